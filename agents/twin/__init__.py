@@ -1,0 +1,1 @@
+"""so101-twin agents."""
