@@ -1,0 +1,479 @@
+"""Start, stop and inspect the cloud twin host deployed by the CDK stack.
+
+`TwinInstance` reads the stack's CloudFormation outputs (`InstanceId`, `DcvUrl`, ...), starts or stops the EC2
+instance, waits for the state with the EC2 waiters, and asks the agent on the instance for its health through
+SSM Run Command (the agent's `/healthz` listens on 127.0.0.1 only, so it can only be asked from the instance).
+
+Everything that can go wrong for a reason the user can fix is raised as a `TwinInstanceError` subclass whose
+message says what to do; the `twin instance` command maps each class to its own exit code:
+
+- `AwsSetupError` (3): no credentials, no region, or credentials AWS rejects.
+- `StackNotFoundError` (4): the stack is not deployed in that account and region.
+- `StackOutputsError` (5): the stack exists but lacks an output this code needs.
+- `InsufficientCapacityError` (6): EC2 has no capacity for the instance type in its Availability Zone.
+- `WaitError` (7): the instance did not reach the wanted state in time, or left the path to it.
+- `AwsCallError` (1): any other AWS error, with its code and message.
+
+Agent health never raises: when SSM cannot ask (agent not registered yet, instance stopped, no permission) the
+result is an `AgentHealth` with state "unknown" and the reason.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import re
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import boto3
+
+log = logging.getLogger(__name__)
+
+DEFAULT_STACK_NAME = "So101TwinStack"
+STACK_ENV_VAR = "SO101_TWIN_STACK"
+
+# Output keys of the CDK stack (stacks/); InstanceId and DcvUrl are the ones this module cannot work without.
+OUTPUT_INSTANCE_ID = "InstanceId"
+OUTPUT_DCV_URL = "DcvUrl"
+OUTPUT_IOT_ENDPOINT = "IotEndpoint"
+OUTPUT_DCV_PASSWORD_SECRET = "DcvPasswordSecret"
+OUTPUT_SSM_SESSION_COMMAND = "SsmSessionCommand"
+REQUIRED_OUTPUTS = (OUTPUT_INSTANCE_ID, OUTPUT_DCV_URL)
+
+HEALTH_URL = "http://127.0.0.1:8080/healthz"
+# The body goes to stdout and the HTTP status is appended as the last three characters; curl prints 000 when
+# nothing answers, which is how "agent not running" is told apart from "agent unhealthy".
+HEALTH_COMMAND = f"curl -s -o /dev/stdout -w '%{{http_code}}' {HEALTH_URL}"
+
+# get_command_invocation states after which the output will not change any more.
+_SSM_PENDING = frozenset({"Pending", "InProgress", "Delayed"})
+
+HEALTHY = "healthy"
+UNHEALTHY = "unhealthy"
+UNKNOWN = "unknown"
+
+G6E_OFFERINGS_COMMAND = (
+    "aws ec2 describe-instance-type-offerings --location-type availability-zone "
+    "--filters Name=instance-type,Values={instance_type} --region {region}"
+)
+
+
+def default_stack_name() -> str:
+    """The stack to act on when none is given: $SO101_TWIN_STACK, else `So101TwinStack`."""
+    return os.environ.get(STACK_ENV_VAR) or DEFAULT_STACK_NAME
+
+
+class TwinInstanceError(Exception):
+    """A problem the user can act on; `str(exc)` says what to do."""
+
+
+class AwsSetupError(TwinInstanceError):
+    """No usable credentials or region."""
+
+
+class StackNotFoundError(TwinInstanceError):
+    """The stack is not deployed in this account and region."""
+
+
+class StackOutputsError(TwinInstanceError):
+    """The stack lacks an output this module needs."""
+
+
+class InsufficientCapacityError(TwinInstanceError):
+    """EC2 could not start the instance for lack of capacity in its Availability Zone."""
+
+
+class WaitError(TwinInstanceError):
+    """The instance did not reach the wanted state."""
+
+
+class AwsCallError(TwinInstanceError):
+    """Any other AWS error."""
+
+
+@dataclass(frozen=True)
+class StackOutputs:
+    instance_id: str
+    dcv_url: str
+    iot_endpoint: str | None = None
+    dcv_password_secret: str | None = None
+    ssm_session_command: str | None = None
+
+
+@dataclass(frozen=True)
+class AgentHealth:
+    """What the agent's /healthz said, or why it could not be asked."""
+
+    state: str  # HEALTHY, UNHEALTHY or UNKNOWN
+    reason: str
+    http_status: int | None = None
+    body: Any = None
+
+    @property
+    def healthy(self) -> bool:
+        return self.state == HEALTHY
+
+    def describe(self) -> str:
+        if self.state == UNKNOWN:
+            return f"agent health unknown: {self.reason}"
+        return f"agent {self.state}: {self.reason}"
+
+
+@dataclass(frozen=True)
+class InstanceStatus:
+    instance_id: str
+    state: str
+    instance_type: str
+    availability_zone: str | None
+    dcv_url: str
+    health: AgentHealth | None = field(default=None)
+
+
+def _device_summary(body: Any) -> str:
+    """One line per device from the agent's JSON; tolerant of its shape so new fields never break the CLI."""
+    if not isinstance(body, dict):
+        return ""
+    devices = body.get("devices")
+    if isinstance(devices, dict):
+        items = devices.items()
+    elif isinstance(devices, list):
+        items = [(d.get("device_id") or d.get("id") or "?", d) for d in devices if isinstance(d, dict)]
+    else:
+        return str(body.get("status", ""))
+    parts = []
+    for name, value in items:
+        shown = value
+        if isinstance(value, dict):
+            shown = value.get("status") or value.get("state") or json.dumps(value, sort_keys=True)
+        parts.append(f"{name}={shown}")
+    return ", ".join(parts)
+
+
+def parse_health_output(stdout: str) -> AgentHealth:
+    """Interpret the output of HEALTH_COMMAND: the /healthz body followed by the 3-digit HTTP status."""
+    text = stdout.strip()
+    match = re.fullmatch(r"(.*?)(\d{3})", text, flags=re.DOTALL)
+    if match is None:
+        shown = text[:200] or "nothing"
+        return AgentHealth(UNKNOWN, f"the health check printed no HTTP status (got {shown!r})")
+    raw_body, status = match.group(1).strip(), int(match.group(2))
+    if status == 0:
+        return AgentHealth(
+            UNHEALTHY,
+            f"nothing answers on {HEALTH_URL}: the twin agent service is not running or still starting",
+            http_status=0,
+        )
+    try:
+        body: Any = json.loads(raw_body) if raw_body else None
+    except json.JSONDecodeError:
+        body = raw_body
+    summary = _device_summary(body)
+    if status == 200:
+        return AgentHealth(HEALTHY, summary or "HTTP 200", http_status=status, body=body)
+    reason = f"HTTP {status}" + (f" ({summary})" if summary else "")
+    return AgentHealth(UNHEALTHY, reason, http_status=status, body=body)
+
+
+class TwinInstance:
+    """The twin host of one deployed stack. Clients are built on first use unless injected (tests, reuse)."""
+
+    def __init__(
+        self,
+        stack_name: str | None = None,
+        *,
+        region: str | None = None,
+        session: boto3.session.Session | None = None,
+        cloudformation: Any = None,
+        ec2: Any = None,
+        ssm: Any = None,
+        poll_interval_s: float = 15.0,
+        health_poll_interval_s: float = 2.0,
+    ) -> None:
+        self.stack_name = stack_name or default_stack_name()
+        self._region = region
+        self._session = session
+        self._clients: dict[str, Any] = {"cloudformation": cloudformation, "ec2": ec2, "ssm": ssm}
+        self._outputs: StackOutputs | None = None
+        self.poll_interval_s = poll_interval_s
+        self.health_poll_interval_s = health_poll_interval_s
+
+    # --- clients -----------------------------------------------------------------------------------
+
+    def _client(self, service: str) -> Any:
+        client = self._clients.get(service)
+        if client is None:
+            with self._aws(f"create the {service} client"):
+                if self._session is None:
+                    import boto3  # noqa: PLC0415 - keeps `twin --help` free of boto3's import time
+
+                    self._session = boto3.session.Session(region_name=self._region)
+                client = self._session.client(service)
+            self._clients[service] = client
+        return client
+
+    @property
+    def region(self) -> str:
+        for client in self._clients.values():
+            if client is not None:
+                return client.meta.region_name
+        if self._session is not None and self._session.region_name:
+            return self._session.region_name
+        return self._region or "(no region)"
+
+    @contextmanager
+    def _aws(self, action: str) -> Iterator[None]:
+        """Turn botocore's exceptions for setup problems into messages that say how to fix them."""
+        from botocore.exceptions import (  # noqa: PLC0415
+            ClientError,
+            EndpointConnectionError,
+            NoCredentialsError,
+            NoRegionError,
+            PartialCredentialsError,
+        )
+
+        try:
+            yield
+        except NoRegionError as exc:
+            raise AwsSetupError(
+                "no AWS region configured: pass --region (e.g. --region us-east-1), set AWS_REGION, "
+                "or run `aws configure`"
+            ) from exc
+        except (NoCredentialsError, PartialCredentialsError) as exc:
+            raise AwsSetupError(
+                f"no AWS credentials found ({exc}): run `aws configure` or `aws sso login`, set AWS_PROFILE, "
+                "or export AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY"
+            ) from exc
+        except EndpointConnectionError as exc:
+            raise AwsCallError(f"could not {action}: {exc} (check the region and the network)") from exc
+        except ClientError as exc:
+            code = exc.response.get("Error", {}).get("Code", "")
+            message = exc.response.get("Error", {}).get("Message", str(exc))
+            if code in {
+                "ExpiredToken",
+                "ExpiredTokenException",
+                "InvalidClientTokenId",
+                "UnrecognizedClientException",
+                "AuthFailure",
+                "SignatureDoesNotMatch",
+            }:
+                raise AwsSetupError(
+                    f"AWS rejected the credentials ({code}: {message}): refresh them "
+                    "(`aws sso login` or `aws configure`) and retry"
+                ) from exc
+            raise AwsCallError(f"could not {action}: {code}: {message}") from exc
+
+    # --- stack -------------------------------------------------------------------------------------
+
+    def outputs(self) -> StackOutputs:
+        """The stack's outputs, read once per object."""
+        if self._outputs is not None:
+            return self._outputs
+        from botocore.exceptions import ClientError  # noqa: PLC0415
+
+        cfn = self._client("cloudformation")
+        # Our own errors pass through _aws untouched; only botocore's are translated there.
+        with self._aws(f"read stack {self.stack_name}"):
+            try:
+                response = cfn.describe_stacks(StackName=self.stack_name)
+            except ClientError as exc:
+                error = exc.response.get("Error", {})
+                if error.get("Code") == "ValidationError" and "does not exist" in error.get("Message", ""):
+                    raise StackNotFoundError(self._stack_missing_message()) from exc
+                raise
+        stacks = response.get("Stacks", [])
+        if not stacks:
+            raise StackNotFoundError(self._stack_missing_message())
+        stack = stacks[0]
+        values = {o["OutputKey"]: o.get("OutputValue", "") for o in stack.get("Outputs", [])}
+        missing = [key for key in REQUIRED_OUTPUTS if not values.get(key)]
+        if missing:
+            raise StackOutputsError(
+                f"stack {self.stack_name} in {self.region} ({stack.get('StackStatus', '?')}) has no output "
+                f"{', '.join(missing)}; it is not the twin stack or its deploy did not finish: redeploy with "
+                "`cdk deploy` or pass the right --stack"
+            )
+        self._outputs = StackOutputs(
+            instance_id=values[OUTPUT_INSTANCE_ID],
+            dcv_url=values[OUTPUT_DCV_URL],
+            iot_endpoint=values.get(OUTPUT_IOT_ENDPOINT),
+            dcv_password_secret=values.get(OUTPUT_DCV_PASSWORD_SECRET),
+            ssm_session_command=values.get(OUTPUT_SSM_SESSION_COMMAND),
+        )
+        log.debug("stack %s outputs: %s", self.stack_name, self._outputs)
+        return self._outputs
+
+    def _stack_missing_message(self) -> str:
+        return (
+            f"stack {self.stack_name} not found in {self.region}: deploy it with "
+            "`cdk deploy -c clientCidr=...` or pass --stack"
+        )
+
+    def url(self) -> str:
+        """The DCV browser URL (stable across stop/start because it is built from the Elastic IP)."""
+        return self.outputs().dcv_url
+
+    # --- instance ----------------------------------------------------------------------------------
+
+    def _describe(self) -> dict[str, Any]:
+        instance_id = self.outputs().instance_id
+        with self._aws(f"describe instance {instance_id}"):
+            reservations = self._client("ec2").describe_instances(InstanceIds=[instance_id])["Reservations"]
+        instances = [i for r in reservations for i in r.get("Instances", [])]
+        if not instances:
+            raise AwsCallError(f"instance {instance_id} from stack {self.stack_name} no longer exists")
+        return instances[0]
+
+    def state(self) -> str:
+        return self._describe()["State"]["Name"]
+
+    def start(self, wait: bool = True, timeout_s: float = 900.0) -> str:
+        """Start the instance; with `wait`, return once it is running. Returns the state last seen."""
+        from botocore.exceptions import ClientError  # noqa: PLC0415
+
+        instance_id = self.outputs().instance_id
+        log.info("starting %s", instance_id)
+        with self._aws(f"start instance {instance_id}"):
+            try:
+                response = self._client("ec2").start_instances(InstanceIds=[instance_id])
+            except ClientError as exc:
+                code = exc.response.get("Error", {}).get("Code")
+                if code == "InsufficientInstanceCapacity":
+                    raise self._capacity_error(exc) from exc
+                if code == "IncorrectInstanceState":
+                    raise AwsCallError(
+                        f"instance {instance_id} cannot be started now ({self.state()}): wait until it "
+                        "is stopped (`twin instance status`), then start it again"
+                    ) from exc
+                raise
+        state = response["StartingInstances"][0]["CurrentState"]["Name"]
+        if wait:
+            self._wait("instance_running", "running", timeout_s)
+            state = "running"
+        return state
+
+    def stop(self, wait: bool = True, timeout_s: float = 900.0) -> str:
+        """Stop the instance (EBS and the Elastic IP stay); with `wait`, return once it is stopped."""
+        instance_id = self.outputs().instance_id
+        log.info("stopping %s", instance_id)
+        with self._aws(f"stop instance {instance_id}"):
+            response = self._client("ec2").stop_instances(InstanceIds=[instance_id])
+        state = response["StoppingInstances"][0]["CurrentState"]["Name"]
+        if wait:
+            self._wait("instance_stopped", "stopped", timeout_s)
+            state = "stopped"
+        return state
+
+    def _capacity_error(self, exc: Exception) -> InsufficientCapacityError:
+        try:
+            described = self._describe()
+            instance_type = described.get("InstanceType", "g6e.2xlarge")
+            zone = described.get("Placement", {}).get("AvailabilityZone", "its Availability Zone")
+        except TwinInstanceError:
+            instance_type, zone = "g6e.2xlarge", "its Availability Zone"
+        offerings = G6E_OFFERINGS_COMMAND.format(instance_type=instance_type, region=self.region)
+        return InsufficientCapacityError(
+            f"AWS has no {instance_type} capacity in {zone} right now (InsufficientInstanceCapacity): "
+            f"G6e capacity in that Availability Zone is exhausted. Retry in a few minutes, or redeploy in "
+            f"another zone that offers {instance_type} with `cdk deploy -c availabilityZone=<zone>` "
+            f"(list them with `{offerings}`). Detail: {exc}"
+        )
+
+    def _wait(self, waiter_name: str, target: str, timeout_s: float) -> None:
+        from botocore.exceptions import WaiterError  # noqa: PLC0415
+
+        instance_id = self.outputs().instance_id
+        delay = max(1, min(int(self.poll_interval_s), int(timeout_s) or 1))
+        attempts = max(1, math.ceil(timeout_s / delay))
+        log.info("waiting up to %.0f s for %s to be %s", timeout_s, instance_id, target)
+        try:
+            with self._aws(f"wait for instance {instance_id}"):
+                self._client("ec2").get_waiter(waiter_name).wait(
+                    InstanceIds=[instance_id], WaiterConfig={"Delay": delay, "MaxAttempts": attempts}
+                )
+        except WaiterError as exc:
+            try:
+                now = self.state()
+            except TwinInstanceError:
+                now = "unknown"
+            if "Max attempts exceeded" in str(exc):
+                raise WaitError(
+                    f"instance {instance_id} was not {target} after {timeout_s:.0f} s (now {now}): "
+                    "check again with `twin instance status` or pass a longer --timeout"
+                ) from exc
+            raise WaitError(f"instance {instance_id} will not become {target}: it is {now} ({exc})") from exc
+
+    # --- health ------------------------------------------------------------------------------------
+
+    def health(self, timeout_s: float = 60.0) -> AgentHealth:
+        """Ask the agent's /healthz through SSM Run Command; never raises."""
+        from botocore.exceptions import BotoCoreError, ClientError  # noqa: PLC0415
+
+        instance_id = self.outputs().instance_id
+        ssm = self._client("ssm")
+        try:
+            sent = ssm.send_command(
+                InstanceIds=[instance_id],
+                DocumentName="AWS-RunShellScript",
+                Comment="twin instance: agent /healthz",
+                Parameters={"commands": [HEALTH_COMMAND]},
+                TimeoutSeconds=max(30, math.ceil(timeout_s)),
+            )
+        except ClientError as exc:
+            error = exc.response.get("Error", {})
+            if error.get("Code") == "InvalidInstanceId":
+                # SSM says this both before the agent's first registration and while it is offline.
+                return AgentHealth(UNKNOWN, "the SSM agent has not registered yet")
+            return AgentHealth(
+                UNKNOWN, f"SSM could not run the check ({error.get('Code')}: {error.get('Message')})"
+            )
+        except BotoCoreError as exc:
+            return AgentHealth(UNKNOWN, f"SSM could not run the check ({exc})")
+        command_id = sent["Command"]["CommandId"]
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                invocation = ssm.get_command_invocation(CommandId=command_id, InstanceId=instance_id)
+            except ClientError as exc:
+                # The invocation appears a moment after send_command returns.
+                if exc.response.get("Error", {}).get("Code") != "InvocationDoesNotExist":
+                    return AgentHealth(UNKNOWN, f"SSM lost the health check ({exc})")
+                invocation = {"Status": "Pending"}
+            except BotoCoreError as exc:
+                return AgentHealth(UNKNOWN, f"SSM lost the health check ({exc})")
+            status = invocation.get("Status", "Pending")
+            if status not in _SSM_PENDING:
+                break
+            if time.monotonic() >= deadline:
+                return AgentHealth(UNKNOWN, f"the health check did not finish within {timeout_s:.0f} s")
+            time.sleep(self.health_poll_interval_s)
+        stdout = invocation.get("StandardOutputContent", "")
+        # curl exits non-zero when nothing listens (status Failed) yet still prints 000: parse what came out.
+        if status not in {"Success", "Failed"} and not stdout.strip():
+            return AgentHealth(UNKNOWN, f"the health check ended {status}")
+        return parse_health_output(stdout)
+
+    def status(self, check_health: bool = True, health_timeout_s: float = 60.0) -> InstanceStatus:
+        """State, type, URL and (when running and asked) agent health."""
+        described = self._describe()
+        state = described["State"]["Name"]
+        health = None
+        if check_health:
+            if state == "running":
+                health = self.health(health_timeout_s)
+            else:
+                health = AgentHealth(UNKNOWN, f"the instance is {state}")
+        return InstanceStatus(
+            instance_id=described["InstanceId"],
+            state=state,
+            instance_type=described.get("InstanceType", "?"),
+            availability_zone=described.get("Placement", {}).get("AvailabilityZone"),
+            dcv_url=self.url(),
+            health=health,
+        )

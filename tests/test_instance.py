@@ -1,0 +1,394 @@
+"""`twin instance` (twin.instance + twin.commands.instance) against moto.
+
+AWS cannot be reached from here, so moto stands in for CloudFormation, EC2 and SSM: each test deploys a small
+stack in moto whose outputs reference a moto EC2 instance and its Elastic IP the way the CDK stack does, then
+drives the real CLI through `twin.cli.main`. What moto cannot do is injected at the botocore level: an
+InsufficientInstanceCapacity from StartInstances, an SSM agent that has not registered, an instance stuck in
+a state, and the output of the health check on the instance (moto's Run Command executes nothing), the latter
+with botocore's Stubber.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+
+import boto3
+import botocore.client
+import pytest
+from botocore.exceptions import ClientError
+from botocore.stub import Stubber
+from moto import mock_aws
+from twin import instance as lib
+from twin.cli import main
+from twin.commands import instance as cmd
+
+REGION = "us-east-1"
+COMMAND_ID = "5c9a1d1e-0000-4000-8000-000000000001"  # SSM command ids are UUIDs
+
+TEMPLATE = {
+    "Resources": {
+        "Host": {
+            "Type": "AWS::EC2::Instance",
+            "Properties": {"ImageId": "ami-12c6146b", "InstanceType": "g6e.2xlarge"},
+        },
+        "Eip": {"Type": "AWS::EC2::EIP", "Properties": {"Domain": "vpc", "InstanceId": {"Ref": "Host"}}},
+    },
+    "Outputs": {
+        "InstanceId": {"Value": {"Ref": "Host"}},
+        # Ref of an EIP is its public address; moto lacks GetAtt PublicIp.
+        "DcvUrl": {"Value": {"Fn::Join": ["", ["https://", {"Ref": "Eip"}, ":8443/#console"]]}},
+        "IotEndpoint": {"Value": "abc123-ats.iot.us-east-1.amazonaws.com"},
+        "DcvPasswordSecret": {"Value": "so101-twin/dcv aws secretsmanager get-secret-value ..."},
+        "SsmSessionCommand": {
+            "Value": {"Fn::Join": ["", ["aws ssm start-session --target ", {"Ref": "Host"}]]}
+        },
+    },
+}
+
+
+@pytest.fixture
+def aws_env(monkeypatch: pytest.MonkeyPatch, tmp_path):
+    """Fake credentials and a region; never the developer's real config files."""
+    empty = tmp_path / "empty"
+    empty.write_text("")
+    for name in ("AWS_PROFILE", "AWS_SESSION_TOKEN", "AWS_REGION", "SO101_TWIN_STACK"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("AWS_SHARED_CREDENTIALS_FILE", str(empty))
+    monkeypatch.setenv("AWS_CONFIG_FILE", str(empty))
+    monkeypatch.setenv("AWS_EC2_METADATA_DISABLED", "true")
+    monkeypatch.setenv("AWS_ACCESS_KEY_ID", "testing")
+    monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", "testing")
+    monkeypatch.setenv("AWS_DEFAULT_REGION", REGION)
+
+
+@pytest.fixture
+def stack(aws_env):
+    """The deployed twin stack in moto: yields its outputs as a dict."""
+    with mock_aws():
+        cfn = boto3.client("cloudformation", region_name=REGION)
+        cfn.create_stack(StackName=lib.DEFAULT_STACK_NAME, TemplateBody=json.dumps(TEMPLATE))
+        outputs = cfn.describe_stacks(StackName=lib.DEFAULT_STACK_NAME)["Stacks"][0]["Outputs"]
+        yield {o["OutputKey"]: o["OutputValue"] for o in outputs}
+
+
+def ec2_state(instance_id: str) -> str:
+    ec2 = boto3.client("ec2", region_name=REGION)
+    return ec2.describe_instances(InstanceIds=[instance_id])["Reservations"][0]["Instances"][0]["State"][
+        "Name"
+    ]
+
+
+def intercept(monkeypatch: pytest.MonkeyPatch, operation: str, handler) -> None:
+    """Route one AWS operation through `handler(original, kwargs)`; the rest still reaches moto."""
+    original = botocore.client.BaseClient._make_api_call
+
+    def patched(self, operation_name, api_params):
+        if operation_name == operation:
+            return handler(lambda: original(self, operation_name, api_params), api_params)
+        return original(self, operation_name, api_params)
+
+    monkeypatch.setattr(botocore.client.BaseClient, "_make_api_call", patched)
+
+
+def client_error(code: str, message: str, operation: str) -> ClientError:
+    return ClientError({"Error": {"Code": code, "Message": message}}, operation)
+
+
+# --- happy paths -------------------------------------------------------------------------------------------
+
+
+def test_url_prints_only_the_dcv_url(stack, capsys):
+    assert main(["instance", "url"]) == 0
+    out = capsys.readouterr().out
+    assert out == stack["DcvUrl"] + "\n"
+    assert out.startswith("https://") and out.endswith(":8443/#console\n")
+
+
+def test_stop_then_start_changes_the_ec2_state(stack, capsys):
+    instance_id = stack["InstanceId"]
+    assert ec2_state(instance_id) == "running"
+
+    assert main(["instance", "stop", "--timeout", "30"]) == 0
+    assert ec2_state(instance_id) == "stopped"
+    assert f"instance {instance_id}: stopped" in capsys.readouterr().out
+
+    assert main(["instance", "start", "--timeout", "30"]) == 0
+    assert ec2_state(instance_id) == "running"
+    out = capsys.readouterr().out
+    assert f"instance {instance_id}: running" in out
+    assert f"DCV URL: {stack['DcvUrl']}" in out
+    # moto's Run Command records the command but runs nothing, so its output is empty: health is unknown.
+    assert "agent health unknown: the health check printed no HTTP status" in out
+    commands = boto3.client("ssm", region_name=REGION).list_commands(InstanceId=instance_id)["Commands"]
+    assert commands[-1]["DocumentName"] == "AWS-RunShellScript"
+    assert commands[-1]["Parameters"]["commands"] == [lib.HEALTH_COMMAND]
+
+
+def test_no_wait_returns_the_transitional_state(stack, capsys):
+    assert main(["instance", "stop", "--no-wait"]) == 0
+    out = capsys.readouterr().out
+    assert f"instance {stack['InstanceId']}: stopping" in out
+    assert "not waiting" in out
+
+
+def test_status_shows_state_type_url_and_health(stack, capsys):
+    assert main(["instance", "status"]) == 0
+    out = capsys.readouterr().out
+    assert f"instance {stack['InstanceId']}: running (g6e.2xlarge in {REGION}a)" in out
+    assert f"DCV URL: {stack['DcvUrl']}" in out
+    assert "agent health" in out
+
+    assert main(["instance", "stop"]) == 0
+    capsys.readouterr()
+    assert main(["instance", "status"]) == 0
+    out = capsys.readouterr().out
+    assert ": stopped (g6e.2xlarge" in out
+    assert "agent health unknown: the instance is stopped" in out
+
+
+def test_status_when_ssm_agent_not_registered(stack, capsys, monkeypatch):
+    def unregistered(_call, params):
+        raise client_error(
+            "InvalidInstanceId", f"Instances [[{params['InstanceIds'][0]}]] not valid", "SendCommand"
+        )
+
+    intercept(monkeypatch, "SendCommand", unregistered)
+    assert main(["instance", "status"]) == 0
+    assert "agent health unknown: the SSM agent has not registered yet" in capsys.readouterr().out
+
+
+def test_stack_name_from_flag_and_environment(stack, capsys, monkeypatch):
+    assert main(["instance", "url", "--stack", lib.DEFAULT_STACK_NAME, "--region", REGION]) == 0
+    assert capsys.readouterr().out == stack["DcvUrl"] + "\n"
+    monkeypatch.setenv(lib.STACK_ENV_VAR, "OtherTwin")
+    assert main(["instance", "url"]) == cmd.EXIT_NO_STACK
+    assert "stack OtherTwin not found" in capsys.readouterr().err
+
+
+# --- errors users can fix ----------------------------------------------------------------------------------
+
+
+def test_missing_stack_is_a_clear_message(aws_env, capsys):
+    with mock_aws():
+        assert main(["instance", "start"]) == cmd.EXIT_NO_STACK
+    captured = capsys.readouterr()
+    assert captured.err.strip() == (
+        "twin instance start: stack So101TwinStack not found in us-east-1: deploy it with "
+        "`cdk deploy -c clientCidr=...` or pass --stack"
+    )
+    assert "Traceback" not in captured.err and captured.out == ""
+
+
+def test_missing_outputs_names_them(aws_env, capsys):
+    template = {
+        "Resources": TEMPLATE["Resources"],
+        "Outputs": {"InstanceId": TEMPLATE["Outputs"]["InstanceId"]},
+    }
+    with mock_aws():
+        boto3.client("cloudformation", region_name=REGION).create_stack(
+            StackName="HalfTwin", TemplateBody=json.dumps(template)
+        )
+        assert main(["instance", "status", "--stack", "HalfTwin"]) == cmd.EXIT_NO_OUTPUTS
+    err = capsys.readouterr().err
+    assert "stack HalfTwin in us-east-1" in err and "has no output DcvUrl" in err
+    assert "cdk deploy" in err
+
+
+def test_missing_credentials_says_how_to_configure(aws_env, capsys, monkeypatch):
+    monkeypatch.delenv("AWS_ACCESS_KEY_ID")
+    monkeypatch.delenv("AWS_SECRET_ACCESS_KEY")
+    assert main(["instance", "url"]) == cmd.EXIT_SETUP
+    err = capsys.readouterr().err
+    assert "no AWS credentials found" in err and "aws configure" in err
+    assert "Traceback" not in err
+
+
+def test_missing_region_says_how_to_configure(aws_env, capsys, monkeypatch):
+    monkeypatch.delenv("AWS_DEFAULT_REGION")
+    assert main(["instance", "status"]) == cmd.EXIT_SETUP
+    err = capsys.readouterr().err
+    assert "no AWS region configured" in err and "--region" in err
+
+
+def test_rejected_credentials_are_a_setup_error(stack, capsys, monkeypatch):
+    def expired(_call, _params):
+        raise client_error(
+            "ExpiredToken", "The security token included in the request is expired", "DescribeStacks"
+        )
+
+    intercept(monkeypatch, "DescribeStacks", expired)
+    assert main(["instance", "url"]) == cmd.EXIT_SETUP
+    assert "AWS rejected the credentials (ExpiredToken" in capsys.readouterr().err
+
+
+def test_insufficient_capacity_explains_the_way_out(stack, capsys, monkeypatch):
+    assert main(["instance", "stop"]) == 0
+    capsys.readouterr()
+
+    def no_capacity(_call, _params):
+        raise client_error(
+            "InsufficientInstanceCapacity",
+            "We currently do not have sufficient g6e.2xlarge capacity in the Availability Zone you requested",
+            "StartInstances",
+        )
+
+    intercept(monkeypatch, "StartInstances", no_capacity)
+    assert main(["instance", "start"]) == cmd.EXIT_CAPACITY
+    captured = capsys.readouterr()
+    err = captured.err
+    assert "no g6e.2xlarge capacity in us-east-1a" in err
+    assert "G6e capacity in that Availability Zone is exhausted" in err
+    assert "-c availabilityZone=<zone>" in err
+    assert (
+        "aws ec2 describe-instance-type-offerings --location-type availability-zone "
+        "--filters Name=instance-type,Values=g6e.2xlarge --region us-east-1" in err
+    )
+    assert "Traceback" not in err and captured.out == ""
+    assert ec2_state(stack["InstanceId"]) == "stopped"
+
+
+def test_wait_is_bounded_by_timeout(stack, capsys, monkeypatch):
+    assert main(["instance", "stop"]) == 0
+    capsys.readouterr()
+
+    def stuck_pending(call, _params):
+        response = call()
+        for reservation in response["Reservations"]:
+            for inst in reservation["Instances"]:
+                inst["State"] = {"Code": 0, "Name": "pending"}
+        return response
+
+    intercept(monkeypatch, "DescribeInstances", stuck_pending)
+    assert main(["instance", "start", "--timeout", "1"]) == cmd.EXIT_WAIT
+    err = capsys.readouterr().err
+    assert f"instance {stack['InstanceId']} was not running after 1 s (now pending)" in err
+    assert "--timeout" in err
+
+
+def test_help_documents_exit_codes(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["instance", "start", "--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    for text in (
+        "--stack",
+        "--region",
+        "--no-wait",
+        "--timeout",
+        "exit codes",
+        "4 stack not found",
+        "6 InsufficientInstanceCapacity",
+        "SO101_TWIN_STACK",
+    ):
+        assert text in out
+
+
+# --- agent health through SSM ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("stdout", "state", "status", "reason_part"),
+    [
+        ('{"status": "ok", "devices": {"arm-001": {"status": "ok"}}}200', lib.HEALTHY, 200, "arm-001=ok"),
+        (
+            '{"devices": {"arm-001": "stale", "arm-002": "ok"}}503',
+            lib.UNHEALTHY,
+            503,
+            "arm-001=stale, arm-002=ok",
+        ),
+        (
+            '{"devices": [{"device_id": "arm-7", "state": "offline"}]}\n503\n',
+            lib.UNHEALTHY,
+            503,
+            "arm-7=offline",
+        ),
+        ("000", lib.UNHEALTHY, 0, "nothing answers on http://127.0.0.1:8080/healthz"),
+        ("not json at all500", lib.UNHEALTHY, 500, "HTTP 500"),
+        ("", lib.UNKNOWN, None, "printed no HTTP status"),
+        ("curl: command not found", lib.UNKNOWN, None, "printed no HTTP status"),
+    ],
+)
+def test_parse_health_output(stdout, state, status, reason_part):
+    health = lib.parse_health_output(stdout)
+    assert health.state == state
+    assert health.http_status == status
+    assert reason_part in health.reason
+    assert health.healthy is (state == lib.HEALTHY)
+
+
+def _stubbed_twin(stack) -> tuple[lib.TwinInstance, Stubber]:
+    ssm = boto3.client("ssm", region_name=REGION)
+    twin = lib.TwinInstance(ssm=ssm, health_poll_interval_s=0.0)
+    return twin, Stubber(ssm)
+
+
+def _invocation(status: str, stdout: str = "") -> dict:
+    return {"CommandId": COMMAND_ID, "InstanceId": "i-x", "Status": status, "StandardOutputContent": stdout}
+
+
+def test_health_polls_until_the_command_finishes(stack):
+    twin, stubber = _stubbed_twin(stack)
+    instance_id = stack["InstanceId"]
+    sent = {
+        "InstanceIds": [instance_id],
+        "DocumentName": "AWS-RunShellScript",
+        "Comment": "twin instance: agent /healthz",
+        "Parameters": {"commands": [lib.HEALTH_COMMAND]},
+        "TimeoutSeconds": 30,
+    }
+    stubber.add_response("send_command", {"Command": {"CommandId": COMMAND_ID}}, sent)
+    stubber.add_client_error("get_command_invocation", "InvocationDoesNotExist")
+    stubber.add_response("get_command_invocation", _invocation("InProgress"))
+    body = json.dumps({"status": "ok", "devices": {"arm-001": {"status": "ok"}}})
+    stubber.add_response("get_command_invocation", _invocation("Success", body + "200"))
+    with stubber:
+        health = twin.health(timeout_s=10)
+    stubber.assert_no_pending_responses()
+    assert health.healthy
+    assert health.body == json.loads(body)
+    assert health.describe() == "agent healthy: arm-001=ok"
+
+
+def test_health_reads_output_of_a_failed_curl(stack):
+    twin, stubber = _stubbed_twin(stack)
+    stubber.add_response("send_command", {"Command": {"CommandId": COMMAND_ID}})
+    stubber.add_response("get_command_invocation", _invocation("Failed", "000"))
+    with stubber:
+        health = twin.health(timeout_s=10)
+    assert health.state == lib.UNHEALTHY and health.http_status == 0
+
+
+def test_health_wait_is_bounded(stack):
+    twin, stubber = _stubbed_twin(stack)
+    stubber.add_response("send_command", {"Command": {"CommandId": COMMAND_ID}})
+    stubber.add_response("get_command_invocation", _invocation("InProgress"))
+    with stubber:
+        started = datetime.datetime.now()
+        health = twin.health(timeout_s=0.0)
+    assert (datetime.datetime.now() - started).total_seconds() < 5
+    assert health.state == lib.UNKNOWN
+    assert "did not finish within 0 s" in health.reason
+
+
+@pytest.mark.parametrize(
+    ("code", "expected"),
+    [
+        ("InvalidInstanceId", "agent health unknown: the SSM agent has not registered yet"),
+        ("AccessDeniedException", "agent health unknown: SSM could not run the check (AccessDeniedException"),
+    ],
+)
+def test_health_unknown_when_ssm_cannot_ask(stack, code, expected):
+    twin, stubber = _stubbed_twin(stack)
+    stubber.add_client_error("send_command", code, "refused")
+    with stubber:
+        health = twin.health(timeout_s=10)
+    assert health.state == lib.UNKNOWN
+    assert health.describe().startswith(expected)
+
+
+def test_clients_are_built_lazily(aws_env):
+    twin = lib.TwinInstance("AnyStack", region="eu-west-1")
+    assert twin._clients == {"cloudformation": None, "ec2": None, "ssm": None}
+    assert twin.region == "eu-west-1"
+    assert lib.default_stack_name() == "So101TwinStack"
