@@ -1,0 +1,281 @@
+"""Per-device health of the telemetry stream: status, age, rate, counters and latencies.
+
+Pure bookkeeping with an injected monotonic clock, so every rule is tested without sleeping. Ages and
+rates use the agent's monotonic receive time only: the edge clock is not NTP-disciplined and may drift or
+jump, so it never decides whether a device is alive. The edge timestamp is used for one thing here, the
+end-to-end latency, which is published as `edge_clock_latency` next to an estimate of the clock offset so
+a skewed edge clock is visible instead of masquerading as network delay.
+
+Not thread-safe by itself: the agent updates it from its one worker thread and reads it under the service
+lock.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import Counter, deque
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from enum import StrEnum
+from typing import Any
+
+Clock = Callable[[], float]
+
+# Latency percentiles are computed over at most this many recent samples: enough for a stable p99 at 10 Hz
+# over the window, and bounded during a flood.
+MAX_LATENCY_SAMPLES = 4096
+# The rate counter groups receive times into buckets this long instead of keeping one entry per message.
+RATE_BUCKET_S = 0.1
+
+
+class DeviceStatus(StrEnum):
+    ONLINE = "ONLINE"
+    STALE = "STALE"
+    OFFLINE = "OFFLINE"
+
+
+@dataclass(frozen=True)
+class HealthThresholds:
+    """STALE after `stale_periods` missed expected periods; OFFLINE after `offline_after_s` of silence."""
+
+    expected_rate_hz: float = 10.0
+    stale_periods: float = 3.0
+    offline_after_s: float = 10.0
+    window_s: float = 5.0
+
+    @property
+    def stale_after_s(self) -> float:
+        return self.stale_periods / self.expected_rate_hz
+
+    def classify(self, silent_for_s: float) -> DeviceStatus:
+        if silent_for_s >= self.offline_after_s:
+            return DeviceStatus.OFFLINE
+        if silent_for_s > self.stale_after_s:
+            return DeviceStatus.STALE
+        return DeviceStatus.ONLINE
+
+    @classmethod
+    def from_section(cls, section: Any) -> HealthThresholds:
+        """From a `twin.config.HealthSection` (duck-typed to keep this module free of the config)."""
+        return cls(
+            expected_rate_hz=section.expected_rate_hz,
+            stale_periods=section.stale_periods,
+            offline_after_s=section.offline_after_s,
+            window_s=section.window_s,
+        )
+
+
+def percentile(sorted_values: list[float], q: float) -> float | None:
+    """Nearest-rank percentile (q in 0..1) of an ascending list; None when empty."""
+    if not sorted_values:
+        return None
+    rank = max(1, math.ceil(q * len(sorted_values)))
+    return sorted_values[min(rank, len(sorted_values)) - 1]
+
+
+class SampleWindow:
+    """Values observed in the last `window_s` seconds (bounded), for percentiles and minima."""
+
+    def __init__(self, window_s: float, max_samples: int = MAX_LATENCY_SAMPLES) -> None:
+        self._window = window_s
+        self._samples: deque[tuple[float, float]] = deque(maxlen=max_samples)
+
+    def add(self, now: float, value: float) -> None:
+        self._samples.append((now, value))
+
+    def values(self, now: float) -> list[float]:
+        horizon = now - self._window
+        while self._samples and self._samples[0][0] <= horizon:
+            self._samples.popleft()
+        return [v for _, v in self._samples]
+
+    def summary(self, now: float) -> dict[str, float | int | None]:
+        values = sorted(self.values(now))
+        return {
+            "p50": percentile(values, 0.50),
+            "p99": percentile(values, 0.99),
+            "min": values[0] if values else None,
+            "max": values[-1] if values else None,
+            "samples": len(values),
+        }
+
+
+class RateMeter:
+    """Events per second over a sliding window, from counts in short buckets (O(1) per event, bounded)."""
+
+    def __init__(self, window_s: float, bucket_s: float = RATE_BUCKET_S) -> None:
+        self._window = window_s
+        self._bucket = bucket_s
+        self._buckets: deque[list[float]] = deque()  # [bucket start, count]
+        self._first: float | None = None
+
+    def add(self, now: float, n: int = 1) -> None:
+        if self._first is None:
+            self._first = now
+        start = now - (now % self._bucket)
+        if self._buckets and self._buckets[-1][0] == start:
+            self._buckets[-1][1] += n
+        else:
+            self._buckets.append([start, float(n)])
+
+    def rate(self, now: float) -> float:
+        horizon = now - self._window
+        while self._buckets and self._buckets[0][0] + self._bucket <= horizon:
+            self._buckets.popleft()
+        if self._first is None:
+            return 0.0
+        count = sum(c for _, c in self._buckets)
+        # A device seen for less than the window is rated over the time it has been seen, but over at least
+        # one second so the first message does not read as a burst.
+        span = max(min(self._window, now - self._first), 1.0)
+        return count / span
+
+
+class DeviceHealth:
+    """The health record of one device."""
+
+    def __init__(self, device_id: str, thresholds: HealthThresholds, clock: Clock, *, since: float) -> None:
+        self.device_id = device_id
+        self.thresholds = thresholds
+        self._clock = clock
+        self._since = since  # when tracking began: a device never heard from is silent since then
+        self.last_message_mono: float | None = None
+        self.last_applied_mono: float | None = None
+        self.last_timestamp_ms: int | None = None
+        self.received = 0
+        self.decoded = 0
+        self.applied = 0
+        self.ignored_stale = 0
+        self.overwritten = 0
+        self.errors = 0
+        self.clock_resets = 0
+        self.rejected: Counter[str] = Counter()
+        self._rate = RateMeter(thresholds.window_s)
+        self._edge_latency = SampleWindow(thresholds.window_s)
+        self._internal_latency = SampleWindow(thresholds.window_s)
+
+    def record_received(self) -> None:
+        """A message for this device left the mailbox (before decoding)."""
+        self.received += 1
+
+    def record_rejected(self, reason: str) -> None:
+        self.rejected[str(reason)] += 1
+
+    def record_error(self) -> None:
+        self.errors += 1
+
+    def record_decoded(self, recv_mono: float, recv_wall: float, timestamp_ms: int) -> None:
+        """A valid telemetry message: the device is alive, whatever its timestamp says."""
+        self.decoded += 1
+        if self.last_message_mono is None or recv_mono > self.last_message_mono:
+            self.last_message_mono = recv_mono
+        self._rate.add(recv_mono)
+        self._edge_latency.add(recv_mono, recv_wall - timestamp_ms / 1000.0)
+
+    def record_applied(self, recv_mono: float, updated_mono: float, timestamp_ms: int) -> None:
+        self.applied += 1
+        self.last_applied_mono = updated_mono
+        self.last_timestamp_ms = timestamp_ms
+        self._internal_latency.add(recv_mono, max(0.0, updated_mono - recv_mono))
+
+    def record_ignored_stale(self) -> None:
+        self.ignored_stale += 1
+
+    def silent_for(self, now: float | None = None) -> float:
+        now = self._clock() if now is None else now
+        last = self.last_message_mono if self.last_message_mono is not None else self._since
+        return max(0.0, now - last)
+
+    def status(self, now: float | None = None) -> DeviceStatus:
+        return self.thresholds.classify(self.silent_for(now))
+
+    @property
+    def rejected_total(self) -> int:
+        return sum(self.rejected.values())
+
+    def snapshot(self, now: float | None = None) -> dict[str, Any]:
+        """A JSON-ready view: what /state and /metrics publish for this device."""
+        now = self._clock() if now is None else now
+        edge = self._edge_latency.summary(now)
+        internal = self._internal_latency.summary(now)
+        offset = edge["min"]
+        p99 = edge["p99"]
+        return {
+            "status": str(self.status(now)),
+            "age_s": None if self.last_message_mono is None else max(0.0, now - self.last_message_mono),
+            "rate_hz": self._rate.rate(now),
+            "last_timestamp_ms": self.last_timestamp_ms,
+            "counters": {
+                "received": self.received,
+                "decoded": self.decoded,
+                "applied": self.applied,
+                "ignored_stale": self.ignored_stale,
+                "overwritten": self.overwritten,
+                "errors": self.errors,
+                "clock_resets": self.clock_resets,
+                "rejected_total": self.rejected_total,
+                "rejected": dict(sorted(self.rejected.items())),
+            },
+            # Receive wall time minus the edge timestamp. The edge clock is not NTP-disciplined, so this
+            # is transit delay PLUS clock offset; the offset estimate (the window minimum) shows how much is
+            # skew, and p99 minus that minimum is a transit jitter that no constant skew can fake.
+            "edge_clock_latency_s": {"p50": edge["p50"], "p99": p99, "samples": edge["samples"]},
+            "edge_clock_offset_s": offset,
+            "edge_transit_jitter_p99_s": None if offset is None or p99 is None else p99 - offset,
+            "internal_latency_s": {
+                "p50": internal["p50"],
+                "p99": internal["p99"],
+                "samples": internal["samples"],
+            },
+        }
+
+
+class FleetHealth:
+    """Health of every device: those configured (tracked from start-up, so a silent one goes OFFLINE) and
+    those discovered on a fleet subscription. Rejections for a device that never sent a valid message and is
+    not configured are counted under UNTRACKED, so garbage on random topics cannot grow the table without
+    bound."""
+
+    UNTRACKED = "_untracked"
+
+    def __init__(
+        self, thresholds: HealthThresholds, configured: Iterable[str] = (), clock: Clock = time.monotonic
+    ) -> None:
+        self.thresholds = thresholds
+        self._clock = clock
+        self._started = clock()
+        self.configured: tuple[str, ...] = tuple(configured)
+        self.devices: dict[str, DeviceHealth] = {}
+        for device in self.configured:
+            self.device(device)
+        self.untracked_rejected: Counter[str] = Counter()
+
+    def device(self, device_id: str) -> DeviceHealth:
+        health = self.devices.get(device_id)
+        if health is None:
+            health = DeviceHealth(device_id, self.thresholds, self._clock, since=self._started)
+            self.devices[device_id] = health
+        return health
+
+    def get(self, device_id: str) -> DeviceHealth | None:
+        return self.devices.get(device_id)
+
+    def record_rejected(self, device_id: str | None, reason: str) -> None:
+        health = self.devices.get(device_id) if device_id is not None else None
+        if health is None:
+            self.untracked_rejected[str(reason)] += 1
+        else:
+            health.record_rejected(reason)
+
+    def statuses(self, now: float | None = None) -> dict[str, DeviceStatus]:
+        now = self._clock() if now is None else now
+        return {device: health.status(now) for device, health in self.devices.items()}
+
+    def offline_configured(self, now: float | None = None) -> list[str]:
+        now = self._clock() if now is None else now
+        return [d for d in self.configured if self.devices[d].status(now) is DeviceStatus.OFFLINE]
+
+    def snapshot(self, now: float | None = None) -> dict[str, dict[str, Any]]:
+        now = self._clock() if now is None else now
+        return {device: health.snapshot(now) for device, health in sorted(self.devices.items())}

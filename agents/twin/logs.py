@@ -1,0 +1,112 @@
+"""JSON-lines logging for the agent: one object per line on stdout, which journald and CloudWatch keep as is.
+
+Each line has `ts` (UTC, ISO 8601 with milliseconds), `level`, `logger`, `msg`, plus every field passed with
+`extra={...}` and, for exceptions, `exc` (the formatted traceback). Nothing is buffered: systemd sees each
+line as it happens, and a crash leaves the lines before it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+import time
+from typing import Any, TextIO
+
+# Attributes every LogRecord has; anything else on a record came from `extra=` and is emitted as a field.
+_RECORD_ATTRS = frozenset(vars(logging.LogRecord("", 0, "", 0, "", None, None))) | {
+    "message",
+    "asctime",
+    "taskName",
+}
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, str | int | float | bool) or value is None:
+        return value
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple | set | frozenset):
+        return [_jsonable(v) for v in value]
+    return str(value)
+
+
+class JsonLinesFormatter(logging.Formatter):
+    """Formats a record as one JSON object on one line (newlines in messages are escaped by JSON)."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        ts = time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(record.created))
+        out: dict[str, Any] = {
+            "ts": f"{ts}.{int(record.msecs):03d}Z",
+            "level": record.levelname,
+            "logger": record.name,
+            "msg": record.getMessage(),
+        }
+        for key, value in vars(record).items():
+            if key not in _RECORD_ATTRS and not key.startswith("_"):
+                out[key] = _jsonable(value)
+        if record.exc_info:
+            out["exc"] = self.formatException(record.exc_info)
+        return json.dumps(out, ensure_ascii=False, allow_nan=True)
+
+
+class _FlushingHandler(logging.StreamHandler):
+    """Looks up the stream at emit time so pytest's capture and a replaced sys.stdout both work."""
+
+    def __init__(self, stream: TextIO | None = None) -> None:
+        super().__init__(stream)
+        self._explicit = stream is not None
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if not self._explicit:
+            self.stream = sys.stdout
+        super().emit(record)
+
+
+_HANDLER_MARK = "_twin_json_handler"
+
+
+def setup_logging(level: str = "INFO", stream: TextIO | None = None) -> None:
+    """Route every logger to JSON lines on stdout (or `stream`) at `level`; calling it again replaces it."""
+    root = logging.getLogger()
+    for handler in list(root.handlers):
+        if getattr(handler, _HANDLER_MARK, False):
+            root.removeHandler(handler)
+    handler = _FlushingHandler(stream)
+    setattr(handler, _HANDLER_MARK, True)
+    handler.setFormatter(JsonLinesFormatter())
+    root.addHandler(handler)
+    root.setLevel(level.upper())
+    # Third-party chatter that uses logging (botocore) is held at WARNING so it does not drown the agent's
+    # lines at DEBUG.
+    for noisy in ("botocore", "boto3", "urllib3"):
+        logging.getLogger(noisy).setLevel(max(logging.WARNING, root.level))
+
+
+class RateLimitedLog:
+    """Logs at most one line per key per interval and counts what it held back.
+
+    A flood of malformed messages must not become a flood of log lines: the first rejection of a kind is
+    logged at once, later ones are summarised as `suppressed` on the next line allowed for that key.
+    """
+
+    def __init__(self, logger: logging.Logger, interval_s: float = 10.0, clock: Any = time.monotonic) -> None:
+        self._logger = logger
+        self._interval = interval_s
+        self._clock = clock
+        self._last: dict[Any, float] = {}
+        self._suppressed: dict[Any, int] = {}
+
+    def log(self, key: Any, level: int, msg: str, *args: Any, **fields: Any) -> bool:
+        now = self._clock()
+        if len(self._last) > 4096:
+            # Keys come from the network (device ids from topics): bound the memory they can take.
+            self._last.clear()
+        last = self._last.get(key)
+        if last is not None and now - last < self._interval:
+            self._suppressed[key] = self._suppressed.get(key, 0) + 1
+            return False
+        self._last[key] = now
+        suppressed = self._suppressed.pop(key, 0)
+        self._logger.log(level, msg, *args, extra={**fields, "suppressed": suppressed})
+        return True

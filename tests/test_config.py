@@ -1,0 +1,167 @@
+"""Agent config: TOML, flag overrides, eager validation with messages naming key, value and fix."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+from twin.config import (
+    MODE_CHOICES,
+    UNITS_CHOICES,
+    AgentConfig,
+    ConfigError,
+    config_from_mapping,
+    load_config,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+
+API_MD_TOML = """
+[broker]
+url = "iot"
+region = ""
+endpoint = ""
+client_id_prefix = "so101-twin-"
+ca_file = ""
+[telemetry]
+topic_prefix = "dt/lerobot"
+devices = ["arm-001"]
+units = "auto"
+calibration = ""
+[twin]
+mode = "kinematic"
+model = ""
+record_dir = ""
+[health]
+expected_rate_hz = 10.0
+stale_periods = 3
+offline_after_s = 10.0
+[http]
+listen = "127.0.0.1:8080"
+[log]
+level = "INFO"
+"""
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "agent.toml"
+    path.write_text(text)
+    return path
+
+
+def test_defaults_match_the_agreed_file(tmp_path: Path) -> None:
+    # The CDK UserData renders exactly the keys in notes/api.md; every one must load, and mean the defaults.
+    assert load_config(write(tmp_path, API_MD_TOML)) == AgentConfig()
+    assert load_config(None) == AgentConfig()
+
+
+def test_example_config_loads() -> None:
+    config = load_config(REPO / "examples" / "agent.toml")
+    assert config.http.host == "127.0.0.1"
+    assert config.telemetry.devices == ("arm-001",)
+
+
+def test_values_and_derived_properties(tmp_path: Path) -> None:
+    path = write(
+        tmp_path,
+        """
+[broker]
+url = "mqtt://127.0.0.1:18830"
+[telemetry]
+devices = ["*"]
+units = "ticks"
+[health]
+expected_rate_hz = 20
+stale_periods = 4
+offline_after_s = 2
+[http]
+listen = "0.0.0.0:9000"
+[log]
+level = "debug"
+""",
+    )
+    config = load_config(path)
+    assert config.broker.url == "mqtt://127.0.0.1:18830"
+    assert config.telemetry.all_devices
+    assert config.health.stale_after_s == pytest.approx(0.2)
+    assert isinstance(config.health.expected_rate_hz, float)
+    assert (config.http.host, config.http.port) == ("0.0.0.0", 9000)
+    assert config.log.level == "DEBUG"
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        config.broker.url = "iot"  # type: ignore[misc]
+
+
+def test_flags_override_file(tmp_path: Path) -> None:
+    path = write(tmp_path, '[broker]\nurl = "mqtt://127.0.0.1:1883"\n[telemetry]\nunits = "degrees"\n')
+    config = load_config(
+        path,
+        {
+            "broker.url": "mqtts://broker.example:8883",
+            "telemetry.units": "ticks",
+            "telemetry.devices": "arm-001, arm-002",
+            "http.listen": "127.0.0.1:0",
+            "twin.mode": None,  # an unset flag leaves the file's (here the default) value
+        },
+    )
+    assert config.broker.url == "mqtts://broker.example:8883"
+    assert config.telemetry.units == "ticks"
+    assert config.telemetry.devices == ("arm-001", "arm-002")
+    assert config.http.port == 0
+    assert config.twin.mode == "kinematic"
+
+
+@pytest.mark.parametrize(
+    ("toml", "must_mention"),
+    [
+        ("[health]\noffline_after = 5.0\n", ["health.offline_after", "offline_after_s"]),
+        ("[helth]\n", ["[helth]", "health"]),
+        ('[telemetry]\nunits = "degree"\n', ["telemetry.units", "'degree'", "degrees"]),
+        ('[twin]\nmode = "physic"\n', ["twin.mode", "physics"]),
+        ('[broker]\nurl = "http://x:1"\n', ["broker.url", "http://x:1", "mqtt://host:port"]),
+        ('[broker]\nurl = "mqtt://h:99999"\n', ["broker.url", "port"]),
+        ("[health]\nexpected_rate_hz = 0\n", ["health.expected_rate_hz", "greater than 0"]),
+        ('[health]\nexpected_rate_hz = "10"\n', ["health.expected_rate_hz", "'10'", "number"]),
+        ("[health]\nstale_periods = true\n", ["health.stale_periods", "number"]),
+        ("[health]\noffline_after_s = 0.2\n", ["health.offline_after_s", "stale"]),
+        ('[http]\nlisten = "8080"\n', ["http.listen", "HOST:PORT"]),
+        ('[telemetry]\ndevices = ["arm/1"]\n', ["telemetry.devices", "arm/1"]),
+        ('[telemetry]\ndevices = ["*", "arm-001"]\n', ["telemetry.devices", "*"]),
+        ("[telemetry]\ndevices = []\n", ["telemetry.devices", "fleet"]),
+        ('[telemetry]\ntopic_prefix = "dt/+/x"\n', ["telemetry.topic_prefix", "wildcards"]),
+        ('[telemetry]\ncalibration = "/nope/cal.json"\n', ["telemetry.calibration", "/nope/cal.json"]),
+        ('[log]\nlevel = "LOUD"\n', ["log.level", "LOUD", "INFO"]),
+        ('[broker]\nca_file = "/nope.pem"\n', ["broker.ca_file", "/nope.pem"]),
+        ("broker = 3\n", ["[broker]", "table"]),
+    ],
+)
+def test_bad_values_name_key_value_and_fix(tmp_path: Path, toml: str, must_mention: list[str]) -> None:
+    with pytest.raises(ConfigError) as info:
+        load_config(write(tmp_path, toml))
+    for text in must_mention:
+        assert text in str(info.value)
+
+
+def test_bad_flag_is_reported_like_a_bad_key() -> None:
+    with pytest.raises(ConfigError, match=r"telemetry\.units = 'radians'"):
+        load_config(None, {"telemetry.units": "radians"})
+
+
+def test_file_errors(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "missing.toml")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(write(tmp_path, "[broker\n"))
+
+
+def test_choices_stay_in_step_with_the_enums() -> None:
+    from twin.telemetry import Units
+
+    assert set(UNITS_CHOICES) == {u.value for u in Units}
+    twin_module = pytest.importorskip("twin.twin")
+    assert set(MODE_CHOICES) == {m.value for m in twin_module.TwinMode}
+
+
+def test_to_dict_round_trips() -> None:
+    config = load_config(None, {"telemetry.devices": ["a", "b"], "broker.url": "mqtt://127.0.0.1:1"})
+    assert config_from_mapping(config.to_dict()) == config

@@ -1,0 +1,162 @@
+"""Device health with a fake clock: status thresholds, age, rate, counters and latency windows."""
+
+from __future__ import annotations
+
+import pytest
+from twin.health import (
+    DeviceStatus,
+    FleetHealth,
+    HealthThresholds,
+    RateMeter,
+    SampleWindow,
+    percentile,
+)
+
+
+class FakeClock:
+    def __init__(self, t: float = 1000.0) -> None:
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+    def advance(self, dt: float) -> None:
+        self.t += dt
+
+
+TH = HealthThresholds(expected_rate_hz=10.0, stale_periods=3, offline_after_s=10.0, window_s=5.0)
+
+
+def feed(fleet: FleetHealth, clock: FakeClock, device: str, n: int, *, dt: float = 0.1, skew_s: float = 0.0):
+    """n messages at 1/dt Hz; the edge clock is the agent's wall clock shifted by skew_s, transit 20 ms."""
+    health = fleet.device(device)
+    for _ in range(n):
+        clock.advance(dt)
+        wall = 1.7e9 + clock.t
+        ts_ms = round((wall - 0.020 - skew_s) * 1000)
+        health.record_received()
+        health.record_decoded(clock.t, wall, ts_ms)
+        health.record_applied(clock.t, clock.t + 0.0005, ts_ms)
+
+
+def test_thresholds_classify() -> None:
+    assert TH.stale_after_s == pytest.approx(0.3)
+    assert TH.classify(0.0) is DeviceStatus.ONLINE
+    assert TH.classify(0.3) is DeviceStatus.ONLINE
+    assert TH.classify(0.31) is DeviceStatus.STALE
+    assert TH.classify(9.99) is DeviceStatus.STALE
+    assert TH.classify(10.0) is DeviceStatus.OFFLINE
+
+
+def test_status_follows_silence_and_recovers() -> None:
+    clock = FakeClock()
+    fleet = FleetHealth(TH, ["arm-001"], clock=clock)
+    h = fleet.device("arm-001")
+    # Never heard from: silent since tracking began, so it goes STALE then OFFLINE on the same thresholds.
+    assert h.status() is DeviceStatus.ONLINE
+    clock.advance(1.0)
+    assert h.status() is DeviceStatus.STALE
+    clock.advance(9.0)
+    assert h.status() is DeviceStatus.OFFLINE
+    assert fleet.offline_configured() == ["arm-001"]
+    assert h.snapshot()["age_s"] is None
+
+    feed(fleet, clock, "arm-001", 20)
+    assert h.status() is DeviceStatus.ONLINE
+    assert fleet.offline_configured() == []
+    clock.advance(0.35)
+    assert h.status() is DeviceStatus.STALE
+    assert h.snapshot()["age_s"] == pytest.approx(0.35)
+    clock.advance(10.0)
+    assert h.status() is DeviceStatus.OFFLINE
+    feed(fleet, clock, "arm-001", 1)
+    assert h.status() is DeviceStatus.ONLINE
+
+
+def test_age_ignores_the_edge_clock() -> None:
+    # An edge clock an hour behind or ahead changes nothing about liveness.
+    clock = FakeClock()
+    fleet = FleetHealth(TH, clock=clock)
+    for device, skew in (("behind", 3600.0), ("ahead", -3600.0)):
+        feed(fleet, clock, device, 5, skew_s=skew)
+        snap = fleet.device(device).snapshot()
+        assert snap["status"] == "ONLINE"
+        assert snap["age_s"] == 0.0
+
+
+def test_rate_over_window() -> None:
+    clock = FakeClock()
+    fleet = FleetHealth(TH, clock=clock)
+    feed(fleet, clock, "arm-001", 100, dt=0.1)  # 10 s at 10 Hz
+    assert fleet.device("arm-001").snapshot()["rate_hz"] == pytest.approx(10.0, abs=0.3)
+    feed(fleet, clock, "arm-001", 150, dt=0.02)  # 3 s at 50 Hz: window holds 2 s of 10 Hz + 3 s of 50 Hz
+    assert fleet.device("arm-001").snapshot()["rate_hz"] == pytest.approx((20 + 150) / 5.0, abs=1.0)
+    clock.advance(6.0)
+    assert fleet.device("arm-001").snapshot()["rate_hz"] == 0.0
+
+
+def test_rate_meter_young_device_and_flood_memory() -> None:
+    meter = RateMeter(5.0)
+    assert meter.rate(0.0) == 0.0
+    for i in range(20):
+        meter.add(i * 0.1)
+    assert meter.rate(1.9) == pytest.approx(20 / 1.9, rel=0.01)
+    for i in range(100_000):
+        meter.add(2.0 + i * 1e-5)  # 100k messages in one second: memory stays in buckets
+    assert len(meter._buckets) <= 5.0 / 0.1 + 2
+    assert meter.rate(3.0) == pytest.approx(100_020 / 3.0, rel=0.01)
+
+
+def test_counters_and_rejections() -> None:
+    clock = FakeClock()
+    fleet = FleetHealth(TH, ["arm-001"], clock=clock)
+    feed(fleet, clock, "arm-001", 3)
+    h = fleet.device("arm-001")
+    h.record_ignored_stale()
+    h.overwritten = 7
+    h.record_error()
+    fleet.record_rejected("arm-001", "not_json")
+    fleet.record_rejected("arm-001", "not_json")
+    fleet.record_rejected("arm-001", "too_large")
+    fleet.record_rejected("ghost-9", "not_json")  # never valid, not configured: not a new table row
+    fleet.record_rejected(None, "bad_device_id")
+    c = h.snapshot()["counters"]
+    assert (c["received"], c["decoded"], c["applied"], c["ignored_stale"]) == (3, 3, 3, 1)
+    assert (c["overwritten"], c["errors"], c["rejected_total"]) == (7, 1, 3)
+    assert c["rejected"] == {"not_json": 2, "too_large": 1}
+    assert "ghost-9" not in fleet.devices
+    assert fleet.untracked_rejected == {"not_json": 1, "bad_device_id": 1}
+
+
+def test_latency_reports_skew_as_offset() -> None:
+    clock = FakeClock()
+    fleet = FleetHealth(TH, clock=clock)
+    feed(fleet, clock, "ok", 30)
+    ok = fleet.device("ok").snapshot()
+    feed(fleet, clock, "skewed", 30, skew_s=2.5)  # edge clock 2.5 s behind
+    skewed = fleet.device("skewed").snapshot()
+    assert ok["edge_clock_latency_s"]["p50"] == pytest.approx(0.020, abs=0.002)
+    assert ok["edge_clock_offset_s"] == pytest.approx(0.020, abs=0.002)
+    # The skewed edge looks 2.5 s "late"; the offset estimate carries it and the jitter stays small.
+    assert skewed["edge_clock_latency_s"]["p99"] == pytest.approx(2.52, abs=0.002)
+    assert skewed["edge_clock_offset_s"] == pytest.approx(2.52, abs=0.002)
+    assert skewed["edge_transit_jitter_p99_s"] == pytest.approx(0.0, abs=0.002)
+    assert ok["internal_latency_s"]["p50"] == pytest.approx(0.0005)
+    assert ok["internal_latency_s"]["samples"] == 30
+
+
+def test_latency_window_forgets_old_samples() -> None:
+    window = SampleWindow(5.0)
+    window.add(0.0, 9.0)
+    window.add(4.0, 1.0)
+    assert window.summary(4.5)["max"] == 9.0
+    assert window.summary(5.5) == {"p50": 1.0, "p99": 1.0, "min": 1.0, "max": 1.0, "samples": 1}
+    assert window.summary(20.0)["p50"] is None
+
+
+def test_percentile_nearest_rank() -> None:
+    values = [float(v) for v in range(1, 101)]
+    assert percentile(values, 0.5) == 50.0
+    assert percentile(values, 0.99) == 99.0
+    assert percentile([3.0], 0.99) == 3.0
+    assert percentile([], 0.5) is None
