@@ -451,7 +451,11 @@ class TwinInstance:
             if status not in _SSM_PENDING:
                 break
             if time.monotonic() >= deadline:
-                return AgentHealth(UNKNOWN, f"the health check did not finish within {timeout_s:.0f} s")
+                return AgentHealth(
+                    UNKNOWN,
+                    f"the health check did not finish within {timeout_s:.0f} s (the host may still be "
+                    "booting: ask again with `twin instance status`)",
+                )
             time.sleep(self.health_poll_interval_s)
         stdout = invocation.get("StandardOutputContent", "")
         # curl exits non-zero when nothing listens (status Failed) yet still prints 000: parse what came out.

@@ -11,6 +11,9 @@ Exit codes:
   5  stack outputs missing (InstanceId or DcvUrl)
   6  InsufficientInstanceCapacity on start (no G6e capacity in the stack's Availability Zone)
   7  the instance did not reach the wanted state within --timeout
+
+The agent's health does not change the exit code (a freshly started host reports "unknown" until its SSM agent
+registers); scripts that need it read the `agent ...` line of `status`.
 """
 
 from __future__ import annotations
