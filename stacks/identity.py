@@ -1,0 +1,128 @@
+"""The host's IAM role: exactly what the agent, DCV and SSM need, in this account and region only."""
+
+from __future__ import annotations
+
+from aws_cdk import Acknowledgment, RemovalPolicy, Stack, Validations
+from aws_cdk import aws_iam as iam
+from aws_cdk import aws_logs as logs
+from constructs import Construct
+
+from stacks.skips import LOG_GROUP_KMS, skip_checkov
+
+
+class TwinIdentity(Construct):
+    """Instance role plus the agent's log group.
+
+    Attributes: `role`, `agent_log_group`. Grants for things created elsewhere (the DCV password
+    secret, the S3 assets) are made by the stack where the two meet.
+    """
+
+    def __init__(
+        self,
+        scope: Construct,
+        id_: str,
+        *,
+        topic_prefix: str,
+        devices: tuple[str, ...],
+        client_id_prefix: str,
+        stack_name: str,
+    ) -> None:
+        super().__init__(scope, id_)
+        stack = Stack.of(self)
+        self.role = iam.Role(
+            self,
+            "HostRole",
+            assumed_by=iam.ServicePrincipal("ec2.amazonaws.com"),
+            description="so101-twin host: IoT telemetry subscribe, DCV licence, SSM, agent logs",
+            managed_policies=[iam.ManagedPolicy.from_aws_managed_policy_name("AmazonSSMManagedInstanceCore")],
+        )
+        Validations.of(self.role).acknowledge(
+            Acknowledgment(
+                id="AwsSolutions-IAM4[Policy::arn:<AWS::Partition>:iam::aws:policy/AmazonSSMManagedInstanceCore]",
+                reason="SSM Session Manager is the way onto the host instead of SSH; AWS maintains this "
+                "policy as the minimum for the SSM agent, and a hand-copied inline version would drift "
+                "from it.",
+            )
+        )
+
+        def iot_arn(resource: str) -> str:
+            return stack.format_arn(service="iot", resource=resource)
+
+        fleet = devices == ("*",)
+        # IoT policy resources treat MQTT '+' literally, so the fleet filter `<prefix>/+/telemetry`
+        # is granted exactly, without a wildcard; only Receive needs '*' to match each device's topic.
+        filters = (
+            [f"{topic_prefix}/+/telemetry"] if fleet else [f"{topic_prefix}/{d}/telemetry" for d in devices]
+        )
+        topics = [f"{topic_prefix}/*/telemetry"] if fleet else filters
+        connect_arn = iot_arn(f"client/{client_id_prefix}*")
+        self.role.add_to_policy(
+            iam.PolicyStatement(sid="IotConnectAsAgent", actions=["iot:Connect"], resources=[connect_arn])
+        )
+        self.role.add_to_policy(
+            iam.PolicyStatement(
+                sid="IotSubscribeTelemetry",
+                actions=["iot:Subscribe"],
+                resources=[iot_arn(f"topicfilter/{f}") for f in filters],
+            )
+        )
+        self.role.add_to_policy(
+            iam.PolicyStatement(
+                sid="IotReceiveTelemetry",
+                actions=["iot:Receive"],
+                resources=[iot_arn(f"topic/{t}") for t in topics],
+            )
+        )
+        self.role.add_to_policy(
+            iam.PolicyStatement(sid="IotFindEndpoint", actions=["iot:DescribeEndpoint"], resources=["*"])
+        )
+        dcv_license = f"arn:{stack.partition}:s3:::dcv-license.{stack.region}/*"
+        self.role.add_to_policy(
+            iam.PolicyStatement(sid="DcvLicense", actions=["s3:GetObject"], resources=[dcv_license])
+        )
+
+        self.agent_log_group = logs.LogGroup(
+            self,
+            "AgentLogGroup",
+            log_group_name=f"/so101-twin/{stack_name}/host",
+            retention=logs.RetentionDays.ONE_YEAR,
+            removal_policy=RemovalPolicy.DESTROY,
+        )
+        skip_checkov(self.agent_log_group, {"CKV_AWS_158": LOG_GROUP_KMS})
+        self.role.add_to_policy(
+            iam.PolicyStatement(
+                sid="HostLogs",
+                actions=["logs:CreateLogStream", "logs:PutLogEvents", "logs:DescribeLogStreams"],
+                resources=[self.agent_log_group.log_group_arn],
+            )
+        )
+
+        # One acknowledgement per wildcard, each saying why it cannot be narrower.
+        reasons = {
+            f"arn:<AWS::Partition>:iot:<AWS::Region>:<AWS::AccountId>:client/{client_id_prefix}*": (
+                "Each agent process connects with a unique client id (fixed prefix plus a random suffix, "
+                "so two agents never kick each other off); the wildcard covers that suffix only, in this "
+                "account and region."
+            ),
+            "*": (
+                "iot:DescribeEndpoint has no resource type (IoT action-resources table), so it cannot be "
+                "scoped; it only returns the account's data endpoint address."
+            ),
+            "arn:<AWS::Partition>:s3:::dcv-license.<AWS::Region>/*": (
+                "DCV on EC2 licenses itself by reading objects from this AWS-owned regional bucket; the "
+                "object keys are not documented, so the grant is read-only on that bucket's objects (DCV "
+                "admin guide, setting-up-license)."
+            ),
+        }
+        if fleet:
+            receive = (
+                f"arn:<AWS::Partition>:iot:<AWS::Region>:<AWS::AccountId>:topic/{topic_prefix}/*/telemetry"
+            )
+            reasons[receive] = (
+                "devices='*' mirrors the whole fleet: the agent receives every device's telemetry topic "
+                "under the prefix; the wildcard stands for the device-id topic level only."
+            )
+        for resource, reason in reasons.items():
+            Validations.of(self.role).acknowledge(
+                Acknowledgment(id=f"AwsSolutions-IAM5[Resource::{resource}]", reason=reason)
+            )

@@ -1,0 +1,110 @@
+"""The single so101-twin stack: network + identity + twin host (+ auto-stop), and the outputs users need."""
+
+from __future__ import annotations
+
+from aws_cdk import CfnOutput, Stack
+from constructs import Construct
+
+from stacks.auto_stop import AutoStop
+from stacks.identity import TwinIdentity
+from stacks.iot_endpoint import IotDataEndpoint
+from stacks.network import DCV_PORT, TwinNetwork
+from stacks.settings import CLIENT_ID_PREFIX, TwinSettings
+from stacks.twin_host import DESKTOP_USER, TwinHost
+
+# `twin instance` reads these keys; renaming one breaks it.
+OUTPUT_KEYS = ("DcvUrl", "InstanceId", "IotEndpoint", "DcvPasswordSecret", "SsmSessionCommand")
+
+
+class TwinStack(Stack):
+    """Everything for one cloud twin: `cdk deploy` builds it, `cdk destroy` removes all of it."""
+
+    def __init__(self, scope: Construct, id_: str, *, settings: TwinSettings, **kwargs) -> None:
+        super().__init__(scope, id_, **kwargs)
+        self.settings = settings
+
+        self.network = TwinNetwork(
+            self,
+            "Network",
+            client_cidr=settings.client_cidr,
+            client_is_ipv6=settings.client_is_ipv6,
+            allow_any_client=settings.allow_any_client,
+            ssh_access=settings.ssh_access,
+            availability_zone=settings.availability_zone,
+        )
+        self.identity = TwinIdentity(
+            self,
+            "Identity",
+            topic_prefix=settings.topic_prefix,
+            devices=settings.devices,
+            client_id_prefix=CLIENT_ID_PREFIX,
+            stack_name=settings.stack_name,
+        )
+        self.host = TwinHost(
+            self,
+            "Host",
+            vpc=self.network.vpc,
+            security_group=self.network.security_group,
+            role=self.identity.role,
+            instance_type=settings.instance_type,
+            volume_gb=settings.volume_gb,
+            ami_ssm_parameter=settings.ami_ssm_parameter,
+            ami_id=settings.ami_id,
+            termination_protection=settings.termination_protection,
+            agent_settings={
+                "TOPIC_PREFIX": settings.topic_prefix,
+                "DEVICES": ",".join(settings.devices),
+                "UNITS": settings.units,
+                "CLIENT_ID_PREFIX": CLIENT_ID_PREFIX,
+                "DESKTOP_USER": DESKTOP_USER,
+                "LOG_GROUP": self.identity.agent_log_group.log_group_name,
+            },
+        )
+        self.iot_endpoint = IotDataEndpoint(self, "IotEndpointLookup")
+        self.auto_stop = (
+            AutoStop(
+                self,
+                "AutoStop",
+                instance_id=self.host.instance.instance_id,
+                cron=settings.auto_stop_cron,
+                timezone=settings.auto_stop_timezone,
+            )
+            if settings.auto_stop_cron
+            else None
+        )
+
+        secret_arn = self.host.password_secret.secret_arn
+        CfnOutput(
+            self,
+            "DcvUrl",
+            value=f"https://{self.host.eip.attr_public_ip}:{DCV_PORT}/#console",
+            description=f"Open in a browser; log in as '{DESKTOP_USER}' with the password from "
+            "DcvPasswordSecret "
+            "(self-signed certificate: accept the warning).",
+        )
+        CfnOutput(self, "InstanceId", value=self.host.instance.instance_id, description="The twin host")
+        CfnOutput(
+            self,
+            "IotEndpoint",
+            value=self.iot_endpoint.address,
+            description="IoT Core data endpoint (iot:Data-ATS) the agent subscribes to",
+        )
+        CfnOutput(
+            self,
+            "DcvPasswordSecret",
+            value=secret_arn,
+            description="Secret holding the DCV password; read it with the command in DcvPasswordCommand",
+        )
+        CfnOutput(
+            self,
+            "DcvPasswordCommand",
+            value=f"aws secretsmanager get-secret-value --region {self.region} --secret-id {secret_arn} "
+            "--query SecretString --output text",
+            description="Prints the DCV password",
+        )
+        CfnOutput(
+            self,
+            "SsmSessionCommand",
+            value=f"aws ssm start-session --region {self.region} --target {self.host.instance.instance_id}",
+            description="A shell on the host without SSH (needs the Session Manager plugin)",
+        )
