@@ -1,0 +1,164 @@
+"""twin.model: the bundled SO-101 loads; bad models fail with errors that name the problem and the fix."""
+
+from __future__ import annotations
+
+import logging
+import shutil
+from pathlib import Path
+
+import mujoco
+import pytest
+from twin import so101
+from twin.model import ModelError, RobotModel, default_model_path
+from twin.twin import DeviceTwin, TwinMode
+
+BUNDLED_DIR = Path(default_model_path()).parent
+
+
+def chain_mjcf(*, site: str | None = None, actuators: str = "position", names: tuple[str, ...] = ()) -> str:
+    """A minimal serial chain with the SO-101 joint names (or `names`), an optional tip site and actuators."""
+    joints = names or so101.JOINT_NAMES
+    bodies = ""
+    closing = ""
+    for i, joint in enumerate(joints):
+        axis = "0 0 1" if i in (0, 4) else "0 1 0"
+        bodies += (
+            f'<body name="link{i}" pos="0 0 0.05"><joint name="{joint}" axis="{axis}" range="-1.5 1.5"/>'
+            f'<geom type="capsule" fromto="0 0 0 0 0 0.05" size="0.01" mass="0.1"/>'
+        )
+        closing += "</body>"
+    tip = f'<site name="{site}" pos="0 0 0.05"/>' if site else ""
+    acts = ""
+    if actuators == "position":
+        acts = "".join(f'<position name="servo{i}" joint="{j}" kp="50"/>' for i, j in enumerate(joints))
+    elif actuators == "motor":
+        acts = "".join(f'<motor joint="{j}"/>' for j in joints)
+    return (
+        '<mujoco><compiler autolimits="true"/><worldbody>'
+        f"{bodies}{tip}{closing}</worldbody><actuator>{acts}</actuator></mujoco>"
+    )
+
+
+def write(tmp_path: Path, xml: str, name: str = "arm.xml") -> Path:
+    path = tmp_path / name
+    path.write_text(xml)
+    return path
+
+
+def test_default_path_is_the_bundled_scene() -> None:
+    path = default_model_path()
+    assert path.name == "scene.xml"
+    assert path.parent.name == "so101"
+    assert path.is_file()
+
+
+def test_bundled_model_loads_with_everything_the_twin_needs() -> None:
+    robot = RobotModel.load()
+    assert robot.path == default_model_path()
+    assert robot.joint_names == so101.JOINT_NAMES
+    assert set(robot.joint_ranges) == set(so101.JOINT_NAMES)
+    for name in so101.JOINT_NAMES:
+        lo, hi = robot.joint_ranges[name]
+        assert (lo, hi) == pytest.approx(so101.JOINT_RANGES_RAD[name], abs=1e-6)
+        jid = robot.joint_ids[name]
+        assert robot.qpos_addr[name] == robot.model.jnt_qposadr[jid]
+        assert robot.dof_addr[name] == robot.model.jnt_dofadr[jid]
+        act = robot.actuator_ids[name]
+        assert robot.model.actuator_trnid[act, 0] == jid
+    assert robot.missing_actuators == ()
+    assert robot.tcp_site == so101.TCP_SITE
+    assert list(robot.body_ids) == list(so101.BODY_NAMES)
+    assert "overview" in robot.camera_names
+    # The inverse-dynamics copy must not share option storage with the simulated model.
+    assert robot.model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_CONSTRAINT == 0
+    assert robot.inverse_model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_CONSTRAINT
+
+
+def test_renamed_joint_is_named_in_the_error(tmp_path: Path) -> None:
+    for name in ("so101.xml", "scene.xml"):
+        shutil.copy(BUNDLED_DIR / name, tmp_path / name)
+    arm = tmp_path / "so101.xml"
+    text = arm.read_text()
+    assert 'joint name="elbow_flex"' in text
+    arm.write_text(
+        text.replace('joint name="elbow_flex"', 'joint name="elbow"').replace(
+            'joint="elbow_flex"', 'joint="elbow"'
+        )
+    )
+    with pytest.raises(ModelError) as err:
+        RobotModel.load(tmp_path / "scene.xml")
+    message = str(err.value)
+    assert "missing joints: elbow_flex" in message
+    assert "elbow," in message  # what the model has instead, so the user sees the typo
+    assert "[twin] model" in message
+    assert str(tmp_path / "scene.xml") in message
+
+
+def test_slide_joint_is_reported_as_not_hinge(tmp_path: Path) -> None:
+    xml = chain_mjcf().replace('<joint name="wrist_flex"', '<joint type="slide" name="wrist_flex"')
+    with pytest.raises(ModelError, match=r"not hinge joints: wrist_flex \(is slide\)"):
+        RobotModel.load(write(tmp_path, xml))
+
+
+def test_nonexistent_path(tmp_path: Path) -> None:
+    missing = tmp_path / "nope" / "scene.xml"
+    with pytest.raises(ModelError) as err:
+        RobotModel.load(missing)
+    assert str(missing) in str(err.value)
+    assert "[twin] model" in str(err.value)
+
+
+def test_bad_xml_carries_mujocos_reason(tmp_path: Path) -> None:
+    path = write(tmp_path, "<mujoco><worldbody><body></mujoco>")
+    with pytest.raises(ModelError) as err:
+        RobotModel.load(path)
+    assert "could not be loaded by MuJoCo" in str(err.value)
+    assert "[twin] model" in str(err.value)
+    assert isinstance(err.value, ValueError)
+
+
+def test_no_tcp_site_falls_back_to_a_body_with_a_warning(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    with caplog.at_level(logging.WARNING, logger="twin.model"):
+        robot = RobotModel.load(write(tmp_path, chain_mjcf()))
+    assert robot.tcp_site is None
+    assert robot.tcp_site_id is None
+    # No body called "gripper" here: the body the gripper joint moves stands in.
+    gripper_body = robot.model.jnt_bodyid[robot.joint_ids[so101.GRIPPER]]
+    assert robot.tcp_body_id == gripper_body
+    assert any("no TCP site" in r.getMessage() for r in caplog.records)
+    twin = DeviceTwin(robot, "arm")
+    assert twin.tcp_position == pytest.approx(twin.data.xpos[gripper_body])
+    # The chain is straight up at q = 0: six links of 5 cm.
+    assert twin.tcp_position == pytest.approx([0, 0, 0.30])
+    # User bodies are not the SO-101's: body_poses returns the ones that exist (none here).
+    assert twin.body_poses() == {}
+
+
+def test_menagerie_site_name_is_found_and_a_configured_name_wins(tmp_path: Path) -> None:
+    path = write(tmp_path, chain_mjcf(site="gripperframe"))
+    assert RobotModel.load(path).tcp_site == "gripperframe"
+    custom = write(tmp_path, chain_mjcf(site="fingertip"), "custom.xml")
+    robot = RobotModel.load(custom, tcp_site="fingertip")
+    assert robot.tcp_site == "fingertip"
+    assert robot.tcp_site_id == robot.model.site("fingertip").id
+
+
+def test_actuators_are_found_by_target_joint_not_by_name(tmp_path: Path) -> None:
+    robot = RobotModel.load(write(tmp_path, chain_mjcf(actuators="position")))
+    assert robot.missing_actuators == ()
+    for name in so101.JOINT_NAMES:
+        assert robot.model.actuator(robot.actuator_ids[name]).name.startswith("servo")
+        assert robot.model.actuator_trnid[robot.actuator_ids[name], 0] == robot.joint_ids[name]
+
+
+def test_missing_position_actuators_only_block_physics_mode(tmp_path: Path) -> None:
+    for kind in ("motor", "none"):
+        robot = RobotModel.load(write(tmp_path, chain_mjcf(actuators=kind), f"{kind}.xml"))
+        assert robot.missing_actuators == so101.JOINT_NAMES
+        DeviceTwin(robot, "arm", TwinMode.KINEMATIC)  # fine without actuators
+        with pytest.raises(ModelError) as err:
+            DeviceTwin(robot, "arm", TwinMode.PHYSICS)
+        assert "physics mode" in str(err.value)
+        assert "shoulder_pan" in str(err.value)
