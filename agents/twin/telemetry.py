@@ -177,7 +177,8 @@ _JOINTS = so101.JOINT_NAMES
 _JOINT_SET = frozenset(_JOINTS)
 _ARM = so101.ARM_JOINTS
 _N_ARM = len(_ARM)
-_DIAG_FIELDS = ("velocity", "load", "temp", "current", "voltage", "status", "moving")
+_NUMERIC_DIAG_FIELDS = ("velocity", "load", "temp", "current", "voltage")
+_DIAG_FIELDS = (*_NUMERIC_DIAG_FIELDS, "status", "moving")
 _BAD_ID_CHARS = ("/", "+", "#")
 
 
@@ -305,7 +306,7 @@ class TelemetryDecoder:
             self._joint_set_error(joints)
 
         positions: list[Any] = []
-        raw_diag: list[dict[str, Any] | None] = []
+        entries: list[dict[str, Any]] = []
         for name in _JOINTS:
             entry = joints[name]
             if type(entry) is not dict:
@@ -329,24 +330,30 @@ class TelemetryDecoder:
                     f"position of {name} must be a JSON number, got {_fmt(pos)}",
                 )
             positions.append(pos)
-            # Only a bare {"position": ...} skips diagnostics parsing; extra unknown fields are ignored later.
-            raw_diag.append(self._diagnostics_fields(name, entry) if len(entry) > 1 else None)
+            entries.append(entry)
 
         units = self.config.units
+        undecided = False
         if units is Units.AUTO:
             units = self._decided.get(device_id, Units.AUTO)
             if units is Units.AUTO:
-                angles, percent, units = self._decide(device_id, positions)
+                units = self._evidence_or_reject(device_id, positions)
+                undecided = True
+                # Evidence only counts when the message is valid in those units, so it is converted first.
+                angles, percent = self._convert(units, positions, auto=False)
             else:
                 angles, percent = self._convert(units, positions, auto=True)
         else:
             angles, percent = self._convert(units, positions, auto=False)
 
         float_variant = units is not Units.TICKS
+        # A bare {"position": ...} (the common case without diagnostics) shares one empty record.
         diagnostics = {
-            name: (_EMPTY_DIAGNOSTICS if fields is None else _build_diagnostics(fields, float_variant))
-            for name, fields in zip(_JOINTS, raw_diag, strict=True)
+            name: _EMPTY_DIAGNOSTICS if len(entry) == 1 else _joint_diagnostics(name, entry, float_variant)
+            for name, entry in zip(_JOINTS, entries, strict=True)
         }
+        if undecided:
+            self._count_evidence(device_id, units)
         return Telemetry(
             device_id=device_id,
             timestamp_ms=timestamp,
@@ -482,33 +489,6 @@ class TelemetryDecoder:
             f"{', '.join(_JOINTS)} only (is this another robot's telemetry?)",
         )
 
-    @staticmethod
-    def _diagnostics_fields(joint: str, entry: dict[str, Any]) -> dict[str, Any] | None:
-        fields: dict[str, Any] | None = None
-        for key in _DIAG_FIELDS:
-            value = entry.get(key, _MISSING)
-            if value is _MISSING:
-                continue
-            if key == "status":
-                if type(value) is not int:
-                    raise _rejected(
-                        RejectReason.WRONG_TYPE,
-                        f"status of {joint} must be a JSON integer, got {_fmt(value)}",
-                    )
-                _check_number(joint, key, value)
-            elif key == "moving":
-                if not (value is True or value is False or (type(value) is int and value in (0, 1))):
-                    raise _rejected(
-                        RejectReason.WRONG_TYPE,
-                        f"moving of {joint} must be true/false or 0/1, got {_fmt(value)}",
-                    )
-            else:
-                _check_number(joint, key, value)
-            if fields is None:
-                fields = {}
-            fields[key] = value
-        return fields
-
     # --- units --------------------------------------------------------------------------------------------
 
     def _convert(self, units: Units, positions: list[Any], *, auto: bool) -> tuple[list[float], float]:
@@ -581,7 +561,8 @@ class TelemetryDecoder:
     def _auto_note(auto: bool) -> str:
         return " (units=auto decided otherwise for this device and never changes its mind)" if auto else ""
 
-    def _decide(self, device_id: str, positions: list[Any]) -> tuple[list[float], float, Units]:
+    @staticmethod
+    def _evidence_or_reject(device_id: str, positions: list[Any]) -> Units:
         kind = _evidence(positions)
         if kind is None:
             raise _rejected(
@@ -590,8 +571,10 @@ class TelemetryDecoder:
                 "non-negative, small positions fit ticks, degrees and range100 alike); waiting for clearer "
                 "messages, or set units explicitly",
             )
-        # Evidence only counts when the message is valid in those units, so conversion comes first.
-        angles, percent = self._convert(kind, positions, auto=False)
+        return kind
+
+    def _count_evidence(self, device_id: str, kind: Units) -> None:
+        """Count one valid evidence message; rejects it as units_undecided until enough agree in a row."""
         previous = self._streaks.pop(device_id, None)
         count = previous[1] + 1 if previous is not None and previous[0] is kind else 1
         if previous is not None and previous[0] is not kind:
@@ -628,7 +611,6 @@ class TelemetryDecoder:
                 device_id,
                 needed,
             )
-        return angles, percent, kind
 
 
 def _evidence(positions: list[Any]) -> Units | None:
@@ -645,25 +627,56 @@ def _evidence(positions: list[Any]) -> Units | None:
     return Units.TICKS if all_ticks and any_big else None
 
 
-def _build_diagnostics(fields: dict[str, Any], float_variant: bool) -> JointDiagnostics:
-    velocity = fields.get("velocity")
+def _joint_diagnostics(joint: str, entry: dict[str, Any], float_variant: bool) -> JointDiagnostics:
+    get = entry.get
+    velocity = get("velocity")
+    load = get("load")
+    temp = get("temp")
+    current = get("current")
+    voltage = get("voltage")
+    status = get("status")
+    moving = get("moving")
+    # One cheap pass for the usual all-plain-numbers case; anything odd goes to the checks that explain it.
+    # (NaN fails the chained comparison, so it takes the slow path too.)
+    for value in (velocity, load, temp, current, voltage):
+        if value is not None and not (
+            (type(value) is int or type(value) is float) and -DIAGNOSTIC_LIMIT <= value <= DIAGNOSTIC_LIMIT
+        ):
+            for key in _NUMERIC_DIAG_FIELDS:
+                if key in entry:
+                    _check_number(joint, key, entry[key])
+    if status is not None and type(status) is not int:
+        raise _rejected(
+            RejectReason.WRONG_TYPE, f"status of {joint} must be a JSON integer, got {_fmt(status)}"
+        )
+    if status is not None:
+        _check_number(joint, "status", status)
+    if moving is not None and not (
+        moving is True or moving is False or (type(moving) is int and 0 <= moving <= 1)
+    ):
+        raise _rejected(
+            RejectReason.WRONG_TYPE, f"moving of {joint} must be true/false or 0/1, got {_fmt(moving)}"
+        )
+    if None in (velocity, load, temp, current, voltage, status, moving):
+        # get() returns None for an absent field and for an explicit null; only the null is an error.
+        for key in _DIAG_FIELDS:
+            if key in entry and entry[key] is None:
+                raise _rejected(
+                    RejectReason.WRONG_TYPE,
+                    f"{key} of {joint} is null; omit a field the edge cannot read instead of sending null",
+                )
     steps = rad_s = None
     if velocity is not None:
         # The float variant (LeRobot-normalised) already carries a signed speed; raw ticks do not.
         steps = float(velocity if float_variant else decode_velocity(velocity))
         rad_s = steps * RAD_PER_STEP_S
-    load = fields.get("load")
-    temp = fields.get("temp")
-    current = fields.get("current")
-    voltage = fields.get("voltage")
-    moving = fields.get("moving")
     return JointDiagnostics(
-        velocity_steps_s=steps,
-        velocity_rad_s=rad_s,
-        load_percent=None if load is None else float(decode_load(load)) * LOAD_PERCENT_PER_UNIT,
-        temperature_c=None if temp is None else float(temp),
-        current_ma=None if current is None else current * CURRENT_MA_PER_UNIT,
-        voltage_v=None if voltage is None else voltage * VOLTAGE_V_PER_UNIT,
-        status=fields.get("status"),
-        moving=None if moving is None else bool(moving),
+        steps,
+        rad_s,
+        None if load is None else decode_load(load) * LOAD_PERCENT_PER_UNIT,
+        None if temp is None else float(temp),
+        None if current is None else current * CURRENT_MA_PER_UNIT,
+        None if voltage is None else voltage * VOLTAGE_V_PER_UNIT,
+        status,
+        None if moving is None else bool(moving),
     )

@@ -1,0 +1,648 @@
+"""Telemetry decoding, table-driven with the documented payloads (telemetry contract, docs/telemetry.md).
+
+Expected angles are worked out by hand from the formulas and written as literals, so a wrong formula in the
+decoder cannot agree with itself. K below is 2*pi/4095 = 0.00153435538636864 rad per tick (LeRobot DEGREES).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import pytest
+from twin import so101
+from twin.calibration import Calibration, MotorCalibration, load_calibration
+from twin.telemetry import (
+    DecoderConfig,
+    JointDiagnostics,
+    RejectReason,
+    Telemetry,
+    TelemetryDecoder,
+    TelemetryRejected,
+    Units,
+    decode_load,
+    decode_velocity,
+)
+
+EXAMPLE_CALIBRATION = (
+    Path(__file__).resolve().parents[1] / "robots" / "so101" / "calibration" / "so101_follower_example.json"
+)
+NAMES = so101.JOINT_NAMES
+TS = 1706000000000
+JAW_LO, JAW_HI = -0.174533, 1.7453292  # the model's gripper range (so101.JOINT_RANGES_RAD)
+
+TICKS_EXAMPLE = (2048, 1800, 2200, 2100, 2048, 1500)  # contract, variant A
+DEGREES_EXAMPLE = (2.01, -98.89, 97.27, 63.70, -3.44, 4.83)  # contract, variant B
+ZERO_DEGREES = (0, 0, 0, 0, 0, 0)  # the arm at zero in degrees: whole, non-negative, JSON integers
+
+
+def message(positions: tuple[Any, ...], *, device: Any = "arm-001", ts: Any = TS, **per_joint: Any) -> dict:
+    return {
+        "device_id": device,
+        "timestamp": ts,
+        "joints": {n: {"position": p, **per_joint} for n, p in zip(NAMES, positions, strict=True)},
+    }
+
+
+def payload(positions: tuple[Any, ...], **kw: Any) -> bytes:
+    return json.dumps(message(positions, **kw)).encode()
+
+
+def decoder(units: Units = Units.AUTO, **kw: Any) -> TelemetryDecoder:
+    return TelemetryDecoder(DecoderConfig(units=units, **kw))
+
+
+def assert_angles(t: Telemetry, expected: dict[str, float]) -> None:
+    assert list(t.angles_rad) == list(NAMES)
+    for name in NAMES:
+        assert t.angles_rad[name] == pytest.approx(expected[name], abs=1e-9), name
+
+
+# --- variant A: ticks ---------------------------------------------------------------------------------------
+
+TICKS_NO_CALIBRATION = {
+    "shoulder_pan": 0.0015343553863686413,  # (2048 - 2047) * K
+    "shoulder_lift": -0.3789857804330544,  # (1800 - 2047) * K = -247 K
+    "elbow_flex": 0.23475637411440212,  # (2200 - 2047) * K = 153 K
+    "wrist_flex": 0.08132083547753799,  # (2100 - 2047) * K = 53 K
+    "wrist_roll": 0.0015343553863686413,  # (2048 - 2047) * K
+    # default jaw range 2047 -/+ 625.625 ticks (half of 1.9198622 rad / K): p = (1500 - 1421.375) / 1251.25
+    # * 100 = 6.2837168 %, angle = -0.174533 + 0.062837168 * 1.9198622 (= pi/4 + (1500 - 2047) * K)
+    "gripper": -0.05389429634364694,
+}
+TICKS_EXAMPLE_CALIBRATION = {
+    "shoulder_pan": 0.018412264636423696,  # mid (762 + 3310) / 2 = 2036: (2048 - 2036) * K = 12 K
+    "shoulder_lift": -0.34676431731931295,  # mid 2026: -226 K
+    "elbow_flex": 0.32835205268288925,  # mid 1986: 214 K
+    "wrist_flex": 0.1296530301481502,  # mid 2015.5: 84.5 K
+    "wrist_roll": -0.02071379771597666,  # mid 2061.5: -13.5 K
+    "gripper": JAW_LO,  # 1500 is below range_min 2024: clamped, p = 0 %, the closed (lower) jaw limit
+}
+
+
+@pytest.mark.parametrize(
+    ("calibration", "expected", "percent"),
+    [
+        (None, TICKS_NO_CALIBRATION, 6.283716803026438),
+        (EXAMPLE_CALIBRATION, TICKS_EXAMPLE_CALIBRATION, 0.0),
+    ],
+    ids=["defaults", "example-calibration"],
+)
+def test_ticks_example(calibration: Path | None, expected: dict[str, float], percent: float) -> None:
+    cal = load_calibration(calibration) if calibration else None
+    t = decoder(Units.TICKS, calibration=cal).decode(payload(TICKS_EXAMPLE))
+    assert (t.device_id, t.timestamp_ms, t.units) == ("arm-001", TS, Units.TICKS)
+    assert_angles(t, expected)
+    assert t.gripper_percent == pytest.approx(percent, abs=1e-9)
+
+
+def test_ticks_gripper_inside_calibrated_range() -> None:
+    t = decoder(Units.TICKS, calibration=load_calibration(EXAMPLE_CALIBRATION)).decode(
+        payload((2048, 1800, 2200, 2100, 2048, 2500))
+    )
+    # p = (2500 - 2024) / (3432 - 2024) * 100 = 476 / 1408 * 100 = 33.806818 %
+    assert t.gripper_percent == pytest.approx(33.80681818181818)
+    # -0.174533 + 0.33806818 * 1.9198622
+    assert t.angles_rad["gripper"] == pytest.approx(0.4745113232954546)
+
+
+def test_drive_mode_inverts_the_gripper_percentage() -> None:
+    data = json.loads(EXAMPLE_CALIBRATION.read_text())
+    data["gripper"]["drive_mode"] = 1
+    cal = Calibration.from_dict(data)
+    t = decoder(Units.TICKS, calibration=cal).decode(payload((2048, 1800, 2200, 2100, 2048, 2500)))
+    assert t.gripper_percent == pytest.approx(100 - 33.80681818181818)  # RANGE_0_100 with drive_mode 1
+
+
+def test_ticks_extremes_stay_physical() -> None:
+    t = decoder(Units.TICKS).decode(payload((0, 4095, 0, 4095, 0, 4095)))
+    assert t.angles_rad["shoulder_pan"] == pytest.approx(-3.1408254758966088)  # -2047 K
+    assert t.angles_rad["shoulder_lift"] == pytest.approx(3.1423598312829775)  # 2048 K
+    assert t.angles_rad["gripper"] == pytest.approx(JAW_HI)  # clamped to the jaw's range_max: 100 %
+    assert t.gripper_percent == 100.0
+
+
+# --- variant B: LeRobot degrees / range100 ------------------------------------------------------------------
+
+DEGREES_EXPECTED = {
+    "shoulder_pan": 0.03508111796508602,  # 2.01 * pi / 180
+    "shoulder_lift": -1.7259560972971923,  # -98.89 * pi / 180
+    "elbow_flex": 1.6976817634148842,  # 97.27 * pi / 180
+    "wrist_flex": 1.111774733520388,  # 63.70 * pi / 180
+    "wrist_roll": -0.060039326268604934,  # -3.44 * pi / 180
+    "gripper": -0.08180365573999998,  # 4.83 % of the jaw: -0.174533 + 0.0483 * 1.9198622
+}
+
+
+@pytest.mark.parametrize("calibration", [None, EXAMPLE_CALIBRATION], ids=["defaults", "example-calibration"])
+def test_degrees_example(calibration: Path | None) -> None:
+    # Degrees are already relative to the calibrated middle, so a calibration file changes nothing here.
+    cal = load_calibration(calibration) if calibration else None
+    t = decoder(Units.DEGREES, calibration=cal).decode(payload(DEGREES_EXAMPLE))
+    assert t.units is Units.DEGREES
+    assert_angles(t, DEGREES_EXPECTED)
+    assert t.gripper_percent == pytest.approx(4.83)
+
+
+def test_range100_without_calibration_uses_the_model_range() -> None:
+    t = decoder(Units.RANGE100).decode(payload((-100, 100, 0, 50.0, -50.0, 100)))
+    assert_angles(
+        t,
+        {
+            "shoulder_pan": -1.91986,  # lo + 0/200 * (hi - lo)
+            "shoulder_lift": 1.7453293,  # hi
+            "elbow_flex": 0.0,  # middle of (-1.69, 1.69)
+            "wrist_flex": 0.8290315,  # 0 + 150/200 * 3.316126 - 1.658063
+            "wrist_roll": -1.3475839,  # -2.7438473 + 50/200 * 5.5850536
+            "gripper": JAW_HI,  # 100 %
+        },
+    )
+
+
+def test_range100_with_calibration_inverts_lerobot() -> None:
+    cal = load_calibration(EXAMPLE_CALIBRATION)
+    t = decoder(Units.RANGE100, calibration=cal).decode(payload((10.0, -100, 0, 100, 0, 0)))
+    # raw - mid = v / 200 * (range_max - range_min), then * K
+    assert t.angles_rad["shoulder_pan"] == pytest.approx(0.1954768762233649)  # 10/200 * 2548 = 127.4 K
+    assert t.angles_rad["shoulder_lift"] == pytest.approx(-1.8320203313241579)  # -2388/2 = -1194 K
+    assert t.angles_rad["elbow_flex"] == 0.0
+    assert t.angles_rad["wrist_flex"] == pytest.approx(1.7959629797444947)  # 2341/2 = 1170.5 K
+
+
+def test_zero_degrees_payload_is_zero_under_explicit_degrees() -> None:
+    t = decoder(Units.DEGREES).decode(payload(ZERO_DEGREES))
+    assert all(t.angles_rad[n] == 0.0 for n in so101.ARM_JOINTS)
+    assert t.gripper_percent == 0.0
+    assert t.angles_rad["gripper"] == pytest.approx(JAW_LO)  # 0 % = closed = the jaw's lower limit
+
+
+# --- auto units ---------------------------------------------------------------------------------------------
+
+
+def test_auto_decides_ticks_from_the_ticks_example(caplog: pytest.LogCaptureFixture) -> None:
+    d = decoder()
+    for i in range(2):
+        with pytest.raises(TelemetryRejected) as info:
+            d.decode(payload(TICKS_EXAMPLE))
+        assert info.value.reason is RejectReason.UNITS_UNDECIDED
+        assert f"{i + 1} of 3" in str(info.value)
+        assert d.units_for("arm-001") is Units.AUTO
+    with caplog.at_level(logging.INFO, logger="twin.telemetry"):
+        t = d.decode(payload(TICKS_EXAMPLE))
+    assert t.units is Units.TICKS
+    assert_angles(t, TICKS_NO_CALIBRATION)
+    assert d.units_for("arm-001") is Units.TICKS
+    assert any("decided ticks" in r.getMessage() for r in caplog.records)
+
+
+def test_auto_zero_degrees_is_undecided_never_ticks() -> None:
+    d = decoder()
+    for _ in range(10):
+        with pytest.raises(TelemetryRejected) as info:
+            d.decode(payload(ZERO_DEGREES))
+        assert info.value.reason is RejectReason.UNITS_UNDECIDED
+    assert d.units_for("arm-001") is Units.AUTO
+
+
+def test_auto_decides_degrees_then_zero_payload_is_zero(caplog: pytest.LogCaptureFixture) -> None:
+    d = decoder()
+    with caplog.at_level(logging.INFO, logger="twin.telemetry"):
+        for _ in range(2):
+            with pytest.raises(TelemetryRejected):
+                d.decode(payload(DEGREES_EXAMPLE))
+        assert d.decode(payload(DEGREES_EXAMPLE)).units is Units.DEGREES
+    decision = [r for r in caplog.records if "decided degrees" in r.getMessage()]
+    assert decision and decision[0].levelno == logging.WARNING
+    assert "units=range100" in decision[0].getMessage()  # the range100 ambiguity is spelled out
+    t = d.decode(payload(ZERO_DEGREES))
+    assert t.units is Units.DEGREES
+    assert all(t.angles_rad[n] == 0.0 for n in so101.ARM_JOINTS)
+    assert t.gripper_percent == 0.0
+
+
+def test_auto_never_flips_after_deciding() -> None:
+    d = decoder(auto_evidence_messages=1)
+    assert d.decode(payload(DEGREES_EXAMPLE)).units is Units.DEGREES
+    with pytest.raises(TelemetryRejected) as info:
+        d.decode(payload(TICKS_EXAMPLE))
+    assert info.value.reason is RejectReason.OUT_OF_RANGE
+    assert "set units=ticks" in str(info.value) and "never changes" in str(info.value)
+    assert d.units_for("arm-001") is Units.DEGREES
+
+
+def test_auto_is_per_device_and_needs_consecutive_agreement() -> None:
+    d = decoder()
+    with pytest.raises(TelemetryRejected):
+        d.decode(payload(TICKS_EXAMPLE))
+    with pytest.raises(TelemetryRejected):
+        d.decode(payload(TICKS_EXAMPLE))
+    # Disagreeing evidence restarts the streak: degrees now needs three in a row of its own.
+    with pytest.raises(TelemetryRejected) as info:
+        d.decode(payload(DEGREES_EXAMPLE))
+    assert "1 of 3" in str(info.value)
+    # Ambiguous messages neither count nor break the streak.
+    with pytest.raises(TelemetryRejected):
+        d.decode(payload(ZERO_DEGREES))
+    with pytest.raises(TelemetryRejected) as info:
+        d.decode(payload(DEGREES_EXAMPLE))
+    assert "2 of 3" in str(info.value)
+    assert d.decode(payload(DEGREES_EXAMPLE)).units is Units.DEGREES
+    # Another device decides on its own evidence.
+    assert d.units_for("arm-002") is Units.AUTO
+    with pytest.raises(TelemetryRejected) as info:
+        d.decode(payload(TICKS_EXAMPLE, device="arm-002"))
+    assert info.value.reason is RejectReason.UNITS_UNDECIDED
+
+
+def test_auto_invalid_messages_are_not_evidence() -> None:
+    d = decoder(auto_evidence_messages=2)
+    bad = message(TICKS_EXAMPLE)
+    bad["joints"]["gripper"]["temp"] = "hot"
+    for _ in range(3):
+        with pytest.raises(TelemetryRejected) as info:
+            d.decode(json.dumps(bad))
+        assert info.value.reason is RejectReason.WRONG_TYPE
+    with pytest.raises(TelemetryRejected) as info:
+        d.decode(payload(TICKS_EXAMPLE))
+    assert "1 of 2" in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("units", "positions", "reason", "hint"),
+    [
+        (Units.DEGREES, TICKS_EXAMPLE, RejectReason.OUT_OF_RANGE, "set units=ticks"),
+        (Units.RANGE100, TICKS_EXAMPLE, RejectReason.OUT_OF_RANGE, "set units=ticks"),
+        (Units.TICKS, DEGREES_EXAMPLE, RejectReason.WRONG_TYPE, "set units=degrees"),
+    ],
+)
+def test_explicit_setting_wins(units: Units, positions: tuple, reason: RejectReason, hint: str) -> None:
+    d = decoder(units)
+    with pytest.raises(TelemetryRejected) as info:
+        d.decode(payload(positions))
+    assert info.value.reason is reason
+    assert hint in str(info.value)
+    assert d.units_for("arm-001") is units
+
+
+def test_explicit_ticks_decodes_the_ambiguous_zero_payload_as_ticks() -> None:
+    t = decoder(Units.TICKS).decode(payload(ZERO_DEGREES))
+    assert t.angles_rad["shoulder_pan"] == pytest.approx(-3.1408254758966088)  # -2047 K: the setting wins
+
+
+def test_wrong_type_message_names_the_fix() -> None:
+    with pytest.raises(TelemetryRejected) as info:
+        decoder(Units.TICKS).decode(payload(DEGREES_EXAMPLE))
+    assert str(info.value) == (
+        "position 2.01 of shoulder_pan is not a whole tick count; the edge looks like it sends LeRobot "
+        "degrees: set units=degrees"
+    )
+
+
+# --- diagnostics --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("raw", "expected"),
+    [(0, 0), (10, 10), (32768, 0), (32778, -10), (32768 + 3400, -3400), (-7, -7), (65535, -32767)],
+)
+def test_decode_velocity(raw: int, expected: int) -> None:
+    assert decode_velocity(raw) == expected
+
+
+@pytest.mark.parametrize(
+    ("raw", "expected"),
+    [(0, 0), (500, 500), (1000, 1000), (1024, 0), (1524, -500), (2024, -1000), (-30, -30), (1100.0, -76.0)],
+)
+def test_decode_load(raw: float, expected: float) -> None:
+    assert decode_load(raw) == expected
+
+
+def test_ticks_diagnostics_are_sign_decoded_and_scaled() -> None:
+    d = decoder(Units.TICKS)
+    t = d.decode(
+        payload(
+            TICKS_EXAMPLE, velocity=32778, load=1524, temp=41, current=100, voltage=121, status=0, moving=1
+        )
+    )
+    assert t.diagnostics["elbow_flex"] == JointDiagnostics(
+        velocity_steps_s=-10.0,
+        velocity_rad_s=pytest.approx(-0.015339807878856412),  # -10 * 2 pi / 4096
+        load_percent=-50.0,  # 1524 -> -500 units of 0.1 %
+        temperature_c=41.0,
+        current_ma=650.0,  # 100 * 6.5 mA
+        voltage_v=pytest.approx(12.1),  # 121 * 0.1 V
+        status=0,
+        moving=True,
+    )
+
+
+def test_float_variant_diagnostics_keep_the_signed_velocity() -> None:
+    t = decoder(Units.DEGREES).decode(payload(DEGREES_EXAMPLE, velocity=-12.0, load=1100.0, temp=36.5))
+    diag = t.diagnostics["gripper"]
+    assert diag.velocity_steps_s == -12.0
+    assert diag.velocity_rad_s == pytest.approx(-0.01840776945)  # -12 * 2 pi / 4096
+    assert diag.load_percent == pytest.approx(-7.6)  # >= 1024 is negative here too: -(1100 - 1024) * 0.1
+    assert diag.temperature_c == 36.5
+    assert (diag.current_ma, diag.voltage_v, diag.status, diag.moving) == (None, None, None, None)
+
+
+def test_missing_diagnostics_are_none_and_unknown_fields_ignored() -> None:
+    msg = message(TICKS_EXAMPLE)
+    msg["joints"]["wrist_roll"]["torque_enabled"] = "yes"  # a field a newer edge might add
+    msg["firmware"] = {"anything": [1, 2, 3]}
+    t = decoder(Units.TICKS).decode(json.dumps(msg))
+    assert t.diagnostics["wrist_roll"] == JointDiagnostics()
+    assert set(t.diagnostics) == set(NAMES)
+
+
+def test_moving_accepts_bool_and_zero_one() -> None:
+    d = decoder(Units.TICKS)
+    assert d.decode(payload(TICKS_EXAMPLE, moving=False)).diagnostics["gripper"].moving is False
+    assert d.decode(payload(TICKS_EXAMPLE, moving=0)).diagnostics["gripper"].moving is False
+    assert d.decode(payload(TICKS_EXAMPLE, moving=True)).diagnostics["gripper"].moving is True
+
+
+def test_topic_device_match_is_accepted() -> None:
+    assert decoder(Units.TICKS).decode(payload(TICKS_EXAMPLE), topic_device="arm-001").device_id == "arm-001"
+
+
+def test_str_and_bytes_payloads_agree() -> None:
+    d = decoder(Units.TICKS)
+    text = json.dumps(message(TICKS_EXAMPLE))
+    assert d.decode(text) == d.decode(text.encode()) == d.decode(bytearray(text.encode()))
+
+
+# --- every rejection reason ---------------------------------------------------------------------------------
+
+
+def _mutated(mutate: Any, positions: tuple = TICKS_EXAMPLE) -> bytes:
+    msg = message(positions)
+    mutate(msg)
+    return json.dumps(msg).encode()
+
+
+def _set_joint(name: str, key: str, value: Any) -> Any:
+    return lambda m: m["joints"][name].__setitem__(key, value)
+
+
+VALID = json.dumps(message(TICKS_EXAMPLE))
+REJECTS: list[tuple[str, Any, Units, RejectReason]] = [
+    ("not-utf8", b'{"device_id": "arm-\xff"}', Units.TICKS, RejectReason.NOT_UTF8),
+    ("lone-surrogate-str", '{"device_id": "\ud800"}', Units.TICKS, RejectReason.NOT_UTF8),
+    ("not-json", b"device_id=arm-001", Units.TICKS, RejectReason.NOT_JSON),
+    ("truncated-json", VALID[:-3].encode(), Units.TICKS, RejectReason.NOT_JSON),
+    ("deeply-nested", b"[" * 50_000 + b"]" * 50_000, Units.TICKS, RejectReason.NOT_JSON),
+    ("empty", b"", Units.TICKS, RejectReason.NOT_JSON),
+    ("not-bytes", 12345, Units.TICKS, RejectReason.WRONG_TYPE),
+    ("too-large", b" " * 131_073, Units.TICKS, RejectReason.TOO_LARGE),
+    (
+        "too-large-valid-json",
+        (VALID[:-1] + ', "pad": "' + "x" * 131_072 + '"}').encode(),
+        Units.TICKS,
+        RejectReason.TOO_LARGE,
+    ),
+    ("too-large-multibyte-str", '"' + "\u00e9" * 70_000 + '"', Units.TICKS, RejectReason.TOO_LARGE),
+    ("array", b"[1, 2, 3]", Units.TICKS, RejectReason.NOT_OBJECT),
+    ("null", b"null", Units.TICKS, RejectReason.NOT_OBJECT),
+    ("no-device", _mutated(lambda m: m.pop("device_id")), Units.TICKS, RejectReason.MISSING_FIELD),
+    ("no-timestamp", _mutated(lambda m: m.pop("timestamp")), Units.TICKS, RejectReason.MISSING_FIELD),
+    ("no-joints", _mutated(lambda m: m.pop("joints")), Units.TICKS, RejectReason.MISSING_FIELD),
+    (
+        "no-position",
+        _mutated(lambda m: m["joints"]["elbow_flex"].pop("position")),
+        Units.TICKS,
+        RejectReason.MISSING_FIELD,
+    ),
+    ("device-empty", payload(TICKS_EXAMPLE, device=""), Units.TICKS, RejectReason.BAD_DEVICE_ID),
+    ("device-int", payload(TICKS_EXAMPLE, device=1), Units.TICKS, RejectReason.BAD_DEVICE_ID),
+    ("device-slash", payload(TICKS_EXAMPLE, device="arm/1"), Units.TICKS, RejectReason.BAD_DEVICE_ID),
+    ("device-plus", payload(TICKS_EXAMPLE, device="arm+"), Units.TICKS, RejectReason.BAD_DEVICE_ID),
+    ("device-hash", payload(TICKS_EXAMPLE, device="#"), Units.TICKS, RejectReason.BAD_DEVICE_ID),
+    ("device-long", payload(TICKS_EXAMPLE, device="a" * 129), Units.TICKS, RejectReason.BAD_DEVICE_ID),
+    ("device-control", payload(TICKS_EXAMPLE, device="arm\n1"), Units.TICKS, RejectReason.BAD_DEVICE_ID),
+    ("ts-float", payload(TICKS_EXAMPLE, ts=1706000000000.0), Units.TICKS, RejectReason.BAD_TIMESTAMP),
+    ("ts-bool", payload(TICKS_EXAMPLE, ts=True), Units.TICKS, RejectReason.BAD_TIMESTAMP),
+    ("ts-str", payload(TICKS_EXAMPLE, ts="1706000000000"), Units.TICKS, RejectReason.BAD_TIMESTAMP),
+    ("ts-seconds", payload(TICKS_EXAMPLE, ts=1706000000), Units.TICKS, RejectReason.BAD_TIMESTAMP),
+    ("ts-negative", payload(TICKS_EXAMPLE, ts=-1), Units.TICKS, RejectReason.BAD_TIMESTAMP),
+    ("ts-far-future", payload(TICKS_EXAMPLE, ts=10**20), Units.TICKS, RejectReason.BAD_TIMESTAMP),
+    (
+        "missing-joint",
+        _mutated(lambda m: m["joints"].pop("wrist_roll")),
+        Units.TICKS,
+        RejectReason.MISSING_JOINT,
+    ),
+    (
+        "renamed-joint",
+        _mutated(lambda m: m["joints"].__setitem__("wrist_rotate", m["joints"].pop("wrist_roll"))),
+        Units.TICKS,
+        RejectReason.MISSING_JOINT,
+    ),
+    (
+        "extra-joint",
+        _mutated(lambda m: m["joints"].__setitem__("elbow_roll", {"position": 2048})),
+        Units.TICKS,
+        RejectReason.EXTRA_JOINT,
+    ),
+    (
+        "joints-list",
+        _mutated(lambda m: m.__setitem__("joints", [2048] * 6)),
+        Units.TICKS,
+        RejectReason.WRONG_TYPE,
+    ),
+    (
+        "joint-number",
+        _mutated(lambda m: m["joints"].__setitem__("gripper", 1500)),
+        Units.TICKS,
+        RejectReason.WRONG_TYPE,
+    ),
+    (
+        "position-bool",
+        _mutated(_set_joint("gripper", "position", True)),
+        Units.TICKS,
+        RejectReason.WRONG_TYPE,
+    ),
+    (
+        "position-str",
+        _mutated(_set_joint("gripper", "position", "1500")),
+        Units.TICKS,
+        RejectReason.WRONG_TYPE,
+    ),
+    (
+        "position-null",
+        _mutated(_set_joint("gripper", "position", None)),
+        Units.TICKS,
+        RejectReason.WRONG_TYPE,
+    ),
+    (
+        "ticks-float",
+        _mutated(_set_joint("gripper", "position", 1500.0)),
+        Units.TICKS,
+        RejectReason.WRONG_TYPE,
+    ),
+    (
+        "velocity-str",
+        _mutated(_set_joint("gripper", "velocity", "fast")),
+        Units.TICKS,
+        RejectReason.WRONG_TYPE,
+    ),
+    ("load-bool", _mutated(_set_joint("gripper", "load", False)), Units.TICKS, RejectReason.WRONG_TYPE),
+    ("temp-null", _mutated(_set_joint("gripper", "temp", None)), Units.TICKS, RejectReason.WRONG_TYPE),
+    ("status-float", _mutated(_set_joint("gripper", "status", 1.0)), Units.TICKS, RejectReason.WRONG_TYPE),
+    ("status-bool", _mutated(_set_joint("gripper", "status", True)), Units.TICKS, RejectReason.WRONG_TYPE),
+    ("moving-2", _mutated(_set_joint("gripper", "moving", 2)), Units.TICKS, RejectReason.WRONG_TYPE),
+    ("moving-str", _mutated(_set_joint("gripper", "moving", "true")), Units.TICKS, RejectReason.WRONG_TYPE),
+    ("nan-token", VALID.replace("1500", "NaN").encode(), Units.TICKS, RejectReason.NOT_FINITE),
+    ("infinity-token", VALID.replace("1800", "-Infinity").encode(), Units.TICKS, RejectReason.NOT_FINITE),
+    ("nan-in-ignored-field", (VALID[:-1] + ', "extra": NaN}').encode(), Units.TICKS, RejectReason.NOT_FINITE),
+    (
+        "overflowing-float",
+        payload(DEGREES_EXAMPLE).replace(b"2.01", b"1e400"),
+        Units.DEGREES,
+        RejectReason.NOT_FINITE,
+    ),
+    (
+        "overflowing-current",
+        _mutated(_set_joint("gripper", "current", 1.0)).replace(b"1.0", b"1e999"),
+        Units.TICKS,
+        RejectReason.NOT_FINITE,
+    ),
+    (
+        "ticks-over-4095",
+        _mutated(_set_joint("gripper", "position", 4096)),
+        Units.TICKS,
+        RejectReason.OUT_OF_RANGE,
+    ),
+    (
+        "ticks-negative",
+        _mutated(_set_joint("gripper", "position", -1)),
+        Units.TICKS,
+        RejectReason.OUT_OF_RANGE,
+    ),
+    ("degrees-over-360", payload((361.0, 0, 0, 0, 0, 0)), Units.DEGREES, RejectReason.OUT_OF_RANGE),
+    ("degrees-huge-int", payload((10**400, 0, 0, 0, 0, 0)), Units.DEGREES, RejectReason.OUT_OF_RANGE),
+    ("gripper-over-100", payload((0, 0, 0, 0, 0, 100.5)), Units.DEGREES, RejectReason.OUT_OF_RANGE),
+    ("gripper-negative", payload((0, 0, 0, 0, 0, -0.5)), Units.RANGE100, RejectReason.OUT_OF_RANGE),
+    ("range100-over", payload((0, 0, 100.01, 0, 0, 0)), Units.RANGE100, RejectReason.OUT_OF_RANGE),
+    (
+        "velocity-absurd",
+        _mutated(_set_joint("gripper", "velocity", 10**12)),
+        Units.TICKS,
+        RejectReason.OUT_OF_RANGE,
+    ),
+    ("undecided", payload(ZERO_DEGREES), Units.AUTO, RejectReason.UNITS_UNDECIDED),
+]
+
+
+@pytest.mark.parametrize(
+    ("payload_", "units", "reason"), [r[1:] for r in REJECTS], ids=[r[0] for r in REJECTS]
+)
+def test_rejects(payload_: Any, units: Units, reason: RejectReason) -> None:
+    with pytest.raises(TelemetryRejected) as info:
+        decoder(units).decode(payload_)
+    assert info.value.reason is reason, str(info.value)
+    assert isinstance(info.value, ValueError)
+    assert len(str(info.value)) > 20  # a sentence a person can act on, not a bare code
+
+
+def test_device_mismatch() -> None:
+    with pytest.raises(TelemetryRejected) as info:
+        decoder(Units.TICKS).decode(payload(TICKS_EXAMPLE), topic_device="arm-002")
+    assert info.value.reason is RejectReason.DEVICE_MISMATCH
+    assert "'arm-001'" in str(info.value) and "'arm-002'" in str(info.value)
+
+
+def test_every_reason_is_exercised() -> None:
+    exercised = {r[3] for r in REJECTS} | {RejectReason.DEVICE_MISMATCH}
+    assert exercised == set(RejectReason)
+
+
+def test_size_is_checked_before_parsing() -> None:
+    # Valid JSON just over a small limit is refused for its size, not parsed.
+    small = decoder(Units.TICKS, max_payload_bytes=100)
+    with pytest.raises(TelemetryRejected) as info:
+        small.decode(payload(TICKS_EXAMPLE))
+    assert info.value.reason is RejectReason.TOO_LARGE
+    assert "100-byte limit" in str(info.value)
+
+
+def test_seconds_timestamp_hint() -> None:
+    with pytest.raises(TelemetryRejected) as info:
+        decoder(Units.TICKS).decode(payload(TICKS_EXAMPLE, ts=1706000000))
+    assert "epoch seconds" in str(info.value)
+
+
+# --- config and calibration ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"units": "furlongs"},
+        {"auto_evidence_messages": 0},
+        {"max_payload_bytes": 0},
+        {"gripper_range_rad": (1.0, 0.0)},
+    ],
+)
+def test_bad_config_is_refused(kwargs: dict[str, Any]) -> None:
+    with pytest.raises(ValueError):
+        DecoderConfig(**kwargs)
+
+
+def test_config_accepts_units_strings() -> None:
+    assert DecoderConfig(units="range100").units is Units.RANGE100  # type: ignore[arg-type]
+
+
+def test_example_calibration_loads() -> None:
+    cal = load_calibration(EXAMPLE_CALIBRATION)
+    assert list(cal) == list(NAMES)
+    assert cal["shoulder_pan"] == MotorCalibration(
+        id=1, drive_mode=0, homing_offset=128, range_min=762, range_max=3310
+    )
+    assert cal["wrist_flex"].mid == 2015.5
+    assert Calibration.from_dict(cal.to_dict()) == cal
+
+
+def _write(tmp_path: Path, data: Any) -> Path:
+    path = tmp_path / "cal.json"
+    path.write_text(data if isinstance(data, str) else json.dumps(data))
+    return path
+
+
+def _example_with(joint: str, key: str, value: Any) -> dict:
+    data = json.loads(EXAMPLE_CALIBRATION.read_text())
+    data[joint][key] = value
+    return data
+
+
+@pytest.mark.parametrize(
+    ("data", "needle"),
+    [
+        ("{not json", "not valid JSON"),
+        ([1, 2], "JSON object keyed by motor name"),
+        ({"shoulder_pan": {"id": 1}}, "lacks"),
+        (_example_with("gripper", "range_min", True), "must be a JSON integer"),
+        (_example_with("gripper", "range_min", 3500), "range_min < range_max"),
+        (_example_with("elbow_flex", "range_max", 4096), "range_min < range_max"),
+        (_example_with("elbow_flex", "drive_mode", 2), "drive_mode must be 0 or 1"),
+        (_example_with("elbow_flex", "homing_offset", 3000), "homing_offset"),
+        ({**json.loads(EXAMPLE_CALIBRATION.read_text()), "elbow_roll": 5}, "must be an object"),
+    ],
+)
+def test_bad_calibration_files(tmp_path: Path, data: Any, needle: str) -> None:
+    with pytest.raises(ValueError, match=needle):
+        load_calibration(_write(tmp_path, data))
+
+
+def test_calibration_for_another_robot(tmp_path: Path) -> None:
+    data = json.loads(EXAMPLE_CALIBRATION.read_text())
+    data["wrist_rotate"] = data.pop("wrist_roll")
+    with pytest.raises(ValueError, match="missing wrist_roll; unknown wrist_rotate"):
+        load_calibration(_write(tmp_path, data))
+
+
+def test_missing_calibration_file_names_lerobot_location(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="so_follower"):
+        load_calibration(tmp_path / "nope.json")
