@@ -48,6 +48,7 @@ class TelemetrySection:
     units: str = "auto"
     calibration: str = ""
     max_payload_bytes: int = 131072
+    max_devices: int = 64
 
     @property
     def all_devices(self) -> bool:
@@ -265,6 +266,12 @@ def validate(config: AgentConfig) -> AgentConfig:
         raise ConfigError(
             f"telemetry.max_payload_bytes = {t.max_payload_bytes} is outside 1024..1048576 "
             "(IoT Core caps a message at 131072)"
+        )
+
+    if not 1 <= t.max_devices <= 10000:
+        raise ConfigError(
+            f"telemetry.max_devices = {t.max_devices} is outside 1..10000; it bounds how many twins a fleet "
+            'subscription (devices = ["*"]) may create'
         )
 
     if tw.mode not in MODE_CHOICES:

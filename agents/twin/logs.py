@@ -97,7 +97,7 @@ class RateLimitedLog:
         self._last: dict[Any, float] = {}
         self._suppressed: dict[Any, int] = {}
 
-    def log(self, key: Any, level: int, msg: str, *args: Any, **fields: Any) -> bool:
+    def log(self, key: Any, level: int, msg: str, *args: Any, exc_info: bool = False, **fields: Any) -> bool:
         now = self._clock()
         if len(self._last) > 4096:
             # Keys come from the network (device ids from topics): bound the memory they can take.
@@ -108,5 +108,5 @@ class RateLimitedLog:
             return False
         self._last[key] = now
         suppressed = self._suppressed.pop(key, 0)
-        self._logger.log(level, msg, *args, extra={**fields, "suppressed": suppressed})
+        self._logger.log(level, msg, *args, exc_info=exc_info, extra={**fields, "suppressed": suppressed})
         return True
