@@ -1,0 +1,301 @@
+"""SessionRecorder: the recorded USD stage, reopened with usd-core, reproduces MuJoCo's forward kinematics."""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+from pxr import Gf, Sdf, Usd, UsdGeom
+from twin import so101
+from twin.model import RobotModel
+from twin.recorder import SessionRecorder, default_asset_path, sanitise_prim_name
+from twin.twin import DeviceTwin
+
+ROOT = Path(__file__).resolve().parents[1]
+SCENE = ROOT / "robots" / "so101" / "scene.xml"
+BODY_REL = {  # where the bundled asset (mujoco-usd-converter layout) nests the bodies
+    "base": "Geometry/base",
+    "shoulder": "Geometry/base/shoulder",
+    "upper_arm": "Geometry/base/shoulder/upper_arm",
+    "lower_arm": "Geometry/base/shoulder/upper_arm/lower_arm",
+    "wrist": "Geometry/base/shoulder/upper_arm/lower_arm/wrist",
+    "gripper": "Geometry/base/shoulder/upper_arm/lower_arm/wrist/gripper",
+    "moving_jaw": "Geometry/base/shoulder/upper_arm/lower_arm/wrist/gripper/moving_jaw",
+}
+# Decoded angle sets (rad, JOINT_NAMES order): zero, the LeRobot rest pose, and two arbitrary in-range poses.
+ANGLE_SETS = [
+    (0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+    tuple(math.radians(d) for d in (2.01, -98.89, 97.27, 63.70, -3.44, 4.83)),
+    (1.2, -0.7, 1.1, -1.3, 2.5, 1.5),
+    (-1.8, 1.6, -1.6, 1.6, -2.7, -0.1),
+]
+
+
+def _fk_poses(model: mujoco.MjModel, data: mujoco.MjData, angles) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    for name, value in zip(so101.JOINT_NAMES, angles, strict=True):
+        data.qpos[model.joint(name).qposadr[0]] = value
+    mujoco.mj_kinematics(model, data)
+    return {name: (data.body(name).xpos.copy(), data.body(name).xquat.copy()) for name in so101.BODY_NAMES}
+
+
+def _quat_matrix(quat: np.ndarray) -> np.ndarray:
+    m = np.empty(9)
+    mujoco.mju_quat2Mat(m, quat)
+    return m.reshape(3, 3)
+
+
+def _assert_world_pose(
+    prim: Usd.Prim, time_code: float, pos: np.ndarray, quat: np.ndarray, label: str
+) -> None:
+    world = UsdGeom.XformCache(Usd.TimeCode(time_code)).GetLocalToWorldTransform(prim)
+    np.testing.assert_allclose(world.ExtractTranslation(), pos, atol=1e-5, err_msg=label)
+    # Gf is row-vector: its 3x3 block is the transpose of MuJoCo's rotation matrix.
+    rotation = np.array(world.ExtractRotationMatrix()).T
+    np.testing.assert_allclose(rotation, _quat_matrix(quat), atol=1e-5, err_msg=label)
+
+
+@pytest.fixture(scope="module")
+def mj() -> tuple[mujoco.MjModel, mujoco.MjData]:
+    model = mujoco.MjModel.from_xml_path(str(SCENE))
+    return model, mujoco.MjData(model)
+
+
+def test_recorded_world_transforms_equal_mujoco_fk(tmp_path: Path, mj) -> None:
+    model, data = mj
+    session = tmp_path / "sessions" / "run1.usda"
+    expected: dict[tuple[str, float], dict] = {}
+    with SessionRecorder(session, time_codes_per_second=30.0) as rec:
+        for i, angles in enumerate(ANGLE_SETS):
+            t = 100.0 + 0.1 * i  # any monotonic clock: the first sample becomes time code 0
+            for device, sign in (("arm-001", 1.0), ("lab/arm 2", -1.0)):
+                # The second device mirrors the first so both are checked at different poses.
+                mirrored = [
+                    float(np.clip(sign * a if j != "gripper" else a, *so101.JOINT_RANGES_RAD[j]))
+                    for j, a in zip(so101.JOINT_NAMES, angles, strict=True)
+                ]
+                poses = _fk_poses(model, data, mirrored)
+                assert rec.record(device, t, poses)
+                expected[device, rec.time_code(t)] = poses
+        assert rec.time_origin_s == 100.0
+        devices = rec.devices
+    assert devices == {"arm-001": "/World/arm_001", "lab/arm 2": "/World/lab_arm_2"}
+
+    stage = Usd.Stage.Open(str(session))
+    assert stage.GetTimeCodesPerSecond() == 30.0
+    assert stage.GetStartTimeCode() == 0.0
+    assert stage.GetEndTimeCode() == pytest.approx(9.0)
+    assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.z
+    for (device, time_code), poses in expected.items():
+        root = stage.GetPrimAtPath(devices[device])
+        assert root.GetCustomDataByKey("twin:deviceId") == device
+        for body, (pos, quat) in poses.items():
+            prim = stage.GetPrimAtPath(f"{devices[device]}/{BODY_REL[body]}")
+            assert prim, body
+            _assert_world_pose(prim, time_code, pos, quat, f"{device} {body} @ {time_code}")
+
+
+def test_asset_is_referenced_relative_to_the_session_file(tmp_path: Path, mj) -> None:
+    model, data = mj
+    session = tmp_path / "run.usda"
+    with SessionRecorder(session) as rec:
+        rec.record("arm", 0.0, _fk_poses(model, data, ANGLE_SETS[0]))
+    layer = Sdf.Layer.OpenAsAnonymous(str(session))
+    refs = layer.GetPrimAtPath("/World/arm").referenceList.prependedItems
+    assert len(refs) == 1
+    asset = refs[0].assetPath
+    assert not Path(asset).is_absolute()
+    assert (session.parent / asset).resolve() == default_asset_path().resolve()
+
+
+def test_device_twin_body_poses_round_trip(tmp_path: Path) -> None:
+    robot = RobotModel.load()
+    twin = DeviceTwin(robot, "arm-7")
+    session = tmp_path / "twin.usda"
+    recorded = []
+    with SessionRecorder(session, time_codes_per_second=10.0) as rec:
+        for i, angles in enumerate(ANGLE_SETS):
+            assert twin.apply(dict(zip(so101.JOINT_NAMES, angles, strict=True)), 1_000 + 100 * i)
+            poses = twin.body_poses()
+            assert rec.record("arm-7", 0.1 * i, poses)
+            recorded.append((rec.time_code(0.1 * i), poses))
+    stage = Usd.Stage.Open(str(session))
+    for time_code, poses in recorded:
+        for body, (pos, quat) in poses.items():
+            prim = stage.GetPrimAtPath(f"/World/arm_7/{BODY_REL[body]}")
+            _assert_world_pose(prim, time_code, pos, quat, f"{body} @ {time_code}")
+
+
+def test_flush_writes_samples_before_close(tmp_path: Path, mj) -> None:
+    model, data = mj
+    session = tmp_path / "live.usda"
+    rec = SessionRecorder(session, flush_interval_s=0.2)
+    try:
+        rec.record("arm", 0.0, _fk_poses(model, data, ANGLE_SETS[1]))
+        on_disk = Sdf.Layer.OpenAsAnonymous(str(session))
+        assert not on_disk.GetPrimAtPath("/World/arm"), "saved before the flush interval elapsed"
+        time.sleep(0.25)
+        rec.record("arm", 1.0, _fk_poses(model, data, ANGLE_SETS[2]))
+        assert rec.flushes >= 1
+        on_disk = Sdf.Layer.OpenAsAnonymous(str(session))
+        attr = on_disk.GetAttributeAtPath(f"/World/arm/{BODY_REL['wrist']}.xformOp:orient:twin")
+        assert attr is not None
+        assert sorted(on_disk.ListTimeSamplesForPath(attr.path)) == [0.0, 30.0]
+        assert on_disk.endTimeCode == 30.0
+    finally:
+        rec.close()
+    rec.close()  # idempotent
+    assert rec.closed
+
+
+def test_at_most_time_codes_per_second_per_device(tmp_path: Path, mj) -> None:
+    model, data = mj
+    poses = _fk_poses(model, data, ANGLE_SETS[2])
+    with SessionRecorder(tmp_path / "rate.usda", time_codes_per_second=10.0) as rec:
+        kept = [rec.record("fast", i / 100.0, poses) for i in range(101)]  # 100 Hz for 1 s
+        assert sum(kept) == 11  # time codes 0, 1, ..., 10
+        assert rec.samples_dropped == 90
+        assert not rec.record("fast", 0.5, poses)  # out of order: never rewrites the past
+        assert rec.record("slow", 0.55, poses)  # another device keeps its own pace
+    layer = Sdf.Layer.OpenAsAnonymous(str(tmp_path / "rate.usda"))
+    path = Sdf.Path(f"/World/fast/{BODY_REL['base']}.xformOp:translate:twin")
+    assert layer.ListTimeSamplesForPath(path) == [float(i) for i in range(11)]
+
+
+def test_bad_input_is_counted_not_raised(tmp_path: Path, mj, caplog: pytest.LogCaptureFixture) -> None:
+    model, data = mj
+    good = _fk_poses(model, data, ANGLE_SETS[0])
+    nan_pose = dict(good, wrist=(np.array([np.nan, 0, 0]), good["wrist"][1]))
+    short_quat = dict(good, gripper=(good["gripper"][0], np.array([1.0, 0.0])))
+    rec = SessionRecorder(tmp_path / "bad.usda")
+    with caplog.at_level(logging.WARNING, logger="twin.recorder"):
+        assert not rec.record("arm", 0.0, {})
+        assert not rec.record("arm", 0.0, {"elbow": (np.zeros(3), np.array([1.0, 0, 0, 0]))})
+        assert not rec.record("arm", 0.0, nan_pose)
+        assert not rec.record("arm", 0.0, short_quat)
+        assert not rec.record("arm", float("nan"), good)
+        assert not rec.record("arm", 0.0, [1, 2, 3])  # type: ignore[arg-type]
+    assert rec.samples_rejected == 6
+    assert "so101.BODY_NAMES" in caplog.text and "'wrist'" in caplog.text
+    assert rec.record("arm", 0.0, good)
+    rec.close()
+    assert not rec.record("arm", 5.0, good)  # after close: dropped, no exception
+    assert rec.samples_written == 1
+
+
+def test_missing_body_keeps_the_asset_pose_and_follows_its_parent(tmp_path: Path, mj) -> None:
+    model, data = mj
+    # The bundled asset's jaw transform is the MJCF's at gripper = 0, so the expected jaw pose is FK there.
+    poses = _fk_poses(model, data, (*ANGLE_SETS[2][:5], 0.0))
+    jaw_pos, jaw_quat = poses.pop("moving_jaw")  # like a user MJCF whose jaw body has another name
+    session = tmp_path / "partial.usda"
+    with SessionRecorder(session) as rec:
+        assert rec.record("arm", 0.0, poses)
+    stage = Usd.Stage.Open(str(session))
+    _assert_world_pose(
+        stage.GetPrimAtPath(f"/World/arm/{BODY_REL['moving_jaw']}"), 0.0, jaw_pos, jaw_quat, "jaw"
+    )
+
+
+def test_device_names_are_sanitised_and_unique(tmp_path: Path, mj) -> None:
+    model, data = mj
+    poses = _fk_poses(model, data, ANGLE_SETS[0])
+    assert sanitise_prim_name("arm-001") == "arm_001"
+    assert sanitise_prim_name("7th arm") == "_7th_arm"
+    with SessionRecorder(tmp_path / "names.usda") as rec:
+        rec.record("arm-1", 0.0, poses)
+        rec.record("arm_1", 0.0, poses)
+        assert rec.devices == {"arm-1": "/World/arm_1", "arm_1": "/World/arm_1_2"}
+
+
+def test_constructor_errors_name_the_fix(tmp_path: Path) -> None:
+    existing = tmp_path / "exists.usda"
+    existing.write_text("#usda 1.0\n")
+    with pytest.raises(FileExistsError, match="pick a new name"):
+        SessionRecorder(existing)
+    with pytest.raises(FileNotFoundError, match="make usd-asset"):
+        SessionRecorder(tmp_path / "a.usda", asset_path=tmp_path / "missing.usda")
+    with pytest.raises(ValueError, match="time_codes_per_second"):
+        SessionRecorder(tmp_path / "b.usda", time_codes_per_second=0)
+    with pytest.raises(ValueError, match="flush_interval_s"):
+        SessionRecorder(tmp_path / "c.usda", flush_interval_s=float("nan"))
+
+
+# Golden-style check on a tiny inline model: every body hinges about z, 0.1 m along x from its parent body,
+# and the hand-written asset hides each child under a static "Mount" Xform (0.05 m along x), so the recorder
+# must remove that offset. At 90 degrees on the first joint, each body's local sample is exactly known.
+TINY_MJCF = """
+<mujoco>
+  <worldbody>
+    <body name="base">
+      <body name="shoulder" pos="0.1 0 0"><joint name="j1" axis="0 0 1"/><geom size="0.01"/>
+        <body name="upper_arm" pos="0.1 0 0"><joint name="j2" axis="0 0 1"/><geom size="0.01"/>
+          <body name="lower_arm" pos="0.1 0 0"><geom size="0.01"/>
+            <body name="wrist" pos="0.1 0 0"><geom size="0.01"/>
+              <body name="gripper" pos="0.1 0 0"><geom size="0.01"/>
+                <body name="moving_jaw" pos="0.1 0 0"><geom size="0.01"/></body>
+              </body>
+            </body>
+          </body>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def _tiny_asset(path: Path) -> None:
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    root = UsdGeom.Xform.Define(stage, "/tiny")
+    stage.SetDefaultPrim(root.GetPrim())
+    parent = UsdGeom.Xform.Define(stage, "/tiny/base")
+    for name in so101.BODY_NAMES[1:]:
+        mount = UsdGeom.Xform.Define(stage, parent.GetPath().AppendChild("Mount"))
+        mount.AddTranslateOp().Set(Gf.Vec3d(0.05, 0, 0))
+        body = UsdGeom.Xform.Define(stage, mount.GetPath().AppendChild(name))
+        body.AddTranslateOp().Set(Gf.Vec3d(0.05, 0, 0))
+        parent = body
+    stage.GetRootLayer().Save()
+
+
+def test_golden_tiny_model(tmp_path: Path) -> None:
+    _tiny_asset(tmp_path / "tiny.usda")
+    model = mujoco.MjModel.from_xml_string(TINY_MJCF)
+    data = mujoco.MjData(model)
+    data.qpos[:] = (math.pi / 2, 0.0)
+    mujoco.mj_kinematics(model, data)
+    poses = {name: (data.body(name).xpos.copy(), data.body(name).xquat.copy()) for name in so101.BODY_NAMES}
+    with SessionRecorder(tmp_path / "out" / "s.usda", asset_path=tmp_path / "tiny.usda") as rec:
+        assert rec.record("tiny", 2.0, poses)
+    layer = Sdf.Layer.OpenAsAnonymous(str(tmp_path / "out" / "s.usda"))
+    assert layer.GetPrimAtPath("/World/tiny").referenceList.prependedItems[0].assetPath == "../tiny.usda"
+    shoulder = "/World/tiny/base/Mount/shoulder"
+    upper = f"{shoulder}/Mount/upper_arm"
+    half = math.sqrt(0.5)
+    golden = {
+        f"{shoulder}.xformOp:translate:twin": Gf.Vec3d(0.05, 0, 0),
+        f"{shoulder}.xformOp:orient:twin": Gf.Quatd(half, 0, 0, half),
+        f"{upper}.xformOp:translate:twin": Gf.Vec3d(0.05, 0, 0),
+        f"{upper}.xformOp:orient:twin": Gf.Quatd(1, 0, 0, 0),
+        "/World/tiny/base.xformOp:orient:twin": Gf.Quatd(1, 0, 0, 0),
+    }
+    for path, value in golden.items():
+        samples = layer.ListTimeSamplesForPath(Sdf.Path(path))
+        assert samples == [0.0], path
+        got = layer.QueryTimeSample(Sdf.Path(path), 0.0)
+        if isinstance(value, Gf.Quatd):
+            assert abs(Gf.Dot(got, value)) == pytest.approx(1.0, abs=1e-12), (path, got)
+        else:
+            assert Gf.IsClose(got, value, 1e-12), (path, got)
+    order = layer.GetAttributeAtPath(f"{shoulder}.xformOpOrder").default
+    assert list(order) == ["xformOp:translate:twin", "xformOp:orient:twin"]
+    stage = Usd.Stage.Open(str(tmp_path / "out" / "s.usda"))
+    tip = stage.GetPrimAtPath(f"{upper}/Mount/lower_arm/Mount/wrist/Mount/gripper/Mount/moving_jaw")
+    _assert_world_pose(tip, 0.0, poses["moving_jaw"][0], poses["moving_jaw"][1], "tiny tip")
