@@ -1,0 +1,285 @@
+"""twin.render and `twin render`: offscreen PNGs of the arm that show the arm, in the pose asked for."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+# MuJoCo binds its GL backend at first import; headless here (the Makefile exports the same).
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import numpy as np
+import pytest
+from PIL import Image
+from twin import so101
+from twin.cli import main
+from twin.model import RobotModel, default_model_path
+from twin.render import RenderError, render_png
+from twin.telemetry import DecoderConfig, TelemetryDecoder, Units
+
+REST_DEG = (2.01, -98.89, 97.27, 63.70, -3.44, 0.0)
+REST = {name: deg * so101.DEG for name, deg in zip(so101.JOINT_NAMES, REST_DEG, strict=True)}
+W, H = 320, 240
+# Rows under the overlay text band, for comparing renders whose labels differ.
+BELOW_TEXT = slice(40, None)
+
+DEGREES_PAYLOAD = {
+    "device_id": "arm-001",
+    "timestamp": 1706000000000,
+    "joints": {
+        "shoulder_pan": {"position": 2.01, "velocity": 0, "load": 12, "temp": 31, "current": 40},
+        "shoulder_lift": {"position": -98.89, "velocity": 0, "load": 80, "temp": 33, "current": 90},
+        "elbow_flex": {"position": 97.27, "velocity": 0, "load": 60, "temp": 32, "current": 70},
+        "wrist_flex": {"position": 63.70, "velocity": 0, "load": 20, "temp": 31, "current": 30},
+        "wrist_roll": {"position": -3.44, "velocity": 0, "load": 5, "temp": 30, "current": 10},
+        "gripper": {"position": 4.83, "velocity": 0, "load": 3, "temp": 30, "current": 10},
+    },
+}
+TICKS_PAYLOAD = {
+    "device_id": "arm-002",
+    "timestamp": 1706000000100,
+    "joints": {
+        name: {"position": pos, "velocity": 0, "load": 10, "temp": 30, "current": 80}
+        for name, pos in zip(so101.JOINT_NAMES, (2048, 1800, 2200, 2100, 2048, 1500), strict=True)
+    },
+}
+
+
+@pytest.fixture(scope="module")
+def robot() -> RobotModel:
+    return RobotModel.load()
+
+
+def pixels(path: Path) -> np.ndarray:
+    with Image.open(path) as image:
+        return np.asarray(image.convert("RGB"), dtype=np.int16)
+
+
+def floor_only_scene(tmp_path: Path) -> Path:
+    """The bundled scene with the arm swapped for an invisible stand-in chain: floor, sky and camera only."""
+    chain = "".join(
+        f'<body name="ghost{i}" pos="0 0 0.01"><joint name="{joint}" range="-3 3"/>'
+        '<geom size="0.001" rgba="0 0 0 0" contype="0" conaffinity="0" mass="0.01"/>'
+        for i, joint in enumerate(so101.JOINT_NAMES)
+    ) + "</body>" * len(so101.JOINT_NAMES)
+    (tmp_path / "ghost.xml").write_text(f"<mujoco><worldbody>{chain}</worldbody></mujoco>")
+    scene = (
+        default_model_path().read_text().replace('<include file="so101.xml"/>', '<include file="ghost.xml"/>')
+    )
+    assert 'include file="ghost.xml"' in scene
+    path = tmp_path / "scene.xml"
+    path.write_text(scene)
+    return path
+
+
+def test_png_has_the_size_asked_and_is_not_blank(robot: RobotModel, tmp_path: Path) -> None:
+    out = render_png(robot, REST, tmp_path / "sub" / "rest.png", width=W, height=H)
+    assert out == tmp_path / "sub" / "rest.png"
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with Image.open(out) as image:
+        assert image.size == (W, H)
+    img = pixels(out)
+    assert img.std() > 10.0
+
+
+def test_the_arm_is_visible_against_the_background(robot: RobotModel, tmp_path: Path) -> None:
+    arm = pixels(render_png(robot, {}, tmp_path / "arm.png", width=W, height=H))
+    empty = pixels(
+        render_png(RobotModel.load(floor_only_scene(tmp_path)), {}, tmp_path / "empty.png", width=W, height=H)
+    )
+    changed = np.abs(arm - empty).sum(axis=2) > 60
+    # The arm covers a real part of the overview (measured ~12 %), not a speck, and stays inside the frame.
+    assert 0.03 < changed.mean() < 0.6
+    rows, cols = np.nonzero(changed)
+    # Top, left and right stay clear; the floor's reflection and the shadow may run off the bottom edge.
+    assert rows.min() > 0 and cols.min() > 0 and cols.max() < W - 1
+
+
+def test_different_poses_give_different_images(robot: RobotModel, tmp_path: Path) -> None:
+    zero = pixels(render_png(robot, {}, tmp_path / "zero.png", width=W, height=H))
+    rest = pixels(render_png(robot, REST, tmp_path / "rest.png", width=W, height=H))
+    again = pixels(render_png(robot, {}, tmp_path / "zero2.png", width=W, height=H))
+    assert (np.abs(zero - rest).sum(axis=2) > 60).mean() > 0.02
+    assert np.array_equal(zero, again)  # deterministic: same pose, same pixels
+
+
+def test_free_camera_frames_a_model_without_cameras(tmp_path: Path) -> None:
+    bare = RobotModel.load(default_model_path().with_name("so101.xml"))  # no floor, no sky, no camera
+    assert bare.camera_names == ()
+    for name, pose in (("zero", {}), ("rest", REST)):
+        img = pixels(render_png(bare, pose, tmp_path / f"{name}.png", width=W, height=H))
+        arm = img.sum(axis=2) > 30  # the background of a model without a skybox is black
+        rows, cols = np.nonzero(arm)
+        assert arm.mean() > 0.02, name
+        # Framed: inside the image with a margin, and big enough to see.
+        assert rows.min() > 2 and cols.min() > 2 and rows.max() < H - 3 and cols.max() < W - 3, name
+        assert cols.max() - cols.min() > W * 0.25, name
+
+
+def test_text_overlay_is_drawn(robot: RobotModel, tmp_path: Path) -> None:
+    plain = pixels(render_png(robot, {}, tmp_path / "plain.png", width=W, height=H))
+    text = pixels(render_png(robot, {}, tmp_path / "text.png", width=W, height=H, text="arm-001"))
+    diff = np.abs(plain - text).sum(axis=2) > 0
+    assert diff[:40, :150].mean() > 0.05
+    assert not diff[BELOW_TEXT].any()
+
+
+def test_larger_than_the_model_buffer_and_named_cameras(robot: RobotModel, tmp_path: Path) -> None:
+    wide = robot.model.vis.global_.offwidth + 64
+    with Image.open(render_png(robot, {}, tmp_path / "wide.png", width=wide, height=60)) as image:
+        assert image.size == (wide, 60)
+    with pytest.raises(RenderError, match=r"camera 'nope' .*cameras: overview"):
+        render_png(robot, {}, tmp_path / "x.png", camera="nope")
+    with pytest.raises(RenderError, match="not positive"):
+        render_png(robot, {}, tmp_path / "x.png", width=0)
+
+
+# -- the command ---------------------------------------------------------------------------------------------
+
+
+def test_cli_pose(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "pose.png"
+    pose = {"shoulder_lift": -1.2, "elbow_flex": 1.1}
+    rc = main(
+        ["render", "--pose", json.dumps(pose), "--out", str(out), "--width", str(W), "--height", str(H)]
+    )
+    assert rc == 0
+    assert capsys.readouterr().out.strip() == str(out)
+    robot = RobotModel.load()
+    expected = pixels(render_png(robot, pose, tmp_path / "lib.png", width=W, height=H))
+    assert np.array_equal(pixels(out)[BELOW_TEXT], expected[BELOW_TEXT])
+
+
+def test_cli_payload_renders_the_decoded_pose(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    payload = tmp_path / "message.json"
+    payload.write_text(json.dumps(DEGREES_PAYLOAD))
+    out = tmp_path / "payload.png"
+    rc = main(
+        [
+            "render",
+            "--payload",
+            str(payload),
+            "--units",
+            "degrees",
+            "--out",
+            str(out),
+            "--width",
+            str(W),
+            "--height",
+            str(H),
+        ]
+    )
+    assert rc == 0, capsys.readouterr().err
+    decoded = TelemetryDecoder(DecoderConfig(units=Units.DEGREES)).decode(payload.read_bytes())
+    expected = pixels(
+        render_png(RobotModel.load(), decoded.angles_rad, tmp_path / "lib.png", width=W, height=H)
+    )
+    assert np.array_equal(pixels(out)[BELOW_TEXT], expected[BELOW_TEXT])
+    # auto decides from this one message (fractional, negative positions: degrees): the same image.
+    auto = tmp_path / "auto.png"
+    assert (
+        main(["render", "--payload", str(payload), "--out", str(auto), "--width", str(W), "--height", str(H)])
+        == 0
+    )
+    assert np.array_equal(pixels(auto)[BELOW_TEXT], expected[BELOW_TEXT])
+
+
+def test_cli_payload_from_stdin_in_ticks(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    stdin = io.TextIOWrapper(io.BytesIO(json.dumps(TICKS_PAYLOAD).encode()))
+    monkeypatch.setattr(sys, "stdin", stdin)
+    out = tmp_path / "ticks.png"
+    rc = main(
+        [
+            "render",
+            "--payload",
+            "-",
+            "--units",
+            "ticks",
+            "--out",
+            str(out),
+            "--width",
+            str(W),
+            "--height",
+            str(H),
+        ]
+    )
+    assert rc == 0, capsys.readouterr().err
+    with Image.open(out) as image:
+        assert image.size == (W, H)
+
+
+@pytest.mark.parametrize(
+    ("payload", "units", "reason"),
+    [
+        (b"{not json", "degrees", "not_json"),
+        (json.dumps(DEGREES_PAYLOAD).encode(), "ticks", "wrong_type"),
+        (json.dumps({**DEGREES_PAYLOAD, "joints": {}}).encode(), "degrees", "missing_joint"),
+    ],
+)
+def test_cli_rejected_payload_exits_2_with_the_reason(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], payload: bytes, units: str, reason: str
+) -> None:
+    path = tmp_path / "bad.json"
+    path.write_bytes(payload)
+    out = tmp_path / "bad.png"
+    assert main(["render", "--payload", str(path), "--units", units, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert f"payload rejected ({reason})" in err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("pose", "message"),
+    [
+        ('{"elbow": 1}', "unknown joints elbow"),
+        ("[1, 2]", "JSON object"),
+        ('{"elbow_flex": "1"}', "not a finite number"),
+        ("{oops", "not valid JSON"),
+    ],
+)
+def test_cli_bad_pose_exits_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], pose: str, message: str
+) -> None:
+    assert main(["render", "--pose", pose, "--out", str(tmp_path / "x.png")]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_cli_missing_model_exits_1(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["render", "--model", str(tmp_path / "none.xml"), "--out", str(tmp_path / "x.png")]) == 1
+    assert "[twin] model" in capsys.readouterr().err
+
+
+def test_console_script_end_to_end(tmp_path: Path) -> None:
+    twin_bin = shutil.which("twin", path=str(Path(sys.executable).parent))
+    assert twin_bin, "the `twin` console script is not installed in this venv"
+    out = tmp_path / "cli.png"
+    result = subprocess.run(
+        [
+            twin_bin,
+            "render",
+            "--pose",
+            '{"shoulder_pan": 0.5}',
+            "--out",
+            str(out),
+            "--width",
+            "200",
+            "--height",
+            "150",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "MUJOCO_GL": "egl"},
+        check=False,
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == str(out)
+    with Image.open(out) as image:
+        assert image.size == (200, 150)
