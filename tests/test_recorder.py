@@ -65,9 +65,10 @@ def mj() -> tuple[mujoco.MjModel, mujoco.MjData]:
     return model, mujoco.MjData(model)
 
 
-def test_recorded_world_transforms_equal_mujoco_fk(tmp_path: Path, mj) -> None:
+@pytest.mark.parametrize("suffix", [".usda", ".usdc"])  # text by default; crate for long sessions
+def test_recorded_world_transforms_equal_mujoco_fk(tmp_path: Path, mj, suffix: str) -> None:
     model, data = mj
-    session = tmp_path / "sessions" / "run1.usda"
+    session = tmp_path / "sessions" / f"run1{suffix}"
     expected: dict[tuple[str, float], dict] = {}
     with SessionRecorder(session, time_codes_per_second=30.0) as rec:
         for i, angles in enumerate(ANGLE_SETS):
