@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import os
+
+# The first module to import mujoco binds its GL backend; headless, so that later render tests work too.
+os.environ.setdefault("MUJOCO_GL", "egl")
+
 import logging
 import shutil
 from pathlib import Path

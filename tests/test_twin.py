@@ -1,6 +1,11 @@
-"""twin.twin.DeviceTwin on the bundled SO-101 (and small inline MJCF where a property needs isolating)."""
+"""twin.twin.DeviceTwin on the bundled SO-101 (and a weightless variant of it for the torque baseline)."""
 
 from __future__ import annotations
+
+import os
+
+# The first module to import mujoco binds its GL backend; headless, so that later render tests work too.
+os.environ.setdefault("MUJOCO_GL", "egl")
 
 import math
 from pathlib import Path

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -27,6 +28,23 @@ _FREE_ELEVATION_DEG = -25.0
 
 class RenderError(RuntimeError):
     """Rendering failed (no OpenGL context, unknown camera ...); the message says what to change."""
+
+
+def _check_gl_backend() -> None:
+    # GLFW/GLX without a display aborts the whole process inside MuJoCo instead of raising, so refuse first.
+    if sys.platform != "linux" or os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"):
+        return
+    try:
+        from mujoco.rendering.classic import gl_context  # noqa: PLC0415 - only to read the bound backend
+
+        bound = str(getattr(gl_context, "_MUJOCO_GL", os.environ.get("MUJOCO_GL", "")))
+    except ImportError:
+        bound = os.environ.get("MUJOCO_GL", "")
+    if bound.lower() not in ("egl", "osmesa"):
+        raise RenderError(
+            f"MuJoCo was imported with MUJOCO_GL={bound or '<unset>'} (GLFW, needs a display) and no DISPLAY "
+            "is set. Set MUJOCO_GL=egl (or osmesa) in the environment before the process starts."
+        )
 
 
 def _free_camera(robot: RobotModel, data: mujoco.MjData) -> mujoco.MjvCamera:
@@ -106,6 +124,7 @@ def render_png(
     if name is None and DEFAULT_CAMERA in robot.camera_names:
         name = DEFAULT_CAMERA
     view: str | mujoco.MjvCamera = name if name is not None else _free_camera(robot, twin.data)
+    _check_gl_backend()
     try:
         renderer = mujoco.Renderer(model, height=height, width=width)
     except Exception as exc:  # the GL backends raise assorted types (FatalError, GLFWError, ImportError)
