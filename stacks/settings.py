@@ -58,7 +58,7 @@ class TwinSettings:
     termination_protection: bool = False
     auto_stop_cron: str | None = None
     auto_stop_timezone: str = "UTC"
-    stack_name: str = "So101Twin"
+    stack_name: str = "So101TwinStack"
 
     @property
     def client_is_ipv6(self) -> bool:
@@ -290,6 +290,6 @@ def _timezone(value: str) -> str:
 def _stack_name(value: str) -> str:
     if not _STACK_NAME_RE.match(value):
         raise SettingsError(
-            f"stackName={value} is not a CloudFormation stack name; pass e.g. -c stackName=So101Twin"
+            f"stackName={value} is not a CloudFormation stack name; pass e.g. -c stackName=So101TwinStack"
         )
     return value

@@ -1,0 +1,178 @@
+#!/usr/bin/env bash
+# Install the so101-twin agent: a Python venv with the agent distribution (package `twin` plus the robot
+# model `twin_robots`), its config, its systemd unit and the DCV desktop's viewer autostart.
+#
+# Runs as part of bootstrap.sh on the host, and in tests against a temporary tree:
+#   ROOT        install prefix (default /); with ROOT != / nothing outside ROOT is touched (no systemctl, no chown)
+#   AGENT_SRC   the unpacked agent asset: pyproject.toml, README.md, agents/, robots/   (required)
+#   PYTHON      interpreter for the venv (default python3.12; mujoco 4 and usd-core 26 need >= 3.11)
+#   VENV_ARGS   extra `python -m venv` arguments; PIP_ARGS extra `pip install` arguments
+#   AWS_REGION, TOPIC_PREFIX, DEVICES (comma list or *), UNITS, CLIENT_ID_PREFIX, DESKTOP_USER: the settings
+# Idempotent: each file is written only when its content differs, pip runs only when the source changed.
+set -euo pipefail
+
+ROOT="${ROOT:-/}"
+ROOT="${ROOT%/}"
+PYTHON="${PYTHON:-python3.12}"
+VENV_ARGS="${VENV_ARGS:-}"
+PIP_ARGS="${PIP_ARGS:-}"
+: "${AGENT_SRC:?set AGENT_SRC to the unpacked agent asset (pyproject.toml, agents/, robots/)}"
+AWS_REGION="${AWS_REGION:-}"
+TOPIC_PREFIX="${TOPIC_PREFIX:-dt/lerobot}"
+DEVICES="${DEVICES:-arm-001}"
+UNITS="${UNITS:-auto}"
+CLIENT_ID_PREFIX="${CLIENT_ID_PREFIX:-so101-twin-}"
+DESKTOP_USER="${DESKTOP_USER:-ubuntu}"
+
+VENV=/opt/so101-twin/venv
+CONFIG=/etc/so101-twin/agent.toml
+UNIT=/etc/systemd/system/so101-twin-agent.service
+AUTOSTART="/home/${DESKTOP_USER}/.config/autostart/so101-twin-view.desktop"
+SESSIONS=/var/lib/so101-twin/sessions
+CHANGED=0
+
+log() { echo "install-agent: $*"; }
+
+# write_file PATH MODE: content on stdin; replaces PATH only when the content differs.
+write_file() {
+  local path="${ROOT}$1" mode="$2" tmp
+  tmp="$(mktemp)"
+  cat >"$tmp"
+  if [ -f "$path" ] && cmp -s "$tmp" "$path"; then
+    rm -f "$tmp"
+    return 0
+  fi
+  mkdir -p "$(dirname "$path")"
+  install -m "$mode" "$tmp" "$path"
+  rm -f "$tmp"
+  log "wrote $1"
+  CHANGED=1
+}
+
+toml_list() {
+  local out="" item
+  local IFS=,
+  for item in $1; do
+    item="${item// /}"
+    [ -n "$item" ] && out="${out:+$out, }\"$item\""
+  done
+  printf '[%s]' "$out"
+}
+
+case "$UNITS" in ticks | degrees | range100 | auto) ;; *)
+  echo "install-agent: UNITS=$UNITS is not one of ticks, degrees, range100, auto" >&2
+  exit 2
+  ;;
+esac
+[ -f "$AGENT_SRC/pyproject.toml" ] || {
+  echo "install-agent: $AGENT_SRC has no pyproject.toml; point AGENT_SRC at the unpacked agent asset" >&2
+  exit 2
+}
+
+# --- venv and the agent package -------------------------------------------------------------------
+if [ ! -x "${ROOT}${VENV}/bin/python" ]; then
+  log "creating venv ${VENV} with ${PYTHON}"
+  # shellcheck disable=SC2086 # VENV_ARGS is a list of flags
+  "$PYTHON" -m venv $VENV_ARGS "${ROOT}${VENV}"
+  CHANGED=1
+fi
+# Hash of the shipped source: pip runs again only when the asset changed (a re-run changes nothing).
+src_hash="$(cd "$AGENT_SRC" && find pyproject.toml README.md agents robots -type f ! -path '*/__pycache__/*' \
+  ! -name '*.pyc' -print0 2>/dev/null | LC_ALL=C sort -z | xargs -0 sha256sum | sha256sum | cut -d' ' -f1)"
+stamp="${ROOT}${VENV}/.so101-twin-source.sha256"
+if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$src_hash" ]; then
+  log "installing the agent package from $AGENT_SRC"
+  build="$(mktemp -d)"
+  # Build from a copy: setuptools writes build/ and *.egg-info next to the sources.
+  cp -r "$AGENT_SRC"/. "$build"/
+  # shellcheck disable=SC2086 # PIP_ARGS is a list of flags
+  "${ROOT}${VENV}/bin/python" -m pip install --disable-pip-version-check --no-input -q $PIP_ARGS "$build"
+  rm -rf "$build"
+  printf '%s\n' "$src_hash" >"$stamp"
+  CHANGED=1
+fi
+
+# --- agent config (the TOML schema `twin run --config` reads) -------------------------------------
+write_file "$CONFIG" 0644 <<TOML
+# Rendered by userdata/install-agent.sh from the stack settings; re-deploy to change it.
+[broker]
+url = "iot"
+region = "${AWS_REGION}"
+endpoint = ""
+client_id_prefix = "${CLIENT_ID_PREFIX}"
+ca_file = ""
+
+[telemetry]
+topic_prefix = "${TOPIC_PREFIX}"
+devices = $(toml_list "$DEVICES")
+units = "${UNITS}"
+calibration = ""
+
+[twin]
+mode = "kinematic"
+model = ""
+record_dir = "${SESSIONS}"
+
+[health]
+expected_rate_hz = 10.0
+stale_periods = 3
+offline_after_s = 10.0
+
+[http]
+listen = "127.0.0.1:8080"
+
+[log]
+level = "INFO"
+TOML
+
+# --- the agent service ----------------------------------------------------------------------------
+write_file "$UNIT" 0644 <<UNIT
+[Unit]
+Description=so101-twin agent: mirrors SO-101 telemetry from IoT Core into MuJoCo and USD
+Wants=network-online.target
+After=network-online.target
+
+[Service]
+Type=simple
+ExecStart=${VENV}/bin/twin run --config ${CONFIG}
+# No X display for the service: MuJoCo renders offscreen through EGL on the GPU.
+Environment=MUJOCO_GL=egl
+Environment=PYTHONUNBUFFERED=1
+Restart=always
+RestartSec=5
+SyslogIdentifier=so101-twin-agent
+StateDirectory=so101-twin
+NoNewPrivileges=true
+ProtectSystem=full
+PrivateTmp=true
+
+[Install]
+WantedBy=multi-user.target
+UNIT
+
+# --- the viewer in the DCV console session --------------------------------------------------------
+write_file "$AUTOSTART" 0644 <<DESKTOP
+[Desktop Entry]
+Type=Application
+Name=SO-101 twin viewer
+Comment=Live MuJoCo view of the arm, following the local so101-twin agent
+Exec=${VENV}/bin/twin view
+Terminal=false
+X-GNOME-Autostart-enabled=true
+X-GNOME-Autostart-Delay=5
+DESKTOP
+
+mkdir -p "${ROOT}${SESSIONS}"
+
+if [ "$ROOT" = "" ]; then
+  if id -u "$DESKTOP_USER" >/dev/null 2>&1; then
+    chown -R "$DESKTOP_USER:" "/home/${DESKTOP_USER}/.config/autostart"
+  fi
+  systemctl daemon-reload
+  systemctl enable so101-twin-agent.service >/dev/null 2>&1
+  if [ "$CHANGED" = 1 ] || ! systemctl is-active --quiet so101-twin-agent.service; then
+    systemctl restart so101-twin-agent.service
+    log "agent service (re)started"
+  fi
+fi
+log "done (changed=$CHANGED)"
