@@ -19,11 +19,13 @@ import http.client
 import json
 import logging
 import math
+import os
+import sys
 import threading
 import time
 import urllib.error
 import urllib.request
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -142,7 +144,9 @@ class FleetView:
                 info.latency_p99_s = _num(edge.get("p99")) if isinstance(edge, dict) else None
                 info.internal_p99_s = _num(internal.get("p99")) if isinstance(internal, dict) else None
                 info.received_s = received_s
-                stamp = d.get("last_timestamp_ms")
+                # timestamp_ms belongs to the same twin snapshot as joints_rad; last_timestamp_ms (health) is
+                # the fallback for agents that publish only that.
+                stamp = d.get("timestamp_ms", d.get("last_timestamp_ms"))
                 joints = d.get("joints_rad")
                 if isinstance(stamp, int) and not isinstance(stamp, bool) and isinstance(joints, dict):
                     info.last_timestamp_ms = stamp
@@ -396,6 +400,7 @@ class TwinViewer:
         from twin.model import RobotModel  # noqa: PLC0415 - pulls in mujoco
 
         make_estimator(self.config.smoothing)  # validate before opening a window
+        check_display()
         robot = RobotModel.load(self.config.model_path)
         model = robot.model
         data = mujoco.MjData(model)
@@ -486,6 +491,28 @@ class TwinViewer:
                 self._stop.wait(delay)
             else:
                 next_frame = self._clock()  # fell behind (slow GPU / busy host): do not try to catch up
+
+
+def check_display(environ: Mapping[str, str] | None = None) -> None:
+    """Fail early, with the fix, when there is no display to open a window on.
+
+    mujoco.viewer initialises GLFW on its own thread; when that fails it prints a bare "could not initialize
+    GLFW" and the process dies, so the obvious cases are checked first.
+    """
+    env = os.environ if environ is None else environ
+    if sys.platform != "linux" or env.get("WAYLAND_DISPLAY"):
+        return
+    display = env.get("DISPLAY", "")
+    hint = (
+        "`twin view` needs a desktop session: run it in the DCV console session or set DISPLAY (e.g. "
+        "DISPLAY=:0); for images without a display use `twin demo` or twin.render."
+    )
+    if not display:
+        raise ViewerError(f"no display: DISPLAY is not set. {hint}")
+    host, _, number = display.rpartition(":")
+    number = number.split(".")[0]
+    if host in ("", "unix") and number.isdigit() and not Path(f"/tmp/.X11-unix/X{number}").exists():
+        raise ViewerError(f"no X server on DISPLAY={display} (no /tmp/.X11-unix/X{number}). {hint}")
 
 
 def _join_viewer_thread(timeout: float = 5.0) -> None:
