@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from PIL import Image
 from twin import so101
+from twin.calibration import load_calibration
 from twin.cli import main
 from twin.model import RobotModel, default_model_path
 from twin.render import RenderError, render_png
@@ -283,3 +284,35 @@ def test_console_script_end_to_end(tmp_path: Path) -> None:
     assert result.stdout.strip() == str(out)
     with Image.open(out) as image:
         assert image.size == (200, 150)
+
+
+def test_cli_payload_with_a_calibration_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Off-centre calibrated ranges move the mid point: the decoded pose differs from the uncalibrated one.
+    calibration = tmp_path / "follower.json"
+    calibration.write_text(
+        json.dumps(
+            {
+                name: {"id": i + 1, "drive_mode": 0, "homing_offset": 0, "range_min": 900, "range_max": 2900}
+                for i, name in enumerate(so101.JOINT_NAMES)
+            }
+        )
+    )
+    payload = tmp_path / "ticks.json"
+    payload.write_text(json.dumps(TICKS_PAYLOAD))
+    out = tmp_path / "calibrated.png"
+    args = ["render", "--payload", str(payload), "--units", "ticks", "--width", str(W), "--height", str(H)]
+    assert main([*args, "--calibration", str(calibration), "--out", str(out)]) == 0, capsys.readouterr().err
+    config = DecoderConfig(units=Units.TICKS, calibration=load_calibration(calibration))
+    decoded = TelemetryDecoder(config).decode(payload.read_bytes())
+    expected = pixels(
+        render_png(RobotModel.load(), decoded.angles_rad, tmp_path / "lib.png", width=W, height=H)
+    )
+    assert np.array_equal(pixels(out)[BELOW_TEXT], expected[BELOW_TEXT])
+    plain = tmp_path / "uncalibrated.png"
+    assert main([*args, "--out", str(plain)]) == 0
+    assert not np.array_equal(pixels(plain)[BELOW_TEXT], expected[BELOW_TEXT])
+
+    broken = tmp_path / "broken.json"
+    broken.write_text("{")
+    assert main([*args, "--calibration", str(broken), "--out", str(tmp_path / "x.png")]) == 2
+    assert "not valid JSON" in capsys.readouterr().err
