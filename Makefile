@@ -1,5 +1,7 @@
 # One entry point for people and CI: `make demo` and `make test` set up what they need first.
 SHELL := /bin/bash
+# pipefail: a failing install must fail the target even when its output is filtered.
+.SHELLFLAGS := -o pipefail -ec
 .DEFAULT_GOAL := help
 
 VENV ?= .venv
@@ -13,6 +15,9 @@ export PYOPENGL_PLATFORM ?= $(MUJOCO_GL)
 
 APT_PACKAGES := mosquitto xvfb xauth libosmesa6 libgl1-mesa-dri libglfw3 shellcheck
 SETUP_STAMP := $(VENV)/.setup-stamp
+# Checkov pins many libraries of its own; a venv of its own keeps them from fighting the agent's.
+CHECKOV_VENV := .venv-checkov
+CHECKOV_STAMP := $(CHECKOV_VENV)/.setup-stamp
 NODE_STAMP := node_modules/.setup-stamp
 
 .PHONY: help setup system-packages test lint demo bench usd-asset clean
@@ -24,7 +29,7 @@ help:
 	@echo "make bench  - run the benchmarks and print figures (docs/performance.md)"
 	@echo "make usd-asset - regenerate robots/so101 USD asset from the MJCF"
 
-setup: system-packages $(SETUP_STAMP) $(NODE_STAMP)
+setup: system-packages $(SETUP_STAMP) $(NODE_STAMP) $(CHECKOV_STAMP)
 
 # apt only when a tool is missing, so a second `make setup` does no network work.
 system-packages:
@@ -42,9 +47,16 @@ system-packages:
 $(SETUP_STAMP): pyproject.toml
 	@test -x $(PY) || python3 -m venv $(VENV)
 	@echo "setup: installing Python packages into $(VENV)"
-	@$(PIP) install --upgrade pip 2>&1 | grep -v '^WARNING: Location' || true
-	@$(PIP) install -e '.[dev]' 2>&1 | grep -v '^WARNING: Location' || true
+	@$(PIP) install --upgrade pip 2>&1 | sed '/^WARNING: Location/d'
+	@$(PIP) install -e '.[dev]' 2>&1 | sed '/^WARNING: Location/d'
 	@$(PY) -c "import twin, mujoco, pxr, awscrt, aws_cdk, cdk_nag" || { echo "setup: Python install failed" >&2; exit 1; }
+	@touch $@
+
+$(CHECKOV_STAMP):
+	@test -x $(CHECKOV_VENV)/bin/python || python3 -m venv $(CHECKOV_VENV)
+	@echo "setup: installing checkov into $(CHECKOV_VENV)"
+	@$(CHECKOV_VENV)/bin/python -m pip --disable-pip-version-check -q install 'checkov>=3.2,<4' 2>&1 | sed '/^WARNING: Location/d'
+	@$(CHECKOV_VENV)/bin/checkov --version >/dev/null || { echo "setup: checkov install failed" >&2; exit 1; }
 	@touch $@
 
 $(NODE_STAMP): package.json package-lock.json

@@ -1,0 +1,158 @@
+"""Process plumbing shared by the benchmark scenarios: a private broker, the agent as a child process, its
+HTTP state, and CPU/RSS sampling of a process tree with psutil."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+import urllib.request
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import psutil
+
+from twin.broker import MosquittoBroker, free_port
+
+
+def child_env() -> dict[str, str]:
+    env = dict(os.environ)
+    env.setdefault("MUJOCO_GL", "egl")
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+def twin_command(*args: str) -> list[str]:
+    return [sys.executable, "-m", "twin.cli", *args]
+
+
+class ProcessSampler:
+    """Samples a process's RSS and CPU time in the background (psutil), from start() to stop()."""
+
+    def __init__(self, pid: int, interval_s: float = 0.25) -> None:
+        self.process = psutil.Process(pid)
+        self.interval_s = interval_s
+        self.max_rss = 0
+        self.last_rss = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._cpu0 = 0.0
+        self._t0 = 0.0
+        self.cpu_s = 0.0
+        self.wall_s = 0.0
+
+    def _cpu(self) -> float:
+        times = self.process.cpu_times()
+        return times.user + times.system
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.interval_s):
+            try:
+                self.last_rss = self.process.memory_info().rss
+            except psutil.Error:
+                return
+            self.max_rss = max(self.max_rss, self.last_rss)
+
+    def start(self) -> ProcessSampler:
+        self._cpu0 = self._cpu()
+        self._t0 = time.monotonic()
+        self.last_rss = self.process.memory_info().rss
+        self.max_rss = self.last_rss
+        self._thread.start()
+        return self
+
+    def stop(self) -> dict[str, float]:
+        self.cpu_s = self._cpu() - self._cpu0
+        self.wall_s = time.monotonic() - self._t0
+        self._stop.set()
+        self._thread.join(2)
+        return {
+            "cpu_percent": 100.0 * self.cpu_s / self.wall_s if self.wall_s else 0.0,
+            "cpu_s": self.cpu_s,
+            "rss_max_mb": self.max_rss / 2**20,
+            "rss_last_mb": self.last_rss / 2**20,
+        }
+
+
+def get_json(url: str, timeout: float = 5.0) -> dict[str, Any]:
+    with urllib.request.urlopen(url, timeout=timeout) as response:
+        return json.loads(response.read())
+
+
+@contextmanager
+def running_agent(broker_url: str, *, devices: str = "*", extra: tuple[str, ...] = (), log_dir: Path):
+    """`twin run` as a child process; yields (Popen, http base URL). Stopped with SIGTERM on exit."""
+    port = free_port()
+    log_dir.mkdir(parents=True, exist_ok=True)
+    log_file = (log_dir / f"agent-{port}.log").open("wb")
+    cmd = twin_command(
+        "run",
+        "--broker",
+        broker_url,
+        "--devices",
+        devices,
+        "--http",
+        f"127.0.0.1:{port}",
+        "--log-level",
+        "WARNING",
+        *extra,
+    )
+    proc = subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT, env=child_env())
+    try:
+        yield proc, f"http://127.0.0.1:{port}"
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5)
+        log_file.close()
+
+
+def wait_subscribed(base_url: str, proc: subprocess.Popen, timeout: float = 30.0) -> float:
+    """Poll /state until the agent's broker connection is subscribed; returns when (monotonic)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"the agent exited with code {proc.returncode} before subscribing")
+        try:
+            state = get_json(f"{base_url}/state", timeout=1.0)
+            if state["agent"]["broker"]["subscribes"] > 0:
+                return time.monotonic()
+        except (OSError, ValueError, KeyError):
+            pass
+        time.sleep(0.02)
+    raise RuntimeError(f"the agent did not subscribe within {timeout} s")
+
+
+@contextmanager
+def private_broker(workdir: Path):
+    broker = MosquittoBroker(workdir=workdir)
+    broker.start()
+    try:
+        yield broker
+    finally:
+        broker.close()
+
+
+def load_process(*args: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "twin.bench.load", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=child_env(),
+    )
+
+
+def last_json_line(text: str) -> dict[str, Any]:
+    for raw in reversed(text.strip().splitlines()):
+        line = raw.strip()
+        if line.startswith("{"):
+            return json.loads(line)
+    raise RuntimeError(f"no JSON result in load process output: {text[-500:]!r}")
