@@ -1,0 +1,81 @@
+"""Synthesis helpers for the infra tests: the stack is built as `cdk synth` builds it (cdk.json context)."""
+
+from __future__ import annotations
+
+import json
+import re
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+# app.py and stacks/ live at the repo root, which is not an installed package.
+if str(REPO_ROOT) not in sys.path:
+    sys.path.insert(0, str(REPO_ROOT))
+CLIENT_CIDR = "203.0.113.7/32"
+ASSET_HASH_RE = re.compile(r"[0-9a-f]{64}")
+# Every optional feature on at once, so one extra synth covers them all.
+ALL_OPTIONS = {
+    "clientCidr": "2001:db8::/64",
+    "sshAccess": "true",
+    "devices": "*",
+    "autoStopCron": "0 20 * * ? *",
+    "autoStopTimezone": "Europe/Berlin",
+    "amiId": "ami-0123456789abcdef0",
+    "terminationProtection": "true",
+    "availabilityZone": "us-east-1b",
+    "instanceType": "g6e.4xlarge",
+    "volumeGb": "200",
+    "units": "ticks",
+    "topicPrefix": "fleet/so101",
+}
+
+
+def cdk_json_context() -> dict[str, Any]:
+    return json.loads((REPO_ROOT / "cdk.json").read_text())["context"]
+
+
+class Synth:
+    """One synthesized variant: the template dict plus the assertions helper and the stack."""
+
+    def __init__(self, stack: Any, template: Any) -> None:
+        self.stack = stack
+        self.template = template
+        self.json: dict[str, Any] = template.to_json()
+
+    def resources(self, type_: str) -> dict[str, dict[str, Any]]:
+        return {k: v for k, v in self.json["Resources"].items() if v["Type"] == type_}
+
+    def one(self, type_: str) -> dict[str, Any]:
+        found = self.resources(type_)
+        assert len(found) == 1, f"expected one {type_}, found {sorted(found)}"
+        return next(iter(found.values()))
+
+
+def synthesize(outdir: Path, **overrides: str) -> Synth:
+    """Synthesize the real app (build_app: settings, stack, cdk-nag) with cdk.json context plus overrides.
+
+    Template.from_stack runs the validation plugins, so an unacknowledged cdk-nag finding raises here.
+    """
+    import aws_cdk as cdk
+    from aws_cdk.assertions import Template
+
+    from app import build_app
+
+    context = cdk_json_context()
+    context.update({"clientCidr": CLIENT_CIDR, **overrides})
+    with pytest.MonkeyPatch.context() as mp:
+        # Environment-agnostic, like a synth without credentials: the template must not depend on who runs it.
+        mp.delenv("CDK_DEFAULT_ACCOUNT", raising=False)
+        mp.delenv("CDK_DEFAULT_REGION", raising=False)
+        app = cdk.App(context=context, outdir=str(outdir))
+        stack = build_app(app)
+        template = Template.from_stack(stack)
+    return Synth(stack, template)
+
+
+def normalise(template: dict[str, Any]) -> dict[str, Any]:
+    """Replace asset hashes so the snapshot changes only when the infrastructure does."""
+    return json.loads(ASSET_HASH_RE.sub("<asset-hash>", json.dumps(template, sort_keys=True)))

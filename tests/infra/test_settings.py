@@ -1,0 +1,173 @@
+"""Settings validation: every refusal names the key and what to pass (no synth needed, so these are fast)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+from stacks.settings import DEFAULT_AMI_SSM_PARAMETER, SettingsError, TwinSettings
+
+from .synth import cdk_json_context
+
+
+def settings(**overrides: Any) -> TwinSettings:
+    context = cdk_json_context()
+    context.update({"clientCidr": "203.0.113.7/32", **overrides})
+    return TwinSettings.from_context(context.get)
+
+
+def refused(**overrides: Any) -> str:
+    with pytest.raises(SettingsError) as info:
+        settings(**overrides)
+    return str(info.value)
+
+
+def test_defaults_come_from_cdk_json() -> None:
+    s = settings()
+    assert s.client_cidr == "203.0.113.7/32"
+    assert s.instance_type == "g6e.2xlarge"
+    assert s.volume_gb == 100
+    assert s.devices == ("arm-001",)
+    assert s.topic_prefix == "dt/lerobot"
+    assert s.units == "auto"
+    assert s.ssh_access is False
+    assert s.ami_ssm_parameter == DEFAULT_AMI_SSM_PARAMETER
+    assert s.ami_id is None
+    assert s.termination_protection is False
+    assert s.auto_stop_cron is None
+    assert s.availability_zone is None
+    assert s.stack_name == "So101TwinStack"
+
+
+def test_client_cidr_is_required_and_the_message_says_what_to_pass() -> None:
+    message = refused(clientCidr="")
+    assert "clientCidr is required" in message
+    assert "-c clientCidr=203.0.113.7/32" in message
+
+
+@pytest.mark.parametrize("cidr", ["0.0.0.0/0", "::/0"])
+def test_open_cidr_is_refused_without_allow_any_client(cidr: str) -> None:
+    message = refused(clientCidr=cidr)
+    assert "whole internet" in message
+    assert "allowAnyClient=true" in message
+
+
+@pytest.mark.parametrize("cidr", ["0.0.0.0/0", "::/0"])
+@pytest.mark.parametrize("flag", [True, "true"])
+def test_open_cidr_is_accepted_with_allow_any_client(cidr: str, flag: object) -> None:
+    s = settings(clientCidr=cidr, allowAnyClient=flag)
+    assert s.client_cidr == cidr
+    assert s.allow_any_client is True
+
+
+@pytest.mark.parametrize(
+    ("cidr", "hint"),
+    [
+        ("203.0.113.7", "203.0.113.7/32"),
+        ("203.0.113.7/24", "203.0.113.0/24"),
+        ("not-an-ip/32", "203.0.113.7/32"),
+        ("203.0.113.300/32", "203.0.113.7/32"),
+    ],
+)
+def test_bad_cidrs_are_refused_with_a_fix(cidr: str, hint: str) -> None:
+    assert hint in refused(clientCidr=cidr)
+
+
+def test_ipv6_client_is_accepted() -> None:
+    s = settings(clientCidr="2001:db8::1/128")
+    assert s.client_is_ipv6
+
+
+@pytest.mark.parametrize("zone", ["us-east-1b", "eu-central-1a", "us-west-2-lax-1a", "us-gov-west-1a"])
+def test_availability_zone_names_are_accepted(zone: str) -> None:
+    assert settings(availabilityZone=zone).availability_zone == zone
+
+
+def test_availability_zone_id_is_refused_with_the_name_hint() -> None:
+    assert "zone ID" in refused(availabilityZone="use1-az4")
+
+
+@pytest.mark.parametrize("zone", ["us-east-1", "useast1b", "US-EAST-1B", "us-east-1bx"])
+def test_bad_availability_zone_is_refused(zone: str) -> None:
+    message = refused(availabilityZone=zone)
+    assert "availabilityZone" in message
+    assert "describe-instance-type-offerings" in message
+
+
+def test_availability_zone_must_be_in_the_stack_region() -> None:
+    s = settings(availabilityZone="us-west-2a")
+    s.check_region("us-west-2")
+    s.check_region(None)
+    with pytest.raises(SettingsError, match="not in the stack's region us-east-1"):
+        s.check_region("us-east-1")
+
+
+@pytest.mark.parametrize("value", ["g6e", "g6e-2xlarge", "G6E.2XLARGE", "g6e.2xhuge", ""])
+def test_bad_instance_type_is_refused(value: str) -> None:
+    if value == "":
+        assert settings(instanceType=value).instance_type == "g6e.2xlarge"
+        return
+    assert "-c instanceType=g6e.2xlarge" in refused(instanceType=value)
+
+
+@pytest.mark.parametrize("value", ["g6e.xlarge", "g6e.4xlarge", "g5.xlarge", "t3.large", "p5.48xlarge"])
+def test_instance_types_are_accepted(value: str) -> None:
+    assert settings(instanceType=value).instance_type == value
+
+
+@pytest.mark.parametrize("value", ["10", "16385", "big", "1.5"])
+def test_bad_volume_is_refused(value: str) -> None:
+    assert "-c volumeGb=100" in refused(volumeGb=value)
+
+
+def test_devices_parse_lists_and_fleet() -> None:
+    assert settings(devices="arm-001, arm-002").devices == ("arm-001", "arm-002")
+    assert settings(devices=["arm-003"]).devices == ("arm-003",)
+    assert settings(devices="*").whole_fleet
+
+
+@pytest.mark.parametrize("value", ["arm/1", "arm+", "*,arm-001", "arm-001,arm-001", " , "])
+def test_bad_devices_are_refused(value: str) -> None:
+    assert "devices" in refused(devices=value) or "device id" in refused(devices=value)
+
+
+@pytest.mark.parametrize("value", ["dt/+/x", "dt/#", "/dt", "dt/", "$aws/things", "dt lerobot"])
+def test_bad_topic_prefix_is_refused(value: str) -> None:
+    assert "-c topicPrefix=dt/lerobot" in refused(topicPrefix=value)
+
+
+def test_units_must_be_known() -> None:
+    assert settings(units="degrees").units == "degrees"
+    assert "ticks, degrees, range100, auto" in refused(units="radians")
+
+
+@pytest.mark.parametrize("value", ["maybe", "2"])
+def test_bad_booleans_are_refused(value: str) -> None:
+    assert "-c sshAccess=true or -c sshAccess=false" in refused(sshAccess=value)
+
+
+def test_ami_id_and_parameter_are_checked() -> None:
+    assert settings(amiId="ami-0123456789abcdef0").ami_id == "ami-0123456789abcdef0"
+    assert "-c amiId=ami-0123456789abcdef0" in refused(amiId="ami-xyz")
+    assert "not an SSM parameter path" in refused(amiSsmParameter="aws/service/x")
+
+
+@pytest.mark.parametrize(
+    ("value", "expected"),
+    [("0 20 * * ? *", "cron(0 20 * * ? *)"), ("cron(30 19 ? * MON-FRI *)", "cron(30 19 ? * MON-FRI *)")],
+)
+def test_auto_stop_cron_is_normalised(value: str, expected: str) -> None:
+    assert settings(autoStopCron=value).auto_stop_cron == expected
+
+
+@pytest.mark.parametrize(
+    "value", ["0 20 * * *", "0 20 * * 1 *", "0 20 ? * ? *", "rate(1 day)", "0 20 * * ? * ;"]
+)
+def test_bad_auto_stop_cron_is_refused(value: str) -> None:
+    assert "autoStopCron" in refused(autoStopCron=value)
+
+
+def test_bad_timezone_and_stack_name_are_refused() -> None:
+    assert "-c autoStopTimezone=UTC" in refused(autoStopTimezone="Berlin time")
+    assert "-c stackName=" in refused(stackName="1-bad_name")

@@ -1,0 +1,396 @@
+"""The synthesized template, point by point against issue 4, plus a normalised snapshot.
+
+Each synth runs cdk-nag (AwsSolutions) and CDK's CloudFormation validation through the real
+app wiring, so merely getting a template here proves zero unacknowledged findings.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+from typing import Any
+
+import pytest
+from aws_cdk.assertions import Match
+from syrupy.extensions.json import JSONSnapshotExtension
+
+from stacks.settings import DEFAULT_AMI_SSM_PARAMETER
+
+from .synth import CLIENT_CIDR, Synth, normalise
+
+OUTPUT_KEYS = {"DcvUrl", "InstanceId", "IotEndpoint", "DcvPasswordSecret", "SsmSessionCommand"}
+
+
+def flatten(value: Any) -> str:
+    """A template fragment as text, for 'this ARN pattern appears somewhere in here' checks."""
+    return json.dumps(value, sort_keys=True)
+
+
+def policy_statements(synth: Synth, role_logical_prefix: str) -> list[dict[str, Any]]:
+    statements = []
+    for policy in synth.resources("AWS::IAM::Policy").values():
+        roles = flatten(policy["Properties"].get("Roles", []))
+        if role_logical_prefix in roles:
+            statements += policy["Properties"]["PolicyDocument"]["Statement"]
+    assert statements, f"no policy attached to a role like {role_logical_prefix}"
+    return statements
+
+
+def statement(statements: list[dict[str, Any]], sid: str) -> dict[str, Any]:
+    found = [s for s in statements if s.get("Sid") == sid]
+    assert len(found) == 1, f"statement {sid}: {found}"
+    return found[0]
+
+
+# --- snapshot -------------------------------------------------------------------------------------
+
+
+def test_template_snapshot(synth_default: Synth, snapshot) -> None:
+    assert normalise(synth_default.json) == snapshot.use_extension(JSONSnapshotExtension)
+
+
+def test_snapshot_normalisation_removes_every_asset_hash(synth_default: Synth) -> None:
+    text = json.dumps(normalise(synth_default.json))
+    assert "<asset-hash>" in text
+    assert not re.search(r"[0-9a-f]{64}", text)
+
+
+# --- network --------------------------------------------------------------------------------------
+
+
+def test_vpc_is_one_public_subnet_without_nat(synth_default: Synth) -> None:
+    t = synth_default.template
+    t.has_resource_properties("AWS::EC2::VPC", {"CidrBlock": "10.0.0.0/16"})
+    t.resource_count_is("AWS::EC2::Subnet", 1)
+    t.resource_count_is("AWS::EC2::NatGateway", 0)
+    t.resource_count_is("AWS::EC2::InternetGateway", 1)
+    # The EIP is the host's only public address.
+    t.has_resource_properties("AWS::EC2::Subnet", {"MapPublicIpOnLaunch": False})
+
+
+def test_vpc_flow_logs_go_to_a_log_group_with_retention(synth_default: Synth) -> None:
+    t = synth_default.template
+    t.has_resource_properties(
+        "AWS::EC2::FlowLog",
+        {"ResourceType": "VPC", "TrafficType": "ALL", "LogDestinationType": "cloud-watch-logs"},
+    )
+    flow_log = synth_default.one("AWS::EC2::FlowLog")
+    group_id = flow_log["Properties"]["LogGroupName"]["Ref"]
+    group = synth_default.json["Resources"][group_id]
+    assert group["Properties"]["RetentionInDays"] == 365
+    assert group["DeletionPolicy"] == "Delete"
+
+
+def test_pinned_availability_zone_is_used_by_the_subnet(
+    synth_default: Synth, synth_all_options: Synth
+) -> None:
+    synth_all_options.template.has_resource_properties("AWS::EC2::Subnet", {"AvailabilityZone": "us-east-1b"})
+    # Unpinned and environment-agnostic: the region's first AZ, chosen at deploy time.
+    synth_default.template.has_resource_properties(
+        "AWS::EC2::Subnet", {"AvailabilityZone": {"Fn::Select": [0, {"Fn::GetAZs": ""}]}}
+    )
+
+
+def ingress_rules(synth: Synth) -> list[dict[str, Any]]:
+    group = next(
+        g
+        for g in synth.resources("AWS::EC2::SecurityGroup").values()
+        if "DCV" in g["Properties"]["GroupDescription"]
+    )
+    return group["Properties"]["SecurityGroupIngress"]
+
+
+def test_security_group_opens_dcv_to_the_client_only(synth_default: Synth) -> None:
+    rules = ingress_rules(synth_default)
+    ports = sorted((r["IpProtocol"], r["FromPort"], r["ToPort"]) for r in rules)
+    assert ports == [("tcp", 8443, 8443), ("udp", 8443, 8443)]
+    assert {r["CidrIp"] for r in rules} == {CLIENT_CIDR}
+    assert all(r.get("Description") for r in rules)
+
+
+def test_ssh_only_with_ssh_access_and_ipv6_clients(synth_all_options: Synth, synth_default: Synth) -> None:
+    rules = ingress_rules(synth_all_options)
+    assert sorted((r["IpProtocol"], r["FromPort"]) for r in rules) == [
+        ("tcp", 22),
+        ("tcp", 8443),
+        ("udp", 8443),
+    ]
+    assert {r["CidrIpv6"] for r in rules} == {"2001:db8::/64"}
+    assert all(r["FromPort"] != 22 for r in ingress_rules(synth_default))
+
+
+def test_egress_is_only_http_and_https(synth_default: Synth) -> None:
+    group = next(
+        g
+        for g in synth_default.resources("AWS::EC2::SecurityGroup").values()
+        if "DCV" in g["Properties"]["GroupDescription"]
+    )
+    egress = sorted((r["IpProtocol"], r["FromPort"]) for r in group["Properties"]["SecurityGroupEgress"])
+    assert egress == [("tcp", 80), ("tcp", 443)]
+
+
+def test_open_cidr_synthesizes_only_with_allow_any_client(synth_factory) -> None:
+    synth = synth_factory(clientCidr="0.0.0.0/0", allowAnyClient="true")
+    assert {r["CidrIp"] for r in ingress_rules(synth)} == {"0.0.0.0/0"}
+
+
+# --- identity -------------------------------------------------------------------------------------
+
+
+def test_host_role_is_for_ec2_with_ssm_core(synth_default: Synth) -> None:
+    synth_default.template.has_resource_properties(
+        "AWS::IAM::Role",
+        {
+            "AssumeRolePolicyDocument": Match.object_like(
+                {"Statement": [Match.object_like({"Principal": {"Service": "ec2.amazonaws.com"}})]}
+            ),
+            "ManagedPolicyArns": [
+                {
+                    "Fn::Join": [
+                        "",
+                        ["arn:", {"Ref": "AWS::Partition"}, ":iam::aws:policy/AmazonSSMManagedInstanceCore"],
+                    ]
+                }
+            ],
+        },
+    )
+    synth_default.template.has_resource_properties(
+        "AWS::IAM::InstanceProfile", {"Roles": [{"Ref": Match.string_like_regexp("^IdentityHostRole")}]}
+    )
+
+
+def test_iot_permissions_are_scoped_to_the_agent_and_the_devices(synth_default: Synth) -> None:
+    statements = policy_statements(synth_default, "IdentityHostRole")
+    connect = statement(statements, "IotConnectAsAgent")
+    assert connect["Action"] == "iot:Connect"
+    assert ":client/so101-twin-*" in flatten(connect["Resource"])
+    assert {"Ref": "AWS::Region"} in connect["Resource"]["Fn::Join"][1]
+    assert {"Ref": "AWS::AccountId"} in connect["Resource"]["Fn::Join"][1]
+    subscribe = statement(statements, "IotSubscribeTelemetry")
+    assert subscribe["Action"] == "iot:Subscribe"
+    assert ":topicfilter/dt/lerobot/arm-001/telemetry" in flatten(subscribe["Resource"])
+    receive = statement(statements, "IotReceiveTelemetry")
+    assert receive["Action"] == "iot:Receive"
+    assert ":topic/dt/lerobot/arm-001/telemetry" in flatten(receive["Resource"])
+    assert "*" not in flatten(subscribe) + flatten(receive)
+    endpoint = statement(statements, "IotFindEndpoint")
+    assert (endpoint["Action"], endpoint["Resource"]) == ("iot:DescribeEndpoint", "*")
+    # Nothing may publish: the host only mirrors.
+    assert "iot:Publish" not in flatten(statements)
+
+
+def test_fleet_subscribes_the_literal_plus_filter_and_receives_every_device(synth_all_options: Synth) -> None:
+    statements = policy_statements(synth_all_options, "IdentityHostRole")
+    assert ":topicfilter/fleet/so101/+/telemetry" in flatten(statement(statements, "IotSubscribeTelemetry"))
+    assert ":topic/fleet/so101/*/telemetry" in flatten(statement(statements, "IotReceiveTelemetry"))
+
+
+def test_dcv_license_logs_assets_and_secret_are_granted_narrowly(synth_default: Synth) -> None:
+    statements = policy_statements(synth_default, "IdentityHostRole")
+    license_ = statement(statements, "DcvLicense")
+    assert license_["Action"] == "s3:GetObject"
+    assert license_["Resource"] == {
+        "Fn::Join": [
+            "",
+            ["arn:", {"Ref": "AWS::Partition"}, ":s3:::dcv-license.", {"Ref": "AWS::Region"}, "/*"],
+        ]
+    }
+    logs = statement(statements, "HostLogs")
+    assert logs["Resource"]["Fn::GetAtt"][0].startswith("IdentityAgentLogGroup")
+    assets = statement(statements, "ReadBootstrapAssets")
+    assert assets["Action"] == "s3:GetObject"
+    assert len(assets["Resource"]) == 2
+    assert all(".zip" in flatten(r) for r in assets["Resource"])
+    secret_reads = [s for s in statements if "secretsmanager:GetSecretValue" in flatten(s.get("Action"))]
+    assert len(secret_reads) == 1
+    assert secret_reads[0]["Resource"]["Ref"].startswith("HostDcvPassword")
+    # No statement besides DescribeEndpoint uses a bare "*" resource.
+    bare = [s.get("Sid") for s in statements if s["Resource"] == "*"]
+    assert bare == ["IotFindEndpoint"]
+
+
+def test_agent_log_group_is_named_retained_a_year_and_removed_on_destroy(synth_default: Synth) -> None:
+    synth_default.template.has_resource(
+        "AWS::Logs::LogGroup",
+        {
+            "Properties": {"LogGroupName": "/so101-twin/So101TwinStack/host", "RetentionInDays": 365},
+            "DeletionPolicy": "Delete",
+        },
+    )
+
+
+# --- host -----------------------------------------------------------------------------------------
+
+
+def test_instance_imdsv2_monitoring_volume_and_stable_ami(synth_default: Synth) -> None:
+    t = synth_default.template
+    t.has_resource_properties(
+        "AWS::EC2::LaunchTemplate",
+        {"LaunchTemplateData": Match.object_like({"MetadataOptions": {"HttpTokens": "required"}})},
+    )
+    t.has_resource_properties(
+        "AWS::EC2::Instance",
+        {
+            "InstanceType": "g6e.2xlarge",
+            "Monitoring": True,
+            "EbsOptimized": True,
+            "DisableApiTermination": False,
+            "ImageId": f"resolve:ssm:{DEFAULT_AMI_SSM_PARAMETER}",
+            "BlockDeviceMappings": [
+                {
+                    "DeviceName": "/dev/sda1",
+                    "Ebs": {
+                        "VolumeSize": 100,
+                        "VolumeType": "gp3",
+                        "Encrypted": True,
+                        "DeleteOnTermination": True,
+                    },
+                }
+            ],
+        },
+    )
+    # No CFN parameter for the AMI: a deploy-time SSM lookup would replace the instance on a new AMI release.
+    assert not any("Ssm" in name for name in synth_default.json.get("Parameters", {}))
+
+
+def test_ami_id_variant_and_termination_protection(synth_all_options: Synth) -> None:
+    synth_all_options.template.has_resource_properties(
+        "AWS::EC2::Instance",
+        {
+            "ImageId": "ami-0123456789abcdef0",
+            "InstanceType": "g6e.4xlarge",
+            "DisableApiTermination": True,
+            "BlockDeviceMappings": [Match.object_like({"Ebs": Match.object_like({"VolumeSize": 200})})],
+        },
+    )
+
+
+def test_elastic_ip_is_associated_with_the_instance(synth_default: Synth) -> None:
+    t = synth_default.template
+    t.resource_count_is("AWS::EC2::EIP", 1)
+    t.has_resource_properties("AWS::EC2::EIP", {"Domain": "vpc"})
+    t.has_resource_properties(
+        "AWS::EC2::EIPAssociation",
+        {
+            "AllocationId": {"Fn::GetAtt": [Match.string_like_regexp("Eip"), "AllocationId"]},
+            "InstanceId": {"Ref": Match.string_like_regexp("HostInstance")},
+        },
+    )
+
+
+def test_dcv_password_is_generated_and_destroyed_with_the_stack(synth_default: Synth) -> None:
+    synth_default.template.has_resource(
+        "AWS::SecretsManager::Secret",
+        {
+            "Properties": Match.object_like(
+                {
+                    "GenerateSecretString": Match.object_like(
+                        {"ExcludePunctuation": True, "PasswordLength": 24}
+                    )
+                }
+            ),
+            "DeletionPolicy": "Delete",
+        },
+    )
+
+
+def user_data_text(synth: Synth) -> str:
+    """The UserData as the instance will see it, with CFN tokens shown as ${...}."""
+    data = synth.one("AWS::EC2::Instance")["Properties"]["UserData"]["Fn::Base64"]
+    if isinstance(data, str):
+        return data
+    parts = data["Fn::Join"][1]
+    return "".join(p if isinstance(p, str) else "${" + flatten(p) + "}" for p in parts)
+
+
+def test_user_data_is_small_has_no_secret_and_fetches_the_assets(synth_default: Synth) -> None:
+    text = user_data_text(synth_default)
+    assert len(text.encode()) < 16 * 1024
+    assert "@@" not in text
+    assert text.count("aws s3 cp") == 1  # inside the retrying fetch()
+    assert len([line for line in text.splitlines() if line.startswith('fetch "')]) == 2
+    assert text.count("s3://") == 2
+    assert "bootstrap.sh /etc/so101-twin/settings.env" in text
+    assert "DcvPassword" in text  # the secret's ARN, never its value
+    assert "GetSecretValue" not in text and "SecretString" not in text
+    for line in ("TOPIC_PREFIX=dt/lerobot", "DEVICES=arm-001", "UNITS=auto", "CLIENT_ID_PREFIX=so101-twin-"):
+        assert line in text
+
+
+def test_agent_asset_holds_only_the_distribution(synth_default: Synth) -> None:
+    outdir = synth_default.stack.node.root.outdir
+    asset_dirs = [p for p in Path(outdir).glob("asset.*") if (p / "pyproject.toml").exists()]
+    assert len(asset_dirs) == 1
+    top = sorted(p.name for p in asset_dirs[0].iterdir())
+    assert top == sorted(n for n in ["README.md", "agents", "pyproject.toml", "robots"] if n in top)
+    assert {"agents", "pyproject.toml", "robots"} <= set(top)
+    names = {p.name for p in asset_dirs[0].rglob("*")}
+    assert not names & {"__pycache__", ".venv", "node_modules", "cdk.out", "tests"}
+    assert (asset_dirs[0] / "agents" / "twin" / "cli.py").exists()
+    scripts = [p for p in Path(outdir).glob("asset.*") if (p / "bootstrap.sh").exists()]
+    assert len(scripts) == 1
+    assert {"bootstrap.sh", "install-agent.sh"} <= {p.name for p in scripts[0].iterdir()}
+
+
+# --- auto-stop and the endpoint -------------------------------------------------------------------
+
+
+def test_auto_stop_is_off_by_default(synth_default: Synth) -> None:
+    synth_default.template.resource_count_is("AWS::Scheduler::Schedule", 0)
+
+
+def test_auto_stop_schedule_can_only_stop_this_instance(synth_all_options: Synth) -> None:
+    t = synth_all_options.template
+    t.has_resource_properties(
+        "AWS::Scheduler::Schedule",
+        {
+            "ScheduleExpression": "cron(0 20 * * ? *)",
+            "ScheduleExpressionTimezone": "Europe/Berlin",
+            "Target": Match.object_like({"Arn": "arn:aws:scheduler:::aws-sdk:ec2:stopInstances"}),
+        },
+    )
+    statements = policy_statements(synth_all_options, "AutoStopSchedulerRole")
+    assert len(statements) == 1
+    stop = statements[0]
+    assert stop["Action"] == "ec2:StopInstances"
+    assert ":instance/" in flatten(stop["Resource"])
+    assert "HostInstance" in flatten(stop["Resource"])
+
+
+def test_iot_endpoint_is_looked_up_for_data_ats(synth_default: Synth) -> None:
+    resource = synth_default.one("Custom::AWS")
+    assert "iot:Data-ATS" in flatten(resource["Properties"]["Create"])
+    assert "describeEndpoint" in flatten(resource["Properties"]["Create"])
+
+
+# --- outputs --------------------------------------------------------------------------------------
+
+
+def test_outputs_have_the_keys_twin_instance_reads(synth_default: Synth) -> None:
+    outputs = synth_default.json["Outputs"]
+    assert set(outputs) >= OUTPUT_KEYS
+
+
+def test_dcv_url_is_built_from_the_elastic_ip(synth_default: Synth) -> None:
+    url = synth_default.json["Outputs"]["DcvUrl"]["Value"]
+    join = url["Fn::Join"][1]
+    assert join[0] == "https://"
+    assert join[1]["Fn::GetAtt"][1] == "PublicIp"
+    assert join[1]["Fn::GetAtt"][0].startswith("HostEip")
+    assert join[2] == ":8443/#console"
+
+
+def test_other_outputs(synth_default: Synth) -> None:
+    outputs = synth_default.json["Outputs"]
+    assert outputs["InstanceId"]["Value"]["Ref"].startswith("HostInstance")
+    assert outputs["IotEndpoint"]["Value"]["Fn::GetAtt"][1] == "endpointAddress"
+    assert "Ref" in outputs["DcvPasswordSecret"]["Value"]
+    command = flatten(outputs["DcvPasswordCommand"]["Value"])
+    assert "aws secretsmanager get-secret-value" in command and "--query SecretString" in command
+    assert "aws ssm start-session" in flatten(outputs["SsmSessionCommand"]["Value"])
+
+
+@pytest.mark.parametrize("key", sorted(OUTPUT_KEYS))
+def test_output_has_a_description(synth_default: Synth, key: str) -> None:
+    assert synth_default.json["Outputs"][key]["Description"]
