@@ -123,11 +123,9 @@ class MosquittoBroker:
             "allow_anonymous true",
             "persistence false",
             # Started as root (CI containers), mosquitto would drop to the `mosquitto` user and lose access to
-            # our private temp dir (TLS key); keep it as the invoking user instead.
+            # our private temp dir (log file, TLS key); keep it as the invoking user instead.
             f"user {pwd.getpwuid(os.geteuid()).pw_name}",
-            # stdout goes to the log file (see start); a log_dest file would be opened after the privilege
-            # change and needs no extra permissions this way.
-            "log_dest stdout",
+            f"log_dest file {self.log_path}",
             "log_timestamp true",
         ]
         if self.tls_certfile and self.tls_keyfile:

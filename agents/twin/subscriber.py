@@ -309,6 +309,7 @@ class SubscriberStats:
 
     connection_attempts: int = 0
     connection_successes: int = 0
+    # Losses of an established connection; the one stop() causes is not counted.
     connection_failures: int = 0
     disconnects: int = 0
     subscribes_sent: int = 0
@@ -533,12 +534,12 @@ class TelemetrySubscriber:
     def _on_disconnection(self, data: mqtt5.LifecycleDisconnectData) -> None:
         self._connected.clear()
         self._subscribed.clear()
-        with self._stats_lock:
-            self._stats.disconnects += 1
-            self._stats.last_error = f"disconnect: {data.exception}"
         if self._stopping:
             log.info("subscriber %s disconnected (stopping)", self.client_id)
             return
+        with self._stats_lock:
+            self._stats.disconnects += 1
+            self._stats.last_error = f"disconnect: {data.exception}"
         reason = ""
         if data.disconnect_packet is not None:
             reason = f" (server reason {data.disconnect_packet.reason_code!r})"
