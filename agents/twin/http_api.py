@@ -113,6 +113,13 @@ def render_metrics(state: dict[str, Any]) -> str:
     ):
         if key in broker:
             family(f"twin_broker_{key}_total", "counter", help_text).add(broker[key])
+    mailbox = agent.get("mailbox", {})
+    family(
+        "twin_mailbox_overwritten_total", "counter", "Messages replaced in the mailbox before decoding."
+    ).add(mailbox.get("overwritten_total"))
+    family(
+        "twin_mailbox_refused_keys_total", "counter", "Messages refused: too many distinct topics pending."
+    ).add(mailbox.get("refused_keys"))
     worker = agent.get("worker", {})
     family("twin_worker_batches_total", "counter", "Batches the twin worker took from the mailbox.").add(
         worker.get("batches")

@@ -449,6 +449,11 @@ class AgentService:
                     "messages": stats.messages_received if stats else 0,
                     "last_error": stats.last_error if stats else "",
                 },
+                "mailbox": {
+                    "overwritten_total": self._mailbox.overwritten_total,
+                    "refused_keys": self._mailbox.refused_keys,
+                    "pending": len(self._mailbox),
+                },
                 "worker": {
                     "alive": self._worker is not None and self._worker.is_alive(),
                     "batches": batches,

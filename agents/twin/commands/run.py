@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
     log.info("configuration", extra={"config": config.to_dict(), "config_file": args.config})
 
     # MuJoCo, awscrt and USD load here, not at import: `twin --help` stays fast.
-    from twin.service import AgentService  # noqa: PLC0415
+    from twin.service import AgentService
 
     try:
         service = AgentService(config)
