@@ -189,6 +189,14 @@ class TwinHost(Construct):
                     "instance.",
                 )
             )
+        else:
+            Validations.of(self.instance).acknowledge(
+                Acknowledgment(
+                    id="CloudFormation-Validate::W9010",
+                    reason="The deployer pinned this AMI with -c amiId (e.g. the Isaac Sim marketplace AMI, "
+                    "which has no public SSM parameter); AMI IDs are per region by nature.",
+                )
+            )
         if not termination_protection:
             Validations.of(self.instance).acknowledge(
                 Acknowledgment(
