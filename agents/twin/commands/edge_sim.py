@@ -95,8 +95,8 @@ def register(subparsers: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     # awscrt and the simulator load only when the command runs, so `twin --help` stays fast.
-    from twin.edge_sim import EdgeSimConfig, EdgeSimulator, FaultConfig, device_ids  # noqa: PLC0415
-    from twin.subscriber import BrokerConfig, BrokerConfigError  # noqa: PLC0415
+    from twin.edge_sim import EdgeSimConfig, EdgeSimulator, FaultConfig, device_ids
+    from twin.subscriber import BrokerConfig, BrokerConfigError
 
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
