@@ -355,12 +355,13 @@ def _write_outputs(
     if not joints:
         raise DemoError(f"device {devices[0]} was never mirrored: nothing to render (see stats above)")
     files: dict[str, str] = {}
+    status = stats["per_device"][devices[0]]["status"]
     try:
         png = render_png(
             service.robot,
             joints,
             out_dir / "twin.png",
-            text=f"{devices[0]}  {first['status']}  after {stats['duration_s']:.0f} s",
+            text=f"{devices[0]}  {status}  after {stats['duration_s']:.0f} s",
         )
         files["png"] = png.name
         if len(frames) >= 2:

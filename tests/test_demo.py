@@ -1,0 +1,164 @@
+"""`twin demo` end to end as a user runs it: a subprocess, real mosquitto, real agent, files checked."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import psutil
+import pytest
+from PIL import Image
+
+TWIN = Path(sys.executable).with_name("twin")
+
+STATS_FIELDS = {
+    "duration_s",
+    "interrupted",
+    "variant",
+    "rate_hz",
+    "devices",
+    "messages",
+    "latency_s",
+    "per_device",
+    "broker",
+    "files",
+}
+MESSAGE_FIELDS = {"sent", "received", "decoded", "applied", "rejected", "rejected_by_reason", "lost"}
+
+
+def demo_env() -> dict[str, str]:
+    env = dict(os.environ)
+    env.pop("MUJOCO_GL", None)  # the demo must choose a headless GL backend itself
+    env.pop("DISPLAY", None)
+    return env
+
+
+def assert_not_blank(path: Path) -> None:
+    with Image.open(path) as image:
+        image.verify()
+    with Image.open(path) as image:
+        rgb = np.asarray(image.convert("RGB"))
+    assert rgb.std() > 10, f"{path} is a flat image"
+    r, g, b = (rgb[..., i].astype(int) for i in range(3))
+    arm = (r > 120) & (g > 80) & (b < 90) & (r - b > 90)
+    assert arm.sum() > 500, f"{path} does not show the (yellow) arm"
+
+
+def assert_broker_gone(stats: dict) -> None:
+    pid = stats["broker"]["pid"]
+    assert isinstance(pid, int), "the demo did not record its broker pid"
+    if psutil.pid_exists(pid):
+        try:
+            proc = psutil.Process(pid)
+            alive = proc.status() != psutil.STATUS_ZOMBIE and "mosquitto" in proc.name()
+        except psutil.NoSuchProcess:
+            alive = False
+        assert not alive, f"mosquitto pid {pid} started by the demo is still running"
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(180)
+def test_demo_leaves_valid_files_and_stops_its_broker(tmp_path):
+    from pxr import Usd
+
+    out = tmp_path / "demo"
+    proc = subprocess.run(
+        [str(TWIN), "demo", "--seconds", "4", "--out", str(out)],
+        check=False,
+        env=demo_env(),
+        capture_output=True,
+        text=True,
+        timeout=150,
+    )
+    assert proc.returncode == 0, f"stdout:\n{proc.stdout}\nstderr:\n{proc.stderr}"
+    # Not a TTY: periodic plain status lines, then the summary.
+    assert "received" in proc.stdout and "done in" in proc.stdout
+    assert "\r" not in proc.stdout
+
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats.keys() >= STATS_FIELDS
+    messages = stats["messages"]
+    assert messages.keys() >= MESSAGE_FIELDS
+    assert messages["received"] > 0
+    # 4 s at 10 Hz; the scheduler may drift by a tick or two on a busy machine.
+    assert 35 <= messages["sent"] <= 45
+    assert messages["rejected"] == 0 and messages["rejected_by_reason"] == {}
+    assert messages["received"] == messages["sent"], "loopback QoS 0 without faults should lose nothing"
+    for kind in ("end_to_end", "internal"):
+        lat = stats["latency_s"][kind]
+        assert 0 <= lat["p50"] <= lat["p99"] < 1.0, lat
+    assert stats["devices"] == ["arm-001"]
+    assert stats["per_device"]["arm-001"]["status"] == "ONLINE"
+    assert stats["interrupted"] is False
+
+    files = stats["files"]
+    assert_not_blank(out / files["png"])
+    with Image.open(out / files["gif"]) as gif:
+        assert gif.n_frames >= 10
+        first = np.asarray(gif.convert("RGB"))
+        gif.seek(gif.n_frames - 1)
+        last = np.asarray(gif.convert("RGB"))
+    assert np.abs(first.astype(int) - last.astype(int)).sum() > 0, "the animation does not move"
+
+    stage = Usd.Stage.Open(str(out / files["usd"]))
+    assert stage is not None
+    sampled = [
+        attr for prim in stage.Traverse() for attr in prim.GetAttributes() if attr.GetNumTimeSamples() > 1
+    ]
+    assert sampled, "the USD session has no time-sampled attributes"
+    assert max(a.GetNumTimeSamples() for a in sampled) >= 10
+
+    assert_broker_gone(stats)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(180)
+def test_demo_on_sigint_cleans_up_and_keeps_partial_results(tmp_path):
+    out = tmp_path / "demo"
+    proc = subprocess.Popen(
+        [str(TWIN), "demo", "--seconds", "60", "--out", str(out), "--devices", "2", "--variant", "degrees"],
+        env=demo_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        deadline = time.monotonic() + 60
+        # Wait until the run is under way (the session file appears once the agent starts).
+        while not list(out.glob("session-*.usda")) and time.monotonic() < deadline:
+            assert proc.poll() is None, proc.communicate()
+            time.sleep(0.2)
+        time.sleep(3.0)
+        proc.send_signal(signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, f"stdout:\n{stdout}\nstderr:\n{stderr}"
+    assert "interrupted" in stderr
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["interrupted"] is True
+    assert stats["variant"] == "degrees"
+    assert stats["devices"] == ["arm-001", "arm-002"]
+    assert stats["messages"]["received"] > 0 and stats["messages"]["rejected"] == 0
+    assert stats["duration_s"] < 30
+    assert_broker_gone(stats)
+
+
+def test_demo_rejects_bad_arguments():
+    proc = subprocess.run(
+        [str(TWIN), "demo", "--seconds", "0"],
+        check=False,
+        env=demo_env(),
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 2
+    assert "--seconds 0" in proc.stderr
