@@ -52,8 +52,8 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(
         level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
-    from twin.model import ModelError  # noqa: PLC0415 - keep `twin --help` free of mujoco
-    from twin.viewer import TwinViewer, ViewerConfig, ViewerError  # noqa: PLC0415
+    from twin.model import ModelError
+    from twin.viewer import TwinViewer, ViewerConfig, ViewerError
 
     try:
         config = ViewerConfig(
