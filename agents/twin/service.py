@@ -34,6 +34,7 @@ from twin.calibration import load_calibration
 from twin.config import AgentConfig, ConfigError
 from twin.health import DeviceStatus, FleetHealth, HealthThresholds
 from twin.http_api import AgentHttpServer
+from twin.latency import LatencyHistogram
 from twin.logs import RateLimitedLog
 from twin.mailbox import LatestValueMailbox
 from twin.model import ModelError, RobotModel
@@ -145,6 +146,10 @@ class AgentService:
         self._stopped = False
         self._stop_lock = threading.Lock()
         self.batches = 0
+        # Fleet-wide distributions since start (every applied message of every device), for `twin bench`
+        # and capacity questions; the per-device windows in health answer "how is this arm doing now".
+        self._internal_hist = LatencyHistogram()
+        self._end_to_end_hist = LatencyHistogram()
         self.processed = 0
         self.errors = 0
 
@@ -371,6 +376,12 @@ class AgentService:
                     health.clock_resets += 1
                 if applied:
                     health.record_applied(item.recv_mono, updated, telemetry.timestamp_ms)
+                    self._internal_hist.add(updated - item.recv_mono)
+                    # Twin-updated wall time minus the edge stamp: only meaningful when the clocks agree
+                    # (same host in `twin bench`); in the field it includes the edge clock's offset.
+                    self._end_to_end_hist.add(
+                        item.recv_wall + (updated - item.recv_mono) - telemetry.timestamp_ms / 1000.0
+                    )
                 else:
                     health.record_ignored_stale()
                 self._units[device] = units
@@ -411,6 +422,10 @@ class AgentService:
             units = dict(self._units)
             untracked = dict(self._fleet.untracked_rejected)
             batches = self.batches
+            latency = {
+                "internal_s": self._internal_hist.summary(),
+                "end_to_end_s": self._end_to_end_hist.summary(),
+            }
         devices: dict[str, Any] = {}
         for device, h in health.items():
             snap = snapshots.get(device)
@@ -454,6 +469,7 @@ class AgentService:
                     "refused_keys": self._mailbox.refused_keys,
                     "pending": len(self._mailbox),
                 },
+                "latency": latency,
                 "worker": {
                     "alive": self._worker is not None and self._worker.is_alive(),
                     "batches": batches,
