@@ -13,6 +13,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -391,7 +392,9 @@ def test_mqtts_with_custom_ca(private_ca: dict[str, Path], tmp_path: Path) -> No
 
 
 @pytest.mark.slow
-def test_survives_broker_restarts(mosquitto: MosquittoBroker) -> None:
+def test_survives_broker_restarts(
+    mosquitto: MosquittoBroker, record_property: Callable[[str, object], None]
+) -> None:
     """Kill/stop and restart the broker 5 times under load; telemetry must flow again within 3 s each time."""
     mailbox: LatestValueMailbox[tuple[bytes, float]] = LatestValueMailbox()
     arrivals: list[float] = []
@@ -440,12 +443,15 @@ def test_survives_broker_restarts(mosquitto: MosquittoBroker) -> None:
         stopped = sub.stop(5)
     assert not sim_errors
     assert stopped
+    record_property("recovery_seconds", [round(r, 3) for r in recoveries])
     assert all(r < 3.0 for r in recoveries), recoveries
     stats = sub.stats
     assert stats.connection_successes == 6
     assert stats.disconnects == 5
     assert stats.subscribes_acked >= 6
     assert stats.callback_errors == 0
-    assert sim.report.publish_failures >= 0 and sim.report.published > 0
+    # Publishes during the outages fail (QoS 0 is not queued offline) and are counted, not raised.
+    assert sim.report.publish_failures > 0
+    assert sim.report.published > sim.report.publish_failures
     # Messages flowed after the last restart too, for both devices.
     assert any(t > back for t in arrivals)

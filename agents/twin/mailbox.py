@@ -8,7 +8,7 @@ in the metrics). Memory is bounded by the number of keys, not by how far the con
 from __future__ import annotations
 
 import threading
-from collections import defaultdict
+from collections import Counter
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
@@ -24,7 +24,7 @@ class LatestValueMailbox(Generic[T]):
         self._pending: dict[str, T] = {}
         self._cond = threading.Condition(threading.Lock())
         self._closed = False
-        self.overwritten: defaultdict[str, int] = defaultdict(int)
+        self._overwritten: Counter[str] = Counter()
         self.put_count = 0
         # Keys refused because max_keys were already pending: a flood of made-up device ids on a "+"
         # subscription must not grow memory without bound.
@@ -36,7 +36,7 @@ class LatestValueMailbox(Generic[T]):
             self.put_count += 1
             pending = self._pending
             if key in pending:
-                self.overwritten[key] += 1
+                self._overwritten[key] += 1
                 # Re-insert so take_all's order follows when the newest value arrived.
                 del pending[key]
             elif len(pending) >= self.max_keys:
@@ -77,6 +77,12 @@ class LatestValueMailbox(Generic[T]):
             return len(self._pending)
 
     @property
+    def overwritten(self) -> Counter[str]:
+        """Overwrites per key, as a snapshot: safe to iterate while producers keep putting (0 if none)."""
+        with self._cond:
+            return self._overwritten.copy()
+
+    @property
     def overwritten_total(self) -> int:
         with self._cond:
-            return sum(self.overwritten.values())
+            return self._overwritten.total()
