@@ -84,13 +84,28 @@ def get_json(url: str, timeout: float = 5.0) -> dict[str, Any]:
 
 
 @contextmanager
-def running_agent(broker_url: str, *, devices: str = "*", extra: tuple[str, ...] = (), log_dir: Path):
-    """`twin run` as a child process; yields (Popen, http base URL). Stopped with SIGTERM on exit."""
+def running_agent(
+    broker_url: str,
+    *,
+    devices: str = "*",
+    max_devices: int = 4096,
+    extra: tuple[str, ...] = (),
+    log_dir: Path,
+):
+    """`twin run` as a child process; yields (Popen, http base URL). Stopped with SIGTERM on exit.
+
+    The fleet bound is raised to the benchmark's size: the default guards a production agent against a
+    misbehaving publisher inventing device ids, which is not what is measured here.
+    """
     port = free_port()
     log_dir.mkdir(parents=True, exist_ok=True)
+    config = log_dir / f"agent-{port}.toml"
+    config.write_text(f"[telemetry]\nmax_devices = {max_devices}\n")
     log_file = (log_dir / f"agent-{port}.log").open("wb")
     cmd = twin_command(
         "run",
+        "--config",
+        str(config),
         "--broker",
         broker_url,
         "--devices",
