@@ -99,7 +99,7 @@ def _health_line(health: AgentHealth | None) -> str:
 
 
 def run(args: argparse.Namespace, twin: TwinInstance | None = None) -> int:
-    from twin import instance as lib  # noqa: PLC0415 - boto3 and botocore load only when the command runs
+    from twin import instance as lib
 
     if args.timeout <= 0:
         _err(f"twin instance: --timeout must be positive, got {args.timeout}")

@@ -94,8 +94,8 @@ def _pose_from_json(text: str, joint_names: tuple[str, ...]) -> dict[str, float]
 
 def _pose_from_payload(args: argparse.Namespace) -> tuple[dict[str, float], str]:
     """Decode --payload; raises ValueError (bad file/calibration) or TelemetryRejected."""
-    from twin.calibration import load_calibration  # noqa: PLC0415 - keep `twin --help` light
-    from twin.telemetry import DecoderConfig, TelemetryDecoder, Units  # noqa: PLC0415
+    from twin.calibration import load_calibration
+    from twin.telemetry import DecoderConfig, TelemetryDecoder, Units
 
     if args.payload == "-":
         payload: bytes = sys.stdin.buffer.read()
@@ -115,9 +115,9 @@ def _pose_from_payload(args: argparse.Namespace) -> tuple[dict[str, float], str]
 def run(args: argparse.Namespace) -> int:
     # MuJoCo binds its GL backend at first import; headless is the common case for this command.
     os.environ.setdefault("MUJOCO_GL", "egl")
-    from twin.model import ModelError, RobotModel  # noqa: PLC0415 - mujoco is heavy
-    from twin.render import RenderError, render_png  # noqa: PLC0415
-    from twin.telemetry import TelemetryRejected  # noqa: PLC0415
+    from twin.model import ModelError, RobotModel
+    from twin.render import RenderError, render_png
+    from twin.telemetry import TelemetryRejected
 
     if args.width <= 0 or args.height <= 0:
         _err(f"--width/--height must be positive, got {args.width}x{args.height}")
