@@ -9,6 +9,7 @@ on, and never wait for anything (a blocking callback deadlocks the client).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import re
 import secrets
@@ -475,9 +476,7 @@ class TelemetrySubscriber:
                 continue
             with self._stats_lock:
                 self._stats.subscribes_sent += 1
-            future.add_done_callback(
-                lambda fut, chunk=chunk: self._on_suback(fut, chunk, pending)  # type: ignore[misc]
-            )
+            future.add_done_callback(functools.partial(self._on_suback, chunk=chunk, pending=pending))
 
     def _on_suback(self, future: Future[Any], chunk: list[str], pending: dict[str, Any]) -> None:
         try:
