@@ -7,7 +7,7 @@ from aws_cdk import aws_iam as iam
 from aws_cdk import aws_logs as logs
 from constructs import Construct
 
-from stacks.skips import LOG_GROUP_KMS, skip_checkov
+from stacks.skips import LOG_GROUP_KMS, nag_arn, skip_checkov
 
 
 class TwinIdentity(Construct):
@@ -38,6 +38,7 @@ class TwinIdentity(Construct):
         )
         Validations.of(self.role).acknowledge(
             Acknowledgment(
+                # Managed policy ARNs keep the partition as a token even in a concrete environment.
                 id="AwsSolutions-IAM4[Policy::arn:<AWS::Partition>:iam::aws:policy/AmazonSSMManagedInstanceCore]",
                 reason="SSM Session Manager is the way onto the host instead of SSH; AWS maintains this "
                 "policy as the minimum for the SSM agent, and a hand-copied inline version would drift "
@@ -99,7 +100,7 @@ class TwinIdentity(Construct):
 
         # One acknowledgement per wildcard, each saying why it cannot be narrower.
         reasons = {
-            f"arn:<AWS::Partition>:iot:<AWS::Region>:<AWS::AccountId>:client/{client_id_prefix}*": (
+            nag_arn(stack, "arn:{partition}:iot:{region}:{account}:client/") + f"{client_id_prefix}*": (
                 "Each agent process connects with a unique client id (fixed prefix plus a random suffix, "
                 "so two agents never kick each other off); the wildcard covers that suffix only, in this "
                 "account and region."
@@ -108,7 +109,7 @@ class TwinIdentity(Construct):
                 "iot:DescribeEndpoint has no resource type (IoT action-resources table), so it cannot be "
                 "scoped; it only returns the account's data endpoint address."
             ),
-            "arn:<AWS::Partition>:s3:::dcv-license.<AWS::Region>/*": (
+            nag_arn(stack, "arn:{partition}:s3:::dcv-license.{region}/*"): (
                 "DCV on EC2 licenses itself by reading objects from this AWS-owned regional bucket; the "
                 "object keys are not documented, so the grant is read-only on that bucket's objects (DCV "
                 "admin guide, setting-up-license)."
@@ -116,7 +117,8 @@ class TwinIdentity(Construct):
         }
         if fleet:
             receive = (
-                f"arn:<AWS::Partition>:iot:<AWS::Region>:<AWS::AccountId>:topic/{topic_prefix}/*/telemetry"
+                nag_arn(stack, "arn:{partition}:iot:{region}:{account}:topic/")
+                + f"{topic_prefix}/*/telemetry"
             )
             reasons[receive] = (
                 "devices='*' mirrors the whole fleet: the agent receives every device's telemetry topic "

@@ -6,7 +6,7 @@ exceptions with their reasons, and a reviewer reads them where the resource is d
 
 from __future__ import annotations
 
-from aws_cdk import CfnResource
+from aws_cdk import CfnResource, Stack, Token
 from constructs import IConstruct
 
 LOG_GROUP_KMS = (
@@ -41,3 +41,18 @@ def skip_checkov(construct: IConstruct, reasons: dict[str, str]) -> None:
 def ignore_cfn_lint(construct: IConstruct, checks: list[str]) -> None:
     """Ignore cfn-lint rules on one resource (the reason sits in the caller's comment and acknowledgement)."""
     _cfn(construct).add_metadata("cfn-lint", {"config": {"ignore_checks": checks}})
+
+
+def nag_arn(stack: Stack, template: str) -> str:
+    """An ARN as cdk-nag prints it in finding ids: pseudo parameters shown as <AWS::Region> while they are
+    unresolved tokens (environment-agnostic synth), as their values once the environment is concrete
+    (`cdk synth` with a default region). Template fields: {partition}, {region}, {account}."""
+
+    def shown(value: str, name: str) -> str:
+        return f"<AWS::{name}>" if Token.is_unresolved(value) else value
+
+    return template.format(
+        partition=shown(stack.partition, "Partition"),
+        region=shown(stack.region, "Region"),
+        account=shown(stack.account, "AccountId"),
+    )

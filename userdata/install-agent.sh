@@ -52,6 +52,9 @@ write_file() {
 toml_list() {
   local out="" item
   local IFS=,
+  # DEVICES='*' means the fleet: split on commas without letting the shell glob it into file names.
+  local -
+  set -f
   for item in $1; do
     item="${item// /}"
     [ -n "$item" ] && out="${out:+$out, }\"$item\""

@@ -27,7 +27,7 @@ def synth_all_options(tmp_path_factory: pytest.TempPathFactory) -> Synth:
 
 @pytest.fixture(scope="session")
 def synth_factory(tmp_path_factory: pytest.TempPathFactory) -> Callable[..., Synth]:
-    def make(**overrides: str) -> Synth:
-        return synthesize(tmp_path_factory.mktemp("cdk-variant"), **overrides)
+    def make(region: str | None = None, **overrides: str) -> Synth:
+        return synthesize(tmp_path_factory.mktemp("cdk-variant"), region=region, **overrides)
 
     return make

@@ -54,7 +54,7 @@ class Synth:
         return next(iter(found.values()))
 
 
-def synthesize(outdir: Path, **overrides: str) -> Synth:
+def synthesize(outdir: Path, region: str | None = None, **overrides: str) -> Synth:
     """Synthesize the real app (build_app: settings, stack, cdk-nag) with cdk.json context plus overrides.
 
     Template.from_stack runs the validation plugins, so an unacknowledged cdk-nag finding raises here.
@@ -70,6 +70,9 @@ def synthesize(outdir: Path, **overrides: str) -> Synth:
         # Environment-agnostic, like a synth without credentials: the template must not depend on who runs it.
         mp.delenv("CDK_DEFAULT_ACCOUNT", raising=False)
         mp.delenv("CDK_DEFAULT_REGION", raising=False)
+        if region:
+            # As `cdk synth` does when the AWS config names a region.
+            mp.setenv("CDK_DEFAULT_REGION", region)
         app = cdk.App(context=context, outdir=str(outdir))
         stack = build_app(app)
         template = Template.from_stack(stack)

@@ -135,6 +135,19 @@ def test_open_cidr_synthesizes_only_with_allow_any_client(synth_factory) -> None
     assert {r["CidrIp"] for r in ingress_rules(synth)} == {"0.0.0.0/0"}
 
 
+def test_concrete_region_synth_is_nag_clean_and_checks_the_zone(synth_factory) -> None:
+    """`cdk synth` with a configured region resolves ARNs to literals; acknowledgements must still match."""
+    from stacks.settings import SettingsError
+
+    from .synth import ALL_OPTIONS
+
+    synth = synth_factory(region="us-east-1", **ALL_OPTIONS)
+    statements = policy_statements(synth, "IdentityHostRole")
+    assert ":iot:us-east-1:" in flatten(statement(statements, "IotReceiveTelemetry"))
+    with pytest.raises(SettingsError, match="not in the stack's region us-west-2"):
+        synth_factory(region="us-west-2", availabilityZone="us-east-1b")
+
+
 # --- identity -------------------------------------------------------------------------------------
 
 

@@ -1,0 +1,209 @@
+"""The UserData scripts: shellcheck, the rendered UserData, and a real run of the agent installer.
+
+The installer runs against a temporary ROOT with the exact agent asset the synth staged (the same
+zip content the instance downloads), building a real venv and pip-installing the real package.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from stacks import twin_host
+
+from .synth import REPO_ROOT, Synth
+
+USERDATA = REPO_ROOT / "userdata"
+SCRIPTS = sorted(USERDATA.glob("*.sh"))
+
+
+def test_shellcheck_is_clean() -> None:
+    assert {p.name for p in SCRIPTS} >= {"user-data.sh", "bootstrap.sh", "install-agent.sh"}
+    shellcheck = shutil.which("shellcheck")
+    if shellcheck is None:
+        pytest.fail("shellcheck is missing: `make setup` installs it (apt package shellcheck)")
+    result = subprocess.run([shellcheck, *map(str, SCRIPTS)], capture_output=True, text=True, check=False)
+    assert result.returncode == 0, result.stdout
+
+
+def test_render_fills_every_placeholder_and_refuses_gaps() -> None:
+    values = {
+        "REGION": "us-east-1",
+        "AGENT_URL": "s3://b/a.zip",
+        "SCRIPTS_URL": "s3://b/s.zip",
+        "SECRET_ARN": "arn:aws:secretsmanager:us-east-1:111111111111:secret:x",
+        "SETTINGS_ENV": "UNITS=auto",
+    }
+    text = twin_host.render_user_data(values)
+    assert "@@" not in text
+    assert len(text.encode()) < 16 * 1024
+    with pytest.raises(KeyError, match="SECRET_ARN"):
+        twin_host.render_user_data({k: v for k, v in values.items() if k != "SECRET_ARN"})
+    with pytest.raises(KeyError, match="NOPE"):
+        twin_host.render_user_data({**values, "NOPE": "x"})
+
+
+def test_bootstrap_never_traces_or_prints_the_password() -> None:
+    text = (USERDATA / "bootstrap.sh").read_text()
+    assert "set -x" not in text
+    assert "chpasswd" in text
+    # The secret only flows into chpasswd's stdin.
+    secret_lines = [line for line in text.splitlines() if "$secret" in line or "${secret}" in line]
+    assert secret_lines == ['  printf \'%s:%s\\n\' "$DESKTOP_USER" "$secret" | chpasswd']
+
+
+def tree_digest(root: Path) -> dict[str, str]:
+    """Content, mode and mtime of every file under root: a re-run that rewrites anything shows up."""
+    digest = {}
+    for path in sorted(root.rglob("*")):
+        if path.is_symlink():
+            digest[str(path.relative_to(root))] = "link:" + os.readlink(path)
+        elif path.is_file():
+            st = path.stat()
+            content = hashlib.sha256(path.read_bytes()).hexdigest()
+            digest[str(path.relative_to(root))] = f"{content}:{st.st_mode:o}:{st.st_mtime_ns}"
+    return digest
+
+
+def agent_asset_dir(synth: Synth) -> Path:
+    dirs = [p for p in Path(synth.stack.node.root.outdir).glob("asset.*") if (p / "pyproject.toml").exists()]
+    assert len(dirs) == 1
+    return dirs[0]
+
+
+def run_installer(root: Path, source: Path, **env: str) -> subprocess.CompletedProcess[str]:
+    full_env = {
+        **os.environ,
+        "ROOT": str(root),
+        "AGENT_SRC": str(source),
+        # The repo's own interpreter stands in for the host's python3.12. --system-site-packages plus
+        # --no-deps keeps the run fast and offline-safe: the heavy runtime wheels (mujoco, usd-core,
+        # awscrt) are already tested elsewhere; here we test what this script writes and installs.
+        "PYTHON": sys.executable,
+        "VENV_ARGS": "--system-site-packages",
+        "PIP_ARGS": "--no-deps",
+        "AWS_REGION": "eu-central-1",
+        "TOPIC_PREFIX": "dt/lerobot",
+        "DEVICES": "arm-001, arm-002",
+        "UNITS": "ticks",
+        "CLIENT_ID_PREFIX": "so101-twin-",
+        "DESKTOP_USER": "ubuntu",
+        **env,
+    }
+    return subprocess.run(
+        ["bash", str(USERDATA / "install-agent.sh")],
+        env=full_env,
+        capture_output=True,
+        text=True,
+        timeout=240,
+        check=False,
+    )
+
+
+@pytest.fixture(scope="module")
+def installed(synth_default: Synth, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    root = tmp_path_factory.mktemp("root")
+    source = agent_asset_dir(synth_default)
+    result = run_installer(root, source)
+    assert result.returncode == 0, result.stdout + result.stderr
+    return root, source
+
+
+def test_installer_writes_the_agent_config_from_the_settings(installed: tuple[Path, Path]) -> None:
+    root, _ = installed
+    path = root / "etc/so101-twin/agent.toml"
+    config = tomllib.loads(path.read_text())
+    assert config["broker"]["url"] == "iot"
+    assert config["broker"]["region"] == "eu-central-1"
+    assert config["broker"]["client_id_prefix"] == "so101-twin-"
+    assert config["telemetry"] == {
+        "topic_prefix": "dt/lerobot",
+        "devices": ["arm-001", "arm-002"],
+        "units": "ticks",
+        "calibration": "",
+    }
+    assert config["twin"]["record_dir"] == "/var/lib/so101-twin/sessions"
+    # The agent's own loader accepts it (same schema as `twin run --config`).
+    from twin.config import load_config
+
+    loaded = load_config(path)
+    assert list(loaded.telemetry.devices) == ["arm-001", "arm-002"]
+    assert loaded.broker.url == "iot"
+
+
+def test_installer_writes_the_service_and_the_viewer_autostart(installed: tuple[Path, Path]) -> None:
+    root, _ = installed
+    unit = (root / "etc/systemd/system/so101-twin-agent.service").read_text()
+    assert "ExecStart=/opt/so101-twin/venv/bin/twin run --config /etc/so101-twin/agent.toml" in unit
+    assert "Restart=always" in unit
+    assert "Environment=MUJOCO_GL=egl" in unit
+    assert "WantedBy=multi-user.target" in unit
+    desktop = (root / "home/ubuntu/.config/autostart/so101-twin-view.desktop").read_text()
+    assert "Exec=/opt/so101-twin/venv/bin/twin view" in desktop
+    assert "Type=Application" in desktop
+    assert (root / "var/lib/so101-twin/sessions").is_dir()
+
+
+def test_installer_installs_the_real_package_with_the_robot_model(installed: tuple[Path, Path]) -> None:
+    root, _ = installed
+    venv_python = root / "opt/so101-twin/venv/bin/python"
+    probe = (
+        "import twin, twin_robots, pathlib; "
+        "p = pathlib.Path(twin_robots.__file__).parent / 'so101' / 'scene.xml'; "
+        "print(pathlib.Path(twin.__file__).parent.parent.name, p.is_file())"
+    )
+    out = subprocess.run(
+        [str(venv_python), "-c", probe], capture_output=True, text=True, check=True, timeout=60
+    )
+    # Installed into the venv's site-packages (not the repo checkout), model files included.
+    assert out.stdout.split() == ["site-packages", "True"]
+    help_ = subprocess.run(
+        [str(root / "opt/so101-twin/venv/bin/twin"), "--help"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert help_.returncode == 0
+    assert "run" in help_.stdout
+
+
+def test_second_run_changes_nothing(installed: tuple[Path, Path]) -> None:
+    root, source = installed
+    before = tree_digest(root)
+    result = run_installer(root, source)
+    assert result.returncode == 0, result.stderr
+    assert "changed=0" in result.stdout
+    assert "installing" not in result.stdout
+    assert tree_digest(root) == before
+
+
+def test_changed_settings_rewrite_only_the_config(installed: tuple[Path, Path], tmp_path: Path) -> None:
+    root = tmp_path / "root"
+    shutil.copytree(installed[0], root, symlinks=True)
+    before = tree_digest(root)
+    result = run_installer(root, installed[1], DEVICES="*", UNITS="auto")
+    assert result.returncode == 0, result.stderr
+    after = tree_digest(root)
+    changed = sorted(k for k in after if before.get(k) != after[k])
+    assert changed == ["etc/so101-twin/agent.toml"]
+    config = tomllib.loads((root / "etc/so101-twin/agent.toml").read_text())
+    assert config["telemetry"]["devices"] == ["*"]
+
+
+@pytest.mark.parametrize(
+    ("env", "message"),
+    [({"UNITS": "radians"}, "UNITS=radians"), ({"AGENT_SRC": "/nonexistent"}, "no pyproject.toml")],
+)
+def test_installer_refuses_bad_input(tmp_path: Path, env: dict[str, str], message: str) -> None:
+    result = run_installer(tmp_path / "root", REPO_ROOT, **env)
+    assert result.returncode == 2
+    assert message in result.stderr
+    assert not (tmp_path / "root" / "etc").exists()
