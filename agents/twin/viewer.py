@@ -448,8 +448,9 @@ class TwinViewer:
         # Free camera framed on the arm's workspace (about 0.45 m reach), not the scene's default that shows
         # the whole floor; the mouse can still orbit and zoom.
         cam.type = mujoco.mjtCamera.mjCAMERA_FREE
-        cam.lookat[:] = (0.12, 0.0, 0.14)
-        cam.distance = 0.85
+        cam.lookat[:] = (0.12, 0.0, 0.18)
+        # Far enough that the arm stretched straight up (about 0.5 m) stays in a small window.
+        cam.distance = 1.1
         cam.azimuth = 140.0
         cam.elevation = -22.0
 
