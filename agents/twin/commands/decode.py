@@ -41,8 +41,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from twin.calibration import load_calibration  # noqa: PLC0415 - keep `twin --help` light
-    from twin.telemetry import DecoderConfig, TelemetryDecoder, TelemetryRejected, Units  # noqa: PLC0415
+    from twin.calibration import load_calibration  # lazy: keeps `twin --help` light
+    from twin.telemetry import DecoderConfig, TelemetryDecoder, TelemetryRejected, Units
 
     try:
         calibration = load_calibration(args.calibration) if args.calibration else None
