@@ -4,6 +4,7 @@
 # No secret appears here: UserData is readable through IMDS and DescribeInstanceAttribute.
 set -euo pipefail
 exec > >(tee -a /var/log/so101-twin-bootstrap.log | logger -t so101-twin-bootstrap) 2>&1
+export SO101_TWIN_LOGGING=1  # bootstrap.sh inherits this stream instead of adding a second tee
 echo "so101-twin user-data: start $(date -Is)"
 
 install -d -m 0755 /etc/so101-twin /opt/so101-twin
