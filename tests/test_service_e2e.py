@@ -277,7 +277,7 @@ def test_sigterm_flushes_the_recording_and_exits_zero(mosquitto: MosquittoBroker
     thread.join(5)
     assert all({"ts", "level", "logger", "msg"} <= set(ln) for ln in lines)
     assert any(ln["msg"] == "agent stopped" for ln in lines)
-    sessions = list(record_dir.glob("session-*.usda"))
+    sessions = list(record_dir.glob("session-*.usdc"))  # the default format
     assert len(sessions) == 1
     from pxr import Usd
 

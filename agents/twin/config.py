@@ -23,6 +23,7 @@ from urllib.parse import urlsplit
 # `twin.telemetry.Units` and `twin.twin.TwinMode` values (tests/test_config.py checks they stay in step).
 UNITS_CHOICES: tuple[str, ...] = ("ticks", "degrees", "range100", "auto")
 MODE_CHOICES: tuple[str, ...] = ("kinematic", "physics")
+RECORD_FORMAT_CHOICES: tuple[str, ...] = ("usdc", "usda")
 LOG_LEVELS: tuple[str, ...] = ("DEBUG", "INFO", "WARNING", "ERROR")
 BROKER_SCHEMES: dict[str, int] = {"mqtt": 1883, "mqtts": 8883}
 ALL_DEVICES = "*"
@@ -60,6 +61,9 @@ class TwinSection:
     mode: str = "kinematic"
     model: str = ""
     record_dir: str = ""
+    # usdc by default: a binary layer saves incrementally, while a text layer is rewritten whole on every
+    # flush, which grows to most of a second per save after an hour of recording (docs/robot-model.md).
+    record_format: str = "usdc"
     physics_rate_hz: float = 200.0
     record_flush_s: float = 2.0
 
@@ -287,6 +291,11 @@ def validate(config: AgentConfig) -> AgentConfig:
     if tw.record_dir and Path(tw.record_dir).exists() and not Path(tw.record_dir).is_dir():
         raise ConfigError(
             f"twin.record_dir = {tw.record_dir!r} is a file; give a directory (created if missing)"
+        )
+    if tw.record_format not in RECORD_FORMAT_CHOICES:
+        raise ConfigError(
+            f"twin.record_format = {tw.record_format!r} is not one of {', '.join(RECORD_FORMAT_CHOICES)}; "
+            "usdc (binary, for long sessions) or usda (text, readable, for short ones)"
         )
     _positive("twin.physics_rate_hz", tw.physics_rate_hz)
     _positive("twin.record_flush_s", tw.record_flush_s)

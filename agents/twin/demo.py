@@ -158,7 +158,7 @@ def run_demo(
                 {
                     "broker": {"url": broker.url, "client_id_prefix": "so101-demo-agent-"},
                     "telemetry": {"devices": devices, "units": config.variant},
-                    "twin": {"record_dir": str(out_dir)},
+                    "twin": {"record_dir": str(out_dir), "record_format": "usda"},
                     "health": {"expected_rate_hz": config.rate_hz},
                     "http": {"listen": f"127.0.0.1:{free_port()}"},
                 }

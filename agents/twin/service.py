@@ -195,7 +195,7 @@ class AgentService:
 
     def _open_recorder(self, directory: Path) -> SessionRecorder:
         stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-        path = directory / f"session-{stamp}-{os.getpid()}.usda"
+        path = directory / f"session-{stamp}-{os.getpid()}.{self.config.twin.record_format}"
         return SessionRecorder(path, flush_interval_s=self.config.twin.record_flush_s)
 
     def stop(self, timeout: float = 5.0) -> None:
