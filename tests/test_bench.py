@@ -1,0 +1,76 @@
+"""Smoke tests of `twin bench`: each scenario runs briefly and prints every figure as JSON.
+
+The figures themselves are not asserted (a benchmark measures, it does not pass or fail); docs/performance.md
+has the full runs. These tests prove the scenarios run end to end against a real mosquitto and a real agent
+process, and that the JSON keeps every field the docs describe.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+pytestmark = pytest.mark.slow
+
+LATENCY_FIELDS = {"count", "mean", "p50", "p99", "max"}
+RUN_FIELDS = {"sent", "received", "lost", "sustained_rate", "cpu_percent", "rss_max_mb", "elapsed_s"}
+
+
+def bench(*args: str, timeout: float = 240) -> dict:
+    env = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
+    proc = subprocess.run(
+        [sys.executable, "-m", "twin.cli", "bench", *args, "--json"],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=env,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return json.loads(proc.stdout)
+
+
+def test_throughput_reports_ceiling_agent_and_latencies() -> None:
+    figures = bench("throughput", "--arms", "20", "--rate", "10", "--seconds", "2")
+    assert figures["scenario"] == "throughput"
+    assert {"arms", "rate_hz", "seconds", "offered_rate", "agent_to_ceiling_ratio"} <= set(figures)
+    assert set(figures["ceiling"]) >= RUN_FIELDS
+    agent = figures["agent"]
+    assert RUN_FIELDS | {"applied", "coalesced", "rejected", "devices_seen"} <= set(agent)
+    assert set(agent["internal_latency_s"]) >= LATENCY_FIELDS
+    assert set(agent["end_to_end_latency_s"]) >= LATENCY_FIELDS
+    # The run really carried traffic through the agent (not a figure check: 400 messages were offered).
+    assert agent["received"] > 0 and agent["applied"] > 0
+    assert agent["devices_seen"] == 20
+
+
+def test_fidelity_compares_hold_and_prediction_at_both_jitters() -> None:
+    figures = bench("fidelity", "--seconds", "5")
+    assert figures["scenario"] == "fidelity"
+    assert [case["jitter_ms"] for case in figures["cases"]] == [0.0, 50.0]
+    for case in figures["cases"]:
+        for estimator in ("hold_last_value", "predict"):
+            assert {"mean_error_rad", "max_error_rad", "mean_error_deg", "max_error_deg", "frames"} <= set(
+                case[estimator]
+            )
+            assert case[estimator]["frames"] > 0
+        assert {"mean_error_ratio", "max_error_ratio"} <= set(case)
+
+
+def test_footprint_reports_cold_start_and_memory() -> None:
+    figures = bench("footprint", "--arms", "20", "--seconds", "2")
+    assert figures["scenario"] == "footprint"
+    assert {
+        "cold_start_to_first_pose_s",
+        "rss_idle_mb",
+        "fleet_arms",
+        "fleet_devices_mirrored",
+        "rss_at_fleet_mb",
+        "rss_peak_mb",
+    } <= set(figures)
+    assert figures["fleet_devices_mirrored"] == 20
+    assert figures["cold_start_to_first_pose_s"] > 0
