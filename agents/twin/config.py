@@ -19,6 +19,8 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
+from twin.health import HealthThresholds
+
 # Kept as plain strings here so loading a config never imports the decoder or MuJoCo; the values are the
 # `twin.telemetry.Units` and `twin.twin.TwinMode` values (tests/test_config.py checks they stay in step).
 UNITS_CHOICES: tuple[str, ...] = ("ticks", "degrees", "range100", "auto")
@@ -68,16 +70,8 @@ class TwinSection:
     record_flush_s: float = 2.0
 
 
-@dataclass(frozen=True)
-class HealthSection:
-    expected_rate_hz: float = 10.0
-    stale_periods: float = 3.0
-    offline_after_s: float = 10.0
-    window_s: float = 5.0
-
-    @property
-    def stale_after_s(self) -> float:
-        return self.stale_periods / self.expected_rate_hz
+# The [health] section is the health thresholds themselves: one definition, used as loaded.
+HealthSection = HealthThresholds
 
 
 @dataclass(frozen=True)

@@ -55,16 +55,6 @@ class HealthThresholds:
             return DeviceStatus.STALE
         return DeviceStatus.ONLINE
 
-    @classmethod
-    def from_section(cls, section: Any) -> HealthThresholds:
-        """From a `twin.config.HealthSection` (duck-typed to keep this module free of the config)."""
-        return cls(
-            expected_rate_hz=section.expected_rate_hz,
-            stale_periods=section.stale_periods,
-            offline_after_s=section.offline_after_s,
-            window_s=section.window_s,
-        )
-
 
 def percentile(sorted_values: list[float], q: float) -> float | None:
     """Nearest-rank percentile (q in 0..1) of an ascending list; None when empty."""

@@ -32,7 +32,7 @@ from typing import Any
 # This module is the heavy end of the agent (MuJoCo, awscrt, USD); `twin run` imports it only when it runs.
 from twin.calibration import load_calibration
 from twin.config import AgentConfig, ConfigError
-from twin.health import DeviceStatus, FleetHealth, HealthThresholds
+from twin.health import DeviceStatus, FleetHealth
 from twin.http_api import AgentHttpServer
 from twin.latency import LatencyHistogram
 from twin.logs import RateLimitedLog
@@ -127,7 +127,7 @@ class AgentService:
         self._decoder = TelemetryDecoder(self._decoder_config)
 
         configured = () if t.all_devices else t.devices
-        self._fleet = FleetHealth(HealthThresholds.from_section(config.health), configured, clock=clock)
+        self._fleet = FleetHealth(config.health, configured, clock=clock)
         self._devices: dict[str, _DeviceState] = {}
         self._snapshots: dict[str, TwinSnapshot] = {}
         self._units: dict[str, str] = {}
