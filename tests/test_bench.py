@@ -17,7 +17,16 @@ import pytest
 pytestmark = pytest.mark.slow
 
 LATENCY_FIELDS = {"count", "mean", "p50", "p99", "max"}
-RUN_FIELDS = {"sent", "received", "lost", "sustained_rate", "cpu_percent", "rss_max_mb", "elapsed_s"}
+RUN_FIELDS = {
+    "sent",
+    "received",
+    "lost",
+    "sustained_rate",
+    "cpu_percent",
+    "host_cpu_percent",
+    "rss_max_mb",
+    "elapsed_s",
+}
 
 
 def bench(*args: str, timeout: float = 240) -> dict:
@@ -40,7 +49,7 @@ def test_throughput_reports_ceiling_agent_and_latencies() -> None:
     assert {"arms", "rate_hz", "seconds", "offered_rate", "agent_to_ceiling_ratio"} <= set(figures)
     assert set(figures["ceiling"]) >= RUN_FIELDS
     agent = figures["agent"]
-    assert RUN_FIELDS | {"applied", "coalesced", "rejected", "devices_seen"} <= set(agent)
+    assert RUN_FIELDS | {"applied", "mirrored_rate", "coalesced", "rejected", "devices_seen"} <= set(agent)
     assert set(agent["internal_latency_s"]) >= LATENCY_FIELDS
     assert set(agent["end_to_end_latency_s"]) >= LATENCY_FIELDS
     # The run really carried traffic through the agent (not a figure check: 400 messages were offered).

@@ -113,7 +113,8 @@ def render_png(
         )
     twin = DeviceTwin(robot, "render", TwinMode.KINEMATIC)
     twin.apply({name: joint_angles.get(name, 0.0) for name in robot.joint_names}, 0)
-    mujoco.mj_forward(model, twin.data)
+    data = twin.data
+    mujoco.mj_forward(model, data)
 
     # The offscreen buffer is sized by the model; growing it only affects renderers created afterwards.
     vis = model.vis.global_
@@ -123,7 +124,7 @@ def render_png(
     name = camera
     if name is None and DEFAULT_CAMERA in robot.camera_names:
         name = DEFAULT_CAMERA
-    view: str | mujoco.MjvCamera = name if name is not None else _free_camera(robot, twin.data)
+    view: str | mujoco.MjvCamera = name if name is not None else _free_camera(robot, data)
     _check_gl_backend()
     try:
         renderer = mujoco.Renderer(model, height=height, width=width)
@@ -134,7 +135,7 @@ def render_png(
             "host set MUJOCO_GL=egl (or osmesa) in the environment before starting the process."
         ) from exc
     with renderer:
-        renderer.update_scene(twin.data, camera=view)
+        renderer.update_scene(data, camera=view)
         pixels = renderer.render()
     if text:
         pixels = _overlay_text(pixels, text)

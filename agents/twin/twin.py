@@ -1,4 +1,4 @@
-"""The per-device twin: one MuJoCo state per arm, driven by decoded telemetry.
+"""The per-device twin of each arm, driven by decoded telemetry.
 
 Two modes. Kinematic: each message sets the joint angles exactly (clamped to the joint ranges) and runs
 forward kinematics; the twin is where the arm says it is. Physics: each message sets the position-actuator
@@ -67,9 +67,10 @@ class DeviceTwin:
         if self.mode is TwinMode.PHYSICS:
             robot.require_actuators()
         model = robot.model
-        self.data = mujoco.MjData(model)
-        # Inverse dynamics runs on its own MjData so it never disturbs the simulated state in physics mode.
-        self._scratch = mujoco.MjData(robot.inverse_model)
+        # Physics needs a state of its own that persists between steps. A kinematic twin is fully described
+        # by its joint angles: it computes through the owning thread's shared workspace and keeps only the
+        # figures it publishes, so a fleet of thousands costs kilobytes per arm, not two MjData each.
+        self._own_data = mujoco.MjData(model) if self.mode is TwinMode.PHYSICS else None
         # Flat per-joint tables, JOINT_NAMES order: the hot path indexes lists instead of hashing names.
         names = robot.joint_names
         self._names = names
@@ -83,16 +84,46 @@ class DeviceTwin:
             for a, lo, hi in zip(self._qadr, self._lo, self._hi, strict=True)
         ]
         self._torques: list[float] = [0.0] * model.nv
+        self._tcp = (0.0, 0.0, 0.0)
         self._sim_debt = 0.0
         self.last_timestamp_ms: int | None = None
         self.applied = 0
         self.ignored_stale = 0
         self.clamped = 0
-        self._write_pose(self.data, self._targets)
-        if self.mode is TwinMode.PHYSICS:
+        if self._own_data is not None:
+            self._write_pose(self._own_data, self._targets)
             self._write_ctrl(self._targets)
-        mujoco.mj_forward(model, self.data)
+            mujoco.mj_forward(model, self._own_data)
+            self._tcp = self._tcp_of(self._own_data)
+        else:
+            self._tcp = self._tcp_of(self._kinematics())
         self._inverse_dynamics()
+
+    @property
+    def data(self) -> mujoco.MjData:
+        """A MuJoCo state holding this twin's pose (positions computed), e.g. for rendering.
+
+        Physics mode: the twin's own simulation state. Kinematic mode: the owning thread's shared workspace,
+        loaded with this twin's angles; it stays this twin's only until another twin of the same model on
+        the same thread computes, so use it right away.
+        """
+        if self._own_data is not None:
+            return self._own_data
+        return self._kinematics()
+
+    def _kinematics(self) -> mujoco.MjData:
+        data = self.robot.workspace()[0]
+        self._write_pose(data, self._targets)
+        mujoco.mj_kinematics(self.robot.model, data)
+        return data
+
+    def _tcp_of(self, data: mujoco.MjData) -> tuple[float, float, float]:
+        robot = self.robot
+        if robot.tcp_site_id is not None:
+            x, y, z = data.site_xpos[robot.tcp_site_id]
+        else:
+            x, y, z = data.xpos[robot.tcp_body_id]
+        return (float(x), float(y), float(z))
 
     # -- hot path -------------------------------------------------------------------------------------------
 
@@ -128,15 +159,16 @@ class DeviceTwin:
             targets[i] = value
         self._targets = targets
         self.clamped += clamped
-        if self.mode is TwinMode.KINEMATIC:
-            self._write_pose(self.data, targets)
-            mujoco.mj_kinematics(self.robot.model, self.data)
+        own = self._own_data
+        if own is None:
+            self._tcp = self._tcp_of(self._kinematics())
         else:
             if last is None:
                 # Start the simulation at the first measured pose instead of swinging there from qpos0.
-                self._write_pose(self.data, targets)
-                self.data.qvel[:] = 0.0
-                mujoco.mj_forward(self.robot.model, self.data)
+                self._write_pose(own, targets)
+                own.qvel[:] = 0.0
+                mujoco.mj_forward(self.robot.model, own)
+                self._tcp = self._tcp_of(own)
             self._write_ctrl(targets)
         self._inverse_dynamics()
         self.last_timestamp_ms = timestamp_ms
@@ -149,12 +181,12 @@ class DeviceTwin:
             qpos[adr] = value
 
     def _write_ctrl(self, values: list[float]) -> None:
-        ctrl = self.data.ctrl
+        ctrl = self._own_data.ctrl
         for act, value in zip(self._act, values, strict=True):
             ctrl[act] = value
 
     def _inverse_dynamics(self) -> None:
-        scratch = self._scratch
+        scratch = self.robot.workspace()[1]
         self._write_pose(scratch, self._targets)
         # qvel and qacc stay zero (mj_inverse only reads them), leaving the gravity term: the holding torque.
         mujoco.mj_inverse(self.robot.inverse_model, scratch)
@@ -180,18 +212,21 @@ class DeviceTwin:
         if steps <= 0:
             return
         self._sim_debt = max(0.0, self._sim_debt - steps * dt)
-        data = self.data
+        data = self._own_data
         for _ in range(steps):
             mujoco.mj_step(model, data)
         # mj_step leaves positions from before its final integration; refresh them for readers and renderers.
         mujoco.mj_kinematics(model, data)
+        self._tcp = self._tcp_of(data)
 
     # -- state ----------------------------------------------------------------------------------------------
 
     @property
     def joint_angles(self) -> dict[str, float]:
         """Current joint angles (radians) by name: measured in kinematic mode, simulated in physics mode."""
-        qpos = self.data.qpos
+        if self._own_data is None:
+            return dict(zip(self._names, self._targets, strict=True))  # kinematic: exactly what was applied
+        qpos = self._own_data.qpos
         return {n: float(qpos[a]) for n, a in zip(self._names, self._qadr, strict=True)}
 
     @property
@@ -208,30 +243,28 @@ class DeviceTwin:
     @property
     def tcp_position(self) -> np.ndarray:
         """World position (m) of the tool-centre point (the TCP site, or the fallback body origin)."""
-        robot = self.robot
-        if robot.tcp_site_id is not None:
-            return self.data.site_xpos[robot.tcp_site_id].copy()
-        return self.data.xpos[robot.tcp_body_id].copy()
+        return np.array(self._tcp)
 
     def body_poses(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """World position (3,) and orientation quaternion (w, x, y, z) (4,) per body, copies.
 
         Bodies are so101.BODY_NAMES in order; a user model lacking some of those names returns those it has.
         """
-        xpos = self.data.xpos
-        xquat = self.data.xquat
+        data = self.data
+        xpos = data.xpos
+        xquat = data.xquat
         return {name: (xpos[bid].copy(), xquat[bid].copy()) for name, bid in self.robot.body_ids.items()}
 
     def snapshot(self) -> TwinSnapshot:
         """An immutable copy of this twin's state to hand to other threads (call it on the owning thread)."""
-        tcp = self.tcp_position
+        tcp = self._tcp
         return TwinSnapshot(
             device_id=self.device_id,
             timestamp_ms=self.last_timestamp_ms,
             joint_angles=self.joint_angles,
             targets=self.targets,
             joint_torques=self.joint_torques,
-            tcp_position=(float(tcp[0]), float(tcp[1]), float(tcp[2])),
+            tcp_position=tcp,
             mode=self.mode,
             applied=self.applied,
             ignored_stale=self.ignored_stale,

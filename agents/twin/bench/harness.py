@@ -58,6 +58,7 @@ class ProcessSampler:
             self.max_rss = max(self.max_rss, self.last_rss)
 
     def start(self) -> ProcessSampler:
+        psutil.cpu_percent(interval=None)  # starts the host-wide measurement that stop() reads
         self._cpu0 = self._cpu()
         self._t0 = time.monotonic()
         self.last_rss = self.process.memory_info().rss
@@ -70,7 +71,11 @@ class ProcessSampler:
         self.wall_s = time.monotonic() - self._t0
         self._stop.set()
         self._thread.join(2)
+        host = psutil.cpu_percent(interval=None)
         return {
+            # The whole host over the same interval (100 % = every core busy): publishers and broker share it.
+            "host_cpu_percent": host,
+            "host_cores": psutil.cpu_count(),
             "cpu_percent": 100.0 * self.cpu_s / self.wall_s if self.wall_s else 0.0,
             "cpu_s": self.cpu_s,
             "rss_max_mb": self.max_rss / 2**20,

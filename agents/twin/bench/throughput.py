@@ -112,17 +112,21 @@ def _agent(url: str, arms: int, rate: float, seconds: float, workdir: Path) -> d
         if proc.poll() is not None:
             raise RuntimeError(f"the agent exited during the run (code {proc.returncode})")
     received = state["agent"]["broker"]["messages"] - before["agent"]["broker"]["messages"]
+    state_applied = _sum_devices(state, "applied")
     latency = state["agent"]["latency"]
     return {
         **sent,
         "received": received,
         "lost": max(0, sent["sent"] - received),
-        "applied": _sum_devices(state, "applied"),
+        "applied": state_applied,
         "coalesced": _sum_devices(state, "overwritten"),
         "rejected": _sum_devices(state, "rejected_total"),
         "ignored_stale": _sum_devices(state, "ignored_stale"),
         "devices_seen": len(state["devices"]),
         "sustained_rate": received / sent["elapsed_s"] if sent["elapsed_s"] else 0.0,
+        # Messages that reached the twin (decoded and applied) per second; the rest of `received` was
+        # coalesced by the latest-value mailbox (a newer pose of the same arm replaced it) or rejected.
+        "mirrored_rate": state_applied / sent["elapsed_s"] if sent["elapsed_s"] else 0.0,
         "internal_latency_s": latency["internal_s"],
         "end_to_end_latency_s": latency["end_to_end_s"],
         **usage,
