@@ -122,6 +122,9 @@ class MosquittoBroker:
             f"listener {self.port} {self.host}",
             "allow_anonymous true",
             "persistence false",
+            # Telemetry is many small packets: without this, Nagle's algorithm holds them back for tens of
+            # milliseconds on loopback, which the demo and the benchmark would report as network latency.
+            "set_tcp_nodelay true",
             # Started as root (CI containers), mosquitto would drop to the `mosquitto` user and lose access to
             # our private temp dir (log file, TLS key); keep it as the invoking user instead.
             f"user {pwd.getpwuid(os.geteuid()).pw_name}",

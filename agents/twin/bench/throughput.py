@@ -120,7 +120,9 @@ def _agent(url: str, arms: int, rate: float, seconds: float, workdir: Path) -> d
         "lost": max(0, sent["sent"] - received),
         "applied": state_applied,
         "coalesced": _sum_devices(state, "overwritten"),
-        "rejected": _sum_devices(state, "rejected_total"),
+        # Per device, plus those counted before a device was known (e.g. units_undecided while `auto`
+        # gathers evidence from a new arm's first messages).
+        "rejected": _sum_devices(state, "rejected_total") + sum(state["untracked_rejected"].values()),
         "ignored_stale": _sum_devices(state, "ignored_stale"),
         "devices_seen": len(state["devices"]),
         "sustained_rate": received / sent["elapsed_s"] if sent["elapsed_s"] else 0.0,
