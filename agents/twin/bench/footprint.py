@@ -10,9 +10,7 @@ from typing import Any
 
 import psutil
 
-from twin.bench.harness import get_json, load_process, private_broker, running_agent, wait_subscribed
-
-PREFIX = "dt/lerobot"
+from twin.bench.harness import get_json, private_broker, running_agent, start_publisher, wait_subscribed
 
 
 def _first_pose_s(base: str, proc: subprocess.Popen, started: float, timeout: float = 60.0) -> float:
@@ -30,18 +28,6 @@ def _first_pose_s(base: str, proc: subprocess.Popen, started: float, timeout: fl
     raise RuntimeError(f"no mirrored pose within {timeout} s")
 
 
-def _fleet_publisher(url: str, first: int, count: int, rate: float, seconds: float) -> subprocess.Popen:
-    return load_process(
-        "publish", "--url", url, "--first", str(first), "--count", str(count),
-        "--rate", str(rate), "--seconds", str(seconds), "--prefix", PREFIX,
-    )  # fmt: skip
-
-
-def _fleet_publisher(url: str, first: int, count: int, rate: float, seconds: float) -> subprocess.Popen:
-    args = ["--url", url, "--first", str(first), "--count", str(count), "--rate", str(rate)]
-    return load_process("publish", *args, "--seconds", str(seconds), "--prefix", PREFIX)
-
-
 def _rss_mb(pid: int) -> float:
     return psutil.Process(pid).memory_info().rss / 2**20
 
@@ -52,10 +38,7 @@ def run(*, fleet: int = 1000, rate: float = 10.0, fleet_seconds: float = 8.0) ->
         with private_broker(workdir / "broker") as broker:
             # Cold start: one arm is already publishing when the agent process is spawned; the clock runs
             # from spawn to the first pose visible in /state (imports, model load, connect, first message).
-            pub = load_process(
-                "publish", "--url", broker.url, "--first", "1", "--count", "1",
-                "--rate", "10", "--seconds", "60", "--prefix", PREFIX,
-            )  # fmt: skip
+            pub = start_publisher(broker.url, 1, 1, 10.0, 60.0)
             try:
                 time.sleep(1.0)
                 started = time.monotonic()
@@ -71,7 +54,7 @@ def run(*, fleet: int = 1000, rate: float = 10.0, fleet_seconds: float = 8.0) ->
                 idle = _rss_mb(proc.pid)
                 half = fleet // 2
                 pubs = [
-                    _fleet_publisher(broker.url, first, half, rate, fleet_seconds) for first in (1, 1 + half)
+                    start_publisher(broker.url, first, half, rate, fleet_seconds) for first in (1, 1 + half)
                 ]
                 peak = idle
                 while any(p.poll() is None for p in pubs):

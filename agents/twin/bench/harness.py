@@ -160,6 +160,16 @@ def private_broker(workdir: Path):
         broker.close()
 
 
+# The edge's default topic prefix; the load processes and the agent under test both use it.
+PREFIX = "dt/lerobot"
+
+
+def start_publisher(url: str, first: int, count: int, rate: float, seconds: float) -> subprocess.Popen:
+    """A publisher process for arms first..first+count-1 (twin.bench.load), at `rate` Hz each."""
+    args = ["--url", url, "--first", str(first), "--count", str(count), "--rate", str(rate)]
+    return load_process("publish", *args, "--seconds", str(seconds), "--prefix", PREFIX)
+
+
 def load_process(*args: str) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, "-m", "twin.bench.load", *args],

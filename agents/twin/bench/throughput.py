@@ -16,16 +16,17 @@ from pathlib import Path
 from typing import Any
 
 from twin.bench.harness import (
+    PREFIX,
     ProcessSampler,
     get_json,
     last_json_line,
     load_process,
     private_broker,
     running_agent,
+    start_publisher,
     wait_subscribed,
 )
 
-PREFIX = "dt/lerobot"
 # One Python publisher process sustains well over 10,000 msg/s with pre-encoded payloads; beyond that the
 # load is split so the publisher is not what limits the figure.
 MSGS_PER_PUBLISHER = 10_000
@@ -37,12 +38,7 @@ def _publishers(url: str, arms: int, rate: float, seconds: float) -> list[Any]:
     procs = []
     for first in range(1, arms + 1, per):
         n = min(per, arms + 1 - first)
-        procs.append(
-            load_process(
-                "publish", "--url", url, "--first", str(first), "--count", str(n),
-                "--rate", str(rate), "--seconds", str(seconds), "--prefix", PREFIX,
-            )
-        )  # fmt: skip
+        procs.append(start_publisher(url, first, n, rate, seconds))
     return procs
 
 
