@@ -6,7 +6,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from twin.broker import MosquittoBroker, MosquittoNotFound
+from twin.tools.mosquitto import MosquittoBroker, MosquittoNotFound
 
 
 @pytest.fixture

@@ -6,8 +6,8 @@ import socket
 from pathlib import Path
 
 import pytest
-from twin import broker as broker_mod
-from twin.broker import BrokerError, MosquittoBroker, MosquittoNotFound
+from twin.tools import mosquitto as broker_mod
+from twin.tools.mosquitto import BrokerError, MosquittoBroker, MosquittoNotFound
 
 pytestmark = pytest.mark.slow
 

@@ -6,7 +6,7 @@ import dataclasses
 from pathlib import Path
 
 import pytest
-from twin.config import (
+from twin.service.config import (
     MODE_CHOICES,
     UNITS_CHOICES,
     AgentConfig,
@@ -155,10 +155,10 @@ def test_file_errors(tmp_path: Path) -> None:
 
 
 def test_choices_stay_in_step_with_the_enums() -> None:
-    from twin.telemetry import Units
+    from twin.core.telemetry import Units
 
     assert set(UNITS_CHOICES) == {u.value for u in Units}
-    twin_module = pytest.importorskip("twin.twin")
+    twin_module = pytest.importorskip("twin.core.twin")
     assert set(MODE_CHOICES) == {m.value for m in twin_module.TwinMode}
 
 

@@ -10,8 +10,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from twin import so101
 from twin.cli import main
+from twin.robot import so101
 
 EXAMPLE_CALIBRATION = (
     Path(__file__).resolve().parents[1] / "robots" / "so101" / "calibration" / "so101_follower_example.json"

@@ -15,10 +15,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from twin import so101
-from twin.broker import MosquittoBroker
 from twin.cli import main
-from twin.edge_sim import (
+from twin.core.telemetry import DecoderConfig, RejectReason, TelemetryDecoder, TelemetryRejected, Units
+from twin.robot import so101
+from twin.tools.edge_sim import (
     MALFORMED_KINDS,
     EdgeSimConfig,
     EdgeSimulator,
@@ -31,8 +31,8 @@ from twin.edge_sim import (
     mock_ticks,
     sign_magnitude,
 )
-from twin.subscriber import BrokerConfig, TelemetrySubscriber, device_from_topic, topic_filters
-from twin.telemetry import DecoderConfig, RejectReason, TelemetryDecoder, TelemetryRejected, Units
+from twin.tools.mosquitto import MosquittoBroker
+from twin.transport.subscriber import BrokerConfig, TelemetrySubscriber, device_from_topic, topic_filters
 
 PREFIX = "dt/lerobot"
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import pytest
-from twin.health import (
+from twin.core.health import (
     DeviceStatus,
     FleetHealth,
     HealthThresholds,

@@ -13,7 +13,7 @@ import urllib.request
 from typing import Any
 
 import pytest
-from twin.http_api import AgentHttpServer, render_metrics
+from twin.service.http_api import AgentHttpServer, render_metrics
 
 
 class StubSource:

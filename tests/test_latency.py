@@ -1,7 +1,7 @@
 import random
 
 import pytest
-from twin.latency import LatencyHistogram
+from twin.core.latency import LatencyHistogram
 
 
 def test_empty_histogram_has_no_percentiles():

@@ -6,7 +6,7 @@ import threading
 import time
 
 import pytest
-from twin.mailbox import LatestValueMailbox
+from twin.transport.mailbox import LatestValueMailbox
 
 
 def test_latest_value_wins_and_overwrites_are_counted() -> None:

@@ -1,4 +1,5 @@
-"""twin.model: the bundled SO-101 loads; bad models fail with errors that name the problem and the fix."""
+"""twin.robot.model: the bundled SO-101 loads; bad models fail with errors that name the problem and the
+fix."""
 
 from __future__ import annotations
 
@@ -13,9 +14,9 @@ from pathlib import Path
 
 import mujoco
 import pytest
-from twin import so101
-from twin.model import ModelError, RobotModel, default_model_path
-from twin.twin import DeviceTwin, TwinMode
+from twin.core.twin import DeviceTwin, TwinMode
+from twin.robot import so101
+from twin.robot.model import ModelError, RobotModel, default_model_path
 
 BUNDLED_DIR = Path(default_model_path()).parent
 
@@ -125,7 +126,7 @@ def test_bad_xml_carries_mujocos_reason(tmp_path: Path) -> None:
 def test_no_tcp_site_falls_back_to_a_body_with_a_warning(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    with caplog.at_level(logging.WARNING, logger="twin.model"):
+    with caplog.at_level(logging.WARNING, logger="twin.robot.model"):
         robot = RobotModel.load(write(tmp_path, chain_mjcf()))
     assert robot.tcp_site is None
     assert robot.tcp_site_id is None

@@ -11,10 +11,10 @@ import mujoco
 import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom
-from twin import so101
-from twin.model import RobotModel
-from twin.recorder import SessionRecorder, default_asset_path, sanitise_prim_name
-from twin.twin import DeviceTwin
+from twin.core.twin import DeviceTwin
+from twin.output.recorder import SessionRecorder, default_asset_path, sanitise_prim_name
+from twin.robot import so101
+from twin.robot.model import RobotModel
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "robots" / "so101" / "scene.xml"
@@ -173,7 +173,7 @@ def test_bad_input_is_counted_not_raised(tmp_path: Path, mj, caplog: pytest.LogC
     nan_pose = dict(good, wrist=(np.array([np.nan, 0, 0]), good["wrist"][1]))
     short_quat = dict(good, gripper=(good["gripper"][0], np.array([1.0, 0.0])))
     rec = SessionRecorder(tmp_path / "bad.usda")
-    with caplog.at_level(logging.WARNING, logger="twin.recorder"):
+    with caplog.at_level(logging.WARNING, logger="twin.output.recorder"):
         assert not rec.record("arm", 0.0, {})
         assert not rec.record("arm", 0.0, {"elbow": (np.zeros(3), np.array([1.0, 0, 0, 0]))})
         assert not rec.record("arm", 0.0, nan_pose)

@@ -1,4 +1,4 @@
-"""twin.render and `twin render`: offscreen PNGs of the arm that show the arm, in the pose asked for."""
+"""twin.output.render and `twin render`: offscreen PNGs that show the arm, in the pose asked for."""
 
 from __future__ import annotations
 
@@ -16,12 +16,12 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import numpy as np
 import pytest
 from PIL import Image
-from twin import so101
-from twin.calibration import load_calibration
 from twin.cli import main
-from twin.model import RobotModel, default_model_path
-from twin.render import RenderError, render_png
-from twin.telemetry import DecoderConfig, TelemetryDecoder, Units
+from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
+from twin.output.render import RenderError, render_png
+from twin.robot import so101
+from twin.robot.calibration import load_calibration
+from twin.robot.model import RobotModel, default_model_path
 
 REST_DEG = (2.01, -98.89, 97.27, 63.70, -3.44, 0.0)
 REST = {name: deg * so101.DEG for name, deg in zip(so101.JOINT_NAMES, REST_DEG, strict=True)}

@@ -8,7 +8,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
-from twin import so101
+from twin.robot import so101
 
 ROBOT_DIR = Path(__file__).resolve().parents[1] / "robots" / "so101"
 SO101_XML = ROBOT_DIR / "so101.xml"

@@ -22,13 +22,13 @@ from typing import Any
 
 import pytest
 from awscrt import mqtt5
-from twin import so101
-from twin.broker import MosquittoBroker
-from twin.config import load_config
-from twin.edge_sim import encode, make_payload
-from twin.service import AgentService
-from twin.subscriber import BrokerConfig, build_mqtt5_client, new_client_id, topic_for
-from twin.telemetry import DecoderConfig, TelemetryDecoder, TelemetryRejected, Units
+from twin.core.telemetry import DecoderConfig, TelemetryDecoder, TelemetryRejected, Units
+from twin.robot import so101
+from twin.service.agent import AgentService
+from twin.service.config import load_config
+from twin.tools.edge_sim import encode, make_payload
+from twin.tools.mosquitto import MosquittoBroker
+from twin.transport.subscriber import BrokerConfig, build_mqtt5_client, new_client_id, topic_for
 
 pytestmark = pytest.mark.slow
 

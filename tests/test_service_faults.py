@@ -11,10 +11,10 @@ from typing import Any
 
 import pytest
 from test_service_e2e import Publisher, device_state, http_get, start_agent, wait_for
-from twin.broker import MosquittoBroker
-from twin.edge_sim import MALFORMED_KINDS, encode, make_malformed, make_payload
-from twin.service import AgentService
-from twin.telemetry import DecoderConfig, TelemetryDecoder, Units
+from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
+from twin.service.agent import AgentService
+from twin.tools.edge_sim import MALFORMED_KINDS, encode, make_malformed, make_payload
+from twin.tools.mosquitto import MosquittoBroker
 
 pytestmark = pytest.mark.slow
 
@@ -97,7 +97,7 @@ def test_broker_restarts_five_times(mosquitto: MosquittoBroker, publisher: Publi
 def test_flood_of_malformed_and_oversized_is_rejected_while_good_flows(
     mosquitto: MosquittoBroker, publisher: Publisher, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.WARNING, logger="twin.service")
+    caplog.set_level(logging.WARNING, logger="twin.service.agent")
     service = ticks_agent(mosquitto.url)
     steady = SteadyPublisher(publisher, "arm-001")
     flooder = Publisher(mosquitto.url)

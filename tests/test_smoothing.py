@@ -7,8 +7,8 @@ import math
 import random
 
 import pytest
-from twin import so101
-from twin.smoothing import HoldLastValue, PlayoutPredictor, SmoothingConfig, make_estimator
+from twin.core.smoothing import HoldLastValue, PlayoutPredictor, SmoothingConfig, make_estimator
+from twin.robot import so101
 
 EPOCH_MS = 1_706_000_000_000  # edge wall clock: epoch ms, nothing like the viewer's monotonic clock
 LOCAL_START = 1234.5  # time.monotonic() of the viewer when the edge clock reads EPOCH_MS

@@ -19,11 +19,12 @@ from typing import Any
 
 import pytest
 from awscrt import mqtt5
-from twin import subscriber as subscriber_mod
-from twin.broker import MosquittoBroker
-from twin.edge_sim import EdgeSimConfig, EdgeSimulator, device_ids, mock_ticks
-from twin.mailbox import LatestValueMailbox
-from twin.subscriber import (
+from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
+from twin.tools.edge_sim import EdgeSimConfig, EdgeSimulator, device_ids, mock_ticks
+from twin.tools.mosquitto import MosquittoBroker
+from twin.transport import subscriber as subscriber_mod
+from twin.transport.mailbox import LatestValueMailbox
+from twin.transport.subscriber import (
     BrokerConfig,
     BrokerConfigError,
     TelemetrySubscriber,
@@ -32,7 +33,6 @@ from twin.subscriber import (
     new_client_id,
     topic_filters,
 )
-from twin.telemetry import DecoderConfig, TelemetryDecoder, Units
 
 PREFIX = "dt/lerobot"
 
@@ -376,7 +376,7 @@ def test_mqtts_with_custom_ca(private_ca: dict[str, Path], tmp_path: Path) -> No
         # in a child process that reports after 2 s and exits without waiting for the CRT.
         script = (
             "import os, sys, time\n"
-            "from twin.subscriber import BrokerConfig, TelemetrySubscriber\n"
+            "from twin.transport.subscriber import BrokerConfig, TelemetrySubscriber\n"
             "s = TelemetrySubscriber(BrokerConfig(url=sys.argv[1]), ['dt/+/telemetry'], lambda *a: None)\n"
             "s.start(); time.sleep(2.0); st = s.stats\n"
             "print(st.connection_attempts, st.connection_successes, flush=True); os._exit(0)\n"

@@ -12,9 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from twin import so101
-from twin.calibration import Calibration, MotorCalibration, load_calibration
-from twin.telemetry import (
+from twin.core.telemetry import (
     DecoderConfig,
     JointDiagnostics,
     RejectReason,
@@ -25,6 +23,8 @@ from twin.telemetry import (
     decode_load,
     decode_velocity,
 )
+from twin.robot import so101
+from twin.robot.calibration import Calibration, MotorCalibration, load_calibration
 
 EXAMPLE_CALIBRATION = (
     Path(__file__).resolve().parents[1] / "robots" / "so101" / "calibration" / "so101_follower_example.json"
@@ -189,7 +189,7 @@ def test_auto_decides_ticks_from_the_ticks_example(caplog: pytest.LogCaptureFixt
         assert info.value.reason is RejectReason.UNITS_UNDECIDED
         assert f"{i + 1} of 3" in str(info.value)
         assert d.units_for("arm-001") is Units.AUTO
-    with caplog.at_level(logging.INFO, logger="twin.telemetry"):
+    with caplog.at_level(logging.INFO, logger="twin.core.telemetry"):
         t = d.decode(payload(TICKS_EXAMPLE))
     assert t.units is Units.TICKS
     assert_angles(t, TICKS_NO_CALIBRATION)
@@ -208,7 +208,7 @@ def test_auto_zero_degrees_is_undecided_never_ticks() -> None:
 
 def test_auto_decides_degrees_then_zero_payload_is_zero(caplog: pytest.LogCaptureFixture) -> None:
     d = decoder()
-    with caplog.at_level(logging.INFO, logger="twin.telemetry"):
+    with caplog.at_level(logging.INFO, logger="twin.core.telemetry"):
         for _ in range(2):
             with pytest.raises(TelemetryRejected):
                 d.decode(payload(DEGREES_EXAMPLE))

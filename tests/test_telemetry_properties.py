@@ -18,8 +18,7 @@ from typing import Any
 
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from twin import so101
-from twin.telemetry import (
+from twin.core.telemetry import (
     DecoderConfig,
     RejectReason,
     Telemetry,
@@ -27,6 +26,7 @@ from twin.telemetry import (
     TelemetryRejected,
     Units,
 )
+from twin.robot import so101
 
 NAMES = so101.JOINT_NAMES
 K = 2 * math.pi / 4095

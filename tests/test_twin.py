@@ -1,4 +1,4 @@
-"""twin.twin.DeviceTwin on the bundled SO-101 (and a weightless variant of it for the torque baseline)."""
+"""twin.core.twin.DeviceTwin on the bundled SO-101 (and a weightless variant for the torque baseline)."""
 
 from __future__ import annotations
 
@@ -13,9 +13,9 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
-from twin import so101
-from twin.model import RobotModel
-from twin.twin import DeviceTwin, TwinMode, TwinSnapshot
+from twin.core.twin import DeviceTwin, TwinMode, TwinSnapshot
+from twin.robot import so101
+from twin.robot.model import RobotModel
 
 # The LeRobot rest pose from the edge's docs (degrees), fed to the model as radians: the tip is on the table.
 REST_DEG = {

@@ -11,7 +11,7 @@ import mujoco
 import numpy as np
 import pytest
 from pxr import Gf, Usd, UsdGeom, UsdPhysics
-from twin import so101
+from twin.robot import so101
 
 ROOT = Path(__file__).resolve().parents[1]
 ASSET_DIR = ROOT / "robots" / "so101" / "usd"

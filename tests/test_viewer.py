@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from twin import so101
-from twin.broker import MosquittoBroker, free_port
-from twin.viewer import (
+from twin.robot import so101
+from twin.tools.mosquitto import MosquittoBroker, free_port
+from twin.viewer.window import (
     KEY_PAGE_DOWN,
     KEY_PAGE_UP,
     LINK_UNREACHABLE,
@@ -195,10 +195,10 @@ def xvfb(tmp_path: Path) -> Iterator[tuple[str, Path]]:
 @pytest.fixture
 def live_agent(mosquitto: MosquittoBroker) -> Iterator[str]:
     """The real agent service fed by the edge simulator (two arms, ticks); yields the agent URL."""
-    from twin.config import config_from_mapping
-    from twin.edge_sim import EdgeSimConfig, EdgeSimulator
-    from twin.service import AgentService
-    from twin.subscriber import BrokerConfig
+    from twin.service.agent import AgentService
+    from twin.service.config import config_from_mapping
+    from twin.tools.edge_sim import EdgeSimConfig, EdgeSimulator
+    from twin.transport.subscriber import BrokerConfig
 
     devices = ["arm-001", "arm-002"]
     config = config_from_mapping(

@@ -340,7 +340,7 @@ def test_agent_asset_holds_only_the_distribution(synth_default: Synth) -> None:
     assert {"agents", "pyproject.toml", "robots"} <= set(top)
     names = {p.name for p in asset_dirs[0].rglob("*")}
     assert not names & {"__pycache__", ".venv", "node_modules", "cdk.out", "tests"}
-    assert (asset_dirs[0] / "agents" / "twin" / "cli.py").exists()
+    assert (asset_dirs[0] / "agents" / "twin" / "cli" / "main.py").exists()
     scripts = [p for p in Path(outdir).glob("asset.*") if (p / "bootstrap.sh").exists()]
     assert len(scripts) == 1
     assert {"bootstrap.sh", "install-agent.sh"} <= {p.name for p in scripts[0].iterdir()}

@@ -131,7 +131,7 @@ def test_installer_writes_the_agent_config_from_the_settings(installed: tuple[Pa
     }
     assert config["twin"]["record_dir"] == "/var/lib/so101-twin/sessions"
     # The agent's own loader accepts it (same schema as `twin run --config`).
-    from twin.config import load_config
+    from twin.service.config import load_config
 
     loaded = load_config(path)
     assert list(loaded.telemetry.devices) == ["arm-001", "arm-002"]

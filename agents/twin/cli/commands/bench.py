@@ -1,0 +1,97 @@
+"""`twin bench`: throughput, fidelity and footprint figures (docs/performance.md says how to read them)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+
+def register(subparsers: Any) -> None:
+    parser = subparsers.add_parser(
+        "bench",
+        help="measure throughput, fidelity and footprint of the agent and print the figures",
+        description="Benchmarks print figures; they assert nothing. See docs/performance.md.",
+    )
+    sub = parser.add_subparsers(dest="scenario", metavar="SCENARIO", required=True)
+
+    tp = sub.add_parser("throughput", help="N arms at R Hz through a private mosquitto into one agent")
+    tp.add_argument("--arms", type=int, default=2000)
+    tp.add_argument("--rate", type=float, default=10.0, help="messages per second per arm")
+    tp.add_argument("--seconds", type=float, default=20.0)
+
+    fi = sub.add_parser("fidelity", help="twin pose at 60 Hz vs the true motion, hold-last-value vs ours")
+    fi.add_argument("--seconds", type=float, default=60.0)
+
+    fo = sub.add_parser("footprint", help="cold start to first pose; RSS idle and with a large fleet")
+    fo.add_argument("--arms", type=int, default=1000)
+    fo.add_argument("--seconds", type=float, default=8.0, help="how long the fleet publishes")
+
+    al = sub.add_parser("all", help="every scenario as published in docs/performance.md, plus the plot")
+    al.add_argument("--seconds", type=float, default=20.0, help="throughput run length")
+    al.add_argument("--plot", type=Path, default=Path("docs/performance.png"))
+
+    for p in (tp, fi, fo, al):
+        p.add_argument("--json", action="store_true", help="print the figures as one JSON object")
+        p.set_defaults(func=run)
+
+
+def _figures(args: argparse.Namespace) -> dict[str, Any]:
+    from twin.tools.bench import fidelity, footprint, throughput
+
+    if args.scenario == "throughput":
+        return throughput.run(arms=args.arms, rate=args.rate, seconds=args.seconds)
+    if args.scenario == "fidelity":
+        return fidelity.run(seconds=args.seconds)
+    if args.scenario == "footprint":
+        return footprint.run(fleet=args.arms, fleet_seconds=args.seconds)
+    # all: the two throughput loads the targets name, then fidelity and footprint.
+    results = {
+        "throughput": [
+            throughput.run(arms=100, rate=10.0, seconds=args.seconds),
+            throughput.run(arms=2000, rate=10.0, seconds=args.seconds),
+        ],
+        "fidelity": fidelity.run(),
+        "footprint": footprint.run(),
+    }
+    from twin.tools.bench import plot
+
+    results["plot"] = str(plot.write(results, args.plot))
+    return results
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    return str(value)
+
+
+def _print_tree(data: Any, indent: str = "") -> None:
+    if isinstance(data, dict):
+        for key, value in data.items():
+            if isinstance(value, dict | list):
+                print(f"{indent}{key}:")
+                _print_tree(value, indent + "  ")
+            else:
+                print(f"{indent}{key}: {_fmt(value)}")
+    elif isinstance(data, list):
+        for i, item in enumerate(data):
+            print(f"{indent}[{i}]")
+            _print_tree(item, indent + "  ")
+    else:
+        print(f"{indent}{_fmt(data)}")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        figures = _figures(args)
+    except RuntimeError as exc:
+        sys.stderr.write(f"twin bench: {exc}\n")
+        return 1
+    if args.json:
+        print(json.dumps(figures, indent=2))
+    else:
+        _print_tree(figures)
+    return 0

@@ -1,0 +1,142 @@
+"""`twin demo`: broker + edge simulator + agent for a set time, live status line, files left in --out."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+EXIT_OK = 0
+EXIT_FAILED = 1
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+# Without a terminal (CI logs, make output captured) a status line every few seconds is enough.
+PLAIN_STATUS_EVERY_S = 2.0
+
+
+def _out(text: str) -> None:
+    sys.stdout.write(text + "\n")
+    sys.stdout.flush()
+
+
+def _err(text: str) -> None:
+    sys.stderr.write(f"twin demo: {text}\n")
+
+
+def register(subparsers: Any) -> None:
+    parser = subparsers.add_parser(
+        "demo",
+        help="run broker, edge simulator and agent locally for a while; leave PNG, GIF, USD and stats.json",
+        description=(
+            "Starts a private mosquitto on a free loopback port, the edge simulator and the twin agent; shows"
+            " a live status line, then writes twin.png, twin.gif, the USD session and stats.json to --out "
+            "(docs/viewer.md). Stops everything it started, also on Ctrl-C."
+        ),
+    )
+    parser.add_argument("--seconds", type=float, default=20.0, help="run time (default %(default)s)")
+    parser.add_argument(
+        "--out", default="out/demo", metavar="DIR", help="output directory (default %(default)s)"
+    )
+    parser.add_argument(
+        "--variant",
+        choices=("ticks", "degrees"),
+        default="ticks",
+        help="edge payload variant (default ticks)",
+    )
+    parser.add_argument("--devices", type=int, default=1, metavar="N", help="simulated arms (default 1)")
+    parser.add_argument(
+        "--rate", type=float, default=10.0, metavar="HZ", help="messages/s per arm (default 10)"
+    )
+    parser.add_argument("--log-level", default="WARNING", help="logging level (default %(default)s)")
+    parser.set_defaults(func=run)
+
+
+def _format(status: Any) -> str:
+    def ms(value: float | None) -> str:
+        return "-" if value is None else f"{value * 1000:.1f}"
+
+    devices = " ".join(f"{d}:{s}" for d, s in sorted(status.statuses.items()))
+    return (
+        f"{status.elapsed_s:5.1f}s  sent {status.sent}  received {status.received}  "
+        f"rate {status.rate_hz:.1f}/s  rejected {status.rejected}  "
+        f"latency p50 {ms(status.latency_p50_s)} ms p99 {ms(status.latency_p99_s)} ms  {devices}"
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    logging.basicConfig(
+        level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    # Rendering the PNG/GIF needs no window: EGL works headless (the Makefile exports the same default).
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
+    from twin.tools.demo import DemoConfig, DemoError, run_demo
+
+    try:
+        config = DemoConfig(
+            seconds=args.seconds,
+            out_dir=Path(args.out),
+            variant=args.variant,
+            devices=args.devices,
+            rate_hz=args.rate,
+        )
+    except ValueError as exc:
+        _err(str(exc))
+        return EXIT_USAGE
+
+    stop = threading.Event()
+
+    def _on_signal(signum: int, _frame: object) -> None:
+        # Not KeyboardInterrupt: the demo must get to its cleanup and still write what it has.
+        stop.set()
+
+    signal.signal(signal.SIGINT, _on_signal)
+    signal.signal(signal.SIGTERM, _on_signal)
+    tty = sys.stdout.isatty()
+    last_plain = [0.0]
+
+    def on_status(status: Any) -> None:
+        line = _format(status)
+        if tty:
+            sys.stdout.write("\r\x1b[2K" + line)
+            sys.stdout.flush()
+        elif time.monotonic() - last_plain[0] >= PLAIN_STATUS_EVERY_S:
+            last_plain[0] = time.monotonic()
+            _out(line)
+
+    _out(
+        f"twin demo: {config.devices} simulated arm(s), {config.variant} payloads at {config.rate_hz:g} Hz "
+        f"for {config.seconds:g} s -> {config.out_dir}"
+    )
+    try:
+        stats = run_demo(config, on_status=on_status, stop=stop)
+    except DemoError as exc:
+        if tty:
+            sys.stdout.write("\n")
+        _err(f"failed: {exc}")
+        return EXIT_FAILED
+    if tty:
+        sys.stdout.write("\n")
+    msgs = stats["messages"]
+    e2e = stats["latency_s"]["end_to_end"]
+    _out(
+        f"done in {stats['duration_s']:.1f} s: sent {msgs['sent']}, received {msgs['received']}, "
+        f"rejected {msgs['rejected']}, end-to-end p50 {_ms(e2e['p50'])} / p99 {_ms(e2e['p99'])}"
+    )
+    for kind, name in stats["files"].items():
+        _out(f"  {kind:4s} {config.out_dir / name}")
+    _out(f"  json {config.out_dir / 'stats.json'}")
+    if stats["interrupted"]:
+        _err("interrupted: the files above cover the run up to the interruption")
+        return EXIT_INTERRUPTED
+    return EXIT_OK
+
+
+def _ms(value: float | None) -> str:
+    return "-" if value is None else f"{value * 1000:.1f} ms"

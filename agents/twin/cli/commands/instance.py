@@ -1,0 +1,144 @@
+"""`twin instance start|stop|status|url`: run the cloud twin host deployed by the CDK stack.
+
+The stack defaults to $SO101_TWIN_STACK, else So101TwinStack; the region to --region, else the AWS config.
+
+Exit codes:
+  0  done
+  1  any other AWS error (the message carries AWS's code)
+  2  bad command line (argparse)
+  3  no AWS credentials or region, or credentials AWS rejects
+  4  stack not found in that account and region
+  5  stack outputs missing (InstanceId or DcvUrl)
+  6  InsufficientInstanceCapacity on start (no G6e capacity in the stack's Availability Zone)
+  7  the instance did not reach the wanted state within --timeout
+
+The agent's health does not change the exit code (a freshly started host reports "unknown" until its SSM agent
+registers); scripts that need it read the `agent ...` line of `status`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from twin.tools.instance import AgentHealth, TwinInstance
+
+EXIT_OK = 0
+EXIT_AWS = 1
+EXIT_SETUP = 3
+EXIT_NO_STACK = 4
+EXIT_NO_OUTPUTS = 5
+EXIT_CAPACITY = 6
+EXIT_WAIT = 7
+
+EPILOG = """exit codes:
+  0 done; 1 other AWS error; 2 bad command line; 3 no AWS credentials or region;
+  4 stack not found; 5 stack outputs missing; 6 InsufficientInstanceCapacity on start;
+  7 instance did not reach the state within --timeout
+stack: --stack, else $SO101_TWIN_STACK, else So101TwinStack"""
+
+DEFAULT_TIMEOUT_S = 900.0
+HEALTH_TIMEOUT_S = 60.0
+
+
+def _out(text: str) -> None:
+    sys.stdout.write(text + "\n")
+
+
+def _err(text: str) -> None:
+    sys.stderr.write(text + "\n")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument(
+        "--stack",
+        default=None,
+        help="CloudFormation stack name (default: $SO101_TWIN_STACK or So101TwinStack)",
+    )
+    common.add_argument(
+        "--region", default=None, help="AWS region (default: from the AWS config / AWS_REGION)"
+    )
+    common.add_argument("--no-wait", action="store_true", help="return after the request, without waiting")
+    common.add_argument(
+        "--timeout",
+        type=float,
+        default=DEFAULT_TIMEOUT_S,
+        metavar="S",
+        help=f"seconds to wait for the instance state (default {DEFAULT_TIMEOUT_S:.0f})",
+    )
+    parser = subparsers.add_parser(
+        "instance",
+        help="start, stop or inspect the cloud twin host (EC2 + DCV)",
+        description=__doc__.split("\n\n")[0],
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
+    for name, help_text in (
+        ("start", "start the instance, wait until running, print the DCV URL and agent health"),
+        ("stop", "stop the instance (disk and Elastic IP are kept) and wait until stopped"),
+        ("status", "print instance state, type, DCV URL and agent health"),
+        ("url", "print only the DCV URL"),
+    ):
+        action = actions.add_parser(
+            name,
+            parents=[common],
+            help=help_text,
+            description=help_text,
+            epilog=EPILOG,
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
+        action.set_defaults(func=run, action=name)
+
+
+def _health_line(health: AgentHealth | None) -> str:
+    return "agent health: not checked" if health is None else health.describe()
+
+
+def run(args: argparse.Namespace, twin: TwinInstance | None = None) -> int:
+    from twin.tools import instance as lib
+
+    if args.timeout <= 0:
+        _err(f"twin instance: --timeout must be positive, got {args.timeout}")
+        return 2
+    codes: dict[type[lib.TwinInstanceError], int] = {
+        lib.AwsSetupError: EXIT_SETUP,
+        lib.StackNotFoundError: EXIT_NO_STACK,
+        lib.StackOutputsError: EXIT_NO_OUTPUTS,
+        lib.InsufficientCapacityError: EXIT_CAPACITY,
+        lib.WaitError: EXIT_WAIT,
+        lib.AwsCallError: EXIT_AWS,
+    }
+    twin = twin or lib.TwinInstance(args.stack, region=args.region)
+    wait = not args.no_wait
+    try:
+        if args.action == "url":
+            _out(twin.url())
+        elif args.action == "stop":
+            outputs = twin.outputs()
+            state = twin.stop(wait=wait, timeout_s=args.timeout)
+            _out(f"instance {outputs.instance_id}: {state}")
+            if not wait:
+                _out("not waiting; follow it with `twin instance status`")
+        elif args.action == "start":
+            outputs = twin.outputs()
+            state = twin.start(wait=wait, timeout_s=args.timeout)
+            _out(f"instance {outputs.instance_id}: {state}")
+            _out(f"DCV URL: {outputs.dcv_url}")
+            if wait:
+                _out(_health_line(twin.health(HEALTH_TIMEOUT_S)))
+            else:
+                _out("not waiting; follow it with `twin instance status`")
+        else:
+            status = twin.status(check_health=True, health_timeout_s=HEALTH_TIMEOUT_S)
+            zone = f" in {status.availability_zone}" if status.availability_zone else ""
+            _out(f"instance {status.instance_id}: {status.state} ({status.instance_type}{zone})")
+            _out(f"DCV URL: {status.dcv_url}")
+            _out(_health_line(status.health))
+    except lib.TwinInstanceError as exc:
+        _err(f"twin instance {args.action}: {exc}")
+        return codes.get(type(exc), EXIT_AWS)
+    return EXIT_OK

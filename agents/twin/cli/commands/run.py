@@ -1,0 +1,120 @@
+"""`twin run`: the agent service (systemd unit on the twin host, or by hand on a laptop).
+
+Exit codes: 0 after SIGTERM/SIGINT and a clean stop (recording flushed); 2 when the configuration is invalid
+(the reason on stderr and as a JSON log line); 1 when the service cannot start or dies (e.g. the HTTP address
+is taken). Logs are JSON lines on stdout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+from typing import Any
+
+from twin.service.config import LOG_LEVELS, ConfigError, load_config
+from twin.service.logs import setup_logging
+
+log = logging.getLogger("twin.run")
+
+EXIT_OK = 0
+EXIT_FAILURE = 1
+EXIT_CONFIG = 2
+
+
+def register(subparsers: Any) -> None:
+    parser = subparsers.add_parser(
+        "run",
+        help="run the agent: subscribe to telemetry, mirror each arm in MuJoCo, serve /state and /metrics",
+        description=(
+            "Run the twin agent. Settings come from --config (TOML, see examples/agent.toml and "
+            "docs/agent.md); the flags below override the file."
+        ),
+    )
+    parser.add_argument("--config", metavar="FILE", help="agent config file (TOML)")
+    parser.add_argument(
+        "--broker", metavar="URL", help='"iot" (AWS IoT Core), mqtt://host:port or mqtts://host:port'
+    )
+    parser.add_argument("--http", metavar="HOST:PORT", help="HTTP listen address (default 127.0.0.1:8080)")
+    parser.add_argument("--units", metavar="U", help="position units: ticks, degrees, range100 or auto")
+    parser.add_argument(
+        "--devices",
+        metavar="IDS",
+        help='comma-separated device ids, or "*" for every device under the prefix',
+    )
+    parser.add_argument("--topic-prefix", metavar="PREFIX", help="topic prefix (default dt/lerobot)")
+    parser.add_argument("--mode", metavar="MODE", help="twin mode: kinematic or physics")
+    parser.add_argument("--record-dir", metavar="DIR", help="record a USD session into DIR")
+    parser.add_argument("--log-level", metavar="LEVEL", help="DEBUG, INFO, WARNING or ERROR")
+    parser.set_defaults(func=run)
+
+
+def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
+    """Flag values as dotted config keys; unset flags are None and leave the file's value."""
+    return {
+        "broker.url": args.broker,
+        "http.listen": args.http,
+        "telemetry.units": args.units,
+        "telemetry.devices": args.devices,
+        "telemetry.topic_prefix": args.topic_prefix,
+        "twin.mode": args.mode,
+        "twin.record_dir": args.record_dir,
+        "log.level": args.log_level,
+    }
+
+
+def _config_error(message: str) -> int:
+    sys.stderr.write(f"twin run: configuration error: {message}\n")
+    log.error("configuration error", extra={"error": message, "exit_code": EXIT_CONFIG})
+    return EXIT_CONFIG
+
+
+def run(args: argparse.Namespace) -> int:
+    # Log before the config is known: a config error must still come out as a JSON line.
+    level = (args.log_level or "INFO").upper()
+    setup_logging(level if level in LOG_LEVELS else "INFO")
+    try:
+        config = load_config(args.config, overrides_from_args(args))
+    except ConfigError as exc:
+        return _config_error(str(exc))
+    setup_logging(config.log.level)
+    log.info("configuration", extra={"config": config.to_dict(), "config_file": args.config})
+
+    # MuJoCo, awscrt and USD load here, not at import: `twin --help` stays fast.
+    from twin.service.agent import AgentService
+
+    try:
+        service = AgentService(config)
+    except (ConfigError, ValueError) as exc:
+        return _config_error(str(exc))
+
+    stop = threading.Event()
+    received: list[str] = []
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        # Only set a flag: the handler runs between bytecodes of the main thread, which may hold locks.
+        received.append(signal.Signals(signum).name)
+        stop.set()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        try:
+            service.start()
+        except (OSError, ValueError) as exc:
+            sys.stderr.write(f"twin run: cannot start: {exc}\n")
+            log.error("cannot start", extra={"error": str(exc), "exit_code": EXIT_FAILURE})
+            service.stop()
+            return EXIT_FAILURE
+        while not stop.wait(1.0):
+            if not service.running:
+                log.error("the twin worker stopped unexpectedly; exiting", extra={"exit_code": EXIT_FAILURE})
+                service.stop()
+                return EXIT_FAILURE
+        log.info("signal received; stopping", extra={"signal": received[0] if received else None})
+        service.stop()
+        return EXIT_OK
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)

@@ -1,0 +1,64 @@
+"""A fixed-memory latency histogram for fleet-wide percentiles.
+
+Per-device windows (twin.core.health) answer "how is this arm doing now"; a fleet of 2,000 arms at 10 Hz needs
+one distribution over every message since start that costs O(1) per message and the same memory at any rate.
+Buckets are log-spaced (about 2 % wide), so a percentile is exact to within one bucket, and the true maximum
+is kept alongside.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+_MIN_S = 1e-6  # 1 microsecond: anything faster lands in the first bucket
+_MAX_S = 100.0  # beyond this lands in the last bucket (max is still exact)
+_GROWTH = 1.02
+_LOG_GROWTH = math.log(_GROWTH)
+_BUCKETS = int(math.log(_MAX_S / _MIN_S) / _LOG_GROWTH) + 2
+
+
+class LatencyHistogram:
+    """Counts of latencies (seconds) in log-spaced buckets; not thread-safe (one writer, snapshot readers)."""
+
+    __slots__ = ("count", "counts", "max", "min", "total")
+
+    def __init__(self) -> None:
+        self.counts = [0] * _BUCKETS
+        self.count = 0
+        self.total = 0.0
+        self.max = 0.0
+        self.min = math.inf
+
+    def add(self, seconds: float) -> None:
+        if seconds <= _MIN_S:
+            index = 0
+        else:
+            index = min(_BUCKETS - 1, 1 + int(math.log(seconds / _MIN_S) / _LOG_GROWTH))
+        self.counts[index] += 1
+        self.count += 1
+        self.total += seconds
+        self.max = max(self.max, seconds)
+        self.min = min(self.min, seconds)
+
+    def quantile(self, q: float) -> float | None:
+        """The upper edge of the bucket holding the q-quantile (capped by the true maximum)."""
+        if self.count == 0:
+            return None
+        rank = max(1, math.ceil(q * self.count))
+        seen = 0
+        for index, n in enumerate(self.counts):
+            seen += n
+            if seen >= rank:
+                upper = _MIN_S * _GROWTH**index
+                return min(upper, self.max)
+        return self.max
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "count": self.count,
+            "mean": self.total / self.count if self.count else None,
+            "p50": self.quantile(0.50),
+            "p99": self.quantile(0.99),
+            "max": self.max if self.count else None,
+        }

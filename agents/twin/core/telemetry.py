@@ -1,0 +1,682 @@
+"""Edge telemetry -> validated joint angles: the twin's data path, pure and I/O free.
+
+One message is a JSON object `{"device_id", "timestamp", "joints": {<joint>: {"position", ...}}}`
+published by the edge component (IgnacioSanchezAlvarado/lerobot-aws-iot-greengrass
+component/lerobot_telemetry). Nothing in it says which units `position` uses, so units are a setting
+(docs/telemetry.md explains every rule here):
+
+- ticks: raw STS3215 encoder counts, JSON integers 0..4095;
+- degrees: LeRobot DEGREES (0 = middle of the calibrated range), gripper 0..100 percent;
+- range100: LeRobot RANGE_M100_100 for the arm, gripper 0..100 percent;
+- auto: decided once per device from agreeing evidence, never flipped per message.
+
+Every rejection raises TelemetryRejected with a RejectReason from a fixed set and a message naming the fix.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import Any
+
+from twin.robot import so101
+from twin.robot.calibration import Calibration
+
+log = logging.getLogger(__name__)
+
+
+class Units(StrEnum):
+    TICKS = "ticks"
+    DEGREES = "degrees"
+    RANGE100 = "range100"
+    AUTO = "auto"
+
+
+class RejectReason(StrEnum):
+    """Why a message was rejected: a fixed set, documented in docs/telemetry.md; metrics label by it."""
+
+    NOT_UTF8 = "not_utf8"
+    NOT_JSON = "not_json"
+    TOO_LARGE = "too_large"
+    NOT_OBJECT = "not_object"
+    MISSING_FIELD = "missing_field"
+    BAD_DEVICE_ID = "bad_device_id"
+    BAD_TIMESTAMP = "bad_timestamp"
+    DEVICE_MISMATCH = "device_mismatch"
+    MISSING_JOINT = "missing_joint"
+    EXTRA_JOINT = "extra_joint"
+    WRONG_TYPE = "wrong_type"
+    NOT_FINITE = "not_finite"
+    OUT_OF_RANGE = "out_of_range"
+    UNITS_UNDECIDED = "units_undecided"
+
+
+class TelemetryRejected(ValueError):  # noqa: N818 - the agreed name (notes/api.md)
+    """A message the decoder refuses; `reason` is for counting, `str(exc)` for people."""
+
+    def __init__(self, reason: RejectReason, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+@dataclass(frozen=True, slots=True)
+class JointDiagnostics:
+    """Per-joint servo readings, decoded to physical units; None where the edge did not send the field."""
+
+    velocity_steps_s: float | None = None
+    velocity_rad_s: float | None = None
+    load_percent: float | None = None
+    temperature_c: float | None = None
+    current_ma: float | None = None
+    voltage_v: float | None = None
+    status: int | None = None
+    moving: bool | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Telemetry:
+    device_id: str
+    timestamp_ms: int
+    units: Units
+    angles_rad: dict[str, float]
+    gripper_percent: float | None
+    diagnostics: dict[str, JointDiagnostics]
+
+
+@dataclass(frozen=True)
+class DecoderConfig:
+    units: Units = Units.AUTO
+    calibration: Calibration | None = None
+    gripper_range_rad: tuple[float, float] = field(default=so101.JOINT_RANGES_RAD[so101.GRIPPER])
+    max_payload_bytes: int = 131072
+    auto_evidence_messages: int = 3
+
+    def __post_init__(self) -> None:
+        try:
+            object.__setattr__(self, "units", Units(self.units))
+        except ValueError:
+            raise ValueError(
+                f"units must be one of {', '.join(u.value for u in Units)}, got {self.units!r}"
+            ) from None
+        lo, hi = self.gripper_range_rad
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+            raise ValueError(
+                f"gripper_range_rad must be two finite radians lo < hi, got {self.gripper_range_rad}"
+            )
+        if self.max_payload_bytes < 1:
+            raise ValueError(f"max_payload_bytes must be positive, got {self.max_payload_bytes}")
+        if self.auto_evidence_messages < 1:
+            raise ValueError(f"auto_evidence_messages must be at least 1, got {self.auto_evidence_messages}")
+
+
+# --- servo register decoding -------------------------------------------------------------------------------
+
+STEPS_PER_TURN = so101.TICKS_PER_TURN
+# LeRobot's DEGREES scale divides by the resolution minus one (4095), not 4096.
+RAD_PER_TICK = 2.0 * math.pi / so101.TICK_MAX
+RAD_PER_STEP_S = 2.0 * math.pi / STEPS_PER_TURN
+CURRENT_MA_PER_UNIT = 6.5
+VOLTAGE_V_PER_UNIT = 0.1
+LOAD_PERCENT_PER_UNIT = 0.1
+
+# Bounds a message must respect; docs/telemetry.md lists them.
+DEVICE_ID_MAX_CHARS = 128
+TIMESTAMP_MIN_MS = 946_684_800_000  # 2000-01-01: an edge clock before this is unset, or it sends seconds
+TIMESTAMP_MAX_MS = 4_102_444_800_000  # 2100-01-01
+# DEGREES = (raw - mid) * 360/4095 with raw and mid both in 0..4095, so no real reading exceeds 360 in size.
+DEGREES_LIMIT = 360.0
+RANGE100_LIMIT = 100.0
+PERCENT_MAX = 100.0
+# Servo registers are at most 16 bits; anything far beyond is not a reading.
+DIAGNOSTIC_LIMIT = 1_000_000.0
+# Auto mode keeps an evidence streak per device until it decides; cap the undecided ones so a flood of
+# made-up device ids cannot grow memory without bound.
+MAX_PENDING_DEVICES = 4096
+
+
+def decode_velocity(raw: float) -> float:
+    """Present_Velocity register -> signed steps/s (sign-magnitude, sign in bit 15).
+
+    Negative input is already signed (the edge's mock mode sends -10..10) and passes through, as does anything
+    outside the 16-bit register.
+    """
+    if 32768 <= raw <= 65535:
+        return -(raw - 32768)
+    return raw
+
+
+def decode_load(raw: float) -> float:
+    """Present_Load register -> signed 0.1 % units (magnitude 0..1000, sign in bit 10: >= 1024 is negative).
+
+    Newer LeRobot already decodes the sign, so negative input passes through, as does anything above 11 bits.
+    """
+    if 1024 <= raw <= 2047:
+        return -(raw - 1024)
+    return raw
+
+
+# --- parsing helpers ---------------------------------------------------------------------------------------
+
+
+class _NonFiniteTokenError(ValueError):
+    pass
+
+
+def _reject_constant(token: str) -> Any:
+    raise _NonFiniteTokenError(token)
+
+
+# Built once: json.loads with a hook would build a decoder per call on the hot path.
+_JSON = json.JSONDecoder(parse_constant=_reject_constant)
+_MISSING: Any = object()
+_EMPTY_DIAGNOSTICS = JointDiagnostics()
+_JOINTS = so101.JOINT_NAMES
+_JOINT_SET = frozenset(_JOINTS)
+_ARM = so101.ARM_JOINTS
+_N_ARM = len(_ARM)
+_NUMERIC_DIAG_FIELDS = ("velocity", "load", "temp", "current", "voltage")
+_DIAG_FIELDS = (*_NUMERIC_DIAG_FIELDS, "status", "moving")
+_BAD_ID_CHARS = ("/", "+", "#")
+
+
+def _rejected(reason: RejectReason, message: str) -> TelemetryRejected:
+    return TelemetryRejected(reason, message)
+
+
+def _fmt(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _units_hint(value: Any) -> str:
+    """What a position that does not fit the configured units looks like instead."""
+    if type(value) is int and 360 < value <= so101.TICK_MAX:
+        return "the edge looks like it sends raw ticks: set units=ticks"
+    if value < 0 or (type(value) is float and not value.is_integer()):
+        return "the edge looks like it sends LeRobot degrees: set units=degrees (or range100 for -100..100)"
+    if RANGE100_LIMIT < abs(value) <= DEGREES_LIMIT:
+        return "the edge looks like it sends LeRobot degrees: set units=degrees"
+    return "no units produce this value: check the edge's position source"
+
+
+def _check_number(joint: str, name: str, value: Any) -> float:
+    t = type(value)
+    if t is int or t is float:
+        if t is float and not math.isfinite(value):
+            raise _rejected(
+                RejectReason.NOT_FINITE,
+                f"{name} {value} of {joint} is not a finite number; the edge must send real readings "
+                "(omit a field it cannot read)",
+            )
+        if not -DIAGNOSTIC_LIMIT <= value <= DIAGNOSTIC_LIMIT:
+            raise _rejected(
+                RejectReason.OUT_OF_RANGE,
+                f"{name} {_fmt(value)} of {joint} is beyond any servo register "
+                f"(|x| <= {DIAGNOSTIC_LIMIT:g}); check the edge's field mapping",
+            )
+        return value
+    raise _rejected(
+        RejectReason.WRONG_TYPE,
+        f"{name} of {joint} must be a JSON number, got {_fmt(value)}; omit the field when it is unknown",
+    )
+
+
+class TelemetryDecoder:
+    """Validates and decodes edge messages. Not thread-safe (auto-units state): one per consuming thread."""
+
+    def __init__(self, config: DecoderConfig | None = None) -> None:
+        self.config = config or DecoderConfig()
+        cfg = self.config
+        cal = cfg.calibration
+        self._max_bytes = cfg.max_payload_bytes
+        self._jaw_lo, jaw_hi = cfg.gripper_range_rad
+        self._jaw_span = jaw_hi - self._jaw_lo
+
+        # Arm joints: every units variant is an affine map angle = a + b * value; precompute (a, b) per joint.
+        ticks: list[tuple[float, float]] = []
+        range100: list[tuple[float, float]] = []
+        for name in _ARM:
+            if cal is not None:
+                m = cal[name]
+                ticks.append((-m.mid * RAD_PER_TICK, RAD_PER_TICK))
+                # Inverting RANGE_M100_100 gives raw - mid = v/200 * (max - min); drive_mode 1 negated v.
+                sign = -1.0 if m.drive_mode else 1.0
+                range100.append((0.0, sign * (m.range_max - m.range_min) / 200.0 * RAD_PER_TICK))
+            else:
+                # LeRobot's half-turn homing puts the calibration pose (the model's zero) at 2047.
+                ticks.append((-so101.TICK_HOME * RAD_PER_TICK, RAD_PER_TICK))
+                lo, hi = so101.JOINT_RANGES_RAD[name]
+                range100.append(((lo + hi) / 2.0, (hi - lo) / 200.0))
+        self._affine = {
+            Units.TICKS: tuple(ticks),
+            Units.DEGREES: tuple((0.0, so101.DEG) for _ in _ARM),
+            Units.RANGE100: tuple(range100),
+        }
+        if cal is not None:
+            g = cal[so101.GRIPPER]
+            self._grip_min, self._grip_max, self._grip_inverted = (
+                float(g.range_min),
+                float(g.range_max),
+                bool(g.drive_mode),
+            )
+        else:
+            # Without a file the jaw's tick span maps 1:1 (RAD_PER_TICK) onto the model's jaw range, centred
+            # on the homing pose; not rounded to whole ticks so the mapping stays exact.
+            half = self._jaw_span / 2.0 / RAD_PER_TICK
+            self._grip_min = so101.TICK_HOME - half
+            self._grip_max = so101.TICK_HOME + half
+            self._grip_inverted = False
+
+        self._decided: dict[str, Units] = {}
+        self._streaks: dict[str, tuple[Units, int]] = {}
+
+    # --- public -------------------------------------------------------------------------------------------
+
+    def units_for(self, device_id: str) -> Units:
+        """The units in force for a device: the explicit setting, auto's decision, or AUTO while undecided."""
+        if self.config.units is not Units.AUTO:
+            return self.config.units
+        return self._decided.get(device_id, Units.AUTO)
+
+    def decode(self, payload: bytes | str, *, topic_device: str | None = None) -> Telemetry:
+        """Validate and decode one message; raises TelemetryRejected (and nothing else) on bad input."""
+        doc = self._parse(payload)
+        if type(doc) is not dict:
+            raise _rejected(
+                RejectReason.NOT_OBJECT,
+                f"message must be a JSON object, got {type(doc).__name__}; the edge publishes one object "
+                "per message",
+            )
+        device_id = self._device_id(doc, topic_device)
+        timestamp = self._timestamp(doc)
+        joints = doc.get("joints", _MISSING)
+        if joints is _MISSING:
+            raise _rejected(
+                RejectReason.MISSING_FIELD, "message has no 'joints' object; check the edge version"
+            )
+        if type(joints) is not dict:
+            raise _rejected(
+                RejectReason.WRONG_TYPE,
+                f"'joints' must be an object keyed by joint name, got {type(joints).__name__}",
+            )
+        if len(joints) != len(_JOINTS) or not _JOINT_SET.issuperset(joints):
+            self._joint_set_error(joints)
+
+        positions: list[Any] = []
+        entries: list[dict[str, Any]] = []
+        for name in _JOINTS:
+            entry = joints[name]
+            if type(entry) is not dict:
+                raise _rejected(
+                    RejectReason.WRONG_TYPE,
+                    f"joint {name} must be an object with a 'position', got {_fmt(entry)}",
+                )
+            pos = entry.get("position", _MISSING)
+            t = type(pos)
+            if t is float:
+                if not math.isfinite(pos):
+                    raise _rejected(
+                        RejectReason.NOT_FINITE,
+                        f"position {pos} of {name} is not a finite number; check the edge's servo read",
+                    )
+            elif t is not int:
+                if pos is _MISSING:
+                    raise _rejected(RejectReason.MISSING_FIELD, f"joint {name} has no 'position'")
+                raise _rejected(
+                    RejectReason.WRONG_TYPE,
+                    f"position of {name} must be a JSON number, got {_fmt(pos)}",
+                )
+            positions.append(pos)
+            entries.append(entry)
+
+        units = self.config.units
+        undecided = False
+        if units is Units.AUTO:
+            units = self._decided.get(device_id, Units.AUTO)
+            if units is Units.AUTO:
+                units = self._evidence_or_reject(device_id, positions)
+                undecided = True
+                # Evidence only counts when the message is valid in those units, so it is converted first.
+                angles, percent = self._convert(units, positions, auto=False)
+            else:
+                angles, percent = self._convert(units, positions, auto=True)
+        else:
+            angles, percent = self._convert(units, positions, auto=False)
+
+        float_variant = units is not Units.TICKS
+        # A bare {"position": ...} (the common case without diagnostics) shares one empty record.
+        diagnostics = {
+            name: _EMPTY_DIAGNOSTICS if len(entry) == 1 else _joint_diagnostics(name, entry, float_variant)
+            for name, entry in zip(_JOINTS, entries, strict=True)
+        }
+        if undecided:
+            self._count_evidence(device_id, units)
+        return Telemetry(
+            device_id=device_id,
+            timestamp_ms=timestamp,
+            units=units,
+            angles_rad=dict(zip(_JOINTS, angles, strict=True)),
+            gripper_percent=percent,
+            diagnostics=diagnostics,
+        )
+
+    # --- envelope -----------------------------------------------------------------------------------------
+
+    def _parse(self, payload: bytes | str) -> Any:
+        limit = self._max_bytes
+        if isinstance(payload, str):
+            # Size first: UTF-8 never takes fewer bytes than characters, and ASCII exactly as many.
+            if len(payload) > limit or (
+                not payload.isascii() and len(payload.encode("utf-8", "surrogatepass")) > limit
+            ):
+                raise self._too_large(len(payload.encode("utf-8", "surrogatepass")))
+            text = payload
+            if not text.isascii():
+                try:
+                    text.encode("utf-8")
+                except UnicodeEncodeError:
+                    raise _rejected(
+                        RejectReason.NOT_UTF8, "message text holds lone surrogates, which UTF-8 cannot carry"
+                    ) from None
+        elif isinstance(payload, bytes | bytearray | memoryview):
+            size = len(payload) if not isinstance(payload, memoryview) else payload.nbytes
+            if size > limit:
+                raise self._too_large(size)
+            try:
+                text = bytes(payload).decode("utf-8")
+            except UnicodeDecodeError as exc:
+                raise _rejected(
+                    RejectReason.NOT_UTF8,
+                    f"message is not UTF-8 ({exc.reason} at byte {exc.start}); "
+                    "the edge must publish UTF-8 JSON",
+                ) from None
+        else:
+            raise _rejected(
+                RejectReason.WRONG_TYPE, f"payload must be bytes or str, got {type(payload).__name__}"
+            )
+        try:
+            return _JSON.decode(text)
+        except _NonFiniteTokenError as exc:
+            raise _rejected(
+                RejectReason.NOT_FINITE,
+                f"message holds the non-standard JSON token {exc.args[0]}; NaN/Infinity are not readings: "
+                "fix the edge to send numbers or omit the field",
+            ) from None
+        except RecursionError:
+            raise _rejected(
+                RejectReason.NOT_JSON, "message JSON is nested too deeply to be telemetry"
+            ) from None
+        except ValueError as exc:
+            raise _rejected(
+                RejectReason.NOT_JSON,
+                f"message is not valid JSON ({exc}); the edge publishes one JSON object",
+            ) from None
+
+    def _too_large(self, size: int) -> TelemetryRejected:
+        return _rejected(
+            RejectReason.TOO_LARGE,
+            f"message is {size} bytes, over the {self._max_bytes}-byte limit "
+            "(the IoT Core maximum is 128 KB); check what the edge packs into it",
+        )
+
+    def _device_id(self, doc: dict[str, Any], topic_device: str | None) -> str:
+        device_id = doc.get("device_id", _MISSING)
+        if device_id is _MISSING:
+            raise _rejected(
+                RejectReason.MISSING_FIELD, "message has no 'device_id'; set the edge component's device id"
+            )
+        if type(device_id) is not str or not device_id:
+            raise _rejected(
+                RejectReason.BAD_DEVICE_ID, f"device_id must be a non-empty string, got {_fmt(device_id)}"
+            )
+        if (
+            len(device_id) > DEVICE_ID_MAX_CHARS
+            or any(c in device_id for c in _BAD_ID_CHARS)
+            or not device_id.isprintable()
+        ):
+            raise _rejected(
+                RejectReason.BAD_DEVICE_ID,
+                f"device_id {_fmt(device_id)} is not usable: at most {DEVICE_ID_MAX_CHARS} printable "
+                "characters without the MQTT topic characters '/', '+', '#'; rename the device on the edge",
+            )
+        if topic_device is not None and device_id != topic_device:
+            raise _rejected(
+                RejectReason.DEVICE_MISMATCH,
+                f"device_id {_fmt(device_id)} does not match the topic's device {_fmt(topic_device)}; "
+                "the edge's device id and its topic must agree (fix the edge config)",
+            )
+        return device_id
+
+    @staticmethod
+    def _timestamp(doc: dict[str, Any]) -> int:
+        ts = doc.get("timestamp", _MISSING)
+        if ts is _MISSING:
+            raise _rejected(RejectReason.MISSING_FIELD, "message has no 'timestamp' (epoch milliseconds)")
+        if type(ts) is not int:
+            raise _rejected(
+                RejectReason.BAD_TIMESTAMP,
+                f"timestamp must be a JSON integer of epoch milliseconds, got {_fmt(ts)}",
+            )
+        if not TIMESTAMP_MIN_MS <= ts <= TIMESTAMP_MAX_MS:
+            hint = (
+                "it looks like epoch seconds: the edge must send milliseconds"
+                if TIMESTAMP_MIN_MS // 1000 <= ts <= TIMESTAMP_MAX_MS // 1000
+                else "the edge clock is unset or broken: enable NTP on the edge"
+            )
+            raise _rejected(
+                RejectReason.BAD_TIMESTAMP,
+                f"timestamp {_fmt(ts)} is outside 2000..2100 in epoch milliseconds; {hint}",
+            )
+        return ts
+
+    @staticmethod
+    def _joint_set_error(joints: dict[str, Any]) -> None:
+        missing = [n for n in _JOINTS if n not in joints]
+        extra = sorted(str(k) for k in joints if k not in _JOINT_SET)
+        if missing:
+            also = f" (it sent unknown joints {', '.join(map(_fmt, extra))})" if extra else ""
+            raise _rejected(
+                RejectReason.MISSING_JOINT,
+                f"joints {', '.join(missing)} are missing{also}; the SO-101 edge sends exactly "
+                f"{', '.join(_JOINTS)}",
+            )
+        raise _rejected(
+            RejectReason.EXTRA_JOINT,
+            f"unknown joints {', '.join(map(_fmt, extra))}; this decoder handles the six SO-101 joints "
+            f"{', '.join(_JOINTS)} only (is this another robot's telemetry?)",
+        )
+
+    # --- units --------------------------------------------------------------------------------------------
+
+    def _convert(self, units: Units, positions: list[Any], *, auto: bool) -> tuple[list[float], float]:
+        if units is Units.TICKS:
+            return self._from_ticks(positions, auto)
+        return self._from_normalised(units, positions, auto)
+
+    def _from_ticks(self, positions: list[Any], auto: bool) -> tuple[list[float], float]:
+        for name, value in zip(_JOINTS, positions, strict=True):
+            if type(value) is not int:
+                fix = (
+                    "the edge looks like it sends LeRobot degrees: set units=degrees"
+                    if not value.is_integer() or value < 0
+                    else "ticks arrive as JSON integers: check the edge sends raw ticks, or set units=degrees"
+                )
+                raise _rejected(
+                    RejectReason.WRONG_TYPE,
+                    f"position {_fmt(value)} of {name} is not a whole tick count; "
+                    f"{fix}{self._auto_note(auto)}",
+                )
+            if not 0 <= value <= so101.TICK_MAX:
+                fix = (
+                    "the edge looks like it sends LeRobot degrees: set units=degrees"
+                    if value < 0
+                    else "check the edge reads position mode"
+                )
+                raise _rejected(
+                    RejectReason.OUT_OF_RANGE,
+                    f"position {_fmt(value)} of {name} is outside the encoder's 0..{so101.TICK_MAX}; "
+                    f"{fix}{self._auto_note(auto)}",
+                )
+        angles = [a + b * v for (a, b), v in zip(self._affine[Units.TICKS], positions, strict=False)]
+        raw = positions[_N_ARM]
+        lo, hi = self._grip_min, self._grip_max
+        # LeRobot RANGE_0_100: clamp into the calibrated range, then scale; drive_mode 1 inverts.
+        clamped = lo if raw < lo else hi if raw > hi else raw
+        percent = (clamped - lo) / (hi - lo) * PERCENT_MAX
+        if self._grip_inverted:
+            percent = PERCENT_MAX - percent
+        angles.append(self._jaw_lo + percent / PERCENT_MAX * self._jaw_span)
+        return angles, percent
+
+    def _from_normalised(self, units: Units, positions: list[Any], auto: bool) -> tuple[list[float], float]:
+        limit = DEGREES_LIMIT if units is Units.DEGREES else RANGE100_LIMIT
+        for name, value in zip(_ARM, positions, strict=False):
+            if not -limit <= value <= limit:
+                raise _rejected(
+                    RejectReason.OUT_OF_RANGE,
+                    f"position {_fmt(value)} of {name} is outside {units.value}'s -{limit:g}..{limit:g}; "
+                    f"{_units_hint(value)}{self._auto_note(auto)}",
+                )
+        percent = positions[_N_ARM]
+        if not 0 <= percent <= PERCENT_MAX:
+            hint = (
+                "the edge looks like it sends raw ticks: set units=ticks"
+                if type(percent) is int and percent > PERCENT_MAX
+                else "LeRobot reports the gripper as 0 (closed)..100 (open) percent"
+            )
+            raise _rejected(
+                RejectReason.OUT_OF_RANGE,
+                f"gripper position {_fmt(percent)} is outside 0..100 percent; {hint}{self._auto_note(auto)}",
+            )
+        # float() after the range checks: a huge JSON integer would overflow it.
+        angles = [a + b * float(v) for (a, b), v in zip(self._affine[units], positions, strict=False)]
+        percent = float(percent)
+        angles.append(self._jaw_lo + percent / PERCENT_MAX * self._jaw_span)
+        return angles, percent
+
+    @staticmethod
+    def _auto_note(auto: bool) -> str:
+        return " (units=auto decided otherwise for this device and never changes its mind)" if auto else ""
+
+    @staticmethod
+    def _evidence_or_reject(device_id: str, positions: list[Any]) -> Units:
+        kind = _evidence(positions)
+        if kind is None:
+            raise _rejected(
+                RejectReason.UNITS_UNDECIDED,
+                f"units=auto has not decided {device_id}'s units yet and this message cannot tell (whole, "
+                "non-negative, small positions fit ticks, degrees and range100 alike); waiting for clearer "
+                "messages, or set units explicitly",
+            )
+        return kind
+
+    def _count_evidence(self, device_id: str, kind: Units) -> None:
+        """Count one valid evidence message; rejects it as units_undecided until enough agree in a row."""
+        previous = self._streaks.pop(device_id, None)
+        count = previous[1] + 1 if previous is not None and previous[0] is kind else 1
+        if previous is not None and previous[0] is not kind:
+            log.debug(
+                "device %s: units evidence switched from %s to %s; streak restarts",
+                device_id,
+                previous[0],
+                kind,
+            )
+        needed = self.config.auto_evidence_messages
+        if count < needed:
+            if len(self._streaks) >= MAX_PENDING_DEVICES:
+                self._streaks.clear()
+            self._streaks[device_id] = (kind, count)
+            raise _rejected(
+                RejectReason.UNITS_UNDECIDED,
+                f"units=auto is collecting evidence for {device_id} ({count} of {needed} messages agree on "
+                f"{kind.value}); set units explicitly to skip this",
+            )
+        self._decided[device_id] = kind
+        if kind is Units.TICKS:
+            log.info(
+                "device %s: units=auto decided ticks after %d agreeing messages (JSON integers 0..4095, some "
+                "above 360); this stays fixed until restart",
+                device_id,
+                needed,
+            )
+        else:
+            log.warning(
+                "device %s: units=auto decided degrees after %d agreeing messages (negative or fractional "
+                "positions: LeRobot-normalised). LeRobot's range100 (-100..100) cannot be told from degrees "
+                "by value: if this arm runs LeRobot without use_degrees (before 0.4.4), set units=range100 "
+                "explicitly. This stays fixed until restart.",
+                device_id,
+                needed,
+            )
+
+
+def _evidence(positions: list[Any]) -> Units | None:
+    """Which units one message proves, or None when it fits several (docs/telemetry.md, "auto")."""
+    any_big = False
+    all_ticks = True
+    for v in positions:
+        if v < 0 or (type(v) is float and not v.is_integer()):
+            return Units.DEGREES
+        if type(v) is not int or v > so101.TICK_MAX:
+            all_ticks = False
+        elif v > DEGREES_LIMIT:
+            any_big = True
+    return Units.TICKS if all_ticks and any_big else None
+
+
+def _joint_diagnostics(joint: str, entry: dict[str, Any], float_variant: bool) -> JointDiagnostics:
+    get = entry.get
+    velocity = get("velocity")
+    load = get("load")
+    temp = get("temp")
+    current = get("current")
+    voltage = get("voltage")
+    status = get("status")
+    moving = get("moving")
+    # One cheap pass for the usual all-plain-numbers case; anything odd goes to the checks that explain it.
+    # (NaN fails the chained comparison, so it takes the slow path too.)
+    for value in (velocity, load, temp, current, voltage):
+        if value is not None and not (
+            (type(value) is int or type(value) is float) and -DIAGNOSTIC_LIMIT <= value <= DIAGNOSTIC_LIMIT
+        ):
+            for key in _NUMERIC_DIAG_FIELDS:
+                if key in entry:
+                    _check_number(joint, key, entry[key])
+    if status is not None and type(status) is not int:
+        raise _rejected(
+            RejectReason.WRONG_TYPE, f"status of {joint} must be a JSON integer, got {_fmt(status)}"
+        )
+    if status is not None:
+        _check_number(joint, "status", status)
+    if moving is not None and not (
+        moving is True or moving is False or (type(moving) is int and 0 <= moving <= 1)
+    ):
+        raise _rejected(
+            RejectReason.WRONG_TYPE, f"moving of {joint} must be true/false or 0/1, got {_fmt(moving)}"
+        )
+    if None in (velocity, load, temp, current, voltage, status, moving):
+        # get() returns None for an absent field and for an explicit null; only the null is an error.
+        for key in _DIAG_FIELDS:
+            if key in entry and entry[key] is None:
+                raise _rejected(
+                    RejectReason.WRONG_TYPE,
+                    f"{key} of {joint} is null; omit a field the edge cannot read instead of sending null",
+                )
+    steps = rad_s = None
+    if velocity is not None:
+        # The float variant (LeRobot-normalised) already carries a signed speed; raw ticks do not.
+        steps = float(velocity if float_variant else decode_velocity(velocity))
+        rad_s = steps * RAD_PER_STEP_S
+    return JointDiagnostics(
+        steps,
+        rad_s,
+        None if load is None else decode_load(load) * LOAD_PERCENT_PER_UNIT,
+        None if temp is None else float(temp),
+        None if current is None else current * CURRENT_MA_PER_UNIT,
+        None if voltage is None else voltage * VOLTAGE_V_PER_UNIT,
+        status,
+        None if moving is None else bool(moving),
+    )

@@ -1,0 +1,272 @@
+"""The per-device twin of each arm, driven by decoded telemetry.
+
+Two modes. Kinematic: each message sets the joint angles exactly (clamped to the joint ranges) and runs
+forward kinematics; the twin is where the arm says it is. Physics: each message sets the position-actuator
+targets and `step()` advances the simulation, so gravity, joint limits, servo strength and contacts shape the
+motion.
+
+Ordering is by the edge timestamp, per device: a message not newer than the last applied one is ignored and
+counted, so MQTT duplicates and late deliveries never move the twin backwards. (The edge clock may jump: a
+jump forward is followed, a jump backward is ignored until the clock catches up; health checks surface it.)
+
+For every applied message the twin also computes the model's joint torques for the measured pose by inverse
+dynamics with zero velocity and acceleration: the torque each servo must exert to hold that pose against
+gravity. It runs on a copy of the model with constraints disabled, because a resting pose that the model puts
+a few mm into the floor would otherwise add a penetration force that measures the model's error, not the arm.
+The service compares it with the servos' reported load (which drops when the arm rests on something).
+
+Threading: a DeviceTwin is owned by one thread, the service's worker, which alone calls `apply`, `step` and
+the other methods. Other threads (HTTP, viewer, recorder) never touch it; the owner hands them `snapshot()`
+results, which are immutable copies, cheap to make and safe to share.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from enum import StrEnum
+
+import mujoco
+import numpy as np
+
+from twin.robot.model import RobotModel
+
+log = logging.getLogger(__name__)
+
+
+class TwinMode(StrEnum):
+    KINEMATIC = "kinematic"
+    PHYSICS = "physics"
+
+
+@dataclass(frozen=True, slots=True)
+class TwinSnapshot:
+    """One device's twin state at one moment; the dicts are fresh copies owned by the snapshot."""
+
+    device_id: str
+    timestamp_ms: int | None
+    joint_angles: dict[str, float]
+    targets: dict[str, float]
+    joint_torques: dict[str, float]
+    tcp_position: tuple[float, float, float]
+    mode: TwinMode = TwinMode.KINEMATIC
+    applied: int = 0
+    ignored_stale: int = 0
+    clamped: int = 0
+
+
+class DeviceTwin:
+    """The MuJoCo twin of one arm. Owned by one thread; see the module docstring."""
+
+    def __init__(self, robot: RobotModel, device_id: str, mode: TwinMode = TwinMode.KINEMATIC) -> None:
+        self.robot = robot
+        self.device_id = device_id
+        self.mode = TwinMode(mode)
+        if self.mode is TwinMode.PHYSICS:
+            robot.require_actuators()
+        model = robot.model
+        # Physics needs a state of its own that persists between steps. A kinematic twin is fully described
+        # by its joint angles: it computes through the owning thread's shared workspace and keeps only the
+        # figures it publishes, so a fleet of thousands costs kilobytes per arm, not two MjData each.
+        self._own_data = mujoco.MjData(model) if self.mode is TwinMode.PHYSICS else None
+        # Flat per-joint tables, JOINT_NAMES order: the hot path indexes lists instead of hashing names.
+        names = robot.joint_names
+        self._names = names
+        self._qadr = [robot.qpos_addr[n] for n in names]
+        self._dadr = [robot.dof_addr[n] for n in names]
+        self._lo = [robot.joint_ranges[n][0] for n in names]
+        self._hi = [robot.joint_ranges[n][1] for n in names]
+        self._act = [robot.actuator_ids.get(n, -1) for n in names]
+        self._targets = [
+            min(max(float(model.qpos0[a]), lo), hi)
+            for a, lo, hi in zip(self._qadr, self._lo, self._hi, strict=True)
+        ]
+        self._torques: list[float] = [0.0] * model.nv
+        self._tcp = (0.0, 0.0, 0.0)
+        self._sim_debt = 0.0
+        self.last_timestamp_ms: int | None = None
+        self.applied = 0
+        self.ignored_stale = 0
+        self.clamped = 0
+        if self._own_data is not None:
+            self._write_pose(self._own_data, self._targets)
+            self._write_ctrl(self._targets)
+            mujoco.mj_forward(model, self._own_data)
+            self._tcp = self._tcp_of(self._own_data)
+        else:
+            self._tcp = self._tcp_of(self._kinematics())
+        self._inverse_dynamics()
+
+    @property
+    def data(self) -> mujoco.MjData:
+        """A MuJoCo state holding this twin's pose (positions computed), e.g. for rendering.
+
+        Physics mode: the twin's own simulation state. Kinematic mode: the owning thread's shared workspace,
+        loaded with this twin's angles; it stays this twin's only until another twin of the same model on
+        the same thread computes, so use it right away.
+        """
+        if self._own_data is not None:
+            return self._own_data
+        return self._kinematics()
+
+    def _kinematics(self) -> mujoco.MjData:
+        data = self.robot.workspace()[0]
+        self._write_pose(data, self._targets)
+        mujoco.mj_kinematics(self.robot.model, data)
+        return data
+
+    def _tcp_of(self, data: mujoco.MjData) -> tuple[float, float, float]:
+        robot = self.robot
+        if robot.tcp_site_id is not None:
+            x, y, z = data.site_xpos[robot.tcp_site_id]
+        else:
+            x, y, z = data.xpos[robot.tcp_body_id]
+        return (float(x), float(y), float(z))
+
+    # -- hot path -------------------------------------------------------------------------------------------
+
+    def apply(self, angles_rad: Mapping[str, float], timestamp_ms: int) -> bool:
+        """Apply one message's joint angles (radians, by joint name); False if it is not newer than the last.
+
+        Joints missing from `angles_rad` keep their previous target; names the model lacks are ignored.
+        Angles outside a joint's range are clamped to it and counted in `clamped`. A non-finite angle raises
+        ValueError before anything changes (the decoder rejects those, so this only guards direct callers).
+        """
+        last = self.last_timestamp_ms
+        if last is not None and timestamp_ms <= last:
+            self.ignored_stale += 1
+            return False
+        targets = self._targets.copy()
+        clamped = 0
+        get = angles_rad.get
+        for i, name in enumerate(self._names):
+            value = get(name)
+            if value is None:
+                continue
+            value = float(value)
+            if value - value != 0.0:  # NaN or +-inf: clamping would hide a decoder bug
+                raise ValueError(f"joint {name}: angle {value!r} is not finite; decode telemetry first")
+            lo = self._lo[i]
+            hi = self._hi[i]
+            if value < lo:
+                value = lo
+                clamped += 1
+            elif value > hi:
+                value = hi
+                clamped += 1
+            targets[i] = value
+        self._targets = targets
+        self.clamped += clamped
+        own = self._own_data
+        if own is None:
+            self._tcp = self._tcp_of(self._kinematics())
+        else:
+            if last is None:
+                # Start the simulation at the first measured pose instead of swinging there from qpos0.
+                self._write_pose(own, targets)
+                own.qvel[:] = 0.0
+                mujoco.mj_forward(self.robot.model, own)
+                self._tcp = self._tcp_of(own)
+            self._write_ctrl(targets)
+        self._inverse_dynamics()
+        self.last_timestamp_ms = timestamp_ms
+        self.applied += 1
+        return True
+
+    def _write_pose(self, data: mujoco.MjData, values: list[float]) -> None:
+        qpos = data.qpos
+        for adr, value in zip(self._qadr, values, strict=True):
+            qpos[adr] = value
+
+    def _write_ctrl(self, values: list[float]) -> None:
+        ctrl = self._own_data.ctrl
+        for act, value in zip(self._act, values, strict=True):
+            ctrl[act] = value
+
+    def _inverse_dynamics(self) -> None:
+        scratch = self.robot.workspace()[1]
+        self._write_pose(scratch, self._targets)
+        # qvel and qacc stay zero (mj_inverse only reads them), leaving the gravity term: the holding torque.
+        mujoco.mj_inverse(self.robot.inverse_model, scratch)
+        self._torques = scratch.qfrc_inverse.tolist()
+
+    # -- simulation -----------------------------------------------------------------------------------------
+
+    def step(self, seconds: float) -> None:
+        """Physics mode: advance the simulation by `seconds` toward the targets; kinematic mode: no-op.
+
+        Time is advanced in whole model timesteps; the remainder carries over to the next call, so calling
+        this with wall-clock intervals keeps simulated time in step with real time.
+        """
+        if self.mode is not TwinMode.PHYSICS:
+            return
+        if not seconds > 0.0:
+            return
+        model = self.robot.model
+        dt = model.opt.timestep
+        self._sim_debt += seconds
+        # The epsilon absorbs float error so step(0.01) with dt 0.005 runs exactly two steps.
+        steps = math.floor(self._sim_debt / dt + 1e-9)
+        if steps <= 0:
+            return
+        self._sim_debt = max(0.0, self._sim_debt - steps * dt)
+        data = self._own_data
+        for _ in range(steps):
+            mujoco.mj_step(model, data)
+        # mj_step leaves positions from before its final integration; refresh them for readers and renderers.
+        mujoco.mj_kinematics(model, data)
+        self._tcp = self._tcp_of(data)
+
+    # -- state ----------------------------------------------------------------------------------------------
+
+    @property
+    def joint_angles(self) -> dict[str, float]:
+        """Current joint angles (radians) by name: measured in kinematic mode, simulated in physics mode."""
+        if self._own_data is None:
+            return dict(zip(self._names, self._targets, strict=True))  # kinematic: exactly what was applied
+        qpos = self._own_data.qpos
+        return {n: float(qpos[a]) for n, a in zip(self._names, self._qadr, strict=True)}
+
+    @property
+    def targets(self) -> dict[str, float]:
+        """The last applied (clamped) angles by name; the actuator targets in physics mode."""
+        return dict(zip(self._names, self._targets, strict=True))
+
+    @property
+    def joint_torques(self) -> dict[str, float]:
+        """Inverse-dynamics holding torque (N m) per joint for the last measured pose."""
+        torques = self._torques
+        return {n: torques[d] for n, d in zip(self._names, self._dadr, strict=True)}
+
+    @property
+    def tcp_position(self) -> np.ndarray:
+        """World position (m) of the tool-centre point (the TCP site, or the fallback body origin)."""
+        return np.array(self._tcp)
+
+    def body_poses(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """World position (3,) and orientation quaternion (w, x, y, z) (4,) per body, copies.
+
+        Bodies are so101.BODY_NAMES in order; a user model lacking some of those names returns those it has.
+        """
+        data = self.data
+        xpos = data.xpos
+        xquat = data.xquat
+        return {name: (xpos[bid].copy(), xquat[bid].copy()) for name, bid in self.robot.body_ids.items()}
+
+    def snapshot(self) -> TwinSnapshot:
+        """An immutable copy of this twin's state to hand to other threads (call it on the owning thread)."""
+        tcp = self._tcp
+        return TwinSnapshot(
+            device_id=self.device_id,
+            timestamp_ms=self.last_timestamp_ms,
+            joint_angles=self.joint_angles,
+            targets=self.targets,
+            joint_torques=self.joint_torques,
+            tcp_position=tcp,
+            mode=self.mode,
+            applied=self.applied,
+            ignored_stale=self.ignored_stale,
+            clamped=self.clamped,
+        )

@@ -1,0 +1,1 @@
+"""output layer (docs/architecture.md)."""

@@ -1,0 +1,395 @@
+"""Session recording: the twin's motion as a time-sampled USD stage that plays in usdview or Omniverse.
+
+One stage per session. Each device gets `/World/<sanitised id>`, which references the arm's USD asset once;
+every body prim of that reference gets time samples on its own translate/orient ops, authored so that the
+composed world transform of the body at a time code equals MuJoCo's forward-kinematics world pose. The asset
+nests bodies like the MJCF (base/shoulder/...), so a body's local transform is taken relative to its parent
+body, including any static prims the asset places between the two. A body missing from the poses (a user MJCF
+with other body names) keeps the asset's own local transform and moves with its parent.
+
+Time code = (t_seconds - origin) * time_codes_per_second, where origin is the first t_seconds recorded in the
+session (kept in the layer's customLayerData as `twin:timeOriginSeconds`), so callers may pass any monotonic
+clock. At most time_codes_per_second samples per device are kept: a sample less than one time code after
+that device's previous one is dropped (and counted). The layer is saved every flush_interval_s of wall time,
+driven by record(), so a crash loses at most that much.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import re
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pxr import Gf, Sdf, Usd, UsdGeom
+
+from twin.robot import so101
+
+log = logging.getLogger(__name__)
+
+# A sample that lands a hair under one time code after the previous one (float rounding of t * fps) is kept.
+_DROP_TOLERANCE = 1e-6
+_OP_SUFFIX = "twin"
+_TIME_CODE_DIGITS = 6
+_PRIM_NAME_BAD = re.compile(r"[^A-Za-z0-9_]")
+
+BodyPoses = Mapping[str, tuple[Any, Any]]
+
+
+def default_asset_path() -> Path:
+    """The bundled SO-101 USD asset (robots/so101/usd/so101.usda, made by `make usd-asset`)."""
+    return Path(str(resources.files("twin_robots") / "so101" / "usd" / "so101.usda"))
+
+
+def sanitise_prim_name(device_id: str) -> str:
+    """A valid USD prim name for a device id: invalid characters become '_', a leading digit gets a '_'."""
+    name = _PRIM_NAME_BAD.sub("_", device_id) or "_"
+    return f"_{name}" if name[0].isdigit() else name
+
+
+@dataclass(frozen=True)
+class _BodyLink:
+    """Where a body sits in the asset. Matrices are Gf row-vector transforms (world = local * parent)."""
+
+    name: str
+    rel_path: str  # below the asset's default prim, e.g. "Geometry/base/shoulder"
+    parent_body: str | None
+    offset: Gf.Matrix4d  # parent body frame (or device root) -> this body's parent prim
+    asset_local: Gf.Matrix4d  # the body's own local transform in the asset, used when its pose is missing
+
+
+@dataclass
+class _DeviceTrack:
+    prim_path: str
+    translate_attrs: dict[str, Usd.Attribute]
+    orient_attrs: dict[str, Usd.Attribute]
+    last_quat: dict[str, Gf.Quatd] = field(default_factory=dict)
+    last_time_code: float = -math.inf
+    samples: int = 0
+    warned_missing: bool = False
+
+
+class SessionRecorder:
+    """Writes one session's twin motion to a USD stage (see the module docstring for the layout)."""
+
+    def __init__(
+        self,
+        path: Path,
+        *,
+        asset_path: Path | None = None,
+        flush_interval_s: float = 2.0,
+        time_codes_per_second: float = 30.0,
+    ) -> None:
+        if not (math.isfinite(time_codes_per_second) and time_codes_per_second > 0):
+            raise ValueError(f"time_codes_per_second must be positive, got {time_codes_per_second!r}")
+        if not (math.isfinite(flush_interval_s) and flush_interval_s > 0):
+            raise ValueError(f"flush_interval_s must be positive seconds, got {flush_interval_s!r}")
+        self.path = Path(path).resolve()
+        if self.path.exists():
+            raise FileExistsError(
+                f"session file {self.path} already exists; recordings are never overwritten, pick a new name"
+            )
+        self.asset_path = Path(asset_path).resolve() if asset_path is not None else default_asset_path()
+        if not self.asset_path.is_file():
+            raise FileNotFoundError(
+                f"USD asset {self.asset_path} not found; run `make usd-asset` or pass asset_path"
+            )
+        self.flush_interval_s = float(flush_interval_s)
+        self.time_codes_per_second = float(time_codes_per_second)
+
+        asset = Usd.Stage.Open(str(self.asset_path))
+        if asset is None or not asset.GetDefaultPrim():
+            raise ValueError(f"USD asset {self.asset_path} has no default prim to reference; set defaultPrim")
+        self._links = _inspect_asset(asset, self.asset_path)
+        meters_per_unit = UsdGeom.GetStageMetersPerUnit(asset)
+        # Poses arrive in metres; the asset's unit decides what a translate value means.
+        self._units_per_metre = 1.0 / meters_per_unit
+
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._stage = Usd.Stage.CreateNew(str(self.path))
+        if self._stage is None:
+            raise OSError(f"cannot create USD stage {self.path}; check the folder is writable")
+        UsdGeom.SetStageUpAxis(self._stage, UsdGeom.GetStageUpAxis(asset))
+        UsdGeom.SetStageMetersPerUnit(self._stage, meters_per_unit)
+        self._stage.SetTimeCodesPerSecond(self.time_codes_per_second)
+        self._stage.SetFramesPerSecond(self.time_codes_per_second)
+        self._stage.SetStartTimeCode(0)
+        self._stage.SetEndTimeCode(0)
+        world = UsdGeom.Xform.Define(self._stage, "/World")
+        self._stage.SetDefaultPrim(world.GetPrim())
+        self._layer: Sdf.Layer = self._stage.GetRootLayer()
+        self._asset_ref = _relative_asset_path(self.asset_path, self.path.parent)
+
+        self._devices: dict[str, _DeviceTrack] = {}
+        self._prim_names: set[str] = set()
+        self._time_origin_s: float | None = None
+        self._min_time_code = math.inf
+        self._max_time_code = -math.inf
+        self._closed = False
+        # Counters for the agent's metrics.
+        self.samples_written = 0
+        self.samples_dropped = 0
+        self.samples_rejected = 0
+        self.flushes = 0
+        self.flush_errors = 0
+        self._layer.Save()
+        self._last_flush = time.monotonic()
+        log.info("recording session to %s (asset %s)", self.path, self._asset_ref)
+
+    @property
+    def time_origin_s(self) -> float | None:
+        """The t_seconds that maps to time code 0 (the first sample recorded); None before any sample."""
+        return self._time_origin_s
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    @property
+    def devices(self) -> dict[str, str]:
+        """Device id -> prim path of every device recorded so far."""
+        return {device_id: track.prim_path for device_id, track in self._devices.items()}
+
+    def time_code(self, t_seconds: float) -> float:
+        """The stage time code of a record() time (the first sample fixes the origin)."""
+        if self._time_origin_s is None:
+            raise RuntimeError("no sample recorded yet, so the time origin is not fixed")
+        # Rounded so float noise (9.000000000000002) does not clutter the text layer.
+        return round((t_seconds - self._time_origin_s) * self.time_codes_per_second, _TIME_CODE_DIGITS)
+
+    def record(self, device_id: str, t_seconds: float, body_poses: BodyPoses) -> bool:
+        """Time-sample one device's body world poses; True if written, False if dropped or rejected.
+
+        Bad input (no known body, non-finite or malformed pose, non-finite time) is logged and counted in
+        samples_rejected, never raised, so a recording problem cannot take the twin service down.
+        """
+        if self._closed:
+            self.samples_dropped += 1
+            log.warning("record(%r) after %s was closed; sample dropped", device_id, self.path.name)
+            return False
+        try:
+            if not math.isfinite(t_seconds):
+                raise ValueError(f"t_seconds must be finite, got {t_seconds!r}")
+            poses = _validate_poses(body_poses)
+        except (TypeError, ValueError) as exc:
+            self.samples_rejected += 1
+            log.warning("session %s: sample for %r rejected: %s", self.path.name, device_id, exc)
+            return False
+
+        if self._time_origin_s is None:
+            self._time_origin_s = float(t_seconds)
+            self._layer.customLayerData = {
+                **self._layer.customLayerData,
+                "twin:timeOriginSeconds": float(t_seconds),
+            }
+        tc = self.time_code(t_seconds)
+        track = self._devices.get(device_id) or self._add_device(device_id)
+        if tc < track.last_time_code + 1.0 - _DROP_TOLERANCE:
+            self.samples_dropped += 1
+            return False
+        if len(poses) < len(self._links) and not track.warned_missing:
+            track.warned_missing = True
+            missing = [link.name for link in self._links if link.name not in poses]
+            log.warning("device %r: no poses for bodies %s; they keep the asset's pose", device_id, missing)
+
+        worlds: dict[str, Gf.Matrix4d] = {}
+        with Sdf.ChangeBlock():
+            for link in self._links:  # base to tip, so a parent's world is known before its children
+                parent = link.offset if link.parent_body is None else link.offset * worlds[link.parent_body]
+                pose = poses.get(link.name)
+                if pose is None:
+                    local = link.asset_local
+                    worlds[link.name] = local * parent
+                else:
+                    worlds[link.name] = self._world_matrix(*pose)
+                    local = worlds[link.name] * parent.GetInverse()
+                quat = local.ExtractRotationQuat().GetNormalized()
+                previous = track.last_quat.get(link.name)
+                # Same hemisphere as the previous sample, so orient interpolation takes the short arc.
+                if previous is not None and Gf.Dot(previous, quat) < 0:
+                    quat = -quat
+                track.last_quat[link.name] = quat
+                track.translate_attrs[link.name].Set(local.ExtractTranslation(), tc)
+                track.orient_attrs[link.name].Set(quat, tc)
+        track.last_time_code = tc
+        track.samples += 1
+        self.samples_written += 1
+        self._min_time_code = min(self._min_time_code, tc)
+        self._max_time_code = max(self._max_time_code, tc)
+        if time.monotonic() - self._last_flush >= self.flush_interval_s:
+            self.flush()
+        return True
+
+    def flush(self) -> None:
+        """Save the stage so far (time range included). A failed save is logged and counted, not raised."""
+        if self._closed:
+            return
+        if self.samples_written:
+            self._stage.SetStartTimeCode(min(0.0, self._min_time_code))
+            self._stage.SetEndTimeCode(self._max_time_code)
+        self._last_flush = time.monotonic()
+        try:
+            saved = self._layer.Save()
+        except Exception:  # pxr raises Tf.ErrorException; a full disk must not stop the twin
+            log.exception("saving session %s failed", self.path)
+            saved = False
+        if saved:
+            self.flushes += 1
+        else:
+            self.flush_errors += 1
+            log.error("session %s could not be saved; check disk space and permissions", self.path)
+
+    def close(self) -> None:
+        """Final save; later calls do nothing."""
+        if self._closed:
+            return
+        self.flush()
+        self._closed = True
+        log.info(
+            "session %s closed: %d samples written, %d dropped, %d rejected, %d devices",
+            self.path,
+            self.samples_written,
+            self.samples_dropped,
+            self.samples_rejected,
+            len(self._devices),
+        )
+
+    def __enter__(self) -> SessionRecorder:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _world_matrix(self, pos: np.ndarray, quat: np.ndarray) -> Gf.Matrix4d:
+        s = self._units_per_metre
+        m = Gf.Matrix4d(1.0)
+        m.SetRotateOnly(Gf.Quatd(float(quat[0]), Gf.Vec3d(float(quat[1]), float(quat[2]), float(quat[3]))))
+        m.SetTranslateOnly(Gf.Vec3d(float(pos[0]) * s, float(pos[1]) * s, float(pos[2]) * s))
+        return m
+
+    def _add_device(self, device_id: str) -> _DeviceTrack:
+        name = sanitise_prim_name(device_id)
+        unique, n = name, 1
+        while unique in self._prim_names:  # "arm-1" and "arm_1" must not share a prim
+            n += 1
+            unique = f"{name}_{n}"
+        self._prim_names.add(unique)
+        prim = UsdGeom.Xform.Define(self._stage, f"/World/{unique}").GetPrim()
+        prim.GetReferences().AddReference(self._asset_ref)
+        prim.SetCustomDataByKey("twin:deviceId", device_id)
+        track = _DeviceTrack(prim_path=str(prim.GetPath()), translate_attrs={}, orient_attrs={})
+        for link in self._links:
+            body = self._stage.GetPrimAtPath(prim.GetPath().AppendPath(Sdf.Path(link.rel_path)))
+            if not body:
+                raise RuntimeError(f"body prim {link.rel_path} missing after referencing {self._asset_ref}")
+            xformable = UsdGeom.Xformable(body)
+            translate = xformable.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble, _OP_SUFFIX)
+            orient = xformable.AddOrientOp(UsdGeom.XformOp.PrecisionDouble, _OP_SUFFIX)
+            # Replaces the asset's static ops on this body: the samples carry its whole local transform.
+            xformable.SetXformOpOrder([translate, orient])
+            track.translate_attrs[link.name] = translate.GetAttr()
+            track.orient_attrs[link.name] = orient.GetAttr()
+        self._devices[device_id] = track
+        log.info("session %s: device %r recorded at %s", self.path.name, device_id, track.prim_path)
+        return track
+
+
+def _validate_poses(body_poses: BodyPoses) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    if not isinstance(body_poses, Mapping):
+        raise TypeError(f"body poses must map body name to (pos, quat), got {type(body_poses).__name__}")
+    poses = {}
+    for name in so101.BODY_NAMES:
+        if name not in body_poses:
+            continue
+        try:
+            pos, quat = body_poses[name]
+            pos = np.asarray(pos, dtype=float).reshape(3)
+            quat = np.asarray(quat, dtype=float).reshape(4)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"pose of {name!r} must be (pos (3,), quat wxyz (4,)): {exc}") from None
+        norm = float(np.linalg.norm(quat))
+        if not (np.all(np.isfinite(pos)) and math.isfinite(norm) and norm > 0.5):
+            raise ValueError(f"pose of {name!r} is not finite or its quaternion is not unit: {pos}, {quat}")
+        poses[name] = (pos, quat / norm)
+    if not poses:
+        raise ValueError(
+            f"no known body in poses {sorted(body_poses)}; pass DeviceTwin.body_poses() "
+            f"(bodies named as so101.BODY_NAMES)"
+        )
+    return poses
+
+
+def _relative_asset_path(asset: Path, session_dir: Path) -> str:
+    try:
+        rel = Path(os.path.relpath(asset, session_dir)).as_posix()
+    except ValueError:  # another drive on Windows: only an absolute path can work
+        return asset.as_posix()
+    # "./" anchors the path to the session layer instead of the resolver's search path.
+    return rel if rel.startswith("../") else f"./{rel}"
+
+
+def _inspect_asset(asset: Usd.Stage, asset_path: Path) -> list[_BodyLink]:
+    """Find every so101 body prim below the default prim and its static offset from its parent body."""
+    root = asset.GetDefaultPrim()
+    found: dict[str, Usd.Prim] = {}
+    for prim in Usd.PrimRange(root):
+        if prim.GetName() in so101.BODY_NAMES and prim.IsA(UsdGeom.Xformable):
+            if prim.GetName() in found:
+                raise ValueError(f"USD asset {asset_path} has two prims named {prim.GetName()!r}")
+            found[prim.GetName()] = prim
+    if root.GetName() in found and found[root.GetName()] == root:
+        raise ValueError(
+            f"USD asset {asset_path}: the default prim is body {root.GetName()!r}; the recorder needs "
+            "the bodies below a root prim it can reference"
+        )
+    missing = [name for name in so101.BODY_NAMES if name not in found]
+    if missing:
+        raise ValueError(
+            f"USD asset {asset_path} lacks Xformable body prims {missing}; regenerate it from an MJCF "
+            "with the body names in so101.BODY_NAMES (`make usd-asset`)"
+        )
+    body_prims = set(found.values())
+    cache = UsdGeom.XformCache(Usd.TimeCode.Default())
+    links = []
+    for name in so101.BODY_NAMES:  # base to tip: parents come before children
+        prim = found[name]
+        parent_body = prim.GetParent()
+        while parent_body and parent_body not in body_prims and parent_body != root:
+            parent_body = parent_body.GetParent()
+        if parent_body in body_prims:
+            offset, _ = cache.ComputeRelativeTransform(prim.GetParent(), parent_body)
+            parent_name: str | None = parent_body.GetName()
+        else:
+            offset = cache.GetLocalToWorldTransform(prim.GetParent())
+            parent_name = None
+        asset_local, _ = cache.GetLocalTransformation(prim)
+        for what, matrix in (("its parent body", offset), ("itself", asset_local)):
+            if not _is_rigid(matrix):
+                raise ValueError(
+                    f"USD asset {asset_path}: the transform between {name!r} and {what} has scale or shear; "
+                    "the recorder can only re-pose bodies joined by rigid transforms"
+                )
+        links.append(
+            _BodyLink(
+                name=name,
+                rel_path=str(prim.GetPath().MakeRelativePath(root.GetPath())),
+                parent_body=parent_name,
+                offset=offset,
+                asset_local=asset_local,
+            )
+        )
+    return links
+
+
+def _is_rigid(matrix: Gf.Matrix4d) -> bool:
+    m = np.array(matrix)
+    rotation = m[:3, :3]
+    # Row-vector matrices keep the projective column (last column) at (0, 0, 0, 1).
+    return bool(np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-6) and np.allclose(m[:3, 3], 0))

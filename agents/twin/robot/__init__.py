@@ -1,0 +1,1 @@
+"""robot layer (docs/architecture.md)."""

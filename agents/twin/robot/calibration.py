@@ -1,0 +1,155 @@
+"""LeRobot motor calibration files: load and validate them for the telemetry decoder.
+
+LeRobot writes one JSON object per arm, keyed by motor name, each entry holding the integer fields
+`id, drive_mode, homing_offset, range_min, range_max` (huggingface/lerobot
+src/lerobot/motors/motors_bus.py, MotorCalibration). For a follower it lives under
+`~/.cache/huggingface/lerobot/calibration/robots/so_follower/<id>.json` (`so101_follower/` before
+LeRobot 0.4.3).
+
+The homing offset is applied inside the servo (Present_Position already has it subtracted), so the decoder
+never uses it; it is loaded only so a file round-trips and a bad value is caught.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+from twin.robot import so101
+
+_FIELDS = ("id", "drive_mode", "homing_offset", "range_min", "range_max")
+# Homing_Offset is sign-magnitude with the sign in bit 11, so its magnitude is at most 2047.
+_HOMING_LIMIT = 2047
+
+
+@dataclass(frozen=True, slots=True)
+class MotorCalibration:
+    """One motor's entry of a LeRobot calibration file."""
+
+    id: int
+    drive_mode: int
+    homing_offset: int
+    range_min: int
+    range_max: int
+
+    @property
+    def mid(self) -> float:
+        """Middle of the calibrated range: LeRobot's DEGREES zero."""
+        return (self.range_min + self.range_max) / 2
+
+
+# eq=False: Mapping already compares by content.
+@dataclass(frozen=True, eq=False)
+class Calibration(Mapping[str, MotorCalibration]):
+    """A validated calibration for the six SO-101 motors, keyed by joint name (so101.JOINT_NAMES)."""
+
+    motors: Mapping[str, MotorCalibration]
+    source: str = "<memory>"
+
+    def __post_init__(self) -> None:
+        validated = _validate_motors(self.motors, self.source)
+        object.__setattr__(self, "motors", MappingProxyType(validated))
+
+    def __getitem__(self, name: str) -> MotorCalibration:
+        return self.motors[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.motors)
+
+    def __len__(self) -> int:
+        return len(self.motors)
+
+    @classmethod
+    def from_dict(cls, data: Any, source: str = "<memory>") -> Calibration:
+        """Build from the parsed JSON of a LeRobot calibration file (ValueError on any problem)."""
+        if not isinstance(data, dict):
+            raise ValueError(
+                f"{source}: a LeRobot calibration file is a JSON object keyed by motor name, "
+                f"got {type(data).__name__}"
+            )
+        motors: dict[str, MotorCalibration] = {}
+        for name, entry in data.items():
+            if not isinstance(entry, dict):
+                raise ValueError(
+                    f"{source}: entry {name!r} must be an object with fields {', '.join(_FIELDS)}"
+                )
+            missing = [f for f in _FIELDS if f not in entry]
+            if missing:
+                raise ValueError(
+                    f"{source}: motor {name!r} lacks {', '.join(missing)}; re-run LeRobot's calibration "
+                    "(lerobot-calibrate) to write a complete file"
+                )
+            values: dict[str, int] = {}
+            for field in _FIELDS:
+                value = entry[field]
+                # bool is an int subclass in Python; a true/false here is a broken file, not a 1/0.
+                if type(value) is not int:
+                    raise ValueError(
+                        f"{source}: motor {name!r} field {field} must be a JSON integer, got {value!r}"
+                    )
+                values[field] = value
+            motors[name] = MotorCalibration(**values)
+        return cls(motors, source)
+
+    def to_dict(self) -> dict[str, dict[str, int]]:
+        """The LeRobot file layout (for writing an example or a test fixture)."""
+        return {name: {f: getattr(m, f) for f in _FIELDS} for name, m in self.motors.items()}
+
+
+def _validate_motors(motors: Mapping[str, MotorCalibration], source: str) -> dict[str, MotorCalibration]:
+    names = set(motors)
+    missing = [n for n in so101.JOINT_NAMES if n not in names]
+    extra = sorted(names.difference(so101.JOINT_NAMES))
+    if missing or extra:
+        parts = []
+        if missing:
+            parts.append(f"missing {', '.join(missing)}")
+        if extra:
+            parts.append(f"unknown {', '.join(extra)}")
+        raise ValueError(
+            f"{source}: not an SO-101 follower calibration ({'; '.join(parts)}); expected exactly the motors "
+            f"{', '.join(so101.JOINT_NAMES)} (LeRobot robots/so_follower/<id>.json)"
+        )
+    ordered: dict[str, MotorCalibration] = {}
+    for name in so101.JOINT_NAMES:
+        m = motors[name]
+        if not isinstance(m, MotorCalibration):
+            raise ValueError(f"{source}: motor {name!r} must be a MotorCalibration, got {type(m).__name__}")
+        if m.drive_mode not in (0, 1):
+            raise ValueError(f"{source}: motor {name!r} drive_mode must be 0 or 1, got {m.drive_mode}")
+        if not 0 <= m.range_min < m.range_max <= so101.TICK_MAX:
+            raise ValueError(
+                f"{source}: motor {name!r} needs 0 <= range_min < range_max <= {so101.TICK_MAX}, got "
+                f"range_min={m.range_min} range_max={m.range_max}; re-run the calibration and move the joint "
+                "through its whole range when asked"
+            )
+        if abs(m.homing_offset) > _HOMING_LIMIT:
+            raise ValueError(
+                f"{source}: motor {name!r} homing_offset {m.homing_offset} is outside the servo's "
+                f"+-{_HOMING_LIMIT}"
+            )
+        ordered[name] = m
+    return ordered
+
+
+def load_calibration(path: str | Path) -> Calibration:
+    """Read a LeRobot calibration JSON file; ValueError names the problem and the fix."""
+    p = Path(path).expanduser()
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ValueError(
+            f"calibration file {p} does not exist; LeRobot keeps follower calibrations under "
+            "~/.cache/huggingface/lerobot/calibration/robots/so_follower/<id>.json"
+        ) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"calibration file {p} cannot be read: {exc}") from None
+    try:
+        data = json.loads(text)
+    except ValueError as exc:
+        raise ValueError(f"calibration file {p} is not valid JSON: {exc}") from None
+    return Calibration.from_dict(data, str(p))

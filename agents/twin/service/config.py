@@ -1,0 +1,370 @@
+"""The agent's configuration: one typed, frozen object loaded once from a TOML file plus flag overrides.
+
+Every value is validated when the file is loaded, not when it is first used, so a bad deployment fails at
+start-up with a message that names the key, the bad value and the fix. Unknown sections and keys are
+errors too: a misspelt key (`offline_after` for `offline_after_s`) would otherwise leave the default
+silently in force. The key names are the contract with the CDK UserData that renders this file on the
+instance (docs/agent.md).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlsplit
+
+from twin.core.health import HealthThresholds
+
+# Kept as plain strings here so loading a config never imports the decoder or MuJoCo; the values are the
+# `twin.core.telemetry.Units` and `twin.core.twin.TwinMode` values (tests/test_config.py checks they stay
+# in step).
+UNITS_CHOICES: tuple[str, ...] = ("ticks", "degrees", "range100", "auto")
+MODE_CHOICES: tuple[str, ...] = ("kinematic", "physics")
+RECORD_FORMAT_CHOICES: tuple[str, ...] = ("usdc", "usda")
+LOG_LEVELS: tuple[str, ...] = ("DEBUG", "INFO", "WARNING", "ERROR")
+BROKER_SCHEMES: dict[str, int] = {"mqtt": 1883, "mqtts": 8883}
+ALL_DEVICES = "*"
+
+
+class ConfigError(ValueError):
+    """A configuration value is missing, unknown or invalid; the message says which key and how to fix it."""
+
+
+@dataclass(frozen=True)
+class BrokerSection:
+    url: str = "iot"
+    region: str = ""
+    endpoint: str = ""
+    client_id_prefix: str = "so101-twin-"
+    ca_file: str = ""
+
+
+@dataclass(frozen=True)
+class TelemetrySection:
+    topic_prefix: str = "dt/lerobot"
+    devices: tuple[str, ...] = ("arm-001",)
+    units: str = "auto"
+    calibration: str = ""
+    max_payload_bytes: int = 131072
+    max_devices: int = 64
+
+    @property
+    def all_devices(self) -> bool:
+        return self.devices == (ALL_DEVICES,)
+
+
+@dataclass(frozen=True)
+class TwinSection:
+    mode: str = "kinematic"
+    model: str = ""
+    record_dir: str = ""
+    # usdc by default: a binary layer saves incrementally, while a text layer is rewritten whole on every
+    # flush, which grows to most of a second per save after an hour of recording (docs/robot-model.md).
+    record_format: str = "usdc"
+    physics_rate_hz: float = 200.0
+    record_flush_s: float = 2.0
+
+
+# The [health] section is the health thresholds themselves: one definition, used as loaded.
+HealthSection = HealthThresholds
+
+
+@dataclass(frozen=True)
+class HttpSection:
+    listen: str = "127.0.0.1:8080"
+    stream_rate_hz: float = 30.0
+
+    @property
+    def host(self) -> str:
+        return _split_listen(self.listen)[0]
+
+    @property
+    def port(self) -> int:
+        return _split_listen(self.listen)[1]
+
+
+@dataclass(frozen=True)
+class LogSection:
+    level: str = "INFO"
+
+
+@dataclass(frozen=True)
+class AgentConfig:
+    broker: BrokerSection = field(default_factory=BrokerSection)
+    telemetry: TelemetrySection = field(default_factory=TelemetrySection)
+    twin: TwinSection = field(default_factory=TwinSection)
+    health: HealthSection = field(default_factory=HealthSection)
+    http: HttpSection = field(default_factory=HttpSection)
+    log: LogSection = field(default_factory=LogSection)
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        """The effective configuration as TOML-shaped sections (logged at start-up, served nowhere)."""
+        out = dataclasses.asdict(self)
+        out["telemetry"]["devices"] = list(self.telemetry.devices)
+        return out
+
+
+_SECTIONS: dict[str, type] = {
+    "broker": BrokerSection,
+    "telemetry": TelemetrySection,
+    "twin": TwinSection,
+    "health": HealthSection,
+    "http": HttpSection,
+    "log": LogSection,
+}
+
+
+def _suggest(name: str, choices: list[str]) -> str:
+    close = difflib.get_close_matches(name, choices, n=1)
+    return f"did you mean '{close[0]}'? " if close else ""
+
+
+def _split_listen(listen: str) -> tuple[str, int]:
+    host, sep, port_text = listen.rpartition(":")
+    if not sep or not host or not port_text.isdigit():
+        raise ConfigError(
+            f"http.listen = {listen!r} is not HOST:PORT; use e.g. '127.0.0.1:8080' (port 0 picks a free port)"
+        )
+    port = int(port_text)
+    if not 0 <= port <= 65535:
+        raise ConfigError(f"http.listen = {listen!r}: port {port} is outside 0..65535")
+    return host.strip("[]"), port
+
+
+def _expect_type(key: str, value: Any, default: Any) -> Any:
+    """Coerce TOML/flag values to the type of the field's default, refusing anything surprising."""
+    short = key.rsplit(".", maxsplit=1)[-1]
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise ConfigError(f"{key} = {value!r} must be true or false")
+        return value
+    if isinstance(default, int):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{key} = {value!r} must be a whole number, e.g. {short} = {default}")
+        return value
+    if isinstance(default, float):
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ConfigError(f"{key} = {value!r} must be a number, e.g. {short} = {default}")
+        value = float(value)
+        if not math.isfinite(value):
+            raise ConfigError(f"{key} = {value!r} must be a finite number")
+        return value
+    if isinstance(default, tuple):
+        if isinstance(value, str):
+            # A flag or a hand-written `devices = "arm-001"`: accept a comma-separated list.
+            value = [part.strip() for part in value.split(",") if part.strip()]
+        if not isinstance(value, list | tuple) or not all(isinstance(v, str) for v in value):
+            raise ConfigError(f'{key} = {value!r} must be a list of strings, e.g. {short} = ["arm-001"]')
+        return tuple(value)
+    if not isinstance(value, str):
+        raise ConfigError(f'{key} = {value!r} must be a string, e.g. {short} = "{default}"')
+    return value
+
+
+def _build_section(name: str, cls: type, values: Mapping[str, Any]) -> Any:
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs: dict[str, Any] = {}
+    for key, value in values.items():
+        if key not in fields:
+            raise ConfigError(
+                f"unknown key '{name}.{key}'; {_suggest(key, list(fields))}"
+                f"the [{name}] keys are: {', '.join(fields)}"
+            )
+        default = cls()
+        kwargs[key] = _expect_type(f"{name}.{key}", value, getattr(default, key))
+    return cls(**kwargs)
+
+
+def _positive(key: str, value: float) -> None:
+    if value <= 0:
+        raise ConfigError(f"{key} = {value!r} must be greater than 0")
+
+
+def _validate_device_id(key: str, device: str) -> None:
+    # A device id becomes one MQTT topic level, so MQTT wildcards and separators cannot be part of it.
+    if not device or any(ch in device for ch in "/+#") or device != device.strip():
+        raise ConfigError(
+            f"{key} contains {device!r}, which is not a device id; use ids like 'arm-001' (no '/', '+', '#' "
+            f'or spaces), or ["*"] alone for the whole fleet'
+        )
+
+
+def validate(config: AgentConfig) -> AgentConfig:
+    """Check every cross-field and range rule; returns the config unchanged or raises ConfigError."""
+    b, t, tw, h, ht, lg = config.broker, config.telemetry, config.twin, config.health, config.http, config.log
+
+    if b.url != "iot":
+        parts = urlsplit(b.url)
+        if parts.scheme not in BROKER_SCHEMES or not parts.hostname:
+            raise ConfigError(
+                f'broker.url = {b.url!r} is not a broker; use "iot" (AWS IoT Core), "mqtt://host:port" '
+                f'or "mqtts://host:port"'
+            )
+        try:
+            _ = parts.port
+        except ValueError as exc:
+            raise ConfigError(
+                f"broker.url = {b.url!r} has a bad port ({exc}); use e.g. mqtt://127.0.0.1:1883"
+            ) from exc
+        if parts.path not in ("", "/") or parts.query:
+            raise ConfigError(
+                f"broker.url = {b.url!r}: a broker URL has no path or query; use scheme://host:port"
+            )
+    if b.ca_file and not Path(b.ca_file).is_file():
+        raise ConfigError(
+            f"broker.ca_file = {b.ca_file!r} does not exist; give a PEM CA bundle or leave it empty"
+        )
+    if b.ca_file and b.url.startswith("mqtt://"):
+        raise ConfigError(
+            f"broker.ca_file is set but broker.url = {b.url!r} is plain MQTT; use mqtts:// or clear ca_file"
+        )
+    if not b.client_id_prefix or any(ch in b.client_id_prefix for ch in "/+# "):
+        raise ConfigError(
+            f"broker.client_id_prefix = {b.client_id_prefix!r} must be non-empty "
+            "without '/', '+', '#' or spaces (the IoT policy scopes client ids by this prefix)"
+        )
+
+    prefix = t.topic_prefix
+    if not prefix or prefix.startswith("/") or prefix.endswith("/") or any(ch in prefix for ch in "+#"):
+        raise ConfigError(
+            f"telemetry.topic_prefix = {prefix!r} must be topic levels "
+            "without wildcards or leading/trailing '/', "
+            'e.g. "dt/lerobot"'
+        )
+    if not t.devices:
+        raise ConfigError(
+            'telemetry.devices is empty; list device ids (["arm-001"]) or ["*"] for the whole fleet'
+        )
+    if ALL_DEVICES in t.devices and len(t.devices) > 1:
+        raise ConfigError(
+            f"telemetry.devices = {list(t.devices)!r} mixes '*' with ids; use [\"*\"] alone or list the ids"
+        )
+    if not t.all_devices:
+        for device in t.devices:
+            _validate_device_id("telemetry.devices", device)
+        if len(set(t.devices)) != len(t.devices):
+            raise ConfigError(f"telemetry.devices = {list(t.devices)!r} lists a device twice")
+    if t.units not in UNITS_CHOICES:
+        raise ConfigError(
+            f"telemetry.units = {t.units!r} is not one of {', '.join(UNITS_CHOICES)}; "
+            f"{_suggest(t.units, list(UNITS_CHOICES))}ticks for raw servo positions, degrees or range100 for "
+            "LeRobot-normalised ones, auto to infer per device"
+        )
+    if t.calibration and not Path(t.calibration).is_file():
+        raise ConfigError(
+            f"telemetry.calibration = {t.calibration!r} does not exist; give the LeRobot calibration JSON "
+            "(~/.cache/huggingface/lerobot/calibration/robots/so_follower/<id>.json) or leave it empty"
+        )
+    if not 1024 <= t.max_payload_bytes <= 1 << 20:
+        raise ConfigError(
+            f"telemetry.max_payload_bytes = {t.max_payload_bytes} is outside 1024..1048576 "
+            "(IoT Core caps a message at 131072)"
+        )
+
+    if not 1 <= t.max_devices <= 10000:
+        raise ConfigError(
+            f"telemetry.max_devices = {t.max_devices} is outside 1..10000; it bounds how many twins a fleet "
+            'subscription (devices = ["*"]) may create'
+        )
+
+    if tw.mode not in MODE_CHOICES:
+        raise ConfigError(
+            f"twin.mode = {tw.mode!r} is not one of {', '.join(MODE_CHOICES)}; "
+            f"{_suggest(tw.mode, list(MODE_CHOICES))}"
+            "kinematic mirrors the measured pose, physics drives a simulated arm toward it"
+        )
+    if tw.model and not Path(tw.model).is_file():
+        raise ConfigError(
+            f"twin.model = {tw.model!r} does not exist; give an MJCF file or leave it empty (bundled SO-101)"
+        )
+    if tw.record_dir and Path(tw.record_dir).exists() and not Path(tw.record_dir).is_dir():
+        raise ConfigError(
+            f"twin.record_dir = {tw.record_dir!r} is a file; give a directory (created if missing)"
+        )
+    if tw.record_format not in RECORD_FORMAT_CHOICES:
+        raise ConfigError(
+            f"twin.record_format = {tw.record_format!r} is not one of {', '.join(RECORD_FORMAT_CHOICES)}; "
+            "usdc (binary, for long sessions) or usda (text, readable, for short ones)"
+        )
+    _positive("twin.physics_rate_hz", tw.physics_rate_hz)
+    _positive("twin.record_flush_s", tw.record_flush_s)
+
+    _positive("health.expected_rate_hz", h.expected_rate_hz)
+    _positive("health.stale_periods", h.stale_periods)
+    _positive("health.offline_after_s", h.offline_after_s)
+    _positive("health.window_s", h.window_s)
+    if h.offline_after_s <= h.stale_after_s:
+        raise ConfigError(
+            f"health.offline_after_s = {h.offline_after_s} must be longer than the stale time "
+            f"(stale_periods / expected_rate_hz = {h.stale_after_s:g} s); raise offline_after_s"
+        )
+
+    _split_listen(ht.listen)
+    _positive("http.stream_rate_hz", ht.stream_rate_hz)
+
+    if lg.level.upper() not in LOG_LEVELS:
+        raise ConfigError(f"log.level = {lg.level!r} is not one of {', '.join(LOG_LEVELS)}")
+    return config
+
+
+def config_from_mapping(data: Mapping[str, Any]) -> AgentConfig:
+    """Build and validate a config from TOML-shaped data ({section: {key: value}})."""
+    sections: dict[str, Any] = {}
+    for name, values in data.items():
+        if name not in _SECTIONS:
+            raise ConfigError(
+                f"unknown section [{name}]; {_suggest(name, list(_SECTIONS))}"
+                f"the sections are: {', '.join(_SECTIONS)}"
+            )
+        if not isinstance(values, Mapping):
+            raise ConfigError(f"[{name}] must be a table of keys, not {values!r}")
+        sections[name] = _build_section(name, _SECTIONS[name], values)
+    config = AgentConfig(**sections)
+    if config.log.level != config.log.level.upper():
+        config = dataclasses.replace(config, log=LogSection(level=config.log.level.upper()))
+    return validate(config)
+
+
+def read_toml(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    try:
+        with path.open("rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError as exc:
+        raise ConfigError(f"config file {str(path)!r} not found; pass an existing file to --config") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"config file {str(path)!r} is not valid TOML: {exc}") from exc
+    except OSError as exc:
+        raise ConfigError(f"config file {str(path)!r} cannot be read: {exc}") from exc
+
+
+def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> AgentConfig:
+    """Load the TOML file (or the defaults when path is None) and apply flag overrides.
+
+    `overrides` maps dotted keys to values, e.g. {"broker.url": "mqtt://127.0.0.1:1883"}; None values are
+    skipped so an argparse namespace can be passed through without filtering. Overrides win over the file.
+    """
+    data: dict[str, dict[str, Any]] = {}
+    if path is not None:
+        data = {k: dict(v) if isinstance(v, Mapping) else v for k, v in read_toml(path).items()}
+    for dotted, value in (overrides or {}).items():
+        if value is None:
+            continue
+        section, _, key = dotted.partition(".")
+        if not key:
+            raise ConfigError(f"override {dotted!r} must be 'section.key'")
+        target = data.setdefault(section, {})
+        if not isinstance(target, dict):
+            raise ConfigError(f"[{section}] must be a table of keys, not {target!r}")
+        target[key] = value
+    try:
+        return config_from_mapping(data)
+    except ConfigError as exc:
+        where = f" (in {path})" if path is not None else ""
+        raise ConfigError(f"{exc}{where}") from exc

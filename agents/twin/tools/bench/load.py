@@ -1,0 +1,171 @@
+"""Load processes for the throughput benchmark: a fleet publisher and a no-op subscriber (the ceiling).
+
+Each runs as its own process (`python -m twin.tools.bench.load publish|noop ...`) so its CPU is not charged to
+the agent under test, and prints one JSON line with its counts on exit. Both use the project's own awscrt
+client construction (twin.transport.subscriber.build_mqtt5_client), so the ceiling measures the same broker
+and client the agent uses, minus the agent's work.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import random
+import signal
+import sys
+import threading
+import time
+from typing import Any
+
+from awscrt import mqtt5
+
+from twin.tools.edge_sim import encode, make_payload
+from twin.transport.subscriber import (
+    BrokerConfig,
+    TelemetrySubscriber,
+    build_mqtt5_client,
+    new_client_id,
+    topic_for,
+)
+
+log = logging.getLogger(__name__)
+
+# Distinct poses the publisher cycles through, so the twin really moves while the message cost stays that
+# of one bytes concatenation (building each payload from scratch would make the publisher the bottleneck).
+POSES = 64
+# Each period is cut into this many slots; devices are spread over them, as a real fleet is not in lock step.
+SLOTS_PER_PERIOD = 50
+
+
+def _templates(device: str, rng: random.Random) -> list[tuple[bytes, bytes]]:
+    """(before, after) the timestamp digits of each pose's JSON, for one device."""
+    marker = 1_111_111_111_111
+    out = []
+    for k in range(POSES):
+        payload = make_payload(device, k * 0.1, "ticks", rng, timestamp_ms=marker)
+        before, after = encode(payload).split(str(marker).encode(), 1)
+        out.append((before, after))
+    return out
+
+
+def publish(
+    url: str, devices: list[str], rate_hz: float, seconds: float, prefix: str, *, seed: int = 1
+) -> dict[str, Any]:
+    """Publish every device at rate_hz for `seconds`; timestamps are the publish wall clock (milliseconds)."""
+    rng = random.Random(seed)
+    templates = {d: _templates(d, rng) for d in devices}
+    topics = {d: topic_for(prefix, d) for d in devices}
+    connected = threading.Event()
+    failures = [0]
+
+    def on_done(future: Any) -> None:
+        if future.exception() is not None:
+            failures[0] += 1
+
+    client = build_mqtt5_client(
+        BrokerConfig(url=url, client_id_prefix="bench-pub-"),
+        new_client_id("bench-pub-"),
+        on_connection_success=lambda _d: connected.set(),
+    )
+    client.start()
+    if not connected.wait(10):
+        raise SystemExit(f"publisher: could not connect to {url}")
+    period = 1.0 / rate_hz
+    slot_len = period / SLOTS_PER_PERIOD
+    slots = [devices[i::SLOTS_PER_PERIOD] for i in range(SLOTS_PER_PERIOD)]
+    sent = 0
+    late_slots = 0
+    start = time.monotonic()
+    end = start + seconds
+    k = 0
+    while True:
+        due = start + k * slot_len
+        if due >= end:
+            break
+        now = time.monotonic()
+        if due > now:
+            time.sleep(due - now)
+        elif now - due > period:
+            late_slots += 1
+        pose = (k // SLOTS_PER_PERIOD) % POSES
+        stamp = str(round(time.time() * 1000)).encode()
+        for device in slots[k % SLOTS_PER_PERIOD]:
+            before, after = templates[device][pose]
+            future = client.publish(
+                mqtt5.PublishPacket(
+                    topic=topics[device], payload=before + stamp + after, qos=mqtt5.QoS.AT_MOST_ONCE
+                )
+            )
+            future.add_done_callback(on_done)
+            sent += 1
+        k += 1
+    elapsed = time.monotonic() - start
+    time.sleep(0.5)  # let queued QoS 0 publishes reach the socket before stopping
+    client.stop()
+    return {
+        "sent": sent,
+        "publish_failures": failures[0],
+        "elapsed_s": elapsed,
+        "late_slots": late_slots,
+        "offered_rate": sent / elapsed if elapsed else 0.0,
+    }
+
+
+def noop(url: str, filters: list[str], seconds: float) -> dict[str, Any]:
+    """Subscribe like the agent does and count messages, doing nothing else with them (the ceiling)."""
+    count = [0]
+    first: list[float] = []
+    last = [0.0]
+
+    def on_message(_topic: str, _payload: bytes, recv: float) -> None:
+        if not first:
+            first.append(recv)
+        count[0] += 1
+        last[0] = recv
+
+    sub = TelemetrySubscriber(BrokerConfig(url=url, client_id_prefix="bench-noop-"), filters, on_message)
+    sub.start()
+    if not sub.wait_subscribed(10):
+        raise SystemExit(f"noop subscriber: could not subscribe on {url}")
+    print(json.dumps({"ready": True}), flush=True)
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    stop.wait(seconds)
+    sub.stop()
+    span = (last[0] - first[0]) if first else 0.0
+    return {"received": count[0], "active_s": span, "rate": count[0] / span if span > 0 else 0.0}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m twin.tools.bench.load")
+    sub = parser.add_subparsers(dest="role", required=True)
+    p = sub.add_parser("publish")
+    p.add_argument("--url", required=True)
+    p.add_argument("--first", type=int, required=True, help="index of the first arm (arm-NNNN naming)")
+    p.add_argument("--count", type=int, required=True)
+    p.add_argument("--rate", type=float, required=True)
+    p.add_argument("--seconds", type=float, required=True)
+    p.add_argument("--prefix", default="dt/lerobot")
+    n = sub.add_parser("noop")
+    n.add_argument("--url", required=True)
+    n.add_argument("--filter", action="append", required=True)
+    n.add_argument("--seconds", type=float, required=True)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, stream=sys.stderr)
+    if args.role == "publish":
+        devices = [arm_name(i) for i in range(args.first, args.first + args.count)]
+        result = publish(args.url, devices, args.rate, args.seconds, args.prefix)
+    else:
+        result = noop(args.url, args.filter, args.seconds)
+    print(json.dumps(result), flush=True)
+    return 0
+
+
+def arm_name(index: int) -> str:
+    """arm-0001 ..: four digits so a 2,000-arm fleet sorts and stays within the device-id rules."""
+    return f"arm-{index:04d}"
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,155 @@
+"""Throughput: N simulated arms at R Hz through a private mosquitto into one agent process.
+
+Two phases in one run, against the same broker with the same offered load:
+1. ceiling: a subscriber built the way the agent builds its own, whose handler only counts;
+2. agent: `twin run` (decode, validate, twin update with inverse dynamics, health) as a child process.
+The publishers run in their own processes so their CPU is not charged to either. All of it shares this
+machine's cores, so the figures are for the whole pipeline on one host: say so when quoting them.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from twin.tools.bench.harness import (
+    PREFIX,
+    ProcessSampler,
+    get_json,
+    last_json_line,
+    load_process,
+    private_broker,
+    running_agent,
+    start_publisher,
+    wait_subscribed,
+)
+
+# One Python publisher process sustains well over 10,000 msg/s with pre-encoded payloads; beyond that the
+# load is split so the publisher is not what limits the figure.
+MSGS_PER_PUBLISHER = 10_000
+
+
+def _publishers(url: str, arms: int, rate: float, seconds: float) -> list[Any]:
+    count = max(1, min(4, math.ceil(arms * rate / MSGS_PER_PUBLISHER)))
+    per = math.ceil(arms / count)
+    procs = []
+    for first in range(1, arms + 1, per):
+        n = min(per, arms + 1 - first)
+        procs.append(start_publisher(url, first, n, rate, seconds))
+    return procs
+
+
+def _collect(procs: list[Any], timeout: float) -> dict[str, Any]:
+    sent = failures = late = 0
+    elapsed = 0.0
+    for proc in procs:
+        out, err = proc.communicate(timeout=timeout)
+        if proc.returncode != 0:
+            raise RuntimeError(f"a publisher failed ({proc.returncode}): {err[-800:]}")
+        result = last_json_line(out)
+        sent += result["sent"]
+        failures += result["publish_failures"]
+        late += result["late_slots"]
+        elapsed = max(elapsed, result["elapsed_s"])
+    return {"sent": sent, "publish_failures": failures, "late_slots": late, "elapsed_s": elapsed}
+
+
+def _ceiling(url: str, arms: int, rate: float, seconds: float) -> dict[str, Any]:
+    noop = load_process(
+        "noop", "--url", url, "--filter", f"{PREFIX}/+/telemetry", "--seconds", str(seconds + 30)
+    )
+    ready = noop.stdout.readline()
+    if '"ready"' not in ready:
+        noop.kill()
+        raise RuntimeError(f"the no-op subscriber did not start: {noop.stderr.read()[-800:]}")
+    sampler = ProcessSampler(noop.pid).start()
+    pubs = _publishers(url, arms, rate, seconds)
+    sent = _collect(pubs, timeout=seconds + 60)
+    time.sleep(1.0)  # in-flight messages
+    usage = sampler.stop()
+    noop.terminate()
+    out, _ = noop.communicate(timeout=30)
+    result = last_json_line(out)
+    received = result["received"]
+    return {
+        **sent,
+        "received": received,
+        "lost": max(0, sent["sent"] - received),
+        "sustained_rate": received / sent["elapsed_s"] if sent["elapsed_s"] else 0.0,
+        **usage,
+    }
+
+
+def _sum_devices(state: dict[str, Any], key: str) -> int:
+    return sum(d["counters"].get(key, 0) for d in state["devices"].values())
+
+
+def _agent(url: str, arms: int, rate: float, seconds: float, workdir: Path) -> dict[str, Any]:
+    with running_agent(url, log_dir=workdir) as (proc, base):
+        wait_subscribed(base, proc)
+        before = get_json(f"{base}/state")
+        sampler = ProcessSampler(proc.pid).start()
+        pubs = _publishers(url, arms, rate, seconds)
+        sent = _collect(pubs, timeout=seconds + 60)
+        # Wait for the worker to drain what it has already received (bounded), then read the figures.
+        deadline = time.monotonic() + 10
+        state = get_json(f"{base}/state", timeout=30)
+        while time.monotonic() < deadline:
+            time.sleep(0.5)
+            newer = get_json(f"{base}/state", timeout=30)
+            if newer["agent"]["worker"]["processed"] == state["agent"]["worker"]["processed"]:
+                state = newer
+                break
+            state = newer
+        usage = sampler.stop()
+        if proc.poll() is not None:
+            raise RuntimeError(f"the agent exited during the run (code {proc.returncode})")
+    received = state["agent"]["broker"]["messages"] - before["agent"]["broker"]["messages"]
+    state_applied = _sum_devices(state, "applied")
+    latency = state["agent"]["latency"]
+    return {
+        **sent,
+        "received": received,
+        "lost": max(0, sent["sent"] - received),
+        "applied": state_applied,
+        "coalesced": _sum_devices(state, "overwritten"),
+        # Per device, plus those counted before a device was known (e.g. units_undecided while `auto`
+        # gathers evidence from a new arm's first messages).
+        "rejected": _sum_devices(state, "rejected_total") + sum(state["untracked_rejected"].values()),
+        "ignored_stale": _sum_devices(state, "ignored_stale"),
+        "devices_seen": len(state["devices"]),
+        "sustained_rate": received / sent["elapsed_s"] if sent["elapsed_s"] else 0.0,
+        # Messages that reached the twin (decoded and applied) per second; the rest of `received` was
+        # coalesced by the latest-value mailbox (a newer pose of the same arm replaced it) or rejected.
+        "mirrored_rate": state_applied / sent["elapsed_s"] if sent["elapsed_s"] else 0.0,
+        "internal_latency_s": latency["internal_s"],
+        "end_to_end_latency_s": latency["end_to_end_s"],
+        **usage,
+    }
+
+
+def run(*, arms: int = 2000, rate: float = 10.0, seconds: float = 20.0) -> dict[str, Any]:
+    """Both phases with the same offered load; returns every figure as one JSON-ready dict."""
+    with tempfile.TemporaryDirectory(prefix="twin-bench-") as tmp:
+        workdir = Path(tmp)
+        with private_broker(workdir / "broker") as broker:
+            ceiling = _ceiling(broker.url, arms, rate, seconds)
+            agent = _agent(broker.url, arms, rate, seconds, workdir)
+    ratio = agent["sustained_rate"] / ceiling["sustained_rate"] if ceiling["sustained_rate"] else None
+    return {
+        "scenario": "throughput",
+        "arms": arms,
+        "rate_hz": rate,
+        "seconds": seconds,
+        "offered_rate": arms * rate,
+        "ceiling": ceiling,
+        "agent": agent,
+        "agent_to_ceiling_ratio": ratio,
+        "notes": (
+            "publishers, broker, no-op subscriber and agent share this host's cores; end-to-end latency is "
+            "twin-updated wall time minus the publish timestamp (whole milliseconds, same host clock)"
+        ),
+    }

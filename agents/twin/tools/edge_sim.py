@@ -1,0 +1,466 @@
+"""Edge simulator: publishes exactly what the SO-101 edge component publishes, plus injectable faults.
+
+The motion is the edge's own mock mode (telemetry-contract.md): joint i follows
+`int(2048 + 500 sin(t (0.5 + 0.1 i) + i pi/3))` ticks. Variant "ticks" sends raw STS3215 registers as the
+serial/mock modes do; variant "degrees" sends what the LeRobot (ROS 2) mode sends for the same motion under a
+default calibration. Faults (drop, duplicate, reorder, clock skew, malformed payloads) reproduce what a real
+fleet does to a consumer. Publishing goes through the same awscrt client builder as the subscriber.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import random
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from awscrt import mqtt5
+
+from twin.robot import so101
+from twin.transport.subscriber import (
+    DEFAULT_TOPIC_PREFIX,
+    BrokerConfig,
+    build_mqtt5_client,
+    new_client_id,
+    topic_for,
+)
+
+log = logging.getLogger(__name__)
+
+VARIANTS: tuple[str, ...] = ("ticks", "degrees")
+# Each kind breaks one rule of the contract a consumer must check; all must be rejected, none may crash it.
+MALFORMED_KINDS: tuple[str, ...] = (
+    "not_json",
+    "not_utf8",
+    "not_object",
+    "missing_field",
+    "missing_joint",
+    "not_finite",
+    "oversized",
+    "wrong_type",
+    "bad_timestamp",
+    "device_mismatch",
+)
+# IoT Core: at most 100 publishes/s per connection, excess discarded (aws-facts.md section 3).
+IOT_PUBLISHES_PER_CONNECTION = 100
+IOT_MAX_PAYLOAD_BYTES = 128 * 1024
+
+# STS3215 registers: velocity is sign-magnitude with the sign in bit 15, load has its sign in bit 10.
+VELOCITY_SIGN_BIT = 1 << 15
+LOAD_SIGN_BIT = 1 << 10
+# Default calibration for the "degrees" variant: arm joints centred on the LeRobot home tick; the gripper's
+# calibrated range is the mock motion's span, so it sweeps 0..100 % (closed..open).
+DEGREES_PER_TICK = 360.0 / so101.TICK_MAX
+GRIPPER_RANGE_TICKS = (1548, 2548)
+
+
+def mock_ticks(t: float) -> list[int]:
+    """The edge mock mode's joint positions (ticks, JOINT_NAMES order) at `t` seconds since start."""
+    return [
+        int(2048 + 500 * math.sin(t * (0.5 + 0.1 * i) + i * math.pi / 3))
+        for i in range(len(so101.JOINT_NAMES))
+    ]
+
+
+def sign_magnitude(value: int, sign_bit: int) -> int:
+    """Encode like the servo register: |value|, plus `sign_bit` when negative (the edge passes it on raw)."""
+    return sign_bit + abs(value) if value < 0 else value
+
+
+def ticks_to_degrees(ticks: int) -> float:
+    """LeRobot DEGREES mode with the default calibration (mid = TICK_HOME)."""
+    return (ticks - so101.TICK_HOME) * DEGREES_PER_TICK
+
+
+def ticks_to_gripper_percent(ticks: int) -> float:
+    """LeRobot RANGE_0_100 for the gripper with the default calibration (0 closed, 100 open)."""
+    lo, hi = GRIPPER_RANGE_TICKS
+    return (min(max(ticks, lo), hi) - lo) / (hi - lo) * 100.0
+
+
+def make_payload(
+    device_id: str,
+    t: float,
+    variant: str,
+    rng: random.Random,
+    *,
+    timestamp_ms: int | None = None,
+    load_sign: bool = False,
+) -> dict[str, Any]:
+    """One telemetry message as the edge builds it (before JSON encoding).
+
+    `timestamp_ms` defaults to the wall clock now; `load_sign` sets bit 10 on about half the raw loads
+    (variant ticks) or makes them negative (variant degrees, where newer LeRobot decodes the sign).
+    """
+    if variant not in VARIANTS:
+        raise ValueError(f"variant {variant!r} is not one of {VARIANTS}")
+    ticks = mock_ticks(t)
+    joints: dict[str, dict[str, Any]] = {}
+    for name, position in zip(so101.JOINT_NAMES, ticks, strict=True):
+        velocity = rng.randint(-10, 10)
+        load = rng.randint(5, 50)
+        negative_load = load_sign and rng.random() < 0.5
+        temp = rng.randint(30, 40)
+        current = rng.randint(80, 300)
+        if variant == "ticks":
+            joints[name] = {
+                "position": position,
+                "velocity": sign_magnitude(velocity, VELOCITY_SIGN_BIT),
+                "load": load + LOAD_SIGN_BIT if negative_load else load,
+                "temp": temp,
+                "current": current,
+            }
+        else:
+            degrees = (
+                ticks_to_gripper_percent(position) if name == so101.GRIPPER else ticks_to_degrees(position)
+            )
+            joints[name] = {
+                "position": round(degrees, 4),
+                "velocity": float(velocity),
+                "load": float(-load if negative_load else load),
+                "temp": float(temp),
+                "voltage": float(rng.randint(118, 122)),
+                "current": float(current),
+            }
+    return {
+        "device_id": device_id,
+        "timestamp": int(time.time() * 1000) if timestamp_ms is None else int(timestamp_ms),
+        "joints": joints,
+    }
+
+
+def encode(payload: Any) -> bytes:
+    return json.dumps(payload, separators=(",", ":")).encode()
+
+
+def make_malformed(kind: str, payload: dict[str, Any], rng: random.Random) -> bytes:
+    """`payload` broken in one documented way (MALFORMED_KINDS)."""
+    broken = json.loads(json.dumps(payload))  # deep copy of plain JSON data
+    joints: dict[str, dict[str, Any]] = broken["joints"]
+    joint = rng.choice(list(joints))
+    if kind == "not_json":
+        return encode(payload)[: rng.randint(1, 40)]
+    if kind == "not_utf8":
+        return b"\xff\xfe" + encode(payload)
+    if kind == "not_object":
+        return encode([payload])
+    if kind == "missing_field":
+        del broken[rng.choice(["timestamp", "joints", "device_id"])]
+    elif kind == "missing_joint":
+        del joints[joint]
+    elif kind == "not_finite":
+        joints[joint]["position"] = rng.choice([math.nan, math.inf, -math.inf])
+        # allow_nan: Python's json writes the NaN/Infinity tokens a sloppy C or JS producer might emit.
+        return json.dumps(broken, separators=(",", ":"), allow_nan=True).encode()
+    elif kind == "oversized":
+        broken["padding"] = "x" * (IOT_MAX_PAYLOAD_BYTES + 4096)
+    elif kind == "wrong_type":
+        joints[joint]["position"] = rng.choice([str(joints[joint]["position"]), None, [1, 2], True])
+    elif kind == "bad_timestamp":
+        broken["timestamp"] = rng.choice(["2024-01-23T10:00:00Z", -5, 1.5e30, None])
+    elif kind == "device_mismatch":
+        broken["device_id"] = broken["device_id"] + "-other"
+    else:
+        raise ValueError(f"malformed kind {kind!r} is not one of {MALFORMED_KINDS}")
+    return encode(broken)
+
+
+@dataclass
+class FaultConfig:
+    """Per-message probabilities (0..1) and a clock offset in milliseconds."""
+
+    drop: float = 0.0
+    duplicate: float = 0.0
+    reorder: float = 0.0
+    malformed: float = 0.0
+    clock_skew_ms: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("drop", "duplicate", "reorder", "malformed"):
+            value = getattr(self, name)
+            if not 0.0 <= value <= 1.0:
+                raise ValueError(f"fault probability --{name} {value} must be between 0 and 1")
+
+
+@dataclass
+class EdgeSimConfig:
+    broker: BrokerConfig
+    devices: list[str] = field(default_factory=lambda: ["arm-001"])
+    variant: str = "ticks"
+    rate_hz: float = 10.0
+    seconds: float | None = None  # None: until the stop event
+    topic_prefix: str = DEFAULT_TOPIC_PREFIX
+    faults: FaultConfig = field(default_factory=FaultConfig)
+    seed: int | None = None
+    load_sign: bool = False
+    connect_timeout_s: float = 10.0
+
+    def __post_init__(self) -> None:
+        if self.variant not in VARIANTS:
+            raise ValueError(f"variant {self.variant!r} is not one of {', '.join(VARIANTS)}")
+        if not self.devices:
+            raise ValueError("no devices: give --devices N or --device ID")
+        for device in self.devices:
+            topic_for(self.topic_prefix, device)  # raises with the fix on '/', '+', '#'
+        if not 0 < self.rate_hz <= 10_000:
+            raise ValueError(f"rate {self.rate_hz} Hz must be in (0, 10000]")
+        if self.seconds is not None and self.seconds <= 0:
+            raise ValueError(f"seconds {self.seconds} must be positive (omit it to run until stopped)")
+
+
+def device_ids(count: int) -> list[str]:
+    """arm-001 .. arm-NNN, the fleet naming of the edge."""
+    if count < 1:
+        raise ValueError(f"--devices {count} must be at least 1")
+    return [f"arm-{i:03d}" for i in range(1, count + 1)]
+
+
+def clock_skews_ms(devices: list[str], skew_ms: int) -> dict[str, int]:
+    """Spread the skew so devices also disagree with each other: the last device is off by the full amount."""
+    n = len(devices)
+    return {device: round(skew_ms * (i + 1) / n) for i, device in enumerate(devices)}
+
+
+@dataclass
+class EdgeSimReport:
+    ticks: int = 0
+    generated: int = 0  # messages built (one per device per tick)
+    published: int = 0  # publish calls made, duplicates included
+    publish_failures: int = 0
+    dropped: int = 0
+    duplicated: int = 0
+    reordered: int = 0
+    skipped_ticks: int = 0  # the machine fell more than a second behind schedule
+    malformed: dict[str, int] = field(default_factory=dict)
+    per_device: dict[str, int] = field(default_factory=dict)
+    elapsed_s: float = 0.0
+
+    @property
+    def malformed_total(self) -> int:
+        return sum(self.malformed.values())
+
+    def as_dict(self) -> dict[str, Any]:
+        data = dataclasses.asdict(self)
+        data["malformed_total"] = self.malformed_total
+        return data
+
+
+class _Connection:
+    """One MQTT5 client plus the bookkeeping the simulator needs, filled in from CRT callbacks."""
+
+    def __init__(self, config: BrokerConfig, report: EdgeSimReport, lock: threading.Lock) -> None:
+        self.client_id = new_client_id(config.client_id_prefix)
+        self.connected = threading.Event()
+        self.stopped = threading.Event()
+        self._report = report
+        self._lock = lock
+        self.outstanding = 0
+        self.client = build_mqtt5_client(
+            config,
+            self.client_id,
+            on_connection_success=self._on_success,
+            on_connection_failure=self._on_failure,
+            on_disconnection=self._on_disconnection,
+            on_stopped=lambda _data: self.stopped.set(),
+        )
+
+    def _on_success(self, _data: Any) -> None:
+        log.info("edge-sim %s connected", self.client_id)
+        self.connected.set()
+
+    def _on_failure(self, data: Any) -> None:
+        log.warning("edge-sim %s could not connect: %s", self.client_id, data.exception)
+
+    def _on_disconnection(self, data: Any) -> None:
+        self.connected.clear()
+        log.info("edge-sim %s disconnected: %s", self.client_id, data.exception)
+
+    def publish(self, topic: str, payload: bytes) -> None:
+        with self._lock:
+            self._report.published += 1
+            self.outstanding += 1
+        future = self.client.publish(
+            mqtt5.PublishPacket(topic=topic, payload=payload, qos=mqtt5.QoS.AT_MOST_ONCE)
+        )
+        future.add_done_callback(self._on_publish_done)
+
+    def _on_publish_done(self, future: Any) -> None:
+        # QoS 0: completes once written to the socket, or fails while disconnected (offline queue policy).
+        failed = future.exception() is not None
+        with self._lock:
+            self.outstanding -= 1
+            if failed:
+                self._report.publish_failures += 1
+
+
+class EdgeSimulator:
+    """Publishes telemetry for `config.devices` at `config.rate_hz` until `seconds` or the stop event."""
+
+    def __init__(self, config: EdgeSimConfig) -> None:
+        self.config = config
+        self.rng = random.Random(config.seed)
+        self.report = EdgeSimReport(
+            malformed=dict.fromkeys(MALFORMED_KINDS, 0), per_device=dict.fromkeys(config.devices, 0)
+        )
+        self._lock = threading.Lock()
+        self._skews = clock_skews_ms(config.devices, config.faults.clock_skew_ms)
+        self._held: dict[str, tuple[bytes, int]] = {}
+        self._topics = {device: topic_for(config.topic_prefix, device) for device in config.devices}
+
+    def _connections_needed(self) -> int:
+        config = self.config
+        if config.broker.kind != "iot":
+            return 1
+        if config.rate_hz > IOT_PUBLISHES_PER_CONNECTION:
+            log.warning(
+                "%.0f Hz per device exceeds IoT Core's %d publishes/s per connection; excess is discarded",
+                config.rate_hz,
+                IOT_PUBLISHES_PER_CONNECTION,
+            )
+        total = len(config.devices) * config.rate_hz * (1 + config.faults.duplicate)
+        needed = min(len(config.devices), max(1, math.ceil(total / IOT_PUBLISHES_PER_CONNECTION)))
+        if needed > 1:
+            log.warning(
+                "%d devices x %.1f Hz exceeds IoT Core's %d publishes/s per connection: spreading them over "
+                "%d connections",
+                len(config.devices),
+                config.rate_hz,
+                IOT_PUBLISHES_PER_CONNECTION,
+                needed,
+            )
+        return needed
+
+    def run(self, stop_event: threading.Event | None = None) -> EdgeSimReport:
+        """Connect, publish on an absolute schedule, flush, disconnect; returns the counts."""
+        stop_event = stop_event or threading.Event()
+        config = self.config
+        connections = [
+            _Connection(config.broker, self.report, self._lock) for _ in range(self._connections_needed())
+        ]
+        route = {device: connections[i % len(connections)] for i, device in enumerate(config.devices)}
+        for connection in connections:
+            connection.client.start()
+        try:
+            for connection in connections:
+                if not connection.connected.wait(config.connect_timeout_s):
+                    raise ConnectionError(
+                        f"edge-sim could not connect to {config.broker.url} within "
+                        f"{config.connect_timeout_s:.0f} s; is the broker running? (the log shows the error)"
+                    )
+            self._loop(stop_event, route)
+            self._flush(route)
+            self._wait_outstanding(connections, timeout=2.0)
+        finally:
+            for connection in connections:
+                connection.client.stop()
+            for connection in connections:
+                if not connection.stopped.wait(5.0):
+                    log.warning("edge-sim %s did not report Stopped within 5 s", connection.client_id)
+        self._log_report()
+        return self.report
+
+    def _loop(self, stop_event: threading.Event, route: dict[str, _Connection]) -> None:
+        config = self.config
+        period = 1.0 / config.rate_hz
+        total_ticks = None if config.seconds is None else max(1, round(config.seconds * config.rate_hz))
+        start = time.monotonic()
+        # Wall clock and monotonic clock are read once: timestamps advance exactly with the schedule, like
+        # an edge loop stamping each sample, instead of jittering with this process's scheduling.
+        wall_start_ms = time.time() * 1000.0
+        k = 0
+        while not stop_event.is_set() and (total_ticks is None or k < total_ticks):
+            target = start + k * period
+            delay = target - time.monotonic()
+            if delay > 0:
+                if stop_event.wait(delay):
+                    break
+            elif delay < -1.0:
+                # More than a second behind (suspended, overloaded): skip ahead rather than burst.
+                behind = int(-delay / period)
+                self.report.skipped_ticks += behind
+                k += behind
+                continue
+            t = k * period
+            for device in config.devices:
+                self._emit(device, t, int(wall_start_ms + t * 1000.0), route[device])
+            k += 1
+            self.report.ticks += 1
+        self.report.elapsed_s = time.monotonic() - start
+
+    def _emit(self, device: str, t: float, now_ms: int, connection: _Connection) -> None:
+        faults = self.config.faults
+        rng = self.rng
+        report = self.report
+        report.generated += 1
+        payload = make_payload(
+            device,
+            t,
+            self.config.variant,
+            rng,
+            timestamp_ms=now_ms + self._skews[device],
+            load_sign=self.config.load_sign,
+        )
+        if faults.drop and rng.random() < faults.drop:
+            report.dropped += 1
+            return
+        if faults.malformed and rng.random() < faults.malformed:
+            kind = rng.choice(MALFORMED_KINDS)
+            report.malformed[kind] += 1
+            data = make_malformed(kind, payload, rng)
+        else:
+            data = encode(payload)
+        copies = 1
+        if faults.duplicate and rng.random() < faults.duplicate:
+            report.duplicated += 1
+            copies = 2
+        held = self._held.pop(device, None)
+        if held is None and faults.reorder and rng.random() < faults.reorder:
+            # Swap with the next message of this device: hold this one back until that one is out.
+            report.reordered += 1
+            self._held[device] = (data, copies)
+            return
+        self._publish(device, data, copies, connection)
+        if held is not None:
+            self._publish(device, held[0], held[1], connection)
+
+    def _publish(self, device: str, data: bytes, copies: int, connection: _Connection) -> None:
+        topic = self._topics[device]
+        for _ in range(copies):
+            connection.publish(topic, data)
+        self.report.per_device[device] += copies
+
+    def _flush(self, route: dict[str, _Connection]) -> None:
+        for device, (data, copies) in list(self._held.items()):
+            self._publish(device, data, copies, route[device])
+        self._held.clear()
+
+    def _wait_outstanding(self, connections: list[_Connection], timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self._lock:
+                if all(c.outstanding == 0 for c in connections):
+                    return
+            time.sleep(0.01)
+
+    def _log_report(self) -> None:
+        r = self.report
+        log.info(
+            "edge-sim done: %d ticks, %d messages generated, %d published (%d failed), dropped %d, "
+            "duplicated %d, reordered %d, malformed %d %s, skipped ticks %d, %.1f s",
+            r.ticks,
+            r.generated,
+            r.published,
+            r.publish_failures,
+            r.dropped,
+            r.duplicated,
+            r.reordered,
+            r.malformed_total,
+            {k: v for k, v in r.malformed.items() if v},
+            r.skipped_ticks,
+            r.elapsed_s,
+        )

@@ -1,0 +1,1 @@
+"""viewer layer (docs/architecture.md)."""
