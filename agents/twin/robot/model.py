@@ -11,7 +11,7 @@ from __future__ import annotations
 import copy
 import logging
 import threading
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -236,6 +236,19 @@ class RobotModel:
             pair = (mujoco.MjData(self.model), mujoco.MjData(self.inverse_model))
             local.pair = pair
         return pair
+
+    def body_poses(self, angles_rad: Mapping[str, float]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """World position (3,) and quaternion (w, x, y, z) (4,) of each body for joint angles (radians, by
+        name), by forward kinematics on this thread's workspace. Joints missing from `angles_rad` sit at the
+        model's reference pose; angles are used as given (clamp first if they may leave the joint ranges)."""
+        data = self.workspace()[0]
+        data.qpos[:] = self.model.qpos0
+        for name, value in angles_rad.items():
+            adr = self.qpos_addr.get(name)
+            if adr is not None:
+                data.qpos[adr] = value
+        mujoco.mj_kinematics(self.model, data)
+        return {name: (data.xpos[bid].copy(), data.xquat[bid].copy()) for name, bid in self.body_ids.items()}
 
     def require_actuators(self) -> None:
         """Raise ModelError unless every joint has a position actuator (physics mode drives them)."""

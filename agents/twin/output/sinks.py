@@ -1,0 +1,195 @@
+"""Sinks: where each mirrored sample goes besides the twin itself (USD recording, history, Rerun, ROS 2).
+
+The agent's worker applies a message to the device's twin and then hands one `AppliedSample` to every sink
+(and one `RejectedSample` for each rejected message). The worker is the mirror's hot path, so a sink's
+`applied`/`rejected` must return in microseconds and never block on I/O. Sinks that do I/O (a file, S3, a
+network peer) wrap their blocking work in `QueuedSink`: a bounded queue and a thread of their own, which drops
+the oldest queued item when the sink falls behind and counts it, so a slow disk, a stalled viewer or an absent
+ROS peer never slows mirroring and never grows memory without bound.
+
+A sample carries joint angles, not body poses: forward kinematics is computed where it is needed, in the
+sink's own thread (`RobotModel.body_poses`), because MuJoCo scratch data is per thread and most sinks need
+no poses at all.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Protocol
+
+from twin.core.telemetry import Telemetry
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class AppliedSample:
+    """One message the twin applied: the decoded telemetry and the angles the twin now shows."""
+
+    device_id: str
+    received_wall_s: float
+    received_mono_s: float
+    telemetry: Telemetry
+    # What the twin applied: the decoded angles clamped to the model's joint ranges (radians, by joint name).
+    joint_angles: Mapping[str, float]
+
+    @property
+    def timestamp_ms(self) -> int:
+        return self.telemetry.timestamp_ms
+
+
+@dataclass(frozen=True, slots=True)
+class RejectedSample:
+    """One message the decoder refused, with the reason it was counted under."""
+
+    device_id: str | None
+    topic: str
+    received_wall_s: float
+    reason: str
+    detail: str
+    payload: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class SinkStats:
+    """Counters a sink reports in /state and /metrics."""
+
+    name: str
+    delivered: int = 0
+    dropped: int = 0
+    errors: int = 0
+    pending: int = 0
+    last_error: str = ""
+
+
+class TwinSink(Protocol):
+    """What the agent's worker calls. Every method except `close` must return without blocking."""
+
+    name: str
+
+    def applied(self, sample: AppliedSample) -> None: ...
+
+    def rejected(self, sample: RejectedSample) -> None: ...
+
+    def stats(self) -> SinkStats: ...
+
+    def close(self, timeout: float = 5.0) -> None: ...
+
+
+class SinkWorker(Protocol):
+    """The blocking half of a queued sink; runs on the sink's own thread only."""
+
+    def handle_applied(self, sample: AppliedSample) -> None: ...
+
+    def handle_rejected(self, sample: RejectedSample) -> None: ...
+
+    def idle(self) -> None:
+        """Called when the queue has been empty for `idle_s` (time-based flushes go here)."""
+        ...
+
+    def close(self) -> None:
+        """Flush and release; called once, on the sink's thread, after the queue is drained."""
+        ...
+
+
+class QueuedSink:
+    """Runs a `SinkWorker` on its own thread behind a bounded queue that drops the oldest when full.
+
+    Errors raised by the worker are caught, counted and logged (at most once per `error_log_s`), never
+    propagated: a broken sink must not stop the mirror or the other sinks.
+    """
+
+    def __init__(
+        self, name: str, worker: SinkWorker, *, max_pending: int = 10_000, idle_s: float = 0.5
+    ) -> None:
+        if max_pending < 1:
+            raise ValueError(f"max_pending must be >= 1, got {max_pending}")
+        self.name = name
+        self._worker = worker
+        self._queue: collections.deque[AppliedSample | RejectedSample] = collections.deque()
+        self._max = max_pending
+        self._cond = threading.Condition(threading.Lock())
+        self._idle_s = idle_s
+        self._closing = False
+        self._delivered = 0
+        self._dropped = 0
+        self._errors = 0
+        self._last_error = ""
+        self._thread = threading.Thread(target=self._run, name=f"sink-{name}", daemon=True)
+        self._thread.start()
+
+    def applied(self, sample: AppliedSample) -> None:
+        self._put(sample)
+
+    def rejected(self, sample: RejectedSample) -> None:
+        self._put(sample)
+
+    def _put(self, item: AppliedSample | RejectedSample) -> None:
+        with self._cond:
+            if self._closing:
+                self._dropped += 1
+                return
+            if len(self._queue) >= self._max:
+                # Newest wins: a live view wants the present, and history counts what it lost.
+                self._queue.popleft()
+                self._dropped += 1
+            self._queue.append(item)
+            if len(self._queue) == 1:
+                self._cond.notify()
+
+    def stats(self) -> SinkStats:
+        with self._cond:
+            return SinkStats(
+                name=self.name,
+                delivered=self._delivered,
+                dropped=self._dropped,
+                errors=self._errors,
+                pending=len(self._queue),
+                last_error=self._last_error,
+            )
+
+    def close(self, timeout: float = 5.0) -> None:
+        """Deliver what is queued, then close the worker; waits up to `timeout` s. Idempotent."""
+        with self._cond:
+            self._closing = True
+            self._cond.notify()
+        self._thread.join(timeout)
+        if self._thread.is_alive():
+            log.error("sink %s did not finish within %.1f s; its queued items are lost", self.name, timeout)
+
+    def _run(self) -> None:
+        worker = self._worker
+        while True:
+            with self._cond:
+                if not self._queue and not self._closing:
+                    self._cond.wait(self._idle_s)
+                item = self._queue.popleft() if self._queue else None
+                done = item is None and self._closing
+            if done:
+                self._guard(worker.close)
+                return
+            if item is None:
+                self._guard(worker.idle)
+            elif isinstance(item, AppliedSample):
+                if self._guard(worker.handle_applied, item):
+                    with self._cond:
+                        self._delivered += 1
+            else:
+                self._guard(worker.handle_rejected, item)
+
+    def _guard(self, fn: object, *args: object) -> bool:
+        try:
+            fn(*args)  # type: ignore[operator]
+        except Exception as exc:
+            with self._cond:
+                first = self._errors == 0 or str(exc) != self._last_error
+                self._errors += 1
+                self._last_error = f"{type(exc).__name__}: {exc}"
+            if first:
+                log.exception("sink %s failed", self.name, extra={"sink": self.name})
+            return False
+        return True
