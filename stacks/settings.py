@@ -12,9 +12,15 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-# The agent config's client_id_prefix; the IAM policy scopes iot:Connect to it, so both come from here.
-CLIENT_ID_PREFIX = "so101-twin-"
-UNITS = ("ticks", "degrees", "range100", "auto")
+# The agent's own rules (pure modules, no MuJoCo or awscrt), so the stack accepts exactly what the agent it
+# deploys accepts: device ids and the topic prefix (twin.core.topics), units, and the client id prefix the
+# IAM policy scopes iot:Connect to.
+from twin.core.telemetry import UNITS_CHOICES
+from twin.core.topics import ALL_DEVICES, policy_device_id_problem, topic_prefix_problem
+from twin.transport.broker import DEFAULT_CLIENT_ID_PREFIX
+
+CLIENT_ID_PREFIX = DEFAULT_CLIENT_ID_PREFIX
+UNITS = UNITS_CHOICES
 DEFAULT_AMI_SSM_PARAMETER = (
     "/aws/service/deeplearning/ami/x86_64/base-oss-nvidia-driver-gpu-ubuntu-24.04/latest/ami-id"
 )
@@ -26,8 +32,6 @@ _INSTANCE_TYPE_RE = re.compile(
     r"^[a-z][a-z0-9-]*\d[a-z0-9-]*\.(nano|micro|small|medium|large|metal|\d*xlarge)$"
 )
 _AMI_ID_RE = re.compile(r"^ami-[0-9a-f]{8}([0-9a-f]{9})?$")
-_DEVICE_RE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
-_TOPIC_LEVEL_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
 _STACK_NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9-]{0,127}$")
 _TIMEZONE_RE = re.compile(r"^(UTC|[A-Za-z]+(/[A-Za-z0-9_+-]+)+)$")
 # EventBridge Scheduler cron: minutes hours day-of-month month day-of-week year.
@@ -209,18 +213,18 @@ def _devices(value: Any) -> tuple[str, ...]:
     devices = tuple(str(item).strip() for item in items if str(item).strip())
     if not devices:
         raise SettingsError("devices is empty; pass -c devices=arm-001 (comma-separated) or -c devices='*'")
-    if "*" in devices:
+    if ALL_DEVICES in devices:
         if len(devices) > 1:
             raise SettingsError(
                 f"devices={','.join(devices)} mixes '*' with names; pass -c devices='*' for the whole fleet "
                 "or list the names only"
             )
-        return ("*",)
+        return (ALL_DEVICES,)
     for device in devices:
-        if not _DEVICE_RE.match(device):
+        problem = policy_device_id_problem(device)
+        if problem is not None:
             raise SettingsError(
-                f"device id {device!r} must be 1-64 letters, digits, '-' or '_' (it is a topic level and "
-                "part of an IAM resource ARN); pass e.g. -c devices=arm-001,arm-002"
+                f"device id {device!r} is not usable: {problem}; pass e.g. -c devices=arm-001,arm-002"
             )
     if len(set(devices)) != len(devices):
         raise SettingsError(f"devices={','.join(devices)} lists a device twice; list each once")
@@ -228,12 +232,9 @@ def _devices(value: Any) -> tuple[str, ...]:
 
 
 def _topic_prefix(value: str) -> str:
-    levels = value.split("/")
-    if value.startswith("$") or not all(_TOPIC_LEVEL_RE.match(level) for level in levels):
-        raise SettingsError(
-            f"topicPrefix={value!r} must be plain topic levels (letters, digits, '.', '_', '-') joined "
-            "by '/', no wildcards, no leading or trailing '/'; pass e.g. -c topicPrefix=dt/lerobot"
-        )
+    problem = topic_prefix_problem(value)
+    if problem is not None:
+        raise SettingsError(f"topicPrefix={value!r}: {problem}; pass e.g. -c topicPrefix=dt/lerobot")
     return value
 
 

@@ -16,32 +16,44 @@ from typing import Any
 
 import pytest
 from twin.cli import main
-from twin.core.telemetry import DecoderConfig, RejectReason, TelemetryDecoder, TelemetryRejected, Units
+from twin.core.telemetry import (
+    MAX_PAYLOAD_BYTES,
+    DecoderConfig,
+    RejectReason,
+    TelemetryDecoder,
+    TelemetryRejected,
+    Units,
+)
+from twin.core.topics import device_from_topic, topic_filters
 from twin.robot import so101
-from twin.tools.edge_sim import (
+from twin.tools.edge_payload import (
     MALFORMED_KINDS,
-    EdgeSimConfig,
-    EdgeSimulator,
-    FaultConfig,
-    clock_skews_ms,
     device_ids,
     encode,
     make_malformed,
     make_payload,
+    mock_motion_ticks,
     mock_ticks,
     sign_magnitude,
 )
+from twin.tools.edge_sim import EdgeSimConfig, EdgeSimulator, FaultConfig, clock_skews_ms
 from twin.tools.mosquitto import MosquittoBroker
-from twin.transport.subscriber import BrokerConfig, TelemetrySubscriber, device_from_topic, topic_filters
+from twin.transport.broker import BrokerConfig
+from twin.transport.subscriber import TelemetrySubscriber
 
 PREFIX = "dt/lerobot"
 
 
 def test_mock_ticks_match_the_edge_formula() -> None:
-    # t = 0: 2048 + 500 sin(i pi/3), truncated toward zero like the edge's int().
+    # Hand-derived oracle (the formula's one definition is twin.tools.edge_payload): at t = 0 joint i reads
+    # 2048 + 500 sin(i pi/3) = 2048, 2481.0, 2481.0, 2048, 1614.9, 1614.9, truncated toward zero.
     assert mock_ticks(0.0) == [2048, 2481, 2481, 2048, 1614, 1614]
-    # shoulder_pan at t = pi s: sin(0.5 pi) = 1.
+    # shoulder_pan at t = pi s: sin(0.5 pi) = 1; elbow_flex (i = 2) at t = pi: sin(0.7 pi + 2 pi/3).
     assert mock_ticks(math.pi)[0] == 2548
+    assert mock_motion_ticks(math.pi)[2] == pytest.approx(
+        2048 + 500 * math.sin(0.7 * math.pi + 2 * math.pi / 3)
+    )
+    assert mock_ticks(1.3) == [int(v) for v in mock_motion_ticks(1.3)]
     for t in (0.0, 1.3, 17.0, 1234.5):
         ticks = mock_ticks(t)
         assert len(ticks) == len(so101.JOINT_NAMES)
@@ -126,7 +138,8 @@ EXPECTED_REASON = {
 @pytest.mark.parametrize("kind", MALFORMED_KINDS)
 @pytest.mark.parametrize("variant", ["ticks", "degrees"])
 def test_malformed_messages_are_rejected_by_the_decoder(kind: str, variant: str) -> None:
-    rng = random.Random(hash((kind, variant)) & 0xFFFF)
+    # A seed from the parameters themselves (not hash(), which is salted per process): every run replays.
+    rng = random.Random(f"{kind}/{variant}")
     decoder = TelemetryDecoder(DecoderConfig(units=Units(variant)))
     for _ in range(15):  # each kind has random sub-forms
         data = make_malformed(kind, make_payload("arm-001", rng.random() * 10, variant, rng), rng)
@@ -134,14 +147,14 @@ def test_malformed_messages_are_rejected_by_the_decoder(kind: str, variant: str)
             decoder.decode(data, topic_device="arm-001")
         assert excinfo.value.reason == EXPECTED_REASON[kind], data[:200]
     if kind == "oversized":
-        assert len(data) > 128 * 1024
+        assert len(data) > MAX_PAYLOAD_BYTES
 
 
 def test_config_validation() -> None:
     broker = BrokerConfig(url="mqtt://127.0.0.1:1")
     with pytest.raises(ValueError, match="variant"):
         EdgeSimConfig(broker=broker, variant="radians")
-    with pytest.raises(ValueError, match="no '/'"):
+    with pytest.raises(ValueError, match="MQTT topic character"):
         EdgeSimConfig(broker=broker, devices=["arm/1"])
     with pytest.raises(ValueError, match="rate"):
         EdgeSimConfig(broker=broker, rate_hz=0)

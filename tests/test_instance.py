@@ -303,7 +303,7 @@ def test_help_documents_exit_codes(capsys):
             503,
             "arm-7=offline",
         ),
-        ("000", lib.UNHEALTHY, 0, "nothing answers on http://127.0.0.1:8080/healthz"),
+        ("000", lib.UNHEALTHY, 0, f"nothing answers on {lib.HEALTH_URL}"),
         ("not json at all500", lib.UNHEALTHY, 500, "HTTP 500"),
         ("", lib.UNKNOWN, None, "printed no HTTP status"),
         ("curl: command not found", lib.UNKNOWN, None, "printed no HTTP status"),

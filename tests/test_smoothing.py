@@ -9,6 +9,7 @@ import random
 import pytest
 from twin.core.smoothing import HoldLastValue, PlayoutPredictor, SmoothingConfig, make_estimator
 from twin.robot import so101
+from twin.tools.edge_payload import mock_motion_ticks, mock_ticks
 
 EPOCH_MS = 1_706_000_000_000  # edge wall clock: epoch ms, nothing like the viewer's monotonic clock
 LOCAL_START = 1234.5  # time.monotonic() of the viewer when the edge clock reads EPOCH_MS
@@ -17,15 +18,14 @@ DISPLAY_HZ = 60.0
 
 
 def true_rad(t: float, i: int) -> float:
-    """The edge mock motion before its int() truncation, as radians about the 2048-tick centre."""
-    ticks = 2048 + 500 * math.sin(t * (0.5 + 0.1 * i) + i * math.pi / 3)
-    return (ticks - 2048) * 2 * math.pi / 4096
+    """The edge mock motion (twin.tools.edge_payload, its one definition; hand-derived values in
+    test_edge_sim.py) before its int() truncation, as radians about the 2048-tick centre."""
+    return (mock_motion_ticks(t)[i] - 2048) * 2 * math.pi / 4096
 
 
 def published_rad(t: float, i: int) -> float:
     """What the edge publishes: the same motion truncated to whole ticks."""
-    ticks = int(2048 + 500 * math.sin(t * (0.5 + 0.1 * i) + i * math.pi / 3))
-    return (ticks - 2048) * 2 * math.pi / 4096
+    return (mock_ticks(t)[i] - 2048) * 2 * math.pi / 4096
 
 
 def samples(seconds: float, jitter_s: float, seed: int = 7, drop=lambda t: False, edge_ms=None):

@@ -6,9 +6,10 @@ through the SDK's SigV4 WebSocket builder, and moto stands in for iot:DescribeEn
 
 from __future__ import annotations
 
+import datetime
+import ipaddress
 import json
 import re
-import shutil
 import subprocess
 import sys
 import threading
@@ -19,20 +20,21 @@ from typing import Any
 
 import pytest
 from awscrt import mqtt5
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+from moto import mock_aws
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
-from twin.tools.edge_sim import EdgeSimConfig, EdgeSimulator, device_ids, mock_ticks
+from twin.core.topics import device_from_topic, topic_filters
+from twin.tools.edge_payload import device_ids, mock_ticks
+from twin.tools.edge_sim import EdgeSimConfig, EdgeSimulator
 from twin.tools.mosquitto import MosquittoBroker
-from twin.transport import subscriber as subscriber_mod
+from twin.transport import client as client_mod
+from twin.transport.broker import CLIENT_ID_PREFIX_MAX, BrokerConfig, BrokerConfigError, new_client_id
+from twin.transport.client import build_mqtt5_client, resolve_iot_endpoint
 from twin.transport.mailbox import LatestValueMailbox
-from twin.transport.subscriber import (
-    BrokerConfig,
-    BrokerConfigError,
-    TelemetrySubscriber,
-    build_mqtt5_client,
-    device_from_topic,
-    new_client_id,
-    topic_filters,
-)
+from twin.transport.subscriber import TelemetrySubscriber
 
 PREFIX = "dt/lerobot"
 
@@ -56,13 +58,17 @@ def test_broker_url_parsing(url: str, kind: str, host: str, port: int) -> None:
     assert (config.kind, config.host, config.port) == (kind, host, port)
 
 
-def test_broker_defaults() -> None:
+def test_default_backoff_meets_the_recovery_budget_and_the_connect_limit() -> None:
     config = BrokerConfig()
-    assert config.url == "iot"
-    assert config.client_id_prefix == "so101-twin-"
-    assert config.min_reconnect_delay_ms == 250
-    # At most 2 s between the broker's return and the next attempt (FULL jitter), inside the 3 s budget.
-    assert config.max_reconnect_delay_ms <= 2500
+    # FULL jitter waits uniformly in [0, current delay]: once the broker is back, the next attempt comes at
+    # most max_reconnect_delay_ms later, inside the 3 s "telemetry flows again" budget with ~1 s to connect.
+    assert config.max_reconnect_delay_ms <= 2000
+    # ... and at the cap the mean wait is max/2: at most one attempt per second on average, IoT Core's
+    # CONNECT limit per client id.
+    assert config.max_reconnect_delay_ms / 2 >= 1000
+    assert 0 < config.min_reconnect_delay_ms <= config.max_reconnect_delay_ms
+    # A silently dropped connection is noticed within a minute (1.5 keep-alives), inside IoT Core's 1200 s.
+    assert 1.5 * config.keep_alive_s <= 60 and config.keep_alive_s <= 1200
 
 
 @pytest.mark.parametrize(
@@ -75,7 +81,8 @@ def test_broker_defaults() -> None:
         ({"url": "mqtt://h:1/path"}, "only mqtt"),
         ({"url": "mqtt://user:pw@h:1"}, "only mqtt"),
         ({"client_id_prefix": "bad prefix"}, "IAM policy"),
-        ({"client_id_prefix": "x" * 101}, "at most 100"),
+        ({"client_id_prefix": ""}, "IAM policy"),
+        ({"client_id_prefix": "x" * 101}, "1..100"),
         ({"url": "mqtt://h:1", "ca_file": "/etc/hostname"}, "only applies to mqtts"),
         ({"url": "mqtts://h:1", "ca_file": "/nonexistent/ca.pem"}, "PEM CA bundle"),
         ({"min_reconnect_delay_ms": 0}, "0 < min"),
@@ -88,66 +95,16 @@ def test_broker_config_errors_name_the_fix(kwargs: dict[str, Any], fix: str) -> 
         BrokerConfig(**kwargs)
 
 
-def test_broker_config_from_mapping() -> None:
-    config = BrokerConfig.from_mapping({"url": "mqtt://127.0.0.1:1884", "region": "", "endpoint": ""})
-    assert config.port == 1884
-    with pytest.raises(BrokerConfigError, match=r"unknown .*'hostname'.*valid"):
-        BrokerConfig.from_mapping({"hostname": "x"})
-
-
-@pytest.mark.parametrize(
-    ("prefix", "devices", "expected"),
-    [
-        ("dt/lerobot", ["*"], ["dt/lerobot/+/telemetry"]),
-        ("dt/lerobot/", ["arm-001"], ["dt/lerobot/arm-001/telemetry"]),
-        ("fleet", ["a", "b", "a"], ["fleet/a/telemetry", "fleet/b/telemetry"]),
-    ],
-)
-def test_topic_filters(prefix: str, devices: list[str], expected: list[str]) -> None:
-    assert topic_filters(prefix, devices) == expected
-
-
-@pytest.mark.parametrize(
-    ("prefix", "devices", "problem"),
-    [
-        ("dt/lerobot", ["arm/001"], "no '/'"),
-        ("dt/lerobot", ["arm+"], "no '/'"),
-        ("dt/lerobot", ["#"], "no '/'"),
-        ("dt/lerobot", [""], "non-empty"),
-        ("dt/lerobot", [], "devices is empty"),
-        ("dt/lerobot", ["*", "arm-001"], "mixes"),
-        ("dt/+", ["arm-001"], "without wildcards"),
-        ("", ["arm-001"], "without wildcards"),
-    ],
-)
-def test_topic_filters_reject(prefix: str, devices: list[str], problem: str) -> None:
-    with pytest.raises(ValueError, match=problem):
-        topic_filters(prefix, devices)
-
-
-@pytest.mark.parametrize(
-    ("topic", "prefix", "device"),
-    [
-        ("dt/lerobot/arm-001/telemetry", "dt/lerobot", "arm-001"),
-        ("dt/lerobot/arm-001/telemetry", "dt/lerobot/", "arm-001"),
-        ("dt/lerobot/arm-001/status", "dt/lerobot", None),
-        ("dt/lerobot/a/b/telemetry", "dt/lerobot", None),
-        ("dt/lerobot//telemetry", "dt/lerobot", None),
-        ("other/arm-001/telemetry", "dt/lerobot", None),
-        ("dt/lerobotX/arm-001/telemetry", "dt/lerobot", None),
-    ],
-)
-def test_device_from_topic(topic: str, prefix: str, device: str | None) -> None:
-    assert device_from_topic(topic, prefix) == device
-
-
-def test_client_ids_are_unique_and_prefixed() -> None:
-    ids = {new_client_id("so101-twin-") for _ in range(1000)}
-    assert len(ids) == 1000
-    assert all(i.startswith("so101-twin-") and len(i) == len("so101-twin-") + 12 for i in ids)
-    a = TelemetrySubscriber(BrokerConfig(url="mqtt://127.0.0.1:1"), ["t/+/telemetry"], lambda *_: None)
-    b = TelemetrySubscriber(BrokerConfig(url="mqtt://127.0.0.1:1"), ["t/+/telemetry"], lambda *_: None)
-    assert a.client_id != b.client_id and a.client_id.startswith("so101-twin-")
+def test_client_ids_are_unique_prefixed_and_fit_iot_core() -> None:
+    prefix = "p" * CLIENT_ID_PREFIX_MAX  # the longest prefix the settings accept
+    ids = {new_client_id(BrokerConfig(client_id_prefix=prefix).client_id_prefix) for _ in range(1000)}
+    assert len(ids) == 1000  # two agents with one id would evict each other
+    # The IAM policy scopes iot:Connect by prefix, and IoT Core refuses client ids over 128 bytes.
+    assert all(i.startswith(prefix) and len(i.encode()) <= 128 for i in ids)
+    config = BrokerConfig(url="mqtt://127.0.0.1:1", client_id_prefix="fleet-a-")
+    a = TelemetrySubscriber(config, ["t/+/telemetry"], lambda *_: None)
+    b = TelemetrySubscriber(config, ["t/+/telemetry"], lambda *_: None)
+    assert a.client_id != b.client_id and a.client_id.startswith("fleet-a-")
 
 
 # -- the "iot" path, built but never started ---------------------------------------------------------------
@@ -157,39 +114,47 @@ def test_client_ids_are_unique_and_prefixed() -> None:
 def builder_calls(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
     """Record the arguments of the SDK's SigV4 builder; the real builder still constructs the client."""
     calls: list[dict[str, Any]] = []
-    real = subscriber_mod.mqtt5_client_builder.websockets_with_default_aws_signing
+    real = client_mod.mqtt5_client_builder.websockets_with_default_aws_signing
 
     def recording(**kwargs: Any) -> mqtt5.Client:
         calls.append(kwargs)
         return real(**kwargs)
 
-    monkeypatch.setattr(subscriber_mod.mqtt5_client_builder, "websockets_with_default_aws_signing", recording)
+    monkeypatch.setattr(client_mod.mqtt5_client_builder, "websockets_with_default_aws_signing", recording)
     return calls
 
 
 def test_iot_client_uses_sigv4_websockets(builder_calls: list[dict[str, Any]]) -> None:
     from awscrt import auth
 
-    config = BrokerConfig(url="iot", region="eu-west-1", endpoint="abc123-ats.iot.eu-west-1.amazonaws.com")
-    client = build_mqtt5_client(config, new_client_id(config.client_id_prefix))
+    config = BrokerConfig(
+        url="iot",
+        region="eu-west-1",
+        endpoint="abc123-ats.iot.eu-west-1.amazonaws.com",
+        min_reconnect_delay_ms=300,
+        max_reconnect_delay_ms=1900,
+        keep_alive_s=45,
+    )
+    client_id = new_client_id(config.client_id_prefix)
+    client = build_mqtt5_client(config, client_id)
     assert isinstance(client, mqtt5.Client)
     (kwargs,) = builder_calls
     assert kwargs["region"] == "eu-west-1"
     assert kwargs["endpoint"] == "abc123-ats.iot.eu-west-1.amazonaws.com"
     assert isinstance(kwargs["credentials_provider"], auth.AwsCredentialsProvider)
-    assert kwargs["client_id"].startswith("so101-twin-")
+    assert kwargs["client_id"] == client_id
+    # Clean session (the twin wants only the newest pose) and jittered backoff (a fleet of agents that lost
+    # IoT Core together does not reconnect in lock step), with the configured figures passed through.
     assert kwargs["session_behavior"] == mqtt5.ClientSessionBehaviorType.CLEAN
     assert kwargs["retry_jitter_mode"] == mqtt5.ExponentialBackoffJitterMode.FULL
-    assert kwargs["min_reconnect_delay_ms"] == 250
-    assert kwargs["max_reconnect_delay_ms"] == config.max_reconnect_delay_ms
-    assert kwargs["keep_alive_interval_sec"] == 30
+    assert (kwargs["min_reconnect_delay_ms"], kwargs["max_reconnect_delay_ms"]) == (300, 1900)
+    assert kwargs["keep_alive_interval_sec"] == 45
 
 
 def test_iot_endpoint_from_describe_endpoint(
     builder_calls: list[dict[str, Any]], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     # IoT Core is not reachable here; moto answers iot:DescribeEndpoint in its place.
-    moto = pytest.importorskip("moto")
     for name, value in {
         "AWS_ACCESS_KEY_ID": "testing",
         "AWS_SECRET_ACCESS_KEY": "testing",
@@ -197,7 +162,7 @@ def test_iot_endpoint_from_describe_endpoint(
         "AWS_DEFAULT_REGION": "us-east-1",
     }.items():
         monkeypatch.setenv(name, value)
-    with moto.mock_aws():
+    with mock_aws():
         subscriber = TelemetrySubscriber(
             BrokerConfig(url="iot", region="us-east-1"), topic_filters(PREFIX, ["*"]), lambda *_: None
         )
@@ -217,7 +182,7 @@ def test_iot_endpoint_lookup_failure_names_the_fix(monkeypatch: pytest.MonkeyPat
 
     monkeypatch.setattr(boto3, "client", broken_client)
     with pytest.raises(BrokerConfigError, match=r"set \[broker\] endpoint"):
-        subscriber_mod.resolve_iot_endpoint(BrokerConfig(url="iot", region="us-east-1"))
+        resolve_iot_endpoint(BrokerConfig(url="iot", region="us-east-1"))
 
 
 # -- against a real broker ---------------------------------------------------------------------------------
@@ -326,31 +291,62 @@ def test_on_message_errors_are_counted_not_raised(mosquitto: MosquittoBroker) ->
 
 @pytest.fixture(scope="module")
 def private_ca(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    """A throwaway CA and a server certificate for 127.0.0.1, made with the openssl CLI."""
-    openssl = shutil.which("openssl")
-    if openssl is None:
-        pytest.skip(
-            "the openssl CLI is not installed, so no test CA can be generated (apt-get install openssl)"
-        )
+    """A throwaway CA and a server certificate for 127.0.0.1 signed by it, made in Python (cryptography)."""
     folder = tmp_path_factory.mktemp("pki")
-    ca_key, ca_crt = folder / "ca.key", folder / "ca.crt"
-    key, csr, crt = folder / "server.key", folder / "server.csr", folder / "server.crt"
-    ext = folder / "server.ext"
-    ext.write_text(
-        "subjectAltName=IP:127.0.0.1,DNS:localhost\nbasicConstraints=CA:FALSE\n"
-        "keyUsage=digitalSignature,keyEncipherment\nextendedKeyUsage=serverAuth\n"
+    now = datetime.datetime.now(datetime.UTC)
+    valid = {
+        "not_valid_before": now - datetime.timedelta(minutes=5),
+        "not_valid_after": now + datetime.timedelta(days=2),
+    }
+    ca_key = ec.generate_private_key(ec.SECP256R1())
+    ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "so101 test CA")])
+    ca_cert = (
+        x509.CertificateBuilder(subject_name=ca_name, issuer_name=ca_name, **valid)
+        .public_key(ca_key.public_key())
+        .serial_number(x509.random_serial_number())
+        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+        .add_extension(
+            x509.KeyUsage(
+                digital_signature=True, content_commitment=False, key_encipherment=False,
+                data_encipherment=False, key_agreement=False, key_cert_sign=True, crl_sign=True,
+                encipher_only=False, decipher_only=False,
+            ),
+            critical=True,
+        )
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(ca_key.public_key()), critical=False)
+        .sign(ca_key, hashes.SHA256())
+    )  # fmt: skip
+    key = ec.generate_private_key(ec.SECP256R1())
+    cert = (
+        x509.CertificateBuilder(
+            subject_name=x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "127.0.0.1")]),
+            issuer_name=ca_name,
+            **valid,
+        )
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .add_extension(
+            x509.SubjectAlternativeName(
+                [x509.IPAddress(ipaddress.ip_address("127.0.0.1")), x509.DNSName("localhost")]
+            ),
+            critical=False,
+        )
+        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+        .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH]), critical=False)
+        .add_extension(
+            x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()), critical=False
+        )
+        .sign(ca_key, hashes.SHA256())
     )
-    ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes"]
-    subj_ca = ["-subj", "/CN=so101 test CA"]
-    run = [
-        [openssl, "req", "-x509", *ec, "-keyout", ca_key, "-out", ca_crt, "-days", "2", *subj_ca],
-        [openssl, "req", *ec, "-keyout", key, "-out", csr, "-subj", "/CN=127.0.0.1"],
-        [openssl, "x509", "-req", "-in", csr, "-CA", ca_crt, "-CAkey", ca_key, "-CAcreateserial",
-         "-out", crt, "-days", "2", "-extfile", ext],
-    ]  # fmt: skip
-    for cmd in run:
-        subprocess.run([str(c) for c in cmd], check=True, capture_output=True, timeout=30)
-    return {"ca": ca_crt, "cert": crt, "key": key}
+    paths = {"ca": folder / "ca.crt", "cert": folder / "server.crt", "key": folder / "server.key"}
+    paths["ca"].write_bytes(ca_cert.public_bytes(serialization.Encoding.PEM))
+    paths["cert"].write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+    paths["key"].write_bytes(
+        key.private_bytes(
+            serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
+        )
+    )
+    return paths
 
 
 @pytest.mark.slow
@@ -376,7 +372,8 @@ def test_mqtts_with_custom_ca(private_ca: dict[str, Path], tmp_path: Path) -> No
         # in a child process that reports after 2 s and exits without waiting for the CRT.
         script = (
             "import os, sys, time\n"
-            "from twin.transport.subscriber import BrokerConfig, TelemetrySubscriber\n"
+            "from twin.transport.broker import BrokerConfig\n"
+            "from twin.transport.subscriber import TelemetrySubscriber\n"
             "s = TelemetrySubscriber(BrokerConfig(url=sys.argv[1]), ['dt/+/telemetry'], lambda *a: None)\n"
             "s.start(); time.sleep(2.0); st = s.stats\n"
             "print(st.connection_attempts, st.connection_successes, flush=True); os._exit(0)\n"

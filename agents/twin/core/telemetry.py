@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
 
+from twin.core.topics import device_id_problem
 from twin.robot import so101
 from twin.robot.calibration import Calibration
 
@@ -33,6 +34,12 @@ class Units(StrEnum):
     DEGREES = "degrees"
     RANGE100 = "range100"
     AUTO = "auto"
+
+
+# The values of `units` in the agent config and the stack settings.
+UNITS_CHOICES: tuple[str, ...] = tuple(u.value for u in Units)
+# IoT Core's cap on one message (telemetry-contract.md); the decoder's default limit and the config's.
+MAX_PAYLOAD_BYTES = 128 * 1024
 
 
 class RejectReason(StrEnum):
@@ -91,7 +98,7 @@ class DecoderConfig:
     units: Units = Units.AUTO
     calibration: Calibration | None = None
     gripper_range_rad: tuple[float, float] = field(default=so101.JOINT_RANGES_RAD[so101.GRIPPER])
-    max_payload_bytes: int = 131072
+    max_payload_bytes: int = MAX_PAYLOAD_BYTES
     auto_evidence_messages: int = 3
 
     def __post_init__(self) -> None:
@@ -122,8 +129,7 @@ CURRENT_MA_PER_UNIT = 6.5
 VOLTAGE_V_PER_UNIT = 0.1
 LOAD_PERCENT_PER_UNIT = 0.1
 
-# Bounds a message must respect; docs/telemetry.md lists them.
-DEVICE_ID_MAX_CHARS = 128
+# Bounds a message must respect; docs/telemetry.md lists them (device ids: twin.core.topics).
 TIMESTAMP_MIN_MS = 946_684_800_000  # 2000-01-01: an edge clock before this is unset, or it sends seconds
 TIMESTAMP_MAX_MS = 4_102_444_800_000  # 2100-01-01
 # DEGREES = (raw - mid) * 360/4095 with raw and mid both in 0..4095, so no real reading exceeds 360 in size.
@@ -179,7 +185,6 @@ _ARM = so101.ARM_JOINTS
 _N_ARM = len(_ARM)
 _NUMERIC_DIAG_FIELDS = ("velocity", "load", "temp", "current", "voltage")
 _DIAG_FIELDS = (*_NUMERIC_DIAG_FIELDS, "status", "moving")
-_BAD_ID_CHARS = ("/", "+", "#")
 
 
 def _rejected(reason: RejectReason, message: str) -> TelemetryRejected:
@@ -282,7 +287,12 @@ class TelemetryDecoder:
         return self._decided.get(device_id, Units.AUTO)
 
     def decode(self, payload: bytes | str, *, topic_device: str | None = None) -> Telemetry:
-        """Validate and decode one message; raises TelemetryRejected (and nothing else) on bad input."""
+        """Validate and decode one message; raises TelemetryRejected (and nothing else) on bad input.
+
+        Longer than the house limit on purpose: this runs for every message of every arm (tens of
+        microseconds each, the largest share of the worker's time at fleet scale: docs/performance.md), so the
+        per-joint checks stay inline instead of costing a call per joint.
+        """
         doc = self._parse(payload)
         if type(doc) is not dict:
             raise _rejected(
@@ -419,7 +429,7 @@ class TelemetryDecoder:
         return _rejected(
             RejectReason.TOO_LARGE,
             f"message is {size} bytes, over the {self._max_bytes}-byte limit "
-            "(the IoT Core maximum is 128 KB); check what the edge packs into it",
+            f"(the IoT Core maximum is {MAX_PAYLOAD_BYTES}); check what the edge packs into it",
         )
 
     def _device_id(self, doc: dict[str, Any], topic_device: str | None) -> str:
@@ -428,19 +438,11 @@ class TelemetryDecoder:
             raise _rejected(
                 RejectReason.MISSING_FIELD, "message has no 'device_id'; set the edge component's device id"
             )
-        if type(device_id) is not str or not device_id:
-            raise _rejected(
-                RejectReason.BAD_DEVICE_ID, f"device_id must be a non-empty string, got {_fmt(device_id)}"
-            )
-        if (
-            len(device_id) > DEVICE_ID_MAX_CHARS
-            or any(c in device_id for c in _BAD_ID_CHARS)
-            or not device_id.isprintable()
-        ):
+        problem = device_id_problem(device_id)
+        if problem is not None:
             raise _rejected(
                 RejectReason.BAD_DEVICE_ID,
-                f"device_id {_fmt(device_id)} is not usable: at most {DEVICE_ID_MAX_CHARS} printable "
-                "characters without the MQTT topic characters '/', '+', '#'; rename the device on the edge",
+                f"device_id {_fmt(device_id)} is not usable: {problem}; rename the device on the edge",
             )
         if topic_device is not None and device_id != topic_device:
             raise _rejected(

@@ -17,41 +17,41 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-from urllib.parse import urlsplit
 
 from twin.core.health import HealthThresholds
+from twin.core.telemetry import MAX_PAYLOAD_BYTES, UNITS_CHOICES
+from twin.core.topics import ALL_DEVICES, DEFAULT_TOPIC_PREFIX, TopicError, check_devices, check_topic_prefix
+from twin.transport.broker import BrokerConfig, BrokerConfigError
 
-# Kept as plain strings here so loading a config never imports the decoder or MuJoCo; the values are the
-# `twin.core.telemetry.Units` and `twin.core.twin.TwinMode` values (tests/test_config.py checks they stay
-# in step).
-UNITS_CHOICES: tuple[str, ...] = ("ticks", "degrees", "range100", "auto")
+# A plain string here so loading a config never imports MuJoCo; the values are `twin.core.twin.TwinMode`'s
+# (tests/test_config.py checks they stay in step).
 MODE_CHOICES: tuple[str, ...] = ("kinematic", "physics")
 RECORD_FORMAT_CHOICES: tuple[str, ...] = ("usdc", "usda")
 LOG_LEVELS: tuple[str, ...] = ("DEBUG", "INFO", "WARNING", "ERROR")
-BROKER_SCHEMES: dict[str, int] = {"mqtt": 1883, "mqtts": 8883}
-ALL_DEVICES = "*"
+# The agent's HTTP API (state, metrics, health): loopback only by default, because it has no authentication.
+# The viewer, `twin instance` (health through SSM) and the instance's config all point here.
+DEFAULT_HTTP_HOST = "127.0.0.1"
+DEFAULT_HTTP_PORT = 8080
+DEFAULT_AGENT_URL = f"http://{DEFAULT_HTTP_HOST}:{DEFAULT_HTTP_PORT}"
+# The largest payload cap a config may set (the default is IoT Core's 128 KiB).
+MAX_PAYLOAD_LIMIT_BYTES = 1 << 20
 
 
 class ConfigError(ValueError):
     """A configuration value is missing, unknown or invalid; the message says which key and how to fix it."""
 
 
-@dataclass(frozen=True)
-class BrokerSection:
-    url: str = "iot"
-    region: str = ""
-    endpoint: str = ""
-    client_id_prefix: str = "so101-twin-"
-    ca_file: str = ""
+# The [broker] section is the subscriber's broker settings themselves: one definition, validated as loaded.
+BrokerSection = BrokerConfig
 
 
 @dataclass(frozen=True)
 class TelemetrySection:
-    topic_prefix: str = "dt/lerobot"
+    topic_prefix: str = DEFAULT_TOPIC_PREFIX
     devices: tuple[str, ...] = ("arm-001",)
     units: str = "auto"
     calibration: str = ""
-    max_payload_bytes: int = 131072
+    max_payload_bytes: int = MAX_PAYLOAD_BYTES
     max_devices: int = 64
 
     @property
@@ -77,7 +77,7 @@ HealthSection = HealthThresholds
 
 @dataclass(frozen=True)
 class HttpSection:
-    listen: str = "127.0.0.1:8080"
+    listen: str = f"{DEFAULT_HTTP_HOST}:{DEFAULT_HTTP_PORT}"
     stream_rate_hz: float = 30.0
 
     @property
@@ -129,7 +129,8 @@ def _split_listen(listen: str) -> tuple[str, int]:
     host, sep, port_text = listen.rpartition(":")
     if not sep or not host or not port_text.isdigit():
         raise ConfigError(
-            f"http.listen = {listen!r} is not HOST:PORT; use e.g. '127.0.0.1:8080' (port 0 picks a free port)"
+            f"http.listen = {listen!r} is not HOST:PORT; use e.g. '{DEFAULT_HTTP_HOST}:{DEFAULT_HTTP_PORT}' "
+            "(port 0 picks a free port)"
         )
     port = int(port_text)
     if not 0 <= port <= 65535:
@@ -178,7 +179,10 @@ def _build_section(name: str, cls: type, values: Mapping[str, Any]) -> Any:
             )
         default = cls()
         kwargs[key] = _expect_type(f"{name}.{key}", value, getattr(default, key))
-    return cls(**kwargs)
+    try:
+        return cls(**kwargs)
+    except BrokerConfigError as exc:  # sections that validate themselves name their keys already
+        raise ConfigError(str(exc)) from None
 
 
 def _positive(key: str, value: float) -> None:
@@ -186,70 +190,32 @@ def _positive(key: str, value: float) -> None:
         raise ConfigError(f"{key} = {value!r} must be greater than 0")
 
 
-def _validate_device_id(key: str, device: str) -> None:
-    # A device id becomes one MQTT topic level, so MQTT wildcards and separators cannot be part of it.
-    if not device or any(ch in device for ch in "/+#") or device != device.strip():
-        raise ConfigError(
-            f"{key} contains {device!r}, which is not a device id; use ids like 'arm-001' (no '/', '+', '#' "
-            f'or spaces), or ["*"] alone for the whole fleet'
-        )
-
-
 def validate(config: AgentConfig) -> AgentConfig:
-    """Check every cross-field and range rule; returns the config unchanged or raises ConfigError."""
-    b, t, tw, h, ht, lg = config.broker, config.telemetry, config.twin, config.health, config.http, config.log
+    """Check every cross-field and range rule; returns the config unchanged or raises ConfigError.
 
-    if b.url != "iot":
-        parts = urlsplit(b.url)
-        if parts.scheme not in BROKER_SCHEMES or not parts.hostname:
-            raise ConfigError(
-                f'broker.url = {b.url!r} is not a broker; use "iot" (AWS IoT Core), "mqtt://host:port" '
-                f'or "mqtts://host:port"'
-            )
-        try:
-            _ = parts.port
-        except ValueError as exc:
-            raise ConfigError(
-                f"broker.url = {b.url!r} has a bad port ({exc}); use e.g. mqtt://127.0.0.1:1883"
-            ) from exc
-        if parts.path not in ("", "/") or parts.query:
-            raise ConfigError(
-                f"broker.url = {b.url!r}: a broker URL has no path or query; use scheme://host:port"
-            )
-    if b.ca_file and not Path(b.ca_file).is_file():
-        raise ConfigError(
-            f"broker.ca_file = {b.ca_file!r} does not exist; give a PEM CA bundle or leave it empty"
-        )
-    if b.ca_file and b.url.startswith("mqtt://"):
-        raise ConfigError(
-            f"broker.ca_file is set but broker.url = {b.url!r} is plain MQTT; use mqtts:// or clear ca_file"
-        )
-    if not b.client_id_prefix or any(ch in b.client_id_prefix for ch in "/+# "):
-        raise ConfigError(
-            f"broker.client_id_prefix = {b.client_id_prefix!r} must be non-empty "
-            "without '/', '+', '#' or spaces (the IoT policy scopes client ids by this prefix)"
-        )
+    [broker] (BrokerConfig) validated itself when it was built; the other sections are checked here.
+    """
+    _validate_telemetry(config.telemetry)
+    _validate_twin(config.twin)
+    _validate_health(config.health)
+    _split_listen(config.http.listen)
+    _positive("http.stream_rate_hz", config.http.stream_rate_hz)
+    if config.log.level.upper() not in LOG_LEVELS:
+        raise ConfigError(f"log.level = {config.log.level!r} is not one of {', '.join(LOG_LEVELS)}")
+    return config
 
-    prefix = t.topic_prefix
-    if not prefix or prefix.startswith("/") or prefix.endswith("/") or any(ch in prefix for ch in "+#"):
+
+def _validate_telemetry(t: TelemetrySection) -> None:
+    try:
+        check_topic_prefix(t.topic_prefix)
+    except TopicError as exc:
+        raise ConfigError(f"telemetry.topic_prefix = {t.topic_prefix!r}: {exc}") from None
+    try:
+        check_devices(t.devices)
+    except TopicError as exc:
         raise ConfigError(
-            f"telemetry.topic_prefix = {prefix!r} must be topic levels "
-            "without wildcards or leading/trailing '/', "
-            'e.g. "dt/lerobot"'
-        )
-    if not t.devices:
-        raise ConfigError(
-            'telemetry.devices is empty; list device ids (["arm-001"]) or ["*"] for the whole fleet'
-        )
-    if ALL_DEVICES in t.devices and len(t.devices) > 1:
-        raise ConfigError(
-            f"telemetry.devices = {list(t.devices)!r} mixes '*' with ids; use [\"*\"] alone or list the ids"
-        )
-    if not t.all_devices:
-        for device in t.devices:
-            _validate_device_id("telemetry.devices", device)
-        if len(set(t.devices)) != len(t.devices):
-            raise ConfigError(f"telemetry.devices = {list(t.devices)!r} lists a device twice")
+            f'telemetry.devices = {list(t.devices)!r}: {exc}; list device ids, or ["*"] alone for the fleet'
+        ) from None
     if t.units not in UNITS_CHOICES:
         raise ConfigError(
             f"telemetry.units = {t.units!r} is not one of {', '.join(UNITS_CHOICES)}; "
@@ -261,10 +227,10 @@ def validate(config: AgentConfig) -> AgentConfig:
             f"telemetry.calibration = {t.calibration!r} does not exist; give the LeRobot calibration JSON "
             "(~/.cache/huggingface/lerobot/calibration/robots/so_follower/<id>.json) or leave it empty"
         )
-    if not 1024 <= t.max_payload_bytes <= 1 << 20:
+    if not 1024 <= t.max_payload_bytes <= MAX_PAYLOAD_LIMIT_BYTES:
         raise ConfigError(
-            f"telemetry.max_payload_bytes = {t.max_payload_bytes} is outside 1024..1048576 "
-            "(IoT Core caps a message at 131072)"
+            f"telemetry.max_payload_bytes = {t.max_payload_bytes} is outside 1024..{MAX_PAYLOAD_LIMIT_BYTES} "
+            f"(IoT Core caps a message at {MAX_PAYLOAD_BYTES})"
         )
 
     if not 1 <= t.max_devices <= 10000:
@@ -273,6 +239,8 @@ def validate(config: AgentConfig) -> AgentConfig:
             'subscription (devices = ["*"]) may create'
         )
 
+
+def _validate_twin(tw: TwinSection) -> None:
     if tw.mode not in MODE_CHOICES:
         raise ConfigError(
             f"twin.mode = {tw.mode!r} is not one of {', '.join(MODE_CHOICES)}; "
@@ -295,6 +263,8 @@ def validate(config: AgentConfig) -> AgentConfig:
     _positive("twin.physics_rate_hz", tw.physics_rate_hz)
     _positive("twin.record_flush_s", tw.record_flush_s)
 
+
+def _validate_health(h: HealthThresholds) -> None:
     _positive("health.expected_rate_hz", h.expected_rate_hz)
     _positive("health.stale_periods", h.stale_periods)
     _positive("health.offline_after_s", h.offline_after_s)
@@ -304,13 +274,6 @@ def validate(config: AgentConfig) -> AgentConfig:
             f"health.offline_after_s = {h.offline_after_s} must be longer than the stale time "
             f"(stale_periods / expected_rate_hz = {h.stale_after_s:g} s); raise offline_after_s"
         )
-
-    _split_listen(ht.listen)
-    _positive("http.stream_rate_hz", ht.stream_rate_hz)
-
-    if lg.level.upper() not in LOG_LEVELS:
-        raise ConfigError(f"log.level = {lg.level!r} is not one of {', '.join(LOG_LEVELS)}")
-    return config
 
 
 def config_from_mapping(data: Mapping[str, Any]) -> AgentConfig:

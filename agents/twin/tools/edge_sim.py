@@ -1,16 +1,13 @@
 """Edge simulator: publishes exactly what the SO-101 edge component publishes, plus injectable faults.
 
-The motion is the edge's own mock mode (telemetry-contract.md): joint i follows
-`int(2048 + 500 sin(t (0.5 + 0.1 i) + i pi/3))` ticks. Variant "ticks" sends raw STS3215 registers as the
-serial/mock modes do; variant "degrees" sends what the LeRobot (ROS 2) mode sends for the same motion under a
-default calibration. Faults (drop, duplicate, reorder, clock skew, malformed payloads) reproduce what a real
-fleet does to a consumer. Publishing goes through the same awscrt client builder as the subscriber.
+The payloads and the motion (the edge's own mock mode) come from `twin.tools.edge_payload`. Faults (drop,
+duplicate, reorder, clock skew, malformed payloads) reproduce what a real fleet does to a consumer.
+Publishing goes through the same awscrt client builder as the subscriber.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
 import random
@@ -21,153 +18,24 @@ from typing import Any
 
 from awscrt import mqtt5
 
-from twin.robot import so101
-from twin.transport.subscriber import (
-    DEFAULT_TOPIC_PREFIX,
-    BrokerConfig,
-    build_mqtt5_client,
-    new_client_id,
-    topic_for,
+from twin.core.topics import DEFAULT_TOPIC_PREFIX, check_topic_prefix, telemetry_topic
+from twin.tools.edge_payload import (
+    MALFORMED_KINDS,
+    VARIANTS,
+    device_ids,
+    encode,
+    make_malformed,
+    make_payload,
 )
+
+__all__ = ["EdgeSimConfig", "EdgeSimReport", "EdgeSimulator", "FaultConfig", "device_ids"]
+from twin.transport.broker import BrokerConfig, new_client_id
+from twin.transport.client import build_mqtt5_client
 
 log = logging.getLogger(__name__)
 
-VARIANTS: tuple[str, ...] = ("ticks", "degrees")
-# Each kind breaks one rule of the contract a consumer must check; all must be rejected, none may crash it.
-MALFORMED_KINDS: tuple[str, ...] = (
-    "not_json",
-    "not_utf8",
-    "not_object",
-    "missing_field",
-    "missing_joint",
-    "not_finite",
-    "oversized",
-    "wrong_type",
-    "bad_timestamp",
-    "device_mismatch",
-)
 # IoT Core: at most 100 publishes/s per connection, excess discarded (aws-facts.md section 3).
 IOT_PUBLISHES_PER_CONNECTION = 100
-IOT_MAX_PAYLOAD_BYTES = 128 * 1024
-
-# STS3215 registers: velocity is sign-magnitude with the sign in bit 15, load has its sign in bit 10.
-VELOCITY_SIGN_BIT = 1 << 15
-LOAD_SIGN_BIT = 1 << 10
-# Default calibration for the "degrees" variant: arm joints centred on the LeRobot home tick; the gripper's
-# calibrated range is the mock motion's span, so it sweeps 0..100 % (closed..open).
-DEGREES_PER_TICK = 360.0 / so101.TICK_MAX
-GRIPPER_RANGE_TICKS = (1548, 2548)
-
-
-def mock_ticks(t: float) -> list[int]:
-    """The edge mock mode's joint positions (ticks, JOINT_NAMES order) at `t` seconds since start."""
-    return [
-        int(2048 + 500 * math.sin(t * (0.5 + 0.1 * i) + i * math.pi / 3))
-        for i in range(len(so101.JOINT_NAMES))
-    ]
-
-
-def sign_magnitude(value: int, sign_bit: int) -> int:
-    """Encode like the servo register: |value|, plus `sign_bit` when negative (the edge passes it on raw)."""
-    return sign_bit + abs(value) if value < 0 else value
-
-
-def ticks_to_degrees(ticks: int) -> float:
-    """LeRobot DEGREES mode with the default calibration (mid = TICK_HOME)."""
-    return (ticks - so101.TICK_HOME) * DEGREES_PER_TICK
-
-
-def ticks_to_gripper_percent(ticks: int) -> float:
-    """LeRobot RANGE_0_100 for the gripper with the default calibration (0 closed, 100 open)."""
-    lo, hi = GRIPPER_RANGE_TICKS
-    return (min(max(ticks, lo), hi) - lo) / (hi - lo) * 100.0
-
-
-def make_payload(
-    device_id: str,
-    t: float,
-    variant: str,
-    rng: random.Random,
-    *,
-    timestamp_ms: int | None = None,
-    load_sign: bool = False,
-) -> dict[str, Any]:
-    """One telemetry message as the edge builds it (before JSON encoding).
-
-    `timestamp_ms` defaults to the wall clock now; `load_sign` sets bit 10 on about half the raw loads
-    (variant ticks) or makes them negative (variant degrees, where newer LeRobot decodes the sign).
-    """
-    if variant not in VARIANTS:
-        raise ValueError(f"variant {variant!r} is not one of {VARIANTS}")
-    ticks = mock_ticks(t)
-    joints: dict[str, dict[str, Any]] = {}
-    for name, position in zip(so101.JOINT_NAMES, ticks, strict=True):
-        velocity = rng.randint(-10, 10)
-        load = rng.randint(5, 50)
-        negative_load = load_sign and rng.random() < 0.5
-        temp = rng.randint(30, 40)
-        current = rng.randint(80, 300)
-        if variant == "ticks":
-            joints[name] = {
-                "position": position,
-                "velocity": sign_magnitude(velocity, VELOCITY_SIGN_BIT),
-                "load": load + LOAD_SIGN_BIT if negative_load else load,
-                "temp": temp,
-                "current": current,
-            }
-        else:
-            degrees = (
-                ticks_to_gripper_percent(position) if name == so101.GRIPPER else ticks_to_degrees(position)
-            )
-            joints[name] = {
-                "position": round(degrees, 4),
-                "velocity": float(velocity),
-                "load": float(-load if negative_load else load),
-                "temp": float(temp),
-                "voltage": float(rng.randint(118, 122)),
-                "current": float(current),
-            }
-    return {
-        "device_id": device_id,
-        "timestamp": int(time.time() * 1000) if timestamp_ms is None else int(timestamp_ms),
-        "joints": joints,
-    }
-
-
-def encode(payload: Any) -> bytes:
-    return json.dumps(payload, separators=(",", ":")).encode()
-
-
-def make_malformed(kind: str, payload: dict[str, Any], rng: random.Random) -> bytes:
-    """`payload` broken in one documented way (MALFORMED_KINDS)."""
-    broken = json.loads(json.dumps(payload))  # deep copy of plain JSON data
-    joints: dict[str, dict[str, Any]] = broken["joints"]
-    joint = rng.choice(list(joints))
-    if kind == "not_json":
-        return encode(payload)[: rng.randint(1, 40)]
-    if kind == "not_utf8":
-        return b"\xff\xfe" + encode(payload)
-    if kind == "not_object":
-        return encode([payload])
-    if kind == "missing_field":
-        del broken[rng.choice(["timestamp", "joints", "device_id"])]
-    elif kind == "missing_joint":
-        del joints[joint]
-    elif kind == "not_finite":
-        joints[joint]["position"] = rng.choice([math.nan, math.inf, -math.inf])
-        # allow_nan: Python's json writes the NaN/Infinity tokens a sloppy C or JS producer might emit.
-        return json.dumps(broken, separators=(",", ":"), allow_nan=True).encode()
-    elif kind == "oversized":
-        broken["padding"] = "x" * (IOT_MAX_PAYLOAD_BYTES + 4096)
-    elif kind == "wrong_type":
-        joints[joint]["position"] = rng.choice([str(joints[joint]["position"]), None, [1, 2], True])
-    elif kind == "bad_timestamp":
-        broken["timestamp"] = rng.choice(["2024-01-23T10:00:00Z", -5, 1.5e30, None])
-    elif kind == "device_mismatch":
-        broken["device_id"] = broken["device_id"] + "-other"
-    else:
-        raise ValueError(f"malformed kind {kind!r} is not one of {MALFORMED_KINDS}")
-    return encode(broken)
 
 
 @dataclass
@@ -205,19 +73,13 @@ class EdgeSimConfig:
             raise ValueError(f"variant {self.variant!r} is not one of {', '.join(VARIANTS)}")
         if not self.devices:
             raise ValueError("no devices: give --devices N or --device ID")
+        check_topic_prefix(self.topic_prefix)
         for device in self.devices:
-            topic_for(self.topic_prefix, device)  # raises with the fix on '/', '+', '#'
+            telemetry_topic(self.topic_prefix, device)  # raises with the rule on '/', '+', '#', ...
         if not 0 < self.rate_hz <= 10_000:
             raise ValueError(f"rate {self.rate_hz} Hz must be in (0, 10000]")
         if self.seconds is not None and self.seconds <= 0:
             raise ValueError(f"seconds {self.seconds} must be positive (omit it to run until stopped)")
-
-
-def device_ids(count: int) -> list[str]:
-    """arm-001 .. arm-NNN, the fleet naming of the edge."""
-    if count < 1:
-        raise ValueError(f"--devices {count} must be at least 1")
-    return [f"arm-{i:03d}" for i in range(1, count + 1)]
 
 
 def clock_skews_ms(devices: list[str], skew_ms: int) -> dict[str, int]:
@@ -310,7 +172,7 @@ class EdgeSimulator:
         self._lock = threading.Lock()
         self._skews = clock_skews_ms(config.devices, config.faults.clock_skew_ms)
         self._held: dict[str, tuple[bytes, int]] = {}
-        self._topics = {device: topic_for(config.topic_prefix, device) for device in config.devices}
+        self._topics = {device: telemetry_topic(config.topic_prefix, device) for device in config.devices}
 
     def _connections_needed(self) -> int:
         config = self.config

@@ -31,6 +31,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from twin.service.config import DEFAULT_AGENT_URL
+
 if TYPE_CHECKING:
     import boto3
 
@@ -47,7 +49,7 @@ OUTPUT_DCV_PASSWORD_SECRET = "DcvPasswordSecret"
 OUTPUT_SSM_SESSION_COMMAND = "SsmSessionCommand"
 REQUIRED_OUTPUTS = (OUTPUT_INSTANCE_ID, OUTPUT_DCV_URL)
 
-HEALTH_URL = "http://127.0.0.1:8080/healthz"
+HEALTH_URL = f"{DEFAULT_AGENT_URL}/healthz"
 # The body goes to stdout and the HTTP status is appended as the last three characters; curl prints 000 when
 # nothing answers, which is how "agent not running" is told apart from "agent unhealthy".
 HEALTH_COMMAND = f"curl -s -o /dev/stdout -w '%{{http_code}}' {HEALTH_URL}"

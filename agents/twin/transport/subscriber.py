@@ -1,9 +1,8 @@
-"""MQTT5 transport for the twin: broker settings, topic filters and the telemetry subscriber.
+"""The telemetry subscriber: subscribes the topic filters on every connection and hands each message on.
 
-One awscrt MQTT5 client code path serves AWS IoT Core (WebSocket + SigV4), a TLS broker with a private CA and
-a plain local mosquitto, so tests and the demo exercise the same reconnect and re-subscribe logic as
-production. awscrt calls every callback here on its event-loop thread: they only count, log and hand data
-on, and never wait for anything (a blocking callback deadlocks the client).
+awscrt calls every callback here on its event-loop thread: they only count, log and hand data on, and never
+wait for anything (a blocking callback deadlocks the client). Broker settings live in
+`twin.transport.broker`, client construction in `twin.transport.client`, topic rules in `twin.core.topics`.
 """
 
 from __future__ import annotations
@@ -11,297 +10,25 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
-import re
-import secrets
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
-from urllib.parse import urlsplit
 
-# awscrt is this module's reason to exist (~70 ms to import); commands import this module lazily, so
-# `twin --help` does not pay for it. boto3 stays lazy below: only the "iot" path needs it.
-from awscrt import auth, io, mqtt5
-from awsiot import mqtt5_client_builder
+from awscrt import mqtt5
+
+from twin.transport.broker import BrokerConfig, new_client_id
+from twin.transport.client import build_mqtt5_client
 
 if TYPE_CHECKING:
     from concurrent.futures import Future
 
 log = logging.getLogger(__name__)
 
-DEFAULT_TOPIC_PREFIX = "dt/lerobot"
-TELEMETRY_SUFFIX = "telemetry"
-# IoT Core refuses client ids over 128 bytes; the random suffix takes 13.
-_MAX_PREFIX_LEN = 100
-_CLIENT_ID_PREFIX_RE = re.compile(r"^[A-Za-z0-9_.:-]*$")
 # IoT Core takes at most 8 topic filters per SUBSCRIBE packet (aws-facts.md section 3).
 _FILTERS_PER_SUBSCRIBE = 8
-
-
-class BrokerConfigError(ValueError):
-    """A broker setting is invalid; the message names the setting and the fix."""
-
-
-@dataclass
-class BrokerConfig:
-    """Where and how to connect. `url`: "iot" (AWS IoT Core), "mqtt://host:port" or "mqtts://host:port"."""
-
-    url: str = "iot"
-    region: str = ""
-    endpoint: str = ""
-    client_id_prefix: str = "so101-twin-"
-    ca_file: str = ""
-    # Reconnect backoff. awscrt doubles the delay after each failed attempt up to the maximum, and FULL
-    # jitter waits a uniform random time in [0, current delay]. So once a broker is back, the next attempt
-    # comes at most max_reconnect_delay_ms later: 2000 ms keeps "telemetry flows again within 3 s of the
-    # broker's return" true even after a long outage, while averaging one attempt per second per agent,
-    # which is IoT Core's CONNECT limit per client id. 250 ms minimum: a blip (broker restart) costs little.
-    min_reconnect_delay_ms: int = 250
-    max_reconnect_delay_ms: int = 2000
-    # The builder default is 1200 s; a NAT or network cut that drops packets silently would then go unnoticed
-    # for up to half an hour. 30 s detects it within ~45 s for a negligible ping cost.
-    keep_alive_s: int = 30
-
-    def __post_init__(self) -> None:
-        self.url = (self.url or "").strip()
-        if not self.url:
-            raise BrokerConfigError(
-                'broker url is empty: use "iot" (AWS IoT Core), "mqtt://host:port" or "mqtts://host:port"'
-            )
-        if self.url != "iot":
-            parts = urlsplit(self.url)
-            if parts.scheme not in ("mqtt", "mqtts") or not parts.hostname:
-                raise BrokerConfigError(
-                    f'broker url {self.url!r} is not understood: use "iot" (AWS IoT Core), '
-                    '"mqtt://host:port" (plain TCP) or "mqtts://host:port" (TLS)'
-                )
-            if parts.path not in ("", "/") or parts.query or parts.username:
-                raise BrokerConfigError(
-                    f"broker url {self.url!r} has a path, query or credentials; give only mqtt[s]://host:port"
-                )
-            try:
-                _ = parts.port
-            except ValueError as exc:
-                raise BrokerConfigError(
-                    f"broker url {self.url!r} has a bad port; use a number 1..65535"
-                ) from exc
-        if len(self.client_id_prefix) > _MAX_PREFIX_LEN or not _CLIENT_ID_PREFIX_RE.match(
-            self.client_id_prefix
-        ):
-            raise BrokerConfigError(
-                f"client_id_prefix {self.client_id_prefix!r} must be at most {_MAX_PREFIX_LEN} characters of "
-                "letters, digits and _ . : - (the IAM policy matches client ids by this prefix)"
-            )
-        if self.ca_file and self.kind != "mqtts":
-            raise BrokerConfigError(
-                f"ca_file is set but the broker url is {self.url!r}: a custom CA only applies to mqtts:// "
-                "(IoT Core uses the system trust store); clear ca_file or use mqtts://"
-            )
-        if self.ca_file and not Path(self.ca_file).is_file():
-            raise BrokerConfigError(f"ca_file {self.ca_file!r} does not exist; give the PEM CA bundle path")
-        if not 0 < self.min_reconnect_delay_ms <= self.max_reconnect_delay_ms:
-            raise BrokerConfigError(
-                f"reconnect delays must satisfy 0 < min ({self.min_reconnect_delay_ms} ms) <= max "
-                f"({self.max_reconnect_delay_ms} ms)"
-            )
-        if not 5 <= self.keep_alive_s <= 1200:
-            raise BrokerConfigError(
-                f"keep_alive_s {self.keep_alive_s} is outside 5..1200 (IoT Core allows at most 1200 s)"
-            )
-
-    @classmethod
-    def from_mapping(cls, values: Mapping[str, Any]) -> BrokerConfig:
-        """From the [broker] table of the agent config; unknown keys are an error naming the valid ones."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - names)
-        if unknown:
-            raise BrokerConfigError(f"unknown [broker] setting(s) {unknown}; valid: {sorted(names)}")
-        return cls(**dict(values))
-
-    @property
-    def kind(self) -> str:
-        """ "iot", "mqtt" or "mqtts"."""
-        return "iot" if self.url == "iot" else urlsplit(self.url).scheme
-
-    @property
-    def host(self) -> str:
-        if self.kind == "iot":
-            return self.endpoint
-        return urlsplit(self.url).hostname or ""
-
-    @property
-    def port(self) -> int:
-        if self.kind == "iot":
-            return 443
-        parts = urlsplit(self.url)
-        return parts.port or (8883 if parts.scheme == "mqtts" else 1883)
-
-
-def new_client_id(prefix: str) -> str:
-    """prefix + 12 random hex digits: unique per process, since two clients with one id evict each other."""
-    return f"{prefix}{secrets.token_hex(6)}"
-
-
-def _check_topic_part(what: str, value: str) -> None:
-    if not value or any(ch in value for ch in "/+#") or "\x00" in value:
-        raise ValueError(
-            f"{what} {value!r} must be non-empty and contain no '/', '+', '#' (MQTT topic level separators "
-            "and wildcards); use '*' in devices for the whole fleet"
-        )
-
-
-def topic_filters(prefix: str, devices: Sequence[str]) -> list[str]:
-    """MQTT topic filters for `devices` under `prefix` ("*" alone = every device via a '+' wildcard)."""
-    prefix = prefix.strip("/")
-    if not prefix or "+" in prefix or "#" in prefix:
-        raise ValueError(
-            f"topic prefix {prefix!r} must be non-empty and without wildcards, e.g. 'dt/lerobot'"
-        )
-    devices = list(devices)
-    if not devices:
-        raise ValueError('devices is empty: list device ids (e.g. ["arm-001"]) or ["*"] for the fleet')
-    if "*" in devices:
-        if len(devices) > 1:
-            raise ValueError(f'devices {devices} mixes "*" with ids; "*" alone already covers the fleet')
-        return [f"{prefix}/+/{TELEMETRY_SUFFIX}"]
-    for device in devices:
-        _check_topic_part("device id", device)
-    return [f"{prefix}/{device}/{TELEMETRY_SUFFIX}" for device in dict.fromkeys(devices)]
-
-
-def device_from_topic(topic: str, prefix: str) -> str | None:
-    """The device id of `{prefix}/{device}/telemetry`, or None for any other topic."""
-    head = prefix.strip("/") + "/"
-    if not topic.startswith(head) or not topic.endswith("/" + TELEMETRY_SUFFIX):
-        return None
-    device = topic[len(head) : -len(TELEMETRY_SUFFIX) - 1]
-    if not device or "/" in device:
-        return None
-    return device
-
-
-def topic_for(prefix: str, device_id: str) -> str:
-    _check_topic_part("device id", device_id)
-    return f"{prefix.strip('/')}/{device_id}/{TELEMETRY_SUFFIX}"
-
-
-def resolve_iot_endpoint(config: BrokerConfig) -> str:
-    """The account's IoT data endpoint: from the config, else iot:DescribeEndpoint (iot:Data-ATS)."""
-    if config.endpoint:
-        return config.endpoint
-    import boto3  # noqa: PLC0415 - slow to import; only the "iot" path needs it
-
-    kwargs = {"region_name": config.region} if config.region else {}
-    try:
-        client = boto3.client("iot", **kwargs)
-        response = client.describe_endpoint(endpointType="iot:Data-ATS")
-    except Exception as exc:
-        raise BrokerConfigError(
-            f"could not look up the IoT Core endpoint ({exc}); set [broker] endpoint to the account's "
-            "xxxx-ats.iot.<region>.amazonaws.com, or give the instance role iot:DescribeEndpoint"
-        ) from exc
-    return str(response["endpointAddress"])
-
-
-def _region(config: BrokerConfig) -> str:
-    if config.region:
-        return config.region
-    import boto3  # noqa: PLC0415 - see resolve_iot_endpoint
-
-    region = boto3.session.Session().region_name
-    if not region:
-        raise BrokerConfigError(
-            "no AWS region for IoT Core: set [broker] region (or --region), or AWS_REGION / the AWS config"
-        )
-    return str(region)
-
-
-LifecycleCallback = Callable[[Any], None]
-
-
-def build_mqtt5_client(
-    config: BrokerConfig,
-    client_id: str,
-    *,
-    on_publish_received: LifecycleCallback | None = None,
-    on_attempting_connect: LifecycleCallback | None = None,
-    on_connection_success: LifecycleCallback | None = None,
-    on_connection_failure: LifecycleCallback | None = None,
-    on_disconnection: LifecycleCallback | None = None,
-    on_stopped: LifecycleCallback | None = None,
-) -> mqtt5.Client:
-    """An unstarted awscrt MQTT5 client for `config`; shared by the subscriber and the edge simulator.
-
-    Every variant uses a clean session, exponential backoff with FULL jitter and the configured delays, so a
-    fleet of agents that lose IoT Core at once does not reconnect in lock step.
-    """
-    common: dict[str, Any] = {
-        "client_id": client_id,
-        # Clean session: after every reconnect the broker has no subscriptions, and the connection-success
-        # callback subscribes again. A persistent session would replay stale QoS1 traffic the twin does not
-        # want (it only cares for the newest pose) and IoT Core expires it after an hour anyway.
-        "session_behavior": mqtt5.ClientSessionBehaviorType.CLEAN,
-        "retry_jitter_mode": mqtt5.ExponentialBackoffJitterMode.FULL,
-        "min_reconnect_delay_ms": config.min_reconnect_delay_ms,
-        "max_reconnect_delay_ms": config.max_reconnect_delay_ms,
-        "keep_alive_interval_sec": config.keep_alive_s,
-        "on_publish_received": on_publish_received,
-        "on_lifecycle_attempting_connect": on_attempting_connect,
-        "on_lifecycle_connection_success": on_connection_success,
-        "on_lifecycle_connection_failure": on_connection_failure,
-        "on_lifecycle_disconnection": on_disconnection,
-        "on_lifecycle_stopped": on_stopped,
-    }
-
-    if config.kind == "iot":
-        region = _region(config)
-        endpoint = resolve_iot_endpoint(config)
-        # SigV4 over WebSocket. The builder's handshake transform signs every connection attempt with fresh
-        # credentials from the default chain (instance role via IMDS on EC2), so both rotated role
-        # credentials and IoT Core's hard 24 h WebSocket lifetime are handled the same way: IoT Core closes
-        # the socket, the client reports a disconnect, auto-reconnects with a newly signed handshake, and the
-        # connection-success callback re-subscribes. Nothing here needs a timer for the 24 h cut.
-        return mqtt5_client_builder.websockets_with_default_aws_signing(
-            region=region,
-            credentials_provider=auth.AwsCredentialsProvider.new_default_chain(),
-            endpoint=endpoint,
-            **common,
-        )
-
-    if config.kind == "mqtts":
-        # The SDK's plain-TLS builder; a private CA replaces the system trust store when given. Extended
-        # validation is IoT-specific (8 filters per SUBSCRIBE, 100 publishes/s throttle), so it is off here.
-        return mqtt5_client_builder.new_default_builder(
-            endpoint=config.host,
-            port=config.port,
-            ca_filepath=config.ca_file or None,
-            enable_metrics_collection=False,
-            extended_validation_and_flow_control_options=(mqtt5.ExtendedValidationAndFlowControlOptions.NONE),
-            **common,
-        )
-
-    # Plain TCP: every SDK builder installs TLS, so build the options directly (aws-facts.md section 3).
-    options = mqtt5.ClientOptions(
-        host_name=config.host,
-        port=config.port,
-        tls_ctx=None,
-        connect_options=mqtt5.ConnectPacket(client_id=client_id, keep_alive_interval_sec=config.keep_alive_s),
-        session_behavior=common["session_behavior"],
-        retry_jitter_mode=common["retry_jitter_mode"],
-        min_reconnect_delay_ms=config.min_reconnect_delay_ms,
-        max_reconnect_delay_ms=config.max_reconnect_delay_ms,
-        socket_options=io.SocketOptions(),
-        on_publish_callback_fn=on_publish_received,
-        on_lifecycle_event_attempting_connect_fn=on_attempting_connect,
-        on_lifecycle_event_connection_success_fn=on_connection_success,
-        on_lifecycle_event_connection_failure_fn=on_connection_failure,
-        on_lifecycle_event_disconnection_fn=on_disconnection,
-        on_lifecycle_event_stopped_fn=on_stopped,
-        disable_metrics=True,
-    )
-    return mqtt5.Client(options)
+Clock = Callable[[], float]
 
 
 @dataclass
@@ -330,8 +57,9 @@ MessageHandler = Callable[[str, bytes, float], None]
 class TelemetrySubscriber:
     """Subscribes `topic_filters` on every connection and hands each message to `on_message`.
 
-    `on_message(topic, payload, received_monotonic)` runs on the CRT thread and must not block: put the
-    message into a `LatestValueMailbox` and decode elsewhere. Exceptions it raises are logged and counted.
+    `on_message(topic, payload, received)` runs on the CRT thread, `received` being `clock()` at arrival. It
+    must not block: put the message into a `LatestValueMailbox` and decode elsewhere. Exceptions it raises
+    are logged and counted.
     """
 
     def __init__(
@@ -341,15 +69,17 @@ class TelemetrySubscriber:
         on_message: MessageHandler,
         *,
         client_id: str | None = None,
+        clock: Clock = time.monotonic,
     ) -> None:
         if not topic_filters:
-            raise ValueError(
-                "topic_filters is empty; build them with twin.transport.subscriber.topic_filters()"
-            )
+            raise ValueError("topic_filters is empty; build them with twin.core.topics.topic_filters()")
         self.config = config
         self.topic_filters = list(topic_filters)
         self.client_id = client_id or new_client_id(config.client_id_prefix)
         self._on_message = on_message
+        # The receive stamp every message carries; the agent injects its own clock so its latencies and
+        # health ages are measured on one timeline.
+        self._clock = clock
         self._stats = SubscriberStats()
         self._stats_lock = threading.Lock()
         self._client: mqtt5.Client | None = None
@@ -418,12 +148,10 @@ class TelemetrySubscriber:
     # -- CRT callbacks: count, log, hand on; never block -------------------------------------------------
 
     def _where(self) -> str:
-        return (
-            self.config.url if self.config.kind != "iot" else f"IoT Core ({self.config.region or 'default'})"
-        )
+        return self.config.where()
 
     def _on_publish_received(self, data: mqtt5.PublishReceivedData) -> None:
-        received = time.monotonic()
+        received = self._clock()
         packet = data.publish_packet
         self._stats.messages_received += 1
         self._stats.last_message_monotonic = received
@@ -448,7 +176,7 @@ class TelemetrySubscriber:
     def _on_connection_success(self, data: mqtt5.LifecycleConnectSuccessData) -> None:
         with self._stats_lock:
             self._stats.connection_successes += 1
-            self._stats.last_connected_monotonic = time.monotonic()
+            self._stats.last_connected_monotonic = self._clock()
         self._connected.set()
         self._subscribed.clear()
         log.info(

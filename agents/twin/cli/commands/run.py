@@ -14,7 +14,8 @@ import sys
 import threading
 from typing import Any
 
-from twin.service.config import LOG_LEVELS, ConfigError, load_config
+from twin.core.topics import DEFAULT_TOPIC_PREFIX
+from twin.service.config import DEFAULT_HTTP_HOST, DEFAULT_HTTP_PORT, LOG_LEVELS, ConfigError, load_config
 from twin.service.logs import setup_logging
 
 log = logging.getLogger("twin.run")
@@ -37,14 +38,20 @@ def register(subparsers: Any) -> None:
     parser.add_argument(
         "--broker", metavar="URL", help='"iot" (AWS IoT Core), mqtt://host:port or mqtts://host:port'
     )
-    parser.add_argument("--http", metavar="HOST:PORT", help="HTTP listen address (default 127.0.0.1:8080)")
+    parser.add_argument(
+        "--http",
+        metavar="HOST:PORT",
+        help=f"HTTP listen address (default {DEFAULT_HTTP_HOST}:{DEFAULT_HTTP_PORT})",
+    )
     parser.add_argument("--units", metavar="U", help="position units: ticks, degrees, range100 or auto")
     parser.add_argument(
         "--devices",
         metavar="IDS",
         help='comma-separated device ids, or "*" for every device under the prefix',
     )
-    parser.add_argument("--topic-prefix", metavar="PREFIX", help="topic prefix (default dt/lerobot)")
+    parser.add_argument(
+        "--topic-prefix", metavar="PREFIX", help=f"topic prefix (default {DEFAULT_TOPIC_PREFIX})"
+    )
     parser.add_argument("--mode", metavar="MODE", help="twin mode: kinematic or physics")
     parser.add_argument("--record-dir", metavar="DIR", help="record a USD session into DIR")
     parser.add_argument("--log-level", metavar="LEVEL", help="DEBUG, INFO, WARNING or ERROR")

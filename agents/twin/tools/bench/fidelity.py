@@ -19,21 +19,10 @@ from typing import Any
 from twin.core.smoothing import make_estimator
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
 from twin.robot import so101
-from twin.tools.edge_sim import encode, make_payload
+from twin.tools.edge_payload import encode, make_payload, mock_motion_ticks
 
-# The edge's mock formula without the int() truncation: the motion the servos would really follow.
-_AMPLITUDE = 500.0
-_CENTRE = 2048.0
 # Edge timestamps must look like a real wall clock (the decoder rejects an unset one).
 _EPOCH_MS = 1_706_000_000_000
-
-
-def true_ticks(t: float) -> list[float]:
-    """Continuous positions (ticks) of the mock motion at edge time t (contract formula, untruncated)."""
-    return [
-        _CENTRE + _AMPLITUDE * math.sin(t * (0.5 + 0.1 * i) + i * math.pi / 3)
-        for i in range(len(so101.JOINT_NAMES))
-    ]
 
 
 def _linear_tick_map(decoder: TelemetryDecoder) -> list[tuple[float, float]]:
@@ -72,6 +61,40 @@ class FidelityResult:
         }
 
 
+def _truth(tick_map: list[tuple[float, float]], edge_t: float) -> list[float]:
+    """Joint angles (JOINT_NAMES order) of the untruncated mock motion at edge time `edge_t`."""
+    return [
+        offset + slope * ticks
+        for (offset, slope), ticks in zip(tick_map, mock_motion_ticks(edge_t), strict=True)
+    ]
+
+
+def _arrivals(
+    decoder: TelemetryDecoder,
+    rng: random.Random,
+    *,
+    seconds: float,
+    rate_hz: float,
+    delay_s: tuple[float, float],
+    clock_offset_s: float,
+) -> list[tuple[float, int, dict[str, float]]]:
+    """(local receive time, edge timestamp ms, decoded angles) of each message, in arrival order.
+
+    The edge samples at `rate_hz`; each message takes `delay_s[0]` plus uniform 0..`delay_s[1]` to arrive.
+    """
+    arrivals = []
+    period = 1.0 / rate_hz
+    base, jitter = delay_s
+    for k in range(int(seconds * rate_hz) + 1):
+        edge_t = k * period
+        payload = make_payload("arm-001", edge_t, "ticks", rng, timestamp_ms=_EPOCH_MS + round(edge_t * 1000))
+        angles = decoder.decode(encode(payload)).angles_rad
+        received = edge_t + clock_offset_s + base + rng.uniform(0.0, jitter)
+        arrivals.append((received, payload["timestamp"], angles))
+    arrivals.sort(key=lambda a: a[0])  # jitter larger than the period reorders messages, as a network would
+    return arrivals
+
+
 def replay(
     estimator_kind: str,
     *,
@@ -88,24 +111,20 @@ def replay(
     """Replay one timeline through one estimator and measure its error against the truth.
 
     `clock_offset_s` puts the local clock far from the edge clock, as in the field (the edge is not
-    NTP-disciplined); the estimator must not depend on the two agreeing. When `series` is given, it receives
-    (edge time, mean absolute error over joints, truth and estimate of the first joint) per frame, for plots.
+    NTP-disciplined); the estimator must not depend on the two agreeing. `series`, when given, receives
+    (edge time, mean absolute error over joints, truth and estimate of the first joint) per frame.
     """
-    rng = random.Random(seed)
     decoder = TelemetryDecoder(DecoderConfig(units=Units.TICKS))
     tick_map = _linear_tick_map(decoder)
     names = so101.JOINT_NAMES
-
-    arrivals: list[tuple[float, int, dict[str, float]]] = []
-    period = 1.0 / rate_hz
-    for k in range(int(seconds * rate_hz) + 1):
-        edge_t = k * period
-        payload = make_payload("arm-001", edge_t, "ticks", rng, timestamp_ms=_EPOCH_MS + round(edge_t * 1000))
-        angles = decoder.decode(encode(payload)).angles_rad
-        received = edge_t + clock_offset_s + (base_delay_ms + rng.uniform(0.0, jitter_ms)) / 1000.0
-        arrivals.append((received, payload["timestamp"], angles))
-    arrivals.sort(key=lambda a: a[0])  # jitter larger than the period reorders messages, as a network would
-
+    arrivals = _arrivals(
+        decoder,
+        random.Random(seed),
+        seconds=seconds,
+        rate_hz=rate_hz,
+        delay_s=(base_delay_ms / 1000.0, jitter_ms / 1000.0),
+        clock_offset_s=clock_offset_s,
+    )
     estimator = make_estimator(estimator_kind)
     total = 0.0
     worst = 0.0
@@ -122,10 +141,7 @@ def replay(
         edge_now = now - clock_offset_s
         if pose is None or edge_now < warmup_s:
             continue
-        truth = [
-            offset + slope * ticks
-            for (offset, slope), ticks in zip(tick_map, true_ticks(edge_now), strict=True)
-        ]
+        truth = _truth(tick_map, edge_now)
         errors = [abs(pose[name] - truth[i]) for i, name in enumerate(names)]
         frame_mean = sum(errors) / len(errors)
         total += frame_mean

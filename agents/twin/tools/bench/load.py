@@ -2,7 +2,7 @@
 
 Each runs as its own process (`python -m twin.tools.bench.load publish|noop ...`) so its CPU is not charged to
 the agent under test, and prints one JSON line with its counts on exit. Both use the project's own awscrt
-client construction (twin.transport.subscriber.build_mqtt5_client), so the ceiling measures the same broker
+client construction (twin.transport.client.build_mqtt5_client), so the ceiling measures the same broker
 and client the agent uses, minus the agent's work.
 """
 
@@ -20,14 +20,11 @@ from typing import Any
 
 from awscrt import mqtt5
 
-from twin.tools.edge_sim import encode, make_payload
-from twin.transport.subscriber import (
-    BrokerConfig,
-    TelemetrySubscriber,
-    build_mqtt5_client,
-    new_client_id,
-    topic_for,
-)
+from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
+from twin.tools.edge_payload import encode, make_payload
+from twin.transport.broker import BrokerConfig, new_client_id
+from twin.transport.client import build_mqtt5_client
+from twin.transport.subscriber import TelemetrySubscriber
 
 log = logging.getLogger(__name__)
 
@@ -49,20 +46,8 @@ def _templates(device: str, rng: random.Random) -> list[tuple[bytes, bytes]]:
     return out
 
 
-def publish(
-    url: str, devices: list[str], rate_hz: float, seconds: float, prefix: str, *, seed: int = 1
-) -> dict[str, Any]:
-    """Publish every device at rate_hz for `seconds`; timestamps are the publish wall clock (milliseconds)."""
-    rng = random.Random(seed)
-    templates = {d: _templates(d, rng) for d in devices}
-    topics = {d: topic_for(prefix, d) for d in devices}
+def _connected_client(url: str) -> mqtt5.Client:
     connected = threading.Event()
-    failures = [0]
-
-    def on_done(future: Any) -> None:
-        if future.exception() is not None:
-            failures[0] += 1
-
     client = build_mqtt5_client(
         BrokerConfig(url=url, client_id_prefix="bench-pub-"),
         new_client_id("bench-pub-"),
@@ -71,6 +56,23 @@ def publish(
     client.start()
     if not connected.wait(10):
         raise SystemExit(f"publisher: could not connect to {url}")
+    return client
+
+
+def publish(
+    url: str, devices: list[str], rate_hz: float, seconds: float, prefix: str, *, seed: int = 1
+) -> dict[str, Any]:
+    """Publish every device at rate_hz for `seconds`; timestamps are the publish wall clock (milliseconds)."""
+    rng = random.Random(seed)
+    templates = {d: _templates(d, rng) for d in devices}
+    topics = {d: telemetry_topic(prefix, d) for d in devices}
+    failures = [0]
+
+    def on_done(future: Any) -> None:
+        if future.exception() is not None:
+            failures[0] += 1
+
+    client = _connected_client(url)
     period = 1.0 / rate_hz
     slot_len = period / SLOTS_PER_PERIOD
     slots = [devices[i::SLOTS_PER_PERIOD] for i in range(SLOTS_PER_PERIOD)]
@@ -146,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--count", type=int, required=True)
     p.add_argument("--rate", type=float, required=True)
     p.add_argument("--seconds", type=float, required=True)
-    p.add_argument("--prefix", default="dt/lerobot")
+    p.add_argument("--prefix", default=DEFAULT_TOPIC_PREFIX)
     n = sub.add_parser("noop")
     n.add_argument("--url", required=True)
     n.add_argument("--filter", action="append", required=True)

@@ -1,0 +1,155 @@
+"""Topic and device-id rules of the telemetry contract: the one home for what a device id and a topic may be.
+
+The edge publishes each arm on `{prefix}/{device_id}/telemetry` (telemetry-contract.md), so a device id is one
+MQTT topic level and the prefix is one or more. Every part of the project that accepts, builds or parses
+these uses this module: the agent config, the subscriber's filters, the decoder's `device_id` check, the edge
+simulator and the CDK stack's settings (`stacks/settings.py`), so a value one of them accepts is never refused
+by another. Pure standard library: the stack imports it without MuJoCo or awscrt.
+
+Two device-id rules, one narrower than the other:
+- `device_id_problem`: what the agent accepts from an edge (a usable topic level, 1..128 printable characters
+  without `/`, `+`, `#` or surrounding spaces). An edge's id is not ours to choose, so this is generous.
+- `policy_device_id_problem`: what a deployment may list in `-c devices=...`. Those ids are also written into
+  IAM policy resource ARNs, so the stack takes only letters, digits, `-` and `_` (at most 64). Every id this
+  rule accepts is also accepted by the first (tests/test_topics.py checks both on one table).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+
+DEFAULT_TOPIC_PREFIX = "dt/lerobot"
+TELEMETRY_SUFFIX = "telemetry"
+# `devices = ["*"]`: the whole fleet under the prefix, subscribed with a single-level '+' wildcard.
+ALL_DEVICES = "*"
+DEVICE_ID_MAX_CHARS = 128
+POLICY_DEVICE_ID_MAX_CHARS = 64
+# MQTT's level separator and its two wildcards: a device id that held one would change what a topic means.
+_TOPIC_SPECIAL = ("/", "+", "#")
+_POLICY_DEVICE_ID_RE = re.compile(r"^[A-Za-z0-9_-]+$")
+# Plain levels only: no wildcards, no '$' (broker-reserved topics such as $aws/ and $share/), nothing that
+# needs quoting in an IAM ARN or a shell.
+_PREFIX_LEVEL_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
+
+DEVICE_ID_RULE = (
+    f"1..{DEVICE_ID_MAX_CHARS} printable characters without '/', '+', '#' (MQTT topic separators and "
+    "wildcards) or surrounding spaces, e.g. 'arm-001'"
+)
+POLICY_DEVICE_ID_RULE = (
+    f"1..{POLICY_DEVICE_ID_MAX_CHARS} letters, digits, '-' or '_' (it is a topic level and part of an IAM "
+    "resource ARN), e.g. 'arm-001'"
+)
+TOPIC_PREFIX_RULE = (
+    "plain topic levels (letters, digits, '.', '_', '-') joined by '/', without wildcards or a leading or "
+    f"trailing '/', e.g. '{DEFAULT_TOPIC_PREFIX}'"
+)
+
+
+class TopicError(ValueError):
+    """A device id, topic prefix or device list breaks the topic rules; the message says which and why."""
+
+
+def device_id_problem(device_id: object) -> str | None:
+    """None when `device_id` may be a device id the agent mirrors, else what is wrong with it.
+
+    Called once per message by the decoder: the common case (a short, clean id) costs a few comparisons.
+    """
+    if type(device_id) is not str or not device_id:
+        return "a device id must be a non-empty string"
+    if len(device_id) > DEVICE_ID_MAX_CHARS:
+        return f"it is longer than {DEVICE_ID_MAX_CHARS} characters"
+    if "/" in device_id or "+" in device_id or "#" in device_id:
+        return "it holds an MQTT topic character ('/', '+' or '#')"
+    if not device_id.isprintable():
+        return "it holds unprintable characters"
+    if device_id[0].isspace() or device_id[-1].isspace():
+        return "it starts or ends with a space"
+    return None
+
+
+def policy_device_id_problem(device_id: object) -> str | None:
+    """None when a deployment may list `device_id` (stricter than `device_id_problem`), else the problem."""
+    problem = device_id_problem(device_id)
+    if problem is not None:
+        return problem
+    text = str(device_id)  # device_id_problem accepted it, so it is a string
+    if len(text) > POLICY_DEVICE_ID_MAX_CHARS or not _POLICY_DEVICE_ID_RE.match(text):
+        return f"a deployed device id must be {POLICY_DEVICE_ID_RULE}"
+    return None
+
+
+def check_device_id(device_id: object) -> str:
+    """`device_id` unchanged, or TopicError naming the value, the rule and an example."""
+    problem = device_id_problem(device_id)
+    if problem is not None:
+        raise TopicError(f"device id {device_id!r} is not usable: {problem}; a device id is {DEVICE_ID_RULE}")
+    return str(device_id)
+
+
+def topic_prefix_problem(prefix: object) -> str | None:
+    """None when `prefix` is a usable topic prefix, else what is wrong with it."""
+    if type(prefix) is not str or not prefix:
+        return "the topic prefix is empty"
+    if not all(_PREFIX_LEVEL_RE.match(level) for level in prefix.split("/")):
+        return f"a topic prefix must be {TOPIC_PREFIX_RULE}"
+    return None
+
+
+def check_topic_prefix(prefix: object) -> str:
+    """`prefix` unchanged, or TopicError naming the value and the rule."""
+    problem = topic_prefix_problem(prefix)
+    if problem is not None:
+        raise TopicError(f"topic prefix {prefix!r} is not usable: {problem}")
+    return str(prefix)
+
+
+def check_devices(devices: Sequence[str]) -> tuple[str, ...]:
+    """A device list as configured: ids (each once), or ["*"] alone for the whole fleet."""
+    devices = tuple(devices)
+    if not devices:
+        raise TopicError(
+            'the device list is empty: list device ids (e.g. ["arm-001"]) or ["*"] for the fleet'
+        )
+    if ALL_DEVICES in devices:
+        if len(devices) > 1:
+            raise TopicError(
+                f'the device list {list(devices)} mixes "*" with ids; "*" alone already covers the fleet'
+            )
+        return devices
+    for device in devices:
+        check_device_id(device)
+    if len(set(devices)) != len(devices):
+        raise TopicError(f"the device list {list(devices)} names a device twice; list each once")
+    return devices
+
+
+def telemetry_topic(prefix: str, device_id: str) -> str:
+    """`{prefix}/{device_id}/telemetry`, the topic the edge publishes one arm on."""
+    return f"{check_topic_prefix(prefix)}/{check_device_id(device_id)}/{TELEMETRY_SUFFIX}"
+
+
+def topic_filters(prefix: str, devices: Sequence[str]) -> list[str]:
+    """MQTT topic filters for `devices` under `prefix` (["*"] = every device, through a '+' wildcard)."""
+    check_topic_prefix(prefix)
+    devices = check_devices(devices)
+    if devices == (ALL_DEVICES,):
+        return [f"{prefix}/+/{TELEMETRY_SUFFIX}"]
+    return [f"{prefix}/{device}/{TELEMETRY_SUFFIX}" for device in devices]
+
+
+def device_from_topic(topic: str, prefix: str) -> str | None:
+    """The device level of `{prefix}/{device}/telemetry`, or None for any other topic.
+
+    Runs on the MQTT client's thread for every message, so it only slices; the decoder applies the device-id
+    rule to the message's own `device_id` and checks that the two agree.
+    """
+    head_len = len(prefix) + 1
+    if not topic.startswith(prefix) or topic[len(prefix) : head_len] != "/":
+        return None
+    if not topic.endswith("/" + TELEMETRY_SUFFIX):
+        return None
+    device = topic[head_len : -len(TELEMETRY_SUFFIX) - 1]
+    if not device or "/" in device:
+        return None
+    return device

@@ -1,0 +1,140 @@
+"""Broker settings: where and how the agent, the edge simulator and the benchmark connect.
+
+`BrokerConfig` is the agent config's `[broker]` section itself (as `HealthThresholds` is `[health]`), so a
+setting is defined, defaulted and validated once, whether it comes from TOML, a flag or code. Pure standard
+library: loading a config never imports awscrt (`twin.transport.client` builds the client).
+"""
+
+from __future__ import annotations
+
+import re
+import secrets
+from dataclasses import dataclass
+from pathlib import Path
+from urllib.parse import urlsplit
+
+# The IAM policy the stack writes scopes iot:Connect to client ids with this prefix (stacks/settings.py
+# imports it), so the agent's default and the policy cannot drift apart.
+DEFAULT_CLIENT_ID_PREFIX = "so101-twin-"
+IOT = "iot"
+SCHEME_PORTS: dict[str, int] = {"mqtt": 1883, "mqtts": 8883}
+IOT_PORT = 443  # IoT Core over WebSocket (SigV4)
+# IoT Core refuses client ids over 128 bytes; the random suffix takes 12.
+CLIENT_ID_PREFIX_MAX = 100
+_CLIENT_ID_PREFIX_RE = re.compile(r"^[A-Za-z0-9_.:-]+$")
+# IoT Core allows a keep-alive of at most 1200 s.
+KEEP_ALIVE_RANGE_S = (5, 1200)
+
+
+class BrokerConfigError(ValueError):
+    """A broker setting is invalid; the message names the setting (`broker.<key>`), the value and the fix."""
+
+
+@dataclass(frozen=True)
+class BrokerConfig:
+    """`url`: "iot" (AWS IoT Core, SigV4 WebSocket), "mqtt://host:port" or "mqtts://host:port"."""
+
+    url: str = IOT
+    region: str = ""
+    endpoint: str = ""
+    client_id_prefix: str = DEFAULT_CLIENT_ID_PREFIX
+    ca_file: str = ""
+    # Reconnect backoff. awscrt doubles the delay after each failed attempt up to the maximum, and FULL
+    # jitter waits a uniform random time in [0, current delay]. So once a broker is back, the next attempt
+    # comes at most max_reconnect_delay_ms later: 2000 ms keeps "telemetry flows again within 3 s of the
+    # broker's return" true even after a long outage, while averaging one attempt per second per agent,
+    # which is IoT Core's CONNECT limit per client id. 250 ms minimum: a blip (broker restart) costs little.
+    min_reconnect_delay_ms: int = 250
+    max_reconnect_delay_ms: int = 2000
+    # The builder default is 1200 s; a NAT or network cut that drops packets silently would then go unnoticed
+    # for up to half an hour. 30 s detects it within ~45 s for a negligible ping cost.
+    keep_alive_s: int = 30
+
+    def __post_init__(self) -> None:
+        # Surrounding spaces (a hand-edited TOML value, a shell variable) are not part of a URL.
+        object.__setattr__(self, "url", (self.url or "").strip())
+        self._check_url()
+        self._check_client_id_prefix()
+        if self.ca_file and self.kind != "mqtts":
+            raise BrokerConfigError(
+                f"broker.ca_file = {self.ca_file!r} is set but broker.url = {self.url!r}: a private CA only "
+                "applies to mqtts:// (IoT Core uses the system trust store); clear ca_file or use mqtts://"
+            )
+        if self.ca_file and not Path(self.ca_file).is_file():
+            raise BrokerConfigError(
+                f"broker.ca_file = {self.ca_file!r} does not exist; give the PEM CA bundle that signed the "
+                "broker's certificate, or leave it empty"
+            )
+        if not 0 < self.min_reconnect_delay_ms <= self.max_reconnect_delay_ms:
+            raise BrokerConfigError(
+                f"reconnect delays must satisfy 0 < min ({self.min_reconnect_delay_ms} ms) <= max "
+                f"({self.max_reconnect_delay_ms} ms); fix broker.min_reconnect_delay_ms / "
+                "broker.max_reconnect_delay_ms"
+            )
+        lo, hi = KEEP_ALIVE_RANGE_S
+        if not lo <= self.keep_alive_s <= hi:
+            raise BrokerConfigError(
+                f"broker.keep_alive_s = {self.keep_alive_s} is outside {lo}..{hi} (IoT Core allows at most "
+                f"{hi} s)"
+            )
+
+    def _check_url(self) -> None:
+        url = self.url
+        if not url:
+            raise BrokerConfigError(
+                'broker.url is empty: use "iot" (AWS IoT Core), "mqtt://host:port" or "mqtts://host:port"'
+            )
+        if url == IOT:
+            return
+        parts = urlsplit(url)
+        if parts.scheme not in SCHEME_PORTS or not parts.hostname:
+            raise BrokerConfigError(
+                f'broker.url = {url!r} is not a broker: use "iot" (AWS IoT Core), "mqtt://host:port" '
+                '(plain TCP) or "mqtts://host:port" (TLS)'
+            )
+        if parts.path not in ("", "/") or parts.query or parts.username:
+            raise BrokerConfigError(
+                f"broker.url = {url!r} has a path, query or credentials; give only mqtt[s]://host:port"
+            )
+        try:
+            _ = parts.port
+        except ValueError as exc:
+            raise BrokerConfigError(
+                f"broker.url = {url!r} has a bad port ({exc}); use a number 1..65535, "
+                "e.g. mqtt://127.0.0.1:1883"
+            ) from None
+
+    def _check_client_id_prefix(self) -> None:
+        prefix = self.client_id_prefix
+        if len(prefix) > CLIENT_ID_PREFIX_MAX or not _CLIENT_ID_PREFIX_RE.match(prefix):
+            raise BrokerConfigError(
+                f"broker.client_id_prefix = {prefix!r} must be 1..{CLIENT_ID_PREFIX_MAX} characters of "
+                "letters, digits and _ . : - (the IAM policy matches client ids by this prefix)"
+            )
+
+    @property
+    def kind(self) -> str:
+        """ "iot", "mqtt" or "mqtts"."""
+        return IOT if self.url == IOT else urlsplit(self.url).scheme
+
+    @property
+    def host(self) -> str:
+        if self.kind == IOT:
+            return self.endpoint
+        return urlsplit(self.url).hostname or ""
+
+    @property
+    def port(self) -> int:
+        if self.kind == IOT:
+            return IOT_PORT
+        parts = urlsplit(self.url)
+        return parts.port or SCHEME_PORTS[parts.scheme]
+
+    def where(self) -> str:
+        """Where this connects, for log lines and errors."""
+        return self.url if self.kind != IOT else f"IoT Core ({self.region or 'default region'})"
+
+
+def new_client_id(prefix: str) -> str:
+    """prefix + 12 random hex digits: unique per process, since two clients with one id evict each other."""
+    return f"{prefix}{secrets.token_hex(6)}"

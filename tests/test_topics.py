@@ -1,0 +1,155 @@
+"""The topic and device-id rules (twin.core.topics) and everyone who applies them: the agent config, the
+decoder, the subscriber's filters, the edge simulator and the CDK stack's settings agree on one table."""
+
+from __future__ import annotations
+
+import random
+
+import pytest
+from twin.core.telemetry import RejectReason, TelemetryDecoder, TelemetryRejected
+from twin.core.topics import (
+    TopicError,
+    check_devices,
+    device_from_topic,
+    device_id_problem,
+    policy_device_id_problem,
+    telemetry_topic,
+    topic_filters,
+    topic_prefix_problem,
+)
+from twin.service.config import ConfigError, load_config
+from twin.tools.edge_payload import encode, make_payload
+
+from stacks.settings import SettingsError, TwinSettings
+
+# (device id, the agent accepts it, a deployment may list it). Hand-written from the rules: a topic level of
+# 1..128 printable characters without '/', '+', '#' or surrounding spaces; deployable ids are also IAM-safe.
+DEVICE_IDS = [
+    ("arm-001", True, True),
+    ("ARM_7", True, True),
+    ("a", True, True),
+    ("x" * 64, True, True),
+    ("x" * 65, True, False),
+    ("x" * 128, True, False),
+    ("x" * 129, False, False),
+    ("arm.001", True, False),
+    ("arm:001", True, False),  # a valid Greengrass thing name, but not in the stack's IAM-safe set
+    ("arm 001", True, False),
+    ("bras-été", True, False),
+    ("arm/001", False, False),
+    ("arm+", False, False),
+    ("#", False, False),
+    ("", False, False),
+    (" arm-001", False, False),
+    ("arm-001 ", False, False),
+    ("arm\x00", False, False),
+    ("arm\n1", False, False),
+]
+
+# (prefix, usable): plain levels of letters, digits, '.', '_', '-' joined by '/'.
+PREFIXES = [
+    ("dt/lerobot", True),
+    ("fleet", True),
+    ("a/b/c.d_e-f", True),
+    ("dt/lerobot/", False),
+    ("/dt/lerobot", False),
+    ("dt//lerobot", False),
+    ("dt/+", False),
+    ("dt/#", False),
+    ("$aws/things", False),
+    ("dt/le robot", False),
+    ("", False),
+]
+
+
+def _stack_accepts(**context: object) -> bool:
+    values = {"clientCidr": "203.0.113.7/32", **context}
+    try:
+        TwinSettings.from_context(values.get)
+    except SettingsError:
+        return False
+    return True
+
+
+def _config_accepts(**overrides: object) -> bool:
+    try:
+        load_config(None, overrides)
+    except ConfigError:
+        return False
+    return True
+
+
+def _decoder_accepts(device_id: str) -> bool:
+    payload = make_payload("placeholder", 0.0, "ticks", random.Random(0))
+    payload["device_id"] = device_id
+    try:
+        TelemetryDecoder().decode(encode(payload))
+    except TelemetryRejected as exc:
+        return exc.reason != RejectReason.BAD_DEVICE_ID
+    return True
+
+
+@pytest.mark.parametrize(("device_id", "agent", "deployable"), DEVICE_IDS)
+def test_every_part_applies_the_same_device_id_rule(device_id: str, agent: bool, deployable: bool) -> None:
+    assert (device_id_problem(device_id) is None) is agent
+    assert (policy_device_id_problem(device_id) is None) is deployable
+    assert _config_accepts(**{"telemetry.devices": [device_id]}) is agent
+    assert _decoder_accepts(device_id) is agent
+    if device_id == device_id.strip():  # the stack trims the items of `-c devices=a, b` before the rule
+        assert _stack_accepts(devices=[device_id]) is deployable
+    if agent:
+        assert topic_filters("dt/lerobot", [device_id]) == [f"dt/lerobot/{device_id}/telemetry"]
+        assert device_from_topic(telemetry_topic("dt/lerobot", device_id), "dt/lerobot") == device_id
+    else:
+        with pytest.raises(TopicError, match="not usable"):
+            telemetry_topic("dt/lerobot", device_id)
+
+
+@pytest.mark.parametrize(("prefix", "usable"), PREFIXES)
+def test_every_part_applies_the_same_topic_prefix_rule(prefix: str, usable: bool) -> None:
+    assert (topic_prefix_problem(prefix) is None) is usable
+    assert _config_accepts(**{"telemetry.topic_prefix": prefix}) is usable
+    if prefix:  # an empty context value means "the default" to the stack
+        assert _stack_accepts(topicPrefix=prefix) is usable
+    if usable:
+        assert topic_filters(prefix, ["*"]) == [f"{prefix}/+/telemetry"]
+    else:
+        with pytest.raises(TopicError):
+            topic_filters(prefix, ["*"])
+
+
+def test_deployable_ids_are_a_subset_of_what_the_agent_accepts() -> None:
+    for device_id, _, _ in DEVICE_IDS:
+        if policy_device_id_problem(device_id) is None:
+            assert device_id_problem(device_id) is None, device_id
+
+
+@pytest.mark.parametrize(
+    ("devices", "problem"),
+    [
+        ([], "empty"),
+        (["*", "arm-001"], "mixes"),
+        (["arm-001", "arm-001"], "twice"),
+        (["arm/1"], "not usable"),
+    ],
+)
+def test_device_lists(devices: list[str], problem: str) -> None:
+    with pytest.raises(TopicError, match=problem):
+        check_devices(devices)
+    assert not _config_accepts(**{"telemetry.devices": devices})
+
+
+@pytest.mark.parametrize(
+    ("topic", "device"),
+    [
+        ("dt/lerobot/arm-001/telemetry", "arm-001"),
+        ("dt/lerobot/arm-001/status", None),
+        ("dt/lerobot/a/b/telemetry", None),
+        ("dt/lerobot//telemetry", None),
+        ("other/arm-001/telemetry", None),
+        ("dt/lerobotX/arm-001/telemetry", None),
+        ("dt/lerobot", None),
+    ],
+)
+def test_device_from_topic(topic: str, device: str | None) -> None:
+    assert device_from_topic(topic, "dt/lerobot") == device
