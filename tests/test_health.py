@@ -9,6 +9,7 @@ from twin.core.health import (
     HealthThresholds,
     RateMeter,
     SampleWindow,
+    WindowLatency,
     percentile,
 )
 
@@ -59,14 +60,14 @@ def test_status_follows_silence_and_recovers() -> None:
     clock.advance(9.0)
     assert h.status() is DeviceStatus.OFFLINE
     assert fleet.offline_configured() == ["arm-001"]
-    assert h.snapshot()["age_s"] is None
+    assert h.snapshot().age_s is None
 
     feed(fleet, clock, "arm-001", 20)
     assert h.status() is DeviceStatus.ONLINE
     assert fleet.offline_configured() == []
     clock.advance(0.35)
     assert h.status() is DeviceStatus.STALE
-    assert h.snapshot()["age_s"] == pytest.approx(0.35)
+    assert h.snapshot().age_s == pytest.approx(0.35)
     clock.advance(10.0)
     assert h.status() is DeviceStatus.OFFLINE
     feed(fleet, clock, "arm-001", 1)
@@ -80,19 +81,19 @@ def test_age_ignores_the_edge_clock() -> None:
     for device, skew in (("behind", 3600.0), ("ahead", -3600.0)):
         feed(fleet, clock, device, 5, skew_s=skew)
         snap = fleet.device(device).snapshot()
-        assert snap["status"] == "ONLINE"
-        assert snap["age_s"] == 0.0
+        assert snap.status is DeviceStatus.ONLINE
+        assert snap.age_s == 0.0
 
 
 def test_rate_over_window() -> None:
     clock = FakeClock()
     fleet = FleetHealth(TH, clock=clock)
     feed(fleet, clock, "arm-001", 100, dt=0.1)  # 10 s at 10 Hz
-    assert fleet.device("arm-001").snapshot()["rate_hz"] == pytest.approx(10.0, abs=0.3)
+    assert fleet.device("arm-001").snapshot().rate_hz == pytest.approx(10.0, abs=0.3)
     feed(fleet, clock, "arm-001", 150, dt=0.02)  # 3 s at 50 Hz: window holds 2 s of 10 Hz + 3 s of 50 Hz
-    assert fleet.device("arm-001").snapshot()["rate_hz"] == pytest.approx((20 + 150) / 5.0, abs=1.0)
+    assert fleet.device("arm-001").snapshot().rate_hz == pytest.approx((20 + 150) / 5.0, abs=1.0)
     clock.advance(6.0)
-    assert fleet.device("arm-001").snapshot()["rate_hz"] == 0.0
+    assert fleet.device("arm-001").snapshot().rate_hz == 0.0
 
 
 def test_rate_meter_young_device_and_flood_memory() -> None:
@@ -120,10 +121,10 @@ def test_counters_and_rejections() -> None:
     fleet.record_rejected("arm-001", "too_large")
     fleet.record_rejected("ghost-9", "not_json")  # never valid, not configured: not a new table row
     fleet.record_rejected(None, "bad_device_id")
-    c = h.snapshot()["counters"]
-    assert (c["received"], c["decoded"], c["applied"], c["ignored_stale"]) == (3, 3, 3, 1)
-    assert (c["overwritten"], c["errors"], c["rejected_total"]) == (7, 1, 3)
-    assert c["rejected"] == {"not_json": 2, "too_large": 1}
+    c = h.snapshot().counters
+    assert (c.received, c.decoded, c.applied, c.ignored_stale) == (3, 3, 3, 1)
+    assert (c.overwritten, c.errors, c.rejected_total) == (7, 1, 3)
+    assert c.rejected == {"not_json": 2, "too_large": 1}
     assert "ghost-9" not in fleet.devices
     assert fleet.untracked_rejected == {"not_json": 1, "bad_device_id": 1}
 
@@ -135,23 +136,23 @@ def test_latency_reports_skew_as_offset() -> None:
     ok = fleet.device("ok").snapshot()
     feed(fleet, clock, "skewed", 30, skew_s=2.5)  # edge clock 2.5 s behind
     skewed = fleet.device("skewed").snapshot()
-    assert ok["edge_clock_latency_s"]["p50"] == pytest.approx(0.020, abs=0.002)
-    assert ok["edge_clock_offset_s"] == pytest.approx(0.020, abs=0.002)
+    assert ok.edge_clock_latency_s.p50 == pytest.approx(0.020, abs=0.002)
+    assert ok.edge_clock_offset_s == pytest.approx(0.020, abs=0.002)
     # The skewed edge looks 2.5 s "late"; the offset estimate carries it and the jitter stays small.
-    assert skewed["edge_clock_latency_s"]["p99"] == pytest.approx(2.52, abs=0.002)
-    assert skewed["edge_clock_offset_s"] == pytest.approx(2.52, abs=0.002)
-    assert skewed["edge_transit_jitter_p99_s"] == pytest.approx(0.0, abs=0.002)
-    assert ok["internal_latency_s"]["p50"] == pytest.approx(0.0005)
-    assert ok["internal_latency_s"]["samples"] == 30
+    assert skewed.edge_clock_latency_s.p99 == pytest.approx(2.52, abs=0.002)
+    assert skewed.edge_clock_offset_s == pytest.approx(2.52, abs=0.002)
+    assert skewed.edge_transit_jitter_p99_s == pytest.approx(0.0, abs=0.002)
+    assert ok.internal_latency_s.p50 == pytest.approx(0.0005)
+    assert ok.internal_latency_s.samples == 30
 
 
 def test_latency_window_forgets_old_samples() -> None:
     window = SampleWindow(5.0)
     window.add(0.0, 9.0)
     window.add(4.0, 1.0)
-    assert window.summary(4.5)["max"] == 9.0
-    assert window.summary(5.5) == {"p50": 1.0, "p99": 1.0, "min": 1.0, "max": 1.0, "samples": 1}
-    assert window.summary(20.0)["p50"] is None
+    assert window.values(4.5) == [9.0, 1.0]
+    assert window.summary(5.5) == (WindowLatency(p50=1.0, p99=1.0, samples=1), 1.0)
+    assert window.summary(20.0) == (WindowLatency(), None)
 
 
 def test_percentile_nearest_rank() -> None:

@@ -13,52 +13,44 @@ import urllib.request
 from typing import Any
 
 import pytest
-from twin.service.http_api import AgentHttpServer, render_metrics
+from conftest import fed_agent, http_get, metric, parse_metrics
+from twin.core.health import DeviceCounters, DeviceStatus, WindowLatency
+from twin.robot import so101
+from twin.service.http_api import AgentHttpServer
+from twin.service.metrics import render_metrics
+from twin.service.state import AgentInfo, AgentState, DeviceState, HealthReport, WorkerState
 
 
 class StubSource:
-    """A StateSource with a state that changes on every call, like the live agent's."""
+    """A StateSource whose state changes on every call, like the live agent's (for the server mechanics:
+    content types, SSE pacing, disconnects). What the agent itself publishes is tested on a real AgentService
+    below."""
 
     def __init__(self) -> None:
         self.calls = 0
         self.healthy = True
         self.lock = threading.Lock()
 
-    def state(self) -> dict[str, Any]:
+    def state(self) -> AgentState:
         with self.lock:
             self.calls += 1
             n = self.calls
-        return {
-            "agent": {
-                "running": True,
-                "uptime_s": 1.5,
-                "broker": {"url": "mqtt://127.0.0.1:1", "connected": True, "connection_successes": 2},
-                "worker": {"batches": n},
-            },
-            "devices": {
-                "arm-001": {
-                    "status": "ONLINE",
-                    "age_s": 0.05,
-                    "rate_hz": 10.0,
-                    "joints_rad": {"shoulder_pan": 0.25, "gripper": -0.1},
-                    "torques_nm": {"shoulder_pan": 0.0},
-                    "counters": {
-                        "received": n,
-                        "applied": n,
-                        "rejected": {"not_json": 3, 'we"ird\\': 1},
-                        "errors": 0,
-                    },
-                    "edge_clock_latency_s": {"p50": 0.02, "p99": 0.05, "samples": 10},
-                    "edge_clock_offset_s": 0.015,
-                    "internal_latency_s": {"p50": None, "p99": None, "samples": 0},
-                },
-                'we"ird\ndevice': {"status": "OFFLINE", "age_s": None, "rate_hz": float("nan")},
-            },
-            "untracked_rejected": {"bad_device_id": 4},
-        }
+        device = DeviceState(
+            device_id="arm-001",
+            status=DeviceStatus.ONLINE,
+            rate_hz=10.0,
+            counters=DeviceCounters(received=n, applied=n, rejected={"not_json": 3, 'we"ird\\': 1}),
+            joints_rad={"shoulder_pan": 0.25, "gripper": -0.1},
+        )
+        odd = DeviceState(device_id='we"ird\ndevice', rate_hz=float("nan"))
+        return AgentState(
+            agent=AgentInfo(running=True, uptime_s=1.5, worker=WorkerState(batches=n)),
+            devices={"arm-001": device, 'we"ird\ndevice': odd},
+            untracked_rejected={"bad_device_id": 4},
+        )
 
-    def healthz(self) -> tuple[bool, dict[str, Any]]:
-        return self.healthy, {"status": "ok" if self.healthy else "unavailable"}
+    def healthz(self) -> HealthReport:
+        return HealthReport(status="ok" if self.healthy else "unavailable")
 
 
 @pytest.fixture
@@ -73,11 +65,8 @@ def server():
 
 
 def get(url: str) -> tuple[int, str, str]:
-    try:
-        with urllib.request.urlopen(url, timeout=5) as resp:
-            return resp.status, resp.headers.get("Content-Type", ""), resp.read().decode()
-    except urllib.error.HTTPError as err:
-        return err.code, err.headers.get("Content-Type", ""), err.read().decode()
+    status, ctype, body = http_get(url)
+    return status, ctype, body.decode()
 
 
 def test_state_json(server) -> None:
@@ -98,11 +87,8 @@ HELP = re.compile(r"^# HELP [a-zA-Z_:][a-zA-Z0-9_:]* \S.*$")
 TYPE = re.compile(r"^# TYPE ([a-zA-Z_:][a-zA-Z0-9_:]*) (counter|gauge|summary|histogram|untyped)$")
 
 
-def test_metrics_is_prometheus_text(server) -> None:
-    srv, _ = server
-    status, ctype, body = get(srv.url + "/metrics")
-    assert status == 200
-    assert ctype.startswith("text/plain; version=0.0.4")
+def check_exposition(body: str) -> dict[str, str]:
+    """Line-level checks of the 0.0.4 text format; returns {family: type}."""
     assert body.endswith("\n")
     typed: dict[str, str] = {}
     for line in body.splitlines():
@@ -119,19 +105,20 @@ def test_metrics_is_prometheus_text(server) -> None:
             assert name in typed, f"sample {name} before its TYPE line"
     for name, kind in typed.items():
         assert (kind == "counter") == name.endswith("_total"), name
-    assert 'twin_messages_rejected_total{device="arm-001",reason="not_json"} 3' in body
-    assert 'reason="we\\"ird\\\\"' in body  # quote and backslash escaped in label values
-    assert 'device="we\\"ird\\ndevice"' in body
-    assert 'twin_device_status{device="arm-001",status="ONLINE"} 1' in body
-    assert 'twin_messages_rejected_total{device="_untracked",reason="bad_device_id"} 4' in body
-    assert 'twin_joint_position_radians{device="arm-001",joint="shoulder_pan"} 0.25' in body
-    # Unknown values are absent rather than a made-up zero.
-    assert "twin_internal_latency_p50_seconds{" not in body
+    return typed
 
 
-def test_render_metrics_of_empty_state() -> None:
-    text = render_metrics({})
-    assert "twin_up 0" in text.splitlines()
+def test_metrics_endpoint_serves_the_text_format(server) -> None:
+    srv, _ = server
+    status, ctype, body = get(srv.url + "/metrics")
+    assert status == 200
+    assert ctype.startswith("text/plain; version=0.0.4")
+    check_exposition(body)
+    samples = parse_metrics(body)
+    # Label values with a quote, a backslash and a newline survive the escaping.
+    assert metric(samples, "twin_messages_rejected_total", device="arm-001", reason='we"ird\\') == 1
+    assert metric(samples, "twin_device_status", device='we"ird\ndevice', status="OFFLINE") == 1
+    assert metric(samples, "twin_messages_rejected_total", device="_untracked", reason="bad_device_id") == 4
 
 
 def test_healthz_codes(server) -> None:
@@ -228,6 +215,69 @@ def test_port_in_use_error_names_the_fix() -> None:
         first.stop()
 
 
-def test_json_has_no_nan() -> None:
-    # Sanity of the stub: the NaN really is there, so the /state test above checks the conversion.
-    assert math.isnan(StubSource().state()["devices"]['we"ird\ndevice']["rate_hz"])
+def test_json_maps_non_finite_numbers_to_null() -> None:
+    state = AgentState(
+        agent=AgentInfo(uptime_s=math.inf),
+        devices={"a": DeviceState(rate_hz=math.nan, edge_clock_latency_s=WindowLatency(p50=-math.inf))},
+    )
+    doc = json.loads(state.to_json(), parse_constant=_refuse)
+    assert doc["agent"]["uptime_s"] is None
+    assert doc["devices"]["a"]["rate_hz"] is None
+    assert doc["devices"]["a"]["edge_clock_latency_s"]["p50"] is None
+
+
+def _refuse(token: str) -> Any:
+    raise AssertionError(f"{token} is not JSON")
+
+
+# -- what a real agent publishes ---------------------------------------------------------------------------
+
+
+def test_real_state_is_strict_json_and_round_trips() -> None:
+    with fed_agent() as service:
+        state = service.state()
+        status, ctype, body = http_get(service.http_url + "/state")
+    assert status == 200 and ctype == "application/json"
+    json.loads(body, parse_constant=_refuse)  # NaN/Infinity would be invalid JSON
+    assert AgentState.from_json(state.to_json()) == state  # every field survives the JSON round trip
+    again = AgentState.from_json(body)
+    assert again.untracked_rejected == {"not_utf8": 1}
+    arm = again.devices["arm-001"]
+    assert arm.counters.applied == 12 and arm.counters.rejected == {"not_json": 1}
+    assert arm.joints_rad is not None and set(arm.joints_rad) == set(so101.JOINT_NAMES)
+    silent = again.devices["arm-002"]
+    assert silent.joints_rad is None and silent.age_s is None and silent.timestamp_ms is None
+    assert again.agent.broker.connected is False
+
+
+def test_metrics_of_a_real_state_agree_with_it() -> None:
+    with fed_agent() as service:
+        state = service.state()
+        text = render_metrics(state)
+    typed = check_exposition(text)
+    assert typed["twin_messages_applied_total"] == "counter"
+    samples = parse_metrics(text)
+    arm = state.devices["arm-001"]
+    assert arm.joints_rad is not None and arm.torques_nm is not None
+    assert metric(samples, "twin_up") == 1
+    assert metric(samples, "twin_broker_connected") == 0
+    assert metric(samples, "twin_messages_applied_total", device="arm-001") == arm.counters.applied
+    assert metric(samples, "twin_messages_received_total", device="arm-001") == arm.counters.received
+    assert metric(samples, "twin_messages_rejected_total", device="arm-001", reason="not_json") == 1
+    assert metric(samples, "twin_messages_rejected_total", device="_untracked", reason="not_utf8") == 1
+    for joint in so101.JOINT_NAMES:
+        assert metric(samples, "twin_joint_position_radians", device="arm-001", joint=joint) == pytest.approx(
+            arm.joints_rad[joint], abs=1e-12
+        )
+        assert metric(samples, "twin_joint_torque_newton_metres", device="arm-001", joint=joint) == (
+            pytest.approx(arm.torques_nm[joint], abs=1e-12)
+        )
+    for status in DeviceStatus:
+        expected = 1 if arm.status is status else 0
+        assert metric(samples, "twin_device_status", device="arm-001", status=status.value) == expected
+    # arm-002 has never sent: its latencies and age are unknown, so absent rather than a made-up 0.
+    assert ("twin_device_last_message_age_seconds", (("device", "arm-002"),)) not in samples
+    assert ("twin_internal_latency_p50_seconds", (("device", "arm-002"),)) not in samples
+    assert metric(samples, "twin_internal_latency_p50_seconds", device="arm-001") == pytest.approx(
+        arm.internal_latency_s.p50
+    )

@@ -1,12 +1,12 @@
 import random
 
 import pytest
-from twin.core.latency import LatencyHistogram
+from twin.core.latency import LatencyHistogram, LatencySummary
 
 
 def test_empty_histogram_has_no_percentiles():
     h = LatencyHistogram()
-    assert h.summary() == {"count": 0, "mean": None, "p50": None, "p99": None, "max": None}
+    assert h.summary() == LatencySummary(count=0, mean=None, p50=None, p99=None, max=None)
 
 
 def test_percentiles_within_one_bucket_of_exact():
@@ -19,7 +19,7 @@ def test_percentiles_within_one_bucket_of_exact():
     for q in (0.5, 0.99):
         exact = values[int(q * len(values)) - 1]
         assert h.quantile(q) == pytest.approx(exact, rel=0.025)
-    assert h.summary()["max"] == values[-1]
+    assert h.summary().max == values[-1]
     assert h.count == len(values)
 
 
@@ -28,4 +28,4 @@ def test_extremes_land_in_edge_buckets_and_max_stays_exact():
     h.add(0.0)
     h.add(500.0)
     assert h.quantile(0.5) == pytest.approx(1e-6)
-    assert h.summary()["max"] == 500.0
+    assert h.summary().max == 500.0

@@ -5,14 +5,17 @@ from __future__ import annotations
 
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import fed_agent, metric, parse_metrics, wait_for
 from twin.core.telemetry import Telemetry, Units
 from twin.core.twin import DeviceTwin
-from twin.output.sinks import AppliedSample, QueuedSink, RejectedSample
+from twin.output.sinks import AppliedSample, QueuedSink, RejectedSample, SinkStats
 from twin.robot import so101
 from twin.robot.model import RobotModel
+from twin.service.metrics import render_metrics
 
 
 def _sample(i: int) -> AppliedSample:
@@ -145,3 +148,68 @@ def test_body_poses_equal_the_twins_forward_kinematics() -> None:
     # The gripper tip moved away from the reference pose: the angles were really used.
     ref = robot.body_poses({})
     assert np.linalg.norm(ref["gripper"][0] - got["gripper"][0]) > 0.05
+
+
+# -- wired into the agent ------------------------------------------------------------------------------------
+
+
+class _Sink:
+    """A sink that keeps what the worker hands it (fast and non-blocking: a list append)."""
+
+    name = "collect"
+
+    def __init__(self) -> None:
+        self.applied_samples: list[AppliedSample] = []
+        self.rejected_samples: list[RejectedSample] = []
+        self.closed = False
+
+    def applied(self, sample: AppliedSample) -> None:
+        self.applied_samples.append(sample)
+
+    def rejected(self, sample: RejectedSample) -> None:
+        self.rejected_samples.append(sample)
+
+    def stats(self) -> SinkStats:
+        return SinkStats(name=self.name, delivered=len(self.applied_samples), pending=0)
+
+    def close(self, timeout: float = 5.0) -> None:
+        self.closed = True
+
+
+def test_the_agent_hands_every_sample_to_every_sink_and_reports_them(tmp_path: Path) -> None:
+    sink = _Sink()
+    with fed_agent(12, sinks=[sink], **{"twin.record_dir": str(tmp_path)}) as service:
+        state = service.state()
+        samples = parse_metrics(render_metrics(state))
+        arm = state.devices["arm-001"]
+        assert [s.name for s in service.sinks] == ["usd", "collect"]
+        # Every applied sample reaches the recorder, which keeps at most 30 per second of receive time.
+        wait_for(
+            lambda: next(s for s in service.state().agent.sinks if s.name == "usd").delivered == 12,
+            10,
+            "the recording sink to take every applied sample",
+        )
+        recording = service.state().agent.recording
+        assert recording is not None
+        assert recording.samples_written >= 1
+        assert recording.samples_written + recording.samples_dropped == 12
+    assert sink.closed  # stop() closes the sinks it was given
+    # One AppliedSample per applied message, carrying the decoded telemetry and the angles the twin shows.
+    assert len(sink.applied_samples) == arm.counters.applied == 12
+    last = sink.applied_samples[-1]
+    assert last.device_id == "arm-001" and dict(last.joint_angles) == arm.joints_rad
+    assert last.timestamp_ms == arm.timestamp_ms
+    stamps = [s.timestamp_ms for s in sink.applied_samples]
+    assert stamps == sorted(stamps)
+    # One RejectedSample per rejection: the topic's device (tracked or not), the reason it was counted
+    # under, and the raw payload.
+    assert {(s.device_id, s.reason, s.payload) for s in sink.rejected_samples} == {
+        ("arm-001", "not_json", b"{not json"),
+        ("ghost", "not_utf8", b"\xff"),
+    }
+    # Sink figures in the typed state and in /metrics.
+    by_name = {s.name: s for s in state.agent.sinks}
+    assert by_name["collect"].delivered == 12
+    assert metric(samples, "twin_sink_delivered_total", sink="collect") == 12
+    assert metric(samples, "twin_sink_dropped_total", sink="usd") == by_name["usd"].dropped == 0
+    assert Path(recording.path).parent == tmp_path.resolve() and Path(recording.path).is_file()

@@ -16,9 +16,8 @@ import math
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Any
 
 Clock = Callable[[], float]
 
@@ -56,6 +55,50 @@ class HealthThresholds:
         return DeviceStatus.ONLINE
 
 
+@dataclass(frozen=True, slots=True)
+class WindowLatency:
+    """Percentiles (seconds) over the health window; None while the window holds no sample."""
+
+    p50: float | None = None
+    p99: float | None = None
+    samples: int = 0
+
+
+@dataclass(frozen=True)
+class DeviceCounters:
+    """Message counters of one device since the agent started (docs/agent.md, "counters")."""
+
+    received: int = 0
+    decoded: int = 0
+    applied: int = 0
+    ignored_stale: int = 0
+    overwritten: int = 0
+    errors: int = 0
+    clock_resets: int = 0
+    rejected_total: int = 0
+    rejected: dict[str, int] = field(default_factory=dict)
+    # Applied angles that lay outside the model's joint range and were clamped into it.
+    clamped: int = 0
+
+
+@dataclass(frozen=True)
+class HealthSnapshot:
+    """One device's health at one instant: what /state and /metrics publish for it."""
+
+    status: DeviceStatus = DeviceStatus.OFFLINE
+    age_s: float | None = None
+    rate_hz: float = 0.0
+    last_timestamp_ms: int | None = None
+    counters: DeviceCounters = field(default_factory=DeviceCounters)
+    # Receive wall time minus the edge timestamp. The edge clock is not NTP-disciplined, so this is transit
+    # delay PLUS clock offset; the offset estimate (the window minimum) shows how much is skew, and p99 minus
+    # that minimum is a transit jitter that no constant skew can fake.
+    edge_clock_latency_s: WindowLatency = field(default_factory=WindowLatency)
+    edge_clock_offset_s: float | None = None
+    edge_transit_jitter_p99_s: float | None = None
+    internal_latency_s: WindowLatency = field(default_factory=WindowLatency)
+
+
 def percentile(sorted_values: list[float], q: float) -> float | None:
     """Nearest-rank percentile (q in 0..1) of an ascending list; None when empty."""
     if not sorted_values:
@@ -80,15 +123,13 @@ class SampleWindow:
             self._samples.popleft()
         return [v for _, v in self._samples]
 
-    def summary(self, now: float) -> dict[str, float | int | None]:
+    def summary(self, now: float) -> tuple[WindowLatency, float | None]:
+        """Percentiles over the window, and its minimum (None when empty)."""
         values = sorted(self.values(now))
-        return {
-            "p50": percentile(values, 0.50),
-            "p99": percentile(values, 0.99),
-            "min": values[0] if values else None,
-            "max": values[-1] if values else None,
-            "samples": len(values),
-        }
+        latency = WindowLatency(
+            p50=percentile(values, 0.50), p99=percentile(values, 0.99), samples=len(values)
+        )
+        return latency, (values[0] if values else None)
 
 
 class RateMeter:
@@ -140,6 +181,7 @@ class DeviceHealth:
         self.overwritten = 0
         self.errors = 0
         self.clock_resets = 0
+        self.clamped = 0
         self.rejected: Counter[str] = Counter()
         self._rate = RateMeter(thresholds.window_s)
         self._edge_latency = SampleWindow(thresholds.window_s)
@@ -184,41 +226,33 @@ class DeviceHealth:
     def rejected_total(self) -> int:
         return sum(self.rejected.values())
 
-    def snapshot(self, now: float | None = None) -> dict[str, Any]:
-        """A JSON-ready view: what /state and /metrics publish for this device."""
+    def snapshot(self, now: float | None = None) -> HealthSnapshot:
+        """This device's health now (an immutable copy, safe to hand to other threads)."""
         now = self._clock() if now is None else now
-        edge = self._edge_latency.summary(now)
-        internal = self._internal_latency.summary(now)
-        offset = edge["min"]
-        p99 = edge["p99"]
-        return {
-            "status": str(self.status(now)),
-            "age_s": None if self.last_message_mono is None else max(0.0, now - self.last_message_mono),
-            "rate_hz": self._rate.rate(now),
-            "last_timestamp_ms": self.last_timestamp_ms,
-            "counters": {
-                "received": self.received,
-                "decoded": self.decoded,
-                "applied": self.applied,
-                "ignored_stale": self.ignored_stale,
-                "overwritten": self.overwritten,
-                "errors": self.errors,
-                "clock_resets": self.clock_resets,
-                "rejected_total": self.rejected_total,
-                "rejected": dict(sorted(self.rejected.items())),
-            },
-            # Receive wall time minus the edge timestamp. The edge clock is not NTP-disciplined, so this
-            # is transit delay PLUS clock offset; the offset estimate (the window minimum) shows how much is
-            # skew, and p99 minus that minimum is a transit jitter that no constant skew can fake.
-            "edge_clock_latency_s": {"p50": edge["p50"], "p99": p99, "samples": edge["samples"]},
-            "edge_clock_offset_s": offset,
-            "edge_transit_jitter_p99_s": None if offset is None or p99 is None else p99 - offset,
-            "internal_latency_s": {
-                "p50": internal["p50"],
-                "p99": internal["p99"],
-                "samples": internal["samples"],
-            },
-        }
+        edge, offset = self._edge_latency.summary(now)
+        internal, _ = self._internal_latency.summary(now)
+        return HealthSnapshot(
+            status=self.status(now),
+            age_s=None if self.last_message_mono is None else max(0.0, now - self.last_message_mono),
+            rate_hz=self._rate.rate(now),
+            last_timestamp_ms=self.last_timestamp_ms,
+            counters=DeviceCounters(
+                received=self.received,
+                decoded=self.decoded,
+                applied=self.applied,
+                ignored_stale=self.ignored_stale,
+                overwritten=self.overwritten,
+                errors=self.errors,
+                clock_resets=self.clock_resets,
+                rejected_total=self.rejected_total,
+                rejected=dict(sorted(self.rejected.items())),
+                clamped=self.clamped,
+            ),
+            edge_clock_latency_s=edge,
+            edge_clock_offset_s=offset,
+            edge_transit_jitter_p99_s=None if offset is None or edge.p99 is None else edge.p99 - offset,
+            internal_latency_s=internal,
+        )
 
 
 class FleetHealth:
@@ -266,6 +300,6 @@ class FleetHealth:
         now = self._clock() if now is None else now
         return [d for d in self.configured if self.devices[d].status(now) is DeviceStatus.OFFLINE]
 
-    def snapshot(self, now: float | None = None) -> dict[str, dict[str, Any]]:
+    def snapshot(self, now: float | None = None) -> dict[str, HealthSnapshot]:
         now = self._clock() if now is None else now
         return {device: health.snapshot(now) for device, health in sorted(self.devices.items())}

@@ -9,13 +9,24 @@ is kept alongside.
 from __future__ import annotations
 
 import math
-from typing import Any
+from dataclasses import dataclass
 
 _MIN_S = 1e-6  # 1 microsecond: anything faster lands in the first bucket
 _MAX_S = 100.0  # beyond this lands in the last bucket (max is still exact)
 _GROWTH = 1.02
 _LOG_GROWTH = math.log(_GROWTH)
 _BUCKETS = int(math.log(_MAX_S / _MIN_S) / _LOG_GROWTH) + 2
+
+
+@dataclass(frozen=True, slots=True)
+class LatencySummary:
+    """Count, mean, p50, p99 and max of a histogram, in seconds; None while it holds no sample."""
+
+    count: int = 0
+    mean: float | None = None
+    p50: float | None = None
+    p99: float | None = None
+    max: float | None = None
 
 
 class LatencyHistogram:
@@ -54,11 +65,13 @@ class LatencyHistogram:
                 return min(upper, self.max)
         return self.max
 
-    def summary(self) -> dict[str, Any]:
-        return {
-            "count": self.count,
-            "mean": self.total / self.count if self.count else None,
-            "p50": self.quantile(0.50),
-            "p99": self.quantile(0.99),
-            "max": self.max if self.count else None,
-        }
+    def summary(self) -> LatencySummary:
+        if not self.count:
+            return LatencySummary()
+        return LatencySummary(
+            count=self.count,
+            mean=self.total / self.count,
+            p50=self.quantile(0.50),
+            p99=self.quantile(0.99),
+            max=self.max,
+        )

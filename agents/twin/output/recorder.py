@@ -11,7 +11,8 @@ Time code = (t_seconds - origin) * time_codes_per_second, where origin is the fi
 session (kept in the layer's customLayerData as `twin:timeOriginSeconds`), so callers may pass any monotonic
 clock. At most time_codes_per_second samples per device are kept: a sample less than one time code after
 that device's previous one is dropped (and counted). The layer is saved every flush_interval_s of wall time,
-driven by record(), so a crash loses at most that much.
+driven by record() and flush_if_due(), so a crash loses at most that much. In the agent the recorder runs as
+a sink on its own thread (twin.output.recording), never on the mirror's worker.
 """
 
 from __future__ import annotations
@@ -112,18 +113,7 @@ class SessionRecorder:
         # Poses arrive in metres; the asset's unit decides what a translate value means.
         self._units_per_metre = 1.0 / meters_per_unit
 
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._stage = Usd.Stage.CreateNew(str(self.path))
-        if self._stage is None:
-            raise OSError(f"cannot create USD stage {self.path}; check the folder is writable")
-        UsdGeom.SetStageUpAxis(self._stage, UsdGeom.GetStageUpAxis(asset))
-        UsdGeom.SetStageMetersPerUnit(self._stage, meters_per_unit)
-        self._stage.SetTimeCodesPerSecond(self.time_codes_per_second)
-        self._stage.SetFramesPerSecond(self.time_codes_per_second)
-        self._stage.SetStartTimeCode(0)
-        self._stage.SetEndTimeCode(0)
-        world = UsdGeom.Xform.Define(self._stage, "/World")
-        self._stage.SetDefaultPrim(world.GetPrim())
+        self._stage = self._create_stage(asset, meters_per_unit)
         self._layer: Sdf.Layer = self._stage.GetRootLayer()
         self._asset_ref = _relative_asset_path(self.asset_path, self.path.parent)
 
@@ -142,6 +132,22 @@ class SessionRecorder:
         self._layer.Save()
         self._last_flush = time.monotonic()
         log.info("recording session to %s (asset %s)", self.path, self._asset_ref)
+
+    def _create_stage(self, asset: Usd.Stage, meters_per_unit: float) -> Usd.Stage:
+        """The session stage: the asset's up axis and units, a /World default prim, time codes per second."""
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        stage = Usd.Stage.CreateNew(str(self.path))
+        if stage is None:
+            raise OSError(f"cannot create USD stage {self.path}; check the folder is writable")
+        UsdGeom.SetStageUpAxis(stage, UsdGeom.GetStageUpAxis(asset))
+        UsdGeom.SetStageMetersPerUnit(stage, meters_per_unit)
+        stage.SetTimeCodesPerSecond(self.time_codes_per_second)
+        stage.SetFramesPerSecond(self.time_codes_per_second)
+        stage.SetStartTimeCode(0)
+        stage.SetEndTimeCode(0)
+        world = UsdGeom.Xform.Define(stage, "/World")
+        stage.SetDefaultPrim(world.GetPrim())
+        return stage
 
     @property
     def time_origin_s(self) -> float | None:
@@ -199,6 +205,19 @@ class SessionRecorder:
             missing = [link.name for link in self._links if link.name not in poses]
             log.warning("device %r: no poses for bodies %s; they keep the asset's pose", device_id, missing)
 
+        self._author(track, poses, tc)
+        track.last_time_code = tc
+        track.samples += 1
+        self.samples_written += 1
+        self._min_time_code = min(self._min_time_code, tc)
+        self._max_time_code = max(self._max_time_code, tc)
+        self.flush_if_due()
+        return True
+
+    def _author(
+        self, track: _DeviceTrack, poses: dict[str, tuple[np.ndarray, np.ndarray]], tc: float
+    ) -> None:
+        """Time-sample every body's local transform so its composed world transform equals its pose."""
         worlds: dict[str, Gf.Matrix4d] = {}
         with Sdf.ChangeBlock():
             for link in self._links:  # base to tip, so a parent's world is known before its children
@@ -218,14 +237,11 @@ class SessionRecorder:
                 track.last_quat[link.name] = quat
                 track.translate_attrs[link.name].Set(local.ExtractTranslation(), tc)
                 track.orient_attrs[link.name].Set(quat, tc)
-        track.last_time_code = tc
-        track.samples += 1
-        self.samples_written += 1
-        self._min_time_code = min(self._min_time_code, tc)
-        self._max_time_code = max(self._max_time_code, tc)
-        if time.monotonic() - self._last_flush >= self.flush_interval_s:
+
+    def flush_if_due(self) -> None:
+        """Save when `flush_interval_s` has passed since the last save (record() and an idle sink call it)."""
+        if not self._closed and time.monotonic() - self._last_flush >= self.flush_interval_s:
             self.flush()
-        return True
 
     def flush(self) -> None:
         """Save the stage so far (time range included). A failed save is logged and counted, not raised."""

@@ -1,22 +1,30 @@
-"""The agent service: MQTT telemetry in, one MuJoCo twin per device, health, HTTP out, optional USD recording.
+"""The agent service: MQTT telemetry in, one MuJoCo twin per device, health, HTTP out, and sinks.
 
-Data path and threads:
+Data path and threads (docs/architecture.md draws it):
 
     CRT event loop --on_message--> LatestValueMailbox (one slot per device, never blocks)
-        --take_all--> worker thread: decode -> DeviceTwin.apply -> health -> recorder -> snapshots
-    HTTP threads read the published snapshots and health under one short lock.
+        --take_all--> worker thread: decode -> admit device -> DeviceTwin.apply (clock-jump check) -> health
+                      -> sinks (USD recording, ...) -> snapshots
+    HTTP threads read the published snapshots and health under one short lock (`state()`, `healthz()`).
 
 The CRT callback only stamps the receive times and drops the message in the mailbox: decoding there would
-stall the client's event loop. The worker owns the decoder (not thread-safe: auto-units state), every
-DeviceTwin and the recorder; other threads only see immutable TwinSnapshots and health dicts. Any exception
-while handling one message is caught, logged (rate-limited) and counted: a bad message never stops the
-service.
+stall the client's event loop. The worker owns the decoder (not thread-safe: auto-units state) and every
+DeviceTwin; other threads only see immutable TwinSnapshots and health snapshots. Any exception while handling
+one message is caught, logged (rate-limited) and counted: a bad message never stops the service.
+
+Sinks (twin.output.sinks) receive every applied message as an `AppliedSample` and every rejected one as a
+`RejectedSample`, on the worker thread; each returns at once (I/O sinks queue to a thread of their own). The
+USD recording is one such sink; `AgentService(..., sinks=[...])` adds more.
 
 Ordering uses the edge timestamp (DeviceTwin.apply ignores anything not newer), liveness uses the agent's
 monotonic receive time (twin.core.health). The two meet in one place: when a device keeps sending valid
 messages that are all older than the last applied one for a while, its edge clock has jumped backwards (an
 edge without NTP rebooting, say); waiting for the clock to catch up would freeze the twin for as long as the
 jump, so the device's twin is rebuilt on the new timeline and the reset is counted and logged.
+
+Time: every reading of the clock goes through the injected `clock` (monotonic seconds: receive stamps, ages,
+latencies, physics steps) and `wall_clock` (epoch seconds: receive wall time, `started_at`), so tests can
+drive the service on a timeline of their own.
 """
 
 from __future__ import annotations
@@ -25,15 +33,19 @@ import logging
 import os
 import threading
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
-from twin.core.health import DeviceStatus, FleetHealth
+from twin.core.health import DeviceStatus, FleetHealth, HealthSnapshot
 from twin.core.latency import LatencyHistogram
-from twin.core.telemetry import DecoderConfig, TelemetryDecoder, TelemetryRejected, Units
+from twin.core.telemetry import DecoderConfig, Telemetry, TelemetryDecoder, TelemetryRejected, Units
+from twin.core.topics import device_from_topic, topic_filters
 from twin.core.twin import DeviceTwin, TwinMode, TwinSnapshot
 from twin.output.recorder import SessionRecorder
+from twin.output.recording import RecordingSink
+from twin.output.sinks import AppliedSample, RejectedSample, TwinSink
 
 # This module is the heavy end of the agent (MuJoCo, awscrt, USD); `twin run` imports it only when it runs.
 from twin.robot.calibration import load_calibration
@@ -41,16 +53,23 @@ from twin.robot.model import ModelError, RobotModel
 from twin.service.config import AgentConfig, ConfigError
 from twin.service.http_api import AgentHttpServer
 from twin.service.logs import RateLimitedLog
-from twin.transport.mailbox import LatestValueMailbox
-from twin.transport.subscriber import (
-    BrokerConfig,
-    BrokerConfigError,
-    TelemetrySubscriber,
-    device_from_topic,
-    topic_filters,
+from twin.service.state import (
+    AgentInfo,
+    AgentState,
+    BrokerState,
+    DeviceState,
+    FleetLatency,
+    HealthReport,
+    MailboxState,
+    RecordingState,
+    WorkerState,
 )
+from twin.transport.mailbox import LatestValueMailbox
+from twin.transport.subscriber import TelemetrySubscriber
 
 log = logging.getLogger(__name__)
+
+Clock = Callable[[], float]
 
 # A device whose valid messages have all been older than its last applied one for this long (and this many
 # messages) has had its edge clock jump backwards: rebuild its twin on the new timeline. Reordering and
@@ -75,7 +94,7 @@ class _Inbound:
 
 
 @dataclass
-class _DeviceState:
+class _Tracked:
     """Worker-private per-device bookkeeping next to its DeviceTwin."""
 
     twin: DeviceTwin
@@ -84,39 +103,53 @@ class _DeviceState:
     gripper_percent: float | None = None
 
 
+class _Applied(NamedTuple):
+    """What applying one message did to a device's twin."""
+
+    tracked: _Tracked
+    applied: bool
+    reset: bool
+    updated_mono: float
+    clamped: int
+
+
+@dataclass(frozen=True, slots=True)
+class _Readout:
+    """Everything `state()` copies under the lock, to build the typed state outside it."""
+
+    now: float
+    health: dict[str, HealthSnapshot]
+    snapshots: dict[str, TwinSnapshot]
+    units: dict[str, str]
+    gripper: dict[str, float | None]
+    untracked: dict[str, int]
+    batches: int
+    latency: FleetLatency
+
+
 class AgentService:
-    """Wires config -> subscriber -> mailbox -> worker -> twins/health/recorder -> HTTP. See the module doc.
+    """Wires config -> subscriber -> mailbox -> worker -> twins/health/sinks -> HTTP. See the module doc.
 
     Lifecycle: `start()` (returns once everything is running; the broker connection itself is asynchronous),
-    `stop()` (idempotent; drains, flushes the recording, stops HTTP). `state()` and `healthz()` may be called
-    from any thread.
+    `stop()` (idempotent; drains, closes the sinks (final USD save), stops HTTP). `state()` and `healthz()`
+    may be called from any thread. `sinks` are extra outputs; the service closes them in `stop()`.
     """
 
-    def __init__(self, config: AgentConfig, *, clock: Any = time.monotonic) -> None:
+    def __init__(
+        self,
+        config: AgentConfig,
+        *,
+        clock: Clock = time.monotonic,
+        wall_clock: Clock = time.time,
+        sinks: Sequence[TwinSink] = (),
+    ) -> None:
         # Everything that can be wrong with the configuration is found here, before any thread or socket.
         self.config = config
+        self.broker_config = config.broker  # validated when the config was built
         self._clock = clock
+        self._wall_clock = wall_clock
         t = config.telemetry
-        try:
-            self.broker_config = BrokerConfig(
-                url=config.broker.url,
-                region=config.broker.region,
-                endpoint=config.broker.endpoint,
-                client_id_prefix=config.broker.client_id_prefix,
-                ca_file=config.broker.ca_file,
-            )
-        except BrokerConfigError as exc:
-            raise ConfigError(f"[broker]: {exc}") from exc
-        try:
-            calibration = load_calibration(t.calibration) if t.calibration else None
-        except ValueError as exc:
-            raise ConfigError(f"telemetry.calibration = {t.calibration!r}: {exc}") from exc
-        try:
-            self._decoder_config = DecoderConfig(
-                units=Units(t.units), calibration=calibration, max_payload_bytes=t.max_payload_bytes
-            )
-        except ValueError as exc:
-            raise ConfigError(f"[telemetry]: {exc}") from exc
+        self._decoder = TelemetryDecoder(self._decoder_config(config))
         self.mode = TwinMode(config.twin.mode)
         try:
             self.robot = RobotModel.load(config.twin.model or None)
@@ -125,21 +158,23 @@ class AgentService:
         except ModelError as exc:
             raise ConfigError(f"twin.model = {config.twin.model!r}: {exc}") from exc
         self.topic_filters = topic_filters(t.topic_prefix, list(t.devices))
-        self._decoder = TelemetryDecoder(self._decoder_config)
 
         configured = () if t.all_devices else t.devices
         self._fleet = FleetHealth(config.health, configured, clock=clock)
-        self._devices: dict[str, _DeviceState] = {}
+        self._devices: dict[str, _Tracked] = {}
         self._snapshots: dict[str, TwinSnapshot] = {}
         self._units: dict[str, str] = {}
+        self._gripper: dict[str, float | None] = {}
         self._lock = threading.Lock()
         self._reject_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
         self._error_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
 
         self._mailbox: LatestValueMailbox[_Inbound] = LatestValueMailbox(max_keys=max(64, 4 * t.max_devices))
-        self._subscriber: Any = None
-        self._http: Any = None
-        self._recorder: SessionRecorder | None = None
+        self._subscriber: TelemetrySubscriber | None = None
+        self._http: AgentHttpServer | None = None
+        self._recording: RecordingSink | None = None
+        self._extra_sinks: tuple[TwinSink, ...] = tuple(sinks)
+        self._sinks: tuple[TwinSink, ...] = ()
         self._worker: threading.Thread | None = None
         self._started_mono: float | None = None
         self._started_wall: float | None = None
@@ -154,17 +189,34 @@ class AgentService:
         self.processed = 0
         self.errors = 0
 
+    @staticmethod
+    def _decoder_config(config: AgentConfig) -> DecoderConfig:
+        t = config.telemetry
+        try:
+            calibration = load_calibration(t.calibration) if t.calibration else None
+        except ValueError as exc:
+            raise ConfigError(f"telemetry.calibration = {t.calibration!r}: {exc}") from exc
+        try:
+            return DecoderConfig(
+                units=Units(t.units), calibration=calibration, max_payload_bytes=t.max_payload_bytes
+            )
+        except ValueError as exc:
+            raise ConfigError(f"[telemetry]: {exc}") from exc
+
     # -------------------------------------------------------------------------------------------- lifecycle
 
     def start(self) -> None:
-        """Start the worker, the recorder, the HTTP server and the subscriber (in that order, so nothing a
+        """Start the sinks, the worker, the HTTP server and the subscriber (in that order, so nothing a
         message triggers can meet a half-built service). Raises OSError if the HTTP address is taken."""
         if self._running.is_set():
             return
         self._started_mono = self._clock()
-        self._started_wall = time.time()
+        self._started_wall = self._wall_clock()
         if self.config.twin.record_dir:
-            self._recorder = self._open_recorder(Path(self.config.twin.record_dir))
+            self._recording = RecordingSink(
+                self._open_recorder(Path(self.config.twin.record_dir)), self.robot
+            )
+        self._sinks = (*((self._recording,) if self._recording else ()), *self._extra_sinks)
         try:
             self._http = AgentHttpServer(
                 self,
@@ -173,14 +225,15 @@ class AgentService:
                 stream_rate_hz=self.config.http.stream_rate_hz,
             )
         except OSError:
-            if self._recorder is not None:
-                self._recorder.close()
+            self._close_sinks(timeout=5.0)
             raise
         self._running.set()
         self._worker = threading.Thread(target=self._work, name="twin-worker", daemon=True)
         self._worker.start()
         self._http.start()
-        self._subscriber = TelemetrySubscriber(self.broker_config, self.topic_filters, self._on_message)
+        self._subscriber = TelemetrySubscriber(
+            self.broker_config, self.topic_filters, self._on_message, clock=self._clock
+        )
         self._subscriber.start()
         log.info(
             "agent started",
@@ -190,19 +243,18 @@ class AgentService:
                 "http": self._http.url,
                 "mode": str(self.mode),
                 "units": self.config.telemetry.units,
-                "recording": str(self._recorder.path) if self._recorder else None,
+                "recording": str(self._recording.path) if self._recording else None,
+                "sinks": [sink.name for sink in self._sinks],
             },
         )
 
     def _open_recorder(self, directory: Path) -> SessionRecorder:
-        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(self._wall_clock()))
         path = directory / f"session-{stamp}-{os.getpid()}.{self.config.twin.record_format}"
         return SessionRecorder(path, flush_interval_s=self.config.twin.record_flush_s)
 
     def stop(self, timeout: float = 5.0) -> None:
-        """Stop the subscriber, drain the mailbox, close the recording (final USD save), stop HTTP.
-
-        Idempotent."""
+        """Stop the subscriber, drain the mailbox, close the sinks (final USD save), stop HTTP. Idempotent."""
         with self._stop_lock:
             if self._stopped:
                 return
@@ -220,14 +272,17 @@ class AgentService:
             if self._worker.is_alive():
                 log.error("twin worker did not finish within %.1f s", timeout)
         self._running.clear()
-        if self._recorder is not None:
-            try:
-                self._recorder.close()
-            except Exception:
-                log.exception("closing the session recording failed")
+        self._close_sinks(timeout)
         if self._http is not None:
             self._http.stop()
         log.info("agent stopped", extra={"processed": self.processed, "errors": self.errors})
+
+    def _close_sinks(self, timeout: float) -> None:
+        for sink in self._sinks or self._extra_sinks:
+            try:
+                sink.close(timeout)
+            except Exception:
+                log.exception("closing sink %s failed", sink.name)
 
     def __enter__(self) -> AgentService:
         self.start()
@@ -248,7 +303,12 @@ class AgentService:
 
     @property
     def recording_path(self) -> Path | None:
-        return self._recorder.path if self._recorder is not None else None
+        return self._recording.path if self._recording is not None else None
+
+    @property
+    def sinks(self) -> tuple[TwinSink, ...]:
+        """The sinks in use (the recording first, when there is one); empty before start()."""
+        return self._sinks
 
     def wait_subscribed(self, timeout: float) -> bool:
         return self._subscriber is not None and self._subscriber.wait_subscribed(timeout)
@@ -257,14 +317,14 @@ class AgentService:
 
     def _on_message(self, topic: str, payload: bytes, recv_mono: float) -> None:
         device = device_from_topic(topic, self.config.telemetry.topic_prefix)
-        self._mailbox.put(device or UNTRACKED_KEY, _Inbound(topic, payload, recv_mono, time.time()))
+        self._mailbox.put(device or UNTRACKED_KEY, _Inbound(topic, payload, recv_mono, self._wall_clock()))
 
     # ------------------------------------------------------------------------------------------ worker
 
     def _work(self) -> None:
         physics = self.mode is TwinMode.PHYSICS
         wake = 1.0 / self.config.twin.physics_rate_hz if physics else IDLE_WAKE_S
-        last_step = time.monotonic()
+        last_step = self._clock()
         while True:
             items = self._mailbox.take_all(wake)
             if not items and self._mailbox.closed:
@@ -275,23 +335,25 @@ class AgentService:
                 if device is not None:
                     dirty.add(device)
             if physics:
-                now = time.monotonic()
-                elapsed = min(now - last_step, MAX_PHYSICS_STEP_S)
+                now = self._clock()
+                self._step_physics(min(now - last_step, MAX_PHYSICS_STEP_S), dirty)
                 last_step = now
-                for device, ds in self._devices.items():
-                    try:
-                        ds.twin.step(elapsed)
-                    except Exception:
-                        self._count_error(device, "physics step failed")
-                    dirty.add(device)
             self._publish(dirty, [k for k, _ in items])
+
+    def _step_physics(self, elapsed: float, dirty: set[str]) -> None:
+        for device, tracked in self._devices.items():
+            try:
+                tracked.twin.step(elapsed)
+            except Exception:
+                self._count_error(device, "physics step failed")
+            dirty.add(device)
 
     def _publish(self, dirty: set[str], keys: list[str]) -> None:
         snapshots = {}
         for device in dirty:
-            ds = self._devices.get(device)
-            if ds is not None:
-                snapshots[device] = ds.twin.snapshot()
+            tracked = self._devices.get(device)
+            if tracked is not None:
+                snapshots[device] = tracked.twin.snapshot()
         overwritten = self._mailbox.overwritten
         with self._lock:
             self._snapshots.update(snapshots)
@@ -303,103 +365,161 @@ class AgentService:
                 self.batches += 1
 
     def _process(self, key: str, item: _Inbound) -> str | None:
-        """Handle one message; returns the device whose twin changed, if any. Never raises."""
+        """Handle one message; returns the device whose twin changed, if any. Never raises.
+
+        The steps: decode (a rejection is counted and handed to the sinks), admit the device (bounded by
+        telemetry.max_devices), apply it to the twin (with clock-jump detection), record health and latency,
+        hand the applied sample to the sinks.
+        """
         topic_device = None if key == UNTRACKED_KEY else key
         try:
             self.processed += 1
-            try:
-                telemetry = self._decoder.decode(item.payload, topic_device=topic_device)
-            except TelemetryRejected as exc:
-                with self._lock:
-                    health = self._fleet.get(topic_device) if topic_device else None
-                    if health is not None:
-                        health.record_received()
-                    self._fleet.record_rejected(topic_device, exc.reason)
-                self._reject_log.log(
-                    (topic_device, str(exc.reason)),
-                    logging.WARNING,
-                    "telemetry rejected",
-                    device=topic_device,
-                    topic=item.topic,
-                    reason=str(exc.reason),
-                    detail=str(exc),
-                )
+            telemetry = self._decode(topic_device, item)
+            if telemetry is None:
                 return None
-
-            device = telemetry.device_id
-            ds = self._devices.get(device)
-            if ds is None:
-                if len(self._devices) >= self.config.telemetry.max_devices:
-                    with self._lock:
-                        self._fleet.record_rejected(None, TOO_MANY_DEVICES)
-                    self._reject_log.log(
-                        TOO_MANY_DEVICES,
-                        logging.WARNING,
-                        "device ignored: telemetry.max_devices twins already exist; raise it if the fleet is "
-                        "really this large",
-                        device=device,
-                        max_devices=self.config.telemetry.max_devices,
-                    )
-                    return None
-                ds = self._new_device(device)
-            ds.gripper_percent = telemetry.gripper_percent
-            units = str(self._decoder.units_for(device))
-
-            applied = ds.twin.apply(telemetry.angles_rad, telemetry.timestamp_ms)
-            updated = time.monotonic()
-            reset = False
-            if applied:
-                ds.stale_streak = 0
-            else:
-                if ds.stale_streak == 0:
-                    ds.stale_since = item.recv_mono
-                ds.stale_streak += 1
-                if (
-                    ds.stale_streak >= CLOCK_RESET_MIN_MESSAGES
-                    and item.recv_mono - ds.stale_since >= CLOCK_RESET_AFTER_S
-                ):
-                    reset = True
-                    previous = ds.twin.last_timestamp_ms
-                    ds = self._new_device(device, replace=True)
-                    applied = ds.twin.apply(telemetry.angles_rad, telemetry.timestamp_ms)
-                    updated = time.monotonic()
-                    log.warning(
-                        "edge clock of %s jumped backwards; twin rebuilt on the new timeline",
-                        device,
-                        extra={"device": device, "last_ms": previous, "now_ms": telemetry.timestamp_ms},
-                    )
-
-            with self._lock:
-                health = self._fleet.device(device)
-                health.record_received()
-                health.record_decoded(item.recv_mono, item.recv_wall, telemetry.timestamp_ms)
-                if reset:
-                    health.clock_resets += 1
-                if applied:
-                    health.record_applied(item.recv_mono, updated, telemetry.timestamp_ms)
-                    self._internal_hist.add(updated - item.recv_mono)
-                    # Twin-updated wall time minus the edge stamp: only meaningful when the clocks agree
-                    # (same host in `twin bench`); in the field it includes the edge clock's offset.
-                    self._end_to_end_hist.add(
-                        item.recv_wall + (updated - item.recv_mono) - telemetry.timestamp_ms / 1000.0
-                    )
-                else:
-                    health.record_ignored_stale()
-                self._units[device] = units
-
-            if applied and self._recorder is not None:
-                self._recorder.record(device, item.recv_mono, ds.twin.body_poses())
-            return device if applied else None
+            tracked = self._admit(telemetry.device_id)
+            if tracked is None:
+                return None
+            tracked.gripper_percent = telemetry.gripper_percent
+            result = self._apply(tracked, telemetry, item)
+            self._record_health(telemetry, item, result)
+            if result.applied and self._sinks:
+                self._hand_applied(telemetry, item, result.tracked)
+            return telemetry.device_id if result.applied else None
         except Exception:
             self._count_error(topic_device, "processing a message failed", topic=item.topic)
             return None
 
-    def _new_device(self, device: str, *, replace: bool = False) -> _DeviceState:
-        ds = _DeviceState(twin=DeviceTwin(self.robot, device, self.mode))
-        self._devices[device] = ds
+    def _decode(self, topic_device: str | None, item: _Inbound) -> Telemetry | None:
+        """The decoded telemetry, or None after counting, logging and handing on the rejection."""
+        try:
+            return self._decoder.decode(item.payload, topic_device=topic_device)
+        except TelemetryRejected as exc:
+            rejected = exc
+        reason = str(rejected.reason)
+        with self._lock:
+            health = self._fleet.get(topic_device) if topic_device else None
+            if health is not None:
+                health.record_received()
+            self._fleet.record_rejected(topic_device, reason)
+        self._reject_log.log(
+            (topic_device, reason),
+            logging.WARNING,
+            "telemetry rejected",
+            device=topic_device,
+            topic=item.topic,
+            reason=reason,
+            detail=str(rejected),
+        )
+        if self._sinks:
+            sample = RejectedSample(
+                device_id=topic_device,
+                topic=item.topic,
+                received_wall_s=item.recv_wall,
+                reason=reason,
+                detail=str(rejected),
+                payload=item.payload,
+            )
+            for sink in self._sinks:
+                self._guard_sink(sink, sink.rejected, sample)
+        return None
+
+    def _admit(self, device: str) -> _Tracked | None:
+        """The device's tracked twin, created on its first message unless max_devices twins exist."""
+        tracked = self._devices.get(device)
+        if tracked is not None:
+            return tracked
+        limit = self.config.telemetry.max_devices
+        if len(self._devices) >= limit:
+            with self._lock:
+                self._fleet.record_rejected(None, TOO_MANY_DEVICES)
+            self._reject_log.log(
+                TOO_MANY_DEVICES,
+                logging.WARNING,
+                "device ignored: telemetry.max_devices twins already exist; raise it if the fleet is "
+                "really this large",
+                device=device,
+                max_devices=limit,
+            )
+            return None
+        return self._new_device(device)
+
+    def _apply(self, tracked: _Tracked, telemetry: Telemetry, item: _Inbound) -> _Applied:
+        """Apply to the twin. A long run of only-older messages means the edge clock jumped back (module doc):
+        the twin is then rebuilt on the new timeline."""
+        twin = tracked.twin
+        clamped_before = twin.clamped
+        applied = twin.apply(telemetry.angles_rad, telemetry.timestamp_ms)
+        updated = self._clock()
+        if applied:
+            tracked.stale_streak = 0
+            return _Applied(tracked, True, False, updated, twin.clamped - clamped_before)
+        if tracked.stale_streak == 0:
+            tracked.stale_since = item.recv_mono
+        tracked.stale_streak += 1
+        if (
+            tracked.stale_streak < CLOCK_RESET_MIN_MESSAGES
+            or item.recv_mono - tracked.stale_since < CLOCK_RESET_AFTER_S
+        ):
+            return _Applied(tracked, False, False, updated, 0)
+        device = telemetry.device_id
+        previous = twin.last_timestamp_ms
+        tracked = self._new_device(device, replace=True)
+        applied = tracked.twin.apply(telemetry.angles_rad, telemetry.timestamp_ms)
+        updated = self._clock()
+        log.warning(
+            "edge clock of %s jumped backwards; twin rebuilt on the new timeline",
+            device,
+            extra={"device": device, "last_ms": previous, "now_ms": telemetry.timestamp_ms},
+        )
+        return _Applied(tracked, applied, True, updated, tracked.twin.clamped)
+
+    def _record_health(self, telemetry: Telemetry, item: _Inbound, result: _Applied) -> None:
+        device = telemetry.device_id
+        units = str(self._decoder.units_for(device))
+        with self._lock:
+            health = self._fleet.device(device)
+            health.record_received()
+            health.record_decoded(item.recv_mono, item.recv_wall, telemetry.timestamp_ms)
+            health.clamped += result.clamped
+            if result.reset:
+                health.clock_resets += 1
+            if result.applied:
+                health.record_applied(item.recv_mono, result.updated_mono, telemetry.timestamp_ms)
+                internal = result.updated_mono - item.recv_mono
+                self._internal_hist.add(internal)
+                # Twin-updated wall time minus the edge stamp: only meaningful when the clocks agree (same
+                # host in `twin bench`); in the field it includes the edge clock's offset.
+                self._end_to_end_hist.add(item.recv_wall + internal - telemetry.timestamp_ms / 1000.0)
+            else:
+                health.record_ignored_stale()
+            self._units[device] = units
+            self._gripper[device] = result.tracked.gripper_percent
+
+    def _hand_applied(self, telemetry: Telemetry, item: _Inbound, tracked: _Tracked) -> None:
+        sample = AppliedSample(
+            device_id=telemetry.device_id,
+            received_wall_s=item.recv_wall,
+            received_mono_s=item.recv_mono,
+            telemetry=telemetry,
+            joint_angles=tracked.twin.targets,
+        )
+        for sink in self._sinks:
+            self._guard_sink(sink, sink.applied, sample)
+
+    def _guard_sink(self, sink: TwinSink, method: Any, sample: object) -> None:
+        # A sink that raises (it should not: I/O sinks queue) must not cost the mirror or the other sinks.
+        try:
+            method(sample)
+        except Exception:
+            self._count_error(None, f"sink {sink.name} failed", sink=sink.name)
+
+    def _new_device(self, device: str, *, replace: bool = False) -> _Tracked:
+        tracked = _Tracked(twin=DeviceTwin(self.robot, device, self.mode))
+        self._devices[device] = tracked
         if not replace:
             log.info("new device", extra={"device": device, "mode": str(self.mode)})
-        return ds
+        return tracked
 
     def _count_error(self, device: str | None, msg: str, **fields: Any) -> None:
         self.errors += 1
@@ -412,85 +532,108 @@ class AgentService:
 
     # ------------------------------------------------------------------------------------------ readers
 
-    def state(self) -> dict[str, Any]:
-        """The agent's state for /state, /metrics and /stream (docs/agent.md describes every field)."""
-        sub = self._subscriber
-        stats = sub.stats if sub is not None else None
+    def state(self) -> AgentState:
+        """The agent's typed state for /state, /metrics and /stream (docs/agent.md describes every field)."""
+        readout = self._read()
+        devices = {device: self._device_state(device, h, readout) for device, h in readout.health.items()}
+        return AgentState(
+            agent=self._agent_info(readout),
+            devices=devices,
+            untracked_rejected=readout.untracked,
+        )
+
+    def _read(self) -> _Readout:
+        """Copy what the worker writes, under the lock, as briefly as possible."""
         with self._lock:
             now = self._clock()
-            health = self._fleet.snapshot(now)
-            snapshots = dict(self._snapshots)
-            units = dict(self._units)
-            untracked = dict(self._fleet.untracked_rejected)
-            batches = self.batches
-            latency = {
-                "internal_s": self._internal_hist.summary(),
-                "end_to_end_s": self._end_to_end_hist.summary(),
-            }
-        devices: dict[str, Any] = {}
-        for device, h in health.items():
-            snap = snapshots.get(device)
-            ds = self._devices.get(device)
-            entry: dict[str, Any] = {"device_id": device, **h}
-            entry["units"] = units.get(device, self.config.telemetry.units)
-            entry["mode"] = str(self.mode)
-            entry["timestamp_ms"] = snap.timestamp_ms if snap else None
-            entry["joints_rad"] = dict(snap.joint_angles) if snap else None
-            entry["targets_rad"] = dict(snap.targets) if snap else None
-            entry["torques_nm"] = dict(snap.joint_torques) if snap else None
-            entry["tcp_position_m"] = list(snap.tcp_position) if snap else None
-            entry["gripper_percent"] = ds.gripper_percent if ds else None
-            entry["counters"]["clamped"] = snap.clamped if snap else 0
-            devices[device] = entry
-        recorder = self._recorder
-        return {
-            "agent": {
-                "running": self.running,
-                "pid": os.getpid(),
-                "started_at": self._started_wall,
-                "uptime_s": (now - self._started_mono) if self._started_mono is not None else 0.0,
-                "time": time.time(),
-                "mode": str(self.mode),
-                "units": self.config.telemetry.units,
-                "devices": list(self.config.telemetry.devices),
-                "topic_filters": list(self.topic_filters),
-                "broker": {
-                    "url": self.config.broker.url,
-                    "client_id": sub.client_id if sub is not None else None,
-                    "connected": bool(sub is not None and sub.connected),
-                    "connection_successes": stats.connection_successes if stats else 0,
-                    "connection_failures": stats.connection_failures if stats else 0,
-                    "disconnections": stats.disconnects if stats else 0,
-                    "subscribes": stats.subscribes_acked if stats else 0,
-                    "messages": stats.messages_received if stats else 0,
-                    "last_error": stats.last_error if stats else "",
-                },
-                "mailbox": {
-                    "overwritten_total": self._mailbox.overwritten_total,
-                    "refused_keys": self._mailbox.refused_keys,
-                    "pending": len(self._mailbox),
-                },
-                "latency": latency,
-                "worker": {
-                    "alive": self._worker is not None and self._worker.is_alive(),
-                    "batches": batches,
-                    "processed": self.processed,
-                    "errors": self.errors,
-                },
-                "recording": None
-                if recorder is None
-                else {
-                    "path": str(recorder.path),
-                    "samples_written": recorder.samples_written,
-                    "flushes": recorder.flushes,
-                    "flush_errors": recorder.flush_errors,
-                },
-            },
-            "devices": devices,
-            "untracked_rejected": untracked,
-        }
+            return _Readout(
+                now=now,
+                health=self._fleet.snapshot(now),
+                snapshots=dict(self._snapshots),
+                units=dict(self._units),
+                gripper=dict(self._gripper),
+                untracked=dict(self._fleet.untracked_rejected),
+                batches=self.batches,
+                latency=FleetLatency(
+                    internal_s=self._internal_hist.summary(), end_to_end_s=self._end_to_end_hist.summary()
+                ),
+            )
 
-    def healthz(self) -> tuple[bool, dict[str, Any]]:
+    def _device_state(self, device: str, health: HealthSnapshot, readout: _Readout) -> DeviceState:
+        snap = readout.snapshots.get(device)
+        return DeviceState.from_health(
+            device,
+            health,
+            units=readout.units.get(device, self.config.telemetry.units),
+            mode=str(self.mode),
+            timestamp_ms=snap.timestamp_ms if snap else None,
+            joints_rad=snap.joint_angles if snap else None,
+            targets_rad=snap.targets if snap else None,
+            torques_nm=snap.joint_torques if snap else None,
+            tcp_position_m=snap.tcp_position if snap else None,
+            gripper_percent=readout.gripper.get(device),
+        )
+
+    def _agent_info(self, readout: _Readout) -> AgentInfo:
+        started = self._started_mono
+        return AgentInfo(
+            running=self.running,
+            pid=os.getpid(),
+            started_at=self._started_wall,
+            uptime_s=(readout.now - started) if started is not None else 0.0,
+            time=self._wall_clock(),
+            mode=str(self.mode),
+            units=self.config.telemetry.units,
+            devices=tuple(self.config.telemetry.devices),
+            topic_filters=tuple(self.topic_filters),
+            broker=self._broker_state(),
+            mailbox=MailboxState(
+                overwritten_total=self._mailbox.overwritten_total,
+                refused_keys=self._mailbox.refused_keys,
+                pending=len(self._mailbox),
+            ),
+            latency=readout.latency,
+            worker=WorkerState(
+                alive=self._worker is not None and self._worker.is_alive(),
+                batches=readout.batches,
+                processed=self.processed,
+                errors=self.errors,
+            ),
+            recording=self._recording_state(),
+            sinks=tuple(sink.stats() for sink in self._sinks),
+        )
+
+    def _broker_state(self) -> BrokerState:
+        sub = self._subscriber
+        if sub is None:
+            return BrokerState(url=self.config.broker.url)
+        stats = sub.stats
+        return BrokerState(
+            url=self.config.broker.url,
+            client_id=sub.client_id,
+            connected=sub.connected,
+            connection_successes=stats.connection_successes,
+            connection_failures=stats.connection_failures,
+            disconnections=stats.disconnects,
+            subscribes=stats.subscribes_acked,
+            messages=stats.messages_received,
+            last_error=stats.last_error,
+        )
+
+    def _recording_state(self) -> RecordingState | None:
+        if self._recording is None:
+            return None
+        recorder = self._recording.recorder
+        # Counters written by the sink's thread; int reads are atomic, and a figure one sample behind is fine.
+        return RecordingState(
+            path=str(recorder.path),
+            samples_written=recorder.samples_written,
+            samples_dropped=recorder.samples_dropped,
+            flushes=recorder.flushes,
+            flush_errors=recorder.flush_errors,
+        )
+
+    def healthz(self) -> HealthReport:
         """Healthy = the service runs, the broker connection is up, and no configured device is OFFLINE.
 
         With devices = ["*"] no device is configured, so only the first two apply: a fleet agent stays healthy
@@ -508,14 +651,13 @@ class AgentService:
         if not connected:
             reasons.append("broker connection down")
         reasons.extend(f"device {d} is OFFLINE" for d in offline)
-        body = {
-            "status": "ok" if not reasons else "unavailable",
-            "running": running,
-            "broker_connected": connected,
-            "devices": {d: str(s) for d, s in statuses.items()},
-            "reasons": reasons,
-        }
-        return not reasons, body
+        return HealthReport(
+            status="ok" if not reasons else "unavailable",
+            running=running,
+            broker_connected=connected,
+            devices=statuses,
+            reasons=tuple(reasons),
+        )
 
     def device_status(self, device: str) -> DeviceStatus | None:
         with self._lock:

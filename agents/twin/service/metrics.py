@@ -1,0 +1,219 @@
+"""Prometheus exposition of the agent's typed state, through prometheus_client.
+
+The agent keeps its own counters (health, mailbox, subscriber, sinks) and publishes them as one `AgentState`,
+so the metrics are rendered from that snapshot by a custom collector instead of being mirrored into
+prometheus_client's own Counter objects: /metrics then shows exactly the numbers /state shows, from the same
+instant. prometheus_client does the text format (escaping, HELP/TYPE lines, value formatting).
+
+Metric names are documented in docs/agent.md; every counter family ends in `_total`, and an unknown value
+(no sample yet) is left out rather than published as a made-up zero.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+from prometheus_client import CollectorRegistry, generate_latest
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.exposition import CONTENT_TYPE_PLAIN_0_0_4
+
+from twin.core.health import DeviceStatus
+from twin.service.state import AgentInfo, AgentState, DeviceState
+
+# Every metric name is valid in the classic format, so the widely parsed 0.0.4 text format is served.
+CONTENT_TYPE = CONTENT_TYPE_PLAIN_0_0_4
+UNTRACKED_DEVICE = "_untracked"  # the device label of rejections that belong to no tracked device
+_STATUSES = tuple(DeviceStatus)
+
+_BROKER_COUNTERS = (
+    ("connection_successes", "MQTT connections established (the first and every reconnect)."),
+    ("connection_failures", "MQTT connection attempts that failed."),
+    ("disconnections", "MQTT connections lost."),
+    ("subscribes", "SUBSCRIBE requests acknowledged by the broker."),
+    ("messages", "PUBLISH packets received from the broker (all devices, before decoding)."),
+)
+_MESSAGE_COUNTERS = (
+    ("received", "Messages taken from the mailbox for decoding."),
+    ("decoded", "Messages that decoded into valid telemetry."),
+    ("applied", "Messages applied to the twin (newer than the last applied one)."),
+    (
+        "ignored_stale",
+        "Valid messages ignored because their timestamp was not newer (duplicate or reordered).",
+    ),
+    ("overwritten", "Messages replaced in the latest-value mailbox before the worker took them."),
+)
+_SINK_COUNTERS = (
+    ("delivered", "Samples a sink handled."),
+    ("dropped", "Samples a sink dropped because its queue was full or it was closing."),
+    ("errors", "Errors a sink raised while handling a sample."),
+)
+
+
+def _gauge(name: str, help_text: str, value: float | None) -> GaugeMetricFamily:
+    family = GaugeMetricFamily(name, help_text)
+    if value is not None:
+        family.add_metric([], value)
+    return family
+
+
+def _counter(name: str, help_text: str, value: float | None) -> CounterMetricFamily:
+    family = CounterMetricFamily(name, help_text)
+    if value is not None:
+        family.add_metric([], value)
+    return family
+
+
+def _agent_families(agent: AgentInfo) -> Iterator[Metric]:
+    broker = agent.broker
+    yield _gauge("twin_up", "1 while the agent service is running.", 1 if agent.running else 0)
+    yield _gauge("twin_uptime_seconds", "Seconds since the agent service started.", agent.uptime_s)
+    yield _gauge("twin_broker_connected", "1 while the MQTT connection is up.", 1 if broker.connected else 0)
+    for key, help_text in _BROKER_COUNTERS:
+        yield _counter(f"twin_broker_{key}_total", help_text, getattr(broker, key))
+    yield _counter(
+        "twin_mailbox_overwritten_total",
+        "Messages replaced in the mailbox before decoding.",
+        agent.mailbox.overwritten_total,
+    )
+    yield _counter(
+        "twin_mailbox_refused_keys_total",
+        "Messages refused: too many distinct topics pending.",
+        agent.mailbox.refused_keys,
+    )
+    yield _counter(
+        "twin_worker_batches_total", "Batches the twin worker took from the mailbox.", agent.worker.batches
+    )
+    for key, help_text in _SINK_COUNTERS:
+        family = CounterMetricFamily(f"twin_sink_{key}_total", help_text, labels=["sink"])
+        for sink in agent.sinks:
+            family.add_metric([sink.name], getattr(sink, key))
+        yield family
+    pending = GaugeMetricFamily(
+        "twin_sink_pending", "Samples queued in a sink, not yet handled.", labels=["sink"]
+    )
+    for sink in agent.sinks:
+        pending.add_metric([sink.name], sink.pending)
+    yield pending
+
+
+class _DeviceFamilies:
+    """The per-device families, filled device by device (one family per metric, many label sets)."""
+
+    def __init__(self) -> None:
+        dev = ["device"]
+        self.status = GaugeMetricFamily(
+            "twin_device_status", "Device health status (1 for the current status).", labels=[*dev, "status"]
+        )
+        self.age = GaugeMetricFamily(
+            "twin_device_last_message_age_seconds",
+            "Seconds since the last valid message (agent clock).",
+            labels=dev,
+        )
+        self.rate = GaugeMetricFamily(
+            "twin_device_message_rate_hz", "Valid messages per second over the health window.", labels=dev
+        )
+        self.messages = {
+            key: CounterMetricFamily(f"twin_messages_{key}_total", help_text, labels=dev)
+            for key, help_text in _MESSAGE_COUNTERS
+        }
+        self.rejected = CounterMetricFamily(
+            "twin_messages_rejected_total",
+            "Messages rejected by the decoder, by reason.",
+            labels=[*dev, "reason"],
+        )
+        self.errors = CounterMetricFamily(
+            "twin_worker_errors_total", "Unexpected errors while processing a message.", labels=dev
+        )
+        self.resets = CounterMetricFamily(
+            "twin_edge_clock_resets_total", "Edge clock jumps backwards that re-based the twin.", labels=dev
+        )
+        self.edge_p50 = GaugeMetricFamily(
+            "twin_edge_clock_latency_p50_seconds",
+            "Median of receive wall time minus edge timestamp; "
+            "includes edge clock offset (not NTP-disciplined).",
+            labels=dev,
+        )
+        self.edge_p99 = GaugeMetricFamily(
+            "twin_edge_clock_latency_p99_seconds",
+            "p99 of receive wall time minus edge timestamp.",
+            labels=dev,
+        )
+        self.offset = GaugeMetricFamily(
+            "twin_edge_clock_offset_seconds",
+            "Window minimum of receive wall time minus edge timestamp: "
+            "clock offset plus the fastest transit.",
+            labels=dev,
+        )
+        self.int_p50 = GaugeMetricFamily(
+            "twin_internal_latency_p50_seconds", "Median time from receive to twin updated.", labels=dev
+        )
+        self.int_p99 = GaugeMetricFamily(
+            "twin_internal_latency_p99_seconds", "p99 time from receive to twin updated.", labels=dev
+        )
+        self.joints = GaugeMetricFamily(
+            "twin_joint_position_radians", "Joint angle of the twin, radians.", labels=[*dev, "joint"]
+        )
+        self.torques = GaugeMetricFamily(
+            "twin_joint_torque_newton_metres",
+            "Inverse-dynamics joint torque of the measured pose.",
+            labels=[*dev, "joint"],
+        )
+
+    def add(self, device: str, d: DeviceState) -> None:
+        for status in _STATUSES:
+            self.status.add_metric([device, status.value], 1 if d.status == status else 0)
+        _maybe(self.age, [device], d.age_s)
+        self.rate.add_metric([device], d.rate_hz)
+        c = d.counters
+        for key, family in self.messages.items():
+            family.add_metric([device], getattr(c, key))
+        for reason, count in sorted(c.rejected.items()):
+            self.rejected.add_metric([device, reason], count)
+        self.errors.add_metric([device], c.errors)
+        self.resets.add_metric([device], c.clock_resets)
+        _maybe(self.edge_p50, [device], d.edge_clock_latency_s.p50)
+        _maybe(self.edge_p99, [device], d.edge_clock_latency_s.p99)
+        _maybe(self.offset, [device], d.edge_clock_offset_s)
+        _maybe(self.int_p50, [device], d.internal_latency_s.p50)
+        _maybe(self.int_p99, [device], d.internal_latency_s.p99)
+        for joint, value in (d.joints_rad or {}).items():
+            self.joints.add_metric([device, joint], value)
+        for joint, value in (d.torques_nm or {}).items():
+            self.torques.add_metric([device, joint], value)
+
+    def all(self) -> Iterator[Metric]:
+        yield self.status
+        yield self.age
+        yield self.rate
+        yield from self.messages.values()
+        yield from (self.rejected, self.errors, self.resets, self.edge_p50, self.edge_p99, self.offset)
+        yield from (self.int_p50, self.int_p99, self.joints, self.torques)
+
+
+def _maybe(family: GaugeMetricFamily, labels: list[str], value: float | None) -> None:
+    if value is not None:  # an unknown value (no samples yet) is absent, not a fake zero
+        family.add_metric(labels, value)
+
+
+class _StateCollector:
+    """A prometheus_client collector over one state snapshot."""
+
+    def __init__(self, state: AgentState) -> None:
+        self._state = state
+
+    def collect(self) -> Iterator[Metric]:
+        state = self._state
+        yield from _agent_families(state.agent)
+        devices = _DeviceFamilies()
+        for device, d in sorted(state.devices.items()):
+            devices.add(device, d)
+        for reason, count in sorted(state.untracked_rejected.items()):
+            devices.rejected.add_metric([UNTRACKED_DEVICE, reason], count)
+        yield from devices.all()
+
+
+def render_metrics(state: AgentState) -> str:
+    """The state as Prometheus text exposition format (every family with HELP and TYPE)."""
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(_StateCollector(state))
+    return generate_latest(registry).decode()

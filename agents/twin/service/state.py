@@ -1,0 +1,186 @@
+"""The agent's typed state: what `AgentService.state()` returns and `/state`, `/metrics`, `/stream` publish.
+
+Frozen dataclasses, one document: `AgentState.to_json()` is the body of `GET /state` and of every `/stream`
+event, `AgentState.from_json()` reads it back (the viewer, `twin bench`), and `twin.service.metrics` renders
+the Prometheus exposition from the same object, so the three endpoints cannot disagree. docs/agent.md
+describes every field. The JSON encoding is msgspec's: field order as declared, NaN and infinities as `null`
+(JSON has no NaN), enums by value.
+
+A document must have `agent` and `devices` (anything else is not an agent state); every other field has a
+default, so a document from an agent that lacks a newer field still parses (the field reads as its
+default), and fields this version does not know are ignored.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import msgspec
+
+from twin.core.health import DeviceCounters, DeviceStatus, HealthSnapshot, WindowLatency
+from twin.core.latency import LatencySummary
+from twin.output.sinks import SinkStats
+
+__all__ = [
+    "AgentInfo",
+    "AgentState",
+    "BrokerState",
+    "DeviceCounters",
+    "DeviceState",
+    "FleetLatency",
+    "HealthReport",
+    "LatencySummary",
+    "MailboxState",
+    "RecordingState",
+    "SinkStats",
+    "WindowLatency",
+    "WorkerState",
+]
+
+_ENCODER = msgspec.json.Encoder()
+
+
+@dataclass(frozen=True)
+class DeviceState:
+    """One device: its health (status, age, rate, counters, latencies) and its twin's latest pose."""
+
+    device_id: str = ""
+    status: DeviceStatus = DeviceStatus.OFFLINE
+    age_s: float | None = None
+    rate_hz: float = 0.0
+    last_timestamp_ms: int | None = None
+    counters: DeviceCounters = field(default_factory=DeviceCounters)
+    edge_clock_latency_s: WindowLatency = field(default_factory=WindowLatency)
+    edge_clock_offset_s: float | None = None
+    edge_transit_jitter_p99_s: float | None = None
+    internal_latency_s: WindowLatency = field(default_factory=WindowLatency)
+    # The twin: None until the first message of this device is applied.
+    units: str = "auto"
+    mode: str = "kinematic"
+    timestamp_ms: int | None = None
+    joints_rad: dict[str, float] | None = None
+    targets_rad: dict[str, float] | None = None
+    torques_nm: dict[str, float] | None = None
+    tcp_position_m: tuple[float, float, float] | None = None
+    gripper_percent: float | None = None
+
+    @classmethod
+    def from_health(cls, device_id: str, health: HealthSnapshot, **twin: object) -> DeviceState:
+        """The health fields from `health`, the twin fields (units, mode, joints_rad, ...) as keywords."""
+        return cls(
+            device_id=device_id,
+            status=health.status,
+            age_s=health.age_s,
+            rate_hz=health.rate_hz,
+            last_timestamp_ms=health.last_timestamp_ms,
+            counters=health.counters,
+            edge_clock_latency_s=health.edge_clock_latency_s,
+            edge_clock_offset_s=health.edge_clock_offset_s,
+            edge_transit_jitter_p99_s=health.edge_transit_jitter_p99_s,
+            internal_latency_s=health.internal_latency_s,
+            **twin,  # type: ignore[arg-type]
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class BrokerState:
+    url: str = ""
+    client_id: str | None = None
+    connected: bool = False
+    connection_successes: int = 0
+    connection_failures: int = 0
+    disconnections: int = 0
+    subscribes: int = 0
+    messages: int = 0
+    last_error: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class MailboxState:
+    overwritten_total: int = 0
+    refused_keys: int = 0
+    pending: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class FleetLatency:
+    """Fleet-wide distributions over every applied message since start (log-bucket histograms)."""
+
+    internal_s: LatencySummary = field(default_factory=LatencySummary)
+    end_to_end_s: LatencySummary = field(default_factory=LatencySummary)
+
+
+@dataclass(frozen=True, slots=True)
+class WorkerState:
+    alive: bool = False
+    batches: int = 0
+    processed: int = 0
+    errors: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class RecordingState:
+    """The USD session recording (a sink; its queue figures are in `agent.sinks`)."""
+
+    path: str = ""
+    samples_written: int = 0
+    # Samples less than one time code (1/30 s) after the device's previous one: the stage keeps 30 per second.
+    samples_dropped: int = 0
+    flushes: int = 0
+    flush_errors: int = 0
+
+
+@dataclass(frozen=True)
+class AgentInfo:
+    running: bool = False
+    pid: int = 0
+    started_at: float | None = None
+    uptime_s: float = 0.0
+    time: float = 0.0
+    mode: str = "kinematic"
+    units: str = "auto"
+    devices: tuple[str, ...] = ()
+    topic_filters: tuple[str, ...] = ()
+    broker: BrokerState = field(default_factory=BrokerState)
+    mailbox: MailboxState = field(default_factory=MailboxState)
+    latency: FleetLatency = field(default_factory=FleetLatency)
+    worker: WorkerState = field(default_factory=WorkerState)
+    recording: RecordingState | None = None
+    sinks: tuple[SinkStats, ...] = ()
+
+
+@dataclass(frozen=True)
+class AgentState:
+    """The whole state document (GET /state)."""
+
+    agent: AgentInfo
+    devices: dict[str, DeviceState]
+    untracked_rejected: dict[str, int] = field(default_factory=dict)
+
+    def to_json(self) -> bytes:
+        """The JSON document (UTF-8); NaN and infinities become null."""
+        return _ENCODER.encode(self)
+
+    @classmethod
+    def from_json(cls, data: bytes | str) -> AgentState:
+        """Parse a /state document; raises ValueError (msgspec.ValidationError) naming the bad field."""
+        return msgspec.json.decode(data, type=cls)
+
+
+@dataclass(frozen=True)
+class HealthReport:
+    """GET /healthz: healthy when the service runs, the broker is connected and no configured device is
+    OFFLINE; `reasons` says what is wrong otherwise."""
+
+    status: str = "unavailable"
+    running: bool = False
+    broker_connected: bool = False
+    devices: dict[str, DeviceStatus] = field(default_factory=dict)
+    reasons: tuple[str, ...] = ()
+
+    @property
+    def healthy(self) -> bool:
+        return self.status == "ok"
+
+    def to_json(self) -> bytes:
+        return _ENCODER.encode(self)
