@@ -14,44 +14,40 @@ import signal
 import struct
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
+from twin.core.health import DeviceStatus, WindowLatency
 from twin.robot import so101
-from twin.tools.mosquitto import MosquittoBroker, free_port
-from twin.viewer.window import (
-    KEY_PAGE_DOWN,
-    KEY_PAGE_UP,
-    LINK_UNREACHABLE,
-    DevicePicker,
-    FleetView,
-    ViewerConfig,
-    ViewerError,
-    check_display,
-    describe_error,
-    iter_sse_data,
-    overlay_lines,
-)
+from twin.service.state import AgentInfo, AgentState, DeviceState
+from twin.tools.mosquitto import free_port
+from twin.tools.rig import LocalRig
+from twin.viewer.config import ViewerConfig
+from twin.viewer.feed import describe_error, iter_sse_data
+from twin.viewer.fleet import KEY_PAGE_DOWN, KEY_PAGE_UP, LINK_UNREACHABLE, DevicePicker, FleetView
+from twin.viewer.window import ViewerError, check_display, overlay_lines
 
 REPO = Path(__file__).resolve().parents[1]
 TWIN = Path(sys.executable).with_name("twin")
 OUT = REPO / "out" / "viewer"
 
 
-def device_state(stamp: int, angle: float, **extra) -> dict:
-    return {
-        "status": "ONLINE",
-        "age_s": 0.05,
-        "rate_hz": 10.0,
-        "timestamp_ms": stamp,
-        "joints_rad": dict.fromkeys(so101.JOINT_NAMES, angle),
-        "edge_clock_latency_s": {"p50": 0.012, "p99": 0.034, "samples": 40},
-        **extra,
-    }
+def device_state(stamp: int, angle: float) -> DeviceState:
+    return DeviceState(
+        status=DeviceStatus.ONLINE,
+        age_s=0.05,
+        rate_hz=10.0,
+        timestamp_ms=stamp,
+        joints_rad=dict.fromkeys(so101.JOINT_NAMES, angle),
+        edge_clock_latency_s=WindowLatency(p50=0.012, p99=0.034, samples=40),
+    )
+
+
+def state_of(**devices: DeviceState) -> AgentState:
+    return AgentState(agent=AgentInfo(), devices={k.replace("_", "-"): v for k, v in devices.items()})
 
 
 # ------------------------------------------------------------------------------------------------ pure parts
@@ -69,8 +65,9 @@ def test_fleet_feeds_estimators_and_ignores_repeats():
     for k in range(5):
         # The agent streams at 30 Hz while telemetry arrives at 10 Hz: each sample is seen three times.
         for rep in range(3):
-            state = {"devices": {"arm-001": device_state(base + 100 * k, 0.1 * k)}}
-            assert fleet.update(state, 50.0 + 0.1 * k + 0.033 * rep) == 1
+            # Through the JSON the stream carries, as the feed hands it over.
+            document = state_of(arm_001=device_state(base + 100 * k, 0.1 * k)).to_json()
+            assert fleet.update_json(document, 50.0 + 0.1 * k + 0.033 * rep) == 1
     assert fleet.devices() == ["arm-001"]
     info = fleet.info("arm-001")
     assert info is not None and info.status == "ONLINE" and info.latency_p99_s == pytest.approx(0.034)
@@ -83,12 +80,14 @@ def test_fleet_feeds_estimators_and_ignores_repeats():
 
 def test_fleet_tolerates_bad_documents():
     fleet = FleetView()
-    assert fleet.update({"nope": 1}, 1.0) == 0
-    assert fleet.update([1, 2], 1.0) == 0
-    assert fleet.bad_snapshots == 2
+    assert fleet.update_json(b'{"nope": 1}', 1.0) == 0  # not an agent state: no "agent", no "devices"
+    assert fleet.update_json(b"[1, 2]", 1.0) == 0
+    assert fleet.update_json(b'{"agent": {}, "devices": {"x": 3}}', 1.0) == 0  # a device must be an object
+    assert fleet.update_json(b'{"agent": {}, "devices": {', 1.0) == 0  # truncated
+    assert fleet.bad_snapshots == 4 and fleet.snapshots == 0
     # A device not yet mirrored (no snapshot) is listed with its health but has no pose.
-    state = {"devices": {"arm-009": {"status": "OFFLINE", "age_s": None, "timestamp_ms": None}, "x": 3}}
-    assert fleet.update(state, 2.0) == 2
+    document = b'{"agent": {}, "devices": {"arm-009": {"status": "OFFLINE", "age_s": null}}}'
+    assert fleet.update_json(document, 2.0) == 1
     assert fleet.devices() == ["arm-009"]
     assert fleet.pose("arm-009", 2.0) is None
     assert fleet.info("arm-009").status == "OFFLINE"
@@ -114,7 +113,7 @@ def test_picker_defaults_to_first_and_cycles_with_page_keys():
 def test_overlay_shows_figures_and_unreachable_agent():
     config = ViewerConfig()
     fleet = FleetView()
-    fleet.update({"devices": {"arm-001": device_state(1000, 0.0), "arm-002": device_state(1000, 0.0)}}, 10.0)
+    fleet.update(state_of(arm_001=device_state(1000, 0.0), arm_002=device_state(1000, 0.0)), 10.0)
     labels, values = overlay_lines(
         config, fleet, device="arm-002", devices=fleet.devices(), now=10.5, fps=59.7
     )
@@ -193,34 +192,12 @@ def xvfb(tmp_path: Path) -> Iterator[tuple[str, Path]]:
 
 
 @pytest.fixture
-def live_agent(mosquitto: MosquittoBroker) -> Iterator[str]:
+def live_agent(rig: LocalRig) -> Iterator[str]:
     """The real agent service fed by the edge simulator (two arms, ticks); yields the agent URL."""
-    from twin.service.agent import AgentService
-    from twin.service.config import config_from_mapping
-    from twin.tools.edge_sim import EdgeSimConfig, EdgeSimulator
-    from twin.transport.subscriber import BrokerConfig
-
     devices = ["arm-001", "arm-002"]
-    config = config_from_mapping(
-        {
-            "broker": {"url": mosquitto.url},
-            "telemetry": {"devices": devices, "units": "ticks"},
-            "http": {"listen": f"127.0.0.1:{free_port()}"},
-        }
-    )
-    service = AgentService(config)
-    service.start()
-    stop = threading.Event()
-    sim = EdgeSimulator(EdgeSimConfig(broker=BrokerConfig(url=mosquitto.url), devices=devices, seed=1))
-    sim_thread = threading.Thread(target=sim.run, args=(stop,), daemon=True)
-    try:
-        assert service.wait_subscribed(10), "agent did not subscribe"
-        sim_thread.start()
-        yield service.http_url
-    finally:
-        stop.set()
-        sim_thread.join(10)
-        service.stop()
+    service = rig.start_agent({"telemetry.devices": devices, "telemetry.units": "ticks"})
+    rig.start_edge(devices, seed=1)
+    yield service.http_url
 
 
 def start_view(display: str, *args: str, log_path: Path) -> subprocess.Popen:

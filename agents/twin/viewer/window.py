@@ -1,297 +1,36 @@
 """`twin view`: a MuJoCo passive viewer that follows the agent's live state.
 
 Three parts, each with one job:
-- `AgentFeed` (background thread) reads the agent's SSE `/stream`, falling back to polling `/state` when the
-  stream is unavailable, and retries forever while the agent is unreachable; it never touches MuJoCo.
-- `FleetView` (thread-safe) keeps, per device, the latest health figures and a smoothing estimator
-  (`twin.core.smoothing`) fed with (edge timestamp, angles, local receive time).
-- `TwinViewer` owns the display loop, the MuJoCo way: at ~60 Hz it asks the estimator for the pose at the
-  current instant, writes qpos under `handle.lock()`, runs forward kinematics, updates the overlay text and
-  calls `handle.sync()`. It ends when the window closes or `stop()` is called (SIGTERM in `twin view`).
+- `AgentFeed` (twin.viewer.feed, background thread) reads the agent's SSE `/stream`, falling back to polling
+  `/state`, and retries forever while the agent is unreachable; it never touches MuJoCo.
+- `FleetView` (twin.viewer.fleet, thread-safe) keeps, per device, the latest health figures and a smoothing
+  estimator (`twin.core.smoothing`) fed with (edge timestamp, angles, local receive time).
+- `TwinViewer` (here) owns the display loop, the MuJoCo way: at ~60 Hz it asks the estimator for the pose at
+  the current instant, writes qpos under `handle.lock()`, runs forward kinematics, updates the overlay text
+  and calls `handle.sync()`. It ends when the window closes or `stop()` is called (SIGTERM in `twin view`).
 
 docs/viewer.md describes the overlay, the keys and the smoothing.
 """
 
 from __future__ import annotations
 
-import contextlib
-import http.client
-import json
 import logging
-import math
 import os
 import sys
 import threading
 import time
-import urllib.error
-import urllib.request
-from collections.abc import Callable, Iterable, Iterator, Mapping
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-from twin.core.smoothing import PoseEstimator, make_estimator
+from twin.core.smoothing import make_estimator
+from twin.viewer.config import ViewerConfig
+from twin.viewer.feed import AgentFeed
+from twin.viewer.fleet import LINK_CONNECTING, LINK_UNREACHABLE, DevicePicker, FleetView
 
 log = logging.getLogger(__name__)
 
 Clock = Callable[[], float]
-
-# GLFW key codes (stable across GLFW 3.x). The simulate UI already binds letters (visual flags), digits (geom
-# groups: group 2 is the arm itself), arrows (stepping) and [ ] (cameras); Page Up/Down only select a parent
-# body when a body is picked, so they are free for the device picker.
-KEY_PAGE_UP = 266
-KEY_PAGE_DOWN = 267
-
-LINK_CONNECTING = "connecting"
-LINK_STREAM = "stream"
-LINK_POLLING = "polling"
-LINK_UNREACHABLE = "unreachable"
-
-
-@dataclass(frozen=True)
-class ViewerConfig:
-    """Settings of `twin view` (one object, built by the command from its flags)."""
-
-    agent_url: str = "http://127.0.0.1:8080"
-    device: str | None = None
-    model_path: str | Path | None = None
-    fps: float = 60.0
-    smoothing: str = "predict"
-    show_ui: bool = False
-    camera: str | None = None
-    # A stream that stays silent this long is dead (the agent streams at tens of Hz).
-    read_timeout_s: float = 3.0
-    retry_s: float = 0.5
-    max_retry_s: float = 5.0
-    poll_hz: float = 20.0
-    # While polling because the stream failed, the stream is retried this often.
-    stream_retry_s: float = 15.0
-
-    def __post_init__(self) -> None:
-        if not self.agent_url.startswith(("http://", "https://")):
-            raise ValueError(f"--agent {self.agent_url!r} must be an http(s) URL, e.g. http://127.0.0.1:8080")
-        if not 1.0 <= self.fps <= 240.0:
-            raise ValueError(f"--fps {self.fps} must be between 1 and 240")
-
-
-# ---------------------------------------------------------------------------------------------- state store
-
-
-@dataclass
-class DeviceInfo:
-    """What the overlay shows for one device (figures as the agent published them)."""
-
-    status: str = "UNKNOWN"
-    age_s: float | None = None
-    rate_hz: float | None = None
-    latency_p50_s: float | None = None
-    latency_p99_s: float | None = None
-    internal_p99_s: float | None = None
-    last_timestamp_ms: int | None = None
-    received_s: float = 0.0  # local monotonic time the snapshot arrived
-
-
-def _num(value: Any) -> float | None:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        return None
-    return float(value) if math.isfinite(value) else None
-
-
-class FleetView:
-    """Latest figures and a pose estimator per device; shared by the feed thread and the display loop."""
-
-    def __init__(
-        self, estimator_factory: Callable[[], PoseEstimator] = lambda: make_estimator("predict")
-    ) -> None:
-        self._lock = threading.Lock()
-        self._factory = estimator_factory
-        self._info: dict[str, DeviceInfo] = {}
-        self._estimators: dict[str, PoseEstimator] = {}
-        self.link = LINK_CONNECTING
-        self.link_error: str | None = None
-        self.link_since: float = time.monotonic()
-        self.snapshots = 0
-        self.bad_snapshots = 0
-
-    def set_link(self, link: str, error: str | None = None, now: float | None = None) -> None:
-        with self._lock:
-            if link != self.link:
-                self.link_since = time.monotonic() if now is None else now
-                log.info("agent link: %s%s", link, f" ({error})" if error else "")
-            self.link = link
-            self.link_error = error
-
-    def update(self, state: Any, received_s: float) -> int:
-        """Take one agent state document (GET /state shape); returns the number of devices in it."""
-        devices = state.get("devices") if isinstance(state, dict) else None
-        if not isinstance(devices, dict):
-            with self._lock:
-                self.bad_snapshots += 1
-            log.warning("agent state has no 'devices' object; is --agent pointing at a twin agent?")
-            return 0
-        with self._lock:
-            self.snapshots += 1
-            for device_id, d in devices.items():
-                if not isinstance(d, dict):
-                    continue
-                info = self._info.setdefault(str(device_id), DeviceInfo())
-                edge = d.get("edge_clock_latency_s") or {}
-                internal = d.get("internal_latency_s") or {}
-                info.status = str(d.get("status", "UNKNOWN"))
-                info.age_s = _num(d.get("age_s"))
-                info.rate_hz = _num(d.get("rate_hz"))
-                info.latency_p50_s = _num(edge.get("p50")) if isinstance(edge, dict) else None
-                info.latency_p99_s = _num(edge.get("p99")) if isinstance(edge, dict) else None
-                info.internal_p99_s = _num(internal.get("p99")) if isinstance(internal, dict) else None
-                info.received_s = received_s
-                # timestamp_ms belongs to the same twin snapshot as joints_rad; last_timestamp_ms (health) is
-                # the fallback for agents that publish only that.
-                stamp = d.get("timestamp_ms", d.get("last_timestamp_ms"))
-                joints = d.get("joints_rad")
-                if isinstance(stamp, int) and not isinstance(stamp, bool) and isinstance(joints, dict):
-                    info.last_timestamp_ms = stamp
-                    estimator = self._estimators.get(str(device_id))
-                    if estimator is None:
-                        estimator = self._estimators[str(device_id)] = self._factory()
-                    # The stream repeats the same sample until the agent applies a newer one; the estimator
-                    # drops duplicates by timestamp, so only genuine new samples move it.
-                    estimator.add(stamp, joints, received_s)
-            return len(devices)
-
-    def devices(self) -> list[str]:
-        with self._lock:
-            return sorted(self._info)
-
-    def info(self, device_id: str) -> DeviceInfo | None:
-        with self._lock:
-            info = self._info.get(device_id)
-            return None if info is None else DeviceInfo(**vars(info))
-
-    def pose(self, device_id: str, now_s: float) -> dict[str, float] | None:
-        with self._lock:
-            estimator = self._estimators.get(device_id)
-            return None if estimator is None else estimator.pose_at(now_s)
-
-
-# ---------------------------------------------------------------------------------------------- agent feed
-
-
-def iter_sse_data(lines: Iterable[bytes]) -> Iterator[str]:
-    """The `data` payload of each Server-Sent Event in a line stream (multi-line data joined by newlines)."""
-    data: list[str] = []
-    for raw in lines:
-        line = raw.decode("utf-8", errors="replace").rstrip("\r\n")
-        if not line:
-            if data:
-                yield "\n".join(data)
-                data = []
-            continue
-        if line.startswith(":"):
-            continue  # comment / keep-alive
-        field, _, value = line.partition(":")
-        if field == "data":
-            data.append(value.removeprefix(" "))
-
-
-def describe_error(exc: BaseException) -> str:
-    """A short human reason for a connection problem (the overlay has one line for it)."""
-    reason = getattr(exc, "reason", None)
-    if isinstance(exc, urllib.error.HTTPError):
-        return f"HTTP {exc.code} {exc.reason}"
-    if isinstance(reason, BaseException):
-        exc = reason
-    elif isinstance(reason, str):
-        return reason
-    if isinstance(exc, ConnectionRefusedError):
-        return "connection refused"
-    if isinstance(exc, TimeoutError):
-        return "timed out"
-    return f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
-
-
-class AgentFeed:
-    """Background reader of the agent's live state into a FleetView; retries forever, never raises."""
-
-    def __init__(self, config: ViewerConfig, fleet: FleetView, clock: Clock = time.monotonic) -> None:
-        self.config = config
-        self.fleet = fleet
-        self._clock = clock
-        self._base = config.agent_url.rstrip("/")
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._response: http.client.HTTPResponse | None = None
-
-    def start(self) -> None:
-        if self._thread is None:
-            self._thread = threading.Thread(target=self._run, name="twin-view-feed", daemon=True)
-            self._thread.start()
-
-    def stop(self, timeout: float = 5.0) -> None:
-        self._stop.set()
-        response = self._response
-        if response is not None:
-            with contextlib.suppress(Exception):
-                response.close()
-        if self._thread is not None:
-            self._thread.join(timeout)
-            self._thread = None
-
-    def _run(self) -> None:
-        backoff = self.config.retry_s
-        while not self._stop.is_set():
-            try:
-                self._read_stream()
-                backoff = self.config.retry_s
-                continue  # the agent closed the stream (restart?): reconnect at once
-            except (OSError, http.client.HTTPException, ValueError) as exc:
-                stream_error = describe_error(exc)
-            if self._stop.is_set():
-                break
-            try:
-                self._poll(stream_error)
-                backoff = self.config.retry_s
-            except (OSError, http.client.HTTPException, ValueError) as exc:
-                self.fleet.set_link(LINK_UNREACHABLE, describe_error(exc))
-                self._stop.wait(backoff)
-                backoff = min(backoff * 2.0, self.config.max_retry_s)
-        log.debug("agent feed stopped")
-
-    def _open(self, path: str) -> http.client.HTTPResponse:
-        request = urllib.request.Request(self._base + path, headers={"Accept": "text/event-stream"})
-        return urllib.request.urlopen(request, timeout=self.config.read_timeout_s)
-
-    def _read_stream(self) -> None:
-        response = self._open("/stream")
-        self._response = response
-        try:
-            content_type = response.headers.get("Content-Type", "")
-            if "text/event-stream" not in content_type:
-                raise ValueError(f"/stream answered {content_type or 'no content type'}, not an SSE stream")
-            for data in iter_sse_data(response):
-                if self._stop.is_set():
-                    return
-                state = json.loads(data)
-                self.fleet.update(state, self._clock())
-                if self.fleet.link != LINK_STREAM:
-                    self.fleet.set_link(LINK_STREAM)
-        finally:
-            self._response = None
-            response.close()
-
-    def _poll(self, stream_error: str) -> None:
-        """Poll /state until it is time to try the stream again; raises when the agent is unreachable."""
-        deadline = self._clock() + self.config.stream_retry_s
-        interval = 1.0 / self.config.poll_hz
-        while not self._stop.is_set() and self._clock() < deadline:
-            with self._open("/state") as response:
-                state = json.loads(response.read())
-            self.fleet.update(state, self._clock())
-            if self.fleet.link != LINK_POLLING:
-                self.fleet.set_link(LINK_POLLING, f"stream: {stream_error}")
-            self._stop.wait(interval)
-
-
-# ---------------------------------------------------------------------------------------------- overlay
 
 
 def _fmt(value: float | None, unit: str, scale: float = 1.0, digits: int = 1) -> str:
@@ -341,36 +80,6 @@ def overlay_lines(
         rows.append(("Keys", "Page Up / Page Down: previous / next device"))
     rows.append(("View", f"{fps:.0f} fps, smoothing {config.smoothing}"))
     return "\n".join(r[0] for r in rows), "\n".join(r[1] for r in rows)
-
-
-class DevicePicker:
-    """Which device the viewer follows: the configured one, else the first; Page Up/Down cycle."""
-
-    def __init__(self, preferred: str | None = None) -> None:
-        self._lock = threading.Lock()
-        self._selected = preferred
-        self._step = 0
-
-    def on_key(self, key: int) -> None:
-        # Called on the viewer's render thread: record the request only, the display loop applies it.
-        with self._lock:
-            if key == KEY_PAGE_DOWN:
-                self._step += 1
-            elif key == KEY_PAGE_UP:
-                self._step -= 1
-
-    def current(self, devices: list[str]) -> str | None:
-        with self._lock:
-            if devices and (self._selected is None or (self._step and self._selected not in devices)):
-                self._selected = devices[0]
-            if self._step and devices:
-                i = devices.index(self._selected) if self._selected in devices else 0
-                self._selected = devices[(i + self._step) % len(devices)]
-            self._step = 0
-            return self._selected
-
-
-# ---------------------------------------------------------------------------------------------- viewer
 
 
 class ViewerError(RuntimeError):

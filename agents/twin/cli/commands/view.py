@@ -5,12 +5,12 @@ from __future__ import annotations
 import argparse
 import logging
 import signal
-import sys
 from typing import Any
 
+from twin.cli.output import Console
+from twin.service.config import DEFAULT_AGENT_URL
 
-def _err(text: str) -> None:
-    sys.stderr.write(f"twin view: {text}\n")
+console = Console("view")
 
 
 def register(subparsers: Any) -> None:
@@ -27,7 +27,7 @@ def register(subparsers: Any) -> None:
     )
     parser.add_argument(
         "--agent",
-        default="http://127.0.0.1:8080",
+        default=DEFAULT_AGENT_URL,
         metavar="URL",
         help="the agent's HTTP address (default %(default)s)",
     )
@@ -53,7 +53,8 @@ def run(args: argparse.Namespace) -> int:
         level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
     from twin.robot.model import ModelError
-    from twin.viewer.window import TwinViewer, ViewerConfig, ViewerError
+    from twin.viewer.config import ViewerConfig
+    from twin.viewer.window import TwinViewer, ViewerError
 
     try:
         config = ViewerConfig(
@@ -66,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
             camera=args.camera,
         )
     except ValueError as exc:
-        _err(str(exc))
+        console.err(str(exc))
         return 2
     viewer = TwinViewer(config)
 
@@ -79,5 +80,5 @@ def run(args: argparse.Namespace) -> int:
     try:
         return viewer.run()
     except (ViewerError, ModelError) as exc:
-        _err(str(exc))
+        console.err(str(exc))
         return 1

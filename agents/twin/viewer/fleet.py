@@ -1,0 +1,148 @@
+"""What the viewer knows about the fleet: per device, the latest health figures and a pose estimator.
+
+`FleetView` is shared by the feed thread (which writes each agent state into it) and the display loop (which
+asks it for the pose at the current instant); `DevicePicker` chooses which device the window follows.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from twin.core.smoothing import PoseEstimator, make_estimator
+from twin.service.state import AgentState
+
+log = logging.getLogger(__name__)
+
+# GLFW key codes (stable across GLFW 3.x). The simulate UI already binds letters (visual flags), digits (geom
+# groups: group 2 is the arm itself), arrows (stepping) and [ ] (cameras); Page Up/Down only select a parent
+# body when a body is picked, so they are free for the device picker.
+KEY_PAGE_UP = 266
+KEY_PAGE_DOWN = 267
+
+LINK_CONNECTING = "connecting"
+LINK_STREAM = "stream"
+LINK_POLLING = "polling"
+LINK_UNREACHABLE = "unreachable"
+
+
+@dataclass
+class DeviceInfo:
+    """What the overlay shows for one device (figures as the agent published them)."""
+
+    status: str = "UNKNOWN"
+    age_s: float | None = None
+    rate_hz: float | None = None
+    latency_p50_s: float | None = None
+    latency_p99_s: float | None = None
+    internal_p99_s: float | None = None
+    last_timestamp_ms: int | None = None
+    received_s: float = 0.0  # local monotonic time the snapshot arrived
+
+
+class FleetView:
+    """Latest figures and a pose estimator per device; shared by the feed thread and the display loop."""
+
+    def __init__(
+        self, estimator_factory: Callable[[], PoseEstimator] = lambda: make_estimator("predict")
+    ) -> None:
+        self._lock = threading.Lock()
+        self._factory = estimator_factory
+        self._info: dict[str, DeviceInfo] = {}
+        self._estimators: dict[str, PoseEstimator] = {}
+        self.link = LINK_CONNECTING
+        self.link_error: str | None = None
+        self.link_since: float = time.monotonic()
+        self.snapshots = 0
+        self.bad_snapshots = 0
+
+    def set_link(self, link: str, error: str | None = None, now: float | None = None) -> None:
+        with self._lock:
+            if link != self.link:
+                self.link_since = time.monotonic() if now is None else now
+                log.info("agent link: %s%s", link, f" ({error})" if error else "")
+            self.link = link
+            self.link_error = error
+
+    def update_json(self, document: bytes | str, received_s: float) -> int:
+        """Take one agent state document (GET /state, one /stream event); returns the devices in it.
+
+        A document that is not an agent state (another service on that port, a truncated body) is counted
+        in `bad_snapshots` and logged, never raised: the feed keeps reading.
+        """
+        try:
+            state = AgentState.from_json(document)
+        except ValueError as exc:
+            with self._lock:
+                self.bad_snapshots += 1
+            log.warning("agent state not understood (%s); is --agent pointing at a twin agent?", exc)
+            return 0
+        return self.update(state, received_s)
+
+    def update(self, state: AgentState, received_s: float) -> int:
+        """Take one agent state; returns the number of devices in it."""
+        with self._lock:
+            self.snapshots += 1
+            for device_id, d in state.devices.items():
+                info = self._info.setdefault(device_id, DeviceInfo())
+                info.status = str(d.status)
+                info.age_s = d.age_s
+                info.rate_hz = d.rate_hz
+                info.latency_p50_s = d.edge_clock_latency_s.p50
+                info.latency_p99_s = d.edge_clock_latency_s.p99
+                info.internal_p99_s = d.internal_latency_s.p99
+                info.received_s = received_s
+                # timestamp_ms belongs to the same twin snapshot as joints_rad (last_timestamp_ms: health's).
+                if d.timestamp_ms is not None and d.joints_rad is not None:
+                    info.last_timestamp_ms = d.timestamp_ms
+                    estimator = self._estimators.get(device_id)
+                    if estimator is None:
+                        estimator = self._estimators[device_id] = self._factory()
+                    # The stream repeats the same sample until the agent applies a newer one; the estimator
+                    # drops duplicates by timestamp, so only genuine new samples move it.
+                    estimator.add(d.timestamp_ms, d.joints_rad, received_s)
+            return len(state.devices)
+
+    def devices(self) -> list[str]:
+        with self._lock:
+            return sorted(self._info)
+
+    def info(self, device_id: str) -> DeviceInfo | None:
+        with self._lock:
+            info = self._info.get(device_id)
+            return None if info is None else DeviceInfo(**vars(info))
+
+    def pose(self, device_id: str, now_s: float) -> dict[str, float] | None:
+        with self._lock:
+            estimator = self._estimators.get(device_id)
+            return None if estimator is None else estimator.pose_at(now_s)
+
+
+class DevicePicker:
+    """Which device the viewer follows: the configured one, else the first; Page Up/Down cycle."""
+
+    def __init__(self, preferred: str | None = None) -> None:
+        self._lock = threading.Lock()
+        self._selected = preferred
+        self._step = 0
+
+    def on_key(self, key: int) -> None:
+        # Called on the viewer's render thread: record the request only, the display loop applies it.
+        with self._lock:
+            if key == KEY_PAGE_DOWN:
+                self._step += 1
+            elif key == KEY_PAGE_UP:
+                self._step -= 1
+
+    def current(self, devices: list[str]) -> str | None:
+        with self._lock:
+            if devices and (self._selected is None or (self._step and self._selected not in devices)):
+                self._selected = devices[0]
+            if self._step and devices:
+                i = devices.index(self._selected) if self._selected in devices else 0
+                self._selected = devices[(i + self._step) % len(devices)]
+            self._step = 0
+            return self._selected
