@@ -1,12 +1,31 @@
-"""Shared fixtures: a private mosquitto per test (real broker, free loopback port)."""
+"""Shared fixtures and helpers: the local rig (real mosquitto on a free loopback port), a plain MQTT
+publisher, the agent's HTTP state parsed into its types, polling, and /metrics parsed by prometheus_client."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import json
+import random
+import threading
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import pytest
-from twin.tools.mosquitto import MosquittoBroker, MosquittoNotFound
+from awscrt import mqtt5
+from prometheus_client.parser import text_string_to_metric_families
+from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
+from twin.service.agent import AgentService
+from twin.service.config import load_config
+from twin.service.state import AgentState, DeviceState
+from twin.tools.edge_payload import encode, make_payload
+from twin.tools.mosquitto import MosquittoBroker, MosquittoNotFound, free_port
+from twin.tools.rig import LocalRig, RigError
+from twin.transport.broker import BrokerConfig, new_client_id
+from twin.transport.client import build_mqtt5_client
 
 
 @pytest.fixture
@@ -21,3 +40,145 @@ def mosquitto(tmp_path: Path) -> Iterator[MosquittoBroker]:
         yield broker
     finally:
         broker.stop()
+
+
+@pytest.fixture
+def rig(tmp_path: Path) -> Iterator[LocalRig]:
+    """The local rig (twin.tools.rig) in tmp_path/rig: its broker runs; agents and edges start on request."""
+    try:
+        local = LocalRig(workdir=tmp_path / "rig")
+    except RigError as exc:
+        pytest.fail(str(exc))
+    with local:
+        yield local
+
+
+class Publisher:
+    """A plain awscrt MQTT5 publisher (QoS 0, like the edge); reconnects by itself after broker restarts."""
+
+    def __init__(self, url: str, prefix: str = DEFAULT_TOPIC_PREFIX) -> None:
+        self.prefix = prefix
+        self.connected = threading.Event()
+        self.stopped = threading.Event()
+        self.client = build_mqtt5_client(
+            BrokerConfig(url=url, min_reconnect_delay_ms=100, max_reconnect_delay_ms=500),
+            new_client_id("test-pub-"),
+            on_connection_success=lambda _d: self.connected.set(),
+            on_disconnection=lambda _d: self.connected.clear(),
+            on_stopped=lambda _d: self.stopped.set(),
+        )
+        self.client.start()
+        if not self.connected.wait(10):
+            pytest.fail(f"test publisher could not connect to {url}")
+
+    def publish(self, device: str, payload: bytes) -> None:
+        packet = mqtt5.PublishPacket(
+            topic=telemetry_topic(self.prefix, device), payload=payload, qos=mqtt5.QoS.AT_MOST_ONCE
+        )
+        self.client.publish(packet).result(5)
+
+    def close(self) -> None:
+        self.client.stop()
+        self.stopped.wait(5)
+
+
+@pytest.fixture
+def publisher(rig: LocalRig) -> Iterator[Publisher]:
+    pub = Publisher(rig.broker.url)
+    yield pub
+    pub.close()
+
+
+def wait_for(predicate: Callable[[], Any], timeout: float, what: str, interval: float = 0.02) -> Any:
+    """Poll until `predicate()` is truthy and return that value; AssertionError naming `what` on timeout."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(interval)
+
+
+def http_get(url: str) -> tuple[int, str, bytes]:
+    """(status, content type, body) of a GET, 4xx/5xx included."""
+    try:
+        with urllib.request.urlopen(url, timeout=5) as resp:
+            return resp.status, resp.headers.get("Content-Type", ""), resp.read()
+    except urllib.error.HTTPError as err:
+        return err.code, err.headers.get("Content-Type", ""), err.read()
+
+
+def get_state(base_url: str) -> AgentState:
+    """GET /state, parsed into the agent's types (so every test also checks the JSON round trip)."""
+    status, _, body = http_get(base_url + "/state")
+    assert status == 200, body
+    return AgentState.from_json(body)
+
+
+def get_health(base_url: str) -> tuple[int, dict[str, Any]]:
+    status, _, body = http_get(base_url + "/healthz")
+    return status, json.loads(body)
+
+
+def device_state(base_url: str, device: str) -> DeviceState:
+    return get_state(base_url).devices[device]
+
+
+def get_metrics(base_url: str) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
+    """GET /metrics parsed by prometheus_client's own parser: {(sample name, sorted labels): value}."""
+    status, _, body = http_get(base_url + "/metrics")
+    assert status == 200
+    return parse_metrics(body.decode())
+
+
+def parse_metrics(text: str) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
+    samples = {}
+    for family in text_string_to_metric_families(text):
+        for sample in family.samples:
+            samples[(sample.name, tuple(sorted(sample.labels.items())))] = sample.value
+    return samples
+
+
+def metric(samples: dict[tuple[str, tuple[tuple[str, str], ...]], float], name: str, **labels: str) -> float:
+    """One sample's value; KeyError naming it when absent."""
+    key = (name, tuple(sorted(labels.items())))
+    if key not in samples:
+        raise KeyError(f"no sample {name}{labels} in /metrics")
+    return samples[key]
+
+
+@contextmanager
+def fed_agent(messages: int = 12, *, sinks: Sequence[Any] = (), **overrides: Any) -> Iterator[AgentService]:
+    """A started AgentService fed through its MQTT callback (no broker needed: the configured one never
+    answers, so the state also shows a disconnected broker): arm-001 mirrored from ticks telemetry with one
+    rejected message, arm-002 configured but never heard from, and garbage on an unknown device.
+    `overrides` are config keys ({"twin.record_dir": ...})."""
+    config = load_config(
+        None,
+        {
+            "broker.url": f"mqtt://127.0.0.1:{free_port()}",
+            "http.listen": "127.0.0.1:0",
+            "telemetry.devices": ["arm-001", "arm-002"],
+            "telemetry.units": "ticks",
+            **overrides,
+        },
+    )
+    service = AgentService(config, sinks=sinks)
+    service.start()
+    try:
+        rng = random.Random(5)
+        t0 = int(time.time() * 1000)
+        for i in range(messages):
+            payload = encode(make_payload("arm-001", 0.1 * i, "ticks", rng, timestamp_ms=t0 + 100 * i))
+            service._on_message("dt/lerobot/arm-001/telemetry", payload, time.monotonic())
+            wait_for(
+                lambda n=i + 1: service.state().devices["arm-001"].counters.received >= n, 3, "the worker"
+            )
+        service._on_message("dt/lerobot/arm-001/telemetry", b"{not json", time.monotonic())
+        service._on_message("dt/lerobot/ghost/telemetry", b"\xff", time.monotonic())
+        wait_for(lambda: service.state().agent.worker.processed == messages + 2, 3, "the rejects")
+        yield service
+    finally:
+        service.stop()

@@ -14,112 +14,41 @@ import subprocess
 import sys
 import threading
 import time
-import urllib.error
 import urllib.request
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
-from awscrt import mqtt5
+from conftest import Publisher, device_state, get_health, get_metrics, metric, wait_for
+from twin.core.health import DeviceStatus
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, TelemetryRejected, Units
 from twin.robot import so101
 from twin.service.agent import AgentService
-from twin.service.config import load_config
-from twin.tools.edge_sim import encode, make_payload
-from twin.tools.mosquitto import MosquittoBroker
-from twin.transport.subscriber import BrokerConfig, build_mqtt5_client, new_client_id, topic_for
+from twin.service.state import AgentState
+from twin.tools.edge_payload import encode, make_payload
+from twin.tools.rig import LocalRig
 
 pytestmark = pytest.mark.slow
 
-PREFIX = "dt/lerobot"
+# Fast health thresholds so STALE/OFFLINE show within a test: 20 Hz expected, STALE after 3 missed periods.
+FAST_HEALTH = {
+    "health.expected_rate_hz": 20.0,
+    "health.stale_periods": 3,
+    "health.offline_after_s": 1.0,
+    "health.window_s": 2.0,
+}
 
 
-class Publisher:
-    """A plain awscrt MQTT5 publisher (QoS 0, like the edge); reconnects by itself after broker restarts."""
-
-    def __init__(self, url: str) -> None:
-        self.connected = threading.Event()
-        self.stopped = threading.Event()
-        self.client = build_mqtt5_client(
-            BrokerConfig(url=url, min_reconnect_delay_ms=100, max_reconnect_delay_ms=500),
-            new_client_id("test-pub-"),
-            on_connection_success=lambda _d: self.connected.set(),
-            on_disconnection=lambda _d: self.connected.clear(),
-            on_stopped=lambda _d: self.stopped.set(),
-        )
-        self.client.start()
-        assert self.connected.wait(10), "test publisher could not connect"
-
-    def publish(self, device: str, payload: bytes) -> None:
-        self.client.publish(
-            mqtt5.PublishPacket(topic=topic_for(PREFIX, device), payload=payload, qos=mqtt5.QoS.AT_MOST_ONCE)
-        ).result(5)
-
-    def close(self) -> None:
-        self.client.stop()
-        self.stopped.wait(5)
-
-
-def agent_config(broker_url: str, **overrides: Any):
-    values = {
-        "broker.url": broker_url,
-        "http.listen": "127.0.0.1:0",
-        "telemetry.devices": ["arm-001", "arm-002"],
-        "telemetry.units": "auto",
-        "health.expected_rate_hz": 20.0,
-        "health.stale_periods": 3,
-        "health.offline_after_s": 1.0,
-        "health.window_s": 2.0,
-    }
+def start_agent(rig: LocalRig, **overrides: Any) -> AgentService:
+    values = {"telemetry.devices": ["arm-001", "arm-002"], "telemetry.units": "auto", **FAST_HEALTH}
     values.update(overrides)
-    return load_config(None, values)
-
-
-def start_agent(broker_url: str, **overrides: Any) -> AgentService:
-    service = AgentService(agent_config(broker_url, **overrides))
-    service.start()
-    assert service.wait_subscribed(10), "agent did not subscribe"
-    return service
-
-
-def http_get(url: str) -> tuple[int, Any]:
-    try:
-        with urllib.request.urlopen(url, timeout=5) as resp:
-            body = resp.read().decode()
-            status = resp.status
-    except urllib.error.HTTPError as err:
-        body, status = err.read().decode(), err.code
-    return status, json.loads(body) if body.startswith(("{", "[")) else body
-
-
-def wait_for(predicate: Callable[[], Any], timeout: float, what: str, interval: float = 0.02) -> Any:
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(interval)
-
-
-def device_state(service: AgentService, device: str) -> dict[str, Any]:
-    return http_get(service.http_url + "/state")[1]["devices"][device]
+    return rig.start_agent(values)
 
 
 @pytest.fixture
-def publisher(mosquitto: MosquittoBroker) -> Iterator[Publisher]:
-    pub = Publisher(mosquitto.url)
-    yield pub
-    pub.close()
-
-
-@pytest.fixture
-def agent(mosquitto: MosquittoBroker, tmp_path: Path) -> Iterator[AgentService]:
-    service = start_agent(mosquitto.url, **{"twin.record_dir": str(tmp_path / "sessions")})
-    yield service
-    service.stop()
+def agent(rig: LocalRig, tmp_path: Path) -> Iterator[AgentService]:
+    yield start_agent(rig, **{"twin.record_dir": str(tmp_path / "sessions")})
 
 
 def test_two_devices_both_variants_match_decode(agent: AgentService, publisher: Publisher) -> None:
@@ -144,29 +73,35 @@ def test_two_devices_both_variants_match_decode(agent: AgentService, publisher: 
         assert expected.units == variant
         state = wait_for(
             lambda d=device, e=expected: (
-                (s := device_state(agent, d))["timestamp_ms"] == e.timestamp_ms and s
+                (s := device_state(agent.http_url, d)).timestamp_ms == e.timestamp_ms and s
             ),
             5,
             f"{device} at the last timestamp",
         )
-        assert state["units"] == variant
-        assert state["status"] == "ONLINE"
-        assert set(state["joints_rad"]) == set(so101.JOINT_NAMES)
+        # Wiring: the agent shows what the decoder under test makes of the last message (the decoder's own
+        # hand-derived oracles are in test_telemetry.py).
+        assert state.units == variant
+        assert state.status is DeviceStatus.ONLINE
+        assert state.joints_rad is not None and set(state.joints_rad) == set(so101.JOINT_NAMES)
         for joint in so101.JOINT_NAMES:
-            assert abs(state["joints_rad"][joint] - expected.angles_rad[joint]) <= 1e-9, (device, joint)
-        assert state["counters"]["applied"] >= 1
-        assert state["counters"]["rejected"].get("units_undecided", 0) <= 3
-        assert state["rate_hz"] > 0
-        assert state["internal_latency_s"]["p50"] is not None
-        assert state["edge_clock_latency_s"]["samples"] > 0
-        assert set(state["torques_nm"]) == set(so101.JOINT_NAMES)
+            assert abs(state.joints_rad[joint] - expected.angles_rad[joint]) <= 1e-9, (device, joint)
+        assert state.counters.applied >= 1
+        assert state.counters.rejected.get("units_undecided", 0) <= 3
+        assert state.rate_hz > 0
+        assert state.internal_latency_s.p50 is not None
+        assert state.edge_clock_latency_s.samples > 0
+        assert state.torques_nm is not None and set(state.torques_nm) == set(so101.JOINT_NAMES)
 
-    status, metrics = http_get(agent.http_url + "/metrics")
-    assert status == 200
-    assert 'twin_device_status{device="arm-002",status="ONLINE"} 1' in metrics
-    status, health = http_get(agent.http_url + "/healthz")
+    samples = get_metrics(agent.http_url)
+    assert metric(samples, "twin_device_status", device="arm-002", status="ONLINE") == 1
+    status, health = get_health(agent.http_url)
     assert status == 200 and health["status"] == "ok"
-    assert agent.state()["agent"]["recording"]["samples_written"] > 0
+    recording = wait_for(
+        lambda: (r := agent.state().agent.recording) and r.samples_written > 0 and r,
+        5,
+        "the recording sink to write samples",
+    )
+    assert recording.path.endswith(".usdc")
 
 
 def publish_for(publisher: Publisher, device: str, seconds: float, rate_hz: float = 20.0) -> int:
@@ -179,28 +114,25 @@ def publish_for(publisher: Publisher, device: str, seconds: float, rate_hz: floa
     return n
 
 
-def test_stale_and_offline_appear_and_clear(mosquitto: MosquittoBroker, publisher: Publisher) -> None:
-    service = start_agent(mosquitto.url, **{"telemetry.devices": ["arm-001"], "telemetry.units": "ticks"})
-    try:
-        publish_for(publisher, "arm-001", 0.6)
-        t_stop = time.monotonic()  # the last message went out one period (50 ms) before this
-        assert device_state(service, "arm-001")["status"] == "ONLINE"
-        assert http_get(service.http_url + "/healthz")[0] == 200
-        # Stale after 3 periods at 20 Hz (0.15 s), offline after 1 s of silence.
-        wait_for(lambda: device_state(service, "arm-001")["status"] == "STALE", 1.0, "STALE")
-        assert time.monotonic() - t_stop < 1.0
-        wait_for(lambda: device_state(service, "arm-001")["status"] == "OFFLINE", 2.0, "OFFLINE")
-        assert time.monotonic() - t_stop >= 1.0 - 0.05
-        status, body = http_get(service.http_url + "/healthz")
-        assert status == 503 and "device arm-001 is OFFLINE" in body["reasons"]
-        metrics = http_get(service.http_url + "/metrics")[1]
-        assert 'twin_device_status{device="arm-001",status="OFFLINE"} 1' in metrics
+def test_stale_and_offline_appear_and_clear(rig: LocalRig, publisher: Publisher) -> None:
+    service = start_agent(rig, **{"telemetry.devices": ["arm-001"], "telemetry.units": "ticks"})
+    url = service.http_url
+    publish_for(publisher, "arm-001", 0.6)
+    t_stop = time.monotonic()  # the last message went out one period (50 ms) before this
+    assert device_state(url, "arm-001").status is DeviceStatus.ONLINE
+    assert get_health(url)[0] == 200
+    # Stale after 3 periods at 20 Hz (0.15 s), offline after 1 s of silence: STALE must show in between.
+    wait_for(lambda: device_state(url, "arm-001").status is DeviceStatus.STALE, 0.9, "STALE before 1 s")
+    wait_for(lambda: device_state(url, "arm-001").status is DeviceStatus.OFFLINE, 2.0, "OFFLINE")
+    # OFFLINE comes from the 1 s threshold, so it cannot show earlier than that after the last message.
+    assert time.monotonic() - t_stop >= 1.0 - 0.05
+    status, body = get_health(url)
+    assert status == 503 and "device arm-001 is OFFLINE" in body["reasons"]
+    assert metric(get_metrics(url), "twin_device_status", device="arm-001", status="OFFLINE") == 1
 
-        publish_for(publisher, "arm-001", 0.3)
-        assert device_state(service, "arm-001")["status"] == "ONLINE"
-        assert http_get(service.http_url + "/healthz")[0] == 200
-    finally:
-        service.stop()
+    publish_for(publisher, "arm-001", 0.3)
+    assert device_state(url, "arm-001").status is DeviceStatus.ONLINE
+    assert get_health(url)[0] == 200
 
 
 def test_stream_follows_the_twin(agent: AgentService, publisher: Publisher) -> None:
@@ -211,7 +143,7 @@ def test_stream_follows_the_twin(agent: AgentService, publisher: Publisher) -> N
         with urllib.request.urlopen(agent.http_url + "/stream", timeout=5) as resp:
             for raw in resp:
                 if raw.startswith(b"data: "):
-                    seen.append(json.loads(raw[6:])["devices"]["arm-001"]["timestamp_ms"])
+                    seen.append(AgentState.from_json(raw[6:]).devices["arm-001"].timestamp_ms)
                     if len(seen) >= 15:
                         return
 
@@ -229,10 +161,10 @@ def test_stream_follows_the_twin(agent: AgentService, publisher: Publisher) -> N
     assert stamps[-1] > stamps[0]
 
 
-def test_sigterm_flushes_the_recording_and_exits_zero(mosquitto: MosquittoBroker, tmp_path: Path) -> None:
+def test_sigterm_flushes_the_recording_and_exits_zero(rig: LocalRig, tmp_path: Path) -> None:
     config = tmp_path / "agent.toml"
     config.write_text(
-        f'[broker]\nurl = "{mosquitto.url}"\n[telemetry]\ndevices = ["arm-001"]\nunits = "ticks"\n'
+        f'[broker]\nurl = "{rig.broker.url}"\n[telemetry]\ndevices = ["arm-001"]\nunits = "ticks"\n'
         '[twin]\nrecord_flush_s = 60.0\n[http]\nlisten = "127.0.0.1:0"\n'
     )
     record_dir = tmp_path / "rec"
@@ -255,7 +187,7 @@ def test_sigterm_flushes_the_recording_and_exits_zero(mosquitto: MosquittoBroker
     thread.start()
     try:
         wait_for(lambda: any("subscribed" in ln["msg"] for ln in lines), 20, "the agent to subscribe", 0.1)
-        publisher = Publisher(mosquitto.url)
+        publisher = Publisher(rig.broker.url)
         try:
             rng = random.Random(5)
             t0 = int(time.time() * 1000)

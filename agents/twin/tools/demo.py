@@ -1,8 +1,9 @@
 """`twin demo`: the whole pipeline on one machine, then the evidence on disk.
 
-A private mosquitto on a free loopback port, the edge simulator publishing the edge's mock motion, and the
-agent service (subscriber, decoder, MuJoCo twin, health, HTTP, USD recording) run in this process for a set
-time. The caller gets a status snapshot about four times a second. Afterwards the output directory holds:
+The local rig (twin.tools.rig): a private mosquitto on a free loopback port, the edge simulator publishing
+the edge's mock motion, and the agent service (subscriber, decoder, MuJoCo twin, health, HTTP, USD
+recording) run in this process for a set time. The caller gets a status snapshot about four times a second.
+Afterwards the output directory holds:
   twin.png    the twin's final pose (twin.output.render.render_png)
   twin.gif    a ~30-frame animation of the run (first device), rendered offscreen
   session-*.usda  the agent's USD session recording
@@ -15,14 +16,15 @@ from __future__ import annotations
 
 import json
 import logging
-import shutil
-import tempfile
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from twin.service.state import AgentState
+from twin.tools.edge_payload import device_ids
 
 log = logging.getLogger(__name__)
 
@@ -71,30 +73,51 @@ class DemoStatus:
     statuses: dict[str, str] = field(default_factory=dict)
 
 
-def _totals(state: dict[str, Any]) -> dict[str, Any]:
-    devices = state.get("devices", {})
-    rejected: dict[str, int] = {}
-    for d in devices.values():
-        for reason, n in d["counters"].get("rejected", {}).items():
-            rejected[reason] = rejected.get(reason, 0) + n
-    for reason, n in state.get("untracked_rejected", {}).items():
-        rejected[reason] = rejected.get(reason, 0) + n
-    return {
-        "received": sum(d["counters"]["received"] for d in devices.values()),
-        "decoded": sum(d["counters"]["decoded"] for d in devices.values()),
-        "applied": sum(d["counters"]["applied"] for d in devices.values()),
-        "ignored_stale": sum(d["counters"]["ignored_stale"] for d in devices.values()),
-        "overwritten": sum(d["counters"]["overwritten"] for d in devices.values()),
-        "rejected": rejected,
-        "rejected_total": sum(rejected.values()),
-        "rate_hz": sum(d.get("rate_hz") or 0.0 for d in devices.values()),
-    }
+@dataclass
+class _Totals:
+    """Message counts summed over the fleet (and the untracked rejections)."""
+
+    received: int = 0
+    decoded: int = 0
+    applied: int = 0
+    ignored_stale: int = 0
+    overwritten: int = 0
+    rejected: dict[str, int] = field(default_factory=dict)
+    rate_hz: float = 0.0
+
+    @property
+    def rejected_total(self) -> int:
+        return sum(self.rejected.values())
 
 
-def _worst(devices: dict[str, Any], key: str, pct: str) -> float | None:
-    values = [(d.get(key) or {}).get(pct) for d in devices.values()]
-    values = [v for v in values if v is not None]
-    return max(values) if values else None
+def _totals(state: AgentState) -> _Totals:
+    totals = _Totals()
+    for d in state.devices.values():
+        c = d.counters
+        totals.received += c.received
+        totals.decoded += c.decoded
+        totals.applied += c.applied
+        totals.ignored_stale += c.ignored_stale
+        totals.overwritten += c.overwritten
+        totals.rate_hz += d.rate_hz
+        for reason, n in c.rejected.items():
+            totals.rejected[reason] = totals.rejected.get(reason, 0) + n
+    for reason, n in state.untracked_rejected.items():
+        totals.rejected[reason] = totals.rejected.get(reason, 0) + n
+    return totals
+
+
+def _worst(values: list[float | None]) -> float | None:
+    known = [v for v in values if v is not None]
+    return max(known) if known else None
+
+
+def _edge_latency(state: AgentState, pct: str) -> float | None:
+    return _worst([getattr(d.edge_clock_latency_s, pct) for d in state.devices.values()])
+
+
+def _internal_latency(state: AgentState, pct: str) -> float | None:
+    return _worst([getattr(d.internal_latency_s, pct) for d in state.devices.values()])
 
 
 def _clear_outputs(out_dir: Path) -> None:
@@ -103,17 +126,15 @@ def _clear_outputs(out_dir: Path) -> None:
             path.unlink()
 
 
-def _broker_pid() -> int | None:
-    """The mosquitto child of this process (recorded so a caller can prove it is gone afterwards)."""
-    import psutil  # noqa: PLC0415
+@dataclass
+class _Run:
+    """What watching the run collected: GIF frames and each arm's status while the edge still published."""
 
-    for child in psutil.Process().children():
-        try:
-            if "mosquitto" in child.name():
-                return child.pid
-        except psutil.Error:
-            continue
-    return None
+    frames: list[dict[str, float]] = field(default_factory=list)
+    running_statuses: dict[str, str] = field(default_factory=dict)
+    started: float = 0.0
+    final_state: AgentState | None = None
+    report: Any = None
 
 
 def run_demo(
@@ -122,218 +143,170 @@ def run_demo(
     on_status: Callable[[DemoStatus], None] | None = None,
     stop: threading.Event | None = None,
 ) -> dict[str, Any]:
-    """Run the demo; returns the stats written to stats.json. Raises DemoError on any failure."""
-    from twin.service.agent import AgentService  # noqa: PLC0415
-    from twin.service.config import ConfigError, config_from_mapping  # noqa: PLC0415
-    from twin.tools.edge_sim import EdgeSimConfig, EdgeSimulator, device_ids  # noqa: PLC0415
-    from twin.tools.mosquitto import MosquittoBroker, MosquittoNotFound, free_port  # noqa: PLC0415
-    from twin.transport.subscriber import BrokerConfig  # noqa: PLC0415
+    """Run the demo; returns the stats written to stats.json. Raises DemoError on any failure.
+
+    The steps: start the local rig (broker + agent recording into the output folder), publish with the edge
+    simulator while watching the agent's state, then write stats.json, the PNG, the GIF (the recording is
+    closed, with its final save, when the rig stops the agent).
+    """
+    from twin.tools.rig import LocalRig, RigError  # noqa: PLC0415 - MuJoCo, USD and awscrt load here
 
     stop = stop or threading.Event()
     out_dir = Path(config.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     _clear_outputs(out_dir)
     devices = device_ids(config.devices)
-    workdir = Path(tempfile.mkdtemp(prefix="so101-demo-"))
+    run = _Run(started=time.monotonic())
     try:
-        broker = MosquittoBroker(workdir=workdir / "mosquitto")
-    except MosquittoNotFound as exc:
-        shutil.rmtree(workdir, ignore_errors=True)
-        raise DemoError(f"{exc}. The demo needs mosquitto: run `make setup`.") from exc
-
-    service: Any = None
-    sim_thread: threading.Thread | None = None
-    sim_stop = threading.Event()
-    sim_result: dict[str, Any] = {}
-    frames: list[dict[str, float]] = []
-    final_state: dict[str, Any] | None = None
-    running_statuses: dict[str, str] = {}
-    started = time.monotonic()
-    broker_pid: int | None = None
-    try:
-        broker.start()
-        broker_pid = _broker_pid()
-        try:
-            agent_config = config_from_mapping(
-                {
-                    "broker": {"url": broker.url, "client_id_prefix": "so101-demo-agent-"},
-                    "telemetry": {"devices": devices, "units": config.variant},
-                    "twin": {"record_dir": str(out_dir), "record_format": "usda"},
-                    "health": {"expected_rate_hz": config.rate_hz},
-                    "http": {"listen": f"127.0.0.1:{free_port()}"},
-                }
+        with LocalRig() as rig:
+            broker_url, broker_pid = rig.broker.url, rig.broker.pid
+            service = rig.start_agent(_agent_overrides(config, devices, out_dir))
+            edge = rig.start_edge(
+                devices, variant=config.variant, rate_hz=config.rate_hz, seconds=config.seconds
             )
-        except ConfigError as exc:  # a bug here, not a user error: the values above are ours
-            raise DemoError(f"internal agent configuration rejected: {exc}") from exc
-        service = AgentService(agent_config)
-        service.start()
-        if not service.wait_subscribed(15.0):
-            raise DemoError(f"the agent did not subscribe on {broker.url} within 15 s (see the log above)")
-
-        sim = EdgeSimulator(
-            EdgeSimConfig(
-                broker=BrokerConfig(url=broker.url, client_id_prefix="so101-demo-edge-"),
+            run.started = time.monotonic()
+            _watch(
+                config=config,
+                service=service,
+                edge=edge,
                 devices=devices,
-                variant=config.variant,
-                rate_hz=config.rate_hz,
-                seconds=config.seconds,
-                seed=101,
+                run=run,
+                on_status=on_status,
+                stop=stop,
             )
-        )
-
-        def _simulate() -> None:
-            try:
-                sim_result["report"] = sim.run(sim_stop)
-            except Exception as exc:  # reported by the main thread as the demo's failure
-                sim_result["error"] = exc
-
-        sim_thread = threading.Thread(target=_simulate, name="demo-edge-sim", daemon=True)
-        started = time.monotonic()
-        sim_thread.start()
-        frame_period = config.seconds / max(1, config.gif_frames)
-        next_frame = started
-        while sim_thread.is_alive() and not stop.is_set():
-            stop.wait(STATUS_INTERVAL_S)
-            now = time.monotonic()
-            state = service.state()
-            running_statuses = {device: d["status"] for device, d in state["devices"].items()}
-            if now >= next_frame:
-                joints = state["devices"].get(devices[0], {}).get("joints_rad")
-                if joints:
-                    frames.append(dict(joints))
-                    next_frame += frame_period
-            if on_status is not None:
-                on_status(_status(state, sim.report.published, now - started))
-        sim_stop.set()
-        sim_thread.join(10.0)
-        # Messages published in the last instant are still in flight through the broker and the worker.
-        time.sleep(0.5)
-        final_state = service.state()
-        if on_status is not None:
-            on_status(_status(final_state, sim.report.published, time.monotonic() - started))
-    finally:
-        sim_stop.set()
-        if sim_thread is not None:
-            sim_thread.join(10.0)
-        if service is not None:
-            service.stop()  # closes the USD recording (final save)
-        broker.stop()
-        shutil.rmtree(workdir, ignore_errors=True)
-    duration = time.monotonic() - started
-
-    if "error" in sim_result:
-        raise DemoError(f"the edge simulator failed: {sim_result['error']}")
-    assert final_state is not None
-    report = sim_result.get("report") or sim.report
-    totals = _totals(final_state)
-    interrupted = stop.is_set()
-    if totals["received"] == 0:
+    except RigError as exc:
+        raise DemoError(str(exc)) from exc
+    except (ConnectionError, ValueError) as exc:  # the edge simulator's failure, re-raised by join()
+        raise DemoError(f"the edge simulator failed: {exc}") from exc
+    duration = time.monotonic() - run.started
+    final = run.final_state
+    if final is None:
+        raise DemoError("the demo ended before the agent reported any state")
+    totals = _totals(final)
+    if totals.received == 0:
         raise DemoError(
             f"the agent received no telemetry in {duration:.1f} s although the edge simulator published "
-            f"{report.published} messages to {broker.url}: check the broker log and the agent log lines above"
+            f"{run.report.published} messages to {broker_url}: check the broker log and the agent log above"
         )
     stats = _stats(
-        config=config,
-        state=final_state,
-        running_statuses=running_statuses,
-        report=report,
-        totals=totals,
-        duration=duration,
-        interrupted=interrupted,
-        broker=broker,
-        broker_pid=broker_pid,
-        service=service,
+        config, run, totals, duration, stop.is_set(), {"url": broker_url, "pid": broker_pid}, service
     )
-    _write_outputs(
-        config=config,
-        service=service,
-        state=final_state,
-        frames=frames,
-        devices=devices,
-        stats=stats,
-        out_dir=out_dir,
-    )
+    _write_outputs(config, service, run, devices, stats, out_dir)
     return stats
 
 
-def _status(state: dict[str, Any], sent: int, elapsed: float) -> DemoStatus:
+def _agent_overrides(config: DemoConfig, devices: list[str], out_dir: Path) -> dict[str, Any]:
+    return {
+        "telemetry.devices": devices,
+        "telemetry.units": config.variant,
+        "twin.record_dir": str(out_dir),
+        "twin.record_format": "usda",
+        "health.expected_rate_hz": config.rate_hz,
+    }
+
+
+def _watch(
+    *,
+    config: DemoConfig,
+    service: Any,
+    edge: Any,
+    devices: list[str],
+    run: _Run,
+    on_status: Callable[[DemoStatus], None] | None,
+    stop: threading.Event,
+) -> None:
+    """Poll the agent while the edge publishes: status line, GIF frames, then the final state."""
+    frame_period = config.seconds / max(1, config.gif_frames)
+    next_frame = run.started
+    while edge.alive and not stop.is_set():
+        stop.wait(STATUS_INTERVAL_S)
+        now = time.monotonic()
+        state = service.state()
+        run.running_statuses = {device: str(d.status) for device, d in state.devices.items()}
+        first = state.devices.get(devices[0])
+        if now >= next_frame and first is not None and first.joints_rad:
+            run.frames.append(dict(first.joints_rad))
+            next_frame += frame_period
+        if on_status is not None:
+            on_status(_status(state, edge.report.published, now - run.started))
+    edge.stop()
+    run.report = edge.join(10.0)
+    # Messages published in the last instant are still in flight through the broker and the worker.
+    time.sleep(0.5)
+    run.final_state = service.state()
+    if on_status is not None:
+        on_status(_status(run.final_state, run.report.published, time.monotonic() - run.started))
+
+
+def _status(state: AgentState, sent: int, elapsed: float) -> DemoStatus:
     totals = _totals(state)
-    devices = state["devices"]
     return DemoStatus(
         elapsed_s=elapsed,
         sent=sent,
-        received=totals["received"],
-        rejected=totals["rejected_total"],
-        rate_hz=totals["rate_hz"],
-        latency_p50_s=_worst(devices, "edge_clock_latency_s", "p50"),
-        latency_p99_s=_worst(devices, "edge_clock_latency_s", "p99"),
-        statuses={device: d["status"] for device, d in devices.items()},
+        received=totals.received,
+        rejected=totals.rejected_total,
+        rate_hz=totals.rate_hz,
+        latency_p50_s=_edge_latency(state, "p50"),
+        latency_p99_s=_edge_latency(state, "p99"),
+        statuses={device: str(d.status) for device, d in state.devices.items()},
     )
 
 
 def _stats(
     *,
     config: DemoConfig,
-    state: dict[str, Any],
-    running_statuses: dict[str, str],
-    report: Any,
-    totals: dict[str, Any],
+    state: AgentState,
+    run: _Run,
+    totals: _Totals,
     duration: float,
     interrupted: bool,
-    broker: Any,
-    broker_pid: int | None,
+    broker: dict[str, Any],
     service: Any,
 ) -> dict[str, Any]:
-    devices = state["devices"]
+    report = run.report
     per_device = {
         device: {
             # Health at the end of the publishing run (a moment later every arm is STALE: the edge stopped).
-            "status": running_statuses.get(device, d["status"]),
-            "status_after_stop": d["status"],
-            "received": d["counters"]["received"],
-            "applied": d["counters"]["applied"],
-            "rejected": d["counters"].get("rejected", {}),
-            "rate_hz": d.get("rate_hz"),
-            "end_to_end_latency_s": {k: d["edge_clock_latency_s"].get(k) for k in ("p50", "p99")},
-            "internal_latency_s": {k: d["internal_latency_s"].get(k) for k in ("p50", "p99")},
-            "joints_rad": d.get("joints_rad"),
+            "status": run.running_statuses.get(device, str(d.status)),
+            "status_after_stop": str(d.status),
+            "received": d.counters.received,
+            "applied": d.counters.applied,
+            "rejected": dict(d.counters.rejected),
+            "rate_hz": d.rate_hz,
+            "end_to_end_latency_s": {"p50": d.edge_clock_latency_s.p50, "p99": d.edge_clock_latency_s.p99},
+            "internal_latency_s": {"p50": d.internal_latency_s.p50, "p99": d.internal_latency_s.p99},
+            "joints_rad": d.joints_rad,
         }
-        for device, d in devices.items()
+        for device, d in state.devices.items()
     }
     return {
         "duration_s": round(duration, 3),
         "interrupted": interrupted,
         "variant": config.variant,
         "rate_hz": config.rate_hz,
-        "devices": sorted(devices),
+        "devices": sorted(state.devices),
         "messages": {
             "sent": report.published,
             "generated": report.generated,
             "publish_failures": report.publish_failures,
-            "received": totals["received"],
-            "decoded": totals["decoded"],
-            "applied": totals["applied"],
-            "ignored_stale": totals["ignored_stale"],
-            "overwritten": totals["overwritten"],
-            "rejected": totals["rejected_total"],
-            "rejected_by_reason": totals["rejected"],
-            "lost": max(0, report.published - totals["received"]),
+            "received": totals.received,
+            "decoded": totals.decoded,
+            "applied": totals.applied,
+            "ignored_stale": totals.ignored_stale,
+            "overwritten": totals.overwritten,
+            "rejected": totals.rejected_total,
+            "rejected_by_reason": totals.rejected,
+            "lost": max(0, report.published - totals.received),
         },
         # Percentiles over the agent's health window (the last seconds of the run), worst device. The edge
         # simulator stamps messages with this host's clock, so end-to-end latency here has no skew in it.
         "latency_s": {
-            "end_to_end": {
-                "p50": _worst(devices, "edge_clock_latency_s", "p50"),
-                "p99": _worst(devices, "edge_clock_latency_s", "p99"),
-            },
-            "internal": {
-                "p50": _worst(devices, "internal_latency_s", "p50"),
-                "p99": _worst(devices, "internal_latency_s", "p99"),
-            },
+            "end_to_end": {"p50": _edge_latency(state, "p50"), "p99": _edge_latency(state, "p99")},
+            "internal": {"p50": _internal_latency(state, "p50"), "p99": _internal_latency(state, "p99")},
             "window_s": service.config.health.window_s,
         },
         "per_device": per_device,
-        "broker": {"url": broker.url, "pid": broker_pid},
+        "broker": broker,
         "files": {},
     }
 
@@ -341,17 +314,17 @@ def _stats(
 def _write_outputs(
     *,
     config: DemoConfig,
+    state: AgentState,
     service: Any,
-    state: dict[str, Any],
-    frames: list[dict[str, float]],
+    run: _Run,
     devices: list[str],
     stats: dict[str, Any],
     out_dir: Path,
 ) -> None:
     from twin.output.render import RenderError, render_png  # noqa: PLC0415
 
-    first = state["devices"].get(devices[0], {})
-    joints = first.get("joints_rad")
+    first = state.devices.get(devices[0])
+    joints = first.joints_rad if first is not None else None
     if not joints:
         raise DemoError(f"device {devices[0]} was never mirrored: nothing to render (see stats above)")
     files: dict[str, str] = {}
@@ -364,8 +337,8 @@ def _write_outputs(
             text=f"{devices[0]}  {status}  after {stats['duration_s']:.0f} s",
         )
         files["png"] = png.name
-        if len(frames) >= 2:
-            files["gif"] = _write_gif(service.robot, frames, out_dir / "twin.gif", config.gif_size).name
+        if len(run.frames) >= 2:
+            files["gif"] = _write_gif(service.robot, run.frames, out_dir / "twin.gif", config.gif_size).name
     except RenderError as exc:
         raise DemoError(f"rendering failed: {exc}") from exc
     recording = service.recording_path

@@ -114,6 +114,11 @@ class MosquittoBroker:
         return f"{scheme}://{self.host}:{self.port}"
 
     @property
+    def pid(self) -> int | None:
+        """The broker process id while it runs (so a caller can prove it is gone afterwards)."""
+        return self._proc.pid if self._proc is not None else None
+
+    @property
     def running(self) -> bool:
         return self._proc is not None and self._proc.poll() is None
 

@@ -1,33 +1,24 @@
-"""Process plumbing shared by the benchmark scenarios: a private broker, the agent as a child process, its
-HTTP state, and CPU/RSS sampling of a process tree with psutil."""
+"""Process plumbing shared by the benchmark scenarios: the local rig (a private broker and the agent as a
+child process, twin.tools.rig), the agent's typed HTTP state, load processes, and CPU/RSS sampling with
+psutil."""
 
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 import threading
 import time
 import urllib.request
+from collections.abc import Iterator
 from contextlib import contextmanager
-from pathlib import Path
 from typing import Any
 
 import psutil
 
-from twin.tools.mosquitto import MosquittoBroker, free_port
-
-
-def child_env() -> dict[str, str]:
-    env = dict(os.environ)
-    env.setdefault("MUJOCO_GL", "egl")
-    env["PYTHONUNBUFFERED"] = "1"
-    return env
-
-
-def twin_command(*args: str) -> list[str]:
-    return [sys.executable, "-m", "twin.cli", *args]
+from twin.core.topics import DEFAULT_TOPIC_PREFIX
+from twin.service.state import AgentState
+from twin.tools.rig import LocalRig, child_env
 
 
 class ProcessSampler:
@@ -83,85 +74,43 @@ class ProcessSampler:
         }
 
 
-def get_json(url: str, timeout: float = 5.0) -> dict[str, Any]:
-    with urllib.request.urlopen(url, timeout=timeout) as response:
-        return json.loads(response.read())
+def get_state(base_url: str, timeout: float = 5.0) -> AgentState:
+    """The agent's GET /state, parsed into its types."""
+    with urllib.request.urlopen(f"{base_url}/state", timeout=timeout) as response:
+        return AgentState.from_json(response.read())
 
 
 @contextmanager
-def running_agent(
-    broker_url: str,
-    *,
-    devices: str = "*",
-    max_devices: int = 4096,
-    extra: tuple[str, ...] = (),
-    log_dir: Path,
-):
-    """`twin run` as a child process; yields (Popen, http base URL). Stopped with SIGTERM on exit.
+def running_agent(rig: LocalRig, *, max_devices: int = 4096) -> Iterator[tuple[subprocess.Popen[bytes], str]]:
+    """`twin run --devices '*'` as a child process on the rig's broker; yields (process, HTTP base URL).
 
     The fleet bound is raised to the benchmark's size: the default guards a production agent against a
     misbehaving publisher inventing device ids, which is not what is measured here.
     """
-    port = free_port()
-    log_dir.mkdir(parents=True, exist_ok=True)
-    config = log_dir / f"agent-{port}.toml"
-    config.write_text(f"[telemetry]\nmax_devices = {max_devices}\n")
-    log_file = (log_dir / f"agent-{port}.log").open("wb")
-    cmd = twin_command(
-        "run",
-        "--config",
-        str(config),
-        "--broker",
-        broker_url,
-        "--devices",
-        devices,
-        "--http",
-        f"127.0.0.1:{port}",
-        "--log-level",
-        "WARNING",
-        *extra,
-    )
-    proc = subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT, env=child_env())
-    try:
-        yield proc, f"http://127.0.0.1:{port}"
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5)
-        log_file.close()
+    with rig.agent_process(
+        config_text=f"[telemetry]\nmax_devices = {max_devices}\n",
+        extra_args=("--log-level", "WARNING"),
+    ) as running:
+        yield running
 
 
-def wait_subscribed(base_url: str, proc: subprocess.Popen, timeout: float = 30.0) -> float:
+def wait_subscribed(base_url: str, proc: subprocess.Popen[bytes], timeout: float = 30.0) -> float:
     """Poll /state until the agent's broker connection is subscribed; returns when (monotonic)."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if proc.poll() is not None:
             raise RuntimeError(f"the agent exited with code {proc.returncode} before subscribing")
         try:
-            state = get_json(f"{base_url}/state", timeout=1.0)
-            if state["agent"]["broker"]["subscribes"] > 0:
+            if get_state(base_url, timeout=1.0).agent.broker.subscribes > 0:
                 return time.monotonic()
-        except (OSError, ValueError, KeyError):
+        except (OSError, ValueError):
             pass
         time.sleep(0.02)
     raise RuntimeError(f"the agent did not subscribe within {timeout} s")
 
 
-@contextmanager
-def private_broker(workdir: Path):
-    broker = MosquittoBroker(workdir=workdir)
-    broker.start()
-    try:
-        yield broker
-    finally:
-        broker.close()
-
-
 # The edge's default topic prefix; the load processes and the agent under test both use it.
-PREFIX = "dt/lerobot"
+PREFIX = DEFAULT_TOPIC_PREFIX
 
 
 def start_publisher(url: str, first: int, count: int, rate: float, seconds: float) -> subprocess.Popen:

@@ -9,23 +9,24 @@ machine's cores, so the figures are for the whole pipeline on one host: say so w
 
 from __future__ import annotations
 
+import dataclasses
 import math
-import tempfile
 import time
-from pathlib import Path
 from typing import Any
 
+from twin.core.topics import ALL_DEVICES, topic_filters
+from twin.service.state import AgentState
 from twin.tools.bench.harness import (
     PREFIX,
     ProcessSampler,
-    get_json,
+    get_state,
     last_json_line,
     load_process,
-    private_broker,
     running_agent,
     start_publisher,
     wait_subscribed,
 )
+from twin.tools.rig import LocalRig
 
 # One Python publisher process sustains well over 10,000 msg/s with pre-encoded payloads; beyond that the
 # load is split so the publisher is not what limits the figure.
@@ -59,7 +60,13 @@ def _collect(procs: list[Any], timeout: float) -> dict[str, Any]:
 
 def _ceiling(url: str, arms: int, rate: float, seconds: float) -> dict[str, Any]:
     noop = load_process(
-        "noop", "--url", url, "--filter", f"{PREFIX}/+/telemetry", "--seconds", str(seconds + 30)
+        "noop",
+        "--url",
+        url,
+        "--filter",
+        *topic_filters(PREFIX, [ALL_DEVICES]),
+        "--seconds",
+        str(seconds + 30),
     )
     ready = noop.stdout.readline()
     if '"ready"' not in ready:
@@ -83,61 +90,63 @@ def _ceiling(url: str, arms: int, rate: float, seconds: float) -> dict[str, Any]
     }
 
 
-def _sum_devices(state: dict[str, Any], key: str) -> int:
-    return sum(d["counters"].get(key, 0) for d in state["devices"].values())
+def _sum_devices(state: AgentState, counter: str) -> int:
+    return sum(getattr(d.counters, counter) for d in state.devices.values())
 
 
-def _agent(url: str, arms: int, rate: float, seconds: float, workdir: Path) -> dict[str, Any]:
-    with running_agent(url, log_dir=workdir) as (proc, base):
+def _drained(base: str) -> AgentState:
+    """The state once the worker has drained what it already received (processed stops growing; bounded)."""
+    deadline = time.monotonic() + 10
+    state = get_state(base, timeout=30)
+    while time.monotonic() < deadline:
+        time.sleep(0.5)
+        newer = get_state(base, timeout=30)
+        if newer.agent.worker.processed == state.agent.worker.processed:
+            return newer
+        state = newer
+    return state
+
+
+def _agent(rig: LocalRig, arms: int, rate: float, seconds: float) -> dict[str, Any]:
+    with running_agent(rig) as (proc, base):
         wait_subscribed(base, proc)
-        before = get_json(f"{base}/state")
+        before = get_state(base)
         sampler = ProcessSampler(proc.pid).start()
-        pubs = _publishers(url, arms, rate, seconds)
+        pubs = _publishers(rig.broker.url, arms, rate, seconds)
         sent = _collect(pubs, timeout=seconds + 60)
-        # Wait for the worker to drain what it has already received (bounded), then read the figures.
-        deadline = time.monotonic() + 10
-        state = get_json(f"{base}/state", timeout=30)
-        while time.monotonic() < deadline:
-            time.sleep(0.5)
-            newer = get_json(f"{base}/state", timeout=30)
-            if newer["agent"]["worker"]["processed"] == state["agent"]["worker"]["processed"]:
-                state = newer
-                break
-            state = newer
+        state = _drained(base)
         usage = sampler.stop()
         if proc.poll() is not None:
             raise RuntimeError(f"the agent exited during the run (code {proc.returncode})")
-    received = state["agent"]["broker"]["messages"] - before["agent"]["broker"]["messages"]
-    state_applied = _sum_devices(state, "applied")
-    latency = state["agent"]["latency"]
+    received = state.agent.broker.messages - before.agent.broker.messages
+    applied = _sum_devices(state, "applied")
+    elapsed = sent["elapsed_s"]
     return {
         **sent,
         "received": received,
         "lost": max(0, sent["sent"] - received),
-        "applied": state_applied,
+        "applied": applied,
         "coalesced": _sum_devices(state, "overwritten"),
         # Per device, plus those counted before a device was known (e.g. units_undecided while `auto`
         # gathers evidence from a new arm's first messages).
-        "rejected": _sum_devices(state, "rejected_total") + sum(state["untracked_rejected"].values()),
+        "rejected": _sum_devices(state, "rejected_total") + sum(state.untracked_rejected.values()),
         "ignored_stale": _sum_devices(state, "ignored_stale"),
-        "devices_seen": len(state["devices"]),
-        "sustained_rate": received / sent["elapsed_s"] if sent["elapsed_s"] else 0.0,
+        "devices_seen": len(state.devices),
+        "sustained_rate": received / elapsed if elapsed else 0.0,
         # Messages that reached the twin (decoded and applied) per second; the rest of `received` was
         # coalesced by the latest-value mailbox (a newer pose of the same arm replaced it) or rejected.
-        "mirrored_rate": state_applied / sent["elapsed_s"] if sent["elapsed_s"] else 0.0,
-        "internal_latency_s": latency["internal_s"],
-        "end_to_end_latency_s": latency["end_to_end_s"],
+        "mirrored_rate": applied / elapsed if elapsed else 0.0,
+        "internal_latency_s": dataclasses.asdict(state.agent.latency.internal_s),
+        "end_to_end_latency_s": dataclasses.asdict(state.agent.latency.end_to_end_s),
         **usage,
     }
 
 
 def run(*, arms: int = 2000, rate: float = 10.0, seconds: float = 20.0) -> dict[str, Any]:
     """Both phases with the same offered load; returns every figure as one JSON-ready dict."""
-    with tempfile.TemporaryDirectory(prefix="twin-bench-") as tmp:
-        workdir = Path(tmp)
-        with private_broker(workdir / "broker") as broker:
-            ceiling = _ceiling(broker.url, arms, rate, seconds)
-            agent = _agent(broker.url, arms, rate, seconds, workdir)
+    with LocalRig() as rig:
+        ceiling = _ceiling(rig.broker.url, arms, rate, seconds)
+        agent = _agent(rig, arms, rate, seconds)
     ratio = agent["sustained_rate"] / ceiling["sustained_rate"] if ceiling["sustained_rate"] else None
     return {
         "scenario": "throughput",

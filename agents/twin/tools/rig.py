@@ -1,0 +1,272 @@
+"""The local rig: the whole pipeline on one machine, for `twin demo`, `twin bench` and the end-to-end tests.
+
+    with LocalRig() as rig:                       # a private mosquitto on a free loopback port
+        service = rig.start_agent({"telemetry.devices": ["arm-001"]})    # the agent, in this process
+        edge = rig.start_edge(["arm-001"], seconds=5)                    # the edge simulator, in a thread
+        report = edge.join()
+        state = service.state()
+    # everything started here is stopped, the temp folder removed
+
+`rig.agent_process(...)` runs the agent as a child process instead (`twin run`), for figures that must be
+measured per process (the benchmark's CPU and RSS) or that need a real signal (SIGTERM). Every piece the rig
+starts is stopped in `close()`, in reverse order, also when the body raises.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from twin.core.topics import DEFAULT_TOPIC_PREFIX
+from twin.service.config import AgentConfig, load_config
+from twin.tools.mosquitto import MosquittoBroker, MosquittoNotFound, free_port
+from twin.transport.broker import BrokerConfig
+
+log = logging.getLogger(__name__)
+
+AGENT_CLIENT_PREFIX = "so101-rig-agent-"
+EDGE_CLIENT_PREFIX = "so101-rig-edge-"
+SUBSCRIBE_TIMEOUT_S = 15.0
+
+
+class RigError(RuntimeError):
+    """A piece of the rig could not start; the message says which and what to do."""
+
+
+class EdgeRun:
+    """The edge simulator running in a background thread; `join()` returns its report or raises its error."""
+
+    def __init__(self, simulator: Any) -> None:
+        self.simulator = simulator
+        self._stop = threading.Event()
+        self._result: Any = None
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="rig-edge-sim", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            self._result = self.simulator.run(self._stop)
+        except Exception as exc:  # handed to whoever joins: the rig's user reports it
+            self._error = exc
+
+    @property
+    def report(self) -> Any:
+        """The simulator's counts so far (live while it runs)."""
+        return self.simulator.report
+
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def join(self, timeout: float | None = None) -> Any:
+        """Wait for the run to end; its EdgeSimReport, or the simulator's exception re-raised."""
+        self._thread.join(timeout)
+        if self._thread.is_alive():
+            raise RigError(f"the edge simulator did not finish within {timeout} s")
+        if self._error is not None:
+            raise self._error
+        return self._result
+
+
+class LocalRig:
+    """A private broker plus, on request, the agent (in-process or as a child) and edge simulators."""
+
+    def __init__(self, workdir: Path | None = None) -> None:
+        self._own_workdir = workdir is None
+        self.workdir = Path(workdir) if workdir is not None else Path(tempfile.mkdtemp(prefix="so101-rig-"))
+        try:
+            self.broker = MosquittoBroker(workdir=self.workdir / "mosquitto")
+        except MosquittoNotFound as exc:
+            self._remove_workdir()
+            raise RigError(f"{exc}. The local rig needs mosquitto: run `make setup`.") from exc
+        self.services: list[Any] = []
+        self._edges: list[EdgeRun] = []
+        self._closed = False
+
+    # -- lifecycle ----------------------------------------------------------------------------------------
+
+    def __enter__(self) -> LocalRig:
+        self.broker.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stop the edge simulators, the agents and the broker (in that order); remove the temp folder."""
+        if self._closed:
+            return
+        self._closed = True
+        for edge in self._edges:
+            edge.stop()
+        for edge in self._edges:
+            with contextlib.suppress(Exception):  # its error was the caller's to collect via join()
+                edge.join(10.0)
+        for service in reversed(self.services):
+            try:
+                service.stop()
+            except Exception:
+                log.exception("stopping a rig agent failed")
+        self.broker.stop()
+        self._remove_workdir()
+
+    def _remove_workdir(self) -> None:
+        if self._own_workdir:
+            shutil.rmtree(self.workdir, ignore_errors=True)
+
+    # -- the agent ----------------------------------------------------------------------------------------
+
+    def agent_config(self, overrides: Mapping[str, Any] | None = None) -> AgentConfig:
+        """An agent config for this rig: its broker, HTTP on a free loopback port, then `overrides`
+        (dotted keys, as `twin run` flags: {"telemetry.devices": ["arm-001"], ...})."""
+        values: dict[str, Any] = {
+            "broker.url": self.broker.url,
+            "broker.client_id_prefix": AGENT_CLIENT_PREFIX,
+            "http.listen": "127.0.0.1:0",
+        }
+        values.update(overrides or {})
+        return load_config(None, values)
+
+    def start_agent(
+        self,
+        overrides: Mapping[str, Any] | AgentConfig | None = None,
+        *,
+        sinks: Sequence[Any] = (),
+        wait_subscribed: bool = True,
+    ) -> Any:
+        """Start an AgentService in this process (stopped by close()); waits until it has subscribed."""
+        from twin.service.agent import AgentService  # noqa: PLC0415 - MuJoCo, USD and awscrt load here
+
+        config = overrides if isinstance(overrides, AgentConfig) else self.agent_config(overrides)
+        service = AgentService(config, sinks=sinks)
+        self.services.append(service)
+        service.start()
+        if wait_subscribed and not service.wait_subscribed(SUBSCRIBE_TIMEOUT_S):
+            raise RigError(
+                f"the agent did not subscribe on {self.broker.url} within {SUBSCRIBE_TIMEOUT_S:.0f} s "
+                f"(the broker log: {self.broker.log_path})"
+            )
+        return service
+
+    @contextlib.contextmanager
+    def agent_process(
+        self,
+        *,
+        devices: str = "*",
+        config_text: str = "",
+        extra_args: Sequence[str] = (),
+        log_name: str = "agent",
+    ) -> Iterator[tuple[subprocess.Popen[bytes], str]]:
+        """`twin run` as a child process on this rig's broker; yields (process, HTTP base URL).
+
+        `config_text` is written as its TOML config; stdout and stderr go to
+        `<workdir>/<log_name>-<port>.log`. Stopped with SIGTERM on exit (SIGKILL after 15 s).
+        """
+        port = free_port()
+        config = self.workdir / f"{log_name}-{port}.toml"
+        config.write_text(config_text)
+        log_path = self.workdir / f"{log_name}-{port}.log"
+        cmd = [
+            sys.executable,
+            "-m",
+            "twin.cli",
+            "run",
+            "--config",
+            str(config),
+            "--broker",
+            self.broker.url,
+            "--devices",
+            devices,
+            "--http",
+            f"127.0.0.1:{port}",
+            *extra_args,
+        ]
+        with log_path.open("wb") as log_file:
+            proc = subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT, env=child_env())
+            try:
+                yield proc, f"http://127.0.0.1:{port}"
+            finally:
+                _terminate(proc)
+
+    # -- the edge -----------------------------------------------------------------------------------------
+
+    def broker_config(self, client_id_prefix: str = EDGE_CLIENT_PREFIX, **settings: Any) -> BrokerConfig:
+        """Settings for a client of this rig's broker (a publisher in a test, say)."""
+        return BrokerConfig(url=self.broker.url, client_id_prefix=client_id_prefix, **settings)
+
+    def start_edge(
+        self,
+        devices: Sequence[str],
+        *,
+        variant: str = "ticks",
+        rate_hz: float = 10.0,
+        seconds: float | None = None,
+        seed: int = 101,
+        topic_prefix: str = DEFAULT_TOPIC_PREFIX,
+        **options: Any,
+    ) -> EdgeRun:
+        """The edge simulator publishing `devices` to this rig's broker, in a background thread.
+
+        `options` go to EdgeSimConfig (faults=FaultConfig(...), load_sign=True, ...)."""
+        from twin.tools.edge_sim import EdgeSimConfig, EdgeSimulator  # noqa: PLC0415 - awscrt loads here
+
+        simulator = EdgeSimulator(
+            EdgeSimConfig(
+                broker=self.broker_config(),
+                devices=list(devices),
+                variant=variant,
+                rate_hz=rate_hz,
+                seconds=seconds,
+                seed=seed,
+                topic_prefix=topic_prefix,
+                **options,
+            )
+        )
+        edge = EdgeRun(simulator)
+        self._edges.append(edge)
+        return edge
+
+
+def child_env() -> dict[str, str]:
+    """The environment of a child agent: headless MuJoCo (EGL) unless set, unbuffered output."""
+    env = dict(os.environ)
+    env.setdefault("MUJOCO_GL", "egl")
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+def _terminate(proc: subprocess.Popen[bytes], timeout: float = 15.0) -> None:
+    if proc.poll() is not None:
+        return
+    proc.terminate()
+    try:
+        proc.wait(timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(5)
+
+
+def wait_until(predicate: Any, timeout: float, what: str, interval: float = 0.02) -> Any:
+    """Poll `predicate` until it returns something truthy (returned) or `timeout` s pass (RigError)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise RigError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(interval)
