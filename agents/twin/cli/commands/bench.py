@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 from typing import Any
+
+from twin.cli.output import Console, import_dev_tool
+
+console = Console("bench")
 
 
 def register(subparsers: Any) -> None:
@@ -39,7 +42,10 @@ def register(subparsers: Any) -> None:
 
 
 def _figures(args: argparse.Namespace) -> dict[str, Any]:
-    from twin.tools.bench import fidelity, footprint, throughput
+    # Development tooling: absent from the agent package deployed to the instance (DevToolMissing says so).
+    throughput = import_dev_tool("twin.tools.bench.throughput", "bench")
+    fidelity = import_dev_tool("twin.tools.bench.fidelity", "bench")
+    footprint = import_dev_tool("twin.tools.bench.footprint", "bench")
 
     if args.scenario == "throughput":
         return throughput.run(arms=args.arms, rate=args.rate, seconds=args.seconds)
@@ -56,8 +62,7 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
         "fidelity": fidelity.run(),
         "footprint": footprint.run(),
     }
-    from twin.tools.bench import plot
-
+    plot = import_dev_tool("twin.tools.bench.plot", "bench")
     results["plot"] = str(plot.write(results, args.plot))
     return results
 
@@ -87,8 +92,8 @@ def _print_tree(data: Any, indent: str = "") -> None:
 def run(args: argparse.Namespace) -> int:
     try:
         figures = _figures(args)
-    except RuntimeError as exc:
-        sys.stderr.write(f"twin bench: {exc}\n")
+    except RuntimeError as exc:  # DevToolMissing, or a scenario that could not run (says why)
+        console.err(str(exc))
         return 1
     if args.json:
         print(json.dumps(figures, indent=2))

@@ -12,21 +12,17 @@ import time
 from pathlib import Path
 from typing import Any
 
+from twin.cli.output import Console, DevToolMissing, import_dev_tool
+
+console = Console("demo")
+
+
 EXIT_OK = 0
 EXIT_FAILED = 1
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
 # Without a terminal (CI logs, make output captured) a status line every few seconds is enough.
 PLAIN_STATUS_EVERY_S = 2.0
-
-
-def _out(text: str) -> None:
-    sys.stdout.write(text + "\n")
-    sys.stdout.flush()
-
-
-def _err(text: str) -> None:
-    sys.stderr.write(f"twin demo: {text}\n")
 
 
 def register(subparsers: Any) -> None:
@@ -76,8 +72,12 @@ def run(args: argparse.Namespace) -> int:
     # Rendering the PNG/GIF needs no window: EGL works headless (the Makefile exports the same default).
     os.environ.setdefault("MUJOCO_GL", "egl")
     os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
-    from twin.tools.demo import DemoConfig, DemoError, run_demo
-
+    try:
+        demo = import_dev_tool("twin.tools.demo", "demo")
+    except DevToolMissing as exc:
+        console.err(str(exc))
+        return EXIT_FAILED
+    DemoConfig, DemoError, run_demo = demo.DemoConfig, demo.DemoError, demo.run_demo  # noqa: N806
     try:
         config = DemoConfig(
             seconds=args.seconds,
@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
             rate_hz=args.rate,
         )
     except ValueError as exc:
-        _err(str(exc))
+        console.err(str(exc))
         return EXIT_USAGE
 
     stop = threading.Event()
@@ -99,6 +99,28 @@ def run(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGINT, _on_signal)
     signal.signal(signal.SIGTERM, _on_signal)
     tty = sys.stdout.isatty()
+    console.out(
+        f"twin demo: {config.devices} simulated arm(s), {config.variant} payloads at {config.rate_hz:g} Hz "
+        f"for {config.seconds:g} s -> {config.out_dir}"
+    )
+    try:
+        stats = run_demo(config, on_status=_status_printer(tty), stop=stop)
+    except DemoError as exc:
+        if tty:
+            sys.stdout.write("\n")
+        console.err(f"failed: {exc}")
+        return EXIT_FAILED
+    if tty:
+        sys.stdout.write("\n")
+    _summary(stats, config.out_dir)
+    if stats["interrupted"]:
+        console.err("interrupted: the files above cover the run up to the interruption")
+        return EXIT_INTERRUPTED
+    return EXIT_OK
+
+
+def _status_printer(tty: bool) -> Any:
+    """The status callback: one line rewritten in place on a terminal, a line every few seconds otherwise."""
     last_plain = [0.0]
 
     def on_status(status: Any) -> None:
@@ -108,34 +130,21 @@ def run(args: argparse.Namespace) -> int:
             sys.stdout.flush()
         elif time.monotonic() - last_plain[0] >= PLAIN_STATUS_EVERY_S:
             last_plain[0] = time.monotonic()
-            _out(line)
+            console.out(line)
 
-    _out(
-        f"twin demo: {config.devices} simulated arm(s), {config.variant} payloads at {config.rate_hz:g} Hz "
-        f"for {config.seconds:g} s -> {config.out_dir}"
-    )
-    try:
-        stats = run_demo(config, on_status=on_status, stop=stop)
-    except DemoError as exc:
-        if tty:
-            sys.stdout.write("\n")
-        _err(f"failed: {exc}")
-        return EXIT_FAILED
-    if tty:
-        sys.stdout.write("\n")
+    return on_status
+
+
+def _summary(stats: dict[str, Any], out_dir: Path) -> None:
     msgs = stats["messages"]
     e2e = stats["latency_s"]["end_to_end"]
-    _out(
+    console.out(
         f"done in {stats['duration_s']:.1f} s: sent {msgs['sent']}, received {msgs['received']}, "
         f"rejected {msgs['rejected']}, end-to-end p50 {_ms(e2e['p50'])} / p99 {_ms(e2e['p99'])}"
     )
     for kind, name in stats["files"].items():
-        _out(f"  {kind:4s} {config.out_dir / name}")
-    _out(f"  json {config.out_dir / 'stats.json'}")
-    if stats["interrupted"]:
-        _err("interrupted: the files above cover the run up to the interruption")
-        return EXIT_INTERRUPTED
-    return EXIT_OK
+        console.out(f"  {kind:4s} {out_dir / name}")
+    console.out(f"  json {out_dir / 'stats.json'}")
 
 
 def _ms(value: float | None) -> str:

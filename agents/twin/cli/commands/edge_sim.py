@@ -6,9 +6,13 @@ import argparse
 import json
 import logging
 import signal
-import sys
 import threading
 from typing import Any
+
+from twin.cli.output import Console
+from twin.core.topics import DEFAULT_TOPIC_PREFIX
+
+console = Console("edge-sim")
 
 
 def _probability(text: str) -> float:
@@ -23,14 +27,6 @@ def _positive(text: str) -> float:
     if value <= 0:
         raise argparse.ArgumentTypeError(f"{value} must be positive")
     return value
-
-
-def _out(text: str) -> None:
-    sys.stdout.write(text + "\n")
-
-
-def _err(text: str) -> None:
-    sys.stderr.write(f"twin edge-sim: {text}\n")
 
 
 def register(subparsers: Any) -> None:
@@ -63,7 +59,9 @@ def register(subparsers: Any) -> None:
     parser.add_argument(
         "--client-id-prefix", default="so101-edge-sim-", help="client id prefix (default %(default)s)"
     )
-    parser.add_argument("--topic-prefix", default="dt/lerobot", help="topic prefix (default %(default)s)")
+    parser.add_argument(
+        "--topic-prefix", default=DEFAULT_TOPIC_PREFIX, help="topic prefix (default %(default)s)"
+    )
     faults = parser.add_argument_group("faults")
     faults.add_argument("--drop", type=_probability, default=0.0, metavar="P", help="drop a message")
     faults.add_argument("--duplicate", type=_probability, default=0.0, metavar="P", help="send twice")
@@ -93,39 +91,47 @@ def register(subparsers: Any) -> None:
     parser.set_defaults(func=run)
 
 
+def _config(args: argparse.Namespace) -> Any:
+    """The simulator's settings from the flags; ValueError (BrokerConfigError included) names a bad one."""
+    from twin.tools.edge_sim import EdgeSimConfig, FaultConfig, device_ids
+    from twin.transport.broker import BrokerConfig
+
+    devices = list(args.device) if args.device else device_ids(args.devices or 1)
+    return EdgeSimConfig(
+        broker=BrokerConfig(
+            url=args.broker,
+            region=args.region,
+            endpoint=args.endpoint,
+            ca_file=args.ca_file,
+            client_id_prefix=args.client_id_prefix,
+        ),
+        devices=devices,
+        variant=args.variant,
+        rate_hz=args.rate,
+        seconds=args.seconds,
+        topic_prefix=args.topic_prefix,
+        faults=FaultConfig(
+            drop=args.drop,
+            duplicate=args.duplicate,
+            reorder=args.reorder,
+            malformed=args.malformed,
+            clock_skew_ms=args.clock_skew_ms,
+        ),
+        seed=args.seed,
+        load_sign=args.load_sign,
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     # awscrt and the simulator load only when the command runs, so `twin --help` stays fast.
-    from twin.tools.edge_sim import EdgeSimConfig, EdgeSimulator, FaultConfig, device_ids
-    from twin.transport.subscriber import BrokerConfig, BrokerConfigError
+    from twin.tools.edge_sim import EdgeSimulator
+    from twin.transport.broker import BrokerConfigError
 
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
-        devices = list(args.device) if args.device else device_ids(args.devices or 1)
-        config = EdgeSimConfig(
-            broker=BrokerConfig(
-                url=args.broker,
-                region=args.region,
-                endpoint=args.endpoint,
-                ca_file=args.ca_file,
-                client_id_prefix=args.client_id_prefix,
-            ),
-            devices=devices,
-            variant=args.variant,
-            rate_hz=args.rate,
-            seconds=args.seconds,
-            topic_prefix=args.topic_prefix,
-            faults=FaultConfig(
-                drop=args.drop,
-                duplicate=args.duplicate,
-                reorder=args.reorder,
-                malformed=args.malformed,
-                clock_skew_ms=args.clock_skew_ms,
-            ),
-            seed=args.seed,
-            load_sign=args.load_sign,
-        )
-    except (BrokerConfigError, ValueError) as exc:
-        _err(str(exc))
+        config = _config(args)
+    except ValueError as exc:
+        console.err(str(exc))
         return 2
 
     stop = threading.Event()
@@ -138,16 +144,16 @@ def run(args: argparse.Namespace) -> int:
     try:
         report = EdgeSimulator(config).run(stop)
     except (ConnectionError, BrokerConfigError) as exc:
-        _err(str(exc))
+        console.err(str(exc))
         return 1
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
 
     if args.json:
-        _out(json.dumps(report.as_dict(), indent=2))
+        console.out(json.dumps(report.as_dict(), indent=2))
     else:
-        _out(
+        console.out(
             f"ticks {report.ticks}, generated {report.generated}, published {report.published} "
             f"(failed {report.publish_failures}), dropped {report.dropped}, duplicated {report.duplicated}, "
             f"reordered {report.reordered}, malformed {report.malformed_total}, "
@@ -155,5 +161,5 @@ def run(args: argparse.Namespace) -> int:
         )
         for kind, count in report.malformed.items():
             if count:
-                _out(f"  malformed {kind}: {count}")
+                console.out(f"  malformed {kind}: {count}")
     return 0

@@ -19,11 +19,15 @@ registers); scripts that need it read the `agent ...` line of `status`.
 from __future__ import annotations
 
 import argparse
-import sys
 from typing import TYPE_CHECKING
+
+from twin.cli.output import Console
 
 if TYPE_CHECKING:
     from twin.tools.instance import AgentHealth, TwinInstance
+
+console = Console("instance")
+
 
 EXIT_OK = 0
 EXIT_AWS = 1
@@ -41,14 +45,6 @@ stack: --stack, else $SO101_TWIN_STACK, else So101TwinStack"""
 
 DEFAULT_TIMEOUT_S = 900.0
 HEALTH_TIMEOUT_S = 60.0
-
-
-def _out(text: str) -> None:
-    sys.stdout.write(text + "\n")
-
-
-def _err(text: str) -> None:
-    sys.stderr.write(text + "\n")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -102,7 +98,7 @@ def run(args: argparse.Namespace, twin: TwinInstance | None = None) -> int:
     from twin.tools import instance as lib
 
     if args.timeout <= 0:
-        _err(f"twin instance: --timeout must be positive, got {args.timeout}")
+        console.err(f"--timeout must be positive, got {args.timeout}")
         return 2
     codes: dict[type[lib.TwinInstanceError], int] = {
         lib.AwsSetupError: EXIT_SETUP,
@@ -116,29 +112,29 @@ def run(args: argparse.Namespace, twin: TwinInstance | None = None) -> int:
     wait = not args.no_wait
     try:
         if args.action == "url":
-            _out(twin.url())
+            console.out(twin.url())
         elif args.action == "stop":
             outputs = twin.outputs()
             state = twin.stop(wait=wait, timeout_s=args.timeout)
-            _out(f"instance {outputs.instance_id}: {state}")
+            console.out(f"instance {outputs.instance_id}: {state}")
             if not wait:
-                _out("not waiting; follow it with `twin instance status`")
+                console.out("not waiting; follow it with `twin instance status`")
         elif args.action == "start":
             outputs = twin.outputs()
             state = twin.start(wait=wait, timeout_s=args.timeout)
-            _out(f"instance {outputs.instance_id}: {state}")
-            _out(f"DCV URL: {outputs.dcv_url}")
+            console.out(f"instance {outputs.instance_id}: {state}")
+            console.out(f"DCV URL: {outputs.dcv_url}")
             if wait:
-                _out(_health_line(twin.health(HEALTH_TIMEOUT_S)))
+                console.out(_health_line(twin.health(HEALTH_TIMEOUT_S)))
             else:
-                _out("not waiting; follow it with `twin instance status`")
+                console.out("not waiting; follow it with `twin instance status`")
         else:
             status = twin.status(check_health=True, health_timeout_s=HEALTH_TIMEOUT_S)
             zone = f" in {status.availability_zone}" if status.availability_zone else ""
-            _out(f"instance {status.instance_id}: {status.state} ({status.instance_type}{zone})")
-            _out(f"DCV URL: {status.dcv_url}")
-            _out(_health_line(status.health))
+            console.out(f"instance {status.instance_id}: {status.state} ({status.instance_type}{zone})")
+            console.out(f"DCV URL: {status.dcv_url}")
+            console.out(_health_line(status.health))
     except lib.TwinInstanceError as exc:
-        _err(f"twin instance {args.action}: {exc}")
+        Console(f"instance {args.action}").err(str(exc))
         return codes.get(type(exc), EXIT_AWS)
     return EXIT_OK

@@ -16,6 +16,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from twin.cli.output import Console
+
+console = Console("render")
+
+
 EXIT_OK = 0
 EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
@@ -63,10 +68,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--camera", default=None, help="model camera name (default: overview, else a free view)"
     )
     parser.set_defaults(func=run)
-
-
-def _err(text: str) -> None:
-    sys.stderr.write(f"twin render: {text}\n")
 
 
 def _pose_from_json(text: str, joint_names: tuple[str, ...]) -> dict[str, float]:
@@ -120,12 +121,12 @@ def run(args: argparse.Namespace) -> int:
     from twin.robot.model import ModelError, RobotModel
 
     if args.width <= 0 or args.height <= 0:
-        _err(f"--width/--height must be positive, got {args.width}x{args.height}")
+        console.err(f"--width/--height must be positive, got {args.width}x{args.height}")
         return EXIT_BAD_INPUT
     try:
         robot = RobotModel.load(args.model)
     except ModelError as exc:
-        _err(str(exc))
+        console.err(str(exc))
         return EXIT_FAILED
 
     try:
@@ -136,10 +137,10 @@ def run(args: argparse.Namespace) -> int:
         else:
             angles, label = {}, "zero pose"
     except TelemetryRejected as exc:
-        _err(f"payload rejected ({exc.reason}): {exc}")
+        console.err(f"payload rejected ({exc.reason}): {exc}")
         return EXIT_BAD_INPUT
     except ValueError as exc:
-        _err(str(exc))
+        console.err(str(exc))
         return EXIT_BAD_INPUT
 
     try:
@@ -147,7 +148,7 @@ def run(args: argparse.Namespace) -> int:
             robot, angles, args.out, width=args.width, height=args.height, camera=args.camera, text=label
         )
     except RenderError as exc:
-        _err(str(exc))
+        console.err(str(exc))
         return EXIT_FAILED
     sys.stdout.write(f"{out}\n")
     return EXIT_OK

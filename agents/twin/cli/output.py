@@ -1,0 +1,50 @@
+"""What every `twin` command shares: how it writes results and errors, and how it loads development tooling.
+
+Results go to stdout (one line at a time, flushed, so a pipe or a CI log sees them as they happen); errors go
+to stderr prefixed with the command (`twin demo: ...`), so a user who ran several commands knows which one
+complained.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+from types import ModuleType
+
+
+class Console:
+    """stdout/stderr of one command."""
+
+    def __init__(self, command: str) -> None:
+        self.command = command
+
+    def out(self, text: str = "") -> None:
+        sys.stdout.write(text + "\n")
+        sys.stdout.flush()
+
+    def err(self, text: str) -> None:
+        sys.stderr.write(f"twin {self.command}: {text}\n")
+
+
+class DevToolMissing(RuntimeError):  # noqa: N818 - reads as what happened: a tool is missing
+    """A development-only module (benchmark, local rig, demo) is not part of this install."""
+
+
+def import_dev_tool(module: str, command: str) -> ModuleType:
+    """Import `module`, or raise DevToolMissing saying why it is absent and where the command runs.
+
+    The agent asset deployed to the instance holds only what the instance runs (stacks/twin_host.py,
+    AGENT_ASSET_PATTERNS), so the benchmark, the local rig and the demo are not there. A missing dependency
+    *inside* the tool is a different error and is re-raised as it is.
+    """
+    try:
+        return importlib.import_module(module)
+    except ModuleNotFoundError as exc:
+        missing = exc.name or ""
+        if not (module == missing or module.startswith(missing + ".")) or not missing.startswith("twin."):
+            raise
+        raise DevToolMissing(
+            f"`twin {command}` is development tooling and is not part of this install ({missing} is absent: "
+            "the agent package deployed to the instance carries only what the instance runs). Run it from a "
+            "clone of the repository after `make setup`."
+        ) from None
