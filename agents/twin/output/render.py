@@ -83,6 +83,18 @@ def _overlay_text(pixels: np.ndarray, text: str) -> np.ndarray:
     return np.asarray(image)
 
 
+def _renderer(model: mujoco.MjModel, width: int, height: int) -> mujoco.Renderer:
+    _check_gl_backend()
+    try:
+        return mujoco.Renderer(model, height=height, width=width)
+    except Exception as exc:  # the GL backends raise assorted types (FatalError, GLFWError, ImportError)
+        backend = os.environ.get("MUJOCO_GL", "<unset: glfw, needs a display>")
+        raise RenderError(
+            f"could not create an OpenGL context for rendering (MUJOCO_GL={backend}): {exc}. On a headless "
+            "host set MUJOCO_GL=egl (or osmesa) in the environment before starting the process."
+        ) from exc
+
+
 def render_png(
     robot: RobotModel,
     joint_angles: Mapping[str, float],
@@ -125,16 +137,7 @@ def render_png(
     if name is None and DEFAULT_CAMERA in robot.camera_names:
         name = DEFAULT_CAMERA
     view: str | mujoco.MjvCamera = name if name is not None else _free_camera(robot, data)
-    _check_gl_backend()
-    try:
-        renderer = mujoco.Renderer(model, height=height, width=width)
-    except Exception as exc:  # the GL backends raise assorted types (FatalError, GLFWError, ImportError)
-        backend = os.environ.get("MUJOCO_GL", "<unset: glfw, needs a display>")
-        raise RenderError(
-            f"could not create an OpenGL context for rendering (MUJOCO_GL={backend}): {exc}. On a headless "
-            "host set MUJOCO_GL=egl (or osmesa) in the environment before starting the process."
-        ) from exc
-    with renderer:
+    with _renderer(model, width, height) as renderer:
         renderer.update_scene(data, camera=view)
         pixels = renderer.render()
     if text:

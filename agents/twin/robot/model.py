@@ -121,99 +121,28 @@ class RobotModel:
     ) -> RobotModel:
         """Validate an already compiled model (e.g. built from a string in a test); raises ModelError."""
         mjcf = Path(path)
-        names = so101.JOINT_NAMES
-        missing: list[str] = []
-        wrong_type: list[str] = []
-        joint_ids: dict[str, int] = {}
-        for name in names:
-            jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
-            if jid < 0:
-                missing.append(name)
-            elif model.jnt_type[jid] != mujoco.mjtJoint.mjJNT_HINGE:
-                kind = mujoco.mjtJoint(model.jnt_type[jid]).name.removeprefix("mjJNT_").lower()
-                wrong_type.append(f"{name} (is {kind})")
-            else:
-                joint_ids[name] = jid
-        if missing or wrong_type:
-            found = [_name(model, mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(model.njnt)]
-            problems = []
-            if missing:
-                problems.append(f"missing joints: {', '.join(missing)}")
-            if wrong_type:
-                problems.append(f"not hinge joints: {', '.join(wrong_type)}")
-            raise ModelError(
-                f"robot model {mjcf} cannot mirror the SO-101: {'; '.join(problems)}. "
-                f"The twin needs hinge joints named {', '.join(names)} (the edge telemetry's names); "
-                f"the model has: {', '.join(n or '<unnamed>' for n in found) or 'no joints'}. {_FIX_HINT}"
-            )
-
-        joint_ranges: dict[str, tuple[float, float]] = {}
-        for name, jid in joint_ids.items():
-            if model.jnt_limited[jid]:
-                lo, hi = (float(v) for v in model.jnt_range[jid])
-                joint_ranges[name] = (lo, hi)
-            else:
-                # An unlimited joint would accept any telemetry; clamp to the real arm's travel instead.
-                joint_ranges[name] = so101.JOINT_RANGES_RAD[name]
-                log.info(
-                    "joint %s has no range in %s; clamping to the SO-101 range %s",
-                    name,
-                    mjcf,
-                    joint_ranges[name],
-                )
-
-        actuator_ids: dict[str, int] = {}
-        for act in range(model.nu):
-            if model.actuator_trntype[act] != mujoco.mjtTrn.mjTRN_JOINT:
-                continue
-            target = int(model.actuator_trnid[act, 0])
-            for name, jid in joint_ids.items():
-                if jid == target and name not in actuator_ids and _is_position_servo(model, act):
-                    actuator_ids[name] = act
-        missing_actuators = tuple(n for n in names if n not in actuator_ids)
-
-        body_ids: dict[str, int] = {}
-        for name in so101.BODY_NAMES:
-            bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
-            if bid >= 0:
-                body_ids[name] = bid
-
-        candidates = (tcp_site,) if isinstance(tcp_site, str) else tuple(tcp_site or DEFAULT_TCP_SITES)
-        site_name: str | None = None
-        site_id: int | None = None
-        for candidate in candidates:
-            sid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, candidate)
-            if sid >= 0:
-                site_name, site_id = candidate, sid
-                break
-        tcp_body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, FALLBACK_TCP_BODY)
-        if tcp_body < 0:
-            # Last resort for a model with other body names: the body the gripper joint moves.
-            tcp_body = int(model.jnt_bodyid[joint_ids[so101.GRIPPER]])
-        if site_id is None:
-            log.warning(
-                "robot model %s has no TCP site (tried %s); using the origin of body %r as the TCP. "
-                "Add a site at the gripper tip or configure its name.",
-                mjcf,
-                ", ".join(candidates),
-                _name(model, mujoco.mjtObj.mjOBJ_BODY, tcp_body),
-            )
-
+        joint_ids = _joint_ids(model, mjcf)
+        actuator_ids = _position_actuators(model, joint_ids)
+        site_name, site_id, tcp_body = _tcp(model, mjcf, joint_ids, tcp_site)
         # A resting pose the model places a few mm into the floor (or exactly at a limit) would otherwise add
         # an arbitrary soft-constraint force from the penetration depth; holding torque = gravity (+ springs).
         inverse_model = copy.deepcopy(model)
         inverse_model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONSTRAINT
-
+        body_ids = {
+            name: bid
+            for name in so101.BODY_NAMES
+            if (bid := mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)) >= 0
+        }
         return cls(
             model=model,
             path=mjcf,
-            joint_names=names,
+            joint_names=so101.JOINT_NAMES,
             joint_ids=joint_ids,
             qpos_addr={n: int(model.jnt_qposadr[j]) for n, j in joint_ids.items()},
             dof_addr={n: int(model.jnt_dofadr[j]) for n, j in joint_ids.items()},
-            joint_ranges=joint_ranges,
+            joint_ranges=_joint_ranges(model, mjcf, joint_ids),
             actuator_ids=actuator_ids,
-            missing_actuators=missing_actuators,
+            missing_actuators=tuple(n for n in so101.JOINT_NAMES if n not in actuator_ids),
             body_ids=body_ids,
             tcp_site=site_name,
             tcp_site_id=site_id,
@@ -258,3 +187,90 @@ class RobotModel:
                 f"{', '.join(self.missing_actuators)}. Add one <position joint=...> actuator per joint, use "
                 '`[twin] mode = "kinematic"`, or set `[twin] model` to an MJCF with position actuators.'
             )
+
+
+def _joint_ids(model: mujoco.MjModel, mjcf: Path) -> dict[str, int]:
+    """Joint name -> id for every SO-101 joint; ModelError listing what is missing or not a hinge."""
+    names = so101.JOINT_NAMES
+    missing: list[str] = []
+    wrong_type: list[str] = []
+    joint_ids: dict[str, int] = {}
+    for name in names:
+        jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
+        if jid < 0:
+            missing.append(name)
+        elif model.jnt_type[jid] != mujoco.mjtJoint.mjJNT_HINGE:
+            kind = mujoco.mjtJoint(model.jnt_type[jid]).name.removeprefix("mjJNT_").lower()
+            wrong_type.append(f"{name} (is {kind})")
+        else:
+            joint_ids[name] = jid
+    if missing or wrong_type:
+        found = [_name(model, mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(model.njnt)]
+        problems = []
+        if missing:
+            problems.append(f"missing joints: {', '.join(missing)}")
+        if wrong_type:
+            problems.append(f"not hinge joints: {', '.join(wrong_type)}")
+        raise ModelError(
+            f"robot model {mjcf} cannot mirror the SO-101: {'; '.join(problems)}. "
+            f"The twin needs hinge joints named {', '.join(names)} (the edge telemetry's names); "
+            f"the model has: {', '.join(n or '<unnamed>' for n in found) or 'no joints'}. {_FIX_HINT}"
+        )
+    return joint_ids
+
+
+def _joint_ranges(
+    model: mujoco.MjModel, mjcf: Path, joint_ids: dict[str, int]
+) -> dict[str, tuple[float, float]]:
+    joint_ranges: dict[str, tuple[float, float]] = {}
+    for name, jid in joint_ids.items():
+        if model.jnt_limited[jid]:
+            lo, hi = (float(v) for v in model.jnt_range[jid])
+            joint_ranges[name] = (lo, hi)
+        else:
+            # An unlimited joint would accept any telemetry; clamp to the real arm's travel instead.
+            joint_ranges[name] = so101.JOINT_RANGES_RAD[name]
+            log.info(
+                "joint %s has no range in %s; clamping to the SO-101 range %s", name, mjcf, joint_ranges[name]
+            )
+    return joint_ranges
+
+
+def _position_actuators(model: mujoco.MjModel, joint_ids: dict[str, int]) -> dict[str, int]:
+    """Joint name -> the first position actuator driving it (physics mode needs one per joint)."""
+    actuator_ids: dict[str, int] = {}
+    for act in range(model.nu):
+        if model.actuator_trntype[act] != mujoco.mjtTrn.mjTRN_JOINT:
+            continue
+        target = int(model.actuator_trnid[act, 0])
+        for name, jid in joint_ids.items():
+            if jid == target and name not in actuator_ids and _is_position_servo(model, act):
+                actuator_ids[name] = act
+    return actuator_ids
+
+
+def _tcp(
+    model: mujoco.MjModel, mjcf: Path, joint_ids: dict[str, int], tcp_site: str | Sequence[str] | None
+) -> tuple[str | None, int | None, int]:
+    """(site name, site id) of the first TCP site found (None, None without one), and the fallback body."""
+    candidates = (tcp_site,) if isinstance(tcp_site, str) else tuple(tcp_site or DEFAULT_TCP_SITES)
+    site_name: str | None = None
+    site_id: int | None = None
+    for candidate in candidates:
+        sid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, candidate)
+        if sid >= 0:
+            site_name, site_id = candidate, sid
+            break
+    tcp_body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, FALLBACK_TCP_BODY)
+    if tcp_body < 0:
+        # Last resort for a model with other body names: the body the gripper joint moves.
+        tcp_body = int(model.jnt_bodyid[joint_ids[so101.GRIPPER]])
+    if site_id is None:
+        log.warning(
+            "robot model %s has no TCP site (tried %s); using the origin of body %r as the TCP. "
+            "Add a site at the gripper tip or configure its name.",
+            mjcf,
+            ", ".join(candidates),
+            _name(model, mujoco.mjtObj.mjOBJ_BODY, tcp_body),
+        )
+    return site_name, site_id, tcp_body
