@@ -20,11 +20,12 @@ CHECKOV_VENV := .venv-checkov
 CHECKOV_STAMP := $(CHECKOV_VENV)/.setup-stamp
 NODE_STAMP := node_modules/.setup-stamp
 
-.PHONY: help setup system-packages test lint demo bench usd-asset clean
+.PHONY: help setup system-packages test test-fast lint demo bench usd-asset clean
 
 help:
 	@echo "make demo   - set up, then run the twin end to end locally (broker, edge simulator, agent)"
 	@echo "make test   - set up, then run every check CI runs"
+	@echo "make test-fast - set up, lint, then the tests not marked slow (the inner loop; make test runs all)"
 	@echo "make setup  - system packages (apt), .venv, CDK CLI; idempotent"
 	@echo "make bench  - run the benchmarks and print figures (docs/performance.md)"
 	@echo "make usd-asset - regenerate robots/so101 USD asset from the MJCF"
@@ -71,6 +72,10 @@ lint: setup
 
 test: setup lint
 	$(VENV)/bin/pytest
+
+# The inner loop: everything but the tests marked `slow` (real brokers, subprocesses, Xvfb, cdk synth, ...).
+test-fast: setup lint
+	$(VENV)/bin/pytest -m "not slow"
 
 demo: setup
 	$(VENV)/bin/twin demo --out out/demo

@@ -101,6 +101,7 @@ def test_the_arm_is_visible_against_the_background(robot: RobotModel, tmp_path: 
     assert rows.min() > 0 and cols.min() > 0 and cols.max() < W - 1
 
 
+@pytest.mark.slow
 def test_different_poses_give_different_images(robot: RobotModel, tmp_path: Path) -> None:
     zero = pixels(render_png(robot, {}, tmp_path / "zero.png", width=W, height=H))
     rest = pixels(render_png(robot, REST, tmp_path / "rest.png", width=W, height=H))
@@ -122,6 +123,7 @@ def test_free_camera_frames_a_model_without_cameras(tmp_path: Path) -> None:
         assert cols.max() - cols.min() > W * 0.25, name
 
 
+@pytest.mark.slow
 def test_text_overlay_is_drawn(robot: RobotModel, tmp_path: Path) -> None:
     plain = pixels(render_png(robot, {}, tmp_path / "plain.png", width=W, height=H))
     text = pixels(render_png(robot, {}, tmp_path / "text.png", width=W, height=H, text="arm-001"))
@@ -143,6 +145,7 @@ def test_larger_than_the_model_buffer_and_named_cameras(robot: RobotModel, tmp_p
 # -- the command ---------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_cli_pose(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "pose.png"
     pose = {"shoulder_lift": -1.2, "elbow_flex": 1.1}
@@ -156,6 +159,7 @@ def test_cli_pose(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert np.array_equal(pixels(out)[BELOW_TEXT], expected[BELOW_TEXT])
 
 
+@pytest.mark.slow
 def test_cli_payload_renders_the_decoded_pose(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     payload = tmp_path / "message.json"
     payload.write_text(json.dumps(DEGREES_PAYLOAD))
@@ -257,6 +261,7 @@ def test_cli_missing_model_exits_1(tmp_path: Path, capsys: pytest.CaptureFixture
     assert "[twin] model" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_console_script_end_to_end(tmp_path: Path) -> None:
     twin_bin = shutil.which("twin", path=str(Path(sys.executable).parent))
     assert twin_bin, "the `twin` console script is not installed in this venv"
@@ -286,6 +291,7 @@ def test_console_script_end_to_end(tmp_path: Path) -> None:
         assert image.size == (200, 150)
 
 
+@pytest.mark.slow
 def test_cli_payload_with_a_calibration_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     # Off-centre calibrated ranges move the mid point: the decoded pose differs from the uncalibrated one.
     calibration = tmp_path / "follower.json"

@@ -87,7 +87,8 @@ def test_both_files_load_and_scene_adds_floor_and_camera(model: mujoco.MjModel) 
     floor = model.geom("floor")
     assert floor.type[0] == mujoco.mjtGeom.mjGEOM_PLANE
     assert model.geom_pos[floor.id][2] == 0.0
-    assert model.camera("overview").id >= 0
+    # mj_name2id answers -1 for a missing name (model.camera() would raise instead of failing the assert).
+    assert mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, "overview") != -1
     assert model.nlight >= 1
 
 
@@ -98,7 +99,10 @@ def test_names_are_the_shared_constants(model: mujoco.MjModel) -> None:
     assert tuple(joints) == so101.JOINT_NAMES
     assert tuple(bodies) == so101.BODY_NAMES
     assert tuple(actuators) == so101.JOINT_NAMES
-    assert model.site(so101.TCP_SITE).id >= 0
+    tcp = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, so101.TCP_SITE)
+    assert tcp != -1
+    # The tool centre point rides on the gripper body (the fixed jaw), not on a link it would lag behind.
+    assert model.site_bodyid[tcp] == model.body("gripper").id
 
 
 @pytest.mark.parametrize("joint", so101.JOINT_NAMES)

@@ -16,6 +16,7 @@ import json
 import math
 from typing import Any
 
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from twin.core.telemetry import (
@@ -215,12 +216,14 @@ def mutated_messages(draw: st.DrawFn) -> str:
 # --- properties ---------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # thousands of generated messages: tens of seconds on the dev machine
 @fast(2500)
 @given(st.binary(max_size=600))
 def test_random_bytes(payload: bytes) -> None:
     feed(payload)
 
 
+@pytest.mark.slow  # thousands of generated messages: tens of seconds on the dev machine
 @fast(2500)
 @given(json_values)
 def test_random_json_values(value: Any) -> None:
@@ -228,12 +231,14 @@ def test_random_json_values(value: Any) -> None:
     feed(json.dumps(value).encode())
 
 
+@pytest.mark.slow  # thousands of generated messages: tens of seconds on the dev machine
 @fast(4500)
 @given(mutated_messages(), st.sampled_from([None, "arm-001"]))
 def test_near_valid_mutated_messages(payload: str, topic_device: str | None) -> None:
     feed(payload.encode("utf-8", "surrogatepass"), topic_device)
 
 
+@pytest.mark.slow  # thousands of generated messages: tens of seconds on the dev machine
 @fast(1000)
 @given(valid_messages())
 def test_valid_messages_are_accepted_in_their_own_units(msg: dict[str, Any]) -> None:

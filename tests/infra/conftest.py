@@ -9,6 +9,15 @@ import pytest
 
 from .synth import ALL_OPTIONS, Synth, synthesize
 
+# A test that needs a synthesized stack waits for `cdk synth` (tens of seconds on the dev machine): slow.
+SYNTH_FIXTURES = frozenset({"synth_default", "synth_all_options", "synth_factory"})
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if SYNTH_FIXTURES & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.slow)
+
 
 @pytest.fixture(scope="session", autouse=True)
 def _jsii_quiet() -> None:
