@@ -22,13 +22,21 @@ ROOT_DEVICE = "/dev/sda1"  # the Ubuntu DLAMI's root device
 DESKTOP_USER = "ubuntu"
 _PLACEHOLDER_RE = re.compile(r"@@([A-Z_]+)@@")
 # The one Python distribution the instance installs: pyproject.toml builds `twin` (agents/) and
-# `twin_robots` (robots/, the model files). Docker-style patterns: drop everything, re-include those.
+# `twin_robots` (robots/, the model files). Docker-style patterns: drop everything, re-include those, then
+# drop the development tooling the instance never runs (benchmark, local rig, demo, private mosquitto; the
+# `twin bench` and `twin demo` commands say so when asked there). pyproject.toml does not list
+# twin.tools.bench, so the package still builds without it.
 AGENT_ASSET_PATTERNS = [
     "*",
     "!pyproject.toml",
     "!README.md",
     "!agents",
     "!robots",
+    "agents/twin/tools/bench",
+    "agents/twin/tools/rig.py",
+    "agents/twin/tools/demo.py",
+    "agents/twin/tools/mosquitto.py",
+    "robots/tools",
     "**/__pycache__",
     "**/*.pyc",
     "**/*.egg-info",

@@ -341,6 +341,14 @@ def test_agent_asset_holds_only_the_distribution(synth_default: Synth) -> None:
     names = {p.name for p in asset_dirs[0].rglob("*")}
     assert not names & {"__pycache__", ".venv", "node_modules", "cdk.out", "tests"}
     assert (asset_dirs[0] / "agents" / "twin" / "cli" / "main.py").exists()
+    # What the instance runs, not the development tooling (benchmark, local rig, demo, private broker).
+    tools = asset_dirs[0] / "agents" / "twin" / "tools"
+    assert (tools / "edge_sim.py").exists() and (tools / "instance.py").exists()
+    assert not [
+        p.name
+        for p in (tools / "bench", tools / "rig.py", tools / "demo.py", tools / "mosquitto.py")
+        if p.exists()
+    ]
     scripts = [p for p in Path(outdir).glob("asset.*") if (p / "bootstrap.sh").exists()]
     assert len(scripts) == 1
     assert {"bootstrap.sh", "install-agent.sh"} <= {p.name for p in scripts[0].iterdir()}

@@ -173,6 +173,16 @@ def test_installer_installs_the_real_package_with_the_robot_model(installed: tup
     )
     assert help_.returncode == 0
     assert "run" in help_.stdout
+    # The benchmark is not shipped; asking for it there says why instead of a traceback.
+    bench = subprocess.run(
+        [str(root / "opt/so101-twin/venv/bin/twin"), "bench", "fidelity", "--seconds", "1"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert bench.returncode == 1
+    assert "development tooling" in bench.stderr and "Traceback" not in bench.stderr
 
 
 def test_second_run_changes_nothing(installed: tuple[Path, Path]) -> None:
