@@ -189,9 +189,18 @@ def run_demo(
             f"{run.report.published} messages to {broker_url}: check the broker log and the agent log above"
         )
     stats = _stats(
-        config, run, totals, duration, stop.is_set(), {"url": broker_url, "pid": broker_pid}, service
+        config=config,
+        state=final,
+        run=run,
+        totals=totals,
+        duration=duration,
+        interrupted=stop.is_set(),
+        broker={"url": broker_url, "pid": broker_pid},
+        service=service,
     )
-    _write_outputs(config, service, run, devices, stats, out_dir)
+    _write_outputs(
+        config=config, state=final, service=service, run=run, devices=devices, stats=stats, out_dir=out_dir
+    )
     return stats
 
 
