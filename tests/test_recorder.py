@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 import math
-import time
 from pathlib import Path
 
 import mujoco
@@ -134,12 +133,16 @@ def test_device_twin_body_poses_round_trip(tmp_path: Path) -> None:
 def test_flush_writes_samples_before_close(tmp_path: Path, mj) -> None:
     model, data = mj
     session = tmp_path / "live.usda"
-    rec = SessionRecorder(session, flush_interval_s=0.2)
+    # The flush clock is the test's, so a loaded machine cannot let the interval pass early.
+    now = [100.0]
+    rec = SessionRecorder(session, flush_interval_s=0.2, clock=lambda: now[0])
     try:
+        now[0] += 0.15
         rec.record("arm", 0.0, _fk_poses(model, data, ANGLE_SETS[1]))
         on_disk = Sdf.Layer.OpenAsAnonymous(str(session))
         assert not on_disk.GetPrimAtPath("/World/arm"), "saved before the flush interval elapsed"
-        time.sleep(0.25)
+        assert rec.flushes == 0
+        now[0] += 0.1  # 0.25 s since the stage was created
         rec.record("arm", 1.0, _fk_poses(model, data, ANGLE_SETS[2]))
         assert rec.flushes >= 1
         on_disk = Sdf.Layer.OpenAsAnonymous(str(session))

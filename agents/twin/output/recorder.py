@@ -22,7 +22,7 @@ import math
 import os
 import re
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -87,6 +87,7 @@ class SessionRecorder:
         asset_path: Path | None = None,
         flush_interval_s: float = 2.0,
         time_codes_per_second: float = 30.0,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         if not (math.isfinite(time_codes_per_second) and time_codes_per_second > 0):
             raise ValueError(f"time_codes_per_second must be positive, got {time_codes_per_second!r}")
@@ -130,7 +131,9 @@ class SessionRecorder:
         self.flushes = 0
         self.flush_errors = 0
         self._layer.Save()
-        self._last_flush = time.monotonic()
+        # Wall-time flushes are measured on this clock (injectable, so tests need not sleep).
+        self._clock = clock
+        self._last_flush = clock()
         log.info("recording session to %s (asset %s)", self.path, self._asset_ref)
 
     def _create_stage(self, asset: Usd.Stage, meters_per_unit: float) -> Usd.Stage:
@@ -240,7 +243,7 @@ class SessionRecorder:
 
     def flush_if_due(self) -> None:
         """Save when `flush_interval_s` has passed since the last save (record() and an idle sink call it)."""
-        if not self._closed and time.monotonic() - self._last_flush >= self.flush_interval_s:
+        if not self._closed and self._clock() - self._last_flush >= self.flush_interval_s:
             self.flush()
 
     def flush(self) -> None:
@@ -250,7 +253,7 @@ class SessionRecorder:
         if self.samples_written:
             self._stage.SetStartTimeCode(min(0.0, self._min_time_code))
             self._stage.SetEndTimeCode(self._max_time_code)
-        self._last_flush = time.monotonic()
+        self._last_flush = self._clock()
         try:
             saved = self._layer.Save()
         except Exception:  # pxr raises Tf.ErrorException; a full disk must not stop the twin

@@ -178,6 +178,18 @@ def run_demo(
         raise DemoError(str(exc)) from exc
     except (ConnectionError, ValueError) as exc:  # the edge simulator's failure, re-raised by join()
         raise DemoError(f"the edge simulator failed: {exc}") from exc
+    broker = {"url": broker_url, "pid": broker_pid}
+    stats, final = _checked_stats(config, run, broker, service, interrupted=stop.is_set())
+    _write_outputs(
+        config=config, state=final, service=service, run=run, devices=devices, stats=stats, out_dir=out_dir
+    )
+    return stats
+
+
+def _checked_stats(
+    config: DemoConfig, run: _Run, broker: dict[str, Any], service: Any, *, interrupted: bool
+) -> tuple[dict[str, Any], AgentState]:
+    """(stats.json's content, the final state); DemoError when there is no state or no telemetry arrived."""
     duration = time.monotonic() - run.started
     final = run.final_state
     if final is None:
@@ -186,7 +198,8 @@ def run_demo(
     if totals.received == 0:
         raise DemoError(
             f"the agent received no telemetry in {duration:.1f} s although the edge simulator published "
-            f"{run.report.published} messages to {broker_url}: check the broker log and the agent log above"
+            f"{run.report.published} messages to {broker['url']}: check the broker log and the agent log "
+            "above"
         )
     stats = _stats(
         config=config,
@@ -194,14 +207,11 @@ def run_demo(
         run=run,
         totals=totals,
         duration=duration,
-        interrupted=stop.is_set(),
-        broker={"url": broker_url, "pid": broker_pid},
+        interrupted=interrupted,
+        broker=broker,
         service=service,
     )
-    _write_outputs(
-        config=config, state=final, service=service, run=run, devices=devices, stats=stats, out_dir=out_dir
-    )
-    return stats
+    return stats, final
 
 
 def _agent_overrides(config: DemoConfig, devices: list[str], out_dir: Path) -> dict[str, Any]:

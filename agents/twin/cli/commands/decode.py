@@ -13,7 +13,10 @@ import sys
 from dataclasses import asdict
 from pathlib import Path
 
+from twin.cli.output import Console
+
 EXIT_REJECTED = 2
+console = Console("decode")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -47,12 +50,12 @@ def run(args: argparse.Namespace) -> int:
     try:
         calibration = load_calibration(args.calibration) if args.calibration else None
     except ValueError as exc:
-        sys.stderr.write(f"twin decode: {exc}\n")
+        console.err(str(exc))
         return 1
     try:
         raw = sys.stdin.buffer.read() if args.payload == "-" else Path(args.payload).read_bytes()
     except OSError as exc:
-        sys.stderr.write(f"twin decode: cannot read {args.payload}: {exc.strerror or exc}\n")
+        console.err(f"cannot read {args.payload}: {exc.strerror or exc}")
         return 1
     # One payload is all the evidence there will be, so auto must decide from it alone.
     decoder = TelemetryDecoder(
@@ -62,6 +65,7 @@ def run(args: argparse.Namespace) -> int:
         telemetry = decoder.decode(raw)
     except TelemetryRejected as exc:
         hint = " (pass --units ticks|degrees|range100)" if exc.reason == "units_undecided" else ""
+        # A line of its own, no command prefix: scripts match on "rejected: <reason>:" (docs/telemetry.md).
         sys.stderr.write(f"rejected: {exc.reason}: {exc}{hint}\n")
         return EXIT_REJECTED
     out = {
@@ -75,5 +79,5 @@ def run(args: argparse.Namespace) -> int:
             for name, diag in telemetry.diagnostics.items()
         },
     }
-    sys.stdout.write(json.dumps(out, indent=2) + "\n")
+    console.out(json.dumps(out, indent=2))
     return 0

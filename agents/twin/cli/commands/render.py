@@ -150,5 +150,5 @@ def run(args: argparse.Namespace) -> int:
     except RenderError as exc:
         console.err(str(exc))
         return EXIT_FAILED
-    sys.stdout.write(f"{out}\n")
+    console.out(str(out))
     return EXIT_OK

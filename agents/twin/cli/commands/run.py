@@ -10,15 +10,16 @@ from __future__ import annotations
 import argparse
 import logging
 import signal
-import sys
 import threading
 from typing import Any
 
+from twin.cli.output import Console
 from twin.core.topics import DEFAULT_TOPIC_PREFIX
 from twin.service.config import DEFAULT_HTTP_HOST, DEFAULT_HTTP_PORT, LOG_LEVELS, ConfigError, load_config
 from twin.service.logs import setup_logging
 
 log = logging.getLogger("twin.run")
+console = Console("run")
 
 EXIT_OK = 0
 EXIT_FAILURE = 1
@@ -73,7 +74,7 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _config_error(message: str) -> int:
-    sys.stderr.write(f"twin run: configuration error: {message}\n")
+    console.err(f"configuration error: {message}")
     log.error("configuration error", extra={"error": message, "exit_code": EXIT_CONFIG})
     return EXIT_CONFIG
 
@@ -110,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             service.start()
         except (OSError, ValueError) as exc:
-            sys.stderr.write(f"twin run: cannot start: {exc}\n")
+            console.err(f"cannot start: {exc}")
             log.error("cannot start", extra={"error": str(exc), "exit_code": EXIT_FAILURE})
             service.stop()
             return EXIT_FAILURE
