@@ -55,7 +55,7 @@ def test_ticks_payload_auto_decides_from_one_message(
         "velocity_steps_s": -10.0,  # 32778: bit 15 set, magnitude 10
         "velocity_rad_s": pytest.approx(-0.015339807878856412),
         "load_percent": -50.0,  # 1524: bit 10 set, magnitude 500 x 0.1 %
-        "current_ma": 650.0,  # 100 x 6.5 mA
+        "current_a": 0.65,  # 100 x 6.5 mA
     }
 
 

@@ -331,7 +331,7 @@ def test_ticks_diagnostics_are_sign_decoded_and_scaled() -> None:
         velocity_rad_s=pytest.approx(-0.015339807878856412),  # -10 * 2 pi / 4096
         load_percent=-50.0,  # 1524 -> -500 units of 0.1 %
         temperature_c=41.0,
-        current_ma=650.0,  # 100 * 6.5 mA
+        current_a=0.65,  # 100 * 6.5 mA
         voltage_v=pytest.approx(12.1),  # 121 * 0.1 V
         status=0,
         moving=True,
@@ -345,7 +345,76 @@ def test_float_variant_diagnostics_keep_the_signed_velocity() -> None:
     assert diag.velocity_rad_s == pytest.approx(-0.01840776945)  # -12 * 2 pi / 4096
     assert diag.load_percent == pytest.approx(-7.6)  # >= 1024 is negative here too: -(1100 - 1024) * 0.1
     assert diag.temperature_c == 36.5
-    assert (diag.current_ma, diag.voltage_v, diag.status, diag.moving) == (None, None, None, None)
+    assert (diag.current_a, diag.voltage_v, diag.status, diag.moving) == (None, None, None, None)
+
+
+# Each diagnostic in physical units, worked out by hand from the register facts (twin.robot.sts3215):
+# velocity steps/s x 2 pi / 4096 rad/s (sign bit 15 in raw registers), load x 0.1 % of stall torque (sign bit
+# 10), temperature as sent, current x 6.5 mA, voltage x 0.1 V.
+DIAGNOSTIC_CASES = [
+    # (variant, the joint's raw fields, expected decoded fields)
+    (
+        Units.TICKS,
+        {"velocity": 3400, "load": 800, "temp": 58, "current": 400, "voltage": 74},
+        {
+            "velocity_steps_s": 3400.0,
+            "velocity_rad_s": 5.215534678811180,  # 3400 x 0.0015339807878856412
+            "load_percent": 80.0,
+            "temperature_c": 58.0,
+            "current_a": 2.6,  # 400 x 6.5 mA = 2600 mA
+            "voltage_v": 7.4,
+        },
+    ),
+    (
+        Units.TICKS,
+        # 32768 + 205: backwards at 205 steps/s; 1024 + 313: load of 31.3 % the other way.
+        {"velocity": 32973, "load": 1337, "temp": 71, "current": 1, "voltage": 50},
+        {
+            "velocity_steps_s": -205.0,
+            "velocity_rad_s": -0.314466061516560,  # -205 x 2 pi / 4096
+            "load_percent": -31.3,
+            "temperature_c": 71.0,
+            "current_a": 0.0065,
+            "voltage_v": 5.0,
+        },
+    ),
+    (
+        Units.DEGREES,
+        # LeRobot-normalised: velocity already signed; newer LeRobot signs the load too.
+        {"velocity": -205.0, "load": -313.0, "temp": 64.0, "current": 250.0, "voltage": 121.0},
+        {
+            "velocity_steps_s": -205.0,
+            "velocity_rad_s": -0.314466061516560,
+            "load_percent": -31.3,
+            "temperature_c": 64.0,
+            "current_a": 1.625,  # 250 x 6.5 mA, LeRobot's gripper protection current
+            "voltage_v": 12.1,
+        },
+    ),
+    (
+        Units.DEGREES,
+        # Older LeRobot leaves the load's bit 10 in the float: 1337.0 is -31.3 % as in ticks.
+        {"velocity": 0.0, "load": 1337.0, "temp": 30.0, "current": 0.0, "voltage": 60.0},
+        {
+            "velocity_steps_s": 0.0,
+            "velocity_rad_s": 0.0,
+            "load_percent": -31.3,
+            "temperature_c": 30.0,
+            "current_a": 0.0,
+            "voltage_v": 6.0,
+        },
+    ),
+]
+
+
+@pytest.mark.parametrize(("units", "raw", "expected"), DIAGNOSTIC_CASES)
+def test_each_diagnostic_decodes_to_physical_units(
+    units: Units, raw: dict[str, Any], expected: dict[str, float]
+) -> None:
+    positions = TICKS_EXAMPLE if units is Units.TICKS else DEGREES_EXAMPLE
+    diag = decoder(units).decode(payload(positions, **raw)).diagnostics["shoulder_lift"]
+    for name, value in expected.items():
+        assert getattr(diag, name) == pytest.approx(value, abs=1e-12), name
 
 
 def test_missing_diagnostics_are_none_and_unknown_fields_ignored() -> None:

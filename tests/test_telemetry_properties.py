@@ -85,7 +85,7 @@ def check_accepted(t: Telemetry) -> None:
             diag.velocity_rad_s,
             diag.load_percent,
             diag.temperature_c,
-            diag.current_ma,
+            diag.current_a,
             diag.voltage_v,
         ):
             assert value is None or math.isfinite(value)

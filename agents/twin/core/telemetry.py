@@ -23,7 +23,7 @@ from enum import StrEnum
 from typing import Any
 
 from twin.core.topics import device_id_problem
-from twin.robot import so101
+from twin.robot import so101, sts3215
 from twin.robot.calibration import Calibration
 
 log = logging.getLogger(__name__)
@@ -77,7 +77,7 @@ class JointDiagnostics:
     velocity_rad_s: float | None = None
     load_percent: float | None = None
     temperature_c: float | None = None
-    current_ma: float | None = None
+    current_a: float | None = None
     voltage_v: float | None = None
     status: int | None = None
     moving: bool | None = None
@@ -124,10 +124,11 @@ class DecoderConfig:
 STEPS_PER_TURN = so101.TICKS_PER_TURN
 # LeRobot's DEGREES scale divides by the resolution minus one (4095), not 4096.
 RAD_PER_TICK = 2.0 * math.pi / so101.TICK_MAX
-RAD_PER_STEP_S = 2.0 * math.pi / STEPS_PER_TURN
-CURRENT_MA_PER_UNIT = 6.5
-VOLTAGE_V_PER_UNIT = 0.1
-LOAD_PERCENT_PER_UNIT = 0.1
+# Diagnostic register scales: twin.robot.sts3215 holds them with their sources.
+RAD_PER_STEP_S = sts3215.RAD_PER_STEP
+CURRENT_MA_PER_UNIT = sts3215.CURRENT_MA_PER_UNIT
+VOLTAGE_V_PER_UNIT = sts3215.VOLTAGE_V_PER_UNIT
+LOAD_PERCENT_PER_UNIT = sts3215.LOAD_PERCENT_PER_UNIT
 
 # Bounds a message must respect; docs/telemetry.md lists them (device ids: twin.core.topics).
 TIMESTAMP_MIN_MS = 946_684_800_000  # 2000-01-01: an edge clock before this is unset, or it sends seconds
@@ -677,7 +678,8 @@ def _joint_diagnostics(joint: str, entry: dict[str, Any], float_variant: bool) -
         rad_s,
         None if load is None else decode_load(load) * LOAD_PERCENT_PER_UNIT,
         None if temp is None else float(temp),
-        None if current is None else current * CURRENT_MA_PER_UNIT,
+        # Divided last so whole mA stay exact: 100 units -> 650 mA -> 0.65 A.
+        None if current is None else current * CURRENT_MA_PER_UNIT / 1000.0,
         None if voltage is None else voltage * VOLTAGE_V_PER_UNIT,
         status,
         None if moving is None else bool(moving),

@@ -1,0 +1,114 @@
+"""Feetech STS3215 servo facts: register scales, factory protection settings and torque figures, in one place.
+
+Every figure names its source (docs/servo-health.md repeats them in a table):
+
+- FT-TBL: the STS3215 memory table as transcribed in Mickael-Roger/python-st3215 `README.md` (register
+  address, unit and factory default of each field);
+- L-FT: huggingface/lerobot `src/lerobot/motors/feetech/tables.py` and `feetech.py` (the same registers as
+  LeRobot reads them) and `robots/so_follower` (what LeRobot writes at connect);
+- SOARM: TheRobotStudio/SO-ARM100 `README.md`, footnote 1 (the follower's two servo versions and their stall
+  torques).
+
+The alarm thresholds in `twin.core.alarms` are derived from these; nothing else in the project should spell
+one of these numbers.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+# 1 kgf·cm in N·m (standard gravity 9.80665 m/s², 1 cm = 0.01 m): datasheets quote torque in kg·cm.
+NM_PER_KGF_CM = 9.80665 / 100.0
+
+# --- register scales (FT-TBL; L-FT agrees) -----------------------------------------------------------------
+
+STEPS_PER_TURN = 4096
+RAD_PER_STEP = 2.0 * math.pi / STEPS_PER_TURN
+# Present_Velocity (address 58) is sign-magnitude with the direction in bit 15; the edge passes it on raw.
+VELOCITY_SIGN_BIT = 1 << 15
+# Present_Load (address 60): "the voltage duty cycle of the current control output driving the motor",
+# magnitude 0..1000 in 0.1 % units with the direction in bit 10 (1024 + n means -n).
+LOAD_SIGN_BIT = 1 << 10
+LOAD_PERCENT_PER_UNIT = 0.1
+# Present_Current (address 69): 6.5 mA per unit, at most 500 units (3.25 A) measurable.
+CURRENT_MA_PER_UNIT = 6.5
+# Present_Voltage (address 62): 0.1 V per unit.
+VOLTAGE_V_PER_UNIT = 0.1
+
+# --- factory protection settings (FT-TBL, EEPROM defaults) -------------------------------------------------
+
+# Maximum temperature (address 13, default 70): above it the servo's temperature protection cuts the torque.
+MAX_TEMPERATURE_C = 70.0
+# Protection current (address 28, default 500 x 6.5 mA) held for the over-current protection time
+# (address 38, default 200 x 10 ms) trips the servo's current protection.
+PROTECTION_CURRENT_A = 500 * CURRENT_MA_PER_UNIT / 1000.0
+OVERCURRENT_PROTECTION_TIME_S = 200 * 0.010
+# Overload torque (address 36, default 80 % of the maximum torque) held for the protection time (address 35,
+# default 200 x 10 ms) makes the servo drop to the protection torque (address 34, default 20 %).
+OVERLOAD_TORQUE_PERCENT = 80.0
+OVERLOAD_PROTECTION_TIME_S = 200 * 0.010
+PROTECTION_TORQUE_PERCENT = 20.0
+# The maximum-torque register (address 16) and the load scale share one reference: 1000 = 100 % of the
+# locked-rotor (stall) torque. So the decoded load percent is a percent of the stall torque.
+LOAD_REFERENCE = "stall torque"
+
+# LeRobot's SO follower writes smaller limits to the gripper servo at connect (L-FT `configure_motors` via
+# robots/so_follower): Protection_Current 250 (x 6.5 mA) and Overload_Torque 25 %, so a grasp cannot burn
+# the jaw servo.
+GRIPPER_PROTECTION_CURRENT_A = 250 * CURRENT_MA_PER_UNIT / 1000.0
+GRIPPER_OVERLOAD_TORQUE_PERCENT = 25.0
+
+
+@dataclass(frozen=True, slots=True)
+class ServoVersion:
+    """One STS3215 version: its stall torque at the voltage the figure is quoted for."""
+
+    name: str
+    stall_torque_nm: float
+    quoted_at_v: float
+    source: str
+
+    def stall_torque_at(self, supply_v: float | None = None) -> float:
+        """Stall torque (N·m) at `supply_v`, or at the quoted voltage when the supply is unknown.
+
+        A DC motor's stall torque is Kt·V/R, proportional to the supply, and the servo's load register is the
+        drive duty cycle: at standstill the load percent is the torque as a share of the stall torque at the
+        present supply. A reading outside 1..20 V is no supply voltage and is ignored.
+        """
+        if supply_v is None or not 1.0 <= supply_v <= 20.0:
+            return self.stall_torque_nm
+        return self.stall_torque_nm * supply_v / self.quoted_at_v
+
+    def load_percent(self, torque_nm: float, supply_v: float | None = None) -> float:
+        """The load (percent of stall torque) a servo reports while holding `torque_nm` still."""
+        return 100.0 * torque_nm / self.stall_torque_at(supply_v)
+
+
+SERVO_VERSIONS: dict[str, ServoVersion] = {
+    # The follower's bill of materials lists the 7.4 V servo (C001) on a 5 V supply.
+    "7.4v": ServoVersion(
+        "7.4v",
+        16.5 * NM_PER_KGF_CM,
+        6.0,
+        "TheRobotStudio/SO-ARM100 README.md footnote 1: 16.5 kg·cm at 6 V",
+    ),
+    "12v": ServoVersion(
+        "12v",
+        30.0 * NM_PER_KGF_CM,
+        12.0,
+        "TheRobotStudio/SO-ARM100 README.md footnote 1: 30 kg·cm (12 V version, 12 V supply)",
+    ),
+}
+DEFAULT_SERVO_VERSION = "7.4v"
+
+
+def servo_version(name: str) -> ServoVersion:
+    """The named version; raises ValueError naming the choices."""
+    try:
+        return SERVO_VERSIONS[name]
+    except KeyError:
+        raise ValueError(
+            f"servo version {name!r} is not one of {', '.join(SERVO_VERSIONS)}; the SO-101 follower ships "
+            "with the 7.4v servo, the optional high-torque one is 12v"
+        ) from None
