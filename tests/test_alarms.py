@@ -1,0 +1,392 @@
+"""Servo alarms: each one raised, latched, acknowledged and cleared with hysteresis and minimum durations.
+
+The clock is a number passed in, so time is exact and nothing sleeps. Figures are worked out by hand from the
+servo facts (twin.robot.sts3215): the 7.4 V STS3215 stalls at 16.5 kg·cm = 1.61809725 N·m at 6 V.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+from twin.core.alarms import (
+    AlarmKind,
+    AlarmNotFound,
+    AlarmState,
+    AlarmThresholds,
+    NothingToAcknowledge,
+    ServoAlarms,
+    Severity,
+    alarm_id,
+)
+from twin.core.telemetry import JointDiagnostics
+from twin.robot import so101, sts3215
+
+DEV = "arm-001"
+STILL: dict[str, Any] = {"velocity_rad_s": 0.0, "moving": False}
+
+
+def readings(joint: str = "elbow_flex", **fields: Any) -> dict[str, JointDiagnostics]:
+    """Diagnostics for all six joints: `fields` on `joint`, a cool idle servo everywhere else."""
+    idle = JointDiagnostics(temperature_c=35.0, current_a=0.2, load_percent=5.0, **STILL)
+    return {
+        name: JointDiagnostics(**{**STILL, **fields}) if name == joint else idle for name in so101.JOINT_NAMES
+    }
+
+
+def run(
+    alarms: ServoAlarms,
+    steps: list[tuple[float, dict[str, Any]]],
+    *,
+    joint: str = "elbow_flex",
+    torques: dict[str, float] | None = None,
+) -> list[tuple[float, str, AlarmKind, AlarmState]]:
+    """Feed (time, fields) samples; returns (time, action, kind, new state) of every event."""
+    out = []
+    for now, fields in steps:
+        for e in alarms.evaluate(DEV, readings(joint, **fields), torques or {}, now):
+            assert e.joint == joint
+            out.append((now, e.action, e.kind, e.state))
+    return out
+
+
+def state(alarms: ServoAlarms, kind: AlarmKind, joint: str = "elbow_flex") -> AlarmState:
+    view = alarms.get(alarm_id(DEV, joint, kind))
+    return AlarmState.NORMAL if view is None else view.state
+
+
+# --- the servo figures the rules use ------------------------------------------------------------------------
+
+
+def test_servo_figures() -> None:
+    v74 = sts3215.servo_version("7.4v")
+    assert v74.stall_torque_nm == pytest.approx(1.61809725)  # 16.5 x 0.0980665
+    assert v74.stall_torque_at(5.0) == pytest.approx(1.348414375)  # x 5/6: stall torque follows the supply
+    assert v74.stall_torque_at(None) == v74.stall_torque_at(0.0) == pytest.approx(1.61809725)
+    assert v74.load_percent(0.5) == pytest.approx(30.900491, abs=1e-6)  # 0.5 / 1.61809725
+    assert v74.load_percent(0.5, 5.0) == pytest.approx(37.080589, abs=1e-6)  # 0.5 / 1.348414375
+    assert sts3215.servo_version("12v").stall_torque_nm == pytest.approx(2.941995)  # 30 x 0.0980665
+    assert pytest.approx(3.25) == sts3215.PROTECTION_CURRENT_A  # 500 x 6.5 mA
+    assert pytest.approx(1.625) == sts3215.GRIPPER_PROTECTION_CURRENT_A  # 250 x 6.5 mA
+    with pytest.raises(ValueError, match=r"7\.4v, 12v"):
+        sts3215.servo_version("6v")
+
+
+def test_default_thresholds_come_from_the_servo_settings() -> None:
+    t = AlarmThresholds()
+    assert t.temperature_critical_c == 65.0  # 5 C before the 70 C cut-out
+    assert t.current_a == pytest.approx(2.6)  # 80 % of 3.25 A
+    assert t.gripper_current_a == pytest.approx(1.3)  # 80 % of LeRobot's 1.625 A
+    assert t.current_raise_after_s == 1.0  # half the servo's 2 s over-current protection time
+    assert (t.overload_percent, t.gripper_overload_percent) == (80.0, 25.0)
+    assert t.rule(AlarmKind.OVERLOAD, "gripper").raise_at == 25.0
+    assert t.rule(AlarmKind.OVERLOAD, "shoulder_lift").raise_at == 80.0
+
+
+@pytest.mark.parametrize(
+    ("changes", "match"),
+    [
+        ({"temperature_warning_clear_c": 60.0}, "over_temperature clears at 60"),
+        ({"gripper_overload_clear_percent": 30.0}, "overload clears at 30"),
+        ({"current_raise_after_s": -1.0}, "durations must be >= 0"),
+        ({"mismatch_percent": float("nan")}, "finite"),
+        ({"servo_version": "24v"}, r"not one of 7\.4v, 12v"),
+        ({"mismatch_joints": ("elbow",)}, "unknown joints"),
+    ],
+)
+def test_bad_thresholds_are_refused_with_the_fix(changes: dict[str, Any], match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        AlarmThresholds(**changes)
+
+
+# --- over-temperature ---------------------------------------------------------------------------------------
+
+
+def test_over_temperature_raised_acknowledged_cleared() -> None:
+    alarms = ServoAlarms()
+    events = run(
+        alarms,
+        [
+            (0.0, {"temperature_c": 50.0}),
+            (1.0, {"temperature_c": 60.0}),  # at the line: the 2 s timer starts
+            (2.9, {"temperature_c": 61.0}),  # 1.9 s: not yet
+            (3.0, {"temperature_c": 61.0}),  # 2.0 s: raised
+        ],
+    )
+    assert events == [(3.0, "raised", AlarmKind.OVER_TEMPERATURE, AlarmState.ACTIVE)]
+    view = alarms.get(alarm_id(DEV, "elbow_flex", AlarmKind.OVER_TEMPERATURE))
+    assert view is not None
+    assert (view.severity, view.value, view.threshold, view.unit, view.raised) == (
+        Severity.WARNING,
+        61.0,
+        60.0,
+        "C",
+        1,
+    )
+    assert "61 C" in view.message and "70 C" in view.message
+
+    ack = alarms.acknowledge(view.alarm_id, 4.0)
+    assert (ack.previous, ack.state, ack.action) == (
+        AlarmState.ACTIVE,
+        AlarmState.ACKNOWLEDGED,
+        "acknowledged",
+    )
+    with pytest.raises(NothingToAcknowledge, match="ACKNOWLEDGED"):
+        alarms.acknowledge(view.alarm_id, 4.5)
+
+    events = run(
+        alarms,
+        [
+            (5.0, {"temperature_c": 57.0}),  # between 55 and 60: holds
+            (30.0, {"temperature_c": 57.0}),
+            (31.0, {"temperature_c": 55.0}),  # at the clear line: the 10 s timer starts
+            (40.9, {"temperature_c": 54.0}),
+            (41.0, {"temperature_c": 54.0}),  # 10 s: cleared, and acknowledged alarms go straight to NORMAL
+        ],
+    )
+    assert events == [(41.0, "cleared", AlarmKind.OVER_TEMPERATURE, AlarmState.NORMAL)]
+
+
+def test_unacknowledged_alarm_latches_until_acknowledged() -> None:
+    alarms = ServoAlarms()
+    run(alarms, [(0.0, {"temperature_c": 62.0}), (2.0, {"temperature_c": 62.0})])
+    assert state(alarms, AlarmKind.OVER_TEMPERATURE) is AlarmState.ACTIVE
+    events = run(alarms, [(3.0, {"temperature_c": 40.0}), (13.0, {"temperature_c": 40.0})])
+    assert events == [(13.0, "cleared", AlarmKind.OVER_TEMPERATURE, AlarmState.LATCHED)]
+    # Latched: the condition is gone but nobody saw it; acknowledging resets it to NORMAL.
+    assert alarms.present_by_severity() == {Severity.WARNING: 0, Severity.CRITICAL: 0}
+    reset = alarms.acknowledge(alarm_id(DEV, "elbow_flex", AlarmKind.OVER_TEMPERATURE), 20.0)
+    assert (reset.previous, reset.state, reset.action) == (AlarmState.LATCHED, AlarmState.NORMAL, "reset")
+    with pytest.raises(NothingToAcknowledge, match="NORMAL"):
+        alarms.acknowledge(reset.alarm_id, 21.0)
+
+
+def test_latched_alarm_that_returns_is_active_again() -> None:
+    alarms = ServoAlarms()
+    steps = [(0.0, 62.0), (2.0, 62.0), (3.0, 40.0), (13.0, 40.0), (14.0, 63.0), (16.0, 63.0)]
+    events = run(alarms, [(t, {"temperature_c": c}) for t, c in steps])
+    assert [(t, s) for t, _, _, s in events] == [
+        (2.0, AlarmState.ACTIVE),
+        (13.0, AlarmState.LATCHED),
+        (16.0, AlarmState.ACTIVE),
+    ]
+    assert alarms.get(alarm_id(DEV, "elbow_flex", AlarmKind.OVER_TEMPERATURE)).raised == 2  # type: ignore[union-attr]
+
+
+def test_without_latching_a_cleared_alarm_returns_to_normal() -> None:
+    alarms = ServoAlarms(AlarmThresholds(latch=False))
+    events = run(
+        alarms, [(t, {"temperature_c": c}) for t, c in [(0, 62.0), (2, 62.0), (3, 40.0), (13, 40.0)]]
+    )
+    assert [s for *_, s in events] == [AlarmState.ACTIVE, AlarmState.NORMAL]
+
+
+def test_a_reading_that_dips_restarts_the_timers() -> None:
+    alarms = ServoAlarms()
+    # 61 C never holds for 2 s: each dip to 59 (between the lines) restarts the raise timer.
+    flapping = [(t * 0.5, {"temperature_c": 61.0 if t % 3 else 59.0}) for t in range(40)]
+    assert run(alarms, flapping) == []
+    run(alarms, [(20.0, {"temperature_c": 61.0}), (22.0, {"temperature_c": 61.0})])
+    assert state(alarms, AlarmKind.OVER_TEMPERATURE) is AlarmState.ACTIVE
+    # Clearing needs 10 s at or below 55 in one stretch: 56 at 27 s restarts it.
+    steps = [(23.0, 54.0), (27.0, 56.0), (28.0, 54.0), (37.9, 54.0)]
+    assert run(alarms, [(t, {"temperature_c": c}) for t, c in steps]) == []
+    assert run(alarms, [(38.0, {"temperature_c": 54.0})])[0][3] is AlarmState.LATCHED
+
+
+def test_missing_readings_hold_the_state() -> None:
+    alarms = ServoAlarms()
+    run(alarms, [(0.0, {"temperature_c": 62.0}), (2.0, {"temperature_c": 62.0})])
+    # The edge stops sending temp: nothing is known, so nothing clears, however long.
+    assert run(alarms, [(t, {}) for t in (3.0, 100.0, 1000.0)]) == []
+    assert state(alarms, AlarmKind.OVER_TEMPERATURE) is AlarmState.ACTIVE
+    # A joint that never sent a value has no alarm record at all.
+    assert alarms.get(alarm_id(DEV, "elbow_flex", AlarmKind.OVER_CURRENT)) is None
+
+
+def test_critical_temperature_raises_both_levels() -> None:
+    alarms = ServoAlarms()
+    events = run(alarms, [(0.0, {"temperature_c": 66.0}), (2.0, {"temperature_c": 66.0})])
+    assert sorted(k for _, _, k, _ in events) == [
+        AlarmKind.OVER_TEMPERATURE,
+        AlarmKind.OVER_TEMPERATURE_CRITICAL,
+    ]
+    assert alarms.present_by_severity() == {Severity.WARNING: 1, Severity.CRITICAL: 1}
+    assert alarms.worst_by_joint(DEV) == {"elbow_flex": (Severity.CRITICAL, AlarmState.ACTIVE)}
+    # Cooling to 62 C clears the critical level (at or below 60 C for 10 s) only once it gets there.
+    run(alarms, [(3.0, {"temperature_c": 62.0}), (30.0, {"temperature_c": 62.0})])
+    assert state(alarms, AlarmKind.OVER_TEMPERATURE_CRITICAL) is AlarmState.ACTIVE
+    run(alarms, [(31.0, {"temperature_c": 60.0}), (41.0, {"temperature_c": 60.0})])
+    assert state(alarms, AlarmKind.OVER_TEMPERATURE_CRITICAL) is AlarmState.LATCHED
+    assert state(alarms, AlarmKind.OVER_TEMPERATURE) is AlarmState.ACTIVE  # 60 C is still at its line
+
+
+# --- over-current -------------------------------------------------------------------------------------------
+
+
+def test_over_current_raised_and_cleared() -> None:
+    alarms = ServoAlarms()
+    steps = [(0.0, 2.7), (0.99, 2.7), (1.0, 2.7), (2.0, 2.4), (10.0, 2.4), (11.0, 2.1), (13.0, 2.1)]
+    events = run(alarms, [(t, {"current_a": a}) for t, a in steps])
+    assert events == [
+        (1.0, "raised", AlarmKind.OVER_CURRENT, AlarmState.ACTIVE),  # 2.7 A >= 2.6 A held 1 s
+        (13.0, "cleared", AlarmKind.OVER_CURRENT, AlarmState.LATCHED),  # <= 2.1125 A held 2 s
+    ]
+    view = alarms.views()[0]
+    assert (view.severity, view.unit) == (Severity.CRITICAL, "A")
+
+
+def test_gripper_has_lerobots_lower_current_limit() -> None:
+    alarms = ServoAlarms()
+    events = run(alarms, [(0.0, {"current_a": 1.4}), (1.0, {"current_a": 1.4})], joint="gripper")
+    assert events == [(1.0, "raised", AlarmKind.OVER_CURRENT, AlarmState.ACTIVE)]  # 1.4 A >= 1.3 A
+    assert run(alarms, [(0.0, {"current_a": 1.4}), (1.0, {"current_a": 1.4})], joint="wrist_roll") == []
+
+
+# --- sustained overload -------------------------------------------------------------------------------------
+
+
+def test_sustained_overload_in_either_direction() -> None:
+    alarms = ServoAlarms()
+    # -85 %: the sign bit says which way; the magnitude is what overloads the servo.
+    steps = [(0.0, -85.0), (0.5, -85.0), (1.0, -85.0), (1.5, -50.0), (3.5, -50.0)]
+    events = run(alarms, [(t, {"load_percent": p}) for t, p in steps])
+    assert events == [
+        (1.0, "raised", AlarmKind.OVERLOAD, AlarmState.ACTIVE),
+        (3.5, "cleared", AlarmKind.OVERLOAD, AlarmState.LATCHED),
+    ]
+    # A short peak is no sustained overload.
+    alarms = ServoAlarms()
+    assert run(alarms, [(0.0, {"load_percent": 95.0}), (0.9, {"load_percent": 95.0}), (1.0, {})]) == []
+
+
+# --- model mismatch -----------------------------------------------------------------------------------------
+
+HOLD = {"shoulder_lift": 0.5}  # N m: 30.9 % of the 7.4 V servo's stall torque at 6 V
+
+
+def test_load_matching_the_model_raises_nothing() -> None:
+    alarms = ServoAlarms()
+    steps = [(t, {"load_percent": 36.0}) for t in (0.0, 1.0, 5.0)]  # |36 - 30.9| = 5.1 < 15
+    assert run(alarms, steps, joint="shoulder_lift", torques=HOLD) == []
+    health = alarms.joint_health(DEV)["shoulder_lift"]
+    assert health.model_load_percent == pytest.approx(30.900491, abs=1e-6)
+    assert health.mismatch_percent == pytest.approx(5.099509, abs=1e-6)
+    assert health.still is True
+
+
+def test_contact_while_still_is_a_model_mismatch() -> None:
+    alarms = ServoAlarms()
+    # The pose holds (same holding torque) but the load jumps to 70 %: 39.1 points off the model, yet under
+    # the 80 % overload line: only the model notices.
+    steps = [(0.0, 30.0), (1.0, 70.0), (1.5, 70.0), (2.0, 70.0)]
+    events = run(alarms, [(t, {"load_percent": p}) for t, p in steps], joint="shoulder_lift", torques=HOLD)
+    assert events == [(2.0, "raised", AlarmKind.MODEL_MISMATCH, AlarmState.ACTIVE)]
+    view = alarms.get(alarm_id(DEV, "shoulder_lift", AlarmKind.MODEL_MISMATCH))
+    assert view is not None and view.value == pytest.approx(39.099509, abs=1e-6)
+    assert "contact, a payload or a failing servo" in view.message and "30.9 %" in view.message
+    ack = alarms.acknowledge(view.alarm_id, 3.0)
+    assert ack.state is AlarmState.ACKNOWLEDGED
+    # Contact released: the load falls back to the model's (|32 - 30.9| <= 10) for 2 s.
+    events = run(
+        alarms,
+        [(4.0, {"load_percent": 32.0}), (6.0, {"load_percent": 32.0})],
+        joint="shoulder_lift",
+        torques=HOLD,
+    )
+    assert events == [(6.0, "cleared", AlarmKind.MODEL_MISMATCH, AlarmState.NORMAL)]
+
+
+def test_the_model_is_only_checked_while_the_joint_is_still() -> None:
+    alarms = ServoAlarms()
+    moving = {"load_percent": 70.0, "velocity_rad_s": 0.8, "moving": True}
+    assert run(alarms, [(t, moving) for t in (0.0, 1.0, 2.0, 3.0)], joint="shoulder_lift", torques=HOLD) == []
+    assert alarms.joint_health(DEV)["shoulder_lift"].still is False
+    # Slow drift under 0.05 rad/s counts as still; the Moving flag alone decides when velocity is absent.
+    slow = {"load_percent": 70.0, "velocity_rad_s": 0.04, "moving": None}
+    events = run(alarms, [(4.0, slow), (5.0, slow)], joint="shoulder_lift", torques=HOLD)
+    assert [k for _, _, k, _ in events] == [AlarmKind.MODEL_MISMATCH]
+    flag_only = ServoAlarms()
+    steps = [(t, {"load_percent": 70.0, "velocity_rad_s": None, "moving": False}) for t in (0.0, 1.0)]
+    assert len(run(flag_only, steps, joint="shoulder_lift", torques=HOLD)) == 1
+    unknown = ServoAlarms()
+    steps = [(t, {"load_percent": 70.0, "velocity_rad_s": None, "moving": None}) for t in (0.0, 1.0)]
+    assert run(unknown, steps, joint="shoulder_lift", torques=HOLD) == []
+
+
+def test_supply_voltage_scales_the_expected_load() -> None:
+    alarms = ServoAlarms()
+    # At 5 V the same 0.5 N m is 37.1 % of the (lower) stall torque: 50 % is 12.9 points off, no alarm;
+    # at the quoted 6 V it would be 19.1 points off.
+    at_5v = {"load_percent": 50.0, "voltage_v": 5.0}
+    assert run(alarms, [(0.0, at_5v), (2.0, at_5v)], joint="shoulder_lift", torques=HOLD) == []
+    at_6v = {"load_percent": 50.0, "voltage_v": 6.0}
+    assert len(run(alarms, [(3.0, at_6v), (4.0, at_6v)], joint="shoulder_lift", torques=HOLD)) == 1
+
+
+def test_the_gripper_is_not_checked_against_the_model() -> None:
+    alarms = ServoAlarms()
+    grasp = [(t, {"load_percent": 22.0}) for t in (0.0, 1.0, 2.0)]  # under its 25 % overload line
+    assert run(alarms, grasp, joint="gripper", torques={"gripper": 0.0}) == []
+    assert alarms.joint_health(DEV)["gripper"].mismatch_percent is None
+
+
+# --- people and views ---------------------------------------------------------------------------------------
+
+
+def test_acknowledging_an_unknown_alarm() -> None:
+    with pytest.raises(AlarmNotFound):
+        ServoAlarms().acknowledge("arm-001/elbow_flex/over_temperature", 0.0)
+
+
+def test_views_sort_worst_first_and_hide_normal() -> None:
+    alarms = ServoAlarms()
+    run(alarms, [(0.0, {"temperature_c": 40.0}), (1.0, {"temperature_c": 40.0})], joint="wrist_flex")
+    run(alarms, [(0.0, {"load_percent": 90.0}), (1.0, {"load_percent": 90.0})], joint="shoulder_pan")
+    run(alarms, [(0.0, {"current_a": 3.0}), (1.0, {"current_a": 3.0})], joint="elbow_flex")
+    assert [(v.joint, v.kind) for v in alarms.views()] == [
+        ("elbow_flex", AlarmKind.OVER_CURRENT),
+        ("shoulder_pan", AlarmKind.OVERLOAD),
+    ]
+    assert len(alarms.views(include_normal=True)) > 2
+    assert alarms.views(device="arm-002") == []
+    assert alarms.worst_by_joint(DEV) == {
+        "elbow_flex": (Severity.CRITICAL, AlarmState.ACTIVE),
+        "shoulder_pan": (Severity.WARNING, AlarmState.ACTIVE),
+    }
+    assert alarms.counters.raised[(AlarmKind.OVER_CURRENT, Severity.CRITICAL)] == 1
+
+
+def test_disabled_alarms_evaluate_nothing() -> None:
+    alarms = ServoAlarms(AlarmThresholds(enabled=False))
+    assert run(alarms, [(0.0, {"temperature_c": 90.0}), (60.0, {"temperature_c": 90.0})]) == []
+    assert alarms.views(include_normal=True) == []
+
+
+def test_motion_seen_in_the_pose_overrides_a_velocity_field_that_says_still() -> None:
+    # The edge's mock mode sends random velocities of a few steps/s while the pose sweeps: the pose decides.
+    alarms = ServoAlarms()
+    fields = {"load_percent": 70.0, "velocity_rad_s": 0.01, "moving": None}
+
+    def feed(t: float, angle: float) -> list[Any]:
+        return alarms.evaluate(
+            DEV,
+            readings("shoulder_lift", **fields),
+            HOLD,
+            t,
+            angles_rad={"shoulder_lift": angle},
+            timestamp_ms=TS0 + round(t * 1000),
+        )
+
+    # 0.03 rad per 100 ms is 0.3 rad/s: moving, however long the load stays off the model.
+    assert [e for i in range(30) for e in feed(i * 0.1, i * 0.03)] == []
+    assert alarms.joint_health(DEV)["shoulder_lift"].still is False
+    # The pose holds (one encoder step of jitter, 0.015 rad/s, is still): raised after 1 s.
+    events = [e for i in range(30, 42) for e in feed(i * 0.1, 0.9 + (i % 2) * 0.0015)]
+    assert [(e.kind, e.state) for e in events] == [(AlarmKind.MODEL_MISMATCH, AlarmState.ACTIVE)]
+    assert events[0].at == pytest.approx(4.1)  # still from the sample at 3.1 s (0.9 rad reached at 3.0 s)
+    # A gap of over a second says nothing about speed: the velocity field decides again.
+    assert alarms._pose_speeds(DEV, {"shoulder_lift": 2.0}, TS0 + 10_000) == {}
+
+
+TS0 = 1_764_000_000_000
