@@ -1,0 +1,177 @@
+"""CloudWatch Embedded Metric Format (EMF): a handful of fleet metrics as JSON lines for the CloudWatch agent.
+
+The agent appends one EMF document per line to a file; the CloudWatch agent on the instance ships the file
+to a log group, and CloudWatch Logs extracts the metrics from each line (no PutMetricData call, no AWS
+credentials in the twin agent). Format: the CloudWatch user guide's "Specification: Embedded metric format"
+(a root object with `_aws.Timestamp` in epoch ms and `_aws.CloudWatchMetrics` directives naming the
+root-level members that hold each metric and dimension value). tests/test_emf.py validates every line
+against that specification.
+
+Metrics stay low-cardinality on purpose: every distinct dimension value is a billed custom metric, so the
+only dimensions are the agent's name and, for the alarm counts, the severity. Per-device and per-joint
+figures live in /metrics (Prometheus) on the instance, not in CloudWatch.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import threading
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+NAMESPACE = "SO101Twin"
+AGENT_DIMENSION = "Agent"
+SEVERITY_DIMENSION = "Severity"
+# The specification's limits (one directive may define at most 100 metrics, a dimension set at most 30 keys,
+# a dimension value at most 1024 characters; a log event is at most 1 MB).
+MAX_METRICS_PER_DIRECTIVE = 100
+MAX_DIMENSION_VALUE_CHARS = 1024
+MAX_EVENT_BYTES = 1024 * 1024
+# CloudWatch's unit names (MetricDatum); only the ones used here.
+UNITS = frozenset({"Count", "Count/Second", "Percent", "Milliseconds", "None"})
+
+
+@dataclass(frozen=True, slots=True)
+class Metric:
+    name: str
+    value: float
+    unit: str = "None"
+
+
+def emf_document(
+    metrics: Sequence[Metric],
+    dimensions: Mapping[str, str],
+    timestamp_ms: int,
+    namespace: str = NAMESPACE,
+) -> dict[str, Any]:
+    """One EMF document: every metric under one dimension set. Raises ValueError on what the spec forbids."""
+    if not metrics:
+        raise ValueError("an EMF document needs at least one metric")
+    if len(metrics) > MAX_METRICS_PER_DIRECTIVE:
+        raise ValueError(f"{len(metrics)} metrics in one document; EMF allows {MAX_METRICS_PER_DIRECTIVE}")
+    doc: dict[str, Any] = {}
+    for key, value in dimensions.items():
+        if not isinstance(value, str) or not value or len(value) > MAX_DIMENSION_VALUE_CHARS:
+            raise ValueError(
+                f"dimension {key}={value!r} must be a non-empty string of at most "
+                f"{MAX_DIMENSION_VALUE_CHARS} characters"
+            )
+        doc[key] = value
+    definitions = []
+    for metric in metrics:
+        if metric.unit not in UNITS:
+            raise ValueError(f"metric {metric.name}: unit {metric.unit!r} is not one of {sorted(UNITS)}")
+        if metric.name in doc or metric.name == "_aws":
+            raise ValueError(f"metric name {metric.name!r} collides with another member of the document")
+        if not math.isfinite(metric.value):
+            raise ValueError(f"metric {metric.name} = {metric.value}: EMF values must be finite numbers")
+        doc[metric.name] = metric.value
+        definitions.append({"Name": metric.name, "Unit": metric.unit})
+    doc["_aws"] = {
+        "Timestamp": int(timestamp_ms),
+        "CloudWatchMetrics": [
+            {"Namespace": namespace, "Dimensions": [list(dimensions)], "Metrics": definitions}
+        ],
+    }
+    return doc
+
+
+@dataclass(frozen=True, slots=True)
+class FleetMetrics:
+    """The agent's CloudWatch figures for one publishing interval (docs/servo-health.md lists each)."""
+
+    messages_per_s: float  # valid messages decoded per second over the interval, all devices
+    rejects: int  # messages rejected by the decoder during the interval
+    loss_percent: float  # estimated share of expected messages that never arrived (see the service)
+    devices_online: int
+    devices_stale: int
+    devices_offline: int
+    internal_latency_p99_ms: float | None  # receive -> twin updated; None when nothing was applied
+    active_alarms: Mapping[str, int]  # severity -> alarms whose condition is present
+
+
+def fleet_documents(
+    fleet: FleetMetrics, agent: str, timestamp_ms: int, namespace: str = NAMESPACE
+) -> list[dict[str, Any]]:
+    """The interval's EMF documents: one for the fleet figures, one per alarm severity."""
+    metrics = [
+        # A heartbeat: the stack's "agent silent" alarm fires when these stop arriving.
+        Metric("AgentUp", 1, "Count"),
+        Metric("MessagesPerSecond", fleet.messages_per_s, "Count/Second"),
+        Metric("Rejects", fleet.rejects, "Count"),
+        Metric("LossPercent", fleet.loss_percent, "Percent"),
+        Metric("DevicesOnline", fleet.devices_online, "Count"),
+        Metric("DevicesStale", fleet.devices_stale, "Count"),
+        Metric("DevicesOffline", fleet.devices_offline, "Count"),
+    ]
+    if fleet.internal_latency_p99_ms is not None:
+        metrics.append(Metric("InternalLatencyP99", fleet.internal_latency_p99_ms, "Milliseconds"))
+    docs = [emf_document(metrics, {AGENT_DIMENSION: agent}, timestamp_ms, namespace)]
+    for severity, count in sorted(fleet.active_alarms.items()):
+        docs.append(
+            emf_document(
+                [Metric("ActiveAlarms", count, "Count")],
+                {AGENT_DIMENSION: agent, SEVERITY_DIMENSION: severity},
+                timestamp_ms,
+                namespace,
+            )
+        )
+    return docs
+
+
+class EmfFileWriter:
+    """Appends EMF documents as JSON lines to a file the CloudWatch agent follows.
+
+    Bounded: when the file passes `max_bytes` it is renamed to `<name>.1` (replacing the previous one) and a
+    new file begins, which the CloudWatch agent follows as a rotation. Thread-safe; every write is flushed so
+    the CloudWatch agent sees whole lines.
+    """
+
+    def __init__(self, path: str | Path, *, max_bytes: int = 10 * 1024 * 1024) -> None:
+        if max_bytes < MAX_EVENT_BYTES:
+            raise ValueError(
+                f"max_bytes {max_bytes} must be at least one EMF event ({MAX_EVENT_BYTES} bytes)"
+            )
+        self.path = Path(path)
+        self.max_bytes = max_bytes
+        self._lock = threading.Lock()
+        self.lines_written = 0
+        self.rotations = 0
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise OSError(
+                exc.errno,
+                f"cannot create the EMF directory {self.path.parent} ({exc.strerror}); set [cloudwatch] "
+                "emf_file to a writable path, or leave it empty to publish no CloudWatch metrics",
+            ) from exc
+
+    def write(self, documents: Sequence[Mapping[str, Any]]) -> None:
+        lines = []
+        for doc in documents:
+            line = json.dumps(doc, separators=(",", ":"), allow_nan=False)
+            if len(line.encode()) > MAX_EVENT_BYTES:
+                raise ValueError(
+                    f"an EMF line of {len(line)} bytes is over the {MAX_EVENT_BYTES}-byte event limit"
+                )
+            lines.append(line + "\n")
+        data = "".join(lines)
+        with self._lock:
+            try:
+                size = self.path.stat().st_size
+            except FileNotFoundError:
+                size = 0
+            if size and size + len(data) > self.max_bytes:
+                os.replace(self.path, self.path.with_name(self.path.name + ".1"))
+                self.rotations += 1
+            with self.path.open("a", encoding="utf-8") as fh:
+                fh.write(data)
+                fh.flush()
+            self.lines_written += len(lines)

@@ -1,0 +1,269 @@
+"""EMF lines against the CloudWatch "Specification: Embedded metric format" (CloudWatch user guide).
+
+The spec is expressed twice here: as a JSON Schema for the shape (its required members, types, lengths and
+the unit names it allows), and as checks for the rules a schema cannot say (every directive's names must be
+root members; metric targets are numbers or arrays of at most 100 numbers; dimension targets are strings of
+at most 1024 characters; a directive defines at most 100 metrics; an event is at most 1 MB). The validator is
+itself tested on documents that break each rule, so it cannot pass everything.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import jsonschema
+import pytest
+from twin.output.emf import (
+    AGENT_DIMENSION,
+    NAMESPACE,
+    EmfFileWriter,
+    FleetMetrics,
+    Metric,
+    emf_document,
+    fleet_documents,
+)
+
+CLOUDWATCH_UNITS = (
+    "Seconds|Microseconds|Milliseconds|Bytes|Kilobytes|Megabytes|Gigabytes|Terabytes|Bits|Kilobits|Megabits|"
+    "Gigabits|Terabits|Percent|Count|Bytes/Second|Kilobytes/Second|Megabytes/Second|Gigabytes/Second|"
+    "Terabytes/Second|Bits/Second|Kilobits/Second|Megabits/Second|Gigabits/Second|Terabits/Second|"
+    "Count/Second|None"
+)
+NAME = {"type": "string", "minLength": 1, "maxLength": 1024}
+EMF_SCHEMA: dict[str, Any] = {
+    "type": "object",
+    "required": ["_aws"],
+    "properties": {
+        "_aws": {
+            "type": "object",
+            "required": ["Timestamp", "CloudWatchMetrics"],
+            "properties": {
+                "Timestamp": {"type": "integer", "minimum": 0},
+                "CloudWatchMetrics": {
+                    "type": "array",
+                    "items": {
+                        "type": "object",
+                        "required": ["Namespace", "Dimensions", "Metrics"],
+                        "additionalProperties": False,
+                        "properties": {
+                            "Namespace": NAME,
+                            "Dimensions": {
+                                "type": "array",
+                                "minItems": 1,
+                                "items": {
+                                    "type": "array",
+                                    "maxItems": 30,
+                                    "items": {"type": "string", "minLength": 1, "maxLength": 250},
+                                },
+                            },
+                            "Metrics": {
+                                "type": "array",
+                                "maxItems": 100,
+                                "items": {
+                                    "type": "object",
+                                    "required": ["Name"],
+                                    "additionalProperties": False,
+                                    "properties": {
+                                        "Name": NAME,
+                                        "Unit": {"type": "string", "pattern": f"^({CLOUDWATCH_UNITS})$"},
+                                        "StorageResolution": {"enum": [1, 60]},
+                                    },
+                                },
+                            },
+                        },
+                    },
+                },
+            },
+        }
+    },
+}
+
+
+def validate_emf_line(line: str) -> dict[str, Any]:
+    """Raises (jsonschema.ValidationError or AssertionError) unless `line` is one valid EMF log event."""
+    assert len(line.encode()) <= 1024 * 1024, "an EMF event is at most 1 MB"
+    assert line == line.strip() and "\n" not in line, "one event per line, nothing around the JSON object"
+    doc = json.loads(line, parse_constant=lambda token: pytest.fail(f"{token} is not JSON"))
+    jsonschema.validate(doc, EMF_SCHEMA)
+    for directive in doc["_aws"]["CloudWatchMetrics"]:
+        for dimension_set in directive["Dimensions"]:
+            for key in dimension_set:
+                assert key in doc, f"dimension {key} is not a member of the root node"
+                value = doc[key]
+                assert isinstance(value, str) and len(value) <= 1024, f"dimension {key} must be a string"
+        for definition in directive["Metrics"]:
+            name = definition["Name"]
+            assert name in doc, f"metric {name} is not a member of the root node"
+            value = doc[name]
+            values = value if isinstance(value, list) else [value]
+            assert len(values) <= 100, f"metric {name} has more than 100 values"
+            for v in values:
+                assert isinstance(v, int | float) and not isinstance(v, bool), (
+                    f"metric {name} is not a number"
+                )
+                assert math.isfinite(v), f"metric {name} is not finite"
+    return doc
+
+
+FLEET = FleetMetrics(
+    messages_per_s=29.8,
+    rejects=3,
+    loss_percent=0.7,
+    devices_online=3,
+    devices_stale=1,
+    devices_offline=0,
+    internal_latency_p99_ms=1.9,
+    active_alarms={"critical": 1, "warning": 2},
+)
+
+
+def test_fleet_lines_written_to_the_file_are_valid_emf(tmp_path: Path) -> None:
+    writer = EmfFileWriter(tmp_path / "emf" / "metrics.log")
+    writer.write(fleet_documents(FLEET, "so101-twin", 1_764_000_000_000))
+    lines = writer.path.read_text().splitlines()
+    assert len(lines) == 3 and writer.lines_written == 3
+    docs = [validate_emf_line(line) for line in lines]
+    fleet, critical, warning = docs
+    assert fleet[AGENT_DIMENSION] == "so101-twin"
+    assert fleet["_aws"]["Timestamp"] == 1_764_000_000_000
+    assert fleet["_aws"]["CloudWatchMetrics"][0]["Namespace"] == NAMESPACE
+    assert {m["Name"]: m["Unit"] for m in fleet["_aws"]["CloudWatchMetrics"][0]["Metrics"]} == {
+        "AgentUp": "Count",
+        "MessagesPerSecond": "Count/Second",
+        "Rejects": "Count",
+        "LossPercent": "Percent",
+        "DevicesOnline": "Count",
+        "DevicesStale": "Count",
+        "DevicesOffline": "Count",
+        "InternalLatencyP99": "Milliseconds",
+    }
+    assert (fleet["MessagesPerSecond"], fleet["DevicesStale"], fleet["InternalLatencyP99"]) == (29.8, 1, 1.9)
+    assert (critical["Severity"], critical["ActiveAlarms"]) == ("critical", 1)
+    assert (warning["Severity"], warning["ActiveAlarms"]) == ("warning", 2)
+    assert critical["_aws"]["CloudWatchMetrics"][0]["Dimensions"] == [["Agent", "Severity"]]
+
+
+def test_no_latency_figure_when_nothing_was_applied() -> None:
+    quiet = FleetMetrics(0.0, 0, 0.0, 0, 0, 1, None, {})
+    (doc,) = fleet_documents(quiet, "so101-twin", 1)
+    validate_emf_line(json.dumps(doc))
+    assert "InternalLatencyP99" not in doc
+
+
+@pytest.mark.parametrize(
+    ("metrics", "dimensions", "match"),
+    [
+        ([], {"Agent": "a"}, "at least one metric"),
+        ([Metric("x", float("nan"))], {"Agent": "a"}, "finite"),
+        ([Metric("x", 1, "Furlongs")], {"Agent": "a"}, "unit 'Furlongs'"),
+        ([Metric("Agent", 1)], {"Agent": "a"}, "collides"),
+        ([Metric("x", 1)], {"Agent": ""}, "non-empty string"),
+        ([Metric(f"m{i}", i) for i in range(101)], {"Agent": "a"}, "100"),
+    ],
+)
+def test_documents_the_spec_forbids_are_refused(
+    metrics: list[Metric], dimensions: dict[str, str], match: str
+) -> None:
+    with pytest.raises(ValueError, match=match):
+        emf_document(metrics, dimensions, 0)
+
+
+def good() -> dict[str, Any]:
+    return emf_document([Metric("Latency", 2.5, "Milliseconds")], {"Agent": "a"}, 1_764_000_000_000)
+
+
+def broken(change: str) -> dict[str, Any]:
+    doc = good()
+    aws = doc["_aws"]
+    directive = aws["CloudWatchMetrics"][0]
+    if change == "no timestamp":
+        del aws["Timestamp"]
+    elif change == "timestamp in seconds as a string":
+        aws["Timestamp"] = "1764000000"
+    elif change == "no namespace":
+        del directive["Namespace"]
+    elif change == "no dimensions":
+        directive["Dimensions"] = []
+    elif change == "too many dimension keys":
+        directive["Dimensions"] = [[f"d{i}" for i in range(31)]]
+    elif change == "dimension not on the root":
+        directive["Dimensions"] = [["Region"]]
+    elif change == "numeric dimension":
+        doc["Agent"] = 7
+    elif change == "metric not on the root":
+        directive["Metrics"].append({"Name": "Missing"})
+    elif change == "nested metric":
+        doc["Latency"] = {"value": 2.5}
+    elif change == "string metric":
+        doc["Latency"] = "2.5"
+    elif change == "101 values":
+        doc["Latency"] = list(range(101))
+    elif change == "bad unit":
+        directive["Metrics"][0]["Unit"] = "ms"
+    elif change == "extra directive member":
+        directive["Region"] = "eu-west-1"
+    elif change == "storage resolution 30":
+        directive["Metrics"][0]["StorageResolution"] = 30
+    return doc
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        "no timestamp",
+        "timestamp in seconds as a string",
+        "no namespace",
+        "no dimensions",
+        "too many dimension keys",
+        "dimension not on the root",
+        "numeric dimension",
+        "metric not on the root",
+        "nested metric",
+        "string metric",
+        "101 values",
+        "bad unit",
+        "extra directive member",
+        "storage resolution 30",
+    ],
+)
+def test_the_validator_catches_each_broken_rule(change: str) -> None:
+    validate_emf_line(json.dumps(good()))
+    with pytest.raises((jsonschema.ValidationError, AssertionError)):
+        validate_emf_line(json.dumps(broken(change)))
+
+
+def test_the_specifications_own_example_passes() -> None:
+    example = {
+        "_aws": {
+            "Timestamp": 1574109732004,
+            "CloudWatchMetrics": [
+                {
+                    "Namespace": "lambda-function-metrics",
+                    "Dimensions": [["functionVersion"]],
+                    "Metrics": [{"Name": "time", "Unit": "Milliseconds", "StorageResolution": 60}],
+                }
+            ],
+        },
+        "functionVersion": "$LATEST",
+        "time": 100,
+        "requestId": "989ffbf8-9ace-4817-a57c-e4dd734019ee",
+    }
+    validate_emf_line(json.dumps(example))
+
+
+def test_the_file_rotates_at_its_bound(tmp_path: Path) -> None:
+    writer = EmfFileWriter(tmp_path / "metrics.log", max_bytes=1024 * 1024)
+    doc = fleet_documents(FLEET, "x" * 1000, 1)
+    per_call = sum(len(json.dumps(d, separators=(",", ":"))) + 1 for d in doc)
+    for _ in range(1024 * 1024 // per_call + 2):  # just past 1 MiB: one rotation
+        writer.write(doc)
+    rotated = tmp_path / "metrics.log.1"
+    assert writer.rotations == 1 and rotated.exists()
+    assert rotated.stat().st_size <= 1024 * 1024
+    for line in (rotated.read_text() + writer.path.read_text()).splitlines():
+        assert json.loads(line)["_aws"]["Timestamp"] == 1
+    with pytest.raises(ValueError, match="at least one EMF event"):
+        EmfFileWriter(tmp_path / "small.log", max_bytes=100)
