@@ -15,7 +15,14 @@ import time
 from typing import Any
 
 from twin.core.telemetry import MAX_PAYLOAD_BYTES
-from twin.robot import so101
+from twin.robot import so101, sts3215
+from twin.tools.servo_faults import (
+    ModelLoads,
+    ServoFault,
+    current_register,
+    load_register,
+    overrides_at,
+)
 
 VARIANTS: tuple[str, ...] = ("ticks", "degrees")
 # Each kind breaks one rule of the contract a consumer must check; all must be rejected, none may crash it.
@@ -32,8 +39,9 @@ MALFORMED_KINDS: tuple[str, ...] = (
     "device_mismatch",
 )
 # STS3215 registers: velocity is sign-magnitude with the sign in bit 15, load has its sign in bit 10.
-VELOCITY_SIGN_BIT = 1 << 15
-LOAD_SIGN_BIT = 1 << 10
+VELOCITY_SIGN_BIT = sts3215.VELOCITY_SIGN_BIT
+LOAD_SIGN_BIT = sts3215.LOAD_SIGN_BIT
+VOLTAGE_V_PER_UNIT = sts3215.VOLTAGE_V_PER_UNIT
 # Default calibration for the "degrees" variant: arm joints centred on the LeRobot home tick; the gripper's
 # calibrated range is the mock motion's span, so it sweeps 0..100 % (closed..open).
 DEGREES_PER_TICK = 360.0 / so101.TICK_MAX
@@ -90,11 +98,15 @@ def make_payload(
     *,
     timestamp_ms: int | None = None,
     load_sign: bool = False,
+    servo_faults: tuple[ServoFault, ...] = (),
+    model_loads: ModelLoads | None = None,
 ) -> dict[str, Any]:
     """One telemetry message as the edge builds it (before JSON encoding).
 
     `timestamp_ms` defaults to the wall clock now; `load_sign` sets bit 10 on about half the raw loads
-    (variant ticks) or makes them negative (variant degrees, where newer LeRobot decodes the sign).
+    (variant ticks) or makes them negative (variant degrees, where newer LeRobot decodes the sign);
+    `servo_faults` rewrite the readings of their joints while they last, and `model_loads` replaces the
+    mock's random loads with the load each servo reports holding the pose (twin.tools.servo_faults).
     """
     if variant not in VARIANTS:
         raise ValueError(f"variant {variant!r} is not one of {VARIANTS}")
@@ -126,11 +138,69 @@ def make_payload(
                 "voltage": float(rng.randint(118, 122)),
                 "current": float(current),
             }
+    if model_loads is not None or servo_faults:
+        _apply_servo_faults(joints, t, variant, faults=servo_faults, model_loads=model_loads)
     return {
         "device_id": device_id,
         "timestamp": int(time.time() * 1000) if timestamp_ms is None else int(timestamp_ms),
         "joints": joints,
     }
+
+
+def _apply_servo_faults(
+    joints: dict[str, dict[str, Any]],
+    t: float,
+    variant: str,
+    *,
+    faults: tuple[ServoFault, ...],
+    model_loads: ModelLoads | None,
+) -> None:
+    """Rewrite loads (model-consistent, when asked) and the faulted joints' readings, encoded as the
+    variant's registers."""
+    ticks_variant = variant == "ticks"
+    overrides = overrides_at(faults, t)
+    positions = mock_ticks(t)
+    for i, name in enumerate(so101.JOINT_NAMES):
+        o = overrides.get(name)
+        if o is not None and o.hold_at_s is not None:
+            positions[i] = mock_ticks(o.hold_at_s)[i]
+    loads = None
+    if model_loads is not None:
+        loads = model_loads.percent(positions)
+        volts = model_loads.supply_v / VOLTAGE_V_PER_UNIT
+        for fields in joints.values():
+            fields["voltage"] = round(volts) if ticks_variant else round(volts, 1)
+    for i, (name, fields) in enumerate(joints.items()):
+        o = overrides.get(name)
+        load = None if loads is None else loads[name]
+        if o is not None and o.hold_at_s is not None:
+            if ticks_variant:
+                fields["position"] = positions[i]
+            elif name == so101.GRIPPER:
+                fields["position"] = round(ticks_to_gripper_percent(positions[i]), 4)
+            else:
+                fields["position"] = round(ticks_to_degrees(positions[i]), 4)
+            fields["velocity"] = 0 if ticks_variant else 0.0
+        if o is not None and o.temperature_c is not None:
+            fields["temp"] = round(o.temperature_c) if ticks_variant else round(o.temperature_c, 1)
+        if o is not None and o.load_percent is not None:
+            load = o.load_percent
+        elif o is not None and o.load_add_percent is not None:
+            base = load if load is not None else _decoded_load(fields["load"])
+            load = base + (o.load_add_percent if base >= 0 else -o.load_add_percent)
+        if load is not None:
+            # The LeRobot variant carries the sign as a sign (newer LeRobot decodes bit 10).
+            fields["load"] = load_register(load) if ticks_variant else round(load * 10.0, 1)
+        if o is not None and o.current_a is not None:
+            raw_current = current_register(o.current_a)
+            fields["current"] = raw_current if ticks_variant else float(raw_current)
+
+
+def _decoded_load(raw: float) -> float:
+    """A load field as this module wrote it (bit 10 set, or a signed float) -> signed percent."""
+    if raw >= LOAD_SIGN_BIT:
+        return -(raw - LOAD_SIGN_BIT) * 0.1
+    return raw * 0.1
 
 
 def encode(payload: Any) -> bytes:

@@ -1,7 +1,8 @@
 """Edge simulator: publishes exactly what the SO-101 edge component publishes, plus injectable faults.
 
 The payloads and the motion (the edge's own mock mode) come from `twin.tools.edge_payload`. Faults (drop,
-duplicate, reorder, clock skew, malformed payloads) reproduce what a real fleet does to a consumer.
+duplicate, reorder, clock skew, malformed payloads) reproduce what a real fleet does to a consumer; servo
+faults (heat, overload, contact: twin.tools.servo_faults) what a real arm does to its servos.
 Publishing goes through the same awscrt client builder as the subscriber.
 """
 
@@ -27,6 +28,7 @@ from twin.tools.edge_payload import (
     make_malformed,
     make_payload,
 )
+from twin.tools.servo_faults import ModelLoads, ServoFault
 
 __all__ = ["EdgeSimConfig", "EdgeSimReport", "EdgeSimulator", "FaultConfig", "device_ids"]
 from twin.transport.broker import BrokerConfig, new_client_id
@@ -66,6 +68,8 @@ class EdgeSimConfig:
     faults: FaultConfig = field(default_factory=FaultConfig)
     seed: int | None = None
     load_sign: bool = False
+    servo_faults: tuple[ServoFault, ...] = ()
+    model_loads: bool = False
     connect_timeout_s: float = 10.0
 
     def __post_init__(self) -> None:
@@ -173,6 +177,7 @@ class EdgeSimulator:
         self._skews = clock_skews_ms(config.devices, config.faults.clock_skew_ms)
         self._held: dict[str, tuple[bytes, int]] = {}
         self._topics = {device: telemetry_topic(config.topic_prefix, device) for device in config.devices}
+        self._model_loads = ModelLoads() if config.model_loads else None
 
     def _connections_needed(self) -> int:
         config = self.config
@@ -266,6 +271,8 @@ class EdgeSimulator:
             rng,
             timestamp_ms=now_ms + self._skews[device],
             load_sign=self.config.load_sign,
+            servo_faults=self.config.servo_faults,
+            model_loads=self._model_loads,
         )
         if faults.drop and rng.random() < faults.drop:
             report.dropped += 1

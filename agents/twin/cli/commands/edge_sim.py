@@ -85,6 +85,26 @@ def register(subparsers: Any) -> None:
     faults.add_argument(
         "--load-sign", action="store_true", help="set the load sign bit (bit 10) on about half the loads"
     )
+    faults.add_argument(
+        "--fault",
+        action="append",
+        default=[],
+        metavar="KIND:JOINT[:START_S[:DURATION_S]]",
+        help=(
+            "servo fault on one joint, repeatable: heat (temperature ramps to 68 C and back), overload "
+            "(stall at 90 %% load, 2.9 A), contact (pose holds, load jumps by 45 points); start and duration "
+            "in seconds since the run began (default 5 and 20), e.g. heat:elbow_flex:5:30"
+        ),
+    )
+    faults.add_argument(
+        "--model-loads",
+        action="store_true",
+        help=(
+            "send the load each servo reports holding the pose (the bundled model's inverse dynamics, 7.4 V "
+            "servos on 5 V) instead of the edge mock's random 0.5..5 %%, so the agent's model check has a "
+            "true baseline"
+        ),
+    )
     parser.add_argument("--seed", type=int, help="random seed for reproducible runs")
     parser.add_argument("--json", action="store_true", help="print the final counts as JSON")
     parser.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
@@ -94,6 +114,7 @@ def register(subparsers: Any) -> None:
 def _config(args: argparse.Namespace) -> Any:
     """The simulator's settings from the flags; ValueError (BrokerConfigError included) names a bad one."""
     from twin.tools.edge_sim import EdgeSimConfig, FaultConfig, device_ids
+    from twin.tools.servo_faults import parse_fault
     from twin.transport.broker import BrokerConfig
 
     devices = list(args.device) if args.device else device_ids(args.devices or 1)
@@ -119,6 +140,8 @@ def _config(args: argparse.Namespace) -> Any:
         ),
         seed=args.seed,
         load_sign=args.load_sign,
+        servo_faults=tuple(parse_fault(text) for text in args.fault),
+        model_loads=args.model_loads,
     )
 
 
