@@ -32,6 +32,8 @@ _INSTANCE_TYPE_RE = re.compile(
     r"^[a-z][a-z0-9-]*\d[a-z0-9-]*\.(nano|micro|small|medium|large|metal|\d*xlarge)$"
 )
 _AMI_ID_RE = re.compile(r"^ami-[0-9a-f]{8}([0-9a-f]{9})?$")
+# Deliberately loose (SNS validates for real): one @, no spaces, a dot in the domain.
+_EMAIL_RE = re.compile(r"^[^@\s]+@[^@\s]+\.[^@\s]+$")
 _STACK_NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9-]{0,127}$")
 _TIMEZONE_RE = re.compile(r"^(UTC|[A-Za-z]+(/[A-Za-z0-9_+-]+)+)$")
 # EventBridge Scheduler cron: minutes hours day-of-month month day-of-week year.
@@ -63,6 +65,9 @@ class TwinSettings:
     auto_stop_cron: str | None = None
     auto_stop_timezone: str = "UTC"
     stack_name: str = "So101TwinStack"
+    # Where the CloudWatch alarms (agent silent, arms stale, critical servo alarm) are e-mailed; empty: the
+    # SNS topic only, for other subscribers.
+    alarm_email: str | None = None
 
     @property
     def client_is_ipv6(self) -> bool:
@@ -97,6 +102,7 @@ class TwinSettings:
             auto_stop_cron=_auto_stop_cron(_str(get, "autoStopCron")),
             auto_stop_timezone=_timezone(_str(get, "autoStopTimezone") or "UTC"),
             stack_name=_stack_name(_str(get, "stackName") or cls.stack_name),
+            alarm_email=_alarm_email(_str(get, "alarmEmail")),
         )
         return settings
 
@@ -292,5 +298,16 @@ def _stack_name(value: str) -> str:
     if not _STACK_NAME_RE.match(value):
         raise SettingsError(
             f"stackName={value} is not a CloudFormation stack name; pass e.g. -c stackName=So101TwinStack"
+        )
+    return value
+
+
+def _alarm_email(value: str) -> str | None:
+    if not value:
+        return None
+    if not _EMAIL_RE.match(value):
+        raise SettingsError(
+            f"alarmEmail={value} is not an e-mail address; pass e.g. -c alarmEmail=ops@example.com "
+            "(or leave it empty to subscribe to the alarm topic yourself)"
         )
     return value

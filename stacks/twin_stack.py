@@ -8,6 +8,7 @@ from constructs import Construct
 from stacks.auto_stop import AutoStop
 from stacks.identity import TwinIdentity
 from stacks.iot_endpoint import IotDataEndpoint
+from stacks.monitoring import TwinMonitoring
 from stacks.network import DCV_PORT, TwinNetwork
 from stacks.settings import CLIENT_ID_PREFIX, TwinSettings
 from stacks.twin_host import DESKTOP_USER, TwinHost
@@ -60,6 +61,9 @@ class TwinStack(Stack):
                 "LOG_GROUP": self.identity.agent_log_group.log_group_name,
             },
         )
+        self.monitoring = TwinMonitoring(
+            self, "Monitoring", agent_name=settings.stack_name, alarm_email=settings.alarm_email
+        )
         self.iot_endpoint = IotDataEndpoint(self, "IotEndpointLookup")
         self.auto_stop = (
             AutoStop(
@@ -101,6 +105,12 @@ class TwinStack(Stack):
             value=f"aws secretsmanager get-secret-value --region {self.region} --secret-id {secret_arn} "
             "--query SecretString --output text",
             description="Prints the DCV password",
+        )
+        CfnOutput(
+            self,
+            "AlarmTopic",
+            value=self.monitoring.topic.topic_arn,
+            description="SNS topic the CloudWatch alarms notify (subscribe more endpoints to it)",
         )
         CfnOutput(
             self,

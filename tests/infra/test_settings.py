@@ -38,6 +38,7 @@ def test_defaults_come_from_cdk_json() -> None:
     assert s.auto_stop_cron is None
     assert s.availability_zone is None
     assert s.stack_name == "So101TwinStack"
+    assert s.alarm_email is None
 
 
 def test_client_cidr_is_required_and_the_message_says_what_to_pass() -> None:
@@ -171,3 +172,8 @@ def test_bad_auto_stop_cron_is_refused(value: str) -> None:
 def test_bad_timezone_and_stack_name_are_refused() -> None:
     assert "-c autoStopTimezone=UTC" in refused(autoStopTimezone="Berlin time")
     assert "-c stackName=" in refused(stackName="1-bad_name")
+
+
+def test_alarm_email_is_optional_and_checked() -> None:
+    assert settings(alarmEmail="ops@example.com").alarm_email == "ops@example.com"
+    assert "-c alarmEmail=ops@example.com" in refused(alarmEmail="ops at example")
