@@ -181,12 +181,17 @@ setup_log_shipping() {
   fi
   [ -x /opt/aws/amazon-cloudwatch-agent/bin/amazon-cloudwatch-agent-ctl ] || return 0
   local cfg=/opt/aws/amazon-cloudwatch-agent/etc/so101-twin.json
+  # The agent's Embedded Metric Format lines: CloudWatch Logs turns each into the SO101Twin metrics the
+  # stack's alarms watch (agents/twin/output/emf.py, stacks/monitoring.py).
+  local EMF_FILE=/var/log/so101-twin/emf.log
   cat >"$cfg" <<JSON
 {"logs": {"logs_collected": {"files": {"collect_list": [
   {"file_path": "/var/log/so101-twin-bootstrap.log", "log_group_name": "${LOG_GROUP}",
    "log_stream_name": "{instance_id}/bootstrap"},
   {"file_path": "/var/log/so101-twin-agent.log", "log_group_name": "${LOG_GROUP}",
-   "log_stream_name": "{instance_id}/agent"}]}}}}
+   "log_stream_name": "{instance_id}/agent"},
+  {"file_path": "${EMF_FILE}", "log_group_name": "${LOG_GROUP}",
+   "log_stream_name": "{instance_id}/emf"}]}}}}
 JSON
   /opt/aws/amazon-cloudwatch-agent/bin/amazon-cloudwatch-agent-ctl -a fetch-config -m ec2 -s -c "file:$cfg" \
     >/dev/null || log "CloudWatch agent did not start; logs stay local"

@@ -217,3 +217,28 @@ def test_installer_refuses_bad_input(tmp_path: Path, env: dict[str, str], messag
     assert result.returncode == 2
     assert message in result.stderr
     assert not (tmp_path / "root" / "etc").exists()
+
+
+def test_cloudwatch_agent_ships_the_emf_file_the_agent_writes() -> None:
+    """The CloudWatch agent config in bootstrap.sh, rendered as the shell would, follows the EMF file."""
+    import json
+    import re
+
+    from twin.output.emf import DEFAULT_EMF_FILE
+
+    text = (USERDATA / "bootstrap.sh").read_text()
+    assert f"local EMF_FILE={DEFAULT_EMF_FILE}\n" in text
+    config = re.search(r'cat >"\$cfg" <<JSON\n(.*?)\nJSON\n', text, re.S)
+    assert config is not None
+    rendered = (
+        config.group(1).replace("${LOG_GROUP}", "/so101-twin/S/host").replace("${EMF_FILE}", DEFAULT_EMF_FILE)
+    )
+    files = json.loads(rendered)["logs"]["logs_collected"]["files"]["collect_list"]
+    emf = [f for f in files if f["file_path"] == DEFAULT_EMF_FILE]
+    assert emf == [
+        {
+            "file_path": DEFAULT_EMF_FILE,
+            "log_group_name": "/so101-twin/S/host",
+            "log_stream_name": "{instance_id}/emf",
+        }
+    ]

@@ -27,6 +27,8 @@ from typing import Any
 log = logging.getLogger(__name__)
 
 NAMESPACE = "SO101Twin"
+# Where the instance's agent writes, and what the CloudWatch agent follows (userdata/bootstrap.sh).
+DEFAULT_EMF_FILE = "/var/log/so101-twin/emf.log"
 AGENT_DIMENSION = "Agent"
 SEVERITY_DIMENSION = "Severity"
 # The specification's limits (one directive may define at most 100 metrics, a dimension set at most 30 keys,
