@@ -303,3 +303,32 @@ def test_golden_tiny_model(tmp_path: Path) -> None:
     stage = Usd.Stage.Open(str(tmp_path / "out" / "s.usda"))
     tip = stage.GetPrimAtPath(f"{upper}/Mount/lower_arm/Mount/wrist/Mount/gripper/Mount/moving_jaw")
     _assert_world_pose(tip, 0.0, poses["moving_jaw"][0], poses["moving_jaw"][1], "tiny tip")
+
+
+@pytest.mark.parametrize("suffix", [".usda", ".usdc"])
+def test_servo_diagnostics_are_time_sampled_on_the_device_prim(tmp_path: Path, mj, suffix: str) -> None:
+    from twin.core.telemetry import JointDiagnostics
+    from twin.output.recorder import servo_attribute_name
+
+    model, data = mj
+    poses = _fk_poses(model, data, ANGLE_SETS[1])
+    hot = JointDiagnostics(velocity_rad_s=-0.25, load_percent=-31.3, temperature_c=61.0, current_a=0.65)
+    session = tmp_path / f"servos{suffix}"
+    with SessionRecorder(session) as rec:
+        rec.record("arm-001", 10.0, poses, {"elbow_flex": hot, "gripper": JointDiagnostics()})
+        rec.record(
+            "arm-001", 11.0, poses, {"elbow_flex": JointDiagnostics(temperature_c=62.0, voltage_v=5.0)}
+        )
+        rec.record("arm-001", 12.0, poses)  # no diagnostics: the poses alone
+    stage = Usd.Stage.Open(str(session))
+    prim = stage.GetPrimAtPath("/World/arm_001")
+    temp = prim.GetAttribute(servo_attribute_name("elbow_flex", "temperatureCelsius"))
+    assert temp.GetTimeSamples() == [0.0, 30.0]
+    assert (temp.Get(0.0), temp.Get(30.0)) == (61.0, 62.0)
+    load = prim.GetAttribute("twin:servo:elbow_flex:loadPercent")
+    assert load.GetTimeSamples() == [0.0] and load.Get(0.0) == pytest.approx(-31.3)
+    assert prim.GetAttribute("twin:servo:elbow_flex:currentAmperes").Get(0.0) == pytest.approx(0.65)
+    assert prim.GetAttribute("twin:servo:elbow_flex:velocityRadPerSecond").Get(0.0) == pytest.approx(-0.25)
+    assert prim.GetAttribute("twin:servo:elbow_flex:voltageVolts").GetTimeSamples() == [30.0]
+    # Readings never sent have no attribute at all, rather than a made-up zero.
+    assert not prim.GetAttribute("twin:servo:gripper:temperatureCelsius")

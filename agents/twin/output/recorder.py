@@ -7,6 +7,12 @@ nests bodies like the MJCF (base/shoulder/...), so a body's local transform is t
 body, including any static prims the asset places between the two. A body missing from the poses (a user MJCF
 with other body names) keeps the asset's own local transform and moves with its parent.
 
+With each pose the caller may pass the servos' decoded diagnostics: they become time-sampled custom
+attributes on the device prim, `twin:servo:<joint>:<reading>` (velocityRadPerSecond, loadPercent,
+temperatureCelsius, currentAmperes, voltageVolts; docs/servo-health.md), sampled at the same time codes as
+the poses. A reading the edge did not send gets no sample, so it holds its last value in playback rather
+than a made-up zero.
+
 Time code = (t_seconds - origin) * time_codes_per_second, where origin is the first t_seconds recorded in the
 session (kept in the layer's customLayerData as `twin:timeOriginSeconds`), so callers may pass any monotonic
 clock. At most time_codes_per_second samples per device are kept: a sample less than one time code after
@@ -31,6 +37,7 @@ from typing import Any
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom
 
+from twin.core.telemetry import JointDiagnostics
 from twin.robot import so101
 
 log = logging.getLogger(__name__)
@@ -42,6 +49,19 @@ _TIME_CODE_DIGITS = 6
 _PRIM_NAME_BAD = re.compile(r"[^A-Za-z0-9_]")
 
 BodyPoses = Mapping[str, tuple[Any, Any]]
+# JointDiagnostics field -> USD attribute name part (units in the name: a USD reader sees no docstring).
+SERVO_READINGS: tuple[tuple[str, str], ...] = (
+    ("velocity_rad_s", "velocityRadPerSecond"),
+    ("load_percent", "loadPercent"),
+    ("temperature_c", "temperatureCelsius"),
+    ("current_a", "currentAmperes"),
+    ("voltage_v", "voltageVolts"),
+)
+
+
+def servo_attribute_name(joint: str, reading: str) -> str:
+    """The device prim's attribute for one servo reading, e.g. twin:servo:elbow_flex:temperatureCelsius."""
+    return f"twin:servo:{joint}:{reading}"
 
 
 def default_asset_path() -> Path:
@@ -72,6 +92,7 @@ class _DeviceTrack:
     translate_attrs: dict[str, Usd.Attribute]
     orient_attrs: dict[str, Usd.Attribute]
     last_quat: dict[str, Gf.Quatd] = field(default_factory=dict)
+    servo_attrs: dict[tuple[str, str], Usd.Attribute] = field(default_factory=dict)
     last_time_code: float = -math.inf
     samples: int = 0
     warned_missing: bool = False
@@ -173,8 +194,15 @@ class SessionRecorder:
         # Rounded so float noise (9.000000000000002) does not clutter the text layer.
         return round((t_seconds - self._time_origin_s) * self.time_codes_per_second, _TIME_CODE_DIGITS)
 
-    def record(self, device_id: str, t_seconds: float, body_poses: BodyPoses) -> bool:
-        """Time-sample one device's body world poses; True if written, False if dropped or rejected.
+    def record(
+        self,
+        device_id: str,
+        t_seconds: float,
+        body_poses: BodyPoses,
+        diagnostics: Mapping[str, JointDiagnostics] | None = None,
+    ) -> bool:
+        """Time-sample one device's body world poses (and servo diagnostics, if given); True if written,
+        False if dropped or rejected.
 
         Bad input (no known body, non-finite or malformed pose, non-finite time) is logged and counted in
         samples_rejected, never raised, so a recording problem cannot take the twin service down.
@@ -209,6 +237,8 @@ class SessionRecorder:
             log.warning("device %r: no poses for bodies %s; they keep the asset's pose", device_id, missing)
 
         self._author(track, poses, tc)
+        if diagnostics:
+            self._record_servos(track, diagnostics, tc)
         track.last_time_code = tc
         track.samples += 1
         self.samples_written += 1
@@ -285,6 +315,26 @@ class SessionRecorder:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+    def _record_servos(
+        self, track: _DeviceTrack, diagnostics: Mapping[str, JointDiagnostics], tc: float
+    ) -> None:
+        prim = None
+        for joint, diag in diagnostics.items():
+            if joint not in so101.JOINT_NAMES:
+                continue
+            for field_name, reading in SERVO_READINGS:
+                value = getattr(diag, field_name)
+                if value is None or not math.isfinite(value):
+                    continue
+                attr = track.servo_attrs.get((joint, reading))
+                if attr is None:
+                    prim = prim or self._stage.GetPrimAtPath(track.prim_path)
+                    attr = prim.CreateAttribute(
+                        servo_attribute_name(joint, reading), Sdf.ValueTypeNames.Double, custom=True
+                    )
+                    track.servo_attrs[(joint, reading)] = attr
+                attr.Set(float(value), tc)
 
     def _world_matrix(self, pos: np.ndarray, quat: np.ndarray) -> Gf.Matrix4d:
         s = self._units_per_metre
