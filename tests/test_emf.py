@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +21,9 @@ from twin.output.emf import (
     AGENT_DIMENSION,
     NAMESPACE,
     EmfFileWriter,
+    EmfPublisher,
     FleetMetrics,
+    FleetTotals,
     Metric,
     emf_document,
     fleet_documents,
@@ -267,3 +270,47 @@ def test_the_file_rotates_at_its_bound(tmp_path: Path) -> None:
         assert json.loads(line)["_aws"]["Timestamp"] == 1
     with pytest.raises(ValueError, match="at least one EMF event"):
         EmfFileWriter(tmp_path / "small.log", max_bytes=100)
+
+
+def test_publisher_turns_totals_into_interval_figures(tmp_path: Path) -> None:
+    clock = [100.0]
+    totals = [FleetTotals(0, 0, 0, 0, 1, 100.0, None, {"critical": 0, "warning": 0})]
+    writer = EmfFileWriter(tmp_path / "emf.log")
+    publisher = EmfPublisher(
+        writer,
+        "so101-twin",
+        lambda: totals[-1],
+        interval_s=60.0,
+        clock=lambda: clock[0],
+        wall=lambda: 1_764.5,
+    )
+    first = publisher.publish_once()
+    assert (first.messages_per_s, first.rejects, first.devices_offline) == (0.0, 0, 1)
+    clock[0] = 160.0
+    totals.append(FleetTotals(600, 4, 1, 0, 0, 0.0, 2.5, {"critical": 1, "warning": 0}))
+    second = publisher.publish_once()
+    assert (second.messages_per_s, second.rejects) == (10.0, 4)  # 600 messages over 60 s
+    clock[0] = 190.0  # a shorter interval (a stop flushes early): the rate is over the real span
+    totals.append(FleetTotals(750, 4, 1, 0, 0, 0.0, 2.5, {"critical": 0, "warning": 0}))
+    assert publisher.publish_once().messages_per_s == 5.0
+    docs = [validate_emf_line(line) for line in writer.path.read_text().splitlines()]
+    assert len(docs) == 9 and publisher.published == 3
+    assert {d["_aws"]["Timestamp"] for d in docs} == {1_764_500}
+    assert [d["ActiveAlarms"] for d in docs if d.get("Severity") == "critical"] == [0, 1, 0]
+    with pytest.raises(ValueError, match="positive"):
+        EmfPublisher(writer, "x", lambda: totals[0], interval_s=0)
+
+
+def test_publisher_thread_writes_until_stopped(tmp_path: Path) -> None:
+    writer = EmfFileWriter(tmp_path / "emf.log")
+    totals = FleetTotals(0, 0, 1, 0, 0, 0.0, 1.0, {"critical": 0, "warning": 0})
+    publisher = EmfPublisher(writer, "so101-twin", lambda: totals, interval_s=0.05)
+    publisher.start()
+    deadline = time.monotonic() + 10
+    while publisher.published < 2 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    publisher.stop()
+    count = publisher.published
+    assert count >= 2 and publisher.errors == 0
+    time.sleep(0.15)
+    assert publisher.published == count

@@ -19,7 +19,8 @@ import logging
 import math
 import os
 import threading
-from collections.abc import Mapping, Sequence
+import time
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -177,3 +178,97 @@ class EmfFileWriter:
                 fh.write(data)
                 fh.flush()
             self.lines_written += len(lines)
+
+
+@dataclass(frozen=True, slots=True)
+class FleetTotals:
+    """What the service reports at one moment: running totals plus the gauges of that moment."""
+
+    decoded: int  # valid messages since start, all devices
+    rejected: int  # rejected messages since start, all devices
+    devices_online: int
+    devices_stale: int
+    devices_offline: int
+    loss_percent: float
+    internal_latency_p99_ms: float | None
+    active_alarms: Mapping[str, int]
+
+
+class EmfPublisher:
+    """Every `interval_s`, turns the service's totals into one interval's FleetMetrics and writes them.
+
+    Rates and counts are differences between successive totals, over the time between them (monotonic
+    clock); the EMF timestamp is the wall clock. Runs on its own thread; a failed write is logged and
+    counted, never raised, so CloudWatch trouble cannot stop the twin.
+    """
+
+    def __init__(
+        self,
+        writer: EmfFileWriter,
+        agent: str,
+        sample: Callable[[], FleetTotals],
+        *,
+        interval_s: float = 60.0,
+        clock: Callable[[], float] = time.monotonic,
+        wall: Callable[[], float] = time.time,
+    ) -> None:
+        if not interval_s > 0:
+            raise ValueError(f"the EMF interval must be positive seconds, got {interval_s}")
+        self.writer = writer
+        self.agent = agent
+        self.interval_s = interval_s
+        self._sample = sample
+        self._clock = clock
+        self._wall = wall
+        self._last: tuple[float, FleetTotals] | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.published = 0
+        self.errors = 0
+
+    def publish_once(self) -> FleetMetrics:
+        """Sample, write this interval's documents, return the figures (the first call covers since start
+        of tracking: totals are taken as rising from zero)."""
+        now = self._clock()
+        totals = self._sample()
+        if self._last is None:
+            since, before = now - self.interval_s, None
+        else:
+            since, before = self._last
+        self._last = (now, totals)
+        span = max(now - since, 1e-9)
+        decoded = totals.decoded - (before.decoded if before else 0)
+        rejected = totals.rejected - (before.rejected if before else 0)
+        fleet = FleetMetrics(
+            messages_per_s=max(0, decoded) / span,
+            rejects=max(0, rejected),
+            loss_percent=totals.loss_percent,
+            devices_online=totals.devices_online,
+            devices_stale=totals.devices_stale,
+            devices_offline=totals.devices_offline,
+            internal_latency_p99_ms=totals.internal_latency_p99_ms,
+            active_alarms=totals.active_alarms,
+        )
+        self.writer.write(fleet_documents(fleet, self.agent, round(self._wall() * 1000)))
+        self.published += 1
+        return fleet
+
+    def start(self) -> None:
+        if self._thread is not None:
+            return
+        self._thread = threading.Thread(target=self._run, name="twin-emf", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout: float = 5.0) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+            self._thread = None
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.interval_s):
+            try:
+                self.publish_once()
+            except Exception:
+                self.errors += 1
+                log.exception("writing CloudWatch metrics to %s failed", self.writer.path)
