@@ -166,3 +166,30 @@ def test_choices_stay_in_step_with_the_enums() -> None:
 def test_to_dict_round_trips() -> None:
     config = load_config(None, {"telemetry.devices": ["a", "b"], "broker.url": "mqtt://127.0.0.1:1"})
     assert config_from_mapping(config.to_dict()) == config
+
+
+def test_alarms_and_cloudwatch_sections() -> None:
+    from twin.service.config import ConfigError, load_config
+
+    config = load_config(
+        None,
+        {
+            "alarms.temperature_warning_c": 58.0,
+            "alarms.servo_version": "12v",
+            "cloudwatch.emf_file": "/var/log/so101-twin/emf.log",
+            "cloudwatch.agent_name": "So101TwinStack",
+        },
+    )
+    assert config.alarms.temperature_warning_c == 58.0
+    assert config.alarms.servo.stall_torque_nm > 2.9
+    assert config.cloudwatch.interval_s == 60.0
+    for overrides, words in [
+        ({"alarms.temperature_warning_clear_c": 61.0}, ["[alarms]", "hysteresis"]),
+        ({"alarms.servo_version": "24v"}, ["[alarms]", "7.4v"]),
+        ({"alarms.overload": 80}, ["alarms.overload", "overload_percent"]),
+        ({"cloudwatch.interval_s": 0.0}, ["cloudwatch.interval_s", "greater than 0"]),
+    ]:
+        with pytest.raises(ConfigError) as info:
+            load_config(None, overrides)
+        for word in words:
+            assert word in str(info.value), (overrides, str(info.value))

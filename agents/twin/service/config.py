@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from twin.core.alarms import AlarmThresholds
 from twin.core.health import HealthThresholds
 from twin.core.telemetry import MAX_PAYLOAD_BYTES, UNITS_CHOICES
 from twin.core.topics import ALL_DEVICES, DEFAULT_TOPIC_PREFIX, TopicError, check_devices, check_topic_prefix
@@ -94,6 +95,23 @@ class LogSection:
     level: str = "INFO"
 
 
+# The [alarms] section is the servo alarm thresholds themselves (docs/servo-health.md lists every key).
+AlarmsSection = AlarmThresholds
+
+
+@dataclass(frozen=True)
+class CloudWatchSection:
+    """CloudWatch metrics as Embedded Metric Format lines (docs/servo-health.md); off while emf_file is empty.
+
+    `agent_name` is the metrics' Agent dimension: the stack renders its own name here, and its alarms watch
+    that value.
+    """
+
+    emf_file: str = ""
+    agent_name: str = "so101-twin"
+    interval_s: float = 60.0
+
+
 @dataclass(frozen=True)
 class AgentConfig:
     broker: BrokerSection = field(default_factory=BrokerSection)
@@ -102,6 +120,8 @@ class AgentConfig:
     health: HealthSection = field(default_factory=HealthSection)
     http: HttpSection = field(default_factory=HttpSection)
     log: LogSection = field(default_factory=LogSection)
+    alarms: AlarmsSection = field(default_factory=AlarmsSection)
+    cloudwatch: CloudWatchSection = field(default_factory=CloudWatchSection)
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
         """The effective configuration as TOML-shaped sections (logged at start-up, served nowhere)."""
@@ -117,6 +137,8 @@ _SECTIONS: dict[str, type] = {
     "health": HealthSection,
     "http": HttpSection,
     "log": LogSection,
+    "alarms": AlarmsSection,
+    "cloudwatch": CloudWatchSection,
 }
 
 
@@ -183,6 +205,8 @@ def _build_section(name: str, cls: type, values: Mapping[str, Any]) -> Any:
         return cls(**kwargs)
     except BrokerConfigError as exc:  # sections that validate themselves name their keys already
         raise ConfigError(str(exc)) from None
+    except ValueError as exc:  # [alarms] validates itself; its messages name the key
+        raise ConfigError(f"[{name}]: {exc}") from None
 
 
 def _positive(key: str, value: float) -> None:
@@ -200,6 +224,9 @@ def validate(config: AgentConfig) -> AgentConfig:
     _validate_health(config.health)
     _split_listen(config.http.listen)
     _positive("http.stream_rate_hz", config.http.stream_rate_hz)
+    _positive("cloudwatch.interval_s", config.cloudwatch.interval_s)
+    if config.cloudwatch.emf_file and not config.cloudwatch.agent_name:
+        raise ConfigError("cloudwatch.agent_name is empty; name the agent (the stack renders its stack name)")
     if config.log.level.upper() not in LOG_LEVELS:
         raise ConfigError(f"log.level = {config.log.level!r} is not one of {', '.join(LOG_LEVELS)}")
     return config
