@@ -520,6 +520,16 @@ class ServoAlarms:
         alarm = self._alarms.get(alarm_id_)
         return None if alarm is None else self._view(alarm)
 
+    def views_of(self, alarm_ids: Iterable[str]) -> list[AlarmView]:
+        """The named alarms; raises AlarmNotFound for an unknown id."""
+        out = []
+        for key in alarm_ids:
+            alarm = self._alarms.get(key)
+            if alarm is None:
+                raise AlarmNotFound(key)
+            out.append(self._view(alarm))
+        return out
+
     def views(self, *, include_normal: bool = False, device: str | None = None) -> list[AlarmView]:
         """Alarms sorted worst first (severity, then state, then id); NORMAL ones only when asked."""
         out = [

@@ -32,7 +32,7 @@ class _RecorderWorker:
 
     def handle_applied(self, sample: AppliedSample) -> None:
         poses = self._robot.body_poses(sample.joint_angles)
-        self._recorder.record(sample.device_id, sample.received_mono_s, poses)
+        self._recorder.record(sample.device_id, sample.received_mono_s, poses, sample.telemetry.diagnostics)
 
     def handle_rejected(self, sample: RejectedSample) -> None:
         """A rejected message moved no twin: nothing to record."""

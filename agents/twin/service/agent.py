@@ -38,11 +38,20 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NamedTuple
 
+from twin.core.alarms import AlarmEvent, AlarmView, ServoAlarms, Severity
 from twin.core.health import DeviceStatus, FleetHealth, HealthSnapshot
 from twin.core.latency import LatencyHistogram
-from twin.core.telemetry import DecoderConfig, Telemetry, TelemetryDecoder, TelemetryRejected, Units
+from twin.core.telemetry import (
+    DecoderConfig,
+    JointDiagnostics,
+    Telemetry,
+    TelemetryDecoder,
+    TelemetryRejected,
+    Units,
+)
 from twin.core.topics import device_from_topic, topic_filters
 from twin.core.twin import DeviceTwin, TwinMode, TwinSnapshot
+from twin.output.emf import EmfFileWriter, EmfPublisher, FleetTotals
 from twin.output.recorder import SessionRecorder
 from twin.output.recording import RecordingSink
 from twin.output.sinks import AppliedSample, RejectedSample, TwinSink
@@ -56,12 +65,15 @@ from twin.service.logs import RateLimitedLog
 from twin.service.state import (
     AgentInfo,
     AgentState,
+    AlarmInfo,
+    AlarmsSummary,
     BrokerState,
     DeviceState,
     FleetLatency,
     HealthReport,
     MailboxState,
     RecordingState,
+    ServoState,
     WorkerState,
 )
 from twin.transport.mailbox import LatestValueMailbox
@@ -125,6 +137,8 @@ class _Readout:
     untracked: dict[str, int]
     batches: int
     latency: FleetLatency
+    servos: dict[str, dict[str, ServoState]]
+    alarms: AlarmsSummary
 
 
 class AgentService:
@@ -165,6 +179,11 @@ class AgentService:
         self._snapshots: dict[str, TwinSnapshot] = {}
         self._units: dict[str, str] = {}
         self._gripper: dict[str, float | None] = {}
+        # Servo alarms and the last diagnostics per device: written by the worker, read (and acknowledged)
+        # by HTTP threads, all under the lock.
+        self._alarms = ServoAlarms(config.alarms)
+        self._diagnostics: dict[str, dict[str, JointDiagnostics]] = {}
+        self._emf: EmfPublisher | None = None
         self._lock = threading.Lock()
         self._reject_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
         self._error_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
@@ -227,6 +246,11 @@ class AgentService:
         except OSError:
             self._close_sinks(timeout=5.0)
             raise
+        if self.config.cloudwatch.emf_file:
+            cw = self.config.cloudwatch
+            self._emf = EmfPublisher(
+                EmfFileWriter(cw.emf_file), cw.agent_name, self._fleet_totals, interval_s=cw.interval_s
+            )
         self._running.set()
         self._worker = threading.Thread(target=self._work, name="twin-worker", daemon=True)
         self._worker.start()
@@ -235,6 +259,8 @@ class AgentService:
             self.broker_config, self.topic_filters, self._on_message, clock=self._clock
         )
         self._subscriber.start()
+        if self._emf is not None:
+            self._emf.start()
         log.info(
             "agent started",
             extra={
@@ -272,6 +298,8 @@ class AgentService:
             if self._worker.is_alive():
                 log.error("twin worker did not finish within %.1f s", timeout)
         self._running.clear()
+        if self._emf is not None:
+            self._emf.stop(timeout)
         self._close_sinks(timeout)
         if self._http is not None:
             self._http.stop()
@@ -383,6 +411,8 @@ class AgentService:
             tracked.gripper_percent = telemetry.gripper_percent
             result = self._apply(tracked, telemetry, item)
             self._record_health(telemetry, item, result)
+            if result.applied:
+                self._evaluate_alarms(telemetry, item, result.tracked)
             if result.applied and self._sinks:
                 self._hand_applied(telemetry, item, result.tracked)
             return telemetry.device_id if result.applied else None
@@ -496,6 +526,24 @@ class AgentService:
             self._units[device] = units
             self._gripper[device] = result.tracked.gripper_percent
 
+    def _evaluate_alarms(self, telemetry: Telemetry, item: _Inbound, tracked: _Tracked) -> None:
+        """Servo alarms for this applied message (docs/servo-health.md); state changes become log lines."""
+        device = telemetry.device_id
+        twin = tracked.twin
+        torques = twin.joint_torques
+        with self._lock:
+            self._diagnostics[device] = telemetry.diagnostics
+            events = self._alarms.evaluate(
+                device,
+                telemetry.diagnostics,
+                torques,
+                item.recv_mono,
+                angles_rad=twin.targets,
+                timestamp_ms=telemetry.timestamp_ms,
+            )
+        for event in events:
+            _log_alarm_event(event)
+
     def _hand_applied(self, telemetry: Telemetry, item: _Inbound, tracked: _Tracked) -> None:
         sample = AppliedSample(
             device_id=telemetry.device_id,
@@ -557,7 +605,90 @@ class AgentService:
                 latency=FleetLatency(
                     internal_s=self._internal_hist.summary(), end_to_end_s=self._end_to_end_hist.summary()
                 ),
+                servos={device: self._servo_states(device) for device in self._diagnostics},
+                alarms=self._alarms_summary(),
             )
+
+    def _servo_states(self, device: str) -> dict[str, ServoState]:
+        """Under the lock: the device's last diagnostics with the alarm engine's view of each joint."""
+        health = self._alarms.joint_health(device)
+        worst = self._alarms.worst_by_joint(device)
+        out = {}
+        for joint, diag in self._diagnostics[device].items():
+            h = health.get(joint)
+            severity, state = worst.get(joint, (None, None))
+            out[joint] = ServoState(
+                velocity_rad_s=diag.velocity_rad_s,
+                load_percent=diag.load_percent,
+                temperature_c=diag.temperature_c,
+                current_a=diag.current_a,
+                voltage_v=diag.voltage_v,
+                model_load_percent=h.model_load_percent if h else None,
+                mismatch_percent=h.mismatch_percent if h else None,
+                still=h.still if h else None,
+                alarm_severity=str(severity) if severity else None,
+                alarm_state=str(state) if state else None,
+            )
+        return out
+
+    def _alarms_summary(self) -> AlarmsSummary:
+        """Under the lock."""
+        counters = self._alarms.counters
+        by_state: dict[str, dict[str, int]] = {str(s): {} for s in Severity}
+        for (severity, state), count in sorted(self._alarms.counts_by_state().items()):
+            by_state[str(severity)][str(state)] = count
+        raised: dict[str, int] = {}
+        for (kind, _), count in counters.raised.items():
+            raised[str(kind)] = raised.get(str(kind), 0) + count
+        return AlarmsSummary(
+            present={str(k): v for k, v in self._alarms.present_by_severity().items()},
+            by_state=by_state,
+            raised_total=dict(sorted(raised.items())),
+            cleared_total={str(k): v for k, v in sorted(counters.cleared.items())},
+            acknowledged_total={str(k): v for k, v in sorted(counters.acknowledged.items())},
+        )
+
+    # ------------------------------------------------------------------------------------ alarms (people)
+
+    def alarms(self, *, include_normal: bool = False) -> tuple[AlarmInfo, ...]:
+        """Servo alarms, worst first (GET /alarms); NORMAL ones only when asked."""
+        with self._lock:
+            now = self._clock()
+            views = self._alarms.views(include_normal=include_normal)
+        wall = self._wall_clock()
+        return tuple(_alarm_info(v, now, wall) for v in views)
+
+    def acknowledge_alarm(self, alarm_id: str) -> AlarmInfo:
+        """ACTIVE -> ACKNOWLEDGED, LATCHED -> NORMAL. Raises twin.core.alarms.AlarmNotFound (unknown id) or
+        NothingToAcknowledge (NORMAL or already ACKNOWLEDGED)."""
+        with self._lock:
+            now = self._clock()
+            event = self._alarms.acknowledge(alarm_id, now)
+            view = self._alarms.views_of((alarm_id,))[0]
+        _log_alarm_event(event)
+        return _alarm_info(view, now, self._wall_clock())
+
+    def _fleet_totals(self) -> FleetTotals:
+        """Running totals and gauges for the CloudWatch metrics (EmfPublisher thread)."""
+        state = self.state()
+        expected = self.config.health.expected_rate_hz
+        statuses = [d.status for d in state.devices.values()]
+        live = [d for d in state.devices.values() if d.status is not DeviceStatus.OFFLINE]
+        # Per arm, the share of the expected rate that did not arrive, averaged over arms that are not
+        # OFFLINE (an OFFLINE arm is counted as such, not as 100 % loss).
+        loss = 100.0 * sum(max(0.0, 1.0 - d.rate_hz / expected) for d in live) / len(live) if live else 0.0
+        p99s = [d.internal_latency_s.p99 for d in state.devices.values() if d.internal_latency_s.p99]
+        return FleetTotals(
+            decoded=sum(d.counters.decoded for d in state.devices.values()),
+            rejected=sum(d.counters.rejected_total for d in state.devices.values())
+            + sum(state.untracked_rejected.values()),
+            devices_online=statuses.count(DeviceStatus.ONLINE),
+            devices_stale=statuses.count(DeviceStatus.STALE),
+            devices_offline=statuses.count(DeviceStatus.OFFLINE),
+            loss_percent=loss,
+            internal_latency_p99_ms=max(p99s) * 1000.0 if p99s else None,
+            active_alarms=state.agent.alarms.present,
+        )
 
     def _device_state(self, device: str, health: HealthSnapshot, readout: _Readout) -> DeviceState:
         snap = readout.snapshots.get(device)
@@ -572,6 +703,7 @@ class AgentService:
             torques_nm=snap.joint_torques if snap else None,
             tcp_position_m=snap.tcp_position if snap else None,
             gripper_percent=readout.gripper.get(device),
+            servos=readout.servos.get(device),
         )
 
     def _agent_info(self, readout: _Readout) -> AgentInfo:
@@ -601,6 +733,7 @@ class AgentService:
             ),
             recording=self._recording_state(),
             sinks=tuple(sink.stats() for sink in self._sinks),
+            alarms=readout.alarms,
         )
 
     def _broker_state(self) -> BrokerState:
@@ -663,3 +796,50 @@ class AgentService:
         with self._lock:
             health = self._fleet.get(device)
             return health.status() if health is not None else None
+
+
+def _alarm_info(view: AlarmView, now_mono: float, now_wall: float) -> AlarmInfo:
+    return AlarmInfo(
+        alarm_id=view.alarm_id,
+        device=view.device,
+        joint=view.joint,
+        kind=str(view.kind),
+        severity=str(view.severity),
+        state=str(view.state),
+        value=view.value,
+        threshold=view.threshold,
+        unit=view.unit,
+        # The engine keeps monotonic times; people want wall time.
+        changed_at=now_wall - (now_mono - view.since),
+        raised=view.raised,
+        message=view.message,
+    )
+
+
+_ALARM_LOG_LEVEL = {"raised": logging.WARNING, "cleared": logging.INFO}
+
+
+def _log_alarm_event(event: AlarmEvent) -> None:
+    """One JSON log line per alarm state change (twin.service.logs formats the fields)."""
+    level = _ALARM_LOG_LEVEL.get(event.action, logging.INFO)
+    if event.action == "raised" and event.severity is Severity.CRITICAL:
+        level = logging.ERROR
+    log.log(
+        level,
+        "servo alarm %s: %s",
+        event.action,
+        event.message,
+        extra={
+            "event": "servo_alarm",
+            "alarm_id": event.alarm_id,
+            "device": event.device,
+            "joint": event.joint,
+            "kind": str(event.kind),
+            "severity": str(event.severity),
+            "action": event.action,
+            "previous": str(event.previous),
+            "state": str(event.state),
+            "value": event.value,
+            "threshold": event.threshold,
+        },
+    )

@@ -10,27 +10,33 @@ Endpoints (docs/agent.md has examples):
 - GET /metrics  Prometheus text exposition format 0.0.4 (twin.service.metrics)
 - GET /healthz  200 {"status": "ok", ...} or 503 {"status": "unavailable", "reasons": [...]}
 - GET /stream   Server-Sent Events, `data: {state json}` at most `stream_rate_hz` times a second
+- GET /alarms   servo alarms that are not NORMAL, worst first (`?all=1`: every alarm)
+- POST /alarms/<device>/<joint>/<kind>/ack   acknowledge one (ACTIVE -> ACKNOWLEDGED, LATCHED -> NORMAL);
+                from loopback clients only, whatever address the server listens on: the API has no
+                authentication, and an acknowledgement silences an alarm for everyone
 """
 
 from __future__ import annotations
 
 import contextlib
+import ipaddress
 import json
 import logging
 import threading
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any, Protocol
-from urllib.parse import urlsplit
+from urllib.parse import parse_qs, unquote, urlsplit
 
+from twin.core.alarms import AlarmNotFound, NothingToAcknowledge
 from twin.service.config import DEFAULT_HTTP_HOST, DEFAULT_HTTP_PORT
 from twin.service.metrics import CONTENT_TYPE as PROMETHEUS_CONTENT_TYPE
 from twin.service.metrics import render_metrics
-from twin.service.state import AgentState, HealthReport
+from twin.service.state import AgentState, AlarmInfo, AlarmList, HealthReport
 
 log = logging.getLogger(__name__)
 
-ENDPOINTS = ("/state", "/metrics", "/healthz", "/stream")
+ENDPOINTS = ("/state", "/metrics", "/healthz", "/stream", "/alarms")
 JSON_CONTENT_TYPE = "application/json"
 # Errors a client hanging up produces mid-write; never worth more than a debug line.
 _DISCONNECTS = (BrokenPipeError, ConnectionResetError, ConnectionAbortedError, TimeoutError)
@@ -44,6 +50,15 @@ class StateSource(Protocol):
     def healthz(self) -> HealthReport:
         """The body of GET /healthz (200 when `healthy`, else 503)."""
         ...
+
+
+class AlarmSource(Protocol):
+    """What /alarms needs besides the state (the agent service has both; a source without them has no
+    /alarms endpoint)."""
+
+    def alarms(self, *, include_normal: bool = False) -> tuple[AlarmInfo, ...]: ...
+
+    def acknowledge_alarm(self, alarm_id: str) -> AlarmInfo: ...
 
 
 # ---------------------------------------------------------------------------------------------------- server
@@ -81,6 +96,11 @@ class _Handler(BaseHTTPRequestHandler):
                 self._send(status, report.to_json(), JSON_CONTENT_TYPE)
             elif path == "/stream":
                 self._stream()
+            elif path == "/alarms" and hasattr(self.server.source, "alarms"):
+                query = parse_qs(urlsplit(self.path).query)
+                include_normal = query.get("all", ["0"])[-1] not in ("", "0", "false")
+                alarms = self.server.source.alarms(include_normal=include_normal)  # type: ignore[attr-defined]
+                self._send(HTTPStatus.OK, AlarmList(alarms=alarms).to_json(), JSON_CONTENT_TYPE)
             elif path == "/":
                 self._send_json(HTTPStatus.OK, {"endpoints": list(ENDPOINTS)})
             else:
@@ -95,9 +115,70 @@ class _Handler(BaseHTTPRequestHandler):
                 self._send_json(HTTPStatus.INTERNAL_SERVER_ERROR, {"error": "internal_error", "path": path})
 
     def do_POST(self) -> None:
-        self._send_json(HTTPStatus.METHOD_NOT_ALLOWED, {"error": "method_not_allowed", "allowed": ["GET"]})
+        path = urlsplit(self.path).path.rstrip("/")
+        parts = path.split("/")
+        # /alarms/<device>/<joint>/<kind>/ack: device ids never hold '/', so the id is the middle three.
+        if len(parts) != 6 or parts[1] != "alarms" or parts[5] != "ack":
+            self._send_json(
+                HTTPStatus.METHOD_NOT_ALLOWED,
+                {"error": "method_not_allowed", "allowed": ["GET", "POST /alarms/<id>/ack"]},
+            )
+            return
+        try:
+            self._acknowledge("/".join(unquote(p) for p in parts[2:5]))
+        except _DISCONNECTS:
+            log.debug("http client went away during %s", path)
+        except Exception:
+            log.exception("http handler failed", extra={"path": path})
+            with contextlib.suppress(OSError):
+                self._send_json(HTTPStatus.INTERNAL_SERVER_ERROR, {"error": "internal_error", "path": path})
 
-    do_PUT = do_DELETE = do_PATCH = do_POST  # noqa: N815
+    def _acknowledge(self, alarm_id: str) -> None:
+        # The body, if any, is not used; read it so the connection stays in step.
+        length = int(self.headers.get("Content-Length") or 0)
+        if length:
+            self.rfile.read(min(length, 65536))
+        client = self.client_address[0]
+        if not ipaddress.ip_address(client.split("%", 1)[0]).is_loopback:
+            self._send_json(
+                HTTPStatus.FORBIDDEN,
+                {
+                    "error": "forbidden",
+                    "detail": f"acknowledging alarms is allowed from this host only (loopback), not "
+                    f"{client}; open a shell on the host (the stack's SsmSessionCommand) and ask there",
+                },
+            )
+            return
+        source = self.server.source
+        if not hasattr(source, "acknowledge_alarm"):
+            self._send_json(
+                HTTPStatus.NOT_FOUND, {"error": "not_found", "detail": "this source has no alarms"}
+            )
+            return
+        try:
+            info = source.acknowledge_alarm(alarm_id)  # type: ignore[attr-defined]
+        except AlarmNotFound:
+            self._send_json(
+                HTTPStatus.NOT_FOUND,
+                {
+                    "error": "alarm_not_found",
+                    "alarm_id": alarm_id,
+                    "detail": "GET /alarms?all=1 lists every id",
+                },
+            )
+            return
+        except NothingToAcknowledge as exc:
+            self._send_json(HTTPStatus.CONFLICT, {"error": "nothing_to_acknowledge", "detail": str(exc)})
+            return
+        self._send(HTTPStatus.OK, AlarmList(alarms=(info,)).to_json(), JSON_CONTENT_TYPE)
+
+    def do_PUT(self) -> None:
+        self._send_json(
+            HTTPStatus.METHOD_NOT_ALLOWED,
+            {"error": "method_not_allowed", "allowed": ["GET", "POST /alarms/<id>/ack"]},
+        )
+
+    do_DELETE = do_PATCH = do_PUT  # noqa: N815
 
     def _stream(self) -> None:
         self.send_response(HTTPStatus.OK)

@@ -18,7 +18,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.exposition import CONTENT_TYPE_PLAIN_0_0_4
 
 from twin.core.health import DeviceStatus
-from twin.service.state import AgentInfo, AgentState, DeviceState
+from twin.service.state import AgentInfo, AgentState, DeviceState, ServoState
 
 # Every metric name is valid in the classic format, so the widely parsed 0.0.4 text format is served.
 CONTENT_TYPE = CONTENT_TYPE_PLAIN_0_0_4
@@ -94,6 +94,57 @@ def _agent_families(agent: AgentInfo) -> Iterator[Metric]:
     for sink in agent.sinks:
         pending.add_metric([sink.name], sink.pending)
     yield pending
+    yield from _alarm_families(agent)
+
+
+def _alarm_families(agent: AgentInfo) -> Iterator[Metric]:
+    alarms = agent.alarms
+    gauge = GaugeMetricFamily(
+        "twin_servo_alarms",
+        "Servo alarms by severity and state (NORMAL included).",
+        labels=["severity", "state"],
+    )
+    for severity, states in sorted(alarms.by_state.items()):
+        for state, count in sorted(states.items()):
+            gauge.add_metric([severity, state], count)
+    yield gauge
+    present = GaugeMetricFamily(
+        "twin_servo_alarms_present",
+        "Servo alarms whose condition is present (ACTIVE or ACKNOWLEDGED), by severity.",
+        labels=["severity"],
+    )
+    for severity, count in sorted(alarms.present.items()):
+        present.add_metric([severity], count)
+    yield present
+    for key, help_text in (
+        ("raised", "Servo alarms raised (NORMAL or LATCHED -> ACTIVE), by kind."),
+        ("cleared", "Servo alarm conditions cleared, by kind."),
+        ("acknowledged", "Servo alarms acknowledged by a person, by kind."),
+    ):
+        family = CounterMetricFamily(f"twin_servo_alarms_{key}_total", help_text, labels=["kind"])
+        for kind, count in sorted(getattr(alarms, f"{key}_total").items()):
+            family.add_metric([kind], count)
+        yield family
+
+
+# ServoState field -> (metric name, help): the servo readings in physical units, per device and joint.
+_SERVO_GAUGES = (
+    ("velocity_rad_s", "twin_servo_velocity_radians_per_second", "Servo velocity (rad/s, signed)."),
+    ("load_percent", "twin_servo_load_percent", "Servo load, percent of stall torque (signed)."),
+    ("temperature_c", "twin_servo_temperature_celsius", "Servo temperature (C)."),
+    ("current_a", "twin_servo_current_amperes", "Servo current (A)."),
+    ("voltage_v", "twin_servo_voltage_volts", "Servo supply voltage (V)."),
+    (
+        "model_load_percent",
+        "twin_servo_model_load_percent",
+        "Load the model's inverse-dynamics holding torque implies, percent of stall torque.",
+    ),
+    (
+        "mismatch_percent",
+        "twin_servo_model_mismatch_percent",
+        "| |load| - |model load| | in percentage points, while the joint is still.",
+    ),
+)
 
 
 class _DeviceFamilies:
@@ -158,6 +209,10 @@ class _DeviceFamilies:
             "Inverse-dynamics joint torque of the measured pose.",
             labels=[*dev, "joint"],
         )
+        self.servos = {
+            attr: GaugeMetricFamily(name, help_text, labels=[*dev, "joint"])
+            for attr, name, help_text in _SERVO_GAUGES
+        }
 
     def add(self, device: str, d: DeviceState) -> None:
         for status in _STATUSES:
@@ -180,6 +235,12 @@ class _DeviceFamilies:
             self.joints.add_metric([device, joint], value)
         for joint, value in (d.torques_nm or {}).items():
             self.torques.add_metric([device, joint], value)
+        for joint, servo in (d.servos or {}).items():
+            self._add_servo(device, joint, servo)
+
+    def _add_servo(self, device: str, joint: str, servo: ServoState) -> None:
+        for attr, family in self.servos.items():
+            _maybe(family, [device, joint], getattr(servo, attr))
 
     def all(self) -> Iterator[Metric]:
         yield self.status
@@ -188,6 +249,7 @@ class _DeviceFamilies:
         yield from self.messages.values()
         yield from (self.rejected, self.errors, self.resets, self.edge_p50, self.edge_p99, self.offset)
         yield from (self.int_p50, self.int_p99, self.joints, self.torques)
+        yield from self.servos.values()
 
 
 def _maybe(family: GaugeMetricFamily, labels: list[str], value: float | None) -> None:

@@ -24,6 +24,9 @@ from twin.output.sinks import SinkStats
 __all__ = [
     "AgentInfo",
     "AgentState",
+    "AlarmInfo",
+    "AlarmList",
+    "AlarmsSummary",
     "BrokerState",
     "DeviceCounters",
     "DeviceState",
@@ -32,12 +35,75 @@ __all__ = [
     "LatencySummary",
     "MailboxState",
     "RecordingState",
+    "ServoState",
     "SinkStats",
     "WindowLatency",
     "WorkerState",
 ]
 
 _ENCODER = msgspec.json.Encoder()
+
+
+@dataclass(frozen=True, slots=True)
+class ServoState:
+    """One joint's servo in physical units (None: not sent), what the model expects of it, and its worst
+    alarm that is not NORMAL (docs/servo-health.md)."""
+
+    velocity_rad_s: float | None = None
+    load_percent: float | None = None  # of the servo's stall torque
+    temperature_c: float | None = None
+    current_a: float | None = None
+    voltage_v: float | None = None
+    # The inverse-dynamics holding torque as the load the servo should report, and how far the measured load
+    # is from it (only while the joint is still).
+    model_load_percent: float | None = None
+    mismatch_percent: float | None = None
+    still: bool | None = None
+    alarm_severity: str | None = None  # warning | critical
+    alarm_state: str | None = None  # ACTIVE | ACKNOWLEDGED | LATCHED
+
+
+@dataclass(frozen=True, slots=True)
+class AlarmInfo:
+    """One servo alarm (GET /alarms); `changed_at` is the wall time of its last state change."""
+
+    alarm_id: str = ""
+    device: str = ""
+    joint: str = ""
+    kind: str = ""
+    severity: str = ""
+    state: str = ""
+    value: float | None = None
+    threshold: float = 0.0
+    unit: str = ""
+    changed_at: float = 0.0
+    raised: int = 0
+    message: str = ""
+
+
+@dataclass(frozen=True)
+class AlarmList:
+    """The body of GET /alarms: alarms that are not NORMAL (all of them with ?all=1), worst first."""
+
+    alarms: tuple[AlarmInfo, ...] = ()
+
+    def to_json(self) -> bytes:
+        return _ENCODER.encode(self)
+
+    @classmethod
+    def from_json(cls, data: bytes | str) -> AlarmList:
+        return msgspec.json.decode(data, type=cls)
+
+
+@dataclass(frozen=True)
+class AlarmsSummary:
+    """Servo alarms across the fleet: counts by state and severity, and running totals of state changes."""
+
+    present: dict[str, int] = field(default_factory=dict)  # severity -> ACTIVE or ACKNOWLEDGED alarms
+    by_state: dict[str, dict[str, int]] = field(default_factory=dict)  # severity -> state -> alarms
+    raised_total: dict[str, int] = field(default_factory=dict)  # kind -> times raised
+    cleared_total: dict[str, int] = field(default_factory=dict)
+    acknowledged_total: dict[str, int] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -63,6 +129,8 @@ class DeviceState:
     torques_nm: dict[str, float] | None = None
     tcp_position_m: tuple[float, float, float] | None = None
     gripper_percent: float | None = None
+    # Per joint, from the last applied message: None until one arrives.
+    servos: dict[str, ServoState] | None = None
 
     @classmethod
     def from_health(cls, device_id: str, health: HealthSnapshot, **twin: object) -> DeviceState:
@@ -147,6 +215,7 @@ class AgentInfo:
     worker: WorkerState = field(default_factory=WorkerState)
     recording: RecordingState | None = None
     sinks: tuple[SinkStats, ...] = ()
+    alarms: AlarmsSummary = field(default_factory=AlarmsSummary)
 
 
 @dataclass(frozen=True)
