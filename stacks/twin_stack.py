@@ -59,6 +59,8 @@ class TwinStack(Stack):
                 "CLIENT_ID_PREFIX": CLIENT_ID_PREFIX,
                 "DESKTOP_USER": DESKTOP_USER,
                 "LOG_GROUP": self.identity.agent_log_group.log_group_name,
+                # The CloudWatch metrics' Agent dimension, which the monitoring alarms below watch.
+                "AGENT_NAME": settings.stack_name,
             },
         )
         self.monitoring = TwinMonitoring(

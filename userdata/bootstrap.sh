@@ -203,7 +203,8 @@ main() {
   apt_install python3.12-venv curl
   ROOT=/ AGENT_SRC=/opt/so101-twin/agent-src PYTHON=python3.12 \
     AWS_REGION="$AWS_REGION" TOPIC_PREFIX="$TOPIC_PREFIX" DEVICES="$DEVICES" UNITS="$UNITS" \
-    CLIENT_ID_PREFIX="$CLIENT_ID_PREFIX" DESKTOP_USER="$DESKTOP_USER" bash "$HERE/install-agent.sh"
+    CLIENT_ID_PREFIX="$CLIENT_ID_PREFIX" DESKTOP_USER="$DESKTOP_USER" AGENT_NAME="${AGENT_NAME:-so101-twin}" \
+    bash "$HERE/install-agent.sh"
   setup_desktop
   set_password
   install_dcv

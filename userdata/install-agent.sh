@@ -8,6 +8,7 @@
 #   PYTHON      interpreter for the venv (default python3.12; mujoco 4 and usd-core 26 need >= 3.11)
 #   VENV_ARGS   extra `python -m venv` arguments; PIP_ARGS extra `pip install` arguments
 #   AWS_REGION, TOPIC_PREFIX, DEVICES (comma list or *), UNITS, CLIENT_ID_PREFIX, DESKTOP_USER: the settings
+#   AGENT_NAME  the CloudWatch metrics' Agent dimension (the stack name; the stack's alarms watch it)
 # Idempotent: each file is written only when its content differs, pip runs only when the source changed.
 set -euo pipefail
 
@@ -23,6 +24,7 @@ DEVICES="${DEVICES:-arm-001}"
 UNITS="${UNITS:-auto}"
 CLIENT_ID_PREFIX="${CLIENT_ID_PREFIX:-so101-twin-}"
 DESKTOP_USER="${DESKTOP_USER:-ubuntu}"
+AGENT_NAME="${AGENT_NAME:-so101-twin}"
 
 VENV=/opt/so101-twin/venv
 CONFIG=/etc/so101-twin/agent.toml
@@ -126,6 +128,11 @@ listen = "127.0.0.1:8080"
 
 [log]
 level = "INFO"
+
+[cloudwatch]
+# EMF lines the CloudWatch agent ships to the host log group (bootstrap.sh); docs/servo-health.md.
+emf_file = "/var/log/so101-twin/emf.log"
+agent_name = "${AGENT_NAME}"
 TOML
 
 # --- the agent service ----------------------------------------------------------------------------
@@ -145,6 +152,8 @@ Restart=always
 RestartSec=5
 SyslogIdentifier=so101-twin-agent
 StateDirectory=so101-twin
+# /var/log/so101-twin: the EMF file for CloudWatch (writable under ProtectSystem=full).
+LogsDirectory=so101-twin
 NoNewPrivileges=true
 ProtectSystem=full
 PrivateTmp=true

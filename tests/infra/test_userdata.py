@@ -93,6 +93,7 @@ def run_installer(root: Path, source: Path, **env: str) -> subprocess.CompletedP
         "TOPIC_PREFIX": "dt/lerobot",
         "DEVICES": "arm-001, arm-002",
         "UNITS": "ticks",
+        "AGENT_NAME": "LabTwin",
         "CLIENT_ID_PREFIX": "so101-twin-",
         "DESKTOP_USER": "ubuntu",
         **env,
@@ -136,6 +137,12 @@ def test_installer_writes_the_agent_config_from_the_settings(installed: tuple[Pa
     loaded = load_config(path)
     assert list(loaded.telemetry.devices) == ["arm-001", "arm-002"]
     assert loaded.broker.url == "iot"
+    # CloudWatch metrics go to the file the CloudWatch agent follows, named for the stack's alarms.
+    from twin.output.emf import DEFAULT_EMF_FILE
+
+    assert (loaded.cloudwatch.emf_file, loaded.cloudwatch.agent_name) == (DEFAULT_EMF_FILE, "LabTwin")
+    unit = (root / "etc/systemd/system/so101-twin-agent.service").read_text()
+    assert "LogsDirectory=so101-twin\n" in unit
 
 
 def test_installer_writes_the_service_and_the_viewer_autostart(installed: tuple[Path, Path]) -> None:
