@@ -22,13 +22,20 @@ import numpy as np
 import pytest
 from twin.core.health import DeviceStatus, WindowLatency
 from twin.robot import so101
-from twin.service.state import AgentInfo, AgentState, DeviceState
+from twin.service.state import AgentInfo, AgentState, DeviceState, ServoState
 from twin.tools.mosquitto import free_port
 from twin.tools.rig import LocalRig
 from twin.viewer.config import ViewerConfig
 from twin.viewer.feed import describe_error, iter_sse_data
 from twin.viewer.fleet import KEY_PAGE_DOWN, KEY_PAGE_UP, LINK_UNREACHABLE, DevicePicker, FleetView
-from twin.viewer.window import ViewerError, check_display, overlay_lines
+from twin.viewer.window import (
+    ALARM_COLOURS,
+    JointTint,
+    ViewerError,
+    check_display,
+    overlay_lines,
+    servo_rows,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 TWIN = Path(sys.executable).with_name("twin")
@@ -130,6 +137,51 @@ def test_overlay_shows_figures_and_unreachable_agent():
     table = dict(zip(labels.split("\n"), values.split("\n"), strict=True))
     assert table["Agent"] == "agent unreachable (connection refused); retrying [3 s]"
     assert table["Device"] == "waiting for devices"
+
+
+def test_servo_overlay_lists_each_servo_with_its_worst_alarm():
+    hot = ServoState(
+        temperature_c=66.0,
+        load_percent=-31.3,
+        model_load_percent=30.9,
+        current_a=0.65,
+        alarm_severity="critical",
+        alarm_state="ACTIVE",
+    )
+    d = DeviceState(status=DeviceStatus.ONLINE, servos={"elbow_flex": hot, "gripper": ServoState()})
+    fleet = FleetView()
+    fleet.update(state_of(arm_001=d), 1.0)
+    info = fleet.info("arm-001")
+    assert info is not None
+    table = dict(servo_rows(info.servos))
+    assert servo_rows(None) == []
+    assert table["elbow_flex"] == "66 C  load -31 % (model 31 %)  0.65 A  [critical ACTIVE]"
+    assert table["gripper"] == "-  load -  -"
+
+
+def test_joint_tint_colours_the_moving_part_and_restores_it():
+    from twin.robot.model import RobotModel
+
+    robot = RobotModel.load()
+    model = robot.model
+    tint = JointTint(model, robot.body_ids)
+    body = robot.body_ids["lower_arm"]  # elbow_flex moves the lower arm
+    geoms = range(int(model.body_geomadr[body]), int(model.body_geomadr[body] + model.body_geomnum[body]))
+    before = [(int(model.geom_matid[g]), tuple(model.geom_rgba[g])) for g in geoms]
+    assert geoms
+    tint.apply({"elbow_flex": ServoState(alarm_severity="critical", alarm_state="ACTIVE")})
+    for g in geoms:
+        assert model.geom_matid[g] == -1
+        assert tuple(model.geom_rgba[g]) == pytest.approx(ALARM_COLOURS[("critical", "ACTIVE")])
+    other = robot.body_ids["wrist"]
+    assert tuple(model.geom_rgba[model.body_geomadr[other]]) != pytest.approx(
+        ALARM_COLOURS[("critical", "ACTIVE")]
+    )
+    tint.apply({"elbow_flex": ServoState(alarm_severity="warning", alarm_state="ACKNOWLEDGED")})
+    assert tuple(model.geom_rgba[geoms[0]]) == pytest.approx(ALARM_COLOURS[("warning", "ACKNOWLEDGED")])
+    tint.apply({"elbow_flex": ServoState()})  # back to NORMAL: the model's own look
+    assert [(int(model.geom_matid[g]), tuple(model.geom_rgba[g])) for g in geoms] == before
+    assert tint.tinted == {}
 
 
 def test_describe_error_and_config_validation():

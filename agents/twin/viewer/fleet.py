@@ -13,7 +13,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from twin.core.smoothing import PoseEstimator, make_estimator
-from twin.service.state import AgentState
+from twin.service.state import AgentState, ServoState
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +41,8 @@ class DeviceInfo:
     internal_p99_s: float | None = None
     last_timestamp_ms: int | None = None
     received_s: float = 0.0  # local monotonic time the snapshot arrived
+    # Per joint: the servo readings and its worst alarm (None until the agent reports diagnostics).
+    servos: dict[str, ServoState] | None = None
 
 
 class FleetView:
@@ -95,6 +97,7 @@ class FleetView:
                 info.latency_p99_s = d.edge_clock_latency_s.p99
                 info.internal_p99_s = d.internal_latency_s.p99
                 info.received_s = received_s
+                info.servos = d.servos
                 # timestamp_ms belongs to the same twin snapshot as joints_rad (last_timestamp_ms: health's).
                 if d.timestamp_ms is not None and d.joints_rad is not None:
                     info.last_timestamp_ms = d.timestamp_ms

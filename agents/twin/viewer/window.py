@@ -6,8 +6,9 @@ Three parts, each with one job:
 - `FleetView` (twin.viewer.fleet, thread-safe) keeps, per device, the latest health figures and a smoothing
   estimator (`twin.core.smoothing`) fed with (edge timestamp, angles, local receive time).
 - `TwinViewer` (here) owns the display loop, the MuJoCo way: at ~60 Hz it asks the estimator for the pose at
-  the current instant, writes qpos under `handle.lock()`, runs forward kinematics, updates the overlay text
-  and calls `handle.sync()`. It ends when the window closes or `stop()` is called (SIGTERM in `twin view`).
+  the current instant, writes qpos under `handle.lock()`, runs forward kinematics, colours each joint by its
+  worst servo alarm, updates the overlay text and calls `handle.sync()`. It ends when the window closes or
+  `stop()` is called (SIGTERM in `twin view`).
 
 docs/viewer.md describes the overlay, the keys and the smoothing.
 """
@@ -24,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from twin.core.smoothing import make_estimator
+from twin.service.state import ServoState
 from twin.viewer.config import ViewerConfig
 from twin.viewer.feed import AgentFeed
 from twin.viewer.fleet import LINK_CONNECTING, LINK_UNREACHABLE, DevicePicker, FleetView
@@ -80,6 +82,87 @@ def overlay_lines(
         rows.append(("Keys", "Page Up / Page Down: previous / next device"))
     rows.append(("View", f"{fps:.0f} fps, smoothing {config.smoothing}"))
     return "\n".join(r[0] for r in rows), "\n".join(r[1] for r in rows)
+
+
+def servo_rows(servos: Mapping[str, ServoState] | None) -> list[tuple[str, str]]:
+    """One overlay row per joint: temperature, load (and the model's), current, and its worst alarm."""
+    if not servos:
+        return []
+    rows = []
+    for joint, s in servos.items():
+        model = "" if s.model_load_percent is None else f" (model {s.model_load_percent:.0f} %)"
+        alarm = f"  [{s.alarm_severity} {s.alarm_state}]" if s.alarm_severity else ""
+        rows.append(
+            (
+                joint,
+                f"{_fmt(s.temperature_c, 'C', digits=0)}  load {_fmt(s.load_percent, '%', digits=0)}{model}  "
+                f"{_fmt(s.current_a, 'A', digits=2)}{alarm}",
+            )
+        )
+    return rows
+
+
+# The body each joint moves (so101 model): the part that takes the joint's alarm colour.
+JOINT_BODIES = {
+    "shoulder_pan": "shoulder",
+    "shoulder_lift": "upper_arm",
+    "elbow_flex": "lower_arm",
+    "wrist_flex": "wrist",
+    "wrist_roll": "gripper",
+    "gripper": "moving_jaw",
+}
+# RGBA per (severity, state): ACTIVE and LATCHED want a person, so full colour; ACKNOWLEDGED is paler.
+ALARM_COLOURS: dict[tuple[str, str], tuple[float, float, float, float]] = {
+    ("critical", "ACTIVE"): (0.9, 0.1, 0.1, 1.0),
+    ("critical", "LATCHED"): (0.9, 0.1, 0.1, 1.0),
+    ("critical", "ACKNOWLEDGED"): (0.9, 0.55, 0.55, 1.0),
+    ("warning", "ACTIVE"): (1.0, 0.65, 0.0, 1.0),
+    ("warning", "LATCHED"): (1.0, 0.65, 0.0, 1.0),
+    ("warning", "ACKNOWLEDGED"): (1.0, 0.85, 0.55, 1.0),
+}
+
+
+class JointTint:
+    """Colours each joint's moving part by its worst servo alarm, and restores the model's own look after.
+
+    A geom with a material draws the material's colour, so a tinted geom drops its material for as long as it
+    is tinted. Call `apply` under the viewer's lock.
+    """
+
+    def __init__(self, model: Any, body_ids: Mapping[str, int]) -> None:
+        self._model = model
+        self._geoms: dict[str, list[int]] = {}
+        for joint, body in JOINT_BODIES.items():
+            bid = body_ids.get(body)
+            if bid is None:
+                continue
+            start, count = int(model.body_geomadr[bid]), int(model.body_geomnum[bid])
+            self._geoms[joint] = list(range(start, start + count))
+        self._original = {
+            g: (int(model.geom_matid[g]), tuple(model.geom_rgba[g]))
+            for ids in self._geoms.values()
+            for g in ids
+        }
+        self.tinted: dict[str, tuple[float, float, float, float]] = {}
+
+    def apply(self, servos: Mapping[str, ServoState] | None) -> None:
+        wanted: dict[str, tuple[float, float, float, float]] = {}
+        for joint, s in (servos or {}).items():
+            colour = ALARM_COLOURS.get((s.alarm_severity or "", s.alarm_state or ""))
+            if colour is not None and joint in self._geoms:
+                wanted[joint] = colour
+        if wanted == self.tinted:
+            return
+        model = self._model
+        for joint, ids in self._geoms.items():
+            colour = wanted.get(joint)
+            for g in ids:
+                if colour is None:
+                    model.geom_matid[g], model.geom_rgba[g] = self._original[g]
+                else:
+                    model.geom_matid[g] = -1
+                    model.geom_rgba[g] = colour
+        self.tinted = wanted
 
 
 class ViewerError(RuntimeError):
@@ -165,6 +248,7 @@ class TwinViewer:
 
     def _loop(self, mujoco: Any, robot: Any, data: Any, handle: Any) -> None:
         model, addr, ranges = robot.model, robot.qpos_addr, robot.joint_ranges
+        tint = JointTint(model, robot.body_ids)
         period = 1.0 / self.config.fps
         next_frame = self._clock()
         fps = 0.0
@@ -174,7 +258,9 @@ class TwinViewer:
             devices = self.fleet.devices()
             device = self.picker.current(devices)
             pose = self.fleet.pose(device, now) if device is not None else None
+            info = self.fleet.info(device) if device is not None else None
             with handle.lock():
+                tint.apply(info.servos if info is not None else None)
                 if pose is not None:
                     for name, value in pose.items():
                         if name in addr:
@@ -186,9 +272,20 @@ class TwinViewer:
             labels, values = overlay_lines(
                 self.config, self.fleet, device=device, devices=devices, now=now, fps=fps
             )
-            handle.set_texts(
-                (mujoco.mjtFontScale.mjFONTSCALE_150, mujoco.mjtGridPos.mjGRID_TOPLEFT, labels, values)
-            )
+            font = mujoco.mjtFontScale.mjFONTSCALE_150
+            texts = [(font, mujoco.mjtGridPos.mjGRID_TOPLEFT, labels, values)]
+            servos = servo_rows(info.servos if info is not None else None)
+            if servos:
+                # Bottom right: clear of the status block and of the arm (framed left of centre).
+                texts.append(
+                    (
+                        font,
+                        mujoco.mjtGridPos.mjGRID_BOTTOMRIGHT,
+                        "\n".join(r[0] for r in servos),
+                        "\n".join(r[1] for r in servos),
+                    )
+                )
+            handle.set_texts(texts if len(texts) > 1 else texts[0])
             handle.sync()
             self.frames += 1
             fps_frames += 1
