@@ -281,3 +281,34 @@ def test_metrics_of_a_real_state_agree_with_it() -> None:
     assert metric(samples, "twin_internal_latency_p50_seconds", device="arm-001") == pytest.approx(
         arm.internal_latency_s.p50
     )
+
+
+@pytest.mark.parametrize(
+    ("address", "loopback"),
+    [
+        ("127.0.0.1", True),
+        ("127.0.0.2", True),
+        ("::1", True),
+        ("::ffff:127.0.0.1", True),  # IPv4 loopback through a dual-stack socket
+        ("10.0.0.5", False),
+        ("203.0.113.7", False),
+        ("::ffff:203.0.113.7", False),
+        ("fe80::1%eth0", False),
+        ("not-an-address", False),
+    ],
+)
+def test_only_loopback_clients_may_acknowledge_alarms(address: str, loopback: bool) -> None:
+    from twin.service.http_api import is_loopback_client
+
+    assert is_loopback_client(address) is loopback
+
+
+def test_a_source_without_alarms_has_no_alarm_endpoints(server) -> None:
+    srv, _ = server
+    status, _, body = get(srv.url + "/alarms")
+    assert status == 404 and json.loads(body)["error"] == "not_found"
+    req = urllib.request.Request(srv.url + "/alarms/arm-001/elbow_flex/overload/ack", data=b"", method="POST")
+    with pytest.raises(urllib.error.HTTPError) as info:
+        urllib.request.urlopen(req, timeout=5)
+    assert info.value.code == 404
+    assert json.loads(info.value.read())["detail"] == "this source has no alarms"

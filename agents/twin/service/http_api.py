@@ -139,7 +139,7 @@ class _Handler(BaseHTTPRequestHandler):
         if length:
             self.rfile.read(min(length, 65536))
         client = self.client_address[0]
-        if not ipaddress.ip_address(client.split("%", 1)[0]).is_loopback:
+        if not is_loopback_client(client):
             self._send_json(
                 HTTPStatus.FORBIDDEN,
                 {
@@ -198,6 +198,17 @@ class _Handler(BaseHTTPRequestHandler):
                 stop.wait(interval)
         finally:
             self.server.stream_clients_inc(-1)
+
+
+def is_loopback_client(address: str) -> bool:
+    """True for a loopback peer: 127.0.0.0/8, ::1, and IPv4 loopback seen through a dual-stack socket
+    (::ffff:127.0.0.1). Anything unparsable is not loopback."""
+    try:
+        ip = ipaddress.ip_address(address.split("%", 1)[0])
+    except ValueError:
+        return False
+    mapped = getattr(ip, "ipv4_mapped", None)
+    return (mapped or ip).is_loopback
 
 
 class _AgentHTTPServer(ThreadingHTTPServer):
