@@ -30,7 +30,6 @@ explains each and what to do when it fires.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from collections import Counter
 from collections.abc import Iterable, Mapping
@@ -79,6 +78,14 @@ UNITS: dict[AlarmKind, str] = {
     AlarmKind.OVERLOAD: "%",
     AlarmKind.MODEL_MISMATCH: "% points",
 }
+# The order evaluate() feeds values in: temperature (twice), current, |load|, model mismatch.
+_KINDS: tuple[AlarmKind, ...] = (
+    AlarmKind.OVER_TEMPERATURE,
+    AlarmKind.OVER_TEMPERATURE_CRITICAL,
+    AlarmKind.OVER_CURRENT,
+    AlarmKind.OVERLOAD,
+    AlarmKind.MODEL_MISMATCH,
+)
 # Poses further apart than this (edge clock) say nothing about the speed between them.
 MAX_POSE_GAP_S = 1.0
 # States in which the condition is present; LATCHED is remembered, not present.
@@ -314,7 +321,13 @@ class ServoAlarms:
         self._joint_health: dict[str, dict[str, JointHealth]] = {}
         self._last_pose: dict[str, tuple[int, dict[str, float]]] = {}
         self.counters = AlarmCounters()
-        # Rules resolved once per joint: evaluate runs for every applied message.
+        # Per device, per joint, one slot per kind (in _KINDS order): evaluate runs for every applied
+        # message, so it indexes lists instead of formatting ids.
+        self._slots: dict[str, dict[str, list[_Alarm | None]]] = {}
+        # Rules resolved once per joint.
+        self._rule_list = {
+            joint: [self.thresholds.rule(kind, joint) for kind in _KINDS] for joint in so101.JOINT_NAMES
+        }
         self._rules = {
             joint: {kind: self.thresholds.rule(kind, joint) for kind in AlarmKind}
             for joint in so101.JOINT_NAMES
@@ -343,25 +356,42 @@ class ServoAlarms:
         speeds = self._pose_speeds(device, angles_rad, timestamp_ms)
         events: list[AlarmEvent] = []
         health: dict[str, JointHealth] = {}
+        slots_of = self._slots.setdefault(device, {})
         for joint, diag in diagnostics.items():
-            rules = self._rules.get(joint)
+            rules = self._rule_list.get(joint)
             if rules is None:
                 continue
             temp = diag.temperature_c
             load = diag.load_percent
-            step = functools.partial(self._step, device, joint, rules=rules, now=now, events=events)
-            step(AlarmKind.OVER_TEMPERATURE, temp)
-            step(AlarmKind.OVER_TEMPERATURE_CRITICAL, temp)
-            step(AlarmKind.OVER_CURRENT, diag.current_a)
-            step(AlarmKind.OVERLOAD, None if load is None else abs(load))
             still = self._still(diag, speeds.get(joint))
             torque = holding_torques_nm.get(joint)
             model = None if torque is None else self._servo.load_percent(abs(torque), diag.voltage_v)
             mismatch = None
             if joint in self._mismatch_joints and still and load is not None and model is not None:
                 mismatch = abs(abs(load) - model)
-            step(AlarmKind.MODEL_MISMATCH, mismatch, model=model)
             health[joint] = JointHealth(model_load_percent=model, mismatch_percent=mismatch, still=still)
+            values = (temp, temp, diag.current_a, None if load is None else abs(load), mismatch)
+            slots = slots_of.get(joint)
+            if slots is None:
+                slots = slots_of[joint] = [None] * len(_KINDS)
+            for k, value in enumerate(values):
+                alarm = slots[k]
+                if alarm is None:
+                    if value is None:
+                        continue  # nothing known, nothing to remember
+                    alarm = slots[k] = _Alarm(device, joint, _KINDS[k], since=now)
+                    self._alarms[alarm.alarm_id] = alarm
+                rule = rules[k]
+                # The common case, a quiet servo: below the line, nothing pending, nothing to change.
+                if (
+                    value is not None
+                    and value < rule.raise_at
+                    and not alarm.present
+                    and alarm.raise_since is None
+                ):
+                    alarm.value = value
+                    continue
+                self._step(alarm, value, rule, now=now, events=events, model=model)
         self._joint_health[device] = health
         return events
 
@@ -399,23 +429,15 @@ class ServoAlarms:
 
     def _step(
         self,
-        device: str,
-        joint: str,
-        kind: AlarmKind,
+        alarm: _Alarm,
         value: float | None,
+        rule: Hysteresis,
         *,
-        rules: Mapping[AlarmKind, Hysteresis],
         now: float,
         events: list[AlarmEvent],
         model: float | None = None,
     ) -> None:
-        key = alarm_id(device, joint, kind)
-        alarm = self._alarms.get(key)
-        if alarm is None:
-            if value is None:
-                return  # nothing known, nothing to remember
-            alarm = self._alarms[key] = _Alarm(device, joint, kind, since=now)
-        rule = rules[kind]
+        kind = alarm.kind
         alarm.value = value
         if value is None or rule.clear_at < value < rule.raise_at:
             # Between the lines, or unknown: hold, and make a new excursion start its timer afresh.
