@@ -36,6 +36,9 @@ class AppliedSample:
     telemetry: Telemetry
     # What the twin applied: the decoded angles clamped to the model's joint ranges (radians, by joint name).
     joint_angles: Mapping[str, float]
+    # The message exactly as received. History keeps the raw readings the decoder does not carry (the
+    # velocity and load registers before sign decoding); empty when the producer did not pass it.
+    payload: bytes = b""
 
     @property
     def timestamp_ms(self) -> int:

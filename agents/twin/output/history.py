@@ -1,0 +1,891 @@
+"""Telemetry history: every applied and rejected message appended to Delta Lake tables (delta-rs).
+
+Two tables live under one base URI (a local directory or `s3://bucket/prefix`):
+  <uri>/telemetry  one row per applied message: device, edge and receive time, units, and per joint the raw
+                   readings exactly as sent plus the decoded position (docs/history.md lists the columns);
+  <uri>/rejected   one row per rejected message: receive time, topic, device if known, reason, detail and
+                   the payload's first bytes.
+Both are partitioned by the UTC date of the receive time (not by device: a fleet would make thousands of
+tiny partitions), sorted by device and time inside each file.
+
+Threads and memory. The agent's worker hands samples to a `QueuedSink` (bounded queue, its own thread, see
+twin.output.sinks). On that thread `HistoryWorker` only collects samples and turns each chunk of a few
+thousand into an Arrow table: the raw readings come from parsing the chunk's payloads in Arrow's C++ JSON
+reader, which does not hold the GIL, so the mirror's threads are barely touched. The Arrow tables go to
+`HistoryWriter`, whose committer thread appends them to Delta every `commit_every_s` seconds or
+`commit_every_rows` rows and runs compaction, checkpoints and vacuum on a schedule. Rows waiting for a
+commit are bounded (`max_buffer_rows`): when storage is down or the disk is full the writer logs a clear
+error, keeps retrying with backoff, and, if the outage outlasts the buffer, drops the oldest rows and counts
+them. Nothing here raises into the twin.
+
+Each commit carries a Delta app transaction (writer id, sequence number), so a commit whose outcome was lost
+(a timeout after S3 accepted it) is recognised on retry instead of being written twice. Several writers may
+append to one table: delta-rs commits with put-if-absent (a local rename, a conditional PUT on S3) and
+retries an append that lost the race.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import datetime as dt
+import io
+import json
+import logging
+import operator
+import os
+import socket
+import threading
+import time
+import uuid
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.json as pa_json
+
+from twin.output.sinks import AppliedSample, QueuedSink, RejectedSample
+from twin.robot import so101
+
+log = logging.getLogger(__name__)
+
+TELEMETRY_TABLE = "telemetry"
+REJECTED_TABLE = "rejected"
+PARTITION_COLUMN = "date"
+JOINTS: tuple[str, ...] = so101.JOINT_NAMES
+# Per-joint fields of an edge message, stored exactly as sent (float64 holds every tick count exactly).
+RAW_FIELDS: tuple[str, ...] = ("position", "velocity", "load", "temp", "current", "voltage")
+MS_PER_DAY = 86_400_000
+
+
+def raw_column(joint: str, name: str) -> str:
+    return f"{joint}_{name}_raw"
+
+
+def position_column(joint: str) -> str:
+    return f"{joint}_position_rad"
+
+
+def telemetry_schema() -> pa.Schema:
+    fields = [
+        pa.field(PARTITION_COLUMN, pa.date32(), nullable=False),
+        pa.field("received_at", pa.timestamp("ms", tz="UTC"), nullable=False),
+        pa.field("edge_time", pa.timestamp("ms", tz="UTC"), nullable=False),
+        pa.field("device_id", pa.string(), nullable=False),
+        pa.field("units", pa.string(), nullable=False),
+    ]
+    for joint in JOINTS:
+        fields.append(pa.field(position_column(joint), pa.float64()))
+        fields.extend(pa.field(raw_column(joint, name), pa.float64()) for name in RAW_FIELDS)
+    return pa.schema(fields)
+
+
+def rejected_schema() -> pa.Schema:
+    return pa.schema(
+        [
+            pa.field(PARTITION_COLUMN, pa.date32(), nullable=False),
+            pa.field("received_at", pa.timestamp("ms", tz="UTC"), nullable=False),
+            pa.field("topic", pa.string(), nullable=False),
+            pa.field("device_id", pa.string()),
+            pa.field("reason", pa.string(), nullable=False),
+            pa.field("detail", pa.string(), nullable=False),
+            pa.field("payload", pa.binary(), nullable=False),
+            pa.field("payload_bytes", pa.int64(), nullable=False),
+        ]
+    )
+
+
+TELEMETRY_SCHEMA = telemetry_schema()
+REJECTED_SCHEMA = rejected_schema()
+SCHEMAS: dict[str, pa.Schema] = {TELEMETRY_TABLE: TELEMETRY_SCHEMA, REJECTED_TABLE: REJECTED_SCHEMA}
+
+# What Arrow's JSON reader extracts from a payload; anything else in it (status, moving, padding) is ignored.
+_JOINT_STRUCT = pa.struct([pa.field(name, pa.float64()) for name in RAW_FIELDS])
+_PAYLOAD_SCHEMA = pa.schema([pa.field("joints", pa.struct([pa.field(j, _JOINT_STRUCT) for j in JOINTS]))])
+_PARSE_OPTIONS = pa_json.ParseOptions(explicit_schema=_PAYLOAD_SCHEMA, unexpected_field_behavior="ignore")
+_ANGLES = operator.itemgetter(*JOINTS)
+
+
+class HistoryError(ValueError):
+    """A history setting is invalid; the message names it and the fix."""
+
+
+@dataclass(frozen=True)
+class HistorySettings:
+    """Where and how history is written ([history] in the agent config; docs/history.md)."""
+
+    uri: str
+    # A commit every N seconds or M rows, whichever comes first.
+    commit_every_s: float = 10.0
+    commit_every_rows: int = 50_000
+    # Rows waiting for a commit (during an outage too) are bounded; beyond this the oldest are dropped.
+    max_buffer_rows: int = 200_000
+    # The sink's queue in front of the chunker: 3 s of a 1,000-arm fleet at 10 Hz, ~2 KB a queued sample.
+    queue_max: int = 30_000
+    chunk_rows: int = 4096
+    chunk_max_age_s: float = 1.0
+    # Compaction, checkpoint and vacuum run this often (0 = never, e.g. when another writer maintains).
+    maintain_every_s: float = 3600.0
+    # Files replaced by compaction stay this long for readers still using an older version.
+    vacuum_retention_hours: float = 24.0
+    target_file_mb: int = 128
+    retry_min_s: float = 1.0
+    retry_max_s: float = 60.0
+    # A rejected message is kept up to this many bytes (its full size is stored too).
+    rejected_payload_max_bytes: int = 4096
+    # Extra object-store options for delta-rs (endpoint, credentials, timeouts); AWS_* env vars also apply.
+    storage_options: Mapping[str, str] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not self.uri or not self.uri.strip():
+            raise HistoryError(
+                'history uri is empty: give a directory ("out/history") or "s3://bucket/history"'
+            )
+        if "://" in self.uri and not self.uri.startswith(("s3://", "s3a://", "file://")):
+            raise HistoryError(
+                f"history uri {self.uri!r} has an unsupported scheme; use a local path or s3://bucket/prefix"
+            )
+        for name in ("commit_every_s", "chunk_max_age_s", "retry_min_s", "retry_max_s"):
+            if not getattr(self, name) > 0:
+                raise HistoryError(f"history {name} = {getattr(self, name)!r} must be greater than 0")
+        if self.retry_max_s < self.retry_min_s:
+            raise HistoryError(
+                f"history retry_max_s = {self.retry_max_s} is below retry_min_s = {self.retry_min_s}"
+            )
+        for name in ("commit_every_rows", "queue_max", "chunk_rows", "target_file_mb"):
+            if getattr(self, name) < 1:
+                raise HistoryError(f"history {name} = {getattr(self, name)!r} must be at least 1")
+        if self.max_buffer_rows < self.commit_every_rows:
+            raise HistoryError(
+                f"history max_buffer_rows = {self.max_buffer_rows} must be at least commit_every_rows = "
+                f"{self.commit_every_rows}, or no commit could ever fill"
+            )
+        if self.maintain_every_s < 0 or self.vacuum_retention_hours < 0:
+            raise HistoryError("history maintain_every_s and vacuum_retention_hours must not be negative")
+        if self.rejected_payload_max_bytes < 0:
+            raise HistoryError("history rejected_payload_max_bytes must not be negative")
+
+    @property
+    def is_s3(self) -> bool:
+        return self.uri.startswith(("s3://", "s3a://"))
+
+    def table_uri(self, table: str) -> str:
+        return table_uri(self.uri, table)
+
+    def object_store_options(self) -> dict[str, str]:
+        return object_store_options(self.uri, self.storage_options)
+
+
+def table_uri(base: str, table: str) -> str:
+    """The URI of one history table under the base URI (a local path stays a path)."""
+    if "://" in base:
+        return f"{base.rstrip('/')}/{table}"
+    return str(Path(base) / table)
+
+
+def object_store_options(uri: str, extra: Mapping[str, str] | None = None) -> dict[str, str]:
+    """delta-rs storage options: bounded timeouts on S3 so an outage surfaces as an error in seconds, not
+    after object_store's default of ten retries over three minutes; `extra` wins."""
+    options: dict[str, str] = {}
+    if uri.startswith(("s3://", "s3a://")):
+        options.update(
+            {"timeout": "30s", "connect_timeout": "5s", "max_retries": "3", "retry_timeout": "20s"}
+        )
+    options.update({str(k): str(v) for k, v in (extra or {}).items()})
+    return options
+
+
+# --- rows ------------------------------------------------------------------------------------------------
+
+
+def _date32(ms: np.ndarray) -> pa.Array:
+    return pa.array((ms // MS_PER_DAY).astype(np.int32), pa.int32()).cast(pa.date32())
+
+
+def _timestamps(ms: np.ndarray) -> pa.Array:
+    return pa.array(ms, pa.int64()).cast(pa.timestamp("ms", tz="UTC"))
+
+
+def _one_line(payload: bytes) -> bytes:
+    # Valid JSON can hold a raw newline only as whitespace (never inside a string), so a space is equivalent
+    # and keeps one message per line for the line-delimited reader.
+    if b"\n" in payload or b"\r" in payload:
+        return payload.replace(b"\n", b" ").replace(b"\r", b" ")
+    return payload or b"{}"
+
+
+def _raw_columns_arrow(payloads: Sequence[bytes]) -> dict[str, pa.Array]:
+    blob = b"\n".join(_one_line(p) for p in payloads)
+    # One block for the whole chunk: the reader then keeps the rows in input order.
+    options = pa_json.ReadOptions(block_size=max(1 << 20, len(blob) + 1), use_threads=False)
+    parsed = pa_json.read_json(io.BytesIO(blob), read_options=options, parse_options=_PARSE_OPTIONS)
+    if parsed.num_rows != len(payloads):
+        raise ValueError(f"parsed {parsed.num_rows} rows from {len(payloads)} payloads")
+    joints = parsed.column("joints").combine_chunks()
+    out: dict[str, pa.Array] = {}
+    # StructArray.flatten() carries a null parent (a payload without "joints") down to every field.
+    for joint, entry in zip(JOINTS, joints.flatten(), strict=True):
+        for name, values in zip(RAW_FIELDS, entry.flatten(), strict=True):
+            out[raw_column(joint, name)] = values
+    return out
+
+
+def _raw_columns_python(payloads: Sequence[bytes]) -> dict[str, pa.Array]:
+    """The slow path for a chunk Arrow's reader refused (e.g. duplicate keys): the stdlib parser, which is
+    what the decoder used, so the values are the ones the twin saw."""
+    columns: dict[str, list[float | None]] = {raw_column(j, n): [] for j in JOINTS for n in RAW_FIELDS}
+    for payload in payloads:
+        try:
+            joints = json.loads(payload).get("joints", {}) if payload else {}
+        except (ValueError, AttributeError):
+            joints = {}
+        for joint in JOINTS:
+            entry = joints.get(joint) if isinstance(joints, dict) else None
+            for name in RAW_FIELDS:
+                value = entry.get(name) if isinstance(entry, dict) else None
+                ok = isinstance(value, int | float) and not isinstance(value, bool)
+                columns[raw_column(joint, name)].append(float(value) if ok else None)
+    return {name: pa.array(values, pa.float64()) for name, values in columns.items()}
+
+
+def telemetry_table(samples: Sequence[AppliedSample]) -> tuple[pa.Table, bool]:
+    """Arrow rows for applied samples (TELEMETRY_SCHEMA); the flag says the slow parse path was needed."""
+    n = len(samples)
+    received_ms = np.fromiter((s.received_wall_s for s in samples), np.float64, n)
+    received_ms = np.rint(received_ms * 1000.0).astype(np.int64)
+    edge_ms = np.fromiter((s.telemetry.timestamp_ms for s in samples), np.int64, n)
+    angles = np.array([_ANGLES(s.telemetry.angles_rad) for s in samples], dtype=np.float64).reshape(n, -1)
+    payloads = [s.payload for s in samples]
+    slow = False
+    try:
+        raw = _raw_columns_arrow(payloads)
+    except (pa.ArrowInvalid, ValueError):
+        raw = _raw_columns_python(payloads)
+        slow = True
+    columns: dict[str, Any] = {
+        PARTITION_COLUMN: _date32(received_ms),
+        "received_at": _timestamps(received_ms),
+        "edge_time": _timestamps(edge_ms),
+        "device_id": pa.array([s.device_id for s in samples], pa.string()),
+        "units": pa.array([s.telemetry.units.value for s in samples], pa.string()),
+    }
+    for i, joint in enumerate(JOINTS):
+        columns[position_column(joint)] = pa.array(angles[:, i], pa.float64())
+        for name in RAW_FIELDS:
+            columns[raw_column(joint, name)] = raw[raw_column(joint, name)]
+    return pa.table(columns, schema=TELEMETRY_SCHEMA), slow
+
+
+def rejected_table(samples: Sequence[RejectedSample], payload_max_bytes: int) -> pa.Table:
+    received_ms = np.rint(
+        np.fromiter((s.received_wall_s for s in samples), np.float64, len(samples)) * 1000.0
+    ).astype(np.int64)
+    return pa.table(
+        {
+            PARTITION_COLUMN: _date32(received_ms),
+            "received_at": _timestamps(received_ms),
+            "topic": pa.array([s.topic for s in samples], pa.string()),
+            "device_id": pa.array([s.device_id for s in samples], pa.string()),
+            "reason": pa.array([s.reason for s in samples], pa.string()),
+            "detail": pa.array([s.detail for s in samples], pa.string()),
+            "payload": pa.array([bytes(s.payload[:payload_max_bytes]) for s in samples], pa.binary()),
+            "payload_bytes": pa.array([len(s.payload) for s in samples], pa.int64()),
+        },
+        schema=REJECTED_SCHEMA,
+    )
+
+
+# --- the committer -------------------------------------------------------------------------------------
+
+
+@dataclass
+class TableStats:
+    rows_committed: int = 0
+    commits: int = 0
+    commit_failures: int = 0
+    rows_dropped: int = 0
+    rows_buffered: int = 0
+    duplicate_commits_skipped: int = 0
+    last_commit_version: int | None = None
+    last_error: str = ""
+
+
+@dataclass
+class WriterStats:
+    tables: dict[str, TableStats] = field(default_factory=dict)
+    maintenance_runs: int = 0
+    maintenance_failures: int = 0
+    maintenance_conflicts: int = 0
+    slow_parses: int = 0
+    conversion_failures: int = 0
+    rows_lost_in_conversion: int = 0
+    storage_ok: bool = True
+    last_error: str = ""
+
+    def as_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+@dataclass
+class _Pending:
+    table: pa.Table
+    since: float  # monotonic time the rows arrived
+    # Set once a commit of exactly these rows was attempted: a retry reuses it, so if the first attempt did
+    # land (its answer lost), the table's app-transaction version shows it and the rows are not written twice.
+    seq: int | None = None
+
+
+def _writer_properties(level: int) -> Any:
+    from deltalake import ColumnProperties, WriterProperties  # noqa: PLC0415 - heavy, only when writing
+
+    # Timestamps step by ~100 ms: delta encoding stores them in about a byte a row. Positions follow smooth
+    # motion, which plain floats let zstd match; the diagnostics take few distinct values (dictionary).
+    columns = {
+        name: ColumnProperties(encoding="DELTA_BINARY_PACKED", dictionary_enabled=False)
+        for name in ("received_at", "edge_time")
+    }
+    for joint in JOINTS:
+        columns[raw_column(joint, "position")] = ColumnProperties(
+            encoding="BYTE_STREAM_SPLIT", dictionary_enabled=False
+        )
+        columns[position_column(joint)] = ColumnProperties(encoding="PLAIN", dictionary_enabled=False)
+    return WriterProperties(compression="ZSTD", compression_level=level, column_properties=columns)
+
+
+# zstd 3 for the frequent small commits (cheap), a stronger level when compaction rewrites them once.
+COMMIT_ZSTD_LEVEL = 3
+COMPACT_ZSTD_LEVEL = 12
+TABLE_CONFIGURATION = {
+    # A checkpoint every 100 commits keeps opening the table to one Parquet read plus a few JSON files.
+    "delta.checkpointInterval": "100",
+    "delta.logRetentionDuration": "interval 30 days",
+    # Each agent run leaves one app-transaction id; forget them after a week.
+    "delta.setTransactionRetentionDuration": "interval 7 days",
+}
+
+
+class HistoryWriter:
+    """Appends Arrow tables to the history tables from a committer thread of its own.
+
+    `add()` never blocks on storage: it queues the rows (bounded) and returns. `flush()` asks for a commit
+    now and waits for it; `close()` commits what is left (bounded by its timeout) and stops the thread.
+    """
+
+    def __init__(
+        self,
+        settings: HistorySettings,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        wall_clock: Callable[[], float] = time.time,
+        writer_id: str | None = None,
+    ) -> None:
+        self.settings = settings
+        self._clock = clock
+        self._wall = wall_clock
+        self.writer_id = writer_id or (
+            f"so101-twin-{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        )
+        self._options = settings.object_store_options()
+        self._cond = threading.Condition(threading.Lock())
+        self._pending: dict[str, collections.deque[_Pending]] = {t: collections.deque() for t in SCHEMAS}
+        # Rejected rows carry payload bytes: a tenth of the row budget keeps a flood of them small.
+        self._limits = {
+            TELEMETRY_TABLE: settings.max_buffer_rows,
+            REJECTED_TABLE: max(1, settings.max_buffer_rows // 10),
+        }
+        self._inflight_rows = dict.fromkeys(SCHEMAS, 0)
+        self._seq = 0
+        self._stats = WriterStats(tables={t: TableStats() for t in SCHEMAS})
+        self._flush_requested = False
+        self._flushes_done = 0
+        self._closing = False
+        self._close_deadline = 0.0
+        self._retry_at = 0.0
+        self._backoff = settings.retry_min_s
+        self._next_maintenance = (
+            clock() + settings.maintain_every_s if settings.maintain_every_s > 0 else float("inf")
+        )
+        self._tables: dict[str, Any] = {}
+        self._error_logged_at = -1e9
+        self._thread = threading.Thread(target=self._run, name="history-commit", daemon=True)
+        self._started = False
+        if not settings.is_s3:
+            path = settings.uri.removeprefix("file://")
+            try:
+                Path(path).mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise HistoryError(
+                    f"history uri {settings.uri!r} cannot be created ({exc}); give a writable directory"
+                ) from exc
+
+    # -- producer side (the sink thread) ---------------------------------------------------------------
+
+    def start(self) -> HistoryWriter:
+        if not self._started:
+            self._started = True
+            self._thread.start()
+        return self
+
+    def add(self, table: str, rows: pa.Table) -> None:
+        """Queue rows for `table` (TELEMETRY_TABLE or REJECTED_TABLE); drops the oldest beyond the bound."""
+        if rows.num_rows == 0:
+            return
+        with self._cond:
+            queue = self._pending[table]
+            stats = self._stats.tables[table]
+            queue.append(_Pending(rows, self._clock()))
+            stats.rows_buffered += rows.num_rows
+            dropped = 0
+            while stats.rows_buffered + self._inflight_rows[table] > self._limits[table] and len(queue) > 1:
+                oldest = queue.popleft()
+                stats.rows_buffered -= oldest.table.num_rows
+                dropped += oldest.table.num_rows
+            stats.rows_dropped += dropped
+            self._cond.notify()
+        if dropped:
+            log.error(
+                "history: %d %s rows dropped: the write buffer is full (max_buffer_rows = %d) because "
+                "commits to %s keep failing (%s); fix the storage or raise max_buffer_rows",
+                dropped,
+                table,
+                self._limits[table],
+                self.settings.uri,
+                self._stats.last_error or "no error yet",
+                extra={"history_dropped_rows": dropped, "table": table},
+            )
+
+    def flush(self, timeout: float = 30.0) -> bool:
+        """Commit everything queued now; True when a commit round finished without error in time."""
+        with self._cond:
+            target = self._flushes_done + 1
+            self._flush_requested = True
+            self._retry_at = 0.0
+            self._cond.notify()
+            deadline = time.monotonic() + timeout
+            while self._flushes_done < target:
+                left = deadline - time.monotonic()
+                if left <= 0 or not self._thread.is_alive():
+                    return False
+                self._cond.wait(left)
+            return self._stats.storage_ok
+
+    def close(self, timeout: float = 30.0) -> None:
+        """Commit what is queued (retrying until `timeout`), then stop. Rows still unwritten are logged."""
+        with self._cond:
+            self._closing = True
+            self._close_deadline = time.monotonic() + timeout
+            self._retry_at = 0.0
+            self._cond.notify()
+        if self._started:
+            self._thread.join(timeout + 5.0)
+        left = self.buffered_rows()
+        if left:
+            log.error(
+                "history: %d rows were not written to %s before shutdown (%s)",
+                left,
+                self.settings.uri,
+                self._stats.last_error or "the committer did not finish in time",
+                extra={"history_unwritten_rows": left},
+            )
+
+    def buffered_rows(self) -> int:
+        with self._cond:
+            buffered = sum(s.rows_buffered for s in self._stats.tables.values())
+            return buffered + sum(self._inflight_rows.values())
+
+    def stats(self) -> WriterStats:
+        with self._cond:
+            return dataclasses.replace(
+                self._stats, tables={k: dataclasses.replace(v) for k, v in self._stats.tables.items()}
+            )
+
+    def count_conversion(self, *, slow: bool = False, lost_rows: int = 0, error: str = "") -> None:
+        with self._cond:
+            self._stats.slow_parses += int(slow)
+            if lost_rows:
+                self._stats.conversion_failures += 1
+                self._stats.rows_lost_in_conversion += lost_rows
+                self._stats.last_error = error
+
+    # -- the committer thread ------------------------------------------------------------------------
+
+    def _due(self, now: float) -> bool:
+        if self._closing or self._flush_requested:
+            return True
+        if now < self._retry_at:
+            return False
+        for table, queue in self._pending.items():
+            if not queue:
+                continue
+            if self._stats.tables[table].rows_buffered >= self.settings.commit_every_rows:
+                return True
+            if now - queue[0].since >= self.settings.commit_every_s:
+                return True
+        return False
+
+    def _wait_s(self, now: float) -> float:
+        waits = [self._next_maintenance - now]
+        if self._retry_at > now:
+            waits.append(self._retry_at - now)
+        for queue in self._pending.values():
+            if queue:
+                waits.append(queue[0].since + self.settings.commit_every_s - now)
+        return min(max(0.01, min(waits)), 1.0)
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while True:
+                    now = self._clock()
+                    if self._due(now) or now >= self._next_maintenance:
+                        break
+                    self._cond.wait(self._wait_s(now))
+                closing = self._closing
+                flush = self._flush_requested
+                self._flush_requested = False
+                batches: dict[str, list[_Pending]] = {}
+                if closing or flush or now >= self._retry_at:
+                    for table, queue in self._pending.items():
+                        if queue:
+                            batches[table] = list(queue)
+                            queue.clear()
+                            rows = sum(p.table.num_rows for p in batches[table])
+                            self._stats.tables[table].rows_buffered -= rows
+                            self._inflight_rows[table] += rows
+            ok = True
+            for table, items in batches.items():
+                ok = self._commit_round(table, items) and ok
+            with self._cond:
+                if batches:
+                    self._stats.storage_ok = ok
+                if flush or closing:
+                    self._flushes_done += 1
+                    self._cond.notify_all()
+                left = sum(s.rows_buffered for s in self._stats.tables.values())
+                if closing and (left == 0 or time.monotonic() >= self._close_deadline):
+                    return
+                if closing and not ok:
+                    # Storage is down at shutdown: retry until the close deadline, a second apart.
+                    self._cond.wait(min(1.0, max(0.0, self._close_deadline - time.monotonic())))
+                    if time.monotonic() >= self._close_deadline:
+                        return
+            if self._clock() >= self._next_maintenance and not closing:
+                self._maintain()
+
+    def _commit_round(self, table: str, items: list[_Pending]) -> bool:
+        """Commit a batch attempted before (alone, with its sequence number), then everything else at once."""
+        groups = [items[:1], items[1:]] if items[0].seq is not None else [items]
+        groups = [g for g in groups if g]
+        for i, group in enumerate(groups):
+            if not self._commit(table, group, later=[p for g in groups[i + 1 :] for p in g]):
+                return False
+        return True
+
+    def _commit(self, table: str, group: list[_Pending], *, later: list[_Pending]) -> bool:
+        rows = group[0].table if len(group) == 1 else pa.concat_tables([p.table for p in group])
+        n = rows.num_rows
+        seq = group[0].seq
+        if seq is None:
+            self._seq += 1
+            seq = self._seq
+        try:
+            version = self._append(table, rows, seq)
+        except Exception as exc:
+            self._failed(table, _Pending(rows, group[0].since, seq), later, exc)
+            return False
+        with self._cond:
+            stats = self._stats.tables[table]
+            self._inflight_rows[table] -= n
+            stats.rows_committed += n
+            stats.commits += 1
+            if version is None:
+                stats.duplicate_commits_skipped += 1
+            else:
+                stats.last_commit_version = version
+            if not self._stats.storage_ok:
+                log.warning("history: writing to %s works again", self.settings.uri)
+            self._stats.storage_ok = True
+            self._backoff = self.settings.retry_min_s
+        return True
+
+    def _append(self, table: str, rows: pa.Table, seq: int) -> int | None:
+        """One Delta append carrying (writer_id, seq); returns the new version, or None if `seq` was already
+        committed by an earlier attempt whose answer was lost."""
+        from deltalake import CommitProperties, DeltaTable, Transaction, write_deltalake  # noqa: PLC0415
+
+        uri = self.settings.table_uri(table)
+        dtable = self._tables.get(table)
+        if dtable is None:
+            try:
+                dtable = DeltaTable(uri, storage_options=self._options)
+            except Exception as exc:
+                if type(exc).__name__ != "TableNotFoundError":
+                    raise
+                dtable = None
+            if dtable is not None:
+                self._tables[table] = dtable
+        if dtable is not None:
+            dtable.update_incremental()
+            done = dtable.transaction_version(self.writer_id)
+            if done is not None and done >= seq:
+                return None
+        if table == TELEMETRY_TABLE:
+            rows = rows.sort_by([("device_id", "ascending"), ("received_at", "ascending")])
+        else:
+            rows = rows.sort_by([("received_at", "ascending")])
+        write_deltalake(
+            dtable if dtable is not None else uri,
+            rows,
+            mode="append",
+            partition_by=[PARTITION_COLUMN],
+            schema_mode="merge",
+            configuration=TABLE_CONFIGURATION if dtable is None else None,
+            storage_options=self._options if dtable is None else None,
+            writer_properties=_writer_properties(COMMIT_ZSTD_LEVEL),
+            target_file_size=self.settings.target_file_mb << 20,
+            commit_properties=CommitProperties(
+                app_transactions=[Transaction(self.writer_id, seq)], max_commit_retries=50
+            ),
+        )
+        if dtable is None:
+            dtable = DeltaTable(uri, storage_options=self._options)
+            self._tables[table] = dtable
+        return int(dtable.version())
+
+    def _failed(self, table: str, failed: _Pending, later: list[_Pending], exc: BaseException) -> None:
+        message = _describe_storage_error(self.settings.uri, exc)
+        # The table handle may describe a state the failed commit left half-known; reload it next time.
+        self._tables.pop(table, None)
+        now = self._clock()
+        n = failed.table.num_rows + sum(p.table.num_rows for p in later)
+        with self._cond:
+            stats = self._stats.tables[table]
+            stats.commit_failures += 1
+            stats.last_error = message
+            self._stats.last_error = message
+            self._stats.storage_ok = False
+            self._inflight_rows[table] -= n
+            # Back to the front of the queue, oldest first, still within the bound.
+            queue = self._pending[table]
+            for item in reversed([failed, *later]):
+                queue.appendleft(item)
+            stats.rows_buffered += n
+            dropped = 0
+            while stats.rows_buffered > self._limits[table] and len(queue) > 1:
+                oldest = queue.popleft()
+                stats.rows_buffered -= oldest.table.num_rows
+                dropped += oldest.table.num_rows
+            stats.rows_dropped += dropped
+            self._retry_at = now + self._backoff
+            retry_in = self._backoff
+            self._backoff = min(self._backoff * 2.0, self.settings.retry_max_s)
+            buffered = stats.rows_buffered
+            failures = stats.commit_failures
+        # One line per backoff step at most once every 10 s: an outage must be visible, not a flood.
+        if now - self._error_logged_at >= 10.0 or dropped:
+            self._error_logged_at = now
+            log.error(
+                "history: %s; %d %s rows kept in memory (bound %d), retrying in %.0f s",
+                message,
+                buffered,
+                table,
+                self._limits[table],
+                retry_in,
+                extra={"table": table, "commit_failures": failures, "history_dropped_rows": dropped},
+            )
+
+    def _maintain(self) -> None:
+        """Compact today's and yesterday's partitions, checkpoint, vacuum replaced files, trim the log."""
+        from deltalake import DeltaTable  # noqa: PLC0415
+        from deltalake.exceptions import CommitFailedError  # noqa: PLC0415
+
+        self._next_maintenance = self._clock() + self.settings.maintain_every_s
+        today = dt.datetime.fromtimestamp(self._wall(), dt.UTC).date()
+        days = [today - dt.timedelta(days=1), today]
+        for table in SCHEMAS:
+            uri = self.settings.table_uri(table)
+            try:
+                dtable = DeltaTable(uri, storage_options=self._options)
+            except Exception as exc:
+                if type(exc).__name__ == "TableNotFoundError":
+                    continue
+                self._maintenance_failed(table, exc)
+                continue
+            try:
+                existing = {str(p.get(PARTITION_COLUMN)) for p in dtable.partitions()}
+                for day in days:
+                    if day.isoformat() not in existing:
+                        continue
+                    metrics = dtable.optimize.compact(
+                        partition_filters=[(PARTITION_COLUMN, "=", day.isoformat())],
+                        target_size=self.settings.target_file_mb << 20,
+                        writer_properties=_writer_properties(COMPACT_ZSTD_LEVEL),
+                    )
+                    log.info(
+                        "history: compacted %s/%s",
+                        table,
+                        day.isoformat(),
+                        extra={
+                            "files_added": metrics.get("numFilesAdded"),
+                            "files_removed": metrics.get("numFilesRemoved"),
+                        },
+                    )
+                dtable.create_checkpoint()
+                dtable.vacuum(
+                    retention_hours=int(self.settings.vacuum_retention_hours),
+                    enforce_retention_duration=False,
+                    dry_run=False,
+                )
+                dtable.cleanup_metadata()
+                with self._cond:
+                    self._stats.maintenance_runs += 1
+            except CommitFailedError as exc:
+                # Another writer changed the same files first (its compaction, say): nothing is lost, the
+                # next run tries again.
+                with self._cond:
+                    self._stats.maintenance_conflicts += 1
+                log.warning(
+                    "history: maintenance of %s lost a commit race (%s); retried next time", table, exc
+                )
+            except Exception as exc:
+                self._maintenance_failed(table, exc)
+        self._tables.clear()  # the next append reloads the table state maintenance changed
+
+    def maintain_now(self) -> None:
+        """Run maintenance on the caller's thread (tests, `twin history compact`); not concurrent-safe with
+        the committer's own maintenance, which this does not replace."""
+        self._maintain()
+
+    def _maintenance_failed(self, table: str, exc: BaseException) -> None:
+        message = _describe_storage_error(self.settings.uri, exc)
+        with self._cond:
+            self._stats.maintenance_failures += 1
+            self._stats.last_error = message
+        log.error("history: maintenance of %s failed: %s; retried at the next interval", table, message)
+
+
+def _describe_storage_error(uri: str, exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    if len(text) > 400:
+        text = text[:397] + "..."
+    lowered = text.lower()
+    if "no space left" in lowered or "enospc" in lowered or "file too large" in lowered:
+        hint = "the disk is full: free space or point [history] uri at a larger volume"
+    elif "permission denied" in lowered or "accessdenied" in lowered or "forbidden" in lowered:
+        hint = "access denied: check the directory's permissions or the role's s3:PutObject on the prefix"
+    elif "nosuchbucket" in lowered:
+        hint = "the bucket does not exist: check [history] uri"
+    elif any(w in lowered for w in ("connect", "timed out", "dns", "error sending request", "unreachable")):
+        hint = "storage is unreachable: check the network or the S3 endpoint"
+    else:
+        hint = "see the error above"
+    return f"cannot write history to {uri} ({type(exc).__name__}: {text}); {hint}"
+
+
+# --- the sink ------------------------------------------------------------------------------------------
+
+
+class HistoryWorker:
+    """The `SinkWorker` of the history sink: chunks samples into Arrow tables for the `HistoryWriter`."""
+
+    def __init__(self, writer: HistoryWriter, *, clock: Callable[[], float] = time.monotonic) -> None:
+        self.writer = writer
+        self._settings = writer.settings
+        self._clock = clock
+        self._applied: list[AppliedSample] = []
+        self._rejected: list[RejectedSample] = []
+        self._applied_since = 0.0
+        self._rejected_since = 0.0
+        self.received_applied = 0
+        self.received_rejected = 0
+
+    def handle_applied(self, sample: AppliedSample) -> None:
+        if not self._applied:
+            self._applied_since = self._clock()
+        self._applied.append(sample)
+        self.received_applied += 1
+        if len(self._applied) >= self._settings.chunk_rows or (
+            self._clock() - self._applied_since >= self._settings.chunk_max_age_s
+        ):
+            self._convert_applied()
+
+    def handle_rejected(self, sample: RejectedSample) -> None:
+        if not self._rejected:
+            self._rejected_since = self._clock()
+        self._rejected.append(sample)
+        self.received_rejected += 1
+        if len(self._rejected) >= self._settings.chunk_rows or (
+            self._clock() - self._rejected_since >= self._settings.chunk_max_age_s
+        ):
+            self._convert_rejected()
+
+    def idle(self) -> None:
+        now = self._clock()
+        if self._applied and now - self._applied_since >= self._settings.chunk_max_age_s:
+            self._convert_applied()
+        if self._rejected and now - self._rejected_since >= self._settings.chunk_max_age_s:
+            self._convert_rejected()
+
+    def flush(self, timeout: float = 30.0) -> bool:
+        """Convert what is collected and commit it now (called on the sink's thread, or when it is idle)."""
+        self._convert_applied()
+        self._convert_rejected()
+        return self.writer.flush(timeout)
+
+    def close(self) -> None:
+        self._convert_applied()
+        self._convert_rejected()
+        self.writer.close()
+
+    def _convert_applied(self) -> None:
+        samples, self._applied = self._applied, []
+        if not samples:
+            return
+        try:
+            rows, slow = telemetry_table(samples)
+        except Exception as exc:
+            self.writer.count_conversion(lost_rows=len(samples), error=f"{type(exc).__name__}: {exc}")
+            raise
+        if slow:
+            self.writer.count_conversion(slow=True)
+            log.warning("history: a chunk of %d payloads needed the slow JSON path", len(samples))
+        self.writer.add(TELEMETRY_TABLE, rows)
+
+    def _convert_rejected(self) -> None:
+        samples, self._rejected = self._rejected, []
+        if not samples:
+            return
+        try:
+            rows = rejected_table(samples, self._settings.rejected_payload_max_bytes)
+        except Exception as exc:
+            self.writer.count_conversion(lost_rows=len(samples), error=f"{type(exc).__name__}: {exc}")
+            raise
+        self.writer.add(REJECTED_TABLE, rows)
+
+
+class HistorySink(QueuedSink):
+    """The history sink the agent adds next to its other sinks; `history_stats()` feeds /state."""
+
+    def __init__(self, settings: HistorySettings, *, writer_id: str | None = None) -> None:
+        self.writer = HistoryWriter(settings, writer_id=writer_id).start()
+        self.worker = HistoryWorker(self.writer)
+        super().__init__("history", self.worker, max_pending=settings.queue_max, idle_s=0.25)
+
+    def close(self, timeout: float = 30.0) -> None:
+        # The queue drains first; the worker's close commits the rest (the writer bounds its own wait).
+        super().close(timeout)
+
+    def history_stats(self) -> dict[str, Any]:
+        sink = self.stats()
+        writer = self.writer.stats().as_dict()
+        return {
+            "uri": self.writer.settings.uri,
+            "received": self.worker.received_applied + self.worker.received_rejected,
+            "queue_dropped": sink.dropped,
+            "queue_pending": sink.pending,
+            "sink_errors": sink.errors,
+            **writer,
+        }
