@@ -1,0 +1,370 @@
+"""Reading telemetry history back (polars `scan_delta`): what is there, one device's window, plots, exports.
+
+The table stores what the edge sent (raw readings) and the decoded joint positions; the decoded diagnostics
+(velocity in rad/s, load in %, temperature in C, current in mA, voltage in V) are exact functions of a raw
+reading and the message's units, so they are computed here on read (`with_decoded`) instead of being stored
+twice: storing them doubled a day's size (docs/history.md, "Schema"). tests/test_history.py checks that these
+expressions give what `twin.core.telemetry` decodes from the same messages.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import logging
+import math
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import polars as pl
+
+from twin.core import telemetry as tm
+from twin.output.history import (
+    JOINTS,
+    PARTITION_COLUMN,
+    REJECTED_TABLE,
+    TELEMETRY_TABLE,
+    object_store_options,
+    position_column,
+    raw_column,
+    table_uri,
+)
+
+log = logging.getLogger(__name__)
+
+# A device's rows belong to one session while consecutive messages are at most this far apart: the agent's
+# default offline_after_s, after which a silent arm counts as gone.
+DEFAULT_SESSION_GAP_S = 10.0
+# Plots draw at most this many points per line; longer windows are averaged into equal time buckets.
+PLOT_MAX_POINTS = 4000
+EXPORT_FORMATS = ("parquet", "csv")
+
+_RELATIVE = re.compile(r"^-?(\d+(?:\.\d+)?)\s*(s|m|h|d)$")
+_UNIT_S = {"s": 1.0, "m": 60.0, "h": 3600.0, "d": 86400.0}
+
+
+class HistoryReadError(ValueError):
+    """History cannot be read as asked; the message says what to change."""
+
+
+def parse_time(text: str, *, now: dt.datetime | None = None) -> dt.datetime:
+    """A point in time from the command line: ISO 8601 (no zone = UTC), epoch seconds, or `-2h` / `90m`
+    (that long before now)."""
+    value = text.strip()
+    now = now or dt.datetime.now(dt.UTC)
+    match = _RELATIVE.match(value)
+    if match:
+        return now - dt.timedelta(seconds=float(match.group(1)) * _UNIT_S[match.group(2)])
+    try:
+        seconds = float(value)
+    except ValueError:
+        pass
+    else:
+        if math.isfinite(seconds):
+            return dt.datetime.fromtimestamp(seconds, dt.UTC)
+    try:
+        parsed = dt.datetime.fromisoformat(value.replace("Z", "+00:00"))
+    except ValueError:
+        raise HistoryReadError(
+            f"time {text!r} is not understood; use ISO 8601 (2026-11-21T14:00:00Z, no zone means UTC), "
+            "epoch seconds, or a span before now such as -2h, 30m, 1d"
+        ) from None
+    return parsed.replace(tzinfo=dt.UTC) if parsed.tzinfo is None else parsed.astimezone(dt.UTC)
+
+
+def with_decoded(frame: pl.LazyFrame) -> pl.LazyFrame:
+    """Adds the decoded diagnostics next to the raw ones, by the decoder's rules (twin.core.telemetry)."""
+    ticks = pl.col("units") == tm.Units.TICKS.value
+    exprs = []
+    for joint in JOINTS:
+        velocity = pl.col(raw_column(joint, "velocity"))
+        load = pl.col(raw_column(joint, "load"))
+        # Raw ticks carry the velocity register's sign in bit 15 (decode_velocity); LeRobot floats are signed.
+        steps = (
+            pl.when(ticks & velocity.is_between(32768, 65535)).then(-(velocity - 32768)).otherwise(velocity)
+        )
+        # decode_load applies to both variants: old LeRobot passes the bit-10 sign through undecoded.
+        load_units = pl.when(load.is_between(1024, 2047)).then(-(load - 1024)).otherwise(load)
+        exprs += [
+            (steps * tm.RAD_PER_STEP_S).alias(f"{joint}_velocity_rad_s"),
+            (load_units * tm.LOAD_PERCENT_PER_UNIT).alias(f"{joint}_load_percent"),
+            pl.col(raw_column(joint, "temp")).alias(f"{joint}_temperature_c"),
+            (pl.col(raw_column(joint, "current")) * tm.CURRENT_MA_PER_UNIT).alias(f"{joint}_current_ma"),
+            (pl.col(raw_column(joint, "voltage")) * tm.VOLTAGE_V_PER_UNIT).alias(f"{joint}_voltage_v"),
+        ]
+    return frame.with_columns(exprs)
+
+
+@dataclass
+class Session:
+    start: dt.datetime
+    end: dt.datetime
+    rows: int
+
+    @property
+    def seconds(self) -> float:
+        return (self.end - self.start).total_seconds()
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "start": _iso(self.start),
+            "end": _iso(self.end),
+            "seconds": round(self.seconds, 3),
+            "rows": self.rows,
+            "rate_hz": round(self.rows / self.seconds, 2) if self.seconds > 0 else None,
+        }
+
+
+@dataclass
+class DeviceSummary:
+    device_id: str
+    rows: int
+    first: dt.datetime
+    last: dt.datetime
+    units: list[str]
+    sessions: list[Session] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "device_id": self.device_id,
+            "rows": self.rows,
+            "first": _iso(self.first),
+            "last": _iso(self.last),
+            "units": self.units,
+            "sessions": [s.as_dict() for s in self.sessions],
+        }
+
+
+def _iso(value: dt.datetime) -> str:
+    return value.astimezone(dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
+class HistoryReader:
+    """Reads the history tables under one base URI (a directory or s3://bucket/prefix)."""
+
+    def __init__(self, uri: str, storage_options: Mapping[str, str] | None = None) -> None:
+        self.uri = uri
+        self._options = object_store_options(uri, storage_options)
+
+    def _scan(self, table: str) -> pl.LazyFrame:
+        location = table_uri(self.uri, table)
+        try:
+            return pl.scan_delta(location, storage_options=self._polars_options() or None)
+        except Exception as exc:
+            if "not found" in str(exc).lower() or "no such file" in str(exc).lower():
+                raise HistoryReadError(
+                    f"no history table at {location}: nothing was recorded there yet (check --history/uri, "
+                    "and that the agent ran with history on)"
+                ) from exc
+            raise HistoryReadError(f"cannot read history at {location}: {exc}") from exc
+
+    def _polars_options(self) -> dict[str, str]:
+        # polars parses retry settings itself and refuses object_store's string forms for them.
+        return {k: v for k, v in self._options.items() if k not in ("max_retries", "retry_timeout")}
+
+    def scan(self) -> pl.LazyFrame:
+        return self._scan(TELEMETRY_TABLE)
+
+    def scan_rejected(self) -> pl.LazyFrame:
+        return self._scan(REJECTED_TABLE)
+
+    def window(
+        self,
+        device: str | None = None,
+        since: dt.datetime | None = None,
+        until: dt.datetime | None = None,
+        *,
+        decoded: bool = True,
+    ) -> pl.LazyFrame:
+        """One device's (or every device's) rows in [since, until), oldest first. The date filter lets
+        delta-rs skip whole partitions; the device and time filters reach the Parquet statistics."""
+        frame = self.scan()
+        if device is not None:
+            frame = frame.filter(pl.col("device_id") == device)
+        if since is not None:
+            frame = frame.filter(
+                (pl.col(PARTITION_COLUMN) >= since.astimezone(dt.UTC).date())
+                & (pl.col("received_at") >= since)
+            )
+        if until is not None:
+            frame = frame.filter(
+                (pl.col(PARTITION_COLUMN) <= until.astimezone(dt.UTC).date())
+                & (pl.col("received_at") < until)
+            )
+        frame = frame.sort(["device_id", "received_at"] if device is None else ["received_at"])
+        return with_decoded(frame) if decoded else frame
+
+    def summary(
+        self,
+        *,
+        device: str | None = None,
+        since: dt.datetime | None = None,
+        until: dt.datetime | None = None,
+        gap_s: float = DEFAULT_SESSION_GAP_S,
+    ) -> list[DeviceSummary]:
+        """Devices with their time ranges and sessions (runs without a gap longer than `gap_s`)."""
+        if not gap_s > 0:
+            raise HistoryReadError(f"--gap {gap_s} must be greater than 0 seconds")
+        frame = self.window(device, since, until, decoded=False).select(["device_id", "received_at", "units"])
+        gap = dt.timedelta(seconds=gap_s)
+        runs = (
+            frame.with_columns(
+                (pl.col("received_at").diff().over("device_id") > gap).fill_null(True).alias("_new")
+            )
+            .with_columns(pl.col("_new").cast(pl.Int64).cum_sum().over("device_id").alias("_session"))
+            .group_by(["device_id", "_session"])
+            .agg(
+                pl.col("received_at").min().alias("start"),
+                pl.col("received_at").max().alias("end"),
+                pl.len().alias("rows"),
+                pl.col("units").unique().alias("units"),
+            )
+            .sort(["device_id", "start"])
+            .collect()
+        )
+        out: dict[str, DeviceSummary] = {}
+        for row in runs.iter_rows(named=True):
+            summary = out.get(row["device_id"])
+            if summary is None:
+                summary = out[row["device_id"]] = DeviceSummary(
+                    row["device_id"], 0, row["start"], row["end"], []
+                )
+            summary.rows += row["rows"]
+            summary.first = min(summary.first, row["start"])
+            summary.last = max(summary.last, row["end"])
+            summary.units = sorted(set(summary.units) | set(row["units"]))
+            summary.sessions.append(Session(row["start"], row["end"], row["rows"]))
+        return list(out.values())
+
+    def rejected_counts(self) -> dict[str, int]:
+        try:
+            frame = self.scan_rejected()
+        except HistoryReadError:
+            return {}
+        counts = frame.group_by("reason").agg(pl.len().alias("n")).collect()
+        return {r["reason"]: r["n"] for r in counts.iter_rows(named=True)}
+
+
+# --- export ------------------------------------------------------------------------------------------------
+
+
+def export(
+    reader: HistoryReader,
+    out: Path,
+    fmt: str,
+    *,
+    device: str | None = None,
+    since: dt.datetime | None = None,
+    until: dt.datetime | None = None,
+    decoded: bool = True,
+) -> int:
+    """Write the selected rows to one Parquet or CSV file (streamed); returns the row count."""
+    if fmt not in EXPORT_FORMATS:
+        raise HistoryReadError(f"--format {fmt!r} is not one of {', '.join(EXPORT_FORMATS)}")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    frame = reader.window(device, since, until, decoded=decoded)
+    if fmt == "parquet":
+        frame.sink_parquet(out, compression="zstd")
+    else:
+        frame.sink_csv(out)
+    rows = pl.scan_parquet(out).select(pl.len()).collect().item() if fmt == "parquet" else None
+    if rows is None:
+        rows = pl.scan_csv(out).select(pl.len()).collect().item()
+    return int(rows)
+
+
+# --- plot --------------------------------------------------------------------------------------------------
+
+
+def _downsample(frame: pl.DataFrame, max_points: int) -> tuple[pl.DataFrame, float | None]:
+    if frame.height <= max_points:
+        return frame, None
+    span = (frame["received_at"].max() - frame["received_at"].min()).total_seconds()
+    bucket_s = max(0.1, span / max_points)
+    every = f"{max(1, round(bucket_s * 1000))}ms"
+    numeric = [c for c, t in frame.schema.items() if t.is_numeric()]
+    sampled = (
+        frame.sort("received_at")
+        .group_by_dynamic("received_at", every=every)
+        .agg([pl.col(c).mean() for c in numeric])
+    )
+    return sampled, bucket_s
+
+
+def plot(
+    reader: HistoryReader,
+    device: str,
+    out: Path,
+    *,
+    since: dt.datetime | None = None,
+    until: dt.datetime | None = None,
+    gap_s: float = DEFAULT_SESSION_GAP_S,
+    max_points: int = PLOT_MAX_POINTS,
+) -> dict[str, Any]:
+    """Joint angles, temperature, load and current of one device on a shared time axis, as a PNG."""
+    import matplotlib  # noqa: PLC0415 - heavy; only this command draws
+
+    matplotlib.use("Agg")
+    import matplotlib.dates as mdates  # noqa: PLC0415
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    frame = reader.window(device, since, until).collect()
+    if frame.height == 0:
+        window = f" between {_iso(since) if since else 'the start'} and {_iso(until) if until else 'now'}"
+        known = [s.device_id for s in reader.summary()]
+        raise HistoryReadError(
+            f"no history rows for device {device!r}{window}; devices with history: "
+            f"{', '.join(known) if known else 'none'} (see `twin history ls`)"
+        )
+    rows = frame.height
+    frame = frame.with_columns([(pl.col(position_column(j)) * (180.0 / math.pi)).alias(j) for j in JOINTS])
+    sampled, bucket_s = _downsample(frame, max_points)
+    # Break the lines across gaps (a pause, a restart) instead of drawing a straight line over them.
+    step = max(gap_s, 3.0 * (bucket_s or 0.0))
+    breaks = sampled["received_at"].diff().dt.total_seconds().fill_null(0.0) > step
+    segment = breaks.cast(pl.Int64).cum_sum()
+    sampled = sampled.with_columns(segment.alias("_segment"))
+
+    panels = [
+        ("joint angle (deg)", dict.fromkeys(JOINTS, "")),
+        ("temperature (C)", {j: "_temperature_c" for j in JOINTS}),
+        ("load (%)", {j: "_load_percent" for j in JOINTS}),
+        ("current (mA)", {j: "_current_ma" for j in JOINTS}),
+    ]
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    parts = sampled.partition_by("_segment", maintain_order=True)
+    fig, axes = plt.subplots(len(panels), 1, sharex=True, figsize=(12, 10), dpi=100)
+    for ax, (label, suffixes) in zip(axes, panels, strict=True):
+        for i, joint in enumerate(JOINTS):
+            column = f"{joint}{suffixes[joint]}"
+            if column not in sampled.columns or sampled[column].null_count() == sampled.height:
+                continue
+            for k, part in enumerate(parts):
+                ax.plot(
+                    part["received_at"].to_list(),
+                    part[column].to_list(),
+                    color=colors[i % len(colors)],
+                    linewidth=0.8,
+                    label=joint if k == 0 else None,
+                )
+        ax.set_ylabel(label)
+        ax.grid(True, alpha=0.3)
+    handles, labels = axes[0].get_legend_handles_labels()
+    unique = dict(zip(labels, handles, strict=False))
+    fig.legend(
+        unique.values(), unique.keys(), loc="upper center", bbox_to_anchor=(0.5, 0.965), ncol=len(JOINTS)
+    )
+    first, last = frame["received_at"].min(), frame["received_at"].max()
+    note = f", mean per {bucket_s:.1f} s" if bucket_s else ""
+    locator = mdates.AutoDateLocator()
+    axes[-1].xaxis.set_major_locator(locator)
+    axes[-1].xaxis.set_major_formatter(mdates.ConciseDateFormatter(locator))
+    axes[-1].set_xlabel("received at (UTC)")
+    fig.suptitle(f"{device}: {rows} messages, {_iso(first)} .. {_iso(last)}{note}", y=0.99, fontsize=11)
+    fig.tight_layout(rect=(0, 0, 1, 0.93))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out)
+    plt.close(fig)
+    return {"device_id": device, "rows": rows, "first": _iso(first), "last": _iso(last), "path": str(out)}
