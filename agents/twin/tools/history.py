@@ -149,16 +149,21 @@ class HistoryReader:
         self._options = object_store_options(uri, storage_options)
 
     def _scan(self, table: str) -> pl.LazyFrame:
+        from deltalake import DeltaTable  # noqa: PLC0415
+        from deltalake.exceptions import TableNotFoundError  # noqa: PLC0415
+
         location = table_uri(self.uri, table)
         try:
-            return pl.scan_delta(location, storage_options=self._polars_options() or None)
+            # Opened here so a missing table is a clear error now rather than a traceback at collect().
+            dtable = DeltaTable(location, storage_options=self._options or None)
+        except TableNotFoundError as exc:
+            raise HistoryReadError(
+                f"no history table at {location}: nothing was recorded there yet (check --history / "
+                "[history] uri, and that the agent ran with history on)"
+            ) from exc
         except Exception as exc:
-            if "not found" in str(exc).lower() or "no such file" in str(exc).lower():
-                raise HistoryReadError(
-                    f"no history table at {location}: nothing was recorded there yet (check --history/uri, "
-                    "and that the agent ran with history on)"
-                ) from exc
             raise HistoryReadError(f"cannot read history at {location}: {exc}") from exc
+        return pl.scan_delta(dtable)
 
     def _polars_options(self) -> dict[str, str]:
         # polars parses retry settings itself and refuses object_store's string forms for them.

@@ -1,0 +1,153 @@
+"""`twin history ls|plot|export`: look back at the telemetry history the agent wrote (docs/history.md).
+
+Every subcommand takes `--history URI` (a directory or s3://bucket/prefix; default out/history, the demo's
+and a laptop agent's location). Times are ISO 8601 (no zone = UTC), epoch seconds, or a span before now
+(`-2h`, `30m`, `1d`). Exit codes: 0 done, 1 nothing to show or storage unreadable (the reason on stderr),
+2 bad arguments.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+DEFAULT_URI = "out/history"
+EXIT_EMPTY = 1
+EXIT_USAGE = 2
+
+
+def add_window_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--since", metavar="T", help="from this time on (ISO 8601, epoch s, or 2h = 2 h ago)")
+    parser.add_argument("--until", metavar="T", help="before this time (ISO 8601, epoch s, or 30m ago)")
+
+
+def add_uri_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--history",
+        metavar="URI",
+        default=DEFAULT_URI,
+        help=f"history location: a directory or s3://bucket/prefix (default {DEFAULT_URI})",
+    )
+
+
+def register(subparsers: Any) -> None:
+    parser = subparsers.add_parser(
+        "history",
+        help="list, plot and export the recorded telemetry history (Delta Lake)",
+        description="Read the telemetry history the agent writes with [history] uri / --history.",
+    )
+    sub = parser.add_subparsers(dest="history_command", metavar="SUBCOMMAND", required=True)
+
+    ls = sub.add_parser("ls", help="devices, time ranges and sessions (continuous runs)")
+    add_uri_argument(ls)
+    add_window_arguments(ls)
+    ls.add_argument("--device", metavar="D", help="only this device")
+    ls.add_argument(
+        "--gap", type=float, default=10.0, help="seconds without a message that end a session (default 10)"
+    )
+    ls.add_argument("--json", action="store_true", help="print one JSON object")
+    ls.set_defaults(func=run_ls)
+
+    pl_ = sub.add_parser("plot", help="joint angles, temperature, load and current of one device, as a PNG")
+    add_uri_argument(pl_)
+    add_window_arguments(pl_)
+    pl_.add_argument("--device", metavar="D", required=True)
+    pl_.add_argument("--out", metavar="PNG", type=Path, default=Path("history.png"))
+    pl_.set_defaults(func=run_plot)
+
+    ex = sub.add_parser("export", help="the selected rows as one Parquet or CSV file")
+    add_uri_argument(ex)
+    add_window_arguments(ex)
+    ex.add_argument("--device", metavar="D", help="only this device (default: all)")
+    ex.add_argument("--format", choices=["parquet", "csv"], default="parquet")
+    ex.add_argument("--out", metavar="FILE", type=Path, help="default history.parquet / history.csv")
+    ex.add_argument(
+        "--raw-only", action="store_true", help="stored columns only, without the decoded diagnostics"
+    )
+    ex.set_defaults(func=run_export)
+
+
+def window(args: argparse.Namespace) -> tuple[Any, Any]:
+    from twin.tools.history import parse_time
+
+    since = parse_time(args.since) if getattr(args, "since", None) else None
+    until = parse_time(args.until) if getattr(args, "until", None) else None
+    return since, until
+
+
+def _fail(command: str, exc: Exception) -> int:
+    sys.stderr.write(f"twin history {command}: {exc}\n")
+    return EXIT_EMPTY
+
+
+def run_ls(args: argparse.Namespace) -> int:
+    from twin.tools.history import HistoryReader, HistoryReadError
+
+    try:
+        since, until = window(args)
+        reader = HistoryReader(args.history)
+        devices = reader.summary(device=args.device, since=since, until=until, gap_s=args.gap)
+        rejected = reader.rejected_counts()
+    except HistoryReadError as exc:
+        return _fail("ls", exc)
+    if args.json:
+        out = {"uri": args.history, "devices": [d.as_dict() for d in devices], "rejected": rejected}
+        print(json.dumps(out, indent=2))
+        return 0 if devices else EXIT_EMPTY
+    if not devices:
+        sys.stderr.write(f"twin history ls: no rows in {args.history} for this selection\n")
+        return EXIT_EMPTY
+    rows = sum(d.rows for d in devices)
+    print(f"{args.history}: {len(devices)} device(s), {rows} messages, {sum(rejected.values())} rejected")
+    for d in devices:
+        first, last = d.as_dict()["first"], d.as_dict()["last"]
+        print(f"{d.device_id}  {d.rows} messages  {first} .. {last}  units {','.join(d.units)}")
+        for i, s in enumerate(d.sessions, start=1):
+            info = s.as_dict()
+            rate = f"{info['rate_hz']:.1f} Hz" if info["rate_hz"] else "-"
+            print(
+                f"  session {i}: {info['start']} .. {info['end']}  {info['seconds']:.0f} s  "
+                f"{info['rows']} messages  {rate}"
+            )
+    if rejected:
+        print("rejected: " + ", ".join(f"{k} {v}" for k, v in sorted(rejected.items())))
+    return 0
+
+
+def run_plot(args: argparse.Namespace) -> int:
+    from twin.tools.history import HistoryReader, HistoryReadError, plot
+
+    try:
+        since, until = window(args)
+        result = plot(HistoryReader(args.history), args.device, args.out, since=since, until=until)
+    except HistoryReadError as exc:
+        return _fail("plot", exc)
+    print(
+        f"wrote {result['path']}: {result['rows']} messages of {args.device}, "
+        f"{result['first']} .. {result['last']}"
+    )
+    return 0
+
+
+def run_export(args: argparse.Namespace) -> int:
+    from twin.tools.history import HistoryReader, HistoryReadError, export
+
+    out = args.out or Path(f"history.{args.format}")
+    try:
+        since, until = window(args)
+        rows = export(
+            HistoryReader(args.history),
+            out,
+            args.format,
+            device=args.device,
+            since=since,
+            until=until,
+            decoded=not args.raw_only,
+        )
+    except HistoryReadError as exc:
+        return _fail("export", exc)
+    print(f"wrote {out}: {rows} rows ({args.format})")
+    return 0 if rows else EXIT_EMPTY

@@ -1,0 +1,196 @@
+"""`twin replay`: publish a device's recorded telemetry to a broker again, so the agent and viewer mirror it.
+
+Each message is rebuilt from the stored raw readings exactly as the edge sent them (JSON integers for a
+ticks device, floats for LeRobot-normalised ones), so the agent decodes the same angles it decoded the first
+time. Messages go out at their recorded pace (receive-time spacing, divided by `speed`) through the project's
+awscrt client (twin.transport.subscriber.build_mqtt5_client), QoS 0 like the edge. Timestamps are shifted so
+the first replayed message carries "now" and the rest keep their edge spacing (divided by `speed`): an agent
+that has mirrored the live arm would otherwise ignore a replay as older than what it has. `--original-
+timestamps` keeps them as recorded.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from twin.output.history import JOINTS, RAW_FIELDS, raw_column
+from twin.tools.history import HistoryReader, HistoryReadError
+from twin.transport.subscriber import BrokerConfig, build_mqtt5_client, new_client_id, topic_for
+
+log = logging.getLogger(__name__)
+
+# IoT Core accepts at most 100 publishes per second on one connection (aws-facts.md section 3).
+IOT_PUBLISHES_PER_S = 100
+# Rows are read in windows of this length, so a day's replay never holds a day in memory.
+READ_WINDOW = dt.timedelta(minutes=10)
+
+
+@dataclass(frozen=True)
+class ReplayConfig:
+    uri: str
+    device: str
+    start: dt.datetime
+    end: dt.datetime
+    broker: BrokerConfig
+    topic_prefix: str = "dt/lerobot"
+    speed: float = 1.0
+    as_device: str | None = None
+    original_timestamps: bool = False
+    storage_options: Mapping[str, str] = field(default_factory=dict)
+    connect_timeout_s: float = 15.0
+
+    def __post_init__(self) -> None:
+        if not 0 < self.speed <= 1000:
+            raise ValueError(f"--speed {self.speed} must be in (0, 1000]")
+        if self.end <= self.start:
+            raise ValueError(f"--to ({self.end.isoformat()}) must be after --from ({self.start.isoformat()})")
+        topic_for(self.topic_prefix, self.target_device)  # refuses ids that are not one topic level
+
+    @property
+    def target_device(self) -> str:
+        return self.as_device or self.device
+
+
+@dataclass
+class ReplayReport:
+    published: int = 0
+    publish_failures: int = 0
+    late: int = 0  # messages sent more than 50 ms after their due time (the machine could not keep up)
+    first_recorded: str | None = None
+    last_recorded: str | None = None
+    elapsed_s: float = 0.0
+    stopped: bool = False
+
+    def as_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+def _number(value: float, integral: bool) -> int | float:
+    return int(value) if integral and value.is_integer() else value
+
+
+def payload_for(row: Mapping[str, Any], device_id: str, timestamp_ms: int) -> bytes:
+    """The edge message for one stored row; absent readings stay absent."""
+    ticks = row["units"] == "ticks"
+    joints: dict[str, dict[str, int | float]] = {}
+    for joint in JOINTS:
+        entry: dict[str, int | float] = {}
+        for name in RAW_FIELDS:
+            value = row.get(raw_column(joint, name))
+            if value is not None:
+                # The ticks variant sends JSON integers (the decoder insists on them for positions).
+                entry[name] = _number(float(value), ticks)
+        joints[joint] = entry
+    message = {"device_id": device_id, "timestamp": int(timestamp_ms), "joints": joints}
+    return json.dumps(message, separators=(",", ":")).encode()
+
+
+def recorded_rows(reader: HistoryReader, device: str, start: dt.datetime, end: dt.datetime) -> Iterator[dict]:
+    """The device's rows in [start, end), oldest first, read one window at a time."""
+    columns = ["received_at", "edge_time", "units"] + [raw_column(j, n) for j in JOINTS for n in RAW_FIELDS]
+    cursor = start
+    while cursor < end:
+        upper = min(end, cursor + READ_WINDOW)
+        frame = reader.window(device, cursor, upper, decoded=False).select(columns).collect()
+        yield from frame.iter_rows(named=True)
+        cursor = upper
+
+
+def replay(
+    config: ReplayConfig,
+    *,
+    stop: threading.Event | None = None,
+    reader: HistoryReader | None = None,
+    on_progress: Callable[[ReplayReport], None] | None = None,
+) -> ReplayReport:
+    """Publish the recorded window; returns the counts. Raises HistoryReadError when there is nothing."""
+    from awscrt import mqtt5  # noqa: PLC0415
+
+    stop = stop or threading.Event()
+    reader = reader or HistoryReader(config.uri, config.storage_options)
+    rows = recorded_rows(reader, config.device, config.start, config.end)
+    first = next(rows, None)
+    if first is None:
+        known = [s.device_id for s in reader.summary()]
+        raise HistoryReadError(
+            f"no history rows for device {config.device!r} between {config.start.isoformat()} and "
+            f"{config.end.isoformat()}; devices with history: {', '.join(known) if known else 'none'} "
+            "(see `twin history ls`)"
+        )
+    if config.broker.kind == "iot" and 10.0 * config.speed > IOT_PUBLISHES_PER_S:
+        log.warning(
+            "replaying at %.1fx may exceed IoT Core's %d publishes/s per connection; excess is discarded",
+            config.speed,
+            IOT_PUBLISHES_PER_S,
+        )
+
+    report = ReplayReport()
+    connected = threading.Event()
+    lock = threading.Lock()
+
+    def on_done(future: Any) -> None:
+        if future.exception() is not None:
+            with lock:
+                report.publish_failures += 1
+
+    client = build_mqtt5_client(
+        config.broker,
+        new_client_id(config.broker.client_id_prefix),
+        on_connection_success=lambda _data: connected.set(),
+    )
+    client.start()
+    topic = topic_for(config.topic_prefix, config.target_device)
+    try:
+        if not connected.wait(config.connect_timeout_s):
+            raise HistoryReadError(
+                f"could not connect to the broker {config.broker.url} within "
+                f"{config.connect_timeout_s:.0f} s; check --broker and that the broker runs"
+            )
+        started = time.monotonic()
+        now_ms = time.time() * 1000.0
+        first_received = first["received_at"]
+        first_edge = first["edge_time"]
+        report.first_recorded = first_received.isoformat()
+        for row in _chain(first, rows):
+            if stop.is_set():
+                report.stopped = True
+                break
+            offset_s = (row["received_at"] - first_received).total_seconds() / config.speed
+            due = started + offset_s
+            wait = due - time.monotonic()
+            if wait > 0 and stop.wait(wait):
+                report.stopped = True
+                break
+            if -wait > 0.05:
+                report.late += 1
+            edge_ms = row["edge_time"].timestamp() * 1000.0
+            if config.original_timestamps:
+                stamp = round(edge_ms)
+            else:
+                stamp = round(now_ms + (edge_ms - first_edge.timestamp() * 1000.0) / config.speed)
+            payload = payload_for(row, config.target_device, stamp)
+            future = client.publish(
+                mqtt5.PublishPacket(topic=topic, payload=payload, qos=mqtt5.QoS.AT_MOST_ONCE)
+            )
+            future.add_done_callback(on_done)
+            report.published += 1
+            report.last_recorded = row["received_at"].isoformat()
+            if on_progress is not None and report.published % 100 == 0:
+                on_progress(report)
+        report.elapsed_s = time.monotonic() - started
+        time.sleep(0.3)  # let the last QoS 0 publishes reach the socket
+    finally:
+        client.stop()
+    return report
+
+
+def _chain(first: dict, rest: Iterator[dict]) -> Iterator[dict]:
+    yield first
+    yield from rest
