@@ -319,6 +319,8 @@ class WriterStats:
     maintenance_runs: int = 0
     maintenance_failures: int = 0
     maintenance_conflicts: int = 0
+    # Windows in which another writer held the maintenance lease.
+    maintenance_skipped: int = 0
     slow_parses: int = 0
     conversion_failures: int = 0
     rows_lost_in_conversion: int = 0
@@ -438,12 +440,7 @@ class HistoryWriter:
             stats = self._stats.tables[table]
             queue.append(_Pending(rows, self._clock()))
             stats.rows_buffered += rows.num_rows
-            dropped = 0
-            while stats.rows_buffered + self._inflight_rows[table] > self._limits[table] and len(queue) > 1:
-                oldest = queue.popleft()
-                stats.rows_buffered -= oldest.table.num_rows
-                dropped += oldest.table.num_rows
-            stats.rows_dropped += dropped
+            dropped = self._trim(table)
             self._cond.notify()
         if dropped:
             log.error(
@@ -456,6 +453,18 @@ class HistoryWriter:
                 self._stats.last_error or "no error yet",
                 extra={"history_dropped_rows": dropped, "table": table},
             )
+
+    def _trim(self, table: str) -> int:
+        """Drop the oldest queued rows while queued plus in-flight rows exceed the bound (lock held)."""
+        queue = self._pending[table]
+        stats = self._stats.tables[table]
+        dropped = 0
+        while queue and stats.rows_buffered + self._inflight_rows[table] > self._limits[table]:
+            oldest = queue.popleft()
+            stats.rows_buffered -= oldest.table.num_rows
+            dropped += oldest.table.num_rows
+        stats.rows_dropped += dropped
+        return dropped
 
     def flush(self, timeout: float = 30.0) -> bool:
         """Commit everything queued now; True when a commit round finished without error in time."""
@@ -577,8 +586,9 @@ class HistoryWriter:
 
     def _commit_round(self, table: str, items: list[_Pending]) -> bool:
         """Commit a batch attempted before (alone, with its sequence number), then everything else at once."""
-        groups = [items[:1], items[1:]] if items[0].seq is not None else [items]
-        groups = [g for g in groups if g]
+        first = items[0].seq
+        retried = [p for p in items if first is not None and p.seq == first]
+        groups = [g for g in (retried, items[len(retried) :]) if g]
         for i, group in enumerate(groups):
             if not self._commit(table, group, later=[p for g in groups[i + 1 :] for p in g]):
                 return False
@@ -594,7 +604,8 @@ class HistoryWriter:
         try:
             version = self._append(table, rows, seq)
         except Exception as exc:
-            self._failed(table, _Pending(rows, group[0].since, seq), later, exc)
+            # The items keep their own identity (the bound trims them one by one) and share the sequence.
+            self._failed(table, [dataclasses.replace(p, seq=seq) for p in group], later, exc)
             return False
         with self._cond:
             stats = self._stats.tables[table]
@@ -614,53 +625,65 @@ class HistoryWriter:
     def _append(self, table: str, rows: pa.Table, seq: int) -> int | None:
         """One Delta append carrying (writer_id, seq); returns the new version, or None if `seq` was already
         committed by an earlier attempt whose answer was lost."""
-        from deltalake import CommitProperties, DeltaTable, Transaction, write_deltalake  # noqa: PLC0415
+        from deltalake import CommitProperties, Transaction, write_deltalake  # noqa: PLC0415
 
         uri = self.settings.table_uri(table)
         dtable = self._tables.get(table)
         if dtable is None:
-            try:
-                dtable = DeltaTable(uri, storage_options=self._options)
-            except Exception as exc:
-                if type(exc).__name__ != "TableNotFoundError":
-                    raise
-                dtable = None
-            if dtable is not None:
-                self._tables[table] = dtable
-        if dtable is not None:
-            dtable.update_incremental()
-            done = dtable.transaction_version(self.writer_id)
-            if done is not None and done >= seq:
-                return None
+            dtable = self._open_or_create(table, uri)
+            self._tables[table] = dtable
+        dtable.update_incremental()
+        done = dtable.transaction_version(self.writer_id)
+        if done is not None and done >= seq:
+            return None
         if table == TELEMETRY_TABLE:
             rows = rows.sort_by([("device_id", "ascending"), ("received_at", "ascending")])
         else:
             rows = rows.sort_by([("received_at", "ascending")])
         write_deltalake(
-            dtable if dtable is not None else uri,
+            dtable,
             rows,
             mode="append",
-            partition_by=[PARTITION_COLUMN],
+            # Columns a newer agent adds are merged in; an append with the table's own schema adds no
+            # metadata action, so concurrent appends from several writers never conflict on it.
             schema_mode="merge",
-            configuration=TABLE_CONFIGURATION if dtable is None else None,
-            storage_options=self._options if dtable is None else None,
             writer_properties=_writer_properties(COMMIT_ZSTD_LEVEL),
             target_file_size=self.settings.target_file_mb << 20,
             commit_properties=CommitProperties(
                 app_transactions=[Transaction(self.writer_id, seq)], max_commit_retries=50
             ),
         )
-        if dtable is None:
-            dtable = DeltaTable(uri, storage_options=self._options)
-            self._tables[table] = dtable
         return int(dtable.version())
 
-    def _failed(self, table: str, failed: _Pending, later: list[_Pending], exc: BaseException) -> None:
+    def _open_or_create(self, table: str, uri: str) -> Any:
+        """The table at `uri`, created first if missing. Created on its own (not by the first append) so two
+        writers starting together race only on the empty creation commit, which the loser just re-reads."""
+        from deltalake import DeltaTable  # noqa: PLC0415
+        from deltalake.exceptions import TableNotFoundError  # noqa: PLC0415
+
+        try:
+            return DeltaTable(uri, storage_options=self._options)
+        except TableNotFoundError:
+            pass
+        try:
+            DeltaTable.create(
+                uri,
+                schema=SCHEMAS[table],
+                mode="ignore",
+                partition_by=[PARTITION_COLUMN],
+                configuration=TABLE_CONFIGURATION,
+                storage_options=self._options,
+            )
+        except Exception:
+            log.info("history: %s was created concurrently by another writer", uri, exc_info=True)
+        return DeltaTable(uri, storage_options=self._options)
+
+    def _failed(self, table: str, failed: list[_Pending], later: list[_Pending], exc: BaseException) -> None:
         message = _describe_storage_error(self.settings.uri, exc)
         # The table handle may describe a state the failed commit left half-known; reload it next time.
         self._tables.pop(table, None)
         now = self._clock()
-        n = failed.table.num_rows + sum(p.table.num_rows for p in later)
+        n = sum(p.table.num_rows for p in (*failed, *later))
         with self._cond:
             stats = self._stats.tables[table]
             stats.commit_failures += 1
@@ -670,15 +693,10 @@ class HistoryWriter:
             self._inflight_rows[table] -= n
             # Back to the front of the queue, oldest first, still within the bound.
             queue = self._pending[table]
-            for item in reversed([failed, *later]):
+            for item in reversed([*failed, *later]):
                 queue.appendleft(item)
             stats.rows_buffered += n
-            dropped = 0
-            while stats.rows_buffered > self._limits[table] and len(queue) > 1:
-                oldest = queue.popleft()
-                stats.rows_buffered -= oldest.table.num_rows
-                dropped += oldest.table.num_rows
-            stats.rows_dropped += dropped
+            dropped = self._trim(table)
             self._retry_at = now + self._backoff
             retry_in = self._backoff
             self._backoff = min(self._backoff * 2.0, self.settings.retry_max_s)
@@ -697,6 +715,40 @@ class HistoryWriter:
                 extra={"table": table, "commit_failures": failures, "history_dropped_rows": dropped},
             )
 
+    def _take_lease(self, table: str) -> bool:
+        """Only one writer may maintain a table per window: delta-rs 1.6 lets two concurrent compactions of
+        the same files both commit (their removes carry dataChange=false), which duplicates every row they
+        touched. The lease is a put-if-absent object per table and window, like a Delta commit itself."""
+        window = int(self._wall() // max(self.settings.maintain_every_s, 60.0))
+        key = f"_maintenance/{table}-{window}.lease"
+        body = json.dumps({"writer": self.writer_id, "window": window}).encode()
+        if not self.settings.is_s3:
+            base = Path(self.settings.uri.removeprefix("file://")) / "_maintenance"
+            base.mkdir(parents=True, exist_ok=True)
+            try:
+                fd = os.open(base / key.rsplit("/", 1)[1], os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            except FileExistsError:
+                return False
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(body)
+            for old in base.glob(f"{table}-*.lease"):
+                stem = old.stem.rsplit("-", 1)[-1]
+                if stem.isdigit() and int(stem) < window - 2:
+                    old.unlink(missing_ok=True)
+            return True
+        bucket, _, prefix = self.settings.uri.split("://", 1)[1].partition("/")
+        client = _s3_client(self._options)
+        try:
+            client.put_object(
+                Bucket=bucket, Key=f"{prefix.strip('/')}/{key}".lstrip("/"), Body=body, IfNoneMatch="*"
+            )
+        except Exception as exc:
+            code = getattr(exc, "response", {}).get("Error", {}).get("Code", "")
+            if code in ("PreconditionFailed", "ConditionalRequestConflict"):
+                return False
+            raise
+        return True
+
     def _maintain(self) -> None:
         """Compact today's and yesterday's partitions, checkpoint, vacuum replaced files, trim the log."""
         from deltalake import DeltaTable  # noqa: PLC0415
@@ -707,6 +759,14 @@ class HistoryWriter:
         days = [today - dt.timedelta(days=1), today]
         for table in SCHEMAS:
             uri = self.settings.table_uri(table)
+            try:
+                if not self._take_lease(table):
+                    with self._cond:
+                        self._stats.maintenance_skipped += 1
+                    continue
+            except Exception as exc:
+                self._maintenance_failed(table, exc)
+                continue
             try:
                 dtable = DeltaTable(uri, storage_options=self._options)
             except Exception as exc:
@@ -765,6 +825,24 @@ class HistoryWriter:
             self._stats.maintenance_failures += 1
             self._stats.last_error = message
         log.error("history: maintenance of %s failed: %s; retried at the next interval", table, message)
+
+
+def _s3_client(options: Mapping[str, str]) -> Any:
+    """A boto3 S3 client for the same endpoint and credentials delta-rs uses (options, else the AWS chain)."""
+    import boto3  # noqa: PLC0415 - only S3 history needs it
+
+    kwargs: dict[str, Any] = {}
+    for key, arg in (
+        ("AWS_ENDPOINT_URL", "endpoint_url"),
+        ("AWS_REGION", "region_name"),
+        ("AWS_ACCESS_KEY_ID", "aws_access_key_id"),
+        ("AWS_SECRET_ACCESS_KEY", "aws_secret_access_key"),
+        ("AWS_SESSION_TOKEN", "aws_session_token"),
+    ):
+        value = options.get(key) or options.get(key.lower())
+        if value:
+            kwargs[arg] = value
+    return boto3.client("s3", **kwargs)
 
 
 def _describe_storage_error(uri: str, exc: BaseException) -> str:

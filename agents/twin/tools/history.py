@@ -163,7 +163,8 @@ class HistoryReader:
             ) from exc
         except Exception as exc:
             raise HistoryReadError(f"cannot read history at {location}: {exc}") from exc
-        return pl.scan_delta(dtable)
+        del dtable
+        return pl.scan_delta(location, storage_options=self._polars_options() or None)
 
     def _polars_options(self) -> dict[str, str]:
         # polars parses retry settings itself and refuses object_store's string forms for them.

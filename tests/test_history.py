@@ -1,0 +1,439 @@
+"""Telemetry history against real storage: the local filesystem (a real tmpfs for the full disk) and S3
+through moto's server mode (ThreadedMotoServer on loopback, in a child process: tests/moto_s3.py).
+
+The rows come from the edge simulator's payloads decoded by the real decoder, so raw and decoded values are
+what the agent would store.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import os
+import random
+import subprocess
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import polars as pl
+import pytest
+from deltalake import CommitProperties, DeltaTable, Transaction, write_deltalake
+from moto_s3 import MotoS3
+from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
+from twin.output.history import (
+    JOINTS,
+    REJECTED_TABLE,
+    TELEMETRY_TABLE,
+    HistoryError,
+    HistorySettings,
+    HistorySink,
+    HistoryWriter,
+    raw_column,
+    telemetry_table,
+)
+from twin.output.sinks import AppliedSample, RejectedSample
+from twin.tools.edge_sim import encode, make_payload
+from twin.tools.history import HistoryReader, HistoryReadError, parse_time, with_decoded
+
+T0 = 1_795_000_000.0  # 2026-11-18T09:46:40Z
+
+
+def samples(
+    n: int,
+    *,
+    device: str = "arm-001",
+    variant: str = "ticks",
+    start_s: float = T0,
+    period_s: float = 0.1,
+    seed: int = 1,
+    load_sign: bool = True,
+) -> list[AppliedSample]:
+    rng = random.Random(seed)
+    decoder = TelemetryDecoder(DecoderConfig(units=Units(variant)))
+    out = []
+    for k in range(n):
+        wall = start_s + k * period_s
+        payload = encode(
+            make_payload(
+                device, k * period_s, variant, rng, timestamp_ms=round(wall * 1000) - 5, load_sign=load_sign
+            )
+        )
+        telemetry = decoder.decode(payload)
+        out.append(AppliedSample(device, wall, wall, telemetry, telemetry.angles_rad, payload))
+    return out
+
+
+def rows_of(uri: str, table: str = TELEMETRY_TABLE, options: dict[str, str] | None = None) -> pl.DataFrame:
+    return pl.read_delta(
+        str(Path(uri) / table) if "://" not in uri else f"{uri}/{table}", storage_options=options
+    )
+
+
+# --- rows: raw as sent, decoded as the decoder decodes -----------------------------------------------------
+
+
+@pytest.mark.parametrize("variant", ["ticks", "degrees"])
+def test_rows_keep_raw_readings_and_decoded_positions(variant: str) -> None:
+    batch = samples(300, variant=variant)
+    table, slow = telemetry_table(batch)
+    assert not slow
+    frame = pl.from_arrow(table)
+    for i, sample in enumerate(batch):
+        sent = json.loads(sample.payload)["joints"]
+        row = frame.row(i, named=True)
+        assert row["device_id"] == "arm-001" and row["units"] == variant
+        assert row["edge_time"].timestamp() * 1000 == sample.telemetry.timestamp_ms
+        for joint in JOINTS:
+            assert row[f"{joint}_position_rad"] == sample.telemetry.angles_rad[joint]
+            for name in ("position", "velocity", "load", "temp", "current", "voltage"):
+                assert row[raw_column(joint, name)] == sent[joint].get(name)
+
+
+@pytest.mark.parametrize("variant", ["ticks", "degrees"])
+def test_decoded_diagnostics_on_read_equal_the_decoder(variant: str) -> None:
+    # load_sign puts the sign bits in the raw registers (ticks) or negative loads (degrees): both rules run.
+    batch = samples(400, variant=variant, load_sign=True)
+    frame = with_decoded(pl.from_arrow(telemetry_table(batch)[0]).lazy()).collect()
+    checked = 0
+    for i, sample in enumerate(batch):
+        row = frame.row(i, named=True)
+        for joint in JOINTS:
+            diag = sample.telemetry.diagnostics[joint]
+            assert row[f"{joint}_velocity_rad_s"] == pytest.approx(diag.velocity_rad_s, rel=1e-12)
+            assert row[f"{joint}_load_percent"] == pytest.approx(diag.load_percent, rel=1e-12)
+            assert row[f"{joint}_temperature_c"] == diag.temperature_c
+            assert row[f"{joint}_current_ma"] == pytest.approx(diag.current_ma, rel=1e-12)
+            if diag.voltage_v is None:
+                assert row[f"{joint}_voltage_v"] is None
+            else:
+                assert row[f"{joint}_voltage_v"] == pytest.approx(diag.voltage_v, rel=1e-12)
+            checked += diag.velocity_rad_s < 0 or diag.load_percent < 0
+    assert checked > 100  # negative velocities and loads were really exercised
+
+
+def test_odd_but_valid_payloads_are_stored_exactly() -> None:
+    batch = samples(3)
+    pretty = json.dumps(json.loads(batch[0].payload), indent=2).encode()  # newlines as whitespace
+    duplicate = batch[1].payload.replace(b'"joints":{', b'"joints":{"shoulder_pan":{"position":1},', 1)
+    decoder = TelemetryDecoder(DecoderConfig(units=Units.TICKS))
+    odd = [
+        AppliedSample("arm-001", T0, T0, decoder.decode(pretty), batch[0].joint_angles, pretty),
+        AppliedSample("arm-001", T0 + 1, T0 + 1, decoder.decode(duplicate), batch[1].joint_angles, duplicate),
+        AppliedSample("arm-001", T0 + 2, T0 + 2, batch[2].telemetry, batch[2].joint_angles),  # no payload
+    ]
+    table, slow = telemetry_table(odd)
+    assert slow  # Arrow's reader refuses the duplicate key; the stdlib parser (the decoder's) takes it
+    frame = pl.from_arrow(table)
+    assert frame["shoulder_pan_position_raw"][0] == json.loads(pretty)["joints"]["shoulder_pan"]["position"]
+    assert (
+        frame["shoulder_pan_position_raw"][1] == json.loads(duplicate)["joints"]["shoulder_pan"]["position"]
+    )
+    assert frame["shoulder_pan_position_raw"][2] is None
+    assert frame["shoulder_pan_position_rad"][2] == batch[2].telemetry.angles_rad["shoulder_pan"]
+
+
+# --- the sink on the local filesystem ---------------------------------------------------------------------
+
+
+def test_sink_writes_every_sample_partitioned_by_date_and_flushes_on_close(tmp_path: Path) -> None:
+    midnight = dt.datetime(2026, 11, 19, tzinfo=dt.UTC).timestamp()
+    # 60 s before to 60 s after midnight UTC, then a 30 s pause (a second session), one rejected message.
+    first = samples(1200, start_s=midnight - 60)
+    second = samples(100, start_s=midnight + 90, seed=2)
+    uri = str(tmp_path / "history")
+    sink = HistorySink(HistorySettings(uri=uri, commit_every_s=3600, commit_every_rows=500, chunk_rows=100))
+    for sample in first + second:
+        sink.applied(sample)
+    topic = "dt/lerobot/arm-001/telemetry"
+    sink.rejected(RejectedSample("arm-001", topic, midnight, "not_json", "bad", b"{x"))
+    sink.close()
+    stats = sink.history_stats()
+    assert stats["received"] == 1301
+    assert stats["queue_dropped"] == 0
+    assert stats["tables"][TELEMETRY_TABLE]["rows_committed"] == 1300
+    assert stats["tables"][TELEMETRY_TABLE]["commits"] >= 2  # 500-row trigger, then the rest on close
+    assert stats["tables"][REJECTED_TABLE]["rows_committed"] == 1
+    frame = rows_of(uri)
+    assert frame.height == 1300
+    assert sorted(p.name for p in (tmp_path / "history" / TELEMETRY_TABLE).glob("date=*")) == [
+        "date=2026-11-18",
+        "date=2026-11-19",
+    ]
+    rejected = rows_of(uri, REJECTED_TABLE)
+    assert rejected["reason"].to_list() == ["not_json"] and rejected["payload"].to_list() == [b"{x"]
+
+    summary = HistoryReader(uri).summary()
+    assert [d.device_id for d in summary] == ["arm-001"]
+    assert [s.rows for s in summary[0].sessions] == [1200, 100]
+    assert HistoryReader(uri).rejected_counts() == {"not_json": 1}
+
+
+def test_commits_follow_the_row_and_time_settings(tmp_path: Path) -> None:
+    uri = str(tmp_path / "h")
+    writer = HistoryWriter(HistorySettings(uri=uri, commit_every_s=0.2, commit_every_rows=10_000)).start()
+    try:
+        writer.add(TELEMETRY_TABLE, telemetry_table(samples(50))[0])
+        deadline = time.monotonic() + 10
+        while writer.stats().tables[TELEMETRY_TABLE].commits == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        # Nothing asked for a flush: the 0.2 s age bound committed the 50 rows on its own.
+        assert writer.stats().tables[TELEMETRY_TABLE].rows_committed == 50
+    finally:
+        writer.close()
+    assert rows_of(uri).height == 50
+
+
+def test_an_outage_keeps_rows_bounded_counts_drops_and_recovers(tmp_path: Path) -> None:
+    base = tmp_path / "h"
+    base.mkdir()
+    blocker = base / TELEMETRY_TABLE
+    blocker.write_text("not a directory")  # every commit to <uri>/telemetry fails until it goes
+    settings = HistorySettings(
+        uri=str(base), commit_every_s=0.05, commit_every_rows=100, max_buffer_rows=300, retry_min_s=0.05
+    )
+    writer = HistoryWriter(settings).start()
+    try:
+        batch = samples(600)
+        for i in range(0, 600, 100):
+            writer.add(TELEMETRY_TABLE, telemetry_table(batch[i : i + 100])[0])
+            time.sleep(0.1)
+        assert not writer.flush(5)
+        stats = writer.stats()
+        table = stats.tables[TELEMETRY_TABLE]
+        assert not stats.storage_ok and table.commit_failures >= 1
+        assert "cannot write history" in stats.last_error
+        # The bound held: 300 rows kept (queued plus the batch being retried), the other 300 counted.
+        assert table.rows_dropped == 300 and writer.buffered_rows() == 300
+        blocker.unlink()
+        assert writer.flush(10)
+    finally:
+        writer.close()
+    frame = rows_of(str(base))
+    assert frame.height == 300
+    assert frame["edge_time"].n_unique() == 300
+    assert writer.stats().tables[TELEMETRY_TABLE].rows_committed == 300
+
+
+def test_a_full_disk_is_a_clear_error_and_writing_resumes_when_space_returns(tmp_path: Path) -> None:
+    mount = tmp_path / "small"
+    mount.mkdir()
+    # A real filesystem that really fills: a 2 MiB tmpfs (the tests run as root, as `make setup` does).
+    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(mount)], check=True)
+    try:
+        uri = str(mount / "history")
+        writer = HistoryWriter(HistorySettings(uri=uri, commit_every_s=3600, retry_min_s=0.05)).start()
+        try:
+            writer.add(TELEMETRY_TABLE, telemetry_table(samples(100))[0])
+            assert writer.flush(10)
+            filler = mount / "filler"
+            with filler.open("wb") as fh:
+                try:
+                    while True:
+                        fh.write(b"\0" * 65536)
+                        fh.flush()
+                except OSError:
+                    pass
+            writer.add(TELEMETRY_TABLE, telemetry_table(samples(2000, start_s=T0 + 100))[0])
+            assert not writer.flush(10)
+            assert "disk is full" in writer.stats().last_error
+            assert writer.buffered_rows() == 2000
+            filler.unlink()
+            assert writer.flush(10)
+        finally:
+            writer.close()
+        frame = rows_of(uri)
+        assert frame.height == 2100
+        assert frame["received_at"].n_unique() == 2100  # nothing written twice
+    finally:
+        subprocess.run(["umount", "-l", str(mount)], check=False)
+
+
+def test_a_retried_commit_that_had_landed_is_not_written_twice(tmp_path: Path) -> None:
+    uri = str(tmp_path / "h")
+    writer = HistoryWriter(HistorySettings(uri=uri), writer_id="test-writer")
+    rows = telemetry_table(samples(10))[0]
+    assert writer._append(TELEMETRY_TABLE, rows, seq=1) == 1  # version 0 created the table
+    # The same sequence number again, as after a commit whose answer was lost: recognised, skipped.
+    assert writer._append(TELEMETRY_TABLE, rows, seq=1) is None
+    assert writer._append(TELEMETRY_TABLE, rows, seq=2) == 2
+    assert rows_of(uri).height == 20
+
+
+def test_two_writers_append_to_one_table_and_a_stale_commit_is_retried(tmp_path: Path) -> None:
+    uri = str(tmp_path / "h")
+    writers = [
+        HistoryWriter(
+            HistorySettings(uri=uri, commit_every_s=0.02, commit_every_rows=50), writer_id=f"w{i}"
+        ).start()
+        for i in range(2)
+    ]
+
+    def feed(i: int) -> None:
+        batch = samples(1000, device=f"arm-00{i + 1}", seed=i)
+        for k in range(0, 1000, 50):
+            writers[i].add(TELEMETRY_TABLE, telemetry_table(batch[k : k + 50])[0])
+            time.sleep(0.005)
+
+    threads = [threading.Thread(target=feed, args=(i,)) for i in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for w in writers:
+        w.close()
+    frame = rows_of(uri)
+    assert frame.group_by("device_id").len().sort("device_id")["len"].to_list() == [1000, 1000]
+    commits = sum(w.stats().tables[TELEMETRY_TABLE].commits for w in writers)
+    table = DeltaTable(str(Path(uri) / TELEMETRY_TABLE))
+    assert table.version() == commits  # version 0 created it; then one version a commit, none lost
+
+    # A commit conflict made on purpose: a handle still at the old version appends after another writer.
+    stale = DeltaTable(str(Path(uri) / TELEMETRY_TABLE))
+    before = stale.version()
+    write_deltalake(table, telemetry_table(samples(5, start_s=T0 + 500))[0], mode="append")
+    write_deltalake(
+        stale,
+        telemetry_table(samples(5, start_s=T0 + 600))[0],
+        mode="append",
+        commit_properties=CommitProperties(app_transactions=[Transaction("stale", 1)]),
+    )
+    assert stale.version() == before + 2  # the loser re-read the log and committed after the winner
+    assert rows_of(uri).height == 2010
+
+
+def test_only_one_of_two_writers_maintains_a_table_per_window(tmp_path: Path) -> None:
+    uri = str(tmp_path / "h")
+    now = time.time()
+    settings = HistorySettings(uri=uri, commit_every_s=3600, maintain_every_s=3600)
+    writers = [HistoryWriter(settings, writer_id=f"m{i}").start() for i in range(2)]
+    for k in range(5):
+        writers[k % 2].add(TELEMETRY_TABLE, telemetry_table(samples(100, start_s=now + 20 * k))[0])
+        assert writers[k % 2].flush(10)
+    for w in writers:
+        w.close()
+    # Both at once: without the lease, delta-rs 1.6 commits both compactions and every row appears twice.
+    threads = [threading.Thread(target=w.maintain_now) for w in writers]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    stats = [w.stats() for w in writers]
+    # Each table's lease went to one writer; the other skipped it (two tables, two skips in all).
+    assert sum(s.maintenance_skipped for s in stats) == 2
+    assert sum(s.maintenance_failures for s in stats) == 0
+    assert len(DeltaTable(str(Path(uri) / TELEMETRY_TABLE)).file_uris()) == 1
+    assert rows_of(uri).height == 500
+
+
+def test_maintenance_compacts_checkpoints_and_vacuums(tmp_path: Path) -> None:
+    uri = str(tmp_path / "h")
+    now = time.time()
+    writer = HistoryWriter(
+        HistorySettings(uri=uri, commit_every_s=3600, maintain_every_s=0, vacuum_retention_hours=0)
+    ).start()
+    for k in range(4):
+        writer.add(TELEMETRY_TABLE, telemetry_table(samples(100, start_s=now + 20 * k))[0])
+        assert writer.flush(10)
+    writer.close()
+    writer.maintain_now()
+    stats = writer.stats()
+    assert stats.maintenance_runs >= 1 and stats.maintenance_failures == 0
+    location = Path(uri) / TELEMETRY_TABLE
+    assert len(DeltaTable(str(location)).file_uris()) == 1
+    data_files = [p for p in location.rglob("*.parquet") if "_delta_log" not in p.parts]
+    assert len(data_files) == 1  # the four small files were vacuumed
+    assert list((location / "_delta_log").glob("*.checkpoint.parquet"))
+    assert rows_of(uri).height == 400
+
+
+def test_settings_refuse_bad_values_with_the_fix() -> None:
+    with pytest.raises(HistoryError, match="uri is empty"):
+        HistorySettings(uri=" ")
+    with pytest.raises(HistoryError, match="unsupported scheme"):
+        HistorySettings(uri="gs://bucket/h")
+    with pytest.raises(HistoryError, match="max_buffer_rows"):
+        HistorySettings(uri="h", max_buffer_rows=10, commit_every_rows=100)
+
+
+def test_reader_errors_and_times() -> None:
+    now = dt.datetime(2026, 11, 21, 12, tzinfo=dt.UTC)
+    assert parse_time("2h", now=now) == now - dt.timedelta(hours=2)
+    assert parse_time("-30m", now=now) == now - dt.timedelta(minutes=30)
+    assert parse_time("2026-11-21T10:00:00") == dt.datetime(2026, 11, 21, 10, tzinfo=dt.UTC)
+    assert parse_time("2026-11-21T10:00:00+01:00") == dt.datetime(2026, 11, 21, 9, tzinfo=dt.UTC)
+    assert parse_time("1795000000") == dt.datetime.fromtimestamp(1_795_000_000, dt.UTC)
+    with pytest.raises(HistoryReadError, match="ISO 8601"):
+        parse_time("yesterday-ish")
+    with pytest.raises(HistoryReadError, match="no history table"):
+        HistoryReader("/nonexistent/history").scan()
+
+
+# --- S3 (moto server mode) --------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def s3() -> Iterator[MotoS3]:
+    server = MotoS3()
+    try:
+        yield server
+    finally:
+        server.close()
+
+
+@pytest.mark.slow
+def test_s3_two_writers_an_outage_and_read_back(s3: MotoS3) -> None:
+    """S3 is moto's server mode (ThreadedMotoServer) on 127.0.0.1, not AWS: the same HTTP API and the
+    conditional PUT (If-None-Match) delta-rs commits with."""
+    uri = f"s3://{s3.bucket}/history"
+    options = s3.storage_options()
+
+    def settings() -> HistorySettings:
+        return HistorySettings(
+            uri=uri, storage_options=options, commit_every_s=0.05, commit_every_rows=100, retry_min_s=0.1
+        )
+
+    writers = [HistoryWriter(settings(), writer_id=f"s3-w{i}").start() for i in range(2)]
+    batches = [samples(600, device=f"arm-00{i + 1}", seed=i) for i in range(2)]
+
+    def feed(i: int, lo: int, hi: int) -> None:
+        for k in range(lo, hi, 100):
+            writers[i].add(TELEMETRY_TABLE, telemetry_table(batches[i][k : k + 100])[0])
+            time.sleep(0.02)
+
+    threads = [threading.Thread(target=feed, args=(i, 0, 300)) for i in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert all(w.flush(30) for w in writers)
+
+    s3.stop()  # the endpoint goes away
+    feed(0, 300, 600)
+    feed(1, 300, 600)
+    assert not writers[0].flush(15)
+    stats = writers[0].stats()
+    assert not stats.storage_ok and "cannot write history" in stats.last_error
+    assert writers[0].buffered_rows() == 300
+    s3.start()  # and comes back with the same bucket
+    assert all(w.flush(30) for w in writers)
+    for w in writers:
+        w.close()
+        assert w.stats().tables[TELEMETRY_TABLE].rows_dropped == 0
+
+    reader = HistoryReader(uri, options)
+    summary = {d.device_id: d.rows for d in reader.summary()}
+    assert summary == {"arm-001": 600, "arm-002": 600}
+    frame = reader.window("arm-002").collect()
+    assert frame["edge_time"].is_sorted() and frame["edge_time"].n_unique() == 600
+    keys = [o["Key"] for o in s3.client().list_objects_v2(Bucket=s3.bucket)["Contents"]]
+    assert all(k.startswith("history/telemetry/") for k in keys)
+    assert any("/date=2026-11-18/" in k for k in keys)
+
+
+def test_demo_style_uri_is_created(tmp_path: Path) -> None:
+    nested = tmp_path / "a" / "b" / "history"
+    HistoryWriter(HistorySettings(uri=str(nested))).close()
+    assert nested.is_dir()
+    assert os.access(nested, os.W_OK)
