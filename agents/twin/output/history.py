@@ -749,13 +749,13 @@ class HistoryWriter:
             raise
         return True
 
-    def _maintain(self) -> None:
+    def _maintain(self, today: dt.date | None = None) -> None:
         """Compact today's and yesterday's partitions, checkpoint, vacuum replaced files, trim the log."""
         from deltalake import DeltaTable  # noqa: PLC0415
         from deltalake.exceptions import CommitFailedError  # noqa: PLC0415
 
         self._next_maintenance = self._clock() + self.settings.maintain_every_s
-        today = dt.datetime.fromtimestamp(self._wall(), dt.UTC).date()
+        today = today or dt.datetime.fromtimestamp(self._wall(), dt.UTC).date()
         days = [today - dt.timedelta(days=1), today]
         for table in SCHEMAS:
             uri = self.settings.table_uri(table)
@@ -814,10 +814,10 @@ class HistoryWriter:
                 self._maintenance_failed(table, exc)
         self._tables.clear()  # the next append reloads the table state maintenance changed
 
-    def maintain_now(self) -> None:
-        """Run maintenance on the caller's thread (tests, `twin history compact`); not concurrent-safe with
-        the committer's own maintenance, which this does not replace."""
-        self._maintain()
+    def maintain_now(self, today: dt.date | None = None) -> None:
+        """Run maintenance on the caller's thread, for `today` (UTC) and the day before; call it on a
+        writer whose committer is closed or has maintenance off (`maintain_every_s = 0`)."""
+        self._maintain(today)
 
     def _maintenance_failed(self, table: str, exc: BaseException) -> None:
         message = _describe_storage_error(self.settings.uri, exc)
