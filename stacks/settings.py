@@ -68,6 +68,10 @@ class TwinSettings:
     # Where the CloudWatch alarms (agent silent, arms stale, critical servo alarm) are e-mailed; empty: the
     # SNS topic only, for other subscribers.
     alarm_email: str | None = None
+    # Telemetry history bucket (docs/history.md): days in S3 Standard before Standard-IA, and whether the
+    # bucket survives `cdk destroy`.
+    history_ia_after_days: int = 30
+    retain_history: bool = True
 
     @property
     def client_is_ipv6(self) -> bool:
@@ -103,6 +107,8 @@ class TwinSettings:
             auto_stop_timezone=_timezone(_str(get, "autoStopTimezone") or "UTC"),
             stack_name=_stack_name(_str(get, "stackName") or cls.stack_name),
             alarm_email=_alarm_email(_str(get, "alarmEmail")),
+            history_ia_after_days=_history_ia_after_days(get("historyIaAfterDays")),
+            retain_history=_bool(get, "retainHistory", True),
         )
         return settings
 
@@ -210,6 +216,24 @@ def _volume_gb(value: Any) -> int:
             "of GB; gp3 tops out at 16 TiB); pass e.g. -c volumeGb=100"
         )
     return size
+
+
+def _history_ia_after_days(value: Any) -> int:
+    if value is None or value == "":
+        return TwinSettings.history_ia_after_days
+    try:
+        days = int(str(value))
+    except ValueError:
+        raise SettingsError(
+            f"historyIaAfterDays={value!r} is not a whole number; pass e.g. -c historyIaAfterDays=30"
+        ) from None
+    # S3 moves objects to Standard-IA no earlier than 30 days after they were written.
+    if not 30 <= days <= 3650:
+        raise SettingsError(
+            f"historyIaAfterDays={days} is outside 30..3650 (S3 refuses a Standard-IA transition before 30 "
+            "days); pass e.g. -c historyIaAfterDays=30"
+        )
+    return days
 
 
 def _devices(value: Any) -> tuple[str, ...]:

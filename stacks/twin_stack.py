@@ -6,6 +6,7 @@ from aws_cdk import CfnOutput, Stack
 from constructs import Construct
 
 from stacks.auto_stop import AutoStop
+from stacks.history_bucket import HistoryBucket
 from stacks.identity import TwinIdentity
 from stacks.iot_endpoint import IotDataEndpoint
 from stacks.monitoring import TwinMonitoring
@@ -41,6 +42,13 @@ class TwinStack(Stack):
             client_id_prefix=CLIENT_ID_PREFIX,
             stack_name=settings.stack_name,
         )
+        self.history = HistoryBucket(
+            self,
+            "History",
+            infrequent_access_after_days=settings.history_ia_after_days,
+            retain=settings.retain_history,
+        )
+        self.history.grant_agent(self.identity.role)
         self.host = TwinHost(
             self,
             "Host",
@@ -61,6 +69,7 @@ class TwinStack(Stack):
                 "LOG_GROUP": self.identity.agent_log_group.log_group_name,
                 # The CloudWatch metrics' Agent dimension, which the monitoring alarms below watch.
                 "AGENT_NAME": settings.stack_name,
+                "HISTORY_URI": self.history.uri,
             },
         )
         self.monitoring = TwinMonitoring(
@@ -113,6 +122,17 @@ class TwinStack(Stack):
             "AlarmTopic",
             value=self.monitoring.topic.topic_arn,
             description="SNS topic the CloudWatch alarms notify (subscribe more endpoints to it)",
+        )
+        CfnOutput(
+            self,
+            "HistoryUri",
+            value=self.history.uri,
+            description="Telemetry history (Delta Lake); read it with `twin history ls --history <this>`. "
+            + (
+                "Kept on cdk destroy: delete it with aws s3 rb s3://<bucket> --force (docs/history.md)"
+                if settings.retain_history
+                else "Deleted with the stack (retainHistory=false)"
+            ),
         )
         CfnOutput(
             self,

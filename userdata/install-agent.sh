@@ -9,6 +9,7 @@
 #   VENV_ARGS   extra `python -m venv` arguments; PIP_ARGS extra `pip install` arguments
 #   AWS_REGION, TOPIC_PREFIX, DEVICES (comma list or *), UNITS, CLIENT_ID_PREFIX, DESKTOP_USER: the settings
 #   AGENT_NAME  the CloudWatch metrics' Agent dimension (the stack name; the stack's alarms watch it)
+#   HISTORY_URI  where the agent keeps telemetry history (s3://<bucket>/history); empty = no history
 # Idempotent: each file is written only when its content differs, pip runs only when the source changed.
 set -euo pipefail
 
@@ -25,6 +26,7 @@ UNITS="${UNITS:-auto}"
 CLIENT_ID_PREFIX="${CLIENT_ID_PREFIX:-so101-twin-}"
 DESKTOP_USER="${DESKTOP_USER:-ubuntu}"
 AGENT_NAME="${AGENT_NAME:-so101-twin}"
+HISTORY_URI="${HISTORY_URI:-}"
 
 VENV=/opt/so101-twin/venv
 CONFIG=/etc/so101-twin/agent.toml
@@ -125,6 +127,10 @@ offline_after_s = 10.0
 
 [http]
 listen = "127.0.0.1:8080"
+
+[history]
+uri = "${HISTORY_URI}"
+region = "${AWS_REGION}"
 
 [log]
 level = "INFO"

@@ -323,7 +323,7 @@ def test_user_data_is_small_has_no_secret_and_fetches_the_assets(synth_default: 
     assert "@@" not in text
     assert text.count("aws s3 cp") == 1  # inside the retrying fetch()
     assert len([line for line in text.splitlines() if line.startswith('fetch "')]) == 2
-    assert text.count("s3://") == 2
+    assert text.count("s3://") == 3  # the two assets, and HISTORY_URI (the history bucket)
     assert "bootstrap.sh /etc/so101-twin/settings.env" in text
     assert "DcvPassword" in text  # the secret's ARN, never its value
     assert "GetSecretValue" not in text and "SecretString" not in text

@@ -91,6 +91,25 @@ class HttpSection:
 
 
 @dataclass(frozen=True)
+class HistorySection:
+    """Telemetry history in Delta Lake (docs/history.md); `uri` empty = off. The defaults are
+    twin.output.history.HistorySettings' (tests/test_config.py keeps the two in step)."""
+
+    uri: str = ""
+    region: str = ""
+    commit_every_s: float = 10.0
+    commit_every_rows: int = 50_000
+    max_buffer_rows: int = 200_000
+    queue_max: int = 30_000
+    maintain_every_s: float = 3600.0
+    vacuum_retention_hours: float = 24.0
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.uri.strip())
+
+
+@dataclass(frozen=True)
 class LogSection:
     level: str = "INFO"
 
@@ -119,6 +138,7 @@ class AgentConfig:
     twin: TwinSection = field(default_factory=TwinSection)
     health: HealthSection = field(default_factory=HealthSection)
     http: HttpSection = field(default_factory=HttpSection)
+    history: HistorySection = field(default_factory=HistorySection)
     log: LogSection = field(default_factory=LogSection)
     alarms: AlarmsSection = field(default_factory=AlarmsSection)
     cloudwatch: CloudWatchSection = field(default_factory=CloudWatchSection)
@@ -136,6 +156,7 @@ _SECTIONS: dict[str, type] = {
     "twin": TwinSection,
     "health": HealthSection,
     "http": HttpSection,
+    "history": HistorySection,
     "log": LogSection,
     "alarms": AlarmsSection,
     "cloudwatch": CloudWatchSection,
@@ -227,6 +248,7 @@ def validate(config: AgentConfig) -> AgentConfig:
     _positive("cloudwatch.interval_s", config.cloudwatch.interval_s)
     if config.cloudwatch.emf_file and not config.cloudwatch.agent_name:
         raise ConfigError("cloudwatch.agent_name is empty; name the agent (the stack renders its stack name)")
+    _validate_history(config.history)
     if config.log.level.upper() not in LOG_LEVELS:
         raise ConfigError(f"log.level = {config.log.level!r} is not one of {', '.join(LOG_LEVELS)}")
     return config
@@ -300,6 +322,34 @@ def _validate_health(h: HealthThresholds) -> None:
         raise ConfigError(
             f"health.offline_after_s = {h.offline_after_s} must be longer than the stale time "
             f"(stale_periods / expected_rate_hz = {h.stale_after_s:g} s); raise offline_after_s"
+        )
+
+
+def _validate_history(hs: HistorySection) -> None:
+    if not hs.enabled:
+        return
+    uri = hs.uri.strip()
+    if "://" in uri and not uri.startswith(("s3://", "file://")):
+        raise ConfigError(
+            f'history.uri = {hs.uri!r} is not a directory or s3://bucket/prefix; e.g. uri = "out/history"'
+        )
+    if uri.startswith("s3://") and not uri.removeprefix("s3://").split("/", 1)[0]:
+        raise ConfigError(f'history.uri = {hs.uri!r} names no bucket; use uri = "s3://<bucket>/history"')
+    if "://" not in uri and Path(uri).exists() and not Path(uri).is_dir():
+        raise ConfigError(f"history.uri = {hs.uri!r} is a file; give a directory (created if missing)")
+    for key in ("commit_every_s", "maintain_every_s", "vacuum_retention_hours"):
+        value = getattr(hs, key)
+        if value < 0 or (key == "commit_every_s" and value == 0):
+            raise ConfigError(
+                f"history.{key} = {value!r} must be greater than 0 (maintain_every_s: 0 = never)"
+            )
+    for key in ("commit_every_rows", "max_buffer_rows", "queue_max"):
+        if getattr(hs, key) < 1:
+            raise ConfigError(f"history.{key} = {getattr(hs, key)!r} must be at least 1")
+    if hs.max_buffer_rows < hs.commit_every_rows:
+        raise ConfigError(
+            f"history.max_buffer_rows = {hs.max_buffer_rows} must be at least commit_every_rows = "
+            f"{hs.commit_every_rows}"
         )
 
 

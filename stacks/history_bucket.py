@@ -1,0 +1,115 @@
+"""The telemetry history bucket: Delta tables the host's agent writes under `history/` (docs/history.md)."""
+
+from __future__ import annotations
+
+from aws_cdk import Acknowledgment, Duration, RemovalPolicy, Stack, Validations
+from aws_cdk import aws_iam as iam
+from aws_cdk import aws_s3 as s3
+from constructs import Construct
+
+from stacks.skips import skip_checkov
+
+HISTORY_PREFIX = "history"
+# S3 Standard-IA bills every object as at least 128 KB; Delta's small log files stay in Standard.
+IA_MIN_OBJECT_BYTES = 128 * 1024
+
+
+class HistoryBucket(Construct):
+    """An encrypted, private, TLS-only bucket whose `history/` objects move to Standard-IA after
+    `infrequent_access_after_days`; kept on `cdk destroy` unless `retain` is false.
+
+    Attributes: `bucket`, `uri` (what the agent config's [history] uri is set to). `grant_agent(role)` gives a
+    role exactly the history prefix.
+    """
+
+    def __init__(
+        self, scope: Construct, id_: str, *, infrequent_access_after_days: int, retain: bool
+    ) -> None:
+        super().__init__(scope, id_)
+        self.bucket = s3.Bucket(
+            self,
+            "Bucket",
+            encryption=s3.BucketEncryption.S3_MANAGED,
+            block_public_access=s3.BlockPublicAccess.BLOCK_ALL,
+            enforce_ssl=True,
+            object_ownership=s3.ObjectOwnership.BUCKET_OWNER_ENFORCED,
+            lifecycle_rules=[
+                s3.LifecycleRule(
+                    id="HistoryToInfrequentAccess",
+                    prefix=f"{HISTORY_PREFIX}/",
+                    object_size_greater_than=IA_MIN_OBJECT_BYTES,
+                    transitions=[
+                        s3.Transition(
+                            storage_class=s3.StorageClass.INFREQUENT_ACCESS,
+                            transition_after=Duration.days(infrequent_access_after_days),
+                        )
+                    ],
+                ),
+                # One lease object per table and maintenance window (docs/history.md, Maintenance).
+                s3.LifecycleRule(
+                    id="ExpireMaintenanceLeases",
+                    prefix=f"{HISTORY_PREFIX}/_maintenance/",
+                    expiration=Duration.days(2),
+                ),
+                s3.LifecycleRule(
+                    id="AbortIncompleteUploads", abort_incomplete_multipart_upload_after=Duration.days(1)
+                ),
+            ],
+            # History outlives the instance: by default `cdk destroy` leaves the bucket (docs/deploy.md says
+            # how to delete it). With retainHistory=false the stack empties and deletes it.
+            removal_policy=RemovalPolicy.RETAIN if retain else RemovalPolicy.DESTROY,
+            auto_delete_objects=not retain,
+        )
+        # CloudFormation types ObjectSizeGreaterThan as a string; CDK writes a number (cfn-lint W9003).
+        cfn = self.bucket.node.default_child
+        assert isinstance(cfn, s3.CfnBucket)
+        cfn.add_property_override(
+            "LifecycleConfiguration.Rules.0.ObjectSizeGreaterThan", str(IA_MIN_OBJECT_BYTES)
+        )
+        self.uri = f"s3://{self.bucket.bucket_name}/{HISTORY_PREFIX}"
+        Validations.of(self.bucket).acknowledge(
+            Acknowledgment(
+                id="AwsSolutions-S1",
+                reason="Server access logs would need a second bucket and grow with every commit (one every "
+                "10 s); the only writer is this stack's host role, whose API calls CloudTrail records.",
+            )
+        )
+        skip_checkov(
+            self.bucket,
+            {
+                "CKV_AWS_18": "Access logging: see the AwsSolutions-S1 acknowledgement (CloudTrail "
+                "covers the single writer).",
+                "CKV_AWS_21": "Versioning would keep every file Delta compacts and vacuums away forever; "
+                "the Delta log itself versions the tables (time travel within the vacuum retention).",
+                "CKV_AWS_145": "SSE-S3 encrypts every object; a customer KMS key would add a key policy and "
+                "a KMS request per object read or written for no gain in a single-account dev stack.",
+            },
+        )
+
+    def grant_agent(self, role: iam.IRole) -> None:
+        """Read, write and delete under `history/` only; list only that prefix."""
+        stack = Stack.of(self)
+        objects = self.bucket.arn_for_objects(f"{HISTORY_PREFIX}/*")
+        role.add_to_principal_policy(
+            iam.PolicyStatement(
+                sid="HistoryObjects",
+                actions=["s3:GetObject", "s3:PutObject", "s3:DeleteObject"],
+                resources=[objects],
+            )
+        )
+        role.add_to_principal_policy(
+            iam.PolicyStatement(
+                sid="HistoryList",
+                actions=["s3:ListBucket"],
+                resources=[self.bucket.bucket_arn],
+                conditions={"StringLike": {"s3:prefix": [f"{HISTORY_PREFIX}/*", HISTORY_PREFIX]}},
+            )
+        )
+        Validations.of(role).acknowledge(
+            Acknowledgment(
+                id=f"AwsSolutions-IAM5[Resource::<{stack.get_logical_id(self.bucket.node.default_child)}.Arn>/"
+                f"{HISTORY_PREFIX}/*]",
+                reason="Delta Lake writes a new object per commit (Parquet files, log entries, checkpoints) "
+                "under keys it chooses; the wildcard is the history prefix of this stack's own bucket only.",
+            )
+        )

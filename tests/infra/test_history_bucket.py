@@ -1,0 +1,106 @@
+"""The history bucket: encrypted, private, TLS only, cheaper storage after N days, retained by default, and
+the host role limited to its `history/` prefix (docs/history.md)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+from aws_cdk.assertions import Match
+
+from stacks.settings import SettingsError, TwinSettings
+
+from .synth import CLIENT_CIDR, Synth
+from .test_stack import flatten, policy_statements, statement, user_data_text
+
+
+def bucket(synth: Synth) -> dict[str, Any]:
+    return synth.one("AWS::S3::Bucket")
+
+
+def test_bucket_is_encrypted_private_and_retained(synth_default: Synth) -> None:
+    resource = bucket(synth_default)
+    props = resource["Properties"]
+    assert props["BucketEncryption"]["ServerSideEncryptionConfiguration"] == [
+        {"ServerSideEncryptionByDefault": {"SSEAlgorithm": "AES256"}}
+    ]
+    assert props["PublicAccessBlockConfiguration"] == {
+        "BlockPublicAcls": True,
+        "BlockPublicPolicy": True,
+        "IgnorePublicAcls": True,
+        "RestrictPublicBuckets": True,
+    }
+    assert resource["DeletionPolicy"] == "Retain" and resource["UpdateReplacePolicy"] == "Retain"
+
+
+def test_bucket_refuses_requests_without_tls(synth_default: Synth) -> None:
+    synth_default.template.has_resource_properties(
+        "AWS::S3::BucketPolicy",
+        {
+            "PolicyDocument": {
+                "Statement": Match.array_with(
+                    [
+                        Match.object_like(
+                            {
+                                "Effect": "Deny",
+                                "Action": "s3:*",
+                                "Condition": {"Bool": {"aws:SecureTransport": "false"}},
+                            }
+                        )
+                    ]
+                )
+            }
+        },
+    )
+
+
+def test_history_moves_to_infrequent_access_after_the_set_days(synth_default: Synth, synth_factory) -> None:
+    rules = {r["Id"]: r for r in bucket(synth_default)["Properties"]["LifecycleConfiguration"]["Rules"]}
+    ia = rules["HistoryToInfrequentAccess"]
+    assert ia["Prefix"] == "history/"
+    assert ia["Transitions"] == [{"StorageClass": "STANDARD_IA", "TransitionInDays": 30}]
+    assert ia["ObjectSizeGreaterThan"] == "131072"  # small Delta log files would cost more in IA
+    assert rules["ExpireMaintenanceLeases"]["ExpirationInDays"] == 2
+    later = synth_factory(historyIaAfterDays="90")
+    rules = {r["Id"]: r for r in bucket(later)["Properties"]["LifecycleConfiguration"]["Rules"]}
+    assert rules["HistoryToInfrequentAccess"]["Transitions"][0]["TransitionInDays"] == 90
+
+
+def test_retain_history_false_deletes_the_bucket_with_the_stack(synth_factory) -> None:
+    synth = synth_factory(retainHistory="false")
+    resource = bucket(synth)
+    assert resource["DeletionPolicy"] == "Delete"
+    # Emptied first by CDK's auto-delete custom resource, or CloudFormation could not delete it.
+    assert synth.resources("Custom::S3AutoDeleteObjects")
+
+
+def test_host_role_gets_exactly_the_history_prefix(synth_default: Synth) -> None:
+    statements = policy_statements(synth_default, "IdentityHostRole")
+    objects = statement(statements, "HistoryObjects")
+    assert sorted(objects["Action"]) == ["s3:DeleteObject", "s3:GetObject", "s3:PutObject"]
+    joined = objects["Resource"]["Fn::Join"][1]
+    assert joined[0]["Fn::GetAtt"][0].startswith("HistoryBucket") and joined[1] == "/history/*"
+    listing = statement(statements, "HistoryList")
+    assert listing["Action"] == "s3:ListBucket"
+    assert listing["Resource"]["Fn::GetAtt"][0].startswith("HistoryBucket")
+    assert listing["Condition"] == {"StringLike": {"s3:prefix": ["history/*", "history"]}}
+    # No other statement reaches the bucket.
+    others = [s.get("Sid") for s in statements if "HistoryBucket" in flatten(s["Resource"])]
+    assert sorted(others) == ["HistoryList", "HistoryObjects"]
+
+
+def test_host_agent_writes_history_to_the_bucket(synth_default: Synth) -> None:
+    text = user_data_text(synth_default)
+    assert "HISTORY_URI=s3://" in text and "/history" in text
+    output = synth_default.json["Outputs"]["HistoryUri"]
+    assert "aws s3 rb" in output["Description"]
+
+
+def test_history_days_setting_is_validated() -> None:
+    def get(values: dict[str, Any]):
+        return {"clientCidr": CLIENT_CIDR, **values}.get
+
+    assert TwinSettings.from_context(get({})).history_ia_after_days == 30
+    assert TwinSettings.from_context(get({"retainHistory": "false"})).retain_history is False
+    with pytest.raises(SettingsError, match=r"historyIaAfterDays=7 is outside 30\.\.3650"):
+        TwinSettings.from_context(get({"historyIaAfterDays": "7"}))
