@@ -35,7 +35,7 @@ from twin.output.history import (
     telemetry_table,
 )
 from twin.output.sinks import AppliedSample, RejectedSample
-from twin.tools.edge_sim import encode, make_payload
+from twin.tools.edge_payload import encode, make_payload
 from twin.tools.history import HistoryReader, HistoryReadError, parse_time, with_decoded
 
 T0 = 1_795_000_000.0  # 2026-11-18T09:46:40Z
@@ -513,7 +513,8 @@ def test_replay_publishes_what_was_recorded_and_the_agent_mirrors_it(
     from twin.service.config import config_from_mapping
     from twin.tools.mosquitto import free_port
     from twin.tools.replay import ReplayConfig, replay
-    from twin.transport.subscriber import BrokerConfig, TelemetrySubscriber
+    from twin.transport.broker import BrokerConfig
+    from twin.transport.subscriber import TelemetrySubscriber
 
     batch = samples(40, variant=variant)
     uri = _history_with(tmp_path, batch)
@@ -529,6 +530,8 @@ def test_replay_publishes_what_was_recorded_and_the_agent_mirrors_it(
                 "broker": {"url": mosquitto.url},
                 "telemetry": {"devices": ["arm-001"], "units": "auto"},
                 "http": {"listen": f"127.0.0.1:{free_port()}"},
+                # The agent keeps its own history of the replay: applied rows with raw readings, rejections.
+                "history": {"uri": str(tmp_path / "agent-history"), "commit_every_s": 0.5},
             }
         )
     )
@@ -567,9 +570,24 @@ def test_replay_publishes_what_was_recorded_and_the_agent_mirrors_it(
         stamps.append(again.timestamp_ms)
     assert stamps[0] >= started * 1000 - 50  # retimed to start now ...
     assert all(b - a == 25 for a, b in itertools.pairwise(stamps))  # ... keeping 100 ms spacing at 4x
-    mirrored = state["devices"]["arm-001"]
+    mirrored = state.devices["arm-001"]
     # units=auto needs a few messages to decide, then mirrors: the last replayed pose is the twin's pose.
-    assert mirrored["counters"]["applied"] >= 30
+    applied = mirrored.counters.applied
+    assert applied >= 30
     last = batch[-1].telemetry.angles_rad
     # The mock motion stays inside the model's joint ranges, so nothing was clamped.
-    assert mirrored["joints_rad"] == pytest.approx(last, abs=1e-9)
+    assert mirrored.joints_rad == pytest.approx(last, abs=1e-9)
+
+    # The agent's history (flushed by stop()) holds every applied message with its raw readings, and the
+    # messages auto-units held back as rejected rows.
+    agent_rows = rows_of(str(tmp_path / "agent-history"))
+    assert agent_rows.height == applied
+    stored = agent_rows.sort("edge_time").row(-1, named=True)
+    sent_last = json.loads(received[-1])["joints"]
+    assert stored["wrist_flex_load_raw"] == sent_last["wrist_flex"]["load"]
+    assert stored["gripper_position_rad"] == last["gripper"]
+    rejected = rows_of(str(tmp_path / "agent-history"), REJECTED_TABLE)
+    assert rejected.height == 40 - applied
+    assert set(rejected["reason"].to_list()) == {"units_undecided"}
+    history = state.agent.history
+    assert history is not None and history.storage_ok and history.commit_failures == 0

@@ -52,6 +52,7 @@ from twin.core.telemetry import (
 from twin.core.topics import device_from_topic, topic_filters
 from twin.core.twin import DeviceTwin, TwinMode, TwinSnapshot
 from twin.output.emf import EmfFileWriter, EmfPublisher, FleetTotals
+from twin.output.history import REJECTED_TABLE, TELEMETRY_TABLE, HistorySettings, HistorySink
 from twin.output.recorder import SessionRecorder
 from twin.output.recording import RecordingSink
 from twin.output.sinks import AppliedSample, RejectedSample, TwinSink
@@ -71,6 +72,7 @@ from twin.service.state import (
     DeviceState,
     FleetLatency,
     HealthReport,
+    HistoryState,
     MailboxState,
     RecordingState,
     ServoState,
@@ -192,6 +194,8 @@ class AgentService:
         self._subscriber: TelemetrySubscriber | None = None
         self._http: AgentHttpServer | None = None
         self._recording: RecordingSink | None = None
+        self._history: HistorySink | None = None
+        self._history_settings = self._history_config(config)
         self._extra_sinks: tuple[TwinSink, ...] = tuple(sinks)
         self._sinks: tuple[TwinSink, ...] = ()
         self._worker: threading.Thread | None = None
@@ -222,6 +226,25 @@ class AgentService:
         except ValueError as exc:
             raise ConfigError(f"[telemetry]: {exc}") from exc
 
+    @staticmethod
+    def _history_config(config: AgentConfig) -> HistorySettings | None:
+        h = config.history
+        if not h.enabled:
+            return None
+        try:
+            return HistorySettings(
+                uri=h.uri.strip(),
+                commit_every_s=h.commit_every_s,
+                commit_every_rows=h.commit_every_rows,
+                max_buffer_rows=h.max_buffer_rows,
+                queue_max=h.queue_max,
+                maintain_every_s=h.maintain_every_s,
+                vacuum_retention_hours=h.vacuum_retention_hours,
+                storage_options={"AWS_REGION": h.region} if h.region else {},
+            )
+        except ValueError as exc:
+            raise ConfigError(f"[history]: {exc}") from exc
+
     # -------------------------------------------------------------------------------------------- lifecycle
 
     def start(self) -> None:
@@ -235,7 +258,17 @@ class AgentService:
             self._recording = RecordingSink(
                 self._open_recorder(Path(self.config.twin.record_dir)), self.robot
             )
-        self._sinks = (*((self._recording,) if self._recording else ()), *self._extra_sinks)
+        if self._history_settings is not None:
+            try:
+                self._history = HistorySink(self._history_settings)
+            except ValueError as exc:
+                self._close_sinks(timeout=5.0)
+                raise OSError(f"history: {exc}") from exc
+        self._sinks = (
+            *((self._recording,) if self._recording else ()),
+            *((self._history,) if self._history else ()),
+            *self._extra_sinks,
+        )
         try:
             self._http = AgentHttpServer(
                 self,
@@ -270,6 +303,7 @@ class AgentService:
                 "mode": str(self.mode),
                 "units": self.config.telemetry.units,
                 "recording": str(self._recording.path) if self._recording else None,
+                "history": self._history_settings.uri if self._history_settings else None,
                 "sinks": [sink.name for sink in self._sinks],
             },
         )
@@ -306,9 +340,11 @@ class AgentService:
         log.info("agent stopped", extra={"processed": self.processed, "errors": self.errors})
 
     def _close_sinks(self, timeout: float) -> None:
-        for sink in self._sinks or self._extra_sinks:
+        sinks = self._sinks or (*((self._recording,) if self._recording else ()), *self._extra_sinks)
+        for sink in sinks:
             try:
-                sink.close(timeout)
+                # History commits what it holds on close; a slow object store needs longer than a file.
+                sink.close(max(timeout, 30.0) if sink is self._history else timeout)
             except Exception:
                 log.exception("closing sink %s failed", sink.name)
 
@@ -551,6 +587,7 @@ class AgentService:
             received_mono_s=item.recv_mono,
             telemetry=telemetry,
             joint_angles=tracked.twin.targets,
+            payload=item.payload,
         )
         for sink in self._sinks:
             self._guard_sink(sink, sink.applied, sample)
@@ -732,8 +769,28 @@ class AgentService:
                 errors=self.errors,
             ),
             recording=self._recording_state(),
+            history=self._history_state(),
             sinks=tuple(sink.stats() for sink in self._sinks),
             alarms=readout.alarms,
+        )
+
+    def _history_state(self) -> HistoryState | None:
+        if self._history is None:
+            return None
+        stats = self._history.writer.stats()
+        rows = stats.tables[TELEMETRY_TABLE]
+        return HistoryState(
+            uri=self._history.writer.settings.uri,
+            storage_ok=stats.storage_ok,
+            rows_committed=rows.rows_committed,
+            commits=rows.commits,
+            commit_failures=sum(t.commit_failures for t in stats.tables.values()),
+            rows_dropped=sum(t.rows_dropped for t in stats.tables.values()) + stats.rows_lost_in_conversion,
+            rows_buffered=sum(t.rows_buffered for t in stats.tables.values()),
+            rejected_rows_committed=stats.tables[REJECTED_TABLE].rows_committed,
+            maintenance_runs=stats.maintenance_runs,
+            maintenance_failures=stats.maintenance_failures,
+            last_error=stats.last_error,
         )
 
     def _broker_state(self) -> BrokerState:

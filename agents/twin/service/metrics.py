@@ -94,6 +94,28 @@ def _agent_families(agent: AgentInfo) -> Iterator[Metric]:
     for sink in agent.sinks:
         pending.add_metric([sink.name], sink.pending)
     yield pending
+    if agent.history is not None:
+        h = agent.history
+        yield _counter(
+            "twin_history_rows_committed_total", "Telemetry rows committed to history.", h.rows_committed
+        )
+        yield _counter("twin_history_commits_total", "History commits (telemetry table).", h.commits)
+        yield _counter(
+            "twin_history_commit_failures_total",
+            "Failed history commits (retried with backoff).",
+            h.commit_failures,
+        )
+        yield _counter(
+            "twin_history_rows_dropped_total",
+            "History rows dropped: the write buffer was full.",
+            h.rows_dropped,
+        )
+        buffered = GaugeMetricFamily("twin_history_rows_buffered", "History rows waiting for a commit.")
+        buffered.add_metric([], h.rows_buffered)
+        yield buffered
+        ok = GaugeMetricFamily("twin_history_storage_ok", "1 while the last history commit succeeded.")
+        ok.add_metric([], 1.0 if h.storage_ok else 0.0)
+        yield ok
     yield from _alarm_families(agent)
 
 

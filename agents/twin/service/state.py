@@ -198,6 +198,24 @@ class RecordingState:
     flush_errors: int = 0
 
 
+@dataclass(frozen=True, slots=True)
+class HistoryState:
+    """The telemetry history writer (docs/history.md; its queue figures are in `agent.sinks`)."""
+
+    uri: str = ""
+    storage_ok: bool = True
+    rows_committed: int = 0
+    commits: int = 0
+    commit_failures: int = 0
+    # Rows dropped because the write buffer was full (an outage longer than max_buffer_rows lasts).
+    rows_dropped: int = 0
+    rows_buffered: int = 0
+    rejected_rows_committed: int = 0
+    maintenance_runs: int = 0
+    maintenance_failures: int = 0
+    last_error: str = ""
+
+
 @dataclass(frozen=True)
 class AgentInfo:
     running: bool = False
@@ -214,6 +232,7 @@ class AgentInfo:
     latency: FleetLatency = field(default_factory=FleetLatency)
     worker: WorkerState = field(default_factory=WorkerState)
     recording: RecordingState | None = None
+    history: HistoryState | None = None
     sinks: tuple[SinkStats, ...] = ()
     alarms: AlarmsSummary = field(default_factory=AlarmsSummary)
 

@@ -20,9 +20,11 @@ from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from twin.core.topics import telemetry_topic
 from twin.output.history import JOINTS, RAW_FIELDS, raw_column
 from twin.tools.history import HistoryReader, HistoryReadError
-from twin.transport.subscriber import BrokerConfig, build_mqtt5_client, new_client_id, topic_for
+from twin.transport.broker import BrokerConfig, new_client_id
+from twin.transport.client import build_mqtt5_client
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +53,7 @@ class ReplayConfig:
             raise ValueError(f"--speed {self.speed} must be in (0, 1000]")
         if self.end <= self.start:
             raise ValueError(f"--to ({self.end.isoformat()}) must be after --from ({self.start.isoformat()})")
-        topic_for(self.topic_prefix, self.target_device)  # refuses ids that are not one topic level
+        telemetry_topic(self.topic_prefix, self.target_device)  # refuses ids that are not one topic level
 
     @property
     def target_device(self) -> str:
@@ -146,7 +148,7 @@ def replay(
         on_connection_success=lambda _data: connected.set(),
     )
     client.start()
-    topic = topic_for(config.topic_prefix, config.target_device)
+    topic = telemetry_topic(config.topic_prefix, config.target_device)
     try:
         if not connected.wait(config.connect_timeout_s):
             raise HistoryReadError(

@@ -53,7 +53,7 @@ def register(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     from twin.tools.history import HistoryReadError, parse_time
     from twin.tools.replay import ReplayConfig, replay
-    from twin.transport.subscriber import BrokerConfig, BrokerConfigError
+    from twin.transport.broker import BrokerConfig, BrokerConfigError
 
     try:
         config = ReplayConfig(

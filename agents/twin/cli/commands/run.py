@@ -55,6 +55,11 @@ def register(subparsers: Any) -> None:
     )
     parser.add_argument("--mode", metavar="MODE", help="twin mode: kinematic or physics")
     parser.add_argument("--record-dir", metavar="DIR", help="record a USD session into DIR")
+    parser.add_argument(
+        "--history",
+        metavar="URI",
+        help='keep telemetry history in Delta Lake at URI (a directory or s3://bucket/prefix; "" = off)',
+    )
     parser.add_argument("--log-level", metavar="LEVEL", help="DEBUG, INFO, WARNING or ERROR")
     parser.set_defaults(func=run)
 
@@ -69,6 +74,7 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         "telemetry.topic_prefix": args.topic_prefix,
         "twin.mode": args.mode,
         "twin.record_dir": args.record_dir,
+        "history.uri": args.history,
         "log.level": args.log_level,
     }
 

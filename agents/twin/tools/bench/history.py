@@ -27,7 +27,7 @@ from typing import Any
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
 from twin.output.history import TELEMETRY_TABLE, HistorySettings, HistoryWriter, telemetry_table
 from twin.output.sinks import AppliedSample
-from twin.tools.edge_sim import encode, make_payload
+from twin.tools.edge_payload import encode, make_payload
 from twin.tools.history import HistoryReader
 
 RATE_HZ = 10.0
