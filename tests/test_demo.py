@@ -28,6 +28,7 @@ STATS_FIELDS = {
     "per_device",
     "broker",
     "files",
+    "history",
 }
 MESSAGE_FIELDS = {"sent", "received", "decoded", "applied", "rejected", "rejected_by_reason", "lost"}
 
@@ -113,6 +114,13 @@ def test_demo_leaves_valid_files_and_stops_its_broker(tmp_path):
     ]
     assert sampled, "the USD session has no time-sampled attributes"
     assert max(a.GetNumTimeSamples() for a in sampled) >= 10
+
+    # The history beside the other outputs: every applied message as a row, and its plot.
+    history = stats["history"]
+    assert history["rows"] == {"arm-001": messages["applied"]}
+    assert history["rejected"] == {}
+    assert (out / history["uri"] / "telemetry" / "_delta_log").is_dir()
+    assert_not_blank(out / history["plot"])
 
     assert_broker_gone(stats)
 

@@ -8,6 +8,8 @@ Afterwards the output directory holds:
   twin.gif    a ~30-frame animation of the run (first device), rendered offscreen
   session-*.usda  the agent's USD session recording
   stats.json  what was sent, received, rejected (by reason), latencies, per-device health
+  history/    the agent's telemetry history (Delta Lake tables, docs/history.md)
+  history.png the first device's joint angles, temperature, load and current, drawn from that history
 Everything started here is stopped in `finally`, also on Ctrl-C / SIGTERM (the caller sets `stop`).
 docs/viewer.md explains stats.json.
 """
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 import threading
 import time
 from collections.abc import Callable
@@ -30,7 +33,8 @@ log = logging.getLogger(__name__)
 
 # Files this module writes into the output directory; earlier runs' copies are removed first so the directory
 # always describes one run. Nothing else in the directory is touched.
-OUTPUT_PATTERNS = ("twin.png", "twin.gif", "stats.json", "session-*.usda")
+OUTPUT_PATTERNS = ("twin.png", "twin.gif", "stats.json", "session-*.usda", "history.png")
+HISTORY_DIR = "history"
 STATUS_INTERVAL_S = 0.25
 
 
@@ -124,6 +128,8 @@ def _clear_outputs(out_dir: Path) -> None:
     for pattern in OUTPUT_PATTERNS:
         for path in out_dir.glob(pattern):
             path.unlink()
+    # A new table per run: appending to the last run's would mix two runs in one history.
+    shutil.rmtree(out_dir / HISTORY_DIR, ignore_errors=True)
 
 
 @dataclass
@@ -180,6 +186,8 @@ def run_demo(
         raise DemoError(f"the edge simulator failed: {exc}") from exc
     broker = {"url": broker_url, "pid": broker_pid}
     stats, final = _checked_stats(config, run, broker, service, interrupted=stop.is_set())
+    # History first: stats.json, written with the other outputs, says what the table holds.
+    _write_history_outputs(devices, stats, out_dir)
     _write_outputs(
         config=config, state=final, service=service, run=run, devices=devices, stats=stats, out_dir=out_dir
     )
@@ -221,6 +229,9 @@ def _agent_overrides(config: DemoConfig, devices: list[str], out_dir: Path) -> d
         "twin.record_dir": str(out_dir),
         "twin.record_format": "usda",
         "health.expected_rate_hz": config.rate_hz,
+        # A commit every 2 s, so even a short demo leaves a table of several versions.
+        "history.uri": str(out_dir / HISTORY_DIR),
+        "history.commit_every_s": 2.0,
     }
 
 
@@ -366,6 +377,24 @@ def _write_outputs(
     files["usd"] = Path(recording).name
     stats["files"] = files
     (out_dir / "stats.json").write_text(json.dumps(stats, indent=2, sort_keys=False) + "\n")
+
+
+def _write_history_outputs(devices: list[str], stats: dict[str, Any], out_dir: Path) -> None:
+    """What the history holds after the agent stopped (its last commit included), and its plot."""
+    from twin.tools.history import HistoryReader, HistoryReadError, plot  # noqa: PLC0415
+
+    reader = HistoryReader(str(out_dir / HISTORY_DIR))
+    try:
+        summary = reader.summary()
+        result = plot(reader, devices[0], out_dir / "history.png")
+    except HistoryReadError as exc:
+        raise DemoError(f"the agent left no usable history in {out_dir / HISTORY_DIR}: {exc}") from exc
+    stats["history"] = {
+        "uri": HISTORY_DIR,
+        "rows": {d.device_id: d.rows for d in summary},
+        "rejected": reader.rejected_counts(),
+        "plot": Path(result["path"]).name,
+    }
 
 
 def _write_gif(robot: Any, frames: list[dict[str, float]], path: Path, size: tuple[int, int]) -> Path:
