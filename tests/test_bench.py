@@ -83,3 +83,28 @@ def test_footprint_reports_cold_start_and_memory() -> None:
     } <= set(figures)
     assert figures["fleet_devices_mirrored"] == 20
     assert figures["cold_start_to_first_pose_s"] > 0
+
+
+def test_history_storage_reports_bytes_per_arm_day() -> None:
+    figures = bench("history-storage", "--hours", "0.05")
+    assert figures["scenario"] == "history-storage"
+    assert figures["messages"] == 1800  # 3 simulated minutes at 10 Hz, all through the real writer
+    assert {"data_bytes", "files", "bytes_per_message", "mb_per_arm_day", "compact_s", "write_s"} <= set(figures)
+    assert figures["files"] == 1 and figures["data_bytes"] > 0
+
+
+def test_history_read_reports_one_devices_window_before_and_after_compaction() -> None:
+    figures = bench("history-read", "--arms", "5", "--minutes", "1")
+    assert figures["scenario"] == "history-read"
+    assert figures["device_rows_read"] == 600 and figures["rows_match"] is True
+    assert figures["files_before_compaction"] == 6 and figures["files_after_compaction"] == 1
+    assert {"read_s_before_compaction", "read_s_after_compaction"} <= set(figures)
+
+
+def test_history_load_compares_the_mirror_with_history_off_and_on() -> None:
+    figures = bench("history-load", "--arms", "20", "--seconds", "2")
+    assert figures["scenario"] == "history-load"
+    assert {"mirrored_rate_on_over_off", "internal_p99_on_over_off", "table_bytes"} <= set(figures)
+    assert figures["on"]["history"] is not None and figures["off"]["history"] is None
+    # Every message the agent handed to history is a row once SIGTERM's final commit is done.
+    assert figures["rows_written"] == figures["rows_handed_to_history"] > 0

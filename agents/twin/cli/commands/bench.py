@@ -32,11 +32,24 @@ def register(subparsers: Any) -> None:
     fo.add_argument("--arms", type=int, default=1000)
     fo.add_argument("--seconds", type=float, default=8.0, help="how long the fleet publishes")
 
+    hs = sub.add_parser("history-storage", help="bytes one arm's day of history takes (edge mock, compacted)")
+    hs.add_argument("--hours", type=float, default=24.0, help="simulated hours written (scaled to a day)")
+    hs.add_argument("--variant", choices=["ticks", "degrees"], default="ticks")
+
+    hr = sub.add_parser("history-read", help="one device's hour read back from a fleet's history table")
+    hr.add_argument("--arms", type=int, default=100)
+    hr.add_argument("--minutes", type=float, default=60.0)
+
+    hl = sub.add_parser("history-load", help="the mirror with history off vs on; rows written vs received")
+    hl.add_argument("--arms", type=int, default=1000)
+    hl.add_argument("--rate", type=float, default=10.0)
+    hl.add_argument("--seconds", type=float, default=20.0)
+
     al = sub.add_parser("all", help="every scenario as published in docs/performance.md, plus the plot")
     al.add_argument("--seconds", type=float, default=20.0, help="throughput run length")
     al.add_argument("--plot", type=Path, default=Path("docs/performance.png"))
 
-    for p in (tp, fi, fo, al):
+    for p in (tp, fi, fo, hs, hr, hl, al):
         p.add_argument("--json", action="store_true", help="print the figures as one JSON object")
         p.set_defaults(func=run)
 
@@ -47,6 +60,13 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
     fidelity = import_dev_tool("twin.tools.bench.fidelity", "bench")
     footprint = import_dev_tool("twin.tools.bench.footprint", "bench")
 
+    if args.scenario.startswith("history-"):
+        history = import_dev_tool("twin.tools.bench.history", "bench")
+        if args.scenario == "history-storage":
+            return history.storage(hours=args.hours, variant=args.variant)
+        if args.scenario == "history-read":
+            return history.read(arms=args.arms, minutes=args.minutes)
+        return history.load(arms=args.arms, rate=args.rate, seconds=args.seconds)
     if args.scenario == "throughput":
         return throughput.run(arms=args.arms, rate=args.rate, seconds=args.seconds)
     if args.scenario == "fidelity":

@@ -185,3 +185,49 @@ def read(*, arms: int = 100, minutes: float = 60.0, commit_every_s: float = 10.0
         }
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def load(*, arms: int = 1000, rate: float = 10.0, seconds: float = 20.0) -> dict[str, Any]:
+    """The mirror with history off, then on, under the same offered load; and the table against the sink.
+
+    Both phases run `twin run` as a child process on one private broker (twin.tools.bench.throughput). After
+    the second the agent is stopped with SIGTERM (its final commit), and the rows in the tables are compared
+    with the messages the agent handed to the history sink (applied + rejected).
+    """
+    from twin.tools.bench.throughput import _agent  # noqa: PLC0415
+    from twin.tools.rig import LocalRig  # noqa: PLC0415
+
+    tmp = Path(tempfile.mkdtemp(prefix="twin-bench-history-load-"))
+    uri = str(tmp / "history")
+    try:
+        with LocalRig() as rig:
+            off = _agent(rig, arms, rate, seconds)
+            on = _agent(rig, arms, rate, seconds, history=uri)
+        reader = HistoryReader(uri)
+        rows = sum(d.rows for d in reader.summary())
+        rejected_rows = sum(reader.rejected_counts().values())
+        handed = on["applied"] + on["rejected"]
+
+        def ratio(key: str, sub: str | None = None) -> float | None:
+            a = off[key] if sub is None else off[key][sub]
+            b = on[key] if sub is None else on[key][sub]
+            return round(b / a, 4) if a else None
+
+        return {
+            "scenario": "history-load",
+            "arms": arms,
+            "rate_hz": rate,
+            "seconds": seconds,
+            "off": off,
+            "on": on,
+            "mirrored_rate_on_over_off": ratio("mirrored_rate"),
+            "internal_p99_on_over_off": ratio("internal_latency_s", "p99"),
+            "rows_written": rows + rejected_rows,
+            "telemetry_rows": rows,
+            "rejected_rows": rejected_rows,
+            "rows_handed_to_history": handed,
+            "rows_equal": rows + rejected_rows == handed,
+            "table_bytes": _dir_bytes(tmp / "history"),
+        }
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)

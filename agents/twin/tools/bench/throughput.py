@@ -107,8 +107,10 @@ def _drained(base: str) -> AgentState:
     return state
 
 
-def _agent(rig: LocalRig, arms: int, rate: float, seconds: float) -> dict[str, Any]:
-    with running_agent(rig) as (proc, base):
+def _agent(
+    rig: LocalRig, arms: int, rate: float, seconds: float, *, history: str | None = None
+) -> dict[str, Any]:
+    with running_agent(rig, history=history) as (proc, base):
         wait_subscribed(base, proc)
         before = get_state(base)
         sampler = ProcessSampler(proc.pid).start()
@@ -136,6 +138,7 @@ def _agent(rig: LocalRig, arms: int, rate: float, seconds: float) -> dict[str, A
         # Messages that reached the twin (decoded and applied) per second; the rest of `received` was
         # coalesced by the latest-value mailbox (a newer pose of the same arm replaced it) or rejected.
         "mirrored_rate": applied / elapsed if elapsed else 0.0,
+        "history": dataclasses.asdict(state.agent.history) if state.agent.history else None,
         "internal_latency_s": dataclasses.asdict(state.agent.latency.internal_s),
         "end_to_end_latency_s": dataclasses.asdict(state.agent.latency.end_to_end_s),
         **usage,
