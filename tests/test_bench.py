@@ -89,7 +89,8 @@ def test_history_storage_reports_bytes_per_arm_day() -> None:
     figures = bench("history-storage", "--hours", "0.05")
     assert figures["scenario"] == "history-storage"
     assert figures["messages"] == 1800  # 3 simulated minutes at 10 Hz, all through the real writer
-    assert {"data_bytes", "files", "bytes_per_message", "mb_per_arm_day", "compact_s", "write_s"} <= set(figures)
+    fields = {"data_bytes", "files", "bytes_per_message", "mb_per_arm_day", "compact_s", "write_s"}
+    assert fields <= set(figures)
     assert figures["files"] == 1 and figures["data_bytes"] > 0
 
 
