@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 from pathlib import Path
 
 import pytest
@@ -11,6 +12,7 @@ from twin.service.config import (
     UNITS_CHOICES,
     AgentConfig,
     ConfigError,
+    HistorySection,
     config_from_mapping,
     load_config,
 )
@@ -60,6 +62,37 @@ def test_example_config_loads() -> None:
     config = load_config(REPO / "examples" / "agent.toml")
     assert config.http.host == "127.0.0.1"
     assert config.telemetry.devices == ("arm-001",)
+    assert config.history == HistorySection()  # the example lists the defaults
+
+
+def test_history_section_defaults_match_the_writers() -> None:
+    from twin.output.history import HistorySettings
+
+    section, writer = HistorySection(), HistorySettings(uri="x")
+    for key in ("commit_every_s", "commit_every_rows", "max_buffer_rows", "queue_max", "maintain_every_s"):
+        assert getattr(section, key) == getattr(writer, key), key
+    assert section.vacuum_retention_hours == writer.vacuum_retention_hours
+    assert not section.enabled
+
+
+@pytest.mark.parametrize(
+    ("toml", "message"),
+    [
+        ('[history]\nuri = "gs://b/h"', "is not a directory or s3://bucket/prefix"),
+        ('[history]\nuri = "s3:///h"', "names no bucket"),
+        ('[history]\nuri = "h"\ncommit_every_s = 0', "history.commit_every_s = 0.0 must be greater than 0"),
+        ('[history]\nuri = "h"\nmax_buffer_rows = 10', "must be at least commit_every_rows"),
+        ('[history]\nuri = "h"\nurl = "x"', "unknown key 'history.url'"),
+    ],
+)
+def test_history_settings_are_checked(tmp_path: Path, toml: str, message: str) -> None:
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        load_config(write(tmp_path, toml))
+
+
+def test_history_flag_turns_it_on(tmp_path: Path) -> None:
+    config = load_config(None, {"history.uri": str(tmp_path / "h")})
+    assert config.history.enabled and config.history.uri == str(tmp_path / "h")
 
 
 def test_values_and_derived_properties(tmp_path: Path) -> None:
