@@ -361,6 +361,7 @@ def test_settings_refuse_bad_values_with_the_fix() -> None:
 def test_reader_errors_and_times() -> None:
     now = dt.datetime(2026, 11, 21, 12, tzinfo=dt.UTC)
     assert parse_time("2h", now=now) == now - dt.timedelta(hours=2)
+    assert parse_time("now", now=now) == now
     assert parse_time("-30m", now=now) == now - dt.timedelta(minutes=30)
     assert parse_time("2026-11-21T10:00:00") == dt.datetime(2026, 11, 21, 10, tzinfo=dt.UTC)
     assert parse_time("2026-11-21T10:00:00+01:00") == dt.datetime(2026, 11, 21, 9, tzinfo=dt.UTC)

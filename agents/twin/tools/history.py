@@ -50,10 +50,12 @@ class HistoryReadError(ValueError):
 
 
 def parse_time(text: str, *, now: dt.datetime | None = None) -> dt.datetime:
-    """A point in time from the command line: ISO 8601 (no zone = UTC), epoch seconds, or `-2h` / `90m`
-    (that long before now)."""
+    """A point in time from the command line: ISO 8601 (no zone = UTC), epoch seconds, `now`, or `-2h` /
+    `90m` (that long before now)."""
     value = text.strip()
     now = now or dt.datetime.now(dt.UTC)
+    if value.lower() == "now":
+        return now
     match = _RELATIVE.match(value)
     if match:
         return now - dt.timedelta(seconds=float(match.group(1)) * _UNIT_S[match.group(2)])
