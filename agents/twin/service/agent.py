@@ -36,7 +36,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 from twin.core.alarms import AlarmEvent, AlarmView, ServoAlarms, Severity
 from twin.core.health import DeviceStatus, FleetHealth, HealthSnapshot
@@ -52,7 +52,6 @@ from twin.core.telemetry import (
 from twin.core.topics import device_from_topic, topic_filters
 from twin.core.twin import DeviceTwin, TwinMode, TwinSnapshot
 from twin.output.emf import EmfFileWriter, EmfPublisher, FleetTotals
-from twin.output.history import REJECTED_TABLE, TELEMETRY_TABLE, HistorySettings, HistorySink
 from twin.output.recorder import SessionRecorder
 from twin.output.recording import RecordingSink
 from twin.output.sinks import AppliedSample, RejectedSample, TwinSink
@@ -80,6 +79,10 @@ from twin.service.state import (
 )
 from twin.transport.mailbox import LatestValueMailbox
 from twin.transport.subscriber import TelemetrySubscriber
+
+if TYPE_CHECKING:
+    # pyarrow and deltalake (~70 MB resident) load only when history is on.
+    from twin.output.history import HistorySettings, HistorySink
 
 log = logging.getLogger(__name__)
 
@@ -231,6 +234,8 @@ class AgentService:
         h = config.history
         if not h.enabled:
             return None
+        from twin.output.history import HistorySettings  # noqa: PLC0415 - heavy; only with history on
+
         try:
             return HistorySettings(
                 uri=h.uri.strip(),
@@ -259,6 +264,8 @@ class AgentService:
                 self._open_recorder(Path(self.config.twin.record_dir)), self.robot
             )
         if self._history_settings is not None:
+            from twin.output.history import HistorySink  # noqa: PLC0415 - heavy; only with history on
+
             try:
                 self._history = HistorySink(self._history_settings)
             except ValueError as exc:
@@ -777,6 +784,8 @@ class AgentService:
     def _history_state(self) -> HistoryState | None:
         if self._history is None:
             return None
+        from twin.output.history import REJECTED_TABLE, TELEMETRY_TABLE  # noqa: PLC0415
+
         stats = self._history.writer.stats()
         rows = stats.tables[TELEMETRY_TABLE]
         return HistoryState(
