@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 from typing import Any
+
+from twin.cli.output import Console
 
 DEFAULT_URI = "out/history"
 EXIT_EMPTY = 1
@@ -78,14 +79,19 @@ def window(args: argparse.Namespace) -> tuple[Any, Any]:
     return since, until
 
 
+def _console(command: str) -> Console:
+    return Console(f"history {command}")
+
+
 def _fail(command: str, exc: Exception) -> int:
-    sys.stderr.write(f"twin history {command}: {exc}\n")
+    _console(command).err(str(exc))
     return EXIT_EMPTY
 
 
 def run_ls(args: argparse.Namespace) -> int:
     from twin.tools.history import HistoryReader, HistoryReadError
 
+    console = _console("ls")
     try:
         since, until = window(args)
         reader = HistoryReader(args.history)
@@ -95,25 +101,26 @@ def run_ls(args: argparse.Namespace) -> int:
         return _fail("ls", exc)
     if args.json:
         out = {"uri": args.history, "devices": [d.as_dict() for d in devices], "rejected": rejected}
-        print(json.dumps(out, indent=2))
+        console.out(json.dumps(out, indent=2))
         return 0 if devices else EXIT_EMPTY
     if not devices:
-        sys.stderr.write(f"twin history ls: no rows in {args.history} for this selection\n")
+        console.err(f"no rows in {args.history} for this selection")
         return EXIT_EMPTY
     rows = sum(d.rows for d in devices)
-    print(f"{args.history}: {len(devices)} device(s), {rows} messages, {sum(rejected.values())} rejected")
+    total_rejected = sum(rejected.values())
+    console.out(f"{args.history}: {len(devices)} device(s), {rows} messages, {total_rejected} rejected")
     for d in devices:
         first, last = d.as_dict()["first"], d.as_dict()["last"]
-        print(f"{d.device_id}  {d.rows} messages  {first} .. {last}  units {','.join(d.units)}")
+        console.out(f"{d.device_id}  {d.rows} messages  {first} .. {last}  units {','.join(d.units)}")
         for i, s in enumerate(d.sessions, start=1):
             info = s.as_dict()
             rate = f"{info['rate_hz']:.1f} Hz" if info["rate_hz"] else "-"
-            print(
+            console.out(
                 f"  session {i}: {info['start']} .. {info['end']}  {info['seconds']:.0f} s  "
                 f"{info['rows']} messages  {rate}"
             )
     if rejected:
-        print("rejected: " + ", ".join(f"{k} {v}" for k, v in sorted(rejected.items())))
+        console.out("rejected: " + ", ".join(f"{k} {v}" for k, v in sorted(rejected.items())))
     return 0
 
 
@@ -125,7 +132,7 @@ def run_plot(args: argparse.Namespace) -> int:
         result = plot(HistoryReader(args.history), args.device, args.out, since=since, until=until)
     except HistoryReadError as exc:
         return _fail("plot", exc)
-    print(
+    _console("plot").out(
         f"wrote {result['path']}: {result['rows']} messages of {args.device}, "
         f"{result['first']} .. {result['last']}"
     )
@@ -149,5 +156,5 @@ def run_export(args: argparse.Namespace) -> int:
         )
     except HistoryReadError as exc:
         return _fail("export", exc)
-    print(f"wrote {out}: {rows} rows ({args.format})")
+    _console("export").out(f"wrote {out}: {rows} rows ({args.format})")
     return 0 if rows else EXIT_EMPTY

@@ -9,11 +9,13 @@ from __future__ import annotations
 import argparse
 import json
 import signal
-import sys
 import threading
 from typing import Any
 
 from twin.cli.commands.history import add_uri_argument
+from twin.cli.output import Console
+
+console = Console("replay")
 
 EXIT_FAILED = 1
 EXIT_USAGE = 2
@@ -68,22 +70,22 @@ def run(args: argparse.Namespace) -> int:
             original_timestamps=args.original_timestamps,
         )
     except (ValueError, BrokerConfigError) as exc:
-        sys.stderr.write(f"twin replay: {exc}\n")
+        console.err(str(exc))
         return EXIT_USAGE
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
         report = replay(config, stop=stop)
     except HistoryReadError as exc:
-        sys.stderr.write(f"twin replay: {exc}\n")
+        console.err(str(exc))
         return EXIT_FAILED
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     if args.json:
-        print(json.dumps(report.as_dict(), indent=2))
+        console.out(json.dumps(report.as_dict(), indent=2))
     else:
-        print(
+        console.out(
             f"replayed {report.published} messages of {args.device} as {config.target_device} in "
             f"{report.elapsed_s:.1f} s (recorded {report.first_recorded} .. {report.last_recorded}); "
             f"publish failures {report.publish_failures}, late {report.late}"
