@@ -916,7 +916,9 @@ class HistoryWorker:
     def close(self) -> None:
         self._convert_applied()
         self._convert_rejected()
-        self.writer.close()
+        # Shorter than the agent's 30 s wait for this sink, so a dead store is reported by the writer (with
+        # the count of rows it could not write) before the sink gives up on it.
+        self.writer.close(timeout=25.0)
 
     def _convert_applied(self) -> None:
         samples, self._applied = self._applied, []
