@@ -106,7 +106,7 @@ def test_decoded_diagnostics_on_read_equal_the_decoder(variant: str) -> None:
             assert row[f"{joint}_velocity_rad_s"] == pytest.approx(diag.velocity_rad_s, rel=1e-12)
             assert row[f"{joint}_load_percent"] == pytest.approx(diag.load_percent, rel=1e-12)
             assert row[f"{joint}_temperature_c"] == diag.temperature_c
-            assert row[f"{joint}_current_ma"] == pytest.approx(diag.current_ma, rel=1e-12)
+            assert row[f"{joint}_current_a"] == pytest.approx(diag.current_a, rel=1e-12)
             if diag.voltage_v is None:
                 assert row[f"{joint}_voltage_v"] is None
             else:
@@ -502,7 +502,7 @@ def test_history_commands_list_plot_and_export(tmp_path: Path, capsys: pytest.Ca
             == 0
         )
         frame = pl.read_csv(out) if fmt == "csv" else pl.read_parquet(out)
-        assert frame.height == 300 and "elbow_flex_current_ma" in frame.columns
+        assert frame.height == 300 and "elbow_flex_current_a" in frame.columns
 
     assert main(["history", "plot", "--history", uri, "--device", "arm-404", "--out", str(png)]) == 1
     assert "arm-001, arm-002" in capsys.readouterr().err
@@ -591,7 +591,8 @@ def test_replay_publishes_what_was_recorded_and_the_agent_mirrors_it(
     assert stored["wrist_flex_load_raw"] == sent_last["wrist_flex"]["load"]
     assert stored["gripper_position_rad"] == last["gripper"]
     rejected = rows_of(str(tmp_path / "agent-history"), REJECTED_TABLE)
-    assert rejected.height == 40 - applied
+    # (At 4x a loaded machine may coalesce a message in the latest-value mailbox: the counters say which.)
+    assert rejected.height == mirrored.counters.rejected_total + sum(state.untracked_rejected.values())
     assert set(rejected["reason"].to_list()) == {"units_undecided"}
     history = state.agent.history
     assert history is not None and history.storage_ok and history.commit_failures == 0

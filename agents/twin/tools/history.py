@@ -1,7 +1,7 @@
 """Reading telemetry history back (polars `scan_delta`): what is there, one device's window, plots, exports.
 
 The table stores what the edge sent (raw readings) and the decoded joint positions; the decoded diagnostics
-(velocity in rad/s, load in %, temperature in C, current in mA, voltage in V) are exact functions of a raw
+(velocity in rad/s, load in %, temperature in C, current in A, voltage in V) are exact functions of a raw
 reading and the message's units, so they are computed here on read (`with_decoded`) instead of being stored
 twice: storing them doubled a day's size (docs/history.md, "Schema"). tests/test_history.py checks that these
 expressions give what `twin.core.telemetry` decodes from the same messages.
@@ -93,7 +93,9 @@ def with_decoded(frame: pl.LazyFrame) -> pl.LazyFrame:
             (steps * tm.RAD_PER_STEP_S).alias(f"{joint}_velocity_rad_s"),
             (load_units * tm.LOAD_PERCENT_PER_UNIT).alias(f"{joint}_load_percent"),
             pl.col(raw_column(joint, "temp")).alias(f"{joint}_temperature_c"),
-            (pl.col(raw_column(joint, "current")) * tm.CURRENT_MA_PER_UNIT).alias(f"{joint}_current_ma"),
+            (pl.col(raw_column(joint, "current")) * tm.CURRENT_MA_PER_UNIT / 1000.0).alias(
+                f"{joint}_current_a"
+            ),
             (pl.col(raw_column(joint, "voltage")) * tm.VOLTAGE_V_PER_UNIT).alias(f"{joint}_voltage_v"),
         ]
     return frame.with_columns(exprs)
@@ -339,7 +341,7 @@ def plot(
         ("joint angle (deg)", dict.fromkeys(JOINTS, "")),
         ("temperature (C)", {j: "_temperature_c" for j in JOINTS}),
         ("load (%)", {j: "_load_percent" for j in JOINTS}),
-        ("current (mA)", {j: "_current_ma" for j in JOINTS}),
+        ("current (A)", {j: "_current_a" for j in JOINTS}),
     ]
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     parts = sampled.partition_by("_segment", maintain_order=True)
