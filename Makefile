@@ -13,12 +13,19 @@ export JSII_SILENCE_WARNING_END_OF_LIFE_NODE_VERSION := 20
 export MUJOCO_GL ?= egl
 export PYOPENGL_PLATFORM ?= $(MUJOCO_GL)
 
-APT_PACKAGES := mosquitto xvfb xauth libosmesa6 libgl1-mesa-dri libglfw3 shellcheck
+# iproute2: the ROS 2 tests build a loopback-only network namespace (unshare -n, ip).
+APT_PACKAGES := mosquitto xvfb xauth libosmesa6 libgl1-mesa-dri libglfw3 shellcheck iproute2
 SETUP_STAMP := $(VENV)/.setup-stamp
 # Checkov pins many libraries of its own; a venv of its own keeps them from fighting the agent's.
 CHECKOV_VENV := .venv-checkov
 CHECKOV_STAMP := $(CHECKOV_VENV)/.setup-stamp
 NODE_STAMP := node_modules/.setup-stamp
+# The ROS 2 bridge is tested against real rclpy (ROS 2 Jazzy wheels from PyPI). Those wheels rewrite the
+# interpreter's library path at start-up, so they live in a venv of their own; pinned so a test run today and
+# next year talk to the same ROS 2.
+ROS2_VENV := .venv-ros2
+ROS2_STAMP := $(ROS2_VENV)/.setup-stamp
+ROS2_PACKAGES := 'ros-jazzy-rclpy[fastrtps]==7.1.6' 'ros-jazzy-sensor-msgs==5.3.6'
 
 .PHONY: help setup system-packages test test-fast lint demo bench usd-asset clean
 
@@ -30,12 +37,12 @@ help:
 	@echo "make bench  - run the benchmarks and print figures (docs/performance.md)"
 	@echo "make usd-asset - regenerate robots/so101 USD asset from the MJCF"
 
-setup: system-packages $(SETUP_STAMP) $(NODE_STAMP) $(CHECKOV_STAMP)
+setup: system-packages $(SETUP_STAMP) $(NODE_STAMP) $(CHECKOV_STAMP) $(ROS2_STAMP)
 
 # apt only when a tool is missing, so a second `make setup` does no network work.
 system-packages:
 	@missing=""; \
-	for bin in mosquitto Xvfb shellcheck; do command -v $$bin >/dev/null 2>&1 || missing=1; done; \
+	for bin in mosquitto Xvfb shellcheck ip unshare; do command -v $$bin >/dev/null 2>&1 || missing=1; done; \
 	[ -e /usr/lib/x86_64-linux-gnu/libOSMesa.so.8 ] || ls /usr/lib/*/libOSMesa.so* >/dev/null 2>&1 || missing=1; \
 	ls /usr/lib/*/libglfw.so.3 >/dev/null 2>&1 || missing=1; \
 	if [ -n "$$missing" ]; then \
@@ -50,7 +57,7 @@ $(SETUP_STAMP): pyproject.toml
 	@echo "setup: installing Python packages into $(VENV)"
 	@$(PIP) install --upgrade pip 2>&1 | sed '/^WARNING: Location/d'
 	@$(PIP) install -e '.[dev]' 2>&1 | sed '/^WARNING: Location/d'
-	@$(PY) -c "import twin, mujoco, pxr, awscrt, aws_cdk, cdk_nag" || { echo "setup: Python install failed" >&2; exit 1; }
+	@$(PY) -c "import twin, mujoco, pxr, awscrt, aws_cdk, cdk_nag, cyclonedds, rosbags" || { echo "setup: Python install failed" >&2; exit 1; }
 	@touch $@
 
 $(CHECKOV_STAMP):
@@ -58,6 +65,13 @@ $(CHECKOV_STAMP):
 	@echo "setup: installing checkov into $(CHECKOV_VENV)"
 	@$(CHECKOV_VENV)/bin/python -m pip --disable-pip-version-check -q install 'checkov>=3.2,<4' 2>&1 | sed '/^WARNING: Location/d'
 	@$(CHECKOV_VENV)/bin/checkov --version >/dev/null || { echo "setup: checkov install failed" >&2; exit 1; }
+	@touch $@
+
+$(ROS2_STAMP):
+	@test -x $(ROS2_VENV)/bin/python || python3 -m venv $(ROS2_VENV)
+	@echo "setup: installing ROS 2 Jazzy rclpy into $(ROS2_VENV) (for the ROS 2 bridge tests)"
+	@$(ROS2_VENV)/bin/python -m pip --disable-pip-version-check -q install $(ROS2_PACKAGES) 2>&1 | sed '/^WARNING: Location/d'
+	@$(ROS2_VENV)/bin/python -c "import rclpy, sensor_msgs.msg" || { echo "setup: rclpy install failed" >&2; exit 1; }
 	@touch $@
 
 $(NODE_STAMP): package.json package-lock.json
