@@ -1,0 +1,109 @@
+"""Drive the ROS 2 sink against the real rclpy listener; runs inside the loopback-only namespace.
+
+Starts `rclpy_listener.py` with .venv-ros2's Python, waits until it has subscribed, then feeds the sink one
+AppliedSample per arm at 10 Hz (edge-simulator payloads through the real decoder) until the listener has
+written its report or the time is up. Writes {"sent": {device: [sample...]}, "listener": <report>,
+"stats": ...} to --out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import random
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
+from twin.output.ros2 import Ros2Bridge, Ros2Settings, resolve_topic
+from twin.output.sinks import AppliedSample, QueuedSink
+from twin.robot import so101
+from twin.tools.edge_sim import make_payload
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--ros-python", required=True)
+    parser.add_argument("--listener", required=True)
+    parser.add_argument("--devices", required=True)
+    parser.add_argument("--settings", required=True, help="Ros2Settings keyword arguments as JSON")
+    parser.add_argument("--count", type=int, default=5)
+    parser.add_argument("--seconds", type=float, default=40.0)
+    parser.add_argument("--out", required=True)
+    args = parser.parse_args()
+
+    devices = args.devices.split(",")
+    kwargs = json.loads(args.settings)
+    for key in ("joint_names", "peers"):
+        if key in kwargs:
+            kwargs[key] = tuple(kwargs[key])
+    settings = Ros2Settings(enabled=True, **kwargs)
+    topics = sorted({resolve_topic(settings.topic, d) for d in devices})
+    report = Path(args.out).with_suffix(".listener.json")
+    listener = subprocess.Popen(
+        [
+            args.ros_python,
+            args.listener,
+            "--topics",
+            ",".join(topics),
+            "--count",
+            str(args.count),
+            "--timeout",
+            str(args.seconds - 5),
+            "--out",
+            str(report),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert listener.stdout is not None
+    if listener.stdout.readline().strip() != "ready":
+        listener.wait(10)
+        sys.stderr.write("listener did not start\n")
+        return 1
+
+    decoder = TelemetryDecoder(DecoderConfig(units=Units.TICKS))
+    rng = random.Random(7)
+    bridge = Ros2Bridge(settings)
+    sink = QueuedSink("ros2", bridge)
+    sent: dict[str, list[dict]] = {d: [] for d in devices}
+    started = time.monotonic()
+    deadline = started + args.seconds
+    while listener.poll() is None and time.monotonic() < deadline:
+        for index, device in enumerate(devices):
+            # Each arm its own phase of the motion, so one arm's message can never pass for another's.
+            payload = make_payload(device, time.monotonic() - started + 1.7 * index, "ticks", rng)
+            telemetry = decoder.decode(json.dumps(payload).encode(), topic_device=device)
+            angles = {j: telemetry.angles_rad[j] for j in so101.JOINT_NAMES}
+            sink.applied(AppliedSample(device, time.time(), time.monotonic(), telemetry, angles))
+            sent[device].append(
+                {
+                    "timestamp_ms": telemetry.timestamp_ms,
+                    "position": [angles[j] for j in so101.JOINT_NAMES],
+                    "velocity": [telemetry.diagnostics[j].velocity_rad_s for j in so101.JOINT_NAMES],
+                }
+            )
+        time.sleep(0.1)
+    listener.wait(15)
+    sink.close()
+    stats = sink.stats()
+    result = {
+        "sent": sent,
+        "listener": json.loads(report.read_text()) if report.exists() else None,
+        "stats": {"delivered": stats.delivered, "errors": stats.errors, "last_error": stats.last_error},
+        "bridge": {
+            "domain_id": bridge.domain_id,
+            "arms": bridge.counters.arms,
+            "published": bridge.counters.published,
+            "refused": bridge.counters.refused,
+            "refused_devices": sorted(bridge.counters.refused_devices),
+        },
+    }
+    Path(args.out).write_text(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
