@@ -20,12 +20,16 @@ SETUP_STAMP := $(VENV)/.setup-stamp
 CHECKOV_VENV := .venv-checkov
 CHECKOV_STAMP := $(CHECKOV_VENV)/.setup-stamp
 NODE_STAMP := node_modules/.setup-stamp
-# The ROS 2 bridge is tested against real rclpy (ROS 2 Jazzy wheels from PyPI). Those wheels rewrite the
-# interpreter's library path at start-up, so they live in a venv of their own; pinned so a test run today and
-# next year talk to the same ROS 2.
+# The ROS 2 bridge is tested against real rclpy from the PyPI wheels: Jazzy (Fast DDS 2.14) and Kilted (Fast
+# DDS 3.2, whose type-information matching is the pitfall the bridge works around). The wheels rewrite the
+# interpreter's library path at start-up, so each distribution lives in a venv of its own; pinned so a test
+# run today and next year talk to the same ROS 2.
 ROS2_VENV := .venv-ros2
 ROS2_STAMP := $(ROS2_VENV)/.setup-stamp
 ROS2_PACKAGES := 'ros-jazzy-rclpy[fastrtps]==7.1.6' 'ros-jazzy-sensor-msgs==5.3.6'
+ROS2_KILTED_VENV := .venv-ros2-kilted
+ROS2_KILTED_STAMP := $(ROS2_KILTED_VENV)/.setup-stamp
+ROS2_KILTED_PACKAGES := 'ros-kilted-rclpy[fastrtps]==9.1.2' 'ros-kilted-sensor-msgs==5.5.1'
 
 .PHONY: help setup system-packages test test-fast lint demo bench usd-asset clean
 
@@ -37,7 +41,7 @@ help:
 	@echo "make bench  - run the benchmarks and print figures (docs/performance.md)"
 	@echo "make usd-asset - regenerate robots/so101 USD asset from the MJCF"
 
-setup: system-packages $(SETUP_STAMP) $(NODE_STAMP) $(CHECKOV_STAMP) $(ROS2_STAMP)
+setup: system-packages $(SETUP_STAMP) $(NODE_STAMP) $(CHECKOV_STAMP) $(ROS2_STAMP) $(ROS2_KILTED_STAMP)
 
 # apt only when a tool is missing, so a second `make setup` does no network work.
 system-packages:
@@ -72,6 +76,13 @@ $(ROS2_STAMP):
 	@echo "setup: installing ROS 2 Jazzy rclpy into $(ROS2_VENV) (for the ROS 2 bridge tests)"
 	@$(ROS2_VENV)/bin/python -m pip --disable-pip-version-check -q install $(ROS2_PACKAGES) 2>&1 | sed '/^WARNING: Location/d'
 	@$(ROS2_VENV)/bin/python -c "import rclpy, sensor_msgs.msg" || { echo "setup: rclpy install failed" >&2; exit 1; }
+	@touch $@
+
+$(ROS2_KILTED_STAMP):
+	@test -x $(ROS2_KILTED_VENV)/bin/python || python3 -m venv $(ROS2_KILTED_VENV)
+	@echo "setup: installing ROS 2 Kilted rclpy into $(ROS2_KILTED_VENV) (for the ROS 2 bridge tests)"
+	@$(ROS2_KILTED_VENV)/bin/python -m pip --disable-pip-version-check -q install $(ROS2_KILTED_PACKAGES) 2>&1 | sed '/^WARNING: Location/d'
+	@$(ROS2_KILTED_VENV)/bin/python -c "import rclpy, sensor_msgs.msg" || { echo "setup: rclpy install failed" >&2; exit 1; }
 	@touch $@
 
 $(NODE_STAMP): package.json package-lock.json

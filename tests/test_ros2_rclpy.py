@@ -1,6 +1,6 @@
-"""The ROS 2 bridge against real ROS 2: rclpy from the Jazzy PyPI wheels (Fast DDS, ROS 2's default
-middleware) subscribes and must receive exactly what the bridge sent. Each test runs in a fresh network
-namespace with loopback only, so DDS discovery never leaves it.
+"""The ROS 2 bridge against real ROS 2: rclpy from the PyPI wheels of Jazzy (Fast DDS 2.14) and Kilted
+(Fast DDS 3.2), ROS 2's default middleware, subscribes and must receive exactly what the bridge sent. Each
+test runs in a fresh network namespace with loopback only, so DDS discovery never leaves it.
 
 A Cyclone-to-Cyclone test alone would not do: it passes in set-ups where real ROS 2 receives nothing (type
 names, CDR layout, QoS and XTypes matching all have to agree with rmw_fastrtps).
@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from ros2_helpers.netns import LISTENER, REPO, ROS_PYTHON, missing_prerequisites, run_in_loopback_namespace
+from ros2_helpers.netns import LISTENER, REPO, ROS_PYTHONS, missing_prerequisites, run_in_loopback_namespace
 from twin.output.ros2 import JOINT_NAME_PRESETS, rihs01
 from twin.robot import so101
 
@@ -30,14 +30,21 @@ def _prerequisites() -> None:
         pytest.fail(reason)
 
 
-def drive(tmp_path: Path, devices: list[str], settings: dict, *, env: dict[str, str] | None = None) -> dict:
+def drive(
+    tmp_path: Path,
+    devices: list[str],
+    settings: dict,
+    *,
+    env: dict[str, str] | None = None,
+    ros: str = "jazzy",
+) -> dict:
     out = tmp_path / "result.json"
     proc = run_in_loopback_namespace(
         [
             sys.executable,
             str(DRIVER),
             "--ros-python",
-            str(ROS_PYTHON),
+            str(ROS_PYTHONS[ros]),
             "--listener",
             str(LISTENER),
             "--devices",
@@ -106,3 +113,20 @@ def test_fixed_topic_over_unicast_peer_on_a_named_interface_carries_one_arm(tmp_
         assert msg["position"] == expected["position"]
         assert msg["velocity"] == []
         assert msg["frame_id"] == "base_link"
+
+
+def test_fast_dds_3_receives_thanks_to_ignoring_its_type_information(tmp_path: Path) -> None:
+    # Kilted's Fast DDS 3.2 announces type information that Cyclone rejects as invalid
+    # ("ddsi_xt_type_init_impl with invalid type object"), and then never matches the reader: without
+    # <IgnoreTypeInformation>1.15</IgnoreTypeInformation> this subscriber received nothing (docs/ros2.md).
+    result = drive(tmp_path, ["arm-001"], {}, ros="kilted")
+    messages = result["listener"]["received"]["/arm_001/joint_states"]
+    assert len(messages) >= 5
+    sent = by_stamp(result["sent"]["arm-001"])
+    for msg in messages:
+        expected = sent[(msg["sec"], msg["nanosec"] // 1_000_000)]
+        assert msg["name"] == list(so101.JOINT_NAMES)
+        assert msg["position"] == expected["position"]
+        assert msg["velocity"] == expected["velocity"]
+    [publisher] = result["listener"]["publishers"]["/arm_001/joint_states"]
+    assert publisher["type_hash"] == rihs01("sensor_msgs/msg/JointState")

@@ -9,19 +9,24 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
-ROS_PYTHON = REPO / ".venv-ros2" / "bin" / "python"
+# rclpy from the PyPI wheels, one venv per ROS 2 distribution (make setup builds both).
+ROS_PYTHONS = {
+    "jazzy": REPO / ".venv-ros2" / "bin" / "python",
+    "kilted": REPO / ".venv-ros2-kilted" / "bin" / "python",
+}
 LISTENER = Path(__file__).with_name("rclpy_listener.py")
 
 # lo is down in a new namespace and has no multicast route: DDS discovery (SPDP) multicasts to 239.255.0.1.
-_SETUP = "ip link set lo up && ip link set lo multicast on && ip route add 224.0.0.0/4 dev lo && exec \"$@\""
+_SETUP = 'ip link set lo up && ip link set lo multicast on && ip route add 224.0.0.0/4 dev lo && exec "$@"'
 
 
 def missing_prerequisites() -> str | None:
     """Why the loopback-namespace tests cannot run here, with the fix; None when they can."""
     if shutil.which("unshare") is None or shutil.which("ip") is None:
         return "unshare and ip are needed (util-linux, iproute2)"
-    if not ROS_PYTHON.exists():
-        return f"{ROS_PYTHON} is missing: run `make setup` (it builds the rclpy venv)"
+    for python in ROS_PYTHONS.values():
+        if not python.exists():
+            return f"{python} is missing: run `make setup` (it builds the rclpy venvs)"
     probe = subprocess.run(
         ["unshare", "-n", "sh", "-c", "ip link set lo up"], capture_output=True, text=True, check=False
     )
@@ -43,4 +48,3 @@ def run_in_loopback_namespace(
         check=False,
         cwd=REPO,
     )
-
