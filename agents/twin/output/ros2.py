@@ -174,7 +174,8 @@ class Ros2Settings:
     interface: str = ""
     # Unicast discovery peers (addresses or host names), for networks without multicast such as EC2.
     peers: tuple[str, ...] = ()
-    max_pending: int = 10_000
+    # About one second of a 100-arm fleet at 10 Hz: a live view wants the present, not a replay of a stall.
+    max_pending: int = 1_000
 
     def __post_init__(self) -> None:
         validate_topic_pattern(self.topic)
