@@ -226,3 +226,41 @@ def test_alarms_and_cloudwatch_sections() -> None:
             load_config(None, overrides)
         for word in words:
             assert word in str(info.value), (overrides, str(info.value))
+
+
+def test_ros2_section_is_the_bridge_settings_and_names_its_keys(tmp_path: Path) -> None:
+    config = load_config(
+        write(
+            tmp_path,
+            """
+[telemetry]
+devices = ["arm-001"]
+[ros2]
+enabled = true
+topic = "/joint_states"
+joint_names = ["so_arm101_usd"]
+velocity = false
+peers = ["10.0.1.23"]
+""",
+        )
+    )
+    assert config.ros2.enabled and config.ros2.fixed_topic
+    assert config.ros2.ros_joint_names[0] == "Rotation"
+    assert config.to_dict()["ros2"]["peers"] == ["10.0.1.23"]
+    # The flag --ros2 is the override ros2.enabled; the section is off by default.
+    assert not load_config(None).ros2.enabled
+    assert load_config(None, {"ros2.enabled": True}).ros2.enabled
+    with pytest.raises(ConfigError, match=r"ros2\.joint_names = \['isaac'\] must be one preset"):
+        load_config(None, {"ros2.joint_names": "isaac"})
+    with pytest.raises(ConfigError, match=r"unknown key 'ros2\.topics'; did you mean 'topic'"):
+        load_config(None, {"ros2.topics": "/x"})
+
+
+def test_a_fixed_ros2_topic_for_several_devices_is_refused() -> None:
+    overrides = {"ros2.enabled": True, "ros2.topic": "/joint_states", "telemetry.devices": "arm-001,arm-002"}
+    with pytest.raises(ConfigError, match=r"one topic for 2 devices.*/\{arm\}/joint_states"):
+        load_config(None, overrides)
+    # Off, or one arm, or a pattern with {arm}: fine.
+    load_config(None, {**overrides, "ros2.enabled": False})
+    load_config(None, {**overrides, "telemetry.devices": "arm-001"})
+    load_config(None, {**overrides, "ros2.topic": "/twin/{arm}/joint_states"})

@@ -9,6 +9,9 @@ No DDS traffic here: anything that discovers peers runs in a loopback-only names
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -299,3 +302,22 @@ def test_cyclone_config_appends_the_users_cyclonedds_uri_so_it_wins() -> None:
     ours, user = config.rsplit(",", 1)
     _domain(ours)
     assert user == "file:///etc/cyclone.xml"
+
+
+@pytest.mark.slow
+def test_twin_run_ros2_without_the_extra_exits_2_and_says_how_to_install(tmp_path) -> None:
+    # A cyclonedds that cannot be imported stands in for a host without the ros2 extra.
+    fake = tmp_path / "site" / "cyclonedds"
+    fake.mkdir(parents=True)
+    (fake / "__init__.py").write_text('raise ImportError("No module named cyclonedds")\n')
+    env = {**os.environ, "PYTHONPATH": str(tmp_path / "site")}
+    proc = subprocess.run(
+        [sys.executable, "-m", "twin.cli", "run", "--ros2", "--broker", "mqtt://127.0.0.1:1"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert "pip install 'so101-twin[ros2]'" in proc.stderr

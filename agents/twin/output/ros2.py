@@ -548,32 +548,23 @@ class Ros2Bridge:
             },
         )
 
-    def _arm(self, device_id: str) -> _Arm | None:
+    def _arm(self, device_id: str) -> _Arm:
         arm = self._arms.get(device_id)
         if arm is not None:
             return arm
-        if device_id in self.counters.refused_devices:
-            self.counters.refused += 1
-            return None
         ros_topic = resolve_topic(self.settings.topic, device_id)
         owner = self._topics.get(ros_topic)
         if owner is not None:
+            # Raised, not logged: the sink counts it as an error per sample not published, shows the reason in
+            # /state (agent.sinks[].last_error) and logs it once.
             self.counters.refused += 1
             self.counters.refused_devices.add(device_id)
             fix = (
                 'use a topic with {arm} (topic = "/{arm}/joint_states") for several arms'
                 if self.settings.fixed_topic
-                else "rename one of the devices so their ROS names differ"
+                else "rename one of the devices so that their ROS names differ"
             )
-            log.error(
-                "ROS 2 topic %s already carries %s; %s is not published (%s)",
-                ros_topic,
-                owner,
-                device_id,
-                fix,
-                extra={"device": device_id, "topic": ros_topic, "owner": owner},
-            )
-            return None
+            raise Ros2Error(f"{device_id} is not published: ROS 2 topic {ros_topic} carries {owner}; {fix}")
         dds_topic = self._topic_cls(self._participant, dds_topic_name(ros_topic), self._idl_type)
         writer = self._writer_cls(self._participant, dds_topic, qos=self._qos)
         arm = _Arm(device_id, ros_topic, writer, JointStateEncoder(self.settings.frame_id, self._names))
@@ -585,8 +576,6 @@ class Ros2Bridge:
 
     def handle_applied(self, sample: AppliedSample) -> None:
         arm = self._arm(sample.device_id)
-        if arm is None:
-            return
         angles = sample.joint_angles
         position = [angles[joint] for joint in so101.JOINT_NAMES]
         velocity = sample_velocities(sample) if self._velocity else None

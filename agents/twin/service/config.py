@@ -22,6 +22,7 @@ from twin.core.alarms import AlarmThresholds
 from twin.core.health import HealthThresholds
 from twin.core.telemetry import MAX_PAYLOAD_BYTES, UNITS_CHOICES
 from twin.core.topics import ALL_DEVICES, DEFAULT_TOPIC_PREFIX, TopicError, check_devices, check_topic_prefix
+from twin.output.ros2 import Ros2Error, Ros2Settings
 from twin.transport.broker import BrokerConfig, BrokerConfigError
 
 # A plain string here so loading a config never imports MuJoCo; the values are `twin.core.twin.TwinMode`'s
@@ -131,6 +132,10 @@ class CloudWatchSection:
     interval_s: float = 60.0
 
 
+# The [ros2] section is the ROS 2 bridge's settings themselves (docs/ros2.md); they validate themselves.
+Ros2Section = Ros2Settings
+
+
 @dataclass(frozen=True)
 class AgentConfig:
     broker: BrokerSection = field(default_factory=BrokerSection)
@@ -142,11 +147,14 @@ class AgentConfig:
     log: LogSection = field(default_factory=LogSection)
     alarms: AlarmsSection = field(default_factory=AlarmsSection)
     cloudwatch: CloudWatchSection = field(default_factory=CloudWatchSection)
+    ros2: Ros2Section = field(default_factory=Ros2Section)
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
         """The effective configuration as TOML-shaped sections (logged at start-up, served nowhere)."""
         out = dataclasses.asdict(self)
         out["telemetry"]["devices"] = list(self.telemetry.devices)
+        out["ros2"]["joint_names"] = list(self.ros2.joint_names)
+        out["ros2"]["peers"] = list(self.ros2.peers)
         return out
 
 
@@ -160,6 +168,7 @@ _SECTIONS: dict[str, type] = {
     "log": LogSection,
     "alarms": AlarmsSection,
     "cloudwatch": CloudWatchSection,
+    "ros2": Ros2Section,
 }
 
 
@@ -224,7 +233,7 @@ def _build_section(name: str, cls: type, values: Mapping[str, Any]) -> Any:
         kwargs[key] = _expect_type(f"{name}.{key}", value, getattr(default, key))
     try:
         return cls(**kwargs)
-    except BrokerConfigError as exc:  # sections that validate themselves name their keys already
+    except (BrokerConfigError, Ros2Error) as exc:  # sections that validate themselves name their keys already
         raise ConfigError(str(exc)) from None
     except ValueError as exc:  # [alarms] validates itself; its messages name the key
         raise ConfigError(f"[{name}]: {exc}") from None
@@ -251,6 +260,7 @@ def validate(config: AgentConfig) -> AgentConfig:
     _validate_history(config.history)
     if config.log.level.upper() not in LOG_LEVELS:
         raise ConfigError(f"log.level = {config.log.level!r} is not one of {', '.join(LOG_LEVELS)}")
+    _validate_ros2(config.ros2, config.telemetry)
     return config
 
 
@@ -311,6 +321,15 @@ def _validate_twin(tw: TwinSection) -> None:
         )
     _positive("twin.physics_rate_hz", tw.physics_rate_hz)
     _positive("twin.record_flush_s", tw.record_flush_s)
+
+
+def _validate_ros2(r: Ros2Section, t: TelemetrySection) -> None:
+    # [ros2] validated itself; what is left is how it meets the device list.
+    if r.enabled and r.fixed_topic and not t.all_devices and len(t.devices) > 1:
+        raise ConfigError(
+            f"ros2.topic = {r.topic!r} is one topic for {len(t.devices)} devices, whose messages would "
+            'interleave; use a topic with {arm} (topic = "/{arm}/joint_states") or mirror one device'
+        )
 
 
 def _validate_health(h: HealthThresholds) -> None:

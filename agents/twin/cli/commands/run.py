@@ -61,6 +61,12 @@ def register(subparsers: Any) -> None:
         help='keep telemetry history in Delta Lake at URI (a directory or s3://bucket/prefix; "" = off)',
     )
     parser.add_argument("--log-level", metavar="LEVEL", help="DEBUG, INFO, WARNING or ERROR")
+    parser.add_argument(
+        "--ros2",
+        action="store_true",
+        default=None,
+        help="publish every arm as ROS 2 sensor_msgs/JointState ([ros2] settings; needs the ros2 extra)",
+    )
     parser.set_defaults(func=run)
 
 
@@ -76,6 +82,7 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         "twin.record_dir": args.record_dir,
         "history.uri": args.history,
         "log.level": args.log_level,
+        "ros2.enabled": args.ros2,
     }
 
 
@@ -99,9 +106,19 @@ def run(args: argparse.Namespace) -> int:
     # MuJoCo, awscrt and USD load here, not at import: `twin --help` stays fast.
     from twin.service.agent import AgentService
 
+    sinks = []
+    if config.ros2.enabled:
+        from twin.output.ros2 import Ros2Error, open_ros2_sink
+
+        try:
+            sinks.append(open_ros2_sink(config.ros2))
+        except Ros2Error as exc:
+            return _config_error(str(exc))
     try:
-        service = AgentService(config)
+        service = AgentService(config, sinks=sinks)
     except (ConfigError, ValueError) as exc:
+        for sink in sinks:
+            sink.close()
         return _config_error(str(exc))
 
     stop = threading.Event()
