@@ -130,3 +130,60 @@ def test_fast_dds_3_receives_thanks_to_ignoring_its_type_information(tmp_path: P
         assert msg["velocity"] == expected["velocity"]
     [publisher] = result["listener"]["publishers"]["/arm_001/joint_states"]
     assert publisher["type_hash"] == rihs01("sensor_msgs/msg/JointState")
+
+
+AGENT_DRIVER = REPO / "tests" / "ros2_helpers" / "agent_driver.py"
+AGENT_CONFIG = """
+[telemetry]
+units = "ticks"
+[ros2]
+joint_names = ["so_arm101_usd"]
+"""
+
+
+def test_end_to_end_rclpy_sees_what_state_shows(tmp_path: Path) -> None:
+    # mosquitto + edge simulator + `twin run --ros2`, all inside the namespace; rclpy on the other side.
+    devices = ["arm-001", "arm-002"]
+    out = tmp_path / "e2e.json"
+    proc = run_in_loopback_namespace(
+        [
+            sys.executable,
+            str(AGENT_DRIVER),
+            "--ros-python",
+            str(ROS_PYTHONS["jazzy"]),
+            "--listener",
+            str(LISTENER),
+            "--devices",
+            ",".join(devices),
+            "--config",
+            AGENT_CONFIG,
+            "--out",
+            str(out),
+        ],
+        env=dict(os.environ),
+        timeout=180,
+    )
+    agent_log = out.with_suffix(".agent.log")
+    context = proc.stderr[-2000:] + (agent_log.read_text()[-3000:] if agent_log.exists() else "")
+    assert proc.returncode == 0, context
+    result = json.loads(out.read_text())
+    state = result["state"]
+    [sink] = [s for s in state["agent"]["sinks"] if s["name"] == "ros2"]
+    assert sink["errors"] == 0, sink["last_error"]
+    usd_names = list(JOINT_NAME_PRESETS["so_arm101_usd"])
+    for device in devices:
+        topic = f"/{device.replace('-', '_')}/joint_states"
+        messages = result["listener"]["received"][topic]
+        assert len(messages) >= 10, f"{topic}: {len(messages)} messages; {context}"
+        stamps = [(m["sec"], m["nanosec"]) for m in messages]
+        assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)
+        # The edge has stopped: the last JointState is the pose the agent's /state shows, bit for bit.
+        last = messages[-1]
+        shown = state["devices"][device]
+        assert last["name"] == usd_names
+        assert last["position"] == [shown["joints_rad"][j] for j in so101.JOINT_NAMES]
+        assert last["sec"] * 1000 + last["nanosec"] // 1_000_000 == shown["timestamp_ms"]
+        assert len(last["velocity"]) == 6  # the simulator reports servo speeds on every joint
+    assert sink["delivered"] >= sum(
+        len(result["listener"]["received"][t]) for t in result["listener"]["received"]
+    )

@@ -1,9 +1,10 @@
 """A real ROS 2 subscriber (rclpy from the Jazzy PyPI wheels, run with .venv-ros2's Python, never .venv's).
 
 Subscribes to `sensor_msgs/JointState` on each topic with ROS 2's default QoS, prints one line "ready" once
-subscribed, and writes a JSON report when every topic has `--count` messages or `--timeout` passes: the
-messages as rclpy decoded them, and each topic's publishers as ROS 2 discovered them (type, type hash,
-QoS). Exit 0 either way; the test judges the report.
+subscribed, and writes a JSON report when every topic has `--count` messages (and, with `--idle S`, no new
+message came for S seconds after that: the publisher has stopped) or `--timeout` passes: the messages as
+rclpy decoded them, and each topic's publishers as ROS 2 discovered them (type, type hash, QoS). Exit 0
+either way; the test judges the report.
 """
 
 from __future__ import annotations
@@ -24,6 +25,9 @@ def main() -> int:
     parser.add_argument("--topics", required=True, help="comma-separated ROS topics")
     parser.add_argument("--count", type=int, default=5)
     parser.add_argument("--timeout", type=float, default=30.0)
+    parser.add_argument(
+        "--idle", type=float, default=0.0, help="then wait until S seconds pass without a message"
+    )
     parser.add_argument("--out", required=True)
     args = parser.parse_args()
     topics = [t for t in args.topics.split(",") if t]
@@ -31,9 +35,11 @@ def main() -> int:
     rclpy.init()
     node = Node("so101_twin_test_listener")
     received: dict[str, list[dict]] = {t: [] for t in topics}
+    last = [time.monotonic()]
 
     def listener(topic: str):
         def on_message(msg: JointState) -> None:
+            last[0] = time.monotonic()
             received[topic].append(
                 {
                     "sec": msg.header.stamp.sec,
@@ -54,8 +60,12 @@ def main() -> int:
     sys.stdout.write("ready\n")
     sys.stdout.flush()
 
+    def done() -> bool:
+        enough = all(len(m) >= args.count for m in received.values())
+        return enough and time.monotonic() - last[0] >= args.idle
+
     deadline = time.monotonic() + args.timeout
-    while time.monotonic() < deadline and any(len(m) < args.count for m in received.values()):
+    while time.monotonic() < deadline and not done():
         rclpy.spin_once(node, timeout_sec=0.1)
 
     publishers = {}
