@@ -14,9 +14,10 @@ import sys
 from pathlib import Path
 
 import pytest
-from ros2_helpers.netns import LISTENER, REPO, ROS_PYTHONS, missing_prerequisites, run_in_loopback_namespace
+from ros2_helpers.paths import LISTENER, REPO, ROS_PYTHONS, missing_prerequisites
 from twin.output.ros2 import JOINT_NAME_PRESETS, rihs01
 from twin.robot import so101
+from twin.tools.bench.netns import run_in_loopback_namespace
 
 pytestmark = pytest.mark.slow
 
@@ -55,6 +56,7 @@ def drive(
             str(out),
         ],
         env={**os.environ, **(env or {})},
+        cwd=REPO,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     result = json.loads(out.read_text())
@@ -160,8 +162,8 @@ def test_end_to_end_rclpy_sees_what_state_shows(tmp_path: Path) -> None:
             "--out",
             str(out),
         ],
-        env=dict(os.environ),
         timeout=180,
+        cwd=REPO,
     )
     agent_log = out.with_suffix(".agent.log")
     context = proc.stderr[-2000:] + (agent_log.read_text()[-3000:] if agent_log.exists() else "")
