@@ -45,11 +45,16 @@ def register(subparsers: Any) -> None:
     hl.add_argument("--rate", type=float, default=10.0)
     hl.add_argument("--seconds", type=float, default=20.0)
 
+    r2 = sub.add_parser("ros2", help="the ROS 2 bridge's cost: the same fleet without and with it")
+    r2.add_argument("--arms", type=int, default=100)
+    r2.add_argument("--rate", type=float, default=10.0, help="messages per second per arm")
+    r2.add_argument("--seconds", type=float, default=20.0)
+
     al = sub.add_parser("all", help="every scenario as published in docs/performance.md, plus the plot")
     al.add_argument("--seconds", type=float, default=20.0, help="throughput run length")
     al.add_argument("--plot", type=Path, default=Path("docs/performance.png"))
 
-    for p in (tp, fi, fo, hs, hr, hl, al):
+    for p in (tp, fi, fo, hs, hr, hl, r2, al):
         p.add_argument("--json", action="store_true", help="print the figures as one JSON object")
         p.set_defaults(func=run)
 
@@ -59,6 +64,7 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
     throughput = import_dev_tool("twin.tools.bench.throughput", "bench")
     fidelity = import_dev_tool("twin.tools.bench.fidelity", "bench")
     footprint = import_dev_tool("twin.tools.bench.footprint", "bench")
+    ros2 = import_dev_tool("twin.tools.bench.ros2", "bench")
 
     if args.scenario.startswith("history-"):
         history = import_dev_tool("twin.tools.bench.history", "bench")
@@ -73,7 +79,9 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
         return fidelity.run(seconds=args.seconds)
     if args.scenario == "footprint":
         return footprint.run(fleet=args.arms, fleet_seconds=args.seconds)
-    # all: the two throughput loads the targets name, then fidelity and footprint.
+    if args.scenario == "ros2":
+        return ros2.run(arms=args.arms, rate=args.rate, seconds=args.seconds)
+    # all: the two throughput loads the targets name, then fidelity, footprint and the ROS 2 bridge's cost.
     results = {
         "throughput": [
             throughput.run(arms=100, rate=10.0, seconds=args.seconds),
@@ -81,6 +89,7 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
         ],
         "fidelity": fidelity.run(),
         "footprint": footprint.run(),
+        "ros2": ros2.run(arms=100, rate=10.0, seconds=args.seconds),
     }
     plot = import_dev_tool("twin.tools.bench.plot", "bench")
     results["plot"] = str(plot.write(results, args.plot))

@@ -82,17 +82,18 @@ def get_state(base_url: str, timeout: float = 5.0) -> AgentState:
 
 @contextmanager
 def running_agent(
-    rig: LocalRig, *, max_devices: int = 4096, history: str | None = None
+    rig: LocalRig, *, max_devices: int = 4096, history: str | None = None, config_text: str = ""
 ) -> Iterator[tuple[subprocess.Popen[bytes], str]]:
     """`twin run --devices '*'` as a child process on the rig's broker; yields (process, HTTP base URL).
 
     The fleet bound is raised to the benchmark's size: the default guards a production agent against a
     misbehaving publisher inventing device ids, which is not what is measured here. `history` turns the
-    agent's telemetry history on at that URI (`--history`).
+    agent's telemetry history on at that URI (`--history`); `config_text` adds sections to its config (e.g.
+    [ros2]).
     """
     extra = ("--log-level", "WARNING", *(("--history", history) if history else ()))
     with rig.agent_process(
-        config_text=f"[telemetry]\nmax_devices = {max_devices}\n",
+        config_text=f"[telemetry]\nmax_devices = {max_devices}\n{config_text}",
         extra_args=extra,
     ) as running:
         yield running

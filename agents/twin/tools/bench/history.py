@@ -194,15 +194,15 @@ def load(*, arms: int = 1000, rate: float = 10.0, seconds: float = 20.0) -> dict
     the second the agent is stopped with SIGTERM (its final commit), and the rows in the tables are compared
     with the messages the agent handed to the history sink (applied + rejected).
     """
-    from twin.tools.bench.throughput import _agent  # noqa: PLC0415
+    from twin.tools.bench.throughput import agent_phase  # noqa: PLC0415
     from twin.tools.rig import LocalRig  # noqa: PLC0415
 
     tmp = Path(tempfile.mkdtemp(prefix="twin-bench-history-load-"))
     uri = str(tmp / "history")
     try:
         with LocalRig() as rig:
-            off = _agent(rig, arms, rate, seconds)
-            on = _agent(rig, arms, rate, seconds, history=uri)
+            off = agent_phase(rig, arms, rate, seconds)
+            on = agent_phase(rig, arms, rate, seconds, history=uri)
         reader = HistoryReader(uri)
         rows = sum(d.rows for d in reader.summary())
         rejected_rows = sum(reader.rejected_counts().values())

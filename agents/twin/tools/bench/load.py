@@ -1,4 +1,4 @@
-"""Load processes for the throughput benchmark: a fleet publisher and a no-op subscriber (the ceiling).
+"""Load processes for the benchmarks: a fleet publisher, a no-op subscriber (the ceiling) and a ROS 2 reader.
 
 Each runs as its own process (`python -m twin.tools.bench.load publish|noop ...`) so its CPU is not charged to
 the agent under test, and prints one JSON line with its counts on exit. Both use the project's own awscrt
@@ -139,6 +139,61 @@ def noop(url: str, filters: list[str], seconds: float) -> dict[str, Any]:
     return {"received": count[0], "active_s": span, "rate": count[0] / span if span > 0 else 0.0}
 
 
+def ros2_reader(arms: list[str], seconds: float) -> dict[str, Any]:
+    """Subscribe to every arm's JointState over DDS, as a ROS 2 node would (default QoS), and count samples.
+
+    Runs only inside a loopback-only namespace (the ros2 scenario puts it there); needs the ros2 extra.
+    """
+    from cyclonedds.core import Listener, Policy, Qos  # noqa: PLC0415 - the optional ros2 extra
+    from cyclonedds.domain import Domain, DomainParticipant  # noqa: PLC0415
+    from cyclonedds.sub import DataReader  # noqa: PLC0415
+    from cyclonedds.topic import Topic  # noqa: PLC0415
+    from cyclonedds.util import duration  # noqa: PLC0415
+
+    from twin.output.ros2 import Ros2Settings, cyclone_config, dds_topic_name, resolve_topic  # noqa: PLC0415
+    from twin.output.ros2_idl import JointState_  # noqa: PLC0415
+
+    settings = Ros2Settings()
+    domain_id = settings.effective_domain_id()
+    domain = Domain(domain_id, cyclone_config(settings))
+    participant = DomainParticipant(domain_id)
+    qos = Qos(
+        Policy.Reliability.Reliable(duration(milliseconds=100)),
+        Policy.Durability.Volatile,
+        Policy.History.KeepLast(10),
+    )
+    lock = threading.Lock()
+    count = [0]
+    first: list[float] = []
+    last = [0.0]
+
+    def on_data_available(reader: Any) -> None:
+        # Cyclone's listener thread: take (and so deserialize) what arrived, as a ROS 2 subscriber would.
+        # Only data: a writer that leaves (the agent stopping) delivers one invalid sample per topic.
+        got = sum(isinstance(sample, JointState_) for sample in reader.take(N=256))
+        now = time.monotonic()
+        with lock:
+            if not first:
+                first.append(now)
+            count[0] += got
+            last[0] = now
+
+    listener = Listener(on_data_available=on_data_available)
+    readers = []
+    for arm in arms:
+        topic = Topic(participant, dds_topic_name(resolve_topic(settings.topic, arm)), JointState_)
+        readers.append(DataReader(participant, topic, qos=qos, listener=listener))
+    print(json.dumps({"ready": True}), flush=True)
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    stop.wait(seconds)
+    with lock:
+        received, span = count[0], (last[0] - first[0]) if first else 0.0
+    readers.clear()
+    del participant, domain
+    return {"received": received, "active_s": span, "rate": received / span if span > 0 else 0.0}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m twin.tools.bench.load")
     sub = parser.add_subparsers(dest="role", required=True)
@@ -153,11 +208,18 @@ def main(argv: list[str] | None = None) -> int:
     n.add_argument("--url", required=True)
     n.add_argument("--filter", action="append", required=True)
     n.add_argument("--seconds", type=float, required=True)
+    r = sub.add_parser("ros2-reader")
+    r.add_argument("--first", type=int, required=True, help="index of the first arm (arm-NNNN naming)")
+    r.add_argument("--count", type=int, required=True)
+    r.add_argument("--seconds", type=float, required=True)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr)
     if args.role == "publish":
         devices = [arm_name(i) for i in range(args.first, args.first + args.count)]
         result = publish(args.url, devices, args.rate, args.seconds, args.prefix)
+    elif args.role == "ros2-reader":
+        arms = [arm_name(i) for i in range(args.first, args.first + args.count)]
+        result = ros2_reader(arms, args.seconds)
     else:
         result = noop(args.url, args.filter, args.seconds)
     print(json.dumps(result), flush=True)

@@ -107,10 +107,18 @@ def _drained(base: str) -> AgentState:
     return state
 
 
-def _agent(
-    rig: LocalRig, arms: int, rate: float, seconds: float, *, history: str | None = None
+def agent_phase(
+    rig: LocalRig,
+    arms: int,
+    rate: float,
+    seconds: float,
+    *,
+    history: str | None = None,
+    config_text: str = "",
 ) -> dict[str, Any]:
-    with running_agent(rig, history=history) as (proc, base):
+    """The agent (`twin run`, with history at `history` and `config_text` sections) under the offered load;
+    its figures from /state."""
+    with running_agent(rig, history=history, config_text=config_text) as (proc, base):
         wait_subscribed(base, proc)
         before = get_state(base)
         sampler = ProcessSampler(proc.pid).start()
@@ -141,6 +149,7 @@ def _agent(
         "history": dataclasses.asdict(state.agent.history) if state.agent.history else None,
         "internal_latency_s": dataclasses.asdict(state.agent.latency.internal_s),
         "end_to_end_latency_s": dataclasses.asdict(state.agent.latency.end_to_end_s),
+        "sinks": [dataclasses.asdict(sink) for sink in state.agent.sinks],
         **usage,
     }
 
@@ -149,7 +158,7 @@ def run(*, arms: int = 2000, rate: float = 10.0, seconds: float = 20.0) -> dict[
     """Both phases with the same offered load; returns every figure as one JSON-ready dict."""
     with LocalRig() as rig:
         ceiling = _ceiling(rig.broker.url, arms, rate, seconds)
-        agent = _agent(rig, arms, rate, seconds)
+        agent = agent_phase(rig, arms, rate, seconds)
     ratio = agent["sustained_rate"] / ceiling["sustained_rate"] if ceiling["sustained_rate"] else None
     return {
         "scenario": "throughput",
