@@ -59,6 +59,8 @@ class TwinSettings:
     topic_prefix: str = "dt/lerobot"
     units: str = "auto"
     ssh_access: bool = False
+    # Publish the arms as ROS 2 JointState on the host (docs/ros2.md): installs the agent's ros2 extra.
+    ros2: bool = False
     ami_ssm_parameter: str = DEFAULT_AMI_SSM_PARAMETER
     ami_id: str | None = None
     termination_protection: bool = False
@@ -100,6 +102,7 @@ class TwinSettings:
             topic_prefix=_topic_prefix(_str(get, "topicPrefix") or cls.topic_prefix),
             units=_units(_str(get, "units") or cls.units),
             ssh_access=_bool(get, "sshAccess", False),
+            ros2=_bool(get, "ros2", False),
             ami_ssm_parameter=_ami_ssm_parameter(_str(get, "amiSsmParameter") or DEFAULT_AMI_SSM_PARAMETER),
             ami_id=_ami_id(ami_id) if ami_id else None,
             termination_protection=_bool(get, "terminationProtection", False),

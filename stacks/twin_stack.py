@@ -64,6 +64,7 @@ class TwinStack(Stack):
                 "TOPIC_PREFIX": settings.topic_prefix,
                 "DEVICES": ",".join(settings.devices),
                 "UNITS": settings.units,
+                "ROS2": "true" if settings.ros2 else "false",
                 "CLIENT_ID_PREFIX": CLIENT_ID_PREFIX,
                 "DESKTOP_USER": DESKTOP_USER,
                 "LOG_GROUP": self.identity.agent_log_group.log_group_name,

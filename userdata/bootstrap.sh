@@ -204,7 +204,7 @@ main() {
   ROOT=/ AGENT_SRC=/opt/so101-twin/agent-src PYTHON=python3.12 \
     AWS_REGION="$AWS_REGION" TOPIC_PREFIX="$TOPIC_PREFIX" DEVICES="$DEVICES" UNITS="$UNITS" \
     CLIENT_ID_PREFIX="$CLIENT_ID_PREFIX" DESKTOP_USER="$DESKTOP_USER" AGENT_NAME="${AGENT_NAME:-so101-twin}" \
-    HISTORY_URI="${HISTORY_URI:-}" \
+    HISTORY_URI="${HISTORY_URI:-}" ROS2="${ROS2:-false}" \
     bash "$HERE/install-agent.sh"
   setup_desktop
   set_password

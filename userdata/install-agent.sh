@@ -10,6 +10,7 @@
 #   AWS_REGION, TOPIC_PREFIX, DEVICES (comma list or *), UNITS, CLIENT_ID_PREFIX, DESKTOP_USER: the settings
 #   AGENT_NAME  the CloudWatch metrics' Agent dimension (the stack name; the stack's alarms watch it)
 #   HISTORY_URI  where the agent keeps telemetry history (s3://<bucket>/history); empty = no history
+#   ROS2         true: install the ros2 extra and publish the arms as ROS 2 JointState (default false)
 # Idempotent: each file is written only when its content differs, pip runs only when the source changed.
 set -euo pipefail
 
@@ -23,6 +24,7 @@ AWS_REGION="${AWS_REGION:-}"
 TOPIC_PREFIX="${TOPIC_PREFIX:-dt/lerobot}"
 DEVICES="${DEVICES:-arm-001}"
 UNITS="${UNITS:-auto}"
+ROS2="${ROS2:-false}"
 CLIENT_ID_PREFIX="${CLIENT_ID_PREFIX:-so101-twin-}"
 DESKTOP_USER="${DESKTOP_USER:-ubuntu}"
 AGENT_NAME="${AGENT_NAME:-so101-twin}"
@@ -71,6 +73,11 @@ case "$UNITS" in ticks | degrees | range100 | auto) ;; *)
   exit 2
   ;;
 esac
+case "$ROS2" in true | false) ;; *)
+  echo "install-agent: ROS2=$ROS2 is not true or false" >&2
+  exit 2
+  ;;
+esac
 [ -f "$AGENT_SRC/pyproject.toml" ] || {
   echo "install-agent: $AGENT_SRC has no pyproject.toml; point AGENT_SRC at the unpacked agent asset" >&2
   exit 2
@@ -86,6 +93,10 @@ fi
 # Hash of the shipped source: pip runs again only when the asset changed (a re-run changes nothing).
 src_hash="$(cd "$AGENT_SRC" && find pyproject.toml README.md agents robots -type f ! -path '*/__pycache__/*' \
   ! -name '*.pyc' -print0 2>/dev/null | LC_ALL=C sort -z | xargs -0 sha256sum | sha256sum | cut -d' ' -f1)"
+# The extras are part of what was installed: turning ros2 on must run pip again even with the same source.
+extras=""
+if [ "$ROS2" = true ]; then extras="[ros2]"; fi
+src_hash="${src_hash}${extras}"
 stamp="${ROOT}${VENV}/.so101-twin-source.sha256"
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$src_hash" ]; then
   log "installing the agent package from $AGENT_SRC"
@@ -93,7 +104,7 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$src_hash" ]; then
   # Build from a copy: setuptools writes build/ and *.egg-info next to the sources.
   cp -r "$AGENT_SRC"/. "$build"/
   # shellcheck disable=SC2086 # PIP_ARGS is a list of flags
-  "${ROOT}${VENV}/bin/python" -m pip install --disable-pip-version-check --no-input -q $PIP_ARGS "$build"
+  "${ROOT}${VENV}/bin/python" -m pip install --disable-pip-version-check --no-input -q $PIP_ARGS "${build}${extras}"
   rm -rf "$build"
   printf '%s\n' "$src_hash" >"$stamp"
   CHANGED=1
@@ -139,6 +150,9 @@ level = "INFO"
 # EMF lines the CloudWatch agent ships to the host log group (bootstrap.sh); docs/servo-health.md.
 emf_file = "/var/log/so101-twin/emf.log"
 agent_name = "${AGENT_NAME}"
+
+[ros2]
+enabled = ${ROS2}
 TOML
 
 # --- the agent service ----------------------------------------------------------------------------

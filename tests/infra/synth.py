@@ -30,6 +30,7 @@ ALL_OPTIONS = {
     "volumeGb": "200",
     "units": "ticks",
     "topicPrefix": "fleet/so101",
+    "ros2": "true",
 }
 
 

@@ -32,6 +32,7 @@ def test_defaults_come_from_cdk_json() -> None:
     assert s.topic_prefix == "dt/lerobot"
     assert s.units == "auto"
     assert s.ssh_access is False
+    assert s.ros2 is False
     assert s.ami_ssm_parameter == DEFAULT_AMI_SSM_PARAMETER
     assert s.ami_id is None
     assert s.termination_protection is False
@@ -146,6 +147,13 @@ def test_units_must_be_known() -> None:
 @pytest.mark.parametrize("value", ["maybe", "2"])
 def test_bad_booleans_are_refused(value: str) -> None:
     assert "-c sshAccess=true or -c sshAccess=false" in refused(sshAccess=value)
+    assert "-c ros2=true or -c ros2=false" in refused(ros2=value)
+
+
+def test_ros2_is_a_boolean_off_by_default() -> None:
+    assert settings(ros2="true").ros2 is True
+    assert settings(ros2=True).ros2 is True
+    assert settings(ros2="false").ros2 is False
 
 
 def test_ami_id_and_parameter_are_checked() -> None:

@@ -329,6 +329,15 @@ def test_user_data_is_small_has_no_secret_and_fetches_the_assets(synth_default: 
     assert "GetSecretValue" not in text and "SecretString" not in text
     for line in ("TOPIC_PREFIX=dt/lerobot", "DEVICES=arm-001", "UNITS=auto", "CLIENT_ID_PREFIX=so101-twin-"):
         assert line in text
+    assert "ROS2=false" in text.splitlines()
+
+
+def test_ros2_setting_reaches_the_host_and_opens_no_port(synth_all_options: Synth) -> None:
+    # The installer turns ROS2=true into the ros2 extra and [ros2] enabled (tests/infra/test_userdata.py).
+    assert "ROS2=true" in user_data_text(synth_all_options).splitlines()
+    # DDS has no authentication, so the stack opens nothing for it (docs/ros2.md says how to reach RViz):
+    # with ros2 on, the ingress rules are still DCV and SSH only.
+    assert {r["FromPort"] for r in ingress_rules(synth_all_options)} == {22, 8443}
 
 
 def test_agent_asset_holds_only_the_distribution(synth_default: Synth) -> None:

@@ -131,6 +131,7 @@ def test_installer_writes_the_agent_config_from_the_settings(installed: tuple[Pa
         "calibration": "",
     }
     assert config["twin"]["record_dir"] == "/var/lib/so101-twin/sessions"
+    assert config["ros2"] == {"enabled": False}
     # The agent's own loader accepts it (same schema as `twin run --config`).
     from twin.service.config import load_config
 
@@ -215,9 +216,29 @@ def test_changed_settings_rewrite_only_the_config(installed: tuple[Path, Path], 
     assert config["telemetry"]["devices"] == ["*"]
 
 
+def test_ros2_installs_the_extra_and_enables_the_bridge(installed: tuple[Path, Path], tmp_path: Path) -> None:
+    root = tmp_path / "root"
+    shutil.copytree(installed[0], root, symlinks=True)
+    result = run_installer(root, installed[1], ROS2="true")
+    assert result.returncode == 0, result.stderr
+    # Same source, but the extra is new: pip runs again (with --no-deps here; cyclonedds comes from the
+    # test venv, as the host gets it from PyPI).
+    assert "installing the agent package" in result.stdout
+    assert (root / "opt/so101-twin/venv/.so101-twin-source.sha256").read_text().strip().endswith("[ros2]")
+    from twin.service.config import load_config
+
+    loaded = load_config(root / "etc/so101-twin/agent.toml")
+    assert loaded.ros2.enabled
+    assert loaded.ros2.topic == "/{arm}/joint_states"
+
+
 @pytest.mark.parametrize(
     ("env", "message"),
-    [({"UNITS": "radians"}, "UNITS=radians"), ({"AGENT_SRC": "/nonexistent"}, "no pyproject.toml")],
+    [
+        ({"UNITS": "radians"}, "UNITS=radians"),
+        ({"ROS2": "yes"}, "ROS2=yes is not true or false"),
+        ({"AGENT_SRC": "/nonexistent"}, "no pyproject.toml"),
+    ],
 )
 def test_installer_refuses_bad_input(tmp_path: Path, env: dict[str, str], message: str) -> None:
     result = run_installer(tmp_path / "root", REPO_ROOT, **env)
