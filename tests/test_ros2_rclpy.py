@@ -189,3 +189,34 @@ def test_end_to_end_rclpy_sees_what_state_shows(tmp_path: Path) -> None:
     assert sink["delivered"] >= sum(
         len(result["listener"]["received"][t]) for t in result["listener"]["received"]
     )
+
+
+BRIDGE_START = """
+import sys
+from twin.output.ros2 import Ros2Bridge, Ros2Error, Ros2Settings
+try:
+    bridge = Ros2Bridge(Ros2Settings(enabled=True, interface=sys.argv[1]))
+except Ros2Error as exc:
+    print("refused:", exc)
+else:
+    bridge.close()
+    print("started")
+"""
+
+
+def test_the_users_cyclone_config_is_read_and_a_bad_one_stops_the_bridge_with_the_fix() -> None:
+    user = (
+        "<CycloneDDS><Domain><General><MaxMessageSize>1400B</MaxMessageSize></General></Domain></CycloneDDS>"
+    )
+    good = run_in_loopback_namespace(
+        [sys.executable, "-c", BRIDGE_START, "lo"], env={**os.environ, "CYCLONEDDS_URI": user}, timeout=60
+    )
+    assert good.stdout.strip() == "started", good.stderr[-1500:]
+    bad_user = user.replace("MaxMessageSize", "NoSuchOption")
+    bad = run_in_loopback_namespace(
+        [sys.executable, "-c", BRIDGE_START, "lo"], env={**os.environ, "CYCLONEDDS_URI": bad_user}, timeout=60
+    )
+    assert "refused: cannot start DDS on domain" in bad.stdout, bad.stderr[-1500:]
+    assert "CYCLONEDDS_URI" in bad.stdout
+    no_such_interface = run_in_loopback_namespace([sys.executable, "-c", BRIDGE_START, "eth9"], timeout=60)
+    assert "refused: cannot start DDS" in no_such_interface.stdout, no_such_interface.stderr[-1500:]
