@@ -388,6 +388,11 @@ class JointStateEncoder:
         self._vel_pad = _pad(after_pos, 4)
         self._after_pos = after_pos + len(self._vel_pad)
         self._seq = struct.Struct(f"<I{len(self._pos_pad)}x{n}d")
+        # velocity starts at a fixed offset too; with it, effort's count needs this padding.
+        vel_pad = _pad(self._after_pos + 4, 8)
+        self._vel_seq = struct.Struct(f"<I{len(vel_pad)}x{n}d")
+        self._effort_after_vel = _pad(self._after_pos + self._vel_seq.size, 4) + b"\x00\x00\x00\x00"
+        self._effort_after_none = _pad(self._after_pos + 4, 4) + b"\x00\x00\x00\x00"
         self._stamp = struct.Struct("<iI")
         self._n = n
 
@@ -408,18 +413,13 @@ class JointStateEncoder:
             self._seq.pack(self._n, *position),
             self._vel_pad,
         ]
-        offset = self._after_pos
+        # effort stays empty: servo health has no physical torque.
         if velocity:
             if len(velocity) != self._n:
                 raise Ros2Error(f"{len(velocity)} velocities for {self._n} joint names")
-            vel_pad = _pad(offset + 4, 8)
-            parts.append(struct.pack(f"<I{len(vel_pad)}x{self._n}d", self._n, *velocity))
-            offset += 4 + len(vel_pad) + 8 * self._n
+            parts += (self._vel_seq.pack(self._n, *velocity), self._effort_after_vel)
         else:
-            parts.append(b"\x00\x00\x00\x00")
-            offset += 4
-        # effort: always empty (no physical torque in servo health yet).
-        parts.append(_pad(offset, 4) + b"\x00\x00\x00\x00")
+            parts += (b"\x00\x00\x00\x00", self._effort_after_none)
         return b"".join(parts)
 
 
