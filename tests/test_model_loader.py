@@ -83,6 +83,7 @@ def test_bundled_model_loads_with_everything_the_twin_needs() -> None:
 def test_renamed_joint_is_named_in_the_error(tmp_path: Path) -> None:
     for name in ("so101.xml", "scene.xml"):
         shutil.copy(BUNDLED_DIR / name, tmp_path / name)
+    (tmp_path / "meshes").symlink_to(BUNDLED_DIR / "meshes")  # the MJCF's meshdir is relative to it
     arm = tmp_path / "so101.xml"
     text = arm.read_text()
     assert 'joint name="elbow_flex"' in text

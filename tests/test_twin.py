@@ -186,6 +186,7 @@ def test_zero_gravity_gives_zero_torques(robot: RobotModel, tmp_path: Path) -> N
     text = Path(robot.path).with_name("so101.xml").read_text()
     scene = tmp_path / "weightless.xml"
     (tmp_path / "so101.xml").write_text(text)
+    (tmp_path / "meshes").symlink_to(Path(robot.path).with_name("meshes"))  # meshdir is relative to it
     scene.write_text('<mujoco><include file="so101.xml"/><option gravity="0 0 0"/></mujoco>')
     weightless = RobotModel.load(scene)
     twin = DeviceTwin(weightless, "arm-001")

@@ -49,5 +49,8 @@ BODY_NAMES: tuple[str, ...] = (
     "moving_jaw",
 )
 TCP_SITE = "tcp"
+# MJCF geom groups: the part meshes people see, and the primitive boxes contacts use (hidden by default).
+VISUAL_GROUP = 2
+COLLISION_GROUP = 3
 
 DEG = math.pi / 180.0
