@@ -332,3 +332,35 @@ def test_servo_diagnostics_are_time_sampled_on_the_device_prim(tmp_path: Path, m
     assert prim.GetAttribute("twin:servo:elbow_flex:voltageVolts").GetTimeSamples() == [30.0]
     # Readings never sent have no attribute at all, rather than a made-up zero.
     assert not prim.GetAttribute("twin:servo:gripper:temperatureCelsius")
+
+
+def test_recorded_part_meshes_sit_where_mujoco_draws_them(tmp_path: Path, mj) -> None:
+    # What a USD viewer shows of a session: the asset's part meshes moved by the recorded body samples. Their
+    # world points at each time code are MuJoCo's mesh vertices at that pose.
+    model, data = mj
+    session = tmp_path / "meshes.usda"
+    with SessionRecorder(session) as rec:
+        for i, angles in enumerate(ANGLE_SETS[1:]):
+            rec.record("arm", float(i), _fk_poses(model, data, angles))
+    stage = Usd.Stage.Open(str(session))
+    checked = 0
+    for i, angles in enumerate(ANGLE_SETS[1:]):
+        _fk_poses(model, data, angles)
+        cache = UsdGeom.XformCache(Usd.TimeCode(rec.time_code(float(i))))
+        for name in ("upper_arm_so101", "wrist_roll_servo", "moving_jaw_so101"):
+            geom = model.geom(name)
+            body = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, geom.bodyid[0])
+            prim = stage.GetPrimAtPath(f"/World/arm/{BODY_REL[body]}/{name}")
+            assert prim.IsA(UsdGeom.Mesh), name
+            points = np.array(UsdGeom.Mesh(prim).GetPointsAttr().Get(), dtype=float)
+            world = np.array(cache.GetLocalToWorldTransform(prim))
+            start, count = model.mesh_vertadr[geom.dataid[0]], model.mesh_vertnum[geom.dataid[0]]
+            drawn = model.mesh_vert[start : start + count] @ data.geom_xmat[geom.id].reshape(3, 3).T
+            np.testing.assert_allclose(
+                points @ world[:3, :3] + world[3, :3],
+                drawn + data.geom_xpos[geom.id],
+                atol=1e-5,
+                err_msg=name,
+            )
+            checked += 1
+    assert checked == 9

@@ -10,8 +10,9 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
-from pxr import Gf, Usd, UsdGeom, UsdPhysics
+from pxr import Gf, Usd, UsdGeom, UsdPhysics, UsdShade
 from twin.robot import so101
+from twin.robot.visual import visual_meshes
 
 ROOT = Path(__file__).resolve().parents[1]
 ASSET_DIR = ROOT / "robots" / "so101" / "usd"
@@ -95,12 +96,49 @@ def test_body_frames_at_zero_match_mujoco_fk(stage: Usd.Stage, mj: mujoco.MjMode
         assert isinstance(world, Gf.Matrix4d)
 
 
-def test_asset_is_text_and_ships_as_package_data() -> None:
+def test_asset_is_text_but_the_mesh_library_and_ships_as_package_data() -> None:
     files = [p for p in ASSET_DIR.rglob("*") if p.is_file()]
     assert files, "no USD asset; run `make usd-asset`"
-    assert not [p for p in files if p.suffix == ".usdc"], "binary layers: run robots/tools/usd_text_layers.py"
+    binary = [p.relative_to(ASSET_DIR).as_posix() for p in files if p.suffix == ".usdc"]
+    assert binary == ["Payload/GeometryLibrary.usdc"], (
+        "other binary layers: run robots/tools/usd_text_layers.py"
+    )
+    # Under a megabyte in all (measured 0.92 MB): the meshes are the simplified visual set, stored once each.
+    assert sum(p.stat().st_size for p in files) < 1_200_000
     pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text())
     patterns = pyproject["tool"]["setuptools"]["package-data"]["twin_robots"]
     for path in files:
         rel = path.relative_to(ROOT / "robots").as_posix()
         assert any(fnmatch(rel, pattern) for pattern in patterns), f"{rel} would not be packaged"
+
+
+def test_asset_holds_the_meshes_where_mujoco_draws_them(stage: Usd.Stage, mj: mujoco.MjModel) -> None:
+    # Every visual mesh geom is a Mesh prim named like the geom, whose points at q = 0, placed by the asset's
+    # transforms, are MuJoCo's vertices placed by forward kinematics; the triangles are the same.
+    data = mujoco.MjData(mj)
+    mujoco.mj_kinematics(mj, data)
+    expected = {part.name: part for parts in visual_meshes(mj).values() for part in parts}
+    cache = UsdGeom.XformCache(Usd.TimeCode.Default())
+    found = {}
+    for prim in stage.Traverse():
+        if prim.IsA(UsdGeom.Mesh) and prim.GetName() in expected:
+            found[prim.GetName()] = prim
+    assert sorted(found) == sorted(expected)
+    for name, prim in found.items():
+        part = expected[name]
+        assert prim.GetParent().GetName() == part.body, name
+        mesh = UsdGeom.Mesh(prim)
+        points = np.array(mesh.GetPointsAttr().Get(), dtype=float)
+        world = np.array(cache.GetLocalToWorldTransform(prim))  # row-vector convention
+        body = mj.body(part.body).id
+        np.testing.assert_allclose(
+            points @ world[:3, :3] + world[3, :3],
+            part.vertices @ data.xmat[body].reshape(3, 3).T + data.xpos[body],
+            atol=1e-6,
+            err_msg=name,
+        )
+        counts = np.array(mesh.GetFaceVertexCountsAttr().Get())
+        indices = np.array(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
+        assert (counts == 3).all() and np.array_equal(indices, part.faces), name
+        binding = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()[0]
+        assert binding.GetPrim().GetName() == mj.mat(mj.geom(name).matid[0]).name, name
