@@ -18,7 +18,7 @@ import pytest
 from PIL import Image
 from twin.cli import main
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
-from twin.output.render import RenderError, render_png
+from twin.output.render import RenderError, framing_camera, render_png
 from twin.robot import so101
 from twin.robot.calibration import load_calibration
 from twin.robot.model import RobotModel, default_model_path
@@ -88,17 +88,51 @@ def test_png_has_the_size_asked_and_is_not_blank(robot: RobotModel, tmp_path: Pa
     assert img.std() > 10.0
 
 
+def arm_pixels(robot: RobotModel, pose: dict[str, float], camera, tmp_path: Path) -> np.ndarray:
+    """Where the arm is in a render: the pixels that change when the arm is swapped for an invisible one."""
+    arm = pixels(render_png(robot, pose, tmp_path / "arm.png", width=W, height=H, camera=camera))
+    empty_scene = RobotModel.load(floor_only_scene(tmp_path))
+    empty = pixels(render_png(empty_scene, {}, tmp_path / "empty.png", width=W, height=H, camera=camera))
+    # The arm's shadow on the floor changes pixels too, but far less than the yellow and black parts.
+    return np.abs(arm - empty).sum(axis=2) > 60
+
+
 def test_the_arm_is_visible_against_the_background(robot: RobotModel, tmp_path: Path) -> None:
-    arm = pixels(render_png(robot, {}, tmp_path / "arm.png", width=W, height=H))
-    empty = pixels(
-        render_png(RobotModel.load(floor_only_scene(tmp_path)), {}, tmp_path / "empty.png", width=W, height=H)
-    )
-    changed = np.abs(arm - empty).sum(axis=2) > 60
-    # The arm covers a real part of the overview (measured ~12 %), not a speck, and stays inside the frame.
-    assert 0.03 < changed.mean() < 0.6
+    changed = arm_pixels(robot, {}, "overview", tmp_path)
+    # The arm covers a real part of the overview (measured ~4 %), not a speck, and stays inside the frame.
+    assert 0.02 < changed.mean() < 0.6
     rows, cols = np.nonzero(changed)
     # Top, left and right stay clear; the floor's reflection and the shadow may run off the bottom edge.
     assert rows.min() > 0 and cols.min() > 0 and cols.max() < W - 1
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("pose", [{}, REST], ids=["zero", "rest"])
+def test_the_default_view_frames_the_arm_in_the_scene(
+    robot: RobotModel, tmp_path: Path, pose: dict[str, float]
+) -> None:
+    camera = framing_camera(robot, [pose], aspect=W / H)
+    changed = arm_pixels(robot, pose, camera, tmp_path)
+    rows, cols = np.nonzero(changed)
+    # Several times the overview's share (about 4 % there), and clear of the top and side edges; the floor's
+    # reflection and the shadow may run off the bottom.
+    assert changed.mean() > 0.15
+    assert rows.min() > 2 and cols.min() > 2 and cols.max() < W - 3
+    # No camera given means exactly this framing.
+    default = pixels(render_png(robot, pose, tmp_path / "default.png", width=W, height=H))
+    assert np.array_equal(default, pixels(tmp_path / "arm.png"))
+
+
+@pytest.mark.slow
+def test_one_framing_for_several_poses_holds_them_all(tmp_path: Path) -> None:
+    bare = RobotModel.load(default_model_path().with_name("so101.xml"))
+    both = framing_camera(bare, [{}, RAISED], aspect=W / H)
+    for name, pose in (("zero", {}), ("raised", RAISED)):
+        img = pixels(render_png(bare, pose, tmp_path / f"{name}.png", width=W, height=H, camera=both))
+        rows, cols = np.nonzero(img.sum(axis=2) > 30)
+        assert rows.min() > 2 and cols.min() > 2 and rows.max() < H - 3 and cols.max() < W - 3, name
+    with pytest.raises(RenderError, match="no poses"):
+        framing_camera(bare, [])
 
 
 @pytest.mark.slow
@@ -110,17 +144,26 @@ def test_different_poses_give_different_images(robot: RobotModel, tmp_path: Path
     assert np.array_equal(zero, again)  # deterministic: same pose, same pixels
 
 
-def test_free_camera_frames_a_model_without_cameras(tmp_path: Path) -> None:
+RAISED = {"shoulder_pan": 1.5, "shoulder_lift": -0.3, "elbow_flex": -1.5, "gripper": 1.2}
+
+
+@pytest.mark.parametrize("pose", [{}, REST, RAISED], ids=["zero", "rest", "raised"])
+def test_the_default_view_fits_the_arm_into_the_image(tmp_path: Path, pose: dict[str, float]) -> None:
     bare = RobotModel.load(default_model_path().with_name("so101.xml"))  # no floor, no sky, no camera
     assert bare.camera_names == ()
-    for name, pose in (("zero", {}), ("rest", REST)):
-        img = pixels(render_png(bare, pose, tmp_path / f"{name}.png", width=W, height=H))
-        arm = img.sum(axis=2) > 30  # the background of a model without a skybox is black
-        rows, cols = np.nonzero(arm)
-        assert arm.mean() > 0.02, name
-        # Framed: inside the image with a margin, and big enough to see.
-        assert rows.min() > 2 and cols.min() > 2 and rows.max() < H - 3 and cols.max() < W - 3, name
-        assert cols.max() - cols.min() > W * 0.25, name
+    img = pixels(render_png(bare, pose, tmp_path / "bare.png", width=W, height=H))
+    arm = img.sum(axis=2) > 30  # the background of a model without a skybox is black
+    rows, cols = np.nonzero(arm)
+    top, bottom, left, right = rows.min(), H - 1 - rows.max(), cols.min(), W - 1 - cols.max()
+    # Whole, with a margin on every side ...
+    assert min(top, bottom, left, right) > 2
+    # ... as large as the image allows: the long side fills ~90 % (8 % margin), centred within a few pixels.
+    width, height = (cols.max() - cols.min()) / W, (rows.max() - rows.min()) / H
+    assert max(width, height) > 0.85, (width, height)
+    if width > height:
+        assert abs(left - right) <= 4
+    else:
+        assert abs(top - bottom) <= 4
 
 
 @pytest.mark.slow

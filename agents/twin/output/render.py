@@ -9,21 +9,22 @@ from __future__ import annotations
 import logging
 import os
 import sys
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 import mujoco
 import numpy as np
 
 from twin.core.twin import DeviceTwin, TwinMode
+from twin.robot import so101
 from twin.robot.model import RobotModel
 
 log = logging.getLogger(__name__)
 
-DEFAULT_CAMERA = "overview"
-# Free-camera view when the model has no overview camera: front-left and above, like the scene's default.
-_FREE_AZIMUTH_DEG = 140.0
-_FREE_ELEVATION_DEG = -25.0
+# The default view: from the front-left and above (MuJoCo free-camera degrees), the arm fitted into the image.
+FRAMING_AZIMUTH_DEG = 140.0
+FRAMING_ELEVATION_DEG = -22.0
+FRAMING_MARGIN = 0.08
 
 
 class RenderError(RuntimeError):
@@ -47,22 +48,98 @@ def _check_gl_backend() -> None:
         )
 
 
-def _free_camera(robot: RobotModel, data: mujoco.MjData) -> mujoco.MjvCamera:
-    # Frame the arm's bodies in this pose: centre on their bounding box, back off so the box fits the fovy.
-    ids = list(robot.body_ids.values()) or list(range(1, robot.model.nbody))
-    points = data.xpos[ids]
-    if robot.tcp_site_id is not None:
-        points = np.vstack([points, data.site_xpos[robot.tcp_site_id]])
-    lo = points.min(axis=0)
-    hi = points.max(axis=0)
-    radius = max(float(np.linalg.norm(hi - lo)) / 2.0, 0.05) + 0.03  # margin for the link geometry
-    fovy = np.deg2rad(float(robot.model.vis.global_.fovy))
+def _arm_geoms(robot: RobotModel) -> np.ndarray:
+    """Geoms drawn by default (groups 0-2) on the arm's bodies: what a framed picture must hold."""
+    model = robot.model
+    bodies = list(robot.body_ids.values()) or list(range(1, model.nbody))
+    geoms = [
+        g
+        for g in range(model.ngeom)
+        if int(model.geom_bodyid[g]) in bodies
+        and model.geom_group[g] <= so101.VISUAL_GROUP
+        and model.geom_type[g] != mujoco.mjtGeom.mjGEOM_PLANE
+    ]
+    return np.asarray(geoms, dtype=int)
+
+
+def _geom_points(model: mujoco.MjModel, data: mujoco.MjData, geoms: np.ndarray) -> np.ndarray:
+    """World points that bound what the geoms draw: a mesh's vertices, other geoms' bounding-box corners."""
+    signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=float)
+    chunks = []
+    for g in geoms:
+        rotation = data.geom_xmat[g].reshape(3, 3)
+        if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH:
+            mesh = model.geom_dataid[g]
+            start, count = model.mesh_vertadr[mesh], model.mesh_vertnum[mesh]
+            local = model.mesh_vert[start : start + count]
+        else:
+            aabb = model.geom_aabb[g]  # centre then half-sizes, in the geom's frame
+            local = aabb[:3] + signs * aabb[3:]
+        chunks.append(local @ rotation.T + data.geom_xpos[g])
+    return np.vstack(chunks)
+
+
+def framing_camera(
+    robot: RobotModel,
+    poses: Iterable[Mapping[str, float]],
+    *,
+    aspect: float = 4 / 3,
+    azimuth: float = FRAMING_AZIMUTH_DEG,
+    elevation: float = FRAMING_ELEVATION_DEG,
+    margin: float = FRAMING_MARGIN,
+) -> mujoco.MjvCamera:
+    """A free camera that shows the arm in every pose of `poses` as large as the image allows.
+
+    The view direction is fixed (azimuth/elevation, degrees, MuJoCo's free-camera convention) so pictures of
+    different poses compare; the look-at point and distance fit the arm's visible geoms (mesh vertices, other
+    geoms' bounding boxes) in all poses into the field of view (`aspect` = width / height) with `margin` (a
+    fraction of the half width/height) to spare. Angles are clamped to the joint ranges; missing joints sit
+    at 0.
+    """
+    model = robot.model
+    data = mujoco.MjData(model)
+    geoms = _arm_geoms(robot)
+    points = []
+    for pose in poses:
+        data.qpos[:] = model.qpos0
+        for name, value in pose.items():
+            if name in robot.qpos_addr:
+                lo, hi = robot.joint_ranges[name]
+                data.qpos[robot.qpos_addr[name]] = min(max(float(value), lo), hi)
+        mujoco.mj_kinematics(model, data)
+        points.append(_geom_points(model, data, geoms) if geoms.size else data.xpos[1:].copy())
+    if not points:
+        raise RenderError("no poses to frame; pass at least one pose (an empty dict is the zero pose)")
+    cloud = np.vstack(points)
+
+    az, el = np.deg2rad(azimuth), np.deg2rad(elevation)
+    forward = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    right = np.cross(forward, (0.0, 0.0, 1.0))
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    tan_v = np.tan(np.deg2rad(float(model.vis.global_.fovy)) / 2.0) * (1.0 - margin)
+    tan_h = tan_v * aspect
+    centre = cloud.mean(axis=0)
+    distance = 0.0
+    # Centring depends on the distance (perspective spreads near points wider) and the distance on the centre:
+    # a few rounds of each settle to well under a pixel.
+    for _ in range(4):
+        rel = cloud - centre
+        x, y, depth = rel @ right, rel @ up, rel @ forward
+        if distance > 0.0:
+            scale = distance / np.maximum(distance + depth, 1e-6)  # perspective: nearer points spread wider
+            x, y = x * scale, y * scale
+        centre = centre + right * (x.max() + x.min()) / 2.0 + up * (y.max() + y.min()) / 2.0
+        rel = cloud - centre
+        x, y, depth = np.abs(rel @ right), np.abs(rel @ up), rel @ forward
+        # A point at depth d beyond the look-at point is inside the view when |x| <= tan_h * (distance + d).
+        distance = float(max((x / tan_h - depth).max(), (y / tan_v - depth).max(), 0.05))
     camera = mujoco.MjvCamera()
     camera.type = mujoco.mjtCamera.mjCAMERA_FREE
-    camera.lookat[:] = (lo + hi) / 2.0
-    camera.distance = radius / np.sin(fovy / 2.0)
-    camera.azimuth = _FREE_AZIMUTH_DEG
-    camera.elevation = _FREE_ELEVATION_DEG
+    camera.lookat[:] = centre
+    camera.distance = distance
+    camera.azimuth = azimuth
+    camera.elevation = elevation
     return camera
 
 
@@ -102,22 +179,23 @@ def render_png(
     *,
     width: int = 640,
     height: int = 480,
-    camera: str | None = None,
+    camera: str | mujoco.MjvCamera | None = None,
     text: str | None = None,
 ) -> Path:
     """Render the arm with `joint_angles` (radians by joint name; missing joints at 0) to a PNG at `path`.
 
-    Angles are clamped to the joint ranges, as the twin does. `camera` names a model camera; None uses
-    "overview" when the model has one, else a free camera framing the arm. `text` is drawn in the top-left
-    corner. Returns the written path. Raises RenderError when no GL context can be made or the camera is
-    unknown.
+    Angles are clamped to the joint ranges, as the twin does. `camera` names a model camera (the bundled
+    scene's "overview" keeps the whole reach over the pan range in view) or is a free camera (e.g. one
+    `framing_camera` made for several poses); None frames the arm in this pose. `text` is drawn in the
+    top-left corner. Returns the written path. Raises RenderError when no GL context can be made or the camera
+    is unknown.
     """
     from PIL import Image  # noqa: PLC0415 - keep PIL out of importers that never render
 
     if width <= 0 or height <= 0:
         raise RenderError(f"image size {width}x{height} is not positive; pass a width and height >= 1")
     model = robot.model
-    if camera is not None and camera not in robot.camera_names:
+    if isinstance(camera, str) and camera not in robot.camera_names:
         available = ", ".join(robot.camera_names) or "none"
         raise RenderError(
             f"camera {camera!r} is not in {robot.path} (cameras: {available}); pick one of those or omit it "
@@ -133,10 +211,9 @@ def render_png(
     vis.offwidth = max(vis.offwidth, width)
     vis.offheight = max(vis.offheight, height)
 
-    name = camera
-    if name is None and DEFAULT_CAMERA in robot.camera_names:
-        name = DEFAULT_CAMERA
-    view: str | mujoco.MjvCamera = name if name is not None else _free_camera(robot, data)
+    view: str | mujoco.MjvCamera = (
+        camera if camera is not None else framing_camera(robot, [joint_angles], aspect=width / height)
+    )
     with _renderer(model, width, height) as renderer:
         renderer.update_scene(data, camera=view)
         pixels = renderer.render()
@@ -145,5 +222,7 @@ def render_png(
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(pixels).save(out, format="PNG")
-    log.debug("rendered %s (%dx%d, camera %s)", out, width, height, name or "free")
+    log.debug(
+        "rendered %s (%dx%d, camera %s)", out, width, height, camera if isinstance(camera, str) else "free"
+    )
     return out
