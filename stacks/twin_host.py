@@ -37,6 +37,8 @@ AGENT_ASSET_PATTERNS = [
     "agents/twin/tools/demo.py",
     "agents/twin/tools/mosquitto.py",
     "robots/tools",
+    # The original meshes (16 MB) are only the source the installed visual meshes are made from.
+    "robots/so101/meshes/source",
     "**/__pycache__",
     "**/*.pyc",
     "**/*.egg-info",

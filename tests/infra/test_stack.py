@@ -358,6 +358,10 @@ def test_agent_asset_holds_only_the_distribution(synth_default: Synth) -> None:
         for p in (tools / "bench", tools / "rig.py", tools / "demo.py", tools / "mosquitto.py")
         if p.exists()
     ]
+    meshes = asset_dirs[0] / "robots" / "so101" / "meshes"
+    assert len(list((meshes / "visual").glob("*.stl"))) == 13
+    assert {"LICENSE", "NOTICE", "provenance.json"} <= {p.name for p in meshes.iterdir()}
+    assert not (meshes / "source").exists()  # originals stay in the repository, not in every deploy
     scripts = [p for p in Path(outdir).glob("asset.*") if (p / "bootstrap.sh").exists()]
     assert len(scripts) == 1
     assert {"bootstrap.sh", "install-agent.sh"} <= {p.name for p in scripts[0].iterdir()}

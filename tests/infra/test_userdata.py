@@ -162,16 +162,21 @@ def test_installer_writes_the_service_and_the_viewer_autostart(installed: tuple[
 def test_installer_installs_the_real_package_with_the_robot_model(installed: tuple[Path, Path]) -> None:
     root, _ = installed
     venv_python = root / "opt/so101-twin/venv/bin/python"
+    # Every mesh file the installed MJCF names is installed beside it (this venv has no mujoco to load it).
     probe = (
-        "import twin, twin_robots, pathlib; "
-        "p = pathlib.Path(twin_robots.__file__).parent / 'so101' / 'scene.xml'; "
-        "print(pathlib.Path(twin.__file__).parent.parent.name, p.is_file())"
+        "import twin, twin_robots, pathlib, xml.etree.ElementTree as et; "
+        "d = pathlib.Path(twin_robots.__file__).parent / 'so101'; "
+        "x = et.parse(d / 'so101.xml').getroot(); "
+        "mesh_dir = d / x.find('compiler').get('meshdir'); "
+        "files = [m.get('file') for m in x.iter('mesh')]; "
+        "print(pathlib.Path(twin.__file__).parent.parent.name, (d / 'scene.xml').is_file(), len(files), "
+        "all((mesh_dir / f).is_file() for f in files), (d / 'meshes' / 'NOTICE').is_file())"
     )
     out = subprocess.run(
         [str(venv_python), "-c", probe], capture_output=True, text=True, check=True, timeout=60
     )
-    # Installed into the venv's site-packages (not the repo checkout), model files included.
-    assert out.stdout.split() == ["site-packages", "True"]
+    # Installed into the venv's site-packages (not the repo checkout), model files and part meshes included.
+    assert out.stdout.split() == ["site-packages", "True", "13", "True", "True"]
     help_ = subprocess.run(
         [str(root / "opt/so101-twin/venv/bin/twin"), "--help"],
         capture_output=True,
