@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import itertools
 import json
 import os
 import shutil
@@ -18,7 +19,7 @@ import pytest
 from PIL import Image
 from twin.cli import main
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
-from twin.output.render import RenderError, framing_camera, render_png
+from twin.output.render import RenderError, framing_camera, render_gif, render_png
 from twin.robot import so101
 from twin.robot.calibration import load_calibration
 from twin.robot.model import RobotModel, default_model_path
@@ -164,6 +165,26 @@ def test_the_default_view_fits_the_arm_into_the_image(tmp_path: Path, pose: dict
         assert abs(left - right) <= 4
     else:
         assert abs(top - bottom) <= 4
+
+
+@pytest.mark.slow
+def test_gif_holds_every_frame_with_the_arm_in_view(tmp_path: Path) -> None:
+    bare = RobotModel.load(default_model_path().with_name("so101.xml"))
+    poses = [{}, REST, RAISED, {"shoulder_pan": -1.5, "wrist_roll": 2.0}]
+    out = render_gif(bare, poses, tmp_path / "anim" / "arm.gif", width=160, height=120)
+    with Image.open(out) as gif:
+        assert gif.size == (160, 120)
+        assert gif.n_frames == len(poses)
+        frames = []
+        for i in range(gif.n_frames):
+            gif.seek(i)
+            frames.append(np.asarray(gif.convert("RGB"), dtype=np.int16))
+    for i, frame in enumerate(frames):
+        rows, cols = np.nonzero(frame.sum(axis=2) > 30)
+        assert rows.min() > 1 and cols.min() > 1 and rows.max() < 118 and cols.max() < 158, i
+    assert all((np.abs(a - b).sum(axis=2) > 60).mean() > 0.01 for a, b in itertools.pairwise(frames))
+    with pytest.raises(RenderError, match="no frames"):
+        render_gif(bare, [], tmp_path / "none.gif")
 
 
 @pytest.mark.slow

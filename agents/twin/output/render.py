@@ -9,7 +9,7 @@ from __future__ import annotations
 import logging
 import os
 import sys
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
 import mujoco
@@ -225,4 +225,56 @@ def render_png(
     log.debug(
         "rendered %s (%dx%d, camera %s)", out, width, height, camera if isinstance(camera, str) else "free"
     )
+    return out
+
+
+def render_gif(
+    robot: RobotModel,
+    frames: Sequence[Mapping[str, float]],
+    path: str | Path,
+    *,
+    width: int = 320,
+    height: int = 240,
+    camera: str | mujoco.MjvCamera | None = None,
+    frame_ms: int = 100,
+) -> Path:
+    """An animated GIF of `frames` (joint angles in radians by name, clamped to the ranges), one offscreen
+    renderer for all of them. None frames every pose at once (`framing_camera`), so the view holds still while
+    the arm moves; a model camera name or a free camera may be given instead. Returns the written path; raises
+    RenderError when there are no frames, no GL context or an unknown camera.
+    """
+    from PIL import Image  # noqa: PLC0415 - keep PIL out of importers that never render
+
+    if not frames:
+        raise RenderError("no frames to animate; pass at least one pose")
+    if width <= 0 or height <= 0:
+        raise RenderError(f"image size {width}x{height} is not positive; pass a width and height >= 1")
+    if isinstance(camera, str) and camera not in robot.camera_names:
+        available = ", ".join(robot.camera_names) or "none"
+        raise RenderError(f"camera {camera!r} is not in {robot.path} (cameras: {available})")
+    model = robot.model
+    view = camera if camera is not None else framing_camera(robot, frames, aspect=width / height)
+    vis = model.vis.global_
+    vis.offwidth = max(vis.offwidth, width)
+    vis.offheight = max(vis.offheight, height)
+    data = mujoco.MjData(model)
+    _check_gl_backend()
+    try:
+        renderer = mujoco.Renderer(model, height=height, width=width)
+    except Exception as exc:  # the GL backends raise assorted types (FatalError, GLFWError, ImportError)
+        raise RenderError(f"no OpenGL context for the animation (set MUJOCO_GL=egl): {exc}") from exc
+    images = []
+    with renderer:
+        for angles in frames:
+            data.qpos[:] = model.qpos0
+            for name, value in angles.items():
+                if name in robot.qpos_addr:
+                    lo, hi = robot.joint_ranges[name]
+                    data.qpos[robot.qpos_addr[name]] = min(max(float(value), lo), hi)
+            mujoco.mj_forward(model, data)
+            renderer.update_scene(data, camera=view)
+            images.append(Image.fromarray(renderer.render()))
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    images[0].save(out, save_all=True, append_images=images[1:], duration=frame_ms, loop=0)
     return out
