@@ -19,7 +19,7 @@ import pytest
 from PIL import Image
 from twin.cli import main
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
-from twin.output.render import RenderError, framing_camera, render_gif, render_png
+from twin.output.render import RenderError, framing_camera, reach_poses, render_gif, render_png
 from twin.robot import so101
 from twin.robot.calibration import load_calibration
 from twin.robot.model import RobotModel, default_model_path
@@ -165,6 +165,19 @@ def test_the_default_view_fits_the_arm_into_the_image(tmp_path: Path, pose: dict
         assert abs(left - right) <= 4
     else:
         assert abs(top - bottom) <= 4
+
+
+@pytest.mark.slow
+def test_the_reach_framing_holds_every_reach_pose_in_a_wide_window(tmp_path: Path) -> None:
+    # `twin view` starts from this camera: stretched over the pan range, upright or folded, the arm shows.
+    bare = RobotModel.load(default_model_path().with_name("so101.xml"))
+    poses = reach_poses(bare)
+    assert len(poses) == 5
+    camera = framing_camera(bare, poses, aspect=16 / 9)
+    for i, pose in enumerate(poses):
+        img = pixels(render_png(bare, pose, tmp_path / f"{i}.png", width=320, height=180, camera=camera))
+        rows, cols = np.nonzero(img.sum(axis=2) > 30)
+        assert rows.min() > 1 and cols.min() > 1 and rows.max() < 178 and cols.max() < 318, pose
 
 
 @pytest.mark.slow

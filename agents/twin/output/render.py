@@ -79,6 +79,15 @@ def _geom_points(model: mujoco.MjModel, data: mujoco.MjData, geoms: np.ndarray) 
     return np.vstack(chunks)
 
 
+def reach_poses(robot: RobotModel) -> list[dict[str, float]]:
+    """Poses that span where the arm usually is: stretched forward straight ahead and at both pan limits,
+    raised upright, and LeRobot's folded rest pose. Framing them all keeps any ordinary pose in view."""
+    pan_lo, pan_hi = robot.joint_ranges.get(so101.JOINT_NAMES[0], (0.0, 0.0))
+    upright = {"shoulder_lift": 0.0, "elbow_flex": -1.57}
+    rest = {"shoulder_lift": -1.726, "elbow_flex": 1.698, "wrist_flex": 1.112}
+    return [{}, {"shoulder_pan": pan_lo}, {"shoulder_pan": pan_hi}, upright, rest]
+
+
 def framing_camera(
     robot: RobotModel,
     poses: Iterable[Mapping[str, float]],
@@ -258,13 +267,8 @@ def render_gif(
     vis.offwidth = max(vis.offwidth, width)
     vis.offheight = max(vis.offheight, height)
     data = mujoco.MjData(model)
-    _check_gl_backend()
-    try:
-        renderer = mujoco.Renderer(model, height=height, width=width)
-    except Exception as exc:  # the GL backends raise assorted types (FatalError, GLFWError, ImportError)
-        raise RenderError(f"no OpenGL context for the animation (set MUJOCO_GL=egl): {exc}") from exc
     images = []
-    with renderer:
+    with _renderer(model, width, height) as renderer:
         for angles in frames:
             data.qpos[:] = model.qpos0
             for name, value in angles.items():

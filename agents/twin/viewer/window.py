@@ -215,7 +215,7 @@ class TwinViewer:
         self.feed.start()
         try:
             with handle.lock():
-                self._frame_camera(mujoco, model, handle)
+                self._frame_camera(mujoco, robot, handle)
             self._loop(mujoco, robot, data, handle)
         finally:
             self.feed.stop()
@@ -224,7 +224,10 @@ class TwinViewer:
         log.info("viewer closed after %d frames", self.frames)
         return 0
 
-    def _frame_camera(self, mujoco: Any, model: Any, handle: Any) -> None:
+    def _frame_camera(self, mujoco: Any, robot: Any, handle: Any) -> None:
+        from twin.output.render import framing_camera, reach_poses  # noqa: PLC0415 - pulls in mujoco
+
+        model = robot.model
         cam = handle.cam
         if self.config.camera:
             cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, self.config.camera)
@@ -237,14 +240,15 @@ class TwinViewer:
             cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
             cam.fixedcamid = cam_id
             return
-        # Free camera framed on the arm's workspace (about 0.45 m reach), not the scene's default that shows
-        # the whole floor; the mouse can still orbit and zoom.
+        # Free camera fitted to the arm's usual reach (stretched out over the pan range, upright, folded), not
+        # the scene's default that shows the whole floor, so any ordinary pose stays in view without the arm
+        # looking small; the mouse can still orbit and zoom. Desktop windows are wide: fit for 16:9.
+        framed = framing_camera(robot, reach_poses(robot), aspect=16 / 9)
         cam.type = mujoco.mjtCamera.mjCAMERA_FREE
-        cam.lookat[:] = (0.12, 0.0, 0.18)
-        # Far enough that the arm stretched straight up (about 0.5 m) stays in a small window.
-        cam.distance = 1.1
-        cam.azimuth = 140.0
-        cam.elevation = -22.0
+        cam.lookat[:] = framed.lookat
+        cam.distance = framed.distance
+        cam.azimuth = framed.azimuth
+        cam.elevation = framed.elevation
 
     def _loop(self, mujoco: Any, robot: Any, data: Any, handle: Any) -> None:
         model, addr, ranges = robot.model, robot.qpos_addr, robot.joint_ranges

@@ -65,7 +65,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--width", type=int, default=640, help="image width in pixels (%(default)s)")
     parser.add_argument("--height", type=int, default=480, help="image height in pixels (%(default)s)")
     parser.add_argument(
-        "--camera", default=None, help="model camera name (default: overview, else a free view)"
+        "--camera", default=None, help="model camera name, e.g. overview (default: a view framing the arm)"
     )
     parser.set_defaults(func=run)
 
