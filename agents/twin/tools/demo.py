@@ -398,31 +398,8 @@ def _write_history_outputs(devices: list[str], stats: dict[str, Any], out_dir: P
 
 
 def _write_gif(robot: Any, frames: list[dict[str, float]], path: Path, size: tuple[int, int]) -> Path:
-    """An animated GIF of the mirrored poses: one offscreen renderer for all (~30 small) frames."""
-    import mujoco  # noqa: PLC0415
-    from PIL import Image  # noqa: PLC0415
-
-    from twin.output.render import RenderError  # noqa: PLC0415
+    """An animated GIF of the mirrored poses, framed once over all of them so the view holds still."""
+    from twin.output.render import render_gif  # noqa: PLC0415
 
     width, height = size
-    model = robot.model
-    model.vis.global_.offwidth = max(model.vis.global_.offwidth, width)
-    model.vis.global_.offheight = max(model.vis.global_.offheight, height)
-    data = mujoco.MjData(model)
-    camera = "overview" if "overview" in robot.camera_names else -1
-    try:
-        renderer = mujoco.Renderer(model, height=height, width=width)
-    except Exception as exc:  # GL backends raise assorted types
-        raise RenderError(f"no OpenGL context for the animation (set MUJOCO_GL=egl): {exc}") from exc
-    images = []
-    with renderer:
-        for angles in frames:
-            for name, value in angles.items():
-                if name in robot.qpos_addr:
-                    lo, hi = robot.joint_ranges[name]
-                    data.qpos[robot.qpos_addr[name]] = min(max(value, lo), hi)
-            mujoco.mj_forward(model, data)
-            renderer.update_scene(data, camera=camera)
-            images.append(Image.fromarray(renderer.render()))
-    images[0].save(path, save_all=True, append_images=images[1:], duration=100, loop=0)
-    return path
+    return render_gif(robot, frames, path, width=width, height=height)
