@@ -124,3 +124,14 @@ def test_ros2_reports_the_bridge_cost_and_that_samples_reached_a_reader() -> Non
     # The bridge really published, and a DDS reader really received (not a figure check).
     assert sink["delivered"] > 0
     assert 0 < figures["reader"]["received"] <= sink["delivered"]
+def test_render_reports_frame_times_load_and_the_demo_pictures() -> None:
+    figures = bench("render", "--frames", "3", "--width", "160", "--height", "120")
+    assert figures["scenario"] == "render"
+    assert {"gl_renderer", "model", "model_load_s", "frame_size", "frames", "target_frame_ms"} <= set(figures)
+    assert {"demo_png_s", "demo_gif_30_frames_s", "load_average_1m"} <= set(figures)
+    # The bundled model really was drawn with its part meshes, from both views.
+    assert (figures["meshes"], figures["mesh_faces"], figures["frame_size"]) == (13, 44_582, "160x120")
+    for view in ("framed", "overview"):
+        for clock in ("wall_ms", "cpu_ms"):
+            assert {"p50", "p90", "min"} <= set(figures["frame"][view][clock])
+        assert figures["frame"][view]["wall_ms"]["p50"] > 0

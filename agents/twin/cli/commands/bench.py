@@ -50,11 +50,16 @@ def register(subparsers: Any) -> None:
     r2.add_argument("--rate", type=float, default=10.0, help="messages per second per arm")
     r2.add_argument("--seconds", type=float, default=20.0)
 
+    rn = sub.add_parser("render", help="offscreen frame time with the part meshes, model load, demo pictures")
+    rn.add_argument("--frames", type=int, default=40, help="timed frames per view (after 5 warm-up frames)")
+    rn.add_argument("--width", type=int, default=640)
+    rn.add_argument("--height", type=int, default=480)
+
     al = sub.add_parser("all", help="every scenario as published in docs/performance.md, plus the plot")
     al.add_argument("--seconds", type=float, default=20.0, help="throughput run length")
     al.add_argument("--plot", type=Path, default=Path("docs/performance.png"))
 
-    for p in (tp, fi, fo, hs, hr, hl, r2, al):
+    for p in (tp, fi, fo, hs, hr, hl, r2, rn, al):
         p.add_argument("--json", action="store_true", help="print the figures as one JSON object")
         p.set_defaults(func=run)
 
@@ -65,6 +70,7 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
     fidelity = import_dev_tool("twin.tools.bench.fidelity", "bench")
     footprint = import_dev_tool("twin.tools.bench.footprint", "bench")
     ros2 = import_dev_tool("twin.tools.bench.ros2", "bench")
+    render = import_dev_tool("twin.tools.bench.render", "bench")
 
     if args.scenario.startswith("history-"):
         history = import_dev_tool("twin.tools.bench.history", "bench")
@@ -81,7 +87,9 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
         return footprint.run(fleet=args.arms, fleet_seconds=args.seconds)
     if args.scenario == "ros2":
         return ros2.run(arms=args.arms, rate=args.rate, seconds=args.seconds)
-    # all: the two throughput loads the targets name, then fidelity, footprint and the ROS 2 bridge's cost.
+    if args.scenario == "render":
+        return render.run(frames=args.frames, width=args.width, height=args.height)
+    # all: the two throughput loads the targets name, then fidelity, footprint, the ROS 2 bridge's cost and render.
     results = {
         "throughput": [
             throughput.run(arms=100, rate=10.0, seconds=args.seconds),
@@ -90,6 +98,7 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
         "fidelity": fidelity.run(),
         "footprint": footprint.run(),
         "ros2": ros2.run(arms=100, rate=10.0, seconds=args.seconds),
+        "render": render.run(),
     }
     plot = import_dev_tool("twin.tools.bench.plot", "bench")
     results["plot"] = str(plot.write(results, args.plot))
