@@ -124,6 +124,8 @@ def test_ros2_reports_the_bridge_cost_and_that_samples_reached_a_reader() -> Non
     # The bridge really published, and a DDS reader really received (not a figure check).
     assert sink["delivered"] > 0
     assert 0 < figures["reader"]["received"] <= sink["delivered"]
+
+
 def test_render_reports_frame_times_load_and_the_demo_pictures() -> None:
     figures = bench("render", "--frames", "3", "--width", "160", "--height", "120")
     assert figures["scenario"] == "render"
