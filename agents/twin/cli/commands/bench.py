@@ -89,7 +89,7 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
         return ros2.run(arms=args.arms, rate=args.rate, seconds=args.seconds)
     if args.scenario == "render":
         return render.run(frames=args.frames, width=args.width, height=args.height)
-    # all: the two throughput loads the targets name, then fidelity, footprint, the ROS 2 bridge's cost and render.
+    # all: the two throughput loads the targets name, fidelity, footprint, the ROS 2 bridge's cost, render.
     results = {
         "throughput": [
             throughput.run(arms=100, rate=10.0, seconds=args.seconds),
