@@ -67,6 +67,8 @@ class SinkStats:
     errors: int = 0
     pending: int = 0
     last_error: str = ""
+    # Samples the sink chose not to write (a rate cap), unlike `dropped` ones it could not keep up with.
+    skipped: int = 0
 
 
 class TwinSink(Protocol):

@@ -1,0 +1,91 @@
+"""Settings of the Rerun sink (the `[rerun]` config section); light, so loading a config imports no Rerun.
+
+docs/web.md explains each one. Everything the sink serves listens on the loopback interface only: the twin
+host opens no new port, and a person reaches the viewer through an SSM port forward or the DCV desktop.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+# The sizes Rerun's server_memory_limit understands: bytes with a binary or decimal unit, or a share of RAM.
+_MEMORY_LIMIT = re.compile(r"^\d+(\.\d+)?\s*(B|kB|KB|KiB|MB|MiB|GB|GiB|TB|TiB|%)$")
+DEFAULT_GRPC_PORT = 9876  # Rerun's own default, so `rerun --connect` finds it without a URL
+DEFAULT_WEB_PORT = 9090
+
+
+class RerunSettingsError(ValueError):
+    """A `[rerun]` value is invalid; the message names the key and the fix."""
+
+
+@dataclass(frozen=True)
+class RerunSettings:
+    # Write the stream to this .rrd file ("" = no file). `rerun FILE.rrd` opens it later.
+    save: str = ""
+    # Serve the stream (gRPC) and the web viewer (HTTP) on 127.0.0.1.
+    serve: bool = False
+    grpc_port: int = DEFAULT_GRPC_PORT
+    web_port: int = DEFAULT_WEB_PORT
+    # What the gRPC server keeps for viewers that connect later; the oldest data goes first, the static
+    # meshes never. A Rerun size ("512MiB") or a share of RAM ("10%").
+    memory_limit: str = "512MiB"
+    # Per device, at most this many samples a second go into the stream (the rest are counted as skipped).
+    max_rate_hz: float = 20.0
+    # Samples are sent in columns, one batch per device at most every flush_s: the stream's delay, traded
+    # against CPU (docs/web.md has the figures).
+    flush_s: float = 0.5
+    # Visual meshes are thinned to this many triangles per arm (a fleet view holds one copy per arm).
+    mesh_faces_per_arm: int = 50_000
+    # Arms in the fleet view stand on a grid this far apart, in order of first appearance.
+    fleet_spacing_m: float = 0.6
+    # The arm whose joints and servo plots the layout opens on ("" = the first arm seen).
+    focus_device: str = ""
+    # The sink's queue: samples waiting for the Rerun thread (the oldest are dropped beyond it).
+    max_pending: int = 10_000
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.save) or self.serve
+
+    def validate(self) -> RerunSettings:
+        """Raise RerunSettingsError naming the first bad key; returns self."""
+        for key in ("grpc_port", "web_port"):
+            port = getattr(self, key)
+            if not 0 <= port <= 65535:
+                raise RerunSettingsError(f"rerun.{key} = {port} is outside 0..65535 (0 picks a free port)")
+        if self.serve and self.grpc_port != 0 and self.grpc_port == self.web_port:
+            raise RerunSettingsError(
+                f"rerun.grpc_port and rerun.web_port are both {self.grpc_port}; give them different ports"
+            )
+        if not _MEMORY_LIMIT.match(self.memory_limit.strip()):
+            raise RerunSettingsError(
+                f"rerun.memory_limit = {self.memory_limit!r} is not a size; "
+                "use e.g. '512MiB', '2GiB' or '10%'"
+            )
+        for key in ("max_rate_hz", "flush_s", "fleet_spacing_m"):
+            value = getattr(self, key)
+            if not (math.isfinite(value) and value > 0):
+                raise RerunSettingsError(f"rerun.{key} = {value!r} must be a number greater than 0")
+        if self.flush_s > 10:
+            raise RerunSettingsError(
+                f"rerun.flush_s = {self.flush_s} delays the stream by that long; use at most 10 s"
+            )
+        if self.mesh_faces_per_arm < 100:
+            raise RerunSettingsError(
+                f"rerun.mesh_faces_per_arm = {self.mesh_faces_per_arm} leaves no arm to see; use at least 100"
+            )
+        if self.max_pending < 1:
+            raise RerunSettingsError(f"rerun.max_pending = {self.max_pending} must be at least 1")
+        if self.save:
+            path = Path(self.save)
+            if path.suffix != ".rrd":
+                raise RerunSettingsError(
+                    f"rerun.save = {self.save!r} must name a .rrd file (Rerun's recording format), "
+                    "e.g. twin.rrd"
+                )
+            if path.is_dir():
+                raise RerunSettingsError(f"rerun.save = {self.save!r} is a directory; give a file name")
+        return self

@@ -1,0 +1,621 @@
+"""Rerun sink: the fleet as a Rerun recording, saved to .rrd and/or served to a browser on loopback.
+
+For each device it writes an entity tree under `arms/<device>/` (docs/web.md draws it):
+
+    arms/<device>                          the arm's place in the fleet grid (static)
+    arms/<device>/<body>                   the body's pose in the arm's base frame, per sample (edge_time)
+    arms/<device>/<body>/visual/<geom>     the geom's triangles and colour, posed in the body (static)
+    arms/<device>/joints/angle_deg         six joint angles, degrees (one series per joint)
+    arms/<device>/servo/<quantity>         six servo readings per quantity, when the edge sends them
+    arms/<device>/events                   servo status and rejected messages, as text
+
+Everything temporal sits on the `edge_time` timeline (the edge's own timestamps). Forward kinematics runs in
+the sink's thread (`RobotModel.body_poses`). Cost is what decides the shape of the code: building a Rerun
+archetype in Python costs far more than the sample it carries, so samples are buffered per device and sent as
+Arrow columns, one record batch per device every `flush_s` (docs/web.md has the figures). The blocking part
+runs behind `QueuedSink`; a per-device rate cap in front of it bounds the stream, and Rerun's server memory
+limit bounds what the served stream keeps for late viewers. The mirror never waits on any of it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import logging
+import math
+import signal
+import socket
+import subprocess
+import threading
+import time
+import uuid
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from urllib.parse import quote
+
+import numpy as np
+import pyarrow as pa
+import rerun as rr
+import rerun.blueprint as rrb
+from rerun.chunk import Chunk
+
+from twin.core.telemetry import JointDiagnostics
+from twin.output.rerun_settings import RerunSettings
+from twin.output.sinks import AppliedSample, QueuedSink, RejectedSample, SinkStats
+from twin.robot import so101
+from twin.robot.model import RobotModel
+from twin.robot.visuals import VisualGeom, fit_face_budget, visual_geoms
+
+log = logging.getLogger(__name__)
+
+APPLICATION_ID = "so101-twin"
+ROOT = "arms"
+TIMELINE = "edge_time"
+LOOPBACK = "127.0.0.1"
+# Servo readings logged per joint, in the units JointDiagnostics carries: (field, entity name, plot title).
+SERVO_SERIES: tuple[tuple[str, str, str], ...] = (
+    ("temperature_c", "temperature_c", "temperature (C)"),
+    ("load_percent", "load_percent", "load (%)"),
+    ("current_ma", "current_ma", "current (mA)"),
+    ("velocity_rad_s", "velocity_rad_s", "velocity (rad/s)"),
+    ("voltage_v", "voltage_v", "voltage (V)"),
+)
+# Feetech STS3215 status register (address 65), bits 0..5 (so101-model-facts.md section 2).
+SERVO_STATUS_BITS: tuple[str, ...] = (
+    "voltage",
+    "angle sensor",
+    "temperature",
+    "current",
+    "angle",
+    "overload",
+)
+# One colour per joint, the same in every plot (matplotlib's tab10, which reads well on dark and light).
+JOINT_COLOURS: tuple[tuple[int, int, int], ...] = (
+    (31, 119, 180),
+    (255, 127, 14),
+    (44, 160, 44),
+    (214, 39, 40),
+    (148, 103, 189),
+    (140, 86, 75),
+)
+FLEET_COLUMNS = 10
+# A device buffers at most this many samples before it is flushed whatever its age.
+MAX_BATCH_ROWS = 256
+# Rejections are logged as text at most this often per device; the rest are counted in the next line.
+REJECT_TEXT_EVERY_S = 1.0
+MAX_REJECT_KEYS = 4096
+WEB_VIEWER_START_S = 15.0
+
+_V3 = pa.list_(pa.field("item", pa.float32(), nullable=False), 3)
+_Q4 = pa.list_(pa.field("item", pa.float32(), nullable=False), 4)
+_SCALARS = pa.list_(pa.field("item", pa.float64(), nullable=False))
+_NS = pa.timestamp("ns")
+
+
+class RerunSinkError(RuntimeError):
+    """The Rerun sink cannot start (a port is taken, the viewer binary is missing, ...); says what to do."""
+
+
+def _field_meta(entity: str, descriptor: rr.ComponentDescriptor) -> dict[bytes, bytes]:
+    # The Arrow metadata Rerun reads to place a column (rerun.chunk.Chunk.from_record_batch).
+    return {
+        b"rerun:kind": b"data",
+        b"rerun:entity_path": entity.encode(),
+        b"rerun:archetype": (descriptor.archetype or "").encode(),
+        b"rerun:component": descriptor.component.encode(),
+        b"rerun:component_type": (descriptor.component_type or "").encode(),
+    }
+
+
+def entity_of(device: str) -> str:
+    """The entity path of a device's tree (device ids may hold characters entity paths escape)."""
+    return f"/{ROOT}/{rr.escape_entity_path_part(device)}"
+
+
+def status_text(statuses: Mapping[str, int]) -> str:
+    """Servo status registers -> a sentence naming each joint's error bits ("" when all are clear)."""
+    parts = []
+    for joint, value in statuses.items():
+        bits = [name for i, name in enumerate(SERVO_STATUS_BITS) if value >> i & 1]
+        if bits:
+            parts.append(f"{joint}: {', '.join(bits)} error")
+    return "; ".join(parts)
+
+
+@dataclass
+class _Arm:
+    """One device's place in the recording and its samples not yet sent."""
+
+    device: str
+    entity: str
+    index: int
+    times_ns: list[int] = field(default_factory=list)
+    poses: list[np.ndarray] = field(default_factory=list)  # (bodies, 7): x y z qx qy qz qw
+    angles_deg: list[np.ndarray] = field(default_factory=list)
+    servo: dict[str, list[np.ndarray | None]] = field(default_factory=dict)
+    first_pending: float = 0.0
+    status: str = ""
+    servo_styled: set[str] = field(default_factory=set)
+    schemas: dict[tuple[str, ...], pa.Schema] = field(default_factory=dict)
+
+    def pending(self) -> int:
+        return len(self.times_ns)
+
+
+class RerunWorker:
+    """The blocking half of the sink (a `SinkWorker`): runs on the sink's own thread only, except the
+    constructor, which opens the file, the gRPC server and the web viewer so that a taken port or a bad path
+    fails the caller's start-up, not a background thread."""
+
+    def __init__(self, robot: RobotModel, settings: RerunSettings) -> None:
+        self.robot = robot
+        self.settings = settings
+        self._rec = rr.RecordingStream(APPLICATION_ID, recording_id=uuid.uuid4())
+        # Only edge_time: the SDK's own log_time/log_tick timelines would put every sample on a second clock.
+        self._rec.set_log_time_enabled(False)
+        self._rec.set_log_tick_enabled(False)
+        self.grpc_url: str | None = None
+        self.viewer_url: str | None = None
+        self.save_path: Path | None = Path(settings.save) if settings.save else None
+        self._web: subprocess.Popen[bytes] | None = None
+        sinks: list[object] = []
+        if self.save_path is not None:
+            self.save_path.parent.mkdir(parents=True, exist_ok=True)
+            sinks.append(rr.FileSink(str(self.save_path)))
+        if settings.serve:
+            grpc_port = _bindable_port(settings.grpc_port, "rerun.grpc_port")
+            sinks.append(
+                rr.GrpcServerSink(LOOPBACK, grpc_port, server_memory_limit=settings.memory_limit.strip())
+            )
+            self.grpc_url = f"rerun+http://{LOOPBACK}:{grpc_port}/proxy"
+        self._rec.set_sinks(*sinks, default_blueprint=self._blueprint(None))  # type: ignore[arg-type]
+        self._rec.send_recording_name("so101-twin fleet")
+        # MuJoCo's world is z-up; Rerun's 3D views follow what the root says.
+        self._rec.log(f"/{ROOT}", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        if settings.serve:
+            try:
+                self._web, web_port = _start_web_viewer(settings.web_port, self.grpc_url or "")
+            except Exception:
+                self._rec.disconnect()
+                raise
+            self.viewer_url = f"http://{LOOPBACK}:{web_port}/?url={quote(self.grpc_url or '', safe='')}"
+
+        self._arms: dict[str, _Arm] = {}
+        self._focus: str | None = None
+        self._geoms: list[VisualGeom] | None = None
+        self._bodies = tuple(robot.body_ids)
+        # Bodies welded to the world never move: their pose is logged once, not per sample.
+        self._moving = tuple(b for b in self._bodies if int(robot.model.body_weldid[robot.body_ids[b]]) != 0)
+        self._moving_idx = np.array([self._bodies.index(b) for b in self._moving], dtype=np.int64)
+        self._next_sweep = 0.0
+        # Per device (None: messages no device could be read from): last rejection text time, and how many
+        # rejections were not written since.
+        self._rejects: dict[str | None, tuple[float, int]] = {}
+        self.samples_logged = 0
+        self.batches_sent = 0
+        self.mesh_faces_per_arm = 0
+
+    # --- SinkWorker ---------------------------------------------------------------------------------------
+
+    def handle_applied(self, sample: AppliedSample) -> None:
+        arm = self._arm(sample.device_id)
+        now = time.monotonic()
+        poses = self.robot.body_poses(sample.joint_angles)
+        row = np.empty((len(self._bodies), 7), dtype=np.float32)
+        for i, name in enumerate(self._bodies):
+            pos, quat = poses[name]
+            row[i, :3] = pos
+            # MuJoCo quaternions are (w, x, y, z); Rerun's are (x, y, z, w).
+            row[i, 3:6] = quat[1:]
+            row[i, 6] = quat[0]
+        if not arm.times_ns:
+            arm.first_pending = now
+        arm.times_ns.append(sample.timestamp_ms * 1_000_000)
+        arm.poses.append(row)
+        angles = sample.joint_angles
+        arm.angles_deg.append(np.degrees([angles.get(j, math.nan) for j in so101.JOINT_NAMES]))
+        self._buffer_servo(arm, sample.telemetry.diagnostics)
+        self._status(arm, sample)
+        self.samples_logged += 1
+        if arm.pending() >= MAX_BATCH_ROWS or now - arm.first_pending >= self.settings.flush_s:
+            self._flush(arm)
+        if now >= self._next_sweep:
+            self._sweep(now)
+
+    def handle_rejected(self, sample: RejectedSample) -> None:
+        device = sample.device_id
+        entity = f"{entity_of(device)}/events" if device is not None else f"/{ROOT}/events"
+        now = time.monotonic()
+        last, unlogged = self._rejects.get(device, (-math.inf, 0))
+        if now - last < REJECT_TEXT_EVERY_S:
+            self._rejects[device] = (last, unlogged + 1)
+            return
+        if len(self._rejects) >= MAX_REJECT_KEYS:
+            # Made-up device ids must not grow this table without bound.
+            self._rejects.clear()
+        self._rejects[device] = (now, 0)
+        more = f" (+{unlogged} more since the last line)" if unlogged else ""
+        # A rejected message may have no usable edge timestamp; the agent's receive time stands in.
+        self._rec.set_time(TIMELINE, timestamp=sample.received_wall_s)
+        text = f"rejected ({sample.reason}): {sample.detail}{more}"
+        self._rec.log(entity, rr.TextLog(text, level=rr.TextLogLevel.WARN))
+
+    def idle(self) -> None:
+        self._sweep(time.monotonic())
+
+    def close(self) -> None:
+        try:
+            for arm in self._arms.values():
+                if arm.pending():
+                    self._flush(arm)
+            self._rec.flush(timeout_sec=30.0)
+        finally:
+            # Closing the sinks writes the .rrd footer and stops the gRPC server.
+            self._rec.disconnect()
+            self.stop_web_viewer()
+        log.info(
+            "rerun sink closed",
+            extra={
+                "samples": self.samples_logged,
+                "batches": self.batches_sent,
+                "rrd": str(self.save_path) if self.save_path else None,
+            },
+        )
+
+    def stop_web_viewer(self) -> None:
+        web, self._web = self._web, None
+        if web is not None and web.poll() is None:
+            web.terminate()
+            try:
+                web.wait(5.0)
+            except subprocess.TimeoutExpired:
+                web.kill()
+                web.wait(5.0)
+
+    # --- devices -------------------------------------------------------------------------------------------
+
+    def _arm(self, device: str) -> _Arm:
+        arm = self._arms.get(device)
+        if arm is not None:
+            return arm
+        arm = _Arm(device=device, entity=entity_of(device), index=len(self._arms))
+        self._arms[device] = arm
+        self._log_arm(arm)
+        focus = self.settings.focus_device
+        if self._focus is None and (not focus or focus == device):
+            self._focus = device
+            self._rec.send_blueprint(self._blueprint(device), make_active=True, make_default=True)
+        return arm
+
+    def _log_arm(self, arm: _Arm) -> None:
+        """The static part of a device: its grid place, fixed bodies, meshes and plot styles."""
+        rec = self._rec
+        rec.log(arm.entity, rr.Transform3D(translation=self._grid_position(arm.index)), static=True)
+        reference = self.robot.body_poses({})
+        for name in self._bodies:
+            if name not in self._moving:
+                pos, quat = reference[name]
+                rec.log(
+                    f"{arm.entity}/{name}",
+                    rr.Transform3D(translation=pos, quaternion=[*quat[1:], quat[0]]),
+                    static=True,
+                )
+        for geom in self._visuals():
+            path = f"{arm.entity}/{geom.body}/visual/{rr.escape_entity_path_part(geom.name)}"
+            rgba = [round(255 * min(max(c, 0.0), 1.0)) for c in geom.rgba]
+            rec.log(
+                path,
+                rr.Transform3D(translation=geom.pos, quaternion=[*geom.quat[1:], geom.quat[0]]),
+                rr.Mesh3D(
+                    vertex_positions=geom.vertices,
+                    triangle_indices=geom.faces,
+                    vertex_normals=geom.normals,
+                    albedo_factor=rgba,
+                ),
+                static=True,
+            )
+        rec.log(f"{arm.entity}/joints/angle_deg", _series_style(), static=True)
+
+    def _visuals(self) -> list[VisualGeom]:
+        if self._geoms is None:
+            geoms = visual_geoms(self.robot.model, self.robot.body_ids)
+            self._geoms, _ = fit_face_budget(geoms, self.settings.mesh_faces_per_arm)
+            self.mesh_faces_per_arm = sum(g.face_count for g in self._geoms)
+            log.info(
+                "rerun sink: %d visual geoms, %d triangles per arm", len(self._geoms), self.mesh_faces_per_arm
+            )
+        return self._geoms
+
+    def _buffer_servo(self, arm: _Arm, diagnostics: Mapping[str, JointDiagnostics]) -> None:
+        n = arm.pending() - 1  # rows before this one
+        for attr, name, _title in SERVO_SERIES:
+            values = [getattr(diagnostics.get(j), attr, None) for j in so101.JOINT_NAMES]
+            column = arm.servo.get(name)
+            if all(v is None for v in values):
+                if column is not None:
+                    column.append(None)
+                continue
+            if column is None:
+                column = arm.servo[name] = [None] * n
+            column.append(np.array([math.nan if v is None else float(v) for v in values]))
+            if name not in arm.servo_styled:
+                arm.servo_styled.add(name)
+                self._rec.log(f"{arm.entity}/servo/{name}", _series_style(), static=True)
+
+    def _status(self, arm: _Arm, sample: AppliedSample) -> None:
+        statuses = {j: d.status for j, d in sample.telemetry.diagnostics.items() if d.status is not None}
+        text = status_text(statuses)
+        if text == arm.status:
+            return
+        cleared = not text
+        message = "all servos report no error" if cleared else text
+        arm.status = text
+        self._rec.set_time(TIMELINE, timestamp=np.datetime64(sample.timestamp_ms, "ms"))
+        level = rr.TextLogLevel.INFO if cleared else rr.TextLogLevel.WARN
+        self._rec.log(f"{arm.entity}/events", rr.TextLog(f"servo status: {message}", level=level))
+
+    # --- sending -------------------------------------------------------------------------------------------
+
+    def _sweep(self, now: float) -> None:
+        self._next_sweep = now + self.settings.flush_s / 4.0
+        for arm in self._arms.values():
+            if arm.pending() and now - arm.first_pending >= self.settings.flush_s:
+                self._flush(arm)
+
+    def _flush(self, arm: _Arm) -> None:
+        """Send a device's buffered samples as one Arrow record batch (one Rerun chunk per entity)."""
+        servo_names = tuple(n for n, col in arm.servo.items() if any(v is not None for v in col))
+        schema = arm.schemas.get(servo_names)
+        if schema is None:
+            schema = arm.schemas[servo_names] = self._schema(arm, servo_names)
+        k = arm.pending()
+        poses = np.stack(arm.poses)[:, self._moving_idx, :]  # (k, moving bodies, 7)
+        arrays: list[pa.Array] = [pa.array(np.asarray(arm.times_ns, dtype=np.int64), type=_NS)]
+        for b in range(len(self._moving)):
+            arrays.append(pa.FixedSizeListArray.from_arrays(pa.array(poses[:, b, :3].ravel()), type=_V3))
+            arrays.append(pa.FixedSizeListArray.from_arrays(pa.array(poses[:, b, 3:].ravel()), type=_Q4))
+        arrays.append(_scalar_rows(arm.angles_deg))
+        for name in servo_names:
+            arrays.append(_scalar_rows(arm.servo[name]))
+        batch = pa.RecordBatch.from_arrays(arrays, schema=schema)
+        arm.times_ns.clear()
+        arm.poses.clear()
+        arm.angles_deg.clear()
+        arm.servo = {n: [] for n in arm.servo}
+        rr.send_chunks(Chunk.from_record_batch(batch), recording=self._rec)
+        self.batches_sent += 1
+        log.debug("rerun sink: sent %d samples of %s", k, arm.device)
+
+    def _schema(self, arm: _Arm, servo_names: Sequence[str]) -> pa.Schema:
+        translation = rr.Transform3D.descriptor_translation()
+        quaternion = rr.Transform3D.descriptor_quaternion()
+        scalars = rr.Scalars.descriptor_scalars()
+        fields = [
+            pa.field(
+                TIMELINE,
+                _NS,
+                nullable=False,
+                metadata={b"rerun:kind": b"index", b"rerun:index_name": TIMELINE.encode()},
+            )
+        ]
+        for body in self._moving:
+            entity = f"{arm.entity}/{body}"
+            fields.append(pa.field(f"{entity}:translation", _V3, metadata=_field_meta(entity, translation)))
+            fields.append(pa.field(f"{entity}:quaternion", _Q4, metadata=_field_meta(entity, quaternion)))
+        entity = f"{arm.entity}/joints/angle_deg"
+        fields.append(pa.field(f"{entity}:scalars", _SCALARS, metadata=_field_meta(entity, scalars)))
+        for name in servo_names:
+            entity = f"{arm.entity}/servo/{name}"
+            fields.append(pa.field(f"{entity}:scalars", _SCALARS, metadata=_field_meta(entity, scalars)))
+        return pa.schema(fields)
+
+    # --- layout --------------------------------------------------------------------------------------------
+
+    def _grid_position(self, index: int) -> np.ndarray:
+        """Where arm number `index` stands: rows of FLEET_COLUMNS side by side along +y, further rows behind
+        along -x. Each arm reaches towards +x, so neighbours stand beside it, not in its reach, and from the
+        front three-quarter view the fleet recedes behind the first arm."""
+        row, col = divmod(index, FLEET_COLUMNS)
+        spacing = self.settings.fleet_spacing_m
+        return np.array([-row * spacing, col * spacing, 0.0])
+
+    def _blueprint(self, device: str | None) -> rrb.Blueprint:
+        """The fleet in 3D; beside it the focus arm's joint angles, servo plots and events."""
+        fleet = rrb.Spatial3DView(name="Fleet", origin=f"/{ROOT}", contents=[f"/{ROOT}/**"])
+        if device is None:
+            return rrb.Blueprint(fleet, collapse_panels=True)
+        arm = self._arms[device]
+        base = self._grid_position(arm.index)
+        # The same three-quarter view as the MuJoCo overview camera (robots/so101/scene.xml), on this arm.
+        target = base + np.array([0.15, 0.0, 0.12])
+        eye = base + np.array([0.8, -0.8, 0.5])
+        fleet = rrb.Spatial3DView(
+            name="Fleet",
+            origin=f"/{ROOT}",
+            contents=[f"/{ROOT}/**"],
+            eye_controls=rrb.EyeControls3D(position=eye, look_target=target, eye_up=[0.0, 0.0, 1.0]),
+        )
+        plots = [
+            rrb.TimeSeriesView(name=f"{device} {title}", origin=f"{arm.entity}/servo/{name}")
+            for _attr, name, title in SERVO_SERIES
+        ]
+        side = rrb.Vertical(
+            rrb.TimeSeriesView(name=f"{device} joint angles (deg)", origin=f"{arm.entity}/joints"),
+            rrb.Tabs(*plots, name=f"{device} servos"),
+            rrb.TextLogView(name=f"{device} events", origin=f"{arm.entity}/events"),
+            row_shares=[3, 3, 1],
+        )
+        return rrb.Blueprint(
+            rrb.Horizontal(fleet, side, column_shares=[3, 2]),
+            rrb.BlueprintPanel(state="collapsed"),
+            rrb.SelectionPanel(state="collapsed"),
+            rrb.TimePanel(state="collapsed"),
+        )
+
+
+class RerunSink:
+    """The Rerun sink the agent adds (a `TwinSink`): a per-device rate cap in front of a `QueuedSink`."""
+
+    name = "rerun"
+
+    def __init__(self, robot: RobotModel, settings: RerunSettings) -> None:
+        settings.validate()
+        self.settings = settings
+        self.worker = RerunWorker(robot, settings)
+        self._queue = QueuedSink(
+            self.name, self.worker, max_pending=settings.max_pending, idle_s=settings.flush_s / 2.0
+        )
+        self._min_interval = 1.0 / settings.max_rate_hz
+        self._last: dict[str, float] = {}
+        self._skipped = 0
+        self._lock = threading.Lock()
+
+    @property
+    def viewer_url(self) -> str | None:
+        """The web viewer page, already pointed at the stream (None unless serving)."""
+        return self.worker.viewer_url
+
+    @property
+    def grpc_url(self) -> str | None:
+        """The stream for a native viewer: `rerun --connect <url>` (None unless serving)."""
+        return self.worker.grpc_url
+
+    @property
+    def save_path(self) -> Path | None:
+        return self.worker.save_path
+
+    def applied(self, sample: AppliedSample) -> None:
+        # Rate cap on the agent's receive clock: the stream's cost follows messages arriving, whatever the
+        # edge clock says.
+        last = self._last.get(sample.device_id)
+        t = sample.received_mono_s
+        if last is not None and 0.0 <= t - last < self._min_interval:
+            with self._lock:
+                self._skipped += 1
+            return
+        self._last[sample.device_id] = t
+        self._queue.applied(sample)
+
+    def rejected(self, sample: RejectedSample) -> None:
+        self._queue.rejected(sample)
+
+    def stats(self) -> SinkStats:
+        with self._lock:
+            skipped = self._skipped
+        return replace(self._queue.stats(), skipped=skipped)
+
+    def close(self, timeout: float = 10.0) -> None:
+        self._queue.close(timeout)
+        # If the queue's thread did not get to it, the web viewer is still ours to stop.
+        self.worker.stop_web_viewer()
+
+
+# --- helpers -------------------------------------------------------------------------------------------
+
+
+def _series_style() -> rr.SeriesLines:
+    return rr.SeriesLines(names=list(so101.JOINT_NAMES), colors=list(JOINT_COLOURS))
+
+
+def _scalar_rows(rows: Sequence[np.ndarray | None]) -> pa.Array:
+    """Rows of six values (or None for a row without any) as a list<float64> column."""
+    offsets = [0]
+    values: list[np.ndarray] = []
+    mask = []
+    for row in rows:
+        if row is None:
+            offsets.append(offsets[-1])
+            mask.append(True)
+        else:
+            values.append(row)
+            offsets.append(offsets[-1] + len(row))
+            mask.append(False)
+    flat = pa.array(np.concatenate(values) if values else np.empty(0), type=pa.float64())
+    return pa.ListArray.from_arrays(
+        pa.array(offsets, type=pa.int32()),
+        flat,
+        type=_SCALARS,
+        mask=pa.array(mask, type=pa.bool_()) if any(mask) else None,
+    )
+
+
+def _bindable_port(port: int, key: str) -> int:
+    """The port to listen on (0 picks a free one); raises RerunSinkError when it is taken."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        try:
+            probe.bind((LOOPBACK, port))
+        except OSError as exc:
+            raise RerunSinkError(
+                f"{key} = {port}: {LOOPBACK}:{port} is in use ({exc.strerror}); stop what holds it or choose "
+                f"another port ({key} = 0 picks a free one)"
+            ) from exc
+        return int(probe.getsockname()[1])
+
+
+def _viewer_binary() -> Path:
+    import rerun_cli  # noqa: PLC0415 - ships with rerun-sdk; only needed when serving
+
+    path = Path(rerun_cli.__file__).resolve().parent / "rerun"
+    if not path.is_file():
+        raise RerunSinkError(f"the Rerun viewer binary is missing ({path}); reinstall rerun-sdk (make setup)")
+    return path
+
+
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
+    # PR_SET_PDEATHSIG: if the agent is killed outright, the kernel stops the web viewer too, so no orphan
+    # holds the port. (The signal follows the thread that started the child: the sink starts it in the
+    # thread that builds the sink, which is the agent's main thread.)
+    with contextlib.suppress(Exception):
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)
+
+
+def _start_web_viewer(web_port: int, grpc_url: str) -> tuple[subprocess.Popen[bytes], int]:
+    """The Rerun web viewer (HTML + Wasm) on 127.0.0.1, pointed at the stream.
+
+    `rr.serve_web_viewer` takes no bind address and listens on every interface; the `rerun` binary that
+    ships in the wheel takes `--bind`, so the viewer page is served by it, in web-viewer-only mode (given a
+    URL it hosts no gRPC server of its own)."""
+    port = _bindable_port(web_port, "rerun.web_port")
+    cmd = [
+        str(_viewer_binary()),
+        "--serve-web",
+        "--bind",
+        LOOPBACK,
+        "--web-viewer-port",
+        str(port),
+        grpc_url,
+    ]
+    proc = subprocess.Popen(
+        cmd,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        preexec_fn=_die_with_parent,  # noqa: PLW1509 - only prctl, async-signal-safe enough
+    )
+    deadline = time.monotonic() + WEB_VIEWER_START_S
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            err = proc.stderr.read().decode(errors="replace")[-600:] if proc.stderr else ""
+            raise RerunSinkError(
+                f"the Rerun web viewer exited at start (code {proc.returncode}): {err.strip()}"
+            )
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+            probe.settimeout(0.2)
+            if probe.connect_ex((LOOPBACK, port)) == 0:
+                if proc.stderr is not None:
+                    # Nobody reads its log from here on; a full pipe must not stall it.
+                    threading.Thread(target=_drain, args=(proc.stderr,), daemon=True).start()
+                return proc, port
+        time.sleep(0.1)
+    proc.terminate()
+    proc.wait(5.0)
+    raise RerunSinkError(
+        f"the Rerun web viewer did not listen on {LOOPBACK}:{port} within {WEB_VIEWER_START_S:.0f} s"
+    )
+
+
+def _drain(stream: object) -> None:
+    with contextlib.suppress(Exception):
+        for line in stream:  # type: ignore[attr-defined]
+            log.debug("rerun web viewer: %s", line.decode(errors="replace").rstrip())

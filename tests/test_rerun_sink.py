@@ -1,0 +1,306 @@
+"""The Rerun sink's .rrd, read back with Rerun's own dataframe API (a local rr.server.Server).
+
+Telemetry goes through the real decoder into the sink; what comes back is checked against oracles that do not
+use the code under test: forward kinematics straight from MuJoCo for the body transforms, and the payload's
+own numbers converted by hand (the units in docs/telemetry.md) for the scalar series.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pyarrow as pa
+import pytest
+import rerun as rr
+from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
+from twin.output.rerun_settings import RerunSettings, RerunSettingsError
+from twin.output.rerun_sink import RerunSink, status_text
+from twin.output.sinks import AppliedSample, RejectedSample
+from twin.robot import so101
+from twin.robot.model import RobotModel, default_model_path
+from twin.robot.visuals import visual_geoms
+
+T0_MS = 1_706_000_000_000
+SAMPLES = 24
+DEVICES = ("arm-001", "arm-002")
+SPACING = 0.6
+JAW_LO, JAW_HI = so101.JOINT_RANGES_RAD["gripper"]
+
+
+def payload(device: str, i: int) -> dict:
+    """LeRobot degrees (variant B): arm joints in degrees, gripper 0..100 %, servo fields in raw units."""
+    d = DEVICES.index(device)
+    joints = {}
+    for k, name in enumerate(so101.ARM_JOINTS):
+        lo, hi = (math.degrees(v) for v in so101.JOINT_RANGES_RAD[name])
+        joints[name] = {
+            "position": round(0.8 * (lo + (hi - lo) * (0.5 + 0.45 * math.sin(0.3 * i + k + d))), 3)
+        }
+    joints["gripper"] = {"position": round(50 + 40 * math.sin(0.2 * i + d), 3)}
+    for k, name in enumerate(so101.JOINT_NAMES):
+        entry = joints[name]
+        entry.update({"temp": 30 + k + i % 3, "load": 5 * k + i, "velocity": -3 * k + i, "voltage": 120 + k})
+        if name != "wrist_roll":  # one joint without a current reading: a gap in that series
+            entry["current"] = 40 + 2 * k + i
+        # elbow_flex reports an overload (status bit 5) for samples 8..15.
+        entry["status"] = 32 if name == "elbow_flex" and 8 <= i < 16 else 0
+    return {"device_id": device, "timestamp": T0_MS + 100 * i, "joints": joints}
+
+
+def hand_angles_rad(doc: dict) -> dict[str, float]:
+    """Variant B by hand: degrees -> radians; gripper % onto the model's jaw range."""
+    out = {n: math.radians(doc["joints"][n]["position"]) for n in so101.ARM_JOINTS}
+    out["gripper"] = JAW_LO + doc["joints"]["gripper"]["position"] / 100.0 * (JAW_HI - JAW_LO)
+    return out
+
+
+def hand_servo(doc: dict, quantity: str) -> list[float]:
+    """Servo fields by hand (docs/telemetry.md): load 0.1 %, current 6.5 mA, voltage 0.1 V per unit,
+    velocity in steps/s of 2 pi / 4096 rad."""
+    scale = {
+        "temperature_c": ("temp", 1.0),
+        "load_percent": ("load", 0.1),
+        "current_ma": ("current", 6.5),
+        "velocity_rad_s": ("velocity", 2 * math.pi / 4096),
+        "voltage_v": ("voltage", 0.1),
+    }[quantity]
+    key, factor = scale
+    return [
+        doc["joints"][n][key] * factor if key in doc["joints"][n] else math.nan for n in so101.JOINT_NAMES
+    ]
+
+
+def mujoco_fk(model: mujoco.MjModel, data: mujoco.MjData, angles: dict[str, float]) -> dict[str, tuple]:
+    data.qpos[:] = model.qpos0
+    for name, value in angles.items():
+        data.qpos[model.joint(name).qposadr[0]] = value
+    mujoco.mj_kinematics(model, data)
+    return {
+        b: (data.xpos[model.body(b).id].copy(), data.xquat[model.body(b).id].copy()) for b in so101.BODY_NAMES
+    }
+
+
+def feed(sink: RerunSink, *, period_s: float = 0.1) -> list[dict]:
+    decoder = TelemetryDecoder(DecoderConfig(units=Units.DEGREES))
+    docs = []
+    mono = time.monotonic()
+    for i in range(SAMPLES):
+        for device in DEVICES:
+            doc = payload(device, i)
+            docs.append(doc)
+            telemetry = decoder.decode(json.dumps(doc), topic_device=device)
+            sample = AppliedSample(
+                device, time.time(), mono + i * period_s, telemetry, dict(telemetry.angles_rad)
+            )
+            sink.applied(sample)
+    return docs
+
+
+@pytest.fixture(scope="module")
+def robot() -> RobotModel:
+    return RobotModel.load()
+
+
+@pytest.fixture(scope="module")
+def recording(
+    robot: RobotModel, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[tuple[Path, list[dict], RerunSink]]:
+    path = tmp_path_factory.mktemp("rerun") / "twin.rrd"
+    sink = RerunSink(robot, RerunSettings(save=str(path), flush_s=0.05, fleet_spacing_m=SPACING))
+    docs = feed(sink)
+    sink.rejected(
+        RejectedSample("arm-002", "dt/lerobot/arm-002/telemetry", time.time(), "not_json", "bad", b"{")
+    )
+    sink.close()
+    yield path, docs, sink
+
+
+def read_rrd(path: Path) -> tuple[pa.Table, pa.Table]:
+    """The recording's temporal (edge_time) and static data, through a loopback Rerun server."""
+    with rr.server.Server(host="127.0.0.1", datasets={"twin": [str(path)]}) as server:
+        client = server.client()  # keep it referenced while the DataFusion frames execute
+        dataset = client.get_dataset("twin")
+        temporal = dataset.reader(index="edge_time").to_arrow_table()
+        static = dataset.reader(index=None).to_arrow_table()
+    return temporal, static
+
+
+@pytest.fixture(scope="module")
+def tables(recording) -> tuple[pa.Table, pa.Table]:
+    return read_rrd(recording[0])
+
+
+def entities(table: pa.Table) -> set[str]:
+    return {name.split(":", 1)[0] for name in table.schema.names if name.startswith("/")}
+
+
+def column(table: pa.Table, entity: str, component: str) -> list:
+    return table.column(f"{entity}:{component}").to_pylist()
+
+
+def times_ms(table: pa.Table) -> list[int]:
+    return (table.column("edge_time").cast(pa.int64()).to_numpy() // 1_000_000).tolist()
+
+
+def test_the_sink_delivered_every_sample(recording) -> None:
+    path, docs, sink = recording
+    stats = sink.stats()
+    assert (stats.delivered, stats.dropped, stats.errors, stats.skipped) == (len(docs), 0, 0, 0), stats
+    assert path.stat().st_size > 0
+
+
+def test_entity_paths(robot: RobotModel, tables) -> None:
+    temporal, static = tables
+    geoms = visual_geoms(robot.model, robot.body_ids)
+    for device in DEVICES:
+        arm = f"/arms/{device}"
+        moving = {f"{arm}/{b}" for b in so101.BODY_NAMES if b != "base"}
+        servo = {
+            f"{arm}/servo/{q}"
+            for q in ("temperature_c", "load_percent", "current_ma", "velocity_rad_s", "voltage_v")
+        }
+        assert moving | servo | {f"{arm}/joints/angle_deg", f"{arm}/events"} <= entities(temporal)
+        visuals = {f"{arm}/{g.body}/visual/{g.name}" for g in geoms}
+        assert visuals | {arm, f"{arm}/base"} <= entities(static)
+        # Each visual geom is a posed mesh with the model's colour.
+        for g in geoms:
+            entity = f"{arm}/{g.body}/visual/{g.name}"
+            (positions,) = column(static, entity, "Mesh3D:vertex_positions")
+            np.testing.assert_allclose(np.array(positions), g.vertices, atol=1e-7)
+            (rgba,) = column(static, entity, "Mesh3D:albedo_factor")
+            expected = [round(255 * c) for c in g.rgba]
+            assert rgba[0] == int.from_bytes(bytes(expected), "big")
+    # The second arm stands one grid step beside the first (along +y: each arm reaches along +x).
+    (offset,) = column(static, "/arms/arm-002", "Transform3D:translation")
+    np.testing.assert_allclose(offset[0], [0.0, SPACING, 0.0])
+    (up,) = column(static, "/arms", "ViewCoordinates:xyz")
+    assert up is not None
+
+
+def test_transforms_at_sample_times_equal_mujoco_forward_kinematics(tables, recording) -> None:
+    temporal, static = tables
+    _, docs, _ = recording
+    model = mujoco.MjModel.from_xml_path(str(default_model_path()))
+    data = mujoco.MjData(model)
+    by_key = {(d["device_id"], d["timestamp"]): d for d in docs}
+    stamps = times_ms(temporal)
+    checked = 0
+    for device in DEVICES:
+        arm = f"/arms/{device}"
+        for row, ts in enumerate(stamps):
+            doc = by_key.get((device, ts))
+            if doc is None:
+                continue
+            expected = mujoco_fk(model, data, hand_angles_rad(doc))
+            for body in so101.BODY_NAMES:
+                if body == "base":  # welded to the world: logged once, statically
+                    (pos,), (quat,) = (
+                        column(static, f"{arm}/base", "Transform3D:translation"),
+                        column(static, f"{arm}/base", "Transform3D:quaternion"),
+                    )
+                    pos, quat = pos[0], quat[0]
+                else:
+                    pos = column(temporal, f"{arm}/{body}", "Transform3D:translation")[row]
+                    quat = column(temporal, f"{arm}/{body}", "Transform3D:quaternion")[row]
+                    assert pos is not None and quat is not None, (device, ts, body)
+                    pos, quat = pos[0], quat[0]
+                want_pos, want_quat = expected[body]
+                np.testing.assert_allclose(pos, want_pos, atol=2e-6)
+                xyzw = np.array([*want_quat[1:], want_quat[0]])
+                got = np.array(quat)
+                assert min(np.abs(got - xyzw).max(), np.abs(got + xyzw).max()) < 2e-6, (device, ts, body)
+            checked += 1
+    assert checked == SAMPLES * len(DEVICES)
+
+
+def test_scalar_series_match_the_telemetry(tables, recording) -> None:
+    temporal, _ = tables
+    _, docs, _ = recording
+    by_key = {(d["device_id"], d["timestamp"]): d for d in docs}
+    stamps = times_ms(temporal)
+    checked = 0
+    for device in DEVICES:
+        arm = f"/arms/{device}"
+        angles = column(temporal, f"{arm}/joints/angle_deg", "Scalars:scalars")
+        servo = {
+            q: column(temporal, f"{arm}/servo/{q}", "Scalars:scalars")
+            for q in ("temperature_c", "load_percent", "current_ma", "velocity_rad_s", "voltage_v")
+        }
+        for row, ts in enumerate(stamps):
+            doc = by_key.get((device, ts))
+            if doc is None:
+                continue
+            want = hand_angles_rad(doc)
+            np.testing.assert_allclose(
+                angles[row], [math.degrees(want[n]) for n in so101.JOINT_NAMES], atol=1e-9
+            )
+            # Arm joints in degrees are the payload's own numbers.
+            np.testing.assert_allclose(
+                angles[row][:5], [doc["joints"][n]["position"] for n in so101.ARM_JOINTS], atol=1e-9
+            )
+            for quantity, values in servo.items():
+                np.testing.assert_allclose(values[row], hand_servo(doc, quantity), atol=1e-9, equal_nan=True)
+            checked += 1
+    assert checked == SAMPLES * len(DEVICES)
+
+
+def test_status_and_rejections_are_events(tables) -> None:
+    temporal, _ = tables
+    text = [t for t in column(temporal, "/arms/arm-001/events", "TextLog:text") if t]
+    flat = [line for cell in text for line in cell]
+    assert flat == ["servo status: elbow_flex: overload error", "servo status: all servos report no error"]
+    rejected = [
+        line for cell in column(temporal, "/arms/arm-002/events", "TextLog:text") if cell for line in cell
+    ]
+    assert any(line.startswith("rejected (not_json): bad") for line in rejected)
+
+
+def test_status_text_names_each_error_bit() -> None:
+    assert status_text({"shoulder_pan": 0, "gripper": 0}) == ""
+    assert status_text({"elbow_flex": 0b100100}) == "elbow_flex: temperature, overload error"
+    assert status_text({"shoulder_pan": 1, "wrist_flex": 2}) == (
+        "shoulder_pan: voltage error; wrist_flex: angle sensor error"
+    )
+
+
+def test_the_rate_cap_skips_and_counts(robot: RobotModel, tmp_path: Path) -> None:
+    path = tmp_path / "capped.rrd"
+    # 10 Hz arrivals against a 4 Hz cap: every third sample is 0.3 s after the last kept one.
+    sink = RerunSink(robot, RerunSettings(save=str(path), max_rate_hz=4.0, flush_s=0.05))
+    feed(sink)
+    sink.close()
+    stats = sink.stats()
+    kept_per_device = len(range(0, SAMPLES, 3))
+    assert stats.delivered == kept_per_device * len(DEVICES)
+    assert stats.skipped == (SAMPLES - kept_per_device) * len(DEVICES)
+    table, _ = read_rrd(path)
+    rows = [
+        ts
+        for ts, v in zip(
+            times_ms(table), column(table, "/arms/arm-001/wrist", "Transform3D:translation"), strict=True
+        )
+        if v
+    ]
+    assert rows == [T0_MS + 100 * i for i in range(0, SAMPLES, 3)]
+
+
+@pytest.mark.parametrize(
+    ("settings", "message"),
+    [
+        (RerunSettings(save="twin.txt"), "must name a .rrd file"),
+        (RerunSettings(memory_limit="lots"), "is not a size"),
+        (RerunSettings(max_rate_hz=0.0), "max_rate_hz"),
+        (RerunSettings(grpc_port=70000), "outside 0..65535"),
+        (RerunSettings(serve=True, grpc_port=9000, web_port=9000), "different ports"),
+        (RerunSettings(mesh_faces_per_arm=10), "at least 100"),
+    ],
+)
+def test_bad_settings_name_the_key_and_the_fix(settings: RerunSettings, message: str) -> None:
+    with pytest.raises(RerunSettingsError, match=message):
+        settings.validate()
