@@ -14,7 +14,8 @@ export MUJOCO_GL ?= egl
 export PYOPENGL_PLATFORM ?= $(MUJOCO_GL)
 
 # iproute2: the ROS 2 tests build a loopback-only network namespace (unshare -n, ip).
-APT_PACKAGES := mosquitto xvfb xauth libosmesa6 libgl1-mesa-dri libglfw3 shellcheck iproute2
+# chromium: the browser test of the Rerun web viewer (Playwright drives this one; none is downloaded).
+APT_PACKAGES := mosquitto xvfb xauth libosmesa6 libgl1-mesa-dri libglfw3 shellcheck iproute2 chromium
 SETUP_STAMP := $(VENV)/.setup-stamp
 # Checkov pins many libraries of its own; a venv of its own keeps them from fighting the agent's.
 CHECKOV_VENV := .venv-checkov
@@ -47,7 +48,7 @@ setup: system-packages $(SETUP_STAMP) $(NODE_STAMP) $(CHECKOV_STAMP) $(ROS2_STAM
 # apt only when a tool is missing, so a second `make setup` does no network work.
 system-packages:
 	@missing=""; \
-	for bin in mosquitto Xvfb shellcheck ip unshare; do command -v $$bin >/dev/null 2>&1 || missing=1; done; \
+	for bin in mosquitto Xvfb shellcheck ip unshare chromium; do command -v $$bin >/dev/null 2>&1 || missing=1; done; \
 	[ -e /usr/lib/x86_64-linux-gnu/libOSMesa.so.8 ] || ls /usr/lib/*/libOSMesa.so* >/dev/null 2>&1 || missing=1; \
 	ls /usr/lib/*/libglfw.so.3 >/dev/null 2>&1 || missing=1; \
 	if [ -n "$$missing" ]; then \
@@ -62,7 +63,7 @@ $(SETUP_STAMP): pyproject.toml
 	@echo "setup: installing Python packages into $(VENV)"
 	@$(PIP) install --upgrade pip 2>&1 | sed '/^WARNING: Location/d'
 	@$(PIP) install -e '.[dev]' 2>&1 | sed '/^WARNING: Location/d'
-	@$(PY) -c "import twin, mujoco, pxr, awscrt, aws_cdk, cdk_nag, cyclonedds, rosbags" || { echo "setup: Python install failed" >&2; exit 1; }
+	@$(PY) -c "import twin, mujoco, pxr, awscrt, aws_cdk, cdk_nag, cyclonedds, rosbags, rerun, datafusion, playwright" || { echo "setup: Python install failed" >&2; exit 1; }
 	@touch $@
 
 $(CHECKOV_STAMP):

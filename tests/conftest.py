@@ -1,5 +1,6 @@
 """Shared fixtures and helpers: the local rig (real mosquitto on a free loopback port), a plain MQTT
-publisher, the agent's HTTP state parsed into its types, polling, and /metrics parsed by prometheus_client."""
+publisher, the agent's HTTP state parsed into its types, polling, /metrics parsed by prometheus_client, and a
+headless chromium that reaches loopback addresses only."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import pytest
 from awscrt import mqtt5
@@ -182,3 +184,50 @@ def fed_agent(messages: int = 12, *, sinks: Sequence[Any] = (), **overrides: Any
         yield service
     finally:
         service.stop()
+
+
+# --- a real headless browser (Debian's chromium, driven by Playwright; no browser is ever downloaded) -------
+
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_FLAGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
+LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
+
+
+def _loopback_only(route: Any) -> None:
+    # Tests talk to loopback only; the page may not reach out (the Rerun viewer tries to, and gets refused).
+    url = route.request.url
+    if url.startswith(("data:", "blob:")) or (urlsplit(url).hostname or "") in LOOPBACK_HOSTS:
+        route.continue_()
+    else:
+        route.abort()
+
+
+@pytest.fixture
+def chromium_page(tmp_path: Path) -> Iterator[Any]:
+    """A Playwright page in a fresh headless chromium profile that can reach loopback addresses only."""
+    from playwright.sync_api import sync_playwright
+
+    if not CHROMIUM.is_file():
+        pytest.fail(f"{CHROMIUM} is missing; `make setup` installs Debian's chromium for the browser tests")
+
+    with sync_playwright() as pw:
+        context = pw.chromium.launch_persistent_context(
+            str(tmp_path / "chromium-profile"),
+            executable_path=str(CHROMIUM),
+            headless=True,
+            args=CHROMIUM_FLAGS,
+            viewport={"width": 1280, "height": 800},
+        )
+        try:
+            context.route("**/*", _loopback_only)
+            yield context.pages[0] if context.pages else context.new_page()
+        finally:
+            context.close()
