@@ -27,7 +27,9 @@ from twin.robot.model import RobotModel
 from twin.tools.edge_sim import make_payload
 
 OUT_DIR = Path(__file__).resolve().parents[1] / "out" / "web"
-RENDER_TIMEOUT_S = 150.0
+# Software WebGL on two shared cores: a quiet machine draws the arm within a minute, a loaded one can take
+# several (each screenshot waits for the page's busy main thread).
+RENDER_TIMEOUT_S = 420.0
 
 
 def arm_pixels(rgb: np.ndarray) -> int:
@@ -62,7 +64,7 @@ def publish(sink: RerunSink, stop: threading.Event, devices: list[str]) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(300)
+@pytest.mark.timeout(600)
 def test_the_served_viewer_shows_the_arm_in_chromium(chromium_page) -> None:
     robot = RobotModel.load()
     sink = RerunSink(robot, RerunSettings(serve=True, grpc_port=0, web_port=0, flush_s=0.2))
@@ -78,7 +80,7 @@ def test_the_served_viewer_shows_the_arm_in_chromium(chromium_page) -> None:
         deadline = time.monotonic() + RENDER_TIMEOUT_S
         rgb = screenshot(page)
         while arm_pixels(rgb[:, : rgb.shape[1] * 3 // 5]) < 1500 and time.monotonic() < deadline:
-            time.sleep(3.0)
+            time.sleep(5.0)
             rgb = screenshot(page)
         OUT_DIR.mkdir(parents=True, exist_ok=True)
         Image.fromarray(rgb).save(OUT_DIR / "rerun-viewer.png")

@@ -37,6 +37,9 @@ class RerunSettings:
     # Samples are sent in columns, one batch per device at most every flush_s: the stream's delay, traded
     # against CPU (docs/web.md has the figures).
     flush_s: float = 0.5
+    # ... and at most this many device batches a second in all: a large fleet waits longer instead of
+    # costing more CPU (100 arms at 50 a second: each arm's samples go every 2 s).
+    max_batches_per_s: float = 50.0
     # Visual meshes are thinned to this many triangles per arm (a fleet view holds one copy per arm).
     mesh_faces_per_arm: int = 50_000
     # Arms in the fleet view stand on a grid this far apart, in order of first appearance.
@@ -65,7 +68,7 @@ class RerunSettings:
                 f"rerun.memory_limit = {self.memory_limit!r} is not a size; "
                 "use e.g. '512MiB', '2GiB' or '10%'"
             )
-        for key in ("max_rate_hz", "flush_s", "fleet_spacing_m"):
+        for key in ("max_rate_hz", "flush_s", "max_batches_per_s", "fleet_spacing_m"):
             value = getattr(self, key)
             if not (math.isfinite(value) and value > 0):
                 raise RerunSettingsError(f"rerun.{key} = {value!r} must be a number greater than 0")

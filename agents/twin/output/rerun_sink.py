@@ -91,6 +91,8 @@ _V3 = pa.list_(pa.field("item", pa.float32(), nullable=False), 3)
 _Q4 = pa.list_(pa.field("item", pa.float32(), nullable=False), 4)
 _SCALARS = pa.list_(pa.field("item", pa.float64(), nullable=False))
 _NS = pa.timestamp("ns")
+_XYZW = [4, 5, 6, 3]  # columns of a (x y z qw qx qy qz) pose row that make Rerun's (qx qy qz qw)
+_NO_READINGS: tuple[None, ...] = (None,) * len(SERVO_SERIES)
 
 
 class RerunSinkError(RuntimeError):
@@ -125,22 +127,35 @@ def status_text(statuses: Mapping[str, int]) -> str:
 
 @dataclass
 class _Arm:
-    """One device's place in the recording and its samples not yet sent."""
+    """One device's place in the recording and its samples not yet sent (columns, grown as needed)."""
 
     device: str
     entity: str
     index: int
-    times_ns: list[int] = field(default_factory=list)
-    poses: list[np.ndarray] = field(default_factory=list)  # (bodies, 7): x y z qx qy qz qw
-    angles_deg: list[np.ndarray] = field(default_factory=list)
-    servo: dict[str, list[np.ndarray | None]] = field(default_factory=dict)
+    bodies: int
+    n: int = 0
+    times_ns: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))
+    poses: np.ndarray = field(default_factory=lambda: np.empty((0, 0, 7)))  # x y z qw qx qy qz
+    angles_rad: np.ndarray = field(default_factory=lambda: np.empty((0, len(so101.JOINT_NAMES))))
+    servo: np.ndarray = field(
+        default_factory=lambda: np.empty((0, len(so101.JOINT_NAMES), len(SERVO_SERIES)))
+    )
     first_pending: float = 0.0
     status: str = ""
     servo_styled: set[str] = field(default_factory=set)
     schemas: dict[tuple[str, ...], pa.Schema] = field(default_factory=dict)
 
-    def pending(self) -> int:
-        return len(self.times_ns)
+    def next_row(self) -> int:
+        """Index of the row to fill, growing the buffers (x2, up to MAX_BATCH_ROWS) when they are full."""
+        row = self.n
+        if row >= len(self.times_ns):
+            cap = min(max(16, 2 * len(self.times_ns)), MAX_BATCH_ROWS)
+            self.times_ns = np.resize(self.times_ns, cap)
+            self.poses = np.resize(self.poses, (cap, self.bodies, 7))
+            self.angles_rad = np.resize(self.angles_rad, (cap, self.angles_rad.shape[1]))
+            self.servo = np.resize(self.servo, (cap, *self.servo.shape[1:]))
+        self.n += 1
+        return row
 
 
 class RerunWorker:
@@ -201,24 +216,19 @@ class RerunWorker:
     def handle_applied(self, sample: AppliedSample) -> None:
         arm = self._arm(sample.device_id)
         now = time.monotonic()
-        poses = self.robot.body_poses(sample.joint_angles)
-        row = np.empty((len(self._bodies), 7), dtype=np.float32)
-        for i, name in enumerate(self._bodies):
-            pos, quat = poses[name]
-            row[i, :3] = pos
-            # MuJoCo quaternions are (w, x, y, z); Rerun's are (x, y, z, w).
-            row[i, 3:6] = quat[1:]
-            row[i, 6] = quat[0]
-        if not arm.times_ns:
+        if arm.n == 0:
             arm.first_pending = now
-        arm.times_ns.append(sample.timestamp_ms * 1_000_000)
-        arm.poses.append(row)
+        row = arm.next_row()
+        arm.times_ns[row] = sample.timestamp_ms * 1_000_000
         angles = sample.joint_angles
-        arm.angles_deg.append(np.degrees([angles.get(j, math.nan) for j in so101.JOINT_NAMES]))
-        self._buffer_servo(arm, sample.telemetry.diagnostics)
+        arm.poses[row] = self.robot.body_pose_array(angles)
+        arm.angles_rad[row] = [angles.get(j, math.nan) for j in so101.JOINT_NAMES]
+        diagnostics = sample.telemetry.diagnostics
+        # One (joints, quantities) block; a reading the edge did not send is None, which becomes NaN.
+        arm.servo[row] = [_servo_row(diagnostics.get(j)) for j in so101.JOINT_NAMES]
         self._status(arm, sample)
         self.samples_logged += 1
-        if arm.pending() >= MAX_BATCH_ROWS or now - arm.first_pending >= self.settings.flush_s:
+        if arm.n >= MAX_BATCH_ROWS or now - arm.first_pending >= self._flush_s():
             self._flush(arm)
         if now >= self._next_sweep:
             self._sweep(now)
@@ -247,7 +257,7 @@ class RerunWorker:
     def close(self) -> None:
         try:
             for arm in self._arms.values():
-                if arm.pending():
+                if arm.n:
                     self._flush(arm)
             self._rec.flush(timeout_sec=30.0)
         finally:
@@ -279,7 +289,7 @@ class RerunWorker:
         arm = self._arms.get(device)
         if arm is not None:
             return arm
-        arm = _Arm(device=device, entity=entity_of(device), index=len(self._arms))
+        arm = _Arm(device=device, entity=entity_of(device), index=len(self._arms), bodies=len(self._bodies))
         self._arms[device] = arm
         self._log_arm(arm)
         focus = self.settings.focus_device
@@ -327,22 +337,6 @@ class RerunWorker:
             )
         return self._geoms
 
-    def _buffer_servo(self, arm: _Arm, diagnostics: Mapping[str, JointDiagnostics]) -> None:
-        n = arm.pending() - 1  # rows before this one
-        for attr, name, _title in SERVO_SERIES:
-            values = [getattr(diagnostics.get(j), attr, None) for j in so101.JOINT_NAMES]
-            column = arm.servo.get(name)
-            if all(v is None for v in values):
-                if column is not None:
-                    column.append(None)
-                continue
-            if column is None:
-                column = arm.servo[name] = [None] * n
-            column.append(np.array([math.nan if v is None else float(v) for v in values]))
-            if name not in arm.servo_styled:
-                arm.servo_styled.add(name)
-                self._rec.log(f"{arm.entity}/servo/{name}", _series_style(), static=True)
-
     def _status(self, arm: _Arm, sample: AppliedSample) -> None:
         statuses = {j: d.status for j, d in sample.telemetry.diagnostics.items() if d.status is not None}
         text = status_text(statuses)
@@ -357,35 +351,49 @@ class RerunWorker:
 
     # --- sending -------------------------------------------------------------------------------------------
 
+    def _flush_s(self) -> float:
+        """How long a device's samples wait: flush_s, or longer when the fleet would otherwise send more
+        than max_batches_per_s batches (the sending cost is per batch, the stream's delay is per device)."""
+        return max(self.settings.flush_s, len(self._arms) / self.settings.max_batches_per_s)
+
     def _sweep(self, now: float) -> None:
-        self._next_sweep = now + self.settings.flush_s / 4.0
+        wait = self._flush_s()
+        self._next_sweep = now + min(wait / 4.0, 0.25)
         for arm in self._arms.values():
-            if arm.pending() and now - arm.first_pending >= self.settings.flush_s:
+            if arm.n and now - arm.first_pending >= wait:
                 self._flush(arm)
 
     def _flush(self, arm: _Arm) -> None:
         """Send a device's buffered samples as one Arrow record batch (one Rerun chunk per entity)."""
-        servo_names = tuple(n for n, col in arm.servo.items() if any(v is not None for v in col))
+        k = arm.n
+        servo = arm.servo[:k]
+        # Rows where a quantity has no joint's reading send nothing for it (a null row, not six NaNs).
+        present = ~np.isnan(servo).all(axis=1)  # (k, quantities)
+        servo_names = tuple(SERVO_SERIES[q][1] for q in range(len(SERVO_SERIES)) if present[:, q].any())
         schema = arm.schemas.get(servo_names)
         if schema is None:
             schema = arm.schemas[servo_names] = self._schema(arm, servo_names)
-        k = arm.pending()
-        poses = np.stack(arm.poses)[:, self._moving_idx, :]  # (k, moving bodies, 7)
-        arrays: list[pa.Array] = [pa.array(np.asarray(arm.times_ns, dtype=np.int64), type=_NS)]
+            for name in servo_names:
+                if name not in arm.servo_styled:
+                    arm.servo_styled.add(name)
+                    self._rec.log(f"{arm.entity}/servo/{name}", _series_style(), static=True)
+        poses = arm.poses[:k][:, self._moving_idx, :]  # (k, moving bodies, 7)
+        arrays: list[pa.Array] = [pa.array(arm.times_ns[:k], type=_NS)]
         for b in range(len(self._moving)):
-            arrays.append(pa.FixedSizeListArray.from_arrays(pa.array(poses[:, b, :3].ravel()), type=_V3))
-            arrays.append(pa.FixedSizeListArray.from_arrays(pa.array(poses[:, b, 3:].ravel()), type=_Q4))
-        arrays.append(_scalar_rows(arm.angles_deg))
-        for name in servo_names:
-            arrays.append(_scalar_rows(arm.servo[name]))
-        batch = pa.RecordBatch.from_arrays(arrays, schema=schema)
-        arm.times_ns.clear()
-        arm.poses.clear()
-        arm.angles_deg.clear()
-        arm.servo = {n: [] for n in arm.servo}
-        rr.send_chunks(Chunk.from_record_batch(batch), recording=self._rec)
+            translation = np.ascontiguousarray(poses[:, b, :3], dtype=np.float32).ravel()
+            # MuJoCo quaternions are (w, x, y, z); Rerun's are (x, y, z, w).
+            quaternion = np.ascontiguousarray(poses[:, b, _XYZW], dtype=np.float32).ravel()
+            arrays.append(pa.FixedSizeListArray.from_arrays(pa.array(translation), type=_V3))
+            arrays.append(pa.FixedSizeListArray.from_arrays(pa.array(quaternion), type=_Q4))
+        arrays.append(_six_per_row(np.degrees(arm.angles_rad[:k]), None))
+        for q, (_attr, name, _title) in enumerate(SERVO_SERIES):
+            if name in servo_names:
+                arrays.append(_six_per_row(servo[:, :, q], present[:, q]))
+        arm.n = 0
+        rr.send_chunks(
+            Chunk.from_record_batch(pa.RecordBatch.from_arrays(arrays, schema=schema)), recording=self._rec
+        )
         self.batches_sent += 1
-        log.debug("rerun sink: sent %d samples of %s", k, arm.device)
 
     def _schema(self, arm: _Arm, servo_names: Sequence[str]) -> pa.Schema:
         translation = rr.Transform3D.descriptor_translation()
@@ -518,26 +526,19 @@ def _series_style() -> rr.SeriesLines:
     return rr.SeriesLines(names=list(so101.JOINT_NAMES), colors=list(JOINT_COLOURS))
 
 
-def _scalar_rows(rows: Sequence[np.ndarray | None]) -> pa.Array:
-    """Rows of six values (or None for a row without any) as a list<float64> column."""
-    offsets = [0]
-    values: list[np.ndarray] = []
-    mask = []
-    for row in rows:
-        if row is None:
-            offsets.append(offsets[-1])
-            mask.append(True)
-        else:
-            values.append(row)
-            offsets.append(offsets[-1] + len(row))
-            mask.append(False)
-    flat = pa.array(np.concatenate(values) if values else np.empty(0), type=pa.float64())
-    return pa.ListArray.from_arrays(
-        pa.array(offsets, type=pa.int32()),
-        flat,
-        type=_SCALARS,
-        mask=pa.array(mask, type=pa.bool_()) if any(mask) else None,
-    )
+def _servo_row(d: JointDiagnostics | None) -> tuple[float | None, ...]:
+    if d is None:
+        return _NO_READINGS
+    return tuple(getattr(d, attr) for attr, _name, _title in SERVO_SERIES)
+
+
+def _six_per_row(values: np.ndarray, present: np.ndarray | None) -> pa.Array:
+    """A (rows, joints) array as a list<float64> column; rows where `present` is False are null."""
+    rows, width = values.shape
+    offsets = pa.array(np.arange(0, rows * width + 1, width, dtype=np.int32))
+    flat = pa.array(np.ascontiguousarray(values, dtype=np.float64).ravel())
+    mask = None if present is None or present.all() else pa.array(~present)
+    return pa.ListArray.from_arrays(offsets, flat, type=_SCALARS, mask=mask)
 
 
 def _bindable_port(port: int, key: str) -> int:
