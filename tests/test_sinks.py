@@ -213,3 +213,24 @@ def test_the_agent_hands_every_sample_to_every_sink_and_reports_them(tmp_path: P
     assert metric(samples, "twin_sink_delivered_total", sink="collect") == 12
     assert metric(samples, "twin_sink_dropped_total", sink="usd") == by_name["usd"].dropped == 0
     assert Path(recording.path).parent == tmp_path.resolve() and Path(recording.path).is_file()
+
+
+def test_body_pose_array_is_body_poses_stacked() -> None:
+    robot = RobotModel.load()
+    angles = {
+        "shoulder_pan": -0.4,
+        "shoulder_lift": 0.9,
+        "elbow_flex": -1.2,
+        "wrist_roll": 2.0,
+        "gripper": 1.0,
+    }
+    poses = robot.body_poses(angles)
+    stacked = robot.body_pose_array(angles)
+    assert stacked.shape == (len(robot.body_ids), 7)
+    for row, name in enumerate(robot.body_ids):
+        np.testing.assert_array_equal(stacked[row, :3], poses[name][0])
+        np.testing.assert_array_equal(stacked[row, 3:], poses[name][1])
+    # A fresh array each call: a caller may keep it while the thread's workspace moves on.
+    again = robot.body_pose_array({})
+    assert not np.shares_memory(stacked, again)
+    assert not np.allclose(stacked, again)
