@@ -378,11 +378,13 @@ class RerunWorker:
                     arm.servo_styled.add(name)
                     self._rec.log(f"{arm.entity}/servo/{name}", _series_style(), static=True)
         poses = arm.poses[:k][:, self._moving_idx, :]  # (k, moving bodies, 7)
-        arrays: list[pa.Array] = [pa.array(arm.times_ns[:k], type=_NS)]
+        # Every array handed to Rerun owns its memory: Arrow wraps numpy buffers without copying, Rerun
+        # encodes later on its own threads, and these buffers are refilled by the next samples.
+        arrays: list[pa.Array] = [pa.array(arm.times_ns[:k].copy(), type=_NS)]
         for b in range(len(self._moving)):
-            translation = np.ascontiguousarray(poses[:, b, :3], dtype=np.float32).ravel()
+            translation = np.array(poses[:, b, :3], dtype=np.float32).ravel()
             # MuJoCo quaternions are (w, x, y, z); Rerun's are (x, y, z, w).
-            quaternion = np.ascontiguousarray(poses[:, b, _XYZW], dtype=np.float32).ravel()
+            quaternion = np.array(poses[:, b, _XYZW], dtype=np.float32).ravel()
             arrays.append(pa.FixedSizeListArray.from_arrays(pa.array(translation), type=_V3))
             arrays.append(pa.FixedSizeListArray.from_arrays(pa.array(quaternion), type=_Q4))
         arrays.append(_six_per_row(np.degrees(arm.angles_rad[:k]), None))
@@ -536,7 +538,7 @@ def _six_per_row(values: np.ndarray, present: np.ndarray | None) -> pa.Array:
     """A (rows, joints) array as a list<float64> column; rows where `present` is False are null."""
     rows, width = values.shape
     offsets = pa.array(np.arange(0, rows * width + 1, width, dtype=np.int32))
-    flat = pa.array(np.ascontiguousarray(values, dtype=np.float64).ravel())
+    flat = pa.array(np.array(values, dtype=np.float64).ravel())  # a copy: see _flush
     mask = None if present is None or present.all() else pa.array(~present)
     return pa.ListArray.from_arrays(offsets, flat, type=_SCALARS, mask=mask)
 
