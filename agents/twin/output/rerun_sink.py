@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import functools
 import logging
 import math
 import signal
@@ -45,7 +46,7 @@ from twin.output.rerun_settings import RerunSettings
 from twin.output.sinks import AppliedSample, QueuedSink, RejectedSample, SinkStats
 from twin.robot import so101
 from twin.robot.model import RobotModel
-from twin.robot.visuals import VisualGeom, fit_face_budget, visual_geoms
+from twin.robot.visuals import fit_face_budget, visual_geoms
 
 log = logging.getLogger(__name__)
 
@@ -95,7 +96,7 @@ _XYZW = [4, 5, 6, 3]  # columns of a (x y z qw qx qy qz) pose row that make Reru
 _NO_READINGS: tuple[None, ...] = (None,) * len(SERVO_SERIES)
 
 
-class RerunSinkError(RuntimeError):
+class RerunSinkError(OSError):
     """The Rerun sink cannot start (a port is taken, the viewer binary is missing, ...); says what to do."""
 
 
@@ -179,7 +180,7 @@ class RerunWorker:
             self.save_path.parent.mkdir(parents=True, exist_ok=True)
             sinks.append(rr.FileSink(str(self.save_path)))
         if settings.serve:
-            grpc_port = _bindable_port(settings.grpc_port, "rerun.grpc_port")
+            grpc_port = bindable_port(settings.grpc_port, "rerun.grpc_port")
             sinks.append(
                 rr.GrpcServerSink(LOOPBACK, grpc_port, server_memory_limit=settings.memory_limit.strip())
             )
@@ -190,15 +191,19 @@ class RerunWorker:
         self._rec.log(f"/{ROOT}", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         if settings.serve:
             try:
-                self._web, web_port = _start_web_viewer(settings.web_port, self.grpc_url or "")
+                web_port = bindable_port(settings.web_port, "rerun.web_port")
+                self._web = start_web_viewer(self.grpc_url or "", web_port)
             except Exception:
                 self._rec.disconnect()
                 raise
-            self.viewer_url = f"http://{LOOPBACK}:{web_port}/?url={quote(self.grpc_url or '', safe='')}"
+            self.viewer_url = viewer_url(web_port, self.grpc_url or "")
 
         self._arms: dict[str, _Arm] = {}
         self._focus: str | None = None
-        self._geoms: list[VisualGeom] | None = None
+        self._meshes: list[tuple[str, rr.Transform3D, rr.Mesh3D]] | None = None
+        # Built now, on the caller's thread before any telemetry flows: thinning detailed meshes takes a
+        # second or two of the GIL, which the mirror's worker must not wait for when the first arm appears.
+        self._visuals()
         self._bodies = tuple(robot.body_ids)
         # Bodies welded to the world never move: their pose is logged once, not per sample.
         self._moving = tuple(b for b in self._bodies if int(robot.model.body_weldid[robot.body_ids[b]]) != 0)
@@ -275,13 +280,8 @@ class RerunWorker:
 
     def stop_web_viewer(self) -> None:
         web, self._web = self._web, None
-        if web is not None and web.poll() is None:
-            web.terminate()
-            try:
-                web.wait(5.0)
-            except subprocess.TimeoutExpired:
-                web.kill()
-                web.wait(5.0)
+        if web is not None:
+            stop_process(web)
 
     # --- devices -------------------------------------------------------------------------------------------
 
@@ -311,31 +311,32 @@ class RerunWorker:
                     rr.Transform3D(translation=pos, quaternion=[*quat[1:], quat[0]]),
                     static=True,
                 )
-        for geom in self._visuals():
-            path = f"{arm.entity}/{geom.body}/visual/{rr.escape_entity_path_part(geom.name)}"
-            rgba = [round(255 * min(max(c, 0.0), 1.0)) for c in geom.rgba]
-            rec.log(
-                path,
-                rr.Transform3D(translation=geom.pos, quaternion=[*geom.quat[1:], geom.quat[0]]),
-                rr.Mesh3D(
-                    vertex_positions=geom.vertices,
-                    triangle_indices=geom.faces,
-                    vertex_normals=geom.normals,
-                    albedo_factor=rgba,
-                ),
-                static=True,
-            )
+        for path, transform, mesh in self._visuals():
+            rec.log(f"{arm.entity}/{path}", transform, mesh, static=True)
         rec.log(f"{arm.entity}/joints/angle_deg", _series_style(), static=True)
 
-    def _visuals(self) -> list[VisualGeom]:
-        if self._geoms is None:
+    def _visuals(self) -> list[tuple[str, rr.Transform3D, rr.Mesh3D]]:
+        """(path under the arm, pose in the body, mesh) of each visual geom, built once for every arm: Rerun
+        archetypes are costly to build in Python, and every arm's meshes are the same."""
+        if self._meshes is None:
             geoms = visual_geoms(self.robot.model, self.robot.body_ids)
-            self._geoms, _ = fit_face_budget(geoms, self.settings.mesh_faces_per_arm)
-            self.mesh_faces_per_arm = sum(g.face_count for g in self._geoms)
-            log.info(
-                "rerun sink: %d visual geoms, %d triangles per arm", len(self._geoms), self.mesh_faces_per_arm
-            )
-        return self._geoms
+            geoms, _ = fit_face_budget(geoms, self.settings.mesh_faces_per_arm)
+            self.mesh_faces_per_arm = sum(g.face_count for g in geoms)
+            self._meshes = [
+                (
+                    f"{g.body}/visual/{rr.escape_entity_path_part(g.name)}",
+                    rr.Transform3D(translation=g.pos, quaternion=[*g.quat[1:], g.quat[0]]),
+                    rr.Mesh3D(
+                        vertex_positions=g.vertices,
+                        triangle_indices=g.faces,
+                        vertex_normals=g.normals,
+                        albedo_factor=[round(255 * min(max(c, 0.0), 1.0)) for c in g.rgba],
+                    ),
+                )
+                for g in geoms
+            ]
+            log.info("rerun sink: %d visual geoms, %d triangles per arm", len(geoms), self.mesh_faces_per_arm)
+        return self._meshes
 
     def _status(self, arm: _Arm, sample: AppliedSample) -> None:
         statuses = {j: d.status for j, d in sample.telemetry.diagnostics.items() if d.status is not None}
@@ -524,7 +525,9 @@ class RerunSink:
 # --- helpers -------------------------------------------------------------------------------------------
 
 
+@functools.cache
 def _series_style() -> rr.SeriesLines:
+    # Built once: the same names and colours go on every arm's plots.
     return rr.SeriesLines(names=list(so101.JOINT_NAMES), colors=list(JOINT_COLOURS))
 
 
@@ -543,8 +546,8 @@ def _six_per_row(values: np.ndarray, present: np.ndarray | None) -> pa.Array:
     return pa.ListArray.from_arrays(offsets, flat, type=_SCALARS, mask=mask)
 
 
-def _bindable_port(port: int, key: str) -> int:
-    """The port to listen on (0 picks a free one); raises RerunSinkError when it is taken."""
+def bindable_port(port: int, key: str) -> int:
+    """The loopback port to listen on (0 picks a free one); raises RerunSinkError when it is taken."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
         try:
             probe.bind((LOOPBACK, port))
@@ -556,13 +559,19 @@ def _bindable_port(port: int, key: str) -> int:
         return int(probe.getsockname()[1])
 
 
-def _viewer_binary() -> Path:
+def viewer_binary() -> Path:
+    """The `rerun` binary that ships in the rerun-sdk wheel (the viewer and its web server)."""
     import rerun_cli  # noqa: PLC0415 - ships with rerun-sdk; only needed when serving
 
     path = Path(rerun_cli.__file__).resolve().parent / "rerun"
     if not path.is_file():
         raise RerunSinkError(f"the Rerun viewer binary is missing ({path}); reinstall rerun-sdk (make setup)")
     return path
+
+
+def viewer_url(web_port: int, grpc_url: str) -> str:
+    """The web viewer page, pointed at a stream."""
+    return f"http://{LOOPBACK}:{web_port}/?url={quote(grpc_url, safe='')}"
 
 
 def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
@@ -573,24 +582,18 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the child between 
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)
 
 
-def _start_web_viewer(web_port: int, grpc_url: str) -> tuple[subprocess.Popen[bytes], int]:
-    """The Rerun web viewer (HTML + Wasm) on 127.0.0.1, pointed at the stream.
+def start_web_viewer(source: str, web_port: int, *, grpc_port: int | None = None) -> subprocess.Popen[bytes]:
+    """Rerun's web viewer (HTML + Wasm) on 127.0.0.1:`web_port`, for `source`: a stream URL, or a .rrd
+    file that the process then also serves as a stream on 127.0.0.1:`grpc_port`.
 
-    `rr.serve_web_viewer` takes no bind address and listens on every interface; the `rerun` binary that
-    ships in the wheel takes `--bind`, so the viewer page is served by it, in web-viewer-only mode (given a
-    URL it hosts no gRPC server of its own)."""
-    port = _bindable_port(web_port, "rerun.web_port")
-    cmd = [
-        str(_viewer_binary()),
-        "--serve-web",
-        "--bind",
-        LOOPBACK,
-        "--web-viewer-port",
-        str(port),
-        grpc_url,
-    ]
+    `rr.serve_web_viewer` takes no bind address and listens on every interface; the `rerun` binary that ships
+    in the wheel takes `--bind`, so it serves the page (given a stream URL it hosts no gRPC server of its
+    own). Returns once the page answers; raises RerunSinkError when the process exits or stays silent."""
+    cmd = [str(viewer_binary()), "--serve-web", "--bind", LOOPBACK, "--web-viewer-port", str(web_port)]
+    if grpc_port is not None:
+        cmd += ["--port", str(grpc_port)]
     proc = subprocess.Popen(
-        cmd,
+        [*cmd, source],
         stdin=subprocess.DEVNULL,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
@@ -605,17 +608,27 @@ def _start_web_viewer(web_port: int, grpc_url: str) -> tuple[subprocess.Popen[by
             )
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
             probe.settimeout(0.2)
-            if probe.connect_ex((LOOPBACK, port)) == 0:
+            if probe.connect_ex((LOOPBACK, web_port)) == 0:
                 if proc.stderr is not None:
                     # Nobody reads its log from here on; a full pipe must not stall it.
                     threading.Thread(target=_drain, args=(proc.stderr,), daemon=True).start()
-                return proc, port
+                return proc
         time.sleep(0.1)
-    proc.terminate()
-    proc.wait(5.0)
+    stop_process(proc)
     raise RerunSinkError(
-        f"the Rerun web viewer did not listen on {LOOPBACK}:{port} within {WEB_VIEWER_START_S:.0f} s"
+        f"the Rerun web viewer did not listen on {LOOPBACK}:{web_port} within {WEB_VIEWER_START_S:.0f} s"
     )
+
+
+def stop_process(proc: subprocess.Popen[bytes]) -> None:
+    """SIGTERM, then SIGKILL after 5 s; waits for it."""
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(5.0)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5.0)
 
 
 def _drain(stream: object) -> None:
