@@ -22,6 +22,7 @@ from twin.core.alarms import AlarmThresholds
 from twin.core.health import HealthThresholds
 from twin.core.telemetry import MAX_PAYLOAD_BYTES, UNITS_CHOICES
 from twin.core.topics import ALL_DEVICES, DEFAULT_TOPIC_PREFIX, TopicError, check_devices, check_topic_prefix
+from twin.output.rerun_settings import RerunSettings, RerunSettingsError
 from twin.output.ros2 import Ros2Error, Ros2Settings
 from twin.transport.broker import BrokerConfig, BrokerConfigError
 
@@ -135,6 +136,9 @@ class CloudWatchSection:
 # The [ros2] section is the ROS 2 bridge's settings themselves (docs/ros2.md); they validate themselves.
 Ros2Section = Ros2Settings
 
+# The [rerun] section is the Rerun sink's settings themselves (off unless `save` or `serve`; docs/web.md).
+RerunSection = RerunSettings
+
 
 @dataclass(frozen=True)
 class AgentConfig:
@@ -148,6 +152,7 @@ class AgentConfig:
     alarms: AlarmsSection = field(default_factory=AlarmsSection)
     cloudwatch: CloudWatchSection = field(default_factory=CloudWatchSection)
     ros2: Ros2Section = field(default_factory=Ros2Section)
+    rerun: RerunSection = field(default_factory=RerunSection)
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
         """The effective configuration as TOML-shaped sections (logged at start-up, served nowhere)."""
@@ -169,6 +174,7 @@ _SECTIONS: dict[str, type] = {
     "alarms": AlarmsSection,
     "cloudwatch": CloudWatchSection,
     "ros2": Ros2Section,
+    "rerun": RerunSection,
 }
 
 
@@ -261,6 +267,10 @@ def validate(config: AgentConfig) -> AgentConfig:
     if config.log.level.upper() not in LOG_LEVELS:
         raise ConfigError(f"log.level = {config.log.level!r} is not one of {', '.join(LOG_LEVELS)}")
     _validate_ros2(config.ros2, config.telemetry)
+    try:
+        config.rerun.validate()
+    except RerunSettingsError as exc:
+        raise ConfigError(str(exc)) from None
     return config
 
 

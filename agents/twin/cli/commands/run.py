@@ -11,11 +11,19 @@ import argparse
 import logging
 import signal
 import threading
+from collections.abc import Callable
 from typing import Any
 
 from twin.cli.output import Console
 from twin.core.topics import DEFAULT_TOPIC_PREFIX
-from twin.service.config import DEFAULT_HTTP_HOST, DEFAULT_HTTP_PORT, LOG_LEVELS, ConfigError, load_config
+from twin.service.config import (
+    DEFAULT_HTTP_HOST,
+    DEFAULT_HTTP_PORT,
+    LOG_LEVELS,
+    AgentConfig,
+    ConfigError,
+    load_config,
+)
 from twin.service.logs import setup_logging
 
 log = logging.getLogger("twin.run")
@@ -35,6 +43,18 @@ def register(subparsers: Any) -> None:
             "docs/agent.md); the flags below override the file."
         ),
     )
+    add_agent_arguments(parser)
+    parser.add_argument(
+        "--rerun-serve",
+        action="store_true",
+        default=None,
+        help="stream the fleet to Rerun's web viewer on 127.0.0.1 ([rerun] serve; docs/web.md)",
+    )
+    parser.set_defaults(func=run)
+
+
+def add_agent_arguments(parser: argparse.ArgumentParser) -> None:
+    """The flags every command that runs the agent takes (`twin run`, `twin web`)."""
     parser.add_argument("--config", metavar="FILE", help="agent config file (TOML)")
     parser.add_argument(
         "--broker", metavar="URL", help='"iot" (AWS IoT Core), mqtt://host:port or mqtts://host:port'
@@ -60,6 +80,9 @@ def register(subparsers: Any) -> None:
         metavar="URI",
         help='keep telemetry history in Delta Lake at URI (a directory or s3://bucket/prefix; "" = off)',
     )
+    parser.add_argument(
+        "--rerun-save", metavar="FILE.rrd", help="write the fleet as a Rerun recording ([rerun] save)"
+    )
     parser.add_argument("--log-level", metavar="LEVEL", help="DEBUG, INFO, WARNING or ERROR")
     parser.add_argument(
         "--ros2",
@@ -67,7 +90,6 @@ def register(subparsers: Any) -> None:
         default=None,
         help="publish every arm as ROS 2 sensor_msgs/JointState ([ros2] settings; needs the ros2 extra)",
     )
-    parser.set_defaults(func=run)
 
 
 def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
@@ -81,6 +103,8 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         "twin.mode": args.mode,
         "twin.record_dir": args.record_dir,
         "history.uri": args.history,
+        "rerun.save": args.rerun_save,
+        "rerun.serve": getattr(args, "rerun_serve", None),
         "log.level": args.log_level,
         "ros2.enabled": args.ros2,
     }
@@ -93,32 +117,42 @@ def _config_error(message: str) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    config = configure(args, overrides_from_args(args))
+    if isinstance(config, int):
+        return config
+    return serve(config)
+
+
+def configure(args: argparse.Namespace, overrides: dict[str, Any]) -> AgentConfig | int:
+    """Logging on, then the config from --config and `overrides`; an exit code when it is invalid."""
     # Log before the config is known: a config error must still come out as a JSON line.
     level = (args.log_level or "INFO").upper()
     setup_logging(level if level in LOG_LEVELS else "INFO")
     try:
-        config = load_config(args.config, overrides_from_args(args))
+        config = load_config(args.config, overrides)
     except ConfigError as exc:
         return _config_error(str(exc))
     setup_logging(config.log.level)
     log.info("configuration", extra={"config": config.to_dict(), "config_file": args.config})
+    return config
 
+
+def serve(config: AgentConfig, on_started: Callable[[Any], None] | None = None) -> int:
+    """Run the agent until SIGTERM/SIGINT; `on_started(service)` runs once it is up. Returns the exit code."""
     # MuJoCo, awscrt and USD load here, not at import: `twin --help` stays fast.
     from twin.service.agent import AgentService
+    from twin.service.outputs import close_sinks, configured_sinks
 
-    sinks = []
-    if config.ros2.enabled:
-        from twin.output.ros2 import Ros2Error, open_ros2_sink
-
-        try:
-            sinks.append(open_ros2_sink(config.ros2))
-        except Ros2Error as exc:
-            return _config_error(str(exc))
+    try:
+        sinks = configured_sinks(config)
+    except ConfigError as exc:
+        return _config_error(str(exc))
+    except OSError as exc:
+        return _cannot_start(exc)
     try:
         service = AgentService(config, sinks=sinks)
     except (ConfigError, ValueError) as exc:
-        for sink in sinks:
-            sink.close()
+        close_sinks(sinks)
         return _config_error(str(exc))
 
     stop = threading.Event()
@@ -134,10 +168,10 @@ def run(args: argparse.Namespace) -> int:
         try:
             service.start()
         except (OSError, ValueError) as exc:
-            console.err(f"cannot start: {exc}")
-            log.error("cannot start", extra={"error": str(exc), "exit_code": EXIT_FAILURE})
-            service.stop()
-            return EXIT_FAILURE
+            service.stop()  # closes the sinks too
+            return _cannot_start(exc)
+        if on_started is not None:
+            on_started(service)
         while not stop.wait(1.0):
             if not service.running:
                 log.error("the twin worker stopped unexpectedly; exiting", extra={"exit_code": EXIT_FAILURE})
@@ -149,3 +183,9 @@ def run(args: argparse.Namespace) -> int:
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+
+
+def _cannot_start(exc: BaseException) -> int:
+    console.err(f"cannot start: {exc}")
+    log.error("cannot start", extra={"error": str(exc), "exit_code": EXIT_FAILURE})
+    return EXIT_FAILURE
