@@ -1,0 +1,134 @@
+"""`twin web`: the fleet in a browser, through Rerun's web viewer on loopback ports (docs/web.md).
+
+Without a file it runs the agent (the settings and flags of `twin run`) with the Rerun stream and the web
+viewer served on 127.0.0.1, and prints the page to open. With a `.rrd` file it serves that recording instead.
+Either way nothing listens beyond loopback: on the twin host, reach the ports through SSM port forwarding or
+open the page in the DCV desktop's browser.
+
+Exit codes as `twin run`: 0 after SIGTERM/SIGINT, 1 when it cannot start, 2 for a bad configuration.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import threading
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlsplit
+
+from twin.cli.commands import run as run_command
+from twin.cli.output import Console
+from twin.output.rerun_settings import DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
+
+console = Console("web")
+
+SSM_HINT = (
+    "from a laptop: forward both ports over SSM (docs/web.md), e.g. "
+    "for p in {web} {grpc}; do aws ssm start-session --target <InstanceId> --document-name "
+    'AWS-StartPortForwardingSession --parameters "{{\\"portNumber\\":[\\"$p\\"],\\"localPortNumber\\":'
+    '[\\"$p\\"]}}" & done; wait'
+)
+
+
+def register(subparsers: Any) -> None:
+    parser = subparsers.add_parser(
+        "web",
+        help="the fleet in a browser: run the agent with Rerun's web viewer on 127.0.0.1, or serve a .rrd",
+        description=(
+            "Runs the agent (settings and flags as `twin run`) streaming to Rerun, and serves Rerun's web "
+            "viewer and the stream on loopback ports; or, given a .rrd file, serves that recording. "
+            "Open the printed URL here, in the DCV desktop's browser, or on a laptop through SSM port "
+            "forwarding (docs/web.md)."
+        ),
+    )
+    parser.add_argument(
+        "rrd", nargs="?", metavar="FILE.rrd", help="serve this recording instead of the agent"
+    )
+    run_command.add_agent_arguments(parser)
+    parser.add_argument(
+        "--grpc-port",
+        type=int,
+        metavar="PORT",
+        help=f"the stream's loopback port ([rerun] grpc_port, default {DEFAULT_GRPC_PORT}; 0 = any free)",
+    )
+    parser.add_argument(
+        "--web-port",
+        type=int,
+        metavar="PORT",
+        help=f"the web viewer's loopback port ([rerun] web_port, default {DEFAULT_WEB_PORT}; 0 = any free)",
+    )
+    parser.set_defaults(func=web)
+
+
+def web(args: argparse.Namespace) -> int:
+    if args.rrd:
+        return serve_file(Path(args.rrd), args)
+    overrides = run_command.overrides_from_args(args)
+    overrides.update(
+        {"rerun.serve": True, "rerun.grpc_port": args.grpc_port, "rerun.web_port": args.web_port}
+    )
+    config = run_command.configure(args, overrides)
+    if isinstance(config, int):
+        return config
+    return run_command.serve(config, on_started=_announce)
+
+
+def _announce(service: Any) -> None:
+    sink = next((s for s in service.sinks if getattr(s, "viewer_url", None)), None)
+    if sink is None:  # cannot happen: rerun.serve is forced on; say so rather than print nothing
+        console.err("the Rerun sink is not serving; see the log above")
+        return
+    console.out(f"open {sink.viewer_url}")
+    console.out(f"  native viewer: rerun --connect {sink.grpc_url}")
+    console.out("  " + _ssm_hint(sink.viewer_url, sink.grpc_url))
+    console.out("  stop with Ctrl-C")
+
+
+def _ssm_hint(page_url: str, grpc_url: str) -> str:
+    return SSM_HINT.format(web=urlsplit(page_url).port, grpc=urlsplit(grpc_url).port)
+
+
+def serve_file(path: Path, args: argparse.Namespace) -> int:
+    """Serve a recording with the `rerun` binary from the wheel (it binds to loopback) until interrupted."""
+    from twin.output.rerun_sink import (
+        LOOPBACK,
+        RerunSinkError,
+        bindable_port,
+        start_web_viewer,
+        stop_process,
+        viewer_url,
+    )
+
+    if path.suffix != ".rrd" or not path.is_file():
+        console.err(f"{path} is not a .rrd file; give a recording (e.g. out/demo/twin.rrd)")
+        return run_command.EXIT_CONFIG
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        try:
+            grpc = bindable_port(
+                DEFAULT_GRPC_PORT if args.grpc_port is None else args.grpc_port, "--grpc-port"
+            )
+            page = bindable_port(DEFAULT_WEB_PORT if args.web_port is None else args.web_port, "--web-port")
+            proc = start_web_viewer(str(path.resolve()), page, grpc_port=grpc)
+        except RerunSinkError as exc:
+            console.err(str(exc))
+            return run_command.EXIT_FAILURE
+        try:
+            grpc_url = f"rerun+http://{LOOPBACK}:{grpc}/proxy"
+            url = viewer_url(page, grpc_url)
+            console.out(f"open {url}")
+            console.out(f"  serving {path}")
+            console.out("  " + _ssm_hint(url, grpc_url))
+            console.out("  stop with Ctrl-C")
+            while not stop.wait(0.5):
+                if proc.poll() is not None:
+                    console.err(f"the Rerun viewer exited (code {proc.returncode})")
+                    return run_command.EXIT_FAILURE
+            return run_command.EXIT_OK
+        finally:
+            stop_process(proc)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
