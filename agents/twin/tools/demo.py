@@ -7,6 +7,7 @@ Afterwards the output directory holds:
   twin.png    the twin's final pose (twin.output.render.render_png)
   twin.gif    a ~30-frame animation of the run (first device), rendered offscreen
   session-*.usda  the agent's USD session recording
+  twin.rrd    the fleet as a Rerun recording (`rerun twin.rrd` opens it; docs/web.md)
   stats.json  what was sent, received, rejected (by reason), latencies, per-device health
   history/    the agent's telemetry history (Delta Lake tables, docs/history.md)
   history.png the first device's joint angles, temperature, load and current, drawn from that history
@@ -33,8 +34,9 @@ log = logging.getLogger(__name__)
 
 # Files this module writes into the output directory; earlier runs' copies are removed first so the directory
 # always describes one run. Nothing else in the directory is touched.
-OUTPUT_PATTERNS = ("twin.png", "twin.gif", "stats.json", "session-*.usda", "history.png")
+OUTPUT_PATTERNS = ("twin.png", "twin.gif", "twin.rrd", "stats.json", "session-*.usda", "history.png")
 HISTORY_DIR = "history"
+RRD_NAME = "twin.rrd"
 STATUS_INTERVAL_S = 0.25
 
 
@@ -51,6 +53,9 @@ class DemoConfig:
     rate_hz: float = 10.0
     gif_frames: int = 30
     gif_size: tuple[int, int] = (320, 240)
+    # The Rerun sink is on in the demo: it writes twin.rrd, and with rerun_serve also serves the web viewer.
+    rerun: bool = True
+    rerun_serve: bool = False
 
     def __post_init__(self) -> None:
         if not 0 < self.seconds <= 3600:
@@ -148,8 +153,11 @@ def run_demo(
     *,
     on_status: Callable[[DemoStatus], None] | None = None,
     stop: threading.Event | None = None,
+    on_viewer: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Run the demo; returns the stats written to stats.json. Raises DemoError on any failure.
+
+    `on_viewer(url)` is called with the web viewer's page when `config.rerun_serve` serves one.
 
     The steps: start the local rig (broker + agent recording into the output folder), publish with the edge
     simulator while watching the agent's state, then write stats.json, the PNG, the GIF (the recording is
@@ -166,7 +174,7 @@ def run_demo(
     try:
         with LocalRig() as rig:
             broker_url, broker_pid = rig.broker.url, rig.broker.pid
-            service = rig.start_agent(_agent_overrides(config, devices, out_dir))
+            service = _start_agent(rig, config, devices, out_dir, on_viewer)
             edge = rig.start_edge(
                 devices, variant=config.variant, rate_hz=config.rate_hz, seconds=config.seconds
             )
@@ -232,7 +240,34 @@ def _agent_overrides(config: DemoConfig, devices: list[str], out_dir: Path) -> d
         # A commit every 2 s, so even a short demo leaves a table of several versions.
         "history.uri": str(out_dir / HISTORY_DIR),
         "history.commit_every_s": 2.0,
+        "rerun.save": str(out_dir / RRD_NAME) if config.rerun else "",
+        "rerun.serve": config.rerun_serve,
     }
+
+
+def _start_agent(
+    rig: Any, config: DemoConfig, devices: list[str], out_dir: Path, on_viewer: Callable[[str], None] | None
+) -> Any:
+    """The agent with the config's extra sinks (the Rerun stream); they close when the rig stops it."""
+    from twin.service.outputs import close_sinks, configured_sinks  # noqa: PLC0415 - rerun loads here
+
+    agent_config = rig.agent_config(_agent_overrides(config, devices, out_dir))
+    try:
+        sinks = configured_sinks(agent_config)
+    except OSError as exc:
+        raise DemoError(f"the Rerun sink cannot start: {exc}") from exc
+    owners = len(rig.services)
+    try:
+        service = rig.start_agent(agent_config, sinks=sinks)
+    except Exception:
+        if len(rig.services) == owners:  # no service took the sinks over (its stop() would close them)
+            close_sinks(sinks)
+        raise
+    for sink in sinks:
+        url = getattr(sink, "viewer_url", None)
+        if url and on_viewer is not None:
+            on_viewer(url)
+    return service
 
 
 def _watch(
@@ -375,6 +410,11 @@ def _write_outputs(
     if recording is None or not Path(recording).is_file():
         raise DemoError(f"the agent did not leave its USD session recording in {out_dir}")
     files["usd"] = Path(recording).name
+    if config.rerun:
+        rrd = out_dir / RRD_NAME
+        if not rrd.is_file() or rrd.stat().st_size == 0:
+            raise DemoError(f"the Rerun sink did not leave {rrd} (see the log above)")
+        files["rrd"] = rrd.name
     stats["files"] = files
     (out_dir / "stats.json").write_text(json.dumps(stats, indent=2, sort_keys=False) + "\n")
 

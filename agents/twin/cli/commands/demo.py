@@ -28,11 +28,12 @@ PLAIN_STATUS_EVERY_S = 2.0
 def register(subparsers: Any) -> None:
     parser = subparsers.add_parser(
         "demo",
-        help="run broker, edge simulator and agent locally for a while; leave PNG, GIF, USD and stats.json",
+        help="run broker, edge simulator and agent locally for a while; leave PNG, GIF, USD, rrd, stats",
         description=(
             "Starts a private mosquitto on a free loopback port, the edge simulator and the twin agent; shows"
-            " a live status line, then writes twin.png, twin.gif, the USD session and stats.json to --out "
-            "(docs/viewer.md). Stops everything it started, also on Ctrl-C."
+            " a live status line, then writes twin.png, twin.gif, the USD session, the Rerun recording "
+            "twin.rrd and stats.json to --out (docs/viewer.md, docs/web.md). Stops everything it started, "
+            "also on Ctrl-C."
         ),
     )
     parser.add_argument("--seconds", type=float, default=20.0, help="run time (default %(default)s)")
@@ -49,6 +50,12 @@ def register(subparsers: Any) -> None:
     parser.add_argument(
         "--rate", type=float, default=10.0, metavar="HZ", help="messages/s per arm (default 10)"
     )
+    parser.add_argument(
+        "--rerun-serve",
+        action="store_true",
+        help="also serve the Rerun web viewer on 127.0.0.1 while the demo runs (docs/web.md)",
+    )
+    parser.add_argument("--no-rerun", action="store_true", help="write no twin.rrd (and serve nothing)")
     parser.add_argument("--log-level", default="WARNING", help="logging level (default %(default)s)")
     parser.set_defaults(func=run)
 
@@ -85,6 +92,8 @@ def run(args: argparse.Namespace) -> int:
             variant=args.variant,
             devices=args.devices,
             rate_hz=args.rate,
+            rerun=not args.no_rerun,
+            rerun_serve=args.rerun_serve and not args.no_rerun,
         )
     except ValueError as exc:
         console.err(str(exc))
@@ -104,7 +113,12 @@ def run(args: argparse.Namespace) -> int:
         f"for {config.seconds:g} s -> {config.out_dir}"
     )
     try:
-        stats = run_demo(config, on_status=_status_printer(tty), stop=stop)
+        stats = run_demo(
+            config,
+            on_status=_status_printer(tty),
+            stop=stop,
+            on_viewer=lambda url: console.out(f"twin demo: Rerun web viewer at {url}"),
+        )
     except DemoError as exc:
         if tty:
             sys.stdout.write("\n")
@@ -145,6 +159,8 @@ def _summary(stats: dict[str, Any], out_dir: Path) -> None:
     for kind, name in stats["files"].items():
         console.out(f"  {kind:4s} {out_dir / name}")
     console.out(f"  json {out_dir / 'stats.json'}")
+    if "rrd" in stats["files"]:
+        console.out(f"  open the Rerun recording: rerun {out_dir / stats['files']['rrd']}  (docs/web.md)")
 
 
 def _ms(value: float | None) -> str:
