@@ -231,3 +231,18 @@ def chromium_page(tmp_path: Path) -> Iterator[Any]:
             yield context.pages[0] if context.pages else context.new_page()
         finally:
             context.close()
+
+
+# --- Rerun recordings, read back with Rerun's own dataframe API -----------------------------------------
+
+
+def read_rrd(path: Path) -> tuple[Any, Any]:
+    """A .rrd's temporal (`edge_time`) and static data as Arrow tables, through a loopback Rerun server."""
+    import rerun as rr
+
+    with rr.server.Server(host="127.0.0.1", datasets={"twin": [str(path)]}) as server:
+        client = server.client()  # keep it referenced while the DataFusion frames execute
+        dataset = client.get_dataset("twin")
+        temporal = dataset.reader(index="edge_time").to_arrow_table()
+        static = dataset.reader(index=None).to_arrow_table()
+    return temporal, static

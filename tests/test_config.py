@@ -63,6 +63,8 @@ def test_example_config_loads() -> None:
     assert config.http.host == "127.0.0.1"
     assert config.telemetry.devices == ("arm-001",)
     assert config.history == HistorySection()  # the example lists the defaults
+    # The example spells out every [rerun] key at its default.
+    assert config.rerun == AgentConfig().rerun
 
 
 def test_history_section_defaults_match_the_writers() -> None:
@@ -93,6 +95,19 @@ def test_history_settings_are_checked(tmp_path: Path, toml: str, message: str) -
 def test_history_flag_turns_it_on(tmp_path: Path) -> None:
     config = load_config(None, {"history.uri": str(tmp_path / "h")})
     assert config.history.enabled and config.history.uri == str(tmp_path / "h")
+
+
+def test_rerun_is_off_unless_saving_or_serving(tmp_path: Path) -> None:
+    assert not AgentConfig().rerun.enabled
+    config = load_config(
+        write(tmp_path, '[rerun]\nsave = "out/fleet.rrd"\nmax_rate_hz = 5\nmemory_limit = "2GiB"\n'),
+        {"rerun.serve": True, "rerun.web_port": 0},
+    )
+    assert config.rerun.enabled and config.rerun.serve
+    assert (config.rerun.save, config.rerun.max_rate_hz, config.rerun.web_port) == ("out/fleet.rrd", 5.0, 0)
+    assert config.rerun.memory_limit == "2GiB"
+    # `twin run` passes None for flags it was not given: the file's value stays.
+    assert load_config(write(tmp_path, "[rerun]\nserve = true\n"), {"rerun.serve": None}).rerun.serve
 
 
 def test_values_and_derived_properties(tmp_path: Path) -> None:
@@ -166,6 +181,13 @@ def test_flags_override_file(tmp_path: Path) -> None:
         ('[log]\nlevel = "LOUD"\n', ["log.level", "LOUD", "INFO"]),
         ('[broker]\nca_file = "/nope.pem"\n', ["broker.ca_file", "/nope.pem"]),
         ("broker = 3\n", ["[broker]", "table"]),
+        ('[rerun]\nsave = "fleet.txt"\n', ["rerun.save", "fleet.txt", ".rrd"]),
+        ('[rerun]\nmemory_limit = "lots"\n', ["rerun.memory_limit", "'lots'", "512MiB"]),
+        ("[rerun]\nmax_rate_hz = 0\n", ["rerun.max_rate_hz", "greater than 0"]),
+        ("[rerun]\nserve = 1\n", ["rerun.serve", "true or false"]),
+        ("[rerun]\nweb_port = 70000\n", ["rerun.web_port", "0..65535"]),
+        ("[rerun]\nserve = true\ngrpc_port = 9000\nweb_port = 9000\n", ["rerun.grpc_port", "different"]),
+        ("[rerun]\nsave_to = 1\n", ["rerun.save_to", "save"]),
     ],
 )
 def test_bad_values_name_key_value_and_fix(tmp_path: Path, toml: str, must_mention: list[str]) -> None:

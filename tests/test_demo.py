@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import psutil
 import pytest
+from conftest import read_rrd
 from PIL import Image
 
 TWIN = Path(sys.executable).with_name("twin")
@@ -121,6 +122,15 @@ def test_demo_leaves_valid_files_and_stops_its_broker(tmp_path):
     assert history["rejected"] == {}
     assert (out / history["uri"] / "telemetry" / "_delta_log").is_dir()
     assert_not_blank(out / history["plot"])
+
+    # The Rerun recording: the arm's tree, a pose per applied message (Rerun's own reader; the values are
+    # checked against MuJoCo in test_rerun_sink.py).
+    assert files["rrd"] == "twin.rrd"
+    assert "rerun " + str(out / "twin.rrd") in proc.stdout
+    temporal, static = read_rrd(out / "twin.rrd")
+    assert "/arms/arm-001:Transform3D:translation" in static.schema.names
+    poses = [v for v in temporal.column("/arms/arm-001/wrist:Transform3D:translation").to_pylist() if v]
+    assert len(poses) == messages["applied"]
 
     assert_broker_gone(stats)
 

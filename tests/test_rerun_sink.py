@@ -17,7 +17,7 @@ import mujoco
 import numpy as np
 import pyarrow as pa
 import pytest
-import rerun as rr
+from conftest import read_rrd
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
 from twin.output.rerun_settings import RerunSettings, RerunSettingsError
 from twin.output.rerun_sink import RerunSink, status_text
@@ -123,16 +123,6 @@ def recording(
     )
     sink.close()
     yield path, docs, sink
-
-
-def read_rrd(path: Path) -> tuple[pa.Table, pa.Table]:
-    """The recording's temporal (edge_time) and static data, through a loopback Rerun server."""
-    with rr.server.Server(host="127.0.0.1", datasets={"twin": [str(path)]}) as server:
-        client = server.client()  # keep it referenced while the DataFusion frames execute
-        dataset = client.get_dataset("twin")
-        temporal = dataset.reader(index="edge_time").to_arrow_table()
-        static = dataset.reader(index=None).to_arrow_table()
-    return temporal, static
 
 
 @pytest.fixture(scope="module")
