@@ -32,7 +32,8 @@ class RerunSettings:
     # What the gRPC server keeps for viewers that connect later; the oldest data goes first, the static
     # meshes never. A Rerun size ("512MiB") or a share of RAM ("10%").
     memory_limit: str = "512MiB"
-    # Per device, at most this many samples a second go into the stream (the rest are counted as skipped).
+    # Per device, at most this many samples a second go into the stream, with half a second's worth of
+    # burst (the rest are counted as skipped).
     max_rate_hz: float = 20.0
     # Samples are sent in columns, one batch per device at most every flush_s: the stream's delay, traded
     # against CPU (docs/web.md has the figures).

@@ -477,8 +477,11 @@ class RerunSink:
         self._queue = QueuedSink(
             self.name, self.worker, max_pending=settings.max_pending, idle_s=settings.flush_s / 2.0
         )
-        self._min_interval = 1.0 / settings.max_rate_hz
-        self._last: dict[str, float] = {}
+        self._rate = settings.max_rate_hz
+        # A token bucket per device: half a second's worth of burst, so network jitter (two messages close
+        # together after a gap) costs nothing at rates under the cap, while a flood is held to the cap.
+        self._burst = max(1.0, settings.max_rate_hz / 2.0)
+        self._buckets: dict[str, tuple[float, float]] = {}  # device -> (tokens, receive time)
         self._skipped = 0
         self._lock = threading.Lock()
 
@@ -499,13 +502,15 @@ class RerunSink:
     def applied(self, sample: AppliedSample) -> None:
         # Rate cap on the agent's receive clock: the stream's cost follows messages arriving, whatever the
         # edge clock says.
-        last = self._last.get(sample.device_id)
         t = sample.received_mono_s
-        if last is not None and 0.0 <= t - last < self._min_interval:
+        tokens, last = self._buckets.get(sample.device_id, (self._burst, t))
+        tokens = min(self._burst, tokens + max(0.0, t - last) * self._rate)
+        if tokens < 1.0:
+            self._buckets[sample.device_id] = (tokens, t)
             with self._lock:
                 self._skipped += 1
             return
-        self._last[sample.device_id] = t
+        self._buckets[sample.device_id] = (tokens - 1.0, t)
         self._queue.applied(sample)
 
     def rejected(self, sample: RejectedSample) -> None:

@@ -46,6 +46,7 @@ _SINK_COUNTERS = (
     ("delivered", "Samples a sink handled."),
     ("dropped", "Samples a sink dropped because its queue was full or it was closing."),
     ("errors", "Errors a sink raised while handling a sample."),
+    ("skipped", "Samples a sink chose not to write (its rate cap, e.g. the Rerun stream's max_rate_hz)."),
 )
 
 

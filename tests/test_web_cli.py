@@ -1,0 +1,192 @@
+"""`twin web` and `twin run --rerun-save` as a user runs them: real processes, the rig's broker and edge.
+
+What matters here: everything `twin web` opens listens on loopback only and answers, SIGTERM stops it with
+exit code 0 and leaves no viewer process behind, and `twin run --rerun-save` leaves a recording holding every
+applied message.
+"""
+
+from __future__ import annotations
+
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from urllib.parse import unquote, urlsplit
+
+import psutil
+import pytest
+from conftest import get_state, http_get, read_rrd, wait_for
+from twin.tools.rig import child_env
+
+TWIN = Path(sys.executable).with_name("twin")
+OPEN_LINE = re.compile(r"^open (http://\S+)$", re.MULTILINE)
+
+
+def read_until_url(proc: subprocess.Popen[str], timeout: float) -> tuple[str, str]:
+    """The page `twin web` printed, and everything it printed up to it."""
+    seen = ""
+    deadline = time.monotonic() + timeout
+    assert proc.stdout is not None
+    while time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        if not line:
+            assert proc.poll() is None, f"twin web exited ({proc.returncode}):\n{seen}{proc.stderr.read()}"
+            continue
+        seen += line
+        match = OPEN_LINE.search(seen)
+        if match and "stop with Ctrl-C" in line:
+            return match.group(1), seen
+    raise AssertionError(f"twin web printed no page within {timeout} s:\n{seen}")
+
+
+def listening(proc: subprocess.Popen[str]) -> list[tuple[str, int]]:
+    """(address, port) of every TCP socket the process and its children listen on."""
+    out = []
+    tree = [psutil.Process(proc.pid), *psutil.Process(proc.pid).children(recursive=True)]
+    for p in tree:
+        for conn in p.net_connections(kind="tcp"):
+            if conn.status == psutil.CONN_LISTEN:
+                out.append((conn.laddr.ip, conn.laddr.port))
+    return out
+
+
+def stop_and_check(proc: subprocess.Popen[str], ports: list[int]) -> None:
+    children = psutil.Process(proc.pid).children(recursive=True)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, f"stdout:\n{out}\nstderr:\n{err}"
+    _, alive = psutil.wait_procs(children, timeout=10)
+    assert not alive, f"twin web left {alive} running"
+    for port in ports:
+        with pytest.raises(OSError):
+            http_get(f"http://127.0.0.1:{port}/")
+
+
+def subscribed(base_url: str) -> bool:
+    try:
+        return get_state(base_url).agent.broker.subscribes > 0
+    except OSError:  # its HTTP server is not up yet
+        return False
+
+
+def check_page(url: str) -> list[int]:
+    """The page answers with Rerun's viewer and names a loopback stream; returns (page port, stream port)."""
+    parts = urlsplit(url)
+    assert parts.hostname == "127.0.0.1"
+    status, _, body = http_get(url)
+    assert status == 200 and b"Rerun" in body
+    stream = urlsplit(unquote(parts.query.removeprefix("url=")))
+    assert stream.scheme == "rerun+http" and stream.hostname == "127.0.0.1"
+    return [parts.port or 0, stream.port or 0]
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(180)
+def test_twin_web_runs_the_agent_with_the_viewer_on_loopback_only(rig) -> None:
+    edge = rig.start_edge(["arm-001"], seconds=60)
+    proc = subprocess.Popen(
+        [
+            str(TWIN),
+            "web",
+            "--broker",
+            rig.broker.url,
+            "--devices",
+            "arm-001",
+            "--units",
+            "ticks",
+            "--http",
+            "127.0.0.1:0",
+            "--grpc-port",
+            "0",
+            "--web-port",
+            "0",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=child_env(),
+    )
+    try:
+        url, printed = read_until_url(proc, 90)
+        assert "AWS-StartPortForwardingSession" in printed
+        ports = check_page(url)
+        sockets = listening(proc)
+        assert {port for _, port in sockets} >= set(ports)
+        assert all(address == "127.0.0.1" for address, _ in sockets), sockets
+        stop_and_check(proc, ports)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        edge.stop()
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(120)
+def test_twin_web_serves_a_recording(tmp_path: Path) -> None:
+    from twin.output.rerun_settings import RerunSettings
+    from twin.output.rerun_sink import RerunSink
+    from twin.robot.model import RobotModel
+
+    path = tmp_path / "fleet.rrd"
+    RerunSink(RobotModel.load(), RerunSettings(save=str(path))).close()
+    proc = subprocess.Popen(
+        [str(TWIN), "web", str(path), "--grpc-port", "0", "--web-port", "0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=child_env(),
+    )
+    try:
+        url, printed = read_until_url(proc, 60)
+        assert str(path) in printed
+        ports = check_page(url)
+        assert all(address == "127.0.0.1" for address, _ in listening(proc))
+        stop_and_check(proc, ports)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+def test_twin_web_refuses_what_is_not_a_recording(tmp_path: Path) -> None:
+    other = tmp_path / "fleet.json"
+    other.write_text("{}")
+    proc = subprocess.run(
+        [str(TWIN), "web", str(other)],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=child_env(),
+    )
+    assert proc.returncode == 2
+    assert "is not a .rrd file" in proc.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(180)
+def test_twin_run_rerun_save_records_every_applied_message(rig, tmp_path: Path) -> None:
+    path = tmp_path / "sessions" / "fleet.rrd"
+    with rig.agent_process(
+        devices="arm-001,arm-002", extra_args=["--units", "ticks", "--rerun-save", str(path)]
+    ) as (
+        proc,
+        base_url,
+    ):
+        wait_for(lambda: subscribed(base_url), 60, "the agent to subscribe")
+        rig.start_edge(["arm-001", "arm-002"], seconds=3).join(30)
+        time.sleep(1.0)  # the last messages are still crossing the broker and the worker
+        state = get_state(base_url)
+    assert proc.returncode == 0
+    rerun = next(s for s in state.agent.sinks if s.name == "rerun")
+    assert (rerun.errors, rerun.dropped, rerun.skipped) == (0, 0, 0)
+    temporal, static = read_rrd(path)
+    for device in ("arm-001", "arm-002"):
+        applied = state.devices[device].counters.applied
+        assert applied >= 25
+        poses = [
+            v for v in temporal.column(f"/arms/{device}/gripper:Transform3D:translation").to_pylist() if v
+        ]
+        assert len(poses) == applied
+        assert f"/arms/{device}:Transform3D:translation" in static.schema.names
