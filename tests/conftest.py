@@ -224,7 +224,7 @@ def chromium_page(tmp_path: Path) -> Iterator[Any]:
             executable_path=str(CHROMIUM),
             headless=True,
             args=CHROMIUM_FLAGS,
-            viewport={"width": 1280, "height": 800},
+            viewport={"width": 1024, "height": 640},
         )
         try:
             context.route("**/*", _loopback_only)

@@ -137,3 +137,21 @@ def test_render_reports_frame_times_load_and_the_demo_pictures() -> None:
         for clock in ("wall_ms", "cpu_ms"):
             assert {"p50", "p90", "min"} <= set(figures["frame"][view][clock])
         assert figures["frame"][view]["wall_ms"]["p50"] > 0
+
+
+def test_rerun_reports_the_agent_without_and_with_the_stream() -> None:
+    figures = bench("rerun", "--arms", "5", "--seconds", "2")
+    assert figures["scenario"] == "rerun"
+    assert {"mirrored_rate_cost", "extra_cpu_percent_of_core", "load_average_1m", "offered_rate"} <= set(
+        figures
+    )
+    for phase in ("off", "on"):
+        assert {"sent", "received", "applied", "mirrored_rate", "cpu_percent", "rss_max_mb"} <= set(
+            figures[phase]
+        )
+        assert figures[phase]["applied"] > 0
+    assert figures["off"]["sink"] is None
+    # The second run really streamed: the sink took every applied sample and wrote a recording.
+    sink = figures["on"]["sink"]
+    assert sink["delivered"] == figures["on"]["applied"] and sink["errors"] == 0
+    assert figures["on"]["rrd_mb"] > 0

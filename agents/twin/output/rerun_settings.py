@@ -39,8 +39,9 @@ class RerunSettings:
     # against CPU (docs/web.md has the figures).
     flush_s: float = 0.5
     # ... and at most this many device batches a second in all: a large fleet waits longer instead of
-    # costing more CPU (100 arms at 50 a second: each arm's samples go every 2 s).
-    max_batches_per_s: float = 50.0
+    # costing more CPU and file size, both mostly per batch (100 arms at 20 a second: each arm's samples
+    # go every 5 s; up to 10 arms, every flush_s).
+    max_batches_per_s: float = 20.0
     # Visual meshes are thinned to this many triangles per arm (a fleet view holds one copy per arm).
     mesh_faces_per_arm: int = 50_000
     # Arms in the fleet view stand on a grid this far apart, in order of first appearance.

@@ -87,6 +87,7 @@ MAX_BATCH_ROWS = 256
 REJECT_TEXT_EVERY_S = 1.0
 MAX_REJECT_KEYS = 4096
 WEB_VIEWER_START_S = 15.0
+PLOT_WINDOW_S = 30.0
 
 _V3 = pa.list_(pa.field("item", pa.float32(), nullable=False), 3)
 _Q4 = pa.list_(pa.field("item", pa.float32(), nullable=False), 4)
@@ -447,12 +448,23 @@ class RerunWorker:
             contents=[f"/{ROOT}/**"],
             eye_controls=rrb.EyeControls3D(position=eye, look_target=target, eye_up=[0.0, 0.0, 1.0]),
         )
+        # Plots show the last PLOT_WINDOW_S before the time cursor: a live view that draws every sample
+        # since start slows down the longer the agent runs (zooming out in the viewer shows the rest).
+        window = rrb.VisibleTimeRange(
+            TIMELINE,
+            start=rrb.TimeRangeBoundary.cursor_relative(seconds=-PLOT_WINDOW_S),
+            end=rrb.TimeRangeBoundary.cursor_relative(),
+        )
         plots = [
-            rrb.TimeSeriesView(name=f"{device} {title}", origin=f"{arm.entity}/servo/{name}")
+            rrb.TimeSeriesView(
+                name=f"{device} {title}", origin=f"{arm.entity}/servo/{name}", time_ranges=window
+            )
             for _attr, name, title in SERVO_SERIES
         ]
         side = rrb.Vertical(
-            rrb.TimeSeriesView(name=f"{device} joint angles (deg)", origin=f"{arm.entity}/joints"),
+            rrb.TimeSeriesView(
+                name=f"{device} joint angles (deg)", origin=f"{arm.entity}/joints", time_ranges=window
+            ),
             rrb.Tabs(*plots, name=f"{device} servos"),
             rrb.TextLogView(name=f"{device} events", origin=f"{arm.entity}/events"),
             row_shares=[3, 3, 1],

@@ -15,7 +15,7 @@ console = Console("bench")
 def register(subparsers: Any) -> None:
     parser = subparsers.add_parser(
         "bench",
-        help="measure throughput, fidelity and footprint of the agent and print the figures",
+        help="measure throughput, fidelity, footprint and the Rerun stream's cost; print the figures",
         description="Benchmarks print figures; they assert nothing. See docs/performance.md.",
     )
     sub = parser.add_subparsers(dest="scenario", metavar="SCENARIO", required=True)
@@ -55,11 +55,16 @@ def register(subparsers: Any) -> None:
     rn.add_argument("--width", type=int, default=640)
     rn.add_argument("--height", type=int, default=480)
 
+    rr = sub.add_parser("rerun", help="the agent without and with the [rerun] sink: mirrored rate and CPU")
+    rr.add_argument("--arms", type=int, default=100)
+    rr.add_argument("--rate", type=float, default=10.0, help="messages per second per arm")
+    rr.add_argument("--seconds", type=float, default=20.0)
+
     al = sub.add_parser("all", help="every scenario as published in docs/performance.md, plus the plot")
     al.add_argument("--seconds", type=float, default=20.0, help="throughput run length")
     al.add_argument("--plot", type=Path, default=Path("docs/performance.png"))
 
-    for p in (tp, fi, fo, hs, hr, hl, r2, rn, al):
+    for p in (tp, fi, fo, hs, hr, hl, r2, rn, rr, al):
         p.add_argument("--json", action="store_true", help="print the figures as one JSON object")
         p.set_defaults(func=run)
 
@@ -71,6 +76,7 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
     footprint = import_dev_tool("twin.tools.bench.footprint", "bench")
     ros2 = import_dev_tool("twin.tools.bench.ros2", "bench")
     render = import_dev_tool("twin.tools.bench.render", "bench")
+    rerun = import_dev_tool("twin.tools.bench.rerun", "bench")
 
     if args.scenario.startswith("history-"):
         history = import_dev_tool("twin.tools.bench.history", "bench")
@@ -89,7 +95,9 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
         return ros2.run(arms=args.arms, rate=args.rate, seconds=args.seconds)
     if args.scenario == "render":
         return render.run(frames=args.frames, width=args.width, height=args.height)
-    # all: the two throughput loads the targets name, fidelity, footprint, the ROS 2 bridge's cost, render.
+    if args.scenario == "rerun":
+        return rerun.run(arms=args.arms, rate=args.rate, seconds=args.seconds)
+    # all: the two throughput loads the targets name, fidelity, footprint, ROS 2, render, Rerun.
     results = {
         "throughput": [
             throughput.run(arms=100, rate=10.0, seconds=args.seconds),
@@ -99,6 +107,7 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
         "footprint": footprint.run(),
         "ros2": ros2.run(arms=100, rate=10.0, seconds=args.seconds),
         "render": render.run(),
+        "rerun": rerun.run(arms=100, rate=10.0, seconds=args.seconds),
     }
     plot = import_dev_tool("twin.tools.bench.plot", "bench")
     results["plot"] = str(plot.write(results, args.plot))

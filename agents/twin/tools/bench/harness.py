@@ -5,6 +5,7 @@ psutil."""
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 import threading
@@ -140,3 +141,53 @@ def last_json_line(text: str) -> dict[str, Any]:
         if line.startswith("{"):
             return json.loads(line)
     raise RuntimeError(f"no JSON result in load process output: {text[-500:]!r}")
+
+
+# One Python publisher process sustains well over 10,000 msg/s with pre-encoded payloads; beyond that the
+# load is split so the publisher is not what limits the figure.
+MSGS_PER_PUBLISHER = 10_000
+
+
+def publishers(url: str, arms: int, rate: float, seconds: float) -> list[Any]:
+    """Publisher processes for arms 1..`arms` at `rate` Hz each, enough of them that none is the limit."""
+    count = max(1, min(4, math.ceil(arms * rate / MSGS_PER_PUBLISHER)))
+    per = math.ceil(arms / count)
+    procs = []
+    for first in range(1, arms + 1, per):
+        n = min(per, arms + 1 - first)
+        procs.append(start_publisher(url, first, n, rate, seconds))
+    return procs
+
+
+def collect(procs: list[Any], timeout: float) -> dict[str, Any]:
+    """Wait for the publishers; what they sent, failed to send and published late, summed."""
+    sent = failures = late = 0
+    elapsed = 0.0
+    for proc in procs:
+        out, err = proc.communicate(timeout=timeout)
+        if proc.returncode != 0:
+            raise RuntimeError(f"a publisher failed ({proc.returncode}): {err[-800:]}")
+        result = last_json_line(out)
+        sent += result["sent"]
+        failures += result["publish_failures"]
+        late += result["late_slots"]
+        elapsed = max(elapsed, result["elapsed_s"])
+    return {"sent": sent, "publish_failures": failures, "late_slots": late, "elapsed_s": elapsed}
+
+
+def sum_devices(state: AgentState, counter: str) -> int:
+    """A per-device counter summed over the fleet."""
+    return sum(getattr(d.counters, counter) for d in state.devices.values())
+
+
+def drained(base: str) -> AgentState:
+    """The state once the worker has drained what it already received (processed stops growing; bounded)."""
+    deadline = time.monotonic() + 10
+    state = get_state(base, timeout=30)
+    while time.monotonic() < deadline:
+        time.sleep(0.5)
+        newer = get_state(base, timeout=30)
+        if newer.agent.worker.processed == state.agent.worker.processed:
+            return newer
+        state = newer
+    return state

@@ -10,52 +10,24 @@ machine's cores, so the figures are for the whole pipeline on one host: say so w
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 from typing import Any
 
 from twin.core.topics import ALL_DEVICES, topic_filters
-from twin.service.state import AgentState
 from twin.tools.bench.harness import (
     PREFIX,
     ProcessSampler,
+    collect,
+    drained,
     get_state,
     last_json_line,
     load_process,
+    publishers,
     running_agent,
-    start_publisher,
+    sum_devices,
     wait_subscribed,
 )
 from twin.tools.rig import LocalRig
-
-# One Python publisher process sustains well over 10,000 msg/s with pre-encoded payloads; beyond that the
-# load is split so the publisher is not what limits the figure.
-MSGS_PER_PUBLISHER = 10_000
-
-
-def _publishers(url: str, arms: int, rate: float, seconds: float) -> list[Any]:
-    count = max(1, min(4, math.ceil(arms * rate / MSGS_PER_PUBLISHER)))
-    per = math.ceil(arms / count)
-    procs = []
-    for first in range(1, arms + 1, per):
-        n = min(per, arms + 1 - first)
-        procs.append(start_publisher(url, first, n, rate, seconds))
-    return procs
-
-
-def _collect(procs: list[Any], timeout: float) -> dict[str, Any]:
-    sent = failures = late = 0
-    elapsed = 0.0
-    for proc in procs:
-        out, err = proc.communicate(timeout=timeout)
-        if proc.returncode != 0:
-            raise RuntimeError(f"a publisher failed ({proc.returncode}): {err[-800:]}")
-        result = last_json_line(out)
-        sent += result["sent"]
-        failures += result["publish_failures"]
-        late += result["late_slots"]
-        elapsed = max(elapsed, result["elapsed_s"])
-    return {"sent": sent, "publish_failures": failures, "late_slots": late, "elapsed_s": elapsed}
 
 
 def _ceiling(url: str, arms: int, rate: float, seconds: float) -> dict[str, Any]:
@@ -73,8 +45,8 @@ def _ceiling(url: str, arms: int, rate: float, seconds: float) -> dict[str, Any]
         noop.kill()
         raise RuntimeError(f"the no-op subscriber did not start: {noop.stderr.read()[-800:]}")
     sampler = ProcessSampler(noop.pid).start()
-    pubs = _publishers(url, arms, rate, seconds)
-    sent = _collect(pubs, timeout=seconds + 60)
+    pubs = publishers(url, arms, rate, seconds)
+    sent = collect(pubs, timeout=seconds + 60)
     time.sleep(1.0)  # in-flight messages
     usage = sampler.stop()
     noop.terminate()
@@ -88,23 +60,6 @@ def _ceiling(url: str, arms: int, rate: float, seconds: float) -> dict[str, Any]
         "sustained_rate": received / sent["elapsed_s"] if sent["elapsed_s"] else 0.0,
         **usage,
     }
-
-
-def _sum_devices(state: AgentState, counter: str) -> int:
-    return sum(getattr(d.counters, counter) for d in state.devices.values())
-
-
-def _drained(base: str) -> AgentState:
-    """The state once the worker has drained what it already received (processed stops growing; bounded)."""
-    deadline = time.monotonic() + 10
-    state = get_state(base, timeout=30)
-    while time.monotonic() < deadline:
-        time.sleep(0.5)
-        newer = get_state(base, timeout=30)
-        if newer.agent.worker.processed == state.agent.worker.processed:
-            return newer
-        state = newer
-    return state
 
 
 def agent_phase(
@@ -122,25 +77,25 @@ def agent_phase(
         wait_subscribed(base, proc)
         before = get_state(base)
         sampler = ProcessSampler(proc.pid).start()
-        pubs = _publishers(rig.broker.url, arms, rate, seconds)
-        sent = _collect(pubs, timeout=seconds + 60)
-        state = _drained(base)
+        pubs = publishers(rig.broker.url, arms, rate, seconds)
+        sent = collect(pubs, timeout=seconds + 60)
+        state = drained(base)
         usage = sampler.stop()
         if proc.poll() is not None:
             raise RuntimeError(f"the agent exited during the run (code {proc.returncode})")
     received = state.agent.broker.messages - before.agent.broker.messages
-    applied = _sum_devices(state, "applied")
+    applied = sum_devices(state, "applied")
     elapsed = sent["elapsed_s"]
     return {
         **sent,
         "received": received,
         "lost": max(0, sent["sent"] - received),
         "applied": applied,
-        "coalesced": _sum_devices(state, "overwritten"),
+        "coalesced": sum_devices(state, "overwritten"),
         # Per device, plus those counted before a device was known (e.g. units_undecided while `auto`
         # gathers evidence from a new arm's first messages).
-        "rejected": _sum_devices(state, "rejected_total") + sum(state.untracked_rejected.values()),
-        "ignored_stale": _sum_devices(state, "ignored_stale"),
+        "rejected": sum_devices(state, "rejected_total") + sum(state.untracked_rejected.values()),
+        "ignored_stale": sum_devices(state, "ignored_stale"),
         "devices_seen": len(state.devices),
         "sustained_rate": received / elapsed if elapsed else 0.0,
         # Messages that reached the twin (decoded and applied) per second; the rest of `received` was
