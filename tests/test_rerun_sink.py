@@ -7,6 +7,7 @@ own numbers converted by hand (the units in docs/telemetry.md) for the scalar se
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import math
@@ -19,13 +20,14 @@ import numpy as np
 import pyarrow as pa
 import pytest
 from conftest import read_rrd
+from twin.core.alarms import AlarmThresholds, ServoAlarms
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
 from twin.output.rerun_settings import RerunSettings, RerunSettingsError
 from twin.output.rerun_sink import RerunSink, status_text
 from twin.output.sinks import AppliedSample, RejectedSample
 from twin.robot import so101
 from twin.robot.model import RobotModel, default_model_path
-from twin.robot.visuals import visual_geoms
+from twin.robot.visuals import fit_face_budget, visual_geoms
 
 T0_MS = 1_706_000_000_000
 SAMPLES = 24
@@ -62,12 +64,12 @@ def hand_angles_rad(doc: dict) -> dict[str, float]:
 
 
 def hand_servo(doc: dict, quantity: str) -> list[float]:
-    """Servo fields by hand (docs/telemetry.md): load 0.1 %, current 6.5 mA, voltage 0.1 V per unit,
-    velocity in steps/s of 2 pi / 4096 rad."""
+    """Servo fields by hand (docs/telemetry.md): load 0.1 %, current 6.5 mA (0.0065 A), voltage 0.1 V per
+    unit, velocity in steps/s of 2 pi / 4096 rad."""
     scale = {
         "temperature_c": ("temp", 1.0),
         "load_percent": ("load", 0.1),
-        "current_ma": ("current", 6.5),
+        "current_a": ("current", 0.0065),
         "velocity_rad_s": ("velocity", 2 * math.pi / 4096),
         "voltage_v": ("voltage", 0.1),
     }[quantity]
@@ -154,13 +156,15 @@ def test_the_sink_delivered_every_sample(recording) -> None:
 
 def test_entity_paths(robot: RobotModel, tables) -> None:
     temporal, static = tables
-    geoms = visual_geoms(robot.model, robot.body_ids)
+    # What the sink logs: the model's visual geoms thinned to the per-arm face budget (the official meshes
+    # are over it).
+    geoms, _ = fit_face_budget(visual_geoms(robot.model, robot.body_ids), RerunSettings().mesh_faces_per_arm)
     for device in DEVICES:
         arm = f"/arms/{device}"
         moving = {f"{arm}/{b}" for b in so101.BODY_NAMES if b != "base"}
         servo = {
             f"{arm}/servo/{q}"
-            for q in ("temperature_c", "load_percent", "current_ma", "velocity_rad_s", "voltage_v")
+            for q in ("temperature_c", "load_percent", "current_a", "velocity_rad_s", "voltage_v")
         }
         assert moving | servo | {f"{arm}/joints/angle_deg", f"{arm}/events"} <= entities(temporal)
         visuals = {f"{arm}/{g.body}/visual/{g.name}" for g in geoms}
@@ -242,7 +246,7 @@ def test_scalar_series_match_the_telemetry(tables, recording) -> None:
         angles = rows_of(temporal, f"{arm}/joints/angle_deg", "Scalars:scalars")
         servo = {
             q: rows_of(temporal, f"{arm}/servo/{q}", "Scalars:scalars")
-            for q in ("temperature_c", "load_percent", "current_ma", "velocity_rad_s", "voltage_v")
+            for q in ("temperature_c", "load_percent", "current_a", "velocity_rad_s", "voltage_v")
         }
         assert set(angles) == set(samples)
         for ts, doc in samples.items():
@@ -269,6 +273,47 @@ def test_status_and_rejections_are_events(tables) -> None:
         line for cell in column(temporal, "/arms/arm-002/events", "TextLog:text") if cell for line in cell
     ]
     assert any(line.startswith("rejected (not_json): bad") for line in rejected)
+
+
+def test_servo_alarms_raised_and_cleared_are_events(robot: RobotModel, tmp_path: Path) -> None:
+    # The real alarm engine sees elbow_flex run hot, then cool; the events it returns ride on the samples.
+    alarms = ServoAlarms(AlarmThresholds(latch=False))
+    decoder = TelemetryDecoder(DecoderConfig(units=Units.DEGREES))
+    path = tmp_path / "alarms.rrd"
+    sink = RerunSink(robot, RerunSettings(save=str(path), flush_s=0.05))
+    raised_at = cleared_at = None
+    for i in range(SAMPLES * 2):
+        telemetry = decoder.decode(json.dumps(payload("arm-001", i)), topic_device="arm-001")
+        hot = 4 <= i < 30
+        temp = 75.0 if hot else 35.0
+        diagnostics = {
+            j: dataclasses.replace(d, temperature_c=temp) for j, d in telemetry.diagnostics.items()
+        }
+        events = tuple(alarms.evaluate("arm-001", {"elbow_flex": diagnostics["elbow_flex"]}, {}, i * 1.0))
+        if any(e.action == "raised" for e in events):
+            raised_at = raised_at or telemetry.timestamp_ms
+        if any(e.action == "cleared" for e in events):
+            cleared_at = cleared_at or telemetry.timestamp_ms
+        sample = AppliedSample(
+            "arm-001", time.time(), i * 1.0, telemetry, dict(telemetry.angles_rad), alarm_events=events
+        )
+        sink.applied(sample)
+    sink.close()
+    assert raised_at and cleared_at, "the engine raised and cleared nothing: the test fed it nothing to see"
+    temporal, _ = read_rrd(path)
+    lines = [
+        (t, line)
+        for t, cell in zip(
+            times_ms(temporal), column(temporal, "/arms/arm-001/events", "TextLog:text"), strict=True
+        )
+        if cell
+        for line in cell
+        if line.startswith("servo alarm")
+    ]
+    assert [line.split(":")[0] for _, line in lines] == ["servo alarm raised", "servo alarm cleared"]
+    assert "elbow_flex" in lines[0][1]
+    # On the edge-time timeline at the message that caused each change.
+    assert [t for t, _ in lines] == [raised_at, cleared_at]
 
 
 def test_status_text_names_each_error_bit() -> None:

@@ -58,7 +58,7 @@ LOOPBACK = "127.0.0.1"
 SERVO_SERIES: tuple[tuple[str, str, str], ...] = (
     ("temperature_c", "temperature_c", "temperature (C)"),
     ("load_percent", "load_percent", "load (%)"),
-    ("current_ma", "current_ma", "current (mA)"),
+    ("current_a", "current_a", "current (A)"),
     ("velocity_rad_s", "velocity_rad_s", "velocity (rad/s)"),
     ("voltage_v", "voltage_v", "voltage (V)"),
 )
@@ -233,6 +233,8 @@ class RerunWorker:
         # One (joints, quantities) block; a reading the edge did not send is None, which becomes NaN.
         arm.servo[row] = [_servo_row(diagnostics.get(j)) for j in so101.JOINT_NAMES]
         self._status(arm, sample)
+        if sample.alarm_events:
+            self._alarms(arm, sample)
         self.samples_logged += 1
         if arm.n >= MAX_BATCH_ROWS or now - arm.first_pending >= self._flush_s():
             self._flush(arm)
@@ -350,6 +352,17 @@ class RerunWorker:
         self._rec.set_time(TIMELINE, timestamp=np.datetime64(sample.timestamp_ms, "ms"))
         level = rr.TextLogLevel.INFO if cleared else rr.TextLogLevel.WARN
         self._rec.log(f"{arm.entity}/events", rr.TextLog(f"servo status: {message}", level=level))
+
+    def _alarms(self, arm: _Arm, sample: AppliedSample) -> None:
+        # Raised and cleared servo alarms (docs/servo-health.md) as the alarm engine words them.
+        self._rec.set_time(TIMELINE, timestamp=np.datetime64(sample.timestamp_ms, "ms"))
+        for event in sample.alarm_events:
+            if event.action == "raised":
+                level = rr.TextLogLevel.ERROR if event.severity == "critical" else rr.TextLogLevel.WARN
+            else:
+                level = rr.TextLogLevel.INFO
+            text = f"servo alarm {event.action}: {event.message}"
+            self._rec.log(f"{arm.entity}/events", rr.TextLog(text, level=level))
 
     # --- sending -------------------------------------------------------------------------------------------
 

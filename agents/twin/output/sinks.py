@@ -21,6 +21,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Protocol
 
+from twin.core.alarms import AlarmEvent
 from twin.core.telemetry import Telemetry
 
 log = logging.getLogger(__name__)
@@ -39,6 +40,8 @@ class AppliedSample:
     # The message exactly as received. History keeps the raw readings the decoder does not carry (the
     # velocity and load registers before sign decoding); empty when the producer did not pass it.
     payload: bytes = b""
+    # Servo alarm state changes this message caused (raised, cleared), in the order the engine made them.
+    alarm_events: tuple[AlarmEvent, ...] = ()
 
     @property
     def timestamp_ms(self) -> int:

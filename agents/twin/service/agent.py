@@ -454,10 +454,11 @@ class AgentService:
             tracked.gripper_percent = telemetry.gripper_percent
             result = self._apply(tracked, telemetry, item)
             self._record_health(telemetry, item, result)
+            events: tuple[AlarmEvent, ...] = ()
             if result.applied:
-                self._evaluate_alarms(telemetry, item, result.tracked)
+                events = self._evaluate_alarms(telemetry, item, result.tracked)
             if result.applied and self._sinks:
-                self._hand_applied(telemetry, item, result.tracked)
+                self._hand_applied(telemetry, item, result.tracked, events)
             return telemetry.device_id if result.applied else None
         except Exception:
             self._count_error(topic_device, "processing a message failed", topic=item.topic)
@@ -569,8 +570,11 @@ class AgentService:
             self._units[device] = units
             self._gripper[device] = result.tracked.gripper_percent
 
-    def _evaluate_alarms(self, telemetry: Telemetry, item: _Inbound, tracked: _Tracked) -> None:
-        """Servo alarms for this applied message (docs/servo-health.md); state changes become log lines."""
+    def _evaluate_alarms(
+        self, telemetry: Telemetry, item: _Inbound, tracked: _Tracked
+    ) -> tuple[AlarmEvent, ...]:
+        """Servo alarms for this applied message (docs/servo-health.md); state changes become log lines and
+        go to the sinks with the sample."""
         device = telemetry.device_id
         twin = tracked.twin
         torques = twin.joint_torques
@@ -586,8 +590,11 @@ class AgentService:
             )
         for event in events:
             _log_alarm_event(event)
+        return tuple(events)
 
-    def _hand_applied(self, telemetry: Telemetry, item: _Inbound, tracked: _Tracked) -> None:
+    def _hand_applied(
+        self, telemetry: Telemetry, item: _Inbound, tracked: _Tracked, events: tuple[AlarmEvent, ...] = ()
+    ) -> None:
         sample = AppliedSample(
             device_id=telemetry.device_id,
             received_wall_s=item.recv_wall,
@@ -595,6 +602,7 @@ class AgentService:
             telemetry=telemetry,
             joint_angles=tracked.twin.targets,
             payload=item.payload,
+            alarm_events=events,
         )
         for sink in self._sinks:
             self._guard_sink(sink, sink.applied, sample)
