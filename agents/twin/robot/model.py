@@ -166,10 +166,8 @@ class RobotModel:
             local.pair = pair
         return pair
 
-    def body_poses(self, angles_rad: Mapping[str, float]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        """World position (3,) and quaternion (w, x, y, z) (4,) of each body for joint angles (radians, by
-        name), by forward kinematics on this thread's workspace. Joints missing from `angles_rad` sit at the
-        model's reference pose; angles are used as given (clamp first if they may leave the joint ranges)."""
+    def _kinematics(self, angles_rad: Mapping[str, float]) -> mujoco.MjData:
+        # This thread's workspace posed at `angles_rad` (other joints at the reference pose), kinematics done.
         data = self.workspace()[0]
         data.qpos[:] = self.model.qpos0
         for name, value in angles_rad.items():
@@ -177,19 +175,20 @@ class RobotModel:
             if adr is not None:
                 data.qpos[adr] = value
         mujoco.mj_kinematics(self.model, data)
+        return data
+
+    def body_poses(self, angles_rad: Mapping[str, float]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """World position (3,) and quaternion (w, x, y, z) (4,) of each body for joint angles (radians, by
+        name), by forward kinematics on this thread's workspace. Joints missing from `angles_rad` sit at the
+        model's reference pose; angles are used as given (clamp first if they may leave the joint ranges)."""
+        data = self._kinematics(angles_rad)
         return {name: (data.xpos[bid].copy(), data.xquat[bid].copy()) for name, bid in self.body_ids.items()}
 
     def body_pose_array(self, angles_rad: Mapping[str, float]) -> np.ndarray:
         """`body_poses` as one (bodies, 7) array in `body_ids` order: position x y z, then the quaternion
         w x y z. For sinks that pose every sample of a fleet: one copy out of MuJoCo instead of a dict of
         fourteen small arrays, which costs several times the kinematics itself."""
-        data = self.workspace()[0]
-        data.qpos[:] = self.model.qpos0
-        for name, value in angles_rad.items():
-            adr = self.qpos_addr.get(name)
-            if adr is not None:
-                data.qpos[adr] = value
-        mujoco.mj_kinematics(self.model, data)
+        data = self._kinematics(angles_rad)
         rows = self.__dict__.get("_pose_rows")
         if rows is None:
             # A slice when the bodies are consecutive (they are in every SO-101 model): fancy indexing is
