@@ -17,6 +17,7 @@ import sys
 import urllib.request
 from pathlib import Path
 
+from listener_process import start_listener
 from twin.output.ros2 import Ros2Settings, resolve_topic
 from twin.tools.rig import LocalRig, wait_until
 
@@ -50,27 +51,9 @@ def main() -> int:
     settings = Ros2Settings()  # the default topic pattern, as the agent config below leaves it
     topics = [resolve_topic(settings.topic, d) for d in devices]
     report = out.with_suffix(".listener.json")
-    listener = subprocess.Popen(
-        [
-            args.ros_python,
-            args.listener,
-            "--topics",
-            ",".join(topics),
-            "--count",
-            "10",
-            "--idle",
-            "2",
-            "--timeout",
-            "60",
-            "--out",
-            str(report),
-        ],
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    assert listener.stdout is not None
-    if listener.stdout.readline().strip() != "ready":
-        sys.stderr.write("the rclpy listener did not start\n")
+    options = ["--count", "10", "--idle", "2", "--timeout", "60"]
+    listener = start_listener(args.ros_python, args.listener, topics, report, options)
+    if listener is None:
         return 1
 
     with LocalRig(out.parent / "rig") as rig:

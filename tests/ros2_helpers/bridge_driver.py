@@ -11,11 +11,11 @@ from __future__ import annotations
 import argparse
 import json
 import random
-import subprocess
 import sys
 import time
 from pathlib import Path
 
+from listener_process import start_listener
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
 from twin.output.ros2 import Ros2Bridge, Ros2Settings, resolve_topic
 from twin.output.sinks import AppliedSample, QueuedSink
@@ -42,26 +42,9 @@ def main() -> int:
     settings = Ros2Settings(enabled=True, **kwargs)
     topics = sorted({resolve_topic(settings.topic, d) for d in devices})
     report = Path(args.out).with_suffix(".listener.json")
-    listener = subprocess.Popen(
-        [
-            args.ros_python,
-            args.listener,
-            "--topics",
-            ",".join(topics),
-            "--count",
-            str(args.count),
-            "--timeout",
-            str(args.seconds - 5),
-            "--out",
-            str(report),
-        ],
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    assert listener.stdout is not None
-    if listener.stdout.readline().strip() != "ready":
-        listener.wait(10)
-        sys.stderr.write("listener did not start\n")
+    options = ["--count", str(args.count), "--timeout", str(args.seconds - 5)]
+    listener = start_listener(args.ros_python, args.listener, topics, report, options)
+    if listener is None:
         return 1
 
     decoder = TelemetryDecoder(DecoderConfig(units=Units.TICKS))
