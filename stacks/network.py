@@ -26,9 +26,7 @@ class TwinNetwork(Construct):
         id_: str,
         *,
         client_cidr: str,
-        client_is_ipv6: bool,
         allow_any_client: bool,
-        ssh_access: bool,
         availability_zone: str | None,
     ) -> None:
         super().__init__(scope, id_)
@@ -84,24 +82,20 @@ class TwinNetwork(Construct):
         self.security_group.add_egress_rule(
             ec2.Peer.any_ipv4(), ec2.Port.tcp(80), "HTTP to the Ubuntu apt mirrors"
         )
-        peer = ec2.Peer.ipv6(client_cidr) if client_is_ipv6 else ec2.Peer.ipv4(client_cidr)
+        # IPv4 only: the settings refuse an IPv6 client because nothing here has an IPv6 address.
+        peer = ec2.Peer.ipv4(client_cidr)
         self.security_group.add_ingress_rule(
             peer, ec2.Port.tcp(DCV_PORT), "DCV web client and native client (HTTPS/WebSocket)"
         )
         self.security_group.add_ingress_rule(
             peer, ec2.Port.udp(DCV_PORT), "DCV QUIC transport (native client)"
         )
-        if ssh_access:
-            self.security_group.add_ingress_rule(
-                peer, ec2.Port.tcp(22), "SSH, enabled with -c sshAccess=true"
-            )
         if allow_any_client:
             # Settings refuse an open CIDR unless the deployer passed allowAnyClient=true on purpose.
             Validations.of(self.security_group).acknowledge(
                 Acknowledgment(
                     id="AwsSolutions-EC23",
                     reason="The deployer explicitly passed -c allowAnyClient=true (e.g. roaming between "
-                    "networks); DCV still requires the generated password, and SSH stays closed unless "
-                    "sshAccess=true.",
+                    "networks); DCV still requires the generated password, and no other port is open.",
                 )
             )

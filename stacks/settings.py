@@ -58,9 +58,9 @@ class TwinSettings:
     devices: tuple[str, ...] = ("arm-001",)
     topic_prefix: str = "dt/lerobot"
     units: str = "auto"
-    ssh_access: bool = False
     # Publish the arms as ROS 2 JointState on the host (docs/ros2.md): installs the agent's ros2 extra.
     ros2: bool = False
+    record_sessions: bool = False
     ami_ssm_parameter: str = DEFAULT_AMI_SSM_PARAMETER
     ami_id: str | None = None
     termination_protection: bool = False
@@ -74,10 +74,17 @@ class TwinSettings:
     # bucket survives `cdk destroy`.
     history_ia_after_days: int = 30
     retain_history: bool = True
+    replace_instance: bool = False
 
     @property
-    def client_is_ipv6(self) -> bool:
-        return ipaddress.ip_network(self.client_cidr).version == 6
+    def instance_fingerprint(self) -> dict[str, str]:
+        """The settings whose change replaces the instance (and its root disk): the replacement guard compares
+        these with the deployed stack's."""
+        return {
+            "availabilityZone": self.availability_zone or "",
+            "volumeGb": str(self.volume_gb),
+            "image": self.ami_id or f"resolve:ssm:{self.ami_ssm_parameter}",
+        }
 
     @property
     def whole_fleet(self) -> bool:
@@ -90,6 +97,7 @@ class TwinSettings:
         `-c key=value` arrives as a string while cdk.json values keep their JSON type, so every
         parser accepts both.
         """
+        _refuse_removed(get)
         allow_any = _bool(get, "allowAnyClient", False)
         ami_id = _str(get, "amiId") or None
         settings = cls(
@@ -101,8 +109,8 @@ class TwinSettings:
             devices=_devices(get("devices")),
             topic_prefix=_topic_prefix(_str(get, "topicPrefix") or cls.topic_prefix),
             units=_units(_str(get, "units") or cls.units),
-            ssh_access=_bool(get, "sshAccess", False),
             ros2=_bool(get, "ros2", False),
+            record_sessions=_bool(get, "recordSessions", False),
             ami_ssm_parameter=_ami_ssm_parameter(_str(get, "amiSsmParameter") or DEFAULT_AMI_SSM_PARAMETER),
             ami_id=_ami_id(ami_id) if ami_id else None,
             termination_protection=_bool(get, "terminationProtection", False),
@@ -112,6 +120,7 @@ class TwinSettings:
             alarm_email=_alarm_email(_str(get, "alarmEmail")),
             history_ia_after_days=_history_ia_after_days(get("historyIaAfterDays")),
             retain_history=_bool(get, "retainHistory", True),
+            replace_instance=_bool(get, "replaceInstance", False),
         )
         return settings
 
@@ -122,6 +131,16 @@ class TwinSettings:
                 f"availabilityZone={self.availability_zone} is not in the stack's region {region}; "
                 f"pass -c availabilityZone=<an AZ of {region} that offers {self.instance_type}>"
             )
+
+
+def _refuse_removed(get: Callable[[str], Any]) -> None:
+    # sshAccess opened port 22 on an instance that has no key pair: nothing could log in through it.
+    if get("sshAccess") not in (None, "", False, "false"):
+        raise SettingsError(
+            "sshAccess was removed: the host has no SSH key pair, so port 22 served nobody. Get a shell with "
+            "SSM Session Manager instead (the stack output SsmSessionCommand prints the command); drop "
+            "-c sshAccess=..."
+        )
 
 
 def _str(get: Callable[[str], Any], key: str) -> str:
@@ -155,9 +174,7 @@ def _client_cidr(value: str, allow_any: bool) -> str:
             "https://checkip.amazonaws.com)"
         )
     if "/" not in value:
-        raise SettingsError(
-            f"clientCidr={value} has no prefix length; pass -c clientCidr={value}/32 (or /128 for IPv6)"
-        )
+        raise SettingsError(f"clientCidr={value} has no prefix length; pass -c clientCidr={value}/32")
     try:
         network = ipaddress.ip_network(value, strict=True)
     except ValueError as exc:
@@ -171,6 +188,13 @@ def _client_cidr(value: str, allow_any: bool) -> str:
             f"clientCidr={value} has host bits set; pass -c clientCidr={loose} "
             f"or the single address -c clientCidr={value.split('/', maxsplit=1)[0]}/{loose.max_prefixlen}"
         ) from None
+    if network.version == 6:
+        # The VPC has no IPv6 CIDR and the Elastic IP is IPv4: an IPv6 rule would admit nobody.
+        raise SettingsError(
+            f"clientCidr={value} is IPv6, but the twin host is reachable over IPv4 only (the VPC has no IPv6 "
+            "range and the Elastic IP is IPv4); pass your public IPv4 address, e.g. -c "
+            "clientCidr=203.0.113.7/32 (find it with: curl -s -4 https://checkip.amazonaws.com)"
+        )
     if network.prefixlen == 0 and not allow_any:
         raise SettingsError(
             f"clientCidr={value} would open the DCV desktop to the whole internet; pass your own address "

@@ -31,8 +31,9 @@ def test_defaults_come_from_cdk_json() -> None:
     assert s.devices == ("arm-001",)
     assert s.topic_prefix == "dt/lerobot"
     assert s.units == "auto"
-    assert s.ssh_access is False
     assert s.ros2 is False
+    assert s.record_sessions is False
+    assert s.replace_instance is False
     assert s.ami_ssm_parameter == DEFAULT_AMI_SSM_PARAMETER
     assert s.ami_id is None
     assert s.termination_protection is False
@@ -48,14 +49,13 @@ def test_client_cidr_is_required_and_the_message_says_what_to_pass() -> None:
     assert "-c clientCidr=203.0.113.7/32" in message
 
 
-@pytest.mark.parametrize("cidr", ["0.0.0.0/0", "::/0"])
-def test_open_cidr_is_refused_without_allow_any_client(cidr: str) -> None:
-    message = refused(clientCidr=cidr)
+def test_open_cidr_is_refused_without_allow_any_client() -> None:
+    message = refused(clientCidr="0.0.0.0/0")
     assert "whole internet" in message
     assert "allowAnyClient=true" in message
 
 
-@pytest.mark.parametrize("cidr", ["0.0.0.0/0", "::/0"])
+@pytest.mark.parametrize("cidr", ["0.0.0.0/0"])
 @pytest.mark.parametrize("flag", [True, "true"])
 def test_open_cidr_is_accepted_with_allow_any_client(cidr: str, flag: object) -> None:
     s = settings(clientCidr=cidr, allowAnyClient=flag)
@@ -76,9 +76,42 @@ def test_bad_cidrs_are_refused_with_a_fix(cidr: str, hint: str) -> None:
     assert hint in refused(clientCidr=cidr)
 
 
-def test_ipv6_client_is_accepted() -> None:
-    s = settings(clientCidr="2001:db8::1/128")
-    assert s.client_is_ipv6
+@pytest.mark.parametrize("cidr", ["2001:db8::1/128", "2001:db8::/64", "::/0"])
+def test_ipv6_client_is_refused_because_nothing_has_an_ipv6_address(cidr: str) -> None:
+    message = refused(clientCidr=cidr, allowAnyClient="true")
+    assert f"clientCidr={cidr} is IPv6" in message
+    assert "-c clientCidr=203.0.113.7/32" in message
+
+
+@pytest.mark.parametrize("value", [True, "true", "1"])
+def test_ssh_access_was_removed_and_says_what_to_use(value: object) -> None:
+    message = refused(sshAccess=value)
+    assert "sshAccess was removed" in message
+    assert "SsmSessionCommand" in message
+
+
+@pytest.mark.parametrize("value", [False, "false", ""])
+def test_ssh_access_false_is_harmless(value: object) -> None:
+    assert settings(sshAccess=value).client_cidr == "203.0.113.7/32"
+
+
+def test_record_sessions_and_replace_instance_flags() -> None:
+    assert settings(recordSessions="true").record_sessions is True
+    assert settings(replaceInstance=True).replace_instance is True
+
+
+def test_instance_fingerprint_names_what_replaces_the_instance() -> None:
+    assert settings().instance_fingerprint == {
+        "availabilityZone": "",
+        "volumeGb": "100",
+        "image": f"resolve:ssm:{DEFAULT_AMI_SSM_PARAMETER}",
+    }
+    pinned = settings(availabilityZone="us-east-1b", volumeGb="200", amiId="ami-0123456789abcdef0")
+    assert pinned.instance_fingerprint == {
+        "availabilityZone": "us-east-1b",
+        "volumeGb": "200",
+        "image": "ami-0123456789abcdef0",
+    }
 
 
 @pytest.mark.parametrize("zone", ["us-east-1b", "eu-central-1a", "us-west-2-lax-1a", "us-gov-west-1a"])
@@ -146,7 +179,7 @@ def test_units_must_be_known() -> None:
 
 @pytest.mark.parametrize("value", ["maybe", "2"])
 def test_bad_booleans_are_refused(value: str) -> None:
-    assert "-c sshAccess=true or -c sshAccess=false" in refused(sshAccess=value)
+    assert "-c recordSessions=true or -c recordSessions=false" in refused(recordSessions=value)
     assert "-c ros2=true or -c ros2=false" in refused(ros2=value)
 
 
