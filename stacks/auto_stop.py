@@ -35,7 +35,7 @@ class AutoStop(Construct):
             flexible_time_window=scheduler.CfnSchedule.FlexibleTimeWindowProperty(mode="OFF"),
             target=scheduler.CfnSchedule.TargetProperty(
                 # Scheduler's universal target calls the EC2 API directly: no Lambda to maintain.
-                arn="arn:aws:scheduler:::aws-sdk:ec2:stopInstances",
+                arn=f"arn:{stack.partition}:scheduler:::aws-sdk:ec2:stopInstances",
                 role_arn=self.role.role_arn,
                 input=stack.to_json_string({"InstanceIds": [instance_id]}),
             ),
