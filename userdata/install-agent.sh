@@ -1,21 +1,25 @@
 #!/usr/bin/env bash
 # Install the so101-twin agent: a Python venv with the agent distribution (package `twin` plus the robot
-# model `twin_robots`), its config, its systemd unit and the DCV desktop's viewer autostart.
+# model `twin_robots`), its config, its systemd unit and the DCV desktop's viewer (autostarted, supervised).
 #
-# Runs as part of bootstrap.sh on the host, and in tests against a temporary tree:
-#   ROOT        install prefix (default /); with ROOT != / nothing outside ROOT is touched (no systemctl, no chown)
+# Runs as a step of bootstrap.sh on the host, and in tests against a temporary tree with stand-ins for the
+# system tools (systemctl, chown, id) first on PATH; the lines are the same in both places:
+#   ROOT        install prefix (empty on the host); every path below is written ${ROOT}/...
 #   AGENT_SRC   the unpacked agent asset: pyproject.toml, README.md, agents/, robots/   (required)
 #   PYTHON      interpreter for the venv (default python3.12; mujoco 4 and usd-core 26 need >= 3.11)
 #   VENV_ARGS   extra `python -m venv` arguments; PIP_ARGS extra `pip install` arguments
-#   AWS_REGION, TOPIC_PREFIX, DEVICES (comma list or *), UNITS, CLIENT_ID_PREFIX, DESKTOP_USER: the settings
+#   AWS_REGION, TOPIC_PREFIX, DEVICES (comma list or *), UNITS, CLIENT_ID_PREFIX, DESKTOP_USER,
+#   RECORD_SESSIONS (true: keep USD recordings in /var/lib/so101-twin/sessions; default false): the settings
 #   AGENT_NAME  the CloudWatch metrics' Agent dimension (the stack name; the stack's alarms watch it)
 #   HISTORY_URI  where the agent keeps telemetry history (s3://<bucket>/history); empty = no history
 #   ROS2         true: install the ros2 extra and publish the arms as ROS 2 JointState (default false)
 # Idempotent: each file is written only when its content differs, pip runs only when the source changed.
-set -euo pipefail
+set -Eeuo pipefail
 
-ROOT="${ROOT:-/}"
-ROOT="${ROOT%/}"
+HERE="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
+LOG_TAG=install-agent
+# shellcheck source=userdata/lib.sh
+. "$HERE/lib.sh"
 PYTHON="${PYTHON:-python3.12}"
 VENV_ARGS="${VENV_ARGS:-}"
 PIP_ARGS="${PIP_ARGS:-}"
@@ -27,6 +31,7 @@ UNITS="${UNITS:-auto}"
 ROS2="${ROS2:-false}"
 CLIENT_ID_PREFIX="${CLIENT_ID_PREFIX:-so101-twin-}"
 DESKTOP_USER="${DESKTOP_USER:-ubuntu}"
+RECORD_SESSIONS="${RECORD_SESSIONS:-false}"
 AGENT_NAME="${AGENT_NAME:-so101-twin}"
 HISTORY_URI="${HISTORY_URI:-}"
 
@@ -34,26 +39,9 @@ VENV=/opt/so101-twin/venv
 CONFIG=/etc/so101-twin/agent.toml
 UNIT=/etc/systemd/system/so101-twin-agent.service
 AUTOSTART="/home/${DESKTOP_USER}/.config/autostart/so101-twin-view.desktop"
+SUPERVISOR=/opt/so101-twin/bin/twin-view-supervised
 SESSIONS=/var/lib/so101-twin/sessions
 CHANGED=0
-
-log() { echo "install-agent: $*"; }
-
-# write_file PATH MODE: content on stdin; replaces PATH only when the content differs.
-write_file() {
-  local path="${ROOT}$1" mode="$2" tmp
-  tmp="$(mktemp)"
-  cat >"$tmp"
-  if [ -f "$path" ] && cmp -s "$tmp" "$path"; then
-    rm -f "$tmp"
-    return 0
-  fi
-  mkdir -p "$(dirname "$path")"
-  install -m "$mode" "$tmp" "$path"
-  rm -f "$tmp"
-  log "wrote $1"
-  CHANGED=1
-}
 
 toml_list() {
   local out="" item
@@ -68,6 +56,11 @@ toml_list() {
   printf '[%s]' "$out"
 }
 
+case "$RECORD_SESSIONS" in true) RECORD_DIR="$SESSIONS" ;; false) RECORD_DIR="" ;; *)
+  echo "install-agent: RECORD_SESSIONS=$RECORD_SESSIONS is not true or false" >&2
+  exit 2
+  ;;
+esac
 case "$UNITS" in ticks | degrees | range100 | auto) ;; *)
   echo "install-agent: UNITS=$UNITS is not one of ticks, degrees, range100, auto" >&2
   exit 2
@@ -92,7 +85,8 @@ if [ ! -x "${ROOT}${VENV}/bin/python" ]; then
 fi
 # Hash of the shipped source: pip runs again only when the asset changed (a re-run changes nothing).
 src_hash="$(cd "$AGENT_SRC" && find pyproject.toml README.md agents robots -type f ! -path '*/__pycache__/*' \
-  ! -name '*.pyc' -print0 2>/dev/null | LC_ALL=C sort -z | xargs -0 sha256sum | sha256sum | cut -d' ' -f1)"
+  ! -name '*.pyc' -print0 2>/dev/null | LC_ALL=C sort -z | xargs -0 sha256sum | sha256sum)"
+src_hash="${src_hash%% *}"
 # The extras are part of what was installed: turning ros2 on must run pip again even with the same source.
 extras=""
 if [ "$ROS2" = true ]; then extras="[ros2]"; fi
@@ -129,7 +123,9 @@ calibration = ""
 [twin]
 mode = "kinematic"
 model = ""
-record_dir = "${SESSIONS}"
+# Recording is off unless the stack sets recordSessions=true: a session file grows for as long as the
+# agent runs, and nothing here would bound it.
+record_dir = "${RECORD_DIR}"
 
 [health]
 expected_rate_hz = 10.0
@@ -183,28 +179,32 @@ WantedBy=multi-user.target
 UNIT
 
 # --- the viewer in the DCV console session --------------------------------------------------------
+# GNOME starts autostart entries once per login and never again; the supervisor restarts the viewer when
+# it exits and when a deploy replaces the agent package.
+write_file "$SUPERVISOR" 0755 <"$HERE/view-supervisor.sh"
 write_file "$AUTOSTART" 0644 <<DESKTOP
 [Desktop Entry]
 Type=Application
 Name=SO-101 twin viewer
-Comment=Live MuJoCo view of the arm, following the local so101-twin agent
-Exec=${VENV}/bin/twin view
+Comment=Live MuJoCo view of the arm, following the local so101-twin agent (restarted when it exits)
+Exec=${SUPERVISOR}
 Terminal=false
 X-GNOME-Autostart-enabled=true
 X-GNOME-Autostart-Delay=5
 DESKTOP
 
-mkdir -p "${ROOT}${SESSIONS}"
+if [ -n "$RECORD_DIR" ]; then
+  mkdir -p "${ROOT}${SESSIONS}"
+fi
 
-if [ "$ROOT" = "" ]; then
-  if id -u "$DESKTOP_USER" >/dev/null 2>&1; then
-    chown -R "$DESKTOP_USER:" "/home/${DESKTOP_USER}/.config/autostart"
-  fi
-  systemctl daemon-reload
-  systemctl enable so101-twin-agent.service >/dev/null 2>&1
-  if [ "$CHANGED" = 1 ] || ! systemctl is-active --quiet so101-twin-agent.service; then
-    systemctl restart so101-twin-agent.service
-    log "agent service (re)started"
-  fi
+if id -u "$DESKTOP_USER" >/dev/null 2>&1; then
+  # Written by root above; the desktop user's GNOME must own its ~/.config to write settings there.
+  chown -R "$DESKTOP_USER:" "${ROOT}/home/${DESKTOP_USER}/.config"
+fi
+systemctl daemon-reload
+systemctl enable so101-twin-agent.service >/dev/null 2>&1
+if [ "$CHANGED" = 1 ] || ! systemctl is-active --quiet so101-twin-agent.service; then
+  systemctl restart so101-twin-agent.service
+  log "agent service (re)started"
 fi
 log "done (changed=$CHANGED)"

@@ -6,11 +6,11 @@ zip content the instance downloads), building a real venv and pip-installing the
 
 from __future__ import annotations
 
-import hashlib
 import os
+import re
 import shutil
 import subprocess
-import sys
+import time
 import tomllib
 from pathlib import Path
 
@@ -18,6 +18,7 @@ import pytest
 
 from stacks import twin_host
 
+from .hostsim import HostSim, tree_digest
 from .synth import REPO_ROOT, Synth
 
 USERDATA = REPO_ROOT / "userdata"
@@ -25,7 +26,15 @@ SCRIPTS = sorted(USERDATA.glob("*.sh"))
 
 
 def test_shellcheck_is_clean() -> None:
-    assert {p.name for p in SCRIPTS} >= {"user-data.sh", "bootstrap.sh", "install-agent.sh"}
+    assert {p.name for p in SCRIPTS} >= {
+        "user-data.sh",
+        "update.sh",
+        "bootstrap.sh",
+        "install-agent.sh",
+        "lib.sh",
+        "host-check.sh",
+        "view-supervisor.sh",
+    }
     shellcheck = shutil.which("shellcheck")
     if shellcheck is None:
         pytest.fail("shellcheck is missing: `make setup` installs it (apt package shellcheck)")
@@ -33,21 +42,70 @@ def test_shellcheck_is_clean() -> None:
     assert result.returncode == 0, result.stdout
 
 
+# --- no reader that exits early under pipefail ------------------------------------------------------------
+
+# A reader that may stop before its writer is done: under `set -o pipefail` the writer then dies of SIGPIPE
+# (status 141) and `set -e` ends the script (the old `tar -tzf ... | head -1`).
+_EARLY_READER = re.compile(
+    r"^\s*(head\b|grep\s+(-\w*[qlLm]\w*|--quiet|--silent|--max-count|--files-with)|sed\s+(-n\s+)?['\"]?\d*q|"
+    r"awk\b.*\bexit\b|read\b|line\b)"
+)
+
+
+def early_exit_pipes(text: str) -> list[str]:
+    """Lines of a shell script that pipe into a reader that can exit before its input ends."""
+    found = []
+    joined = re.sub(r"\\\n\s*", " ", text)
+    for line in joined.splitlines():
+        code = line.split(" #", 1)[0]
+        if code.lstrip().startswith("#"):
+            continue
+        # Split on single pipes, not on `||`.
+        segments = re.split(r"(?<!\|)\|(?!\|)", code)
+        if any(_EARLY_READER.match(segment) for segment in segments[1:]):
+            found.append(line.strip())
+    return found
+
+
+def test_the_pipe_check_catches_the_old_bugs() -> None:
+    """The check must find what the old bootstrap did, or it proves nothing."""
+    old = (
+        'dir="$(tar -tzf "$work/$tarball" | head -1 | cut -d/ -f1)"\n'
+        'dpkg-query -W -f=\'${Status}\' "$pkg" 2>/dev/null | grep -q "install ok installed" || x\n'
+        "id -nG dcv 2>/dev/null | grep -qw video || usermod -aG video dcv\n"
+        "nvidia-smi -L 2>/dev/null | \\\n  grep -m1 GPU\n"
+    )
+    assert len(early_exit_pipes(old)) == 4
+    fine = "a || b\nfind . -print0 | sort -z | xargs -0 sha256sum | sha256sum\n# x | head\n"
+    assert early_exit_pipes(fine) == []
+
+
+@pytest.mark.parametrize("script", SCRIPTS, ids=lambda p: p.name)
+def test_no_script_pipes_into_an_early_exiting_reader(script: Path) -> None:
+    assert early_exit_pipes(script.read_text()) == []
+
+
+# --- templates -------------------------------------------------------------------------------------------
+
+
 def test_render_fills_every_placeholder_and_refuses_gaps() -> None:
     values = {
         "REGION": "us-east-1",
-        "AGENT_URL": "s3://b/a.zip",
-        "SCRIPTS_URL": "s3://b/s.zip",
-        "SECRET_ARN": "arn:aws:secretsmanager:us-east-1:111111111111:secret:x",
-        "SETTINGS_ENV": "UNITS=auto",
+        "STACK_NAME": "So101TwinStack",
+        "RESOURCE": "HostInstance2C59A3BE",
+        "PARAMETER": "/so101-twin/So101TwinStack/deployment",
+        "HANDLE_URL": "https://cloudformation-waitcondition-us-east-1.s3.amazonaws.com/x",
     }
     text = twin_host.render_user_data(values)
     assert "@@" not in text
     assert len(text.encode()) < 16 * 1024
-    with pytest.raises(KeyError, match="SECRET_ARN"):
-        twin_host.render_user_data({k: v for k, v in values.items() if k != "SECRET_ARN"})
+    with pytest.raises(KeyError, match="HANDLE_URL"):
+        twin_host.render_user_data({k: v for k, v in values.items() if k != "HANDLE_URL"})
     with pytest.raises(KeyError, match="NOPE"):
         twin_host.render_user_data({**values, "NOPE": "x"})
+    commands = twin_host.render_update_commands("0123456789ab")
+    assert "export SO101_TWIN_EXPECTED_VERSION='0123456789ab'" in commands
+    assert not [line for line in commands if "@@" in line]
 
 
 def test_bootstrap_never_traces_or_prints_the_password() -> None:
@@ -59,19 +117,6 @@ def test_bootstrap_never_traces_or_prints_the_password() -> None:
     assert secret_lines == ['  printf \'%s:%s\\n\' "$DESKTOP_USER" "$secret" | chpasswd']
 
 
-def tree_digest(root: Path) -> dict[str, str]:
-    """Content, mode and mtime of every file under root: a re-run that rewrites anything shows up."""
-    digest = {}
-    for path in sorted(root.rglob("*")):
-        if path.is_symlink():
-            digest[str(path.relative_to(root))] = "link:" + os.readlink(path)
-        elif path.is_file():
-            st = path.stat()
-            content = hashlib.sha256(path.read_bytes()).hexdigest()
-            digest[str(path.relative_to(root))] = f"{content}:{st.st_mode:o}:{st.st_mtime_ns}"
-    return digest
-
-
 def agent_asset_dir(synth: Synth) -> Path:
     dirs = [p for p in Path(synth.stack.node.root.outdir).glob("asset.*") if (p / "pyproject.toml").exists()]
     assert len(dirs) == 1
@@ -79,16 +124,11 @@ def agent_asset_dir(synth: Synth) -> Path:
 
 
 def run_installer(root: Path, source: Path, **env: str) -> subprocess.CompletedProcess[str]:
+    host = HostSim(root.parent / f"{root.name}-sim")
     full_env = {
-        **os.environ,
+        **host.env(),
         "ROOT": str(root),
         "AGENT_SRC": str(source),
-        # The repo's own interpreter stands in for the host's python3.12. --system-site-packages plus
-        # --no-deps keeps the run fast and offline-safe: the heavy runtime wheels (mujoco, usd-core,
-        # awscrt) are already tested elsewhere; here we test what this script writes and installs.
-        "PYTHON": sys.executable,
-        "VENV_ARGS": "--system-site-packages",
-        "PIP_ARGS": "--no-deps",
         "AWS_REGION": "eu-central-1",
         "TOPIC_PREFIX": "dt/lerobot",
         "DEVICES": "arm-001, arm-002",
@@ -130,7 +170,8 @@ def test_installer_writes_the_agent_config_from_the_settings(installed: tuple[Pa
         "units": "ticks",
         "calibration": "",
     }
-    assert config["twin"]["record_dir"] == "/var/lib/so101-twin/sessions"
+    # No recording unless the stack says recordSessions=true: it would grow without bound.
+    assert config["twin"]["record_dir"] == ""
     assert config["ros2"] == {"enabled": False}
     # The agent's own loader accepts it (same schema as `twin run --config`).
     from twin.service.config import load_config
@@ -154,9 +195,12 @@ def test_installer_writes_the_service_and_the_viewer_autostart(installed: tuple[
     assert "Environment=MUJOCO_GL=egl" in unit
     assert "WantedBy=multi-user.target" in unit
     desktop = (root / "home/ubuntu/.config/autostart/so101-twin-view.desktop").read_text()
-    assert "Exec=/opt/so101-twin/venv/bin/twin view" in desktop
+    assert "Exec=/opt/so101-twin/bin/twin-view-supervised" in desktop
     assert "Type=Application" in desktop
-    assert (root / "var/lib/so101-twin/sessions").is_dir()
+    supervisor = root / "opt/so101-twin/bin/twin-view-supervised"
+    assert supervisor.read_text() == (USERDATA / "view-supervisor.sh").read_text()
+    assert os.access(supervisor, os.X_OK)
+    assert not (root / "var/lib/so101-twin/sessions").exists()
 
 
 def test_installer_installs_the_real_package_with_the_robot_model(installed: tuple[Path, Path]) -> None:
@@ -212,13 +256,15 @@ def test_changed_settings_rewrite_only_the_config(installed: tuple[Path, Path], 
     root = tmp_path / "root"
     shutil.copytree(installed[0], root, symlinks=True)
     before = tree_digest(root)
-    result = run_installer(root, installed[1], DEVICES="*", UNITS="auto")
+    result = run_installer(root, installed[1], DEVICES="*", UNITS="auto", RECORD_SESSIONS="true")
     assert result.returncode == 0, result.stderr
     after = tree_digest(root)
     changed = sorted(k for k in after if before.get(k) != after[k])
     assert changed == ["etc/so101-twin/agent.toml"]
     config = tomllib.loads((root / "etc/so101-twin/agent.toml").read_text())
     assert config["telemetry"]["devices"] == ["*"]
+    assert config["twin"]["record_dir"] == "/var/lib/so101-twin/sessions"
+    assert (root / "var/lib/so101-twin/sessions").is_dir()
 
 
 def test_ros2_installs_the_extra_and_enables_the_bridge(installed: tuple[Path, Path], tmp_path: Path) -> None:
@@ -243,6 +289,7 @@ def test_ros2_installs_the_extra_and_enables_the_bridge(installed: tuple[Path, P
         ({"UNITS": "radians"}, "UNITS=radians"),
         ({"ROS2": "yes"}, "ROS2=yes is not true or false"),
         ({"AGENT_SRC": "/nonexistent"}, "no pyproject.toml"),
+        ({"RECORD_SESSIONS": "yes"}, "RECORD_SESSIONS=yes is not true or false"),
     ],
 )
 def test_installer_refuses_bad_input(tmp_path: Path, env: dict[str, str], message: str) -> None:
@@ -261,7 +308,11 @@ def test_cloudwatch_agent_ships_the_emf_file_the_agent_writes() -> None:
 
     text = (USERDATA / "bootstrap.sh").read_text()
     assert f"local EMF_FILE={DEFAULT_EMF_FILE}\n" in text
-    config = re.search(r'cat >"\$cfg" <<JSON\n(.*?)\nJSON\n', text, re.S)
+    config = re.search(
+        r"write_file /opt/aws/amazon-cloudwatch-agent/etc/so101-twin.json 0644 <<JSON\n(.*?)\nJSON\n",
+        text,
+        re.S,
+    )
     assert config is not None
     rendered = (
         config.group(1).replace("${LOG_GROUP}", "/so101-twin/S/host").replace("${EMF_FILE}", DEFAULT_EMF_FILE)
@@ -275,3 +326,55 @@ def test_cloudwatch_agent_ships_the_emf_file_the_agent_writes() -> None:
             "log_stream_name": "{instance_id}/emf",
         }
     ]
+
+
+# --- the viewer supervisor ---------------------------------------------------------------------------------
+
+
+def fake_viewer(root: Path, body: str) -> Path:
+    """A stand-in `twin` in the venv: the supervisor's only job is to keep whatever that is running."""
+    twin = root / "opt/so101-twin/venv/bin/twin"
+    twin.parent.mkdir(parents=True, exist_ok=True)
+    twin.write_text(f'#!/usr/bin/env bash\necho "$*" >>{root}/starts\n{body}\n')
+    twin.chmod(0o755)
+    return twin
+
+
+def test_supervisor_restarts_a_viewer_that_dies(tmp_path: Path) -> None:
+    fake_viewer(tmp_path, "exit 3")
+    result = subprocess.run(
+        ["bash", str(USERDATA / "view-supervisor.sh")],
+        env={**os.environ, "ROOT": str(tmp_path), "VIEW_POLL_S": "0.05", "VIEW_MAX_STARTS": "3"},
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert result.returncode == 0, result.stderr
+    assert (tmp_path / "starts").read_text() == "view\nview\nview\n"
+    assert result.stderr.count("twin view exited with status 3") == 3
+
+
+def test_supervisor_restarts_the_viewer_when_the_agent_package_changes(tmp_path: Path) -> None:
+    fake_viewer(tmp_path, "exec sleep 30")
+    stamp = tmp_path / "opt/so101-twin/venv/.so101-twin-source.sha256"
+    stamp.write_text("old\n")
+    proc = subprocess.Popen(
+        ["bash", str(USERDATA / "view-supervisor.sh")],
+        env={**os.environ, "ROOT": str(tmp_path), "VIEW_POLL_S": "0.05", "VIEW_MAX_STARTS": "2"},
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        deadline = time.monotonic() + 20
+        while not (tmp_path / "starts").exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        stamp.write_text("new\n")
+        # The second start is killed by the test's end; wait for it to appear.
+        while (tmp_path / "starts").read_text().count("view") < 2 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert (tmp_path / "starts").read_text() == "view\nview\n"
+    finally:
+        proc.terminate()
+        _, stderr = proc.communicate(timeout=20)
+    assert "the agent package changed; restarting the viewer" in stderr
