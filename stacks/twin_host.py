@@ -1,16 +1,41 @@
-"""The GPU host: DCV desktop, the agents from S3 assets, an Elastic IP, and its DCV password secret."""
+"""The GPU host: DCV desktop, the agents from S3 assets, an Elastic IP, and its DCV password secret.
+
+How the host is set up and kept current (docs/deploy.md tells the user's side):
+- First boot: the UserData (userdata/user-data.sh) reads the deployment parameter, fetches the assets and
+  runs userdata/bootstrap.sh, which ends by signalling the instance's CreationPolicy (and a wait condition
+  that carries a failure's reason into the `cdk deploy` output).
+- Updates in place: the UserData names only things that never change for the stack, so a deploy that
+  changes agent code or settings rewrites the deployment parameter and the State Manager association
+  (whose parameters carry the deployment version), and State Manager re-runs the idempotent setup on the
+  running host. The instance is neither stopped nor replaced.
+"""
 
 from __future__ import annotations
 
+import hashlib
+import json
 import re
+from collections.abc import Mapping
 from pathlib import Path
 
 import jsii
-from aws_cdk import Acknowledgment, CfnTag, IgnoreMode, RemovalPolicy, Stack, Validations
+from aws_cdk import (
+    Acknowledgment,
+    CfnCreationPolicy,
+    CfnResourceSignal,
+    CfnTag,
+    CfnWaitCondition,
+    CfnWaitConditionHandle,
+    IgnoreMode,
+    RemovalPolicy,
+    Stack,
+    Validations,
+)
 from aws_cdk import aws_ec2 as ec2
 from aws_cdk import aws_iam as iam
 from aws_cdk import aws_s3_assets as s3_assets
 from aws_cdk import aws_secretsmanager as secretsmanager
+from aws_cdk import aws_ssm as ssm
 from constructs import Construct
 
 from stacks.skips import ignore_cfn_lint, skip_checkov
@@ -18,8 +43,14 @@ from stacks.skips import ignore_cfn_lint, skip_checkov
 REPO_ROOT = Path(__file__).resolve().parents[1]
 USERDATA_DIR = REPO_ROOT / "userdata"
 USERDATA_TEMPLATE = USERDATA_DIR / "user-data.sh"
+UPDATE_TEMPLATE = USERDATA_DIR / "update.sh"
 ROOT_DEVICE = "/dev/sda1"  # the Ubuntu DLAMI's root device
 DESKTOP_USER = "ubuntu"
+# The first boot's budget: the sum of the step estimates in docs/deploy.md ("First boot timeline",
+# 12-20 min) times about two, for slow mirrors and a busy CDN. Past it the stack rolls back.
+BOOT_TIMEOUT_MINUTES = 45
+# An update re-runs the same steps on a host that has them all: minutes, but a new agent wheel may be large.
+UPDATE_TIMEOUT_SECONDS = 3600
 _PLACEHOLDER_RE = re.compile(r"@@([A-Z_]+)@@")
 # The one Python distribution the instance installs: pyproject.toml builds `twin` (agents/) and
 # `twin_robots` (robots/, the model files). Docker-style patterns: drop everything, re-include those, then
@@ -43,7 +74,7 @@ AGENT_ASSET_PATTERNS = [
     "**/*.pyc",
     "**/*.egg-info",
 ]
-USERDATA_ASSET_PATTERNS = ["user-data.sh", "**/__pycache__"]
+USERDATA_ASSET_PATTERNS = ["user-data.sh", "update.sh", "**/__pycache__"]
 
 
 @jsii.implements(ec2.IMachineImage)
@@ -59,22 +90,42 @@ class _FixedImage:
         )
 
 
-def render_user_data(values: dict[str, str]) -> str:
-    """Fill the @@NAME@@ placeholders of userdata/user-data.sh; every placeholder must be given."""
-    text = USERDATA_TEMPLATE.read_text()
+def render_template(template: Path, values: Mapping[str, str]) -> str:
+    """Fill the @@NAME@@ placeholders of a userdata/ template; every placeholder must be given."""
+    text = template.read_text()
     for name, value in values.items():
         placeholder = f"@@{name}@@"
         if placeholder not in text:
-            raise KeyError(f"{USERDATA_TEMPLATE.name} has no placeholder {placeholder}")
+            raise KeyError(f"{template.name} has no placeholder {placeholder}")
         text = text.replace(placeholder, value)
     missing = sorted(set(_PLACEHOLDER_RE.findall(text)))
     if missing:
-        raise KeyError(f"{USERDATA_TEMPLATE.name}: no value for {missing}")
+        raise KeyError(f"{template.name}: no value for {missing}")
     return text
 
 
+def render_user_data(values: Mapping[str, str]) -> str:
+    """userdata/user-data.sh with REGION, STACK_NAME, RESOURCE, PARAMETER and HANDLE_URL filled in."""
+    return render_template(USERDATA_TEMPLATE, values)
+
+
+def render_update_commands(version: str) -> list[str]:
+    """The association's AWS-RunShellScript lines: userdata/update.sh for this deployment version."""
+    return render_template(UPDATE_TEMPLATE, {"VERSION": version}).splitlines()
+
+
+def deployment_version(*parts: str) -> str:
+    """A short, stable id of what the host should run: changes exactly when an asset or a setting does."""
+    digest = hashlib.sha256("\n".join(parts).encode()).hexdigest()
+    return digest[:12]
+
+
 class TwinHost(Construct):
-    """The instance and what only it uses. Attributes: `instance`, `eip`, `password_secret`."""
+    """The instance and what only it uses.
+
+    Attributes: `instance`, `eip`, `password_secret`, `deployment_parameter`, `update_association`,
+    `boot_wait`, `deployment_version`.
+    """
 
     def __init__(
         self,
@@ -89,7 +140,9 @@ class TwinHost(Construct):
         ami_ssm_parameter: str,
         ami_id: str | None,
         termination_protection: bool,
-        agent_settings: dict[str, str],
+        agent_settings: Mapping[str, str],
+        boot_timeout_minutes: int = BOOT_TIMEOUT_MINUTES,
+        agent_source: Path = REPO_ROOT,
     ) -> None:
         super().__init__(scope, id_)
         stack = Stack.of(self)
@@ -122,7 +175,7 @@ class TwinHost(Construct):
         agent_asset = s3_assets.Asset(
             self,
             "AgentPackage",
-            path=str(REPO_ROOT),
+            path=str(agent_source),
             exclude=AGENT_ASSET_PATTERNS,
             ignore_mode=IgnoreMode.DOCKER,
         )
@@ -141,18 +194,52 @@ class TwinHost(Construct):
             )
         )
 
-        settings_env = "\n".join(f"{key}={value}" for key, value in sorted(agent_settings.items()))
-        user_data = ec2.UserData.custom(
-            render_user_data(
-                {
-                    "REGION": stack.region,
-                    "AGENT_URL": agent_asset.s3_object_url,
-                    "SCRIPTS_URL": scripts_asset.s3_object_url,
-                    "SECRET_ARN": self.password_secret.secret_arn,
-                    "SETTINGS_ENV": settings_env,
-                }
+        # What the host should run, as KEY=value lines: read by the UserData at first boot and by every
+        # in-place update. Its version names the assets' content hashes and the settings, nothing else.
+        settings_lines = [f"{key}={value}" for key, value in sorted(agent_settings.items())]
+        self.deployment_version = deployment_version(
+            agent_asset.asset_hash,
+            scripts_asset.asset_hash,
+            json.dumps(stack.resolve(settings_lines), sort_keys=True),
+        )
+        deployment_lines = [
+            f"DEPLOYMENT_VERSION={self.deployment_version}",
+            f"AGENT_URL={agent_asset.s3_object_url}",
+            f"SCRIPTS_URL={scripts_asset.s3_object_url}",
+            f"DCV_SECRET_ARN={self.password_secret.secret_arn}",
+            f"AWS_REGION={stack.region}",
+            f"URL_SUFFIX={stack.url_suffix}",
+            *settings_lines,
+        ]
+        self.parameter_name = f"/so101-twin/{stack.stack_name}/deployment"
+        self.deployment_parameter = ssm.StringParameter(
+            self,
+            "Deployment",
+            parameter_name=self.parameter_name,
+            description="so101-twin host: asset locations, settings and their version (read by the host)",
+            string_value="\n".join(deployment_lines),
+        )
+        self.deployment_parameter.grant_read(role)
+        # The first boot's two reports: SignalResource answers the instance's CreationPolicy, on the
+        # stack's own ARN only; the wait condition's handle (a pre-signed URL) takes a reason, which
+        # `cdk deploy` prints when the boot fails.
+        role.add_to_principal_policy(
+            iam.PolicyStatement(
+                sid="SignalFirstBoot", actions=["cloudformation:SignalResource"], resources=[stack.stack_id]
             )
         )
+        self.boot_handle = CfnWaitConditionHandle(self, "BootHandle")
+        self.boot_wait = CfnWaitCondition(
+            self,
+            "BootWait",
+            handle=self.boot_handle.ref,
+            count=1,
+            # Created before the instance launches, so it gets the instance's budget plus launch time.
+            timeout=str((boot_timeout_minutes + 10) * 60),
+        )
+
+        # Filled in below, once the instance's logical id (which the UserData signals) exists.
+        user_data = ec2.UserData.for_linux(shebang="#!/bin/bash")
 
         if ami_id:
             machine_image: ec2.IMachineImage = _FixedImage(ami_id)
@@ -173,6 +260,9 @@ class TwinHost(Construct):
             security_group=security_group,
             role=role,
             user_data=user_data,
+            # A public address from the first packet: the Elastic IP is associated only once the
+            # instance is complete, i.e. after the boot signalled, and the boot needs the internet.
+            associate_public_ip_address=True,
             require_imdsv2=True,
             detailed_monitoring=True,
             ebs_optimized=True,
@@ -188,7 +278,50 @@ class TwinHost(Construct):
                 )
             ],
         )
-        self.instance.instance.disable_api_termination = termination_protection
+        cfn_instance = self.instance.instance
+        cfn_instance.disable_api_termination = termination_protection
+        cfn_instance.cfn_options.creation_policy = CfnCreationPolicy(
+            resource_signal=CfnResourceSignal(count=1, timeout=f"PT{boot_timeout_minutes}M")
+        )
+        # Everything the boot reads must exist (and be granted) before the instance starts.
+        self.instance.node.add_dependency(self.deployment_parameter, role)
+        template = render_user_data(
+            {
+                "REGION": stack.region,
+                "STACK_NAME": stack.stack_name,
+                "RESOURCE": cfn_instance.logical_id,
+                "PARAMETER": self.parameter_name,
+                "HANDLE_URL": self.boot_handle.ref,
+            }
+        )
+        # for_linux adds the shebang line itself.
+        user_data.add_commands(template.split("\n", 1)[1])
+        skip_checkov(
+            self.instance,
+            {
+                "CKV_AWS_88": "The address is needed for the first boot only (the Elastic IP is associated "
+                "after the boot signals); the security group admits DCV from clientCidr and nothing else."
+            },
+        )
+
+        # In-place updates: State Manager runs the association again whenever its parameters change, and
+        # they change exactly when the deployment version does.
+        self.update_association = ssm.CfnAssociation(
+            self,
+            "InPlaceUpdate",
+            name="AWS-RunShellScript",
+            association_name=f"{stack.stack_name}-host-update",
+            targets=[
+                ssm.CfnAssociation.TargetProperty(key="InstanceIds", values=[self.instance.instance_id])
+            ],
+            parameters={
+                "commands": render_update_commands(self.deployment_version),
+                "executionTimeout": [str(UPDATE_TIMEOUT_SECONDS)],
+            },
+            max_concurrency="1",
+            max_errors="0",
+        )
+        self.update_association.node.add_dependency(self.deployment_parameter, role)
         if not ami_id:
             ignore_cfn_lint(self.instance, ["E1152"])
             Validations.of(self.instance).acknowledge(

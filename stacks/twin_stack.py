@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+from typing import Any
+
 from aws_cdk import CfnOutput, Stack
 from constructs import Construct
 
@@ -12,16 +16,34 @@ from stacks.iot_endpoint import IotDataEndpoint
 from stacks.monitoring import TwinMonitoring
 from stacks.network import DCV_PORT, TwinNetwork
 from stacks.settings import CLIENT_ID_PREFIX, TwinSettings
-from stacks.twin_host import DESKTOP_USER, TwinHost
+from stacks.twin_host import DESKTOP_USER, REPO_ROOT, TwinHost
 
 # `twin instance` reads these keys; renaming one breaks it.
-OUTPUT_KEYS = ("DcvUrl", "InstanceId", "IotEndpoint", "DcvPasswordSecret", "SsmSessionCommand")
+OUTPUT_KEYS = (
+    "DcvUrl",
+    "InstanceId",
+    "IotEndpoint",
+    "DcvPasswordSecret",
+    "SsmSessionCommand",
+    "DeploymentVersion",
+    "InstanceFingerprint",
+    "UpdateAssociationId",
+    "HostLogGroup",
+)
 
 
 class TwinStack(Stack):
     """Everything for one cloud twin: `cdk deploy` builds it, `cdk destroy` removes all of it."""
 
-    def __init__(self, scope: Construct, id_: str, *, settings: TwinSettings, **kwargs) -> None:
+    def __init__(
+        self,
+        scope: Construct,
+        id_: str,
+        *,
+        settings: TwinSettings,
+        agent_source: Path | None = None,
+        **kwargs: Any,
+    ) -> None:
         super().__init__(scope, id_, **kwargs)
         self.settings = settings
 
@@ -29,9 +51,7 @@ class TwinStack(Stack):
             self,
             "Network",
             client_cidr=settings.client_cidr,
-            client_is_ipv6=settings.client_is_ipv6,
             allow_any_client=settings.allow_any_client,
-            ssh_access=settings.ssh_access,
             availability_zone=settings.availability_zone,
         )
         self.identity = TwinIdentity(
@@ -71,7 +91,9 @@ class TwinStack(Stack):
                 # The CloudWatch metrics' Agent dimension, which the monitoring alarms below watch.
                 "AGENT_NAME": settings.stack_name,
                 "HISTORY_URI": self.history.uri,
+                "RECORD_SESSIONS": "true" if settings.record_sessions else "false",
             },
+            agent_source=agent_source or REPO_ROOT,
         )
         self.monitoring = TwinMonitoring(
             self, "Monitoring", agent_name=settings.stack_name, alarm_email=settings.alarm_email
@@ -134,6 +156,30 @@ class TwinStack(Stack):
                 if settings.retain_history
                 else "Deleted with the stack (retainHistory=false)"
             ),
+        )
+        CfnOutput(
+            self,
+            "DeploymentVersion",
+            value=self.host.deployment_version,
+            description="Version of agent code + settings for the host; `twin instance status` shows its own",
+        )
+        CfnOutput(
+            self,
+            "InstanceFingerprint",
+            value=json.dumps(settings.instance_fingerprint, sort_keys=True),
+            description="Settings whose change replaces the instance; synth compares them (replaceInstance)",
+        )
+        CfnOutput(
+            self,
+            "UpdateAssociationId",
+            value=self.host.update_association.attr_association_id,
+            description="State Manager association that updates the host in place after a deploy",
+        )
+        CfnOutput(
+            self,
+            "HostLogGroup",
+            value=self.identity.agent_log_group.log_group_name,
+            description="CloudWatch log group of the host: streams <instance-id>/bootstrap, /agent, /dcv",
         )
         CfnOutput(
             self,

@@ -18,8 +18,8 @@ CLIENT_CIDR = "203.0.113.7/32"
 ASSET_HASH_RE = re.compile(r"[0-9a-f]{64}")
 # Every optional feature on at once, so one extra synth covers them all.
 ALL_OPTIONS = {
-    "clientCidr": "2001:db8::/64",
-    "sshAccess": "true",
+    "clientCidr": "198.51.100.0/24",
+    "recordSessions": "true",
     "devices": "*",
     "autoStopCron": "0 20 * * ? *",
     "autoStopTimezone": "Europe/Berlin",
@@ -55,7 +55,9 @@ class Synth:
         return next(iter(found.values()))
 
 
-def synthesize(outdir: Path, region: str | None = None, **overrides: str) -> Synth:
+def synthesize(
+    outdir: Path, region: str | None = None, agent_source: Path | None = None, **overrides: str
+) -> Synth:
     """Synthesize the real app (build_app: settings, stack, cdk-nag) with cdk.json context plus overrides.
 
     Template.from_stack runs the validation plugins, so an unacknowledged cdk-nag finding raises here.
@@ -75,7 +77,8 @@ def synthesize(outdir: Path, region: str | None = None, **overrides: str) -> Syn
             # As `cdk synth` does when the AWS config names a region.
             mp.setenv("CDK_DEFAULT_REGION", region)
         app = cdk.App(context=context, outdir=str(outdir))
-        stack = build_app(app)
+        # agent_source: the agent distribution from another folder (tests that change agent code).
+        stack = build_app(app, agent_source=agent_source)
         template = Template.from_stack(stack)
     return Synth(stack, template)
 

@@ -1,4 +1,4 @@
-"""The synthesized template, point by point against issue 4, plus a normalised snapshot.
+"""The synthesized template, point by point against issues 4 and 9, plus a normalised snapshot.
 
 Each synth runs cdk-nag (AwsSolutions) and CDK's CloudFormation validation through the real
 app wiring, so merely getting a template here proves zero unacknowledged findings.
@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -16,10 +17,12 @@ from aws_cdk.assertions import Match
 from syrupy.extensions.json import JSONSnapshotExtension
 
 from stacks.settings import DEFAULT_AMI_SSM_PARAMETER
+from stacks.twin_host import BOOT_TIMEOUT_MINUTES
+from stacks.twin_stack import OUTPUT_KEYS as STACK_OUTPUT_KEYS
 
 from .synth import CLIENT_CIDR, Synth, normalise
 
-OUTPUT_KEYS = {"DcvUrl", "InstanceId", "IotEndpoint", "DcvPasswordSecret", "SsmSessionCommand"}
+OUTPUT_KEYS = set(STACK_OUTPUT_KEYS)
 
 
 def flatten(value: Any) -> str:
@@ -109,15 +112,13 @@ def test_security_group_opens_dcv_to_the_client_only(synth_default: Synth) -> No
     assert all(r.get("Description") for r in rules)
 
 
-def test_ssh_only_with_ssh_access_and_ipv6_clients(synth_all_options: Synth, synth_default: Synth) -> None:
-    rules = ingress_rules(synth_all_options)
-    assert sorted((r["IpProtocol"], r["FromPort"]) for r in rules) == [
-        ("tcp", 22),
-        ("tcp", 8443),
-        ("udp", 8443),
-    ]
-    assert {r["CidrIpv6"] for r in rules} == {"2001:db8::/64"}
-    assert all(r["FromPort"] != 22 for r in ingress_rules(synth_default))
+def test_no_ssh_port_in_any_variant(synth_all_options: Synth, synth_default: Synth) -> None:
+    for synth in (synth_default, synth_all_options):
+        rules = ingress_rules(synth)
+        assert sorted((r["IpProtocol"], r["FromPort"]) for r in rules) == [("tcp", 8443), ("udp", 8443)]
+        assert all("CidrIpv6" not in r for r in rules)
+    assert {r["CidrIp"] for r in ingress_rules(synth_all_options)} == {"198.51.100.0/24"}
+    assert "KeyName" not in synth_default.one("AWS::EC2::Instance")["Properties"]
 
 
 def test_egress_is_only_http_and_https(synth_default: Synth) -> None:
@@ -317,27 +318,188 @@ def user_data_text(synth: Synth) -> str:
     return "".join(p if isinstance(p, str) else "${" + flatten(p) + "}" for p in parts)
 
 
-def test_user_data_is_small_has_no_secret_and_fetches_the_assets(synth_default: Synth) -> None:
+def test_user_data_is_small_names_no_secret_and_no_changing_value(synth_default: Synth) -> None:
     text = user_data_text(synth_default)
     assert len(text.encode()) < 16 * 1024
+    assert text.startswith("#!/bin/bash\n")
     assert "@@" not in text
-    assert text.count("aws s3 cp") == 1  # inside the retrying fetch()
-    assert len([line for line in text.splitlines() if line.startswith('fetch "')]) == 2
-    assert text.count("s3://") == 3  # the two assets, and HISTORY_URI (the history bucket)
-    assert "bootstrap.sh /etc/so101-twin/settings.env" in text
-    assert "DcvPassword" in text  # the secret's ARN, never its value
-    assert "GetSecretValue" not in text and "SecretString" not in text
-    for line in ("TOPIC_PREFIX=dt/lerobot", "DEVICES=arm-001", "UNITS=auto", "CLIENT_ID_PREFIX=so101-twin-"):
-        assert line in text
-    assert "ROS2=false" in text.splitlines()
+    # Only what never changes for the stack: no asset URL, no setting, no secret.
+    assert not re.search(r"[0-9a-f]{64}", text), "an asset hash in the UserData"
+    assert "cdk-hnb659fds-assets" not in text, "an asset location in the UserData"
+    assert "TOPIC_PREFIX" not in text and "DEVICES=" not in text
+    assert "GetSecretValue" not in text and "SecretString" not in text and "DcvPassword" not in text
+    assert "SO101_TWIN_PARAMETER='/so101-twin/So101TwinStack/deployment'" in text
+    assert "SO101_TWIN_STACK='So101TwinStack'" in text
+    logical_id = next(iter(synth_default.resources("AWS::EC2::Instance")))
+    assert f"SO101_TWIN_RESOURCE='{logical_id}'" in text
+    assert "bootstrap.sh" in text
+
+
+def test_deployment_parameter_carries_assets_settings_and_version(synth_default: Synth) -> None:
+    parameter = synth_default.one("AWS::SSM::Parameter")["Properties"]
+    assert parameter["Name"] == "/so101-twin/So101TwinStack/deployment"
+    value = flatten(parameter["Value"])
+    for key in (
+        "DEPLOYMENT_VERSION=",
+        "AGENT_URL=",
+        "SCRIPTS_URL=",
+        "DCV_SECRET_ARN=",
+        "s3://cdk-",
+        "TOPIC_PREFIX=dt/lerobot",
+        "DEVICES=arm-001",
+        "UNITS=auto",
+        "RECORD_SESSIONS=false",
+        "ROS2=false",
+        "HISTORY_URI=s3://",
+        "CLIENT_ID_PREFIX=so101-twin-",
+        "LOG_GROUP=",
+        "URL_SUFFIX=",
+    ):
+        assert key in value, key
+    statements = policy_statements(synth_default, "IdentityHostRole")
+    reads = [s for s in statements if "ssm:GetParameter" in flatten(s.get("Action"))]
+    assert len(reads) == 1
+    resource = flatten(reads[0]["Resource"])
+    assert ":parameter" in resource and '"Ref": "HostDeployment' in resource
 
 
 def test_ros2_setting_reaches_the_host_and_opens_no_port(synth_all_options: Synth) -> None:
     # The installer turns ROS2=true into the ros2 extra and [ros2] enabled (tests/infra/test_userdata.py).
-    assert "ROS2=true" in user_data_text(synth_all_options).splitlines()
+    value = flatten(synth_all_options.one("AWS::SSM::Parameter")["Properties"]["Value"])
+    assert "ROS2=true" in value
     # DDS has no authentication, so the stack opens nothing for it (docs/ros2.md says how to reach RViz):
-    # with ros2 on, the ingress rules are still DCV and SSH only.
-    assert {r["FromPort"] for r in ingress_rules(synth_all_options)} == {22, 8443}
+    # with ros2 on, the only ingress rule is still DCV's.
+    assert {r["FromPort"] for r in ingress_rules(synth_all_options)} == {8443}
+
+
+# --- first boot proves itself --------------------------------------------------------------------------
+
+
+def test_instance_has_a_creation_policy_sized_to_the_boot(synth_default: Synth) -> None:
+    instance = synth_default.one("AWS::EC2::Instance")
+    assert instance["CreationPolicy"] == {
+        "ResourceSignal": {"Count": 1, "Timeout": f"PT{BOOT_TIMEOUT_MINUTES}M"}
+    }
+    # The boot needs its settings and its permissions before the instance starts.
+    depends = instance["DependsOn"]
+    assert any(d.startswith("HostDeployment") for d in depends)
+    assert any(d.startswith("IdentityHostRoleDefaultPolicy") for d in depends)
+
+
+def test_wait_condition_carries_the_failure_reason(synth_default: Synth) -> None:
+    wait = synth_default.one("AWS::CloudFormation::WaitCondition")["Properties"]
+    handle_id = wait["Handle"]["Ref"]
+    assert synth_default.json["Resources"][handle_id]["Type"] == "AWS::CloudFormation::WaitConditionHandle"
+    assert wait["Count"] == 1
+    assert int(wait["Timeout"]) >= BOOT_TIMEOUT_MINUTES * 60
+    assert {"Ref": handle_id} in synth_default.one("AWS::EC2::Instance")["Properties"]["UserData"][
+        "Fn::Base64"
+    ]["Fn::Join"][1]
+
+
+def test_signal_permission_is_scoped_to_this_stack(synth_default: Synth) -> None:
+    statements = policy_statements(synth_default, "IdentityHostRole")
+    signal = statement(statements, "SignalFirstBoot")
+    assert signal["Action"] == "cloudformation:SignalResource"
+    # The stack's own ARN (with its unique id), no wildcard.
+    assert signal["Resource"] == {"Ref": "AWS::StackId"}
+    assert not [s for s in statements if "cloudformation:" in flatten(s["Action"]) and s is not signal]
+
+
+def test_first_boot_gets_a_public_address_before_the_elastic_ip(synth_default: Synth) -> None:
+    interfaces = synth_default.one("AWS::EC2::Instance")["Properties"]["NetworkInterfaces"]
+    assert interfaces[0]["AssociatePublicIpAddress"] is True
+
+
+# --- updates in place ----------------------------------------------------------------------------------
+
+
+def test_update_association_reruns_the_installer_with_the_version(synth_default: Synth) -> None:
+    association = synth_default.one("AWS::SSM::Association")["Properties"]
+    assert association["Name"] == "AWS-RunShellScript"
+    assert association["Targets"] == [
+        {"Key": "InstanceIds", "Values": [{"Ref": next(iter(synth_default.resources("AWS::EC2::Instance")))}]}
+    ]
+    commands = association["Parameters"]["commands"]
+    version = synth_default.json["Outputs"]["DeploymentVersion"]["Value"]
+    assert f"export SO101_TWIN_EXPECTED_VERSION='{version}'" in commands
+    assert any("latest/user-data" in line for line in commands)
+    assert "ApplyOnlyAtCronInterval" not in association and "ScheduleExpression" not in association
+    # No WaitForSuccessTimeoutSeconds: a stopped host would fail the deploy and its rollback (docs/deploy.md).
+    assert "WaitForSuccessTimeoutSeconds" not in association
+
+
+def agent_copy(tmp_path: Path) -> Path:
+    """The agent distribution with one line of code changed."""
+    from .synth import REPO_ROOT
+
+    copy = tmp_path / "agent-src"
+    copy.mkdir()
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(REPO_ROOT / name, copy / name)
+    for name in ("agents", "robots"):
+        shutil.copytree(REPO_ROOT / name, copy / name, ignore=shutil.ignore_patterns("__pycache__"))
+    init = copy / "agents" / "twin" / "__init__.py"
+    init.write_text(init.read_text() + "\n# a code change\n")
+    return copy
+
+
+@pytest.mark.slow
+def test_settings_and_code_changes_leave_the_instance_untouched(
+    synth_default: Synth, synth_factory, tmp_path: Path
+) -> None:
+    changed = synth_factory(
+        agent_source=agent_copy(tmp_path),
+        devices="arm-002,arm-003",
+        units="degrees",
+        topicPrefix="fleet/so101",
+        recordSessions="true",
+    )
+
+    def instance(synth: Synth) -> dict[str, Any]:
+        return next(iter(synth.resources("AWS::EC2::Instance").values()))
+
+    # Same UserData, same everything: CloudFormation neither stops nor replaces the instance.
+    assert instance(changed)["Properties"]["UserData"] == instance(synth_default)["Properties"]["UserData"]
+    assert instance(changed) == instance(synth_default)
+    assert list(changed.resources("AWS::EC2::Instance")) == list(
+        synth_default.resources("AWS::EC2::Instance")
+    )
+    # ... while what the host should run did change, and with it the association's parameters.
+    old_v = synth_default.json["Outputs"]["DeploymentVersion"]["Value"]
+    new_v = changed.json["Outputs"]["DeploymentVersion"]["Value"]
+    assert old_v != new_v
+    assert (
+        changed.one("AWS::SSM::Parameter")["Properties"]["Value"]
+        != synth_default.one("AWS::SSM::Parameter")["Properties"]["Value"]
+    )
+    commands = changed.one("AWS::SSM::Association")["Properties"]["Parameters"]["commands"]
+    assert f"export SO101_TWIN_EXPECTED_VERSION='{new_v}'" in commands
+
+
+@pytest.mark.slow
+def test_code_change_alone_changes_the_version(synth_default: Synth, synth_factory, tmp_path: Path) -> None:
+    changed = synth_factory(agent_source=agent_copy(tmp_path))
+    assert (
+        changed.json["Outputs"]["DeploymentVersion"]["Value"]
+        != synth_default.json["Outputs"]["DeploymentVersion"]["Value"]
+    )
+    assert user_data_text(changed) == user_data_text(synth_default)
+
+
+def test_same_input_same_version(synth_default: Synth, synth_factory) -> None:
+    again = synth_factory()
+    assert again.json["Outputs"]["DeploymentVersion"] == synth_default.json["Outputs"]["DeploymentVersion"]
+
+
+# --- partitions ----------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("variant", ["synth_default", "synth_all_options"])
+def test_no_arn_hard_codes_the_aws_partition(variant: str, request: pytest.FixtureRequest) -> None:
+    text = json.dumps(request.getfixturevalue(variant).json)
+    assert "arn:aws:" not in text
+    assert "arn:aws-" not in text
 
 
 def test_agent_asset_holds_only_the_distribution(synth_default: Synth) -> None:
@@ -364,7 +526,14 @@ def test_agent_asset_holds_only_the_distribution(synth_default: Synth) -> None:
     assert not (meshes / "source").exists()  # originals stay in the repository, not in every deploy
     scripts = [p for p in Path(outdir).glob("asset.*") if (p / "bootstrap.sh").exists()]
     assert len(scripts) == 1
-    assert {"bootstrap.sh", "install-agent.sh"} <= {p.name for p in scripts[0].iterdir()}
+    # The templates are rendered into the UserData and the association; the host gets the rest.
+    assert {p.name for p in scripts[0].iterdir()} == {
+        "bootstrap.sh",
+        "install-agent.sh",
+        "lib.sh",
+        "host-check.sh",
+        "view-supervisor.sh",
+    }
 
 
 # --- auto-stop and the endpoint -------------------------------------------------------------------
@@ -381,7 +550,16 @@ def test_auto_stop_schedule_can_only_stop_this_instance(synth_all_options: Synth
         {
             "ScheduleExpression": "cron(0 20 * * ? *)",
             "ScheduleExpressionTimezone": "Europe/Berlin",
-            "Target": Match.object_like({"Arn": "arn:aws:scheduler:::aws-sdk:ec2:stopInstances"}),
+            "Target": Match.object_like(
+                {
+                    "Arn": {
+                        "Fn::Join": [
+                            "",
+                            ["arn:", {"Ref": "AWS::Partition"}, ":scheduler:::aws-sdk:ec2:stopInstances"],
+                        ]
+                    }
+                }
+            ),
         },
     )
     statements = policy_statements(synth_all_options, "AutoStopSchedulerRole")
