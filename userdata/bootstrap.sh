@@ -129,7 +129,7 @@ step_logs() {
     # The regional bucket, partition-aware through the URL suffix (amazonaws.com, amazonaws.com.cn).
     retry curl -fsSL -o "$deb" \
       "https://amazoncloudwatch-agent-${AWS_REGION}.s3.${AWS_REGION}.${URL_SUFFIX}/ubuntu/${arch}/latest/amazon-cloudwatch-agent.deb"
-    retry apt-get install -y -q "$deb"
+    retry apt-get "${APT_OPTS[@]}" install -y -q "$deb"
     rm -f "$deb"
     [ -x "$ctl" ] || die "the CloudWatch agent package did not install $ctl"
   fi
@@ -139,7 +139,8 @@ step_logs() {
 # Managed by so101-twin bootstrap.sh: the agent's log as a file for the CloudWatch agent.
 :programname, isequal, "so101-twin-agent" /var/log/so101-twin-agent.log
 RSYSLOG
-  if [ "$CHANGED" = 1 ]; then systemctl restart rsyslog; fi
+  # rsyslog ships with Ubuntu server images; the packages step installs it otherwise and it reads the rule then.
+  if [ "$CHANGED" = 1 ] && installed rsyslog; then systemctl restart rsyslog; fi
   write_file /etc/logrotate.d/so101-twin 0644 <<'ROTATE'
 # Managed by so101-twin bootstrap.sh: bound the host's own logs on disk (CloudWatch keeps them a year).
 /var/log/so101-twin-bootstrap.log /var/log/so101-twin-agent.log {
@@ -292,6 +293,7 @@ APPORT
 
   if [ "$GPU" = 1 ]; then
     if ! xorg_conf_ok; then
+      command -v nvidia-xconfig >/dev/null 2>&1 || apt_install nvidia-xconfig
       # nvidia-xconfig edits a legacy XF86Config instead of writing xorg.conf when one exists.
       rm -f "$ROOT"/etc/X11/XF86Config*
       nvidia-xconfig --preserve-busid --enable-all-gpus --allow-empty-initial-configuration \
@@ -366,7 +368,7 @@ install_dcv_packages() {
   for deb in "${debs[@]}"; do
     [ -f "$deb" ] || die "$tarball has no ${deb##*/} (its layout changed?)"
   done
-  retry apt-get install -y -q "${debs[@]}"
+  retry apt-get "${APT_OPTS[@]}" install -y -q "${debs[@]}"
   rm -rf "$work"
 }
 

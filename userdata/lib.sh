@@ -61,6 +61,9 @@ installed() {
   [ "$status" = "install ok installed" ]
 }
 
+# apt waits for the dpkg lock instead of failing: on a first boot, unattended-upgrades often holds it.
+APT_OPTS=(-o DPkg::Lock::Timeout=600)
+
 apt_install() {
   local missing=() pkg
   for pkg in "$@"; do
@@ -68,8 +71,8 @@ apt_install() {
   done
   [ ${#missing[@]} -eq 0 ] && return 0
   log "apt-get install ${missing[*]}"
-  retry apt-get update -q
-  retry apt-get install -y -q --no-install-recommends "${missing[@]}"
+  retry apt-get "${APT_OPTS[@]}" update -q
+  retry apt-get "${APT_OPTS[@]}" install -y -q --no-install-recommends "${missing[@]}"
 }
 
 # load_env FILE: KEY=value lines (the stack's deployment settings) into variables, without executing the

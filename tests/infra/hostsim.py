@@ -60,6 +60,7 @@ has() { [ -e "$SIM/$1/$2" ]; }
 
 STANDINS: dict[str, str] = {
     "apt-get": r"""
+while [ "${1:-}" = -o ]; do shift 2; done  # -o Option=value
 case "${1:-}" in
   update) exit 0 ;;
   install)
