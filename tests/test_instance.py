@@ -122,7 +122,7 @@ def test_stop_then_start_changes_the_ec2_state(stack, capsys):
     assert "agent health unknown: the health check printed no HTTP status" in out
     commands = boto3.client("ssm", region_name=REGION).list_commands(InstanceId=instance_id)["Commands"]
     assert commands[-1]["DocumentName"] == "AWS-RunShellScript"
-    assert commands[-1]["Parameters"]["commands"] == [lib.HEALTH_COMMAND]
+    assert commands[-1]["Parameters"]["commands"] == lib.STATUS_COMMANDS
 
 
 def test_no_wait_returns_the_transitional_state(stack, capsys):
@@ -334,20 +334,21 @@ def test_health_polls_until_the_command_finishes(stack):
         "InstanceIds": [instance_id],
         "DocumentName": "AWS-RunShellScript",
         "Comment": "twin instance: agent /healthz",
-        "Parameters": {"commands": [lib.HEALTH_COMMAND]},
+        "Parameters": {"commands": lib.STATUS_COMMANDS},
         "TimeoutSeconds": 30,
     }
     stubber.add_response("send_command", {"Command": {"CommandId": COMMAND_ID}}, sent)
     stubber.add_client_error("get_command_invocation", "InvocationDoesNotExist")
     stubber.add_response("get_command_invocation", _invocation("InProgress"))
     body = json.dumps({"status": "ok", "devices": {"arm-001": {"status": "ok"}}})
-    stubber.add_response("get_command_invocation", _invocation("Success", body + "200"))
+    stubber.add_response("get_command_invocation", _invocation("Success", "version=abc123\n" + body + "200"))
     with stubber:
         health = twin.health(timeout_s=10)
     stubber.assert_no_pending_responses()
     assert health.healthy
     assert health.body == json.loads(body)
     assert health.describe() == "agent healthy: arm-001=ok"
+    assert health.host_version == "abc123"
 
 
 def test_health_reads_output_of_a_failed_curl(stack):

@@ -1,8 +1,10 @@
 """Start, stop and inspect the cloud twin host deployed by the CDK stack.
 
-`TwinInstance` reads the stack's CloudFormation outputs (`InstanceId`, `DcvUrl`, ...), starts or stops the EC2
-instance, waits for the state with the EC2 waiters, and asks the agent on the instance for its health through
-SSM Run Command (the agent's `/healthz` listens on 127.0.0.1 only, so it can only be asked from the instance).
+`TwinInstance` reads the stack's CloudFormation outputs (`InstanceId`, `DcvUrl`, `DeploymentVersion`, ...)
+and events, starts or stops the EC2 instance, waits for the state with the EC2 waiters, and runs commands on
+the host through SSM Run Command (`run_on_host`): the agent's health (its `/healthz` listens on 127.0.0.1
+only, so it can only be asked from the instance) with the deployment version the host runs, and the host
+checks of `twin instance check` (twin.tools.instance_check).
 
 Everything that can go wrong for a reason the user can fix is raised as a `TwinInstanceError` subclass whose
 message says what to do; the `twin instance` command maps each class to its own exit code:
@@ -20,6 +22,7 @@ result is an `AgentHealth` with state "unknown" and the reason.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -47,12 +50,20 @@ OUTPUT_DCV_URL = "DcvUrl"
 OUTPUT_IOT_ENDPOINT = "IotEndpoint"
 OUTPUT_DCV_PASSWORD_SECRET = "DcvPasswordSecret"
 OUTPUT_SSM_SESSION_COMMAND = "SsmSessionCommand"
+OUTPUT_DEPLOYMENT_VERSION = "DeploymentVersion"
+OUTPUT_UPDATE_ASSOCIATION = "UpdateAssociationId"
+OUTPUT_HOST_LOG_GROUP = "HostLogGroup"
 REQUIRED_OUTPUTS = (OUTPUT_INSTANCE_ID, OUTPUT_DCV_URL)
 
 HEALTH_URL = f"{DEFAULT_AGENT_URL}/healthz"
 # The body goes to stdout and the HTTP status is appended as the last three characters; curl prints 000 when
 # nothing answers, which is how "agent not running" is told apart from "agent unhealthy".
 HEALTH_COMMAND = f"curl -s -o /dev/stdout -w '%{{http_code}}' {HEALTH_URL}"
+# The deployment version the host runs (written by userdata/bootstrap.sh after a verified boot or update),
+# printed as the first line so one Run Command answers both.
+DEPLOYED_VERSION_FILE = "/var/lib/so101-twin/deployed-version"
+VERSION_COMMAND = f"printf 'version=%s\\n' \"$(cat {DEPLOYED_VERSION_FILE} 2>/dev/null || echo none)\""
+STATUS_COMMANDS = [VERSION_COMMAND, HEALTH_COMMAND]
 
 # get_command_invocation states after which the output will not change any more.
 _SSM_PENDING = frozenset({"Pending", "InProgress", "Delayed"})
@@ -107,6 +118,9 @@ class StackOutputs:
     iot_endpoint: str | None = None
     dcv_password_secret: str | None = None
     ssm_session_command: str | None = None
+    deployment_version: str | None = None
+    update_association_id: str | None = None
+    host_log_group: str | None = None
 
 
 @dataclass(frozen=True)
@@ -117,6 +131,8 @@ class AgentHealth:
     reason: str
     http_status: int | None = None
     body: Any = None
+    # The deployment version the host runs ("none" before its first verified boot), when it could be asked.
+    host_version: str | None = None
 
     @property
     def healthy(self) -> bool:
@@ -136,6 +152,21 @@ class InstanceStatus:
     availability_zone: str | None
     dcv_url: str
     health: AgentHealth | None = field(default=None)
+    expected_version: str | None = None
+
+    @property
+    def host_version(self) -> str | None:
+        return self.health.host_version if self.health is not None else None
+
+
+@dataclass(frozen=True)
+class HostCommand:
+    """The outcome of a Run Command on the host: its status and output, or why it could not run."""
+
+    status: str
+    stdout: str = ""
+    stderr: str = ""
+    problem: str | None = None  # set when SSM could not run it or it did not finish
 
 
 def _device_summary(body: Any) -> str:
@@ -159,8 +190,19 @@ def _device_summary(body: Any) -> str:
 
 
 def parse_health_output(stdout: str) -> AgentHealth:
-    """Interpret the output of HEALTH_COMMAND: the /healthz body followed by the 3-digit HTTP status."""
+    """Interpret the output of STATUS_COMMANDS (or HEALTH_COMMAND alone): an optional `version=...` line, then
+    the /healthz body followed by the 3-digit HTTP status."""
     text = stdout.strip()
+    host_version = None
+    if text.startswith("version="):
+        first, _, text = text.partition("\n")
+        host_version = first.removeprefix("version=").strip() or None
+        text = text.strip()
+    health = _parse_health(text)
+    return dataclasses.replace(health, host_version=host_version) if host_version else health
+
+
+def _parse_health(text: str) -> AgentHealth:
     match = re.fullmatch(r"(.*?)(\d{3})", text, flags=re.DOTALL)
     if match is None:
         shown = text[:200] or "nothing"
@@ -203,6 +245,7 @@ class TwinInstance:
         self._session = session
         self._clients: dict[str, Any] = {"cloudformation": cloudformation, "ec2": ec2, "ssm": ssm}
         self._outputs: StackOutputs | None = None
+        self._stack: dict[str, Any] | None = None
         self.poll_interval_s = poll_interval_s
         self.health_poll_interval_s = health_poll_interval_s
 
@@ -273,10 +316,10 @@ class TwinInstance:
 
     # --- stack -------------------------------------------------------------------------------------
 
-    def outputs(self) -> StackOutputs:
-        """The stack's outputs, read once per object."""
-        if self._outputs is not None:
-            return self._outputs
+    def stack_description(self) -> dict[str, Any]:
+        """The stack as DescribeStacks returns it (status, outputs, ...), read once per object."""
+        if self._stack is not None:
+            return self._stack
         from botocore.exceptions import ClientError  # noqa: PLC0415
 
         cfn = self._client("cloudformation")
@@ -292,7 +335,14 @@ class TwinInstance:
         stacks = response.get("Stacks", [])
         if not stacks:
             raise StackNotFoundError(self._stack_missing_message())
-        stack = stacks[0]
+        self._stack = stacks[0]
+        return self._stack
+
+    def outputs(self) -> StackOutputs:
+        """The stack's outputs, read once per object."""
+        if self._outputs is not None:
+            return self._outputs
+        stack = self.stack_description()
         values = {o["OutputKey"]: o.get("OutputValue", "") for o in stack.get("Outputs", [])}
         missing = [key for key in REQUIRED_OUTPUTS if not values.get(key)]
         if missing:
@@ -307,9 +357,27 @@ class TwinInstance:
             iot_endpoint=values.get(OUTPUT_IOT_ENDPOINT),
             dcv_password_secret=values.get(OUTPUT_DCV_PASSWORD_SECRET),
             ssm_session_command=values.get(OUTPUT_SSM_SESSION_COMMAND),
+            deployment_version=values.get(OUTPUT_DEPLOYMENT_VERSION),
+            update_association_id=values.get(OUTPUT_UPDATE_ASSOCIATION),
+            host_log_group=values.get(OUTPUT_HOST_LOG_GROUP),
         )
         log.debug("stack %s outputs: %s", self.stack_name, self._outputs)
         return self._outputs
+
+    def stack_events(self, max_pages: int = 3) -> list[dict[str, Any]]:
+        """The stack's most recent events, newest first (a few pages: enough to reach the last deploy)."""
+        events: list[dict[str, Any]] = []
+        token = None
+        cfn = self._client("cloudformation")
+        with self._aws(f"read the events of stack {self.stack_name}"):
+            for _ in range(max_pages):
+                kwargs = {"StackName": self.stack_name, **({"NextToken": token} if token else {})}
+                page = cfn.describe_stack_events(**kwargs)
+                events += page.get("StackEvents", [])
+                token = page.get("NextToken")
+                if not token:
+                    break
+        return events
 
     def _stack_missing_message(self) -> str:
         return (
@@ -322,6 +390,10 @@ class TwinInstance:
         return self.outputs().dcv_url
 
     # --- instance ----------------------------------------------------------------------------------
+
+    def describe_instance(self) -> dict[str, Any]:
+        """The instance as DescribeInstances returns it."""
+        return self._describe()
 
     def _describe(self) -> dict[str, Any]:
         instance_id = self.outputs().instance_id
@@ -413,8 +485,11 @@ class TwinInstance:
 
     # --- health ------------------------------------------------------------------------------------
 
-    def health(self, timeout_s: float = 60.0) -> AgentHealth:
-        """Ask the agent's /healthz through SSM Run Command; never raises."""
+    def run_on_host(self, commands: list[str], comment: str, timeout_s: float = 60.0) -> HostCommand:
+        """Run shell commands on the host through SSM Run Command and wait for them; never raises.
+
+        `problem` says why when SSM could not run them or they did not finish within `timeout_s`.
+        """
         from botocore.exceptions import BotoCoreError, ClientError  # noqa: PLC0415
 
         instance_id = self.outputs().instance_id
@@ -423,20 +498,21 @@ class TwinInstance:
             sent = ssm.send_command(
                 InstanceIds=[instance_id],
                 DocumentName="AWS-RunShellScript",
-                Comment="twin instance: agent /healthz",
-                Parameters={"commands": [HEALTH_COMMAND]},
+                Comment=comment,
+                Parameters={"commands": commands},
                 TimeoutSeconds=max(30, math.ceil(timeout_s)),
             )
         except ClientError as exc:
             error = exc.response.get("Error", {})
             if error.get("Code") == "InvalidInstanceId":
                 # SSM says this both before the agent's first registration and while it is offline.
-                return AgentHealth(UNKNOWN, "the SSM agent has not registered yet")
-            return AgentHealth(
-                UNKNOWN, f"SSM could not run the check ({error.get('Code')}: {error.get('Message')})"
+                return HostCommand("NotSent", problem="the SSM agent has not registered yet")
+            return HostCommand(
+                "NotSent",
+                problem=f"SSM could not run the check ({error.get('Code')}: {error.get('Message')})",
             )
         except BotoCoreError as exc:
-            return AgentHealth(UNKNOWN, f"SSM could not run the check ({exc})")
+            return HostCommand("NotSent", problem=f"SSM could not run the check ({exc})")
         command_id = sent["Command"]["CommandId"]
         deadline = time.monotonic() + timeout_s
         while True:
@@ -445,25 +521,33 @@ class TwinInstance:
             except ClientError as exc:
                 # The invocation appears a moment after send_command returns.
                 if exc.response.get("Error", {}).get("Code") != "InvocationDoesNotExist":
-                    return AgentHealth(UNKNOWN, f"SSM lost the health check ({exc})")
+                    return HostCommand("Lost", problem=f"SSM lost the check ({exc})")
                 invocation = {"Status": "Pending"}
             except BotoCoreError as exc:
-                return AgentHealth(UNKNOWN, f"SSM lost the health check ({exc})")
+                return HostCommand("Lost", problem=f"SSM lost the check ({exc})")
             status = invocation.get("Status", "Pending")
             if status not in _SSM_PENDING:
                 break
             if time.monotonic() >= deadline:
-                return AgentHealth(
-                    UNKNOWN,
-                    f"the health check did not finish within {timeout_s:.0f} s (the host may still be "
+                return HostCommand(
+                    status,
+                    problem=f"the check did not finish within {timeout_s:.0f} s (the host may still be "
                     "booting: ask again with `twin instance status`)",
                 )
             time.sleep(self.health_poll_interval_s)
         stdout = invocation.get("StandardOutputContent", "")
-        # curl exits non-zero when nothing listens (status Failed) yet still prints 000: parse what came out.
+        stderr = invocation.get("StandardErrorContent", "")
+        # A command that exits non-zero (curl with nothing listening) still printed something: keep it.
         if status not in {"Success", "Failed"} and not stdout.strip():
-            return AgentHealth(UNKNOWN, f"the health check ended {status}")
-        return parse_health_output(stdout)
+            return HostCommand(status, stdout, stderr, problem=f"the check ended {status}")
+        return HostCommand(status, stdout, stderr)
+
+    def health(self, timeout_s: float = 60.0) -> AgentHealth:
+        """Ask the agent's /healthz (and the deployed version) through SSM Run Command; never raises."""
+        result = self.run_on_host(STATUS_COMMANDS, "twin instance: agent /healthz", timeout_s)
+        if result.problem:
+            return AgentHealth(UNKNOWN, result.problem)
+        return parse_health_output(result.stdout)
 
     def status(self, check_health: bool = True, health_timeout_s: float = 60.0) -> InstanceStatus:
         """State, type, URL and (when running and asked) agent health."""
@@ -482,4 +566,5 @@ class TwinInstance:
             availability_zone=described.get("Placement", {}).get("AvailabilityZone"),
             dcv_url=self.url(),
             health=health,
+            expected_version=self.outputs().deployment_version,
         )

@@ -1,4 +1,4 @@
-"""`twin instance start|stop|status|url`: run the cloud twin host deployed by the CDK stack.
+"""`twin instance start|stop|status|url|check`: run and check the cloud twin host deployed by the CDK stack.
 
 The stack defaults to $SO101_TWIN_STACK, else So101TwinStack; the region to --region, else the AWS config.
 
@@ -11,6 +11,7 @@ Exit codes:
   5  stack outputs missing (InstanceId or DcvUrl)
   6  InsufficientInstanceCapacity on start (no G6e capacity in the stack's Availability Zone)
   7  the instance did not reach the wanted state within --timeout
+  8  `check`: at least one check failed (the table says which and how to fix it)
 
 The agent's health does not change the exit code (a freshly started host reports "unknown" until its SSM agent
 registers); scripts that need it read the `agent ...` line of `status`.
@@ -36,15 +37,17 @@ EXIT_NO_STACK = 4
 EXIT_NO_OUTPUTS = 5
 EXIT_CAPACITY = 6
 EXIT_WAIT = 7
+EXIT_CHECK_FAILED = 8
 
 EPILOG = """exit codes:
   0 done; 1 other AWS error; 2 bad command line; 3 no AWS credentials or region;
   4 stack not found; 5 stack outputs missing; 6 InsufficientInstanceCapacity on start;
-  7 instance did not reach the state within --timeout
+  7 instance did not reach the state within --timeout; 8 a check failed (check)
 stack: --stack, else $SO101_TWIN_STACK, else So101TwinStack"""
 
 DEFAULT_TIMEOUT_S = 900.0
 HEALTH_TIMEOUT_S = 60.0
+HOST_CHECK_TIMEOUT_S = 90.0
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -78,6 +81,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         ("stop", "stop the instance (disk and Elastic IP are kept) and wait until stopped"),
         ("status", "print instance state, type, DCV URL and agent health"),
         ("url", "print only the DCV URL"),
+        (
+            "check",
+            "say whether the twin works: stack and boot signal, instance, DCV port over TLS from here, "
+            "and on the host X on the GPU, the DCV session, the agent, telemetry, the viewer, the version",
+        ),
     ):
         action = actions.add_parser(
             name,
@@ -92,6 +100,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _health_line(health: AgentHealth | None) -> str:
     return "agent health: not checked" if health is None else health.describe()
+
+
+def _version_line(host_version: str | None, expected: str | None) -> str:
+    """What the host runs next to what the stack asks for."""
+    if host_version is None:
+        return f"version: unknown on the host (the stack's: {expected or 'not published'})"
+    if host_version == "none":
+        return f"version: none verified yet on the host (first boot not finished?); the stack's: {expected}"
+    if expected is None or host_version == expected:
+        return f"version: {host_version}" + (" (the stack's current deployment)" if expected else "")
+    return (
+        f"version: the host runs {host_version}, the stack asks for {expected}: the in-place update is "
+        "pending or failed (`twin instance check` says more)"
+    )
 
 
 def run(args: argparse.Namespace, twin: TwinInstance | None = None) -> int:
@@ -113,6 +135,13 @@ def run(args: argparse.Namespace, twin: TwinInstance | None = None) -> int:
     try:
         if args.action == "url":
             console.out(twin.url())
+        elif args.action == "check":
+            from twin.tools.instance_check import check_twin
+
+            report = check_twin(twin, host_timeout_s=HOST_CHECK_TIMEOUT_S)
+            for line in report.render():
+                console.out(line)
+            return EXIT_OK if report.ok else EXIT_CHECK_FAILED
         elif args.action == "stop":
             outputs = twin.outputs()
             state = twin.stop(wait=wait, timeout_s=args.timeout)
@@ -134,6 +163,7 @@ def run(args: argparse.Namespace, twin: TwinInstance | None = None) -> int:
             console.out(f"instance {status.instance_id}: {status.state} ({status.instance_type}{zone})")
             console.out(f"DCV URL: {status.dcv_url}")
             console.out(_health_line(status.health))
+            console.out(_version_line(status.host_version, status.expected_version))
     except lib.TwinInstanceError as exc:
         Console(f"instance {args.action}").err(str(exc))
         return codes.get(type(exc), EXIT_AWS)

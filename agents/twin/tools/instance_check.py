@@ -1,0 +1,264 @@
+"""`twin instance check`: does the deployed twin work? One table, a verdict, and a fix for each failing line.
+
+From the caller's side: the stack's status and the first boot's signal (CloudFormation), the instance's state
+(EC2), and whether the DCV port completes a TLS handshake from here (the same path a browser takes). On the
+host, through SSM Run Command, `userdata/host-check.sh`: the very checks the first boot waited for before it
+signalled (X on the GPU, the DCV console session, the agent subscribed, the viewer) plus the telemetry
+(devices, rates, age of the last message) and the version the host runs, compared with the stack's.
+"""
+
+from __future__ import annotations
+
+import socket
+import ssl
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+from urllib.parse import urlsplit
+
+if TYPE_CHECKING:
+    from twin.tools.instance import TwinInstance
+
+OK = "OK"
+WARN = "WARN"
+FAIL = "FAIL"
+SKIP = "SKIP"
+
+HOST_CHECK_SCRIPT = "/opt/so101-twin/userdata/host-check.sh"
+# SSM Run Command runs as root.
+HOST_CHECK_COMMAND = f"bash {HOST_CHECK_SCRIPT}"
+DCV_CONNECT_TIMEOUT_S = 5.0
+
+# Stack statuses after which the stack is usable as deployed.
+_STACK_OK = {"CREATE_COMPLETE", "UPDATE_COMPLETE", "IMPORT_COMPLETE"}
+_STACK_WARN = {"UPDATE_ROLLBACK_COMPLETE"}
+
+HOST_FIXES = {
+    "x-on-gpu": "X must run on the NVIDIA GPU: docs/deploy.md, Troubleshooting, 'X does not run on the "
+    "NVIDIA GPU' (on the host: nvidia-smi; /var/log/Xorg.0.log; restart gdm3, then dcvserver)",
+    "dcv-session": "restart DCV once X is up (sudo systemctl restart dcvserver), or create the session: "
+    "sudo dcv create-session --type=console --owner ubuntu console",
+    "agent": "on the host: journalctl -u so101-twin-agent -n 50; the role may subscribe only to the "
+    "configured devices' topics (redeploy with -c devices=...); sudo systemctl restart so101-twin-agent",
+    "telemetry": "no arm is publishing to the subscribed topics: start the edge publisher of each device "
+    "(or check its topic prefix and device id against the stack's settings)",
+    "viewer": "the viewer starts at the desktop login: reconnect the DCV session, or on the host "
+    "sudo systemctl restart gdm3 && sudo systemctl restart dcvserver",
+}
+
+
+@dataclass(frozen=True)
+class CheckLine:
+    """One row of the table: what was checked, how it came out, what was seen, and what to do about it."""
+
+    name: str
+    status: str  # OK, WARN, FAIL or SKIP
+    detail: str
+    fix: str = ""
+
+
+@dataclass(frozen=True)
+class CheckReport:
+    lines: tuple[CheckLine, ...]
+
+    @property
+    def failures(self) -> tuple[CheckLine, ...]:
+        return tuple(line for line in self.lines if line.status == FAIL)
+
+    @property
+    def warnings(self) -> tuple[CheckLine, ...]:
+        return tuple(line for line in self.lines if line.status == WARN)
+
+    @property
+    def ok(self) -> bool:
+        return not self.failures
+
+    def verdict(self) -> str:
+        if self.ok:
+            extra = f", {len(self.warnings)} warning(s)" if self.warnings else ""
+            return f"the twin works ({sum(line.status == OK for line in self.lines)} checks OK{extra})"
+        names = ", ".join(line.name for line in self.failures)
+        return f"the twin does not work: {len(self.failures)} failing check(s): {names}"
+
+    def render(self) -> list[str]:
+        """The table, then the fixes, then the verdict, as lines of text."""
+        width = max(len(line.name) for line in self.lines)
+        rows = [f"{'CHECK'.ljust(width)}  RESULT  DETAIL"]
+        rows += [f"{line.name.ljust(width)}  {line.status.ljust(6)}  {line.detail}" for line in self.lines]
+        fixes = [line for line in self.lines if line.status in (FAIL, WARN) and line.fix]
+        if fixes:
+            rows.append("")
+            rows.append("fixes:")
+            rows += [f"  {line.name}: {line.fix}" for line in fixes]
+        rows.append("")
+        rows.append(f"verdict: {self.verdict()}")
+        return rows
+
+
+def check_stack(status: str, reason: str) -> CheckLine:
+    shown = f"{status}" + (f" ({reason})" if reason else "")
+    if status in _STACK_OK:
+        return CheckLine("stack", OK, status)
+    if status in _STACK_WARN:
+        return CheckLine(
+            "stack",
+            WARN,
+            shown,
+            "the last deploy failed and was rolled back; the host runs the previous deployment: read the "
+            "stack's events, fix, deploy again",
+        )
+    if status.endswith("_IN_PROGRESS"):
+        return CheckLine("stack", WARN, shown, "a deploy is running: check again when it has finished")
+    return CheckLine(
+        "stack",
+        FAIL,
+        shown,
+        "the stack is not deployed in a working state: read its events (aws cloudformation "
+        "describe-stack-events), fix, deploy again (cdk deploy --no-rollback keeps a failed instance)",
+    )
+
+
+def check_boot_signal(events: list[dict]) -> CheckLine:
+    """The first boot's verdict as CloudFormation recorded it: the instance's signal, the wait condition."""
+    reasons = [
+        (e.get("ResourceType", ""), e.get("ResourceStatus", ""), e.get("ResourceStatusReason") or "")
+        for e in events
+    ]
+    failed = [r for t, _, r in reasons if t == "AWS::CloudFormation::WaitCondition" and "failed message" in r]
+    if failed or any("FAILURE signal" in r for _, _, r in reasons):
+        detail = failed[0] if failed else next(r for _, _, r in reasons if "FAILURE signal" in r)
+        return CheckLine(
+            "boot signal",
+            FAIL,
+            detail,
+            "the first boot failed at the step named here: docs/deploy.md, Troubleshooting; the full log "
+            "is in the HostLogGroup stream <instance-id>/bootstrap",
+        )
+    if any("SUCCESS signal" in r for _, _, r in reasons):
+        return CheckLine("boot signal", OK, "the first boot signalled SUCCESS after verifying the host")
+    if any("within the specified duration" in r or "timed out" in r.lower() for _, _, r in reasons):
+        return CheckLine(
+            "boot signal",
+            FAIL,
+            "no signal before the CreationPolicy's timeout",
+            "the host never reported: it could not reach AWS or a step hung; see the bootstrap log stream",
+        )
+    return CheckLine(
+        "boot signal",
+        WARN,
+        "no signal in the stack's recent events (the boot still runs, or the events are older)",
+        "if the deploy has finished, the CloudFormation console's event history shows the signal",
+    )
+
+
+def check_instance(state: str, instance_id: str) -> CheckLine:
+    if state == "running":
+        return CheckLine("instance", OK, f"{instance_id} running")
+    if state in ("stopped", "stopping"):
+        return CheckLine("instance", FAIL, f"{instance_id} {state}", "start it: twin instance start")
+    return CheckLine("instance", WARN, f"{instance_id} {state}", "check again in a minute")
+
+
+def check_dcv_port(dcv_url: str, timeout_s: float = DCV_CONNECT_TIMEOUT_S) -> CheckLine:
+    """A TLS handshake with the DCV web port from here (DCV's certificate is self-signed: not verified)."""
+    parts = urlsplit(dcv_url)
+    host, port = parts.hostname, parts.port or 443
+    if not host:
+        return CheckLine("dcv port", FAIL, f"DcvUrl {dcv_url!r} names no host", "redeploy the stack")
+    context = ssl.create_default_context()
+    context.check_hostname = False
+    context.verify_mode = ssl.CERT_NONE
+    try:
+        with (
+            socket.create_connection((host, port), timeout=timeout_s) as raw,
+            context.wrap_socket(raw, server_hostname=host) as tls,
+        ):
+            version = tls.version()
+    except (TimeoutError, ConnectionRefusedError, OSError) as exc:
+        return CheckLine(
+            "dcv port",
+            FAIL,
+            f"no TLS handshake with {host}:{port} from here ({exc.__class__.__name__}: {exc})",
+            "DCV admits only clientCidr: if your public address changed, find it (curl -s "
+            "https://checkip.amazonaws.com) and redeploy with -c clientCidr=<it>/32; otherwise dcvserver is "
+            "down (check dcv-session below)",
+        )
+    return CheckLine("dcv port", OK, f"{host}:{port} completes a TLS handshake from here ({version})")
+
+
+def parse_host_check(
+    stdout: str, expected_version: str | None, association_id: str | None
+) -> list[CheckLine]:
+    """The lines `host-check.sh` printed (NAME<TAB>STATUS<TAB>detail), with fixes, the version compared."""
+    lines = []
+    for raw in stdout.splitlines():
+        parts = raw.split("\t", 2)
+        if len(parts) != 3 or parts[1] not in (OK, WARN, FAIL):
+            continue
+        name, status, detail = parts
+        if name == "version":
+            lines.append(_version_line(detail, expected_version, association_id))
+            continue
+        lines.append(CheckLine(name, status, detail, HOST_FIXES.get(name, "") if status != OK else ""))
+    return lines
+
+
+def _version_line(detail: str, expected: str | None, association_id: str | None) -> CheckLine:
+    running = detail.split(" ", 1)[0]
+    if not expected:
+        return CheckLine("version", OK, f"host runs {detail}")
+    if running == expected:
+        return CheckLine("version", OK, f"host runs {running}, the stack's current deployment")
+    rerun = (
+        f"aws ssm start-associations-once --association-ids {association_id}"
+        if association_id
+        else "re-run the stack's <stack>-host-update association"
+    )
+    last_run = detail.split(" ", 1)[1] if " " in detail else ""
+    return CheckLine(
+        "version",
+        FAIL,
+        f"host runs {running}, the stack asks for {expected} {last_run}".rstrip(),
+        f"the in-place update has not run or failed: {rerun}; its log is the bootstrap log stream",
+    )
+
+
+def check_twin(twin: TwinInstance, *, host_timeout_s: float = 90.0) -> CheckReport:
+    """Run every check, in the order a person would look; later checks are skipped when they cannot run."""
+    lines: list[CheckLine] = []
+    stack = twin.stack_description()
+    lines.append(check_stack(stack.get("StackStatus", "?"), stack.get("StackStatusReason", "")))
+    outputs = twin.outputs()
+    lines.append(check_boot_signal(twin.stack_events()))
+    state = twin.describe_instance()["State"]["Name"]
+    lines.append(check_instance(state, outputs.instance_id))
+    if state != "running":
+        lines.append(CheckLine("dcv port", SKIP, f"the instance is {state}"))
+        lines.append(CheckLine("host", SKIP, f"the instance is {state}"))
+        return CheckReport(tuple(lines))
+    lines.append(check_dcv_port(outputs.dcv_url))
+    result = twin.run_on_host([HOST_CHECK_COMMAND], "twin instance check: host checks", host_timeout_s)
+    host_lines = parse_host_check(result.stdout, outputs.deployment_version, outputs.update_association_id)
+    if host_lines:
+        lines += host_lines
+    elif result.problem:
+        lines.append(
+            CheckLine(
+                "host",
+                FAIL,
+                result.problem,
+                "SSM Run Command could not ask the host: wait until its SSM agent has registered (a few "
+                "minutes after a start) and check again",
+            )
+        )
+    else:
+        shown = (result.stdout + result.stderr).strip()[:300] or "nothing"
+        lines.append(
+            CheckLine(
+                "host",
+                FAIL,
+                f"{HOST_CHECK_SCRIPT} printed no check lines ({result.status}: {shown!r})",
+                "the first boot has not fetched the scripts yet (still booting) or failed at 'fetch': see "
+                "the bootstrap log stream",
+            )
+        )
+    return CheckReport(tuple(lines))

@@ -1,0 +1,426 @@
+"""`twin instance check` (twin.tools.instance_check) and the version in `twin instance status`.
+
+AWS cannot be reached from here. moto stands in for CloudFormation, EC2 and SSM (a small stack whose outputs
+reference a moto instance, as the CDK stack's do). What moto cannot do is injected at the botocore level and
+said so at each place: the first boot's signal events (moto records no CreationPolicy signals), and the output
+of Run Command on the host (moto executes nothing). That output is not made up: it is what the real
+`userdata/host-check.sh` prints, run here against a stand-in host (tests/infra/hostsim.py: a temporary root
+with stand-ins for nvidia-smi, dcv, systemctl, pgrep and curl). The DCV port check makes a real TLS handshake
+with a local server that has a self-signed certificate, like DCV's; a closed port stands for a blocked one.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import re
+import socket
+import ssl
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import boto3
+import botocore.client
+import pytest
+from infra.hostsim import HEALTHZ, STATE, HostSim
+from moto import mock_aws
+from twin.cli import main
+from twin.cli.commands import instance as cmd
+from twin.tools import instance as lib
+from twin.tools import instance_check as chk
+
+REGION = "us-east-1"
+REPO = Path(__file__).resolve().parents[1]
+VERSION = "a63e23774290"
+
+
+# --- a DCV-like TLS port on loopback ------------------------------------------------------------------------
+
+
+def self_signed(tmp: Path) -> tuple[Path, Path]:
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import NameOID
+
+    key = ec.generate_private_key(ec.SECP256R1())
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "dcv-stand-in")])
+    now = datetime.datetime.now(datetime.UTC)
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(name)
+        .issuer_name(name)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - datetime.timedelta(minutes=1))
+        .not_valid_after(now + datetime.timedelta(days=1))
+        .sign(key, hashes.SHA256())
+    )
+    cert_path, key_path = tmp / "cert.pem", tmp / "key.pem"
+    cert_path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+    key_path.write_bytes(
+        key.private_bytes(
+            serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
+        )
+    )
+    return cert_path, key_path
+
+
+@pytest.fixture
+def dcv_port(tmp_path: Path) -> Iterator[int]:
+    """A TLS listener on 127.0.0.1 that completes handshakes, then closes."""
+    cert, key = self_signed(tmp_path)
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    context.load_cert_chain(cert, key)
+    server = socket.create_server(("127.0.0.1", 0))
+    server.settimeout(0.2)
+    stop = threading.Event()
+
+    def serve() -> None:
+        while not stop.is_set():
+            try:
+                conn, _ = server.accept()
+            except TimeoutError:
+                continue
+            try:
+                with context.wrap_socket(conn, server_side=True):
+                    pass
+            except (ssl.SSLError, OSError):
+                pass
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        yield server.getsockname()[1]
+    finally:
+        stop.set()
+        thread.join(timeout=5)
+        server.close()
+
+
+def closed_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+# --- the stand-in host's own answer -------------------------------------------------------------------------
+
+
+def host_check_output(tmp: Path, *, deployed: str = VERSION, viewer: bool = True, x: bool = True) -> str:
+    """What userdata/host-check.sh prints on a host in the given state (run for real on a stand-in host)."""
+    host = HostSim(tmp / "host")
+    (host.sim / "state").mkdir()
+    for marker, on in (("xorg", x), ("viewer", viewer)):
+        if on:
+            (host.sim / "state" / marker).touch()
+    (host.sim / "state" / "console").write_text("ubuntu\n")
+    (host.sim / "services").mkdir(exist_ok=True)
+    (host.sim / "services" / "so101-twin-agent").touch()
+    (host.root / "etc/so101-twin").mkdir(parents=True, exist_ok=True)
+    (host.root / "etc/so101-twin/deployment.env").write_text(
+        f"DESKTOP_USER=ubuntu\nDEPLOYMENT_VERSION={deployed}\n"
+    )
+    (host.root / "var/lib/so101-twin").mkdir(parents=True, exist_ok=True)
+    (host.root / "var/lib/so101-twin/deployed-version").write_text(deployed + "\n")
+    (host.root / "var/lib/so101-twin/last-run").write_text(
+        "2026-11-23T10:00:00+00:00 boot SUCCESS verified\n"
+    )
+    venv_bin = host.root / "opt/so101-twin/venv/bin"
+    venv_bin.mkdir(parents=True)
+    (venv_bin / "python").symlink_to(sys.executable)
+    state = json.loads(json.dumps(STATE))
+    state["devices"]["arm-001"].update({"status": "ONLINE", "age_s": 0.04, "rate_hz": 10.0})
+    (host.sim / "agent" / "state.json").write_text(json.dumps(state))
+    (host.sim / "agent" / "healthz.json").write_text(json.dumps({**HEALTHZ, "status": "ok", "reasons": []}))
+    result = subprocess.run(
+        ["bash", str(REPO / "userdata" / "host-check.sh")],
+        env=host.env(),
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert result.stdout, result.stderr
+    return result.stdout
+
+
+# --- moto stack ---------------------------------------------------------------------------------------------
+
+
+def template(dcv_url: str) -> dict:
+    return {
+        "Resources": {
+            "Host": {
+                "Type": "AWS::EC2::Instance",
+                "Properties": {"ImageId": "ami-12c6146b", "InstanceType": "g6e.2xlarge"},
+            },
+        },
+        "Outputs": {
+            "InstanceId": {"Value": {"Ref": "Host"}},
+            "DcvUrl": {"Value": dcv_url},
+            "DeploymentVersion": {"Value": VERSION},
+            "UpdateAssociationId": {"Value": "0b1c2d3e-0000-4000-8000-000000000009"},
+        },
+    }
+
+
+@pytest.fixture
+def aws_env(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    empty = tmp_path / "empty"
+    empty.write_text("")
+    for name in ("AWS_PROFILE", "AWS_SESSION_TOKEN", "AWS_REGION", "SO101_TWIN_STACK"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("AWS_SHARED_CREDENTIALS_FILE", str(empty))
+    monkeypatch.setenv("AWS_CONFIG_FILE", str(empty))
+    monkeypatch.setenv("AWS_EC2_METADATA_DISABLED", "true")
+    monkeypatch.setenv("AWS_ACCESS_KEY_ID", "testing")
+    monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", "testing")
+    monkeypatch.setenv("AWS_DEFAULT_REGION", REGION)
+
+
+def deploy(dcv_url: str) -> dict[str, str]:
+    cfn = boto3.client("cloudformation", region_name=REGION)
+    cfn.create_stack(StackName=lib.DEFAULT_STACK_NAME, TemplateBody=json.dumps(template(dcv_url)))
+    outputs = cfn.describe_stacks(StackName=lib.DEFAULT_STACK_NAME)["Stacks"][0]["Outputs"]
+    return {o["OutputKey"]: o["OutputValue"] for o in outputs}
+
+
+SIGNAL_SUCCESS = {
+    "ResourceType": "AWS::EC2::Instance",
+    "LogicalResourceId": "HostInstance2C59A3BE",
+    "ResourceStatus": "CREATE_IN_PROGRESS",
+    "ResourceStatusReason": "Received SUCCESS signal with UniqueId i-0123456789abcdef0",
+}
+WAIT_FAILED = {
+    "ResourceType": "AWS::CloudFormation::WaitCondition",
+    "LogicalResourceId": "HostBootWait",
+    "ResourceStatus": "CREATE_FAILED",
+    "ResourceStatusReason": "WaitCondition received failed message: 'step display failed (exit 1): X did not "
+    "start on the GPU: no Xorg process; last log lines: ...' for uniqueId: i-0123456789abcdef0",
+}
+
+
+def intercept(monkeypatch: pytest.MonkeyPatch, handlers: dict) -> None:
+    """Route chosen AWS operations through `handler(original, params)`; everything else reaches moto."""
+    original = botocore.client.BaseClient._make_api_call
+
+    def patched(self, operation_name, api_params):
+        if operation_name in handlers:
+            return handlers[operation_name](lambda: original(self, operation_name, api_params), api_params)
+        return original(self, operation_name, api_params)
+
+    monkeypatch.setattr(botocore.client.BaseClient, "_make_api_call", patched)
+
+
+def with_events(*extra: dict):
+    """moto's own stack events plus the signal events it cannot produce (stand-ins)."""
+
+    def handler(call, _params):
+        response = call()
+        response["StackEvents"] = list(extra) + response.get("StackEvents", [])
+        return response
+
+    return handler
+
+
+def host_answers(stdout: str, status: str = "Success"):
+    """SSM's GetCommandInvocation as the host would answer (moto runs nothing on an instance)."""
+
+    def handler(call, params):
+        response = call()
+        response.update({"Status": status, "StandardOutputContent": stdout, "StandardErrorContent": ""})
+        return response
+
+    return handler
+
+
+def run_check(capsys) -> tuple[int, str]:
+    code = main(["instance", "check"])
+    return code, capsys.readouterr().out
+
+
+def table(out: str) -> dict[str, tuple[str, str]]:
+    rows = {}
+    for line in out.splitlines()[1:]:
+        if not line.strip() or line.startswith(("fixes:", "  ", "verdict:")):
+            break
+        name, status, detail = re.split(r"\s{2,}", line, maxsplit=2)
+        rows[name] = (status, detail)
+    return rows
+
+
+# --- the whole command -------------------------------------------------------------------------------------
+
+
+def test_a_working_twin_passes_every_check(aws_env, dcv_port, tmp_path, monkeypatch, capsys):
+    stdout = host_check_output(tmp_path)
+    with mock_aws():
+        deploy(f"https://127.0.0.1:{dcv_port}/#console")
+        intercept(
+            monkeypatch,
+            {
+                "DescribeStackEvents": with_events(SIGNAL_SUCCESS),
+                "GetCommandInvocation": host_answers(stdout),
+            },
+        )
+        code, out = run_check(capsys)
+        sent = boto3.client("ssm", region_name=REGION).list_commands()["Commands"][-1]
+    assert code == cmd.EXIT_OK, out
+    rows = table(out)
+    assert list(rows) == [
+        "stack",
+        "boot signal",
+        "instance",
+        "dcv port",
+        "x-on-gpu",
+        "dcv-session",
+        "agent",
+        "telemetry",
+        "viewer",
+        "version",
+    ]
+    assert {name: status for name, (status, _) in rows.items()} == dict.fromkeys(rows, "OK")
+    assert rows["dcv port"][1].startswith(f"127.0.0.1:{dcv_port} completes a TLS handshake from here (TLSv1.")
+    assert "arm-001 ONLINE 10.0 Hz, last message 0.0 s ago" in rows["telemetry"][1]
+    assert f"host runs {VERSION}, the stack's current deployment" in rows["version"][1]
+    assert out.rstrip().endswith("verdict: the twin works (10 checks OK)")
+    assert sent["Parameters"]["commands"] == [chk.HOST_CHECK_COMMAND]
+
+
+def test_failing_lines_get_a_fix_and_the_verdict_fails(aws_env, tmp_path, monkeypatch, capsys):
+    stdout = host_check_output(tmp_path, deployed="0ld0ld0ld0ld", viewer=False)
+    with mock_aws():
+        deploy(f"https://127.0.0.1:{closed_port()}/#console")
+        intercept(
+            monkeypatch,
+            {
+                "DescribeStackEvents": with_events(SIGNAL_SUCCESS),
+                "GetCommandInvocation": host_answers(stdout, "Failed"),
+            },
+        )
+        code, out = run_check(capsys)
+    assert code == cmd.EXIT_CHECK_FAILED
+    rows = table(out)
+    assert rows["dcv port"][0] == "FAIL" and "ConnectionRefusedError" in rows["dcv port"][1]
+    assert rows["viewer"][0] == "FAIL"
+    assert rows["version"] == (
+        "FAIL",
+        f"host runs 0ld0ld0ld0ld, the stack asks for {VERSION} (last run: "
+        "2026-11-23T10:00:00+00:00 boot SUCCESS verified)",
+    )
+    fixes = out.split("fixes:", 1)[1]
+    assert "dcv port: DCV admits only clientCidr" in fixes and "-c clientCidr=<it>/32" in fixes
+    assert "viewer: the viewer starts at the desktop login" in fixes
+    assert "aws ssm start-associations-once --association-ids 0b1c2d3e-0000-4000-8000-000000000009" in fixes
+    assert "verdict: the twin does not work: 3 failing check(s): dcv port, viewer, version" in out
+
+
+def test_a_failed_boot_shows_the_reason_from_the_wait_condition(
+    aws_env, dcv_port, tmp_path, monkeypatch, capsys
+):
+    stdout = host_check_output(tmp_path, x=False)
+    with mock_aws():
+        deploy(f"https://127.0.0.1:{dcv_port}/#console")
+        intercept(
+            monkeypatch,
+            {"DescribeStackEvents": with_events(WAIT_FAILED), "GetCommandInvocation": host_answers(stdout)},
+        )
+        code, out = run_check(capsys)
+    assert code == cmd.EXIT_CHECK_FAILED
+    rows = table(out)
+    assert rows["boot signal"][0] == "FAIL"
+    assert "step display failed (exit 1): X did not start on the GPU" in rows["boot signal"][1]
+    assert rows["x-on-gpu"][0] == "FAIL" and "no Xorg process" in rows["x-on-gpu"][1]
+
+
+def test_a_stopped_instance_skips_the_host(aws_env, dcv_port, monkeypatch, capsys):
+    with mock_aws():
+        outputs = deploy(f"https://127.0.0.1:{dcv_port}/#console")
+        boto3.client("ec2", region_name=REGION).stop_instances(InstanceIds=[outputs["InstanceId"]])
+        intercept(monkeypatch, {"DescribeStackEvents": with_events(SIGNAL_SUCCESS)})
+        code, out = run_check(capsys)
+    assert code == cmd.EXIT_CHECK_FAILED
+    rows = table(out)
+    assert rows["instance"][0] == "FAIL"
+    assert rows["dcv port"][0] == "SKIP" and rows["host"][0] == "SKIP"
+    assert "instance: start it: twin instance start" in out
+
+
+def test_an_unregistered_ssm_agent_is_one_clear_line(aws_env, dcv_port, monkeypatch, capsys):
+    from botocore.exceptions import ClientError
+
+    def unregistered(_call, params):
+        raise ClientError({"Error": {"Code": "InvalidInstanceId", "Message": "not valid"}}, "SendCommand")
+
+    with mock_aws():
+        deploy(f"https://127.0.0.1:{dcv_port}/#console")
+        intercept(
+            monkeypatch, {"DescribeStackEvents": with_events(SIGNAL_SUCCESS), "SendCommand": unregistered}
+        )
+        code, out = run_check(capsys)
+    assert code == cmd.EXIT_CHECK_FAILED
+    assert table(out)["host"] == ("FAIL", "the SSM agent has not registered yet")
+
+
+# --- status shows the version ------------------------------------------------------------------------------
+
+
+def test_status_shows_the_version_the_host_runs(aws_env, dcv_port, monkeypatch, capsys):
+    body = json.dumps({"status": "ok", "devices": {"arm-001": "ONLINE"}})
+    with mock_aws():
+        deploy(f"https://127.0.0.1:{dcv_port}/#console")
+        intercept(monkeypatch, {"GetCommandInvocation": host_answers(f"version={VERSION}\n{body}200")})
+        assert main(["instance", "status"]) == 0
+        out = capsys.readouterr().out
+        sent = boto3.client("ssm", region_name=REGION).list_commands()["Commands"][-1]
+    assert "agent healthy: arm-001=ONLINE" in out
+    assert f"version: {VERSION} (the stack's current deployment)" in out
+    assert sent["Parameters"]["commands"] == lib.STATUS_COMMANDS
+
+
+def test_status_says_when_the_host_is_behind(aws_env, dcv_port, monkeypatch, capsys):
+    with mock_aws():
+        deploy(f"https://127.0.0.1:{dcv_port}/#console")
+        intercept(monkeypatch, {"GetCommandInvocation": host_answers("version=0ld0ld0ld0ld\n000", "Failed")})
+        assert main(["instance", "status"]) == 0
+        out = capsys.readouterr().out
+    assert f"the host runs 0ld0ld0ld0ld, the stack asks for {VERSION}: the in-place update is pending" in out
+
+
+# --- the pieces ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("status", "expected"),
+    [
+        ("CREATE_COMPLETE", chk.OK),
+        ("UPDATE_COMPLETE", chk.OK),
+        ("UPDATE_ROLLBACK_COMPLETE", chk.WARN),
+        ("UPDATE_IN_PROGRESS", chk.WARN),
+        ("ROLLBACK_COMPLETE", chk.FAIL),
+        ("CREATE_FAILED", chk.FAIL),
+    ],
+)
+def test_stack_status_lines(status: str, expected: str) -> None:
+    line = chk.check_stack(status, "")
+    assert line.status == expected
+    assert bool(line.fix) == (expected != chk.OK)
+
+
+def test_boot_signal_without_events_is_a_warning_not_a_pass() -> None:
+    assert chk.check_boot_signal([]).status == chk.WARN
+    timeout = {
+        "ResourceType": "AWS::EC2::Instance",
+        "ResourceStatus": "CREATE_FAILED",
+        "ResourceStatusReason": "Failed to receive 1 resource signal(s) within the specified duration",
+    }
+    assert chk.check_boot_signal([timeout]).status == chk.FAIL
+
+
+def test_unparseable_host_output_is_ignored_line_by_line() -> None:
+    lines = chk.parse_host_check("garbage\nagent\tOK\tconnected\nx\tMAYBE\ty\n", None, None)
+    assert [(line.name, line.status) for line in lines] == [("agent", "OK")]
