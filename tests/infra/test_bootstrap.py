@@ -369,3 +369,17 @@ def test_a_failing_download_before_bootstrap_signals_failure(
     assert any(
         "--status FAILURE" in s and "--unique-id i-0123456789abcdef0-fetch" in s for s in host.signals()
     )
+
+
+def test_an_unguarded_command_failing_inside_a_step_function_is_caught(
+    tmp_path: Path, deployed: Deployed, dcv_tgz: Path
+) -> None:
+    """No `|| die` around it: set -E carries the ERR trap into the step's function (the old script lacked it,
+    so a failure inside a function ended the boot silently)."""
+    host, result = failing_boot(tmp_path, deployed, dcv_tgz, "dpkg")
+    assert result.returncode != 0
+    posts = host.handle_posts()
+    assert [p["Status"] for p in posts] == ["FAILURE"]
+    assert posts[0]["Reason"].startswith("step logs failed (exit 1); last log lines:")
+    assert "dpkg: failing on purpose" in posts[0]["Reason"]
+    assert any("--status FAILURE" in s for s in host.signals())
