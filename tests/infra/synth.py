@@ -84,5 +84,10 @@ def synthesize(
 
 
 def normalise(template: dict[str, Any]) -> dict[str, Any]:
-    """Replace asset hashes so the snapshot changes only when the infrastructure does."""
-    return json.loads(ASSET_HASH_RE.sub("<asset-hash>", json.dumps(template, sort_keys=True)))
+    """Replace asset hashes and the deployment version (derived from them) so the snapshot changes only when
+    the infrastructure does, not with every change of agent code."""
+    text = json.dumps(template, sort_keys=True)
+    version = template.get("Outputs", {}).get("DeploymentVersion", {}).get("Value")
+    if isinstance(version, str):
+        text = text.replace(version, "<deployment-version>")
+    return json.loads(ASSET_HASH_RE.sub("<asset-hash>", text))

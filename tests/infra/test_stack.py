@@ -57,6 +57,9 @@ def test_snapshot_normalisation_removes_every_asset_hash(synth_default: Synth) -
     text = json.dumps(normalise(synth_default.json))
     assert "<asset-hash>" in text
     assert not re.search(r"[0-9a-f]{64}", text)
+    version = synth_default.json["Outputs"]["DeploymentVersion"]["Value"]
+    assert version not in text
+    assert text.count("<deployment-version>") == 3  # the output, the parameter, the association
 
 
 # --- network --------------------------------------------------------------------------------------
