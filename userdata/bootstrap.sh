@@ -48,12 +48,8 @@ if [ -z "${SO101_TWIN_LOGGING:-}" ]; then
 fi
 mkdir -p "$STATE"
 
-load_env "$DEPLOYMENT"
-: "${AWS_REGION:?} ${DCV_SECRET_ARN:?} ${DESKTOP_USER:?} ${DEPLOYMENT_VERSION:?} ${LOG_GROUP:?}"
-URL_SUFFIX="${URL_SUFFIX:-amazonaws.com}"
 export DEBIAN_FRONTEND=noninteractive
-
-STEP=start
+STEP=settings
 FAIL_DETAIL=""
 GPU=0
 DISPLAY_CHANGED=0
@@ -80,17 +76,18 @@ signal() {
     curl -fsS -X PUT -H 'Content-Type:' --data-binary "$body" "$SO101_TWIN_HANDLE" ||
       log "could not post to the wait condition (it may be complete already)"
   fi
-  aws cloudformation signal-resource --region "$AWS_REGION" --stack-name "$SO101_TWIN_STACK" \
-    --logical-resource-id "$SO101_TWIN_RESOURCE" --unique-id "$instance" --status "$status" ||
+  aws cloudformation signal-resource --region "${AWS_REGION:-${SO101_TWIN_REGION:-}}" \
+    --stack-name "$SO101_TWIN_STACK" --logical-resource-id "${SO101_TWIN_RESOURCE:-}" \
+    --unique-id "$instance" --status "$status" ||
     log "signal-resource $status failed"
-  log "signalled $status to $SO101_TWIN_STACK/$SO101_TWIN_RESOURCE"
+  log "signalled $status to $SO101_TWIN_STACK/${SO101_TWIN_RESOURCE:-}"
 }
 
 # finish STATUS SUMMARY: record the outcome on the host; on the first boot, signal it.
 finish() {
   local status="$1" summary="$2" tail_text
   printf '%s %s %s %s\n' "$(date -Is)" "$MODE" "$status" "$summary" >"$STATE/last-run"
-  if [ "$status" = SUCCESS ] && [ "$(cat "$STATE/deployed-version" 2>/dev/null)" != "$DEPLOYMENT_VERSION" ]; then
+  if [ "$status" = SUCCESS ] && [ "$(cat "$STATE/deployed-version" 2>/dev/null)" != "${DEPLOYMENT_VERSION:-}" ]; then
     printf '%s\n' "$DEPLOYMENT_VERSION" >"$STATE/deployed-version"
   fi
   [ "$MODE" = boot ] || return 0
@@ -110,6 +107,13 @@ on_error() {
   exit "$rc"
 }
 trap on_error ERR
+
+load_env "$DEPLOYMENT"
+for setting in AWS_REGION DCV_SECRET_ARN DESKTOP_USER DEPLOYMENT_VERSION LOG_GROUP TOPIC_PREFIX DEVICES UNITS \
+  CLIENT_ID_PREFIX; do
+  [ -n "${!setting:-}" ] || die "$DEPLOYMENT has no $setting: the stack's deployment parameter is incomplete"
+done
+URL_SUFFIX="${URL_SUFFIX:-amazonaws.com}"
 
 run_step() {
   local t0=$SECONDS

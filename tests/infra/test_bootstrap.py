@@ -383,3 +383,18 @@ def test_an_unguarded_command_failing_inside_a_step_function_is_caught(
     assert posts[0]["Reason"].startswith("step logs failed (exit 1); last log lines:")
     assert "dpkg: failing on purpose" in posts[0]["Reason"]
     assert any("--status FAILURE" in s for s in host.signals())
+
+
+def test_an_incomplete_deployment_parameter_fails_the_settings_step(
+    tmp_path: Path, deployed: Deployed, dcv_tgz: Path
+) -> None:
+    parameter = "\n".join(line for line in deployed.parameter.splitlines() if not line.startswith("DEVICES="))
+    host = HostSim(
+        tmp_path, parameter=parameter, user_data=deployed.user_data, s3=deployed.s3, dcv_tgz=dcv_tgz
+    )
+    result = first_boot(host, deployed)
+    assert result.returncode != 0
+    reason = host.handle_posts()[0]["Reason"]
+    assert reason.startswith("step settings failed (exit 1): ")
+    assert "has no DEVICES: the stack's deployment parameter is incomplete" in reason
+    assert any("--status FAILURE" in s for s in host.signals())
