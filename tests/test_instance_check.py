@@ -25,10 +25,12 @@ from pathlib import Path
 import boto3
 import botocore.client
 import pytest
-from infra.hostsim import HEALTHZ, STATE, HostSim
+from infra.hostsim import HostSim
 from moto import mock_aws
 from twin.cli import main
 from twin.cli.commands import instance as cmd
+from twin.core.health import DeviceStatus
+from twin.service.state import AgentInfo, AgentState, BrokerState, DeviceState, HealthReport
 from twin.tools import instance as lib
 from twin.tools import instance_check as chk
 
@@ -132,10 +134,19 @@ def host_check_output(tmp: Path, *, deployed: str = VERSION, viewer: bool = True
     venv_bin = host.root / "opt/so101-twin/venv/bin"
     venv_bin.mkdir(parents=True)
     (venv_bin / "python").symlink_to(sys.executable)
-    state = json.loads(json.dumps(STATE))
-    state["devices"]["arm-001"].update({"status": "ONLINE", "age_s": 0.04, "rate_hz": 10.0})
-    (host.sim / "agent" / "state.json").write_text(json.dumps(state))
-    (host.sim / "agent" / "healthz.json").write_text(json.dumps({**HEALTHZ, "status": "ok", "reasons": []}))
+    # The documents the agent itself would serve, built from its own typed state (twin.service.state).
+    online = DeviceStatus.ONLINE
+    state = AgentState(
+        agent=AgentInfo(
+            running=True,
+            topic_filters=("dt/lerobot/arm-001/telemetry",),
+            broker=BrokerState(url="iot", connected=True, subscribes=1, messages=420),
+        ),
+        devices={"arm-001": DeviceState(device_id="arm-001", status=online, age_s=0.04, rate_hz=10.0)},
+    )
+    health = HealthReport(status="ok", running=True, broker_connected=True, devices={"arm-001": online})
+    (host.sim / "agent" / "state.json").write_bytes(state.to_json())
+    (host.sim / "agent" / "healthz.json").write_bytes(health.to_json())
     result = subprocess.run(
         ["bash", str(REPO / "userdata" / "host-check.sh")],
         env=host.env(),
