@@ -179,7 +179,7 @@ class TwinStack(Stack):
             self,
             "HostLogGroup",
             value=self.identity.agent_log_group.log_group_name,
-            description="CloudWatch log group of the host: streams <instance-id>/bootstrap, /agent, /dcv",
+            description="Host log group: streams <instance-id>/bootstrap, /agent, /dcv, /emf",
         )
         CfnOutput(
             self,
