@@ -38,6 +38,7 @@ HANDLE_URL = (
 )
 SECRET_ARN = f"arn:aws:secretsmanager:{REGION}:{ACCOUNT}:secret:HostDcvPassword-AbCdEf"
 LOG_GROUP = f"/so101-twin/{STACK_NAME}/host"
+HISTORY_BUCKET = "so101twinstack-historybucket-0123456789ab"
 DCV_VERSION = "2025.0-20103"
 DCV_DIR = f"nice-dcv-{DCV_VERSION}-ubuntu2404-x86_64"
 DCV_PACKAGES = {  # member -> size in bytes: several MB in all, like the real tarball's debs

@@ -19,6 +19,7 @@ import pytest
 
 from .hostsim import (
     HANDLE_URL,
+    HISTORY_BUCKET,
     INSTANCE_ID,
     LOG_GROUP,
     SECRET_ARN,
@@ -46,6 +47,8 @@ def refs_for(synth: Synth) -> dict[str, str]:
             values[logical_id] = LOG_GROUP
         elif resource["Type"] == "AWS::CloudFormation::WaitConditionHandle":
             values[logical_id] = HANDLE_URL
+        elif resource["Type"] == "AWS::S3::Bucket" and logical_id.startswith("History"):
+            values[logical_id] = HISTORY_BUCKET
     return values
 
 
@@ -230,6 +233,10 @@ def test_agent_config_from_the_deployment_parameter(booted, deployed: Deployed) 
     # USD recording is off unless recordSessions=true.
     assert config["twin"]["record_dir"] == ""
     assert deployed.settings["RECORD_SESSIONS"] == "false"
+    # Main's history bucket and ros2 setting reach the agent through the same parameter.
+    assert config["history"] == {"uri": f"s3://{HISTORY_BUCKET}/history", "region": "us-east-1"}
+    assert config["ros2"] == {"enabled": False}
+    assert config["cloudwatch"]["emf_file"] == "/var/log/so101-twin/emf.log"
 
 
 def test_host_check_reports_every_line(booted) -> None:

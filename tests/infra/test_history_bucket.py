@@ -18,6 +18,10 @@ def bucket(synth: Synth) -> dict[str, Any]:
     return synth.one("AWS::S3::Bucket")
 
 
+def bucket_id(synth: Synth) -> str:
+    return next(iter(synth.resources("AWS::S3::Bucket")))
+
+
 def test_bucket_is_encrypted_private_and_retained(synth_default: Synth) -> None:
     resource = bucket(synth_default)
     props = resource["Properties"]
@@ -90,8 +94,11 @@ def test_host_role_gets_exactly_the_history_prefix(synth_default: Synth) -> None
 
 
 def test_host_agent_writes_history_to_the_bucket(synth_default: Synth) -> None:
-    text = user_data_text(synth_default)
-    assert "HISTORY_URI=s3://" in text and "/history" in text
+    # Through the deployment parameter, as every setting the host reads; the UserData stays the same.
+    value = synth_default.one("AWS::SSM::Parameter")["Properties"]["Value"]["Fn::Join"][1]
+    at = value.index({"Ref": bucket_id(synth_default)})
+    assert value[at - 1].endswith("\nHISTORY_URI=s3://") and value[at + 1].startswith("/history\n")
+    assert "HISTORY_URI" not in user_data_text(synth_default)
     output = synth_default.json["Outputs"]["HistoryUri"]
     assert "aws s3 rb" in output["Description"]
 

@@ -457,6 +457,7 @@ def test_settings_and_code_changes_leave_the_instance_untouched(
         units="degrees",
         topicPrefix="fleet/so101",
         recordSessions="true",
+        ros2="true",
     )
 
     def instance(synth: Synth) -> dict[str, Any]:

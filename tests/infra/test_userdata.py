@@ -136,6 +136,7 @@ def run_installer(root: Path, source: Path, **env: str) -> subprocess.CompletedP
         "AGENT_NAME": "LabTwin",
         "CLIENT_ID_PREFIX": "so101-twin-",
         "DESKTOP_USER": "ubuntu",
+        "HISTORY_URI": "s3://twin-history-bucket/history",
         **env,
     }
     return subprocess.run(
@@ -183,6 +184,9 @@ def test_installer_writes_the_agent_config_from_the_settings(installed: tuple[Pa
     from twin.output.emf import DEFAULT_EMF_FILE
 
     assert (loaded.cloudwatch.emf_file, loaded.cloudwatch.agent_name) == (DEFAULT_EMF_FILE, "LabTwin")
+    # History goes to the stack's bucket, in the instance's region.
+    assert (loaded.history.uri, loaded.history.region) == ("s3://twin-history-bucket/history", "eu-central-1")
+    assert loaded.history.enabled
     unit = (root / "etc/systemd/system/so101-twin-agent.service").read_text()
     assert "LogsDirectory=so101-twin\n" in unit
 
@@ -297,6 +301,34 @@ def test_installer_refuses_bad_input(tmp_path: Path, env: dict[str, str], messag
     assert result.returncode == 2
     assert message in result.stderr
     assert not (tmp_path / "root" / "etc").exists()
+
+
+def test_boot_hands_every_installer_setting_from_the_deployment_parameter(synth_all_options: Synth) -> None:
+    """Each setting install-agent.sh reads that the stack puts in the deployment parameter (ROS2,
+    HISTORY_URI, RECORD_SESSIONS, ...) is passed on by bootstrap.sh's agent step; one left out would be
+    silently replaced by the installer's default on the host."""
+
+    def text_of(value: object) -> str:  # the literal parts of a Fn::Join, with their real newlines
+        if isinstance(value, str):
+            return value
+        if isinstance(value, list):
+            return "".join(text_of(v) for v in value)
+        if isinstance(value, dict):
+            return "".join(text_of(v) for v in value.values())
+        return ""
+
+    parameter = text_of(synth_all_options.one("AWS::SSM::Parameter")["Properties"]["Value"])
+    stack_keys = set(re.findall(r"^([A-Z][A-Z0-9_]*)=", parameter, re.M))
+    installer_keys = set(
+        re.findall(r'^([A-Z][A-Z0-9_]*)="\$\{\1:-', (USERDATA / "install-agent.sh").read_text(), re.M)
+    )
+    bootstrap = (USERDATA / "bootstrap.sh").read_text()
+    step = re.search(r"^step_agent\(\) \{\n(.*?)^\}", bootstrap, re.S | re.M)
+    assert step is not None
+    passed = set(re.findall(r"\b([A-Z][A-Z0-9_]*)=", step.group(1)))
+    wanted = stack_keys & installer_keys
+    assert {"ROS2", "HISTORY_URI", "RECORD_SESSIONS", "AGENT_NAME", "DEVICES"} <= wanted
+    assert wanted <= passed, f"step_agent does not pass {sorted(wanted - passed)}"
 
 
 def test_cloudwatch_agent_ships_the_emf_file_the_agent_writes() -> None:
