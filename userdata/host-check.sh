@@ -7,6 +7,7 @@
 # Checks: x-on-gpu, dcv-session, agent, telemetry (WARN only: no arm may be publishing), viewer, version.
 
 CHECK_VENV="${VENV:-/opt/so101-twin/venv}"
+# The agent's DEFAULT_AGENT_URL (agents/twin/service/config.py), which install-agent.sh configures.
 AGENT_HTTP="${AGENT_HTTP:-http://127.0.0.1:8080}"
 DETAIL=""
 

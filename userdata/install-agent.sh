@@ -133,6 +133,8 @@ stale_periods = 3
 offline_after_s = 10.0
 
 [http]
+# DEFAULT_HTTP_HOST:DEFAULT_HTTP_PORT of agents/twin/service/config.py; host-check.sh asks this address
+# (tests/infra/test_userdata.py keeps the three in step).
 listen = "127.0.0.1:8080"
 
 [history]

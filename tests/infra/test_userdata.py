@@ -331,6 +331,29 @@ def test_boot_hands_every_installer_setting_from_the_deployment_parameter(synth_
     assert wanted <= passed, f"step_agent does not pass {sorted(wanted - passed)}"
 
 
+def test_host_scripts_use_the_agents_http_address(installed: tuple[Path, Path]) -> None:
+    """install-agent.sh writes the agent's listen address and host-check.sh (the boot's verify step and
+    `twin instance check`) asks it for /healthz: both must be the one the agent package defines."""
+    from twin.service.config import DEFAULT_AGENT_URL, DEFAULT_HTTP_HOST, DEFAULT_HTTP_PORT
+
+    config = tomllib.loads((installed[0] / "etc/so101-twin/agent.toml").read_text())
+    assert config["http"]["listen"] == f"{DEFAULT_HTTP_HOST}:{DEFAULT_HTTP_PORT}"
+    check = subprocess.run(
+        [
+            "bash",
+            "-c",
+            'unset AGENT_HTTP; . "$1"; printf %s "$AGENT_HTTP"',
+            "-",
+            str(USERDATA / "host-check.sh"),
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=30,
+    )
+    assert check.stdout == DEFAULT_AGENT_URL
+
+
 def test_cloudwatch_agent_ships_the_emf_file_the_agent_writes() -> None:
     """The CloudWatch agent config in bootstrap.sh, rendered as the shell would, follows the EMF file."""
     import json
