@@ -127,6 +127,7 @@ def test_demo_leaves_valid_files_and_stops_its_broker(tmp_path):
     # checked against MuJoCo in test_rerun_sink.py).
     assert files["rrd"] == "twin.rrd"
     assert "rerun " + str(out / "twin.rrd") in proc.stdout
+    assert f"twin history ls --history {out / 'history'}" in proc.stdout
     temporal, static = read_rrd(out / "twin.rrd")
     assert "/arms/arm-001:Transform3D:translation" in static.schema.names
     poses = [v for v in temporal.column("/arms/arm-001/wrist:Transform3D:translation").to_pylist() if v]

@@ -159,6 +159,12 @@ def _summary(stats: dict[str, Any], out_dir: Path) -> None:
     for kind, name in stats["files"].items():
         console.out(f"  {kind:4s} {out_dir / name}")
     console.out(f"  json {out_dir / 'stats.json'}")
+    history = stats.get("history")
+    if history:
+        table = out_dir / history["uri"]
+        console.out(f"  hist {table}  (twin history ls --history {table})")
+        if history.get("plot"):
+            console.out(f"  plot {out_dir / history['plot']}")
     if "rrd" in stats["files"]:
         console.out(f"  open the Rerun recording: rerun {out_dir / stats['files']['rrd']}  (docs/web.md)")
 
