@@ -715,3 +715,25 @@ def test_calibration_for_another_robot(tmp_path: Path) -> None:
 def test_missing_calibration_file_names_lerobot_location(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="so_follower"):
         load_calibration(tmp_path / "nope.json")
+
+
+# --- exact messages -----------------------------------------------------------------------------------------
+
+# Reason and message of every case above under every units setting, as the decoder produced them before
+# it moved its parsing to msgspec (tests/data/telemetry_rejections.json, written once by that decoder).
+# People and runbooks match on these sentences, so a rewrite of the parsing must keep them word for word.
+GOLDEN = json.loads((Path(__file__).parent / "data" / "telemetry_rejections.json").read_text())
+
+
+@pytest.mark.parametrize(
+    ("case_id", "payload_"), [(r[0], r[1]) for r in REJECTS], ids=[r[0] for r in REJECTS]
+)
+def test_rejection_messages_are_unchanged(case_id: str, payload_: Any) -> None:
+    got = {}
+    for units in ("ticks", "degrees", "range100", "auto"):
+        try:
+            decoder(Units(units)).decode(payload_)
+            got[f"{units}/-"] = "accepted"
+        except TelemetryRejected as exc:
+            got[f"{units}/-"] = [str(exc.reason), str(exc)]
+    assert got == GOLDEN[case_id]
