@@ -11,10 +11,12 @@ import logging
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import pytest
 from twin.core.telemetry import (
     DecoderConfig,
     JointDiagnostics,
+    JointReading,
     RejectReason,
     Telemetry,
     TelemetryDecoder,
@@ -431,6 +433,79 @@ def test_moving_accepts_bool_and_zero_one() -> None:
     assert d.decode(payload(TICKS_EXAMPLE, moving=False)).diagnostics["gripper"].moving is False
     assert d.decode(payload(TICKS_EXAMPLE, moving=0)).diagnostics["gripper"].moving is False
     assert d.decode(payload(TICKS_EXAMPLE, moving=True)).diagnostics["gripper"].moving is True
+
+
+def test_raw_values_are_kept_as_sent() -> None:
+    t = decoder(Units.TICKS).decode(payload(TICKS_EXAMPLE, velocity=32778, moving=1))
+    assert t.positions_raw == dict(zip(NAMES, TICKS_EXAMPLE, strict=True))
+    assert all(type(v) is int for v in t.positions_raw.values())
+    reading = t.readings_raw["elbow_flex"]
+    assert isinstance(reading, JointReading)
+    assert (reading.position, reading.velocity, reading.moving) == (2200, 32778, 1)  # undecoded
+    assert reading.load is msgspec.UNSET and reading.temp is msgspec.UNSET  # not sent
+    degrees = decoder(Units.DEGREES).decode(payload(DEGREES_EXAMPLE))
+    assert degrees.positions_raw["shoulder_lift"] == -98.89
+
+
+def test_diagnostics_read_as_a_mapping() -> None:
+    t = decoder(Units.TICKS).decode(payload(TICKS_EXAMPLE, temp=41))
+    assert list(t.diagnostics) == list(NAMES) and len(t.diagnostics) == 6
+    assert dict(t.diagnostics)["gripper"] == JointDiagnostics(temperature_c=41.0)
+    assert t.diagnostics.get("elbow_roll") is None
+
+
+VALID_TICKS = json.dumps(message(TICKS_EXAMPLE))
+
+
+@pytest.mark.parametrize(
+    ("payload_", "reason"),
+    [
+        # Cases a fast parser could wave through where the rules refuse them, and the reverse.
+        ((VALID_TICKS[:-1] + ', "note": "\xff"}').encode("latin-1"), RejectReason.NOT_UTF8),
+        ((VALID_TICKS[:-1] + ', "note": NaN}').encode(), RejectReason.NOT_FINITE),
+        ((VALID_TICKS[:-1] + ', "note": 1e999}').encode(), None),  # an ignored field may overflow
+        ((VALID_TICKS[:-1] + ', "deep": ' + "[" * 5000 + "]" * 5000 + "}").encode(), RejectReason.NOT_JSON),
+        (
+            VALID_TICKS.replace('{"position": 1500}', '{"position": 1500, "position": 4096}'),
+            RejectReason.OUT_OF_RANGE,
+        ),
+        (
+            VALID_TICKS.replace('{"position": 1500}', '{"position": 4096, "position": 1500}'),
+            None,
+        ),  # last wins
+        (
+            VALID_TICKS.replace('{"position": 1500}', '{"position": 1500, "moving": 1.0}'),
+            RejectReason.WRONG_TYPE,
+        ),
+        (
+            VALID_TICKS.replace('{"position": 1500}', '{"position": 1500, "status": 1000001}'),
+            RejectReason.OUT_OF_RANGE,
+        ),
+        (VALID_TICKS.replace("1706000000000", "4102444800001"), RejectReason.BAD_TIMESTAMP),
+        (VALID_TICKS.replace("1706000000000", "4102444800000"), None),
+        (VALID_TICKS.replace('"arm-001"', '"a\\u2028b"'), RejectReason.BAD_DEVICE_ID),
+    ],
+)
+def test_edge_cases_of_the_fast_parser(payload_: bytes | str, reason: RejectReason | None) -> None:
+    if reason is None:
+        assert decoder(Units.TICKS).decode(payload_).device_id == "arm-001"
+        return
+    with pytest.raises(TelemetryRejected) as info:
+        decoder(Units.TICKS).decode(payload_)
+    assert info.value.reason is reason, str(info.value)
+
+
+def test_auto_decided_device_keeps_its_hints() -> None:
+    # Once auto has decided, the topic picks that units' ranges before parsing; the message still says auto.
+    d = decoder(auto_evidence_messages=1)
+    assert d.decode(payload(DEGREES_EXAMPLE), topic_device="arm-001").units is Units.DEGREES
+    with pytest.raises(TelemetryRejected) as info:
+        d.decode(payload(TICKS_EXAMPLE), topic_device="arm-001")
+    assert info.value.reason is RejectReason.OUT_OF_RANGE
+    assert "never changes its mind" in str(info.value)
+    with pytest.raises(TelemetryRejected) as info:
+        d.decode(payload(DEGREES_EXAMPLE, device="arm-002"), topic_device="arm-001")
+    assert info.value.reason is RejectReason.DEVICE_MISMATCH
 
 
 def test_topic_device_match_is_accepted() -> None:

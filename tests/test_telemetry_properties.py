@@ -14,8 +14,10 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from typing import Any
 
+import msgspec
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -91,18 +93,74 @@ def check_accepted(t: Telemetry) -> None:
             assert value is None or math.isfinite(value)
 
 
+# A message that decides units=auto for arm-001 at once (auto_evidence_messages=1), per units.
+DECIDING = {
+    Units.TICKS: json.dumps(
+        {"device_id": "arm-001", "timestamp": 1706000000000, "joints": {n: {"position": 3000} for n in NAMES}}
+    ),
+    Units.DEGREES: json.dumps(
+        {
+            "device_id": "arm-001",
+            "timestamp": 1706000000000,
+            "joints": {n: {"position": 1.5 if n == so101.GRIPPER else -1.5} for n in NAMES},
+        }
+    ),
+}
+
+
+def auto_decided(kind: Units | None) -> TelemetryDecoder:
+    """A fresh units=auto decoder, with arm-001 already decided as `kind` (None: undecided)."""
+    decoder = TelemetryDecoder(DecoderConfig(auto_evidence_messages=1))
+    if kind is not None:
+        assert decoder.decode(DECIDING[kind]).units is kind
+    return decoder
+
+
+def outcome(decode: Callable[[], Telemetry]) -> tuple[Any, ...]:
+    """Everything a caller can observe of one decode: the telemetry's values, or the reason and message."""
+    try:
+        t = decode()
+    except TelemetryRejected as exc:
+        return ("rejected", exc.reason, str(exc))
+    readings = {name: msgspec.structs.astuple(r) for name, r in t.readings_raw.items()}
+    return (
+        t.device_id,
+        t.timestamp_ms,
+        t.units,
+        t.angles_rad,
+        t.gripper_percent,
+        dict(t.diagnostics),
+        t.positions_raw,
+        readings,
+    )
+
+
+def explained(decoder: TelemetryDecoder, payload: bytes | str, topic_device: str | None) -> Telemetry:
+    """The rule-by-rule path the decoder takes when its msgspec schema refuses a message, forced."""
+    return decoder._explain(decoder._envelope(payload), topic_device)
+
+
 def feed(payload: bytes | str, topic_device: str | None = None) -> int:
-    """Decode with every setting; returns how many accepted. Any exception but TelemetryRejected fails."""
+    """Decode with every setting; returns how many accepted. Any exception but TelemetryRejected fails.
+
+    Each payload also goes through the rule-by-rule explanation path on a decoder in the same state: the
+    msgspec hot path must never accept what the rules refuse, and must give the same values, reasons and
+    messages (docs/telemetry.md's sentences are the explanation path's).
+    """
     accepted = 0
-    decoders = [*EXPLICIT.values(), TelemetryDecoder(DecoderConfig(auto_evidence_messages=1))]
-    for decoder in decoders:
-        try:
-            t = decoder.decode(payload, topic_device=topic_device)
-        except TelemetryRejected as exc:
-            assert exc.reason in REASONS
-            assert str(exc)
+    # Explicit units; auto undecided; auto already decided for arm-001 (which picks a units schema by topic).
+    makers = [*(lambda u=u: EXPLICIT[u] for u in EXPLICIT), lambda: auto_decided(None)]
+    makers += [lambda k=kind: auto_decided(k) for kind in DECIDING]
+    for make in makers:
+        decoder = make()
+        fast = outcome(lambda d=decoder: d.decode(payload, topic_device=topic_device))
+        twin = decoder if decoder in EXPLICIT.values() else make()
+        assert outcome(lambda d=twin: explained(d, payload, topic_device)) == fast, payload
+        if fast[0] == "rejected":
+            assert fast[1] in REASONS
+            assert fast[2]
             continue
-        check_accepted(t)
+        check_accepted(decoder.decode(payload, topic_device=topic_device))
         accepted += 1
     return accepted
 

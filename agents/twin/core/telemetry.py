@@ -11,6 +11,15 @@ component/lerobot_telemetry). Nothing in it says which units `position` uses, so
 - auto: decided once per device from agreeing evidence, never flipped per message.
 
 Every rejection raises TelemetryRejected with a RejectReason from a fixed set and a message naming the fix.
+
+Two paths, one set of rules. The hot path parses and type-checks a message in one pass with msgspec against a
+typed schema of the contract (`JointReading`, `_Message`), then applies the rules that depend on the decoder's
+state (units, auto evidence) or need a sentence of their own (device-id characters). When the schema refuses a
+message, msgspec's error would neither name the fix nor always be the first rule the documented order
+reports, so `_explain` parses it again with the standard json module and walks the rules in that order: the
+reason and message for a payload are the same whichever path saw it first. The schema refuses whatever the
+rules refuse (tests/test_telemetry_properties.py compares both paths on generated payloads), so the hot path
+never accepts a message the explanation would reject.
 """
 
 from __future__ import annotations
@@ -18,9 +27,14 @@ from __future__ import annotations
 import json
 import logging
 import math
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Any
+from operator import attrgetter
+from typing import Annotated, Any
+
+import msgspec
+from msgspec import UNSET, Meta, UnsetType
 
 from twin.core.topics import device_id_problem
 from twin.robot import so101, sts3215
@@ -83,14 +97,79 @@ class JointDiagnostics:
     moving: bool | None = None
 
 
-@dataclass(frozen=True, slots=True)
-class Telemetry:
+# Servo registers are at most 16 bits; anything far beyond is not a reading.
+DIAGNOSTIC_LIMIT = 1_000_000.0
+_INT_LIMIT = int(DIAGNOSTIC_LIMIT)
+# A diagnostic reading: a JSON number (never a bool) within DIAGNOSTIC_LIMIT.
+_Reading = (
+    Annotated[int, Meta(ge=-_INT_LIMIT, le=_INT_LIMIT)]
+    | Annotated[float, Meta(ge=-DIAGNOSTIC_LIMIT, le=DIAGNOSTIC_LIMIT)]
+)
+
+
+class JointReading(msgspec.Struct, frozen=True, gc=False):
+    """One joint's fields exactly as the edge sent them, before any conversion; `msgspec.UNSET` (falsy) where
+    the edge left a field out. The schema of the hot path: the types and bounds here are the contract's."""
+
+    position: int | float
+    velocity: _Reading | UnsetType = UNSET
+    load: _Reading | UnsetType = UNSET
+    temp: _Reading | UnsetType = UNSET
+    current: _Reading | UnsetType = UNSET
+    voltage: _Reading | UnsetType = UNSET
+    status: Annotated[int, Meta(ge=-_INT_LIMIT, le=_INT_LIMIT)] | UnsetType = UNSET
+    moving: bool | Annotated[int, Meta(ge=0, le=1)] | UnsetType = UNSET
+
+
+class Telemetry(msgspec.Struct, frozen=True, gc=False):
+    """One decoded message. Immutable; built once per message, so a msgspec Struct (a tenth of the cost of a
+    frozen dataclass) rather than a dataclass."""
+
     device_id: str
     timestamp_ms: int
     units: Units
     angles_rad: dict[str, float]
     gripper_percent: float | None
-    diagnostics: dict[str, JointDiagnostics]
+    # Computed on first access: most consumers (the twin, health) never read them.
+    diagnostics: Mapping[str, JointDiagnostics]
+    # As sent, by joint name: the positions before any units conversion and every field of each joint. The
+    # history keeps them next to the decoded values, so a wrong units setting can be corrected afterwards.
+    positions_raw: dict[str, int | float] = msgspec.field(default_factory=dict)
+    readings_raw: dict[str, JointReading] = msgspec.field(default_factory=dict)
+
+
+class _LazyDiagnostics(Mapping[str, JointDiagnostics]):
+    """JointDiagnostics by joint name, converted from schema-checked readings when first read (the
+    conversion cannot fail: the schema already checked every type and bound)."""
+
+    __slots__ = ("_float_variant", "_readings", "_values")
+
+    def __init__(self, readings: tuple[JointReading, ...], float_variant: bool) -> None:
+        self._readings = readings
+        self._float_variant = float_variant
+        self._values: dict[str, JointDiagnostics] | None = None
+
+    def _all(self) -> dict[str, JointDiagnostics]:
+        values = self._values
+        if values is None:
+            # Idempotent: two threads racing here compute equal dicts and either may win.
+            values = self._values = {
+                name: _reading_diagnostics(r, self._float_variant)
+                for name, r in zip(_JOINTS, self._readings, strict=True)
+            }
+        return values
+
+    def __getitem__(self, joint: str) -> JointDiagnostics:
+        return self._all()[joint]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(_JOINTS)
+
+    def __len__(self) -> int:
+        return len(_JOINTS)
+
+    def __repr__(self) -> str:
+        return repr(self._all())
 
 
 @dataclass(frozen=True)
@@ -137,8 +216,6 @@ TIMESTAMP_MAX_MS = 4_102_444_800_000  # 2100-01-01
 DEGREES_LIMIT = 360.0
 RANGE100_LIMIT = 100.0
 PERCENT_MAX = 100.0
-# Servo registers are at most 16 bits; anything far beyond is not a reading.
-DIAGNOSTIC_LIMIT = 1_000_000.0
 # Auto mode keeps an evidence streak per device until it decides; cap the undecided ones so a flood of
 # made-up device ids cannot grow memory without bound.
 MAX_PENDING_DEVICES = 4096
@@ -187,6 +264,58 @@ _N_ARM = len(_ARM)
 _NUMERIC_DIAG_FIELDS = ("velocity", "load", "temp", "current", "voltage")
 _DIAG_FIELDS = (*_NUMERIC_DIAG_FIELDS, "status", "moving")
 
+# The hot path's schemas of a whole message: exactly the six joints, each a JointReading; unknown top-level
+# and per-joint fields are ignored, as the contract allows newer edges to add some. One schema per units
+# setting also carries that setting's position ranges, so a message it accepts only needs arithmetic; the
+# generic one (units=auto before a device is decided) leaves positions to the checks in TelemetryDecoder.
+_Timestamp = Annotated[int, Meta(ge=TIMESTAMP_MIN_MS, le=TIMESTAMP_MAX_MS)]
+
+
+def _number_within(lo: int, hi: int) -> Any:
+    return Annotated[int, Meta(ge=lo, le=hi)] | Annotated[float, Meta(ge=float(lo), le=float(hi))]
+
+
+def _message_schema(tag: str, arm_position: Any, gripper_position: Any) -> msgspec.json.Decoder:
+    def reading(kind: str, position: Any) -> Any:
+        return msgspec.defstruct(
+            f"_{kind}Reading{tag}", [("position", position)], bases=(JointReading,), frozen=True, gc=False
+        )
+
+    arm, gripper = reading("Arm", arm_position), reading("Gripper", gripper_position)
+    joints = msgspec.defstruct(
+        f"_Joints{tag}",
+        [(name, gripper if name == so101.GRIPPER else arm) for name in _JOINTS],
+        forbid_unknown_fields=True,
+        frozen=True,
+        gc=False,
+    )
+    message = msgspec.defstruct(
+        f"_Message{tag}",
+        [("device_id", str), ("timestamp", _Timestamp), ("joints", joints)],
+        frozen=True,
+        gc=False,
+    )
+    return msgspec.json.Decoder(message)
+
+
+_PERCENT = _number_within(0, int(PERCENT_MAX))
+_SCHEMAS: dict[Units, msgspec.json.Decoder] = {
+    Units.AUTO: _message_schema("Any", int | float, int | float),
+    Units.TICKS: _message_schema(
+        "Ticks", Annotated[int, Meta(ge=0, le=so101.TICK_MAX)], Annotated[int, Meta(ge=0, le=so101.TICK_MAX)]
+    ),
+    Units.DEGREES: _message_schema(
+        "Degrees", _number_within(-int(DEGREES_LIMIT), int(DEGREES_LIMIT)), _PERCENT
+    ),
+    Units.RANGE100: _message_schema(
+        "Range100", _number_within(-int(RANGE100_LIMIT), int(RANGE100_LIMIT)), _PERCENT
+    ),
+}
+# msgspec raises RecursionError on nesting deeper than it parses; the explanation then names it.
+_SCHEMA_ERRORS = (msgspec.ValidationError, msgspec.DecodeError, RecursionError)
+_readings_of = attrgetter(*_JOINTS)
+_READING_FIELDS = JointReading.__struct_fields__
+
 
 def _rejected(reason: RejectReason, message: str) -> TelemetryRejected:
     return TelemetryRejected(reason, message)
@@ -230,6 +359,24 @@ def _check_number(joint: str, name: str, value: Any) -> float:
     )
 
 
+def _check_device_id(device_id: object) -> None:
+    """The device-id rule of twin.core.topics, as a rejection naming the problem."""
+    problem = device_id_problem(device_id)
+    if problem is not None:
+        raise _rejected(
+            RejectReason.BAD_DEVICE_ID,
+            f"device_id {_fmt(device_id)} is not usable: {problem}; rename the device on the edge",
+        )
+
+
+def _mismatch(device_id: str, topic_device: str) -> TelemetryRejected:
+    return _rejected(
+        RejectReason.DEVICE_MISMATCH,
+        f"device_id {_fmt(device_id)} does not match the topic's device {_fmt(topic_device)}; "
+        "the edge's device id and its topic must agree (fix the edge config)",
+    )
+
+
 class TelemetryDecoder:
     """Validates and decodes edge messages. Not thread-safe (auto-units state): one per consuming thread."""
 
@@ -261,6 +408,7 @@ class TelemetryDecoder:
             Units.DEGREES: tuple((0.0, so101.DEG) for _ in _ARM),
             Units.RANGE100: tuple(range100),
         }
+        self._affine_ticks = self._affine[Units.TICKS]
         if cal is not None:
             g = cal[so101.GRIPPER]
             self._grip_min, self._grip_max, self._grip_inverted = (
@@ -278,6 +426,8 @@ class TelemetryDecoder:
 
         self._decided: dict[str, Units] = {}
         self._streaks: dict[str, tuple[Units, int]] = {}
+        # Device ids that already passed the character rule, so the hot path checks each id once.
+        self._known_ids: set[str] = set()
 
     # --- public -------------------------------------------------------------------------------------------
 
@@ -288,13 +438,64 @@ class TelemetryDecoder:
         return self._decided.get(device_id, Units.AUTO)
 
     def decode(self, payload: bytes | str, *, topic_device: str | None = None) -> Telemetry:
-        """Validate and decode one message; raises TelemetryRejected (and nothing else) on bad input.
+        """Validate and decode one message; raises TelemetryRejected (and nothing else) on bad input."""
+        data = self._envelope(payload)
+        units = self.config.units
+        if units is Units.AUTO and topic_device is not None:
+            # The topic names the device before parsing; a payload naming another device is refused below.
+            units = self._decided.get(topic_device, Units.AUTO)
+        try:
+            msg = _SCHEMAS[units].decode(data)
+        except _SCHEMA_ERRORS:
+            return self._explain(data, topic_device)
+        device_id = msg.device_id
+        if device_id not in self._known_ids:
+            _check_device_id(device_id)
+            if len(self._known_ids) >= MAX_PENDING_DEVICES:
+                self._known_ids.clear()
+            self._known_ids.add(device_id)
+        if topic_device is not None and device_id != topic_device:
+            raise _mismatch(device_id, topic_device)
+        readings = _readings_of(msg.joints)
+        positions = [r.position for r in readings]
+        undecided = False
+        if units is Units.AUTO:
+            units, angles, percent, undecided = self._units_and_angles(device_id, positions)
+        else:
+            angles, percent = self._angles(units, positions)
+        if undecided:
+            self._count_evidence(device_id, units)
+        return Telemetry(
+            device_id,
+            msg.timestamp,
+            units,
+            dict(zip(_JOINTS, angles, strict=True)),
+            percent,
+            _LazyDiagnostics(readings, units is not Units.TICKS),
+            dict(zip(_JOINTS, positions, strict=True)),
+            dict(zip(_JOINTS, readings, strict=True)),
+        )
 
-        Longer than the house limit on purpose: this runs for every message of every arm (tens of
-        microseconds each, the largest share of the worker's time at fleet scale: docs/performance.md), so the
-        per-joint checks stay inline instead of costing a call per joint.
-        """
-        doc = self._parse(payload)
+    def _units_and_angles(
+        self, device_id: str, positions: list[Any]
+    ) -> tuple[Units, list[float], float, bool]:
+        """The units in force, the converted angles and gripper percent, and whether auto is still deciding
+        (then the message only counts as evidence once everything else about it proved valid)."""
+        units = self.config.units
+        if units is not Units.AUTO:
+            return (units, *self._convert(units, positions, auto=False), False)
+        units = self._decided.get(device_id, Units.AUTO)
+        if units is not Units.AUTO:
+            return (units, *self._convert(units, positions, auto=True), False)
+        units = self._evidence_or_reject(device_id, positions)
+        # Evidence only counts when the message is valid in those units, so it is converted first.
+        return (units, *self._convert(units, positions, auto=False), True)
+
+    def _explain(self, data: bytes | str, topic_device: str | None) -> Telemetry:
+        """The rules one by one in the documented order, on the standard json module's parse: for a message
+        the schema refused, this finds the first broken rule and says how to fix it."""
+        text = data if isinstance(data, str) else data.decode("utf-8")
+        doc = self._parse(text)
         if type(doc) is not dict:
             raise _rejected(
                 RejectReason.NOT_OBJECT,
@@ -343,20 +544,7 @@ class TelemetryDecoder:
             positions.append(pos)
             entries.append(entry)
 
-        units = self.config.units
-        undecided = False
-        if units is Units.AUTO:
-            units = self._decided.get(device_id, Units.AUTO)
-            if units is Units.AUTO:
-                units = self._evidence_or_reject(device_id, positions)
-                undecided = True
-                # Evidence only counts when the message is valid in those units, so it is converted first.
-                angles, percent = self._convert(units, positions, auto=False)
-            else:
-                angles, percent = self._convert(units, positions, auto=True)
-        else:
-            angles, percent = self._convert(units, positions, auto=False)
-
+        units, angles, percent, undecided = self._units_and_angles(device_id, positions)
         float_variant = units is not Units.TICKS
         # A bare {"position": ...} (the common case without diagnostics) shares one empty record.
         diagnostics = {
@@ -372,11 +560,17 @@ class TelemetryDecoder:
             angles_rad=dict(zip(_JOINTS, angles, strict=True)),
             gripper_percent=percent,
             diagnostics=diagnostics,
+            positions_raw=dict(zip(_JOINTS, positions, strict=True)),
+            readings_raw={
+                name: JointReading(**{k: entry[k] for k in _READING_FIELDS if k in entry})
+                for name, entry in zip(_JOINTS, entries, strict=True)
+            },
         )
 
     # --- envelope -----------------------------------------------------------------------------------------
 
-    def _parse(self, payload: bytes | str) -> Any:
+    def _envelope(self, payload: bytes | str) -> bytes | str:
+        """Size and encoding checks before any parsing; returns what the parsers read (UTF-8 proven)."""
         limit = self._max_bytes
         if isinstance(payload, str):
             # Size first: UTF-8 never takes fewer bytes than characters, and ASCII exactly as many.
@@ -384,30 +578,37 @@ class TelemetryDecoder:
                 not payload.isascii() and len(payload.encode("utf-8", "surrogatepass")) > limit
             ):
                 raise self._too_large(len(payload.encode("utf-8", "surrogatepass")))
-            text = payload
-            if not text.isascii():
+            if not payload.isascii():
                 try:
-                    text.encode("utf-8")
+                    payload.encode("utf-8")
                 except UnicodeEncodeError:
                     raise _rejected(
                         RejectReason.NOT_UTF8, "message text holds lone surrogates, which UTF-8 cannot carry"
                     ) from None
-        elif isinstance(payload, bytes | bytearray | memoryview):
+            return payload
+        if isinstance(payload, bytes | bytearray | memoryview):
             size = len(payload) if not isinstance(payload, memoryview) else payload.nbytes
             if size > limit:
                 raise self._too_large(size)
-            try:
-                text = bytes(payload).decode("utf-8")
-            except UnicodeDecodeError as exc:
-                raise _rejected(
-                    RejectReason.NOT_UTF8,
-                    f"message is not UTF-8 ({exc.reason} at byte {exc.start}); "
-                    "the edge must publish UTF-8 JSON",
-                ) from None
-        else:
-            raise _rejected(
-                RejectReason.WRONG_TYPE, f"payload must be bytes or str, got {type(payload).__name__}"
-            )
+            data = payload if type(payload) is bytes else bytes(payload)
+            # ASCII is valid UTF-8 (and the usual case, checked at C speed); msgspec does not check the UTF-8
+            # of strings it skips, so anything else is proven here.
+            if not data.isascii():
+                try:
+                    data.decode("utf-8")
+                except UnicodeDecodeError as exc:
+                    raise _rejected(
+                        RejectReason.NOT_UTF8,
+                        f"message is not UTF-8 ({exc.reason} at byte {exc.start}); "
+                        "the edge must publish UTF-8 JSON",
+                    ) from None
+            return data
+        raise _rejected(
+            RejectReason.WRONG_TYPE, f"payload must be bytes or str, got {type(payload).__name__}"
+        )
+
+    @staticmethod
+    def _parse(text: str) -> Any:
         try:
             return _JSON.decode(text)
         except _NonFiniteTokenError as exc:
@@ -433,24 +634,16 @@ class TelemetryDecoder:
             f"(the IoT Core maximum is {MAX_PAYLOAD_BYTES}); check what the edge packs into it",
         )
 
-    def _device_id(self, doc: dict[str, Any], topic_device: str | None) -> str:
+    @staticmethod
+    def _device_id(doc: dict[str, Any], topic_device: str | None) -> str:
         device_id = doc.get("device_id", _MISSING)
         if device_id is _MISSING:
             raise _rejected(
                 RejectReason.MISSING_FIELD, "message has no 'device_id'; set the edge component's device id"
             )
-        problem = device_id_problem(device_id)
-        if problem is not None:
-            raise _rejected(
-                RejectReason.BAD_DEVICE_ID,
-                f"device_id {_fmt(device_id)} is not usable: {problem}; rename the device on the edge",
-            )
+        _check_device_id(device_id)
         if topic_device is not None and device_id != topic_device:
-            raise _rejected(
-                RejectReason.DEVICE_MISMATCH,
-                f"device_id {_fmt(device_id)} does not match the topic's device {_fmt(topic_device)}; "
-                "the edge's device id and its topic must agree (fix the edge config)",
-            )
+            raise _mismatch(device_id, topic_device)
         return device_id
 
     @staticmethod
@@ -496,10 +689,30 @@ class TelemetryDecoder:
 
     def _convert(self, units: Units, positions: list[Any], *, auto: bool) -> tuple[list[float], float]:
         if units is Units.TICKS:
-            return self._from_ticks(positions, auto)
-        return self._from_normalised(units, positions, auto)
+            self._check_ticks(positions, auto)
+        else:
+            self._check_normalised(units, positions, auto)
+        return self._angles(units, positions)
 
-    def _from_ticks(self, positions: list[Any], auto: bool) -> tuple[list[float], float]:
+    def _angles(self, units: Units, positions: list[Any]) -> tuple[list[float], float]:
+        """Positions already checked against `units` -> joint angles and gripper percent (arithmetic only)."""
+        if units is Units.TICKS:
+            angles = [a + b * v for (a, b), v in zip(self._affine_ticks, positions, strict=False)]
+            raw = positions[_N_ARM]
+            lo, hi = self._grip_min, self._grip_max
+            # LeRobot RANGE_0_100: clamp into the calibrated range, then scale; drive_mode 1 inverts.
+            clamped = lo if raw < lo else hi if raw > hi else raw
+            percent = (clamped - lo) / (hi - lo) * PERCENT_MAX
+            if self._grip_inverted:
+                percent = PERCENT_MAX - percent
+        else:
+            # float() only after the range checks: a huge JSON integer would overflow it.
+            angles = [a + b * float(v) for (a, b), v in zip(self._affine[units], positions, strict=False)]
+            percent = float(positions[_N_ARM])
+        angles.append(self._jaw_lo + percent / PERCENT_MAX * self._jaw_span)
+        return angles, percent
+
+    def _check_ticks(self, positions: list[Any], auto: bool) -> None:
         for name, value in zip(_JOINTS, positions, strict=True):
             if type(value) is not int:
                 fix = (
@@ -523,18 +736,8 @@ class TelemetryDecoder:
                     f"position {_fmt(value)} of {name} is outside the encoder's 0..{so101.TICK_MAX}; "
                     f"{fix}{self._auto_note(auto)}",
                 )
-        angles = [a + b * v for (a, b), v in zip(self._affine[Units.TICKS], positions, strict=False)]
-        raw = positions[_N_ARM]
-        lo, hi = self._grip_min, self._grip_max
-        # LeRobot RANGE_0_100: clamp into the calibrated range, then scale; drive_mode 1 inverts.
-        clamped = lo if raw < lo else hi if raw > hi else raw
-        percent = (clamped - lo) / (hi - lo) * PERCENT_MAX
-        if self._grip_inverted:
-            percent = PERCENT_MAX - percent
-        angles.append(self._jaw_lo + percent / PERCENT_MAX * self._jaw_span)
-        return angles, percent
 
-    def _from_normalised(self, units: Units, positions: list[Any], auto: bool) -> tuple[list[float], float]:
+    def _check_normalised(self, units: Units, positions: list[Any], auto: bool) -> None:
         limit = DEGREES_LIMIT if units is Units.DEGREES else RANGE100_LIMIT
         for name, value in zip(_ARM, positions, strict=False):
             if not -limit <= value <= limit:
@@ -554,11 +757,6 @@ class TelemetryDecoder:
                 RejectReason.OUT_OF_RANGE,
                 f"gripper position {_fmt(percent)} is outside 0..100 percent; {hint}{self._auto_note(auto)}",
             )
-        # float() after the range checks: a huge JSON integer would overflow it.
-        angles = [a + b * float(v) for (a, b), v in zip(self._affine[units], positions, strict=False)]
-        percent = float(percent)
-        angles.append(self._jaw_lo + percent / PERCENT_MAX * self._jaw_span)
-        return angles, percent
 
     @staticmethod
     def _auto_note(auto: bool) -> str:
@@ -683,4 +881,41 @@ def _joint_diagnostics(joint: str, entry: dict[str, Any], float_variant: bool) -
         None if voltage is None else voltage * VOLTAGE_V_PER_UNIT,
         status,
         None if moving is None else bool(moving),
+    )
+
+
+def _reading_diagnostics(r: JointReading, float_variant: bool) -> JointDiagnostics:
+    """JointDiagnostics of a reading the schema already checked (types and bounds): conversion only."""
+    velocity, load, temp, current, voltage, status, moving = (
+        r.velocity,
+        r.load,
+        r.temp,
+        r.current,
+        r.voltage,
+        r.status,
+        r.moving,
+    )
+    if (
+        velocity is UNSET
+        and load is UNSET
+        and temp is UNSET
+        and current is UNSET
+        and voltage is UNSET
+        and status is UNSET
+        and moving is UNSET
+    ):
+        return _EMPTY_DIAGNOSTICS
+    steps = rad_s = None
+    if velocity is not UNSET:
+        steps = float(velocity if float_variant else decode_velocity(velocity))
+        rad_s = steps * RAD_PER_STEP_S
+    return JointDiagnostics(
+        steps,
+        rad_s,
+        None if load is UNSET else decode_load(load) * LOAD_PERCENT_PER_UNIT,
+        None if temp is UNSET else float(temp),
+        None if current is UNSET else current * CURRENT_MA_PER_UNIT,
+        None if voltage is UNSET else voltage * VOLTAGE_V_PER_UNIT,
+        None if status is UNSET else status,
+        None if moving is UNSET else bool(moving),
     )
