@@ -1,0 +1,326 @@
+"""Estimated message loss per device, from the gaps between edge timestamps.
+
+QoS 0 telemetry that a broker discards (IoT Core drops whatever exceeds 100 publishes per second on one
+connection, silently) leaves no trace at the receiver except holes in each device's sequence of samples. The
+edge stamps each sample when it takes it, at a fixed period, so a device's timestamps sit on a grid: the
+period is the largest step of which (almost) every gap between consecutive samples is a whole multiple, and a
+gap of n periods means n - 1 samples that never arrived. That works while most messages are lost too (gaps of
+3, 7, 12 periods still share the step), needs no sequence number the edge does not send, and does not care
+about the offset of the edge clock, only about its rate.
+
+Each gap is rounded to whole periods on its own, so the jitter of the edge clock and a small error in the
+period never add up over a long run. Until the period rests on a full history of gaps, the device's first
+gaps are kept and recounted with every better estimate, so a rough early period leaves no error behind; when
+a settled period moves by more than a quarter (the edge was reconfigured), the newest gaps that fit the new
+one are recounted with it. A gap longer than `outage_s` is a pause (the arm was off, or the device was
+OFFLINE by the health rules), not loss; a jump backwards further than `reorder_s` is an edge clock reset
+(a new timeline, nothing counted), while smaller steps back are late deliveries that fill a hole counted
+before. Duplicates of a recent timestamp are ignored. A message the decoder rejected still arrived, so each
+rejection for the device offsets one missing sample.
+
+What this cannot see: a device none of whose messages arrive, and a loss pattern locked in phase with the
+device (every tenth sample passing, always) looks like a device publishing ten times slower. The optional
+nominal period (the `[health] expected_rate_hz` setting) resolves the second: when every gap is a whole
+multiple of it, it is taken as the period.
+
+Pure bookkeeping with an injected monotonic clock (used only for the recent window), like twin.core.health:
+not thread-safe by itself; the agent updates it from one thread and reads it under its lock.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any
+
+Clock = Callable[[], float]
+
+# Gaps kept for the period estimate. Once it is settled it is recomputed every GAP_HISTORY new gaps (tens of
+# microseconds each, so well under one per message); before that at 1, 2, 4, ... gaps.
+GAP_HISTORY = 64
+# A gap fits a period p when it is within this share of p of a whole multiple of p (timestamps are sampled on
+# the edge's grid, so the jitter of one sample does not add up over long gaps). A random gap fits with odds
+# 2 * FIT_TOLERANCE, so FIT_SHARE of 64 gaps fitting by chance is out of the question.
+FIT_TOLERANCE = 0.25
+# This share of the recent gaps must fit a period for it to be believed (outliers are delayed samples).
+FIT_SHARE = 0.9
+# The candidate periods are a base gap divided by 1, 2, 3, ...: the median of the gaps near the shortest
+# ones (up to 1.5 x a low quantile), so one early-delivered outlier does not make every normal gap look like
+# several periods and a jittery edge clock still yields its mean step.
+BASE_QUANTILE = 0.1
+MAX_DIVISOR = 64
+# The fastest edge this recognises (100 Hz); gaps on a finer grid leave the period unknown (no loss counted).
+MIN_PERIOD_MS = 10.0
+# A settled period estimate that moves by more than this share means the edge's rate was changed; smaller
+# moves are averaged in with this weight.
+PERIOD_CHANGE = 0.25
+PERIOD_SMOOTHING = 0.2
+# Duplicate detection: the last this many timestamps.
+RECENT_TIMESTAMPS = 32
+# The recent window is sampled at most this often.
+WINDOW_BUCKET_S = 1.0
+# "losing": over the recent window at least this many samples and this share of the expected were lost.
+LOSING_MIN_LOST = 2
+LOSING_RATIO = 0.01
+
+
+def _fits(gap: float, period: float) -> bool:
+    multiple = round(gap / period)
+    return multiple >= 1 and abs(gap - multiple * period) <= FIT_TOLERANCE * period
+
+
+def _share_fitting(gaps: Sequence[float], period: float) -> float:
+    tolerance = FIT_TOLERANCE * period
+    fitting = 0
+    for g in gaps:
+        m = round(g / period)
+        if m >= 1 and abs(g - m * period) <= tolerance:
+            fitting += 1
+    return fitting / len(gaps)
+
+
+def _refined(gaps: Sequence[float], period: float) -> float:
+    """Least squares over the gaps that fit `period`: sum of gaps / sum of their multiples."""
+    tolerance = FIT_TOLERANCE * period
+    total = multiples = 0
+    for g in gaps:
+        m = round(g / period)
+        if m >= 1 and abs(g - m * period) <= tolerance:
+            total += g
+            multiples += m
+    return total / multiples if multiples else period
+
+
+def _fitted(gaps: Sequence[float], candidate: float) -> float | None:
+    """`candidate` refined on the short gaps first (a small error in it grows with the multiple), then on
+    all; None unless FIT_SHARE of the gaps fit the result."""
+    short = [g for g in gaps if g <= 4.5 * candidate]
+    period = _refined(short, candidate) if short else candidate
+    period = _refined(gaps, period)
+    return period if _share_fitting(gaps, period) >= FIT_SHARE else None
+
+
+def estimate_period_ms(gaps: Sequence[float], nominal_ms: float | None = None) -> float | None:
+    """The sampling period (ms) the positive `gaps` are whole multiples of, or None when none fits.
+
+    Candidates are a base gap divided by 1, 2, 3, ...; the largest that FIT_SHARE of the gaps fit, refined by
+    least squares (sum of gaps / sum of multiples, which recovers a period off the whole milliseconds), wins.
+    """
+    gaps = [g for g in gaps if g > 0]
+    if not gaps:
+        return None
+    ordered = sorted(gaps)
+    low = ordered[int(BASE_QUANTILE * (len(ordered) - 1))]
+    near = [g for g in ordered if g <= 1.5 * low]
+    base = near[len(near) // 2]
+    best = None
+    for k in range(1, MAX_DIVISOR + 1):
+        if base / k < MIN_PERIOD_MS:
+            break
+        best = _fitted(gaps, base / k)
+        if best is not None:
+            break
+    if nominal_ms is not None and (best is None or best > (1.0 + PERIOD_CHANGE) * nominal_ms):
+        # Every gap a whole number of nominal periods: a loss pattern locked in phase with the device, not
+        # a slower device (which the health thresholds would call STALE anyway).
+        best = _fitted(gaps, nominal_ms) or best
+    return best
+
+
+class DeviceLoss:
+    """Loss estimate of one device. `observe` every valid message's edge timestamp, `record_rejected` every
+    rejected message that carried the device's topic."""
+
+    def __init__(
+        self,
+        *,
+        nominal_period_s: float | None = None,
+        outage_s: float = 10.0,
+        reorder_s: float = 2.0,
+        window_s: float = 10.0,
+        clock: Clock = time.monotonic,
+    ) -> None:
+        if outage_s <= 0 or reorder_s <= 0 or window_s <= 0:
+            raise ValueError(
+                f"outage_s ({outage_s}), reorder_s ({reorder_s}) and window_s ({window_s}) must be positive"
+            )
+        self._nominal_ms = None if nominal_period_s is None else nominal_period_s * 1000.0
+        self._outage_ms = outage_s * 1000.0
+        self._reorder_ms = reorder_s * 1000.0
+        self._window_s = window_s
+        self._clock = clock
+        self._gaps: deque[int] = deque(maxlen=GAP_HISTORY)
+        self._new_gaps = 0
+        self._period_ms: float | None = None
+        # Until the period rests on a full history, the gaps seen so far are kept and recounted with each
+        # better estimate; after that each gap is counted once, when it arrives.
+        self._early: list[int] | None = []
+        self._early_missing = 0
+        self._missing = 0
+        self._recent: deque[int] = deque(maxlen=RECENT_TIMESTAMPS)
+        self._recent_set: set[int] = set()
+        self._first: int | None = None  # current segment's earliest and latest timestamp
+        self._last = 0
+        self.received = 0
+        self.duplicates = 0
+        self.segments = 0
+        self.rejected = 0
+        self._window: deque[tuple[float, int, int]] = deque()  # (when, received, lost) samples
+
+    # -- updates --------------------------------------------------------------------------------------------
+
+    def observe(self, timestamp_ms: int) -> None:
+        """One valid message's edge timestamp, in arrival order (duplicates and late ones included)."""
+        if timestamp_ms in self._recent_set:
+            self.duplicates += 1
+            return
+        recent = self._recent
+        if len(recent) == recent.maxlen:
+            self._recent_set.discard(recent[0])
+        recent.append(timestamp_ms)
+        self._recent_set.add(timestamp_ms)
+        self.received += 1
+
+        first = self._first
+        if first is None:
+            self._open(timestamp_ms)
+        elif timestamp_ms > self._last:
+            gap = timestamp_ms - self._last
+            self._last = timestamp_ms
+            if gap > self._outage_ms:
+                self._open(timestamp_ms)  # a pause (the arm was off), not loss
+            else:
+                self._count_gap(gap)
+        elif self._last - timestamp_ms > self._reorder_ms:
+            self._open(timestamp_ms)  # the edge clock jumped back: a new timeline
+        elif timestamp_ms > first:
+            self._missing -= 1  # late: it fills a hole an earlier gap counted
+        else:
+            # Late and older than anything in this segment: the segment reaches back to it.
+            self._first = timestamp_ms
+            self._count_gap(first - timestamp_ms)
+        self._sample_window()
+
+    def record_rejected(self) -> None:
+        """A message for this device arrived but was rejected: its sample is not lost in transit."""
+        self.rejected += 1
+
+    def _open(self, timestamp_ms: int) -> None:
+        self._first = self._last = timestamp_ms
+        self.segments += 1
+
+    def _count_gap(self, gap: int) -> None:
+        self._gaps.append(gap)
+        self._new_gaps += 1
+        period = self._period_ms
+        missing = 0 if period is None else max(0, round(gap / period) - 1)
+        early = self._early
+        if early is not None:
+            early.append(gap)
+            self._early_missing += missing
+            if len(early) & (len(early) - 1) == 0 or len(self._gaps) == GAP_HISTORY:
+                self._reestimate()
+            return
+        self._missing += missing
+        if self._new_gaps >= GAP_HISTORY:
+            self._reestimate()
+
+    def _reestimate(self) -> None:
+        self._new_gaps = 0
+        period = estimate_period_ms(self._gaps, self._nominal_ms)
+        old = self._period_ms
+        early = self._early
+        if (
+            early is None
+            and period is not None
+            and old is not None
+            and abs(period - old) <= PERIOD_CHANGE * old
+        ):
+            # Settled: average the windows, since 64 jittery gaps pin the period to about a percent only.
+            period = old + PERIOD_SMOOTHING * (period - old)
+        if period is not None:  # gaps that fit nothing (an irregular or stalled edge) keep the last period
+            self._period_ms = period
+        if early is not None:
+            p = self._period_ms
+            self._early_missing = 0 if p is None else sum(max(0, round(g / p) - 1) for g in early)
+            if len(self._gaps) == GAP_HISTORY:
+                # The estimate rests on a full history: settle the early gaps, count the rest as they come.
+                self._missing += self._early_missing
+                self._early_missing = 0
+                self._early = None
+        elif period is not None and old is not None and abs(period - old) > PERIOD_CHANGE * old:
+            # The edge's rate changed: the newest gaps that fit the new period came after the change and
+            # were counted with the old one; count them again.
+            for gap in reversed(self._gaps):
+                if not _fits(gap, period):
+                    break
+                self._missing += max(0, round(gap / period) - 1) - max(0, round(gap / old) - 1)
+
+    # -- readings -------------------------------------------------------------------------------------------
+
+    @property
+    def period_s(self) -> float | None:
+        """The estimated sampling period, or None until gaps fit one."""
+        return None if self._period_ms is None else self._period_ms / 1000.0
+
+    @property
+    def lost(self) -> int:
+        """Samples estimated missing, less those that arrived and were rejected."""
+        return max(0, self._missing + self._early_missing - self.rejected)
+
+    def _sample_window(self) -> None:
+        now = self._clock()
+        window = self._window
+        if not window or now - window[-1][0] >= WINDOW_BUCKET_S:
+            window.append((now, self.received, self.lost))
+            horizon = now - self._window_s - WINDOW_BUCKET_S
+            while len(window) > 2 and window[1][0] <= horizon:
+                window.popleft()
+
+    def recent(self, now: float | None = None) -> tuple[int, int]:
+        """(received, lost) over the last `window_s` seconds (at WINDOW_BUCKET_S resolution)."""
+        now = self._clock() if now is None else now
+        horizon = now - self._window_s
+        base = None
+        for sample in self._window:
+            if sample[0] >= horizon:
+                base = sample
+                break
+        if base is None:
+            return 0, 0
+        return self.received - base[1], max(0, self.lost - base[2])
+
+    def snapshot(self, now: float | None = None) -> dict[str, Any]:
+        """A JSON-ready view for /state and /metrics."""
+        received, lost = self.received, self.lost
+        recent_received, recent_lost = self.recent(now)
+        recent_expected = recent_received + recent_lost
+        recent_ratio = recent_lost / recent_expected if recent_expected else 0.0
+        return {
+            "period_s": self.period_s,
+            "received": received,
+            "lost": lost,
+            "loss_ratio": lost / (received + lost) if received + lost else 0.0,
+            "recent_lost": recent_lost,
+            "recent_loss_ratio": recent_ratio,
+            "losing": recent_lost >= LOSING_MIN_LOST and recent_ratio >= LOSING_RATIO,
+            "duplicates": self.duplicates,
+            "segments": self.segments,
+        }
+
+
+def fleet_loss(devices: Iterable[DeviceLoss], now: float | None = None) -> dict[str, Any]:
+    """The fleet's totals: lost / (received + lost) over every device, and the devices losing data now."""
+    received = lost = losing = 0
+    for device in devices:
+        snap = device.snapshot(now)
+        received += snap["received"]
+        lost += snap["lost"]
+        losing += 1 if snap["losing"] else 0
+    return {
+        "received": received,
+        "lost": lost,
+        "loss_ratio": lost / (received + lost) if received + lost else 0.0,
+        "devices_losing": losing,
+    }
