@@ -1,0 +1,379 @@
+"""A loopback MQTT proxy that enforces a per-connection publish budget the way AWS IoT Core does.
+
+IoT Core accepts at most 100 PUBLISH requests per second on one connection, inbound plus outbound, and
+discards the excess without telling anyone (aws-facts.md section 3, "IoT Core quotas"). That binds a
+subscriber too: one connection subscribed to a fleet receives at most 100 messages a second. mosquitto has
+no such limit, so tests and `twin bench quota` put this proxy between the clients and mosquitto: each client
+connection gets its own upstream connection, every MQTT packet is forwarded whole, and a PUBLISH that finds
+its connection's budget spent is dropped and counted for that connection and direction.
+
+The budget is a token bucket per connection: `budget` tokens a second, holding at most `budget * burst_s`
+(IoT Core does not document its algorithm; a one-second bucket is the simplest reading of "per second"). Both
+directions draw from the same bucket, as IoT Core counts inbound plus outbound. Only PUBLISH packets are
+metered; CONNECT, SUBSCRIBE, PINGREQ and the acknowledgements always pass. The project publishes telemetry at
+QoS 0; a dropped QoS 1 PUBLISH would be redelivered by its sender, which this proxy does not model.
+
+Packets are framed by the MQTT fixed header (packet type, then the remaining length as a variable-byte
+integer), which MQTT 3.1.1 and 5 share; the CONNECT packet is read far enough to label a connection with its
+client id. For tests and benchmarks only: it listens on loopback, forwards to loopback, and runs its own
+asyncio loop in a background thread.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import ipaddress
+import logging
+import socket
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+PUBLISH = 3
+CONNECT = 1
+# The variable-byte remaining length has at most four bytes (MQTT 3.1.1 2.2.3, MQTT 5 1.5.5).
+_MAX_LENGTH_BYTES = 4
+_READ_CHUNK = 1 << 16
+
+
+class ProxyError(ValueError):
+    """A proxy setting is not usable; the message says which and what to use instead."""
+
+
+@dataclass
+class ConnectionStats:
+    """Counts for one client connection; `to_broker` is the client's direction, `to_client` the broker's."""
+
+    number: int
+    client_id: str = ""
+    open: bool = True
+    forwarded_to_broker: int = 0
+    forwarded_to_client: int = 0
+    dropped_to_broker: int = 0
+    dropped_to_client: int = 0
+
+    @property
+    def dropped(self) -> int:
+        return self.dropped_to_broker + self.dropped_to_client
+
+    @property
+    def forwarded(self) -> int:
+        return self.forwarded_to_broker + self.forwarded_to_client
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "number": self.number,
+            "client_id": self.client_id,
+            "open": self.open,
+            "forwarded_to_broker": self.forwarded_to_broker,
+            "forwarded_to_client": self.forwarded_to_client,
+            "dropped_to_broker": self.dropped_to_broker,
+            "dropped_to_client": self.dropped_to_client,
+        }
+
+
+class TokenBucket:
+    """`rate` tokens a second, at most `capacity` held; starts full. `clock` is injectable for tests."""
+
+    def __init__(self, rate: float, capacity: float, clock: Callable[[], float] = time.monotonic) -> None:
+        self.rate = rate
+        self.capacity = capacity
+        self._clock = clock
+        self._tokens = capacity
+        self._stamp = clock()
+
+    def take(self) -> bool:
+        now = self._clock()
+        self._tokens = min(self.capacity, self._tokens + (now - self._stamp) * self.rate)
+        self._stamp = now
+        if self._tokens >= 1.0:
+            self._tokens -= 1.0
+            return True
+        return False
+
+
+def split_packets(buffer: bytearray) -> tuple[list[tuple[int, bytes]], int]:
+    """Complete MQTT packets at the start of `buffer`: ([(packet type, packet bytes)], bytes consumed).
+
+    Raises ValueError on a remaining length longer than four bytes (not MQTT)."""
+    packets = []
+    pos = 0
+    end = len(buffer)
+    while pos + 2 <= end:
+        length = 0
+        shift = 0
+        i = pos + 1
+        while True:
+            if i >= end:
+                return packets, pos  # the length itself is not complete yet
+            byte = buffer[i]
+            length |= (byte & 0x7F) << shift
+            i += 1
+            if not byte & 0x80:
+                break
+            shift += 7
+            if i - pos - 1 >= _MAX_LENGTH_BYTES:
+                raise ValueError("MQTT remaining length longer than four bytes: not an MQTT stream")
+        if i + length > end:
+            return packets, pos
+        packets.append((buffer[pos] >> 4, bytes(buffer[pos : i + length])))
+        pos = i + length
+    return packets, pos
+
+
+def connect_client_id(packet: bytes) -> str:
+    """The client id of an MQTT 3.1.1 or 5 CONNECT packet, or "" if it cannot be read."""
+    try:
+        i = 1
+        while packet[i] & 0x80:  # skip the remaining length
+            i += 1
+        i += 1
+        name_len = int.from_bytes(packet[i : i + 2], "big")
+        i += 2 + name_len
+        level = packet[i]
+        i += 1 + 1 + 2  # level, flags, keep alive
+        if level == 5:
+            props, shift = 0, 0
+            while True:  # properties length, a variable-byte integer
+                byte = packet[i]
+                i += 1
+                props |= (byte & 0x7F) << shift
+                shift += 7
+                if not byte & 0x80:
+                    break
+            i += props
+        id_len = int.from_bytes(packet[i : i + 2], "big")
+        return packet[i + 2 : i + 2 + id_len].decode("utf-8", "replace")
+    except (IndexError, ValueError):
+        return ""
+
+
+def _require_loopback(what: str, host: str) -> None:
+    try:
+        loopback = ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        loopback = host == "localhost"
+    if not loopback:
+        raise ProxyError(
+            f"{what} {host!r} is not a loopback address; the quota proxy is for local tests: use 127.0.0.1"
+        )
+
+
+class QuotaProxy:
+    """Forwards MQTT from 127.0.0.1:`port` to `upstream_host:upstream_port`, dropping PUBLISH packets over
+    `budget` per second per connection (None: no limit, a plain proxy). `start()` returns once listening."""
+
+    def __init__(
+        self,
+        upstream_host: str,
+        upstream_port: int,
+        *,
+        budget: float | None = 100.0,
+        burst_s: float = 1.0,
+        listen_host: str = "127.0.0.1",
+        listen_port: int = 0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        _require_loopback("upstream host", upstream_host)
+        _require_loopback("listen host", listen_host)
+        if budget is not None and not budget > 0:
+            raise ProxyError(f"budget {budget!r} must be a positive number of publishes per second (or None)")
+        if not burst_s > 0:
+            raise ProxyError(f"burst_s {burst_s!r} must be positive")
+        self.upstream = (upstream_host, upstream_port)
+        self.budget = budget
+        self.burst_s = burst_s
+        self._listen = (listen_host, listen_port)
+        self._clock = clock
+        self._connections: list[ConnectionStats] = []
+        self._lock = threading.Lock()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._server: asyncio.AbstractServer | None = None
+        self._thread: threading.Thread | None = None
+        self._ready = threading.Event()
+        self._shutdown: asyncio.Event | None = None
+        self._error: BaseException | None = None
+        self.port = 0
+
+    # -- lifecycle ------------------------------------------------------------------------------------------
+
+    def start(self, timeout: float = 10.0) -> QuotaProxy:
+        if self._thread is not None:
+            return self
+        self._thread = threading.Thread(target=self._run, name="quota-proxy", daemon=True)
+        self._thread.start()
+        if not self._ready.wait(timeout):
+            raise RuntimeError(f"the quota proxy did not start listening within {timeout} s")
+        if self._error is not None:
+            raise RuntimeError(f"the quota proxy could not start: {self._error}") from self._error
+        log.info(
+            "quota proxy 127.0.0.1:%d -> %s:%d, %s publishes/s per connection",
+            self.port,
+            *self.upstream,
+            "unlimited" if self.budget is None else f"{self.budget:g}",
+        )
+        return self
+
+    def stop(self, timeout: float = 5.0) -> None:
+        loop, thread = self._loop, self._thread
+        if loop is None or thread is None:
+            return
+        shutdown = self._shutdown
+        if shutdown is not None:
+            with contextlib.suppress(RuntimeError):  # the loop already ended
+                loop.call_soon_threadsafe(shutdown.set)
+        thread.join(timeout)
+        self._thread = None
+
+    def __enter__(self) -> QuotaProxy:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    @property
+    def url(self) -> str:
+        return f"mqtt://127.0.0.1:{self.port}"
+
+    # -- figures --------------------------------------------------------------------------------------------
+
+    def connections(self) -> list[ConnectionStats]:
+        """A copy of every connection's counts so far, in the order they connected (closed ones included)."""
+        with self._lock:
+            return [ConnectionStats(**vars(c)) for c in self._connections]
+
+    def totals(self) -> dict[str, Any]:
+        conns = self.connections()
+        return {
+            "budget_per_connection": self.budget,
+            "connections": len(conns),
+            "forwarded": sum(c.forwarded for c in conns),
+            "dropped": sum(c.dropped for c in conns),
+            "dropped_to_client": sum(c.dropped_to_client for c in conns),
+            "dropped_to_broker": sum(c.dropped_to_broker for c in conns),
+            "per_connection": [c.as_dict() for c in conns],
+        }
+
+    # -- the loop thread ------------------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        try:
+            asyncio.run(self._main())
+        except BaseException as exc:  # reported to start(), or logged if it happens later
+            self._error = exc
+            self._ready.set()
+            log.exception("quota proxy stopped on an error")
+
+    async def _main(self) -> None:
+        shutdown = self._shutdown = asyncio.Event()
+        self._loop = asyncio.get_running_loop()
+        tasks: set[asyncio.Task[None]] = set()
+
+        async def on_client(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+            task = asyncio.current_task()
+            if task is not None:
+                tasks.add(task)
+            try:
+                await self._serve(reader, writer)
+            finally:
+                if task is not None:
+                    tasks.discard(task)
+
+        server = await asyncio.start_server(on_client, *self._listen)
+        self.port = server.sockets[0].getsockname()[1]
+        self._ready.set()
+        async with server:
+            await shutdown.wait()
+            server.close()
+            for task in list(tasks):
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+
+    async def _serve(self, client_reader: asyncio.StreamReader, client_writer: asyncio.StreamWriter) -> None:
+        with self._lock:
+            stats = ConnectionStats(number=len(self._connections) + 1)
+            self._connections.append(stats)
+        _nodelay(client_writer)
+        try:
+            broker_reader, broker_writer = await asyncio.open_connection(*self.upstream)
+        except OSError as exc:
+            log.warning("quota proxy: cannot reach the broker at %s:%d: %s", *self.upstream, exc)
+            stats.open = False
+            client_writer.close()
+            return
+        _nodelay(broker_writer)
+        bucket = None
+        if self.budget is not None:
+            bucket = TokenBucket(self.budget, self.budget * self.burst_s, self._clock)
+        upstream = asyncio.create_task(
+            self._pump(client_reader, broker_writer, bucket, stats, to_broker=True)
+        )
+        downstream = asyncio.create_task(
+            self._pump(broker_reader, client_writer, bucket, stats, to_broker=False)
+        )
+        try:
+            # Either side hanging up ends the connection, as a broker closing its socket would.
+            await asyncio.wait({upstream, downstream}, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for task in (upstream, downstream):
+                task.cancel()
+            await asyncio.gather(upstream, downstream, return_exceptions=True)
+            for writer in (client_writer, broker_writer):
+                writer.close()
+                with contextlib.suppress(Exception):
+                    await writer.wait_closed()
+            stats.open = False
+
+    async def _pump(
+        self,
+        reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+        bucket: TokenBucket | None,
+        stats: ConnectionStats,
+        *,
+        to_broker: bool,
+    ) -> None:
+        buffer = bytearray()
+        while True:
+            chunk = await reader.read(_READ_CHUNK)
+            if not chunk:
+                return
+            buffer += chunk
+            try:
+                packets, used = split_packets(buffer)
+            except ValueError as exc:
+                log.warning("quota proxy: connection %d: %s; closing it", stats.number, exc)
+                return
+            del buffer[:used]
+            out = []
+            for kind, packet in packets:
+                if kind == CONNECT and to_broker and not stats.client_id:
+                    stats.client_id = connect_client_id(packet)
+                if kind == PUBLISH:
+                    if bucket is not None and not bucket.take():
+                        if to_broker:
+                            stats.dropped_to_broker += 1
+                        else:
+                            stats.dropped_to_client += 1
+                        continue
+                    if to_broker:
+                        stats.forwarded_to_broker += 1
+                    else:
+                        stats.forwarded_to_client += 1
+                out.append(packet)
+            if out:
+                writer.write(b"".join(out))
+                await writer.drain()
+
+
+def _nodelay(writer: asyncio.StreamWriter) -> None:
+    # Small telemetry packets must not wait for Nagle's algorithm (the private broker sets it too).
+    sock = writer.get_extra_info("socket")
+    if sock is not None:
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)

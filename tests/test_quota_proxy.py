@@ -1,0 +1,194 @@
+"""The quota proxy: MQTT framing, the token bucket, and the budget enforced both ways against a real mosquitto
+and the real awscrt client (what the fleet tests and `twin bench quota` rely on)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any
+
+import pytest
+from awscrt import mqtt5
+from twin.tools.mosquitto import MosquittoBroker
+from twin.tools.quota_proxy import (
+    ProxyError,
+    QuotaProxy,
+    TokenBucket,
+    connect_client_id,
+    split_packets,
+)
+from twin.transport.subscriber import BrokerConfig, TelemetrySubscriber, build_mqtt5_client
+
+# --- framing (pure) -----------------------------------------------------------------------------------------
+
+
+def _packet(kind: int, body: bytes, flags: int = 0) -> bytes:
+    length, encoded = len(body), bytearray()
+    while True:
+        byte, length = length & 0x7F, length >> 7
+        encoded.append(byte | (0x80 if length else 0))
+        if not length:
+            break
+    return bytes([kind << 4 | flags]) + bytes(encoded) + body
+
+
+def test_split_packets_handles_fragments_and_long_lengths() -> None:
+    small = _packet(3, b"x" * 5)
+    large = _packet(3, b"y" * 20_000)  # a three-byte remaining length
+    ping = _packet(12, b"")
+    stream = small + large + ping
+    for cut in (1, 2, 3, len(small) + 2, len(small) + 4, len(stream) - 1):
+        buffer = bytearray(stream[:cut])
+        first, used = split_packets(buffer)
+        del buffer[:used]
+        buffer += stream[cut:]
+        rest, used2 = split_packets(buffer)
+        assert [p for _, p in first + rest] == [small, large, ping]
+        assert used2 == len(buffer)
+    assert [k for k, _ in split_packets(bytearray(stream))[0]] == [3, 3, 12]
+
+
+def test_split_packets_refuses_a_non_mqtt_stream() -> None:
+    with pytest.raises(ValueError, match="not an MQTT stream"):
+        split_packets(bytearray(b"\x30\xff\xff\xff\xff\x01"))
+
+
+def _connect(level: int, client_id: str, properties: bytes = b"") -> bytes:
+    body = b"\x00\x04MQTT" + bytes([level, 0x02]) + b"\x00\x3c"
+    if level == 5:
+        body += bytes([len(properties)]) + properties
+    body += len(client_id).to_bytes(2, "big") + client_id.encode()
+    return _packet(1, body)
+
+
+def test_connect_client_id_of_both_protocol_versions() -> None:
+    assert connect_client_id(_connect(4, "agent-311")) == "agent-311"
+    # MQTT 5: a session-expiry property (0x11, four bytes) sits between the header and the payload.
+    assert connect_client_id(_connect(5, "agent-5", b"\x11\x00\x00\x00\x3c")) == "agent-5"
+    assert connect_client_id(b"\x10\x02\x00") == ""
+
+
+def test_token_bucket_allows_the_budget_per_second() -> None:
+    now = [0.0]
+    bucket = TokenBucket(rate=100, capacity=100, clock=lambda: now[0])
+    assert sum(bucket.take() for _ in range(150)) == 100  # a full bucket, then nothing
+    now[0] = 0.5
+    assert sum(bucket.take() for _ in range(150)) == 50
+    now[0] = 10.0
+    assert sum(bucket.take() for _ in range(500)) == 100  # never more than the capacity
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "needle"),
+    [
+        ({"upstream_host": "10.0.0.1"}, "not a loopback address"),
+        ({"listen_host": "0.0.0.0"}, "not a loopback address"),
+        ({"budget": 0}, "positive number"),
+        ({"burst_s": 0}, "burst_s"),
+    ],
+)
+def test_bad_settings_are_refused(kwargs: dict[str, Any], needle: str) -> None:
+    args = {"upstream_host": "127.0.0.1", "upstream_port": 1883, **kwargs}
+    with pytest.raises(ProxyError, match=needle):
+        QuotaProxy(args.pop("upstream_host"), args.pop("upstream_port"), **args)
+
+
+# --- against mosquitto --------------------------------------------------------------------------------------
+
+TOPIC = "dt/lerobot/arm-001/telemetry"
+
+
+def _publish(url: str, count: int, rate: float) -> None:
+    """`count` QoS 0 publishes on one connection at `rate` per second."""
+    connected, stopped = threading.Event(), threading.Event()
+    client = build_mqtt5_client(
+        BrokerConfig(url=url, client_id_prefix="proxy-test-pub-"),
+        "proxy-test-pub",
+        on_connection_success=lambda _d: connected.set(),
+        on_stopped=lambda _d: stopped.set(),
+    )
+    client.start()
+    assert connected.wait(10)
+    start = time.monotonic()
+    for i in range(count):
+        delay = start + i / rate - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        client.publish(mqtt5.PublishPacket(topic=TOPIC, payload=b"%d" % i, qos=mqtt5.QoS.AT_MOST_ONCE))
+    time.sleep(0.5)  # let the last QoS 0 packets reach the socket
+    client.stop()
+    stopped.wait(5)
+
+
+def _subscriber(url: str) -> tuple[TelemetrySubscriber, list[bytes]]:
+    received: list[bytes] = []
+    sub = TelemetrySubscriber(
+        BrokerConfig(url=url, client_id_prefix="proxy-test-sub-"),
+        [TOPIC],
+        lambda _t, payload, _r: received.append(payload),
+        client_id="proxy-test-sub",
+    )
+    sub.start()
+    assert sub.wait_subscribed(10)
+    return sub, received
+
+
+def _settle(received: list[bytes], quiet_s: float = 0.5, timeout: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout
+    last = -1
+    while time.monotonic() < deadline and len(received) != last:
+        last = len(received)
+        time.sleep(quiet_s)
+
+
+@pytest.mark.slow
+def test_a_publisher_over_budget_loses_the_excess(mosquitto: MosquittoBroker) -> None:
+    with QuotaProxy("127.0.0.1", mosquitto.port, budget=100) as proxy:
+        sub, received = _subscriber(mosquitto.url)  # directly on the broker: sees what got through
+        try:
+            _publish(proxy.url, count=600, rate=300.0)  # 2 s at three times the budget
+            _settle(received)
+        finally:
+            sub.stop()
+        totals = proxy.totals()
+    (conn,) = totals["per_connection"]
+    assert conn["client_id"] == "proxy-test-pub"
+    assert conn["forwarded_to_broker"] + conn["dropped_to_broker"] == 600
+    assert conn["forwarded_to_broker"] == len(received)
+    # A full bucket (100) plus 100 a second for the ~2 s of publishing.
+    assert 260 <= len(received) <= 360, len(received)
+    assert conn["dropped_to_client"] == 0
+
+
+@pytest.mark.slow
+def test_a_subscriber_over_budget_receives_at_most_its_budget(mosquitto: MosquittoBroker) -> None:
+    with QuotaProxy("127.0.0.1", mosquitto.port, budget=100) as proxy:
+        sub, received = _subscriber(proxy.url)  # the subscriber's inbound direction is metered too
+        try:
+            _publish(mosquitto.url, count=600, rate=300.0)
+            _settle(received)
+        finally:
+            sub.stop()
+        totals = proxy.totals()
+    (conn,) = totals["per_connection"]
+    assert conn["client_id"] == "proxy-test-sub"
+    assert conn["forwarded_to_client"] == len(received)
+    assert conn["forwarded_to_client"] + conn["dropped_to_client"] == 600
+    assert 260 <= len(received) <= 360, len(received)
+    assert totals["dropped"] == conn["dropped_to_client"]
+
+
+@pytest.mark.slow
+def test_under_budget_everything_passes_and_unlimited_is_a_plain_proxy(mosquitto: MosquittoBroker) -> None:
+    for budget in (100, None):
+        with QuotaProxy("127.0.0.1", mosquitto.port, budget=budget) as proxy:
+            sub, received = _subscriber(proxy.url)
+            try:
+                _publish(proxy.url, count=90 if budget else 900, rate=90.0 if budget else 900.0)
+                _settle(received)
+            finally:
+                sub.stop()
+            totals = proxy.totals()
+        assert totals["dropped"] == 0
+        assert len(received) == (90 if budget else 900)
+        assert totals["connections"] == 2
