@@ -9,11 +9,17 @@ Ordering is by the edge timestamp, per device: a message not newer than the last
 counted, so MQTT duplicates and late deliveries never move the twin backwards. (The edge clock may jump: a
 jump forward is followed, a jump backward is ignored until the clock catches up; health checks surface it.)
 
-For every applied message the twin also computes the model's joint torques for the measured pose by inverse
-dynamics with zero velocity and acceleration: the torque each servo must exert to hold that pose against
+For the measured pose the twin also computes the model's joint torques by inverse dynamics with zero velocity
+and acceleration: the torque each servo must exert to hold that pose against
 gravity. It runs on a copy of the model with constraints disabled, because a resting pose that the model puts
 a few mm into the floor would otherwise add a penetration force that measures the model's error, not the arm.
 The service compares it with the servos' reported load (which drops when the arm rests on something).
+
+Forward kinematics (the TCP position) and inverse dynamics are computed when someone reads them, not for
+every message: a 10 Hz arm read by a 1 Hz scrape costs one computation a second instead of ten, and a fleet
+mirrored at 20,000 messages a second spends its time on what is read. A snapshot carries the pose it was taken
+at and computes both on first access, in the reading thread's own MuJoCo workspace (RobotModel.workspace is
+per thread), at most once.
 
 Threading: a DeviceTwin is owned by one thread, the service's worker, which alone calls `apply`, `step` and
 the other methods. Other threads (HTTP, viewer, recorder) never touch it; the owner hands them `snapshot()`
@@ -25,7 +31,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import StrEnum
 
 import mujoco
@@ -41,20 +47,88 @@ class TwinMode(StrEnum):
     PHYSICS = "physics"
 
 
+class _Figures:
+    """TCP position and holding torques of one pose, computed at most once, in whichever thread asks first
+    (a race computes the same values twice; either result is kept)."""
+
+    __slots__ = ("_pose", "_robot", "_tcp", "_torques")
+
+    def __init__(
+        self,
+        robot: RobotModel,
+        pose: tuple[float, ...],
+        tcp: tuple[float, float, float] | None = None,
+        torques: dict[str, float] | None = None,
+    ) -> None:
+        self._robot = robot
+        self._pose = pose
+        self._tcp = tcp
+        self._torques = torques
+
+    def _write(self, data: mujoco.MjData) -> None:
+        qpos = data.qpos
+        robot = self._robot
+        for name, value in zip(robot.joint_names, self._pose, strict=True):
+            qpos[robot.qpos_addr[name]] = value
+
+    @property
+    def tcp(self) -> tuple[float, float, float]:
+        tcp = self._tcp
+        if tcp is None:
+            robot = self._robot
+            data = robot.workspace()[0]
+            self._write(data)
+            mujoco.mj_kinematics(robot.model, data)
+            tcp = self._tcp = _tcp_of(robot, data)
+        return tcp
+
+    @property
+    def torques(self) -> dict[str, float]:
+        torques = self._torques
+        if torques is None:
+            robot = self._robot
+            scratch = robot.workspace()[1]
+            self._write(scratch)
+            # qvel and qacc stay zero (mj_inverse only reads them), leaving the gravity term: the holding
+            # torque.
+            mujoco.mj_inverse(robot.inverse_model, scratch)
+            forces = scratch.qfrc_inverse
+            torques = self._torques = {n: float(forces[robot.dof_addr[n]]) for n in robot.joint_names}
+        return torques
+
+
+def _tcp_of(robot: RobotModel, data: mujoco.MjData) -> tuple[float, float, float]:
+    if robot.tcp_site_id is not None:
+        x, y, z = data.site_xpos[robot.tcp_site_id]
+    else:
+        x, y, z = data.xpos[robot.tcp_body_id]
+    return (float(x), float(y), float(z))
+
+
 @dataclass(frozen=True, slots=True)
 class TwinSnapshot:
-    """One device's twin state at one moment; the dicts are fresh copies owned by the snapshot."""
+    """One device's twin state at one moment; the dicts are fresh copies owned by the snapshot.
+
+    `joint_torques` and `tcp_position` are computed on first access (module doc)."""
 
     device_id: str
     timestamp_ms: int | None
     joint_angles: dict[str, float]
     targets: dict[str, float]
-    joint_torques: dict[str, float]
-    tcp_position: tuple[float, float, float]
+    figures: _Figures = field(repr=False, compare=False)
     mode: TwinMode = TwinMode.KINEMATIC
     applied: int = 0
     ignored_stale: int = 0
     clamped: int = 0
+
+    @property
+    def joint_torques(self) -> dict[str, float]:
+        """Inverse-dynamics holding torque (N m) per joint of the measured pose (a fresh copy)."""
+        return dict(self.figures.torques)
+
+    @property
+    def tcp_position(self) -> tuple[float, float, float]:
+        return self.figures.tcp
 
 
 class DeviceTwin:
@@ -83,8 +157,8 @@ class DeviceTwin:
             min(max(float(model.qpos0[a]), lo), hi)
             for a, lo, hi in zip(self._qadr, self._lo, self._hi, strict=True)
         ]
-        self._torques: list[float] = [0.0] * model.nv
-        self._tcp = (0.0, 0.0, 0.0)
+        self._tcp: tuple[float, float, float] | None = None  # physics: of the simulated state
+        self._figures: _Figures | None = None  # of the current targets, once computed
         self._sim_debt = 0.0
         self.last_timestamp_ms: int | None = None
         self.applied = 0
@@ -94,10 +168,7 @@ class DeviceTwin:
             self._write_pose(self._own_data, self._targets)
             self._write_ctrl(self._targets)
             mujoco.mj_forward(model, self._own_data)
-            self._tcp = self._tcp_of(self._own_data)
-        else:
-            self._tcp = self._tcp_of(self._kinematics())
-        self._inverse_dynamics()
+            self._tcp = _tcp_of(robot, self._own_data)
 
     @property
     def data(self) -> mujoco.MjData:
@@ -117,13 +188,11 @@ class DeviceTwin:
         mujoco.mj_kinematics(self.robot.model, data)
         return data
 
-    def _tcp_of(self, data: mujoco.MjData) -> tuple[float, float, float]:
-        robot = self.robot
-        if robot.tcp_site_id is not None:
-            x, y, z = data.site_xpos[robot.tcp_site_id]
-        else:
-            x, y, z = data.xpos[robot.tcp_body_id]
-        return (float(x), float(y), float(z))
+    def _current_figures(self) -> _Figures:
+        figures = self._figures
+        if figures is None:
+            figures = self._figures = _Figures(self.robot, tuple(self._targets), tcp=self._tcp)
+        return figures
 
     # -- hot path -------------------------------------------------------------------------------------------
 
@@ -159,18 +228,16 @@ class DeviceTwin:
             targets[i] = value
         self._targets = targets
         self.clamped += clamped
+        self._figures = None  # computed when read
         own = self._own_data
-        if own is None:
-            self._tcp = self._tcp_of(self._kinematics())
-        else:
+        if own is not None:
             if last is None:
                 # Start the simulation at the first measured pose instead of swinging there from qpos0.
                 self._write_pose(own, targets)
                 own.qvel[:] = 0.0
                 mujoco.mj_forward(self.robot.model, own)
-                self._tcp = self._tcp_of(own)
+                self._tcp = _tcp_of(self.robot, own)
             self._write_ctrl(targets)
-        self._inverse_dynamics()
         self.last_timestamp_ms = timestamp_ms
         self.applied += 1
         return True
@@ -184,13 +251,6 @@ class DeviceTwin:
         ctrl = self._own_data.ctrl
         for act, value in zip(self._act, values, strict=True):
             ctrl[act] = value
-
-    def _inverse_dynamics(self) -> None:
-        scratch = self.robot.workspace()[1]
-        self._write_pose(scratch, self._targets)
-        # qvel and qacc stay zero (mj_inverse only reads them), leaving the gravity term: the holding torque.
-        mujoco.mj_inverse(self.robot.inverse_model, scratch)
-        self._torques = scratch.qfrc_inverse.tolist()
 
     # -- simulation -----------------------------------------------------------------------------------------
 
@@ -217,7 +277,8 @@ class DeviceTwin:
             mujoco.mj_step(model, data)
         # mj_step leaves positions from before its final integration; refresh them for readers and renderers.
         mujoco.mj_kinematics(model, data)
-        self._tcp = self._tcp_of(data)
+        self._tcp = _tcp_of(self.robot, data)
+        self._figures = None
 
     # -- state ----------------------------------------------------------------------------------------------
 
@@ -237,13 +298,12 @@ class DeviceTwin:
     @property
     def joint_torques(self) -> dict[str, float]:
         """Inverse-dynamics holding torque (N m) per joint for the last measured pose."""
-        torques = self._torques
-        return {n: torques[d] for n, d in zip(self._names, self._dadr, strict=True)}
+        return dict(self._current_figures().torques)
 
     @property
     def tcp_position(self) -> np.ndarray:
         """World position (m) of the tool-centre point (the TCP site, or the fallback body origin)."""
-        return np.array(self._tcp)
+        return np.array(self._current_figures().tcp)
 
     def body_poses(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """World position (3,) and orientation quaternion (w, x, y, z) (4,) per body, copies.
@@ -256,15 +316,15 @@ class DeviceTwin:
         return {name: (xpos[bid].copy(), xquat[bid].copy()) for name, bid in self.robot.body_ids.items()}
 
     def snapshot(self) -> TwinSnapshot:
-        """An immutable copy of this twin's state to hand to other threads (call it on the owning thread)."""
-        tcp = self._tcp
+        """An immutable copy of this twin's state to hand to other threads (call it on the owning thread).
+
+        Cheap: no MuJoCo call; the TCP and torques are computed by whoever reads them first."""
         return TwinSnapshot(
             device_id=self.device_id,
             timestamp_ms=self.last_timestamp_ms,
             joint_angles=self.joint_angles,
             targets=self.targets,
-            joint_torques=self.joint_torques,
-            tcp_position=tcp,
+            figures=self._current_figures(),
             mode=self.mode,
             applied=self.applied,
             ignored_stale=self.ignored_stale,
