@@ -28,7 +28,7 @@ client_id_prefix = "so101-twin-"
 ca_file = ""
 [telemetry]
 topic_prefix = "dt/lerobot"
-devices = ["arm-001"]
+devices = ["*"]
 units = "auto"
 calibration = ""
 [twin]
@@ -61,7 +61,10 @@ def test_defaults_match_the_agreed_file(tmp_path: Path) -> None:
 def test_example_config_loads() -> None:
     config = load_config(REPO / "examples" / "agent.toml")
     assert config.http.host == "127.0.0.1"
-    assert config.telemetry.devices == ("arm-001",)
+    # Every key of the example is its default: the whole fleet, IoT Core's own per-connection budget.
+    assert config == AgentConfig()
+    assert config.telemetry.all_devices
+    assert (config.broker.per_connection_limit, config.broker.max_connections) == (0, 8)
     assert config.history == HistorySection()  # the example lists the defaults
     # The example spells out every [rerun] key at its default.
     assert config.rerun == AgentConfig().rerun
@@ -108,6 +111,19 @@ def test_rerun_is_off_unless_saving_or_serving(tmp_path: Path) -> None:
     assert config.rerun.memory_limit == "2GiB"
     # `twin run` passes None for flags it was not given: the file's value stays.
     assert load_config(write(tmp_path, "[rerun]\nserve = true\n"), {"rerun.serve": None}).rerun.serve
+
+
+@pytest.mark.parametrize(
+    ("values", "needle"),
+    [
+        ({"broker.per_connection_limit": -1}, "per_connection_limit"),
+        ({"broker.max_connections": 0}, "max_connections"),
+        ({"broker.max_connections": 65}, "max_connections"),
+    ],
+)
+def test_pool_settings_are_checked(values: dict[str, object], needle: str) -> None:
+    with pytest.raises(ConfigError, match=needle):
+        load_config(None, values)
 
 
 def test_values_and_derived_properties(tmp_path: Path) -> None:

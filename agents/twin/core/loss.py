@@ -203,8 +203,10 @@ class DeviceLoss:
         self._sample_window()
 
     def record_rejected(self) -> None:
-        """A message for this device arrived but was rejected: its sample is not lost in transit."""
-        self.rejected += 1
+        """A message for this device arrived but was rejected: its sample is not lost in transit. Before the
+        first valid sample there is no hole to fill (units=auto rejects a new arm's first messages)."""
+        if self._first is not None:
+            self.rejected += 1
 
     def _open(self, timestamp_ms: int) -> None:
         self._first = self._last = timestamp_ms

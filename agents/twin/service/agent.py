@@ -2,13 +2,17 @@
 
 Data path and threads (docs/architecture.md draws it):
 
-    CRT event loop --on_message--> LatestValueMailbox (one slot per device, never blocks)
-        --take_all--> worker thread: decode -> admit device -> DeviceTwin.apply (clock-jump check) -> health
-                      -> sinks (USD recording, ...) -> snapshots
+    connection pool (one or more MQTT connections, each under the broker's per-connection budget)
+      --CRT threads: on_message--> InboundQueue (FIFO, bounded, never blocks)
+        --take_all--> worker thread: decode -> loss estimate -> admit device -> DeviceTwin.apply
+                      (clock-jump check) -> health -> sinks (USD recording, ...) -> snapshots
     HTTP threads read the published snapshots and health under one short lock (`state()`, `healthz()`).
 
-The CRT callback only stamps the receive times and drops the message in the mailbox: decoding there would
-stall the client's event loop. The worker owns the decoder (not thread-safe: auto-units state) and every
+The CRT callback only stamps the receive times and appends the message to the queue: decoding there would
+stall the client's event loop. Every message is decoded and counted, in arrival order, before anything is
+coalesced: a garbage message never displaces a good one, and every valid message is applied (the twin
+computes kinematics and dynamics when they are read, so applying costs microseconds).
+The worker owns the decoder (not thread-safe: auto-units state) and every
 DeviceTwin; other threads only see immutable TwinSnapshots and health snapshots. Any exception while handling
 one message is caught, logged (rate-limited) and counted: a bad message never stops the service.
 
@@ -41,6 +45,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 from twin.core.alarms import AlarmEvent, AlarmView, ServoAlarms, Severity
 from twin.core.health import DeviceStatus, FleetHealth, HealthSnapshot
 from twin.core.latency import LatencyHistogram
+from twin.core.loss import DeviceLoss
 from twin.core.telemetry import (
     DecoderConfig,
     JointDiagnostics,
@@ -49,7 +54,7 @@ from twin.core.telemetry import (
     TelemetryRejected,
     Units,
 )
-from twin.core.topics import device_from_topic, topic_filters
+from twin.core.topics import device_from_topic
 from twin.core.twin import DeviceTwin, TwinMode, TwinSnapshot
 from twin.output.emf import EmfFileWriter, EmfPublisher, FleetTotals
 from twin.output.recorder import SessionRecorder
@@ -68,8 +73,10 @@ from twin.service.state import (
     AlarmInfo,
     AlarmsSummary,
     BrokerState,
+    ConnectionState,
     DeviceState,
     FleetLatency,
+    FleetLoss,
     HealthReport,
     HistoryState,
     MailboxState,
@@ -77,8 +84,11 @@ from twin.service.state import (
     ServoState,
     WorkerState,
 )
-from twin.transport.mailbox import LatestValueMailbox
-from twin.transport.subscriber import TelemetrySubscriber
+from twin.service.state import (
+    DeviceLoss as DeviceLossState,
+)
+from twin.transport.mailbox import InboundQueue
+from twin.transport.pool import ConnectionPool, PoolSettings, default_limit
 
 if TYPE_CHECKING:
     # pyarrow and deltalake (~70 MB resident) load only when history is on.
@@ -99,6 +109,9 @@ MAX_PHYSICS_STEP_S = 0.1
 # How often the worker wakes with nothing to do (kinematic mode): bounds the stop latency.
 IDLE_WAKE_S = 0.2
 TOO_MANY_DEVICES = "too_many_devices"
+# The queue between the MQTT threads and the worker holds at most this many messages (about 40 MB of edge
+# payloads); beyond it the oldest are dropped and counted, so a stalled worker cannot exhaust memory.
+MAX_QUEUED_MESSAGES = 50_000
 UNTRACKED_KEY = "\x00untracked"  # mailbox key for topics that carry no device id (cannot collide with one)
 
 
@@ -144,6 +157,7 @@ class _Readout:
     latency: FleetLatency
     servos: dict[str, dict[str, ServoState]]
     alarms: AlarmsSummary
+    loss: dict[str, dict[str, Any]]
 
 
 class AgentService:
@@ -176,7 +190,15 @@ class AgentService:
                 self.robot.require_actuators()
         except ModelError as exc:
             raise ConfigError(f"twin.model = {config.twin.model!r}: {exc}") from exc
-        self.topic_filters = topic_filters(t.topic_prefix, list(t.devices))
+        self._pool_settings = PoolSettings(
+            prefix=t.topic_prefix,
+            devices=tuple(t.devices),
+            rate_hz=config.health.expected_rate_hz,
+            limit=default_limit(config.broker),
+            max_connections=config.broker.max_connections,
+        )
+        self._pool = ConnectionPool(self.broker_config, self._pool_settings, self._on_message, clock=clock)
+        self.topic_filters = self._pool.topic_filters
 
         configured = () if t.all_devices else t.devices
         self._fleet = FleetHealth(config.health, configured, clock=clock)
@@ -189,12 +211,13 @@ class AgentService:
         self._alarms = ServoAlarms(config.alarms)
         self._diagnostics: dict[str, dict[str, JointDiagnostics]] = {}
         self._emf: EmfPublisher | None = None
+        self._loss: dict[str, DeviceLoss] = {}
         self._lock = threading.Lock()
         self._reject_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
         self._error_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
 
-        self._mailbox: LatestValueMailbox[_Inbound] = LatestValueMailbox(max_keys=max(64, 4 * t.max_devices))
-        self._subscriber: TelemetrySubscriber | None = None
+        self._mailbox: InboundQueue[_Inbound] = InboundQueue(max_items=MAX_QUEUED_MESSAGES)
+        self._started_pool = False
         self._http: AgentHttpServer | None = None
         self._recording: RecordingSink | None = None
         self._history: HistorySink | None = None
@@ -295,10 +318,8 @@ class AgentService:
         self._worker = threading.Thread(target=self._work, name="twin-worker", daemon=True)
         self._worker.start()
         self._http.start()
-        self._subscriber = TelemetrySubscriber(
-            self.broker_config, self.topic_filters, self._on_message, clock=self._clock
-        )
-        self._subscriber.start()
+        self._pool.start()
+        self._started_pool = True
         if self._emf is not None:
             self._emf.start()
         log.info(
@@ -327,11 +348,11 @@ class AgentService:
                 return
             self._stopped = True
         log.info("agent stopping")
-        if self._subscriber is not None:
+        if self._started_pool:
             try:
-                self._subscriber.stop(timeout)
+                self._pool.stop(timeout)
             except Exception:
-                log.exception("subscriber stop failed")
+                log.exception("stopping the connection pool failed")
         self._mailbox.close()
         if self._worker is not None:
             # The worker takes what is left, then sees the closed, empty mailbox and returns.
@@ -382,7 +403,7 @@ class AgentService:
         return self._sinks
 
     def wait_subscribed(self, timeout: float) -> bool:
-        return self._subscriber is not None and self._subscriber.wait_subscribed(timeout)
+        return self._started_pool and self._pool.wait_subscribed(timeout)
 
     # ---------------------------------------------------------------------------------- CRT callback thread
 
@@ -425,7 +446,7 @@ class AgentService:
             tracked = self._devices.get(device)
             if tracked is not None:
                 snapshots[device] = tracked.twin.snapshot()
-        overwritten = self._mailbox.overwritten
+        overwritten = self._mailbox.overflowed
         with self._lock:
             self._snapshots.update(snapshots)
             for key in keys:
@@ -475,6 +496,8 @@ class AgentService:
             health = self._fleet.get(topic_device) if topic_device else None
             if health is not None:
                 health.record_received()
+                # It arrived: the hole it leaves in the device's timestamps is not transit loss.
+                self._loss_of(topic_device).record_rejected()
             self._fleet.record_rejected(topic_device, reason)
         self._reject_log.log(
             (topic_device, reason),
@@ -555,6 +578,7 @@ class AgentService:
             health = self._fleet.device(device)
             health.record_received()
             health.record_decoded(item.recv_mono, item.recv_wall, telemetry.timestamp_ms)
+            self._loss_of(device).observe(telemetry.timestamp_ms)
             health.clamped += result.clamped
             if result.reset:
                 health.clock_resets += 1
@@ -591,6 +615,20 @@ class AgentService:
         for event in events:
             _log_alarm_event(event)
         return tuple(events)
+
+    def _loss_of(self, device: str) -> DeviceLoss:
+        """The device's loss estimator (under the lock). Its nominal period is the configured edge rate; a gap
+        longer than the offline time is an outage, not loss."""
+        loss = self._loss.get(device)
+        if loss is None:
+            h = self.config.health
+            loss = self._loss[device] = DeviceLoss(
+                nominal_period_s=1.0 / h.expected_rate_hz,
+                outage_s=h.offline_after_s,
+                window_s=max(h.window_s, 10.0),
+                clock=self._clock,
+            )
+        return loss
 
     def _hand_applied(
         self, telemetry: Telemetry, item: _Inbound, tracked: _Tracked, events: tuple[AlarmEvent, ...] = ()
@@ -659,6 +697,7 @@ class AgentService:
                 ),
                 servos={device: self._servo_states(device) for device in self._diagnostics},
                 alarms=self._alarms_summary(),
+                loss={device: loss.snapshot(now) for device, loss in self._loss.items()},
             )
 
     def _servo_states(self, device: str) -> dict[str, ServoState]:
@@ -756,6 +795,7 @@ class AgentService:
             tcp_position_m=snap.tcp_position if snap else None,
             gripper_percent=readout.gripper.get(device),
             servos=readout.servos.get(device),
+            loss=_device_loss(readout.loss.get(device)),
         )
 
     def _agent_info(self, readout: _Readout) -> AgentInfo:
@@ -772,8 +812,8 @@ class AgentService:
             topic_filters=tuple(self.topic_filters),
             broker=self._broker_state(),
             mailbox=MailboxState(
-                overwritten_total=self._mailbox.overwritten_total,
-                refused_keys=self._mailbox.refused_keys,
+                overwritten_total=self._mailbox.overflowed_total,
+                refused_keys=0,
                 pending=len(self._mailbox),
             ),
             latency=readout.latency,
@@ -787,6 +827,7 @@ class AgentService:
             history=self._history_state(),
             sinks=tuple(sink.stats() for sink in self._sinks),
             alarms=readout.alarms,
+            loss=_fleet_loss(readout.loss.values()),
         )
 
     def _history_state(self) -> HistoryState | None:
@@ -811,20 +852,37 @@ class AgentService:
         )
 
     def _broker_state(self) -> BrokerState:
-        sub = self._subscriber
-        if sub is None:
-            return BrokerState(url=self.config.broker.url)
-        stats = sub.stats
+        limit = self._pool_settings.limit
+        if not self._started_pool:
+            return BrokerState(url=self.config.broker.url, per_connection_limit=limit)
+        infos = self._pool.connections()
+        stats = [c.stats for c in self._pool.subscribers()]
         return BrokerState(
             url=self.config.broker.url,
-            client_id=sub.client_id,
-            connected=sub.connected,
-            connection_successes=stats.connection_successes,
-            connection_failures=stats.connection_failures,
-            disconnections=stats.disconnects,
-            subscribes=stats.subscribes_acked,
-            messages=stats.messages_received,
-            last_error=stats.last_error,
+            client_id=infos[0].client_id if infos else None,
+            connected=self._pool.connected,
+            connection_successes=sum(st.connection_successes for st in stats),
+            connection_failures=sum(st.connection_failures for st in stats),
+            disconnections=sum(st.disconnects for st in stats),
+            subscribes=sum(st.subscribes_acked for st in stats),
+            messages=self._pool.messages,
+            last_error=next((st.last_error for st in stats if st.last_error), ""),
+            per_connection_limit=limit,
+            rate_hz=self._pool.rate_hz,
+            connections=tuple(
+                ConnectionState(
+                    index=c.index,
+                    client_id=c.client_id,
+                    state=c.state,
+                    filters=len(c.filters),
+                    rate_hz=c.rate_hz,
+                    messages=c.messages,
+                    connection_successes=c.connection_successes,
+                    disconnections=c.disconnections,
+                    last_error=c.last_error,
+                )
+                for c in infos
+            ),
         )
 
     def _recording_state(self) -> RecordingState | None:
@@ -846,8 +904,7 @@ class AgentService:
         With devices = ["*"] no device is configured, so only the first two apply: a fleet agent stays healthy
         while individual arms come and go (their status is in /state and /metrics).
         """
-        sub = self._subscriber
-        connected = bool(sub is not None and sub.connected)
+        connected = self._started_pool and self._pool.connected
         running = self.running
         with self._lock:
             statuses = self._fleet.statuses()
@@ -916,4 +973,30 @@ def _log_alarm_event(event: AlarmEvent) -> None:
             "value": event.value,
             "threshold": event.threshold,
         },
+    )
+
+
+def _device_loss(snapshot: dict[str, Any] | None) -> DeviceLossState:
+    if snapshot is None:
+        return DeviceLossState()
+    return DeviceLossState(
+        period_s=snapshot["period_s"],
+        received=snapshot["received"],
+        lost=snapshot["lost"],
+        loss_ratio=snapshot["loss_ratio"],
+        recent_lost=snapshot["recent_lost"],
+        recent_loss_ratio=snapshot["recent_loss_ratio"],
+        losing=snapshot["losing"],
+    )
+
+
+def _fleet_loss(snapshots: Any) -> FleetLoss:
+    received = lost = losing = 0
+    for snap in snapshots:
+        received += snap["received"]
+        lost += snap["lost"]
+        losing += 1 if snap["losing"] else 0
+    expected = received + lost
+    return FleetLoss(
+        received=received, lost=lost, loss_ratio=lost / expected if expected else 0.0, devices_losing=losing
     )

@@ -51,7 +51,8 @@ BrokerSection = BrokerConfig
 @dataclass(frozen=True)
 class TelemetrySection:
     topic_prefix: str = DEFAULT_TOPIC_PREFIX
-    devices: tuple[str, ...] = ("arm-001",)
+    # The whole fleet under the prefix by default: a new user pointing the agent at a broker sees every arm.
+    devices: tuple[str, ...] = (ALL_DEVICES,)
     units: str = "auto"
     calibration: str = ""
     max_payload_bytes: int = MAX_PAYLOAD_BYTES

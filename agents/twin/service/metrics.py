@@ -40,7 +40,7 @@ _MESSAGE_COUNTERS = (
         "ignored_stale",
         "Valid messages ignored because their timestamp was not newer (duplicate or reordered).",
     ),
-    ("overwritten", "Messages replaced in the latest-value mailbox before the worker took them."),
+    ("overwritten", "Messages dropped undecoded because the worker fell a whole queue behind."),
 )
 _SINK_COUNTERS = (
     ("delivered", "Samples a sink handled."),
@@ -73,7 +73,7 @@ def _agent_families(agent: AgentInfo) -> Iterator[Metric]:
         yield _counter(f"twin_broker_{key}_total", help_text, getattr(broker, key))
     yield _counter(
         "twin_mailbox_overwritten_total",
-        "Messages replaced in the mailbox before decoding.",
+        "Messages dropped undecoded because the worker fell a whole queue behind.",
         agent.mailbox.overwritten_total,
     )
     yield _counter(
@@ -118,6 +118,17 @@ def _agent_families(agent: AgentInfo) -> Iterator[Metric]:
         ok.add_metric([], 1.0 if h.storage_ok else 0.0)
         yield ok
     yield from _alarm_families(agent)
+    yield from _pool_families(agent)
+    loss = agent.loss
+    yield _counter(
+        "twin_fleet_messages_lost_total",
+        "Messages estimated lost in transit over every device (gaps in the edge timestamps).",
+        loss.lost,
+    )
+    yield _gauge(
+        "twin_fleet_loss_ratio", "Estimated lost / (received + lost) over every device.", loss.loss_ratio
+    )
+    yield _gauge("twin_fleet_devices_losing", "Devices that lost messages recently.", loss.devices_losing)
 
 
 def _alarm_families(agent: AgentInfo) -> Iterator[Metric]:
@@ -168,6 +179,34 @@ _SERVO_GAUGES = (
         "| |load| - |model load| | in percentage points, while the joint is still.",
     ),
 )
+
+
+def _pool_families(agent: AgentInfo) -> Iterator[Metric]:
+    broker = agent.broker
+    yield _gauge(
+        "twin_broker_per_connection_limit",
+        "Publishes per second one connection may carry (absent: unlimited).",
+        broker.per_connection_limit,
+    )
+    yield _gauge("twin_broker_connections", "Connections in the subscriber pool.", len(broker.connections))
+    labels = ["connection", "client_id"]
+    up = GaugeMetricFamily("twin_connection_up", "1 while this pool connection is connected.", labels=labels)
+    rate = GaugeMetricFamily(
+        "twin_connection_message_rate_hz", "Messages per second received on this connection.", labels=labels
+    )
+    messages = CounterMetricFamily(
+        "twin_connection_messages_total", "Messages received on this connection.", labels=labels
+    )
+    reconnects = CounterMetricFamily(
+        "twin_connection_disconnections_total", "Times this connection was lost.", labels=labels
+    )
+    for c in broker.connections:
+        key = [str(c.index), c.client_id]
+        up.add_metric(key, 1 if c.state == "connected" else 0)
+        rate.add_metric(key, c.rate_hz)
+        messages.add_metric(key, c.messages)
+        reconnects.add_metric(key, c.disconnections)
+    yield from (up, rate, messages, reconnects)
 
 
 class _DeviceFamilies:
@@ -236,6 +275,17 @@ class _DeviceFamilies:
             attr: GaugeMetricFamily(name, help_text, labels=[*dev, "joint"])
             for attr, name, help_text in _SERVO_GAUGES
         }
+        self.lost = CounterMetricFamily(
+            "twin_messages_lost_total",
+            "Messages estimated lost in transit (gaps in the edge timestamps).",
+            labels=dev,
+        )
+        self.loss_ratio = GaugeMetricFamily(
+            "twin_device_loss_ratio", "Estimated lost / (received + lost) since start.", labels=dev
+        )
+        self.losing = GaugeMetricFamily(
+            "twin_device_losing", "1 while the device lost messages recently.", labels=dev
+        )
 
     def add(self, device: str, d: DeviceState) -> None:
         for status in _STATUSES:
@@ -260,6 +310,9 @@ class _DeviceFamilies:
             self.torques.add_metric([device, joint], value)
         for joint, servo in (d.servos or {}).items():
             self._add_servo(device, joint, servo)
+        self.lost.add_metric([device], d.loss.lost)
+        self.loss_ratio.add_metric([device], d.loss.loss_ratio)
+        self.losing.add_metric([device], 1 if d.loss.losing else 0)
 
     def _add_servo(self, device: str, joint: str, servo: ServoState) -> None:
         for attr, family in self.servos.items():
@@ -273,6 +326,7 @@ class _DeviceFamilies:
         yield from (self.rejected, self.errors, self.resets, self.edge_p50, self.edge_p99, self.offset)
         yield from (self.int_p50, self.int_p99, self.joints, self.torques)
         yield from self.servos.values()
+        yield from (self.lost, self.loss_ratio, self.losing)
 
 
 def _maybe(family: GaugeMetricFamily, labels: list[str], value: float | None) -> None:

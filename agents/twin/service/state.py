@@ -28,9 +28,12 @@ __all__ = [
     "AlarmList",
     "AlarmsSummary",
     "BrokerState",
+    "ConnectionState",
     "DeviceCounters",
+    "DeviceLoss",
     "DeviceState",
     "FleetLatency",
+    "FleetLoss",
     "HealthReport",
     "LatencySummary",
     "MailboxState",
@@ -106,6 +109,45 @@ class AlarmsSummary:
     acknowledged_total: dict[str, int] = field(default_factory=dict)
 
 
+@dataclass(frozen=True, slots=True)
+class DeviceLoss:
+    """Messages of one device estimated lost in transit, from the gaps in its edge timestamps
+    (twin.core.loss); `losing` is true while the recent window saw losses (docs/agent.md, "Loss")."""
+
+    period_s: float | None = None
+    received: int = 0
+    lost: int = 0
+    loss_ratio: float = 0.0
+    recent_lost: int = 0
+    recent_loss_ratio: float = 0.0
+    losing: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class FleetLoss:
+    """The fleet's totals: lost / (received + lost) over every device, and how many devices lose data now."""
+
+    received: int = 0
+    lost: int = 0
+    loss_ratio: float = 0.0
+    devices_losing: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class ConnectionState:
+    """One connection of the subscriber pool (twin.transport.pool)."""
+
+    index: int = 0
+    client_id: str = ""
+    state: str = "connecting"
+    filters: int = 0
+    rate_hz: float = 0.0
+    messages: int = 0
+    connection_successes: int = 0
+    disconnections: int = 0
+    last_error: str = ""
+
+
 @dataclass(frozen=True)
 class DeviceState:
     """One device: its health (status, age, rate, counters, latencies) and its twin's latest pose."""
@@ -131,6 +173,7 @@ class DeviceState:
     gripper_percent: float | None = None
     # Per joint, from the last applied message: None until one arrives.
     servos: dict[str, ServoState] | None = None
+    loss: DeviceLoss = field(default_factory=DeviceLoss)
 
     @classmethod
     def from_health(cls, device_id: str, health: HealthSnapshot, **twin: object) -> DeviceState:
@@ -152,6 +195,8 @@ class DeviceState:
 
 @dataclass(frozen=True, slots=True)
 class BrokerState:
+    """The broker side, summed over the pool's connections (`connections` has each one)."""
+
     url: str = ""
     client_id: str | None = None
     connected: bool = False
@@ -161,10 +206,17 @@ class BrokerState:
     subscribes: int = 0
     messages: int = 0
     last_error: str = ""
+    # Publishes per second one connection may carry (None: unlimited), and the pool's measured total rate.
+    per_connection_limit: float | None = None
+    rate_hz: float = 0.0
+    connections: tuple[ConnectionState, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)
 class MailboxState:
+    """The queue between the MQTT threads and the worker. Every message is decoded; `overwritten_total`
+    counts those dropped undecoded because the worker fell a whole queue behind."""
+
     overwritten_total: int = 0
     refused_keys: int = 0
     pending: int = 0
@@ -235,6 +287,7 @@ class AgentInfo:
     history: HistoryState | None = None
     sinks: tuple[SinkStats, ...] = ()
     alarms: AlarmsSummary = field(default_factory=AlarmsSummary)
+    loss: FleetLoss = field(default_factory=FleetLoss)
 
 
 @dataclass(frozen=True)

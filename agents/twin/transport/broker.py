@@ -24,6 +24,8 @@ CLIENT_ID_PREFIX_MAX = 100
 _CLIENT_ID_PREFIX_RE = re.compile(r"^[A-Za-z0-9_.:-]+$")
 # IoT Core allows a keep-alive of at most 1200 s.
 KEEP_ALIVE_RANGE_S = (5, 1200)
+# Beyond this many connections a fleet wants an IoT rule to Kinesis instead (aws-facts.md section 3).
+MAX_CONNECTIONS_LIMIT = 64
 
 
 class BrokerConfigError(ValueError):
@@ -49,6 +51,12 @@ class BrokerConfig:
     # The builder default is 1200 s; a NAT or network cut that drops packets silently would then go unnoticed
     # for up to half an hour. 30 s detects it within ~45 s for a negligible ping cost.
     keep_alive_s: int = 30
+    # Publishes per second one connection may carry. IoT Core delivers at most 100 per connection, inbound
+    # plus outbound, and discards the rest silently; 0 = the broker's own: 100 on "iot", unlimited elsewhere.
+    # The connection pool (twin.transport.pool) plans to use 80 % of it.
+    per_connection_limit: int = 0
+    # The most connections a whole-fleet ("*") subscription may grow to under that budget.
+    max_connections: int = 8
 
     def __post_init__(self) -> None:
         # Surrounding spaces (a hand-edited TOML value, a shell variable) are not part of a URL.
@@ -70,6 +78,17 @@ class BrokerConfig:
                 f"reconnect delays must satisfy 0 < min ({self.min_reconnect_delay_ms} ms) <= max "
                 f"({self.max_reconnect_delay_ms} ms); fix broker.min_reconnect_delay_ms / "
                 "broker.max_reconnect_delay_ms"
+            )
+        if self.per_connection_limit < 0:
+            raise BrokerConfigError(
+                f"broker.per_connection_limit = {self.per_connection_limit} must be 0 (the broker's own: 100 "
+                "publishes/s on IoT Core, unlimited elsewhere) or a positive number of publishes per second"
+            )
+        if not 1 <= self.max_connections <= MAX_CONNECTIONS_LIMIT:
+            raise BrokerConfigError(
+                f"broker.max_connections = {self.max_connections} is outside 1..{MAX_CONNECTIONS_LIMIT}; it "
+                "bounds the connections a whole-fleet subscription grows to (each carries "
+                "per_connection_limit)"
             )
         lo, hi = KEEP_ALIVE_RANGE_S
         if not lo <= self.keep_alive_s <= hi:

@@ -68,7 +68,14 @@ def add_agent_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--devices",
         metavar="IDS",
-        help='comma-separated device ids, or "*" for every device under the prefix',
+        help='comma-separated device ids, or "*" (the default) for every device under the prefix',
+    )
+    parser.add_argument(
+        "--per-connection-limit",
+        metavar="N",
+        type=int,
+        help="publishes per second one broker connection may carry (default: 100 on IoT Core, its quota; "
+        "unlimited elsewhere); the agent spreads its subscriptions over connections to stay under it",
     )
     parser.add_argument(
         "--topic-prefix", metavar="PREFIX", help=f"topic prefix (default {DEFAULT_TOPIC_PREFIX})"
@@ -96,6 +103,7 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
     """Flag values as dotted config keys; unset flags are None and leave the file's value."""
     return {
         "broker.url": args.broker,
+        "broker.per_connection_limit": args.per_connection_limit,
         "http.listen": args.http,
         "telemetry.units": args.units,
         "telemetry.devices": args.devices,

@@ -1,0 +1,381 @@
+"""A pool of subscriber connections that stays under a per-connection publish budget.
+
+AWS IoT Core delivers at most 100 publishes per second to one connection (inbound plus outbound) and discards
+the rest silently (aws-facts.md section 3): one connection subscribed to a fleet of 10 Hz arms loses messages
+from the eleventh arm on, and nothing tells the subscriber. So the agent receives over several connections,
+each kept under a budget, used with a safety margin (SAFETY_MARGIN) because arrivals are bursty:
+
+- Listed devices are spread over connections in the order they are listed (`plan_listed`): each connection
+  carries at most budget x margin / rate devices, on IoT Core also at most 50 subscriptions (8 per SUBSCRIBE,
+  which the subscriber already honours). A device is always on one connection, so its messages keep their
+  order.
+- The whole fleet (`*`) is a shared subscription, `$share/<group>/<prefix>/+/telemetry`, over K connections:
+  the broker spreads the fleet's messages across the group's members. K grows as soon as the measured rate
+  nears K x budget x margin (at once to what the rate needs; doubling when a connection sits at its raw
+  budget, since then the real demand cannot be seen), shrinks by one after a sustained quiet spell, and stays
+  within 1..max_connections. A shared subscription does not keep one device's messages on one connection,
+  so order across connections is the twin's job (it orders by edge timestamp).
+
+Each connection is a `TelemetrySubscriber`: it reconnects and re-subscribes on its own. Client ids are
+`<client_id_prefix><12 random hex>-<index>`, the index below max_connections (or the listed plan's count),
+which is exactly what the stack's IAM policy allows (`pool_client_ids`). Without a budget (a private
+mosquitto) the pool is one connection with the plain filters, as before.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import secrets
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+from twin.core.topics import ALL_DEVICES, TELEMETRY_SUFFIX, check_devices, topic_filters
+from twin.transport.broker import IOT, BrokerConfig
+from twin.transport.subscriber import MessageHandler, TelemetrySubscriber
+
+log = logging.getLogger(__name__)
+
+Clock = Callable[[], float]
+
+# IoT Core's per-connection quotas (aws-facts.md section 3).
+IOT_PUBLISHES_PER_CONNECTION = 100
+IOT_SUBSCRIPTIONS_PER_CONNECTION = 50
+# The share of a connection's budget the pool plans to use: bursts (devices in step, a reconnect backlog) must
+# not push a connection over the quota, where the excess is lost.
+SAFETY_MARGIN = 0.8
+# Shared subscriptions: grow when the measured rate reaches this share of K x budget x margin, aiming for
+# GROW_TARGET after growing; a connection at this share of its raw budget is saturated (the broker may be
+# discarding), so the pool doubles instead. Shrink by one when the rate has stayed under SHRINK_BELOW of what
+# K - 1 connections carry for SHRINK_AFTER_S.
+GROW_AT = 0.9
+GROW_TARGET = 0.7
+SATURATED_AT = 0.95
+SHRINK_BELOW = 0.5
+SHRINK_AFTER_S = 30.0
+# How often the pool measures and rescales, and over how long it averages the rate.
+SCALE_INTERVAL_S = 1.0
+RATE_WINDOW_S = 3.0
+DEFAULT_MAX_CONNECTIONS = 8
+
+
+def default_limit(config: BrokerConfig) -> float | None:
+    """The per-connection budget in force: the configured one, else IoT Core's quota on "iot", else none."""
+    if config.per_connection_limit > 0:
+        return float(config.per_connection_limit)
+    return float(IOT_PUBLISHES_PER_CONNECTION) if config.kind == IOT else None
+
+
+def shared_group(client_id_prefix: str) -> str:
+    """The shared-subscription group name: the client id prefix without trailing separators."""
+    return client_id_prefix.rstrip("-_.:") or "so101-twin"
+
+
+def shared_filter(prefix: str, client_id_prefix: str) -> str:
+    return f"$share/{shared_group(client_id_prefix)}/{prefix}/+/{TELEMETRY_SUFFIX}"
+
+
+def devices_per_connection(rate_hz: float, limit: float | None, *, iot: bool) -> int | None:
+    """How many listed devices one connection carries (None: all of them)."""
+    cap = IOT_SUBSCRIPTIONS_PER_CONNECTION if iot else None
+    if limit is None:
+        return cap
+    per = max(1, math.floor(limit * SAFETY_MARGIN / rate_hz))
+    return per if cap is None else min(per, cap)
+
+
+def plan_listed(
+    prefix: str, devices: Sequence[str], *, rate_hz: float, limit: float | None, iot: bool
+) -> list[list[str]]:
+    """Topic filters per connection for listed devices, in the listed order; deterministic."""
+    filters = topic_filters(prefix, list(devices))
+    per = devices_per_connection(rate_hz, limit, iot=iot) or len(filters)
+    return [filters[i : i + per] for i in range(0, len(filters), per)]
+
+
+def listed_connections(devices: Sequence[str], *, rate_hz: float, limit: float | None, iot: bool) -> int:
+    """How many connections `plan_listed` makes (the stack's IAM policy allows exactly these client ids)."""
+    per = devices_per_connection(rate_hz, limit, iot=iot) or len(devices)
+    return max(1, math.ceil(len(devices) / per))
+
+
+def pool_client_ids(client_id_prefix: str, connections: int) -> list[str]:
+    """IAM resource patterns for the pool's client ids: `<prefix>*-<index>`, one per connection index."""
+    return [f"{client_id_prefix}*-{i}" for i in range(connections)]
+
+
+@dataclass(frozen=True)
+class PoolSettings:
+    """What the pool needs beyond the broker: the devices, their rate, the budget and the bound on K."""
+
+    prefix: str
+    devices: tuple[str, ...]
+    rate_hz: float = 10.0
+    limit: float | None = None
+    max_connections: int = DEFAULT_MAX_CONNECTIONS
+
+    def __post_init__(self) -> None:
+        check_devices(self.devices)
+        if not self.rate_hz > 0:
+            raise ValueError(f"rate_hz {self.rate_hz!r} must be positive")
+        if self.limit is not None and not self.limit > 0:
+            raise ValueError(f"per-connection limit {self.limit!r} must be positive (or None: unlimited)")
+        if self.max_connections < 1:
+            raise ValueError(f"max_connections {self.max_connections} must be at least 1")
+
+    @property
+    def fleet(self) -> bool:
+        return self.devices == (ALL_DEVICES,)
+
+    @property
+    def shared(self) -> bool:
+        """The whole fleet under a budget: a shared subscription over K connections."""
+        return self.fleet and self.limit is not None
+
+
+@dataclass(frozen=True)
+class ConnectionInfo:
+    """One connection as /state and /metrics show it."""
+
+    index: int
+    client_id: str
+    state: str  # "connected", "connecting" or "stopped"
+    filters: tuple[str, ...]
+    rate_hz: float
+    messages: int
+    connection_successes: int
+    disconnections: int
+    last_error: str
+
+
+class _Connection:
+    """A subscriber plus the message counter the pool rates it by (incremented on its CRT thread only)."""
+
+    def __init__(self, index: int, subscriber: TelemetrySubscriber) -> None:
+        self.index = index
+        self.subscriber = subscriber
+        self.messages = 0
+        self.rate_hz = 0.0
+        self._samples: list[tuple[float, int]] = []
+
+    def sample(self, now: float) -> float:
+        samples = self._samples
+        samples.append((now, self.messages))
+        while len(samples) > 2 and samples[1][0] <= now - RATE_WINDOW_S:
+            samples.pop(0)
+        t0, n0 = samples[0]
+        self.rate_hz = (self.messages - n0) / (now - t0) if now > t0 else 0.0
+        return self.rate_hz
+
+
+class ConnectionPool:
+    """The agent's subscriber connections (module doc). `on_message(topic, payload, received)` runs on the
+    connections' CRT threads and must not block. `start()`, `stop()`; `connections()` and `rate_hz` from any
+    thread."""
+
+    def __init__(
+        self,
+        config: BrokerConfig,
+        settings: PoolSettings,
+        on_message: MessageHandler,
+        *,
+        clock: Clock = time.monotonic,
+    ) -> None:
+        self.config = config
+        self.settings = settings
+        self._on_message = on_message
+        self._clock = clock
+        self._instance = secrets.token_hex(6)
+        self._lock = threading.Lock()
+        self._connections: list[_Connection] = []
+        self._stop = threading.Event()
+        self._scaler: threading.Thread | None = None
+        self._quiet_since: float | None = None
+        self.rate_hz = 0.0
+        self._removed_messages = 0
+        self.grown = 0
+        self.shrunk = 0
+        if settings.shared:
+            self._plan: list[list[str]] = []
+            self._shared = shared_filter(settings.prefix, config.client_id_prefix)
+        else:
+            self._shared = ""
+            self._plan = plan_listed(
+                settings.prefix,
+                settings.devices,
+                rate_hz=settings.rate_hz,
+                limit=settings.limit,
+                iot=config.kind == IOT,
+            )
+
+    # -- lifecycle ------------------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        if self._connections:
+            return
+        if self.settings.shared:
+            self._add_connection([self._shared])
+        else:
+            for filters in self._plan:
+                self._add_connection(filters)
+        log.info(
+            "connection pool: %d connection(s), %s",
+            len(self._connections),
+            "unlimited" if self.settings.limit is None else f"{self.settings.limit:g} publishes/s each",
+        )
+        self._stop.clear()
+        self._scaler = threading.Thread(target=self._scale_loop, name="twin-pool", daemon=True)
+        self._scaler.start()
+
+    def stop(self, timeout: float = 5.0) -> None:
+        self._stop.set()
+        if self._scaler is not None:
+            self._scaler.join(timeout)
+            self._scaler = None
+        with self._lock:
+            connections, self._connections = self._connections, []
+        for connection in connections:
+            connection.subscriber.stop(timeout)
+
+    # -- readings -------------------------------------------------------------------------------------------
+
+    @property
+    def size(self) -> int:
+        with self._lock:
+            return len(self._connections)
+
+    @property
+    def connected(self) -> bool:
+        """True while every connection is up."""
+        with self._lock:
+            connections = list(self._connections)
+        return bool(connections) and all(c.subscriber.connected for c in connections)
+
+    @property
+    def messages(self) -> int:
+        """Messages received on every connection since start, those since removed included."""
+        with self._lock:
+            return self._removed_messages + sum(c.messages for c in self._connections)
+
+    def subscribers(self) -> list[TelemetrySubscriber]:
+        with self._lock:
+            return [c.subscriber for c in self._connections]
+
+    @property
+    def topic_filters(self) -> list[str]:
+        return [self._shared] if self.settings.shared else [f for chunk in self._plan for f in chunk]
+
+    def wait_subscribed(self, timeout: float) -> bool:
+        """Block (not from a callback) until every current connection's subscriptions are acknowledged."""
+        deadline = time.monotonic() + timeout
+        with self._lock:
+            connections = list(self._connections)
+        return bool(connections) and all(
+            c.subscriber.wait_subscribed(max(0.0, deadline - time.monotonic())) for c in connections
+        )
+
+    def connections(self) -> list[ConnectionInfo]:
+        with self._lock:
+            connections = list(self._connections)
+        out = []
+        for c in connections:
+            sub = c.subscriber
+            stats = sub.stats
+            out.append(
+                ConnectionInfo(
+                    index=c.index,
+                    client_id=sub.client_id,
+                    state="connected" if sub.connected else "connecting",
+                    filters=tuple(sub.topic_filters),
+                    rate_hz=c.rate_hz,
+                    messages=stats.messages_received,
+                    connection_successes=stats.connection_successes,
+                    disconnections=stats.disconnects,
+                    last_error=stats.last_error,
+                )
+            )
+        return out
+
+    # -- scaling --------------------------------------------------------------------------------------------
+
+    def _add_connection(self, filters: list[str]) -> None:
+        index = len(self._connections)
+        client_id = f"{self.config.client_id_prefix}{self._instance}-{index}"
+
+        def on_message(topic: str, payload: bytes, received: float) -> None:
+            connection.messages += 1
+            self._on_message(topic, payload, received)
+
+        subscriber = TelemetrySubscriber(
+            self.config, filters, on_message, client_id=client_id, clock=self._clock
+        )
+        connection = _Connection(index, subscriber)
+        with self._lock:
+            self._connections.append(connection)
+        subscriber.start()
+
+    def _scale_loop(self) -> None:
+        while not self._stop.wait(SCALE_INTERVAL_S):
+            try:
+                self.rescale(self._clock())
+            except Exception:
+                log.exception("connection pool: rescaling failed (the pool keeps its size)")
+
+    def rescale(self, now: float) -> int:
+        """Measure each connection's rate and, for a shared subscription, grow or shrink K; returns K."""
+        with self._lock:
+            connections = list(self._connections)
+        total = sum(c.sample(now) for c in connections)
+        self.rate_hz = total
+        limit = self.settings.limit
+        if not self.settings.shared or limit is None:
+            return len(connections)
+        k = len(connections)
+        capacity = limit * SAFETY_MARGIN
+        saturated = any(c.rate_hz >= SATURATED_AT * limit for c in connections)
+        target = k
+        if saturated:
+            target = 2 * k
+        if total >= GROW_AT * k * capacity:
+            target = max(target, k + 1, math.ceil(total / (GROW_TARGET * capacity)))
+        target = min(target, self.settings.max_connections)
+        if target > k:
+            self._quiet_since = None
+            log.info(
+                "connection pool: %.0f msg/s on %d connection(s) of %g/s: growing to %d",
+                total,
+                k,
+                limit,
+                target,
+            )
+            for _ in range(target - k):
+                self._add_connection([self._shared])
+            self.grown += 1
+            return target
+        if saturated and k >= self.settings.max_connections:
+            log.warning(
+                "connection pool: all %d connections (max_connections) receive at their budget of %g msg/s: "
+                "the broker discards the excess; raise broker.max_connections",
+                k,
+                limit,
+            )
+        if k > 1 and total < SHRINK_BELOW * (k - 1) * capacity:
+            if self._quiet_since is None:
+                self._quiet_since = now
+            elif now - self._quiet_since >= SHRINK_AFTER_S:
+                self._quiet_since = None
+                self._remove_last()
+                self.shrunk += 1
+                return k - 1
+        else:
+            self._quiet_since = None
+        return k
+
+    def _remove_last(self) -> None:
+        with self._lock:
+            connection = self._connections.pop()
+            self._removed_messages += connection.messages
+        log.info("connection pool: quiet, shrinking to %d connection(s)", connection.index)
+        connection.subscriber.stop()

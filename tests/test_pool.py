@@ -1,0 +1,62 @@
+"""Connection-pool planning (pure): how listed devices spread over connections, the shared filter, the ids."""
+
+from __future__ import annotations
+
+import pytest
+from twin.transport.broker import BrokerConfig
+from twin.transport.pool import (
+    PoolSettings,
+    default_limit,
+    devices_per_connection,
+    listed_connections,
+    plan_listed,
+    pool_client_ids,
+    shared_filter,
+)
+
+ARMS = [f"arm-{i:03d}" for i in range(1, 201)]
+
+
+def test_listed_devices_fill_connections_in_order_under_the_margin() -> None:
+    plan = plan_listed("dt/lerobot", ARMS, rate_hz=10.0, limit=100, iot=True)
+    assert [len(p) for p in plan] == [8] * 25  # 80 % of 100 msg/s at 10 Hz
+    assert plan[0][0] == "dt/lerobot/arm-001/telemetry" and plan[-1][-1] == "dt/lerobot/arm-200/telemetry"
+    flat = [f for chunk in plan for f in chunk]
+    assert flat == [f"dt/lerobot/{a}/telemetry" for a in ARMS]  # each device on exactly one connection
+    assert plan == plan_listed("dt/lerobot", ARMS, rate_hz=10.0, limit=100, iot=True)  # deterministic
+    assert listed_connections(ARMS, rate_hz=10.0, limit=100, iot=True) == 25
+
+
+def test_iot_core_caps_subscriptions_per_connection() -> None:
+    # 1 Hz arms: the budget would allow 80 per connection, IoT Core's 50 subscriptions do not.
+    assert devices_per_connection(1.0, 100, iot=True) == 50
+    assert devices_per_connection(1.0, 100, iot=False) == 80
+    assert [len(p) for p in plan_listed("dt/lerobot", ARMS, rate_hz=1.0, limit=100, iot=True)] == [50] * 4
+    # Without a budget: one connection, still at most 50 filters on IoT Core.
+    assert devices_per_connection(10.0, None, iot=False) is None
+    assert len(plan_listed("dt/lerobot", ARMS, rate_hz=10.0, limit=None, iot=False)) == 1
+    # An arm faster than the budget still gets a connection of its own.
+    assert devices_per_connection(500.0, 100, iot=False) == 1
+
+
+def test_budget_defaults_follow_the_broker() -> None:
+    assert default_limit(BrokerConfig(url="iot")) == 100
+    assert default_limit(BrokerConfig(url="mqtt://127.0.0.1:1883")) is None
+    assert default_limit(BrokerConfig(url="mqtt://127.0.0.1:1883", per_connection_limit=40)) == 40
+
+
+def test_shared_filter_and_client_ids() -> None:
+    assert shared_filter("dt/lerobot", "so101-twin-") == "$share/so101-twin/dt/lerobot/+/telemetry"
+    assert pool_client_ids("so101-twin-", 3) == ["so101-twin-*-0", "so101-twin-*-1", "so101-twin-*-2"]
+    assert PoolSettings("dt/lerobot", ("*",), limit=100).shared
+    assert not PoolSettings("dt/lerobot", ("*",), limit=None).shared
+    assert not PoolSettings("dt/lerobot", ("arm-001",), limit=100).shared
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "needle"),
+    [({"rate_hz": 0}, "rate_hz"), ({"limit": -5}, "limit"), ({"max_connections": 0}, "max_connections")],
+)
+def test_bad_pool_settings(kwargs: dict[str, float], needle: str) -> None:
+    with pytest.raises(ValueError, match=needle):
+        PoolSettings("dt/lerobot", ("*",), **kwargs)
