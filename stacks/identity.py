@@ -6,8 +6,19 @@ from aws_cdk import Acknowledgment, RemovalPolicy, Stack, Validations
 from aws_cdk import aws_iam as iam
 from aws_cdk import aws_logs as logs
 from constructs import Construct
+from twin.core.topics import TELEMETRY_SUFFIX
+from twin.transport.plan import (
+    DEFAULT_MAX_CONNECTIONS,
+    IOT_PUBLISHES_PER_CONNECTION,
+    listed_connections,
+    pool_client_ids,
+    shared_group,
+)
 
 from stacks.skips import LOG_GROUP_KMS, nag_arn, skip_checkov
+
+# The edge's default publish rate (telemetry contract); the agent plans its listed connections with it.
+EDGE_RATE_HZ = 10.0
 
 
 class TwinIdentity(Construct):
@@ -50,15 +61,29 @@ class TwinIdentity(Construct):
             return stack.format_arn(service="iot", resource=resource)
 
         fleet = devices == ("*",)
-        # IoT policy resources treat MQTT '+' literally, so the fleet filter `<prefix>/+/telemetry`
-        # is granted exactly, without a wildcard; only Receive needs '*' to match each device's topic.
-        filters = (
-            [f"{topic_prefix}/+/telemetry"] if fleet else [f"{topic_prefix}/{d}/telemetry" for d in devices]
-        )
-        topics = [f"{topic_prefix}/*/telemetry"] if fleet else filters
-        connect_arn = iot_arn(f"client/{client_id_prefix}*")
+        # IoT Core delivers at most 100 publishes/s per connection, so the agent receives over a pool of
+        # connections (twin.transport.pool) with client ids `<prefix><random>-<index>`: the policy allows
+        # exactly those indexes. Listed devices are subscribed one filter each; the whole fleet through the
+        # shared subscription `$share/<group>/<prefix>/+/telemetry` (MQTT '+' is literal in a policy
+        # resource, so the filter is granted exactly; Receive matches the shared topic form per device).
+        if fleet:
+            connections = DEFAULT_MAX_CONNECTIONS
+            group = shared_group(client_id_prefix)
+            filters = [f"$share/{group}/{topic_prefix}/+/{TELEMETRY_SUFFIX}"]
+            topics = [f"$share/{group}/{topic_prefix}/*/{TELEMETRY_SUFFIX}"]
+        else:
+            connections = listed_connections(
+                devices, rate_hz=EDGE_RATE_HZ, limit=IOT_PUBLISHES_PER_CONNECTION, iot=True
+            )
+            filters = [f"{topic_prefix}/{d}/{TELEMETRY_SUFFIX}" for d in devices]
+            topics = filters
+        client_ids = pool_client_ids(client_id_prefix, connections)
         self.role.add_to_policy(
-            iam.PolicyStatement(sid="IotConnectAsAgent", actions=["iot:Connect"], resources=[connect_arn])
+            iam.PolicyStatement(
+                sid="IotConnectAsAgent",
+                actions=["iot:Connect"],
+                resources=[iot_arn(f"client/{c}") for c in client_ids],
+            )
         )
         self.role.add_to_policy(
             iam.PolicyStatement(
@@ -99,12 +124,16 @@ class TwinIdentity(Construct):
         )
 
         # One acknowledgement per wildcard, each saying why it cannot be narrower.
+        client_reason = (
+            "Each agent process connects with unique client ids (fixed prefix, a random part so two agents "
+            "never kick each other off, then the connection's index in its pool); the wildcard covers the "
+            "random part only, one resource per pool connection, in this account and region."
+        )
         reasons = {
-            nag_arn(stack, "arn:{partition}:iot:{region}:{account}:client/") + f"{client_id_prefix}*": (
-                "Each agent process connects with a unique client id (fixed prefix plus a random suffix, "
-                "so two agents never kick each other off); the wildcard covers that suffix only, in this "
-                "account and region."
-            ),
+            **{
+                nag_arn(stack, "arn:{partition}:iot:{region}:{account}:client/") + c: client_reason
+                for c in client_ids
+            },
             "*": (
                 "iot:DescribeEndpoint has no resource type (IoT action-resources table), so it cannot be "
                 "scoped; it only returns the account's data endpoint address."
@@ -116,13 +145,11 @@ class TwinIdentity(Construct):
             ),
         }
         if fleet:
-            receive = (
-                nag_arn(stack, "arn:{partition}:iot:{region}:{account}:topic/")
-                + f"{topic_prefix}/*/telemetry"
-            )
+            receive = nag_arn(stack, "arn:{partition}:iot:{region}:{account}:topic/") + topics[0]
             reasons[receive] = (
-                "devices='*' mirrors the whole fleet: the agent receives every device's telemetry topic "
-                "under the prefix; the wildcard stands for the device-id topic level only."
+                "devices='*' mirrors the whole fleet through the agent's shared subscription: it "
+                "receives every device's telemetry topic under the prefix; the wildcard stands for the "
+                "device-id topic level only."
             )
         for resource, reason in reasons.items():
             Validations.of(self.role).acknowledge(

@@ -12,11 +12,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from twin.core.topics import ALL_DEVICES, policy_device_id_problem, topic_prefix_problem
+
 # The agent's own rules (pure modules, no MuJoCo or awscrt), so the stack accepts exactly what the agent it
 # deploys accepts: device ids and the topic prefix (twin.core.topics), units, and the client id prefix the
 # IAM policy scopes iot:Connect to.
-from twin.core.telemetry import UNITS_CHOICES
-from twin.core.topics import ALL_DEVICES, policy_device_id_problem, topic_prefix_problem
+from twin.core.units import UNITS_CHOICES
 from twin.transport.broker import DEFAULT_CLIENT_ID_PREFIX
 
 CLIENT_ID_PREFIX = DEFAULT_CLIENT_ID_PREFIX

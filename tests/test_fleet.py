@@ -16,7 +16,7 @@ from twin.service.agent import AgentService
 from twin.tools.edge_sim import FaultConfig
 from twin.tools.quota_proxy import QuotaProxy
 from twin.tools.rig import LocalRig
-from twin.transport.pool import plan_listed
+from twin.transport.plan import plan_listed
 
 pytestmark = pytest.mark.slow
 

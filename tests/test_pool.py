@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 from twin.transport.broker import BrokerConfig
-from twin.transport.pool import (
+from twin.transport.plan import (
     PoolSettings,
     default_limit,
     devices_per_connection,

@@ -181,9 +181,12 @@ def test_iot_permissions_are_scoped_to_the_agent_and_the_devices(synth_default: 
     statements = policy_statements(synth_default, "IdentityHostRole")
     connect = statement(statements, "IotConnectAsAgent")
     assert connect["Action"] == "iot:Connect"
-    assert ":client/so101-twin-*" in flatten(connect["Resource"])
-    assert {"Ref": "AWS::Region"} in connect["Resource"]["Fn::Join"][1]
-    assert {"Ref": "AWS::AccountId"} in connect["Resource"]["Fn::Join"][1]
+    # One listed device: the pool has one connection, and only its client id is allowed.
+    resource = connect["Resource"][0] if isinstance(connect["Resource"], list) else connect["Resource"]
+    assert ":client/so101-twin-*-0" in flatten(connect["Resource"])
+    assert ":client/so101-twin-*-1" not in flatten(connect["Resource"])
+    assert {"Ref": "AWS::Region"} in resource["Fn::Join"][1]
+    assert {"Ref": "AWS::AccountId"} in resource["Fn::Join"][1]
     subscribe = statement(statements, "IotSubscribeTelemetry")
     assert subscribe["Action"] == "iot:Subscribe"
     assert ":topicfilter/dt/lerobot/arm-001/telemetry" in flatten(subscribe["Resource"])
@@ -197,10 +200,27 @@ def test_iot_permissions_are_scoped_to_the_agent_and_the_devices(synth_default: 
     assert "iot:Publish" not in flatten(statements)
 
 
-def test_fleet_subscribes_the_literal_plus_filter_and_receives_every_device(synth_all_options: Synth) -> None:
+def test_fleet_subscribes_exactly_the_shared_filter_from_the_pool_client_ids(
+    synth_all_options: Synth,
+) -> None:
+    # The whole fleet comes through the agent's shared subscription over at most 8 pool connections
+    # (IoT Core's 100 publishes/s per connection): exactly that filter and those client ids are allowed.
     statements = policy_statements(synth_all_options, "IdentityHostRole")
-    assert ":topicfilter/fleet/so101/+/telemetry" in flatten(statement(statements, "IotSubscribeTelemetry"))
-    assert ":topic/fleet/so101/*/telemetry" in flatten(statement(statements, "IotReceiveTelemetry"))
+    subscribe = statement(statements, "IotSubscribeTelemetry")
+    receive = statement(statements, "IotReceiveTelemetry")
+    connect = statement(statements, "IotConnectAsAgent")
+    subscribe_arns = (
+        subscribe["Resource"] if isinstance(subscribe["Resource"], list) else [subscribe["Resource"]]
+    )
+    assert len(subscribe_arns) == 1
+    assert ":topicfilter/$share/so101-twin/fleet/so101/+/telemetry" in flatten(subscribe_arns[0])
+    assert ":topic/$share/so101-twin/fleet/so101/*/telemetry" in flatten(receive)
+    assert ":topicfilter/fleet/so101/+/telemetry" not in flatten(subscribe)  # no plain, unshared filter
+    ids = [flatten(r).rsplit(":client/", 1)[1].split('"', 1)[0] for r in connect["Resource"]]
+    assert ids == [f"so101-twin-*-{i}" for i in range(8)]
+    # Partition-aware: every IoT ARN is built from the stack's partition, never a literal "aws".
+    for arn in (*connect["Resource"], *subscribe_arns, receive["Resource"]):
+        assert "AWS::Partition" in flatten(arn)
 
 
 def test_dcv_license_logs_assets_and_secret_are_granted_narrowly(synth_default: Synth) -> None:

@@ -37,23 +37,26 @@ import msgspec
 from msgspec import UNSET, Meta, UnsetType
 
 from twin.core.topics import device_id_problem
+from twin.core.units import MAX_PAYLOAD_BYTES, UNITS_CHOICES, Units
 from twin.robot import so101, sts3215
 from twin.robot.calibration import Calibration
 
 log = logging.getLogger(__name__)
 
-
-class Units(StrEnum):
-    TICKS = "ticks"
-    DEGREES = "degrees"
-    RANGE100 = "range100"
-    AUTO = "auto"
-
-
-# The values of `units` in the agent config and the stack settings.
-UNITS_CHOICES: tuple[str, ...] = tuple(u.value for u in Units)
-# IoT Core's cap on one message (telemetry-contract.md); the decoder's default limit and the config's.
-MAX_PAYLOAD_BYTES = 128 * 1024
+__all__ = [
+    "MAX_PAYLOAD_BYTES",
+    "UNITS_CHOICES",
+    "DecoderConfig",
+    "JointDiagnostics",
+    "JointReading",
+    "RejectReason",
+    "Telemetry",
+    "TelemetryDecoder",
+    "TelemetryRejected",
+    "Units",
+    "decode_load",
+    "decode_velocity",
+]
 
 
 class RejectReason(StrEnum):
@@ -914,7 +917,8 @@ def _reading_diagnostics(r: JointReading, float_variant: bool) -> JointDiagnosti
         rad_s,
         None if load is UNSET else decode_load(load) * LOAD_PERCENT_PER_UNIT,
         None if temp is UNSET else float(temp),
-        None if current is UNSET else current * CURRENT_MA_PER_UNIT,
+        # Divided last so whole mA stay exact, as the explanation path does: 100 units -> 650 mA -> 0.65 A.
+        None if current is UNSET else current * CURRENT_MA_PER_UNIT / 1000.0,
         None if voltage is UNSET else voltage * VOLTAGE_V_PER_UNIT,
         None if status is UNSET else status,
         None if moving is UNSET else bool(moving),

@@ -88,7 +88,8 @@ from twin.service.state import (
     DeviceLoss as DeviceLossState,
 )
 from twin.transport.mailbox import InboundQueue
-from twin.transport.pool import ConnectionPool, PoolSettings, default_limit
+from twin.transport.plan import PoolSettings, default_limit
+from twin.transport.pool import ConnectionPool
 
 if TYPE_CHECKING:
     # pyarrow and deltalake (~70 MB resident) load only when history is on.

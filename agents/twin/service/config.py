@@ -20,8 +20,8 @@ from typing import Any
 
 from twin.core.alarms import AlarmThresholds
 from twin.core.health import HealthThresholds
-from twin.core.telemetry import MAX_PAYLOAD_BYTES, UNITS_CHOICES
 from twin.core.topics import ALL_DEVICES, DEFAULT_TOPIC_PREFIX, TopicError, check_devices, check_topic_prefix
+from twin.core.units import MAX_PAYLOAD_BYTES, UNITS_CHOICES
 from twin.output.rerun_settings import RerunSettings, RerunSettingsError
 from twin.output.ros2 import Ros2Error, Ros2Settings
 from twin.transport.broker import BrokerConfig, BrokerConfigError

@@ -1,0 +1,107 @@
+"""Connection-pool planning, pure (standard library and the topic rules only): how many connections the agent
+opens and what each subscribes. The stack imports it to write an IAM policy that allows exactly the pool's
+client ids and filters, without awscrt or MuJoCo. twin.transport.pool explains the pool itself.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from twin.core.topics import ALL_DEVICES, TELEMETRY_SUFFIX, check_devices, topic_filters
+from twin.transport.broker import IOT, BrokerConfig
+
+# IoT Core's per-connection quotas (aws-facts.md section 3).
+IOT_PUBLISHES_PER_CONNECTION = 100
+IOT_SUBSCRIPTIONS_PER_CONNECTION = 50
+# The share of a connection's budget the pool plans to use: bursts (devices in step, a reconnect backlog) must
+# not push a connection over the quota, where the excess is lost.
+SAFETY_MARGIN = 0.8
+# Shared subscriptions: grow when the measured rate reaches this share of K x budget x margin, aiming for
+# GROW_TARGET after growing; a connection at this share of its raw budget is saturated (the broker may be
+# discarding), so the pool doubles instead. Shrink by one when the rate has stayed under SHRINK_BELOW of what
+# K - 1 connections carry for SHRINK_AFTER_S.
+GROW_AT = 0.9
+GROW_TARGET = 0.7
+SATURATED_AT = 0.95
+SHRINK_BELOW = 0.5
+SHRINK_AFTER_S = 30.0
+# How often the pool measures and rescales, and over how long it averages the rate.
+SCALE_INTERVAL_S = 1.0
+RATE_WINDOW_S = 3.0
+DEFAULT_MAX_CONNECTIONS = 8
+
+
+def default_limit(config: BrokerConfig) -> float | None:
+    """The per-connection budget in force: the configured one, else IoT Core's quota on "iot", else none."""
+    if config.per_connection_limit > 0:
+        return float(config.per_connection_limit)
+    return float(IOT_PUBLISHES_PER_CONNECTION) if config.kind == IOT else None
+
+
+def shared_group(client_id_prefix: str) -> str:
+    """The shared-subscription group name: the client id prefix without trailing separators."""
+    return client_id_prefix.rstrip("-_.:") or "so101-twin"
+
+
+def shared_filter(prefix: str, client_id_prefix: str) -> str:
+    return f"$share/{shared_group(client_id_prefix)}/{prefix}/+/{TELEMETRY_SUFFIX}"
+
+
+def devices_per_connection(rate_hz: float, limit: float | None, *, iot: bool) -> int | None:
+    """How many listed devices one connection carries (None: all of them)."""
+    cap = IOT_SUBSCRIPTIONS_PER_CONNECTION if iot else None
+    if limit is None:
+        return cap
+    per = max(1, math.floor(limit * SAFETY_MARGIN / rate_hz))
+    return per if cap is None else min(per, cap)
+
+
+def plan_listed(
+    prefix: str, devices: Sequence[str], *, rate_hz: float, limit: float | None, iot: bool
+) -> list[list[str]]:
+    """Topic filters per connection for listed devices, in the listed order; deterministic."""
+    filters = topic_filters(prefix, list(devices))
+    per = devices_per_connection(rate_hz, limit, iot=iot) or len(filters)
+    return [filters[i : i + per] for i in range(0, len(filters), per)]
+
+
+def listed_connections(devices: Sequence[str], *, rate_hz: float, limit: float | None, iot: bool) -> int:
+    """How many connections `plan_listed` makes (the stack's IAM policy allows exactly these client ids)."""
+    per = devices_per_connection(rate_hz, limit, iot=iot) or len(devices)
+    return max(1, math.ceil(len(devices) / per))
+
+
+def pool_client_ids(client_id_prefix: str, connections: int) -> list[str]:
+    """IAM resource patterns for the pool's client ids: `<prefix>*-<index>`, one per connection index."""
+    return [f"{client_id_prefix}*-{i}" for i in range(connections)]
+
+
+@dataclass(frozen=True)
+class PoolSettings:
+    """What the pool needs beyond the broker: the devices, their rate, the budget and the bound on K."""
+
+    prefix: str
+    devices: tuple[str, ...]
+    rate_hz: float = 10.0
+    limit: float | None = None
+    max_connections: int = DEFAULT_MAX_CONNECTIONS
+
+    def __post_init__(self) -> None:
+        check_devices(self.devices)
+        if not self.rate_hz > 0:
+            raise ValueError(f"rate_hz {self.rate_hz!r} must be positive")
+        if self.limit is not None and not self.limit > 0:
+            raise ValueError(f"per-connection limit {self.limit!r} must be positive (or None: unlimited)")
+        if self.max_connections < 1:
+            raise ValueError(f"max_connections {self.max_connections} must be at least 1")
+
+    @property
+    def fleet(self) -> bool:
+        return self.devices == (ALL_DEVICES,)
+
+    @property
+    def shared(self) -> bool:
+        """The whole fleet under a budget: a shared subscription over K connections."""
+        return self.fleet and self.limit is not None
