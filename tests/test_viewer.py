@@ -8,6 +8,7 @@ out/viewer/.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import shutil
 import signal
@@ -22,7 +23,7 @@ import numpy as np
 import pytest
 from twin.core.health import DeviceStatus, WindowLatency
 from twin.robot import so101
-from twin.service.state import AgentInfo, AgentState, DeviceState, ServoState
+from twin.service.state import AgentInfo, AgentState, DeviceLoss, DeviceState, ServoState
 from twin.tools.mosquitto import free_port
 from twin.tools.rig import LocalRig
 from twin.viewer.config import ViewerConfig
@@ -130,6 +131,7 @@ def test_overlay_shows_figures_and_unreachable_agent():
     assert table["Age"] == "0.55 s"  # the agent's age plus the time since the snapshot arrived
     assert table["Rate"] == "10.0 Hz"
     assert table["Latency"] == "p50 12 ms / p99 34 ms (edge clock)"
+    assert table["Lost"] == "0 messages (estimated from edge timestamp gaps)"
     assert "[arm-002]" in table["Devices"] and "Page Up" in table["Keys"]
     assert table["View"] == "60 fps, smoothing predict"
     fleet.set_link(LINK_UNREACHABLE, "connection refused", now=10.0)
@@ -182,6 +184,24 @@ def test_joint_tint_colours_the_moving_part_and_restores_it():
     tint.apply({"elbow_flex": ServoState()})  # back to NORMAL: the model's own look
     assert [(int(model.geom_matid[g]), tuple(model.geom_rgba[g])) for g in geoms] == before
     assert tint.tinted == {}
+
+
+def test_overlay_marks_a_device_losing_data():
+    losing = dataclasses.replace(
+        device_state(1000, 0.0), loss=DeviceLoss(lost=42, recent_lost=40, recent_loss_ratio=0.8, losing=True)
+    )
+    fleet = FleetView()
+    # Through the JSON the stream carries, as the feed hands it over.
+    fleet.update_json(state_of(arm_001=losing, arm_002=device_state(1000, 0.0)).to_json(), 10.0)
+    tables = {}
+    for device in ("arm-001", "arm-002"):
+        labels, values = overlay_lines(
+            ViewerConfig(), fleet, device=device, devices=fleet.devices(), now=10.0, fps=60.0
+        )
+        tables[device] = dict(zip(labels.split("\n"), values.split("\n"), strict=True))
+    assert tables["arm-001"]["Status"] == "ONLINE  LOSING DATA (80% recently)"
+    assert tables["arm-001"]["Lost"].startswith("42 messages")
+    assert tables["arm-002"]["Status"] == "ONLINE"
 
 
 def test_describe_error_and_config_validation():

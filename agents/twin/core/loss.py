@@ -13,10 +13,10 @@ period never add up over a long run. Until the period rests on a full history of
 gaps are kept and recounted with every better estimate, so a rough early period leaves no error behind; when
 a settled period moves by more than a quarter (the edge was reconfigured), the newest gaps that fit the new
 one are recounted with it. A gap longer than `outage_s` is a pause (the arm was off, or the device was
-OFFLINE by the health rules), not loss; a jump backwards further than `reorder_s` is an edge clock reset
-(a new timeline, nothing counted), while smaller steps back are late deliveries that fill a hole counted
-before. Duplicates of a recent timestamp are ignored. A message the decoder rejected still arrived, so each
-rejection for the device offsets one missing sample.
+OFFLINE by the health rules), not loss; five messages in a row further back than `reorder_s` are an edge
+clock reset (a new timeline, nothing counted), while other steps back are late deliveries that fill a hole
+counted before. Duplicates of a recent timestamp are ignored. A message the decoder rejected still arrived,
+so each rejection for the device offsets one missing sample.
 
 What this cannot see: a device none of whose messages arrive, and a loss pattern locked in phase with the
 device (every tenth sample passing, always) looks like a device publishing ten times slower. The optional
@@ -56,6 +56,9 @@ MIN_PERIOD_MS = 10.0
 # moves are averaged in with this weight.
 PERIOD_CHANGE = 0.25
 PERIOD_SMOOTHING = 0.2
+# This many messages in a row further back than reorder_s mean the edge clock jumped back; fewer are late
+# deliveries (a shared subscription spreads one device over several connections, which reorders).
+CLOCK_RESET_MESSAGES = 5
 # Duplicate detection: the last this many timestamps.
 RECENT_TIMESTAMPS = 32
 # The recent window is sampled at most this often.
@@ -160,6 +163,8 @@ class DeviceLoss:
         self._missing = 0
         self._recent: deque[int] = deque(maxlen=RECENT_TIMESTAMPS)
         self._recent_set: set[int] = set()
+        self._jumps = 0  # consecutive messages further back than reorder_s, and the holes they filled
+        self._jump_fills = 0
         self._first: int | None = None  # current segment's earliest and latest timestamp
         self._last = 0
         self.received = 0
@@ -192,15 +197,33 @@ class DeviceLoss:
                 self._open(timestamp_ms)  # a pause (the arm was off), not loss
             else:
                 self._count_gap(gap)
-        elif self._last - timestamp_ms > self._reorder_ms:
-            self._open(timestamp_ms)  # the edge clock jumped back: a new timeline
-        elif timestamp_ms > first:
-            self._missing -= 1  # late: it fills a hole an earlier gap counted
+        else:
+            self._late(timestamp_ms, first)
+            self._sample_window()
+            return
+        self._jumps = self._jump_fills = 0
+        self._sample_window()
+
+    def _late(self, timestamp_ms: int, first: int) -> None:
+        """A message older than the newest one: a late delivery that fills a hole an earlier gap counted,
+        unless CLOCK_RESET_MESSAGES in a row are all further back than `reorder_s`: then the edge clock jumped
+        back, those were a new timeline, and a new segment starts (their hole fills are undone)."""
+        if self._last - timestamp_ms > self._reorder_ms:
+            self._jumps += 1
+            if self._jumps >= CLOCK_RESET_MESSAGES:
+                self._missing += self._jump_fills
+                self._jumps = self._jump_fills = 0
+                self._open(timestamp_ms)
+            elif timestamp_ms > first:
+                self._missing -= 1
+                self._jump_fills += 1
+            return
+        if timestamp_ms > first:
+            self._missing -= 1
         else:
             # Late and older than anything in this segment: the segment reaches back to it.
             self._first = timestamp_ms
             self._count_gap(first - timestamp_ms)
-        self._sample_window()
 
     def record_rejected(self) -> None:
         """A message for this device arrived but was rejected: its sample is not lost in transit. Before the

@@ -43,6 +43,10 @@ class DeviceInfo:
     received_s: float = 0.0  # local monotonic time the snapshot arrived
     # Per joint: the servo readings and its worst alarm (None until the agent reports diagnostics).
     servos: dict[str, ServoState] | None = None
+    # The agent's loss estimate (docs/agent.md, Loss): losing data now, and the share lost recently.
+    losing: bool = False
+    recent_loss_ratio: float = 0.0
+    lost: int = 0
 
 
 class FleetView:
@@ -98,6 +102,9 @@ class FleetView:
                 info.internal_p99_s = d.internal_latency_s.p99
                 info.received_s = received_s
                 info.servos = d.servos
+                info.losing = d.loss.losing
+                info.recent_loss_ratio = d.loss.recent_loss_ratio
+                info.lost = d.loss.lost
                 # timestamp_ms belongs to the same twin snapshot as joints_rad (last_timestamp_ms: health's).
                 if d.timestamp_ms is not None and d.joints_rad is not None:
                     info.last_timestamp_ms = d.timestamp_ms

@@ -67,9 +67,12 @@ def overlay_lines(
             rows.append(("Status", "not reported by the agent yet"))
         else:
             age = None if info.age_s is None else info.age_s + max(0.0, now - info.received_s)
-            rows.append(("Status", info.status))
+            # A device losing data is marked on the status line itself, where the eye already is.
+            losing = f"  LOSING DATA ({info.recent_loss_ratio:.0%} recently)" if info.losing else ""
+            rows.append(("Status", f"{info.status}{losing}"))
             rows.append(("Age", _fmt(age, "s", digits=2)))
             rows.append(("Rate", _fmt(info.rate_hz, "Hz")))
+            rows.append(("Lost", f"{info.lost} messages (estimated from edge timestamp gaps)"))
             rows.append(
                 (
                     "Latency",

@@ -60,11 +60,20 @@ def register(subparsers: Any) -> None:
     rr.add_argument("--rate", type=float, default=10.0, help="messages per second per arm")
     rr.add_argument("--seconds", type=float, default=20.0)
 
+    qu = sub.add_parser(
+        "quota", help="a fleet through an IoT-Core-like per-connection quota: one connection vs the pool"
+    )
+    qu.add_argument("--arms", type=int, default=200)
+    qu.add_argument("--rate", type=float, default=10.0, help="messages per second per arm")
+    qu.add_argument("--seconds", type=float, default=20.0, help="measured window of each phase")
+
+    de = sub.add_parser("decode", help="decode + validate of an edge message against json.loads of it")
+
     al = sub.add_parser("all", help="every scenario as published in docs/performance.md, plus the plot")
     al.add_argument("--seconds", type=float, default=20.0, help="throughput run length")
     al.add_argument("--plot", type=Path, default=Path("docs/performance.png"))
 
-    for p in (tp, fi, fo, hs, hr, hl, r2, rn, rr, al):
+    for p in (tp, fi, fo, hs, hr, hl, r2, rn, rr, qu, de, al):
         p.add_argument("--json", action="store_true", help="print the figures as one JSON object")
         p.set_defaults(func=run)
 
@@ -97,7 +106,13 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
         return render.run(frames=args.frames, width=args.width, height=args.height)
     if args.scenario == "rerun":
         return rerun.run(arms=args.arms, rate=args.rate, seconds=args.seconds)
-    # all: the two throughput loads the targets name, fidelity, footprint, ROS 2, render, Rerun.
+    if args.scenario == "quota":
+        quota = import_dev_tool("twin.tools.bench.quota", "bench")
+        return quota.run(arms=args.arms, rate=args.rate, seconds=args.seconds)
+    if args.scenario == "decode":
+        return import_dev_tool("twin.tools.bench.decode", "bench").run()
+    # all: the two throughput loads the targets name, fidelity, footprint, ROS 2, render, Rerun, the quota
+    # (one connection vs the pool) and decode against json.loads.
     results = {
         "throughput": [
             throughput.run(arms=100, rate=10.0, seconds=args.seconds),
@@ -108,6 +123,8 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
         "ros2": ros2.run(arms=100, rate=10.0, seconds=args.seconds),
         "render": render.run(),
         "rerun": rerun.run(arms=100, rate=10.0, seconds=args.seconds),
+        "quota": import_dev_tool("twin.tools.bench.quota", "bench").run(seconds=args.seconds),
+        "decode": import_dev_tool("twin.tools.bench.decode", "bench").run(),
     }
     plot = import_dev_tool("twin.tools.bench.plot", "bench")
     results["plot"] = str(plot.write(results, args.plot))
