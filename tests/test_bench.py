@@ -155,3 +155,33 @@ def test_rerun_reports_the_agent_without_and_with_the_stream() -> None:
     sink = figures["on"]["sink"]
     assert sink["delivered"] == figures["on"]["applied"] and sink["errors"] == 0
     assert figures["on"]["rrd_mb"] > 0
+
+
+def test_quota_reports_each_phase_with_the_proxy_drops_and_the_estimate() -> None:
+    out = bench("quota", "--arms", "20", "--rate", "10", "--seconds", "2", timeout=300)
+    assert out["scenario"] == "quota" and out["budget_per_connection"] == 100
+    phases = {p["phase"]: p for p in out["phases"]}
+    assert set(phases) == {"one_connection", "pool_listed", "pool_fleet"}
+    for phase in phases.values():
+        assert phase.keys() >= {
+            "sent",
+            "proxy_dropped",
+            "received",
+            "applied",
+            "estimated_lost",
+            "estimate_error_of_sent",
+            "connections",
+            "internal_latency_s",
+        }
+        assert phase["received"] > 0
+    # 20 arms at 10 Hz is 200 msg/s: one connection is over the budget, the listed pool uses three.
+    assert phases["one_connection"]["connections"] == 1
+    assert phases["pool_listed"]["connections"] == 3
+
+
+def test_decode_compares_with_json_loads_in_one_run() -> None:
+    out = bench("decode", timeout=120)
+    assert [c["variant"] for c in out["cases"]] == ["ticks", "ticks", "degrees"]
+    for case in out["cases"]:
+        assert case["json_loads_us"] > 0 and case["decode_validate_us"] > 0
+        assert case["ratio"] == case["decode_validate_us"] / case["json_loads_us"]

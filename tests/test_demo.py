@@ -31,7 +31,17 @@ STATS_FIELDS = {
     "files",
     "history",
 }
-MESSAGE_FIELDS = {"sent", "received", "decoded", "applied", "rejected", "rejected_by_reason", "lost"}
+MESSAGE_FIELDS = {
+    "sent",
+    "received",
+    "decoded",
+    "applied",
+    "rejected",
+    "rejected_by_reason",
+    "lost",
+    "estimated_lost",
+    "estimated_loss_ratio",
+}
 
 
 def demo_env() -> dict[str, str]:
@@ -92,6 +102,8 @@ def test_demo_leaves_valid_files_and_stops_its_broker(tmp_path):
     assert 35 <= messages["sent"] <= 45
     assert messages["rejected"] == 0 and messages["rejected_by_reason"] == {}
     assert messages["received"] == messages["sent"], "loopback QoS 0 without faults should lose nothing"
+    # The agent's own loss estimate (edge timestamp gaps) agrees: nothing went missing.
+    assert messages["estimated_lost"] == 0 and messages["estimated_loss_ratio"] == 0.0
     for kind in ("end_to_end", "internal"):
         lat = stats["latency_s"][kind]
         assert 0 <= lat["p50"] <= lat["p99"] < 1.0, lat

@@ -340,6 +340,8 @@ def _stats(
             "rate_hz": d.rate_hz,
             "end_to_end_latency_s": {"p50": d.edge_clock_latency_s.p50, "p99": d.edge_clock_latency_s.p99},
             "internal_latency_s": {"p50": d.internal_latency_s.p50, "p99": d.internal_latency_s.p99},
+            # Estimated from the gaps in the edge timestamps (docs/agent.md, Loss).
+            "loss": {"lost": d.loss.lost, "loss_ratio": d.loss.loss_ratio, "losing": d.loss.losing},
             "joints_rad": d.joints_rad,
         }
         for device, d in state.devices.items()
@@ -362,6 +364,10 @@ def _stats(
             "rejected": totals.rejected_total,
             "rejected_by_reason": totals.rejected,
             "lost": max(0, report.published - totals.received),
+            # The agent's own estimate of what never arrived, from the edge timestamps alone (it does not
+            # know `sent`): on this loopback broker it should read 0, on IoT Core it shows quota discards.
+            "estimated_lost": state.agent.loss.lost,
+            "estimated_loss_ratio": state.agent.loss.loss_ratio,
         },
         # Percentiles over the agent's health window (the last seconds of the run), worst device. The edge
         # simulator stamps messages with this host's clock, so end-to-end latency here has no skew in it.

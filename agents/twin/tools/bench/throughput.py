@@ -2,7 +2,8 @@
 
 Two phases in one run, against the same broker with the same offered load:
 1. ceiling: a subscriber built the way the agent builds its own, whose handler only counts;
-2. agent: `twin run` (decode, validate, twin update with inverse dynamics, health) as a child process.
+2. agent: `twin run` (decode and validate every message, twin update, loss estimate, health) as a child
+   process; forward kinematics and inverse dynamics are computed when read, which the benchmark does not.
 The publishers run in their own processes so their CPU is not charged to either. All of it shares this
 machine's cores, so the figures are for the whole pipeline on one host: say so when quoting them.
 """
@@ -99,7 +100,7 @@ def agent_phase(
         "devices_seen": len(state.devices),
         "sustained_rate": received / elapsed if elapsed else 0.0,
         # Messages that reached the twin (decoded and applied) per second; the rest of `received` was
-        # coalesced by the latest-value mailbox (a newer pose of the same arm replaced it) or rejected.
+        # rejected, ignored as stale, or dropped undecoded because the agent's queue was full ("coalesced").
         "mirrored_rate": applied / elapsed if elapsed else 0.0,
         "history": dataclasses.asdict(state.agent.history) if state.agent.history else None,
         "internal_latency_s": dataclasses.asdict(state.agent.latency.internal_s),
