@@ -35,9 +35,14 @@ from collections import Counter
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
+from typing import TYPE_CHECKING
 
-from twin.core.telemetry import JointDiagnostics
 from twin.robot import so101, sts3215
+
+if TYPE_CHECKING:
+    # Annotations only: the config loads the alarm thresholds from here, and `twin --help` must not need the
+    # decoder's msgspec (tests/infra/test_userdata.py installs the package without its dependencies).
+    from twin.core.telemetry import JointDiagnostics
 
 
 class AlarmState(StrEnum):
