@@ -32,7 +32,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections import Counter
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import TYPE_CHECKING
@@ -299,13 +299,78 @@ class _Alarm:
         return alarm_id(self.device, self.joint, self.kind)
 
 
-@dataclass(frozen=True, slots=True)
-class JointHealth:
-    """What the alarm rules saw for one joint in the last evaluation (for /state, /metrics and the viewer)."""
+TorqueSource = Mapping[str, float] | Callable[[], Mapping[str, float]]
 
-    model_load_percent: float | None  # the holding torque as the load the servo should report
-    mismatch_percent: float | None  # | |load| - |model load| |, only while the joint is still
-    still: bool | None
+
+class _Torques:
+    """One pose's holding torques, asked for at most once: the agent passes a function that runs inverse
+    dynamics (about 30 us per arm), which only a still joint's model check and a reader of
+    `model_load_percent` need; a fleet of moving arms should not pay it per message."""
+
+    __slots__ = ("_source", "_torques")
+
+    def __init__(self, source: TorqueSource) -> None:
+        self._source = source
+        self._torques: Mapping[str, float] | None = None if callable(source) else source
+
+    def get(self, joint: str) -> float | None:
+        torques = self._torques
+        if torques is None:
+            torques = self._torques = self._source()  # type: ignore[operator]
+        return torques.get(joint)
+
+
+_UNKNOWN = object()
+
+
+class JointHealth:
+    """What the alarm rules saw for one joint in the last evaluation (for /state, /metrics and the viewer).
+
+    `model_load_percent` (the holding torque as the load the servo should report) is computed when first read,
+    unless the model check already needed it. Safe to read from any thread: a race computes the same value."""
+
+    __slots__ = ("_model", "_servo", "_torques", "_voltage", "joint", "mismatch_percent", "still")
+
+    def __init__(
+        self,
+        *,
+        mismatch_percent: float | None,
+        still: bool | None,
+        model_load_percent: float | object | None = _UNKNOWN,
+        joint: str = "",
+        torques: _Torques | None = None,
+        servo: sts3215.ServoVersion | None = None,
+        voltage_v: float | None = None,
+    ) -> None:
+        self.mismatch_percent = mismatch_percent  # | |load| - |model load| |, only while the joint is still
+        self.still = still
+        self.joint = joint
+        self._model = model_load_percent
+        self._torques = torques
+        self._servo = servo
+        self._voltage = voltage_v
+
+    @property
+    def model_load_percent(self) -> float | None:
+        model = self._model
+        if model is _UNKNOWN:
+            model = self._model = _model_load(self._torques, self._servo, self.joint, self._voltage)
+        return model  # type: ignore[return-value]
+
+    def __repr__(self) -> str:
+        return (
+            f"JointHealth(model_load_percent={self.model_load_percent!r}, "
+            f"mismatch_percent={self.mismatch_percent!r}, still={self.still!r})"
+        )
+
+
+def _model_load(
+    torques: _Torques | None, servo: sts3215.ServoVersion | None, joint: str, voltage_v: float | None
+) -> float | None:
+    torque = None if torques is None else torques.get(joint)
+    if torque is None or servo is None:
+        return None
+    return servo.load_percent(abs(torque), voltage_v)
 
 
 @dataclass
@@ -345,7 +410,7 @@ class ServoAlarms:
         self,
         device: str,
         diagnostics: Mapping[str, JointDiagnostics],
-        holding_torques_nm: Mapping[str, float],
+        holding_torques_nm: TorqueSource,
         now: float,
         *,
         angles_rad: Mapping[str, float] | None = None,
@@ -355,6 +420,7 @@ class ServoAlarms:
 
         `angles_rad` and `timestamp_ms` (the applied pose and its edge time) let the model check see motion
         from the pose itself: the edge's mock mode, for one, sends random velocities whatever the arm does.
+        `holding_torques_nm` may be a function returning them: it is called only if some joint needs them.
         """
         if not self.thresholds.enabled:
             return []
@@ -362,6 +428,7 @@ class ServoAlarms:
         events: list[AlarmEvent] = []
         health: dict[str, JointHealth] = {}
         slots_of = self._slots.setdefault(device, {})
+        torques = _Torques(holding_torques_nm)
         for joint, diag in diagnostics.items():
             rules = self._rule_list.get(joint)
             if rules is None:
@@ -369,12 +436,22 @@ class ServoAlarms:
             temp = diag.temperature_c
             load = diag.load_percent
             still = self._still(diag, speeds.get(joint))
-            torque = holding_torques_nm.get(joint)
-            model = None if torque is None else self._servo.load_percent(abs(torque), diag.voltage_v)
+            model: float | None = None
             mismatch = None
-            if joint in self._mismatch_joints and still and load is not None and model is not None:
-                mismatch = abs(abs(load) - model)
-            health[joint] = JointHealth(model_load_percent=model, mismatch_percent=mismatch, still=still)
+            if joint in self._mismatch_joints and still and load is not None:
+                model = _model_load(torques, self._servo, joint, diag.voltage_v)
+                if model is not None:
+                    mismatch = abs(abs(load) - model)
+                health[joint] = JointHealth(model_load_percent=model, mismatch_percent=mismatch, still=still)
+            else:
+                health[joint] = JointHealth(
+                    mismatch_percent=None,
+                    still=still,
+                    joint=joint,
+                    torques=torques,
+                    servo=self._servo,
+                    voltage_v=diag.voltage_v,
+                )
             values = (temp, temp, diag.current_a, None if load is None else abs(load), mismatch)
             slots = slots_of.get(joint)
             if slots is None:

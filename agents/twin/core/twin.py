@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
 
@@ -226,10 +226,12 @@ class DeviceTwin:
                 value = hi
                 clamped += 1
             targets[i] = value
+        own = self._own_data
+        if own is not None or targets != self._targets:
+            # Computed when read; an arm holding still keeps the figures of its pose.
+            self._figures = None
         self._targets = targets
         self.clamped += clamped
-        self._figures = None  # computed when read
-        own = self._own_data
         if own is not None:
             if last is None:
                 # Start the simulation at the first measured pose instead of swinging there from qpos0.
@@ -299,6 +301,12 @@ class DeviceTwin:
     def joint_torques(self) -> dict[str, float]:
         """Inverse-dynamics holding torque (N m) per joint for the last measured pose."""
         return dict(self._current_figures().torques)
+
+    def torques_when_read(self) -> Callable[[], Mapping[str, float]]:
+        """The current pose's holding torques as a function that computes them on its first call (the same
+        computation `snapshot()` shares): for callers that may not need them, such as the alarm engine."""
+        figures = self._current_figures()
+        return lambda: figures.torques
 
     @property
     def tcp_position(self) -> np.ndarray:

@@ -42,7 +42,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
-from twin.core.alarms import AlarmEvent, AlarmView, ServoAlarms, Severity
+from twin.core.alarms import AlarmEvent, AlarmState, AlarmView, JointHealth, ServoAlarms, Severity
 from twin.core.health import DeviceStatus, FleetHealth, HealthSnapshot
 from twin.core.latency import LatencyHistogram
 from twin.core.loss import DeviceLoss
@@ -144,6 +144,12 @@ class _Applied(NamedTuple):
     clamped: int
 
 
+# A device's last diagnostics, the alarm engine's JointHealth and worst (severity, state) per joint.
+_ServoReadout = tuple[
+    dict[str, JointDiagnostics], dict[str, JointHealth], dict[str, tuple[Severity, AlarmState]]
+]
+
+
 @dataclass(frozen=True, slots=True)
 class _Readout:
     """Everything `state()` copies under the lock, to build the typed state outside it."""
@@ -156,7 +162,7 @@ class _Readout:
     untracked: dict[str, int]
     batches: int
     latency: FleetLatency
-    servos: dict[str, dict[str, ServoState]]
+    servos: dict[str, _ServoReadout]
     alarms: AlarmsSummary
     loss: dict[str, dict[str, Any]]
 
@@ -602,7 +608,8 @@ class AgentService:
         go to the sinks with the sample."""
         device = telemetry.device_id
         twin = tracked.twin
-        torques = twin.joint_torques
+        # Inverse dynamics only if a still joint's model check or a reader needs it (core.alarms._Torques).
+        torques = twin.torques_when_read()
         with self._lock:
             self._diagnostics[device] = telemetry.diagnostics
             events = self._alarms.evaluate(
@@ -696,17 +703,22 @@ class AgentService:
                 latency=FleetLatency(
                     internal_s=self._internal_hist.summary(), end_to_end_s=self._end_to_end_hist.summary()
                 ),
-                servos={device: self._servo_states(device) for device in self._diagnostics},
+                servos={device: self._servo_readout(device) for device in self._diagnostics},
                 alarms=self._alarms_summary(),
                 loss={device: loss.snapshot(now) for device, loss in self._loss.items()},
             )
 
-    def _servo_states(self, device: str) -> dict[str, ServoState]:
-        """Under the lock: the device's last diagnostics with the alarm engine's view of each joint."""
-        health = self._alarms.joint_health(device)
-        worst = self._alarms.worst_by_joint(device)
+    def _servo_readout(self, device: str) -> _ServoReadout:
+        """Under the lock: the device's last diagnostics and the alarm engine's view of each joint."""
+        alarms = self._alarms
+        return self._diagnostics[device], alarms.joint_health(device), alarms.worst_by_joint(device)
+
+    @staticmethod
+    def _servo_states(readout: _ServoReadout) -> dict[str, ServoState]:
+        """Outside the lock: `model_load_percent` may run inverse dynamics on first read (core.alarms)."""
+        diagnostics, health, worst = readout
         out = {}
-        for joint, diag in self._diagnostics[device].items():
+        for joint, diag in diagnostics.items():
             h = health.get(joint)
             severity, state = worst.get(joint, (None, None))
             out[joint] = ServoState(
@@ -795,7 +807,7 @@ class AgentService:
             torques_nm=snap.joint_torques if snap else None,
             tcp_position_m=snap.tcp_position if snap else None,
             gripper_percent=readout.gripper.get(device),
-            servos=readout.servos.get(device),
+            servos=self._servo_states(readout.servos[device]) if device in readout.servos else None,
             loss=_device_loss(readout.loss.get(device)),
         )
 
