@@ -435,6 +435,26 @@ def test_s3_two_writers_an_outage_and_read_back(s3: MotoS3) -> None:
     assert any("/date=2026-11-18/" in k for k in keys)
 
 
+def test_the_agent_keeps_every_decoded_message_also_those_the_twin_ignores(tmp_path: Path) -> None:
+    from conftest import fed_agent, wait_for
+
+    uri = str(tmp_path / "agent-history")
+    with fed_agent(12, **{"history.uri": uri, "history.commit_every_s": 0.2}) as agent:
+        t0 = agent.state().devices["arm-001"].timestamp_ms - 1100
+        # A late message (between two applied ones) and a repeat of the last: valid, decoded, not applied.
+        for stamp in (t0 + 150, t0 + 1100):
+            payload = encode(make_payload("arm-001", 0.0, "ticks", random.Random(1), timestamp_ms=stamp))
+            agent._on_message("dt/lerobot/arm-001/telemetry", payload, time.monotonic())
+        wait_for(lambda: agent.state().agent.worker.processed == 16, 3, "the late messages")
+        counters = agent.state().devices["arm-001"].counters
+    assert (counters.decoded, counters.applied, counters.ignored_stale) == (14, 12, 2)
+    rows = rows_of(uri)
+    assert rows.height == 14  # every decoded message, applied or not
+    assert sorted(rows["edge_time"].dt.epoch("ms").to_list()).count(t0 + 1100) == 2
+    # The two garbage messages of the fed agent are rejected rows.
+    assert rows_of(uri, REJECTED_TABLE).height == 2
+
+
 def test_demo_style_uri_is_created(tmp_path: Path) -> None:
     nested = tmp_path / "a" / "b" / "history"
     HistoryWriter(HistorySettings(uri=str(nested))).close()
@@ -582,16 +602,15 @@ def test_replay_publishes_what_was_recorded_and_the_agent_mirrors_it(
     # The mock motion stays inside the model's joint ranges, so nothing was clamped.
     assert mirrored.joints_rad == pytest.approx(last, abs=1e-9)
 
-    # The agent's history (flushed by stop()) holds every applied message with its raw readings, and the
+    # The agent's history (flushed by stop()) holds every decoded message with its raw readings, and the
     # messages auto-units held back as rejected rows.
     agent_rows = rows_of(str(tmp_path / "agent-history"))
-    assert agent_rows.height == applied
+    assert agent_rows.height == mirrored.counters.decoded >= applied
     stored = agent_rows.sort("edge_time").row(-1, named=True)
     sent_last = json.loads(received[-1])["joints"]
     assert stored["wrist_flex_load_raw"] == sent_last["wrist_flex"]["load"]
     assert stored["gripper_position_rad"] == last["gripper"]
     rejected = rows_of(str(tmp_path / "agent-history"), REJECTED_TABLE)
-    # (At 4x a loaded machine may coalesce a message in the latest-value mailbox: the counters say which.)
     assert rejected.height == mirrored.counters.rejected_total + sum(state.untracked_rejected.values())
     assert set(rejected["reason"].to_list()) == {"units_undecided"}
     history = state.agent.history

@@ -19,17 +19,24 @@ import logging
 import threading
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 from twin.core.alarms import AlarmEvent
-from twin.core.telemetry import Telemetry
+
+if TYPE_CHECKING:
+    # Annotations only: the config imports the ROS 2 sink's settings, which import this module, and
+    # `twin --help` must not need the decoder's msgspec (tests/infra/test_userdata.py).
+    from twin.core.telemetry import Telemetry
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, slots=True)
 class AppliedSample:
-    """One message the twin applied: the decoded telemetry and the angles the twin now shows."""
+    """One message the twin applied: the decoded telemetry and the angles the twin now shows.
+
+    The history sink alone also receives the valid messages the twin did not apply (late or duplicate); for
+    those `joint_angles` are the decoded angles."""
 
     device_id: str
     received_wall_s: float

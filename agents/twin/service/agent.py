@@ -18,7 +18,8 @@ one message is caught, logged (rate-limited) and counted: a bad message never st
 
 Sinks (twin.output.sinks) receive every applied message as an `AppliedSample` and every rejected one as a
 `RejectedSample`, on the worker thread; each returns at once (I/O sinks queue to a thread of their own). The
-USD recording is one such sink; `AgentService(..., sinks=[...])` adds more.
+history sink also gets the valid messages the twin did not apply (late or duplicate), so it holds every
+decoded message. The USD recording is one such sink; `AgentService(..., sinks=[...])` adds more.
 
 Ordering uses the edge timestamp (DeviceTwin.apply ignores anything not newer), liveness uses the agent's
 monotonic receive time (twin.core.health). The two meet in one place: when a device keeps sending valid
@@ -487,6 +488,10 @@ class AgentService:
                 events = self._evaluate_alarms(telemetry, item, result.tracked)
             if result.applied and self._sinks:
                 self._hand_applied(telemetry, item, result.tracked, events)
+            elif self._history is not None:
+                # History keeps every decoded message (issue 13: rows written = rows received), also one the
+                # twin did not apply because it came late or twice; the other sinks mirror the twin.
+                self._hand_history(telemetry, item)
             return telemetry.device_id if result.applied else None
         except Exception:
             self._count_error(topic_device, "processing a message failed", topic=item.topic)
@@ -652,6 +657,19 @@ class AgentService:
         )
         for sink in self._sinks:
             self._guard_sink(sink, sink.applied, sample)
+
+    def _hand_history(self, telemetry: Telemetry, item: _Inbound) -> None:
+        history = self._history
+        assert history is not None
+        sample = AppliedSample(
+            device_id=telemetry.device_id,
+            received_wall_s=item.recv_wall,
+            received_mono_s=item.recv_mono,
+            telemetry=telemetry,
+            joint_angles=telemetry.angles_rad,  # not applied: the decoded angles, unclamped
+            payload=item.payload,
+        )
+        self._guard_sink(history, history.applied, sample)
 
     def _guard_sink(self, sink: TwinSink, method: Any, sample: object) -> None:
         # A sink that raises (it should not: I/O sinks queue) must not cost the mirror or the other sinks.

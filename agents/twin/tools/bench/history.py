@@ -192,7 +192,7 @@ def load(*, arms: int = 1000, rate: float = 10.0, seconds: float = 20.0) -> dict
 
     Both phases run `twin run` as a child process on one private broker (twin.tools.bench.throughput). After
     the second the agent is stopped with SIGTERM (its final commit), and the rows in the tables are compared
-    with the messages the agent handed to the history sink (applied + rejected).
+    with the messages the agent handed to the history sink (every decoded one + rejected).
     """
     from twin.tools.bench.throughput import agent_phase  # noqa: PLC0415
     from twin.tools.rig import LocalRig  # noqa: PLC0415
@@ -206,7 +206,7 @@ def load(*, arms: int = 1000, rate: float = 10.0, seconds: float = 20.0) -> dict
         reader = HistoryReader(uri)
         rows = sum(d.rows for d in reader.summary())
         rejected_rows = sum(reader.rejected_counts().values())
-        handed = on["applied"] + on["rejected"]
+        handed = on["decoded"] + on["rejected"]
 
         def ratio(key: str, sub: str | None = None) -> float | None:
             a = off[key] if sub is None else off[key][sub]

@@ -92,6 +92,7 @@ def agent_phase(
         "received": received,
         "lost": max(0, sent["sent"] - received),
         "applied": applied,
+        "decoded": sum_devices(state, "decoded"),
         "coalesced": sum_devices(state, "overwritten"),
         # Per device, plus those counted before a device was known (e.g. units_undecided while `auto`
         # gathers evidence from a new arm's first messages).
