@@ -8,12 +8,14 @@ No DDS traffic here: anything that discovers peers runs in a loopback-only names
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
 
+import msgspec
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -163,8 +165,9 @@ def _sample(velocities: list[float | None]) -> AppliedSample:
 def test_velocity_only_when_every_joint_reports_one() -> None:
     assert sample_velocities(_sample([0.1, 0.2, 0.3, 0.4, 0.5, 0.6])) == [0.1, 0.2, 0.3, 0.4, 0.5, 0.6]
     assert sample_velocities(_sample([0.1, 0.2, None, 0.4, 0.5, 0.6])) is None
-    no_diag = _sample([0.0] * 6)
-    object.__setattr__(no_diag.telemetry, "diagnostics", {})
+    sample = _sample([0.0] * 6)
+    # Telemetry is a frozen msgspec Struct: a copy without diagnostics.
+    no_diag = dataclasses.replace(sample, telemetry=msgspec.structs.replace(sample.telemetry, diagnostics={}))
     assert sample_velocities(no_diag) is None
 
 
