@@ -27,7 +27,7 @@ from __future__ import annotations
 import json
 import logging
 import math
-from collections.abc import Iterator, Mapping
+from collections.abc import ItemsView, Iterator, Mapping, ValuesView
 from dataclasses import dataclass, field
 from enum import StrEnum
 from operator import attrgetter
@@ -170,6 +170,17 @@ class _LazyDiagnostics(Mapping[str, JointDiagnostics]):
 
     def __len__(self) -> int:
         return len(_JOINTS)
+
+    # The Mapping mixins would go through __getitem__ once per joint; the alarm engine iterates items() for
+    # every applied message, so these go straight to the dict.
+    def items(self) -> ItemsView[str, JointDiagnostics]:
+        return self._all().items()
+
+    def values(self) -> ValuesView[JointDiagnostics]:
+        return self._all().values()
+
+    def get(self, joint: str, default: Any = None) -> Any:
+        return self._all().get(joint, default)
 
     def __repr__(self) -> str:
         return repr(self._all())
