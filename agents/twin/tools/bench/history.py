@@ -24,6 +24,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import msgspec
+
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
 from twin.output.history import TELEMETRY_TABLE, HistorySettings, HistoryWriter, telemetry_table
 from twin.output.sinks import AppliedSample
@@ -139,7 +141,7 @@ def read(*, arms: int = 100, minutes: float = 60.0, commit_every_s: float = 10.0
                     pose = poses[k % POSES_PER_ARM]
                     ms = round(wall * 1000)
                     before, _, after = pose.payload.partition(b"1795046400000")
-                    telemetry = dataclasses.replace(pose.telemetry, timestamp_ms=ms)
+                    telemetry = msgspec.structs.replace(pose.telemetry, timestamp_ms=ms)  # a frozen Struct
                     payload = before + str(ms).encode() + after
                     batch.append(
                         dataclasses.replace(pose, received_wall_s=wall, telemetry=telemetry, payload=payload)
