@@ -178,15 +178,20 @@ def test_reordered_and_duplicated_never_move_the_twin_backwards(rig: LocalRig, p
             expected_ignored += 1
         seen_max = max(seen_max, k)
         publisher.publish("arm-001", payloads[k])
-        # One at a time: wait until the worker took it, so the mailbox never merges two.
+        # One at a time. The counters move while the worker handles a message and the pose is published
+        # when its batch ends, so wait for both; until the next message the state cannot change, so a twin
+        # that moved backwards shows an older stamp here and the wait fails.
+        expected_ms = t0 + 100 * seen_max
         wait_for(
-            lambda n=i + 1: service.state().devices["arm-001"].counters.received >= n,
+            lambda n=i + 1, ms=expected_ms: (
+                (d := service.state().devices["arm-001"]).counters.received >= n and d.timestamp_ms == ms
+            ),
             3,
-            f"message {i} to be processed",
+            f"message {i} to be processed and the twin at {expected_ms}",
             0.005,
         )
         stamps.append(service.state().devices["arm-001"].timestamp_ms)
-        assert stamps[-1] == t0 + 100 * seen_max
+        assert stamps[-1] == expected_ms
     dev = device_state(service.http_url, "arm-001")
     assert dev.counters.ignored_stale == expected_ignored
     assert dev.counters.applied == len(order) - expected_ignored
