@@ -21,9 +21,16 @@ import time
 from typing import Any
 
 from twin.service.state import AgentState
-from twin.tools.bench.harness import ProcessSampler, get_state, wait_subscribed
+from twin.tools.bench.harness import (
+    ProcessSampler,
+    collect,
+    drained,
+    get_state,
+    publishers,
+    sum_devices,
+    wait_subscribed,
+)
 from twin.tools.bench.load import arm_name
-from twin.tools.bench.throughput import _collect, _drained, _publishers, _sum_devices
 from twin.tools.quota_proxy import QuotaProxy
 from twin.tools.rig import LocalRig
 
@@ -41,9 +48,9 @@ def _figures(before: AgentState, after: AgentState, drops: int) -> dict[str, Any
         "proxy_dropped": drops,
         "proxy_dropped_ratio": drops / sent if sent else 0.0,
         "received": received,
-        "applied": _sum_devices(after, "applied") - _sum_devices(before, "applied"),
+        "applied": sum_devices(after, "applied") - sum_devices(before, "applied"),
         # Valid but overtaken by a newer message of the same arm (a shared subscription reorders).
-        "ignored_stale": _sum_devices(after, "ignored_stale") - _sum_devices(before, "ignored_stale"),
+        "ignored_stale": sum_devices(after, "ignored_stale") - sum_devices(before, "ignored_stale"),
         "estimated_lost": estimated,
         # The agent's estimate against what the proxy really dropped, as a share of what was sent.
         "estimate_error_of_sent": (estimated - drops) / sent if sent else 0.0,
@@ -78,13 +85,13 @@ def _phase(
             log_name=f"quota-{name}",
         ) as (proc, base):
             wait_subscribed(base, proc)
-            pubs = _publishers(rig.broker.url, arms, rate, warmup + seconds)
+            pubs = publishers(rig.broker.url, arms, rate, warmup + seconds)
             time.sleep(warmup)
             before = get_state(base)
             dropped_before = proxy.totals()["dropped"]
             sampler = ProcessSampler(proc.pid).start()
-            sent = _collect(pubs, timeout=warmup + seconds + 60)
-            after = _drained(base)
+            sent = collect(pubs, timeout=warmup + seconds + 60)
+            after = drained(base)
             usage = sampler.stop()
             if proc.poll() is not None:
                 raise RuntimeError(f"the agent exited during the {name} phase (code {proc.returncode})")
