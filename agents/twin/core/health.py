@@ -72,6 +72,9 @@ class DeviceCounters:
     decoded: int = 0
     applied: int = 0
     ignored_stale: int = 0
+    # Valid messages not applied because a newer valid one of the same arm was already waiting (the worker
+    # was catching up); they still count as received and decoded, and history keeps them.
+    coalesced: int = 0
     overwritten: int = 0
     errors: int = 0
     clock_resets: int = 0
@@ -178,6 +181,7 @@ class DeviceHealth:
         self.decoded = 0
         self.applied = 0
         self.ignored_stale = 0
+        self.coalesced = 0
         self.overwritten = 0
         self.errors = 0
         self.clock_resets = 0
@@ -214,6 +218,9 @@ class DeviceHealth:
     def record_ignored_stale(self) -> None:
         self.ignored_stale += 1
 
+    def record_coalesced(self) -> None:
+        self.coalesced += 1
+
     def silent_for(self, now: float | None = None) -> float:
         now = self._clock() if now is None else now
         last = self.last_message_mono if self.last_message_mono is not None else self._since
@@ -241,6 +248,7 @@ class DeviceHealth:
                 decoded=self.decoded,
                 applied=self.applied,
                 ignored_stale=self.ignored_stale,
+                coalesced=self.coalesced,
                 overwritten=self.overwritten,
                 errors=self.errors,
                 clock_resets=self.clock_resets,

@@ -110,6 +110,10 @@ CLOCK_RESET_MIN_MESSAGES = 5
 MAX_PHYSICS_STEP_S = 0.1
 # How often the worker wakes with nothing to do (kinematic mode): bounds the stop latency.
 IDLE_WAKE_S = 0.2
+# When the oldest message of a batch has waited longer than this, the worker is behind: it still decodes and
+# counts every message, but applies only each arm's newest valid one, so the twin shows the present instead
+# of replaying a backlog seconds old (docs/agent.md, "Catching up").
+CATCH_UP_AFTER_S = 0.05
 TOO_MANY_DEVICES = "too_many_devices"
 # The queue between the MQTT threads and the worker holds at most this many messages (about 40 MB of edge
 # payloads); beyond it the oldest are dropped and counted, so a stalled worker cannot exhaust memory.
@@ -430,10 +434,16 @@ class AgentService:
             if not items and self._mailbox.closed:
                 return
             dirty: set[str] = set()
-            for key, item in items:
-                device = self._process(key, item)
-                if device is not None:
-                    dirty.add(device)
+            if items and self._clock() - items[0][1].recv_mono > CATCH_UP_AFTER_S:
+                for key, item, telemetry in self._catch_up(items):
+                    device = self._process(key, item, telemetry)
+                    if device is not None:
+                        dirty.add(device)
+            else:
+                for key, item in items:
+                    device = self._process(key, item)
+                    if device is not None:
+                        dirty.add(device)
             if physics:
                 now = self._clock()
                 self._step_physics(min(now - last_step, MAX_PHYSICS_STEP_S), dirty)
@@ -464,17 +474,61 @@ class AgentService:
             if keys:
                 self.batches += 1
 
-    def _process(self, key: str, item: _Inbound) -> str | None:
+    def _catch_up(self, items: list[tuple[str, _Inbound]]) -> list[tuple[str, _Inbound, Telemetry]]:
+        """A batch taken while behind: every message decoded (rejections counted as always), and of each
+        known arm only the newest valid message kept for the twin; the older valid ones are counted as
+        coalesced and still reach history. A garbage message never displaces a good one: only valid
+        messages compete. Arms not yet admitted keep every message (admission decides on them)."""
+        decoded: list[tuple[str, _Inbound, Telemetry]] = []
+        for key, item in items:
+            topic_device = None if key == UNTRACKED_KEY else key
+            self.processed += 1
+            try:
+                telemetry = self._decode(topic_device, item)
+            except Exception:
+                self._count_error(topic_device, "processing a message failed", topic=item.topic)
+                continue
+            if telemetry is not None:
+                decoded.append((key, item, telemetry))
+        newest: dict[str, int] = {}
+        for i, (_key, _item, telemetry) in enumerate(decoded):
+            if telemetry.device_id in self._devices:
+                newest[telemetry.device_id] = i
+        keep = []
+        for i, entry in enumerate(decoded):
+            device = entry[2].device_id
+            if newest.get(device, i) == i:
+                keep.append(entry)
+            else:
+                self._coalesce(entry[2], entry[1])
+        return keep
+
+    def _coalesce(self, telemetry: Telemetry, item: _Inbound) -> None:
+        # Received and valid: the device is alive and this sample is no transit loss, only not shown.
+        device = telemetry.device_id
+        with self._lock:
+            health = self._fleet.device(device)
+            health.record_received()
+            health.record_decoded(item.recv_mono, item.recv_wall, telemetry.timestamp_ms)
+            health.record_coalesced()
+            self._loss_of(device).observe(telemetry.timestamp_ms)
+        if self._history is not None:
+            self._hand_history(telemetry, item)
+
+    def _process(self, key: str, item: _Inbound, decoded: Telemetry | None = None) -> str | None:
         """Handle one message; returns the device whose twin changed, if any. Never raises.
 
-        The steps: decode (a rejection is counted and handed to the sinks), admit the device (bounded by
-        telemetry.max_devices), apply it to the twin (with clock-jump detection), record health and latency,
-        hand the applied sample to the sinks.
+        The steps: decode (a rejection is counted and handed to the sinks; skipped when `decoded` is the
+        catch-up pass's result), admit the device (bounded by telemetry.max_devices), apply it to the twin
+        (with clock-jump detection), record health and latency, hand the applied sample to the sinks.
         """
         topic_device = None if key == UNTRACKED_KEY else key
         try:
-            self.processed += 1
-            telemetry = self._decode(topic_device, item)
+            if decoded is None:
+                self.processed += 1
+                telemetry = self._decode(topic_device, item)
+            else:
+                telemetry = decoded
             if telemetry is None:
                 return None
             tracked = self._admit(telemetry.device_id)

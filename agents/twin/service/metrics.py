@@ -40,6 +40,10 @@ _MESSAGE_COUNTERS = (
         "ignored_stale",
         "Valid messages ignored because their timestamp was not newer (duplicate or reordered).",
     ),
+    (
+        "coalesced",
+        "Valid messages not applied because a newer one of the same arm was waiting (worker catching up).",
+    ),
     ("overwritten", "Messages dropped undecoded because the worker fell a whole queue behind."),
 )
 _SINK_COUNTERS = (

@@ -93,7 +93,8 @@ def agent_phase(
         "lost": max(0, sent["sent"] - received),
         "applied": applied,
         "decoded": sum_devices(state, "decoded"),
-        "coalesced": sum_devices(state, "overwritten"),
+        "coalesced": sum_devices(state, "coalesced"),
+        "overwritten": sum_devices(state, "overwritten"),
         # Per device, plus those counted before a device was known (e.g. units_undecided while `auto`
         # gathers evidence from a new arm's first messages).
         "rejected": sum_devices(state, "rejected_total") + sum(state.untracked_rejected.values()),
@@ -101,7 +102,8 @@ def agent_phase(
         "devices_seen": len(state.devices),
         "sustained_rate": received / elapsed if elapsed else 0.0,
         # Messages that reached the twin (decoded and applied) per second; the rest of `received` was
-        # rejected, ignored as stale, or dropped undecoded because the agent's queue was full ("coalesced").
+        # rejected, ignored as stale, coalesced while the worker caught up (decoded, counted, kept in history,
+        # not applied), or dropped undecoded because the agent's queue was full ("overwritten").
         "mirrored_rate": applied / elapsed if elapsed else 0.0,
         "history": dataclasses.asdict(state.agent.history) if state.agent.history else None,
         "internal_latency_s": dataclasses.asdict(state.agent.latency.internal_s),

@@ -1,0 +1,116 @@
+"""The worker catching up: a backlog is decoded and counted whole; each arm shows its newest valid message.
+
+A gate sink holds the worker inside its first applied sample while a backlog queues behind it (the sink
+contract forbids blocking; here it is the tool that makes the worker fall behind deterministically). The
+service is fed through its MQTT callback; no broker is needed.
+"""
+
+from __future__ import annotations
+
+import random
+import threading
+import time
+from collections.abc import Iterator
+
+import pytest
+from conftest import wait_for
+from twin.output.sinks import AppliedSample, RejectedSample, SinkStats
+from twin.service.agent import CATCH_UP_AFTER_S, AgentService
+from twin.service.config import load_config
+from twin.tools.edge_payload import encode, make_payload
+from twin.tools.mosquitto import free_port
+
+TOPIC = "dt/lerobot/arm-001/telemetry"
+
+
+class GateSink:
+    """Blocks the worker in the first applied sample until released; records what it was handed."""
+
+    name = "gate"
+
+    def __init__(self) -> None:
+        self.entered = threading.Event()
+        self.release = threading.Event()
+        self.applied_ms: list[int] = []
+        self.rejected_reasons: list[str] = []
+
+    def applied(self, sample: AppliedSample) -> None:
+        self.applied_ms.append(sample.timestamp_ms)
+        if not self.entered.is_set():
+            self.entered.set()
+            self.release.wait(10)
+
+    def rejected(self, sample: RejectedSample) -> None:
+        self.rejected_reasons.append(sample.reason)
+
+    def stats(self) -> SinkStats:
+        return SinkStats(name=self.name, delivered=len(self.applied_ms))
+
+    def close(self, timeout: float = 5.0) -> None:
+        self.release.set()
+
+
+@pytest.fixture
+def gated() -> Iterator[tuple[AgentService, GateSink]]:
+    config = load_config(
+        None,
+        {
+            "broker.url": f"mqtt://127.0.0.1:{free_port()}",
+            "http.listen": "127.0.0.1:0",
+            "telemetry.devices": ["arm-001"],
+            "telemetry.units": "ticks",
+        },
+    )
+    gate = GateSink()
+    service = AgentService(config, sinks=[gate])
+    service.start()
+    try:
+        yield service, gate
+    finally:
+        gate.release.set()
+        service.stop()
+
+
+def test_a_backlog_is_counted_whole_and_the_newest_valid_message_is_shown(
+    gated: tuple[AgentService, GateSink],
+) -> None:
+    service, gate = gated
+    rng = random.Random(3)
+    t0 = int(time.time() * 1000)
+
+    def message(i: int) -> bytes:
+        return encode(make_payload("arm-001", 0.1 * i, "ticks", rng, timestamp_ms=t0 + 100 * i))
+
+    service._on_message(TOPIC, message(0), time.monotonic())
+    assert gate.entered.wait(5), "the worker never applied the first message"
+    # The backlog: nine good messages, then garbage last, all queued while the worker is held.
+    for i in range(1, 10):
+        service._on_message(TOPIC, message(i), time.monotonic())
+    service._on_message(TOPIC, b"{not json", time.monotonic())
+    time.sleep(CATCH_UP_AFTER_S * 2)  # the backlog's oldest message has now waited past the threshold
+    gate.release.set()
+
+    wait_for(lambda: service.state().agent.worker.processed == 11, 5, "the backlog")
+    counters = service.state().devices["arm-001"].counters
+    assert (counters.received, counters.decoded, counters.rejected_total) == (11, 10, 1)
+    # Only the newest valid message of the backlog moved the twin; the garbage after it displaced nothing.
+    assert (counters.applied, counters.coalesced) == (2, 8)
+    assert gate.applied_ms == [t0, t0 + 900]
+    assert gate.rejected_reasons == ["not_json"]
+    assert service.state().devices["arm-001"].timestamp_ms == t0 + 900
+    # Coalesced messages arrived: they are no transit loss.
+    assert service.state().devices["arm-001"].loss.lost == 0
+
+
+def test_a_worker_keeping_up_applies_every_message(gated: tuple[AgentService, GateSink]) -> None:
+    service, gate = gated
+    gate.release.set()
+    rng = random.Random(4)
+    t0 = int(time.time() * 1000)
+    for i in range(20):
+        payload = encode(make_payload("arm-001", 0.1 * i, "ticks", rng, timestamp_ms=t0 + 100 * i))
+        service._on_message(TOPIC, payload, time.monotonic())
+    wait_for(lambda: service.state().agent.worker.processed == 20, 5, "the messages")
+    counters = service.state().devices["arm-001"].counters
+    assert (counters.applied, counters.coalesced) == (20, 0)
+    assert gate.applied_ms == [t0 + 100 * i for i in range(20)]
