@@ -12,18 +12,25 @@ from twin.cli.output import Console, import_dev_tool
 console = Console("bench")
 
 
+def _fleet_load(
+    parser: argparse.ArgumentParser, *, arms: int, seconds_help: str = "how long it publishes"
+) -> None:
+    # The offered load of the fleet scenarios: N arms at R Hz for S seconds.
+    parser.add_argument("--arms", type=int, default=arms)
+    parser.add_argument("--rate", type=float, default=10.0, help="messages per second per arm")
+    parser.add_argument("--seconds", type=float, default=20.0, help=seconds_help)
+
+
 def register(subparsers: Any) -> None:
     parser = subparsers.add_parser(
         "bench",
-        help="measure throughput, fidelity, footprint and the Rerun stream's cost; print the figures",
+        help="measure the agent (throughput, fidelity, footprint, history, quota, sinks ...); print figures",
         description="Benchmarks print figures; they assert nothing. See docs/performance.md.",
     )
     sub = parser.add_subparsers(dest="scenario", metavar="SCENARIO", required=True)
 
     tp = sub.add_parser("throughput", help="N arms at R Hz through a private mosquitto into one agent")
-    tp.add_argument("--arms", type=int, default=2000)
-    tp.add_argument("--rate", type=float, default=10.0, help="messages per second per arm")
-    tp.add_argument("--seconds", type=float, default=20.0)
+    _fleet_load(tp, arms=2000)
 
     fi = sub.add_parser("fidelity", help="twin pose at 60 Hz vs the true motion, hold-last-value vs ours")
     fi.add_argument("--seconds", type=float, default=60.0)
@@ -41,14 +48,10 @@ def register(subparsers: Any) -> None:
     hr.add_argument("--minutes", type=float, default=60.0)
 
     hl = sub.add_parser("history-load", help="the mirror with history off vs on; rows written vs received")
-    hl.add_argument("--arms", type=int, default=1000)
-    hl.add_argument("--rate", type=float, default=10.0)
-    hl.add_argument("--seconds", type=float, default=20.0)
+    _fleet_load(hl, arms=1000)
 
     r2 = sub.add_parser("ros2", help="the ROS 2 bridge's cost: the same fleet without and with it")
-    r2.add_argument("--arms", type=int, default=100)
-    r2.add_argument("--rate", type=float, default=10.0, help="messages per second per arm")
-    r2.add_argument("--seconds", type=float, default=20.0)
+    _fleet_load(r2, arms=100)
 
     rn = sub.add_parser("render", help="offscreen frame time with the part meshes, model load, demo pictures")
     rn.add_argument("--frames", type=int, default=40, help="timed frames per view (after 5 warm-up frames)")
@@ -56,16 +59,12 @@ def register(subparsers: Any) -> None:
     rn.add_argument("--height", type=int, default=480)
 
     rr = sub.add_parser("rerun", help="the agent without and with the [rerun] sink: mirrored rate and CPU")
-    rr.add_argument("--arms", type=int, default=100)
-    rr.add_argument("--rate", type=float, default=10.0, help="messages per second per arm")
-    rr.add_argument("--seconds", type=float, default=20.0)
+    _fleet_load(rr, arms=100)
 
     qu = sub.add_parser(
         "quota", help="a fleet through an IoT-Core-like per-connection quota: one connection vs the pool"
     )
-    qu.add_argument("--arms", type=int, default=200)
-    qu.add_argument("--rate", type=float, default=10.0, help="messages per second per arm")
-    qu.add_argument("--seconds", type=float, default=20.0, help="measured window of each phase")
+    _fleet_load(qu, arms=200, seconds_help="measured window of each phase")
 
     de = sub.add_parser("decode", help="decode + validate of an edge message against json.loads of it")
 
