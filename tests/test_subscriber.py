@@ -33,7 +33,7 @@ from twin.tools.mosquitto import MosquittoBroker
 from twin.transport import client as client_mod
 from twin.transport.broker import CLIENT_ID_PREFIX_MAX, BrokerConfig, BrokerConfigError, new_client_id
 from twin.transport.client import build_mqtt5_client, resolve_iot_endpoint
-from twin.transport.mailbox import LatestValueMailbox
+from twin.transport.mailbox import InboundQueue
 from twin.transport.subscriber import TelemetrySubscriber
 
 PREFIX = "dt/lerobot"
@@ -393,7 +393,7 @@ def test_survives_broker_restarts(
     mosquitto: MosquittoBroker, record_property: Callable[[str, object], None]
 ) -> None:
     """Kill/stop and restart the broker 5 times under load; telemetry must flow again within 3 s each time."""
-    mailbox: LatestValueMailbox[tuple[bytes, float]] = LatestValueMailbox()
+    mailbox: InboundQueue[tuple[bytes, float]] = InboundQueue()
     arrivals: list[float] = []
 
     def on_message(topic: str, payload: bytes, received: float) -> None:

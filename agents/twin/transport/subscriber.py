@@ -58,8 +58,8 @@ class TelemetrySubscriber:
     """Subscribes `topic_filters` on every connection and hands each message to `on_message`.
 
     `on_message(topic, payload, received)` runs on the CRT thread, `received` being `clock()` at arrival. It
-    must not block: put the message into a `LatestValueMailbox` and decode elsewhere. Exceptions it raises
-    are logged and counted.
+    must not block: put the message into the `InboundQueue` (transport.mailbox) and decode elsewhere.
+    Exceptions it raises are logged and counted.
     """
 
     def __init__(
