@@ -1,4 +1,5 @@
-"""What every `twin` command shares: how it writes results and errors, and how it loads development tooling.
+"""What every `twin` command shares: how it writes results and errors, how it loads development tooling, and
+how a long-running command stops on SIGTERM or Ctrl-C.
 
 Results go to stdout (one line at a time, flushed, so a pipe or a CI log sees them as they happen); errors go
 to stderr prefixed with the command (`twin demo: ...`), so a user who ran several commands knows which one
@@ -8,7 +9,11 @@ complained.
 from __future__ import annotations
 
 import importlib
+import signal
 import sys
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from types import ModuleType
 
 
@@ -48,3 +53,24 @@ def import_dev_tool(module: str, command: str) -> ModuleType:
             "the agent package deployed to the instance carries only what the instance runs). Run it from a "
             "clone of the repository after `make setup`."
         ) from None
+
+
+@contextmanager
+def stop_on_signals(on_signal: Callable[[int], None] | None = None) -> Iterator[threading.Event]:
+    """An Event that SIGTERM or SIGINT sets while the block runs; the previous handlers are back after it.
+
+    `on_signal(signum)` runs first, inside the handler, which interrupts the main thread between bytecodes
+    (it may hold locks): keep it to recording the signal."""
+    stop = threading.Event()
+
+    def handler(signum: int, _frame: object) -> None:
+        if on_signal is not None:
+            on_signal(signum)
+        stop.set()
+
+    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        yield stop
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)

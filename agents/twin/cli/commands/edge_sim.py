@@ -5,11 +5,9 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import signal
-import threading
 from typing import Any
 
-from twin.cli.output import Console
+from twin.cli.output import Console, stop_on_signals
 from twin.core.topics import DEFAULT_TOPIC_PREFIX
 
 console = Console("edge-sim")
@@ -157,21 +155,12 @@ def run(args: argparse.Namespace) -> int:
         console.err(str(exc))
         return 2
 
-    stop = threading.Event()
-
-    def _stop(signum: int, _frame: Any) -> None:
-        logging.getLogger(__name__).info("signal %d: stopping", signum)
-        stop.set()
-
-    previous = {sig: signal.signal(sig, _stop) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        report = EdgeSimulator(config).run(stop)
-    except (ConnectionError, BrokerConfigError) as exc:
-        console.err(str(exc))
-        return 1
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+    with stop_on_signals() as stop:
+        try:
+            report = EdgeSimulator(config).run(stop)
+        except (ConnectionError, BrokerConfigError) as exc:
+            console.err(str(exc))
+            return 1
 
     if args.json:
         console.out(json.dumps(report.as_dict(), indent=2))

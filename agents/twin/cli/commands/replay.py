@@ -8,12 +8,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
-import threading
 from typing import Any
 
 from twin.cli.commands.history import add_uri_argument
-from twin.cli.output import Console
+from twin.cli.output import Console, stop_on_signals
 
 console = Console("replay")
 
@@ -72,16 +70,12 @@ def run(args: argparse.Namespace) -> int:
     except (ValueError, BrokerConfigError) as exc:
         console.err(str(exc))
         return EXIT_USAGE
-    stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGTERM, signal.SIGINT)}
-    try:
-        report = replay(config, stop=stop)
-    except HistoryReadError as exc:
-        console.err(str(exc))
-        return EXIT_FAILED
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+    with stop_on_signals() as stop:
+        try:
+            report = replay(config, stop=stop)
+        except HistoryReadError as exc:
+            console.err(str(exc))
+            return EXIT_FAILED
     if args.json:
         console.out(json.dumps(report.as_dict(), indent=2))
     else:

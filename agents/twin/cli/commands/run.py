@@ -10,11 +10,10 @@ from __future__ import annotations
 import argparse
 import logging
 import signal
-import threading
 from collections.abc import Callable
 from typing import Any
 
-from twin.cli.output import Console
+from twin.cli.output import Console, stop_on_signals
 from twin.core.topics import DEFAULT_TOPIC_PREFIX
 from twin.service.config import (
     DEFAULT_HTTP_HOST,
@@ -163,16 +162,8 @@ def serve(config: AgentConfig, on_started: Callable[[Any], None] | None = None) 
         close_sinks(sinks)
         return _config_error(str(exc))
 
-    stop = threading.Event()
     received: list[str] = []
-
-    def on_signal(signum: int, _frame: Any) -> None:
-        # Only set a flag: the handler runs between bytecodes of the main thread, which may hold locks.
-        received.append(signal.Signals(signum).name)
-        stop.set()
-
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
-    try:
+    with stop_on_signals(lambda signum: received.append(signal.Signals(signum).name)) as stop:
         try:
             service.start()
         except (OSError, ValueError) as exc:
@@ -188,9 +179,6 @@ def serve(config: AgentConfig, on_started: Callable[[Any], None] | None = None) 
         log.info("signal received; stopping", extra={"signal": received[0] if received else None})
         service.stop()
         return EXIT_OK
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
 
 
 def _cannot_start(exc: BaseException) -> int:

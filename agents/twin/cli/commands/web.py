@@ -11,14 +11,12 @@ Exit codes as `twin run`: 0 after SIGTERM/SIGINT, 1 when it cannot start, 2 for 
 from __future__ import annotations
 
 import argparse
-import signal
-import threading
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
 from twin.cli.commands import run as run_command
-from twin.cli.output import Console
+from twin.cli.output import Console, stop_on_signals
 from twin.output.rerun_settings import DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 
 console = Console("web")
@@ -103,9 +101,7 @@ def serve_file(path: Path, args: argparse.Namespace) -> int:
     if path.suffix != ".rrd" or not path.is_file():
         console.err(f"{path} is not a .rrd file; give a recording (e.g. out/demo/twin.rrd)")
         return run_command.EXIT_CONFIG
-    stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGTERM, signal.SIGINT)}
-    try:
+    with stop_on_signals() as stop:
         try:
             grpc = bindable_port(
                 DEFAULT_GRPC_PORT if args.grpc_port is None else args.grpc_port, "--grpc-port"
@@ -129,6 +125,3 @@ def serve_file(path: Path, args: argparse.Namespace) -> int:
             return run_command.EXIT_OK
         finally:
             stop_process(proc)
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
