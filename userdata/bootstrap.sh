@@ -367,7 +367,7 @@ install_dcv_packages() {
   retry curl -fsSL -o "$work/$tarball" "$DCV_CDN/$tarball"
   tar -xzf "$work/$tarball" -C "$work"
   # The tarball unpacks to one versioned directory; find the packages with a glob after extracting
-  # (listing it with `tar -t | head` kills tar with SIGPIPE under pipefail).
+  # (listing the archive and stopping after its first line would kill tar with SIGPIPE under pipefail).
   debs=("$work"/nice-dcv-*/nice-dcv-server_*.deb "$work"/nice-dcv-*/nice-dcv-web-viewer_*.deb)
   for deb in "${debs[@]}"; do
     [ -f "$deb" ] || die "$tarball has no ${deb##*/} (its layout changed?)"
