@@ -751,55 +751,17 @@ class HistoryWriter:
 
     def _maintain(self, today: dt.date | None = None) -> None:
         """Compact today's and yesterday's partitions, checkpoint, vacuum replaced files, trim the log."""
-        from deltalake import DeltaTable  # noqa: PLC0415
         from deltalake.exceptions import CommitFailedError  # noqa: PLC0415
 
         self._next_maintenance = self._clock() + self.settings.maintain_every_s
         today = today or dt.datetime.fromtimestamp(self._wall(), dt.UTC).date()
         days = [today - dt.timedelta(days=1), today]
         for table in SCHEMAS:
-            uri = self.settings.table_uri(table)
-            try:
-                if not self._take_lease(table):
-                    with self._cond:
-                        self._stats.maintenance_skipped += 1
-                    continue
-            except Exception as exc:
-                self._maintenance_failed(table, exc)
+            dtable = self._leased_table(table)
+            if dtable is None:
                 continue
             try:
-                dtable = DeltaTable(uri, storage_options=self._options)
-            except Exception as exc:
-                if type(exc).__name__ == "TableNotFoundError":
-                    continue
-                self._maintenance_failed(table, exc)
-                continue
-            try:
-                existing = {str(p.get(PARTITION_COLUMN)) for p in dtable.partitions()}
-                for day in days:
-                    if day.isoformat() not in existing:
-                        continue
-                    metrics = dtable.optimize.compact(
-                        partition_filters=[(PARTITION_COLUMN, "=", day.isoformat())],
-                        target_size=self.settings.target_file_mb << 20,
-                        writer_properties=_writer_properties(COMPACT_ZSTD_LEVEL),
-                    )
-                    log.info(
-                        "history: compacted %s/%s",
-                        table,
-                        day.isoformat(),
-                        extra={
-                            "files_added": metrics.get("numFilesAdded"),
-                            "files_removed": metrics.get("numFilesRemoved"),
-                        },
-                    )
-                dtable.create_checkpoint()
-                dtable.vacuum(
-                    retention_hours=int(self.settings.vacuum_retention_hours),
-                    enforce_retention_duration=False,
-                    dry_run=False,
-                )
-                dtable.cleanup_metadata()
+                self._maintain_table(table, dtable, days)
                 with self._cond:
                     self._stats.maintenance_runs += 1
             except CommitFailedError as exc:
@@ -813,6 +775,53 @@ class HistoryWriter:
             except Exception as exc:
                 self._maintenance_failed(table, exc)
         self._tables.clear()  # the next append reloads the table state maintenance changed
+
+    def _leased_table(self, table: str) -> Any:
+        """The table to maintain, or None: another writer holds the lease (counted as skipped), the table does
+        not exist yet, or opening it failed (counted and logged)."""
+        from deltalake import DeltaTable  # noqa: PLC0415
+
+        try:
+            if not self._take_lease(table):
+                with self._cond:
+                    self._stats.maintenance_skipped += 1
+                return None
+        except Exception as exc:
+            self._maintenance_failed(table, exc)
+            return None
+        try:
+            return DeltaTable(self.settings.table_uri(table), storage_options=self._options)
+        except Exception as exc:
+            if type(exc).__name__ != "TableNotFoundError":
+                self._maintenance_failed(table, exc)
+            return None
+
+    def _maintain_table(self, table: str, dtable: Any, days: list[dt.date]) -> None:
+        existing = {str(p.get(PARTITION_COLUMN)) for p in dtable.partitions()}
+        for day in days:
+            if day.isoformat() not in existing:
+                continue
+            metrics = dtable.optimize.compact(
+                partition_filters=[(PARTITION_COLUMN, "=", day.isoformat())],
+                target_size=self.settings.target_file_mb << 20,
+                writer_properties=_writer_properties(COMPACT_ZSTD_LEVEL),
+            )
+            log.info(
+                "history: compacted %s/%s",
+                table,
+                day.isoformat(),
+                extra={
+                    "files_added": metrics.get("numFilesAdded"),
+                    "files_removed": metrics.get("numFilesRemoved"),
+                },
+            )
+        dtable.create_checkpoint()
+        dtable.vacuum(
+            retention_hours=int(self.settings.vacuum_retention_hours),
+            enforce_retention_duration=False,
+            dry_run=False,
+        )
+        dtable.cleanup_metadata()
 
     def maintain_now(self, today: dt.date | None = None) -> None:
         """Run maintenance on the caller's thread, for `today` (UTC) and the day before; call it on a

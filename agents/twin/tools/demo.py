@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from twin.service.state import AgentState
+from twin.service.state import AgentState, DeviceState
 from twin.tools.edge_payload import device_ids
 
 log = logging.getLogger(__name__)
@@ -317,6 +317,43 @@ def _status(state: AgentState, sent: int, elapsed: float) -> DemoStatus:
     )
 
 
+def _device_stats(run: _Run, device: str, d: DeviceState) -> dict[str, Any]:
+    return {
+        # Health at the end of the publishing run (a moment later every arm is STALE: the edge stopped).
+        "status": run.running_statuses.get(device, str(d.status)),
+        "status_after_stop": str(d.status),
+        "received": d.counters.received,
+        "applied": d.counters.applied,
+        "rejected": dict(d.counters.rejected),
+        "rate_hz": d.rate_hz,
+        "end_to_end_latency_s": {"p50": d.edge_clock_latency_s.p50, "p99": d.edge_clock_latency_s.p99},
+        "internal_latency_s": {"p50": d.internal_latency_s.p50, "p99": d.internal_latency_s.p99},
+        # Estimated from the gaps in the edge timestamps (docs/agent.md, Loss).
+        "loss": {"lost": d.loss.lost, "loss_ratio": d.loss.loss_ratio, "losing": d.loss.losing},
+        "joints_rad": d.joints_rad,
+    }
+
+
+def _message_stats(report: Any, totals: _Totals, state: AgentState) -> dict[str, Any]:
+    return {
+        "sent": report.published,
+        "generated": report.generated,
+        "publish_failures": report.publish_failures,
+        "received": totals.received,
+        "decoded": totals.decoded,
+        "applied": totals.applied,
+        "ignored_stale": totals.ignored_stale,
+        "overwritten": totals.overwritten,
+        "rejected": totals.rejected_total,
+        "rejected_by_reason": totals.rejected,
+        "lost": max(0, report.published - totals.received),
+        # The agent's own estimate of what never arrived, from the edge timestamps alone (it does not know
+        # `sent`): on this loopback broker it should read 0, on IoT Core it shows quota discards.
+        "estimated_lost": state.agent.loss.lost,
+        "estimated_loss_ratio": state.agent.loss.loss_ratio,
+    }
+
+
 def _stats(
     *,
     config: DemoConfig,
@@ -328,47 +365,14 @@ def _stats(
     broker: dict[str, Any],
     service: Any,
 ) -> dict[str, Any]:
-    report = run.report
-    per_device = {
-        device: {
-            # Health at the end of the publishing run (a moment later every arm is STALE: the edge stopped).
-            "status": run.running_statuses.get(device, str(d.status)),
-            "status_after_stop": str(d.status),
-            "received": d.counters.received,
-            "applied": d.counters.applied,
-            "rejected": dict(d.counters.rejected),
-            "rate_hz": d.rate_hz,
-            "end_to_end_latency_s": {"p50": d.edge_clock_latency_s.p50, "p99": d.edge_clock_latency_s.p99},
-            "internal_latency_s": {"p50": d.internal_latency_s.p50, "p99": d.internal_latency_s.p99},
-            # Estimated from the gaps in the edge timestamps (docs/agent.md, Loss).
-            "loss": {"lost": d.loss.lost, "loss_ratio": d.loss.loss_ratio, "losing": d.loss.losing},
-            "joints_rad": d.joints_rad,
-        }
-        for device, d in state.devices.items()
-    }
+    per_device = {device: _device_stats(run, device, d) for device, d in state.devices.items()}
     return {
         "duration_s": round(duration, 3),
         "interrupted": interrupted,
         "variant": config.variant,
         "rate_hz": config.rate_hz,
         "devices": sorted(state.devices),
-        "messages": {
-            "sent": report.published,
-            "generated": report.generated,
-            "publish_failures": report.publish_failures,
-            "received": totals.received,
-            "decoded": totals.decoded,
-            "applied": totals.applied,
-            "ignored_stale": totals.ignored_stale,
-            "overwritten": totals.overwritten,
-            "rejected": totals.rejected_total,
-            "rejected_by_reason": totals.rejected,
-            "lost": max(0, report.published - totals.received),
-            # The agent's own estimate of what never arrived, from the edge timestamps alone (it does not
-            # know `sent`): on this loopback broker it should read 0, on IoT Core it shows quota discards.
-            "estimated_lost": state.agent.loss.lost,
-            "estimated_loss_ratio": state.agent.loss.loss_ratio,
-        },
+        "messages": _message_stats(run.report, totals, state),
         # Percentiles over the agent's health window (the last seconds of the run), worst device. The edge
         # simulator stamps messages with this host's clock, so end-to-end latency here has no skew in it.
         "latency_s": {

@@ -303,6 +303,41 @@ def _downsample(frame: pl.DataFrame, max_points: int) -> tuple[pl.DataFrame, flo
     return sampled, bucket_s
 
 
+# The plot's panels: a label and the column suffix after each joint's name.
+_PANELS = (
+    ("joint angle (deg)", ""),
+    ("temperature (C)", "_temperature_c"),
+    ("load (%)", "_load_percent"),
+    ("current (A)", "_current_a"),
+)
+
+
+def _segments(sampled: pl.DataFrame, gap_s: float) -> list[pl.DataFrame]:
+    """The rows split where consecutive samples lie more than `gap_s` apart (a pause, a restart), so lines
+    break across gaps instead of bridging them."""
+    breaks = sampled["received_at"].diff().dt.total_seconds().fill_null(0.0) > gap_s
+    marked = sampled.with_columns(breaks.cast(pl.Int64).cum_sum().alias("_segment"))
+    return marked.partition_by("_segment", maintain_order=True)
+
+
+def _draw_panel(
+    ax: Any, parts: list[pl.DataFrame], columns: list[str], colors: list[str], sampled: pl.DataFrame
+) -> None:
+    """One line per joint column (one colour per joint), drawn segment by segment; absent columns skipped."""
+    for i, (joint, column) in enumerate(zip(JOINTS, columns, strict=True)):
+        if column not in sampled.columns or sampled[column].null_count() == sampled.height:
+            continue
+        for k, part in enumerate(parts):
+            ax.plot(
+                part["received_at"].to_list(),
+                part[column].to_list(),
+                color=colors[i % len(colors)],
+                linewidth=0.8,
+                label=joint if k == 0 else None,
+            )
+    ax.grid(True, alpha=0.3)
+
+
 def plot(
     reader: HistoryReader,
     device: str,
@@ -331,36 +366,12 @@ def plot(
     rows = frame.height
     frame = frame.with_columns([(pl.col(position_column(j)) * (180.0 / math.pi)).alias(j) for j in JOINTS])
     sampled, bucket_s = _downsample(frame, max_points)
-    # Break the lines across gaps (a pause, a restart) instead of drawing a straight line over them.
-    step = max(gap_s, 3.0 * (bucket_s or 0.0))
-    breaks = sampled["received_at"].diff().dt.total_seconds().fill_null(0.0) > step
-    segment = breaks.cast(pl.Int64).cum_sum()
-    sampled = sampled.with_columns(segment.alias("_segment"))
-
-    panels = [
-        ("joint angle (deg)", dict.fromkeys(JOINTS, "")),
-        ("temperature (C)", {j: "_temperature_c" for j in JOINTS}),
-        ("load (%)", {j: "_load_percent" for j in JOINTS}),
-        ("current (A)", {j: "_current_a" for j in JOINTS}),
-    ]
+    parts = _segments(sampled, max(gap_s, 3.0 * (bucket_s or 0.0)))
+    fig, axes = plt.subplots(len(_PANELS), 1, sharex=True, figsize=(12, 10), dpi=100)
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    parts = sampled.partition_by("_segment", maintain_order=True)
-    fig, axes = plt.subplots(len(panels), 1, sharex=True, figsize=(12, 10), dpi=100)
-    for ax, (label, suffixes) in zip(axes, panels, strict=True):
-        for i, joint in enumerate(JOINTS):
-            column = f"{joint}{suffixes[joint]}"
-            if column not in sampled.columns or sampled[column].null_count() == sampled.height:
-                continue
-            for k, part in enumerate(parts):
-                ax.plot(
-                    part["received_at"].to_list(),
-                    part[column].to_list(),
-                    color=colors[i % len(colors)],
-                    linewidth=0.8,
-                    label=joint if k == 0 else None,
-                )
+    for ax, (label, suffix) in zip(axes, _PANELS, strict=True):
+        _draw_panel(ax, parts, [f"{joint}{suffix}" for joint in JOINTS], colors, sampled)
         ax.set_ylabel(label)
-        ax.grid(True, alpha=0.3)
     handles, labels = axes[0].get_legend_handles_labels()
     unique = dict(zip(labels, handles, strict=False))
     fig.legend(

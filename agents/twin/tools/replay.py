@@ -113,8 +113,6 @@ def replay(
     on_progress: Callable[[ReplayReport], None] | None = None,
 ) -> ReplayReport:
     """Publish the recorded window; returns the counts. Raises HistoryReadError when there is nothing."""
-    from awscrt import mqtt5  # noqa: PLC0415
-
     stop = stop or threading.Event()
     reader = reader or HistoryReader(config.uri, config.storage_options)
     rows = recorded_rows(reader, config.device, config.start, config.end)
@@ -132,8 +130,26 @@ def replay(
             config.speed,
             IOT_PUBLISHES_PER_S,
         )
-
     report = ReplayReport()
+    client, connected, on_done = _client(config, report)
+    try:
+        if not connected.wait(config.connect_timeout_s):
+            raise HistoryReadError(
+                f"could not connect to the broker {config.broker.url} within "
+                f"{config.connect_timeout_s:.0f} s; check --broker and that the broker runs"
+            )
+        _publish_rows(
+            config, client, _chain(first, rows), report, on_done=on_done, stop=stop, on_progress=on_progress
+        )
+        time.sleep(0.3)  # let the last QoS 0 publishes reach the socket
+    finally:
+        client.stop()
+    return report
+
+
+def _client(config: ReplayConfig, report: ReplayReport) -> tuple[Any, threading.Event, Callable[[Any], None]]:
+    """A started MQTT5 client, its connected event, and the publish callback that counts failures in
+    `report`."""
     connected = threading.Event()
     lock = threading.Lock()
 
@@ -148,49 +164,58 @@ def replay(
         on_connection_success=lambda _data: connected.set(),
     )
     client.start()
+    return client, connected, on_done
+
+
+def _publish_rows(
+    config: ReplayConfig,
+    client: Any,
+    rows: Iterator[dict],
+    report: ReplayReport,
+    *,
+    on_done: Callable[[Any], None],
+    stop: threading.Event,
+    on_progress: Callable[[ReplayReport], None] | None,
+) -> None:
+    """Publish each row at its recorded time (divided by the speed), restamped unless asked not to."""
+    from awscrt import mqtt5  # noqa: PLC0415
+
     topic = telemetry_topic(config.topic_prefix, config.target_device)
-    try:
-        if not connected.wait(config.connect_timeout_s):
-            raise HistoryReadError(
-                f"could not connect to the broker {config.broker.url} within "
-                f"{config.connect_timeout_s:.0f} s; check --broker and that the broker runs"
+    started = time.monotonic()
+    now_ms = time.time() * 1000.0
+    first_received = first_edge_ms = None
+    for row in rows:
+        if first_received is None:
+            first_received = row["received_at"]
+            first_edge_ms = row["edge_time"].timestamp() * 1000.0
+            report.first_recorded = first_received.isoformat()
+        if stop.is_set():
+            report.stopped = True
+            break
+        wait = (
+            started + (row["received_at"] - first_received).total_seconds() / config.speed - time.monotonic()
+        )
+        if wait > 0 and stop.wait(wait):
+            report.stopped = True
+            break
+        if -wait > 0.05:
+            report.late += 1
+        edge_ms = row["edge_time"].timestamp() * 1000.0
+        if config.original_timestamps:
+            stamp = round(edge_ms)
+        else:
+            stamp = round(now_ms + (edge_ms - first_edge_ms) / config.speed)
+        future = client.publish(
+            mqtt5.PublishPacket(
+                topic=topic, payload=payload_for(row, config.target_device, stamp), qos=mqtt5.QoS.AT_MOST_ONCE
             )
-        started = time.monotonic()
-        now_ms = time.time() * 1000.0
-        first_received = first["received_at"]
-        first_edge = first["edge_time"]
-        report.first_recorded = first_received.isoformat()
-        for row in _chain(first, rows):
-            if stop.is_set():
-                report.stopped = True
-                break
-            offset_s = (row["received_at"] - first_received).total_seconds() / config.speed
-            due = started + offset_s
-            wait = due - time.monotonic()
-            if wait > 0 and stop.wait(wait):
-                report.stopped = True
-                break
-            if -wait > 0.05:
-                report.late += 1
-            edge_ms = row["edge_time"].timestamp() * 1000.0
-            if config.original_timestamps:
-                stamp = round(edge_ms)
-            else:
-                stamp = round(now_ms + (edge_ms - first_edge.timestamp() * 1000.0) / config.speed)
-            payload = payload_for(row, config.target_device, stamp)
-            future = client.publish(
-                mqtt5.PublishPacket(topic=topic, payload=payload, qos=mqtt5.QoS.AT_MOST_ONCE)
-            )
-            future.add_done_callback(on_done)
-            report.published += 1
-            report.last_recorded = row["received_at"].isoformat()
-            if on_progress is not None and report.published % 100 == 0:
-                on_progress(report)
-        report.elapsed_s = time.monotonic() - started
-        time.sleep(0.3)  # let the last QoS 0 publishes reach the socket
-    finally:
-        client.stop()
-    return report
+        )
+        future.add_done_callback(on_done)
+        report.published += 1
+        report.last_recorded = row["received_at"].isoformat()
+        if on_progress is not None and report.published % 100 == 0:
+            on_progress(report)
+    report.elapsed_s = time.monotonic() - started
 
 
 def _chain(first: dict, rest: Iterator[dict]) -> Iterator[dict]:
