@@ -422,6 +422,8 @@ class ServoAlarms:
         from the pose itself: the edge's mock mode, for one, sends random velocities whatever the arm does.
         `holding_torques_nm` may be a function returning them: it is called only if some joint needs them.
         """
+        # Long on purpose: this runs for every joint of every applied message on the worker's hot path, so the
+        # per-joint checks stay inline instead of paying a call each (docs/performance.md).
         if not self.thresholds.enabled:
             return []
         speeds = self._pose_speeds(device, angles_rad, timestamp_ms)

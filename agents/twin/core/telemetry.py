@@ -508,6 +508,8 @@ class TelemetryDecoder:
     def _explain(self, data: bytes | str, topic_device: str | None) -> Telemetry:
         """The rules one by one in the documented order, on the standard json module's parse: for a message
         the schema refused, this finds the first broken rule and says how to fix it."""
+        # Long on purpose: the contract's rules one after another in their documented order; the order is what
+        # decides which reason a broken message is counted under.
         text = data if isinstance(data, str) else data.decode("utf-8")
         doc = self._parse(text)
         if type(doc) is not dict:

@@ -105,6 +105,8 @@ def framing_camera(
     fraction of the half width/height) to spare. Angles are clamped to the joint ranges; missing joints sit
     at 0.
     """
+    # Long on purpose: one geometric computation (gather the visible points of every pose, project them into
+    # the fixed view, fit distance and centre) whose steps share all their intermediate values.
     model = robot.model
     data = mujoco.MjData(model)
     geoms = _arm_geoms(robot)

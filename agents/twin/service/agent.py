@@ -189,6 +189,8 @@ class AgentService:
         sinks: Sequence[TwinSink] = (),
     ) -> None:
         # Everything that can be wrong with the configuration is found here, before any thread or socket.
+        # Long on purpose: the service's wiring, state by state, in one place so every field it owns and the
+        # lock that guards it can be read together.
         self.config = config
         self.broker_config = config.broker  # validated when the config was built
         self._clock = clock

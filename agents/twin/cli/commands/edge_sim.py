@@ -28,6 +28,8 @@ def _positive(text: str) -> float:
 
 
 def register(subparsers: Any) -> None:
+    # Long on purpose: one add_argument per flag, in the order `--help` lists them; split up, the one list of
+    # the command's options would be scattered.
     parser = subparsers.add_parser(
         "edge-sim",
         help="publish simulated SO-101 edge telemetry (ticks or LeRobot degrees) with optional faults",

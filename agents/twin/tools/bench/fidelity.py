@@ -114,6 +114,8 @@ def replay(
     NTP-disciplined); the estimator must not depend on the two agreeing. `series`, when given, receives
     (edge time, mean absolute error over joints, truth and estimate of the first joint) per frame.
     """
+    # Long on purpose: a benchmark's measurement loop, kept in reading order (schedule arrivals, feed the
+    # estimator, compare with the truth at each display instant).
     decoder = TelemetryDecoder(DecoderConfig(units=Units.TICKS))
     tick_map = _linear_tick_map(decoder)
     names = so101.JOINT_NAMES

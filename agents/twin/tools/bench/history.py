@@ -124,6 +124,8 @@ def _fleet_templates(arms: int) -> dict[str, list[AppliedSample]]:
 
 def read(*, arms: int = 100, minutes: float = 60.0, commit_every_s: float = 10.0) -> dict[str, Any]:
     """Seconds to read one device's hour from a fleet table, before and after compaction."""
+    # Long on purpose: a benchmark script in reading order (write the fleet's hour, time the read, compact,
+    # time it again, check the rows).
     tmp = Path(tempfile.mkdtemp(prefix="twin-bench-history-read-"))
     uri = str(tmp / "history")
     try:

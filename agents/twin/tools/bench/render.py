@@ -53,6 +53,8 @@ def measure(
     *, frames: int = 40, width: int = 640, height: int = 480, model: str | None = None
 ) -> dict[str, Any]:
     """The figures, measured in this process (MUJOCO_GL must be set before mujoco is imported)."""
+    # Long on purpose: a benchmark script in reading order (model load, timed frames per view, the demo's
+    # pictures).
     import mujoco  # noqa: PLC0415
 
     from twin.output.render import framing_camera, render_gif, render_png  # noqa: PLC0415
