@@ -18,12 +18,13 @@ import botocore.client
 import pytest
 from botocore.exceptions import ClientError
 from botocore.stub import Stubber
+from conftest import AWS_TEST_REGION
 from moto import mock_aws
 from twin.cli import main
 from twin.cli.commands import instance as cmd
 from twin.tools import instance as lib
 
-REGION = "us-east-1"
+REGION = AWS_TEST_REGION
 COMMAND_ID = "5c9a1d1e-0000-4000-8000-000000000001"  # SSM command ids are UUIDs
 
 TEMPLATE = {
@@ -45,21 +46,6 @@ TEMPLATE = {
         },
     },
 }
-
-
-@pytest.fixture
-def aws_env(monkeypatch: pytest.MonkeyPatch, tmp_path):
-    """Fake credentials and a region; never the developer's real config files."""
-    empty = tmp_path / "empty"
-    empty.write_text("")
-    for name in ("AWS_PROFILE", "AWS_SESSION_TOKEN", "AWS_REGION", "SO101_TWIN_STACK"):
-        monkeypatch.delenv(name, raising=False)
-    monkeypatch.setenv("AWS_SHARED_CREDENTIALS_FILE", str(empty))
-    monkeypatch.setenv("AWS_CONFIG_FILE", str(empty))
-    monkeypatch.setenv("AWS_EC2_METADATA_DISABLED", "true")
-    monkeypatch.setenv("AWS_ACCESS_KEY_ID", "testing")
-    monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", "testing")
-    monkeypatch.setenv("AWS_DEFAULT_REGION", REGION)
 
 
 @pytest.fixture

@@ -25,6 +25,7 @@ from pathlib import Path
 import boto3
 import botocore.client
 import pytest
+from conftest import AWS_TEST_REGION
 from infra.hostsim import HostSim
 from moto import mock_aws
 from twin.cli import main
@@ -34,7 +35,7 @@ from twin.service.state import AgentInfo, AgentState, BrokerState, DeviceState, 
 from twin.tools import instance as lib
 from twin.tools import instance_check as chk
 
-REGION = "us-east-1"
+REGION = AWS_TEST_REGION
 REPO = Path(__file__).resolve().parents[1]
 VERSION = "a63e23774290"
 
@@ -177,20 +178,6 @@ def template(dcv_url: str) -> dict:
             "UpdateAssociationId": {"Value": "0b1c2d3e-0000-4000-8000-000000000009"},
         },
     }
-
-
-@pytest.fixture
-def aws_env(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
-    empty = tmp_path / "empty"
-    empty.write_text("")
-    for name in ("AWS_PROFILE", "AWS_SESSION_TOKEN", "AWS_REGION", "SO101_TWIN_STACK"):
-        monkeypatch.delenv(name, raising=False)
-    monkeypatch.setenv("AWS_SHARED_CREDENTIALS_FILE", str(empty))
-    monkeypatch.setenv("AWS_CONFIG_FILE", str(empty))
-    monkeypatch.setenv("AWS_EC2_METADATA_DISABLED", "true")
-    monkeypatch.setenv("AWS_ACCESS_KEY_ID", "testing")
-    monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", "testing")
-    monkeypatch.setenv("AWS_DEFAULT_REGION", REGION)
 
 
 def deploy(dcv_url: str) -> dict[str, str]:
