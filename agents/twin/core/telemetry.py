@@ -882,6 +882,30 @@ def _joint_diagnostics(joint: str, entry: dict[str, Any], float_variant: bool) -
                     RejectReason.WRONG_TYPE,
                     f"{key} of {joint} is null; omit a field the edge cannot read instead of sending null",
                 )
+    return _converted(
+        float_variant,
+        velocity=velocity,
+        load=load,
+        temp=temp,
+        current=current,
+        voltage=voltage,
+        status=status,
+        moving=moving,
+    )
+
+
+def _converted(
+    float_variant: bool,
+    *,
+    velocity: Any,
+    load: Any,
+    temp: Any,
+    current: Any,
+    voltage: Any,
+    status: Any,
+    moving: Any,
+) -> JointDiagnostics:
+    """Register readings already checked (None where absent) -> physical units; both decode paths end here."""
     steps = rad_s = None
     if velocity is not None:
         # The float variant (LeRobot-normalised) already carries a signed speed; raw ticks do not.
@@ -921,18 +945,13 @@ def _reading_diagnostics(r: JointReading, float_variant: bool) -> JointDiagnosti
         and moving is UNSET
     ):
         return _EMPTY_DIAGNOSTICS
-    steps = rad_s = None
-    if velocity is not UNSET:
-        steps = float(velocity if float_variant else decode_velocity(velocity))
-        rad_s = steps * RAD_PER_STEP_S
-    return JointDiagnostics(
-        steps,
-        rad_s,
-        None if load is UNSET else decode_load(load) * LOAD_PERCENT_PER_UNIT,
-        None if temp is UNSET else float(temp),
-        # Divided last so whole mA stay exact, as the explanation path does: 100 units -> 650 mA -> 0.65 A.
-        None if current is UNSET else current * CURRENT_MA_PER_UNIT / 1000.0,
-        None if voltage is UNSET else voltage * VOLTAGE_V_PER_UNIT,
-        None if status is UNSET else status,
-        None if moving is UNSET else bool(moving),
+    return _converted(
+        float_variant,
+        velocity=None if velocity is UNSET else velocity,
+        load=None if load is UNSET else load,
+        temp=None if temp is UNSET else temp,
+        current=None if current is UNSET else current,
+        voltage=None if voltage is UNSET else voltage,
+        status=None if status is UNSET else status,
+        moving=None if moving is UNSET else moving,
     )
