@@ -658,7 +658,7 @@ class HistoryWriter:
     def _open_or_create(self, table: str, uri: str) -> Any:
         """The table at `uri`, created first if missing. Created on its own (not by the first append) so two
         writers starting together race only on the empty creation commit, which the loser just re-reads."""
-        from deltalake import DeltaTable  # noqa: PLC0415
+        from deltalake import CommitProperties, DeltaTable  # noqa: PLC0415
         from deltalake.exceptions import TableNotFoundError  # noqa: PLC0415
 
         try:
@@ -673,6 +673,9 @@ class HistoryWriter:
                 partition_by=[PARTITION_COLUMN],
                 configuration=TABLE_CONFIGURATION,
                 storage_options=self._options,
+                # No retry: a writer that loses the race for version 0 must fail here, not commit the same
+                # schema again as version 1 (delta-rs retries a conflicting create at the next version).
+                commit_properties=CommitProperties(max_commit_retries=0),
             )
         except Exception:
             log.info("history: %s was created concurrently by another writer", uri, exc_info=True)
