@@ -326,10 +326,11 @@ def test_status_text_names_each_error_bit() -> None:
 
 def test_the_rate_cap_skips_and_counts(robot: RobotModel, tmp_path: Path) -> None:
     path = tmp_path / "capped.rrd"
-    # 10 Hz arrivals (2.3 s of receive time) against a 4 Hz cap with a burst of 2: the bucket starts full and
-    # refills at 4 a second, so at most 2 + 4 x 2.3 = 11.2 samples per device get through, and at least one
-    # fewer (the last refill may fall short of a whole token).
-    sink = RerunSink(robot, RerunSettings(save=str(path), max_rate_hz=4.0, flush_s=0.05))
+    # 10 Hz arrivals (2.3 s of receive time) against a 4 Hz cap with a burst of 2 (half a second's worth):
+    # the bucket starts full and refills at 4 a second, so at most 2 + 4 x 2.3 = 11.2 samples per device get
+    # through, and at least one fewer (the last refill may fall short of a whole token).
+    settings = RerunSettings(save=str(path), max_rate_hz=4.0, burst_s=0.5, flush_s=0.05)
+    sink = RerunSink(robot, settings)
     feed(sink)
     sink.close()
     stats = sink.stats()
@@ -357,12 +358,48 @@ def test_jitter_under_the_cap_costs_nothing(robot: RobotModel, tmp_path: Path) -
     assert (sink.stats().delivered, sink.stats().skipped) == (40, 0)
 
 
+def test_a_host_stall_costs_a_normal_arm_nothing_and_a_flood_is_still_capped(
+    robot: RobotModel, tmp_path: Path
+) -> None:
+    # The CI failure: the agent's MQTT thread stalls for 3 s, then a 10 Hz arm's backlog (30 messages)
+    # arrives within a few milliseconds. Meanwhile another edge floods at 200 Hz. Default settings.
+    settings = RerunSettings(save=str(tmp_path / "stall.rrd"))
+    sink = RerunSink(robot, settings)
+    decoder = TelemetryDecoder(DecoderConfig(units=Units.DEGREES))
+    mono = time.monotonic()
+    arrivals: list[tuple[float, str, int]] = []
+    for i in range(20):  # 2 s of normal traffic, then nothing for 3 s
+        arrivals.append((mono + 0.1 * i, "arm-001", i))
+    for k in range(30):  # the stall's backlog, 0.1 ms apart
+        arrivals.append((mono + 1.9 + 3.0 + 0.0001 * k, "arm-001", 20 + k))
+    for i in range(40):  # and on at 10 Hz
+        arrivals.append((mono + 5.0 + 0.1 * i, "arm-001", 50 + i))
+    flood_s = 9.0
+    for i in range(int(200 * flood_s)):
+        arrivals.append((mono + i / 200, "arm-002", i))
+    for t, device, i in sorted(arrivals):
+        telemetry = decoder.decode(json.dumps(payload(device, i)), topic_device=device)
+        sink.applied(AppliedSample(device, time.time(), t, telemetry, dict(telemetry.angles_rad)))
+    sink.close()
+    table, _ = read_rrd(tmp_path / "stall.rrd")
+    normal = rows_of(table, "/arms/arm-001/wrist", "Transform3D:translation")
+    assert len(normal) == 90, "the stalled 10 Hz arm lost samples to the rate cap"
+    flood = len(rows_of(table, "/arms/arm-002/wrist", "Transform3D:translation"))
+    # The flood gets its burst (5 s x 20 Hz) and then the cap over its 9 s: about 280 of its 1800.
+    burst = settings.max_rate_hz * settings.burst_s
+    cap = burst + settings.max_rate_hz * flood_s
+    assert cap - 2 <= flood <= cap + 1
+    assert sink.stats().skipped == int(200 * flood_s) - flood
+
+
 @pytest.mark.parametrize(
     ("settings", "message"),
     [
         (RerunSettings(save="twin.txt"), "must name a .rrd file"),
         (RerunSettings(memory_limit="lots"), "is not a size"),
         (RerunSettings(max_rate_hz=0.0), "max_rate_hz"),
+        (RerunSettings(burst_s=0.0), r"rerun.burst_s = 0.0 must be .* greater than 0.*burst_s = 5.0"),
+        (RerunSettings(burst_s=math.inf), "rerun.burst_s = inf"),
         (RerunSettings(grpc_port=70000), "outside 0..65535"),
         (RerunSettings(serve=True, grpc_port=9000, web_port=9000), "different ports"),
         (RerunSettings(mesh_faces_per_arm=10), "at least 100"),

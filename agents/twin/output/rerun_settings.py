@@ -32,9 +32,13 @@ class RerunSettings:
     # What the gRPC server keeps for viewers that connect later; the oldest data goes first, the static
     # meshes never. A Rerun size ("512MiB") or a share of RAM ("10%").
     memory_limit: str = "512MiB"
-    # Per device, at most this many samples a second go into the stream, with half a second's worth of
-    # burst (the rest are counted as skipped).
+    # Per device, at most this many samples a second go into the stream (the rest are counted as skipped).
     max_rate_hz: float = 20.0
+    # ... after a burst of up to burst_s seconds' worth of the cap: a host stall (the MQTT thread starved
+    # for seconds, then a normal arm's backlog arriving within milliseconds) must not cost that arm its
+    # samples, while a flooding edge is still held to max_rate_hz once its burst is spent. 5 s at 20 Hz is
+    # 100 samples: a 10 Hz arm's backlog of a stall up to 10 s.
+    burst_s: float = 5.0
     # Samples are sent in columns, one batch per device at most every flush_s: the stream's delay, traded
     # against CPU (docs/web.md has the figures).
     flush_s: float = 0.5
@@ -74,6 +78,11 @@ class RerunSettings:
             value = getattr(self, key)
             if not (math.isfinite(value) and value > 0):
                 raise RerunSettingsError(f"rerun.{key} = {value!r} must be a number greater than 0")
+        if not (math.isfinite(self.burst_s) and self.burst_s > 0):
+            raise RerunSettingsError(
+                f"rerun.burst_s = {self.burst_s!r} must be a number of seconds greater than 0: how much of "
+                "max_rate_hz a device may send at once after a pause (e.g. burst_s = 5.0)"
+            )
         if self.flush_s > 10:
             raise RerunSettingsError(
                 f"rerun.flush_s = {self.flush_s} delays the stream by that long; use at most 10 s"

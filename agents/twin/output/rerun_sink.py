@@ -503,9 +503,10 @@ class RerunSink:
             self.name, self.worker, max_pending=settings.max_pending, idle_s=settings.flush_s / 2.0
         )
         self._rate = settings.max_rate_hz
-        # A token bucket per device: half a second's worth of burst, so network jitter (two messages close
-        # together after a gap) costs nothing at rates under the cap, while a flood is held to the cap.
-        self._burst = max(1.0, settings.max_rate_hz / 2.0)
+        # A token bucket per device holding burst_s seconds of the cap: a backlog released at once (network
+        # jitter, or the agent's own MQTT thread stalled for seconds on a loaded host) costs an arm under
+        # the cap nothing, while a flood is held to the cap once the burst is spent.
+        self._burst = max(1.0, settings.max_rate_hz * settings.burst_s)
         self._buckets: dict[str, tuple[float, float]] = {}  # device -> (tokens, receive time)
         self._skipped = 0
         self._lock = threading.Lock()
