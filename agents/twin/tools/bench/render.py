@@ -3,8 +3,10 @@
 The figures run in a child process with MUJOCO_GL=egl (MuJoCo binds its GL backend when it is first imported,
 and a benchmark run may already have imported it), one renderer for all frames as `twin.output.render` uses.
 Per frame: wall time (what a caller waits) and the process's CPU time (every llvmpipe thread; steadier than
-wall time on a busy machine). The 1-minute load average before and after travels with the figures: on a
-shared machine they are only comparable at similar load.
+wall time on a busy machine). The frames are drawn as the pictures are (`offscreen_renderer`: no shadow, no
+floor reflection); `scene_costs` times the framed view again with the shadow, the reflection and both (as
+`twin view` draws), so what each pass costs is measured, not remembered. The 1-minute load average before and
+after travels with the figures: on a shared machine they are only comparable at similar load.
 
     python -m twin.tools.bench.render [--frames 40] [--width 640] [--height 480] [--model MJCF]
 """
@@ -49,15 +51,46 @@ def _gl_renderer() -> str:
         return "unknown"
 
 
+def _time_frames(
+    renderer: Any, robot: Any, data: Any, poses: list[dict[str, float]], *, view: str | None, aspect: float
+) -> dict[str, Any]:
+    """Wall and CPU milliseconds per frame (scene update, draw, readback) over `poses`, after warm-up.
+
+    `view` is a camera name, or None to frame the arm in each pose as `twin render` does.
+    """
+    import mujoco  # noqa: PLC0415
+
+    from twin.output.render import framing_camera  # noqa: PLC0415
+
+    wall, cpu = [], []
+    for i, pose in enumerate([poses[0]] * WARMUP_FRAMES + poses):
+        for name, value in pose.items():
+            data.qpos[robot.qpos_addr[name]] = value
+        mujoco.mj_forward(robot.model, data)
+        camera = view if view is not None else framing_camera(robot, [pose], aspect=aspect)
+        t0, c0 = time.perf_counter(), time.process_time()
+        renderer.update_scene(data, camera=camera)
+        renderer.render()
+        if i >= WARMUP_FRAMES:
+            wall.append((time.perf_counter() - t0) * 1000)
+            cpu.append((time.process_time() - c0) * 1000)
+    return {"wall_ms": _percentiles(wall), "cpu_ms": _percentiles(cpu)}
+
+
 def measure(
     *, frames: int = 40, width: int = 640, height: int = 480, model: str | None = None
 ) -> dict[str, Any]:
     """The figures, measured in this process (MUJOCO_GL must be set before mujoco is imported)."""
-    # Long on purpose: a benchmark script in reading order (model load, timed frames per view, the demo's
-    # pictures).
+    # Long on purpose: a benchmark script in reading order (model load, timed frames per view, what each
+    # optional pass would cost, the demo's pictures).
     import mujoco  # noqa: PLC0415
 
-    from twin.output.render import framing_camera, render_gif, render_png  # noqa: PLC0415
+    from twin.output.render import (  # noqa: PLC0415
+        OFFSCREEN_SCENE_FLAGS,
+        offscreen_renderer,
+        render_gif,
+        render_png,
+    )
     from twin.robot.model import RobotModel  # noqa: PLC0415
 
     load_before = os.getloadavg()[0]
@@ -67,30 +100,33 @@ def measure(
         robot = RobotModel.load(model)
         loads.append(time.perf_counter() - started)
     m = robot.model
-    m.vis.global_.offwidth = max(m.vis.global_.offwidth, width)
-    m.vis.global_.offheight = max(m.vis.global_.offheight, height)
     poses = _poses(frames, robot.joint_ranges)
     data = mujoco.MjData(m)
-    views: dict[str, Any] = {"framed": None}
+    views: dict[str, str | None] = {"framed": None}
     if "overview" in robot.camera_names:
         views["overview"] = "overview"
+    shadow, reflection = mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION
+    extra_passes = {
+        "with_shadow": {shadow: True},
+        "with_reflection": {reflection: True},
+        "with_shadow_and_reflection": {shadow: True, reflection: True},
+    }
     per_view: dict[str, Any] = {}
-    with mujoco.Renderer(m, height=height, width=width) as renderer:
+    scene_costs: dict[str, Any] = {}
+    with offscreen_renderer(m, width, height) as renderer:
         gl = _gl_renderer()
-        for label, fixed in views.items():
-            wall, cpu = [], []
-            for i, pose in enumerate([poses[0]] * WARMUP_FRAMES + poses):
-                for name, value in pose.items():
-                    data.qpos[robot.qpos_addr[name]] = value
-                mujoco.mj_forward(m, data)
-                view = fixed if fixed is not None else framing_camera(robot, [pose], aspect=width / height)
-                t0, c0 = time.perf_counter(), time.process_time()
-                renderer.update_scene(data, camera=view)
-                renderer.render()
-                if i >= WARMUP_FRAMES:
-                    wall.append((time.perf_counter() - t0) * 1000)
-                    cpu.append((time.process_time() - c0) * 1000)
-            per_view[label] = {"wall_ms": _percentiles(wall), "cpu_ms": _percentiles(cpu)}
+        drawn_flags = {
+            mujoco.mjtRndFlag(flag).name: bool(renderer.scene.flags[flag]) for flag in OFFSCREEN_SCENE_FLAGS
+        }
+        for label, view in views.items():
+            per_view[label] = _time_frames(renderer, robot, data, poses, view=view, aspect=width / height)
+        offscreen_flags = renderer.scene.flags.copy()
+        for label, flags in extra_passes.items():
+            renderer.scene.flags[:] = offscreen_flags
+            for flag, enabled in flags.items():
+                renderer.scene.flags[flag] = enabled
+            scene_costs[label] = _time_frames(renderer, robot, data, poses, view=None, aspect=width / height)
+        renderer.scene.flags[:] = offscreen_flags
     with tempfile.TemporaryDirectory(prefix="twin-bench-render-") as tmp:
         started = time.perf_counter()
         render_png(robot, poses[0], Path(tmp) / "twin.png")
@@ -108,7 +144,13 @@ def measure(
         "model_load_s": statistics.median(loads),
         "frame_size": f"{width}x{height}",
         "frames": frames,
+        # How the timed frames were drawn: the flags the pictures set, multisampling, the shadow map's size.
+        "scene_flags": drawn_flags,
+        "msaa_samples": int(m.vis.quality.offsamples),
+        "shadow_size": int(m.vis.quality.shadowsize),
         "frame": per_view,
+        # The framed view again with the passes the pictures leave out, one at a time and both.
+        "scene_costs": scene_costs,
         "target_frame_ms": 150.0,
         # What `twin demo` spends on pictures: its PNG (640x480, renderer made per call) and 30-frame GIF.
         "demo_png_s": png_s,
