@@ -28,17 +28,16 @@ FRAMING_ELEVATION_DEG = -22.0
 FRAMING_MARGIN = 0.08
 
 # Scene render flags that offscreen pictures change from MuJoCo's defaults. Where pictures are made (the CLI,
-# the demo, CI) there is no GPU: llvmpipe draws on the CPU, and these two passes cost most of a frame there.
-# The key light's shadow is a depth pass over every triangle plus a second full colour pass lit by that light
-# alone; the floor's reflection is a mirrored pass of the whole arm. At 640x480 with the part meshes a frame
-# took 124 ms of CPU with both, 63 ms without the shadow and 41 ms without either (`twin bench render`,
-# quiet machine). What the picture loses is the arm's shadow on the floor and on itself and a faint mirror
-# image under the base; the arm's shape still reads from its three lights and the headlight. Multisampling
-# stays: without it llvmpipe saves another 26 ms, but every edge and grid line turns to stairs.
-# `twin view` keeps MuJoCo's defaults: its desktop has a GPU.
+# the demo, CI) there is no GPU and llvmpipe draws on the CPU. The floor's reflection, a mirrored pass of the
+# whole arm for a faint image under the base, is off. The key light's shadow (a depth pass over every triangle
+# plus a second full colour pass lit by that light alone) costs more but stays: it is the cue for how high the
+# gripper is above the floor, and without it the arm looks as if it floats. At 640x480 with the part meshes a
+# frame takes about 102 ms of CPU with the shadow, 125 with the reflection too and 42 with neither (p50,
+# docs/robot-model.md); llvmpipe spreads it over both cores, about 60 ms wall on a quiet machine, inside the
+# 150 ms target. Multisampling stays: without it llvmpipe saves another 26 ms, but every edge and grid line
+# turns to stairs. `twin view` keeps MuJoCo's defaults: its desktop has a GPU.
 OFFSCREEN_SCENE_FLAGS: Mapping[mujoco.mjtRndFlag, bool] = MappingProxyType(
     {
-        mujoco.mjtRndFlag.mjRND_SHADOW: False,
         mujoco.mjtRndFlag.mjRND_REFLECTION: False,
     }
 )
@@ -227,8 +226,9 @@ def render_png(
     Angles are clamped to the joint ranges, as the twin does. `camera` names a model camera (the bundled
     scene's "overview" keeps the whole reach over the pan range in view) or is a free camera (e.g. one
     `framing_camera` made for several poses); None frames the arm in this pose. `text` is drawn in the
-    top-left corner. Drawn without shadows or the floor's reflection (OFFSCREEN_SCENE_FLAGS). Returns the
-    written path. Raises RenderError when no GL context can be made or the camera is unknown.
+    top-left corner. Drawn with the key light's shadow but without the floor's reflection
+    (OFFSCREEN_SCENE_FLAGS). Returns the written path. Raises RenderError when no GL context can be made or
+    the camera is unknown.
     """
     from PIL import Image  # noqa: PLC0415 - keep PIL out of importers that never render
 
