@@ -7,7 +7,6 @@ own numbers converted by hand (the units in docs/telemetry.md) for the scalar se
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import json
 import math
@@ -15,6 +14,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import msgspec
 import mujoco
 import numpy as np
 import pyarrow as pa
@@ -287,7 +287,7 @@ def test_servo_alarms_raised_and_cleared_are_events(robot: RobotModel, tmp_path:
         hot = 4 <= i < 30
         temp = 75.0 if hot else 35.0
         diagnostics = {
-            j: dataclasses.replace(d, temperature_c=temp) for j, d in telemetry.diagnostics.items()
+            j: msgspec.structs.replace(d, temperature_c=temp) for j, d in telemetry.diagnostics.items()
         }
         events = tuple(alarms.evaluate("arm-001", {"elbow_flex": diagnostics["elbow_flex"]}, {}, i * 1.0))
         if any(e.action == "raised" for e in events):

@@ -91,6 +91,7 @@ _KINDS: tuple[AlarmKind, ...] = (
     AlarmKind.OVERLOAD,
     AlarmKind.MODEL_MISMATCH,
 )
+_JOINT_SET = frozenset(so101.JOINT_NAMES)
 # Poses further apart than this (edge clock) say nothing about the speed between them.
 MAX_POSE_GAP_S = 1.0
 # States in which the condition is present; LATCHED is remembered, not present.
@@ -299,6 +300,17 @@ class _Alarm:
         return alarm_id(self.device, self.joint, self.kind)
 
 
+class _JointAlarms:
+    """One joint's alarms, one slot per kind in _KINDS order (None until the kind first has a value), and
+    whether all of them are idle: not present and no raise timer running."""
+
+    __slots__ = ("alarms", "idle")
+
+    def __init__(self, alarms: list[_Alarm | None]) -> None:
+        self.alarms = alarms
+        self.idle = False  # the first evaluation takes the full path
+
+
 TorqueSource = Mapping[str, float] | Callable[[], Mapping[str, float]]
 
 
@@ -364,6 +376,53 @@ class JointHealth:
         )
 
 
+def _still(diag: JointDiagnostics, pose_speed: float | None, limit: float) -> bool | None:
+    """False on any sign of motion, True on some sign of rest and none of motion, None when nothing is known
+    (no velocity, no Moving flag, no previous pose). `limit` is the still speed in rad/s."""
+    velocity = diag.velocity_rad_s
+    if (
+        diag.moving is True
+        or (velocity is not None and abs(velocity) > limit)
+        or (pose_speed is not None and pose_speed > limit)
+    ):
+        return False
+    if velocity is None and pose_speed is None and diag.moving is None:
+        return None
+    return True
+
+
+@dataclass(frozen=True, slots=True)
+class _Evaluation:
+    """What one evaluation of a device saw, kept until the next: its JointHealth, built when first read."""
+
+    diagnostics: Mapping[str, JointDiagnostics]
+    speeds: Mapping[str, float]
+    torques: _Torques
+    checked: Mapping[str, tuple[float | None, float | None]]
+
+    def joint_health(
+        self, thresholds: AlarmThresholds, servo: sts3215.ServoVersion
+    ) -> dict[str, JointHealth]:
+        out = {}
+        for joint, diag in self.diagnostics.items():
+            if joint not in _JOINT_SET:
+                continue
+            model_check = self.checked.get(joint)
+            if model_check is not None:
+                model, mismatch = model_check
+                out[joint] = JointHealth(model_load_percent=model, mismatch_percent=mismatch, still=True)
+                continue
+            out[joint] = JointHealth(
+                mismatch_percent=None,
+                still=_still(diag, self.speeds.get(joint), thresholds.still_velocity_rad_s),
+                joint=joint,
+                torques=self.torques,
+                servo=servo,
+                voltage_v=diag.voltage_v,
+            )
+        return out
+
+
 def _model_load(
     torques: _Torques | None, servo: sts3215.ServoVersion | None, joint: str, voltage_v: float | None
 ) -> float | None:
@@ -388,15 +447,25 @@ class ServoAlarms:
         self.thresholds = thresholds or AlarmThresholds()
         self._servo = self.thresholds.servo
         self._alarms: dict[str, _Alarm] = {}
-        self._joint_health: dict[str, dict[str, JointHealth]] = {}
-        self._last_pose: dict[str, tuple[int, dict[str, float]]] = {}
+        # What the last evaluation of each device saw; its JointHealth is built from it when read, since
+        # six objects per applied message would cost the fleet more than every reader of /state together.
+        self._last: dict[str, _Evaluation] = {}
+        self._last_pose: dict[str, tuple[int, Mapping[str, float]]] = {}
+        # Each device's alarms, for the per-device readers (worst_by_joint, views(device=...)): scanning every
+        # alarm of the fleet per device made a fleet's /state quadratic in its size.
+        self._by_device: dict[str, list[_Alarm]] = {}
         self.counters = AlarmCounters()
         # Per device, per joint, one slot per kind (in _KINDS order): evaluate runs for every applied
         # message, so it indexes lists instead of formatting ids.
-        self._slots: dict[str, dict[str, list[_Alarm | None]]] = {}
-        # Rules resolved once per joint.
+        self._slots: dict[str, dict[str, _JointAlarms]] = {}
+        # Rules resolved once per joint, and each joint's raise lines in _KINDS order with the lower of the
+        # two temperature lines first (the quiet check compares a temperature once).
         self._rule_list = {
             joint: [self.thresholds.rule(kind, joint) for kind in _KINDS] for joint in so101.JOINT_NAMES
+        }
+        self._quiet = {
+            joint: (min(rules[0].raise_at, rules[1].raise_at), *(r.raise_at for r in rules[1:]))
+            for joint, rules in self._rule_list.items()
         }
         self._rules = {
             joint: {kind: self.thresholds.rule(kind, joint) for kind in AlarmKind}
@@ -428,45 +497,53 @@ class ServoAlarms:
             return []
         speeds = self._pose_speeds(device, angles_rad, timestamp_ms)
         events: list[AlarmEvent] = []
-        health: dict[str, JointHealth] = {}
-        slots_of = self._slots.setdefault(device, {})
+        slots_of = self._slots.get(device)
+        if slots_of is None:
+            slots_of = self._slots[device] = {}
         torques = _Torques(holding_torques_nm)
+        limit = self.thresholds.still_velocity_rad_s
+        mismatch_joints = self._mismatch_joints
+        # Joints whose model check ran (still, load known): (model load %, mismatch) for their JointHealth.
+        checked: dict[str, tuple[float | None, float | None]] = {}
         for joint, diag in diagnostics.items():
             rules = self._rule_list.get(joint)
             if rules is None:
                 continue
-            temp = diag.temperature_c
             load = diag.load_percent
-            still = self._still(diag, speeds.get(joint))
             model: float | None = None
             mismatch = None
-            if joint in self._mismatch_joints and still and load is not None:
+            if joint in mismatch_joints and load is not None and _still(diag, speeds.get(joint), limit):
                 model = _model_load(torques, self._servo, joint, diag.voltage_v)
                 if model is not None:
                     mismatch = abs(abs(load) - model)
-                health[joint] = JointHealth(model_load_percent=model, mismatch_percent=mismatch, still=still)
-            else:
-                health[joint] = JointHealth(
-                    mismatch_percent=None,
-                    still=still,
-                    joint=joint,
-                    torques=torques,
-                    servo=self._servo,
-                    voltage_v=diag.voltage_v,
-                )
-            values = (temp, temp, diag.current_a, None if load is None else abs(load), mismatch)
+                checked[joint] = (model, mismatch)
+            temp = diag.temperature_c
+            current = diag.current_a
             slots = slots_of.get(joint)
             if slots is None:
-                slots = slots_of[joint] = [None] * len(_KINDS)
+                slots = slots_of[joint] = _JointAlarms([None] * len(_KINDS))
+            elif slots.idle:
+                # The common case, a quiet servo: every value below its line (and already given an alarm to
+                # remember it by), nothing raised or pending on the joint: nothing can change. The views
+                # read the values from the last evaluation, so nothing is written either.
+                quiet = self._quiet[joint]
+                alarms = slots.alarms
+                if (
+                    (temp is None or (temp < quiet[0] and alarms[0] is not None))
+                    and (current is None or (current < quiet[2] and alarms[2] is not None))
+                    and (load is None or (abs(load) < quiet[3] and alarms[3] is not None))
+                    and (mismatch is None or (mismatch < quiet[4] and alarms[4] is not None))
+                ):
+                    continue
+            values = (temp, temp, current, None if load is None else abs(load), mismatch)
+            alarms = slots.alarms
             for k, value in enumerate(values):
-                alarm = slots[k]
+                alarm = alarms[k]
                 if alarm is None:
                     if value is None:
                         continue  # nothing known, nothing to remember
-                    alarm = slots[k] = _Alarm(device, joint, _KINDS[k], since=now)
-                    self._alarms[alarm.alarm_id] = alarm
+                    alarm = alarms[k] = self._new_alarm(device, joint, _KINDS[k], now)
                 rule = rules[k]
-                # The common case, a quiet servo: below the line, nothing pending, nothing to change.
                 if (
                     value is not None
                     and value < rule.raise_at
@@ -476,8 +553,15 @@ class ServoAlarms:
                     alarm.value = value
                     continue
                 self._step(alarm, value, rule, now=now, events=events, model=model)
-        self._joint_health[device] = health
+            slots.idle = all(a is None or (not a.present and a.raise_since is None) for a in alarms)
+        self._last[device] = _Evaluation(diagnostics, speeds, torques, checked)
         return events
+
+    def _new_alarm(self, device: str, joint: str, kind: AlarmKind, now: float) -> _Alarm:
+        alarm = _Alarm(device, joint, kind, since=now)
+        self._alarms[alarm.alarm_id] = alarm
+        self._by_device.setdefault(device, []).append(alarm)
+        return alarm
 
     def _pose_speeds(
         self, device: str, angles: Mapping[str, float] | None, timestamp_ms: int | None
@@ -495,21 +579,6 @@ class ServoAlarms:
             return {}
         last = previous[1]
         return {j: abs(a - last[j]) / dt for j, a in angles.items() if j in last}
-
-    def _still(self, diag: JointDiagnostics, pose_speed: float | None) -> bool | None:
-        """False on any sign of motion, True on some sign of rest and none of motion, None when nothing is
-        known (no velocity, no Moving flag, no previous pose)."""
-        limit = self.thresholds.still_velocity_rad_s
-        velocity = diag.velocity_rad_s
-        if (
-            diag.moving is True
-            or (velocity is not None and abs(velocity) > limit)
-            or (pose_speed is not None and pose_speed > limit)
-        ):
-            return False
-        if velocity is None and pose_speed is None and diag.moving is None:
-            return None
-        return True
 
     def _step(
         self,
@@ -638,11 +707,8 @@ class ServoAlarms:
 
     def views(self, *, include_normal: bool = False, device: str | None = None) -> list[AlarmView]:
         """Alarms sorted worst first (severity, then state, then id); NORMAL ones only when asked."""
-        out = [
-            self._view(a)
-            for a in self._alarms.values()
-            if (include_normal or a.state is not AlarmState.NORMAL) and (device is None or a.device == device)
-        ]
+        alarms = self._alarms.values() if device is None else self._by_device.get(device, ())
+        out = [self._view(a) for a in alarms if include_normal or a.state is not AlarmState.NORMAL]
         out.sort(key=lambda v: (-v.severity.rank, _STATE_ORDER[v.state], v.alarm_id))
         return out
 
@@ -655,7 +721,7 @@ class ServoAlarms:
             kind=alarm.kind,
             severity=SEVERITY[alarm.kind],
             state=alarm.state,
-            value=alarm.value,
+            value=self._value_of(alarm),
             threshold=rule.raise_at,
             unit=UNITS[alarm.kind],
             since=alarm.since,
@@ -663,14 +729,31 @@ class ServoAlarms:
             message=alarm.message,
         )
 
+    def _value_of(self, alarm: _Alarm) -> float | None:
+        """The alarm's value at the device's last evaluation (a quiet evaluation does not write it)."""
+        last = self._last.get(alarm.device)
+        diag = None if last is None else last.diagnostics.get(alarm.joint)
+        if diag is None:
+            return alarm.value  # the joint was not in the last message: what it had when last evaluated
+        kind = alarm.kind
+        if kind is AlarmKind.OVER_TEMPERATURE or kind is AlarmKind.OVER_TEMPERATURE_CRITICAL:
+            return diag.temperature_c
+        if kind is AlarmKind.OVER_CURRENT:
+            return diag.current_a
+        if kind is AlarmKind.OVERLOAD:
+            return None if diag.load_percent is None else abs(diag.load_percent)
+        checked = last.checked.get(alarm.joint)  # type: ignore[union-attr]
+        return None if checked is None else checked[1]
+
     def joint_health(self, device: str) -> dict[str, JointHealth]:
-        return dict(self._joint_health.get(device, {}))
+        last = self._last.get(device)
+        return {} if last is None else last.joint_health(self.thresholds, self._servo)
 
     def worst_by_joint(self, device: str) -> dict[str, tuple[Severity, AlarmState]]:
         """Per joint, the severity and state of its worst alarm that is not NORMAL (the viewer's colour)."""
         worst: dict[str, tuple[Severity, AlarmState]] = {}
-        for alarm in self._alarms.values():
-            if alarm.device != device or alarm.state is AlarmState.NORMAL:
+        for alarm in self._by_device.get(device, ()):
+            if alarm.state is AlarmState.NORMAL:
                 continue
             candidate = (SEVERITY[alarm.kind], alarm.state)
             current = worst.get(alarm.joint)

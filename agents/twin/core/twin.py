@@ -107,19 +107,32 @@ def _tcp_of(robot: RobotModel, data: mujoco.MjData) -> tuple[float, float, float
 
 @dataclass(frozen=True, slots=True)
 class TwinSnapshot:
-    """One device's twin state at one moment; the dicts are fresh copies owned by the snapshot.
+    """One device's twin state at one moment, immutable: each read of the angle dicts builds a fresh one.
 
-    `joint_torques` and `tcp_position` are computed on first access (module doc)."""
+    The worker takes a snapshot of every device it changed after each batch, and most are never read, so the
+    angles are kept as tuples (JOINT_NAMES order) and `joint_torques` and `tcp_position` are computed on first
+    access (module doc)."""
 
     device_id: str
     timestamp_ms: int | None
-    joint_angles: dict[str, float]
-    targets: dict[str, float]
+    names: tuple[str, ...]
+    angles: tuple[float, ...]
+    target_values: tuple[float, ...]
     figures: _Figures = field(repr=False, compare=False)
     mode: TwinMode = TwinMode.KINEMATIC
     applied: int = 0
     ignored_stale: int = 0
     clamped: int = 0
+
+    @property
+    def joint_angles(self) -> dict[str, float]:
+        """Joint angles (radians) by name: measured in kinematic mode, simulated in physics mode."""
+        return dict(zip(self.names, self.angles, strict=True))
+
+    @property
+    def targets(self) -> dict[str, float]:
+        """The applied (clamped) angles by name; the actuator targets in physics mode."""
+        return dict(zip(self.names, self.target_values, strict=True))
 
     @property
     def joint_torques(self) -> dict[str, float]:
@@ -327,11 +340,15 @@ class DeviceTwin:
         """An immutable copy of this twin's state to hand to other threads (call it on the owning thread).
 
         Cheap: no MuJoCo call; the TCP and torques are computed by whoever reads them first."""
+        targets = tuple(self._targets)
+        own = self._own_data
+        angles = targets if own is None else tuple(float(own.qpos[a]) for a in self._qadr)
         return TwinSnapshot(
             device_id=self.device_id,
             timestamp_ms=self.last_timestamp_ms,
-            joint_angles=self.joint_angles,
-            targets=self.targets,
+            names=self._names,
+            angles=angles,
+            target_values=targets,
             figures=self._current_figures(),
             mode=self.mode,
             applied=self.applied,

@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import asdict
 from pathlib import Path
 
 from twin.cli.output import Console
@@ -44,6 +43,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import msgspec  # lazy with the decoder: keeps `twin --help` light
+
     from twin.core.telemetry import DecoderConfig, TelemetryDecoder, TelemetryRejected, Units
     from twin.robot.calibration import load_calibration  # lazy: keeps `twin --help` light
 
@@ -75,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
         "angles_rad": telemetry.angles_rad,
         "gripper_percent": telemetry.gripper_percent,
         "diagnostics": {
-            name: {k: v for k, v in asdict(diag).items() if v is not None}
+            name: {k: v for k, v in msgspec.structs.asdict(diag).items() if v is not None}
             for name, diag in telemetry.diagnostics.items()
         },
     }
