@@ -52,6 +52,23 @@ class LatencyHistogram:
         self.max = max(self.max, seconds)
         self.min = min(self.min, seconds)
 
+    def copy(self) -> LatencyHistogram:
+        out = LatencyHistogram()
+        out.merge(self)
+        return out
+
+    def merge(self, other: LatencyHistogram) -> None:
+        """Add `other`'s samples to this one (the fleet's histogram from its worker processes' histograms)."""
+        if len(other.counts) != len(self.counts):
+            raise ValueError(
+                f"cannot merge a histogram of {len(other.counts)} buckets into {len(self.counts)}"
+            )
+        self.counts = [a + b for a, b in zip(self.counts, other.counts, strict=True)]
+        self.count += other.count
+        self.total += other.total
+        self.max = max(self.max, other.max)
+        self.min = min(self.min, other.min)
+
     def quantile(self, q: float) -> float | None:
         """The upper edge of the bucket holding the q-quantile (capped by the true maximum)."""
         if self.count == 0:

@@ -36,10 +36,13 @@ from __future__ import annotations
 
 import logging
 import os
+import pickle
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
@@ -172,6 +175,64 @@ class _Readout:
     loss: dict[str, dict[str, Any]]
 
 
+class PipeInbox:
+    """The worker thread's queue in a sharded agent's worker process: batches its receiving process wrote to a
+    pipe (service.shards), read by the worker thread itself, so no thread or queue sits between.
+
+    Each pipe message is a pickled list of (device or None, topic, payload, receive monotonic, receive wall);
+    an empty one is the end marker. The receiving process's queue for this worker is bounded and counts
+    what it drops, so nothing here overflows (the pipe holds back the writer instead)."""
+
+    # Read at most this many messages per take: a backlog reaches the worker's catch-up check in pieces.
+    MAX_TAKE = 5_000
+
+    def __init__(self, conn: Connection) -> None:
+        self._conn = conn
+        self._closed = False
+
+    def take_all(self, timeout: float | None = None) -> list[tuple[str, _Inbound]]:
+        items: list[tuple[str, _Inbound]] = []
+        if self._closed:
+            return items
+        conn = self._conn
+        try:
+            if not conn.poll(timeout):
+                return items
+            while True:
+                raw = conn.recv_bytes()
+                if not raw:
+                    self._closed = True
+                    break
+                items.extend(
+                    (device or UNTRACKED_KEY, _Inbound(topic, payload, mono, wall))
+                    for device, topic, payload, mono, wall in pickle.loads(raw)
+                )
+                if len(items) >= self.MAX_TAKE or not conn.poll(0):
+                    break
+        except (EOFError, OSError):
+            log.warning("the receiving process went away; worker stopping")
+            self._closed = True
+        return items
+
+    def close(self) -> None:
+        self._closed = True
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def __len__(self) -> int:
+        return 0  # what waits in the pipe is the receiving process's to count (its per-worker queue)
+
+    @property
+    def overflowed(self) -> Counter[str]:
+        return Counter()
+
+    @property
+    def overflowed_total(self) -> int:
+        return 0
+
+
 class AgentService:
     """Wires config -> subscriber -> mailbox -> worker -> twins/health/sinks -> HTTP. See the module doc.
 
@@ -187,11 +248,15 @@ class AgentService:
         clock: Clock = time.monotonic,
         wall_clock: Clock = time.time,
         sinks: Sequence[TwinSink] = (),
+        inbox: Connection | None = None,
     ) -> None:
         # Everything that can be wrong with the configuration is found here, before any thread or socket.
         # Long on purpose: the service's wiring, state by state, in one place so every field it owns and the
         # lock that guards it can be read together.
         self.config = config
+        # With an inbox: one worker process of a sharded agent (service.shards), which reads its messages
+        # from that pipe. The receiving process subscribes, serves HTTP and publishes the CloudWatch metrics.
+        self.embedded = inbox is not None
         self.broker_config = config.broker  # validated when the config was built
         self._clock = clock
         self._wall_clock = wall_clock
@@ -230,7 +295,9 @@ class AgentService:
         self._reject_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
         self._error_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
 
-        self._mailbox: InboundQueue[_Inbound] = InboundQueue(max_items=MAX_QUEUED_MESSAGES)
+        self._mailbox: InboundQueue[_Inbound] | PipeInbox = (
+            InboundQueue(max_items=MAX_QUEUED_MESSAGES) if inbox is None else PipeInbox(inbox)
+        )
         self._started_pool = False
         self._http: AgentHttpServer | None = None
         self._recording: RecordingSink | None = None
@@ -313,17 +380,18 @@ class AgentService:
             *((self._history,) if self._history else ()),
             *self._extra_sinks,
         )
-        try:
-            self._http = AgentHttpServer(
-                self,
-                self.config.http.host,
-                self.config.http.port,
-                stream_rate_hz=self.config.http.stream_rate_hz,
-            )
-        except OSError:
-            self._close_sinks(timeout=5.0)
-            raise
-        if self.config.cloudwatch.emf_file:
+        if not self.embedded:
+            try:
+                self._http = AgentHttpServer(
+                    self,
+                    self.config.http.host,
+                    self.config.http.port,
+                    stream_rate_hz=self.config.http.stream_rate_hz,
+                )
+            except OSError:
+                self._close_sinks(timeout=5.0)
+                raise
+        if self.config.cloudwatch.emf_file and not self.embedded:
             cw = self.config.cloudwatch
             self._emf = EmfPublisher(
                 EmfFileWriter(cw.emf_file), cw.agent_name, self._fleet_totals, interval_s=cw.interval_s
@@ -331,17 +399,19 @@ class AgentService:
         self._running.set()
         self._worker = threading.Thread(target=self._work, name="twin-worker", daemon=True)
         self._worker.start()
-        self._http.start()
-        self._pool.start()
-        self._started_pool = True
+        if self._http is not None:
+            self._http.start()
+        if not self.embedded:
+            self._pool.start()
+            self._started_pool = True
         if self._emf is not None:
             self._emf.start()
         log.info(
-            "agent started",
+            "agent started" if not self.embedded else "agent worker started",
             extra={
                 "broker": self.config.broker.url,
                 "topics": self.topic_filters,
-                "http": self._http.url,
+                "http": self._http.url if self._http is not None else None,
                 "mode": str(self.mode),
                 "units": self.config.telemetry.units,
                 "recording": str(self._recording.path) if self._recording else None,
@@ -424,6 +494,12 @@ class AgentService:
     def _on_message(self, topic: str, payload: bytes, recv_mono: float) -> None:
         device = device_from_topic(topic, self.config.telemetry.topic_prefix)
         self._mailbox.put(device or UNTRACKED_KEY, _Inbound(topic, payload, recv_mono, self._wall_clock()))
+
+    def histograms(self) -> tuple[LatencyHistogram, LatencyHistogram]:
+        """Copies of the fleet-wide internal and end-to-end latency histograms (a sharded agent merges its
+        workers' into one)."""
+        with self._lock:
+            return self._internal_hist.copy(), self._end_to_end_hist.copy()
 
     # ------------------------------------------------------------------------------------------ worker
 
@@ -848,25 +924,7 @@ class AgentService:
 
     def _fleet_totals(self) -> FleetTotals:
         """Running totals and gauges for the CloudWatch metrics (EmfPublisher thread)."""
-        state = self.state()
-        expected = self.config.health.expected_rate_hz
-        statuses = [d.status for d in state.devices.values()]
-        live = [d for d in state.devices.values() if d.status is not DeviceStatus.OFFLINE]
-        # Per arm, the share of the expected rate that did not arrive, averaged over arms that are not
-        # OFFLINE (an OFFLINE arm is counted as such, not as 100 % loss).
-        loss = 100.0 * sum(max(0.0, 1.0 - d.rate_hz / expected) for d in live) / len(live) if live else 0.0
-        p99s = [d.internal_latency_s.p99 for d in state.devices.values() if d.internal_latency_s.p99]
-        return FleetTotals(
-            decoded=sum(d.counters.decoded for d in state.devices.values()),
-            rejected=sum(d.counters.rejected_total for d in state.devices.values())
-            + sum(state.untracked_rejected.values()),
-            devices_online=statuses.count(DeviceStatus.ONLINE),
-            devices_stale=statuses.count(DeviceStatus.STALE),
-            devices_offline=statuses.count(DeviceStatus.OFFLINE),
-            loss_percent=loss,
-            internal_latency_p99_ms=max(p99s) * 1000.0 if p99s else None,
-            active_alarms=state.agent.alarms.present,
-        )
+        return fleet_totals(self.state(), self.config.health.expected_rate_hz)
 
     def _device_state(self, device: str, health: HealthSnapshot, readout: _Readout) -> DeviceState:
         snap = readout.snapshots.get(device)
@@ -939,38 +997,7 @@ class AgentService:
         )
 
     def _broker_state(self) -> BrokerState:
-        limit = self._pool_settings.limit
-        if not self._started_pool:
-            return BrokerState(url=self.config.broker.url, per_connection_limit=limit)
-        infos = self._pool.connections()
-        stats = [c.stats for c in self._pool.subscribers()]
-        return BrokerState(
-            url=self.config.broker.url,
-            client_id=infos[0].client_id if infos else None,
-            connected=self._pool.connected,
-            connection_successes=sum(st.connection_successes for st in stats),
-            connection_failures=sum(st.connection_failures for st in stats),
-            disconnections=sum(st.disconnects for st in stats),
-            subscribes=sum(st.subscribes_acked for st in stats),
-            messages=self._pool.messages,
-            last_error=next((st.last_error for st in stats if st.last_error), ""),
-            per_connection_limit=limit,
-            rate_hz=self._pool.rate_hz,
-            connections=tuple(
-                ConnectionState(
-                    index=c.index,
-                    client_id=c.client_id,
-                    state=c.state,
-                    filters=len(c.filters),
-                    rate_hz=c.rate_hz,
-                    messages=c.messages,
-                    connection_successes=c.connection_successes,
-                    disconnections=c.disconnections,
-                    last_error=c.last_error,
-                )
-                for c in infos
-            ),
-        )
+        return broker_state(self.config.broker.url, self._pool_settings, self._pool, self._started_pool)
 
     def _recording_state(self) -> RecordingState | None:
         if self._recording is None:
@@ -1014,6 +1041,75 @@ class AgentService:
         with self._lock:
             health = self._fleet.get(device)
             return health.status() if health is not None else None
+
+
+def fleet_totals(state: AgentState, expected_rate_hz: float) -> FleetTotals:
+    """The CloudWatch metrics' running totals and gauges, from one state document (docs/servo-health.md)."""
+    statuses = [d.status for d in state.devices.values()]
+    live = [d for d in state.devices.values() if d.status is not DeviceStatus.OFFLINE]
+    # Per arm, the share of the expected rate that did not arrive, averaged over arms that are not OFFLINE
+    # (an OFFLINE arm is counted as such, not as 100 % loss).
+    loss = (
+        100.0 * sum(max(0.0, 1.0 - d.rate_hz / expected_rate_hz) for d in live) / len(live) if live else 0.0
+    )
+    p99s = [d.internal_latency_s.p99 for d in state.devices.values() if d.internal_latency_s.p99]
+    return FleetTotals(
+        decoded=sum(d.counters.decoded for d in state.devices.values()),
+        rejected=sum(d.counters.rejected_total for d in state.devices.values())
+        + sum(state.untracked_rejected.values()),
+        devices_online=statuses.count(DeviceStatus.ONLINE),
+        devices_stale=statuses.count(DeviceStatus.STALE),
+        devices_offline=statuses.count(DeviceStatus.OFFLINE),
+        loss_percent=loss,
+        internal_latency_p99_ms=max(p99s) * 1000.0 if p99s else None,
+        active_alarms=state.agent.alarms.present,
+    )
+
+
+_SEVERITY_RANK = {str(s): s.rank for s in Severity}
+_STATE_ORDER = {str(AlarmState.ACTIVE): 0, str(AlarmState.LATCHED): 1, str(AlarmState.ACKNOWLEDGED): 2}
+
+
+def alarm_order(info: AlarmInfo) -> tuple[int, int, str]:
+    """Worst first: critical before warning, then ACTIVE, LATCHED, ACKNOWLEDGED, NORMAL, then by id (the
+    order ServoAlarms.views gives)."""
+    return (-_SEVERITY_RANK.get(info.severity, 0), _STATE_ORDER.get(info.state, 3), info.alarm_id)
+
+
+def broker_state(url: str, settings: PoolSettings, pool: ConnectionPool, started: bool) -> BrokerState:
+    """The broker side of /state: the pool's connections, summed and one by one."""
+    limit = settings.limit
+    if not started:
+        return BrokerState(url=url, per_connection_limit=limit)
+    infos = pool.connections()
+    stats = [c.stats for c in pool.subscribers()]
+    return BrokerState(
+        url=url,
+        client_id=infos[0].client_id if infos else None,
+        connected=pool.connected,
+        connection_successes=sum(st.connection_successes for st in stats),
+        connection_failures=sum(st.connection_failures for st in stats),
+        disconnections=sum(st.disconnects for st in stats),
+        subscribes=sum(st.subscribes_acked for st in stats),
+        messages=pool.messages,
+        last_error=next((st.last_error for st in stats if st.last_error), ""),
+        per_connection_limit=limit,
+        rate_hz=pool.rate_hz,
+        connections=tuple(
+            ConnectionState(
+                index=c.index,
+                client_id=c.client_id,
+                state=c.state,
+                filters=len(c.filters),
+                rate_hz=c.rate_hz,
+                messages=c.messages,
+                connection_successes=c.connection_successes,
+                disconnections=c.disconnections,
+                last_error=c.last_error,
+            )
+            for c in infos
+        ),
+    )
 
 
 def _alarm_info(view: AlarmView, now_mono: float, now_wall: float) -> AlarmInfo:

@@ -36,6 +36,8 @@ LOG_LEVELS: tuple[str, ...] = ("DEBUG", "INFO", "WARNING", "ERROR")
 DEFAULT_HTTP_HOST = "127.0.0.1"
 DEFAULT_HTTP_PORT = 8080
 DEFAULT_AGENT_URL = f"http://{DEFAULT_HTTP_HOST}:{DEFAULT_HTTP_PORT}"
+# More worker processes than this is a typo, not a fleet (docs/agent.md, "Workers").
+MAX_WORKERS = 64
 # The largest payload cap a config may set (the default is IoT Core's 128 KiB).
 MAX_PAYLOAD_LIMIT_BYTES = 1 << 20
 
@@ -73,6 +75,9 @@ class TwinSection:
     record_format: str = "usdc"
     physics_rate_hz: float = 200.0
     record_flush_s: float = 2.0
+    # Processes that mirror the fleet, each a share of the devices (docs/agent.md, "Workers"); 0 = one per
+    # usable core for the whole fleet, fewer for a small listed one (twin.service.shards.worker_count).
+    workers: int = 0
 
 
 # The [health] section is the health thresholds themselves: one definition, used as loaded.
@@ -272,6 +277,11 @@ def validate(config: AgentConfig) -> AgentConfig:
         config.rerun.validate()
     except RerunSettingsError as exc:
         raise ConfigError(str(exc)) from None
+    if config.rerun.enabled and config.twin.workers > 1:
+        raise ConfigError(
+            f"twin.workers = {config.twin.workers} with [rerun] on: the Rerun stream is one recording from "
+            "one process; set workers = 1 (or 0, which picks 1 while [rerun] is on), or turn [rerun] off"
+        )
     return config
 
 
@@ -332,6 +342,11 @@ def _validate_twin(tw: TwinSection) -> None:
         )
     _positive("twin.physics_rate_hz", tw.physics_rate_hz)
     _positive("twin.record_flush_s", tw.record_flush_s)
+    if not 0 <= tw.workers <= MAX_WORKERS:
+        raise ConfigError(
+            f"twin.workers = {tw.workers} is outside 0..{MAX_WORKERS}; 0 picks one per core, 1 runs "
+            "everything in one process"
+        )
 
 
 def _validate_ros2(r: Ros2Section, t: TelemetrySection) -> None:

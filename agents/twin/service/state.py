@@ -41,6 +41,7 @@ __all__ = [
     "ServoState",
     "SinkStats",
     "WindowLatency",
+    "WorkerInfo",
     "WorkerState",
 ]
 
@@ -268,6 +269,23 @@ class HistoryState:
     last_error: str = ""
 
 
+@dataclass(frozen=True, slots=True)
+class WorkerInfo:
+    """One worker process of a sharded agent (`twin run --workers N`, docs/agent.md "Workers"): the devices it
+    mirrors, what it handled, and what the receiving process queued for it or could not hand over."""
+
+    index: int = 0
+    pid: int = 0
+    alive: bool = False
+    restarts: int = 0
+    devices: int = 0
+    queued: int = 0
+    dropped: int = 0
+    processed: int = 0
+    errors: int = 0
+    recording: str = ""
+
+
 @dataclass(frozen=True)
 class AgentInfo:
     running: bool = False
@@ -288,6 +306,8 @@ class AgentInfo:
     sinks: tuple[SinkStats, ...] = ()
     alarms: AlarmsSummary = field(default_factory=AlarmsSummary)
     loss: FleetLoss = field(default_factory=FleetLoss)
+    # A sharded agent's worker processes (empty when one process does everything).
+    workers: tuple[WorkerInfo, ...] = ()
 
 
 @dataclass(frozen=True)

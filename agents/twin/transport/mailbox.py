@@ -46,6 +46,21 @@ class InboundQueue(Generic[T]):
                 # The consumer sleeps only while empty, so one wake-up per empty->non-empty step is enough.
                 self._cond.notify_all()
 
+    def put_many(self, items: list[tuple[str, T]]) -> None:
+        """Append (key, item) pairs in order under one lock (a batch that arrived together)."""
+        if not items:
+            return
+        with self._cond:
+            self.put_count += len(items)
+            queue = self._items
+            was_empty = not queue
+            queue.extend(items)
+            excess = len(queue) - self.max_items
+            for _ in range(max(0, excess)):
+                self._overflowed[queue.popleft()[0]] += 1
+            if was_empty:
+                self._cond.notify_all()
+
     def take_all(self, timeout: float | None = None) -> list[tuple[str, T]]:
         """Wait up to `timeout` seconds (None = forever) for anything, then take everything, oldest first.
 

@@ -80,6 +80,13 @@ def add_agent_arguments(parser: argparse.ArgumentParser) -> None:
         "--topic-prefix", metavar="PREFIX", help=f"topic prefix (default {DEFAULT_TOPIC_PREFIX})"
     )
     parser.add_argument("--mode", metavar="MODE", help="twin mode: kinematic or physics")
+    parser.add_argument(
+        "--workers",
+        metavar="N",
+        type=int,
+        help="processes that mirror the fleet, each a share of the devices (default 0: one per core for the "
+        "whole fleet, fewer for a small listed one; 1: one process)",
+    )
     parser.add_argument("--record-dir", metavar="DIR", help="record a USD session into DIR")
     parser.add_argument(
         "--history",
@@ -108,6 +115,7 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         "telemetry.devices": args.devices,
         "telemetry.topic_prefix": args.topic_prefix,
         "twin.mode": args.mode,
+        "twin.workers": args.workers,
         "twin.record_dir": args.record_dir,
         "history.uri": args.history,
         "rerun.save": args.rerun_save,
@@ -146,27 +154,15 @@ def configure(args: argparse.Namespace, overrides: dict[str, Any]) -> AgentConfi
 
 def serve(config: AgentConfig, on_started: Callable[[Any], None] | None = None) -> int:
     """Run the agent until SIGTERM/SIGINT; `on_started(service)` runs once it is up. Returns the exit code."""
-    # MuJoCo, awscrt and USD load here, not at import: `twin --help` stays fast.
-    from twin.service.agent import AgentService
-    from twin.service.outputs import close_sinks, configured_sinks
-
-    try:
-        sinks = configured_sinks(config)
-    except ConfigError as exc:
-        return _config_error(str(exc))
-    except OSError as exc:
-        return _cannot_start(exc)
-    try:
-        service = AgentService(config, sinks=sinks)
-    except (ConfigError, ValueError) as exc:
-        close_sinks(sinks)
-        return _config_error(str(exc))
+    service = _build_service(config)
+    if isinstance(service, int):
+        return service
 
     received: list[str] = []
     with stop_on_signals(lambda signum: received.append(signal.Signals(signum).name)) as stop:
         try:
             service.start()
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, RuntimeError) as exc:  # RuntimeError: a worker could not start
             service.stop()  # closes the sinks too
             return _cannot_start(exc)
         if on_started is not None:
@@ -179,6 +175,35 @@ def serve(config: AgentConfig, on_started: Callable[[Any], None] | None = None) 
         log.info("signal received; stopping", extra={"signal": received[0] if received else None})
         service.stop()
         return EXIT_OK
+
+
+def _build_service(config: AgentConfig) -> Any:
+    """AgentService (one process), or ShardedAgent when the config asks for several workers; an exit code
+    when the configuration is invalid or a sink cannot open."""
+    # MuJoCo, awscrt and USD load here, not at import: `twin --help` stays fast.
+    from twin.service.shards import ShardedAgent, worker_count
+
+    workers = worker_count(config)
+    if workers > 1:
+        # Each worker builds its own sinks and twins; this process only receives and serves.
+        try:
+            return ShardedAgent(config, workers)
+        except (ConfigError, ValueError) as exc:
+            return _config_error(str(exc))
+    from twin.service.agent import AgentService
+    from twin.service.outputs import close_sinks, configured_sinks
+
+    try:
+        sinks = configured_sinks(config)
+    except ConfigError as exc:
+        return _config_error(str(exc))
+    except OSError as exc:
+        return _cannot_start(exc)
+    try:
+        return AgentService(config, sinks=sinks)
+    except (ConfigError, ValueError) as exc:
+        close_sinks(sinks)
+        return _config_error(str(exc))
 
 
 def _cannot_start(exc: BaseException) -> int:
