@@ -23,13 +23,17 @@ from twin.tools.rig import LocalRig, child_env
 
 
 class ProcessSampler:
-    """Samples a process's RSS and CPU time in the background (psutil), from start() to stop()."""
+    """Samples a process's RSS and CPU time in the background (psutil), from start() to stop(), together
+    with its child processes' (a sharded agent's workers): CPU is the tree's, RSS both the tree's total and
+    the largest single process's."""
 
     def __init__(self, pid: int, interval_s: float = 0.25) -> None:
         self.process = psutil.Process(pid)
         self.interval_s = interval_s
         self.max_rss = 0
         self.last_rss = 0
+        self.max_process_rss = 0
+        self.processes = 1
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._cpu0 = 0.0
@@ -37,24 +41,47 @@ class ProcessSampler:
         self.cpu_s = 0.0
         self.wall_s = 0.0
 
+    def _tree(self) -> list[psutil.Process]:
+        try:
+            return [self.process, *self.process.children(recursive=True)]
+        except psutil.Error:
+            return [self.process]
+
     def _cpu(self) -> float:
-        times = self.process.cpu_times()
-        return times.user + times.system
+        total = 0.0
+        for process in self._tree():
+            try:
+                times = process.cpu_times()
+            except psutil.Error:
+                continue
+            total += times.user + times.system
+        return total
+
+    def _sample_rss(self) -> None:
+        sizes = []
+        for process in self._tree():
+            try:
+                sizes.append(process.memory_info().rss)
+            except psutil.Error:
+                continue
+        if not sizes:
+            return
+        self.last_rss = sum(sizes)
+        self.processes = len(sizes)
+        self.max_rss = max(self.max_rss, self.last_rss)
+        self.max_process_rss = max(self.max_process_rss, *sizes)
 
     def _run(self) -> None:
         while not self._stop.wait(self.interval_s):
-            try:
-                self.last_rss = self.process.memory_info().rss
-            except psutil.Error:
+            if not self.process.is_running():
                 return
-            self.max_rss = max(self.max_rss, self.last_rss)
+            self._sample_rss()
 
     def start(self) -> ProcessSampler:
         psutil.cpu_percent(interval=None)  # starts the host-wide measurement that stop() reads
         self._cpu0 = self._cpu()
         self._t0 = time.monotonic()
-        self.last_rss = self.process.memory_info().rss
-        self.max_rss = self.last_rss
+        self._sample_rss()
         self._thread.start()
         return self
 
@@ -68,10 +95,13 @@ class ProcessSampler:
             # The whole host over the same interval (100 % = every core busy): publishers and broker share it.
             "host_cpu_percent": host,
             "host_cores": psutil.cpu_count(),
+            # Percent of one core, the process and its children together (a sharded agent's workers).
             "cpu_percent": 100.0 * self.cpu_s / self.wall_s if self.wall_s else 0.0,
             "cpu_s": self.cpu_s,
+            "processes": self.processes,
             "rss_max_mb": self.max_rss / 2**20,
             "rss_last_mb": self.last_rss / 2**20,
+            "rss_max_process_mb": self.max_process_rss / 2**20,
         }
 
 
@@ -83,16 +113,26 @@ def get_state(base_url: str, timeout: float = 5.0) -> AgentState:
 
 @contextmanager
 def running_agent(
-    rig: LocalRig, *, max_devices: int = 4096, history: str | None = None, config_text: str = ""
+    rig: LocalRig,
+    *,
+    max_devices: int = 4096,
+    history: str | None = None,
+    config_text: str = "",
+    workers: int | None = None,
 ) -> Iterator[tuple[subprocess.Popen[bytes], str]]:
     """`twin run --devices '*'` as a child process on the rig's broker; yields (process, HTTP base URL).
 
     The fleet bound is raised to the benchmark's size: the default guards a production agent against a
     misbehaving publisher inventing device ids, which is not what is measured here. `history` turns the
     agent's telemetry history on at that URI (`--history`); `config_text` adds sections to its config (e.g.
-    [ros2]).
+    [ros2]). `workers` is `--workers` (None: the agent's default, one per core for the whole fleet).
     """
-    extra = ("--log-level", "WARNING", *(("--history", history) if history else ()))
+    extra = (
+        "--log-level",
+        "WARNING",
+        *(("--history", history) if history else ()),
+        *(("--workers", str(workers)) if workers is not None else ()),
+    )
     with rig.agent_process(
         config_text=f"[telemetry]\nmax_devices = {max_devices}\n{config_text}",
         extra_args=extra,

@@ -100,6 +100,8 @@ def agent_phase(
         "rejected": sum_devices(state, "rejected_total") + sum(state.untracked_rejected.values()),
         "ignored_stale": sum_devices(state, "ignored_stale"),
         "devices_seen": len(state.devices),
+        # Worker processes that mirrored the fleet (`--workers`; 1 = the agent in one process).
+        "workers": len(state.agent.workers) or 1,
         "sustained_rate": received / elapsed if elapsed else 0.0,
         # Messages that reached the twin (decoded and applied) per second; the rest of `received` was
         # rejected, ignored as stale, coalesced while the worker caught up (decoded, counted, kept in history,
