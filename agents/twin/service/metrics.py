@@ -125,6 +125,7 @@ def _agent_families(agent: AgentInfo) -> Iterator[Metric]:
         yield ok
     yield from _alarm_families(agent)
     yield from _pool_families(agent)
+    yield from _worker_families(agent)
     loss = agent.loss
     yield _counter(
         "twin_fleet_messages_lost_total",
@@ -185,6 +186,34 @@ _SERVO_GAUGES = (
         "| |load| - |model load| | in percentage points, while the joint is still.",
     ),
 )
+
+
+def _worker_families(agent: AgentInfo) -> Iterator[Metric]:
+    """A sharded agent's worker processes (none when one process does everything)."""
+    if not agent.workers:
+        return
+    label = ["worker"]
+    up = GaugeMetricFamily("twin_worker_up", "1 while a worker process runs.", labels=label)
+    devices = GaugeMetricFamily("twin_worker_devices", "Devices a worker process mirrors.", labels=label)
+    queued = GaugeMetricFamily(
+        "twin_worker_queued", "Messages the receiving process holds for a worker.", labels=label
+    )
+    restarts = CounterMetricFamily(
+        "twin_worker_restarts_total", "Times a worker process was started again.", labels=label
+    )
+    dropped = CounterMetricFamily(
+        "twin_worker_dropped_total",
+        "Messages the receiving process dropped for a worker (its queue full, or the worker down).",
+        labels=label,
+    )
+    for w in agent.workers:
+        index = [str(w.index)]
+        up.add_metric(index, 1 if w.alive else 0)
+        devices.add_metric(index, w.devices)
+        queued.add_metric(index, w.queued)
+        restarts.add_metric(index, w.restarts)
+        dropped.add_metric(index, w.dropped)
+    yield from (up, devices, queued, restarts, dropped)
 
 
 def _pool_families(agent: AgentInfo) -> Iterator[Metric]:

@@ -162,6 +162,24 @@ class LocalRig:
             )
         return service
 
+    def start_sharded_agent(
+        self, overrides: Mapping[str, Any] | AgentConfig | None = None, *, workers: int = 2
+    ) -> Any:
+        """Start a ShardedAgent (`twin run --workers N`) in this process, its workers as child processes
+        (stopped by close()); waits until it has subscribed."""
+        from twin.service.shards import ShardedAgent  # noqa: PLC0415 - awscrt loads here
+
+        config = overrides if isinstance(overrides, AgentConfig) else self.agent_config(overrides)
+        agent = ShardedAgent(config, workers)
+        self.services.append(agent)
+        agent.start()
+        if not agent.wait_subscribed(SUBSCRIBE_TIMEOUT_S):
+            raise RigError(
+                f"the agent did not subscribe on {self.broker.url} within {SUBSCRIBE_TIMEOUT_S:.0f} s "
+                f"(the broker log: {self.broker.log_path})"
+            )
+        return agent
+
     @contextlib.contextmanager
     def agent_process(
         self,

@@ -1,9 +1,10 @@
 """Load processes for the benchmarks: a fleet publisher, a no-op subscriber (the ceiling) and a ROS 2 reader.
 
 Each runs as its own process (`python -m twin.tools.bench.load publish|noop ...`) so its CPU is not charged to
-the agent under test, and prints one JSON line with its counts on exit. Both use the project's own awscrt
-client construction (twin.transport.client.build_mqtt5_client), so the ceiling measures the same broker
-and client the agent uses, minus the agent's work.
+the agent under test, and prints one JSON line with its counts on exit. The publisher writes its packets
+straight to the broker's socket (twin.tools.bench.wire), so the load takes little of the cores it shares with
+the agent. The no-op subscriber uses the project's own client construction (twin.transport.subscriber), so
+the ceiling measures the same broker and client the agent uses, minus the agent's work.
 """
 
 from __future__ import annotations

@@ -1,0 +1,369 @@
+"""`twin run --workers N`: the receiving process and its worker processes (twin.service.shards).
+
+The plan and the merge are pure and tested here with hand-built inputs. The rest runs for real: worker
+processes (spawned, as the CLI spawns them) behind a real mosquitto, some through the quota proxy, with the
+edge simulator publishing.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import urllib.request
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import psutil
+import pytest
+from conftest import get_metrics, metric, wait_for
+from test_servo_alarms_e2e import alarms, post
+from twin.core.health import DeviceCounters, DeviceStatus
+from twin.core.latency import LatencyHistogram
+from twin.service.config import ConfigError, load_config
+from twin.service.shards import WorkerPlan, WorkerReport, merge_reports, worker_config, worker_count
+from twin.service.state import (
+    AgentInfo,
+    AgentState,
+    AlarmsSummary,
+    DeviceState,
+    FleetLoss,
+    HistoryState,
+    SinkStats,
+    WorkerInfo,
+)
+from twin.tools.quota_proxy import QuotaProxy
+from twin.tools.rig import LocalRig, child_env
+from twin.tools.servo_faults import ServoFault
+
+# --- the plan ---------------------------------------------------------------------------------------------
+
+
+def test_a_listed_fleet_is_dealt_out_in_list_order() -> None:
+    plan = WorkerPlan(3, ["d", "a", "c", "b"])
+    assert [plan.worker_of(d) for d in ("d", "a", "c", "b")] == [0, 1, 2, 0]
+    assert plan.devices_of(0) == ("d", "b") and plan.devices_of(2) == ("c",)
+
+
+def test_any_other_device_has_the_same_worker_in_every_process() -> None:
+    # Python's own hash() is salted per process; the plan must not be, or a restarted agent (or the test's
+    # other interpreter) would send an arm to another worker.
+    ids = [f"arm-{i:04d}" for i in range(300)]
+    here = [WorkerPlan(4).worker_of(d) for d in ids]
+    script = (
+        "import json, sys; from twin.service.shards import WorkerPlan; "
+        "print(json.dumps([WorkerPlan(4).worker_of(d) for d in json.loads(sys.argv[1])]))"
+    )
+    other = subprocess.run(
+        [sys.executable, "-c", script, json.dumps(ids)],
+        capture_output=True,
+        text=True,
+        check=True,
+        env={**child_env(), "PYTHONHASHSEED": "12345"},
+    )
+    assert json.loads(other.stdout) == here
+    # CRC-32 spreads the ids: each of 4 workers gets a quarter, give or take.
+    assert all(50 <= n <= 100 for n in Counter(here).values()), Counter(here)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "cores", "expected"),
+    [
+        ({"telemetry.devices": ["*"]}, 8, 8),  # the whole fleet: a worker per core
+        ({"telemetry.devices": ["arm-001", "arm-002", "arm-003"]}, 8, 1),  # 30 msg/s: one process
+        ({"telemetry.devices": [f"a{i}" for i in range(250)]}, 8, 3),  # 2,500 msg/s / 1,000 per worker
+        ({"telemetry.devices": [f"a{i}" for i in range(5000)], "telemetry.max_devices": 6000}, 8, 8),
+        ({"telemetry.devices": [f"a{i}" for i in range(250)], "health.expected_rate_hz": 30.0}, 8, 8),
+        ({"telemetry.devices": ["*"], "twin.workers": 3}, 8, 3),  # asked for: as asked
+        ({"telemetry.devices": ["*"], "rerun.save": "x.rrd"}, 8, 1),  # one Rerun stream, one process
+    ],
+)
+def test_worker_count(overrides: dict[str, Any], cores: int, expected: int) -> None:
+    assert worker_count(load_config(None, overrides), cores=cores) == expected
+
+
+def test_a_workers_config_holds_its_share_and_leaves_cloudwatch_to_the_receiver() -> None:
+    config = load_config(
+        None,
+        {
+            "telemetry.devices": ["a", "b", "c"],
+            "twin.workers": 2,
+            "cloudwatch.emf_file": "/var/log/twin/emf.log",
+        },
+    )
+    plan = WorkerPlan(2, config.telemetry.devices)
+    first, second = (worker_config(config, plan, i) for i in (0, 1))
+    assert (first.telemetry.devices, second.telemetry.devices) == (("a", "c"), ("b",))
+    assert first.cloudwatch.emf_file == "" and first.twin.workers == 1
+    assert first.broker == config.broker and first.history == config.history
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        ({"twin.workers": -1}, "twin.workers = -1 is outside 0..64"),
+        ({"twin.workers": 65}, "outside 0..64"),
+        ({"twin.workers": 2, "rerun.save": "x.rrd"}, "set workers = 1"),
+    ],
+)
+def test_bad_worker_settings_name_the_key_and_the_fix(overrides: dict[str, Any], message: str) -> None:
+    with pytest.raises(ConfigError, match=message.replace(".", r"\.")):
+        load_config(None, overrides)
+
+
+# --- the merge --------------------------------------------------------------------------------------------
+
+
+def histogram(*seconds: float) -> LatencyHistogram:
+    h = LatencyHistogram()
+    for s in seconds:
+        h.add(s)
+    return h
+
+
+def worker_state(devices: dict[str, DeviceCounters], **agent: Any) -> AgentState:
+    return AgentState(
+        agent=AgentInfo(pid=99, **agent),
+        devices={
+            d: DeviceState(device_id=d, status=DeviceStatus.ONLINE, counters=c) for d, c in devices.items()
+        },
+        untracked_rejected={"not_json": 1},
+    )
+
+
+def test_merged_state_sums_the_workers_and_adds_what_the_receiver_dropped() -> None:
+    first = worker_state(
+        {"a": DeviceCounters(received=10, applied=9, overwritten=1)},
+        sinks=(SinkStats(name="history", delivered=10, dropped=0, errors=0, pending=2, last_error=""),),
+        history=HistoryState(uri="out/h", rows_committed=8, commits=2, last_error=""),
+        alarms=AlarmsSummary(present={"critical": 1}, raised_total={"over_current": 1}),
+        loss=FleetLoss(received=10, lost=0, devices_losing=0),
+    )
+    second = worker_state(
+        {"b": DeviceCounters(received=20, applied=20), "c": DeviceCounters(received=5, applied=5)},
+        sinks=(SinkStats(name="history", delivered=25, dropped=1, errors=0, pending=0, last_error="full"),),
+        history=HistoryState(uri="out/h", storage_ok=False, rows_committed=25, commits=3, last_error="full"),
+        alarms=AlarmsSummary(present={"critical": 1, "warning": 2}, raised_total={"over_current": 2}),
+        loss=FleetLoss(received=25, lost=5, devices_losing=1),
+    )
+    workers = (
+        WorkerInfo(index=0, alive=True, queued=3),
+        WorkerInfo(index=1, alive=True, queued=4),
+    )
+    state = merge_reports(
+        AgentInfo(pid=1, running=True),
+        [
+            (0, WorkerReport(first, histogram(0.001, 0.002), histogram())),
+            (1, WorkerReport(second, histogram(0.004), histogram(0.01))),
+        ],
+        workers,
+        refused={"too_many_devices": 2},
+        dropped=Counter({"b": 3}),
+        expected_rate_hz=10.0,
+    )
+    assert list(state.devices) == ["a", "b", "c"]
+    assert state.devices["a"].counters.overwritten == 1  # its worker's own
+    assert state.devices["b"].counters.overwritten == 3  # dropped by the receiving process
+    assert state.untracked_rejected == {"not_json": 2, "too_many_devices": 2}
+    agent = state.agent
+    assert (agent.pid, agent.running, agent.workers) == (1, True, workers)
+    assert agent.latency.internal_s.count == 3 and agent.latency.internal_s.max == pytest.approx(0.004)
+    assert agent.latency.end_to_end_s.count == 1
+    assert agent.mailbox.overwritten_total == 3 and agent.mailbox.pending == 7
+    (sink,) = agent.sinks
+    assert (sink.name, sink.delivered, sink.dropped, sink.pending, sink.last_error) == (
+        "history",
+        35,
+        1,
+        2,
+        "full",
+    )
+    assert agent.history is not None
+    assert (agent.history.rows_committed, agent.history.commits, agent.history.storage_ok) == (33, 5, False)
+    assert agent.alarms.present == {"critical": 2, "warning": 2}
+    assert agent.alarms.raised_total == {"over_current": 3}
+    assert (agent.loss.received, agent.loss.lost, agent.loss.devices_losing) == (35, 5, 1)
+    assert agent.loss.loss_ratio == pytest.approx(5 / 40)
+    # Still one state document: it survives its own JSON.
+    assert AgentState.from_json(state.to_json()) == state
+
+
+def test_a_worker_that_does_not_answer_is_not_running_in_the_merged_state() -> None:
+    report = WorkerReport(worker_state({"a": DeviceCounters(received=1)}), histogram(), histogram())
+    state = merge_reports(
+        AgentInfo(running=True),
+        [(0, report)],
+        (WorkerInfo(index=0, alive=True), WorkerInfo(index=1, alive=False)),
+        refused={},
+        dropped=Counter(),
+        expected_rate_hz=10.0,
+    )
+    assert state.agent.running is False and state.agent.worker.alive is False
+    assert list(state.devices) == ["a"]
+
+
+# --- for real ---------------------------------------------------------------------------------------------
+
+FLEET = [f"arm-{i:03d}" for i in range(1, 31)]
+
+
+@pytest.mark.slow
+def test_a_sharded_agent_mirrors_a_listed_fleet_through_the_quota(rig: LocalRig) -> None:
+    with QuotaProxy("127.0.0.1", rig.broker.port, budget=100) as proxy:
+        agent = rig.start_sharded_agent(
+            {
+                "broker.url": proxy.url,
+                "broker.per_connection_limit": 100,
+                "telemetry.devices": FLEET,
+                "telemetry.units": "ticks",
+                "telemetry.max_devices": 100,
+            },
+            workers=3,
+        )
+        report = rig.start_edge(FLEET, seconds=4.0, rate_hz=10.0).join(30)
+        wait_for(
+            lambda: sum(d.counters.applied for d in agent.state().devices.values()) >= report.published,
+            20,
+            "every message applied",
+        )
+        state = agent.state()
+        assert proxy.totals()["dropped"] == 0
+        with urllib.request.urlopen(agent.http_url + "/healthz", timeout=5) as resp:
+            assert json.loads(resp.read())["status"] == "ok"
+    # Every device on its worker (dealt out in list order), every message applied once, nothing lost.
+    assert [w.devices for w in state.agent.workers] == [10, 10, 10]
+    assert all(w.alive and w.pid not in (0, os.getpid()) for w in state.agent.workers)
+    for device in FLEET:
+        counters = state.devices[device].counters
+        assert counters.applied == report.per_device[device], device
+        assert counters.ignored_stale == counters.overwritten == 0
+    assert state.agent.loss.lost == 0 and state.agent.loss.received == report.published
+    assert state.agent.latency.internal_s.count == report.published
+    assert len(state.agent.broker.connections) == 4  # the pool is the receiving process's, as before
+    metrics = get_metrics(agent.http_url)
+    assert metric(metrics, "twin_messages_applied_total", device="arm-030") == report.per_device["arm-030"]
+    assert [metric(metrics, "twin_worker_devices", worker=str(i)) for i in range(3)] == [10.0] * 3
+
+
+FAULTS = (ServoFault("heat", "wrist_roll", 0.5, 4.0),)  # above 60 C from about 1.3 s to 3.7 s
+
+
+@pytest.mark.slow
+def test_a_sharded_wildcard_fleet_keeps_history_and_routes_acknowledgements(
+    rig: LocalRig, tmp_path: Path
+) -> None:
+    devices = FLEET[:6]
+    plan = WorkerPlan(2)
+    assert {plan.worker_of(d) for d in devices} == {0, 1}  # both workers get arms (and alarms)
+    history = tmp_path / "history"
+    agent = rig.start_sharded_agent(
+        {"telemetry.units": "ticks", "history.uri": str(history), "history.commit_every_s": 1.0}, workers=2
+    )
+    edge = rig.start_edge(devices, rate_hz=10.0, servo_faults=FAULTS, seconds=8.0)
+    url = agent.http_url
+
+    def raised() -> set[str] | None:
+        seen = {a.device for a in alarms(url).alarms if a.kind == "over_temperature"}
+        return seen if seen == set(devices) else None
+
+    wait_for(raised, 30, "an over-temperature alarm on every arm", interval=0.2)
+    # Each acknowledgement goes to the worker that owns the arm; twice is a conflict, an unknown id 404.
+    for device in devices:
+        status, body = post(f"{url}/alarms/{device}/wrist_roll/over_temperature/ack")
+        assert status == 200 and body["alarms"][0]["state"] == "ACKNOWLEDGED", body
+    status, body = post(f"{url}/alarms/{devices[0]}/wrist_roll/over_temperature/ack")
+    assert status == 409 and body["error"] == "nothing_to_acknowledge"
+    status, _ = post(f"{url}/alarms/arm-999/wrist_roll/over_temperature/ack")
+    assert status == 404
+    report = edge.join(30)
+    wait_for(
+        lambda: sum(d.counters.decoded for d in agent.state().devices.values()) >= report.published,
+        20,
+        "every message decoded",
+    )
+    agent.stop()  # both workers commit what they hold
+    import polars as pl
+
+    rows = pl.read_delta(str(history / "telemetry")).group_by("device_id").len()
+    assert dict(rows.iter_rows()) == report.per_device
+
+
+@pytest.mark.slow
+def test_a_dead_worker_is_started_again(rig: LocalRig) -> None:
+    devices = FLEET[:4]
+    agent = rig.start_sharded_agent({"telemetry.devices": devices, "telemetry.units": "ticks"}, workers=2)
+    edge = rig.start_edge(devices, rate_hz=10.0, seconds=None)
+    wait_for(
+        lambda: (
+            len(agent.state().devices) == 4
+            and all(d.counters.applied for d in agent.state().devices.values())
+        ),
+        10,
+        "all arms mirrored",
+    )
+    victim = agent.state().agent.workers[1]
+    os.kill(victim.pid, signal.SIGKILL)
+
+    def back() -> Any:
+        state = agent.state()
+        worker = state.agent.workers[1]
+        return state if worker.alive and worker.restarts == 1 and worker.pid != victim.pid else None
+
+    wait_for(back, 20, "worker 1 to be started again")
+    # Its arms are mirrored again from their next message; what arrived while it was down is counted.
+    wait_for(
+        lambda: all(agent.state().devices[d].counters.applied > 5 for d in devices),
+        10,
+        "its arms mirrored again",
+    )
+    edge.stop()
+    state = agent.state()
+    lost_by_receiver = state.agent.workers[1].dropped
+    assert lost_by_receiver > 0
+    assert (
+        sum(state.devices[d].counters.overwritten for d in WorkerPlan(2, devices).devices_of(1))
+        == lost_by_receiver
+    )
+    assert state.agent.workers[0].restarts == 0
+
+
+@pytest.mark.slow
+def test_twin_run_with_workers_stops_them_all_on_sigterm(rig: LocalRig) -> None:
+    with rig.agent_process(devices="*", extra_args=("--workers", "2", "--units", "ticks")) as (proc, base):
+
+        def up() -> AgentState | None:
+            try:
+                with urllib.request.urlopen(base + "/state", timeout=2) as resp:
+                    state = AgentState.from_json(resp.read())
+            except OSError:
+                return None
+            return state if state.agent.broker.subscribes and len(state.agent.workers) == 2 else None
+
+        state = wait_for(up, 60, "the agent and its 2 workers", interval=0.2)
+        pids = [w.pid for w in state.agent.workers]
+        children = {p.pid for p in psutil.Process(proc.pid).children(recursive=True)}
+        assert set(pids) <= children
+        report = rig.start_edge(["arm-001", "arm-002", "arm-003"], seconds=2.0).join(20)
+
+        def mirrored() -> bool:
+            with urllib.request.urlopen(base + "/state", timeout=2) as resp:
+                done = AgentState.from_json(resp.read())
+            return sum(d.counters.applied for d in done.devices.values()) == report.published
+
+        wait_for(mirrored, 15, "every message applied")
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(30) == 0
+    # No worker outlives the agent: systemd's stop leaves nothing behind.
+    time.sleep(0.5)
+    assert not [
+        p for p in pids if psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE
+    ]
+    log_lines = [
+        json.loads(line) for line in rig.workdir.glob("agent-*.log").__next__().read_text().splitlines()
+    ]
+    workers_seen = {line.get("worker") for line in log_lines if line.get("msg") == "agent stopped"}
+    assert workers_seen == {0, 1, None}  # each worker, then the receiving process
