@@ -201,6 +201,12 @@ def worker_main(index: int, config: AgentConfig, data: Connection, control: Conn
         sinks = configured_sinks(config)
         service = AgentService(config, sinks=sinks, inbox=data)
         service.start()
+    except ConfigError as exc:
+        # A setting the worker cannot work with (the ros2 extra missing, say): the receiving process exits
+        # as for any configuration error, with this message.
+        close_sinks(sinks)
+        control.send(("config", str(exc)))
+        return
     except Exception as exc:
         close_sinks(sinks)
         log.exception("worker %d could not start", index)
@@ -475,6 +481,8 @@ class ShardedAgent:
                 f"worker {worker.index} exited while starting (exit code {worker.process.exitcode}); "
                 "its log lines above say why"
             ) from None
+        if kind == "config":
+            raise ConfigError(str(value))
         if kind != "ready":
             raise WorkerError(f"worker {worker.index} could not start: {value}")
         worker.pid = int(value)

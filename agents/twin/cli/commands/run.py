@@ -162,6 +162,9 @@ def serve(config: AgentConfig, on_started: Callable[[Any], None] | None = None) 
     with stop_on_signals(lambda signum: received.append(signal.Signals(signum).name)) as stop:
         try:
             service.start()
+        except ConfigError as exc:  # found by a worker process as it started (a sink's extra missing)
+            service.stop()
+            return _config_error(str(exc))
         except (OSError, ValueError, RuntimeError) as exc:  # RuntimeError: a worker could not start
             service.stop()  # closes the sinks too
             return _cannot_start(exc)
