@@ -3,10 +3,11 @@
 The figures run in a child process with MUJOCO_GL=egl (MuJoCo binds its GL backend when it is first imported,
 and a benchmark run may already have imported it), one renderer for all frames as `twin.output.render` uses.
 Per frame: wall time (what a caller waits) and the process's CPU time (every llvmpipe thread; steadier than
-wall time on a busy machine). The frames are drawn as the pictures are (`offscreen_renderer`: no shadow, no
-floor reflection); `scene_costs` times the framed view again with the shadow, the reflection and both (as
-`twin view` draws), so what each pass costs is measured, not remembered. The 1-minute load average before and
-after travels with the figures: on a shared machine they are only comparable at similar load.
+wall time on a busy machine). The frames are drawn as the pictures are (`offscreen_renderer`: the key light's
+shadow, no floor reflection); `scene_costs` times the framed view again with each combination of the two
+passes (neither, the shadow only as the pictures, the reflection only, both as `twin view` draws), so what
+each pass costs is measured, not remembered. The 1-minute load average before and after travels with the
+figures: on a shared machine they are only comparable at similar load.
 
     python -m twin.tools.bench.render [--frames 40] [--width 640] [--height 480] [--model MJCF]
 """
@@ -106,22 +107,25 @@ def measure(
     if "overview" in robot.camera_names:
         views["overview"] = "overview"
     shadow, reflection = mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION
-    extra_passes = {
-        "with_shadow": {shadow: True},
-        "with_reflection": {reflection: True},
-        "with_shadow_and_reflection": {shadow: True, reflection: True},
+    # Absolute settings of the two passes, whatever the pictures' own flags are.
+    pass_sets = {
+        "neither": {shadow: False, reflection: False},
+        "shadow_only": {shadow: True, reflection: False},
+        "reflection_only": {shadow: False, reflection: True},
+        "shadow_and_reflection": {shadow: True, reflection: True},
     }
     per_view: dict[str, Any] = {}
     scene_costs: dict[str, Any] = {}
     with offscreen_renderer(m, width, height) as renderer:
         gl = _gl_renderer()
         drawn_flags = {
-            mujoco.mjtRndFlag(flag).name: bool(renderer.scene.flags[flag]) for flag in OFFSCREEN_SCENE_FLAGS
+            mujoco.mjtRndFlag(flag).name: bool(renderer.scene.flags[flag])
+            for flag in {shadow, reflection, *OFFSCREEN_SCENE_FLAGS}
         }
         for label, view in views.items():
             per_view[label] = _time_frames(renderer, robot, data, poses, view=view, aspect=width / height)
         offscreen_flags = renderer.scene.flags.copy()
-        for label, flags in extra_passes.items():
+        for label, flags in pass_sets.items():
             renderer.scene.flags[:] = offscreen_flags
             for flag, enabled in flags.items():
                 renderer.scene.flags[flag] = enabled
@@ -149,7 +153,7 @@ def measure(
         "msaa_samples": int(m.vis.quality.offsamples),
         "shadow_size": int(m.vis.quality.shadowsize),
         "frame": per_view,
-        # The framed view again with the passes the pictures leave out, one at a time and both.
+        # The framed view again with each combination of the shadow and reflection passes.
         "scene_costs": scene_costs,
         "target_frame_ms": 150.0,
         # What `twin demo` spends on pictures: its PNG (640x480, renderer made per call) and 30-frame GIF.
