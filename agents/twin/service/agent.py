@@ -61,8 +61,6 @@ from twin.core.telemetry import (
 from twin.core.topics import device_from_topic
 from twin.core.twin import DeviceTwin, TwinMode, TwinSnapshot
 from twin.output.emf import EmfFileWriter, EmfPublisher, FleetTotals
-from twin.output.recorder import SessionRecorder
-from twin.output.recording import RecordingSink
 from twin.output.sinks import AppliedSample, RejectedSample, TwinSink
 
 # This module is the heavy end of the agent (MuJoCo, awscrt, USD); `twin run` imports it only when it runs.
@@ -77,7 +75,6 @@ from twin.service.state import (
     AlarmInfo,
     AlarmsSummary,
     BrokerState,
-    ConnectionState,
     DeviceState,
     FleetLatency,
     FleetLoss,
@@ -91,13 +88,17 @@ from twin.service.state import (
 from twin.service.state import (
     DeviceLoss as DeviceLossState,
 )
+from twin.service.summary import broker_state, fleet_totals
 from twin.transport.mailbox import InboundQueue
 from twin.transport.plan import PoolSettings, default_limit
 from twin.transport.pool import ConnectionPool
 
 if TYPE_CHECKING:
-    # pyarrow and deltalake (~70 MB resident) load only when history is on.
+    # pyarrow and deltalake (~70 MB resident) load only when history is on, usd-core (~80 MB) only when
+    # recording: every worker process of a sharded agent pays for what it imports.
     from twin.output.history import HistorySettings, HistorySink
+    from twin.output.recorder import SessionRecorder
+    from twin.output.recording import RecordingSink
 
 log = logging.getLogger(__name__)
 
@@ -363,23 +364,7 @@ class AgentService:
             return
         self._started_mono = self._clock()
         self._started_wall = self._wall_clock()
-        if self.config.twin.record_dir:
-            self._recording = RecordingSink(
-                self._open_recorder(Path(self.config.twin.record_dir)), self.robot
-            )
-        if self._history_settings is not None:
-            from twin.output.history import HistorySink  # noqa: PLC0415 - heavy; only with history on
-
-            try:
-                self._history = HistorySink(self._history_settings)
-            except ValueError as exc:
-                self._close_sinks(timeout=5.0)
-                raise OSError(f"history: {exc}") from exc
-        self._sinks = (
-            *((self._recording,) if self._recording else ()),
-            *((self._history,) if self._history else ()),
-            *self._extra_sinks,
-        )
+        self._open_sinks()
         if not self.embedded:
             try:
                 self._http = AgentHttpServer(
@@ -420,7 +405,32 @@ class AgentService:
             },
         )
 
+    def _open_sinks(self) -> None:
+        """The service's own sinks (USD recording, history) before the extra ones; OSError when history cannot
+        open its table."""
+        if self.config.twin.record_dir:
+            from twin.output.recording import RecordingSink  # noqa: PLC0415 - usd-core only when recording
+
+            self._recording = RecordingSink(
+                self._open_recorder(Path(self.config.twin.record_dir)), self.robot
+            )
+        if self._history_settings is not None:
+            from twin.output.history import HistorySink  # noqa: PLC0415 - heavy; only with history on
+
+            try:
+                self._history = HistorySink(self._history_settings)
+            except ValueError as exc:
+                self._close_sinks(timeout=5.0)
+                raise OSError(f"history: {exc}") from exc
+        self._sinks = (
+            *((self._recording,) if self._recording else ()),
+            *((self._history,) if self._history else ()),
+            *self._extra_sinks,
+        )
+
     def _open_recorder(self, directory: Path) -> SessionRecorder:
+        from twin.output.recorder import SessionRecorder  # noqa: PLC0415 - usd-core only when recording
+
         stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(self._wall_clock()))
         path = directory / f"session-{stamp}-{os.getpid()}.{self.config.twin.record_format}"
         return SessionRecorder(path, flush_interval_s=self.config.twin.record_flush_s)
@@ -1041,75 +1051,6 @@ class AgentService:
         with self._lock:
             health = self._fleet.get(device)
             return health.status() if health is not None else None
-
-
-def fleet_totals(state: AgentState, expected_rate_hz: float) -> FleetTotals:
-    """The CloudWatch metrics' running totals and gauges, from one state document (docs/servo-health.md)."""
-    statuses = [d.status for d in state.devices.values()]
-    live = [d for d in state.devices.values() if d.status is not DeviceStatus.OFFLINE]
-    # Per arm, the share of the expected rate that did not arrive, averaged over arms that are not OFFLINE
-    # (an OFFLINE arm is counted as such, not as 100 % loss).
-    loss = (
-        100.0 * sum(max(0.0, 1.0 - d.rate_hz / expected_rate_hz) for d in live) / len(live) if live else 0.0
-    )
-    p99s = [d.internal_latency_s.p99 for d in state.devices.values() if d.internal_latency_s.p99]
-    return FleetTotals(
-        decoded=sum(d.counters.decoded for d in state.devices.values()),
-        rejected=sum(d.counters.rejected_total for d in state.devices.values())
-        + sum(state.untracked_rejected.values()),
-        devices_online=statuses.count(DeviceStatus.ONLINE),
-        devices_stale=statuses.count(DeviceStatus.STALE),
-        devices_offline=statuses.count(DeviceStatus.OFFLINE),
-        loss_percent=loss,
-        internal_latency_p99_ms=max(p99s) * 1000.0 if p99s else None,
-        active_alarms=state.agent.alarms.present,
-    )
-
-
-_SEVERITY_RANK = {str(s): s.rank for s in Severity}
-_STATE_ORDER = {str(AlarmState.ACTIVE): 0, str(AlarmState.LATCHED): 1, str(AlarmState.ACKNOWLEDGED): 2}
-
-
-def alarm_order(info: AlarmInfo) -> tuple[int, int, str]:
-    """Worst first: critical before warning, then ACTIVE, LATCHED, ACKNOWLEDGED, NORMAL, then by id (the
-    order ServoAlarms.views gives)."""
-    return (-_SEVERITY_RANK.get(info.severity, 0), _STATE_ORDER.get(info.state, 3), info.alarm_id)
-
-
-def broker_state(url: str, settings: PoolSettings, pool: ConnectionPool, started: bool) -> BrokerState:
-    """The broker side of /state: the pool's connections, summed and one by one."""
-    limit = settings.limit
-    if not started:
-        return BrokerState(url=url, per_connection_limit=limit)
-    infos = pool.connections()
-    stats = [c.stats for c in pool.subscribers()]
-    return BrokerState(
-        url=url,
-        client_id=infos[0].client_id if infos else None,
-        connected=pool.connected,
-        connection_successes=sum(st.connection_successes for st in stats),
-        connection_failures=sum(st.connection_failures for st in stats),
-        disconnections=sum(st.disconnects for st in stats),
-        subscribes=sum(st.subscribes_acked for st in stats),
-        messages=pool.messages,
-        last_error=next((st.last_error for st in stats if st.last_error), ""),
-        per_connection_limit=limit,
-        rate_hz=pool.rate_hz,
-        connections=tuple(
-            ConnectionState(
-                index=c.index,
-                client_id=c.client_id,
-                state=c.state,
-                filters=len(c.filters),
-                rate_hz=c.rate_hz,
-                messages=c.messages,
-                connection_successes=c.connection_successes,
-                disconnections=c.disconnections,
-                last_error=c.last_error,
-            )
-            for c in infos
-        ),
-    )
 
 
 def _alarm_info(view: AlarmView, now_mono: float, now_wall: float) -> AlarmInfo:

@@ -66,6 +66,7 @@ from twin.service.state import (
     WorkerInfo,
     WorkerState,
 )
+from twin.service.summary import alarm_order, broker_state, fleet_totals
 from twin.transport.mailbox import InboundQueue
 from twin.transport.plan import PoolSettings, default_limit
 from twin.transport.pool import ConnectionPool
@@ -673,8 +674,6 @@ class ShardedAgent:
 
     def _info(self, now: float) -> AgentInfo:
         started = self._started_mono
-        from twin.service.agent import broker_state  # noqa: PLC0415 - shares the pool's reading
-
         return AgentInfo(
             running=self.running,
             pid=os.getpid(),
@@ -743,8 +742,6 @@ class ShardedAgent:
 
     def alarms(self, *, include_normal: bool = False) -> tuple[AlarmInfo, ...]:
         """Every worker's alarms, worst first (the order AgentService.alarms uses)."""
-        from twin.service.agent import alarm_order  # noqa: PLC0415
-
         merged = [info for _, infos in self._ask_all("alarms", include_normal) for info in infos]
         return tuple(sorted(merged, key=alarm_order))
 
@@ -759,8 +756,6 @@ class ShardedAgent:
         return self._ask(self._workers[index], "ack", alarm_id)
 
     def _fleet_totals(self) -> FleetTotals:
-        from twin.service.agent import fleet_totals  # noqa: PLC0415
-
         return fleet_totals(self.state(), self.config.health.expected_rate_hz)
 
 
