@@ -118,7 +118,13 @@ class SampleWindow:
         self._samples: deque[tuple[float, float]] = deque(maxlen=max_samples)
 
     def add(self, now: float, value: float) -> None:
-        self._samples.append((now, value))
+        samples = self._samples
+        samples.append((now, value))
+        # Trimmed here as well as when read: nobody may read /state for hours, and a window that only ever
+        # reached its maxlen held 4,096 samples of every device instead of the window's worth.
+        horizon = now - self._window
+        while samples[0][0] <= horizon:
+            samples.popleft()
 
     def values(self, now: float) -> list[float]:
         horizon = now - self._window
@@ -148,10 +154,15 @@ class RateMeter:
         if self._first is None:
             self._first = now
         start = now - (now % self._bucket)
-        if self._buckets and self._buckets[-1][0] == start:
-            self._buckets[-1][1] += n
-        else:
-            self._buckets.append([start, float(n)])
+        buckets = self._buckets
+        if buckets and buckets[-1][0] == start:
+            buckets[-1][1] += n
+            return
+        buckets.append([start, float(n)])
+        # Trimmed as buckets open, not only when read: unread for hours, a device kept ten buckets a second.
+        horizon = now - self._window
+        while buckets[0][0] + self._bucket <= horizon:
+            buckets.popleft()
 
     def rate(self, now: float) -> float:
         horizon = now - self._window
