@@ -122,6 +122,26 @@ def test_a_changed_rate_is_followed() -> None:
     assert dropped - 1 <= loss.lost <= dropped
 
 
+@pytest.mark.parametrize("seed", range(5))
+@pytest.mark.parametrize(("before", "after"), [(100, 200), (200, 100)], ids=["slowed down", "sped up"])
+def test_a_changed_rate_is_recounted_from_the_change_on(before: int, after: int, seed: int) -> None:
+    # Whenever the change falls between two estimates (the estimators of a fleet do not run in step), the
+    # gaps since the change are recounted with the new period, and none from before it. After a speed-up
+    # every old gap is also a whole number of new periods, which must not be counted as loss.
+    rng = random.Random(seed)
+    ts, timestamps, dropped = T0, [], 0
+    for k in range(1000):
+        ts += before if k < 500 else after
+        if rng.random() < 0.1 and 10 < k < 990:
+            dropped += 1
+            continue
+        timestamps.append(ts)
+    loss = feed(timestamps)
+    assert loss.period_s == pytest.approx(after / 1000, rel=0.01)
+    # A gap of one old period just after a speed-up is also one lost new sample: it may go uncounted.
+    assert dropped - 2 <= loss.lost <= dropped, (loss.lost, dropped)
+
+
 def test_a_loss_locked_in_phase_needs_the_nominal_rate() -> None:
     # Every tenth sample passes, always: by the gaps alone a 1 Hz device.
     every_tenth = [T0 + k * PERIOD_MS for k in range(0, 2000, 10)]

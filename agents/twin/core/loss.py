@@ -29,6 +29,7 @@ not thread-safe by itself; the agent updates it from one thread and reads it und
 
 from __future__ import annotations
 
+import itertools
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
@@ -56,6 +57,8 @@ MIN_PERIOD_MS = 10.0
 # moves are averaged in with this weight.
 PERIOD_CHANGE = 0.25
 PERIOD_SMOOTHING = 0.2
+# After a speed-up, this many gaps in a row that fit the old period mark the time before the change.
+CHANGE_RUN = 8
 # This many messages in a row further back than reorder_s mean the edge clock jumped back; fewer are late
 # deliveries (a shared subscription spreads one device over several connections, which reorders).
 CLOCK_RESET_MESSAGES = 5
@@ -66,6 +69,11 @@ WINDOW_BUCKET_S = 1.0
 # "losing": over the recent window at least this many samples and this share of the expected were lost.
 LOSING_MIN_LOST = 2
 LOSING_RATIO = 0.01
+
+
+# Spreads the settled re-estimates of many devices over the GAP_HISTORY messages between two (a prime step,
+# so consecutive devices land far apart).
+_STAGGER = itertools.count(0, 37)
 
 
 def _fits(gap: float, period: float) -> bool:
@@ -104,15 +112,34 @@ def _fitted(gaps: Sequence[float], candidate: float) -> float | None:
     return period if _share_fitting(gaps, period) >= FIT_SHARE else None
 
 
-def estimate_period_ms(gaps: Sequence[float], nominal_ms: float | None = None) -> float | None:
+def _still_fits(gaps: Sequence[float], period: float) -> bool:
+    """True when `period` still explains the gaps: FIT_SHARE of them fit it, and most are exactly one period
+    (so it is not a divisor of the true period, as after the edge slowed down)."""
+    tolerance = FIT_TOLERANCE * period
+    fitting = single = 0
+    for g in gaps:
+        m = round(g / period)
+        if m >= 1 and abs(g - m * period) <= tolerance:
+            fitting += 1
+            single += m == 1
+    return fitting >= FIT_SHARE * len(gaps) and single * 2 > len(gaps)
+
+
+def estimate_period_ms(
+    gaps: Sequence[float], nominal_ms: float | None = None, previous_ms: float | None = None
+) -> float | None:
     """The sampling period (ms) the positive `gaps` are whole multiples of, or None when none fits.
 
     Candidates are a base gap divided by 1, 2, 3, ...; the largest that FIT_SHARE of the gaps fit, refined by
     least squares (sum of gaps / sum of multiples, which recovers a period off the whole milliseconds), wins.
+    A `previous_ms` estimate that still explains the gaps is only refined: a fleet that started together
+    re-estimates together, and the full search costs several times as much.
     """
     gaps = [g for g in gaps if g > 0]
     if not gaps:
         return None
+    if previous_ms is not None and _still_fits(gaps, previous_ms):
+        return _refined(gaps, previous_ms)
     ordered = sorted(gaps)
     low = ordered[int(BASE_QUANTILE * (len(ordered) - 1))]
     near = [g for g in ordered if g <= 1.5 * low]
@@ -153,7 +180,9 @@ class DeviceLoss:
         self._reorder_ms = reorder_s * 1000.0
         self._window_s = window_s
         self._clock = clock
-        self._gaps: deque[int] = deque(maxlen=GAP_HISTORY)
+        # The newest GAP_HISTORY gaps estimate the period; twice as many are kept so a rate change, which an
+        # estimate may take up to GAP_HISTORY more gaps to see, is recounted back to where it happened.
+        self._gaps: deque[int] = deque(maxlen=2 * GAP_HISTORY)
         self._new_gaps = 0
         self._period_ms: float | None = None
         # Until the period rests on a full history, the gaps seen so far are kept and recounted with each
@@ -244,7 +273,7 @@ class DeviceLoss:
         if early is not None:
             early.append(gap)
             self._early_missing += missing
-            if len(early) & (len(early) - 1) == 0 or len(self._gaps) == GAP_HISTORY:
+            if len(early) & (len(early) - 1) == 0 or len(early) == GAP_HISTORY:
                 self._reestimate()
             return
         self._missing += missing
@@ -253,7 +282,8 @@ class DeviceLoss:
 
     def _reestimate(self) -> None:
         self._new_gaps = 0
-        period = estimate_period_ms(self._gaps, self._nominal_ms)
+        recent = list(self._gaps)[-GAP_HISTORY:]
+        period = estimate_period_ms(recent, self._nominal_ms, self._period_ms)
         old = self._period_ms
         early = self._early
         if (
@@ -269,18 +299,46 @@ class DeviceLoss:
         if early is not None:
             p = self._period_ms
             self._early_missing = 0 if p is None else sum(max(0, round(g / p) - 1) for g in early)
-            if len(self._gaps) == GAP_HISTORY:
+            if len(early) == GAP_HISTORY:
                 # The estimate rests on a full history: settle the early gaps, count the rest as they come.
                 self._missing += self._early_missing
                 self._early_missing = 0
                 self._early = None
+                # Devices that started together would otherwise re-estimate in the same instant every
+                # GAP_HISTORY gaps; each starts its cycle part way through instead (never later: a rate change
+                # is recounted over the last GAP_HISTORY gaps only).
+                self._new_gaps = next(_STAGGER) % GAP_HISTORY
         elif period is not None and old is not None and abs(period - old) > PERIOD_CHANGE * old:
-            # The edge's rate changed: the newest gaps that fit the new period came after the change and
-            # were counted with the old one; count them again.
-            for gap in reversed(self._gaps):
-                if not _fits(gap, period):
-                    break
+            # The edge's rate changed: the gaps since the change were counted with the old period; count them
+            # again with the new one.
+            for gap in self._since_change(period, old):
                 self._missing += max(0, round(gap / period) - 1) - max(0, round(gap / old) - 1)
+
+    def _since_change(self, period: float, old: float) -> list[int]:
+        """The newest gaps from the rate change on. Walking back, a gap that does not fit the new period is
+        from before the change. After a speed-up every old gap fits the new period too (as a multiple), so
+        there the change is the earliest gap that does not fit the old period, before a run of CHANGE_RUN
+        that all do (a lost sample after the change can also make a gap the old period fits)."""
+        gaps = list(self._gaps)
+        if period >= old:
+            start = len(gaps)
+            while start and _fits(gaps[start - 1], period):
+                start -= 1
+            return gaps[start:]
+        start = len(gaps)
+        run = 0
+        for i in range(len(gaps) - 1, -1, -1):
+            gap = gaps[i]
+            if not _fits(gap, period):
+                break
+            if _fits(gap, old):
+                run += 1
+                if run >= CHANGE_RUN:
+                    break
+            else:
+                run = 0
+                start = i
+        return gaps[start:]
 
     # -- readings -------------------------------------------------------------------------------------------
 
