@@ -34,6 +34,7 @@ drive the service on a timeline of their own.
 
 from __future__ import annotations
 
+import gc
 import logging
 import os
 import pickle
@@ -114,6 +115,14 @@ CLOCK_RESET_MIN_MESSAGES = 5
 MAX_PHYSICS_STEP_S = 0.1
 # How often the worker wakes with nothing to do (kinematic mode): bounds the stop latency.
 IDLE_WAKE_S = 0.2
+# Python's cyclic garbage collector walks every tracked object in a full pass. At fleet scale most of them are
+# the arms' own state (twins, health windows, alarm records), alive for the whole run, and a full pass held
+# the worker for 60 ms at 1,000 arms (docs/performance.md). So this often the worker collects the young
+# generations (their cyclic garbage, which must not be frozen) and freezes what is left (`gc.freeze`): later
+# passes walk only what was allocated since. What is frozen is still freed by reference counting. New arms
+# bring new state, so a batch that admitted some is followed by a freeze sooner (FREEZE_AFTER_NEW_S).
+FREEZE_EVERY_S = 10.0
+FREEZE_AFTER_NEW_S = 1.0
 # When the oldest message of a batch has waited longer than this, the worker is behind: it still decodes and
 # counts every message, but applies only each arm's newest valid one, so the twin shows the present instead
 # of replaying a backlog seconds old (docs/agent.md, "Catching up").
@@ -516,7 +525,8 @@ class AgentService:
     def _work(self) -> None:
         physics = self.mode is TwinMode.PHYSICS
         wake = 1.0 / self.config.twin.physics_rate_hz if physics else IDLE_WAKE_S
-        last_step = self._clock()
+        last_step = last_freeze = self._clock()
+        frozen_devices = 0
         while True:
             items = self._mailbox.take_all(wake)
             if not items and self._mailbox.closed:
@@ -537,6 +547,13 @@ class AgentService:
                 self._step_physics(min(now - last_step, MAX_PHYSICS_STEP_S), dirty)
                 last_step = now
             self._publish(dirty, [k for k, _ in items])
+            since = self._clock() - last_freeze
+            grown = len(self._devices) != frozen_devices
+            if since >= FREEZE_EVERY_S or (grown and since >= FREEZE_AFTER_NEW_S):
+                gc.collect(1)
+                gc.freeze()
+                last_freeze = self._clock()
+                frozen_devices = len(self._devices)
 
     def _step_physics(self, elapsed: float, dirty: set[str]) -> None:
         for device, tracked in self._devices.items():
@@ -756,7 +773,7 @@ class AgentService:
         device = telemetry.device_id
         twin = tracked.twin
         # Inverse dynamics only if a still joint's model check or a reader needs it (core.alarms._Torques).
-        torques = twin.torques_when_read()
+        torques = twin.holding_torques_when_read()
         with self._lock:
             self._diagnostics[device] = telemetry.diagnostics
             events = self._alarms.evaluate(

@@ -84,6 +84,13 @@ WORKER_PLAN_RATE = 1000.0
 MAX_QUEUED_PER_WORKER = 25_000
 # One pipe write carries at most this many messages: a backlog goes over in pieces the worker can start on.
 MAX_BATCH = 1000
+# Above this many messages a second for one worker, its sender pauses SEND_PAUSE_S after each hand-over
+# (unless it had a full batch), so messages arriving meanwhile go over together. Without the pause every
+# message woke the sender (a Condition notify costs more than routing the message) and crossed the pipe
+# alone: at 10,000 msg/s a worker the receiving process spent 26 us a message instead of 18. Below the rate
+# the wake-ups cost little and the pause would only add latency.
+PAUSE_ABOVE_RATE = 2000.0
+SEND_PAUSE_S = 0.002
 # How long a merged state is reused: /stream clients, /metrics and the CloudWatch thread read it often, and
 # each reading asks every worker.
 STATE_REUSE_S = 0.05
@@ -565,12 +572,21 @@ class ShardedAgent:
     def _send_loop(self, worker: _Worker) -> None:
         """Hand the worker its queue in batches; what cannot be handed over (it is down) is counted."""
         queue = worker.queue
+        window_start, window_count, pause = time.monotonic(), 0, False
         while True:
             items = queue.take_all(0.2)
             if not items:
                 if queue.closed:
                     break
                 continue
+            if pause and len(items) < MAX_BATCH:
+                time.sleep(SEND_PAUSE_S)
+                items += queue.take_all(0)
+            window_count += len(items)
+            now = time.monotonic()
+            if now - window_start >= 1.0:
+                pause = window_count / (now - window_start) > PAUSE_ABOVE_RATE
+                window_start, window_count = now, 0
             for start in range(0, len(items), MAX_BATCH):
                 chunk = items[start : start + MAX_BATCH]
                 conn = worker.data
