@@ -279,3 +279,22 @@ def test_snapshot_is_an_immutable_copy(robot: RobotModel) -> None:
     assert snap.timestamp_ms == 10
     with pytest.raises(AttributeError):
         snap.timestamp_ms = 11  # type: ignore[misc]
+
+
+def test_holding_torques_are_reused_only_for_a_pose_that_close(robot: RobotModel) -> None:
+    from twin.core.twin import HOLDING_POSE_RAD
+
+    pose = inside(robot, {"shoulder_pan": 0.3, "shoulder_lift": -0.8, "elbow_flex": 0.9, "wrist_flex": 0.2})
+    twin = DeviceTwin(robot, "arm-001")
+    twin.apply(pose, 1)
+    first = dict(twin.holding_torques_when_read()())
+    assert first == twin.joint_torques  # the pose's own inverse dynamics
+    # An encoder step or two away (every joint within HOLDING_POSE_RAD): the same torques, not recomputed.
+    near = {n: v + 0.8 * HOLDING_POSE_RAD for n, v in pose.items()}
+    twin.apply(near, 2)
+    assert dict(twin.holding_torques_when_read()()) == first
+    assert twin.joint_torques != first  # readers of the twin still get the exact pose's
+    # One joint further than that: computed afresh, for this pose.
+    far = {**near, "shoulder_lift": pose["shoulder_lift"] + 3 * HOLDING_POSE_RAD}
+    twin.apply(far, 3)
+    assert dict(twin.holding_torques_when_read()()) == twin.joint_torques != first
