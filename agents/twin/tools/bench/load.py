@@ -56,6 +56,9 @@ def publish(
     doc says why)."""
     rng = random.Random(seed)
     templates = {d: _templates(d, telemetry_topic(prefix, d), rng) for d in devices}
+    # Each arm moves on its own: a real fleet's arms are not in step, and a fleet that is turns every arm's
+    # still moments (the alarm engine's model check) into one burst.
+    phase = {d: rng.randrange(POSES) for d in devices}
     publisher = WirePublisher(url, new_client_id("bench-pub-"))
     publisher.connect()
     period = 1.0 / rate_hz
@@ -76,11 +79,11 @@ def publish(
             time.sleep(due - now)
         elif now - due > period:
             late_slots += 1
-        pose = (k // SLOTS_PER_PERIOD) % POSES
+        step = k // SLOTS_PER_PERIOD
         stamp = str(round(time.time() * 1000)).encode()
         packets = []
         for device in slots[k % SLOTS_PER_PERIOD]:
-            before, after = templates[device][pose]
+            before, after = templates[device][(step + phase[device]) % POSES]
             packets += (before, stamp, after)
         try:
             publisher.send(packets)
