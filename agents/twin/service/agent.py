@@ -89,9 +89,8 @@ from twin.service.state import (
 from twin.service.state import (
     DeviceLoss as DeviceLossState,
 )
-from twin.service.summary import broker_state, fleet_totals
+from twin.service.summary import broker_state, fleet_totals, pool_settings
 from twin.transport.mailbox import InboundQueue
-from twin.transport.plan import PoolSettings, default_limit
 from twin.transport.pool import ConnectionPool
 
 if TYPE_CHECKING:
@@ -279,13 +278,7 @@ class AgentService:
                 self.robot.require_actuators()
         except ModelError as exc:
             raise ConfigError(f"twin.model = {config.twin.model!r}: {exc}") from exc
-        self._pool_settings = PoolSettings(
-            prefix=t.topic_prefix,
-            devices=tuple(t.devices),
-            rate_hz=config.health.expected_rate_hz,
-            limit=default_limit(config.broker),
-            max_connections=config.broker.max_connections,
-        )
+        self._pool_settings = pool_settings(config)
         self._pool = ConnectionPool(self.broker_config, self._pool_settings, self._on_message, clock=clock)
         self.topic_filters = self._pool.topic_filters
 

@@ -66,9 +66,8 @@ from twin.service.state import (
     WorkerInfo,
     WorkerState,
 )
-from twin.service.summary import alarm_order, broker_state, fleet_totals
+from twin.service.summary import alarm_order, broker_state, fleet_totals, pool_settings
 from twin.transport.mailbox import InboundQueue
-from twin.transport.plan import PoolSettings, default_limit
 from twin.transport.pool import ConnectionPool
 
 log = logging.getLogger(__name__)
@@ -308,13 +307,7 @@ class ShardedAgent:
         t = config.telemetry
         self.plan = WorkerPlan(workers, () if t.all_devices else t.devices)
         self._workers = [_Worker(i) for i in range(workers)]
-        self._pool_settings = PoolSettings(
-            prefix=t.topic_prefix,
-            devices=tuple(t.devices),
-            rate_hz=config.health.expected_rate_hz,
-            limit=default_limit(config.broker),
-            max_connections=config.broker.max_connections,
-        )
+        self._pool_settings = pool_settings(config)
         self._pool = ConnectionPool(config.broker, self._pool_settings, self._on_message, clock=clock)
         self.topic_filters = self._pool.topic_filters
         self._prefix = t.topic_prefix

@@ -1,5 +1,6 @@
-"""What the agent reports the same way in one process (service.agent) and in several (service.shards): the
-broker side of /state, the order of /alarms, and the CloudWatch metrics' totals.
+"""What the agent does the same way in one process (service.agent) and in several (service.shards): the
+connection pool's plan from the config, the broker side of /state, the order of /alarms, and the CloudWatch
+metrics' totals.
 
 Light on purpose: the receiving process of a sharded agent imports it, and must not load MuJoCo or usd-core.
 """
@@ -9,8 +10,9 @@ from __future__ import annotations
 from twin.core.alarms import AlarmState, Severity
 from twin.core.health import DeviceStatus
 from twin.output.emf import FleetTotals
+from twin.service.config import AgentConfig
 from twin.service.state import AgentState, AlarmInfo, BrokerState, ConnectionState
-from twin.transport.plan import PoolSettings
+from twin.transport.plan import PoolSettings, default_limit
 from twin.transport.pool import ConnectionPool
 
 
@@ -80,4 +82,16 @@ def broker_state(url: str, settings: PoolSettings, pool: ConnectionPool, started
             )
             for c in infos
         ),
+    )
+
+
+def pool_settings(config: AgentConfig) -> PoolSettings:
+    """The connection pool's settings from the agent's config (the broker's budget, the fleet to plan for)."""
+    t = config.telemetry
+    return PoolSettings(
+        prefix=t.topic_prefix,
+        devices=tuple(t.devices),
+        rate_hz=config.health.expected_rate_hz,
+        limit=default_limit(config.broker),
+        max_connections=config.broker.max_connections,
     )
