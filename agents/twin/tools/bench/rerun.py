@@ -1,8 +1,8 @@
 """What streaming to Rerun costs: the same fleet through the agent without and with the `[rerun]` sink.
 
 Two phases against one private broker, with the same offered load (default 100 arms at 10 Hz, the target's
-load), each with a fresh `twin run` child process:
-1. off: the agent as deployed by default;
+load), each with a fresh `twin run --workers 1` child process (with [rerun] the agent is one process):
+1. off: the agent as deployed by default, but in one process;
 2. on: the agent with `[rerun]` writing a .rrd and serving the stream and the web viewer (no viewer
    connected; a slow or absent viewer is the gRPC server's to buffer, within its memory limit).
 The figures: the mirrored rate of both (messages applied to the twins per second) and what the second lost
@@ -37,7 +37,13 @@ def _rerun_config(rrd: Path) -> str:
 
 
 def _phase(rig: LocalRig, arms: int, rate: float, seconds: float, config_text: str) -> dict[str, Any]:
-    with running_agent(rig, max_devices=max(4096, arms), config_text=config_text) as (proc, base):
+    # One worker in both phases: [rerun] runs the agent as one process (one stream), and without it the
+    # agent would shard the fleet over one process per core, so the difference would be the shape of the
+    # agent, not the stream.
+    with running_agent(rig, max_devices=max(4096, arms), config_text=config_text, workers=1) as (
+        proc,
+        base,
+    ):
         wait_subscribed(base, proc)
         before = get_state(base)
         sampler = ProcessSampler(proc.pid).start()
