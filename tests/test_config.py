@@ -201,6 +201,7 @@ def test_flags_override_file(tmp_path: Path) -> None:
         ('[rerun]\nmemory_limit = "lots"\n', ["rerun.memory_limit", "'lots'", "512MiB"]),
         ("[rerun]\nmax_rate_hz = 0\n", ["rerun.max_rate_hz", "greater than 0"]),
         ("[rerun]\nburst_s = -1\n", ["rerun.burst_s", "-1.0", "greater than 0", "burst_s = 5.0"]),
+        ("[rerun]\nmesh_faces_far = 10\n", ["rerun.mesh_faces_far", "10", "at least 100"]),
         ("[rerun]\nserve = 1\n", ["rerun.serve", "true or false"]),
         ("[rerun]\nweb_port = 70000\n", ["rerun.web_port", "0..65535"]),
         ("[rerun]\nserve = true\ngrpc_port = 9000\nweb_port = 9000\n", ["rerun.grpc_port", "different"]),

@@ -184,6 +184,35 @@ def test_entity_paths(robot: RobotModel, tables) -> None:
     assert up is not None
 
 
+def test_arms_beyond_the_detailed_ones_get_the_far_meshes(robot: RobotModel, tmp_path: Path) -> None:
+    # One detailed arm by position (the first), the focus arm detailed wherever it stands, the rest far.
+    path = tmp_path / "far.rrd"
+    settings = RerunSettings(
+        save=str(path), mesh_detailed_arms=1, mesh_faces_far=5_000, focus_device="arm-003", flush_s=0.05
+    )
+    sink = RerunSink(robot, settings)
+    decoder = TelemetryDecoder(DecoderConfig(units=Units.DEGREES))
+    for device in ("arm-001", "arm-002", "arm-003"):
+        telemetry = decoder.decode(
+            json.dumps(payload("arm-001", 0) | {"device_id": device}), topic_device=device
+        )
+        sink.applied(
+            AppliedSample(device, time.time(), time.monotonic(), telemetry, dict(telemetry.angles_rad))
+        )
+    sink.close()
+    near, _ = fit_face_budget(visual_geoms(robot.model, robot.body_ids), settings.mesh_faces_per_arm)
+    far, _ = fit_face_budget(near, settings.mesh_faces_far)
+    assert sum(g.face_count for g in far) <= settings.mesh_faces_far < sum(g.face_count for g in near)
+    _, static = read_rrd(path)
+    for device, geoms in (("arm-001", near), ("arm-002", far), ("arm-003", near)):
+        for g in geoms:
+            entity = f"/arms/{device}/{g.body}/visual/{g.name}"
+            (positions,) = column(static, entity, "Mesh3D:vertex_positions")
+            np.testing.assert_allclose(np.array(positions), g.vertices, atol=1e-7)
+            (faces,) = column(static, entity, "Mesh3D:triangle_indices")
+            assert len(faces) == g.face_count, (device, g.name)
+
+
 def rows_of(table: pa.Table, entity: str, component: str) -> dict[int, object]:
     """edge_time (ms) -> the entity's value, over the rows that hold one (the reader may give several rows
     one time when different entities' chunks share it)."""
@@ -403,6 +432,8 @@ def test_a_host_stall_costs_a_normal_arm_nothing_and_a_flood_is_still_capped(
         (RerunSettings(grpc_port=70000), "outside 0..65535"),
         (RerunSettings(serve=True, grpc_port=9000, web_port=9000), "different ports"),
         (RerunSettings(mesh_faces_per_arm=10), "at least 100"),
+        (RerunSettings(mesh_faces_far=10), r"rerun.mesh_faces_far = 10 .* at least 100"),
+        (RerunSettings(mesh_detailed_arms=-1), "mesh_detailed_arms = -1 must be 0 or more"),
     ],
 )
 def test_bad_settings_name_the_key_and_the_fix(settings: RerunSettings, message: str) -> None:

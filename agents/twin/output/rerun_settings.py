@@ -46,8 +46,14 @@ class RerunSettings:
     # costing more CPU and file size, both mostly per batch (100 arms at 20 a second: each arm's samples
     # go every 5 s; up to 10 arms, every flush_s).
     max_batches_per_s: float = 20.0
-    # Visual meshes are thinned to this many triangles per arm (a fleet view holds one copy per arm).
+    # Visual meshes are thinned to this many triangles per arm (a fleet view holds one copy per arm) ...
     mesh_faces_per_arm: int = 50_000
+    # ... for the first mesh_detailed_arms arms (the grid's first row, which the layout looks at) and the
+    # focus arm; every other arm gets a copy thinned to mesh_faces_far (never more than the detailed one).
+    # Static meshes are logged, encoded, written and kept by the stream once per arm: at 100 detailed arms
+    # they were most of the .rrd and of the served stream's memory.
+    mesh_detailed_arms: int = 10
+    mesh_faces_far: int = 10_000
     # Arms in the fleet view stand on a grid this far apart, in order of first appearance.
     fleet_spacing_m: float = 0.6
     # The arm whose joints and servo plots the layout opens on ("" = the first arm seen).
@@ -90,6 +96,15 @@ class RerunSettings:
         if self.mesh_faces_per_arm < 100:
             raise RerunSettingsError(
                 f"rerun.mesh_faces_per_arm = {self.mesh_faces_per_arm} leaves no arm to see; use at least 100"
+            )
+        if self.mesh_faces_far < 100:
+            raise RerunSettingsError(
+                f"rerun.mesh_faces_far = {self.mesh_faces_far} leaves no arm to see; use at least 100"
+            )
+        if self.mesh_detailed_arms < 0:
+            raise RerunSettingsError(
+                f"rerun.mesh_detailed_arms = {self.mesh_detailed_arms} must be 0 or more "
+                "(0: only the focus arm is detailed)"
             )
         if self.max_pending < 1:
             raise RerunSettingsError(f"rerun.max_pending = {self.max_pending} must be at least 1")

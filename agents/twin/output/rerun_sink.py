@@ -46,7 +46,7 @@ from twin.output.rerun_settings import RerunSettings
 from twin.output.sinks import AppliedSample, QueuedSink, RejectedSample, SinkStats
 from twin.robot import so101
 from twin.robot.model import RobotModel
-from twin.robot.visuals import fit_face_budget, visual_geoms
+from twin.robot.visuals import VisualGeom, fit_face_budget, visual_geoms
 
 log = logging.getLogger(__name__)
 
@@ -201,10 +201,11 @@ class RerunWorker:
 
         self._arms: dict[str, _Arm] = {}
         self._focus: str | None = None
-        self._meshes: list[tuple[str, rr.Transform3D, rr.Mesh3D]] | None = None
+        # Triangles per arm of the detailed and the far copy (see _log_arm).
+        self.mesh_faces: dict[bool, int] = {}
         # Built now, on the caller's thread before any telemetry flows: thinning detailed meshes takes a
         # second or two of the GIL, which the mirror's worker must not wait for when the first arm appears.
-        self._visuals()
+        self._meshes = self._visuals()
         self._bodies = tuple(robot.body_ids)
         # Bodies welded to the world never move: their pose is logged once, not per sample.
         self._moving = tuple(b for b in self._bodies if int(robot.model.body_weldid[robot.body_ids[b]]) != 0)
@@ -215,7 +216,6 @@ class RerunWorker:
         self._rejects: dict[str | None, tuple[float, int]] = {}
         self.samples_logged = 0
         self.batches_sent = 0
-        self.mesh_faces_per_arm = 0
 
     # --- SinkWorker ---------------------------------------------------------------------------------------
 
@@ -314,32 +314,41 @@ class RerunWorker:
                     rr.Transform3D(translation=pos, quaternion=[*quat[1:], quat[0]]),
                     static=True,
                 )
-        for path, transform, mesh in self._visuals():
+        # The arms the layout opens on (the grid's first row and the focus arm) are drawn in detail; the
+        # rest, further from the camera, get the coarser copy: the static meshes are encoded, written and
+        # kept by the stream once per arm, so their size is most of what a large fleet costs to log.
+        settings = self.settings
+        focus = settings.focus_device
+        detailed = arm.index < settings.mesh_detailed_arms or (
+            arm.device == focus if focus else arm.index == 0
+        )
+        for path, transform, mesh in self._meshes[detailed]:
             rec.log(f"{arm.entity}/{path}", transform, mesh, static=True)
         rec.log(f"{arm.entity}/joints/angle_deg", _series_style(), static=True)
 
-    def _visuals(self) -> list[tuple[str, rr.Transform3D, rr.Mesh3D]]:
-        """(path under the arm, pose in the body, mesh) of each visual geom, built once for every arm: Rerun
-        archetypes are costly to build in Python, and every arm's meshes are the same."""
-        if self._meshes is None:
-            geoms = visual_geoms(self.robot.model, self.robot.body_ids)
-            geoms, _ = fit_face_budget(geoms, self.settings.mesh_faces_per_arm)
-            self.mesh_faces_per_arm = sum(g.face_count for g in geoms)
-            self._meshes = [
-                (
-                    f"{g.body}/visual/{rr.escape_entity_path_part(g.name)}",
-                    rr.Transform3D(translation=g.pos, quaternion=[*g.quat[1:], g.quat[0]]),
-                    rr.Mesh3D(
-                        vertex_positions=g.vertices,
-                        triangle_indices=g.faces,
-                        vertex_normals=g.normals,
-                        albedo_factor=[round(255 * min(max(c, 0.0), 1.0)) for c in g.rgba],
-                    ),
-                )
-                for g in geoms
-            ]
-            log.info("rerun sink: %d visual geoms, %d triangles per arm", len(geoms), self.mesh_faces_per_arm)
-        return self._meshes
+    def _visuals(self) -> dict[bool, list[tuple[str, rr.Transform3D, rr.Mesh3D]]]:
+        """(path under the arm, pose in the body, mesh) of each visual geom, detailed (True) and far (False),
+        each built once for every arm that uses it: Rerun archetypes are costly to build in Python."""
+        geoms = visual_geoms(self.robot.model, self.robot.body_ids)
+        near, _ = fit_face_budget(geoms, self.settings.mesh_faces_per_arm)
+        self.mesh_faces[True] = sum(g.face_count for g in near)
+        meshes = {True: _posed_meshes(near)}
+        if self.mesh_faces[True] <= self.settings.mesh_faces_far:
+            far = near  # already small enough: the far arms share the detailed copy
+            meshes[False] = meshes[True]
+        else:
+            # Thinned from the detailed copy, not from the model: the same clustering at a coarser cell, on
+            # a tenth of the official meshes' triangles.
+            far, _ = fit_face_budget(near, self.settings.mesh_faces_far)
+            meshes[False] = _posed_meshes(far)
+        self.mesh_faces[False] = sum(g.face_count for g in far)
+        log.info(
+            "rerun sink: %d visual geoms; %d triangles per detailed arm, %d per far arm",
+            len(near),
+            self.mesh_faces[True],
+            self.mesh_faces[False],
+        )
+        return meshes
 
     def _status(self, arm: _Arm, sample: AppliedSample) -> None:
         statuses = {j: d.status for j, d in sample.telemetry.diagnostics.items() if d.status is not None}
@@ -560,6 +569,22 @@ class RerunSink:
 def _series_style() -> rr.SeriesLines:
     # Built once: the same names and colours go on every arm's plots.
     return rr.SeriesLines(names=list(so101.JOINT_NAMES), colors=list(JOINT_COLOURS))
+
+
+def _posed_meshes(geoms: Sequence[VisualGeom]) -> list[tuple[str, rr.Transform3D, rr.Mesh3D]]:
+    return [
+        (
+            f"{g.body}/visual/{rr.escape_entity_path_part(g.name)}",
+            rr.Transform3D(translation=g.pos, quaternion=[*g.quat[1:], g.quat[0]]),
+            rr.Mesh3D(
+                vertex_positions=g.vertices,
+                triangle_indices=g.faces,
+                vertex_normals=g.normals,
+                albedo_factor=[round(255 * min(max(c, 0.0), 1.0)) for c in g.rgba],
+            ),
+        )
+        for g in geoms
+    ]
 
 
 def _servo_row(d: JointDiagnostics | None) -> tuple[float | None, ...]:
