@@ -421,6 +421,25 @@ def test_a_host_stall_costs_a_normal_arm_nothing_and_a_flood_is_still_capped(
     assert sink.stats().skipped == int(200 * flood_s) - flood
 
 
+def test_samples_reach_the_sink_thread_when_the_fleet_goes_quiet(robot: RobotModel, tmp_path: Path) -> None:
+    # Samples are handed to the sink's thread in groups; what a fleet leaves behind when it stops sending
+    # is taken by the thread when its queue idles (flush_s / 2), not held until the next message or close.
+    sink = RerunSink(robot, RerunSettings(save=str(tmp_path / "quiet.rrd"), flush_s=0.1))
+    decoder = TelemetryDecoder(DecoderConfig(units=Units.DEGREES))
+    for i in range(3):
+        telemetry = decoder.decode(json.dumps(payload("arm-001", i)), topic_device="arm-001")
+        sink.applied(
+            AppliedSample("arm-001", time.time(), time.monotonic(), telemetry, dict(telemetry.angles_rad))
+        )
+    assert sink.stats().pending + sink.stats().delivered == 3
+    deadline = time.monotonic() + 5.0
+    while sink.worker.batches_sent == 0 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    stats = sink.stats()
+    assert (stats.delivered, stats.pending, sink.worker.batches_sent) == (3, 0, 1)
+    sink.close()
+
+
 @pytest.mark.parametrize(
     ("settings", "message"),
     [

@@ -10,11 +10,12 @@ For each device it writes an entity tree under `arms/<device>/` (docs/web.md dra
     arms/<device>/events                   servo status and rejected messages, as text
 
 Everything temporal sits on the `edge_time` timeline (the edge's own timestamps). Forward kinematics runs in
-the sink's thread (`RobotModel.body_poses`). Cost is what decides the shape of the code: building a Rerun
+the sink's thread (`RobotModel.body_pose_array`). Cost is what decides the shape of the code: building a Rerun
 archetype in Python costs far more than the sample it carries, so samples are buffered per device and sent as
 Arrow columns, one record batch per device every `flush_s` (docs/web.md has the figures). The blocking part
-runs behind `QueuedSink`; a per-device rate cap in front of it bounds the stream, and Rerun's server memory
-limit bounds what the served stream keeps for late viewers. The mirror never waits on any of it.
+runs behind `QueuedSink`, which is handed samples HANDOFF_S at a time; a per-device rate cap in front of it
+bounds the stream, and Rerun's server memory limit bounds what the served stream keeps for late viewers. The
+mirror never waits on any of it.
 """
 
 from __future__ import annotations
@@ -24,13 +25,14 @@ import ctypes
 import functools
 import logging
 import math
+import operator
 import signal
 import socket
 import subprocess
 import threading
 import time
 import uuid
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from urllib.parse import quote
@@ -88,6 +90,11 @@ REJECT_TEXT_EVERY_S = 1.0
 MAX_REJECT_KEYS = 4096
 WEB_VIEWER_START_S = 15.0
 PLOT_WINDOW_S = 30.0
+# Applied samples are collected on the caller's side for this long and then handed to the sink's thread
+# together, so the thread wakes about 20 times a second instead of once per sample: each wake-up passes the
+# GIL between the mirror's threads and the sink's, which at 100 arms x 10 Hz cost more CPU than the samples'
+# own work (docs/web.md has the figures). It adds nothing visible to a stream sent every flush_s.
+HANDOFF_S = 0.05
 
 _V3 = pa.list_(pa.field("item", pa.float32(), nullable=False), 3)
 _Q4 = pa.list_(pa.field("item", pa.float32(), nullable=False), 4)
@@ -144,6 +151,7 @@ class _Arm:
     )
     first_pending: float = 0.0
     status: str = ""
+    status_key: tuple[int | None, ...] = ()
     servo_styled: set[str] = field(default_factory=set)
     schemas: dict[tuple[str, ...], pa.Schema] = field(default_factory=dict)
 
@@ -216,11 +224,13 @@ class RerunWorker:
         self._rejects: dict[str | None, tuple[float, int]] = {}
         self.samples_logged = 0
         self.batches_sent = 0
+        # Called on the sink's thread when its queue has been idle: RerunSink hands over what it collected.
+        self.before_idle: Callable[[], None] | None = None
 
     # --- SinkWorker ---------------------------------------------------------------------------------------
 
     def handle_applied(self, sample: AppliedSample) -> None:
-        arm = self._arm(sample.device_id)
+        arm = self._arms.get(sample.device_id) or self._arm(sample.device_id)
         now = time.monotonic()
         if arm.n == 0:
             arm.first_pending = now
@@ -231,7 +241,7 @@ class RerunWorker:
         arm.angles_rad[row] = [angles.get(j, math.nan) for j in so101.JOINT_NAMES]
         diagnostics = sample.telemetry.diagnostics
         # One (joints, quantities) block; a reading the edge did not send is None, which becomes NaN.
-        arm.servo[row] = [_servo_row(diagnostics.get(j)) for j in so101.JOINT_NAMES]
+        arm.servo[row] = [_servo_row(d) for d in map(diagnostics.get, so101.JOINT_NAMES)]
         self._status(arm, sample)
         if sample.alarm_events:
             self._alarms(arm, sample)
@@ -260,6 +270,8 @@ class RerunWorker:
         self._rec.log(entity, rr.TextLog(text, level=rr.TextLogLevel.WARN))
 
     def idle(self) -> None:
+        if self.before_idle is not None:
+            self.before_idle()
         self._sweep(time.monotonic())
 
     def close(self) -> None:
@@ -351,8 +363,13 @@ class RerunWorker:
         return meshes
 
     def _status(self, arm: _Arm, sample: AppliedSample) -> None:
-        statuses = {j: d.status for j, d in sample.telemetry.diagnostics.items() if d.status is not None}
-        text = status_text(statuses)
+        diagnostics = sample.telemetry.diagnostics
+        # Per sample, only a comparison: the registers almost never change between messages.
+        key = tuple(d.status for d in diagnostics.values())
+        if key == arm.status_key:
+            return
+        arm.status_key = key
+        text = status_text({j: d.status for j, d in diagnostics.items() if d.status is not None})
         if text == arm.status:
             return
         cleared = not text
@@ -402,15 +419,16 @@ class RerunWorker:
                     arm.servo_styled.add(name)
                     self._rec.log(f"{arm.entity}/servo/{name}", _series_style(), static=True)
         poses = arm.poses[:k][:, self._moving_idx, :]  # (k, moving bodies, 7)
-        # Every array handed to Rerun owns its memory: Arrow wraps numpy buffers without copying, Rerun
-        # encodes later on its own threads, and these buffers are refilled by the next samples.
+        # Body-major float32 copies, so each body's column is one contiguous slice. Every array handed to
+        # Rerun owns its memory: Arrow wraps numpy buffers without copying, Rerun encodes later on its own
+        # threads, and the arm's buffers are refilled by the next samples.
+        translations = np.ascontiguousarray(poses[:, :, :3].transpose(1, 0, 2), dtype=np.float32)
+        # MuJoCo quaternions are (w, x, y, z); Rerun's are (x, y, z, w).
+        quaternions = np.ascontiguousarray(poses[:, :, _XYZW].transpose(1, 0, 2), dtype=np.float32)
         arrays: list[pa.Array] = [pa.array(arm.times_ns[:k].copy(), type=_NS)]
         for b in range(len(self._moving)):
-            translation = np.array(poses[:, b, :3], dtype=np.float32).ravel()
-            # MuJoCo quaternions are (w, x, y, z); Rerun's are (x, y, z, w).
-            quaternion = np.array(poses[:, b, _XYZW], dtype=np.float32).ravel()
-            arrays.append(pa.FixedSizeListArray.from_arrays(pa.array(translation), type=_V3))
-            arrays.append(pa.FixedSizeListArray.from_arrays(pa.array(quaternion), type=_Q4))
+            arrays.append(pa.FixedSizeListArray.from_arrays(pa.array(translations[b].ravel()), type=_V3))
+            arrays.append(pa.FixedSizeListArray.from_arrays(pa.array(quaternions[b].ravel()), type=_Q4))
         arrays.append(_six_per_row(np.degrees(arm.angles_rad[:k]), None))
         for q, (_attr, name, _title) in enumerate(SERVO_SERIES):
             if name in servo_names:
@@ -500,7 +518,8 @@ class RerunWorker:
 
 
 class RerunSink:
-    """The Rerun sink the agent adds (a `TwinSink`): a per-device rate cap in front of a `QueuedSink`."""
+    """The Rerun sink the agent adds (a `TwinSink`): a per-device rate cap in front of a `QueuedSink`, fed
+    HANDOFF_S worth of samples at a time."""
 
     name = "rerun"
 
@@ -518,7 +537,12 @@ class RerunSink:
         self._burst = max(1.0, settings.max_rate_hz * settings.burst_s)
         self._buckets: dict[str, tuple[float, float]] = {}  # device -> (tokens, receive time)
         self._skipped = 0
+        # Applied samples not yet handed to the queue, and when the first of them came (monotonic).
+        self._staged: list[AppliedSample] = []
+        self._staged_at = 0.0
         self._lock = threading.Lock()
+        # When the fleet goes quiet, the sink's thread takes what is left here within flush_s / 2.
+        self.worker.before_idle = self._hand_off
 
     @property
     def viewer_url(self) -> str | None:
@@ -546,20 +570,40 @@ class RerunSink:
                 self._skipped += 1
             return
         self._buckets[sample.device_id] = (tokens - 1.0, t)
-        self._queue.applied(sample)
+        now = time.monotonic()
+        with self._lock:
+            if not self._staged:
+                self._staged_at = now
+            self._staged.append(sample)
+            if now - self._staged_at >= HANDOFF_S:
+                self._hand_off_locked()
 
     def rejected(self, sample: RejectedSample) -> None:
-        self._queue.rejected(sample)
+        with self._lock:
+            self._hand_off_locked()  # the sink's thread sees messages in the order they came
+            self._queue.rejected(sample)
 
     def stats(self) -> SinkStats:
         with self._lock:
-            skipped = self._skipped
-        return replace(self._queue.stats(), skipped=skipped)
+            skipped, staged = self._skipped, len(self._staged)
+        queued = self._queue.stats()
+        return replace(queued, skipped=skipped, pending=queued.pending + staged)
 
     def close(self, timeout: float = 10.0) -> None:
+        self._hand_off()
         self._queue.close(timeout)
         # If the queue's thread did not get to it, the web viewer is still ours to stop.
         self.worker.stop_web_viewer()
+
+    def _hand_off(self) -> None:
+        with self._lock:
+            self._hand_off_locked()
+
+    def _hand_off_locked(self) -> None:
+        # Under self._lock, so two hand-offs (the caller's and the idle thread's) cannot interleave.
+        staged, self._staged = self._staged, []
+        for sample in staged:
+            self._queue.applied(sample)
 
 
 # --- helpers -------------------------------------------------------------------------------------------
@@ -587,10 +631,11 @@ def _posed_meshes(geoms: Sequence[VisualGeom]) -> list[tuple[str, rr.Transform3D
     ]
 
 
+_SERVO_READINGS = operator.attrgetter(*(attr for attr, _name, _title in SERVO_SERIES))
+
+
 def _servo_row(d: JointDiagnostics | None) -> tuple[float | None, ...]:
-    if d is None:
-        return _NO_READINGS
-    return tuple(getattr(d, attr) for attr, _name, _title in SERVO_SERIES)
+    return _NO_READINGS if d is None else _SERVO_READINGS(d)
 
 
 def _six_per_row(values: np.ndarray, present: np.ndarray | None) -> pa.Array:
