@@ -31,8 +31,19 @@ def _first_pose_s(base: str, proc: subprocess.Popen[bytes], started: float, time
     raise RuntimeError(f"no mirrored pose within {timeout} s")
 
 
-def _rss_mb(pid: int) -> float:
-    return psutil.Process(pid).memory_info().rss / 2**20
+def _rss_mb(pid: int) -> list[float]:
+    """RSS (MB) of the agent process and of each of its workers (a sharded agent's), the agent first; the
+    multiprocessing resource tracker, which holds no agent state, is left out."""
+    process = psutil.Process(pid)
+    sizes = [process.memory_info().rss / 2**20]
+    for child in process.children(recursive=True):
+        try:
+            if any("resource_tracker" in part for part in child.cmdline()):
+                continue
+            sizes.append(child.memory_info().rss / 2**20)
+        except psutil.Error:
+            continue
+    return sizes
 
 
 def _cold_start_s(rig: LocalRig) -> float:
@@ -50,7 +61,8 @@ def _cold_start_s(rig: LocalRig) -> float:
 
 
 def _memory(rig: LocalRig, fleet: int, rate: float, fleet_seconds: float) -> dict[str, Any]:
-    """RSS idle (connected, no traffic), then with `fleet` arms publishing at `rate` Hz."""
+    """RSS idle (connected, no traffic), then with `fleet` arms publishing at `rate` Hz: of each process (the
+    agent, then its workers) and in all."""
     with running_agent(rig) as (proc, base):
         wait_subscribed(base, proc)
         time.sleep(2.0)
@@ -59,17 +71,23 @@ def _memory(rig: LocalRig, fleet: int, rate: float, fleet_seconds: float) -> dic
         pubs = [start_publisher(rig.broker.url, first, half, rate, fleet_seconds) for first in (1, 1 + half)]
         peak = idle
         while any(p.poll() is None for p in pubs):
-            peak = max(peak, _rss_mb(proc.pid))
+            now = _rss_mb(proc.pid)
+            peak = now if sum(now) > sum(peak) else peak
             time.sleep(0.25)
         time.sleep(1.0)
         state = get_state(base, timeout=30)
         at_fleet = _rss_mb(proc.pid)
     return {
-        "rss_idle_mb": idle,
+        "processes": len(at_fleet),
+        "workers": len(state.agent.workers) or 1,
+        "rss_idle_mb": sum(idle),
+        "rss_idle_per_process_mb": idle,
         "fleet_arms": fleet,
         "fleet_devices_mirrored": _mirrored(state),
-        "rss_at_fleet_mb": at_fleet,
-        "rss_peak_mb": max(peak, at_fleet),
+        "rss_at_fleet_mb": sum(at_fleet),
+        "rss_at_fleet_per_process_mb": at_fleet,
+        "rss_at_fleet_largest_process_mb": max(at_fleet),
+        "rss_peak_mb": max(sum(peak), sum(at_fleet)),
     }
 
 
