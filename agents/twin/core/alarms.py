@@ -463,9 +463,10 @@ class ServoAlarms:
         self._rule_list = {
             joint: [self.thresholds.rule(kind, joint) for kind in _KINDS] for joint in so101.JOINT_NAMES
         }
+        self._raise_at = {joint: tuple(r.raise_at for r in rules) for joint, rules in self._rule_list.items()}
         self._quiet = {
-            joint: (min(rules[0].raise_at, rules[1].raise_at), *(r.raise_at for r in rules[1:]))
-            for joint, rules in self._rule_list.items()
+            joint: (min(raise_at[0], raise_at[1]), *raise_at[1:])
+            for joint, raise_at in self._raise_at.items()
         }
         self._rules = {
             joint: {kind: self.thresholds.rule(kind, joint) for kind in AlarmKind}
@@ -537,23 +538,25 @@ class ServoAlarms:
                     continue
             values = (temp, temp, current, None if load is None else abs(load), mismatch)
             alarms = slots.alarms
+            raise_at = self._raise_at[joint]
+            idle = True
             for k, value in enumerate(values):
                 alarm = alarms[k]
                 if alarm is None:
                     if value is None:
                         continue  # nothing known, nothing to remember
                     alarm = alarms[k] = self._new_alarm(device, joint, _KINDS[k], now)
-                rule = rules[k]
-                if (
+                elif (
                     value is not None
-                    and value < rule.raise_at
+                    and value < raise_at[k]
                     and not alarm.present
                     and alarm.raise_since is None
                 ):
-                    alarm.value = value
-                    continue
-                self._step(alarm, value, rule, now=now, events=events, model=model)
-            slots.idle = all(a is None or (not a.present and a.raise_since is None) for a in alarms)
+                    continue  # quiet: nothing to change (the views read the value from the evaluation)
+                self._step(alarm, value, rules[k], now=now, events=events, model=model)
+                if alarm.present or alarm.raise_since is not None:
+                    idle = False
+            slots.idle = idle
         self._last[device] = _Evaluation(diagnostics, speeds, torques, checked)
         return events
 

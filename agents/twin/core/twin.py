@@ -31,8 +31,8 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
 from enum import StrEnum
+from typing import NamedTuple
 
 import mujoco
 import numpy as np
@@ -120,20 +120,19 @@ def _tcp_of(robot: RobotModel, data: mujoco.MjData) -> tuple[float, float, float
     return (float(x), float(y), float(z))
 
 
-@dataclass(frozen=True, slots=True)
-class TwinSnapshot:
+class TwinSnapshot(NamedTuple):
     """One device's twin state at one moment, immutable: each read of the angle dicts builds a fresh one.
 
-    The worker takes a snapshot of every device it changed after each batch, and most are never read, so the
-    angles are kept as tuples (JOINT_NAMES order) and `joint_torques` and `tcp_position` are computed on first
-    access (module doc)."""
+    The worker takes a snapshot of every device it changed after each batch, and most are never read, so it is
+    a NamedTuple (built in a fraction of a frozen dataclass's time), the angles are kept as tuples
+    (JOINT_NAMES order), and `joint_torques` and `tcp_position` are computed on first access (module doc)."""
 
     device_id: str
     timestamp_ms: int | None
     names: tuple[str, ...]
     angles: tuple[float, ...]
     target_values: tuple[float, ...]
-    figures: _Figures = field(repr=False, compare=False)
+    figures: _Figures
     mode: TwinMode = TwinMode.KINEMATIC
     applied: int = 0
     ignored_stale: int = 0
@@ -375,14 +374,14 @@ class DeviceTwin:
         own = self._own_data
         angles = targets if own is None else tuple(float(own.qpos[a]) for a in self._qadr)
         return TwinSnapshot(
-            device_id=self.device_id,
-            timestamp_ms=self.last_timestamp_ms,
-            names=self._names,
-            angles=angles,
-            target_values=targets,
-            figures=self._current_figures(),
-            mode=self.mode,
-            applied=self.applied,
-            ignored_stale=self.ignored_stale,
-            clamped=self.clamped,
+            self.device_id,
+            self.last_timestamp_ms,
+            self._names,
+            angles,
+            targets,
+            self._current_figures(),
+            self.mode,
+            self.applied,
+            self.ignored_stale,
+            self.clamped,
         )

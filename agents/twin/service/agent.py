@@ -562,13 +562,14 @@ class AgentService:
             tracked = self._devices.get(device)
             if tracked is not None:
                 snapshots[device] = tracked.twin.snapshot()
-        overwritten = self._mailbox.overflowed
+        # Only devices whose messages the queue dropped have a count to copy (a full queue is rare).
+        overwritten = self._mailbox.overflowed if self._mailbox.overflowed_total else {}
         with self._lock:
             self._snapshots.update(snapshots)
-            for key in keys:
+            for key, count in overwritten.items():
                 health = self._fleet.get(key)
                 if health is not None:
-                    health.overwritten = overwritten.get(key, 0)
+                    health.overwritten = count
             if keys:
                 self.batches += 1
 
