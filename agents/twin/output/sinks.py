@@ -17,6 +17,7 @@ from __future__ import annotations
 import collections
 import logging
 import threading
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
@@ -119,16 +120,31 @@ class QueuedSink:
     """
 
     def __init__(
-        self, name: str, worker: SinkWorker, *, max_pending: int = 10_000, idle_s: float = 0.5
+        self,
+        name: str,
+        worker: SinkWorker,
+        *,
+        max_pending: int = 10_000,
+        idle_s: float = 0.5,
+        hand_off_s: float = 0.0,
     ) -> None:
         if max_pending < 1:
             raise ValueError(f"max_pending must be >= 1, got {max_pending}")
+        if hand_off_s < 0:
+            raise ValueError(f"hand_off_s must be >= 0, got {hand_off_s}")
         self.name = name
         self._worker = worker
         self._queue: collections.deque[AppliedSample | RejectedSample] = collections.deque()
         self._max = max_pending
         self._cond = threading.Condition(threading.Lock())
         self._idle_s = idle_s
+        # After each batch the thread pauses this long before it takes the next, so under load samples arrive
+        # in batches: waking the thread for every sample hands the GIL back and forth with the mirror's own
+        # threads, which cost more than the sink's work (docs/web.md, "Where the CPU goes"). The agent's
+        # worker only wakes a thread that waits on an empty queue.
+        self._hand_off_s = hand_off_s
+        self._waiting = False
+        self._in_flight = 0
         self._closing = False
         self._delivered = 0
         self._dropped = 0
@@ -153,7 +169,7 @@ class QueuedSink:
                 self._queue.popleft()
                 self._dropped += 1
             self._queue.append(item)
-            if len(self._queue) == 1:
+            if self._waiting and len(self._queue) == 1:
                 self._cond.notify()
 
     def stats(self) -> SinkStats:
@@ -163,7 +179,7 @@ class QueuedSink:
                 delivered=self._delivered,
                 dropped=self._dropped,
                 errors=self._errors,
-                pending=len(self._queue),
+                pending=len(self._queue) + self._in_flight,
                 last_error=self._last_error,
             )
 
@@ -181,20 +197,30 @@ class QueuedSink:
         while True:
             with self._cond:
                 if not self._queue and not self._closing:
+                    self._waiting = True
                     self._cond.wait(self._idle_s)
-                item = self._queue.popleft() if self._queue else None
-                done = item is None and self._closing
-            if done:
-                self._guard(worker.close)
-                return
-            if item is None:
+                    self._waiting = False
+                items = list(self._queue)
+                self._queue.clear()
+                self._in_flight = len(items)
+                closing = self._closing
+            if not items:
+                if closing:
+                    self._guard(worker.close)
+                    return
                 self._guard(worker.idle)
-            elif isinstance(item, AppliedSample):
-                if self._guard(worker.handle_applied, item):
-                    with self._cond:
-                        self._delivered += 1
-            else:
-                self._guard(worker.handle_rejected, item)
+                continue
+            delivered = 0
+            for item in items:
+                if isinstance(item, AppliedSample):
+                    delivered += self._guard(worker.handle_applied, item)
+                else:
+                    self._guard(worker.handle_rejected, item)
+            with self._cond:
+                self._delivered += delivered
+                self._in_flight = 0
+            if self._hand_off_s and not closing:
+                time.sleep(self._hand_off_s)
 
     def _guard(self, fn: object, *args: object) -> bool:
         try:
