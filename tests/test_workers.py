@@ -316,7 +316,11 @@ def test_a_dead_worker_is_started_again(rig: LocalRig) -> None:
     wait_for(back, 20, "worker 1 to be started again")
     # Its arms are mirrored again from their next message; what arrived while it was down is counted.
     wait_for(
-        lambda: all(agent.state().devices[d].counters.applied > 5 for d in devices),
+        lambda: all(
+            d in state.devices and state.devices[d].counters.applied > 5
+            for state in [agent.state()]
+            for d in devices
+        ),
         10,
         "its arms mirrored again",
     )

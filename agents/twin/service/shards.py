@@ -705,7 +705,8 @@ class ShardedAgent:
                 WorkerInfo(
                     index=worker.index,
                     pid=worker.pid,
-                    alive=worker.alive,
+                    # Running and answering: a worker being started again has no report to merge yet.
+                    alive=worker.alive and report is not None,
                     restarts=worker.restarts,
                     devices=len(report.state.devices) if report is not None else 0,
                     queued=len(worker.queue),
