@@ -126,6 +126,9 @@ model = ""
 # Recording is off unless the stack sets recordSessions=true: a session file grows for as long as the
 # agent runs, and nothing here would bound it.
 record_dir = "${RECORD_DIR}"
+# Worker processes (docs/agent.md, "Workers"): 0 = one per vCPU for the whole fleet, fewer for a short
+# device list. systemd's stop reaches them through the agent, which lets each flush its history first.
+workers = 0
 
 [health]
 expected_rate_hz = 10.0
