@@ -38,7 +38,7 @@ from typing import Any
 Clock = Callable[[], float]
 
 # Gaps kept for the period estimate. Once it is settled it is recomputed every GAP_HISTORY new gaps (tens of
-# microseconds each, so well under one per message); before that at 1, 2, 4, ... gaps.
+# microseconds each, so well under one per message); before that at 1, 2, 4, 8 and 16 gaps.
 GAP_HISTORY = 64
 # A gap fits a period p when it is within this share of p of a whole multiple of p (timestamps are sampled on
 # the edge's grid, so the jitter of one sample does not add up over long gaps). A random gap fits with odds
@@ -71,8 +71,8 @@ LOSING_MIN_LOST = 2
 LOSING_RATIO = 0.01
 
 
-# Spreads the settled re-estimates of many devices over the GAP_HISTORY messages between two (a prime step,
-# so consecutive devices land far apart).
+# Spreads the moments many devices settle their estimates (a prime step, so consecutive devices land far
+# apart); their re-estimates every GAP_HISTORY gaps after that stay spread.
 _STAGGER = itertools.count(0, 37)
 
 
@@ -184,6 +184,10 @@ class DeviceLoss:
         # estimate may take up to GAP_HISTORY more gaps to see, is recounted back to where it happened.
         self._gaps: deque[int] = deque(maxlen=2 * GAP_HISTORY)
         self._new_gaps = 0
+        # The estimate settles after GAP_HISTORY gaps and up to half as many again, by device: devices that
+        # started together would otherwise settle, and then re-estimate every GAP_HISTORY gaps, in the same
+        # instant (a 1,000-arm fleet's estimates cost the worker 50 ms at once).
+        self._settle_at = GAP_HISTORY + next(_STAGGER) % (GAP_HISTORY // 2)
         self._period_ms: float | None = None
         # Until the period rests on a full history, the gaps seen so far are kept and recounted with each
         # better estimate; after that each gap is counted once, when it arrives.
@@ -273,7 +277,9 @@ class DeviceLoss:
         if early is not None:
             early.append(gap)
             self._early_missing += missing
-            if len(early) & (len(early) - 1) == 0 or len(early) == GAP_HISTORY:
+            # 1, 2, 4, 8, 16 gaps (a rough period early, corrected at the settling recount), then settled.
+            n = len(early)
+            if (n & (n - 1) == 0 and n < GAP_HISTORY // 2) or n == self._settle_at:
                 self._reestimate()
             return
         self._missing += missing
@@ -299,15 +305,11 @@ class DeviceLoss:
         if early is not None:
             p = self._period_ms
             self._early_missing = 0 if p is None else sum(max(0, round(g / p) - 1) for g in early)
-            if len(early) == GAP_HISTORY:
+            if len(early) == self._settle_at:
                 # The estimate rests on a full history: settle the early gaps, count the rest as they come.
                 self._missing += self._early_missing
                 self._early_missing = 0
                 self._early = None
-                # Devices that started together would otherwise re-estimate in the same instant every
-                # GAP_HISTORY gaps; each starts its cycle part way through instead (never later: a rate change
-                # is recounted over the last GAP_HISTORY gaps only).
-                self._new_gaps = next(_STAGGER) % GAP_HISTORY
         elif period is not None and old is not None and abs(period - old) > PERIOD_CHANGE * old:
             # The edge's rate changed: the gaps since the change were counted with the old period; count them
             # again with the new one.
