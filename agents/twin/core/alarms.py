@@ -92,6 +92,8 @@ _KINDS: tuple[AlarmKind, ...] = (
     AlarmKind.MODEL_MISMATCH,
 )
 _JOINT_SET = frozenset(so101.JOINT_NAMES)
+# What follows the device in an alarm id (`alarm_id`), per joint and kind.
+_ID_SUFFIX = {(joint, kind): f"/{joint}/{kind.value}" for joint in so101.JOINT_NAMES for kind in AlarmKind}
 # Poses further apart than this (edge clock) say nothing about the speed between them.
 MAX_POSE_GAP_S = 1.0
 # States in which the condition is present; LATCHED is remembered, not present.
@@ -562,7 +564,8 @@ class ServoAlarms:
 
     def _new_alarm(self, device: str, joint: str, kind: AlarmKind, now: float) -> _Alarm:
         alarm = _Alarm(device, joint, kind, since=now)
-        self._alarms[alarm.alarm_id] = alarm
+        # alarm_id's f-string formats the StrEnum, slowly; a new arm creates its 29 alarms at once.
+        self._alarms[device + _ID_SUFFIX[joint, kind]] = alarm
         self._by_device.setdefault(device, []).append(alarm)
         return alarm
 
