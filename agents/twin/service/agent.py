@@ -54,6 +54,7 @@ from twin.core.loss import DeviceLoss
 from twin.core.telemetry import (
     DecoderConfig,
     JointDiagnostics,
+    RejectReason,
     Telemetry,
     TelemetryDecoder,
     TelemetryRejected,
@@ -121,7 +122,7 @@ IDLE_WAKE_S = 0.2
 # passes walk only what was allocated since. What is frozen is still freed by reference counting. New arms
 # bring new state, so a batch that admitted some is followed by a freeze sooner (FREEZE_AFTER_NEW_S).
 FREEZE_EVERY_S = 10.0
-FREEZE_AFTER_NEW_S = 1.0
+FREEZE_AFTER_NEW_S = 0.25
 # When the oldest message of a batch has waited longer than this, the worker is behind: it still decodes and
 # counts every message, but applies only each arm's newest valid one, so the twin shows the present instead
 # of replaying a backlog seconds old (docs/agent.md, "Catching up").
@@ -666,7 +667,9 @@ class AgentService:
             self._fleet.record_rejected(topic_device, reason)
         self._reject_log.log(
             (topic_device, reason),
-            logging.WARNING,
+            # units=auto turning away a new arm's first messages while it gathers evidence is expected, not a
+            # fault (the decision itself is logged at INFO): a 2,000-arm fleet's start made 2,000 warnings.
+            logging.DEBUG if rejected.reason is RejectReason.UNITS_UNDECIDED else logging.WARNING,
             "telemetry rejected",
             device=topic_device,
             topic=item.topic,
