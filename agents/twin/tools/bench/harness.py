@@ -159,10 +159,15 @@ def wait_subscribed(base_url: str, proc: subprocess.Popen[bytes], timeout: float
 PREFIX = DEFAULT_TOPIC_PREFIX
 
 
-def start_publisher(url: str, first: int, count: int, rate: float, seconds: float) -> subprocess.Popen:
-    """A publisher process for arms first..first+count-1 (twin.tools.bench.load), at `rate` Hz each."""
+def start_publisher(
+    url: str, first: int, count: int, rate: float, seconds: float, *, jitter_ms: float = 0.0
+) -> subprocess.Popen:
+    """A publisher process for arms first..first+count-1 (twin.tools.bench.load), at `rate` Hz each, each
+    message delayed 0..jitter_ms after its sample."""
     args = ["--url", url, "--first", str(first), "--count", str(count), "--rate", str(rate)]
-    return load_process("publish", *args, "--seconds", str(seconds), "--prefix", PREFIX)
+    return load_process(
+        "publish", *args, "--seconds", str(seconds), "--prefix", PREFIX, "--jitter-ms", str(jitter_ms)
+    )
 
 
 def load_process(*args: str) -> subprocess.Popen:
@@ -188,14 +193,14 @@ def last_json_line(text: str) -> dict[str, Any]:
 MSGS_PER_PUBLISHER = 10_000
 
 
-def publishers(url: str, arms: int, rate: float, seconds: float) -> list[Any]:
+def publishers(url: str, arms: int, rate: float, seconds: float, *, jitter_ms: float = 0.0) -> list[Any]:
     """Publisher processes for arms 1..`arms` at `rate` Hz each, enough of them that none is the limit."""
     count = max(1, min(4, math.ceil(arms * rate / MSGS_PER_PUBLISHER)))
     per = math.ceil(arms / count)
     procs = []
     for first in range(1, arms + 1, per):
         n = min(per, arms + 1 - first)
-        procs.append(start_publisher(url, first, n, rate, seconds))
+        procs.append(start_publisher(url, first, n, rate, seconds, jitter_ms=jitter_ms))
     return procs
 
 

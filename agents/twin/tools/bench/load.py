@@ -10,6 +10,8 @@ the ceiling measures the same broker and client the agent uses, minus the agent'
 from __future__ import annotations
 
 import argparse
+import heapq
+import itertools
 import json
 import logging
 import random
@@ -48,12 +50,21 @@ def _templates(device: str, topic: str, rng: random.Random) -> list[tuple[bytes,
 
 
 def publish(
-    url: str, devices: list[str], rate_hz: float, seconds: float, prefix: str, *, seed: int = 1
+    url: str,
+    devices: list[str],
+    rate_hz: float,
+    seconds: float,
+    prefix: str,
+    *,
+    seed: int = 1,
+    jitter_ms: float = 0.0,
 ) -> dict[str, Any]:
-    """Publish every device at rate_hz for `seconds`; timestamps are the publish wall clock (milliseconds).
+    """Publish every device at rate_hz for `seconds`; timestamps are the wall clock of each sample's slot
+    (milliseconds), as an edge stamps a sample when it takes it.
 
-    Through `WirePublisher`: one write per time slot, so the load costs the shared cores little (its module
-    doc says why)."""
+    `jitter_ms` delays each message by a random 0..jitter_ms after its sample, as the networks between real
+    arms and the broker do (the timestamps stay on the sampling grid). Through `WirePublisher`: one write per
+    time slot, so the load costs the shared cores little (its module doc says why)."""
     rng = random.Random(seed)
     templates = {d: _templates(d, telemetry_topic(prefix, d), rng) for d in devices}
     # Each arm moves on its own: a real fleet's arms are not in step, and a fleet that is turns every arm's
@@ -64,8 +75,9 @@ def publish(
     period = 1.0 / rate_hz
     slot_len = period / SLOTS_PER_PERIOD
     slots = [devices[i::SLOTS_PER_PERIOD] for i in range(SLOTS_PER_PERIOD)]
-    sent = 0
-    failures = 0
+    delayed: list[tuple[float, int, tuple[bytes, bytes, bytes]]] = []  # (send at, order, packet pieces)
+    order = itertools.count()
+    counts = {"sent": 0, "failures": 0}
     late_slots = 0
     start = time.monotonic()
     end = start + seconds
@@ -81,25 +93,40 @@ def publish(
             late_slots += 1
         step = k // SLOTS_PER_PERIOD
         stamp = str(round(time.time() * 1000)).encode()
-        packets = []
+        packets: list[bytes] = []
         for device in slots[k % SLOTS_PER_PERIOD]:
             before, after = templates[device][(step + phase[device]) % POSES]
-            packets += (before, stamp, after)
-        try:
-            publisher.send(packets)
-            sent += len(packets) // 3
-        except WireError:
-            failures += len(packets) // 3
+            if jitter_ms:
+                send_at = due + rng.uniform(0.0, jitter_ms) / 1000.0
+                heapq.heappush(delayed, (send_at, next(order), (before, stamp, after)))
+            else:
+                packets += (before, stamp, after)
+        while delayed and delayed[0][0] <= time.monotonic():
+            packets += heapq.heappop(delayed)[2]
+        _send(publisher, packets, counts)
         k += 1
+    _send(publisher, [piece for _, _, pieces in sorted(delayed) for piece in pieces], counts)
     elapsed = time.monotonic() - start
     publisher.close()  # returns once the broker has read everything (DISCONNECT, then its close)
     return {
-        "sent": sent,
-        "publish_failures": failures,
+        "sent": counts["sent"],
+        "publish_failures": counts["failures"],
         "elapsed_s": elapsed,
         "late_slots": late_slots,
-        "offered_rate": sent / elapsed if elapsed else 0.0,
+        "offered_rate": counts["sent"] / elapsed if elapsed else 0.0,
+        "jitter_ms": jitter_ms,
     }
+
+
+def _send(publisher: WirePublisher, packets: list[bytes], counts: dict[str, int]) -> None:
+    """Write the pieces (three per message) in one go; count them as sent or failed."""
+    if not packets:
+        return
+    try:
+        publisher.send(packets)
+        counts["sent"] += len(packets) // 3
+    except WireError:
+        counts["failures"] += len(packets) // 3
 
 
 def noop(url: str, filters: list[str], seconds: float) -> dict[str, Any]:
@@ -192,6 +219,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rate", type=float, required=True)
     p.add_argument("--seconds", type=float, required=True)
     p.add_argument("--prefix", default=DEFAULT_TOPIC_PREFIX)
+    p.add_argument("--jitter-ms", type=float, default=0.0, help="network delay 0..J ms after each sample")
     n = sub.add_parser("noop")
     n.add_argument("--url", required=True)
     n.add_argument("--filter", action="append", required=True)
@@ -204,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr)
     if args.role == "publish":
         devices = [arm_name(i) for i in range(args.first, args.first + args.count)]
-        result = publish(args.url, devices, args.rate, args.seconds, args.prefix)
+        result = publish(args.url, devices, args.rate, args.seconds, args.prefix, jitter_ms=args.jitter_ms)
     elif args.role == "ros2-reader":
         arms = [arm_name(i) for i in range(args.first, args.first + args.count)]
         result = ros2_reader(arms, args.seconds)
