@@ -185,3 +185,11 @@ def test_decode_compares_with_json_loads_in_one_run() -> None:
     for case in out["cases"]:
         assert case["json_loads_us"] > 0 and case["decode_validate_us"] > 0
         assert case["ratio"] == case["decode_validate_us"] / case["json_loads_us"]
+
+
+def test_worker_handles_every_message_and_prints_its_cost() -> None:
+    out = bench("worker", "--arms", "50", "--rounds", "5", timeout=120)
+    assert [c["alarms"] for c in out["cases"]] == [True, False]
+    for case in out["cases"]:
+        assert case["errors"] == 0
+        assert case["first_message_us"] > 0 and case["message_us"] > 0

@@ -68,11 +68,15 @@ def register(subparsers: Any) -> None:
 
     de = sub.add_parser("decode", help="decode + validate of an edge message against json.loads of it")
 
+    wo = sub.add_parser("worker", help="CPU per message of one worker process, fed through its pipe")
+    wo.add_argument("--arms", type=int, default=1000)
+    wo.add_argument("--rounds", type=int, default=40, help="messages per arm (10 Hz edge timestamps)")
+
     al = sub.add_parser("all", help="every scenario as published in docs/performance.md, plus the plot")
     al.add_argument("--seconds", type=float, default=20.0, help="throughput run length")
     al.add_argument("--plot", type=Path, default=Path("docs/performance.png"))
 
-    for p in (tp, fi, fo, hs, hr, hl, r2, rn, rr, qu, de, al):
+    for p in (tp, fi, fo, hs, hr, hl, r2, rn, rr, qu, de, wo, al):
         p.add_argument("--json", action="store_true", help="print the figures as one JSON object")
         p.set_defaults(func=run)
 
@@ -110,8 +114,10 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
         return quota.run(arms=args.arms, rate=args.rate, seconds=args.seconds)
     if args.scenario == "decode":
         return import_dev_tool("twin.tools.bench.decode", "bench").run()
+    if args.scenario == "worker":
+        return import_dev_tool("twin.tools.bench.worker", "bench").run(arms=args.arms, rounds=args.rounds)
     # all: the two throughput loads the targets name, fidelity, footprint, ROS 2, render, Rerun, the quota
-    # (one connection vs the pool) and decode against json.loads.
+    # (one connection vs the pool), decode against json.loads and a worker's cost per message.
     results = {
         "throughput": [
             throughput.run(arms=100, rate=10.0, seconds=args.seconds),
@@ -124,6 +130,7 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
         "rerun": rerun.run(arms=100, rate=10.0, seconds=args.seconds),
         "quota": import_dev_tool("twin.tools.bench.quota", "bench").run(seconds=args.seconds),
         "decode": import_dev_tool("twin.tools.bench.decode", "bench").run(),
+        "worker": import_dev_tool("twin.tools.bench.worker", "bench").run(),
     }
     plot = import_dev_tool("twin.tools.bench.plot", "bench")
     results["plot"] = str(plot.write(results, args.plot))
