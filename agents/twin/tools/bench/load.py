@@ -65,6 +65,8 @@ def publish(
     `jitter_ms` delays each message by a random 0..jitter_ms after its sample, as the networks between real
     arms and the broker do (the timestamps stay on the sampling grid). Through `WirePublisher`: one write per
     time slot, so the load costs the shared cores little (its module doc says why)."""
+    # Long on purpose: the publishing loop in time order (wait for the slot, build its packets, send those
+    # that are due), which reads best as one piece next to its timing rules.
     rng = random.Random(seed)
     templates = {d: _templates(d, telemetry_topic(prefix, d), rng) for d in devices}
     # Each arm moves on its own: a real fleet's arms are not in step, and a fleet that is turns every arm's
