@@ -494,8 +494,6 @@ class ServoAlarms:
         from the pose itself: the edge's mock mode, for one, sends random velocities whatever the arm does.
         `holding_torques_nm` may be a function returning them: it is called only if some joint needs them.
         """
-        # Long on purpose: this runs for every joint of every applied message on the worker's hot path, so the
-        # per-joint checks stay inline instead of paying a call each (docs/performance.md).
         if not self.thresholds.enabled:
             return []
         speeds = self._pose_speeds(device, angles_rad, timestamp_ms)
@@ -504,22 +502,18 @@ class ServoAlarms:
         if slots_of is None:
             slots_of = self._slots[device] = {}
         torques = _Torques(holding_torques_nm)
-        limit = self.thresholds.still_velocity_rad_s
         mismatch_joints = self._mismatch_joints
         # Joints whose model check ran (still, load known): (model load %, mismatch) for their JointHealth.
         checked: dict[str, tuple[float | None, float | None]] = {}
         for joint, diag in diagnostics.items():
-            rules = self._rule_list.get(joint)
-            if rules is None:
+            if joint not in self._rule_list:
                 continue
             load = diag.load_percent
-            model: float | None = None
-            mismatch = None
-            if joint in mismatch_joints and load is not None and _still(diag, speeds.get(joint), limit):
-                model = _model_load(torques, self._servo, joint, diag.voltage_v)
-                if model is not None:
-                    mismatch = abs(abs(load) - model)
-                checked[joint] = (model, mismatch)
+            model = mismatch = None
+            if joint in mismatch_joints and load is not None:
+                model, mismatch = self._model_check(
+                    joint, diag, load, pose_speed=speeds.get(joint), torques=torques, checked=checked
+                )
             temp = diag.temperature_c
             current = diag.current_a
             slots = slots_of.get(joint)
@@ -528,7 +522,8 @@ class ServoAlarms:
             elif slots.idle:
                 # The common case, a quiet servo: every value below its line (and already given an alarm to
                 # remember it by), nothing raised or pending on the joint: nothing can change. The views
-                # read the values from the last evaluation, so nothing is written either.
+                # read the values from the last evaluation, so nothing is written either. Inline, not a call:
+                # it runs for every joint of every applied message.
                 quiet = self._quiet[joint]
                 alarms = slots.alarms
                 if (
@@ -539,28 +534,59 @@ class ServoAlarms:
                 ):
                     continue
             values = (temp, temp, current, None if load is None else abs(load), mismatch)
-            alarms = slots.alarms
-            raise_at = self._raise_at[joint]
-            idle = True
-            for k, value in enumerate(values):
-                alarm = alarms[k]
-                if alarm is None:
-                    if value is None:
-                        continue  # nothing known, nothing to remember
-                    alarm = alarms[k] = self._new_alarm(device, joint, _KINDS[k], now)
-                elif (
-                    value is not None
-                    and value < raise_at[k]
-                    and not alarm.present
-                    and alarm.raise_since is None
-                ):
-                    continue  # quiet: nothing to change (the views read the value from the evaluation)
-                self._step(alarm, value, rules[k], now=now, events=events, model=model)
-                if alarm.present or alarm.raise_since is not None:
-                    idle = False
-            slots.idle = idle
+            self._step_joint(device, joint, slots, values, model=model, now=now, events=events)
         self._last[device] = _Evaluation(diagnostics, speeds, torques, checked)
         return events
+
+    def _model_check(
+        self,
+        joint: str,
+        diag: JointDiagnostics,
+        load: float,
+        *,
+        pose_speed: float | None,
+        torques: _Torques,
+        checked: dict[str, tuple[float | None, float | None]],
+    ) -> tuple[float | None, float | None]:
+        """(model load %, | |load| - model |) while the joint is still (recorded in `checked`), else Nones."""
+        if not _still(diag, pose_speed, self.thresholds.still_velocity_rad_s):
+            return None, None
+        model = _model_load(torques, self._servo, joint, diag.voltage_v)
+        mismatch = None if model is None else abs(abs(load) - model)
+        checked[joint] = (model, mismatch)
+        return model, mismatch
+
+    def _step_joint(
+        self,
+        device: str,
+        joint: str,
+        slots: _JointAlarms,
+        values: tuple[float | None, ...],
+        *,
+        model: float | None,
+        now: float,
+        events: list[AlarmEvent],
+    ) -> None:
+        """Every kind of one joint that is not quiet steps through its rule (values in _KINDS order); the
+        joint is idle afterwards when none of its alarms is present or timing a raise."""
+        alarms = slots.alarms
+        rules = self._rule_list[joint]
+        raise_at = self._raise_at[joint]
+        idle = True
+        for k, value in enumerate(values):
+            alarm = alarms[k]
+            if alarm is None:
+                if value is None:
+                    continue  # nothing known, nothing to remember
+                alarm = alarms[k] = self._new_alarm(device, joint, _KINDS[k], now)
+            elif (
+                value is not None and value < raise_at[k] and not alarm.present and alarm.raise_since is None
+            ):
+                continue  # quiet: nothing to change (the views read the value from the evaluation)
+            self._step(alarm, value, rules[k], now=now, events=events, model=model)
+            if alarm.present or alarm.raise_since is not None:
+                idle = False
+        slots.idle = idle
 
     def _new_alarm(self, device: str, joint: str, kind: AlarmKind, now: float) -> _Alarm:
         alarm = _Alarm(device, joint, kind, since=now)

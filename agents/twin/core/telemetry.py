@@ -518,8 +518,8 @@ class TelemetryDecoder:
     def _explain(self, data: bytes | str, topic_device: str | None) -> Telemetry:
         """The rules one by one in the documented order, on the standard json module's parse: for a message
         the schema refused, this finds the first broken rule and says how to fix it."""
-        # Long on purpose: the contract's rules one after another in their documented order; the order is what
-        # decides which reason a broken message is counted under.
+        # The rules run in their documented order, which decides the reason a broken message is counted under:
+        # the document, device id, timestamp, the joints object, each joint's position, then the units.
         text = data if isinstance(data, str) else data.decode("utf-8")
         doc = self._parse(text)
         if type(doc) is not dict:
@@ -530,46 +530,7 @@ class TelemetryDecoder:
             )
         device_id = self._device_id(doc, topic_device)
         timestamp = self._timestamp(doc)
-        joints = doc.get("joints", _MISSING)
-        if joints is _MISSING:
-            raise _rejected(
-                RejectReason.MISSING_FIELD, "message has no 'joints' object; check the edge version"
-            )
-        if type(joints) is not dict:
-            raise _rejected(
-                RejectReason.WRONG_TYPE,
-                f"'joints' must be an object keyed by joint name, got {type(joints).__name__}",
-            )
-        if len(joints) != len(_JOINTS) or not _JOINT_SET.issuperset(joints):
-            self._joint_set_error(joints)
-
-        positions: list[Any] = []
-        entries: list[dict[str, Any]] = []
-        for name in _JOINTS:
-            entry = joints[name]
-            if type(entry) is not dict:
-                raise _rejected(
-                    RejectReason.WRONG_TYPE,
-                    f"joint {name} must be an object with a 'position', got {_fmt(entry)}",
-                )
-            pos = entry.get("position", _MISSING)
-            t = type(pos)
-            if t is float:
-                if not math.isfinite(pos):
-                    raise _rejected(
-                        RejectReason.NOT_FINITE,
-                        f"position {pos} of {name} is not a finite number; check the edge's servo read",
-                    )
-            elif t is not int:
-                if pos is _MISSING:
-                    raise _rejected(RejectReason.MISSING_FIELD, f"joint {name} has no 'position'")
-                raise _rejected(
-                    RejectReason.WRONG_TYPE,
-                    f"position of {name} must be a JSON number, got {_fmt(pos)}",
-                )
-            positions.append(pos)
-            entries.append(entry)
-
+        entries, positions = self._joints(doc)
         units, angles, percent, undecided = self._units_and_angles(device_id, positions)
         float_variant = units is not Units.TICKS
         # A bare {"position": ...} (the common case without diagnostics) shares one empty record.
@@ -590,6 +551,34 @@ class TelemetryDecoder:
                 JointReading(**{k: entry[k] for k in _READING_FIELDS if k in entry}) for entry in entries
             ),
         )
+
+    def _joints(self, doc: dict[str, Any]) -> tuple[list[dict[str, Any]], list[int | float]]:
+        """The six joints' objects and positions in JOINT_NAMES order: 'joints' present, an object, exactly
+        the six; then joint by joint, an object with a number for its position."""
+        joints = doc.get("joints", _MISSING)
+        if joints is _MISSING:
+            raise _rejected(
+                RejectReason.MISSING_FIELD, "message has no 'joints' object; check the edge version"
+            )
+        if type(joints) is not dict:
+            raise _rejected(
+                RejectReason.WRONG_TYPE,
+                f"'joints' must be an object keyed by joint name, got {type(joints).__name__}",
+            )
+        if len(joints) != len(_JOINTS) or not _JOINT_SET.issuperset(joints):
+            self._joint_set_error(joints)
+        entries = []
+        positions = []
+        for name in _JOINTS:
+            entry = joints[name]
+            if type(entry) is not dict:
+                raise _rejected(
+                    RejectReason.WRONG_TYPE,
+                    f"joint {name} must be an object with a 'position', got {_fmt(entry)}",
+                )
+            positions.append(_position(name, entry))
+            entries.append(entry)
+        return entries, positions
 
     # --- envelope -----------------------------------------------------------------------------------------
 
@@ -836,6 +825,26 @@ class TelemetryDecoder:
                 device_id,
                 needed,
             )
+
+
+def _position(name: str, entry: dict[str, Any]) -> int | float:
+    """A joint's 'position': present, a JSON number, finite (its range is the units' rule)."""
+    pos = entry.get("position", _MISSING)
+    t = type(pos)
+    if t is float:
+        if not math.isfinite(pos):
+            raise _rejected(
+                RejectReason.NOT_FINITE,
+                f"position {pos} of {name} is not a finite number; check the edge's servo read",
+            )
+    elif t is not int:
+        if pos is _MISSING:
+            raise _rejected(RejectReason.MISSING_FIELD, f"joint {name} has no 'position'")
+        raise _rejected(
+            RejectReason.WRONG_TYPE,
+            f"position of {name} must be a JSON number, got {_fmt(pos)}",
+        )
+    return pos
 
 
 def _evidence(positions: list[Any]) -> Units | None:

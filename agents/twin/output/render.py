@@ -121,8 +121,26 @@ def framing_camera(
     fraction of the half width/height) to spare. Angles are clamped to the joint ranges; missing joints sit
     at 0.
     """
-    # Long on purpose: one geometric computation (gather the visible points of every pose, project them into
-    # the fixed view, fit distance and centre) whose steps share all their intermediate values.
+    cloud = _visible_points(robot, poses)
+    az, el = np.deg2rad(azimuth), np.deg2rad(elevation)
+    forward = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    right = np.cross(forward, (0.0, 0.0, 1.0))
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    tan_v = np.tan(np.deg2rad(float(robot.model.vis.global_.fovy)) / 2.0) * (1.0 - margin)
+    centre, distance = _fit_view(cloud, (forward, right, up), tan_h=tan_v * aspect, tan_v=tan_v)
+    camera = mujoco.MjvCamera()
+    camera.type = mujoco.mjtCamera.mjCAMERA_FREE
+    camera.lookat[:] = centre
+    camera.distance = distance
+    camera.azimuth = azimuth
+    camera.elevation = elevation
+    return camera
+
+
+def _visible_points(robot: RobotModel, poses: Iterable[Mapping[str, float]]) -> np.ndarray:
+    """The arm's visible geometry in world coordinates over all `poses` (mesh vertices, other geoms' bounding
+    boxes; body origins when the model has no arm geoms), angles clamped to the joint ranges."""
     model = robot.model
     data = mujoco.MjData(model)
     geoms = _arm_geoms(robot)
@@ -137,15 +155,15 @@ def framing_camera(
         points.append(_geom_points(model, data, geoms) if geoms.size else data.xpos[1:].copy())
     if not points:
         raise RenderError("no poses to frame; pass at least one pose (an empty dict is the zero pose)")
-    cloud = np.vstack(points)
+    return np.vstack(points)
 
-    az, el = np.deg2rad(azimuth), np.deg2rad(elevation)
-    forward = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-    right = np.cross(forward, (0.0, 0.0, 1.0))
-    right /= np.linalg.norm(right)
-    up = np.cross(right, forward)
-    tan_v = np.tan(np.deg2rad(float(model.vis.global_.fovy)) / 2.0) * (1.0 - margin)
-    tan_h = tan_v * aspect
+
+def _fit_view(
+    cloud: np.ndarray, axes: tuple[np.ndarray, np.ndarray, np.ndarray], *, tan_h: float, tan_v: float
+) -> tuple[np.ndarray, float]:
+    """The look-at point and distance that put every point of `cloud` inside the view along `axes` (forward,
+    right, up), whose half-angles have these tangents."""
+    forward, right, up = axes
     centre = cloud.mean(axis=0)
     distance = 0.0
     # Centring depends on the distance (perspective spreads near points wider) and the distance on the centre:
@@ -161,13 +179,7 @@ def framing_camera(
         x, y, depth = np.abs(rel @ right), np.abs(rel @ up), rel @ forward
         # A point at depth d beyond the look-at point is inside the view when |x| <= tan_h * (distance + d).
         distance = float(max((x / tan_h - depth).max(), (y / tan_v - depth).max(), 0.05))
-    camera = mujoco.MjvCamera()
-    camera.type = mujoco.mjtCamera.mjCAMERA_FREE
-    camera.lookat[:] = centre
-    camera.distance = distance
-    camera.azimuth = azimuth
-    camera.elevation = elevation
-    return camera
+    return centre, distance
 
 
 def _overlay_text(pixels: np.ndarray, text: str) -> np.ndarray:

@@ -261,8 +261,6 @@ class AgentService:
         inbox: Connection | None = None,
     ) -> None:
         # Everything that can be wrong with the configuration is found here, before any thread or socket.
-        # Long on purpose: the service's wiring, state by state, in one place so every field it owns and the
-        # lock that guards it can be read together.
         self.config = config
         # With an inbox: one worker process of a sharded agent (service.shards), which reads its messages
         # from that pipe. The receiving process subscribes, serves HTTP and publishes the CloudWatch metrics.
@@ -270,43 +268,22 @@ class AgentService:
         self.broker_config = config.broker  # validated when the config was built
         self._clock = clock
         self._wall_clock = wall_clock
-        t = config.telemetry
         self._decoder = TelemetryDecoder(self._decoder_config(config))
         self.mode = TwinMode(config.twin.mode)
-        try:
-            self.robot = RobotModel.load(config.twin.model or None)
-            if self.mode is TwinMode.PHYSICS:
-                self.robot.require_actuators()
-        except ModelError as exc:
-            raise ConfigError(f"twin.model = {config.twin.model!r}: {exc}") from exc
+        self.robot = self._load_robot(config, self.mode)
+        self._history_settings = self._history_config(config)
         self._pool_settings = pool_settings(config)
         self._pool = ConnectionPool(self.broker_config, self._pool_settings, self._on_message, clock=clock)
         self.topic_filters = self._pool.topic_filters
-
-        configured = () if t.all_devices else t.devices
-        self._fleet = FleetHealth(config.health, configured, clock=clock)
-        self._devices: dict[str, _Tracked] = {}
-        self._snapshots: dict[str, TwinSnapshot] = {}
-        self._units: dict[str, str] = {}
-        self._gripper: dict[str, float | None] = {}
-        # Servo alarms and the last diagnostics per device: written by the worker, read (and acknowledged)
-        # by HTTP threads, all under the lock.
-        self._alarms = ServoAlarms(config.alarms)
-        self._diagnostics: dict[str, dict[str, JointDiagnostics]] = {}
-        self._emf: EmfPublisher | None = None
-        self._loss: dict[str, DeviceLoss] = {}
-        self._lock = threading.Lock()
-        self._reject_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
-        self._error_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
-
+        self._init_fleet_state(config, clock)
         self._mailbox: InboundQueue[_Inbound] | PipeInbox = (
             InboundQueue(max_items=MAX_QUEUED_MESSAGES) if inbox is None else PipeInbox(inbox)
         )
         self._started_pool = False
         self._http: AgentHttpServer | None = None
+        self._emf: EmfPublisher | None = None
         self._recording: RecordingSink | None = None
         self._history: HistorySink | None = None
-        self._history_settings = self._history_config(config)
         self._extra_sinks: tuple[TwinSink, ...] = tuple(sinks)
         self._sinks: tuple[TwinSink, ...] = ()
         self._worker: threading.Thread | None = None
@@ -315,6 +292,23 @@ class AgentService:
         self._running = threading.Event()
         self._stopped = False
         self._stop_lock = threading.Lock()
+
+    def _init_fleet_state(self, config: AgentConfig, clock: Clock) -> None:
+        """What the worker writes per device and the HTTP threads read, and the lock that guards it."""
+        t = config.telemetry
+        self._fleet = FleetHealth(config.health, () if t.all_devices else t.devices, clock=clock)
+        self._devices: dict[str, _Tracked] = {}
+        self._snapshots: dict[str, TwinSnapshot] = {}
+        self._units: dict[str, str] = {}
+        self._gripper: dict[str, float | None] = {}
+        # Servo alarms and the last diagnostics per device: written by the worker, read (and acknowledged)
+        # by HTTP threads, all under the lock.
+        self._alarms = ServoAlarms(config.alarms)
+        self._diagnostics: dict[str, dict[str, JointDiagnostics]] = {}
+        self._loss: dict[str, DeviceLoss] = {}
+        self._lock = threading.Lock()
+        self._reject_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
+        self._error_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
         self.batches = 0
         # Fleet-wide distributions since start (every applied message of every device), for `twin bench`
         # and capacity questions; the per-device windows in health answer "how is this arm doing now".
@@ -322,6 +316,16 @@ class AgentService:
         self._end_to_end_hist = LatencyHistogram()
         self.processed = 0
         self.errors = 0
+
+    @staticmethod
+    def _load_robot(config: AgentConfig, mode: TwinMode) -> RobotModel:
+        try:
+            robot = RobotModel.load(config.twin.model or None)
+            if mode is TwinMode.PHYSICS:
+                robot.require_actuators()
+        except ModelError as exc:
+            raise ConfigError(f"twin.model = {config.twin.model!r}: {exc}") from exc
+        return robot
 
     @staticmethod
     def _decoder_config(config: AgentConfig) -> DecoderConfig:

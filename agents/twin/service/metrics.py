@@ -18,7 +18,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.exposition import CONTENT_TYPE_PLAIN_0_0_4
 
 from twin.core.health import DeviceStatus
-from twin.service.state import AgentInfo, AgentState, DeviceState, ServoState
+from twin.service.state import AgentInfo, AgentState, DeviceState, HistoryState, ServoState
 
 # Every metric name is valid in the classic format, so the widely parsed 0.0.4 text format is served.
 CONTENT_TYPE = CONTENT_TYPE_PLAIN_0_0_4
@@ -69,8 +69,7 @@ def _counter(name: str, help_text: str, value: float | None) -> CounterMetricFam
 
 
 def _agent_families(agent: AgentInfo) -> Iterator[Metric]:
-    # Long on purpose: one yield per exposed metric family, in the order docs/agent.md lists them; a table
-    # would hide the per-family help text and types.
+    """The agent's own families, in the order docs/agent.md lists them."""
     broker = agent.broker
     yield _gauge("twin_up", "1 while the agent service is running.", 1 if agent.running else 0)
     yield _gauge("twin_uptime_seconds", "Seconds since the agent service started.", agent.uptime_s)
@@ -90,39 +89,9 @@ def _agent_families(agent: AgentInfo) -> Iterator[Metric]:
     yield _counter(
         "twin_worker_batches_total", "Batches the twin worker took from the mailbox.", agent.worker.batches
     )
-    for key, help_text in _SINK_COUNTERS:
-        family = CounterMetricFamily(f"twin_sink_{key}_total", help_text, labels=["sink"])
-        for sink in agent.sinks:
-            family.add_metric([sink.name], getattr(sink, key))
-        yield family
-    pending = GaugeMetricFamily(
-        "twin_sink_pending", "Samples queued in a sink, not yet handled.", labels=["sink"]
-    )
-    for sink in agent.sinks:
-        pending.add_metric([sink.name], sink.pending)
-    yield pending
+    yield from _sink_families(agent)
     if agent.history is not None:
-        h = agent.history
-        yield _counter(
-            "twin_history_rows_committed_total", "Telemetry rows committed to history.", h.rows_committed
-        )
-        yield _counter("twin_history_commits_total", "History commits (telemetry table).", h.commits)
-        yield _counter(
-            "twin_history_commit_failures_total",
-            "Failed history commits (retried with backoff).",
-            h.commit_failures,
-        )
-        yield _counter(
-            "twin_history_rows_dropped_total",
-            "History rows dropped: the write buffer was full.",
-            h.rows_dropped,
-        )
-        buffered = GaugeMetricFamily("twin_history_rows_buffered", "History rows waiting for a commit.")
-        buffered.add_metric([], h.rows_buffered)
-        yield buffered
-        ok = GaugeMetricFamily("twin_history_storage_ok", "1 while the last history commit succeeded.")
-        ok.add_metric([], 1.0 if h.storage_ok else 0.0)
-        yield ok
+        yield from _history_families(agent.history)
     yield from _alarm_families(agent)
     yield from _pool_families(agent)
     yield from _worker_families(agent)
@@ -136,6 +105,41 @@ def _agent_families(agent: AgentInfo) -> Iterator[Metric]:
         "twin_fleet_loss_ratio", "Estimated lost / (received + lost) over every device.", loss.loss_ratio
     )
     yield _gauge("twin_fleet_devices_losing", "Devices that lost messages recently.", loss.devices_losing)
+
+
+def _sink_families(agent: AgentInfo) -> Iterator[Metric]:
+    for key, help_text in _SINK_COUNTERS:
+        family = CounterMetricFamily(f"twin_sink_{key}_total", help_text, labels=["sink"])
+        for sink in agent.sinks:
+            family.add_metric([sink.name], getattr(sink, key))
+        yield family
+    pending = GaugeMetricFamily(
+        "twin_sink_pending", "Samples queued in a sink, not yet handled.", labels=["sink"]
+    )
+    for sink in agent.sinks:
+        pending.add_metric([sink.name], sink.pending)
+    yield pending
+
+
+def _history_families(h: HistoryState) -> Iterator[Metric]:
+    yield _counter(
+        "twin_history_rows_committed_total", "Telemetry rows committed to history.", h.rows_committed
+    )
+    yield _counter("twin_history_commits_total", "History commits (telemetry table).", h.commits)
+    yield _counter(
+        "twin_history_commit_failures_total",
+        "Failed history commits (retried with backoff).",
+        h.commit_failures,
+    )
+    yield _counter(
+        "twin_history_rows_dropped_total",
+        "History rows dropped: the write buffer was full.",
+        h.rows_dropped,
+    )
+    yield _gauge("twin_history_rows_buffered", "History rows waiting for a commit.", h.rows_buffered)
+    yield _gauge(
+        "twin_history_storage_ok", "1 while the last history commit succeeded.", 1.0 if h.storage_ok else 0.0
+    )
 
 
 def _alarm_families(agent: AgentInfo) -> Iterator[Metric]:
@@ -248,9 +252,12 @@ class _DeviceFamilies:
     """The per-device families, filled device by device (one family per metric, many label sets)."""
 
     def __init__(self) -> None:
-        # Long on purpose: one declaration per per-device metric family (name, help, labels), read against
-        # docs/agent.md's table.
-        dev = ["device"]
+        # One declaration per family (name, help, labels), as docs/agent.md lists them: health, latency, twin.
+        self._declare_health(["device"])
+        self._declare_latency(["device"])
+        self._declare_twin(["device"])
+
+    def _declare_health(self, dev: list[str]) -> None:
         self.status = GaugeMetricFamily(
             "twin_device_status", "Device health status (1 for the current status).", labels=[*dev, "status"]
         )
@@ -277,6 +284,19 @@ class _DeviceFamilies:
         self.resets = CounterMetricFamily(
             "twin_edge_clock_resets_total", "Edge clock jumps backwards that re-based the twin.", labels=dev
         )
+        self.lost = CounterMetricFamily(
+            "twin_messages_lost_total",
+            "Messages estimated lost in transit (gaps in the edge timestamps).",
+            labels=dev,
+        )
+        self.loss_ratio = GaugeMetricFamily(
+            "twin_device_loss_ratio", "Estimated lost / (received + lost) since start.", labels=dev
+        )
+        self.losing = GaugeMetricFamily(
+            "twin_device_losing", "1 while the device lost messages recently.", labels=dev
+        )
+
+    def _declare_latency(self, dev: list[str]) -> None:
         self.edge_p50 = GaugeMetricFamily(
             "twin_edge_clock_latency_p50_seconds",
             "Median of receive wall time minus edge timestamp; "
@@ -300,6 +320,8 @@ class _DeviceFamilies:
         self.int_p99 = GaugeMetricFamily(
             "twin_internal_latency_p99_seconds", "p99 time from receive to twin updated.", labels=dev
         )
+
+    def _declare_twin(self, dev: list[str]) -> None:
         self.joints = GaugeMetricFamily(
             "twin_joint_position_radians", "Joint angle of the twin, radians.", labels=[*dev, "joint"]
         )
@@ -312,17 +334,6 @@ class _DeviceFamilies:
             attr: GaugeMetricFamily(name, help_text, labels=[*dev, "joint"])
             for attr, name, help_text in _SERVO_GAUGES
         }
-        self.lost = CounterMetricFamily(
-            "twin_messages_lost_total",
-            "Messages estimated lost in transit (gaps in the edge timestamps).",
-            labels=dev,
-        )
-        self.loss_ratio = GaugeMetricFamily(
-            "twin_device_loss_ratio", "Estimated lost / (received + lost) since start.", labels=dev
-        )
-        self.losing = GaugeMetricFamily(
-            "twin_device_losing", "1 while the device lost messages recently.", labels=dev
-        )
 
     def add(self, device: str, d: DeviceState) -> None:
         for status in _STATUSES:

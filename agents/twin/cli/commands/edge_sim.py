@@ -28,8 +28,6 @@ def _positive(text: str) -> float:
 
 
 def register(subparsers: Any) -> None:
-    # Long on purpose: one add_argument per flag, in the order `--help` lists them; split up, the one list of
-    # the command's options would be scattered.
     parser = subparsers.add_parser(
         "edge-sim",
         help="publish simulated SO-101 edge telemetry (ticks or LeRobot degrees) with optional faults",
@@ -39,12 +37,27 @@ def register(subparsers: Any) -> None:
             "Ctrl-C / SIGTERM, then prints how many messages went out per fault kind."
         ),
     )
+    _add_fleet_arguments(parser)
+    _add_broker_arguments(parser)
+    _add_message_faults(parser.add_argument_group("faults"))
+    parser.add_argument("--seed", type=int, help="random seed for reproducible runs")
+    parser.add_argument("--json", action="store_true", help="print the final counts as JSON")
+    parser.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    parser.set_defaults(func=run)
+
+
+def _add_fleet_arguments(parser: argparse.ArgumentParser) -> None:
+    """What is simulated: payload format, which arms, how fast, for how long."""
     parser.add_argument("--variant", choices=("ticks", "degrees"), default="ticks", help="payload format")
     who = parser.add_mutually_exclusive_group()
     who.add_argument("--devices", type=int, metavar="N", help="simulate arm-001..arm-00N (default 1)")
     who.add_argument("--device", action="append", metavar="ID", help="device id (repeatable)")
     parser.add_argument("--rate", type=_positive, default=10.0, metavar="HZ", help="messages/s per device")
     parser.add_argument("--seconds", type=_positive, metavar="S", help="run time (default: until stopped)")
+
+
+def _add_broker_arguments(parser: argparse.ArgumentParser) -> None:
+    """Where it publishes: the broker and the topic and client id prefixes."""
     parser.add_argument(
         "--broker",
         default="mqtt://127.0.0.1:1883",
@@ -62,7 +75,10 @@ def register(subparsers: Any) -> None:
     parser.add_argument(
         "--topic-prefix", default=DEFAULT_TOPIC_PREFIX, help="topic prefix (default %(default)s)"
     )
-    faults = parser.add_argument_group("faults")
+
+
+def _add_message_faults(faults: Any) -> None:
+    """Per-message faults (probabilities), then the servo faults of `_add_servo_faults`."""
     faults.add_argument("--drop", type=_probability, default=0.0, metavar="P", help="drop a message")
     faults.add_argument("--duplicate", type=_probability, default=0.0, metavar="P", help="send twice")
     faults.add_argument(
@@ -82,6 +98,11 @@ def register(subparsers: Any) -> None:
         metavar="MS",
         help="add to timestamps; spread over devices, the last one gets the full MS",
     )
+    _add_servo_faults(faults)
+
+
+def _add_servo_faults(faults: Any) -> None:
+    """What the simulated servos report: the load sign bit, timed servo faults, model-consistent loads."""
     faults.add_argument(
         "--load-sign", action="store_true", help="set the load sign bit (bit 10) on about half the loads"
     )
@@ -105,10 +126,6 @@ def register(subparsers: Any) -> None:
             "true baseline"
         ),
     )
-    parser.add_argument("--seed", type=int, help="random seed for reproducible runs")
-    parser.add_argument("--json", action="store_true", help="print the final counts as JSON")
-    parser.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
-    parser.set_defaults(func=run)
 
 
 def _config(args: argparse.Namespace) -> Any:
