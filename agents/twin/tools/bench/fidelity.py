@@ -114,11 +114,7 @@ def replay(
     NTP-disciplined); the estimator must not depend on the two agreeing. `series`, when given, receives
     (edge time, mean absolute error over joints, truth and estimate of the first joint) per frame.
     """
-    # Long on purpose: a benchmark's measurement loop, kept in reading order (schedule arrivals, feed the
-    # estimator, compare with the truth at each display instant).
     decoder = TelemetryDecoder(DecoderConfig(units=Units.TICKS))
-    tick_map = _linear_tick_map(decoder)
-    names = so101.JOINT_NAMES
     arrivals = _arrivals(
         decoder,
         random.Random(seed),
@@ -127,14 +123,41 @@ def replay(
         delay_s=(base_delay_ms / 1000.0, jitter_ms / 1000.0),
         clock_offset_s=clock_offset_s,
     )
-    estimator = make_estimator(estimator_kind)
-    total = 0.0
-    worst = 0.0
-    frames = 0
-    next_arrival = 0
-    frame_period = 1.0 / display_hz
-    for f in range(int(seconds * display_hz)):
-        now = clock_offset_s + f * frame_period
+    total, worst, frames = _display_errors(
+        make_estimator(estimator_kind),
+        arrivals,
+        _linear_tick_map(decoder),
+        frame_times=[clock_offset_s + f / display_hz for f in range(int(seconds * display_hz))],
+        clock_offset_s=clock_offset_s,
+        warmup_s=warmup_s,
+        series=series,
+    )
+    return FidelityResult(
+        estimator=estimator_kind,
+        jitter_ms=jitter_ms,
+        mean_error_rad=total / frames if frames else float("nan"),
+        max_error_rad=worst,
+        frames=frames,
+    )
+
+
+def _display_errors(
+    estimator: Any,
+    arrivals: list[Any],
+    tick_map: Any,
+    *,
+    frame_times: list[float],
+    clock_offset_s: float,
+    warmup_s: float,
+    series: list[tuple[float, float, float, float]] | None,
+) -> tuple[float, float, int]:
+    """At each display instant (local clock): feed the estimator what has arrived, ask it for a pose and
+    compare with the truth. Returns the sum of the frames' mean errors, the largest joint error and the
+    frames counted (after `warmup_s` of edge time)."""
+    names = so101.JOINT_NAMES
+    total = worst = 0.0
+    frames = next_arrival = 0
+    for now in frame_times:
         while next_arrival < len(arrivals) and arrivals[next_arrival][0] <= now:
             received, timestamp_ms, angles = arrivals[next_arrival]
             estimator.add(timestamp_ms, angles, received)
@@ -151,13 +174,7 @@ def replay(
         frames += 1
         if series is not None:
             series.append((edge_now, frame_mean, truth[0], pose[names[0]]))
-    return FidelityResult(
-        estimator=estimator_kind,
-        jitter_ms=jitter_ms,
-        mean_error_rad=total / frames if frames else float("nan"),
-        max_error_rad=worst,
-        frames=frames,
-    )
+    return total, worst, frames
 
 
 def run(*, seconds: float = 60.0, jitters_ms: Sequence[float] = (0.0, 50.0), seed: int = 7) -> dict[str, Any]:

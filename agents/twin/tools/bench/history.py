@@ -124,42 +124,21 @@ def _fleet_templates(arms: int) -> dict[str, list[AppliedSample]]:
 
 def read(*, arms: int = 100, minutes: float = 60.0, commit_every_s: float = 10.0) -> dict[str, Any]:
     """Seconds to read one device's hour from a fleet table, before and after compaction."""
-    # Long on purpose: a benchmark script in reading order (write the fleet's hour, time the read, compact,
-    # time it again, check the rows).
     tmp = Path(tempfile.mkdtemp(prefix="twin-bench-history-read-"))
     uri = str(tmp / "history")
     try:
-        templates = _fleet_templates(arms)
         writer = HistoryWriter(HistorySettings(uri=uri, commit_every_s=3600, maintain_every_s=0)).start()
         steps = round(minutes * 60 * RATE_HZ)
-        per_commit = round(commit_every_s * RATE_HZ)
         started = time.monotonic()
-        commits = 0
-        for first in range(0, steps, per_commit):
-            batch = []
-            for k in range(first, min(steps, first + per_commit)):
-                wall = DAY_START_S + 3600 + k / RATE_HZ
-                for poses in templates.values():
-                    pose = poses[k % POSES_PER_ARM]
-                    ms = round(wall * 1000)
-                    before, _, after = pose.payload.partition(b"1795046400000")
-                    telemetry = msgspec.structs.replace(pose.telemetry, timestamp_ms=ms)  # a frozen Struct
-                    payload = before + str(ms).encode() + after
-                    batch.append(
-                        dataclasses.replace(pose, received_wall_s=wall, telemetry=telemetry, payload=payload)
-                    )
-            writer.add(TELEMETRY_TABLE, telemetry_table(batch)[0])
-            writer.flush(120)
-            commits += 1
+        commits = _write_fleet_hour(writer, _fleet_templates(arms), steps, round(commit_every_s * RATE_HZ))
         write_s = time.monotonic() - started
         reader = HistoryReader(uri)
-        device = "arm-0001"
         since = dt.datetime.fromtimestamp(DAY_START_S + 3600, dt.UTC)
         until = since + dt.timedelta(minutes=minutes)
 
         def timed_read() -> tuple[float, int]:
             t = time.perf_counter()
-            rows = reader.window(device, since, until).collect().height
+            rows = reader.window("arm-0001", since, until).collect().height
             return time.perf_counter() - t, rows
 
         cold_s, rows = timed_read()
@@ -189,6 +168,31 @@ def read(*, arms: int = 100, minutes: float = 60.0, commit_every_s: float = 10.0
         }
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _write_fleet_hour(
+    writer: HistoryWriter, templates: dict[str, list[AppliedSample]], steps: int, per_commit: int
+) -> int:
+    """`steps` 10 Hz samples of every arm from an hour into the day, a commit per `per_commit` steps (the
+    agent's default cadence); returns the commits made."""
+    commits = 0
+    for first in range(0, steps, per_commit):
+        batch = []
+        for k in range(first, min(steps, first + per_commit)):
+            wall = DAY_START_S + 3600 + k / RATE_HZ
+            ms = round(wall * 1000)
+            for poses in templates.values():
+                pose = poses[k % POSES_PER_ARM]
+                before, _, after = pose.payload.partition(b"1795046400000")
+                telemetry = msgspec.structs.replace(pose.telemetry, timestamp_ms=ms)  # a frozen Struct
+                payload = before + str(ms).encode() + after
+                batch.append(
+                    dataclasses.replace(pose, received_wall_s=wall, telemetry=telemetry, payload=payload)
+                )
+        writer.add(TELEMETRY_TABLE, telemetry_table(batch)[0])
+        writer.flush(120)
+        commits += 1
+    return commits
 
 
 def load(*, arms: int = 1000, rate: float = 10.0, seconds: float = 20.0) -> dict[str, Any]:

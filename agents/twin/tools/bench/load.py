@@ -65,20 +65,12 @@ def publish(
     `jitter_ms` delays each message by a random 0..jitter_ms after its sample, as the networks between real
     arms and the broker do (the timestamps stay on the sampling grid). Through `WirePublisher`: one write per
     time slot, so the load costs the shared cores little (its module doc says why)."""
-    # Long on purpose: the publishing loop in time order (wait for the slot, build its packets, send those
-    # that are due), which reads best as one piece next to its timing rules.
     rng = random.Random(seed)
-    templates = {d: _templates(d, telemetry_topic(prefix, d), rng) for d in devices}
-    # Each arm moves on its own: a real fleet's arms are not in step, and a fleet that is turns every arm's
-    # still moments (the alarm engine's model check) into one burst.
-    phase = {d: rng.randrange(POSES) for d in devices}
+    schedule = _Schedule(devices, prefix, rng, jitter_ms)
     publisher = WirePublisher(url, new_client_id("bench-pub-"))
     publisher.connect()
     period = 1.0 / rate_hz
     slot_len = period / SLOTS_PER_PERIOD
-    slots = [devices[i::SLOTS_PER_PERIOD] for i in range(SLOTS_PER_PERIOD)]
-    delayed: list[tuple[float, int, tuple[bytes, bytes, bytes]]] = []  # (send at, order, packet pieces)
-    order = itertools.count()
     counts = {"sent": 0, "failures": 0}
     late_slots = 0
     start = time.monotonic()
@@ -93,21 +85,9 @@ def publish(
             time.sleep(due - now)
         elif now - due > period:
             late_slots += 1
-        step = k // SLOTS_PER_PERIOD
-        stamp = str(round(time.time() * 1000)).encode()
-        packets: list[bytes] = []
-        for device in slots[k % SLOTS_PER_PERIOD]:
-            before, after = templates[device][(step + phase[device]) % POSES]
-            if jitter_ms:
-                send_at = due + rng.uniform(0.0, jitter_ms) / 1000.0
-                heapq.heappush(delayed, (send_at, next(order), (before, stamp, after)))
-            else:
-                packets += (before, stamp, after)
-        while delayed and delayed[0][0] <= time.monotonic():
-            packets += heapq.heappop(delayed)[2]
-        _send(publisher, packets, counts)
+        _send(publisher, schedule.slot(k, due, str(round(time.time() * 1000)).encode()), counts)
         k += 1
-    _send(publisher, [piece for _, _, pieces in sorted(delayed) for piece in pieces], counts)
+    _send(publisher, schedule.rest(), counts)
     elapsed = time.monotonic() - start
     publisher.close()  # returns once the broker has read everything (DISCONNECT, then its close)
     return {
@@ -118,6 +98,42 @@ def publish(
         "offered_rate": counts["sent"] / elapsed if elapsed else 0.0,
         "jitter_ms": jitter_ms,
     }
+
+
+class _Schedule:
+    """What each time slot sends: the packets of the arms whose sample falls in it, each held back
+    0..jitter_ms after its sample, as pieces (before the timestamp, the timestamp, after it)."""
+
+    def __init__(self, devices: list[str], prefix: str, rng: random.Random, jitter_ms: float) -> None:
+        self._rng = rng
+        self._jitter_s = jitter_ms / 1000.0
+        self._templates = {d: _templates(d, telemetry_topic(prefix, d), rng) for d in devices}
+        # Each arm moves on its own: a real fleet's arms are not in step, and a fleet that is turns every
+        # arm's still moments (the alarm engine's model check) into one burst.
+        self._phase = {d: rng.randrange(POSES) for d in devices}
+        self._slots = [devices[i::SLOTS_PER_PERIOD] for i in range(SLOTS_PER_PERIOD)]
+        self._delayed: list[tuple[float, int, tuple[bytes, bytes, bytes]]] = []  # (send at, order, pieces)
+        self._order = itertools.count()
+
+    def slot(self, k: int, due: float, stamp: bytes) -> list[bytes]:
+        """Slot k's samples stamped `stamp` (those not held back), then every held-back one now due."""
+        step = k // SLOTS_PER_PERIOD
+        packets: list[bytes] = []
+        for device in self._slots[k % SLOTS_PER_PERIOD]:
+            before, after = self._templates[device][(step + self._phase[device]) % POSES]
+            if self._jitter_s:
+                send_at = due + self._rng.uniform(0.0, self._jitter_s)
+                heapq.heappush(self._delayed, (send_at, next(self._order), (before, stamp, after)))
+            else:
+                packets += (before, stamp, after)
+        delayed = self._delayed
+        while delayed and delayed[0][0] <= time.monotonic():
+            packets += heapq.heappop(delayed)[2]
+        return packets
+
+    def rest(self) -> list[bytes]:
+        """Whatever is still held back, in order."""
+        return [piece for _, _, pieces in sorted(self._delayed) for piece in pieces]
 
 
 def _send(publisher: WirePublisher, packets: list[bytes], counts: dict[str, int]) -> None:

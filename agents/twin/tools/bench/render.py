@@ -82,16 +82,7 @@ def measure(
     *, frames: int = 40, width: int = 640, height: int = 480, model: str | None = None
 ) -> dict[str, Any]:
     """The figures, measured in this process (MUJOCO_GL must be set before mujoco is imported)."""
-    # Long on purpose: a benchmark script in reading order (model load, timed frames per view, what each
-    # optional pass would cost, the demo's pictures).
-    import mujoco  # noqa: PLC0415
 
-    from twin.output.render import (  # noqa: PLC0415
-        OFFSCREEN_SCENE_FLAGS,
-        offscreen_renderer,
-        render_gif,
-        render_png,
-    )
     from twin.robot.model import RobotModel  # noqa: PLC0415
 
     load_before = os.getloadavg()[0]
@@ -102,45 +93,11 @@ def measure(
         loads.append(time.perf_counter() - started)
     m = robot.model
     poses = _poses(frames, robot.joint_ranges)
-    data = mujoco.MjData(m)
-    views: dict[str, str | None] = {"framed": None}
-    if "overview" in robot.camera_names:
-        views["overview"] = "overview"
-    shadow, reflection = mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION
-    # Absolute settings of the two passes, whatever the pictures' own flags are.
-    pass_sets = {
-        "neither": {shadow: False, reflection: False},
-        "shadow_only": {shadow: True, reflection: False},
-        "reflection_only": {shadow: False, reflection: True},
-        "shadow_and_reflection": {shadow: True, reflection: True},
-    }
-    per_view: dict[str, Any] = {}
-    scene_costs: dict[str, Any] = {}
-    with offscreen_renderer(m, width, height) as renderer:
-        gl = _gl_renderer()
-        drawn_flags = {
-            mujoco.mjtRndFlag(flag).name: bool(renderer.scene.flags[flag])
-            for flag in {shadow, reflection, *OFFSCREEN_SCENE_FLAGS}
-        }
-        for label, view in views.items():
-            per_view[label] = _time_frames(renderer, robot, data, poses, view=view, aspect=width / height)
-        offscreen_flags = renderer.scene.flags.copy()
-        for label, flags in pass_sets.items():
-            renderer.scene.flags[:] = offscreen_flags
-            for flag, enabled in flags.items():
-                renderer.scene.flags[flag] = enabled
-            scene_costs[label] = _time_frames(renderer, robot, data, poses, view=None, aspect=width / height)
-        renderer.scene.flags[:] = offscreen_flags
-    with tempfile.TemporaryDirectory(prefix="twin-bench-render-") as tmp:
-        started = time.perf_counter()
-        render_png(robot, poses[0], Path(tmp) / "twin.png")
-        png_s = time.perf_counter() - started
-        started = time.perf_counter()
-        render_gif(robot, poses[:30], Path(tmp) / "twin.gif")
-        gif_s = time.perf_counter() - started
+    frame = _time_views(robot, poses, width, height)
+    png_s, gif_s = _demo_pictures(robot, poses)
     return {
         "scenario": "render",
-        "gl_renderer": gl,
+        "gl_renderer": frame["gl_renderer"],
         "model": str(robot.path),
         "meshes": int(m.nmesh),
         "mesh_faces": int(m.nmeshface),
@@ -149,18 +106,75 @@ def measure(
         "frame_size": f"{width}x{height}",
         "frames": frames,
         # How the timed frames were drawn: the flags the pictures set, multisampling, the shadow map's size.
-        "scene_flags": drawn_flags,
+        "scene_flags": frame["scene_flags"],
         "msaa_samples": int(m.vis.quality.offsamples),
         "shadow_size": int(m.vis.quality.shadowsize),
-        "frame": per_view,
+        "frame": frame["per_view"],
         # The framed view again with each combination of the shadow and reflection passes.
-        "scene_costs": scene_costs,
+        "scene_costs": frame["scene_costs"],
         "target_frame_ms": 150.0,
         # What `twin demo` spends on pictures: its PNG (640x480, renderer made per call) and 30-frame GIF.
         "demo_png_s": png_s,
         "demo_gif_30_frames_s": gif_s,
         "load_average_1m": {"before": load_before, "after": os.getloadavg()[0]},
     }
+
+
+def _time_views(robot: Any, poses: list[dict[str, float]], width: int, height: int) -> dict[str, Any]:
+    """Frames as the pictures draw them, per view; then the framed view with each combination of the shadow
+    and reflection passes (absolute settings, whatever the pictures' own flags are)."""
+    import mujoco  # noqa: PLC0415
+
+    from twin.output.render import OFFSCREEN_SCENE_FLAGS, offscreen_renderer  # noqa: PLC0415
+
+    m = robot.model
+    data = mujoco.MjData(m)
+    views: dict[str, str | None] = {"framed": None}
+    if "overview" in robot.camera_names:
+        views["overview"] = "overview"
+    shadow, reflection = mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION
+    pass_sets = {
+        "neither": {shadow: False, reflection: False},
+        "shadow_only": {shadow: True, reflection: False},
+        "reflection_only": {shadow: False, reflection: True},
+        "shadow_and_reflection": {shadow: True, reflection: True},
+    }
+    with offscreen_renderer(m, width, height) as renderer:
+        out: dict[str, Any] = {
+            "gl_renderer": _gl_renderer(),
+            "scene_flags": {
+                mujoco.mjtRndFlag(flag).name: bool(renderer.scene.flags[flag])
+                for flag in {shadow, reflection, *OFFSCREEN_SCENE_FLAGS}
+            },
+            "per_view": {
+                label: _time_frames(renderer, robot, data, poses, view=view, aspect=width / height)
+                for label, view in views.items()
+            },
+            "scene_costs": {},
+        }
+        offscreen_flags = renderer.scene.flags.copy()
+        for label, flags in pass_sets.items():
+            renderer.scene.flags[:] = offscreen_flags
+            for flag, enabled in flags.items():
+                renderer.scene.flags[flag] = enabled
+            out["scene_costs"][label] = _time_frames(
+                renderer, robot, data, poses, view=None, aspect=width / height
+            )
+        renderer.scene.flags[:] = offscreen_flags
+    return out
+
+
+def _demo_pictures(robot: Any, poses: list[dict[str, float]]) -> tuple[float, float]:
+    """Seconds for the demo's PNG (640x480, its renderer made per call) and its 30-frame GIF."""
+    from twin.output.render import render_gif, render_png  # noqa: PLC0415
+
+    with tempfile.TemporaryDirectory(prefix="twin-bench-render-") as tmp:
+        started = time.perf_counter()
+        render_png(robot, poses[0], Path(tmp) / "twin.png")
+        png_s = time.perf_counter() - started
+        started = time.perf_counter()
+        render_gif(robot, poses[:30], Path(tmp) / "twin.gif")
+        return png_s, time.perf_counter() - started
 
 
 def run(*, frames: int = 40, width: int = 640, height: int = 480, model: str | None = None) -> dict[str, Any]:
