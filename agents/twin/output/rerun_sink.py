@@ -13,7 +13,7 @@ Everything temporal sits on the `edge_time` timeline (the edge's own timestamps)
 the sink's thread (`RobotModel.body_pose_array`). Cost is what decides the shape of the code: building a Rerun
 archetype in Python costs far more than the sample it carries, so samples are buffered per device and sent as
 Arrow columns, one record batch per device every `flush_s` (docs/web.md has the figures). The blocking part
-runs behind `QueuedSink`, which is handed samples HANDOFF_S at a time; a per-device rate cap in front of it
+runs behind `QueuedSink`, whose thread takes samples HANDOFF_S at a time; a per-device rate cap in front of it
 bounds the stream, and Rerun's server memory limit bounds what the served stream keeps for late viewers. The
 mirror never waits on any of it.
 """
@@ -32,7 +32,7 @@ import subprocess
 import threading
 import time
 import uuid
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from urllib.parse import quote
@@ -90,10 +90,10 @@ REJECT_TEXT_EVERY_S = 1.0
 MAX_REJECT_KEYS = 4096
 WEB_VIEWER_START_S = 15.0
 PLOT_WINDOW_S = 30.0
-# Applied samples are collected on the caller's side for this long and then handed to the sink's thread
-# together, so the thread wakes about 20 times a second instead of once per sample: each wake-up passes the
-# GIL between the mirror's threads and the sink's, which at 100 arms x 10 Hz cost more CPU than the samples'
-# own work (docs/web.md has the figures). It adds nothing visible to a stream sent every flush_s.
+# The sink's thread takes what is queued at most this often (QueuedSink's hand-off), so it wakes about 20
+# times a second instead of once per sample: each wake-up passes the GIL between the mirror's threads and the
+# sink's, which at 100 arms x 10 Hz cost more CPU than the samples' own work (docs/web.md has the figures).
+# It adds nothing visible to a stream sent every flush_s.
 HANDOFF_S = 0.05
 
 _V3 = pa.list_(pa.field("item", pa.float32(), nullable=False), 3)
@@ -224,8 +224,6 @@ class RerunWorker:
         self._rejects: dict[str | None, tuple[float, int]] = {}
         self.samples_logged = 0
         self.batches_sent = 0
-        # Called on the sink's thread when its queue has been idle: RerunSink hands over what it collected.
-        self.before_idle: Callable[[], None] | None = None
 
     # --- SinkWorker ---------------------------------------------------------------------------------------
 
@@ -270,8 +268,6 @@ class RerunWorker:
         self._rec.log(entity, rr.TextLog(text, level=rr.TextLogLevel.WARN))
 
     def idle(self) -> None:
-        if self.before_idle is not None:
-            self.before_idle()
         self._sweep(time.monotonic())
 
     def close(self) -> None:
@@ -518,8 +514,8 @@ class RerunWorker:
 
 
 class RerunSink:
-    """The Rerun sink the agent adds (a `TwinSink`): a per-device rate cap in front of a `QueuedSink`, fed
-    HANDOFF_S worth of samples at a time."""
+    """The Rerun sink the agent adds (a `TwinSink`): a per-device rate cap in front of a `QueuedSink`, whose
+    thread takes HANDOFF_S worth of samples at a time."""
 
     name = "rerun"
 
@@ -528,7 +524,11 @@ class RerunSink:
         self.settings = settings
         self.worker = RerunWorker(robot, settings)
         self._queue = QueuedSink(
-            self.name, self.worker, max_pending=settings.max_pending, idle_s=settings.flush_s / 2.0
+            self.name,
+            self.worker,
+            max_pending=settings.max_pending,
+            idle_s=settings.flush_s / 2.0,
+            hand_off_s=HANDOFF_S,
         )
         self._rate = settings.max_rate_hz
         # A token bucket per device holding burst_s seconds of the cap: a backlog released at once (network
@@ -537,12 +537,7 @@ class RerunSink:
         self._burst = max(1.0, settings.max_rate_hz * settings.burst_s)
         self._buckets: dict[str, tuple[float, float]] = {}  # device -> (tokens, receive time)
         self._skipped = 0
-        # Applied samples not yet handed to the queue, and when the first of them came (monotonic).
-        self._staged: list[AppliedSample] = []
-        self._staged_at = 0.0
         self._lock = threading.Lock()
-        # When the fleet goes quiet, the sink's thread takes what is left here within flush_s / 2.
-        self.worker.before_idle = self._hand_off
 
     @property
     def viewer_url(self) -> str | None:
@@ -570,40 +565,20 @@ class RerunSink:
                 self._skipped += 1
             return
         self._buckets[sample.device_id] = (tokens - 1.0, t)
-        now = time.monotonic()
-        with self._lock:
-            if not self._staged:
-                self._staged_at = now
-            self._staged.append(sample)
-            if now - self._staged_at >= HANDOFF_S:
-                self._hand_off_locked()
+        self._queue.applied(sample)
 
     def rejected(self, sample: RejectedSample) -> None:
-        with self._lock:
-            self._hand_off_locked()  # the sink's thread sees messages in the order they came
-            self._queue.rejected(sample)
+        self._queue.rejected(sample)
 
     def stats(self) -> SinkStats:
         with self._lock:
-            skipped, staged = self._skipped, len(self._staged)
-        queued = self._queue.stats()
-        return replace(queued, skipped=skipped, pending=queued.pending + staged)
+            skipped = self._skipped
+        return replace(self._queue.stats(), skipped=skipped)
 
     def close(self, timeout: float = 10.0) -> None:
-        self._hand_off()
         self._queue.close(timeout)
         # If the queue's thread did not get to it, the web viewer is still ours to stop.
         self.worker.stop_web_viewer()
-
-    def _hand_off(self) -> None:
-        with self._lock:
-            self._hand_off_locked()
-
-    def _hand_off_locked(self) -> None:
-        # Under self._lock, so two hand-offs (the caller's and the idle thread's) cannot interleave.
-        staged, self._staged = self._staged, []
-        for sample in staged:
-            self._queue.applied(sample)
 
 
 # --- helpers -------------------------------------------------------------------------------------------
