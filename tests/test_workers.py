@@ -157,13 +157,12 @@ def test_merged_state_sums_the_workers_and_adds_what_the_receiver_dropped() -> N
     state = merge_reports(
         AgentInfo(pid=1, running=True),
         [
-            (0, WorkerReport(first, histogram(0.001, 0.002), histogram())),
-            (1, WorkerReport(second, histogram(0.004), histogram(0.01))),
+            WorkerReport(first, histogram(0.001, 0.002), histogram()),
+            WorkerReport(second, histogram(0.004), histogram(0.01)),
         ],
         workers,
         refused={"too_many_devices": 2},
         dropped=Counter({"b": 3}),
-        expected_rate_hz=10.0,
     )
     assert list(state.devices) == ["a", "b", "c"]
     assert state.devices["a"].counters.overwritten == 1  # its worker's own
@@ -196,11 +195,10 @@ def test_a_worker_that_does_not_answer_is_not_running_in_the_merged_state() -> N
     report = WorkerReport(worker_state({"a": DeviceCounters(received=1)}), histogram(), histogram())
     state = merge_reports(
         AgentInfo(running=True),
-        [(0, report)],
+        [report],
         (WorkerInfo(index=0, alive=True), WorkerInfo(index=1, alive=False)),
         refused={},
         dropped=Counter(),
-        expected_rate_hz=10.0,
     )
     assert state.agent.running is False and state.agent.worker.alive is False
     assert list(state.devices) == ["a"]

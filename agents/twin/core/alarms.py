@@ -741,7 +741,7 @@ class ServoAlarms:
         """Alarms sorted worst first (severity, then state, then id); NORMAL ones only when asked."""
         alarms = self._alarms.values() if device is None else self._by_device.get(device, ())
         out = [self._view(a) for a in alarms if include_normal or a.state is not AlarmState.NORMAL]
-        out.sort(key=lambda v: (-v.severity.rank, _STATE_ORDER[v.state], v.alarm_id))
+        out.sort(key=lambda v: worst_first(v.severity, v.state, v.alarm_id))
         return out
 
     def _view(self, alarm: _Alarm) -> AlarmView:
@@ -813,6 +813,12 @@ _STATE_ORDER = {
     AlarmState.ACKNOWLEDGED: 2,
     AlarmState.NORMAL: 3,
 }
+
+
+def worst_first(severity: Severity | str, state: AlarmState | str, alarm_id: str) -> tuple[int, int, str]:
+    """The sort key of every list of alarms: critical before warning, then ACTIVE, LATCHED, ACKNOWLEDGED,
+    NORMAL, then by id. Takes the enums or their values (an AlarmInfo carries strings)."""
+    return (-Severity(severity).rank, _STATE_ORDER[AlarmState(state)], alarm_id)
 
 
 def _worse(a: tuple[Severity, AlarmState], b: tuple[Severity, AlarmState]) -> bool:

@@ -544,7 +544,7 @@ class AgentService:
                 now = self._clock()
                 self._step_physics(min(now - last_step, MAX_PHYSICS_STEP_S), dirty)
                 last_step = now
-            self._publish(dirty, [k for k, _ in items])
+            self._publish(dirty, took=bool(items))
             since = self._clock() - last_freeze
             grown = len(self._devices) != frozen_devices
             if since >= FREEZE_EVERY_S or (grown and since >= FREEZE_AFTER_NEW_S):
@@ -561,7 +561,9 @@ class AgentService:
                 self._count_error(device, "physics step failed")
             dirty.add(device)
 
-    def _publish(self, dirty: set[str], keys: list[str]) -> None:
+    def _publish(self, dirty: set[str], *, took: bool) -> None:
+        """Snapshots of the devices this batch changed, and the queue's drop counts, for the readers; `took`:
+        the batch had messages (it counts in `batches`)."""
         snapshots = {}
         for device in dirty:
             tracked = self._devices.get(device)
@@ -575,7 +577,7 @@ class AgentService:
                 health = self._fleet.get(key)
                 if health is not None:
                     health.overwritten = count
-            if keys:
+            if took:
                 self.batches += 1
 
     def _catch_up(self, items: list[tuple[str, _Inbound]]) -> list[tuple[str, _Inbound, Telemetry]]:

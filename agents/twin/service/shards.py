@@ -672,11 +672,10 @@ class ShardedAgent:
             answers = self._ask_all("state")
             state = merge_reports(
                 self._info(now),
-                [(worker.index, report) for worker, report in answers],
+                [report for _, report in answers],
                 self._worker_infos({worker.index: report for worker, report in answers}),
                 refused=dict(self._refused),
                 dropped=self._dropped(),
-                expected_rate_hz=self.config.health.expected_rate_hz,
             )
             self._cached = (now, state)
             return state
@@ -774,12 +773,11 @@ class ShardedAgent:
 
 def merge_reports(
     info: AgentInfo,
-    reports: Sequence[tuple[int, WorkerReport]],
+    reports: Sequence[WorkerReport],
     workers: tuple[WorkerInfo, ...],
     *,
     refused: dict[str, int],
     dropped: Counter[str],
-    expected_rate_hz: float,
 ) -> AgentState:
     """One fleet state from the workers' states. `info` is the receiving process's own part (process,
     broker); `refused` its rejections by reason (devices over telemetry.max_devices); `dropped` the messages
@@ -788,7 +786,7 @@ def merge_reports(
     devices = {}
     untracked: Counter[str] = Counter(refused)
     internal, end_to_end = LatencyHistogram(), LatencyHistogram()
-    for _, report in reports:
+    for report in reports:
         state = report.state
         for device, d in state.devices.items():
             extra = dropped.get(device, 0)
@@ -803,8 +801,7 @@ def merge_reports(
         untracked.update(state.untracked_rejected)
         internal.merge(report.internal)
         end_to_end.merge(report.end_to_end)
-    agents = [report.state.agent for _, report in reports]
-    del expected_rate_hz  # the same in every worker; kept in the signature for the loss figures' meaning
+    agents = [report.state.agent for report in reports]
     return AgentState(
         agent=dataclasses.replace(
             info,

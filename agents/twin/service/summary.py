@@ -7,7 +7,7 @@ Light on purpose: the receiving process of a sharded agent imports it, and must 
 
 from __future__ import annotations
 
-from twin.core.alarms import AlarmState, Severity
+from twin.core.alarms import worst_first
 from twin.core.health import DeviceStatus
 from twin.output.emf import FleetTotals
 from twin.service.config import AgentConfig
@@ -39,14 +39,9 @@ def fleet_totals(state: AgentState, expected_rate_hz: float) -> FleetTotals:
     )
 
 
-_SEVERITY_RANK = {str(s): s.rank for s in Severity}
-_STATE_ORDER = {str(AlarmState.ACTIVE): 0, str(AlarmState.LATCHED): 1, str(AlarmState.ACKNOWLEDGED): 2}
-
-
 def alarm_order(info: AlarmInfo) -> tuple[int, int, str]:
-    """Worst first: critical before warning, then ACTIVE, LATCHED, ACKNOWLEDGED, NORMAL, then by id (the
-    order ServoAlarms.views gives)."""
-    return (-_SEVERITY_RANK.get(info.severity, 0), _STATE_ORDER.get(info.state, 3), info.alarm_id)
+    """Worst first, as ServoAlarms.views orders them (core.alarms.worst_first)."""
+    return worst_first(info.severity, info.state, info.alarm_id)
 
 
 def broker_state(url: str, settings: PoolSettings, pool: ConnectionPool, started: bool) -> BrokerState:
