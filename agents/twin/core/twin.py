@@ -32,7 +32,7 @@ import logging
 import math
 from collections.abc import Callable, Mapping
 from enum import StrEnum
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import mujoco
 import numpy as np
@@ -108,36 +108,6 @@ class _Figures:
         return torques
 
 
-_TABLES: dict[int, tuple[RobotModel, tuple[tuple[Any, ...], ...]]] = {}
-
-
-def _joint_tables(robot: RobotModel) -> tuple[tuple[Any, ...], ...]:
-    """(qpos addresses, dof addresses, lower limits, upper limits, actuator ids, the model's rest pose clamped
-    to the limits), each in JOINT_NAMES order; computed once per model."""
-    cached = _TABLES.get(id(robot))
-    if cached is not None and cached[0] is robot:
-        return cached[1]
-    names = robot.joint_names
-    lo = tuple(robot.joint_ranges[n][0] for n in names)
-    hi = tuple(robot.joint_ranges[n][1] for n in names)
-    qadr = tuple(robot.qpos_addr[n] for n in names)
-    rest = tuple(
-        min(max(float(robot.model.qpos0[a]), low), high) for a, low, high in zip(qadr, lo, hi, strict=True)
-    )
-    tables = (
-        qadr,
-        tuple(robot.dof_addr[n] for n in names),
-        lo,
-        hi,
-        tuple(robot.actuator_ids.get(n, -1) for n in names),
-        rest,
-    )
-    if len(_TABLES) >= 16:  # an agent has one model; tests load many, which must not stay alive here
-        _TABLES.clear()
-    _TABLES[id(robot)] = (robot, tables)
-    return tables
-
-
 def _near(a: tuple[float, ...], b: tuple[float, ...], tolerance: float) -> bool:
     return all(abs(x - y) <= tolerance for x, y in zip(a, b, strict=True))
 
@@ -204,9 +174,8 @@ class DeviceTwin:
         self._own_data = mujoco.MjData(model) if self.mode is TwinMode.PHYSICS else None
         # Flat per-joint tables, JOINT_NAMES order: the hot path indexes lists instead of hashing names. They
         # are the model's, shared by every twin of it: a fleet's first messages each create a twin.
-        tables = _joint_tables(robot)
         self._names = robot.joint_names
-        self._qadr, self._dadr, self._lo, self._hi, self._act, rest = tables
+        self._qadr, self._dadr, self._lo, self._hi, self._act, rest = robot.joint_tables
         self._targets = list(rest)
         self._tcp: tuple[float, float, float] | None = None  # physics: of the simulated state
         self._figures: _Figures | None = None  # of the current targets, once computed

@@ -9,11 +9,13 @@ are only needed to drive the model in physics mode, so their absence is recorded
 from __future__ import annotations
 
 import copy
+import functools
 import logging
 import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import mujoco
 import numpy as np
@@ -59,6 +61,18 @@ def _is_position_servo(model: mujoco.MjModel, act: int) -> bool:
         and kp > 0.0
         and bool(np.isclose(model.actuator_biasprm[act, 1], -kp))
     )
+
+
+class JointTables(NamedTuple):
+    """Per-joint tables in JOINT_NAMES order: qpos and dof addresses, lower and upper limits, the position
+    actuator's id (-1 without one), and the model's reference pose clamped to the limits."""
+
+    qpos: tuple[int, ...]
+    dof: tuple[int, ...]
+    lo: tuple[float, ...]
+    hi: tuple[float, ...]
+    actuator: tuple[int, ...]
+    rest: tuple[float, ...]
 
 
 @dataclass(eq=False)
@@ -149,6 +163,26 @@ class RobotModel:
             tcp_body_id=tcp_body,
             inverse_model=inverse_model,
             camera_names=tuple(_name(model, mujoco.mjtObj.mjOBJ_CAMERA, c) for c in range(model.ncam)),
+        )
+
+    @functools.cached_property
+    def joint_tables(self) -> JointTables:
+        """The per-joint index tables a twin reads per message, each in `joint_names` order; built on first
+        use and kept with the model."""
+        names = self.joint_names
+        lo = tuple(self.joint_ranges[n][0] for n in names)
+        hi = tuple(self.joint_ranges[n][1] for n in names)
+        qadr = tuple(self.qpos_addr[n] for n in names)
+        return JointTables(
+            qpos=qadr,
+            dof=tuple(self.dof_addr[n] for n in names),
+            lo=lo,
+            hi=hi,
+            actuator=tuple(self.actuator_ids.get(n, -1) for n in names),
+            rest=tuple(
+                min(max(float(self.model.qpos0[a]), low), high)
+                for a, low, high in zip(qadr, lo, hi, strict=True)
+            ),
         )
 
     def workspace(self) -> tuple[mujoco.MjData, mujoco.MjData]:
