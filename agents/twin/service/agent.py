@@ -37,7 +37,6 @@ from __future__ import annotations
 import gc
 import logging
 import os
-import pickle
 import threading
 import time
 from collections import Counter
@@ -90,8 +89,9 @@ from twin.service.state import (
 from twin.service.state import (
     DeviceLoss as DeviceLossState,
 )
-from twin.service.summary import broker_state, fleet_totals, pool_settings
-from twin.transport.mailbox import InboundQueue
+from twin.service.summary import TOO_MANY_DEVICES, broker_state, fleet_totals, pool_settings
+from twin.transport.mailbox import UNTRACKED_KEY, InboundQueue
+from twin.transport.pipe import read_batch
 from twin.transport.pool import ConnectionPool
 
 if TYPE_CHECKING:
@@ -127,11 +127,9 @@ FREEZE_AFTER_NEW_S = 0.25
 # counts every message, but applies only each arm's newest valid one, so the twin shows the present instead
 # of replaying a backlog seconds old (docs/agent.md, "Catching up").
 CATCH_UP_AFTER_S = 0.05
-TOO_MANY_DEVICES = "too_many_devices"
 # The queue between the MQTT threads and the worker holds at most this many messages (about 40 MB of edge
 # payloads); beyond it the oldest are dropped and counted, so a stalled worker cannot exhaust memory.
 MAX_QUEUED_MESSAGES = 50_000
-UNTRACKED_KEY = "\x00untracked"  # mailbox key for topics that carry no device id (cannot collide with one)
 
 
 @dataclass(frozen=True, slots=True)
@@ -189,9 +187,8 @@ class PipeInbox:
     """The worker thread's queue in a sharded agent's worker process: batches its receiving process wrote to a
     pipe (service.shards), read by the worker thread itself, so no thread or queue sits between.
 
-    Each pipe message is a pickled list of (device or None, topic, payload, receive monotonic, receive wall);
-    an empty one is the end marker. The receiving process's queue for this worker is bounded and counts
-    what it drops, so nothing here overflows (the pipe holds back the writer instead)."""
+    The batches' format is transport.pipe's. The receiving process's queue for this worker is bounded and
+    counts what it drops, so nothing here overflows (the pipe holds back the writer instead)."""
 
     # Read at most this many messages per take: a backlog reaches the worker's catch-up check in pieces.
     MAX_TAKE = 5_000
@@ -209,14 +206,11 @@ class PipeInbox:
             if not conn.poll(timeout):
                 return items
             while True:
-                raw = conn.recv_bytes()
-                if not raw:
+                batch = read_batch(conn.recv_bytes())
+                if batch is None:
                     self._closed = True
                     break
-                items.extend(
-                    (device or UNTRACKED_KEY, _Inbound(topic, payload, mono, wall))
-                    for device, topic, payload, mono, wall in pickle.loads(raw)
-                )
+                items.extend((key, _Inbound(*fields)) for key, fields in batch)
                 if len(items) >= self.MAX_TAKE or not conn.poll(0):
                     break
         except (EOFError, OSError):

@@ -32,7 +32,6 @@ import logging
 import math
 import multiprocessing
 import os
-import pickle
 import signal
 import threading
 import time
@@ -66,8 +65,9 @@ from twin.service.state import (
     WorkerInfo,
     WorkerState,
 )
-from twin.service.summary import alarm_order, broker_state, fleet_totals, pool_settings
-from twin.transport.mailbox import InboundQueue
+from twin.service.summary import TOO_MANY_DEVICES, alarm_order, broker_state, fleet_totals, pool_settings
+from twin.transport.mailbox import UNTRACKED_KEY, InboundQueue
+from twin.transport.pipe import send_batch, send_end
 from twin.transport.pool import ConnectionPool
 
 log = logging.getLogger(__name__)
@@ -101,8 +101,6 @@ START_TIMEOUT_S = 120.0
 # MAX_RESTART_PAUSE_S) rather than at once, so a worker that cannot run does not spin.
 QUICK_DEATH_S = 30.0
 MAX_RESTART_PAUSE_S = 60.0
-UNTRACKED = "\x00untracked"  # a topic naming no device (cannot collide with a device id)
-TOO_MANY_DEVICES = "too_many_devices"
 
 
 class WorkerError(RuntimeError):
@@ -410,7 +408,7 @@ class ShardedAgent:
                 worker.sender.join(max(0.1, deadline - time.monotonic()))
             elif worker.data is not None:
                 with contextlib.suppress(OSError, ValueError):
-                    worker.data.send_bytes(b"")
+                    send_end(worker.data)
         for worker in self._workers:
             process = worker.process
             if process is None:
@@ -533,7 +531,7 @@ class ShardedAgent:
         """On a CRT thread: admit the device, queue the message for its worker. Never blocks for long."""
         device = device_from_topic(topic, self._prefix)
         if device is None:
-            self._workers[0].queue.put(UNTRACKED, (topic, payload, recv_mono, self._wall_clock()))
+            self._workers[0].queue.put(UNTRACKED_KEY, (topic, payload, recv_mono, self._wall_clock()))
             return
         index = self._routes.get(device)
         if index is None:
@@ -586,15 +584,14 @@ class ShardedAgent:
                 if not worker.ready or conn is None:
                     worker.dropped.update(key for key, _ in chunk)
                     continue
-                batch = [(None if key == UNTRACKED else key, *item) for key, item in chunk]
                 try:
-                    conn.send_bytes(pickle.dumps(batch, protocol=pickle.HIGHEST_PROTOCOL))
+                    send_batch(conn, chunk)
                 except (OSError, ValueError):
                     worker.ready = False
                     worker.dropped.update(key for key, _ in chunk)
         if worker.data is not None and worker.ready:
             with contextlib.suppress(OSError, ValueError):
-                worker.data.send_bytes(b"")
+                send_end(worker.data)
 
     # ------------------------------------------------------------------------------------------- requests
 

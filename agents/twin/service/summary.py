@@ -1,6 +1,6 @@
 """What the agent does the same way in one process (service.agent) and in several (service.shards): the
 connection pool's plan from the config, the broker side of /state, the order of /alarms, and the CloudWatch
-metrics' totals.
+metrics' totals, and the rejection reason for a device over `telemetry.max_devices`.
 
 Light on purpose: the receiving process of a sharded agent imports it, and must not load MuJoCo or usd-core.
 """
@@ -14,6 +14,9 @@ from twin.service.config import AgentConfig
 from twin.service.state import AgentState, AlarmInfo, BrokerState, ConnectionState
 from twin.transport.plan import PoolSettings, default_limit
 from twin.transport.pool import ConnectionPool
+
+# Counted for a valid message from a device beyond `telemetry.max_devices` (docs/agent.md).
+TOO_MANY_DEVICES = "too_many_devices"
 
 
 def fleet_totals(state: AgentState, expected_rate_hz: float) -> FleetTotals:

@@ -14,6 +14,9 @@ from typing import Generic, TypeVar
 
 T = TypeVar("T")
 
+# The key of messages whose topic names no device (cannot collide with a device id).
+UNTRACKED_KEY = "\x00untracked"
+
 
 class InboundQueue(Generic[T]):
     """A bounded FIFO between the MQTT callback threads and the worker, which decodes every message.

@@ -1,13 +1,13 @@
 """Worker: what one worker process spends per message, without a broker, publishers or another process.
 
 An `AgentService` is built as a sharded agent's worker process builds it (fed through a pipe, `inbox`), and
-this process writes the fleet's messages into the other end as the receiving process does: pickled batches
-of up to 1,000. The payloads are the edge's mock ones (raw ticks with every diagnostic, as `twin edge-sim`
-sends them), each arm at its own phase of the mock motion, with 10 Hz edge timestamps. The figure is the CPU
-time of this process (both threads; the pickling here is about what the receiving process's sender pays) per
-message: for the fleet's first messages (every arm new) and for the rounds after them, with the servo alarm
-engine on and off. No wall-clock rate is imposed: the worker runs flat out, so this is the cost of a
-message, not a latency.
+this process writes the fleet's messages into the other end as the receiving process does (transport.pipe,
+batches of up to shards.MAX_BATCH). The payloads are the edge's mock ones (raw ticks with every diagnostic,
+as `twin edge-sim` sends them), each arm at its own phase of the mock motion, with 10 Hz edge timestamps. The
+figure is the CPU time of this process (both threads; the pickling here is about what the receiving
+process's sender pays) per message: for the fleet's first messages (every arm new) and for the rounds after
+them, with the servo alarm engine on and off. No wall-clock rate is imposed: the worker runs flat out, so
+this is the cost of a message, not a latency.
 
     twin bench worker [--arms 1000] [--rounds 40] [--json]
 """
@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import logging
 import os
-import pickle
 import random
 import time
 from multiprocessing import Pipe
@@ -25,16 +24,17 @@ from typing import Any
 from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
 from twin.service.agent import AgentService
 from twin.service.config import load_config
+from twin.service.shards import MAX_BATCH
 from twin.tools.edge_payload import encode, make_payload
+from twin.transport.pipe import Message, send_batch, send_end
 
 POSES = 64
-BATCH = 1000
 T0_MS = 1_764_000_000_000
 MARKER = 1_111_111_111_111
 
 
-def _fleet(arms: int, rounds: int, seed: int = 1) -> list[list[tuple[str, str, bytes, float, float]]]:
-    """One list of messages per round (every arm once, in arm order), as the receiving process sends them."""
+def _fleet(arms: int, rounds: int, seed: int = 1) -> list[list[tuple[str, str, bytes]]]:
+    """One list of (device, topic, payload) per round: every arm once, in arm order."""
     rng = random.Random(seed)
     devices = [f"arm-{i:04d}" for i in range(1, arms + 1)]
     templates = {
@@ -52,7 +52,7 @@ def _fleet(arms: int, rounds: int, seed: int = 1) -> list[list[tuple[str, str, b
         messages = []
         for d in devices:
             before, after = templates[d][(r + phase[d]) % POSES]
-            messages.append((d, topics[d], before + stamp + after, 0.0, 0.0))
+            messages.append((d, topics[d], before + stamp + after))
         out.append(messages)
     return out
 
@@ -76,7 +76,7 @@ def _case(arms: int, rounds: int, *, alarms: bool) -> dict[str, Any]:
         first = _feed(service, writer, fleet[:1])
         rest = _feed(service, writer, fleet[1:])
     finally:
-        writer.send_bytes(b"")  # the end marker
+        send_end(writer)
         service.stop(timeout=30.0)
         writer.close()
     return {
@@ -87,18 +87,18 @@ def _case(arms: int, rounds: int, *, alarms: bool) -> dict[str, Any]:
     }
 
 
-def _feed(
-    service: AgentService, writer: Any, rounds: list[list[tuple[str, str, bytes, float, float]]]
-) -> float:
+def _feed(service: AgentService, writer: Any, rounds: list[list[tuple[str, str, bytes]]]) -> float:
     """CPU microseconds of this process per message while the worker handles `rounds`."""
     total = sum(len(r) for r in rounds)
     target = service.processed + total
     started = time.process_time()
     for messages in rounds:
         now_mono, now_wall = time.monotonic(), time.time()
-        for i in range(0, len(messages), BATCH):
-            batch = [(d, t, p, now_mono, now_wall) for d, t, p, _, _ in messages[i : i + BATCH]]
-            writer.send_bytes(pickle.dumps(batch, protocol=pickle.HIGHEST_PROTOCOL))
+        for i in range(0, len(messages), MAX_BATCH):
+            batch: list[Message] = [
+                (d, (t, p, now_mono, now_wall)) for d, t, p in messages[i : i + MAX_BATCH]
+            ]
+            send_batch(writer, batch)
     deadline = time.monotonic() + 120.0
     while service.processed < target and time.monotonic() < deadline:
         time.sleep(0.001)
