@@ -828,12 +828,12 @@ def merge_reports(
 
 
 def _sum_fields(items: Sequence[Any], cls: type, **fixed: Any) -> Any:
-    """A dataclass whose int fields are the sums of `items`' (other fields from `fixed`)."""
-    values: dict[str, Any] = {}
+    """A dataclass whose counts are the sums of `items`' (other fields from `fixed`)."""
+    values: dict[str, Any] = dict(fixed)
     for f in dataclasses.fields(cls):
-        if f.name in fixed:
-            values[f.name] = fixed[f.name]
-        elif f.type in ("int", int):
+        first = getattr(items[0], f.name)
+        # By value, not annotation: under `from __future__ import annotations` those are strings.
+        if f.name not in fixed and isinstance(first, int) and not isinstance(first, bool):
             values[f.name] = sum(getattr(item, f.name) for item in items)
     return cls(**values)
 
