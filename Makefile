@@ -6,16 +6,34 @@ SHELL := /bin/bash
 
 VENV ?= .venv
 PY := $(VENV)/bin/python
-PIP := $(PY) -m pip --disable-pip-version-check -q
 # Node 20 is past jsii's support window; the banner on every CDK call drowns real output.
 export JSII_SILENCE_WARNING_END_OF_LIFE_NODE_VERSION := 20
 # No GPU here or in CI: MuJoCo renders offscreen through EGL (Mesa surfaceless here, NVIDIA on the instance).
 export MUJOCO_GL ?= egl
 export PYOPENGL_PLATFORM ?= $(MUJOCO_GL)
 
-# iproute2: the ROS 2 tests build a loopback-only network namespace (unshare -n, ip).
-# chromium: the browser test of the Rerun web viewer (Playwright drives this one; none is downloaded).
-APT_PACKAGES := mosquitto xvfb xauth libosmesa6 libgl1-mesa-dri libglfw3 shellcheck iproute2 chromium
+# What the demo needs from apt: the private broker and offscreen OpenGL (EGL/OSMesa through Mesa).
+DEMO_APT_PACKAGES := mosquitto libosmesa6 libgl1-mesa-dri libglfw3
+# What the tests need on top: Xvfb for the viewer window; shellcheck for userdata/; iproute2 for the ROS 2 tests'
+# loopback-only network namespace (unshare -n, ip); chromium for the browser tests (Playwright drives this one;
+# no browser is ever downloaded).
+TEST_APT_PACKAGES := xvfb xauth shellcheck iproute2 chromium
+
+# Python environments come from locks (docs/development.md): uv.lock for the agents and their tests, and
+# hashed requirements files for the tools that live in venvs of their own. uv itself is installed from a hashed
+# requirements file into a venv of its own, so `uv sync` can never remove it.
+UV_VENV := .venv-uv
+UV := $(UV_VENV)/bin/uv
+UV_STAMP := $(UV_VENV)/.setup-stamp
+# uv installs into .venv, with this machine's python3, and never downloads an interpreter.
+export UV_PROJECT_ENVIRONMENT := $(VENV)
+export UV_PYTHON := python3
+export UV_PYTHON_DOWNLOADS := never
+# Hardlinks fail across filesystems (the cache may sit on another); copying is what uv falls back to anyway.
+export UV_LINK_MODE := copy
+UV_SYNC := $(UV) sync --frozen --quiet
+# The runtime and the extras `make demo` runs with (history: the demo keeps and plots the arm's history).
+DEMO_STAMP := $(VENV)/.demo-stamp
 SETUP_STAMP := $(VENV)/.setup-stamp
 # Checkov pins many libraries of its own; a venv of its own keeps them from fighting the agent's.
 CHECKOV_VENV := .venv-checkov
@@ -23,88 +41,137 @@ CHECKOV_STAMP := $(CHECKOV_VENV)/.setup-stamp
 NODE_STAMP := node_modules/.setup-stamp
 # The ROS 2 bridge is tested against real rclpy from the PyPI wheels: Jazzy (Fast DDS 2.14) and Kilted (Fast
 # DDS 3.2, whose type-information matching is the pitfall the bridge works around). The wheels rewrite the
-# interpreter's library path at start-up, so each distribution lives in a venv of its own; pinned so a test
-# run today and next year talk to the same ROS 2.
+# interpreter's library path at start-up, so each distribution lives in a venv of its own; locked
+# (requirements/ros2-*.txt) so a test run today and next year talk to the same ROS 2.
 ROS2_VENV := .venv-ros2
 ROS2_STAMP := $(ROS2_VENV)/.setup-stamp
-ROS2_PACKAGES := 'ros-jazzy-rclpy[fastrtps]==7.1.6' 'ros-jazzy-sensor-msgs==5.3.6'
 ROS2_KILTED_VENV := .venv-ros2-kilted
 ROS2_KILTED_STAMP := $(ROS2_KILTED_VENV)/.setup-stamp
-ROS2_KILTED_PACKAGES := 'ros-kilted-rclpy[fastrtps]==9.1.2' 'ros-kilted-sensor-msgs==5.5.1'
+# `make test` runs the suite in a fixed order; `make test-stress` shuffles it (pytest-randomly).
+PYTEST := $(VENV)/bin/pytest -p no:randomly
 
-.PHONY: help setup system-packages test test-fast lint demo bench usd-asset meshes clean
+.PHONY: help setup setup-demo system-packages demo-system-packages test test-fast test-stress lint lock \
+	check-lock demo bench usd-asset meshes clean
 
 help:
-	@echo "make demo   - set up, then run the twin end to end locally (broker, edge simulator, agent)"
+	@echo "make demo   - set up what the demo needs, then run the twin end to end locally (broker, edge simulator, agent)"
 	@echo "make test   - set up, then run every check CI runs"
 	@echo "make test-fast - set up, lint, then the tests not marked slow (the inner loop; make test runs all)"
-	@echo "make setup  - system packages (apt), .venv, CDK CLI; idempotent"
+	@echo "make test-stress - the whole suite three times in random order with every core busy (finds flaky tests)"
+	@echo "make setup  - system packages (apt), .venv from the lock, the test tools, CDK CLI; idempotent"
+	@echo "make lock   - re-resolve the locks after a change to pyproject.toml or requirements/*.in"
 	@echo "make bench  - run the benchmarks and print figures (docs/performance.md)"
 	@echo "make usd-asset - regenerate robots/so101 USD asset from the MJCF"
 	@echo "make meshes - re-fetch the SO-101 part meshes (checked against their provenance), re-make visual/"
 
 setup: system-packages $(SETUP_STAMP) $(NODE_STAMP) $(CHECKOV_STAMP) $(ROS2_STAMP) $(ROS2_KILTED_STAMP)
 
-# apt only when a tool is missing, so a second `make setup` does no network work.
-system-packages:
+setup-demo: demo-system-packages $(DEMO_STAMP)
+
+# apt only when a tool is missing, so a second `make setup` does no network work. $(1): the packages.
+apt_install = if [ "$$(id -u)" != 0 ]; then echo "setup: need root to apt-get install $(1)" >&2; exit 1; fi; \
+	echo "setup: installing system packages: $(1)"; \
+	DEBIAN_FRONTEND=noninteractive apt-get update -qq && \
+	DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $(1) >/dev/null
+
+demo-system-packages:
 	@missing=""; \
-	for bin in mosquitto Xvfb shellcheck ip unshare chromium; do command -v $$bin >/dev/null 2>&1 || missing=1; done; \
-	[ -e /usr/lib/x86_64-linux-gnu/libOSMesa.so.8 ] || ls /usr/lib/*/libOSMesa.so* >/dev/null 2>&1 || missing=1; \
+	command -v mosquitto >/dev/null 2>&1 || missing=1; \
+	ls /usr/lib/*/libOSMesa.so* >/dev/null 2>&1 || missing=1; \
 	ls /usr/lib/*/libglfw.so.3 >/dev/null 2>&1 || missing=1; \
-	if [ -n "$$missing" ]; then \
-	  if [ "$$(id -u)" != 0 ]; then echo "setup: need root to apt-get install $(APT_PACKAGES)" >&2; exit 1; fi; \
-	  echo "setup: installing system packages: $(APT_PACKAGES)"; \
-	  DEBIAN_FRONTEND=noninteractive apt-get update -qq && \
-	  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $(APT_PACKAGES) >/dev/null; \
-	fi
+	if [ -n "$$missing" ]; then $(call apt_install,$(DEMO_APT_PACKAGES)); fi
 
-$(SETUP_STAMP): pyproject.toml
-	@test -x $(PY) || python3 -m venv $(VENV)
-	@echo "setup: installing Python packages into $(VENV)"
-	@$(PIP) install --upgrade pip 2>&1 | sed '/^WARNING: Location/d'
-	@$(PIP) install -e '.[dev]' 2>&1 | sed '/^WARNING: Location/d'
+system-packages: demo-system-packages
+	@missing=""; \
+	for bin in Xvfb shellcheck ip unshare chromium; do command -v $$bin >/dev/null 2>&1 || missing=1; done; \
+	if [ -n "$$missing" ]; then $(call apt_install,$(TEST_APT_PACKAGES)); fi
+
+$(UV_STAMP): requirements/uv.txt
+	@test -x $(UV_VENV)/bin/python || python3 -m venv $(UV_VENV)
+	@$(UV_VENV)/bin/python -m pip --disable-pip-version-check -q install --require-hashes -r requirements/uv.txt
+	@touch $@
+
+# The demo's environment: the runtime and the history extra, nothing for tests. --inexact: a full `make setup`
+# venv keeps its test tools when `make demo` runs in it.
+$(DEMO_STAMP): $(UV_STAMP) uv.lock pyproject.toml
+	@echo "setup: installing the agents from uv.lock into $(VENV)"
+	@$(UV_SYNC) --inexact --no-default-groups --extra history
+	@$(PY) -c "import twin, mujoco, pxr, awscrt, deltalake" || { echo "setup: Python install failed" >&2; exit 1; }
+	@touch $@
+
+$(SETUP_STAMP): $(UV_STAMP) uv.lock pyproject.toml
+	@echo "setup: installing the agents and the test tools from uv.lock into $(VENV)"
+	@$(UV_SYNC) --all-extras
 	@$(PY) -c "import twin, mujoco, pxr, awscrt, aws_cdk, cdk_nag, cyclonedds, rosbags, rerun, datafusion, playwright" || { echo "setup: Python install failed" >&2; exit 1; }
-	@touch $@
+	@touch $@ $(DEMO_STAMP)
 
-$(CHECKOV_STAMP):
-	@test -x $(CHECKOV_VENV)/bin/python || python3 -m venv $(CHECKOV_VENV)
+# A tool venv from a hashed requirements file: $(1) venv, $(2) requirements file, $(3) import check. Made anew
+# each time its lock changes: the ROS 2 wheels share files between distributions, and syncing over an older
+# install removed some of them.
+define tool_venv
+	@rm -rf $(1) && $(UV) venv --quiet $(1)
+	@$(UV) pip sync --quiet --require-hashes --python $(1)/bin/python $(2)
+	@$(1)/bin/python -c "$(3)" || { echo "setup: $(1) install failed" >&2; exit 1; }
+	@touch $(1)/.setup-stamp
+endef
+
+$(CHECKOV_STAMP): $(UV_STAMP) requirements/checkov.txt
 	@echo "setup: installing checkov into $(CHECKOV_VENV)"
-	@$(CHECKOV_VENV)/bin/python -m pip --disable-pip-version-check -q install 'checkov>=3.2,<4' 2>&1 | sed '/^WARNING: Location/d'
-	@$(CHECKOV_VENV)/bin/checkov --version >/dev/null || { echo "setup: checkov install failed" >&2; exit 1; }
-	@touch $@
+	$(call tool_venv,$(CHECKOV_VENV),requirements/checkov.txt,import checkov)
 
-$(ROS2_STAMP):
-	@test -x $(ROS2_VENV)/bin/python || python3 -m venv $(ROS2_VENV)
+$(ROS2_STAMP): $(UV_STAMP) requirements/ros2-jazzy.txt
 	@echo "setup: installing ROS 2 Jazzy rclpy into $(ROS2_VENV) (for the ROS 2 bridge tests)"
-	@$(ROS2_VENV)/bin/python -m pip --disable-pip-version-check -q install $(ROS2_PACKAGES) 2>&1 | sed '/^WARNING: Location/d'
-	@$(ROS2_VENV)/bin/python -c "import rclpy, sensor_msgs.msg" || { echo "setup: rclpy install failed" >&2; exit 1; }
-	@touch $@
+	$(call tool_venv,$(ROS2_VENV),requirements/ros2-jazzy.txt,import rclpy, sensor_msgs.msg)
 
-$(ROS2_KILTED_STAMP):
-	@test -x $(ROS2_KILTED_VENV)/bin/python || python3 -m venv $(ROS2_KILTED_VENV)
+$(ROS2_KILTED_STAMP): $(UV_STAMP) requirements/ros2-kilted.txt
 	@echo "setup: installing ROS 2 Kilted rclpy into $(ROS2_KILTED_VENV) (for the ROS 2 bridge tests)"
-	@$(ROS2_KILTED_VENV)/bin/python -m pip --disable-pip-version-check -q install $(ROS2_KILTED_PACKAGES) 2>&1 | sed '/^WARNING: Location/d'
-	@$(ROS2_KILTED_VENV)/bin/python -c "import rclpy, sensor_msgs.msg" || { echo "setup: rclpy install failed" >&2; exit 1; }
-	@touch $@
+	$(call tool_venv,$(ROS2_KILTED_VENV),requirements/ros2-kilted.txt,import rclpy, sensor_msgs.msg)
 
 $(NODE_STAMP): package.json package-lock.json
 	@echo "setup: installing the pinned CDK CLI (package.json)"
 	@npm ci --no-audit --no-fund --loglevel=error >/dev/null
 	@touch $@
 
+# Re-resolve every lock: uv.lock from pyproject.toml, the instance's hashed requirements exported from it, and
+# the tool venvs' requirements from their .in files. Versions already locked are kept unless a range forces a
+# change; `make lock UPGRADE=1` takes the newest each range allows.
+lock: $(UV_STAMP)
+	$(UV) lock $(if $(UPGRADE),--upgrade)
+	$(UV) export --frozen --quiet $(HOST_EXPORT) -o requirements/host.txt
+	@for name in uv checkov ros2-jazzy ros2-kilted; do \
+	  $(UV) pip compile --quiet --generate-hashes --python-version 3.11 --python-platform x86_64-manylinux_2_28 \
+	    $(if $(UPGRADE),--upgrade) --custom-compile-command "make lock" requirements/$$name.in -o requirements/$$name.txt; \
+	done
+
+# What the instance installs (userdata/install-agent.sh): the runtime, the extras a host may turn on, and the
+# build backend, every file by hash; the agent itself is installed from source with --no-deps.
+HOST_EXPORT := --no-dev --extra history --extra ros2 --group build --no-emit-project --no-header \
+	--format requirements.txt
+
+# CI fails when a lock no longer matches what it is built from.
+check-lock: $(UV_STAMP)
+	@$(UV) lock --check --offline --quiet || { echo "uv.lock does not match pyproject.toml: run make lock" >&2; exit 1; }
+	@$(UV) export --frozen --quiet $(HOST_EXPORT) | diff -u requirements/host.txt - \
+	  || { echo "requirements/host.txt is not uv.lock's export: run make lock" >&2; exit 1; }
+
 lint: setup
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
-	shellcheck userdata/*.sh
+	shellcheck userdata/*.sh tests/stress.sh
 
-test: setup lint
-	$(VENV)/bin/pytest
+test: setup lint check-lock
+	$(PYTEST)
 
 # The inner loop: everything but the tests marked `slow` (real brokers, subprocesses, Xvfb, cdk synth, ...).
 test-fast: setup lint
-	$(VENV)/bin/pytest -m "not slow"
+	$(PYTEST) -m "not slow"
 
-demo: setup
+# Flaky tests show under load and in another order: the whole suite, three times, each in a new random order,
+# with one busy process per core. Stops at the first failing run and prints the seed that reproduces it.
+test-stress: setup
+	tests/stress.sh 3
+
+demo: setup-demo
 	$(VENV)/bin/twin demo --out out/demo
 
 bench: setup
