@@ -14,6 +14,7 @@ import sys
 from collections.abc import Sequence
 
 from twin.cli import commands
+from twin.cli.output import Console, missing_extra_message
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -36,6 +37,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         return 130
+    except ModuleNotFoundError as exc:
+        message = missing_extra_message(exc)
+        if message is None:
+            raise
+        Console(args.command).err(message)
+        return 1
 
 
 if __name__ == "__main__":

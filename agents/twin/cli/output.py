@@ -31,6 +31,30 @@ class Console:
         sys.stderr.write(f"twin {self.command}: {text}\n")
 
 
+# The optional parts of the distribution and the libraries each brings (pyproject.toml's extras): a command
+# that needs one of them and finds it absent names the extra to install instead of a bare import error.
+EXTRA_OF_LIBRARY = {
+    "deltalake": "history",
+    "polars": "history",
+    "matplotlib": "history",
+    "cyclonedds": "ros2",
+    "psutil": "bench",
+}
+
+
+def missing_extra_message(exc: ModuleNotFoundError) -> str | None:
+    """What to tell a user whose command needs an extra that is not installed, or None for any other import
+    error."""
+    library = (exc.name or "").split(".", 1)[0]
+    extra = EXTRA_OF_LIBRARY.get(library)
+    if extra is None:
+        return None
+    return (
+        f"{library} is not installed: this needs the {extra} extra. Install it with "
+        f"pip install 'so101-twin[{extra}]' (a clone: make setup installs every extra)."
+    )
+
+
 class DevToolMissing(RuntimeError):  # noqa: N818 - reads as what happened: a tool is missing
     """A development-only module (benchmark, local rig, demo) is not part of this install."""
 

@@ -29,6 +29,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import datetime as dt
+import importlib.util
 import io
 import json
 import logging
@@ -113,6 +114,17 @@ class HistoryError(ValueError):
     """A history setting is invalid; the message names it and the fix."""
 
 
+def require_history_libraries() -> None:
+    """Raise HistoryError naming the extra to install when the Delta Lake writer is absent: history is an
+    optional part of the distribution (pyproject.toml's `history` extra), and the agent must say so when it
+    starts, not fail at its first commit."""
+    if importlib.util.find_spec("deltalake") is None:
+        raise HistoryError(
+            "history is on but deltalake is not installed: install the history extra "
+            "(pip install 'so101-twin[history]'), or set [history] enabled = false"
+        )
+
+
 @dataclass(frozen=True)
 class HistorySettings:
     """Where and how history is written ([history] in the agent config; docs/history.md)."""
@@ -140,6 +152,7 @@ class HistorySettings:
     storage_options: Mapping[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        require_history_libraries()
         if not self.uri or not self.uri.strip():
             raise HistoryError(
                 'history uri is empty: give a directory ("out/history") or "s3://bucket/history"'
