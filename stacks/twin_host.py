@@ -54,19 +54,17 @@ UPDATE_TIMEOUT_SECONDS = 3600
 _PLACEHOLDER_RE = re.compile(r"@@([A-Z_]+)@@")
 # The one Python distribution the instance installs: pyproject.toml builds `twin` (agents/) and
 # `twin_robots` (robots/, the model files). Docker-style patterns: drop everything, re-include those, then
-# drop the development tooling the instance never runs (benchmark, local rig, demo, private mosquitto; the
-# `twin bench` and `twin demo` commands say so when asked there). pyproject.toml does not list
-# twin.tools.bench, so the package still builds without it.
+# drop the development tooling the instance never runs: the layers `rig` (local rig, private mosquitto, quota
+# proxy, demo) and `bench` (benchmarks); the `twin demo` and `twin bench` commands say so when asked there.
+# pyproject.toml lists neither package, so the package still builds without them.
 AGENT_ASSET_PATTERNS = [
     "*",
     "!pyproject.toml",
     "!README.md",
     "!agents",
     "!robots",
-    "agents/twin/tools/bench",
-    "agents/twin/tools/rig.py",
-    "agents/twin/tools/demo.py",
-    "agents/twin/tools/mosquitto.py",
+    "agents/twin/rig",
+    "agents/twin/bench",
     "robots/tools",
     # The original meshes (16 MB) are only the source the installed visual meshes are made from.
     "robots/so101/meshes/source",

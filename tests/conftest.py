@@ -20,12 +20,12 @@ import pytest
 from awscrt import mqtt5
 from prometheus_client.parser import text_string_to_metric_families
 from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
+from twin.edge.payload import encode, make_payload
+from twin.rig.local import LocalRig, RigError
+from twin.rig.mosquitto import MosquittoBroker, MosquittoNotFound, free_port
 from twin.service.agent import AgentService
 from twin.service.config import load_config
 from twin.service.state import AgentState, DeviceState
-from twin.tools.edge_payload import encode, make_payload
-from twin.tools.mosquitto import MosquittoBroker, MosquittoNotFound, free_port
-from twin.tools.rig import LocalRig, RigError
 from twin.transport.broker import BrokerConfig, new_client_id
 from twin.transport.client import build_mqtt5_client
 
@@ -64,7 +64,7 @@ def mosquitto(tmp_path: Path) -> Iterator[MosquittoBroker]:
 
 @pytest.fixture
 def rig(tmp_path: Path) -> Iterator[LocalRig]:
-    """The local rig (twin.tools.rig) in tmp_path/rig: its broker runs; agents and edges start on request."""
+    """The local rig (twin.rig.local) in tmp_path/rig: its broker runs; agents and edges start on request."""
     try:
         local = LocalRig(workdir=tmp_path / "rig")
     except RigError as exc:

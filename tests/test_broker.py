@@ -6,8 +6,8 @@ import socket
 from pathlib import Path
 
 import pytest
-from twin.tools import mosquitto as broker_mod
-from twin.tools.mosquitto import BrokerError, MosquittoBroker, MosquittoNotFound
+from twin.rig import mosquitto as broker_mod
+from twin.rig.mosquitto import BrokerError, MosquittoBroker, MosquittoNotFound
 
 pytestmark = pytest.mark.slow
 

@@ -14,11 +14,11 @@ from collections.abc import Iterator
 
 import pytest
 from conftest import wait_for
+from twin.edge.payload import encode, make_payload
 from twin.output.sinks import AppliedSample, RejectedSample, SinkStats
+from twin.rig.mosquitto import free_port
 from twin.service.agent import CATCH_UP_AFTER_S, AgentService
 from twin.service.config import load_config
-from twin.tools.edge_payload import encode, make_payload
-from twin.tools.mosquitto import free_port
 
 TOPIC = "dt/lerobot/arm-001/telemetry"
 

@@ -25,8 +25,7 @@ from twin.core.telemetry import (
     Units,
 )
 from twin.core.topics import device_from_topic, topic_filters
-from twin.robot import so101
-from twin.tools.edge_payload import (
+from twin.edge.payload import (
     MALFORMED_KINDS,
     device_ids,
     encode,
@@ -36,8 +35,9 @@ from twin.tools.edge_payload import (
     mock_ticks,
     sign_magnitude,
 )
-from twin.tools.edge_sim import EdgeSimConfig, EdgeSimulator, FaultConfig, clock_skews_ms
-from twin.tools.mosquitto import MosquittoBroker
+from twin.edge.simulator import EdgeSimConfig, EdgeSimulator, FaultConfig, clock_skews_ms
+from twin.rig.mosquitto import MosquittoBroker
+from twin.robot import so101
 from twin.transport.broker import BrokerConfig
 from twin.transport.subscriber import TelemetrySubscriber
 
@@ -45,7 +45,7 @@ PREFIX = "dt/lerobot"
 
 
 def test_mock_ticks_match_the_edge_formula() -> None:
-    # Hand-derived oracle (the formula's one definition is twin.tools.edge_payload): at t = 0 joint i reads
+    # Hand-derived oracle (the formula's one definition is twin.edge.payload): at t = 0 joint i reads
     # 2048 + 500 sin(i pi/3) = 2048, 2481.0, 2481.0, 2048, 1614.9, 1614.9, truncated toward zero.
     assert mock_ticks(0.0) == [2048, 2481, 2481, 2048, 1614, 1614]
     # shoulder_pan at t = pi s: sin(0.5 pi) = 1; elbow_flex (i = 2) at t = pi: sin(0.7 pi + 2 pi/3).

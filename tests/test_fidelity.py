@@ -12,8 +12,8 @@ from __future__ import annotations
 import math
 
 import pytest
+from twin.bench import fidelity
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
-from twin.tools.bench import fidelity
 
 K = 2 * math.pi / 4095  # radians per tick, LeRobot's scale
 JAW_MID = (-0.174533 + 1.7453292) / 2  # the model's gripper range (so101.xml), 0.7853981 = pi/4

@@ -12,10 +12,10 @@ from collections.abc import Iterator
 
 import pytest
 from conftest import wait_for
+from twin.edge.simulator import FaultConfig
+from twin.rig.local import LocalRig
+from twin.rig.quota_proxy import QuotaProxy
 from twin.service.agent import AgentService
-from twin.tools.edge_sim import FaultConfig
-from twin.tools.quota_proxy import QuotaProxy
-from twin.tools.rig import LocalRig
 from twin.transport.plan import plan_listed
 
 pytestmark = pytest.mark.slow

@@ -24,6 +24,8 @@ import pytest
 from deltalake import CommitProperties, DeltaTable, Transaction, write_deltalake
 from moto_s3 import MotoS3
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
+from twin.edge.payload import encode, make_payload
+from twin.ops.history import HistoryReader, HistoryReadError, parse_time, with_decoded
 from twin.output.history import (
     JOINTS,
     REJECTED_TABLE,
@@ -36,8 +38,6 @@ from twin.output.history import (
     telemetry_table,
 )
 from twin.output.sinks import AppliedSample, RejectedSample
-from twin.tools.edge_payload import encode, make_payload
-from twin.tools.history import HistoryReader, HistoryReadError, parse_time, with_decoded
 
 T0 = 1_795_000_000.0  # 2026-11-18T09:46:40Z
 
@@ -533,10 +533,10 @@ def test_history_commands_list_plot_and_export(tmp_path: Path, capsys: pytest.Ca
 def test_replay_publishes_what_was_recorded_and_the_agent_mirrors_it(
     tmp_path: Path, mosquitto: object, variant: str
 ) -> None:
+    from twin.ops.replay import ReplayConfig, replay
+    from twin.rig.mosquitto import free_port
     from twin.service.agent import AgentService
     from twin.service.config import config_from_mapping
-    from twin.tools.mosquitto import free_port
-    from twin.tools.replay import ReplayConfig, replay
     from twin.transport.broker import BrokerConfig
     from twin.transport.subscriber import TelemetrySubscriber
 

@@ -1,4 +1,4 @@
-"""`twin instance` (twin.tools.instance + twin.cli.commands.instance) against moto.
+"""`twin instance` (twin.ops.instance + twin.cli.commands.instance) against moto.
 
 AWS cannot be reached from here, so moto stands in for CloudFormation, EC2 and SSM: each test deploys a small
 stack in moto whose outputs reference a moto EC2 instance and its Elastic IP the way the CDK stack does, then
@@ -22,7 +22,7 @@ from conftest import AWS_TEST_REGION
 from moto import mock_aws
 from twin.cli import main
 from twin.cli.commands import instance as cmd
-from twin.tools import instance as lib
+from twin.ops import instance as lib
 
 REGION = AWS_TEST_REGION
 COMMAND_ID = "5c9a1d1e-0000-4000-8000-000000000001"  # SSM command ids are UUIDs

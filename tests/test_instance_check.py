@@ -1,4 +1,4 @@
-"""`twin instance check` (twin.tools.instance_check) and the version in `twin instance status`.
+"""`twin instance check` (twin.ops.instance_check) and the version in `twin instance status`.
 
 AWS cannot be reached from here. moto stands in for CloudFormation, EC2 and SSM (a small stack whose outputs
 reference a moto instance, as the CDK stack's do). What moto cannot do is injected at the botocore level and
@@ -31,9 +31,9 @@ from moto import mock_aws
 from twin.cli import main
 from twin.cli.commands import instance as cmd
 from twin.core.health import DeviceStatus
+from twin.ops import instance as lib
+from twin.ops import instance_check as chk
 from twin.service.state import AgentInfo, AgentState, BrokerState, DeviceState, HealthReport
-from twin.tools import instance as lib
-from twin.tools import instance_check as chk
 
 REGION = AWS_TEST_REGION
 REPO = Path(__file__).resolve().parents[1]

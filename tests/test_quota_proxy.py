@@ -9,8 +9,8 @@ from typing import Any
 
 import pytest
 from awscrt import mqtt5
-from twin.tools.mosquitto import MosquittoBroker
-from twin.tools.quota_proxy import (
+from twin.rig.mosquitto import MosquittoBroker
+from twin.rig.quota_proxy import (
     ProxyError,
     QuotaProxy,
     TokenBucket,

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import pytest
 from ros2_helpers.paths import LISTENER, REPO, ROS_PYTHONS, missing_prerequisites
+from twin.bench.netns import run_in_loopback_namespace
 from twin.output.ros2 import JOINT_NAME_PRESETS, rihs01
 from twin.robot import so101
-from twin.tools.bench.netns import run_in_loopback_namespace
 
 pytestmark = pytest.mark.slow
 

@@ -23,11 +23,11 @@ import pytest
 from conftest import Publisher, device_state, get_health, get_metrics, metric, wait_for
 from twin.core.health import DeviceStatus
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, TelemetryRejected, Units
+from twin.edge.payload import encode, make_payload
+from twin.rig.local import LocalRig
 from twin.robot import so101
 from twin.service.agent import AgentService
 from twin.service.state import AgentState
-from twin.tools.edge_payload import encode, make_payload
-from twin.tools.rig import LocalRig
 
 pytestmark = pytest.mark.slow
 

@@ -12,10 +12,10 @@ import pytest
 from conftest import Publisher, device_state, get_health, get_metrics, get_state, metric, wait_for
 from twin.core.health import DeviceStatus
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
+from twin.edge.payload import MALFORMED_KINDS, encode, make_malformed, make_payload
+from twin.rig.local import LocalRig
 from twin.service.agent import AgentService
 from twin.service.state import AgentState
-from twin.tools.edge_payload import MALFORMED_KINDS, encode, make_malformed, make_payload
-from twin.tools.rig import LocalRig
 
 pytestmark = pytest.mark.slow
 

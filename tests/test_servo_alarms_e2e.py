@@ -18,9 +18,9 @@ from typing import Any
 import pytest
 from conftest import get_metrics, metric, wait_for
 from test_emf import validate_emf_line
+from twin.edge.servo_faults import ServoFault
+from twin.rig.local import LocalRig
 from twin.service.state import AgentState, AlarmList
-from twin.tools.rig import LocalRig
-from twin.tools.servo_faults import ServoFault
 
 pytestmark = pytest.mark.slow
 

@@ -13,9 +13,8 @@ import pytest
 from twin.core.alarms import AlarmKind, AlarmState, AlarmThresholds, ServoAlarms
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
 from twin.core.twin import DeviceTwin
-from twin.robot.model import RobotModel
-from twin.tools.edge_payload import make_payload, mock_ticks, ticks_to_degrees
-from twin.tools.servo_faults import (
+from twin.edge.payload import make_payload, mock_ticks, ticks_to_degrees
+from twin.edge.servo_faults import (
     CONTACT_JUMP_PERCENT,
     HEAT_PEAK_C,
     ModelLoads,
@@ -25,6 +24,7 @@ from twin.tools.servo_faults import (
     overrides_at,
     parse_fault,
 )
+from twin.robot.model import RobotModel
 
 TS0 = 1_764_000_000_000
 

@@ -8,8 +8,8 @@ import random
 
 import pytest
 from twin.core.smoothing import HoldLastValue, PlayoutPredictor, SmoothingConfig, make_estimator
+from twin.edge.payload import mock_motion_ticks, mock_ticks
 from twin.robot import so101
-from twin.tools.edge_payload import mock_motion_ticks, mock_ticks
 
 EPOCH_MS = 1_706_000_000_000  # edge wall clock: epoch ms, nothing like the viewer's monotonic clock
 LOCAL_START = 1234.5  # time.monotonic() of the viewer when the edge clock reads EPOCH_MS
@@ -18,7 +18,7 @@ DISPLAY_HZ = 60.0
 
 
 def true_rad(t: float, i: int) -> float:
-    """The edge mock motion (twin.tools.edge_payload, its one definition; hand-derived values in
+    """The edge mock motion (twin.edge.payload, its one definition; hand-derived values in
     test_edge_sim.py) before its int() truncation, as radians about the 2048-tick centre."""
     return (mock_motion_ticks(t)[i] - 2048) * 2 * math.pi / 4096
 

@@ -27,9 +27,9 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 from moto import mock_aws
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
 from twin.core.topics import device_from_topic, topic_filters
-from twin.tools.edge_payload import device_ids, mock_ticks
-from twin.tools.edge_sim import EdgeSimConfig, EdgeSimulator
-from twin.tools.mosquitto import MosquittoBroker
+from twin.edge.payload import device_ids, mock_ticks
+from twin.edge.simulator import EdgeSimConfig, EdgeSimulator
+from twin.rig.mosquitto import MosquittoBroker
 from twin.transport import client as client_mod
 from twin.transport.broker import CLIENT_ID_PREFIX_MAX, BrokerConfig, BrokerConfigError, new_client_id
 from twin.transport.client import build_mqtt5_client, resolve_iot_endpoint

@@ -17,8 +17,8 @@ from twin.core.topics import (
     topic_filters,
     topic_prefix_problem,
 )
+from twin.edge.payload import encode, make_payload
 from twin.service.config import ConfigError, load_config
-from twin.tools.edge_payload import encode, make_payload
 
 from stacks.settings import SettingsError, TwinSettings
 

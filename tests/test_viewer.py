@@ -22,10 +22,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 from twin.core.health import DeviceStatus, WindowLatency
+from twin.rig.local import LocalRig
+from twin.rig.mosquitto import free_port
 from twin.robot import so101
 from twin.service.state import AgentInfo, AgentState, DeviceLoss, DeviceState, ServoState
-from twin.tools.mosquitto import free_port
-from twin.tools.rig import LocalRig
 from twin.viewer.config import ViewerConfig
 from twin.viewer.feed import describe_error, iter_sse_data
 from twin.viewer.fleet import KEY_PAGE_DOWN, KEY_PAGE_UP, LINK_UNREACHABLE, DevicePicker, FleetView

@@ -18,7 +18,7 @@ from urllib.parse import unquote, urlsplit
 import psutil
 import pytest
 from conftest import get_state, http_get, read_rrd, wait_for
-from twin.tools.rig import child_env
+from twin.rig.local import child_env
 
 TWIN = Path(sys.executable).with_name("twin")
 OPEN_LINE = re.compile(r"^open (http://\S+)$", re.MULTILINE)

@@ -24,6 +24,9 @@ from conftest import get_metrics, metric, wait_for
 from test_servo_alarms_e2e import alarms, post
 from twin.core.health import DeviceCounters, DeviceStatus
 from twin.core.latency import LatencyHistogram
+from twin.edge.servo_faults import ServoFault
+from twin.rig.local import LocalRig, child_env
+from twin.rig.quota_proxy import QuotaProxy
 from twin.service.config import ConfigError, load_config
 from twin.service.shards import WorkerPlan, WorkerReport, merge_reports, worker_config, worker_count
 from twin.service.state import (
@@ -36,9 +39,6 @@ from twin.service.state import (
     SinkStats,
     WorkerInfo,
 )
-from twin.tools.quota_proxy import QuotaProxy
-from twin.tools.rig import LocalRig, child_env
-from twin.tools.servo_faults import ServoFault
 
 # --- the plan ---------------------------------------------------------------------------------------------
 

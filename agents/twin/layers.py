@@ -3,6 +3,7 @@
 A module may import from its own layer and from the layers below it, never from a layer above, and never
 from a different layer of the same rank (transport and output are independent of each other). The test
 tests/test_layers.py parses every module's imports and enforces this; docs/architecture.md draws it.
+The layers `rig` and `bench` are development tooling, left out of what the instance installs.
 """
 
 from __future__ import annotations
@@ -12,8 +13,11 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("core",),  # telemetry contract and decoding, topic rules, per-device twin, smoothing, health, latency
     ("transport", "output"),  # MQTT settings/client/subscriber/mailbox | sinks, USD recording, PNG render
     ("service",),  # the agent: typed state, config, HTTP API, Prometheus rendering, logs
-    ("viewer",),  # `twin view`: state feed, fleet model, window
-    ("tools",),  # edge simulator, local rig, mosquitto, demo, instance control, benchmarks
+    # Peers: `twin view` (state feed, fleet model, window) | what the SO-101 edge publishes, its servo faults
+    # and the simulator | the deployed twin from outside: instance control and checks, history, replay
+    ("viewer", "edge", "ops"),
+    ("rig",),  # the whole pipeline on one machine: private mosquitto, quota proxy, local rig, `twin demo`
+    ("bench",),  # `twin bench`: benchmarks that print figures
     ("cli",),  # the `twin` command and its subcommands
 )
 

@@ -536,14 +536,10 @@ def test_agent_asset_holds_only_the_distribution(synth_default: Synth) -> None:
     names = {p.name for p in asset_dirs[0].rglob("*")}
     assert not names & {"__pycache__", ".venv", "node_modules", "cdk.out", "tests"}
     assert (asset_dirs[0] / "agents" / "twin" / "cli" / "main.py").exists()
-    # What the instance runs, not the development tooling (benchmark, local rig, demo, private broker).
-    tools = asset_dirs[0] / "agents" / "twin" / "tools"
-    assert (tools / "edge_sim.py").exists() and (tools / "instance.py").exists()
-    assert not [
-        p.name
-        for p in (tools / "bench", tools / "rig.py", tools / "demo.py", tools / "mosquitto.py")
-        if p.exists()
-    ]
+    # What the instance runs, not the development tooling (the layers rig and bench).
+    package = asset_dirs[0] / "agents" / "twin"
+    assert (package / "edge" / "simulator.py").exists() and (package / "ops" / "instance.py").exists()
+    assert not [name for name in ("rig", "bench") if (package / name).exists()]
     meshes = asset_dirs[0] / "robots" / "so101" / "meshes"
     assert len(list((meshes / "visual").glob("*.stl"))) == 13
     assert {"LICENSE", "NOTICE", "provenance.json"} <= {p.name for p in meshes.iterdir()}

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from listener_process import start_listener
 from twin.output.ros2 import Ros2Settings, resolve_topic
-from twin.tools.rig import LocalRig, wait_until
+from twin.rig.local import LocalRig, wait_until
 
 
 def _state(base: str) -> dict:

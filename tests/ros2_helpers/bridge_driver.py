@@ -17,10 +17,10 @@ from pathlib import Path
 
 from listener_process import start_listener
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
+from twin.edge.simulator import make_payload
 from twin.output.ros2 import Ros2Bridge, Ros2Settings, resolve_topic
 from twin.output.sinks import AppliedSample, QueuedSink
 from twin.robot import so101
-from twin.tools.edge_sim import make_payload
 
 
 def main() -> int:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from twin.tools.bench.netns import missing_prerequisites as namespace_missing
+from twin.bench.netns import missing_prerequisites as namespace_missing
 
 REPO = Path(__file__).resolve().parents[2]
 LISTENER = Path(__file__).with_name("rclpy_listener.py")

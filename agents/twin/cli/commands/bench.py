@@ -83,15 +83,15 @@ def register(subparsers: Any) -> None:
 
 def _figures(args: argparse.Namespace) -> dict[str, Any]:
     # Development tooling: absent from the agent package deployed to the instance (DevToolMissing says so).
-    throughput = import_dev_tool("twin.tools.bench.throughput", "bench")
-    fidelity = import_dev_tool("twin.tools.bench.fidelity", "bench")
-    footprint = import_dev_tool("twin.tools.bench.footprint", "bench")
-    ros2 = import_dev_tool("twin.tools.bench.ros2", "bench")
-    render = import_dev_tool("twin.tools.bench.render", "bench")
-    rerun = import_dev_tool("twin.tools.bench.rerun", "bench")
+    throughput = import_dev_tool("twin.bench.throughput", "bench")
+    fidelity = import_dev_tool("twin.bench.fidelity", "bench")
+    footprint = import_dev_tool("twin.bench.footprint", "bench")
+    ros2 = import_dev_tool("twin.bench.ros2", "bench")
+    render = import_dev_tool("twin.bench.render", "bench")
+    rerun = import_dev_tool("twin.bench.rerun", "bench")
 
     if args.scenario.startswith("history-"):
-        history = import_dev_tool("twin.tools.bench.history", "bench")
+        history = import_dev_tool("twin.bench.history", "bench")
         if args.scenario == "history-storage":
             return history.storage(hours=args.hours, variant=args.variant)
         if args.scenario == "history-read":
@@ -110,12 +110,12 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
     if args.scenario == "rerun":
         return rerun.run(arms=args.arms, rate=args.rate, seconds=args.seconds)
     if args.scenario == "quota":
-        quota = import_dev_tool("twin.tools.bench.quota", "bench")
+        quota = import_dev_tool("twin.bench.quota", "bench")
         return quota.run(arms=args.arms, rate=args.rate, seconds=args.seconds)
     if args.scenario == "decode":
-        return import_dev_tool("twin.tools.bench.decode", "bench").run()
+        return import_dev_tool("twin.bench.decode", "bench").run()
     if args.scenario == "worker":
-        return import_dev_tool("twin.tools.bench.worker", "bench").run(arms=args.arms, rounds=args.rounds)
+        return import_dev_tool("twin.bench.worker", "bench").run(arms=args.arms, rounds=args.rounds)
     # all: the two throughput loads the targets name, fidelity, footprint, ROS 2, render, Rerun, the quota
     # (one connection vs the pool), decode against json.loads and a worker's cost per message.
     results = {
@@ -128,11 +128,11 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
         "ros2": ros2.run(arms=100, rate=10.0, seconds=args.seconds),
         "render": render.run(),
         "rerun": rerun.run(arms=100, rate=10.0, seconds=args.seconds),
-        "quota": import_dev_tool("twin.tools.bench.quota", "bench").run(seconds=args.seconds),
-        "decode": import_dev_tool("twin.tools.bench.decode", "bench").run(),
-        "worker": import_dev_tool("twin.tools.bench.worker", "bench").run(),
+        "quota": import_dev_tool("twin.bench.quota", "bench").run(seconds=args.seconds),
+        "decode": import_dev_tool("twin.bench.decode", "bench").run(),
+        "worker": import_dev_tool("twin.bench.worker", "bench").run(),
     }
-    plot = import_dev_tool("twin.tools.bench.plot", "bench")
+    plot = import_dev_tool("twin.bench.plot", "bench")
     results["plot"] = str(plot.write(results, args.plot))
     return results
 

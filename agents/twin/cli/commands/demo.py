@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
     try:
-        demo = import_dev_tool("twin.tools.demo", "demo")
+        demo = import_dev_tool("twin.rig.demo", "demo")
     except DevToolMissing as exc:
         console.err(str(exc))
         return EXIT_FAILED

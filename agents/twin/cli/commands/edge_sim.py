@@ -130,8 +130,8 @@ def _add_servo_faults(faults: Any) -> None:
 
 def _config(args: argparse.Namespace) -> Any:
     """The simulator's settings from the flags; ValueError (BrokerConfigError included) names a bad one."""
-    from twin.tools.edge_sim import EdgeSimConfig, FaultConfig, device_ids
-    from twin.tools.servo_faults import parse_fault
+    from twin.edge.servo_faults import parse_fault
+    from twin.edge.simulator import EdgeSimConfig, FaultConfig, device_ids
     from twin.transport.broker import BrokerConfig
 
     devices = list(args.device) if args.device else device_ids(args.devices or 1)
@@ -164,7 +164,7 @@ def _config(args: argparse.Namespace) -> Any:
 
 def run(args: argparse.Namespace) -> int:
     # awscrt and the simulator load only when the command runs, so `twin --help` stays fast.
-    from twin.tools.edge_sim import EdgeSimulator
+    from twin.edge.simulator import EdgeSimulator
     from twin.transport.broker import BrokerConfigError
 
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")

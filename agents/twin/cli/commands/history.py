@@ -72,7 +72,7 @@ def register(subparsers: Any) -> None:
 
 
 def window(args: argparse.Namespace) -> tuple[Any, Any]:
-    from twin.tools.history import parse_time
+    from twin.ops.history import parse_time
 
     since = parse_time(args.since) if getattr(args, "since", None) else None
     until = parse_time(args.until) if getattr(args, "until", None) else None
@@ -89,7 +89,7 @@ def _fail(command: str, exc: Exception) -> int:
 
 
 def run_ls(args: argparse.Namespace) -> int:
-    from twin.tools.history import HistoryReader, HistoryReadError
+    from twin.ops.history import HistoryReader, HistoryReadError
 
     console = _console("ls")
     try:
@@ -125,7 +125,7 @@ def run_ls(args: argparse.Namespace) -> int:
 
 
 def run_plot(args: argparse.Namespace) -> int:
-    from twin.tools.history import HistoryReader, HistoryReadError, plot
+    from twin.ops.history import HistoryReader, HistoryReadError, plot
 
     try:
         since, until = window(args)
@@ -140,7 +140,7 @@ def run_plot(args: argparse.Namespace) -> int:
 
 
 def run_export(args: argparse.Namespace) -> int:
-    from twin.tools.history import HistoryReader, HistoryReadError, export
+    from twin.ops.history import HistoryReader, HistoryReadError, export
 
     out = args.out or Path(f"history.{args.format}")
     try:

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 from twin.cli.output import Console
 
 if TYPE_CHECKING:
-    from twin.tools.instance import AgentHealth, TwinInstance
+    from twin.ops.instance import AgentHealth, TwinInstance
 
 console = Console("instance")
 
@@ -117,7 +117,7 @@ def _version_line(host_version: str | None, expected: str | None) -> str:
 
 
 def run(args: argparse.Namespace, twin: TwinInstance | None = None) -> int:
-    from twin.tools import instance as lib
+    from twin.ops import instance as lib
 
     if args.timeout <= 0:
         console.err(f"--timeout must be positive, got {args.timeout}")
@@ -136,7 +136,7 @@ def run(args: argparse.Namespace, twin: TwinInstance | None = None) -> int:
         if args.action == "url":
             console.out(twin.url())
         elif args.action == "check":
-            from twin.tools.instance_check import check_twin
+            from twin.ops.instance_check import check_twin
 
             report = check_twin(twin, host_timeout_s=HOST_CHECK_TIMEOUT_S)
             for line in report.render():

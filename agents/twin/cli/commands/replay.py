@@ -51,8 +51,8 @@ def register(subparsers: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from twin.tools.history import HistoryReadError, parse_time
-    from twin.tools.replay import ReplayConfig, replay
+    from twin.ops.history import HistoryReadError, parse_time
+    from twin.ops.replay import ReplayConfig, replay
     from twin.transport.broker import BrokerConfig, BrokerConfigError
 
     try:

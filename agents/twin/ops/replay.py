@@ -21,8 +21,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from twin.core.topics import telemetry_topic
+from twin.ops.history import HistoryReader, HistoryReadError
 from twin.output.history import JOINTS, RAW_FIELDS, raw_column
-from twin.tools.history import HistoryReader, HistoryReadError
 from twin.transport.broker import BrokerConfig, new_client_id
 from twin.transport.client import build_mqtt5_client
 

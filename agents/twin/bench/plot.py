@@ -11,7 +11,7 @@ import matplotlib
 matplotlib.use("Agg")  # no display: the benchmark runs headless
 import matplotlib.pyplot as plt
 
-from twin.tools.bench import fidelity
+from twin.bench import fidelity
 
 
 def write(results: dict[str, Any], path: Path) -> Path:

@@ -18,8 +18,8 @@ from typing import Any
 
 from twin.core.smoothing import make_estimator
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
+from twin.edge.payload import encode, make_payload, mock_motion_ticks
 from twin.robot import so101
-from twin.tools.edge_payload import encode, make_payload, mock_motion_ticks
 
 # Edge timestamps must look like a real wall clock (the decoder rejects an unset one).
 _EPOCH_MS = 1_706_000_000_000

@@ -4,7 +4,7 @@
 and events, starts or stops the EC2 instance, waits for the state with the EC2 waiters, and runs commands on
 the host through SSM Run Command (`run_on_host`): the agent's health (its `/healthz` listens on 127.0.0.1
 only, so it can only be asked from the instance) with the deployment version the host runs, and the host
-checks of `twin instance check` (twin.tools.instance_check).
+checks of `twin instance check` (twin.ops.instance_check).
 
 Everything that can go wrong for a reason the user can fix is raised as a `TwinInstanceError` subclass whose
 message says what to do; the `twin instance` command maps each class to its own exit code:

@@ -1,8 +1,8 @@
 """Edge simulator: publishes exactly what the SO-101 edge component publishes, plus injectable faults.
 
-The payloads and the motion (the edge's own mock mode) come from `twin.tools.edge_payload`. Faults (drop,
+The payloads and the motion (the edge's own mock mode) come from `twin.edge.payload`. Faults (drop,
 duplicate, reorder, clock skew, malformed payloads) reproduce what a real fleet does to a consumer; servo
-faults (heat, overload, contact: twin.tools.servo_faults) what a real arm does to its servos.
+faults (heat, overload, contact: twin.edge.servo_faults) what a real arm does to its servos.
 Publishing goes through the same awscrt client builder as the subscriber.
 """
 
@@ -20,7 +20,7 @@ from typing import Any
 from awscrt import mqtt5
 
 from twin.core.topics import DEFAULT_TOPIC_PREFIX, check_topic_prefix, telemetry_topic
-from twin.tools.edge_payload import (
+from twin.edge.payload import (
     MALFORMED_KINDS,
     VARIANTS,
     device_ids,
@@ -28,7 +28,7 @@ from twin.tools.edge_payload import (
     make_malformed,
     make_payload,
 )
-from twin.tools.servo_faults import ModelLoads, ServoFault
+from twin.edge.servo_faults import ModelLoads, ServoFault
 
 __all__ = ["EdgeSimConfig", "EdgeSimReport", "EdgeSimulator", "FaultConfig", "device_ids"]
 from twin.transport.broker import BrokerConfig, new_client_id

@@ -22,10 +22,10 @@ from multiprocessing import Pipe
 from typing import Any
 
 from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
+from twin.edge.payload import encode, make_payload
 from twin.service.agent import AgentService
 from twin.service.config import load_config
 from twin.service.shards import MAX_BATCH
-from twin.tools.edge_payload import encode, make_payload
 from twin.transport.pipe import Message, send_batch, send_end
 
 POSES = 64

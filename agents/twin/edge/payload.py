@@ -15,14 +15,14 @@ import time
 from typing import Any
 
 from twin.core.telemetry import MAX_PAYLOAD_BYTES
-from twin.robot import so101, sts3215
-from twin.tools.servo_faults import (
+from twin.edge.servo_faults import (
     ModelLoads,
     ServoFault,
     current_register,
     load_register,
     overrides_at,
 )
+from twin.robot import so101, sts3215
 
 VARIANTS: tuple[str, ...] = ("ticks", "degrees")
 # Each kind breaks one rule of the contract a consumer must check; all must be rejected, none may crash it.
@@ -106,7 +106,7 @@ def make_payload(
     `timestamp_ms` defaults to the wall clock now; `load_sign` sets bit 10 on about half the raw loads
     (variant ticks) or makes them negative (variant degrees, where newer LeRobot decodes the sign);
     `servo_faults` rewrite the readings of their joints while they last, and `model_loads` replaces the
-    mock's random loads with the load each servo reports holding the pose (twin.tools.servo_faults).
+    mock's random loads with the load each servo reports holding the pose (twin.edge.servo_faults).
     """
     if variant not in VARIANTS:
         raise ValueError(f"variant {variant!r} is not one of {VARIANTS}")

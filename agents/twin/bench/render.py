@@ -9,7 +9,7 @@ passes (neither, the shadow only as the pictures, the reflection only, both as `
 each pass costs is measured, not remembered. The 1-minute load average before and after travels with the
 figures: on a shared machine they are only comparable at similar load.
 
-    python -m twin.tools.bench.render [--frames 40] [--width 640] [--height 480] [--model MJCF]
+    python -m twin.bench.render [--frames 40] [--width 640] [--height 480] [--model MJCF]
 """
 
 from __future__ import annotations
@@ -179,7 +179,7 @@ def _demo_pictures(robot: Any, poses: list[dict[str, float]]) -> tuple[float, fl
 
 def run(*, frames: int = 40, width: int = 640, height: int = 480, model: str | None = None) -> dict[str, Any]:
     """Measure in a child process with an offscreen GL backend; returns the figures."""
-    args = [sys.executable, "-m", "twin.tools.bench.render", "--frames", str(frames)]
+    args = [sys.executable, "-m", "twin.bench.render", "--frames", str(frames)]
     args += ["--width", str(width), "--height", str(height)]
     if model:
         args += ["--model", model]

@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from twin.tools.bench.harness import (
+from twin.bench.harness import (
     ProcessSampler,
     collect,
     drained,
@@ -29,7 +29,7 @@ from twin.tools.bench.harness import (
     sum_devices,
     wait_subscribed,
 )
-from twin.tools.rig import LocalRig
+from twin.rig.local import LocalRig
 
 
 def _rerun_config(rrd: Path) -> str:

@@ -14,8 +14,7 @@ import dataclasses
 import time
 from typing import Any
 
-from twin.core.topics import ALL_DEVICES, topic_filters
-from twin.tools.bench.harness import (
+from twin.bench.harness import (
     PREFIX,
     ProcessSampler,
     collect,
@@ -28,7 +27,8 @@ from twin.tools.bench.harness import (
     sum_devices,
     wait_subscribed,
 )
-from twin.tools.rig import LocalRig
+from twin.core.topics import ALL_DEVICES, topic_filters
+from twin.rig.local import LocalRig
 
 
 def _ceiling(url: str, arms: int, rate: float, seconds: float) -> dict[str, Any]:

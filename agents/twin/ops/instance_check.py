@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
 
 if TYPE_CHECKING:
-    from twin.tools.instance import TwinInstance
+    from twin.ops.instance import TwinInstance
 
 OK = "OK"
 WARN = "WARN"

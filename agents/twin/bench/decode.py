@@ -2,7 +2,7 @@
 
 Both are timed in the same process and run, interleaved in rounds, and the best round of each is kept (the
 least disturbed by other work on a shared machine), so the ratio compares like with like. Payloads are what
-the edge publishes (twin.tools.edge_payload: mock motion with the servo diagnostics), both variants.
+the edge publishes (twin.edge.payload: mock motion with the servo diagnostics), both variants.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from collections.abc import Callable
 from typing import Any
 
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
-from twin.tools.edge_payload import encode, make_payload
+from twin.edge.payload import encode, make_payload
 
 ROUNDS = 15
 CALLS_PER_ROUND = 2000

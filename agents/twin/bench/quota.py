@@ -2,7 +2,7 @@
 
 AWS IoT Core delivers at most 100 publishes per second to one connection and discards the rest silently.
 Here publishers send N arms at R Hz straight to a private mosquitto; the agent (`twin run` as a child process)
-connects through `twin.tools.quota_proxy`, which enforces that budget on each of the agent's connections and
+connects through `twin.rig.quota_proxy`, which enforces that budget on each of the agent's connections and
 counts what it drops. Three phases with the same offered load:
 
 1. one connection (`--per-connection-limit 0`: the agent does not know the budget): the quota discards most
@@ -20,8 +20,7 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from twin.service.state import AgentState
-from twin.tools.bench.harness import (
+from twin.bench.harness import (
     ProcessSampler,
     collect,
     drained,
@@ -30,9 +29,10 @@ from twin.tools.bench.harness import (
     sum_devices,
     wait_subscribed,
 )
-from twin.tools.bench.load import arm_name
-from twin.tools.quota_proxy import QuotaProxy
-from twin.tools.rig import LocalRig
+from twin.bench.load import arm_name
+from twin.rig.local import LocalRig
+from twin.rig.quota_proxy import QuotaProxy
+from twin.service.state import AgentState
 
 BUDGET = 100
 WARMUP_S = 8.0

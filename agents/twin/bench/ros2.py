@@ -7,7 +7,7 @@ of the bridge is the difference in the agent process's CPU and in its mirrored r
 counters (delivered, dropped, errors) and what the reader received show that the messages really flowed.
 
 DDS discovers its peers by multicast, so the whole run (broker, publishers, agent, reader) happens inside a
-loopback-only network namespace: `run()` re-executes the scenario there (twin.tools.bench.netns).
+loopback-only network namespace: `run()` re-executes the scenario there (twin.bench.netns).
 """
 
 from __future__ import annotations
@@ -17,10 +17,10 @@ import os
 import sys
 from typing import Any
 
-from twin.tools.bench import netns
-from twin.tools.bench.harness import last_json_line, load_process
-from twin.tools.bench.throughput import agent_phase
-from twin.tools.rig import LocalRig
+from twin.bench import netns
+from twin.bench.harness import last_json_line, load_process
+from twin.bench.throughput import agent_phase
+from twin.rig.local import LocalRig
 
 # The bridge as deployed, with the default topic pattern and joint names.
 ROS2_CONFIG = "[ros2]\nenabled = true\n"
@@ -73,7 +73,7 @@ def run(*, arms: int = 100, rate: float = 10.0, seconds: float = 20.0) -> dict[s
     """The scenario's figures; re-executes itself in a loopback-only namespace unless already inside one."""
     if netns.inside():
         return measure(arms=arms, rate=rate, seconds=seconds)
-    argv = [sys.executable, "-m", "twin.tools.bench.ros2", str(arms), str(rate), str(seconds)]
+    argv = [sys.executable, "-m", "twin.bench.ros2", str(arms), str(rate), str(seconds)]
     proc = netns.run_in_loopback_namespace(argv, timeout=2 * seconds + 300)
     if proc.returncode != 0:
         raise RuntimeError(f"the ros2 scenario failed ({proc.returncode}): {proc.stderr[-1500:]}")

@@ -1,8 +1,8 @@
 """Load processes for the benchmarks: a fleet publisher, a no-op subscriber (the ceiling) and a ROS 2 reader.
 
-Each runs as its own process (`python -m twin.tools.bench.load publish|noop ...`) so its CPU is not charged to
+Each runs as its own process (`python -m twin.bench.load publish|noop ...`) so its CPU is not charged to
 the agent under test, and prints one JSON line with its counts on exit. The publisher writes its packets
-straight to the broker's socket (twin.tools.bench.wire), so the load takes little of the cores it shares with
+straight to the broker's socket (twin.bench.wire), so the load takes little of the cores it shares with
 the agent. The no-op subscriber uses the project's own client construction (twin.transport.subscriber), so
 the ceiling measures the same broker and client the agent uses, minus the agent's work.
 """
@@ -21,9 +21,9 @@ import threading
 import time
 from typing import Any
 
+from twin.bench.wire import WireError, WirePublisher, publish_packet, topic_field
 from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
-from twin.tools.bench.wire import WireError, WirePublisher, publish_packet, topic_field
-from twin.tools.edge_payload import encode, make_payload
+from twin.edge.payload import encode, make_payload
 from twin.transport.broker import BrokerConfig, new_client_id
 from twin.transport.subscriber import TelemetrySubscriber
 
@@ -228,7 +228,7 @@ def ros2_reader(arms: list[str], seconds: float) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m twin.tools.bench.load")
+    parser = argparse.ArgumentParser(prog="python -m twin.bench.load")
     sub = parser.add_subparsers(dest="role", required=True)
     p = sub.add_parser("publish")
     p.add_argument("--url", required=True)

@@ -1,5 +1,5 @@
 """Process plumbing shared by the benchmark scenarios: the local rig (a private broker and the agent as a
-child process, twin.tools.rig), the agent's typed HTTP state, load processes, and CPU/RSS sampling with
+child process, twin.rig.local), the agent's typed HTTP state, load processes, and CPU/RSS sampling with
 psutil."""
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ from typing import Any
 import psutil
 
 from twin.core.topics import DEFAULT_TOPIC_PREFIX
+from twin.rig.local import LocalRig, child_env
 from twin.service.state import AgentState
-from twin.tools.rig import LocalRig, child_env
 
 
 class ProcessSampler:
@@ -162,7 +162,7 @@ PREFIX = DEFAULT_TOPIC_PREFIX
 def start_publisher(
     url: str, first: int, count: int, rate: float, seconds: float, *, jitter_ms: float = 0.0
 ) -> subprocess.Popen:
-    """A publisher process for arms first..first+count-1 (twin.tools.bench.load), at `rate` Hz each, each
+    """A publisher process for arms first..first+count-1 (twin.bench.load), at `rate` Hz each, each
     message delayed 0..jitter_ms after its sample."""
     args = ["--url", url, "--first", str(first), "--count", str(count), "--rate", str(rate)]
     return load_process(
@@ -172,7 +172,7 @@ def start_publisher(
 
 def load_process(*args: str) -> subprocess.Popen:
     return subprocess.Popen(
-        [sys.executable, "-m", "twin.tools.bench.load", *args],
+        [sys.executable, "-m", "twin.bench.load", *args],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,

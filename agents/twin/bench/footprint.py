@@ -8,9 +8,9 @@ from typing import Any
 
 import psutil
 
+from twin.bench.harness import get_state, running_agent, start_publisher, wait_subscribed
+from twin.rig.local import LocalRig
 from twin.service.state import AgentState
-from twin.tools.bench.harness import get_state, running_agent, start_publisher, wait_subscribed
-from twin.tools.rig import LocalRig
 
 
 def _mirrored(state: AgentState) -> int:

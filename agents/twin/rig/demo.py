@@ -1,6 +1,6 @@
 """`twin demo`: the whole pipeline on one machine, then the evidence on disk.
 
-The local rig (twin.tools.rig): a private mosquitto on a free loopback port, the edge simulator publishing
+The local rig (twin.rig.local): a private mosquitto on a free loopback port, the edge simulator publishing
 the edge's mock motion, and the agent service (subscriber, decoder, MuJoCo twin, health, HTTP, USD
 recording) run in this process for a set time. The caller gets a status snapshot about four times a second.
 Afterwards the output directory holds:
@@ -27,8 +27,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from twin.edge.payload import device_ids
 from twin.service.state import AgentState, DeviceState
-from twin.tools.edge_payload import device_ids
 
 log = logging.getLogger(__name__)
 
@@ -163,7 +163,7 @@ def run_demo(
     simulator while watching the agent's state, then write stats.json, the PNG, the GIF (the recording is
     closed, with its final save, when the rig stops the agent).
     """
-    from twin.tools.rig import LocalRig, RigError  # noqa: PLC0415 - MuJoCo, USD and awscrt load here
+    from twin.rig.local import LocalRig, RigError  # noqa: PLC0415 - MuJoCo, USD and awscrt load here
 
     stop = stop or threading.Event()
     out_dir = Path(config.out_dir)
@@ -431,7 +431,7 @@ def _write_outputs(
 
 def _write_history_outputs(devices: list[str], stats: dict[str, Any], out_dir: Path) -> None:
     """What the history holds after the agent stopped (its last commit included), and its plot."""
-    from twin.tools.history import HistoryReader, HistoryReadError, plot  # noqa: PLC0415
+    from twin.ops.history import HistoryReader, HistoryReadError, plot  # noqa: PLC0415
 
     reader = HistoryReader(str(out_dir / HISTORY_DIR))
     try:

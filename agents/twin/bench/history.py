@@ -27,10 +27,10 @@ from typing import Any
 import msgspec
 
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
+from twin.edge.payload import encode, make_payload
+from twin.ops.history import HistoryReader
 from twin.output.history import TELEMETRY_TABLE, HistorySettings, HistoryWriter, telemetry_table
 from twin.output.sinks import AppliedSample
-from twin.tools.edge_payload import encode, make_payload
-from twin.tools.history import HistoryReader
 
 RATE_HZ = 10.0
 # 2026-11-18T00:00:00Z: a whole UTC day, so the day is exactly one partition.
@@ -198,12 +198,12 @@ def _write_fleet_hour(
 def load(*, arms: int = 1000, rate: float = 10.0, seconds: float = 20.0) -> dict[str, Any]:
     """The mirror with history off, then on, under the same offered load; and the table against the sink.
 
-    Both phases run `twin run` as a child process on one private broker (twin.tools.bench.throughput). After
+    Both phases run `twin run` as a child process on one private broker (twin.bench.throughput). After
     the second the agent is stopped with SIGTERM (its final commit), and the rows in the tables are compared
     with the messages the agent handed to the history sink (every decoded one + rejected).
     """
-    from twin.tools.bench.throughput import agent_phase  # noqa: PLC0415
-    from twin.tools.rig import LocalRig  # noqa: PLC0415
+    from twin.bench.throughput import agent_phase  # noqa: PLC0415
+    from twin.rig.local import LocalRig  # noqa: PLC0415
 
     tmp = Path(tempfile.mkdtemp(prefix="twin-bench-history-load-"))
     uri = str(tmp / "history")

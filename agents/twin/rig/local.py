@@ -28,8 +28,8 @@ from pathlib import Path
 from typing import Any
 
 from twin.core.topics import DEFAULT_TOPIC_PREFIX
+from twin.rig.mosquitto import MosquittoBroker, MosquittoNotFound, free_port
 from twin.service.config import AgentConfig, load_config
-from twin.tools.mosquitto import MosquittoBroker, MosquittoNotFound, free_port
 from twin.transport.broker import BrokerConfig
 
 log = logging.getLogger(__name__)
@@ -240,7 +240,7 @@ class LocalRig:
         """The edge simulator publishing `devices` to this rig's broker, in a background thread.
 
         `options` go to EdgeSimConfig (faults=FaultConfig(...), load_sign=True, ...)."""
-        from twin.tools.edge_sim import EdgeSimConfig, EdgeSimulator  # noqa: PLC0415 - awscrt loads here
+        from twin.edge.simulator import EdgeSimConfig, EdgeSimulator  # noqa: PLC0415 - awscrt loads here
 
         simulator = EdgeSimulator(
             EdgeSimConfig(

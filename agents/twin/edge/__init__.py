@@ -1,0 +1,1 @@
+"""edge layer (docs/architecture.md): what the SO-101 edge publishes, and the simulator that publishes it."""

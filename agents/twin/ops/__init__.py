@@ -1,0 +1,1 @@
+"""ops layer (docs/architecture.md): the deployed twin from outside: instances, checks, history, replay."""

@@ -1,1 +1,0 @@
-"""tools layer (docs/architecture.md)."""
