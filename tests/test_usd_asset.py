@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from pxr import Gf, Usd, UsdGeom, UsdPhysics, UsdShade
 from twin.robot import so101
-from twin.robot.visual import visual_meshes
+from twin.robot.visuals import visual_geoms
 
 ROOT = Path(__file__).resolve().parents[1]
 ASSET_DIR = ROOT / "robots" / "so101" / "usd"
@@ -117,7 +117,9 @@ def test_asset_holds_the_meshes_where_mujoco_draws_them(stage: Usd.Stage, mj: mu
     # transforms, are MuJoCo's vertices placed by forward kinematics; the triangles are the same.
     data = mujoco.MjData(mj)
     mujoco.mj_kinematics(mj, data)
-    expected = {part.name: part for parts in visual_meshes(mj).values() for part in parts}
+    bodies = {name: mj.body(name).id for name in so101.BODY_NAMES}
+    expected = {part.name: part for part in visual_geoms(mj, bodies)}
+    rotation = np.empty(9)
     cache = UsdGeom.XformCache(Usd.TimeCode.Default())
     found = {}
     for prim in stage.Traverse():
@@ -131,9 +133,11 @@ def test_asset_holds_the_meshes_where_mujoco_draws_them(stage: Usd.Stage, mj: mu
         points = np.array(mesh.GetPointsAttr().Get(), dtype=float)
         world = np.array(cache.GetLocalToWorldTransform(prim))  # row-vector convention
         body = mj.body(part.body).id
+        mujoco.mju_quat2Mat(rotation, part.quat)  # the geom's frame -> its body's frame
+        in_body = part.vertices.astype(np.float64) @ rotation.reshape(3, 3).T + part.pos
         np.testing.assert_allclose(
             points @ world[:3, :3] + world[3, :3],
-            part.vertices @ data.xmat[body].reshape(3, 3).T + data.xpos[body],
+            in_body @ data.xmat[body].reshape(3, 3).T + data.xpos[body],
             atol=1e-6,
             err_msg=name,
         )

@@ -27,7 +27,7 @@ from PIL import Image, ImageFilter
 from twin.output.render import framing_camera
 from twin.robot import so101
 from twin.robot.model import RobotModel
-from twin.robot.visual import visual_meshes
+from twin.robot.visuals import VisualGeom, visual_geoms
 
 ROOT = Path(__file__).resolve().parents[1]
 MESH_DIR = ROOT / "robots" / "so101" / "meshes"
@@ -215,11 +215,23 @@ def test_every_visual_geom_is_a_mesh_without_contacts_and_collision_stays_boxes(
     assert sorted(servos) == sorted(f"{joint}_servo" for joint in so101.JOINT_NAMES)
 
 
+def body_frame_meshes(robot: RobotModel) -> dict[str, list[tuple[VisualGeom, np.ndarray]]]:
+    """The visual meshes by body, in model order, each with its vertices placed in the body's frame."""
+    rotation = np.empty(9)
+    out: dict[str, list[tuple[VisualGeom, np.ndarray]]] = {}
+    for geom in visual_geoms(robot.model, robot.body_ids):
+        assert geom.kind == "mesh", f"{geom.name} is a {geom.kind}: the SO-101 draws meshes only"
+        mujoco.mju_quat2Mat(rotation, geom.quat)
+        vertices = geom.vertices.astype(np.float64) @ rotation.reshape(3, 3).T + geom.pos
+        out.setdefault(geom.body, []).append((geom, vertices))
+    return out
+
+
 def test_mesh_bounds_per_body_match_the_facts(robot: RobotModel) -> None:
-    meshes = visual_meshes(robot.model)
+    meshes = body_frame_meshes(robot)
     assert list(meshes) == list(so101.BODY_NAMES)
     for body, (lo, hi) in FACTS_BODY_BOUNDS.items():
-        points = np.vstack([m.vertices for m in meshes[body]])
+        points = np.vstack([vertices for _, vertices in meshes[body]])
         np.testing.assert_allclose(points.min(axis=0), lo, atol=1.5e-3, err_msg=body)
         np.testing.assert_allclose(points.max(axis=0), hi, atol=1.5e-3, err_msg=body)
 
@@ -233,20 +245,23 @@ def test_body_frame_meshes_placed_by_body_poses_are_what_mujoco_draws(robot: Rob
         data.qpos[robot.qpos_addr[name]] = value
     mujoco.mj_kinematics(model, data)
     world_poses = robot.body_poses(pose)
-    meshes = visual_meshes(model)
+    meshes = body_frame_meshes(robot)
     assert sum(len(m) for m in meshes.values()) == 17
+    assert {part.name for parts in meshes.values() for part, _ in parts} == {
+        model.geom(g).name for g in range(model.ngeom) if model.geom_group[g] == so101.VISUAL_GROUP
+    }
     rotation = np.empty(9)
     for body, parts in meshes.items():
         pos, quat = world_poses[body]
         mujoco.mju_quat2Mat(rotation, quat)
-        for part in parts:
+        for part, vertices in parts:
             g = model.geom(part.name).id
             mesh = model.geom_dataid[g]
             start, count = model.mesh_vertadr[mesh], model.mesh_vertnum[mesh]
             drawn = (
                 model.mesh_vert[start : start + count] @ data.geom_xmat[g].reshape(3, 3).T + data.geom_xpos[g]
             )
-            placed = part.vertices @ rotation.reshape(3, 3).T + pos
+            placed = vertices @ rotation.reshape(3, 3).T + pos
             np.testing.assert_allclose(placed, drawn, atol=1e-6, err_msg=part.name)
             assert part.faces.shape == (model.mesh_facenum[mesh], 3) and part.faces.max() < count
             assert part.rgba[3] == 1.0
