@@ -340,9 +340,6 @@ class WriterStats:
     storage_ok: bool = True
     last_error: str = ""
 
-    def as_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
-
 
 @dataclass
 class _Pending:
@@ -902,14 +899,11 @@ class HistoryWorker:
         self._rejected: list[RejectedSample] = []
         self._applied_since = 0.0
         self._rejected_since = 0.0
-        self.received_applied = 0
-        self.received_rejected = 0
 
     def handle_applied(self, sample: AppliedSample) -> None:
         if not self._applied:
             self._applied_since = self._clock()
         self._applied.append(sample)
-        self.received_applied += 1
         if len(self._applied) >= self._settings.chunk_rows or (
             self._clock() - self._applied_since >= self._settings.chunk_max_age_s
         ):
@@ -919,7 +913,6 @@ class HistoryWorker:
         if not self._rejected:
             self._rejected_since = self._clock()
         self._rejected.append(sample)
-        self.received_rejected += 1
         if len(self._rejected) >= self._settings.chunk_rows or (
             self._clock() - self._rejected_since >= self._settings.chunk_max_age_s
         ):
@@ -972,7 +965,8 @@ class HistoryWorker:
 
 
 class HistorySink(QueuedSink):
-    """The history sink the agent adds next to its other sinks; `history_stats()` feeds /state."""
+    """The history sink the agent adds next to its other sinks. /state shows its queue (`stats()`, as for
+    every sink) and its writer (`writer.stats()`: commits, rows, storage health)."""
 
     def __init__(self, settings: HistorySettings, *, writer_id: str | None = None) -> None:
         self.writer = HistoryWriter(settings, writer_id=writer_id).start()
@@ -983,15 +977,3 @@ class HistorySink(QueuedSink):
     def close(self, timeout: float = 30.0) -> None:
         # The queue drains first; the worker's close commits the rest (the writer bounds its own wait).
         super().close(timeout)
-
-    def history_stats(self) -> dict[str, Any]:
-        sink = self.stats()
-        writer = self.writer.stats().as_dict()
-        return {
-            "uri": self.writer.settings.uri,
-            "received": self.worker.received_applied + self.worker.received_rejected,
-            "queue_dropped": sink.dropped,
-            "queue_pending": sink.pending,
-            "sink_errors": sink.errors,
-            **writer,
-        }
