@@ -21,6 +21,13 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("cli",),  # the `twin` command and its subcommands
 )
 
+# What the CDK app (app.py, stacks/) may import from the agent: pure modules only, so a value the stack
+# accepts is one the agent it deploys accepts, and synth never loads awscrt, MuJoCo or USD. The set is closed
+# under these modules' own imports of twin; tests/test_layers.py checks both.
+STACK_IMPORTS: frozenset[str] = frozenset(
+    {"twin.core.topics", "twin.core.units", "twin.transport.broker", "twin.transport.plan"}
+)
+
 
 def rank(layer: str) -> int:
     """The position of `layer` in LAYERS (0 = lowest); KeyError for a folder that is not a layer."""
