@@ -234,16 +234,21 @@ def test_installer_installs_the_real_package_with_the_robot_model(installed: tup
     )
     assert help_.returncode == 0
     assert "run" in help_.stdout
-    # The benchmark is not shipped; asking for it there says why instead of a traceback.
-    bench = subprocess.run(
-        [str(root / "opt/so101-twin/venv/bin/twin"), "bench", "fidelity", "--seconds", "1"],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
-    assert bench.returncode == 1
-    assert "development tooling" in bench.stderr and "Traceback" not in bench.stderr
+    # The benchmark and the demo (the layers bench and rig) are not shipped; asking for them there says why
+    # instead of a traceback.
+    for command in (["bench", "fidelity", "--seconds", "1"], ["demo", "--seconds", "1"]):
+        tool = subprocess.run(
+            [str(root / "opt/so101-twin/venv/bin/twin"), *command],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            check=False,
+        )
+        assert tool.returncode == 1, command
+        assert "development tooling" in tool.stderr and "Traceback" not in tool.stderr, tool.stderr
+    site = next((root / "opt/so101-twin/venv/lib").glob("python3*/site-packages"))
+    assert {p.name for p in (site / "twin").iterdir() if p.is_dir()} >= {"edge", "ops", "cli"}
+    assert not [name for name in ("rig", "bench") if (site / "twin" / name).exists()]
 
 
 def test_second_run_changes_nothing(installed: tuple[Path, Path]) -> None:
