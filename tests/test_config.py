@@ -19,7 +19,7 @@ from twin.service.config import (
 
 REPO = Path(__file__).resolve().parents[1]
 
-API_MD_TOML = """
+EVERY_KEY_TOML = """
 [broker]
 url = "iot"
 region = ""
@@ -53,8 +53,9 @@ def write(tmp_path: Path, text: str) -> Path:
 
 
 def test_defaults_match_the_agreed_file(tmp_path: Path) -> None:
-    # The CDK UserData renders exactly the keys in notes/api.md; every one must load, and mean the defaults.
-    assert load_config(write(tmp_path, API_MD_TOML)) == AgentConfig()
+    # The keys the host's config file has always carried (docs/agent.md, "Configuration reference"): every
+    # one must load, and mean the defaults.
+    assert load_config(write(tmp_path, EVERY_KEY_TOML)) == AgentConfig()
     assert load_config(None) == AgentConfig()
 
 

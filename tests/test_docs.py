@@ -1,4 +1,4 @@
-"""The guides stay readable and say what the code does.
+"""The guides stay readable, say what the code does, and cite only what a reader of the repository can open.
 
 An edit once replaced the empty string in docs/servo-health.md with a paragraph, which put that paragraph
 between every two characters of the page (4 MB, nothing legible) and landed unnoticed. These checks read the
@@ -7,6 +7,7 @@ pages as a person would look for things in them.
 
 from __future__ import annotations
 
+import re
 from collections import Counter
 from pathlib import Path
 
@@ -15,6 +16,26 @@ from twin.core.alarms import AlarmKind, AlarmThresholds
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = sorted([ROOT / "README.md", *(ROOT / "docs").glob("*.md")])
+# Everything that cites a page: the pages, the code and its comments, the model files, the build files.
+CITING = sorted(
+    {
+        *PAGES,
+        *(ROOT / name for name in ("pyproject.toml", "Makefile", "app.py", "cdk.json")),
+        *(
+            path
+            for folder in ("agents", "stacks", "userdata", "tests", "robots", "examples")
+            for path in (ROOT / folder).rglob("*")
+            if path.suffix in {".py", ".md", ".sh", ".xml", ".toml", ".txt"}
+            and "__pycache__" not in path.parts
+        ),
+    }
+    - {Path(__file__).resolve()}  # this file's examples cite missing files on purpose
+)
+# A markdown file named in text: `docs/agent.md`, [x](agent.md#health), ../../docs/telemetry.md; not in a URL.
+MD_MENTION = re.compile(r"(?<![\w./:-])((?:\.\./|[\w-][\w.-]*/)*[\w-][\w.-]*\.md)\b")
+# A public repository named as owner/name, as the docs name their sources (huggingface/lerobot `path`).
+REPOSITORY = re.compile(r"(?<![\w./-])([A-Za-z][\w.-]*)/[A-Za-z0-9][\w.-]*(?![\w/.-])")
+TOP_LEVEL = {path.name for path in ROOT.iterdir()}
 
 
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
@@ -43,3 +64,63 @@ def test_servo_health_names_every_alarm_and_its_default_lines() -> None:
     ]
     missing = [line for line in expected if line not in text]
     assert not missing, f"docs/servo-health.md no longer states {missing}"
+
+
+def outside_references(text: str, citing: Path) -> list[str]:
+    """Mentions in `text` (the file `citing`) of a file the repository does not hold.
+
+    A markdown file must exist relative to the repository root or to the citing file's folder, unless it is a
+    public source's path after its repository's name in the same paragraph (owner/name `path/FILE.md`).
+    The reference notes kept beside the repository are no source a reader can open: what the code relies on
+    from them belongs in docs/ in our words."""
+    problems = []
+    for block in re.finditer(r"(?:[^\n]*\S[^\n]*(?:\n|$))+", text):  # paragraphs: runs of non-blank lines
+        paragraph = block.group(0)
+
+        def where(offset: int, block: re.Match[str] = block) -> str:
+            return f"{citing.relative_to(ROOT)}:{text.count(chr(10), 0, block.start() + offset) + 1}"
+
+        for match in MD_MENTION.finditer(paragraph):
+            name = match.group(1)
+            candidates = ((ROOT / name).resolve(), (citing.parent / name).resolve())
+            if any(c.is_relative_to(ROOT) and c.is_file() for c in candidates):
+                continue
+            before = REPOSITORY.finditer(paragraph, 0, match.start())
+            if not any(m.group(1) not in TOP_LEVEL for m in before):
+                problems.append(
+                    f"{where(match.start())}: {name} is not in this repository; cite docs/ instead"
+                )
+        problems.extend(
+            f"{where(m.start())}: the shared reference notes are outside the repository; cite docs/ instead"
+            for m in re.finditer(r"shared[ /]reference", paragraph)
+        )
+    return problems
+
+
+def test_nothing_cites_a_file_outside_the_repository() -> None:
+    problems = [p for path in CITING for p in outside_references(path.read_text(encoding="utf-8"), path)]
+    assert not problems, "\n".join(problems)
+
+
+@pytest.mark.parametrize(
+    ("text", "found"),
+    [
+        ("# IoT Core's cap on one message (aws-facts.md section 3).", ["aws-facts.md"]),
+        ("class Missing(RuntimeError):  # noqa: N818 - name fixed by notes/api.md", ["notes/api.md"]),
+        ("the project's summary is the telemetry contract in the shared reference", ["shared reference"]),
+        (
+            "Figures from `so101-model-facts.md` (TheRobotStudio/SO-ARM100 so101_new_calib.xml)",
+            ["so101-model-facts.md"],
+        ),
+        ("see docs/aws-facts.md and [the contract](../../../docs/telemetry.md#units)", []),
+        ("awsdocs/nice-dcv-admin-guide, `doc_source/setting-up-license.md`", []),
+        ("Mickael-Roger/python-st3215 `README.md`, https://example.com/x/notes.md", []),
+    ],
+)
+def test_the_citation_check_tells_outside_files_from_ours_and_public_sources(
+    text: str, found: list[str]
+) -> None:
+    # Read as a comment of agents/twin/core/units.py would be.
+    problems = outside_references(text, ROOT / "agents" / "twin" / "core" / "units.py")
+    assert len(problems) == len(found), problems
+    assert all(f in p for f, p in zip(found, problems, strict=True))

@@ -1,4 +1,4 @@
-"""The bundled SO-101 MJCF against the figures in so101-model-facts.md (literal values, not re-derived)."""
+"""The bundled SO-101 MJCF against the upstream figures (docs/robot-model.md), as literals, not re-derived."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ ROBOT_DIR = Path(__file__).resolve().parents[1] / "robots" / "so101"
 SO101_XML = ROBOT_DIR / "so101.xml"
 SCENE_XML = ROBOT_DIR / "scene.xml"
 
-# Facts section 1.1: every joint is a hinge about local +Z; ranges of the "new calibration" model.
+# Every joint is a hinge about local +Z; ranges of the upstream "new calibration" model (docs/robot-model.md).
 EXPECTED_RANGES = {
     "shoulder_pan": (-1.91986, 1.91986),
     "shoulder_lift": (-1.7453293, 1.7453293),
@@ -31,7 +31,7 @@ EXPECTED_CTRLRANGES = {
     "wrist_roll": (-2.74385, 2.84121),
     "gripper": (-0.17453, 1.74533),
 }
-# Facts section 1.3: joint axes in the world frame at q = 0.
+# Joint axes in the world frame at q = 0 (docs/robot-model.md, "Frames and joints").
 EXPECTED_WORLD_AXES_AT_ZERO = {
     "shoulder_pan": (0, 0, -1),
     "shoulder_lift": (0, 1, 0),

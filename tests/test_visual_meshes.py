@@ -1,6 +1,6 @@
 """The official SO-101 meshes: where they come from, that they sit on the right links, the per-body export.
 
-Placement is checked two independent ways: each body's mesh bounds against the bounds in so101-model-facts.md
+Placement is checked two independent ways: each body's mesh bounds against the bounds in docs/robot-model.md
 (measured from the upstream STL files with upstream's placements), and rendered silhouettes of the meshes
 (group 2) against those of the collision primitives (group 3), which follow the real dimensions.
 """
@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 MESH_DIR = ROOT / "robots" / "so101" / "meshes"
 SO101_XML = ROOT / "robots" / "so101" / "so101.xml"
 
-# so101-model-facts.md section 1.5(b): mesh bounding boxes in each body frame, metres (rounded to 1 mm there).
+# Mesh bounding boxes in each body frame, metres, rounded to 1 mm (docs/robot-model.md, "Part mesh bounds").
 FACTS_BODY_BOUNDS = {
     "base": ((-0.031, -0.056, -0.002), (0.065, 0.056, 0.070)),
     "shoulder": ((-0.051, -0.026, -0.064), (0.012, 0.029, 0.046)),
@@ -312,7 +312,7 @@ def _grow(mask: np.ndarray, pixels: int) -> np.ndarray:
 
 def coverage(sil: Silhouettes, angles: Mapping[str, float], view: tuple[float, float]) -> tuple[float, float]:
     """(share of the collision silhouette the meshes cover, share of the mesh silhouette the boxes cover) of
-    the moving bodies; the base is left out: it has no collision geom (facts, section 1.5(a))."""
+    the moving bodies; the base is left out: it has no collision geom, as in the menagerie's model."""
     model = sil.model
     moving = {sil.robot.body_ids[b] for b in so101.BODY_NAMES[1:]}
     on_arm = [g for g in range(model.ngeom) if int(model.geom_bodyid[g]) in moving]

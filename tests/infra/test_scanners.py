@@ -45,7 +45,7 @@ def test_cfn_lint_reports_no_errors(variant: str, request: pytest.FixtureRequest
     from cfnlint.api import ManualArgs, lint
 
     path = write_template(request.getfixturevalue(variant), tmp_path)
-    # The regions that offer G6e (aws-facts.md section 2); elsewhere the instance type itself is invalid.
+    # The regions that offer G6e (docs/aws-facts.md); elsewhere the instance type itself is invalid.
     matches = lint(path.read_text(), config=ManualArgs(regions=G6E_REGIONS))
     errors = [
         f"{m.rule.id} {m.message} ({'/'.join(map(str, m.path))})"

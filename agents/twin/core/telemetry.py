@@ -78,7 +78,7 @@ class RejectReason(StrEnum):
     UNITS_UNDECIDED = "units_undecided"
 
 
-class TelemetryRejected(ValueError):  # noqa: N818 - the agreed name (notes/api.md)
+class TelemetryRejected(ValueError):  # noqa: N818 - a public name: callers catch it, docs/telemetry.md names it
     """A message the decoder refuses; `reason` is for counting, `str(exc)` for people."""
 
     def __init__(self, reason: RejectReason, message: str) -> None:

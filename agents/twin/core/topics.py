@@ -1,6 +1,6 @@
 """Topic and device-id rules of the telemetry contract: the one home for what a device id and a topic may be.
 
-The edge publishes each arm on `{prefix}/{device_id}/telemetry` (telemetry-contract.md), so a device id is one
+The edge publishes each arm on `{prefix}/{device_id}/telemetry` (docs/telemetry.md), so a device id is one
 MQTT topic level and the prefix is one or more. Every part of the project that accepts, builds or parses
 these uses this module: the agent config, the subscriber's filters, the decoder's `device_id` check, the edge
 simulator and the CDK stack's settings (`stacks/settings.py`), so a value one of them accepts is never refused

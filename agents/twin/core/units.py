@@ -18,5 +18,5 @@ class Units(StrEnum):
 
 # The values of `units` in the agent config and the stack settings.
 UNITS_CHOICES: tuple[str, ...] = tuple(u.value for u in Units)
-# IoT Core's cap on one message (telemetry-contract.md); the decoder's default limit and the config's.
+# IoT Core's cap on one message (docs/aws-facts.md); the decoder's default limit and the config's.
 MAX_PAYLOAD_BYTES = 128 * 1024

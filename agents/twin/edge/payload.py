@@ -3,7 +3,8 @@ malformed variants a consumer must reject. Pure (no MQTT): the edge simulator pu
 benchmark and the tests use them directly.
 
 Variant "ticks" sends raw STS3215 registers as the serial/mock modes do; variant "degrees" sends what the
-LeRobot (ROS 2) mode sends for the same motion under a default calibration (telemetry-contract.md).
+LeRobot (ROS 2) mode sends for the same motion under a default calibration (docs/telemetry.md, "The edge's
+telemetry contract").
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ DEGREES_PER_TICK = 360.0 / so101.TICK_MAX
 GRIPPER_RANGE_TICKS = (1548, 2548)
 
 
-# The edge's mock mode (telemetry-contract.md): joint i (JOINT_NAMES order) at t seconds since start is
+# The edge's mock mode (docs/telemetry.md, the contract): joint i (JOINT_NAMES order) at t s after start is
 # int(2048 + 500 sin(t (0.5 + 0.1 i) + i pi/3)) ticks. The one definition of that motion in the project: the
 # edge simulator publishes it, the fidelity benchmark measures against it, tests check both.
 MOCK_CENTRE_TICKS = 2048.0

@@ -36,7 +36,7 @@ from twin.transport.client import build_mqtt5_client
 
 log = logging.getLogger(__name__)
 
-# IoT Core: at most 100 publishes/s per connection, excess discarded (aws-facts.md section 3).
+# IoT Core: at most 100 publishes/s per connection, excess discarded (docs/aws-facts.md, "IoT Core quotas").
 IOT_PUBLISHES_PER_CONNECTION = 100
 
 

@@ -28,7 +28,7 @@ from twin.transport.client import build_mqtt5_client
 
 log = logging.getLogger(__name__)
 
-# IoT Core accepts at most 100 publishes per second on one connection (aws-facts.md section 3).
+# IoT Core accepts at most 100 publishes per second on one connection (docs/aws-facts.md, "IoT Core quotas").
 IOT_PUBLISHES_PER_S = 100
 # Rows are read in windows of this length, so a day's replay never holds a day in memory.
 READ_WINDOW = dt.timedelta(minutes=10)

@@ -64,7 +64,7 @@ SERVO_SERIES: tuple[tuple[str, str, str], ...] = (
     ("velocity_rad_s", "velocity_rad_s", "velocity (rad/s)"),
     ("voltage_v", "voltage_v", "voltage (V)"),
 )
-# Feetech STS3215 status register (address 65), bits 0..5 (so101-model-facts.md section 2).
+# Feetech STS3215 status register (address 65), bits 0..5 (docs/telemetry.md, "Diagnostics").
 SERVO_STATUS_BITS: tuple[str, ...] = (
     "voltage",
     "angle sensor",

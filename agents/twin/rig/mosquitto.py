@@ -25,7 +25,7 @@ _SEARCH_DIRS = ("/usr/sbin", "/usr/local/sbin", "/opt/homebrew/sbin")
 _HOST = "127.0.0.1"
 
 
-class MosquittoNotFound(RuntimeError):  # noqa: N818 - name fixed by api.md
+class MosquittoNotFound(RuntimeError):  # noqa: N818 - a public name: the rig, the demo and tests catch it
     """The mosquitto binary is not installed (or not on PATH / in /usr/sbin)."""
 
 

@@ -1,7 +1,7 @@
 """A loopback MQTT proxy that enforces a per-connection publish budget the way AWS IoT Core does.
 
 IoT Core accepts at most 100 PUBLISH requests per second on one connection, inbound plus outbound, and
-discards the excess without telling anyone (aws-facts.md section 3, "IoT Core quotas"). That binds a
+discards the excess without telling anyone (docs/aws-facts.md, "IoT Core quotas"). That binds a
 subscriber too: one connection subscribed to a fleet receives at most 100 messages a second. mosquitto has
 no such limit, so tests and `twin bench quota` put this proxy between the clients and mosquitto: each client
 connection gets its own upstream connection, every MQTT packet is forwarded whole, and a PUBLISH that finds

@@ -1,7 +1,8 @@
 """SO-101 follower constants: joint names and ranges shared by the decoder, the twin and the viewer.
 
-Figures come from `so101-model-facts.md` (TheRobotStudio/SO-ARM100 Simulation/SO101/so101_new_calib.xml and
-google-deepmind/mujoco_menagerie robotstudio_so101/so101.xml). The names match the edge telemetry exactly.
+Figures come from the upstream models that docs/robot-model.md names (TheRobotStudio/SO-ARM100
+so101_new_calib.xml, google-deepmind/mujoco_menagerie robotstudio_so101/so101.xml). The names match the edge
+telemetry exactly.
 """
 
 from __future__ import annotations

@@ -24,7 +24,7 @@ CLIENT_ID_PREFIX_MAX = 100
 _CLIENT_ID_PREFIX_RE = re.compile(r"^[A-Za-z0-9_.:-]+$")
 # IoT Core allows a keep-alive of at most 1200 s.
 KEEP_ALIVE_RANGE_S = (5, 1200)
-# Beyond this many connections a fleet wants an IoT rule to Kinesis instead (aws-facts.md section 3).
+# Beyond this many connections a fleet wants an IoT rule to Kinesis instead (docs/aws-facts.md).
 MAX_CONNECTIONS_LIMIT = 64
 
 

@@ -120,7 +120,7 @@ def _tls_client(config: BrokerConfig, common: dict[str, Any]) -> mqtt5.Client:
 
 
 def _plain_client(config: BrokerConfig, common: dict[str, Any]) -> mqtt5.Client:
-    # Plain TCP: every SDK builder installs TLS, so build the options directly (aws-facts.md section 3).
+    # Plain TCP: every SDK builder installs TLS, so build the options directly (docs/aws-facts.md).
     options = mqtt5.ClientOptions(
         host_name=config.host,
         port=config.port,

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from twin.core.topics import ALL_DEVICES, TELEMETRY_SUFFIX, check_devices, topic_filters
 from twin.transport.broker import IOT, BrokerConfig
 
-# IoT Core's per-connection quotas (aws-facts.md section 3).
+# IoT Core's per-connection quotas (docs/aws-facts.md, "IoT Core quotas").
 IOT_PUBLISHES_PER_CONNECTION = 100
 IOT_SUBSCRIPTIONS_PER_CONNECTION = 50
 # The share of a connection's budget the pool plans to use: bursts (devices in step, a reconnect backlog) must

@@ -1,7 +1,7 @@
 """A pool of subscriber connections that stays under a per-connection publish budget.
 
 AWS IoT Core delivers at most 100 publishes per second to one connection (inbound plus outbound) and discards
-the rest silently (aws-facts.md section 3): one connection subscribed to a fleet of 10 Hz arms loses messages
+the rest silently (docs/aws-facts.md): one connection subscribed to a fleet of 10 Hz arms loses messages
 from the eleventh arm on, and nothing tells the subscriber. So the agent receives over several connections,
 each kept under a budget, used with a safety margin (SAFETY_MARGIN) because arrivals are bursty:
 

@@ -26,7 +26,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-# IoT Core takes at most 8 topic filters per SUBSCRIBE packet (aws-facts.md section 3).
+# IoT Core takes at most 8 topic filters per SUBSCRIBE packet (docs/aws-facts.md, "IoT Core quotas").
 _FILTERS_PER_SUBSCRIBE = 8
 Clock = Callable[[], float]
 
