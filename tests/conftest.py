@@ -4,6 +4,14 @@ headless chromium that reaches loopback addresses only."""
 
 from __future__ import annotations
 
+import os
+
+# MuJoCo binds its GL backend when it is first imported; with none set it takes GLFW, which needs a display.
+# `make test` exports MUJOCO_GL=egl; a bare `pytest` (or a shuffled order that imports mujoco in an unexpected
+# test first) must get the same, so it is set here, before this file imports anything that imports mujoco.
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
+
 import json
 import random
 import threading
