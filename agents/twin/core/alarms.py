@@ -34,8 +34,8 @@ import math
 from collections import Counter
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
-from enum import StrEnum
-from typing import TYPE_CHECKING
+from enum import Enum, StrEnum
+from typing import TYPE_CHECKING, Final
 
 from twin.robot import so101, sts3215
 
@@ -330,11 +330,18 @@ class _Torques:
     def get(self, joint: str) -> float | None:
         torques = self._torques
         if torques is None:
-            torques = self._torques = self._source()  # type: ignore[operator]
+            source = self._source
+            torques = self._torques = source() if callable(source) else source
         return torques.get(joint)
 
 
-_UNKNOWN = object()
+class _Unknown(Enum):
+    """Not computed yet: a sentinel that, unlike None, is a valid value of no reading."""
+
+    UNKNOWN = 0
+
+
+_UNKNOWN: Final = _Unknown.UNKNOWN
 
 
 class JointHealth:
@@ -350,7 +357,7 @@ class JointHealth:
         *,
         mismatch_percent: float | None,
         still: bool | None,
-        model_load_percent: float | object | None = _UNKNOWN,
+        model_load_percent: float | _Unknown | None = _UNKNOWN,
         joint: str = "",
         torques: _Torques | None = None,
         servo: sts3215.ServoVersion | None = None,
@@ -369,7 +376,7 @@ class JointHealth:
         model = self._model
         if model is _UNKNOWN:
             model = self._model = _model_load(self._torques, self._servo, self.joint, self._voltage)
-        return model  # type: ignore[return-value]
+        return model
 
     def __repr__(self) -> str:
         return (
@@ -765,7 +772,7 @@ class ServoAlarms:
         """The alarm's value at the device's last evaluation (a quiet evaluation does not write it)."""
         last = self._last.get(alarm.device)
         diag = None if last is None else last.diagnostics.get(alarm.joint)
-        if diag is None:
+        if last is None or diag is None:
             return alarm.value  # the joint was not in the last message: what it had when last evaluated
         kind = alarm.kind
         if kind is AlarmKind.OVER_TEMPERATURE or kind is AlarmKind.OVER_TEMPERATURE_CRITICAL:
@@ -774,7 +781,7 @@ class ServoAlarms:
             return diag.current_a
         if kind is AlarmKind.OVERLOAD:
             return None if diag.load_percent is None else abs(diag.load_percent)
-        checked = last.checked.get(alarm.joint)  # type: ignore[union-attr]
+        checked = last.checked.get(alarm.joint)
         return None if checked is None else checked[1]
 
     def joint_health(self, device: str) -> dict[str, JointHealth]:

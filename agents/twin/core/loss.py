@@ -94,7 +94,8 @@ def _share_fitting(gaps: Sequence[float], period: float) -> float:
 def _refined(gaps: Sequence[float], period: float) -> float:
     """Least squares over the gaps that fit `period`: sum of gaps / sum of their multiples."""
     tolerance = FIT_TOLERANCE * period
-    total = multiples = 0
+    total: float = 0
+    multiples = 0
     for g in gaps:
         m = round(g / period)
         if m >= 1 and abs(g - m * period) <= tolerance:

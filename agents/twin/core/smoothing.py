@@ -167,12 +167,12 @@ class PlayoutPredictor:
         edge_s = timestamp_ms / 1000.0
         sample_offset = received_s - edge_s
         if self._offset is not None and abs(sample_offset - self._offset) > self.config.jump_threshold_s:
-            return self._hold_back(edge_s, received_s, values)
+            return self._hold_back(edge_s, received_s, values, self._offset)
         self._pending.clear()
         self._track_offset(received_s, sample_offset)
         return self._insert(edge_s, values)
 
-    def _hold_back(self, edge_s: float, received_s: float, values: tuple[float, ...]) -> bool:
+    def _hold_back(self, edge_s: float, received_s: float, values: tuple[float, ...], offset: float) -> bool:
         # Either a straggler from a network stall or the first samples after an edge clock jump; only a run
         # of samples that agree with each other proves the latter.
         sample_offset = received_s - edge_s
@@ -184,9 +184,7 @@ class PlayoutPredictor:
         if len(self._pending) < self.config.jump_confirmations:
             return False
         pending = self._pending
-        log.info(
-            "edge clock jumped by %.3f s: restarting the playout timeline", -sample_offset + self._offset
-        )
+        log.info("edge clock jumped by %.3f s: restarting the playout timeline", -sample_offset + offset)
         self.reset()
         self.clock_resets += 1
         for p_edge, p_received, p_values in pending:

@@ -31,7 +31,7 @@ from collections.abc import ItemsView, Iterator, Mapping, ValuesView
 from dataclasses import dataclass, field
 from enum import StrEnum
 from operator import attrgetter
-from typing import Annotated, Any
+from typing import Annotated, Any, Final, NoReturn, Protocol, TypeVar, cast, overload
 
 import msgspec
 from msgspec import UNSET, Meta, UnsetType
@@ -152,6 +152,9 @@ class Telemetry(msgspec.Struct, frozen=True, gc=False):
         return {name: r.position for name, r in zip(_JOINTS, self.readings, strict=True)}
 
 
+_T = TypeVar("_T")
+
+
 class _LazyDiagnostics(Mapping[str, JointDiagnostics]):
     """JointDiagnostics by joint name, converted from schema-checked readings when first read (the
     conversion cannot fail: the schema already checked every type and bound)."""
@@ -190,7 +193,11 @@ class _LazyDiagnostics(Mapping[str, JointDiagnostics]):
     def values(self) -> ValuesView[JointDiagnostics]:
         return self._all().values()
 
-    def get(self, joint: str, default: Any = None) -> Any:
+    @overload
+    def get(self, joint: str, /) -> JointDiagnostics | None: ...
+    @overload
+    def get(self, joint: str, default: JointDiagnostics | _T, /) -> JointDiagnostics | _T: ...
+    def get(self, joint: str, default: object = None) -> object:
         return self._all().get(joint, default)
 
     def __repr__(self) -> str:
@@ -274,13 +281,16 @@ class _NonFiniteTokenError(ValueError):
     pass
 
 
-def _reject_constant(token: str) -> Any:
+def _reject_constant(token: str) -> NoReturn:
     raise _NonFiniteTokenError(token)
 
 
+# A JSON object as the standard parser returns it, on the explaining path: its values are whatever the edge
+# sent, and the rules below check them one by one before anything reads them as numbers.
+_JsonObject = dict[str, Any]
 # Built once: json.loads with a hook would build a decoder per call on the hot path.
 _JSON = json.JSONDecoder(parse_constant=_reject_constant)
-_MISSING: Any = object()
+_MISSING: Final = object()
 _EMPTY_DIAGNOSTICS = JointDiagnostics()
 _JOINTS = so101.JOINT_NAMES
 _JOINT_SET = frozenset(_JOINTS)
@@ -296,12 +306,27 @@ _DIAG_FIELDS = (*_NUMERIC_DIAG_FIELDS, "status", "moving")
 _Timestamp = Annotated[int, Meta(ge=TIMESTAMP_MIN_MS, le=TIMESTAMP_MAX_MS)]
 
 
-def _number_within(lo: int, hi: int) -> Any:
+class _Message(Protocol):
+    """What a `_message_schema` decoder returns: a Struct class made at import time with these fields, and
+    `joints` holding one JointReading subclass per joint (read with `_readings_of`)."""
+
+    @property
+    def device_id(self) -> str: ...
+    @property
+    def timestamp(self) -> int: ...
+    @property
+    def joints(self) -> object: ...
+
+
+# Type expressions (an Annotated union) handed to msgspec as field types; they are objects, not classes.
+def _number_within(lo: int, hi: int) -> object:
     return Annotated[int, Meta(ge=lo, le=hi)] | Annotated[float, Meta(ge=float(lo), le=float(hi))]
 
 
-def _message_schema(tag: str, arm_position: Any, gripper_position: Any) -> msgspec.json.Decoder:
-    def reading(kind: str, position: Any) -> Any:
+def _message_schema(
+    tag: str, arm_position: object, gripper_position: object
+) -> msgspec.json.Decoder[_Message]:
+    def reading(kind: str, position: object) -> type[msgspec.Struct]:
         return msgspec.defstruct(
             f"_{kind}Reading{tag}", [("position", position)], bases=(JointReading,), frozen=True, gc=False
         )
@@ -320,11 +345,12 @@ def _message_schema(tag: str, arm_position: Any, gripper_position: Any) -> msgsp
         frozen=True,
         gc=False,
     )
-    return msgspec.json.Decoder(message)
+    # defstruct's classes are typed as plain Structs; _Message names the fields this one was given above.
+    return cast("msgspec.json.Decoder[_Message]", msgspec.json.Decoder(message))
 
 
 _PERCENT = _number_within(0, int(PERCENT_MAX))
-_SCHEMAS: dict[Units, msgspec.json.Decoder] = {
+_SCHEMAS: dict[Units, msgspec.json.Decoder[_Message]] = {
     Units.AUTO: _message_schema("Any", int | float, int | float),
     Units.TICKS: _message_schema(
         "Ticks", Annotated[int, Meta(ge=0, le=so101.TICK_MAX)], Annotated[int, Meta(ge=0, le=so101.TICK_MAX)]
@@ -346,12 +372,12 @@ def _rejected(reason: RejectReason, message: str) -> TelemetryRejected:
     return TelemetryRejected(reason, message)
 
 
-def _fmt(value: Any) -> str:
+def _fmt(value: object) -> str:
     text = repr(value)
     return text if len(text) <= 40 else text[:37] + "..."
 
 
-def _units_hint(value: Any) -> str:
+def _units_hint(value: int | float) -> str:
     """What a position that does not fit the configured units looks like instead."""
     if type(value) is int and 360 < value <= so101.TICK_MAX:
         return "the edge looks like it sends raw ticks: set units=ticks"
@@ -362,10 +388,9 @@ def _units_hint(value: Any) -> str:
     return "no units produce this value: check the edge's position source"
 
 
-def _check_number(joint: str, name: str, value: Any) -> float:
-    t = type(value)
-    if t is int or t is float:
-        if t is float and not math.isfinite(value):
+def _check_number(joint: str, name: str, value: object) -> float:
+    if type(value) is int or type(value) is float:
+        if type(value) is float and not math.isfinite(value):
             raise _rejected(
                 RejectReason.NOT_FINITE,
                 f"{name} {value} of {joint} is not a finite number; the edge must send real readings "
@@ -384,14 +409,15 @@ def _check_number(joint: str, name: str, value: Any) -> float:
     )
 
 
-def _check_device_id(device_id: object) -> None:
-    """The device-id rule of twin.core.topics, as a rejection naming the problem."""
+def _check_device_id(device_id: object) -> str:
+    """`device_id` if it passes the device-id rule of twin.core.topics, else a rejection saying why."""
     problem = device_id_problem(device_id)
-    if problem is not None:
-        raise _rejected(
-            RejectReason.BAD_DEVICE_ID,
-            f"device_id {_fmt(device_id)} is not usable: {problem}; rename the device on the edge",
-        )
+    if problem is None and isinstance(device_id, str):  # the rule accepts only strings
+        return device_id
+    raise _rejected(
+        RejectReason.BAD_DEVICE_ID,
+        f"device_id {_fmt(device_id)} is not usable: {problem}; rename the device on the edge",
+    )
 
 
 def _mismatch(device_id: str, topic_device: str) -> TelemetryRejected:
@@ -481,7 +507,7 @@ class TelemetryDecoder:
             self._known_ids.add(device_id)
         if topic_device is not None and device_id != topic_device:
             raise _mismatch(device_id, topic_device)
-        readings = _readings_of(msg.joints)
+        readings: tuple[JointReading, ...] = _readings_of(msg.joints)
         positions = [r.position for r in readings]
         undecided = False
         if units is Units.AUTO:
@@ -501,7 +527,7 @@ class TelemetryDecoder:
         )
 
     def _units_and_angles(
-        self, device_id: str, positions: list[Any]
+        self, device_id: str, positions: list[int | float]
     ) -> tuple[Units, list[float], float, bool]:
         """The units in force, the converted angles and gripper percent, and whether auto is still deciding
         (then the message only counts as evidence once everything else about it proved valid)."""
@@ -552,7 +578,7 @@ class TelemetryDecoder:
             ),
         )
 
-    def _joints(self, doc: dict[str, Any]) -> tuple[list[dict[str, Any]], list[int | float]]:
+    def _joints(self, doc: _JsonObject) -> tuple[list[_JsonObject], list[int | float]]:
         """The six joints' objects and positions in JOINT_NAMES order: 'joints' present, an object, exactly
         the six; then joint by joint, an object with a number for its position."""
         joints = doc.get("joints", _MISSING)
@@ -567,8 +593,8 @@ class TelemetryDecoder:
             )
         if len(joints) != len(_JOINTS) or not _JOINT_SET.issuperset(joints):
             self._joint_set_error(joints)
-        entries = []
-        positions = []
+        entries: list[_JsonObject] = []
+        positions: list[int | float] = []
         for name in _JOINTS:
             entry = joints[name]
             if type(entry) is not dict:
@@ -621,7 +647,7 @@ class TelemetryDecoder:
         )
 
     @staticmethod
-    def _parse(text: str) -> Any:
+    def _parse(text: str) -> object:
         try:
             return _JSON.decode(text)
         except _NonFiniteTokenError as exc:
@@ -648,19 +674,19 @@ class TelemetryDecoder:
         )
 
     @staticmethod
-    def _device_id(doc: dict[str, Any], topic_device: str | None) -> str:
-        device_id = doc.get("device_id", _MISSING)
-        if device_id is _MISSING:
+    def _device_id(doc: _JsonObject, topic_device: str | None) -> str:
+        sent = doc.get("device_id", _MISSING)
+        if sent is _MISSING:
             raise _rejected(
                 RejectReason.MISSING_FIELD, "message has no 'device_id'; set the edge component's device id"
             )
-        _check_device_id(device_id)
+        device_id = _check_device_id(sent)
         if topic_device is not None and device_id != topic_device:
             raise _mismatch(device_id, topic_device)
         return device_id
 
     @staticmethod
-    def _timestamp(doc: dict[str, Any]) -> int:
+    def _timestamp(doc: _JsonObject) -> int:
         ts = doc.get("timestamp", _MISSING)
         if ts is _MISSING:
             raise _rejected(RejectReason.MISSING_FIELD, "message has no 'timestamp' (epoch milliseconds)")
@@ -682,7 +708,7 @@ class TelemetryDecoder:
         return ts
 
     @staticmethod
-    def _joint_set_error(joints: dict[str, Any]) -> None:
+    def _joint_set_error(joints: _JsonObject) -> NoReturn:
         missing = [n for n in _JOINTS if n not in joints]
         extra = sorted(str(k) for k in joints if k not in _JOINT_SET)
         if missing:
@@ -700,14 +726,16 @@ class TelemetryDecoder:
 
     # --- units --------------------------------------------------------------------------------------------
 
-    def _convert(self, units: Units, positions: list[Any], *, auto: bool) -> tuple[list[float], float]:
+    def _convert(
+        self, units: Units, positions: list[int | float], *, auto: bool
+    ) -> tuple[list[float], float]:
         if units is Units.TICKS:
             self._check_ticks(positions, auto)
         else:
             self._check_normalised(units, positions, auto)
         return self._angles(units, positions)
 
-    def _angles(self, units: Units, positions: list[Any]) -> tuple[list[float], float]:
+    def _angles(self, units: Units, positions: list[int | float]) -> tuple[list[float], float]:
         """Positions already checked against `units` -> joint angles and gripper percent (arithmetic only)."""
         if units is Units.TICKS:
             angles = [a + b * v for (a, b), v in zip(self._affine_ticks, positions, strict=False)]
@@ -725,12 +753,12 @@ class TelemetryDecoder:
         angles.append(self._jaw_lo + percent / PERCENT_MAX * self._jaw_span)
         return angles, percent
 
-    def _check_ticks(self, positions: list[Any], auto: bool) -> None:
+    def _check_ticks(self, positions: list[int | float], auto: bool) -> None:
         for name, value in zip(_JOINTS, positions, strict=True):
             if type(value) is not int:
                 fix = (
                     "the edge looks like it sends LeRobot degrees: set units=degrees"
-                    if not value.is_integer() or value < 0
+                    if not float(value).is_integer() or value < 0
                     else "ticks arrive as JSON integers: check the edge sends raw ticks, or set units=degrees"
                 )
                 raise _rejected(
@@ -750,7 +778,7 @@ class TelemetryDecoder:
                     f"{fix}{self._auto_note(auto)}",
                 )
 
-    def _check_normalised(self, units: Units, positions: list[Any], auto: bool) -> None:
+    def _check_normalised(self, units: Units, positions: list[int | float], auto: bool) -> None:
         limit = DEGREES_LIMIT if units is Units.DEGREES else RANGE100_LIMIT
         for name, value in zip(_ARM, positions, strict=False):
             if not -limit <= value <= limit:
@@ -776,7 +804,7 @@ class TelemetryDecoder:
         return " (units=auto decided otherwise for this device and never changes its mind)" if auto else ""
 
     @staticmethod
-    def _evidence_or_reject(device_id: str, positions: list[Any]) -> Units:
+    def _evidence_or_reject(device_id: str, positions: list[int | float]) -> Units:
         kind = _evidence(positions)
         if kind is None:
             raise _rejected(
@@ -827,17 +855,17 @@ class TelemetryDecoder:
             )
 
 
-def _position(name: str, entry: dict[str, Any]) -> int | float:
+def _position(name: str, entry: _JsonObject) -> int | float:
     """A joint's 'position': present, a JSON number, finite (its range is the units' rule)."""
-    pos = entry.get("position", _MISSING)
-    t = type(pos)
-    if t is float:
+    pos: object = entry.get("position", _MISSING)
+    if type(pos) is float:
         if not math.isfinite(pos):
             raise _rejected(
                 RejectReason.NOT_FINITE,
                 f"position {pos} of {name} is not a finite number; check the edge's servo read",
             )
-    elif t is not int:
+        return pos
+    if type(pos) is not int:
         if pos is _MISSING:
             raise _rejected(RejectReason.MISSING_FIELD, f"joint {name} has no 'position'")
         raise _rejected(
@@ -847,7 +875,7 @@ def _position(name: str, entry: dict[str, Any]) -> int | float:
     return pos
 
 
-def _evidence(positions: list[Any]) -> Units | None:
+def _evidence(positions: list[int | float]) -> Units | None:
     """Which units one message proves, or None when it fits several (docs/telemetry.md, "auto")."""
     any_big = False
     all_ticks = True
@@ -861,7 +889,7 @@ def _evidence(positions: list[Any]) -> Units | None:
     return Units.TICKS if all_ticks and any_big else None
 
 
-def _joint_diagnostics(joint: str, entry: dict[str, Any], float_variant: bool) -> JointDiagnostics:
+def _joint_diagnostics(joint: str, entry: _JsonObject, float_variant: bool) -> JointDiagnostics:
     get = entry.get
     velocity = get("velocity")
     load = get("load")
@@ -914,13 +942,13 @@ def _joint_diagnostics(joint: str, entry: dict[str, Any], float_variant: bool) -
 def _converted(
     float_variant: bool,
     *,
-    velocity: Any,
-    load: Any,
-    temp: Any,
-    current: Any,
-    voltage: Any,
-    status: Any,
-    moving: Any,
+    velocity: float | None,
+    load: float | None,
+    temp: float | None,
+    current: float | None,
+    voltage: float | None,
+    status: int | None,
+    moving: bool | int | None,
 ) -> JointDiagnostics:
     """Register readings already checked (None where absent) -> physical units; both decode paths end here."""
     steps = rad_s = None

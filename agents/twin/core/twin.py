@@ -188,7 +188,7 @@ class DeviceTwin:
         self.clamped = 0
         if self._own_data is not None:
             self._write_pose(self._own_data, self._targets)
-            self._write_ctrl(self._targets)
+            self._write_ctrl(self._own_data, self._targets)
             mujoco.mj_forward(model, self._own_data)
             self._tcp = _tcp_of(robot, self._own_data)
 
@@ -261,7 +261,7 @@ class DeviceTwin:
                 own.qvel[:] = 0.0
                 mujoco.mj_forward(self.robot.model, own)
                 self._tcp = _tcp_of(self.robot, own)
-            self._write_ctrl(targets)
+            self._write_ctrl(own, targets)
         self.last_timestamp_ms = timestamp_ms
         self.applied += 1
         return True
@@ -271,8 +271,8 @@ class DeviceTwin:
         for adr, value in zip(self._qadr, values, strict=True):
             qpos[adr] = value
 
-    def _write_ctrl(self, values: list[float]) -> None:
-        ctrl = self._own_data.ctrl
+    def _write_ctrl(self, data: mujoco.MjData, values: list[float]) -> None:
+        ctrl = data.ctrl
         for act, value in zip(self._act, values, strict=True):
             ctrl[act] = value
 
@@ -284,7 +284,8 @@ class DeviceTwin:
         Time is advanced in whole model timesteps; the remainder carries over to the next call, so calling
         this with wall-clock intervals keeps simulated time in step with real time.
         """
-        if self.mode is not TwinMode.PHYSICS:
+        data = self._own_data  # set exactly in physics mode
+        if self.mode is not TwinMode.PHYSICS or data is None:
             return
         if not seconds > 0.0:
             return
@@ -296,7 +297,6 @@ class DeviceTwin:
         if steps <= 0:
             return
         self._sim_debt = max(0.0, self._sim_debt - steps * dt)
-        data = self._own_data
         for _ in range(steps):
             mujoco.mj_step(model, data)
         # mj_step leaves positions from before its final integration; refresh them for readers and renderers.

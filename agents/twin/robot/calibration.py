@@ -17,7 +17,6 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any
 
 from twin.robot import so101
 
@@ -64,7 +63,7 @@ class Calibration(Mapping[str, MotorCalibration]):
         return len(self.motors)
 
     @classmethod
-    def from_dict(cls, data: Any, source: str = "<memory>") -> Calibration:
+    def from_dict(cls, data: object, source: str = "<memory>") -> Calibration:
         """Build from the parsed JSON of a LeRobot calibration file (ValueError on any problem)."""
         if not isinstance(data, dict):
             raise ValueError(

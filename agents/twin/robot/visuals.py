@@ -30,8 +30,11 @@ from dataclasses import dataclass, replace
 
 import mujoco
 import numpy as np
+from numpy.typing import NDArray
 
 log = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
 
 # MuJoCo's viewer shows geom groups 0, 1 and 2 and hides 3..5 (mjvOption.geomgroup defaults).
 VISIBLE_GROUPS: frozenset[int] = frozenset({0, 1, 2})
@@ -68,11 +71,11 @@ class VisualGeom:
 
 def geom_rgba(model: mujoco.MjModel, geom: int) -> tuple[float, float, float, float]:
     """The colour MuJoCo draws a geom in: its own rgba if set, else its material's."""
-    rgba = tuple(float(v) for v in model.geom_rgba[geom])
+    r, g, b, a = (float(v) for v in model.geom_rgba[geom])
     mat = int(model.geom_matid[geom])
-    if mat >= 0 and np.allclose(rgba, DEFAULT_GEOM_RGBA):
-        rgba = tuple(float(v) for v in model.mat_rgba[mat])
-    return rgba  # type: ignore[return-value]
+    if mat >= 0 and np.allclose((r, g, b, a), DEFAULT_GEOM_RGBA):
+        r, g, b, a = (float(v) for v in model.mat_rgba[mat])
+    return r, g, b, a
 
 
 def visual_geoms(model: mujoco.MjModel, bodies: Mapping[str, int]) -> list[VisualGeom]:
@@ -180,7 +183,9 @@ def _triangles(model: mujoco.MjModel, g: int) -> tuple[str, np.ndarray, np.ndarr
 def box(half: Sequence[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """24 vertices (4 per side, so each side shades flat) and 12 triangles."""
     hx, hy, hz = (float(v) for v in half[:3])
-    vertices, faces, normals = [], [], []
+    vertices: list[FloatArray] = []
+    faces: list[tuple[int, int, int]] = []
+    normals: list[FloatArray] = []
     for axis in range(3):
         for sign in (1.0, -1.0):
             n = np.zeros(3)
@@ -292,7 +297,7 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     for k in range(3):
         np.add.at(acc, f[:, k], cross)
     norm = np.linalg.norm(acc, axis=1, keepdims=True)
-    out = np.divide(acc, norm, out=np.tile([0.0, 0.0, 1.0], (len(v), 1)), where=norm > 0)
+    out: FloatArray = np.divide(acc, norm, out=np.tile([0.0, 0.0, 1.0], (len(v), 1)), where=norm > 0)
     return out
 
 

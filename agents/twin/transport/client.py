@@ -9,7 +9,7 @@ only the "iot" path needs it.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import TypedDict
 
 from awscrt import auth, io, mqtt5
 from awsiot import mqtt5_client_builder
@@ -23,9 +23,9 @@ def resolve_iot_endpoint(config: BrokerConfig) -> str:
         return config.endpoint
     import boto3  # noqa: PLC0415 - slow to import; only the "iot" path needs it
 
-    kwargs = {"region_name": config.region} if config.region else {}
     try:
-        client = boto3.client("iot", **kwargs)
+        # No region: boto3's default chain decides (AWS_REGION, the AWS config, IMDS).
+        client = boto3.client("iot", region_name=config.region or None)
         response = client.describe_endpoint(endpointType="iot:Data-ATS")
     except Exception as exc:
         raise BrokerConfigError(
@@ -48,26 +48,49 @@ def _region(config: BrokerConfig) -> str:
     return str(region)
 
 
-LifecycleCallback = Callable[[Any], None]
+# awscrt calls each with its own event's data.
+OnPublishReceived = Callable[[mqtt5.PublishReceivedData], None]
+OnAttemptingConnect = Callable[[mqtt5.LifecycleAttemptingConnectData], None]
+OnConnectionSuccess = Callable[[mqtt5.LifecycleConnectSuccessData], None]
+OnConnectionFailure = Callable[[mqtt5.LifecycleConnectFailureData], None]
+OnDisconnection = Callable[[mqtt5.LifecycleDisconnectData], None]
+OnStopped = Callable[[mqtt5.LifecycleStoppedData], None]
+
+
+class _CommonSettings(TypedDict):
+    """The settings every variant shares, named as the SDK's builders take them as keyword arguments."""
+
+    client_id: str
+    session_behavior: mqtt5.ClientSessionBehaviorType
+    retry_jitter_mode: mqtt5.ExponentialBackoffJitterMode
+    min_reconnect_delay_ms: int
+    max_reconnect_delay_ms: int
+    keep_alive_interval_sec: int
+    on_publish_received: OnPublishReceived | None
+    on_lifecycle_attempting_connect: OnAttemptingConnect | None
+    on_lifecycle_connection_success: OnConnectionSuccess | None
+    on_lifecycle_connection_failure: OnConnectionFailure | None
+    on_lifecycle_disconnection: OnDisconnection | None
+    on_lifecycle_stopped: OnStopped | None
 
 
 def build_mqtt5_client(
     config: BrokerConfig,
     client_id: str,
     *,
-    on_publish_received: LifecycleCallback | None = None,
-    on_attempting_connect: LifecycleCallback | None = None,
-    on_connection_success: LifecycleCallback | None = None,
-    on_connection_failure: LifecycleCallback | None = None,
-    on_disconnection: LifecycleCallback | None = None,
-    on_stopped: LifecycleCallback | None = None,
+    on_publish_received: OnPublishReceived | None = None,
+    on_attempting_connect: OnAttemptingConnect | None = None,
+    on_connection_success: OnConnectionSuccess | None = None,
+    on_connection_failure: OnConnectionFailure | None = None,
+    on_disconnection: OnDisconnection | None = None,
+    on_stopped: OnStopped | None = None,
 ) -> mqtt5.Client:
     """An unstarted awscrt MQTT5 client for `config`; shared by the subscriber and the edge simulator.
 
     Every variant uses a clean session, exponential backoff with FULL jitter and the configured delays, so a
     fleet of agents that lose IoT Core at once does not reconnect in lock step.
     """
-    common: dict[str, Any] = {
+    common: _CommonSettings = {
         "client_id": client_id,
         # Clean session: after every reconnect the broker has no subscriptions, and the connection-success
         # callback subscribes again. A persistent session would replay stale QoS1 traffic the twin does not
@@ -92,7 +115,7 @@ def build_mqtt5_client(
     return _plain_client(config, common)
 
 
-def _iot_client(config: BrokerConfig, common: dict[str, Any]) -> mqtt5.Client:
+def _iot_client(config: BrokerConfig, common: _CommonSettings) -> mqtt5.Client:
     # SigV4 over WebSocket. The builder's handshake transform signs every connection attempt with fresh
     # credentials from the default chain (instance role via IMDS on EC2), so both rotated role credentials
     # and IoT Core's hard 24 h WebSocket lifetime are handled the same way: IoT Core closes the socket, the
@@ -106,7 +129,7 @@ def _iot_client(config: BrokerConfig, common: dict[str, Any]) -> mqtt5.Client:
     )
 
 
-def _tls_client(config: BrokerConfig, common: dict[str, Any]) -> mqtt5.Client:
+def _tls_client(config: BrokerConfig, common: _CommonSettings) -> mqtt5.Client:
     # The SDK's plain-TLS builder; a private CA replaces the system trust store when given. Extended
     # validation is IoT-specific (8 filters per SUBSCRIBE, 100 publishes/s throttle), so it is off here.
     return mqtt5_client_builder.new_default_builder(
@@ -119,7 +142,7 @@ def _tls_client(config: BrokerConfig, common: dict[str, Any]) -> mqtt5.Client:
     )
 
 
-def _plain_client(config: BrokerConfig, common: dict[str, Any]) -> mqtt5.Client:
+def _plain_client(config: BrokerConfig, common: _CommonSettings) -> mqtt5.Client:
     # Plain TCP: every SDK builder installs TLS, so build the options directly (docs/aws-facts.md).
     options = mqtt5.ClientOptions(
         host_name=config.host,

@@ -14,7 +14,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, TypedDict
 
 from awscrt import mqtt5
 
@@ -52,6 +52,13 @@ class SubscriberStats:
 
 
 MessageHandler = Callable[[str, bytes, float], None]
+
+
+class _PendingSubacks(TypedDict):
+    """One connection's SUBSCRIBEs: how many await a SUBACK, and whether all so far granted every filter."""
+
+    left: int
+    ok: bool
 
 
 class TelemetrySubscriber:
@@ -155,6 +162,8 @@ class TelemetrySubscriber:
         packet = data.publish_packet
         self._stats.messages_received += 1
         self._stats.last_message_monotonic = received
+        if packet is None or packet.topic is None:  # never: awscrt hands on a PUBLISH, which has a topic
+            return
         payload = packet.payload
         if not isinstance(payload, bytes):
             payload = bytes(payload or b"")
@@ -168,7 +177,7 @@ class TelemetrySubscriber:
                     "on_message failed for %s (%d so far)", packet.topic, self._stats.callback_errors
                 )
 
-    def _on_attempting_connect(self, _data: Any) -> None:
+    def _on_attempting_connect(self, _data: mqtt5.LifecycleAttemptingConnectData) -> None:
         with self._stats_lock:
             self._stats.connection_attempts += 1
         log.debug("subscriber %s attempting to connect", self.client_id)
@@ -194,7 +203,7 @@ class TelemetrySubscriber:
             self.topic_filters[i : i + _FILTERS_PER_SUBSCRIBE]
             for i in range(0, len(self.topic_filters), _FILTERS_PER_SUBSCRIBE)
         ]
-        pending = {"left": len(chunks), "ok": True}
+        pending: _PendingSubacks = {"left": len(chunks), "ok": True}
         for chunk in chunks:
             packet = mqtt5.SubscribePacket(
                 subscriptions=[mqtt5.Subscription(topic_filter=f, qos=mqtt5.QoS.AT_MOST_ONCE) for f in chunk]
@@ -208,7 +217,9 @@ class TelemetrySubscriber:
                 self._stats.subscribes_sent += 1
             future.add_done_callback(functools.partial(self._on_suback, chunk=chunk, pending=pending))
 
-    def _on_suback(self, future: Future[Any], chunk: list[str], pending: dict[str, Any]) -> None:
+    def _on_suback(
+        self, future: Future[mqtt5.SubackPacket], chunk: list[str], pending: _PendingSubacks
+    ) -> None:
         try:
             suback = future.result(timeout=0)  # already done: this is its done-callback
         except Exception as exc:
@@ -280,7 +291,7 @@ class TelemetrySubscriber:
             reason,
         )
 
-    def _on_stopped(self, _data: Any) -> None:
+    def _on_stopped(self, _data: mqtt5.LifecycleStoppedData) -> None:
         self._connected.clear()
         log.info("subscriber %s stopped", self.client_id)
         self._stopped.set()
