@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import cast
+
 from aws_cdk import Acknowledgment, Duration, RemovalPolicy, Stack, Validations
 from aws_cdk import aws_iam as iam
 from aws_cdk import aws_s3 as s3
@@ -89,6 +91,8 @@ class HistoryBucket(Construct):
     def grant_agent(self, role: iam.IRole) -> None:
         """Read, write and delete under `history/` only; list only that prefix."""
         stack = Stack.of(self)
+        # An L2 Bucket's default child is the CfnBucket it wraps; the construct tree types it as a construct.
+        cfn_bucket = cast(s3.CfnBucket, self.bucket.node.default_child)
         objects = self.bucket.arn_for_objects(f"{HISTORY_PREFIX}/*")
         role.add_to_principal_policy(
             iam.PolicyStatement(
@@ -107,7 +111,7 @@ class HistoryBucket(Construct):
         )
         Validations.of(role).acknowledge(
             Acknowledgment(
-                id=f"AwsSolutions-IAM5[Resource::<{stack.get_logical_id(self.bucket.node.default_child)}.Arn>/"
+                id=f"AwsSolutions-IAM5[Resource::<{stack.get_logical_id(cfn_bucket)}.Arn>/"
                 f"{HISTORY_PREFIX}/*]",
                 reason="Delta Lake writes a new object per commit (Parquet files, log entries, checkpoints) "
                 "under keys it chooses; the wildcard is the history prefix of this stack's own bucket only.",

@@ -10,7 +10,6 @@ import ipaddress
 import re
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 from twin.core.topics import ALL_DEVICES, policy_device_id_problem, topic_prefix_problem
 
@@ -92,7 +91,7 @@ class TwinSettings:
         return self.devices == ("*",)
 
     @classmethod
-    def from_context(cls, get: Callable[[str], Any]) -> TwinSettings:
+    def from_context(cls, get: Callable[[str], object]) -> TwinSettings:
         """Build from a context getter (`app.node.try_get_context`); raise SettingsError on bad input.
 
         `-c key=value` arrives as a string while cdk.json values keep their JSON type, so every
@@ -134,7 +133,7 @@ class TwinSettings:
             )
 
 
-def _refuse_removed(get: Callable[[str], Any]) -> None:
+def _refuse_removed(get: Callable[[str], object]) -> None:
     # sshAccess opened port 22 on an instance that has no key pair: nothing could log in through it.
     if get("sshAccess") not in (None, "", False, "false"):
         raise SettingsError(
@@ -144,7 +143,7 @@ def _refuse_removed(get: Callable[[str], Any]) -> None:
         )
 
 
-def _str(get: Callable[[str], Any], key: str) -> str:
+def _str(get: Callable[[str], object], key: str) -> str:
     value = get(key)
     if value is None:
         return ""
@@ -153,7 +152,7 @@ def _str(get: Callable[[str], Any], key: str) -> str:
     return str(value).strip()
 
 
-def _bool(get: Callable[[str], Any], key: str, default: bool) -> bool:
+def _bool(get: Callable[[str], object], key: str, default: bool) -> bool:
     value = get(key)
     if value is None or value == "":
         return default
@@ -231,7 +230,7 @@ def _instance_type(value: str) -> str:
     return value
 
 
-def _volume_gb(value: Any) -> int:
+def _volume_gb(value: object) -> int:
     if value is None or value == "":
         return TwinSettings.volume_gb
     try:
@@ -246,7 +245,7 @@ def _volume_gb(value: Any) -> int:
     return size
 
 
-def _history_ia_after_days(value: Any) -> int:
+def _history_ia_after_days(value: object) -> int:
     if value is None or value == "":
         return TwinSettings.history_ia_after_days
     try:
@@ -264,7 +263,7 @@ def _history_ia_after_days(value: Any) -> int:
     return days
 
 
-def _devices(value: Any) -> tuple[str, ...]:
+def _devices(value: object) -> tuple[str, ...]:
     if value is None or value == "":
         return TwinSettings.devices
     items = value if isinstance(value, list) else str(value).split(",")

@@ -259,8 +259,8 @@ def _raw_columns_python(payloads: Sequence[bytes]) -> dict[str, pa.Array]:
             entry = joints.get(joint) if isinstance(joints, dict) else None
             for name in RAW_FIELDS:
                 value = entry.get(name) if isinstance(entry, dict) else None
-                ok = isinstance(value, int | float) and not isinstance(value, bool)
-                columns[raw_column(joint, name)].append(float(value) if ok else None)
+                number = value if isinstance(value, int | float) and not isinstance(value, bool) else None
+                columns[raw_column(joint, name)].append(None if number is None else float(number))
     return {name: pa.array(values, pa.float64()) for name, values in columns.items()}
 
 

@@ -32,10 +32,10 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import Any
 
 import numpy as np
-from pxr import Gf, Sdf, Usd, UsdGeom
+from numpy.typing import ArrayLike
+from pxr import Gf, Sdf, Tf, Usd, UsdGeom
 
 from twin.core.telemetry import JointDiagnostics
 from twin.robot import so101
@@ -48,7 +48,7 @@ _OP_SUFFIX = "twin"
 _TIME_CODE_DIGITS = 6
 _PRIM_NAME_BAD = re.compile(r"[^A-Za-z0-9_]")
 
-BodyPoses = Mapping[str, tuple[Any, Any]]
+BodyPoses = Mapping[str, tuple[ArrayLike, ArrayLike]]  # anything np.asarray takes: checked on arrival
 # JointDiagnostics field -> USD attribute name part (units in the name: a USD reader sees no docstring).
 SERVO_READINGS: tuple[tuple[str, str], ...] = (
     ("velocity_rad_s", "velocityRadPerSecond"),
@@ -408,8 +408,9 @@ def _inspect_asset(asset: Usd.Stage, asset_path: Path) -> list[_BodyLink]:
     """Find every so101 body prim below the default prim and its static offset from its parent body."""
     root = asset.GetDefaultPrim()
     found: dict[str, Usd.Prim] = {}
+    xformable = Tf.Type.Find(UsdGeom.Xformable)
     for prim in Usd.PrimRange(root):
-        if prim.GetName() in so101.BODY_NAMES and prim.IsA(UsdGeom.Xformable):
+        if prim.GetName() in so101.BODY_NAMES and prim.IsA(xformable):
             if prim.GetName() in found:
                 raise ValueError(f"USD asset {asset_path} has two prims named {prim.GetName()!r}")
             found[prim.GetName()] = prim

@@ -32,7 +32,7 @@ import subprocess
 import threading
 import time
 import uuid
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from urllib.parse import quote
@@ -184,7 +184,7 @@ class RerunWorker:
         self.viewer_url: str | None = None
         self.save_path: Path | None = Path(settings.save) if settings.save else None
         self._web: subprocess.Popen[bytes] | None = None
-        sinks: list[object] = []
+        sinks: list[rr.FileSink | rr.GrpcServerSink] = []
         if self.save_path is not None:
             self.save_path.parent.mkdir(parents=True, exist_ok=True)
             sinks.append(rr.FileSink(str(self.save_path)))
@@ -194,7 +194,7 @@ class RerunWorker:
                 rr.GrpcServerSink(LOOPBACK, grpc_port, server_memory_limit=settings.memory_limit.strip())
             )
             self.grpc_url = f"rerun+http://{LOOPBACK}:{grpc_port}/proxy"
-        self._rec.set_sinks(*sinks, default_blueprint=self._blueprint(None))  # type: ignore[arg-type]
+        self._rec.set_sinks(*sinks, default_blueprint=self._blueprint(None))
         self._rec.send_recording_name("so101-twin fleet")
         # MuJoCo's world is z-up; Rerun's 3D views follow what the root says.
         self._rec.log(f"/{ROOT}", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
@@ -319,7 +319,7 @@ class RerunWorker:
                 pos, quat = reference[name]
                 rec.log(
                     f"{arm.entity}/{name}",
-                    rr.Transform3D(translation=pos, quaternion=[*quat[1:], quat[0]]),
+                    rr.Transform3D(translation=pos, quaternion=rr.Quaternion(xyzw=[*quat[1:], quat[0]])),
                     static=True,
                 )
         # The arms the layout opens on (the grid's first row and the focus arm) are drawn in detail; the
@@ -594,7 +594,7 @@ def _posed_meshes(geoms: Sequence[VisualGeom]) -> list[tuple[str, rr.Transform3D
     return [
         (
             f"{g.body}/visual/{rr.escape_entity_path_part(g.name)}",
-            rr.Transform3D(translation=g.pos, quaternion=[*g.quat[1:], g.quat[0]]),
+            rr.Transform3D(translation=g.pos, quaternion=rr.Quaternion(xyzw=[*g.quat[1:], g.quat[0]])),
             rr.Mesh3D(
                 vertex_positions=g.vertices,
                 triangle_indices=g.faces,
@@ -707,7 +707,7 @@ def stop_process(proc: subprocess.Popen[bytes]) -> None:
             proc.wait(5.0)
 
 
-def _drain(stream: object) -> None:
+def _drain(stream: Iterable[bytes]) -> None:
     with contextlib.suppress(Exception):
-        for line in stream:  # type: ignore[attr-defined]
+        for line in stream:
             log.debug("rerun web viewer: %s", line.decode(errors="replace").rstrip())

@@ -18,7 +18,7 @@ import collections
 import logging
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
@@ -222,9 +222,9 @@ class QueuedSink:
             if self._hand_off_s and not closing:
                 time.sleep(self._hand_off_s)
 
-    def _guard(self, fn: object, *args: object) -> bool:
+    def _guard(self, fn: Callable[..., object], *args: object) -> bool:
         try:
-            fn(*args)  # type: ignore[operator]
+            fn(*args)
         except Exception as exc:
             with self._cond:
                 first = self._errors == 0 or str(exc) != self._last_error
