@@ -85,7 +85,7 @@ class ProcessSampler:
         self._thread.start()
         return self
 
-    def stop(self) -> dict[str, float]:
+    def stop(self) -> dict[str, float | None]:
         self.cpu_s = self._cpu() - self._cpu0
         self.wall_s = time.monotonic() - self._t0
         self._stop.set()
@@ -170,7 +170,7 @@ def start_publisher(
     )
 
 
-def load_process(*args: str) -> subprocess.Popen:
+def load_process(*args: str) -> subprocess.Popen[str]:
     return subprocess.Popen(
         [sys.executable, "-m", "twin.bench.load", *args],
         stdout=subprocess.PIPE,

@@ -18,7 +18,13 @@ def write(results: dict[str, Any], path: Path) -> Path:
     fig, (lat_ax, fid_ax) = plt.subplots(1, 2, figsize=(12, 4.5))
 
     runs = [r for r in results.get("throughput", []) if r]
-    labels, series = [], {"internal p50": [], "internal p99": [], "end-to-end p50": [], "end-to-end p99": []}
+    labels: list[str] = []
+    series: dict[str, list[float]] = {
+        "internal p50": [],
+        "internal p99": [],
+        "end-to-end p50": [],
+        "end-to-end p99": [],
+    }
     for run in runs:
         labels.append(f"{run['arms']} arms x {run['rate_hz']:g} Hz")
         agent = run["agent"]

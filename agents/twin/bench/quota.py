@@ -17,6 +17,7 @@ agent's loss estimate next to the proxy's count. Publishers, broker, proxy and a
 
 from __future__ import annotations
 
+import functools
 import time
 from typing import Any
 
@@ -114,13 +115,13 @@ def _phase(
 def run(*, arms: int = 200, rate: float = 10.0, seconds: float = 20.0) -> dict[str, Any]:
     """The three phases (module doc); every figure as one JSON-ready dict."""
     listed = ",".join(arm_name(i) for i in range(1, arms + 1))
-    load = {"arms": arms, "rate": rate, "seconds": seconds}
     limit = ("--per-connection-limit", str(BUDGET))
     with LocalRig() as rig:
+        phase = functools.partial(_phase, rig, arms=arms, rate=rate, seconds=seconds)
         phases = [
-            _phase(rig, "one_connection", ("--per-connection-limit", "0"), warmup=2.0, **load),
-            _phase(rig, "pool_listed", (*limit, "--devices", listed), warmup=2.0, **load),
-            _phase(rig, "pool_fleet", limit, warmup=WARMUP_S, **load),
+            phase("one_connection", ("--per-connection-limit", "0"), warmup=2.0),
+            phase("pool_listed", (*limit, "--devices", listed), warmup=2.0),
+            phase("pool_fleet", limit, warmup=WARMUP_S),
         ]
     return {
         "scenario": "quota",

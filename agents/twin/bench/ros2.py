@@ -28,6 +28,7 @@ ROS2_CONFIG = "[ros2]\nenabled = true\n"
 
 def _reader(arms: int, seconds: float) -> Any:
     reader = load_process("ros2-reader", "--first", "1", "--count", str(arms), "--seconds", str(seconds))
+    assert reader.stdout is not None and reader.stderr is not None  # load_process pipes both
     ready = reader.stdout.readline()
     if '"ready"' not in ready:
         reader.kill()

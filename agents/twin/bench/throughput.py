@@ -41,6 +41,7 @@ def _ceiling(url: str, arms: int, rate: float, seconds: float) -> dict[str, Any]
         "--seconds",
         str(seconds + 30),
     )
+    assert noop.stdout is not None and noop.stderr is not None  # load_process pipes both
     ready = noop.stdout.readline()
     if '"ready"' not in ready:
         noop.kill()

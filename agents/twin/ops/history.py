@@ -141,6 +141,14 @@ class DeviceSummary:
         }
 
 
+def _time_span(times: pl.Series) -> tuple[dt.datetime, dt.datetime]:
+    """The first and last time of a non-empty Datetime column (the history's received_at)."""
+    first, last = times.min(), times.max()
+    if not isinstance(first, dt.datetime) or not isinstance(last, dt.datetime):
+        raise TypeError(f"column {times.name} holds {times.dtype}, not times")
+    return first, last
+
+
 def _iso(value: dt.datetime) -> str:
     return value.astimezone(dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
@@ -291,7 +299,8 @@ def export(
 def _downsample(frame: pl.DataFrame, max_points: int) -> tuple[pl.DataFrame, float | None]:
     if frame.height <= max_points:
         return frame, None
-    span = (frame["received_at"].max() - frame["received_at"].min()).total_seconds()
+    first, last = _time_span(frame["received_at"])
+    span = (last - first).total_seconds()
     bucket_s = max(0.1, span / max_points)
     every = f"{max(1, round(bucket_s * 1000))}ms"
     numeric = [c for c, t in frame.schema.items() if t.is_numeric()]
@@ -377,7 +386,7 @@ def plot(
     fig.legend(
         unique.values(), unique.keys(), loc="upper center", bbox_to_anchor=(0.5, 0.965), ncol=len(JOINTS)
     )
-    first, last = frame["received_at"].min(), frame["received_at"].max()
+    first, last = _time_span(frame["received_at"])
     note = f", mean per {bucket_s:.1f} s" if bucket_s else ""
     locator = mdates.AutoDateLocator()
     axes[-1].xaxis.set_major_locator(locator)

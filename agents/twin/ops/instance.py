@@ -29,10 +29,10 @@ import math
 import os
 import re
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 from twin.service.config import DEFAULT_AGENT_URL
 
@@ -174,6 +174,7 @@ def _device_summary(body: Any) -> str:
     if not isinstance(body, dict):
         return ""
     devices = body.get("devices")
+    items: Iterable[tuple[object, object]]
     if isinstance(devices, dict):
         items = devices.items()
     elif isinstance(devices, list):
@@ -251,7 +252,7 @@ class TwinInstance:
 
     # --- clients -----------------------------------------------------------------------------------
 
-    def _client(self, service: str) -> Any:
+    def _client(self, service: Literal["cloudformation", "ec2", "ssm"]) -> Any:
         client = self._clients.get(service)
         if client is None:
             with self._aws(f"create the {service} client"):

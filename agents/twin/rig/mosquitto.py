@@ -18,6 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 from types import TracebackType
+from typing import BinaryIO
 
 log = logging.getLogger(__name__)
 
@@ -106,7 +107,7 @@ class MosquittoBroker:
         self.config_path = self.workdir / "mosquitto.conf"
         self._binary = find_mosquitto()
         self._proc: subprocess.Popen[bytes] | None = None
-        self._log_file = None
+        self._log_file: BinaryIO | None = None
 
     @property
     def url(self) -> str:

@@ -101,7 +101,7 @@ def split_packets(buffer: bytearray) -> tuple[list[tuple[int, bytes]], int]:
     """Complete MQTT packets at the start of `buffer`: ([(packet type, packet bytes)], bytes consumed).
 
     Raises ValueError on a remaining length longer than four bytes (not MQTT)."""
-    packets = []
+    packets: list[tuple[int, bytes]] = []
     pos = 0
     end = len(buffer)
     while pos + 2 <= end:
