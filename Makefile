@@ -157,6 +157,7 @@ check-lock: $(UV_STAMP)
 lint: setup
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/mypy
 	shellcheck userdata/*.sh tests/stress.sh
 
 test: setup lint check-lock
