@@ -49,6 +49,11 @@ ROS2_KILTED_VENV := .venv-ros2-kilted
 ROS2_KILTED_STAMP := $(ROS2_KILTED_VENV)/.setup-stamp
 # `make test` runs the suite in a fixed order; `make test-stress` shuffles it (pytest-randomly).
 PYTEST := $(VENV)/bin/pytest -p no:randomly
+# The host builds the agent with --no-build-isolation from requirements/host.txt, which holds its build
+# backend; the installer tests do the same, offline, from these wheels of it (tests/infra/hostsim.py): the
+# backend, and Pillow, which the host's screen check runs on.
+WHEELHOUSE := .wheelhouse
+WHEELHOUSE_STAMP := $(WHEELHOUSE)/.setup-stamp
 
 .PHONY: help setup setup-demo system-packages demo-system-packages test test-fast test-stress lint lock \
 	check-lock demo bench usd-asset meshes clean
@@ -64,7 +69,8 @@ help:
 	@echo "make usd-asset - regenerate robots/so101 USD asset from the MJCF"
 	@echo "make meshes - re-fetch the SO-101 part meshes (checked against their provenance), re-make visual/"
 
-setup: system-packages $(SETUP_STAMP) $(NODE_STAMP) $(CHECKOV_STAMP) $(ROS2_STAMP) $(ROS2_KILTED_STAMP)
+setup: system-packages $(SETUP_STAMP) $(NODE_STAMP) $(CHECKOV_STAMP) $(ROS2_STAMP) $(ROS2_KILTED_STAMP) \
+	$(WHEELHOUSE_STAMP)
 
 setup-demo: demo-system-packages $(DEMO_STAMP)
 
@@ -126,6 +132,12 @@ $(ROS2_STAMP): $(UV_STAMP) requirements/ros2-jazzy.txt
 $(ROS2_KILTED_STAMP): $(UV_STAMP) requirements/ros2-kilted.txt
 	@echo "setup: installing ROS 2 Kilted rclpy into $(ROS2_KILTED_VENV) (for the ROS 2 bridge tests)"
 	$(call tool_venv,$(ROS2_KILTED_VENV),requirements/ros2-kilted.txt,import rclpy, sensor_msgs.msg)
+
+$(WHEELHOUSE_STAMP): $(UV_STAMP) requirements/host.txt
+	@echo "setup: the build backend's and Pillow's wheels, by their hashes in requirements/host.txt, into $(WHEELHOUSE)"
+	@rm -rf $(WHEELHOUSE)
+	@$(UV_VENV)/bin/python tests/infra/fetch_wheelhouse.py requirements/host.txt $(WHEELHOUSE) setuptools wheel pillow
+	@touch $@
 
 $(NODE_STAMP): package.json package-lock.json
 	@echo "setup: installing the pinned CDK CLI (package.json)"
@@ -203,4 +215,4 @@ meshes: setup
 	$(PY) robots/tools/so101_meshes.py check
 
 clean:
-	rm -rf out cdk.out .pytest_cache
+	rm -rf out cdk.out .pytest_cache $(WHEELHOUSE)

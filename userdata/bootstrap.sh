@@ -3,16 +3,19 @@
 # deployment settings it read from the stack's SSM parameter:
 #   bash bootstrap.sh /etc/so101-twin/deployment.env
 # Steps, in order (docs/deploy.md has the timeline and why each differs from AWS's DCV recipe):
-#   logs      CloudWatch agent shipping this log (from its first line), the agent's and DCV's
-#   packages  GNOME (ubuntu-desktop-minimal), GDM, mesa-utils, dpkg-dev, python3.12-venv
-#   gpu       the NVIDIA GPU, and the Xorg module matching its driver
-#   agent     install-agent.sh: venv, config, service, supervised viewer autostart
-#   desktop   GDM (Xorg, auto-login), GNOME without first-run wizard/blanking/lock, ~/.config owned by the
-#             user, xorg.conf for a monitor-less GPU (virtual screen, AllowEmptyInitialConfiguration)
-#   password  the desktop user's password (the DCV login) from Secrets Manager
-#   dcv       Amazon DCV server + web viewer, automatic console session owned by the desktop user
-#   display   X (GDM) first, then DCV, then the console session
-#   verify    host-check.sh: X on the GPU, the DCV console session, the agent subscribed, the viewer
+#   settings  the deployment parameter's allowed keys, all present
+#   apt       unattended-upgrades and the apt timers stopped and masked for the run; the dpkg lock free
+#   logs      the CloudWatch agent (signature checked) shipping this log from its first line, and the others
+#   packages  GNOME (ubuntu-desktop-minimal) and GDM with their recommends (Xorg.wrap), mesa-utils, ...
+#   gpu       the NVIDIA driver (none: FAILURE), and its Xorg module only if the packaged one matches
+#   agent     install-agent.sh: its own user, locked requirements with hashes, sandboxed service, viewer
+#   desktop   GDM (Xorg, auto-login), Xorg.wrap with root rights, a quiet GNOME, no admin rights for the
+#             desktop user, xorg.conf for a monitor-less GPU (virtual screen, AllowEmptyInitialConfiguration)
+#   password  the desktop user's password (the DCV login): the secret's AWSCURRENT version
+#   dcv       Amazon DCV server + web viewer: pinned release, tarball SHA-256 and package signatures checked
+#   display   X (GDM) first, then DCV, then the console session; the same order on every later start
+#   verify    host-check.sh: X on the GPU, the console session, the agent subscribed, the viewer stable for
+#             20 s, and a screenshot of the console that is not one flat colour
 # First boot (SO101_TWIN_MODE=boot) ends by signalling CloudFormation: SUCCESS after verify, FAILURE from
 # the first failing step with its name and the last log lines. An update (SO101_TWIN_MODE=update, the SSM
 # association) runs the same steps, which only change what differs, and reports through its exit status.
@@ -29,17 +32,16 @@ DEPLOYMENT="${1:-$ROOT/etc/so101-twin/deployment.env}"
 MODE="${SO101_TWIN_MODE:-boot}"
 LOG="$ROOT/var/log/so101-twin-bootstrap.log"
 STATE="$ROOT/var/lib/so101-twin"
-VENV=/opt/so101-twin/venv
+RELEASES="$HERE/releases.env"
 XORG_CONF=/etc/X11/xorg.conf
-DCV_CDN="${DCV_CDN:-https://d1uj6qtbmh3dt5.cloudfront.net}"
+DCV_CDN=https://d1uj6qtbmh3dt5.cloudfront.net
+CLOUDWATCH_KEY_URL=https://amazoncloudwatch-agent.s3.amazonaws.com/assets/amazon-cloudwatch-agent.gpg
+START_UNIT=/etc/systemd/system/so101-twin-start.service
 # The largest screen a DCV web client may ask for (dcv.conf) and the X screen's virtual size: with no
 # monitor attached the NVIDIA driver has no mode to start from, so X needs the size given.
 VIRTUAL_SCREEN=4096x2160
-# Polls for the things that start asynchronously (tries x 5 s): X, the DCV session, the agent, the viewer.
-WAIT_X_TRIES=60
-WAIT_DCV_TRIES=36
-WAIT_AGENT_TRIES=60
-WAIT_VIEWER_TRIES=36
+# The dpkg lock, polled every 5 s once automatic updates are stopped: 5 minutes at most.
+WAIT_LOCK_TRIES=60
 
 if [ -z "${SO101_TWIN_LOGGING:-}" ]; then
   mkdir -p "$(dirname "$LOG")"
@@ -51,7 +53,6 @@ mkdir -p "$STATE"
 export DEBIAN_FRONTEND=noninteractive
 STEP=settings
 FAIL_DETAIL=""
-GPU=0
 DISPLAY_CHANGED=0
 
 # die MESSAGE: fail the current step with a message that says what is wrong.
@@ -73,19 +74,20 @@ signal() {
   fi
   body="$(python3 -c 'import json, sys; print(json.dumps({"Status": sys.argv[1], "Reason": sys.argv[2][-3000:], "UniqueId": sys.argv[3], "Data": sys.argv[2][:200]}))' "$status" "$reason" "$instance")"
   if [ -n "${SO101_TWIN_HANDLE:-}" ]; then
-    curl -fsS -X PUT -H 'Content-Type:' --data-binary "$body" "$SO101_TWIN_HANDLE" ||
+    curl -fsS --max-time 30 --retry 3 -X PUT -H 'Content-Type:' --data-binary "$body" "$SO101_TWIN_HANDLE" ||
       log "could not post to the wait condition (it may be complete already)"
   fi
   aws cloudformation signal-resource --region "${AWS_REGION:-${SO101_TWIN_REGION:-}}" \
     --stack-name "$SO101_TWIN_STACK" --logical-resource-id "${SO101_TWIN_RESOURCE:-}" \
-    --unique-id "$instance" --status "$status" ||
+    --unique-id "$instance" --status "$status" "${AWS_LIMITS[@]}" ||
     log "signal-resource $status failed"
   log "signalled $status to $SO101_TWIN_STACK/${SO101_TWIN_RESOURCE:-}"
 }
 
-# finish STATUS SUMMARY: record the outcome on the host; on the first boot, signal it.
+# finish STATUS SUMMARY: give apt its timers back, record the outcome on the host; on the first boot, signal.
 finish() {
   local status="$1" summary="$2" tail_text
+  restore_apt "$STATE" || log "could not restore the apt timers (the next start's checks retry)"
   printf '%s %s %s %s\n' "$(date -Is)" "$MODE" "$status" "$summary" >"$STATE/last-run"
   if [ "$status" = SUCCESS ] && [ "$(cat "$STATE/deployed-version" 2>/dev/null)" != "${DEPLOYMENT_VERSION:-}" ]; then
     printf '%s\n' "$DEPLOYMENT_VERSION" >"$STATE/deployed-version"
@@ -113,7 +115,20 @@ for setting in AWS_REGION DCV_SECRET_ARN DESKTOP_USER DEPLOYMENT_VERSION LOG_GRO
   CLIENT_ID_PREFIX; do
   [ -n "${!setting:-}" ] || die "$DEPLOYMENT has no $setting: the stack's deployment parameter is incomplete"
 done
+# The user name reaches paths, config files and commands.
+[[ $DESKTOP_USER =~ ^[a-z_][a-z0-9_-]{0,31}$ ]] || die "DESKTOP_USER=$DESKTOP_USER is not a Linux user name"
 URL_SUFFIX="${URL_SUFFIX:-amazonaws.com}"
+
+# The pins of userdata/releases.env (shipped with these scripts, as trusted as they are): its DCV_* and
+# CLOUDWATCH_* keys.
+load_releases() {
+  local keys=() line
+  while IFS= read -r line; do
+    if [[ $line =~ ^((DCV|CLOUDWATCH)_[A-Z0-9_]+)= ]]; then keys+=("${BASH_REMATCH[1]}"); fi
+  done <"$RELEASES"
+  [ ${#keys[@]} -gt 0 ] || die "$RELEASES pins nothing"
+  load_env "$RELEASES" "${keys[@]}"
+}
 
 run_step() {
   local t0=$SECONDS
@@ -124,17 +139,38 @@ run_step() {
   log "step $STEP: done in $((SECONDS - t0)) s"
 }
 
+# --- apt: nothing else may take the dpkg lock while the boot installs ----------------------------------
+step_apt() {
+  hold_apt "$STATE"
+  wait_for "$WAIT_LOCK_TRIES" 5 "the dpkg lock" dpkg_lock_free ||
+    die "the dpkg lock is still held by $LOCK_HOLDER after $((WAIT_LOCK_TRIES * 5)) s with automatic updates" \
+      "stopped: see what it is (ps -fp <pid>; journalctl -u apt-daily-upgrade), let it finish, run the update again"
+}
+
 # --- logs: to CloudWatch from the first step ------------------------------------------------------
+install_cloudwatch_agent() {
+  local work arch base problem
+  work="$(mktemp -d)"
+  arch="$(dpkg --print-architecture)"
+  # The regional bucket, partition-aware through the URL suffix (amazonaws.com, amazonaws.com.cn).
+  base="https://amazoncloudwatch-agent-${AWS_REGION}.s3.${AWS_REGION}.${URL_SUFFIX}/ubuntu/${arch}/latest"
+  download "$base/amazon-cloudwatch-agent.deb" "$work/amazon-cloudwatch-agent.deb" 300
+  download "$base/amazon-cloudwatch-agent.deb.sig" "$work/amazon-cloudwatch-agent.deb.sig"
+  download "$CLOUDWATCH_KEY_URL" "$work/amazon-cloudwatch-agent.gpg"
+  problem="$(verify_detached "$work/amazon-cloudwatch-agent.gpg" "$CLOUDWATCH_KEY_FINGERPRINT" \
+    "$work/amazon-cloudwatch-agent.deb.sig" "$work/amazon-cloudwatch-agent.deb" 2>&1)" ||
+    die "the CloudWatch agent package failed its signature check, not installed: $problem"
+  log "CloudWatch agent package: signature by $CLOUDWATCH_KEY_FINGERPRINT verified"
+  retry apt-get "${APT_OPTS[@]}" install -y -q "$work/amazon-cloudwatch-agent.deb"
+  rm -rf "$work"
+}
+
 step_logs() {
-  local ctl="$ROOT/opt/aws/amazon-cloudwatch-agent/bin/amazon-cloudwatch-agent-ctl" deb arch
+  local ctl="$ROOT/opt/aws/amazon-cloudwatch-agent/bin/amazon-cloudwatch-agent-ctl"
+  load_releases
+  [ -n "${CLOUDWATCH_KEY_FINGERPRINT:-}" ] || die "$RELEASES pins no CLOUDWATCH_KEY_FINGERPRINT"
   if [ ! -x "$ctl" ]; then
-    arch="$(dpkg --print-architecture)"
-    deb="$(mktemp --suffix=.deb)"
-    # The regional bucket, partition-aware through the URL suffix (amazonaws.com, amazonaws.com.cn).
-    retry curl -fsSL -o "$deb" \
-      "https://amazoncloudwatch-agent-${AWS_REGION}.s3.${AWS_REGION}.${URL_SUFFIX}/ubuntu/${arch}/latest/amazon-cloudwatch-agent.deb"
-    retry apt-get "${APT_OPTS[@]}" install -y -q "$deb"
-    rm -f "$deb"
+    install_cloudwatch_agent
     [ -x "$ctl" ] || die "the CloudWatch agent package did not install $ctl"
   fi
   CHANGED=0
@@ -145,9 +181,9 @@ step_logs() {
 RSYSLOG
   # rsyslog ships with Ubuntu server images; the packages step installs it otherwise and it reads the rule then.
   if [ "$CHANGED" = 1 ] && installed rsyslog; then systemctl restart rsyslog; fi
-  write_file /etc/logrotate.d/so101-twin 0644 <<'ROTATE'
+  write_file /etc/logrotate.d/so101-twin 0644 <<ROTATE
 # Managed by so101-twin bootstrap.sh: bound the host's own logs on disk (CloudWatch keeps them a year).
-/var/log/so101-twin-bootstrap.log /var/log/so101-twin-agent.log {
+/var/log/so101-twin-bootstrap.log /var/log/so101-twin-agent.log ${START_LOG} ${HOST_EMF_FILE} {
   weekly
   rotate 4
   maxsize 50M
@@ -159,7 +195,8 @@ RSYSLOG
 ROTATE
   CHANGED=0
   # The agent's Embedded Metric Format lines: CloudWatch Logs turns each into the SO101Twin metrics the
-  # stack's alarms watch (agents/twin/output/emf.py, stacks/monitoring.py).
+  # stack's alarms watch (agents/twin/output/emf.py, stacks/monitoring.py); the host checks after each start
+  # write theirs to a file of their own.
   local EMF_FILE=/var/log/so101-twin/emf.log
   # The agent reads new files from their beginning (its JSON config defaults to from_beginning), so the
   # lines the UserData wrote before this step reach CloudWatch too.
@@ -171,6 +208,10 @@ ROTATE
    "log_stream_name": "{instance_id}/agent"},
   {"file_path": "/var/log/dcv/server.log", "log_group_name": "${LOG_GROUP}",
    "log_stream_name": "{instance_id}/dcv"},
+  {"file_path": "${START_LOG}", "log_group_name": "${LOG_GROUP}",
+   "log_stream_name": "{instance_id}/start"},
+  {"file_path": "${HOST_EMF_FILE}", "log_group_name": "${LOG_GROUP}",
+   "log_stream_name": "{instance_id}/host-emf"},
   {"file_path": "${EMF_FILE}", "log_group_name": "${LOG_GROUP}",
    "log_stream_name": "{instance_id}/emf"}]}}}}
 JSON
@@ -181,8 +222,15 @@ JSON
 
 # --- packages -------------------------------------------------------------------------------------
 step_packages() {
+  # The desktop with its recommends, as AWS's recipes install it: among them xserver-xorg-legacy, whose
+  # Xorg.wrap lets GDM start X with root rights, which NVIDIA's driver without kernel modesetting needs.
+  # Named here too, so a host whose desktop was installed without recommends gets it on its next update.
+  apt_install --recommends ubuntu-desktop-minimal gdm3 xserver-xorg-legacy
   # dpkg-dev: the DCV server's postinst calls dpkg-architecture. python3.12-venv: the agent's venv.
-  apt_install ubuntu-desktop-minimal gdm3 mesa-utils dpkg-dev python3.12-venv curl rsyslog
+  # binutils (ar) and gnupg: the signature checks of the DCV packages.
+  apt_install mesa-utils dpkg-dev python3.12-venv curl rsyslog binutils gnupg
+  [ -x "$ROOT/usr/lib/xorg/Xorg.wrap" ] ||
+    die "xserver-xorg-legacy installed no /usr/lib/xorg/Xorg.wrap: GDM could not start X for the NVIDIA driver"
 }
 
 # --- the GPU and the Xorg driver module matching it -----------------------------------------------
@@ -192,10 +240,19 @@ nvidia_xorg_module() {
     [ -e "$ROOT/usr/lib/xorg/modules/drivers/nvidia_drv.so" ]
 }
 
-# The packaged driver's flavour, e.g. 580-server from libnvidia-gl-580-server; the Xorg module package
-# must be the same flavour or X and the kernel module disagree.
+# Whether the PCI bus shows an NVIDIA device (vendor 0x10de), for the message when the driver is missing.
+nvidia_on_pci() {
+  local vendor
+  for vendor in "$ROOT"/sys/bus/pci/devices/*/vendor; do
+    [ -f "$vendor" ] && [ "$(cat "$vendor")" = 0x10de ] && return 0
+  done
+  return 1
+}
+
+# The packaged driver's flavour, e.g. 580-server from libnvidia-gl-580-server; empty when the driver was not
+# installed from packages.
 nvidia_flavour() {
-  local listing pkg status version
+  local listing pkg status
   listing="$(dpkg-query -W -f='${Package} ${Status}\n' 'libnvidia-gl-*' 2>/dev/null || true)"
   while read -r pkg status; do
     if [ "$status" = "install ok installed" ]; then
@@ -203,29 +260,55 @@ nvidia_flavour() {
       return 0
     fi
   done <<<"$listing"
-  version="$(nvidia-smi --query-gpu=driver_version --format=csv,noheader)"
-  version="${version%%$'\n'*}"
-  echo "${version%%.*}-server"
+}
+
+# apt's candidate version of PKG (after apt-get update), empty when apt has none.
+apt_candidate() {
+  local policy line
+  policy="$(apt-cache policy "$1" 2>/dev/null || true)"
+  while IFS= read -r line; do
+    if [[ $line =~ ^[[:space:]]*Candidate:[[:space:]]*(.+)$ ]]; then
+      [ "${BASH_REMATCH[1]}" = "(none)" ] || echo "${BASH_REMATCH[1]}"
+      return 0
+    fi
+  done <<<"$policy"
+}
+
+# The NVIDIA Xorg module is missing: Ubuntu's xserver-xorg-video-nvidia-<flavour> pins its libraries to
+# exact versions, so it is installed only when it is the very version of the installed driver; any other
+# would replace the driver under the running kernel module.
+install_matching_xorg_module() {
+  local flavour driver candidate
+  flavour="$(nvidia_flavour)"
+  [ -n "$flavour" ] ||
+    die "the NVIDIA Xorg module nvidia_drv.so is missing and the driver is not from Ubuntu packages (no" \
+      "libnvidia-gl-*): X cannot use the GPU; use an AMI whose driver includes its Xorg module (the default" \
+      "DLAMI Base OSS NVIDIA)"
+  driver="$(dpkg-query -W -f='${Version}' "libnvidia-gl-$flavour")"
+  retry apt-get "${APT_OPTS[@]}" update -q
+  candidate="$(apt_candidate "xserver-xorg-video-nvidia-$flavour")"
+  [ "$candidate" = "$driver" ] ||
+    die "the NVIDIA Xorg module nvidia_drv.so is missing, and apt offers xserver-xorg-video-nvidia-$flavour" \
+      "${candidate:-(none)}, not the installed driver's $driver: installing it would replace the driver." \
+      "Use an AMI whose driver includes its Xorg module (the default DLAMI Base OSS NVIDIA)"
+  log "the NVIDIA Xorg module is missing; installing xserver-xorg-video-nvidia-$flavour $driver (the driver's own version)"
+  apt_install "xserver-xorg-video-nvidia-$flavour"
+  nvidia_xorg_module || die "xserver-xorg-video-nvidia-$flavour installed no nvidia_drv.so"
 }
 
 step_gpu() {
-  local gpus flavour
+  local gpus where
   if ! command -v nvidia-smi >/dev/null 2>&1; then
-    log "no nvidia-smi: no NVIDIA driver; the console session gets a dummy X screen (no GPU rendering)"
-    GPU=0
-    apt_install xserver-xorg-video-dummy
-    return 0
+    if nvidia_on_pci; then where="the instance has an NVIDIA GPU (PCI vendor 10de) but"; else
+      where="the instance shows no NVIDIA GPU on its PCI bus (a G or P instance type has one), and"
+    fi
+    die "no NVIDIA driver: $where nvidia-smi is missing. The twin's desktop runs X on the GPU: deploy the" \
+      "default DLAMI Base OSS NVIDIA AMI (amiSsmParameter) or an AMI with NVIDIA's driver"
   fi
   gpus="$(nvidia-smi -L)" || die "nvidia-smi -L failed: the NVIDIA driver is not working"
   [[ $gpus == *GPU* ]] || die "nvidia-smi lists no GPU: $gpus"
-  GPU=1
   log "GPU: ${gpus//$'\n'/; }"
-  if ! nvidia_xorg_module; then
-    flavour="$(nvidia_flavour)"
-    log "the NVIDIA Xorg module is missing; installing xserver-xorg-video-nvidia-$flavour"
-    apt_install "xserver-xorg-video-nvidia-$flavour"
-    nvidia_xorg_module || die "xserver-xorg-video-nvidia-$flavour installed no nvidia_drv.so"
-  fi
+  nvidia_xorg_module || install_matching_xorg_module
 }
 
 # --- the agent ------------------------------------------------------------------------------------
@@ -242,6 +325,24 @@ xorg_conf_ok() {
   local text
   text="$(cat "${ROOT}${XORG_CONF}" 2>/dev/null)" || return 1
   [[ $text == *'Driver'*'"nvidia"'* && $text == *AllowEmptyInitialConfiguration* && $text == *Virtual* ]]
+}
+
+# The desktop user logs in to DCV with a password: that login must not be root. Ubuntu's cloud images make
+# the default user an administrator (sudo without password, and the lxd group); administration goes through
+# Session Manager instead, whose ssm-user has sudo.
+revoke_admin_rights() {
+  local groups group kept file=/etc/sudoers.d/90-cloud-init-users
+  groups=" $(id -nG "$DESKTOP_USER") "
+  for group in sudo admin lxd docker; do
+    if [[ $groups == *" $group "* ]]; then
+      gpasswd -d "$DESKTOP_USER" "$group" >/dev/null
+      log "removed $DESKTOP_USER from group $group (administration is through Session Manager)"
+    fi
+  done
+  if [ -f "${ROOT}$file" ]; then
+    kept="$(grep -v "^${DESKTOP_USER}[[:space:]]" "${ROOT}$file" || true)"
+    write_file "$file" 0440 <<<"$kept"
+  fi
 }
 
 step_desktop() {
@@ -263,6 +364,15 @@ AutomaticLogin=${DESKTOP_USER}
 
 [debug]
 CONF
+  # Xorg.wrap decides who may start X and with which rights; NVIDIA's driver without kernel modesetting
+  # needs root, which its default (auto) grants only for KMS drivers.
+  write_file /etc/X11/Xwrapper.config 0644 <<'WRAPPER'
+# Managed by so101-twin bootstrap.sh: GDM's X on the NVIDIA GPU runs with root rights (Xorg.wrap).
+allowed_users=console
+needs_root_rights=yes
+WRAPPER
+  [ "$CHANGED" = 0 ] || DISPLAY_CHANGED=1
+  CHANGED=0
   # Defaults for every user: no blanking, no lock, no suspend; the viewer is watched, not typed at.
   write_file /usr/share/glib-2.0/schemas/90_so101-twin.gschema.override 0644 <<'GSCHEMA'
 # Managed by so101-twin bootstrap.sh: a kiosk-like desktop for the twin viewer.
@@ -290,88 +400,78 @@ GSCHEMA
 # Managed by so101-twin bootstrap.sh: no crash-report dialogs on the twin desktop.
 enabled=0
 APPORT
+  revoke_admin_rights
   # GNOME's first-run wizard is skipped when this file exists; ~/.config must be the user's own, or
   # GNOME cannot save any setting (everything here is written by root).
   write_file "/home/${DESKTOP_USER}/.config/gnome-initial-setup-done" 0644 <<<"yes"
   chown -R "$DESKTOP_USER:" "$ROOT/home/${DESKTOP_USER}/.config"
 
-  if [ "$GPU" = 1 ]; then
-    if ! xorg_conf_ok; then
-      command -v nvidia-xconfig >/dev/null 2>&1 || apt_install nvidia-xconfig
-      # nvidia-xconfig edits a legacy XF86Config instead of writing xorg.conf when one exists.
-      rm -f "$ROOT"/etc/X11/XF86Config*
-      nvidia-xconfig --preserve-busid --enable-all-gpus --allow-empty-initial-configuration \
-        --virtual="$VIRTUAL_SCREEN" --output-xconfig="${ROOT}${XORG_CONF}"
-      xorg_conf_ok || die "nvidia-xconfig wrote ${XORG_CONF} without the nvidia driver, a virtual screen or AllowEmptyInitialConfiguration"
-      log "xorg.conf: NVIDIA, virtual screen ${VIRTUAL_SCREEN}, starts without a monitor"
-      DISPLAY_CHANGED=1
-    fi
-  else
-    CHANGED=0
-    write_file "$XORG_CONF" 0644 <<'XORG'
-# Managed by so101-twin bootstrap.sh: no GPU, so the console session gets a dummy screen.
-Section "Device"
-    Identifier "DummyDevice"
-    Driver "dummy"
-    VideoRam 512000
-EndSection
-
-Section "Monitor"
-    Identifier "DummyMonitor"
-    HorizSync 5.0 - 1000.0
-    VertRefresh 5.0 - 200.0
-EndSection
-
-Section "Screen"
-    Identifier "DummyScreen"
-    Device "DummyDevice"
-    Monitor "DummyMonitor"
-    DefaultDepth 24
-    SubSection "Display"
-        Depth 24
-        Virtual 4096 2160
-    EndSubSection
-EndSection
-XORG
-    [ "$CHANGED" = 0 ] || DISPLAY_CHANGED=1
+  if ! xorg_conf_ok; then
+    command -v nvidia-xconfig >/dev/null 2>&1 || apt_install nvidia-xconfig
+    # nvidia-xconfig edits a legacy XF86Config instead of writing xorg.conf when one exists.
+    rm -f "$ROOT"/etc/X11/XF86Config*
+    nvidia-xconfig --preserve-busid --enable-all-gpus --allow-empty-initial-configuration \
+      --virtual="$VIRTUAL_SCREEN" --output-xconfig="${ROOT}${XORG_CONF}"
+    xorg_conf_ok || die "nvidia-xconfig wrote ${XORG_CONF} without the nvidia driver, a virtual screen or AllowEmptyInitialConfiguration"
+    log "xorg.conf: NVIDIA, virtual screen ${VIRTUAL_SCREEN}, starts without a monitor"
+    DISPLAY_CHANGED=1
   fi
 }
 
 # --- the desktop user's password = the DCV login (never traced, never logged, never in UserData) -----
+# The version whose stages include AWSCURRENT (the map's first key may be AWSPREVIOUS after a change).
+current_secret_version() {
+  aws secretsmanager describe-secret --region "$AWS_REGION" --secret-id "$DCV_SECRET_ARN" --output json \
+    "${AWS_LIMITS[@]}" |
+    python3 -c 'import json, sys; print(next(v for v, s in json.load(sys.stdin)["VersionIdsToStages"].items() if "AWSCURRENT" in s))'
+}
+
 step_password() {
   local stamp="$STATE/password.version" version secret
-  version="$(aws secretsmanager describe-secret --region "$AWS_REGION" --secret-id "$DCV_SECRET_ARN" \
-    --query 'VersionIdsToStages | keys(@) | [0]' --output text)"
+  version="$(current_secret_version)" || die "the DCV password secret has no AWSCURRENT version"
   if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$version" ]; then
     return 0
   fi
   secret="$(aws secretsmanager get-secret-value --region "$AWS_REGION" --secret-id "$DCV_SECRET_ARN" \
-    --query SecretString --output text)"
+    --version-id "$version" --query SecretString --output text "${AWS_LIMITS[@]}")"
   printf '%s:%s\n' "$DESKTOP_USER" "$secret" | chpasswd
   unset secret
   printf '%s\n' "$version" >"$stamp"
-  log "password of $DESKTOP_USER set from the DCV password secret"
+  log "password of $DESKTOP_USER set from the DCV password secret (AWSCURRENT, version $version)"
 }
 
 # --- Amazon DCV -------------------------------------------------------------------------------------
 install_dcv_packages() {
-  local work ubuntu arch tarball debs deb
+  local work ubuntu arch pin_key pin tarball url sha debs deb problem
+  if [ -z "${DCV_VERSION:-}" ] || [ -z "${DCV_KEY_FINGERPRINT:-}" ]; then
+    die "$RELEASES pins no DCV_VERSION or DCV_KEY_FINGERPRINT"
+  fi
   work="$(mktemp -d)"
   # shellcheck source=/dev/null
   ubuntu="$(. "$ROOT/etc/os-release" && echo "${VERSION_ID//./}")"
   arch="$(uname -m)"
-  tarball="nice-dcv-ubuntu${ubuntu}-${arch}.tgz"
-  log "installing DCV from $DCV_CDN/$tarball"
-  retry curl -fsSL -o "$work/NICE-GPG-KEY" "$DCV_CDN/NICE-GPG-KEY"
-  gpg --import "$work/NICE-GPG-KEY"
-  retry curl -fsSL -o "$work/$tarball" "$DCV_CDN/$tarball"
+  pin_key="DCV_SHA256_UBUNTU${ubuntu}_${arch^^}"
+  pin="${!pin_key:-}"
+  [ -n "$pin" ] || die "userdata/releases.env pins no DCV tarball for ubuntu${ubuntu}-${arch} ($pin_key):" \
+    "add it (docs/deploy.md, Updating the pinned downloads)"
+  tarball="nice-dcv-${DCV_VERSION}-ubuntu${ubuntu}-${arch}.tgz"
+  url="$DCV_CDN/${DCV_VERSION%%-*}/Servers/$tarball"
+  log "installing DCV $DCV_VERSION from $url"
+  download "$url" "$work/$tarball" 600
+  sha="$(sha256sum <"$work/$tarball")"
+  sha="${sha%% *}"
+  [ "$sha" = "$pin" ] || die "$url has SHA-256 $sha, not the pinned $pin: not installed"
+  download "$DCV_CDN/NICE-GPG-KEY" "$work/NICE-GPG-KEY"
   tar -xzf "$work/$tarball" -C "$work"
   # The tarball unpacks to one versioned directory; find the packages with a glob after extracting
   # (listing the archive and stopping after its first line would kill tar with SIGPIPE under pipefail).
   debs=("$work"/nice-dcv-*/nice-dcv-server_*.deb "$work"/nice-dcv-*/nice-dcv-web-viewer_*.deb)
   for deb in "${debs[@]}"; do
     [ -f "$deb" ] || die "$tarball has no ${deb##*/} (its layout changed?)"
+    problem="$(verify_deb "$work/NICE-GPG-KEY" "$DCV_KEY_FINGERPRINT" "$deb" 2>&1)" ||
+      die "DCV package signature check failed, not installed: $problem"
   done
+  log "DCV tarball SHA-256 and package signatures by $DCV_KEY_FINGERPRINT verified"
   retry apt-get "${APT_OPTS[@]}" install -y -q "${debs[@]}"
   rm -rf "$work"
 }
@@ -408,53 +508,64 @@ enable-quic-frontend = true
 [security]
 authentication = "system"
 CONF
+  # DCV attaches its console session to the X display that runs when it starts: after a reboot it must
+  # start after the display manager (so101-twin-start.service then checks that it found X).
+  write_file /etc/systemd/system/dcvserver.service.d/10-so101-twin.conf 0644 <<'DROPIN'
+# Managed by so101-twin bootstrap.sh: DCV's console session needs the X display GDM starts.
+[Unit]
+Wants=display-manager.service
+After=display-manager.service
+DROPIN
   [ "$CHANGED" = 0 ] || DISPLAY_CHANGED=1
+  systemctl daemon-reload
   systemctl enable dcvserver
 }
 
 # --- display: X first, then DCV, then the console session -------------------------------------------
-x_ready() {
-  if [ "$GPU" = 1 ]; then check_x_on_gpu; else pgrep -x Xorg >/dev/null; fi
-}
-
 step_display() {
   [ "$(systemctl get-default)" = graphical.target ] || systemctl set-default graphical.target
-  if [ "$MODE" = boot ] || [ "$DISPLAY_CHANGED" = 1 ] || ! x_ready; then
+  if [ "$MODE" = boot ] || [ "$DISPLAY_CHANGED" = 1 ] || ! check_x_on_gpu; then
     log "(re)starting GDM so X starts with the current xorg.conf and auto-login"
     systemctl restart gdm3
-    wait_for "$WAIT_X_TRIES" 5 "X on the GPU" x_ready || die "X did not start on the GPU: $DETAIL"
+    wait_for "$WAIT_X_TRIES" 5 "X on the GPU" check_x_on_gpu || die "X did not start on the GPU: $DETAIL"
     # DCV attaches its console session to the X display that runs when it starts.
     systemctl restart dcvserver
   elif ! systemctl is-active --quiet dcvserver; then
     systemctl restart dcvserver
   fi
   log "X: $DETAIL"
-  if ! wait_for "$WAIT_DCV_TRIES" 5 "the DCV console session" check_dcv_session; then
-    log "no automatic console session ($DETAIL); creating it"
-    dcv create-session --type=console --owner "$DESKTOP_USER" console
-    wait_for 12 5 "the DCV console session" check_dcv_session || die "DCV console session: $DETAIL"
-  fi
+  ensure_console_session || die "DCV console session: $DETAIL"
+  # Every later start: a oneshot after the display manager, DCV and the agent puts the console session on
+  # X again if DCV came up first, re-runs the host checks and reports them (host-check.sh --on-start).
+  CHANGED=0
+  write_file "$START_UNIT" 0644 <<UNIT
+# Managed by so101-twin bootstrap.sh.
+[Unit]
+Description=so101-twin: after every start, DCV's console session on X, then the host checks
+Wants=network-online.target
+After=network-online.target display-manager.service dcvserver.service so101-twin-agent.service
+
+[Service]
+Type=oneshot
+ExecStart=/bin/bash /opt/so101-twin/userdata/host-check.sh --on-start
+SyslogIdentifier=so101-twin-start
+TimeoutStartSec=20min
+
+[Install]
+WantedBy=graphical.target
+UNIT
+  if [ "$CHANGED" = 1 ]; then systemctl daemon-reload; fi
+  systemctl enable so101-twin-start.service >/dev/null 2>&1
 }
 
-# --- verify: the twin works -----------------------------------------------------------------------
+# --- verify: the twin works, as a person would see it -----------------------------------------------
 step_verify() {
-  local failures=()
-  wait_for "$WAIT_X_TRIES" 5 "X on the GPU" x_ready || failures+=("x-on-gpu: $DETAIL")
-  log "x-on-gpu: $DETAIL"
-  wait_for "$WAIT_DCV_TRIES" 5 "the DCV console session" check_dcv_session || failures+=("dcv-session: $DETAIL")
-  log "dcv-session: $DETAIL"
-  wait_for "$WAIT_AGENT_TRIES" 5 "the agent subscribed" check_agent || failures+=("agent: $DETAIL")
-  log "agent: $DETAIL"
-  log "telemetry: ${TELEMETRY_RESULT#*$'\t'} (not required: no arm needs to be publishing)"
-  wait_for "$WAIT_VIEWER_TRIES" 5 "the viewer" check_viewer || failures+=("viewer: $DETAIL")
-  log "viewer: $DETAIL"
-  if [ ${#failures[@]} -gt 0 ]; then
-    die "$(printf '%s; ' "${failures[@]}")"
-  fi
+  verify_host || die "$VERIFY_SUMMARY"
 }
 
 main() {
   log "$MODE of deployment $DEPLOYMENT_VERSION (settings $DEPLOYMENT)"
+  run_step apt step_apt
   run_step logs step_logs
   run_step packages step_packages
   run_step gpu step_gpu
@@ -465,7 +576,8 @@ main() {
   run_step display step_display
   run_step verify step_verify
   STEP=finish
-  finish SUCCESS "deployment $DEPLOYMENT_VERSION verified: X on the GPU, DCV console session of $DESKTOP_USER, agent subscribed, viewer running"
+  local verified="X on the GPU, DCV console session of $DESKTOP_USER, agent subscribed, viewer stable, the"
+  finish SUCCESS "deployment $DEPLOYMENT_VERSION verified: $verified console screenshot shows a desktop"
   log "done: deployment $DEPLOYMENT_VERSION"
 }
 

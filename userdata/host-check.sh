@@ -1,14 +1,34 @@
 #!/usr/bin/env bash
-# Is the twin host working? One place for the rules, used twice:
-#   - bootstrap.sh sources it and its verify step waits for the required checks before signalling SUCCESS;
-#   - `twin instance check` runs it on the host through SSM Run Command:
-#       bash /opt/so101-twin/userdata/host-check.sh
-#     and reads one line per check: NAME<TAB>OK|WARN|FAIL<TAB>detail (exit status 1 when any FAIL).
-# Checks: x-on-gpu, dcv-session, agent, telemetry (WARN only: no arm may be publishing), viewer, version.
+# Is the twin host working, as a person at the DCV desktop would find it? One place for the rules, used
+# three ways:
+#   - bootstrap.sh sources it: its display step puts the console session on X (ensure_console_session),
+#     its verify step waits for every check (verify_host) before signalling SUCCESS;
+#   - after every start of the host, so101-twin-start.service runs `host-check.sh --on-start`: the same
+#     order and waits, a verdict in its log, in /var/lib/so101-twin/last-start and as a CloudWatch metric;
+#   - `twin instance check` runs it on the host through SSM Run Command (`bash host-check.sh`) and reads one
+#     line per check: NAME<TAB>OK|WARN|FAIL<TAB>detail (exit status 1 when any FAIL).
+# Checks: x-on-gpu, dcv-session, agent, telemetry (WARN only: no arm may be publishing), viewer (the same
+# process for 20 s), screen (a capture of the console that is not one flat colour), version.
 
 CHECK_VENV="${VENV:-/opt/so101-twin/venv}"
 # The agent's DEFAULT_AGENT_URL (agents/twin/service/config.py), which install-agent.sh configures.
 AGENT_HTTP="${AGENT_HTTP:-http://127.0.0.1:8080}"
+CHECK_STATE=/var/lib/so101-twin
+# The last capture of the console, kept on the host (`twin instance check --screenshot FILE` fetches it).
+SCREENSHOT="$CHECK_STATE/console.png"
+LAST_START="$CHECK_STATE/last-start"
+# The on-start run's log and its metric lines, both shipped to CloudWatch (bootstrap.sh, step logs).
+START_LOG=/var/log/so101-twin-start.log
+HOST_EMF_FILE=/var/log/so101-twin-host-emf.log
+# A viewer counts once the same process has run this long: its supervisor restarts a crashing one within
+# seconds, so "a process exists" proves nothing.
+VIEWER_STABLE_S=20
+# Polls for what starts asynchronously (tries x 5 s): X, the DCV session, the agent, the viewer, the screen.
+WAIT_X_TRIES=60
+WAIT_DCV_TRIES=36
+WAIT_AGENT_TRIES=60
+WAIT_VIEWER_TRIES=36
+WAIT_SCREEN_TRIES=12
 DETAIL=""
 
 check_x_on_gpu() {
@@ -34,31 +54,58 @@ check_x_on_gpu() {
   DETAIL="Xorg runs on ${gpu//$'\n'/; }"
 }
 
+# The owner of DCV's console session from `dcv list-sessions --json` (a JSON array of sessions with id,
+# owner and type), or a line saying what was found instead.
 check_dcv_session() {
-  local out
-  if ! out="$(dcv list-sessions 2>&1)"; then
+  local out verdict
+  if ! out="$(dcv list-sessions --json 2>&1)"; then
     DETAIL="dcv list-sessions failed: ${out:0:300} (is dcvserver running? systemctl status dcvserver)"
     return 1
   fi
-  if [[ $out == *"Session: 'console' (owner:${DESKTOP_USER} "* ]]; then
-    DETAIL="console session owned by ${DESKTOP_USER}"
-    return 0
-  fi
-  if [[ $out == *"Session: 'console'"* ]]; then
-    DETAIL="a console session exists but is not owned by ${DESKTOP_USER}: ${out//$'\n'/; }"
-  else
-    DETAIL="no console session (dcv list-sessions: ${out:-nothing})"
-  fi
-  return 1
+  verdict="$(DCV_SESSIONS="$out" python3 - "$DESKTOP_USER" <<'PY'
+import json, os, sys
+
+user = sys.argv[1]
+try:
+    sessions = json.loads(os.environ["DCV_SESSIONS"])
+except ValueError:
+    print(f"FAIL\tdcv list-sessions --json printed no JSON: {os.environ['DCV_SESSIONS'][:200]!r}")
+    raise SystemExit(0)
+if not isinstance(sessions, list):
+    sessions = []
+console = [s for s in sessions if isinstance(s, dict) and s.get("id") == "console"]
+if not console:
+    ids = ", ".join(str(s.get("id")) for s in sessions if isinstance(s, dict)) or "none"
+    print(f"FAIL\tno console session (sessions: {ids})")
+elif console[0].get("type", "console") != "console":
+    print(f"FAIL\tthe session 'console' is a {console[0].get('type')} session, not a console session")
+elif console[0].get("owner") != user:
+    print(f"FAIL\ta console session exists but is owned by {console[0].get('owner')}, not {user}")
+else:
+    print(f"OK\tconsole session owned by {user}")
+PY
+)"
+  DETAIL="${verdict#*$'\t'}"
+  [ "${verdict%%$'\t'*}" = OK ]
 }
 
 # Sets AGENT_RESULT and TELEMETRY_RESULT to "STATUS<TAB>detail" from the agent's /healthz and /state.
 agent_results() {
-  local health state active
+  local health state active status line last=""
   if ! systemctl is-active --quiet so101-twin-agent.service; then
     active="$(systemctl is-active so101-twin-agent.service 2>&1 || true)"
-    AGENT_RESULT=$'FAIL\tso101-twin-agent.service is '"${active:-not active}"' (journalctl -u so101-twin-agent)'
+    status="$(systemctl show so101-twin-agent.service -p ExecMainStatus --value 2>/dev/null || true)"
     TELEMETRY_RESULT=$'WARN\tno agent, no telemetry'
+    if [ "$status" = 2 ]; then
+      # `twin run` exits 2 on a configuration error, which the unit does not restart on: its log names
+      # the setting.
+      while IFS= read -r line; do
+        [[ $line == *"configuration error"* ]] && last="$line"
+      done <<<"$(journalctl -u so101-twin-agent.service -n 50 -o cat --no-pager 2>/dev/null || true)"
+      AGENT_RESULT=$'FAIL\tthe agent refused its configuration (exit status 2, not restarted): '"${last:-see journalctl -u so101-twin-agent}"
+      return 0
+    fi
+    AGENT_RESULT=$'FAIL\tso101-twin-agent.service is '"${active:-not active}"' (journalctl -u so101-twin-agent)'
     return 0
   fi
   health="$(curl -s --max-time 5 "$AGENT_HTTP/healthz" 2>&1 || true)"
@@ -120,13 +167,73 @@ check_agent() {
   [ "${AGENT_RESULT%%$'\t'*}" = OK ]
 }
 
+# The viewer counts when one `twin view` process of the desktop user has been alive for VIEWER_STABLE_S.
 check_viewer() {
-  if pgrep -u "$DESKTOP_USER" -f "${CHECK_VENV}/bin/twin view" >/dev/null; then
-    DETAIL="twin view runs in ${DESKTOP_USER}'s desktop session"
+  local pids pid age oldest=-1
+  pids="$(pgrep -u "$DESKTOP_USER" -f "${CHECK_VENV}/bin/twin view" || true)"
+  if [ -z "$pids" ]; then
+    DETAIL="twin view is not running in ${DESKTOP_USER}'s session (GNOME autostart starts its supervisor at login)"
+    return 1
+  fi
+  for pid in $pids; do
+    age="$(ps -o etimes= -p "$pid" 2>/dev/null || true)"
+    age="${age//[[:space:]]/}"
+    if [[ $age =~ ^[0-9]+$ ]] && [ "$age" -gt "$oldest" ]; then oldest="$age"; fi
+  done
+  if [ "$oldest" -lt 0 ]; then
+    DETAIL="twin view runs, but ps could not tell how long (pids: ${pids//$'\n'/ })"
+    return 1
+  fi
+  if [ "$oldest" -ge "$VIEWER_STABLE_S" ]; then
+    DETAIL="twin view runs in ${DESKTOP_USER}'s desktop session (the same process for ${oldest} s)"
     return 0
   fi
-  DETAIL="twin view is not running in ${DESKTOP_USER}'s session (GNOME autostart starts its supervisor at login)"
+  DETAIL="twin view keeps restarting in ${DESKTOP_USER}'s session: its process is ${oldest} s old, and a viewer"
+  DETAIL+=" counts once one process has run ${VIEWER_STABLE_S} s (its supervisor logs why: journalctl _UID=\$(id -u"
+  DETAIL+=" ${DESKTOP_USER}) | grep twin-view)"
   return 1
+}
+
+# What a person would see: a capture of the console session, which must not be one flat colour (a black
+# or blank screen). Kept on the host for `twin instance check --screenshot`.
+check_screen() {
+  local out
+  mkdir -p "${ROOT}${CHECK_STATE}"
+  if ! out="$(dcv get-screenshot --max-width 1280 --max-height 720 --format PNG \
+    --output "${ROOT}${SCREENSHOT}" console 2>&1)"; then
+    DETAIL="dcv get-screenshot of the console session failed: ${out:0:300}"
+    return 1
+  fi
+  chmod 0640 "${ROOT}${SCREENSHOT}"
+  out="$("${ROOT}${CHECK_VENV}/bin/python" - "${ROOT}${SCREENSHOT}" "$SCREENSHOT" <<'PY' 2>&1
+import sys
+
+from PIL import Image, ImageStat
+
+path, shown = sys.argv[1], sys.argv[2]
+with Image.open(path) as image:
+    width, height = image.size
+    small = image.convert("RGB")
+small.thumbnail((320, 320))
+pixels = small.width * small.height
+colours = small.getcolors(maxcolors=pixels)
+count, top = max(colours)
+share = count / pixels
+spread = max(ImageStat.Stat(small).stddev)
+# One colour over nearly all of it, or hardly any variation: a black, blank or frozen-grey screen.
+if share >= 0.99 or spread < 2.0:
+    hex_colour = "#%02x%02x%02x" % top
+    print(f"FAIL\tthe console shows one flat colour ({hex_colour} over {share:.1%} of {width}x{height}): no"
+          f" desktop is drawn (capture kept in {shown})")
+else:
+    print(f"OK\tthe console shows a desktop ({width}x{height}, {len(colours)} colours; capture kept in {shown})")
+PY
+)" || {
+    DETAIL="could not analyse the capture: ${out:0:300}"
+    return 1
+  }
+  DETAIL="${out#*$'\t'}"
+  [ "${out%%$'\t'*}" = OK ]
 }
 
 # Prints NAME<TAB>STATUS<TAB>DETAIL with the detail on one line.
@@ -135,11 +242,68 @@ report() {
   printf '%s\t%s\t%s\n' "$1" "$2" "${detail//$'\n'/; }"
 }
 
+# DCV creates the automatic console session when it starts, and only if X runs then: without one while X
+# runs, DCV came first (after a reboot, or a restart of GDM), so restart it; create the session by hand
+# only when that did not help.
+ensure_console_session() {
+  wait_for 6 5 "the DCV console session" check_dcv_session && return 0
+  if check_x_on_gpu; then
+    log "no console session while X runs ($DETAIL): restarting dcvserver so it attaches to X"
+    systemctl restart dcvserver
+  fi
+  wait_for "$WAIT_DCV_TRIES" 5 "the DCV console session" check_dcv_session && return 0
+  log "no automatic console session ($DETAIL); creating it"
+  dcv create-session --type=console --owner "$DESKTOP_USER" console || true
+  wait_for 12 5 "the DCV console session" check_dcv_session
+}
+
+# _verified NAME OK|FAIL: one line of verify_host's table from DETAIL (uses its VERIFY_LINES and failures).
+_verified() {
+  VERIFY_LINES+=("$(report "$1" "$2" "$DETAIL")")
+  log "$1: $DETAIL"
+  [ "$2" = OK ] || failures+=("$1: $DETAIL")
+}
+
+# verify_host: wait for every check in the order a person meets them. Sets VERIFY_LINES (the table) and
+# VERIFY_SUMMARY (the failures, or what was verified); fails when any required check does.
+verify_host() {
+  local failures=()
+  VERIFY_LINES=()
+  if wait_for "$WAIT_X_TRIES" 5 "X on the GPU" check_x_on_gpu; then _verified x-on-gpu OK; else
+    _verified x-on-gpu FAIL
+  fi
+  if wait_for "$WAIT_DCV_TRIES" 5 "the DCV console session" check_dcv_session; then _verified dcv-session OK; else
+    _verified dcv-session FAIL
+  fi
+  if wait_for "$WAIT_AGENT_TRIES" 5 "the agent subscribed" check_agent; then _verified agent OK; else
+    _verified agent FAIL
+  fi
+  VERIFY_LINES+=("$(report telemetry "${TELEMETRY_RESULT%%$'\t'*}" "${TELEMETRY_RESULT#*$'\t'}")")
+  log "telemetry: ${TELEMETRY_RESULT#*$'\t'} (not required: no arm needs to be publishing)"
+  if wait_for "$WAIT_VIEWER_TRIES" 5 "a stable viewer" check_viewer; then
+    _verified viewer OK
+    # Once the viewer is up, the console must show it (GNOME may take a moment to paint).
+    if wait_for "$WAIT_SCREEN_TRIES" 5 "a drawn desktop" check_screen; then _verified screen OK; else
+      _verified screen FAIL
+    fi
+  else
+    _verified viewer FAIL
+    DETAIL="not captured: no viewer ran ${VIEWER_STABLE_S} s"
+    _verified screen FAIL
+  fi
+  if [ ${#failures[@]} -gt 0 ]; then
+    VERIFY_SUMMARY="$(printf '%s; ' "${failures[@]}")"
+    VERIFY_SUMMARY="${VERIFY_SUMMARY%; }"
+    return 1
+  fi
+  VERIFY_SUMMARY="X on the GPU, DCV console session, agent subscribed, viewer stable, desktop on screen"
+}
+
 host_check_main() {
   local failed=0 name version last
   load_env "$ROOT/etc/so101-twin/deployment.env"
   DESKTOP_USER="${DESKTOP_USER:-ubuntu}"
-  for name in x_on_gpu dcv_session agent viewer; do
+  for name in x_on_gpu dcv_session agent viewer screen; do
     if "check_$name"; then
       report "${name//_/-}" OK "$DETAIL"
     else
@@ -156,10 +320,60 @@ host_check_main() {
   return "$failed"
 }
 
+# The kernel's id of this boot: the verdict of the on-start checks names it, so `twin instance start` can
+# tell this start's verdict from the previous one's.
+boot_id() { cat "${ROOT}/proc/sys/kernel/random/boot_id" 2>/dev/null || echo unknown; }
+
+# emit_metric FAILED: one EMF line (namespace SO101Twin, dimension Agent) the CloudWatch agent ships.
+emit_metric() {
+  "${ROOT}${CHECK_VENV}/bin/python" - "${AGENT_NAME:-so101-twin}" "$1" >>"${ROOT}${HOST_EMF_FILE}" <<'PY'
+import json, sys, time
+
+from twin.output.emf import AGENT_DIMENSION, Metric, emf_document
+
+agent, failed = sys.argv[1], int(sys.argv[2])
+metrics = [Metric("HostChecksFailed", float(failed), "Count"), Metric("HostStartsVerified", float(not failed), "Count")]
+print(json.dumps(emf_document(metrics, {AGENT_DIMENSION: agent}, int(time.time() * 1000)), separators=(",", ":")))
+PY
+}
+
+# After every start (so101-twin-start.service): the console session on X, every check waited for, one
+# verdict. Not while a boot or an update runs: they verify the host themselves.
+on_start_main() {
+  local verdict status failed=0
+  mkdir -p "${ROOT}${CHECK_STATE}" "$(dirname "${ROOT}${START_LOG}")"
+  exec > >(tee -a "${ROOT}${START_LOG}") 2>&1
+  exec 9>"${ROOT}${CHECK_STATE}/run.lock"
+  flock 9
+  load_env "$ROOT/etc/so101-twin/deployment.env"
+  DESKTOP_USER="${DESKTOP_USER:-ubuntu}"
+  log "start checks of boot $(boot_id), deployment ${DEPLOYMENT_VERSION:-unknown}"
+  # A run that was killed while it held apt still left its record: give the timers back.
+  restore_apt "${ROOT}${CHECK_STATE}" || log "could not restore the apt timers"
+  if wait_for "$WAIT_X_TRIES" 5 "X on the GPU" check_x_on_gpu; then
+    ensure_console_session || log "dcv-session: $DETAIL"
+  fi
+  if verify_host; then status=PASS; else
+    status=FAIL
+    failed=1
+  fi
+  verdict="boot=$(boot_id) $(date -Is) $status $VERIFY_SUMMARY"
+  printf '%s\n' "$verdict" "${VERIFY_LINES[@]}" >"${ROOT}${LAST_START}.new"
+  mv -f "${ROOT}${LAST_START}.new" "${ROOT}${LAST_START}"
+  emit_metric "$failed" || log "could not write the HostChecksFailed metric line"
+  log "verdict: $status: $VERIFY_SUMMARY"
+  return "$failed"
+}
+
 if [ "${BASH_SOURCE[0]}" = "$0" ]; then
   set -Eeuo pipefail
   HERE="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
+  LOG_TAG=host-check
   # shellcheck source=userdata/lib.sh
   . "$HERE/lib.sh"
-  host_check_main
+  if [ "${1:-}" = --on-start ]; then
+    on_start_main
+  else
+    host_check_main
+  fi
 fi

@@ -1,19 +1,28 @@
 #!/usr/bin/env bash
 # Install the so101-twin agent: a Python venv with the agent distribution (package `twin` plus the robot
-# model `twin_robots`), its config, its systemd unit and the DCV desktop's viewer (autostarted, supervised).
+# model `twin_robots`), its config, its systemd unit (its own unprivileged user, sandboxed) and the DCV
+# desktop's viewer (autostarted, supervised, running as the desktop user).
+#
+# Nothing unhashed is ever fetched: the dependencies come from the locked requirements shipped with the
+# agent (requirements/host.txt: every package pinned with --hash=sha256, the runtime, the extras a host may
+# turn on and the build backend), installed with --require-hashes; the agent itself is then built from the
+# shipped source with --no-index and --no-build-isolation (the backend from the lock). Both on the first
+# boot and on every update.
 #
 # Runs as a step of bootstrap.sh on the host, and in tests against a temporary tree with stand-ins for the
 # system tools (systemctl, chown, id) first on PATH; the lines are the same in both places:
 #   ROOT        install prefix (empty on the host); every path below is written ${ROOT}/...
-#   AGENT_SRC   the unpacked agent asset: pyproject.toml, README.md, agents/, robots/   (required)
+#   AGENT_SRC   the unpacked agent asset: pyproject.toml, README.md, agents/, robots/, requirements/host.txt
+#               (required)
 #   PYTHON      interpreter for the venv (default python3.12; mujoco 4 and usd-core 26 need >= 3.11)
 #   VENV_ARGS   extra `python -m venv` arguments; PIP_ARGS extra `pip install` arguments
 #   AWS_REGION, TOPIC_PREFIX, DEVICES (comma list or *), UNITS, CLIENT_ID_PREFIX, DESKTOP_USER,
-#   RECORD_SESSIONS (true: keep USD recordings in /var/lib/so101-twin/sessions; default false): the settings
+#   RECORD_SESSIONS (true: keep USD recordings in /var/lib/so101-twin-agent/sessions; default false): the settings
 #   AGENT_NAME  the CloudWatch metrics' Agent dimension (the stack name; the stack's alarms watch it)
 #   HISTORY_URI  where the agent keeps telemetry history (s3://<bucket>/history); empty = no history
-#   ROS2         true: install the ros2 extra and publish the arms as ROS 2 JointState (default false)
-# Idempotent: each file is written only when its content differs, pip runs only when the source changed.
+#   ROS2         true: publish the arms as ROS 2 JointState (default false; the lock holds the ros2 extra)
+# Idempotent: each file is written only when its content differs, pip runs only when the source or the lock
+# changed.
 set -Eeuo pipefail
 
 HERE="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
@@ -40,7 +49,12 @@ CONFIG=/etc/so101-twin/agent.toml
 UNIT=/etc/systemd/system/so101-twin-agent.service
 AUTOSTART="/home/${DESKTOP_USER}/.config/autostart/so101-twin-view.desktop"
 SUPERVISOR=/opt/so101-twin/bin/twin-view-supervised
-SESSIONS=/var/lib/so101-twin/sessions
+# The agent's own user and the only places it may write (its unit's StateDirectory= and LogsDirectory=).
+AGENT_USER=so101-twin
+AGENT_STATE=/var/lib/so101-twin-agent
+SESSIONS="$AGENT_STATE/sessions"
+LOCK=requirements/host.txt
+PIP=(--disable-pip-version-check --no-input -q --timeout 60 --retries 5)
 CHANGED=0
 
 toml_list() {
@@ -75,6 +89,17 @@ esac
   echo "install-agent: $AGENT_SRC has no pyproject.toml; point AGENT_SRC at the unpacked agent asset" >&2
   exit 2
 }
+[ -f "$AGENT_SRC/$LOCK" ] || {
+  echo "install-agent: $AGENT_SRC has no $LOCK, the hashed dependency lock the host installs from; it ships" \
+    "with the agent asset (stacks/twin_host.py, AGENT_ASSET_PATTERNS)" >&2
+  exit 2
+}
+
+# --- the agent's user ------------------------------------------------------------------------------
+if ! id -u "$AGENT_USER" >/dev/null 2>&1; then
+  useradd --system --user-group --home-dir "$AGENT_STATE" --no-create-home --shell /usr/sbin/nologin "$AGENT_USER"
+  log "created system user $AGENT_USER"
+fi
 
 # --- venv and the agent package -------------------------------------------------------------------
 if [ ! -x "${ROOT}${VENV}/bin/python" ]; then
@@ -83,22 +108,21 @@ if [ ! -x "${ROOT}${VENV}/bin/python" ]; then
   "$PYTHON" -m venv $VENV_ARGS "${ROOT}${VENV}"
   CHANGED=1
 fi
-# Hash of the shipped source: pip runs again only when the asset changed (a re-run changes nothing).
-src_hash="$(cd "$AGENT_SRC" && find pyproject.toml README.md agents robots -type f ! -path '*/__pycache__/*' \
+# Hash of the shipped source and lock: pip runs again only when either changed (a re-run changes nothing).
+src_hash="$(cd "$AGENT_SRC" && find pyproject.toml README.md agents robots "$LOCK" -type f ! -path '*/__pycache__/*' \
   ! -name '*.pyc' -print0 2>/dev/null | LC_ALL=C sort -z | xargs -0 sha256sum | sha256sum)"
 src_hash="${src_hash%% *}"
-# The extras are part of what was installed: turning ros2 on must run pip again even with the same source.
-extras=""
-if [ "$ROS2" = true ]; then extras="[ros2]"; fi
-src_hash="${src_hash}${extras}"
 stamp="${ROOT}${VENV}/.so101-twin-source.sha256"
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$src_hash" ]; then
-  log "installing the agent package from $AGENT_SRC"
+  log "installing the locked dependencies ($LOCK, --require-hashes)"
+  # shellcheck disable=SC2086 # PIP_ARGS is a list of flags
+  "${ROOT}${VENV}/bin/python" -m pip install "${PIP[@]}" --require-hashes --no-deps $PIP_ARGS -r "$AGENT_SRC/$LOCK"
+  log "installing the agent package from $AGENT_SRC (no index, no build isolation)"
   build="$(mktemp -d)"
   # Build from a copy: setuptools writes build/ and *.egg-info next to the sources.
   cp -r "$AGENT_SRC"/. "$build"/
   # shellcheck disable=SC2086 # PIP_ARGS is a list of flags
-  "${ROOT}${VENV}/bin/python" -m pip install --disable-pip-version-check --no-input -q $PIP_ARGS "${build}${extras}"
+  "${ROOT}${VENV}/bin/python" -m pip install "${PIP[@]}" --no-deps --no-build-isolation --no-index $PIP_ARGS "$build"
   rm -rf "$build"
   printf '%s\n' "$src_hash" >"$stamp"
   CHANGED=1
@@ -157,6 +181,8 @@ enabled = ${ROS2}
 TOML
 
 # --- the agent service ----------------------------------------------------------------------------
+# Its own user, no capabilities, a read-only system but for its state and log directories: the agent
+# parses untrusted MQTT payloads with native parsers, so what it can reach is kept small.
 write_file "$UNIT" 0644 <<UNIT
 [Unit]
 Description=so101-twin agent: mirrors SO-101 telemetry from IoT Core into MuJoCo and USD
@@ -165,19 +191,42 @@ After=network-online.target
 
 [Service]
 Type=simple
+User=${AGENT_USER}
+Group=${AGENT_USER}
+# MuJoCo renders offscreen through EGL on the GPU (/dev/nvidia*); no X display for the service.
+SupplementaryGroups=video
 ExecStart=${VENV}/bin/twin run --config ${CONFIG}
-# No X display for the service: MuJoCo renders offscreen through EGL on the GPU.
 Environment=MUJOCO_GL=egl
 Environment=PYTHONUNBUFFERED=1
+Environment=HOME=${AGENT_STATE}
+Environment=MPLCONFIGDIR=${AGENT_STATE}/matplotlib
 Restart=always
 RestartSec=5
+# \`twin run\` exits 2 on a configuration error (agents/twin/cli/commands/run.py, EXIT_CONFIG) and logs
+# the setting: restarting cannot fix it, so systemd leaves it stopped and failed.
+RestartPreventExitStatus=2
 SyslogIdentifier=so101-twin-agent
-StateDirectory=so101-twin
-# /var/log/so101-twin: the EMF file for CloudWatch (writable under ProtectSystem=full).
+StateDirectory=so101-twin-agent
+StateDirectoryMode=0750
+# /var/log/so101-twin: the EMF file for CloudWatch.
 LogsDirectory=so101-twin
-NoNewPrivileges=true
-ProtectSystem=full
-PrivateTmp=true
+NoNewPrivileges=yes
+ProtectSystem=strict
+ReadWritePaths=-${AGENT_STATE} -/var/log/so101-twin
+ProtectHome=yes
+PrivateTmp=yes
+CapabilityBoundingSet=
+AmbientCapabilities=
+ProtectKernelTunables=yes
+ProtectKernelModules=yes
+ProtectControlGroups=yes
+RestrictSUIDSGID=yes
+RestrictRealtime=yes
+RestrictNamespaces=yes
+LockPersonality=yes
+SystemCallArchitectures=native
+RestrictAddressFamilies=AF_UNIX AF_INET AF_INET6 AF_NETLINK
+UMask=0027
 
 [Install]
 WantedBy=multi-user.target
@@ -200,6 +249,7 @@ DESKTOP
 
 if [ -n "$RECORD_DIR" ]; then
   mkdir -p "${ROOT}${SESSIONS}"
+  chown "$AGENT_USER:" "${ROOT}${SESSIONS}"
 fi
 
 if id -u "$DESKTOP_USER" >/dev/null 2>&1; then

@@ -1,5 +1,5 @@
 # shellcheck shell=bash
-# Helpers shared by bootstrap.sh and install-agent.sh (sourced, never run).
+# Helpers shared by bootstrap.sh, install-agent.sh and host-check.sh (sourced, never run).
 #
 # ROOT is the install prefix: empty on the host, a temporary directory in the tests. Every path a script
 # touches is written "${ROOT}/..."; every system tool is called by name through PATH, so the tests put
@@ -11,16 +11,17 @@ CHANGED="${CHANGED:-0}"
 
 log() { echo "${LOG_TAG:-so101-twin}: $(date -Is) $*"; }
 
-# retry CMD...: five tries, 10/20/30/40 s apart (apt mirrors and CDNs have bad minutes, not bad hours).
+# retry CMD...: three tries, 10 and 20 s apart (mirrors and CDNs have bad minutes, not bad hours). Each
+# command bounds its own time (curl --max-time, apt's timeouts), so a retried step is bounded too.
 retry() {
   local n
-  for n in 1 2 3 4 5; do
+  for n in 1 2 3; do
     if "$@"; then return 0; fi
-    [ "$n" = 5 ] && break
-    log "retry $n/4 in $((n * 10)) s: $*"
+    [ "$n" = 3 ] && break
+    log "retry $n/2 in $((n * 10)) s: $*"
     sleep $((n * 10))
   done
-  log "gave up after 5 tries: $*"
+  log "gave up after 3 tries: $*"
   return 1
 }
 
@@ -34,6 +35,13 @@ wait_for() {
   done
   log "timed out after $((tries * interval)) s waiting for $what"
   return 1
+}
+
+# download URL OUT [MAX_S]: HTTPS only, a time limit per attempt (default 120 s) and curl's own retries for
+# any transient error, so one call is bounded by about 4 x MAX_S.
+download() {
+  curl -fsSL --proto '=https' --tlsv1.2 --connect-timeout 15 --max-time "${3:-120}" \
+    --retry 3 --retry-delay 5 --retry-all-errors -o "$2" "$1"
 }
 
 # write_file PATH MODE: content on stdin; PATH is below ROOT. Replaced (atomically, by rename, so a
@@ -61,33 +69,219 @@ installed() {
   [ "$status" = "install ok installed" ]
 }
 
-# apt waits for the dpkg lock instead of failing: on a first boot, unattended-upgrades often holds it.
-APT_OPTS=(-o DPkg::Lock::Timeout=600)
+# The AWS CLI's own time limits (it retries by itself), so no call hangs a boot.
+# shellcheck disable=SC2034 # used by the scripts that source this file
+AWS_LIMITS=(--cli-connect-timeout 10 --cli-read-timeout 60)
 
+# apt's own limits: the boot holds automatic updates still and checks the dpkg lock first (bootstrap.sh,
+# step apt), so a lock wait here is short; downloads time out and are retried instead of hanging.
+APT_OPTS=(-o DPkg::Lock::Timeout=120 -o Acquire::Retries=3 -o Acquire::http::Timeout=30
+  -o Acquire::https::Timeout=30)
+
+# apt_install [--recommends] PKG...: the packages not installed yet; without recommends unless asked.
 apt_install() {
-  local missing=() pkg
+  local missing=() pkg recommends=--no-install-recommends
+  if [ "${1:-}" = --recommends ]; then
+    recommends=--install-recommends
+    shift
+  fi
   for pkg in "$@"; do
     installed "$pkg" || missing+=("$pkg")
   done
   [ ${#missing[@]} -eq 0 ] && return 0
-  log "apt-get install ${missing[*]}"
+  log "apt-get install ${missing[*]} ($recommends)"
   retry apt-get "${APT_OPTS[@]}" update -q
-  retry apt-get "${APT_OPTS[@]}" install -y -q --no-install-recommends "${missing[@]}"
+  retry apt-get "${APT_OPTS[@]}" install -y -q "$recommends" "${missing[@]}"
 }
 
-# load_env FILE: KEY=value lines (the stack's deployment settings) into variables, without executing the
-# file as shell code; only upper-case keys are taken.
+# The deployment parameter's keys (stacks/twin_host.py writes them; tests/infra keeps the two in step).
+# Nothing else is taken from it: whoever can write the parameter must not be able to set PATH, LD_PRELOAD,
+# PIP_INDEX_URL or the like for the next root bootstrap.
+DEPLOYMENT_KEYS=(DEPLOYMENT_VERSION AGENT_URL SCRIPTS_URL DCV_SECRET_ARN AWS_REGION URL_SUFFIX TOPIC_PREFIX
+  DEVICES UNITS ROS2 CLIENT_ID_PREFIX DESKTOP_USER LOG_GROUP AGENT_NAME HISTORY_URI RECORD_SESSIONS)
+
+# load_env FILE [KEY...]: KEY=value lines into exported variables, without executing the file as shell code.
+# Only the listed keys are taken (default: DEPLOYMENT_KEYS); any other line is logged and ignored.
 load_env() {
-  local key value
+  local file="$1" key value allowed
+  shift
+  local keys=("$@")
+  [ ${#keys[@]} -gt 0 ] || keys=("${DEPLOYMENT_KEYS[@]}")
+  allowed=" ${keys[*]} "
   while IFS='=' read -r key value || [ -n "$key" ]; do
-    case "$key" in
-      '' | \#*) continue ;;
-      *[!A-Z0-9_]*)
-        log "ignoring malformed line in $1: $key"
-        continue
-        ;;
-    esac
+    case "$key" in '' | \#*) continue ;; esac
+    if [[ $allowed != *" $key "* ]]; then
+      log "ignoring ${key:0:40} in $file: not a setting this host takes"
+      continue
+    fi
     printf -v "$key" '%s' "$value"
     export "${key?}"
-  done <"$1"
+  done <"$file"
+}
+
+# --- signatures ------------------------------------------------------------------------------------------
+# The key is fetched with the download it signs, so it proves nothing by itself: its fingerprint is pinned
+# (userdata/releases.env) and checked before anything is verified with it.
+
+# gpg_home KEYFILE FINGERPRINT: a throw-away keyring holding KEYFILE, whose primary key must have
+# FINGERPRINT; prints the keyring's directory.
+gpg_home() {
+  local home listing fpr="" line
+  home="$(mktemp -d)"
+  gpg --homedir "$home" --batch --quiet --import "$1" >/dev/null 2>&1 || {
+    echo "gpg could not import $1" >&2
+    return 1
+  }
+  listing="$(gpg --homedir "$home" --batch --with-colons --fingerprint 2>/dev/null)"
+  # The first fpr line after pub is the primary key's.
+  while IFS= read -r line; do
+    if [[ $line == fpr:* ]]; then
+      fpr="$(cut -d: -f10 <<<"$line")"
+      break
+    fi
+  done <<<"$listing"
+  if [ "$fpr" != "$2" ]; then
+    echo "the key in $1 has fingerprint ${fpr:-none}, not the pinned $2" >&2
+    return 1
+  fi
+  echo "$home"
+}
+
+# signed_by HOME FINGERPRINT ARGS...: gpg --verify|--decrypt ARGS with the keyring; succeeds only on a valid
+# signature whose primary key is FINGERPRINT (VALIDSIG's last field; a key that has expired since signing
+# still verifies what it signed).
+signed_by() {
+  local home="$1" fpr="$2" status line
+  shift 2
+  status="$(gpg --homedir "$home" --batch --status-fd 1 "$@" 2>/dev/null)" || true
+  while IFS= read -r line; do
+    if [[ $line == "[GNUPG:] VALIDSIG "* && $line == *" $fpr" ]]; then return 0; fi
+  done <<<"$status"
+  return 1
+}
+
+# verify_detached KEYFILE FINGERPRINT SIGFILE FILE: FILE carries a detached signature by the pinned key.
+verify_detached() {
+  local home ok=0
+  home="$(gpg_home "$1" "$2")" || return 1
+  signed_by "$home" "$2" --verify "$3" "$4" || ok=1
+  gpgconf --homedir "$home" --kill all >/dev/null 2>&1 || true
+  rm -rf "$home"
+  if [ "$ok" = 1 ]; then
+    echo "$4: no valid signature by $2 in $3" >&2
+    return 1
+  fi
+}
+
+# verify_deb KEYFILE FINGERPRINT DEB: the package's embedded builder signature (the `_gpgbuilder` member
+# dpkg-sig writes: a clear-signed list of every other member's md5, sha1 and size) is valid, by the pinned
+# key, and matches every member. dpkg-sig itself is gone from Ubuntu 24.04, so the check is spelled out.
+verify_deb() {
+  local key="$1" fpr="$2" deb="$3" home work members member expected actual problem=""
+  home="$(gpg_home "$key" "$fpr")" || return 1
+  work="$(mktemp -d)"
+  members="$(ar t "$deb")" || problem="$deb is not an ar archive"
+  if [ -z "$problem" ] && [[ $'\n'$members$'\n' != *$'\n_gpgbuilder\n'* ]]; then
+    problem="$deb carries no builder signature (_gpgbuilder)"
+  fi
+  if [ -z "$problem" ]; then
+    ar p "$deb" _gpgbuilder >"$work/sig.asc"
+    rm -f "$work/signed.txt"
+    signed_by "$home" "$fpr" --output "$work/signed.txt" --decrypt "$work/sig.asc" ||
+      problem="$deb: its builder signature is not a valid signature by $fpr"
+  fi
+  if [ -z "$problem" ]; then
+    while IFS= read -r member; do
+      [[ $member == _gpg* ]] && continue
+      ar p "$deb" "$member" >"$work/member"
+      actual="$(md5sum <"$work/member") $(sha1sum <"$work/member") $(stat -c %s "$work/member")"
+      actual="${actual//  -/}"
+      expected="$(sed -n "s/^[[:space:]]\{1,\}\([0-9a-f]\{32\} [0-9a-f]\{40\} [0-9]\{1,\}\) ${member//./\\.}\$/\1/p" \
+        "$work/signed.txt")"
+      if [ "$expected" != "$actual" ]; then
+        problem="$deb: member $member does not match its signed checksums (signed: ${expected:-nothing})"
+        break
+      fi
+    done <<<"$members"
+  fi
+  gpgconf --homedir "$home" --kill all >/dev/null 2>&1 || true
+  rm -rf "$home" "$work"
+  if [ -n "$problem" ]; then
+    echo "$problem" >&2
+    return 1
+  fi
+}
+
+# --- the dpkg lock --------------------------------------------------------------------------------------
+
+# dpkg_lock_holder: prints "PID (command) on PATH" for the first of apt's and dpkg's locks that a process
+# holds, nothing when all are free. Asks the kernel (fcntl F_GETLK, the kind of lock apt and dpkg take)
+# instead of guessing from process names.
+dpkg_lock_holder() {
+  python3 - "$ROOT" <<'PY'
+import fcntl, os, struct, sys
+
+root = sys.argv[1]
+for path in ("/var/lib/dpkg/lock-frontend", "/var/lib/dpkg/lock", "/var/lib/apt/lists/lock",
+             "/var/cache/apt/archives/lock"):
+    try:
+        fd = os.open(root + path, os.O_RDONLY)
+    except OSError:
+        continue
+    try:
+        # struct flock on 64-bit Linux: type, whence, start, len, pid (+ padding).
+        probe = struct.pack("hhqqi4x", fcntl.F_WRLCK, os.SEEK_SET, 0, 0, 0)
+        lock_type, _, _, _, pid = struct.unpack("hhqqi4x", fcntl.fcntl(fd, fcntl.F_GETLK, probe))
+    finally:
+        os.close(fd)
+    if lock_type != fcntl.F_UNLCK:
+        try:
+            with open(f"/proc/{pid}/comm") as comm:
+                name = comm.read().strip()
+        except OSError:
+            name = "?"
+        print(f"{pid} ({name}) on {path}")
+        break
+PY
+}
+
+dpkg_lock_free() {
+  LOCK_HOLDER="$(dpkg_lock_holder)"
+  [ -z "$LOCK_HOLDER" ]
+}
+
+# --- automatic updates held still for a run -------------------------------------------------------------
+# unattended-upgrades and the apt timers take the dpkg lock at random times, and a first boot is when they
+# have most to do. A run stops and masks them (masked until the next reboot only: --runtime), and restores
+# the timers it found active when it ends, whatever the outcome. The record of what to restore survives a
+# run that was killed, so the next run (or the next start's checks) restores it.
+APT_TIMERS=(apt-daily.timer apt-daily-upgrade.timer)
+APT_UNITS=("${APT_TIMERS[@]}" apt-daily.service apt-daily-upgrade.service unattended-upgrades.service)
+
+# hold_apt STATE_DIR
+hold_apt() {
+  local record="$1/apt-held" unit active=()
+  if [ ! -f "$record" ]; then
+    for unit in "${APT_TIMERS[@]}" unattended-upgrades.service; do
+      if systemctl is-active --quiet "$unit"; then active+=("$unit"); fi
+    done
+    printf '%s\n' "${active[@]+"${active[@]}"}" >"$record"
+  fi
+  log "holding apt still: stopping and masking until reboot ${APT_UNITS[*]}"
+  # Stopping apt-daily-upgrade lets a running unattended-upgrade finish its current package first.
+  timeout 300 systemctl stop "${APT_UNITS[@]}" || log "some apt units did not stop cleanly (see the lock check)"
+  systemctl mask --runtime "${APT_UNITS[@]}" >/dev/null
+}
+
+# restore_apt STATE_DIR: undo hold_apt (nothing to do without its record).
+restore_apt() {
+  local record="$1/apt-held" unit active=()
+  [ -f "$record" ] || return 0
+  while IFS= read -r unit; do
+    [ -n "$unit" ] && active+=("$unit")
+  done <"$record"
+  systemctl unmask --runtime "${APT_UNITS[@]}" >/dev/null
+  if [ ${#active[@]} -gt 0 ]; then systemctl start "${active[@]}"; fi
+  rm -f "$record"
+  log "apt restored: unmasked ${APT_UNITS[*]}; started again: ${active[*]:-none}"
 }

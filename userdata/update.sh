@@ -9,9 +9,11 @@
 set -eu
 ROOT="${ROOT:-}"
 IMDS="${IMDS:-http://169.254.169.254}"
-token="$(curl -fsS -X PUT -H 'X-aws-ec2-metadata-token-ttl-seconds: 300' "$IMDS/latest/api/token")"
+token="$(curl -fsS --max-time 10 --retry 3 -X PUT -H 'X-aws-ec2-metadata-token-ttl-seconds: 300' \
+  "$IMDS/latest/api/token")"
 mkdir -p "$ROOT/run/so101-twin"
-curl -fsS -H "X-aws-ec2-metadata-token: $token" -o "$ROOT/run/so101-twin/user-data.sh" "$IMDS/latest/user-data"
+curl -fsS --max-time 10 --retry 3 -H "X-aws-ec2-metadata-token: $token" -o "$ROOT/run/so101-twin/user-data.sh" \
+  "$IMDS/latest/user-data"
 export SO101_TWIN_MODE=update
 export SO101_TWIN_EXPECTED_VERSION='@@VERSION@@'
 exec bash "$ROOT/run/so101-twin/user-data.sh"

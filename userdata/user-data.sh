@@ -42,11 +42,12 @@ fail() {
   reason="step $step failed (exit $rc); last log lines: $tail_text"
   instance="$(cat "$ROOT/var/lib/cloud/data/instance-id" 2>/dev/null || echo unknown)"
   # The wait condition carries the reason into the `cdk deploy` output (SignalResource takes none).
-  curl -fsS -X PUT -H 'Content-Type:' --data-binary @- "$SO101_TWIN_HANDLE" <<JSON || true
+  curl -fsS --max-time 30 --retry 3 -X PUT -H 'Content-Type:' --data-binary @- "$SO101_TWIN_HANDLE" <<JSON || true
 $(python3 -c 'import json, sys; print(json.dumps({"Status": "FAILURE", "Reason": sys.argv[1], "UniqueId": sys.argv[2], "Data": ""}))' "$reason" "$instance")
 JSON
   aws cloudformation signal-resource --region "$SO101_TWIN_REGION" --stack-name "$SO101_TWIN_STACK" \
-    --logical-resource-id "$SO101_TWIN_RESOURCE" --unique-id "$instance-$step" --status FAILURE || true
+    --logical-resource-id "$SO101_TWIN_RESOURCE" --unique-id "$instance-$step" --status FAILURE \
+    --cli-connect-timeout 10 --cli-read-timeout 60 || true
   exit "$rc"
 }
 trap fail ERR
@@ -56,13 +57,14 @@ exec 9>"$ROOT/var/lib/so101-twin/run.lock"
 flock 9
 
 # The AWS CLI ships with the DLAMI; other Ubuntu AMIs get it from the snap store.
-command -v aws >/dev/null 2>&1 || snap install aws-cli --classic
+command -v aws >/dev/null 2>&1 || timeout 600 snap install aws-cli --classic
 
 # The deployment parameter: asset locations, settings and their version. An update must see the version
 # the association was created for; Parameter Store is read-after-write consistent only eventually.
 read_deployment() {
   aws ssm get-parameter --region "$SO101_TWIN_REGION" --name "$SO101_TWIN_PARAMETER" \
-    --query Parameter.Value --output text >"$ROOT/etc/so101-twin/deployment.env.new" || return 1
+    --query Parameter.Value --output text --cli-connect-timeout 10 --cli-read-timeout 60 \
+    >"$ROOT/etc/so101-twin/deployment.env.new" || return 1
   [ -z "$EXPECTED_VERSION" ] ||
     [ "$(sed -n 's/^DEPLOYMENT_VERSION=//p' "$ROOT/etc/so101-twin/deployment.env.new")" = "$EXPECTED_VERSION" ]
 }
@@ -80,11 +82,13 @@ mv -f "$ROOT/etc/so101-twin/deployment.env.new" "$ROOT/etc/so101-twin/deployment
 AGENT_URL="$(sed -n 's/^AGENT_URL=//p' "$ROOT/etc/so101-twin/deployment.env")"
 SCRIPTS_URL="$(sed -n 's/^SCRIPTS_URL=//p' "$ROOT/etc/so101-twin/deployment.env")"
 
-# IAM changes made in the same deploy take seconds to reach S3, so each download retries.
+# IAM changes made in the same deploy take seconds to reach S3, so each download retries (30 tries, each
+# bounded by the CLI's time limits).
 fetch() {
   local attempt
   for attempt in $(seq 1 30); do
-    if aws s3 cp --only-show-errors --region "$SO101_TWIN_REGION" "$1" "$2"; then return 0; fi
+    if aws s3 cp --only-show-errors --region "$SO101_TWIN_REGION" --cli-connect-timeout 10 \
+      --cli-read-timeout 60 "$1" "$2"; then return 0; fi
     echo "fetch $1: attempt $attempt failed, retrying in 10 s"
     sleep 10
   done

@@ -2,16 +2,22 @@
 the system tools, first on PATH.
 
 What is real: bash, the scripts themselves (the very text the stack renders into UserData and the State
-Manager association), tar on a DCV tarball of realistic size and layout, python3 (venv, pip, zipfile, JSON),
-coreutils, flock. What stands in, and why: the tools that would change this machine or need AWS, a GPU, a
-display or a package mirror (apt-get, dpkg-query, dpkg, systemctl, nvidia-smi, nvidia-xconfig, dcv, gpg,
-chpasswd, chown, usermod, id, glib-compile-schemas, pgrep, aws, curl, sleep). Each stand-in logs its
-arguments to `calls.log` and keeps the host's state in SIM (installed packages, active services, whether X
-runs on the GPU, the DCV sessions), and encodes the dependencies that matter for the order of the boot: X
-starts on the GPU only with the NVIDIA Xorg module and an xorg.conf for the nvidia driver; dcvserver creates
-the automatic console session only if X runs when it starts; the viewer runs once X runs and the autostart
-entry and its supervisor exist; the agent answers /healthz only while its service is active.
+Manager association), tar on a DCV tarball of realistic size and layout, python3 (venv, pip, zipfile, JSON,
+the fcntl lock probe), gpg and ar (every signature check runs for real, against test keys), coreutils,
+timeout, flock, Pillow on the console capture. What stands in, and why: the tools that would change this
+machine or need AWS, a GPU, a display or a package mirror (apt-get, apt-cache, dpkg-query, dpkg, systemctl,
+journalctl, nvidia-smi, nvidia-xconfig, dcv, chpasswd, chown, usermod, useradd, gpasswd, id, ps, pgrep,
+glib-compile-schemas, aws, curl, sleep). Each stand-in logs its arguments to `calls.log` and keeps the host's
+state in SIM (installed packages, active and masked units, whether X runs on the GPU, the DCV sessions, the
+viewer), and encodes the dependencies that matter for the order of the boot: X starts on the GPU only with
+the NVIDIA Xorg module, Xorg.wrap and an xorg.conf for the nvidia driver; dcvserver creates the automatic
+console session only if X runs when it starts; the viewer runs once X runs and the autostart entry and its
+supervisor exist; a masked unit does not start; the agent answers /healthz only while its service is active.
 A file SIM/fail/<tool> makes that stand-in fail (to test a failing step).
+
+The CDN stand-in (curl) serves files from SIM/cdn: a DCV release whose packages carry dpkg-sig builder
+signatures and a CloudWatch agent package with a detached signature, both made here with throw-away keys
+(`TestSigner`); the scripts asset of a test deploy pins those keys and that tarball (`release_pins`).
 """
 
 from __future__ import annotations
@@ -23,13 +29,18 @@ import os
 import random
 import shutil
 import subprocess
+import sys
 import tarfile
+import tempfile
 import textwrap
 import zipfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 INSTANCE_ID = "i-0123456789abcdef0"
+BOOT_ID = "6f1c2d3e-4a5b-4c6d-8e9f-0a1b2c3d4e5f"
 REGION = "us-east-1"
 ACCOUNT = "111111111111"
 STACK_NAME = "So101TwinStack"
@@ -37,17 +48,32 @@ HANDLE_URL = (
     "https://cloudformation-waitcondition-us-east-1.s3.amazonaws.com/arn%3Aaws%3Acloudformation/handle?sig=x"
 )
 SECRET_ARN = f"arn:aws:secretsmanager:{REGION}:{ACCOUNT}:secret:HostDcvPassword-AbCdEf"
+PASSWORD = "Gener4tedPassw0rdOfTwentyFour"
+OLD_PASSWORD = "PreviousPassw0rdNotToBeUsed"
 LOG_GROUP = f"/so101-twin/{STACK_NAME}/host"
 HISTORY_BUCKET = "so101twinstack-historybucket-0123456789ab"
 DCV_VERSION = "2025.0-20103"
 DCV_DIR = f"nice-dcv-{DCV_VERSION}-ubuntu2404-x86_64"
-DCV_PACKAGES = {  # member -> size in bytes: several MB in all, like the real tarball's debs
-    f"nice-dcv-server_{DCV_VERSION.replace('-', '.')}-1_amd64.ubuntu2404.deb": 3_000_000,
-    f"nice-dcv-web-viewer_{DCV_VERSION.replace('-', '.')}-1_amd64.ubuntu2404.deb": 2_000_000,
-    "nice-xdcv_2025.0.655-1_amd64.ubuntu2404.deb": 1_000_000,
-    "nice-dcv-gl_2025.0.1158-1_amd64.ubuntu2404.deb": 1_000_000,
-    "nice-dcv-gltest_2025.0.346-1_amd64.ubuntu2404.deb": 500_000,
+DCV_TARBALL = f"{DCV_DIR}.tgz"
+DCV_CDN = "https://d1uj6qtbmh3dt5.cloudfront.net"
+CLOUDWATCH_BASE = f"https://amazoncloudwatch-agent-{REGION}.s3.{REGION}.amazonaws.com/ubuntu/amd64/latest"
+CLOUDWATCH_KEY_URL = "https://amazoncloudwatch-agent.s3.amazonaws.com/assets/amazon-cloudwatch-agent.gpg"
+# member -> (size in bytes, signed): several MB in all, like the real tarball's debs; the two installed
+# packages carry builder signatures.
+DCV_PACKAGES = {
+    f"nice-dcv-server_{DCV_VERSION.replace('-', '.')}-1_amd64.ubuntu2404.deb": (3_000_000, True),
+    f"nice-dcv-web-viewer_{DCV_VERSION.replace('-', '.')}-1_amd64.ubuntu2404.deb": (2_000_000, True),
+    "nice-xdcv_2025.0.655-1_amd64.ubuntu2404.deb": (1_000_000, False),
+    "nice-dcv-gl_2025.0.1158-1_amd64.ubuntu2404.deb": (1_000_000, False),
+    "nice-dcv-gltest_2025.0.346-1_amd64.ubuntu2404.deb": (500_000, False),
 }
+APT_UNITS = (
+    "apt-daily.timer",
+    "apt-daily-upgrade.timer",
+    "apt-daily.service",
+    "apt-daily-upgrade.service",
+    "unattended-upgrades.service",
+)
 
 _COMMON = r"""#!/usr/bin/env bash
 # Stand-in for a system tool (tests/infra/hostsim.py).
@@ -83,15 +109,25 @@ case "${1:-}" in
         amazon-cloudwatch-agent)
           mkdir -p "$ROOT/opt/aws/amazon-cloudwatch-agent/bin"
           cp "$SIM/bin/amazon-cloudwatch-agent-ctl" "$ROOT/opt/aws/amazon-cloudwatch-agent/bin/" ;;
+        xserver-xorg-legacy)
+          mkdir -p "$ROOT/usr/lib/xorg"; : >"$ROOT/usr/lib/xorg/Xorg.wrap"
+          chmod 755 "$ROOT/usr/lib/xorg/Xorg.wrap" ;;
         xserver-xorg-video-nvidia-*)
           mkdir -p "$ROOT/usr/lib/x86_64-linux-gnu/nvidia/xorg"
           : >"$ROOT/usr/lib/x86_64-linux-gnu/nvidia/xorg/nvidia_drv.so" ;;
-        nice-dcv-server) mark users dcv; mkdir -p "$ROOT/etc/dcv" ;;
+        nice-dcv-server) mark users dcv; echo "dcv" >"$SIM/groups/dcv"; mkdir -p "$ROOT/etc/dcv" ;;
         gdm3) mkdir -p "$ROOT/etc/gdm3" ;;
       esac
     done ;;
   *) echo "apt-get stand-in: unsupported $*" >&2; exit 100 ;;
 esac
+""",
+    "apt-cache": r"""
+# apt-cache policy PKG
+[ "$1" = policy ] || { echo "apt-cache stand-in: unsupported $*" >&2; exit 1; }
+echo "$2:"
+echo "  Installed: (none)"
+echo "  Candidate: $(cat "$SIM/apt-candidate/$2" 2>/dev/null || echo '(none)')"
 """,
     "dpkg-query": r"""
 # dpkg-query -W -f=FORMAT PATTERN
@@ -99,6 +135,10 @@ format="${2#-f=}"; pattern="$3"
 if [ "$format" = '${Status}' ]; then
   if has dpkg "$pattern"; then printf 'install ok installed'; exit 0; fi
   echo "dpkg-query: no packages found matching $pattern" >&2; exit 1
+fi
+if [ "$format" = '${Version}' ]; then
+  has dpkg "$pattern" || { echo "dpkg-query: no packages found matching $pattern" >&2; exit 1; }
+  cat "$SIM/dpkg/$pattern"; exit 0
 fi
 found=0
 for f in "$SIM"/dpkg/*; do
@@ -111,46 +151,84 @@ done
 """,
     "dpkg": r"""[ "${1:-}" = --print-architecture ] && echo amd64""",
     "systemctl": r"""
-args=("$@"); quiet=0
+args=("$@"); quiet=0; runtime=0
 [ "${args[0]}" = --global ] && args=("${args[@]:1}")
-[ "${args[1]:-}" = --quiet ] && { quiet=1; args=("${args[0]}" "${args[@]:2}"); }
-unit="${args[1]:-}"; unit="${unit%.service}"
+rest=()
+for a in "${args[@]:1}"; do
+  case "$a" in --quiet) quiet=1 ;; --runtime) runtime=1 ;; -p|--value) rest+=("$a") ;; *) rest+=("$a") ;; esac
+done
+verb="${args[0]}"
 x_can_start() {
   [ -e "$ROOT/usr/lib/x86_64-linux-gnu/nvidia/xorg/nvidia_drv.so" ] &&
+    [ -x "$ROOT/usr/lib/xorg/Xorg.wrap" ] &&
     grep -qs 'Driver.*"nvidia"' "$ROOT/etc/X11/xorg.conf" &&
     grep -qs AllowEmptyInitialConfiguration "$ROOT/etc/X11/xorg.conf"
 }
-case "${args[0]}" in
+start_unit() {
+  local unit="${1%.service}"
+  if has masked "$unit"; then echo "Failed to start $unit: Unit $unit is masked." >&2; exit 1; fi
+  mark services "$unit"
+  case "$unit" in
+    gdm3)
+      rm -f "$SIM/state/xorg" "$SIM/state/viewer"
+      if x_can_start; then
+        mark state xorg
+        if [ -e "$ROOT/home/ubuntu/.config/autostart/so101-twin-view.desktop" ] &&
+           [ -x "$ROOT/opt/so101-twin/bin/twin-view-supervised" ]; then mark state viewer; fi
+      fi ;;
+    dcvserver)
+      rm -f "$SIM/state/console"
+      if has state xorg && grep -qs '^create-session = true' "$ROOT/etc/dcv/dcv.conf"; then
+        sed -n 's/^owner = "\(.*\)"/\1/p' "$ROOT/etc/dcv/dcv.conf" >"$SIM/state/console"
+      fi ;;
+  esac
+}
+case "$verb" in
   daemon-reload|enable) ;;
   get-default) cat "$SIM/default.target" 2>/dev/null || echo multi-user.target ;;
-  set-default) echo "$unit" >"$SIM/default.target" ;;
+  set-default) echo "${rest[0]}" >"$SIM/default.target" ;;
   is-active)
+    unit="${rest[0]%.service}"
     if has services "$unit"; then [ "$quiet" = 1 ] || echo active; exit 0; fi
     [ "$quiet" = 1 ] || echo inactive; exit 3 ;;
-  restart|start)
-    mark services "$unit"
-    case "$unit" in
-      gdm3)
-        rm -f "$SIM/state/xorg" "$SIM/state/viewer"
-        if x_can_start; then
-          mark state xorg
-          if [ -e "$ROOT/home/ubuntu/.config/autostart/so101-twin-view.desktop" ] &&
-             [ -x "$ROOT/opt/so101-twin/bin/twin-view-supervised" ]; then mark state viewer; fi
-        fi ;;
-      dcvserver)
-        rm -f "$SIM/state/console"
-        if has state xorg && grep -qs '^create-session = true' "$ROOT/etc/dcv/dcv.conf"; then
-          sed -n 's/^owner = "\(.*\)"/\1/p' "$ROOT/etc/dcv/dcv.conf" >"$SIM/state/console"
-        fi ;;
-    esac ;;
+  show)
+    # systemctl show UNIT -p ExecMainStatus --value
+    unit="${rest[0]%.service}"; cat "$SIM/exit-status/$unit" 2>/dev/null || echo 0 ;;
+  restart|start) for u in "${rest[@]}"; do start_unit "$u"; done ;;
+  stop) for u in "${rest[@]}"; do rm -f "$SIM/services/${u%.service}"; done ;;
+  mask)
+    for u in "${rest[@]}"; do u="${u%.service}"; mark masked "$u"; echo "$runtime" >"$SIM/masked/$u"; done ;;
+  unmask) for u in "${rest[@]}"; do rm -f "$SIM/masked/${u%.service}"; done ;;
   *) echo "systemctl stand-in: unsupported ${args[*]}" >&2; exit 1 ;;
 esac
+""",
+    "journalctl": r"""
+# journalctl -u UNIT ...: the unit's recorded journal, if the test gave one.
+unit=""; while [ $# -gt 0 ]; do [ "$1" = -u ] && unit="${2%.service}"; shift; done
+cat "$SIM/journal/$unit" 2>/dev/null || true
 """,
     "pgrep": r"""
 # pgrep -x Xorg | pgrep -u USER -f PATTERN
 if [ "$1" = -x ] && [ "$2" = Xorg ]; then has state xorg && { echo 1234; exit 0; }; exit 1; fi
-if [ "$1" = -u ]; then has state viewer && { echo 2345; exit 0; }; exit 1; fi
+if [ "$1" = -u ]; then
+  has state viewer || exit 1
+  if [ "$(cat "$SIM/viewer-mode" 2>/dev/null)" = crashloop ]; then
+    # A viewer that dies every few seconds: its supervisor has started a new one each time we look.
+    n=$(( $(cat "$SIM/viewer-starts" 2>/dev/null || echo 0) + 1 )); echo "$n" >"$SIM/viewer-starts"
+    echo $((3000 + n)); exit 0
+  fi
+  echo 2345; exit 0
+fi
 exit 1
+""",
+    "ps": r"""
+# ps -o etimes= -p PID: seconds the process has run.
+pid="${!#}"
+case "$pid" in
+  2345) cat "$SIM/viewer-age" 2>/dev/null || echo 120 ;;
+  3*) echo 3 ;;
+  *) exit 1 ;;
+esac
 """,
     "nvidia-smi": r"""
 case "${1:-}" in
@@ -188,29 +266,49 @@ mkdir -p "$(dirname "$out")"
     "dcv": r"""
 case "$1" in
   list-sessions)
-    if has state console; then echo "Session: 'console' (owner:$(cat "$SIM/state/console") type:console)"
-    else echo "There are no sessions available."; fi ;;
+    [ "${2:-}" = --json ] || { echo "dcv stand-in: only list-sessions --json" >&2; exit 2; }
+    if has state console; then
+      printf '[ { "id" : "console", "owner" : "%s", "name" : "console", "type" : "console",' \
+        "$(cat "$SIM/state/console")"
+      printf ' "x11-display" : ":0" } ]\n'
+    else echo "[ ]"; fi ;;
   create-session)
     has state xorg || { echo "Could not create session: no X server" >&2; exit 1; }
-    owner=""; for a in "$@"; do case "$a" in --owner) ;; esac; done
+    owner=""
     while [ $# -gt 0 ]; do [ "$1" = --owner ] && owner="$2"; shift; done
     echo "$owner" >"$SIM/state/console" ;;
+  get-screenshot)
+    has state console || { echo "Could not find session console" >&2; exit 1; }
+    out=""; while [ $# -gt 0 ]; do [ "$1" = --output ] && out="$2"; shift; done
+    cp "$SIM/screen.png" "$out" ;;
 esac
 """,
-    "gpg": r"""exit 0""",
     "glib-compile-schemas": r"""exit 0""",
-    "usermod": r"""exit 0""",
+    "usermod": r"""
+# usermod -aG GROUP USER
+echo "$2" >>"$SIM/groups/$3"
+""",
+    "useradd": r"""
+user="${!#}"; mark users "$user"; echo "$user" >"$SIM/groups/$user"
+""",
+    "gpasswd": r"""
+# gpasswd -d USER GROUP
+grep -vx "$3" "$SIM/groups/$2" >"$SIM/groups/$2.new" || true
+mv "$SIM/groups/$2.new" "$SIM/groups/$2"
+""",
     "chown": r"""exit 0""",
     "sleep": r"""exit 0""",
     "chpasswd": r"""
 IFS= read -r line
 user="${line%%:*}"; password="${line#*:}"
-printf 'chpasswd user=%s length=%s\n' "$user" "${#password}" >>"$SIM/chpasswd.log"
+printf 'chpasswd user=%s password=%s\n' "$user" "$password" >>"$SIM/chpasswd.log"
 """,
     "id": r"""
 case "$1" in
   -u) has users "$2" && { echo 1000; exit 0; }; echo "id: '$2': no such user" >&2; exit 1 ;;
-  -nG) has users "$2" || { echo "id: '$2': no such user" >&2; exit 1; }; echo "$2" ;;
+  -nG)
+    has users "$2" || { echo "id: '$2': no such user" >&2; exit 1; }
+    tr '\n' ' ' <"$SIM/groups/$2"; echo ;;
 esac
 """,
     "aws": r"""
@@ -225,8 +323,14 @@ case "$1 $2" in
       exit 1
     fi
     cp "$SIM/s3/$src" "$dst" ;;
-  "secretsmanager describe-secret") echo "v-1" ;;
-  "secretsmanager get-secret-value") echo "Gener4tedPassw0rdOfTwentyFour" ;;
+  "secretsmanager describe-secret")
+    # The map's first key is the previous version: the boot must pick the one staged AWSCURRENT.
+    echo '{"Name": "HostDcvPassword",'
+    echo ' "VersionIdsToStages": {"v-1": ["AWSPREVIOUS"], "v-2": ["AWSCURRENT"]}}' ;;
+  "secretsmanager get-secret-value")
+    version=""; while [ $# -gt 0 ]; do [ "$1" = --version-id ] && version="$2"; shift; done
+    case "$version" in v-2) echo "Gener4tedPassw0rdOfTwentyFour" ;; v-1) echo "PreviousPassw0rdNotToBeUsed" ;;
+      *) echo "aws stand-in: get-secret-value without --version-id" >&2; exit 2 ;; esac ;;
   "cloudformation signal-resource") printf '%s\n' "$*" >>"$SIM/signals.log" ;;
   *) echo "aws stand-in: unsupported $*" >&2; exit 2 ;;
 esac
@@ -237,7 +341,7 @@ while [ $# -gt 0 ]; do
   case "$1" in
     -o) out="$2"; shift ;;
     -X) method="$2"; shift ;;
-    -H|--max-time) shift ;;
+    -H|--max-time|--connect-timeout|--retry|--retry-delay|--proto) shift ;;
     --data-binary) data="$2"; shift ;;
     -*) ;;
     *) url="$1" ;;
@@ -247,9 +351,10 @@ done
 [ "$data" = @- ] && data="$(cat)"
 emit() { if [ -n "$out" ]; then cat >"$out"; else cat; fi; }
 case "$url" in
-  */NICE-GPG-KEY) echo "-----BEGIN PGP PUBLIC KEY BLOCK-----" | emit ;;
-  */nice-dcv-ubuntu2404-x86_64.tgz) emit <"$SIM/dcv.tgz" ;;
-  *amazon-cloudwatch-agent.deb) echo "Package: amazon-cloudwatch-agent" | emit ;;
+  https://d1uj6qtbmh3dt5.cloudfront.net/*|https://amazoncloudwatch-agent*)
+    name="${url#https://}"; name="${name//\//_}"
+    [ -f "$SIM/cdn/$name" ] || { echo "curl: (22) The requested URL returned error: 404" >&2; exit 22; }
+    emit <"$SIM/cdn/$name" ;;
   https://cloudformation-waitcondition-*) [ "$method" = PUT ] && printf '%s\n' "$data" >>"$SIM/handle.log" ;;
   */latest/api/token) echo "imds-token" | emit ;;
   */latest/user-data) emit <"$SIM/user-data.sh" ;;
@@ -279,20 +384,407 @@ STATE = {
 }
 
 
-def make_dcv_tarball(path: Path, seed: int = 101) -> Path:
-    """A tarball laid out like AWS's (one versioned directory of .deb files), incompressible, several MB."""
-    rng = random.Random(seed)
-    with tarfile.open(path, "w:gz") as tar:
-        for name, size in DCV_PACKAGES.items():
-            data = rng.randbytes(size)
-            info = tarfile.TarInfo(f"{DCV_DIR}/{name}")
-            info.size = size
+# --- signing, packages and the release they form ------------------------------------------------------------
+
+
+class TestSigner:
+    """A throw-away OpenPGP signing key (ed25519, no passphrase) in its own keyring, driven with real gpg."""
+
+    __test__ = False  # not a pytest class
+
+    def __init__(self, name: str) -> None:
+        self.home = Path(tempfile.mkdtemp(prefix="so101-signer-"))
+        self._gpg(
+            "--passphrase",
+            "",
+            "--quick-gen-key",
+            f"{name} <{name}@example.invalid>",
+            "ed25519",
+            "sign",
+            "never",
+        )
+        listing = self._gpg("--with-colons", "--fingerprint").stdout.decode()
+        self.fingerprint = next(
+            line.split(":")[9] for line in listing.splitlines() if line.startswith("fpr:")
+        )
+
+    def _gpg(self, *args: str, data: bytes | None = None) -> subprocess.CompletedProcess[bytes]:
+        return subprocess.run(
+            ["gpg", "--homedir", str(self.home), "--batch", "--quiet", *args],
+            input=data,
+            capture_output=True,
+            check=True,
+            timeout=120,
+        )
+
+    def public_key(self) -> bytes:
+        return self._gpg("--armor", "--export", self.fingerprint).stdout
+
+    def clearsign(self, text: str) -> bytes:
+        return self._gpg(
+            "--pinentry-mode", "loopback", "--passphrase", "", "--clearsign", data=text.encode()
+        ).stdout
+
+    def detach_sign(self, data: bytes) -> bytes:
+        return self._gpg("--pinentry-mode", "loopback", "--passphrase", "", "--detach-sign", data=data).stdout
+
+    def close(self) -> None:
+        subprocess.run(["gpgconf", "--homedir", str(self.home), "--kill", "all"], check=False, timeout=60)
+        shutil.rmtree(self.home, ignore_errors=True)
+
+
+def _tar_gz(files: dict[str, bytes]) -> bytes:
+    buffer = io.BytesIO()
+    with tarfile.open(fileobj=buffer, mode="w:gz") as tar:
+        for name, data in files.items():
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
             tar.addfile(info, io.BytesIO(data))
-        notes = b"DCV release notes (stand-in)\n"
-        info = tarfile.TarInfo(f"{DCV_DIR}/README")
-        info.size = len(notes)
-        tar.addfile(info, io.BytesIO(notes))
+    return buffer.getvalue()
+
+
+def make_deb(path: Path, package: str, data: bytes, signer: TestSigner | None = None) -> Path:
+    """An ar archive laid out like a .deb; with a signer, the `_gpgbuilder` member dpkg-sig writes: a
+    clear-signed list of md5, sha1 and size of every other member."""
+    members = {
+        "debian-binary": b"2.0\n",
+        "control.tar.gz": _tar_gz({"./control": f"Package: {package}\nVersion: 1\n".encode()}),
+        "data.tar.xz": data,
+    }
+    work = Path(tempfile.mkdtemp(prefix="so101-deb-"))
+    try:
+        for name, content in members.items():
+            (work / name).write_bytes(content)
+        names = list(members)
+        if signer is not None:
+            lines = "".join(
+                f"\t{hashlib.md5(c).hexdigest()} {hashlib.sha1(c).hexdigest()} {len(c)} {n}\n"
+                for n, c in members.items()
+            )
+            text = f"Version: 4\nSigner: \nDate: Mon Nov 23 10:00:00 2026\nRole: builder\nFiles: \n{lines}"
+            (work / "_gpgbuilder").write_bytes(signer.clearsign(text))
+            names.append("_gpgbuilder")
+        path.unlink(missing_ok=True)
+        subprocess.run(["ar", "rcD", str(path), *names], cwd=work, check=True, timeout=60)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
     return path
+
+
+def make_dcv_tarball(path: Path, signer: TestSigner, seed: int = 101) -> Path:
+    """A tarball laid out like AWS's (one versioned directory of .deb files), incompressible, several MB;
+    the server and web viewer packages signed by `signer`."""
+    rng = random.Random(seed)
+    work = Path(tempfile.mkdtemp(prefix="so101-dcv-"))
+    try:
+        with tarfile.open(path, "w:gz") as tar:
+            for name, (size, signed) in DCV_PACKAGES.items():
+                deb = make_deb(
+                    work / name, name.split("_", 1)[0], rng.randbytes(size), signer if signed else None
+                )
+                tar.add(deb, arcname=f"{DCV_DIR}/{name}")
+            notes = b"DCV release notes (stand-in)\n"
+            info = tarfile.TarInfo(f"{DCV_DIR}/README")
+            info.size = len(notes)
+            tar.addfile(info, io.BytesIO(notes))
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    return path
+
+
+def cdn_name(url: str) -> str:
+    """The file name the curl stand-in serves `url` from (SIM/cdn/<name>)."""
+    return url.removeprefix("https://").replace("/", "_")
+
+
+def make_cdn(target: Path, dcv_signer: TestSigner, cloudwatch_signer: TestSigner) -> dict[str, Any]:
+    """The downloads a boot makes outside apt and PyPI, as files for the CDN stand-in, and their pins."""
+    target.mkdir(parents=True, exist_ok=True)
+    tarball = make_dcv_tarball(target / cdn_name(f"{DCV_CDN}/2025.0/Servers/{DCV_TARBALL}"), dcv_signer)
+    (target / cdn_name(f"{DCV_CDN}/NICE-GPG-KEY")).write_bytes(dcv_signer.public_key())
+    agent = b"Package: amazon-cloudwatch-agent\n"
+    (target / cdn_name(f"{CLOUDWATCH_BASE}/amazon-cloudwatch-agent.deb")).write_bytes(agent)
+    (target / cdn_name(f"{CLOUDWATCH_BASE}/amazon-cloudwatch-agent.deb.sig")).write_bytes(
+        cloudwatch_signer.detach_sign(agent)
+    )
+    (target / cdn_name(CLOUDWATCH_KEY_URL)).write_bytes(cloudwatch_signer.public_key())
+    return {
+        "dir": target,
+        "tarball": tarball,
+        "pins": release_pins(
+            hashlib.sha256(tarball.read_bytes()).hexdigest(),
+            dcv_signer.fingerprint,
+            cloudwatch_signer.fingerprint,
+        ),
+    }
+
+
+def release_pins(dcv_sha256: str, dcv_key: str, cloudwatch_key: str) -> str:
+    """userdata/releases.env as it would pin this release and these keys."""
+    return (
+        "# Pins of the test release (tests/infra/hostsim.py).\n"
+        f"DCV_VERSION={DCV_VERSION}\n"
+        f"DCV_SHA256_UBUNTU2404_X86_64={dcv_sha256}\n"
+        f"DCV_KEY_FINGERPRINT={dcv_key}\n"
+        f"CLOUDWATCH_KEY_FINGERPRINT={cloudwatch_key}\n"
+    )
+
+
+# --- the dependency lock ----------------------------------------------------------------------------------
+
+PROBE = "so101_twin_lock_probe"
+
+
+def make_probe_wheel(target: Path) -> Path:
+    """A tiny real wheel (the lock's stand-in dependency): installing it proves the lock step ran."""
+    target.mkdir(parents=True, exist_ok=True)
+    wheel = target / f"{PROBE}-1.0-py3-none-any.whl"
+    files = {
+        f"{PROBE}/__init__.py": b'LOCKED = "from requirements/host.txt"\n',
+        f"{PROBE}-1.0.dist-info/METADATA": b"Metadata-Version: 2.1\nName: so101-twin-lock-probe\n"
+        b"Version: 1.0\n",
+        f"{PROBE}-1.0.dist-info/WHEEL": b"Wheel-Version: 1.0\nGenerator: hostsim\nRoot-Is-Purelib: true\n"
+        b"Tag: py3-none-any\n",
+    }
+    record = [f"{name},,{len(data)}" for name, data in files.items()] + [f"{PROBE}-1.0.dist-info/RECORD,,"]
+    files[f"{PROBE}-1.0.dist-info/RECORD"] = ("\n".join(record) + "\n").encode()
+    # Fixed timestamps: the same bytes every time, so every copy matches the lock's hash.
+    with zipfile.ZipFile(wheel, "w") as zf:
+        for name, data in files.items():
+            zf.writestr(zipfile.ZipInfo(name, date_time=(1980, 1, 1, 0, 0, 0)), data)
+    return wheel
+
+
+WHEELHOUSE = Path(__file__).resolve().parents[2] / ".wheelhouse"
+
+
+def lock_wheels(target: Path) -> list[Path]:
+    """The wheels a test lock pins, in `target` (the host's --find-links): the probe, the build backend
+    (setuptools, wheel) the agent is built with, as the real lock pins its backend, and Pillow, which the
+    host's screen check needs (the real lock has it among the agent's dependencies)."""
+    backend = [
+        wheel
+        for pattern in ("setuptools-*.whl", "wheel-*.whl", "pillow-*.whl")
+        for wheel in WHEELHOUSE.glob(pattern)
+    ]
+    if len(backend) < 3:
+        raise FileNotFoundError(
+            f"{WHEELHOUSE} lacks the setuptools, wheel and pillow wheels: run `make setup`"
+        )
+    target.mkdir(parents=True, exist_ok=True)
+    for wheel in backend:
+        shutil.copy(wheel, target / wheel.name)
+    return [make_probe_wheel(target), *(target / w.name for w in backend)]
+
+
+def lock_text(wheels: list[Path]) -> str:
+    """A requirements/host.txt pinning `wheels` by hash, in the form of the real lock."""
+    lines = ["# lock stand-in (tests/infra/hostsim.py)"]
+    for wheel in wheels:
+        name, version = wheel.name.split("-")[:2]
+        digest = hashlib.sha256(wheel.read_bytes()).hexdigest()
+        lines.append(f"{name.replace('_', '-')}=={version} \\\n    --hash=sha256:{digest}")
+    return "\n".join(lines) + "\n"
+
+
+def with_lock(source: Path, target: Path, lock: str) -> Path:
+    """A copy of the agent asset `source` whose requirements/host.txt is `lock` (the real lock pins the
+    agent's own dependencies, which a test cannot fetch: tests run offline)."""
+    shutil.copytree(source, target, ignore=shutil.ignore_patterns("__pycache__"))
+    (target / "requirements").mkdir(exist_ok=True)
+    (target / "requirements" / "host.txt").write_text(lock)
+    return target
+
+
+@contextmanager
+def dpkg_lock_held(lock: Path) -> Iterator[int]:
+    """A process holding `lock` as apt and dpkg hold theirs (an fcntl write lock); yields its pid."""
+    script = (
+        "import fcntl, sys\n"
+        "f = open(sys.argv[1], 'w')\n"
+        "fcntl.lockf(f, fcntl.LOCK_EX)\n"
+        "print('held', flush=True)\n"
+        "sys.stdin.read()\n"
+    )
+    holder = subprocess.Popen(
+        [sys.executable, "-c", script, str(lock)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
+        yield holder.pid
+    finally:
+        assert holder.stdin is not None
+        holder.stdin.close()
+        holder.wait(timeout=30)
+
+
+# --- what the console shows ---------------------------------------------------------------------------------
+
+
+def desktop_png(path: Path) -> Path:
+    """A capture with something drawn on it: a desktop bar, a window, a gradient, as a desktop would look."""
+    from PIL import Image, ImageDraw
+
+    image = Image.new("RGB", (1280, 720), (48, 10, 36))
+    draw = ImageDraw.Draw(image)
+    for x in range(0, 1280, 4):
+        draw.line([(x, 40), (x, 720)], fill=(48 + x // 20, 10 + x // 40, 36))
+    draw.rectangle([0, 0, 1280, 32], fill=(30, 30, 30))
+    draw.rectangle([200, 120, 1080, 620], fill=(90, 110, 140), outline=(230, 230, 230))
+    draw.ellipse([560, 280, 720, 440], fill=(240, 160, 40))
+    image.save(path)
+    return path
+
+
+def uniform_png(path: Path, colour: tuple[int, int, int] = (0, 0, 0)) -> Path:
+    from PIL import Image
+
+    Image.new("RGB", (1280, 720), colour).save(path)
+    return path
+
+
+# --- the host -----------------------------------------------------------------------------------------------
+
+
+class HostSim:
+    """One stand-in host: ROOT (the file system the scripts write), SIM (stand-in state), BIN (stand-ins).
+
+    gpu_driver: nvidia-smi is there. xorg_module: the driver's Xorg module is installed (the DLAMI's case).
+    """
+
+    def __init__(
+        self,
+        base: Path,
+        *,
+        parameter: str = "",
+        user_data: str = "",
+        s3: dict[str, Path] | None = None,
+        cdn: Path | None = None,
+        gpu_driver: bool = True,
+        xorg_module: bool = True,
+    ) -> None:
+        self.root = base / "root"
+        self.sim = base / "sim"
+        self.bin = self.sim / "bin"
+        for directory in (
+            self.root,
+            self.sim,
+            self.bin,
+            self.sim / "agent",
+            self.sim / "s3",
+            self.sim / "fail",
+            self.sim / "dpkg",
+            self.sim / "users",
+            self.sim / "groups",
+            self.sim / "services",
+            self.sim / "state",
+        ):
+            directory.mkdir(parents=True, exist_ok=True)
+        for name, body in STANDINS.items():
+            if name == "nvidia-smi" and not gpu_driver:
+                continue
+            path = self.bin / name
+            path.write_text(_COMMON + textwrap.dedent(body))
+            path.chmod(0o755)
+        (self.sim / "parameter").write_text(parameter)
+        (self.sim / "user-data.sh").write_text(user_data)
+        (self.sim / "agent" / "healthz.json").write_text(json.dumps(HEALTHZ))
+        (self.sim / "agent" / "state.json").write_text(json.dumps(STATE))
+        desktop_png(self.sim / "screen.png")
+        if cdn is not None:
+            shutil.copytree(cdn, self.sim / "cdn")
+        for key, source in (s3 or {}).items():
+            target = self.sim / "s3" / key
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy(source, target)
+        # The Ubuntu cloud image's default user: an administrator, which the boot undoes.
+        (self.sim / "users" / "ubuntu").touch()
+        (self.sim / "groups" / "ubuntu").write_text("ubuntu\nadm\nsudo\nlxd\n")
+        # Automatic updates as a fresh Ubuntu has them: the timers and the shutdown helper running.
+        for unit in ("apt-daily.timer", "apt-daily-upgrade.timer", "unattended-upgrades"):
+            (self.sim / "services" / unit).touch()
+        (self.root / "etc" / "sudoers.d").mkdir(parents=True, exist_ok=True)
+        (self.root / "etc" / "sudoers.d" / "90-cloud-init-users").write_text(
+            "# Created by cloud-init\n\n# User rules for ubuntu\nubuntu ALL=(ALL) NOPASSWD:ALL\n"
+        )
+        (self.root / "etc" / "os-release").write_text('NAME="Ubuntu"\nVERSION_ID="24.04"\n')
+        (self.root / "home" / "ubuntu").mkdir(parents=True, exist_ok=True)
+        (self.root / "var" / "lib" / "cloud" / "data").mkdir(parents=True, exist_ok=True)
+        (self.root / "var" / "lib" / "cloud" / "data" / "instance-id").write_text(INSTANCE_ID + "\n")
+        (self.root / "var" / "lib" / "dpkg").mkdir(parents=True, exist_ok=True)
+        (self.root / "var" / "lib" / "dpkg" / "lock-frontend").touch()
+        (self.root / "proc" / "sys" / "kernel" / "random").mkdir(parents=True, exist_ok=True)
+        (self.root / "proc" / "sys" / "kernel" / "random" / "boot_id").write_text(BOOT_ID + "\n")
+        pci = self.root / "sys" / "bus" / "pci" / "devices" / "0000:00:1e.0"
+        pci.mkdir(parents=True, exist_ok=True)
+        (pci / "vendor").write_text("0x10de\n")
+        # The DLAMI's driver: packaged, with its Xorg module.
+        (self.sim / "dpkg" / "libnvidia-gl-580-server").write_text("580.95.05-0ubuntu0.24.04.2\n")
+        if xorg_module:
+            module = self.root / "usr/lib/x86_64-linux-gnu/nvidia/xorg/nvidia_drv.so"
+            module.parent.mkdir(parents=True, exist_ok=True)
+            module.touch()
+
+    @classmethod
+    def attach(cls, base: Path) -> HostSim:
+        """The HostSim of a tree made earlier (a copy of a booted host)."""
+        host = cls.__new__(cls)
+        host.root, host.sim, host.bin = base / "root", base / "sim", base / "sim" / "bin"
+        return host
+
+    def env(self, **extra: str) -> dict[str, str]:
+        return {
+            "PATH": f"{self.bin}:{os.environ['PATH']}",
+            "HOME": str(self.sim),
+            "LANG": "C.UTF-8",
+            "ROOT": str(self.root),
+            "SIM": str(self.sim),
+            "TMPDIR": str(self.sim),
+            # The repo's interpreter stands in for the host's python3.12, with its packages (the agent's
+            # dependencies and the build backend); pip never reaches an index, only the lock's wheels here.
+            "PYTHON": sys.executable,
+            "VENV_ARGS": "--system-site-packages",
+            "PIP_ARGS": f"--no-index --find-links {self.sim / 'wheels'}",
+            **extra,
+        }
+
+    def run(self, script: Path | str, *args: str, stdin: str | None = None, **env: str):
+        return subprocess.run(
+            ["bash", str(script), *args],
+            env=self.env(**env),
+            input=stdin,
+            capture_output=True,
+            text=True,
+            timeout=600,
+            check=False,
+        )
+
+    def fail(self, tool: str) -> None:
+        (self.sim / "fail" / tool).touch()
+
+    def calls(self) -> list[str]:
+        path = self.sim / "calls.log"
+        return path.read_text().splitlines() if path.exists() else []
+
+    def signals(self) -> list[str]:
+        path = self.sim / "signals.log"
+        return path.read_text().splitlines() if path.exists() else []
+
+    def handle_posts(self) -> list[dict[str, Any]]:
+        path = self.sim / "handle.log"
+        return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
+
+    def file(self, path: str) -> str:
+        return (self.root / path.lstrip("/")).read_text()
+
+    def active(self, unit: str) -> bool:
+        return (self.sim / "services" / unit.removesuffix(".service")).exists()
+
+    def masked(self, unit: str) -> bool:
+        return (self.sim / "masked" / unit.removesuffix(".service")).exists()
+
+    def groups(self, user: str) -> list[str]:
+        return (self.sim / "groups" / user).read_text().split()
 
 
 def zip_dir(source: Path, target: Path) -> Path:
@@ -331,101 +823,6 @@ def resolve(value: Any, refs: dict[str, str]) -> Any:
         if fn == "Fn::Base64":
             return resolve(arg, refs)
     raise ValueError(f"cannot resolve {value!r}")
-
-
-class HostSim:
-    """One stand-in host: ROOT (the file system the scripts write), SIM (stand-in state), BIN (stand-ins)."""
-
-    def __init__(
-        self,
-        base: Path,
-        *,
-        parameter: str = "",
-        user_data: str = "",
-        s3: dict[str, Path] | None = None,
-        dcv_tgz: Path | None = None,
-    ) -> None:
-        self.root = base / "root"
-        self.sim = base / "sim"
-        self.bin = self.sim / "bin"
-        for directory in (
-            self.root,
-            self.sim,
-            self.bin,
-            self.sim / "agent",
-            self.sim / "s3",
-            self.sim / "fail",
-        ):
-            directory.mkdir(parents=True, exist_ok=True)
-        for name, body in STANDINS.items():
-            path = self.bin / name
-            path.write_text(_COMMON + textwrap.dedent(body))
-            path.chmod(0o755)
-        (self.sim / "parameter").write_text(parameter)
-        (self.sim / "user-data.sh").write_text(user_data)
-        (self.sim / "agent" / "healthz.json").write_text(json.dumps(HEALTHZ))
-        (self.sim / "agent" / "state.json").write_text(json.dumps(STATE))
-        if dcv_tgz is not None:
-            shutil.copy(dcv_tgz, self.sim / "dcv.tgz")
-        for key, source in (s3 or {}).items():
-            target = self.sim / "s3" / key
-            target.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy(source, target)
-        (self.sim / "dpkg").mkdir(exist_ok=True)
-        (self.sim / "users").mkdir(exist_ok=True)
-        (self.sim / "users" / "ubuntu").touch()
-        (self.root / "etc").mkdir(exist_ok=True)
-        (self.root / "etc" / "os-release").write_text('NAME="Ubuntu"\nVERSION_ID="24.04"\n')
-        (self.root / "home" / "ubuntu").mkdir(parents=True, exist_ok=True)
-        (self.root / "var" / "lib" / "cloud" / "data").mkdir(parents=True, exist_ok=True)
-        (self.root / "var" / "lib" / "cloud" / "data" / "instance-id").write_text(INSTANCE_ID + "\n")
-
-    def env(self, **extra: str) -> dict[str, str]:
-        import sys
-
-        return {
-            "PATH": f"{self.bin}:{os.environ['PATH']}",
-            "HOME": str(self.sim),
-            "LANG": "C.UTF-8",
-            "ROOT": str(self.root),
-            "SIM": str(self.sim),
-            "TMPDIR": str(self.sim),
-            # The repo's interpreter stands in for the host's python3.12; --no-deps keeps pip offline-safe
-            # (the runtime wheels are tested elsewhere; here what matters is what the scripts do).
-            "PYTHON": sys.executable,
-            "VENV_ARGS": "--system-site-packages",
-            "PIP_ARGS": "--no-deps",
-            **extra,
-        }
-
-    def run(self, script: Path | str, *args: str, stdin: str | None = None, **env: str):
-        return subprocess.run(
-            ["bash", str(script), *args],
-            env=self.env(**env),
-            input=stdin,
-            capture_output=True,
-            text=True,
-            timeout=600,
-            check=False,
-        )
-
-    def fail(self, tool: str) -> None:
-        (self.sim / "fail" / tool).touch()
-
-    def calls(self) -> list[str]:
-        path = self.sim / "calls.log"
-        return path.read_text().splitlines() if path.exists() else []
-
-    def signals(self) -> list[str]:
-        path = self.sim / "signals.log"
-        return path.read_text().splitlines() if path.exists() else []
-
-    def handle_posts(self) -> list[dict[str, Any]]:
-        path = self.sim / "handle.log"
-        return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
-
-    def file(self, path: str) -> str:
-        return (self.root / path.lstrip("/")).read_text()
 
 
 def tree_digest(root: Path) -> dict[str, str]:

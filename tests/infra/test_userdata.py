@@ -1,7 +1,9 @@
-"""The UserData scripts: shellcheck, the rendered UserData, and a real run of the agent installer.
+"""The UserData scripts: shellcheck, the rendered UserData, a real run of the agent installer, and the
+helpers every script shares (the deployment parameter's allow-list, the signature checks).
 
-The installer runs against a temporary ROOT with the exact agent asset the synth staged (the same
-zip content the instance downloads), building a real venv and pip-installing the real package.
+The installer runs against a temporary ROOT with the exact agent asset the synth staged (the same zip
+content the instance downloads), building a real venv and pip-installing the real package, offline: its
+dependency lock is swapped for one that pins a small local wheel (tests/infra/hostsim.py, `with_lock`).
 """
 
 from __future__ import annotations
@@ -12,13 +14,23 @@ import shutil
 import subprocess
 import time
 import tomllib
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 from stacks import twin_host
 
-from .hostsim import HostSim, tree_digest
+from .hostsim import (
+    HostSim,
+    TestSigner,
+    dpkg_lock_held,
+    lock_text,
+    lock_wheels,
+    make_deb,
+    tree_digest,
+    with_lock,
+)
 from .synth import REPO_ROOT, Synth
 
 USERDATA = REPO_ROOT / "userdata"
@@ -26,7 +38,7 @@ SCRIPTS = sorted(USERDATA.glob("*.sh"))
 
 
 def test_shellcheck_is_clean() -> None:
-    assert {p.name for p in SCRIPTS} >= {
+    assert {p.name for p in SCRIPTS} == {
         "user-data.sh",
         "update.sh",
         "bootstrap.sh",
@@ -125,6 +137,7 @@ def agent_asset_dir(synth: Synth) -> Path:
 
 def run_installer(root: Path, source: Path, **env: str) -> subprocess.CompletedProcess[str]:
     host = HostSim(root.parent / f"{root.name}-sim")
+    lock_wheels(host.sim / "wheels")
     full_env = {
         **host.env(),
         "ROOT": str(root),
@@ -150,9 +163,16 @@ def run_installer(root: Path, source: Path, **env: str) -> subprocess.CompletedP
 
 
 @pytest.fixture(scope="module")
-def installed(synth_default: Synth, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+def locked_source(synth_default: Synth, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The synthesized agent asset with a lock pinning the local probe wheel."""
+    work = tmp_path_factory.mktemp("locked")
+    return with_lock(agent_asset_dir(synth_default), work / "agent", lock_text(lock_wheels(work / "w")))
+
+
+@pytest.fixture(scope="module")
+def installed(locked_source: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     root = tmp_path_factory.mktemp("root")
-    source = agent_asset_dir(synth_default)
+    source = locked_source
     result = run_installer(root, source)
     assert result.returncode == 0, result.stdout + result.stderr
     return root, source
@@ -191,6 +211,15 @@ def test_installer_writes_the_agent_config_from_the_settings(installed: tuple[Pa
     assert "LogsDirectory=so101-twin\n" in unit
 
 
+def unit_directives(text: str) -> dict[str, list[str]]:
+    directives: dict[str, list[str]] = {}
+    for line in text.splitlines():
+        if "=" in line and not line.startswith("#"):
+            key, value = line.split("=", 1)
+            directives.setdefault(key, []).append(value)
+    return directives
+
+
 def test_installer_writes_the_service_and_the_viewer_autostart(installed: tuple[Path, Path]) -> None:
     root, _ = installed
     unit = (root / "etc/systemd/system/so101-twin-agent.service").read_text()
@@ -204,7 +233,64 @@ def test_installer_writes_the_service_and_the_viewer_autostart(installed: tuple[
     supervisor = root / "opt/so101-twin/bin/twin-view-supervised"
     assert supervisor.read_text() == (USERDATA / "view-supervisor.sh").read_text()
     assert os.access(supervisor, os.X_OK)
-    assert not (root / "var/lib/so101-twin/sessions").exists()
+    assert not (root / "var/lib/so101-twin-agent/sessions").exists()
+
+
+def test_the_agent_runs_as_its_own_user_in_a_sandbox(installed: tuple[Path, Path]) -> None:
+    """It parses untrusted MQTT payloads with native parsers: no root, no capabilities, a read-only system."""
+    from twin.cli.commands.run import EXIT_CONFIG
+
+    root, _ = installed
+    directives = unit_directives((root / "etc/systemd/system/so101-twin-agent.service").read_text())
+    assert directives["User"] == ["so101-twin"] and directives["Group"] == ["so101-twin"]
+    for key, value in {
+        "NoNewPrivileges": "yes",
+        "ProtectSystem": "strict",
+        "PrivateTmp": "yes",
+        "ProtectHome": "yes",
+        "CapabilityBoundingSet": "",
+        "AmbientCapabilities": "",
+        "RestrictSUIDSGID": "yes",
+    }.items():
+        assert directives[key] == [value], key
+    # Writable: its state and its EMF log, nothing else.
+    assert directives["ReadWritePaths"] == ["-/var/lib/so101-twin-agent -/var/log/so101-twin"]
+    assert directives["StateDirectory"] == ["so101-twin-agent"] and directives["LogsDirectory"] == [
+        "so101-twin"
+    ]
+    # A configuration error (`twin run` exits EXIT_CONFIG) is not restarted every 5 s forever.
+    assert directives["RestartPreventExitStatus"] == [str(EXIT_CONFIG)]
+    # No device restriction: EGL needs /dev/nvidia* (ProtectClock= or PrivateDevices= would hide them).
+    assert not {"PrivateDevices", "ProtectClock", "DeviceAllow"} & set(directives)
+
+
+def test_the_unit_is_valid_for_systemd(installed: tuple[Path, Path], tmp_path: Path) -> None:
+    """systemd's own parser reads the unit without a complaint about any directive."""
+    systemd_analyze = shutil.which("systemd-analyze")
+    if systemd_analyze is None:
+        pytest.fail("systemd-analyze is missing (package systemd)")
+    root, _ = installed
+    unit = tmp_path / "so101-twin-agent.service"
+    # The venv's twin lives under the test's root: point ExecStart there so only the directives are judged.
+    unit.write_text(
+        (root / "etc/systemd/system/so101-twin-agent.service")
+        .read_text()
+        .replace("ExecStart=/opt/so101-twin/venv/bin/twin", f"ExecStart={root}/opt/so101-twin/venv/bin/twin")
+    )
+    result = subprocess.run(
+        [systemd_analyze, "verify", "--man=no", str(unit)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    complaints = [
+        line
+        for line in (result.stdout + result.stderr).splitlines()
+        if "so101-twin-agent.service" in line
+        and ("Unknown" in line or "Invalid" in line or "Failed to parse" in line)
+    ]
+    assert complaints == []
 
 
 def test_installer_installs_the_real_package_with_the_robot_model(installed: tuple[Path, Path]) -> None:
@@ -272,19 +358,22 @@ def test_changed_settings_rewrite_only_the_config(installed: tuple[Path, Path], 
     assert changed == ["etc/so101-twin/agent.toml"]
     config = tomllib.loads((root / "etc/so101-twin/agent.toml").read_text())
     assert config["telemetry"]["devices"] == ["*"]
-    assert config["twin"]["record_dir"] == "/var/lib/so101-twin/sessions"
-    assert (root / "var/lib/so101-twin/sessions").is_dir()
+    assert config["twin"]["record_dir"] == "/var/lib/so101-twin-agent/sessions"
+    assert (root / "var/lib/so101-twin-agent/sessions").is_dir()
 
 
-def test_ros2_installs_the_extra_and_enables_the_bridge(installed: tuple[Path, Path], tmp_path: Path) -> None:
+def test_ros2_enables_the_bridge_from_the_lock_it_already_has(
+    installed: tuple[Path, Path], tmp_path: Path
+) -> None:
     root = tmp_path / "root"
     shutil.copytree(installed[0], root, symlinks=True)
+    before = tree_digest(root)
     result = run_installer(root, installed[1], ROS2="true")
     assert result.returncode == 0, result.stderr
-    # Same source, but the extra is new: pip runs again (with --no-deps here; cyclonedds comes from the
-    # test venv, as the host gets it from PyPI).
-    assert "installing the agent package" in result.stdout
-    assert (root / "opt/so101-twin/venv/.so101-twin-source.sha256").read_text().strip().endswith("[ros2]")
+    # The lock holds the ros2 extra's packages already: only the config changes, pip does not run again.
+    assert "installing" not in result.stdout
+    after = tree_digest(root)
+    assert sorted(k for k in after if before.get(k) != after[k]) == ["etc/so101-twin/agent.toml"]
     from twin.service.config import load_config
 
     loaded = load_config(root / "etc/so101-twin/agent.toml")
@@ -306,6 +395,32 @@ def test_installer_refuses_bad_input(tmp_path: Path, env: dict[str, str], messag
     assert result.returncode == 2
     assert message in result.stderr
     assert not (tmp_path / "root" / "etc").exists()
+
+
+def test_installer_refuses_a_source_without_the_lock(tmp_path: Path) -> None:
+    source = tmp_path / "agent"
+    source.mkdir()
+    shutil.copy(REPO_ROOT / "pyproject.toml", source / "pyproject.toml")
+    result = run_installer(tmp_path / "root", source)
+    assert result.returncode == 2
+    assert "has no requirements/host.txt, the hashed dependency lock" in result.stderr
+    assert not (tmp_path / "root" / "opt").exists()
+
+
+def test_installer_installs_only_what_the_lock_hashes(locked_source: Path, tmp_path: Path) -> None:
+    """A wheel that is not the one the lock hashed is refused by pip (--require-hashes), and nothing else
+    is fetched: the agent is built with --no-index and --no-build-isolation."""
+    text = (USERDATA / "install-agent.sh").read_text()
+    assert '--require-hashes --no-deps $PIP_ARGS -r "$AGENT_SRC/$LOCK"' in text
+    assert '--no-deps --no-build-isolation --no-index $PIP_ARGS "$build"' in text
+    source = tmp_path / "agent"
+    shutil.copytree(locked_source, source)
+    lock = source / "requirements" / "host.txt"
+    lock.write_text(re.sub(r"sha256:[0-9a-f]{64}", "sha256:" + "0" * 64, lock.read_text()))
+    result = run_installer(tmp_path / "root", source)
+    assert result.returncode != 0
+    assert "DO NOT MATCH THE HASHES" in result.stderr
+    assert not (tmp_path / "root/opt/so101-twin/venv/.so101-twin-source.sha256").exists()
 
 
 def test_boot_hands_every_installer_setting_from_the_deployment_parameter(synth_all_options: Synth) -> None:
@@ -438,3 +553,138 @@ def test_supervisor_restarts_the_viewer_when_the_agent_package_changes(tmp_path:
         proc.terminate()
         _, stderr = proc.communicate(timeout=20)
     assert "the agent package changed; restarting the viewer" in stderr
+
+
+# --- the helpers every script shares -----------------------------------------------------------------------
+
+
+def lib_call(script: str, *args: str, **env: str) -> subprocess.CompletedProcess[str]:
+    """Source userdata/lib.sh and run `script` (bash) with `args` as $1..."""
+    return subprocess.run(
+        ["bash", "-c", f'set -Eeuo pipefail; . "{USERDATA}/lib.sh"; {script}', "-", *args],
+        env={**os.environ, **env},
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+
+
+def test_the_deployment_parameter_gives_only_the_keys_the_host_takes(
+    synth_all_options: Synth, tmp_path: Path
+) -> None:
+    """Whoever can write the parameter must not reach the next root bootstrap's environment."""
+
+    def text_of(value: object) -> str:
+        if isinstance(value, str):
+            return value
+        if isinstance(value, list):
+            return "".join(text_of(v) for v in value)
+        if isinstance(value, dict):
+            return "".join(text_of(v) for v in value.values())
+        return ""
+
+    parameter = text_of(synth_all_options.one("AWS::SSM::Parameter")["Properties"]["Value"])
+    stack_keys = set(re.findall(r"^([A-Z][A-Z0-9_]*)=", parameter, re.M))
+    allowed = lib_call('printf "%s\\n" "${DEPLOYMENT_KEYS[@]}"').stdout.split()
+    assert stack_keys == set(allowed)
+    env_file = tmp_path / "deployment.env"
+    env_file.write_text(
+        "DEVICES=arm-001\nLD_PRELOAD=/tmp/evil.so\nPIP_INDEX_URL=http://203.0.113.9/simple\nPATH=/tmp/evil\n"
+        "lowercase=x\n# a comment\n\nUNITS=ticks\n"
+    )
+    shown = lib_call(
+        'load_env "$1"; printf "%s|%s|%s|%s\\n" "$DEVICES" "$UNITS" "${PIP_INDEX_URL:-unset}" '
+        '"${LD_PRELOAD:-unset}"',
+        str(env_file),
+        PATH=os.environ["PATH"],
+    )
+    assert shown.returncode == 0, shown.stderr
+    assert shown.stdout.splitlines()[-1] == "arm-001|ticks|unset|unset"
+    for key in ("LD_PRELOAD", "PIP_INDEX_URL", "PATH", "lowercase"):
+        assert f"ignoring {key} in {env_file}: not a setting this host takes" in shown.stdout
+
+
+@pytest.fixture(scope="module")
+def signer() -> Iterator[TestSigner]:
+    key = TestSigner("helper-test")
+    try:
+        yield key
+    finally:
+        key.close()
+
+
+def test_verify_deb_checks_the_builder_signature_and_every_member(signer: TestSigner, tmp_path: Path) -> None:
+    key = tmp_path / "key.asc"
+    key.write_bytes(signer.public_key())
+    good = make_deb(tmp_path / "good_1_amd64.deb", "good", b"payload" * 1000, signer)
+    ok = lib_call('verify_deb "$1" "$2" "$3"', str(key), signer.fingerprint, str(good), TMPDIR=str(tmp_path))
+    assert ok.returncode == 0, ok.stderr
+    # A member changed after signing.
+    tampered = tmp_path / "tampered"
+    tampered.mkdir()
+    subprocess.run(["ar", "x", str(good)], cwd=tampered, check=True)
+    (tampered / "data.tar.xz").write_bytes(b"payload" * 999 + b"evil" * 2)
+    bad = tmp_path / "bad_1_amd64.deb"
+    names = ["debian-binary", "control.tar.gz", "data.tar.xz", "_gpgbuilder"]
+    subprocess.run(["ar", "rcD", str(bad), *names], cwd=tampered, check=True)
+    refused = lib_call(
+        'verify_deb "$1" "$2" "$3"', str(key), signer.fingerprint, str(bad), TMPDIR=str(tmp_path)
+    )
+    assert refused.returncode == 1
+    assert "member data.tar.xz does not match its signed checksums" in refused.stderr
+    # No builder signature at all.
+    unsigned = make_deb(tmp_path / "unsigned_1_amd64.deb", "unsigned", b"x", None)
+    refused = lib_call(
+        'verify_deb "$1" "$2" "$3"', str(key), signer.fingerprint, str(unsigned), TMPDIR=str(tmp_path)
+    )
+    assert refused.returncode == 1 and "carries no builder signature" in refused.stderr
+    # Signed, but the key served next to it is not the pinned one.
+    refused = lib_call('verify_deb "$1" "$2" "$3"', str(key), "0" * 40, str(good), TMPDIR=str(tmp_path))
+    assert (
+        refused.returncode == 1 and f"has fingerprint {signer.fingerprint}, not the pinned" in refused.stderr
+    )
+
+
+def test_verify_detached_needs_the_pinned_key(signer: TestSigner, tmp_path: Path) -> None:
+    key = tmp_path / "key.asc"
+    key.write_bytes(signer.public_key())
+    package = tmp_path / "agent.deb"
+    package.write_bytes(b"Package: amazon-cloudwatch-agent\n")
+    sig = tmp_path / "agent.deb.sig"
+    sig.write_bytes(signer.detach_sign(package.read_bytes()))
+    ok = lib_call(
+        'verify_detached "$@"', str(key), signer.fingerprint, str(sig), str(package), TMPDIR=str(tmp_path)
+    )
+    assert ok.returncode == 0, ok.stderr
+    package.write_bytes(b"Package: something-else\n")
+    refused = lib_call(
+        'verify_detached "$@"', str(key), signer.fingerprint, str(sig), str(package), TMPDIR=str(tmp_path)
+    )
+    assert refused.returncode == 1 and "no valid signature by" in refused.stderr
+
+
+def test_the_pinned_downloads_are_one_well_formed_file_in_the_scripts_asset(synth_default: Synth) -> None:
+    text = (USERDATA / "releases.env").read_text()
+    pins = dict(line.split("=", 1) for line in text.splitlines() if line and not line.startswith("#"))
+    assert re.fullmatch(r"\d{4}\.\d+-\d+", pins["DCV_VERSION"])
+    assert re.fullmatch(r"[0-9a-f]{64}", pins["DCV_SHA256_UBUNTU2404_X86_64"])
+    assert re.fullmatch(r"[0-9A-F]{40}", pins["DCV_KEY_FINGERPRINT"])
+    assert re.fullmatch(r"[0-9A-F]{40}", pins["CLOUDWATCH_KEY_FINGERPRINT"])
+    # Nothing else names a DCV release: the version and its hash live in this file only.
+    for script in SCRIPTS:
+        assert pins["DCV_VERSION"] not in script.read_text(), script.name
+    outdir = Path(synth_default.stack.node.root.outdir)
+    shipped = next(p for p in outdir.glob("asset.*") if (p / "bootstrap.sh").exists())
+    assert (shipped / "releases.env").read_text() == text
+
+
+def test_the_dpkg_lock_probe_names_the_holder(tmp_path: Path) -> None:
+    lock = tmp_path / "var/lib/dpkg/lock-frontend"
+    lock.parent.mkdir(parents=True)
+    lock.touch()
+    free = lib_call("dpkg_lock_holder", ROOT=str(tmp_path))
+    assert free.returncode == 0 and free.stdout == ""
+    with dpkg_lock_held(lock) as pid:
+        held = lib_call("dpkg_lock_holder", ROOT=str(tmp_path))
+    assert re.fullmatch(rf"{pid} \(python[\d.]*\) on /var/lib/dpkg/lock-frontend", held.stdout.strip())
