@@ -1,4 +1,11 @@
-"""The host's IAM role: exactly what the agent, DCV and SSM need, in this account and region only."""
+"""The host's IAM role: exactly what the agent, DCV and SSM need, in this account and region only.
+
+SSM: instead of the managed AmazonSSMManagedInstanceCore (which also reads every SSM parameter of the account
+and region, and serves patching, inventory and Distributor), the calls the SSM Agent makes for what this
+host uses: registration and heartbeat, Run Command (`twin instance status|check|start`), Session Manager
+(the shell) and the State Manager association that updates it in place (AWS-RunShellScript). Parameter
+reads are granted where the parameter is made (stacks/twin_host.py), on the stack's own parameter only.
+"""
 
 from __future__ import annotations
 
@@ -45,17 +52,8 @@ class TwinIdentity(Construct):
             "HostRole",
             assumed_by=iam.ServicePrincipal("ec2.amazonaws.com"),
             description="so101-twin host: IoT telemetry subscribe, DCV licence, SSM, agent logs",
-            managed_policies=[iam.ManagedPolicy.from_aws_managed_policy_name("AmazonSSMManagedInstanceCore")],
         )
-        Validations.of(self.role).acknowledge(
-            Acknowledgment(
-                # Managed policy ARNs keep the partition as a token even in a concrete environment.
-                id="AwsSolutions-IAM4[Policy::arn:<AWS::Partition>:iam::aws:policy/AmazonSSMManagedInstanceCore]",
-                reason="SSM Session Manager is the way onto the host instead of SSH; AWS maintains this "
-                "policy as the minimum for the SSM agent, and a hand-copied inline version would drift "
-                "from it.",
-            )
-        )
+        self._grant_ssm_agent(stack)
 
         def iot_arn(resource: str) -> str:
             return stack.format_arn(service="iot", resource=resource)
@@ -136,7 +134,10 @@ class TwinIdentity(Construct):
             },
             "*": (
                 "iot:DescribeEndpoint has no resource type (IoT action-resources table), so it cannot be "
-                "scoped; it only returns the account's data endpoint address."
+                "scoped; it only returns the account's data endpoint address. The SSM Agent's own calls "
+                "(SsmAgentCore, RunCommandMessages, SessionManagerChannels) act on the calling instance "
+                "itself, which the service identifies from the instance role's credentials; AWS grants "
+                "them on '*' in its own policy, and no resource ARN narrows them."
             ),
             nag_arn(stack, "arn:{partition}:s3:::dcv-license.{region}/*"): (
                 "DCV on EC2 licenses itself by reading objects from this AWS-owned regional bucket; the "
@@ -155,3 +156,64 @@ class TwinIdentity(Construct):
             Validations.of(self.role).acknowledge(
                 Acknowledgment(id=f"AwsSolutions-IAM5[Resource::{resource}]", reason=reason)
             )
+
+    def _grant_ssm_agent(self, stack: Stack) -> None:
+        """The SSM Agent's calls for registration, Run Command, Session Manager and the association."""
+        self.role.add_to_policy(
+            iam.PolicyStatement(
+                sid="SsmAgentCore",
+                actions=[
+                    # Registration and heartbeat (every SSM feature needs the instance to be managed).
+                    "ssm:UpdateInstanceInformation",
+                    # State Manager: the agent lists its associations, reads each one's document and
+                    # reports the outcome (amazon-ssm-agent, agent/association/service).
+                    "ssm:ListInstanceAssociations",
+                    "ssm:DescribeAssociation",
+                    "ssm:UpdateInstanceAssociationStatus",
+                ],
+                resources=["*"],
+            )
+        )
+        self.role.add_to_policy(
+            iam.PolicyStatement(
+                sid="SsmAssociationDocument",
+                actions=["ssm:GetDocument", "ssm:DescribeDocument"],
+                # The one document the association and `twin instance` run: AWS-owned, so no account.
+                resources=[f"arn:{stack.partition}:ssm:{stack.region}::document/AWS-RunShellScript"],
+            )
+        )
+        self.role.add_to_policy(
+            iam.PolicyStatement(
+                sid="RunCommandMessages",
+                actions=[
+                    "ec2messages:AcknowledgeMessage",
+                    "ec2messages:DeleteMessage",
+                    "ec2messages:FailMessage",
+                    "ec2messages:GetEndpoint",
+                    "ec2messages:GetMessages",
+                    "ec2messages:SendReply",
+                ],
+                resources=["*"],
+            )
+        )
+        self.role.add_to_policy(
+            iam.PolicyStatement(
+                sid="SessionManagerChannels",
+                actions=[
+                    "ssmmessages:CreateControlChannel",
+                    "ssmmessages:CreateDataChannel",
+                    "ssmmessages:OpenControlChannel",
+                    "ssmmessages:OpenDataChannel",
+                ],
+                resources=["*"],
+            )
+        )
+        skip_checkov(
+            self.role.node.find_child("DefaultPolicy"),
+            {
+                "CKV_AWS_111": "The writes without a resource constraint are the SSM Agent's reports about "
+                "the instance it runs on (instance information, association status, Run Command replies, "
+                "Session Manager channels): the service ties each to the calling instance's role, and these "
+                "actions take no resource ARN that could narrow them."
+            },
+        )

@@ -21,6 +21,7 @@ from pathlib import Path
 import jsii
 from aws_cdk import (
     Acknowledgment,
+    Annotations,
     CfnCreationPolicy,
     CfnResourceSignal,
     CfnTag,
@@ -52,17 +53,25 @@ BOOT_TIMEOUT_MINUTES = 45
 # An update re-runs the same steps on a host that has them all: minutes, but a new agent wheel may be large.
 UPDATE_TIMEOUT_SECONDS = 3600
 _PLACEHOLDER_RE = re.compile(r"@@([A-Z_]+)@@")
+# The instance metadata service answers one network hop: the host's own processes, nothing behind it.
+IMDS_HOP_LIMIT = 1
+# The hashed dependency lock the host installs from (userdata/install-agent.sh, --require-hashes).
+HOST_LOCK = "requirements/host.txt"
 # The one Python distribution the instance installs: pyproject.toml builds `twin` (agents/) and
-# `twin_robots` (robots/, the model files). Docker-style patterns: drop everything, re-include those, then
-# drop the development tooling the instance never runs: the layers `rig` (local rig, private mosquitto, quota
-# proxy, demo) and `bench` (benchmarks); the `twin demo` and `twin bench` commands say so when asked there.
-# pyproject.toml lists neither package, so the package still builds without them.
+# `twin_robots` (robots/, the model files), with the lock of its dependencies. Docker-style patterns: drop
+# everything, re-include those, then drop the development tooling the instance never runs: the layers `rig`
+# (local rig, private mosquitto, quota proxy, demo) and `bench` (benchmarks); the `twin demo` and `twin bench`
+# commands say so when asked there. pyproject.toml lists neither package, so the package still builds without
+# them. Of requirements/, only the host's lock.
 AGENT_ASSET_PATTERNS = [
     "*",
     "!pyproject.toml",
     "!README.md",
     "!agents",
     "!robots",
+    "!requirements",
+    "requirements/*",
+    f"!{HOST_LOCK}",
     "agents/twin/rig",
     "agents/twin/bench",
     "robots/tools",
@@ -170,6 +179,12 @@ class TwinHost(Construct):
         )
         self.password_secret.grant_read(role)
 
+        if not (agent_source / HOST_LOCK).is_file():
+            Annotations.of(self).add_warning_v2(
+                "so101-twin:no-host-lock",
+                f"{agent_source / HOST_LOCK} is missing: the host installs the agent only from this hashed "
+                "lock (--require-hashes), so its first boot would fail at step agent. Build the lock first.",
+            )
         agent_asset = s3_assets.Asset(
             self,
             "AgentPackage",
@@ -261,7 +276,8 @@ class TwinHost(Construct):
             # A public address from the first packet: the Elastic IP is associated only once the
             # instance is complete, i.e. after the boot signalled, and the boot needs the internet.
             associate_public_ip_address=True,
-            require_imdsv2=True,
+            # IMDSv2 and the hop limit come from the launch template below.
+            require_imdsv2=False,
             detailed_monitoring=True,
             ebs_optimized=True,
             block_devices=[
@@ -277,6 +293,24 @@ class TwinHost(Construct):
             ],
         )
         cfn_instance = self.instance.instance
+        # IMDSv2 only, answering one hop: set explicitly (EC2's default hop limit depends on the AMI and
+        # account settings), so a container or a forwarded packet on the host never gets the role's keys.
+        self.metadata_options = ec2.CfnLaunchTemplate(
+            self,
+            "MetadataOptions",
+            launch_template_data=ec2.CfnLaunchTemplate.LaunchTemplateDataProperty(
+                metadata_options=ec2.CfnLaunchTemplate.MetadataOptionsProperty(
+                    http_endpoint="enabled",
+                    http_tokens="required",
+                    http_put_response_hop_limit=IMDS_HOP_LIMIT,
+                    instance_metadata_tags="disabled",
+                )
+            ),
+        )
+        cfn_instance.launch_template = ec2.CfnInstance.LaunchTemplateSpecificationProperty(
+            launch_template_id=self.metadata_options.ref,
+            version=self.metadata_options.attr_latest_version_number,
+        )
         cfn_instance.disable_api_termination = termination_protection
         cfn_instance.cfn_options.creation_policy = CfnCreationPolicy(
             resource_signal=CfnResourceSignal(count=1, timeout=f"PT{boot_timeout_minutes}M")

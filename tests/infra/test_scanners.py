@@ -37,7 +37,8 @@ def test_cdk_nag_catches_an_unacknowledged_finding(tmp_path: Path) -> None:
         Template.from_stack(stack)
     report = json.loads((tmp_path / "validation-report.json").read_text())
     rules = {v["ruleName"] for p in report["pluginReports"] for v in p["violations"]}
-    assert rules == {"AwsSolutions-EC23"}, info.value
+    # The report also lists the stack's own warnings (Annotation::...), which never fail synth.
+    assert {r for r in rules if not r.startswith("Annotation::")} == {"AwsSolutions-EC23"}, info.value
 
 
 @pytest.mark.parametrize("variant", ["synth_default", "synth_all_options"])

@@ -155,26 +155,72 @@ def test_concrete_region_synth_is_nag_clean_and_checks_the_zone(synth_factory) -
 # --- identity -------------------------------------------------------------------------------------
 
 
-def test_host_role_is_for_ec2_with_ssm_core(synth_default: Synth) -> None:
-    synth_default.template.has_resource_properties(
-        "AWS::IAM::Role",
-        {
-            "AssumeRolePolicyDocument": Match.object_like(
-                {"Statement": [Match.object_like({"Principal": {"Service": "ec2.amazonaws.com"}})]}
-            ),
-            "ManagedPolicyArns": [
-                {
-                    "Fn::Join": [
-                        "",
-                        ["arn:", {"Ref": "AWS::Partition"}, ":iam::aws:policy/AmazonSSMManagedInstanceCore"],
-                    ]
-                }
-            ],
-        },
-    )
+def test_host_role_is_for_ec2_without_any_managed_policy(synth_default: Synth) -> None:
+    roles = [
+        r["Properties"]
+        for r in synth_default.resources("AWS::IAM::Role").values()
+        if "ec2.amazonaws.com" in flatten(r["Properties"]["AssumeRolePolicyDocument"])
+    ]
+    assert len(roles) == 1
+    assert "ManagedPolicyArns" not in roles[0]
+    assert "AmazonSSMManagedInstanceCore" not in json.dumps(synth_default.json)
     synth_default.template.has_resource_properties(
         "AWS::IAM::InstanceProfile", {"Roles": [{"Ref": Match.string_like_regexp("^IdentityHostRole")}]}
     )
+
+
+def test_ssm_is_granted_only_what_the_agent_calls(synth_default: Synth) -> None:
+    """Session Manager, Run Command and the State Manager association; no inventory, patching, Distributor,
+    and no parameter reads but the stack's own."""
+    statements = policy_statements(synth_default, "IdentityHostRole")
+    core = statement(statements, "SsmAgentCore")
+    assert sorted(core["Action"]) == [
+        "ssm:DescribeAssociation",
+        "ssm:ListInstanceAssociations",
+        "ssm:UpdateInstanceAssociationStatus",
+        "ssm:UpdateInstanceInformation",
+    ]
+    document = statement(statements, "SsmAssociationDocument")
+    assert sorted(document["Action"]) == ["ssm:DescribeDocument", "ssm:GetDocument"]
+    assert document["Resource"] == {
+        "Fn::Join": [
+            "",
+            [
+                "arn:",
+                {"Ref": "AWS::Partition"},
+                ":ssm:",
+                {"Ref": "AWS::Region"},
+                "::document/AWS-RunShellScript",
+            ],
+        ]
+    }
+    assert all(a.startswith("ec2messages:") for a in statement(statements, "RunCommandMessages")["Action"])
+    assert all(
+        a.startswith("ssmmessages:") for a in statement(statements, "SessionManagerChannels")["Action"]
+    )
+    ssm_actions = {
+        action
+        for s in statements
+        for action in ([s["Action"]] if isinstance(s["Action"], str) else s["Action"])
+        if action.startswith("ssm:")
+    }
+    assert not ssm_actions & {
+        "ssm:PutInventory",
+        "ssm:PutComplianceItems",
+        "ssm:GetManifest",
+        "ssm:ListAssociations",
+    }
+    assert not [a for a in ssm_actions | {flatten(s["Action"]) for s in statements} if a.endswith("*")]
+
+
+def test_parameter_reads_name_this_stacks_parameter_only(synth_default: Synth) -> None:
+    statements = policy_statements(synth_default, "IdentityHostRole")
+    reads = [s for s in statements if "ssm:GetParameter" in flatten(s["Action"])]
+    assert len(reads) == 1
+    parameter_id = next(iter(synth_default.resources("AWS::SSM::Parameter")))
+    resource = flatten(reads[0]["Resource"])
+    assert f'"Ref": "{parameter_id}"' in resource and ":parameter" in resource
+    assert "*" not in resource
 
 
 def test_iot_permissions_are_scoped_to_the_agent_and_the_devices(synth_default: Synth) -> None:
@@ -242,9 +288,10 @@ def test_dcv_license_logs_assets_and_secret_are_granted_narrowly(synth_default: 
     secret_reads = [s for s in statements if "secretsmanager:GetSecretValue" in flatten(s.get("Action"))]
     assert len(secret_reads) == 1
     assert secret_reads[0]["Resource"]["Ref"].startswith("HostDcvPassword")
-    # No statement besides DescribeEndpoint uses a bare "*" resource.
-    bare = [s.get("Sid") for s in statements if s["Resource"] == "*"]
-    assert bare == ["IotFindEndpoint"]
+    # A bare "*" resource only where the action has no resource type: DescribeEndpoint and the SSM Agent's
+    # own calls for the instance it runs on.
+    bare = sorted(s.get("Sid") for s in statements if s["Resource"] == "*")
+    assert bare == ["IotFindEndpoint", "RunCommandMessages", "SessionManagerChannels", "SsmAgentCore"]
 
 
 def test_agent_log_group_is_named_retained_a_year_and_removed_on_destroy(synth_default: Synth) -> None:
@@ -260,12 +307,24 @@ def test_agent_log_group_is_named_retained_a_year_and_removed_on_destroy(synth_d
 # --- host -----------------------------------------------------------------------------------------
 
 
-def test_instance_imdsv2_monitoring_volume_and_stable_ami(synth_default: Synth) -> None:
+def test_instance_metadata_is_imdsv2_with_a_hop_limit_of_one(synth_default: Synth) -> None:
+    """Set explicitly: no container or forwarded packet on the host reaches the role's credentials."""
+    template = synth_default.one("AWS::EC2::LaunchTemplate")
+    assert template["Properties"]["LaunchTemplateData"]["MetadataOptions"] == {
+        "HttpEndpoint": "enabled",
+        "HttpPutResponseHopLimit": 1,
+        "HttpTokens": "required",
+        "InstanceMetadataTags": "disabled",
+    }
+    template_id = next(iter(synth_default.resources("AWS::EC2::LaunchTemplate")))
+    assert synth_default.one("AWS::EC2::Instance")["Properties"]["LaunchTemplate"] == {
+        "LaunchTemplateId": {"Ref": template_id},
+        "Version": {"Fn::GetAtt": [template_id, "LatestVersionNumber"]},
+    }
+
+
+def test_instance_monitoring_volume_and_stable_ami(synth_default: Synth) -> None:
     t = synth_default.template
-    t.has_resource_properties(
-        "AWS::EC2::LaunchTemplate",
-        {"LaunchTemplateData": Match.object_like({"MetadataOptions": {"HttpTokens": "required"}})},
-    )
     t.has_resource_properties(
         "AWS::EC2::Instance",
         {
@@ -531,8 +590,13 @@ def test_agent_asset_holds_only_the_distribution(synth_default: Synth) -> None:
     asset_dirs = [p for p in Path(outdir).glob("asset.*") if (p / "pyproject.toml").exists()]
     assert len(asset_dirs) == 1
     top = sorted(p.name for p in asset_dirs[0].iterdir())
-    assert top == sorted(n for n in ["README.md", "agents", "pyproject.toml", "robots"] if n in top)
+    assert top == sorted(
+        n for n in ["README.md", "agents", "pyproject.toml", "requirements", "robots"] if n in top
+    )
     assert {"agents", "pyproject.toml", "robots"} <= set(top)
+    # Of the dependency locks, the host's only (when the lock exists; the installer refuses to run without).
+    if "requirements" in top:
+        assert [p.name for p in (asset_dirs[0] / "requirements").iterdir()] == ["host.txt"]
     names = {p.name for p in asset_dirs[0].rglob("*")}
     assert not names & {"__pycache__", ".venv", "node_modules", "cdk.out", "tests"}
     assert (asset_dirs[0] / "agents" / "twin" / "cli" / "main.py").exists()
@@ -553,6 +617,7 @@ def test_agent_asset_holds_only_the_distribution(synth_default: Synth) -> None:
         "lib.sh",
         "host-check.sh",
         "view-supervisor.sh",
+        "releases.env",
     }
 
 
