@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -37,7 +38,7 @@ def synth_all_options(tmp_path_factory: pytest.TempPathFactory) -> Synth:
 
 @pytest.fixture(scope="session")
 def synth_factory(tmp_path_factory: pytest.TempPathFactory) -> Callable[..., Synth]:
-    def make(region: str | None = None, agent_source: Path | None = None, **overrides: str) -> Synth:
+    def make(region: str | None = None, agent_source: Path | None = None, **overrides: Any) -> Synth:
         return synthesize(
             tmp_path_factory.mktemp("cdk-variant"), region=region, agent_source=agent_source, **overrides
         )

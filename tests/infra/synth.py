@@ -55,12 +55,25 @@ class Synth:
         return next(iter(found.values()))
 
 
+def no_lookup(account: str, region: str, instance_type: str) -> list[str]:
+    raise AssertionError(f"a test synth must not ask AWS for the offerings of {instance_type} in {region}")
+
+
 def synthesize(
-    outdir: Path, region: str | None = None, agent_source: Path | None = None, **overrides: str
+    outdir: Path,
+    region: str | None = None,
+    agent_source: Path | None = None,
+    *,
+    account: str | None = None,
+    offerings_lookup: Any = no_lookup,
+    context_file: Path | None = None,
+    **overrides: Any,
 ) -> Synth:
     """Synthesize the real app (build_app: settings, stack, cdk-nag) with cdk.json context plus overrides.
 
-    Template.from_stack runs the validation plugins, so an unacknowledged cdk-nag finding raises here.
+    Template.from_stack runs the validation plugins, so an unacknowledged cdk-nag finding raises here. With
+    an account and a region the AZ is chosen from the instance type's offerings: tests give them as context
+    (the cdk.context.json cache) or pass a lookup; AWS is never asked.
     """
     import aws_cdk as cdk
     from aws_cdk.assertions import Template
@@ -76,9 +89,19 @@ def synthesize(
         if region:
             # As `cdk synth` does when the AWS config names a region.
             mp.setenv("CDK_DEFAULT_REGION", region)
+        if account:
+            # As the CDK CLI does when it has credentials.
+            mp.setenv("CDK_DEFAULT_ACCOUNT", account)
         app = cdk.App(context=context, outdir=str(outdir))
         # agent_source: the agent distribution from another folder (tests that change agent code).
-        stack = build_app(app, agent_source=agent_source)
+        stack = build_app(
+            app,
+            agent_source=agent_source,
+            # Nothing deployed to compare with (the guard has its own tests, with moto).
+            deployed_reader=lambda _stack, _region: None,
+            offerings_lookup=offerings_lookup,
+            context_file=context_file or outdir / "cdk.context.json",
+        )
         template = Template.from_stack(stack)
     return Synth(stack, template)
 
