@@ -4,9 +4,11 @@ AWS cannot be reached from here. moto stands in for CloudFormation, EC2 and SSM 
 reference a moto instance, as the CDK stack's do). What moto cannot do is injected at the botocore level and
 said so at each place: the first boot's signal events (moto records no CreationPolicy signals), and the output
 of Run Command on the host (moto executes nothing). That output is not made up: it is what the real
-`userdata/host-check.sh` prints, run here against a stand-in host (tests/infra/hostsim.py: a temporary root
-with stand-ins for nvidia-smi, dcv, systemctl, pgrep and curl). The DCV port check makes a real TLS handshake
-with a local server that has a self-signed certificate, like DCV's; a closed port stands for a blocked one.
+`userdata/host-check.sh` prints (or `host-check.sh --on-start` writes, for `twin instance start`), run here
+against a stand-in host (tests/infra/hostsim.py: a temporary root with stand-ins for nvidia-smi, dcv,
+systemctl, pgrep, ps and curl), and the commands that bring the console capture back are run for real on a
+local copy of it. The DCV port check makes a real TLS handshake with a local server that has a self-signed
+certificate, like DCV's; a closed port stands for a blocked one.
 """
 
 from __future__ import annotations
@@ -21,12 +23,13 @@ import sys
 import threading
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import boto3
 import botocore.client
 import pytest
 from conftest import AWS_TEST_REGION
-from infra.hostsim import HostSim
+from infra.hostsim import BOOT_ID, HostSim
 from moto import mock_aws
 from twin.cli import main
 from twin.cli.commands import instance as cmd
@@ -113,10 +116,9 @@ def closed_port() -> int:
 # --- the stand-in host's own answer -------------------------------------------------------------------------
 
 
-def host_check_output(tmp: Path, *, deployed: str = VERSION, viewer: bool = True, x: bool = True) -> str:
-    """What userdata/host-check.sh prints on a host in the given state (run for real on a stand-in host)."""
+def stand_in_host(tmp: Path, *, deployed: str = VERSION, viewer: bool = True, x: bool = True) -> HostSim:
+    """A stand-in host in the given state, its agent serving the documents the real agent would."""
     host = HostSim(tmp / "host")
-    (host.sim / "state").mkdir()
     for marker, on in (("xorg", x), ("viewer", viewer)):
         if on:
             (host.sim / "state" / marker).touch()
@@ -134,7 +136,9 @@ def host_check_output(tmp: Path, *, deployed: str = VERSION, viewer: bool = True
     )
     venv_bin = host.root / "opt/so101-twin/venv/bin"
     venv_bin.mkdir(parents=True)
-    (venv_bin / "python").symlink_to(sys.executable)
+    # The test venv's interpreter, with its packages (Pillow for the screen check), as the host venv's.
+    (venv_bin / "python").write_text(f'#!/bin/sh\nexec {sys.executable} "$@"\n')
+    (venv_bin / "python").chmod(0o755)
     # The documents the agent itself would serve, built from its own typed state (twin.service.state).
     online = DeviceStatus.ONLINE
     state = AgentState(
@@ -148,16 +152,23 @@ def host_check_output(tmp: Path, *, deployed: str = VERSION, viewer: bool = True
     health = HealthReport(status="ok", running=True, broker_connected=True, devices={"arm-001": online})
     (host.sim / "agent" / "state.json").write_bytes(state.to_json())
     (host.sim / "agent" / "healthz.json").write_bytes(health.to_json())
-    result = subprocess.run(
-        ["bash", str(REPO / "userdata" / "host-check.sh")],
-        env=host.env(),
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
+    return host
+
+
+def host_check_output(tmp: Path, **state: Any) -> str:
+    """What userdata/host-check.sh prints on a host in the given state (run for real on a stand-in host)."""
+    host = stand_in_host(tmp, **state)
+    result = host.run(REPO / "userdata" / "host-check.sh")
     assert result.stdout, result.stderr
     return result.stdout
+
+
+def start_verdict_output(tmp: Path, **state: Any) -> str:
+    """What START_VERDICT_COMMANDS print on a host whose start checks (host-check.sh --on-start) have run."""
+    host = stand_in_host(tmp, **state)
+    host.run(REPO / "userdata" / "host-check.sh", "--on-start")
+    last_start = (host.root / "var/lib/so101-twin/last-start").read_text()
+    return f"boot={BOOT_ID}\n{last_start}"
 
 
 # --- moto stack ---------------------------------------------------------------------------------------------
@@ -279,13 +290,14 @@ def test_a_working_twin_passes_every_check(aws_env, dcv_port, tmp_path, monkeypa
         "agent",
         "telemetry",
         "viewer",
+        "screen",
         "version",
     ]
     assert {name: status for name, (status, _) in rows.items()} == dict.fromkeys(rows, "OK")
     assert rows["dcv port"][1].startswith(f"127.0.0.1:{dcv_port} completes a TLS handshake from here (TLSv1.")
     assert "arm-001 ONLINE 10.0 Hz, last message 0.0 s ago" in rows["telemetry"][1]
     assert f"host runs {VERSION}, the stack's current deployment" in rows["version"][1]
-    assert out.rstrip().endswith("verdict: the twin works (10 checks OK)")
+    assert out.rstrip().endswith("verdict: the twin works (11 checks OK)")
     assert sent["Parameters"]["commands"] == [chk.HOST_CHECK_COMMAND]
 
 
@@ -305,6 +317,7 @@ def test_failing_lines_get_a_fix_and_the_verdict_fails(aws_env, tmp_path, monkey
     rows = table(out)
     assert rows["dcv port"][0] == "FAIL" and "ConnectionRefusedError" in rows["dcv port"][1]
     assert rows["viewer"][0] == "FAIL"
+    assert rows["screen"][0] == "OK"
     assert rows["version"] == (
         "FAIL",
         f"host runs 0ld0ld0ld0ld, the stack asks for {VERSION} (last run: "
@@ -312,7 +325,7 @@ def test_failing_lines_get_a_fix_and_the_verdict_fails(aws_env, tmp_path, monkey
     )
     fixes = out.split("fixes:", 1)[1]
     assert "dcv port: DCV admits only clientCidr" in fixes and "-c clientCidr=<it>/32" in fixes
-    assert "viewer: the viewer starts at the desktop login" in fixes
+    assert "viewer: the viewer starts at the desktop login and must keep running" in fixes
     assert "aws ssm start-associations-once --association-ids 0b1c2d3e-0000-4000-8000-000000000009" in fixes
     assert "verdict: the twin does not work: 3 failing check(s): dcv port, viewer, version" in out
 
@@ -422,3 +435,126 @@ def test_boot_signal_without_events_is_a_warning_not_a_pass() -> None:
 def test_unparseable_host_output_is_ignored_line_by_line() -> None:
     lines = chk.parse_host_check("garbage\nagent\tOK\tconnected\nx\tMAYBE\ty\n", None, None)
     assert [(line.name, line.status) for line in lines] == [("agent", "OK")]
+
+
+# --- the verdict of the checks after a start ---------------------------------------------------------------
+
+
+def test_start_waits_for_the_hosts_own_checks_and_prints_their_verdict(
+    aws_env, dcv_port, tmp_path, monkeypatch, capsys
+):
+    stdout = start_verdict_output(tmp_path)
+    with mock_aws():
+        deploy(f"https://127.0.0.1:{dcv_port}/#console")
+        intercept(monkeypatch, {"GetCommandInvocation": host_answers(stdout)})
+        code = main(["instance", "start", "--timeout", "60"])
+        out = capsys.readouterr().out
+        sent = boto3.client("ssm", region_name=REGION).list_commands()["Commands"][-1]
+    assert code == cmd.EXIT_OK, out
+    assert "start checks: PASS: X on the GPU, DCV console session, agent subscribed, viewer stable" in out
+    assert sent["Parameters"]["commands"] == lib.START_VERDICT_COMMANDS
+
+
+def test_start_fails_with_the_failing_checks_and_their_fixes(
+    aws_env, dcv_port, tmp_path, monkeypatch, capsys
+):
+    stdout = start_verdict_output(tmp_path, viewer=False)
+    with mock_aws():
+        deploy(f"https://127.0.0.1:{dcv_port}/#console")
+        intercept(monkeypatch, {"GetCommandInvocation": host_answers(stdout)})
+        code = main(["instance", "start", "--timeout", "60"])
+        out = capsys.readouterr().out
+    assert code == cmd.EXIT_CHECK_FAILED, out
+    assert "start checks: FAIL: viewer: twin view is not running" in out
+    assert "  viewer: twin view is not running in ubuntu's session" in out
+    assert "    fix: the viewer starts at the desktop login" in out
+    # The screen is not even captured without a viewer that ran its 20 s.
+    assert "  screen: not captured" in out
+
+
+def test_a_verdict_of_an_earlier_boot_is_not_this_starts(aws_env, dcv_port, tmp_path, monkeypatch) -> None:
+    """The host still shows the verdict of the boot before the stop: `start` waits for a new one."""
+    earlier = start_verdict_output(tmp_path).replace(f"boot={BOOT_ID}\n", "boot=0a0a0a0a-new-boot\n", 1)
+    assert lib.parse_start_verdict(earlier) is None
+    assert lib.parse_start_verdict(start_verdict_output(tmp_path / "again")).state == lib.PASS
+    with mock_aws():
+        deploy(f"https://127.0.0.1:{dcv_port}/#console")
+        intercept(monkeypatch, {"GetCommandInvocation": host_answers(earlier)})
+        twin = lib.TwinInstance(poll_interval_s=0.01, health_poll_interval_s=0.01)
+        verdict = twin.start_verdict(timeout_s=0.5)
+    assert verdict.state == lib.UNKNOWN
+    assert "none within 0 s (the start checks have not finished yet)" in verdict.summary
+
+
+# --- the console capture comes back ------------------------------------------------------------------------
+
+
+def host_runs(answer):
+    """SendCommand and GetCommandInvocation as the host would serve them: `answer(commands)` is the output of
+    the commands sent (moto records commands but runs nothing)."""
+    sent: dict[str, list[str]] = {}
+
+    def record(call, params):
+        response = call()
+        sent[response["Command"]["CommandId"]] = params["Parameters"]["commands"]
+        return response
+
+    def on_the_host(call, params):
+        response = call()
+        stdout = answer(sent[params["CommandId"]])
+        response.update({"Status": "Success", "StandardOutputContent": stdout, "StandardErrorContent": ""})
+        return response
+
+    return {"SendCommand": record, "GetCommandInvocation": on_the_host}, sent
+
+
+def test_check_brings_the_console_capture_back(aws_env, dcv_port, tmp_path, monkeypatch, capsys):
+    """The capture host-check.sh just took, in pieces that fit Run Command's output, checked by SHA-256."""
+    host = stand_in_host(tmp_path)
+    checked = host.run(REPO / "userdata" / "host-check.sh")
+    capture = host.root / "var/lib/so101-twin/console.png"
+    # Bigger than one piece, as a real desktop's capture is.
+    capture.write_bytes(capture.read_bytes() + bytes(range(256)) * 200)
+
+    def answer(commands: list[str]) -> str:
+        if commands == [chk.HOST_CHECK_COMMAND]:
+            return checked.stdout
+        # The capture's size and pieces: run for real against the stand-in host's files.
+        script = "\n".join(commands).replace("/var/lib/so101-twin/", f"{host.root}/var/lib/so101-twin/")
+        stdout = subprocess.run(
+            ["bash", "-c", script], capture_output=True, text=True, check=True, timeout=60
+        ).stdout
+        assert len(stdout) <= 24_000, "Run Command would cut this output"
+        return stdout
+
+    handlers, sent = host_runs(answer)
+    target = tmp_path / "console.png"
+    with mock_aws():
+        deploy(f"https://127.0.0.1:{dcv_port}/#console")
+        intercept(monkeypatch, {"DescribeStackEvents": with_events(SIGNAL_SUCCESS), **handlers})
+        code = main(["instance", "check", "--screenshot", str(target)])
+        out = capsys.readouterr().out
+    assert code == cmd.EXIT_OK, out
+    assert target.read_bytes() == capture.read_bytes()
+    size = capture.stat().st_size
+    assert size > chk.SCREENSHOT_CHUNK_BYTES
+    captured = int(capture.stat().st_mtime)
+    assert table(out)["screenshot"] == ("OK", f"saved {target} ({size} bytes, captured at epoch {captured})")
+    # The host checks, the size, then one command per piece.
+    assert len(sent) == 2 + -(-size // chk.SCREENSHOT_CHUNK_BYTES)
+
+
+def test_a_missing_capture_is_a_failing_line_not_a_crash(aws_env, dcv_port, tmp_path, monkeypatch, capsys):
+    stdout = host_check_output(tmp_path)
+    handlers, _ = host_runs(lambda commands: stdout if commands == [chk.HOST_CHECK_COMMAND] else "missing\n")
+    with mock_aws():
+        deploy(f"https://127.0.0.1:{dcv_port}/#console")
+        intercept(monkeypatch, {"DescribeStackEvents": with_events(SIGNAL_SUCCESS), **handlers})
+        code = main(["instance", "check", "--screenshot", str(tmp_path / "x.png")])
+        out = capsys.readouterr().out
+    assert code == cmd.EXIT_CHECK_FAILED
+    assert table(out)["screenshot"] == (
+        "FAIL",
+        "no capture to fetch from /var/lib/so101-twin/console.png (missing)",
+    )
+    assert not (tmp_path / "x.png").exists()

@@ -3,8 +3,9 @@
 `TwinInstance` reads the stack's CloudFormation outputs (`InstanceId`, `DcvUrl`, `DeploymentVersion`, ...)
 and events, starts or stops the EC2 instance, waits for the state with the EC2 waiters, and runs commands on
 the host through SSM Run Command (`run_on_host`): the agent's health (its `/healthz` listens on 127.0.0.1
-only, so it can only be asked from the instance) with the deployment version the host runs, and the host
-checks of `twin instance check` (twin.ops.instance_check).
+only, so it can only be asked from the instance) with the deployment version the host runs, the verdict of
+the checks the host runs after every start (`start_verdict`), and the host checks of `twin instance check`
+(twin.ops.instance_check).
 
 Everything that can go wrong for a reason the user can fix is raised as a `TwinInstanceError` subclass whose
 message says what to do; the `twin instance` command maps each class to its own exit code:
@@ -64,6 +65,17 @@ HEALTH_COMMAND = f"curl -s -o /dev/stdout -w '%{{http_code}}' {HEALTH_URL}"
 DEPLOYED_VERSION_FILE = "/var/lib/so101-twin/deployed-version"
 VERSION_COMMAND = f"printf 'version=%s\\n' \"$(cat {DEPLOYED_VERSION_FILE} 2>/dev/null || echo none)\""
 STATUS_COMMANDS = [VERSION_COMMAND, HEALTH_COMMAND]
+
+# After every start, so101-twin-start.service runs the host checks (userdata/host-check.sh --on-start) and
+# writes their verdict, headed by the id of the boot it belongs to; asking for the current boot id in the same
+# command tells this start's verdict from the previous one's.
+LAST_START_FILE = "/var/lib/so101-twin/last-start"
+START_VERDICT_COMMANDS = [
+    "printf 'boot=%s\\n' \"$(cat /proc/sys/kernel/random/boot_id)\"",
+    f"cat {LAST_START_FILE} 2>/dev/null || true",
+]
+PASS = "PASS"
+FAIL = "FAIL"
 
 # get_command_invocation states after which the output will not change any more.
 _SSM_PENDING = frozenset({"Pending", "InProgress", "Delayed"})
@@ -157,6 +169,34 @@ class InstanceStatus:
     @property
     def host_version(self) -> str | None:
         return self.health.host_version if self.health is not None else None
+
+
+@dataclass(frozen=True)
+class StartVerdict:
+    """The host checks after a start: PASS, FAIL, or UNKNOWN when no verdict of this boot came in time."""
+
+    state: str
+    summary: str
+    # The host-check lines (NAME<TAB>OK|WARN|FAIL<TAB>detail) the verdict was made from.
+    lines: tuple[str, ...] = ()
+
+    def describe(self) -> str:
+        if self.state == UNKNOWN:
+            return f"start checks: no verdict: {self.summary}"
+        return f"start checks: {self.state}: {self.summary}"
+
+
+def parse_start_verdict(stdout: str) -> StartVerdict | None:
+    """Interpret START_VERDICT_COMMANDS' output; None while the verdict on the host is not this boot's."""
+    lines = stdout.strip().splitlines()
+    if len(lines) < 2 or not lines[0].startswith("boot="):
+        return None
+    boot = lines[0].removeprefix("boot=").strip()
+    # "boot=<id> <time> PASS|FAIL <summary>"
+    head = lines[1].split(" ", 3)
+    if len(head) < 3 or head[0] != f"boot={boot}" or head[2] not in (PASS, FAIL):
+        return None
+    return StartVerdict(head[2], head[3] if len(head) > 3 else "", tuple(lines[2:]))
 
 
 @dataclass(frozen=True)
@@ -549,6 +589,29 @@ class TwinInstance:
         if result.problem:
             return AgentHealth(UNKNOWN, result.problem)
         return parse_health_output(result.stdout)
+
+    def start_verdict(self, timeout_s: float = 900.0) -> StartVerdict:
+        """Wait for the verdict of the host checks of this boot (so101-twin-start.service); never raises."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            remaining = max(0.0, deadline - time.monotonic())
+            result = self.run_on_host(
+                START_VERDICT_COMMANDS,
+                "twin instance start: verdict of the start checks",
+                min(60.0, remaining),
+            )
+            verdict = None if result.problem else parse_start_verdict(result.stdout)
+            if verdict is not None:
+                return verdict
+            waiting = result.problem or "the start checks have not finished yet"
+            if time.monotonic() >= deadline:
+                return StartVerdict(
+                    UNKNOWN,
+                    f"none within {timeout_s:.0f} s ({waiting}); ask again with `twin instance check`, "
+                    f"or read {LAST_START_FILE} and `journalctl -u so101-twin-start` on the host",
+                )
+            log.info("start checks: %s", waiting)
+            time.sleep(min(self.poll_interval_s, max(0.0, deadline - time.monotonic())))
 
     def status(self, check_health: bool = True, health_timeout_s: float = 60.0) -> InstanceStatus:
         """State, type, URL and (when running and asked) agent health."""

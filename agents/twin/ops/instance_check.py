@@ -3,15 +3,22 @@
 From the caller's side: the stack's status and the first boot's signal (CloudFormation), the instance's state
 (EC2), and whether the DCV port completes a TLS handshake from here (the same path a browser takes). On the
 host, through SSM Run Command, `userdata/host-check.sh`: the very checks the first boot waited for before it
-signalled (X on the GPU, the DCV console session, the agent subscribed, the viewer) plus the telemetry
-(devices, rates, age of the last message) and the version the host runs, compared with the stack's.
+signalled (X on the GPU, the DCV console session, the agent subscribed, the viewer stable, a capture of the
+console that is not one flat colour) plus the telemetry (devices, rates, age of the last message) and the
+version the host runs, compared with the stack's. With a file to save it to, the capture comes back too, in
+pieces small enough for Run Command's output.
 """
 
 from __future__ import annotations
 
+import base64
+import hashlib
+import math
+import re
 import socket
 import ssl
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
 
@@ -27,6 +34,13 @@ HOST_CHECK_SCRIPT = "/opt/so101-twin/userdata/host-check.sh"
 # SSM Run Command runs as root.
 HOST_CHECK_COMMAND = f"bash {HOST_CHECK_SCRIPT}"
 DCV_CONNECT_TIMEOUT_S = 5.0
+# The console capture host-check.sh keeps on the host. Run Command returns at most 24,000 characters of
+# output, so it comes back in pieces of 17,000 bytes (22,668 characters of base64).
+SCREENSHOT_FILE = "/var/lib/so101-twin/console.png"
+SCREENSHOT_CHUNK_BYTES = 17_000
+SCREENSHOT_INFO_COMMAND = (
+    f'f={SCREENSHOT_FILE}; if [ -f "$f" ]; then stat -c "%s %Y" "$f"; sha256sum "$f"; else echo missing; fi'
+)
 
 # Stack statuses after which the stack is usable as deployed.
 _STACK_OK = {"CREATE_COMPLETE", "UPDATE_COMPLETE", "IMPORT_COMPLETE"}
@@ -41,8 +55,12 @@ HOST_FIXES = {
     "configured devices' topics (redeploy with -c devices=...); sudo systemctl restart so101-twin-agent",
     "telemetry": "no arm is publishing to the subscribed topics: start the edge publisher of each device "
     "(or check its topic prefix and device id against the stack's settings)",
-    "viewer": "the viewer starts at the desktop login: reconnect the DCV session, or on the host "
-    "sudo systemctl restart gdm3 && sudo systemctl restart dcvserver",
+    "viewer": "the viewer starts at the desktop login and must keep running: if it keeps restarting, its "
+    "supervisor's log says why (on the host: journalctl _UID=$(id -u ubuntu) | grep twin-view); "
+    "docs/deploy.md, Troubleshooting, 'The viewer keeps restarting'",
+    "screen": "the console shows one flat colour: docs/deploy.md, Troubleshooting, 'The console is black or "
+    "blank' (bring the capture back with --screenshot FILE; on the host: sudo systemctl restart gdm3, then "
+    "dcvserver)",
 }
 
 
@@ -222,7 +240,52 @@ def _version_line(detail: str, expected: str | None, association_id: str | None)
     )
 
 
-def check_twin(twin: TwinInstance, *, host_timeout_s: float = 90.0) -> CheckReport:
+def screenshot_chunk_command(index: int) -> str:
+    """The shell command that prints piece `index` of the capture as base64."""
+    return (
+        f"dd if={SCREENSHOT_FILE} bs={SCREENSHOT_CHUNK_BYTES} skip={index} count=1 status=none | base64 -w0"
+    )
+
+
+def fetch_screenshot(twin: TwinInstance, target: Path, *, timeout_s: float = 90.0) -> CheckLine:
+    """Bring the console capture kept on the host back into `target`, checked against its SHA-256."""
+    info = twin.run_on_host([SCREENSHOT_INFO_COMMAND], "twin instance check: screenshot size", timeout_s)
+    match = re.match(r"(\d+) (\d+)\s+([0-9a-f]{64})\s", info.stdout)
+    if info.problem or match is None:
+        shown = info.problem or (info.stdout.strip()[:200] or "nothing")
+        return CheckLine(
+            "screenshot",
+            FAIL,
+            f"no capture to fetch from {SCREENSHOT_FILE} ({shown})",
+            "the host captures the console in its checks: run `twin instance check` again once it is up",
+        )
+    size, captured, digest = int(match.group(1)), int(match.group(2)), match.group(3)
+    pieces = []
+    for index in range(math.ceil(size / SCREENSHOT_CHUNK_BYTES)):
+        piece = twin.run_on_host(
+            [screenshot_chunk_command(index)], f"twin instance check: screenshot {index}", timeout_s
+        )
+        if piece.problem:
+            return CheckLine(
+                "screenshot", FAIL, f"piece {index} of the capture did not arrive: {piece.problem}"
+            )
+        pieces.append(base64.b64decode(piece.stdout.strip()))
+    data = b"".join(pieces)
+    if len(data) != size or hashlib.sha256(data).hexdigest() != digest:
+        return CheckLine(
+            "screenshot",
+            FAIL,
+            f"the capture arrived damaged ({len(data)} of {size} bytes, or another SHA-256); it may have "
+            "been replaced while it was read",
+            "fetch it again: twin instance check --screenshot FILE",
+        )
+    target.write_bytes(data)
+    return CheckLine("screenshot", OK, f"saved {target} ({size} bytes, captured at epoch {captured})")
+
+
+def check_twin(
+    twin: TwinInstance, *, host_timeout_s: float = 90.0, screenshot: Path | None = None
+) -> CheckReport:
     """Run every check, in the order a person would look; later checks are skipped when they cannot run."""
     lines: list[CheckLine] = []
     stack = twin.stack_description()
@@ -240,6 +303,8 @@ def check_twin(twin: TwinInstance, *, host_timeout_s: float = 90.0) -> CheckRepo
     host_lines = parse_host_check(result.stdout, outputs.deployment_version, outputs.update_association_id)
     if host_lines:
         lines += host_lines
+        if screenshot is not None:
+            lines.append(fetch_screenshot(twin, screenshot, timeout_s=host_timeout_s))
     elif result.problem:
         lines.append(
             CheckLine(

@@ -10,22 +10,26 @@ Exit codes:
   4  stack not found in that account and region
   5  stack outputs missing (InstanceId or DcvUrl)
   6  InsufficientInstanceCapacity on start (no G6e capacity in the stack's Availability Zone)
-  7  the instance did not reach the wanted state within --timeout
-  8  `check`: at least one check failed (the table says which and how to fix it)
+  7  the instance did not reach the wanted state within --timeout, or `start` got no verdict of its checks
+  8  `check`: at least one check failed (the table says which and how to fix it); `start`: the host's checks
+     after the start failed
 
-The agent's health does not change the exit code (a freshly started host reports "unknown" until its SSM agent
-registers); scripts that need it read the `agent ...` line of `status`.
+`start` waits for the checks the host runs after every start (X, then DCV's console session, the agent, the
+viewer, a capture of the console) and prints their verdict. The agent's health does not change the exit code
+of `status` (a freshly started host reports "unknown" until its SSM agent registers); scripts that need it
+read its `agent ...` line.
 """
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from twin.cli.output import Console
 
 if TYPE_CHECKING:
-    from twin.ops.instance import AgentHealth, TwinInstance
+    from twin.ops.instance import AgentHealth, StartVerdict, TwinInstance
 
 console = Console("instance")
 
@@ -42,7 +46,8 @@ EXIT_CHECK_FAILED = 8
 EPILOG = """exit codes:
   0 done; 1 other AWS error; 2 bad command line; 3 no AWS credentials or region;
   4 stack not found; 5 stack outputs missing; 6 InsufficientInstanceCapacity on start;
-  7 instance did not reach the state within --timeout; 8 a check failed (check)
+  7 instance did not reach the state (or start: no verdict of its checks) within --timeout;
+  8 a check failed (check, or start: the host's checks after the start)
 stack: --stack, else $SO101_TWIN_STACK, else So101TwinStack"""
 
 DEFAULT_TIMEOUT_S = 900.0
@@ -77,14 +82,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
     for name, help_text in (
-        ("start", "start the instance, wait until running, print the DCV URL and agent health"),
+        (
+            "start",
+            "start the instance, wait until it runs and the host's own checks have passed (X, the DCV "
+            "console session, the agent, the viewer, the screen), print the DCV URL and their verdict",
+        ),
         ("stop", "stop the instance (disk and Elastic IP are kept) and wait until stopped"),
         ("status", "print instance state, type, DCV URL and agent health"),
         ("url", "print only the DCV URL"),
         (
             "check",
             "say whether the twin works: stack and boot signal, instance, DCV port over TLS from here, "
-            "and on the host X on the GPU, the DCV session, the agent, telemetry, the viewer, the version",
+            "and on the host X on the GPU, the DCV session, the agent, telemetry, the viewer, a capture of "
+            "the console, the version",
         ),
     ):
         action = actions.add_parser(
@@ -95,7 +105,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             epilog=EPILOG,
             formatter_class=argparse.RawDescriptionHelpFormatter,
         )
-        action.set_defaults(func=run, action=name)
+        action.set_defaults(func=run, action=name, screenshot=None)
+        if name == "check":
+            action.add_argument(
+                "--screenshot",
+                metavar="FILE",
+                type=Path,
+                help="also bring back the capture of the console the host just checked (PNG) into FILE",
+            )
 
 
 def _health_line(health: AgentHealth | None) -> str:
@@ -114,6 +131,17 @@ def _version_line(host_version: str | None, expected: str | None) -> str:
         f"version: the host runs {host_version}, the stack asks for {expected}: the in-place update is "
         "pending or failed (`twin instance check` says more)"
     )
+
+
+def _print_verdict(verdict: StartVerdict) -> None:
+    from twin.tools.instance_check import FAIL, parse_host_check
+
+    console.out(verdict.describe())
+    for line in parse_host_check("\n".join(verdict.lines), None, None):
+        if line.status == FAIL:
+            console.out(f"  {line.name}: {line.detail}")
+            if line.fix:
+                console.out(f"    fix: {line.fix}")
 
 
 def run(args: argparse.Namespace, twin: TwinInstance | None = None) -> int:
@@ -138,7 +166,7 @@ def run(args: argparse.Namespace, twin: TwinInstance | None = None) -> int:
         elif args.action == "check":
             from twin.ops.instance_check import check_twin
 
-            report = check_twin(twin, host_timeout_s=HOST_CHECK_TIMEOUT_S)
+            report = check_twin(twin, host_timeout_s=HOST_CHECK_TIMEOUT_S, screenshot=args.screenshot)
             for line in report.render():
                 console.out(line)
             return EXIT_OK if report.ok else EXIT_CHECK_FAILED
@@ -153,10 +181,15 @@ def run(args: argparse.Namespace, twin: TwinInstance | None = None) -> int:
             state = twin.start(wait=wait, timeout_s=args.timeout)
             console.out(f"instance {outputs.instance_id}: {state}")
             console.out(f"DCV URL: {outputs.dcv_url}")
-            if wait:
-                console.out(_health_line(twin.health(HEALTH_TIMEOUT_S)))
-            else:
+            if not wait:
                 console.out("not waiting; follow it with `twin instance status`")
+                return EXIT_OK
+            console.out(f"waiting up to {args.timeout:.0f} s for the host's checks after the start")
+            verdict = twin.start_verdict(args.timeout)
+            _print_verdict(verdict)
+            if verdict.state == lib.UNKNOWN:
+                return EXIT_WAIT
+            return EXIT_OK if verdict.state == lib.PASS else EXIT_CHECK_FAILED
         else:
             status = twin.status(check_health=True, health_timeout_s=HEALTH_TIMEOUT_S)
             zone = f" in {status.availability_zone}" if status.availability_zone else ""
