@@ -40,7 +40,8 @@ def main(argv: list[str]) -> int:
         requirements.write(wanted)
         requirements.flush()
         command = [sys.executable, "-m", "pip", "--disable-pip-version-check", "-q", "download"]
-        command += ["--require-hashes", "--no-deps", "--only-binary=:all:", "-d", target, "-r", requirements.name]
+        command += ["--require-hashes", "--no-deps", "--only-binary=:all:", "-d", target]
+        command += ["-r", requirements.name]
         return subprocess.run(command, check=False).returncode
 
 
