@@ -476,9 +476,18 @@ install_dcv_packages() {
   rm -rf "$work"
 }
 
+# The pinned release is installed: nice-dcv-server's version is the release's with a packaging suffix
+# (release 2025.0-20103 -> package 2025.0.20103-1).
+dcv_current() {
+  local have
+  installed nice-dcv-web-viewer || return 1
+  have="$(dpkg-query -W -f='${Version}' nice-dcv-server 2>/dev/null)" || return 1
+  [[ $have == "${DCV_VERSION/-/.}"-* ]]
+}
+
 step_dcv() {
   local groups
-  if ! installed nice-dcv-server || ! installed nice-dcv-web-viewer; then
+  if ! dcv_current; then
     install_dcv_packages
     DISPLAY_CHANGED=1
   fi

@@ -105,6 +105,10 @@ case "${1:-}" in
       esac
       [ -n "$pkg" ] || { echo "apt-get: $a is not a package" >&2; exit 100; }
       mark dpkg "$pkg"
+      # A package file's version is the second field of its name (name_version_arch.deb).
+      case "$a" in
+        */*_*_*.deb) base="$(basename "$a")"; base="${base#*_}"; echo "${base%%_*}" >"$SIM/dpkg/$pkg" ;;
+      esac
       case "$pkg" in
         amazon-cloudwatch-agent)
           mkdir -p "$ROOT/opt/aws/amazon-cloudwatch-agent/bin"
