@@ -477,7 +477,7 @@ install_dcv_packages() {
 }
 
 # The pinned release is installed: nice-dcv-server's version is the release's with a packaging suffix
-# (release 2025.0-20103 -> package 2025.0.20103-1).
+# (release YEAR.N-BUILD -> package YEAR.N.BUILD-1).
 dcv_current() {
   local have
   installed nice-dcv-web-viewer || return 1
