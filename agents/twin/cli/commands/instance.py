@@ -134,7 +134,7 @@ def _version_line(host_version: str | None, expected: str | None) -> str:
 
 
 def _print_verdict(verdict: StartVerdict) -> None:
-    from twin.tools.instance_check import FAIL, parse_host_check
+    from twin.ops.instance_check import FAIL, parse_host_check
 
     console.out(verdict.describe())
     for line in parse_host_check("\n".join(verdict.lines), None, None):
