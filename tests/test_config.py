@@ -7,9 +7,9 @@ import re
 from pathlib import Path
 
 import pytest
+from twin.core.modes import TwinMode
+from twin.core.units import Units
 from twin.service.config import (
-    MODE_CHOICES,
-    UNITS_CHOICES,
     AgentConfig,
     ConfigError,
     HistorySection,
@@ -228,13 +228,12 @@ def test_file_errors(tmp_path: Path) -> None:
         load_config(write(tmp_path, "[broker\n"))
 
 
-def test_choices_stay_in_step_with_the_enums() -> None:
-    from twin.core.telemetry import Units
-
-    assert set(UNITS_CHOICES) == {u.value for u in Units}
-    from twin.core.twin import TwinMode  # MuJoCo: imported here so loading a config stays light elsewhere
-
-    assert set(MODE_CHOICES) == {m.value for m in TwinMode}
+def test_choices_load_as_their_enums() -> None:
+    config = load_config(None, {"telemetry.units": "range100", "twin.mode": "physics"})
+    assert config.telemetry.units is Units.RANGE100 and config.twin.mode is TwinMode.PHYSICS
+    assert AgentConfig().telemetry.units is Units.AUTO and AgentConfig().twin.mode is TwinMode.KINEMATIC
+    with pytest.raises(ConfigError, match=r"twin\.mode = 3 is not one of kinematic, physics"):
+        load_config(None, {"twin.mode": 3})
 
 
 def test_to_dict_round_trips() -> None:

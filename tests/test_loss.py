@@ -5,7 +5,7 @@ from __future__ import annotations
 import random
 
 import pytest
-from twin.core.loss import DeviceLoss, estimate_period_ms, fleet_loss
+from twin.core.loss import DeviceLoss, FleetLoss, estimate_period_ms, fleet_loss
 
 T0 = 1_706_000_000_000
 PERIOD_MS = 100
@@ -60,7 +60,7 @@ def test_known_drops_are_estimated(drop: float, jitter_ms: int, tolerance: float
     assert abs(loss.lost - truth) <= allowed, (loss.lost, truth)
     assert loss.received == len(timestamps)
     snap = loss.snapshot()
-    assert snap["loss_ratio"] == pytest.approx(loss.lost / (loss.lost + loss.received))
+    assert snap.loss_ratio == pytest.approx(loss.lost / (loss.lost + loss.received))
 
 
 def test_duplicates_are_ignored_and_late_messages_fill_their_hole() -> None:
@@ -172,21 +172,21 @@ def test_recent_window_marks_a_device_losing_data_and_clears() -> None:
         for mark in (150, 290, 450):
             if k >= mark and mark not in states:
                 states[mark] = loss.snapshot()
-    assert not states[150]["losing"] and states[150]["recent_lost"] == 0
-    assert states[290]["losing"] and 0.3 < states[290]["recent_loss_ratio"] < 0.7
-    assert not states[450]["losing"]  # the window moved past the losses; the total keeps them
-    assert loss.snapshot()["lost"] == states[450]["lost"] > states[290]["lost"] > 0
+    assert not states[150].losing and states[150].recent_lost == 0
+    assert states[290].losing and 0.3 < states[290].recent_loss_ratio < 0.7
+    assert not states[450].losing  # the window moved past the losses; the total keeps them
+    assert loss.snapshot().lost == states[450].lost > states[290].lost > 0
 
 
 def test_fleet_ratio_sums_devices() -> None:
     clean, _ = stream(1000)
     lossy, truth = stream(1000, drop=0.3, seed=4)
     devices = [feed(clean), feed(lossy)]
-    fleet = fleet_loss(devices)
-    assert fleet["lost"] == truth
-    assert fleet["received"] == len(clean) + len(lossy)
-    assert fleet["loss_ratio"] == pytest.approx(truth / (truth + fleet["received"]))
-    assert fleet_loss([])["loss_ratio"] == 0.0
+    fleet = fleet_loss(d.snapshot() for d in devices)
+    assert fleet.lost == truth
+    assert fleet.received == len(clean) + len(lossy)
+    assert fleet.loss_ratio == pytest.approx(truth / (truth + fleet.received))
+    assert fleet_loss([]) == FleetLoss()
 
 
 @pytest.mark.parametrize(

@@ -14,7 +14,8 @@ from pathlib import Path
 
 import mujoco
 import pytest
-from twin.core.twin import DeviceTwin, TwinMode
+from twin.core.modes import TwinMode
+from twin.core.twin import DeviceTwin
 from twin.robot import so101
 from twin.robot.model import ModelError, RobotModel, default_model_path
 

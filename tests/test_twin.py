@@ -13,7 +13,8 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
-from twin.core.twin import DeviceTwin, TwinMode, TwinSnapshot
+from twin.core.modes import TwinMode
+from twin.core.twin import DeviceTwin, TwinSnapshot
 from twin.robot import so101
 from twin.robot.model import RobotModel
 

@@ -25,7 +25,7 @@ from twin.core.health import DeviceStatus, WindowLatency
 from twin.rig.local import LocalRig
 from twin.rig.mosquitto import free_port
 from twin.robot import so101
-from twin.service.state import AgentInfo, AgentState, DeviceLoss, DeviceState, ServoState
+from twin.service.state import AgentInfo, AgentState, DeviceState, LossSnapshot, ServoState
 from twin.viewer.config import ViewerConfig
 from twin.viewer.feed import describe_error, iter_sse_data
 from twin.viewer.fleet import KEY_PAGE_DOWN, KEY_PAGE_UP, LINK_UNREACHABLE, DevicePicker, FleetView
@@ -188,7 +188,8 @@ def test_joint_tint_colours_the_moving_part_and_restores_it():
 
 def test_overlay_marks_a_device_losing_data():
     losing = dataclasses.replace(
-        device_state(1000, 0.0), loss=DeviceLoss(lost=42, recent_lost=40, recent_loss_ratio=0.8, losing=True)
+        device_state(1000, 0.0),
+        loss=LossSnapshot(lost=42, recent_lost=40, recent_loss_ratio=0.8, losing=True),
     )
     fleet = FleetView()
     # Through the JSON the stream carries, as the feed hands it over.

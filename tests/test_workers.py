@@ -34,8 +34,8 @@ from twin.service.state import (
     AgentState,
     AlarmsSummary,
     DeviceState,
-    FleetLoss,
     HistoryState,
+    LossSnapshot,
     SinkStats,
     WorkerInfo,
 )
@@ -125,11 +125,17 @@ def histogram(*seconds: float) -> LatencyHistogram:
     return h
 
 
-def worker_state(devices: dict[str, DeviceCounters], **agent: Any) -> AgentState:
+def worker_state(
+    devices: dict[str, DeviceCounters], losses: dict[str, LossSnapshot] | None = None, **agent: Any
+) -> AgentState:
+    losses = losses or {}
     return AgentState(
         agent=AgentInfo(pid=99, **agent),
         devices={
-            d: DeviceState(device_id=d, status=DeviceStatus.ONLINE, counters=c) for d, c in devices.items()
+            d: DeviceState(
+                device_id=d, status=DeviceStatus.ONLINE, counters=c, loss=losses.get(d, LossSnapshot())
+            )
+            for d, c in devices.items()
         },
         untracked_rejected={"not_json": 1},
     )
@@ -138,17 +144,17 @@ def worker_state(devices: dict[str, DeviceCounters], **agent: Any) -> AgentState
 def test_merged_state_sums_the_workers_and_adds_what_the_receiver_dropped() -> None:
     first = worker_state(
         {"a": DeviceCounters(received=10, applied=9, overwritten=1)},
+        {"a": LossSnapshot(received=10)},
         sinks=(SinkStats(name="history", delivered=10, dropped=0, errors=0, pending=2, last_error=""),),
         history=HistoryState(uri="out/h", rows_committed=8, commits=2, last_error=""),
         alarms=AlarmsSummary(present={"critical": 1}, raised_total={"over_current": 1}),
-        loss=FleetLoss(received=10, lost=0, devices_losing=0),
     )
     second = worker_state(
         {"b": DeviceCounters(received=20, applied=20), "c": DeviceCounters(received=5, applied=5)},
+        {"b": LossSnapshot(received=20, lost=5, losing=True), "c": LossSnapshot(received=5)},
         sinks=(SinkStats(name="history", delivered=25, dropped=1, errors=0, pending=0, last_error="full"),),
         history=HistoryState(uri="out/h", storage_ok=False, rows_committed=25, commits=3, last_error="full"),
         alarms=AlarmsSummary(present={"critical": 1, "warning": 2}, raised_total={"over_current": 2}),
-        loss=FleetLoss(received=25, lost=5, devices_losing=1),
     )
     workers = (
         WorkerInfo(index=0, alive=True, queued=3),

@@ -33,7 +33,7 @@ import itertools
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
-from typing import Any
+from dataclasses import dataclass
 
 Clock = Callable[[], float]
 
@@ -157,6 +157,30 @@ def estimate_period_ms(
         # a slower device (which the health thresholds would call STALE anyway).
         best = _fitted(gaps, nominal_ms) or best
     return best
+
+
+@dataclass(frozen=True, slots=True)
+class LossSnapshot:
+    """One device's loss estimate at one instant, as /state and /metrics publish it; `losing` is true while
+    the recent window saw losses (docs/agent.md, "Loss")."""
+
+    period_s: float | None = None
+    received: int = 0
+    lost: int = 0
+    loss_ratio: float = 0.0
+    recent_lost: int = 0
+    recent_loss_ratio: float = 0.0
+    losing: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class FleetLoss:
+    """The fleet's totals: lost / (received + lost) over every device, and how many devices lose data now."""
+
+    received: int = 0
+    lost: int = 0
+    loss_ratio: float = 0.0
+    devices_losing: int = 0
 
 
 class DeviceLoss:
@@ -377,36 +401,33 @@ class DeviceLoss:
             return 0, 0
         return self.received - base[1], max(0, self.lost - base[2])
 
-    def snapshot(self, now: float | None = None) -> dict[str, Any]:
-        """A JSON-ready view for /state and /metrics."""
+    def snapshot(self, now: float | None = None) -> LossSnapshot:
+        """The estimate now (`now` on the injected clock; None reads it)."""
         received, lost = self.received, self.lost
         recent_received, recent_lost = self.recent(now)
         recent_expected = recent_received + recent_lost
         recent_ratio = recent_lost / recent_expected if recent_expected else 0.0
-        return {
-            "period_s": self.period_s,
-            "received": received,
-            "lost": lost,
-            "loss_ratio": lost / (received + lost) if received + lost else 0.0,
-            "recent_lost": recent_lost,
-            "recent_loss_ratio": recent_ratio,
-            "losing": recent_lost >= LOSING_MIN_LOST and recent_ratio >= LOSING_RATIO,
-            "duplicates": self.duplicates,
-            "segments": self.segments,
-        }
+        return LossSnapshot(
+            period_s=self.period_s,
+            received=received,
+            lost=lost,
+            loss_ratio=lost / (received + lost) if received + lost else 0.0,
+            recent_lost=recent_lost,
+            recent_loss_ratio=recent_ratio,
+            losing=recent_lost >= LOSING_MIN_LOST and recent_ratio >= LOSING_RATIO,
+        )
 
 
-def fleet_loss(devices: Iterable[DeviceLoss], now: float | None = None) -> dict[str, Any]:
-    """The fleet's totals: lost / (received + lost) over every device, and the devices losing data now."""
+def fleet_loss(devices: Iterable[LossSnapshot]) -> FleetLoss:
+    """The fleet's totals from its devices' snapshots (each device counted once, whichever worker has it)."""
     received = lost = losing = 0
-    for device in devices:
-        snap = device.snapshot(now)
-        received += snap["received"]
-        lost += snap["lost"]
-        losing += 1 if snap["losing"] else 0
-    return {
-        "received": received,
-        "lost": lost,
-        "loss_ratio": lost / (received + lost) if received + lost else 0.0,
-        "devices_losing": losing,
-    }
+    for snap in devices:
+        received += snap.received
+        lost += snap.lost
+        losing += snap.losing
+    return FleetLoss(
+        received=received,
+        lost=lost,
+        loss_ratio=lost / (received + lost) if received + lost else 0.0,
+        devices_losing=losing,
+    )

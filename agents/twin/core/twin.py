@@ -31,12 +31,12 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Mapping
-from enum import StrEnum
 from typing import NamedTuple
 
 import mujoco
 import numpy as np
 
+from twin.core.modes import TwinMode
 from twin.robot.model import RobotModel
 
 log = logging.getLogger(__name__)
@@ -47,11 +47,6 @@ log = logging.getLogger(__name__)
 # (3,000 random poses, every joint moved 0.005 rad), 0.44 % of the 7.4 V servo's 1.62 N m stall torque, where
 # the model check's tolerance is 15 points (docs/servo-health.md).
 HOLDING_POSE_RAD = 0.005
-
-
-class TwinMode(StrEnum):
-    KINEMATIC = "kinematic"
-    PHYSICS = "physics"
 
 
 class _Figures:

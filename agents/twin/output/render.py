@@ -16,7 +16,8 @@ from types import MappingProxyType
 import mujoco
 import numpy as np
 
-from twin.core.twin import DeviceTwin, TwinMode
+from twin.core.modes import TwinMode
+from twin.core.twin import DeviceTwin
 from twin.robot import so101
 from twin.robot.model import RobotModel
 

@@ -49,7 +49,8 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 from twin.core.alarms import AlarmEvent, AlarmState, AlarmView, JointHealth, ServoAlarms, Severity
 from twin.core.health import DeviceStatus, FleetHealth, HealthSnapshot
 from twin.core.latency import LatencyHistogram
-from twin.core.loss import DeviceLoss
+from twin.core.loss import DeviceLoss, LossSnapshot, fleet_loss
+from twin.core.modes import TwinMode
 from twin.core.telemetry import (
     DecoderConfig,
     JointDiagnostics,
@@ -60,7 +61,7 @@ from twin.core.telemetry import (
     Units,
 )
 from twin.core.topics import device_from_topic
-from twin.core.twin import DeviceTwin, TwinMode, TwinSnapshot
+from twin.core.twin import DeviceTwin, TwinSnapshot
 from twin.output.emf import EmfFileWriter, EmfPublisher, FleetTotals
 from twin.output.sinks import AppliedSample, RejectedSample, TwinSink
 
@@ -78,16 +79,12 @@ from twin.service.state import (
     BrokerState,
     DeviceState,
     FleetLatency,
-    FleetLoss,
     HealthReport,
     HistoryState,
     MailboxState,
     RecordingState,
     ServoState,
     WorkerState,
-)
-from twin.service.state import (
-    DeviceLoss as DeviceLossState,
 )
 from twin.service.summary import TOO_MANY_DEVICES, broker_state, fleet_totals, pool_settings
 from twin.transport.mailbox import UNTRACKED_KEY, InboundQueue
@@ -173,14 +170,14 @@ class _Readout:
     now: float
     health: dict[str, HealthSnapshot]
     snapshots: dict[str, TwinSnapshot]
-    units: dict[str, str]
+    units: dict[str, Units]
     gripper: dict[str, float | None]
     untracked: dict[str, int]
     batches: int
     latency: FleetLatency
     servos: dict[str, _ServoReadout]
     alarms: AlarmsSummary
-    loss: dict[str, dict[str, Any]]
+    loss: dict[str, LossSnapshot]
 
 
 class PipeInbox:
@@ -293,7 +290,7 @@ class AgentService:
         self._fleet = FleetHealth(config.health, () if t.all_devices else t.devices, clock=clock)
         self._devices: dict[str, _Tracked] = {}
         self._snapshots: dict[str, TwinSnapshot] = {}
-        self._units: dict[str, str] = {}
+        self._units: dict[str, Units] = {}
         self._gripper: dict[str, float | None] = {}
         # Servo alarms and the last diagnostics per device: written by the worker, read (and acknowledged)
         # by HTTP threads, all under the lock.
@@ -398,7 +395,7 @@ class AgentService:
                 "broker": self.config.broker.url,
                 "topics": self.topic_filters,
                 "http": self._http.url if self._http is not None else None,
-                "mode": str(self.mode),
+                "mode": self.mode,
                 "units": self.config.telemetry.units,
                 "recording": str(self._recording.path) if self._recording else None,
                 "history": self._history_settings.uri if self._history_settings else None,
@@ -741,7 +738,7 @@ class AgentService:
 
     def _record_health(self, telemetry: Telemetry, item: _Inbound, result: _Applied) -> None:
         device = telemetry.device_id
-        units = str(self._decoder.units_for(device))
+        units = self._decoder.units_for(device)
         with self._lock:
             health = self._fleet.device(device)
             health.record_received()
@@ -956,7 +953,7 @@ class AgentService:
             device,
             health,
             units=readout.units.get(device, self.config.telemetry.units),
-            mode=str(self.mode),
+            mode=self.mode,
             timestamp_ms=snap.timestamp_ms if snap else None,
             joints_rad=snap.joint_angles if snap else None,
             targets_rad=snap.targets if snap else None,
@@ -964,7 +961,7 @@ class AgentService:
             tcp_position_m=snap.tcp_position if snap else None,
             gripper_percent=readout.gripper.get(device),
             servos=self._servo_states(readout.servos[device]) if device in readout.servos else None,
-            loss=_device_loss(readout.loss.get(device)),
+            loss=readout.loss.get(device, LossSnapshot()),
         )
 
     def _agent_info(self, readout: _Readout) -> AgentInfo:
@@ -975,7 +972,7 @@ class AgentService:
             started_at=self._started_wall,
             uptime_s=(readout.now - started) if started is not None else 0.0,
             time=self._wall_clock(),
-            mode=str(self.mode),
+            mode=self.mode,
             units=self.config.telemetry.units,
             devices=tuple(self.config.telemetry.devices),
             topic_filters=tuple(self.topic_filters),
@@ -996,7 +993,7 @@ class AgentService:
             history=self._history_state(),
             sinks=tuple(sink.stats() for sink in self._sinks),
             alarms=readout.alarms,
-            loss=_fleet_loss(readout.loss.values()),
+            loss=fleet_loss(readout.loss.values()),
         )
 
     def _history_state(self) -> HistoryState | None:
@@ -1111,30 +1108,4 @@ def _log_alarm_event(event: AlarmEvent) -> None:
             "value": event.value,
             "threshold": event.threshold,
         },
-    )
-
-
-def _device_loss(snapshot: dict[str, Any] | None) -> DeviceLossState:
-    if snapshot is None:
-        return DeviceLossState()
-    return DeviceLossState(
-        period_s=snapshot["period_s"],
-        received=snapshot["received"],
-        lost=snapshot["lost"],
-        loss_ratio=snapshot["loss_ratio"],
-        recent_lost=snapshot["recent_lost"],
-        recent_loss_ratio=snapshot["recent_loss_ratio"],
-        losing=snapshot["losing"],
-    )
-
-
-def _fleet_loss(snapshots: Any) -> FleetLoss:
-    received = lost = losing = 0
-    for snap in snapshots:
-        received += snap["received"]
-        lost += snap["lost"]
-        losing += 1 if snap["losing"] else 0
-    expected = received + lost
-    return FleetLoss(
-        received=received, lost=lost, loss_ratio=lost / expected if expected else 0.0, devices_losing=losing
     )

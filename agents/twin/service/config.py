@@ -15,20 +15,19 @@ import math
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from enum import Enum
 from pathlib import Path
 from typing import Any
 
 from twin.core.alarms import AlarmThresholds
 from twin.core.health import HealthThresholds
+from twin.core.modes import TwinMode
 from twin.core.topics import ALL_DEVICES, DEFAULT_TOPIC_PREFIX, TopicError, check_devices, check_topic_prefix
-from twin.core.units import MAX_PAYLOAD_BYTES, UNITS_CHOICES
+from twin.core.units import MAX_PAYLOAD_BYTES, Units
 from twin.output.rerun_settings import RerunSettings, RerunSettingsError
 from twin.output.ros2 import Ros2Error, Ros2Settings
 from twin.transport.broker import BrokerConfig, BrokerConfigError
 
-# A plain string here so loading a config never imports MuJoCo; the values are `twin.core.twin.TwinMode`'s
-# (tests/test_config.py checks they stay in step).
-MODE_CHOICES: tuple[str, ...] = ("kinematic", "physics")
 RECORD_FORMAT_CHOICES: tuple[str, ...] = ("usdc", "usda")
 LOG_LEVELS: tuple[str, ...] = ("DEBUG", "INFO", "WARNING", "ERROR")
 # The agent's HTTP API (state, metrics, health): loopback only by default, because it has no authentication.
@@ -55,7 +54,7 @@ class TelemetrySection:
     topic_prefix: str = DEFAULT_TOPIC_PREFIX
     # The whole fleet under the prefix by default: a new user pointing the agent at a broker sees every arm.
     devices: tuple[str, ...] = (ALL_DEVICES,)
-    units: str = "auto"
+    units: Units = Units.AUTO
     calibration: str = ""
     max_payload_bytes: int = MAX_PAYLOAD_BYTES
     max_devices: int = 64
@@ -67,7 +66,7 @@ class TelemetrySection:
 
 @dataclass(frozen=True)
 class TwinSection:
-    mode: str = "kinematic"
+    mode: TwinMode = TwinMode.KINEMATIC
     model: str = ""
     record_dir: str = ""
     # usdc by default: a binary layer saves incrementally, while a text layer is rewritten whole on every
@@ -202,9 +201,19 @@ def _split_listen(listen: str) -> tuple[str, int]:
     return host.strip("[]"), port
 
 
+# What each choice means, after the list of choices in the message for a value that is none of them.
+_CHOICE_HINTS: dict[str, str] = {
+    "telemetry.units": "ticks for raw servo positions, degrees or range100 for LeRobot-normalised ones, "
+    "auto to infer per device",
+    "twin.mode": "kinematic mirrors the measured pose, physics drives a simulated arm toward it",
+}
+
+
 def _expect_type(key: str, value: Any, default: Any) -> Any:
     """Coerce TOML/flag values to the type of the field's default, refusing anything surprising."""
     short = key.rsplit(".", maxsplit=1)[-1]
+    if isinstance(default, Enum):
+        return _expect_choice(key, value, type(default))
     if isinstance(default, bool):
         if not isinstance(value, bool):
             raise ConfigError(f"{key} = {value!r} must be true or false")
@@ -230,6 +239,19 @@ def _expect_type(key: str, value: Any, default: Any) -> Any:
     if not isinstance(value, str):
         raise ConfigError(f'{key} = {value!r} must be a string, e.g. {short} = "{default}"')
     return value
+
+
+def _expect_choice(key: str, value: Any, choices: type[Enum]) -> Enum:
+    """The member of `choices` whose value `value` is; ConfigError listing the values otherwise."""
+    values = [str(member.value) for member in choices]
+    if isinstance(value, str):
+        for member in choices:
+            if member.value == value:
+                return member
+    suggestion = _suggest(value, values) if isinstance(value, str) else ""
+    raise ConfigError(
+        f"{key} = {value!r} is not one of {', '.join(values)}; {suggestion}{_CHOICE_HINTS.get(key, '')}"
+    )
 
 
 def _build_section(name: str, cls: type, values: Mapping[str, Any]) -> Any:
@@ -296,12 +318,6 @@ def _validate_telemetry(t: TelemetrySection) -> None:
         raise ConfigError(
             f'telemetry.devices = {list(t.devices)!r}: {exc}; list device ids, or ["*"] alone for the fleet'
         ) from None
-    if t.units not in UNITS_CHOICES:
-        raise ConfigError(
-            f"telemetry.units = {t.units!r} is not one of {', '.join(UNITS_CHOICES)}; "
-            f"{_suggest(t.units, list(UNITS_CHOICES))}ticks for raw servo positions, degrees or range100 for "
-            "LeRobot-normalised ones, auto to infer per device"
-        )
     if t.calibration and not Path(t.calibration).is_file():
         raise ConfigError(
             f"telemetry.calibration = {t.calibration!r} does not exist; give the LeRobot calibration JSON "
@@ -321,12 +337,6 @@ def _validate_telemetry(t: TelemetrySection) -> None:
 
 
 def _validate_twin(tw: TwinSection) -> None:
-    if tw.mode not in MODE_CHOICES:
-        raise ConfigError(
-            f"twin.mode = {tw.mode!r} is not one of {', '.join(MODE_CHOICES)}; "
-            f"{_suggest(tw.mode, list(MODE_CHOICES))}"
-            "kinematic mirrors the measured pose, physics drives a simulated arm toward it"
-        )
     if tw.model and not Path(tw.model).is_file():
         raise ConfigError(
             f"twin.model = {tw.model!r} does not exist; give an MJCF file or leave it empty (bundled SO-101)"

@@ -45,6 +45,7 @@ from typing import Any
 from twin.core.alarms import AlarmNotFound, NothingToAcknowledge
 from twin.core.health import DeviceStatus
 from twin.core.latency import LatencyHistogram
+from twin.core.loss import fleet_loss
 from twin.core.topics import device_from_topic
 from twin.output.emf import EmfFileWriter, EmfPublisher, FleetTotals
 from twin.service.config import AgentConfig, ConfigError
@@ -56,7 +57,6 @@ from twin.service.state import (
     AlarmInfo,
     AlarmsSummary,
     FleetLatency,
-    FleetLoss,
     HealthReport,
     HistoryState,
     MailboxState,
@@ -819,7 +819,7 @@ def merge_reports(
             history=_merge_history([a.history for a in agents if a.history is not None]),
             sinks=_merge_sinks([a.sinks for a in agents]),
             alarms=_merge_alarms([a.alarms for a in agents]),
-            loss=_merge_loss([a.loss for a in agents]),
+            loss=fleet_loss(d.loss for d in devices.values()),
             workers=workers,
         ),
         devices=dict(sorted(devices.items())),
@@ -888,18 +888,6 @@ def _merge_alarms(parts: list[AlarmsSummary]) -> AlarmsSummary:
         raised_total=_merge_counts([p.raised_total for p in parts]),
         cleared_total=_merge_counts([p.cleared_total for p in parts]),
         acknowledged_total=_merge_counts([p.acknowledged_total for p in parts]),
-    )
-
-
-def _merge_loss(parts: list[FleetLoss]) -> FleetLoss:
-    received = sum(p.received for p in parts)
-    lost = sum(p.lost for p in parts)
-    expected = received + lost
-    return FleetLoss(
-        received=received,
-        lost=lost,
-        loss_ratio=lost / expected if expected else 0.0,
-        devices_losing=sum(p.devices_losing for p in parts),
     )
 
 

@@ -19,6 +19,9 @@ import msgspec
 
 from twin.core.health import DeviceCounters, DeviceStatus, HealthSnapshot, WindowLatency
 from twin.core.latency import LatencySummary
+from twin.core.loss import FleetLoss, LossSnapshot
+from twin.core.modes import TwinMode
+from twin.core.units import Units
 from twin.output.sinks import SinkStats
 
 __all__ = [
@@ -30,12 +33,12 @@ __all__ = [
     "BrokerState",
     "ConnectionState",
     "DeviceCounters",
-    "DeviceLoss",
     "DeviceState",
     "FleetLatency",
     "FleetLoss",
     "HealthReport",
     "LatencySummary",
+    "LossSnapshot",
     "MailboxState",
     "RecordingState",
     "ServoState",
@@ -111,30 +114,6 @@ class AlarmsSummary:
 
 
 @dataclass(frozen=True, slots=True)
-class DeviceLoss:
-    """Messages of one device estimated lost in transit, from the gaps in its edge timestamps
-    (twin.core.loss); `losing` is true while the recent window saw losses (docs/agent.md, "Loss")."""
-
-    period_s: float | None = None
-    received: int = 0
-    lost: int = 0
-    loss_ratio: float = 0.0
-    recent_lost: int = 0
-    recent_loss_ratio: float = 0.0
-    losing: bool = False
-
-
-@dataclass(frozen=True, slots=True)
-class FleetLoss:
-    """The fleet's totals: lost / (received + lost) over every device, and how many devices lose data now."""
-
-    received: int = 0
-    lost: int = 0
-    loss_ratio: float = 0.0
-    devices_losing: int = 0
-
-
-@dataclass(frozen=True, slots=True)
 class ConnectionState:
     """One connection of the subscriber pool (twin.transport.pool)."""
 
@@ -164,8 +143,8 @@ class DeviceState:
     edge_transit_jitter_p99_s: float | None = None
     internal_latency_s: WindowLatency = field(default_factory=WindowLatency)
     # The twin: None until the first message of this device is applied.
-    units: str = "auto"
-    mode: str = "kinematic"
+    units: Units = Units.AUTO
+    mode: TwinMode = TwinMode.KINEMATIC
     timestamp_ms: int | None = None
     joints_rad: dict[str, float] | None = None
     targets_rad: dict[str, float] | None = None
@@ -174,7 +153,8 @@ class DeviceState:
     gripper_percent: float | None = None
     # Per joint, from the last applied message: None until one arrives.
     servos: dict[str, ServoState] | None = None
-    loss: DeviceLoss = field(default_factory=DeviceLoss)
+    # Messages estimated lost in transit, from the gaps in its edge timestamps (twin.core.loss).
+    loss: LossSnapshot = field(default_factory=LossSnapshot)
 
     @classmethod
     def from_health(cls, device_id: str, health: HealthSnapshot, **twin: object) -> DeviceState:
@@ -293,8 +273,8 @@ class AgentInfo:
     started_at: float | None = None
     uptime_s: float = 0.0
     time: float = 0.0
-    mode: str = "kinematic"
-    units: str = "auto"
+    mode: TwinMode = TwinMode.KINEMATIC
+    units: Units = Units.AUTO
     devices: tuple[str, ...] = ()
     topic_filters: tuple[str, ...] = ()
     broker: BrokerState = field(default_factory=BrokerState)
