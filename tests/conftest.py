@@ -179,7 +179,7 @@ def metric(samples: dict[tuple[str, tuple[tuple[str, str], ...]], float], name: 
 
 @contextmanager
 def fed_agent(messages: int = 12, *, sinks: Sequence[Any] = (), **overrides: Any) -> Iterator[AgentService]:
-    """A started AgentService fed through its MQTT callback (no broker needed: the configured one never
+    """A started AgentService fed through `feed` (no broker needed: the configured one never
     answers, so the state also shows a disconnected broker): arm-001 mirrored from ticks telemetry with one
     rejected message, arm-002 configured but never heard from, and garbage on an unknown device.
     `overrides` are config keys ({"twin.record_dir": ...})."""
@@ -200,12 +200,12 @@ def fed_agent(messages: int = 12, *, sinks: Sequence[Any] = (), **overrides: Any
         t0 = int(time.time() * 1000)
         for i in range(messages):
             payload = encode(make_payload("arm-001", 0.1 * i, "ticks", rng, timestamp_ms=t0 + 100 * i))
-            service._on_message("dt/lerobot/arm-001/telemetry", payload, time.monotonic())
+            service.feed("dt/lerobot/arm-001/telemetry", payload)
             wait_for(
                 lambda n=i + 1: service.state().devices["arm-001"].counters.received >= n, 3, "the worker"
             )
-        service._on_message("dt/lerobot/arm-001/telemetry", b"{not json", time.monotonic())
-        service._on_message("dt/lerobot/ghost/telemetry", b"\xff", time.monotonic())
+        service.feed("dt/lerobot/arm-001/telemetry", b"{not json")
+        service.feed("dt/lerobot/ghost/telemetry", b"\xff")
         wait_for(lambda: service.state().agent.worker.processed == messages + 2, 3, "the rejects")
         yield service
     finally:

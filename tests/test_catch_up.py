@@ -2,7 +2,7 @@
 
 A gate sink holds the worker inside its first applied sample while a backlog queues behind it (the sink
 contract forbids blocking; here it is the tool that makes the worker fall behind deterministically). The
-service is fed through its MQTT callback; no broker is needed.
+service is fed through `AgentService.feed`; no broker is needed.
 """
 
 from __future__ import annotations
@@ -17,8 +17,9 @@ from conftest import wait_for
 from twin.edge.payload import encode, make_payload
 from twin.output.sinks import AppliedSample, RejectedSample, SinkStats
 from twin.rig.mosquitto import free_port
-from twin.service.agent import CATCH_UP_AFTER_S, AgentService
+from twin.service.agent import AgentService
 from twin.service.config import load_config
+from twin.service.mirror import CATCH_UP_AFTER_S
 
 TOPIC = "dt/lerobot/arm-001/telemetry"
 
@@ -81,12 +82,12 @@ def test_a_backlog_is_counted_whole_and_the_newest_valid_message_is_shown(
     def message(i: int) -> bytes:
         return encode(make_payload("arm-001", 0.1 * i, "ticks", rng, timestamp_ms=t0 + 100 * i))
 
-    service._on_message(TOPIC, message(0), time.monotonic())
+    service.feed(TOPIC, message(0))
     assert gate.entered.wait(5), "the worker never applied the first message"
     # The backlog: nine good messages, then garbage last, all queued while the worker is held.
     for i in range(1, 10):
-        service._on_message(TOPIC, message(i), time.monotonic())
-    service._on_message(TOPIC, b"{not json", time.monotonic())
+        service.feed(TOPIC, message(i))
+    service.feed(TOPIC, b"{not json")
     time.sleep(CATCH_UP_AFTER_S * 2)  # the backlog's oldest message has now waited past the threshold
     gate.release.set()
 
@@ -109,7 +110,7 @@ def test_a_worker_keeping_up_applies_every_message(gated: tuple[AgentService, Ga
     t0 = int(time.time() * 1000)
     for i in range(20):
         payload = encode(make_payload("arm-001", 0.1 * i, "ticks", rng, timestamp_ms=t0 + 100 * i))
-        service._on_message(TOPIC, payload, time.monotonic())
+        service.feed(TOPIC, payload)
     wait_for(lambda: service.state().agent.worker.processed == 20, 5, "the messages")
     counters = service.state().devices["arm-001"].counters
     assert (counters.applied, counters.coalesced) == (20, 0)

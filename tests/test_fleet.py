@@ -45,7 +45,9 @@ def start_agent(rig: LocalRig, proxy: QuotaProxy, devices: list[str], **override
 
 def settle(agent: AgentService, expected: int, timeout: float = 15.0) -> None:
     """Wait until the worker has decoded `expected` messages and stopped moving."""
-    wait_for(lambda: agent.processed >= expected, timeout, f"{expected} messages processed")
+    wait_for(
+        lambda: agent.state().agent.worker.processed >= expected, timeout, f"{expected} messages processed"
+    )
     time.sleep(0.5)
 
 

@@ -444,7 +444,7 @@ def test_the_agent_keeps_every_decoded_message_also_those_the_twin_ignores(tmp_p
         # A late message (between two applied ones) and a repeat of the last: valid, decoded, not applied.
         for stamp in (t0 + 150, t0 + 1100):
             payload = encode(make_payload("arm-001", 0.0, "ticks", random.Random(1), timestamp_ms=stamp))
-            agent._on_message("dt/lerobot/arm-001/telemetry", payload, time.monotonic())
+            agent.feed("dt/lerobot/arm-001/telemetry", payload)
         wait_for(lambda: agent.state().agent.worker.processed == 16, 3, "the late messages")
         counters = agent.state().devices["arm-001"].counters
     assert (counters.decoded, counters.applied, counters.ignored_stale) == (14, 12, 2)

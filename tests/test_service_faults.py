@@ -95,7 +95,7 @@ def test_broker_restarts_five_times(rig: LocalRig, publisher: Publisher) -> None
 def test_flood_of_malformed_and_oversized_is_rejected_while_good_flows(
     rig: LocalRig, publisher: Publisher, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.WARNING, logger="twin.service.agent")
+    caplog.set_level(logging.WARNING, logger="twin.service")
     service = ticks_agent(rig)
     url = service.http_url
     steady = SteadyPublisher(publisher, "arm-001")

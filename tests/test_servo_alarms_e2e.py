@@ -72,7 +72,7 @@ def test_each_servo_fault_raises_and_clears_its_alarms(
         }
     )
     url = agent.http_url
-    caplog.set_level(logging.INFO, logger="twin.service.agent")
+    caplog.set_level(logging.INFO, logger="twin.service")
     rig.start_edge(["arm-001"], variant="ticks", rate_hz=10.0, servo_faults=FAULTS, model_loads=True)
 
     # Raised: every expected alarm ACTIVE (and nothing else).

@@ -28,7 +28,7 @@ from twin.edge.servo_faults import ServoFault
 from twin.rig.local import LocalRig, child_env
 from twin.rig.quota_proxy import QuotaProxy
 from twin.service.config import ConfigError, load_config
-from twin.service.shards import WorkerPlan, WorkerReport, merge_reports, worker_config, worker_count
+from twin.service.shards import MirrorReport, WorkerPlan, merge_reports, worker_config, worker_count
 from twin.service.state import (
     AgentInfo,
     AgentState,
@@ -36,8 +36,10 @@ from twin.service.state import (
     DeviceState,
     HistoryState,
     LossSnapshot,
+    MailboxState,
     SinkStats,
     WorkerInfo,
+    WorkerState,
 )
 
 # --- the plan ---------------------------------------------------------------------------------------------
@@ -125,12 +127,25 @@ def histogram(*seconds: float) -> LatencyHistogram:
     return h
 
 
-def worker_state(
-    devices: dict[str, DeviceCounters], losses: dict[str, LossSnapshot] | None = None, **agent: Any
-) -> AgentState:
+def mirror_report(
+    devices: dict[str, DeviceCounters],
+    losses: dict[str, LossSnapshot] | None = None,
+    *,
+    internal: LatencyHistogram | None = None,
+    end_to_end: LatencyHistogram | None = None,
+    **parts: Any,
+) -> MirrorReport:
     losses = losses or {}
-    return AgentState(
-        agent=AgentInfo(pid=99, **agent),
+    values: dict[str, Any] = {
+        "mailbox": MailboxState(),
+        "worker": WorkerState(alive=True),
+        "recording": None,
+        "history": None,
+        "sinks": (),
+        "alarms": AlarmsSummary(),
+        **parts,
+    }
+    return MirrorReport(
         devices={
             d: DeviceState(
                 device_id=d, status=DeviceStatus.ONLINE, counters=c, loss=losses.get(d, LossSnapshot())
@@ -138,23 +153,29 @@ def worker_state(
             for d, c in devices.items()
         },
         untracked_rejected={"not_json": 1},
+        internal=internal or histogram(),
+        end_to_end=end_to_end or histogram(),
+        **values,
     )
 
 
 def test_merged_state_sums_the_workers_and_adds_what_the_receiver_dropped() -> None:
-    first = worker_state(
+    first = mirror_report(
         {"a": DeviceCounters(received=10, applied=9, overwritten=1)},
         {"a": LossSnapshot(received=10)},
         sinks=(SinkStats(name="history", delivered=10, dropped=0, errors=0, pending=2, last_error=""),),
         history=HistoryState(uri="out/h", rows_committed=8, commits=2, last_error=""),
         alarms=AlarmsSummary(present={"critical": 1}, raised_total={"over_current": 1}),
+        internal=histogram(0.001, 0.002),
     )
-    second = worker_state(
+    second = mirror_report(
         {"b": DeviceCounters(received=20, applied=20), "c": DeviceCounters(received=5, applied=5)},
         {"b": LossSnapshot(received=20, lost=5, losing=True), "c": LossSnapshot(received=5)},
         sinks=(SinkStats(name="history", delivered=25, dropped=1, errors=0, pending=0, last_error="full"),),
         history=HistoryState(uri="out/h", storage_ok=False, rows_committed=25, commits=3, last_error="full"),
         alarms=AlarmsSummary(present={"critical": 1, "warning": 2}, raised_total={"over_current": 2}),
+        internal=histogram(0.004),
+        end_to_end=histogram(0.01),
     )
     workers = (
         WorkerInfo(index=0, alive=True, queued=3),
@@ -162,18 +183,14 @@ def test_merged_state_sums_the_workers_and_adds_what_the_receiver_dropped() -> N
     )
     state = merge_reports(
         AgentInfo(pid=1, running=True),
-        [
-            WorkerReport(first, histogram(0.001, 0.002), histogram()),
-            WorkerReport(second, histogram(0.004), histogram(0.01)),
-        ],
+        [first, second],
         workers,
-        refused={"too_many_devices": 2},
         dropped=Counter({"b": 3}),
     )
     assert list(state.devices) == ["a", "b", "c"]
     assert state.devices["a"].counters.overwritten == 1  # its worker's own
     assert state.devices["b"].counters.overwritten == 3  # dropped by the receiving process
-    assert state.untracked_rejected == {"not_json": 2, "too_many_devices": 2}
+    assert state.untracked_rejected == {"not_json": 2}
     agent = state.agent
     assert (agent.pid, agent.running, agent.workers) == (1, True, workers)
     assert agent.latency.internal_s.count == 3 and agent.latency.internal_s.max == pytest.approx(0.004)
@@ -198,12 +215,11 @@ def test_merged_state_sums_the_workers_and_adds_what_the_receiver_dropped() -> N
 
 
 def test_a_worker_that_does_not_answer_is_not_running_in_the_merged_state() -> None:
-    report = WorkerReport(worker_state({"a": DeviceCounters(received=1)}), histogram(), histogram())
+    report = mirror_report({"a": DeviceCounters(received=1)})
     state = merge_reports(
         AgentInfo(running=True),
         [report],
         (WorkerInfo(index=0, alive=True), WorkerInfo(index=1, alive=False)),
-        refused={},
         dropped=Counter(),
     )
     assert state.agent.running is False and state.agent.worker.alive is False
@@ -218,7 +234,7 @@ FLEET = [f"arm-{i:03d}" for i in range(1, 31)]
 @pytest.mark.slow
 def test_a_sharded_agent_mirrors_a_listed_fleet_through_the_quota(rig: LocalRig) -> None:
     with QuotaProxy("127.0.0.1", rig.broker.port, budget=100) as proxy:
-        agent = rig.start_sharded_agent(
+        agent = rig.start_agent(
             {
                 "broker.url": proxy.url,
                 "broker.per_connection_limit": 100,
@@ -264,7 +280,7 @@ def test_a_sharded_wildcard_fleet_keeps_history_and_routes_acknowledgements(
     plan = WorkerPlan(2)
     assert {plan.worker_of(d) for d in devices} == {0, 1}  # both workers get arms (and alarms)
     history = tmp_path / "history"
-    agent = rig.start_sharded_agent(
+    agent = rig.start_agent(
         {"telemetry.units": "ticks", "history.uri": str(history), "history.commit_every_s": 1.0}, workers=2
     )
     edge = rig.start_edge(devices, rate_hz=10.0, servo_faults=FAULTS, seconds=8.0)
@@ -299,7 +315,7 @@ def test_a_sharded_wildcard_fleet_keeps_history_and_routes_acknowledgements(
 @pytest.mark.slow
 def test_a_dead_worker_is_started_again(rig: LocalRig) -> None:
     devices = FLEET[:4]
-    agent = rig.start_sharded_agent({"telemetry.devices": devices, "telemetry.units": "ticks"}, workers=2)
+    agent = rig.start_agent({"telemetry.devices": devices, "telemetry.units": "ticks"}, workers=2)
     edge = rig.start_edge(devices, rate_hz=10.0, seconds=None)
     wait_for(
         lambda: (

@@ -1,8 +1,8 @@
 """Worker: what one worker process spends per message, without a broker, publishers or another process.
 
-An `AgentService` is built as a sharded agent's worker process builds it (fed through a pipe, `inbox`), and
-this process writes the fleet's messages into the other end as the receiving process does (transport.pipe,
-batches of up to shards.MAX_BATCH). The payloads are the edge's mock ones (raw ticks with every diagnostic,
+A `Mirror` is built as a worker process of `twin run --workers N` builds it (fed through a pipe, `PipeInbox`),
+and this process writes the fleet's messages into the other end as the agent does (transport.pipe, batches of
+up to shards.MAX_BATCH). The payloads are the edge's mock ones (raw ticks with every diagnostic,
 as `twin edge-sim` sends them), each arm at its own phase of the mock motion, with 10 Hz edge timestamps. The
 figure is the CPU time of this process (both threads; the pickling here is about what the receiving
 process's sender pays) per message: for the fleet's first messages (every arm new) and for the rounds after
@@ -23,8 +23,9 @@ from typing import Any
 
 from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
 from twin.edge.payload import encode, make_payload
-from twin.service.agent import AgentService
+from twin.service.admission import DeviceBudget
 from twin.service.config import load_config
+from twin.service.mirror import Mirror, PipeInbox
 from twin.service.shards import MAX_BATCH
 from twin.transport.pipe import Message, send_batch, send_end
 
@@ -70,7 +71,7 @@ def _case(arms: int, rounds: int, *, alarms: bool) -> dict[str, Any]:
     )
     fleet = _fleet(arms, rounds)
     reader, writer = Pipe(duplex=False)
-    service = AgentService(config, inbox=reader)
+    service = Mirror(config, inbox=PipeInbox(reader), budget=DeviceBudget(config.telemetry.max_devices))
     service.start()
     try:
         first = _feed(service, writer, fleet[:1])
@@ -87,7 +88,7 @@ def _case(arms: int, rounds: int, *, alarms: bool) -> dict[str, Any]:
     }
 
 
-def _feed(service: AgentService, writer: Any, rounds: list[list[tuple[str, str, bytes]]]) -> float:
+def _feed(service: Mirror, writer: Any, rounds: list[list[tuple[str, str, bytes]]]) -> float:
     """CPU microseconds of this process per message while the worker handles `rounds`."""
     total = sum(len(r) for r in rounds)
     target = service.processed + total

@@ -147,12 +147,14 @@ class LocalRig:
         *,
         sinks: Sequence[Any] = (),
         wait_subscribed: bool = True,
+        workers: int = 1,
     ) -> Any:
-        """Start an AgentService in this process (stopped by close()); waits until it has subscribed."""
-        from twin.service.agent import AgentService  # noqa: PLC0415 - MuJoCo, USD and awscrt load here
+        """Start an AgentService in this process (stopped by close()), its mirror in-process or, with
+        `workers` > 1, in as many worker processes (`twin run --workers N`); waits until it has subscribed."""
+        from twin.service.agent import AgentService  # noqa: PLC0415 - awscrt (and MuJoCo, USD) load here
 
         config = overrides if isinstance(overrides, AgentConfig) else self.agent_config(overrides)
-        service = AgentService(config, sinks=sinks)
+        service = AgentService(config, workers=workers, sinks=sinks)
         self.services.append(service)
         service.start()
         if wait_subscribed and not service.wait_subscribed(SUBSCRIBE_TIMEOUT_S):
@@ -161,24 +163,6 @@ class LocalRig:
                 f"(the broker log: {self.broker.log_path})"
             )
         return service
-
-    def start_sharded_agent(
-        self, overrides: Mapping[str, Any] | AgentConfig | None = None, *, workers: int = 2
-    ) -> Any:
-        """Start a ShardedAgent (`twin run --workers N`) in this process, its workers as child processes
-        (stopped by close()); waits until it has subscribed."""
-        from twin.service.shards import ShardedAgent  # noqa: PLC0415 - awscrt loads here
-
-        config = overrides if isinstance(overrides, AgentConfig) else self.agent_config(overrides)
-        agent = ShardedAgent(config, workers)
-        self.services.append(agent)
-        agent.start()
-        if not agent.wait_subscribed(SUBSCRIBE_TIMEOUT_S):
-            raise RigError(
-                f"the agent did not subscribe on {self.broker.url} within {SUBSCRIBE_TIMEOUT_S:.0f} s "
-                f"(the broker log: {self.broker.log_path})"
-            )
-        return agent
 
     @contextlib.contextmanager
     def agent_process(

@@ -1,472 +1,251 @@
-"""The agent service: MQTT telemetry in, one MuJoCo twin per device, health, HTTP out, and sinks.
+"""The agent service: MQTT telemetry in, the fleet mirrored by its shards, HTTP and CloudWatch metrics out.
 
 Data path and threads (docs/architecture.md draws it):
 
     connection pool (one or more MQTT connections, each under the broker's per-connection budget)
-      --CRT threads: on_message--> InboundQueue (FIFO, bounded, never blocks)
-        --take_all--> worker thread: decode -> loss estimate -> admit device -> DeviceTwin.apply
-                      (clock-jump check) -> health -> sinks (USD recording, ...) -> snapshots
-    HTTP threads read the published snapshots and health under one short lock (`state()`, `healthz()`).
+      --CRT threads: feed()--> device from the topic, its shard (service.shards, `WorkerPlan`)
+        --> the shard's queue --> its mirror (service.mirror): decode -> loss -> admit -> twin -> health
+            -> servo alarms -> sinks
+    HTTP threads (service.http_api) and the CloudWatch thread read `state()`: every shard's report, merged.
 
-The CRT callback only stamps the receive times and appends the message to the queue: decoding there would
-stall the client's event loop. Every message is decoded and counted, in arrival order, before anything is
-coalesced: a garbage message never displaces a good one, and every valid message is applied (the twin
-computes kinematics and dynamics when they are read, so applying costs microseconds).
-The worker owns the decoder (not thread-safe: auto-units state) and every
-DeviceTwin; other threads only see immutable TwinSnapshots and health snapshots. Any exception while handling
-one message is caught, logged (rate-limited) and counted: a bad message never stops the service.
+One class for one process and for many: the agent is the front (connection pool, HTTP, metrics, lifecycle),
+and its shards mirror. `workers=1` (the default, `twin run --workers 1`, the demo and the tests) runs the one
+mirror in this process; `workers=N` runs N worker processes, each a mirror of a share of the fleet fed
+through a pipe (service.shards). Either way a message takes the same path through the mirror, a device
+counts against `telemetry.max_devices` once it has sent a valid message (service.admission), and `/state`
+is the shards' reports merged by the same code.
 
-Sinks (twin.output.sinks) receive every applied message as an `AppliedSample` and every rejected one as a
-`RejectedSample`, on the worker thread; each returns at once (I/O sinks queue to a thread of their own). The
-history sink also gets the valid messages the twin did not apply (late or duplicate), so it holds every
-decoded message. The USD recording is one such sink; `AgentService(..., sinks=[...])` adds more.
+The CRT callback (`feed`) only finds the device in the topic and appends the message to its shard's queue:
+decoding there would stall the client's event loop. `feed` is public: a test, a replay or a bridge hands the
+agent a message exactly as the broker connection does.
 
-Ordering uses the edge timestamp (DeviceTwin.apply ignores anything not newer), liveness uses the agent's
-monotonic receive time (twin.core.health). The two meet in one place: when a device keeps sending valid
-messages that are all older than the last applied one for a while, its edge clock has jumped backwards (an
-edge without NTP rebooting, say); waiting for the clock to catch up would freeze the twin for as long as the
-jump, so the device's twin is rebuilt on the new timeline and the reset is counted and logged.
-
-Time: every reading of the clock goes through the injected `clock` (monotonic seconds: receive stamps, ages,
-latencies, physics steps) and `wall_clock` (epoch seconds: receive wall time, `started_at`), so tests can
-drive the service on a timeline of their own.
+Time: the injected `clock` (monotonic seconds: receive stamps, uptime) and `wall_clock` (epoch seconds:
+receive wall time, `started_at`) reach an in-process mirror too, so tests can drive the whole agent on a
+timeline of their own; worker processes use the system clocks.
 """
 
 from __future__ import annotations
 
-import gc
 import logging
+import multiprocessing
 import os
 import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import TYPE_CHECKING, TypeVar
 
-from twin.core.alarms import AlarmEvent, AlarmState, AlarmView, JointHealth, ServoAlarms, Severity
-from twin.core.health import DeviceStatus, FleetHealth, HealthSnapshot
-from twin.core.latency import LatencyHistogram
-from twin.core.loss import DeviceLoss, LossSnapshot, fleet_loss
-from twin.core.modes import TwinMode
-from twin.core.telemetry import (
-    DecoderConfig,
-    JointDiagnostics,
-    RejectReason,
-    Telemetry,
-    TelemetryDecoder,
-    TelemetryRejected,
-    Units,
-)
+from twin.core.alarms import worst_first
+from twin.core.health import DeviceStatus
 from twin.core.topics import device_from_topic
-from twin.core.twin import DeviceTwin, TwinSnapshot
 from twin.output.emf import EmfFileWriter, EmfPublisher, FleetTotals
-from twin.output.sinks import AppliedSample, RejectedSample, TwinSink
-
-# This module is the heavy end of the agent (MuJoCo, awscrt, USD); `twin run` imports it only when it runs.
-from twin.robot.calibration import load_calibration
-from twin.robot.model import ModelError, RobotModel
+from twin.output.sinks import TwinSink
+from twin.service.admission import DeviceBudget
 from twin.service.config import AgentConfig, ConfigError
 from twin.service.http_api import AgentHttpServer
-from twin.service.logs import RateLimitedLog
+from twin.service.shards import (
+    AckRequest,
+    AlarmsRequest,
+    MirrorReport,
+    Reply,
+    ReportRequest,
+    Request,
+    Shard,
+    WorkerError,
+    WorkerPlan,
+    WorkerShard,
+    alarm_of,
+    alarms_of,
+    merge_reports,
+    report_of,
+    worker_config,
+)
 from twin.service.state import (
     AgentInfo,
     AgentState,
     AlarmInfo,
-    AlarmsSummary,
     BrokerState,
-    DeviceState,
-    FleetLatency,
+    ConnectionState,
     HealthReport,
-    HistoryState,
-    MailboxState,
-    RecordingState,
-    ServoState,
-    WorkerState,
+    WorkerInfo,
 )
-from twin.service.summary import TOO_MANY_DEVICES, broker_state, fleet_totals, pool_settings
-from twin.transport.mailbox import UNTRACKED_KEY, InboundQueue
-from twin.transport.pipe import read_batch
+from twin.transport.mailbox import UNTRACKED_KEY
+from twin.transport.plan import PoolSettings, default_limit
 from twin.transport.pool import ConnectionPool
 
 if TYPE_CHECKING:
-    # pyarrow and deltalake (~70 MB resident) load only when history is on, usd-core (~80 MB) only when
-    # recording: every worker process of a sharded agent pays for what it imports.
-    from twin.output.history import HistorySettings, HistorySink
-    from twin.output.recorder import SessionRecorder
-    from twin.output.recording import RecordingSink
+    from twin.robot.model import RobotModel
+    from twin.service.mirror import Mirror
 
 log = logging.getLogger(__name__)
 
 Clock = Callable[[], float]
+_T = TypeVar("_T")
 
-# A device whose valid messages have all been older than its last applied one for this long (and this many
-# messages) has had its edge clock jump backwards: rebuild its twin on the new timeline. Reordering and
-# duplicates interleave with newer messages, which end a streak long before this.
-CLOCK_RESET_AFTER_S = 2.0
-CLOCK_RESET_MIN_MESSAGES = 5
-# physics mode: at most this much simulated time per worker wake-up, so a stalled worker catches up smoothly
-# instead of running seconds of simulation in one go.
-MAX_PHYSICS_STEP_S = 0.1
-# How often the worker wakes with nothing to do (kinematic mode): bounds the stop latency.
-IDLE_WAKE_S = 0.2
-# Python's cyclic garbage collector walks every tracked object in a full pass. At fleet scale most of them are
-# the arms' own state (twins, health windows, alarm records), alive for the whole run, and a full pass held
-# the worker for 60 ms at 1,000 arms (docs/performance.md). So this often the worker collects the young
-# generations (their cyclic garbage, which must not be frozen) and freezes what is left (`gc.freeze`): later
-# passes walk only what was allocated since. What is frozen is still freed by reference counting. New arms
-# bring new state, so a batch that admitted some is followed by a freeze sooner (FREEZE_AFTER_NEW_S).
-FREEZE_EVERY_S = 10.0
-FREEZE_AFTER_NEW_S = 0.25
-# When the oldest message of a batch has waited longer than this, the worker is behind: it still decodes and
-# counts every message, but applies only each arm's newest valid one, so the twin shows the present instead
-# of replaying a backlog seconds old (docs/agent.md, "Catching up").
-CATCH_UP_AFTER_S = 0.05
-# The queue between the MQTT threads and the worker holds at most this many messages (about 40 MB of edge
-# payloads); beyond it the oldest are dropped and counted, so a stalled worker cannot exhaust memory.
-MAX_QUEUED_MESSAGES = 50_000
-
-
-@dataclass(frozen=True, slots=True)
-class _Inbound:
-    topic: str
-    payload: bytes
-    recv_mono: float
-    recv_wall: float
-
-
-@dataclass
-class _Tracked:
-    """Worker-private per-device bookkeeping next to its DeviceTwin."""
-
-    twin: DeviceTwin
-    stale_streak: int = 0
-    stale_since: float = 0.0
-    gripper_percent: float | None = None
-
-
-class _Applied(NamedTuple):
-    """What applying one message did to a device's twin."""
-
-    tracked: _Tracked
-    applied: bool
-    reset: bool
-    updated_mono: float
-    clamped: int
-
-
-# A device's last diagnostics, the alarm engine's JointHealth and worst (severity, state) per joint.
-_ServoReadout = tuple[
-    dict[str, JointDiagnostics], dict[str, JointHealth], dict[str, tuple[Severity, AlarmState]]
-]
-
-
-@dataclass(frozen=True, slots=True)
-class _Readout:
-    """Everything `state()` copies under the lock, to build the typed state outside it."""
-
-    now: float
-    health: dict[str, HealthSnapshot]
-    snapshots: dict[str, TwinSnapshot]
-    units: dict[str, Units]
-    gripper: dict[str, float | None]
-    untracked: dict[str, int]
-    batches: int
-    latency: FleetLatency
-    servos: dict[str, _ServoReadout]
-    alarms: AlarmsSummary
-    loss: dict[str, LossSnapshot]
-
-
-class PipeInbox:
-    """The worker thread's queue in a sharded agent's worker process: batches its receiving process wrote to a
-    pipe (service.shards), read by the worker thread itself, so no thread or queue sits between.
-
-    The batches' format is transport.pipe's. The receiving process's queue for this worker is bounded and
-    counts what it drops, so nothing here overflows (the pipe holds back the writer instead)."""
-
-    # Read at most this many messages per take: a backlog reaches the worker's catch-up check in pieces.
-    MAX_TAKE = 5_000
-
-    def __init__(self, conn: Connection) -> None:
-        self._conn = conn
-        self._closed = False
-
-    def take_all(self, timeout: float | None = None) -> list[tuple[str, _Inbound]]:
-        items: list[tuple[str, _Inbound]] = []
-        if self._closed:
-            return items
-        conn = self._conn
-        try:
-            if not conn.poll(timeout):
-                return items
-            while True:
-                batch = read_batch(conn.recv_bytes())
-                if batch is None:
-                    self._closed = True
-                    break
-                items.extend((key, _Inbound(*fields)) for key, fields in batch)
-                if len(items) >= self.MAX_TAKE or not conn.poll(0):
-                    break
-        except (EOFError, OSError):
-            log.warning("the receiving process went away; worker stopping")
-            self._closed = True
-        return items
-
-    def close(self) -> None:
-        self._closed = True
-
-    @property
-    def closed(self) -> bool:
-        return self._closed
-
-    def __len__(self) -> int:
-        return 0  # what waits in the pipe is the receiving process's to count (its per-worker queue)
-
-    @property
-    def overflowed(self) -> Counter[str]:
-        return Counter()
-
-    @property
-    def overflowed_total(self) -> int:
-        return 0
+# With worker processes, a merged state is reused for this long: /stream clients, /metrics and the CloudWatch
+# thread read it often, and each reading asks every worker. An in-process mirror is read afresh every time.
+STATE_REUSE_S = 0.05
+# How often the agent looks for a worker process to start again.
+SUPERVISE_EVERY_S = 0.5
 
 
 class AgentService:
-    """Wires config -> subscriber -> mailbox -> worker -> twins/health/sinks -> HTTP. See the module doc.
+    """Config -> connection pool -> shards (mirrors) -> HTTP and metrics. See the module doc.
 
-    Lifecycle: `start()` (returns once everything is running; the broker connection itself is asynchronous),
-    `stop()` (idempotent; drains, closes the sinks (final USD save), stops HTTP). `state()` and `healthz()`
-    may be called from any thread. `sinks` are extra outputs; the service closes them in `stop()`.
+    Lifecycle: `start()` (returns once every mirror runs; the broker connection itself is asynchronous; raises
+    OSError when the HTTP address is taken, ConfigError when a worker finds a setting it cannot work with,
+    WorkerError when a worker cannot start), `stop()` (idempotent: unsubscribes, lets every mirror handle what
+    is queued and close its sinks (final USD save, history's last commit), stops HTTP). `state()`,
+    `healthz()`, `alarms()`, `acknowledge_alarm()` and `feed()` may be called from any thread. `sinks` are
+    extra outputs of an in-process mirror (it closes them in `stop()`); worker processes build theirs from the
+    config (service.outputs).
     """
 
     def __init__(
         self,
         config: AgentConfig,
         *,
+        workers: int = 1,
+        sinks: Sequence[TwinSink] = (),
         clock: Clock = time.monotonic,
         wall_clock: Clock = time.time,
-        sinks: Sequence[TwinSink] = (),
-        inbox: Connection | None = None,
     ) -> None:
-        # Everything that can be wrong with the configuration is found here, before any thread or socket.
+        if workers > 1 and sinks:
+            raise ValueError("extra sinks run in the agent's own process: pass them with workers=1")
+        if workers > 1 and config.rerun.enabled:
+            raise ConfigError(
+                "[rerun] streams one recording from one process: run with --workers 1 ([twin] workers = 1) "
+                "to stream to Rerun, or turn [rerun] off"
+            )
+        # Everything that can be wrong with the configuration is found here (an in-process mirror loads the
+        # model and the calibration now), before any thread or socket.
         self.config = config
-        # With an inbox: one worker process of a sharded agent (service.shards), which reads its messages
-        # from that pipe. The receiving process subscribes, serves HTTP and publishes the CloudWatch metrics.
-        self.embedded = inbox is not None
-        self.broker_config = config.broker  # validated when the config was built
         self._clock = clock
         self._wall_clock = wall_clock
-        self._decoder = TelemetryDecoder(self._decoder_config(config))
-        self.mode = TwinMode(config.twin.mode)
-        self.robot = self._load_robot(config, self.mode)
-        self._history_settings = self._history_config(config)
+        t = config.telemetry
+        self._prefix = t.topic_prefix
+        self.plan = WorkerPlan(max(1, workers), () if t.all_devices else t.devices)
+        self._mirror: Mirror | None = None
+        self._shards = self._build_shards(config, sinks)
         self._pool_settings = pool_settings(config)
-        self._pool = ConnectionPool(self.broker_config, self._pool_settings, self._on_message, clock=clock)
+        self._pool = ConnectionPool(config.broker, self._pool_settings, self.feed, clock=clock)
         self.topic_filters = self._pool.topic_filters
-        self._init_fleet_state(config, clock)
-        self._mailbox: InboundQueue[_Inbound] | PipeInbox = (
-            InboundQueue(max_items=MAX_QUEUED_MESSAGES) if inbox is None else PipeInbox(inbox)
-        )
-        self._started_pool = False
+        self._reuse_s = STATE_REUSE_S if self._mirror is None else 0.0
         self._http: AgentHttpServer | None = None
         self._emf: EmfPublisher | None = None
-        self._recording: RecordingSink | None = None
-        self._history: HistorySink | None = None
-        self._extra_sinks: tuple[TwinSink, ...] = tuple(sinks)
-        self._sinks: tuple[TwinSink, ...] = ()
-        self._worker: threading.Thread | None = None
+        self._supervisor: threading.Thread | None = None
+        self._running = False
+        self._stopping = threading.Event()
+        self._stop_lock = threading.Lock()
+        self._started_pool = False
         self._started_mono: float | None = None
         self._started_wall: float | None = None
-        self._running = threading.Event()
-        self._stopped = False
-        self._stop_lock = threading.Lock()
+        self._state_lock = threading.Lock()
+        self._cached: tuple[float, AgentState] | None = None
 
-    def _init_fleet_state(self, config: AgentConfig, clock: Clock) -> None:
-        """What the worker writes per device and the HTTP threads read, and the lock that guards it."""
-        t = config.telemetry
-        self._fleet = FleetHealth(config.health, () if t.all_devices else t.devices, clock=clock)
-        self._devices: dict[str, _Tracked] = {}
-        self._snapshots: dict[str, TwinSnapshot] = {}
-        self._units: dict[str, Units] = {}
-        self._gripper: dict[str, float | None] = {}
-        # Servo alarms and the last diagnostics per device: written by the worker, read (and acknowledged)
-        # by HTTP threads, all under the lock.
-        self._alarms = ServoAlarms(config.alarms)
-        self._diagnostics: dict[str, dict[str, JointDiagnostics]] = {}
-        self._loss: dict[str, DeviceLoss] = {}
-        self._lock = threading.Lock()
-        self._reject_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
-        self._error_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
-        self.batches = 0
-        # Fleet-wide distributions since start (every applied message of every device), for `twin bench`
-        # and capacity questions; the per-device windows in health answer "how is this arm doing now".
-        self._internal_hist = LatencyHistogram()
-        self._end_to_end_hist = LatencyHistogram()
-        self.processed = 0
-        self.errors = 0
+    def _build_shards(self, config: AgentConfig, sinks: Sequence[TwinSink]) -> list[Shard]:
+        count = self.plan.count
+        context = multiprocessing.get_context("spawn")
+        budget = DeviceBudget(config.telemetry.max_devices, count, context)
+        if count == 1:
+            # MuJoCo (and USD when recording) load here, with the mirror, not when the module is imported.
+            from twin.service.mirror import LocalShard  # noqa: PLC0415
 
-    @staticmethod
-    def _load_robot(config: AgentConfig, mode: TwinMode) -> RobotModel:
-        try:
-            robot = RobotModel.load(config.twin.model or None)
-            if mode is TwinMode.PHYSICS:
-                robot.require_actuators()
-        except ModelError as exc:
-            raise ConfigError(f"twin.model = {config.twin.model!r}: {exc}") from exc
-        return robot
-
-    @staticmethod
-    def _decoder_config(config: AgentConfig) -> DecoderConfig:
-        t = config.telemetry
-        try:
-            calibration = load_calibration(t.calibration) if t.calibration else None
-        except ValueError as exc:
-            raise ConfigError(f"telemetry.calibration = {t.calibration!r}: {exc}") from exc
-        try:
-            return DecoderConfig(
-                units=Units(t.units), calibration=calibration, max_payload_bytes=t.max_payload_bytes
+            local = LocalShard(
+                config, budget=budget, clock=self._clock, wall_clock=self._wall_clock, sinks=sinks
             )
-        except ValueError as exc:
-            raise ConfigError(f"[telemetry]: {exc}") from exc
-
-    @staticmethod
-    def _history_config(config: AgentConfig) -> HistorySettings | None:
-        h = config.history
-        if not h.enabled:
-            return None
-        from twin.output.history import HistorySettings  # noqa: PLC0415 - heavy; only with history on
-
-        try:
-            return HistorySettings(
-                uri=h.uri.strip(),
-                commit_every_s=h.commit_every_s,
-                commit_every_rows=h.commit_every_rows,
-                max_buffer_rows=h.max_buffer_rows,
-                queue_max=h.queue_max,
-                maintain_every_s=h.maintain_every_s,
-                vacuum_retention_hours=h.vacuum_retention_hours,
-                storage_options={"AWS_REGION": h.region} if h.region else {},
-            )
-        except ValueError as exc:
-            raise ConfigError(f"[history]: {exc}") from exc
+            self._mirror = local.mirror
+            return [local]
+        return [WorkerShard(i, worker_config(config, self.plan, i), budget, context) for i in range(count)]
 
     # -------------------------------------------------------------------------------------------- lifecycle
 
     def start(self) -> None:
-        """Start the sinks, the worker, the HTTP server and the subscriber (in that order, so nothing a
-        message triggers can meet a half-built service). Raises OSError if the HTTP address is taken."""
-        if self._running.is_set():
+        """Start the mirrors (and wait until each runs), the HTTP server, the subscription and the metrics, in
+        that order, so nothing a message triggers can meet a half-built agent. See the class doc for what it
+        raises."""
+        if self._running:
             return
         self._started_mono = self._clock()
         self._started_wall = self._wall_clock()
-        self._open_sinks()
-        if not self.embedded:
-            try:
-                self._http = AgentHttpServer(
-                    self,
-                    self.config.http.host,
-                    self.config.http.port,
-                    stream_rate_hz=self.config.http.stream_rate_hz,
-                )
-            except OSError:
-                self._close_sinks(timeout=5.0)
-                raise
-        if self.config.cloudwatch.emf_file and not self.embedded:
-            cw = self.config.cloudwatch
+        try:
+            for shard in self._shards:
+                shard.launch()
+            for shard in self._shards:
+                shard.await_ready()
+            self._http = AgentHttpServer(
+                self,
+                self.config.http.host,
+                self.config.http.port,
+                stream_rate_hz=self.config.http.stream_rate_hz,
+            )
+        except BaseException:
+            self._stop_shards(timeout=10.0)
+            raise
+        self._running = True
+        self._supervisor = threading.Thread(target=self._supervise, name="twin-supervisor", daemon=True)
+        self._supervisor.start()
+        self._http.start()
+        self._pool.start()
+        self._started_pool = True
+        cw = self.config.cloudwatch
+        if cw.emf_file:
             self._emf = EmfPublisher(
                 EmfFileWriter(cw.emf_file), cw.agent_name, self._fleet_totals, interval_s=cw.interval_s
             )
-        self._running.set()
-        self._worker = threading.Thread(target=self._work, name="twin-worker", daemon=True)
-        self._worker.start()
-        if self._http is not None:
-            self._http.start()
-        if not self.embedded:
-            self._pool.start()
-            self._started_pool = True
-        if self._emf is not None:
             self._emf.start()
+        workers = self._worker_infos({})
         log.info(
-            "agent started" if not self.embedded else "agent worker started",
+            "agent started",
             extra={
                 "broker": self.config.broker.url,
                 "topics": self.topic_filters,
-                "http": self._http.url if self._http is not None else None,
-                "mode": self.mode,
+                "http": self._http.url,
+                "mode": self.config.twin.mode,
                 "units": self.config.telemetry.units,
-                "recording": str(self._recording.path) if self._recording else None,
-                "history": self._history_settings.uri if self._history_settings else None,
-                "sinks": [sink.name for sink in self._sinks],
+                "workers": len(workers),
+                "worker_pids": [w.pid for w in workers],
             },
         )
 
-    def _open_sinks(self) -> None:
-        """The service's own sinks (USD recording, history) before the extra ones; OSError when history cannot
-        open its table."""
-        if self.config.twin.record_dir:
-            from twin.output.recording import RecordingSink  # noqa: PLC0415 - usd-core only when recording
-
-            self._recording = RecordingSink(
-                self._open_recorder(Path(self.config.twin.record_dir)), self.robot
-            )
-        if self._history_settings is not None:
-            from twin.output.history import HistorySink  # noqa: PLC0415 - heavy; only with history on
-
-            try:
-                self._history = HistorySink(self._history_settings)
-            except ValueError as exc:
-                self._close_sinks(timeout=5.0)
-                raise OSError(f"history: {exc}") from exc
-        self._sinks = (
-            *((self._recording,) if self._recording else ()),
-            *((self._history,) if self._history else ()),
-            *self._extra_sinks,
-        )
-
-    def _open_recorder(self, directory: Path) -> SessionRecorder:
-        from twin.output.recorder import SessionRecorder  # noqa: PLC0415 - usd-core only when recording
-
-        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(self._wall_clock()))
-        path = directory / f"session-{stamp}-{os.getpid()}.{self.config.twin.record_format}"
-        return SessionRecorder(path, flush_interval_s=self.config.twin.record_flush_s)
-
-    def stop(self, timeout: float = 5.0) -> None:
-        """Stop the subscriber, drain the mailbox, close the sinks (final USD save), stop HTTP. Idempotent."""
+    def stop(self, timeout: float = 30.0) -> None:
+        """Unsubscribe, let every mirror handle what is queued for it, flush its sinks and end, stop the
+        metrics and HTTP. Idempotent."""
         with self._stop_lock:
-            if self._stopped:
+            if self._stopping.is_set():
                 return
-            self._stopped = True
+            self._stopping.set()
         log.info("agent stopping")
         if self._started_pool:
             try:
-                self._pool.stop(timeout)
+                self._pool.stop(min(timeout, 5.0))
             except Exception:
                 log.exception("stopping the connection pool failed")
-        self._mailbox.close()
-        if self._worker is not None:
-            # The worker takes what is left, then sees the closed, empty mailbox and returns.
-            self._worker.join(timeout)
-            if self._worker.is_alive():
-                log.error("twin worker did not finish within %.1f s", timeout)
-        self._running.clear()
+        self._stop_shards(timeout)
+        if self._supervisor is not None:
+            self._supervisor.join(timeout)
         if self._emf is not None:
             self._emf.stop(timeout)
-        self._close_sinks(timeout)
         if self._http is not None:
             self._http.stop()
-        log.info("agent stopped", extra={"processed": self.processed, "errors": self.errors})
+        self._running = False
+        log.info("agent stopped")
 
-    def _close_sinks(self, timeout: float) -> None:
-        sinks = self._sinks or (*((self._recording,) if self._recording else ()), *self._extra_sinks)
-        for sink in sinks:
-            try:
-                # History commits what it holds on close; a slow object store needs longer than a file.
-                sink.close(max(timeout, 30.0) if sink is self._history else timeout)
-            except Exception:
-                log.exception("closing sink %s failed", sink.name)
+    def _stop_shards(self, timeout: float) -> None:
+        # Closed together, so the workers hand over and flush in parallel, then waited for one by one.
+        for shard in self._shards:
+            shard.close()
+        deadline = time.monotonic() + timeout
+        for shard in self._shards:
+            shard.join(deadline)
+
+    def _supervise(self) -> None:
+        while not self._stopping.wait(SUPERVISE_EVERY_S):
+            for shard in self._shards:
+                if self._stopping.is_set():
+                    return
+                shard.supervise()
 
     def __enter__(self) -> AgentService:
         self.start()
@@ -477,7 +256,8 @@ class AgentService:
 
     @property
     def running(self) -> bool:
-        return self._running.is_set() and self._worker is not None and self._worker.is_alive()
+        """Started, not stopping, and no mirror gone for good (a dead worker process is started again)."""
+        return self._running and not self._stopping.is_set() and not any(s.failed for s in self._shards)
 
     @property
     def http_url(self) -> str:
@@ -485,571 +265,133 @@ class AgentService:
             raise RuntimeError("the HTTP server starts with start()")
         return self._http.url
 
-    @property
-    def recording_path(self) -> Path | None:
-        return self._recording.path if self._recording is not None else None
-
-    @property
-    def sinks(self) -> tuple[TwinSink, ...]:
-        """The sinks in use (the recording first, when there is one); empty before start()."""
-        return self._sinks
-
     def wait_subscribed(self, timeout: float) -> bool:
         return self._started_pool and self._pool.wait_subscribed(timeout)
 
-    # ---------------------------------------------------------------------------------- CRT callback thread
+    @property
+    def robot(self) -> RobotModel:
+        """The in-process mirror's robot model (worker processes load their own)."""
+        return self._in_process().robot
 
-    def _on_message(self, topic: str, payload: bytes, recv_mono: float) -> None:
-        device = device_from_topic(topic, self.config.telemetry.topic_prefix)
-        self._mailbox.put(device or UNTRACKED_KEY, _Inbound(topic, payload, recv_mono, self._wall_clock()))
+    @property
+    def recording_path(self) -> Path | None:
+        """The in-process mirror's USD session file (each worker process records its own: `agent.workers`)."""
+        return self._mirror.recording_path if self._mirror is not None else None
 
-    def histograms(self) -> tuple[LatencyHistogram, LatencyHistogram]:
-        """Copies of the fleet-wide internal and end-to-end latency histograms (a sharded agent merges its
-        workers' into one)."""
-        with self._lock:
-            return self._internal_hist.copy(), self._end_to_end_hist.copy()
+    @property
+    def sinks(self) -> tuple[TwinSink, ...]:
+        """The in-process mirror's sinks (the recording first, when there is one); empty before start() and
+        with worker processes."""
+        return self._mirror.sinks if self._mirror is not None else ()
 
-    # ------------------------------------------------------------------------------------------ worker
+    def _in_process(self) -> Mirror:
+        if self._mirror is None:
+            raise RuntimeError("the mirrors run in worker processes (workers > 1)")
+        return self._mirror
 
-    def _work(self) -> None:
-        physics = self.mode is TwinMode.PHYSICS
-        wake = 1.0 / self.config.twin.physics_rate_hz if physics else IDLE_WAKE_S
-        last_step = last_freeze = self._clock()
-        frozen_devices = 0
-        while True:
-            items = self._mailbox.take_all(wake)
-            if not items and self._mailbox.closed:
-                return
-            dirty: set[str] = set()
-            if items and self._clock() - items[0][1].recv_mono > CATCH_UP_AFTER_S:
-                for key, item, telemetry in self._catch_up(items):
-                    device = self._process(key, item, telemetry)
-                    if device is not None:
-                        dirty.add(device)
-            else:
-                for key, item in items:
-                    device = self._process(key, item)
-                    if device is not None:
-                        dirty.add(device)
-            if physics:
-                now = self._clock()
-                self._step_physics(min(now - last_step, MAX_PHYSICS_STEP_S), dirty)
-                last_step = now
-            self._publish(dirty, took=bool(items))
-            since = self._clock() - last_freeze
-            grown = len(self._devices) != frozen_devices
-            if since >= FREEZE_EVERY_S or (grown and since >= FREEZE_AFTER_NEW_S):
-                gc.collect(1)
-                gc.freeze()
-                last_freeze = self._clock()
-                frozen_devices = len(self._devices)
+    # ------------------------------------------------------------------------------------------- messages
 
-    def _step_physics(self, elapsed: float, dirty: set[str]) -> None:
-        for device, tracked in self._devices.items():
-            try:
-                tracked.twin.step(elapsed)
-            except Exception:
-                self._count_error(device, "physics step failed")
-            dirty.add(device)
+    def feed(self, topic: str, payload: bytes, received_mono: float | None = None) -> None:
+        """Hand the agent one message as its broker connections do for each they receive: thread-safe, never
+        blocks for long. The message is queued for the shard of the device its topic names (a topic that names
+        none goes to the first, where it is counted as rejected) and then mirrored, rejected or refused like
+        any other. `received_mono` is when it arrived on the agent's clock (default: now)."""
+        recv_mono = self._clock() if received_mono is None else received_mono
+        device = device_from_topic(topic, self._prefix)
+        if device is None:
+            self._shards[0].put(UNTRACKED_KEY, topic, payload, recv_mono, self._wall_clock())
+            return
+        self._shards[self.plan.worker_of(device)].put(device, topic, payload, recv_mono, self._wall_clock())
 
-    def _publish(self, dirty: set[str], *, took: bool) -> None:
-        """Snapshots of the devices this batch changed, and the queue's drop counts, for the readers; `took`:
-        the batch had messages (it counts in `batches`)."""
-        snapshots = {}
-        for device in dirty:
-            tracked = self._devices.get(device)
-            if tracked is not None:
-                snapshots[device] = tracked.twin.snapshot()
-        # Only devices whose messages the queue dropped have a count to copy (a full queue is rare).
-        overwritten = self._mailbox.overflowed if self._mailbox.overflowed_total else {}
-        with self._lock:
-            self._snapshots.update(snapshots)
-            for key, count in overwritten.items():
-                health = self._fleet.get(key)
-                if health is not None:
-                    health.overwritten = count
-            if took:
-                self.batches += 1
+    # ------------------------------------------------------------------------------------------- requests
 
-    def _catch_up(self, items: list[tuple[str, _Inbound]]) -> list[tuple[str, _Inbound, Telemetry]]:
-        """A batch taken while behind: every message decoded (rejections counted as always), and of each
-        known arm only the newest valid message kept for the twin; the older valid ones are counted as
-        coalesced and still reach history. A garbage message never displaces a good one: only valid
-        messages compete. Arms not yet admitted keep every message (admission decides on them)."""
-        decoded: list[tuple[str, _Inbound, Telemetry]] = []
-        for key, item in items:
-            topic_device = None if key == UNTRACKED_KEY else key
-            self.processed += 1
-            try:
-                telemetry = self._decode(topic_device, item)
-            except Exception:
-                self._count_error(topic_device, "processing a message failed", topic=item.topic)
+    def _ask_all(self, request: Request, read: Callable[[Reply], _T]) -> list[tuple[Shard, _T]]:
+        """`request` to every shard that can answer now, then their answers (worker processes work on it in
+        parallel); a worker that does not answer is logged and left out."""
+        waiting = []
+        for shard in self._shards:
+            if not shard.answering:
                 continue
-            if telemetry is not None:
-                decoded.append((key, item, telemetry))
-        newest: dict[str, int] = {}
-        for i, (_key, _item, telemetry) in enumerate(decoded):
-            if telemetry.device_id in self._devices:
-                newest[telemetry.device_id] = i
-        keep = []
-        for i, entry in enumerate(decoded):
-            device = entry[2].device_id
-            if newest.get(device, i) == i:
-                keep.append(entry)
-            else:
-                self._coalesce(entry[2], entry[1])
-        return keep
+            try:
+                waiting.append((shard, shard.request(request)))
+            except WorkerError:
+                continue  # it died since; the supervisor starts it again
+        answers = []
+        for shard, wait in waiting:
+            try:
+                answers.append((shard, read(wait())))
+            except WorkerError as exc:
+                log.warning("%s", exc)
+        return answers
 
-    def _coalesce(self, telemetry: Telemetry, item: _Inbound) -> None:
-        # Received and valid: the device is alive and this sample is no transit loss, only not shown.
-        device = telemetry.device_id
-        with self._lock:
-            health = self._fleet.device(device)
-            health.record_received()
-            health.record_decoded(item.recv_mono, item.recv_wall, telemetry.timestamp_ms)
-            health.record_coalesced()
-            self._loss_of(device).observe(telemetry.timestamp_ms)
-        if self._history is not None:
-            self._hand_history(telemetry, item)
-
-    def _process(self, key: str, item: _Inbound, decoded: Telemetry | None = None) -> str | None:
-        """Handle one message; returns the device whose twin changed, if any. Never raises.
-
-        The steps: decode (a rejection is counted and handed to the sinks; skipped when `decoded` is the
-        catch-up pass's result), admit the device (bounded by telemetry.max_devices), apply it to the twin
-        (with clock-jump detection), record health and latency, hand the applied sample to the sinks.
-        """
-        topic_device = None if key == UNTRACKED_KEY else key
-        try:
-            if decoded is None:
-                self.processed += 1
-                telemetry = self._decode(topic_device, item)
-            else:
-                telemetry = decoded
-            if telemetry is None:
-                return None
-            tracked = self._admit(telemetry.device_id)
-            if tracked is None:
-                return None
-            tracked.gripper_percent = telemetry.gripper_percent
-            result = self._apply(tracked, telemetry, item)
-            self._record_health(telemetry, item, result)
-            events: tuple[AlarmEvent, ...] = ()
-            if result.applied:
-                events = self._evaluate_alarms(telemetry, item, result.tracked)
-            if result.applied and self._sinks:
-                self._hand_applied(telemetry, item, result.tracked, events)
-            elif self._history is not None:
-                # History keeps every decoded message (issue 13: rows written = rows received), also one the
-                # twin did not apply because it came late or twice; the other sinks mirror the twin.
-                self._hand_history(telemetry, item)
-            return telemetry.device_id if result.applied else None
-        except Exception:
-            self._count_error(topic_device, "processing a message failed", topic=item.topic)
-            return None
-
-    def _decode(self, topic_device: str | None, item: _Inbound) -> Telemetry | None:
-        """The decoded telemetry, or None after counting, logging and handing on the rejection."""
-        try:
-            return self._decoder.decode(item.payload, topic_device=topic_device)
-        except TelemetryRejected as exc:
-            rejected = exc
-        reason = str(rejected.reason)
-        with self._lock:
-            health = self._fleet.get(topic_device) if topic_device else None
-            if health is not None:
-                health.record_received()
-                # It arrived: the hole it leaves in the device's timestamps is not transit loss.
-                self._loss_of(topic_device).record_rejected()
-            self._fleet.record_rejected(topic_device, reason)
-        self._reject_log.log(
-            (topic_device, reason),
-            # units=auto turning away a new arm's first messages while it gathers evidence is expected, not a
-            # fault (the decision itself is logged at INFO): a 2,000-arm fleet's start made 2,000 warnings.
-            logging.DEBUG if rejected.reason is RejectReason.UNITS_UNDECIDED else logging.WARNING,
-            "telemetry rejected",
-            device=topic_device,
-            topic=item.topic,
-            reason=reason,
-            detail=str(rejected),
-        )
-        if self._sinks:
-            sample = RejectedSample(
-                device_id=topic_device,
-                topic=item.topic,
-                received_wall_s=item.recv_wall,
-                reason=reason,
-                detail=str(rejected),
-                payload=item.payload,
-            )
-            for sink in self._sinks:
-                self._guard_sink(sink, sink.rejected, sample)
-        return None
-
-    def _admit(self, device: str) -> _Tracked | None:
-        """The device's tracked twin, created on its first message unless max_devices twins exist."""
-        tracked = self._devices.get(device)
-        if tracked is not None:
-            return tracked
-        limit = self.config.telemetry.max_devices
-        if len(self._devices) >= limit:
-            with self._lock:
-                self._fleet.record_rejected(None, TOO_MANY_DEVICES)
-            self._reject_log.log(
-                TOO_MANY_DEVICES,
-                logging.WARNING,
-                "device ignored: telemetry.max_devices twins already exist; raise it if the fleet is "
-                "really this large",
-                device=device,
-                max_devices=limit,
-            )
-            return None
-        return self._new_device(device)
-
-    def _apply(self, tracked: _Tracked, telemetry: Telemetry, item: _Inbound) -> _Applied:
-        """Apply to the twin. A long run of only-older messages means the edge clock jumped back (module doc):
-        the twin is then rebuilt on the new timeline."""
-        twin = tracked.twin
-        clamped_before = twin.clamped
-        applied = twin.apply(telemetry.angles_rad, telemetry.timestamp_ms)
-        updated = self._clock()
-        if applied:
-            tracked.stale_streak = 0
-            return _Applied(tracked, True, False, updated, twin.clamped - clamped_before)
-        if tracked.stale_streak == 0:
-            tracked.stale_since = item.recv_mono
-        tracked.stale_streak += 1
-        if (
-            tracked.stale_streak < CLOCK_RESET_MIN_MESSAGES
-            or item.recv_mono - tracked.stale_since < CLOCK_RESET_AFTER_S
-        ):
-            return _Applied(tracked, False, False, updated, 0)
-        device = telemetry.device_id
-        previous = twin.last_timestamp_ms
-        tracked = self._new_device(device, replace=True)
-        applied = tracked.twin.apply(telemetry.angles_rad, telemetry.timestamp_ms)
-        updated = self._clock()
-        log.warning(
-            "edge clock of %s jumped backwards; twin rebuilt on the new timeline",
-            device,
-            extra={"device": device, "last_ms": previous, "now_ms": telemetry.timestamp_ms},
-        )
-        return _Applied(tracked, applied, True, updated, tracked.twin.clamped)
-
-    def _record_health(self, telemetry: Telemetry, item: _Inbound, result: _Applied) -> None:
-        device = telemetry.device_id
-        units = self._decoder.units_for(device)
-        with self._lock:
-            health = self._fleet.device(device)
-            health.record_received()
-            health.record_decoded(item.recv_mono, item.recv_wall, telemetry.timestamp_ms)
-            self._loss_of(device).observe(telemetry.timestamp_ms)
-            health.clamped += result.clamped
-            if result.reset:
-                health.clock_resets += 1
-            if result.applied:
-                health.record_applied(item.recv_mono, result.updated_mono, telemetry.timestamp_ms)
-                internal = result.updated_mono - item.recv_mono
-                self._internal_hist.add(internal)
-                # Twin-updated wall time minus the edge stamp: only meaningful when the clocks agree (same
-                # host in `twin bench`); in the field it includes the edge clock's offset.
-                self._end_to_end_hist.add(item.recv_wall + internal - telemetry.timestamp_ms / 1000.0)
-            else:
-                health.record_ignored_stale()
-            self._units[device] = units
-            self._gripper[device] = result.tracked.gripper_percent
-
-    def _evaluate_alarms(
-        self, telemetry: Telemetry, item: _Inbound, tracked: _Tracked
-    ) -> tuple[AlarmEvent, ...]:
-        """Servo alarms for this applied message (docs/servo-health.md); state changes become log lines and
-        go to the sinks with the sample."""
-        device = telemetry.device_id
-        twin = tracked.twin
-        # Inverse dynamics only if a still joint's model check or a reader needs it (core.alarms._Torques).
-        torques = twin.holding_torques_when_read()
-        with self._lock:
-            self._diagnostics[device] = telemetry.diagnostics
-            events = self._alarms.evaluate(
-                device,
-                telemetry.diagnostics,
-                torques,
-                item.recv_mono,
-                angles_rad=twin.targets,
-                timestamp_ms=telemetry.timestamp_ms,
-            )
-        for event in events:
-            _log_alarm_event(event)
-        return tuple(events)
-
-    def _loss_of(self, device: str) -> DeviceLoss:
-        """The device's loss estimator (under the lock). Its nominal period is the configured edge rate; a gap
-        longer than the offline time is an outage, not loss."""
-        loss = self._loss.get(device)
-        if loss is None:
-            h = self.config.health
-            loss = self._loss[device] = DeviceLoss(
-                nominal_period_s=1.0 / h.expected_rate_hz,
-                outage_s=h.offline_after_s,
-                window_s=max(h.window_s, 10.0),
-                clock=self._clock,
-            )
-        return loss
-
-    def _hand_applied(
-        self, telemetry: Telemetry, item: _Inbound, tracked: _Tracked, events: tuple[AlarmEvent, ...] = ()
-    ) -> None:
-        sample = AppliedSample(
-            device_id=telemetry.device_id,
-            received_wall_s=item.recv_wall,
-            received_mono_s=item.recv_mono,
-            telemetry=telemetry,
-            joint_angles=tracked.twin.targets,
-            payload=item.payload,
-            alarm_events=events,
-        )
-        for sink in self._sinks:
-            self._guard_sink(sink, sink.applied, sample)
-
-    def _hand_history(self, telemetry: Telemetry, item: _Inbound) -> None:
-        history = self._history
-        assert history is not None
-        sample = AppliedSample(
-            device_id=telemetry.device_id,
-            received_wall_s=item.recv_wall,
-            received_mono_s=item.recv_mono,
-            telemetry=telemetry,
-            joint_angles=telemetry.angles_rad,  # not applied: the decoded angles, unclamped
-            payload=item.payload,
-        )
-        self._guard_sink(history, history.applied, sample)
-
-    def _guard_sink(self, sink: TwinSink, method: Any, sample: object) -> None:
-        # A sink that raises (it should not: I/O sinks queue) must not cost the mirror or the other sinks.
-        try:
-            method(sample)
-        except Exception:
-            self._count_error(None, f"sink {sink.name} failed", sink=sink.name)
-
-    def _new_device(self, device: str, *, replace: bool = False) -> _Tracked:
-        tracked = _Tracked(twin=DeviceTwin(self.robot, device, self.mode))
-        self._devices[device] = tracked
-        if not replace:
-            log.info("new device", extra={"device": device, "mode": str(self.mode)})
-        return tracked
-
-    def _count_error(self, device: str | None, msg: str, **fields: Any) -> None:
-        self.errors += 1
-        with self._lock:
-            health = self._fleet.get(device) if device else None
-            if health is not None:
-                health.record_error()
-        # One traceback per interval; the rest are summarised as `suppressed` on the next line.
-        self._error_log.log((device, msg), logging.ERROR, msg, exc_info=True, device=device, **fields)
-
-    # ------------------------------------------------------------------------------------------ readers
+    # --------------------------------------------------------------------------------------------- readers
 
     def state(self) -> AgentState:
-        """The agent's typed state for /state, /metrics and /stream (docs/agent.md describes every field)."""
-        readout = self._read()
-        devices = {device: self._device_state(device, h, readout) for device, h in readout.health.items()}
-        return AgentState(
-            agent=self._agent_info(readout),
-            devices=devices,
-            untracked_rejected=readout.untracked,
-        )
-
-    def _read(self) -> _Readout:
-        """Copy what the worker writes, under the lock, as briefly as possible."""
-        with self._lock:
+        """The agent's typed state for /state, /metrics and /stream: every shard's report merged
+        (docs/agent.md describes every field; `agent.workers` lists the worker processes)."""
+        with self._state_lock:
+            cached = self._cached
+            if cached is not None and time.monotonic() - cached[0] < self._reuse_s:
+                return cached[1]
             now = self._clock()
-            return _Readout(
-                now=now,
-                health=self._fleet.snapshot(now),
-                snapshots=dict(self._snapshots),
-                units=dict(self._units),
-                gripper=dict(self._gripper),
-                untracked=dict(self._fleet.untracked_rejected),
-                batches=self.batches,
-                latency=FleetLatency(
-                    internal_s=self._internal_hist.summary(), end_to_end_s=self._end_to_end_hist.summary()
-                ),
-                servos={device: self._servo_readout(device) for device in self._diagnostics},
-                alarms=self._alarms_summary(),
-                loss={device: loss.snapshot(now) for device, loss in self._loss.items()},
+            reports = {shard.index: report for shard, report in self._ask_all(ReportRequest(), report_of)}
+            state = merge_reports(
+                self._info(now),
+                list(reports.values()),
+                self._worker_infos(reports),
+                dropped=self._dropped(),
             )
+            self._cached = (time.monotonic(), state)
+            return state
 
-    def _servo_readout(self, device: str) -> _ServoReadout:
-        """Under the lock: the device's last diagnostics and the alarm engine's view of each joint."""
-        alarms = self._alarms
-        return self._diagnostics[device], alarms.joint_health(device), alarms.worst_by_joint(device)
-
-    @staticmethod
-    def _servo_states(readout: _ServoReadout) -> dict[str, ServoState]:
-        """Outside the lock: `model_load_percent` may run inverse dynamics on first read (core.alarms)."""
-        diagnostics, health, worst = readout
-        out = {}
-        for joint, diag in diagnostics.items():
-            h = health.get(joint)
-            severity, state = worst.get(joint, (None, None))
-            out[joint] = ServoState(
-                velocity_rad_s=diag.velocity_rad_s,
-                load_percent=diag.load_percent,
-                temperature_c=diag.temperature_c,
-                current_a=diag.current_a,
-                voltage_v=diag.voltage_v,
-                model_load_percent=h.model_load_percent if h else None,
-                mismatch_percent=h.mismatch_percent if h else None,
-                still=h.still if h else None,
-                alarm_severity=str(severity) if severity else None,
-                alarm_state=str(state) if state else None,
-            )
-        return out
-
-    def _alarms_summary(self) -> AlarmsSummary:
-        """Under the lock."""
-        counters = self._alarms.counters
-        by_state: dict[str, dict[str, int]] = {str(s): {} for s in Severity}
-        for (severity, state), count in sorted(self._alarms.counts_by_state().items()):
-            by_state[str(severity)][str(state)] = count
-        raised: dict[str, int] = {}
-        for (kind, _), count in counters.raised.items():
-            raised[str(kind)] = raised.get(str(kind), 0) + count
-        return AlarmsSummary(
-            present={str(k): v for k, v in self._alarms.present_by_severity().items()},
-            by_state=by_state,
-            raised_total=dict(sorted(raised.items())),
-            cleared_total={str(k): v for k, v in sorted(counters.cleared.items())},
-            acknowledged_total={str(k): v for k, v in sorted(counters.acknowledged.items())},
-        )
-
-    # ------------------------------------------------------------------------------------ alarms (people)
-
-    def alarms(self, *, include_normal: bool = False) -> tuple[AlarmInfo, ...]:
-        """Servo alarms, worst first (GET /alarms); NORMAL ones only when asked."""
-        with self._lock:
-            now = self._clock()
-            views = self._alarms.views(include_normal=include_normal)
-        wall = self._wall_clock()
-        return tuple(_alarm_info(v, now, wall) for v in views)
-
-    def acknowledge_alarm(self, alarm_id: str) -> AlarmInfo:
-        """ACTIVE -> ACKNOWLEDGED, LATCHED -> NORMAL. Raises twin.core.alarms.AlarmNotFound (unknown id) or
-        NothingToAcknowledge (NORMAL or already ACKNOWLEDGED)."""
-        with self._lock:
-            now = self._clock()
-            event = self._alarms.acknowledge(alarm_id, now)
-            view = self._alarms.views_of((alarm_id,))[0]
-        _log_alarm_event(event)
-        return _alarm_info(view, now, self._wall_clock())
-
-    def _fleet_totals(self) -> FleetTotals:
-        """Running totals and gauges for the CloudWatch metrics (EmfPublisher thread)."""
-        return fleet_totals(self.state(), self.config.health.expected_rate_hz)
-
-    def _device_state(self, device: str, health: HealthSnapshot, readout: _Readout) -> DeviceState:
-        snap = readout.snapshots.get(device)
-        return DeviceState.from_health(
-            device,
-            health,
-            units=readout.units.get(device, self.config.telemetry.units),
-            mode=self.mode,
-            timestamp_ms=snap.timestamp_ms if snap else None,
-            joints_rad=snap.joint_angles if snap else None,
-            targets_rad=snap.targets if snap else None,
-            torques_nm=snap.joint_torques if snap else None,
-            tcp_position_m=snap.tcp_position if snap else None,
-            gripper_percent=readout.gripper.get(device),
-            servos=self._servo_states(readout.servos[device]) if device in readout.servos else None,
-            loss=readout.loss.get(device, LossSnapshot()),
-        )
-
-    def _agent_info(self, readout: _Readout) -> AgentInfo:
+    def _info(self, now: float) -> AgentInfo:
+        """The agent's own part of the state: the process and the broker."""
         started = self._started_mono
         return AgentInfo(
             running=self.running,
             pid=os.getpid(),
             started_at=self._started_wall,
-            uptime_s=(readout.now - started) if started is not None else 0.0,
+            uptime_s=(now - started) if started is not None else 0.0,
             time=self._wall_clock(),
-            mode=self.mode,
+            mode=self.config.twin.mode,
             units=self.config.telemetry.units,
             devices=tuple(self.config.telemetry.devices),
             topic_filters=tuple(self.topic_filters),
-            broker=self._broker_state(),
-            mailbox=MailboxState(
-                overwritten_total=self._mailbox.overflowed_total,
-                refused_keys=0,
-                pending=len(self._mailbox),
-            ),
-            latency=readout.latency,
-            worker=WorkerState(
-                alive=self._worker is not None and self._worker.is_alive(),
-                batches=readout.batches,
-                processed=self.processed,
-                errors=self.errors,
-            ),
-            recording=self._recording_state(),
-            history=self._history_state(),
-            sinks=tuple(sink.stats() for sink in self._sinks),
-            alarms=readout.alarms,
-            loss=fleet_loss(readout.loss.values()),
+            broker=broker_state(self.config.broker.url, self._pool_settings, self._pool, self._started_pool),
         )
 
-    def _history_state(self) -> HistoryState | None:
-        if self._history is None:
-            return None
-        from twin.output.history import REJECTED_TABLE, TELEMETRY_TABLE  # noqa: PLC0415
+    def _worker_infos(self, reports: dict[int, MirrorReport]) -> tuple[WorkerInfo, ...]:
+        infos = (shard.describe(reports.get(shard.index)) for shard in self._shards)
+        return tuple(info for info in infos if info is not None)
 
-        stats = self._history.writer.stats()
-        rows = stats.tables[TELEMETRY_TABLE]
-        return HistoryState(
-            uri=self._history.writer.settings.uri,
-            storage_ok=stats.storage_ok,
-            rows_committed=rows.rows_committed,
-            commits=rows.commits,
-            commit_failures=sum(t.commit_failures for t in stats.tables.values()),
-            rows_dropped=sum(t.rows_dropped for t in stats.tables.values()) + stats.rows_lost_in_conversion,
-            rows_buffered=sum(t.rows_buffered for t in stats.tables.values()),
-            rejected_rows_committed=stats.tables[REJECTED_TABLE].rows_committed,
-            maintenance_runs=stats.maintenance_runs,
-            maintenance_failures=stats.maintenance_failures,
-            last_error=stats.last_error,
-        )
-
-    def _broker_state(self) -> BrokerState:
-        return broker_state(self.config.broker.url, self._pool_settings, self._pool, self._started_pool)
-
-    def _recording_state(self) -> RecordingState | None:
-        if self._recording is None:
-            return None
-        recorder = self._recording.recorder
-        # Counters written by the sink's thread; int reads are atomic, and a figure one sample behind is fine.
-        return RecordingState(
-            path=str(recorder.path),
-            samples_written=recorder.samples_written,
-            samples_dropped=recorder.samples_dropped,
-            flushes=recorder.flushes,
-            flush_errors=recorder.flush_errors,
-        )
+    def _dropped(self) -> Counter[str]:
+        """Messages of each device the agent could not hand to its mirror."""
+        total: Counter[str] = Counter()
+        for shard in self._shards:
+            total.update(shard.dropped())
+        return total
 
     def healthz(self) -> HealthReport:
-        """Healthy = the service runs, the broker connection is up, and no configured device is OFFLINE.
+        """Healthy = the agent runs, the broker connection is up, every worker process runs and no configured
+        device is OFFLINE.
 
-        With devices = ["*"] no device is configured, so only the first two apply: a fleet agent stays healthy
-        while individual arms come and go (their status is in /state and /metrics).
+        With devices = ["*"] no device is configured, so the last rule does not apply: a fleet agent stays
+        healthy while individual arms come and go (their status is in /state and /metrics).
         """
+        state = self.state()
         connected = self._started_pool and self._pool.connected
         running = self.running
-        with self._lock:
-            statuses = self._fleet.statuses()
-            offline = self._fleet.offline_configured()
         reasons = []
         if not running:
             reasons.append("service not running")
         if not connected:
             reasons.append("broker connection down")
-        reasons.extend(f"device {d} is OFFLINE" for d in offline)
+        reasons.extend(f"worker {w.index} is not running" for w in state.agent.workers if not w.alive)
+        configured = () if self.config.telemetry.all_devices else self.config.telemetry.devices
+        statuses = {device: d.status for device, d in state.devices.items()}
+        reasons.extend(
+            f"device {d} is OFFLINE" for d in sorted(configured) if statuses.get(d) is DeviceStatus.OFFLINE
+        )
         return HealthReport(
             status="ok" if not reasons else "unavailable",
             running=running,
@@ -1058,54 +400,97 @@ class AgentService:
             reasons=tuple(reasons),
         )
 
-    def device_status(self, device: str) -> DeviceStatus | None:
-        with self._lock:
-            health = self._fleet.get(device)
-            return health.status() if health is not None else None
+    def alarms(self, *, include_normal: bool = False) -> tuple[AlarmInfo, ...]:
+        """Servo alarms of every mirror, worst first (GET /alarms); NORMAL ones only when asked."""
+        merged = [a for _, alarms in self._ask_all(AlarmsRequest(include_normal), alarms_of) for a in alarms]
+        return tuple(sorted(merged, key=alarm_order))
+
+    def acknowledge_alarm(self, alarm_id: str) -> AlarmInfo:
+        """ACTIVE -> ACKNOWLEDGED, LATCHED -> NORMAL, by the mirror of the alarm's device. Raises
+        twin.core.alarms.AlarmNotFound (unknown id) or NothingToAcknowledge (NORMAL or already ACKNOWLEDGED),
+        WorkerError when that device's worker is being started again."""
+        device = alarm_id.split("/", 1)[0]
+        shard = self._shards[self.plan.worker_of(device)]
+        info = alarm_of(shard.request(AckRequest(alarm_id))())
+        self._cached = None
+        return info
+
+    def _fleet_totals(self) -> FleetTotals:
+        """Running totals and gauges for the CloudWatch metrics (EmfPublisher thread)."""
+        return fleet_totals(self.state(), self.config.health.expected_rate_hz)
 
 
-def _alarm_info(view: AlarmView, now_mono: float, now_wall: float) -> AlarmInfo:
-    return AlarmInfo(
-        alarm_id=view.alarm_id,
-        device=view.device,
-        joint=view.joint,
-        kind=str(view.kind),
-        severity=str(view.severity),
-        state=str(view.state),
-        value=view.value,
-        threshold=view.threshold,
-        unit=view.unit,
-        # The engine keeps monotonic times; people want wall time.
-        changed_at=now_wall - (now_mono - view.since),
-        raised=view.raised,
-        message=view.message,
+def alarm_order(info: AlarmInfo) -> tuple[int, int, str]:
+    """Worst first, as ServoAlarms.views orders them (core.alarms.worst_first)."""
+    return worst_first(info.severity, info.state, info.alarm_id)
+
+
+def fleet_totals(state: AgentState, expected_rate_hz: float) -> FleetTotals:
+    """The CloudWatch metrics' running totals and gauges, from one state document (docs/servo-health.md)."""
+    statuses = [d.status for d in state.devices.values()]
+    live = [d for d in state.devices.values() if d.status is not DeviceStatus.OFFLINE]
+    # Per arm, the share of the expected rate that did not arrive, averaged over arms that are not OFFLINE
+    # (an OFFLINE arm is counted as such, not as 100 % loss).
+    loss = (
+        100.0 * sum(max(0.0, 1.0 - d.rate_hz / expected_rate_hz) for d in live) / len(live) if live else 0.0
+    )
+    p99s = [d.internal_latency_s.p99 for d in state.devices.values() if d.internal_latency_s.p99]
+    return FleetTotals(
+        decoded=sum(d.counters.decoded for d in state.devices.values()),
+        rejected=sum(d.counters.rejected_total for d in state.devices.values())
+        + sum(state.untracked_rejected.values()),
+        devices_online=statuses.count(DeviceStatus.ONLINE),
+        devices_stale=statuses.count(DeviceStatus.STALE),
+        devices_offline=statuses.count(DeviceStatus.OFFLINE),
+        loss_percent=loss,
+        internal_latency_p99_ms=max(p99s) * 1000.0 if p99s else None,
+        active_alarms=state.agent.alarms.present,
     )
 
 
-_ALARM_LOG_LEVEL = {"raised": logging.WARNING, "cleared": logging.INFO}
+def broker_state(url: str, settings: PoolSettings, pool: ConnectionPool, started: bool) -> BrokerState:
+    """The broker side of /state: the pool's connections, summed and one by one."""
+    limit = settings.limit
+    if not started:
+        return BrokerState(url=url, per_connection_limit=limit)
+    infos = pool.connections()
+    stats = [c.stats for c in pool.subscribers()]
+    return BrokerState(
+        url=url,
+        client_id=infos[0].client_id if infos else None,
+        connected=pool.connected,
+        connection_successes=sum(st.connection_successes for st in stats),
+        connection_failures=sum(st.connection_failures for st in stats),
+        disconnections=sum(st.disconnects for st in stats),
+        subscribes=sum(st.subscribes_acked for st in stats),
+        messages=pool.messages,
+        last_error=next((st.last_error for st in stats if st.last_error), ""),
+        per_connection_limit=limit,
+        rate_hz=pool.rate_hz,
+        connections=tuple(
+            ConnectionState(
+                index=c.index,
+                client_id=c.client_id,
+                state=c.state,
+                filters=len(c.filters),
+                rate_hz=c.rate_hz,
+                messages=c.messages,
+                connection_successes=c.connection_successes,
+                disconnections=c.disconnections,
+                last_error=c.last_error,
+            )
+            for c in infos
+        ),
+    )
 
 
-def _log_alarm_event(event: AlarmEvent) -> None:
-    """One JSON log line per alarm state change (twin.service.logs formats the fields)."""
-    level = _ALARM_LOG_LEVEL.get(event.action, logging.INFO)
-    if event.action == "raised" and event.severity is Severity.CRITICAL:
-        level = logging.ERROR
-    log.log(
-        level,
-        "servo alarm %s: %s",
-        event.action,
-        event.message,
-        extra={
-            "event": "servo_alarm",
-            "alarm_id": event.alarm_id,
-            "device": event.device,
-            "joint": event.joint,
-            "kind": str(event.kind),
-            "severity": str(event.severity),
-            "action": event.action,
-            "previous": str(event.previous),
-            "state": str(event.state),
-            "value": event.value,
-            "threshold": event.threshold,
-        },
+def pool_settings(config: AgentConfig) -> PoolSettings:
+    """The connection pool's settings from the agent's config (the broker's budget, the fleet to plan for)."""
+    t = config.telemetry
+    return PoolSettings(
+        prefix=t.topic_prefix,
+        devices=tuple(t.devices),
+        rate_hz=config.health.expected_rate_hz,
+        limit=default_limit(config.broker),
+        max_connections=config.broker.max_connections,
     )

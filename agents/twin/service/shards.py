@@ -1,26 +1,34 @@
-"""A sharded agent: one process receives, N worker processes mirror, each a share of the fleet.
+"""The fleet's shares: which mirror mirrors which device, the mirrors in worker processes, and the merge.
 
-One Python process cannot mirror a large fleet: every message is decoded, applied, counted and checked by the
-alarm engine, and the interpreter runs that on one core at a time (docs/performance.md). So `twin run
---workers N` splits the work:
+The agent (service.agent) hands every message to one of its shards, and each shard runs one mirror
+(service.mirror: decode, loss, twin, health, alarms, sinks) over its share of the devices. With one shard
+the mirror runs in the agent's own process (`LocalShard`, in service.mirror); `twin run --workers N` runs N
+shards, each a worker process (`WorkerShard`, here):
 
-    receiving process: connection pool (the IoT Core quota's connections) --CRT threads: on_message-->
-      admit the device (telemetry.max_devices), pick its worker (`WorkerPlan.worker_of`)
-      --> one bounded queue per worker --sender thread: batches over a pipe-->
-    worker process k: an embedded AgentService (decode, twin, health, loss, alarms, sinks) for its devices
-    receiving process: HTTP API, CloudWatch metrics; /state asks every worker and merges (`merge_reports`)
+    agent: connection pool --CRT threads: feed()--> device from the topic, its shard (`WorkerPlan.worker_of`)
+      --> the shard's bounded queue --sender thread: batches over a pipe (transport.pipe)-->
+    worker process k: a Mirror reading that pipe on its own worker thread, answering the control pipe
 
-Each device belongs to exactly one worker, for as long as the agent runs: a listed fleet is dealt out in
-list order (balanced, deterministic), the whole fleet (`*`) by a stable hash of the device id (CRC-32, the
-same in every process and on every run). A device's messages travel one queue and one pipe in order, so the
-order they arrived in is kept. The receiving process does no per-message work beyond the routing: the
-connection pool's no-op ceiling (docs/performance.md) is what it costs.
+Each device belongs to exactly one shard for as long as the agent runs: a listed fleet is dealt out in list
+order (balanced, deterministic), the whole fleet (`*`) by a stable hash of the device id (CRC-32, the same in
+every process and on every run). A device's messages travel one queue and one pipe in order, so the order they
+arrived in is kept. The agent's side does no per-message work beyond the routing: the connection pool's no-op
+ceiling (docs/performance.md) is what it costs. Admission (`telemetry.max_devices`) is the mirrors' own, after
+decoding, from one budget every process shares (service.admission).
+
+The agent asks the shards for their figures with typed requests (`ReportRequest`, `AlarmsRequest`,
+`AckRequest`); a worker answers over its control pipe, a local shard at once, and `merge_reports` makes one
+state of the answers, whatever the number of shards.
 
 A worker that dies (a crash in a native library, say) is started again; its devices lose their twins' state
-and start over from their next message, and the messages that arrived while it was down are counted as
-dropped (`overwritten`) against their devices. Workers ignore SIGINT and SIGTERM: the receiving process
-stops them in order (the rest of the queue, then an end marker), so each one flushes its sinks (USD
-recording, history) before it exits. A worker whose parent vanished sees its pipe close and exits too.
+and start over from their next message (their places in the device budget are given back), and the messages
+that arrived while it was down are counted as dropped (`overwritten`) against their devices. Workers ignore
+SIGINT and SIGTERM: the agent stops them in order (the rest of the queue, then an end marker), so each one
+flushes its sinks (USD recording, history) before it exits. A worker whose parent vanished sees its pipe close
+and exits too.
+
+Light on purpose: the agent imports it with worker processes too, and must not load MuJoCo (only the worker
+processes do, in `worker_main`).
 """
 
 from __future__ import annotations
@@ -30,7 +38,6 @@ import dataclasses
 import itertools
 import logging
 import math
-import multiprocessing
 import os
 import signal
 import threading
@@ -39,60 +46,54 @@ import zlib
 from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from enum import StrEnum
 from multiprocessing.connection import Connection
-from typing import Any
+from multiprocessing.context import SpawnContext, SpawnProcess
+from typing import TYPE_CHECKING, Protocol, TypeVar
 
 from twin.core.alarms import AlarmNotFound, NothingToAcknowledge
-from twin.core.health import DeviceStatus
 from twin.core.latency import LatencyHistogram
 from twin.core.loss import fleet_loss
-from twin.core.topics import device_from_topic
-from twin.output.emf import EmfFileWriter, EmfPublisher, FleetTotals
+from twin.output.sinks import SinkStats
+from twin.service.admission import DeviceBudget
 from twin.service.config import AgentConfig, ConfigError
-from twin.service.http_api import AgentHttpServer
-from twin.service.logs import RateLimitedLog
 from twin.service.state import (
     AgentInfo,
     AgentState,
     AlarmInfo,
     AlarmsSummary,
+    DeviceState,
     FleetLatency,
-    HealthReport,
     HistoryState,
     MailboxState,
     RecordingState,
-    SinkStats,
     WorkerInfo,
     WorkerState,
 )
-from twin.service.summary import TOO_MANY_DEVICES, alarm_order, broker_state, fleet_totals, pool_settings
-from twin.transport.mailbox import UNTRACKED_KEY, InboundQueue
-from twin.transport.pipe import send_batch, send_end
-from twin.transport.pool import ConnectionPool
+from twin.transport.mailbox import InboundQueue
+from twin.transport.pipe import Message, send_batch, send_end
+
+if TYPE_CHECKING:
+    from twin.service.mirror import Mirror
 
 log = logging.getLogger(__name__)
-
-Clock = Callable[[], float]
 
 # Messages a second one worker is planned for when `[twin] workers = 0` chooses the count for a listed fleet:
 # about a third of what one worker mirrors on this project's 2-core development machine, so a fleet of up to
 # 100 arms at 10 Hz stays in one process (docs/agent.md, "Workers").
 WORKER_PLAN_RATE = 1000.0
-# Per worker, the receiving process queues at most this many messages for its pipe (about 40 MB of payloads
-# across the fleet's queues at most); beyond it the oldest are dropped and counted, as in the worker's own.
+# Per worker, the agent queues at most this many messages for its pipe (about 40 MB of payloads across the
+# fleet's queues at most); beyond it the oldest are dropped and counted, as in an in-process mirror's queue.
 MAX_QUEUED_PER_WORKER = 25_000
 # One pipe write carries at most this many messages: a backlog goes over in pieces the worker can start on.
 MAX_BATCH = 1000
 # Above this many messages a second for one worker, its sender pauses SEND_PAUSE_S after each hand-over
 # (unless it had a full batch), so messages arriving meanwhile go over together. Without the pause every
 # message woke the sender (a Condition notify costs more than routing the message) and crossed the pipe
-# alone: at 10,000 msg/s a worker the receiving process spent 26 us a message instead of 18. Below the rate
-# the wake-ups cost little and the pause would only add latency.
+# alone: at 10,000 msg/s a worker the agent spent 26 us a message instead of 18. Below the rate the wake-ups
+# cost little and the pause would only add latency.
 PAUSE_ABOVE_RATE = 2000.0
 SEND_PAUSE_S = 0.002
-# How long a merged state is reused: /stream clients, /metrics and the CloudWatch thread read it often, and
-# each reading asks every worker.
-STATE_REUSE_S = 0.05
 # How long a worker may take to answer one request (a state of thousands of arms takes tens of ms).
 ASK_TIMEOUT_S = 10.0
 # A worker must be up within this (Python, MuJoCo and the sinks it opens, e.g. a Delta table on S3).
@@ -118,7 +119,7 @@ def usable_cores() -> int:
 def worker_count(config: AgentConfig, cores: int | None = None) -> int:
     """How many worker processes `config` asks for: `[twin] workers`, or when it is 0 one per usable core,
     but one per WORKER_PLAN_RATE of a listed fleet's expected messages, and one when the Rerun stream is on
-    (one stream, one process)."""
+    (one stream, one process). 1 means the mirror runs in the agent's own process."""
     requested = config.twin.workers
     if requested:
         return requested
@@ -132,28 +133,30 @@ def worker_count(config: AgentConfig, cores: int | None = None) -> int:
 
 
 class WorkerPlan:
-    """Which worker mirrors which device: listed devices dealt out in list order, any other by CRC-32."""
+    """Which shard mirrors which device: listed devices dealt out in list order, any other by CRC-32."""
 
     def __init__(self, count: int, listed: Sequence[str] = ()) -> None:
         if count < 1:
-            raise ValueError(f"a sharded agent needs at least one worker, got {count}")
+            raise ValueError(f"an agent needs at least one shard, got {count}")
         self.count = count
         self._listed = {device: i % count for i, device in enumerate(listed)}
 
     def worker_of(self, device: str) -> int:
+        if self.count == 1:
+            return 0
         listed = self._listed.get(device)
         if listed is not None:
             return listed
         return zlib.crc32(device.encode("utf-8", "surrogatepass")) % self.count
 
     def devices_of(self, index: int) -> tuple[str, ...]:
-        """The listed devices worker `index` mirrors."""
+        """The listed devices shard `index` mirrors."""
         return tuple(device for device, worker in self._listed.items() if worker == index)
 
 
 def worker_config(config: AgentConfig, plan: WorkerPlan, index: int) -> AgentConfig:
-    """What worker `index` runs with: its share of a listed fleet (so each configured device is reported by
-    one worker), and no CloudWatch file (the receiving process publishes the fleet's metrics)."""
+    """What the mirror of shard `index` runs with: its share of a listed fleet (so each configured device is
+    reported by one mirror), and no CloudWatch file (the agent publishes the fleet's metrics)."""
     telemetry = config.telemetry
     if not telemetry.all_devices:
         telemetry = dataclasses.replace(telemetry, devices=plan.devices_of(index))
@@ -165,404 +168,328 @@ def worker_config(config: AgentConfig, plan: WorkerPlan, index: int) -> AgentCon
     )
 
 
-# ------------------------------------------------------------------------------------------- worker process
+# ------------------------------------------------------------------------------------ what a mirror reports
 
 
 @dataclass(frozen=True)
-class WorkerReport:
-    """A worker's answer to "state": its typed state and its latency histograms (percentiles do not add
-    up; histograms do)."""
+class MirrorReport:
+    """One mirror's part of the agent's state: its devices and rejections, its queue, worker and sinks, and
+    its latency histograms (percentiles do not add up; histograms do). `merge_reports` makes the state."""
 
-    state: AgentState
+    devices: dict[str, DeviceState]
+    untracked_rejected: dict[str, int]
+    mailbox: MailboxState
+    worker: WorkerState
+    recording: RecordingState | None
+    history: HistoryState | None
+    sinks: tuple[SinkStats, ...]
+    alarms: AlarmsSummary
     internal: LatencyHistogram
     end_to_end: LatencyHistogram
 
 
-class _WorkerLogFilter(logging.Filter):
-    def __init__(self, index: int) -> None:
-        super().__init__()
+# -------------------------------------------------------------------------------------------- requests
+
+
+@dataclass(frozen=True, slots=True)
+class ReportRequest:
+    """The mirror's `MirrorReport`."""
+
+
+@dataclass(frozen=True, slots=True)
+class AlarmsRequest:
+    """The mirror's servo alarms, worst first; NORMAL ones only with `include_normal`."""
+
+    include_normal: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class AckRequest:
+    """Acknowledge one alarm of the mirror's devices; refused as AlarmNotFound or NothingToAcknowledge."""
+
+    alarm_id: str
+
+
+Request = ReportRequest | AlarmsRequest | AckRequest
+Reply = MirrorReport | tuple[AlarmInfo, ...] | AlarmInfo
+
+
+def report_of(reply: Reply) -> MirrorReport:
+    """The answer to a ReportRequest; WorkerError for anything else."""
+    if not isinstance(reply, MirrorReport):
+        raise WorkerError(f"a report was asked for, the answer was {type(reply).__name__}")
+    return reply
+
+
+def alarms_of(reply: Reply) -> tuple[AlarmInfo, ...]:
+    """The answer to an AlarmsRequest; WorkerError for anything else."""
+    if not isinstance(reply, tuple) or not all(isinstance(a, AlarmInfo) for a in reply):
+        raise WorkerError(f"alarms were asked for, the answer was {type(reply).__name__}")
+    return reply
+
+
+def alarm_of(reply: Reply) -> AlarmInfo:
+    """The answer to an AckRequest; WorkerError for anything else."""
+    if not isinstance(reply, AlarmInfo):
+        raise WorkerError(f"an acknowledged alarm was asked for, the answer was {type(reply).__name__}")
+    return reply
+
+
+# What crosses a worker's control pipe (pickled): the agent's calls, and the worker's answers and refusals,
+# matched by call id; when it starts, the worker says once whether it runs.
+
+
+@dataclass(frozen=True, slots=True)
+class Call:
+    call_id: int
+    request: Request
+
+
+@dataclass(frozen=True, slots=True)
+class Answer:
+    call_id: int
+    reply: Reply
+
+
+class Refusal(StrEnum):
+    ALARM_NOT_FOUND = "alarm_not_found"
+    NOTHING_TO_ACKNOWLEDGE = "nothing_to_acknowledge"
+    ERROR = "error"
+
+
+@dataclass(frozen=True, slots=True)
+class Refused:
+    call_id: int
+    refusal: Refusal
+    message: str
+
+
+@dataclass(frozen=True, slots=True)
+class Ready:
+    pid: int
+
+
+@dataclass(frozen=True, slots=True)
+class StartFailed:
+    """The worker could not start; `config_error`: because of a setting (`twin run` exits 2, `message`)."""
+
+    message: str
+    config_error: bool
+
+
+def _raise_refusal(refused: Refused, worker: int) -> None:
+    if refused.refusal is Refusal.ALARM_NOT_FOUND:
+        raise AlarmNotFound(refused.message)
+    if refused.refusal is Refusal.NOTHING_TO_ACKNOWLEDGE:
+        raise NothingToAcknowledge(refused.message)
+    raise WorkerError(f"worker {worker}: {refused.message}")
+
+
+# ------------------------------------------------------------------------------------------------- shards
+
+
+class Shard(Protocol):
+    """What the agent needs of one share of the fleet, whether its mirror runs in-process or in a worker."""
+
+    index: int
+
+    def put(self, key: str, topic: str, payload: bytes, recv_mono: float, recv_wall: float) -> None:
+        """Queue one message for the mirror (`key`: its device, or UNTRACKED_KEY); on a CRT thread, never
+        blocks for long."""
+        ...
+
+    def launch(self) -> None:
+        """Begin starting the mirror (a worker: spawn it; the agent waits for every shard afterwards)."""
+        ...
+
+    def await_ready(self) -> None:
+        """Return once the mirror runs; ConfigError (a setting it cannot work with), WorkerError, OSError."""
+        ...
+
+    def close(self) -> None:
+        """No more messages: the mirror handles what is queued, flushes its sinks and ends."""
+        ...
+
+    def join(self, deadline: float) -> None:
+        """Wait (until `deadline`, time.monotonic) for the mirror to end after `close`."""
+        ...
+
+    def supervise(self) -> None:
+        """Called every half second while the agent runs: start a dead worker again."""
+        ...
+
+    @property
+    def failed(self) -> bool:
+        """The mirror stopped for good while the agent runs (nothing will start it again)."""
+        ...
+
+    @property
+    def answering(self) -> bool:
+        """The mirror can be asked now (a worker being started again cannot)."""
+        ...
+
+    def request(self, request: Request) -> Callable[[], Reply]:
+        """Send `request`; the returned function (call it exactly once) waits for and returns the reply, or
+        raises AlarmNotFound, NothingToAcknowledge or WorkerError."""
+        ...
+
+    def describe(self, report: MirrorReport | None) -> WorkerInfo | None:
+        """This shard as a worker in `agent.workers` (None for an in-process mirror)."""
+        ...
+
+    def dropped(self) -> Counter[str]:
+        """Messages per device the agent could not hand to this mirror (its queue overflowed, it was down)."""
+        ...
+
+
+_CALL_IDS = itertools.count(1)
+
+
+class WorkerShard:
+    """A share of the fleet mirrored in a worker process: its process, pipes, queue and sender thread."""
+
+    def __init__(self, index: int, config: AgentConfig, budget: DeviceBudget, context: SpawnContext) -> None:
         self.index = index
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        record.worker = self.index
-        return True
-
-
-def worker_main(index: int, config: AgentConfig, data: Connection, control: Connection) -> None:
-    """A worker process: an embedded AgentService fed from `data`, answering `control` (module doc)."""
-    # The receiving process decides when workers stop (the rest of the queue first, then the sinks flush);
-    # a Ctrl-C in a terminal or systemd's SIGTERM reaches the whole process group.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    from twin.service.agent import AgentService  # noqa: PLC0415 - MuJoCo loads in the worker, not its parent
-    from twin.service.logs import setup_logging  # noqa: PLC0415
-    from twin.service.outputs import close_sinks, configured_sinks  # noqa: PLC0415
-
-    setup_logging(config.log.level)
-    for handler in logging.getLogger().handlers:
-        handler.addFilter(_WorkerLogFilter(index))
-    sinks: list[Any] = []
-    try:
-        sinks = configured_sinks(config)
-        service = AgentService(config, sinks=sinks, inbox=data)
-        service.start()
-    except ConfigError as exc:
-        # A setting the worker cannot work with (the ros2 extra missing, say): the receiving process exits
-        # as for any configuration error, with this message.
-        close_sinks(sinks)
-        control.send(("config", str(exc)))
-        return
-    except Exception as exc:
-        close_sinks(sinks)
-        log.exception("worker %d could not start", index)
-        control.send(("failed", f"{type(exc).__name__}: {exc}"))
-        return
-    control.send(("ready", os.getpid()))
-    threading.Thread(target=_serve_control, args=(service, control), name="twin-control", daemon=True).start()
-    # The worker thread reads the pipe until the end marker (or the receiving process is gone), then stops.
-    while service.running:
-        time.sleep(0.2)
-    service.stop(timeout=30.0)
-
-
-def _serve_control(service: Any, control: Connection) -> None:
-    """Answer the receiving process's requests: (id, op, argument) -> (id, ok, result)."""
-    while True:
-        try:
-            request_id, op, arg = control.recv()
-        except (EOFError, OSError):
-            return
-        try:
-            if op == "state":
-                result: Any = WorkerReport(service.state(), *service.histograms())
-            elif op == "alarms":
-                result = service.alarms(include_normal=bool(arg))
-            elif op == "ack":
-                result = service.acknowledge_alarm(arg)
-            else:
-                raise ValueError(f"unknown request {op!r}")
-            reply = (request_id, True, result)
-        except (AlarmNotFound, NothingToAcknowledge) as exc:
-            reply = (request_id, False, (type(exc).__name__, str(exc)))
-        except Exception as exc:
-            log.exception("worker request %s failed", op)
-            reply = (request_id, False, ("error", f"{type(exc).__name__}: {exc}"))
-        try:
-            control.send(reply)
-        except (OSError, ValueError):
-            return
-
-
-# ----------------------------------------------------------------------------------------- receiving process
-
-
-class _Worker:
-    """The receiving process's handle on one worker: its process, pipes, queue and sender thread."""
-
-    def __init__(self, index: int) -> None:
-        self.index = index
+        self._config = config  # the worker's own (worker_config)
+        self._budget = budget
+        self._ctx = context
         self.queue: InboundQueue[tuple[str, bytes, float, float]] = InboundQueue(MAX_QUEUED_PER_WORKER)
-        self.process: Any = None
+        self.process: SpawnProcess | None = None
         self.data: Connection | None = None
         self.control: Connection | None = None
-        self.control_lock = threading.Lock()
+        self._control_lock = threading.Lock()
         self.ready = False
         self.pid = 0
         self.started_at = 0.0
         self.restarts = 0
-        self.restart_at: float | None = None
-        self.sender: threading.Thread | None = None
+        self._restart_at: float | None = None
+        self._sender: threading.Thread | None = None
         # Messages that could not be handed to the worker (it was down), by device.
-        self.dropped: Counter[str] = Counter()
+        self._dropped: Counter[str] = Counter()
+        self._closed = False
 
     @property
     def alive(self) -> bool:
         return self.ready and self.process is not None and self.process.is_alive()
 
-
-class ShardedAgent:
-    """The receiving process of `twin run --workers N` (N >= 2): the same surface as AgentService for the CLI
-    and the HTTP API (`start`, `stop`, `running`, `state`, `healthz`, `alarms`, `acknowledge_alarm`)."""
-
-    def __init__(
-        self,
-        config: AgentConfig,
-        workers: int,
-        *,
-        clock: Clock = time.monotonic,
-        wall_clock: Clock = time.time,
-    ) -> None:
-        if workers < 2:
-            raise ValueError(f"a sharded agent has at least 2 workers (1 is AgentService), got {workers}")
-        if config.rerun.enabled:
-            raise ConfigError(
-                "[rerun] streams one recording from one process: run with --workers 1 ([twin] workers = 1) "
-                "to stream to Rerun, or turn [rerun] off"
-            )
-        self.config = config
-        self._clock = clock
-        self._wall_clock = wall_clock
-        t = config.telemetry
-        self.plan = WorkerPlan(workers, () if t.all_devices else t.devices)
-        self._workers = [_Worker(i) for i in range(workers)]
-        self._pool_settings = pool_settings(config)
-        self._pool = ConnectionPool(config.broker, self._pool_settings, self._on_message, clock=clock)
-        self.topic_filters = self._pool.topic_filters
-        self._prefix = t.topic_prefix
-        # Devices admitted so far (telemetry.max_devices bounds them): device -> its worker.
-        self._routes: dict[str, int] = {}
-        self._admit_lock = threading.Lock()
-        self._refused: Counter[str] = Counter()
-        self._refuse_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
-        self._ctx = multiprocessing.get_context("spawn")
-        self._http: AgentHttpServer | None = None
-        self._emf: EmfPublisher | None = None
-        self._supervisor: threading.Thread | None = None
-        self._stopping = threading.Event()
-        self._running = False
-        self._started_pool = False
-        self._started_mono: float | None = None
-        self._started_wall: float | None = None
-        self._request_ids = itertools.count(1)
-        self._state_lock = threading.Lock()
-        self._cached: tuple[float, AgentState] | None = None
-
-    # -------------------------------------------------------------------------------------------- lifecycle
-
-    def start(self) -> None:
-        """Start the workers (and wait until each is up), the senders, the HTTP server, the subscription.
-        Raises WorkerError when a worker cannot start (its reason in the message), OSError when the HTTP
-        address is taken."""
-        if self._running:
-            return
-        self._started_mono = self._clock()
-        self._started_wall = self._wall_clock()
-        try:
-            for worker in self._workers:
-                self._spawn(worker)
-            for worker in self._workers:
-                self._await_ready(worker)
-            self._http = AgentHttpServer(
-                self,
-                self.config.http.host,
-                self.config.http.port,
-                stream_rate_hz=self.config.http.stream_rate_hz,
-            )
-        except BaseException:
-            self._stop_workers(timeout=10.0)
-            raise
-        for worker in self._workers:
-            worker.sender = threading.Thread(
-                target=self._send_loop, args=(worker,), name=f"twin-send-{worker.index}", daemon=True
-            )
-            worker.sender.start()
-        self._running = True
-        self._supervisor = threading.Thread(target=self._supervise, name="twin-supervisor", daemon=True)
-        self._supervisor.start()
-        self._http.start()
-        self._pool.start()
-        self._started_pool = True
-        cw = self.config.cloudwatch
-        if cw.emf_file:
-            self._emf = EmfPublisher(
-                EmfFileWriter(cw.emf_file), cw.agent_name, self._fleet_totals, cw.interval_s
-            )
-            self._emf.start()
-        log.info(
-            "agent started",
-            extra={
-                "broker": self.config.broker.url,
-                "topics": self.topic_filters,
-                "http": self._http.url,
-                "workers": len(self._workers),
-                "worker_pids": [w.pid for w in self._workers],
-            },
-        )
-
-    def stop(self, timeout: float = 30.0) -> None:
-        """Unsubscribe, hand each worker the rest of its queue and an end marker, wait for them to flush and
-        exit, stop HTTP. Idempotent."""
-        if self._stopping.is_set():
-            return
-        self._stopping.set()
-        log.info("agent stopping")
-        if self._started_pool:
-            try:
-                self._pool.stop(min(timeout, 5.0))
-            except Exception:
-                log.exception("stopping the connection pool failed")
-        self._stop_workers(timeout)
-        if self._emf is not None:
-            self._emf.stop(timeout)
-        if self._http is not None:
-            self._http.stop()
-        self._running = False
-        log.info("agent stopped")
-
-    def _stop_workers(self, timeout: float) -> None:
-        for worker in self._workers:
-            worker.queue.close()
-        deadline = time.monotonic() + timeout
-        for worker in self._workers:
-            if worker.sender is not None:
-                worker.sender.join(max(0.1, deadline - time.monotonic()))
-            elif worker.data is not None:
-                with contextlib.suppress(OSError, ValueError):
-                    send_end(worker.data)
-        for worker in self._workers:
-            process = worker.process
-            if process is None:
-                continue
-            process.join(max(0.1, deadline - time.monotonic()))
-            if process.is_alive():
-                log.error("worker %d did not stop within %.0f s; killing it", worker.index, timeout)
-                process.kill()
-                process.join(5.0)
-            worker.ready = False
-            for conn in (worker.data, worker.control):
-                if conn is not None:
-                    conn.close()
-
-    def __enter__(self) -> ShardedAgent:
-        self.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
+    @property
+    def answering(self) -> bool:
+        return self.alive
 
     @property
-    def running(self) -> bool:
-        return self._running and not self._stopping.is_set()
+    def failed(self) -> bool:
+        return False  # a dead worker is started again
 
-    @property
-    def http_url(self) -> str:
-        if self._http is None:
-            raise RuntimeError("the HTTP server starts with start()")
-        return self._http.url
+    def put(self, key: str, topic: str, payload: bytes, recv_mono: float, recv_wall: float) -> None:
+        self.queue.put(key, (topic, payload, recv_mono, recv_wall))
 
-    @property
-    def workers(self) -> int:
-        return len(self._workers)
+    def dropped(self) -> Counter[str]:
+        return self.queue.overflowed + self._dropped
 
-    def worker_pids(self) -> list[int]:
-        return [w.pid for w in self._workers]
+    # -- lifecycle -----------------------------------------------------------------------------------------
 
-    def wait_subscribed(self, timeout: float) -> bool:
-        return self._started_pool and self._pool.wait_subscribed(timeout)
-
-    # ------------------------------------------------------------------------------------- worker processes
-
-    def _spawn(self, worker: _Worker) -> None:
+    def launch(self) -> None:
         data_read, data_write = self._ctx.Pipe(duplex=False)
         control, control_child = self._ctx.Pipe()
-        config = worker_config(self.config, self.plan, worker.index)
         process = self._ctx.Process(
             target=worker_main,
-            args=(worker.index, config, data_read, control_child),
-            name=f"twin-worker-{worker.index}",
+            args=(self.index, self._config, data_read, control_child, self._budget),
+            name=f"twin-worker-{self.index}",
         )
         process.start()
         # The worker holds its own ends now; closing ours lets each side see the other go (EOF).
         data_read.close()
         control_child.close()
-        worker.process, worker.data, worker.control = process, data_write, control
-        worker.started_at = time.monotonic()
+        self.process, self.data, self.control = process, data_write, control
+        self.started_at = time.monotonic()
 
-    def _await_ready(self, worker: _Worker) -> None:
-        assert worker.control is not None and worker.process is not None
-        if not worker.control.poll(START_TIMEOUT_S):
-            raise WorkerError(f"worker {worker.index} did not start within {START_TIMEOUT_S:.0f} s")
+    def await_ready(self) -> None:
+        assert self.control is not None and self.process is not None
+        if not self.control.poll(START_TIMEOUT_S):
+            raise WorkerError(f"worker {self.index} did not start within {START_TIMEOUT_S:.0f} s")
         try:
-            kind, value = worker.control.recv()
+            hello = self.control.recv()
         except (EOFError, OSError):
-            worker.process.join(5.0)
+            self.process.join(5.0)
             raise WorkerError(
-                f"worker {worker.index} exited while starting (exit code {worker.process.exitcode}); "
+                f"worker {self.index} exited while starting (exit code {self.process.exitcode}); "
                 "its log lines above say why"
             ) from None
-        if kind == "config":
-            raise ConfigError(str(value))
-        if kind != "ready":
-            raise WorkerError(f"worker {worker.index} could not start: {value}")
-        worker.pid = int(value)
-        worker.ready = True
+        if isinstance(hello, StartFailed):
+            if hello.config_error:
+                raise ConfigError(hello.message)
+            raise WorkerError(f"worker {self.index} could not start: {hello.message}")
+        if not isinstance(hello, Ready):
+            raise WorkerError(f"worker {self.index} said {hello!r} instead of being ready")
+        self.pid = hello.pid
+        self.ready = True
+        if self._sender is None:
+            self._sender = threading.Thread(
+                target=self._send_loop, name=f"twin-send-{self.index}", daemon=True
+            )
+            self._sender.start()
 
-    def _supervise(self) -> None:
-        """Start dead workers again (module doc); their devices' twins start over."""
-        while not self._stopping.wait(0.5):
-            for worker in self._workers:
-                if worker.process is None or worker.process.is_alive() or self._stopping.is_set():
-                    continue
-                now = time.monotonic()
-                if worker.restart_at is None:
-                    worker.ready = False
-                    quick = now - worker.started_at < QUICK_DEATH_S
-                    pause = min(MAX_RESTART_PAUSE_S, 2.0 ** min(worker.restarts, 6)) if quick else 0.0
-                    worker.restart_at = now + pause
-                    log.error(
-                        "worker %d exited (code %s); starting it again%s",
-                        worker.index,
-                        worker.process.exitcode,
-                        f" in {pause:.0f} s" if pause else "",
-                        extra={"worker": worker.index, "exit_code": worker.process.exitcode},
-                    )
-                if now < worker.restart_at:
-                    continue
-                worker.restart_at = None
-                worker.restarts += 1
-                self._restart(worker)
-
-    def _restart(self, worker: _Worker) -> None:
-        with worker.control_lock:
-            for conn in (worker.data, worker.control):
+    def supervise(self) -> None:
+        """Start the worker again if it died (module doc); its devices' twins start over."""
+        process = self.process
+        if process is None or process.is_alive() or self._closed:
+            return
+        now = time.monotonic()
+        if self._restart_at is None:
+            self.ready = False
+            quick = now - self.started_at < QUICK_DEATH_S
+            pause = min(MAX_RESTART_PAUSE_S, 2.0 ** min(self.restarts, 6)) if quick else 0.0
+            self._restart_at = now + pause
+            log.error(
+                "worker %d exited (code %s); starting it again%s",
+                self.index,
+                process.exitcode,
+                f" in {pause:.0f} s" if pause else "",
+                extra={"worker": self.index, "exit_code": process.exitcode},
+            )
+        if now < self._restart_at:
+            return
+        self._restart_at = None
+        self.restarts += 1
+        with self._control_lock:
+            for conn in (self.data, self.control):
                 if conn is not None:
                     conn.close()
+            # Its devices are gone with it: their places count again from their next valid message.
+            self._budget.release(self.index)
             try:
-                self._spawn(worker)
-                self._await_ready(worker)
-            except WorkerError as exc:
-                log.error("worker %d could not be started again: %s", worker.index, exc)
+                self.launch()
+                self.await_ready()
+            except (WorkerError, ConfigError) as exc:
+                log.error("worker %d could not be started again: %s", self.index, exc)
                 return
-        log.info("worker %d running again", worker.index, extra={"worker": worker.index, "pid": worker.pid})
+        log.info("worker %d running again", self.index, extra={"worker": self.index, "pid": self.pid})
 
-    # ------------------------------------------------------------------------------------- receive and send
+    def close(self) -> None:
+        self._closed = True
+        self.queue.close()
 
-    def _on_message(self, topic: str, payload: bytes, recv_mono: float) -> None:
-        """On a CRT thread: admit the device, queue the message for its worker. Never blocks for long."""
-        device = device_from_topic(topic, self._prefix)
-        if device is None:
-            self._workers[0].queue.put(UNTRACKED_KEY, (topic, payload, recv_mono, self._wall_clock()))
-            return
-        index = self._routes.get(device)
-        if index is None:
-            index = self._admit(device)
-            if index is None:
-                return
-        self._workers[index].queue.put(device, (topic, payload, recv_mono, self._wall_clock()))
+    def join(self, deadline: float) -> None:
+        if self._sender is not None:
+            self._sender.join(max(0.1, deadline - time.monotonic()))
+        elif self.data is not None:
+            with contextlib.suppress(OSError, ValueError):
+                send_end(self.data)
+        process = self.process
+        if process is not None:
+            process.join(max(0.1, deadline - time.monotonic()))
+            if process.is_alive():
+                log.error("worker %d did not stop in time; killing it", self.index)
+                process.kill()
+                process.join(5.0)
+        self.ready = False
+        for conn in (self.data, self.control):
+            if conn is not None:
+                conn.close()
 
-    def _admit(self, device: str) -> int | None:
-        with self._admit_lock:
-            index = self._routes.get(device)
-            if index is not None:
-                return index
-            limit = self.config.telemetry.max_devices
-            if len(self._routes) >= limit:
-                self._refused[TOO_MANY_DEVICES] += 1
-                self._refuse_log.log(
-                    TOO_MANY_DEVICES,
-                    logging.WARNING,
-                    "device ignored: telemetry.max_devices devices already seen; raise it if the fleet is "
-                    "really this large",
-                    device=device,
-                    max_devices=limit,
-                )
-                return None
-            index = self._routes[device] = self.plan.worker_of(device)
-            return index
-
-    def _send_loop(self, worker: _Worker) -> None:
+    def _send_loop(self) -> None:
         """Hand the worker its queue in batches; what cannot be handed over (it is down) is counted."""
-        queue = worker.queue
+        queue = self.queue
         window_start, window_count, pause = time.monotonic(), 0, False
         while True:
             items = queue.take_all(0.2)
@@ -579,190 +506,154 @@ class ShardedAgent:
                 pause = window_count / (now - window_start) > PAUSE_ABOVE_RATE
                 window_start, window_count = now, 0
             for start in range(0, len(items), MAX_BATCH):
-                chunk = items[start : start + MAX_BATCH]
-                conn = worker.data
-                if not worker.ready or conn is None:
-                    worker.dropped.update(key for key, _ in chunk)
+                chunk: list[Message] = items[start : start + MAX_BATCH]
+                conn = self.data
+                if not self.ready or conn is None:
+                    self._dropped.update(key for key, _ in chunk)
                     continue
                 try:
                     send_batch(conn, chunk)
                 except (OSError, ValueError):
-                    worker.ready = False
-                    worker.dropped.update(key for key, _ in chunk)
-        if worker.data is not None and worker.ready:
+                    self.ready = False
+                    self._dropped.update(key for key, _ in chunk)
+        if self.data is not None and self.ready:
             with contextlib.suppress(OSError, ValueError):
-                send_end(worker.data)
+                send_end(self.data)
 
-    # ------------------------------------------------------------------------------------------- requests
+    # -- requests ------------------------------------------------------------------------------------------
 
-    def _ask_all(self, op: str, arg: Any = None) -> list[tuple[_Worker, Any]]:
-        """Send the request to every running worker, then collect the answers (they work in parallel)."""
-        asked = []
-        for worker in self._workers:
-            if not worker.alive:
-                continue
-            worker.control_lock.acquire()
-            request_id = next(self._request_ids)
+    def request(self, request: Request) -> Callable[[], Reply]:
+        if not self.alive:
+            raise WorkerError(f"worker {self.index} is not running (it is being started again)")
+        self._control_lock.acquire()
+        call_id = next(_CALL_IDS)
+        try:
+            assert self.control is not None
+            self.control.send(Call(call_id, request))
+        except (OSError, ValueError) as exc:
+            self._control_lock.release()
+            raise WorkerError(f"worker {self.index} is not reachable: {exc}") from exc
+
+        def wait() -> Reply:
             try:
-                assert worker.control is not None
-                worker.control.send((request_id, op, arg))
-            except (OSError, ValueError):
-                worker.control_lock.release()
-                continue
-            asked.append((worker, request_id))
-        answers = []
-        for worker, request_id in asked:
-            try:
-                answers.append((worker, self._answer(worker, request_id)))
-            except WorkerError as exc:
-                log.warning("%s", exc)
+                return self._answer(call_id)
             finally:
-                worker.control_lock.release()
-        return answers
+                self._control_lock.release()
 
-    def _ask(self, worker: _Worker, op: str, arg: Any = None) -> Any:
-        if not worker.alive:
-            raise WorkerError(f"worker {worker.index} is not running (it is being started again)")
-        with worker.control_lock:
-            request_id = next(self._request_ids)
-            try:
-                assert worker.control is not None
-                worker.control.send((request_id, op, arg))
-            except (OSError, ValueError) as exc:
-                raise WorkerError(f"worker {worker.index} is not reachable: {exc}") from exc
-            return self._answer(worker, request_id)
+        return wait
 
-    @staticmethod
-    def _answer(worker: _Worker, request_id: int) -> Any:
-        """The answer to `request_id` (under the worker's control lock); late answers to requests that timed
-        out are skipped."""
-        conn = worker.control
+    def _answer(self, call_id: int) -> Reply:
+        """The answer to `call_id` (under the control lock); late answers to calls that timed out are
+        skipped."""
+        conn = self.control
         assert conn is not None
         deadline = time.monotonic() + ASK_TIMEOUT_S
         while True:
             remaining = deadline - time.monotonic()
             try:
                 if remaining <= 0 or not conn.poll(remaining):
-                    raise WorkerError(f"worker {worker.index} did not answer within {ASK_TIMEOUT_S:.0f} s")
-                answer_id, ok, result = conn.recv()
+                    raise WorkerError(f"worker {self.index} did not answer within {ASK_TIMEOUT_S:.0f} s")
+                message = conn.recv()
             except (EOFError, OSError) as exc:
-                raise WorkerError(f"worker {worker.index} went away: {exc}") from exc
-            if answer_id != request_id:
-                continue
-            if ok:
-                return result
-            kind, message = result
-            if kind == "AlarmNotFound":
-                raise AlarmNotFound(message)
-            if kind == "NothingToAcknowledge":
-                raise NothingToAcknowledge(message)
-            raise WorkerError(f"worker {worker.index}: {message}")
+                raise WorkerError(f"worker {self.index} went away: {exc}") from exc
+            if isinstance(message, Answer) and message.call_id == call_id:
+                return message.reply
+            if isinstance(message, Refused) and message.call_id == call_id:
+                _raise_refusal(message, self.index)
 
-    # --------------------------------------------------------------------------------------------- readers
-
-    def state(self) -> AgentState:
-        """The fleet's state: every worker's, merged (docs/agent.md; `agent.workers` has each worker)."""
-        with self._state_lock:
-            now = self._clock()
-            if self._cached is not None and now - self._cached[0] < STATE_REUSE_S:
-                return self._cached[1]
-            answers = self._ask_all("state")
-            state = merge_reports(
-                self._info(now),
-                [report for _, report in answers],
-                self._worker_infos({worker.index: report for worker, report in answers}),
-                refused=dict(self._refused),
-                dropped=self._dropped(),
-            )
-            self._cached = (now, state)
-            return state
-
-    def _info(self, now: float) -> AgentInfo:
-        started = self._started_mono
-        return AgentInfo(
-            running=self.running,
-            pid=os.getpid(),
-            started_at=self._started_wall,
-            uptime_s=(now - started) if started is not None else 0.0,
-            time=self._wall_clock(),
-            mode=self.config.twin.mode,
-            units=self.config.telemetry.units,
-            devices=tuple(self.config.telemetry.devices),
-            topic_filters=tuple(self.topic_filters),
-            broker=broker_state(self.config.broker.url, self._pool_settings, self._pool, self._started_pool),
+    def describe(self, report: MirrorReport | None) -> WorkerInfo:
+        return WorkerInfo(
+            index=self.index,
+            pid=self.pid,
+            # Running and answering: a worker being started again has no report to merge yet.
+            alive=self.alive and report is not None,
+            restarts=self.restarts,
+            devices=len(report.devices) if report is not None else 0,
+            queued=len(self.queue),
+            dropped=self._dropped.total(),
+            processed=report.worker.processed if report is not None else 0,
+            errors=report.worker.errors if report is not None else 0,
+            recording=report.recording.path if report is not None and report.recording else "",
         )
 
-    def _worker_infos(self, reports: dict[int, WorkerReport]) -> tuple[WorkerInfo, ...]:
-        out = []
-        for worker in self._workers:
-            report = reports.get(worker.index)
-            agent = report.state.agent if report is not None else None
-            out.append(
-                WorkerInfo(
-                    index=worker.index,
-                    pid=worker.pid,
-                    # Running and answering: a worker being started again has no report to merge yet.
-                    alive=worker.alive and report is not None,
-                    restarts=worker.restarts,
-                    devices=len(report.state.devices) if report is not None else 0,
-                    queued=len(worker.queue),
-                    dropped=worker.dropped.total(),
-                    processed=agent.worker.processed if agent is not None else 0,
-                    errors=agent.worker.errors if agent is not None else 0,
-                    recording=agent.recording.path if agent is not None and agent.recording else "",
-                )
-            )
-        return tuple(out)
 
-    def _dropped(self) -> Counter[str]:
-        """Messages of each device dropped in this process: a worker's queue overflowed, or it was down."""
-        total: Counter[str] = Counter()
-        for worker in self._workers:
-            total.update(worker.queue.overflowed)
-            total.update(worker.dropped)
-        return total
+# ------------------------------------------------------------------------------------------ worker process
 
-    def healthz(self) -> HealthReport:
-        """Healthy = running, the broker connection up, every worker running and no configured device
-        OFFLINE."""
-        state = self.state()
-        connected = self._started_pool and self._pool.connected
-        reasons = []
-        if not self.running:
-            reasons.append("service not running")
-        if not connected:
-            reasons.append("broker connection down")
-        reasons.extend(f"worker {w.index} is not running" for w in state.agent.workers if not w.alive)
-        configured = set() if self.config.telemetry.all_devices else set(self.config.telemetry.devices)
-        statuses = {device: d.status for device, d in state.devices.items()}
-        reasons.extend(
-            f"device {d} is OFFLINE" for d in sorted(configured) if statuses.get(d) is DeviceStatus.OFFLINE
-        )
-        return HealthReport(
-            status="ok" if not reasons else "unavailable",
-            running=self.running,
-            broker_connected=connected,
-            devices=statuses,
-            reasons=tuple(reasons),
-        )
 
-    def alarms(self, *, include_normal: bool = False) -> tuple[AlarmInfo, ...]:
-        """Every worker's alarms, worst first (the order AgentService.alarms uses)."""
-        merged = [info for _, infos in self._ask_all("alarms", include_normal) for info in infos]
-        return tuple(sorted(merged, key=alarm_order))
+class _WorkerLogFilter(logging.Filter):
+    def __init__(self, index: int) -> None:
+        super().__init__()
+        self.index = index
 
-    def acknowledge_alarm(self, alarm_id: str) -> AlarmInfo:
-        """Acknowledged by the worker that owns the alarm's device; raises AlarmNotFound or
-        NothingToAcknowledge as AgentService does."""
-        device = alarm_id.split("/", 1)[0]
-        index = self._routes.get(device)
-        if index is None:
-            raise AlarmNotFound(alarm_id)
-        self._cached = None
-        return self._ask(self._workers[index], "ack", alarm_id)
+    def filter(self, record: logging.LogRecord) -> bool:
+        record.worker = self.index
+        return True
 
-    def _fleet_totals(self) -> FleetTotals:
-        return fleet_totals(self.state(), self.config.health.expected_rate_hz)
+
+def worker_main(
+    index: int, config: AgentConfig, data: Connection, control: Connection, budget: DeviceBudget
+) -> None:
+    """A worker process: a Mirror fed from `data`, answering `control` (module doc)."""
+    # The agent decides when workers stop (the rest of the queue first, then the sinks flush); a Ctrl-C in a
+    # terminal or systemd's SIGTERM reaches the whole process group.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    from twin.output.sinks import TwinSink  # noqa: PLC0415
+    from twin.service.logs import setup_logging  # noqa: PLC0415
+    from twin.service.mirror import Mirror, PipeInbox  # noqa: PLC0415 - MuJoCo loads in the worker only
+    from twin.service.outputs import close_sinks, configured_sinks  # noqa: PLC0415
+
+    setup_logging(config.log.level)
+    for handler in logging.getLogger().handlers:
+        handler.addFilter(_WorkerLogFilter(index))
+    sinks: list[TwinSink] = []
+    try:
+        sinks = configured_sinks(config)
+        mirror = Mirror(config, inbox=PipeInbox(data), budget=budget, slot=index, sinks=sinks)
+        mirror.start()
+    except ConfigError as exc:
+        # A setting the worker cannot work with (the ros2 extra missing, say): the agent exits as for any
+        # configuration error, with this message.
+        close_sinks(sinks)
+        control.send(StartFailed(str(exc), config_error=True))
+        return
+    except Exception as exc:
+        close_sinks(sinks)
+        log.exception("worker %d could not start", index)
+        control.send(StartFailed(f"{type(exc).__name__}: {exc}", config_error=False))
+        return
+    control.send(Ready(os.getpid()))
+    threading.Thread(target=_serve_control, args=(mirror, control), name="twin-control", daemon=True).start()
+    # The worker thread reads the pipe until the end marker (or the agent is gone), then ends.
+    mirror.join()
+    mirror.stop(timeout=30.0)
+    log.info("agent stopped", extra={"processed": mirror.processed, "errors": mirror.errors})
+
+
+def _serve_control(mirror: Mirror, control: Connection) -> None:
+    """Answer the agent's calls, one at a time, in the order they come."""
+    while True:
+        try:
+            call = control.recv()
+        except (EOFError, OSError):
+            return
+        if not isinstance(call, Call):
+            log.error("worker control: %r is not a call", call)
+            continue
+        reply: Answer | Refused
+        try:
+            reply = Answer(call.call_id, mirror.answer(call.request))
+        except AlarmNotFound as exc:
+            reply = Refused(call.call_id, Refusal.ALARM_NOT_FOUND, str(exc.args[0]) if exc.args else "")
+        except NothingToAcknowledge as exc:
+            reply = Refused(call.call_id, Refusal.NOTHING_TO_ACKNOWLEDGE, str(exc))
+        except Exception as exc:
+            log.exception("worker request %s failed", type(call.request).__name__)
+            reply = Refused(call.call_id, Refusal.ERROR, f"{type(exc).__name__}: {exc}")
+        try:
+            control.send(reply)
+        except (OSError, ValueError):
+            return
 
 
 # ------------------------------------------------------------------------------------------------ merging
@@ -770,22 +661,20 @@ class ShardedAgent:
 
 def merge_reports(
     info: AgentInfo,
-    reports: Sequence[WorkerReport],
+    reports: Sequence[MirrorReport],
     workers: tuple[WorkerInfo, ...],
     *,
-    refused: dict[str, int],
     dropped: Counter[str],
 ) -> AgentState:
-    """One fleet state from the workers' states. `info` is the receiving process's own part (process,
-    broker); `refused` its rejections by reason (devices over telemetry.max_devices); `dropped` the messages
-    of each device it could not hand to a worker, counted with the worker's own queue drops (`overwritten`).
+    """One fleet state from the mirrors' reports. `info` is the agent's own part (process, broker); `workers`
+    its worker processes (empty when the mirror runs in-process); `dropped` the messages of each device it
+    could not hand to a mirror, counted with the mirror's own queue drops (`overwritten`).
     """
     devices = {}
-    untracked: Counter[str] = Counter(refused)
+    untracked: Counter[str] = Counter()
     internal, end_to_end = LatencyHistogram(), LatencyHistogram()
     for report in reports:
-        state = report.state
-        for device, d in state.devices.items():
+        for device, d in report.devices.items():
             extra = dropped.get(device, 0)
             counters = d.counters
             devices[device] = (
@@ -795,30 +684,30 @@ def merge_reports(
                 if extra
                 else d
             )
-        untracked.update(state.untracked_rejected)
+        untracked.update(report.untracked_rejected)
         internal.merge(report.internal)
         end_to_end.merge(report.end_to_end)
-    agents = [report.state.agent for report in reports]
+    workers_alive = all(w.alive for w in workers)
     return AgentState(
         agent=dataclasses.replace(
             info,
-            running=info.running and all(w.alive for w in workers),
+            running=info.running and workers_alive,
             mailbox=MailboxState(
-                overwritten_total=sum(a.mailbox.overwritten_total for a in agents) + dropped.total(),
+                overwritten_total=sum(r.mailbox.overwritten_total for r in reports) + dropped.total(),
                 refused_keys=0,
-                pending=sum(a.mailbox.pending for a in agents) + sum(w.queued for w in workers),
+                pending=sum(r.mailbox.pending for r in reports) + sum(w.queued for w in workers),
             ),
             latency=FleetLatency(internal_s=internal.summary(), end_to_end_s=end_to_end.summary()),
             worker=WorkerState(
-                alive=all(w.alive for w in workers),
-                batches=sum(a.worker.batches for a in agents),
-                processed=sum(a.worker.processed for a in agents),
-                errors=sum(a.worker.errors for a in agents),
+                alive=bool(reports) and workers_alive and all(r.worker.alive for r in reports),
+                batches=sum(r.worker.batches for r in reports),
+                processed=sum(r.worker.processed for r in reports),
+                errors=sum(r.worker.errors for r in reports),
             ),
-            recording=_merge_recording([a.recording for a in agents if a.recording is not None]),
-            history=_merge_history([a.history for a in agents if a.history is not None]),
-            sinks=_merge_sinks([a.sinks for a in agents]),
-            alarms=_merge_alarms([a.alarms for a in agents]),
+            recording=_merge_recording([r.recording for r in reports if r.recording is not None]),
+            history=_merge_history([r.history for r in reports if r.history is not None]),
+            sinks=_merge_sinks([r.sinks for r in reports]),
+            alarms=_merge_alarms([r.alarms for r in reports]),
             loss=fleet_loss(d.loss for d in devices.values()),
             workers=workers,
         ),
@@ -827,22 +716,26 @@ def merge_reports(
     )
 
 
-def _sum_fields(items: Sequence[Any], cls: type, **fixed: Any) -> Any:
-    """A dataclass whose counts are the sums of `items`' (other fields from `fixed`)."""
-    values: dict[str, Any] = dict(fixed)
-    for f in dataclasses.fields(cls):
-        first = getattr(items[0], f.name)
+SummedT = TypeVar("SummedT", RecordingState, HistoryState, SinkStats)
+
+
+def _sum_fields(items: Sequence[SummedT], **fixed: object) -> SummedT:
+    """Like `items[0]`, its counts the sums of `items`' (other fields from `fixed`)."""
+    first = items[0]
+    values: dict[str, object] = dict(fixed)
+    for f in dataclasses.fields(first):
+        value = getattr(first, f.name)
         # By value, not annotation: under `from __future__ import annotations` those are strings.
-        if f.name not in fixed and isinstance(first, int) and not isinstance(first, bool):
+        if f.name not in fixed and isinstance(value, int) and not isinstance(value, bool):
             values[f.name] = sum(getattr(item, f.name) for item in items)
-    return cls(**values)
+    return dataclasses.replace(first, **values)
 
 
 def _merge_recording(parts: list[RecordingState]) -> RecordingState | None:
     if not parts:
         return None
     # Each worker records its own devices into its own session file; `agent.workers` lists every path.
-    return _sum_fields(parts, RecordingState, path=parts[0].path)
+    return _sum_fields(parts)
 
 
 def _merge_history(parts: list[HistoryState]) -> HistoryState | None:
@@ -850,8 +743,6 @@ def _merge_history(parts: list[HistoryState]) -> HistoryState | None:
         return None
     return _sum_fields(
         parts,
-        HistoryState,
-        uri=parts[0].uri,
         storage_ok=all(p.storage_ok for p in parts),
         last_error=next((p.last_error for p in parts if p.last_error), ""),
     )
@@ -863,13 +754,8 @@ def _merge_sinks(parts: list[tuple[SinkStats, ...]]) -> tuple[SinkStats, ...]:
         for sink in stats:
             by_name.setdefault(sink.name, []).append(sink)
     return tuple(
-        _sum_fields(
-            group,
-            SinkStats,
-            name=name,
-            last_error=next((s.last_error for s in group if s.last_error), ""),
-        )
-        for name, group in by_name.items()
+        _sum_fields(group, last_error=next((s.last_error for s in group if s.last_error), ""))
+        for group in by_name.values()
     )
 
 
@@ -892,11 +778,20 @@ def _merge_alarms(parts: list[AlarmsSummary]) -> AlarmsSummary:
 
 
 __all__ = [
-    "ShardedAgent",
+    "AckRequest",
+    "AlarmsRequest",
+    "MirrorReport",
+    "Reply",
+    "ReportRequest",
+    "Request",
+    "Shard",
     "WorkerError",
     "WorkerPlan",
-    "WorkerReport",
+    "WorkerShard",
+    "alarm_of",
+    "alarms_of",
     "merge_reports",
+    "report_of",
     "worker_config",
     "worker_count",
 ]

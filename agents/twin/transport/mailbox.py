@@ -1,7 +1,7 @@
 """The queue between the MQTT callback threads and the twin's worker.
 
 The CRT event-loop threads must never block, and every message must be decoded and counted before anything
-is coalesced (the worker coalesces valid messages when it catches up: service.agent). So this is a plain
+is coalesced (the worker coalesces valid messages when it catches up: service.mirror). So this is a plain
 bounded FIFO: putting never waits, and memory is bounded by dropping the oldest item when full (counted per
 key, so dropped work is visible in the metrics).
 """

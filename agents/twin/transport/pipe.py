@@ -1,11 +1,12 @@
-"""How messages cross the pipe from a sharded agent's receiving process to one of its worker processes.
+"""How messages cross the pipe from the agent to one of its worker processes (`twin run --workers N`).
 
-The receiving process (service.shards) and `twin bench worker` write batches with `send_batch` and end with
-`send_end`; the worker's PipeInbox (service.agent) reads them with `read_batch`. One pipe message is a
-pickled list of (mailbox key, (topic, payload, receive monotonic, receive wall)): the key is the device, or
-transport.mailbox.UNTRACKED_KEY for a topic that names none. An empty message is the end marker.
+The agent (service.shards, a sender thread per worker) and `twin bench worker` write batches with
+`send_batch` and end with `send_end`; the worker's PipeInbox (service.mirror) reads them with `read_batch`.
+One pipe message is a pickled list of (mailbox key, (topic, payload, receive monotonic, receive wall)): the
+key is the device, or transport.mailbox.UNTRACKED_KEY for a topic that names none. An empty message is the
+end marker.
 
-Light on purpose: the receiving process imports it, and must not load MuJoCo.
+Light on purpose: the agent imports it, and must not load MuJoCo.
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ import argparse
 import logging
 import signal
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from twin.cli.output import Console, stop_on_signals
 from twin.core.topics import DEFAULT_TOPIC_PREFIX
@@ -24,6 +24,10 @@ from twin.service.config import (
     load_config,
 )
 from twin.service.logs import setup_logging
+
+if TYPE_CHECKING:
+    from twin.output.sinks import TwinSink
+    from twin.service.agent import AgentService
 
 log = logging.getLogger("twin.run")
 console = Console("run")
@@ -152,7 +156,7 @@ def configure(args: argparse.Namespace, overrides: dict[str, Any]) -> AgentConfi
     return config
 
 
-def serve(config: AgentConfig, on_started: Callable[[Any], None] | None = None) -> int:
+def serve(config: AgentConfig, on_started: Callable[[AgentService], None] | None = None) -> int:
     """Run the agent until SIGTERM/SIGINT; `on_started(service)` runs once it is up. Returns the exit code."""
     service = _build_service(config)
     if isinstance(service, int):
@@ -180,32 +184,33 @@ def serve(config: AgentConfig, on_started: Callable[[Any], None] | None = None) 
         return EXIT_OK
 
 
-def _build_service(config: AgentConfig) -> Any:
-    """AgentService (one process), or ShardedAgent when the config asks for several workers; an exit code
+def _build_service(config: AgentConfig) -> AgentService | int:
+    """The agent with as many worker processes as the config asks for (in-process for one); an exit code
     when the configuration is invalid or a sink cannot open."""
-    # MuJoCo, awscrt and USD load here, not at import: `twin --help` stays fast.
-    from twin.service.shards import ShardedAgent, worker_count
+    # awscrt (and for an in-process mirror MuJoCo and USD) load here, not at import: `twin --help` stays fast.
+    from twin.service.agent import AgentService
+    from twin.service.shards import worker_count
 
     workers = worker_count(config)
-    if workers > 1:
-        # Each worker builds its own sinks and twins; this process only receives and serves.
-        try:
-            return ShardedAgent(config, workers)
-        except (ConfigError, ValueError) as exc:
-            return _config_error(str(exc))
-    from twin.service.agent import AgentService
-    from twin.service.outputs import close_sinks, configured_sinks
+    sinks: list[TwinSink] = []
+    if workers == 1:
+        # Worker processes build their own sinks from the config; an in-process mirror takes these. (The
+        # outputs load MuJoCo: not in an agent whose mirrors are worker processes.)
+        from twin.service.outputs import configured_sinks
 
+        try:
+            sinks = configured_sinks(config)
+        except ConfigError as exc:
+            return _config_error(str(exc))
+        except OSError as exc:
+            return _cannot_start(exc)
     try:
-        sinks = configured_sinks(config)
-    except ConfigError as exc:
-        return _config_error(str(exc))
-    except OSError as exc:
-        return _cannot_start(exc)
-    try:
-        return AgentService(config, sinks=sinks)
+        return AgentService(config, workers=workers, sinks=sinks)
     except (ConfigError, ValueError) as exc:
-        close_sinks(sinks)
+        if sinks:
+            from twin.service.outputs import close_sinks
+
+            close_sinks(sinks)
         return _config_error(str(exc))
 
 
