@@ -2,20 +2,24 @@
 
 The edge simulator publishes straight to mosquitto; the agent connects through the proxy, which drops every
 PUBLISH beyond 100 a second on each of the agent's connections, as IoT Core does. So the agent only mirrors
-the whole fleet if its connection pool keeps each connection under the budget.
+the whole fleet if its connection pool keeps each connection under the budget. And a new user's fleet: `twin
+run` with no config beside a 200-arm `twin edge-sim`, straight to mosquitto.
 """
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 
 import pytest
-from conftest import wait_for
-from twin.edge.simulator import FaultConfig
-from twin.rig.local import LocalRig
+from conftest import get_state, wait_for
+from twin.edge.simulator import FaultConfig, device_ids
+from twin.rig.local import LocalRig, child_env
 from twin.rig.quota_proxy import QuotaProxy
 from twin.service.agent import AgentService
+from twin.service.state import AgentState
 from twin.transport.plan import plan_listed
 
 pytestmark = pytest.mark.slow
@@ -139,3 +143,44 @@ def agent_metrics(agent: AgentService) -> str:
     from twin.service.metrics import render_metrics
 
     return render_metrics(agent.state())
+
+
+def test_a_new_user_sees_a_200_arm_fleet_mirrored_whole(rig: LocalRig) -> None:
+    """`twin run --devices '*'` with no config beside `twin edge-sim --devices 200`: every arm has a twin."""
+    arms = device_ids(200)
+    with rig.agent_process(devices="*", config_text=None) as (_proc, base):
+
+        def up() -> AgentState | None:
+            try:
+                state = get_state(base)
+            except OSError:
+                return None
+            return state if state.agent.broker.subscribes else None
+
+        wait_for(up, 60, "the agent subscribed", interval=0.2)
+        edge_log = rig.workdir / "edge-sim-200.log"
+        edge_sim = ["edge-sim", "--devices", "200", "--broker", rig.broker.url]
+        with edge_log.open("wb") as out:
+            edge = subprocess.Popen(
+                [sys.executable, "-m", "twin.cli", *edge_sim],
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                env=child_env(),
+            )
+            try:
+
+                def mirrored() -> AgentState | None:
+                    state = get_state(base)
+                    whole = len(state.devices) == len(arms)
+                    return (
+                        state if whole and all(d.counters.applied for d in state.devices.values()) else None
+                    )
+
+                state = wait_for(mirrored, 120, "all 200 arms mirrored", interval=0.5)
+            finally:
+                edge.terminate()
+                edge.wait(15)
+    assert sorted(state.devices) == arms
+    assert "too_many_devices" not in state.untracked_rejected
+    agent_log = next(rig.workdir.glob("agent-*.log")).read_text()
+    assert "device ignored" not in agent_log

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import random
 import signal
 import subprocess
 import sys
@@ -20,10 +21,13 @@ from typing import Any
 
 import psutil
 import pytest
-from conftest import get_metrics, metric, wait_for
+from awscrt import mqtt5
+from conftest import Publisher, get_metrics, get_state, metric, wait_for
 from test_servo_alarms_e2e import alarms, post
 from twin.core.health import DeviceCounters, DeviceStatus
 from twin.core.latency import LatencyHistogram
+from twin.core.topics import DEFAULT_TOPIC_PREFIX
+from twin.edge.payload import encode, make_payload
 from twin.edge.servo_faults import ServoFault
 from twin.rig.local import LocalRig, child_env
 from twin.rig.quota_proxy import QuotaProxy
@@ -391,3 +395,75 @@ def test_twin_run_with_workers_stops_them_all_on_sigterm(rig: LocalRig) -> None:
     ]
     workers_seen = {line.get("worker") for line in log_lines if line.get("msg") == "agent stopped"}
     assert workers_seen == {0, 1, None}  # each worker, then the receiving process
+
+
+# Junk that must take no place in the device budget: garbage on invented devices' topics (on both workers),
+# JSON that is not telemetry, a valid message on another device's topic, and a topic that names no device.
+JUNK_DEVICES = [f"junk-{i}" for i in range(8)] + [f"ghost-{i}" for i in range(8)]
+
+
+@pytest.mark.slow
+def test_junk_takes_no_place_and_the_device_limit_holds_across_workers(rig: LocalRig) -> None:
+    plan = WorkerPlan(2)
+    assert {plan.worker_of(d) for d in JUNK_DEVICES} == {0, 1}
+    # arm-001 is on worker 1, arm-004 and arm-005 on worker 0: the three places are taken on both workers.
+    order = ("arm-001", "arm-004", "arm-005", "arm-002", "arm-006")
+    assert [plan.worker_of(d) for d in order] == [1, 0, 0, 1, 0]
+    config = '[telemetry]\nmax_devices = 3\nunits = "ticks"\n'
+    with rig.agent_process(devices="*", config_text=config, extra_args=("--workers", "2")) as (_proc, base):
+
+        def up() -> AgentState | None:
+            try:
+                state = get_state(base)
+            except OSError:
+                return None
+            workers = state.agent.workers
+            ready = state.agent.broker.subscribes and len(workers) == 2 and all(w.alive for w in workers)
+            return state if ready else None
+
+        wait_for(up, 60, "the agent and its 2 workers", interval=0.2)
+        publisher = Publisher(rig.broker.url)
+        try:
+            rng = random.Random(7)
+            for device in JUNK_DEVICES[:8]:
+                publisher.publish(device, b"not json")
+            for device in JUNK_DEVICES[8:]:
+                publisher.publish(device, json.dumps({"device_id": device}).encode())
+            publisher.publish("ghost-9", encode(make_payload("arm-009", 0.0, "ticks", rng)))
+            nameless = f"{DEFAULT_TOPIC_PREFIX}/{'x' * 129}/telemetry"  # longer than a device id may be
+            publisher.client.publish(
+                mqtt5.PublishPacket(topic=nameless, payload=b"{}", qos=mqtt5.QoS.AT_MOST_ONCE)
+            ).result(5)
+        finally:
+            publisher.close()
+        sent = len(JUNK_DEVICES) + 2
+
+        def counted() -> AgentState | None:
+            state = get_state(base)
+            return state if sum(state.untracked_rejected.values()) >= sent else None
+
+        state = wait_for(counted, 20, f"the {sent} junk messages rejected")
+        assert sum(state.untracked_rejected.values()) == sent, state.untracked_rejected
+        assert "too_many_devices" not in state.untracked_rejected
+        assert state.devices == {}
+
+        # Three arms, one after another: each is admitted and mirrored, whichever worker it lands on.
+        for arms in (["arm-001"], ["arm-004", "arm-005"]):
+            report = rig.start_edge(arms, seconds=1.5, rate_hz=10.0).join(30)
+
+            def mirrored(arms: list[str] = arms, report: Any = report) -> bool:
+                devices = get_state(base).devices
+                return all(d in devices and devices[d].counters.applied == report.per_device[d] for d in arms)
+
+            wait_for(mirrored, 20, f"{arms} mirrored")
+
+        # The budget is spent across both workers: a fourth and fifth arm are refused, each on its own worker.
+        report = rig.start_edge(["arm-002", "arm-006"], seconds=1.5, rate_hz=10.0).join(30)
+
+        def refused() -> AgentState | None:
+            state = get_state(base)
+            return state if state.untracked_rejected.get("too_many_devices") == report.published else None
+
+        state = wait_for(refused, 20, "every message of the fourth and fifth arm refused")
+        assert sorted(state.devices) == ["arm-001", "arm-004", "arm-005"]
+        assert [w.devices for w in state.agent.workers] == [2, 1]

@@ -169,26 +169,29 @@ class LocalRig:
         self,
         *,
         devices: str = "*",
-        config_text: str = "",
+        config_text: str | None = "",
         extra_args: Sequence[str] = (),
         log_name: str = "agent",
     ) -> Iterator[tuple[subprocess.Popen[bytes], str]]:
         """`twin run` as a child process on this rig's broker; yields (process, HTTP base URL).
 
-        `config_text` is written as its TOML config; stdout and stderr go to
-        `<workdir>/<log_name>-<port>.log`. Stopped with SIGTERM on exit (SIGKILL after 15 s).
+        `config_text` is written as its TOML config (None: no --config, the defaults and the flags only);
+        stdout and stderr go to `<workdir>/<log_name>-<port>.log`. Stopped with SIGTERM on exit (SIGKILL
+        after 15 s).
         """
         port = free_port()
-        config = self.workdir / f"{log_name}-{port}.toml"
-        config.write_text(config_text)
+        config_args: list[str] = []
+        if config_text is not None:
+            config = self.workdir / f"{log_name}-{port}.toml"
+            config.write_text(config_text)
+            config_args = ["--config", str(config)]
         log_path = self.workdir / f"{log_name}-{port}.log"
         cmd = [
             sys.executable,
             "-m",
             "twin.cli",
             "run",
-            "--config",
-            str(config),
+            *config_args,
             "--broker",
             self.broker.url,
             "--devices",

@@ -57,7 +57,9 @@ class TelemetrySection:
     units: Units = Units.AUTO
     calibration: str = ""
     max_payload_bytes: int = MAX_PAYLOAD_BYTES
-    max_devices: int = 64
+    # One host mirrors about this many arms, and the account's default IoT Core publish quota carries as many
+    # at 10 Hz; a device counts once it has sent valid telemetry (service.admission).
+    max_devices: int = 2000
 
     @property
     def all_devices(self) -> bool:
