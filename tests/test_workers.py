@@ -7,6 +7,7 @@ edge simulator publishing.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import random
@@ -41,6 +42,7 @@ from twin.service.state import (
     HistoryState,
     LossSnapshot,
     MailboxState,
+    RecordingState,
     SinkStats,
     WorkerInfo,
     WorkerState,
@@ -216,6 +218,28 @@ def test_merged_state_sums_the_workers_and_adds_what_the_receiver_dropped() -> N
     assert agent.loss.loss_ratio == pytest.approx(5 / 40)
     # Still one state document: it survives its own JSON.
     assert AgentState.from_json(state.to_json()) == state
+
+
+def ones(cls: type[Any], **fixed: Any) -> Any:
+    """An instance of the dataclass `cls` whose every whole-number field is 1."""
+    values = {f.name: 1 for f in dataclasses.fields(cls) if f.type in ("int", int)}
+    return cls(**{**values, **fixed})
+
+
+def test_every_count_of_the_recording_history_and_sinks_is_summed() -> None:
+    # A count added to one of these states must be merged too: each whole-number field of two reports adds up.
+    parts = {
+        "recording": ones(RecordingState, path="a.usdc"),
+        "history": ones(HistoryState, uri="out/h"),
+        "sinks": (ones(SinkStats, name="history"),),
+    }
+    state = merge_reports(
+        AgentInfo(), [mirror_report({}, **parts), mirror_report({}, **parts)], (), dropped=Counter()
+    )
+    merged = [state.agent.recording, state.agent.history, *state.agent.sinks]
+    for item in merged:
+        counts = {f.name: getattr(item, f.name) for f in dataclasses.fields(item) if f.type in ("int", int)}
+        assert counts and set(counts.values()) == {2}, (type(item).__name__, counts)
 
 
 def test_a_worker_that_does_not_answer_is_not_running_in_the_merged_state() -> None:

@@ -19,6 +19,7 @@ import os
 import random
 import time
 from multiprocessing import Pipe
+from multiprocessing.connection import Connection
 from typing import Any
 
 from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
@@ -88,7 +89,7 @@ def _case(arms: int, rounds: int, *, alarms: bool) -> dict[str, Any]:
     }
 
 
-def _feed(service: Mirror, writer: Any, rounds: list[list[tuple[str, str, bytes]]]) -> float:
+def _feed(service: Mirror, writer: Connection, rounds: list[list[tuple[str, str, bytes]]]) -> float:
     """CPU microseconds of this process per message while the worker handles `rounds`."""
     total = sum(len(r) for r in rounds)
     target = service.processed + total

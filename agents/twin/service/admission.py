@@ -39,19 +39,18 @@ class DeviceBudget:
     def take(self, mirror: int) -> bool:
         """One place for a new device of `mirror`; False when `limit` devices hold one already."""
         with self._taken.get_lock():
-            taken = self._taken.get_obj()
-            if sum(taken) >= self.limit:
+            if sum(self._taken[:]) >= self.limit:
                 return False
-            taken[mirror] += 1
+            self._taken[mirror] += 1
             return True
 
     def release(self, mirror: int) -> None:
         """Give back every place `mirror` holds (its devices are gone: its process is started again)."""
         with self._taken.get_lock():
-            self._taken.get_obj()[mirror] = 0
+            self._taken[mirror] = 0
 
     @property
     def taken(self) -> int:
         """Places held across every mirror."""
         with self._taken.get_lock():
-            return int(sum(self._taken.get_obj()))
+            return int(sum(self._taken[:]))

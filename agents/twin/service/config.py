@@ -243,7 +243,7 @@ def _expect_type(key: str, value: Any, default: Any) -> Any:
     return value
 
 
-def _expect_choice(key: str, value: Any, choices: type[Enum]) -> Enum:
+def _expect_choice(key: str, value: object, choices: type[Enum]) -> Enum:
     """The member of `choices` whose value `value` is; ConfigError listing the values otherwise."""
     values = [str(member.value) for member in choices]
     if isinstance(value, str):

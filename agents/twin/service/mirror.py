@@ -43,7 +43,7 @@ import os
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -166,7 +166,7 @@ class _Applied(NamedTuple):
 
 # A device's last diagnostics, the alarm engine's JointHealth and worst (severity, state) per joint.
 _ServoReadout = tuple[
-    dict[str, JointDiagnostics], dict[str, JointHealth], dict[str, tuple[Severity, AlarmState]]
+    Mapping[str, JointDiagnostics], dict[str, JointHealth], dict[str, tuple[Severity, AlarmState]]
 ]
 
 
@@ -297,7 +297,7 @@ class Mirror:
         # Servo alarms and the last diagnostics per device: written by the worker, read (and acknowledged)
         # by the agent's threads, all under the lock.
         self._alarms = ServoAlarms(config.alarms)
-        self._diagnostics: dict[str, dict[str, JointDiagnostics]] = {}
+        self._diagnostics: dict[str, Mapping[str, JointDiagnostics]] = {}
         self._loss: dict[str, DeviceLoss] = {}
         self._lock = threading.Lock()
         self._reject_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
@@ -595,7 +595,7 @@ class Mirror:
         reason = str(rejected.reason)
         with self._lock:
             health = self._fleet.get(topic_device) if topic_device else None
-            if health is not None:
+            if topic_device is not None and health is not None:
                 health.record_received()
                 # It arrived: the hole it leaves in the device's timestamps is not transit loss.
                 self._loss_of(topic_device).record_rejected()

@@ -49,7 +49,7 @@ from dataclasses import dataclass
 from enum import StrEnum
 from multiprocessing.connection import Connection
 from multiprocessing.context import SpawnContext, SpawnProcess
-from typing import TYPE_CHECKING, Protocol, TypeVar
+from typing import TYPE_CHECKING, Protocol
 
 from twin.core.alarms import AlarmNotFound, NothingToAcknowledge
 from twin.core.latency import LatencyHistogram
@@ -716,34 +716,33 @@ def merge_reports(
     )
 
 
-SummedT = TypeVar("SummedT", RecordingState, HistoryState, SinkStats)
-
-
-def _sum_fields(items: Sequence[SummedT], **fixed: object) -> SummedT:
-    """Like `items[0]`, its counts the sums of `items`' (other fields from `fixed`)."""
-    first = items[0]
-    values: dict[str, object] = dict(fixed)
-    for f in dataclasses.fields(first):
-        value = getattr(first, f.name)
-        # By value, not annotation: under `from __future__ import annotations` those are strings.
-        if f.name not in fixed and isinstance(value, int) and not isinstance(value, bool):
-            values[f.name] = sum(getattr(item, f.name) for item in items)
-    return dataclasses.replace(first, **values)
-
-
 def _merge_recording(parts: list[RecordingState]) -> RecordingState | None:
     if not parts:
         return None
     # Each worker records its own devices into its own session file; `agent.workers` lists every path.
-    return _sum_fields(parts)
+    return RecordingState(
+        path=parts[0].path,
+        samples_written=sum(p.samples_written for p in parts),
+        samples_dropped=sum(p.samples_dropped for p in parts),
+        flushes=sum(p.flushes for p in parts),
+        flush_errors=sum(p.flush_errors for p in parts),
+    )
 
 
 def _merge_history(parts: list[HistoryState]) -> HistoryState | None:
     if not parts:
         return None
-    return _sum_fields(
-        parts,
+    return HistoryState(
+        uri=parts[0].uri,
         storage_ok=all(p.storage_ok for p in parts),
+        rows_committed=sum(p.rows_committed for p in parts),
+        commits=sum(p.commits for p in parts),
+        commit_failures=sum(p.commit_failures for p in parts),
+        rows_dropped=sum(p.rows_dropped for p in parts),
+        rows_buffered=sum(p.rows_buffered for p in parts),
+        rejected_rows_committed=sum(p.rejected_rows_committed for p in parts),
+        maintenance_runs=sum(p.maintenance_runs for p in parts),
+        maintenance_failures=sum(p.maintenance_failures for p in parts),
         last_error=next((p.last_error for p in parts if p.last_error), ""),
     )
 
@@ -754,8 +753,16 @@ def _merge_sinks(parts: list[tuple[SinkStats, ...]]) -> tuple[SinkStats, ...]:
         for sink in stats:
             by_name.setdefault(sink.name, []).append(sink)
     return tuple(
-        _sum_fields(group, last_error=next((s.last_error for s in group if s.last_error), ""))
-        for group in by_name.values()
+        SinkStats(
+            name=name,
+            delivered=sum(s.delivered for s in group),
+            dropped=sum(s.dropped for s in group),
+            errors=sum(s.errors for s in group),
+            pending=sum(s.pending for s in group),
+            last_error=next((s.last_error for s in group if s.last_error), ""),
+            skipped=sum(s.skipped for s in group),
+        )
+        for name, group in by_name.items()
     )
 
 
