@@ -202,7 +202,9 @@ def fed_agent(messages: int = 12, *, sinks: Sequence[Any] = (), **overrides: Any
             payload = encode(make_payload("arm-001", 0.1 * i, "ticks", rng, timestamp_ms=t0 + 100 * i))
             service.feed("dt/lerobot/arm-001/telemetry", payload)
             wait_for(
-                lambda n=i + 1: service.state().devices["arm-001"].counters.received >= n, 3, "the worker"
+                lambda n=i + 1: service.state().devices["arm-001"].health.counters.received >= n,
+                3,
+                "the worker",
             )
         service.feed("dt/lerobot/arm-001/telemetry", b"{not json")
         service.feed("dt/lerobot/ghost/telemetry", b"\xff")

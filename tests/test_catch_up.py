@@ -92,7 +92,7 @@ def test_a_backlog_is_counted_whole_and_the_newest_valid_message_is_shown(
     gate.release.set()
 
     wait_for(lambda: service.state().agent.worker.processed == 11, 5, "the backlog")
-    counters = service.state().devices["arm-001"].counters
+    counters = service.state().devices["arm-001"].health.counters
     assert (counters.received, counters.decoded, counters.rejected_total) == (11, 10, 1)
     # Only the newest valid message of the backlog moved the twin; the garbage after it displaced nothing.
     assert (counters.applied, counters.coalesced) == (2, 8)
@@ -112,6 +112,6 @@ def test_a_worker_keeping_up_applies_every_message(gated: tuple[AgentService, Ga
         payload = encode(make_payload("arm-001", 0.1 * i, "ticks", rng, timestamp_ms=t0 + 100 * i))
         service.feed(TOPIC, payload)
     wait_for(lambda: service.state().agent.worker.processed == 20, 5, "the messages")
-    counters = service.state().devices["arm-001"].counters
+    counters = service.state().devices["arm-001"].health.counters
     assert (counters.applied, counters.coalesced) == (20, 0)
     assert gate.applied_ms == [t0 + 100 * i for i in range(20)]

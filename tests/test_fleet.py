@@ -69,8 +69,8 @@ def test_a_listed_fleet_through_the_quota_has_no_loss(rig: LocalRig, proxy: Quot
     # Each device's messages arrive on one connection, so all of them are applied, in order.
     for device in FLEET:
         d = state.devices[device]
-        assert d.counters.applied == report.per_device[device], device
-        assert d.counters.ignored_stale == 0
+        assert d.health.counters.applied == report.per_device[device], device
+        assert d.health.counters.ignored_stale == 0
         assert d.loss.lost == 0
     assert state.agent.loss.lost == 0
     assert state.agent.loss.received == report.published
@@ -97,8 +97,8 @@ def test_a_wildcard_fleet_grows_its_shared_subscription(rig: LocalRig, proxy: Qu
     # What the quota discarded before the pool grew shows up as estimated loss, close to the proxy's count.
     lost, dropped = state.agent.loss.lost, proxy.totals()["dropped"]
     assert abs(lost - dropped) <= max(10, 0.1 * dropped), (lost, dropped)
-    applied = sum(d.counters.applied for d in state.devices.values())
-    assert applied + dropped + sum(d.counters.ignored_stale for d in state.devices.values()) >= (
+    applied = sum(d.health.counters.applied for d in state.devices.values())
+    assert applied + dropped + sum(d.health.counters.ignored_stale for d in state.devices.values()) >= (
         report.published - 5 * len(FLEET)
     )
 
@@ -127,14 +127,14 @@ def test_garbage_interleaved_with_good_messages_is_counted_exactly(rig: LocalRig
     report = edge.join(30)
     settle(agent, report.published)
     state = agent.state()
-    rejected = sum(d.counters.rejected_total for d in state.devices.values())
+    rejected = sum(d.health.counters.rejected_total for d in state.devices.values())
     rejected += sum(state.untracked_rejected.values())
     good = report.published - report.malformed_total
     assert report.malformed_total > 50
     assert rejected == report.malformed_total
-    assert sum(d.counters.decoded for d in state.devices.values()) == good
+    assert sum(d.health.counters.decoded for d in state.devices.values()) == good
     # Every good message was applied: none was displaced by the garbage queued around it.
-    assert sum(d.counters.applied for d in state.devices.values()) == good
+    assert sum(d.health.counters.applied for d in state.devices.values()) == good
     # A rejected message arrived, so the hole it leaves is not counted as transit loss.
     assert state.agent.loss.lost == 0
 
@@ -173,7 +173,9 @@ def test_a_new_user_sees_a_200_arm_fleet_mirrored_whole(rig: LocalRig) -> None:
                     state = get_state(base)
                     whole = len(state.devices) == len(arms)
                     return (
-                        state if whole and all(d.counters.applied for d in state.devices.values()) else None
+                        state
+                        if whole and all(d.health.counters.applied for d in state.devices.values())
+                        else None
                     )
 
                 state = wait_for(mirrored, 120, "all 200 arms mirrored", interval=0.5)

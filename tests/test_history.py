@@ -446,7 +446,7 @@ def test_the_agent_keeps_every_decoded_message_also_those_the_twin_ignores(tmp_p
             payload = encode(make_payload("arm-001", 0.0, "ticks", random.Random(1), timestamp_ms=stamp))
             agent.feed("dt/lerobot/arm-001/telemetry", payload)
         wait_for(lambda: agent.state().agent.worker.processed == 16, 3, "the late messages")
-        counters = agent.state().devices["arm-001"].counters
+        counters = agent.state().devices["arm-001"].health.counters
     assert (counters.decoded, counters.applied, counters.ignored_stale) == (14, 12, 2)
     rows = rows_of(uri)
     assert rows.height == 14  # every decoded message, applied or not
@@ -596,7 +596,7 @@ def test_replay_publishes_what_was_recorded_and_the_agent_mirrors_it(
     assert all(b - a == 25 for a, b in itertools.pairwise(stamps))  # ... keeping 100 ms spacing at 4x
     mirrored = state.devices["arm-001"]
     # units=auto needs a few messages to decide, then mirrors: the last replayed pose is the twin's pose.
-    applied = mirrored.counters.applied
+    applied = mirrored.health.counters.applied
     assert applied >= 30
     last = batch[-1].telemetry.angles_rad
     # The mock motion stays inside the model's joint ranges, so nothing was clamped.
@@ -605,13 +605,13 @@ def test_replay_publishes_what_was_recorded_and_the_agent_mirrors_it(
     # The agent's history (flushed by stop()) holds every decoded message with its raw readings, and the
     # messages auto-units held back as rejected rows.
     agent_rows = rows_of(str(tmp_path / "agent-history"))
-    assert agent_rows.height == mirrored.counters.decoded >= applied
+    assert agent_rows.height == mirrored.health.counters.decoded >= applied
     stored = agent_rows.sort("edge_time").row(-1, named=True)
     sent_last = json.loads(received[-1])["joints"]
     assert stored["wrist_flex_load_raw"] == sent_last["wrist_flex"]["load"]
     assert stored["gripper_position_rad"] == last["gripper"]
     rejected = rows_of(str(tmp_path / "agent-history"), REJECTED_TABLE)
-    assert rejected.height == mirrored.counters.rejected_total + sum(state.untracked_rejected.values())
+    assert rejected.height == mirrored.health.counters.rejected_total + sum(state.untracked_rejected.values())
     assert set(rejected["reason"].to_list()) == {"units_undecided"}
     history = state.agent.history
     assert history is not None and history.storage_ok and history.commit_failures == 0

@@ -14,7 +14,7 @@ from typing import Any
 
 import pytest
 from conftest import fed_agent, http_get, metric, parse_metrics
-from twin.core.health import DeviceCounters, DeviceStatus, WindowLatency
+from twin.core.health import DeviceCounters, DeviceStatus, HealthSnapshot, WindowLatency
 from twin.robot import so101
 from twin.service.http_api import AgentHttpServer
 from twin.service.metrics import render_metrics
@@ -37,12 +37,14 @@ class StubSource:
             n = self.calls
         device = DeviceState(
             device_id="arm-001",
-            status=DeviceStatus.ONLINE,
-            rate_hz=10.0,
-            counters=DeviceCounters(received=n, applied=n, rejected={"not_json": 3, 'we"ird\\': 1}),
+            health=HealthSnapshot(
+                status=DeviceStatus.ONLINE,
+                rate_hz=10.0,
+                counters=DeviceCounters(received=n, applied=n, rejected={"not_json": 3, 'we"ird\\': 1}),
+            ),
             joints_rad={"shoulder_pan": 0.25, "gripper": -0.1},
         )
-        odd = DeviceState(device_id='we"ird\ndevice', rate_hz=float("nan"))
+        odd = DeviceState(device_id='we"ird\ndevice', health=HealthSnapshot(rate_hz=float("nan")))
         return AgentState(
             agent=AgentInfo(running=True, uptime_s=1.5, worker=WorkerState(batches=n)),
             devices={"arm-001": device, 'we"ird\ndevice': odd},
@@ -75,7 +77,9 @@ def test_state_json(server) -> None:
     assert status == 200 and ctype == "application/json"
     state = json.loads(body)
     assert state["devices"]["arm-001"]["joints_rad"]["shoulder_pan"] == 0.25
-    assert state["devices"]['we"ird\ndevice']["rate_hz"] is None  # NaN is published as null, still valid JSON
+    assert (
+        state["devices"]['we"ird\ndevice']["health"]["rate_hz"] is None
+    )  # NaN is published as null, still valid JSON
 
 
 # One sample line: name, optional {label="value",...}, a float value (Prometheus text format 0.0.4).
@@ -218,12 +222,16 @@ def test_port_in_use_error_names_the_fix() -> None:
 def test_json_maps_non_finite_numbers_to_null() -> None:
     state = AgentState(
         agent=AgentInfo(uptime_s=math.inf),
-        devices={"a": DeviceState(rate_hz=math.nan, edge_clock_latency_s=WindowLatency(p50=-math.inf))},
+        devices={
+            "a": DeviceState(
+                health=HealthSnapshot(rate_hz=math.nan, edge_clock_latency_s=WindowLatency(p50=-math.inf))
+            )
+        },
     )
     doc = json.loads(state.to_json(), parse_constant=_refuse)
     assert doc["agent"]["uptime_s"] is None
-    assert doc["devices"]["a"]["rate_hz"] is None
-    assert doc["devices"]["a"]["edge_clock_latency_s"]["p50"] is None
+    assert doc["devices"]["a"]["health"]["rate_hz"] is None
+    assert doc["devices"]["a"]["health"]["edge_clock_latency_s"]["p50"] is None
 
 
 def _refuse(token: str) -> Any:
@@ -243,10 +251,10 @@ def test_real_state_is_strict_json_and_round_trips() -> None:
     again = AgentState.from_json(body)
     assert again.untracked_rejected == {"not_utf8": 1}
     arm = again.devices["arm-001"]
-    assert arm.counters.applied == 12 and arm.counters.rejected == {"not_json": 1}
+    assert arm.health.counters.applied == 12 and arm.health.counters.rejected == {"not_json": 1}
     assert arm.joints_rad is not None and set(arm.joints_rad) == set(so101.JOINT_NAMES)
     silent = again.devices["arm-002"]
-    assert silent.joints_rad is None and silent.age_s is None and silent.timestamp_ms is None
+    assert silent.joints_rad is None and silent.health.age_s is None and silent.timestamp_ms is None
     assert again.agent.broker.connected is False
 
 
@@ -261,8 +269,8 @@ def test_metrics_of_a_real_state_agree_with_it() -> None:
     assert arm.joints_rad is not None and arm.torques_nm is not None
     assert metric(samples, "twin_up") == 1
     assert metric(samples, "twin_broker_connected") == 0
-    assert metric(samples, "twin_messages_applied_total", device="arm-001") == arm.counters.applied
-    assert metric(samples, "twin_messages_received_total", device="arm-001") == arm.counters.received
+    assert metric(samples, "twin_messages_applied_total", device="arm-001") == arm.health.counters.applied
+    assert metric(samples, "twin_messages_received_total", device="arm-001") == arm.health.counters.received
     assert metric(samples, "twin_messages_rejected_total", device="arm-001", reason="not_json") == 1
     assert metric(samples, "twin_messages_rejected_total", device="_untracked", reason="not_utf8") == 1
     for joint in so101.JOINT_NAMES:
@@ -273,13 +281,13 @@ def test_metrics_of_a_real_state_agree_with_it() -> None:
             pytest.approx(arm.torques_nm[joint], abs=1e-12)
         )
     for status in DeviceStatus:
-        expected = 1 if arm.status is status else 0
+        expected = 1 if arm.health.status is status else 0
         assert metric(samples, "twin_device_status", device="arm-001", status=status.value) == expected
     # arm-002 has never sent: its latencies and age are unknown, so absent rather than a made-up 0.
     assert ("twin_device_last_message_age_seconds", (("device", "arm-002"),)) not in samples
     assert ("twin_internal_latency_p50_seconds", (("device", "arm-002"),)) not in samples
     assert metric(samples, "twin_internal_latency_p50_seconds", device="arm-001") == pytest.approx(
-        arm.internal_latency_s.p50
+        arm.health.internal_latency_s.p50
     )
 
 

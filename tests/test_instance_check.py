@@ -33,7 +33,7 @@ from infra.hostsim import BOOT_ID, HostSim
 from moto import mock_aws
 from twin.cli import main
 from twin.cli.commands import instance as cmd
-from twin.core.health import DeviceStatus
+from twin.core.health import DeviceStatus, HealthSnapshot
 from twin.ops import instance as lib
 from twin.ops import instance_check as chk
 from twin.service.state import AgentInfo, AgentState, BrokerState, DeviceState, HealthReport
@@ -147,7 +147,11 @@ def stand_in_host(tmp: Path, *, deployed: str = VERSION, viewer: bool = True, x:
             topic_filters=("dt/lerobot/arm-001/telemetry",),
             broker=BrokerState(url="iot", connected=True, subscribes=1, messages=420),
         ),
-        devices={"arm-001": DeviceState(device_id="arm-001", status=online, age_s=0.04, rate_hz=10.0)},
+        devices={
+            "arm-001": DeviceState(
+                device_id="arm-001", health=HealthSnapshot(status=online, age_s=0.04, rate_hz=10.0)
+            )
+        },
     )
     health = HealthReport(status="ok", running=True, broker_connected=True, devices={"arm-001": online})
     (host.sim / "agent" / "state.json").write_bytes(state.to_json())

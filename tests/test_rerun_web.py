@@ -83,7 +83,7 @@ def test_the_served_viewer_shows_the_arm_in_chromium(rig, chromium_page) -> None
     assert stats.delivered > 0 and (stats.errors, stats.dropped, stats.skipped) == (0, 0, 0)
     assert state.agent.worker.errors == 0
     for device in ("arm-001", "arm-002"):
-        counters = state.devices[device].counters
+        counters = state.devices[device].health.counters
         assert counters.applied > 0 and counters.rejected_total == 0
     web_port = urlsplit(url).port or 0
     service.stop()  # closes the sink, which stops its web viewer

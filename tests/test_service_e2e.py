@@ -81,15 +81,15 @@ def test_two_devices_both_variants_match_decode(agent: AgentService, publisher: 
         # Wiring: the agent shows what the decoder under test makes of the last message (the decoder's own
         # hand-derived oracles are in test_telemetry.py).
         assert state.units == variant
-        assert state.status is DeviceStatus.ONLINE
+        assert state.health.status is DeviceStatus.ONLINE
         assert state.joints_rad is not None and set(state.joints_rad) == set(so101.JOINT_NAMES)
         for joint in so101.JOINT_NAMES:
             assert abs(state.joints_rad[joint] - expected.angles_rad[joint]) <= 1e-9, (device, joint)
-        assert state.counters.applied >= 1
-        assert state.counters.rejected.get("units_undecided", 0) <= 3
-        assert state.rate_hz > 0
-        assert state.internal_latency_s.p50 is not None
-        assert state.edge_clock_latency_s.samples > 0
+        assert state.health.counters.applied >= 1
+        assert state.health.counters.rejected.get("units_undecided", 0) <= 3
+        assert state.health.rate_hz > 0
+        assert state.health.internal_latency_s.p50 is not None
+        assert state.health.edge_clock_latency_s.samples > 0
         assert state.torques_nm is not None and set(state.torques_nm) == set(so101.JOINT_NAMES)
 
     samples = get_metrics(agent.http_url)
@@ -119,11 +119,13 @@ def test_stale_and_offline_appear_and_clear(rig: LocalRig, publisher: Publisher)
     url = service.http_url
     publish_for(publisher, "arm-001", 0.6)
     t_stop = time.monotonic()  # the last message went out one period (50 ms) before this
-    assert device_state(url, "arm-001").status is DeviceStatus.ONLINE
+    assert device_state(url, "arm-001").health.status is DeviceStatus.ONLINE
     assert get_health(url)[0] == 200
     # Stale after 3 periods at 20 Hz (0.15 s), offline after 1 s of silence: STALE must show in between.
-    wait_for(lambda: device_state(url, "arm-001").status is DeviceStatus.STALE, 0.9, "STALE before 1 s")
-    wait_for(lambda: device_state(url, "arm-001").status is DeviceStatus.OFFLINE, 2.0, "OFFLINE")
+    wait_for(
+        lambda: device_state(url, "arm-001").health.status is DeviceStatus.STALE, 0.9, "STALE before 1 s"
+    )
+    wait_for(lambda: device_state(url, "arm-001").health.status is DeviceStatus.OFFLINE, 2.0, "OFFLINE")
     # OFFLINE comes from the 1 s threshold, so it cannot show earlier than that after the last message.
     assert time.monotonic() - t_stop >= 1.0 - 0.05
     status, body = get_health(url)
@@ -131,7 +133,7 @@ def test_stale_and_offline_appear_and_clear(rig: LocalRig, publisher: Publisher)
     assert metric(get_metrics(url), "twin_device_status", device="arm-001", status="OFFLINE") == 1
 
     publish_for(publisher, "arm-001", 0.3)
-    assert device_state(url, "arm-001").status is DeviceStatus.ONLINE
+    assert device_state(url, "arm-001").health.status is DeviceStatus.ONLINE
     assert get_health(url)[0] == 200
 
 

@@ -120,7 +120,7 @@ def test_flood_of_malformed_and_oversized_is_rejected_while_good_flows(
         # (mosquitto may drop some QoS 0 messages to a subscriber that falls behind, as IoT Core may.)
         def settled() -> AgentState | None:
             state = get_state(url)
-            c = state.devices["arm-001"].counters
+            c = state.devices["arm-001"].health.counters
             delivered = state.agent.broker.messages
             mailbox = state.agent.mailbox
             untracked = sum(state.untracked_rejected.values())
@@ -136,21 +136,21 @@ def test_flood_of_malformed_and_oversized_is_rejected_while_good_flows(
                 f"{exc}: accounted, delivered, bad sent, good sent = {last_counts}"
             ) from None
         dev = state.devices["arm-001"]
-        rejected = dev.counters.rejected
+        rejected = dev.health.counters.rejected
         assert rejected.get("too_large", 0) > 0
         assert rejected.get("not_json", 0) > 0
         assert rejected.get("device_mismatch", 0) > 0
         assert len(rejected) >= 6
         assert "ghost-7" not in state.devices
         # Good messages kept flowing through the flood.
-        assert dev.counters.applied > start.counters.applied + 10
+        assert dev.health.counters.applied > start.health.counters.applied + 10
         assert (dev.timestamp_ms or 0) > (start.timestamp_ms or 0)
         assert state.agent.worker.errors == 0
 
         samples = get_metrics(url)
         too_large = metric(samples, "twin_messages_rejected_total", device="arm-001", reason="too_large")
         assert too_large >= rejected["too_large"]  # a later scrape: counters only grow
-        assert metric(samples, "twin_messages_applied_total", device="arm-001") >= dev.counters.applied
+        assert metric(samples, "twin_messages_applied_total", device="arm-001") >= dev.health.counters.applied
         assert service.running
         # Rate-limited: one line per (device, reason) per 10 s, not one per message.
         lines = [r for r in caplog.records if r.getMessage() == "telemetry rejected"]
@@ -184,7 +184,8 @@ def test_reordered_and_duplicated_never_move_the_twin_backwards(rig: LocalRig, p
         expected_ms = t0 + 100 * seen_max
         wait_for(
             lambda n=i + 1, ms=expected_ms: (
-                (d := service.state().devices["arm-001"]).counters.received >= n and d.timestamp_ms == ms
+                (d := service.state().devices["arm-001"]).health.counters.received >= n
+                and d.timestamp_ms == ms
             ),
             3,
             f"message {i} to be processed and the twin at {expected_ms}",
@@ -193,9 +194,9 @@ def test_reordered_and_duplicated_never_move_the_twin_backwards(rig: LocalRig, p
         stamps.append(service.state().devices["arm-001"].timestamp_ms)
         assert stamps[-1] == expected_ms
     dev = device_state(service.http_url, "arm-001")
-    assert dev.counters.ignored_stale == expected_ignored
-    assert dev.counters.applied == len(order) - expected_ignored
-    assert dev.counters.clock_resets == 0
+    assert dev.health.counters.ignored_stale == expected_ignored
+    assert dev.health.counters.applied == len(order) - expected_ignored
+    assert dev.health.counters.clock_resets == 0
     expected = TelemetryDecoder(DecoderConfig(units=Units.TICKS)).decode(payloads[max(order)])
     assert dev.joints_rad is not None
     for joint, angle in expected.angles_rad.items():
@@ -220,9 +221,9 @@ def test_edge_clock_jump_backwards_rebuilds_the_twin(rig: LocalRig, publisher: P
         )
         time.sleep(0.05)
     dev = wait_for(
-        lambda: (d := device_state(url, "arm-001")).counters.clock_resets == 1 and d,
+        lambda: (d := device_state(url, "arm-001")).health.counters.clock_resets == 1 and d,
         3,
         "a counted clock reset",
     )
     assert dev.timestamp_ms is not None and now <= dev.timestamp_ms < future
-    assert dev.status is DeviceStatus.ONLINE
+    assert dev.health.status is DeviceStatus.ONLINE

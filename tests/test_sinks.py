@@ -234,7 +234,7 @@ def test_the_agent_hands_every_sample_to_every_sink_and_reports_them(tmp_path: P
         assert recording.samples_written + recording.samples_dropped == 12
     assert sink.closed  # stop() closes the sinks it was given
     # One AppliedSample per applied message, carrying the decoded telemetry and the angles the twin shows.
-    assert len(sink.applied_samples) == arm.counters.applied == 12
+    assert len(sink.applied_samples) == arm.health.counters.applied == 12
     last = sink.applied_samples[-1]
     assert last.device_id == "arm-001" and dict(last.joint_angles) == arm.joints_rad
     assert last.timestamp_ms == arm.timestamp_ms

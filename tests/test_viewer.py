@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from twin.core.health import DeviceStatus, WindowLatency
+from twin.core.health import DeviceStatus, HealthSnapshot, WindowLatency
 from twin.rig.local import LocalRig
 from twin.rig.mosquitto import free_port
 from twin.robot import so101
@@ -45,12 +45,14 @@ OUT = REPO / "out" / "viewer"
 
 def device_state(stamp: int, angle: float) -> DeviceState:
     return DeviceState(
-        status=DeviceStatus.ONLINE,
-        age_s=0.05,
-        rate_hz=10.0,
+        health=HealthSnapshot(
+            status=DeviceStatus.ONLINE,
+            age_s=0.05,
+            rate_hz=10.0,
+            edge_clock_latency_s=WindowLatency(p50=0.012, p99=0.034, samples=40),
+        ),
         timestamp_ms=stamp,
         joints_rad=dict.fromkeys(so101.JOINT_NAMES, angle),
-        edge_clock_latency_s=WindowLatency(p50=0.012, p99=0.034, samples=40),
     )
 
 
@@ -150,7 +152,9 @@ def test_servo_overlay_lists_each_servo_with_its_worst_alarm():
         alarm_severity="critical",
         alarm_state="ACTIVE",
     )
-    d = DeviceState(status=DeviceStatus.ONLINE, servos={"elbow_flex": hot, "gripper": ServoState()})
+    d = DeviceState(
+        health=HealthSnapshot(status=DeviceStatus.ONLINE), servos={"elbow_flex": hot, "gripper": ServoState()}
+    )
     fleet = FleetView()
     fleet.update(state_of(arm_001=d), 1.0)
     info = fleet.info("arm-001")

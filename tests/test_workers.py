@@ -25,7 +25,7 @@ import pytest
 from awscrt import mqtt5
 from conftest import Publisher, get_metrics, get_state, metric, wait_for
 from test_servo_alarms_e2e import alarms, post
-from twin.core.health import DeviceCounters, DeviceStatus
+from twin.core.health import DeviceCounters, DeviceStatus, HealthSnapshot
 from twin.core.latency import LatencyHistogram
 from twin.core.topics import DEFAULT_TOPIC_PREFIX
 from twin.edge.payload import encode, make_payload
@@ -154,7 +154,9 @@ def mirror_report(
     return MirrorReport(
         devices={
             d: DeviceState(
-                device_id=d, status=DeviceStatus.ONLINE, counters=c, loss=losses.get(d, LossSnapshot())
+                device_id=d,
+                health=HealthSnapshot(status=DeviceStatus.ONLINE, counters=c),
+                loss=losses.get(d, LossSnapshot()),
             )
             for d, c in devices.items()
         },
@@ -194,8 +196,8 @@ def test_merged_state_sums_the_workers_and_adds_what_the_receiver_dropped() -> N
         dropped=Counter({"b": 3}),
     )
     assert list(state.devices) == ["a", "b", "c"]
-    assert state.devices["a"].counters.overwritten == 1  # its worker's own
-    assert state.devices["b"].counters.overwritten == 3  # dropped by the receiving process
+    assert state.devices["a"].health.counters.overwritten == 1  # its worker's own
+    assert state.devices["b"].health.counters.overwritten == 3  # dropped by the receiving process
     assert state.untracked_rejected == {"not_json": 2}
     agent = state.agent
     assert (agent.pid, agent.running, agent.workers) == (1, True, workers)
@@ -274,7 +276,9 @@ def test_a_sharded_agent_mirrors_a_listed_fleet_through_the_quota(rig: LocalRig)
         )
         report = rig.start_edge(FLEET, seconds=4.0, rate_hz=10.0).join(30)
         wait_for(
-            lambda: sum(d.counters.applied for d in agent.state().devices.values()) >= report.published,
+            lambda: (
+                sum(d.health.counters.applied for d in agent.state().devices.values()) >= report.published
+            ),
             20,
             "every message applied",
         )
@@ -286,7 +290,7 @@ def test_a_sharded_agent_mirrors_a_listed_fleet_through_the_quota(rig: LocalRig)
     assert [w.devices for w in state.agent.workers] == [10, 10, 10]
     assert all(w.alive and w.pid not in (0, os.getpid()) for w in state.agent.workers)
     for device in FLEET:
-        counters = state.devices[device].counters
+        counters = state.devices[device].health.counters
         assert counters.applied == report.per_device[device], device
         assert counters.ignored_stale == counters.overwritten == 0
     assert state.agent.loss.lost == 0 and state.agent.loss.received == report.published
@@ -329,7 +333,7 @@ def test_a_sharded_wildcard_fleet_keeps_history_and_routes_acknowledgements(
     assert status == 404
     report = edge.join(30)
     wait_for(
-        lambda: sum(d.counters.decoded for d in agent.state().devices.values()) >= report.published,
+        lambda: sum(d.health.counters.decoded for d in agent.state().devices.values()) >= report.published,
         20,
         "every message decoded",
     )
@@ -348,7 +352,7 @@ def test_a_dead_worker_is_started_again(rig: LocalRig) -> None:
     wait_for(
         lambda: (
             len(agent.state().devices) == 4
-            and all(d.counters.applied for d in agent.state().devices.values())
+            and all(d.health.counters.applied for d in agent.state().devices.values())
         ),
         10,
         "all arms mirrored",
@@ -365,7 +369,7 @@ def test_a_dead_worker_is_started_again(rig: LocalRig) -> None:
     # Its arms are mirrored again from their next message; what arrived while it was down is counted.
     wait_for(
         lambda: all(
-            d in state.devices and state.devices[d].counters.applied > 5
+            d in state.devices and state.devices[d].health.counters.applied > 5
             for state in [agent.state()]
             for d in devices
         ),
@@ -377,7 +381,7 @@ def test_a_dead_worker_is_started_again(rig: LocalRig) -> None:
     lost_by_receiver = state.agent.workers[1].dropped
     assert lost_by_receiver > 0
     assert (
-        sum(state.devices[d].counters.overwritten for d in WorkerPlan(2, devices).devices_of(1))
+        sum(state.devices[d].health.counters.overwritten for d in WorkerPlan(2, devices).devices_of(1))
         == lost_by_receiver
     )
     assert state.agent.workers[0].restarts == 0
@@ -404,7 +408,7 @@ def test_twin_run_with_workers_stops_them_all_on_sigterm(rig: LocalRig) -> None:
         def mirrored() -> bool:
             with urllib.request.urlopen(base + "/state", timeout=2) as resp:
                 done = AgentState.from_json(resp.read())
-            return sum(d.counters.applied for d in done.devices.values()) == report.published
+            return sum(d.health.counters.applied for d in done.devices.values()) == report.published
 
         wait_for(mirrored, 15, "every message applied")
         proc.send_signal(signal.SIGTERM)
@@ -477,7 +481,9 @@ def test_junk_takes_no_place_and_the_device_limit_holds_across_workers(rig: Loca
 
             def mirrored(arms: list[str] = arms, report: Any = report) -> bool:
                 devices = get_state(base).devices
-                return all(d in devices and devices[d].counters.applied == report.per_device[d] for d in arms)
+                return all(
+                    d in devices and devices[d].health.counters.applied == report.per_device[d] for d in arms
+                )
 
             wait_for(mirrored, 20, f"{arms} mirrored")
 

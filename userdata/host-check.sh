@@ -147,10 +147,11 @@ else:
 devices = state.get("devices", {})
 lines, all_online = [], bool(devices)
 for device, entry in sorted(devices.items()):
-    status = entry.get("status", "?")
+    health = entry.get("health") or {}
+    status = health.get("status", "?")
     all_online = all_online and status == "ONLINE"
-    age = entry.get("age_s")
-    rate = entry.get("rate_hz") or 0.0
+    age = health.get("age_s")
+    rate = health.get("rate_hz") or 0.0
     seen = "never seen" if age is None else f"last message {age:.1f} s ago"
     lines.append(f"{device} {status} {rate:.1f} Hz, {seen}")
 detail = "; ".join(lines) or "no device has sent telemetry yet"

@@ -384,7 +384,9 @@ STATE = {
         "topic_filters": ["dt/lerobot/arm-001/telemetry"],
         "broker": {"url": "iot", "connected": True, "subscribes": 1, "messages": 0, "last_error": ""},
     },
-    "devices": {"arm-001": {"device_id": "arm-001", "status": "OFFLINE", "age_s": None, "rate_hz": 0.0}},
+    "devices": {
+        "arm-001": {"device_id": "arm-001", "health": {"status": "OFFLINE", "age_s": None, "rate_hz": 0.0}}
+    },
 }
 
 

@@ -222,7 +222,7 @@ def collect(procs: list[Any], timeout: float) -> dict[str, Any]:
 
 def sum_devices(state: AgentState, counter: str) -> int:
     """A per-device counter summed over the fleet."""
-    return sum(getattr(d.counters, counter) for d in state.devices.values())
+    return sum(getattr(d.health.counters, counter) for d in state.devices.values())
 
 
 def drained(base: str) -> AgentState:

@@ -102,13 +102,13 @@ class _Totals:
 def _totals(state: AgentState) -> _Totals:
     totals = _Totals()
     for d in state.devices.values():
-        c = d.counters
+        c = d.health.counters
         totals.received += c.received
         totals.decoded += c.decoded
         totals.applied += c.applied
         totals.ignored_stale += c.ignored_stale
         totals.overwritten += c.overwritten
-        totals.rate_hz += d.rate_hz
+        totals.rate_hz += d.health.rate_hz
         for reason, n in c.rejected.items():
             totals.rejected[reason] = totals.rejected.get(reason, 0) + n
     for reason, n in state.untracked_rejected.items():
@@ -122,11 +122,11 @@ def _worst(values: list[float | None]) -> float | None:
 
 
 def _edge_latency(state: AgentState, pct: str) -> float | None:
-    return _worst([getattr(d.edge_clock_latency_s, pct) for d in state.devices.values()])
+    return _worst([getattr(d.health.edge_clock_latency_s, pct) for d in state.devices.values()])
 
 
 def _internal_latency(state: AgentState, pct: str) -> float | None:
-    return _worst([getattr(d.internal_latency_s, pct) for d in state.devices.values()])
+    return _worst([getattr(d.health.internal_latency_s, pct) for d in state.devices.values()])
 
 
 def _clear_outputs(out_dir: Path) -> None:
@@ -287,7 +287,7 @@ def _watch(
         stop.wait(STATUS_INTERVAL_S)
         now = time.monotonic()
         state = service.state()
-        run.running_statuses = {device: str(d.status) for device, d in state.devices.items()}
+        run.running_statuses = {device: str(d.health.status) for device, d in state.devices.items()}
         first = state.devices.get(devices[0])
         if now >= next_frame and first is not None and first.joints_rad:
             run.frames.append(dict(first.joints_rad))
@@ -313,21 +313,27 @@ def _status(state: AgentState, sent: int, elapsed: float) -> DemoStatus:
         rate_hz=totals.rate_hz,
         latency_p50_s=_edge_latency(state, "p50"),
         latency_p99_s=_edge_latency(state, "p99"),
-        statuses={device: str(d.status) for device, d in state.devices.items()},
+        statuses={device: str(d.health.status) for device, d in state.devices.items()},
     )
 
 
 def _device_stats(run: _Run, device: str, d: DeviceState) -> dict[str, Any]:
     return {
         # Health at the end of the publishing run (a moment later every arm is STALE: the edge stopped).
-        "status": run.running_statuses.get(device, str(d.status)),
-        "status_after_stop": str(d.status),
-        "received": d.counters.received,
-        "applied": d.counters.applied,
-        "rejected": dict(d.counters.rejected),
-        "rate_hz": d.rate_hz,
-        "end_to_end_latency_s": {"p50": d.edge_clock_latency_s.p50, "p99": d.edge_clock_latency_s.p99},
-        "internal_latency_s": {"p50": d.internal_latency_s.p50, "p99": d.internal_latency_s.p99},
+        "status": run.running_statuses.get(device, str(d.health.status)),
+        "status_after_stop": str(d.health.status),
+        "received": d.health.counters.received,
+        "applied": d.health.counters.applied,
+        "rejected": dict(d.health.counters.rejected),
+        "rate_hz": d.health.rate_hz,
+        "end_to_end_latency_s": {
+            "p50": d.health.edge_clock_latency_s.p50,
+            "p99": d.health.edge_clock_latency_s.p99,
+        },
+        "internal_latency_s": {
+            "p50": d.health.internal_latency_s.p50,
+            "p99": d.health.internal_latency_s.p99,
+        },
         # Estimated from the gaps in the edge timestamps (docs/agent.md, Loss).
         "loss": {"lost": d.loss.lost, "loss_ratio": d.loss.loss_ratio, "losing": d.loss.losing},
         "joints_rad": d.joints_rad,

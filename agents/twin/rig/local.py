@@ -25,12 +25,15 @@ import threading
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from twin.core.topics import DEFAULT_TOPIC_PREFIX
 from twin.rig.mosquitto import MosquittoBroker, MosquittoNotFound, free_port
 from twin.service.config import AgentConfig, load_config
 from twin.transport.broker import BrokerConfig
+
+if TYPE_CHECKING:
+    from twin.service.agent import AgentService
 
 log = logging.getLogger(__name__)
 
@@ -148,7 +151,7 @@ class LocalRig:
         sinks: Sequence[Any] = (),
         wait_subscribed: bool = True,
         workers: int = 1,
-    ) -> Any:
+    ) -> AgentService:
         """Start an AgentService in this process (stopped by close()), its mirror in-process or, with
         `workers` > 1, in as many worker processes (`twin run --workers N`); waits until it has subscribed."""
         from twin.service.agent import AgentService  # noqa: PLC0415 - awscrt (and MuJoCo, USD) load here

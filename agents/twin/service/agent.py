@@ -388,7 +388,7 @@ class AgentService:
             reasons.append("broker connection down")
         reasons.extend(f"worker {w.index} is not running" for w in state.agent.workers if not w.alive)
         configured = () if self.config.telemetry.all_devices else self.config.telemetry.devices
-        statuses = {device: d.status for device, d in state.devices.items()}
+        statuses = {device: d.health.status for device, d in state.devices.items()}
         reasons.extend(
             f"device {d} is OFFLINE" for d in sorted(configured) if statuses.get(d) is DeviceStatus.OFFLINE
         )
@@ -427,17 +427,21 @@ def alarm_order(info: AlarmInfo) -> tuple[int, int, str]:
 
 def fleet_totals(state: AgentState, expected_rate_hz: float) -> FleetTotals:
     """The CloudWatch metrics' running totals and gauges, from one state document (docs/servo-health.md)."""
-    statuses = [d.status for d in state.devices.values()]
-    live = [d for d in state.devices.values() if d.status is not DeviceStatus.OFFLINE]
+    statuses = [d.health.status for d in state.devices.values()]
+    live = [d for d in state.devices.values() if d.health.status is not DeviceStatus.OFFLINE]
     # Per arm, the share of the expected rate that did not arrive, averaged over arms that are not OFFLINE
     # (an OFFLINE arm is counted as such, not as 100 % loss).
     loss = (
-        100.0 * sum(max(0.0, 1.0 - d.rate_hz / expected_rate_hz) for d in live) / len(live) if live else 0.0
+        100.0 * sum(max(0.0, 1.0 - d.health.rate_hz / expected_rate_hz) for d in live) / len(live)
+        if live
+        else 0.0
     )
-    p99s = [d.internal_latency_s.p99 for d in state.devices.values() if d.internal_latency_s.p99]
+    p99s = [
+        d.health.internal_latency_s.p99 for d in state.devices.values() if d.health.internal_latency_s.p99
+    ]
     return FleetTotals(
-        decoded=sum(d.counters.decoded for d in state.devices.values()),
-        rejected=sum(d.counters.rejected_total for d in state.devices.values())
+        decoded=sum(d.health.counters.decoded for d in state.devices.values()),
+        rejected=sum(d.health.counters.rejected_total for d in state.devices.values())
         + sum(state.untracked_rejected.values()),
         devices_online=statuses.count(DeviceStatus.ONLINE),
         devices_stale=statuses.count(DeviceStatus.STALE),

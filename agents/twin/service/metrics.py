@@ -337,21 +337,21 @@ class _DeviceFamilies:
 
     def add(self, device: str, d: DeviceState) -> None:
         for status in _STATUSES:
-            self.status.add_metric([device, status.value], 1 if d.status == status else 0)
-        _maybe(self.age, [device], d.age_s)
-        self.rate.add_metric([device], d.rate_hz)
-        c = d.counters
+            self.status.add_metric([device, status.value], 1 if d.health.status == status else 0)
+        _maybe(self.age, [device], d.health.age_s)
+        self.rate.add_metric([device], d.health.rate_hz)
+        c = d.health.counters
         for key, family in self.messages.items():
             family.add_metric([device], getattr(c, key))
         for reason, count in sorted(c.rejected.items()):
             self.rejected.add_metric([device, reason], count)
         self.errors.add_metric([device], c.errors)
         self.resets.add_metric([device], c.clock_resets)
-        _maybe(self.edge_p50, [device], d.edge_clock_latency_s.p50)
-        _maybe(self.edge_p99, [device], d.edge_clock_latency_s.p99)
-        _maybe(self.offset, [device], d.edge_clock_offset_s)
-        _maybe(self.int_p50, [device], d.internal_latency_s.p50)
-        _maybe(self.int_p99, [device], d.internal_latency_s.p99)
+        _maybe(self.edge_p50, [device], d.health.edge_clock_latency_s.p50)
+        _maybe(self.edge_p99, [device], d.health.edge_clock_latency_s.p99)
+        _maybe(self.offset, [device], d.health.edge_clock_offset_s)
+        _maybe(self.int_p50, [device], d.health.internal_latency_s.p50)
+        _maybe(self.int_p99, [device], d.health.internal_latency_s.p99)
         for joint, value in (d.joints_rad or {}).items():
             self.joints.add_metric([device, joint], value)
         for joint, value in (d.torques_nm or {}).items():

@@ -904,9 +904,9 @@ class Mirror:
 
     def _device_state(self, device: str, health: HealthSnapshot, readout: _Readout) -> DeviceState:
         snap = readout.snapshots.get(device)
-        return DeviceState.from_health(
-            device,
-            health,
+        return DeviceState(
+            device_id=device,
+            health=health,
             units=readout.units.get(device, self.config.telemetry.units),
             mode=self.mode,
             timestamp_ms=snap.timestamp_ms if snap else None,

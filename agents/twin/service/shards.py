@@ -676,14 +676,7 @@ def merge_reports(
     for report in reports:
         for device, d in report.devices.items():
             extra = dropped.get(device, 0)
-            counters = d.counters
-            devices[device] = (
-                dataclasses.replace(
-                    d, counters=dataclasses.replace(counters, overwritten=counters.overwritten + extra)
-                )
-                if extra
-                else d
-            )
+            devices[device] = _with_dropped(d, extra) if extra else d
         untracked.update(report.untracked_rejected)
         internal.merge(report.internal)
         end_to_end.merge(report.end_to_end)
@@ -714,6 +707,13 @@ def merge_reports(
         devices=dict(sorted(devices.items())),
         untracked_rejected=dict(sorted(untracked.items())),
     )
+
+
+def _with_dropped(device: DeviceState, dropped: int) -> DeviceState:
+    """`device` with `dropped` more messages counted as overwritten (the agent could not hand them over)."""
+    counters = device.health.counters
+    counters = dataclasses.replace(counters, overwritten=counters.overwritten + dropped)
+    return dataclasses.replace(device, health=dataclasses.replace(device.health, counters=counters))
 
 
 def _merge_recording(parts: list[RecordingState]) -> RecordingState | None:

@@ -37,6 +37,7 @@ __all__ = [
     "FleetLatency",
     "FleetLoss",
     "HealthReport",
+    "HealthSnapshot",
     "LatencySummary",
     "LossSnapshot",
     "MailboxState",
@@ -130,18 +131,11 @@ class ConnectionState:
 
 @dataclass(frozen=True)
 class DeviceState:
-    """One device: its health (status, age, rate, counters, latencies) and its twin's latest pose."""
+    """One device: its health (status, age, rate, counters, latencies; twin.core.health) and its twin's
+    latest pose."""
 
     device_id: str = ""
-    status: DeviceStatus = DeviceStatus.OFFLINE
-    age_s: float | None = None
-    rate_hz: float = 0.0
-    last_timestamp_ms: int | None = None
-    counters: DeviceCounters = field(default_factory=DeviceCounters)
-    edge_clock_latency_s: WindowLatency = field(default_factory=WindowLatency)
-    edge_clock_offset_s: float | None = None
-    edge_transit_jitter_p99_s: float | None = None
-    internal_latency_s: WindowLatency = field(default_factory=WindowLatency)
+    health: HealthSnapshot = field(default_factory=HealthSnapshot)
     # The twin: None until the first message of this device is applied.
     units: Units = Units.AUTO
     mode: TwinMode = TwinMode.KINEMATIC
@@ -155,23 +149,6 @@ class DeviceState:
     servos: dict[str, ServoState] | None = None
     # Messages estimated lost in transit, from the gaps in its edge timestamps (twin.core.loss).
     loss: LossSnapshot = field(default_factory=LossSnapshot)
-
-    @classmethod
-    def from_health(cls, device_id: str, health: HealthSnapshot, **twin: object) -> DeviceState:
-        """The health fields from `health`, the twin fields (units, mode, joints_rad, ...) as keywords."""
-        return cls(
-            device_id=device_id,
-            status=health.status,
-            age_s=health.age_s,
-            rate_hz=health.rate_hz,
-            last_timestamp_ms=health.last_timestamp_ms,
-            counters=health.counters,
-            edge_clock_latency_s=health.edge_clock_latency_s,
-            edge_clock_offset_s=health.edge_clock_offset_s,
-            edge_transit_jitter_p99_s=health.edge_transit_jitter_p99_s,
-            internal_latency_s=health.internal_latency_s,
-            **twin,  # type: ignore[arg-type]
-        )
 
 
 @dataclass(frozen=True, slots=True)

@@ -94,12 +94,12 @@ class FleetView:
             self.snapshots += 1
             for device_id, d in state.devices.items():
                 info = self._info.setdefault(device_id, DeviceInfo())
-                info.status = str(d.status)
-                info.age_s = d.age_s
-                info.rate_hz = d.rate_hz
-                info.latency_p50_s = d.edge_clock_latency_s.p50
-                info.latency_p99_s = d.edge_clock_latency_s.p99
-                info.internal_p99_s = d.internal_latency_s.p99
+                info.status = str(d.health.status)
+                info.age_s = d.health.age_s
+                info.rate_hz = d.health.rate_hz
+                info.latency_p50_s = d.health.edge_clock_latency_s.p50
+                info.latency_p99_s = d.health.edge_clock_latency_s.p99
+                info.internal_p99_s = d.health.internal_latency_s.p99
                 info.received_s = received_s
                 info.servos = d.servos
                 info.losing = d.loss.losing
