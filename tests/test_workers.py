@@ -31,6 +31,7 @@ from twin.core.topics import DEFAULT_TOPIC_PREFIX
 from twin.edge.payload import encode, make_payload
 from twin.edge.servo_faults import ServoFault
 from twin.rig.local import LocalRig, child_env
+from twin.rig.mosquitto import free_port
 from twin.rig.quota_proxy import QuotaProxy
 from twin.service.config import ConfigError, load_config
 from twin.service.shards import MirrorReport, WorkerPlan, merge_reports, worker_config, worker_count
@@ -497,3 +498,25 @@ def test_junk_takes_no_place_and_the_device_limit_holds_across_workers(rig: Loca
         state = wait_for(refused, 20, "every message of the fourth and fifth arm refused")
         assert sorted(state.devices) == ["arm-001", "arm-004", "arm-005"]
         assert [w.devices for w in state.agent.workers] == [2, 1]
+
+
+@pytest.mark.slow
+def test_a_setting_only_a_worker_can_check_stops_twin_run_with_exit_code_2(tmp_path: Path) -> None:
+    # The calibration file exists (the config loads), but only a mirror reads it: in a worker process here.
+    calibration = tmp_path / "arm.json"
+    calibration.write_text("{not a calibration")
+    config = tmp_path / "agent.toml"
+    config.write_text(f'[telemetry]\ncalibration = "{calibration}"\n')
+    broker = f"mqtt://127.0.0.1:{free_port()}"  # never reached: the workers fail before the pool starts
+    run = ["run", "--config", str(config), "--workers", "2", "--broker", broker, "--http", "127.0.0.1:0"]
+    done = subprocess.run(
+        [sys.executable, "-m", "twin.cli", *run],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=180,
+        env=child_env(),
+    )
+    assert done.returncode == 2, done.stderr
+    assert "configuration error: telemetry.calibration" in done.stderr
+    assert str(calibration) in done.stderr
