@@ -87,8 +87,23 @@ HealthSection = HealthThresholds
 
 @dataclass(frozen=True)
 class HttpSection:
+    """The HTTP API and the operator console (docs/agent.md "HTTP API", docs/console.md)."""
+
     listen: str = f"{DEFAULT_HTTP_HOST}:{DEFAULT_HTTP_PORT}"
     stream_rate_hz: float = 30.0
+    # Host names (or addresses) the server answers to besides the loopback ones: a page that reaches it
+    # under any other name (DNS rebinding) is refused. Add the name a non-loopback listener is reached by.
+    allowed_hosts: tuple[str, ...] = ()
+    # At most this many connections at once (more get 503): viewers, scrapes and console tabs are a handful.
+    max_connections: int = 64
+    # A request head or body that stalls, or a client that stops reading, is cut off after this long.
+    timeout_s: float = 10.0
+    # The largest request body accepted (the one POST takes none).
+    max_body_bytes: int = 65536
+    # How often the console's pages are updated (the fleet summary, an arm's page, the events tail).
+    console_rate_hz: float = 2.0
+    # A device's telemetry history splits into sessions at gaps longer than this (the Sessions page).
+    session_gap_s: float = 30.0
 
     @property
     def host(self) -> str:
@@ -288,8 +303,7 @@ def validate(config: AgentConfig) -> AgentConfig:
     _validate_telemetry(config.telemetry)
     _validate_twin(config.twin)
     _validate_health(config.health)
-    _split_listen(config.http.listen)
-    _positive("http.stream_rate_hz", config.http.stream_rate_hz)
+    _validate_http(config.http)
     _positive("cloudwatch.interval_s", config.cloudwatch.interval_s)
     if config.cloudwatch.emf_file and not config.cloudwatch.agent_name:
         raise ConfigError("cloudwatch.agent_name is empty; name the agent (the stack renders its stack name)")
@@ -307,6 +321,31 @@ def validate(config: AgentConfig) -> AgentConfig:
             "one process; set workers = 1 (or 0, which picks 1 while [rerun] is on), or turn [rerun] off"
         )
     return config
+
+
+def _validate_http(h: HttpSection) -> None:
+    _split_listen(h.listen)
+    _positive("http.stream_rate_hz", h.stream_rate_hz)
+    _positive("http.timeout_s", h.timeout_s)
+    _positive("http.console_rate_hz", h.console_rate_hz)
+    _positive("http.session_gap_s", h.session_gap_s)
+    if h.console_rate_hz > h.stream_rate_hz:
+        raise ConfigError(
+            f"http.console_rate_hz = {h.console_rate_hz} is above stream_rate_hz = {h.stream_rate_hz}; the "
+            "console needs no more than the stream (2 is plenty for people)"
+        )
+    if not 1 <= h.max_connections <= 10_000:
+        raise ConfigError(f"http.max_connections = {h.max_connections} is outside 1..10000")
+    if not 1024 <= h.max_body_bytes <= MAX_PAYLOAD_LIMIT_BYTES:
+        raise ConfigError(
+            f"http.max_body_bytes = {h.max_body_bytes} is outside 1024..{MAX_PAYLOAD_LIMIT_BYTES}"
+        )
+    for name in h.allowed_hosts:
+        if not name.strip() or any(c in name for c in "/ ,*@") or name.count(":") == 1:
+            raise ConfigError(
+                f"http.allowed_hosts: {name!r} is not a host name; list names or addresses without scheme, "
+                'port or wildcard, e.g. allowed_hosts = ["twin.example.internal", "10.0.1.5"]'
+            )
 
 
 def _validate_telemetry(t: TelemetrySection) -> None:

@@ -1,45 +1,109 @@
-"""The agent's local HTTP interface: state as JSON, Prometheus metrics, a health probe and a live SSE stream.
+"""The agent's HTTP server: the JSON API (state, metrics, health, alarms, a live stream) and the operator
+console's pages (docs/console.md), on one port, loopback by default.
 
-`http.server.ThreadingHTTPServer`: the agent binds it to 127.0.0.1 by default, and viewers, curl and a
-Prometheus scrape are its only clients. The server knows nothing about MQTT or MuJoCo; it asks a `StateSource`
-(the agent service) for its typed `AgentState` and renders every endpoint from that one snapshot, so /state,
-/metrics and /stream always agree.
+Starlette routes the requests; uvicorn serves them on a thread of its own with its own event loop, inside the
+agent's process, so the agent starts and stops it like any of its threads (`start()`, `stop()`). The server
+knows nothing about MQTT or MuJoCo: it asks its source (the agent service) for its typed `AgentState` and
+renders /state, /metrics and /stream from it, so they always agree.
 
-Endpoints (docs/agent.md has examples):
+Endpoints (docs/agent.md has examples; docs/console.md the console's own API):
 - GET /state    `AgentState.to_json()`
 - GET /metrics  Prometheus text exposition format 0.0.4 (twin.service.metrics)
 - GET /healthz  200 {"status": "ok", ...} or 503 {"status": "unavailable", "reasons": [...]}
 - GET /stream   Server-Sent Events, `data: {state json}` at most `stream_rate_hz` times a second
-- GET /alarms   servo alarms that are not NORMAL, worst first (`?all=1`: every alarm)
-- POST /alarms/<device>/<joint>/<kind>/ack   acknowledge one (ACTIVE -> ACKNOWLEDGED, LATCHED -> NORMAL);
-                from loopback clients only, whatever address the server listens on: the API has no
-                authentication, and an acknowledgement silences an alarm for everyone
+- GET /alarms   servo alarms that are not NORMAL, worst first (`?all=1`: every alarm; `?device=`: one arm's)
+- POST /alarms/<device>/<joint>/<kind>/ack  acknowledge one (ACTIVE -> ACKNOWLEDGED, LATCHED -> NORMAL); the
+                id may also come percent-encoded as one segment. Loopback clients only; a browser's request
+                only from the console's origin with its CSRF token (twin.service.http_guard)
+- GET /  (a browser) the console; (anything else) the list of endpoints, as before
+
+Bounded (each limit a `[http]` key): at most `max_connections` connections (more get 503), a request head or
+body that stalls, or a client that stops reading what it is sent, is cut off after `timeout_s`, and a body
+over `max_body_bytes` gets 413. Live updates are built once per tick and shared by every client
+(twin.service.stream_hub).
 """
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
-import ipaddress
-import json
 import logging
+import re
+import shutil
+import socket
+import tempfile
 import threading
-from http import HTTPStatus
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
-from typing import Any, Protocol
-from urllib.parse import parse_qs, unquote, urlsplit
+import time
+from collections.abc import Awaitable, Callable, Sequence
+from pathlib import Path
+from typing import Protocol, TypeVar, cast, runtime_checkable
+from urllib.parse import unquote
+
+import h11
+import uvicorn
+from starlette.applications import Starlette
+from starlette.exceptions import HTTPException
+from starlette.requests import Request
+from starlette.responses import FileResponse, JSONResponse, Response
+from starlette.routing import Mount, Route
+from starlette.staticfiles import StaticFiles
+from starlette.types import Receive, Scope, Send
+from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from twin.core.alarms import AlarmNotFound, NothingToAcknowledge
-from twin.service.config import DEFAULT_HTTP_HOST, DEFAULT_HTTP_PORT
+from twin.service.config import DEFAULT_HTTP_HOST, DEFAULT_HTTP_PORT, HttpSection
+from twin.service.console import (
+    ASSETS,
+    SESSION_FILE_KINDS,
+    EventSource,
+    SessionCatalog,
+    SessionInfo,
+    arm_update,
+    fleet_summary,
+    render_page,
+)
+from twin.service.events import Event, EventKind, EventLevel, EventQuery, events_csv, events_json
+from twin.service.http_guard import (
+    BodyTooLarge,
+    GuardSettings,
+    RequestGuard,
+    is_loopback_client,
+    new_csrf_token,
+)
 from twin.service.metrics import CONTENT_TYPE as PROMETHEUS_CONTENT_TYPE
 from twin.service.metrics import render_metrics
 from twin.service.state import AgentState, AlarmInfo, AlarmList, HealthReport
+from twin.service.stream_hub import ARM_PREFIX, FLEET, STATE, StreamHub, Subscription, encode_events
 
 log = logging.getLogger(__name__)
 
+__all__ = [
+    "ENDPOINTS",
+    "AgentHttpServer",
+    "AlarmSource",
+    "StateSource",
+    "is_loopback_client",
+]
+
 ENDPOINTS = ("/state", "/metrics", "/healthz", "/stream", "/alarms")
+CONSOLE_PAGES = ("/", "/arm/<device>", "/sessions", "/events")
 JSON_CONTENT_TYPE = "application/json"
-# Errors a client hanging up produces mid-write; never worth more than a debug line.
-_DISCONNECTS = (BrokenPipeError, ConnectionResetError, ConnectionAbortedError, TimeoutError)
+# How long a list of sessions is reused: reading them scans the history table.
+SESSIONS_REUSE_S = 5.0
+# Answers every page and API response carries: nothing is cached, nothing may frame the console, scripts and
+# styles come from this server only (the console ships its own; no inline script, no CDN).
+SECURITY_HEADERS = {
+    "cache-control": "no-store",
+    "x-content-type-options": "nosniff",
+    "x-frame-options": "DENY",
+    "referrer-policy": "no-referrer",
+}
+PAGE_CSP = (
+    "default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' data:; connect-src 'self'; "
+    "frame-ancestors 'none'; base-uri 'none'; form-action 'self'"
+)
+_DEVICE_FILE = re.compile(r"[^A-Za-z0-9_.-]")
+_T = TypeVar("_T")
 
 
 class StateSource(Protocol):
@@ -52,6 +116,7 @@ class StateSource(Protocol):
         ...
 
 
+@runtime_checkable
 class AlarmSource(Protocol):
     """What /alarms needs besides the state (the agent service has both; a source without them has no
     /alarms endpoint)."""
@@ -61,180 +126,138 @@ class AlarmSource(Protocol):
     def acknowledge_alarm(self, alarm_id: str) -> AlarmInfo: ...
 
 
-# ---------------------------------------------------------------------------------------------------- server
+# ------------------------------------------------------------------------------------------- connections
 
 
-class _Handler(BaseHTTPRequestHandler):
-    server: _AgentHTTPServer
-    server_version = "so101-twin"
+class _GuardedH11(H11Protocol):
+    """uvicorn's HTTP/1.1 connection, cut off when it stalls: a request head that does not arrive, or a
+    client that stops reading what it is sent. uvicorn waits forever on both (its keep-alive timeout covers
+    only an idle connection between requests): a client that stops reading would hold its connection and its
+    stream open for good, and closing it gracefully waits for the unsent data, so it is aborted instead."""
 
-    def log_message(self, format: str, *args: Any) -> None:
-        log.debug("http %s", format % args)
+    stall_timeout_s = 10.0
 
-    def _send(self, status: int, body: bytes, content_type: str) -> None:
-        self.send_response(status)
-        self.send_header("Content-Type", content_type)
-        self.send_header("Content-Length", str(len(body)))
-        self.send_header("Cache-Control", "no-store")
-        self.end_headers()
-        self.wfile.write(body)
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        # asyncio hands a server protocol a stream transport; uvicorn's signature says so, asyncio's does not.
+        super().connection_made(cast(asyncio.Transport, transport))
+        self._head_timer: asyncio.TimerHandle | None = None
+        self._write_timer: asyncio.TimerHandle | None = None
+        self._arm_head_timer()
 
-    def _send_json(self, status: int, payload: Any) -> None:
-        self._send(status, json.dumps(payload, allow_nan=False).encode(), JSON_CONTENT_TYPE)
+    def _arm_head_timer(self) -> None:
+        self._cancel(self._head_timer)
+        self._head_timer = self.loop.call_later(self.stall_timeout_s, self._head_stalled)
 
-    def do_GET(self) -> None:
-        path = urlsplit(self.path).path.rstrip("/") or "/"
-        try:
-            if path == "/state":
-                self._send(HTTPStatus.OK, self.server.source.state().to_json(), JSON_CONTENT_TYPE)
-            elif path == "/metrics":
-                body = render_metrics(self.server.source.state()).encode()
-                self._send(HTTPStatus.OK, body, PROMETHEUS_CONTENT_TYPE)
-            elif path == "/healthz":
-                report = self.server.source.healthz()
-                status = HTTPStatus.OK if report.healthy else HTTPStatus.SERVICE_UNAVAILABLE
-                self._send(status, report.to_json(), JSON_CONTENT_TYPE)
-            elif path == "/stream":
-                self._stream()
-            elif path == "/alarms" and hasattr(self.server.source, "alarms"):
-                query = parse_qs(urlsplit(self.path).query)
-                include_normal = query.get("all", ["0"])[-1] not in ("", "0", "false")
-                alarms = self.server.source.alarms(include_normal=include_normal)  # type: ignore[attr-defined]
-                self._send(HTTPStatus.OK, AlarmList(alarms=alarms).to_json(), JSON_CONTENT_TYPE)
-            elif path == "/":
-                self._send_json(HTTPStatus.OK, {"endpoints": list(ENDPOINTS)})
-            else:
-                self._send_json(
-                    HTTPStatus.NOT_FOUND, {"error": "not_found", "path": path, "endpoints": list(ENDPOINTS)}
-                )
-        except _DISCONNECTS:
-            log.debug("http client went away during %s", path)
-        except Exception:
-            log.exception("http handler failed", extra={"path": path})
-            with contextlib.suppress(OSError):
-                self._send_json(HTTPStatus.INTERNAL_SERVER_ERROR, {"error": "internal_error", "path": path})
+    def _head_stalled(self) -> None:
+        # Still no complete request head on this connection (a response completing re-arms the timer).
+        if self.conn.their_state in (h11.IDLE, h11.SEND_BODY) and not self.transport.is_closing():
+            log.debug("http connection from %s stalled before its request; closed", self.client)
+            self.transport.abort()
 
-    def do_POST(self) -> None:
-        path = urlsplit(self.path).path.rstrip("/")
-        parts = path.split("/")
-        # /alarms/<device>/<joint>/<kind>/ack: device ids never hold '/', so the id is the middle three.
-        if len(parts) != 6 or parts[1] != "alarms" or parts[5] != "ack":
-            self._send_json(
-                HTTPStatus.METHOD_NOT_ALLOWED,
-                {"error": "method_not_allowed", "allowed": ["GET", "POST /alarms/<id>/ack"]},
-            )
-            return
-        try:
-            self._acknowledge("/".join(unquote(p) for p in parts[2:5]))
-        except _DISCONNECTS:
-            log.debug("http client went away during %s", path)
-        except Exception:
-            log.exception("http handler failed", extra={"path": path})
-            with contextlib.suppress(OSError):
-                self._send_json(HTTPStatus.INTERNAL_SERVER_ERROR, {"error": "internal_error", "path": path})
+    def handle_events(self) -> None:
+        cycle = self.cycle
+        super().handle_events()
+        if self.cycle is not cycle and self.conn.their_state is not h11.SEND_BODY:
+            self._cancel(self._head_timer)
 
-    def _acknowledge(self, alarm_id: str) -> None:
-        # The body, if any, is not used; read it so the connection stays in step.
-        length = int(self.headers.get("Content-Length") or 0)
-        if length:
-            self.rfile.read(min(length, 65536))
-        client = self.client_address[0]
-        if not is_loopback_client(client):
-            self._send_json(
-                HTTPStatus.FORBIDDEN,
-                {
-                    "error": "forbidden",
-                    "detail": f"acknowledging alarms is allowed from this host only (loopback), not "
-                    f"{client}; open a shell on the host (the stack's SsmSessionCommand) and ask there",
-                },
-            )
-            return
-        source = self.server.source
-        if not hasattr(source, "acknowledge_alarm"):
-            self._send_json(
-                HTTPStatus.NOT_FOUND, {"error": "not_found", "detail": "this source has no alarms"}
-            )
-            return
-        try:
-            info = source.acknowledge_alarm(alarm_id)  # type: ignore[attr-defined]
-        except AlarmNotFound:
-            self._send_json(
-                HTTPStatus.NOT_FOUND,
-                {
-                    "error": "alarm_not_found",
-                    "alarm_id": alarm_id,
-                    "detail": "GET /alarms?all=1 lists every id",
-                },
-            )
-            return
-        except NothingToAcknowledge as exc:
-            self._send_json(HTTPStatus.CONFLICT, {"error": "nothing_to_acknowledge", "detail": str(exc)})
-            return
-        self._send(HTTPStatus.OK, AlarmList(alarms=(info,)).to_json(), JSON_CONTENT_TYPE)
+    def on_response_complete(self) -> None:
+        super().on_response_complete()
+        if not self.transport.is_closing():
+            self._arm_head_timer()
 
-    def do_PUT(self) -> None:
-        self._send_json(
-            HTTPStatus.METHOD_NOT_ALLOWED,
-            {"error": "method_not_allowed", "allowed": ["GET", "POST /alarms/<id>/ack"]},
+    def pause_writing(self) -> None:
+        super().pause_writing()
+        self._cancel(self._write_timer)
+        self._write_timer = self.loop.call_later(self.stall_timeout_s, self._write_stalled)
+
+    def resume_writing(self) -> None:
+        super().resume_writing()
+        self._cancel(self._write_timer)
+
+    def _write_stalled(self) -> None:
+        log.info(
+            "http client %s stopped reading for %.0f s; connection aborted", self.client, self.stall_timeout_s
         )
+        self.transport.abort()
 
-    do_DELETE = do_PATCH = do_PUT  # noqa: N815
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._cancel(self._head_timer)
+        self._cancel(self._write_timer)
+        super().connection_lost(exc)
 
-    def _stream(self) -> None:
-        self.send_response(HTTPStatus.OK)
-        self.send_header("Content-Type", "text/event-stream")
-        self.send_header("Cache-Control", "no-store")
-        self.send_header("X-Accel-Buffering", "no")
-        self.end_headers()
-        stop = self.server.stopping
-        interval = 1.0 / self.server.stream_rate_hz
-        self.wfile.write(b"retry: 1000\n\n")
-        self.server.stream_clients_inc(1)
+    @staticmethod
+    def _cancel(timer: asyncio.TimerHandle | None) -> None:
+        if timer is not None:
+            timer.cancel()
+
+
+def _protocol_class(stall_timeout_s: float) -> type[_GuardedH11]:
+    return type("GuardedH11", (_GuardedH11,), {"stall_timeout_s": stall_timeout_s})
+
+
+# ------------------------------------------------------------------------------------------- responses
+
+
+def _json(status: int, body: bytes) -> Response:
+    return Response(body, status_code=status, media_type=JSON_CONTENT_TYPE, headers=SECURITY_HEADERS)
+
+
+def _error(status: int, error: str, **fields: object) -> Response:
+    return JSONResponse({"error": error, **fields}, status_code=status, headers=SECURITY_HEADERS)
+
+
+class _EventStream(Response):
+    """A Server-Sent Events response fed by one hub subscription; ends when the client leaves, the server
+    stops, or the subscription closes."""
+
+    def __init__(self, subscription: Subscription, release: Callable[[Subscription], None]) -> None:
+        super().__init__(
+            # Exactly this type (Starlette would add a charset to a text/* media type; SSE is UTF-8 anyway).
+            headers={**SECURITY_HEADERS, "content-type": "text/event-stream", "x-accel-buffering": "no"},
+        )
+        # A stream has no length: Starlette declares the empty body's 0, which h11 would then enforce.
+        self.raw_headers = [(k, v) for k, v in self.raw_headers if k != b"content-length"]
+        self.subscription = subscription
+        self._release = release
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        sub = self.subscription
         try:
-            while not stop.is_set():
-                # One event = one JSON document on one line (msgspec never emits a newline inside it).
-                self.wfile.write(b"event: state\ndata: " + self.server.source.state().to_json() + b"\n\n")
-                self.wfile.flush()
-                stop.wait(interval)
+            await send({"type": "http.response.start", "status": 200, "headers": self.raw_headers})
+            await send({"type": "http.response.body", "body": b"retry: 1000\n\n", "more_body": True})
+            gone = asyncio.ensure_future(_disconnected(receive))
+            try:
+                while True:
+                    frame = asyncio.ensure_future(sub.next())
+                    done, _ = await asyncio.wait({frame, gone}, return_when=asyncio.FIRST_COMPLETED)
+                    if gone in done:
+                        frame.cancel()
+                        return
+                    data = frame.result()
+                    if data is None:
+                        break
+                    await send({"type": "http.response.body", "body": data, "more_body": True})
+                await send({"type": "http.response.body", "body": b"", "more_body": False})
+            finally:
+                gone.cancel()
         finally:
-            self.server.stream_clients_inc(-1)
+            self._release(sub)
 
 
-def is_loopback_client(address: str) -> bool:
-    """True for a loopback peer: 127.0.0.0/8, ::1, and IPv4 loopback seen through a dual-stack socket
-    (::ffff:127.0.0.1). Anything unparsable is not loopback."""
-    try:
-        ip = ipaddress.ip_address(address.split("%", 1)[0])
-    except ValueError:
-        return False
-    mapped = getattr(ip, "ipv4_mapped", None)
-    return (mapped or ip).is_loopback
+async def _disconnected(receive: Receive) -> None:
+    while (await receive())["type"] != "http.disconnect":
+        pass
 
 
-class _AgentHTTPServer(ThreadingHTTPServer):
-    daemon_threads = True
-    # Port reuse so a restarted agent can bind at once while old sockets sit in TIME_WAIT.
-    allow_reuse_address = True
-
-    def __init__(self, address: tuple[str, int], source: StateSource, stream_rate_hz: float) -> None:
-        super().__init__(address, _Handler)
-        self.source = source
-        self.stream_rate_hz = stream_rate_hz
-        self.stopping = threading.Event()
-        self._clients_lock = threading.Lock()
-        self.stream_clients = 0
-
-    def stream_clients_inc(self, n: int) -> None:
-        with self._clients_lock:
-            self.stream_clients += n
-
-    def handle_error(self, request: Any, client_address: Any) -> None:
-        # The default prints a traceback to stderr; a client dropping mid-response is routine, not an error.
-        log.debug("http connection error from %s", client_address, exc_info=True)
+# ------------------------------------------------------------------------------------------------- server
 
 
 class AgentHttpServer:
-    """Serves a StateSource on host:port in a background thread; `port=0` binds a free port (see `.port`)."""
+    """Serves a StateSource on host:port in a background thread; `port=0` binds a free port (see `.port`).
+
+    `settings` is the config's `[http]` section (limits, allowed hosts, the console's rates); `sessions` the
+    history's sessions for the console (none: the Sessions page says history is off); `rerun_url` the Rerun
+    web viewer the arm page links to (empty: no link)."""
 
     def __init__(
         self,
@@ -243,52 +266,126 @@ class AgentHttpServer:
         port: int = DEFAULT_HTTP_PORT,
         *,
         stream_rate_hz: float = 30.0,
+        settings: HttpSection | None = None,
+        sessions: SessionCatalog | None = None,
+        rerun_url: str = "",
     ):
         if stream_rate_hz <= 0:
             raise ValueError(f"stream_rate_hz = {stream_rate_hz} must be > 0")
-        try:
-            self._server = _AgentHTTPServer((host, port), source, stream_rate_hz)
-        except OSError as exc:
-            raise OSError(
-                exc.errno,
-                f"cannot listen on {host}:{port} ({exc.strerror}); another agent may be running there: "
-                "stop it or choose another address with --http HOST:PORT",
-            ) from exc
+        self.settings = settings or HttpSection()
+        self._source = source
+        self._stream_rate_hz = stream_rate_hz
+        self._sessions = sessions
+        self.rerun_url = rerun_url
+        self.csrf_token = new_csrf_token()
+        self._socket = _listen(host, port)
+        self._host, self._port = self._socket.getsockname()[:2]
+        self._guard = RequestGuard(
+            self._build_app(),
+            GuardSettings.of(self.settings.allowed_hosts, self.settings.max_body_bytes, host),
+            self.csrf_token,
+        )
+        self._uvicorn = uvicorn.Server(
+            uvicorn.Config(
+                self._guard,
+                lifespan="off",
+                log_config=None,
+                log_level=logging.WARNING,
+                access_log=False,
+                http=_protocol_class(self.settings.timeout_s),
+                ws="none",
+                # uvicorn counts the connection asking, so one more than the connections to serve.
+                limit_concurrency=self.settings.max_connections + 1,
+                timeout_keep_alive=5,
+                timeout_graceful_shutdown=2,
+                h11_max_incomplete_event_size=16 * 1024,
+                server_header=False,
+            )
+        )
         self._thread: threading.Thread | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._hub: StreamHub | None = None
+        self._started = threading.Event()
+        self._files_dir: Path | None = None
+        self._file_locks: dict[str, asyncio.Lock] = {}
+        self._sessions_cache: tuple[float, list[SessionInfo]] | None = None
+
+    # --------------------------------------------------------------------------------------------- lifecycle
 
     @property
     def host(self) -> str:
-        return str(self._server.server_address[0])
+        return str(self._host)
 
     @property
     def port(self) -> int:
-        return int(self._server.server_address[1])
+        return int(self._port)
 
     @property
     def url(self) -> str:
-        return f"http://{self.host}:{self.port}"
+        host = self.host if ":" not in self.host else f"[{self.host}]"
+        return f"http://{host}:{self.port}"
 
     @property
     def stream_clients(self) -> int:
-        return self._server.stream_clients
+        """Open live streams (/stream and the console's)."""
+        return self._hub.clients if self._hub is not None else 0
+
+    @property
+    def refused(self) -> dict[str, int]:
+        """Requests the guard refused, by reason."""
+        return dict(self._guard.refused)
 
     def start(self) -> None:
         if self._thread is not None:
             return
-        self._thread = threading.Thread(
-            target=self._server.serve_forever, kwargs={"poll_interval": 0.2}, name="twin-http", daemon=True
-        )
+        self._thread = threading.Thread(target=self._serve, name="twin-http", daemon=True)
         self._thread.start()
+        if not self._started.wait(10.0):
+            log.error("http server did not start within 10 s")
         log.info("http listening", extra={"url": self.url})
 
+    def _serve(self) -> None:
+        try:
+            asyncio.run(self._main())
+        except Exception:
+            log.exception("http server failed")
+        finally:
+            self._started.set()
+
+    async def _main(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        hub = self._hub = StreamHub(
+            self._source, state_rate_hz=self._stream_rate_hz, console_rate_hz=self.settings.console_rate_hz
+        )
+        ticker = asyncio.create_task(hub.run(), name="twin-http-hub")
+        self._started.set()
+        try:
+            await self._uvicorn.serve(sockets=[self._socket])
+        finally:
+            hub.close()
+            ticker.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await ticker
+
     def stop(self) -> None:
-        """Stop accepting, end open streams, close the socket. Idempotent."""
-        self._server.stopping.set()
-        if self._thread is not None:
-            self._server.shutdown()
-            self._thread.join(timeout=5)
-            self._thread = None
-        self._server.server_close()
+        """End open streams, stop accepting, close the socket. Idempotent."""
+        loop, thread = self._loop, self._thread
+        if loop is not None and thread is not None and thread.is_alive():
+            with contextlib.suppress(RuntimeError):  # the loop already closed
+                loop.call_soon_threadsafe(self._shutdown)
+            thread.join(timeout=10)
+            if thread.is_alive():
+                log.error("http server thread did not stop within 10 s")
+        self._thread = None
+        self._socket.close()
+        if self._files_dir is not None:
+            shutil.rmtree(self._files_dir, ignore_errors=True)
+            self._files_dir = None
+
+    def _shutdown(self) -> None:
+        if self._hub is not None:
+            self._hub.close()
+        self._uvicorn.should_exit = True
 
     def __enter__(self) -> AgentHttpServer:
         self.start()
@@ -296,3 +393,384 @@ class AgentHttpServer:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+    # ------------------------------------------------------------------------------------------------ routes
+
+    def _build_app(self) -> Starlette:
+        r = self._guarded
+        routes = [
+            Route("/", r(self._root)),
+            Route("/state", r(self._state)),
+            Route("/metrics", r(self._metrics)),
+            Route("/healthz", r(self._healthz)),
+            Route("/stream", r(self._stream)),
+            Route("/alarms", r(self._alarms)),
+            Route("/alarms/{alarm_id:path}/ack", r(self._acknowledge), methods=["POST"]),
+            Route("/arm/{device}", r(self._page_arm)),
+            Route("/sessions", r(self._page("sessions"))),
+            Route("/events", r(self._page("events"))),
+            Route("/api/fleet", r(self._api_fleet)),
+            Route("/api/arm/{device}", r(self._api_arm)),
+            Route("/api/stream/fleet", r(self._stream_fleet)),
+            Route("/api/stream/arm/{device}", r(self._stream_arm)),
+            Route("/api/events", r(self._api_events)),
+            Route("/api/events.csv", r(self._export_events_csv)),
+            Route("/api/events.json", r(self._export_events_json)),
+            Route("/api/stream/events", r(self._stream_events)),
+            Route("/api/sessions", r(self._api_sessions)),
+            Route("/api/sessions/{device}/{start}/{kind}", r(self._session_file)),
+            Mount("/static", app=StaticFiles(directory=ASSETS), name="static"),
+        ]
+        return Starlette(
+            routes=routes,
+            exception_handlers={404: self._not_found, 405: self._not_allowed},
+        )
+
+    def _guarded(
+        self, handler: Callable[[Request], Awaitable[Response]]
+    ) -> Callable[[Request], Awaitable[Response]]:
+        """A handler whose failure is a logged 500 with a JSON body, and a client gone mid-answer nothing."""
+
+        async def run(request: Request) -> Response:
+            try:
+                return await handler(request)
+            except HTTPException:
+                raise
+            except Exception:
+                log.exception("http handler failed", extra={"path": request.url.path})
+                return _error(500, "internal_error", path=request.url.path)
+
+        return run
+
+    async def _not_found(self, request: Request, exc: Exception) -> Response:
+        if request.method not in ("GET", "HEAD"):
+            return await self._not_allowed(request, exc)
+        return _error(404, "not_found", path=request.url.path, endpoints=list(ENDPOINTS))
+
+    async def _not_allowed(self, request: Request, exc: Exception) -> Response:
+        return _error(405, "method_not_allowed", allowed=["GET", "POST /alarms/<id>/ack"])
+
+    async def _call(self, fn: Callable[[], _T]) -> _T:
+        """Run a blocking source call off the event loop (the state of a sharded agent asks its workers)."""
+        return await asyncio.to_thread(fn)
+
+    # ---------------------------------------------------------------------------------------------- the API
+
+    async def _root(self, request: Request) -> Response:
+        if "text/html" in request.headers.get("accept", ""):
+            return self._html(render_page("fleet", csrf_token=self.csrf_token, rerun_url=self.rerun_url))
+        return JSONResponse(
+            {"endpoints": list(ENDPOINTS), "console": list(CONSOLE_PAGES)}, headers=SECURITY_HEADERS
+        )
+
+    async def _state(self, request: Request) -> Response:
+        state = await self._call(self._source.state)
+        return _json(200, state.to_json())
+
+    async def _metrics(self, request: Request) -> Response:
+        state = await self._call(self._source.state)
+        body = render_metrics(state).encode()
+        return Response(
+            body, media_type=None, headers={**SECURITY_HEADERS, "content-type": PROMETHEUS_CONTENT_TYPE}
+        )
+
+    async def _healthz(self, request: Request) -> Response:
+        report = await self._call(self._source.healthz)
+        return _json(200 if report.healthy else 503, report.to_json())
+
+    async def _stream(self, request: Request) -> Response:
+        return self._subscribe(STATE)
+
+    async def _alarms(self, request: Request) -> Response:
+        source = self._source
+        if not isinstance(source, AlarmSource):
+            return _error(404, "not_found", path=request.url.path, endpoints=list(ENDPOINTS))
+        include_normal = request.query_params.get("all", "0") not in ("", "0", "false")
+        alarms = await self._call(lambda: source.alarms(include_normal=include_normal))
+        device = request.query_params.get("device")
+        if device is not None:
+            alarms = tuple(a for a in alarms if a.device == device)
+        return _json(200, AlarmList(alarms=alarms).to_json())
+
+    async def _acknowledge(self, request: Request) -> Response:
+        try:
+            # The body, if any, is not used; it is read (within the limits) so the connection stays in step.
+            await asyncio.wait_for(request.body(), self.settings.timeout_s)
+        except BodyTooLarge as exc:
+            return _error(413, "body_too_large", detail=str(exc))
+        except TimeoutError:
+            return _error(
+                408,
+                "request_timeout",
+                detail=f"the request body did not arrive within {self.settings.timeout_s} s",
+            )
+        source = self._source
+        if not isinstance(source, AlarmSource):
+            return _error(404, "not_found", detail="this source has no alarms")
+        alarm_id = alarm_id_of(request.scope)
+        try:
+            info = await self._call(lambda: source.acknowledge_alarm(alarm_id))
+        except AlarmNotFound:
+            return _error(
+                404, "alarm_not_found", alarm_id=alarm_id, detail="GET /alarms?all=1 lists every id"
+            )
+        except NothingToAcknowledge as exc:
+            return _error(409, "nothing_to_acknowledge", detail=str(exc))
+        return _json(200, AlarmList(alarms=(info,)).to_json())
+
+    # ------------------------------------------------------------------------------------------ the console
+
+    def _html(self, body: bytes) -> Response:
+        return Response(
+            body,
+            media_type="text/html; charset=utf-8",
+            headers={**SECURITY_HEADERS, "content-security-policy": PAGE_CSP},
+        )
+
+    def _page(self, page: str) -> Callable[[Request], Awaitable[Response]]:
+        async def serve(request: Request) -> Response:
+            return self._html(render_page(page, csrf_token=self.csrf_token, rerun_url=self.rerun_url))
+
+        return serve
+
+    async def _page_arm(self, request: Request) -> Response:
+        device = request.path_params["device"]
+        return self._html(
+            render_page("arm", csrf_token=self.csrf_token, device=device, rerun_url=self.rerun_url)
+        )
+
+    async def _alarm_list(self) -> Sequence[AlarmInfo]:
+        source = self._source
+        if not isinstance(source, AlarmSource):
+            return ()
+        return await self._call(source.alarms)
+
+    async def _api_fleet(self, request: Request) -> Response:
+        state = await self._call(self._source.state)
+        return _json(200, fleet_summary(state, await self._alarm_list()))
+
+    async def _api_arm(self, request: Request) -> Response:
+        device = request.path_params["device"]
+        state = await self._call(self._source.state)
+        if device not in state.devices:
+            return _error(404, "device_not_found", device=device, detail="GET /api/fleet lists every device")
+        return _json(200, arm_update(state, device, await self._alarm_list()))
+
+    async def _stream_fleet(self, request: Request) -> Response:
+        return self._subscribe(FLEET)
+
+    async def _stream_arm(self, request: Request) -> Response:
+        return self._subscribe(ARM_PREFIX + request.path_params["device"])
+
+    def _subscribe(self, topic: str) -> Response:
+        hub = self._hub
+        if hub is None:
+            return _error(503, "starting", detail="the server is starting; try again")
+        return _EventStream(hub.subscribe(topic), hub.unsubscribe)
+
+    async def _stream_events(self, request: Request) -> Response:
+        hub = self._hub
+        if hub is None:
+            return _error(503, "starting", detail="the server is starting; try again")
+        after = _int_param(request, "after", 0)
+        return _EventStream(await hub.subscribe_events(after), hub.unsubscribe)
+
+    async def _query_events(self, request: Request, limit: int) -> Sequence[Event] | Response:
+        source = self._source
+        if not isinstance(source, EventSource):
+            return _error(404, "not_found", detail="this source keeps no events")
+        try:
+            query = event_query(request, limit)
+        except ValueError as exc:
+            return _error(400, "bad_query", detail=str(exc))
+        return await self._call(lambda: source.events(query))
+
+    async def _api_events(self, request: Request) -> Response:
+        events = await self._query_events(request, limit=1000)
+        if isinstance(events, Response):
+            return events
+        last = events[-1].id if events else _int_param(request, "after", 0)
+        body = b'{"last_id":' + str(last).encode() + b',"events":' + encode_events(events) + b"}"
+        return _json(200, body)
+
+    async def _export_events_csv(self, request: Request) -> Response:
+        events = await self._query_events(request, limit=100_000)
+        if isinstance(events, Response):
+            return events
+        return Response(
+            events_csv(events).encode("utf-8"),
+            media_type="text/csv; charset=utf-8",
+            headers={**SECURITY_HEADERS, "content-disposition": 'attachment; filename="twin-events.csv"'},
+        )
+
+    async def _export_events_json(self, request: Request) -> Response:
+        events = await self._query_events(request, limit=100_000)
+        if isinstance(events, Response):
+            return events
+        return Response(
+            events_json(events),
+            media_type=JSON_CONTENT_TYPE,
+            headers={**SECURITY_HEADERS, "content-disposition": 'attachment; filename="twin-events.json"'},
+        )
+
+    # -------------------------------------------------------------------------------------------- sessions
+
+    async def _session_list(self) -> list[SessionInfo]:
+        catalog = self._sessions
+        if catalog is None:
+            return []
+        now = time.monotonic()
+        cached = self._sessions_cache
+        if cached is not None and now - cached[0] < SESSIONS_REUSE_S:
+            return cached[1]
+        gap = self.settings.session_gap_s
+        listed = await self._call(lambda: catalog.sessions(gap))
+        raised = await self._alarm_raises()
+        wall = time.time()
+        out = [
+            SessionInfo(
+                device=s.device,
+                start=s.start,
+                end=s.end,
+                messages=s.messages,
+                status="active" if wall - s.end <= gap else "completed",
+                alarms_raised=sum(
+                    1 for device, t in raised if device == s.device and s.start <= t <= s.end + gap
+                ),
+            )
+            for s in listed
+        ]
+        self._sessions_cache = (now, out)
+        return out
+
+    async def _alarm_raises(self) -> list[tuple[str, float]]:
+        source = self._source
+        if not isinstance(source, EventSource):
+            return []
+        query = EventQuery(
+            kinds=frozenset({EventKind.ALARM.value}), min_level=EventLevel.WARNING, limit=100_000
+        )
+        events = await self._call(lambda: source.events(query))
+        return [(e.device, e.time) for e in events if e.data.get("action") == "raised"]
+
+    async def _api_sessions(self, request: Request) -> Response:
+        sessions = await self._session_list()
+        body = {
+            "history": self._sessions is not None,
+            "gap_s": self.settings.session_gap_s,
+            "kinds": list(SESSION_FILE_KINDS),
+            "sessions": [
+                {
+                    "device": s.device,
+                    "key": s.key,
+                    "start": s.start,
+                    "end": s.end,
+                    "duration_s": round(s.end - s.start, 3),
+                    "messages": s.messages,
+                    "alarms_raised": s.alarms_raised,
+                    "status": s.status,
+                }
+                for s in sessions
+            ],
+        }
+        return JSONResponse(body, headers=SECURITY_HEADERS)
+
+    async def _session_file(self, request: Request) -> Response:
+        catalog = self._sessions
+        if catalog is None:
+            return _error(404, "no_history", detail="history is off: set [history] uri to keep sessions")
+        device, start, kind = (request.path_params[k] for k in ("device", "start", "kind"))
+        if kind not in SESSION_FILE_KINDS:
+            return _error(404, "unknown_kind", kind=kind, kinds=list(SESSION_FILE_KINDS))
+        session = next((s for s in await self._session_list() if s.device == device and s.key == start), None)
+        if session is None:
+            return _error(
+                404, "session_not_found", device=device, start=start, detail="GET /api/sessions lists them"
+            )
+        media_type, ext = SESSION_FILE_KINDS[kind]
+        directory = self._files()
+        name = f"{_DEVICE_FILE.sub('_', device)}-{session.key}.{ext}"
+        lock = self._file_locks.setdefault(name, asyncio.Lock())
+        async with lock:
+            path = directory / name
+            # A completed session's file is made once; an active one grows, so it is made anew each time.
+            if not path.is_file() or session.status == "active":
+                try:
+                    path = await self._call(lambda: catalog.session_file(session, kind, directory))
+                except ValueError as exc:
+                    return _error(409, "session_file_failed", detail=str(exc))
+        return FileResponse(path, media_type=media_type, filename=name, headers=SECURITY_HEADERS)
+
+    def _files(self) -> Path:
+        if self._files_dir is None:
+            self._files_dir = Path(tempfile.mkdtemp(prefix="twin-console-"))
+        return self._files_dir
+
+
+# ----------------------------------------------------------------------------------------------- helpers
+
+
+def _listen(host: str, port: int) -> socket.socket:
+    """The listening socket, made now so a taken address is an error at construction, with the fix."""
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(
+            host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE
+        )[0]
+        sock = socket.socket(family, kind, proto)
+    except OSError as exc:
+        raise OSError(exc.errno, f"cannot listen on {host}:{port} ({exc.strerror or exc})") from exc
+    try:
+        # Port reuse so a restarted agent can bind at once while old sockets sit in TIME_WAIT.
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(address)
+        sock.listen(128)
+    except OSError as exc:
+        sock.close()
+        raise OSError(
+            exc.errno,
+            f"cannot listen on {host}:{port} ({exc.strerror}); another agent may be running there: "
+            "stop it or choose another address with --http HOST:PORT",
+        ) from exc
+    sock.setblocking(False)
+    return sock
+
+
+def alarm_id_of(scope: Scope) -> str:
+    """The alarm id of POST /alarms/<id>/ack from the raw path: `device/joint/kind` as three segments, or as
+    one percent-encoded segment (`arm-001%2Fwrist_roll%2Fover_temperature`); each segment is decoded once."""
+    raw = bytes(scope.get("raw_path") or scope["path"].encode()).decode("latin-1").split("?", 1)[0]
+    inner = raw.rstrip("/").removeprefix("/alarms/").removesuffix("/ack")
+    return "/".join(unquote(part) for part in inner.split("/"))
+
+
+def _int_param(request: Request, name: str, default: int) -> int:
+    text = request.query_params.get(name, "")
+    return int(text) if text.isdigit() else default
+
+
+def _float_param(request: Request, name: str) -> float | None:
+    text = request.query_params.get(name, "").strip()
+    if not text:
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise ValueError(f"{name} = {text!r} is not a time in epoch seconds") from None
+
+
+def event_query(request: Request, limit: int) -> EventQuery:
+    """An EventQuery from the query string: device, level (minimum), kind (comma-separated), q (text), since,
+    until (epoch seconds), after (an event id), limit."""
+    params = request.query_params
+    level = params.get("level", "").strip()
+    kinds = frozenset(k.strip() for k in params.get("kind", "").split(",") if k.strip())
+    return EventQuery(
+        device=params.get("device", "").strip(),
+        min_level=EventLevel.parse(level) if level else EventLevel.INFO,
+        kinds=kinds,
+        text=params.get("q", "").strip(),
+        since=_float_param(request, "since"),
+        until=_float_param(request, "until"),
+        after_id=_int_param(request, "after", 0),
+        limit=min(limit, max(1, _int_param(request, "limit", limit))),
+    )

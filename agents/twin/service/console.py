@@ -1,0 +1,201 @@
+"""What the operator console's pages are sent: the fleet summary, one arm's update, sessions, page shells.
+
+The fleet page of a 2,000-arm fleet must not receive 2,000 full device states (~3 kB each) every tick: it
+gets one row per arm with what a card shows (status, last seen, rate, loss, worst alarm, hottest servo), as
+arrays under one list of column names, built once per tick from the state every client shares
+(`fleet_summary`). An arm's page gets that arm's full state and its alarms (`arm_update`).
+
+Sessions come from the telemetry history, which the service layer cannot read itself (the reader lives with
+the tools, above it): whoever runs the agent hands the HTTP server a `SessionCatalog` (the CLI's
+`twin run` does when `[history]` is on). The pages themselves are static files shipped in the package
+(`console_ui/`, no CDN: the console works with no internet), one HTML shell filled per page.
+"""
+
+from __future__ import annotations
+
+import html
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from string import Template
+from typing import Protocol, runtime_checkable
+
+import msgspec
+
+from twin.service.events import Event, EventQuery
+from twin.service.state import AgentState, AlarmInfo, DeviceState
+
+__all__ = [
+    "ASSETS",
+    "FLEET_COLUMNS",
+    "SESSION_FILE_KINDS",
+    "EventSource",
+    "SessionCatalog",
+    "SessionInfo",
+    "arm_update",
+    "fleet_summary",
+    "render_page",
+]
+
+ASSETS = Path(__file__).with_name("console_ui")
+PAGES = ("fleet", "arm", "sessions", "events")
+FLEET_COLUMNS = (
+    "device",
+    "status",
+    "last_seen",  # epoch seconds of the last message (null: never heard from)
+    "rate_hz",
+    "loss_pct",  # of the recent window (docs/agent.md, "Loss")
+    "alarm_severity",  # the worst alarm that is not NORMAL: critical | warning | null
+    "alarm_state",
+    "alarm_kind",
+    "alarm_joint",
+    "hot_joint",  # the hottest servo and its temperature (null: no temperature sent)
+    "hot_c",
+    "rejected",  # messages rejected so far
+)
+# What a session offers to download, with the media type of each.
+SESSION_FILE_KINDS: dict[str, tuple[str, str]] = {
+    "csv": ("text/csv", "csv"),
+    "parquet": ("application/vnd.apache.parquet", "parquet"),
+    "png": ("image/png", "png"),
+    "rrd": ("application/octet-stream", "rrd"),
+    "usd": ("application/octet-stream", "usdc"),
+}
+_SEVERITY_RANK = {"critical": 2, "warning": 1}
+
+
+@runtime_checkable
+class EventSource(Protocol):
+    """The optional part of the service surface behind the Events page."""
+
+    def events(self, query: EventQuery) -> Sequence[Event]: ...
+
+
+class SessionInfo(msgspec.Struct, frozen=True):
+    """One session: a device's continuous telemetry, from its first to its last message (epoch seconds)."""
+
+    device: str
+    start: float
+    end: float
+    messages: int
+    status: str = "completed"  # active | completed
+    alarms_raised: int = 0
+
+    @property
+    def key(self) -> str:
+        """How a page names the session: the device and its start in epoch milliseconds."""
+        return f"{round(self.start * 1000)}"
+
+
+@runtime_checkable
+class SessionCatalog(Protocol):
+    """Sessions from the telemetry history (implemented next to the history reader, in the tools)."""
+
+    def sessions(self, gap_s: float) -> Sequence[SessionInfo]:
+        """Every device's sessions: runs of messages no more than `gap_s` apart, newest first."""
+        ...
+
+    def session_file(self, session: SessionInfo, kind: str, directory: Path) -> Path:
+        """Make the session's file of `kind` (a SESSION_FILE_KINDS key) in `directory`; returns its path.
+        Raises ValueError when the history cannot give it (the message says why)."""
+        ...
+
+
+def _worst_alarms(alarms: Sequence[AlarmInfo]) -> dict[str, AlarmInfo]:
+    """Each device's first alarm in the list (alarms come worst first)."""
+    worst: dict[str, AlarmInfo] = {}
+    for alarm in alarms:
+        worst.setdefault(alarm.device, alarm)
+    return worst
+
+
+def _hottest(device: DeviceState) -> tuple[str | None, float | None]:
+    best: tuple[str | None, float | None] = (None, None)
+    for joint, servo in (device.servos or {}).items():
+        temp = servo.temperature_c
+        if temp is not None and (best[1] is None or temp > best[1]):
+            best = (joint, temp)
+    return best
+
+
+def _round(value: float | None, digits: int) -> float | None:
+    if value is None or math.isnan(value):  # NaN is not JSON
+        return None
+    return round(value, digits)
+
+
+def fleet_rows(state: AgentState, alarms: Sequence[AlarmInfo]) -> list[list[object]]:
+    """One row per device in FLEET_COLUMNS order, sorted by device id."""
+    now = state.agent.time
+    worst = _worst_alarms(alarms)
+    rows: list[list[object]] = []
+    for device_id, d in state.devices.items():
+        alarm = worst.get(device_id)
+        joint, temp = _hottest(d)
+        rows.append(
+            [
+                device_id,
+                str(d.status),
+                _round(now - d.age_s, 3) if d.age_s is not None and now else None,
+                _round(d.rate_hz, 1),
+                _round(d.loss.recent_loss_ratio * 100.0, 1),
+                alarm.severity if alarm else None,
+                alarm.state if alarm else None,
+                alarm.kind if alarm else None,
+                alarm.joint if alarm else None,
+                joint,
+                _round(temp, 1),
+                sum(d.counters.rejected.values()),
+            ]
+        )
+    return rows
+
+
+def fleet_summary(state: AgentState, alarms: Sequence[AlarmInfo]) -> bytes:
+    """The fleet page's document: {"time", "columns", "rows", "counts"} (module doc)."""
+    rows = fleet_rows(state, alarms)
+    statuses: dict[str, int] = {"ONLINE": 0, "STALE": 0, "OFFLINE": 0}
+    for row in rows:
+        status = str(row[1])
+        statuses[status] = statuses.get(status, 0) + 1
+    severities: dict[str, int] = {"critical": 0, "warning": 0}
+    for alarm in _worst_alarms(alarms).values():
+        severities[alarm.severity] = severities.get(alarm.severity, 0) + 1
+    return msgspec.json.encode(
+        {
+            "time": state.agent.time,
+            "running": state.agent.running,
+            "broker_connected": state.agent.broker.connected,
+            "columns": FLEET_COLUMNS,
+            "rows": rows,
+            "counts": {"status": statuses, "alarmed_devices": severities, "devices": len(rows)},
+        }
+    )
+
+
+def arm_update(state: AgentState, device: str, alarms: Sequence[AlarmInfo]) -> bytes:
+    """An arm page's document: {"time", "device": DeviceState or null, "alarms": [...]}; its alarms are every
+    one that is not NORMAL, worst first."""
+    mine = [a for a in alarms if a.device == device]
+    return msgspec.json.encode(
+        {"time": state.agent.time, "device": state.devices.get(device), "alarms": mine}
+    )
+
+
+def render_page(page: str, *, csrf_token: str, device: str = "", rerun_url: str = "") -> bytes:
+    """The HTML shell of one console page; its script builds the page from the JSON API."""
+    if page not in PAGES:
+        raise ValueError(f"no console page {page!r}; the pages are {', '.join(PAGES)}")
+    shell = Template((ASSETS / "page.html").read_text(encoding="utf-8"))
+    title = {"fleet": "Fleet", "arm": device or "Arm", "sessions": "Sessions", "events": "Events"}[page]
+    return shell.substitute(
+        page=page,
+        title=html.escape(title),
+        csrf=html.escape(csrf_token),
+        device=html.escape(device),
+        rerun=html.escape(rerun_url),
+    ).encode("utf-8")
+
+
+def severity_rank(severity: str | None) -> int:
+    return _SEVERITY_RANK.get(severity or "", 0)

@@ -1,0 +1,416 @@
+"""The twin's events: what an operator wants to see happen, kept in a bounded store with ids and times.
+
+An event is one line of the console's Events page: a device changing status (ONLINE, STALE, OFFLINE), a servo
+alarm changing state, telemetry rejected (with its reason), the broker connection going down or up, a worker
+process exiting or coming back. Logs have all of these too, but a log is not something an operator can filter
+by device, tail live in a browser and export.
+
+`Event` is a small frozen msgspec Struct: cheap to make on the worker thread, picklable, so a worker process
+of a sharded agent hands its events to the receiving process over the control pipe (`EventStore.after`, then
+`EventStore.ingest` there, which numbers them anew), and JSON-encodable as it is for the HTTP API.
+
+`EventStore` is a ring buffer: the newest `capacity` events, each with an id that only grows, so a reader
+that remembers the last id it saw asks for what came after it (`after`), and a reader that fell further behind
+than the buffer simply gets what is left. `query` filters by device, level, kind, text and time range;
+`subscribe` calls back on every new event (from the emitting thread: the callback must only hand it on).
+
+The emitters that need memory live here too, so the runtime calls each with one line: `StatusWatch` turns the
+fleet's statuses (which change by the passing of time, not by a message) into transitions, `BrokerWatch` the
+connection pool's counters into disconnects and reconnects, `RejectionThrottle` a flood of rejected messages
+into at most one event per device and reason per interval, with the count it stands for.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import itertools
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from enum import IntEnum, StrEnum
+
+import msgspec
+
+__all__ = [
+    "BrokerWatch",
+    "Event",
+    "EventKind",
+    "EventLevel",
+    "EventQuery",
+    "EventStore",
+    "RejectionThrottle",
+    "StatusWatch",
+    "events_csv",
+    "events_json",
+    "neutralise_cell",
+]
+
+# How many events a store keeps by default: at a 2,000-arm fleet's start every arm comes ONLINE once, so the
+# buffer must hold a few fleets' worth of transitions and still be small (an event is ~300 bytes).
+DEFAULT_CAPACITY = 20_000
+# A device's rejections of one reason make at most one event per this many seconds (the count in between is
+# carried by the next one): a flooding edge must not push every other event out of the buffer.
+REJECTION_INTERVAL_S = 10.0
+
+
+class EventLevel(IntEnum):
+    """Ordered, so a filter can ask for "warning and worse"."""
+
+    INFO = 20
+    WARNING = 30
+    ERROR = 40
+
+    @property
+    def label(self) -> str:
+        return self.name.lower()
+
+    @classmethod
+    def parse(cls, text: str) -> EventLevel:
+        try:
+            return cls[text.strip().upper()]
+        except KeyError:
+            raise ValueError(
+                f"level {text!r} is not one of {', '.join(level.label for level in cls)}"
+            ) from None
+
+
+class EventKind(StrEnum):
+    STATUS = "status"  # a device went ONLINE, STALE or OFFLINE
+    ALARM = "alarm"  # a servo alarm was raised, cleared, acknowledged or reset
+    REJECTED = "rejected"  # telemetry the decoder refused, by reason
+    BROKER = "broker"  # a broker connection went down or came (back) up
+    WORKER = "worker"  # a worker process of a sharded agent exited or runs again
+    TWIN = "twin"  # a device's twin was rebuilt (its edge clock jumped back)
+
+
+class Event(msgspec.Struct, frozen=True, gc=False):
+    """One event. `time` is wall-clock epoch seconds; `id` grows by one per event within one store (0 until a
+    store numbers it); `data` holds the machine-readable details (alarm id, reason, statuses, counts)."""
+
+    kind: str
+    level: str
+    message: str
+    time: float
+    device: str = ""
+    data: dict[str, str] = msgspec.field(default_factory=dict)
+    id: int = 0
+
+
+@dataclass(frozen=True)
+class EventQuery:
+    """What `EventStore.query` returns: events matching every filter given, oldest first, at most `limit`
+    (the newest ones when more match). Times are epoch seconds, `since` inclusive, `until` exclusive."""
+
+    device: str = ""
+    min_level: EventLevel = EventLevel.INFO
+    kinds: frozenset[str] = frozenset()
+    text: str = ""
+    since: float | None = None
+    until: float | None = None
+    after_id: int = 0
+    limit: int = 1000
+
+    def __post_init__(self) -> None:
+        if self.limit < 1:
+            raise ValueError(f"limit = {self.limit} must be at least 1")
+        unknown = sorted(set(self.kinds) - {k.value for k in EventKind})
+        if unknown:
+            raise ValueError(
+                f"kind {', '.join(unknown)} is not one of {', '.join(k.value for k in EventKind)}"
+            )
+
+    def matches(self, event: Event) -> bool:
+        if event.id <= self.after_id:
+            return False
+        if self.device and event.device != self.device:
+            return False
+        if self.kinds and event.kind not in self.kinds:
+            return False
+        if self.min_level > EventLevel.INFO and _level_of(event) < self.min_level:
+            return False
+        if self.since is not None and event.time < self.since:
+            return False
+        if self.until is not None and event.time >= self.until:
+            return False
+        if self.text:
+            needle = self.text.casefold()
+            return needle in event.message.casefold() or needle in event.device.casefold()
+        return True
+
+
+def _level_of(event: Event) -> EventLevel:
+    try:
+        return EventLevel[event.level.upper()]
+    except KeyError:
+        return EventLevel.INFO
+
+
+Subscriber = Callable[[Event], None]
+
+
+class EventStore:
+    """The newest `capacity` events, numbered; thread-safe (module doc)."""
+
+    def __init__(
+        self, capacity: int = DEFAULT_CAPACITY, *, wall_clock: Callable[[], float] = time.time
+    ) -> None:
+        if capacity < 1:
+            raise ValueError(f"an event store holds at least one event, got capacity = {capacity}")
+        self._events: deque[Event] = deque(maxlen=capacity)
+        self._ids = itertools.count(1)
+        self._last_id = 0
+        self._lock = threading.Lock()
+        self._subscribers: list[Subscriber] = []
+        self._wall_clock = wall_clock
+        self.dropped = 0  # pushed out of the buffer by newer ones
+
+    @property
+    def capacity(self) -> int:
+        return self._events.maxlen or 0
+
+    @property
+    def last_id(self) -> int:
+        return self._last_id
+
+    def __len__(self) -> int:
+        return len(self._events)
+
+    def emit(
+        self,
+        kind: EventKind,
+        level: EventLevel,
+        message: str,
+        *,
+        device: str = "",
+        data: Mapping[str, object] | None = None,
+        at: float | None = None,
+    ) -> Event:
+        """Record a new event now (or at wall time `at`); returns it with its id."""
+        event = Event(
+            kind=str(kind),
+            level=level.label,
+            message=message,
+            time=self._wall_clock() if at is None else at,
+            device=device,
+            data={k: "" if v is None else str(v) for k, v in (data or {}).items()},
+        )
+        return self._add((event,))[0]
+
+    def ingest(self, events: Iterable[Event]) -> list[Event]:
+        """Take events recorded elsewhere (a worker process's store), numbered anew in this store's order."""
+        return self._add(tuple(events))
+
+    def _add(self, events: Sequence[Event]) -> list[Event]:
+        if not events:
+            return []
+        with self._lock:
+            numbered = [msgspec.structs.replace(e, id=next(self._ids)) for e in events]
+            overflow = len(self._events) + len(numbered) - self.capacity
+            if overflow > 0:
+                self.dropped += min(overflow, len(self._events) + len(numbered))
+            self._events.extend(numbered)
+            self._last_id = numbered[-1].id
+            subscribers = tuple(self._subscribers)
+        for callback in subscribers:
+            for event in numbered:
+                callback(event)
+        return numbered
+
+    def after(self, after_id: int, limit: int | None = None) -> list[Event]:
+        """Events newer than `after_id`, oldest first (at most the first `limit` of them)."""
+        with self._lock:
+            if after_id >= self._last_id:
+                return []
+            # Ids are consecutive within the buffer, so the start is found by arithmetic, not a scan.
+            first = self._events[0].id if self._events else self._last_id + 1
+            start = max(0, after_id + 1 - first)
+            end = len(self._events) if limit is None else min(len(self._events), start + limit)
+            return list(itertools.islice(self._events, start, end))
+
+    def query(self, query: EventQuery) -> list[Event]:
+        with self._lock:
+            candidates = list(self._events)
+        matched = [e for e in candidates if query.matches(e)]
+        return matched[-query.limit :]
+
+    def subscribe(self, callback: Subscriber) -> Callable[[], None]:
+        """Call `callback(event)` for every new event, on the thread that adds it; returns the unsubscribe."""
+        with self._lock:
+            self._subscribers.append(callback)
+
+        def unsubscribe() -> None:
+            with self._lock:
+                if callback in self._subscribers:
+                    self._subscribers.remove(callback)
+
+        return unsubscribe
+
+
+# ------------------------------------------------------------------------------------------------- emitters
+
+_STATUS_LEVEL = {"ONLINE": EventLevel.INFO, "STALE": EventLevel.WARNING, "OFFLINE": EventLevel.WARNING}
+
+
+class StatusWatch:
+    """Device status transitions from successive readings of the fleet's statuses. A device's first reading
+    is a transition from "new" (its first message), so the log shows when each arm came."""
+
+    def __init__(self, store: EventStore) -> None:
+        self._store = store
+        self._last: dict[str, str] = {}
+
+    def sweep(self, statuses: Mapping[str, object]) -> None:
+        """`statuses`: device -> its status now (a DeviceStatus or its string)."""
+        last = self._last
+        for device, status in statuses.items():
+            now = str(status)
+            before = last.get(device)
+            if before == now:
+                continue
+            last[device] = now
+            if before is None:
+                if now == "OFFLINE":
+                    continue  # configured but never heard from: nothing happened yet
+                message = f"{device} is {now} (first message)"
+            else:
+                message = f"{device} went {now} (was {before})"
+            self._store.emit(
+                EventKind.STATUS,
+                _STATUS_LEVEL.get(now, EventLevel.INFO),
+                message,
+                device=device,
+                data={"status": now, "previous": before or ""},
+            )
+
+
+class BrokerWatch:
+    """Disconnects and (re)connects of the broker connections, from their running counters (the pool counts
+    them on its own threads; reading the counters keeps the transport free of any event code)."""
+
+    def __init__(self, store: EventStore) -> None:
+        self._store = store
+        self._seen: dict[int, tuple[int, int]] = {}
+
+    def sweep(self, connections: Iterable[tuple[int, str, int, int, str]]) -> None:
+        """`connections`: (index, client id, connection successes, disconnections, last error) of each."""
+        for index, client_id, successes, disconnections, last_error in connections:
+            before = self._seen.get(index, (0, 0))
+            self._seen[index] = (successes, disconnections)
+            dropped = disconnections - before[1]
+            if dropped > 0:
+                self._store.emit(
+                    EventKind.BROKER,
+                    EventLevel.WARNING,
+                    f"broker connection {index} lost"
+                    + (f" ({dropped} times)" if dropped > 1 else "")
+                    + (f": {last_error}" if last_error else ""),
+                    data={"connection": index, "client_id": client_id, "error": last_error},
+                )
+            if successes > before[0]:
+                again = successes > 1
+                self._store.emit(
+                    EventKind.BROKER,
+                    EventLevel.INFO,
+                    f"broker connection {index} {'reconnected' if again else 'connected'}",
+                    data={"connection": index, "client_id": client_id, "connects": successes},
+                )
+
+
+class RejectionThrottle:
+    """At most one "rejected" event per (device, reason) per `interval_s`; the next one carries how many
+    rejections it stands for."""
+
+    def __init__(
+        self,
+        store: EventStore,
+        interval_s: float = REJECTION_INTERVAL_S,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self._store = store
+        self._interval_s = interval_s
+        self._clock = clock
+        self._next: dict[tuple[str, str], float] = {}
+        self._pending: dict[tuple[str, str], int] = {}
+
+    def rejected(self, device: str | None, reason: str, detail: str) -> None:
+        key = (device or "", reason)
+        count = self._pending.get(key, 0) + 1
+        now = self._clock()
+        if now < self._next.get(key, 0.0):
+            self._pending[key] = count
+            return
+        self._pending.pop(key, None)
+        self._next[key] = now + self._interval_s
+        where = device or "a message with no usable device"
+        times = f" ({count} since the last report)" if count > 1 else ""
+        self._store.emit(
+            EventKind.REJECTED,
+            EventLevel.WARNING,
+            f"telemetry from {where} rejected: {reason}{times}: {detail}",
+            device=device or "",
+            data={"reason": reason, "count": count},
+        )
+
+
+# --------------------------------------------------------------------------------------------------- export
+
+EXPORT_COLUMNS = ("id", "time", "iso_time", "level", "kind", "device", "message", "data")
+_FORMULA_START = ("=", "+", "-", "@")
+
+
+def neutralise_cell(text: str) -> str:
+    """A text cell a spreadsheet would run as a formula (`=`, `+`, `-`, `@` first, also after leading tabs or
+    carriage returns) gets a leading apostrophe, the usual way to make it plain text."""
+    stripped = text.lstrip("\t\r\n ")
+    if stripped.startswith(_FORMULA_START) or text.startswith(("\t", "\r")):
+        return "'" + text
+    return text
+
+
+def _iso(epoch_s: float) -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(epoch_s)) + f".{int(epoch_s % 1 * 1000):03d}Z"
+
+
+def events_csv(events: Iterable[Event]) -> str:
+    """The events as CSV (a header, then one row each); every text cell neutralised."""
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(EXPORT_COLUMNS)
+    for e in events:
+        data = ";".join(f"{k}={v}" for k, v in e.data.items())
+        writer.writerow(
+            [
+                e.id,
+                f"{e.time:.3f}",
+                _iso(e.time),
+                neutralise_cell(e.level),
+                neutralise_cell(e.kind),
+                neutralise_cell(e.device),
+                neutralise_cell(e.message),
+                neutralise_cell(data),
+            ]
+        )
+    return out.getvalue()
+
+
+def events_json(events: Iterable[Event]) -> bytes:
+    """The events as one JSON document, {"events": [...]}, with the same neutralised text as the CSV: an
+    export is opened in spreadsheets too."""
+    rows = [
+        {
+            "id": e.id,
+            "time": e.time,
+            "iso_time": _iso(e.time),
+            "level": neutralise_cell(e.level),
+            "kind": neutralise_cell(e.kind),
+            "device": neutralise_cell(e.device),
+            "message": neutralise_cell(e.message),
+            "data": {neutralise_cell(k): neutralise_cell(v) for k, v in e.data.items()},
+        }
+        for e in events
+    ]
+    return msgspec.json.encode({"events": rows})

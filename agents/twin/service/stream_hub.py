@@ -1,0 +1,218 @@
+"""Live updates, built once per tick and shared by every client (the HTTP server's event loop runs it).
+
+Before, every `/stream` client asked the agent for its whole state 30 times a second: ten viewers cost ten
+times the state-building, and at a large fleet each state takes milliseconds. Here one task asks once per
+tick, encodes each topic's frame once, and hands the same bytes to every subscriber of that topic:
+
+- `state`: the /state document as an SSE frame, at `state_rate_hz` (what `twin view` reads);
+- `fleet`: the fleet summary (twin.service.console), at `console_rate_hz`;
+- `arm:<device>`: one arm's state and alarms, at `console_rate_hz`, built only for devices someone watches;
+- `events`: new events since the last tick, at `console_rate_hz`.
+
+A subscriber keeps only the newest frame of a state-like topic (a slow client skips frames, it never queues
+them) and a bounded backlog of event batches. The task sleeps while nobody subscribes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections import deque
+from collections.abc import Sequence
+from typing import Protocol, runtime_checkable
+
+import msgspec
+
+from twin.service.console import EventSource, arm_update, fleet_summary
+from twin.service.events import Event, EventQuery
+from twin.service.state import AgentState, AlarmInfo
+
+log = logging.getLogger(__name__)
+
+STATE = "state"
+FLEET = "fleet"
+EVENTS = "events"
+ARM_PREFIX = "arm:"
+# Event batches a subscriber may fall behind before the oldest are dropped (the page then reloads the list).
+EVENT_BACKLOG = 64
+# Events fetched per tick at most; a burst larger than this arrives over the next ticks.
+EVENTS_PER_TICK = 2000
+
+
+@runtime_checkable
+class AlarmLister(Protocol):
+    def alarms(self, *, include_normal: bool = False) -> tuple[AlarmInfo, ...]: ...
+
+
+class StateSource(Protocol):
+    def state(self) -> AgentState: ...
+
+
+def sse_frame(event: str, data: bytes) -> bytes:
+    """One Server-Sent Event; `data` is one line of JSON (msgspec never puts a newline inside)."""
+    return b"event: " + event.encode() + b"\ndata: " + data + b"\n\n"
+
+
+class Subscription:
+    """One client's view of one topic (on the event loop's thread only)."""
+
+    def __init__(self, topic: str, backlog: int = 1) -> None:
+        self.topic = topic
+        self._frames: deque[bytes] = deque(maxlen=backlog)
+        self._wake = asyncio.Event()
+        self.closed = False
+        self.skipped = 0
+
+    def push(self, frame: bytes) -> None:
+        if len(self._frames) == self._frames.maxlen:
+            self.skipped += 1
+        self._frames.append(frame)
+        self._wake.set()
+
+    def close(self) -> None:
+        self.closed = True
+        self._wake.set()
+
+    async def next(self) -> bytes | None:
+        """The frames pushed since the last call, joined; None once closed."""
+        while not self._frames and not self.closed:
+            self._wake.clear()
+            await self._wake.wait()
+        if self.closed:
+            return None
+        out = b"".join(self._frames)
+        self._frames.clear()
+        return out
+
+
+class StreamHub:
+    """The shared ticker (module doc). Create and use it on the server's event loop."""
+
+    def __init__(self, source: StateSource, *, state_rate_hz: float, console_rate_hz: float) -> None:
+        self._source = source
+        self._state_interval = 1.0 / state_rate_hz
+        self._console_interval = 1.0 / console_rate_hz
+        self._subs: dict[str, set[Subscription]] = {}
+        self._changed = asyncio.Event()
+        self._closed = False
+        self._event_cursor: int | None = None
+        self.ticks = 0
+
+    @property
+    def clients(self) -> int:
+        return sum(len(subs) for subs in self._subs.values())
+
+    def subscribe(self, topic: str, backlog: int = 1) -> Subscription:
+        sub = Subscription(topic, backlog)
+        if self._closed:
+            sub.close()
+            return sub
+        self._subs.setdefault(topic, set()).add(sub)
+        self._changed.set()
+        return sub
+
+    def unsubscribe(self, sub: Subscription) -> None:
+        subs = self._subs.get(sub.topic)
+        if subs is not None:
+            subs.discard(sub)
+            if not subs:
+                del self._subs[sub.topic]
+                if sub.topic == EVENTS:
+                    self._event_cursor = None
+
+    def close(self) -> None:
+        self._closed = True
+        for subs in self._subs.values():
+            for sub in subs:
+                sub.close()
+        self._subs.clear()
+        self._changed.set()
+
+    async def run(self) -> None:
+        loop = asyncio.get_running_loop()
+        next_state = next_console = loop.time()
+        while not self._closed:
+            if not self._subs:
+                self._changed.clear()
+                await self._changed.wait()
+                next_state = next_console = loop.time()
+                continue
+            now = loop.time()
+            state_due = STATE in self._subs and now >= next_state
+            console_due = any(t != STATE for t in self._subs) and now >= next_console
+            if state_due or console_due:
+                try:
+                    await self._tick(state_due, console_due)
+                except Exception:
+                    log.exception("building the live update failed")
+                self.ticks += 1
+                now = loop.time()
+                if state_due:
+                    next_state = max(next_state + self._state_interval, now)
+                if console_due:
+                    next_console = max(next_console + self._console_interval, now)
+            wake = min(
+                next_state if STATE in self._subs else float("inf"),
+                next_console if any(t != STATE for t in self._subs) else float("inf"),
+            )
+            self._changed.clear()
+            if wake != float("inf"):
+                # A new subscriber wakes the loop early: its first frame should not wait a whole interval.
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self._changed.wait(), max(0.0, wake - loop.time()))
+
+    async def _tick(self, state_due: bool, console_due: bool) -> None:
+        state = await asyncio.to_thread(self._source.state)
+        if state_due:
+            self._publish(STATE, sse_frame("state", state.to_json()))
+        if not console_due:
+            return
+        arms = [t for t in self._subs if t.startswith(ARM_PREFIX)]
+        alarms: Sequence[AlarmInfo] = ()
+        if (FLEET in self._subs or arms) and isinstance(self._source, AlarmLister):
+            alarms = await asyncio.to_thread(self._source.alarms)
+        if FLEET in self._subs:
+            self._publish(FLEET, sse_frame("fleet", fleet_summary(state, alarms)))
+        for topic in arms:
+            self._publish(topic, sse_frame("arm", arm_update(state, topic[len(ARM_PREFIX) :], alarms)))
+        if EVENTS in self._subs and isinstance(self._source, EventSource):
+            await self._tick_events(self._source)
+
+    async def subscribe_events(self, after_id: int) -> Subscription:
+        """A subscription to the events topic whose first frame holds the events after `after_id` (those a
+        page has not loaded yet); the tail follows from where the hub is."""
+        sub = self.subscribe(EVENTS, EVENT_BACKLOG)
+        if not isinstance(self._source, EventSource):
+            return sub
+        backlog = await asyncio.to_thread(
+            self._source.events, EventQuery(after_id=after_id, limit=EVENTS_PER_TICK)
+        )
+        if self._event_cursor is None:
+            if backlog:
+                self._event_cursor = backlog[-1].id
+            else:
+                # Nothing after `after_id`: start from the newest event (a page from before a restart may
+                # name an id this store has not reached).
+                newest = await asyncio.to_thread(self._source.events, EventQuery(limit=1))
+                self._event_cursor = newest[-1].id if newest else 0
+        sub.push(sse_frame("events", encode_events(backlog)))
+        return sub
+
+    async def _tick_events(self, source: EventSource) -> None:
+        if self._event_cursor is None:
+            return
+        fresh = await asyncio.to_thread(
+            source.events, EventQuery(after_id=self._event_cursor, limit=EVENTS_PER_TICK)
+        )
+        if fresh:
+            self._event_cursor = fresh[-1].id
+            self._publish(EVENTS, sse_frame("events", encode_events(fresh)))
+
+    def _publish(self, topic: str, frame: bytes) -> None:
+        for sub in self._subs.get(topic, ()):
+            sub.push(frame)
+
+
+def encode_events(events: Sequence[Event]) -> bytes:
+    return msgspec.json.encode(list(events))
