@@ -35,6 +35,7 @@ __all__ = [
     "arm_update",
     "fleet_summary",
     "render_page",
+    "rerun_viewer_url",
 ]
 
 ASSETS = Path(__file__).with_name("console_ui")
@@ -199,3 +200,17 @@ def render_page(page: str, *, csrf_token: str, device: str = "", rerun_url: str 
 
 def severity_rank(severity: str | None) -> int:
     return _SEVERITY_RANK.get(severity or "", 0)
+
+
+@runtime_checkable
+class _ViewerLinked(Protocol):
+    @property
+    def viewer_url(self) -> str | None: ...
+
+
+def rerun_viewer_url(sinks: Sequence[object]) -> str:
+    """The Rerun web viewer a sink serves (twin.output.rerun_sink), for the arm page's link; "" if none."""
+    for sink in sinks:
+        if isinstance(sink, _ViewerLinked) and sink.viewer_url:
+            return sink.viewer_url
+    return ""

@@ -31,8 +31,11 @@ from collections import deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from enum import IntEnum, StrEnum
+from typing import Protocol
 
 import msgspec
+
+from twin.core.alarms import AlarmEvent
 
 __all__ = [
     "BrokerWatch",
@@ -41,6 +44,7 @@ __all__ = [
     "EventLevel",
     "EventQuery",
     "EventStore",
+    "FleetWatch",
     "RejectionThrottle",
     "StatusWatch",
     "events_csv",
@@ -286,6 +290,21 @@ class StatusWatch:
             )
 
 
+class ConnectionCounters(Protocol):
+    """What BrokerWatch reads of one broker connection."""
+
+    @property
+    def index(self) -> int: ...
+    @property
+    def client_id(self) -> str: ...
+    @property
+    def connection_successes(self) -> int: ...
+    @property
+    def disconnections(self) -> int: ...
+    @property
+    def last_error(self) -> str: ...
+
+
 class BrokerWatch:
     """Disconnects and (re)connects of the broker connections, from their running counters (the pool counts
     them on its own threads; reading the counters keeps the transport free of any event code)."""
@@ -294,9 +313,11 @@ class BrokerWatch:
         self._store = store
         self._seen: dict[int, tuple[int, int]] = {}
 
-    def sweep(self, connections: Iterable[tuple[int, str, int, int, str]]) -> None:
-        """`connections`: (index, client id, connection successes, disconnections, last error) of each."""
-        for index, client_id, successes, disconnections, last_error in connections:
+    def sweep(self, connections: Iterable[ConnectionCounters]) -> None:
+        """`connections`: the pool's connections now (twin.transport.pool.ConnectionInfo)."""
+        for c in connections:
+            index, client_id, last_error = c.index, c.client_id, c.last_error
+            successes, disconnections = c.connection_successes, c.disconnections
             before = self._seen.get(index, (0, 0))
             self._seen[index] = (successes, disconnections)
             dropped = disconnections - before[1]
@@ -317,6 +338,66 @@ class BrokerWatch:
                     f"broker connection {index} {'reconnected' if again else 'connected'}",
                     data={"connection": index, "client_id": client_id, "connects": successes},
                 )
+
+
+_ALARM_LEVEL = {"raised": EventLevel.WARNING, "cleared": EventLevel.INFO}
+# How often FleetWatch reads the fleet's statuses and the broker's counters.
+WATCH_INTERVAL_S = 0.5
+
+
+class FleetWatch:
+    """The runtime's one handle on its events: status and broker sweeps (`due`, `statuses`, `broker`), and
+    the alarm transitions and twin rebuilds it is told about."""
+
+    interval_s = WATCH_INTERVAL_S
+
+    def __init__(self, store: EventStore) -> None:
+        self.store = store
+        self._statuses = StatusWatch(store)
+        self._broker = BrokerWatch(store)
+        self._next = 0.0
+
+    def due(self, now: float) -> bool:
+        if now < self._next:
+            return False
+        self._next = now + self.interval_s
+        return True
+
+    def statuses(self, statuses: Mapping[str, object]) -> None:
+        self._statuses.sweep(statuses)
+
+    def broker(self, connections: Iterable[ConnectionCounters]) -> None:
+        self._broker.sweep(connections)
+
+    def alarm(self, event: AlarmEvent) -> None:
+        level = _ALARM_LEVEL.get(event.action, EventLevel.INFO)
+        if event.action == "raised" and str(event.severity) == "critical":
+            level = EventLevel.ERROR
+        self.store.emit(
+            EventKind.ALARM,
+            level,
+            f"{event.alarm_id} {event.action}: {event.message}",
+            device=event.device,
+            data={
+                "alarm_id": event.alarm_id,
+                "action": event.action,
+                "severity": str(event.severity),
+                "state": str(event.state),
+                "previous": str(event.previous),
+                "joint": event.joint,
+                "kind": str(event.kind),
+                "value": event.value,
+            },
+        )
+
+    def clock_reset(self, device: str, last_ms: int | None, now_ms: int) -> None:
+        self.store.emit(
+            EventKind.TWIN,
+            EventLevel.WARNING,
+            f"edge clock of {device} jumped backwards; twin rebuilt on the new timeline",
+            device=device,
+            data={"last_ms": last_ms, "now_ms": now_ms},
+        )
 
 
 class RejectionThrottle:
