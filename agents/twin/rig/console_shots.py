@@ -1,0 +1,106 @@
+"""Pictures of a running operator console, taken in headless Chromium through Playwright.
+
+`console_screenshots(url, out_dir, device=...)` opens the Fleet page and one arm's page of the console at
+`url` (an agent's HTTP address), waits until each has drawn its live data, and saves `console-fleet.png` and
+`console-arm.png`. docs/console.md's pictures are made this way, and a demo can call it with the agent it runs.
+
+The browser is Debian's chromium (`make setup` installs it), never one Playwright downloads; the page may
+reach loopback addresses only. Playwright is a development dependency: without it this raises
+ConsoleShotError with the way to get it.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+from urllib.parse import quote, urlsplit
+
+if TYPE_CHECKING:
+    from playwright.sync_api import Page, Route
+
+log = logging.getLogger(__name__)
+
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_FLAGS = (
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+)
+LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1", "[::1]")
+
+
+class ConsoleShotError(RuntimeError):
+    """The pictures could not be taken; the message says why and what to do."""
+
+
+@dataclass
+class ConsoleShots:
+    fleet: Path
+    arm: Path
+    console_errors: list[str] = field(default_factory=list)
+
+
+def loopback_only(route: Route) -> None:
+    """A Playwright route handler: loopback and inline URLs pass, anything else is refused."""
+    url = route.request.url
+    if url.startswith(("data:", "blob:")) or (urlsplit(url).hostname or "") in LOOPBACK_HOSTS:
+        route.continue_()
+    else:
+        route.abort()
+
+
+def wait_for_charts(page: Page, timeout_s: float) -> None:
+    """Until every chart of an arm page has drawn at least two readings."""
+    page.wait_for_function(
+        "() => [...document.querySelectorAll('canvas[data-chart]')].every(c => Number(c.dataset.points) >= 2)",
+        timeout=timeout_s * 1000,
+    )
+
+
+def console_screenshots(
+    url: str,
+    out_dir: Path,
+    *,
+    device: str,
+    size: tuple[int, int] = (1280, 800),
+    timeout_s: float = 60.0,
+    chromium: Path = CHROMIUM,
+) -> ConsoleShots:
+    """`console-fleet.png` and `console-arm.png` of the console at `url` in `out_dir` (module doc)."""
+    try:
+        from playwright.sync_api import Error as PlaywrightError  # noqa: PLC0415 - development dependency
+        from playwright.sync_api import sync_playwright  # noqa: PLC0415
+    except ImportError as exc:
+        raise ConsoleShotError(
+            "console pictures need Playwright (a development dependency): run `make setup`"
+        ) from exc
+    if not chromium.is_file():
+        raise ConsoleShotError(f"{chromium} is missing; `make setup` installs Debian's chromium")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    shots = ConsoleShots(fleet=out_dir / "console-fleet.png", arm=out_dir / "console-arm.png")
+    base = url.rstrip("/")
+    try:
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=str(chromium), headless=True, args=list(CHROMIUM_FLAGS))
+            try:
+                page = browser.new_page(viewport={"width": size[0], "height": size[1]})
+                page.route("**/*", loopback_only)
+                page.on("console", lambda m: shots.console_errors.append(m.text) if m.type == "error" else None)
+                page.goto(base + "/", wait_until="load")
+                page.wait_for_selector(f'[data-device="{device}"]', timeout=timeout_s * 1000)
+                page.screenshot(path=str(shots.fleet))
+                page.goto(f"{base}/arm/{quote(device, safe='')}", wait_until="load")
+                wait_for_charts(page, timeout_s)
+                page.screenshot(path=str(shots.arm), full_page=True)
+            finally:
+                browser.close()
+    except PlaywrightError as exc:
+        raise ConsoleShotError(f"taking the console pictures failed: {exc}") from exc
+    log.info("console pictures", extra={"fleet": str(shots.fleet), "arm": str(shots.arm)})
+    return shots

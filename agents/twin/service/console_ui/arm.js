@@ -1,0 +1,156 @@
+// One arm: live charts (joint angles; servo temperature, load and current) over the last minutes, its
+// alarms with Acknowledge, loss and rejections by reason, and a link to the Rerun view.
+"use strict";
+
+(() => {
+  const { el, main, device } = Twin;
+  const WINDOW_S = 300;
+  const COLORS = ["#2457c5", "#c0262d", "#1a7f37", "#b7791f", "#7b3fb5", "#0f8a8a"];
+  const CHARTS = [
+    { key: "angle", title: "joint angles (°)", pick: (d, j) => d.joints_rad && d.joints_rad[j] !== undefined ? d.joints_rad[j] * 180 / Math.PI : null },
+    { key: "temperature", title: "servo temperature (°C)", pick: (d, j) => servo(d, j, "temperature_c") },
+    { key: "load", title: "servo load (% of stall)", pick: (d, j) => servo(d, j, "load_percent") },
+    { key: "current", title: "servo current (A)", pick: (d, j) => servo(d, j, "current_a") },
+  ];
+  function servo(d, joint, field) {
+    const s = d.servos && d.servos[joint];
+    return s && s[field] !== null && s[field] !== undefined ? s[field] : null;
+  }
+
+  let joints = [];
+  const samples = [];  // [time, {chart key: [value per joint]}]
+  let lastTimestamp = null;
+
+  const title = el("h1", { text: device });
+  const summary = el("div", { class: "kv" });
+  const rerun = Twin.rerun
+    ? el("a", { href: Twin.rerun, target: "_blank", rel: "noopener", id: "rerun-link", text: "open the fleet in the Rerun viewer" },)
+    : el("span", { class: "muted", text: "Rerun view: off (twin run --rerun-serve, docs/web.md)" });
+  const charts = CHARTS.map((c) => {
+    const canvas = el("canvas", { class: "chart", "data-chart": c.key, "data-points": "0" });
+    const legend = el("div", { class: "legend" });
+    return { ...c, canvas, legend, panel: el("div", { class: "panel" }, el("h2", { text: c.title }), canvas, legend) };
+  });
+  const alarmsBody = el("tbody");
+  const lossBox = el("div", { class: "kv" });
+  const rejectsBody = el("tbody");
+  main.append(
+    el("div", { class: "toolbar" }, el("a", { href: "/", text: "← fleet" })),
+    title,
+    el("div", { class: "grid2" },
+      el("div", { class: "panel" }, summary, el("p", {}, rerun,
+        el("span", { class: "muted", text: ` (this arm is arms/${device})` }))),
+      el("div", { class: "panel" }, el("h2", { text: "loss" }), lossBox, el("h2", { text: "rejected messages by reason" }),
+        el("table", {}, el("thead", {}, el("tr", {}, el("th", { text: "reason" }), el("th", { text: "messages" }))), rejectsBody))),
+    el("h2", { text: "alarms" }),
+    el("table", { id: "alarms" }, el("thead", {}, el("tr", {}, ...["alarm", "severity", "state", "value", "since", "message", ""].map((t) => el("th", { text: t })))), alarmsBody),
+    el("h2", { text: "live, last 5 minutes" }),
+    el("div", { class: "grid2" }, ...charts.map((c) => c.panel)));
+
+  function kv(box, pairs) {
+    box.replaceChildren(...pairs.flatMap(([k, v]) => [el("span", { class: "muted", text: k }), v instanceof Node ? v : el("span", { text: v })]));
+  }
+
+  function record(d, now) {
+    if (!d.joints_rad) return;
+    if (d.timestamp_ms === lastTimestamp) return;  // nothing new since the last tick
+    lastTimestamp = d.timestamp_ms;
+    if (!joints.length) joints = Object.keys(d.joints_rad);
+    const values = {};
+    for (const c of CHARTS) values[c.key] = joints.map((j) => c.pick(d, j));
+    samples.push([now, values]);
+    while (samples.length && samples[0][0] < now - WINDOW_S) samples.shift();
+  }
+
+  function draw(chart, now) {
+    const canvas = chart.canvas, ratio = window.devicePixelRatio || 1;
+    const w = canvas.clientWidth, h = canvas.clientHeight;
+    if (canvas.width !== Math.round(w * ratio)) { canvas.width = Math.round(w * ratio); canvas.height = Math.round(h * ratio); }
+    const ctx = canvas.getContext("2d");
+    ctx.setTransform(ratio, 0, 0, ratio, 0, 0);
+    ctx.clearRect(0, 0, w, h);
+    let lo = Infinity, hi = -Infinity, points = 0;
+    for (const [, values] of samples) for (const v of values[chart.key]) if (v !== null) { lo = Math.min(lo, v); hi = Math.max(hi, v); points++; }
+    // The window grows with what the page has seen, up to WINDOW_S, so a fresh page shows its lines.
+    const span = samples.length ? Math.min(WINDOW_S, Math.max(30, now - samples[0][0])) : WINDOW_S;
+    const left = 44, right = 8, top = 8, bottom = 18;
+    ctx.strokeStyle = "#d9dde5"; ctx.fillStyle = "#667085"; ctx.font = "11px sans-serif";
+    ctx.strokeRect(left, top, w - left - right, h - top - bottom);
+    ctx.fillText(span >= 90 ? `-${Math.round(span / 60)} min` : `-${Math.round(span)} s`, left, h - 4);
+    ctx.fillText("now", w - right - 22, h - 4);
+    canvas.dataset.points = String(points);
+    if (!points) { ctx.fillText("no readings yet", left + 8, top + 16); return; }
+    if (hi - lo < 1e-6) { hi += 1; lo -= 1; }
+    const pad = (hi - lo) * 0.08; hi += pad; lo -= pad;
+    ctx.fillText(hi.toFixed(1), 2, top + 10);
+    ctx.fillText(lo.toFixed(1), 2, h - bottom);
+    const x = (t) => left + (w - left - right) * (1 - (now - t) / span);
+    const y = (v) => top + (h - top - bottom) * (1 - (v - lo) / (hi - lo));
+    joints.forEach((joint, k) => {
+      ctx.strokeStyle = COLORS[k % COLORS.length]; ctx.lineWidth = 1.5; ctx.beginPath();
+      let pen = false;
+      for (const [t, values] of samples) {
+        const v = values[chart.key][k];
+        if (v === null) { pen = false; continue; }
+        if (pen) ctx.lineTo(x(t), y(v)); else { ctx.moveTo(x(t), y(v)); pen = true; }
+      }
+      ctx.stroke();
+    });
+    if (!chart.legend.childElementCount) {
+      chart.legend.replaceChildren(...joints.map((j, k) => { const i = el("i"); i.style.background = COLORS[k % COLORS.length]; return el("span", {}, i, j); }));
+    }
+  }
+
+  async function acknowledge(alarm, button) {
+    button.disabled = true;
+    const id = alarm.alarm_id.split("/").map(encodeURIComponent).join("/");
+    const result = await Twin.post(`/alarms/${id}/ack`);
+    button.textContent = result.ok ? "acknowledged" : `refused (${result.status})`;
+    if (result.ok) renderAlarms((await Twin.getJSON("/alarms?device=" + encodeURIComponent(device))).alarms);
+  }
+
+  let shownAlarms = null;
+  function renderAlarms(alarms) {
+    const key = JSON.stringify(alarms);
+    if (key === shownAlarms) return;  // unchanged: keep the buttons where they are
+    shownAlarms = key;
+    if (!alarms.length) { alarmsBody.replaceChildren(el("tr", {}, el("td", { colspan: 7, class: "muted", text: "no alarm" }))); return; }
+    alarmsBody.replaceChildren(...alarms.map((a) => {
+      const button = el("button", { type: "button", class: "primary", "data-alarm": a.alarm_id, text: "Acknowledge" });
+      button.addEventListener("click", () => acknowledge(a, button));
+      const can = a.state === "ACTIVE" || a.state === "LATCHED";
+      return el("tr", { "data-alarm": a.alarm_id, "data-state": a.state },
+        el("td", { text: `${a.joint} ${a.kind}` }), el("td", { class: "sev-" + a.severity, text: a.severity }),
+        el("td", { class: "alarm-state", text: a.state }), el("td", { text: `${Twin.num(a.value, 1)} ${a.unit} (limit ${a.threshold})` }),
+        el("td", { text: Twin.time(a.changed_at) }), el("td", { text: a.message }), el("td", {}, can ? button : ""));
+    }));
+  }
+
+  function update(doc) {
+    const d = doc.device;
+    if (!d) { title.textContent = `${device}: not known to the agent`; return; }
+    title.textContent = device;
+    const now = doc.time;
+    kv(summary, [
+      ["status", el("span", { class: "status " + d.status, text: d.status })],
+      ["last seen", d.age_s === null ? "never" : `${Twin.num(d.age_s, 1)} s ago`],
+      ["rate", `${Twin.num(d.rate_hz, 1)} Hz`],
+      ["units", d.units], ["mode", d.mode],
+      ["messages", `${d.counters.received} received, ${d.counters.applied} applied`],
+    ]);
+    kv(lossBox, [
+      ["lost (estimated)", `${d.loss.lost} of ${d.loss.received + d.loss.lost} (${Twin.num(d.loss.loss_ratio * 100, 2)} %)`],
+      ["recent window", `${d.loss.recent_lost} (${Twin.num(d.loss.recent_loss_ratio * 100, 2)} %)${d.loss.losing ? " — losing now" : ""}`],
+    ]);
+    const reasons = Object.entries(d.counters.rejected || {});
+    rejectsBody.replaceChildren(...(reasons.length ? reasons.map(([r, n]) => el("tr", {}, el("td", { text: r }), el("td", { text: String(n) })))
+      : [el("tr", {}, el("td", { colspan: 2, class: "muted", text: "none" }))]));
+    renderAlarms(doc.alarms);
+    record(d, now);
+    for (const c of charts) draw(c, now);
+    if (!document.body.dataset.ready) { document.body.dataset.ready = "1"; window.twinReadyAt = performance.now(); }
+  }
+
+  Twin.getJSON("/api/arm/" + encodeURIComponent(device)).then(update).catch(() => { title.textContent = `${device}: not known to the agent (yet)`; });
+  Twin.stream("/api/stream/arm/" + encodeURIComponent(device), { arm: update });
+})();

@@ -1,0 +1,96 @@
+// Shared helpers of the console's pages: DOM building (text only, never HTML from data), the live stream,
+// the CSRF token for requests that change state, and time formatting. No framework, no CDN.
+"use strict";
+
+const Twin = (() => {
+  const body = document.body;
+  const linkState = document.getElementById("link-state");
+
+  function el(tag, attrs, ...children) {
+    const node = document.createElement(tag);
+    for (const [key, value] of Object.entries(attrs || {})) {
+      if (value === null || value === undefined || value === false) continue;
+      if (key === "class") node.className = value;
+      else if (key === "text") node.textContent = value;
+      else if (key.startsWith("on")) node.addEventListener(key.slice(2), value);
+      else node.setAttribute(key, value === true ? "" : String(value));
+    }
+    for (const child of children) {
+      if (child === null || child === undefined) continue;
+      node.append(child instanceof Node ? child : document.createTextNode(String(child)));
+    }
+    return node;
+  }
+
+  function setLink(live, text) {
+    if (!linkState) return;
+    linkState.className = "link " + (live ? "live" : "down");
+    linkState.textContent = text;
+  }
+
+  // An EventSource that shows its state in the header; the browser reconnects by itself (retry: 1000).
+  function stream(url, handlers) {
+    const source = new EventSource(url);
+    source.onopen = () => setLink(true, "live");
+    source.onerror = () => setLink(false, "reconnecting…");
+    for (const [event, handler] of Object.entries(handlers)) {
+      source.addEventListener(event, (message) => {
+        setLink(true, "live");
+        handler(JSON.parse(message.data));
+      });
+    }
+    return source;
+  }
+
+  async function getJSON(url) {
+    const response = await fetch(url, { headers: { Accept: "application/json" } });
+    if (!response.ok) throw new Error(`${url}: ${response.status}`);
+    return response.json();
+  }
+
+  // A request that changes state: the server wants the page's CSRF token (the Origin is the browser's).
+  async function post(url) {
+    const token = document.querySelector('meta[name="csrf-token"]').content;
+    const response = await fetch(url, { method: "POST", headers: { "X-CSRF-Token": token } });
+    let payload = null;
+    try { payload = await response.json(); } catch (_) { payload = null; }
+    return { ok: response.ok, status: response.status, payload };
+  }
+
+  function ago(epoch, now) {
+    if (epoch === null || epoch === undefined) return "never";
+    const s = Math.max(0, now - epoch);
+    if (s < 1) return "now";
+    if (s < 90) return `${Math.round(s)} s ago`;
+    if (s < 5400) return `${Math.round(s / 60)} min ago`;
+    if (s < 172800) return `${Math.round(s / 3600)} h ago`;
+    return `${Math.round(s / 86400)} d ago`;
+  }
+
+  function time(epoch) {
+    if (epoch === null || epoch === undefined) return "";
+    const d = new Date(epoch * 1000);
+    const pad = (n, w = 2) => String(n).padStart(w, "0");
+    return `${d.getFullYear()}-${pad(d.getMonth() + 1)}-${pad(d.getDate())} ` +
+      `${pad(d.getHours())}:${pad(d.getMinutes())}:${pad(d.getSeconds())}`;
+  }
+
+  function duration(seconds) {
+    const s = Math.round(seconds);
+    if (s < 120) return `${s} s`;
+    if (s < 7200) return `${Math.floor(s / 60)} min ${s % 60} s`;
+    return `${Math.floor(s / 3600)} h ${Math.round((s % 3600) / 60)} min`;
+  }
+
+  function num(value, digits) {
+    return value === null || value === undefined ? "–" : Number(value).toFixed(digits);
+  }
+
+  const page = body.dataset.page;
+  for (const a of document.querySelectorAll("[data-nav]")) {
+    if (a.dataset.nav === page || (page === "arm" && a.dataset.nav === "fleet")) a.classList.add("active");
+  }
+
+  return { el, stream, getJSON, post, ago, time, duration, num, setLink, main: document.getElementById("main"),
+    device: body.dataset.device, rerun: body.dataset.rerun };
+})();

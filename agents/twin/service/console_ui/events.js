@@ -1,0 +1,99 @@
+// The twin's events: filters by device, level, kind, text and time range; a live tail with auto-scroll; and
+// the same selection exported as CSV or JSON (cells a spreadsheet would run as formulas are neutralised).
+"use strict";
+
+(() => {
+  const { el, main } = Twin;
+  const MAX_ROWS = 5000;
+  const device = el("input", { type: "search", placeholder: "device", "aria-label": "device" });
+  const level = el("select", { "aria-label": "level" }, el("option", { value: "", text: "any level" }),
+    el("option", { value: "warning", text: "warning and worse" }), el("option", { value: "error", text: "errors" }));
+  const kind = el("select", { "aria-label": "kind" }, el("option", { value: "", text: "any kind" }),
+    ...["status", "alarm", "rejected", "broker", "worker", "twin"].map((k) => el("option", { value: k, text: k })));
+  const text = el("input", { type: "search", placeholder: "text", "aria-label": "text" });
+  const since = el("input", { type: "datetime-local", "aria-label": "from", step: "1" });
+  const until = el("input", { type: "datetime-local", "aria-label": "until", step: "1" });
+  const follow = el("input", { type: "checkbox", id: "follow", checked: true });
+  const csv = el("a", { id: "export-csv", text: "CSV", download: "" });
+  const json = el("a", { id: "export-json", text: "JSON", download: "" });
+  const count = el("span", { class: "counts" });
+  const body = el("tbody");
+  const box = el("div", { class: "events panel" },
+    el("table", { id: "events" }, el("thead", {}, el("tr", {}, ...["time", "level", "kind", "device", "event"].map((t) => el("th", { text: t })))), body));
+  main.append(el("h1", { text: "Events" }),
+    el("div", { class: "toolbar" }, device, level, kind, text, "from", since, "until", until,
+      el("label", {}, follow, " auto-scroll"), "export:", csv, json, count), box);
+
+  let events = [], lastId = 0;
+
+  function params(extra) {
+    const p = new URLSearchParams();
+    if (device.value.trim()) p.set("device", device.value.trim());
+    if (level.value) p.set("level", level.value);
+    if (kind.value) p.set("kind", kind.value);
+    if (text.value.trim()) p.set("q", text.value.trim());
+    if (since.value) p.set("since", String(new Date(since.value).getTime() / 1000));
+    if (until.value) p.set("until", String(new Date(until.value).getTime() / 1000));
+    for (const [k, v] of Object.entries(extra || {})) p.set(k, v);
+    return p.toString();
+  }
+
+  const LEVELS = { info: 20, warning: 30, error: 40 };
+  function matches(e) {
+    const q = text.value.trim().toLowerCase(), d = device.value.trim();
+    if (d && e.device !== d) return false;
+    if (level.value && (LEVELS[e.level] || 20) < LEVELS[level.value]) return false;
+    if (kind.value && e.kind !== kind.value) return false;
+    if (q && !e.message.toLowerCase().includes(q) && !e.device.toLowerCase().includes(q)) return false;
+    if (since.value && e.time < new Date(since.value).getTime() / 1000) return false;
+    if (until.value && e.time >= new Date(until.value).getTime() / 1000) return false;
+    return true;
+  }
+
+  function row(e) {
+    return el("tr", { "data-id": e.id, class: "level-" + e.level },
+      el("td", { text: Twin.time(e.time) }), el("td", { text: e.level }), el("td", { text: e.kind }),
+      el("td", {}, e.device ? el("a", { href: "/arm/" + encodeURIComponent(e.device), text: e.device }) : ""),
+      el("td", { class: "msg", text: e.message }));
+  }
+
+  function render() {
+    body.replaceChildren(...events.map(row));
+    count.textContent = `${events.length} events`;
+    if (follow.checked) box.scrollTop = box.scrollHeight;
+  }
+
+  function append(fresh) {
+    const add = fresh.filter((e) => e.id > lastId && matches(e));
+    for (const e of fresh) lastId = Math.max(lastId, e.id);
+    if (!add.length) return;
+    events.push(...add);
+    const rows = add.map(row);
+    body.append(...rows);
+    while (events.length > MAX_ROWS) { events.shift(); body.firstChild.remove(); }
+    count.textContent = `${events.length} events`;
+    if (follow.checked) box.scrollTop = box.scrollHeight;
+  }
+
+  let source = null;
+  async function load() {
+    csv.href = "/api/events.csv?" + params();
+    json.href = "/api/events.json?" + params();
+    try {
+      const doc = await Twin.getJSON("/api/events?" + params({ limit: "2000" }));
+      events = doc.events;
+      lastId = Math.max(lastId, doc.last_id);
+      render();
+      if (!document.body.dataset.ready) { document.body.dataset.ready = "1"; window.twinReadyAt = performance.now(); }
+    } catch (_) {
+      Twin.setLink(false, "agent unreachable");
+    }
+    if (source === null) source = Twin.stream("/api/stream/events?after=" + lastId, { events: append });
+  }
+  let timer = null;
+  for (const input of [device, level, kind, text, since, until]) {
+    input.addEventListener("input", () => { clearTimeout(timer); timer = setTimeout(load, 250); });
+  }
+  follow.addEventListener("change", () => { if (follow.checked) box.scrollTop = box.scrollHeight; });
+  load();
+})();

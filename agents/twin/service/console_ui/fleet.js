@@ -1,0 +1,166 @@
+// The fleet: every arm as a card (grid) or a row (list), filtered by status and alarm, searched by id, live.
+// Only what is on screen is in the DOM (a virtualised viewport), so 2,000 arms cost what 50 do.
+"use strict";
+
+(() => {
+  const { el, main } = Twin;
+  const CARD_W = 230, CARD_H = 108, GAP = 8, ROW_H = 30;
+  let columns = {}, rows = [], shown = [], now = Date.now() / 1000;
+  let mode = localStorage.getItem("twin.fleet.view") === "list" ? "list" : "grid";
+
+  const search = el("input", { type: "search", placeholder: "search arm id", "aria-label": "search by id" });
+  const status = el("select", { "aria-label": "status" },
+    el("option", { value: "", text: "any status" }), el("option", { value: "ONLINE", text: "ONLINE" }),
+    el("option", { value: "STALE", text: "STALE" }), el("option", { value: "OFFLINE", text: "OFFLINE" }));
+  const alarm = el("select", { "aria-label": "alarm" },
+    el("option", { value: "", text: "any alarm state" }), el("option", { value: "any", text: "with an alarm" }),
+    el("option", { value: "critical", text: "critical" }), el("option", { value: "warning", text: "warning" }),
+    el("option", { value: "ACTIVE", text: "unacknowledged" }), el("option", { value: "none", text: "no alarm" }));
+  const sort = el("select", { "aria-label": "sort" },
+    el("option", { value: "id", text: "sort: id" }), el("option", { value: "alarm", text: "sort: worst alarm" }),
+    el("option", { value: "hot", text: "sort: hottest servo" }), el("option", { value: "loss", text: "sort: loss" }));
+  const gridButton = el("button", { type: "button", text: "Grid", onclick: () => setMode("grid") });
+  const listButton = el("button", { type: "button", text: "List", onclick: () => setMode("list") });
+  const counts = el("span", { class: "counts" });
+  const viewport = el("div", { class: "viewport", id: "fleet-view", role: "list" });
+  const spacer = el("div", { class: "spacer" });
+  viewport.append(spacer);
+  main.append(
+    el("div", { class: "toolbar" }, search, status, alarm, sort,
+      el("span", { class: "toggle" }, gridButton, listButton), counts),
+    viewport);
+
+  function setMode(next) {
+    mode = next;
+    localStorage.setItem("twin.fleet.view", mode);
+    gridButton.classList.toggle("on", mode === "grid");
+    listButton.classList.toggle("on", mode === "list");
+    viewport.scrollTop = 0;
+    render();
+  }
+
+  const SEVERITY = { critical: 2, warning: 1 };
+  function filter() {
+    const c = columns, q = search.value.trim().toLowerCase(), st = status.value, al = alarm.value;
+    shown = rows.filter((r) => {
+      if (q && !r[c.device].toLowerCase().includes(q)) return false;
+      if (st && r[c.status] !== st) return false;
+      const sev = r[c.alarm_severity];
+      if (al === "any" && !sev) return false;
+      if (al === "none" && sev) return false;
+      if ((al === "critical" || al === "warning") && sev !== al) return false;
+      if (al === "ACTIVE" && r[c.alarm_state] !== "ACTIVE") return false;
+      return true;
+    });
+    const key = sort.value;
+    if (key === "alarm") shown.sort((a, b) => (SEVERITY[b[c.alarm_severity]] || 0) - (SEVERITY[a[c.alarm_severity]] || 0));
+    else if (key === "hot") shown.sort((a, b) => (b[c.hot_c] ?? -1e9) - (a[c.hot_c] ?? -1e9));
+    else if (key === "loss") shown.sort((a, b) => (b[c.loss_pct] ?? 0) - (a[c.loss_pct] ?? 0));
+  }
+
+  function alarmText(r) {
+    const c = columns, sev = r[c.alarm_severity];
+    if (!sev) return el("span", { class: "muted", text: "no alarm" });
+    return el("span", { class: "sev-" + sev, text: `${sev} ${r[c.alarm_kind]} (${r[c.alarm_joint]}) ${r[c.alarm_state]}` });
+  }
+
+  function hotText(r) {
+    const c = columns;
+    return r[c.hot_c] === null ? "–" : `${r[c.hot_joint]} ${Twin.num(r[c.hot_c], 0)} °C`;
+  }
+
+  function card(r, x, y) {
+    const c = columns, id = r[c.device];
+    const node = el("a", { class: "card " + r[c.status], href: "/arm/" + encodeURIComponent(id), role: "listitem",
+      "data-device": id },
+      el("div", { class: "id", text: id }),
+      el("div", { class: "line" }, el("span", { class: "status " + r[c.status], text: r[c.status] }),
+        " · " + Twin.ago(r[c.last_seen], now)),
+      el("div", { class: "line", text: `${Twin.num(r[c.rate_hz], 1)} Hz · loss ${Twin.num(r[c.loss_pct], 1)} %` }),
+      el("div", { class: "line", text: "hottest: " + hotText(r) }),
+      el("div", { class: "line" }, alarmText(r)));
+    node.style.transform = `translate(${x}px, ${y}px)`;
+    node.style.width = CARD_W + "px";
+    node.style.height = CARD_H + "px";
+    return node;
+  }
+
+  function listRow(r, y) {
+    const c = columns, id = r[c.device];
+    const node = el("a", { class: "row", href: "/arm/" + encodeURIComponent(id), role: "listitem", "data-device": id },
+      el("span", { text: id }), el("span", { class: "status " + r[c.status], text: r[c.status] }),
+      el("span", { class: "wide", text: Twin.ago(r[c.last_seen], now) }),
+      el("span", { text: Twin.num(r[c.rate_hz], 1) + " Hz" }),
+      el("span", { class: "wide", text: Twin.num(r[c.loss_pct], 1) + " %" }),
+      el("span", {}, alarmText(r)), el("span", { text: hotText(r) }));
+    node.style.top = y + "px";
+    node.style.height = ROW_H + "px";
+    return node;
+  }
+
+  function header() {
+    const node = el("div", { class: "row head" }, el("span", { text: "arm" }), el("span", { text: "status" }),
+      el("span", { class: "wide", text: "last seen" }), el("span", { text: "rate" }),
+      el("span", { class: "wide", text: "loss" }), el("span", { text: "worst alarm" }),
+      el("span", { text: "hottest servo" }));
+    node.style.height = ROW_H + "px";
+    return node;
+  }
+
+  function render() {
+    const width = viewport.clientWidth - 2 * GAP, top = viewport.scrollTop, height = viewport.clientHeight;
+    const nodes = [];
+    if (mode === "grid") {
+      const perRow = Math.max(1, Math.floor((width + GAP) / (CARD_W + GAP)));
+      const lines = Math.ceil(shown.length / perRow);
+      spacer.style.height = lines * (CARD_H + GAP) + GAP + "px";
+      const first = Math.max(0, Math.floor(top / (CARD_H + GAP)) - 1);
+      const last = Math.min(lines, Math.ceil((top + height) / (CARD_H + GAP)) + 1);
+      for (let line = first; line < last; line++) {
+        for (let k = 0; k < perRow; k++) {
+          const r = shown[line * perRow + k];
+          if (r) nodes.push(card(r, GAP + k * (CARD_W + GAP), GAP + line * (CARD_H + GAP)));
+        }
+      }
+    } else {
+      nodes.push(header());
+      spacer.style.height = (shown.length + 1) * ROW_H + "px";
+      const first = Math.max(0, Math.floor(top / ROW_H) - 2);
+      const last = Math.min(shown.length, Math.ceil((top + height) / ROW_H) + 2);
+      for (let i = first; i < last; i++) nodes.push(listRow(shown[i], (i + 1) * ROW_H));
+    }
+    if (!shown.length) nodes.push(el("div", { class: "empty", text: rows.length ? "no arm matches the filters" : "no arm has been heard from yet" }));
+    spacer.replaceChildren(...nodes);
+  }
+
+  function update(doc) {
+    columns = Object.fromEntries(doc.columns.map((name, i) => [name, i]));
+    rows = doc.rows;
+    now = doc.time || Date.now() / 1000;
+    const s = doc.counts.status, a = doc.counts.alarmed_devices;
+    counts.replaceChildren(el("b", { text: String(doc.counts.devices) }), " arms · ",
+      el("span", { class: "status ONLINE", text: `${s.ONLINE} online` }), " · ",
+      el("span", { class: "status STALE", text: `${s.STALE} stale` }), " · ",
+      el("span", { class: "status OFFLINE", text: `${s.OFFLINE} offline` }), " · ",
+      el("span", { class: "sev-critical", text: `${a.critical} critical` }), " · ",
+      el("span", { class: "sev-warning", text: `${a.warning} warning` }));
+    filter();
+    render();
+    if (!document.body.dataset.ready) {
+      document.body.dataset.ready = "1";
+      window.twinReadyAt = performance.now();
+    }
+  }
+
+  for (const input of [search, status, alarm, sort]) input.addEventListener("input", () => { filter(); render(); });
+  let pending = false;
+  viewport.addEventListener("scroll", () => {
+    if (pending) return;
+    pending = true;
+    requestAnimationFrame(() => { pending = false; render(); });
+  });
+  window.addEventListener("resize", render);
+  setMode(mode);
+  Twin.getJSON("/api/fleet").then(update).catch(() => Twin.setLink(false, "agent unreachable"));
+  Twin.stream("/api/stream/fleet", { fleet: update });
+})();

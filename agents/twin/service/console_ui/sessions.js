@@ -1,0 +1,55 @@
+// Sessions from the telemetry history: device, start, duration, messages, alarms raised, status, and each
+// session's files (CSV, Parquet, a plot, a Rerun recording and a USD session, made on demand).
+"use strict";
+
+(() => {
+  const { el, main } = Twin;
+  const LABELS = { csv: "CSV", parquet: "Parquet", png: "plot", rrd: "Rerun .rrd", usd: "USD" };
+  const device = el("input", { type: "search", placeholder: "device", "aria-label": "device" });
+  const state = el("select", { "aria-label": "status" }, el("option", { value: "", text: "any status" }),
+    el("option", { value: "active", text: "active" }), el("option", { value: "completed", text: "completed" }));
+  const note = el("span", { class: "counts" });
+  const body = el("tbody");
+  main.append(el("h1", { text: "Sessions" }),
+    el("div", { class: "toolbar" }, device, state, el("button", { type: "button", text: "Refresh", onclick: load }), note),
+    el("table", { id: "sessions" }, el("thead", {}, el("tr", {}, ...["device", "start", "duration", "messages", "alarms raised", "status", "files"].map((t) => el("th", { text: t })))), body));
+  let doc = null;
+
+  function render() {
+    if (!doc) return;
+    if (!doc.history) {
+      body.replaceChildren(el("tr", {}, el("td", { colspan: 7, class: "empty", text: "History is off: set [history] uri in the agent's config to keep sessions (docs/history.md)." })));
+      return;
+    }
+    const q = device.value.trim().toLowerCase(), st = state.value;
+    const rows = doc.sessions.filter((s) => (!q || s.device.toLowerCase().includes(q)) && (!st || s.status === st));
+    note.textContent = `${rows.length} of ${doc.sessions.length} sessions · a gap of ${doc.gap_s} s ends one`;
+    if (!rows.length) { body.replaceChildren(el("tr", {}, el("td", { colspan: 7, class: "empty", text: "no session yet" }))); return; }
+    body.replaceChildren(...rows.map((s) => {
+      const base = `/api/sessions/${encodeURIComponent(s.device)}/${s.key}/`;
+      const files = doc.kinds.map((k) => el("a", { href: base + k, download: "", "data-kind": k, text: LABELS[k] || k }));
+      const cell = el("td", {});
+      files.forEach((a, i) => { if (i) cell.append(" · "); cell.append(a); });
+      return el("tr", { "data-device": s.device, "data-key": s.key },
+        el("td", {}, el("a", { href: "/arm/" + encodeURIComponent(s.device), text: s.device })),
+        el("td", { text: Twin.time(s.start) }), el("td", { text: Twin.duration(s.duration_s) }),
+        el("td", { text: String(s.messages) }), el("td", { text: String(s.alarms_raised) }),
+        el("td", { class: "session-status", text: s.status }), cell);
+    }));
+  }
+
+  async function load() {
+    try {
+      doc = await Twin.getJSON("/api/sessions");
+      Twin.setLink(true, "up to date");
+      render();
+      if (!document.body.dataset.ready) { document.body.dataset.ready = "1"; window.twinReadyAt = performance.now(); }
+    } catch (_) {
+      Twin.setLink(false, "agent unreachable");
+    }
+  }
+  device.addEventListener("input", render);
+  state.addEventListener("input", render);
+  load();
+  setInterval(load, 10000);
+})();
