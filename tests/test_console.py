@@ -1,0 +1,170 @@
+"""The operator console in a real browser (Debian's chromium, driven by Playwright), against a live agent
+fed by the edge simulator through a real mosquitto, with a servo heating up on arm-001 and arm-002.
+
+One agent, one edge simulator and one browser for the whole module: the pages are read in the order an
+operator would (fleet, an arm, acknowledging its alarm, sessions, events), and no page may log an error."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+from urllib.parse import quote
+
+import pytest
+from conftest import CHROMIUM, CHROMIUM_FLAGS, http_get, wait_for
+from twin.tools.console_shots import loopback_only, wait_for_charts
+from twin.tools.rig import LocalRig
+from twin.tools.servo_faults import ServoFault
+
+pytestmark = pytest.mark.slow
+
+DEVICES = ["arm-001", "arm-002", "arm-003"]
+# The heat fault ramps the temperature to 68 C over the first quarter of its run (15 s), so the warning alarm
+# (60 C, held 2 s) rises about 14 s in and stays ACTIVE until the run has cooled down again (after 60 s).
+HEAT = (ServoFault("heat", "elbow_flex", 1.0, 60.0),)
+TIMEOUT_S = 90.0
+
+
+@pytest.fixture(scope="module")
+def console(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """The live agent's URL (history on, so sessions exist)."""
+    workdir = tmp_path_factory.mktemp("console")
+    with LocalRig(workdir=workdir / "rig") as rig:
+        agent = rig.start_agent(
+            {
+                "telemetry.units": "ticks",
+                "history.uri": str(workdir / "history"),
+                "history.commit_every_s": 1.0,
+            }
+        )
+        rig.start_edge(DEVICES, variant="ticks", rate_hz=10.0, servo_faults=HEAT)
+        yield agent.http_url
+
+
+@pytest.fixture(scope="module")
+def browser_errors() -> list[str]:
+    return []
+
+
+@pytest.fixture(scope="module")
+def page(tmp_path_factory: pytest.TempPathFactory, browser_errors: list[str]) -> Iterator[Any]:
+    from playwright.sync_api import sync_playwright
+
+    if not CHROMIUM.is_file():
+        pytest.fail(f"{CHROMIUM} is missing; `make setup` installs Debian's chromium for the browser tests")
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_FLAGS)
+        try:
+            context = browser.new_context(viewport={"width": 1280, "height": 800}, accept_downloads=True)
+            context.route("**/*", loopback_only)
+            tab = context.new_page()
+            tab.set_default_timeout(TIMEOUT_S * 1000)
+            tab.on("console", lambda m: browser_errors.append(m.text) if m.type == "error" else None)
+            tab.on("pageerror", lambda e: browser_errors.append(str(e)))
+            yield tab
+        finally:
+            browser.close()
+
+
+def alarms(url: str, device: str) -> list[dict[str, Any]]:
+    status, _, body = http_get(f"{url}/alarms?device={quote(device)}")
+    assert status == 200
+    return json.loads(body)["alarms"]
+
+
+def active_heat_alarm(url: str, device: str) -> dict[str, Any] | None:
+    return next(
+        (a for a in alarms(url, device) if a["joint"] == "elbow_flex" and a["state"] == "ACTIVE"), None
+    )
+
+
+def test_the_fleet_page_lists_the_arms(console: str, page: Any, browser_errors: list[str]) -> None:
+    page.goto(console + "/")
+    for device in DEVICES:
+        page.wait_for_selector(f'#fleet-view [data-device="{device}"]')
+    card = page.locator('#fleet-view [data-device="arm-003"]')
+    assert "ONLINE" in card.inner_text()
+    # The list view and the search filter, live without a reload.
+    page.get_by_role("button", name="List").click()
+    page.get_by_label("search by id").fill("arm-002")
+    page.wait_for_function(
+        "() => [...document.querySelectorAll('#fleet-view [data-device]')].map(e => e.dataset.device)"
+        ".join() === 'arm-002'"
+    )
+    page.get_by_label("search by id").fill("")
+    page.get_by_role("button", name="Grid").click()
+    assert browser_errors == []
+
+
+def test_an_arm_page_draws_its_charts(console: str, page: Any, browser_errors: list[str]) -> None:
+    page.goto(console + "/arm/arm-003")
+    wait_for_charts(page, TIMEOUT_S)
+    assert page.locator("canvas[data-chart]").count() == 4
+    assert browser_errors == []
+
+
+def test_acknowledge_moves_the_alarm_to_acknowledged(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    alarm = wait_for(lambda: active_heat_alarm(console, "arm-001"), TIMEOUT_S, "arm-001's heat alarm")
+    page.goto(console + "/arm/arm-001")
+    row = page.locator(f'#alarms tr[data-alarm="{alarm["alarm_id"]}"]')
+    row.get_by_role("button", name="Acknowledge").click()
+    page.wait_for_selector(f'#alarms tr[data-alarm="{alarm["alarm_id"]}"][data-state="ACKNOWLEDGED"]')
+    after = {a["alarm_id"]: a["state"] for a in alarms(console, "arm-001")}
+    assert after[alarm["alarm_id"]] == "ACKNOWLEDGED"
+    assert browser_errors == []
+
+
+def test_curl_acknowledges_a_percent_encoded_id(console: str) -> None:
+    alarm = wait_for(lambda: active_heat_alarm(console, "arm-002"), TIMEOUT_S, "arm-002's heat alarm")
+    encoded = quote(alarm["alarm_id"], safe="")
+    assert "%2F" in encoded
+    request = urllib.request.Request(f"{console}/alarms/{encoded}/ack", data=b"", method="POST")
+    with urllib.request.urlopen(request, timeout=10) as response:
+        assert json.loads(response.read())["alarms"][0]["state"] == "ACKNOWLEDGED"
+
+
+def test_the_sessions_page_lists_a_session_and_its_csv_parses(
+    console: str, page: Any, browser_errors: list[str], tmp_path: Path
+) -> None:
+    def listed() -> bool:
+        status, _, body = http_get(console + "/api/sessions")
+        return status == 200 and any(s["device"] == "arm-003" for s in json.loads(body)["sessions"])
+
+    wait_for(listed, TIMEOUT_S, "history to hold a session of arm-003")
+    page.goto(console + "/sessions")
+    row = page.locator('#sessions tr[data-device="arm-003"]').first
+    row.wait_for()
+    assert row.locator(".session-status").inner_text() == "active"
+    with page.expect_download() as download:
+        row.locator('a[data-kind="csv"]').click()
+    path = tmp_path / "session.csv"
+    download.value.save_as(path)
+    rows = list(csv.DictReader(io.StringIO(path.read_text())))
+    assert rows and {r["device_id"] for r in rows} == {"arm-003"}
+    assert "shoulder_pan_temperature_c" in rows[0]
+    assert browser_errors == []
+
+
+def test_the_events_page_tails_the_twins_events(console: str, page: Any, browser_errors: list[str]) -> None:
+    page.goto(console + "/events")
+    page.wait_for_selector('#events tr:has-text("arm-003 is ONLINE")')
+    # The acknowledgement made above is an event too, and the device filter keeps only arm-001's.
+    page.get_by_label("device").fill("arm-001")
+    page.wait_for_function(
+        """() => {
+          const rows = [...document.querySelectorAll('#events tbody tr')];
+          return rows.some(r => r.textContent.includes('acknowledged'))
+            && rows.every(r => r.children[3].textContent === 'arm-001');
+        }"""
+    )
+    status, ctype, body = http_get(console + "/api/events.csv?device=arm-001")
+    assert status == 200 and ctype.startswith("text/csv")
+    assert any(r["kind"] == "alarm" for r in csv.DictReader(io.StringIO(body.decode())))
+    assert browser_errors == []
