@@ -17,9 +17,9 @@ from urllib.parse import quote
 
 import pytest
 from conftest import CHROMIUM, CHROMIUM_FLAGS, http_get, wait_for
-from twin.tools.console_shots import loopback_only, wait_for_charts
-from twin.tools.rig import LocalRig
-from twin.tools.servo_faults import ServoFault
+from twin.edge.servo_faults import ServoFault
+from twin.rig.console_shots import loopback_only, wait_for_charts
+from twin.rig.local import LocalRig
 
 pytestmark = pytest.mark.slow
 

@@ -28,8 +28,8 @@ from twin.service.config import AgentConfig
 from twin.service.console import SESSION_FILE_KINDS, SessionInfo
 
 if TYPE_CHECKING:
-    from twin.robot.model import RobotModel
     from twin.ops.history import HistoryReader
+    from twin.robot.model import RobotModel
 
 log = logging.getLogger(__name__)
 

@@ -1,8 +1,8 @@
 """Pictures of a running operator console, taken in headless Chromium through Playwright.
 
 `console_screenshots(url, out_dir, device=...)` opens the Fleet page and one arm's page of the console at
-`url` (an agent's HTTP address), waits until each has drawn its live data, and saves `console-fleet.png` and
-`console-arm.png`. docs/console.md's pictures are made this way, and a demo can call it with the agent it runs.
+`url` (an agent's HTTP address), waits until each has drawn its live data, and saves `console-fleet.png`
+and `console-arm.png`. docs/console.md's pictures are made this way; a demo can call it with its agent.
 
 The browser is Debian's chromium (`make setup` installs it), never one Playwright downloads; the page may
 reach loopback addresses only. Playwright is a development dependency: without it this raises
@@ -58,7 +58,8 @@ def loopback_only(route: Route) -> None:
 def wait_for_charts(page: Page, timeout_s: float) -> None:
     """Until every chart of an arm page has drawn at least two readings."""
     page.wait_for_function(
-        "() => [...document.querySelectorAll('canvas[data-chart]')].every(c => Number(c.dataset.points) >= 2)",
+        "() => [...document.querySelectorAll('canvas[data-chart]')]"
+        ".every(c => Number(c.dataset.points) >= 2)",
         timeout=timeout_s * 1000,
     )
 
@@ -87,11 +88,15 @@ def console_screenshots(
     base = url.rstrip("/")
     try:
         with sync_playwright() as pw:
-            browser = pw.chromium.launch(executable_path=str(chromium), headless=True, args=list(CHROMIUM_FLAGS))
+            browser = pw.chromium.launch(
+                executable_path=str(chromium), headless=True, args=list(CHROMIUM_FLAGS)
+            )
             try:
                 page = browser.new_page(viewport={"width": size[0], "height": size[1]})
                 page.route("**/*", loopback_only)
-                page.on("console", lambda m: shots.console_errors.append(m.text) if m.type == "error" else None)
+                page.on(
+                    "console", lambda m: shots.console_errors.append(m.text) if m.type == "error" else None
+                )
                 page.goto(base + "/", wait_until="load")
                 page.wait_for_selector(f'[data-device="{device}"]', timeout=timeout_s * 1000)
                 page.screenshot(path=str(shots.fleet))
