@@ -193,3 +193,16 @@ def test_worker_handles_every_message_and_prints_its_cost() -> None:
     for case in out["cases"]:
         assert case["errors"] == 0
         assert case["first_message_us"] > 0 and case["message_us"] > 0
+
+
+def test_console_reports_time_to_interactive_and_the_cpu_of_two_consoles() -> None:
+    out = bench("console", "--arms", "20", "--cpu-arms", "10", "--runs", "2", "--seconds", "2", timeout=300)
+    assert out["scenario"] == "console"
+    interactive = out["interactive"]
+    assert interactive["arms"] == 20 and interactive["runs"] == 2
+    for figure in ("ready_ms", "search_ms", "update_ms"):
+        spread = interactive[figure]
+        assert 0 < spread["min"] <= spread["median"] <= spread["max"], figure
+    cpu = out["cpu"]
+    assert cpu["consoles"] == 2 and cpu["agent_cpu_percent_with"] > 0
+    assert all(n >= 1 for n in cpu["updates_per_console"])

@@ -113,12 +113,19 @@ class AgentFeed:
             content_type = response.headers.get("Content-Type", "")
             if "text/event-stream" not in content_type:
                 raise ValueError(f"/stream answered {content_type or 'no content type'}, not an SSE stream")
-            for data in iter_sse_data(response):
+            try:
+                for data in iter_sse_data(response):
+                    if self._stop.is_set():
+                        return
+                    self.fleet.update_json(data, self._clock())
+                    if self.fleet.link != LINK_STREAM:
+                        self.fleet.set_link(LINK_STREAM)
+            except AttributeError:
+                # stop() closed the response under this read: http.client, in the middle of a chunked
+                # body (the agent's stream is chunked), then reads from a file it has already dropped.
                 if self._stop.is_set():
                     return
-                self.fleet.update_json(data, self._clock())
-                if self.fleet.link != LINK_STREAM:
-                    self.fleet.set_link(LINK_STREAM)
+                raise
         finally:
             self._response = None
             response.close()

@@ -72,11 +72,20 @@ def register(subparsers: Any) -> None:
     wo.add_argument("--arms", type=int, default=1000)
     wo.add_argument("--rounds", type=int, default=40, help="messages per arm (10 Hz edge timestamps)")
 
+    cs = sub.add_parser(
+        "console", help="the operator console: fleet page interactive at 2,000 arms, CPU of two consoles"
+    )
+    cs.add_argument("--arms", type=int, default=2000, help="arms on the fleet page timed to interactive")
+    cs.add_argument("--cpu-arms", type=int, default=1000, help="arms while two consoles' CPU is measured")
+    cs.add_argument("--rate", type=float, default=2.0, help="messages per second per arm")
+    cs.add_argument("--runs", type=int, default=5, help="page loads timed")
+    cs.add_argument("--seconds", type=float, default=20.0, help="CPU measurement window of each phase")
+
     al = sub.add_parser("all", help="every scenario as published in docs/performance.md, plus the plot")
     al.add_argument("--seconds", type=float, default=20.0, help="throughput run length")
     al.add_argument("--plot", type=Path, default=Path("docs/performance.png"))
 
-    for p in (tp, fi, fo, hs, hr, hl, r2, rn, rr, qu, de, wo, al):
+    for p in (tp, fi, fo, hs, hr, hl, r2, rn, rr, qu, de, wo, cs, al):
         p.add_argument("--json", action="store_true", help="print the figures as one JSON object")
         p.set_defaults(func=run)
 
@@ -114,6 +123,10 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
         return quota.run(arms=args.arms, rate=args.rate, seconds=args.seconds)
     if args.scenario == "decode":
         return import_dev_tool("twin.bench.decode", "bench").run()
+    if args.scenario == "console":
+        return import_dev_tool("twin.bench.console", "bench").run(
+            arms=args.arms, cpu_arms=args.cpu_arms, rate=args.rate, runs=args.runs, seconds=args.seconds
+        )
     if args.scenario == "worker":
         return import_dev_tool("twin.bench.worker", "bench").run(arms=args.arms, rounds=args.rounds)
     # all: the two throughput loads the targets name, fidelity, footprint, ROS 2, render, Rerun, the quota
@@ -131,6 +144,7 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
         "quota": import_dev_tool("twin.bench.quota", "bench").run(seconds=args.seconds),
         "decode": import_dev_tool("twin.bench.decode", "bench").run(),
         "worker": import_dev_tool("twin.bench.worker", "bench").run(),
+        "console": import_dev_tool("twin.bench.console", "bench").run(seconds=args.seconds),
     }
     plot = import_dev_tool("twin.bench.plot", "bench")
     results["plot"] = str(plot.write(results, args.plot))

@@ -133,7 +133,9 @@
     spacer.replaceChildren(...nodes);
   }
 
+  let updates = 0, updateTotalMs = 0;
   function update(doc) {
+    const t0 = performance.now();
     columns = Object.fromEntries(doc.columns.map((name, i) => [name, i]));
     rows = doc.rows;
     now = doc.time || Date.now() / 1000;
@@ -146,6 +148,12 @@
       el("span", { class: "sev-warning", text: `${a.warning} warning` }));
     filter();
     render();
+    // What `twin bench console` reads: rows shown, updates handled and the mean time each took.
+    updates += 1;
+    updateTotalMs += performance.now() - t0;
+    window.twinRows = rows.length;
+    window.twinUpdates = updates;
+    window.twinUpdateMs = updateTotalMs / updates;
     if (!document.body.dataset.ready) {
       document.body.dataset.ready = "1";
       window.twinReadyAt = performance.now();

@@ -1,0 +1,212 @@
+"""What the operator console costs and how it feels at fleet scale, measured in Debian's chromium.
+
+Two phases, each against a `twin run` child process on a private broker with the whole fleet publishing:
+1. interactive: the Fleet page of a 2,000-arm fleet opened `runs` times in a fresh page; per run, the time
+   from navigation to the first full render of every arm (the page marks it: `window.twinReadyAt`, on the
+   browser's own clock), the time a search takes to show its match, and how long the page spends on each
+   live update (`window.twinUpdateMs`, the mean over the updates it handled). Reported as median, min, max.
+2. cpu: the agent's CPU (its process tree) at 1,000 arms for `seconds` with no console open, then the same
+   with two Fleet pages open; the difference is what two consoles cost the agent. The browser's own CPU is
+   reported too (it runs on the same cores).
+Publishers, broker, agent and browser share this host's cores: quote the load average with the figures.
+"""
+
+from __future__ import annotations
+
+import os
+import statistics
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import psutil
+
+from twin.bench.harness import ProcessSampler, publishers, running_agent, wait_subscribed
+from twin.rig.console_shots import CHROMIUM, CHROMIUM_FLAGS, loopback_only
+from twin.rig.local import LocalRig
+
+# The fleet must be in the agent's state before the page is timed.
+FLEET_TIMEOUT_S = 120.0
+
+_SEARCH_JS = """
+async (id) => {
+  const input = document.querySelector('input[type=search]');
+  const t0 = performance.now();
+  input.value = id;
+  input.dispatchEvent(new Event('input'));
+  while (!document.querySelector(`#fleet-view [data-device="${id}"]`)) {
+    await new Promise(r => requestAnimationFrame(r));
+  }
+  return performance.now() - t0;
+}
+"""
+
+
+def _spread(values: list[float]) -> dict[str, float | None]:
+    if not values:
+        return {"median": None, "min": None, "max": None}
+    return {"median": statistics.median(values), "min": min(values), "max": max(values)}
+
+
+@contextmanager
+def _browser() -> Iterator[Any]:
+    from playwright.sync_api import sync_playwright  # noqa: PLC0415 - development dependency
+
+    if not CHROMIUM.is_file():
+        raise RuntimeError(f"{CHROMIUM} is missing; `make setup` installs Debian's chromium")
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=list(CHROMIUM_FLAGS))
+        try:
+            yield browser
+        finally:
+            browser.close()
+
+
+def _wait_fleet(base: str, arms: int, proc: Any) -> float:
+    """Until /api/fleet lists every arm; returns the seconds it took."""
+    import json  # noqa: PLC0415
+    import urllib.request  # noqa: PLC0415
+
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < FLEET_TIMEOUT_S:
+        if proc.poll() is not None:
+            raise RuntimeError(f"the agent exited with code {proc.returncode}")
+        with urllib.request.urlopen(base + "/api/fleet", timeout=30) as response:
+            if json.loads(response.read())["counts"]["devices"] >= arms:
+                return time.monotonic() - t0
+        time.sleep(0.5)
+    raise RuntimeError(f"the agent did not list {arms} arms within {FLEET_TIMEOUT_S:.0f} s")
+
+
+def _open_fleet(context: Any, base: str, arms: int) -> Any:
+    page = context.new_page()
+    page.route("**/*", loopback_only)
+    page.set_default_timeout(FLEET_TIMEOUT_S * 1000)
+    page.goto(base + "/")
+    page.wait_for_function(f"() => window.twinReadyAt && window.twinRows >= {arms}")
+    return page
+
+
+def _interactive(rig: LocalRig, arms: int, rate: float, runs: int) -> dict[str, Any]:
+    seconds = FLEET_TIMEOUT_S + runs * 20.0
+    with running_agent(rig, max_devices=max(4096, arms)) as (proc, base):
+        wait_subscribed(base, proc)
+        pubs = publishers(rig.broker.url, arms, rate, seconds)
+        try:
+            listed_s = _wait_fleet(base, arms, proc)
+            ready, search, update = [], [], []
+            with _browser() as browser:
+                for _ in range(runs):
+                    context = browser.new_context(viewport={"width": 1280, "height": 800})
+                    page = _open_fleet(context, base, arms)
+                    ready.append(page.evaluate("window.twinReadyAt"))
+                    # A few live updates, then a search for the last arm.
+                    page.wait_for_function("() => window.twinUpdates >= 4")
+                    update.append(page.evaluate("window.twinUpdateMs"))
+                    search.append(page.evaluate(_SEARCH_JS, f"arm-{arms:04d}"))
+                    context.close()
+        finally:
+            for p in pubs:
+                p.kill()
+            collect_quietly(pubs)
+    return {
+        "arms": arms,
+        "rate_hz": rate,
+        "runs": runs,
+        "fleet_listed_after_s": listed_s,
+        "ready_ms": _spread(ready),
+        "search_ms": _spread(search),
+        "update_ms": _spread(update),
+    }
+
+
+def collect_quietly(procs: list[Any]) -> None:
+    for p in procs:
+        try:
+            p.communicate(timeout=10)
+        except Exception:  # a killed publisher has nothing to report
+            p.kill()
+
+
+def _browser_cpu(pid: int) -> float:
+    try:
+        root = psutil.Process(pid)
+        processes = [root, *root.children(recursive=True)]
+    except psutil.Error:
+        return 0.0
+    total = 0.0
+    for process in processes:
+        try:
+            times = process.cpu_times()
+        except psutil.Error:
+            continue
+        total += times.user + times.system
+    return total
+
+
+def _cpu(rig: LocalRig, arms: int, rate: float, seconds: float, consoles: int) -> dict[str, Any]:
+    total = FLEET_TIMEOUT_S + 3 * seconds
+    with running_agent(rig, max_devices=max(4096, arms)) as (proc, base):
+        wait_subscribed(base, proc)
+        pubs = publishers(rig.broker.url, arms, rate, total)
+        try:
+            _wait_fleet(base, arms, proc)
+            idle = ProcessSampler(proc.pid).start()
+            time.sleep(seconds)
+            without = idle.stop()
+            with _browser() as browser:
+                context = browser.new_context(viewport={"width": 1280, "height": 800})
+                pages = [_open_fleet(context, base, arms) for _ in range(consoles)]
+                browser_pid = _chromium_pid()
+                sampler = ProcessSampler(proc.pid).start()
+                browser0 = _browser_cpu(browser_pid) if browser_pid else 0.0
+                time.sleep(seconds)
+                browser_s = (_browser_cpu(browser_pid) - browser0) if browser_pid else 0.0
+                with_consoles = sampler.stop()
+                updates = [p.evaluate("window.twinUpdates") for p in pages]
+                context.close()
+        finally:
+            for p in pubs:
+                p.kill()
+            collect_quietly(pubs)
+    return {
+        "arms": arms,
+        "rate_hz": rate,
+        "seconds": seconds,
+        "consoles": consoles,
+        "agent_cpu_percent_without": without["cpu_percent"],
+        "agent_cpu_percent_with": with_consoles["cpu_percent"],
+        "agent_cpu_percent_cost": with_consoles["cpu_percent"] - without["cpu_percent"],
+        "browser_cpu_percent": 100.0 * browser_s / seconds,
+        "host_cpu_percent_with": with_consoles["host_cpu_percent"],
+        "updates_per_console": updates,
+    }
+
+
+def _chromium_pid() -> int | None:
+    """The newest chromium process started by this one (Playwright's browser)."""
+    me = psutil.Process(os.getpid())
+    candidates = [p for p in me.children(recursive=True) if "chrom" in p.name()]
+    return min(candidates, key=lambda p: p.create_time()).pid if candidates else None
+
+
+def run(
+    *, arms: int = 2000, cpu_arms: int = 1000, rate: float = 2.0, runs: int = 5, seconds: float = 20.0
+) -> dict[str, Any]:
+    """Both phases as one JSON-ready dict (nothing asserted: a benchmark measures)."""
+    load_before = os.getloadavg()
+    with LocalRig() as rig:
+        interactive = _interactive(rig, arms, rate, runs)
+        cpu = _cpu(rig, cpu_arms, rate, seconds, consoles=2)
+    return {
+        "scenario": "console",
+        "interactive": interactive,
+        "cpu": cpu,
+        "load_average_1m": {"before": load_before[0], "after": os.getloadavg()[0]},
+        "notes": (
+            "headless Debian chromium (software rendering) on the same cores as the agent, broker and "
+            "publishers; times from the browser's clock; figures taken while other work runs are noisy"
+        ),
+        "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
