@@ -55,11 +55,12 @@ def loopback_only(route: Route) -> None:
         route.abort()
 
 
-def wait_for_charts(page: Page, timeout_s: float) -> None:
-    """Until every chart of an arm page has drawn at least two readings."""
+def wait_for_charts(page: Page, timeout_s: float, readings: int = 2) -> None:
+    """Until every chart of an arm page has drawn at least `readings` readings (the page takes two a
+    second, `[http] console_rate_hz`)."""
     page.wait_for_function(
-        "() => [...document.querySelectorAll('canvas[data-chart]')]"
-        ".every(c => Number(c.dataset.points) >= 2)",
+        f"() => [...document.querySelectorAll('canvas[data-chart]')]"
+        f".every(c => Number(c.dataset.points) >= {int(readings)})",
         timeout=timeout_s * 1000,
     )
 
@@ -101,7 +102,8 @@ def console_screenshots(
                 page.wait_for_selector(f'[data-device="{device}"]', timeout=timeout_s * 1000)
                 page.screenshot(path=str(shots.fleet))
                 page.goto(f"{base}/arm/{quote(device, safe='')}", wait_until="load")
-                wait_for_charts(page, timeout_s)
+                # Some seconds of readings, so the pictures show lines rather than their first points.
+                wait_for_charts(page, timeout_s, readings=20)
                 page.screenshot(path=str(shots.arm), full_page=True)
             finally:
                 browser.close()

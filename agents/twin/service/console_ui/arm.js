@@ -70,9 +70,13 @@
     ctx.setTransform(ratio, 0, 0, ratio, 0, 0);
     ctx.clearRect(0, 0, w, h);
     let lo = Infinity, hi = -Infinity, points = 0;
-    for (const [, values] of samples) for (const v of values[chart.key]) if (v !== null) { lo = Math.min(lo, v); hi = Math.max(hi, v); points++; }
+    for (const [, values] of samples) {
+      let any = false;
+      for (const v of values[chart.key]) if (v !== null) { lo = Math.min(lo, v); hi = Math.max(hi, v); any = true; }
+      if (any) points++;  // readings drawn: samples with at least one value
+    }
     // The window grows with what the page has seen, up to WINDOW_S, so a fresh page shows its lines.
-    const span = samples.length ? Math.min(WINDOW_S, Math.max(30, now - samples[0][0])) : WINDOW_S;
+    const span = samples.length ? Math.min(WINDOW_S, Math.max(10, now - samples[0][0])) : WINDOW_S;
     const left = 44, right = 8, top = 8, bottom = 18;
     ctx.strokeStyle = "#d9dde5"; ctx.fillStyle = "#667085"; ctx.font = "11px sans-serif";
     ctx.strokeRect(left, top, w - left - right, h - top - bottom);
@@ -122,7 +126,7 @@
       return el("tr", { "data-alarm": a.alarm_id, "data-state": a.state },
         el("td", { text: `${a.joint} ${a.kind}` }), el("td", { class: "sev-" + a.severity, text: a.severity }),
         el("td", { class: "alarm-state", text: a.state }), el("td", { text: `${Twin.num(a.value, 1)} ${a.unit} (limit ${a.threshold})` }),
-        el("td", { text: Twin.time(a.changed_at) }), el("td", { text: a.message }), el("td", {}, can ? button : ""));
+        el("td", { text: Twin.time(a.changed_at) }), el("td", { class: "msg", text: a.message }), el("td", {}, can ? button : ""));
     }));
   }
 

@@ -4,7 +4,7 @@
 
 (() => {
   const { el, main } = Twin;
-  const CARD_W = 230, CARD_H = 108, GAP = 8, ROW_H = 30;
+  const CARD_W = 230, CARD_H = 124, GAP = 8, ROW_H = 30;
   let columns = {}, rows = [], shown = [], now = Date.now() / 1000;
   let mode = localStorage.getItem("twin.fleet.view") === "list" ? "list" : "grid";
 
@@ -64,6 +64,14 @@
     return el("span", { class: "sev-" + sev, text: `${sev} ${r[c.alarm_kind]} (${r[c.alarm_joint]}) ${r[c.alarm_state]}` });
   }
 
+  // A card has room for the alarm's severity, joint and state on one line and its kind on the next.
+  function cardAlarm(r) {
+    const c = columns, sev = r[c.alarm_severity];
+    if (!sev) return [el("div", { class: "line muted", text: "no alarm" })];
+    return [el("div", { class: "line" }, el("span", { class: "sev-" + sev, text: sev }), ` · ${r[c.alarm_joint]} · ${r[c.alarm_state]}`),
+      el("div", { class: "line", text: r[c.alarm_kind] })];
+  }
+
   function hotText(r) {
     const c = columns;
     return r[c.hot_c] === null ? "–" : `${r[c.hot_joint]} ${Twin.num(r[c.hot_c], 0)} °C`;
@@ -78,7 +86,7 @@
         " · " + Twin.ago(r[c.last_seen], now)),
       el("div", { class: "line", text: `${Twin.num(r[c.rate_hz], 1)} Hz · loss ${Twin.num(r[c.loss_pct], 1)} %` }),
       el("div", { class: "line", text: "hottest: " + hotText(r) }),
-      el("div", { class: "line" }, alarmText(r)));
+      ...cardAlarm(r));
     node.style.transform = `translate(${x}px, ${y}px)`;
     node.style.width = CARD_W + "px";
     node.style.height = CARD_H + "px";
