@@ -16,7 +16,7 @@ from typing import Any
 from urllib.parse import quote
 
 import pytest
-from conftest import CHROMIUM, CHROMIUM_FLAGS, http_get, wait_for
+from conftest import CHROMIUM, CHROMIUM_FLAGS, http_get, read_rrd, wait_for
 from twin.edge.servo_faults import ServoFault
 from twin.rig.console_shots import loopback_only, wait_for_charts
 from twin.rig.local import LocalRig
@@ -168,3 +168,28 @@ def test_the_events_page_tails_the_twins_events(console: str, page: Any, browser
     assert status == 200 and ctype.startswith("text/csv")
     assert any(r["kind"] == "alarm" for r in csv.DictReader(io.StringIO(body.decode())))
     assert browser_errors == []
+
+
+def test_a_sessions_other_files_are_made_from_history(console: str, tmp_path: Path) -> None:
+    status, _, body = http_get(console + "/api/sessions")
+    session = next(s for s in json.loads(body)["sessions"] if s["device"] == "arm-003")
+    base = f"{console}/api/sessions/arm-003/{session['key']}/"
+    files = {}
+    for kind in ("parquet", "png", "rrd", "usd"):
+        status, _, data = http_get(base + kind)
+        assert status == 200, (kind, data[:200])
+        files[kind] = tmp_path / f"session.{kind}"
+        files[kind].write_bytes(data)
+    import polars as pl
+    from PIL import Image
+    from pxr import Usd
+
+    frame = pl.read_parquet(files["parquet"])
+    assert frame.height > 0 and set(frame["device_id"]) == {"arm-003"}
+    assert Image.open(files["png"]).size[0] > 100
+    temporal, _ = read_rrd(files["rrd"])
+    assert temporal.num_rows > 0
+    assert "/arms/arm-003/joints/angle_deg:Scalars:scalars" in temporal.column_names
+    stage = Usd.Stage.Open(str(files["usd"]))
+    assert stage.GetEndTimeCode() > stage.GetStartTimeCode()
+    assert http_get(base + "exe")[0] == 404

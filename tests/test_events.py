@@ -1,0 +1,202 @@
+"""The twin's events: the bounded store (ids, the tail, filters, subscribers), the emitters the runtime calls,
+and the exports whose formula-like cells are neutralised."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import pickle
+import threading
+from typing import Any
+
+import msgspec
+import pytest
+from twin.service.events import (
+    BrokerWatch,
+    Event,
+    EventKind,
+    EventLevel,
+    EventQuery,
+    EventStore,
+    RejectionThrottle,
+    StatusWatch,
+    events_csv,
+    events_json,
+    neutralise_cell,
+)
+
+
+class Clock:
+    def __init__(self, t: float = 1000.0) -> None:
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def store(capacity: int = 100) -> tuple[EventStore, Clock]:
+    clock = Clock()
+    return EventStore(capacity, wall_clock=clock), clock
+
+
+def test_events_are_numbered_and_the_oldest_go_first() -> None:
+    s, _ = store(capacity=3)
+    for i in range(5):
+        s.emit(EventKind.STATUS, EventLevel.INFO, f"e{i}", device="arm-001")
+    assert [e.message for e in s.query(EventQuery())] == ["e2", "e3", "e4"]
+    assert [e.id for e in s.query(EventQuery())] == [3, 4, 5]
+    assert s.last_id == 5 and s.dropped == 2 and len(s) == 3
+    # The tail after an id: what a reader has not seen; after an id that fell out, what is left.
+    assert [e.id for e in s.after(4)] == [5]
+    assert [e.id for e in s.after(0)] == [3, 4, 5]
+    assert s.after(5) == [] and s.after(99) == []
+    assert [e.id for e in s.after(2, limit=2)] == [3, 4]
+
+
+def test_queries_filter_by_device_level_kind_text_and_time() -> None:
+    s, clock = store()
+    clock.t = 10.0
+    s.emit(EventKind.STATUS, EventLevel.INFO, "arm-001 is ONLINE", device="arm-001")
+    clock.t = 20.0
+    s.emit(EventKind.ALARM, EventLevel.WARNING, "Elbow hot", device="arm-002")
+    clock.t = 30.0
+    s.emit(EventKind.ALARM, EventLevel.ERROR, "elbow critical", device="arm-001")
+    clock.t = 40.0
+    s.emit(EventKind.BROKER, EventLevel.WARNING, "broker connection 0 lost")
+
+    def messages(**filters: Any) -> list[str]:
+        return [e.message for e in s.query(EventQuery(**filters))]
+
+    assert messages(device="arm-001") == ["arm-001 is ONLINE", "elbow critical"]
+    assert messages(min_level=EventLevel.WARNING) == [
+        "Elbow hot",
+        "elbow critical",
+        "broker connection 0 lost",
+    ]
+    assert messages(min_level=EventLevel.ERROR) == ["elbow critical"]
+    assert messages(kinds=frozenset({"alarm"})) == ["Elbow hot", "elbow critical"]
+    assert messages(text="ELBOW") == ["Elbow hot", "elbow critical"]  # case-insensitive
+    assert messages(text="arm-002") == ["Elbow hot"]  # the device matches too
+    assert messages(since=20.0, until=40.0) == ["Elbow hot", "elbow critical"]
+    assert messages(limit=2) == ["elbow critical", "broker connection 0 lost"]  # the newest
+    with pytest.raises(ValueError, match="kind nope is not one of"):
+        EventQuery(kinds=frozenset({"nope"}))
+    with pytest.raises(ValueError, match="level 'loud' is not one of info, warning, error"):
+        EventLevel.parse("loud")
+
+
+def test_an_event_crosses_a_process_boundary_and_is_renumbered() -> None:
+    worker, _ = store()
+    worker.emit(EventKind.ALARM, EventLevel.WARNING, "hot", device="arm-001", data={"value": 63.5, "x": None})
+    (event,) = worker.after(0)
+    assert event.data == {"value": "63.5", "x": ""}
+    copied = pickle.loads(pickle.dumps(event))
+    assert copied == event
+    assert msgspec.json.decode(msgspec.json.encode(event), type=Event) == event
+    front, _ = store()
+    front.emit(EventKind.WORKER, EventLevel.INFO, "worker 0 running again")
+    (ingested,) = front.ingest([copied])
+    assert ingested.id == 2 and ingested.message == "hot" and ingested.time == event.time
+
+
+def test_subscribers_see_every_new_event_once() -> None:
+    s, _ = store()
+    seen: list[int] = []
+    unsubscribe = s.subscribe(lambda e: seen.append(e.id))
+    threads = [
+        threading.Thread(target=lambda: [s.emit(EventKind.TWIN, EventLevel.INFO, "x") for _ in range(50)])
+        for _ in range(4)
+    ]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert sorted(seen) == list(range(1, 201))
+    unsubscribe()
+    s.emit(EventKind.TWIN, EventLevel.INFO, "after")
+    assert len(seen) == 200
+
+
+def test_status_watch_reports_transitions_only() -> None:
+    s, _ = store()
+    watch = StatusWatch(s)
+    watch.sweep({"arm-001": "ONLINE", "arm-002": "OFFLINE"})  # arm-002 configured, never heard from
+    watch.sweep({"arm-001": "ONLINE", "arm-002": "OFFLINE"})
+    watch.sweep({"arm-001": "STALE", "arm-002": "OFFLINE"})
+    watch.sweep({"arm-001": "OFFLINE", "arm-002": "ONLINE"})
+    got = [(e.device, e.level, e.data["status"], e.data["previous"]) for e in s.query(EventQuery())]
+    assert got == [
+        ("arm-001", "info", "ONLINE", ""),
+        ("arm-001", "warning", "STALE", "ONLINE"),
+        ("arm-001", "warning", "OFFLINE", "STALE"),
+        ("arm-002", "info", "ONLINE", "OFFLINE"),
+    ]
+
+
+class Conn:
+    def __init__(self, successes: int, disconnections: int, last_error: str = "") -> None:
+        self.index, self.client_id = 0, "so101-twin-x-0"
+        self.connection_successes, self.disconnections, self.last_error = (
+            successes,
+            disconnections,
+            last_error,
+        )
+
+
+def test_broker_watch_reports_connects_losses_and_reconnects() -> None:
+    s, _ = store()
+    watch = BrokerWatch(s)
+    watch.sweep([Conn(0, 0)])
+    watch.sweep([Conn(1, 0)])
+    watch.sweep([Conn(1, 1, "AWS_ERROR_MQTT_UNEXPECTED_HANGUP")])
+    watch.sweep([Conn(2, 1)])
+    assert [e.message for e in s.query(EventQuery())] == [
+        "broker connection 0 connected",
+        "broker connection 0 lost: AWS_ERROR_MQTT_UNEXPECTED_HANGUP",
+        "broker connection 0 reconnected",
+    ]
+
+
+def test_a_rejection_flood_makes_one_event_per_interval_with_its_count() -> None:
+    s, _ = store()
+    clock = Clock(0.0)
+    throttle = RejectionThrottle(s, interval_s=10.0, clock=clock)
+    for i in range(100):
+        clock.t = i * 0.1  # 10 a second for 10 s
+        throttle.rejected("arm-001", "not_json", "payload is not JSON")
+    throttle.rejected("arm-002", "not_json", "payload is not JSON")  # another device is its own
+    clock.t = 10.5
+    throttle.rejected("arm-001", "not_json", "payload is not JSON")
+    got = [(e.device, e.data["count"]) for e in s.query(EventQuery())]
+    assert got == [("arm-001", "1"), ("arm-002", "1"), ("arm-001", "100")]
+    assert "(100 since the last report)" in s.query(EventQuery())[-1].message
+
+
+@pytest.mark.parametrize(
+    ("cell", "expected"),
+    [
+        ('=HYPERLINK("http://x")', '\'=HYPERLINK("http://x")'),
+        ("+1", "'+1"),
+        ("-2+3", "'-2+3"),
+        ("@SUM(A1)", "'@SUM(A1)"),
+        ("  =1", "'  =1"),
+        ("\t=1", "'\t=1"),
+        ("arm-001", "arm-001"),
+        ("", ""),
+    ],
+)
+def test_formula_cells_are_neutralised(cell: str, expected: str) -> None:
+    assert neutralise_cell(cell) == expected
+
+
+def test_exports_neutralise_text_and_keep_numbers() -> None:
+    s, _ = store()
+    s.emit(EventKind.REJECTED, EventLevel.WARNING, "=cmd|' /C calc'!A0", device="@arm", data={"reason": "-x"})
+    rows = list(csv.DictReader(io.StringIO(events_csv(s.query(EventQuery())))))
+    assert rows[0]["message"] == "'=cmd|' /C calc'!A0"
+    assert rows[0]["device"] == "'@arm" and rows[0]["data"] == "reason=-x"
+    assert rows[0]["id"] == "1" and float(rows[0]["time"]) == 1000.0
+    doc = json.loads(events_json(s.query(EventQuery())))
+    assert doc["events"][0]["message"].startswith("'=") and doc["events"][0]["data"] == {"reason": "'-x"}
+    assert doc["events"][0]["time"] == 1000.0
