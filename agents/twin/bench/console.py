@@ -175,13 +175,17 @@ def _cpu(rig: LocalRig, arms: int, rate: float, seconds: float, consoles: int) -
         "rate_hz": rate,
         "seconds": seconds,
         "consoles": consoles,
-        "agent_cpu_percent_without": without["cpu_percent"],
-        "agent_cpu_percent_with": with_consoles["cpu_percent"],
-        "agent_cpu_percent_cost": with_consoles["cpu_percent"] - without["cpu_percent"],
+        "agent_cpu_percent_without": _figure(without["cpu_percent"]),
+        "agent_cpu_percent_with": _figure(with_consoles["cpu_percent"]),
+        "agent_cpu_percent_cost": _figure(with_consoles["cpu_percent"]) - _figure(without["cpu_percent"]),
         "browser_cpu_percent": 100.0 * browser_s / seconds,
         "host_cpu_percent_with": with_consoles["host_cpu_percent"],
         "updates_per_console": updates,
     }
+
+
+def _figure(value: float | None) -> float:
+    return value if value is not None else 0.0
 
 
 def _chromium_pid() -> int | None:
