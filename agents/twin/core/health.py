@@ -244,6 +244,10 @@ class DeviceHealth:
     def rejected_total(self) -> int:
         return sum(self.rejected.values())
 
+    def rate_hz(self, now: float) -> float:
+        """Valid messages per second over the window (what `snapshot` reports, without the rest of it)."""
+        return self._rate.rate(now)
+
     def snapshot(self, now: float | None = None) -> HealthSnapshot:
         """This device's health now (an immutable copy, safe to hand to other threads)."""
         now = self._clock() if now is None else now

@@ -15,24 +15,28 @@ from __future__ import annotations
 
 import html
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from string import Template
-from typing import Protocol, runtime_checkable
+from typing import NamedTuple, Protocol, runtime_checkable
 
 import msgspec
 
 from twin.service.events import Event, EventQuery
-from twin.service.state import AgentState, AlarmInfo, DeviceState
+from twin.service.state import AgentState, AlarmInfo
 
 __all__ = [
     "ASSETS",
     "FLEET_COLUMNS",
     "SESSION_FILE_KINDS",
     "EventSource",
+    "FleetRow",
+    "FleetRowSource",
     "SessionCatalog",
     "SessionInfo",
     "arm_update",
+    "fleet_row",
+    "fleet_rows",
     "fleet_summary",
     "render_page",
     "rerun_viewer_url",
@@ -110,63 +114,103 @@ def _worst_alarms(alarms: Sequence[AlarmInfo]) -> dict[str, AlarmInfo]:
     return worst
 
 
-def _hottest(device: DeviceState) -> tuple[str | None, float | None]:
-    best: tuple[str | None, float | None] = (None, None)
-    for joint, servo in (device.servos or {}).items():
-        temp = servo.temperature_c
-        if temp is not None and (best[1] is None or temp > best[1]):
-            best = (joint, temp)
-    return best
-
-
 def _round(value: float | None, digits: int) -> float | None:
     if value is None or math.isnan(value):  # NaN is not JSON
         return None
     return round(value, digits)
 
 
-def fleet_rows(state: AgentState, alarms: Sequence[AlarmInfo]) -> list[list[object]]:
-    """One row per device in FLEET_COLUMNS order, sorted by device id."""
+class FleetRow(NamedTuple):
+    """One arm on the Fleet page, in FLEET_COLUMNS order (small and picklable: a sharded agent's workers
+    send their arms' rows, not their states)."""
+
+    device: str
+    status: str
+    last_seen: float | None
+    rate_hz: float | None
+    loss_pct: float | None
+    alarm_severity: str | None
+    alarm_state: str | None
+    alarm_kind: str | None
+    alarm_joint: str | None
+    hot_joint: str | None
+    hot_c: float | None
+    rejected: int
+
+
+@runtime_checkable
+class FleetRowSource(Protocol):
+    """The optional part of the service surface that reads the fleet's rows without its whole state."""
+
+    def fleet_rows(self) -> list[FleetRow]: ...
+
+
+def fleet_row(
+    device: str,
+    *,
+    status: str,
+    last_seen: float | None,
+    rate_hz: float,
+    loss_ratio: float,
+    temperatures: Mapping[str, float | None],
+    rejected: int,
+    alarm: tuple[str, str, str, str] | None,
+) -> FleetRow:
+    """A row from its parts; `alarm` is the worst one that is not NORMAL: (severity, state, kind, joint)."""
+    hot_joint, hot_c = None, None
+    for joint, temp in temperatures.items():
+        if temp is not None and (hot_c is None or temp > hot_c):
+            hot_joint, hot_c = joint, temp
+    severity, state, kind, alarm_joint = alarm if alarm is not None else (None, None, None, None)
+    return FleetRow(
+        device,
+        status,
+        _round(last_seen, 3),
+        _round(rate_hz, 1),
+        _round(loss_ratio * 100.0, 1),
+        severity,
+        state,
+        kind,
+        alarm_joint,
+        hot_joint,
+        _round(hot_c, 1),
+        rejected,
+    )
+
+
+def fleet_rows(state: AgentState, alarms: Sequence[AlarmInfo]) -> list[FleetRow]:
+    """One row per device of a full state, sorted by device id (for a source without `fleet_rows`)."""
     now = state.agent.time
     worst = _worst_alarms(alarms)
-    rows: list[list[object]] = []
+    rows: list[FleetRow] = []
     for device_id, d in state.devices.items():
-        alarm = worst.get(device_id)
-        joint, temp = _hottest(d)
+        a = worst.get(device_id)
         rows.append(
-            [
+            fleet_row(
                 device_id,
-                str(d.status),
-                _round(now - d.age_s, 3) if d.age_s is not None and now else None,
-                _round(d.rate_hz, 1),
-                _round(d.loss.recent_loss_ratio * 100.0, 1),
-                alarm.severity if alarm else None,
-                alarm.state if alarm else None,
-                alarm.kind if alarm else None,
-                alarm.joint if alarm else None,
-                joint,
-                _round(temp, 1),
-                sum(d.counters.rejected.values()),
-            ]
+                status=str(d.status),
+                last_seen=now - d.age_s if d.age_s is not None and now else None,
+                rate_hz=d.rate_hz,
+                loss_ratio=d.loss.recent_loss_ratio,
+                temperatures={joint: servo.temperature_c for joint, servo in (d.servos or {}).items()},
+                rejected=sum(d.counters.rejected.values()),
+                alarm=(a.severity, a.state, a.kind, a.joint) if a else None,
+            )
         )
     return rows
 
 
-def fleet_summary(state: AgentState, alarms: Sequence[AlarmInfo]) -> bytes:
+def fleet_summary(rows: Sequence[FleetRow], time_s: float) -> bytes:
     """The fleet page's document: {"time", "columns", "rows", "counts"} (module doc)."""
-    rows = fleet_rows(state, alarms)
     statuses: dict[str, int] = {"ONLINE": 0, "STALE": 0, "OFFLINE": 0}
-    for row in rows:
-        status = str(row[1])
-        statuses[status] = statuses.get(status, 0) + 1
     severities: dict[str, int] = {"critical": 0, "warning": 0}
-    for alarm in _worst_alarms(alarms).values():
-        severities[alarm.severity] = severities.get(alarm.severity, 0) + 1
+    for row in rows:
+        statuses[row.status] = statuses.get(row.status, 0) + 1
+        if row.alarm_severity:
+            severities[row.alarm_severity] = severities.get(row.alarm_severity, 0) + 1
     return msgspec.json.encode(
         {
-            "time": state.agent.time,
-            "running": state.agent.running,
-            "broker_connected": state.agent.broker.connected,
+            "time": time_s,
             "columns": FLEET_COLUMNS,
             "rows": rows,
             "counts": {"status": statuses, "alarmed_devices": severities, "devices": len(rows)},

@@ -56,9 +56,11 @@ from twin.service.console import (
     ASSETS,
     SESSION_FILE_KINDS,
     EventSource,
+    FleetRowSource,
     SessionCatalog,
     SessionInfo,
     arm_update,
+    fleet_rows,
     fleet_summary,
     render_page,
 )
@@ -546,8 +548,13 @@ class AgentHttpServer:
         return await self._call(source.alarms)
 
     async def _api_fleet(self, request: Request) -> Response:
-        state = await self._call(self._source.state)
-        return _json(200, fleet_summary(state, await self._alarm_list()))
+        source = self._source
+        if isinstance(source, FleetRowSource):
+            rows = await self._call(source.fleet_rows)
+        else:
+            state = await self._call(source.state)
+            rows = fleet_rows(state, await self._alarm_list())
+        return _json(200, fleet_summary(rows, time.time()))
 
     async def _api_arm(self, request: Request) -> Response:
         device = request.path_params["device"]

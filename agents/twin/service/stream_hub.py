@@ -18,13 +18,14 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import time
 from collections import deque
 from collections.abc import Sequence
 from typing import Protocol, runtime_checkable
 
 import msgspec
 
-from twin.service.console import EventSource, arm_update, fleet_summary
+from twin.service.console import EventSource, FleetRowSource, arm_update, fleet_rows, fleet_summary
 from twin.service.events import Event, EventQuery
 from twin.service.state import AgentState, AlarmInfo
 
@@ -163,21 +164,32 @@ class StreamHub:
                     await asyncio.wait_for(self._changed.wait(), max(0.0, wake - loop.time()))
 
     async def _tick(self, state_due: bool, console_due: bool) -> None:
-        state = await asyncio.to_thread(self._source.state)
-        if state_due:
+        source = self._source
+        arms = [t for t in self._subs if t.startswith(ARM_PREFIX)] if console_due else []
+        fleet = console_due and FLEET in self._subs
+        # The fleet's rows come without the whole state when the source can give them (building a state of
+        # thousands of arms, in every worker of a sharded agent, is most of what a tick costs).
+        rows_only = isinstance(source, FleetRowSource)
+        state: AgentState | None = None
+        if state_due or arms or (fleet and not rows_only):
+            state = await asyncio.to_thread(source.state)
+        if state_due and state is not None:
             self._publish(STATE, sse_frame("state", state.to_json()))
-        if not console_due:
-            return
-        arms = [t for t in self._subs if t.startswith(ARM_PREFIX)]
         alarms: Sequence[AlarmInfo] = ()
-        if (FLEET in self._subs or arms) and isinstance(self._source, AlarmLister):
-            alarms = await asyncio.to_thread(self._source.alarms)
-        if FLEET in self._subs:
-            self._publish(FLEET, sse_frame("fleet", fleet_summary(state, alarms)))
+        if (arms or (fleet and not rows_only)) and isinstance(source, AlarmLister):
+            alarms = await asyncio.to_thread(source.alarms)
+        if fleet:
+            if isinstance(source, FleetRowSource):
+                rows = await asyncio.to_thread(source.fleet_rows)
+            else:
+                assert state is not None
+                rows = fleet_rows(state, alarms)
+            self._publish(FLEET, sse_frame("fleet", fleet_summary(rows, time.time())))
         for topic in arms:
+            assert state is not None
             self._publish(topic, sse_frame("arm", arm_update(state, topic[len(ARM_PREFIX) :], alarms)))
-        if EVENTS in self._subs and isinstance(self._source, EventSource):
-            await self._tick_events(self._source)
+        if console_due and EVENTS in self._subs and isinstance(source, EventSource):
+            await self._tick_events(source)
 
     async def subscribe_events(self, after_id: int) -> Subscription:
         """A subscription to the events topic whose first frame holds the events after `after_id` (those a

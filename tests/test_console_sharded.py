@@ -1,0 +1,65 @@
+"""The console's data from a sharded agent (`twin run --workers 2`): the Fleet page's rows come from the
+workers without their full states, and the Events page gets each worker's events and the worker restarts."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+from typing import Any
+
+import pytest
+from conftest import http_get, wait_for
+from twin.rig.local import LocalRig
+from twin.service.console import FLEET_COLUMNS, fleet_rows
+
+pytestmark = pytest.mark.slow
+
+DEVICES = ["arm-001", "arm-002", "arm-003", "arm-004"]
+
+
+def get_json(url: str) -> Any:
+    status, _, body = http_get(url)
+    assert status == 200, body
+    return json.loads(body)
+
+
+def messages(url: str, **query: str) -> list[str]:
+    params = "&".join(f"{k}={v}" for k, v in query.items())
+    return [e["message"] for e in get_json(f"{url}/api/events?{params}")["events"]]
+
+
+def test_a_sharded_agent_serves_the_fleet_rows_and_every_workers_events(rig: LocalRig) -> None:
+    agent = rig.start_sharded_agent({"telemetry.devices": DEVICES, "telemetry.units": "ticks"}, workers=2)
+    url = agent.http_url
+    rig.start_edge(DEVICES, rate_hz=10.0, seconds=None)
+    wait_for(
+        lambda: (
+            [r[0] for r in get_json(url + "/api/fleet")["rows"]] == DEVICES
+            and all(r[1] == "ONLINE" for r in get_json(url + "/api/fleet")["rows"])
+        ),
+        20,
+        "every arm ONLINE on the fleet page",
+    )
+    doc = get_json(url + "/api/fleet")
+    assert doc["columns"] == list(FLEET_COLUMNS) and doc["counts"]["status"]["ONLINE"] == 4
+    # The workers' rows agree with the rows made from the merged state.
+    from_state = {r.device: r for r in fleet_rows(agent.state(), agent.alarms())}
+    for row in doc["rows"]:
+        expected = from_state[row[0]]
+        assert row[1] == expected.status and row[9] == expected.hot_joint and row[11] == expected.rejected
+    # Each worker's events reach the front within a supervisor round or two.
+    wait_for(
+        lambda: all(f"{d} is ONLINE (first message)" in messages(url, kind="status") for d in DEVICES),
+        10,
+        "every arm's first-message event",
+    )
+    victim = agent.state().agent.workers[1]
+    os.kill(victim.pid, signal.SIGKILL)
+    wait_for(
+        lambda: any("worker 1 running again" in m for m in messages(url, kind="worker")),
+        30,
+        "the restart events",
+    )
+    worker_events = messages(url, kind="worker", level="error")
+    assert any(m.startswith("worker 1 exited") for m in worker_events)
