@@ -30,7 +30,7 @@ def messages(url: str, **query: str) -> list[str]:
 
 
 def test_a_sharded_agent_serves_the_fleet_rows_and_every_workers_events(rig: LocalRig) -> None:
-    agent = rig.start_sharded_agent({"telemetry.devices": DEVICES, "telemetry.units": "ticks"}, workers=2)
+    agent = rig.start_agent({"telemetry.devices": DEVICES, "telemetry.units": "ticks"}, workers=2)
     url = agent.http_url
     rig.start_edge(DEVICES, rate_hz=10.0, seconds=None)
     wait_for(

@@ -154,10 +154,11 @@ class LocalRig:
     ) -> AgentService:
         """Start an AgentService in this process (stopped by close()), its mirror in-process or, with
         `workers` > 1, in as many worker processes (`twin run --workers N`); waits until it has subscribed."""
+        from twin.ops.sessions import history_sessions  # noqa: PLC0415
         from twin.service.agent import AgentService  # noqa: PLC0415 - awscrt (and MuJoCo, USD) load here
 
         config = overrides if isinstance(overrides, AgentConfig) else self.agent_config(overrides)
-        service = AgentService(config, workers=workers, sinks=sinks)
+        service = AgentService(config, workers=workers, sinks=sinks, sessions=history_sessions(config))
         self.services.append(service)
         service.start()
         if wait_subscribed and not service.wait_subscribed(SUBSCRIBE_TIMEOUT_S):

@@ -43,10 +43,14 @@ from twin.output.emf import EmfFileWriter, EmfPublisher, FleetTotals
 from twin.output.sinks import TwinSink
 from twin.service.admission import DeviceBudget
 from twin.service.config import AgentConfig, ConfigError
+from twin.service.console import FleetRow, SessionCatalog, rerun_viewer_url
+from twin.service.events import Event, EventKind, EventLevel, EventQuery, EventStore, FleetWatch
 from twin.service.http_api import AgentHttpServer
 from twin.service.shards import (
     AckRequest,
     AlarmsRequest,
+    EventsRequest,
+    FleetRowsRequest,
     MirrorReport,
     Reply,
     ReportRequest,
@@ -57,6 +61,8 @@ from twin.service.shards import (
     WorkerShard,
     alarm_of,
     alarms_of,
+    events_of,
+    fleet_rows_of,
     merge_reports,
     report_of,
     worker_config,
@@ -110,6 +116,7 @@ class AgentService:
         sinks: Sequence[TwinSink] = (),
         clock: Clock = time.monotonic,
         wall_clock: Clock = time.time,
+        sessions: SessionCatalog | None = None,
     ) -> None:
         if workers > 1 and sinks:
             raise ValueError("extra sinks run in the agent's own process: pass them with workers=1")
@@ -143,6 +150,13 @@ class AgentService:
         self._started_wall: float | None = None
         self._state_lock = threading.Lock()
         self._cached: tuple[float, AgentState] | None = None
+        # The console: sessions from history (the reader lives in ops/; `twin run` hands it in), and the
+        # twin's events: the agent's own (broker, workers) and every mirror's, collected by the supervisor.
+        self._sessions = sessions
+        self._events = EventStore(wall_clock=wall_clock)
+        self._watch = FleetWatch(self._events)
+        self._events_seen: dict[int, int] = {}
+        self._workers_seen: dict[int, tuple[bool, int]] = {}
 
     def _build_shards(self, config: AgentConfig, sinks: Sequence[TwinSink]) -> list[Shard]:
         count = self.plan.count
@@ -179,6 +193,9 @@ class AgentService:
                 self.config.http.host,
                 self.config.http.port,
                 stream_rate_hz=self.config.http.stream_rate_hz,
+                settings=self.config.http,
+                sessions=self._sessions,
+                rerun_url=rerun_viewer_url(self.sinks),
             )
         except BaseException:
             self._stop_shards(timeout=10.0)
@@ -246,6 +263,7 @@ class AgentService:
                 if self._stopping.is_set():
                     return
                 shard.supervise()
+            self._collect_events()
 
     def __enter__(self) -> AgentService:
         self.start()
@@ -418,6 +436,60 @@ class AgentService:
     def _fleet_totals(self) -> FleetTotals:
         """Running totals and gauges for the CloudWatch metrics (EmfPublisher thread)."""
         return fleet_totals(self.state(), self.config.health.expected_rate_hz)
+
+    # ------------------------------------------------------------------------------------------ console
+
+    def fleet_rows(self) -> list[FleetRow]:
+        """The console's Fleet page: every mirror's row per arm (Mirror.fleet_rows), without their states."""
+        rows = [row for _, part in self._ask_all(FleetRowsRequest(), fleet_rows_of) for row in part]
+        return sorted(rows, key=lambda row: row.device)
+
+    def events(self, query: EventQuery) -> list[Event]:
+        """The twin's events that match `query` (docs/console.md): the agent's own and every mirror's,
+        collected every supervisor round, so at most about SUPERVISE_EVERY_S late."""
+        return self._events.query(query)
+
+    def _collect_events(self) -> None:
+        """On the supervisor thread: broker reconnects, worker exits and restarts, and each mirror's new
+        events, into the agent's store (numbered anew in the order they are collected)."""
+        if self._started_pool:
+            self._watch.broker(self._pool.connections())
+        for shard in self._shards:
+            self._watch_worker(shard)
+            if not shard.answering:
+                continue
+            after = self._events_seen.get(shard.index, 0)
+            try:
+                fresh = events_of(shard.request(EventsRequest(after))())
+            except WorkerError as exc:
+                log.debug("events of shard %d not collected: %s", shard.index, exc)
+                continue
+            if fresh:
+                self._events_seen[shard.index] = fresh[-1].id
+                self._events.ingest(fresh)
+
+    def _watch_worker(self, shard: Shard) -> None:
+        info = shard.describe(None)
+        if info is None:
+            return  # an in-process mirror: no process to lose
+        answering = shard.answering
+        was_answering, restarts = self._workers_seen.get(shard.index, (True, 0))
+        self._workers_seen[shard.index] = (answering, info.restarts)
+        if was_answering and not answering:
+            self._events.emit(
+                EventKind.WORKER,
+                EventLevel.ERROR,
+                f"worker {shard.index} exited; it is started again and its arms start over",
+                data={"worker": shard.index, "pid": info.pid},
+            )
+        if info.restarts > restarts and answering:
+            self._events_seen[shard.index] = 0  # a new process numbers its events from 1
+            self._events.emit(
+                EventKind.WORKER,
+                EventLevel.INFO,
+                f"worker {shard.index} running again (restart {info.restarts})",
+                data={"worker": shard.index, "pid": info.pid, "restarts": info.restarts},
+            )
 
 
 def alarm_order(info: AlarmInfo) -> tuple[int, int, str]:

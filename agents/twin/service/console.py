@@ -188,12 +188,12 @@ def fleet_rows(state: AgentState, alarms: Sequence[AlarmInfo]) -> list[FleetRow]
         rows.append(
             fleet_row(
                 device_id,
-                status=str(d.status),
-                last_seen=now - d.age_s if d.age_s is not None and now else None,
-                rate_hz=d.rate_hz,
+                status=str(d.health.status),
+                last_seen=now - d.health.age_s if d.health.age_s is not None and now else None,
+                rate_hz=d.health.rate_hz,
                 loss_ratio=d.loss.recent_loss_ratio,
                 temperatures={joint: servo.temperature_c for joint, servo in (d.servos or {}).items()},
-                rejected=sum(d.counters.rejected.values()),
+                rejected=sum(d.health.counters.rejected.values()),
                 alarm=(a.severity, a.state, a.kind, a.joint) if a else None,
             )
         )

@@ -72,10 +72,15 @@ from twin.robot.calibration import load_calibration
 from twin.robot.model import ModelError, RobotModel
 from twin.service.admission import TOO_MANY_DEVICES, DeviceBudget
 from twin.service.config import AgentConfig, ConfigError
+from twin.service.console import FleetRow, fleet_row
+from twin.service.events import Event, EventQuery, EventStore, FleetWatch, RejectionThrottle
 from twin.service.logs import RateLimitedLog
 from twin.service.shards import (
+    EVENTS_PER_ASK,
     AckRequest,
     AlarmsRequest,
+    EventsRequest,
+    FleetRowsRequest,
     MirrorReport,
     Reply,
     ReportRequest,
@@ -302,6 +307,10 @@ class Mirror:
         self._lock = threading.Lock()
         self._reject_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
         self._error_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
+        # The twin's events (the console's Events page): this mirror's, which the agent collects.
+        self._events = EventStore(wall_clock=self._wall_clock)
+        self._watch = FleetWatch(self._events)
+        self._rejections = RejectionThrottle(self._events, clock=clock)
         self.batches = 0
         # Fleet-wide distributions since start (every applied message of every device), for `twin bench`
         # and capacity questions; the per-device windows in health answer "how is this arm doing now".
@@ -474,6 +483,7 @@ class Mirror:
                 self._step_physics(min(now - last_step, MAX_PHYSICS_STEP_S), dirty)
                 last_step = now
             self._publish(dirty, took=bool(items))
+            self._watch_statuses()
             since = self._clock() - last_freeze
             grown = len(self._devices) != frozen_devices
             if since >= FREEZE_EVERY_S or (grown and since >= FREEZE_AFTER_NEW_S):
@@ -600,6 +610,8 @@ class Mirror:
                 # It arrived: the hole it leaves in the device's timestamps is not transit loss.
                 self._loss_of(topic_device).record_rejected()
             self._fleet.record_rejected(topic_device, reason)
+        if rejected.reason is not RejectReason.UNITS_UNDECIDED:
+            self._rejections.rejected(topic_device, reason, str(rejected))
         self._reject_log.log(
             (topic_device, reason),
             # units=auto turning away a new arm's first messages while it gathers evidence is expected, not a
@@ -633,6 +645,7 @@ class Mirror:
         if not self._budget.take(self._slot):
             with self._lock:
                 self._fleet.record_rejected(None, TOO_MANY_DEVICES)
+            self._rejections.rejected(device, TOO_MANY_DEVICES, "telemetry.max_devices reached")
             self._reject_log.log(
                 TOO_MANY_DEVICES,
                 logging.WARNING,
@@ -672,6 +685,7 @@ class Mirror:
             device,
             extra={"device": device, "last_ms": previous, "now_ms": telemetry.timestamp_ms},
         )
+        self._watch.clock_reset(device, previous, telemetry.timestamp_ms)
         return _Applied(tracked, applied, True, updated, tracked.twin.clamped)
 
     def _record_health(self, telemetry: Telemetry, item: Inbound, result: _Applied) -> None:
@@ -718,6 +732,7 @@ class Mirror:
             )
         for event in events:
             _log_alarm_event(event)
+            self._watch.alarm(event)
         return tuple(events)
 
     def _loss_of(self, device: str) -> DeviceLoss:
@@ -795,7 +810,52 @@ class Mirror:
             return self.alarms(include_normal=request.include_normal)
         if isinstance(request, AckRequest):
             return self.acknowledge_alarm(request.alarm_id)
+        if isinstance(request, EventsRequest):
+            return tuple(self.events(EventQuery(after_id=request.after_id, limit=EVENTS_PER_ASK)))
+        if isinstance(request, FleetRowsRequest):
+            return tuple(self.fleet_rows())
         raise TypeError(f"not a request to a mirror: {request!r}")
+
+    def events(self, query: EventQuery) -> list[Event]:
+        """This mirror's events that match `query` (the agent collects them: AgentService.events)."""
+        return self._events.query(query)
+
+    def _watch_statuses(self) -> None:
+        """On the worker thread: status transitions become events, read at most every FleetWatch.interval_s
+        (statuses change by the passing of time, not by a message, so they are read, not told)."""
+        if not self._watch.due(self._clock()):
+            return
+        with self._lock:
+            statuses = self._fleet.statuses()
+        self._watch.statuses(statuses)
+
+    def fleet_rows(self) -> list[FleetRow]:
+        """One row per arm for the console's Fleet page, read without building the report (no device
+        states, no latency percentiles): at a large fleet that is most of what a console tick costs."""
+        with self._lock:
+            now, wall = self._clock(), self._wall_clock()
+            worst: dict[str, tuple[str, str, str, str]] = {}
+            for v in self._alarms.views():  # worst first
+                worst.setdefault(v.device, (str(v.severity), str(v.state), str(v.kind), v.joint))
+            rows = []
+            for device, h in self._fleet.devices.items():
+                loss = self._loss.get(device)
+                received, lost = loss.recent(now) if loss is not None else (0, 0)
+                diagnostics = self._diagnostics.get(device, {})
+                last = h.last_message_mono
+                rows.append(
+                    fleet_row(
+                        device,
+                        status=str(h.status(now)),
+                        last_seen=wall - (now - last) if last is not None else None,
+                        rate_hz=h.rate_hz(now),
+                        loss_ratio=lost / (received + lost) if received + lost else 0.0,
+                        temperatures={j: d.temperature_c for j, d in diagnostics.items()},
+                        rejected=h.rejected_total,
+                        alarm=worst.get(device),
+                    )
+                )
+        return sorted(rows, key=lambda row: row.device)
 
     def report(self) -> MirrorReport:
         """This mirror's part of the agent's state (docs/agent.md describes every field)."""
@@ -900,6 +960,7 @@ class Mirror:
             event = self._alarms.acknowledge(alarm_id, now)
             view = self._alarms.views_of((alarm_id,))[0]
         _log_alarm_event(event)
+        self._watch.alarm(event)
         return _alarm_info(view, now, self._wall_clock())
 
     def _device_state(self, device: str, health: HealthSnapshot, readout: _Readout) -> DeviceState:

@@ -57,6 +57,8 @@ from twin.core.loss import fleet_loss
 from twin.output.sinks import SinkStats
 from twin.service.admission import DeviceBudget
 from twin.service.config import AgentConfig, ConfigError
+from twin.service.console import FleetRow
+from twin.service.events import Event
 from twin.service.state import (
     AgentInfo,
     AgentState,
@@ -210,8 +212,22 @@ class AckRequest:
     alarm_id: str
 
 
-Request = ReportRequest | AlarmsRequest | AckRequest
-Reply = MirrorReport | tuple[AlarmInfo, ...] | AlarmInfo
+@dataclass(frozen=True, slots=True)
+class EventsRequest:
+    """The mirror's events after `after_id` (its own numbering), oldest first, at most EVENTS_PER_ASK."""
+
+    after_id: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class FleetRowsRequest:
+    """The console's row of each of the mirror's devices (twin.service.console.FleetRow)."""
+
+
+Request = ReportRequest | AlarmsRequest | AckRequest | EventsRequest | FleetRowsRequest
+Reply = MirrorReport | tuple[AlarmInfo, ...] | AlarmInfo | tuple[Event, ...] | tuple[FleetRow, ...]
+# Events a mirror hands over per request (the agent asks every supervisor round).
+EVENTS_PER_ASK = 5000
 
 
 def report_of(reply: Reply) -> MirrorReport:
@@ -225,7 +241,21 @@ def alarms_of(reply: Reply) -> tuple[AlarmInfo, ...]:
     """The answer to an AlarmsRequest; WorkerError for anything else."""
     if not isinstance(reply, tuple) or not all(isinstance(a, AlarmInfo) for a in reply):
         raise WorkerError(f"alarms were asked for, the answer was {type(reply).__name__}")
-    return reply
+    return tuple(a for a in reply if isinstance(a, AlarmInfo))
+
+
+def events_of(reply: Reply) -> tuple[Event, ...]:
+    """The answer to an EventsRequest; WorkerError for anything else."""
+    if not isinstance(reply, tuple) or not all(isinstance(e, Event) for e in reply):
+        raise WorkerError(f"events were asked for, the answer was {type(reply).__name__}")
+    return tuple(e for e in reply if isinstance(e, Event))
+
+
+def fleet_rows_of(reply: Reply) -> tuple[FleetRow, ...]:
+    """The answer to a FleetRowsRequest; WorkerError for anything else."""
+    if not isinstance(reply, tuple) or not all(isinstance(r, FleetRow) for r in reply):
+        raise WorkerError(f"fleet rows were asked for, the answer was {type(reply).__name__}")
+    return tuple(r for r in reply if isinstance(r, FleetRow))
 
 
 def alarm_of(reply: Reply) -> AlarmInfo:
@@ -787,6 +817,8 @@ def _merge_alarms(parts: list[AlarmsSummary]) -> AlarmsSummary:
 __all__ = [
     "AckRequest",
     "AlarmsRequest",
+    "EventsRequest",
+    "FleetRowsRequest",
     "MirrorReport",
     "Reply",
     "ReportRequest",

@@ -188,6 +188,7 @@ def _build_service(config: AgentConfig) -> AgentService | int:
     """The agent with as many worker processes as the config asks for (in-process for one); an exit code
     when the configuration is invalid or a sink cannot open."""
     # awscrt (and for an in-process mirror MuJoCo and USD) load here, not at import: `twin --help` stays fast.
+    from twin.ops.sessions import history_sessions
     from twin.service.agent import AgentService
     from twin.service.shards import worker_count
 
@@ -205,7 +206,8 @@ def _build_service(config: AgentConfig) -> AgentService | int:
         except OSError as exc:
             return _cannot_start(exc)
     try:
-        return AgentService(config, workers=workers, sinks=sinks)
+        # The console's Sessions page reads the agent's own history (docs/console.md).
+        return AgentService(config, workers=workers, sinks=sinks, sessions=history_sessions(config))
     except (ConfigError, ValueError) as exc:
         if sinks:
             from twin.service.outputs import close_sinks

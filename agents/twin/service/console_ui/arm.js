@@ -134,19 +134,19 @@
     const d = doc.device;
     if (!d) { title.textContent = `${device}: not known to the agent`; return; }
     title.textContent = device;
-    const now = doc.time;
+    const now = doc.time, h = d.health;
     kv(summary, [
-      ["status", el("span", { class: "status " + d.status, text: d.status })],
-      ["last seen", d.age_s === null ? "never" : `${Twin.num(d.age_s, 1)} s ago`],
-      ["rate", `${Twin.num(d.rate_hz, 1)} Hz`],
+      ["status", el("span", { class: "status " + h.status, text: h.status })],
+      ["last seen", h.age_s === null ? "never" : `${Twin.num(h.age_s, 1)} s ago`],
+      ["rate", `${Twin.num(h.rate_hz, 1)} Hz`],
       ["units", d.units], ["mode", d.mode],
-      ["messages", `${d.counters.received} received, ${d.counters.applied} applied`],
+      ["messages", `${h.counters.received} received, ${h.counters.applied} applied`],
     ]);
     kv(lossBox, [
       ["lost (estimated)", `${d.loss.lost} of ${d.loss.received + d.loss.lost} (${Twin.num(d.loss.loss_ratio * 100, 2)} %)`],
       ["recent window", `${d.loss.recent_lost} (${Twin.num(d.loss.recent_loss_ratio * 100, 2)} %)${d.loss.losing ? " — losing now" : ""}`],
     ]);
-    const reasons = Object.entries(d.counters.rejected || {});
+    const reasons = Object.entries(h.counters.rejected || {});
     rejectsBody.replaceChildren(...(reasons.length ? reasons.map(([r, n]) => el("tr", {}, el("td", { text: r }), el("td", { text: String(n) })))
       : [el("tr", {}, el("td", { colspan: 2, class: "muted", text: "none" }))]));
     renderAlarms(doc.alarms);
