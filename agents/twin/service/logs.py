@@ -50,7 +50,7 @@ class JsonLinesFormatter(logging.Formatter):
         return json.dumps(out, ensure_ascii=False, allow_nan=True)
 
 
-class _FlushingHandler(logging.StreamHandler):
+class _FlushingHandler(logging.StreamHandler[TextIO]):
     """Looks up the stream at emit time so pytest's capture and a replaced sys.stdout both work."""
 
     def __init__(self, stream: TextIO | None = None) -> None:
