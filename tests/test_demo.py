@@ -4,19 +4,22 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
-import time
+import threading
 from pathlib import Path
 
 import numpy as np
 import psutil
 import pytest
-from conftest import read_rrd
+from conftest import read_rrd, wait_for
 from PIL import Image
 
 TWIN = Path(sys.executable).with_name("twin")
+# The demo's plain status line (stdout not a terminal): "...  sent 41  received 40  rate ..."
+RECEIVED = re.compile(r"\bsent \d+  received (\d+) ")
 
 STATS_FIELDS = {
     "duration_s",
@@ -106,7 +109,9 @@ def test_demo_leaves_valid_files_and_stops_its_broker(tmp_path):
     assert messages["estimated_lost"] == 0 and messages["estimated_loss_ratio"] == 0.0
     for kind in ("end_to_end", "internal"):
         lat = stats["latency_s"][kind]
-        assert 0 <= lat["p50"] <= lat["p99"] < 1.0, lat
+        # Seconds (milliseconds on loopback; the bound is loose because the cores may be busy with other runs:
+        # speed is what `twin bench` measures, not this test).
+        assert 0 <= lat["p50"] <= lat["p99"] < 10.0, lat
     assert stats["devices"] == ["arm-001"]
     assert stats["per_device"]["arm-001"]["status"] == "ONLINE"
     assert stats["interrupted"] is False
@@ -114,7 +119,9 @@ def test_demo_leaves_valid_files_and_stops_its_broker(tmp_path):
     files = stats["files"]
     assert_not_blank(out / files["png"])
     with Image.open(out / files["gif"]) as gif:
-        assert gif.n_frames >= 10
+        # A frame each time the demo's status poll (every 0.25 s) finds the next frame due: about 16 in 4 s,
+        # fewer when the machine is busy.
+        assert gif.n_frames >= 5
         first = np.asarray(gif.convert("RGB"))
         gif.seek(gif.n_frames - 1)
         last = np.asarray(gif.convert("RGB"))
@@ -149,28 +156,51 @@ def test_demo_leaves_valid_files_and_stops_its_broker(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(180)
+@pytest.mark.timeout(300)
 def test_demo_on_sigint_cleans_up_and_keeps_partial_results(tmp_path):
     out = tmp_path / "demo"
-    proc = subprocess.Popen(
-        [str(TWIN), "demo", "--seconds", "60", "--out", str(out), "--devices", "2", "--variant", "degrees"],
-        env=demo_env(),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    stderr_path = tmp_path / "demo.stderr"
+    with stderr_path.open("w") as stderr_file:
+        proc = subprocess.Popen(
+            [
+                str(TWIN),
+                "demo",
+                "--seconds",
+                "60",
+                "--out",
+                str(out),
+                "--devices",
+                "2",
+                "--variant",
+                "degrees",
+            ],
+            env=demo_env(),
+            stdout=subprocess.PIPE,
+            stderr=stderr_file,
+            text=True,
+        )
+    lines: list[str] = []
+
+    def read_stdout() -> None:
+        for line in proc.stdout or ():
+            lines.append(line)
+
+    reader = threading.Thread(target=read_stdout, daemon=True)
+    reader.start()
     try:
-        deadline = time.monotonic() + 60
-        # Wait until the run is under way (the session file appears once the agent starts).
-        while not list(out.glob("session-*.usda")) and time.monotonic() < deadline:
-            assert proc.poll() is None, proc.communicate()
-            time.sleep(0.2)
-        time.sleep(3.0)
+        # Interrupt once the agent has received telemetry: the demo prints a status line every 2 s.
+        def receiving() -> bool:
+            assert proc.poll() is None, f"twin demo exited {proc.returncode}:\n{''.join(lines)}"
+            return any(int(m.group(1)) > 0 for m in map(RECEIVED.search, list(lines)) if m)
+
+        wait_for(receiving, 120, "a status line with telemetry received", interval=0.1)
         proc.send_signal(signal.SIGINT)
-        stdout, stderr = proc.communicate(timeout=60)
+        proc.wait(60)
     finally:
         if proc.poll() is None:
             proc.kill()
+    reader.join(30)
+    stdout, stderr = "".join(lines), stderr_path.read_text()
     assert proc.returncode == 130, f"stdout:\n{stdout}\nstderr:\n{stderr}"
     assert "interrupted" in stderr
     stats = json.loads((out / "stats.json").read_text())
@@ -178,7 +208,7 @@ def test_demo_on_sigint_cleans_up_and_keeps_partial_results(tmp_path):
     assert stats["variant"] == "degrees"
     assert stats["devices"] == ["arm-001", "arm-002"]
     assert stats["messages"]["received"] > 0 and stats["messages"]["rejected"] == 0
-    assert stats["duration_s"] < 30
+    assert stats["duration_s"] < 60  # stopped before the 60 s it was asked to run
     assert_broker_gone(stats)
 
 
