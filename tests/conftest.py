@@ -110,6 +110,17 @@ class Publisher:
         self.stopped.wait(30)
 
 
+def start_agent_on_clock(
+    rig: LocalRig, overrides: dict[str, Any], clock: Callable[[], float]
+) -> AgentService:
+    """rig.start_agent(overrides), with the agent on `clock` (a ManualClock); the rig stops it."""
+    service = AgentService(rig.agent_config(overrides), clock=clock)
+    rig.services.append(service)
+    service.start()
+    assert service.wait_subscribed(30), f"the agent did not subscribe (broker log: {rig.broker.log_path})"
+    return service
+
+
 @pytest.fixture
 def publisher(rig: LocalRig) -> Iterator[Publisher]:
     pub = Publisher(rig.broker.url)

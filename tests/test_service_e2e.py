@@ -30,6 +30,7 @@ from conftest import (
     get_metrics,
     get_state,
     metric,
+    start_agent_on_clock,
     wait_for,
     wait_handled,
 )
@@ -54,14 +55,9 @@ FAST_HEALTH = {
 
 
 def start_agent(rig: LocalRig, clock: ManualClock, **overrides: Any) -> AgentService:
-    """An agent on the rig's broker (the rig stops it), on `clock`."""
     values = {"telemetry.devices": ["arm-001", "arm-002"], "telemetry.units": "auto", **FAST_HEALTH}
     values.update(overrides)
-    service = AgentService(rig.agent_config(values), clock=clock)
-    rig.services.append(service)
-    service.start()
-    assert service.wait_subscribed(30), f"the agent did not subscribe (broker log: {rig.broker.log_path})"
-    return service
+    return start_agent_on_clock(rig, values, clock)
 
 
 @pytest.fixture
