@@ -135,9 +135,10 @@ def test_demo_leaves_valid_files_and_stops_its_broker(tmp_path):
     assert sampled, "the USD session has no time-sampled attributes"
     assert max(a.GetNumTimeSamples() for a in sampled) >= 10
 
-    # The history beside the other outputs: every applied message as a row, and its plot.
+    # The history beside the other outputs: every decoded message as a row (applied ones, and any a worker
+    # behind coalesced into a newer one), and its plot.
     history = stats["history"]
-    assert history["rows"] == {"arm-001": messages["applied"]}
+    assert history["rows"] == {"arm-001": messages["decoded"]}
     assert history["rejected"] == {}
     assert (out / history["uri"] / "telemetry" / "_delta_log").is_dir()
     assert_not_blank(out / history["plot"])

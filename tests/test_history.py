@@ -602,7 +602,8 @@ def test_replay_publishes_what_was_recorded_and_the_agent_mirrors_it(
     mirrored = state.devices["arm-001"]
     # units=auto needs a few messages to decide, then mirrors: the last replayed pose is the twin's pose.
     applied = mirrored.health.counters.applied
-    assert applied >= 30
+    # (A worker behind, on a busy machine, applies each batch's newest and counts the rest as coalesced.)
+    assert mirrored.health.counters.decoded >= 30 and applied >= 1
     last = batch[-1].telemetry.angles_rad
     # The mock motion stays inside the model's joint ranges, so nothing was clamped.
     assert mirrored.joints_rad == pytest.approx(last, abs=1e-9)

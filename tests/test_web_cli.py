@@ -183,8 +183,10 @@ def test_twin_run_rerun_save_records_every_applied_message(rig, tmp_path: Path) 
     assert (rerun.errors, rerun.dropped, rerun.skipped) == (0, 0, 0)
     temporal, static = read_rrd(path)
     for device in ("arm-001", "arm-002"):
-        applied = state.devices[device].health.counters.applied
-        assert applied >= 25
+        counters = state.devices[device].health.counters
+        # Each message reached the twin; a worker behind (a busy machine) coalesces some into newer ones.
+        assert counters.applied + counters.coalesced == report.per_device[device]
+        applied = counters.applied
         poses = [
             v for v in temporal.column(f"/arms/{device}/gripper:Transform3D:translation").to_pylist() if v
         ]
