@@ -38,7 +38,6 @@ from twin.core.health import DeviceStatus
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, TelemetryRejected, Units
 from twin.edge.payload import encode, make_payload
 from twin.rig.local import LocalRig
-from twin.rig.mosquitto import free_port
 from twin.robot import so101
 from twin.service.agent import AgentService
 from twin.service.state import AgentState
@@ -196,10 +195,9 @@ def test_stream_follows_the_twin(agent: AgentService, publisher: Publisher) -> N
 
 def test_sigterm_flushes_the_recording_and_exits_zero(rig: LocalRig, tmp_path: Path) -> None:
     config = tmp_path / "agent.toml"
-    port = free_port()
     config.write_text(
         f'[broker]\nurl = "{rig.broker.url}"\n[telemetry]\ndevices = ["arm-001"]\nunits = "ticks"\n'
-        f'[twin]\nrecord_flush_s = 60.0\n[http]\nlisten = "127.0.0.1:{port}"\n'
+        '[twin]\nrecord_flush_s = 60.0\n[http]\nlisten = "127.0.0.1:0"\n'
     )
     record_dir = tmp_path / "rec"
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
@@ -221,6 +219,11 @@ def test_sigterm_flushes_the_recording_and_exits_zero(rig: LocalRig, tmp_path: P
     thread.start()
     try:
         wait_for(lambda: any("subscribed" in ln["msg"] for ln in lines), 60, "the agent to subscribe", 0.1)
+        base_url = wait_for(
+            lambda: next((ln["url"] for ln in lines if ln["msg"] == "http listening"), None),
+            60,
+            "the agent's HTTP address in its log",
+        )
         publisher = Publisher(rig.broker.url)
         try:
             rng = random.Random(5)
@@ -234,7 +237,7 @@ def test_sigterm_flushes_the_recording_and_exits_zero(rig: LocalRig, tmp_path: P
                 time.sleep(0.05)
         finally:
             publisher.close()
-        wait_handled(lambda: get_state(f"http://127.0.0.1:{port}"), 20)
+        wait_handled(lambda: get_state(base_url), 20)
         # record_flush_s = 60: nothing but the shutdown path can have saved these samples.
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(60) == 0, proc.stderr.read() if proc.stderr else ""
