@@ -534,7 +534,6 @@ def test_replay_publishes_what_was_recorded_and_the_agent_mirrors_it(
     tmp_path: Path, mosquitto: object, variant: str
 ) -> None:
     from twin.ops.replay import ReplayConfig, replay
-    from twin.rig.mosquitto import free_port
     from twin.service.agent import AgentService
     from twin.service.config import config_from_mapping
     from twin.transport.broker import BrokerConfig
@@ -553,7 +552,7 @@ def test_replay_publishes_what_was_recorded_and_the_agent_mirrors_it(
             {
                 "broker": {"url": mosquitto.url},
                 "telemetry": {"devices": ["arm-001"], "units": "auto"},
-                "http": {"listen": f"127.0.0.1:{free_port()}"},
+                "http": {"listen": "127.0.0.1:0"},
                 # The agent keeps its own history of the replay: applied rows with raw readings, rejections.
                 "history": {"uri": str(tmp_path / "agent-history"), "commit_every_s": 0.5},
             }
