@@ -587,7 +587,9 @@ def test_replay_publishes_what_was_recorded_and_the_agent_mirrors_it(
         agent.stop()
         sub.stop()
     assert report.published == 40 and report.publish_failures == 0
-    assert 3.9 / 4 * 0.9 < report.elapsed_s < 3.9 / 4 + 2.0  # 3.9 s recorded, at 4x
+    # 3.9 s recorded, at 4x: never early (the schedule), and well under the recording's own pace however
+    # busy the machine is (the stamps below pin the 4x exactly).
+    assert 3.9 / 4 * 0.9 < report.elapsed_s < 3.9
     assert len(received) == 40
     decoder = TelemetryDecoder(DecoderConfig(units=Units(variant)))
     stamps = []
