@@ -113,7 +113,10 @@ def test_demo_leaves_valid_files_and_stops_its_broker(tmp_path):
         # speed is what `twin bench` measures, not this test).
         assert 0 <= lat["p50"] <= lat["p99"] < 10.0, lat
     assert stats["devices"] == ["arm-001"]
-    assert stats["per_device"]["arm-001"]["status"] == "ONLINE"
+    # The arm's health at the demo's last poll while the edge simulator ran: ONLINE, or STALE when that poll
+    # came during the simulator's shutdown, 0.3 s (three periods) after its last message, which a busy
+    # machine makes likely. Never OFFLINE.
+    assert stats["per_device"]["arm-001"]["status"] in ("ONLINE", "STALE")
     assert stats["interrupted"] is False
 
     files = stats["files"]
