@@ -221,7 +221,7 @@ class EdgeSimulator:
                     )
             self._loop(stop_event, route)
             self._flush(route)
-            self._wait_outstanding(connections, timeout=2.0)
+            self._wait_outstanding(connections, timeout=10.0)
         finally:
             for connection in connections:
                 connection.client.stop()
