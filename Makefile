@@ -12,11 +12,11 @@ export JSII_SILENCE_WARNING_END_OF_LIFE_NODE_VERSION := 20
 export MUJOCO_GL ?= egl
 export PYOPENGL_PLATFORM ?= $(MUJOCO_GL)
 
-# What the demo needs from apt: the private broker and offscreen OpenGL (EGL/OSMesa through Mesa).
-DEMO_APT_PACKAGES := mosquitto libosmesa6 libgl1-mesa-dri libglfw3
+# What the demo needs from apt: the private broker, offscreen OpenGL (EGL/OSMesa through Mesa), and chromium
+# for its pictures of the operator console (Playwright drives this one; no browser is ever downloaded).
+DEMO_APT_PACKAGES := mosquitto libosmesa6 libgl1-mesa-dri libglfw3 chromium
 # What the tests need on top: Xvfb for the viewer window; shellcheck for userdata/; iproute2 for the ROS 2 tests'
-# loopback-only network namespace (unshare -n, ip); chromium for the browser tests (Playwright drives this one;
-# no browser is ever downloaded).
+# loopback-only network namespace (unshare -n, ip); chromium for the browser tests.
 TEST_APT_PACKAGES := xvfb xauth shellcheck iproute2 chromium
 
 # Python environments come from locks (docs/development.md): uv.lock for the agents and their tests, and
@@ -85,6 +85,7 @@ demo-system-packages:
 	command -v mosquitto >/dev/null 2>&1 || missing=1; \
 	ls /usr/lib/*/libOSMesa.so* >/dev/null 2>&1 || missing=1; \
 	ls /usr/lib/*/libglfw.so.3 >/dev/null 2>&1 || missing=1; \
+	command -v chromium >/dev/null 2>&1 || missing=1; \
 	if [ -n "$$missing" ]; then $(call apt_install,$(DEMO_APT_PACKAGES)); fi
 
 system-packages: demo-system-packages
@@ -97,12 +98,13 @@ $(UV_STAMP): requirements/uv.txt
 	@$(UV_VENV)/bin/python -m pip --disable-pip-version-check -q install --require-hashes -r requirements/uv.txt
 	@touch $@
 
-# The demo's environment: the runtime and the history extra, nothing for tests. --inexact: a full `make setup`
-# venv keeps its test tools when `make demo` runs in it.
+# The demo's environment: the runtime, the history extra and the demo extra (Playwright, for the console
+# pictures), nothing for tests. --inexact: a full `make setup` venv keeps its test tools when `make demo` runs
+# in it.
 $(DEMO_STAMP): $(UV_STAMP) uv.lock pyproject.toml
 	@echo "setup: installing the agents from uv.lock into $(VENV)"
-	@$(UV_SYNC) --inexact --no-default-groups --extra history
-	@$(PY) -c "import twin, mujoco, pxr, awscrt, deltalake" || { echo "setup: Python install failed" >&2; exit 1; }
+	@$(UV_SYNC) --inexact --no-default-groups --extra history --extra demo
+	@$(PY) -c "import twin, mujoco, pxr, awscrt, deltalake, playwright" || { echo "setup: Python install failed" >&2; exit 1; }
 	@touch $@
 
 $(SETUP_STAMP): $(UV_STAMP) uv.lock pyproject.toml
