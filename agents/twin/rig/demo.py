@@ -61,10 +61,11 @@ HISTORY_DIR = "history"
 RRD_NAME = "twin.rrd"
 STATUS_INTERVAL_S = 0.25
 
-# The story (module doc). 160 g at the tip puts the shoulder at 60 to 100 % of its stall torque through the
-# mock motion; at 80x its thermal time constant (9.5 minutes, twin.robot.sts3215) is 7 s, so the servo passes
-# 60 C after about 15 s and 65 C after about 25 s, and peaks below the servo's 70 C cut-out, which the
-# simulator does not model (docs/servo-health.md, "Physical servos", has the figures).
+# The story (module doc). 220 g at the tip keeps the shoulder at three quarters of its stall torque on average
+# through the mock motion (at stall a quarter of the time); at 80x its thermal time constant (9.5 minutes,
+# twin.robot.sts3215) is 7 s, so the servo passes 60 C after about 15 s and 65 C after about 25 s, and peaks
+# just below the servo's 70 C cut-out, which the simulator does not model (docs/servo-health.md, "Physical
+# servos", has the figures; tests/test_servo_physics.py checks this timeline).
 STORY_JOINT = "shoulder_lift"
 STORY_PAYLOAD_KG = 0.22
 STORY_SPEEDUP = 80.0
