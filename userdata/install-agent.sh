@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Install the so101-twin agent: a Python venv with the agent distribution (package `twin` plus the robot
-# model `twin_robots`), its config, its systemd unit (its own unprivileged user, sandboxed) and the DCV
-# desktop's viewer (autostarted, supervised, running as the desktop user).
+# model `twin_robots`), its config, its systemd unit (its own unprivileged user, sandboxed), the DCV
+# desktop's viewer (autostarted, supervised, running as the desktop user) and the desktop's launcher of the
+# operator console (in the desktop user's applications and on the desktop).
 #
 # Nothing unhashed is ever fetched: the dependencies come from the locked requirements shipped with the
 # agent (requirements/host.txt: every package pinned with --hash=sha256, the runtime, the extras a host may
@@ -49,6 +50,15 @@ CONFIG=/etc/so101-twin/agent.toml
 UNIT=/etc/systemd/system/so101-twin-agent.service
 AUTOSTART="/home/${DESKTOP_USER}/.config/autostart/so101-twin-view.desktop"
 SUPERVISOR=/opt/so101-twin/bin/twin-view-supervised
+# The agent's HTTP address (loopback only) and its operator console there, opened by the desktop's launcher
+# in the host's browser (bootstrap.sh installs Firefox, a snap).
+HTTP_LISTEN=127.0.0.1:8080
+CONSOLE_URL="http://${HTTP_LISTEN}/"
+BROWSER=/snap/bin/firefox
+LAUNCHER_NAME=so101-twin-console.desktop
+LAUNCHER_APPS="/home/${DESKTOP_USER}/.local/share/applications/${LAUNCHER_NAME}"
+LAUNCHER_DESKTOP="/home/${DESKTOP_USER}/Desktop/${LAUNCHER_NAME}"
+LAUNCHER_TRUST="/home/${DESKTOP_USER}/.config/autostart/so101-twin-console-trust.desktop"
 # The agent's own user and the only places it may write (its unit's StateDirectory= and LogsDirectory=).
 AGENT_USER=so101-twin
 AGENT_STATE=/var/lib/so101-twin-agent
@@ -161,8 +171,8 @@ offline_after_s = 10.0
 
 [http]
 # DEFAULT_HTTP_HOST:DEFAULT_HTTP_PORT of agents/twin/service/config.py; host-check.sh asks this address
-# (tests/infra/test_userdata.py keeps the three in step).
-listen = "127.0.0.1:8080"
+# and the console launcher opens it (tests/infra/test_userdata.py keeps them in step).
+listen = "${HTTP_LISTEN}"
 
 [history]
 uri = "${HISTORY_URI}"
@@ -247,14 +257,45 @@ X-GNOME-Autostart-enabled=true
 X-GNOME-Autostart-Delay=5
 DESKTOP
 
+# --- the operator console's launcher ----------------------------------------------------------------
+# In GNOME's applications (search "console") and as an icon on the desktop. The desktop's icons (Ubuntu's
+# Desktop Icons NG) launch only a desktop file that is executable and marked trusted; the mark is a GIO
+# metadata attribute of the user's session, so a one-shot autostart entry sets it at login.
+launcher() {
+  cat <<DESKTOP
+[Desktop Entry]
+Type=Application
+Name=SO-101 operator console
+Comment=The fleet, each arm's alarms and live charts, sessions and events, served by the local so101-twin agent
+Exec=${BROWSER} --new-window ${CONSOLE_URL}
+Icon=firefox
+Terminal=false
+Categories=System;Monitor;
+DESKTOP
+}
+write_file "$LAUNCHER_APPS" 0755 < <(launcher)
+write_file "$LAUNCHER_DESKTOP" 0755 < <(launcher)
+write_file "$LAUNCHER_TRUST" 0644 <<DESKTOP
+[Desktop Entry]
+Type=Application
+Name=SO-101 console launcher: trusted
+Comment=Lets the desktop icon of the operator console launch (a GIO metadata mark of the session)
+Exec=gio set ${LAUNCHER_DESKTOP} metadata::trusted true
+Terminal=false
+NoDisplay=true
+X-GNOME-Autostart-enabled=true
+DESKTOP
+
 if [ -n "$RECORD_DIR" ]; then
   mkdir -p "${ROOT}${SESSIONS}"
   chown "$AGENT_USER:" "${ROOT}${SESSIONS}"
 fi
 
 if id -u "$DESKTOP_USER" >/dev/null 2>&1; then
-  # Written by root above; the desktop user's GNOME must own its ~/.config to write settings there.
-  chown -R "$DESKTOP_USER:" "${ROOT}/home/${DESKTOP_USER}/.config"
+  # Written by root above; the desktop user's GNOME must own its ~/.config to write settings there, and
+  # its ~/.local and ~/Desktop, where the launchers are, to keep or move them.
+  chown -R "$DESKTOP_USER:" "${ROOT}/home/${DESKTOP_USER}/.config" "${ROOT}/home/${DESKTOP_USER}/.local" \
+    "${ROOT}/home/${DESKTOP_USER}/Desktop"
 fi
 systemctl daemon-reload
 systemctl enable so101-twin-agent.service >/dev/null 2>&1

@@ -14,6 +14,7 @@ encodes, is described in hostsim.py. Nothing here reaches AWS or the network.
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -324,6 +325,24 @@ def test_desktop_is_quiet_owned_by_the_user_and_not_an_administrator(booted) -> 
     # The DCV login is not root: no sudo, no lxd, no NOPASSWD rule.
     assert host.groups("ubuntu") == ["ubuntu", "adm"]
     assert "ubuntu ALL" not in host.file("/etc/sudoers.d/90-cloud-init-users")
+
+
+def test_the_desktop_gets_a_browser_for_the_console_launcher(booted) -> None:
+    """The desktop install brings no browser (ubuntu-desktop-minimal recommends none since Ubuntu 21.10; its
+    Firefox is a snap the installer seeds): the boot installs the snap, and the launcher opens the command it
+    put in /snap/bin."""
+    host, _ = booted
+    calls = host.calls()
+    desktop = next(i for i, c in enumerate(calls) if "ubuntu-desktop-minimal" in c)
+    browser = calls.index("snap install firefox")
+    assert desktop < browser
+    policies = json.loads(host.file("/etc/firefox/policies/policies.json"))["policies"]
+    assert policies["DontCheckDefaultBrowser"] is True and policies["OverrideFirstRunPage"] == ""
+    launcher = host.file("/home/ubuntu/Desktop/so101-twin-console.desktop")
+    assert launcher == host.file("/home/ubuntu/.local/share/applications/so101-twin-console.desktop")
+    exec_line = next(line for line in launcher.splitlines() if line.startswith("Exec="))
+    command = exec_line.removeprefix("Exec=").split()[0]
+    assert os.access(host.root / command.lstrip("/"), os.X_OK), f"{command} was not installed by the boot"
 
 
 def test_dcv_config_password_at_awscurrent_and_start_ordering(booted) -> None:

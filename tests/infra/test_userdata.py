@@ -236,6 +236,36 @@ def test_installer_writes_the_service_and_the_viewer_autostart(installed: tuple[
     assert not (root / "var/lib/so101-twin-agent/sessions").exists()
 
 
+def test_installer_writes_the_console_launcher(installed: tuple[Path, Path]) -> None:
+    """The operator console one click away on the DCV desktop: a launcher in the applications and on the
+    desktop opening the agent's own address, both valid desktop entries (desktop-file-validate, the
+    freedesktop.org reference validator), and the login-time mark that lets the desktop icon launch."""
+    from twin.service.config import DEFAULT_AGENT_URL
+
+    root, _ = installed
+    home = root / "home/ubuntu"
+    apps = home / ".local/share/applications/so101-twin-console.desktop"
+    desktop = home / "Desktop/so101-twin-console.desktop"
+    trust = home / ".config/autostart/so101-twin-console-trust.desktop"
+    assert apps.read_text() == desktop.read_text()
+    assert os.access(apps, os.X_OK) and os.access(desktop, os.X_OK)  # the desktop launches only these
+    entry = unit_directives(desktop.read_text())
+    assert entry["Type"] == ["Application"] and entry["Terminal"] == ["false"]
+    assert entry["Exec"] == [f"/snap/bin/firefox --new-window {DEFAULT_AGENT_URL}/"]
+    config = tomllib.loads((root / "etc/so101-twin/agent.toml").read_text())
+    assert f"http://{config['http']['listen']}" == DEFAULT_AGENT_URL
+    assert unit_directives(trust.read_text())["Exec"] == [
+        "gio set /home/ubuntu/Desktop/so101-twin-console.desktop metadata::trusted true"
+    ]
+    validator = shutil.which("desktop-file-validate")
+    assert validator, "desktop-file-validate is missing: make setup installs desktop-file-utils"
+    for path in (apps, desktop, trust):
+        result = subprocess.run(
+            [validator, str(path)], capture_output=True, text=True, timeout=30, check=False
+        )
+        assert result.returncode == 0 and "error" not in result.stdout, result.stdout + result.stderr
+
+
 def test_the_agent_runs_as_its_own_user_in_a_sandbox(installed: tuple[Path, Path]) -> None:
     """It parses untrusted MQTT payloads with native parsers: no root, no capabilities, a read-only system."""
     from twin.cli.commands.run import EXIT_CONFIG
