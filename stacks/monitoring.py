@@ -8,9 +8,15 @@ dimension Agent = the stack name. Three alarms watch them (docs/servo-health.md 
   host stopped on purpose, by the auto-stop schedule say, reads the same: nobody is watching the arms);
 - arms stale: at least one arm STALE or OFFLINE for 3 minutes in a row;
 - critical servo alarm: a critical servo alarm (over-temperature near the cut-out, over-current) present.
+
+A CloudWatch dashboard shows the same metrics over time: arms by status, the mirrored message rate, the
+estimated loss, the servo alarms present by severity and how far history lags, next to the three alarms.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
 
 from aws_cdk import Duration, RemovalPolicy, Stack
 from aws_cdk import aws_cloudwatch as cw
@@ -26,6 +32,10 @@ NAMESPACE = "SO101Twin"
 AGENT_DIMENSION = "Agent"
 SEVERITY_DIMENSION = "Severity"
 PERIOD = Duration.minutes(1)
+SEVERITIES = ("critical", "warning")
+# History's figures (emf.HISTORY_LAG, emf.HISTORY_ROWS_DROPPED where the agent defines them).
+HISTORY_LAG = "HistoryLagSeconds"
+HISTORY_ROWS_DROPPED = "HistoryRowsDropped"
 
 
 class TwinMonitoring(Construct):
@@ -137,3 +147,61 @@ class TwinMonitoring(Construct):
         for alarm in self.alarms.values():
             alarm.add_alarm_action(action)
             alarm.add_ok_action(action)
+        self.dashboard = _dashboard(self, agent_name, metric, list(self.alarms.values()))
+
+
+def _dashboard(
+    scope: Construct, agent_name: str, metric: Callable[..., cw.Metric], alarms: list[cw.Alarm]
+) -> cw.Dashboard:
+    """The fleet at a glance, one graph per question an operator asks, each from the agent's EMF metrics."""
+
+    def graph(
+        title: str, left: list[cw.IMetric], right: list[cw.IMetric] | None = None, **options: Any
+    ) -> cw.GraphWidget:
+        return cw.GraphWidget(title=title, left=left, right=right or [], width=12, height=6, **options)
+
+    def labelled(name: str, statistic: str, label: str, **extra: str) -> cw.Metric:
+        return metric(name, statistic, **extra).with_(label=label)
+
+    dashboard = cw.Dashboard(
+        scope,
+        "Dashboard",
+        dashboard_name=f"{agent_name}-fleet",
+        default_interval=Duration.hours(3),
+    )
+    dashboard.add_widgets(
+        graph(
+            "Arms by status",
+            [
+                labelled("DevicesOnline", "Maximum", "online"),
+                labelled("DevicesStale", "Maximum", "stale"),
+                labelled("DevicesOffline", "Maximum", "offline"),
+            ],
+            stacked=True,
+        ),
+        graph(
+            "Mirrored messages per second (all arms) and rejected messages",
+            [labelled("MessagesPerSecond", "Average", "mirrored msg/s")],
+            [labelled("Rejects", "Sum", "rejected per minute")],
+        ),
+        graph(
+            "Loss: share of expected messages that never arrived (%)",
+            [labelled("LossPercent", "Maximum", "loss %")],
+            left_y_axis=cw.YAxisProps(min=0),
+        ),
+        graph(
+            "Servo alarms present, by severity",
+            [
+                labelled("ActiveAlarms", "Maximum", severity, **{SEVERITY_DIMENSION: severity})
+                for severity in SEVERITIES
+            ],
+            left_y_axis=cw.YAxisProps(min=0),
+        ),
+        graph(
+            "History: lag of the oldest unwritten row (s) and rows dropped",
+            [labelled(HISTORY_LAG, "Maximum", "lag s")],
+            [labelled(HISTORY_ROWS_DROPPED, "Sum", "rows dropped per minute")],
+        ),
+        cw.AlarmStatusWidget(title="Alarms", alarms=alarms, width=12, height=6),
+    )
+    return dashboard

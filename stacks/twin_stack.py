@@ -148,6 +148,13 @@ class TwinStack(Stack):
         )
         CfnOutput(
             self,
+            "Dashboard",
+            value=f"https://console.aws.amazon.com/cloudwatch/home?region={self.region}#dashboards/dashboard/"
+            f"{self.monitoring.dashboard.dashboard_name}",
+            description="CloudWatch dashboard of the fleet: arms, rates, loss, alarms, history lag",
+        )
+        CfnOutput(
+            self,
             "HistoryUri",
             value=self.history.uri,
             description="Telemetry history (Delta Lake); read it with `twin history ls --history <this>`. "

@@ -6,6 +6,8 @@ dimensions are checked against the agent's own constants, so the two cannot drif
 
 from __future__ import annotations
 
+import dataclasses
+import json
 from typing import Any
 
 from aws_cdk.assertions import Match
@@ -125,3 +127,113 @@ def test_the_agent_name_follows_the_stack_name(synth_factory: Any) -> None:
     synth = synth_factory(stackName="LabTwin")
     props = alarm(synth, "The so101-twin agent")
     assert props["Dimensions"] == [{"Name": "Agent", "Value": "LabTwin"}]
+
+
+# --- the dashboard ---------------------------------------------------------------------------------------
+
+
+def dashboard_body(synth: Synth) -> dict[str, Any]:
+    """The dashboard's JSON, its CloudFormation tokens (region, alarm ARNs) written as "<token>"."""
+    body = synth.one("AWS::CloudWatch::Dashboard")["Properties"]["DashboardBody"]
+
+    def text(value: Any) -> str:
+        if isinstance(value, str):
+            return value
+        if isinstance(value, dict) and "Fn::Join" in value:
+            separator, parts = value["Fn::Join"]
+            return separator.join(text(part) for part in parts)
+        return "<token>"
+
+    return json.loads(text(body))
+
+
+def emitted_metrics() -> set[tuple[str, frozenset[tuple[str, str]]]]:
+    """Every (metric, dimensions) the agent writes, from its own EMF documents with every figure set."""
+    fields = {f.name for f in dataclasses.fields(emf.FleetMetrics)}
+    values: dict[str, Any] = {
+        "messages_per_s": 10.0,
+        "rejects": 1,
+        "loss_percent": 1.0,
+        "devices_online": 2,
+        "devices_stale": 1,
+        "devices_offline": 1,
+        "internal_latency_p99_ms": 3.0,
+        "active_alarms": {"critical": 1, "warning": 2},
+    }
+    # History's figures, where the agent reports them (only while history is on).
+    optional = {"history_lag_s": 1.5, "history_rows_dropped": 0, "history_commit_failures": 0}
+    values.update({name: value for name, value in optional.items() if name in fields})
+    out = set()
+    for doc in emf.fleet_documents(emf.FleetMetrics(**values), "So101TwinStack", 0):
+        (directive,) = doc["_aws"]["CloudWatchMetrics"]
+        (dimension_names,) = directive["Dimensions"]
+        dims = frozenset((name, doc[name]) for name in dimension_names)
+        out |= {(m["Name"], dims) for m in directive["Metrics"]}
+    return out
+
+
+def dashboard_metrics(body: dict[str, Any]) -> list[tuple[str, str, frozenset[tuple[str, str]]]]:
+    """(widget title, metric, dimensions) of every metric a graph draws."""
+    out = []
+    for widget in body["widgets"]:
+        props = widget["properties"]
+        for row in props.get("metrics", []):
+            names = [v for v in row if isinstance(v, str)]
+            namespace, metric, *pairs = names
+            assert namespace == emf.NAMESPACE, row
+            dims = frozenset(zip(pairs[::2], pairs[1::2], strict=True))
+            out.append((props["title"], metric, dims))
+    return out
+
+
+def test_the_dashboard_draws_only_metrics_the_agent_emits(synth_default: Synth) -> None:
+    synth_default.template.resource_count_is("AWS::CloudWatch::Dashboard", 1)
+    props = synth_default.one("AWS::CloudWatch::Dashboard")["Properties"]
+    assert props["DashboardName"] == "So101TwinStack-fleet"
+    drawn = dashboard_metrics(dashboard_body(synth_default))
+    emitted = emitted_metrics()
+    # History's lag and drops come with the agent's history metrics (output/emf.py); until the agent
+    # defines them the dashboard already draws them, by the names agreed for them.
+    pending = (
+        set() if hasattr(emf, "HISTORY_LAG") else {monitoring.HISTORY_LAG, monitoring.HISTORY_ROWS_DROPPED}
+    )
+    missing = {(m, d) for _, m, d in drawn if (m, d) not in emitted and m not in pending}
+    assert not missing, f"the dashboard draws metrics the agent never writes: {missing}"
+    if not pending:
+        assert monitoring.HISTORY_LAG == emf.HISTORY_LAG
+        assert monitoring.HISTORY_ROWS_DROPPED == emf.HISTORY_ROWS_DROPPED
+    agent = frozenset({("Agent", "So101TwinStack")})
+    by_metric = {(m, d) for _, m, d in drawn}
+    # What an operator asks of the fleet: arms online, the mirrored rate, loss, alarms by severity, history.
+    assert {("DevicesOnline", agent), ("DevicesStale", agent), ("DevicesOffline", agent)} <= by_metric
+    assert ("MessagesPerSecond", agent) in by_metric and ("LossPercent", agent) in by_metric
+    for severity in ("critical", "warning"):
+        assert ("ActiveAlarms", agent | {("Severity", severity)}) in by_metric
+    assert {(monitoring.HISTORY_LAG, agent), (monitoring.HISTORY_ROWS_DROPPED, agent)} <= by_metric
+
+
+def test_the_dashboard_shows_the_three_alarms_and_is_an_output(synth_default: Synth) -> None:
+    body = dashboard_body(synth_default)
+    status = [w for w in body["widgets"] if w["type"] == "alarm"]
+    assert len(status) == 1 and len(status[0]["properties"]["alarms"]) == 3
+    # One point a minute, the agent's EMF interval, each with the statistic its figure needs.
+    for widget in body["widgets"]:
+        for row in widget["properties"].get("metrics", []):
+            options = row[-1]
+            # CloudWatch draws the average unless told otherwise (the rendered body then names no stat).
+            assert options["period"] == 60 and options.get("stat", "Average") in (
+                "Average",
+                "Maximum",
+                "Sum",
+            ), row
+    output = synth_default.json["Outputs"]["Dashboard"]["Value"]
+    parts = output["Fn::Join"][1]
+    assert parts[0].startswith("https://console.aws.amazon.com/cloudwatch/home?region=")
+    assert {"Ref": next(iter(synth_default.resources("AWS::CloudWatch::Dashboard")))} in parts
+
+
+def test_the_dashboard_follows_the_stack_name(synth_factory: Any) -> None:
+    synth = synth_factory(stackName="LabTwin")
+    assert synth.one("AWS::CloudWatch::Dashboard")["Properties"]["DashboardName"] == "LabTwin-fleet"
+    drawn = dashboard_metrics(dashboard_body(synth))
+    assert drawn and all(("Agent", "LabTwin") in dims for _, _, dims in drawn)
