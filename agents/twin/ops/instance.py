@@ -40,6 +40,8 @@ from twin.service.config import DEFAULT_AGENT_URL
 if TYPE_CHECKING:
     import boto3
 
+    from twin.ops.port_forward import PortForward
+
 log = logging.getLogger(__name__)
 
 DEFAULT_STACK_NAME = "So101TwinStack"
@@ -612,6 +614,30 @@ class TwinInstance:
                 )
             log.info("start checks: %s", waiting)
             time.sleep(min(self.poll_interval_s, max(0.0, deadline - time.monotonic())))
+
+    # --- a port of the host here ---------------------------------------------------------------------
+
+    def forward_port(self, remote_port: int, local_port: int, *, plugin: str | None = None) -> PortForward:
+        """`remote_port` of the running host on this machine's 127.0.0.1:`local_port`, through Session
+        Manager and its plugin (twin.ops.port_forward); `close()` the result to end it."""
+        from twin.ops.port_forward import find_plugin, start_port_forward  # noqa: PLC0415
+
+        path = plugin or find_plugin()  # before any AWS call: a missing plugin leaves no session behind
+        instance_id = self.outputs().instance_id
+        state = self.state()
+        if state != "running":
+            raise WaitError(
+                f"instance {instance_id} is {state}: start it with `twin instance start`, then run this again"
+            )
+        with self._aws(f"start a Session Manager session to {instance_id}"):
+            return start_port_forward(
+                self._client("ssm"),
+                instance_id=instance_id,
+                remote_port=remote_port,
+                local_port=local_port,
+                profile=os.environ.get("AWS_PROFILE", ""),
+                plugin=path,
+            )
 
     def status(self, check_health: bool = True, health_timeout_s: float = 60.0) -> InstanceStatus:
         """State, type, URL and (when running and asked) agent health."""
