@@ -468,6 +468,8 @@ def _watch(
     if pictures is not None:
         pictures.join(0.0 if stop.is_set() else 30.0)
         run.console = pictures.result if pictures.started else {"taken": False, "skipped": "interrupted"}
+        if stop.is_set() and pictures.running:
+            run.console = {"taken": False, "skipped": "interrupted while the pictures were taken"}
         if run.console["taken"]:
             note(f"pictures: {pictures.shots.fleet}, {pictures.shots.arm}")
         elif pictures.started:
