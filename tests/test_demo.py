@@ -222,8 +222,9 @@ def test_demo_without_chromium_says_so_and_skips_only_the_console_pictures(tmp_p
     assert not list(out.glob("console-*.png"))
     assert "console_fleet" not in stats["files"]
     assert_not_blank(out / stats["files"]["png"])
-    # 3 s at 10 Hz: nothing waits for pictures that cannot be taken.
-    assert 25 <= stats["messages"]["sent"] <= 35
+    # Nothing tries, or waits for, pictures that cannot be taken.
+    assert "taking the console pictures" not in proc.stdout
+    assert stats["messages"]["received"] > 0
     assert_broker_gone(stats)
 
 
