@@ -126,7 +126,7 @@ def test_curl_acknowledges_a_percent_encoded_id(console: str) -> None:
     encoded = quote(alarm["alarm_id"], safe="")
     assert "%2F" in encoded
     request = urllib.request.Request(f"{console}/alarms/{encoded}/ack", data=b"", method="POST")
-    with urllib.request.urlopen(request, timeout=10) as response:
+    with urllib.request.urlopen(request, timeout=30) as response:
         assert json.loads(response.read())["alarms"][0]["state"] == "ACKNOWLEDGED"
 
 
