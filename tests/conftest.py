@@ -157,12 +157,8 @@ class ManualClock:
 
 
 def messages_handled(state: AgentState) -> int:
-    """How many messages the agent is done counting: each one ends as `received` of a device it tracks
-    (applied, ignored, coalesced or rejected) or as a rejection of an untracked one. Unlike
-    `agent.worker.processed`, which counts a message when the worker takes it, these are bumped after it
-    was decoded and its health recorded."""
-    tracked = sum(d.health.counters.received for d in state.devices.values())
-    return tracked + sum(state.untracked_rejected.values())
+    """AgentState.messages_handled: what a test waiting for N messages waits on."""
+    return state.messages_handled()
 
 
 def wait_handled(read_state: Callable[[], AgentState], count: int, timeout: float = 60.0) -> AgentState:

@@ -60,6 +60,8 @@ OUTPUT_PATTERNS = (
 HISTORY_DIR = "history"
 RRD_NAME = "twin.rrd"
 STATUS_INTERVAL_S = 0.25
+# How long the end of a run waits for the last published messages to be counted by the agent.
+SETTLE_TIMEOUT_S = 10.0
 
 # The story (module doc). 220 g at the tip keeps the shoulder at three quarters of its stall torque on average
 # through the mock motion (at stall a quarter of the time); at 80x its thermal time constant (9.5 minutes,
@@ -474,11 +476,20 @@ def _watch(
             note(f"pictures: {pictures.shots.fleet}, {pictures.shots.arm}")
         elif pictures.started:
             note(f"console pictures skipped: {run.console['skipped']}")
-    # Messages published in the last instant are still in flight through the broker and the worker.
-    time.sleep(0.5)
-    run.final_state = service.state()
+    run.final_state = _settled_state(service, run.report.published)
     if on_status is not None:
         on_status(_status(run.final_state, run.report.published, time.monotonic() - run.started))
+
+
+def _settled_state(service: Any, published: int) -> AgentState:
+    """The agent's state once it has counted every published message (the last ones are still crossing the
+    broker and the mirror when the edge stops), or after SETTLE_TIMEOUT_S if some never arrive."""
+    deadline = time.monotonic() + SETTLE_TIMEOUT_S
+    state: AgentState = service.state()
+    while state.messages_handled() < published and time.monotonic() < deadline:
+        time.sleep(0.05)
+        state = service.state()
+    return state
 
 
 def _follow_story(

@@ -275,6 +275,14 @@ class AgentState:
     devices: dict[str, DeviceState]
     untracked_rejected: dict[str, int] = field(default_factory=dict)
 
+    def messages_handled(self) -> int:
+        """How many messages the agent is done counting: each ends as `received` of a device it tracks
+        (applied, ignored, coalesced or rejected) or as a rejection of an untracked one. Unlike
+        `agent.worker.processed`, which counts a message when a mirror takes it, these are counted after it
+        was decoded and its health recorded, so a reader waiting for N messages can wait on this."""
+        tracked = sum(d.health.counters.received for d in self.devices.values())
+        return tracked + sum(self.untracked_rejected.values())
+
     def to_json(self) -> bytes:
         """The JSON document (UTF-8); NaN and infinities become null."""
         return _ENCODER.encode(self)
