@@ -29,6 +29,7 @@ OUTPUT_KEYS = (
     "InstanceFingerprint",
     "UpdateAssociationId",
     "HostLogGroup",
+    "Settings",
 )
 
 
@@ -41,6 +42,7 @@ class TwinStack(Stack):
         id_: str,
         *,
         settings: TwinSettings,
+        settings_output: str,
         agent_source: Path | None = None,
         **kwargs: Any,
     ) -> None:
@@ -187,6 +189,13 @@ class TwinStack(Stack):
             "HostLogGroup",
             value=self.identity.agent_log_group.log_group_name,
             description="Host log group: streams <instance-id>/bootstrap, /agent, /dcv, /emf",
+        )
+        CfnOutput(
+            self,
+            "Settings",
+            value=settings_output,
+            description="The settings this stack was deployed with (JSON); `twin instance settings` prints "
+            "them as twin.settings.toml, and the next synth refuses to reset one it is not given",
         )
         CfnOutput(
             self,

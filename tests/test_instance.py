@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import datetime
 import json
+import tomllib
 
 import boto3
 import botocore.client
@@ -43,6 +44,23 @@ TEMPLATE = {
         "DcvPasswordSecret": {"Value": "so101-twin/dcv aws secretsmanager get-secret-value ..."},
         "SsmSessionCommand": {
             "Value": {"Fn::Join": ["", ["aws ssm start-session --target ", {"Ref": "Host"}]]}
+        },
+        # As stacks/settings_guard.py writes it: kept settings in order, and where the given ones came from.
+        "Settings": {
+            "Value": json.dumps(
+                {
+                    "version": 1,
+                    "values": {
+                        "clientCidr": "203.0.113.7/32",
+                        "stackName": "So101TwinStack",
+                        "devices": ["arm-001", "arm-002"],
+                        "alarmEmail": "",
+                        "alarmWarnings": True,
+                    },
+                    "given": {"clientCidr": "file", "devices": "file", "alarmWarnings": "-c"},
+                },
+                separators=(",", ":"),
+            )
         },
     },
 }
@@ -89,6 +107,39 @@ def test_url_prints_only_the_dcv_url(stack, capsys):
     out = capsys.readouterr().out
     assert out == stack["DcvUrl"] + "\n"
     assert out.startswith("https://") and out.endswith(":8443/#console\n")
+
+
+def test_settings_print_the_deployed_stack_as_a_settings_file(stack, capsys):
+    assert main(["instance", "settings"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("# The settings of stack So101TwinStack in us-east-1, as deployed")
+    body = [
+        line for line in out.splitlines() if not line.startswith("# The") and not line.startswith("# Save")
+    ]
+    assert body == [
+        'clientCidr = "203.0.113.7/32"',
+        '# stackName = "So101TwinStack"  # default',
+        'devices = ["arm-001", "arm-002"]',
+        '# alarmEmail = ""  # default',
+        "alarmWarnings = true  # given with -c: keep it here, or the next deploy resets it",
+    ]
+    assert tomllib.loads(out) == {
+        "clientCidr": "203.0.113.7/32",
+        "devices": ["arm-001", "arm-002"],
+        "alarmWarnings": True,
+    }
+
+
+def test_settings_of_an_older_stack_say_to_deploy_once(aws_env, capsys):
+    template = {"Resources": TEMPLATE["Resources"], "Outputs": dict(TEMPLATE["Outputs"])}
+    del template["Outputs"]["Settings"]
+    with mock_aws():
+        boto3.client("cloudformation", region_name=REGION).create_stack(
+            StackName="OldTwin", TemplateBody=json.dumps(template)
+        )
+        assert main(["instance", "settings", "--stack", "OldTwin"]) == cmd.EXIT_NO_OUTPUTS
+    err = capsys.readouterr().err
+    assert "has no Settings output" in err and "cdk deploy" in err
 
 
 def test_stop_then_start_changes_the_ec2_state(stack, capsys):

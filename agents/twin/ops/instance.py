@@ -40,6 +40,7 @@ from twin.service.config import DEFAULT_AGENT_URL
 if TYPE_CHECKING:
     import boto3
 
+    from twin.ops.deployed_settings import DeployedSettings
     from twin.ops.port_forward import PortForward
 
 log = logging.getLogger(__name__)
@@ -56,6 +57,7 @@ OUTPUT_SSM_SESSION_COMMAND = "SsmSessionCommand"
 OUTPUT_DEPLOYMENT_VERSION = "DeploymentVersion"
 OUTPUT_UPDATE_ASSOCIATION = "UpdateAssociationId"
 OUTPUT_HOST_LOG_GROUP = "HostLogGroup"
+OUTPUT_SETTINGS = "Settings"
 REQUIRED_OUTPUTS = (OUTPUT_INSTANCE_ID, OUTPUT_DCV_URL)
 
 HEALTH_URL = f"{DEFAULT_AGENT_URL}/healthz"
@@ -135,6 +137,8 @@ class StackOutputs:
     deployment_version: str | None = None
     update_association_id: str | None = None
     host_log_group: str | None = None
+    # The settings the stack was deployed with, as JSON (twin.ops.deployed_settings reads it).
+    settings: str | None = None
 
 
 @dataclass(frozen=True)
@@ -403,6 +407,7 @@ class TwinInstance:
             deployment_version=values.get(OUTPUT_DEPLOYMENT_VERSION),
             update_association_id=values.get(OUTPUT_UPDATE_ASSOCIATION),
             host_log_group=values.get(OUTPUT_HOST_LOG_GROUP),
+            settings=values.get(OUTPUT_SETTINGS),
         )
         log.debug("stack %s outputs: %s", self.stack_name, self._outputs)
         return self._outputs
@@ -431,6 +436,15 @@ class TwinInstance:
     def url(self) -> str:
         """The DCV browser URL (stable across stop/start because it is built from the Elastic IP)."""
         return self.outputs().dcv_url
+
+    def settings(self) -> DeployedSettings:
+        """The settings the stack was deployed with; StackOutputsError when it does not publish them."""
+        from twin.ops.deployed_settings import DeployedSettingsError, parse_deployed_settings  # noqa: PLC0415
+
+        try:
+            return parse_deployed_settings(self.outputs().settings, self.stack_name)
+        except DeployedSettingsError as exc:
+            raise StackOutputsError(str(exc)) from exc
 
     # --- instance ----------------------------------------------------------------------------------
 

@@ -1,5 +1,5 @@
-"""`twin instance start|stop|status|url|check|console`: run and check the cloud twin host deployed by the CDK
-stack, and open its operator console here.
+"""`twin instance start|stop|status|url|check|console|settings`: run and check the cloud twin host deployed by
+the CDK stack, open its operator console here, and print the settings it runs with.
 
 The stack defaults to $SO101_TWIN_STACK, else So101TwinStack; the region to --region, else the AWS config.
 
@@ -9,7 +9,7 @@ Exit codes:
   2  bad command line (argparse)
   3  no AWS credentials or region, or credentials AWS rejects, or (`console`) no Session Manager plugin
   4  stack not found in that account and region
-  5  stack outputs missing (InstanceId or DcvUrl)
+  5  stack outputs missing (InstanceId or DcvUrl; for `settings`, the Settings output)
   6  InsufficientInstanceCapacity on start (no G6e capacity in the stack's Availability Zone)
   7  the instance did not reach the wanted state within --timeout, or `start` got no verdict of its checks
   8  `check`: at least one check failed (the table says which and how to fix it); `start`: the host's checks
@@ -101,6 +101,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             "console",
             "open the operator console here: forward the agent's port on the host to 127.0.0.1 through "
             "Session Manager (needs the Session Manager plugin) and open it in the browser, until Ctrl-C",
+        ),
+        (
+            "settings",
+            "print the settings the deployed stack runs with, as a twin.settings.toml (save it to keep them: "
+            "twin instance settings > twin.settings.toml)",
         ),
         (
             "check",
@@ -230,6 +235,14 @@ def run(args: argparse.Namespace, twin: TwinInstance | None = None) -> int:
             console.out(twin.url())
         elif args.action == "console":
             return _console(twin, args)
+        elif args.action == "settings":
+            deployed = twin.settings()
+            header = (
+                f"The settings of stack {twin.stack_name} in {twin.region}, as deployed (its Settings "
+                "output).\nSave as twin.settings.toml in the repository to keep them; commented lines are "
+                "defaults."
+            )
+            console.out(deployed.to_toml(header=header).rstrip("\n"))
         elif args.action == "check":
             from twin.ops.instance_check import check_twin
 
