@@ -30,6 +30,7 @@ OUTPUT_KEYS = (
     "UpdateAssociationId",
     "HostLogGroup",
     "Settings",
+    "CalibrationUri",
 )
 
 
@@ -93,6 +94,7 @@ class TwinStack(Stack):
                 # The CloudWatch metrics' Agent dimension, which the monitoring alarms below watch.
                 "AGENT_NAME": settings.stack_name,
                 "HISTORY_URI": self.history.uri,
+                "CALIBRATIONS_URI": self.history.calibration_uri,
                 "RECORD_SESSIONS": "true" if settings.record_sessions else "false",
             },
             agent_source=agent_source or REPO_ROOT,
@@ -165,6 +167,13 @@ class TwinStack(Stack):
                 if settings.retain_history
                 else "Deleted with the stack (retainHistory=false)"
             ),
+        )
+        CfnOutput(
+            self,
+            "CalibrationUri",
+            value=self.history.calibration_uri,
+            description="Where each arm's LeRobot calibration is kept (<device>.json); `twin calibration "
+            "push ARM FILE` uploads one and the agent picks it up within calibration_poll_s",
         )
         CfnOutput(
             self,

@@ -409,6 +409,7 @@ def test_host_check_reports_every_line(booted) -> None:
         "dcv-session": "OK",
         "agent": "OK",
         "telemetry": "WARN",
+        "calibration": "OK",
         "viewer": "OK",
         "screen": "OK",
         "version": "OK",
@@ -448,6 +449,7 @@ def test_after_a_reboot_dcv_is_put_on_x_and_the_checks_report(booted, tmp_path: 
         "dcv-session",
         "agent",
         "telemetry",
+        "calibration",
         "viewer",
         "screen",
     }

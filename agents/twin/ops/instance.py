@@ -58,6 +58,7 @@ OUTPUT_DEPLOYMENT_VERSION = "DeploymentVersion"
 OUTPUT_UPDATE_ASSOCIATION = "UpdateAssociationId"
 OUTPUT_HOST_LOG_GROUP = "HostLogGroup"
 OUTPUT_SETTINGS = "Settings"
+OUTPUT_CALIBRATION_URI = "CalibrationUri"
 REQUIRED_OUTPUTS = (OUTPUT_INSTANCE_ID, OUTPUT_DCV_URL)
 
 HEALTH_URL = f"{DEFAULT_AGENT_URL}/healthz"
@@ -139,6 +140,8 @@ class StackOutputs:
     host_log_group: str | None = None
     # The settings the stack was deployed with, as JSON (twin.ops.deployed_settings reads it).
     settings: str | None = None
+    # Where the arms' calibrations are kept (s3://<bucket>/calibration; `twin calibration`).
+    calibration_uri: str | None = None
 
 
 @dataclass(frozen=True)
@@ -408,6 +411,7 @@ class TwinInstance:
             update_association_id=values.get(OUTPUT_UPDATE_ASSOCIATION),
             host_log_group=values.get(OUTPUT_HOST_LOG_GROUP),
             settings=values.get(OUTPUT_SETTINGS),
+            calibration_uri=values.get(OUTPUT_CALIBRATION_URI),
         )
         log.debug("stack %s outputs: %s", self.stack_name, self._outputs)
         return self._outputs

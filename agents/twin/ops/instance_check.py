@@ -55,6 +55,8 @@ HOST_FIXES = {
     "configured devices' topics (redeploy with -c devices=...); sudo systemctl restart so101-twin-agent",
     "telemetry": "no arm is publishing to the subscribed topics: start the edge publisher of each device "
     "(or check its topic prefix and device id against the stack's settings)",
+    "calibration": "push each arm's LeRobot calibration: twin calibration push ARM FILE (the agent picks it "
+    "up within 30 s; docs/agent.md, 'Calibration'); a refused file says why in the console's Events",
     "viewer": "the viewer starts at the desktop login and must keep running: if it keeps restarting, its "
     "supervisor's log says why (on the host: journalctl _UID=$(id -u ubuntu) | grep twin-view); "
     "docs/deploy.md, Troubleshooting, 'The viewer keeps restarting'",

@@ -42,6 +42,7 @@ from twin.core.topics import device_from_topic
 from twin.output.emf import EmfFileWriter, EmfPublisher, FleetTotals
 from twin.output.sinks import TwinSink
 from twin.service.admission import DeviceBudget
+from twin.service.calibrations import CalibrationBook, CalibrationWatcher, open_store
 from twin.service.config import AgentConfig, ConfigError
 from twin.service.console import FleetRow, SessionCatalog, rerun_viewer_url
 from twin.service.events import Event, EventKind, EventLevel, EventQuery, EventStore, FleetWatch
@@ -49,6 +50,7 @@ from twin.service.http_api import AgentHttpServer
 from twin.service.shards import (
     AckRequest,
     AlarmsRequest,
+    CalibrationsRequest,
     EventsRequest,
     FleetRowsRequest,
     MirrorReport,
@@ -61,6 +63,7 @@ from twin.service.shards import (
     WorkerShard,
     alarm_of,
     alarms_of,
+    applied_of,
     events_of,
     fleet_rows_of,
     merge_reports,
@@ -157,6 +160,15 @@ class AgentService:
         self._watch = FleetWatch(self._events)
         self._events_seen: dict[int, int] = {}
         self._workers_seen: dict[int, tuple[bool, int]] = {}
+        # Each arm's own calibration (docs/agent.md, "Calibration"): watched here, once for every shard, and
+        # handed to each; the last hand-over is kept for a worker that is started again.
+        self._calibrations: CalibrationWatcher | None = None
+        self._calibration_request = CalibrationsRequest()
+        if t.calibrations:
+            store = open_store(t.calibrations, region=config.broker.region or config.history.region)
+            self._calibrations = CalibrationWatcher(
+                store, interval_s=t.calibration_poll_s, on_change=self._hand_calibrations
+            )
 
     def _build_shards(self, config: AgentConfig, sinks: Sequence[TwinSink]) -> list[Shard]:
         count = self.plan.count
@@ -188,6 +200,9 @@ class AgentService:
                 shard.launch()
             for shard in self._shards:
                 shard.await_ready()
+            if self._calibrations is not None:
+                # Before the subscription, so the first messages already decode with each arm's own.
+                self._calibrations.poll()
             self._http = AgentHttpServer(
                 self,
                 self.config.http.host,
@@ -203,6 +218,8 @@ class AgentService:
         self._running = True
         self._supervisor = threading.Thread(target=self._supervise, name="twin-supervisor", daemon=True)
         self._supervisor.start()
+        if self._calibrations is not None:
+            self._calibrations.start()
         self._http.start()
         self._pool.start()
         self._started_pool = True
@@ -239,6 +256,8 @@ class AgentService:
                 self._pool.stop(min(timeout, 5.0))
             except Exception:
                 log.exception("stopping the connection pool failed")
+        if self._calibrations is not None:
+            self._calibrations.stop(min(timeout, 5.0))
         self._stop_shards(timeout)
         if self._supervisor is not None:
             self._supervisor.join(timeout)
@@ -484,12 +503,53 @@ class AgentService:
             )
         if info.restarts > restarts and answering:
             self._events_seen[shard.index] = 0  # a new process numbers its events from 1
+            self._hand_calibrations_to(shard, self._calibration_request)
             self._events.emit(
                 EventKind.WORKER,
                 EventLevel.INFO,
                 f"worker {shard.index} running again (restart {info.restarts})",
                 data={"worker": shard.index, "pid": info.pid, "restarts": info.restarts},
             )
+
+    # ------------------------------------------------------------------------------------- calibrations
+
+    def _hand_calibrations(self, book: CalibrationBook) -> None:
+        """A new set of the arms' own calibrations (CalibrationWatcher, on its thread or start's): to every
+        mirror, and into the events."""
+        request = CalibrationsRequest(
+            files=tuple(
+                (device, entry.source, entry.calibration.to_dict()) for device, entry in book.entries.items()
+            ),
+            problems=tuple(book.problems.items()),
+        )
+        self._calibration_request = request
+        for shard in self._shards:
+            self._hand_calibrations_to(shard, request)
+        self._cached = None
+        for change in book.changes:
+            if change.action == "refused":
+                level, message = (
+                    EventLevel.WARNING,
+                    f"calibration of {change.device} refused: {change.detail}",
+                )
+            elif change.action == "removed":
+                level, message = EventLevel.INFO, f"calibration of {change.device} removed from the store"
+            else:
+                level, message = (
+                    EventLevel.INFO,
+                    f"calibration of {change.device} picked up from {change.detail}",
+                )
+            self._events.emit(
+                EventKind.CALIBRATION, level, message, device=change.device, data={"action": change.action}
+            )
+
+    def _hand_calibrations_to(self, shard: Shard, request: CalibrationsRequest) -> None:
+        if not shard.answering:
+            return  # a worker being started again gets them once it answers (_watch_worker)
+        try:
+            applied_of(shard.request(request)())
+        except WorkerError as exc:
+            log.warning("calibrations not handed to shard %d: %s", shard.index, exc)
 
 
 def alarm_order(info: AlarmInfo) -> tuple[int, int, str]:

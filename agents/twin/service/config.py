@@ -13,7 +13,7 @@ import dataclasses
 import difflib
 import math
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
@@ -55,7 +55,13 @@ class TelemetrySection:
     # The whole fleet under the prefix by default: a new user pointing the agent at a broker sees every arm.
     devices: tuple[str, ...] = (ALL_DEVICES,)
     units: Units = Units.AUTO
+    # One LeRobot calibration file for every arm without its own (empty: the nominal SO-101).
     calibration: str = ""
+    # Where each arm's own calibration is kept, as <device>.json: a directory or s3://bucket/prefix (the
+    # stack renders its bucket's calibration/ prefix); empty: none. Watched every calibration_poll_s
+    # (twin.service.calibrations).
+    calibrations: str = ""
+    calibration_poll_s: float = 30.0
     max_payload_bytes: int = MAX_PAYLOAD_BYTES
     # One host mirrors about this many arms, and the account's default IoT Core publish quota carries as many
     # at 10 Hz; a device counts once it has sent valid telemetry (service.admission).
@@ -364,6 +370,25 @@ def _validate_telemetry(t: TelemetrySection) -> None:
             f"telemetry.calibration = {t.calibration!r} does not exist; give the LeRobot calibration JSON "
             "(~/.cache/huggingface/lerobot/calibration/robots/so_follower/<id>.json) or leave it empty"
         )
+    store = t.calibrations.strip()
+    if "://" in store and not store.startswith(("s3://", "file://")):
+        raise ConfigError(
+            f"telemetry.calibrations = {t.calibrations!r} is not a directory or s3://bucket/prefix; e.g. "
+            'calibrations = "s3://<bucket>/calibration" (or "" for none)'
+        )
+    if store.startswith("s3://") and not store.removeprefix("s3://").split("/", 1)[0]:
+        raise ConfigError(
+            f'telemetry.calibrations = {t.calibrations!r} names no bucket; use "s3://<bucket>/calibration"'
+        )
+    if "://" not in store and store and Path(store).expanduser().is_file():
+        raise ConfigError(
+            f"telemetry.calibrations = {t.calibrations!r} is a file; give the directory that holds "
+            "<device>.json files (one file for every arm is telemetry.calibration)"
+        )
+    if not 1.0 <= t.calibration_poll_s <= 3600.0:
+        raise ConfigError(
+            f"telemetry.calibration_poll_s = {t.calibration_poll_s:g} is outside 1..3600 seconds; e.g. 30"
+        )
     if not 1024 <= t.max_payload_bytes <= MAX_PAYLOAD_LIMIT_BYTES:
         raise ConfigError(
             f"telemetry.max_payload_bytes = {t.max_payload_bytes} is outside 1024..{MAX_PAYLOAD_LIMIT_BYTES} "
@@ -480,15 +505,26 @@ def read_toml(path: str | Path) -> dict[str, Any]:
         raise ConfigError(f"config file {str(path)!r} cannot be read: {exc}") from exc
 
 
-def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> AgentConfig:
-    """Load the TOML file (or the defaults when path is None) and apply flag overrides.
+def load_config(
+    path: str | Path | Sequence[str | Path] | None = None, overrides: Mapping[str, Any] | None = None
+) -> AgentConfig:
+    """Load the TOML file (or files, or the defaults when path is None) and apply flag overrides.
 
-    `overrides` maps dotted keys to values, e.g. {"broker.url": "mqtt://127.0.0.1:1883"}; None values are
-    skipped so an argparse namespace can be passed through without filtering. Overrides win over the file.
+    Several files are read in order, each key of a later file winning over the same key of an earlier one:
+    the twin host runs with its generated config and then the operator's own file (docs/deploy.md, "What the
+    instance runs"). `overrides` maps dotted keys to values, e.g. {"broker.url": "mqtt://127.0.0.1:1883"};
+    None values are skipped so an argparse namespace can be passed through without filtering. Overrides win
+    over the files.
     """
-    data: dict[str, dict[str, Any]] = {}
-    if path is not None:
-        data = {k: dict(v) if isinstance(v, Mapping) else v for k, v in read_toml(path).items()}
+    paths: list[str | Path] = [] if path is None else [path] if isinstance(path, str | Path) else list(path)
+    data: dict[str, Any] = {}
+    for one in paths:
+        for name, values in read_toml(one).items():
+            target = data.get(name)
+            if isinstance(values, Mapping) and isinstance(target, dict):
+                target.update(values)
+            else:
+                data[name] = dict(values) if isinstance(values, Mapping) else values
     for dotted, value in (overrides or {}).items():
         if value is None:
             continue
@@ -502,5 +538,5 @@ def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | N
     try:
         return config_from_mapping(data)
     except ConfigError as exc:
-        where = f" (in {path})" if path is not None else ""
+        where = f" (in {', '.join(str(p) for p in paths)})" if paths else ""
         raise ConfigError(f"{exc}{where}") from exc

@@ -88,6 +88,7 @@ class EventKind(StrEnum):
     BROKER = "broker"  # a broker connection went down or came (back) up
     WORKER = "worker"  # a worker process of a sharded agent exited or runs again
     TWIN = "twin"  # a device's twin was rebuilt (its edge clock jumped back)
+    CALIBRATION = "calibration"  # an arm's calibration was picked up, refused or removed
 
 
 class Event(msgspec.Struct, frozen=True, gc=False):

@@ -224,8 +224,18 @@ class FleetRowsRequest:
     """The console's row of each of the mirror's devices (twin.service.console.FleetRow)."""
 
 
-Request = ReportRequest | AlarmsRequest | AckRequest | EventsRequest | FleetRowsRequest
-Reply = MirrorReport | tuple[AlarmInfo, ...] | AlarmInfo | tuple[Event, ...] | tuple[FleetRow, ...]
+@dataclass(frozen=True, slots=True)
+class CalibrationsRequest:
+    """Each arm's own calibration from now on (service.calibrations), replacing the previous set: per device
+    its source and its LeRobot file as parsed JSON (a Calibration holds a mapping proxy, which does not
+    pickle), and why a newer file was refused. Answered with how many arms have one."""
+
+    files: tuple[tuple[str, str, dict[str, dict[str, int]]], ...] = ()
+    problems: tuple[tuple[str, str], ...] = ()
+
+
+Request = ReportRequest | AlarmsRequest | AckRequest | EventsRequest | FleetRowsRequest | CalibrationsRequest
+Reply = MirrorReport | tuple[AlarmInfo, ...] | AlarmInfo | tuple[Event, ...] | tuple[FleetRow, ...] | int
 # Events a mirror hands over per request (the agent asks every supervisor round).
 EVENTS_PER_ASK = 5000
 
@@ -256,6 +266,13 @@ def fleet_rows_of(reply: Reply) -> tuple[FleetRow, ...]:
     if not isinstance(reply, tuple) or not all(isinstance(r, FleetRow) for r in reply):
         raise WorkerError(f"fleet rows were asked for, the answer was {type(reply).__name__}")
     return tuple(r for r in reply if isinstance(r, FleetRow))
+
+
+def applied_of(reply: Reply) -> int:
+    """The answer to a CalibrationsRequest; WorkerError for anything else."""
+    if not isinstance(reply, int) or isinstance(reply, bool):
+        raise WorkerError(f"calibrations were handed over, the answer was {type(reply).__name__}")
+    return reply
 
 
 def alarm_of(reply: Reply) -> AlarmInfo:
@@ -817,6 +834,7 @@ def _merge_alarms(parts: list[AlarmsSummary]) -> AlarmsSummary:
 __all__ = [
     "AckRequest",
     "AlarmsRequest",
+    "CalibrationsRequest",
     "EventsRequest",
     "FleetRowsRequest",
     "MirrorReport",
@@ -829,6 +847,7 @@ __all__ = [
     "WorkerShard",
     "alarm_of",
     "alarms_of",
+    "applied_of",
     "merge_reports",
     "report_of",
     "worker_config",

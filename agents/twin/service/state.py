@@ -149,6 +149,13 @@ class DeviceState:
     servos: dict[str, ServoState] | None = None
     # Messages estimated lost in transit, from the gaps in its edge timestamps (twin.core.loss).
     loss: LossSnapshot = field(default_factory=LossSnapshot)
+    # Where the LeRobot calibration it decodes with came from: its own file in the calibration store, the
+    # config's one for every arm, or "" for none (the nominal SO-101). `uncalibrated`: none, while its units
+    # (ticks, range100) need one, so its angles are the nominal arm's, not this arm's (docs/agent.md).
+    calibration: str = ""
+    uncalibrated: bool = False
+    # Why its file in the calibration store was refused (it keeps the calibration it had); "" when it was not.
+    calibration_problem: str = ""
 
 
 @dataclass(frozen=True, slots=True)
