@@ -31,9 +31,8 @@ from twin.core.topics import ALL_DEVICES, policy_device_id_problem, topic_prefix
 # deploys accepts: device ids and the topic prefix (twin.core.topics), units, and the client id prefix the
 # IAM policy scopes iot:Connect to.
 from twin.core.units import UNITS_CHOICES
-from twin.transport.broker import DEFAULT_CLIENT_ID_PREFIX
+from twin.transport.broker import agent_client_id_prefix
 
-CLIENT_ID_PREFIX = DEFAULT_CLIENT_ID_PREFIX
 UNITS = UNITS_CHOICES
 DEFAULT_AMI_SSM_PARAMETER = (
     "/aws/service/deeplearning/ami/x86_64/base-oss-nvidia-driver-gpu-ubuntu-24.04/latest/ami-id"
@@ -122,6 +121,13 @@ class TwinSettings:
     @property
     def whole_fleet(self) -> bool:
         return self.devices == ("*",)
+
+    @property
+    def client_id_prefix(self) -> str:
+        """The twin host agent's client ids and shared-subscription group, `so101-twin-<stack name>-`: its
+        own, so an agent on a laptop (named for its host) never splits the fleet with it, and two stacks in
+        one account never collide. The IAM policy allows exactly these client ids."""
+        return agent_client_id_prefix(self.stack_name)
 
     def deploy_blockers(self) -> list[str]:
         """What stops `cdk deploy` (but not `cdk destroy`, which needs no settings): the app turns each into

@@ -15,7 +15,7 @@ from stacks.identity import TwinIdentity
 from stacks.iot_endpoint import IotDataEndpoint
 from stacks.monitoring import TwinMonitoring
 from stacks.network import DCV_PORT, TwinNetwork
-from stacks.settings import CLIENT_ID_PREFIX, TwinSettings
+from stacks.settings import TwinSettings
 from stacks.twin_host import DESKTOP_USER, REPO_ROOT, TwinHost
 
 # `twin instance` reads these keys; renaming one breaks it.
@@ -62,7 +62,7 @@ class TwinStack(Stack):
             "Identity",
             topic_prefix=settings.topic_prefix,
             devices=settings.devices,
-            client_id_prefix=CLIENT_ID_PREFIX,
+            client_id_prefix=settings.client_id_prefix,
             stack_name=settings.stack_name,
         )
         self.history = HistoryBucket(
@@ -88,7 +88,7 @@ class TwinStack(Stack):
                 "DEVICES": ",".join(settings.devices),
                 "UNITS": settings.units,
                 "ROS2": "true" if settings.ros2 else "false",
-                "CLIENT_ID_PREFIX": CLIENT_ID_PREFIX,
+                "CLIENT_ID_PREFIX": settings.client_id_prefix,
                 "DESKTOP_USER": DESKTOP_USER,
                 "LOG_GROUP": self.identity.agent_log_group.log_group_name,
                 # The CloudWatch metrics' Agent dimension, which the monitoring alarms below watch.

@@ -82,7 +82,6 @@ def test_default_backoff_meets_the_recovery_budget_and_the_connect_limit() -> No
         ({"url": "mqtt://h:1/path"}, "only mqtt"),
         ({"url": "mqtt://user:pw@h:1"}, "only mqtt"),
         ({"client_id_prefix": "bad prefix"}, "IAM policy"),
-        ({"client_id_prefix": ""}, "IAM policy"),
         ({"client_id_prefix": "x" * 101}, "1..100"),
         ({"url": "mqtt://h:1", "ca_file": "/etc/hostname"}, "only applies to mqtts"),
         ({"url": "mqtts://h:1", "ca_file": "/nonexistent/ca.pem"}, "PEM CA bundle"),
