@@ -72,6 +72,10 @@ class TwinStack(Stack):
             retain=settings.retain_history,
         )
         self.history.grant_agent(self.identity.role)
+        self.monitoring = TwinMonitoring(
+            self, "Monitoring", agent_name=settings.stack_name, alarm_email=settings.alarm_email
+        )
+        self.monitoring.grant_host(self.identity.role)
         self.host = TwinHost(
             self,
             "Host",
@@ -95,13 +99,15 @@ class TwinStack(Stack):
                 "AGENT_NAME": settings.stack_name,
                 "HISTORY_URI": self.history.uri,
                 "CALIBRATIONS_URI": self.history.calibration_uri,
+                # The host's agent publishes servo alarm transitions here (critical ones; warnings too
+                # with alarmWarnings).
+                "ALERT_TOPIC_ARN": self.monitoring.topic.topic_arn,
+                "ALERT_WARNINGS": "true" if settings.alarm_warnings else "false",
                 "RECORD_SESSIONS": "true" if settings.record_sessions else "false",
             },
             agent_source=agent_source or REPO_ROOT,
         )
-        self.monitoring = TwinMonitoring(
-            self, "Monitoring", agent_name=settings.stack_name, alarm_email=settings.alarm_email
-        )
+        self.monitoring.watch_host(self.host.instance.instance_id)
         self.iot_endpoint = IotDataEndpoint(self, "IotEndpointLookup")
         self.auto_stop = (
             AutoStop(
@@ -148,7 +154,8 @@ class TwinStack(Stack):
             self,
             "AlarmTopic",
             value=self.monitoring.topic.topic_arn,
-            description="SNS topic the CloudWatch alarms notify (subscribe more endpoints to it)",
+            description="SNS topic of the alarms: the host's servo alarms and the CloudWatch alarms "
+            "(subscribe more endpoints to it)",
         )
         CfnOutput(
             self,

@@ -22,6 +22,8 @@
 #   AGENT_NAME  the CloudWatch metrics' Agent dimension (the stack name; the stack's alarms watch it)
 #   HISTORY_URI  where the agent keeps telemetry history (s3://<bucket>/history); empty = no history
 #   CALIBRATIONS_URI  where each arm's LeRobot calibration is kept (s3://<bucket>/calibration); empty = none
+#   ALERT_TOPIC_ARN  the SNS topic servo alarm transitions are published to; empty = none
+#   ALERT_WARNINGS   true: warnings too, not only critical alarms (default false)
 #   ROS2         true: publish the arms as ROS 2 JointState (default false; the lock holds the ros2 extra)
 # Idempotent: each file is written only when its content differs, pip runs only when the source or the lock
 # changed.
@@ -46,6 +48,8 @@ RECORD_SESSIONS="${RECORD_SESSIONS:-false}"
 AGENT_NAME="${AGENT_NAME:-so101-twin}"
 HISTORY_URI="${HISTORY_URI:-}"
 CALIBRATIONS_URI="${CALIBRATIONS_URI:-}"
+ALERT_TOPIC_ARN="${ALERT_TOPIC_ARN:-}"
+ALERT_WARNINGS="${ALERT_WARNINGS:-false}"
 
 VENV=/opt/so101-twin/venv
 # Generated from the stack's settings on every run; the operator's own changes go in LOCAL_CONFIG, which the
@@ -97,6 +101,11 @@ case "$UNITS" in ticks | degrees | range100 | auto) ;; *)
 esac
 case "$ROS2" in true | false) ;; *)
   echo "install-agent: ROS2=$ROS2 is not true or false" >&2
+  exit 2
+  ;;
+esac
+case "$ALERT_WARNINGS" in true | false) ;; *)
+  echo "install-agent: ALERT_WARNINGS=$ALERT_WARNINGS is not true or false" >&2
   exit 2
   ;;
 esac
@@ -195,6 +204,12 @@ level = "INFO"
 # EMF lines the CloudWatch agent ships to the host log group (bootstrap.sh); docs/servo-health.md.
 emf_file = "/var/log/so101-twin/emf.log"
 agent_name = "${AGENT_NAME}"
+
+[alerts]
+# Servo alarm transitions, batched and rate-limited, to the stack's alarm topic (docs/servo-health.md).
+topic_arn = "${ALERT_TOPIC_ARN}"
+region = "${AWS_REGION}"
+warnings = ${ALERT_WARNINGS}
 
 [ros2]
 enabled = ${ROS2}

@@ -25,6 +25,7 @@ from typing import Any
 import pytest
 
 from .hostsim import (
+    ALARM_TOPIC_ARN,
     APT_UNITS,
     BOOT_ID,
     HANDLE_URL,
@@ -66,6 +67,8 @@ def refs_for(synth: Synth) -> dict[str, str]:
             values[logical_id] = HANDLE_URL
         elif resource["Type"] == "AWS::S3::Bucket" and logical_id.startswith("History"):
             values[logical_id] = HISTORY_BUCKET
+        elif resource["Type"] == "AWS::SNS::Topic":
+            values[logical_id] = ALARM_TOPIC_ARN
     return values
 
 
@@ -379,6 +382,11 @@ def test_agent_config_and_its_own_user(booted, deployed: Deployed) -> None:
     assert deployed.settings["RECORD_SESSIONS"] == "false"
     # Main's history bucket and ros2 setting reach the agent through the same parameter.
     assert config["history"] == {"uri": f"s3://{HISTORY_BUCKET}/history", "region": "us-east-1"}
+    # ... and so do the arms' calibrations, the alarm topic and the host agent's own client id prefix.
+    assert config["telemetry"]["calibrations"] == f"s3://{HISTORY_BUCKET}/calibration"
+    assert config["alerts"]["topic_arn"] == deployed.settings["ALERT_TOPIC_ARN"] == ALARM_TOPIC_ARN
+    assert config["alerts"]["warnings"] is False
+    assert config["broker"]["client_id_prefix"] == "so101-twin-So101TwinStack-"
     assert config["ros2"] == {"enabled": False}
     assert config["cloudwatch"]["emf_file"] == "/var/log/so101-twin/emf.log"
     assert (host.sim / "users" / "so101-twin").exists()

@@ -10,7 +10,6 @@ import dataclasses
 import json
 from typing import Any
 
-from aws_cdk.assertions import Match
 from twin.output import emf
 
 from stacks import monitoring
@@ -72,61 +71,77 @@ def test_alarm_email_subscribes_to_the_topic(synth_factory: Any) -> None:
     )
 
 
-def test_three_alarms_notify_the_topic_on_alarm_and_ok(synth_default: Synth) -> None:
-    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 3)
+def test_two_alarms_notify_the_topic_on_alarm_and_ok(synth_default: Synth) -> None:
+    # Servo alarms reach the topic from the host directly (test_host_publishes_servo_alarms_to_the_topic_
+    # only), not through a CloudWatch alarm on a once-a-minute metric.
+    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 2)
     ref = topic_ref(synth_default)
     for props in synth_default.resources("AWS::CloudWatch::Alarm").values():
         assert props["Properties"]["AlarmActions"] == [ref]
         assert props["Properties"]["OKActions"] == [ref]
 
 
-def test_agent_silent_alarms_on_a_missing_heartbeat(synth_default: Synth) -> None:
+def queries(props: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    return {q["Id"]: q for q in props["Metrics"]}
+
+
+def test_agent_silent_pages_only_while_the_host_runs(synth_default: Synth) -> None:
+    """A stopped instance reports no CPU: the expression is 0 then, so a stop (by hand or by schedule) does
+    not page; a running host whose agent sends no heartbeat for 5 minutes does."""
     props = alarm(synth_default, "The so101-twin agent")
-    assert props["MetricName"] == "AgentUp"
-    assert props["Namespace"] == emf.NAMESPACE
-    assert props["Dimensions"] == [{"Name": "Agent", "Value": "So101TwinStack"}]
-    assert (props["Statistic"], props["Period"]) == ("SampleCount", 60)
-    assert (props["ComparisonOperator"], props["Threshold"]) == ("LessThanThreshold", 1)
-    assert (props["EvaluationPeriods"], props["DatapointsToAlarm"]) == (3, 3)
-    assert props["TreatMissingData"] == "breaching"
-
-
-def test_arms_stale_counts_stale_and_offline_arms(synth_default: Synth) -> None:
-    props = alarm(synth_default, "At least one arm")
-    queries = {q["Id"]: q for q in props["Metrics"]}
-    expression = next(q for q in props["Metrics"] if "Expression" in q)
-    assert expression["Expression"] == "stale + offline" and expression["ReturnData"] is True
-    for query_id, name in (("stale", "DevicesStale"), ("offline", "DevicesOffline")):
-        stat = queries[query_id]["MetricStat"]
-        assert stat["Metric"]["MetricName"] == name
-        assert stat["Metric"]["Dimensions"] == [{"Name": "Agent", "Value": "So101TwinStack"}]
-        assert (stat["Stat"], stat["Period"]) == ("Maximum", 60)
-    assert props["ComparisonOperator"] == "GreaterThanOrEqualToThreshold"
-    assert (props["Threshold"], props["EvaluationPeriods"]) == (1, 3)
+    q = queries(props)
+    expression = next(v for v in q.values() if "Expression" in v)
+    assert expression["Expression"] == "IF(FILL(running, 0) > 0 AND FILL(up, 0) < 1, 1, 0)"
+    up = q["up"]["MetricStat"]
+    assert up["Metric"]["MetricName"] == "AgentUp" and up["Metric"]["Namespace"] == emf.NAMESPACE
+    assert up["Metric"]["Dimensions"] == [{"Name": "Agent", "Value": "So101TwinStack"}]
+    assert (up["Stat"], up["Period"]) == ("SampleCount", 60)
+    running = q["running"]["MetricStat"]
+    assert (running["Metric"]["Namespace"], running["Metric"]["MetricName"]) == ("AWS/EC2", "CPUUtilization")
+    (instance,) = synth_default.resources("AWS::EC2::Instance")
+    assert running["Metric"]["Dimensions"] == [{"Name": "InstanceId", "Value": {"Ref": instance}}]
+    assert (props["ComparisonOperator"], props["Threshold"]) == ("GreaterThanOrEqualToThreshold", 1)
+    assert (props["EvaluationPeriods"], props["DatapointsToAlarm"]) == (5, 5)
     assert props["TreatMissingData"] == "notBreaching"
 
 
-def test_critical_servo_alarm_watches_critical_active_alarms(synth_default: Synth) -> None:
-    synth_default.template.has_resource_properties(
-        "AWS::CloudWatch::Alarm",
-        {
-            "MetricName": "ActiveAlarms",
-            "Namespace": "SO101Twin",
-            "Dimensions": Match.array_equals(
-                [{"Name": "Agent", "Value": "So101TwinStack"}, {"Name": "Severity", "Value": "critical"}]
-            ),
-            "Statistic": "Maximum",
-            "Threshold": 1,
-            "ComparisonOperator": "GreaterThanOrEqualToThreshold",
-            "TreatMissingData": "notBreaching",
-        },
-    )
+def test_arms_stale_counts_stale_arms_not_the_ones_switched_off(synth_default: Synth) -> None:
+    props = alarm(synth_default, "At least one arm")
+    assert (props["MetricName"], props["Statistic"], props["Period"]) == ("DevicesStale", "Maximum", 60)
+    assert props["Dimensions"] == [{"Name": "Agent", "Value": "So101TwinStack"}]
+    assert props["ComparisonOperator"] == "GreaterThanOrEqualToThreshold"
+    assert (props["Threshold"], props["EvaluationPeriods"]) == (1, 3)
+    assert props["TreatMissingData"] == "notBreaching"
+    assert "DevicesOffline" not in str(props)
+
+
+def test_host_publishes_servo_alarms_to_the_topic_only(synth_default: Synth) -> None:
+    from .test_stack import policy_statements, statement
+
+    statements = policy_statements(synth_default, "IdentityHostRole")
+    publish = statement(statements, "AlarmTopicPublish")
+    assert (publish["Action"], publish["Resource"]) == ("sns:Publish", topic_ref(synth_default))
+    key = statement(statements, "AlarmTopicKey")
+    (key_id,) = synth_default.resources("AWS::KMS::Key")
+    assert sorted(key["Action"]) == ["kms:Decrypt", "kms:GenerateDataKey"]
+    assert key["Resource"] == {"Fn::GetAtt": [key_id, "Arn"]}
+    # The host's config names the topic and whether warnings go too.
+    parameter = json.dumps(synth_default.one("AWS::SSM::Parameter")["Properties"]["Value"])
+    assert "ALERT_TOPIC_ARN=" in parameter and "ALERT_WARNINGS=false" in parameter
+
+
+def test_warnings_are_a_setting(synth_factory: Any) -> None:
+    synth = synth_factory(alarmWarnings="true")
+    parameter = json.dumps(synth.one("AWS::SSM::Parameter")["Properties"]["Value"])
+    assert "ALERT_WARNINGS=true" in parameter
 
 
 def test_the_agent_name_follows_the_stack_name(synth_factory: Any) -> None:
     synth = synth_factory(stackName="LabTwin")
     props = alarm(synth, "The so101-twin agent")
-    assert props["Dimensions"] == [{"Name": "Agent", "Value": "LabTwin"}]
+    assert queries(props)["up"]["MetricStat"]["Metric"]["Dimensions"] == [
+        {"Name": "Agent", "Value": "LabTwin"}
+    ]
 
 
 # --- the dashboard ---------------------------------------------------------------------------------------
@@ -212,10 +227,10 @@ def test_the_dashboard_draws_only_metrics_the_agent_emits(synth_default: Synth) 
     assert {(monitoring.HISTORY_LAG, agent), (monitoring.HISTORY_ROWS_DROPPED, agent)} <= by_metric
 
 
-def test_the_dashboard_shows_the_three_alarms_and_is_an_output(synth_default: Synth) -> None:
+def test_the_dashboard_shows_the_two_alarms_and_is_an_output(synth_default: Synth) -> None:
     body = dashboard_body(synth_default)
     status = [w for w in body["widgets"] if w["type"] == "alarm"]
-    assert len(status) == 1 and len(status[0]["properties"]["alarms"]) == 3
+    assert len(status) == 1 and len(status[0]["properties"]["alarms"]) == 2
     # One point a minute, the agent's EMF interval, each with the statistic its figure needs.
     for widget in body["widgets"]:
         for row in widget["properties"].get("metrics", []):

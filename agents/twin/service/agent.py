@@ -39,6 +39,7 @@ from typing import TYPE_CHECKING, TypeVar
 from twin.core.alarms import worst_first
 from twin.core.health import DeviceStatus
 from twin.core.topics import device_from_topic
+from twin.output.alerts import Alert, AlertPublisher, sns_publisher
 from twin.output.emf import EmfFileWriter, EmfPublisher, FleetTotals
 from twin.output.sinks import TwinSink
 from twin.service.admission import DeviceBudget
@@ -160,6 +161,11 @@ class AgentService:
         self._watch = FleetWatch(self._events)
         self._events_seen: dict[int, int] = {}
         self._workers_seen: dict[int, tuple[bool, int]] = {}
+        # Servo alarm transitions to the alarm topic (docs/servo-health.md, "Alarm e-mails"): the events
+        # every mirror's alarms make, once collected here, go to the publisher.
+        self._alerts = alert_publisher(config) if config.alerts.enabled else None
+        if self._alerts is not None:
+            self._events.subscribe(self._offer_alert)
         # Each arm's own calibration (docs/agent.md, "Calibration"): watched here, once for every shard, and
         # handed to each; the last hand-over is kept for a worker that is started again.
         self._calibrations: CalibrationWatcher | None = None
@@ -220,6 +226,8 @@ class AgentService:
         self._supervisor.start()
         if self._calibrations is not None:
             self._calibrations.start()
+        if self._alerts is not None:
+            self._alerts.start()
         self._http.start()
         self._pool.start()
         self._started_pool = True
@@ -261,6 +269,9 @@ class AgentService:
         self._stop_shards(timeout)
         if self._supervisor is not None:
             self._supervisor.join(timeout)
+        if self._alerts is not None:
+            # After the last events were collected: what is pending still goes out.
+            self._alerts.stop(min(timeout, 15.0))
         if self._emf is not None:
             self._emf.stop(timeout)
         if self._http is not None:
@@ -511,6 +522,17 @@ class AgentService:
                 data={"worker": shard.index, "pid": info.pid, "restarts": info.restarts},
             )
 
+    # ------------------------------------------------------------------------------------------ alerts
+
+    def _offer_alert(self, event: Event) -> None:
+        """An event of the agent's store (on the thread that added it): an alarm transition of a severity the
+        config sends goes to the alert publisher's queue."""
+        if event.kind != EventKind.ALARM or self._alerts is None:
+            return
+        alert = alert_of(event)
+        if alert.severity == "critical" or self.config.alerts.warnings:
+            self._alerts.offer(alert)
+
     # ------------------------------------------------------------------------------------- calibrations
 
     def _hand_calibrations(self, book: CalibrationBook) -> None:
@@ -550,6 +572,52 @@ class AgentService:
             applied_of(shard.request(request)())
         except WorkerError as exc:
             log.warning("calibrations not handed to shard %d: %s", shard.index, exc)
+
+
+def alert_publisher(config: AgentConfig) -> AlertPublisher:
+    """The publisher of servo alarm transitions to the config's SNS topic."""
+    a = config.alerts
+    url = f"http://{config.http.host}:{config.http.port}"
+    how = (
+        f"On the twin's desktop (DCV: `twin instance url`) open the console, {url}/arm/<arm>, and press "
+        f"Acknowledge; or in a shell on the host (`twin instance` prints SsmSessionCommand): curl -X POST "
+        f"{url}/alarms/<alarm id>/ack. Until acknowledged, an alarm whose condition went away stays LATCHED "
+        "(docs/servo-health.md)."
+    )
+    return AlertPublisher(
+        sns_publisher(a.topic_arn.strip(), a.region or config.broker.region),
+        agent_name=config.cloudwatch.agent_name,
+        how_to_acknowledge=how,
+        flush_s=a.flush_s,
+        max_per_hour=a.max_per_hour,
+        burst=a.burst,
+    )
+
+
+def alert_of(event: Event) -> Alert:
+    """An alarm event of the store (service.events, FleetWatch.alarm) as the notification names it."""
+    d = event.data
+    return Alert(
+        alarm_id=d.get("alarm_id", ""),
+        device=event.device,
+        joint=d.get("joint", ""),
+        kind=d.get("kind", ""),
+        severity=d.get("severity", ""),
+        action=d.get("action", ""),
+        state=d.get("state", ""),
+        value=_number(d.get("value", "")),
+        threshold=_number(d.get("threshold", "")),
+        unit=d.get("unit", ""),
+        message=d.get("text", "") or event.message,
+        at=event.time,
+    )
+
+
+def _number(text: str) -> float | None:
+    try:
+        return float(text) if text else None
+    except ValueError:
+        return None
 
 
 def alarm_order(info: AlarmInfo) -> tuple[int, int, str]:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import re
 import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -39,6 +40,9 @@ DEFAULT_AGENT_URL = f"http://{DEFAULT_HTTP_HOST}:{DEFAULT_HTTP_PORT}"
 MAX_WORKERS = 64
 # The largest payload cap a config may set (the default is IoT Core's 128 KiB).
 MAX_PAYLOAD_LIMIT_BYTES = 1 << 20
+# twin.output.alerts.MAX_FLUSH_S, as a plain number so loading a config imports no output module.
+MAX_ALERT_FLUSH_S = 9.5
+_SNS_ARN_RE = re.compile(r"^arn:aws[a-z-]*:sns:[a-z0-9-]+:\d{12}:[A-Za-z0-9_-]{1,256}(\.fifo)?$")
 
 
 class ConfigError(ValueError):
@@ -161,6 +165,25 @@ class CloudWatchSection:
     interval_s: float = 60.0
 
 
+@dataclass(frozen=True)
+class AlertsSection:
+    """Servo alarm transitions sent to an SNS topic, batched and rate-limited (twin.output.alerts;
+    docs/servo-health.md, "Alarm e-mails"); off while topic_arn is empty. The twin host's config names the
+    stack's alarm topic."""
+
+    topic_arn: str = ""
+    region: str = ""
+    # Critical alarms are always sent; warnings too when this is true (the stack's alarmWarnings).
+    warnings: bool = False
+    flush_s: float = 5.0
+    max_per_hour: int = 30
+    burst: int = 10
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.topic_arn.strip())
+
+
 # The [ros2] section is the ROS 2 bridge's settings themselves (docs/ros2.md); they validate themselves.
 Ros2Section = Ros2Settings
 
@@ -179,6 +202,7 @@ class AgentConfig:
     log: LogSection = field(default_factory=LogSection)
     alarms: AlarmsSection = field(default_factory=AlarmsSection)
     cloudwatch: CloudWatchSection = field(default_factory=CloudWatchSection)
+    alerts: AlertsSection = field(default_factory=AlertsSection)
     ros2: Ros2Section = field(default_factory=Ros2Section)
     rerun: RerunSection = field(default_factory=RerunSection)
 
@@ -201,6 +225,7 @@ _SECTIONS: dict[str, type] = {
     "log": LogSection,
     "alarms": AlarmsSection,
     "cloudwatch": CloudWatchSection,
+    "alerts": AlertsSection,
     "ros2": Ros2Section,
     "rerun": RerunSection,
 }
@@ -314,6 +339,7 @@ def validate(config: AgentConfig) -> AgentConfig:
     if config.cloudwatch.emf_file and not config.cloudwatch.agent_name:
         raise ConfigError("cloudwatch.agent_name is empty; name the agent (the stack renders its stack name)")
     _validate_history(config.history)
+    _validate_alerts(config.alerts)
     if config.log.level.upper() not in LOG_LEVELS:
         raise ConfigError(f"log.level = {config.log.level!r} is not one of {', '.join(LOG_LEVELS)}")
     _validate_ros2(config.ros2, config.telemetry)
@@ -444,6 +470,22 @@ def _validate_health(h: HealthThresholds) -> None:
             f"health.offline_after_s = {h.offline_after_s} must be longer than the stale time "
             f"(stale_periods / expected_rate_hz = {h.stale_after_s:g} s); raise offline_after_s"
         )
+
+
+def _validate_alerts(a: AlertsSection) -> None:
+    if a.enabled and not _SNS_ARN_RE.match(a.topic_arn.strip()):
+        raise ConfigError(
+            f"alerts.topic_arn = {a.topic_arn!r} is not an SNS topic ARN; e.g. "
+            '"arn:aws:sns:us-east-1:123456789012:alarms" (the stack\'s AlarmTopic output), or "" for none'
+        )
+    if not 0 < a.flush_s <= MAX_ALERT_FLUSH_S:
+        raise ConfigError(
+            f"alerts.flush_s = {a.flush_s:g} must be in (0, {MAX_ALERT_FLUSH_S:g}]: a transition is sent on "
+            "the flush after it, within 10 s"
+        )
+    for key in ("max_per_hour", "burst"):
+        if getattr(a, key) < 1:
+            raise ConfigError(f"alerts.{key} = {getattr(a, key)} must be at least 1")
 
 
 def _validate_history(hs: HistorySection) -> None:

@@ -35,6 +35,7 @@ from typing import Protocol
 
 import msgspec
 
+from twin.core.alarms import UNITS as ALARM_UNITS
 from twin.core.alarms import AlarmEvent
 
 __all__ = [
@@ -388,6 +389,9 @@ class FleetWatch:
                 "joint": event.joint,
                 "kind": str(event.kind),
                 "value": event.value,
+                "threshold": event.threshold,
+                "unit": ALARM_UNITS.get(event.kind, ""),
+                "text": event.message,
             },
         )
 
