@@ -57,7 +57,7 @@ WHEELHOUSE := .wheelhouse
 WHEELHOUSE_STAMP := $(WHEELHOUSE)/.setup-stamp
 
 .PHONY: help setup setup-demo system-packages demo-system-packages test test-fast test-stress lint lock \
-	check-lock demo bench usd-asset meshes clean
+	check-lock demo bench usd-asset meshes clean config-docs
 
 help:
 	@echo "make demo   - set up what the demo needs, then run the twin end to end locally (broker, edge simulator, agent)"
@@ -67,6 +67,7 @@ help:
 	@echo "make setup  - system packages (apt), .venv from the lock, the test tools, CDK CLI; idempotent"
 	@echo "make lock   - re-resolve the locks after a change to pyproject.toml or requirements/*.in"
 	@echo "make bench  - run the benchmarks and print figures (docs/performance.md)"
+	@echo "make config-docs - regenerate docs/configuration.md and examples/agent.toml from the config loader"
 	@echo "make usd-asset - regenerate robots/so101 USD asset from the MJCF"
 	@echo "make meshes - re-fetch the SO-101 part meshes (checked against their provenance), re-make visual/"
 
@@ -190,6 +191,12 @@ test-stress: setup
 
 demo: setup-demo
 	$(VENV)/bin/twin demo --out out/demo
+
+# The config reference and the complete example are generated from the loader (tests/test_config_reference.py
+# fails when either differs from what these print).
+config-docs: $(SETUP_STAMP)
+	$(VENV)/bin/twin config reference > docs/configuration.md
+	$(VENV)/bin/twin config example > examples/agent.toml
 
 bench: setup
 	$(VENV)/bin/twin bench all

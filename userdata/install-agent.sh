@@ -218,8 +218,8 @@ TOML
 # The operator's file: written only when it is missing, so a hand edit survives every deploy.
 if [ ! -f "${ROOT}${LOCAL_CONFIG}" ]; then
   write_file "$LOCAL_CONFIG" 0644 <<TOML
-# Your own agent settings on this host: any key of the agent config (docs/agent.md, "Configuration
-# reference"), read after ${CONFIG}, whose keys it overrides one by one. Deploys never change this file.
+# Your own agent settings on this host: any key of the agent config (docs/configuration.md), read after
+# ${CONFIG}, whose keys it overrides one by one. Deploys never change this file.
 # Apply a change with: sudo systemctl restart so101-twin-agent
 #
 # [alarms]
