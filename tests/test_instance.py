@@ -213,9 +213,21 @@ def test_missing_stack_is_a_clear_message(aws_env, capsys):
     captured = capsys.readouterr()
     assert captured.err.strip() == (
         "twin instance start: stack So101TwinStack not found in us-east-1: deploy it with "
-        "`cdk deploy -c clientCidr=...` or pass --stack"
+        "`cdk deploy` (docs/deploy.md) or pass --stack"
     )
     assert "Traceback" not in captured.err and captured.out == ""
+
+
+def test_the_stack_name_comes_from_the_settings_file_where_there_is_one(aws_env, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert lib.default_stack_name() == "So101TwinStack"
+    (tmp_path / "twin.settings.toml").write_text('clientCidr = "203.0.113.7/32"\nstackName = "FiveArms"\n')
+    assert lib.default_stack_name() == "FiveArms"
+    monkeypatch.setenv(lib.STACK_ENV_VAR, "Other")
+    assert lib.default_stack_name() == "Other"
+    monkeypatch.delenv(lib.STACK_ENV_VAR)
+    (tmp_path / "twin.settings.toml").write_text("not toml [")
+    assert lib.default_stack_name() == "So101TwinStack"  # `cdk deploy` says what is wrong with the file
 
 
 def test_missing_outputs_names_them(aws_env, capsys):

@@ -333,7 +333,10 @@ def test_failing_lines_get_a_fix_and_the_verdict_fails(aws_env, tmp_path, monkey
         "2026-11-23T10:00:00+00:00 boot SUCCESS verified)",
     )
     fixes = out.split("fixes:", 1)[1]
-    assert "dcv port: DCV admits only clientCidr" in fixes and "-c clientCidr=<it>/32" in fixes
+    assert (
+        "dcv port: DCV admits only clientCidr" in fixes
+        and 'clientCidr = "<it>/32" into twin.settings.toml' in fixes
+    )
     assert "viewer: the viewer starts at the desktop login and must keep running" in fixes
     assert "aws ssm start-associations-once --association-ids 0b1c2d3e-0000-4000-8000-000000000009" in fixes
     assert "verdict: the twin does not work: 3 failing check(s): dcv port, viewer, version" in out

@@ -30,6 +30,7 @@ import math
 import os
 import re
 import time
+import tomllib
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -47,6 +48,8 @@ log = logging.getLogger(__name__)
 
 DEFAULT_STACK_NAME = "So101TwinStack"
 STACK_ENV_VAR = "SO101_TWIN_STACK"
+# The deployment's settings file (stacks/settings.py reads it for `cdk deploy`): its stackName is the default.
+SETTINGS_FILE = "twin.settings.toml"
 
 # Output keys of the CDK stack (stacks/); InstanceId and DcvUrl are the ones this module cannot work without.
 OUTPUT_INSTANCE_ID = "InstanceId"
@@ -96,8 +99,18 @@ G6E_OFFERINGS_COMMAND = (
 
 
 def default_stack_name() -> str:
-    """The stack to act on when none is given: $SO101_TWIN_STACK, else `So101TwinStack`."""
-    return os.environ.get(STACK_ENV_VAR) or DEFAULT_STACK_NAME
+    """The stack to act on when none is given: $SO101_TWIN_STACK, else the `stackName` of the deployment's
+    settings file (twin.settings.toml in the current directory, the repository root where `cdk deploy` runs),
+    else `So101TwinStack`."""
+    named = os.environ.get(STACK_ENV_VAR)
+    if named:
+        return named
+    try:
+        with open(SETTINGS_FILE, "rb") as fh:
+            value = tomllib.load(fh).get("stackName")
+    except (OSError, tomllib.TOMLDecodeError):
+        value = None
+    return value if isinstance(value, str) and value.strip() else DEFAULT_STACK_NAME
 
 
 class TwinInstanceError(Exception):
@@ -434,7 +447,7 @@ class TwinInstance:
     def _stack_missing_message(self) -> str:
         return (
             f"stack {self.stack_name} not found in {self.region}: deploy it with "
-            "`cdk deploy -c clientCidr=...` or pass --stack"
+            "`cdk deploy` (docs/deploy.md) or pass --stack"
         )
 
     def url(self) -> str:
