@@ -743,6 +743,7 @@ def merge_reports(
                 batches=sum(r.worker.batches for r in reports),
                 processed=sum(r.worker.processed for r in reports),
                 errors=sum(r.worker.errors for r in reports),
+                stage_cpu_s=_merge_seconds([r.worker.stage_cpu_s for r in reports]),
             ),
             recording=_merge_recording([r.recording for r in reports if r.recording is not None]),
             history=_merge_history([r.history for r in reports if r.history is not None]),
@@ -818,6 +819,14 @@ def _merge_counts(parts: Sequence[dict[str, int]]) -> dict[str, int]:
     for part in parts:
         total.update(part)
     return dict(sorted(total.items()))
+
+
+def _merge_seconds(parts: Sequence[dict[str, float]]) -> dict[str, float]:
+    total: dict[str, float] = {}
+    for part in parts:
+        for key, seconds in part.items():
+            total[key] = total.get(key, 0.0) + seconds
+    return total
 
 
 def _merge_alarms(parts: list[AlarmsSummary]) -> AlarmsSummary:

@@ -201,6 +201,9 @@ class WorkerState:
     batches: int = 0
     processed: int = 0
     errors: int = 0
+    # CPU seconds the mirrors' worker threads spent in each stage since start (hand_over, decode, twin,
+    # health_alarms, sinks), summed over the workers: where the agent's CPU goes (`twin bench cost`).
+    stage_cpu_s: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, slots=True)
@@ -231,6 +234,8 @@ class HistoryState:
     maintenance_runs: int = 0
     maintenance_failures: int = 0
     last_error: str = ""
+    # The process that writes the history (its own, apart from the mirrors); None while it is not running.
+    writer_pid: int | None = None
 
 
 @dataclass(frozen=True, slots=True)
