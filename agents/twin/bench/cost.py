@@ -8,16 +8,20 @@ median over the measured window.
 
 One run: a private mosquitto, `twin run --devices '*'` as a child process (its defaults: one worker process
 per core), N arms publishing at R Hz for S seconds (publisher processes writing to the broker's socket, as in
-`twin bench throughput`). Over the window from just before the first message to the drained end, the CPU
-time of every process and thread of the agent is read (psutil, /proc), and the mirrors' own stage timers from
-`/state` (`agent.worker.stage_cpu_s`: CPU time of each worker thread's stages). The stages:
+`twin bench throughput`). Over the window from just before the first message to the moment the agent has
+gone quiet again, the CPU time of every process and thread of the agent is read from outside (psutil,
+/proc; `/state` is read before and after the window, since answering it costs CPU too), and the mirrors'
+own stage timers from `/state` (`agent.worker.stage_cpu_s`: CPU time of each worker thread's stages). The
+stages:
 
-- receive: the awscrt event-loop threads of the receiving process (socket, MQTT, the callback into Python);
-- hand_over: the receiving process's other threads (the senders that write batches to the workers' pipes)
-  and the workers reading and unpacking them;
+- receive: the awscrt event-loop threads of the receiving process (socket, MQTT, the callback into Python
+  and the agent's routing of the message to its shard's queue);
+- hand_over: the receiving process's sender threads (batches written to the workers' pipes) and the workers
+  reading and unpacking them;
 - decode, twin, health_alarms (health, latency, loss estimate, servo alarms), sinks: the worker threads' stage
   timers; sinks also counts the history writer's process and the worker processes' sink threads;
-- other: what is left of the workers' CPU (requests for /state, the garbage collector, idle wake-ups).
+- other: the rest of the agent's CPU (the receiving process's other threads; the workers' control threads,
+  garbage collector and idle wake-ups).
 
 Reported per run: received and mirrored (applied to a twin), CPU per received and per mirrored message in
 microseconds and in `json.loads` units, the stages in `json.loads` units per received message, the probe's
@@ -58,9 +62,10 @@ from twin.rig.local import LocalRig
 from twin.service.state import AgentState
 
 STAGES = ("receive", "hand_over", "decode", "twin", "health_alarms", "sinks", "other")
-# The names awscrt gives its event-loop threads (aws-c-io); everything else in the receiving process is the
-# agent's own Python threads.
+# The names awscrt gives its event-loop threads (aws-c-io), and the agent its senders (service.logs
+# name_native_thread); its other threads (HTTP, supervisor, the pool's scaler) count as "other".
 CRT_THREAD_PREFIX = "AwsEventLoop"
+SENDER_THREAD_PREFIX = "twin-send-"
 
 
 @dataclass(frozen=True)
@@ -111,6 +116,22 @@ def _delta(before: _Threads | None, after: _Threads | None) -> dict[int, tuple[s
     return {tid: (name, cpu - old.get(tid, ("", 0.0))[1]) for tid, (name, cpu) in after.cpu.items()}
 
 
+def _quiet(pid: int, *, below: float = 0.05, step_s: float = 0.25, timeout_s: float = 15.0) -> None:
+    """Wait until the agent's processes together use less than `below` of a core over `step_s`."""
+    deadline = time.monotonic() + timeout_s
+    last = _total(_tree(pid))
+    while time.monotonic() < deadline:
+        time.sleep(step_s)
+        now = _total(_tree(pid))
+        if now - last < below * step_s:
+            return
+        last = now
+
+
+def _total(tree: dict[int, _Threads]) -> float:
+    return sum(threads.total() for threads in tree.values())
+
+
 def _stage_cpu(state: AgentState) -> dict[str, float]:
     return dict(state.agent.worker.stage_cpu_s)
 
@@ -134,8 +155,10 @@ def _split(
         if pid == receiving:
             roles["receiving_process"] += total
             crt = sum(cpu for name, cpu in threads.values() if name.startswith(CRT_THREAD_PREFIX))
+            senders = sum(cpu for name, cpu in threads.values() if name.startswith(SENDER_THREAD_PREFIX))
             by_stage["receive"] += crt
-            by_stage["hand_over"] += total - crt
+            by_stage["hand_over"] += senders
+            by_stage["other"] += total - crt - senders
         elif pid in workers:
             roles["workers"] += total
         elif pid == history_pid:
@@ -196,9 +219,12 @@ def one_run(
             t0 = time.monotonic()
             pubs = publishers(rig.broker.url, arms, rate, seconds)
             sent = collect(pubs, timeout=seconds + 60)
-            state1 = drained(base)
+            # The end of the window: once the agent has gone quiet (it has handled what it received), read
+            # from outside; /state comes after, since answering it costs the agent CPU of its own.
+            _quiet(proc.pid)
             tree1 = _tree(proc.pid)
             t1 = time.monotonic()
+            state1 = drained(base)
             if proc.poll() is not None:
                 raise RuntimeError(f"the agent exited during the run (code {proc.returncode})")
     finally:

@@ -98,6 +98,9 @@ _T = TypeVar("_T")
 STATE_REUSE_S = 0.05
 # How often the agent looks for a worker process to start again.
 SUPERVISE_EVERY_S = 0.5
+# feed() remembers where each topic goes (its shard and mailbox key) for this many topics at most; beyond
+# that (junk on invented topics) it starts over, so memory stays bounded.
+MAX_ROUTES = 16_384
 
 
 class AgentService:
@@ -175,6 +178,7 @@ class AgentService:
             self._calibrations = CalibrationWatcher(
                 store, interval_s=t.calibration_poll_s, on_change=self._hand_calibrations
             )
+        self._routes: dict[str, tuple[Shard, str]] = {}
 
     def _build_shards(self, config: AgentConfig, sinks: Sequence[TwinSink]) -> list[Shard]:
         count = self.plan.count
@@ -345,11 +349,24 @@ class AgentService:
         none goes to the first, where it is counted as rejected) and then mirrored, rejected or refused like
         any other. `received_mono` is when it arrived on the agent's clock (default: now)."""
         recv_mono = self._clock() if received_mono is None else received_mono
+        # Every message of the fleet comes through here on a CRT thread: a topic's route is worked out once.
+        route = self._routes.get(topic)
+        if route is None:
+            route = self._route(topic)
+        route[0].put(route[1], topic, payload, recv_mono, self._wall_clock())
+
+    def _route(self, topic: str) -> tuple[Shard, str]:
         device = device_from_topic(topic, self._prefix)
-        if device is None:
-            self._shards[0].put(UNTRACKED_KEY, topic, payload, recv_mono, self._wall_clock())
-            return
-        self._shards[self.plan.worker_of(device)].put(device, topic, payload, recv_mono, self._wall_clock())
+        route = (
+            (self._shards[0], UNTRACKED_KEY)
+            if device is None
+            else (self._shards[self.plan.worker_of(device)], device)
+        )
+        routes = self._routes
+        if len(routes) >= MAX_ROUTES:
+            routes.clear()
+        routes[topic] = route
+        return route
 
     # ------------------------------------------------------------------------------------------- requests
 
