@@ -102,7 +102,6 @@ from twin.service.state import (
     AlarmInfo,
     AlarmsSummary,
     DeviceState,
-    HistoryState,
     MailboxState,
     RecordingState,
     ServoState,
@@ -115,7 +114,7 @@ from twin.transport.pipe import EMPTY, Batch, batch_of, read_batch
 if TYPE_CHECKING:
     # pyarrow and deltalake (~70 MB resident) load only when history is on, usd-core (~80 MB) only when
     # recording: every worker process pays for what it imports.
-    from twin.output.history import HistorySettings, HistorySink
+    from twin.output.history_feed import HistoryFeed, HistoryLink, TelemetryRow
     from twin.output.recorder import SessionRecorder
     from twin.output.recording import RecordingSink
 
@@ -312,9 +311,10 @@ class Mirror:
 
     `start()` opens the sinks and starts the worker thread; the thread ends once the inbox is closed and
     drained; `stop()` (idempotent) closes the inbox, waits for the thread and closes the sinks (the USD
-    recording's last save, history's last commit). `report()`, `alarms()` and `acknowledge_alarm()` may be
-    called from any thread. `sinks` are extra outputs; the mirror closes them in `stop()`. `slot` is this
-    mirror's slot in the device budget (its shard's index).
+    recording's last save, the rows still for history handed to its writer process). `report()`, `alarms()`
+    and `acknowledge_alarm()` may be called from any thread. `sinks` are extra outputs; the mirror closes
+    them in `stop()`. `slot` is this mirror's slot in the device budget (its shard's index). `history` is
+    where the agent's history writer process listens (needed when the config turns history on).
     """
 
     def __init__(
@@ -327,7 +327,10 @@ class Mirror:
         clock: Clock = time.monotonic,
         wall_clock: Clock = time.time,
         sinks: Sequence[TwinSink] = (),
+        history: HistoryLink | None = None,
     ) -> None:
+        if config.history.enabled and history is None:
+            raise ValueError("history is on: the mirror needs the link to the agent's history writer process")
         # Everything that can be wrong with the configuration is found here, before any thread.
         self.config = config
         self._clock = clock
@@ -342,13 +345,13 @@ class Mirror:
         # The alarm engine takes a round's poses as rows in the contract's joint order (so101.JOINT_NAMES):
         # the bundled model's. A model of its own order is evaluated message by message.
         self._joint_order_is_the_contracts = tuple(self.robot.joint_names) == tuple(so101.JOINT_NAMES)
-        self._history_settings = self._history_config(config)
+        self._history_link = history if config.history.enabled else None
         self._budget = budget
         self._slot = slot
         self._init_fleet_state(config, clock)
         self._mailbox = inbox
         self._recording: RecordingSink | None = None
-        self._history: HistorySink | None = None
+        self._history: HistoryFeed | None = None
         self._extra_sinks: tuple[TwinSink, ...] = tuple(sinks)
         self._sinks: tuple[TwinSink, ...] = ()
         self._worker: threading.Thread | None = None
@@ -407,27 +410,6 @@ class Mirror:
         except ValueError as exc:
             raise ConfigError(f"[telemetry]: {exc}") from exc
 
-    @staticmethod
-    def _history_config(config: AgentConfig) -> HistorySettings | None:
-        h = config.history
-        if not h.enabled:
-            return None
-        from twin.output.history import HistorySettings  # noqa: PLC0415 - heavy; only with history on
-
-        try:
-            return HistorySettings(
-                uri=h.uri.strip(),
-                commit_every_s=h.commit_every_s,
-                commit_every_rows=h.commit_every_rows,
-                max_buffer_rows=h.max_buffer_rows,
-                queue_max=h.queue_max,
-                maintain_every_s=h.maintain_every_s,
-                vacuum_retention_hours=h.vacuum_retention_hours,
-                storage_options={"AWS_REGION": h.region} if h.region else {},
-            )
-        except ValueError as exc:
-            raise ConfigError(f"[history]: {exc}") from exc
-
     # -------------------------------------------------------------------------------------------- lifecycle
 
     def start(self) -> None:
@@ -443,33 +425,29 @@ class Mirror:
                 "mode": self.mode,
                 "units": self.config.telemetry.units,
                 "recording": str(self._recording.path) if self._recording else None,
-                "history": self._history_settings.uri if self._history_settings else None,
+                "history": self.config.history.uri if self._history else None,
                 "sinks": [sink.name for sink in self._sinks],
             },
         )
 
     def _open_sinks(self) -> None:
-        """The service's own sinks (USD recording, history) before the extra ones; OSError when history cannot
-        open its table."""
+        """The service's own sinks (the USD recording) before the extra ones, and the feed of the history
+        writer process."""
         if self.config.twin.record_dir:
             from twin.output.recording import RecordingSink  # noqa: PLC0415 - usd-core only when recording
 
             self._recording = RecordingSink(
                 self._open_recorder(Path(self.config.twin.record_dir)), self.robot
             )
-        if self._history_settings is not None:
-            from twin.output.history import HistorySink  # noqa: PLC0415 - heavy; only with history on
+        if self._history_link is not None:
+            from twin.output.history_feed import REJECTED_PAYLOAD_MAX_BYTES, HistoryFeed  # noqa: PLC0415
 
-            try:
-                self._history = HistorySink(self._history_settings)
-            except ValueError as exc:
-                self._close_sinks(timeout=5.0)
-                raise OSError(f"history: {exc}") from exc
-        self._sinks = (
-            *((self._recording,) if self._recording else ()),
-            *((self._history,) if self._history else ()),
-            *self._extra_sinks,
-        )
+            self._history = HistoryFeed(
+                self._history_link,
+                max_pending=self.config.history.queue_max,
+                payload_max_bytes=REJECTED_PAYLOAD_MAX_BYTES,
+            )
+        self._sinks = (*((self._recording,) if self._recording else ()), *self._extra_sinks)
 
     def _open_recorder(self, directory: Path) -> SessionRecorder:
         from twin.output.recorder import SessionRecorder  # noqa: PLC0415 - usd-core only when recording
@@ -502,10 +480,12 @@ class Mirror:
         sinks = self._sinks or (*((self._recording,) if self._recording else ()), *self._extra_sinks)
         for sink in sinks:
             try:
-                # History commits what it holds on close; a slow object store needs longer than a file.
-                sink.close(max(timeout, 30.0) if sink is self._history else timeout)
+                sink.close(timeout)
             except Exception:
                 log.exception("closing sink %s failed", sink.name)
+        if self._history is not None:
+            # Its rows go to the writer process, which commits them once every feed has closed.
+            self._history.close(max(timeout, 30.0))
 
     @property
     def running(self) -> bool:
@@ -620,7 +600,7 @@ class Mirror:
                 for event in message_events:
                     _log_alarm_event(event)
                     self._watch.alarm(event)
-            if self._sinks:
+            if self._sinks or self._history is not None:
                 self._hand_all(entries, applied, events, batch)
                 stage_cpu["sinks"] += cpu() - started
 
@@ -686,9 +666,10 @@ class Mirror:
                 health.record_received()
                 health.record_decoded(monos[i], walls[i], telemetry.timestamp_ms)
                 health.record_coalesced()
-        if self._history is not None:
+        history = self._history
+        if history is not None:
             for i, telemetry, _ in coalesced:
-                self._hand_history(telemetry, batch, i)
+                history.telemetry(_history_row(telemetry, batch, i))
 
     def _apply_all(self, entries: list[_Decoded], batch: Batch) -> list[bool]:
         """The twin stage (under the lock): each message applied to its device's twin, or not (stale)."""
@@ -828,15 +809,17 @@ class Mirror:
         events: list[tuple[AlarmEvent, ...]],
         batch: Batch,
     ) -> None:
-        """The sinks stage: every applied message to every sink; with history on, the others to history."""
+        """The sinks stage: every applied message to every sink; with history on, every message to its feed
+        (history keeps every decoded message, also one the twin did not apply because it came late or twice:
+        rows written = rows received; the other sinks mirror the twin)."""
+        if self._sinks:
+            for (i, telemetry, record), ok, alarm_events in zip(entries, applied, events, strict=True):
+                if ok:
+                    self._hand_applied(telemetry, batch, i, record.twin.targets, alarm_events)
         history = self._history
-        for (i, telemetry, record), ok, alarm_events in zip(entries, applied, events, strict=True):
-            if ok:
-                self._hand_applied(telemetry, batch, i, record.twin.targets, alarm_events)
-            elif history is not None:
-                # History keeps every decoded message (issue 13: rows written = rows received), also one the
-                # twin did not apply because it came late or twice; the other sinks mirror the twin.
-                self._hand_history(telemetry, batch, i)
+        if history is not None:
+            for i, telemetry, _ in entries:
+                history.telemetry(_history_row(telemetry, batch, i))
 
     def _rejected(
         self, topic_device: str | None, rejected: TelemetryRejected, batch: Batch, i: int
@@ -876,6 +859,20 @@ class Mirror:
             )
             for sink in self._sinks:
                 self._guard_sink(sink, sink.rejected, sample)
+        history = self._history
+        if history is not None:
+            payload = batch.payloads[i]
+            history.rejected(
+                (
+                    batch.recv_wall[i],
+                    topic,
+                    topic_device,
+                    reason,
+                    str(rejected),
+                    bytes(payload[: history.payload_max_bytes]),
+                    len(payload),
+                )
+            )
         return loss
 
     def _admit(self, device: str) -> _Device | None:
@@ -884,7 +881,6 @@ class Mirror:
         if not self._budget.take(self._slot):
             with self._lock:
                 self._fleet.record_rejected(None, TOO_MANY_DEVICES)
-            self._rejections.rejected(device, TOO_MANY_DEVICES, "telemetry.max_devices reached")
             self._rejections.rejected(device, TOO_MANY_DEVICES, "telemetry.max_devices reached")
             self._reject_log.log(
                 TOO_MANY_DEVICES,
@@ -936,19 +932,6 @@ class Mirror:
         )
         for sink in self._sinks:
             self._guard_sink(sink, sink.applied, sample)
-
-    def _hand_history(self, telemetry: Telemetry, batch: Batch, i: int) -> None:
-        history = self._history
-        assert history is not None
-        sample = AppliedSample(
-            device_id=telemetry.device_id,
-            received_wall_s=batch.recv_wall[i],
-            received_mono_s=batch.recv_mono[i],
-            telemetry=telemetry,
-            joint_angles=telemetry.angles_rad,  # not applied: the decoded angles, unclamped
-            payload=batch.payloads[i],
-        )
-        self._guard_sink(history, history.applied, sample)
 
     def _guard_sink(self, sink: TwinSink, method: Callable[[_SampleT], None], sample: _SampleT) -> None:
         # A sink that raises (it should not: I/O sinks queue) must not cost the mirror or the other sinks.
@@ -1069,8 +1052,12 @@ class Mirror:
                 stage_cpu_s=readout.stage_cpu_s,
             ),
             recording=self._recording_state(),
-            history=self._history_state(),
-            sinks=tuple(sink.stats() for sink in self._sinks),
+            # The agent has the history's own figures (its writer process); the feed's are a sink's.
+            history=None,
+            sinks=(
+                *(sink.stats() for sink in self._sinks),
+                *((self._history.stats(),) if self._history is not None else ()),
+            ),
             alarms=readout.alarms,
             internal=readout.internal,
             end_to_end=readout.end_to_end,
@@ -1199,27 +1186,6 @@ class Mirror:
         middle, ticks and range100 are not."""
         return not self._calibration_source(device) and units in (Units.TICKS, Units.RANGE100)
 
-    def _history_state(self) -> HistoryState | None:
-        if self._history is None:
-            return None
-        from twin.output.history import REJECTED_TABLE, TELEMETRY_TABLE  # noqa: PLC0415
-
-        stats = self._history.writer.stats()
-        rows = stats.tables[TELEMETRY_TABLE]
-        return HistoryState(
-            uri=self._history.writer.settings.uri,
-            storage_ok=stats.storage_ok,
-            rows_committed=rows.rows_committed,
-            commits=rows.commits,
-            commit_failures=sum(t.commit_failures for t in stats.tables.values()),
-            rows_dropped=sum(t.rows_dropped for t in stats.tables.values()) + stats.rows_lost_in_conversion,
-            rows_buffered=sum(t.rows_buffered for t in stats.tables.values()),
-            rejected_rows_committed=stats.tables[REJECTED_TABLE].rows_committed,
-            maintenance_runs=stats.maintenance_runs,
-            maintenance_failures=stats.maintenance_failures,
-            last_error=stats.last_error,
-        )
-
     def _recording_state(self) -> RecordingState | None:
         if self._recording is None:
             return None
@@ -1248,6 +1214,7 @@ class LocalShard:
         clock: Clock = time.monotonic,
         wall_clock: Clock = time.time,
         sinks: Sequence[TwinSink] = (),
+        history: HistoryLink | None = None,
     ) -> None:
         self._inbox: InboundQueue[QueuedMessage] = InboundQueue(max_items=MAX_QUEUED_MESSAGES)
         self.mirror = Mirror(
@@ -1257,6 +1224,7 @@ class LocalShard:
             clock=clock,
             wall_clock=wall_clock,
             sinks=sinks,
+            history=history,
         )
         self._closed = False
 
@@ -1296,6 +1264,18 @@ class LocalShard:
 
     def dropped(self) -> Counter[str]:
         return Counter()  # the mirror counts its own queue's drops
+
+
+def _history_row(telemetry: Telemetry, batch: Batch, i: int) -> TelemetryRow:
+    """A decoded message as its history row: its decoded angles (not the applied, clamped ones)."""
+    return (
+        telemetry.device_id,
+        batch.recv_wall[i],
+        telemetry.timestamp_ms,
+        telemetry.units.value,
+        tuple(telemetry.angles_rad.values()),
+        batch.payloads[i],
+    )
 
 
 def _rounds(decoded: list[_Decoded]) -> list[list[_Decoded]]:

@@ -77,6 +77,7 @@ from twin.transport.mailbox import InboundQueue
 from twin.transport.pipe import Message, send_batch, send_end
 
 if TYPE_CHECKING:
+    from twin.output.history_feed import HistoryLink
     from twin.service.mirror import Mirror
 
 log = logging.getLogger(__name__)
@@ -399,10 +400,18 @@ _CALL_IDS = itertools.count(1)
 class WorkerShard:
     """A share of the fleet mirrored in a worker process: its process, pipes, queue and sender thread."""
 
-    def __init__(self, index: int, config: AgentConfig, budget: DeviceBudget, context: SpawnContext) -> None:
+    def __init__(
+        self,
+        index: int,
+        config: AgentConfig,
+        budget: DeviceBudget,
+        context: SpawnContext,
+        history: HistoryLink | None = None,
+    ) -> None:
         self.index = index
         self._config = config  # the worker's own (worker_config)
         self._budget = budget
+        self._history = history
         self._ctx = context
         self.queue: InboundQueue[tuple[str, bytes, float, float]] = InboundQueue(MAX_QUEUED_PER_WORKER)
         self.process: SpawnProcess | None = None
@@ -445,6 +454,7 @@ class WorkerShard:
         process = self._ctx.Process(
             target=worker_main,
             args=(self.index, self._config, data_read, control_child, self._budget),
+            kwargs={"history": self._history},
             name=f"twin-worker-{self.index}",
         )
         process.start()
@@ -644,9 +654,16 @@ class _WorkerLogFilter(logging.Filter):
 
 
 def worker_main(
-    index: int, config: AgentConfig, data: Connection, control: Connection, budget: DeviceBudget
+    index: int,
+    config: AgentConfig,
+    data: Connection,
+    control: Connection,
+    budget: DeviceBudget,
+    *,
+    history: HistoryLink | None = None,
 ) -> None:
-    """A worker process: a Mirror fed from `data`, answering `control` (module doc)."""
+    """A worker process: a Mirror fed from `data`, answering `control` (module doc); with history on it
+    feeds the agent's history writer process at `history`."""
     # The agent decides when workers stop (the rest of the queue first, then the sinks flush); a Ctrl-C in a
     # terminal or systemd's SIGTERM reaches the whole process group.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -662,7 +679,9 @@ def worker_main(
     sinks: list[TwinSink] = []
     try:
         sinks = configured_sinks(config)
-        mirror = Mirror(config, inbox=PipeInbox(data), budget=budget, slot=index, sinks=sinks)
+        mirror = Mirror(
+            config, inbox=PipeInbox(data), budget=budget, slot=index, sinks=sinks, history=history
+        )
         mirror.start()
     except ConfigError as exc:
         # A setting the worker cannot work with (the ros2 extra missing, say): the agent exits as for any
@@ -799,6 +818,9 @@ def _merge_history(parts: list[HistoryState]) -> HistoryState | None:
         maintenance_runs=sum(p.maintenance_runs for p in parts),
         maintenance_failures=sum(p.maintenance_failures for p in parts),
         last_error=next((p.last_error for p in parts if p.last_error), ""),
+        writer_restarts=sum(p.writer_restarts for p in parts),
+        rows_received=sum(p.rows_received for p in parts),
+        rows_lost=sum(p.rows_lost for p in parts),
     )
 
 

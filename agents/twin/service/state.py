@@ -236,6 +236,11 @@ class HistoryState:
     last_error: str = ""
     # The process that writes the history (its own, apart from the mirrors); None while it is not running.
     writer_pid: int | None = None
+    # Times the writer process was started again after it died, the rows it received from the mirrors, and
+    # the rows lost with a writer that died holding them (not yet committed).
+    writer_restarts: int = 0
+    rows_received: int = 0
+    rows_lost: int = 0
 
 
 @dataclass(frozen=True, slots=True)
