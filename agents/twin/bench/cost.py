@@ -28,7 +28,7 @@ microseconds and in `json.loads` units, the stages in `json.loads` units per rec
 median and spread, internal latency, and the 1-minute load average before and after. With `runs` > 1 each
 fleet size is run that many times and summarised (median, min, max).
 
-    twin bench cost [--arms 100 1000 2000] [--seconds 20] [--runs 3] [--history] [--json]
+    twin bench cost [--arms 100 1000 2000] [--seconds 20] [--runs 3] [--history] [--workers N] [--json]
 """
 
 from __future__ import annotations
@@ -200,7 +200,13 @@ def _spread(values: list[float]) -> dict[str, float | int | None]:
 
 
 def one_run(
-    rig: LocalRig, arms: int, rate: float, seconds: float, *, history: str | None = None
+    rig: LocalRig,
+    arms: int,
+    rate: float,
+    seconds: float,
+    *,
+    history: str | None = None,
+    workers: int | None = None,
 ) -> dict[str, Any]:
     """One fleet size once: the agent's CPU per message over the window, divided by the probe's median."""
     load_before = os.getloadavg()
@@ -210,10 +216,10 @@ def one_run(
         probe.kill()
         raise RuntimeError("the json.loads probe did not start")
     try:
-        with running_agent(rig, history=history) as (proc, base):
+        with running_agent(rig, history=history, workers=workers) as (proc, base):
             wait_subscribed(base, proc)
             state0 = get_state(base)
-            workers = {w.pid for w in state0.agent.workers}
+            worker_pids = {w.pid for w in state0.agent.workers}
             history_pid = state0.agent.history.writer_pid if state0.agent.history else None
             tree0 = _tree(proc.pid)
             t0 = time.monotonic()
@@ -237,7 +243,7 @@ def one_run(
     mirrored = sum_devices(state1, "applied") - sum_devices(state0, "applied")
     stages = {k: v - _stage_cpu(state0).get(k, 0.0) for k, v in _stage_cpu(state1).items()}
     roles, by_stage = _split(
-        tree0, tree1, receiving=proc.pid, workers=workers, history_pid=history_pid, stages=stages
+        tree0, tree1, receiving=proc.pid, workers=worker_pids, history_pid=history_pid, stages=stages
     )
     cpu = sum(roles.values())
     unit = loads["median"]
@@ -253,6 +259,7 @@ def one_run(
         "rate_hz": rate,
         "seconds": seconds,
         "history": history is not None,
+        "workers": len(state1.agent.workers) or 1,
         "sent": sent["sent"],
         "received": received,
         "mirrored": mirrored,
@@ -305,6 +312,7 @@ def run(
     seconds: float = 20.0,
     runs: int = 1,
     history: bool = False,
+    workers: int | None = None,
 ) -> dict[str, Any]:
     """Every fleet size `runs` times (the sizes interleaved, so a slow spell of the machine does not fall on
     one size only); per size its runs and their summary."""
@@ -316,7 +324,7 @@ def run(
             for k in range(runs):
                 for n in sizes:
                     uri = str(tmp / f"history-{n}-{k}") if tmp is not None else None
-                    results[n].append(one_run(rig, n, rate, seconds, history=uri))
+                    results[n].append(one_run(rig, n, rate, seconds, history=uri, workers=workers))
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)

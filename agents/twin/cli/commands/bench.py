@@ -88,6 +88,7 @@ def register(subparsers: Any) -> None:
     co.add_argument("--seconds", type=float, default=20.0, help="how long each run publishes")
     co.add_argument("--runs", type=int, default=1, help="runs of each fleet size (summarised)")
     co.add_argument("--history", action="store_true", help="with the telemetry history on (a temp dir)")
+    co.add_argument("--workers", type=int, default=None, help="the agent's --workers (default: its own)")
 
     al = sub.add_parser("all", help="every scenario as published in docs/performance.md, plus the plot")
     al.add_argument("--seconds", type=float, default=20.0, help="throughput run length")
@@ -139,7 +140,12 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
         return import_dev_tool("twin.bench.worker", "bench").run(arms=args.arms, rounds=args.rounds)
     if args.scenario == "cost":
         return import_dev_tool("twin.bench.cost", "bench").run(
-            arms=args.arms, rate=args.rate, seconds=args.seconds, runs=args.runs, history=args.history
+            arms=args.arms,
+            rate=args.rate,
+            seconds=args.seconds,
+            runs=args.runs,
+            history=args.history,
+            workers=args.workers,
         )
     # all: the two throughput loads the targets name, fidelity, footprint, ROS 2, render, Rerun, the quota
     # (one connection vs the pool), decode against json.loads, a worker's cost per message, and the agent's
