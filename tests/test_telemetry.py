@@ -132,6 +132,23 @@ def test_an_arm_without_its_own_uses_the_configs_calibration_on_both_paths() -> 
     assert_angles(auto.decode(payload(TICKS_EXAMPLE, device="arm-001")), TICKS_EXAMPLE_CALIBRATION)
 
 
+def test_an_arms_own_calibration_gives_the_same_values_as_the_same_file_in_the_config() -> None:
+    """The config's calibration converts ticks through tables made once, an arm's own by arithmetic (a table
+    per arm would cost memory at fleet size): the two must agree exactly, on every tick of every joint, with
+    the gripper's clamp at both ends and an inverted gripper."""
+    data = _shifted(load_calibration(EXAMPLE_CALIBRATION).to_dict(), 0)
+    data["gripper"] = {**data["gripper"], "drive_mode": 1}
+    for cal in (load_calibration(EXAMPLE_CALIBRATION), Calibration.from_dict(data)):
+        tables = decoder(Units.TICKS, calibration=cal)
+        arithmetic = decoder(Units.TICKS)
+        arithmetic.set_calibrations({"arm-001": cal})
+        for tick in range(so101.TICK_MAX + 1):
+            positions = tuple((tick + 683 * i) % (so101.TICK_MAX + 1) for i in range(len(NAMES)))
+            a = tables.decode(payload(positions))
+            b = arithmetic.decode(payload(positions))
+            assert (a.angles_rad, a.gripper_percent) == (b.angles_rad, b.gripper_percent), positions
+
+
 def _shifted(data: dict[str, dict[str, int]], ticks: int) -> dict[str, dict[str, int]]:
     """A calibration whose every range sits `ticks` higher (its middle moves by as much)."""
     return {
