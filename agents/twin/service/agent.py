@@ -26,6 +26,7 @@ timeline of their own; worker processes use the system clocks.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import multiprocessing
 import os
@@ -34,13 +35,14 @@ import time
 from collections import Counter
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from twin.core.alarms import worst_first
 from twin.core.health import DeviceStatus
 from twin.core.topics import device_from_topic
 from twin.output.alerts import Alert, AlertPublisher, sns_publisher
 from twin.output.emf import EmfFileWriter, EmfPublisher, FleetTotals
+from twin.output.history_feed import HistoryProcess, HistoryStartError, WriterFigures
 from twin.output.sinks import TwinSink
 from twin.service.admission import DeviceBudget
 from twin.service.calibrations import CalibrationBook, CalibrationWatcher, open_store
@@ -78,6 +80,7 @@ from twin.service.state import (
     BrokerState,
     ConnectionState,
     HealthReport,
+    HistoryState,
     WorkerInfo,
 )
 from twin.transport.mailbox import UNTRACKED_KEY
@@ -98,6 +101,9 @@ _T = TypeVar("_T")
 STATE_REUSE_S = 0.05
 # How often the agent looks for a worker process to start again.
 SUPERVISE_EVERY_S = 0.5
+# feed() remembers where each topic goes (its shard and mailbox key) for this many topics at most; beyond
+# that (junk on invented topics) it starts over, so memory stays bounded.
+MAX_ROUTES = 16_384
 
 
 class AgentService:
@@ -138,6 +144,10 @@ class AgentService:
         self._prefix = t.topic_prefix
         self.plan = WorkerPlan(max(1, workers), () if t.all_devices else t.devices)
         self._mirror: Mirror | None = None
+        # Telemetry history is written by a process of its own, fed by every mirror (output.history_feed).
+        self._context = multiprocessing.get_context("spawn")
+        settings = history_settings(config)
+        self._history = HistoryProcess(settings, self._context) if settings is not None else None
         self._shards = self._build_shards(config, sinks)
         self._pool_settings = pool_settings(config)
         self._pool = ConnectionPool(config.broker, self._pool_settings, self.feed, clock=clock)
@@ -175,21 +185,30 @@ class AgentService:
             self._calibrations = CalibrationWatcher(
                 store, interval_s=t.calibration_poll_s, on_change=self._hand_calibrations
             )
+        self._routes: dict[str, tuple[Shard, str]] = {}
 
     def _build_shards(self, config: AgentConfig, sinks: Sequence[TwinSink]) -> list[Shard]:
         count = self.plan.count
-        context = multiprocessing.get_context("spawn")
+        context = self._context
         budget = DeviceBudget(config.telemetry.max_devices, count, context)
+        link = self._history.link if self._history is not None else None
         if count == 1:
             # MuJoCo (and USD when recording) load here, with the mirror, not when the module is imported.
             from twin.service.mirror import LocalShard  # noqa: PLC0415
 
             local = LocalShard(
-                config, budget=budget, clock=self._clock, wall_clock=self._wall_clock, sinks=sinks
+                config,
+                budget=budget,
+                clock=self._clock,
+                wall_clock=self._wall_clock,
+                sinks=sinks,
+                history=link,
             )
             self._mirror = local.mirror
             return [local]
-        return [WorkerShard(i, worker_config(config, self.plan, i), budget, context) for i in range(count)]
+        return [
+            WorkerShard(i, worker_config(config, self.plan, i), budget, context, link) for i in range(count)
+        ]
 
     # -------------------------------------------------------------------------------------------- lifecycle
 
@@ -202,6 +221,9 @@ class AgentService:
         self._started_mono = self._clock()
         self._started_wall = self._wall_clock()
         try:
+            if self._history is not None:
+                # First, so the mirrors' feeds find it listening.
+                self._launch_history(self._history)
             for shard in self._shards:
                 shard.launch()
             for shard in self._shards:
@@ -220,6 +242,8 @@ class AgentService:
             )
         except BaseException:
             self._stop_shards(timeout=10.0)
+            if self._history is not None:
+                self._history.stop(timeout=10.0)
             raise
         self._running = True
         self._supervisor = threading.Thread(target=self._supervise, name="twin-supervisor", daemon=True)
@@ -272,6 +296,9 @@ class AgentService:
         if self._alerts is not None:
             # After the last events were collected: what is pending still goes out.
             self._alerts.stop(min(timeout, 15.0))
+        if self._history is not None:
+            # Last: every mirror's feed has handed over its rows; the writer commits them, then exits.
+            self._history.stop(max(timeout, 30.0))
         if self._emf is not None:
             self._emf.stop(timeout)
         if self._http is not None:
@@ -293,7 +320,18 @@ class AgentService:
                 if self._stopping.is_set():
                     return
                 shard.supervise()
+            if self._history is not None:
+                self._history.supervise()
             self._collect_events()
+
+    @staticmethod
+    def _launch_history(history: HistoryProcess) -> None:
+        try:
+            history.launch()
+        except HistoryStartError as exc:
+            if exc.setting:
+                raise ConfigError(str(exc)) from exc
+            raise
 
     def __enter__(self) -> AgentService:
         self.start()
@@ -345,11 +383,24 @@ class AgentService:
         none goes to the first, where it is counted as rejected) and then mirrored, rejected or refused like
         any other. `received_mono` is when it arrived on the agent's clock (default: now)."""
         recv_mono = self._clock() if received_mono is None else received_mono
+        # Every message of the fleet comes through here on a CRT thread: a topic's route is worked out once.
+        route = self._routes.get(topic)
+        if route is None:
+            route = self._route(topic)
+        route[0].put(route[1], topic, payload, recv_mono, self._wall_clock())
+
+    def _route(self, topic: str) -> tuple[Shard, str]:
         device = device_from_topic(topic, self._prefix)
-        if device is None:
-            self._shards[0].put(UNTRACKED_KEY, topic, payload, recv_mono, self._wall_clock())
-            return
-        self._shards[self.plan.worker_of(device)].put(device, topic, payload, recv_mono, self._wall_clock())
+        route = (
+            (self._shards[0], UNTRACKED_KEY)
+            if device is None
+            else (self._shards[self.plan.worker_of(device)], device)
+        )
+        routes = self._routes
+        if len(routes) >= MAX_ROUTES:
+            routes.clear()
+        routes[topic] = route
+        return route
 
     # ------------------------------------------------------------------------------------------- requests
 
@@ -389,8 +440,34 @@ class AgentService:
                 self._worker_infos(reports),
                 dropped=self._dropped(),
             )
+            if self._history is not None:
+                state = dataclasses.replace(
+                    state, agent=dataclasses.replace(state.agent, history=self._history_state(self._history))
+                )
             self._cached = (time.monotonic(), state)
             return state
+
+    def _history_state(self, history: HistoryProcess) -> HistoryState:
+        """The history writer process's figures, as /state shows them (docs/history.md)."""
+        figures = history.figures()
+        stats = figures.stats or WriterFigures()
+        return HistoryState(
+            uri=self.config.history.uri,
+            storage_ok=stats.storage_ok,
+            rows_committed=stats.rows_committed,
+            commits=stats.commits,
+            commit_failures=stats.commit_failures,
+            rows_dropped=stats.rows_dropped,
+            rows_buffered=stats.rows_buffered,
+            rejected_rows_committed=stats.rejected_rows_committed,
+            maintenance_runs=stats.maintenance_runs,
+            maintenance_failures=stats.maintenance_failures,
+            last_error=stats.last_error,
+            writer_pid=figures.pid,
+            writer_restarts=figures.restarts,
+            rows_received=figures.rows_received,
+            rows_lost=figures.rows_lost,
+        )
 
     def _info(self, now: float) -> AgentInfo:
         """The agent's own part of the state: the process and the broker."""
@@ -686,6 +763,24 @@ def broker_state(url: str, settings: PoolSettings, pool: ConnectionPool, started
             for c in infos
         ),
     )
+
+
+def history_settings(config: AgentConfig) -> dict[str, Any] | None:
+    """HistorySettings' fields from the config's [history] (None when it is off); the writer process makes
+    the settings (and checks them: a bad one stops the agent as a configuration error)."""
+    h = config.history
+    if not h.enabled:
+        return None
+    return {
+        "uri": h.uri.strip(),
+        "commit_every_s": h.commit_every_s,
+        "commit_every_rows": h.commit_every_rows,
+        "max_buffer_rows": h.max_buffer_rows,
+        "queue_max": h.queue_max,
+        "maintain_every_s": h.maintain_every_s,
+        "vacuum_retention_hours": h.vacuum_retention_hours,
+        "storage_options": {"AWS_REGION": h.region} if h.region else {},
+    }
 
 
 def pool_settings(config: AgentConfig) -> PoolSettings:

@@ -59,6 +59,7 @@ from twin.service.admission import DeviceBudget
 from twin.service.config import AgentConfig, ConfigError
 from twin.service.console import FleetRow
 from twin.service.events import Event
+from twin.service.logs import name_native_thread
 from twin.service.state import (
     AgentInfo,
     AgentState,
@@ -76,6 +77,7 @@ from twin.transport.mailbox import InboundQueue
 from twin.transport.pipe import Message, send_batch, send_end
 
 if TYPE_CHECKING:
+    from twin.output.history_feed import HistoryLink
     from twin.service.mirror import Mirror
 
 log = logging.getLogger(__name__)
@@ -89,13 +91,16 @@ WORKER_PLAN_RATE = 1000.0
 MAX_QUEUED_PER_WORKER = 25_000
 # One pipe write carries at most this many messages: a backlog goes over in pieces the worker can start on.
 MAX_BATCH = 1000
-# Above this many messages a second for one worker, its sender pauses SEND_PAUSE_S after each hand-over
-# (unless it had a full batch), so messages arriving meanwhile go over together. Without the pause every
-# message woke the sender (a Condition notify costs more than routing the message) and crossed the pipe
-# alone: at 10,000 msg/s a worker the agent spent 26 us a message instead of 18. Below the rate the wake-ups
-# cost little and the pause would only add latency.
+# Above this many messages a second for one worker, its sender pauses after each hand-over (unless it had a
+# full batch), so messages arriving meanwhile go over together: long enough for about BATCH_TARGET messages,
+# at most MAX_SEND_PAUSE_S. Without the pause every message woke the sender and crossed the pipe alone (at
+# 10,000 msg/s a worker the agent spent 26 us a message instead of 18), and the mirror's stages cost about
+# 50-80 us a batch whatever its size (their timers, the lock, the numpy arrays of the servo alarms and the
+# latency histograms), over 5 us a message in batches of 10. Below the rate the wake-ups cost little and
+# the pause would only add latency (the 100-arm target: internal p99 <= 2 ms).
 PAUSE_ABOVE_RATE = 2000.0
-SEND_PAUSE_S = 0.002
+BATCH_TARGET = 64
+MAX_SEND_PAUSE_S = 0.008
 # How long a worker may take to answer one request (a state of thousands of arms takes tens of ms).
 ASK_TIMEOUT_S = 10.0
 # A worker must be up within this (Python, MuJoCo and the sinks it opens, e.g. a Delta table on S3).
@@ -395,10 +400,18 @@ _CALL_IDS = itertools.count(1)
 class WorkerShard:
     """A share of the fleet mirrored in a worker process: its process, pipes, queue and sender thread."""
 
-    def __init__(self, index: int, config: AgentConfig, budget: DeviceBudget, context: SpawnContext) -> None:
+    def __init__(
+        self,
+        index: int,
+        config: AgentConfig,
+        budget: DeviceBudget,
+        context: SpawnContext,
+        history: HistoryLink | None = None,
+    ) -> None:
         self.index = index
         self._config = config  # the worker's own (worker_config)
         self._budget = budget
+        self._history = history
         self._ctx = context
         self.queue: InboundQueue[tuple[str, bytes, float, float]] = InboundQueue(MAX_QUEUED_PER_WORKER)
         self.process: SpawnProcess | None = None
@@ -441,6 +454,7 @@ class WorkerShard:
         process = self._ctx.Process(
             target=worker_main,
             args=(self.index, self._config, data_read, control_child, self._budget),
+            kwargs={"history": self._history},
             name=f"twin-worker-{self.index}",
         )
         process.start()
@@ -536,8 +550,9 @@ class WorkerShard:
 
     def _send_loop(self) -> None:
         """Hand the worker its queue in batches; what cannot be handed over (it is down) is counted."""
+        name_native_thread()
         queue = self.queue
-        window_start, window_count, pause = time.monotonic(), 0, False
+        window_start, window_count, pause = time.monotonic(), 0, 0.0
         while True:
             items = queue.take_all(0.2)
             if not items:
@@ -545,12 +560,13 @@ class WorkerShard:
                     break
                 continue
             if pause and len(items) < MAX_BATCH:
-                time.sleep(SEND_PAUSE_S)
+                time.sleep(pause)
                 items += queue.take_all(0)
             window_count += len(items)
             now = time.monotonic()
             if now - window_start >= 1.0:
-                pause = window_count / (now - window_start) > PAUSE_ABOVE_RATE
+                rate = window_count / (now - window_start)
+                pause = min(MAX_SEND_PAUSE_S, BATCH_TARGET / rate) if rate > PAUSE_ABOVE_RATE else 0.0
                 window_start, window_count = now, 0
             for start in range(0, len(items), MAX_BATCH):
                 chunk: list[Message] = items[start : start + MAX_BATCH]
@@ -638,9 +654,16 @@ class _WorkerLogFilter(logging.Filter):
 
 
 def worker_main(
-    index: int, config: AgentConfig, data: Connection, control: Connection, budget: DeviceBudget
+    index: int,
+    config: AgentConfig,
+    data: Connection,
+    control: Connection,
+    budget: DeviceBudget,
+    *,
+    history: HistoryLink | None = None,
 ) -> None:
-    """A worker process: a Mirror fed from `data`, answering `control` (module doc)."""
+    """A worker process: a Mirror fed from `data`, answering `control` (module doc); with history on it
+    feeds the agent's history writer process at `history`."""
     # The agent decides when workers stop (the rest of the queue first, then the sinks flush); a Ctrl-C in a
     # terminal or systemd's SIGTERM reaches the whole process group.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -656,7 +679,9 @@ def worker_main(
     sinks: list[TwinSink] = []
     try:
         sinks = configured_sinks(config)
-        mirror = Mirror(config, inbox=PipeInbox(data), budget=budget, slot=index, sinks=sinks)
+        mirror = Mirror(
+            config, inbox=PipeInbox(data), budget=budget, slot=index, sinks=sinks, history=history
+        )
         mirror.start()
     except ConfigError as exc:
         # A setting the worker cannot work with (the ros2 extra missing, say): the agent exits as for any
@@ -679,6 +704,7 @@ def worker_main(
 
 def _serve_control(mirror: Mirror, control: Connection) -> None:
     """Answer the agent's calls, one at a time, in the order they come."""
+    name_native_thread()
     while True:
         try:
             call = control.recv()
@@ -743,6 +769,7 @@ def merge_reports(
                 batches=sum(r.worker.batches for r in reports),
                 processed=sum(r.worker.processed for r in reports),
                 errors=sum(r.worker.errors for r in reports),
+                stage_cpu_s=_merge_seconds([r.worker.stage_cpu_s for r in reports]),
             ),
             recording=_merge_recording([r.recording for r in reports if r.recording is not None]),
             history=_merge_history([r.history for r in reports if r.history is not None]),
@@ -791,6 +818,9 @@ def _merge_history(parts: list[HistoryState]) -> HistoryState | None:
         maintenance_runs=sum(p.maintenance_runs for p in parts),
         maintenance_failures=sum(p.maintenance_failures for p in parts),
         last_error=next((p.last_error for p in parts if p.last_error), ""),
+        writer_restarts=sum(p.writer_restarts for p in parts),
+        rows_received=sum(p.rows_received for p in parts),
+        rows_lost=sum(p.rows_lost for p in parts),
     )
 
 
@@ -818,6 +848,14 @@ def _merge_counts(parts: Sequence[dict[str, int]]) -> dict[str, int]:
     for part in parts:
         total.update(part)
     return dict(sorted(total.items()))
+
+
+def _merge_seconds(parts: Sequence[dict[str, float]]) -> dict[str, float]:
+    total: dict[str, float] = {}
+    for part in parts:
+        for key, seconds in part.items():
+            total[key] = total.get(key, 0.0) + seconds
+    return total
 
 
 def _merge_alarms(parts: list[AlarmsSummary]) -> AlarmsSummary:

@@ -201,6 +201,9 @@ class WorkerState:
     batches: int = 0
     processed: int = 0
     errors: int = 0
+    # CPU seconds the mirrors' worker threads spent in each stage since start (hand_over, decode, twin,
+    # health_alarms, sinks), summed over the workers: where the agent's CPU goes (`twin bench cost`).
+    stage_cpu_s: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, slots=True)
@@ -231,6 +234,13 @@ class HistoryState:
     maintenance_runs: int = 0
     maintenance_failures: int = 0
     last_error: str = ""
+    # The process that writes the history (its own, apart from the mirrors); None while it is not running.
+    writer_pid: int | None = None
+    # Times the writer process was started again after it died, the rows it received from the mirrors, and
+    # the rows lost with a writer that died holding them (not yet committed).
+    writer_restarts: int = 0
+    rows_received: int = 0
+    rows_lost: int = 0
 
 
 @dataclass(frozen=True, slots=True)
