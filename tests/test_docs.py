@@ -300,3 +300,34 @@ def test_the_link_check_finds_a_missing_file_and_a_missing_heading() -> None:
 def test_the_reference_check_tells_ours_from_public_ones(text: str, found: list[str]) -> None:
     problems = internal_references(text, ROOT / "docs" / "glossary.md")
     assert [p.split("'")[1] for p in problems] == found, problems
+
+
+def guide_commands(text: str) -> list[str]:
+    """The `twin` command lines of a page's shell blocks, without the shell around them (variables set before
+    the command, the comment after it)."""
+    commands = []
+    for block in re.findall(r"^```(?:sh|bash)\n(.*?)^```", text, re.M | re.S):
+        for line in block.splitlines():
+            line = re.sub(r"\s+#.*$", "", line)
+            match = re.match(r"(?:[A-Z_]+=\S+\s+)*(?:\.venv/bin/)?twin\s+(.*)$", line.strip())
+            if match:
+                commands.append(match.group(1))
+    return commands
+
+
+def test_every_twin_command_in_the_guide_is_one_twin_accepts() -> None:
+    """docs/getting-started.md is typed in as written: each `twin` line must parse (the page was run through
+    once by hand; this keeps it true when a command's options change)."""
+    import shlex
+
+    from twin.cli.main import build_parser
+
+    commands = guide_commands((ROOT / "docs" / "getting-started.md").read_text(encoding="utf-8"))
+    assert len(commands) >= 15, commands
+    refused = []
+    for command in commands:
+        try:
+            build_parser().parse_args(shlex.split(command))
+        except SystemExit:
+            refused.append(command)
+    assert not refused, f"twin refuses these commands of docs/getting-started.md: {refused}"
