@@ -126,13 +126,13 @@ def test_the_citation_check_tells_outside_files_from_ours_and_public_sources(
     assert all(f in p for f, p in zip(found, problems, strict=True))
 
 
-# --- links between the pages, and what a reader of the repository cannot look up ------------------------------
+# --- links between the pages, and what a reader of the repository cannot look up ----------------------------
 
 # The runtime work on these two pages lands first; the docs split that follows it (agent.md into agent,
 # configuration, HTTP API and scaling pages; performance.md's targets) rewrites the lines flagged here.
 FOLLOW_UP = "left for the agent.md split and the performance.md rewrite after the runtime work lands"
-# Pages with a known finding per check, marked xfail(strict=True): the mark fails once the page is fixed, so it
-# cannot outlive the finding.
+# Pages with a known finding per check, marked xfail(strict=True): the mark fails once the page is fixed, so
+# it cannot outlive the finding.
 KNOWN_FINDINGS: dict[str, set[str]] = {"links": set(), "internal": {"agent.md", "performance.md"}}
 
 FENCE = re.compile(r"^ {0,3}(```|~~~).*?^ {0,3}\1[^\n]*$", re.M | re.S)
@@ -162,10 +162,10 @@ def github_anchor(heading: str) -> str:
         if i % 2:  # a code span renders its content as it is, `<id>` included
             parts.append(part.strip("`"))
             continue
-        part = re.sub(r"!?\[((?:[^\]\\]|\\.)*)\]\([^)]*\)", r"\1", part)  # a link renders as its text
-        part = re.sub(r"<[^>]+>", "", part)  # inline HTML renders nothing of its own
-        part = re.sub(r"(?<!\w)_+|_+(?!\w)", "", part)  # _emphasis_, not snake_case
-        parts.append(part)
+        rendered = re.sub(r"!?\[((?:[^\]\\]|\\.)*)\]\([^)]*\)", r"\1", part)  # a link renders as its text
+        rendered = re.sub(r"<[^>]+>", "", rendered)  # inline HTML renders nothing of its own
+        rendered = re.sub(r"(?<!\w)_+|_+(?!\w)", "", rendered)  # _emphasis_, not snake_case
+        parts.append(rendered)
     return re.sub(r"[^\w\- ]", "", "".join(parts).strip().lower()).replace(" ", "-")
 
 
@@ -181,7 +181,8 @@ def anchors(text: str) -> set[str]:
 
 
 def broken_links(text: str, page: Path) -> list[str]:
-    """Relative links in `text` (the page `page`) whose file, or whose anchor in a markdown file, is missing."""
+    """Relative links in `text` (the page `page`) whose file, or whose anchor in a markdown file, is
+    missing."""
     problems = []
     plain = prose(text)
     for match in [*LINK.finditer(plain), *HTML_LINK.finditer(plain)]:
@@ -214,7 +215,8 @@ URL = re.compile(r"\bhttps?://\S+")
 
 
 def internal_references(text: str, page: Path) -> list[str]:
-    """Our own tracker's issue numbers and commit ids in `text`: nothing a reader of the repository can open."""
+    """Our own tracker's issue numbers and commit ids in `text`: nothing a reader of the repository can
+    open."""
     problems = []
     plain = URL.sub(blank, text)
     for match in NUMBERED_REFERENCE.finditer(plain):
@@ -233,7 +235,9 @@ def per_page(check: str) -> list[object]:
         pytest.param(
             page,
             id=page.name,
-            marks=[pytest.mark.xfail(strict=True, reason=FOLLOW_UP)] if page.name in KNOWN_FINDINGS[check] else [],
+            marks=[pytest.mark.xfail(strict=True, reason=FOLLOW_UP)]
+            if page.name in KNOWN_FINDINGS[check]
+            else [],
         )
         for page in PAGES
     ]
@@ -254,10 +258,16 @@ def test_no_page_names_an_issue_of_ours_or_a_commit(page: Path) -> None:
 @pytest.mark.parametrize(
     ("heading", "anchor"),
     [
-        ("### `auto`: decided once per device, never per message", "auto-decided-once-per-device-never-per-message"),
+        (
+            "### `auto`: decided once per device, never per message",
+            "auto-decided-once-per-device-never-per-message",
+        ),
         ("### `GET /alarms` and `POST /alarms/<id>/ack`", "get-alarms-and-post-alarmsidack"),
         ("## The instance: G6e, the AMI and Python", "the-instance-g6e-the-ami-and-python"),
-        ("## Servo health (FT-TBL factory defaults, L-FT for the gripper)", "servo-health-ft-tbl-factory-defaults-l-ft-for-the-gripper"),
+        (
+            "## Servo health (FT-TBL factory defaults, L-FT for the gripper)",
+            "servo-health-ft-tbl-factory-defaults-l-ft-for-the-gripper",
+        ),
         ("## [Links](x.md) in `snake_case` and _emphasis_", "links-in-snake_case-and-emphasis"),
         ("## Alarms ≥ 65 C", "alarms--65-c"),
     ],
@@ -275,7 +285,8 @@ def test_the_link_check_finds_a_missing_file_and_a_missing_heading() -> None:
     page = ROOT / "docs" / "glossary.md"
     text = (
         "[ok](deploy.md) [ok](#cost) ![ok](web.png) [web](https://example.com/none.md) `[code](none.md)`\n"
-        "## Cost\n[gone](gone.md) [no heading](deploy.md#no-such-heading) [outside](../../etc/passwd) [x](#price)\n"
+        "## Cost\n[gone](gone.md) [no heading](deploy.md#no-such-heading) [outside](../../etc/passwd)"
+        " [x](#price)\n"
     )
     problems = broken_links(text, page)
     assert [p.split(": ", 1)[1].split(" ", 1)[0] for p in problems] == [
@@ -292,7 +303,11 @@ def test_the_link_check_finds_a_missing_file_and_a_missing_heading() -> None:
         ("Targets (issue 13): with history on", ["issue 13"]),
         ("as it did in b0149c0's quieter runs", ["b0149c0"]),
         ("fixed in #23, see PR 41", ["#23", "PR 41"]),
-        ("TheRobotStudio/SO-ARM100 issue #132; pytorch/torchx PR 969; vantage-sh/ec2instances.info\n  issue 751", []),
+        (
+            "TheRobotStudio/SO-ARM100 issue #132; pytorch/torchx PR 969;"
+            " vantage-sh/ec2instances.info\n  issue 751",
+            [],
+        ),
         ("aws-iot-device-sdk-java-v2#523 and https://github.com/o/r/issues/12", []),
         ("i-0123456789abcdef0, so101-twin-2e40c0d85193, a 1795275877257 ms clock, `#1f77b4`, ## Heading", []),
     ],
@@ -308,8 +323,8 @@ def guide_commands(text: str) -> list[str]:
     commands = []
     for block in re.findall(r"^```(?:sh|bash)\n(.*?)^```", text, re.M | re.S):
         for line in block.splitlines():
-            line = re.sub(r"\s+#.*$", "", line)
-            match = re.match(r"(?:[A-Z_]+=\S+\s+)*(?:\.venv/bin/)?twin\s+(.*)$", line.strip())
+            command = re.sub(r"\s+#.*$", "", line).strip()
+            match = re.match(r"(?:[A-Z_]+=\S+\s+)*(?:\.venv/bin/)?twin\s+(.*)$", command)
             if match:
                 commands.append(match.group(1))
     return commands
