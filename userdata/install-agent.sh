@@ -179,7 +179,7 @@ model = ""
 # Recording is off unless the stack sets recordSessions=true: a session file grows for as long as the
 # agent runs, and nothing here would bound it.
 record_dir = "${RECORD_DIR}"
-# Worker processes (docs/agent.md, "Workers"): 0 = one per vCPU for the whole fleet, fewer for a short
+# Worker processes (docs/scaling.md, "Workers"): 0 = one per vCPU for the whole fleet, fewer for a short
 # device list. systemd's stop reaches them through the agent, which lets each flush its history first.
 workers = 0
 

@@ -427,7 +427,7 @@ class AgentService:
 
     def state(self) -> AgentState:
         """The agent's typed state for /state, /metrics and /stream: every shard's report merged
-        (docs/agent.md describes every field; `agent.workers` lists the worker processes)."""
+        (docs/http-api.md describes every field; `agent.workers` lists the worker processes)."""
         with self._state_lock:
             cached = self._cached
             if cached is not None and time.monotonic() - cached[0] < self._reuse_s:

@@ -4,7 +4,7 @@ Every value is validated when the file is loaded, not when it is first used, so 
 start-up with a message that names the key, the bad value and the fix. Unknown sections and keys are
 errors too: a misspelt key (`offline_after` for `offline_after_s`) would otherwise leave the default
 silently in force. The key names are the contract with the CDK UserData that renders this file on the
-instance (docs/agent.md).
+instance (docs/configuration.md).
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ LOG_LEVELS: tuple[str, ...] = ("DEBUG", "INFO", "WARNING", "ERROR")
 DEFAULT_HTTP_HOST = "127.0.0.1"
 DEFAULT_HTTP_PORT = 8080
 DEFAULT_AGENT_URL = f"http://{DEFAULT_HTTP_HOST}:{DEFAULT_HTTP_PORT}"
-# More worker processes than this is a typo, not a fleet (docs/agent.md, "Workers").
+# More worker processes than this is a typo, not a fleet (docs/scaling.md, "Workers").
 MAX_WORKERS = 64
 # The largest payload cap a config may set (the default is IoT Core's 128 KiB).
 MAX_PAYLOAD_LIMIT_BYTES = 1 << 20
@@ -86,7 +86,7 @@ class TwinSection:
     record_format: str = "usdc"
     physics_rate_hz: float = 200.0
     record_flush_s: float = 2.0
-    # Processes that mirror the fleet, each a share of the devices (docs/agent.md, "Workers"); 0 = one per
+    # Processes that mirror the fleet, each a share of the devices (docs/scaling.md, "Workers"); 0 = one per
     # usable core for the whole fleet, fewer for a small listed one (twin.service.shards.worker_count).
     workers: int = 0
 
@@ -97,7 +97,7 @@ HealthSection = HealthThresholds
 
 @dataclass(frozen=True)
 class HttpSection:
-    """The HTTP API and the operator console (docs/agent.md "HTTP API", docs/console.md)."""
+    """The HTTP API and the operator console (docs/http-api.md, docs/console.md)."""
 
     listen: str = f"{DEFAULT_HTTP_HOST}:{DEFAULT_HTTP_PORT}"
     stream_rate_hz: float = 30.0

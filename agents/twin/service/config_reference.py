@@ -27,7 +27,7 @@ SECTION_DOCS: dict[str, str] = {
     "telemetry": "What the agent subscribes to and how it reads a message (docs/telemetry.md).",
     "twin": "The twin itself: kinematic or physics, its model, USD recording, worker processes.",
     "health": 'When an arm counts as ONLINE, STALE or OFFLINE (docs/agent.md, "Health").',
-    "http": 'The HTTP API and the operator console (docs/agent.md, "HTTP API"; docs/console.md).',
+    "http": "The HTTP API and the operator console (docs/http-api.md; docs/console.md).",
     "history": "Telemetry history in Delta Lake: every applied and rejected message, written in batches "
     "(docs/history.md).",
     "log": "The agent's JSON log lines.",
@@ -74,7 +74,7 @@ KEY_DOCS: dict[str, str] = {
     ),
     "broker.per_connection_limit": (
         "Publishes per second one connection may carry; 0 = the broker's own (100 on `iot`, unlimited"
-        " elsewhere). The connection pool plans to use 80 % of it (docs/agent.md, \"IoT Core's "
+        " elsewhere). The connection pool plans to use 80 % of it (docs/scaling.md, \"IoT Core's "
         'per-connection quota"). Flag `--per-connection-limit`.'
     ),
     "broker.max_connections": (
@@ -138,7 +138,7 @@ KEY_DOCS: dict[str, str] = {
     "twin.physics_rate_hz": "physics mode: how often the worker steps the simulation.",
     "twin.record_flush_s": "Seconds between saves of the USD recording. The final save happens on stop.",
     "twin.workers": (
-        'Processes that mirror the fleet, each a share of the devices (docs/agent.md, "Workers"). '
+        'Processes that mirror the fleet, each a share of the devices (docs/scaling.md, "Workers"). '
         "`0`: one per core for the whole fleet, one per 1,000 expected msg/s for a listed one, one "
         "while `[rerun]` is on; `1`: one process. At most 64. Flag `--workers`."
     ),

@@ -6,7 +6,7 @@ agent's process, so the agent starts and stops it like any of its threads (`star
 knows nothing about MQTT or MuJoCo: it asks its source (the agent service) for its typed `AgentState` and
 renders /state, /metrics and /stream from it, so they always agree.
 
-Endpoints (docs/agent.md has examples; docs/console.md the console's own API):
+Endpoints (docs/http-api.md has examples; docs/console.md the console's own API):
 - GET /state    `AgentState.to_json()`
 - GET /metrics  Prometheus text exposition format 0.0.4 (twin.service.metrics)
 - GET /healthz  200 {"status": "ok", ...} or 503 {"status": "unavailable", "reasons": [...]}
@@ -110,7 +110,7 @@ _T = TypeVar("_T")
 
 class StateSource(Protocol):
     def state(self) -> AgentState:
-        """The agent state (see docs/agent.md, GET /state)."""
+        """The agent state (see docs/http-api.md, GET /state)."""
         ...
 
     def healthz(self) -> HealthReport:

@@ -5,7 +5,7 @@ so the metrics are rendered from that snapshot by a custom collector instead of 
 prometheus_client's own Counter objects: /metrics then shows exactly the numbers /state shows, from the same
 instant. prometheus_client does the text format (escaping, HELP/TYPE lines, value formatting).
 
-Metric names are documented in docs/agent.md; every counter family ends in `_total`, and an unknown value
+Metric names are documented in docs/http-api.md; every counter family ends in `_total`, and an unknown value
 (no sample yet) is left out rather than published as a made-up zero.
 """
 
@@ -69,7 +69,7 @@ def _counter(name: str, help_text: str, value: float | None) -> CounterMetricFam
 
 
 def _agent_families(agent: AgentInfo) -> Iterator[Metric]:
-    """The agent's own families, in the order docs/agent.md lists them."""
+    """The agent's own families, in the order docs/http-api.md lists them."""
     broker = agent.broker
     yield _gauge("twin_up", "1 while the agent service is running.", 1 if agent.running else 0)
     yield _gauge("twin_uptime_seconds", "Seconds since the agent service started.", agent.uptime_s)
@@ -252,7 +252,8 @@ class _DeviceFamilies:
     """The per-device families, filled device by device (one family per metric, many label sets)."""
 
     def __init__(self) -> None:
-        # One declaration per family (name, help, labels), as docs/agent.md lists them: health, latency, twin.
+        # One declaration per family (name, help, labels), as docs/http-api.md lists them: health, latency,
+        # twin.
         self._declare_health(["device"])
         self._declare_latency(["device"])
         self._declare_twin(["device"])

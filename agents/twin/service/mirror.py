@@ -1034,7 +1034,7 @@ class Mirror:
         return sorted(rows, key=lambda row: row.device)
 
     def report(self) -> MirrorReport:
-        """This mirror's part of the agent's state (docs/agent.md describes every field)."""
+        """This mirror's part of the agent's state (docs/http-api.md describes every field)."""
         readout = self._read()
         return MirrorReport(
             devices={device: self._device_state(device, h, readout) for device, h in readout.health.items()},

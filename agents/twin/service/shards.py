@@ -84,7 +84,7 @@ log = logging.getLogger(__name__)
 
 # Messages a second one worker is planned for when `[twin] workers = 0` chooses the count for a listed fleet:
 # about a third of what one worker mirrors on this project's 2-core development machine, so a fleet of up to
-# 100 arms at 10 Hz stays in one process (docs/agent.md, "Workers").
+# 100 arms at 10 Hz stays in one process (docs/scaling.md, "Workers").
 WORKER_PLAN_RATE = 1000.0
 # Per worker, the agent queues at most this many messages for its pipe (about 40 MB of payloads across the
 # fleet's queues at most); beyond it the oldest are dropped and counted, as in an in-process mirror's queue.

@@ -2,7 +2,7 @@
 
 Frozen dataclasses, one document: `AgentState.to_json()` is the body of `GET /state` and of every `/stream`
 event, `AgentState.from_json()` reads it back (the viewer, `twin bench`), and `twin.service.metrics` renders
-the Prometheus exposition from the same object, so the three endpoints cannot disagree. docs/agent.md
+the Prometheus exposition from the same object, so the three endpoints cannot disagree. docs/http-api.md
 describes every field. The JSON encoding is msgspec's: field order as declared, NaN and infinities as `null`
 (JSON has no NaN), enums by value.
 
@@ -151,7 +151,8 @@ class DeviceState:
     loss: LossSnapshot = field(default_factory=LossSnapshot)
     # Where the LeRobot calibration it decodes with came from: its own file in the calibration store, the
     # config's one for every arm, or "" for none (the nominal SO-101). `uncalibrated`: none, while its units
-    # (ticks, range100) need one, so its angles are the nominal arm's, not this arm's (docs/agent.md).
+    # (ticks, range100) need one, so its angles are the nominal arm's, not this arm's (docs/agent.md,
+    # "Calibration").
     calibration: str = ""
     uncalibrated: bool = False
     # Why its file in the calibration store was refused (it keeps the calibration it had); "" when it was not.
@@ -245,8 +246,8 @@ class HistoryState:
 
 @dataclass(frozen=True, slots=True)
 class WorkerInfo:
-    """One worker process of a sharded agent (`twin run --workers N`, docs/agent.md "Workers"): the devices it
-    mirrors, what it handled, and what the receiving process queued for it or could not hand over."""
+    """One worker process of a sharded agent (`twin run --workers N`, docs/scaling.md "Workers"): the devices
+    it mirrors, what it handled, and what the receiving process queued for it or could not hand over."""
 
     index: int = 0
     pid: int = 0

@@ -43,7 +43,7 @@ def register(subparsers: Any) -> None:
         help="run the agent: subscribe to telemetry, mirror each arm in MuJoCo, serve /state and /metrics",
         description=(
             "Run the twin agent. Settings come from --config (TOML, see examples/agent.toml and "
-            "docs/agent.md); the flags below override the file."
+            "docs/configuration.md); the flags below override the file."
         ),
     )
     add_agent_arguments(parser)
