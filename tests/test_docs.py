@@ -128,13 +128,6 @@ def test_the_citation_check_tells_outside_files_from_ours_and_public_sources(
 
 # --- links between the pages, and what a reader of the repository cannot look up ----------------------------
 
-# The runtime work on these two pages lands first; the docs split that follows it (agent.md into agent,
-# configuration, HTTP API and scaling pages; performance.md's targets) rewrites the lines flagged here.
-FOLLOW_UP = "left for the agent.md split and the performance.md rewrite after the runtime work lands"
-# Pages with a known finding per check, marked xfail(strict=True): the mark fails once the page is fixed, so
-# it cannot outlive the finding.
-KNOWN_FINDINGS: dict[str, set[str]] = {"links": set(), "internal": {"performance.md"}}
-
 FENCE = re.compile(r"^ {0,3}(```|~~~).*?^ {0,3}\1[^\n]*$", re.M | re.S)
 CODE_SPAN = re.compile(r"(`+)(?!`).*?(?<!`)\1(?!`)", re.S)
 # [text](target) and ![alt](target), the target up to a space (a title may follow) or the closing parenthesis.
@@ -230,26 +223,13 @@ def internal_references(text: str, page: Path) -> list[str]:
     return problems
 
 
-def per_page(check: str) -> list[object]:
-    return [
-        pytest.param(
-            page,
-            id=page.name,
-            marks=[pytest.mark.xfail(strict=True, reason=FOLLOW_UP)]
-            if page.name in KNOWN_FINDINGS[check]
-            else [],
-        )
-        for page in PAGES
-    ]
-
-
-@pytest.mark.parametrize("page", per_page("links"))
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
 def test_every_relative_link_reaches_a_file_and_its_heading(page: Path) -> None:
     problems = broken_links(page.read_text(encoding="utf-8"), page)
     assert not problems, "\n".join(problems)
 
 
-@pytest.mark.parametrize("page", per_page("internal"))
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
 def test_no_page_names_an_issue_of_ours_or_a_commit(page: Path) -> None:
     problems = internal_references(page.read_text(encoding="utf-8"), page)
     assert not problems, "\n".join(problems)
