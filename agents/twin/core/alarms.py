@@ -302,6 +302,30 @@ class _Alarm:
         return alarm_id(self.device, self.joint, self.kind)
 
 
+@dataclass(frozen=True, slots=True)
+class AlarmRecord:
+    """What an alarm must carry across a restart: its state and the condition's debounce, the times on the
+    engine's clock (monotonic seconds). `ServoAlarms.records` exports them, `ServoAlarms.restore` takes them
+    back; the agent keeps them over a worker's restart and, for the states a person must see, in its state
+    file over its own (service.persist)."""
+
+    device: str
+    joint: str
+    kind: AlarmKind
+    state: AlarmState
+    since: float
+    present: bool
+    raised: int
+    value: float | None = None
+    message: str = ""
+    raise_since: float | None = None
+    clear_since: float | None = None
+
+    @property
+    def alarm_id(self) -> str:
+        return alarm_id(self.device, self.joint, self.kind)
+
+
 class _JointAlarms:
     """One joint's alarms, one slot per kind in _KINDS order (None until the kind first has a value), and
     whether all of them are idle: not present and no raise timer running."""
@@ -703,6 +727,71 @@ class ServoAlarms:
                 message=message,
             )
         )
+
+    # -- restarts -------------------------------------------------------------------------------------------
+
+    def records(self, *, devices: Iterable[str] | None = None) -> list[AlarmRecord]:
+        """Every alarm that is not NORMAL or whose condition is present or timing a raise (a NORMAL, idle
+        alarm is made again from the next message), of `devices` or of all."""
+        wanted = None if devices is None else set(devices)
+        out = []
+        for alarm in self._alarms.values():
+            if wanted is not None and alarm.device not in wanted:
+                continue
+            if alarm.state is AlarmState.NORMAL and not alarm.present and alarm.raise_since is None:
+                continue
+            out.append(
+                AlarmRecord(
+                    device=alarm.device,
+                    joint=alarm.joint,
+                    kind=alarm.kind,
+                    state=alarm.state,
+                    since=alarm.since,
+                    present=alarm.present,
+                    raised=alarm.raised,
+                    value=alarm.value,
+                    message=alarm.message,
+                    raise_since=alarm.raise_since,
+                    clear_since=alarm.clear_since,
+                )
+            )
+        return out
+
+    def restore(self, records: Iterable[AlarmRecord]) -> int:
+        """Take back alarms `records` exported (after a restart, before any message of their devices): each
+        replaces what the engine has for its id. Records of joints or kinds this engine does not know are
+        skipped. Returns how many were restored."""
+        restored = 0
+        for record in records:
+            if record.joint not in self._rule_list or record.kind not in _KINDS:
+                continue
+            key = record.device + _ID_SUFFIX[record.joint, record.kind]
+            alarm = self._alarms.get(key)
+            slots_of = self._slots.setdefault(record.device, {})
+            slots = slots_of.get(record.joint)
+            if slots is None:
+                slots = slots_of[record.joint] = _JointAlarms([None] * len(_KINDS))
+            if alarm is None:
+                alarm = self._new_alarm(record.device, record.joint, record.kind, record.since)
+                slots.alarms[_KINDS.index(record.kind)] = alarm
+            # The joint's next evaluation takes the full path, so a restored condition can clear.
+            slots.idle = False
+            alarm.state = record.state
+            alarm.since = record.since
+            alarm.present = record.present
+            alarm.raised = record.raised
+            alarm.value = record.value
+            alarm.message = record.message
+            alarm.raise_since = record.raise_since
+            alarm.clear_since = record.clear_since
+            restored += 1
+        return restored
+
+    def restore_counters(self, counters: AlarmCounters) -> None:
+        """Add `counters` (a previous run's totals) to this engine's."""
+        self.counters.raised.update(counters.raised)
+        self.counters.cleared.update(counters.cleared)
+        self.counters.acknowledged.update(counters.acknowledged)
 
     # -- people ---------------------------------------------------------------------------------------------
 

@@ -305,7 +305,7 @@ def rejected_table(samples: Sequence[RejectedSample], payload_max_bytes: int) ->
             "reason": pa.array([s.reason for s in samples], pa.string()),
             "detail": pa.array([s.detail for s in samples], pa.string()),
             "payload": pa.array([bytes(s.payload[:payload_max_bytes]) for s in samples], pa.binary()),
-            "payload_bytes": pa.array([len(s.payload) for s in samples], pa.int64()),
+            "payload_bytes": pa.array([s.size for s in samples], pa.int64()),
         },
         schema=REJECTED_SCHEMA,
     )
@@ -339,6 +339,9 @@ class WriterStats:
     rows_lost_in_conversion: int = 0
     storage_ok: bool = True
     last_error: str = ""
+    # How long the oldest row not yet committed has waited (0 when none waits): the history's lag behind the
+    # twin, which a storage outage makes grow (the metric CloudWatch alarms on, output.emf).
+    lag_s: float = 0.0
 
 
 @dataclass
@@ -409,6 +412,8 @@ class HistoryWriter:
             REJECTED_TABLE: max(1, settings.max_buffer_rows // 10),
         }
         self._inflight_rows = dict.fromkeys(SCHEMAS, 0)
+        # When the oldest rows of the batch being committed arrived, per table (None: nothing in flight).
+        self._inflight_since: dict[str, float | None] = dict.fromkeys(SCHEMAS)
         self._seq = 0
         self._stats = WriterStats(tables={t: TableStats() for t in SCHEMAS})
         self._flush_requested = False
@@ -518,8 +523,16 @@ class HistoryWriter:
     def stats(self) -> WriterStats:
         with self._cond:
             return dataclasses.replace(
-                self._stats, tables={k: dataclasses.replace(v) for k, v in self._stats.tables.items()}
+                self._stats,
+                tables={k: dataclasses.replace(v) for k, v in self._stats.tables.items()},
+                lag_s=self._lag(self._clock()),
             )
+
+    def _lag(self, now: float) -> float:
+        """Seconds the oldest uncommitted row has waited (lock held)."""
+        oldest = [q[0].since for q in self._pending.values() if q]
+        oldest.extend(t for t in self._inflight_since.values() if t is not None)
+        return max(0.0, now - min(oldest)) if oldest else 0.0
 
     def count_conversion(self, *, slow: bool = False, lost_rows: int = 0, error: str = "") -> None:
         with self._cond:
@@ -574,9 +587,12 @@ class HistoryWriter:
                             rows = sum(p.table.num_rows for p in batches[table])
                             self._stats.tables[table].rows_buffered -= rows
                             self._inflight_rows[table] += rows
+                            self._inflight_since[table] = batches[table][0].since
             ok = True
             for table, items in batches.items():
                 ok = self._commit_round(table, items) and ok
+                with self._cond:
+                    self._inflight_since[table] = None
             with self._cond:
                 if batches:
                     self._stats.storage_ok = ok
@@ -899,6 +915,8 @@ class HistoryWorker:
         self._rejected: list[RejectedSample] = []
         self._applied_since = 0.0
         self._rejected_since = 0.0
+        # How long close() lets the writer retry its last commit; the sink sets it from its own close budget.
+        self.close_timeout_s = 25.0
 
     def handle_applied(self, sample: AppliedSample) -> None:
         if not self._applied:
@@ -934,9 +952,9 @@ class HistoryWorker:
     def close(self) -> None:
         self._convert_applied()
         self._convert_rejected()
-        # Shorter than the agent's 30 s wait for this sink, so a dead store is reported by the writer (with
-        # the count of rows it could not write) before the sink gives up on it.
-        self.writer.close(timeout=25.0)
+        # Shorter than the sink's own wait (HistorySink.close), so a dead store is reported by the writer
+        # (with the count of rows it could not write) before the sink gives up on it.
+        self.writer.close(timeout=self.close_timeout_s)
 
     def _convert_applied(self) -> None:
         samples, self._applied = self._applied, []
@@ -975,5 +993,7 @@ class HistorySink(QueuedSink):
         super().__init__("history", self.worker, max_pending=settings.queue_max, idle_s=0.25, hand_off_s=0.05)
 
     def close(self, timeout: float = 30.0) -> None:
-        # The queue drains first; the worker's close commits the rest (the writer bounds its own wait).
+        # The queue drains first; the worker's close commits the rest, retrying for all but the last few
+        # seconds of `timeout` (the writer bounds its own wait and reports the rows it could not write).
+        self.worker.close_timeout_s = max(1.0, timeout - 8.0)
         super().close(timeout)

@@ -36,7 +36,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
 
-from twin.core.alarms import worst_first
+from twin.core.alarms import AlarmRecord, worst_first
 from twin.core.health import DeviceStatus
 from twin.core.topics import device_from_topic
 from twin.output.emf import EmfFileWriter, EmfPublisher, FleetTotals
@@ -46,25 +46,33 @@ from twin.service.config import AgentConfig, ConfigError
 from twin.service.console import FleetRow, SessionCatalog, rerun_viewer_url
 from twin.service.events import Event, EventKind, EventLevel, EventQuery, EventStore, FleetWatch
 from twin.service.http_api import AgentHttpServer
+from twin.service.persist import StateFile
 from twin.service.shards import (
+    CHECKPOINT_EVERY_S,
     AckRequest,
     AlarmsRequest,
+    CheckpointRequest,
     EventsRequest,
     FleetRowsRequest,
+    MirrorCheckpoint,
     MirrorReport,
     Reply,
     ReportRequest,
     Request,
+    RestoreRequest,
     Shard,
+    StopReport,
     WorkerError,
     WorkerPlan,
     WorkerShard,
     alarm_of,
     alarms_of,
+    checkpoint_of,
     events_of,
     fleet_rows_of,
     merge_reports,
     report_of,
+    restored_of,
     worker_config,
 )
 from twin.service.state import (
@@ -73,6 +81,7 @@ from twin.service.state import (
     AlarmInfo,
     BrokerState,
     ConnectionState,
+    DeviceState,
     HealthReport,
     WorkerInfo,
 )
@@ -157,6 +166,10 @@ class AgentService:
         self._watch = FleetWatch(self._events)
         self._events_seen: dict[int, int] = {}
         self._workers_seen: dict[int, tuple[bool, int]] = {}
+        self._state_file = StateFile(config.twin.state_file) if config.twin.state_file else None
+        # Set to make the supervisor take checkpoints now (an acknowledgement must reach the state file).
+        self._wake = threading.Event()
+        self.stop_reports: dict[int, StopReport | None] = {}
 
     def _build_shards(self, config: AgentConfig, sinks: Sequence[TwinSink]) -> list[Shard]:
         count = self.plan.count
@@ -188,6 +201,7 @@ class AgentService:
                 shard.launch()
             for shard in self._shards:
                 shard.await_ready()
+            self._restore_state_file()
             self._http = AgentHttpServer(
                 self,
                 self.config.http.host,
@@ -198,7 +212,7 @@ class AgentService:
                 rerun_url=rerun_viewer_url(self.sinks),
             )
         except BaseException:
-            self._stop_shards(timeout=10.0)
+            self._stop_shards(time.monotonic() + 10.0)
             raise
         self._running = True
         self._supervisor = threading.Thread(target=self._supervise, name="twin-supervisor", daemon=True)
@@ -226,44 +240,135 @@ class AgentService:
             },
         )
 
-    def stop(self, timeout: float = 30.0) -> None:
+    def stop(self, timeout: float | None = None) -> None:
         """Unsubscribe, let every mirror handle what is queued for it, flush its sinks and end, stop the
-        metrics and HTTP. Idempotent."""
+        metrics and HTTP, all within `timeout` seconds (default: `[twin] shutdown_budget_s`); a worker still
+        running then is killed. Logs what could not be written, and keeps the alarms in the state file.
+        Idempotent."""
         with self._stop_lock:
             if self._stopping.is_set():
                 return
             self._stopping.set()
-        log.info("agent stopping")
+        budget = self.config.twin.shutdown_budget_s if timeout is None else timeout
+        deadline = time.monotonic() + budget
+        self._wake.set()
+        log.info("agent stopping", extra={"shutdown_budget_s": budget})
         if self._started_pool:
             try:
-                self._pool.stop(min(timeout, 5.0))
+                self._pool.stop(min(budget / 4.0, 5.0))
             except Exception:
                 log.exception("stopping the connection pool failed")
-        self._stop_shards(timeout)
         if self._supervisor is not None:
-            self._supervisor.join(timeout)
+            # It may be starting a worker again (up to START_TIMEOUT_S): the budget does not wait for that.
+            self._supervisor.join(min(5.0, max(0.1, deadline - time.monotonic())))
+        self._stop_shards(deadline)
+        self._keep_state(final=True)
         if self._emf is not None:
-            self._emf.stop(timeout)
+            self._emf.stop(5.0)
         if self._http is not None:
             self._http.stop()
         self._running = False
-        log.info("agent stopped")
+        self._report_stop(budget)
 
-    def _stop_shards(self, timeout: float) -> None:
+    def _stop_shards(self, deadline: float) -> None:
         # Closed together, so the workers hand over and flush in parallel, then waited for one by one.
         for shard in self._shards:
             shard.close()
-        deadline = time.monotonic() + timeout
         for shard in self._shards:
-            shard.join(deadline)
+            self.stop_reports[shard.index] = shard.join(deadline)
+
+    def _report_stop(self, budget: float) -> None:
+        """One line: the agent stopped, and what it could not write (ERROR when anything)."""
+        unwritten: Counter[str] = Counter()
+        killed = []
+        for index, report in sorted(self.stop_reports.items()):
+            if report is None:
+                killed.append(index)
+            else:
+                unwritten.update(report.unwritten)
+        fields = {"unwritten": dict(unwritten), "workers_killed": killed, "shutdown_budget_s": budget}
+        if unwritten or killed:
+            log.error(
+                "agent stopped; not everything was written: %s%s",
+                ", ".join(f"{n} {what}" for what, n in sorted(unwritten.items())) or "nothing counted",
+                f"; worker(s) {killed} killed at the {budget:g} s budget, what they held is lost"
+                if killed
+                else "",
+                extra=fields,
+            )
+        else:
+            log.info("agent stopped", extra=fields)
 
     def _supervise(self) -> None:
-        while not self._stopping.wait(SUPERVISE_EVERY_S):
+        next_checkpoint = time.monotonic() + CHECKPOINT_EVERY_S
+        while not self._stopping.is_set():
+            self._wake.wait(SUPERVISE_EVERY_S)
+            if self._stopping.is_set():
+                return
+            urgent = self._wake.is_set()
+            self._wake.clear()
             for shard in self._shards:
                 if self._stopping.is_set():
                     return
                 shard.supervise()
             self._collect_events()
+            now = time.monotonic()
+            if urgent or now >= next_checkpoint:
+                next_checkpoint = now + CHECKPOINT_EVERY_S
+                self._keep_state()
+
+    # ------------------------------------------------------------------------------------------ state kept
+
+    def _keep_state(self, *, final: bool = False) -> None:
+        """Each worker's checkpoint (its restart's starting point) and the alarms the state file keeps.
+        `final`: the shards have stopped; their stop reports hold their alarms."""
+        workers = self._mirror is None
+        if not workers and self._state_file is None:
+            return
+        records: list[AlarmRecord] = []
+        for shard in self._shards:
+            report = self.stop_reports.get(shard.index) if final else None
+            if report is not None:
+                records.extend(report.alarms)
+                continue
+            checkpoint = None if final else self._checkpoint(shard, alarms_only=not workers)
+            if checkpoint is None:
+                checkpoint = shard.checkpoint  # restarting, or gone: what it last said
+            if checkpoint is not None:
+                records.extend(checkpoint.alarms)
+        if self._state_file is not None:
+            self._state_file.save(records, time.monotonic(), time.time())
+
+    def _checkpoint(self, shard: Shard, *, alarms_only: bool) -> MirrorCheckpoint | None:
+        if not shard.answering:
+            return None
+        try:
+            checkpoint = checkpoint_of(shard.request(CheckpointRequest(alarms_only))())
+        except (WorkerError, TimeoutError) as exc:
+            log.warning("no checkpoint of shard %d: %s", shard.index, exc)
+            return None
+        shard.confirm(checkpoint)
+        return checkpoint
+
+    def _restore_state_file(self) -> None:
+        """Give each mirror the alarms the state file kept for its devices (before any message)."""
+        if self._state_file is None:
+            return
+        records = self._state_file.load(time.monotonic(), time.time())
+        by_shard: dict[int, list[AlarmRecord]] = {}
+        for record in records:
+            by_shard.setdefault(self.plan.worker_of(record.device), []).append(record)
+        for shard in self._shards:
+            mine = tuple(by_shard.get(shard.index, ()))
+            if not mine:
+                continue
+            restored = restored_of(shard.request(RestoreRequest(alarms=mine))())
+            # Also what the worker starts from if it dies before its first checkpoint.
+            shard.confirm(MirrorCheckpoint(alarms=mine, at=time.monotonic()))
+            log.info(
+                "alarms restored from the state file",
+                extra={"shard": shard.index, "alarms": restored.alarms, "path": str(self._state_file.path)},
+            )
 
     def __enter__(self) -> AgentService:
         self.start()
@@ -353,11 +458,22 @@ class AgentService:
                 return cached[1]
             now = self._clock()
             reports = {shard.index: report for shard, report in self._ask_all(ReportRequest(), report_of)}
+            restarting: dict[str, DeviceState] = {}
+            restarting_untracked = []
+            for shard in self._shards:
+                if shard.index not in reports and shard.restarting:
+                    # Worker processes share the host's monotonic clock, which their checkpoints are on.
+                    restarting.update(shard.restarting_devices(self.config.health, time.monotonic()))
+                    if shard.checkpoint is not None:
+                        restarting_untracked.append(shard.checkpoint.untracked_rejected)
             state = merge_reports(
                 self._info(now),
                 list(reports.values()),
                 self._worker_infos(reports),
                 dropped=self._dropped(),
+                dropped_total=sum(shard.dropped_total for shard in self._shards),
+                restarting=restarting,
+                restarting_untracked=restarting_untracked,
             )
             self._cached = (time.monotonic(), state)
             return state
@@ -383,7 +499,7 @@ class AgentService:
         return tuple(info for info in infos if info is not None)
 
     def _dropped(self) -> Counter[str]:
-        """Messages of each device the agent could not hand to its mirror."""
+        """Messages of each device the agent could not hand to its mirror (the most recent devices)."""
         total: Counter[str] = Counter()
         for shard in self._shards:
             total.update(shard.dropped())
@@ -431,6 +547,7 @@ class AgentService:
         shard = self._shards[self.plan.worker_of(device)]
         info = alarm_of(shard.request(AckRequest(alarm_id))())
         self._cached = None
+        self._wake.set()  # into the state file (and the worker's checkpoint) now
         return info
 
     def _fleet_totals(self) -> FleetTotals:

@@ -40,17 +40,27 @@ from __future__ import annotations
 import gc
 import logging
 import os
+import pickle
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple, TypeVar
 
-from twin.core.alarms import AlarmEvent, AlarmState, AlarmView, JointHealth, ServoAlarms, Severity
-from twin.core.health import FleetHealth, HealthSnapshot
+from twin.core.alarms import (
+    AlarmCounters,
+    AlarmEvent,
+    AlarmRecord,
+    AlarmState,
+    AlarmView,
+    JointHealth,
+    ServoAlarms,
+    Severity,
+)
+from twin.core.health import FleetHealth, HealthSnapshot, HealthThresholds
 from twin.core.latency import LatencyHistogram
 from twin.core.loss import DeviceLoss, LossSnapshot
 from twin.core.modes import TwinMode
@@ -64,7 +74,7 @@ from twin.core.telemetry import (
     Units,
 )
 from twin.core.twin import DeviceTwin, TwinSnapshot
-from twin.output.sinks import AppliedSample, RejectedSample, TwinSink
+from twin.output.sinks import AppliedSample, RejectedSample, TwinSink, rejected_sample
 
 # This module is the heavy end of the agent (MuJoCo, USD): the agent imports it only for an in-process
 # mirror, and worker processes import it; the agent with worker processes never does.
@@ -79,12 +89,18 @@ from twin.service.shards import (
     EVENTS_PER_ASK,
     AckRequest,
     AlarmsRequest,
+    CheckpointRequest,
+    DeviceCheckpoint,
     EventsRequest,
     FleetRowsRequest,
+    MirrorCheckpoint,
     MirrorReport,
     Reply,
     ReportRequest,
     Request,
+    Restored,
+    RestoreRequest,
+    StopReport,
 )
 from twin.service.state import (
     AlarmInfo,
@@ -111,6 +127,7 @@ log = logging.getLogger(__name__)
 
 Clock = Callable[[], float]
 _SampleT = TypeVar("_SampleT", AppliedSample, RejectedSample)
+_T = TypeVar("_T")
 
 # A device whose valid messages have all been older than its last applied one for this long (and this many
 # messages) has had its edge clock jump backwards: rebuild its twin on the new timeline. Reordering and
@@ -137,6 +154,8 @@ CATCH_UP_AFTER_S = 0.05
 # The queue between the MQTT threads and the worker holds at most this many messages (about 40 MB of edge
 # payloads); beyond it the oldest are dropped and counted, so a stalled worker cannot exhaust memory.
 MAX_QUEUED_MESSAGES = 50_000
+# ... and at most this many bytes of payloads: fewer messages when they are large.
+MAX_QUEUED_BYTES = 64 * 2**20
 
 
 @dataclass(frozen=True, slots=True)
@@ -193,6 +212,29 @@ class _Readout:
     loss: dict[str, LossSnapshot]
 
 
+class _Job:
+    """Work another thread hands the worker thread, done between two batches (a checkpoint, a restore), so it
+    sees the mirror exactly as the messages taken so far left it."""
+
+    def __init__(self, fn: Callable[[], object]) -> None:
+        self.fn = fn
+        self.done = threading.Event()
+        self.result: object = None
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        try:
+            self.result = self.fn()
+        except BaseException as exc:  # handed back to the caller, on its own thread
+            self.error = exc
+        finally:
+            self.done.set()
+
+
+# How long a checkpoint or a restore may wait for the worker thread to finish its batch.
+JOB_TIMEOUT_S = 10.0
+
+
 class PipeInbox:
     """A worker process's inbox: the batches the agent wrote to its pipe (service.shards), read by the worker
     thread itself, so no thread or queue sits between.
@@ -239,8 +281,8 @@ class PipeInbox:
         return 0  # what waits in the pipe is the agent's to count (its queue for this worker)
 
     @property
-    def overflowed(self) -> Counter[str]:
-        return Counter()
+    def overflowed(self) -> dict[str, int]:
+        return {}
 
     @property
     def overflowed_total(self) -> int:
@@ -290,6 +332,7 @@ class Mirror:
         self._worker: threading.Thread | None = None
         self._stopped = False
         self._stop_lock = threading.Lock()
+        self._jobs: deque[_Job] = deque()
 
     def _init_fleet_state(self, config: AgentConfig, clock: Clock) -> None:
         """What the worker writes per device and the agent's threads read, and the lock that guards it."""
@@ -399,7 +442,7 @@ class Mirror:
             try:
                 self._history = HistorySink(self._history_settings)
             except ValueError as exc:
-                self._close_sinks(timeout=5.0)
+                self._close_sinks(time.monotonic() + 5.0)
                 raise OSError(f"history: {exc}") from exc
         self._sinks = (
             *((self._recording,) if self._recording else ()),
@@ -419,29 +462,48 @@ class Mirror:
         if self._worker is not None:
             self._worker.join(timeout)
 
-    def stop(self, timeout: float = 30.0) -> None:
-        """Close the inbox, let the worker handle what it holds, close the sinks (final USD save).
-        Idempotent."""
+    def stop(self, timeout: float = 30.0) -> StopReport:
+        """Close the inbox, let the worker handle what it holds, close the sinks (final USD save, history's
+        last commit), all within `timeout` seconds; returns what could not be written. Idempotent."""
+        deadline = time.monotonic() + timeout
         with self._stop_lock:
             if self._stopped:
-                return
+                return self.stop_report()
             self._stopped = True
         self._mailbox.close()
         if self._worker is not None:
             # The worker takes what is left, then sees the closed, empty inbox and returns.
-            self._worker.join(timeout)
+            self._worker.join(max(0.1, deadline - time.monotonic()))
             if self._worker.is_alive():
                 log.error("twin worker did not finish within %.1f s", timeout)
-        self._close_sinks(timeout)
+        self._close_sinks(deadline)
+        return self.stop_report()
 
-    def _close_sinks(self, timeout: float) -> None:
+    def _close_sinks(self, deadline: float) -> None:
+        """Close every sink, the recording first and history (the longest: its last commit) before the extra
+        ones, each with what is left of the time until `deadline`."""
         sinks = self._sinks or (*((self._recording,) if self._recording else ()), *self._extra_sinks)
         for sink in sinks:
             try:
-                # History commits what it holds on close; a slow object store needs longer than a file.
-                sink.close(max(timeout, 30.0) if sink is self._history else timeout)
+                sink.close(max(1.0, deadline - time.monotonic()))
             except Exception:
                 log.exception("closing sink %s failed", sink.name)
+
+    def stop_report(self) -> StopReport:
+        """After `stop`: what the sinks could not write (history's rows, every sink's queued samples) and
+        the alarms a restart must not forget."""
+        unwritten: dict[str, int] = {}
+        for sink in self._sinks:
+            pending = sink.stats().pending
+            if pending:
+                unwritten[f"{sink.name}_samples"] = pending
+        if self._history is not None:
+            rows = self._history.writer.buffered_rows()
+            if rows:
+                unwritten["history_rows"] = rows
+        with self._lock:
+            alarms = tuple(self._alarms.records())
+        return StopReport(unwritten=unwritten, alarms=alarms)
 
     @property
     def running(self) -> bool:
@@ -466,6 +528,7 @@ class Mirror:
         while True:
             items = self._mailbox.take_all(wake)
             if not items and self._mailbox.closed:
+                self._run_jobs()
                 return
             dirty: set[str] = set()
             if items and self._clock() - items[0][1].recv_mono > CATCH_UP_AFTER_S:
@@ -484,6 +547,8 @@ class Mirror:
                 last_step = now
             self._publish(dirty, took=bool(items))
             self._watch_statuses()
+            if self._jobs:
+                self._run_jobs()
             since = self._clock() - last_freeze
             grown = len(self._devices) != frozen_devices
             if since >= FREEZE_EVERY_S or (grown and since >= FREEZE_AFTER_NEW_S):
@@ -491,6 +556,113 @@ class Mirror:
                 gc.freeze()
                 last_freeze = self._clock()
                 frozen_devices = len(self._devices)
+
+    def _run_jobs(self) -> None:
+        while self._jobs:
+            self._jobs.popleft().run()
+
+    def _between_batches(self, fn: Callable[[], _T], timeout: float = JOB_TIMEOUT_S) -> _T:
+        """`fn()` on the worker thread between two batches (at once when it does not run, or when called on
+        it); TimeoutError when the worker does not get to it within `timeout`."""
+        worker = self._worker
+        if worker is None or not worker.is_alive() or threading.current_thread() is worker:
+            return fn()
+        job = _Job(fn)
+        self._jobs.append(job)
+        if not job.done.wait(timeout):
+            raise TimeoutError(f"the mirror's worker did not finish its batch within {timeout:.0f} s")
+        if job.error is not None:
+            raise job.error
+        return job.result  # type: ignore[return-value]
+
+    # --------------------------------------------------------------------------------------- checkpoints
+
+    def checkpoint(self, *, alarms_only: bool = False) -> MirrorCheckpoint:
+        """The mirror's state between two batches (service.shards, `MirrorCheckpoint`)."""
+        return self._between_batches(lambda: self._build_checkpoint(alarms_only))
+
+    def _build_checkpoint(self, alarms_only: bool) -> MirrorCheckpoint:
+        """On the worker thread (or with it stopped): nothing changes while this runs."""
+        with self._lock:
+            alarms = tuple(self._alarms.records())
+            counters = _copy_counters(self._alarms.counters)
+            if alarms_only:
+                return MirrorCheckpoint(alarms=alarms, alarm_counters=counters, at=self._clock())
+            decided = self._decoder.decided_units()
+            devices = {}
+            for device, health in self._fleet.devices.items():
+                tracked = self._devices.get(device)
+                loss = self._loss.get(device)
+                devices[device] = DeviceCheckpoint(
+                    health=health.checkpoint(),
+                    loss=pickle.dumps(loss, protocol=pickle.HIGHEST_PROTOCOL) if loss is not None else b"",
+                    units=decided.get(device),
+                    timestamp_ms=tracked.twin.last_timestamp_ms if tracked is not None else None,
+                    targets_rad=dict(tracked.twin.targets) if tracked is not None else None,
+                    gripper_percent=self._gripper.get(device),
+                )
+            untracked = dict(self._fleet.untracked_rejected)
+            batches = self.batches
+        return MirrorCheckpoint(
+            taken=self.processed,
+            errors=self.errors,
+            batches=batches,
+            at=self._clock(),
+            devices=devices,
+            untracked_rejected=untracked,
+            alarms=alarms,
+            alarm_counters=counters,
+            history=self._history_state(),
+            tracking_since=self._fleet.started,
+        )
+
+    def restore(self, checkpoint: MirrorCheckpoint | None, alarms: Sequence[AlarmRecord] = ()) -> Restored:
+        """Take back a checkpoint of this mirror's previous process and alarms kept over a restart of the
+        agent, before the first message; between batches on the worker thread."""
+        return self._between_batches(lambda: self._restore(checkpoint, tuple(alarms)))
+
+    def _restore(self, checkpoint: MirrorCheckpoint | None, alarms: tuple[AlarmRecord, ...]) -> Restored:
+        devices = 0
+        with self._lock:
+            if checkpoint is not None:
+                self.processed = checkpoint.taken
+                self.errors = checkpoint.errors
+                self.batches = checkpoint.batches
+                self._fleet.untracked_rejected.update(checkpoint.untracked_rejected)
+                self._alarms.restore_counters(checkpoint.alarm_counters)
+                for device, saved in checkpoint.devices.items():
+                    self._restore_device(device, saved)
+                    devices += 1
+                restored = self._alarms.restore(checkpoint.alarms)
+            else:
+                restored = 0
+            restored += self._alarms.restore(alarms)
+        if checkpoint is not None:
+            self._decoder.restore_units(
+                {device: saved.units for device, saved in checkpoint.devices.items() if saved.units}
+            )
+        if devices or restored:
+            log.info("mirror state restored", extra={"devices": devices, "alarms": restored})
+        return Restored(devices=devices, alarms=restored)
+
+    def _restore_device(self, device: str, saved: DeviceCheckpoint) -> None:
+        """Under the lock: one device's counters, loss estimate and twin (from its last applied pose)."""
+        self._fleet.device(device).restore(saved.health)
+        if saved.loss:
+            loss = pickle.loads(saved.loss)  # written by this agent's own previous worker process
+            if isinstance(loss, DeviceLoss):
+                self._loss[device] = loss
+        if saved.timestamp_ms is None or saved.targets_rad is None or device in self._devices:
+            return
+        if not self._budget.take(self._slot):
+            return  # the place went to another worker's device meanwhile: it is admitted anew, if at all
+        tracked = self._new_device(device, replace=True)
+        tracked.twin.apply(saved.targets_rad, saved.timestamp_ms)
+        tracked.gripper_percent = saved.gripper_percent
+        self._gripper[device] = saved.gripper_percent
+        self._snapshots[device] = tracked.twin.snapshot()
+        if saved.units is not None:
+            self._units[device] = saved.units
 
     def _step_physics(self, elapsed: float, dirty: set[str]) -> None:
         for device, tracked in self._devices.items():
@@ -624,9 +796,10 @@ class Mirror:
             detail=str(rejected),
         )
         if self._sinks:
-            sample = RejectedSample(
-                device_id=topic_device,
-                topic=item.topic,
+            # Only the payload's first bytes: the sinks' queues must not hold every junk message whole.
+            sample = rejected_sample(
+                topic_device,
+                item.topic,
                 received_wall_s=item.recv_wall,
                 reason=reason,
                 detail=str(rejected),
@@ -646,6 +819,8 @@ class Mirror:
             with self._lock:
                 self._fleet.record_rejected(None, TOO_MANY_DEVICES)
             self._rejections.rejected(device, TOO_MANY_DEVICES, "telemetry.max_devices reached")
+            # units=auto may have decided this device's units already: an invented id must leave nothing.
+            self._decoder.forget(device)
             self._reject_log.log(
                 TOO_MANY_DEVICES,
                 logging.WARNING,
@@ -814,6 +989,10 @@ class Mirror:
             return tuple(self.events(EventQuery(after_id=request.after_id, limit=EVENTS_PER_ASK)))
         if isinstance(request, FleetRowsRequest):
             return tuple(self.fleet_rows())
+        if isinstance(request, CheckpointRequest):
+            return self.checkpoint(alarms_only=request.alarms_only)
+        if isinstance(request, RestoreRequest):
+            return self.restore(request.checkpoint, request.alarms)
         raise TypeError(f"not a request to a mirror: {request!r}")
 
     def events(self, query: EventQuery) -> list[Event]:
@@ -999,6 +1178,7 @@ class Mirror:
             maintenance_runs=stats.maintenance_runs,
             maintenance_failures=stats.maintenance_failures,
             last_error=stats.last_error,
+            lag_s=stats.lag_s,
         )
 
     def _recording_state(self) -> RecordingState | None:
@@ -1030,14 +1210,17 @@ class LocalShard:
         wall_clock: Clock = time.time,
         sinks: Sequence[TwinSink] = (),
     ) -> None:
-        self._inbox: InboundQueue[Inbound] = InboundQueue(max_items=MAX_QUEUED_MESSAGES)
+        self._inbox: InboundQueue[Inbound] = InboundQueue(
+            max_items=MAX_QUEUED_MESSAGES, max_bytes=MAX_QUEUED_BYTES
+        )
+        self.checkpoint: MirrorCheckpoint | None = None
         self.mirror = Mirror(
             config, inbox=self._inbox, budget=budget, clock=clock, wall_clock=wall_clock, sinks=sinks
         )
         self._closed = False
 
     def put(self, key: str, topic: str, payload: bytes, recv_mono: float, recv_wall: float) -> None:
-        self._inbox.put(key, Inbound(topic, payload, recv_mono, recv_wall))
+        self._inbox.put(key, Inbound(topic, payload, recv_mono, recv_wall), len(payload))
 
     def launch(self) -> None:
         self.mirror.start()
@@ -1049,11 +1232,19 @@ class LocalShard:
         self._closed = True
         self._inbox.close()
 
-    def join(self, deadline: float) -> None:
-        self.mirror.stop(max(0.1, deadline - time.monotonic()))
+    def join(self, deadline: float) -> StopReport | None:
+        return self.mirror.stop(max(0.1, deadline - time.monotonic()))
 
     def supervise(self) -> None:
         return  # nothing to start again: a dead worker thread is `failed`
+
+    restarting = False
+
+    def confirm(self, checkpoint: MirrorCheckpoint) -> None:
+        self.checkpoint = checkpoint
+
+    def restarting_devices(self, thresholds: HealthThresholds, now: float) -> dict[str, DeviceState]:
+        return {}  # never restarts: a dead worker thread is `failed`
 
     @property
     def failed(self) -> bool:
@@ -1070,8 +1261,18 @@ class LocalShard:
     def describe(self, report: MirrorReport | None) -> WorkerInfo | None:
         return None  # `agent.workers` lists worker processes only
 
-    def dropped(self) -> Counter[str]:
-        return Counter()  # the mirror counts its own queue's drops
+    def dropped(self) -> dict[str, int]:
+        return {}  # the mirror counts its own queue's drops
+
+    dropped_total = 0
+
+
+def _copy_counters(counters: AlarmCounters) -> AlarmCounters:
+    return AlarmCounters(
+        raised=Counter(counters.raised),
+        cleared=Counter(counters.cleared),
+        acknowledged=Counter(counters.acknowledged),
+    )
 
 
 def _alarm_info(view: AlarmView, now_mono: float, now_wall: float) -> AlarmInfo:

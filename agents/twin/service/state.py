@@ -14,6 +14,7 @@ default), and fields this version does not know are ignored.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import msgspec
 
@@ -41,6 +42,7 @@ __all__ = [
     "LatencySummary",
     "LossSnapshot",
     "MailboxState",
+    "MirrorStatus",
     "RecordingState",
     "ServoState",
     "SinkStats",
@@ -50,6 +52,14 @@ __all__ = [
 ]
 
 _ENCODER = msgspec.json.Encoder()
+
+
+class MirrorStatus(StrEnum):
+    """Whether a device's mirror runs: `restarting` while its worker process is being started again (the
+    device's figures are then its worker's last checkpoint, service.shards)."""
+
+    RUNNING = "running"
+    RESTARTING = "restarting"
 
 
 @dataclass(frozen=True, slots=True)
@@ -149,6 +159,9 @@ class DeviceState:
     servos: dict[str, ServoState] | None = None
     # Messages estimated lost in transit, from the gaps in its edge timestamps (twin.core.loss).
     loss: LossSnapshot = field(default_factory=LossSnapshot)
+    # running, or restarting while its worker process is started again (the figures are then its last
+    # checkpoint's; the arm never leaves /state).
+    mirror: MirrorStatus = MirrorStatus.RUNNING
 
 
 @dataclass(frozen=True, slots=True)
@@ -224,6 +237,8 @@ class HistoryState:
     maintenance_runs: int = 0
     maintenance_failures: int = 0
     last_error: str = ""
+    # How long the oldest row not yet written has waited, seconds (0: nothing waits); grows in an outage.
+    lag_s: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -241,6 +256,8 @@ class WorkerInfo:
     processed: int = 0
     errors: int = 0
     recording: str = ""
+    # Died and being started again: its arms show as restarting until it runs.
+    restarting: bool = False
 
 
 @dataclass(frozen=True)
