@@ -355,8 +355,10 @@ def test_a_dead_worker_is_started_again_where_it_stopped(rig: LocalRig) -> None:
     edge = rig.start_edge(devices, rate_hz=10.0, seconds=None)
     victims = WorkerPlan(2, devices).devices_of(1)
     wait_for(
-        lambda: all(d.health.counters.applied > 10 for d in agent.state().devices.values())
-        and len(agent.state().devices) == 4,
+        lambda: (
+            all(d.health.counters.applied > 10 for d in agent.state().devices.values())
+            and len(agent.state().devices) == 4
+        ),
         15,
         "all arms mirrored",
     )
@@ -392,6 +394,7 @@ def test_a_dead_worker_is_started_again_where_it_stopped(rig: LocalRig) -> None:
         assert state.devices[d].mirror == "running"
     edge.stop()
     report = edge.join(10)
+
     # Every message published is accounted for: nothing was dropped, and the loss estimate saw no hole.
     def counted() -> AgentState | None:
         state = agent.state()

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import pytest
 from aws_cdk.assertions import Match
 from twin.output import emf
 
@@ -35,6 +36,15 @@ def test_names_agree_with_the_agents_emf() -> None:
     assert monitoring.NAMESPACE == emf.NAMESPACE
     assert monitoring.AGENT_DIMENSION == emf.AGENT_DIMENSION
     assert monitoring.SEVERITY_DIMENSION == emf.SEVERITY_DIMENSION
+    stack_side = (
+        monitoring.MESSAGES_DROPPED,
+        monitoring.SINK_DROPS,
+        monitoring.WORKER_RESTARTS,
+        monitoring.HISTORY_ROWS_DROPPED,
+        monitoring.HISTORY_COMMIT_FAILURES,
+        monitoring.HISTORY_LAG,
+    )
+    assert stack_side == emf.LOSS_METRICS
 
 
 def test_topic_is_encrypted_tls_only_and_cloudwatch_may_publish(synth_default: Synth) -> None:
@@ -70,8 +80,8 @@ def test_alarm_email_subscribes_to_the_topic(synth_factory: Any) -> None:
     )
 
 
-def test_three_alarms_notify_the_topic_on_alarm_and_ok(synth_default: Synth) -> None:
-    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 3)
+def test_every_alarm_notifies_the_topic_on_alarm_and_ok(synth_default: Synth) -> None:
+    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 9)
     ref = topic_ref(synth_default)
     for props in synth_default.resources("AWS::CloudWatch::Alarm").values():
         assert props["Properties"]["AlarmActions"] == [ref]
@@ -125,3 +135,40 @@ def test_the_agent_name_follows_the_stack_name(synth_factory: Any) -> None:
     synth = synth_factory(stackName="LabTwin")
     props = alarm(synth, "The so101-twin agent")
     assert props["Dimensions"] == [{"Name": "Agent", "Value": "LabTwin"}]
+
+
+def _alarm_on(synth: Synth, metric_name: str) -> dict[str, Any]:
+    found = [
+        a["Properties"]
+        for a in synth.resources("AWS::CloudWatch::Alarm").values()
+        if a["Properties"].get("MetricName") == metric_name
+    ]
+    assert len(found) == 1, found
+    return found[0]
+
+
+@pytest.mark.parametrize(
+    "name",
+    [emf.MESSAGES_DROPPED, emf.SINK_DROPS, emf.WORKER_RESTARTS, emf.HISTORY_ROWS_DROPPED],
+)
+def test_any_loss_in_a_minute_alarms(synth_default: Synth, name: str) -> None:
+    props = _alarm_on(synth_default, name)
+    assert props["Namespace"] == emf.NAMESPACE
+    assert props["Dimensions"] == [{"Name": "Agent", "Value": "So101TwinStack"}]
+    assert (props["Statistic"], props["Period"]) == ("Sum", 60)
+    assert (props["ComparisonOperator"], props["Threshold"]) == ("GreaterThanOrEqualToThreshold", 1)
+    assert props["EvaluationPeriods"] == 1 and props["TreatMissingData"] == "notBreaching"
+
+
+def test_history_commit_failures_alarm_after_five_minutes_of_them(synth_default: Synth) -> None:
+    props = _alarm_on(synth_default, emf.HISTORY_COMMIT_FAILURES)
+    assert (props["Statistic"], props["Threshold"]) == ("Sum", 1)
+    assert (props["EvaluationPeriods"], props["DatapointsToAlarm"]) == (5, 5)
+
+
+def test_history_lag_alarms_over_a_minute_for_two(synth_default: Synth) -> None:
+    props = _alarm_on(synth_default, emf.HISTORY_LAG)
+    assert (props["Statistic"], props["Period"]) == ("Maximum", 60)
+    assert (props["ComparisonOperator"], props["Threshold"]) == ("GreaterThanOrEqualToThreshold", 60)
+    assert (props["EvaluationPeriods"], props["DatapointsToAlarm"]) == (2, 2)
+    assert props["TreatMissingData"] == "notBreaching"

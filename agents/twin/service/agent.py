@@ -628,6 +628,7 @@ def fleet_totals(state: AgentState, expected_rate_hz: float) -> FleetTotals:
     p99s = [
         d.health.internal_latency_s.p99 for d in state.devices.values() if d.health.internal_latency_s.p99
     ]
+    history = state.agent.history
     return FleetTotals(
         decoded=sum(d.health.counters.decoded for d in state.devices.values()),
         rejected=sum(d.health.counters.rejected_total for d in state.devices.values())
@@ -638,6 +639,12 @@ def fleet_totals(state: AgentState, expected_rate_hz: float) -> FleetTotals:
         loss_percent=loss,
         internal_latency_p99_ms=max(p99s) * 1000.0 if p99s else None,
         active_alarms=state.agent.alarms.present,
+        messages_dropped=state.agent.mailbox.overwritten_total,
+        sink_drops=sum(s.dropped for s in state.agent.sinks),
+        worker_restarts=sum(w.restarts for w in state.agent.workers),
+        history_rows_dropped=history.rows_dropped if history is not None else None,
+        history_commit_failures=history.commit_failures if history is not None else None,
+        history_lag_s=history.lag_s if history is not None else None,
     )
 
 
