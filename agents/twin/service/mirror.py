@@ -431,10 +431,21 @@ class Mirror:
         """The service's own sinks (USD recording, history) before the extra ones; OSError when history cannot
         open its table."""
         if self.config.twin.record_dir:
-            from twin.output.recording import RecordingSink  # noqa: PLC0415 - usd-core only when recording
+            # usd-core only when recording
+            from twin.output.recording import RecordingLimits, RecordingSink  # noqa: PLC0415
 
+            tw = self.config.twin
+            directory = Path(tw.record_dir)
             self._recording = RecordingSink(
-                self._open_recorder(Path(self.config.twin.record_dir)), self.robot
+                self._open_recorder(directory),
+                self.robot,
+                limits=RecordingLimits(
+                    max_bytes=int(tw.record_max_mb * 2**20),
+                    max_age_s=tw.record_max_age_s,
+                    budget_bytes=int(tw.record_budget_mb * 2**20),
+                    rate_hz=tw.record_rate_hz,
+                ),
+                open_next=lambda n: self._open_recorder(directory, n),
             )
         if self._history_settings is not None:
             from twin.output.history import HistorySink  # noqa: PLC0415 - heavy; only with history on
@@ -450,11 +461,13 @@ class Mirror:
             *self._extra_sinks,
         )
 
-    def _open_recorder(self, directory: Path) -> SessionRecorder:
+    def _open_recorder(self, directory: Path, rotation: int = 0) -> SessionRecorder:
+        """A new session file: session-<UTC time>-<pid>.<format>, and -<n> after it for the n-th rotation."""
         from twin.output.recorder import SessionRecorder  # noqa: PLC0415 - usd-core only when recording
 
         stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(self._wall_clock()))
-        path = directory / f"session-{stamp}-{os.getpid()}.{self.config.twin.record_format}"
+        suffix = f"-{rotation}" if rotation else ""
+        path = directory / f"session-{stamp}-{os.getpid()}{suffix}.{self.config.twin.record_format}"
         return SessionRecorder(path, flush_interval_s=self.config.twin.record_flush_s)
 
     def join(self, timeout: float | None = None) -> None:
@@ -1184,14 +1197,15 @@ class Mirror:
     def _recording_state(self) -> RecordingState | None:
         if self._recording is None:
             return None
-        recorder = self._recording.recorder
-        # Counters written by the sink's thread; int reads are atomic, and a figure one sample behind is fine.
+        totals = self._recording.totals()
         return RecordingState(
-            path=str(recorder.path),
-            samples_written=recorder.samples_written,
-            samples_dropped=recorder.samples_dropped,
-            flushes=recorder.flushes,
-            flush_errors=recorder.flush_errors,
+            path=totals.path,
+            samples_written=totals.samples_written,
+            samples_dropped=totals.samples_dropped,
+            flushes=totals.flushes,
+            flush_errors=totals.flush_errors,
+            rotations=totals.rotations,
+            files_deleted=totals.files_deleted,
         )
 
 

@@ -1132,6 +1132,8 @@ def _merge_recording(parts: list[RecordingState]) -> RecordingState | None:
         samples_dropped=sum(p.samples_dropped for p in parts),
         flushes=sum(p.flushes for p in parts),
         flush_errors=sum(p.flush_errors for p in parts),
+        rotations=sum(p.rotations for p in parts),
+        files_deleted=sum(p.files_deleted for p in parts),
     )
 
 

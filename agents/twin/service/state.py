@@ -219,6 +219,10 @@ class RecordingState:
     samples_dropped: int = 0
     flushes: int = 0
     flush_errors: int = 0
+    # New session files begun ([twin] record_max_mb, record_max_age_s) and old ones deleted to keep the
+    # directory within record_budget_mb.
+    rotations: int = 0
+    files_deleted: int = 0
 
 
 @dataclass(frozen=True, slots=True)
