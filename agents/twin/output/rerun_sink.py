@@ -42,6 +42,7 @@ import numpy as np
 import pyarrow as pa
 import rerun as rr
 import rerun.blueprint as rrb
+import rerun_bindings
 from rerun.chunk import Chunk
 
 from twin.core.telemetry import JointDiagnostics
@@ -206,8 +207,8 @@ class SaveRotation:
     The live file is always `save` (what `rerun <save>` opens); at a rotation it is renamed
     `<stem>-<UTC start time>-<n>.rrd` beside it, and the oldest of those are deleted while they, with
     the live file at its largest (`save_max_mb`), would take more than `save_budget_mb`. Each file holds
-    the arms' static parts and the layout, so it opens on its own; `rerun` opens several at once as one
-    recording (they share its id)."""
+    the arms' static parts, so it opens on its own (the first one also the layout); `rerun` opens several
+    at once as one recording (they share its id)."""
 
     CHECK_EVERY_S = 1.0
 
@@ -325,13 +326,17 @@ class RerunWorker:
         self.samples_logged = 0
         self.batches_sent = 0
 
-    def _stream(self, sink: rr.FileSink | rr.GrpcServerSink) -> rr.RecordingStream:
-        """A stream of this sink's one recording into `sink`, with the recording's name and root axes."""
+    def _stream(self, sink: rr.FileSink | rr.GrpcServerSink, *, layout: bool = True) -> rr.RecordingStream:
+        """A stream of this sink's one recording into `sink`, with the recording's name and root axes, and the
+        default layout unless `layout` is false."""
         rec = rr.RecordingStream(APPLICATION_ID, recording_id=self._recording_id)
         # Only edge_time: the SDK's own log_time/log_tick timelines would put every sample on a second clock.
         rec.set_log_time_enabled(False)
         rec.set_log_tick_enabled(False)
-        rec.set_sinks(sink, default_blueprint=self._blueprint(None))
+        if layout:
+            rec.set_sinks(sink, default_blueprint=self._blueprint(None))
+        else:
+            rec.set_sinks(sink)
         rec.send_recording_name("so101-twin fleet")
         # MuJoCo's world is z-up; Rerun's 3D views follow what the root says.
         rec.log(f"/{ROOT}", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
@@ -354,19 +359,27 @@ class RerunWorker:
         for arm in self._arms.values():
             if arm.n:
                 self._flush(arm)
+        # Nothing but `old` may hold the file's stream now, or it outlives the sweep below.
+        self._file = None
+        self._rec = _Tee([s for s in (self._served,) if s is not None])
         old.flush(timeout_sec=30.0)
         old.disconnect()  # writes the file's footer
+        del old
+        # A dropped stream keeps its batcher and writer threads until the SDK sweeps the orphans (two threads
+        # per rotation, for as long as the agent runs, otherwise).
+        rerun_bindings.flush_and_cleanup_orphaned_recordings()
         rotation.rotated(now)
         assert self.save_path is not None
-        self._file = new = self._stream(rr.FileSink(str(self.save_path)))
+        # No layout in the new file: every blueprint the SDK (0.41) builds keeps a stream of its own, with two
+        # threads, for as long as the process runs, which a rotation every few minutes would pile up. A later
+        # file opens with Rerun's own layout; opened with the first one, it takes the first one's.
+        self._file = new = self._stream(rr.FileSink(str(self.save_path)), layout=False)
         self._rec = _Tee([s for s in (new, self._served) if s is not None])
         only_new = _Tee([new])
         for arm in self._arms.values():
             self._log_arm(arm, only_new)
             arm.servo_styled.clear()  # logged again with the next batch
             arm.status, arm.status_key = "", ()
-        if self._focus is not None:
-            new.send_blueprint(self._blueprint(self._focus), make_active=True, make_default=True)
 
     # --- SinkWorker ---------------------------------------------------------------------------------------
 
