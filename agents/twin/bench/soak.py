@@ -68,9 +68,11 @@ SOAK_CAPS = Caps(
     record_max_age_s=120.0,
     record_budget_mb=160.0,
     record_rate_hz=2.0,
-    rrd_max_mb=64.0,
+    # At 200 arms the .rrd grows about 1.5 MB a second and each file starts with the arms' meshes (about
+    # 30 MB, logged again at every rotation): a file every few minutes, the budget reached in about ten.
+    rrd_max_mb=256.0,
     rrd_max_age_s=600.0,
-    rrd_budget_mb=320.0,
+    rrd_budget_mb=1024.0,
 )
 SHORT_CAPS = Caps(
     record_max_mb=2.0,
@@ -174,11 +176,18 @@ def _counts(base: str) -> dict[str, Any]:
 
 
 def measure(
-    *, minutes: float, arms: int, rate: float, out: Path, sample_s: float | None = None
+    *,
+    minutes: float,
+    arms: int,
+    rate: float,
+    out: Path,
+    sample_s: float | None = None,
+    caps: Caps | None = None,
 ) -> dict[str, Any]:
     """The soak itself, in this process (run() puts it in a loopback namespace when ROS 2 can be on)."""
     ros2 = netns.inside() and importlib.util.find_spec("cyclonedds") is not None
-    caps = SOAK_CAPS if minutes >= LONG_RUN_MINUTES else SHORT_CAPS
+    if caps is None:
+        caps = SOAK_CAPS if minutes >= LONG_RUN_MINUTES else SHORT_CAPS
     seconds = minutes * 60.0
     warmup = min(WARMUP_S, seconds / 2.0)
     interval = sample_s if sample_s is not None else max(2.0, min(15.0, seconds / 60.0))
