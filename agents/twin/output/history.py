@@ -339,8 +339,8 @@ class WriterStats:
     rows_lost_in_conversion: int = 0
     storage_ok: bool = True
     last_error: str = ""
-    # How long the oldest row not yet committed has waited (0 when none waits): the history's lag behind the
-    # twin, which a storage outage makes grow (the metric CloudWatch alarms on, output.emf).
+    # How long ago the oldest row not yet written arrived (0 when every row is written): history's lag behind
+    # the twin, which grows for as long as commits fail, rows dropped or not (CloudWatch alarms on it).
     lag_s: float = 0.0
 
 
@@ -412,8 +412,9 @@ class HistoryWriter:
             REJECTED_TABLE: max(1, settings.max_buffer_rows // 10),
         }
         self._inflight_rows = dict.fromkeys(SCHEMAS, 0)
-        # When the oldest rows of the batch being committed arrived, per table (None: nothing in flight).
-        self._inflight_since: dict[str, float | None] = dict.fromkeys(SCHEMAS)
+        # When the oldest row not yet written arrived (None: every row is written). Dropped rows do not move
+        # it: while commits fail, the lag keeps growing however many rows the bound drops.
+        self._unwritten_since: float | None = None
         self._seq = 0
         self._stats = WriterStats(tables={t: TableStats() for t in SCHEMAS})
         self._flush_requested = False
@@ -453,7 +454,10 @@ class HistoryWriter:
         with self._cond:
             queue = self._pending[table]
             stats = self._stats.tables[table]
-            queue.append(_Pending(rows, self._clock()))
+            now = self._clock()
+            queue.append(_Pending(rows, now))
+            if self._unwritten_since is None:
+                self._unwritten_since = now
             stats.rows_buffered += rows.num_rows
             dropped = self._trim(table)
             self._cond.notify()
@@ -529,10 +533,8 @@ class HistoryWriter:
             )
 
     def _lag(self, now: float) -> float:
-        """Seconds the oldest uncommitted row has waited (lock held)."""
-        oldest = [q[0].since for q in self._pending.values() if q]
-        oldest.extend(t for t in self._inflight_since.values() if t is not None)
-        return max(0.0, now - min(oldest)) if oldest else 0.0
+        """Seconds since the oldest row not yet written arrived (lock held)."""
+        return 0.0 if self._unwritten_since is None else max(0.0, now - self._unwritten_since)
 
     def count_conversion(self, *, slow: bool = False, lost_rows: int = 0, error: str = "") -> None:
         with self._cond:
@@ -587,15 +589,16 @@ class HistoryWriter:
                             rows = sum(p.table.num_rows for p in batches[table])
                             self._stats.tables[table].rows_buffered -= rows
                             self._inflight_rows[table] += rows
-                            self._inflight_since[table] = batches[table][0].since
             ok = True
             for table, items in batches.items():
                 ok = self._commit_round(table, items) and ok
-                with self._cond:
-                    self._inflight_since[table] = None
             with self._cond:
                 if batches:
                     self._stats.storage_ok = ok
+                    if ok:
+                        # Written up to here: the lag starts again from what arrived meanwhile.
+                        waiting = [q[0].since for q in self._pending.values() if q]
+                        self._unwritten_since = min(waiting) if waiting else None
                 if flush or closing:
                     self._flushes_done += 1
                     self._cond.notify_all()

@@ -35,6 +35,8 @@ RECORDING_SINK = "usd"
 MAX_PENDING_SAMPLES = 20_000
 # The session files the budget counts (the agent names them session-<UTC time>-<pid>[-<n>].<format>).
 SESSION_GLOB = "session-*.usd[ac]"
+# After a failed save or open (a full disk), a new session is tried this often.
+BROKEN_RETRY_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -88,6 +90,8 @@ class _RecorderWorker:
         self._clock = clock
         self._opened = clock()
         self._checked_flushes = 0
+        self._retry_at = 0.0
+        self._attempts = 0
         self._lock = threading.Lock()  # the totals, read by the agent's threads
         self._done = RecordingTotals(path="")
         self.rotations = 0
@@ -109,8 +113,15 @@ class _RecorderWorker:
         self.recorder.close()
 
     def _rotate_if_due(self) -> None:
-        """After a save (the file's size is known then), or once the session is too old: a new session."""
+        """After a save (the file's size is known then), or once the session is too old: a new session. And
+        after a failed save (a full disk), a new session as soon as one can be opened."""
         recorder = self.recorder
+        if recorder.broken:
+            now = self._clock()
+            if now >= self._retry_at:
+                self._retry_at = now + BROKEN_RETRY_S
+                self._rotate(recorder, size=0, force=True)
+            return
         saved = recorder.flushes != self._checked_flushes
         old = self._clock() - self._opened >= self._limits.max_age_s
         if not saved and not old:
@@ -122,14 +133,20 @@ class _RecorderWorker:
             size = 0
         if size < self._limits.max_bytes and not old:
             return
-        if self._open_next is None or recorder.samples_written == 0:
+        self._rotate(recorder, size=size)
+
+    def _rotate(self, recorder: SessionRecorder, *, size: int, force: bool = False) -> None:
+        if self._open_next is None or (recorder.samples_written == 0 and not force):
             return  # nothing to rotate to, or an empty session (an idle agent's keeps its file)
         recorder.close()
+        # Every attempt gets a name of its own: a failed one may leave its file behind.
+        self._attempts += 1
         try:
-            successor = self._open_next(self.rotations + 1)
-        except Exception:
-            log.exception("recording: the next session file could not be opened; recording stops")
-            self._open_next = None
+            successor = self._open_next(self._attempts)
+        except Exception as exc:  # a full disk (pxr raises Tf.ErrorException): try again later
+            log.error("recording: the next session file could not be opened (%s); trying again later", exc)
+            recorder.broken = True  # closed, with no successor: the retry path takes it from here
+            self._retry_at = self._clock() + BROKEN_RETRY_S
             return
         with self._lock:
             self._done = _add(self._done, recorder)
