@@ -10,9 +10,11 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 import random
 import signal
+import subprocess
 import threading
 import time
 from pathlib import Path
@@ -158,3 +160,57 @@ def test_an_agent_restart_keeps_latched_and_acknowledged_alarms(rig: LocalRig, t
     assert after[HOT] == "LATCHED" and after[("shoulder_lift", "over_current")] == "ACKNOWLEDGED"
     status, body = post(f"{url}/alarms/arm-001/wrist_roll/over_temperature/ack")
     assert status == 200 and body["alarms"][0]["state"] == "NORMAL"
+
+
+def test_stop_keeps_its_budget_and_reports_what_it_could_not_write(
+    rig: LocalRig, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """History on a full disk (a real tmpfs) when the agent stops: each worker retries its last commit within
+    the shutdown budget, says how many rows it could not write, and the agent logs them in one line."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(disk)], check=True)
+    try:
+        budget = 12.0
+        agent = rig.start_agent(
+            {
+                "telemetry.devices": FLEET,
+                "telemetry.units": "ticks",
+                "history.uri": str(disk / "history"),
+                "history.commit_every_s": 0.5,
+                "twin.shutdown_budget_s": budget,
+            },
+            workers=2,
+        )
+        rig.start_edge(FLEET, variant="ticks", rate_hz=10.0, seed=3)
+        wait_for(lambda: (agent.state().agent.history.commits or 0) >= 2, 30, "history committing")
+        try:
+            with (disk / "filler").open("wb") as fh:
+                while True:
+                    fh.write(b"\0" * 65536)
+                    fh.flush()
+        except OSError:
+            pass  # full
+        wait_for(
+            lambda: (
+                agent.state().agent.history.commit_failures > 0 and agent.state().agent.history.rows_buffered
+            ),
+            30,
+            "commits failing with rows waiting",
+            interval=0.2,
+        )
+        caplog.set_level(logging.INFO, logger="twin.service.agent")
+        started = time.monotonic()
+        agent.stop()
+        took = time.monotonic() - started
+        # Not a speed figure: the budget is a promise to systemd, whose stop timeout is longer.
+        assert took < budget + 10.0, took
+        reports = agent.stop_reports
+        assert set(reports) == {0, 1} and all(r is not None for r in reports.values())
+        unwritten = sum(r.unwritten.get("history_rows", 0) for r in reports.values() if r is not None)
+        assert unwritten > 0
+        line = next(r for r in caplog.records if r.getMessage().startswith("agent stopped"))
+        assert line.levelno == logging.ERROR and f"{unwritten} history_rows" in line.getMessage()
+        assert line.unwritten == {"history_rows": unwritten}  # type: ignore[attr-defined]
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], check=False)
