@@ -159,7 +159,7 @@ class TwinMonitoring(Construct):
             return cw.Alarm(
                 self,
                 id_,
-                alarm_description=f'{description} docs/agent.md, "Bounds"',
+                alarm_description=f'{description} docs/agent.md, "Bounds and restarts"',
                 metric=metric(name, "Sum"),
                 threshold=1,
                 comparison_operator=cw.ComparisonOperator.GREATER_THAN_OR_EQUAL_TO_THRESHOLD,
