@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import Publisher, wait_for
+from conftest import Publisher, get_metrics, metric, wait_for
 from moto_s3 import MotoS3
 from test_emf import validate_emf_line
 from twin.bench.harness import collect, start_publisher
@@ -268,6 +268,8 @@ def test_s3_stopped_longer_than_the_history_buffer(
             wait_for(
                 lambda: any(d.get("HistoryLagSeconds", 0.0) > 2.0 for d in _emf(emf)), 30, "the lag in EMF"
             )
+            # ... and /metrics on the host.
+            assert metric(get_metrics(agent.http_url), "twin_history_lag_seconds") > 2.0
             s3.start()
         finally:
             fleet.stop()

@@ -140,6 +140,11 @@ def _history_families(h: HistoryState) -> Iterator[Metric]:
     yield _gauge(
         "twin_history_storage_ok", "1 while the last history commit succeeded.", 1.0 if h.storage_ok else 0.0
     )
+    yield _gauge(
+        "twin_history_lag_seconds",
+        "How long ago the oldest history row not yet written arrived (0: every row is written).",
+        h.lag_s,
+    )
 
 
 def _alarm_families(agent: AgentInfo) -> Iterator[Metric]:

@@ -46,7 +46,9 @@ class StateFile:
         self.path = Path(path)
         self.writes = 0
         self.write_errors = 0
-        self._last: list[dict[str, Any]] | None = None
+        # What the last write held, by what identifies a change (not the wall time, which a clock slewed
+        # by NTP would move a little at every check).
+        self._last: list[tuple[str, str, int, float]] | None = None
 
     # -- reading -------------------------------------------------------------------------------------------
 
@@ -81,10 +83,11 @@ class StateFile:
     def save(self, records: Sequence[AlarmRecord], now_mono: float, now_wall: float) -> bool:
         """Write the kept alarms of `records` if they differ from the last write; True when written. A failed
         write is logged and counted, never raised: the twin goes on without it."""
-        entries = [entry(r, now_mono, now_wall) for r in records if r.state in KEPT_STATES]
-        entries.sort(key=lambda e: e["alarm_id"])
-        if entries == self._last:
+        kept = sorted((r for r in records if r.state in KEPT_STATES), key=lambda r: r.alarm_id)
+        identity = [(r.alarm_id, str(r.state), r.raised, round(r.since, 3)) for r in kept]
+        if identity == self._last:
             return False
+        entries = [entry(r, now_mono, now_wall) for r in kept]
         document = {"version": VERSION, "written_at": now_wall, "alarms": entries}
         try:
             write_atomically(self.path, json.dumps(document, indent=1, sort_keys=True) + "\n")
@@ -97,7 +100,7 @@ class StateFile:
                 exc,
             )
             return False
-        self._last = entries
+        self._last = identity
         self.writes += 1
         return True
 
