@@ -99,7 +99,9 @@ def _config(data: Path, caps: Caps, arms: int, ros2: bool) -> str:
         f'[history]\nuri = "{data / "history"}"\n'
         f'[rerun]\nsave = "{data / "rrd" / "twin.rrd"}"\nsave_max_mb = {caps.rrd_max_mb}\n'
         f"save_max_age_s = {caps.rrd_max_age_s}\nsave_budget_mb = {caps.rrd_budget_mb}\n"
-        + ("[ros2]\nenabled = true\n" if ros2 else "")
+        # The bridge's default queue (1,000 samples) dropped a 200-arm fleet's first samples while it created
+        # a writer per arm; the soak measures what time does, so the queue holds the start's burst.
+        + ("[ros2]\nenabled = true\nmax_pending = 20000\n" if ros2 else "")
     )
 
 
