@@ -978,6 +978,11 @@ class _WorkerLogFilter(logging.Filter):
         return True
 
 
+# A worker's control pipe has two writers once it stops (the answering thread, and the main thread's
+# Farewell); a Connection must not be written from two threads at once.
+_CONTROL_SEND = threading.Lock()
+
+
 def worker_main(
     index: int, config: AgentConfig, data: Connection, control: Connection, budget: DeviceBudget
 ) -> None:
@@ -1016,7 +1021,7 @@ def worker_main(
     mirror.join()
     # Within the agent's shutdown budget, less what it keeps for itself (it kills a worker at the budget).
     report = mirror.stop(timeout=max(5.0, config.twin.shutdown_budget_s - WORKER_BUDGET_MARGIN_S))
-    with contextlib.suppress(OSError, ValueError):
+    with contextlib.suppress(OSError, ValueError), _CONTROL_SEND:
         control.send(Farewell(report))
     log.info(
         "agent stopped",
@@ -1045,7 +1050,8 @@ def _serve_control(mirror: Mirror, control: Connection) -> None:
             log.exception("worker request %s failed", type(call.request).__name__)
             reply = Refused(call.call_id, Refusal.ERROR, f"{type(exc).__name__}: {exc}")
         try:
-            control.send(reply)
+            with _CONTROL_SEND:
+                control.send(reply)
         except (OSError, ValueError):
             return
 
