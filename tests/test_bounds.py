@@ -27,6 +27,7 @@ from twin.output.sinks import (
 from twin.rig.mosquitto import free_port
 from twin.service.agent import AgentService
 from twin.service.config import load_config
+from twin.service.events import MAX_THROTTLE_KEYS
 from twin.service.logs import RateLimitedLog
 from twin.transport.mailbox import MAX_OVERFLOW_KEYS, UNTRACKED_KEY, InboundQueue
 
@@ -226,6 +227,9 @@ def test_100000_junk_device_ids_leave_every_per_device_table_within_its_cap() ->
         assert len(decoder._streaks) <= 4096 and len(decoder._known_ids) <= 4096
         assert mirror._mailbox.overflowed_keys <= MAX_OVERFLOW_KEYS
         assert mirror._reject_log.keys <= 1024 and mirror._error_log.keys <= 1024
+        # The console's rejection events are throttled per (device, reason), for the most recent keys only.
+        assert len(mirror._rejections._next) <= MAX_THROTTLE_KEYS
+        assert len(mirror._rejections._pending) <= MAX_THROTTLE_KEYS
         # Untracked rejections are counted by reason, not by device.
         assert len(state.untracked_rejected) <= 32
         assert UNTRACKED_KEY not in state.devices
