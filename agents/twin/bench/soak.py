@@ -18,7 +18,8 @@ time) into `out`. The bounds it judges (docs/performance.md, "Soak"):
 - nothing lost: every message published was received, every one received was counted (against its arm or
   as a rejection), none was dropped by a queue, a sink or the history writer, the loss estimate is zero,
   and every decoded message is a row in the history table after the agent stopped;
-- disk: once the rotating sinks reached their budget, they never exceed it (history grows: it is the data).
+- disk: once the rotating sinks took half their budget, they never exceed it by more than what one size
+  check lets a live file overshoot (FLAT_ALLOWANCE; history grows: it is the data).
 
 The caps are small so a run reaches them early: SOAK_CAPS for a run of LONG_RUN_MINUTES or more, SHORT_CAPS
 below (the 2-minute run of `make test`).
@@ -46,6 +47,7 @@ from twin.rig.local import LocalRig
 
 RSS_GROWTH_LIMIT = 0.05
 FLAT_ALLOWANCE = 1.1
+REACHED_SHARE = 0.5
 WARMUP_S = 300.0
 LONG_RUN_MINUTES = 10.0
 
@@ -324,7 +326,9 @@ def verdicts(  # noqa: PLR0917 - the figures a soak produced, each its own
     disk: dict[str, Any] = {}
     for sink, budget in budgets.items():
         sizes = [s["disk"][sink][0] / 2**20 for s in samples]
-        reached = next((i for i, size in enumerate(sizes) if size >= 0.75 * budget), None)
+        # Reached: half the budget taken. The sink deletes its oldest files to keep within the budget with the
+        # live file counted at its largest, so the total settles between about budget - one file and budget.
+        reached = next((i for i, size in enumerate(sizes) if size >= REACHED_SHARE * budget), None)
         peak_after = max(sizes[reached:]) if reached is not None else None
         disk[sink] = {
             "budget_mb": budget,
