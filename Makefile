@@ -12,12 +12,13 @@ export JSII_SILENCE_WARNING_END_OF_LIFE_NODE_VERSION := 20
 export MUJOCO_GL ?= egl
 export PYOPENGL_PLATFORM ?= $(MUJOCO_GL)
 
-# What the demo needs from apt: the private broker and offscreen OpenGL (EGL/OSMesa through Mesa).
-DEMO_APT_PACKAGES := mosquitto libosmesa6 libgl1-mesa-dri libglfw3
+# What the demo needs from apt: the private broker, offscreen OpenGL (EGL/OSMesa through Mesa), and chromium
+# for its pictures of the operator console (Playwright drives this one; no browser is ever downloaded).
+DEMO_APT_PACKAGES := mosquitto libosmesa6 libgl1-mesa-dri libglfw3 chromium
 # What the tests need on top: Xvfb for the viewer window; shellcheck for userdata/; iproute2 for the ROS 2 tests'
-# loopback-only network namespace (unshare -n, ip); chromium for the browser tests (Playwright drives this one;
-# no browser is ever downloaded).
-TEST_APT_PACKAGES := xvfb xauth shellcheck iproute2 chromium
+# loopback-only network namespace (unshare -n, ip); chromium for the browser tests; desktop-file-utils to
+# validate the desktop launchers userdata/ writes.
+TEST_APT_PACKAGES := xvfb xauth shellcheck iproute2 chromium desktop-file-utils
 
 # Python environments come from locks (docs/development.md): uv.lock for the agents and their tests, and
 # hashed requirements files for the tools that live in venvs of their own. uv itself is installed from a hashed
@@ -56,7 +57,7 @@ WHEELHOUSE := .wheelhouse
 WHEELHOUSE_STAMP := $(WHEELHOUSE)/.setup-stamp
 
 .PHONY: help setup setup-demo system-packages demo-system-packages test test-fast test-stress lint lock \
-	check-lock demo bench usd-asset meshes clean
+	check-lock demo bench usd-asset meshes clean config-docs
 
 help:
 	@echo "make demo   - set up what the demo needs, then run the twin end to end locally (broker, edge simulator, agent)"
@@ -66,6 +67,7 @@ help:
 	@echo "make setup  - system packages (apt), .venv from the lock, the test tools, CDK CLI; idempotent"
 	@echo "make lock   - re-resolve the locks after a change to pyproject.toml or requirements/*.in"
 	@echo "make bench  - run the benchmarks and print figures (docs/performance.md)"
+	@echo "make config-docs - regenerate docs/configuration.md and examples/agent.toml from the config loader"
 	@echo "make usd-asset - regenerate robots/so101 USD asset from the MJCF"
 	@echo "make meshes - re-fetch the SO-101 part meshes (checked against their provenance), re-make visual/"
 
@@ -85,11 +87,13 @@ demo-system-packages:
 	command -v mosquitto >/dev/null 2>&1 || missing=1; \
 	ls /usr/lib/*/libOSMesa.so* >/dev/null 2>&1 || missing=1; \
 	ls /usr/lib/*/libglfw.so.3 >/dev/null 2>&1 || missing=1; \
+	command -v chromium >/dev/null 2>&1 || missing=1; \
 	if [ -n "$$missing" ]; then $(call apt_install,$(DEMO_APT_PACKAGES)); fi
 
 system-packages: demo-system-packages
 	@missing=""; \
-	for bin in Xvfb shellcheck ip unshare chromium; do command -v $$bin >/dev/null 2>&1 || missing=1; done; \
+	for bin in Xvfb shellcheck ip unshare chromium desktop-file-validate; do \
+	  command -v $$bin >/dev/null 2>&1 || missing=1; done; \
 	if [ -n "$$missing" ]; then $(call apt_install,$(TEST_APT_PACKAGES)); fi
 
 $(UV_STAMP): requirements/uv.txt
@@ -97,12 +101,13 @@ $(UV_STAMP): requirements/uv.txt
 	@$(UV_VENV)/bin/python -m pip --disable-pip-version-check -q install --require-hashes -r requirements/uv.txt
 	@touch $@
 
-# The demo's environment: the runtime and the history extra, nothing for tests. --inexact: a full `make setup`
-# venv keeps its test tools when `make demo` runs in it.
+# The demo's environment: the runtime, the history extra and the demo extra (Playwright, for the console
+# pictures), nothing for tests. --inexact: a full `make setup` venv keeps its test tools when `make demo` runs
+# in it.
 $(DEMO_STAMP): $(UV_STAMP) uv.lock pyproject.toml
 	@echo "setup: installing the agents from uv.lock into $(VENV)"
-	@$(UV_SYNC) --inexact --no-default-groups --extra history
-	@$(PY) -c "import twin, mujoco, pxr, awscrt, deltalake" || { echo "setup: Python install failed" >&2; exit 1; }
+	@$(UV_SYNC) --inexact --no-default-groups --extra history --extra demo
+	@$(PY) -c "import twin, mujoco, pxr, awscrt, deltalake, playwright" || { echo "setup: Python install failed" >&2; exit 1; }
 	@touch $@
 
 $(SETUP_STAMP): $(UV_STAMP) uv.lock pyproject.toml
@@ -186,6 +191,12 @@ test-stress: setup
 
 demo: setup-demo
 	$(VENV)/bin/twin demo --out out/demo
+
+# The config reference and the complete example are generated from the loader (tests/test_config_reference.py
+# fails when either differs from what these print).
+config-docs: $(SETUP_STAMP)
+	$(VENV)/bin/twin config reference > docs/configuration.md
+	$(VENV)/bin/twin config example > examples/agent.toml
 
 bench: setup
 	$(VENV)/bin/twin bench all

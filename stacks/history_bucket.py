@@ -1,4 +1,6 @@
-"""The telemetry history bucket: Delta tables the host's agent writes under `history/` (docs/history.md)."""
+"""The stack's bucket: Delta tables the host's agent writes under `history/` (docs/history.md), and each arm's
+LeRobot calibration under `calibration/<device>.json`, which `twin calibration push` writes and the agent
+reads (docs/agent.md, "Calibration")."""
 
 from __future__ import annotations
 
@@ -12,6 +14,7 @@ from constructs import Construct
 from stacks.skips import skip_checkov
 
 HISTORY_PREFIX = "history"
+CALIBRATION_PREFIX = "calibration"
 # S3 Standard-IA bills every object as at least 128 KB; Delta's small log files stay in Standard.
 IA_MIN_OBJECT_BYTES = 128 * 1024
 
@@ -20,8 +23,9 @@ class HistoryBucket(Construct):
     """An encrypted, private, TLS-only bucket whose `history/` objects move to Standard-IA after
     `infrequent_access_after_days`; kept on `cdk destroy` unless `retain` is false.
 
-    Attributes: `bucket`, `uri` (what the agent config's [history] uri is set to). `grant_agent(role)` gives a
-    role exactly the history prefix.
+    Attributes: `bucket`, `uri` (what the agent config's [history] uri is set to), `calibration_uri` (its
+    [telemetry] calibrations). `grant_agent(role)` gives a role exactly the history prefix, and read access to
+    the calibration prefix.
     """
 
     def __init__(
@@ -69,6 +73,7 @@ class HistoryBucket(Construct):
             "LifecycleConfiguration.Rules.0.ObjectSizeGreaterThan", str(IA_MIN_OBJECT_BYTES)
         )
         self.uri = f"s3://{self.bucket.bucket_name}/{HISTORY_PREFIX}"
+        self.calibration_uri = f"s3://{self.bucket.bucket_name}/{CALIBRATION_PREFIX}"
         Validations.of(self.bucket).acknowledge(
             Acknowledgment(
                 id="AwsSolutions-S1",
@@ -107,6 +112,30 @@ class HistoryBucket(Construct):
                 actions=["s3:ListBucket"],
                 resources=[self.bucket.bucket_arn],
                 conditions={"StringLike": {"s3:prefix": [f"{HISTORY_PREFIX}/*", HISTORY_PREFIX]}},
+            )
+        )
+        # The arms' calibrations: read only (people push them with their own credentials), list that prefix.
+        role.add_to_principal_policy(
+            iam.PolicyStatement(
+                sid="CalibrationRead",
+                actions=["s3:GetObject"],
+                resources=[self.bucket.arn_for_objects(f"{CALIBRATION_PREFIX}/*")],
+            )
+        )
+        role.add_to_principal_policy(
+            iam.PolicyStatement(
+                sid="CalibrationList",
+                actions=["s3:ListBucket"],
+                resources=[self.bucket.bucket_arn],
+                conditions={"StringLike": {"s3:prefix": [f"{CALIBRATION_PREFIX}/*", CALIBRATION_PREFIX]}},
+            )
+        )
+        Validations.of(role).acknowledge(
+            Acknowledgment(
+                id=f"AwsSolutions-IAM5[Resource::<{stack.get_logical_id(cfn_bucket)}.Arn>/"
+                f"{CALIBRATION_PREFIX}/*]",
+                reason="One object per arm, named for its device id (<device>.json), which the fleet "
+                "decides; read only, on the calibration prefix of this stack's own bucket.",
             )
         )
         Validations.of(role).acknowledge(

@@ -1,27 +1,37 @@
-"""CloudWatch alarms on the agent's EMF metrics, notifying one SNS topic (and an e-mail address, if given).
+"""The alarm topic and what notifies it: the host's servo alarms directly, and eight CloudWatch alarms.
 
-The agent writes Embedded Metric Format lines (agents/twin/output/emf.py) to a file the CloudWatch agent
-ships to the host's log group; CloudWatch Logs turns them into metrics in the SO101Twin namespace with the
-dimension Agent = the stack name. Three alarms watch the fleet (docs/servo-health.md says what to do for
-each):
+One SNS topic (encrypted, TLS only; an e-mail address subscribed when the settings give one):
 
-- agent silent: no AgentUp heartbeat for 3 minutes (the agent, the host or its CloudWatch agent is down; a
-  host stopped on purpose, by the auto-stop schedule say, reads the same: nobody is watching the arms);
-- arms stale: at least one arm STALE or OFFLINE for 3 minutes in a row;
-- critical servo alarm: a critical servo alarm (over-temperature near the cut-out, over-current) present.
+- **servo alarms**: the twin host's agent publishes every transition of a critical servo alarm (and of a
+  warning with `alarmWarnings`) straight to the topic, batched and rate-limited
+  (agents/twin/output/alerts.py), naming the arm, the servo, the value, the threshold, the state and how to
+  acknowledge: within 10 s, where a CloudWatch alarm on a once-a-minute metric took minutes and named
+  neither. Its role may `sns:Publish` on this topic only (`grant_host`).
+- **agent silent** (CloudWatch): the instance runs (EC2 reports its CPU) but the agent sent no AgentUp
+  heartbeat for 5 minutes: the agent or the host's CloudWatch agent is down. A stopped instance reports no
+  CPU, so stopping it (by hand or on the auto-stop schedule) does not page.
+- **arms stale** (CloudWatch): at least one arm STALE (publishing, but with gaps) for 3 minutes in a row. An
+  arm that is switched off goes OFFLINE and is not paged: arms are switched off on schedules.
+- **what the twin loses** (CloudWatch, six alarms), so a loss that nobody reads in the logs still reaches
+  someone: messages dropped before they were decoded (a queue was full, or a dead worker took them); samples
+  a sink (USD recording, history's queue, Rerun, ROS 2) could not keep up with; a worker process that died
+  and was started again; history rows dropped (the writer's buffer overflowed: storage unreachable longer
+  than it holds); history commits failing for 5 minutes; history's oldest unwritten row over a minute old, 2
+  minutes running (storage slow or unreachable; rows are dropped once the buffer is full).
 
-And six on what the twin loses, so a loss that nobody reads in the logs still reaches someone:
+The agent writes Embedded Metric Format lines (agents/twin/output/emf.py) to a file the CloudWatch agent ships
+to the host's log group; CloudWatch Logs turns them into metrics in the SO101Twin namespace with the dimension
+Agent = the stack name, which the alarms watch (docs/servo-health.md says what to do for each).
 
-- messages dropped: telemetry dropped before it was decoded (a queue was full, or a dead worker took it);
-- sink drops: samples a sink (USD recording, history's queue, Rerun, ROS 2) could not keep up with;
-- worker restarts: a worker process died and was started again;
-- history rows dropped: the history writer's buffer overflowed (storage unreachable longer than it holds);
-- history commit failures: history commits kept failing for 5 minutes;
-- history lag: the oldest unwritten history row is over a minute old, 2 minutes running (storage is slow
-  or unreachable; rows are dropped once the buffer is full).
+A CloudWatch dashboard shows the same metrics over time: arms by status, the mirrored message rate, the
+estimated loss, the servo alarms present by severity, how far history lags and what the twin lost, above
+the alarms.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
 
 from aws_cdk import Duration, RemovalPolicy, Stack
 from aws_cdk import aws_cloudwatch as cw
@@ -46,24 +56,29 @@ HISTORY_LAG = "HistoryLagSeconds"
 PERIOD = Duration.minutes(1)
 # History commits every 10 s by default (docs/history.md): a minute's lag means commits are failing.
 HISTORY_LAG_ALARM_S = 60
+# How long the agent may be silent on a running host before it pages (it restarts itself within seconds).
+SILENT_MINUTES = 5
+SEVERITIES = ("critical", "warning")
 
 
 class TwinMonitoring(Construct):
-    """Attributes: `topic` (alarm notifications), `alarms` (name -> cw.Alarm)."""
+    """Attributes: `topic` (notifications), `alarms` (name -> cw.Alarm) and `dashboard`, both made by
+    `watch_host`."""
 
     def __init__(self, scope: Construct, id_: str, *, agent_name: str, alarm_email: str | None) -> None:
         super().__init__(scope, id_)
         stack = Stack.of(self)
+        self.agent_name = agent_name
         # CloudWatch can only publish to an encrypted topic whose key lets it encrypt: the AWS-managed SNS
         # key does not, so the topic gets a key of its own (rotated yearly).
-        key = kms.Key(
+        self.key = kms.Key(
             self,
             "AlarmTopicKey",
             description="so101-twin alarm topic encryption",
             enable_key_rotation=True,
             removal_policy=RemovalPolicy.DESTROY,
         )
-        key.add_to_resource_policy(
+        self.key.add_to_resource_policy(
             iam.PolicyStatement(
                 sid="CloudWatchAlarmsPublish",
                 principals=[iam.ServicePrincipal("cloudwatch.amazonaws.com")],
@@ -76,7 +91,7 @@ class TwinMonitoring(Construct):
             self,
             "AlarmTopic",
             display_name="so101-twin alarms",
-            master_key=key,
+            master_key=self.key,
             enforce_ssl=True,
         )
         self.topic.add_to_resource_policy(
@@ -90,48 +105,77 @@ class TwinMonitoring(Construct):
         )
         if alarm_email:
             self.topic.add_subscription(subs.EmailSubscription(alarm_email))
+        self.alarms: dict[str, cw.Alarm] = {}
+
+    def grant_host(self, role: iam.IRole) -> None:
+        """The host's agent publishes servo alarms to this topic and nowhere else: sns:Publish on it, and the
+        topic key's encrypt side (SNS encrypts each message with it on the publisher's behalf)."""
+        role.add_to_principal_policy(
+            iam.PolicyStatement(
+                sid="AlarmTopicPublish", actions=["sns:Publish"], resources=[self.topic.topic_arn]
+            )
+        )
+        role.add_to_principal_policy(
+            iam.PolicyStatement(
+                sid="AlarmTopicKey",
+                # The two calls SNS makes with the publisher's rights for an encrypted topic; no wildcard.
+                actions=["kms:Decrypt", "kms:GenerateDataKey"],
+                resources=[self.key.key_arn],
+            )
+        )
+
+    def watch_host(self, instance_id: str) -> None:
+        """The CloudWatch alarms, which need the instance: its CPU metric tells a stopped host from a silent
+        agent."""
 
         def metric(name: str, statistic: str, **extra: str) -> cw.Metric:
             return cw.Metric(
                 namespace=NAMESPACE,
                 metric_name=name,
-                dimensions_map={AGENT_DIMENSION: agent_name, **extra},
+                dimensions_map={AGENT_DIMENSION: self.agent_name, **extra},
                 statistic=statistic,
                 period=PERIOD,
             )
 
-        self.alarms: dict[str, cw.Alarm] = {
+        running = cw.Metric(
+            namespace="AWS/EC2",
+            metric_name="CPUUtilization",
+            dimensions_map={"InstanceId": instance_id},
+            statistic="SampleCount",
+            period=PERIOD,
+        )
+        self.alarms = {
             "AgentSilent": cw.Alarm(
                 self,
                 "AgentSilent",
                 alarm_description=(
-                    f"The so101-twin agent of {agent_name} sent no heartbeat for 3 minutes: the agent, the "
-                    "host or its CloudWatch agent is down (or the host was stopped). docs/servo-health.md"
+                    f"The so101-twin agent of {self.agent_name} sent no heartbeat for 5 minutes while its "
+                    "host runs: the agent or the host's CloudWatch agent is down (a stopped host does not "
+                    "count). docs/servo-health.md"
                 ),
-                metric=metric("AgentUp", "SampleCount"),
+                # 1 while the instance reports CPU (it runs) and the agent no heartbeat; a stopped instance
+                # reports nothing, which FILL makes 0: not breaching.
+                metric=cw.MathExpression(
+                    expression="IF(FILL(running, 0) > 0 AND FILL(up, 0) < 1, 1, 0)",
+                    using_metrics={"running": running, "up": metric("AgentUp", "SampleCount")},
+                    label="Host runs, agent silent",
+                    period=PERIOD,
+                ),
                 threshold=1,
-                comparison_operator=cw.ComparisonOperator.LESS_THAN_THRESHOLD,
-                evaluation_periods=3,
-                datapoints_to_alarm=3,
-                # Silence is the signal: no data at all must alarm.
-                treat_missing_data=cw.TreatMissingData.BREACHING,
+                comparison_operator=cw.ComparisonOperator.GREATER_THAN_OR_EQUAL_TO_THRESHOLD,
+                evaluation_periods=SILENT_MINUTES,
+                datapoints_to_alarm=SILENT_MINUTES,
+                treat_missing_data=cw.TreatMissingData.NOT_BREACHING,
             ),
             "ArmsStale": cw.Alarm(
                 self,
                 "ArmsStale",
                 alarm_description=(
-                    f"At least one arm of {agent_name} has been STALE or OFFLINE for 3 minutes: its edge "
-                    "stopped publishing or the network drops its telemetry. docs/servo-health.md"
+                    f"At least one arm of {self.agent_name} has been STALE for 3 minutes: it publishes with "
+                    "gaps (a weak network, an overloaded edge). Arms switched off go OFFLINE and are not "
+                    "paged. docs/servo-health.md"
                 ),
-                metric=cw.MathExpression(
-                    expression="stale + offline",
-                    using_metrics={
-                        "stale": metric("DevicesStale", "Maximum"),
-                        "offline": metric("DevicesOffline", "Maximum"),
-                    },
-                    label="Arms not online",
-                    period=PERIOD,
-                ),
+                metric=metric("DevicesStale", "Maximum"),
                 threshold=1,
                 comparison_operator=cw.ComparisonOperator.GREATER_THAN_OR_EQUAL_TO_THRESHOLD,
                 evaluation_periods=3,
@@ -139,20 +183,9 @@ class TwinMonitoring(Construct):
                 # A silent agent is AgentSilent's to report; this one judges the arms it can see.
                 treat_missing_data=cw.TreatMissingData.NOT_BREACHING,
             ),
-            "CriticalServoAlarm": cw.Alarm(
-                self,
-                "CriticalServoAlarm",
-                alarm_description=(
-                    f"A servo of {agent_name} has a critical alarm (near the 70 C cut-out, or over-current): "
-                    "see GET /alarms on the host and docs/servo-health.md"
-                ),
-                metric=metric("ActiveAlarms", "Maximum", **{SEVERITY_DIMENSION: "critical"}),
-                threshold=1,
-                comparison_operator=cw.ComparisonOperator.GREATER_THAN_OR_EQUAL_TO_THRESHOLD,
-                evaluation_periods=1,
-                treat_missing_data=cw.TreatMissingData.NOT_BREACHING,
-            ),
         }
+
+        agent_name = self.agent_name
 
         def any_loss(id_: str, name: str, description: str) -> cw.Alarm:
             """Alarm when `name` counted anything in a minute."""
@@ -224,3 +257,71 @@ class TwinMonitoring(Construct):
         for alarm in self.alarms.values():
             alarm.add_alarm_action(action)
             alarm.add_ok_action(action)
+        self.dashboard = _dashboard(self, self.agent_name, metric, list(self.alarms.values()))
+
+
+def _dashboard(
+    scope: Construct, agent_name: str, metric: Callable[..., cw.Metric], alarms: list[cw.Alarm]
+) -> cw.Dashboard:
+    """The fleet at a glance, one graph per question an operator asks, each from the agent's EMF metrics."""
+
+    def graph(
+        title: str, left: list[cw.IMetric], right: list[cw.IMetric] | None = None, **options: Any
+    ) -> cw.GraphWidget:
+        return cw.GraphWidget(title=title, left=left, right=right or [], width=12, height=6, **options)
+
+    def labelled(name: str, statistic: str, label: str, **extra: str) -> cw.Metric:
+        return metric(name, statistic, **extra).with_(label=label)
+
+    dashboard = cw.Dashboard(
+        scope,
+        "Dashboard",
+        dashboard_name=f"{agent_name}-fleet",
+        default_interval=Duration.hours(3),
+    )
+    dashboard.add_widgets(
+        graph(
+            "Arms by status",
+            [
+                labelled("DevicesOnline", "Maximum", "online"),
+                labelled("DevicesStale", "Maximum", "stale"),
+                labelled("DevicesOffline", "Maximum", "offline"),
+            ],
+            stacked=True,
+        ),
+        graph(
+            "Mirrored messages per second (all arms) and rejected messages",
+            [labelled("MessagesPerSecond", "Average", "mirrored msg/s")],
+            [labelled("Rejects", "Sum", "rejected per minute")],
+        ),
+        graph(
+            "Loss: share of expected messages that never arrived (%)",
+            [labelled("LossPercent", "Maximum", "loss %")],
+            left_y_axis=cw.YAxisProps(min=0),
+        ),
+        graph(
+            "Servo alarms present, by severity",
+            [
+                labelled("ActiveAlarms", "Maximum", severity, **{SEVERITY_DIMENSION: severity})
+                for severity in SEVERITIES
+            ],
+            left_y_axis=cw.YAxisProps(min=0),
+        ),
+        graph(
+            "History: lag of the oldest unwritten row (s) and rows dropped",
+            [labelled(HISTORY_LAG, "Maximum", "lag s")],
+            [labelled(HISTORY_ROWS_DROPPED, "Sum", "rows dropped per minute")],
+        ),
+        graph(
+            "Lost: messages dropped, sink drops, worker restarts, history commit failures (per minute)",
+            [
+                labelled(MESSAGES_DROPPED, "Sum", "messages dropped"),
+                labelled(SINK_DROPS, "Sum", "sink drops"),
+                labelled(WORKER_RESTARTS, "Sum", "worker restarts"),
+                labelled(HISTORY_COMMIT_FAILURES, "Sum", "history commit failures"),
+            ],
+            left_y_axis=cw.YAxisProps(min=0),
+        ),
+        cw.AlarmStatusWidget(title="Alarms", alarms=alarms, width=24, height=6),
+    )
+    return dashboard

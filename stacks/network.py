@@ -25,7 +25,7 @@ class TwinNetwork(Construct):
         scope: Construct,
         id_: str,
         *,
-        client_cidr: str,
+        client_cidr: str | None,
         allow_any_client: bool,
         availability_zone: str | None,
     ) -> None:
@@ -82,14 +82,17 @@ class TwinNetwork(Construct):
         self.security_group.add_egress_rule(
             ec2.Peer.any_ipv4(), ec2.Port.tcp(80), "HTTP to the Ubuntu apt mirrors"
         )
-        # IPv4 only: the settings refuse an IPv6 client because nothing here has an IPv6 address.
-        peer = ec2.Peer.ipv4(client_cidr)
-        self.security_group.add_ingress_rule(
-            peer, ec2.Port.tcp(DCV_PORT), "DCV web client and native client (HTTPS/WebSocket)"
-        )
-        self.security_group.add_ingress_rule(
-            peer, ec2.Port.udp(DCV_PORT), "DCV QUIC transport (native client)"
-        )
+        # IPv4 only: the settings refuse an IPv6 client because nothing here has an IPv6 address. Without a
+        # client range (a synth for `cdk destroy`, which the app's error annotation keeps from deploying)
+        # nothing is admitted.
+        if client_cidr is not None:
+            peer = ec2.Peer.ipv4(client_cidr)
+            self.security_group.add_ingress_rule(
+                peer, ec2.Port.tcp(DCV_PORT), "DCV web client and native client (HTTPS/WebSocket)"
+            )
+            self.security_group.add_ingress_rule(
+                peer, ec2.Port.udp(DCV_PORT), "DCV QUIC transport (native client)"
+            )
         if allow_any_client:
             # Settings refuse an open CIDR unless the deployer passed allowAnyClient=true on purpose.
             Validations.of(self.security_group).acknowledge(

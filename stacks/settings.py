@@ -1,15 +1,29 @@
-"""Deployment settings: read once from CDK context (defaults in cdk.json), validated in one place.
+"""Deployment settings: read once, validated in one place.
 
-Every refusal says what to pass instead, because the person reading it is at a terminal running
-`cdk deploy` and wants the fix, not a stack trace.
+Where a value comes from, the last one winning (docs/deploy.md, "Settings"):
+
+1. the default here (`TwinSettings`' field defaults, the one place they are written);
+2. the deployer's settings file, `twin.settings.toml` at the repository root (or the file that
+   `-c settingsFile=...` names): the settings a deployment keeps, so every later `cdk deploy` and
+   `cdk destroy` repeats them without flags;
+3. CDK context (`-c key=value`): an override for one run.
+
+cdk.json holds no setting (only CDK's feature flags), so any context value of a setting's name is the
+deployer's `-c`. Every refusal says what to write instead, because the person reading it is at a terminal
+running `cdk deploy` and wants the fix, not a stack trace.
 """
 
 from __future__ import annotations
 
+import difflib
 import ipaddress
 import re
-from collections.abc import Callable
+import tomllib
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from enum import StrEnum
+from pathlib import Path
+from typing import Any
 
 from twin.core.topics import ALL_DEVICES, policy_device_id_problem, topic_prefix_problem
 
@@ -17,9 +31,8 @@ from twin.core.topics import ALL_DEVICES, policy_device_id_problem, topic_prefix
 # deploys accepts: device ids and the topic prefix (twin.core.topics), units, and the client id prefix the
 # IAM policy scopes iot:Connect to.
 from twin.core.units import UNITS_CHOICES
-from twin.transport.broker import DEFAULT_CLIENT_ID_PREFIX
+from twin.transport.broker import agent_client_id_prefix
 
-CLIENT_ID_PREFIX = DEFAULT_CLIENT_ID_PREFIX
 UNITS = UNITS_CHOICES
 DEFAULT_AMI_SSM_PARAMETER = (
     "/aws/service/deeplearning/ami/x86_64/base-oss-nvidia-driver-gpu-ubuntu-24.04/latest/ami-id"
@@ -43,14 +56,31 @@ VOLUME_GB_MAX = 16384
 
 
 class SettingsError(ValueError):
-    """A context value is missing or unsafe; the message names the key and the `-c` to pass."""
+    """A setting is unknown, or its value is unsafe; the message names the key and what to write."""
+
+
+# The settings file at the repository root; `-c settingsFile=PATH` names another (relative to the root).
+SETTINGS_FILE = "twin.settings.toml"
+SETTINGS_FILE_KEY = "settingsFile"
+# Confirmations for one deploy, never kept: in the settings file they would confirm every later deploy too.
+ONE_RUN_KEYS = frozenset({"replaceInstance"})
+
+
+class Source(StrEnum):
+    """Where a setting's value came from."""
+
+    DEFAULT = "default"
+    FILE = "file"
+    CONTEXT = "-c"
 
 
 @dataclass(frozen=True)
 class TwinSettings:
     """Everything the stack needs from the person deploying it, already validated."""
 
-    client_cidr: str
+    # None until given: synth still builds (so `cdk destroy` needs no flags), but `cdk deploy` refuses
+    # (`deploy_blockers`).
+    client_cidr: str | None = None
     allow_any_client: bool = False
     availability_zone: str | None = None
     instance_type: str = "g6e.2xlarge"
@@ -67,9 +97,11 @@ class TwinSettings:
     auto_stop_cron: str | None = None
     auto_stop_timezone: str = "UTC"
     stack_name: str = "So101TwinStack"
-    # Where the CloudWatch alarms (agent silent, arms stale, critical servo alarm) are e-mailed; empty: the
-    # SNS topic only, for other subscribers.
+    # Where alarms are e-mailed (the host's servo alarms and the CloudWatch alarms); empty: the SNS topic
+    # only, for other subscribers.
     alarm_email: str | None = None
+    # Servo alarms of warning severity are e-mailed too (critical ones always are; docs/servo-health.md).
+    alarm_warnings: bool = False
     # Telemetry history bucket (docs/history.md): days in S3 Standard before Standard-IA, and whether the
     # bucket survives `cdk destroy`.
     history_ia_after_days: int = 30
@@ -90,11 +122,42 @@ class TwinSettings:
     def whole_fleet(self) -> bool:
         return self.devices == ("*",)
 
+    @property
+    def client_id_prefix(self) -> str:
+        """The twin host agent's client ids and shared-subscription group, `so101-twin-<stack name>-`: its
+        own, so an agent on a laptop (named for its host) never splits the fleet with it, and two stacks in
+        one account never collide. The IAM policy allows exactly these client ids."""
+        return agent_client_id_prefix(self.stack_name)
+
+    def deploy_blockers(self) -> list[str]:
+        """What stops `cdk deploy` (but not `cdk destroy`, which needs no settings): the app turns each into
+        an error annotation, which the CDK CLI refuses to deploy or synthesize."""
+        if self.client_cidr is None:
+            return [
+                "clientCidr is required: the DCV port opens to this range only. Write your public IP into "
+                f'{SETTINGS_FILE} (clientCidr = "203.0.113.7/32") or pass it once, e.g. cdk deploy -c '
+                "clientCidr=203.0.113.7/32 (find it with: curl -s https://checkip.amazonaws.com)"
+            ]
+        return []
+
+    def file_values(self) -> dict[str, Any]:
+        """Every setting as the settings file writes it (TOML types, empty string for "not set")."""
+        values: dict[str, Any] = {}
+        for key, name in SETTING_FIELDS.items():
+            value = getattr(self, name)
+            if value is None:
+                value = ""
+            elif isinstance(value, tuple):
+                value = list(value)
+            values[key] = value
+        return values
+
     @classmethod
     def from_context(cls, get: Callable[[str], object]) -> TwinSettings:
-        """Build from a context getter (`app.node.try_get_context`); raise SettingsError on bad input.
+        """Build from a getter of setting values (CDK context, or `resolve`'s merge of the settings file and
+        context); raise SettingsError on bad input.
 
-        `-c key=value` arrives as a string while cdk.json values keep their JSON type, so every
+        `-c key=value` arrives as a string while the settings file's values keep their TOML type, so every
         parser accepts both.
         """
         _refuse_removed(get)
@@ -118,6 +181,7 @@ class TwinSettings:
             auto_stop_timezone=_timezone(_str(get, "autoStopTimezone") or "UTC"),
             stack_name=_stack_name(_str(get, "stackName") or cls.stack_name),
             alarm_email=_alarm_email(_str(get, "alarmEmail")),
+            alarm_warnings=_bool(get, "alarmWarnings", False),
             history_ia_after_days=_history_ia_after_days(get("historyIaAfterDays")),
             retain_history=_bool(get, "retainHistory", True),
             replace_instance=_bool(get, "replaceInstance", False),
@@ -131,6 +195,126 @@ class TwinSettings:
                 f"availabilityZone={self.availability_zone} is not in the stack's region {region}; "
                 f"pass -c availabilityZone=<an AZ of {region} that offers {self.instance_type}>"
             )
+
+
+# Setting key (as in the settings file and -c) -> TwinSettings field, in the order docs/deploy.md lists them.
+SETTING_FIELDS: dict[str, str] = {
+    "clientCidr": "client_cidr",
+    "allowAnyClient": "allow_any_client",
+    "stackName": "stack_name",
+    "devices": "devices",
+    "topicPrefix": "topic_prefix",
+    "units": "units",
+    "alarmEmail": "alarm_email",
+    "alarmWarnings": "alarm_warnings",
+    "instanceType": "instance_type",
+    "availabilityZone": "availability_zone",
+    "volumeGb": "volume_gb",
+    "amiSsmParameter": "ami_ssm_parameter",
+    "amiId": "ami_id",
+    "terminationProtection": "termination_protection",
+    "autoStopCron": "auto_stop_cron",
+    "autoStopTimezone": "auto_stop_timezone",
+    "ros2": "ros2",
+    "recordSessions": "record_sessions",
+    "historyIaAfterDays": "history_ia_after_days",
+    "retainHistory": "retain_history",
+    "replaceInstance": "replace_instance",
+}
+# The settings a deployment keeps (the file's keys, the deployed stack's Settings output).
+KEPT_KEYS: tuple[str, ...] = tuple(k for k in SETTING_FIELDS if k not in ONE_RUN_KEYS)
+
+
+@dataclass(frozen=True)
+class ResolvedSettings:
+    """The validated settings, where each came from, and the settings file that was read (None: none)."""
+
+    settings: TwinSettings
+    sources: Mapping[str, Source]
+    settings_file: Path | None
+
+    @property
+    def given(self) -> dict[str, str]:
+        """Kept settings that were written down (file or -c), with where: what the Settings output records."""
+        return {k: str(s) for k, s in self.sources.items() if s is not Source.DEFAULT and k in KEPT_KEYS}
+
+
+def settings_file_path(root: Path, get: Callable[[str], object]) -> tuple[Path, bool]:
+    """The settings file to read and whether the deployer named it (then it must exist)."""
+    named = get(SETTINGS_FILE_KEY)
+    if named in (None, ""):
+        return root / SETTINGS_FILE, False
+    path = Path(str(named)).expanduser()
+    return (path if path.is_absolute() else root / path), True
+
+
+def read_settings_file(path: Path, *, required: bool = False) -> dict[str, Any]:
+    """The settings file's values by key ({} when it is absent and not required); SettingsError names an
+    unknown key, a table where a value belongs, or a one-run flag written down."""
+    try:
+        with path.open("rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        if required:
+            raise SettingsError(
+                f"{SETTINGS_FILE_KEY}={path} does not exist; pass an existing file or drop "
+                f"-c {SETTINGS_FILE_KEY}"
+            ) from None
+        return {}
+    except tomllib.TOMLDecodeError as exc:
+        raise SettingsError(f"{path} is not valid TOML: {exc}") from None
+    except OSError as exc:
+        raise SettingsError(f"{path} cannot be read: {exc}") from None
+    for key, value in data.items():
+        if key in ONE_RUN_KEYS:
+            raise SettingsError(
+                f"{path}: {key} confirms one deploy and is never kept; remove it from the file and pass "
+                f"-c {key}=true with the deploy it confirms"
+            )
+        if key not in SETTING_FIELDS:
+            close = difflib.get_close_matches(key, list(SETTING_FIELDS), n=1)
+            hint = f"did you mean '{close[0]}'? " if close else ""
+            raise SettingsError(
+                f"{path}: unknown setting '{key}'; {hint}the settings are: {', '.join(KEPT_KEYS)} "
+                "(docs/deploy.md, Settings)"
+            )
+        if isinstance(value, dict):
+            raise SettingsError(f"{path}: {key} must be a value, not a table")
+    return data
+
+
+def resolve(
+    get_context: Callable[[str], object], file_values: Mapping[str, Any], settings_file: Path | None = None
+) -> ResolvedSettings:
+    """Merge the settings file with context (`-c` wins), validate, and say where each value came from."""
+    sources: dict[str, Source] = {}
+    for key in SETTING_FIELDS:
+        if get_context(key) is not None:
+            sources[key] = Source.CONTEXT
+        elif key in file_values:
+            sources[key] = Source.FILE
+        else:
+            sources[key] = Source.DEFAULT
+
+    def get(key: str) -> object:
+        value = get_context(key)
+        return value if value is not None else file_values.get(key)
+
+    try:
+        settings = TwinSettings.from_context(get)
+    except SettingsError as exc:
+        # The messages start with the key; say when the bad value is the file's, so the fix goes there.
+        match = re.match(r"[a-zA-Z0-9]+", str(exc))
+        if match and sources.get(match.group(0)) is Source.FILE and settings_file is not None:
+            raise SettingsError(f"{exc} (it is set in {settings_file})") from None
+        raise
+    return ResolvedSettings(settings, sources, settings_file if file_values else None)
+
+
+def default_values() -> dict[str, Any]:
+    """Every kept setting's default, as the settings file writes it."""
+    values = TwinSettings().file_values()
+    return {k: values[k] for k in KEPT_KEYS}
 
 
 def _refuse_removed(get: Callable[[str], object]) -> None:
@@ -166,13 +350,9 @@ def _bool(get: Callable[[str], object], key: str, default: bool) -> bool:
     raise SettingsError(f"{key}={value!r} is not a boolean; pass -c {key}=true or -c {key}=false")
 
 
-def _client_cidr(value: str, allow_any: bool) -> str:
+def _client_cidr(value: str, allow_any: bool) -> str | None:
     if not value:
-        raise SettingsError(
-            "clientCidr is required: the DCV port opens to this range only. Pass your public IP, "
-            "e.g. cdk deploy -c clientCidr=203.0.113.7/32 (find it with: curl -s "
-            "https://checkip.amazonaws.com)"
-        )
+        return None  # TwinSettings.deploy_blockers says what to pass
     if "/" not in value:
         raise SettingsError(f"clientCidr={value} has no prefix length; pass -c clientCidr={value}/32")
     try:

@@ -15,7 +15,7 @@ from stacks.identity import TwinIdentity
 from stacks.iot_endpoint import IotDataEndpoint
 from stacks.monitoring import TwinMonitoring
 from stacks.network import DCV_PORT, TwinNetwork
-from stacks.settings import CLIENT_ID_PREFIX, TwinSettings
+from stacks.settings import TwinSettings
 from stacks.twin_host import DESKTOP_USER, REPO_ROOT, TwinHost
 
 # `twin instance` reads these keys; renaming one breaks it.
@@ -29,6 +29,8 @@ OUTPUT_KEYS = (
     "InstanceFingerprint",
     "UpdateAssociationId",
     "HostLogGroup",
+    "Settings",
+    "CalibrationUri",
 )
 
 
@@ -41,6 +43,7 @@ class TwinStack(Stack):
         id_: str,
         *,
         settings: TwinSettings,
+        settings_output: str,
         agent_source: Path | None = None,
         **kwargs: Any,
     ) -> None:
@@ -59,7 +62,7 @@ class TwinStack(Stack):
             "Identity",
             topic_prefix=settings.topic_prefix,
             devices=settings.devices,
-            client_id_prefix=CLIENT_ID_PREFIX,
+            client_id_prefix=settings.client_id_prefix,
             stack_name=settings.stack_name,
         )
         self.history = HistoryBucket(
@@ -69,6 +72,10 @@ class TwinStack(Stack):
             retain=settings.retain_history,
         )
         self.history.grant_agent(self.identity.role)
+        self.monitoring = TwinMonitoring(
+            self, "Monitoring", agent_name=settings.stack_name, alarm_email=settings.alarm_email
+        )
+        self.monitoring.grant_host(self.identity.role)
         self.host = TwinHost(
             self,
             "Host",
@@ -85,19 +92,22 @@ class TwinStack(Stack):
                 "DEVICES": ",".join(settings.devices),
                 "UNITS": settings.units,
                 "ROS2": "true" if settings.ros2 else "false",
-                "CLIENT_ID_PREFIX": CLIENT_ID_PREFIX,
+                "CLIENT_ID_PREFIX": settings.client_id_prefix,
                 "DESKTOP_USER": DESKTOP_USER,
                 "LOG_GROUP": self.identity.agent_log_group.log_group_name,
                 # The CloudWatch metrics' Agent dimension, which the monitoring alarms below watch.
                 "AGENT_NAME": settings.stack_name,
                 "HISTORY_URI": self.history.uri,
+                "CALIBRATIONS_URI": self.history.calibration_uri,
+                # The host's agent publishes servo alarm transitions here (critical ones; warnings too
+                # with alarmWarnings).
+                "ALERT_TOPIC_ARN": self.monitoring.topic.topic_arn,
+                "ALERT_WARNINGS": "true" if settings.alarm_warnings else "false",
                 "RECORD_SESSIONS": "true" if settings.record_sessions else "false",
             },
             agent_source=agent_source or REPO_ROOT,
         )
-        self.monitoring = TwinMonitoring(
-            self, "Monitoring", agent_name=settings.stack_name, alarm_email=settings.alarm_email
-        )
+        self.monitoring.watch_host(self.host.instance.instance_id)
         self.iot_endpoint = IotDataEndpoint(self, "IotEndpointLookup")
         self.auto_stop = (
             AutoStop(
@@ -144,7 +154,15 @@ class TwinStack(Stack):
             self,
             "AlarmTopic",
             value=self.monitoring.topic.topic_arn,
-            description="SNS topic the CloudWatch alarms notify (subscribe more endpoints to it)",
+            description="SNS topic of the alarms: the host's servo alarms and the CloudWatch alarms "
+            "(subscribe more endpoints to it)",
+        )
+        CfnOutput(
+            self,
+            "Dashboard",
+            value=f"https://console.aws.amazon.com/cloudwatch/home?region={self.region}#dashboards/dashboard/"
+            f"{self.monitoring.dashboard.dashboard_name}",
+            description="CloudWatch dashboard of the fleet: arms, rates, loss, alarms, history lag",
         )
         CfnOutput(
             self,
@@ -156,6 +174,13 @@ class TwinStack(Stack):
                 if settings.retain_history
                 else "Deleted with the stack (retainHistory=false)"
             ),
+        )
+        CfnOutput(
+            self,
+            "CalibrationUri",
+            value=self.history.calibration_uri,
+            description="Where each arm's LeRobot calibration is kept (<device>.json); `twin calibration "
+            "push ARM FILE` uploads one and the agent picks it up within calibration_poll_s",
         )
         CfnOutput(
             self,
@@ -180,6 +205,13 @@ class TwinStack(Stack):
             "HostLogGroup",
             value=self.identity.agent_log_group.log_group_name,
             description="Host log group: streams <instance-id>/bootstrap, /agent, /dcv, /emf",
+        )
+        CfnOutput(
+            self,
+            "Settings",
+            value=settings_output,
+            description="The settings this stack was deployed with (JSON); `twin instance settings` prints "
+            "them as twin.settings.toml, and the next synth refuses to reset one it is not given",
         )
         CfnOutput(
             self,

@@ -96,18 +96,29 @@ class Publisher:
             on_stopped=lambda _d: self.stopped.set(),
         )
         self.client.start()
-        if not self.connected.wait(10):
+        if not self.connected.wait(30):
             pytest.fail(f"test publisher could not connect to {url}")
 
     def publish(self, device: str, payload: bytes) -> None:
         packet = mqtt5.PublishPacket(
             topic=telemetry_topic(self.prefix, device), payload=payload, qos=mqtt5.QoS.AT_MOST_ONCE
         )
-        self.client.publish(packet).result(5)
+        self.client.publish(packet).result(30)
 
     def close(self) -> None:
         self.client.stop()
-        self.stopped.wait(5)
+        self.stopped.wait(30)
+
+
+def start_agent_on_clock(
+    rig: LocalRig, overrides: dict[str, Any], clock: Callable[[], float]
+) -> AgentService:
+    """rig.start_agent(overrides), with the agent on `clock` (a ManualClock); the rig stops it."""
+    service = AgentService(rig.agent_config(overrides), clock=clock)
+    rig.services.append(service)
+    service.start()
+    assert service.wait_subscribed(30), f"the agent did not subscribe (broker log: {rig.broker.log_path})"
+    return service
 
 
 @pytest.fixture
@@ -129,10 +140,43 @@ def wait_for(predicate: Callable[[], Any], timeout: float, what: str, interval: 
         time.sleep(interval)
 
 
+class ManualClock:
+    """A monotonic clock that stands still until the test moves it, for the `clock=` an agent, its health and
+    its pool take: ages, staleness and "behind" are then decided by the test, not by how long this shared
+    machine took to run it. The agent stamps what it receives (`feed`, its broker connections) with it too.
+    Starts at the real monotonic time, so stamps taken with time.monotonic() around it stay comparable."""
+
+    def __init__(self) -> None:
+        self.now = time.monotonic()
+
+    def __call__(self) -> float:
+        return self.now
+
+    def advance(self, seconds: float) -> None:
+        self.now += seconds
+
+
+def messages_handled(state: AgentState) -> int:
+    """AgentState.messages_handled: what a test waiting for N messages waits on."""
+    return state.messages_handled()
+
+
+def wait_handled(read_state: Callable[[], AgentState], count: int, timeout: float = 60.0) -> AgentState:
+    """The agent's state once it has handled `count` messages (messages_handled); AssertionError on timeout.
+    Twin poses (joints_rad, timestamp_ms) are published after a whole batch: wait on those themselves."""
+
+    def handled() -> AgentState | None:
+        state = read_state()
+        return state if messages_handled(state) >= count else None
+
+    return wait_for(handled, timeout, f"the agent to handle {count} messages")
+
+
 def http_get(url: str) -> tuple[int, str, bytes]:
-    """(status, content type, body) of a GET, 4xx/5xx included."""
+    """(status, content type, body) of a GET, 4xx/5xx included. The timeout is for a wedged server, not a
+    slow one: an agent answers in milliseconds, but this machine may be busy with other test runs."""
     try:
-        with urllib.request.urlopen(url, timeout=5) as resp:
+        with urllib.request.urlopen(url, timeout=30) as resp:
             return resp.status, resp.headers.get("Content-Type", ""), resp.read()
     except urllib.error.HTTPError as err:
         return err.code, err.headers.get("Content-Type", ""), err.read()
@@ -203,12 +247,13 @@ def fed_agent(messages: int = 12, *, sinks: Sequence[Any] = (), **overrides: Any
             service.feed("dt/lerobot/arm-001/telemetry", payload)
             wait_for(
                 lambda n=i + 1: service.state().devices["arm-001"].health.counters.received >= n,
-                3,
+                30,
                 "the worker",
             )
         service.feed("dt/lerobot/arm-001/telemetry", b"{not json")
         service.feed("dt/lerobot/ghost/telemetry", b"\xff")
-        wait_for(lambda: service.state().agent.worker.processed == messages + 2, 3, "the rejects")
+        # Not worker.processed, which counts a message when the worker takes it, before its rejection is.
+        wait_handled(service.state, messages + 2)
         yield service
     finally:
         service.stop()

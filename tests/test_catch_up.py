@@ -2,7 +2,8 @@
 
 A gate sink holds the worker inside its first applied sample while a backlog queues behind it (the sink
 contract forbids blocking; here it is the tool that makes the worker fall behind deterministically). The
-service is fed through `AgentService.feed`; no broker is needed.
+service is fed through `AgentService.feed`; no broker is needed. Its clock is the test's (ManualClock): a
+batch is "behind" when the clock says so, never because this busy machine was slow to run the worker.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import time
 from collections.abc import Iterator
 
 import pytest
-from conftest import wait_for
+from conftest import ManualClock, wait_for
 from twin.edge.payload import encode, make_payload
 from twin.output.sinks import AppliedSample, RejectedSample, SinkStats
 from twin.rig.mosquitto import free_port
@@ -52,7 +53,7 @@ class GateSink:
 
 
 @pytest.fixture
-def gated() -> Iterator[tuple[AgentService, GateSink]]:
+def gated() -> Iterator[tuple[AgentService, GateSink, ManualClock]]:
     config = load_config(
         None,
         {
@@ -63,19 +64,20 @@ def gated() -> Iterator[tuple[AgentService, GateSink]]:
         },
     )
     gate = GateSink()
-    service = AgentService(config, sinks=[gate])
+    clock = ManualClock()
+    service = AgentService(config, sinks=[gate], clock=clock)
     service.start()
     try:
-        yield service, gate
+        yield service, gate, clock
     finally:
         gate.release.set()
         service.stop()
 
 
 def test_a_backlog_is_counted_whole_and_the_newest_valid_message_is_shown(
-    gated: tuple[AgentService, GateSink],
+    gated: tuple[AgentService, GateSink, ManualClock],
 ) -> None:
-    service, gate = gated
+    service, gate, clock = gated
     rng = random.Random(3)
     t0 = int(time.time() * 1000)
 
@@ -83,15 +85,18 @@ def test_a_backlog_is_counted_whole_and_the_newest_valid_message_is_shown(
         return encode(make_payload("arm-001", 0.1 * i, "ticks", rng, timestamp_ms=t0 + 100 * i))
 
     service.feed(TOPIC, message(0))
-    assert gate.entered.wait(5), "the worker never applied the first message"
+    assert gate.entered.wait(30), "the worker never applied the first message"
     # The backlog: nine good messages, then garbage last, all queued while the worker is held.
     for i in range(1, 10):
         service.feed(TOPIC, message(i))
     service.feed(TOPIC, b"{not json")
-    time.sleep(CATCH_UP_AFTER_S * 2)  # the backlog's oldest message has now waited past the threshold
+    # feed() stamps each message with the agent's clock: moved on by twice the threshold, the backlog is
+    # behind to the worker.
+    clock.advance(CATCH_UP_AFTER_S * 2)
     gate.release.set()
 
-    wait_for(lambda: service.state().agent.worker.processed == 11, 5, "the backlog")
+    # The twin's pose is published after the whole batch, so it is the last thing the backlog changes.
+    wait_for(lambda: service.state().devices["arm-001"].timestamp_ms == t0 + 900, 30, "the backlog")
     counters = service.state().devices["arm-001"].health.counters
     assert (counters.received, counters.decoded, counters.rejected_total) == (11, 10, 1)
     # Only the newest valid message of the backlog moved the twin; the garbage after it displaced nothing.
@@ -103,15 +108,16 @@ def test_a_backlog_is_counted_whole_and_the_newest_valid_message_is_shown(
     assert service.state().devices["arm-001"].loss.lost == 0
 
 
-def test_a_worker_keeping_up_applies_every_message(gated: tuple[AgentService, GateSink]) -> None:
-    service, gate = gated
+def test_a_worker_keeping_up_applies_every_message(gated: tuple[AgentService, GateSink, ManualClock]) -> None:
+    # The clock stands still, so no batch is ever behind, however late the worker takes it.
+    service, gate, _clock = gated
     gate.release.set()
     rng = random.Random(4)
     t0 = int(time.time() * 1000)
     for i in range(20):
         payload = encode(make_payload("arm-001", 0.1 * i, "ticks", rng, timestamp_ms=t0 + 100 * i))
         service.feed(TOPIC, payload)
-    wait_for(lambda: service.state().agent.worker.processed == 20, 5, "the messages")
+    wait_for(lambda: service.state().devices["arm-001"].timestamp_ms == t0 + 1900, 30, "the last message")
     counters = service.state().devices["arm-001"].health.counters
     assert (counters.applied, counters.coalesced) == (20, 0)
     assert gate.applied_ms == [t0 + 100 * i for i in range(20)]

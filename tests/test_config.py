@@ -24,7 +24,7 @@ EVERY_KEY_TOML = """
 url = "iot"
 region = ""
 endpoint = ""
-client_id_prefix = "so101-twin-"
+client_id_prefix = ""
 ca_file = ""
 [telemetry]
 topic_prefix = "dt/lerobot"

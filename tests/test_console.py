@@ -89,6 +89,11 @@ def test_the_fleet_page_lists_the_arms(console: str, page: Any, browser_errors: 
         page.wait_for_selector(f'#fleet-view [data-device="{device}"]')
     card = page.locator('#fleet-view [data-device="arm-003"]')
     assert "ONLINE" in card.inner_text()
+    # Raw ticks and no calibration anywhere: every arm is flagged.
+    page.wait_for_function(
+        "() => document.querySelector('#fleet-view [data-device=\"arm-003\"]')"
+        ".innerText.includes('uncalibrated')"
+    )
     # The list view and the search filter, live without a reload.
     page.get_by_role("button", name="List").click()
     page.get_by_label("search by id").fill("arm-002")
@@ -105,6 +110,7 @@ def test_an_arm_page_draws_its_charts(console: str, page: Any, browser_errors: l
     page.goto(console + "/arm/arm-003")
     wait_for_charts(page, TIMEOUT_S)
     assert page.locator("canvas[data-chart]").count() == 4
+    assert "twin calibration push arm-003 FILE" in page.locator("#uncalibrated").inner_text()
     assert browser_errors == []
 
 
@@ -126,7 +132,7 @@ def test_curl_acknowledges_a_percent_encoded_id(console: str) -> None:
     encoded = quote(alarm["alarm_id"], safe="")
     assert "%2F" in encoded
     request = urllib.request.Request(f"{console}/alarms/{encoded}/ack", data=b"", method="POST")
-    with urllib.request.urlopen(request, timeout=10) as response:
+    with urllib.request.urlopen(request, timeout=30) as response:
         assert json.loads(response.read())["alarms"][0]["state"] == "ACKNOWLEDGED"
 
 

@@ -4,19 +4,22 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
-import time
+import threading
 from pathlib import Path
 
 import numpy as np
 import psutil
 import pytest
-from conftest import read_rrd
+from conftest import read_rrd, wait_for
 from PIL import Image
 
 TWIN = Path(sys.executable).with_name("twin")
+# The demo's plain status line (stdout not a terminal): "...  sent 41  received 40  rate ..."
+RECEIVED = re.compile(r"\bsent \d+  received (\d+) ")
 
 STATS_FIELDS = {
     "duration_s",
@@ -30,6 +33,9 @@ STATS_FIELDS = {
     "broker",
     "files",
     "history",
+    "servos",
+    "story",
+    "console",
 }
 MESSAGE_FIELDS = {
     "sent",
@@ -74,51 +80,95 @@ def assert_broker_gone(stats: dict) -> None:
         assert not alive, f"mosquitto pid {pid} started by the demo is still running"
 
 
+def assert_png(path: Path, width: int, min_height: int, max_height: int) -> None:
+    """A real PNG of that size, with something drawn in it."""
+    with Image.open(path) as image:
+        assert image.format == "PNG", path
+        image.verify()
+    with Image.open(path) as image:
+        assert image.width == width and min_height <= image.height <= max_height, (path, image.size)
+        rgb = np.asarray(image.convert("RGB"))
+    assert rgb.std() > 10, f"{path} is a flat image"
+
+
 @pytest.mark.slow
-@pytest.mark.timeout(180)
-def test_demo_leaves_valid_files_and_stops_its_broker(tmp_path):
+@pytest.mark.timeout(300)
+def test_demo_tells_the_story_leaves_valid_files_and_stops_its_broker(tmp_path):
+    """`twin demo` as `make demo` runs it (the defaults): the first arm's shoulder overheats until the agent
+    raises its alarm, the console is photographed while it is up, and every file is left behind."""
     from pxr import Usd
+    from twin.rig.demo import STORY_JOINT
 
     out = tmp_path / "demo"
     proc = subprocess.run(
-        [str(TWIN), "demo", "--seconds", "4", "--out", str(out)],
+        [str(TWIN), "demo", "--out", str(out)],
         check=False,
         env=demo_env(),
         capture_output=True,
         text=True,
-        timeout=150,
+        timeout=280,
     )
     assert proc.returncode == 0, f"stdout:\n{proc.stdout}\nstderr:\n{proc.stderr}"
-    # Not a TTY: periodic plain status lines, then the summary.
+    # Not a TTY: periodic plain status lines, the story's steps, then the summary.
     assert "received" in proc.stdout and "done in" in proc.stdout
     assert "\r" not in proc.stdout
 
     stats = json.loads((out / "stats.json").read_text())
     assert stats.keys() >= STATS_FIELDS
+    devices = [f"arm-{i:03d}" for i in range(1, 7)]
+    assert stats["devices"] == devices and stats["servos"] == "physical"
+    assert stats["interrupted"] is False
+    # The story: the first arm's shoulder_lift raised the over-temperature warning, and the pictures were
+    # taken while the alarm was up.
+    story = stats["story"]
+    assert (story["device"], story["joint"]) == ("arm-001", STORY_JOINT)
+    raised = {a["kind"]: a for a in story["alarms"]}
+    assert "over_temperature" in raised, story
+    warning = raised["over_temperature"]
+    assert warning["alarm_id"] == f"arm-001/{STORY_JOINT}/over_temperature"
+    assert warning["severity"] == "warning" and warning["state"] == "ACTIVE"
+    assert 0 < warning["raised_after_s"] < stats["duration_s"]
+    assert 60.0 <= story["peak_temperature_c"] < 70.0
+    assert f"alarm arm-001/{STORY_JOINT}/over_temperature ACTIVE" in proc.stdout
+    console = stats["console"]
+    assert console["taken"] is True and console["skipped"] is None, console
+    assert console["console_errors"] == []
+    assert f"arm-001/{STORY_JOINT}/over_temperature" in console["alarms_at_pictures"]
+    files = stats["files"]
+    assert (files["console_fleet"], files["console_arm"]) == ("console-fleet.png", "console-arm.png")
+    assert_png(out / "console-fleet.png", 1280, 800, 800)
+    assert_png(out / "console-arm.png", 1280, 800, 4000)  # the whole page
+
     messages = stats["messages"]
     assert messages.keys() >= MESSAGE_FIELDS
-    assert messages["received"] > 0
-    # 4 s at 10 Hz; the scheduler may drift by a tick or two on a busy machine.
-    assert 35 <= messages["sent"] <= 45
+    # The edge publishes for the run's 30 s at least, and on while the pictures are taken.
+    assert stats["duration_s"] >= 30.0 and messages["sent"] > 0
     assert messages["rejected"] == 0 and messages["rejected_by_reason"] == {}
     assert messages["received"] == messages["sent"], "loopback QoS 0 without faults should lose nothing"
     # The agent's own loss estimate (edge timestamp gaps) agrees: nothing went missing.
     assert messages["estimated_lost"] == 0 and messages["estimated_loss_ratio"] == 0.0
     for kind in ("end_to_end", "internal"):
         lat = stats["latency_s"][kind]
-        assert 0 <= lat["p50"] <= lat["p99"] < 1.0, lat
-    assert stats["devices"] == ["arm-001"]
-    assert stats["per_device"]["arm-001"]["status"] == "ONLINE"
-    assert stats["interrupted"] is False
+        # Seconds (milliseconds on loopback; the bound is loose because the cores may be busy with other runs:
+        # speed is what `twin bench` measures, not this test).
+        assert 0 <= lat["p50"] <= lat["p99"] < 10.0, lat
+    # Each arm's health at the demo's last poll while the edge simulator ran: ONLINE, or STALE when that poll
+    # came during the simulator's shutdown, 0.3 s (three periods) after its last message, which a busy
+    # machine makes likely. Never OFFLINE.
+    assert {stats["per_device"][d]["status"] for d in devices} <= {"ONLINE", "STALE"}
 
-    files = stats["files"]
     assert_not_blank(out / files["png"])
     with Image.open(out / files["gif"]) as gif:
+        # A frame each time the demo's status poll (every 0.25 s) finds the next one due, one a second over
+        # the 30 s run: fewer when the machine is busy.
         assert gif.n_frames >= 10
         first = np.asarray(gif.convert("RGB"))
         gif.seek(gif.n_frames - 1)
         last = np.asarray(gif.convert("RGB"))
     assert np.abs(first.astype(int) - last.astype(int)).sum() > 0, "the animation does not move"
+    # The twin's picture was the first one written, long before the console's.
+    first_picture = proc.stdout.index("picture: ")
+    assert first_picture < proc.stdout.index("taking the console pictures")
 
     stage = Usd.Stage.Open(str(out / files["usd"]))
     assert stage is not None
@@ -128,9 +178,11 @@ def test_demo_leaves_valid_files_and_stops_its_broker(tmp_path):
     assert sampled, "the USD session has no time-sampled attributes"
     assert max(a.GetNumTimeSamples() for a in sampled) >= 10
 
-    # The history beside the other outputs: every applied message as a row, and its plot.
+    # The history beside the other outputs: every decoded message as a row (those the mirror coalesced while
+    # it was busy too), and its plot.
     history = stats["history"]
-    assert history["rows"] == {"arm-001": messages["applied"]}
+    assert history["rows"] == {d: stats["per_device"][d]["received"] for d in devices}
+    assert sum(history["rows"].values()) == messages["decoded"]
     assert history["rejected"] == {}
     assert (out / history["uri"] / "telemetry" / "_delta_log").is_dir()
     assert_not_blank(out / history["plot"])
@@ -143,34 +195,97 @@ def test_demo_leaves_valid_files_and_stops_its_broker(tmp_path):
     temporal, static = read_rrd(out / "twin.rrd")
     assert "/arms/arm-001:Transform3D:translation" in static.schema.names
     poses = [v for v in temporal.column("/arms/arm-001/wrist:Transform3D:translation").to_pylist() if v]
-    assert len(poses) == messages["applied"]
+    assert len(poses) == stats["per_device"]["arm-001"]["applied"]
 
     assert_broker_gone(stats)
 
 
 @pytest.mark.slow
 @pytest.mark.timeout(180)
+def test_demo_without_chromium_says_so_and_skips_only_the_console_pictures(tmp_path):
+    out = tmp_path / "demo"
+    missing = tmp_path / "no-such" / "chromium"
+    args = ["--seconds", "3", "--devices", "1", "--no-rerun", "--out", str(out), "--chromium", str(missing)]
+    proc = subprocess.run(
+        [str(TWIN), "demo", *args],
+        check=False,
+        env=demo_env(),
+        capture_output=True,
+        text=True,
+        timeout=150,
+    )
+    assert proc.returncode == 0, f"stdout:\n{proc.stdout}\nstderr:\n{proc.stderr}"
+    expected = f"console pictures skipped: {missing} is missing: `make setup-demo` installs Debian's chromium"
+    assert expected in proc.stdout
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["console"]["taken"] is False and "is missing" in stats["console"]["skipped"]
+    assert not list(out.glob("console-*.png"))
+    assert "console_fleet" not in stats["files"]
+    assert_not_blank(out / stats["files"]["png"])
+    # Nothing tries, or waits for, pictures that cannot be taken.
+    assert "taking the console pictures" not in proc.stdout
+    assert stats["messages"]["received"] > 0
+    assert_broker_gone(stats)
+
+
+def test_missing_playwright_is_named_with_the_way_to_install_it():
+    code = (
+        "import sys\nsys.modules['playwright'] = None\n"
+        "from twin.rig.console_shots import missing_for_shots\nprint(missing_for_shots())"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], check=True, capture_output=True, text=True, timeout=60
+    )
+    assert "Playwright is not installed: `make setup-demo` installs it" in proc.stdout
+    assert "so101-twin[demo]" in proc.stdout
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
 def test_demo_on_sigint_cleans_up_and_keeps_partial_results(tmp_path):
     out = tmp_path / "demo"
-    proc = subprocess.Popen(
-        [str(TWIN), "demo", "--seconds", "60", "--out", str(out), "--devices", "2", "--variant", "degrees"],
-        env=demo_env(),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    stderr_path = tmp_path / "demo.stderr"
+    with stderr_path.open("w") as stderr_file:
+        proc = subprocess.Popen(
+            [
+                str(TWIN),
+                "demo",
+                "--seconds",
+                "60",
+                "--out",
+                str(out),
+                "--devices",
+                "2",
+                "--variant",
+                "degrees",
+            ],
+            env=demo_env(),
+            stdout=subprocess.PIPE,
+            stderr=stderr_file,
+            text=True,
+        )
+    lines: list[str] = []
+
+    def read_stdout() -> None:
+        for line in proc.stdout or ():
+            lines.append(line)
+
+    reader = threading.Thread(target=read_stdout, daemon=True)
+    reader.start()
     try:
-        deadline = time.monotonic() + 60
-        # Wait until the run is under way (the session file appears once the agent starts).
-        while not list(out.glob("session-*.usda")) and time.monotonic() < deadline:
-            assert proc.poll() is None, proc.communicate()
-            time.sleep(0.2)
-        time.sleep(3.0)
+        # Interrupt once the agent has received telemetry: the demo prints a status line every 2 s.
+        def receiving() -> bool:
+            assert proc.poll() is None, f"twin demo exited {proc.returncode}:\n{''.join(lines)}"
+            return any(int(m.group(1)) > 0 for m in map(RECEIVED.search, list(lines)) if m)
+
+        wait_for(receiving, 120, "a status line with telemetry received", interval=0.1)
         proc.send_signal(signal.SIGINT)
-        stdout, stderr = proc.communicate(timeout=60)
+        proc.wait(60)
     finally:
         if proc.poll() is None:
             proc.kill()
+    reader.join(30)
+    stdout, stderr = "".join(lines), stderr_path.read_text()
     assert proc.returncode == 130, f"stdout:\n{stdout}\nstderr:\n{stderr}"
     assert "interrupted" in stderr
     stats = json.loads((out / "stats.json").read_text())
@@ -178,7 +293,10 @@ def test_demo_on_sigint_cleans_up_and_keeps_partial_results(tmp_path):
     assert stats["variant"] == "degrees"
     assert stats["devices"] == ["arm-001", "arm-002"]
     assert stats["messages"]["received"] > 0 and stats["messages"]["rejected"] == 0
-    assert stats["duration_s"] < 30
+    assert stats["duration_s"] < 60  # stopped before the 60 s it was asked to run
+    # Interrupted before the hot servo's alarm: no pictures, and no wait for them.
+    assert stats["console"] == {"taken": False, "skipped": "interrupted"}
+    assert not list(out.glob("console-*.png"))
     assert_broker_gone(stats)
 
 

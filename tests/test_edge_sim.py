@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import wait_for
 from twin.cli import main
 from twin.core.telemetry import (
     MAX_PAYLOAD_BYTES,
@@ -195,17 +196,16 @@ class Received:
     def __call__(self, topic: str, payload: bytes, received: float) -> None:
         self.items.append((topic, payload, received))
 
-    def wait_for(self, count: int, timeout: float = 5.0) -> None:
-        deadline = time.monotonic() + timeout
-        while len(self.items) < count and time.monotonic() < deadline:
-            time.sleep(0.01)
-        time.sleep(0.1)  # anything beyond `count` would show up now
+    def wait_for(self, count: int, timeout: float = 60.0) -> None:
+        wait_for(lambda: len(self.items) >= count, timeout, f"{count} messages at the subscriber")
+        # A quiet period for the exact-count checks: a message beyond `count` would show up now.
+        time.sleep(0.1)
 
 
 def _subscribe(url: str, received: Received) -> TelemetrySubscriber:
     sub = TelemetrySubscriber(BrokerConfig(url=url), topic_filters(PREFIX, ["*"]), received)
     sub.start()
-    assert sub.wait_subscribed(5)
+    assert sub.wait_subscribed(30)
     return sub
 
 
@@ -222,18 +222,18 @@ def test_rate_is_kept_without_drift(mosquitto: MosquittoBroker) -> None:
         report = _run(mosquitto.url, rate_hz=50, seconds=1.0)
         received.wait_for(report.published)
     finally:
-        sub.stop(5)
+        sub.stop(30)
     assert report.ticks == report.published == len(received.items) == 50
     assert report.skipped_ticks == 0
-    assert 0.95 <= report.elapsed_s <= 1.15
+    # The schedule is absolute: the 50th tick is due 0.98 s after the start and never sent early; and a
+    # simulator more than 1 s behind skips ticks (none were), so it ended less than 1 s after it was due.
+    # How much less is this machine's load, not the simulator's: speed belongs to `twin bench`.
+    assert 0.98 <= report.elapsed_s < 0.98 + 1.0 + 0.1
     # Timestamps follow the absolute schedule exactly: 20 ms apart, no accumulated drift.
     stamps = [json.loads(p)["timestamp"] for _, p, _ in received.items]
     steps = [b - a for a, b in itertools.pairwise(stamps)]
     assert all(19 <= s <= 21 for s in steps), steps
     assert stamps[-1] - stamps[0] in (979, 980, 981)
-    # Arrival times too: the 50th message lands ~0.98 s after the first, whatever the per-tick jitter.
-    arrivals = [r for _, _, r in received.items]
-    assert arrivals[-1] - arrivals[0] == pytest.approx(0.98, abs=0.15)
 
 
 @pytest.mark.slow
@@ -241,6 +241,7 @@ def test_faults_are_produced_as_counted(mosquitto: MosquittoBroker) -> None:
     received = Received()
     sub = _subscribe(mosquitto.url, received)
     try:
+        before_ms = time.time() * 1000
         report = _run(
             mosquitto.url,
             devices=device_ids(2),
@@ -249,9 +250,10 @@ def test_faults_are_produced_as_counted(mosquitto: MosquittoBroker) -> None:
             seed=7,
             faults=FaultConfig(drop=0.1, duplicate=0.1, reorder=0.1, clock_skew_ms=60_000),
         )
+        after_ms = time.time() * 1000
         received.wait_for(report.published)
     finally:
-        sub.stop(5)
+        sub.stop(30)
     assert report.generated == 200
     assert report.dropped > 0 and report.duplicated > 0 and report.reordered > 0
     assert report.published == report.generated - report.dropped + report.duplicated
@@ -262,15 +264,15 @@ def test_faults_are_produced_as_counted(mosquitto: MosquittoBroker) -> None:
         assert device is not None
         by_device.setdefault(device, []).append(json.loads(payload))
     assert {d: len(m) for d, m in by_device.items()} == report.per_device
-    now_ms = time.time() * 1000
     inversions = duplicates = 0
     for device, messages in by_device.items():
         stamps = [m["timestamp"] for m in messages]
         duplicates += sum(1 for a, b in itertools.pairwise(messages) if a == b)
         inversions += sum(1 for a, b in itertools.pairwise(stamps) if b < a)
-        # Skew: arm-001 runs 30 s ahead, arm-002 60 s ahead of the wall clock.
+        # Skew: arm-001 runs 30 s ahead, arm-002 60 s ahead of the wall clock (during the run; 1 ms for
+        # rounding).
         skew = {"arm-001": 30_000, "arm-002": 60_000}[device]
-        assert now_ms + skew - 3000 < stamps[-1] < now_ms + skew + 1000
+        assert before_ms + skew - 1 <= stamps[-1] <= after_ms + skew + 1
     assert duplicates == report.duplicated
     assert inversions == report.reordered
     total_unique = sum(len({m["timestamp"] for m in ms}) for ms in by_device.values())
@@ -285,7 +287,7 @@ def test_malformed_fault_reaches_the_consumer_and_is_rejected(mosquitto: Mosquit
         report = _run(mosquitto.url, rate_hz=100, seconds=1.0, seed=11, faults=FaultConfig(malformed=0.5))
         received.wait_for(report.published)
     finally:
-        sub.stop(5)
+        sub.stop(30)
     assert report.malformed_total > 20
     assert sum(1 for v in report.malformed.values() if v) >= 6  # several kinds, not one
     decoder = TelemetryDecoder(DecoderConfig(units=Units.TICKS))
@@ -341,16 +343,13 @@ def test_cli_stops_on_sigterm(mosquitto: MosquittoBroker) -> None:
         text=True,
     )
     try:
-        deadline = time.monotonic() + 10
-        while not received.items and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert received.items, "the simulator published nothing"
+        wait_for(lambda: received.items, 60, "the simulator to publish")
         proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=10)
+        out, err = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
             proc.kill()
-        sub.stop(5)
+        sub.stop(30)
     assert proc.returncode == 0, err
     assert "published" in out
     assert device_from_topic(received.items[0][0], PREFIX) == "arm-042"
@@ -360,9 +359,18 @@ def test_cli_stops_on_sigterm(mosquitto: MosquittoBroker) -> None:
 def test_stop_event_ends_a_forever_run(mosquitto: MosquittoBroker) -> None:
     stop = threading.Event()
     config = EdgeSimConfig(broker=BrokerConfig(url=mosquitto.url), rate_hz=10)
-    timer = threading.Timer(0.35, stop.set)
-    timer.start()
-    start = time.monotonic()
-    report = EdgeSimulator(config).run(stop)
-    assert time.monotonic() - start < 2.0
-    assert 3 <= report.ticks <= 5
+    simulator = EdgeSimulator(config)
+    ticks_at_stop: list[int] = []
+
+    def stop_after_three_ticks() -> None:
+        wait_for(lambda: simulator.report.ticks >= 3, 60, "three ticks")
+        stop.set()
+        ticks_at_stop.append(simulator.report.ticks)
+
+    stopper = threading.Thread(target=stop_after_three_ticks, daemon=True)
+    stopper.start()
+    report = simulator.run(stop)  # returns: a run without `seconds` ends on the event
+    stopper.join(30)
+    assert ticks_at_stop, "the run ended before the stop event was set"
+    # Once the event is set no new tick starts; at most the one under way when it was set finishes.
+    assert ticks_at_stop[0] <= report.ticks <= ticks_at_stop[0] + 1

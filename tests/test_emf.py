@@ -18,6 +18,7 @@ from typing import Any
 
 import jsonschema
 import pytest
+from conftest import wait_for
 from twin.output.emf import (
     AGENT_DIMENSION,
     LOSS_METRICS,
@@ -311,13 +312,11 @@ def test_publisher_thread_writes_until_stopped(tmp_path: Path) -> None:
     totals = FleetTotals(0, 0, 1, 0, 0, 0.0, 1.0, {"critical": 0, "warning": 0})
     publisher = EmfPublisher(writer, "so101-twin", lambda: totals, interval_s=0.05)
     publisher.start()
-    deadline = time.monotonic() + 10
-    while publisher.published < 2 and time.monotonic() < deadline:
-        time.sleep(0.02)
+    wait_for(lambda: publisher.published >= 2, 30, "two intervals published")
     publisher.stop()
     count = publisher.published
     assert count >= 2 and publisher.errors == 0
-    time.sleep(0.15)
+    time.sleep(0.15)  # three intervals of quiet: a thread still running would have published again
     assert publisher.published == count
 
 

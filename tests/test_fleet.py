@@ -11,10 +11,10 @@ from __future__ import annotations
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import pytest
-from conftest import get_state, wait_for
+from conftest import get_state, wait_for, wait_handled
 from twin.edge.simulator import FaultConfig, device_ids
 from twin.rig.local import LocalRig, child_env
 from twin.rig.quota_proxy import QuotaProxy
@@ -47,12 +47,31 @@ def start_agent(rig: LocalRig, proxy: QuotaProxy, devices: list[str], **override
     )
 
 
-def settle(agent: AgentService, expected: int, timeout: float = 15.0) -> None:
-    """Wait until the worker has decoded `expected` messages and stopped moving."""
-    wait_for(
-        lambda: agent.state().agent.worker.processed >= expected, timeout, f"{expected} messages processed"
-    )
-    time.sleep(0.5)
+def through_proxy(proxy: QuotaProxy, published: int) -> tuple[int, int]:
+    """(forwarded, dropped) to the agent, once all `published` messages have passed the proxy one way or the
+    other (after edge.join() the broker may still be handing the last ones over)."""
+
+    def counted() -> tuple[int, int] | None:
+        conns = proxy.connections()
+        forwarded = sum(c.forwarded_to_client for c in conns)
+        dropped = sum(c.dropped_to_client for c in conns)
+        return (forwarded, dropped) if forwarded + dropped >= published else None
+
+    return wait_for(counted, 60, f"{published} messages through the quota proxy")
+
+
+def wait_unchanged(read: Callable[[], int], quiet_s: float, timeout: float, what: str) -> int:
+    """read()'s value once it has not changed for `quiet_s` (a count that stops growing)."""
+    last, since = read(), time.monotonic()
+
+    def steady() -> tuple[int] | None:
+        nonlocal last, since
+        value = read()
+        if value != last:
+            last, since = value, time.monotonic()
+        return (value,) if time.monotonic() - since >= quiet_s else None
+
+    return wait_for(steady, timeout, what, interval=0.1)[0]
 
 
 def test_a_listed_fleet_through_the_quota_has_no_loss(rig: LocalRig, proxy: QuotaProxy) -> None:
@@ -61,18 +80,19 @@ def test_a_listed_fleet_through_the_quota_has_no_loss(rig: LocalRig, proxy: Quot
     agent = start_agent(rig, proxy, FLEET)
     edge = rig.start_edge(FLEET, seconds=4.0, rate_hz=10.0)
     report = edge.join(30)
-    settle(agent, report.published)
-    state = agent.state()
-    totals = proxy.totals()
-    assert totals["dropped"] == 0, totals
+    forwarded, dropped = through_proxy(proxy, report.published)
+    assert dropped == 0, proxy.totals()
+    state = wait_handled(agent.state, forwarded)
     assert len(state.agent.broker.connections) == 4
-    # Each device's messages arrive on one connection, so all of them are applied, in order.
+    # Each device's messages arrive on one connection, so all of them reach the twin, in order (a worker
+    # behind, as on a busy machine, applies each batch's newest and counts the rest as coalesced). The only
+    # holes are ticks the edge skipped (over a second late on a busy machine: none, normally).
     for device in FLEET:
         d = state.devices[device]
-        assert d.health.counters.applied == report.per_device[device], device
+        assert d.health.counters.applied + d.health.counters.coalesced == report.per_device[device], device
         assert d.health.counters.ignored_stale == 0
-        assert d.loss.lost == 0
-    assert state.agent.loss.lost == 0
+        assert d.loss.lost <= report.skipped_ticks
+    assert state.agent.loss.lost <= report.skipped_ticks * len(FLEET)
     assert state.agent.loss.received == report.published
     assert {c.filters for c in state.agent.broker.connections} == {8, 6}
 
@@ -80,27 +100,26 @@ def test_a_listed_fleet_through_the_quota_has_no_loss(rig: LocalRig, proxy: Quot
 def test_a_wildcard_fleet_grows_its_shared_subscription(rig: LocalRig, proxy: QuotaProxy) -> None:
     agent = start_agent(rig, proxy, ["*"])
     assert agent.topic_filters == ["$share/so101-rig-agent/dt/lerobot/+/telemetry"]
-    edge = rig.start_edge(FLEET, seconds=10.0, rate_hz=10.0)
-    size = wait_for(lambda: len(agent.state().agent.broker.connections) >= 4 or None, 10, "the pool to grow")
-    assert size
-    # Grown: from now on no connection is over its budget, so the proxy drops nothing more.
-    time.sleep(1.5)
-    dropped_after_growth = proxy.totals()["dropped"]
+    edge = rig.start_edge(FLEET, rate_hz=10.0)  # publishes until stopped
+    wait_for(lambda: len(agent.state().agent.broker.connections) >= 4, 60, "the pool to grow")
+    # Grown: no connection is over its budget any more, so the proxy stops dropping. Just after the growth a
+    # connection's bucket is still empty and a late edge's catch-up burst can overflow it, so this waits for
+    # a quiet stretch instead of assuming one a fixed time after the growth.
+    wait_unchanged(lambda: proxy.totals()["dropped"], 2.0, 60, "the proxy to stop dropping")
+    edge.stop()
     report = edge.join(30)
-    settle(agent, 1)
-    state = agent.state()
-    assert proxy.totals()["dropped"] == dropped_after_growth
+    forwarded, dropped = through_proxy(proxy, report.published)
+    state = wait_handled(agent.state, forwarded)
     assert len(state.devices) == len(FLEET)
     connections = state.agent.broker.connections
     assert 4 <= len(connections) <= 8
     assert all(c.rate_hz <= BUDGET for c in connections)
     # What the quota discarded before the pool grew shows up as estimated loss, close to the proxy's count.
-    lost, dropped = state.agent.loss.lost, proxy.totals()["dropped"]
-    assert abs(lost - dropped) <= max(10, 0.1 * dropped), (lost, dropped)
-    applied = sum(d.health.counters.applied for d in state.devices.values())
-    assert applied + dropped + sum(d.health.counters.ignored_stale for d in state.devices.values()) >= (
-        report.published - 5 * len(FLEET)
-    )
+    # A tick the edge skipped (over a second late on a busy machine) leaves the same hole as a lost message.
+    lost, skipped, slack = state.agent.loss.lost, report.skipped_ticks * len(FLEET), max(10, 0.1 * dropped)
+    assert dropped - slack <= lost <= dropped + skipped + slack, (lost, dropped, skipped)
+    # Every message the quota let through was handled: applied, or too late to move the twin.
+    assert sum(d.health.counters.received for d in state.devices.values()) == forwarded
 
 
 def test_loss_estimates_on_a_stream_with_known_drops(rig: LocalRig) -> None:
@@ -108,11 +127,12 @@ def test_loss_estimates_on_a_stream_with_known_drops(rig: LocalRig) -> None:
     agent = rig.start_agent({"telemetry.devices": devices, "telemetry.units": "ticks"})
     edge = rig.start_edge(devices, seconds=6.0, rate_hz=20.0, faults=FaultConfig(drop=0.2))
     report = edge.join(30)
-    settle(agent, report.published)
-    state = agent.state()
+    state = wait_handled(agent.state, report.published)
     lost = state.agent.loss.lost
     # Drops before a device's first or after its last delivered message leave no hole (at most a few each).
-    assert report.dropped - 4 * len(devices) <= lost <= report.dropped, (lost, report.dropped)
+    # A tick the edge skipped (over a second late on a busy machine) leaves the same hole as a dropped one.
+    holes = report.dropped + report.skipped_ticks * len(devices)
+    assert report.dropped - 4 * len(devices) <= lost <= holes, (lost, report.dropped, report.skipped_ticks)
     assert state.agent.loss.received == report.published
     assert 0.15 < state.agent.loss.loss_ratio < 0.25
     assert all(d.loss.period_s == pytest.approx(0.05, rel=0.02) for d in state.devices.values())
@@ -125,18 +145,20 @@ def test_garbage_interleaved_with_good_messages_is_counted_exactly(rig: LocalRig
     agent = rig.start_agent({"telemetry.devices": devices, "telemetry.units": "ticks"})
     edge = rig.start_edge(devices, seconds=3.0, rate_hz=50.0, faults=FaultConfig(malformed=0.3), seed=5)
     report = edge.join(30)
-    settle(agent, report.published)
-    state = agent.state()
+    state = wait_handled(agent.state, report.published)
     rejected = sum(d.health.counters.rejected_total for d in state.devices.values())
     rejected += sum(state.untracked_rejected.values())
     good = report.published - report.malformed_total
     assert report.malformed_total > 50
     assert rejected == report.malformed_total
     assert sum(d.health.counters.decoded for d in state.devices.values()) == good
-    # Every good message was applied: none was displaced by the garbage queued around it.
-    assert sum(d.health.counters.applied for d in state.devices.values()) == good
-    # A rejected message arrived, so the hole it leaves is not counted as transit loss.
-    assert state.agent.loss.lost == 0
+    # Every good message was applied (or, by a worker behind, coalesced into a newer one): none was displaced
+    # by the garbage queued around it.
+    counters = [d.health.counters for d in state.devices.values()]
+    assert sum(c.applied + c.coalesced for c in counters) == good
+    # A rejected message arrived, so the hole it leaves is not counted as transit loss (a tick the edge
+    # skipped, over a second late on a busy machine, is a hole for every device).
+    assert state.agent.loss.lost <= report.skipped_ticks * len(devices)
 
 
 def agent_metrics(agent: AgentService) -> str:

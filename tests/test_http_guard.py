@@ -201,7 +201,7 @@ def test_a_client_that_stops_reading_is_cut_off(agent: AgentService) -> None:
         sock.connect(address(agent))
         host, port = address(agent)
         sock.sendall(f"GET /stream HTTP/1.1\r\nHost: {host}:{port}\r\n\r\n".encode())
-        wait_for(lambda: http.stream_clients >= 1, 10, "the stream to open")
+        wait_for(lambda: http.stream_clients >= 1, 30, "the stream to open")
         # Never read: the server aborts the connection after timeout_s of not being able to write.
         wait_for(lambda: http.stream_clients == 0, 60, "the server to drop the stalled stream")
         assert closed_by_server(sock, 10)
@@ -220,7 +220,7 @@ def test_one_connection_too_many_gets_503(agent: AgentService) -> None:
             sock = socket.create_connection((host, port), timeout=10)
             sock.sendall(f"GET /stream HTTP/1.1\r\nHost: {host}:{port}\r\n\r\n".encode())
             streams.append(sock)
-        wait_for(lambda: http.stream_clients == MAX_CONNECTIONS, 10, "every stream to open")
+        wait_for(lambda: http.stream_clients == MAX_CONNECTIONS, 30, "every stream to open")
         status, _, _ = request(
             agent, f"GET /state HTTP/1.1\r\nHost: {host}:{port}\r\nConnection: close\r\n\r\n".encode()
         )
@@ -228,8 +228,8 @@ def test_one_connection_too_many_gets_503(agent: AgentService) -> None:
     finally:
         for sock in streams:
             sock.close()
-    wait_for(lambda: http.stream_clients == 0, 10, "the streams to close")
-    wait_for(lambda: get(agent, "/healthz")[0] in (200, 503), 10, "the server to answer again")
+    wait_for(lambda: http.stream_clients == 0, 30, "the streams to close")
+    wait_for(lambda: get(agent, "/healthz")[0] in (200, 503), 30, "the server to answer again")
 
 
 @pytest.mark.parametrize(

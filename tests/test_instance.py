@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import datetime
 import json
+import tomllib
 
 import boto3
 import botocore.client
@@ -43,6 +44,23 @@ TEMPLATE = {
         "DcvPasswordSecret": {"Value": "so101-twin/dcv aws secretsmanager get-secret-value ..."},
         "SsmSessionCommand": {
             "Value": {"Fn::Join": ["", ["aws ssm start-session --target ", {"Ref": "Host"}]]}
+        },
+        # As stacks/settings_guard.py writes it: kept settings in order, and where the given ones came from.
+        "Settings": {
+            "Value": json.dumps(
+                {
+                    "version": 1,
+                    "values": {
+                        "clientCidr": "203.0.113.7/32",
+                        "stackName": "So101TwinStack",
+                        "devices": ["arm-001", "arm-002"],
+                        "alarmEmail": "",
+                        "alarmWarnings": True,
+                    },
+                    "given": {"clientCidr": "file", "devices": "file", "alarmWarnings": "-c"},
+                },
+                separators=(",", ":"),
+            )
         },
     },
 }
@@ -89,6 +107,39 @@ def test_url_prints_only_the_dcv_url(stack, capsys):
     out = capsys.readouterr().out
     assert out == stack["DcvUrl"] + "\n"
     assert out.startswith("https://") and out.endswith(":8443/#console\n")
+
+
+def test_settings_print_the_deployed_stack_as_a_settings_file(stack, capsys):
+    assert main(["instance", "settings"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("# The settings of stack So101TwinStack in us-east-1, as deployed")
+    body = [
+        line for line in out.splitlines() if not line.startswith("# The") and not line.startswith("# Save")
+    ]
+    assert body == [
+        'clientCidr = "203.0.113.7/32"',
+        '# stackName = "So101TwinStack"  # default',
+        'devices = ["arm-001", "arm-002"]',
+        '# alarmEmail = ""  # default',
+        "alarmWarnings = true  # given with -c: keep it here, or the next deploy resets it",
+    ]
+    assert tomllib.loads(out) == {
+        "clientCidr": "203.0.113.7/32",
+        "devices": ["arm-001", "arm-002"],
+        "alarmWarnings": True,
+    }
+
+
+def test_settings_of_an_older_stack_say_to_deploy_once(aws_env, capsys):
+    template = {"Resources": TEMPLATE["Resources"], "Outputs": dict(TEMPLATE["Outputs"])}
+    del template["Outputs"]["Settings"]
+    with mock_aws():
+        boto3.client("cloudformation", region_name=REGION).create_stack(
+            StackName="OldTwin", TemplateBody=json.dumps(template)
+        )
+        assert main(["instance", "settings", "--stack", "OldTwin"]) == cmd.EXIT_NO_OUTPUTS
+    err = capsys.readouterr().err
+    assert "has no Settings output" in err and "cdk deploy" in err
 
 
 def test_stop_then_start_changes_the_ec2_state(stack, capsys):
@@ -162,9 +213,21 @@ def test_missing_stack_is_a_clear_message(aws_env, capsys):
     captured = capsys.readouterr()
     assert captured.err.strip() == (
         "twin instance start: stack So101TwinStack not found in us-east-1: deploy it with "
-        "`cdk deploy -c clientCidr=...` or pass --stack"
+        "`cdk deploy` (docs/deploy.md) or pass --stack"
     )
     assert "Traceback" not in captured.err and captured.out == ""
+
+
+def test_the_stack_name_comes_from_the_settings_file_where_there_is_one(aws_env, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert lib.default_stack_name() == "So101TwinStack"
+    (tmp_path / "twin.settings.toml").write_text('clientCidr = "203.0.113.7/32"\nstackName = "FiveArms"\n')
+    assert lib.default_stack_name() == "FiveArms"
+    monkeypatch.setenv(lib.STACK_ENV_VAR, "Other")
+    assert lib.default_stack_name() == "Other"
+    monkeypatch.delenv(lib.STACK_ENV_VAR)
+    (tmp_path / "twin.settings.toml").write_text("not toml [")
+    assert lib.default_stack_name() == "So101TwinStack"  # `cdk deploy` says what is wrong with the file
 
 
 def test_missing_outputs_names_them(aws_env, capsys):

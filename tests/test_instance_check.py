@@ -116,7 +116,9 @@ def closed_port() -> int:
 # --- the stand-in host's own answer -------------------------------------------------------------------------
 
 
-def stand_in_host(tmp: Path, *, deployed: str = VERSION, viewer: bool = True, x: bool = True) -> HostSim:
+def stand_in_host(
+    tmp: Path, *, deployed: str = VERSION, viewer: bool = True, x: bool = True, uncalibrated: bool = False
+) -> HostSim:
     """A stand-in host in the given state, its agent serving the documents the real agent would."""
     host = HostSim(tmp / "host")
     for marker, on in (("xorg", x), ("viewer", viewer)):
@@ -149,7 +151,9 @@ def stand_in_host(tmp: Path, *, deployed: str = VERSION, viewer: bool = True, x:
         ),
         devices={
             "arm-001": DeviceState(
-                device_id="arm-001", health=HealthSnapshot(status=online, age_s=0.04, rate_hz=10.0)
+                device_id="arm-001",
+                health=HealthSnapshot(status=online, age_s=0.04, rate_hz=10.0),
+                uncalibrated=uncalibrated,
             )
         },
     )
@@ -293,6 +297,7 @@ def test_a_working_twin_passes_every_check(aws_env, dcv_port, tmp_path, monkeypa
         "dcv-session",
         "agent",
         "telemetry",
+        "calibration",
         "viewer",
         "screen",
         "version",
@@ -301,7 +306,7 @@ def test_a_working_twin_passes_every_check(aws_env, dcv_port, tmp_path, monkeypa
     assert rows["dcv port"][1].startswith(f"127.0.0.1:{dcv_port} completes a TLS handshake from here (TLSv1.")
     assert "arm-001 ONLINE 10.0 Hz, last message 0.0 s ago" in rows["telemetry"][1]
     assert f"host runs {VERSION}, the stack's current deployment" in rows["version"][1]
-    assert out.rstrip().endswith("verdict: the twin works (11 checks OK)")
+    assert out.rstrip().endswith("verdict: the twin works (12 checks OK)")
     assert sent["Parameters"]["commands"] == [chk.HOST_CHECK_COMMAND]
 
 
@@ -328,10 +333,36 @@ def test_failing_lines_get_a_fix_and_the_verdict_fails(aws_env, tmp_path, monkey
         "2026-11-23T10:00:00+00:00 boot SUCCESS verified)",
     )
     fixes = out.split("fixes:", 1)[1]
-    assert "dcv port: DCV admits only clientCidr" in fixes and "-c clientCidr=<it>/32" in fixes
+    assert (
+        "dcv port: DCV admits only clientCidr" in fixes
+        and 'clientCidr = "<it>/32" into twin.settings.toml' in fixes
+    )
     assert "viewer: the viewer starts at the desktop login and must keep running" in fixes
     assert "aws ssm start-associations-once --association-ids 0b1c2d3e-0000-4000-8000-000000000009" in fixes
     assert "verdict: the twin does not work: 3 failing check(s): dcv port, viewer, version" in out
+
+
+def test_an_arm_without_calibration_is_a_warning_with_the_command(
+    aws_env, dcv_port, tmp_path, monkeypatch, capsys
+):
+    stdout = host_check_output(tmp_path, uncalibrated=True)
+    with mock_aws():
+        deploy(f"https://127.0.0.1:{dcv_port}/#console")
+        intercept(
+            monkeypatch,
+            {
+                "DescribeStackEvents": with_events(SIGNAL_SUCCESS),
+                "GetCommandInvocation": host_answers(stdout),
+            },
+        )
+        code, out = run_check(capsys)
+    assert code == cmd.EXIT_OK  # a warning: the twin works, with the nominal arm's angles
+    rows = table(out)
+    assert rows["calibration"] == (
+        "WARN",
+        "arm-001 has no calibration: the nominal SO-101's zero and range, not the arm's",
+    )
+    assert "calibration: push each arm's LeRobot calibration: twin calibration push ARM FILE" in out
 
 
 def test_a_failed_boot_shows_the_reason_from_the_wait_condition(

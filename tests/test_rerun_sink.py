@@ -19,7 +19,7 @@ import mujoco
 import numpy as np
 import pyarrow as pa
 import pytest
-from conftest import read_rrd
+from conftest import read_rrd, wait_for
 from twin.core.alarms import AlarmThresholds, ServoAlarms
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
 from twin.output.rerun_settings import RerunSettings, RerunSettingsError
@@ -97,6 +97,7 @@ def feed(sink: RerunSink, *, period_s: float = 0.1, pause_every: int = 0) -> lis
     mono = time.monotonic()
     for i in range(SAMPLES):
         if pause_every and i and i % pause_every == 0:
+            # Past the flush delay: the next sample finds the batch due, however late this thread runs.
             time.sleep(0.2)
         for device in DEVICES:
             doc = payload(device, i)
@@ -424,7 +425,9 @@ def test_a_host_stall_costs_a_normal_arm_nothing_and_a_flood_is_still_capped(
 def test_samples_reach_the_sink_thread_when_the_fleet_goes_quiet(robot: RobotModel, tmp_path: Path) -> None:
     # Samples are handed to the sink's thread in groups; what a fleet leaves behind when it stops sending
     # is taken by the thread when its queue idles (flush_s / 2), not held until the next message or close.
-    sink = RerunSink(robot, RerunSettings(save=str(tmp_path / "quiet.rrd"), flush_s=0.1))
+    # flush_s 0.5: the three samples below are handed over within that of each other even on a busy machine,
+    # so they make one batch.
+    sink = RerunSink(robot, RerunSettings(save=str(tmp_path / "quiet.rrd"), flush_s=0.5))
     decoder = TelemetryDecoder(DecoderConfig(units=Units.DEGREES))
     for i in range(3):
         telemetry = decoder.decode(json.dumps(payload("arm-001", i)), topic_device="arm-001")
@@ -432,9 +435,7 @@ def test_samples_reach_the_sink_thread_when_the_fleet_goes_quiet(robot: RobotMod
             AppliedSample("arm-001", time.time(), time.monotonic(), telemetry, dict(telemetry.angles_rad))
         )
     assert sink.stats().pending + sink.stats().delivered == 3
-    deadline = time.monotonic() + 5.0
-    while sink.worker.batches_sent == 0 and time.monotonic() < deadline:
-        time.sleep(0.02)
+    wait_for(lambda: sink.worker.batches_sent and sink.stats().delivered == 3, 30, "the quiet fleet's batch")
     stats = sink.stats()
     assert (stats.delivered, stats.pending, sink.worker.batches_sent) == (3, 0, 1)
     sink.close()

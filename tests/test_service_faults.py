@@ -9,7 +9,18 @@ import time
 from typing import Any
 
 import pytest
-from conftest import Publisher, device_state, get_health, get_metrics, get_state, metric, wait_for
+from conftest import (
+    ManualClock,
+    Publisher,
+    device_state,
+    get_health,
+    get_metrics,
+    get_state,
+    metric,
+    start_agent_on_clock,
+    wait_for,
+    wait_handled,
+)
 from twin.core.health import DeviceStatus
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
 from twin.edge.payload import MALFORMED_KINDS, encode, make_malformed, make_payload
@@ -45,10 +56,10 @@ class SteadyPublisher:
 
     def stop(self) -> None:
         self._stop.set()
-        self._thread.join(5)
+        self._thread.join(30)
 
 
-def ticks_agent(rig: LocalRig, **overrides: Any) -> AgentService:
+def ticks_agent(rig: LocalRig, clock: ManualClock | None = None, **overrides: Any) -> AgentService:
     values = {
         "telemetry.devices": ["arm-001"],
         "telemetry.units": "ticks",
@@ -57,7 +68,7 @@ def ticks_agent(rig: LocalRig, **overrides: Any) -> AgentService:
         "health.window_s": 2.0,
         **overrides,
     }
-    return rig.start_agent(values)
+    return rig.start_agent(values) if clock is None else start_agent_on_clock(rig, values, clock)
 
 
 def test_broker_restarts_five_times(rig: LocalRig, publisher: Publisher) -> None:
@@ -65,7 +76,7 @@ def test_broker_restarts_five_times(rig: LocalRig, publisher: Publisher) -> None
     url = service.http_url
     steady = SteadyPublisher(publisher, "arm-001")
     try:
-        wait_for(lambda: device_state(url, "arm-001").timestamp_ms, 5, "first telemetry")
+        wait_for(lambda: device_state(url, "arm-001").timestamp_ms, 30, "first telemetry")
         for cycle in range(5):
             before = get_state(url)
             subscribes = before.agent.broker.subscribes
@@ -73,14 +84,16 @@ def test_broker_restarts_five_times(rig: LocalRig, publisher: Publisher) -> None
             assert last_ts is not None
             # Alternate a crash (SIGKILL: no clean close of the agent's socket) with a clean stop.
             rig.broker.restart(hard=cycle % 2 == 0)
+            # The backoff caps the wait for the next attempt at 2 s (broker.max_reconnect_delay_ms); how long
+            # the rest takes is this machine's speed, so the waits are generous.
             wait_for(
                 lambda s=subscribes: get_state(url).agent.broker.subscribes > s,
-                3.0,
-                f"re-subscribe within 3 s of the broker's return (cycle {cycle})",
+                30,
+                f"re-subscribe after the broker's return (cycle {cycle})",
             )
             wait_for(
                 lambda t=last_ts: (device_state(url, "arm-001").timestamp_ms or 0) > t,
-                8.0,
+                30,
                 f"the twin to update again (cycle {cycle})",
             )
             assert service.running
@@ -101,11 +114,11 @@ def test_flood_of_malformed_and_oversized_is_rejected_while_good_flows(
     steady = SteadyPublisher(publisher, "arm-001")
     flooder = Publisher(rig.broker.url)
     try:
-        wait_for(lambda: device_state(url, "arm-001").timestamp_ms, 5, "first telemetry")
+        wait_for(lambda: device_state(url, "arm-001").timestamp_ms, 30, "first telemetry")
         start = device_state(url, "arm-001")
         rng = random.Random(2)
         sent_bad = 0
-        t_end = time.monotonic() + 1.5
+        t_end = time.monotonic() + 1.5  # the flood: as fast as this thread publishes, for 1.5 s
         while time.monotonic() < t_end:
             base = make_payload("arm-001", time.monotonic(), "ticks", rng)
             for kind in MALFORMED_KINDS:
@@ -130,7 +143,7 @@ def test_flood_of_malformed_and_oversized_is_rejected_while_good_flows(
 
         last_counts: list[int] = []
         try:
-            state = wait_for(settled, 5, "every delivered message to be counted")
+            state = wait_for(settled, 60, "every delivered message to be counted")
         except AssertionError as exc:
             raise AssertionError(
                 f"{exc}: accounted, delivered, bad sent, good sent = {last_counts}"
@@ -142,8 +155,11 @@ def test_flood_of_malformed_and_oversized_is_rejected_while_good_flows(
         assert rejected.get("device_mismatch", 0) > 0
         assert len(rejected) >= 6
         assert "ghost-7" not in state.devices
-        # Good messages kept flowing through the flood.
-        assert dev.health.counters.applied > start.health.counters.applied + 10
+        # Good messages kept flowing through the flood: decoded, and the twin moved on. (A worker behind the
+        # flood applies only each batch's newest good message and counts the others as coalesced, so how
+        # many were applied depends on how far behind this machine let it fall.)
+        assert dev.health.counters.decoded > start.health.counters.decoded + 10
+        assert dev.health.counters.applied > start.health.counters.applied
         assert (dev.timestamp_ms or 0) > (start.timestamp_ms or 0)
         assert state.agent.worker.errors == 0
 
@@ -187,7 +203,7 @@ def test_reordered_and_duplicated_never_move_the_twin_backwards(rig: LocalRig, p
                 (d := service.state().devices["arm-001"]).health.counters.received >= n
                 and d.timestamp_ms == ms
             ),
-            3,
+            30,
             f"message {i} to be processed and the twin at {expected_ms}",
             0.005,
         )
@@ -208,22 +224,24 @@ def test_reordered_and_duplicated_never_move_the_twin_backwards(rig: LocalRig, p
 def test_edge_clock_jump_backwards_rebuilds_the_twin(rig: LocalRig, publisher: Publisher) -> None:
     # An edge that reboots without NTP restarts its clock in the past; the twin must not freeze until the
     # clock catches up. Messages keep arriving (the device is ONLINE) but all are older than the last one.
-    service = ticks_agent(rig)
+    # The agent runs on the test's clock: each message arrives 50 ms after the previous one on it, however
+    # long this machine takes to deliver it, and the device is ONLINE at the end because no time passed.
+    clock = ManualClock()
+    service = ticks_agent(rig, clock)
     url = service.http_url
     rng = random.Random(9)
     future = int(time.time() * 1000) + 3_600_000
     publisher.publish("arm-001", encode(make_payload("arm-001", 0.0, "ticks", rng, timestamp_ms=future)))
-    wait_for(lambda: device_state(url, "arm-001").timestamp_ms == future, 3, "the future timestamp")
+    wait_for(lambda: device_state(url, "arm-001").timestamp_ms == future, 30, "the future timestamp")
     now = int(time.time() * 1000)
     for i in range(60):  # 3 s at 20 Hz on the "rebooted" clock
+        clock.advance(0.05)
         publisher.publish(
             "arm-001", encode(make_payload("arm-001", i * 0.05, "ticks", rng, timestamp_ms=now + 50 * i))
         )
-        time.sleep(0.05)
-    dev = wait_for(
-        lambda: (d := device_state(url, "arm-001")).health.counters.clock_resets == 1 and d,
-        3,
-        "a counted clock reset",
-    )
+        wait_handled(service.state, i + 2)
+    dev = device_state(url, "arm-001")
+    # A reset needs older messages for 2 s of receive time (CLOCK_RESET_AFTER_S): one, about 40 messages in.
+    assert dev.health.counters.clock_resets == 1
     assert dev.timestamp_ms is not None and now <= dev.timestamp_ms < future
     assert dev.health.status is DeviceStatus.ONLINE

@@ -40,14 +40,14 @@ EXPECTED = {
 
 
 def alarms(url: str, everything: bool = False) -> AlarmList:
-    with urllib.request.urlopen(url + "/alarms" + ("?all=1" if everything else ""), timeout=5) as resp:
+    with urllib.request.urlopen(url + "/alarms" + ("?all=1" if everything else ""), timeout=30) as resp:
         return AlarmList.from_json(resp.read())
 
 
 def post(url: str) -> tuple[int, Any]:
     request = urllib.request.Request(url, data=b"", method="POST")
     try:
-        with urllib.request.urlopen(request, timeout=5) as resp:
+        with urllib.request.urlopen(request, timeout=30) as resp:
             return resp.status, json.loads(resp.read())
     except urllib.error.HTTPError as err:
         return err.code, json.loads(err.read())
@@ -80,8 +80,21 @@ def test_each_servo_fault_raises_and_clears_its_alarms(
         seen = by_key(alarms(url))
         return seen if set(seen) >= EXPECTED else None
 
-    raised = wait_for(all_raised, 30, "every fault's alarms to be raised", interval=0.1)
+    raised = wait_for(all_raised, 60, "every fault's alarms to be raised", interval=0.1)
     assert set(raised) == EXPECTED, raised
+
+    # The readings are in /state and /metrics while the faults run: read first, as the heat lasts only until
+    # about 7 s into the run and a busy machine may have taken some of that to see every alarm raised.
+    with urllib.request.urlopen(url + "/state", timeout=30) as resp:
+        state = AgentState.from_json(resp.read())
+    servos = state.devices["arm-001"].servos
+    assert servos is not None and servos["shoulder_lift"].voltage_v == 5.0
+    assert servos["elbow_flex"].model_load_percent is not None
+    metrics = get_metrics(url)
+    assert metric(metrics, "twin_servo_temperature_celsius", device="arm-001", joint="wrist_roll") >= 60.0
+    assert abs(metric(metrics, "twin_servo_load_percent", device="arm-001", joint="shoulder_lift")) <= 100.0
+    assert metric(metrics, "twin_servo_alarms_raised_total", kind="overload") == 1.0
+    assert metric(metrics, "twin_servo_alarms_present", severity="critical") >= 1.0
 
     # Acknowledge the over-current while it lasts: ACKNOWLEDGED; again: 409; an unknown id: 404.
     ack_url = f"{url}/alarms/arm-001/shoulder_lift/over_current/ack"
@@ -93,24 +106,12 @@ def test_each_servo_fault_raises_and_clears_its_alarms(
     status, body = post(f"{url}/alarms/arm-001/shoulder_lift/melting/ack")
     assert status == 404 and body["error"] == "alarm_not_found"
 
-    # The readings are in /state and /metrics while the faults run.
-    with urllib.request.urlopen(url + "/state", timeout=5) as resp:
-        state = AgentState.from_json(resp.read())
-    servos = state.devices["arm-001"].servos
-    assert servos is not None and servos["shoulder_lift"].voltage_v == 5.0
-    assert servos["elbow_flex"].model_load_percent is not None
-    metrics = get_metrics(url)
-    assert metric(metrics, "twin_servo_temperature_celsius", device="arm-001", joint="wrist_roll") >= 60.0
-    assert abs(metric(metrics, "twin_servo_load_percent", device="arm-001", joint="shoulder_lift")) <= 100.0
-    assert metric(metrics, "twin_servo_alarms_raised_total", kind="overload") == 1.0
-    assert metric(metrics, "twin_servo_alarms_present", severity="critical") >= 1.0
-
     # Cleared: the acknowledged alarm returns to NORMAL, the others wait LATCHED for a person.
     def all_cleared() -> dict[tuple[str, str], str] | None:
         seen = by_key(alarms(url))
         return seen if seen and all(s == "LATCHED" for s in seen.values()) else None
 
-    cleared = wait_for(all_cleared, 30, "every alarm to clear", interval=0.1)
+    cleared = wait_for(all_cleared, 60, "every alarm to clear", interval=0.1)
     assert set(cleared) == EXPECTED - {("shoulder_lift", "over_current")}
     for joint, kind in cleared:
         status, body = post(f"{url}/alarms/arm-001/{joint}/{kind}/ack")
@@ -133,4 +134,4 @@ def test_each_servo_fault_raises_and_clears_its_alarms(
         docs = [validate_emf_line(line) for line in emf_file.read_text().splitlines()]
         return any(d.get("Severity") == "critical" and d["ActiveAlarms"] >= 1 for d in docs)
 
-    assert wait_for(critical_seen, 5, "an EMF line counting a critical alarm", interval=0.2)
+    assert wait_for(critical_seen, 30, "an EMF line counting a critical alarm", interval=0.2)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from pathlib import Path
 from typing import Any
 
@@ -98,6 +99,45 @@ def test_ticks_example(calibration: Path | None, expected: dict[str, float], per
     assert (t.device_id, t.timestamp_ms, t.units) == ("arm-001", TS, Units.TICKS)
     assert_angles(t, expected)
     assert t.gripper_percent == pytest.approx(percent, abs=1e-9)
+
+
+def test_each_arm_decodes_with_its_own_calibration() -> None:
+    """Two arms in one decoder: arm-001 with the example calibration, arm-002 with none (the nominal SO-101),
+    from one identical payload; replacing the set moves arm-002 onto it and arm-001 back to the default."""
+    cal = load_calibration(EXAMPLE_CALIBRATION)
+    d = decoder(Units.TICKS)
+    d.set_calibrations({"arm-001": cal})
+    assert_angles(d.decode(payload(TICKS_EXAMPLE, device="arm-001")), TICKS_EXAMPLE_CALIBRATION)
+    assert_angles(d.decode(payload(TICKS_EXAMPLE, device="arm-002")), TICKS_NO_CALIBRATION)
+    assert d.calibration_for("arm-001") is cal and d.calibration_for("arm-002") is None
+    d.set_calibrations({"arm-002": cal})
+    assert_angles(d.decode(payload(TICKS_EXAMPLE, device="arm-001")), TICKS_NO_CALIBRATION)
+    assert_angles(d.decode(payload(TICKS_EXAMPLE, device="arm-002")), TICKS_EXAMPLE_CALIBRATION)
+
+
+def test_an_arm_without_its_own_uses_the_configs_calibration_on_both_paths() -> None:
+    """The config's file stays the default for the arms without their own; units decided by auto take the
+    arm's own table too."""
+    cal = load_calibration(EXAMPLE_CALIBRATION)
+    d = decoder(Units.TICKS, calibration=cal)
+    d.set_calibrations({"arm-002": Calibration.from_dict(_shifted(cal.to_dict(), 100))})
+    assert_angles(d.decode(payload(TICKS_EXAMPLE, device="arm-001")), TICKS_EXAMPLE_CALIBRATION)
+    shifted = d.decode(payload(TICKS_EXAMPLE, device="arm-002"))
+    rad_per_tick = 2 * math.pi / 4095
+    assert shifted.angles_rad["shoulder_pan"] == pytest.approx(
+        TICKS_EXAMPLE_CALIBRATION["shoulder_pan"] - 100 * rad_per_tick
+    )
+    auto = decoder(Units.AUTO, auto_evidence_messages=1)
+    auto.set_calibrations({"arm-001": cal})
+    assert_angles(auto.decode(payload(TICKS_EXAMPLE, device="arm-001")), TICKS_EXAMPLE_CALIBRATION)
+
+
+def _shifted(data: dict[str, dict[str, int]], ticks: int) -> dict[str, dict[str, int]]:
+    """A calibration whose every range sits `ticks` higher (its middle moves by as much)."""
+    return {
+        name: {**m, "range_min": m["range_min"] + ticks, "range_max": m["range_max"] + ticks}
+        for name, m in data.items()
+    }
 
 
 def test_ticks_gripper_inside_calibrated_range() -> None:

@@ -17,7 +17,7 @@ from urllib.parse import unquote, urlsplit
 
 import psutil
 import pytest
-from conftest import get_state, http_get, read_rrd, wait_for
+from conftest import get_state, http_get, read_rrd, wait_for, wait_handled
 from twin.rig.local import child_env
 
 TWIN = Path(sys.executable).with_name("twin")
@@ -57,7 +57,7 @@ def stop_and_check(proc: subprocess.Popen[str], ports: list[int]) -> None:
     proc.send_signal(signal.SIGTERM)
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, f"stdout:\n{out}\nstderr:\n{err}"
-    _, alive = psutil.wait_procs(children, timeout=10)
+    _, alive = psutil.wait_procs(children, timeout=30)
     assert not alive, f"twin web left {alive} running"
     for port in ports:
         with pytest.raises(OSError):
@@ -175,16 +175,18 @@ def test_twin_run_rerun_save_records_every_applied_message(rig, tmp_path: Path) 
         base_url,
     ):
         wait_for(lambda: subscribed(base_url), 60, "the agent to subscribe")
-        rig.start_edge(["arm-001", "arm-002"], seconds=3).join(30)
-        time.sleep(1.0)  # the last messages are still crossing the broker and the worker
-        state = get_state(base_url)
+        report = rig.start_edge(["arm-001", "arm-002"], seconds=3).join(30)
+        # The last messages may still be crossing the broker and the worker.
+        state = wait_handled(lambda: get_state(base_url), report.published)
     assert proc.returncode == 0
     rerun = next(s for s in state.agent.sinks if s.name == "rerun")
     assert (rerun.errors, rerun.dropped, rerun.skipped) == (0, 0, 0)
     temporal, static = read_rrd(path)
     for device in ("arm-001", "arm-002"):
-        applied = state.devices[device].health.counters.applied
-        assert applied >= 25
+        counters = state.devices[device].health.counters
+        # Each message reached the twin; a worker behind (a busy machine) coalesces some into newer ones.
+        assert counters.applied + counters.coalesced == report.per_device[device]
+        applied = counters.applied
         poses = [
             v for v in temporal.column(f"/arms/{device}/gripper:Transform3D:translation").to_pylist() if v
         ]

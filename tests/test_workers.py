@@ -14,7 +14,6 @@ import random
 import signal
 import subprocess
 import sys
-import time
 import urllib.request
 from collections import Counter
 from pathlib import Path
@@ -23,7 +22,7 @@ from typing import Any
 import psutil
 import pytest
 from awscrt import mqtt5
-from conftest import Publisher, get_metrics, get_state, metric, wait_for
+from conftest import Publisher, get_metrics, get_state, metric, wait_for, wait_handled
 from test_servo_alarms_e2e import alarms, post
 from twin.core.health import DeviceCounters, DeviceStatus, HealthSnapshot
 from twin.core.latency import LatencyHistogram
@@ -276,29 +275,25 @@ def test_a_sharded_agent_mirrors_a_listed_fleet_through_the_quota(rig: LocalRig)
             workers=3,
         )
         report = rig.start_edge(FLEET, seconds=4.0, rate_hz=10.0).join(30)
-        wait_for(
-            lambda: (
-                sum(d.health.counters.applied for d in agent.state().devices.values()) >= report.published
-            ),
-            20,
-            "every message applied",
-        )
-        state = agent.state()
+        state = wait_handled(agent.state, report.published)
         assert proxy.totals()["dropped"] == 0
-        with urllib.request.urlopen(agent.http_url + "/healthz", timeout=5) as resp:
+        with urllib.request.urlopen(agent.http_url + "/healthz", timeout=30) as resp:
             assert json.loads(resp.read())["status"] == "ok"
-    # Every device on its worker (dealt out in list order), every message applied once, nothing lost.
+    # Every device on its worker (dealt out in list order), every message applied once, nothing lost. (A
+    # worker that falls behind, as one may on a busy machine, applies each batch's newest message and counts
+    # the others as coalesced: they reached the twin's worker all the same.)
     assert [w.devices for w in state.agent.workers] == [10, 10, 10]
     assert all(w.alive and w.pid not in (0, os.getpid()) for w in state.agent.workers)
     for device in FLEET:
         counters = state.devices[device].health.counters
-        assert counters.applied == report.per_device[device], device
+        assert counters.applied + counters.coalesced == report.per_device[device], device
         assert counters.ignored_stale == counters.overwritten == 0
     assert state.agent.loss.lost == 0 and state.agent.loss.received == report.published
-    assert state.agent.latency.internal_s.count == report.published
+    applied = {device: d.health.counters.applied for device, d in state.devices.items()}
+    assert state.agent.latency.internal_s.count == sum(applied.values())
     assert len(state.agent.broker.connections) == 4  # the pool is the receiving process's, as before
     metrics = get_metrics(agent.http_url)
-    assert metric(metrics, "twin_messages_applied_total", device="arm-030") == report.per_device["arm-030"]
+    assert metric(metrics, "twin_messages_applied_total", device="arm-030") == applied["arm-030"]
     assert [metric(metrics, "twin_worker_devices", worker=str(i)) for i in range(3)] == [10.0] * 3
 
 
@@ -323,7 +318,7 @@ def test_a_sharded_wildcard_fleet_keeps_history_and_routes_acknowledgements(
         seen = {a.device for a in alarms(url).alarms if a.kind == "over_temperature"}
         return seen if seen == set(devices) else None
 
-    wait_for(raised, 30, "an over-temperature alarm on every arm", interval=0.2)
+    wait_for(raised, 60, "an over-temperature alarm on every arm", interval=0.2)
     # Each acknowledgement goes to the worker that owns the arm; twice is a conflict, an unknown id 404.
     for device in devices:
         status, body = post(f"{url}/alarms/{device}/wrist_roll/over_temperature/ack")
@@ -335,7 +330,7 @@ def test_a_sharded_wildcard_fleet_keeps_history_and_routes_acknowledgements(
     report = edge.join(30)
     wait_for(
         lambda: sum(d.health.counters.decoded for d in agent.state().devices.values()) >= report.published,
-        20,
+        60,
         "every message decoded",
     )
     agent.stop()  # both workers commit what they hold
@@ -351,7 +346,7 @@ def test_twin_run_with_workers_stops_them_all_on_sigterm(rig: LocalRig) -> None:
 
         def up() -> AgentState | None:
             try:
-                with urllib.request.urlopen(base + "/state", timeout=2) as resp:
+                with urllib.request.urlopen(base + "/state", timeout=30) as resp:
                     state = AgentState.from_json(resp.read())
             except OSError:
                 return None
@@ -361,18 +356,12 @@ def test_twin_run_with_workers_stops_them_all_on_sigterm(rig: LocalRig) -> None:
         pids = [w.pid for w in state.agent.workers]
         children = {p.pid for p in psutil.Process(proc.pid).children(recursive=True)}
         assert set(pids) <= children
-        report = rig.start_edge(["arm-001", "arm-002", "arm-003"], seconds=2.0).join(20)
-
-        def mirrored() -> bool:
-            with urllib.request.urlopen(base + "/state", timeout=2) as resp:
-                done = AgentState.from_json(resp.read())
-            return sum(d.health.counters.applied for d in done.devices.values()) == report.published
-
-        wait_for(mirrored, 15, "every message applied")
+        report = rig.start_edge(["arm-001", "arm-002", "arm-003"], seconds=2.0).join(30)
+        wait_handled(lambda: get_state(base), report.published)
         proc.send_signal(signal.SIGTERM)
-        assert proc.wait(30) == 0
-    # No worker outlives the agent: systemd's stop leaves nothing behind.
-    time.sleep(0.5)
+        assert proc.wait(60) == 0
+    # No worker outlives the agent: systemd's stop leaves nothing behind. (It joins its workers before it
+    # exits, so they are gone already, not on their way out.)
     assert not [
         p for p in pids if psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE
     ]
@@ -419,7 +408,7 @@ def test_junk_takes_no_place_and_the_device_limit_holds_across_workers(rig: Loca
             nameless = f"{DEFAULT_TOPIC_PREFIX}/{'x' * 129}/telemetry"  # longer than a device id may be
             publisher.client.publish(
                 mqtt5.PublishPacket(topic=nameless, payload=b"{}", qos=mqtt5.QoS.AT_MOST_ONCE)
-            ).result(5)
+            ).result(30)
         finally:
             publisher.close()
         sent = len(JUNK_DEVICES) + 2
@@ -428,7 +417,7 @@ def test_junk_takes_no_place_and_the_device_limit_holds_across_workers(rig: Loca
             state = get_state(base)
             return state if sum(state.untracked_rejected.values()) >= sent else None
 
-        state = wait_for(counted, 20, f"the {sent} junk messages rejected")
+        state = wait_for(counted, 60, f"the {sent} junk messages rejected")
         assert sum(state.untracked_rejected.values()) == sent, state.untracked_rejected
         assert "too_many_devices" not in state.untracked_rejected
         assert state.devices == {}
@@ -438,12 +427,15 @@ def test_junk_takes_no_place_and_the_device_limit_holds_across_workers(rig: Loca
             report = rig.start_edge(arms, seconds=1.5, rate_hz=10.0).join(30)
 
             def mirrored(arms: list[str] = arms, report: Any = report) -> bool:
+                # Every message reached the arm's twin: applied, or coalesced by a worker behind.
                 devices = get_state(base).devices
                 return all(
-                    d in devices and devices[d].health.counters.applied == report.per_device[d] for d in arms
+                    d in devices
+                    and (c := devices[d].health.counters).applied + c.coalesced == report.per_device[d]
+                    for d in arms
                 )
 
-            wait_for(mirrored, 20, f"{arms} mirrored")
+            wait_for(mirrored, 60, f"{arms} mirrored")
 
         # The budget is spent across both workers: a fourth and fifth arm are refused, each on its own worker.
         report = rig.start_edge(["arm-002", "arm-006"], seconds=1.5, rate_hz=10.0).join(30)
@@ -452,7 +444,7 @@ def test_junk_takes_no_place_and_the_device_limit_holds_across_workers(rig: Loca
             state = get_state(base)
             return state if state.untracked_rejected.get("too_many_devices") == report.published else None
 
-        state = wait_for(refused, 20, "every message of the fourth and fifth arm refused")
+        state = wait_for(refused, 60, "every message of the fourth and fifth arm refused")
         assert sorted(state.devices) == ["arm-001", "arm-004", "arm-005"]
         assert [w.devices for w in state.agent.workers] == [2, 1]
 

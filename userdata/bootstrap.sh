@@ -6,7 +6,8 @@
 #   settings  the deployment parameter's allowed keys, all present
 #   apt       unattended-upgrades and the apt timers stopped and masked for the run; the dpkg lock free
 #   logs      the CloudWatch agent (signature checked) shipping this log from its first line, and the others
-#   packages  GNOME (ubuntu-desktop-minimal) and GDM with their recommends (Xorg.wrap), mesa-utils, ...
+#   packages  GNOME (ubuntu-desktop-minimal) and GDM with their recommends (Xorg.wrap), mesa-utils, ...,
+#             and Firefox (a snap) for the operator console's launcher
 #   gpu       the NVIDIA driver (none: FAILURE), and its Xorg module only if the packaged one matches
 #   agent     install-agent.sh: its own user, locked requirements with hashes, sandboxed service, viewer
 #   desktop   GDM (Xorg, auto-login), Xorg.wrap with root rights, a quiet GNOME, no admin rights for the
@@ -231,6 +232,23 @@ step_packages() {
   apt_install mesa-utils dpkg-dev python3.12-venv curl rsyslog binutils gnupg
   [ -x "$ROOT/usr/lib/xorg/Xorg.wrap" ] ||
     die "xserver-xorg-legacy installed no /usr/lib/xorg/Xorg.wrap: GDM could not start X for the NVIDIA driver"
+  install_browser
+}
+
+# The desktop's browser, for the operator console's launcher (install-agent.sh). ubuntu-desktop-minimal
+# brings none: since Ubuntu 21.10 its recommends no longer name firefox, whose deb is only a stub that
+# installs the snap; Ubuntu's installer seeds the snap, which apt never does. So the snap, from the Snap Store
+# (snapd checks its signed assertions; the DLAMI's Ubuntu already runs snapd). Its enterprise policies (read
+# from /etc/firefox/policies) skip the first-run page and the default-browser question.
+install_browser() {
+  if ! snap list firefox >/dev/null 2>&1; then
+    log "snap install firefox (the desktop's browser, for the operator console)"
+    retry snap install firefox || die "snap install firefox failed: the console launcher needs a browser"
+  fi
+  write_file /etc/firefox/policies/policies.json 0644 <<'JSON'
+{"policies": {"DontCheckDefaultBrowser": true, "OverrideFirstRunPage": "", "OverridePostUpdatePage": "",
+  "DisableTelemetry": true}}
+JSON
 }
 
 # --- the GPU and the Xorg driver module matching it -----------------------------------------------
@@ -317,6 +335,8 @@ step_agent() {
     TOPIC_PREFIX="$TOPIC_PREFIX" DEVICES="$DEVICES" UNITS="$UNITS" CLIENT_ID_PREFIX="$CLIENT_ID_PREFIX" \
     DESKTOP_USER="$DESKTOP_USER" RECORD_SESSIONS="${RECORD_SESSIONS:-false}" \
     AGENT_NAME="${AGENT_NAME:-so101-twin}" HISTORY_URI="${HISTORY_URI:-}" ROS2="${ROS2:-false}" \
+    CALIBRATIONS_URI="${CALIBRATIONS_URI:-}" ALERT_TOPIC_ARN="${ALERT_TOPIC_ARN:-}" \
+    ALERT_WARNINGS="${ALERT_WARNINGS:-false}" \
     bash "$HERE/install-agent.sh"
 }
 

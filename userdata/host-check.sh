@@ -7,8 +7,9 @@
 #     order and waits, a verdict in its log, in /var/lib/so101-twin/last-start and as a CloudWatch metric;
 #   - `twin instance check` runs it on the host through SSM Run Command (`bash host-check.sh`) and reads one
 #     line per check: NAME<TAB>OK|WARN|FAIL<TAB>detail (exit status 1 when any FAIL).
-# Checks: x-on-gpu, dcv-session, agent, telemetry (WARN only: no arm may be publishing), viewer (the same
-# process for 20 s), screen (a capture of the console that is not one flat colour), version.
+# Checks: x-on-gpu, dcv-session, agent, telemetry (WARN only: no arm may be publishing), calibration (WARN
+# only: an arm whose raw positions are turned into angles without its own LeRobot calibration), viewer (the
+# same process for 20 s), screen (a capture of the console that is not one flat colour), version.
 
 CHECK_VENV="${VENV:-/opt/so101-twin/venv}"
 # The agent's DEFAULT_AGENT_URL (agents/twin/service/config.py), which install-agent.sh configures.
@@ -89,13 +90,15 @@ PY
   [ "${verdict%%$'\t'*}" = OK ]
 }
 
-# Sets AGENT_RESULT and TELEMETRY_RESULT to "STATUS<TAB>detail" from the agent's /healthz and /state.
+# Sets AGENT_RESULT, TELEMETRY_RESULT and CALIBRATION_RESULT to "STATUS<TAB>detail" from the agent's
+# /healthz and /state.
 agent_results() {
-  local health state active status line last=""
+  local health state active status line last="" rest
   if ! systemctl is-active --quiet so101-twin-agent.service; then
     active="$(systemctl is-active so101-twin-agent.service 2>&1 || true)"
     status="$(systemctl show so101-twin-agent.service -p ExecMainStatus --value 2>/dev/null || true)"
     TELEMETRY_RESULT=$'WARN\tno agent, no telemetry'
+    CALIBRATION_RESULT=$'WARN\tno agent, no calibration state'
     if [ "$status" = 2 ]; then
       # `twin run` exits 2 on a configuration error, which the unit does not restart on: its log names
       # the setting.
@@ -128,6 +131,7 @@ if not isinstance(health, dict) or not isinstance(state, dict):
     shown = (os.environ["HEALTH"] or "nothing")[:200].replace("\n", " ")
     print(f"FAIL\tthe agent's HTTP API does not answer with JSON (got {shown!r})")
     print("WARN\tno telemetry state")
+    print("WARN\tno calibration state")
     raise SystemExit(0)
 agent = state.get("agent", {})
 broker = agent.get("broker", {})
@@ -156,10 +160,24 @@ for device, entry in sorted(devices.items()):
     lines.append(f"{device} {status} {rate:.1f} Hz, {seen}")
 detail = "; ".join(lines) or "no device has sent telemetry yet"
 print(f"{'OK' if all_online else 'WARN'}\t{detail}")
+# Each arm's LeRobot calibration (docs/agent.md, "Calibration"): without one, raw positions become the
+# nominal arm's angles.
+missing = sorted(d for d, e in devices.items() if e.get("uncalibrated"))
+refused = sorted(d for d, e in devices.items() if e.get("calibration_problem"))
+own = sum(1 for e in devices.values() if e.get("calibration"))
+if missing:
+    verb = "has" if len(missing) == 1 else "have"
+    print(f"WARN\t{', '.join(missing)} {verb} no calibration: the nominal SO-101's zero and range, not the arm's")
+elif refused:
+    print(f"WARN\tthe newest calibration file of {', '.join(refused)} was refused: {devices[refused[0]]['calibration_problem']}")
+else:
+    print(f"OK\tno arm lacks one it needs ({own} of {len(devices)} decode with a calibration)")
 PY
-)" || parsed=$'FAIL\tcould not read the agent state with the venv python\nWARN\tno telemetry state'
+)" || parsed=$'FAIL\tcould not read the agent state with the venv python\nWARN\tno telemetry state\nWARN\tno calibration state'
   AGENT_RESULT="${parsed%%$'\n'*}"
-  TELEMETRY_RESULT="${parsed#*$'\n'}"
+  rest="${parsed#*$'\n'}"
+  TELEMETRY_RESULT="${rest%%$'\n'*}"
+  CALIBRATION_RESULT="${rest#*$'\n'}"
 }
 
 check_agent() {
@@ -281,6 +299,7 @@ verify_host() {
   fi
   VERIFY_LINES+=("$(report telemetry "${TELEMETRY_RESULT%%$'\t'*}" "${TELEMETRY_RESULT#*$'\t'}")")
   log "telemetry: ${TELEMETRY_RESULT#*$'\t'} (not required: no arm needs to be publishing)"
+  VERIFY_LINES+=("$(report calibration "${CALIBRATION_RESULT%%$'\t'*}" "${CALIBRATION_RESULT#*$'\t'}")")
   if wait_for "$WAIT_VIEWER_TRIES" 5 "a stable viewer" check_viewer; then
     _verified viewer OK
     # Once the viewer is up, the console must show it (GNOME may take a moment to paint).
@@ -313,6 +332,7 @@ host_check_main() {
     fi
     if [ "$name" = agent ]; then
       report telemetry "${TELEMETRY_RESULT%%$'\t'*}" "${TELEMETRY_RESULT#*$'\t'}"
+      report calibration "${CALIBRATION_RESULT%%$'\t'*}" "${CALIBRATION_RESULT#*$'\t'}"
     fi
   done
   version="$(cat "$ROOT/var/lib/so101-twin/deployed-version" 2>/dev/null || echo none)"

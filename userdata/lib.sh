@@ -98,7 +98,8 @@ apt_install() {
 # Nothing else is taken from it: whoever can write the parameter must not be able to set PATH, LD_PRELOAD,
 # PIP_INDEX_URL or the like for the next root bootstrap.
 DEPLOYMENT_KEYS=(DEPLOYMENT_VERSION AGENT_URL SCRIPTS_URL DCV_SECRET_ARN AWS_REGION URL_SUFFIX TOPIC_PREFIX
-  DEVICES UNITS ROS2 CLIENT_ID_PREFIX DESKTOP_USER LOG_GROUP AGENT_NAME HISTORY_URI RECORD_SESSIONS)
+  DEVICES UNITS ROS2 CLIENT_ID_PREFIX DESKTOP_USER LOG_GROUP AGENT_NAME HISTORY_URI CALIBRATIONS_URI
+  RECORD_SESSIONS ALERT_TOPIC_ARN ALERT_WARNINGS)
 
 # load_env FILE [KEY...]: KEY=value lines into exported variables, without executing the file as shell code.
 # Only the listed keys are taken (default: DEPLOYMENT_KEYS); any other line is logged and ignored.

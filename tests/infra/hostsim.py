@@ -7,13 +7,13 @@ the fcntl lock probe), gpg and ar (every signature check runs for real, against 
 timeout, flock, Pillow on the console capture. What stands in, and why: the tools that would change this
 machine or need AWS, a GPU, a display or a package mirror (apt-get, apt-cache, dpkg-query, dpkg, systemctl,
 journalctl, nvidia-smi, nvidia-xconfig, dcv, chpasswd, chown, usermod, useradd, gpasswd, id, ps, pgrep,
-glib-compile-schemas, aws, curl, sleep). Each stand-in logs its arguments to `calls.log` and keeps the host's
-state in SIM (installed packages, active and masked units, whether X runs on the GPU, the DCV sessions, the
-viewer), and encodes the dependencies that matter for the order of the boot: X starts on the GPU only with
-the NVIDIA Xorg module, Xorg.wrap and an xorg.conf for the nvidia driver; dcvserver creates the automatic
-console session only if X runs when it starts; the viewer runs once X runs and the autostart entry and its
-supervisor exist; a masked unit does not start; the agent answers /healthz only while its service is active.
-A file SIM/fail/<tool> makes that stand-in fail (to test a failing step).
+glib-compile-schemas, snap, aws, curl, sleep). Each stand-in logs its arguments to `calls.log` and keeps the
+host's state in SIM (installed packages and snaps, active and masked units, whether X runs on the GPU, the DCV
+sessions, the viewer), and encodes the dependencies that matter for the order of the boot: X starts on the GPU
+only with the NVIDIA Xorg module, Xorg.wrap and an xorg.conf for the nvidia driver; dcvserver creates the
+automatic console session only if X runs when it starts; the viewer runs once X runs and the autostart entry
+and its supervisor exist; a masked unit does not start; the agent answers /healthz only while its service is
+active. A file SIM/fail/<tool> makes that stand-in fail (to test a failing step).
 
 The CDN stand-in (curl) serves files from SIM/cdn: a DCV release whose packages carry dpkg-sig builder
 signatures and a CloudWatch agent package with a detached signature, both made here with throw-away keys
@@ -52,6 +52,7 @@ PASSWORD = "Gener4tedPassw0rdOfTwentyFour"
 OLD_PASSWORD = "PreviousPassw0rdNotToBeUsed"
 LOG_GROUP = f"/so101-twin/{STACK_NAME}/host"
 HISTORY_BUCKET = "so101twinstack-historybucket-0123456789ab"
+ALARM_TOPIC_ARN = f"arn:aws:sns:{REGION}:{ACCOUNT}:{STACK_NAME}-MonitoringAlarmTopic-AbCdEf"
 DCV_VERSION = "2025.0-20103"
 DCV_DIR = f"nice-dcv-{DCV_VERSION}-ubuntu2404-x86_64"
 DCV_TARBALL = f"{DCV_DIR}.tgz"
@@ -288,6 +289,18 @@ case "$1" in
 esac
 """,
     "glib-compile-schemas": r"""exit 0""",
+    "snap": r"""
+# snap list NAME | snap install NAME: an installed snap puts its command in /snap/bin.
+case "${1:-}" in
+  list)
+    has snaps "$2" && { echo "Name  Version  Rev"; echo "$2  1.0  1"; exit 0; }
+    echo "error: no matching snaps installed" >&2; exit 1 ;;
+  install)
+    mark snaps "$2"; mkdir -p "$ROOT/snap/bin"
+    printf '#!/bin/sh\nexit 0\n' >"$ROOT/snap/bin/$2"; chmod 755 "$ROOT/snap/bin/$2" ;;
+  *) echo "snap stand-in: unsupported $*" >&2; exit 1 ;;
+esac
+""",
     "usermod": r"""
 # usermod -aG GROUP USER
 echo "$2" >>"$SIM/groups/$3"

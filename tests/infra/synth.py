@@ -1,4 +1,5 @@
-"""Synthesis helpers for the infra tests: the stack is built as `cdk synth` builds it (cdk.json context)."""
+"""Synthesis helpers for the infra tests: the stack is built as `cdk synth` builds it (cdk.json context plus
+settings given as `-c`, and a settings file when a test names one; never the repository's own)."""
 
 from __future__ import annotations
 
@@ -67,6 +68,7 @@ def synthesize(
     account: str | None = None,
     offerings_lookup: Any = no_lookup,
     context_file: Path | None = None,
+    settings_file: Path | None = None,
     **overrides: Any,
 ) -> Synth:
     """Synthesize the real app (build_app: settings, stack, cdk-nag) with cdk.json context plus overrides.
@@ -81,7 +83,9 @@ def synthesize(
     from app import build_app
 
     context = cdk_json_context()
-    context.update({"clientCidr": CLIENT_CIDR, **overrides})
+    # A None override leaves the key out (as a deployer who passes no -c for it).
+    given = {"clientCidr": CLIENT_CIDR, **overrides}
+    context.update({k: v for k, v in given.items() if v is not None})
     with pytest.MonkeyPatch.context() as mp:
         # Environment-agnostic, like a synth without credentials: the template must not depend on who runs it.
         mp.delenv("CDK_DEFAULT_ACCOUNT", raising=False)
@@ -101,9 +105,56 @@ def synthesize(
             deployed_reader=lambda _stack, _region: None,
             offerings_lookup=offerings_lookup,
             context_file=context_file or outdir / "cdk.context.json",
+            settings_file=settings_file,
         )
         template = Template.from_stack(stack)
     return Synth(stack, template)
+
+
+# The context the CDK CLI adds when it runs the app: validation errors (cdk-nag findings, error annotations)
+# are reported to the CLI, which decides per command whether they stop it (deploy and synth do, destroy not).
+CLI_CONTEXT = {"@aws-cdk/core:failSynthOnValidationErrors": False}
+
+
+def app_stack(
+    outdir: Path,
+    *,
+    reader: Any,
+    account: str | None = "111111111111",
+    region: str = "us-east-1",
+    settings_file: Path | None = None,
+    **context: Any,
+) -> Any:
+    """The app as the CDK CLI runs it for `cdk deploy` with credentials: the deployed stack read through
+    `reader` (outputs by key), the offerings given, errors left to the caller (`annotations`). Context is
+    cdk.json's plus `context` (clientCidr only when given)."""
+    import aws_cdk as cdk
+
+    from app import build_app
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.delenv("CDK_DEFAULT_ACCOUNT", raising=False)
+        mp.setenv("CDK_DEFAULT_REGION", region)
+        if account:
+            mp.setenv("CDK_DEFAULT_ACCOUNT", account)
+        app = cdk.App(context={**cdk_json_context(), **CLI_CONTEXT, **context}, outdir=str(outdir))
+        return build_app(
+            app,
+            deployed_reader=reader,
+            offerings_lookup=lambda _a, _r, _t: [f"{region}b", f"{region}c"],
+            context_file=outdir / "cdk.context.json",
+            settings_file=settings_file,
+        )
+
+
+def annotations(stack: Any, level: str) -> list[str]:
+    """The stack's annotations of `level` ("error" or "warning") as the CDK CLI reads them: from the cloud
+    assembly that app.synth() writes (the stack's metadata file)."""
+    directory = Path(stack.node.root.synth().directory)
+    metadata = json.loads((directory / f"{stack.artifact_id}.metadata.json").read_text())
+    return [
+        str(e["data"]) for entries in metadata.values() for e in entries if e["type"] == f"aws:cdk:{level}"
+    ]
 
 
 def normalise(template: dict[str, Any]) -> dict[str, Any]:

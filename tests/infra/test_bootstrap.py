@@ -14,6 +14,7 @@ encodes, is described in hostsim.py. Nothing here reaches AWS or the network.
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -24,6 +25,7 @@ from typing import Any
 import pytest
 
 from .hostsim import (
+    ALARM_TOPIC_ARN,
     APT_UNITS,
     BOOT_ID,
     HANDLE_URL,
@@ -65,6 +67,8 @@ def refs_for(synth: Synth) -> dict[str, str]:
             values[logical_id] = HANDLE_URL
         elif resource["Type"] == "AWS::S3::Bucket" and logical_id.startswith("History"):
             values[logical_id] = HISTORY_BUCKET
+        elif resource["Type"] == "AWS::SNS::Topic":
+            values[logical_id] = ALARM_TOPIC_ARN
     return values
 
 
@@ -326,6 +330,24 @@ def test_desktop_is_quiet_owned_by_the_user_and_not_an_administrator(booted) -> 
     assert "ubuntu ALL" not in host.file("/etc/sudoers.d/90-cloud-init-users")
 
 
+def test_the_desktop_gets_a_browser_for_the_console_launcher(booted) -> None:
+    """The desktop install brings no browser (ubuntu-desktop-minimal recommends none since Ubuntu 21.10; its
+    Firefox is a snap the installer seeds): the boot installs the snap, and the launcher opens the command it
+    put in /snap/bin."""
+    host, _ = booted
+    calls = host.calls()
+    desktop = next(i for i, c in enumerate(calls) if "ubuntu-desktop-minimal" in c)
+    browser = calls.index("snap install firefox")
+    assert desktop < browser
+    policies = json.loads(host.file("/etc/firefox/policies/policies.json"))["policies"]
+    assert policies["DontCheckDefaultBrowser"] is True and policies["OverrideFirstRunPage"] == ""
+    launcher = host.file("/home/ubuntu/Desktop/so101-twin-console.desktop")
+    assert launcher == host.file("/home/ubuntu/.local/share/applications/so101-twin-console.desktop")
+    exec_line = next(line for line in launcher.splitlines() if line.startswith("Exec="))
+    command = exec_line.removeprefix("Exec=").split()[0]
+    assert os.access(host.root / command.lstrip("/"), os.X_OK), f"{command} was not installed by the boot"
+
+
 def test_dcv_config_password_at_awscurrent_and_start_ordering(booted) -> None:
     host, _ = booted
     conf = host.file("/etc/dcv/dcv.conf")
@@ -360,6 +382,11 @@ def test_agent_config_and_its_own_user(booted, deployed: Deployed) -> None:
     assert deployed.settings["RECORD_SESSIONS"] == "false"
     # Main's history bucket and ros2 setting reach the agent through the same parameter.
     assert config["history"] == {"uri": f"s3://{HISTORY_BUCKET}/history", "region": "us-east-1"}
+    # ... and so do the arms' calibrations, the alarm topic and the host agent's own client id prefix.
+    assert config["telemetry"]["calibrations"] == f"s3://{HISTORY_BUCKET}/calibration"
+    assert config["alerts"]["topic_arn"] == deployed.settings["ALERT_TOPIC_ARN"] == ALARM_TOPIC_ARN
+    assert config["alerts"]["warnings"] is False
+    assert config["broker"]["client_id_prefix"] == "so101-twin-So101TwinStack-"
     assert config["ros2"] == {"enabled": False}
     assert config["cloudwatch"]["emf_file"] == "/var/log/so101-twin/emf.log"
     assert (host.sim / "users" / "so101-twin").exists()
@@ -390,6 +417,7 @@ def test_host_check_reports_every_line(booted) -> None:
         "dcv-session": "OK",
         "agent": "OK",
         "telemetry": "WARN",
+        "calibration": "OK",
         "viewer": "OK",
         "screen": "OK",
         "version": "OK",
@@ -429,6 +457,7 @@ def test_after_a_reboot_dcv_is_put_on_x_and_the_checks_report(booted, tmp_path: 
         "dcv-session",
         "agent",
         "telemetry",
+        "calibration",
         "viewer",
         "screen",
     }

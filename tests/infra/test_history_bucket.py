@@ -88,16 +88,23 @@ def test_host_role_gets_exactly_the_history_prefix(synth_default: Synth) -> None
     assert listing["Action"] == "s3:ListBucket"
     assert listing["Resource"]["Fn::GetAtt"][0].startswith("HistoryBucket")
     assert listing["Condition"] == {"StringLike": {"s3:prefix": ["history/*", "history"]}}
+    # The calibration prefix: read and list only (people push with their own credentials).
+    calibration = statement(statements, "CalibrationRead")
+    assert calibration["Action"] == "s3:GetObject"
+    assert calibration["Resource"]["Fn::Join"][1][1] == "/calibration/*"
+    calibration_list = statement(statements, "CalibrationList")
+    assert calibration_list["Condition"] == {"StringLike": {"s3:prefix": ["calibration/*", "calibration"]}}
     # No other statement reaches the bucket.
     others = [s.get("Sid") for s in statements if "HistoryBucket" in flatten(s["Resource"])]
-    assert sorted(others) == ["HistoryList", "HistoryObjects"]
+    assert sorted(others) == ["CalibrationList", "CalibrationRead", "HistoryList", "HistoryObjects"]
 
 
 def test_host_agent_writes_history_to_the_bucket(synth_default: Synth) -> None:
     # Through the deployment parameter, as every setting the host reads; the UserData stays the same.
     value = synth_default.one("AWS::SSM::Parameter")["Properties"]["Value"]["Fn::Join"][1]
-    at = value.index({"Ref": bucket_id(synth_default)})
-    assert value[at - 1].endswith("\nHISTORY_URI=s3://") and value[at + 1].startswith("/history\n")
+    refs = [i for i, part in enumerate(value) if part == {"Ref": bucket_id(synth_default)}]
+    uris = {value[i - 1].rsplit("\n", 1)[1] + "<bucket>" + value[i + 1].split("\n", 1)[0] for i in refs}
+    assert uris == {"HISTORY_URI=s3://<bucket>/history", "CALIBRATIONS_URI=s3://<bucket>/calibration"}
     assert "HISTORY_URI" not in user_data_text(synth_default)
     output = synth_default.json["Outputs"]["HistoryUri"]
     assert "aws s3 rb" in output["Description"]

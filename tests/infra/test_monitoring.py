@@ -6,10 +6,11 @@ dimensions are checked against the agent's own constants, so the two cannot drif
 
 from __future__ import annotations
 
+import dataclasses
+import json
 from typing import Any
 
 import pytest
-from aws_cdk.assertions import Match
 from twin.output import emf
 
 from stacks import monitoring
@@ -81,60 +82,185 @@ def test_alarm_email_subscribes_to_the_topic(synth_factory: Any) -> None:
 
 
 def test_every_alarm_notifies_the_topic_on_alarm_and_ok(synth_default: Synth) -> None:
-    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 9)
+    # Servo alarms reach the topic from the host directly (test_host_publishes_servo_alarms_to_the_topic_
+    # only), not through a CloudWatch alarm on a once-a-minute metric: agent silent, arms stale and the six
+    # loss alarms.
+    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 8)
     ref = topic_ref(synth_default)
     for props in synth_default.resources("AWS::CloudWatch::Alarm").values():
         assert props["Properties"]["AlarmActions"] == [ref]
         assert props["Properties"]["OKActions"] == [ref]
 
 
-def test_agent_silent_alarms_on_a_missing_heartbeat(synth_default: Synth) -> None:
+def queries(props: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    return {q["Id"]: q for q in props["Metrics"]}
+
+
+def test_agent_silent_pages_only_while_the_host_runs(synth_default: Synth) -> None:
+    """A stopped instance reports no CPU: the expression is 0 then, so a stop (by hand or by schedule) does
+    not page; a running host whose agent sends no heartbeat for 5 minutes does."""
     props = alarm(synth_default, "The so101-twin agent")
-    assert props["MetricName"] == "AgentUp"
-    assert props["Namespace"] == emf.NAMESPACE
-    assert props["Dimensions"] == [{"Name": "Agent", "Value": "So101TwinStack"}]
-    assert (props["Statistic"], props["Period"]) == ("SampleCount", 60)
-    assert (props["ComparisonOperator"], props["Threshold"]) == ("LessThanThreshold", 1)
-    assert (props["EvaluationPeriods"], props["DatapointsToAlarm"]) == (3, 3)
-    assert props["TreatMissingData"] == "breaching"
-
-
-def test_arms_stale_counts_stale_and_offline_arms(synth_default: Synth) -> None:
-    props = alarm(synth_default, "At least one arm")
-    queries = {q["Id"]: q for q in props["Metrics"]}
-    expression = next(q for q in props["Metrics"] if "Expression" in q)
-    assert expression["Expression"] == "stale + offline" and expression["ReturnData"] is True
-    for query_id, name in (("stale", "DevicesStale"), ("offline", "DevicesOffline")):
-        stat = queries[query_id]["MetricStat"]
-        assert stat["Metric"]["MetricName"] == name
-        assert stat["Metric"]["Dimensions"] == [{"Name": "Agent", "Value": "So101TwinStack"}]
-        assert (stat["Stat"], stat["Period"]) == ("Maximum", 60)
-    assert props["ComparisonOperator"] == "GreaterThanOrEqualToThreshold"
-    assert (props["Threshold"], props["EvaluationPeriods"]) == (1, 3)
+    q = queries(props)
+    expression = next(v for v in q.values() if "Expression" in v)
+    assert expression["Expression"] == "IF(FILL(running, 0) > 0 AND FILL(up, 0) < 1, 1, 0)"
+    up = q["up"]["MetricStat"]
+    assert up["Metric"]["MetricName"] == "AgentUp" and up["Metric"]["Namespace"] == emf.NAMESPACE
+    assert up["Metric"]["Dimensions"] == [{"Name": "Agent", "Value": "So101TwinStack"}]
+    assert (up["Stat"], up["Period"]) == ("SampleCount", 60)
+    running = q["running"]["MetricStat"]
+    assert (running["Metric"]["Namespace"], running["Metric"]["MetricName"]) == ("AWS/EC2", "CPUUtilization")
+    (instance,) = synth_default.resources("AWS::EC2::Instance")
+    assert running["Metric"]["Dimensions"] == [{"Name": "InstanceId", "Value": {"Ref": instance}}]
+    assert (props["ComparisonOperator"], props["Threshold"]) == ("GreaterThanOrEqualToThreshold", 1)
+    assert (props["EvaluationPeriods"], props["DatapointsToAlarm"]) == (5, 5)
     assert props["TreatMissingData"] == "notBreaching"
 
 
-def test_critical_servo_alarm_watches_critical_active_alarms(synth_default: Synth) -> None:
-    synth_default.template.has_resource_properties(
-        "AWS::CloudWatch::Alarm",
-        {
-            "MetricName": "ActiveAlarms",
-            "Namespace": "SO101Twin",
-            "Dimensions": Match.array_equals(
-                [{"Name": "Agent", "Value": "So101TwinStack"}, {"Name": "Severity", "Value": "critical"}]
-            ),
-            "Statistic": "Maximum",
-            "Threshold": 1,
-            "ComparisonOperator": "GreaterThanOrEqualToThreshold",
-            "TreatMissingData": "notBreaching",
-        },
-    )
+def test_arms_stale_counts_stale_arms_not_the_ones_switched_off(synth_default: Synth) -> None:
+    props = alarm(synth_default, "At least one arm")
+    assert (props["MetricName"], props["Statistic"], props["Period"]) == ("DevicesStale", "Maximum", 60)
+    assert props["Dimensions"] == [{"Name": "Agent", "Value": "So101TwinStack"}]
+    assert props["ComparisonOperator"] == "GreaterThanOrEqualToThreshold"
+    assert (props["Threshold"], props["EvaluationPeriods"]) == (1, 3)
+    assert props["TreatMissingData"] == "notBreaching"
+    assert "DevicesOffline" not in str(props)
+
+
+def test_host_publishes_servo_alarms_to_the_topic_only(synth_default: Synth) -> None:
+    from .test_stack import policy_statements, statement
+
+    statements = policy_statements(synth_default, "IdentityHostRole")
+    publish = statement(statements, "AlarmTopicPublish")
+    assert (publish["Action"], publish["Resource"]) == ("sns:Publish", topic_ref(synth_default))
+    key = statement(statements, "AlarmTopicKey")
+    (key_id,) = synth_default.resources("AWS::KMS::Key")
+    assert sorted(key["Action"]) == ["kms:Decrypt", "kms:GenerateDataKey"]
+    assert key["Resource"] == {"Fn::GetAtt": [key_id, "Arn"]}
+    # The host's config names the topic and whether warnings go too.
+    parameter = json.dumps(synth_default.one("AWS::SSM::Parameter")["Properties"]["Value"])
+    assert "ALERT_TOPIC_ARN=" in parameter and "ALERT_WARNINGS=false" in parameter
+
+
+def test_warnings_are_a_setting(synth_factory: Any) -> None:
+    synth = synth_factory(alarmWarnings="true")
+    parameter = json.dumps(synth.one("AWS::SSM::Parameter")["Properties"]["Value"])
+    assert "ALERT_WARNINGS=true" in parameter
 
 
 def test_the_agent_name_follows_the_stack_name(synth_factory: Any) -> None:
     synth = synth_factory(stackName="LabTwin")
     props = alarm(synth, "The so101-twin agent")
-    assert props["Dimensions"] == [{"Name": "Agent", "Value": "LabTwin"}]
+    assert queries(props)["up"]["MetricStat"]["Metric"]["Dimensions"] == [
+        {"Name": "Agent", "Value": "LabTwin"}
+    ]
+
+
+# --- the dashboard ---------------------------------------------------------------------------------------
+
+
+def dashboard_body(synth: Synth) -> dict[str, Any]:
+    """The dashboard's JSON, its CloudFormation tokens (region, alarm ARNs) written as "<token>"."""
+    body = synth.one("AWS::CloudWatch::Dashboard")["Properties"]["DashboardBody"]
+
+    def text(value: Any) -> str:
+        if isinstance(value, str):
+            return value
+        if isinstance(value, dict) and "Fn::Join" in value:
+            separator, parts = value["Fn::Join"]
+            return separator.join(text(part) for part in parts)
+        return "<token>"
+
+    return json.loads(text(body))
+
+
+def emitted_metrics() -> set[tuple[str, frozenset[tuple[str, str]]]]:
+    """Every (metric, dimensions) the agent writes, from its own EMF documents with every figure set."""
+    fields = {f.name for f in dataclasses.fields(emf.FleetMetrics)}
+    values: dict[str, Any] = {
+        "messages_per_s": 10.0,
+        "rejects": 1,
+        "loss_percent": 1.0,
+        "devices_online": 2,
+        "devices_stale": 1,
+        "devices_offline": 1,
+        "internal_latency_p99_ms": 3.0,
+        "active_alarms": {"critical": 1, "warning": 2},
+    }
+    # History's figures are written only while history is on: set here, so the document has them.
+    values.update({"history_lag_s": 1.5, "history_rows_dropped": 0, "history_commit_failures": 0})
+    assert set(values) <= fields
+    out = set()
+    for doc in emf.fleet_documents(emf.FleetMetrics(**values), "So101TwinStack", 0):
+        (directive,) = doc["_aws"]["CloudWatchMetrics"]
+        (dimension_names,) = directive["Dimensions"]
+        dims = frozenset((name, doc[name]) for name in dimension_names)
+        out |= {(m["Name"], dims) for m in directive["Metrics"]}
+    return out
+
+
+def dashboard_metrics(body: dict[str, Any]) -> list[tuple[str, str, frozenset[tuple[str, str]]]]:
+    """(widget title, metric, dimensions) of every metric a graph draws."""
+    out = []
+    for widget in body["widgets"]:
+        props = widget["properties"]
+        for row in props.get("metrics", []):
+            names = [v for v in row if isinstance(v, str)]
+            namespace, metric, *pairs = names
+            assert namespace == emf.NAMESPACE, row
+            dims = frozenset(zip(pairs[::2], pairs[1::2], strict=True))
+            out.append((props["title"], metric, dims))
+    return out
+
+
+def test_the_dashboard_draws_only_metrics_the_agent_emits(synth_default: Synth) -> None:
+    synth_default.template.resource_count_is("AWS::CloudWatch::Dashboard", 1)
+    props = synth_default.one("AWS::CloudWatch::Dashboard")["Properties"]
+    assert props["DashboardName"] == "So101TwinStack-fleet"
+    drawn = dashboard_metrics(dashboard_body(synth_default))
+    emitted = emitted_metrics()
+    missing = {(m, d) for _, m, d in drawn if (m, d) not in emitted}
+    assert not missing, f"the dashboard draws metrics the agent never writes: {missing}"
+    agent = frozenset({("Agent", "So101TwinStack")})
+    by_metric = {(m, d) for _, m, d in drawn}
+    # What an operator asks of the fleet: arms online, the mirrored rate, loss, alarms by severity, history.
+    assert {("DevicesOnline", agent), ("DevicesStale", agent), ("DevicesOffline", agent)} <= by_metric
+    assert ("MessagesPerSecond", agent) in by_metric and ("LossPercent", agent) in by_metric
+    for severity in ("critical", "warning"):
+        assert ("ActiveAlarms", agent | {("Severity", severity)}) in by_metric
+    assert {(monitoring.HISTORY_LAG, agent), (monitoring.HISTORY_ROWS_DROPPED, agent)} <= by_metric
+    assert monitoring.HISTORY_LAG == emf.HISTORY_LAG
+    assert monitoring.HISTORY_ROWS_DROPPED == emf.HISTORY_ROWS_DROPPED
+    # ... and what the twin lost, each figure a loss alarm watches.
+    losses = {emf.MESSAGES_DROPPED, emf.SINK_DROPS, emf.WORKER_RESTARTS, emf.HISTORY_COMMIT_FAILURES}
+    assert {(name, agent) for name in losses} <= by_metric
+
+
+def test_the_dashboard_shows_every_alarm_and_is_an_output(synth_default: Synth) -> None:
+    body = dashboard_body(synth_default)
+    status = [w for w in body["widgets"] if w["type"] == "alarm"]
+    alarms = synth_default.resources("AWS::CloudWatch::Alarm")
+    assert len(status) == 1 and len(status[0]["properties"]["alarms"]) == len(alarms) == 8
+    # One point a minute, the agent's EMF interval, each with the statistic its figure needs.
+    for widget in body["widgets"]:
+        for row in widget["properties"].get("metrics", []):
+            options = row[-1]
+            # CloudWatch draws the average unless told otherwise (the rendered body then names no stat).
+            assert options["period"] == 60 and options.get("stat", "Average") in (
+                "Average",
+                "Maximum",
+                "Sum",
+            ), row
+    output = synth_default.json["Outputs"]["Dashboard"]["Value"]
+    parts = output["Fn::Join"][1]
+    assert parts[0].startswith("https://console.aws.amazon.com/cloudwatch/home?region=")
+    assert {"Ref": next(iter(synth_default.resources("AWS::CloudWatch::Dashboard")))} in parts
+
+
+def test_the_dashboard_follows_the_stack_name(synth_factory: Any) -> None:
+    synth = synth_factory(stackName="LabTwin")
+    assert synth.one("AWS::CloudWatch::Dashboard")["Properties"]["DashboardName"] == "LabTwin-fleet"
+    drawn = dashboard_metrics(dashboard_body(synth))
+    assert drawn and all(("Agent", "LabTwin") in dims for _, _, dims in drawn)
 
 
 def _alarm_on(synth: Synth, metric_name: str) -> dict[str, Any]:

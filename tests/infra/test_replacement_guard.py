@@ -1,4 +1,4 @@
-"""The replacement guard: a change of availabilityZone, volumeGb or the image is refused at synth unless
+"""The replacement guard: a change of availabilityZone, volumeGb or the image stops the deploy unless
 -c replaceInstance=true confirms it. The deployed stack is read with DescribeStacks; AWS cannot be reached
 from here, so moto stands in for CloudFormation (a stack whose outputs are what the twin stack publishes).
 """
@@ -6,18 +6,16 @@ from here, so moto stands in for CloudFormation (a stack whose outputs are what 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import boto3
 import pytest
 from moto import mock_aws
 
-from stacks.replacement_guard import (
-    DeployedUnknownError,
-    check_replacement,
-    read_deployed_fingerprint,
-    replacing_changes,
-)
-from stacks.settings import SettingsError
+from stacks.deployed import DeployedUnknownError, read_deployed_outputs
+from stacks.replacement_guard import deployed_fingerprint, replacement_refusal, replacing_changes
+
+from .synth import CLIENT_CIDR, annotations, app_stack
 
 DEPLOYED = {"availabilityZone": "us-east-1b", "volumeGb": "100", "image": "resolve:ssm:/aws/x"}
 REGION = "us-east-1"
@@ -39,12 +37,27 @@ def cfn(monkeypatch: pytest.MonkeyPatch):
         yield client
 
 
+def outputs(cfn) -> dict[str, str]:
+    found = read_deployed_outputs("So101TwinStack", REGION, cloudformation=cfn)
+    assert found is not None
+    return found
+
+
 def test_reads_the_fingerprint_output_with_describe_stacks(cfn) -> None:
-    assert read_deployed_fingerprint("So101TwinStack", REGION, cloudformation=cfn) == DEPLOYED
+    assert deployed_fingerprint(outputs(cfn)) == DEPLOYED
 
 
-def test_a_stack_not_yet_deployed_has_no_fingerprint(cfn) -> None:
-    assert read_deployed_fingerprint("OtherStack", REGION, cloudformation=cfn) is None
+def test_a_stack_not_yet_deployed_has_no_outputs(cfn) -> None:
+    assert read_deployed_outputs("OtherStack", REGION, cloudformation=cfn) is None
+
+
+def test_a_stack_without_the_output_has_no_fingerprint() -> None:
+    assert deployed_fingerprint({"DcvUrl": "https://x"}) is None
+
+
+def test_a_broken_fingerprint_is_reported_not_guessed() -> None:
+    with pytest.raises(DeployedUnknownError, match="not JSON"):
+        deployed_fingerprint({"InstanceFingerprint": "{broken"})
 
 
 def test_unreadable_stack_is_reported_not_guessed(cfn, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -55,7 +68,7 @@ def test_unreadable_stack_is_reported_not_guessed(cfn, monkeypatch: pytest.Monke
 
     monkeypatch.setattr(cfn, "describe_stacks", denied)
     with pytest.raises(DeployedUnknownError, match="AccessDenied"):
-        read_deployed_fingerprint("So101TwinStack", REGION, cloudformation=cfn)
+        read_deployed_outputs("So101TwinStack", REGION, cloudformation=cfn)
 
 
 def test_changes_are_named_with_both_values() -> None:
@@ -67,75 +80,54 @@ def test_changes_are_named_with_both_values() -> None:
     assert replacing_changes(DEPLOYED, dict(DEPLOYED)) == []
 
 
-def guard(wanted: dict[str, str], *, confirmed: bool = False, cfn=None, account: str | None = "111111111111"):
-    return check_replacement(
-        stack_name="So101TwinStack",
-        wanted=wanted,
-        confirmed=confirmed,
-        region=REGION,
-        account=account,
-        reader=lambda name, region: read_deployed_fingerprint(name, region, cloudformation=cfn),
+def refusal(cfn, wanted: dict[str, str], *, confirmed: bool = False) -> str | None:
+    return replacement_refusal(
+        stack_name="So101TwinStack", deployed_outputs=outputs(cfn), wanted=wanted, confirmed=confirmed
     )
 
 
 def test_a_replacing_change_is_refused_with_the_fix(cfn) -> None:
-    with pytest.raises(SettingsError) as info:
-        guard({**DEPLOYED, "volumeGb": "200"}, cfn=cfn)
-    message = str(info.value)
+    message = refusal(cfn, {**DEPLOYED, "volumeGb": "200"})
+    assert message is not None
     assert "volumeGb: 100 -> 200" in message
     assert "-c replaceInstance=true" in message
     assert "first boot" in message
 
 
 def test_confirmed_or_unchanged_passes(cfn) -> None:
-    assert guard({**DEPLOYED, "volumeGb": "200"}, confirmed=True, cfn=cfn) is None
-    assert guard(dict(DEPLOYED), cfn=cfn) is None
+    assert refusal(cfn, {**DEPLOYED, "volumeGb": "200"}, confirmed=True) is None
+    assert refusal(cfn, dict(DEPLOYED)) is None
 
 
-def test_without_credentials_nothing_is_compared() -> None:
+def test_the_app_stops_the_deploy_with_an_error_annotation(tmp_path: Path) -> None:
+    """Through the real app wiring: build_app reads the deployed outputs once and turns the refusal into an
+    error annotation (the CDK CLI refuses to deploy it; `cdk destroy` ignores it)."""
+    deployed = {"availabilityZone": "us-east-1b", "volumeGb": "100", "image": "ami-0123456789abcdef0"}
+    stack = app_stack(
+        tmp_path,
+        reader=lambda _n, _r: {"InstanceFingerprint": json.dumps(deployed)},
+        clientCidr=CLIENT_CIDR,
+        availabilityZone="us-east-1c",
+        amiId="ami-0123456789abcdef0",
+    )
+    (error,) = annotations(stack, "error")
+    assert "availabilityZone: us-east-1b -> us-east-1c" in error
+
+
+def test_without_credentials_nothing_is_compared(tmp_path: Path) -> None:
     # No account from the CDK CLI (a synth without credentials): no AWS call, no refusal, no warning.
     def never(_name: str, _region: str):
         raise AssertionError("must not call AWS")
 
-    result = check_replacement(
-        stack_name="So101TwinStack",
-        wanted={**DEPLOYED, "volumeGb": "200"},
-        confirmed=False,
-        region=None,
-        account=None,
-        reader=never,
-    )
-    assert result is None
+    stack = app_stack(tmp_path, reader=never, account=None, clientCidr=CLIENT_CIDR)
+    assert annotations(stack, "error") == []
 
 
-def test_a_failed_lookup_warns_instead_of_refusing() -> None:
+def test_a_failed_lookup_warns_instead_of_refusing(tmp_path: Path) -> None:
     def broken(_name: str, _region: str):
         raise DeployedUnknownError("ExpiredToken: refresh")
 
-    warning = check_replacement(
-        stack_name="So101TwinStack",
-        wanted=DEPLOYED,
-        confirmed=False,
-        region=REGION,
-        account="111111111111",
-        reader=broken,
-    )
-    assert warning is not None and "ExpiredToken" in warning and "replaces the instance" in warning
-
-
-def test_the_app_refuses_at_synth(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Through the real app wiring: build_app consults the reader with the settings' fingerprint."""
-    import aws_cdk as cdk
-
-    from app import build_app
-
-    from .synth import CLIENT_CIDR, cdk_json_context
-
-    monkeypatch.setenv("CDK_DEFAULT_ACCOUNT", "111111111111")
-    monkeypatch.setenv("CDK_DEFAULT_REGION", REGION)
-    deployed = {"availabilityZone": "us-east-1b", "volumeGb": "100", "image": "ami-0123456789abcdef0"}
-    context = {**cdk_json_context(), "clientCidr": CLIENT_CIDR, "availabilityZone": "us-east-1c"}
-    context["amiId"] = "ami-0123456789abcdef0"
-    app = cdk.App(context=context, outdir=str(tmp_path))
-    with pytest.raises(SettingsError, match=r"availabilityZone: us-east-1b -> us-east-1c"):
-        build_app(app, deployed_reader=lambda _n, _r: deployed)
+    stack = app_stack(tmp_path, reader=broken, clientCidr=CLIENT_CIDR)
+    assert annotations(stack, "error") == []
+    warnings = " ".join(annotations(stack, "warning"))
+    assert "ExpiredToken" in warnings and "replaces the instance" in warnings

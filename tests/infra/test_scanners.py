@@ -31,7 +31,7 @@ def test_cdk_nag_catches_an_unacknowledged_finding(tmp_path: Path) -> None:
     from .synth import CLIENT_CIDR, cdk_json_context
 
     app = cdk.App(context={**cdk_json_context(), "clientCidr": CLIENT_CIDR}, outdir=str(tmp_path))
-    stack = build_app(app)
+    stack = build_app(app, settings_file=None)
     stack.network.security_group.add_ingress_rule(ec2.Peer.any_ipv4(), ec2.Port.tcp(8443), "bad on purpose")
     with pytest.raises(Exception, match=r"ValidationFailed|Validation failed") as info:
         Template.from_stack(stack)

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import pytest
 
-from stacks.settings import DEFAULT_AMI_SSM_PARAMETER, SettingsError, TwinSettings
+from stacks.settings import DEFAULT_AMI_SSM_PARAMETER, SETTING_FIELDS, SettingsError, TwinSettings
 
 from .synth import cdk_json_context
 
@@ -23,7 +24,7 @@ def refused(**overrides: Any) -> str:
     return str(info.value)
 
 
-def test_defaults_come_from_cdk_json() -> None:
+def test_defaults_live_in_the_settings_class() -> None:
     s = settings()
     assert s.client_cidr == "203.0.113.7/32"
     assert s.instance_type == "g6e.2xlarge"
@@ -41,12 +42,25 @@ def test_defaults_come_from_cdk_json() -> None:
     assert s.availability_zone is None
     assert s.stack_name == "So101TwinStack"
     assert s.alarm_email is None
+    assert s.alarm_warnings is False
 
 
-def test_client_cidr_is_required_and_the_message_says_what_to_pass() -> None:
-    message = refused(clientCidr="")
+def test_cdk_json_holds_no_setting_so_context_is_only_what_the_deployer_passed() -> None:
+    assert set(cdk_json_context()) & set(SETTING_FIELDS) == set()
+
+
+def test_every_field_has_a_key() -> None:
+    assert set(SETTING_FIELDS.values()) == {f.name for f in dataclasses.fields(TwinSettings)}
+
+
+def test_client_cidr_missing_blocks_the_deploy_but_not_the_synth() -> None:
+    s = settings(clientCidr="")
+    assert s.client_cidr is None
+    (message,) = s.deploy_blockers()
     assert "clientCidr is required" in message
     assert "-c clientCidr=203.0.113.7/32" in message
+    assert 'clientCidr = "203.0.113.7/32"' in message and "twin.settings.toml" in message
+    assert settings().deploy_blockers() == []
 
 
 def test_open_cidr_is_refused_without_allow_any_client() -> None:

@@ -229,8 +229,9 @@ def test_iot_permissions_are_scoped_to_the_agent_and_the_devices(synth_default: 
     assert connect["Action"] == "iot:Connect"
     # One listed device: the pool has one connection, and only its client id is allowed.
     resource = connect["Resource"][0] if isinstance(connect["Resource"], list) else connect["Resource"]
-    assert ":client/so101-twin-*-0" in flatten(connect["Resource"])
-    assert ":client/so101-twin-*-1" not in flatten(connect["Resource"])
+    # The host agent's own prefix, named for the stack: never an agent's on a laptop beside it.
+    assert ":client/so101-twin-So101TwinStack-*-0" in flatten(connect["Resource"])
+    assert ":client/so101-twin-So101TwinStack-*-1" not in flatten(connect["Resource"])
     assert {"Ref": "AWS::Region"} in resource["Fn::Join"][1]
     assert {"Ref": "AWS::AccountId"} in resource["Fn::Join"][1]
     subscribe = statement(statements, "IotSubscribeTelemetry")
@@ -259,11 +260,13 @@ def test_fleet_subscribes_exactly_the_shared_filter_from_the_pool_client_ids(
         subscribe["Resource"] if isinstance(subscribe["Resource"], list) else [subscribe["Resource"]]
     )
     assert len(subscribe_arns) == 1
-    assert ":topicfilter/$share/so101-twin/fleet/so101/+/telemetry" in flatten(subscribe_arns[0])
-    assert ":topic/$share/so101-twin/fleet/so101/*/telemetry" in flatten(receive)
+    # The group is the host agent's own (its client id prefix), so a laptop's agent has a group of its own.
+    group = "so101-twin-So101TwinStack"
+    assert f":topicfilter/$share/{group}/fleet/so101/+/telemetry" in flatten(subscribe_arns[0])
+    assert f":topic/$share/{group}/fleet/so101/*/telemetry" in flatten(receive)
     assert ":topicfilter/fleet/so101/+/telemetry" not in flatten(subscribe)  # no plain, unshared filter
     ids = [flatten(r).rsplit(":client/", 1)[1].split('"', 1)[0] for r in connect["Resource"]]
-    assert ids == [f"so101-twin-*-{i}" for i in range(8)]
+    assert ids == [f"so101-twin-So101TwinStack-*-{i}" for i in range(8)]
     # Partition-aware: every IoT ARN is built from the stack's partition, never a literal "aws".
     for arn in (*connect["Resource"], *subscribe_arns, receive["Resource"]):
         assert "AWS::Partition" in flatten(arn)
@@ -433,7 +436,7 @@ def test_deployment_parameter_carries_assets_settings_and_version(synth_default:
         "RECORD_SESSIONS=false",
         "ROS2=false",
         "HISTORY_URI=s3://",
-        "CLIENT_ID_PREFIX=so101-twin-",
+        "CLIENT_ID_PREFIX=so101-twin-So101TwinStack-",
         "LOG_GROUP=",
         "URL_SUFFIX=",
     ):

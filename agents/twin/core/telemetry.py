@@ -431,18 +431,19 @@ def _mismatch(device_id: str, topic_device: str) -> TelemetryRejected:
     )
 
 
-class TelemetryDecoder:
-    """Validates and decodes edge messages. Not thread-safe (auto-units state): one per consuming thread."""
+@dataclass(frozen=True, slots=True)
+class _PositionMap:
+    """How one arm's positions become angles: every units variant of an arm joint is an affine map
+    angle = a + b * value, precomputed per joint; the gripper's tick range for its percent."""
 
-    def __init__(self, config: DecoderConfig | None = None) -> None:
-        self.config = config or DecoderConfig()
-        cfg = self.config
-        cal = cfg.calibration
-        self._max_bytes = cfg.max_payload_bytes
-        self._jaw_lo, jaw_hi = cfg.gripper_range_rad
-        self._jaw_span = jaw_hi - self._jaw_lo
+    affine: Mapping[Units, tuple[tuple[float, float], ...]]
+    ticks: tuple[tuple[float, float], ...]
+    grip_min: float
+    grip_max: float
+    grip_inverted: bool
 
-        # Arm joints: every units variant is an affine map angle = a + b * value; precompute (a, b) per joint.
+    @classmethod
+    def of(cls, cal: Calibration | None, jaw_span: float) -> _PositionMap:
         ticks: list[tuple[float, float]] = []
         range100: list[tuple[float, float]] = []
         for name in _ARM:
@@ -457,33 +458,58 @@ class TelemetryDecoder:
                 ticks.append((-so101.TICK_HOME * RAD_PER_TICK, RAD_PER_TICK))
                 lo, hi = so101.JOINT_RANGES_RAD[name]
                 range100.append(((lo + hi) / 2.0, (hi - lo) / 200.0))
-        self._affine = {
+        affine = {
             Units.TICKS: tuple(ticks),
             Units.DEGREES: tuple((0.0, so101.DEG) for _ in _ARM),
             Units.RANGE100: tuple(range100),
         }
-        self._affine_ticks = self._affine[Units.TICKS]
         if cal is not None:
             g = cal[so101.GRIPPER]
-            self._grip_min, self._grip_max, self._grip_inverted = (
-                float(g.range_min),
-                float(g.range_max),
-                bool(g.drive_mode),
+            return cls(
+                affine, affine[Units.TICKS], float(g.range_min), float(g.range_max), bool(g.drive_mode)
             )
-        else:
-            # Without a file the jaw's tick span maps 1:1 (RAD_PER_TICK) onto the model's jaw range, centred
-            # on the homing pose; not rounded to whole ticks so the mapping stays exact.
-            half = self._jaw_span / 2.0 / RAD_PER_TICK
-            self._grip_min = so101.TICK_HOME - half
-            self._grip_max = so101.TICK_HOME + half
-            self._grip_inverted = False
+        # Without a file the jaw's tick span maps 1:1 (RAD_PER_TICK) onto the model's jaw range, centred on
+        # the homing pose; not rounded to whole ticks so the mapping stays exact.
+        half = jaw_span / 2.0 / RAD_PER_TICK
+        return cls(affine, affine[Units.TICKS], so101.TICK_HOME - half, so101.TICK_HOME + half, False)
 
+
+class TelemetryDecoder:
+    """Validates and decodes edge messages. Not thread-safe (auto-units state): one per consuming thread."""
+
+    def __init__(self, config: DecoderConfig | None = None) -> None:
+        self.config = config or DecoderConfig()
+        cfg = self.config
+        self._max_bytes = cfg.max_payload_bytes
+        self._jaw_lo, jaw_hi = cfg.gripper_range_rad
+        self._jaw_span = jaw_hi - self._jaw_lo
+        # How positions map to angles: the config's calibration (or the nominal SO-101 without one) for every
+        # arm, and per arm its own where one was set (set_calibrations). The hot path looks its arm up once.
+        self._default = _PositionMap.of(cfg.calibration, self._jaw_span)
+        self._per_device: dict[str, _PositionMap] = {}
+        self._calibrations: dict[str, Calibration] = {}
         self._decided: dict[str, Units] = {}
         self._streaks: dict[str, tuple[Units, int]] = {}
         # Device ids that already passed the character rule, so the hot path checks each id once.
         self._known_ids: set[str] = set()
 
     # --- public -------------------------------------------------------------------------------------------
+
+    def set_calibrations(self, calibrations: Mapping[str, Calibration]) -> None:
+        """Each arm's own LeRobot calibration (device id -> file), replacing the previous set; an arm not in
+        it decodes with the config's calibration. Safe to call from another thread than the decoding one: the
+        table is built aside and swapped in whole, so a message decodes with the old set or the new one."""
+        kept = {d: m for d, m in self._per_device.items() if self._calibrations.get(d) == calibrations.get(d)}
+        fresh = {
+            device: kept.get(device) or _PositionMap.of(cal, self._jaw_span)
+            for device, cal in calibrations.items()
+        }
+        self._calibrations = dict(calibrations)
+        self._per_device = fresh
+
+    def calibration_for(self, device_id: str) -> Calibration | None:
+        """The calibration a device decodes with: its own, else the config's, else None (nominal SO-101)."""
+        return self._calibrations.get(device_id, self.config.calibration)
 
     def units_for(self, device_id: str) -> Units:
         """The units in force for a device: the explicit setting, auto's decision, or AUTO while undecided."""
@@ -540,7 +566,7 @@ class TelemetryDecoder:
         if units is Units.AUTO:
             units, angles, percent, undecided = self._units_and_angles(device_id, positions)
         else:
-            angles, percent = self._angles(units, positions)
+            angles, percent = self._angles(units, positions, self._per_device.get(device_id, self._default))
         if undecided:
             self._count_evidence(device_id, units)
         return Telemetry(
@@ -559,14 +585,15 @@ class TelemetryDecoder:
         """The units in force, the converted angles and gripper percent, and whether auto is still deciding
         (then the message only counts as evidence once everything else about it proved valid)."""
         units = self.config.units
+        mapping = self._per_device.get(device_id, self._default)
         if units is not Units.AUTO:
-            return (units, *self._convert(units, positions, auto=False), False)
+            return (units, *self._convert(units, positions, mapping, auto=False), False)
         units = self._decided.get(device_id, Units.AUTO)
         if units is not Units.AUTO:
-            return (units, *self._convert(units, positions, auto=True), False)
+            return (units, *self._convert(units, positions, mapping, auto=True), False)
         units = self._evidence_or_reject(device_id, positions)
         # Evidence only counts when the message is valid in those units, so it is converted first.
-        return (units, *self._convert(units, positions, auto=False), True)
+        return (units, *self._convert(units, positions, mapping, auto=False), True)
 
     def _explain(self, data: bytes | str, topic_device: str | None) -> Telemetry:
         """The rules one by one in the documented order, on the standard json module's parse: for a message
@@ -754,28 +781,30 @@ class TelemetryDecoder:
     # --- units --------------------------------------------------------------------------------------------
 
     def _convert(
-        self, units: Units, positions: list[int | float], *, auto: bool
+        self, units: Units, positions: list[int | float], mapping: _PositionMap, *, auto: bool
     ) -> tuple[list[float], float]:
         if units is Units.TICKS:
             self._check_ticks(positions, auto)
         else:
             self._check_normalised(units, positions, auto)
-        return self._angles(units, positions)
+        return self._angles(units, positions, mapping)
 
-    def _angles(self, units: Units, positions: list[int | float]) -> tuple[list[float], float]:
+    def _angles(
+        self, units: Units, positions: list[int | float], mapping: _PositionMap
+    ) -> tuple[list[float], float]:
         """Positions already checked against `units` -> joint angles and gripper percent (arithmetic only)."""
         if units is Units.TICKS:
-            angles = [a + b * v for (a, b), v in zip(self._affine_ticks, positions, strict=False)]
+            angles = [a + b * v for (a, b), v in zip(mapping.ticks, positions, strict=False)]
             raw = positions[_N_ARM]
-            lo, hi = self._grip_min, self._grip_max
+            lo, hi = mapping.grip_min, mapping.grip_max
             # LeRobot RANGE_0_100: clamp into the calibrated range, then scale; drive_mode 1 inverts.
             clamped = lo if raw < lo else hi if raw > hi else raw
             percent = (clamped - lo) / (hi - lo) * PERCENT_MAX
-            if self._grip_inverted:
+            if mapping.grip_inverted:
                 percent = PERCENT_MAX - percent
         else:
             # float() only after the range checks: a huge JSON integer would overflow it.
-            angles = [a + b * float(v) for (a, b), v in zip(self._affine[units], positions, strict=False)]
+            angles = [a + b * float(v) for (a, b), v in zip(mapping.affine[units], positions, strict=False)]
             percent = float(positions[_N_ARM])
         angles.append(self._jaw_lo + percent / PERCENT_MAX * self._jaw_span)
         return angles, percent

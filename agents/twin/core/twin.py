@@ -92,14 +92,8 @@ class _Figures:
     def torques(self) -> dict[str, float]:
         torques = self._torques
         if torques is None:
-            robot = self._robot
-            scratch = robot.workspace()[1]
-            self._write(scratch)
-            # qvel and qacc stay zero (mj_inverse only reads them), leaving the gravity term: the holding
-            # torque.
-            mujoco.mj_inverse(robot.inverse_model, scratch)
-            forces = scratch.qfrc_inverse
-            torques = self._torques = {n: float(forces[robot.dof_addr[n]]) for n in robot.joint_names}
+            # No velocity or acceleration: the gravity term (and springs), the holding torque.
+            torques = self._torques = self._robot.inverse_dynamics(self._pose)
         return torques
 
 

@@ -13,7 +13,7 @@ import json
 import math
 import random
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from twin.core.telemetry import MAX_PAYLOAD_BYTES
 from twin.edge.servo_faults import (
@@ -24,6 +24,10 @@ from twin.edge.servo_faults import (
     overrides_at,
 )
 from twin.robot import so101, sts3215
+
+if TYPE_CHECKING:
+    # Only the physical mode loads MuJoCo: the payloads of the mock mode need none of it.
+    from twin.edge.servo_physics import PhysicalArm
 
 VARIANTS: tuple[str, ...] = ("ticks", "degrees")
 # Each kind breaks one rule of the contract a consumer must check; all must be rejected, none may crash it.
@@ -70,6 +74,19 @@ def mock_motion_ticks(t: float) -> list[float]:
     ]
 
 
+def mock_motion_rates(t: float) -> tuple[list[float], list[float]]:
+    """The mock motion's speed (ticks/s) and acceleration (ticks/s²) at edge time `t`, JOINT_NAMES order:
+    the derivatives of `mock_motion_ticks`, which the physical servos turn into torques."""
+    rates: list[float] = []
+    accelerations: list[float] = []
+    for i in range(len(so101.JOINT_NAMES)):
+        omega = MOCK_BASE_RAD_S + MOCK_STEP_RAD_S * i
+        phase = t * omega + i * MOCK_PHASE_STEP_RAD
+        rates.append(MOCK_AMPLITUDE_TICKS * omega * math.cos(phase))
+        accelerations.append(-MOCK_AMPLITUDE_TICKS * omega * omega * math.sin(phase))
+    return rates, accelerations
+
+
 def mock_ticks(t: float) -> list[int]:
     """The edge mock mode's published joint positions (whole ticks, truncated like the edge's int())."""
     return [int(ticks) for ticks in mock_motion_ticks(t)]
@@ -101,6 +118,7 @@ def make_payload(
     load_sign: bool = False,
     servo_faults: tuple[ServoFault, ...] = (),
     model_loads: ModelLoads | None = None,
+    physical: PhysicalArm | None = None,
 ) -> dict[str, Any]:
     """One telemetry message as the edge builds it (before JSON encoding).
 
@@ -108,9 +126,28 @@ def make_payload(
     (variant ticks) or makes them negative (variant degrees, where newer LeRobot decodes the sign);
     `servo_faults` rewrite the readings of their joints while they last, and `model_loads` replaces the
     mock's random loads with the load each servo reports holding the pose (twin.edge.servo_faults).
+    `physical` replaces all the mock's random readings with what servos following the motion report
+    (twin.edge.servo_physics); it keeps the arm's temperatures, so call it in time order.
     """
     if variant not in VARIANTS:
         raise ValueError(f"variant {variant!r} is not one of {VARIANTS}")
+    if physical is not None:
+        if model_loads is not None:
+            raise ValueError("physical servos already report the model's loads: give model_loads or physical")
+        joints = _physical_joints(t, variant, physical, servo_faults)
+    else:
+        joints = _mock_joints(t, variant, rng, load_sign)
+    if model_loads is not None or servo_faults:
+        _apply_servo_faults(joints, t, variant, faults=servo_faults, model_loads=model_loads)
+    return {
+        "device_id": device_id,
+        "timestamp": int(time.time() * 1000) if timestamp_ms is None else int(timestamp_ms),
+        "joints": joints,
+    }
+
+
+def _mock_joints(t: float, variant: str, rng: random.Random, load_sign: bool) -> dict[str, dict[str, Any]]:
+    """Every joint as the edge's mock mode sends it: the motion's position, uniform noise for the rest."""
     ticks = mock_ticks(t)
     joints: dict[str, dict[str, Any]] = {}
     for name, position in zip(so101.JOINT_NAMES, ticks, strict=True):
@@ -139,13 +176,53 @@ def make_payload(
                 "voltage": float(rng.randint(118, 122)),
                 "current": float(current),
             }
-    if model_loads is not None or servo_faults:
-        _apply_servo_faults(joints, t, variant, faults=servo_faults, model_loads=model_loads)
-    return {
-        "device_id": device_id,
-        "timestamp": int(time.time() * 1000) if timestamp_ms is None else int(timestamp_ms),
-        "joints": joints,
-    }
+    return joints
+
+
+def _physical_joints(
+    t: float, variant: str, physical: PhysicalArm, faults: tuple[ServoFault, ...]
+) -> dict[str, dict[str, Any]]:
+    """Every joint's readings from the physical servos, encoded as the variant's registers. A joint a fault
+    holds still is computed still, where the fault holds it."""
+    ticks = mock_ticks(t)
+    rates, accelerations = mock_motion_rates(t)
+    overrides = overrides_at(faults, t)
+    for i, name in enumerate(so101.JOINT_NAMES):
+        o = overrides.get(name)
+        if o is not None and o.hold_at_s is not None:
+            ticks[i] = mock_ticks(o.hold_at_s)[i]
+            rates[i] = accelerations[i] = 0.0
+    readings = physical.readings(t, ticks, rates, accelerations)
+    joints: dict[str, dict[str, Any]] = {}
+    for name, position in zip(so101.JOINT_NAMES, ticks, strict=True):
+        r = readings[name]
+        steps = round(r.velocity_steps_s)
+        # Present_Temperature reads whole degrees, whichever way the edge forwards it.
+        temperature = round(r.temperature_c)
+        volts = r.voltage_v / VOLTAGE_V_PER_UNIT
+        if variant == "ticks":
+            joints[name] = {
+                "position": position,
+                "velocity": sign_magnitude(steps, VELOCITY_SIGN_BIT),
+                "load": load_register(r.load_percent),
+                "temp": temperature,
+                "current": current_register(r.current_a),
+                "voltage": round(volts),
+            }
+        else:
+            degrees = (
+                ticks_to_gripper_percent(position) if name == so101.GRIPPER else ticks_to_degrees(position)
+            )
+            joints[name] = {
+                "position": round(degrees, 4),
+                "velocity": float(steps),
+                # LeRobot passes the register on in its 0.1 % units, the sign decoded.
+                "load": round(r.load_percent * 10.0, 1),
+                "temp": float(temperature),
+                "voltage": round(volts, 1),
+                "current": float(current_register(r.current_a)),
+            }
+    return joints
 
 
 def _apply_servo_faults(

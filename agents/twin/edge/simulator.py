@@ -14,6 +14,7 @@ import math
 import random
 import threading
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -29,6 +30,7 @@ from twin.edge.payload import (
     make_payload,
 )
 from twin.edge.servo_faults import ModelLoads, ServoFault
+from twin.edge.servo_physics import SERVO_MODES, PhysicalServoConfig
 
 __all__ = ["EdgeSimConfig", "EdgeSimReport", "EdgeSimulator", "FaultConfig", "device_ids"]
 from twin.transport.broker import BrokerConfig, new_client_id
@@ -70,6 +72,11 @@ class EdgeSimConfig:
     load_sign: bool = False
     servo_faults: tuple[ServoFault, ...] = ()
     model_loads: bool = False
+    # "mock": the edge mock mode's uniform noise (what the real edge sends); "physical": readings from the
+    # motion (twin.edge.servo_physics), with `physical`'s settings, or a device's own in `physical_by_device`.
+    servos: str = "mock"
+    physical: PhysicalServoConfig = field(default_factory=PhysicalServoConfig)
+    physical_by_device: Mapping[str, PhysicalServoConfig] = field(default_factory=dict)
     connect_timeout_s: float = 10.0
 
     def __post_init__(self) -> None:
@@ -84,6 +91,16 @@ class EdgeSimConfig:
             raise ValueError(f"rate {self.rate_hz} Hz must be in (0, 10000]")
         if self.seconds is not None and self.seconds <= 0:
             raise ValueError(f"seconds {self.seconds} must be positive (omit it to run until stopped)")
+        if self.servos not in SERVO_MODES:
+            raise ValueError(f"servos {self.servos!r} is not one of {', '.join(SERVO_MODES)}")
+        if self.servos == "physical" and self.model_loads:
+            raise ValueError(
+                "--model-loads and --servos physical: give one; physical servos already report the model's "
+                "loads (with the motion's)"
+            )
+        unknown = sorted(set(self.physical_by_device) - set(self.devices))
+        if unknown:
+            raise ValueError(f"physical servo settings for devices not simulated: {', '.join(unknown)}")
 
 
 def clock_skews_ms(devices: list[str], skew_ms: int) -> dict[str, int]:
@@ -114,6 +131,20 @@ class EdgeSimReport:
         data = dataclasses.asdict(self)
         data["malformed_total"] = self.malformed_total
         return data
+
+
+def _physical_arms(config: EdgeSimConfig) -> dict[str, Any]:
+    """A PhysicalArm per device; arms with the same payload share one model (MuJoCo loads here, once)."""
+    from twin.edge.servo_physics import ArmDynamics, PhysicalArm, payload_model  # noqa: PLC0415
+
+    dynamics: dict[float, ArmDynamics] = {}
+    arms: dict[str, Any] = {}
+    for device in config.devices:
+        settings = config.physical_by_device.get(device, config.physical)
+        if settings.payload_kg not in dynamics:
+            dynamics[settings.payload_kg] = ArmDynamics(payload_model(settings.payload_kg))
+        arms[device] = PhysicalArm(settings, dynamics[settings.payload_kg])
+    return arms
 
 
 class _Connection:
@@ -178,6 +209,7 @@ class EdgeSimulator:
         self._held: dict[str, tuple[bytes, int]] = {}
         self._topics = {device: telemetry_topic(config.topic_prefix, device) for device in config.devices}
         self._model_loads = ModelLoads() if config.model_loads else None
+        self._arms = _physical_arms(config) if config.servos == "physical" else {}
 
     def _connections_needed(self) -> int:
         config = self.config
@@ -221,7 +253,7 @@ class EdgeSimulator:
                     )
             self._loop(stop_event, route)
             self._flush(route)
-            self._wait_outstanding(connections, timeout=2.0)
+            self._wait_outstanding(connections, timeout=10.0)
         finally:
             for connection in connections:
                 connection.client.stop()
@@ -273,6 +305,7 @@ class EdgeSimulator:
             load_sign=self.config.load_sign,
             servo_faults=self.config.servo_faults,
             model_loads=self._model_loads,
+            physical=self._arms.get(device),
         )
         if faults.drop and rng.random() < faults.drop:
             report.dropped += 1

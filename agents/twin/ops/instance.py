@@ -30,6 +30,7 @@ import math
 import os
 import re
 import time
+import tomllib
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -40,10 +41,15 @@ from twin.service.config import DEFAULT_AGENT_URL
 if TYPE_CHECKING:
     import boto3
 
+    from twin.ops.deployed_settings import DeployedSettings
+    from twin.ops.port_forward import PortForward
+
 log = logging.getLogger(__name__)
 
 DEFAULT_STACK_NAME = "So101TwinStack"
 STACK_ENV_VAR = "SO101_TWIN_STACK"
+# The deployment's settings file (stacks/settings.py reads it for `cdk deploy`): its stackName is the default.
+SETTINGS_FILE = "twin.settings.toml"
 
 # Output keys of the CDK stack (stacks/); InstanceId and DcvUrl are the ones this module cannot work without.
 OUTPUT_INSTANCE_ID = "InstanceId"
@@ -54,6 +60,8 @@ OUTPUT_SSM_SESSION_COMMAND = "SsmSessionCommand"
 OUTPUT_DEPLOYMENT_VERSION = "DeploymentVersion"
 OUTPUT_UPDATE_ASSOCIATION = "UpdateAssociationId"
 OUTPUT_HOST_LOG_GROUP = "HostLogGroup"
+OUTPUT_SETTINGS = "Settings"
+OUTPUT_CALIBRATION_URI = "CalibrationUri"
 REQUIRED_OUTPUTS = (OUTPUT_INSTANCE_ID, OUTPUT_DCV_URL)
 
 HEALTH_URL = f"{DEFAULT_AGENT_URL}/healthz"
@@ -91,8 +99,18 @@ G6E_OFFERINGS_COMMAND = (
 
 
 def default_stack_name() -> str:
-    """The stack to act on when none is given: $SO101_TWIN_STACK, else `So101TwinStack`."""
-    return os.environ.get(STACK_ENV_VAR) or DEFAULT_STACK_NAME
+    """The stack to act on when none is given: $SO101_TWIN_STACK, else the `stackName` of the deployment's
+    settings file (twin.settings.toml in the current directory, the repository root where `cdk deploy` runs),
+    else `So101TwinStack`."""
+    named = os.environ.get(STACK_ENV_VAR)
+    if named:
+        return named
+    try:
+        with open(SETTINGS_FILE, "rb") as fh:
+            value = tomllib.load(fh).get("stackName")
+    except (OSError, tomllib.TOMLDecodeError):
+        value = None
+    return value if isinstance(value, str) and value.strip() else DEFAULT_STACK_NAME
 
 
 class TwinInstanceError(Exception):
@@ -133,6 +151,10 @@ class StackOutputs:
     deployment_version: str | None = None
     update_association_id: str | None = None
     host_log_group: str | None = None
+    # The settings the stack was deployed with, as JSON (twin.ops.deployed_settings reads it).
+    settings: str | None = None
+    # Where the arms' calibrations are kept (s3://<bucket>/calibration; `twin calibration`).
+    calibration_uri: str | None = None
 
 
 @dataclass(frozen=True)
@@ -401,6 +423,8 @@ class TwinInstance:
             deployment_version=values.get(OUTPUT_DEPLOYMENT_VERSION),
             update_association_id=values.get(OUTPUT_UPDATE_ASSOCIATION),
             host_log_group=values.get(OUTPUT_HOST_LOG_GROUP),
+            settings=values.get(OUTPUT_SETTINGS),
+            calibration_uri=values.get(OUTPUT_CALIBRATION_URI),
         )
         log.debug("stack %s outputs: %s", self.stack_name, self._outputs)
         return self._outputs
@@ -423,12 +447,21 @@ class TwinInstance:
     def _stack_missing_message(self) -> str:
         return (
             f"stack {self.stack_name} not found in {self.region}: deploy it with "
-            "`cdk deploy -c clientCidr=...` or pass --stack"
+            "`cdk deploy` (docs/deploy.md) or pass --stack"
         )
 
     def url(self) -> str:
         """The DCV browser URL (stable across stop/start because it is built from the Elastic IP)."""
         return self.outputs().dcv_url
+
+    def settings(self) -> DeployedSettings:
+        """The settings the stack was deployed with; StackOutputsError when it does not publish them."""
+        from twin.ops.deployed_settings import DeployedSettingsError, parse_deployed_settings  # noqa: PLC0415
+
+        try:
+            return parse_deployed_settings(self.outputs().settings, self.stack_name)
+        except DeployedSettingsError as exc:
+            raise StackOutputsError(str(exc)) from exc
 
     # --- instance ----------------------------------------------------------------------------------
 
@@ -612,6 +645,30 @@ class TwinInstance:
                 )
             log.info("start checks: %s", waiting)
             time.sleep(min(self.poll_interval_s, max(0.0, deadline - time.monotonic())))
+
+    # --- a port of the host here ---------------------------------------------------------------------
+
+    def forward_port(self, remote_port: int, local_port: int, *, plugin: str | None = None) -> PortForward:
+        """`remote_port` of the running host on this machine's 127.0.0.1:`local_port`, through Session
+        Manager and its plugin (twin.ops.port_forward); `close()` the result to end it."""
+        from twin.ops.port_forward import find_plugin, start_port_forward  # noqa: PLC0415
+
+        path = plugin or find_plugin()  # before any AWS call: a missing plugin leaves no session behind
+        instance_id = self.outputs().instance_id
+        state = self.state()
+        if state != "running":
+            raise WaitError(
+                f"instance {instance_id} is {state}: start it with `twin instance start`, then run this again"
+            )
+        with self._aws(f"start a Session Manager session to {instance_id}"):
+            return start_port_forward(
+                self._client("ssm"),
+                instance_id=instance_id,
+                remote_port=remote_port,
+                local_port=local_port,
+                profile=os.environ.get("AWS_PROFILE", ""),
+                plugin=path,
+            )
 
     def status(self, check_health: bool = True, health_timeout_s: float = 60.0) -> InstanceStatus:
         """State, type, URL and (when running and asked) agent health."""

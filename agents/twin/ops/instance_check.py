@@ -52,9 +52,12 @@ HOST_FIXES = {
     "dcv-session": "restart DCV once X is up (sudo systemctl restart dcvserver), or create the session: "
     "sudo dcv create-session --type=console --owner ubuntu console",
     "agent": "on the host: journalctl -u so101-twin-agent -n 50; the role may subscribe only to the "
-    "configured devices' topics (redeploy with -c devices=...); sudo systemctl restart so101-twin-agent",
+    "configured devices' topics (set devices in twin.settings.toml and cdk deploy); sudo systemctl restart "
+    "so101-twin-agent",
     "telemetry": "no arm is publishing to the subscribed topics: start the edge publisher of each device "
     "(or check its topic prefix and device id against the stack's settings)",
+    "calibration": "push each arm's LeRobot calibration: twin calibration push ARM FILE (the agent picks it "
+    "up within 30 s; docs/agent.md, 'Calibration'); a refused file says why in the console's Events",
     "viewer": "the viewer starts at the desktop login and must keep running: if it keeps restarting, its "
     "supervisor's log says why (on the host: journalctl _UID=$(id -u ubuntu) | grep twin-view); "
     "docs/deploy.md, Troubleshooting, 'The viewer keeps restarting'",
@@ -197,8 +200,8 @@ def check_dcv_port(dcv_url: str, timeout_s: float = DCV_CONNECT_TIMEOUT_S) -> Ch
             FAIL,
             f"no TLS handshake with {host}:{port} from here ({exc.__class__.__name__}: {exc})",
             "DCV admits only clientCidr: if your public address changed, find it (curl -s "
-            "https://checkip.amazonaws.com) and redeploy with -c clientCidr=<it>/32; otherwise dcvserver is "
-            "down (check dcv-session below)",
+            'https://checkip.amazonaws.com), write clientCidr = "<it>/32" into twin.settings.toml and cdk '
+            "deploy; otherwise dcvserver is down (check dcv-session below)",
         )
     return CheckLine("dcv port", OK, f"{host}:{port} completes a TLS handshake from here ({version})")
 

@@ -32,6 +32,8 @@ log = logging.getLogger(__name__)
 IOT_PUBLISHES_PER_S = 100
 # Rows are read in windows of this length, so a day's replay never holds a day in memory.
 READ_WINDOW = dt.timedelta(minutes=10)
+# How long a replay waits, once every row is handed to the client, for its publishes to reach the socket.
+FLUSH_TIMEOUT_S = 30.0
 
 
 @dataclass(frozen=True)
@@ -131,7 +133,7 @@ def replay(
             IOT_PUBLISHES_PER_S,
         )
     report = ReplayReport()
-    client, connected, on_done = _client(config, report)
+    client, connected, on_done, outstanding = _client(config, report)
     try:
         if not connected.wait(config.connect_timeout_s):
             raise HistoryReadError(
@@ -139,24 +141,61 @@ def replay(
                 f"{config.connect_timeout_s:.0f} s; check --broker and that the broker runs"
             )
         _publish_rows(
-            config, client, _chain(first, rows), report, on_done=on_done, stop=stop, on_progress=on_progress
+            config,
+            client,
+            _chain(first, rows),
+            report,
+            on_done=on_done,
+            outstanding=outstanding,
+            stop=stop,
+            on_progress=on_progress,
         )
-        time.sleep(0.3)  # let the last QoS 0 publishes reach the socket
+        # A QoS 0 publish completes once it is on the socket: stopping before then would lose the last ones.
+        if not outstanding.wait_empty(FLUSH_TIMEOUT_S):
+            log.warning(
+                "replay: %d publishes still unwritten after %.0f s", outstanding.count, FLUSH_TIMEOUT_S
+            )
     finally:
         client.stop()
     return report
 
 
-def _client(config: ReplayConfig, report: ReplayReport) -> tuple[Any, threading.Event, Callable[[Any], None]]:
-    """A started MQTT5 client, its connected event, and the publish callback that counts failures in
-    `report`."""
+class _Outstanding:
+    """Publishes handed to the client and not yet completed."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self.count = 0
+
+    def add(self) -> None:
+        with self._cond:
+            self.count += 1
+
+    def done(self) -> None:
+        with self._cond:
+            self.count -= 1
+            if self.count == 0:
+                self._cond.notify_all()
+
+    def wait_empty(self, timeout: float) -> bool:
+        with self._cond:
+            return self._cond.wait_for(lambda: self.count == 0, timeout)
+
+
+def _client(
+    config: ReplayConfig, report: ReplayReport
+) -> tuple[Any, threading.Event, Callable[[Any], None], _Outstanding]:
+    """A started MQTT5 client, its connected event, the publish callback that counts failures in `report`,
+    and the count of publishes not yet completed."""
     connected = threading.Event()
     lock = threading.Lock()
+    outstanding = _Outstanding()
 
     def on_done(future: Any) -> None:
         if future.exception() is not None:
             with lock:
                 report.publish_failures += 1
+        outstanding.done()
 
     client = build_mqtt5_client(
         config.broker,
@@ -164,7 +203,7 @@ def _client(config: ReplayConfig, report: ReplayReport) -> tuple[Any, threading.
         on_connection_success=lambda _data: connected.set(),
     )
     client.start()
-    return client, connected, on_done
+    return client, connected, on_done, outstanding
 
 
 def _publish_rows(
@@ -174,6 +213,7 @@ def _publish_rows(
     report: ReplayReport,
     *,
     on_done: Callable[[Any], None],
+    outstanding: _Outstanding,
     stop: threading.Event,
     on_progress: Callable[[ReplayReport], None] | None,
 ) -> None:
@@ -205,6 +245,7 @@ def _publish_rows(
             stamp = round(edge_ms)
         else:
             stamp = round(now_ms + (edge_ms - first_edge_ms) / config.speed)
+        outstanding.add()
         future = client.publish(
             mqtt5.PublishPacket(
                 topic=topic, payload=payload_for(row, config.target_device, stamp), qos=mqtt5.QoS.AT_MOST_ONCE

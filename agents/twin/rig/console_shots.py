@@ -2,11 +2,12 @@
 
 `console_screenshots(url, out_dir, device=...)` opens the Fleet page and one arm's page of the console at
 `url` (an agent's HTTP address), waits until each has drawn its live data, and saves `console-fleet.png`
-and `console-arm.png`. docs/console.md's pictures are made this way; a demo can call it with its agent.
+and `console-arm.png`. docs/console.md's pictures are made this way, and `twin demo` takes its two so.
 
-The browser is Debian's chromium (`make setup` installs it), never one Playwright downloads; the page may
-reach loopback addresses only. Playwright is a development dependency: without it this raises
-ConsoleShotError with the way to get it.
+The browser is Debian's chromium (`make setup-demo` and `make setup` install it), never one Playwright
+downloads; the page may reach loopback addresses only. Playwright comes with the `demo` extra and the
+development tools: without it, or without the browser, this raises ConsoleShotError with the way to get
+them (`missing_for_shots` says so beforehand).
 """
 
 from __future__ import annotations
@@ -65,6 +66,20 @@ def wait_for_charts(page: Page, timeout_s: float, readings: int = 2) -> None:
     )
 
 
+def missing_for_shots(chromium: Path = CHROMIUM) -> str | None:
+    """Why the pictures cannot be taken here (what to install, and how), or None when they can."""
+    try:
+        import playwright.sync_api  # noqa: F401, PLC0415 - an optional dependency: is it there?
+    except ImportError:
+        return (
+            "Playwright is not installed: `make setup-demo` installs it (the `demo` extra of the agent "
+            "package: pip install 'so101-twin[demo]')"
+        )
+    if not chromium.is_file():
+        return f"{chromium} is missing: `make setup-demo` installs Debian's chromium (apt package chromium)"
+    return None
+
+
 def console_screenshots(
     url: str,
     out_dir: Path,
@@ -75,15 +90,12 @@ def console_screenshots(
     chromium: Path = CHROMIUM,
 ) -> ConsoleShots:
     """`console-fleet.png` and `console-arm.png` of the console at `url` in `out_dir` (module doc)."""
-    try:
-        from playwright.sync_api import Error as PlaywrightError  # noqa: PLC0415 - development dependency
-        from playwright.sync_api import sync_playwright  # noqa: PLC0415
-    except ImportError as exc:
-        raise ConsoleShotError(
-            "console pictures need Playwright (a development dependency): run `make setup`"
-        ) from exc
-    if not chromium.is_file():
-        raise ConsoleShotError(f"{chromium} is missing; `make setup` installs Debian's chromium")
+    missing = missing_for_shots(chromium)
+    if missing is not None:
+        raise ConsoleShotError(missing)
+    from playwright.sync_api import Error as PlaywrightError  # noqa: PLC0415 - an optional dependency
+    from playwright.sync_api import sync_playwright  # noqa: PLC0415
+
     out_dir.mkdir(parents=True, exist_ok=True)
     shots = ConsoleShots(fleet=out_dir / "console-fleet.png", arm=out_dir / "console-arm.png")
     base = url.rstrip("/")

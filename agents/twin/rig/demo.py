@@ -1,14 +1,25 @@
-"""`twin demo`: the whole pipeline on one machine, then the evidence on disk.
+"""`twin demo`: the whole pipeline on one machine, a servo that overheats, then the evidence on disk.
 
 The local rig (twin.rig.local): a private mosquitto on a free loopback port, the edge simulator publishing
-the edge's mock motion, and the agent service (subscriber, decoder, MuJoCo twin, health, HTTP, USD
-recording) run in this process for a set time. The caller gets a status snapshot about four times a second.
+the edge's mock motion with physical servos (twin.edge.servo_physics), and the agent service (subscriber,
+decoder, MuJoCo twin, alarms, health, HTTP and console, USD recording) run in this process for a set time.
+The caller gets a status snapshot about four times a second and a note for each step of the story.
+
+The story: the first arm lifts a payload too heavy for it (STORY_PAYLOAD_KG at the gripper tip) through the
+mock motion, so its shoulder_lift servo works near and past its overload line and heats, its thermal model
+run STORY_SPEEDUP times faster than the clock so that what takes a real servo minutes happens in the run:
+the agent raises the over-temperature warning (60 C) after about 15 s and the critical alarm (65 C) after
+about 25 s. The other arms carry nothing and stay cool. When the first of the two is raised, the console's
+Fleet page and the hot arm's page are photographed in headless Chromium (twin.rig.console_shots); without
+Chromium or Playwright the demo says so and goes on without the two pictures.
+
 Afterwards the output directory holds:
-  twin.png    the twin's final pose (twin.output.render.render_png)
+  twin.png    the twin's pose: written as soon as the first arm is mirrored, then again with its final pose
   twin.gif    a ~30-frame animation of the run (first device), rendered offscreen
+  console-fleet.png, console-arm.png  the operator console while the hot servo's alarm is up
   session-*.usda  the agent's USD session recording
   twin.rrd    the fleet as a Rerun recording (`rerun twin.rrd` opens it; docs/web.md)
-  stats.json  what was sent, received, rejected (by reason), latencies, per-device health
+  stats.json  what was sent, received, rejected (by reason), latencies, per-device health, the story
   history/    the agent's telemetry history (Delta Lake tables, docs/history.md)
   history.png the first device's joint angles, temperature, load and current, drawn from that history
 Everything started here is stopped in `finally`, also on Ctrl-C / SIGTERM (the caller sets `stop`).
@@ -28,16 +39,41 @@ from pathlib import Path
 from typing import Any
 
 from twin.edge.payload import device_ids
+from twin.edge.servo_physics import SERVO_MODES, PhysicalServoConfig
+from twin.rig.console_shots import CHROMIUM, ConsoleShotError, console_screenshots, missing_for_shots
 from twin.service.state import AgentState, DeviceState
 
 log = logging.getLogger(__name__)
 
 # Files this module writes into the output directory; earlier runs' copies are removed first so the directory
 # always describes one run. Nothing else in the directory is touched.
-OUTPUT_PATTERNS = ("twin.png", "twin.gif", "twin.rrd", "stats.json", "session-*.usda", "history.png")
+OUTPUT_PATTERNS = (
+    "twin.png",
+    "twin.gif",
+    "twin.rrd",
+    "stats.json",
+    "session-*.usda",
+    "history.png",
+    "console-fleet.png",
+    "console-arm.png",
+)
 HISTORY_DIR = "history"
 RRD_NAME = "twin.rrd"
 STATUS_INTERVAL_S = 0.25
+# How long the end of a run waits for the last published messages to be counted by the agent.
+SETTLE_TIMEOUT_S = 10.0
+
+# The story (module doc). 220 g at the tip keeps the shoulder at three quarters of its stall torque on average
+# through the mock motion (at stall a quarter of the time); at 80x its thermal time constant (9.5 minutes,
+# twin.robot.sts3215) is 7 s, so the servo passes 60 C after about 15 s and 65 C after about 25 s, and peaks
+# just below the servo's 70 C cut-out, which the simulator does not model (docs/servo-health.md, "Physical
+# servos", has the figures; tests/test_servo_physics.py checks this timeline).
+STORY_JOINT = "shoulder_lift"
+STORY_PAYLOAD_KG = 0.22
+STORY_SPEEDUP = 80.0
+STORY_ALARMS = ("over_temperature", "over_temperature_critical")
+# How long the run may go on past its seconds for the console pictures to finish.
+PICTURES_GRACE_S = 90.0
 
 
 class DemoError(RuntimeError):
@@ -46,16 +82,21 @@ class DemoError(RuntimeError):
 
 @dataclass(frozen=True)
 class DemoConfig:
-    seconds: float = 20.0
+    seconds: float = 30.0
     out_dir: Path = Path("out/demo")
     variant: str = "ticks"  # ticks | degrees (the two edge payload variants)
-    devices: int = 1
+    devices: int = 6
     rate_hz: float = 10.0
     gif_frames: int = 30
     gif_size: tuple[int, int] = (320, 240)
     # The Rerun sink is on in the demo: it writes twin.rrd, and with rerun_serve also serves the web viewer.
     rerun: bool = True
     rerun_serve: bool = False
+    # physical: the story (module doc); mock: the edge mock mode's random servo readings, no story.
+    servos: str = "physical"
+    # The console pictures, taken with this browser.
+    console: bool = True
+    chromium: Path = CHROMIUM
 
     def __post_init__(self) -> None:
         if not 0 < self.seconds <= 3600:
@@ -66,6 +107,8 @@ class DemoConfig:
             raise ValueError(f"--devices {self.devices} must be between 1 and 100")
         if not 0 < self.rate_hz <= 1000:
             raise ValueError(f"--rate {self.rate_hz} must be in (0, 1000] Hz")
+        if self.servos not in SERVO_MODES:
+            raise ValueError(f"--servos {self.servos!r} must be one of {', '.join(SERVO_MODES)}")
 
 
 @dataclass
@@ -138,14 +181,91 @@ def _clear_outputs(out_dir: Path) -> None:
 
 
 @dataclass
+class _Story:
+    """What the run showed of the hot servo: its alarms as they were raised, and its peak temperature."""
+
+    device: str
+    joint: str
+    alarms: list[dict[str, Any]] = field(default_factory=list)
+    peak_temperature_c: float | None = None
+
+    @property
+    def raised(self) -> bool:
+        return bool(self.alarms)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "device": self.device,
+            "joint": self.joint,
+            "payload_kg": STORY_PAYLOAD_KG,
+            "thermal_speedup": STORY_SPEEDUP,
+            "alarms": self.alarms,
+            "peak_temperature_c": self.peak_temperature_c,
+        }
+
+
+class _ConsolePictures:
+    """The two console pictures, taken on a thread of their own while the run goes on (the pages need a live
+    agent and live data); `result` is the stats' "console" entry once done."""
+
+    def __init__(
+        self, config: DemoConfig, url: str, device: str, out_dir: Path, alarms_now: Callable[[], list[str]]
+    ) -> None:
+        self._config = config
+        self._url = url
+        self._device = device
+        self._out_dir = out_dir
+        self._alarms_now = alarms_now
+        self._thread: threading.Thread | None = None
+        self.result: dict[str, Any] = {"taken": False, "skipped": None}
+        self.shots: Any = None
+
+    @property
+    def started(self) -> bool:
+        return self._thread is not None
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._take, name="demo-console-shots", daemon=True)
+        self._thread.start()
+
+    def _take(self) -> None:
+        try:
+            self.shots = console_screenshots(
+                self._url, self._out_dir, device=self._device, chromium=self._config.chromium
+            )
+        except ConsoleShotError as exc:
+            self.result["skipped"] = str(exc)
+            return
+        # What the arm's page showed: the device's alarms that were up when its picture was taken.
+        self.result.update(
+            taken=True, console_errors=self.shots.console_errors, alarms_at_pictures=self._alarms_now()
+        )
+
+    def join(self, timeout: float) -> None:
+        if self._thread is not None:
+            self._thread.join(timeout)
+            if self._thread.is_alive():
+                self.result["skipped"] = f"the pictures were not done {timeout:.0f} s after the run"
+
+
+@dataclass
 class _Run:
-    """What watching the run collected: GIF frames and each arm's status while the edge still published."""
+    """What watching the run collected: GIF frames, each arm's status while the edge still published, the
+    story and the console pictures."""
 
     frames: list[dict[str, float]] = field(default_factory=list)
     running_statuses: dict[str, str] = field(default_factory=dict)
     started: float = 0.0
     final_state: AgentState | None = None
     report: Any = None
+    first_png: Path | None = None
+    story: _Story | None = None
+    pictures: _ConsolePictures | None = None
+    console: dict[str, Any] = field(default_factory=lambda: {"taken": False, "skipped": None})
 
 
 def run_demo(
@@ -154,29 +274,48 @@ def run_demo(
     on_status: Callable[[DemoStatus], None] | None = None,
     stop: threading.Event | None = None,
     on_viewer: Callable[[str], None] | None = None,
+    on_note: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Run the demo; returns the stats written to stats.json. Raises DemoError on any failure.
 
-    `on_viewer(url)` is called with the web viewer's page when `config.rerun_serve` serves one.
+    `on_viewer(url)` is called with the web viewer's page when `config.rerun_serve` serves one, `on_note`
+    with a line for each step of the story (an alarm raised, a picture written or skipped).
 
     The steps: start the local rig (broker + agent recording into the output folder), publish with the edge
-    simulator while watching the agent's state, then write stats.json, the PNG, the GIF (the recording is
-    closed, with its final save, when the rig stops the agent).
+    simulator while watching the agent's state and taking the pictures, then write stats.json, the PNG, the
+    GIF (the recording is closed, with its final save, when the rig stops the agent).
     """
     from twin.rig.local import LocalRig, RigError  # noqa: PLC0415 - MuJoCo, USD and awscrt load here
 
     stop = stop or threading.Event()
+    note = on_note or (lambda line: log.info("%s", line))
     out_dir = Path(config.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     _clear_outputs(out_dir)
     devices = device_ids(config.devices)
     run = _Run(started=time.monotonic())
+    if config.servos == "physical":
+        run.story = _Story(devices[0], STORY_JOINT)
+    if config.console:
+        missing = missing_for_shots(config.chromium)
+        if missing:
+            run.console["skipped"] = missing
+            note(f"console pictures skipped: {missing}")
     try:
         with LocalRig() as rig:
             broker_url, broker_pid = rig.broker.url, rig.broker.pid
             service = _start_agent(rig, config, devices, out_dir, on_viewer)
+            if config.console and run.console["skipped"] is None:
+                run.pictures = _ConsolePictures(
+                    config,
+                    service.http_url,
+                    devices[0],
+                    out_dir,
+                    lambda: [a.alarm_id for a in service.alarms() if a.device == devices[0]],
+                )
+            # Until stopped: the run lasts its seconds, and longer while the console pictures are taken.
             edge = rig.start_edge(
-                devices, variant=config.variant, rate_hz=config.rate_hz, seconds=config.seconds
+                devices, variant=config.variant, rate_hz=config.rate_hz, **_edge_options(config, devices)
             )
             run.started = time.monotonic()
             _watch(
@@ -186,7 +325,9 @@ def run_demo(
                 devices=devices,
                 run=run,
                 on_status=on_status,
+                note=note,
                 stop=stop,
+                out_dir=out_dir,
             )
     except RigError as exc:
         raise DemoError(str(exc)) from exc
@@ -200,6 +341,15 @@ def run_demo(
         config=config, state=final, service=service, run=run, devices=devices, stats=stats, out_dir=out_dir
     )
     return stats
+
+
+def _edge_options(config: DemoConfig, devices: list[str]) -> dict[str, Any]:
+    """The edge simulator's servo settings: physical servos for every arm, the story's payload and thermal
+    speed-up on the first."""
+    if config.servos != "physical":
+        return {}
+    hot = PhysicalServoConfig(payload_kg=STORY_PAYLOAD_KG, speedup={STORY_JOINT: STORY_SPEEDUP})
+    return {"servos": "physical", "physical_by_device": {devices[0]: hot}}
 
 
 def _checked_stats(
@@ -278,29 +428,104 @@ def _watch(
     devices: list[str],
     run: _Run,
     on_status: Callable[[DemoStatus], None] | None,
+    note: Callable[[str], None],
     stop: threading.Event,
+    out_dir: Path,
 ) -> None:
-    """Poll the agent while the edge publishes: status line, GIF frames, then the final state."""
+    """Poll the agent while the edge publishes: status line, the first picture, GIF frames, the story and
+    the console pictures, then the final state. The edge publishes for `config.seconds`, and on while the
+    console pictures are taken (at most PICTURES_GRACE_S more)."""
     frame_period = config.seconds / max(1, config.gif_frames)
     next_frame = run.started
+    end = run.started + config.seconds
+    pictures = run.pictures
     while edge.alive and not stop.is_set():
         stop.wait(STATUS_INTERVAL_S)
         now = time.monotonic()
         state = service.state()
         run.running_statuses = {device: str(d.health.status) for device, d in state.devices.items()}
-        first = state.devices.get(devices[0])
-        if now >= next_frame and first is not None and first.joints_rad:
-            run.frames.append(dict(first.joints_rad))
-            next_frame += frame_period
         if on_status is not None:
             on_status(_status(state, edge.report.published, now - run.started))
+        first = state.devices.get(devices[0])
+        if first is not None and first.joints_rad:
+            if now >= next_frame:
+                run.frames.append(dict(first.joints_rad))
+                next_frame += frame_period
+            if run.first_png is None:
+                # The first picture as early as it can be: the twin's, while the run goes on.
+                run.first_png = _render_twin(service, first.joints_rad, out_dir, f"{devices[0]}  first pose")
+                note(f"picture: {run.first_png}")
+        if run.story is not None:
+            _follow_story(run.story, service, state, now - run.started, note)
+        # The pictures when the hot servo's alarm is up; a run without the story, or too short for it, at its
+        # end.
+        story_told = run.story is not None and run.story.raised
+        if pictures is not None and not pictures.started and (story_told or now >= end):
+            note(f"taking the console pictures of {devices[0]} (headless Chromium)")
+            pictures.start()
+        if now >= end and (pictures is None or not pictures.running or now >= end + PICTURES_GRACE_S):
+            break
     edge.stop()
     run.report = edge.join(10.0)
-    # Messages published in the last instant are still in flight through the broker and the worker.
-    time.sleep(0.5)
-    run.final_state = service.state()
+    if pictures is not None:
+        pictures.join(0.0 if stop.is_set() else 30.0)
+        run.console = pictures.result if pictures.started else {"taken": False, "skipped": "interrupted"}
+        if stop.is_set() and pictures.running:
+            run.console = {"taken": False, "skipped": "interrupted while the pictures were taken"}
+        if run.console["taken"]:
+            note(f"pictures: {pictures.shots.fleet}, {pictures.shots.arm}")
+        elif pictures.started:
+            note(f"console pictures skipped: {run.console['skipped']}")
+    run.final_state = _settled_state(service, run.report.published)
     if on_status is not None:
         on_status(_status(run.final_state, run.report.published, time.monotonic() - run.started))
+
+
+def _settled_state(service: Any, published: int) -> AgentState:
+    """The agent's state once it has counted every published message (the last ones are still crossing the
+    broker and the mirror when the edge stops), or after SETTLE_TIMEOUT_S if some never arrive."""
+    deadline = time.monotonic() + SETTLE_TIMEOUT_S
+    state: AgentState = service.state()
+    while state.messages_handled() < published and time.monotonic() < deadline:
+        time.sleep(0.05)
+        state = service.state()
+    return state
+
+
+def _follow_story(
+    story: _Story, service: Any, state: AgentState, elapsed_s: float, note: Callable[[str], None]
+) -> None:
+    """Record the hot servo's temperature, and each of its over-temperature alarms the first time it is up."""
+    device = state.devices.get(story.device)
+    servo = None if device is None or device.servos is None else device.servos.get(story.joint)
+    if servo is not None and servo.temperature_c is not None:
+        story.peak_temperature_c = max(story.peak_temperature_c or servo.temperature_c, servo.temperature_c)
+    seen = {a["kind"] for a in story.alarms}
+    for alarm in service.alarms():
+        if (alarm.device, alarm.joint) != (story.device, story.joint) or alarm.kind not in STORY_ALARMS:
+            continue
+        if alarm.kind in seen:
+            continue
+        story.alarms.append(
+            {
+                "alarm_id": alarm.alarm_id,
+                "kind": alarm.kind,
+                "severity": alarm.severity,
+                "state": alarm.state,
+                "raised_after_s": round(elapsed_s, 1),
+                "message": alarm.message,
+            }
+        )
+        note(f"{elapsed_s:5.1f}s  alarm {alarm.alarm_id} {alarm.state} ({alarm.severity}): {alarm.message}")
+
+
+def _render_twin(service: Any, joints: dict[str, float], out_dir: Path, text: str) -> Path:
+    from twin.output.render import RenderError, render_png  # noqa: PLC0415
+
+    try:
+        return render_png(service.robot, joints, out_dir / "twin.png", text=text)
+    except RenderError as exc:
+        raise DemoError(f"rendering failed: {exc}") from exc
 
 
 def _status(state: AgentState, sent: int, elapsed: float) -> DemoStatus:
@@ -388,6 +613,11 @@ def _stats(
         },
         "per_device": per_device,
         "broker": broker,
+        "servos": config.servos,
+        # The hot servo's alarms as they were raised (null without the story: --servos mock).
+        "story": None if run.story is None else run.story.as_dict(),
+        # The console pictures: taken, or why not (skipped).
+        "console": run.console,
         "files": {},
     }
 
@@ -431,6 +661,9 @@ def _write_outputs(
         if not rrd.is_file() or rrd.stat().st_size == 0:
             raise DemoError(f"the Rerun sink did not leave {rrd} (see the log above)")
         files["rrd"] = rrd.name
+    if run.console.get("taken"):
+        files["console_fleet"] = "console-fleet.png"
+        files["console_arm"] = "console-arm.png"
     stats["files"] = files
     (out_dir / "stats.json").write_text(json.dumps(stats, indent=2, sort_keys=False) + "\n")
 

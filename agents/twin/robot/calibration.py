@@ -23,6 +23,8 @@ from twin.robot import so101
 _FIELDS = ("id", "drive_mode", "homing_offset", "range_min", "range_max")
 # Homing_Offset is sign-magnitude with the sign in bit 11, so its magnitude is at most 2047.
 _HOMING_LIMIT = 2047
+# A file of six motors is about 1 KB; anything far larger is not a calibration (and is not read whole).
+MAX_FILE_BYTES = 64 * 1024
 
 
 @dataclass(frozen=True, slots=True)
@@ -139,16 +141,31 @@ def load_calibration(path: str | Path) -> Calibration:
     """Read a LeRobot calibration JSON file; ValueError names the problem and the fix."""
     p = Path(path).expanduser()
     try:
-        text = p.read_text(encoding="utf-8")
+        data = p.read_bytes()
     except FileNotFoundError:
         raise ValueError(
             f"calibration file {p} does not exist; LeRobot keeps follower calibrations under "
             "~/.cache/huggingface/lerobot/calibration/robots/so_follower/<id>.json"
         ) from None
-    except (OSError, UnicodeDecodeError) as exc:
+    except OSError as exc:
         raise ValueError(f"calibration file {p} cannot be read: {exc}") from None
+    return parse_calibration(data, f"calibration file {p}")
+
+
+def parse_calibration(data: bytes | str, source: str) -> Calibration:
+    """A LeRobot calibration from the bytes of its file (from disk, S3 or an upload); `source` names where it
+    came from in every error. ValueError names the problem and the fix."""
+    if len(data) > MAX_FILE_BYTES:
+        raise ValueError(
+            f"{source} is {len(data)} bytes; a LeRobot calibration of six motors is about 1 KB (at most "
+            f"{MAX_FILE_BYTES}): is it the right file?"
+        )
     try:
-        data = json.loads(text)
+        text = data if isinstance(data, str) else data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{source} is not UTF-8 text: {exc}") from None
+    try:
+        parsed = json.loads(text)
     except ValueError as exc:
-        raise ValueError(f"calibration file {p} is not valid JSON: {exc}") from None
-    return Calibration.from_dict(data, str(p))
+        raise ValueError(f"{source} is not valid JSON: {exc}") from None
+    return Calibration.from_dict(parsed, source)

@@ -200,6 +200,36 @@ class RobotModel:
             local.pair = pair
         return pair
 
+    def inverse_dynamics(
+        self,
+        pose: Sequence[float],
+        velocity: Sequence[float] | None = None,
+        acceleration: Sequence[float] | None = None,
+        *,
+        passive: bool = True,
+    ) -> dict[str, float]:
+        """The torque (N·m, by joint name) each joint needs to move with `acceleration` at `pose` and
+        `velocity` (rad, rad/s, rad/s², `joint_names` order; None = zero), by inverse dynamics on
+        `inverse_model` in this thread's workspace: gravity, inertia (with the rotors' armature), Coriolis and
+        centrifugal terms, and, with `passive`, the joints' springs and damping.
+
+        With neither velocity nor acceleration this is the holding torque the twin's model check compares
+        with the servos' load (twin.core.twin); the edge simulator's physical servos add the motion."""
+        scratch = self.workspace()[1]
+        tables = self.joint_tables
+        qpos, qvel, qacc = scratch.qpos, scratch.qvel, scratch.qacc
+        for i, (qadr, dof) in enumerate(zip(tables.qpos, tables.dof, strict=True)):
+            qpos[qadr] = pose[i]
+            # Written every call: the scratch is shared, and mj_inverse reads whatever the last caller left.
+            qvel[dof] = 0.0 if velocity is None else velocity[i]
+            qacc[dof] = 0.0 if acceleration is None else acceleration[i]
+        mujoco.mj_inverse(self.inverse_model, scratch)
+        forces = scratch.qfrc_inverse
+        if not passive:
+            # mj_inverse subtracts the passive forces (qfrc_inverse = M qacc + bias - passive); add them back.
+            forces = forces + scratch.qfrc_passive
+        return {name: float(forces[dof]) for name, dof in zip(self.joint_names, tables.dof, strict=True)}
+
     def _kinematics(self, angles_rad: Mapping[str, float]) -> mujoco.MjData:
         # This thread's workspace posed at `angles_rad` (other joints at the reference pose), kinematics done.
         data = self.workspace()[0]

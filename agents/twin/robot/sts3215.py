@@ -7,7 +7,12 @@ Every figure names its source (docs/servo-health.md repeats them in a table):
 - L-FT: huggingface/lerobot `src/lerobot/motors/feetech/tables.py` and `feetech.py` (the same registers as
   LeRobot reads them) and `robots/so_follower` (what LeRobot writes at connect);
 - SOARM: TheRobotStudio/SO-ARM100 `README.md`, footnote 1 (the follower's two servo versions and their stall
-  torques).
+  torques);
+- SOARM-132: TheRobotStudio/SO-ARM100 issue #132 (the 12 V version's no-load and stall currents; the same
+  figures are the inputs of the actuator model in Gregory119/RBE501-RL-arm-project
+  `gymnasium_env/calc_actuator_model.py`);
+- SOARM-134: TheRobotStudio/SO-ARM100 issue #134 (a bench test of the 12 V version: its temperature rise
+  under a steady load).
 
 The alarm thresholds in `twin.core.alarms` are derived from these; nothing else in the project should spell
 one of these numbers.
@@ -59,6 +64,20 @@ LOAD_REFERENCE = "stall torque"
 GRIPPER_PROTECTION_CURRENT_A = 250 * CURRENT_MA_PER_UNIT / 1000.0
 GRIPPER_OVERLOAD_TORQUE_PERCENT = 25.0
 
+# --- current and heating (the edge simulator's physical servos, twin.edge.servo_physics) --------------------
+
+# SOARM-132: the 12 V version draws 0.18 A running free and 2.7 A stalled, at 12 V. Our sources give no
+# current for the 7.4 V version; the simulator takes the same two figures at its quoted voltage.
+NO_LOAD_CURRENT_A = 0.18
+STALL_CURRENT_A = 2.7
+# A first-order thermal model, T' = (T_ambient + HEATING_C_PER_A2 * I^2 - T) / THERMAL_TIME_CONSTANT_S, fitted
+# to SOARM-134: holding 15 kg·cm (half the 12 V version's 30 kg·cm stall torque, so 0.18 + 0.5 * 2.52 =
+# 1.44 A) the servo settled at 48 C after an hour, +23 C over a room taken as 25 C (the test does not say):
+# 23 / 1.44^2 = 11.1 C per A^2. Lifting the same torque it was +15 C after 10 minutes: 1 - exp(-10 / tau) =
+# 15 / 23 gives tau = 9.5 minutes. Copper losses (I^2 R) dominate a loaded DC motor, hence I^2.
+HEATING_C_PER_A2 = 11.1
+THERMAL_TIME_CONSTANT_S = 570.0
+
 
 @dataclass(frozen=True, slots=True)
 class ServoVersion:
@@ -83,6 +102,20 @@ class ServoVersion:
     def load_percent(self, torque_nm: float, supply_v: float | None = None) -> float:
         """The load (percent of stall torque) a servo reports while holding `torque_nm` still."""
         return 100.0 * torque_nm / self.stall_torque_at(supply_v)
+
+    def stall_current_at(self, supply_v: float | None = None) -> float:
+        """Stall current (A) at `supply_v`: V/R, proportional to the supply like the stall torque
+        (STALL_CURRENT_A at the quoted voltage; the same rule for a reading that is no supply voltage)."""
+        if supply_v is None or not 1.0 <= supply_v <= 20.0:
+            return STALL_CURRENT_A
+        return STALL_CURRENT_A * supply_v / self.quoted_at_v
+
+    def current_a(self, load_percent: float, supply_v: float | None = None) -> float:
+        """The current (A) a servo draws at `load_percent` of its stall torque: a DC motor's current follows
+        its torque, from the no-load current to the stall current."""
+        share = min(abs(load_percent), 100.0) / 100.0
+        stall = self.stall_current_at(supply_v)
+        return NO_LOAD_CURRENT_A + share * max(stall - NO_LOAD_CURRENT_A, 0.0)
 
 
 SERVO_VERSIONS: dict[str, ServoVersion] = {

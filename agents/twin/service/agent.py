@@ -39,9 +39,11 @@ from typing import TYPE_CHECKING, TypeVar
 from twin.core.alarms import AlarmRecord, worst_first
 from twin.core.health import DeviceStatus
 from twin.core.topics import device_from_topic
+from twin.output.alerts import Alert, AlertPublisher, sns_publisher
 from twin.output.emf import EmfFileWriter, EmfPublisher, FleetTotals
 from twin.output.sinks import TwinSink
 from twin.service.admission import DeviceBudget
+from twin.service.calibrations import CalibrationBook, CalibrationWatcher, open_store
 from twin.service.config import AgentConfig, ConfigError
 from twin.service.console import FleetRow, SessionCatalog, rerun_viewer_url
 from twin.service.events import Event, EventKind, EventLevel, EventQuery, EventStore, FleetWatch
@@ -51,6 +53,7 @@ from twin.service.shards import (
     CHECKPOINT_EVERY_S,
     AckRequest,
     AlarmsRequest,
+    CalibrationsRequest,
     CheckpointRequest,
     EventsRequest,
     FleetRowsRequest,
@@ -67,6 +70,7 @@ from twin.service.shards import (
     WorkerShard,
     alarm_of,
     alarms_of,
+    applied_of,
     checkpoint_of,
     events_of,
     fleet_rows_of,
@@ -103,6 +107,9 @@ _T = TypeVar("_T")
 STATE_REUSE_S = 0.05
 # How often the agent looks for a worker process to start again.
 SUPERVISE_EVERY_S = 0.5
+# At a stop, the alert publisher has at least this long for what is pending, even when the workers' flush took
+# the whole shutdown budget (the unit's stop timeout leaves room for it: docs/deploy.md).
+ALERTS_STOP_MIN_S = 5.0
 
 
 class AgentService:
@@ -170,6 +177,20 @@ class AgentService:
         # Set to make the supervisor take checkpoints now (an acknowledgement must reach the state file).
         self._wake = threading.Event()
         self.stop_reports: dict[int, StopReport | None] = {}
+        # Servo alarm transitions to the alarm topic (docs/servo-health.md, "Alarm e-mails"): the events
+        # every mirror's alarms make, once collected here, go to the publisher.
+        self._alerts = alert_publisher(config) if config.alerts.enabled else None
+        if self._alerts is not None:
+            self._events.subscribe(self._offer_alert)
+        # Each arm's own calibration (docs/agent.md, "Calibration"): watched here, once for every shard, and
+        # handed to each; the last hand-over is kept for a worker that is started again.
+        self._calibrations: CalibrationWatcher | None = None
+        self._calibration_request = CalibrationsRequest()
+        if t.calibrations:
+            store = open_store(t.calibrations, region=config.broker.region or config.history.region)
+            self._calibrations = CalibrationWatcher(
+                store, interval_s=t.calibration_poll_s, on_change=self._hand_calibrations
+            )
 
     def _build_shards(self, config: AgentConfig, sinks: Sequence[TwinSink]) -> list[Shard]:
         count = self.plan.count
@@ -202,6 +223,9 @@ class AgentService:
             for shard in self._shards:
                 shard.await_ready()
             self._restore_state_file()
+            if self._calibrations is not None:
+                # Before the subscription, so the first messages already decode with each arm's own.
+                self._calibrations.poll()
             self._http = AgentHttpServer(
                 self,
                 self.config.http.host,
@@ -217,6 +241,10 @@ class AgentService:
         self._running = True
         self._supervisor = threading.Thread(target=self._supervise, name="twin-supervisor", daemon=True)
         self._supervisor.start()
+        if self._calibrations is not None:
+            self._calibrations.start()
+        if self._alerts is not None:
+            self._alerts.start()
         self._http.start()
         self._pool.start()
         self._started_pool = True
@@ -258,11 +286,17 @@ class AgentService:
                 self._pool.stop(min(budget / 4.0, 5.0))
             except Exception:
                 log.exception("stopping the connection pool failed")
+        if self._calibrations is not None:
+            self._calibrations.stop(min(5.0, max(0.1, deadline - time.monotonic())))
         if self._supervisor is not None:
             # It may be starting a worker again (up to START_TIMEOUT_S): the budget does not wait for that.
             self._supervisor.join(min(5.0, max(0.1, deadline - time.monotonic())))
         self._stop_shards(deadline)
         self._keep_state(final=True)
+        if self._alerts is not None:
+            # After the last events were collected: what is pending still goes out, with at least a few
+            # seconds of its own when the workers took the whole budget (systemd's stop timeout leaves them).
+            self._alerts.stop(min(15.0, max(ALERTS_STOP_MIN_S, deadline - time.monotonic())))
         if self._emf is not None:
             self._emf.stop(5.0)
         if self._http is not None:
@@ -596,17 +630,118 @@ class AgentService:
             self._events.emit(
                 EventKind.WORKER,
                 EventLevel.ERROR,
-                f"worker {shard.index} exited; it is started again and its arms start over",
+                f"worker {shard.index} exited; it is started again from its last checkpoint, its arms kept",
                 data={"worker": shard.index, "pid": info.pid},
             )
         if info.restarts > restarts and answering:
             self._events_seen[shard.index] = 0  # a new process numbers its events from 1
+            # It had them before its first message (WorkerShard.supervise); again, in case they changed
+            # while it was being started.
+            self._hand_calibrations_to(shard, self._calibration_request)
             self._events.emit(
                 EventKind.WORKER,
                 EventLevel.INFO,
                 f"worker {shard.index} running again (restart {info.restarts})",
                 data={"worker": shard.index, "pid": info.pid, "restarts": info.restarts},
             )
+
+    # ------------------------------------------------------------------------------------------ alerts
+
+    def _offer_alert(self, event: Event) -> None:
+        """An event of the agent's store (on the thread that added it): an alarm transition of a severity the
+        config sends goes to the alert publisher's queue."""
+        if event.kind != EventKind.ALARM or self._alerts is None:
+            return
+        alert = alert_of(event)
+        if alert.severity == "critical" or self.config.alerts.warnings:
+            self._alerts.offer(alert)
+
+    # ------------------------------------------------------------------------------------- calibrations
+
+    def _hand_calibrations(self, book: CalibrationBook) -> None:
+        """A new set of the arms' own calibrations (CalibrationWatcher, on its thread or start's): to every
+        mirror, and into the events."""
+        request = CalibrationsRequest(
+            files=tuple(
+                (device, entry.source, entry.calibration.to_dict()) for device, entry in book.entries.items()
+            ),
+            problems=tuple(book.problems.items()),
+        )
+        self._calibration_request = request
+        for shard in self._shards:
+            shard.keep_calibrations(request)
+            self._hand_calibrations_to(shard, request)
+        self._cached = None
+        for change in book.changes:
+            if change.action == "refused":
+                level, message = (
+                    EventLevel.WARNING,
+                    f"calibration of {change.device} refused: {change.detail}",
+                )
+            elif change.action == "removed":
+                level, message = EventLevel.INFO, f"calibration of {change.device} removed from the store"
+            else:
+                level, message = (
+                    EventLevel.INFO,
+                    f"calibration of {change.device} picked up from {change.detail}",
+                )
+            self._events.emit(
+                EventKind.CALIBRATION, level, message, device=change.device, data={"action": change.action}
+            )
+
+    def _hand_calibrations_to(self, shard: Shard, request: CalibrationsRequest) -> None:
+        if not shard.answering:
+            return  # a worker being started again gets them once it answers (_watch_worker)
+        try:
+            applied_of(shard.request(request)())
+        except WorkerError as exc:
+            log.warning("calibrations not handed to shard %d: %s", shard.index, exc)
+
+
+def alert_publisher(config: AgentConfig) -> AlertPublisher:
+    """The publisher of servo alarm transitions to the config's SNS topic."""
+    a = config.alerts
+    url = f"http://{config.http.host}:{config.http.port}"
+    how = (
+        f"On the twin's desktop (DCV: `twin instance url`) open the console, {url}/arm/<arm>, and press "
+        f"Acknowledge; or in a shell on the host (`twin instance` prints SsmSessionCommand): curl -X POST "
+        f"{url}/alarms/<alarm id>/ack. Until acknowledged, an alarm whose condition went away stays LATCHED "
+        "(docs/servo-health.md)."
+    )
+    return AlertPublisher(
+        sns_publisher(a.topic_arn.strip(), a.region or config.broker.region),
+        agent_name=config.cloudwatch.agent_name,
+        how_to_acknowledge=how,
+        flush_s=a.flush_s,
+        max_per_hour=a.max_per_hour,
+        burst=a.burst,
+    )
+
+
+def alert_of(event: Event) -> Alert:
+    """An alarm event of the store (service.events, FleetWatch.alarm) as the notification names it."""
+    d = event.data
+    return Alert(
+        alarm_id=d.get("alarm_id", ""),
+        device=event.device,
+        joint=d.get("joint", ""),
+        kind=d.get("kind", ""),
+        severity=d.get("severity", ""),
+        action=d.get("action", ""),
+        state=d.get("state", ""),
+        value=_number(d.get("value", "")),
+        threshold=_number(d.get("threshold", "")),
+        unit=d.get("unit", ""),
+        message=d.get("text", "") or event.message,
+        at=event.time,
+    )
+
+
+def _number(text: str) -> float | None:
+    try:
+        return float(text) if text else None
+    except ValueError:
+        return None
 
 
 def alarm_order(info: AlarmInfo) -> tuple[int, int, str]:

@@ -12,8 +12,9 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import re
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
@@ -39,6 +40,9 @@ DEFAULT_AGENT_URL = f"http://{DEFAULT_HTTP_HOST}:{DEFAULT_HTTP_PORT}"
 MAX_WORKERS = 64
 # The largest payload cap a config may set (the default is IoT Core's 128 KiB).
 MAX_PAYLOAD_LIMIT_BYTES = 1 << 20
+# twin.output.alerts.MAX_FLUSH_S, as a plain number so loading a config imports no output module.
+MAX_ALERT_FLUSH_S = 9.5
+_SNS_ARN_RE = re.compile(r"^arn:aws[a-z-]*:sns:[a-z0-9-]+:\d{12}:[A-Za-z0-9_-]{1,256}(\.fifo)?$")
 
 
 class ConfigError(ValueError):
@@ -55,7 +59,13 @@ class TelemetrySection:
     # The whole fleet under the prefix by default: a new user pointing the agent at a broker sees every arm.
     devices: tuple[str, ...] = (ALL_DEVICES,)
     units: Units = Units.AUTO
+    # One LeRobot calibration file for every arm without its own (empty: the nominal SO-101).
     calibration: str = ""
+    # Where each arm's own calibration is kept, as <device>.json: a directory or s3://bucket/prefix (the
+    # stack renders its bucket's calibration/ prefix); empty: none. Watched every calibration_poll_s
+    # (twin.service.calibrations).
+    calibrations: str = ""
+    calibration_poll_s: float = 30.0
     max_payload_bytes: int = MAX_PAYLOAD_BYTES
     # One host mirrors about this many arms, and the account's default IoT Core publish quota carries as many
     # at 10 Hz; a device counts once it has sent valid telemetry (service.admission).
@@ -171,6 +181,25 @@ class CloudWatchSection:
     interval_s: float = 60.0
 
 
+@dataclass(frozen=True)
+class AlertsSection:
+    """Servo alarm transitions sent to an SNS topic, batched and rate-limited (twin.output.alerts;
+    docs/servo-health.md, "Alarm e-mails"); off while topic_arn is empty. The twin host's config names the
+    stack's alarm topic."""
+
+    topic_arn: str = ""
+    region: str = ""
+    # Critical alarms are always sent; warnings too when this is true (the stack's alarmWarnings).
+    warnings: bool = False
+    flush_s: float = 5.0
+    max_per_hour: int = 30
+    burst: int = 10
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.topic_arn.strip())
+
+
 # The [ros2] section is the ROS 2 bridge's settings themselves (docs/ros2.md); they validate themselves.
 Ros2Section = Ros2Settings
 
@@ -189,6 +218,7 @@ class AgentConfig:
     log: LogSection = field(default_factory=LogSection)
     alarms: AlarmsSection = field(default_factory=AlarmsSection)
     cloudwatch: CloudWatchSection = field(default_factory=CloudWatchSection)
+    alerts: AlertsSection = field(default_factory=AlertsSection)
     ros2: Ros2Section = field(default_factory=Ros2Section)
     rerun: RerunSection = field(default_factory=RerunSection)
 
@@ -211,6 +241,7 @@ _SECTIONS: dict[str, type] = {
     "log": LogSection,
     "alarms": AlarmsSection,
     "cloudwatch": CloudWatchSection,
+    "alerts": AlertsSection,
     "ros2": Ros2Section,
     "rerun": RerunSection,
 }
@@ -324,6 +355,7 @@ def validate(config: AgentConfig) -> AgentConfig:
     if config.cloudwatch.emf_file and not config.cloudwatch.agent_name:
         raise ConfigError("cloudwatch.agent_name is empty; name the agent (the stack renders its stack name)")
     _validate_history(config.history)
+    _validate_alerts(config.alerts)
     if config.log.level.upper() not in LOG_LEVELS:
         raise ConfigError(f"log.level = {config.log.level!r} is not one of {', '.join(LOG_LEVELS)}")
     _validate_ros2(config.ros2, config.telemetry)
@@ -379,6 +411,25 @@ def _validate_telemetry(t: TelemetrySection) -> None:
         raise ConfigError(
             f"telemetry.calibration = {t.calibration!r} does not exist; give the LeRobot calibration JSON "
             "(~/.cache/huggingface/lerobot/calibration/robots/so_follower/<id>.json) or leave it empty"
+        )
+    store = t.calibrations.strip()
+    if "://" in store and not store.startswith(("s3://", "file://")):
+        raise ConfigError(
+            f"telemetry.calibrations = {t.calibrations!r} is not a directory or s3://bucket/prefix; e.g. "
+            'calibrations = "s3://<bucket>/calibration" (or "" for none)'
+        )
+    if store.startswith("s3://") and not store.removeprefix("s3://").split("/", 1)[0]:
+        raise ConfigError(
+            f'telemetry.calibrations = {t.calibrations!r} names no bucket; use "s3://<bucket>/calibration"'
+        )
+    if "://" not in store and store and Path(store).expanduser().is_file():
+        raise ConfigError(
+            f"telemetry.calibrations = {t.calibrations!r} is a file; give the directory that holds "
+            "<device>.json files (one file for every arm is telemetry.calibration)"
+        )
+    if not 1.0 <= t.calibration_poll_s <= 3600.0:
+        raise ConfigError(
+            f"telemetry.calibration_poll_s = {t.calibration_poll_s:g} is outside 1..3600 seconds; e.g. 30"
         )
     if not 1024 <= t.max_payload_bytes <= MAX_PAYLOAD_LIMIT_BYTES:
         raise ConfigError(
@@ -454,6 +505,22 @@ def _validate_health(h: HealthThresholds) -> None:
         )
 
 
+def _validate_alerts(a: AlertsSection) -> None:
+    if a.enabled and not _SNS_ARN_RE.match(a.topic_arn.strip()):
+        raise ConfigError(
+            f"alerts.topic_arn = {a.topic_arn!r} is not an SNS topic ARN; e.g. "
+            '"arn:aws:sns:us-east-1:123456789012:alarms" (the stack\'s AlarmTopic output), or "" for none'
+        )
+    if not 0 < a.flush_s <= MAX_ALERT_FLUSH_S:
+        raise ConfigError(
+            f"alerts.flush_s = {a.flush_s:g} must be in (0, {MAX_ALERT_FLUSH_S:g}]: a transition is sent on "
+            "the flush after it, within 10 s"
+        )
+    for key in ("max_per_hour", "burst"):
+        if getattr(a, key) < 1:
+            raise ConfigError(f"alerts.{key} = {getattr(a, key)} must be at least 1")
+
+
 def _validate_history(hs: HistorySection) -> None:
     if not hs.enabled:
         return
@@ -513,15 +580,26 @@ def read_toml(path: str | Path) -> dict[str, Any]:
         raise ConfigError(f"config file {str(path)!r} cannot be read: {exc}") from exc
 
 
-def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> AgentConfig:
-    """Load the TOML file (or the defaults when path is None) and apply flag overrides.
+def load_config(
+    path: str | Path | Sequence[str | Path] | None = None, overrides: Mapping[str, Any] | None = None
+) -> AgentConfig:
+    """Load the TOML file (or files, or the defaults when path is None) and apply flag overrides.
 
-    `overrides` maps dotted keys to values, e.g. {"broker.url": "mqtt://127.0.0.1:1883"}; None values are
-    skipped so an argparse namespace can be passed through without filtering. Overrides win over the file.
+    Several files are read in order, each key of a later file winning over the same key of an earlier one:
+    the twin host runs with its generated config and then the operator's own file (docs/deploy.md, "What the
+    instance runs"). `overrides` maps dotted keys to values, e.g. {"broker.url": "mqtt://127.0.0.1:1883"};
+    None values are skipped so an argparse namespace can be passed through without filtering. Overrides win
+    over the files.
     """
-    data: dict[str, dict[str, Any]] = {}
-    if path is not None:
-        data = {k: dict(v) if isinstance(v, Mapping) else v for k, v in read_toml(path).items()}
+    paths: list[str | Path] = [] if path is None else [path] if isinstance(path, str | Path) else list(path)
+    data: dict[str, Any] = {}
+    for one in paths:
+        for name, values in read_toml(one).items():
+            target = data.get(name)
+            if isinstance(values, Mapping) and isinstance(target, dict):
+                target.update(values)
+            else:
+                data[name] = dict(values) if isinstance(values, Mapping) else values
     for dotted, value in (overrides or {}).items():
         if value is None:
             continue
@@ -535,5 +613,5 @@ def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | N
     try:
         return config_from_mapping(data)
     except ConfigError as exc:
-        where = f" (in {path})" if path is not None else ""
+        where = f" (in {', '.join(str(p) for p in paths)})" if paths else ""
         raise ConfigError(f"{exc}{where}") from exc

@@ -57,6 +57,7 @@ FLEET_COLUMNS = (
     "hot_joint",  # the hottest servo and its temperature (null: no temperature sent)
     "hot_c",
     "rejected",  # messages rejected so far
+    "uncalibrated",  # true: no LeRobot calibration while its units need one (docs/agent.md, "Calibration")
 )
 # What a session offers to download, with the media type of each.
 SESSION_FILE_KINDS: dict[str, tuple[str, str]] = {
@@ -136,6 +137,7 @@ class FleetRow(NamedTuple):
     hot_joint: str | None
     hot_c: float | None
     rejected: int
+    uncalibrated: bool = False
 
 
 @runtime_checkable
@@ -155,6 +157,7 @@ def fleet_row(
     temperatures: Mapping[str, float | None],
     rejected: int,
     alarm: tuple[str, str, str, str] | None,
+    uncalibrated: bool = False,
 ) -> FleetRow:
     """A row from its parts; `alarm` is the worst one that is not NORMAL: (severity, state, kind, joint)."""
     hot_joint, hot_c = None, None
@@ -175,6 +178,7 @@ def fleet_row(
         hot_joint,
         _round(hot_c, 1),
         rejected,
+        uncalibrated,
     )
 
 
@@ -195,6 +199,7 @@ def fleet_rows(state: AgentState, alarms: Sequence[AlarmInfo]) -> list[FleetRow]
                 temperatures={joint: servo.temperature_c for joint, servo in (d.servos or {}).items()},
                 rejected=sum(d.health.counters.rejected.values()),
                 alarm=(a.severity, a.state, a.kind, a.joint) if a else None,
+                uncalibrated=d.uncalibrated,
             )
         )
     return rows

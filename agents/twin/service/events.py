@@ -35,6 +35,7 @@ from typing import Protocol
 
 import msgspec
 
+from twin.core.alarms import UNITS as ALARM_UNITS
 from twin.core.alarms import AlarmEvent
 
 __all__ = [
@@ -88,6 +89,7 @@ class EventKind(StrEnum):
     BROKER = "broker"  # a broker connection went down or came (back) up
     WORKER = "worker"  # a worker process of a sharded agent exited or runs again
     TWIN = "twin"  # a device's twin was rebuilt (its edge clock jumped back)
+    CALIBRATION = "calibration"  # an arm's calibration was picked up, refused or removed
 
 
 class Event(msgspec.Struct, frozen=True, gc=False):
@@ -387,6 +389,9 @@ class FleetWatch:
                 "joint": event.joint,
                 "kind": str(event.kind),
                 "value": event.value,
+                "threshold": event.threshold,
+                "unit": ALARM_UNITS.get(event.kind, ""),
+                "text": event.message,
             },
         )
 

@@ -78,7 +78,7 @@ from twin.output.sinks import AppliedSample, RejectedSample, TwinSink, rejected_
 
 # This module is the heavy end of the agent (MuJoCo, USD): the agent imports it only for an in-process
 # mirror, and worker processes import it; the agent with worker processes never does.
-from twin.robot.calibration import load_calibration
+from twin.robot.calibration import Calibration, load_calibration
 from twin.robot.model import ModelError, RobotModel
 from twin.service.admission import TOO_MANY_DEVICES, DeviceBudget
 from twin.service.config import AgentConfig, ConfigError
@@ -89,6 +89,7 @@ from twin.service.shards import (
     EVENTS_PER_ASK,
     AckRequest,
     AlarmsRequest,
+    CalibrationsRequest,
     CheckpointRequest,
     DeviceCheckpoint,
     EventsRequest,
@@ -101,6 +102,7 @@ from twin.service.shards import (
     Restored,
     RestoreRequest,
     StopReport,
+    uncalibrated,
 )
 from twin.service.state import (
     AlarmInfo,
@@ -318,6 +320,10 @@ class Mirror:
         self._clock = clock
         self._wall_clock = wall_clock
         self._decoder = TelemetryDecoder(self._decoder_config(config))
+        # Each arm's own calibration (the agent hands them over: set_calibrations): where it came from, and
+        # why a newer file of it was refused; the config's file is every other arm's.
+        self._calibration_sources: dict[str, str] = {}
+        self._calibration_problems: dict[str, str] = {}
         self.mode = TwinMode(config.twin.mode)
         self.robot = self._load_robot(config, self.mode)
         self._history_settings = self._history_config(config)
@@ -1006,7 +1012,19 @@ class Mirror:
             return self.checkpoint(alarms_only=request.alarms_only)
         if isinstance(request, RestoreRequest):
             return self.restore(request.checkpoint, request.alarms)
+        if isinstance(request, CalibrationsRequest):
+            return self.set_calibrations(request)
         raise TypeError(f"not a request to a mirror: {request!r}")
+
+    def set_calibrations(self, request: CalibrationsRequest) -> int:
+        """Each arm's own calibration from now on (from any thread: the decoder swaps its table in whole);
+        returns how many arms have one. The files were validated by the agent that read them."""
+        calibrations = {device: Calibration.from_dict(data, source) for device, source, data in request.files}
+        self._decoder.set_calibrations(calibrations)
+        with self._lock:
+            self._calibration_sources = {device: source for device, source, _ in request.files}
+            self._calibration_problems = dict(request.problems)
+        return len(calibrations)
 
     def events(self, query: EventQuery) -> list[Event]:
         """This mirror's events that match `query` (the agent collects them: AgentService.events)."""
@@ -1045,6 +1063,9 @@ class Mirror:
                         temperatures={j: d.temperature_c for j, d in diagnostics.items()},
                         rejected=h.rejected_total,
                         alarm=worst.get(device),
+                        uncalibrated=self._uncalibrated(
+                            device, self._units.get(device, self.config.telemetry.units)
+                        ),
                     )
                 )
         return sorted(rows, key=lambda row: row.device)
@@ -1157,10 +1178,11 @@ class Mirror:
 
     def _device_state(self, device: str, health: HealthSnapshot, readout: _Readout) -> DeviceState:
         snap = readout.snapshots.get(device)
+        units = readout.units.get(device, self.config.telemetry.units)
         return DeviceState(
             device_id=device,
             health=health,
-            units=readout.units.get(device, self.config.telemetry.units),
+            units=units,
             mode=self.mode,
             timestamp_ms=snap.timestamp_ms if snap else None,
             joints_rad=snap.joint_angles if snap else None,
@@ -1170,7 +1192,17 @@ class Mirror:
             gripper_percent=readout.gripper.get(device),
             servos=self._servo_states(readout.servos[device]) if device in readout.servos else None,
             loss=readout.loss.get(device, LossSnapshot()),
+            calibration=self._calibration_source(device),
+            uncalibrated=self._uncalibrated(device, units),
+            calibration_problem=self._calibration_problems.get(device, ""),
         )
+
+    def _calibration_source(self, device: str) -> str:
+        # Replaced whole by set_calibrations, so reading it needs no lock.
+        return self._calibration_sources.get(device) or self.config.telemetry.calibration
+
+    def _uncalibrated(self, device: str, units: Units) -> bool:
+        return uncalibrated(self._calibration_source(device), units)
 
     def _history_state(self) -> HistoryState | None:
         if self._history is None:
@@ -1259,6 +1291,9 @@ class LocalShard:
 
     def restarting_devices(self, thresholds: HealthThresholds, now: float) -> dict[str, DeviceState]:
         return {}  # never restarts: a dead worker thread is `failed`
+
+    def keep_calibrations(self, request: CalibrationsRequest) -> None:
+        return  # handed to the mirror itself, which never starts again
 
     @property
     def failed(self) -> bool:

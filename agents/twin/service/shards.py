@@ -20,9 +20,11 @@ The agent asks the shards for their figures with typed requests (`ReportRequest`
 `AckRequest`); a worker answers over its control pipe, a local shard at once, and `merge_reports` makes one
 state of the answers, whatever the number of shards.
 
-A worker that dies (a crash in a native library, say) is started again; its devices lose their twins' state
-and start over from their next message (their places in the device budget are given back), and the messages
-that arrived while it was down are counted as dropped (`overwritten`) against their devices. Workers ignore
+A worker that dies (a crash in a native library, say) is started again from its last checkpoint (the agent
+takes one every CHECKPOINT_EVERY_S: counters, loss estimates, alarms, poses), is sent again every message the
+checkpoint does not count, then what arrived while it was down (`WorkerShard`); its arms show as `restarting`
+meanwhile and never leave `/state`. Messages are counted as dropped (`overwritten`) against their devices only
+when the queue or the messages kept for a restart overflowed. Workers ignore
 SIGINT and SIGTERM: the agent stops them in order (the rest of the queue, then an end marker), so each one
 flushes its sinks (USD recording, history) before it exits. A worker whose parent vanished sees its pipe close
 and exits too.
@@ -238,6 +240,16 @@ class FleetRowsRequest:
     """The console's row of each of the mirror's devices (twin.service.console.FleetRow)."""
 
 
+@dataclass(frozen=True, slots=True)
+class CalibrationsRequest:
+    """Each arm's own calibration from now on (service.calibrations), replacing the previous set: per device
+    its source and its LeRobot file as parsed JSON (a Calibration holds a mapping proxy, which does not
+    pickle), and why a newer file was refused. Answered with how many arms have one."""
+
+    files: tuple[tuple[str, str, dict[str, dict[str, int]]], ...] = ()
+    problems: tuple[tuple[str, str], ...] = ()
+
+
 # Events a mirror hands over per request (the agent asks every supervisor round).
 EVENTS_PER_ASK = 5000
 # ----------------------------------------------------------------------------------- checkpoints (restarts)
@@ -315,6 +327,7 @@ Request = (
     | AckRequest
     | EventsRequest
     | FleetRowsRequest
+    | CalibrationsRequest
     | CheckpointRequest
     | RestoreRequest
 )
@@ -324,6 +337,7 @@ Reply = (
     | AlarmInfo
     | tuple[Event, ...]
     | tuple[FleetRow, ...]
+    | int
     | MirrorCheckpoint
     | Restored
 )
@@ -368,6 +382,13 @@ def restored_of(reply: Reply) -> Restored:
     """The answer to a RestoreRequest; WorkerError for anything else."""
     if not isinstance(reply, Restored):
         raise WorkerError(f"a restore was asked for, the answer was {type(reply).__name__}")
+    return reply
+
+
+def applied_of(reply: Reply) -> int:
+    """The answer to a CalibrationsRequest; WorkerError for anything else."""
+    if not isinstance(reply, int) or isinstance(reply, bool):
+        raise WorkerError(f"calibrations were handed over, the answer was {type(reply).__name__}")
     return reply
 
 
@@ -516,6 +537,11 @@ class Shard(Protocol):
         """While restarting: the mirror's devices as its latest checkpoint left them."""
         ...
 
+    def keep_calibrations(self, request: CalibrationsRequest) -> None:
+        """The arms' own calibrations the agent last handed over: a worker started again gets them before
+        its first message."""
+        ...
+
 
 _CALL_IDS = itertools.count(1)
 
@@ -565,6 +591,7 @@ class WorkerShard:
         # Messages lost for good, by device: handed to a worker that died before its checkpoint counted them
         # and no longer kept (MAX_UNCONFIRMED), or still queued when the agent stopped during a restart.
         self._lost: BoundedCounter[str] = BoundedCounter(MAX_OVERFLOW_KEYS)
+        self._calibrations: CalibrationsRequest | None = None
         self._closed = False
 
     @property
@@ -680,6 +707,7 @@ class WorkerShard:
                 self.launch()
                 self._await_hello()
                 restored = self._restore()
+                self._recalibrate()
             except (WorkerError, ConfigError) as exc:
                 log.error("worker %d could not be started again: %s", self.index, exc)
                 return
@@ -709,6 +737,23 @@ class WorkerShard:
         except (OSError, ValueError) as exc:
             raise WorkerError(f"worker {self.index} is not reachable: {exc}") from exc
         return restored_of(self._answer(call_id))
+
+    def _recalibrate(self) -> None:
+        """Hand the new process the arms' own calibrations before the messages it is sent again, so none of
+        them decodes with another calibration than the first time (control lock held)."""
+        request = self._calibrations
+        if request is None:
+            return
+        assert self.control is not None
+        call_id = next(_CALL_IDS)
+        try:
+            self.control.send(Call(call_id, request))
+        except (OSError, ValueError) as exc:
+            raise WorkerError(f"worker {self.index} is not reachable: {exc}") from exc
+        applied_of(self._answer(call_id))
+
+    def keep_calibrations(self, request: CalibrationsRequest) -> None:
+        self._calibrations = request
 
     def _replay(self) -> int:
         """Send the new process what the checkpoint does not count, then what was held; then it runs."""
@@ -921,10 +966,20 @@ class WorkerShard:
         checkpoint = self.checkpoint
         if checkpoint is None:
             return {}
-        return {
-            device: checkpoint_device(device, saved, thresholds, now, checkpoint.tracking_since)
-            for device, saved in checkpoint.devices.items()
-        }
+        calibrations = self._calibrations or CalibrationsRequest()
+        sources = {device: source for device, source, _ in calibrations.files}
+        problems = dict(calibrations.problems)
+        devices = {}
+        for device, saved in checkpoint.devices.items():
+            state = checkpoint_device(device, saved, thresholds, now, checkpoint.tracking_since)
+            source = sources.get(device) or self._config.telemetry.calibration
+            devices[device] = dataclasses.replace(
+                state,
+                calibration=source,
+                uncalibrated=uncalibrated(source, state.units),
+                calibration_problem=problems.get(device, ""),
+            )
+        return devices
 
     def describe(self, report: MirrorReport | None) -> WorkerInfo:
         return WorkerInfo(
@@ -941,6 +996,12 @@ class WorkerShard:
             recording=report.recording.path if report is not None and report.recording else "",
             restarting=self.restarting,
         )
+
+
+def uncalibrated(calibration: str, units: Units) -> bool:
+    """No calibration while the units need one: degrees are already relative to the arm's calibrated
+    middle, ticks and range100 are not."""
+    return not calibration and units in (Units.TICKS, Units.RANGE100)
 
 
 def checkpoint_device(
@@ -1202,20 +1263,31 @@ def _merge_alarms(parts: list[AlarmsSummary]) -> AlarmsSummary:
 __all__ = [
     "AckRequest",
     "AlarmsRequest",
+    "CalibrationsRequest",
+    "CheckpointRequest",
+    "DeviceCheckpoint",
     "EventsRequest",
     "FleetRowsRequest",
+    "MirrorCheckpoint",
     "MirrorReport",
     "Reply",
     "ReportRequest",
     "Request",
+    "RestoreRequest",
+    "Restored",
     "Shard",
+    "StopReport",
     "WorkerError",
     "WorkerPlan",
     "WorkerShard",
     "alarm_of",
     "alarms_of",
+    "applied_of",
+    "checkpoint_of",
     "merge_reports",
     "report_of",
+    "restored_of",
+    "uncalibrated",
     "worker_config",
     "worker_count",
 ]

@@ -159,6 +159,13 @@ class DeviceState:
     servos: dict[str, ServoState] | None = None
     # Messages estimated lost in transit, from the gaps in its edge timestamps (twin.core.loss).
     loss: LossSnapshot = field(default_factory=LossSnapshot)
+    # Where the LeRobot calibration it decodes with came from: its own file in the calibration store, the
+    # config's one for every arm, or "" for none (the nominal SO-101). `uncalibrated`: none, while its units
+    # (ticks, range100) need one, so its angles are the nominal arm's, not this arm's (docs/agent.md).
+    calibration: str = ""
+    uncalibrated: bool = False
+    # Why its file in the calibration store was refused (it keeps the calibration it had); "" when it was not.
+    calibration_problem: str = ""
     # running, or restarting while its worker process is started again (the figures are then its last
     # checkpoint's; the arm never leaves /state).
     mirror: MirrorStatus = MirrorStatus.RUNNING
@@ -295,6 +302,14 @@ class AgentState:
     agent: AgentInfo
     devices: dict[str, DeviceState]
     untracked_rejected: dict[str, int] = field(default_factory=dict)
+
+    def messages_handled(self) -> int:
+        """How many messages the agent is done counting: each ends as `received` of a device it tracks
+        (applied, ignored, coalesced or rejected) or as a rejection of an untracked one. Unlike
+        `agent.worker.processed`, which counts a message when a mirror takes it, these are counted after it
+        was decoded and its health recorded, so a reader waiting for N messages can wait on this."""
+        tracked = sum(d.health.counters.received for d in self.devices.values())
+        return tracked + sum(self.untracked_rejected.values())
 
     def to_json(self) -> bytes:
         """The JSON document (UTF-8); NaN and infinities become null."""

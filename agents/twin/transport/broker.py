@@ -9,12 +9,16 @@ from __future__ import annotations
 
 import re
 import secrets
+import socket
 from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import urlsplit
 
-# The IAM policy the stack writes scopes iot:Connect to client ids with this prefix (stacks/settings.py
-# imports it), so the agent's default and the policy cannot drift apart.
+# Every agent's client ids start with this, then a name of its own (`agent_client_id_prefix`): the stack's
+# name for the twin host (stacks/twin_stack.py renders it into the host's config and scopes the IAM policy
+# to it), the machine's host name for any other agent (a laptop), unless the config gives one. The shared
+# subscription's group is the prefix too (twin.transport.plan.shared_group), so two agents never split a
+# fleet's messages between them, and never reuse each other's client ids.
 DEFAULT_CLIENT_ID_PREFIX = "so101-twin-"
 IOT = "iot"
 SCHEME_PORTS: dict[str, int] = {"mqtt": 1883, "mqtts": 8883}
@@ -22,6 +26,7 @@ IOT_PORT = 443  # IoT Core over WebSocket (SigV4)
 # IoT Core refuses client ids over 128 bytes; the random suffix takes 12.
 CLIENT_ID_PREFIX_MAX = 100
 _CLIENT_ID_PREFIX_RE = re.compile(r"^[A-Za-z0-9_.:-]+$")
+_NOT_IN_CLIENT_ID = re.compile(r"[^A-Za-z0-9_.:-]+")
 # IoT Core allows a keep-alive of at most 1200 s.
 KEEP_ALIVE_RANGE_S = (5, 1200)
 # Beyond this many connections a fleet wants an IoT rule to Kinesis instead (docs/aws-facts.md).
@@ -39,7 +44,8 @@ class BrokerConfig:
     url: str = IOT
     region: str = ""
     endpoint: str = ""
-    client_id_prefix: str = DEFAULT_CLIENT_ID_PREFIX
+    # Empty: this machine's own, `so101-twin-<host name>-` (agent_client_id_prefix).
+    client_id_prefix: str = ""
     ca_file: str = ""
     # Reconnect backoff. awscrt doubles the delay after each failed attempt up to the maximum, and FULL
     # jitter waits a uniform random time in [0, current delay]. So once a broker is back, the next attempt
@@ -61,6 +67,8 @@ class BrokerConfig:
     def __post_init__(self) -> None:
         # Surrounding spaces (a hand-edited TOML value, a shell variable) are not part of a URL.
         object.__setattr__(self, "url", (self.url or "").strip())
+        if not self.client_id_prefix:
+            object.__setattr__(self, "client_id_prefix", agent_client_id_prefix(socket.gethostname()))
         self._check_url()
         self._check_client_id_prefix()
         if self.ca_file and self.kind != "mqtts":
@@ -152,6 +160,15 @@ class BrokerConfig:
     def where(self) -> str:
         """Where this connects, for log lines and errors."""
         return self.url if self.kind != IOT else f"IoT Core ({self.region or 'default region'})"
+
+
+def agent_client_id_prefix(name: str) -> str:
+    """`so101-twin-<name>-`, the client id prefix (and shared-subscription group) of the agent `name` stands
+    for: a stack's name, a host name. Characters a client id may not hold become '-'; long names are cut so
+    the prefix stays within CLIENT_ID_PREFIX_MAX."""
+    room = CLIENT_ID_PREFIX_MAX - len(DEFAULT_CLIENT_ID_PREFIX) - 1
+    safe = _NOT_IN_CLIENT_ID.sub("-", name).strip("-_.:")[:room].strip("-_.:") or "agent"
+    return f"{DEFAULT_CLIENT_ID_PREFIX}{safe}-"
 
 
 def new_client_id(prefix: str) -> str:

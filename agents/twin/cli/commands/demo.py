@@ -28,15 +28,17 @@ PLAIN_STATUS_EVERY_S = 2.0
 def register(subparsers: Any) -> None:
     parser = subparsers.add_parser(
         "demo",
-        help="run broker, edge simulator and agent locally for a while; leave PNG, GIF, USD, rrd, stats",
+        help="broker, edge simulator and agent locally: a servo overheats; leave pictures, USD, rrd, stats",
         description=(
-            "Starts a private mosquitto on a free loopback port, the edge simulator and the twin agent; shows"
-            " a live status line, then writes twin.png, twin.gif, the USD session, the Rerun recording "
-            "twin.rrd and stats.json to --out (docs/viewer.md, docs/web.md). Stops everything it started, "
-            "also on Ctrl-C."
+            "Starts a private mosquitto on a free loopback port, the edge simulator and the twin agent. The "
+            "first arm lifts a payload too heavy for it and its shoulder servo overheats until the agent "
+            "raises the alarm; the operator console is then photographed in headless Chromium. Shows a "
+            "live status line, then writes twin.png, twin.gif, console-fleet.png, console-arm.png, the USD "
+            "session, the Rerun recording twin.rrd, the history and stats.json to --out (docs/viewer.md, "
+            "docs/web.md). Stops everything it started, also on Ctrl-C."
         ),
     )
-    parser.add_argument("--seconds", type=float, default=20.0, help="run time (default %(default)s)")
+    parser.add_argument("--seconds", type=float, default=30.0, help="run time (default %(default)s)")
     parser.add_argument(
         "--out", default="out/demo", metavar="DIR", help="output directory (default %(default)s)"
     )
@@ -46,7 +48,7 @@ def register(subparsers: Any) -> None:
         default="ticks",
         help="edge payload variant (default ticks)",
     )
-    parser.add_argument("--devices", type=int, default=1, metavar="N", help="simulated arms (default 1)")
+    parser.add_argument("--devices", type=int, default=6, metavar="N", help="simulated arms (default 6)")
     parser.add_argument(
         "--rate", type=float, default=10.0, metavar="HZ", help="messages/s per arm (default 10)"
     )
@@ -56,6 +58,22 @@ def register(subparsers: Any) -> None:
         help="also serve the Rerun web viewer on 127.0.0.1 while the demo runs (docs/web.md)",
     )
     parser.add_argument("--no-rerun", action="store_true", help="write no twin.rrd (and serve nothing)")
+    parser.add_argument(
+        "--servos",
+        choices=("physical", "mock"),
+        default="physical",
+        help=(
+            "physical (default): servo readings from the motion, and the overheating servo; mock: the edge "
+            "mock mode's random readings, no story"
+        ),
+    )
+    parser.add_argument("--no-console", action="store_true", help="take no pictures of the operator console")
+    parser.add_argument(
+        "--chromium",
+        default="/usr/bin/chromium",
+        metavar="PATH",
+        help="the browser the console pictures are taken with (default %(default)s, Debian's chromium)",
+    )
     parser.add_argument("--log-level", default="WARNING", help="logging level (default %(default)s)")
     parser.set_defaults(func=run)
 
@@ -94,6 +112,9 @@ def run(args: argparse.Namespace) -> int:
             rate_hz=args.rate,
             rerun=not args.no_rerun,
             rerun_serve=args.rerun_serve and not args.no_rerun,
+            servos=args.servos,
+            console=not args.no_console,
+            chromium=Path(args.chromium),
         )
     except ValueError as exc:
         console.err(str(exc))
@@ -118,6 +139,7 @@ def run(args: argparse.Namespace) -> int:
             on_status=_status_printer(tty),
             stop=stop,
             on_viewer=lambda url: console.out(f"twin demo: Rerun web viewer at {url}"),
+            on_note=_note_printer(tty),
         )
     except DemoError as exc:
         if tty:
@@ -149,6 +171,17 @@ def _status_printer(tty: bool) -> Any:
     return on_status
 
 
+def _note_printer(tty: bool) -> Any:
+    """A story line on a line of its own, above the status line on a terminal."""
+
+    def on_note(line: str) -> None:
+        if tty:
+            sys.stdout.write("\r\x1b[2K")
+        console.out(f"twin demo: {line}")
+
+    return on_note
+
+
 def _summary(stats: dict[str, Any], out_dir: Path) -> None:
     msgs = stats["messages"]
     e2e = stats["latency_s"]["end_to_end"]
@@ -157,7 +190,7 @@ def _summary(stats: dict[str, Any], out_dir: Path) -> None:
         f"rejected {msgs['rejected']}, end-to-end p50 {_ms(e2e['p50'])} / p99 {_ms(e2e['p99'])}"
     )
     for kind, name in stats["files"].items():
-        console.out(f"  {kind:4s} {out_dir / name}")
+        console.out(f"  {kind:13s} {out_dir / name}")
     console.out(f"  json {out_dir / 'stats.json'}")
     history = stats.get("history")
     if history:
@@ -165,6 +198,16 @@ def _summary(stats: dict[str, Any], out_dir: Path) -> None:
         console.out(f"  hist {table}  (twin history ls --history {table})")
         if history.get("plot"):
             console.out(f"  plot {out_dir / history['plot']}")
+    story = stats.get("story")
+    if story:
+        raised = ", ".join(f"{a['kind']} after {a['raised_after_s']:.0f} s" for a in story["alarms"])
+        peak = story["peak_temperature_c"]
+        console.out(
+            f"  story: {story['device']} {story['joint']} peaked at "
+            f"{'-' if peak is None else f'{peak:.0f} C'}; alarms raised: {raised or 'none'}"
+        )
+    if stats["console"].get("skipped"):
+        console.out(f"  console pictures skipped: {stats['console']['skipped']}")
     if "rrd" in stats["files"]:
         console.out(f"  open the Rerun recording: rerun {out_dir / stats['files']['rrd']}  (docs/web.md)")
 

@@ -1,4 +1,5 @@
-"""`twin edge-sim`: publish SO-101 edge telemetry (mock motion) with optional faults."""
+"""`twin edge-sim`: publish SO-101 edge telemetry (mock motion) with optional faults; the servo readings are
+the edge mock mode's noise or, with `--servos physical`, what servos following the motion report."""
 
 from __future__ import annotations
 
@@ -126,15 +127,62 @@ def _add_servo_faults(faults: Any) -> None:
             "true baseline"
         ),
     )
+    _add_physical_servos(faults)
+
+
+def _add_physical_servos(group: Any) -> None:
+    """`--servos physical` and its settings (twin.edge.servo_physics, docs/servo-health.md)."""
+    group.add_argument(
+        "--servos",
+        choices=("mock", "physical"),
+        default="mock",
+        help=(
+            "mock (default): the edge mock mode's random velocity, load, temperature and current, as the "
+            "real edge sends; physical: what servos following the motion report: load from the model's "
+            "gravity and motion torques, current from the load, temperature from a thermal model of it"
+        ),
+    )
+    group.add_argument(
+        "--payload",
+        type=float,
+        default=0.0,
+        metavar="KG",
+        help="physical: a mass held at the gripper tip, in kg (default 0)",
+    )
+    group.add_argument(
+        "--ambient",
+        type=float,
+        default=25.0,
+        metavar="C",
+        help="physical: the room's temperature, where the servos start and cool to (default %(default)s C)",
+    )
+    group.add_argument(
+        "--thermal-speedup",
+        action="append",
+        default=[],
+        metavar="JOINT:FACTOR",
+        help=(
+            "physical: run this servo's thermal model FACTOR times faster than the clock (a servo heats in "
+            "minutes; shoulder_lift:80 shows it in seconds), repeatable"
+        ),
+    )
 
 
 def _config(args: argparse.Namespace) -> Any:
     """The simulator's settings from the flags; ValueError (BrokerConfigError included) names a bad one."""
     from twin.edge.servo_faults import parse_fault
+    from twin.edge.servo_physics import PhysicalServoConfig, parse_speedup
     from twin.edge.simulator import EdgeSimConfig, FaultConfig, device_ids
     from twin.transport.broker import BrokerConfig
 
     devices = list(args.device) if args.device else device_ids(args.devices or 1)
+    if args.servos == "mock" and (args.payload or args.thermal_speedup):
+        raise ValueError("--payload and --thermal-speedup are settings of --servos physical; add it")
+    physical = PhysicalServoConfig(
+        ambient_c=args.ambient,
+        payload_kg=args.payload,
+        speedup=dict(parse_speedup(text) for text in args.thermal_speedup),
+    )
     return EdgeSimConfig(
         broker=BrokerConfig(
             url=args.broker,
@@ -159,6 +207,8 @@ def _config(args: argparse.Namespace) -> Any:
         load_sign=args.load_sign,
         servo_faults=tuple(parse_fault(text) for text in args.fault),
         model_loads=args.model_loads,
+        servos=args.servos,
+        physical=physical,
     )
 
 

@@ -1,18 +1,24 @@
-"""`twin instance start|stop|status|url|check`: run and check the cloud twin host deployed by the CDK stack.
+"""`twin instance start|stop|status|url|check|console|settings`: run and check the cloud twin host deployed by
+the CDK stack, open its operator console here, and print the settings it runs with.
 
-The stack defaults to $SO101_TWIN_STACK, else So101TwinStack; the region to --region, else the AWS config.
+The stack defaults to $SO101_TWIN_STACK, else the stackName of ./twin.settings.toml, else So101TwinStack; the
+region to --region, else the AWS config.
 
 Exit codes:
   0  done
   1  any other AWS error (the message carries AWS's code)
   2  bad command line (argparse)
-  3  no AWS credentials or region, or credentials AWS rejects
+  3  no AWS credentials or region, or credentials AWS rejects, or (`console`) no Session Manager plugin
   4  stack not found in that account and region
-  5  stack outputs missing (InstanceId or DcvUrl)
+  5  stack outputs missing (InstanceId or DcvUrl; for `settings`, the Settings output)
   6  InsufficientInstanceCapacity on start (no G6e capacity in the stack's Availability Zone)
   7  the instance did not reach the wanted state within --timeout, or `start` got no verdict of its checks
   8  `check`: at least one check failed (the table says which and how to fix it); `start`: the host's checks
      after the start failed
+
+`console` forwards the agent's port 8080 on the host to this machine's 127.0.0.1 through Session Manager
+(nothing opens in the security group; the Session Manager plugin must be installed) and opens the console in
+the browser, until Ctrl-C.
 
 `start` waits for the checks the host runs after every start (X, then DCV's console session, the agent, the
 viewer, a capture of the console) and prints their verdict. The agent's health does not change the exit code
@@ -44,15 +50,17 @@ EXIT_WAIT = 7
 EXIT_CHECK_FAILED = 8
 
 EPILOG = """exit codes:
-  0 done; 1 other AWS error; 2 bad command line; 3 no AWS credentials or region;
+  0 done; 1 other AWS error; 2 bad command line; 3 no AWS credentials or region (console: or no plugin);
   4 stack not found; 5 stack outputs missing; 6 InsufficientInstanceCapacity on start;
   7 instance did not reach the state (or start: no verdict of its checks) within --timeout;
   8 a check failed (check, or start: the host's checks after the start)
-stack: --stack, else $SO101_TWIN_STACK, else So101TwinStack"""
+stack: --stack, else $SO101_TWIN_STACK, else stackName in ./twin.settings.toml, else So101TwinStack"""
 
 DEFAULT_TIMEOUT_S = 900.0
 HEALTH_TIMEOUT_S = 60.0
 HOST_CHECK_TIMEOUT_S = 90.0
+# The Session Manager session usually answers within seconds; the first one after a start can take longer.
+CONSOLE_READY_TIMEOUT_S = 60.0
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -60,7 +68,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     common.add_argument(
         "--stack",
         default=None,
-        help="CloudFormation stack name (default: $SO101_TWIN_STACK or So101TwinStack)",
+        help="CloudFormation stack name (default: $SO101_TWIN_STACK, else stackName in ./twin.settings.toml, "
+        "else So101TwinStack)",
     )
     common.add_argument(
         "--region", default=None, help="AWS region (default: from the AWS config / AWS_REGION)"
@@ -91,6 +100,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         ("status", "print instance state, type, DCV URL and agent health"),
         ("url", "print only the DCV URL"),
         (
+            "console",
+            "open the operator console here: forward the agent's port on the host to 127.0.0.1 through "
+            "Session Manager (needs the Session Manager plugin) and open it in the browser, until Ctrl-C",
+        ),
+        (
+            "settings",
+            "print the settings the deployed stack runs with, as a twin.settings.toml (save it to keep them: "
+            "twin instance settings > twin.settings.toml)",
+        ),
+        (
             "check",
             "say whether the twin works: stack and boot signal, instance, DCV port over TLS from here, "
             "and on the host X on the GPU, the DCV session, the agent, telemetry, the viewer, a capture of "
@@ -105,7 +124,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             epilog=EPILOG,
             formatter_class=argparse.RawDescriptionHelpFormatter,
         )
-        action.set_defaults(func=run, action=name, screenshot=None)
+        action.set_defaults(func=run, action=name, screenshot=None, port=None, no_browser=False)
+        if name == "console":
+            _add_console_arguments(action)
         if name == "check":
             action.add_argument(
                 "--screenshot",
@@ -113,6 +134,57 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                 type=Path,
                 help="also bring back the capture of the console the host just checked (PNG) into FILE",
             )
+
+
+def _add_console_arguments(action: argparse.ArgumentParser) -> None:
+    from twin.service.config import DEFAULT_HTTP_PORT
+
+    action.add_argument(
+        "--port",
+        type=int,
+        default=DEFAULT_HTTP_PORT,
+        metavar="PORT",
+        help="the local port (default %(default)s, the agent's own; 0 = any free port)",
+    )
+    action.add_argument("--no-browser", action="store_true", help="print the URL, open no browser")
+
+
+def _console(twin: TwinInstance, args: argparse.Namespace) -> int:
+    """The forward until Ctrl-C (or the plugin ends): print the URL, open the browser."""
+    import webbrowser
+
+    from twin.cli.output import stop_on_signals
+    from twin.service.config import DEFAULT_HTTP_PORT
+
+    if not 0 <= args.port <= 65535:
+        console.err(f"--port {args.port} must be a port number (0 for any free port)")
+        return 2
+    with stop_on_signals() as stop:
+        forward = twin.forward_port(DEFAULT_HTTP_PORT, args.port)
+        try:
+            if not forward.wait_ready(CONSOLE_READY_TIMEOUT_S):
+                console.err(
+                    f"the Session Manager session to {forward.instance_id} did not open port "
+                    f"{forward.local_port} here within {CONSOLE_READY_TIMEOUT_S:.0f} s; the plugin said:\n"
+                    f"{forward.output or '(nothing)'}\n"
+                    "Is the host's SSM agent online? (`twin instance status`)"
+                )
+                return EXIT_AWS
+            console.out(f"console: {forward.url}")
+            console.out(
+                f"  port {forward.remote_port} of {forward.instance_id}, through Session Manager "
+                f"(session {forward.session_id}); Ctrl-C ends it"
+            )
+            if not args.no_browser and not webbrowser.open(forward.url):
+                console.out("  (no browser found here: open the URL yourself)")
+            while not stop.wait(0.5):
+                if not forward.alive:
+                    console.err(f"the Session Manager plugin ended:\n{forward.output or '(no output)'}")
+                    return EXIT_AWS
+        finally:
+            forward.close()
+    console.out("console: session ended")
+    return EXIT_OK
 
 
 def _health_line(health: AgentHealth | None) -> str:
@@ -163,6 +235,16 @@ def run(args: argparse.Namespace, twin: TwinInstance | None = None) -> int:
     try:
         if args.action == "url":
             console.out(twin.url())
+        elif args.action == "console":
+            return _console(twin, args)
+        elif args.action == "settings":
+            deployed = twin.settings()
+            header = (
+                f"The settings of stack {twin.stack_name} in {twin.region}, as deployed (its Settings "
+                "output).\nSave as twin.settings.toml in the repository to keep them; commented lines are "
+                "defaults."
+            )
+            console.out(deployed.to_toml(header=header).rstrip("\n"))
         elif args.action == "check":
             from twin.ops.instance_check import check_twin
 
@@ -199,5 +281,6 @@ def run(args: argparse.Namespace, twin: TwinInstance | None = None) -> int:
             console.out(_version_line(status.host_version, status.expected_version))
     except lib.TwinInstanceError as exc:
         Console(f"instance {args.action}").err(str(exc))
-        return codes.get(type(exc), EXIT_AWS)
+        # By class, subclasses included: a missing Session Manager plugin is a setup error too.
+        return next((code for cls, code in codes.items() if isinstance(exc, cls)), EXIT_AWS)
     return EXIT_OK

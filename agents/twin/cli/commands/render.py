@@ -27,8 +27,8 @@ EXIT_BAD_INPUT = 2
 
 EPILOG = """examples:
   twin render --pose '{"shoulder_lift": -1.2, "elbow_flex": 1.1}' --out pose.png
-  twin render --payload message.json --units degrees --out arm.png
-  mosquitto_sub -C 1 -t dt/lerobot/arm-001/telemetry | twin render --payload - --units ticks
+  twin render --payload examples/payload-degrees.json --units degrees --out arm.png
+  twin render --payload - --units ticks --out arm.png < examples/payload-ticks.json
 
 exit codes: 0 written; 1 model or rendering failed; 2 bad pose, payload, units or calibration"""
 

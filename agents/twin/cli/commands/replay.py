@@ -31,8 +31,14 @@ def register(subparsers: Any) -> None:
     )
     add_uri_argument(parser)
     parser.add_argument("--device", metavar="D", required=True, help="the recorded device")
-    parser.add_argument("--from", dest="start", metavar="T", required=True, help="ISO 8601, epoch s, or -1h")
-    parser.add_argument("--to", dest="end", metavar="T", required=True, help="ISO 8601, epoch s, or -10m")
+    # "-1h" reads as an option to argparse: the span before now is written without its minus sign (or as
+    # --from=-1h), as `twin history` takes it.
+    parser.add_argument(
+        "--from", dest="start", metavar="T", required=True, help="ISO 8601, epoch s, or 1h = 1 h ago"
+    )
+    parser.add_argument(
+        "--to", dest="end", metavar="T", required=True, help="ISO 8601, epoch s, now, or 10m ago"
+    )
     parser.add_argument("--speed", type=float, default=1.0, help="playback speed factor (default 1)")
     parser.add_argument(
         "--broker",

@@ -58,7 +58,13 @@ def register(subparsers: Any) -> None:
 
 def add_agent_arguments(parser: argparse.ArgumentParser) -> None:
     """The flags every command that runs the agent takes (`twin run`, `twin web`)."""
-    parser.add_argument("--config", metavar="FILE", help="agent config file (TOML)")
+    parser.add_argument(
+        "--config",
+        metavar="FILE",
+        action="append",
+        help="agent config file (TOML); give it again to layer another file on top, key by key (the twin "
+        "host runs with its generated config and then /etc/so101-twin/agent.local.toml)",
+    )
     parser.add_argument(
         "--broker", metavar="URL", help='"iot" (AWS IoT Core), mqtt://host:port or mqtts://host:port'
     )

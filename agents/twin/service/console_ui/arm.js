@@ -47,6 +47,16 @@
     el("h2", { text: "live, last 5 minutes" }),
     el("div", { class: "grid2" }, ...charts.map((c) => c.panel)));
 
+  // Where the arm's LeRobot calibration came from; flagged when it has none while its units need one.
+  function calibration(d) {
+    const problem = d.calibration_problem ? ` (newest file refused: ${d.calibration_problem})` : "";
+    if (d.uncalibrated) {
+      return el("span", { class: "uncalibrated", id: "uncalibrated",
+        text: `none: the nominal SO-101's zero and range, not this arm's (twin calibration push ${device} FILE)${problem}` });
+    }
+    return el("span", { text: (d.calibration || "not needed for these units") + problem });
+  }
+
   function kv(box, pairs) {
     box.replaceChildren(...pairs.flatMap(([k, v]) => [el("span", { class: "muted", text: k }), v instanceof Node ? v : el("span", { text: v })]));
   }
@@ -140,6 +150,7 @@
       ["last seen", h.age_s === null ? "never" : `${Twin.num(h.age_s, 1)} s ago`],
       ["rate", `${Twin.num(h.rate_hz, 1)} Hz`],
       ["units", d.units], ["mode", d.mode],
+      ["calibration", calibration(d)],
       ["messages", `${h.counters.received} received, ${h.counters.applied} applied`],
     ]);
     kv(lossBox, [

@@ -81,7 +81,8 @@
     const c = columns, id = r[c.device];
     const node = el("a", { class: "card " + r[c.status], href: "/arm/" + encodeURIComponent(id), role: "listitem",
       "data-device": id },
-      el("div", { class: "id", text: id }),
+      el("div", { class: "id" }, id, ...(r[c.uncalibrated]
+        ? [" ", el("span", { class: "uncalibrated", title: "no LeRobot calibration: twin calibration push", text: "uncalibrated" })] : [])),
       el("div", { class: "line" }, el("span", { class: "status " + r[c.status], text: r[c.status] }),
         " · " + Twin.ago(r[c.last_seen], now)),
       el("div", { class: "line", text: `${Twin.num(r[c.rate_hz], 1)} Hz · loss ${Twin.num(r[c.loss_pct], 1)} %` }),
@@ -96,7 +97,8 @@
   function listRow(r, y) {
     const c = columns, id = r[c.device];
     const node = el("a", { class: "row", href: "/arm/" + encodeURIComponent(id), role: "listitem", "data-device": id },
-      el("span", { text: id }), el("span", { class: "status " + r[c.status], text: r[c.status] }),
+      el("span", { text: id + (r[c.uncalibrated] ? " (no calibration)" : ""), class: r[c.uncalibrated] ? "uncalibrated" : "" }),
+      el("span", { class: "status " + r[c.status], text: r[c.status] }),
       el("span", { class: "wide", text: Twin.ago(r[c.last_seen], now) }),
       el("span", { text: Twin.num(r[c.rate_hz], 1) + " Hz" }),
       el("span", { class: "wide", text: Twin.num(r[c.loss_pct], 1) + " %" }),

@@ -1,0 +1,158 @@
+"""`twin calibration push|ls|rm`: each arm's LeRobot calibration, in the store the agent watches.
+
+LeRobot writes one calibration file per arm when it is calibrated (`lerobot-calibrate`), under
+~/.cache/huggingface/lerobot/calibration/robots/so_follower/<id>.json. `push ARM FILE` checks the file is a
+complete SO-101 calibration and stores it as ARM's; the agent picks it up within `calibration_poll_s` (30 s
+by default), without a redeploy or a restart (docs/agent.md, "Calibration").
+
+The store is the deployed stack's (its CalibrationUri output: s3://<bucket>/calibration), or the one --store
+names: s3://bucket/prefix, or a directory for an agent on this machine ([telemetry] calibrations).
+
+Exit codes:
+  0  done
+  1  the store could not be read or written (the message says why), or `rm` found nothing to remove
+  2  bad command line, or FILE is not an SO-101 calibration, or ARM is not a device id
+  3  no AWS credentials or region; 4 stack not found; 5 the stack has no CalibrationUri output
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from twin.cli.output import Console
+
+if TYPE_CHECKING:
+    from twin.service.calibrations import CalibrationStore
+
+console = Console("calibration")
+
+EXIT_OK = 0
+EXIT_STORE = 1
+EXIT_USAGE = 2
+EXIT_SETUP = 3
+EXIT_NO_STACK = 4
+EXIT_NO_OUTPUTS = 5
+
+EPILOG = """examples:
+  twin calibration push arm-003 ~/.cache/huggingface/lerobot/calibration/robots/so_follower/arm-003.json
+  twin calibration ls
+  twin calibration push arm-001 robots/so101/calibration/so101_follower_example.json --store out/calibration
+exit codes: 0 done; 1 store error (or rm: nothing there); 2 bad file, device id or command line;
+  3 no AWS credentials or region; 4 stack not found; 5 the stack has no CalibrationUri output
+store: --store, else the CalibrationUri output of --stack (default $SO101_TWIN_STACK, else So101TwinStack)"""
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument(
+        "--store",
+        metavar="URI",
+        help="s3://bucket/prefix or a directory (default: the deployed stack's CalibrationUri output)",
+    )
+    common.add_argument("--stack", default=None, help="stack whose store to use (default: as twin instance)")
+    common.add_argument("--region", default=None, help="AWS region (default: from the AWS config)")
+    parser = subparsers.add_parser(
+        "calibration",
+        help="store each arm's LeRobot calibration where the agent picks it up",
+        description=__doc__.split("\n\n")[0],
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
+    push = actions.add_parser(
+        "push",
+        parents=[common],
+        help="check FILE is an SO-101 calibration and store it as ARM's",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    push.add_argument("arm", metavar="ARM", help="the arm's device id, as its edge publishes it (arm-003)")
+    push.add_argument("file", metavar="FILE", type=Path, help="the arm's LeRobot calibration JSON")
+    ls = actions.add_parser("ls", parents=[common], help="list the arms that have a calibration in the store")
+    rm = actions.add_parser(
+        "rm", parents=[common], help="remove ARM's calibration (the arm decodes with the config's again)"
+    )
+    rm.add_argument("arm", metavar="ARM")
+    for action in (push, ls, rm):
+        action.set_defaults(func=run)
+
+
+def _store(args: argparse.Namespace) -> CalibrationStore | int:
+    """The store --store names, else the stack's; an exit code when there is none."""
+    from twin.service.calibrations import open_store
+
+    if args.store:
+        try:
+            return open_store(args.store, region=args.region or "")
+        except ValueError as exc:
+            console.err(f"--store {exc}")
+            return EXIT_USAGE
+    from twin.ops import instance as lib
+
+    twin = lib.TwinInstance(args.stack, region=args.region)
+    codes = {lib.AwsSetupError: EXIT_SETUP, lib.StackNotFoundError: EXIT_NO_STACK}
+    try:
+        outputs = twin.outputs()
+    except lib.TwinInstanceError as exc:
+        console.err(str(exc))
+        return codes.get(type(exc), EXIT_NO_OUTPUTS if isinstance(exc, lib.StackOutputsError) else EXIT_STORE)
+    if not outputs.calibration_uri:
+        console.err(
+            f"stack {twin.stack_name} has no CalibrationUri output: it was deployed by an older version; "
+            "deploy it once with this version (`cdk deploy`), or pass --store"
+        )
+        return EXIT_NO_OUTPUTS
+    return open_store(outputs.calibration_uri, region=twin.region)
+
+
+def run(args: argparse.Namespace) -> int:
+    from twin.robot.calibration import parse_calibration
+    from twin.service.calibrations import CalibrationStoreError, check_device
+
+    if args.action in ("push", "rm"):
+        try:
+            check_device(args.arm)
+        except ValueError as exc:
+            console.err(f"ARM {exc}; use the device id the arm's edge publishes as")
+            return EXIT_USAGE
+    data = b""
+    if args.action == "push":
+        try:
+            data = args.file.expanduser().read_bytes()
+            calibration = parse_calibration(data, str(args.file))
+        except OSError as exc:
+            console.err(f"cannot read {args.file}: {exc}")
+            return EXIT_USAGE
+        except ValueError as exc:
+            console.err(str(exc))
+            return EXIT_USAGE
+        # Stored as LeRobot wrote it, once it parsed as a complete SO-101 calibration.
+        console.out(f"{args.file}: an SO-101 calibration of motors {', '.join(calibration)}")
+    store = _store(args)
+    if isinstance(store, int):
+        return store
+    try:
+        if args.action == "push":
+            where = store.write(args.arm, data)
+            console.out(
+                f"{args.arm}: {where} (the agent picks it up within its calibration_poll_s, 30 s by default)"
+            )
+        elif args.action == "rm":
+            if not store.delete(args.arm):
+                console.err(f"{args.arm} has no calibration in {store.uri}")
+                return EXIT_STORE
+            console.out(
+                f"{args.arm}: removed from {store.uri}; it decodes with the config's calibration again"
+            )
+        else:
+            listing = store.listing()
+            if not listing:
+                console.out(f"no calibration in {store.uri}")
+            for device in sorted(listing):
+                console.out(f"{device}\t{store.uri_of(device)}")
+    except CalibrationStoreError as exc:
+        console.err(str(exc))
+        return EXIT_STORE
+    return EXIT_OK

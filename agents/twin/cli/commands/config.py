@@ -1,0 +1,61 @@
+"""`twin config example|reference|check`: the agent config's every key, and whether a file is valid.
+
+`example` prints a config with every key at its default, each with what it means (examples/agent.toml is
+this output); `reference` prints the same as a Markdown table (docs/configuration.md is this output); `check`
+loads files exactly as `twin run --config` does and says whether the agent would start with them.
+
+Exit codes: 0 done (check: valid); 2 bad command line, or the files are not a valid config (the reason names
+the key and the fix).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from twin.cli.output import Console
+
+console = Console("config")
+
+EPILOG = """examples:
+  twin config example > my-agent.toml
+  twin config check examples/agent.toml
+  twin config reference"""
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "config",
+        help="print every agent config key (as a file or a table), or check a config file",
+        description=__doc__.split("\n\n")[0],
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
+    actions.add_parser("example", help="a config with every key at its default and what it means (TOML)")
+    actions.add_parser("reference", help="every key, its type, default and meaning (Markdown)")
+    check = actions.add_parser(
+        "check", help="load FILE (several: each on top of the ones before) as `twin run --config` would"
+    )
+    check.add_argument("files", metavar="FILE", type=Path, nargs="+")
+    parser.set_defaults(func=run)
+    for action in actions.choices.values():
+        action.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from twin.service.config import ConfigError, load_config
+    from twin.service.config_reference import render_example, render_reference
+
+    if args.action == "example":
+        console.out(render_example().rstrip("\n"))
+    elif args.action == "reference":
+        console.out(render_reference().rstrip("\n"))
+    else:
+        try:
+            load_config(args.files)
+        except ConfigError as exc:
+            console.err(str(exc))
+            return 2
+        console.out(f"{', '.join(str(f) for f in args.files)}: a valid agent config")
+    return 0

@@ -1,0 +1,283 @@
+"""Servo alarm transitions as notifications: batched, rate-limited messages to an SNS topic (e-mail and more).
+
+The twin host publishes straight to the stack's alarm topic (its role may `sns:Publish` on that topic only),
+so a person hears of a servo alarm within seconds, with what happened, instead of a CloudWatch alarm on a
+once-a-minute metric that names neither the arm nor the servo. The agent hands every alarm transition
+(raised, cleared, acknowledged, reset) it wants sent to `AlertPublisher.offer`; the publisher's thread sends
+what came in once every `flush_s` (at most 9.5 s, so with the agent's half-second collection a transition is
+sent within 10 s):
+
+- one message per flush, however many transitions: each alarm once, with its latest state, how many times
+  it changed since the last message, and its value, threshold and message;
+- a token bucket bounds the messages: `burst` at once, then `max_per_hour`; transitions that arrive while it
+  is empty wait and go out together in the next message it allows, so a flapping servo cannot flood anyone's
+  mailbox, and nothing is dropped (beyond `max_pending` alarms, the oldest are summed up as a count);
+- a publish that fails (no network, throttled) keeps the batch for the next flush.
+
+Pure but for the thread and the injected `publish(subject, body)` (boto3's SNS client in the agent, a list in
+tests); the clock is injected too.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+
+log = logging.getLogger(__name__)
+
+# A transition is published on the flush after it arrives; the agent collects its mirrors' events every
+# 0.5 s, so a flush interval of at most this keeps the whole path within 10 s.
+MAX_FLUSH_S = 9.5
+# SNS refuses a subject over 100 characters (ASCII, no line breaks).
+SUBJECT_MAX = 100
+
+Publish = Callable[[str, str], None]
+
+
+@dataclass(frozen=True, slots=True)
+class Alert:
+    """One alarm transition, as the notification names it."""
+
+    alarm_id: str
+    device: str
+    joint: str
+    kind: str
+    severity: str  # warning | critical
+    action: str  # raised | cleared | acknowledged | reset
+    state: str  # the alarm's state after it: ACTIVE, ACKNOWLEDGED, LATCHED, NORMAL
+    value: float | None
+    threshold: float | None
+    unit: str
+    message: str
+    at: float  # wall-clock epoch seconds
+
+
+@dataclass
+class _Pending:
+    latest: Alert
+    first_at: float
+    changes: int = 1
+    actions: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True, slots=True)
+class AlertCounters:
+    offered: int
+    published_messages: int
+    published_alerts: int
+    failures: int
+    delayed: int  # flushes the rate limit held back
+    pending: int
+    last_error: str
+
+
+class AlertPublisher:
+    """Batches alarm transitions and publishes them (module doc). `start()`/`stop()` run the flush thread;
+    `flush()` does one round on the calling thread."""
+
+    def __init__(
+        self,
+        publish: Publish,
+        *,
+        agent_name: str,
+        how_to_acknowledge: str,
+        flush_s: float = 5.0,
+        max_per_hour: int = 30,
+        burst: int = 10,
+        max_pending: int = 500,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        if not 0 < flush_s <= MAX_FLUSH_S:
+            raise ValueError(
+                f"flush_s = {flush_s} must be in (0, {MAX_FLUSH_S}] so an alarm is sent within 10 s"
+            )
+        if max_per_hour < 1 or burst < 1 or max_pending < 1:
+            raise ValueError("max_per_hour, burst and max_pending must each be at least 1")
+        self._publish = publish
+        self.agent_name = agent_name
+        self.how_to_acknowledge = how_to_acknowledge
+        self.flush_s = flush_s
+        self._rate = max_per_hour / 3600.0
+        self._burst = float(burst)
+        self._tokens = float(burst)
+        self._max_pending = max_pending
+        self._clock = clock
+        self._refilled = clock()
+        self._lock = threading.Lock()
+        self._pending: OrderedDict[str, _Pending] = OrderedDict()
+        self._overflow = 0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._offered = 0
+        self._messages = 0
+        self._alerts = 0
+        self._failures = 0
+        self._delayed = 0
+        self._last_error = ""
+
+    # -- in --------------------------------------------------------------------------------------------
+
+    def offer(self, alert: Alert) -> None:
+        """Queue a transition for the next flush; never blocks for long (any thread)."""
+        with self._lock:
+            self._offered += 1
+            entry = self._pending.get(alert.alarm_id)
+            if entry is None:
+                if len(self._pending) >= self._max_pending:
+                    self._pending.popitem(last=False)
+                    self._overflow += 1
+                self._pending[alert.alarm_id] = _Pending(alert, alert.at, 1, [alert.action])
+            else:
+                entry.latest = alert
+                entry.changes += 1
+                entry.actions.append(alert.action)
+
+    # -- out -------------------------------------------------------------------------------------------
+
+    def flush(self) -> bool:
+        """Publish what is pending as one message if the rate limit allows; True when a message went out."""
+        with self._lock:
+            if not self._pending and not self._overflow:
+                return False
+            now = self._clock()
+            self._tokens = min(self._burst, self._tokens + (now - self._refilled) * self._rate)
+            self._refilled = now
+            if self._tokens < 1.0:
+                self._delayed += 1
+                return False
+            # Copies: transitions that arrive while this one is published stay for the next message.
+            originals = list(self._pending.values())
+            batch = [_Pending(e.latest, e.first_at, e.changes, list(e.actions)) for e in originals]
+            overflow = self._overflow
+        subject, body = self.compose(batch, overflow)
+        try:
+            self._publish(subject, body)
+        except Exception as exc:  # the next flush tries again with everything still pending
+            with self._lock:
+                self._failures += 1
+                self._last_error = f"{type(exc).__name__}: {exc}"
+            log.warning("alarm notification not published (kept for the next try): %s", exc)
+            return False
+        with self._lock:
+            self._tokens -= 1.0
+            self._messages += 1
+            self._alerts += len(batch)
+            self._last_error = ""
+            for original, sent in zip(originals, batch, strict=True):
+                current = self._pending.get(sent.latest.alarm_id)
+                if current is not original:
+                    continue  # gone (pushed out) or a new entry since
+                if current.changes <= sent.changes:
+                    del self._pending[sent.latest.alarm_id]
+                else:
+                    current.changes -= sent.changes
+                    current.actions = current.actions[sent.changes :]
+                    current.first_at = current.latest.at
+            self._overflow -= overflow
+        log.info(
+            "alarm notification published",
+            extra={"event": "alert_published", "alarms": len(batch), "subject": subject},
+        )
+        return True
+
+    def compose(self, batch: Iterable[_Pending], overflow: int = 0) -> tuple[str, str]:
+        """The message for a batch: a subject naming the worst alarm, a body with every alarm in it."""
+        entries = sorted(batch, key=lambda e: (e.latest.severity != "critical", e.first_at))
+        lines = []
+        for entry in entries:
+            a = entry.latest
+            value = "no value" if a.value is None else f"{a.value:.3g} {a.unit}".strip()
+            threshold = "" if a.threshold is None else f", threshold {a.threshold:.3g} {a.unit}".rstrip()
+            history = (
+                f" ({entry.changes} changes since the last message: {', '.join(entry.actions)})"
+                if entry.changes > 1
+                else ""
+            )
+            lines += [
+                f"{a.severity.upper()} {a.action}: arm {a.device}, servo {a.joint}, {a.kind}{history}",
+                f"  now {a.state}; value {value}{threshold}",
+                f"  {a.message}",
+                f"  alarm id {a.alarm_id}, at {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime(a.at))}",
+                "",
+            ]
+        if overflow:
+            lines += [f"... and {overflow} more alarm(s) changed (too many to list; see the console).", ""]
+        first = entries[0].latest if entries else None
+        if first is not None:
+            more = len(entries) - 1 + overflow
+            subject = (
+                f"[{self.agent_name}] {first.severity.upper()} {first.device} {first.joint} {first.kind} "
+                f"{first.action}" + (f" (+{more} more)" if more else "")
+            )
+        else:
+            subject = f"[{self.agent_name}] {overflow} servo alarm(s) changed"
+        lines += ["How to acknowledge:", self.how_to_acknowledge]
+        return _subject(subject), "\n".join(lines)
+
+    def counters(self) -> AlertCounters:
+        with self._lock:
+            return AlertCounters(
+                offered=self._offered,
+                published_messages=self._messages,
+                published_alerts=self._alerts,
+                failures=self._failures,
+                delayed=self._delayed,
+                pending=len(self._pending) + self._overflow,
+                last_error=self._last_error,
+            )
+
+    # -- thread ----------------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        if self._thread is not None:
+            return
+        self._thread = threading.Thread(target=self._run, name="twin-alerts", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.flush_s):
+            try:
+                self.flush()
+            except Exception:
+                log.exception("alarm notification flush failed")
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Stop the thread after one last flush (what is pending goes out if the rate limit allows)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+        try:
+            self.flush()
+        except Exception:
+            log.exception("alarm notification flush failed")
+
+
+def _subject(text: str) -> str:
+    """SNS's rules: printable ASCII, no line breaks, at most 100 characters."""
+    clean = "".join(c if 32 <= ord(c) < 127 else "?" for c in text)
+    return clean if len(clean) <= SUBJECT_MAX else clean[: SUBJECT_MAX - 3] + "..."
+
+
+def sns_publisher(topic_arn: str, region: str = "", client: object = None) -> Publish:
+    """`publish(subject, body)` to an SNS topic with boto3 (built on first use unless given)."""
+    state: dict[str, object] = {"client": client}
+
+    def publish(subject: str, body: str) -> None:
+        sns = state["client"]
+        if sns is None:
+            import boto3  # noqa: PLC0415 - only an agent that sends alerts pays for boto3
+            from botocore.config import Config  # noqa: PLC0415
+
+            sns = boto3.client(
+                "sns",
+                region_name=region or None,
+                config=Config(connect_timeout=5, read_timeout=10, retries={"max_attempts": 3}),
+            )
+            state["client"] = sns
+        sns.publish(TopicArn=topic_arn, Subject=subject, Message=body)  # type: ignore[attr-defined]
+
+    return publish

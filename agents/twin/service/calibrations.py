@@ -1,0 +1,372 @@
+"""Each arm's own LeRobot calibration, kept in a store the agent watches: a directory or s3://bucket/prefix.
+
+A real SO-101 is calibrated once with LeRobot (`lerobot-calibrate`), which writes one JSON file per arm
+(twin.robot.calibration reads it). The twin needs that file to turn an arm's raw positions (ticks, or
+range100) into the right angles, and five arms have five different files. The store holds one object per arm,
+named for its device id: `<store>/<device>.json`. `twin calibration push ARM FILE` puts one there (on AWS the
+stack's bucket, prefix `calibration/`: the CalibrationUri output), and the agent picks it up without a
+redeploy or a restart:
+
+- `CalibrationWatcher` lists the store every `telemetry.calibration_poll_s` (one LIST call for the whole
+  fleet: S3 returns each object's ETag, a directory each file's modification time and size) and reads only
+  the files that are new or changed since the last poll; a file that is removed takes its arm back to the
+  config's calibration.
+- A file that is not a valid SO-101 calibration is refused with the reason (logged, and kept in
+  `CalibrationBook.problems`); the arm keeps the calibration it had, so a bad upload never moves its twin.
+- The agent hands each new book to its mirrors (AgentService), whose decoders swap the arm's table in whole.
+
+Listing and reading go through `CalibrationStore`, one for a directory and one for S3 (boto3, built lazily,
+or injected by tests).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+from twin.core.topics import device_id_problem
+from twin.robot.calibration import MAX_FILE_BYTES, Calibration, parse_calibration
+
+log = logging.getLogger(__name__)
+
+SUFFIX = ".json"
+DEFAULT_POLL_S = 30.0
+
+
+class CalibrationStoreError(Exception):
+    """The store could not be listed or read (no access, no network, no such bucket or directory)."""
+
+
+class CalibrationStore(Protocol):
+    """Where the arms' calibration files are kept."""
+
+    @property
+    def uri(self) -> str: ...
+
+    def listing(self) -> dict[str, str]:
+        """Device id -> a version that changes whenever its file does (ETag, or mtime and size)."""
+        ...
+
+    def read(self, device: str) -> bytes: ...
+
+    def write(self, device: str, data: bytes) -> str:
+        """Store `data` as the device's file; returns where it went."""
+        ...
+
+    def delete(self, device: str) -> bool:
+        """Remove the device's file; False when there was none."""
+        ...
+
+    def uri_of(self, device: str) -> str: ...
+
+
+def device_of(name: str) -> str | None:
+    """The device id a file name in the store stands for, or None when it names no device."""
+    if not name.endswith(SUFFIX):
+        return None
+    device = name[: -len(SUFFIX)]
+    return device if device_id_problem(device) is None and "/" not in device else None
+
+
+def check_device(device: str) -> None:
+    """ValueError naming the rule when `device` cannot be an arm's file name in a store."""
+    problem = device_id_problem(device)
+    if problem is not None:
+        raise ValueError(f"{device!r} is not a device id: {problem}")
+
+
+@dataclass(frozen=True)
+class DirectoryStore:
+    """A directory of `<device>.json` files (a laptop's agent, the tests)."""
+
+    path: Path
+
+    @property
+    def uri(self) -> str:
+        return str(self.path)
+
+    def listing(self) -> dict[str, str]:
+        try:
+            entries = list(os.scandir(self.path))
+        except FileNotFoundError:
+            return {}
+        except OSError as exc:
+            raise CalibrationStoreError(f"cannot list {self.path}: {exc}") from exc
+        found = {}
+        for entry in entries:
+            device = device_of(entry.name)
+            if device is None or not entry.is_file():
+                continue
+            st = entry.stat()
+            found[device] = f"{st.st_mtime_ns}:{st.st_size}"
+        return found
+
+    def read(self, device: str) -> bytes:
+        path = self.path / f"{device}{SUFFIX}"
+        try:
+            with path.open("rb") as fh:
+                return fh.read(MAX_FILE_BYTES + 1)
+        except OSError as exc:
+            raise CalibrationStoreError(f"cannot read {path}: {exc}") from exc
+
+    def write(self, device: str, data: bytes) -> str:
+        check_device(device)
+        self.path.mkdir(parents=True, exist_ok=True)
+        path = self.path / f"{device}{SUFFIX}"
+        tmp = path.with_name(f".{path.name}.tmp")
+        tmp.write_bytes(data)
+        # A rename, so the watcher never reads half a file.
+        tmp.replace(path)
+        return str(path)
+
+    def delete(self, device: str) -> bool:
+        try:
+            (self.path / f"{device}{SUFFIX}").unlink()
+        except FileNotFoundError:
+            return False
+        return True
+
+    def uri_of(self, device: str) -> str:
+        return str(self.path / f"{device}{SUFFIX}")
+
+
+@dataclass
+class S3Store:
+    """`s3://bucket/prefix/<device>.json`; the client is built on first use unless given."""
+
+    bucket: str
+    prefix: str
+    region: str = ""
+    client: Any = None
+
+    @property
+    def uri(self) -> str:
+        return f"s3://{self.bucket}/{self.prefix}" if self.prefix else f"s3://{self.bucket}"
+
+    def _s3(self) -> Any:
+        if self.client is None:
+            import boto3  # noqa: PLC0415 - loading a config must not pay for boto3
+            from botocore.config import Config  # noqa: PLC0415
+
+            self.client = boto3.client(
+                "s3",
+                region_name=self.region or None,
+                config=Config(connect_timeout=5, read_timeout=10, retries={"max_attempts": 3}),
+            )
+        return self.client
+
+    def _key(self, device: str) -> str:
+        return f"{self.prefix}/{device}{SUFFIX}" if self.prefix else f"{device}{SUFFIX}"
+
+    def _call(self, action: str, fn: Callable[[], Any]) -> Any:
+        from botocore.exceptions import BotoCoreError, ClientError  # noqa: PLC0415
+
+        try:
+            return fn()
+        except ClientError as exc:
+            error = exc.response.get("Error", {})
+            raise CalibrationStoreError(
+                f"cannot {action} {self.uri}: {error.get('Code')}: {error.get('Message')}"
+            ) from exc
+        except BotoCoreError as exc:
+            raise CalibrationStoreError(f"cannot {action} {self.uri}: {exc}") from exc
+
+    def listing(self) -> dict[str, str]:
+        start = f"{self.prefix}/" if self.prefix else ""
+
+        def pages() -> list[dict[str, Any]]:
+            paginator = self._s3().get_paginator("list_objects_v2")
+            return list(paginator.paginate(Bucket=self.bucket, Prefix=start))
+
+        found = {}
+        for page in self._call("list", pages):
+            for obj in page.get("Contents", []):
+                name = obj["Key"][len(start) :]
+                device = device_of(name) if "/" not in name else None
+                if device is not None:
+                    found[device] = str(obj.get("ETag", "")) + f":{obj.get('Size', 0)}"
+        return found
+
+    def read(self, device: str) -> bytes:
+        def get() -> bytes:
+            body = self._s3().get_object(Bucket=self.bucket, Key=self._key(device))["Body"]
+            try:
+                return bytes(body.read(MAX_FILE_BYTES + 1))
+            finally:
+                body.close()
+
+        return bytes(self._call("read", get))
+
+    def write(self, device: str, data: bytes) -> str:
+        check_device(device)
+        self._call(
+            "write to",
+            lambda: self._s3().put_object(
+                Bucket=self.bucket, Key=self._key(device), Body=data, ContentType="application/json"
+            ),
+        )
+        return self.uri_of(device)
+
+    def delete(self, device: str) -> bool:
+        if device not in self.listing():
+            return False
+        self._call("delete from", lambda: self._s3().delete_object(Bucket=self.bucket, Key=self._key(device)))
+        return True
+
+    def uri_of(self, device: str) -> str:
+        return f"s3://{self.bucket}/{self._key(device)}"
+
+
+def open_store(uri: str, *, region: str = "", s3_client: Any = None) -> CalibrationStore:
+    """The store at `uri`: s3://bucket[/prefix], file:///dir or a directory path."""
+    uri = uri.strip()
+    if uri.startswith("s3://"):
+        bucket, _, prefix = uri.removeprefix("s3://").partition("/")
+        if not bucket:
+            raise ValueError(f"{uri!r} names no bucket; use s3://<bucket>/calibration")
+        return S3Store(bucket, prefix.strip("/"), region, s3_client)
+    if "://" in uri and not uri.startswith("file://"):
+        raise ValueError(f"{uri!r} is not a directory or s3://bucket/prefix")
+    return DirectoryStore(Path(uri.removeprefix("file://")).expanduser())
+
+
+@dataclass(frozen=True)
+class StoredCalibration:
+    calibration: Calibration
+    source: str  # where it was read from (s3://... or a path)
+    version: str  # the store's version of the file it was read from
+
+
+@dataclass(frozen=True)
+class CalibrationChange:
+    """What one poll changed for one arm: "picked up" (detail: the source), "refused" (detail: why) or
+    "removed"."""
+
+    device: str
+    action: str
+    detail: str = ""
+
+
+@dataclass(frozen=True)
+class CalibrationBook:
+    """The calibrations in force, by device, why any file in the store was refused, and what the poll that
+    made this book changed."""
+
+    entries: Mapping[str, StoredCalibration] = field(default_factory=dict)
+    problems: Mapping[str, str] = field(default_factory=dict)
+    changes: tuple[CalibrationChange, ...] = ()
+
+    def calibrations(self) -> dict[str, Calibration]:
+        return {device: e.calibration for device, e in self.entries.items()}
+
+    def sources(self) -> dict[str, str]:
+        return {device: e.source for device, e in self.entries.items()}
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.entries)
+
+
+class CalibrationWatcher:
+    """Polls a store and calls `on_change(book)` whenever what is in force changes (module doc).
+
+    `poll()` does one round on the calling thread (the agent's first, before it subscribes); `start()` runs
+    them every `interval_s` on a thread of its own. A store that cannot be listed keeps the book as it is and
+    is tried again next round.
+    """
+
+    def __init__(
+        self,
+        store: CalibrationStore,
+        *,
+        interval_s: float = DEFAULT_POLL_S,
+        on_change: Callable[[CalibrationBook], None] = lambda _book: None,
+    ) -> None:
+        self.store = store
+        self.interval_s = interval_s
+        self._on_change = on_change
+        self._book = CalibrationBook()
+        # The version each device's file had when it was last read (good or refused), so it is read once.
+        self._seen: dict[str, str] = {}
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.polls = 0
+        self.failures = 0
+        self.last_error = ""
+
+    @property
+    def book(self) -> CalibrationBook:
+        return self._book
+
+    def poll(self) -> bool:
+        """One round; True when the book changed (and `on_change` was called)."""
+        self.polls += 1
+        try:
+            listing = self.store.listing()
+        except CalibrationStoreError as exc:
+            self.failures += 1
+            self.last_error = str(exc)
+            log.warning("calibrations not refreshed: %s", exc, extra={"event": "calibration_store"})
+            return False
+        self.last_error = ""
+        entries = dict(self._book.entries)
+        problems = {d: p for d, p in self._book.problems.items() if d in listing}
+        changes: list[CalibrationChange] = []
+        for device in [d for d in entries if d not in listing]:
+            del entries[device]
+            self._seen.pop(device, None)
+            changes.append(CalibrationChange(device, "removed"))
+            log.info("calibration of %s removed from the store: it decodes with the config's again", device)
+        for device, version in sorted(listing.items()):
+            if self._seen.get(device) == version:
+                continue
+            self._seen[device] = version
+            source = self.store.uri_of(device)
+            try:
+                calibration = parse_calibration(self.store.read(device), source)
+            except (ValueError, CalibrationStoreError) as exc:
+                problems[device] = str(exc)
+                changes.append(CalibrationChange(device, "refused", str(exc)))
+                log.warning(
+                    "calibration of %s refused, it keeps the one it had: %s",
+                    device,
+                    exc,
+                    extra={"event": "calibration_refused", "device": device},
+                )
+                continue
+            problems.pop(device, None)
+            entries[device] = StoredCalibration(calibration, source, version)
+            changes.append(CalibrationChange(device, "picked up", source))
+            log.info(
+                "calibration of %s picked up from %s",
+                device,
+                source,
+                extra={"event": "calibration", "device": device},
+            )
+        if not changes and problems == self._book.problems:
+            return False
+        self._book = CalibrationBook(entries, problems, tuple(changes))
+        self._on_change(self._book)
+        return True
+
+    def start(self) -> None:
+        if self._thread is not None:
+            return
+        self._thread = threading.Thread(target=self._run, name="twin-calibrations", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.interval_s):
+            try:
+                self.poll()
+            except Exception:
+                log.exception("calibration poll failed")
+
+    def stop(self, timeout: float = 5.0) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)

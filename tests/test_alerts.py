@@ -1,0 +1,255 @@
+"""Servo alarm e-mails: the publisher's batching, rate limit and retries (a list stands in for SNS), and the
+agent publishing an alarm transition to the alarm topic, naming arm and servo. AWS cannot be reached from
+here: moto stands in for SNS (and for an SQS queue subscribed to the topic, which reads the messages back)."""
+
+from __future__ import annotations
+
+import json
+import time
+from typing import Any
+
+import boto3
+import pytest
+from conftest import AWS_TEST_REGION, wait_for
+from moto import mock_aws
+from twin.output.alerts import MAX_FLUSH_S, SUBJECT_MAX, Alert, AlertPublisher
+from twin.rig.mosquitto import free_port
+from twin.robot import so101
+from twin.service.agent import AgentService
+from twin.service.config import ConfigError, load_config
+
+ACK = "Open the console and press Acknowledge."
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def alert(action: str = "raised", *, device: str = "arm-003", joint: str = "elbow_flex", **kw: Any) -> Alert:
+    fields: dict[str, Any] = {
+        "alarm_id": f"{device}/{joint}/over_temperature_critical",
+        "device": device,
+        "joint": joint,
+        "kind": "over_temperature_critical",
+        "severity": "critical",
+        "action": action,
+        "state": {"raised": "ACTIVE", "cleared": "LATCHED", "acknowledged": "ACKNOWLEDGED"}.get(
+            action, "NORMAL"
+        ),
+        "value": 67.0,
+        "threshold": 65.0,
+        "unit": "C",
+        "message": f"{joint} servo at 67 C, near the 70 C cut-out (critical at 65 C)",
+        "at": 1_795_000_000.0,
+    }
+    fields.update(kw)
+    return Alert(**fields)
+
+
+def publisher(sent: list[tuple[str, str]], clock: Clock, **kw: Any) -> AlertPublisher:
+    return AlertPublisher(
+        lambda subject, body: sent.append((subject, body)),
+        agent_name="LabTwin",
+        how_to_acknowledge=ACK,
+        clock=clock,
+        **kw,
+    )
+
+
+def test_one_transition_is_one_message_that_says_what() -> None:
+    sent: list[tuple[str, str]] = []
+    p = publisher(sent, Clock())
+    assert p.flush() is False and sent == []  # nothing pending, nothing sent
+    p.offer(alert())
+    assert p.flush() is True
+    ((subject, body),) = sent
+    assert subject == "[LabTwin] CRITICAL arm-003 elbow_flex over_temperature_critical raised"
+    assert "arm arm-003, servo elbow_flex" in body
+    assert "now ACTIVE; value 67 C, threshold 65 C" in body
+    assert "near the 70 C cut-out" in body
+    assert body.rstrip().endswith(f"How to acknowledge:\n{ACK}")
+    assert p.counters().pending == 0 and p.flush() is False
+
+
+def test_a_flapping_servo_makes_one_message_per_flush_not_one_per_change() -> None:
+    sent: list[tuple[str, str]] = []
+    p = publisher(sent, Clock())
+    for action in ("raised", "cleared", "raised", "cleared", "raised"):
+        p.offer(alert(action))
+    p.offer(alert(joint="wrist_roll", severity="warning", kind="over_temperature"))
+    assert p.flush()
+    ((subject, body),) = sent
+    assert subject.endswith("(+1 more)")
+    assert "(5 changes since the last message: raised, cleared, raised, cleared, raised)" in body
+    # The critical one first.
+    assert body.index("servo elbow_flex") < body.index("servo wrist_roll")
+
+
+def test_the_rate_limit_holds_transitions_back_and_sends_them_together_later() -> None:
+    sent: list[tuple[str, str]] = []
+    clock = Clock()
+    p = publisher(sent, clock, burst=2, max_per_hour=60)  # two at once, then one a minute
+    for i in range(2):
+        p.offer(alert(device=f"arm-00{i}"))
+        assert p.flush()
+        clock.now += 5
+    for i in range(3):
+        p.offer(alert(device=f"arm-01{i}"))
+        assert p.flush() is False  # held back, not dropped
+        clock.now += 5
+    assert p.counters().delayed == 3 and p.counters().pending == 3
+    clock.now += 60
+    assert p.flush()
+    assert len(sent) == 3 and all(f"arm arm-01{i}" in sent[-1][1] for i in range(3))
+
+
+def test_a_failed_publish_keeps_the_batch_for_the_next_flush() -> None:
+    sent: list[tuple[str, str]] = []
+    failing = [True]
+
+    def publish(subject: str, body: str) -> None:
+        if failing[0]:
+            raise ConnectionError("no route to SNS")
+        sent.append((subject, body))
+
+    p = AlertPublisher(publish, agent_name="LabTwin", how_to_acknowledge=ACK, clock=Clock())
+    p.offer(alert())
+    assert p.flush() is False
+    assert p.counters().failures == 1 and "no route to SNS" in p.counters().last_error
+    failing[0] = False
+    assert p.flush() and len(sent) == 1
+
+
+def test_transitions_during_a_publish_go_in_the_next_message() -> None:
+    sent: list[tuple[str, str]] = []
+    p: AlertPublisher
+
+    def publish(subject: str, body: str) -> None:
+        if not sent:
+            p.offer(alert("cleared"))  # arrives while the first message is on its way
+        sent.append((subject, body))
+
+    p = AlertPublisher(publish, agent_name="LabTwin", how_to_acknowledge=ACK, clock=Clock())
+    p.offer(alert("raised"))
+    assert p.flush() and p.flush()
+    assert "raised: arm arm-003" in sent[0][1] and "cleared: arm arm-003" in sent[1][1]
+    assert p.counters().pending == 0
+
+
+def test_subjects_keep_to_snss_rules() -> None:
+    sent: list[tuple[str, str]] = []
+    p = publisher(sent, Clock())
+    p.offer(alert(device="a" * 120 + "é"))
+    p.flush()
+    subject = sent[0][0]
+    assert len(subject) <= SUBJECT_MAX and subject.isascii() and "\n" not in subject
+
+
+def test_a_transition_goes_out_on_the_next_flush_which_comes_within_10_s() -> None:
+    """The 10 s is a design property: the agent collects events every 0.5 s and the publisher flushes every
+    flush_s, which may not exceed 9.5 s; the config refuses more."""
+    assert MAX_FLUSH_S <= 9.5
+    with pytest.raises(ValueError, match="within 10 s"):
+        AlertPublisher(lambda _s, _b: None, agent_name="x", how_to_acknowledge="", flush_s=10.0)
+    with pytest.raises(ConfigError, match=r"alerts.flush_s = 10 must be in \(0, 9.5\]"):
+        load_config(None, {"alerts.flush_s": 10.0})
+    with pytest.raises(ConfigError, match="not an SNS topic ARN"):
+        load_config(None, {"alerts.topic_arn": "alarms"})
+
+
+# --- the agent, with moto standing in for SNS --------------------------------------------------------------
+
+
+@pytest.fixture
+def topic(aws_env: None) -> Any:
+    """A moto SNS topic with an SQS queue subscribed to it, from which the test reads what was published."""
+    with mock_aws():
+        sns = boto3.client("sns", region_name=AWS_TEST_REGION)
+        sqs = boto3.client("sqs", region_name=AWS_TEST_REGION)
+        arn = sns.create_topic(Name="so101-twin-alarms")["TopicArn"]
+        queue = sqs.create_queue(QueueName="inbox")["QueueUrl"]
+        queue_arn = sqs.get_queue_attributes(QueueUrl=queue, AttributeNames=["QueueArn"])["Attributes"][
+            "QueueArn"
+        ]
+        sns.subscribe(TopicArn=arn, Protocol="sqs", Endpoint=queue_arn)
+
+        def received() -> list[dict[str, Any]]:
+            messages = sqs.receive_message(QueueUrl=queue, MaxNumberOfMessages=10).get("Messages", [])
+            for m in messages:
+                sqs.delete_message(QueueUrl=queue, ReceiptHandle=m["ReceiptHandle"])
+            return [json.loads(m["Body"]) for m in messages]
+
+        yield arn, received
+
+
+def hot(device: str, ts: int, temp: float) -> bytes:
+    joints = {name: {"position": 2048, "temp": 35} for name in so101.JOINT_NAMES}
+    joints["elbow_flex"]["temp"] = temp
+    return json.dumps({"device_id": device, "timestamp": ts, "joints": joints}).encode()
+
+
+def agent_with_topic(arn: str, **overrides: Any) -> AgentService:
+    config = load_config(
+        None,
+        {
+            "broker.url": f"mqtt://127.0.0.1:{free_port()}",  # nobody answers: fed through feed()
+            "http.listen": "127.0.0.1:0",
+            "telemetry.devices": ["arm-003"],
+            "telemetry.units": "ticks",
+            "alarms.temperature_raise_after_s": 0.0,
+            "alerts.topic_arn": arn,
+            "alerts.region": AWS_TEST_REGION,
+            "alerts.flush_s": 1.0,
+            "cloudwatch.agent_name": "LabTwin",
+            **overrides,
+        },
+    )
+    return AgentService(config)
+
+
+def test_an_alarm_transition_reaches_sns_as_one_message_naming_arm_and_servo(topic: Any) -> None:
+    """Done when: an alarm transition produces one SNS-bound message naming the arm and the servo, published
+    on the flush after it (moto stands in for SNS). 68 C raises the warning (60 C) and the critical alarm
+    (65 C) together; warnings are off by default, so only the critical one is in it."""
+    arn, received = topic
+    agent = agent_with_topic(arn)
+    agent.start()
+    try:
+        agent.feed("dt/lerobot/arm-003/telemetry", hot("arm-003", int(time.time() * 1000), 68))
+        messages = wait_for(received, 60, "the alarm at the topic's queue", interval=0.2)
+        assert len(messages) == 1
+        (notification,) = messages
+        assert (
+            notification["Subject"]
+            == "[LabTwin] CRITICAL arm-003 elbow_flex over_temperature_critical raised"
+        )
+        body = notification["Message"]
+        assert "arm arm-003, servo elbow_flex" in body
+        assert "now ACTIVE; value 68 C, threshold 65 C" in body
+        assert "How to acknowledge:" in body and "/alarms/<alarm id>/ack" in body
+        assert "over_temperature raised" not in body  # the warning: not sent unless asked for
+        # Acknowledging is a transition too; it goes out on the next flush.
+        agent.acknowledge_alarm("arm-003/elbow_flex/over_temperature_critical")
+        (ack,) = wait_for(received, 60, "the acknowledgement at the queue", interval=0.2)
+        assert ack["Subject"].endswith("elbow_flex over_temperature_critical acknowledged")
+        assert "now ACKNOWLEDGED" in ack["Message"]
+    finally:
+        agent.stop()
+    assert received() == []
+
+
+def test_warnings_go_too_when_asked(topic: Any) -> None:
+    arn, received = topic
+    agent = agent_with_topic(arn, **{"alerts.warnings": True})
+    agent.start()
+    try:
+        agent.feed("dt/lerobot/arm-003/telemetry", hot("arm-003", int(time.time() * 1000), 68))
+        (notification,) = wait_for(received, 60, "the alarms at the queue", interval=0.2)
+    finally:
+        agent.stop()
+    assert notification["Subject"].endswith("(+1 more)")
+    assert "WARNING raised: arm arm-003, servo elbow_flex, over_temperature" in notification["Message"]

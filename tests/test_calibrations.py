@@ -1,0 +1,336 @@
+"""Each arm's own LeRobot calibration: the store (a directory, or S3 with moto standing in for it: AWS cannot
+be reached from here), the watcher that picks files up without a restart, `twin calibration`, and the agent
+decoding each arm with its own, flagging the arms that have none."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+from pathlib import Path
+from typing import Any
+
+import boto3
+import pytest
+from conftest import AWS_TEST_REGION, wait_for
+from moto import mock_aws
+from twin.cli import main
+from twin.cli.commands import calibration as cmd
+from twin.edge.payload import encode
+from twin.rig.mosquitto import free_port
+from twin.robot import so101
+from twin.robot.calibration import load_calibration
+from twin.service.agent import AgentService
+from twin.service.calibrations import (
+    CalibrationBook,
+    CalibrationWatcher,
+    DirectoryStore,
+    S3Store,
+    device_of,
+    open_store,
+)
+from twin.service.config import ConfigError, load_config
+
+REPO = Path(__file__).resolve().parents[1]
+EXAMPLE = REPO / "robots" / "so101" / "calibration" / "so101_follower_example.json"
+RAD_PER_TICK = 2 * 3.141592653589793 / 4095
+
+
+def shifted(ticks: int) -> bytes:
+    """The example calibration with every range `ticks` higher: each joint's middle moves by as much."""
+    data = json.loads(EXAMPLE.read_text())
+    for motor in data.values():
+        motor["range_min"] += ticks
+        motor["range_max"] += ticks
+    return json.dumps(data).encode()
+
+
+def ticks_message(
+    device: str, ts: int, positions: tuple[int, ...] = (2048, 1800, 2200, 2100, 2048, 2500)
+) -> bytes:
+    joints = {name: {"position": p} for name, p in zip(so101.JOINT_NAMES, positions, strict=True)}
+    return json.dumps({"device_id": device, "timestamp": ts, "joints": joints}).encode()
+
+
+def pan_angle(calibration_bytes: bytes | None, position: int = 2048) -> float:
+    """shoulder_pan's angle for `position` ticks: (position - middle of its calibrated range) * K."""
+    if calibration_bytes is None:
+        return (position - so101.TICK_HOME) * RAD_PER_TICK
+    pan = json.loads(calibration_bytes)["shoulder_pan"]
+    return (position - (pan["range_min"] + pan["range_max"]) / 2) * RAD_PER_TICK
+
+
+# --- the store and the watcher ---------------------------------------------------------------------------
+
+
+def test_file_names_are_device_ids() -> None:
+    assert device_of("arm-001.json") == "arm-001"
+    assert device_of("arm-001.txt") is None
+    assert device_of("+.json") is None and device_of(".json") is None
+
+
+def test_the_watcher_picks_up_changes_refuses_bad_files_and_keeps_what_it_had(tmp_path: Path) -> None:
+    store = DirectoryStore(tmp_path / "calibration")
+    books: list[CalibrationBook] = []
+    watcher = CalibrationWatcher(store, on_change=books.append)
+    assert watcher.poll() is False and books == []  # no directory yet: nothing, and no error
+    store.write("arm-001", EXAMPLE.read_bytes())
+    store.write("arm-002", b'{"shoulder_pan": {}}')
+    assert watcher.poll() is True
+    book = books[-1]
+    assert set(book.entries) == {"arm-001"}
+    assert book.entries["arm-001"].source == str(tmp_path / "calibration" / "arm-001.json")
+    assert "lacks id, drive_mode" in book.problems["arm-002"]
+    assert [(c.device, c.action) for c in book.changes] == [("arm-001", "picked up"), ("arm-002", "refused")]
+    # Nothing new: no second hand-over.
+    assert watcher.poll() is False and len(books) == 1
+    # A broken replacement keeps the arm's calibration; a good one for arm-002 is taken.
+    (tmp_path / "calibration" / "arm-001.json").write_text("{not json")
+    store.write("arm-002", shifted(100))
+    assert watcher.poll() is True
+    book = books[-1]
+    assert book.entries["arm-001"].calibration == load_calibration(EXAMPLE)
+    assert "not valid JSON" in book.problems["arm-001"]
+    assert book.entries["arm-002"].calibration["shoulder_pan"].range_min == 762 + 100
+    # Removing a file takes the arm back to the config's calibration.
+    assert store.delete("arm-002") and not store.delete("arm-002")
+    assert watcher.poll() is True
+    assert set(books[-1].entries) == {"arm-001"}
+    assert [(c.device, c.action) for c in books[-1].changes] == [("arm-002", "removed")]
+
+
+def test_an_unreadable_store_keeps_the_book_and_says_why(tmp_path: Path) -> None:
+    store = DirectoryStore(tmp_path / "cal")
+    store.write("arm-001", EXAMPLE.read_bytes())
+    watcher = CalibrationWatcher(store)
+    assert watcher.poll()
+    # The store's path turns into a file: it cannot be listed (as root, permissions would not stop it).
+    for child in (tmp_path / "cal").iterdir():
+        child.unlink()
+    (tmp_path / "cal").rmdir()
+    (tmp_path / "cal").write_text("")
+    assert watcher.poll() is False
+    assert "cannot list" in watcher.last_error and watcher.failures == 1
+    assert set(watcher.book.entries) == {"arm-001"}
+
+
+@pytest.fixture
+def s3(aws_env: None):
+    with mock_aws():
+        client = boto3.client("s3", region_name=AWS_TEST_REGION)
+        client.create_bucket(Bucket="twin-bucket")
+        yield client
+
+
+def test_the_s3_store_lists_one_object_per_arm(s3: Any) -> None:
+    store = open_store("s3://twin-bucket/calibration", s3_client=s3)
+    assert isinstance(store, S3Store) and store.uri == "s3://twin-bucket/calibration"
+    assert store.write("arm-003", EXAMPLE.read_bytes()) == "s3://twin-bucket/calibration/arm-003.json"
+    # Not an arm's file: another prefix, a nested key, another suffix.
+    s3.put_object(Bucket="twin-bucket", Key="history/arm-009.json", Body=b"{}")
+    s3.put_object(Bucket="twin-bucket", Key="calibration/old/arm-004.json", Body=b"{}")
+    s3.put_object(Bucket="twin-bucket", Key="calibration/notes.txt", Body=b"")
+    listing = store.listing()
+    assert list(listing) == ["arm-003"]
+    assert store.read("arm-003") == EXAMPLE.read_bytes()
+    version = listing["arm-003"]
+    store.write("arm-003", shifted(5))
+    assert store.listing()["arm-003"] != version
+    assert store.delete("arm-003") and store.listing() == {}
+
+
+def test_store_uris_are_checked() -> None:
+    assert isinstance(open_store("out/calibration"), DirectoryStore)
+    assert isinstance(open_store("file:///tmp/cal"), DirectoryStore)
+    for bad in ("s3://", "http://x/y"):
+        with pytest.raises(ValueError):
+            open_store(bad)
+    for key, value, message in [
+        ("telemetry.calibrations", "http://example.com/c", "not a directory or s3://"),
+        ("telemetry.calibrations", "s3:///calibration", "names no bucket"),
+        ("telemetry.calibration_poll_s", 0.5, "outside 1..3600"),
+    ]:
+        with pytest.raises(ConfigError, match=message):
+            load_config(None, {key: value})
+
+
+# --- twin calibration ------------------------------------------------------------------------------------
+
+
+def test_push_ls_rm_with_a_directory_store(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    store = str(tmp_path / "cal")
+    assert main(["calibration", "push", "arm-001", str(EXAMPLE), "--store", store]) == cmd.EXIT_OK
+    out = capsys.readouterr().out
+    assert f"arm-001: {tmp_path / 'cal' / 'arm-001.json'}" in out and "shoulder_pan" in out
+    assert (tmp_path / "cal" / "arm-001.json").read_bytes() == EXAMPLE.read_bytes()
+    assert main(["calibration", "ls", "--store", store]) == cmd.EXIT_OK
+    assert capsys.readouterr().out == f"arm-001\t{tmp_path / 'cal' / 'arm-001.json'}\n"
+    assert main(["calibration", "rm", "arm-001", "--store", store]) == cmd.EXIT_OK
+    assert main(["calibration", "rm", "arm-001", "--store", store]) == cmd.EXIT_STORE
+    assert "arm-001 has no calibration" in capsys.readouterr().err
+
+
+def test_push_refuses_what_is_not_a_calibration(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"shoulder_pan": {"id": 1}}))
+    store = str(tmp_path / "cal")
+    assert main(["calibration", "push", "arm-001", str(bad), "--store", store]) == cmd.EXIT_USAGE
+    assert "lacks drive_mode" in capsys.readouterr().err
+    assert main(["calibration", "push", "arm/1", str(EXAMPLE), "--store", store]) == cmd.EXIT_USAGE
+    assert "not a device id" in capsys.readouterr().err
+    assert main(["calibration", "push", "arm-001", str(tmp_path / "none.json"), "--store", store]) == 2
+    assert "cannot read" in capsys.readouterr().err
+    assert not (tmp_path / "cal").exists()
+
+
+def test_push_goes_to_the_stacks_calibration_uri(s3: Any, capsys: pytest.CaptureFixture[str]) -> None:
+    template = {
+        "Resources": {"Topic": {"Type": "AWS::SNS::Topic"}},
+        "Outputs": {
+            "InstanceId": {"Value": "i-0123456789abcdef0"},
+            "DcvUrl": {"Value": "https://192.0.2.1:8443/#console"},
+            "CalibrationUri": {"Value": "s3://twin-bucket/calibration"},
+        },
+    }
+    boto3.client("cloudformation", region_name=AWS_TEST_REGION).create_stack(
+        StackName="So101TwinStack", TemplateBody=json.dumps(template)
+    )
+    assert main(["calibration", "push", "arm-005", str(EXAMPLE)]) == cmd.EXIT_OK
+    assert "s3://twin-bucket/calibration/arm-005.json" in capsys.readouterr().out
+    body = s3.get_object(Bucket="twin-bucket", Key="calibration/arm-005.json")["Body"].read()
+    assert body == EXAMPLE.read_bytes()
+    assert main(["calibration", "ls", "--stack", "Missing"]) == cmd.EXIT_NO_STACK
+
+
+# --- the agent --------------------------------------------------------------------------------------------
+
+
+def agent_with_store(store: Path, **overrides: Any) -> AgentService:
+    config = load_config(
+        None,
+        {
+            "broker.url": f"mqtt://127.0.0.1:{free_port()}",  # nobody answers: fed through feed()
+            "http.listen": "127.0.0.1:0",
+            "telemetry.devices": ["arm-001", "arm-002"],
+            "telemetry.units": "ticks",
+            "telemetry.calibrations": str(store),
+            "telemetry.calibration_poll_s": 1.0,
+            **overrides,
+        },
+    )
+    return AgentService(config, workers=int(overrides.get("twin.workers", 1)))
+
+
+def feed_until(agent: AgentService, device: str, expected_pan: float, ts: list[int]) -> None:
+    """Feed `device` fresh ticks until its twin shows shoulder_pan at `expected_pan` (a poll may come
+    between)."""
+
+    def shown() -> bool:
+        ts[0] += 100
+        agent.feed(f"dt/lerobot/{device}/telemetry", ticks_message(device, ts[0]))
+        joints = agent.state().devices.get(device)
+        pan = (joints.joints_rad or {}).get("shoulder_pan") if joints else None
+        return pan is not None and abs(pan - expected_pan) < 1e-9
+
+    wait_for(shown, 60, f"{device}'s twin at shoulder_pan {expected_pan:.6f}", interval=0.1)
+
+
+@pytest.mark.parametrize("workers", [1, 2], ids=["in-process", "two-worker-processes"])
+def test_each_arm_decodes_with_its_own_and_a_new_one_needs_no_restart(tmp_path: Path, workers: int) -> None:
+    store = DirectoryStore(tmp_path / "cal")
+    store.write("arm-001", EXAMPLE.read_bytes())
+    agent = agent_with_store(tmp_path / "cal", **{"twin.workers": workers})
+    agent.start()
+    try:
+        ts = [int(time.time() * 1000)]
+        feed_until(agent, "arm-001", pan_angle(EXAMPLE.read_bytes()), ts)
+        feed_until(agent, "arm-002", pan_angle(None), ts)
+        devices = agent.state().devices
+        assert devices["arm-001"].calibration == str(tmp_path / "cal" / "arm-001.json")
+        assert not devices["arm-001"].uncalibrated
+        assert devices["arm-002"].calibration == "" and devices["arm-002"].uncalibrated
+        # A calibration for arm-002 arrives while the agent runs: picked up within a poll, no restart.
+        store.write("arm-002", shifted(100))
+        feed_until(agent, "arm-002", pan_angle(shifted(100)), ts)
+        assert not agent.state().devices["arm-002"].uncalibrated
+        # A broken upload is refused and said so; the arm keeps decoding with the one it had.
+        (tmp_path / "cal" / "arm-002.json").write_text("{broken")
+        wait_for(lambda: agent.state().devices["arm-002"].calibration_problem, 30, "the refusal in /state")
+        feed_until(agent, "arm-002", pan_angle(shifted(100)), ts)
+        kinds = {(e.device, e.data.get("action")) for e in agent.events(_calibration_events())}
+        assert {("arm-001", "picked up"), ("arm-002", "picked up"), ("arm-002", "refused")} <= kinds
+    finally:
+        agent.stop()
+
+
+def _calibration_events() -> Any:
+    from twin.service.events import EventQuery
+
+    return EventQuery(kinds=frozenset({"calibration"}))
+
+
+def test_degrees_need_no_calibration_so_they_are_not_flagged(tmp_path: Path) -> None:
+    agent = agent_with_store(tmp_path / "none", **{"telemetry.units": "degrees"})
+    agent.start()
+    try:
+        joints = {name: {"position": 1.5} for name in so101.JOINT_NAMES}
+        agent.feed(
+            "dt/lerobot/arm-001/telemetry",
+            encode({"device_id": "arm-001", "timestamp": int(time.time() * 1000), "joints": joints}),
+        )
+        state = wait_for(lambda: agent.state().devices["arm-001"].joints_rad and agent.state(), 30, "arm-001")
+        assert state.devices["arm-001"].uncalibrated is False
+    finally:
+        agent.stop()
+
+
+@pytest.mark.slow
+def test_a_restarted_worker_decodes_with_the_arms_own_from_its_first_message(tmp_path: Path) -> None:
+    """The new process is handed the arms' calibrations before the messages it is sent again and those that
+    waited while it was down: not one of them decodes with the nominal arm's."""
+    store = DirectoryStore(tmp_path / "cal")
+    store.write("arm-001", EXAMPLE.read_bytes())
+    agent = agent_with_store(tmp_path / "cal", **{"twin.workers": 2})
+    agent.start()
+    try:
+        ts = [int(time.time() * 1000)]
+        feed_until(agent, "arm-001", pan_angle(EXAMPLE.read_bytes()), ts)
+        shard = agent._shards[agent.plan.worker_of("arm-001")]
+        wait_for(
+            lambda: shard.checkpoint is not None and "arm-001" in shard.checkpoint.devices, 30, "a checkpoint"
+        )
+        victim = agent.state().agent.workers[shard.index]
+        os.kill(victim.pid, signal.SIGKILL)
+        restarting = wait_for(
+            lambda: (
+                (d := agent.state().devices.get("arm-001")) is not None and d.mirror == "restarting" and d
+            ),
+            30,
+            "arm-001 shown as restarting",
+            interval=0.05,
+        )
+        assert restarting.calibration == str(tmp_path / "cal" / "arm-001.json")
+        assert not restarting.uncalibrated
+        # One message while its worker is down, then none: it is the first the new process decodes.
+        applied = restarting.health.counters.applied
+        ts[0] += 100
+        agent.feed(
+            "dt/lerobot/arm-001/telemetry",
+            ticks_message("arm-001", ts[0], (2500, 1800, 2200, 2100, 2048, 2500)),
+        )
+        back = wait_for(
+            lambda: (
+                (d := agent.state().devices.get("arm-001")) is not None
+                and d.mirror == "running"
+                and d.health.counters.applied > applied
+                and d
+            ),
+            60,
+            "the worker running again with the message applied",
+        )
+        assert back.timestamp_ms == ts[0]
+        assert back.joints_rad is not None
+        assert abs(back.joints_rad["shoulder_pan"] - pan_angle(EXAMPLE.read_bytes(), 2500)) < 1e-9
+    finally:
+        agent.stop()

@@ -1,0 +1,69 @@
+"""One schema, one truth: docs/configuration.md and examples/agent.toml are what the loader's own sections
+generate (`make config-docs`), every key has its meaning written once, and the example is every key at its
+default. Fails when a key is added, renamed or given a new default without the files following."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from pathlib import Path
+
+from twin.cli import main
+from twin.service import config as cfg
+from twin.service.config_reference import KEY_DOCS, SECTION_DOCS, keys, render_example, render_reference
+
+REPO = Path(__file__).resolve().parents[1]
+REFERENCE = REPO / "docs/configuration.md"
+FIX = "the config changed: run `make config-docs` and commit docs/configuration.md and examples/agent.toml"
+
+
+def loader_keys() -> set[str]:
+    return {f"{name}.{f.name}" for name, cls in cfg._SECTIONS.items() for f in dataclasses.fields(cls)}
+
+
+def test_every_key_has_its_meaning_written_once() -> None:
+    assert set(KEY_DOCS) == loader_keys()
+    assert set(SECTION_DOCS) == set(cfg._SECTIONS)
+    assert all(text.strip() for text in KEY_DOCS.values())
+
+
+def test_the_reference_is_what_the_loader_generates() -> None:
+    assert REFERENCE.read_text() == render_reference(), FIX
+
+
+def test_the_example_is_what_the_loader_generates() -> None:
+    assert (REPO / "examples" / "agent.toml").read_text() == render_example(), FIX
+
+
+def test_the_example_has_every_key_at_its_default() -> None:
+    data = tomllib.loads(render_example())
+    assert {f"{s}.{k}" for s, values in data.items() for k in values} == loader_keys()
+    loaded = cfg.load_config(REPO / "examples" / "agent.toml").to_dict()
+    defaults = cfg.AgentConfig().to_dict()
+    for section, values in defaults.items():
+        for key, default in values.items():
+            got = loaded[section][key]
+            if isinstance(default, float):
+                assert math.isclose(got, default, rel_tol=1e-9), f"{section}.{key}"
+            else:
+                assert got == default, f"{section}.{key}"
+
+
+def test_the_reference_names_every_key_with_its_default() -> None:
+    text = render_reference()
+    for key in keys():
+        assert f"## `[{key.section}]`" in text
+        assert f"| `{key.name}` | {key.type} |" in text
+
+
+def test_twin_config_prints_both_and_checks_files(tmp_path: Path, capsys) -> None:
+    assert main(["config", "example"]) == 0
+    assert capsys.readouterr().out == render_example()
+    assert main(["config", "reference"]) == 0
+    assert capsys.readouterr().out == render_reference()
+    assert main(["config", "check", str(REPO / "examples" / "agent.toml")]) == 0
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[history]\ntarget_file_mb = 128\n")
+    assert main(["config", "check", str(bad)]) == 2
+    assert "unknown key 'history.target_file_mb'" in capsys.readouterr().err
