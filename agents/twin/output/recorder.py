@@ -378,7 +378,9 @@ class SessionRecorder:
             track.translate_attrs[link.name] = translate.GetAttr()
             track.orient_attrs[link.name] = orient.GetAttr()
         self._devices[device_id] = track
-        log.info("session %s: device %r recorded at %s", self.path.name, device_id, track.prim_path)
+        # DEBUG: the mirror logs a new device once; every rotation registers each arm again (a 200-arm soak
+        # logged 200 lines a rotation at INFO).
+        log.debug("session %s: device %r recorded at %s", self.path.name, device_id, track.prim_path)
         return track
 
 
