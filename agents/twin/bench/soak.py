@@ -22,7 +22,9 @@ time) into `out`. The bounds it judges (docs/performance.md, "Soak"):
   check lets a live file overshoot (FLAT_ALLOWANCE; history grows: it is the data).
 
 The caps are small so a run reaches them early: SOAK_CAPS for a run of LONG_RUN_MINUTES or more, SHORT_CAPS
-below (the 2-minute run of `make test`).
+below (the 2-minute run of `make test`). History's maintenance is one of them: its Delta table state grows
+with every commit's file until maintenance compacts them (hourly by default), so an hour at the default
+interval never reaches that bound (docs/performance.md, "Soak").
 """
 
 from __future__ import annotations
@@ -63,6 +65,7 @@ class Caps:
     rrd_max_mb: float
     rrd_max_age_s: float
     rrd_budget_mb: float
+    history_maintain_every_s: float
 
 
 SOAK_CAPS = Caps(
@@ -78,6 +81,9 @@ SOAK_CAPS = Caps(
     rrd_max_mb=256.0,
     rrd_max_age_s=600.0,
     rrd_budget_mb=1024.0,
+    # The table state held every file of the hour (about 0.2 MB each, a commit every 10 s): 70 MB of RSS
+    # growth in the documented hour, which compaction takes back. Every 10 minutes, a run sees that bound.
+    history_maintain_every_s=600.0,
 )
 SHORT_CAPS = Caps(
     record_max_mb=2.0,
@@ -88,6 +94,7 @@ SHORT_CAPS = Caps(
     rrd_max_mb=20.0,
     rrd_max_age_s=30.0,
     rrd_budget_mb=60.0,
+    history_maintain_every_s=3600.0,  # the default: 2 minutes of files are a few MB
 )
 
 
@@ -98,7 +105,7 @@ def _config(data: Path, caps: Caps, arms: int, ros2: bool) -> str:
         f"record_max_age_s = {caps.record_max_age_s}\nrecord_budget_mb = {caps.record_budget_mb}\n"
         f"record_rate_hz = {caps.record_rate_hz}\n"
         f'state_file = "{data / "state.json"}"\n'
-        f'[history]\nuri = "{data / "history"}"\n'
+        f'[history]\nuri = "{data / "history"}"\nmaintain_every_s = {caps.history_maintain_every_s}\n'
         f'[rerun]\nsave = "{data / "rrd" / "twin.rrd"}"\nsave_max_mb = {caps.rrd_max_mb}\n'
         f"save_max_age_s = {caps.rrd_max_age_s}\nsave_budget_mb = {caps.rrd_budget_mb}\n"
         # The bridge's default queue (1,000 samples) dropped a 200-arm fleet's first samples while it created
