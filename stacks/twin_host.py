@@ -1,6 +1,6 @@
 """The GPU host: DCV desktop, the agents from S3 assets, an Elastic IP, and its DCV password secret.
 
-How the host is set up and kept current (docs/deploy.md tells the user's side):
+How the host is set up and kept current (docs/host.md; docs/deploy.md tells the user's side):
 - First boot: the UserData (userdata/user-data.sh) reads the deployment parameter, fetches the assets and
   runs userdata/bootstrap.sh, which ends by signalling the instance's CreationPolicy (and a wait condition
   that carries a failure's reason into the `cdk deploy` output).
@@ -47,7 +47,7 @@ USERDATA_TEMPLATE = USERDATA_DIR / "user-data.sh"
 UPDATE_TEMPLATE = USERDATA_DIR / "update.sh"
 ROOT_DEVICE = "/dev/sda1"  # the Ubuntu DLAMI's root device
 DESKTOP_USER = "ubuntu"
-# The first boot's budget: the sum of the step estimates in docs/deploy.md ("First boot timeline",
+# The first boot's budget: the sum of the step estimates in docs/host.md ("First boot",
 # 12-20 min) times about two, for slow mirrors and a busy CDN. Past it the stack rolls back.
 BOOT_TIMEOUT_MINUTES = 45
 # An update re-runs the same steps on a host that has them all: minutes, but a new agent wheel may be large.

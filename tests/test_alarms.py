@@ -6,6 +6,7 @@ servo facts (twin.robot.sts3215): the 7.4 V STS3215 stalls at 16.5 kg·cm = 1.61
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import pytest
@@ -423,3 +424,84 @@ def test_records_restore_acknowledged_and_latched_alarms_into_a_new_engine() -> 
     assert state(new, AlarmKind.OVER_CURRENT, "wrist_flex") is AlarmState.LATCHED
     new.acknowledge(alarm_id(DEV, "wrist_flex", AlarmKind.OVER_CURRENT), 32.0)
     assert state(new, AlarmKind.OVER_CURRENT, "wrist_flex") is AlarmState.NORMAL
+
+
+# --- a round of messages at once ----------------------------------------------------------------------------
+
+
+def _round_payload(device: str, step: int, rng: Any) -> dict[str, Any]:
+    """An edge message whose servos wander across every line, in spells long enough for the timers: cool
+    and hot, idle and overloaded, still and moving (the pose holds now and then), so alarms raise, hold and
+    clear; a field left out or a Moving flag now and then sends a message down the one-by-one path."""
+    from twin.edge.payload import make_payload
+
+    spell = (step // 25 + sum(map(ord, device))) % 4
+    held = (step // 13) % 3 == 0
+    payload = make_payload(device, 0.0 if held else step * 0.1, "ticks", rng, timestamp_ms=TS0 + 100 * step)
+    for joint in payload["joints"].values():
+        joint["temp"] = (35, 61, 67, 54)[spell] + rng.choice([0, 0, 0, -3])
+        joint["current"] = (100, 210, 420, 160)[spell] + rng.choice([0, 0, 40, -40])
+        joint["load"] = (10, 850, 1024 + 900, 620)[spell] + rng.choice([0, 0, 0, 30])
+        if rng.random() < 0.05:
+            del joint["current"]
+        if rng.random() < 0.03:
+            joint["moving"] = rng.random() < 0.5
+    return payload
+
+
+def test_a_round_at_once_is_evaluate_one_by_one() -> None:
+    """evaluate_batch (the mirror's path) against evaluate per message: the same events in the same order,
+    the same alarms, states, values and joint health, on messages that raise, hold, clear and acknowledge."""
+    import json
+    import random
+
+    from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units, diagnostic_columns
+
+    rng = random.Random(11)
+    decoder = TelemetryDecoder(DecoderConfig(units=Units.TICKS))
+    devices = [f"arm-{i:02d}" for i in range(12)]
+    one, many = ServoAlarms(), ServoAlarms()
+
+    def torques_of(pose: tuple[float, ...]) -> dict[str, float]:
+        return {j: 0.6 * math.sin(a) for j, a in zip(so101.JOINT_NAMES, pose, strict=True)}
+
+    raised: set[AlarmKind] = set()
+    for step in range(160):
+        now = step * 0.1
+        messages = [decoder.decode(json.dumps(_round_payload(d, step, rng)).encode()) for d in devices]
+        poses = [tuple(m.angles_rad.values()) for m in messages]
+        expected = [
+            one.evaluate(
+                m.device_id,
+                m.diagnostics,
+                torques_of(pose),
+                now,
+                angles_rad=m.angles_rad,
+                timestamp_ms=m.timestamp_ms,
+            )
+            for m, pose in zip(messages, poses, strict=True)
+        ]
+        got = many.evaluate_batch(
+            [m.device_id for m in messages],
+            [m.diagnostics for m in messages],
+            columns=diagnostic_columns(messages),
+            angles=poses,
+            timestamps_ms=[m.timestamp_ms for m in messages],
+            now=[now] * len(messages),
+            holding_torques_nm=[(lambda p=pose: torques_of(p)) for pose in poses],
+        )
+        assert got == expected, step
+        raised |= {e.kind for events in got for e in events if e.action == "raised"}
+        if step % 25 == 24:  # people acknowledge what is up, on both
+            for view in one.views():
+                if view.state in (AlarmState.ACTIVE, AlarmState.LATCHED):
+                    assert one.acknowledge(view.alarm_id, now) == many.acknowledge(view.alarm_id, now)
+        assert many.views(include_normal=True) == one.views(include_normal=True)
+        for device in devices:
+            a, b = one.joint_health(device), many.joint_health(device)
+            assert {j: repr(h) for j, h in a.items()} == {j: repr(h) for j, h in b.items()}
+            assert one.worst_by_joint(device) == many.worst_by_joint(device)
+    assert raised == set(AlarmKind)  # every kind was raised, the model check's too
+    assert many.counts_by_state() == one.counts_by_state()
+    assert many.present_by_severity() == one.present_by_severity()
+    assert many.counters == one.counters

@@ -206,3 +206,18 @@ def test_console_reports_time_to_interactive_and_the_cpu_of_two_consoles() -> No
     cpu = out["cpu"]
     assert cpu["consoles"] == 2 and cpu["agent_cpu_percent_with"] > 0
     assert all(n >= 1 for n in cpu["updates_per_console"])
+
+
+def test_cost_reports_cpu_per_message_in_json_loads_and_by_stage() -> None:
+    out = bench("cost", "--arms", "20", "--seconds", "2", timeout=180)
+    assert out["scenario"] == "cost"
+    (size,) = out["sizes"]
+    assert size["arms"] == 20 and size["summary"]["runs"] == 1
+    (run,) = size["runs"]
+    # The run carried traffic, the probe measured the yardstick through it, and the CPU was split.
+    assert run["received"] > 0 and run["mirrored"] > 0
+    assert run["json_loads_us"]["samples"] > 0 and run["json_loads_us"]["median"] > 0
+    assert run["loads_per_received"] > 0 and run["loads_per_mirrored"] > 0
+    assert set(run["stages_loads_per_received"]) == set(out["stages"])
+    assert run["cpu_s"]["receiving_process"] > 0 and run["cpu_s"]["workers"] > 0
+    assert {"before", "after"} <= set(run["load_average_1m"])

@@ -25,7 +25,7 @@ from twin.output.sinks import (
     rejected_sample,
 )
 from twin.rig.mosquitto import free_port
-from twin.service.agent import AgentService
+from twin.service.agent import MAX_ROUTES, AgentService
 from twin.service.config import load_config
 from twin.service.events import MAX_THROTTLE_KEYS
 from twin.service.logs import RateLimitedLog
@@ -50,12 +50,12 @@ def test_a_bounded_counter_keeps_the_recent_keys_and_an_exact_total() -> None:
 
 
 def test_the_inbound_queue_drops_the_oldest_beyond_its_bytes_and_keeps_the_newest() -> None:
-    queue: InboundQueue[bytes] = InboundQueue(max_items=100, max_bytes=1000)
+    queue: InboundQueue[bytes] = InboundQueue(max_items=100, max_bytes=1000, size_of=len)
     for i in range(5):
-        queue.put(f"d{i}", b"x" * 300, 300)
+        queue.put(f"d{i}", b"x" * 300)
     # 5 x 300 bytes is over 1000: the two oldest went, counted per key; the rest is within the bound.
     assert queue.overflowed == {"d0": 1, "d1": 1} and queue.queued_bytes == 900
-    queue.put("big", b"x" * 5000, 5000)
+    queue.put("big", b"x" * 5000)
     # One message larger than the whole bound is still delivered (the newest is never dropped).
     assert [key for key, _ in queue.take_all(0)] == ["big"]
     assert queue.queued_bytes == 0 and queue.overflowed_total == 5
@@ -221,11 +221,14 @@ def test_100000_junk_device_ids_leave_every_per_device_table_within_its_cap() ->
         decoder = mirror._decoder
         assert len(mirror._devices) <= MAX_DEVICES and len(state.devices) <= MAX_DEVICES
         assert len(mirror._fleet.devices) <= MAX_DEVICES and len(mirror._loss) <= MAX_DEVICES
-        assert len(mirror._snapshots) <= MAX_DEVICES and len(mirror._diagnostics) <= MAX_DEVICES
+        # The alarm engine has a row per device it evaluated: admitted devices only.
+        assert len(mirror._alarms._devices) <= MAX_DEVICES
+        # The agent's routes from topics to shards start over at their cap.
+        assert len(agent._routes) <= MAX_ROUTES
         # units=auto decided for the admitted devices only: every refused one was forgotten.
         assert len(decoder.decided_units()) <= MAX_DEVICES
         assert len(decoder._streaks) <= 4096 and len(decoder._known_ids) <= 4096
-        assert mirror._mailbox.overflowed_keys <= MAX_OVERFLOW_KEYS
+        assert mirror._mailbox.queue.overflowed_keys <= MAX_OVERFLOW_KEYS  # the in-process queue
         assert mirror._reject_log.keys <= 1024 and mirror._error_log.keys <= 1024
         # The console's rejection events are throttled per (device, reason), for the most recent keys only.
         assert len(mirror._rejections._next) <= MAX_THROTTLE_KEYS

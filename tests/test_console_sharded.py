@@ -38,20 +38,29 @@ def test_a_sharded_agent_serves_the_fleet_rows_and_every_workers_events(rig: Loc
             [r[0] for r in get_json(url + "/api/fleet")["rows"]] == DEVICES
             and all(r[1] == "ONLINE" for r in get_json(url + "/api/fleet")["rows"])
         ),
-        20,
+        60,
         "every arm ONLINE on the fleet page",
     )
     doc = get_json(url + "/api/fleet")
-    assert doc["columns"] == list(FLEET_COLUMNS) and doc["counts"]["status"]["ONLINE"] == 4
-    # The workers' rows agree with the rows made from the merged state.
-    from_state = {r.device: r for r in fleet_rows(agent.state(), agent.alarms())}
-    for row in doc["rows"]:
-        expected = from_state[row[0]]
-        assert row[1] == expected.status and row[9] == expected.hot_joint and row[11] == expected.rejected
+    assert doc["columns"] == list(FLEET_COLUMNS) and len(doc["rows"]) == len(DEVICES)
+
+    def rows_agree_with_state() -> bool:
+        # The workers' rows agree with the rows made from the merged state. The two are read one after
+        # the other while the arms keep publishing (the hottest servo can change in between), so the
+        # test waits for a pair of reads that agree instead of asserting on the first.
+        rows = get_json(url + "/api/fleet")["rows"]
+        from_state = {r.device: r for r in fleet_rows(agent.state(), agent.alarms())}
+        return all(
+            (row[1], row[9], row[11])
+            == (from_state[row[0]].status, from_state[row[0]].hot_joint, from_state[row[0]].rejected)
+            for row in rows
+        )
+
+    wait_for(rows_agree_with_state, 30, "the fleet rows agree with the merged state")
     # Each worker's events reach the front within a supervisor round or two.
     wait_for(
         lambda: all(f"{d} is ONLINE (first message)" in messages(url, kind="status") for d in DEVICES),
-        10,
+        30,
         "every arm's first-message event",
     )
     victim = agent.state().agent.workers[1]

@@ -130,6 +130,8 @@ def test_demo_tells_the_story_leaves_valid_files_and_stops_its_broker(tmp_path):
     assert 0 < warning["raised_after_s"] < stats["duration_s"]
     assert 60.0 <= story["peak_temperature_c"] < 70.0
     assert f"alarm arm-001/{STORY_JOINT}/over_temperature ACTIVE" in proc.stdout
+    # Where to open the console while it runs (the agent takes a free port).
+    assert re.search(r"console at http://127\.0\.0\.1:\d+/ while the demo runs", proc.stdout), proc.stdout
     console = stats["console"]
     assert console["taken"] is True and console["skipped"] is None, console
     assert console["console_errors"] == []

@@ -124,3 +124,225 @@ def test_the_citation_check_tells_outside_files_from_ours_and_public_sources(
     problems = outside_references(text, ROOT / "agents" / "twin" / "core" / "units.py")
     assert len(problems) == len(found), problems
     assert all(f in p for f, p in zip(found, problems, strict=True))
+
+
+# --- links between the pages, and what a reader of the repository cannot look up ----------------------------
+
+# The runtime work on these two pages lands first; the docs split that follows it (agent.md into agent,
+# configuration, HTTP API and scaling pages; performance.md's targets) rewrites the lines flagged here.
+FOLLOW_UP = "left for the agent.md split and the performance.md rewrite after the runtime work lands"
+# Pages with a known finding per check, marked xfail(strict=True): the mark fails once the page is fixed, so
+# it cannot outlive the finding.
+KNOWN_FINDINGS: dict[str, set[str]] = {"links": set(), "internal": {"agent.md", "performance.md"}}
+
+FENCE = re.compile(r"^ {0,3}(```|~~~).*?^ {0,3}\1[^\n]*$", re.M | re.S)
+CODE_SPAN = re.compile(r"(`+)(?!`).*?(?<!`)\1(?!`)", re.S)
+# [text](target) and ![alt](target), the target up to a space (a title may follow) or the closing parenthesis.
+LINK = re.compile(r"!?\[(?:[^\]\\]|\\.)*\]\(\s*<?([^\s)>]+)>?(?:\s+\"[^\"]*\")?\s*\)")
+HTML_LINK = re.compile(r"<(?:a|img)\b[^>]*?\b(?:href|src)=\"([^\"]+)\"", re.I)
+HEADING = re.compile(r"^ {0,3}(#{1,6})[ \t]+(.*?)(?:[ \t]+#+)?[ \t]*$", re.M)
+EXPLICIT_ANCHOR = re.compile(r"<a\b[^>]*?\b(?:id|name)=\"([^\"]+)\"", re.I)
+
+
+def blank(match: re.Match[str]) -> str:
+    """The matched text as spaces, its newlines kept, so offsets and line numbers stay where they were."""
+    return re.sub(r"[^\n]", " ", match.group(0))
+
+
+def prose(text: str) -> str:
+    """`text` without fenced code blocks and code spans: what markdown renders as links and headings."""
+    return CODE_SPAN.sub(blank, FENCE.sub(blank, text))
+
+
+def github_anchor(heading: str) -> str:
+    """The id GitHub gives a heading: its rendered text, lower case, without punctuation but `-` and `_`,
+    each space a hyphen (github-slugger's rule)."""
+    parts = []
+    for i, part in enumerate(re.split(r"(`+[^`]*?`+)", heading)):
+        if i % 2:  # a code span renders its content as it is, `<id>` included
+            parts.append(part.strip("`"))
+            continue
+        rendered = re.sub(r"!?\[((?:[^\]\\]|\\.)*)\]\([^)]*\)", r"\1", part)  # a link renders as its text
+        rendered = re.sub(r"<[^>]+>", "", rendered)  # inline HTML renders nothing of its own
+        rendered = re.sub(r"(?<!\w)_+|_+(?!\w)", "", rendered)  # _emphasis_, not snake_case
+        parts.append(rendered)
+    return re.sub(r"[^\w\- ]", "", "".join(parts).strip().lower()).replace(" ", "-")
+
+
+def anchors(text: str) -> set[str]:
+    """Every anchor a page offers: its headings' ids (a repeated one gets -1, -2, ...) and explicit <a id>."""
+    found: set[str] = set(EXPLICIT_ANCHOR.findall(text))
+    seen: Counter[str] = Counter()
+    for match in HEADING.finditer(FENCE.sub(blank, text)):
+        slug = github_anchor(match.group(2))
+        found.add(slug if not seen[slug] else f"{slug}-{seen[slug]}")
+        seen[slug] += 1
+    return found
+
+
+def broken_links(text: str, page: Path) -> list[str]:
+    """Relative links in `text` (the page `page`) whose file, or whose anchor in a markdown file, is
+    missing."""
+    problems = []
+    plain = prose(text)
+    for match in [*LINK.finditer(plain), *HTML_LINK.finditer(plain)]:
+        target = match.group(1)
+        if re.match(r"[a-z][a-z0-9+.-]*:", target, re.I) or target.startswith("//"):
+            continue  # https:, mailto:: not a file of ours
+        where = f"{page.relative_to(ROOT)}:{plain.count(chr(10), 0, match.start()) + 1}"
+        path_part, _, anchor = target.partition("#")
+        if not path_part:  # an anchor on this page
+            if anchor not in anchors(text):
+                problems.append(f"{where}: {target}: this page has no heading with the anchor #{anchor}")
+            continue
+        file = (page.parent / path_part).resolve()
+        if not file.is_relative_to(ROOT) or not file.exists():
+            problems.append(f"{where}: {target} links to a file that is not in this repository")
+        elif anchor and file.suffix == ".md" and anchor not in anchors(file.read_text(encoding="utf-8")):
+            problems.append(f"{where}: {target}: {file.name} has no heading with the anchor #{anchor}")
+    return problems
+
+
+# An owner/name right before a reference makes it a public repository's issue or pull request, not ours.
+PUBLIC_REPOSITORY_BEFORE = re.compile(r"[A-Za-z][\w.-]*/[\w.-]+[`'\")]?\s*$")
+NUMBERED_REFERENCE = re.compile(
+    r"\b(?:issues?|PRs?|pull requests?|tickets?)\s+#?\d+|(?<![\w&/#])#\d+\b(?![\w-])", re.I
+)
+# A hexadecimal word of 7..40 characters with a digit and a letter: how git abbreviates a commit. Ids of
+# AWS resources (i-0123..., alice-0a1b...) and client ids are joined to a name by a hyphen, and are not these.
+COMMIT_ID = re.compile(r"(?<![\w./:#@$-])(?=[0-9a-f]*[a-f])(?=[0-9a-f]*\d)[0-9a-f]{7,40}(?![\w-])")
+URL = re.compile(r"\bhttps?://\S+")
+
+
+def internal_references(text: str, page: Path) -> list[str]:
+    """Our own tracker's issue numbers and commit ids in `text`: nothing a reader of the repository can
+    open."""
+    problems = []
+    plain = URL.sub(blank, text)
+    for match in NUMBERED_REFERENCE.finditer(plain):
+        if PUBLIC_REPOSITORY_BEFORE.search(plain, 0, match.start()):
+            continue
+        line = plain.count("\n", 0, match.start()) + 1
+        problems.append(f"{page.relative_to(ROOT)}:{line}: {match.group(0)!r} is an issue of our own tracker")
+    for match in COMMIT_ID.finditer(plain):
+        line = plain.count("\n", 0, match.start()) + 1
+        problems.append(f"{page.relative_to(ROOT)}:{line}: {match.group(0)!r} looks like a commit id")
+    return problems
+
+
+def per_page(check: str) -> list[object]:
+    return [
+        pytest.param(
+            page,
+            id=page.name,
+            marks=[pytest.mark.xfail(strict=True, reason=FOLLOW_UP)]
+            if page.name in KNOWN_FINDINGS[check]
+            else [],
+        )
+        for page in PAGES
+    ]
+
+
+@pytest.mark.parametrize("page", per_page("links"))
+def test_every_relative_link_reaches_a_file_and_its_heading(page: Path) -> None:
+    problems = broken_links(page.read_text(encoding="utf-8"), page)
+    assert not problems, "\n".join(problems)
+
+
+@pytest.mark.parametrize("page", per_page("internal"))
+def test_no_page_names_an_issue_of_ours_or_a_commit(page: Path) -> None:
+    problems = internal_references(page.read_text(encoding="utf-8"), page)
+    assert not problems, "\n".join(problems)
+
+
+@pytest.mark.parametrize(
+    ("heading", "anchor"),
+    [
+        (
+            "### `auto`: decided once per device, never per message",
+            "auto-decided-once-per-device-never-per-message",
+        ),
+        ("### `GET /alarms` and `POST /alarms/<id>/ack`", "get-alarms-and-post-alarmsidack"),
+        ("## The instance: G6e, the AMI and Python", "the-instance-g6e-the-ami-and-python"),
+        (
+            "## Servo health (FT-TBL factory defaults, L-FT for the gripper)",
+            "servo-health-ft-tbl-factory-defaults-l-ft-for-the-gripper",
+        ),
+        ("## [Links](x.md) in `snake_case` and _emphasis_", "links-in-snake_case-and-emphasis"),
+        ("## Alarms ≥ 65 C", "alarms--65-c"),
+    ],
+)
+def test_anchors_are_github_s(heading: str, anchor: str) -> None:
+    assert github_anchor(heading.lstrip("# ")) == anchor
+
+
+def test_a_repeated_heading_gets_a_numbered_anchor_and_code_is_no_heading() -> None:
+    text = "# Page\n## Cost\n```sh\n# not a heading\n```\n## Cost\n"
+    assert anchors(text) == {"page", "cost", "cost-1"}
+
+
+def test_the_link_check_finds_a_missing_file_and_a_missing_heading() -> None:
+    page = ROOT / "docs" / "glossary.md"
+    text = (
+        "[ok](deploy.md) [ok](#cost) ![ok](web.png) [web](https://example.com/none.md) `[code](none.md)`\n"
+        "## Cost\n[gone](gone.md) [no heading](deploy.md#no-such-heading) [outside](../../etc/passwd)"
+        " [x](#price)\n"
+    )
+    problems = broken_links(text, page)
+    assert [p.split(": ", 1)[1].split(" ", 1)[0] for p in problems] == [
+        "gone.md",
+        "deploy.md#no-such-heading:",
+        "../../etc/passwd",
+        "#price:",
+    ], problems
+
+
+@pytest.mark.parametrize(
+    ("text", "found"),
+    [
+        ("Targets (issue 13): with history on", ["issue 13"]),
+        ("as it did in b0149c0's quieter runs", ["b0149c0"]),
+        ("fixed in #23, see PR 41", ["#23", "PR 41"]),
+        (
+            "TheRobotStudio/SO-ARM100 issue #132; pytorch/torchx PR 969;"
+            " vantage-sh/ec2instances.info\n  issue 751",
+            [],
+        ),
+        ("aws-iot-device-sdk-java-v2#523 and https://github.com/o/r/issues/12", []),
+        ("i-0123456789abcdef0, so101-twin-2e40c0d85193, a 1795275877257 ms clock, `#1f77b4`, ## Heading", []),
+    ],
+)
+def test_the_reference_check_tells_ours_from_public_ones(text: str, found: list[str]) -> None:
+    problems = internal_references(text, ROOT / "docs" / "glossary.md")
+    assert [p.split("'")[1] for p in problems] == found, problems
+
+
+def guide_commands(text: str) -> list[str]:
+    """The `twin` command lines of a page's shell blocks, without the shell around them (variables set before
+    the command, the comment after it)."""
+    commands = []
+    for block in re.findall(r"^```(?:sh|bash)\n(.*?)^```", text, re.M | re.S):
+        for line in block.splitlines():
+            command = re.sub(r"\s+#.*$", "", line).strip()
+            match = re.match(r"(?:[A-Z_]+=\S+\s+)*(?:\.venv/bin/)?twin\s+(.*)$", command)
+            if match:
+                commands.append(match.group(1))
+    return commands
+
+
+def test_every_twin_command_in_the_guide_is_one_twin_accepts() -> None:
+    """docs/getting-started.md is typed in as written: each `twin` line must parse (the page was run through
+    once by hand; this keeps it true when a command's options change)."""
+    import shlex
+
+    from twin.cli.main import build_parser
+
+    commands = guide_commands((ROOT / "docs" / "getting-started.md").read_text(encoding="utf-8"))
+    assert len(commands) >= 15, commands
+    refused = []
+    for command in commands:
+        try:
+            build_parser().parse_args(shlex.split(command))
+        except SystemExit:
+            refused.append(command)
+    assert not refused, f"twin refuses these commands of docs/getting-started.md: {refused}"

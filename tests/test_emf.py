@@ -347,7 +347,8 @@ def test_losses_are_counted_per_interval_and_history_only_when_it_is_on(tmp_path
         75.0,
     )
     clock[0] = 120.0
-    # A worker restarted: its history writer counts from zero again, so the lower total is all new.
+    # The history writer process was started again: its commit failures count from zero again, so a lower
+    # total is all new.
     totals.append(dataclasses.replace(totals[-1], history_rows_dropped=200, history_commit_failures=4))
     third = publisher.publish_once()
     assert (third.history_rows_dropped, third.history_commit_failures, third.sink_drops) == (200, 0, 0)

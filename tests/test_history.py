@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 import pytest
-from conftest import wait_for, wait_handled
+from conftest import get_metrics, metric, wait_for, wait_handled
 from deltalake import CommitProperties, DeltaTable, Transaction, write_deltalake
 from moto_s3 import MotoS3
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
@@ -39,6 +39,7 @@ from twin.output.history import (
     telemetry_table,
 )
 from twin.output.sinks import AppliedSample, RejectedSample
+from twin.service.state import HistoryState
 
 T0 = 1_795_000_000.0  # 2026-11-18T09:46:40Z
 
@@ -453,6 +454,105 @@ def test_the_agent_keeps_every_decoded_message_also_those_the_twin_ignores(tmp_p
     assert sorted(rows["edge_time"].dt.epoch("ms").to_list()).count(t0 + 1100) == 2
     # The two garbage messages of the fed agent are rejected rows.
     assert rows_of(uri, REJECTED_TABLE).height == 2
+
+
+def test_the_writer_process_writes_what_it_received_and_a_crash_is_counted_and_survived(
+    tmp_path: Path,
+) -> None:
+    """History is written by a process of its own. It commits every row the mirror handed it; when it dies
+    holding rows not yet committed, the agent counts them as lost, starts it again, and the mirror's feed
+    carries on with the new one: nothing else goes missing."""
+    import signal
+
+    from twin.rig.mosquitto import free_port
+    from twin.service.agent import AgentService
+    from twin.service.config import load_config
+
+    uri = str(tmp_path / "history")
+    config = load_config(
+        None,
+        {
+            "broker.url": f"mqtt://127.0.0.1:{free_port()}",  # never answers: fed through feed()
+            "http.listen": "127.0.0.1:0",
+            "telemetry.devices": ["arm-001"],
+            "telemetry.units": "ticks",
+            "history.uri": uri,
+            # A commit per 20 rows and none by time: rows 21..27 wait in the writer when it is killed.
+            "history.commit_every_rows": 20,
+            "history.commit_every_s": 3600.0,
+        },
+    )
+    rng = random.Random(8)
+    t0 = int(time.time() * 1000)
+    agent = AgentService(config)
+    agent.start()
+    try:
+
+        def feed(first: int, count: int) -> None:
+            for i in range(first, first + count):
+                payload = encode(make_payload("arm-001", 0.1 * i, "ticks", rng, timestamp_ms=t0 + 100 * i))
+                agent.feed("dt/lerobot/arm-001/telemetry", payload)
+
+        def history() -> HistoryState:
+            state = agent.state().agent.history
+            assert state is not None
+            return state
+
+        feed(0, 20)
+        wait_for(lambda: history().rows_committed == 20, 60, "the first 20 rows committed")
+        feed(20, 7)
+        wait_for(lambda: history().rows_received == 27, 60, "7 more rows in the writer, not yet committed")
+        first = history()
+        assert first.writer_pid is not None and first.writer_pid != os.getpid()
+        os.kill(first.writer_pid, signal.SIGKILL)
+
+        def restarted() -> HistoryState | None:
+            state = history()
+            running = state.writer_pid is not None and state.writer_pid != first.writer_pid
+            return state if state.writer_restarts == 1 and running else None
+
+        again = wait_for(restarted, 60, "the history writer started again")
+        assert again.rows_lost == 7  # received, not committed when it died: counted
+        # ... and paged: CloudWatch's history drops include them, its worker restarts the writer's.
+        from twin.service.agent import fleet_totals
+
+        totals = fleet_totals(agent.state(), config.health.expected_rate_hz)
+        assert (totals.history_rows_dropped, totals.worker_restarts) == (7, 1)
+        samples = get_metrics(agent.http_url)
+        assert metric(samples, "twin_history_rows_lost_total") == 7
+        assert metric(samples, "twin_history_writer_restarts_total") == 1
+        feed(27, 20)
+        # The figures run on across the restart.
+        wait_for(lambda: history().rows_committed == 40, 60, "the new writer's first commit")
+        assert history().rows_received == 27 + 20
+    finally:
+        agent.stop()
+    rows = rows_of(uri)
+    # The 20 before the crash and the 20 after; the 7 the dead writer held are the ones counted lost.
+    assert rows.height == 40
+    stamps = sorted(rows["edge_time"].dt.epoch("ms").to_list())
+    assert stamps == [t0 + 100 * i for i in (*range(20), *range(27, 47))]
+
+
+def test_a_feed_that_cannot_reach_the_writer_keeps_its_bound_and_counts_what_it_drops(tmp_path: Path) -> None:
+    from twin.output.history_feed import HistoryFeed, HistoryLink
+
+    # Nobody listens here: the feed keeps trying, its queue holds at most max_pending rows.
+    feed = HistoryFeed(
+        HistoryLink(str(tmp_path / "nobody.sock"), b"key"), max_pending=50, payload_max_bytes=8
+    )
+    try:
+        for i in range(120):
+            feed.telemetry(("arm-001", 1.0 + i, 1_700_000_000_000 + i, "ticks", (0.0,) * 6, b"{}"))
+        stats = feed.stats()
+        assert feed.handed == 120
+        # At most max_pending wait; the feed's thread may hold one batch it took before the queue filled.
+        assert stats.dropped >= 120 - 2 * 50 and stats.pending <= 50
+        assert stats.delivered == 0
+        wait_for(lambda: feed.stats().errors > 0, 30, "the feed to try the writer")
+        assert "history writer out of reach" in feed.stats().last_error
+    finally:
+        feed.close(timeout=1.0)
 
 
 def test_demo_style_uri_is_created(tmp_path: Path) -> None:

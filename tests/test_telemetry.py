@@ -132,6 +132,23 @@ def test_an_arm_without_its_own_uses_the_configs_calibration_on_both_paths() -> 
     assert_angles(auto.decode(payload(TICKS_EXAMPLE, device="arm-001")), TICKS_EXAMPLE_CALIBRATION)
 
 
+def test_an_arms_own_calibration_gives_the_same_values_as_the_same_file_in_the_config() -> None:
+    """The config's calibration converts ticks through tables made once, an arm's own by arithmetic (a table
+    per arm would cost memory at fleet size): the two must agree exactly, on every tick of every joint, with
+    the gripper's clamp at both ends and an inverted gripper."""
+    data = _shifted(load_calibration(EXAMPLE_CALIBRATION).to_dict(), 0)
+    data["gripper"] = {**data["gripper"], "drive_mode": 1}
+    for cal in (load_calibration(EXAMPLE_CALIBRATION), Calibration.from_dict(data)):
+        tables = decoder(Units.TICKS, calibration=cal)
+        arithmetic = decoder(Units.TICKS)
+        arithmetic.set_calibrations({"arm-001": cal})
+        for tick in range(so101.TICK_MAX + 1):
+            positions = tuple((tick + 683 * i) % (so101.TICK_MAX + 1) for i in range(len(NAMES)))
+            a = tables.decode(payload(positions))
+            b = arithmetic.decode(payload(positions))
+            assert (a.angles_rad, a.gripper_percent) == (b.angles_rad, b.gripper_percent), positions
+
+
 def _shifted(data: dict[str, dict[str, int]], ticks: int) -> dict[str, dict[str, int]]:
     """A calibration whose every range sits `ticks` higher (its middle moves by as much)."""
     return {
@@ -852,3 +869,49 @@ def test_rejection_messages_are_unchanged(case_id: str, payload_: Any) -> None:
         except TelemetryRejected as exc:
             got[f"{units}/-"] = [str(exc.reason), str(exc)]
     assert got == GOLDEN[case_id]
+
+
+def test_diagnostic_columns_hold_what_joint_diagnostics_hold() -> None:
+    """The alarm engine's columns of many messages: value for value what each JointDiagnostics holds (sign
+    bits, both variants' velocity), and a message that leaves a field out or sends `moving` is not known."""
+    import random
+
+    from twin.core.telemetry import diagnostic_columns
+
+    rng = random.Random(21)
+    decoders = {units: TelemetryDecoder(DecoderConfig(units=units)) for units in (Units.TICKS, Units.DEGREES)}
+    messages = []
+    for k in range(400):
+        units = Units.TICKS if k % 3 else Units.DEGREES
+        joints = {}
+        for name in so101.JOINT_NAMES:
+            joints[name] = {
+                "position": rng.randint(0, 4095) if units is Units.TICKS else rng.uniform(-90, 90),
+                "velocity": rng.choice([0, 5, 32768, 32768 + 40, 65535, -7, 900]),
+                "load": rng.choice([0, 12, 1023, 1024, 1024 + 300, 2047, 2048, -50]),
+                "temp": rng.choice([30, 45.5, 70]),
+                "current": rng.choice([0, 100, 499, 12.5]),
+            }
+        if k % 17 == 0:
+            del joints["wrist_flex"]["temp"]
+        if k % 19 == 0:
+            joints["gripper"]["moving"] = True
+        if units is Units.DEGREES:
+            joints["gripper"]["position"] = rng.uniform(0, 100)
+        payload = {"device_id": "arm-001", "timestamp": 1_706_000_000_000 + k, "joints": joints}
+        messages.append(decoders[units].decode(json.dumps(payload).encode()))
+    columns = diagnostic_columns(messages)
+    fields = {
+        "temperature_c": columns.temperature_c,
+        "current_a": columns.current_a,
+        "load_percent": columns.load_percent,
+        "velocity_rad_s": columns.velocity_rad_s,
+    }
+    for k, message in enumerate(messages):
+        assert bool(columns.known[k]) == (k % 17 != 0 and k % 19 != 0), k
+        if not columns.known[k]:
+            continue
+        for j, name in enumerate(so101.JOINT_NAMES):
+            diag = message.diagnostics[name]
+            for field, column in fields.items():
+                assert float(column[k, j]) == getattr(diag, field), (k, name, field)

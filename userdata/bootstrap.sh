@@ -2,7 +2,7 @@
 # Sets up the so101-twin host and proves it works; started by the UserData (user-data.sh) with the
 # deployment settings it read from the stack's SSM parameter:
 #   bash bootstrap.sh /etc/so101-twin/deployment.env
-# Steps, in order (docs/deploy.md has the timeline and why each differs from AWS's DCV recipe):
+# Steps, in order (docs/host.md has the timeline and why each differs from AWS's DCV recipe):
 #   settings  the deployment parameter's allowed keys, all present
 #   apt       unattended-upgrades and the apt timers stopped and masked for the run; the dpkg lock free
 #   logs      the CloudWatch agent (signature checked) shipping this log from its first line, and the others
@@ -473,7 +473,7 @@ install_dcv_packages() {
   pin_key="DCV_SHA256_UBUNTU${ubuntu}_${arch^^}"
   pin="${!pin_key:-}"
   [ -n "$pin" ] || die "userdata/releases.env pins no DCV tarball for ubuntu${ubuntu}-${arch} ($pin_key):" \
-    "add it (docs/deploy.md, Updating the pinned downloads)"
+    "add it (docs/host.md, Updating the pinned downloads)"
   tarball="nice-dcv-${DCV_VERSION}-ubuntu${ubuntu}-${arch}.tgz"
   url="$DCV_CDN/${DCV_VERSION%%-*}/Servers/$tarball"
   log "installing DCV $DCV_VERSION from $url"

@@ -406,8 +406,10 @@ def test_agent_config_and_its_own_user(booted, deployed: Deployed) -> None:
     assert probe.stdout.strip() == "from requirements/host.txt", probe.stderr
 
 
-def test_host_check_reports_every_line(booted) -> None:
-    host, _ = booted
+def test_host_check_reports_every_line(booted, tmp_path: Path) -> None:
+    # On a copy: the module's booted host is shared, and this run's calls would land after the boot's signal.
+    source, _ = booted
+    host = copy_of(source, tmp_path)
     result = host.run(host.root / "opt/so101-twin/userdata/host-check.sh")
     assert result.returncode == 0, result.stdout + result.stderr
     lines = [line.split("\t") for line in result.stdout.splitlines()]

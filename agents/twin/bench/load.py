@@ -1,4 +1,6 @@
-"""Load processes for the benchmarks: a fleet publisher, a no-op subscriber (the ceiling) and a ROS 2 reader.
+"""Load processes for the benchmarks: a fleet publisher, a no-op subscriber (the ceiling), a ROS 2 reader,
+and the yardstick the cost benchmark measures the agent's CPU in (`json.loads` of one edge message, timed
+again and again while the agent runs).
 
 Each runs as its own process (`python -m twin.bench.load publish|noop ...`) so its CPU is not charged to
 the agent under test, and prints one JSON line with its counts on exit. The publisher writes its packets
@@ -232,6 +234,27 @@ def ros2_reader(arms: list[str], seconds: float) -> dict[str, Any]:
     return {"received": received, "active_s": span, "rate": received / span if span > 0 else 0.0}
 
 
+def loads_probe(seconds: float, *, calls: int = 200, every_s: float = 0.25) -> None:
+    """Time `json.loads` of one edge message (the fleet publisher's payload) in rounds of `calls`, every
+    `every_s`, for `seconds` or until SIGTERM: one JSON line per round, {"at": monotonic s, "us": CPU us per
+    call}. CPU time of this thread, not wall time: a round the scheduler interrupts still measures how fast
+    the machine runs the call, which is what the agent's CPU time is divided by. Monotonic time is the whole
+    host's, so the reader can keep the rounds of a window of its own."""
+    payload = encode(make_payload("arm-0001", 1.0, "ticks", random.Random(1), timestamp_ms=1_764_000_000_000))
+    loads = json.loads
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    print(json.dumps({"ready": True, "payload_bytes": len(payload)}), flush=True)
+    end = time.monotonic() + seconds
+    while not stop.is_set() and time.monotonic() < end:
+        started = time.thread_time_ns()
+        for _ in range(calls):
+            loads(payload)
+        spent = time.thread_time_ns() - started
+        print(json.dumps({"at": time.monotonic(), "us": spent / calls / 1000.0}), flush=True)
+        stop.wait(every_s)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m twin.bench.load")
     sub = parser.add_subparsers(dest="role", required=True)
@@ -251,11 +274,16 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--first", type=int, required=True, help="index of the first arm (arm-NNNN naming)")
     r.add_argument("--count", type=int, required=True)
     r.add_argument("--seconds", type=float, required=True)
+    lp = sub.add_parser("loads-probe")
+    lp.add_argument("--seconds", type=float, required=True)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr)
     if args.role == "publish":
         devices = [arm_name(i) for i in range(args.first, args.first + args.count)]
         result = publish(args.url, devices, args.rate, args.seconds, args.prefix, jitter_ms=args.jitter_ms)
+    elif args.role == "loads-probe":
+        loads_probe(args.seconds)
+        return 0
     elif args.role == "ros2-reader":
         arms = [arm_name(i) for i in range(args.first, args.first + args.count)]
         result = ros2_reader(arms, args.seconds)

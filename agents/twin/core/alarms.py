@@ -31,18 +31,22 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from array import array
 from collections import Counter
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum, StrEnum
-from typing import TYPE_CHECKING, Final
+from typing import TYPE_CHECKING, Any, Final
 
 from twin.robot import so101, sts3215
 
 if TYPE_CHECKING:
     # Annotations only: the config loads the alarm thresholds from here, and `twin --help` must not need the
-    # decoder's msgspec (tests/infra/test_userdata.py installs the package without its dependencies).
-    from twin.core.telemetry import JointDiagnostics
+    # decoder's msgspec (tests/infra/test_userdata.py installs the package without its dependencies); nor
+    # may the agent's receiving process, which imports this module, load numpy (evaluate_batch does, in the
+    # mirrors, which have it loaded for MuJoCo).
+
+    from twin.core.telemetry import DiagnosticColumns, JointDiagnostics
 
 
 class AlarmState(StrEnum):
@@ -92,6 +96,7 @@ _KINDS: tuple[AlarmKind, ...] = (
     AlarmKind.MODEL_MISMATCH,
 )
 _JOINT_SET = frozenset(so101.JOINT_NAMES)
+_JOINT_INDEX = {joint: i for i, joint in enumerate(so101.JOINT_NAMES)}
 # What follows the device in an alarm id (`alarm_id`), per joint and kind.
 _ID_SUFFIX = {(joint, kind): f"/{joint}/{kind.value}" for joint in so101.JOINT_NAMES for kind in AlarmKind}
 # Poses further apart than this (edge clock) say nothing about the speed between them.
@@ -283,25 +288,6 @@ class AlarmView:
     message: str
 
 
-@dataclass(slots=True)
-class _Alarm:
-    device: str
-    joint: str
-    kind: AlarmKind
-    state: AlarmState = AlarmState.NORMAL
-    since: float = 0.0
-    value: float | None = None
-    present: bool = False  # the debounced condition
-    raise_since: float | None = None
-    clear_since: float | None = None
-    raised: int = 0
-    message: str = ""
-
-    @property
-    def alarm_id(self) -> str:
-        return alarm_id(self.device, self.joint, self.kind)
-
-
 @dataclass(frozen=True, slots=True)
 class AlarmRecord:
     """What an alarm must carry across a restart: its state and the condition's debounce, the times on the
@@ -324,17 +310,6 @@ class AlarmRecord:
     @property
     def alarm_id(self) -> str:
         return alarm_id(self.device, self.joint, self.kind)
-
-
-class _JointAlarms:
-    """One joint's alarms, one slot per kind in _KINDS order (None until the kind first has a value), and
-    whether all of them are idle: not present and no raise timer running."""
-
-    __slots__ = ("alarms", "idle")
-
-    def __init__(self, alarms: list[_Alarm | None]) -> None:
-        self.alarms = alarms
-        self.idle = False  # the first evaluation takes the full path
 
 
 TorqueSource = Mapping[str, float] | Callable[[], Mapping[str, float]]
@@ -424,38 +399,6 @@ def _still(diag: JointDiagnostics, pose_speed: float | None, limit: float) -> bo
     return True
 
 
-@dataclass(frozen=True, slots=True)
-class _Evaluation:
-    """What one evaluation of a device saw, kept until the next: its JointHealth, built when first read."""
-
-    diagnostics: Mapping[str, JointDiagnostics]
-    speeds: Mapping[str, float]
-    torques: _Torques
-    checked: Mapping[str, tuple[float | None, float | None]]
-
-    def joint_health(
-        self, thresholds: AlarmThresholds, servo: sts3215.ServoVersion
-    ) -> dict[str, JointHealth]:
-        out = {}
-        for joint, diag in self.diagnostics.items():
-            if joint not in _JOINT_SET:
-                continue
-            model_check = self.checked.get(joint)
-            if model_check is not None:
-                model, mismatch = model_check
-                out[joint] = JointHealth(model_load_percent=model, mismatch_percent=mismatch, still=True)
-                continue
-            out[joint] = JointHealth(
-                mismatch_percent=None,
-                still=_still(diag, self.speeds.get(joint), thresholds.still_velocity_rad_s),
-                joint=joint,
-                torques=self.torques,
-                servo=servo,
-                voltage_v=diag.voltage_v,
-            )
-        return out
-
-
 def _model_load(
     torques: _Torques | None, servo: sts3215.ServoVersion | None, joint: str, voltage_v: float | None
 ) -> float | None:
@@ -472,40 +415,164 @@ class AlarmCounters:
     acknowledged: Counter[AlarmKind] = field(default_factory=Counter)
 
 
+# --- the engine's state: one flat array per field, a row per device ----------------------------------------
+
+# The alarm states as the arrays hold them.
+_NORMAL, _ACTIVE, _ACKNOWLEDGED, _LATCHED = 0, 1, 2, 3
+_STATES = (AlarmState.NORMAL, AlarmState.ACTIVE, AlarmState.ACKNOWLEDGED, AlarmState.LATCHED)
+_CODE = {state: code for code, state in enumerate(_STATES)}
+_JOINTS = len(so101.JOINT_NAMES)
+_N_KINDS = len(_KINDS)
+_KIND_INDEX = {kind: k for k, kind in enumerate(_KINDS)}
+# A fleet's arrays start with room for this many devices and double when full.
+_FIRST_CAPACITY = 64
+
+
+def _np() -> Any:
+    """numpy, imported on first use (TYPE_CHECKING above says why)."""
+    import numpy as np  # noqa: PLC0415
+
+    return np
+
+
+class _Fleet:
+    """Every device's alarms and last evaluation, as arrays with a row per device (ServoAlarms' slots):
+    per joint and kind (_KINDS order) whether the alarm exists (its kind has had a value), its state, whether
+    its condition is present, its raise and clear timers (NaN: not running), when it last changed, its value
+    at the last evaluation and how often it was raised; per joint the last pose (NaN: not given) with its
+    edge time, and what the last evaluation saw (speeds, model checks)."""
+
+    def __init__(self, capacity: int) -> None:
+        np = _np()
+        shape = (capacity, _JOINTS, _N_KINDS)
+        self.capacity = capacity
+        self.exists = np.zeros(shape, dtype=bool)
+        self.state = np.zeros(shape, dtype=np.int8)
+        self.present = np.zeros(shape, dtype=bool)
+        self.raise_since = np.full(shape, np.nan)
+        self.clear_since = np.full(shape, np.nan)
+        self.since = np.zeros(shape)
+        self.value = np.full(shape, np.nan)
+        self.raised = np.zeros(shape, dtype=np.int64)
+        self.pose = np.full((capacity, _JOINTS), np.nan)
+        self.pose_ms = np.zeros(capacity, dtype=np.int64)
+        self.has_pose = np.zeros(capacity, dtype=bool)
+        self.speeds = np.full((capacity, _JOINTS), np.nan)
+        self.checked = np.zeros((capacity, _JOINTS), dtype=bool)
+        self.model = np.full((capacity, _JOINTS), np.nan)
+        self.mismatch = np.full((capacity, _JOINTS), np.nan)
+
+    def grown(self) -> _Fleet:
+        bigger = _Fleet(self.capacity * 2)
+        n = self.capacity
+        for name, column in vars(self).items():
+            if name != "capacity":
+                getattr(bigger, name)[:n] = column
+        return bigger
+
+
+@dataclass
+class _Rows:
+    """K evaluations at once, each of another device, as arrays (joints in JOINT_NAMES order; NaN: the field
+    was not sent, or the joint not given)."""
+
+    slots: Any  # (K,) int64
+    diagnostics: Sequence[Mapping[str, JointDiagnostics]]
+    torques: list[TorqueSource | _Torques]  # wrapped in _Torques when first asked for
+    now: Any  # (K,)
+    given: Any  # (K, 6) bool: the joint is in the message's diagnostics
+    temperature: Any
+    current: Any
+    load: Any  # signed
+    velocity: Any
+    moving: Any  # 1.0 True, 0.0 False, NaN None
+    angles: Any  # (K, 6), NaN where not given
+    posed: Any  # (K,) bool: the evaluation came with a pose and its edge time
+    stamps: Any  # (K,) int64
+
+
+def _matrix(rows: Sequence[Sequence[float]], count: int) -> Any:
+    """(count, 6) float64 from rows of six floats (through array('d'): numpy reads nested Python sequences
+    element by element, several times slower)."""
+    flat = array("d")
+    for row in rows:
+        flat.extend(row)
+    return _np().frombuffer(flat, dtype=_np().float64).reshape(count, _JOINTS).copy()
+
+
+def _float(value: float | None) -> float:
+    return math.nan if value is None else float(value)
+
+
+def _optional(value: float) -> float | None:
+    return None if math.isnan(value) else float(value)
+
+
 class ServoAlarms:
     """Every alarm of every device. Not thread-safe: the agent's worker evaluates, and the HTTP thread's
-    acknowledgements go through the service lock like every other read of worker state."""
+    acknowledgements go through the service lock like every other read of worker state.
+
+    The state lives in flat arrays with a row per device (`_Fleet`), so `evaluate_batch` runs the rules for
+    a round of messages (one per device) in a few array operations instead of a loop per joint and kind in
+    Python: a fleet's every applied message is evaluated. Only what is rare runs per item in Python: a model
+    check (inverse dynamics), a state change and its event."""
 
     def __init__(self, thresholds: AlarmThresholds | None = None) -> None:
         self.thresholds = thresholds or AlarmThresholds()
         self._servo = self.thresholds.servo
-        self._alarms: dict[str, _Alarm] = {}
-        # What the last evaluation of each device saw; its JointHealth is built from it when read, since
-        # six objects per applied message would cost the fleet more than every reader of /state together.
-        self._last: dict[str, _Evaluation] = {}
-        self._last_pose: dict[str, tuple[int, Mapping[str, float]]] = {}
-        # Each device's alarms, for the per-device readers (worst_by_joint, views(device=...)): scanning every
-        # alarm of the fleet per device made a fleet's /state quadratic in its size.
-        self._by_device: dict[str, list[_Alarm]] = {}
         self.counters = AlarmCounters()
-        # Per device, per joint, one slot per kind (in _KINDS order): evaluate runs for every applied
-        # message, so it indexes lists instead of formatting ids.
-        self._slots: dict[str, dict[str, _JointAlarms]] = {}
-        # Rules resolved once per joint, and each joint's raise lines in _KINDS order with the lower of the
-        # two temperature lines first (the quiet check compares a temperature once).
-        self._rule_list = {
-            joint: [self.thresholds.rule(kind, joint) for kind in _KINDS] for joint in so101.JOINT_NAMES
-        }
-        self._raise_at = {joint: tuple(r.raise_at for r in rules) for joint, rules in self._rule_list.items()}
-        self._quiet = {
-            joint: (min(raise_at[0], raise_at[1]), *raise_at[1:])
-            for joint, raise_at in self._raise_at.items()
-        }
         self._rules = {
             joint: {kind: self.thresholds.rule(kind, joint) for kind in AlarmKind}
             for joint in so101.JOINT_NAMES
         }
         self._mismatch_joints = frozenset(self.thresholds.mismatch_joints)
+        # The device of each row, and the row of each device.
+        self._devices: list[str] = []
+        self._slot: dict[str, int] = {}
+        self._fleet: _Fleet | None = None  # made on the first evaluation (numpy: see TYPE_CHECKING)
+        # A raised alarm's message, by (row, joint, kind).
+        self._messages: dict[tuple[int, int, int], str] = {}
+        # The last evaluation's diagnostics and holding torques, by row (JointHealth reads them).
+        self._last_diagnostics: list[Mapping[str, JointDiagnostics] | None] = []
+        self._last_torques: list[TorqueSource | _Torques | None] = []
+        self._rule_arrays: tuple[Any, Any, Any, Any, Any] | None = None
+
+    # -- rows -----------------------------------------------------------------------------------------------
+
+    def _arrays(self) -> _Fleet:
+        fleet = self._fleet
+        if fleet is None:
+            fleet = self._fleet = _Fleet(_FIRST_CAPACITY)
+        return fleet
+
+    def _row(self, device: str) -> int:
+        """The device's row, made on its first evaluation."""
+        slot = self._slot.get(device)
+        if slot is None:
+            slot = self._slot[device] = len(self._devices)
+            self._devices.append(device)
+            self._last_diagnostics.append(None)
+            self._last_torques.append(None)
+            fleet = self._arrays()
+            if slot >= fleet.capacity:
+                self._fleet = fleet.grown()
+        return slot
+
+    def _rules_as_arrays(self) -> tuple[Any, Any, Any, Any, Any]:
+        """(raise_at, clear_at, raise_after_s, clear_after_s) per joint and kind, and the joints the model
+        check looks at."""
+        arrays = self._rule_arrays
+        if arrays is None:
+            np = _np()
+            rules = [[self._rules[joint][kind] for kind in _KINDS] for joint in so101.JOINT_NAMES]
+            arrays = self._rule_arrays = (
+                np.array([[r.raise_at for r in row] for row in rules]),
+                np.array([[r.clear_at for r in row] for row in rules]),
+                np.array([[r.raise_after_s for r in row] for row in rules]),
+                np.array([[r.clear_after_s for r in row] for row in rules]),
+                np.array([joint in self._mismatch_joints for joint in so101.JOINT_NAMES]),
+            )
+        return arrays
 
     # -- evaluation -------------------------------------------------------------------------------------
 
@@ -527,232 +594,319 @@ class ServoAlarms:
         """
         if not self.thresholds.enabled:
             return []
-        speeds = self._pose_speeds(device, angles_rad, timestamp_ms)
-        events: list[AlarmEvent] = []
-        slots_of = self._slots.get(device)
-        if slots_of is None:
-            slots_of = self._slots[device] = {}
-        torques = _Torques(holding_torques_nm)
-        mismatch_joints = self._mismatch_joints
-        # Joints whose model check ran (still, load known): (model load %, mismatch) for their JointHealth.
-        checked: dict[str, tuple[float | None, float | None]] = {}
+        np = _np()
+        rows = self._rows_of([device], [diagnostics], [holding_torques_nm], [now])
+        if angles_rad is not None and timestamp_ms is not None:
+            rows.angles[0] = [_float(angles_rad.get(j)) for j in so101.JOINT_NAMES]
+            rows.posed[0] = True
+            rows.stamps[0] = timestamp_ms
+        rows.stamps = np.asarray(rows.stamps, dtype=np.int64)
+        return self._evaluate(rows)[0]
+
+    def evaluate_batch(
+        self,
+        devices: Sequence[str],
+        diagnostics: Sequence[Mapping[str, JointDiagnostics]],
+        *,
+        columns: DiagnosticColumns,
+        angles: Sequence[Sequence[float]],
+        timestamps_ms: Sequence[int],
+        now: Sequence[float],
+        holding_torques_nm: Sequence[TorqueSource],
+    ) -> list[list[AlarmEvent]]:
+        """`evaluate` for many applied messages, each of another device: row k is `devices[k]`, its
+        diagnostics (as `columns` row k holds them, where it knows them), its applied pose in JOINT_NAMES
+        order with its edge time, its receive time and its holding torques. Returns each message's events,
+        as `evaluate` one by one would."""
+        count = len(devices)
+        if not self.thresholds.enabled:
+            return [[] for _ in range(count)]
+        np = _np()
+        slots = np.fromiter((self._row(d) for d in devices), dtype=np.int64, count=count)
+        known = columns.known
+        nan = np.full((count, _JOINTS), np.nan)
+        rows = _Rows(
+            slots=slots,
+            diagnostics=diagnostics,
+            torques=list(holding_torques_nm),
+            now=np.asarray(now, dtype=np.float64),
+            given=np.ones((count, _JOINTS), dtype=bool),
+            temperature=columns.temperature_c,
+            current=columns.current_a,
+            load=columns.load_percent,
+            velocity=columns.velocity_rad_s,
+            moving=nan,
+            angles=_matrix(angles, count),
+            posed=np.ones(count, dtype=bool),
+            stamps=np.asarray(timestamps_ms, dtype=np.int64),
+        )
+        if not known.all():
+            # What the columns do not hold (a field left out, a Moving flag), from the diagnostics themselves.
+            rows.moving = nan.copy()
+            for k in np.flatnonzero(~known).tolist():
+                rows.given[k] = False
+                self._fill(rows, k, diagnostics[k])
+        return self._evaluate(rows)
+
+    def _rows_of(
+        self,
+        devices: Sequence[str],
+        diagnostics: Sequence[Mapping[str, JointDiagnostics]],
+        torques: Sequence[TorqueSource],
+        now: Sequence[float],
+    ) -> _Rows:
+        np = _np()
+        count = len(devices)
+        rows = _Rows(
+            slots=np.fromiter((self._row(d) for d in devices), dtype=np.int64, count=count),
+            diagnostics=diagnostics,
+            torques=list(torques),
+            now=np.asarray(now, dtype=np.float64),
+            given=np.zeros((count, _JOINTS), dtype=bool),
+            temperature=np.full((count, _JOINTS), np.nan),
+            current=np.full((count, _JOINTS), np.nan),
+            load=np.full((count, _JOINTS), np.nan),
+            velocity=np.full((count, _JOINTS), np.nan),
+            moving=np.full((count, _JOINTS), np.nan),
+            angles=np.full((count, _JOINTS), np.nan),
+            posed=np.zeros(count, dtype=bool),
+            stamps=[0] * count,
+        )
+        for k, diag in enumerate(diagnostics):
+            self._fill(rows, k, diag)
+        return rows
+
+    @staticmethod
+    def _fill(rows: _Rows, k: int, diagnostics: Mapping[str, JointDiagnostics]) -> None:
+        """Row k's readings, from its JointDiagnostics (joints the SO-101 does not have are left out)."""
         for joint, diag in diagnostics.items():
-            if joint not in self._rule_list:
+            j = _JOINT_INDEX.get(joint)
+            if j is None:
                 continue
-            load = diag.load_percent
-            model = mismatch = None
-            if joint in mismatch_joints and load is not None:
-                model, mismatch = self._model_check(
-                    joint, diag, load, pose_speed=speeds.get(joint), torques=torques, checked=checked
-                )
-            temp = diag.temperature_c
-            current = diag.current_a
-            slots = slots_of.get(joint)
-            if slots is None:
-                slots = slots_of[joint] = _JointAlarms([None] * len(_KINDS))
-            elif slots.idle:
-                # The common case, a quiet servo: every value below its line (and already given an alarm to
-                # remember it by), nothing raised or pending on the joint: nothing can change. The views
-                # read the values from the last evaluation, so nothing is written either. Inline, not a call:
-                # it runs for every joint of every applied message.
-                quiet = self._quiet[joint]
-                alarms = slots.alarms
-                if (
-                    (temp is None or (temp < quiet[0] and alarms[0] is not None))
-                    and (current is None or (current < quiet[2] and alarms[2] is not None))
-                    and (load is None or (abs(load) < quiet[3] and alarms[3] is not None))
-                    and (mismatch is None or (mismatch < quiet[4] and alarms[4] is not None))
-                ):
+            rows.given[k, j] = True
+            rows.temperature[k, j] = _float(diag.temperature_c)
+            rows.current[k, j] = _float(diag.current_a)
+            rows.load[k, j] = _float(diag.load_percent)
+            rows.velocity[k, j] = _float(diag.velocity_rad_s)
+            rows.moving[k, j] = math.nan if diag.moving is None else float(bool(diag.moving))
+
+    def _evaluate(self, rows: _Rows) -> list[list[AlarmEvent]]:
+        """The rules for every row at once (module doc; each row a device of its own)."""
+        np = _np()
+        fleet = self._arrays()
+        slots = rows.slots
+        count = len(slots)
+        raise_at, clear_at, raise_after, clear_after, check_joints = self._rules_as_arrays()
+        limit = self.thresholds.still_velocity_rad_s
+
+        # The pose against the device's last one (edge clock), only for consecutive-looking samples.
+        before = fleet.pose[slots]
+        dt = (rows.stamps - fleet.pose_ms[slots]) / 1000.0
+        timed = rows.posed & fleet.has_pose[slots] & (dt > 0.0) & (dt <= MAX_POSE_GAP_S)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            speeds = np.abs(rows.angles - before) / np.where(timed, dt, 1.0)[:, None]
+        speeds[~timed] = np.nan
+        posed = slots[rows.posed]
+        fleet.pose[posed] = rows.angles[rows.posed]
+        fleet.pose_ms[posed] = rows.stamps[rows.posed]
+        fleet.has_pose[posed] = True
+
+        # Still (as _still): no sign of motion, and some sign of rest.
+        # (Comparisons with NaN, the unknown, are false.)
+        motion = (rows.moving == 1.0) | (np.abs(rows.velocity) > limit) | (speeds > limit)
+        still = ~motion & ~(np.isnan(rows.velocity) & np.isnan(speeds) & np.isnan(rows.moving))
+        # The model check: a still joint it looks at, with a load; its holding torque comes from inverse
+        # dynamics, one row at a time, only here.
+        checked = rows.given & check_joints & still & ~np.isnan(rows.load)
+        model = np.full((count, _JOINTS), np.nan)
+        mismatch = np.full((count, _JOINTS), np.nan)
+        torques = rows.torques
+        if checked.any():
+            for k, j in zip(*np.nonzero(checked), strict=True):
+                joint = so101.JOINT_NAMES[j]
+                source = torques[k]
+                if not isinstance(source, _Torques):
+                    source = torques[k] = _Torques(source)
+                value = _model_load(source, self._servo, joint, rows.diagnostics[k][joint].voltage_v)
+                if value is not None:
+                    model[k, j] = value
+                    mismatch[k, j] = abs(abs(float(rows.load[k, j])) - value)
+
+        # The values of each kind, in _KINDS order: temperature twice, current, |load|, model mismatch.
+        values = np.stack(
+            (rows.temperature, rows.temperature, rows.current, np.abs(rows.load), mismatch), axis=2
+        )
+        given = rows.given[:, :, None]
+        exists = fleet.exists[slots]
+        created = given & ~exists & ~np.isnan(values)
+        now = rows.now[:, None, None]
+        if created.any():
+            # An alarm comes to be when its kind first has a value (nothing known, nothing to remember).
+            exists |= created
+            fleet.exists[slots] = exists
+            fleet.since[slots] = np.where(created, now, fleet.since[slots])
+        evaluated = given & exists
+
+        above = evaluated & (values >= raise_at)
+        below = evaluated & (values <= clear_at)
+        present = fleet.present[slots]
+        # The raise timer runs while the value stays at or above the line and the condition is not yet
+        # present; the clear timer while it stays at or below the clear line and the condition is present.
+        # Anything else stops both: unknown, or between the lines (hold, and start afresh next time).
+        raise_since = fleet.raise_since[slots]
+        raise_since = np.where(above & ~present, np.where(np.isnan(raise_since), now, raise_since), np.nan)
+        raise_since = np.where(evaluated, raise_since, fleet.raise_since[slots])
+        clear_since = fleet.clear_since[slots]
+        clear_since = np.where(below & present, np.where(np.isnan(clear_since), now, clear_since), np.nan)
+        clear_since = np.where(evaluated, clear_since, fleet.clear_since[slots])
+        raising = above & ~present & (now - raise_since >= raise_after)
+        clearing = below & present & (now - clear_since >= clear_after)
+        fleet.raise_since[slots] = raise_since
+        fleet.clear_since[slots] = clear_since
+        fleet.value[slots] = np.where(evaluated, values, fleet.value[slots])
+        out: list[list[AlarmEvent]] = [[] for _ in range(count)]
+        if raising.any() or clearing.any():
+            self._changes(rows, (raising, clearing, values, model), out)
+
+        # What this evaluation saw, for JointHealth.
+        fleet.speeds[slots] = speeds
+        fleet.checked[slots] = checked
+        fleet.model[slots] = model
+        fleet.mismatch[slots] = mismatch
+        last_diagnostics, last_torques = self._last_diagnostics, self._last_torques
+        for k, slot in enumerate(slots.tolist()):
+            last_diagnostics[slot] = rows.diagnostics[k]
+            last_torques[slot] = torques[k]
+        return out
+
+    def _changes(self, rows: _Rows, found: tuple[Any, Any, Any, Any], out: list[list[AlarmEvent]]) -> None:
+        """The rows' raises and clears (rare): states, counters, messages and events, each row's in the order
+        of its diagnostics' joints, then _KINDS."""
+        np = _np()
+        raising, clearing, values, model = found
+        fleet = self._arrays()
+        latch = self.thresholds.latch
+        for k in np.flatnonzero((raising | clearing).any(axis=(1, 2))).tolist():
+            slot = int(rows.slots[k])
+            now = float(rows.now[k])
+            for joint in rows.diagnostics[k]:
+                j = _JOINT_INDEX.get(joint)
+                if j is None:
                     continue
-            values = (temp, temp, current, None if load is None else abs(load), mismatch)
-            self._step_joint(device, joint, slots, values, model=model, now=now, events=events)
-        self._last[device] = _Evaluation(diagnostics, speeds, torques, checked)
-        return events
+                for n in range(_N_KINDS):
+                    kind = _KINDS[n]
+                    rule = self._rules[joint][kind]
+                    value = float(values[k, j, n])
+                    at = (slot, j, n)
+                    if raising[k, j, n]:
+                        fleet.present[at] = True
+                        fleet.raise_since[at] = math.nan
+                        fleet.raised[at] += 1
+                        checked = _optional(float(model[k, j]))
+                        self._messages[at] = _describe(joint, kind, value, rule, checked)
+                        out[k].append(self._move(at, _ACTIVE, "raised", now=now))
+                        self.counters.raised[(kind, SEVERITY[kind])] += 1
+                    elif clearing[k, j, n]:
+                        fleet.present[at] = False
+                        fleet.clear_since[at] = math.nan
+                        self.counters.cleared[kind] += 1
+                        latched = fleet.state[at] == _ACTIVE and latch
+                        out[k].append(self._move(at, _LATCHED if latched else _NORMAL, "cleared", now=now))
 
-    def _model_check(
-        self,
-        joint: str,
-        diag: JointDiagnostics,
-        load: float,
-        *,
-        pose_speed: float | None,
-        torques: _Torques,
-        checked: dict[str, tuple[float | None, float | None]],
-    ) -> tuple[float | None, float | None]:
-        """(model load %, | |load| - model |) while the joint is still (recorded in `checked`), else Nones."""
-        if not _still(diag, pose_speed, self.thresholds.still_velocity_rad_s):
-            return None, None
-        model = _model_load(torques, self._servo, joint, diag.voltage_v)
-        mismatch = None if model is None else abs(abs(load) - model)
-        checked[joint] = (model, mismatch)
-        return model, mismatch
-
-    def _step_joint(
-        self,
-        device: str,
-        joint: str,
-        slots: _JointAlarms,
-        values: tuple[float | None, ...],
-        *,
-        model: float | None,
-        now: float,
-        events: list[AlarmEvent],
-    ) -> None:
-        """Every kind of one joint that is not quiet steps through its rule (values in _KINDS order); the
-        joint is idle afterwards when none of its alarms is present or timing a raise."""
-        alarms = slots.alarms
-        rules = self._rule_list[joint]
-        raise_at = self._raise_at[joint]
-        idle = True
-        for k, value in enumerate(values):
-            alarm = alarms[k]
-            if alarm is None:
-                if value is None:
-                    continue  # nothing known, nothing to remember
-                alarm = alarms[k] = self._new_alarm(device, joint, _KINDS[k], now)
-            elif (
-                value is not None and value < raise_at[k] and not alarm.present and alarm.raise_since is None
-            ):
-                continue  # quiet: nothing to change (the views read the value from the evaluation)
-            self._step(alarm, value, rules[k], now=now, events=events, model=model)
-            if alarm.present or alarm.raise_since is not None:
-                idle = False
-        slots.idle = idle
-
-    def _new_alarm(self, device: str, joint: str, kind: AlarmKind, now: float) -> _Alarm:
-        alarm = _Alarm(device, joint, kind, since=now)
-        # alarm_id's f-string formats the StrEnum, slowly; a new arm creates its 29 alarms at once.
-        self._alarms[device + _ID_SUFFIX[joint, kind]] = alarm
-        self._by_device.setdefault(device, []).append(alarm)
-        return alarm
+    def _move(self, at: tuple[int, int, int], state: int, action: str, *, now: float) -> AlarmEvent:
+        """Alarm `at` (row, joint, kind) to `state`; its event."""
+        fleet = self._arrays()
+        slot, j, n = at
+        previous = _STATES[int(fleet.state[at])]
+        fleet.state[at] = state
+        fleet.since[at] = now
+        joint, kind = so101.JOINT_NAMES[j], _KINDS[n]
+        rule = self._rules[joint][kind]
+        new = _STATES[state]
+        if action == "raised":
+            message = self._messages.get(at, "")
+        elif action == "cleared":
+            latched = " (latched until acknowledged)" if new is AlarmState.LATCHED else ""
+            message = (
+                f"{joint} {kind} cleared: at or below {rule.clear_at:g} {UNITS[kind]} for "
+                f"{rule.clear_after_s:g} s{latched}"
+            )
+        else:
+            message = f"{joint} {kind} {action} by a person"
+        device = self._devices[slot]
+        return AlarmEvent(
+            alarm_id=device + _ID_SUFFIX[joint, kind],
+            device=device,
+            joint=joint,
+            kind=kind,
+            severity=SEVERITY[kind],
+            previous=previous,
+            state=new,
+            action=action,
+            value=_optional(float(fleet.value[at])),
+            threshold=rule.raise_at if action == "raised" else rule.clear_at,
+            at=now,
+            message=message,
+        )
 
     def _pose_speeds(
         self, device: str, angles: Mapping[str, float] | None, timestamp_ms: int | None
     ) -> dict[str, float]:
-        """|dθ/dt| per joint between this pose and the last one (edge clock), when both are known."""
+        """|dθ/dt| per joint between this pose and the device's last one (edge clock), when both are known;
+        the pose becomes the last one."""
         if angles is None or timestamp_ms is None:
             return {}
-        previous = self._last_pose.get(device)
-        self._last_pose[device] = (timestamp_ms, dict(angles))
-        if previous is None:
+        slot = self._row(device)
+        fleet = self._arrays()
+        before = fleet.pose[slot].copy()
+        had, last_ms = bool(fleet.has_pose[slot]), int(fleet.pose_ms[slot])
+        fleet.pose[slot] = [_float(angles.get(j)) for j in so101.JOINT_NAMES]
+        fleet.pose_ms[slot] = timestamp_ms
+        fleet.has_pose[slot] = True
+        if not had:
             return {}
-        dt = (timestamp_ms - previous[0]) / 1000.0
+        dt = (timestamp_ms - last_ms) / 1000.0
         # Only consecutive-looking samples: across a gap of seconds the arm may have moved and come back.
         if not 0.0 < dt <= MAX_POSE_GAP_S:
             return {}
-        last = previous[1]
-        return {j: abs(a - last[j]) / dt for j, a in angles.items() if j in last}
-
-    def _step(
-        self,
-        alarm: _Alarm,
-        value: float | None,
-        rule: Hysteresis,
-        *,
-        now: float,
-        events: list[AlarmEvent],
-        model: float | None = None,
-    ) -> None:
-        kind = alarm.kind
-        alarm.value = value
-        if value is None or rule.clear_at < value < rule.raise_at:
-            # Between the lines, or unknown: hold, and make a new excursion start its timer afresh.
-            alarm.raise_since = alarm.clear_since = None
-            return
-        if value >= rule.raise_at:
-            alarm.clear_since = None
-            if alarm.present:
-                return
-            if alarm.raise_since is None:
-                alarm.raise_since = now
-            if now - alarm.raise_since >= rule.raise_after_s:
-                alarm.present = True
-                alarm.raise_since = None
-                alarm.raised += 1
-                alarm.message = _describe(alarm, value, rule, model)
-                # From NORMAL or LATCHED (ACKNOWLEDGED always has its condition present, so never here).
-                self._move(alarm, AlarmState.ACTIVE, "raised", rule=rule, now=now, events=events)
-                self.counters.raised[(kind, SEVERITY[kind])] += 1
-            return
-        alarm.raise_since = None
-        if not alarm.present:
-            return
-        if alarm.clear_since is None:
-            alarm.clear_since = now
-        if now - alarm.clear_since >= rule.clear_after_s:
-            alarm.present = False
-            alarm.clear_since = None
-            self.counters.cleared[kind] += 1
-            if alarm.state is AlarmState.ACTIVE and self.thresholds.latch:
-                self._move(alarm, AlarmState.LATCHED, "cleared", rule=rule, now=now, events=events)
-            else:
-                self._move(alarm, AlarmState.NORMAL, "cleared", rule=rule, now=now, events=events)
-
-    def _move(
-        self,
-        alarm: _Alarm,
-        state: AlarmState,
-        action: str,
-        *,
-        rule: Hysteresis,
-        now: float,
-        events: list[AlarmEvent],
-    ) -> None:
-        previous = alarm.state
-        alarm.state = state
-        alarm.since = now
-        if action == "raised":
-            message = alarm.message
-        elif action == "cleared":
-            message = (
-                f"{alarm.joint} {alarm.kind} cleared: at or below {rule.clear_at:g} {UNITS[alarm.kind]} for "
-                f"{rule.clear_after_s:g} s"
-                + (" (latched until acknowledged)" if state is AlarmState.LATCHED else "")
-            )
-        else:
-            message = f"{alarm.joint} {alarm.kind} {action} by a person"
-        events.append(
-            AlarmEvent(
-                alarm_id=alarm.alarm_id,
-                device=alarm.device,
-                joint=alarm.joint,
-                kind=alarm.kind,
-                severity=SEVERITY[alarm.kind],
-                previous=previous,
-                state=state,
-                action=action,
-                value=alarm.value,
-                threshold=rule.raise_at if action == "raised" else rule.clear_at,
-                at=now,
-                message=message,
-            )
-        )
+        return {
+            j: abs(a - float(before[_JOINT_INDEX[j]])) / dt
+            for j, a in angles.items()
+            if j in _JOINT_INDEX and not math.isnan(before[_JOINT_INDEX[j]])
+        }
 
     # -- restarts -------------------------------------------------------------------------------------------
 
     def records(self, *, devices: Iterable[str] | None = None) -> list[AlarmRecord]:
         """Every alarm that is not NORMAL or whose condition is present or timing a raise (a NORMAL, idle
         alarm is made again from the next message), of `devices` or of all."""
+        fleet = self._fleet
+        if fleet is None:
+            return []
         wanted = None if devices is None else set(devices)
         out = []
-        for alarm in self._alarms.values():
-            if wanted is not None and alarm.device not in wanted:
+        for at in self._existing():
+            slot, j, n = at
+            device = self._devices[slot]
+            if wanted is not None and device not in wanted:
                 continue
-            if alarm.state is AlarmState.NORMAL and not alarm.present and alarm.raise_since is None:
+            state, present = int(fleet.state[at]), bool(fleet.present[at])
+            raise_since = _optional(float(fleet.raise_since[at]))
+            if state == _NORMAL and not present and raise_since is None:
                 continue
             out.append(
                 AlarmRecord(
-                    device=alarm.device,
-                    joint=alarm.joint,
-                    kind=alarm.kind,
-                    state=alarm.state,
-                    since=alarm.since,
-                    present=alarm.present,
-                    raised=alarm.raised,
-                    value=alarm.value,
-                    message=alarm.message,
-                    raise_since=alarm.raise_since,
-                    clear_since=alarm.clear_since,
+                    device=device,
+                    joint=so101.JOINT_NAMES[j],
+                    kind=_KINDS[n],
+                    state=_STATES[state],
+                    since=float(fleet.since[at]),
+                    present=present,
+                    raised=int(fleet.raised[at]),
+                    value=_optional(float(fleet.value[at])),
+                    message=self._messages.get(at, ""),
+                    raise_since=raise_since,
+                    clear_since=_optional(float(fleet.clear_since[at])),
                 )
             )
         return out
@@ -763,27 +917,25 @@ class ServoAlarms:
         skipped. Returns how many were restored."""
         restored = 0
         for record in records:
-            if record.joint not in self._rule_list or record.kind not in _KINDS:
+            j = _JOINT_INDEX.get(record.joint)
+            n = _KIND_INDEX.get(record.kind)
+            if j is None or n is None:
                 continue
-            key = record.device + _ID_SUFFIX[record.joint, record.kind]
-            alarm = self._alarms.get(key)
-            slots_of = self._slots.setdefault(record.device, {})
-            slots = slots_of.get(record.joint)
-            if slots is None:
-                slots = slots_of[record.joint] = _JointAlarms([None] * len(_KINDS))
-            if alarm is None:
-                alarm = self._new_alarm(record.device, record.joint, record.kind, record.since)
-                slots.alarms[_KINDS.index(record.kind)] = alarm
-            # The joint's next evaluation takes the full path, so a restored condition can clear.
-            slots.idle = False
-            alarm.state = record.state
-            alarm.since = record.since
-            alarm.present = record.present
-            alarm.raised = record.raised
-            alarm.value = record.value
-            alarm.message = record.message
-            alarm.raise_since = record.raise_since
-            alarm.clear_since = record.clear_since
+            slot = self._row(record.device)
+            fleet = self._arrays()  # after _row: it may have grown the arrays
+            at = (slot, j, n)
+            fleet.exists[at] = True
+            fleet.state[at] = _CODE[record.state]
+            fleet.since[at] = record.since
+            fleet.present[at] = record.present
+            fleet.raised[at] = record.raised
+            fleet.value[at] = _float(record.value)
+            fleet.raise_since[at] = _float(record.raise_since)
+            fleet.clear_since[at] = _float(record.clear_since)
+            if record.message:
+                self._messages[at] = record.message
+            else:
+                self._messages.pop(at, None)
             restored += 1
         return restored
 
@@ -795,110 +947,201 @@ class ServoAlarms:
 
     # -- people ---------------------------------------------------------------------------------------------
 
+    def _find(self, alarm_id_: str) -> tuple[int, int, int] | None:
+        device, _, rest = alarm_id_.partition("/")
+        joint, _, kind_name = rest.partition("/")
+        slot = self._slot.get(device)
+        j = _JOINT_INDEX.get(joint)
+        try:
+            n = _KIND_INDEX[AlarmKind(kind_name)]
+        except ValueError:
+            return None
+        if slot is None or j is None or self._fleet is None or not self._fleet.exists[slot, j, n]:
+            return None
+        return (slot, j, n)
+
     def acknowledge(self, alarm_id_: str, now: float) -> AlarmEvent:
         """ACTIVE -> ACKNOWLEDGED, LATCHED -> NORMAL (SiteWise's acknowledge and reset in one verb).
 
         Raises AlarmNotFound for an unknown id and NothingToAcknowledge for a NORMAL or ACKNOWLEDGED alarm.
         """
-        alarm = self._alarms.get(alarm_id_)
-        if alarm is None:
+        at = self._find(alarm_id_)
+        if at is None:
             raise AlarmNotFound(alarm_id_)
-        if alarm.state is AlarmState.ACTIVE:
-            target, action = AlarmState.ACKNOWLEDGED, "acknowledged"
-        elif alarm.state is AlarmState.LATCHED:
-            target, action = AlarmState.NORMAL, "reset"
+        state = int(self._arrays().state[at])
+        if state == _ACTIVE:
+            target, action = _ACKNOWLEDGED, "acknowledged"
+        elif state == _LATCHED:
+            target, action = _NORMAL, "reset"
         else:
             raise NothingToAcknowledge(
-                f"alarm {alarm_id_} is {alarm.state}: only ACTIVE or LATCHED alarms can be acknowledged"
+                f"alarm {alarm_id_} is {_STATES[state]}: only ACTIVE or LATCHED alarms can be acknowledged"
             )
-        events: list[AlarmEvent] = []
-        rule = self._rules[alarm.joint][alarm.kind]
-        self._move(alarm, target, action, rule=rule, now=now, events=events)
-        self.counters.acknowledged[alarm.kind] += 1
-        return events[0]
+        event = self._move(at, target, action, now=now)
+        self.counters.acknowledged[_KINDS[at[2]]] += 1
+        return event
 
     # -- views ----------------------------------------------------------------------------------------------
 
     def get(self, alarm_id_: str) -> AlarmView | None:
-        alarm = self._alarms.get(alarm_id_)
-        return None if alarm is None else self._view(alarm)
+        at = self._find(alarm_id_)
+        return None if at is None else self._view(at)
 
     def views_of(self, alarm_ids: Iterable[str]) -> list[AlarmView]:
         """The named alarms; raises AlarmNotFound for an unknown id."""
         out = []
         for key in alarm_ids:
-            alarm = self._alarms.get(key)
-            if alarm is None:
+            at = self._find(key)
+            if at is None:
                 raise AlarmNotFound(key)
-            out.append(self._view(alarm))
+            out.append(self._view(at))
         return out
+
+    def _existing(self, device: str | None = None) -> list[tuple[int, int, int]]:
+        """(row, joint, kind) of every alarm that exists, of one device or all."""
+        fleet = self._fleet
+        if fleet is None:
+            return []
+        np = _np()
+        if device is None:
+            rows = len(self._devices)
+            found = np.argwhere(fleet.exists[:rows])
+            return [(int(s), int(j), int(n)) for s, j, n in found.tolist()]
+        slot = self._slot.get(device)
+        if slot is None:
+            return []
+        return [(slot, int(j), int(n)) for j, n in np.argwhere(fleet.exists[slot]).tolist()]
 
     def views(self, *, include_normal: bool = False, device: str | None = None) -> list[AlarmView]:
         """Alarms sorted worst first (severity, then state, then id); NORMAL ones only when asked."""
-        alarms = self._alarms.values() if device is None else self._by_device.get(device, ())
-        out = [self._view(a) for a in alarms if include_normal or a.state is not AlarmState.NORMAL]
+        fleet = self._fleet
+        if fleet is None:
+            return []
+        out = [
+            self._view(at) for at in self._existing(device) if include_normal or fleet.state[at] != _NORMAL
+        ]
         out.sort(key=lambda v: worst_first(v.severity, v.state, v.alarm_id))
         return out
 
-    def _view(self, alarm: _Alarm) -> AlarmView:
-        rule = self._rules[alarm.joint][alarm.kind]
+    def _view(self, at: tuple[int, int, int]) -> AlarmView:
+        fleet = self._arrays()
+        slot, j, n = at
+        joint, kind = so101.JOINT_NAMES[j], _KINDS[n]
+        device = self._devices[slot]
         return AlarmView(
-            alarm_id=alarm.alarm_id,
-            device=alarm.device,
-            joint=alarm.joint,
-            kind=alarm.kind,
-            severity=SEVERITY[alarm.kind],
-            state=alarm.state,
-            value=self._value_of(alarm),
-            threshold=rule.raise_at,
-            unit=UNITS[alarm.kind],
-            since=alarm.since,
-            raised=alarm.raised,
-            message=alarm.message,
+            alarm_id=device + _ID_SUFFIX[joint, kind],
+            device=device,
+            joint=joint,
+            kind=kind,
+            severity=SEVERITY[kind],
+            state=_STATES[int(fleet.state[at])],
+            value=self._value_of(at),
+            threshold=self._rules[joint][kind].raise_at,
+            unit=UNITS[kind],
+            since=float(fleet.since[at]),
+            raised=int(fleet.raised[at]),
+            message=self._messages.get(at, ""),
         )
 
-    def _value_of(self, alarm: _Alarm) -> float | None:
-        """The alarm's value at the device's last evaluation (a quiet evaluation does not write it)."""
-        last = self._last.get(alarm.device)
-        diag = None if last is None else last.diagnostics.get(alarm.joint)
-        if last is None or diag is None:
-            return alarm.value  # the joint was not in the last message: what it had when last evaluated
-        kind = alarm.kind
+    def _value_of(self, at: tuple[int, int, int]) -> float | None:
+        """The alarm's value at the device's last evaluation."""
+        fleet = self._arrays()
+        slot, j, n = at
+        diagnostics = self._last_diagnostics[slot]
+        diag = None if diagnostics is None else diagnostics.get(so101.JOINT_NAMES[j])
+        if diag is None:
+            return _optional(float(fleet.value[at]))  # not in the last message: what it had when last seen
+        kind = _KINDS[n]
         if kind is AlarmKind.OVER_TEMPERATURE or kind is AlarmKind.OVER_TEMPERATURE_CRITICAL:
             return diag.temperature_c
         if kind is AlarmKind.OVER_CURRENT:
             return diag.current_a
         if kind is AlarmKind.OVERLOAD:
             return None if diag.load_percent is None else abs(diag.load_percent)
-        checked = last.checked.get(alarm.joint)
-        return None if checked is None else checked[1]
+        return _optional(float(fleet.mismatch[slot, j])) if fleet.checked[slot, j] else None
 
     def joint_health(self, device: str) -> dict[str, JointHealth]:
-        last = self._last.get(device)
-        return {} if last is None else last.joint_health(self.thresholds, self._servo)
+        slot = self._slot.get(device)
+        diagnostics = None if slot is None else self._last_diagnostics[slot]
+        if slot is None or diagnostics is None:
+            return {}
+        fleet = self._arrays()
+        limit = self.thresholds.still_velocity_rad_s
+        out = {}
+        for joint, diag in diagnostics.items():
+            j = _JOINT_INDEX.get(joint)
+            if j is None:
+                continue
+            if fleet.checked[slot, j]:
+                out[joint] = JointHealth(
+                    model_load_percent=_optional(float(fleet.model[slot, j])),
+                    mismatch_percent=_optional(float(fleet.mismatch[slot, j])),
+                    still=True,
+                )
+                continue
+            out[joint] = JointHealth(
+                mismatch_percent=None,
+                still=_still(diag, _optional(float(fleet.speeds[slot, j])), limit),
+                joint=joint,
+                torques=self._torques_of(slot),
+                servo=self._servo,
+                voltage_v=diag.voltage_v,
+            )
+        return out
+
+    def _torques_of(self, slot: int) -> _Torques | None:
+        """The holding torques of the row's last evaluation, asked for at most once from now on."""
+        source = self._last_torques[slot]
+        if source is None or isinstance(source, _Torques):
+            return source
+        torques = self._last_torques[slot] = _Torques(source)
+        return torques
 
     def worst_by_joint(self, device: str) -> dict[str, tuple[Severity, AlarmState]]:
         """Per joint, the severity and state of its worst alarm that is not NORMAL (the viewer's colour)."""
+        fleet = self._fleet
         worst: dict[str, tuple[Severity, AlarmState]] = {}
-        for alarm in self._by_device.get(device, ()):
-            if alarm.state is AlarmState.NORMAL:
+        for at in self._existing(device):
+            assert fleet is not None
+            state = _STATES[int(fleet.state[at])]
+            if state is AlarmState.NORMAL:
                 continue
-            candidate = (SEVERITY[alarm.kind], alarm.state)
-            current = worst.get(alarm.joint)
+            joint = so101.JOINT_NAMES[at[1]]
+            candidate = (SEVERITY[_KINDS[at[2]]], state)
+            current = worst.get(joint)
             if current is None or _worse(candidate, current):
-                worst[alarm.joint] = candidate
+                worst[joint] = candidate
         return worst
 
     def counts_by_state(self) -> Counter[tuple[Severity, AlarmState]]:
-        return Counter((SEVERITY[a.kind], a.state) for a in self._alarms.values())
+        fleet = self._fleet
+        counts: Counter[tuple[Severity, AlarmState]] = Counter()
+        if fleet is None:
+            return counts
+        np = _np()
+        rows = len(self._devices)
+        exists, state = fleet.exists[:rows], fleet.state[:rows]
+        for n, kind in enumerate(_KINDS):
+            codes = state[:, :, n][exists[:, :, n]]
+            for code, count in enumerate(np.bincount(codes, minlength=len(_STATES)).tolist()):
+                if count:
+                    counts[(SEVERITY[kind], _STATES[code])] += count
+        return counts
 
     def present_by_severity(self, devices: Iterable[str] | None = None) -> dict[Severity, int]:
         """How many alarms have their condition present (ACTIVE or ACKNOWLEDGED), by severity."""
-        wanted = None if devices is None else set(devices)
         out = dict.fromkeys(Severity, 0)
-        for alarm in self._alarms.values():
-            if alarm.state in CONDITION_PRESENT and (wanted is None or alarm.device in wanted):
-                out[SEVERITY[alarm.kind]] += 1
+        fleet = self._fleet
+        if fleet is None:
+            return out
+        if devices is None:
+            rows: Any = slice(0, len(self._devices))
+        else:
+            rows = [self._slot[d] for d in set(devices) if d in self._slot]
+        exists, state = fleet.exists[rows], fleet.state[rows]
+        condition = exists & ((state == _ACTIVE) | (state == _ACKNOWLEDGED))
+        for n, kind in enumerate(_KINDS):
+            out[SEVERITY[kind]] += int(condition[..., n].sum())
         return out
 
 
@@ -921,8 +1164,7 @@ def _worse(a: tuple[Severity, AlarmState], b: tuple[Severity, AlarmState]) -> bo
     return (a[0].rank, -_STATE_ORDER[a[1]]) > (b[0].rank, -_STATE_ORDER[b[1]])
 
 
-def _describe(alarm: _Alarm, value: float, rule: Hysteresis, model: float | None) -> str:
-    kind, joint = alarm.kind, alarm.joint
+def _describe(joint: str, kind: AlarmKind, value: float, rule: Hysteresis, model: float | None) -> str:
     if kind is AlarmKind.OVER_TEMPERATURE:
         return f"{joint} servo at {value:.0f} C (warning at {rule.raise_at:g} C; the servo cuts out at 70 C)"
     if kind is AlarmKind.OVER_TEMPERATURE_CRITICAL:

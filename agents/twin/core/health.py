@@ -249,6 +249,27 @@ class DeviceHealth:
         self.last_timestamp_ms = timestamp_ms
         self._internal_latency.add(recv_mono, max(0.0, updated_mono - recv_mono))
 
+    def record_message(
+        self, recv_mono: float, recv_wall: float, timestamp_ms: int, applied: bool, updated_mono: float
+    ) -> None:
+        """One valid message, received and decoded, then applied (at `updated_mono`) or ignored as stale:
+        record_received, record_decoded and record_applied or record_ignored_stale in one call, since the
+        mirror makes it for every message of the fleet."""
+        self.received += 1
+        self.decoded += 1
+        last = self.last_message_mono
+        if last is None or recv_mono > last:
+            self.last_message_mono = recv_mono
+        self._rate.add(recv_mono)
+        self._edge_latency.add(recv_mono, recv_wall - timestamp_ms / 1000.0)
+        if applied:
+            self.applied += 1
+            self.last_applied_mono = updated_mono
+            self.last_timestamp_ms = timestamp_ms
+            self._internal_latency.add(recv_mono, max(0.0, updated_mono - recv_mono))
+        else:
+            self.ignored_stale += 1
+
     def record_ignored_stale(self) -> None:
         self.ignored_stale += 1
 

@@ -233,8 +233,9 @@ class DeviceLoss:
 
     # -- updates --------------------------------------------------------------------------------------------
 
-    def observe(self, timestamp_ms: int) -> None:
-        """One valid message's edge timestamp, in arrival order (duplicates and late ones included)."""
+    def observe(self, timestamp_ms: int, now: float | None = None) -> None:
+        """One valid message's edge timestamp, in arrival order (duplicates and late ones included); `now`
+        (the injected clock's time, read when None) places it in the recent window."""
         if timestamp_ms in self._recent_set:
             self.duplicates += 1
             return
@@ -253,14 +254,28 @@ class DeviceLoss:
             self._last = timestamp_ms
             if gap > self._outage_ms:
                 self._open(timestamp_ms)  # a pause (the arm was off), not loss
+            elif self._early is None and self._new_gaps + 1 < GAP_HISTORY:
+                # _count_gap's settled case inline (every message of a settled device comes here): the gap
+                # kept, its missing samples counted with the period, no re-estimate due yet.
+                self._gaps.append(gap)
+                self._new_gaps += 1
+                period = self._period_ms
+                if period is not None:
+                    missing = round(gap / period) - 1
+                    if missing > 0:
+                        self._missing += missing
             else:
                 self._count_gap(gap)
         else:
             self._late(timestamp_ms, first)
-            self._sample_window()
+            self._sample_window(now)
             return
         self._jumps = self._jump_fills = 0
-        self._sample_window()
+        if now is None:
+            now = self._clock()
+        window = self._window
+        if not window or now - window[-1][0] >= WINDOW_BUCKET_S:
+            self._sample_window(now)
 
     def _late(self, timestamp_ms: int, first: int) -> None:
         """A message older than the newest one: a late delivery that fills a hole an earlier gap counted,
@@ -379,8 +394,9 @@ class DeviceLoss:
         """Samples estimated missing, less those that arrived and were rejected."""
         return max(0, self._missing + self._early_missing - self.rejected)
 
-    def _sample_window(self) -> None:
-        now = self._clock()
+    def _sample_window(self, now: float | None = None) -> None:
+        if now is None:
+            now = self._clock()
         window = self._window
         if not window or now - window[-1][0] >= WINDOW_BUCKET_S:
             window.append((now, self.received, self.lost))

@@ -31,6 +31,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Mapping
+from operator import sub
 from typing import NamedTuple
 
 import mujoco
@@ -72,10 +73,8 @@ class _Figures:
         return self._pose
 
     def _write(self, data: mujoco.MjData) -> None:
-        qpos = data.qpos
-        robot = self._robot
-        for name, value in zip(robot.joint_names, self._pose, strict=True):
-            qpos[robot.qpos_addr[name]] = value
+        # One indexed assignment (qpos addresses in joint_names order, as the pose is).
+        data.qpos[list(self._robot.joint_tables.qpos)] = self._pose
 
     @property
     def tcp(self) -> tuple[float, float, float]:
@@ -98,7 +97,8 @@ class _Figures:
 
 
 def _near(a: tuple[float, ...], b: tuple[float, ...], tolerance: float) -> bool:
-    return all(abs(x - y) <= tolerance for x, y in zip(a, b, strict=True))
+    # map() in C: the alarm engine asks this for every still arm's every message.
+    return len(a) == len(b) and max(map(abs, map(sub, a, b)), default=0.0) <= tolerance
 
 
 def _tcp_of(robot: RobotModel, data: mujoco.MjData) -> tuple[float, float, float]:
@@ -107,6 +107,29 @@ def _tcp_of(robot: RobotModel, data: mujoco.MjData) -> tuple[float, float, float
     else:
         x, y, z = data.xpos[robot.tcp_body_id]
     return (float(x), float(y), float(z))
+
+
+class _HeldTorques:
+    """A twin's holding torques of one pose, computed (or reused: DeviceTwin.holding_torques_when_read) when
+    called."""
+
+    __slots__ = ("_pose", "_twin")
+
+    def __init__(self, twin: DeviceTwin, pose: tuple[float, ...]) -> None:
+        self._twin = twin
+        self._pose = pose
+
+    def __call__(self) -> Mapping[str, float]:
+        twin, pose = self._twin, self._pose
+        held = twin._holding
+        if held is not None and _near(held[0], pose, HOLDING_POSE_RAD):
+            return held[1]
+        figures = twin._figures
+        if figures is None or figures.pose != pose:
+            figures = _Figures(twin.robot, pose)
+        computed = figures.torques
+        twin._holding = (pose, computed)
+        return computed
 
 
 class TwinSnapshot(NamedTuple):
@@ -309,6 +332,11 @@ class DeviceTwin:
         return dict(zip(self._names, self._targets, strict=True))
 
     @property
+    def target_values(self) -> tuple[float, ...]:
+        """`targets`' values in the model's joint order (`robot.joint_names`), without building a dict."""
+        return tuple(self._targets)
+
+    @property
     def joint_torques(self) -> dict[str, float]:
         """Inverse-dynamics holding torque (N m) per joint for the last measured pose."""
         return dict(self._current_figures().torques)
@@ -321,17 +349,12 @@ class DeviceTwin:
         holding torques change by far less than the model check's tolerance, so the torques last computed for
         a pose that close are reused instead of running inverse dynamics (about 30 us) for every message of
         every still arm. `joint_torques` and snapshots always have the exact pose's."""
-        figures = self._current_figures()
+        return _HeldTorques(self, tuple(self._targets))
 
-        def torques() -> Mapping[str, float]:
-            held = self._holding
-            if held is not None and _near(held[0], figures.pose, HOLDING_POSE_RAD):
-                return held[1]
-            computed = figures.torques
-            self._holding = (figures.pose, computed)
-            return computed
-
-        return torques
+    def holding_torques_at(self, pose: tuple[float, ...]) -> Callable[[], Mapping[str, float]]:
+        """`holding_torques_when_read` for `pose`, the current one (`target_values`) that the caller already
+        holds: one small object per message, the figures made only if the torques are asked for."""
+        return _HeldTorques(self, pose)
 
     @property
     def tcp_position(self) -> np.ndarray:

@@ -48,6 +48,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.json as pa_json
 
+from twin.output.history_feed import REJECTED_PAYLOAD_MAX_BYTES
 from twin.output.sinks import AppliedSample, QueuedSink, RejectedSample
 from twin.robot import so101
 
@@ -147,7 +148,7 @@ class HistorySettings:
     retry_min_s: float = 1.0
     retry_max_s: float = 60.0
     # A rejected message is kept up to this many bytes (its full size is stored too).
-    rejected_payload_max_bytes: int = 4096
+    rejected_payload_max_bytes: int = REJECTED_PAYLOAD_MAX_BYTES
     # Extra object-store options for delta-rs (endpoint, credentials, timeouts); AWS_* env vars also apply.
     storage_options: Mapping[str, str] = field(default_factory=dict)
 
@@ -266,12 +267,31 @@ def _raw_columns_python(payloads: Sequence[bytes]) -> dict[str, pa.Array]:
 
 def telemetry_table(samples: Sequence[AppliedSample]) -> tuple[pa.Table, bool]:
     """Arrow rows for applied samples (TELEMETRY_SCHEMA); the flag says the slow parse path was needed."""
-    n = len(samples)
-    received_ms = np.fromiter((s.received_wall_s for s in samples), np.float64, n)
-    received_ms = np.rint(received_ms * 1000.0).astype(np.int64)
-    edge_ms = np.fromiter((s.telemetry.timestamp_ms for s in samples), np.int64, n)
-    angles = np.array([_ANGLES(s.telemetry.angles_rad) for s in samples], dtype=np.float64).reshape(n, -1)
-    payloads = [s.payload for s in samples]
+    return telemetry_table_of(
+        device_ids=[s.device_id for s in samples],
+        received_wall_s=[s.received_wall_s for s in samples],
+        edge_ms=[s.telemetry.timestamp_ms for s in samples],
+        units=[s.telemetry.units.value for s in samples],
+        angles=[a for s in samples for a in _ANGLES(s.telemetry.angles_rad)],
+        payloads=[s.payload for s in samples],
+    )
+
+
+def telemetry_table_of(
+    *,
+    device_ids: Sequence[str],
+    received_wall_s: Sequence[float],
+    edge_ms: Sequence[int],
+    units: Sequence[str],
+    angles: Sequence[float],
+    payloads: Sequence[bytes],
+) -> tuple[pa.Table, bool]:
+    """`telemetry_table` from columns (the history writer process gets them so): `angles` holds each row's
+    decoded angles in JOINTS order, one row after the other."""
+    n = len(device_ids)
+    received_ms = np.rint(np.asarray(received_wall_s, dtype=np.float64) * 1000.0).astype(np.int64)
+    edge = np.asarray(edge_ms, dtype=np.int64)
+    decoded = np.asarray(angles, dtype=np.float64).reshape(n, len(JOINTS))
     slow = False
     try:
         raw = _raw_columns_arrow(payloads)
@@ -281,31 +301,52 @@ def telemetry_table(samples: Sequence[AppliedSample]) -> tuple[pa.Table, bool]:
     columns: dict[str, Any] = {
         PARTITION_COLUMN: _date32(received_ms),
         "received_at": _timestamps(received_ms),
-        "edge_time": _timestamps(edge_ms),
-        "device_id": pa.array([s.device_id for s in samples], pa.string()),
-        "units": pa.array([s.telemetry.units.value for s in samples], pa.string()),
+        "edge_time": _timestamps(edge),
+        "device_id": pa.array(device_ids, pa.string()),
+        "units": pa.array(units, pa.string()),
     }
     for i, joint in enumerate(JOINTS):
-        columns[position_column(joint)] = pa.array(angles[:, i], pa.float64())
+        columns[position_column(joint)] = pa.array(decoded[:, i], pa.float64())
         for name in RAW_FIELDS:
             columns[raw_column(joint, name)] = raw[raw_column(joint, name)]
     return pa.table(columns, schema=TELEMETRY_SCHEMA), slow
 
 
 def rejected_table(samples: Sequence[RejectedSample], payload_max_bytes: int) -> pa.Table:
-    received_ms = np.rint(
-        np.fromiter((s.received_wall_s for s in samples), np.float64, len(samples)) * 1000.0
-    ).astype(np.int64)
+    return rejected_table_of([rejected_row(s, payload_max_bytes) for s in samples])
+
+
+# One rejected message as the rejected table keeps it: receive wall time, topic, device (None when the topic
+# names none), reason, detail, the payload's first bytes, and its whole length.
+RejectedRow = tuple[float, str, str | None, str, str, bytes, int]
+
+
+def rejected_row(sample: RejectedSample, payload_max_bytes: int) -> RejectedRow:
+    payload = sample.payload
+    return (
+        sample.received_wall_s,
+        sample.topic,
+        sample.device_id,
+        sample.reason,
+        sample.detail,
+        bytes(payload[:payload_max_bytes]),
+        sample.size,  # the whole message's, though the sample may carry only its first bytes
+    )
+
+
+def rejected_table_of(rows: Sequence[RejectedRow]) -> pa.Table:
+    """`rejected_table` from RejectedRows (the history writer process gets them so)."""
+    received_ms = np.rint(np.fromiter((r[0] for r in rows), np.float64, len(rows)) * 1000.0).astype(np.int64)
     return pa.table(
         {
             PARTITION_COLUMN: _date32(received_ms),
             "received_at": _timestamps(received_ms),
-            "topic": pa.array([s.topic for s in samples], pa.string()),
-            "device_id": pa.array([s.device_id for s in samples], pa.string()),
-            "reason": pa.array([s.reason for s in samples], pa.string()),
-            "detail": pa.array([s.detail for s in samples], pa.string()),
-            "payload": pa.array([bytes(s.payload[:payload_max_bytes]) for s in samples], pa.binary()),
-            "payload_bytes": pa.array([s.size for s in samples], pa.int64()),
+            "topic": pa.array([r[1] for r in rows], pa.string()),
+            "device_id": pa.array([r[2] for r in rows], pa.string()),
+            "reason": pa.array([r[3] for r in rows], pa.string()),
+            "detail": pa.array([r[4] for r in rows], pa.string()),
+            "payload": pa.array([r[5] for r in rows], pa.binary()),
+            "payload_bytes": pa.array([r[6] for r in rows], pa.int64()),
         },
         schema=REJECTED_SCHEMA,
     )

@@ -305,6 +305,8 @@ def run_demo(
         with LocalRig() as rig:
             broker_url, broker_pid = rig.broker.url, rig.broker.pid
             service = _start_agent(rig, config, devices, out_dir, on_viewer)
+            # The agent listens on a free port: the operator needs to be told where its console is.
+            note(f"console at {service.http_url}/ while the demo runs")
             if config.console and run.console["skipped"] is None:
                 run.pictures = _ConsolePictures(
                     config,

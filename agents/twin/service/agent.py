@@ -26,6 +26,7 @@ timeline of their own; worker processes use the system clocks.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import multiprocessing
 import os
@@ -34,13 +35,14 @@ import time
 from collections import Counter
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from twin.core.alarms import AlarmRecord, worst_first
 from twin.core.health import DeviceStatus
 from twin.core.topics import device_from_topic
 from twin.output.alerts import Alert, AlertPublisher, sns_publisher
 from twin.output.emf import EmfFileWriter, EmfPublisher, FleetTotals
+from twin.output.history_feed import HistoryProcess, HistoryStartError, WriterFigures
 from twin.output.sinks import TwinSink
 from twin.service.admission import DeviceBudget
 from twin.service.calibrations import CalibrationBook, CalibrationWatcher, open_store
@@ -87,6 +89,7 @@ from twin.service.state import (
     ConnectionState,
     DeviceState,
     HealthReport,
+    HistoryState,
     WorkerInfo,
 )
 from twin.transport.mailbox import UNTRACKED_KEY
@@ -108,8 +111,13 @@ STATE_REUSE_S = 0.05
 # How often the agent looks for a worker process to start again.
 SUPERVISE_EVERY_S = 0.5
 # At a stop, the alert publisher has at least this long for what is pending, even when the workers' flush took
-# the whole shutdown budget (the unit's stop timeout leaves room for it: docs/deploy.md).
+# the whole shutdown budget (the unit's stop timeout leaves room for it: docs/host.md).
 ALERTS_STOP_MIN_S = 5.0
+# ... and the history writer at least this long for its last commit.
+HISTORY_STOP_MIN_S = 5.0
+# feed() remembers where each topic goes (its shard and mailbox key) for this many topics at most; beyond
+# that (junk on invented topics) it starts over, so memory stays bounded.
+MAX_ROUTES = 16_384
 
 
 class AgentService:
@@ -150,6 +158,10 @@ class AgentService:
         self._prefix = t.topic_prefix
         self.plan = WorkerPlan(max(1, workers), () if t.all_devices else t.devices)
         self._mirror: Mirror | None = None
+        # Telemetry history is written by a process of its own, fed by every mirror (output.history_feed).
+        self._context = multiprocessing.get_context("spawn")
+        settings = history_settings(config)
+        self._history = HistoryProcess(settings, self._context) if settings is not None else None
         self._shards = self._build_shards(config, sinks)
         self._pool_settings = pool_settings(config)
         self._pool = ConnectionPool(config.broker, self._pool_settings, self.feed, clock=clock)
@@ -191,21 +203,30 @@ class AgentService:
             self._calibrations = CalibrationWatcher(
                 store, interval_s=t.calibration_poll_s, on_change=self._hand_calibrations
             )
+        self._routes: dict[str, tuple[Shard, str]] = {}
 
     def _build_shards(self, config: AgentConfig, sinks: Sequence[TwinSink]) -> list[Shard]:
         count = self.plan.count
-        context = multiprocessing.get_context("spawn")
+        context = self._context
         budget = DeviceBudget(config.telemetry.max_devices, count, context)
+        link = self._history.link if self._history is not None else None
         if count == 1:
             # MuJoCo (and USD when recording) load here, with the mirror, not when the module is imported.
             from twin.service.mirror import LocalShard  # noqa: PLC0415
 
             local = LocalShard(
-                config, budget=budget, clock=self._clock, wall_clock=self._wall_clock, sinks=sinks
+                config,
+                budget=budget,
+                clock=self._clock,
+                wall_clock=self._wall_clock,
+                sinks=sinks,
+                history=link,
             )
             self._mirror = local.mirror
             return [local]
-        return [WorkerShard(i, worker_config(config, self.plan, i), budget, context) for i in range(count)]
+        return [
+            WorkerShard(i, worker_config(config, self.plan, i), budget, context, link) for i in range(count)
+        ]
 
     # -------------------------------------------------------------------------------------------- lifecycle
 
@@ -218,6 +239,9 @@ class AgentService:
         self._started_mono = self._clock()
         self._started_wall = self._wall_clock()
         try:
+            if self._history is not None:
+                # First, so the mirrors' feeds find it listening.
+                self._launch_history(self._history)
             for shard in self._shards:
                 shard.launch()
             for shard in self._shards:
@@ -237,6 +261,8 @@ class AgentService:
             )
         except BaseException:
             self._stop_shards(time.monotonic() + 10.0)
+            if self._history is not None:
+                self._history.stop(timeout=10.0)
             raise
         self._running = True
         self._supervisor = threading.Thread(target=self._supervise, name="twin-supervisor", daemon=True)
@@ -293,6 +319,10 @@ class AgentService:
             self._supervisor.join(min(5.0, max(0.1, deadline - time.monotonic())))
         self._stop_shards(deadline)
         self._keep_state(final=True)
+        if self._history is not None:
+            # Last of the budget: every mirror's feed has handed over its rows; the writer commits them (a
+            # store that fails is retried until the budget ends), then exits.
+            self._history.stop(max(HISTORY_STOP_MIN_S, deadline - time.monotonic()))
         if self._alerts is not None:
             # After the last events were collected: what is pending still goes out, with at least a few
             # seconds of its own when the workers took the whole budget (systemd's stop timeout leaves them).
@@ -320,6 +350,11 @@ class AgentService:
                 killed.append(index)
             else:
                 unwritten.update(report.unwritten)
+        if self._history is not None:
+            # The writer process's own: what it could not commit before it ended.
+            rows = self._history.unwritten_rows()
+            if rows:
+                unwritten["history_rows"] += rows
         fields = {"unwritten": dict(unwritten), "workers_killed": killed, "shutdown_budget_s": budget}
         if unwritten or killed:
             log.error(
@@ -345,6 +380,8 @@ class AgentService:
                 if self._stopping.is_set():
                     return
                 shard.supervise()
+            if self._history is not None:
+                self._history.supervise()
             self._collect_events()
             now = time.monotonic()
             if urgent or now >= next_checkpoint:
@@ -404,6 +441,15 @@ class AgentService:
                 extra={"shard": shard.index, "alarms": restored.alarms, "path": str(self._state_file.path)},
             )
 
+    @staticmethod
+    def _launch_history(history: HistoryProcess) -> None:
+        try:
+            history.launch()
+        except HistoryStartError as exc:
+            if exc.setting:
+                raise ConfigError(str(exc)) from exc
+            raise
+
     def __enter__(self) -> AgentService:
         self.start()
         return self
@@ -454,11 +500,24 @@ class AgentService:
         none goes to the first, where it is counted as rejected) and then mirrored, rejected or refused like
         any other. `received_mono` is when it arrived on the agent's clock (default: now)."""
         recv_mono = self._clock() if received_mono is None else received_mono
+        # Every message of the fleet comes through here on a CRT thread: a topic's route is worked out once.
+        route = self._routes.get(topic)
+        if route is None:
+            route = self._route(topic)
+        route[0].put(route[1], topic, payload, recv_mono, self._wall_clock())
+
+    def _route(self, topic: str) -> tuple[Shard, str]:
         device = device_from_topic(topic, self._prefix)
-        if device is None:
-            self._shards[0].put(UNTRACKED_KEY, topic, payload, recv_mono, self._wall_clock())
-            return
-        self._shards[self.plan.worker_of(device)].put(device, topic, payload, recv_mono, self._wall_clock())
+        route = (
+            (self._shards[0], UNTRACKED_KEY)
+            if device is None
+            else (self._shards[self.plan.worker_of(device)], device)
+        )
+        routes = self._routes
+        if len(routes) >= MAX_ROUTES:
+            routes.clear()
+        routes[topic] = route
+        return route
 
     # ------------------------------------------------------------------------------------------- requests
 
@@ -509,8 +568,35 @@ class AgentService:
                 restarting=restarting,
                 restarting_untracked=restarting_untracked,
             )
+            if self._history is not None:
+                state = dataclasses.replace(
+                    state, agent=dataclasses.replace(state.agent, history=self._history_state(self._history))
+                )
             self._cached = (time.monotonic(), state)
             return state
+
+    def _history_state(self, history: HistoryProcess) -> HistoryState:
+        """The history writer process's figures, as /state shows them (docs/history.md)."""
+        figures = history.figures()
+        stats = figures.stats or WriterFigures()
+        return HistoryState(
+            uri=self.config.history.uri,
+            storage_ok=stats.storage_ok,
+            rows_committed=stats.rows_committed,
+            commits=stats.commits,
+            commit_failures=stats.commit_failures,
+            rows_dropped=stats.rows_dropped,
+            rows_buffered=stats.rows_buffered,
+            rejected_rows_committed=stats.rejected_rows_committed,
+            maintenance_runs=stats.maintenance_runs,
+            maintenance_failures=stats.maintenance_failures,
+            last_error=stats.last_error,
+            writer_pid=figures.pid,
+            writer_restarts=figures.restarts,
+            rows_received=figures.rows_received,
+            rows_lost=figures.rows_lost,
+            lag_s=stats.lag_s,
+        )
 
     def _info(self, now: float) -> AgentInfo:
         """The agent's own part of the state: the process and the broker."""
@@ -776,8 +862,11 @@ def fleet_totals(state: AgentState, expected_rate_hz: float) -> FleetTotals:
         active_alarms=state.agent.alarms.present,
         messages_dropped=state.agent.mailbox.overwritten_total,
         sink_drops=sum(s.dropped for s in state.agent.sinks),
-        worker_restarts=sum(w.restarts for w in state.agent.workers),
-        history_rows_dropped=history.rows_dropped if history is not None else None,
+        # The history writer is a worker process too.
+        worker_restarts=sum(w.restarts for w in state.agent.workers)
+        + (history.writer_restarts if history is not None else 0),
+        # Rows the writer's buffer dropped, and rows lost with a writer that died holding them.
+        history_rows_dropped=history.rows_dropped + history.rows_lost if history is not None else None,
         history_commit_failures=history.commit_failures if history is not None else None,
         history_lag_s=history.lag_s if history is not None else None,
     )
@@ -817,6 +906,24 @@ def broker_state(url: str, settings: PoolSettings, pool: ConnectionPool, started
             for c in infos
         ),
     )
+
+
+def history_settings(config: AgentConfig) -> dict[str, Any] | None:
+    """HistorySettings' fields from the config's [history] (None when it is off); the writer process makes
+    the settings (and checks them: a bad one stops the agent as a configuration error)."""
+    h = config.history
+    if not h.enabled:
+        return None
+    return {
+        "uri": h.uri.strip(),
+        "commit_every_s": h.commit_every_s,
+        "commit_every_rows": h.commit_every_rows,
+        "max_buffer_rows": h.max_buffer_rows,
+        "queue_max": h.queue_max,
+        "maintain_every_s": h.maintain_every_s,
+        "vacuum_retention_hours": h.vacuum_retention_hours,
+        "storage_options": {"AWS_REGION": h.region} if h.region else {},
+    }
 
 
 def pool_settings(config: AgentConfig) -> PoolSettings:

@@ -204,7 +204,10 @@ KEY_DOCS: dict[str, str] = {
     "history.max_buffer_rows": (
         "Rows held in memory while commits fail; beyond, the oldest are dropped and counted."
     ),
-    "history.queue_max": "The history sink's queue (samples).",
+    "history.queue_max": (
+        "Each mirror's queue of rows in front of the history writer process, which fills only while the "
+        "writer is out of reach; beyond, the oldest are dropped and counted."
+    ),
     "history.maintain_every_s": (
         "Compaction, checkpoint and vacuum interval; 0 = never (another writer maintains)."
     ),

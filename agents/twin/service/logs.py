@@ -7,13 +7,31 @@ line as it happens, and a crash leaves the lines before it.
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import json
 import logging
 import math
 import sys
+import threading
 import time
 from collections import OrderedDict
 from typing import Any, TextIO
+
+_PR_SET_NAME = 15
+
+
+def name_native_thread() -> None:
+    """Give the calling thread's Python name to the OS thread too (Linux: 15 bytes), so `top -H`, /proc and
+    `twin bench cost` can tell the agent's threads apart (CPython 3.11 leaves them all "python"). Does
+    nothing where it cannot."""
+    name = threading.current_thread().name.encode("ascii", "replace")[:15]
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        libc.prctl(_PR_SET_NAME, ctypes.c_char_p(name), 0, 0, 0)
+    except (OSError, AttributeError):
+        return
+
 
 # Attributes every LogRecord has; anything else on a record came from `extra=` and is emitted as a field.
 _RECORD_ATTRS = frozenset(vars(logging.LogRecord("", 0, "", 0, "", None, None))) | {

@@ -5,15 +5,22 @@ shard runs one Mirror, in the agent's own process (`LocalShard`) or in a worker 
 (`PipeInbox`). The mirror is the same code either way:
 
     the shard's inbox (an InboundQueue, or the worker's pipe)
-      --take_all--> worker thread: decode -> loss estimate -> admit device -> DeviceTwin.apply
-                    (clock-jump check) -> health -> servo alarms -> sinks (USD recording, ...) -> snapshots
-    the agent's threads read the published snapshots and health under one short lock (`report()`).
+      --take: a batch, as columns--> worker thread, stage by stage over the batch:
+        decode (and admit each new device) -> twin (DeviceTwin.apply, clock-jump check)
+        -> health, latency, loss estimate, servo alarms -> sinks (USD recording, history, ...)
+    the agent's threads read the twins, health and alarms under one short lock (`report()`).
 
 Every message is decoded and counted, in arrival order, before anything is coalesced: a garbage message never
 displaces a good one, and every valid message is applied (the twin computes kinematics and dynamics when they
-are read, so applying costs microseconds). The worker owns the decoder (not thread-safe: auto-units state) and
-every DeviceTwin; other threads only see immutable TwinSnapshots and health snapshots. Any exception while
-handling one message is caught, logged (rate-limited) and counted: a bad message never stops the mirror.
+are read, so applying costs microseconds). A batch goes through the stages one after the other (each stage
+over all its messages) rather than message by message: each stage's CPU time is measured once per batch
+(`WorkerState.stage_cpu_s`, what `twin bench cost` splits the agent's cost by), and the lock is taken once
+per batch instead of once per message. A device's messages keep their order in every stage; a batch holding
+two of one device's messages goes through the twin and health stages in rounds (each device at most once a
+round), so its alarms see the pose of the message they evaluate. The worker owns the decoder (not
+thread-safe: auto-units state) and every DeviceTwin; other threads see the twins only under the lock. Any
+exception while handling one message is caught, logged (rate-limited) and counted: a bad message never stops
+the mirror.
 
 A device is admitted (gets a twin) on its first valid message, while the fleet's device budget has a place
 (service.admission, `telemetry.max_devices`, shared by every mirror of the agent); a message that does not
@@ -32,7 +39,8 @@ jump, so the device's twin is rebuilt on the new timeline and the reset is count
 
 Time: every reading of the clock goes through the injected `clock` (monotonic seconds: ages, latencies,
 physics steps) and `wall_clock` (epoch seconds: alarm times, the recording's name); the receive stamps come
-with each message. Tests drive the mirror on a timeline of their own through the agent.
+with each message. A twin counts as updated when its batch's twin stage ends (one clock reading per round).
+Tests drive the mirror on a timeline of their own through the agent.
 """
 
 from __future__ import annotations
@@ -46,9 +54,10 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from itertools import chain
 from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import TYPE_CHECKING, NamedTuple, TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 from twin.core.alarms import (
     AlarmCounters,
@@ -60,7 +69,7 @@ from twin.core.alarms import (
     ServoAlarms,
     Severity,
 )
-from twin.core.health import FleetHealth, HealthSnapshot, HealthThresholds
+from twin.core.health import DeviceHealth, FleetHealth, HealthSnapshot, HealthThresholds
 from twin.core.latency import LatencyHistogram
 from twin.core.loss import DeviceLoss, LossSnapshot
 from twin.core.modes import TwinMode
@@ -72,19 +81,21 @@ from twin.core.telemetry import (
     TelemetryDecoder,
     TelemetryRejected,
     Units,
+    diagnostic_columns,
 )
 from twin.core.twin import DeviceTwin, TwinSnapshot
 from twin.output.sinks import AppliedSample, RejectedSample, TwinSink, rejected_sample
 
 # This module is the heavy end of the agent (MuJoCo, USD): the agent imports it only for an in-process
 # mirror, and worker processes import it; the agent with worker processes never does.
+from twin.robot import so101
 from twin.robot.calibration import Calibration, load_calibration
 from twin.robot.model import ModelError, RobotModel
 from twin.service.admission import TOO_MANY_DEVICES, DeviceBudget
 from twin.service.config import AgentConfig, ConfigError
 from twin.service.console import FleetRow, fleet_row
 from twin.service.events import Event, EventQuery, EventStore, FleetWatch, RejectionThrottle
-from twin.service.logs import RateLimitedLog
+from twin.service.logs import RateLimitedLog, name_native_thread
 from twin.service.shards import (
     EVENTS_PER_ASK,
     AckRequest,
@@ -108,7 +119,6 @@ from twin.service.state import (
     AlarmInfo,
     AlarmsSummary,
     DeviceState,
-    HistoryState,
     MailboxState,
     RecordingState,
     ServoState,
@@ -116,12 +126,12 @@ from twin.service.state import (
     WorkerState,
 )
 from twin.transport.mailbox import UNTRACKED_KEY, InboundQueue
-from twin.transport.pipe import read_batch
+from twin.transport.pipe import EMPTY, Batch, batch_of, read_batch
 
 if TYPE_CHECKING:
     # pyarrow and deltalake (~70 MB resident) load only when history is on, usd-core (~80 MB) only when
     # recording: every worker process pays for what it imports.
-    from twin.output.history import HistorySettings, HistorySink
+    from twin.output.history_feed import HistoryFeed, HistoryLink, TelemetryRow
     from twin.output.recorder import SessionRecorder
     from twin.output.recording import RecordingSink
 
@@ -160,34 +170,43 @@ MAX_QUEUED_MESSAGES = 50_000
 MAX_QUEUED_BYTES = 64 * 2**20
 
 
-@dataclass(frozen=True, slots=True)
-class Inbound:
-    """One message as received: its topic and payload, and when it arrived (agent clocks)."""
-
-    topic: str
-    payload: bytes
-    recv_mono: float
-    recv_wall: float
+# A message in the shard queue of an in-process mirror: topic, payload, receive monotonic and wall time.
+QueuedMessage = tuple[str, bytes, float, float]
+# The stages of a batch, in order (module doc); `WorkerState.stage_cpu_s` has the CPU seconds of each.
+STAGES = ("hand_over", "decode", "twin", "health_alarms", "sinks")
 
 
-@dataclass
-class _Tracked:
-    """Worker-private per-device bookkeeping next to its DeviceTwin."""
+class _Device:
+    """What the worker keeps per admitted device, in one place so a message finds all of it in one lookup:
+    its twin, health record and loss estimator, the clock-jump streak, and what /state shows of its last
+    message. Written by the worker under the mirror's lock; read by `report()` under it."""
 
-    twin: DeviceTwin
-    stale_streak: int = 0
-    stale_since: float = 0.0
-    gripper_percent: float | None = None
+    __slots__ = (
+        "device",
+        "diagnostics",
+        "gripper_percent",
+        "health",
+        "loss",
+        "stale_since",
+        "stale_streak",
+        "twin",
+        "units",
+    )
+
+    def __init__(self, device: str, twin: DeviceTwin, health: DeviceHealth, loss: DeviceLoss) -> None:
+        self.device = device
+        self.twin = twin
+        self.health = health
+        self.loss = loss
+        self.stale_streak = 0
+        self.stale_since = 0.0
+        self.gripper_percent: float | None = None
+        self.units: Units | None = None
+        self.diagnostics: Mapping[str, JointDiagnostics] | None = None
 
 
-class _Applied(NamedTuple):
-    """What applying one message did to a device's twin."""
-
-    tracked: _Tracked
-    applied: bool
-    reset: bool
-    updated_mono: float
-    clamped: int
+# One decoded message of a batch: its index in the batch, its telemetry, its device's record.
+_Decoded = tuple[int, Telemetry, _Device]
 
 
 # A device's last diagnostics, the alarm engine's JointHealth and worst (severity, state) per joint.
@@ -207,6 +226,8 @@ class _Readout:
     gripper: dict[str, float | None]
     untracked: dict[str, int]
     batches: int
+    processed: int
+    stage_cpu_s: dict[str, float]
     internal: LatencyHistogram
     end_to_end: LatencyHistogram
     servos: dict[str, _ServoReadout]
@@ -237,6 +258,34 @@ class _Job:
 JOB_TIMEOUT_S = 10.0
 
 
+class QueueInbox:
+    """An in-process mirror's inbox: the shard's InboundQueue, taken as batches."""
+
+    def __init__(self, queue: InboundQueue[QueuedMessage]) -> None:
+        self.queue = queue
+
+    def take(self, timeout: float | None = None) -> Batch:
+        return batch_of(self.queue.take_all(timeout))
+
+    def close(self) -> None:
+        self.queue.close()
+
+    @property
+    def closed(self) -> bool:
+        return self.queue.closed
+
+    def __len__(self) -> int:
+        return len(self.queue)
+
+    @property
+    def overflowed(self) -> dict[str, int]:
+        return self.queue.overflowed
+
+    @property
+    def overflowed_total(self) -> int:
+        return self.queue.overflowed_total
+
+
 class PipeInbox:
     """A worker process's inbox: the batches the agent wrote to its pipe (service.shards), read by the worker
     thread itself, so no thread or queue sits between.
@@ -251,26 +300,32 @@ class PipeInbox:
         self._conn = conn
         self._closed = False
 
-    def take_all(self, timeout: float | None = None) -> list[tuple[str, Inbound]]:
-        items: list[tuple[str, Inbound]] = []
+    def take(self, timeout: float | None = None) -> Batch:
         if self._closed:
-            return items
+            return EMPTY
         conn = self._conn
+        batches: list[Batch] = []
+        taken = 0
         try:
             if not conn.poll(timeout):
-                return items
+                return EMPTY
             while True:
                 batch = read_batch(conn.recv_bytes())
                 if batch is None:
                     self._closed = True
                     break
-                items.extend((key, Inbound(*fields)) for key, fields in batch)
-                if len(items) >= self.MAX_TAKE or not conn.poll(0):
+                batches.append(batch)
+                taken += len(batch.payloads)
+                if taken >= self.MAX_TAKE or not conn.poll(0):
                     break
         except (EOFError, OSError):
             log.warning("the agent went away; worker stopping")
             self._closed = True
-        return items
+        if len(batches) == 1:
+            return batches[0]
+        if not batches:
+            return EMPTY
+        return Batch(*(tuple(chain.from_iterable(columns)) for columns in zip(*batches, strict=True)))
 
     def close(self) -> None:
         self._closed = True
@@ -291,7 +346,7 @@ class PipeInbox:
         return 0
 
 
-Inbox = InboundQueue[Inbound] | PipeInbox
+Inbox = QueueInbox | PipeInbox
 
 
 class Mirror:
@@ -299,9 +354,10 @@ class Mirror:
 
     `start()` opens the sinks and starts the worker thread; the thread ends once the inbox is closed and
     drained; `stop()` (idempotent) closes the inbox, waits for the thread and closes the sinks (the USD
-    recording's last save, history's last commit). `report()`, `alarms()` and `acknowledge_alarm()` may be
-    called from any thread. `sinks` are extra outputs; the mirror closes them in `stop()`. `slot` is this
-    mirror's slot in the device budget (its shard's index).
+    recording's last save, the rows still for history handed to its writer process). `report()`, `alarms()`
+    and `acknowledge_alarm()` may be called from any thread. `sinks` are extra outputs; the mirror closes
+    them in `stop()`. `slot` is this mirror's slot in the device budget (its shard's index). `history` is
+    where the agent's history writer process listens (needed when the config turns history on).
     """
 
     def __init__(
@@ -314,7 +370,10 @@ class Mirror:
         clock: Clock = time.monotonic,
         wall_clock: Clock = time.time,
         sinks: Sequence[TwinSink] = (),
+        history: HistoryLink | None = None,
     ) -> None:
+        if config.history.enabled and history is None:
+            raise ValueError("history is on: the mirror needs the link to the agent's history writer process")
         # Everything that can be wrong with the configuration is found here, before any thread.
         self.config = config
         self._clock = clock
@@ -326,13 +385,16 @@ class Mirror:
         self._calibration_problems: dict[str, str] = {}
         self.mode = TwinMode(config.twin.mode)
         self.robot = self._load_robot(config, self.mode)
-        self._history_settings = self._history_config(config)
+        # The alarm engine takes a round's poses as rows in the contract's joint order (so101.JOINT_NAMES):
+        # the bundled model's. A model of its own order is evaluated message by message.
+        self._joint_order_is_the_contracts = tuple(self.robot.joint_names) == tuple(so101.JOINT_NAMES)
+        self._history_link = history if config.history.enabled else None
         self._budget = budget
         self._slot = slot
         self._init_fleet_state(config, clock)
         self._mailbox = inbox
         self._recording: RecordingSink | None = None
-        self._history: HistorySink | None = None
+        self._history: HistoryFeed | None = None
         self._extra_sinks: tuple[TwinSink, ...] = tuple(sinks)
         self._sinks: tuple[TwinSink, ...] = ()
         self._worker: threading.Thread | None = None
@@ -344,16 +406,16 @@ class Mirror:
         """What the worker writes per device and the agent's threads read, and the lock that guards it."""
         t = config.telemetry
         self._fleet = FleetHealth(config.health, () if t.all_devices else t.devices, clock=clock)
-        self._devices: dict[str, _Tracked] = {}
-        self._snapshots: dict[str, TwinSnapshot] = {}
-        self._units: dict[str, Units] = {}
-        self._gripper: dict[str, float | None] = {}
-        # Servo alarms and the last diagnostics per device: written by the worker, read (and acknowledged)
-        # by the agent's threads, all under the lock.
+        self._devices: dict[str, _Device] = {}
+        # Servo alarms: evaluated by the worker, read (and acknowledged) by the agent's threads, all under the
+        # lock.
         self._alarms = ServoAlarms(config.alarms)
-        self._diagnostics: dict[str, Mapping[str, JointDiagnostics]] = {}
+        self._alarms_on = config.alarms.enabled
+        # Loss estimators by device: an admitted device's is also in its record; a configured device that
+        # only sent rejected messages has one too (its rejections offset the holes they leave).
         self._loss: dict[str, DeviceLoss] = {}
         self._lock = threading.Lock()
+        self._stage_cpu = dict.fromkeys(STAGES, 0.0)
         self._reject_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
         self._error_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
         # The twin's events (the console's Events page): this mirror's, which the agent collects.
@@ -392,27 +454,6 @@ class Mirror:
         except ValueError as exc:
             raise ConfigError(f"[telemetry]: {exc}") from exc
 
-    @staticmethod
-    def _history_config(config: AgentConfig) -> HistorySettings | None:
-        h = config.history
-        if not h.enabled:
-            return None
-        from twin.output.history import HistorySettings  # noqa: PLC0415 - heavy; only with history on
-
-        try:
-            return HistorySettings(
-                uri=h.uri.strip(),
-                commit_every_s=h.commit_every_s,
-                commit_every_rows=h.commit_every_rows,
-                max_buffer_rows=h.max_buffer_rows,
-                queue_max=h.queue_max,
-                maintain_every_s=h.maintain_every_s,
-                vacuum_retention_hours=h.vacuum_retention_hours,
-                storage_options={"AWS_REGION": h.region} if h.region else {},
-            )
-        except ValueError as exc:
-            raise ConfigError(f"[history]: {exc}") from exc
-
     # -------------------------------------------------------------------------------------------- lifecycle
 
     def start(self) -> None:
@@ -428,14 +469,14 @@ class Mirror:
                 "mode": self.mode,
                 "units": self.config.telemetry.units,
                 "recording": str(self._recording.path) if self._recording else None,
-                "history": self._history_settings.uri if self._history_settings else None,
+                "history": self.config.history.uri if self._history else None,
                 "sinks": [sink.name for sink in self._sinks],
             },
         )
 
     def _open_sinks(self) -> None:
-        """The service's own sinks (USD recording, history) before the extra ones; OSError when history cannot
-        open its table."""
+        """The service's own sinks (the USD recording) before the extra ones, and the feed of the history
+        writer process."""
         if self.config.twin.record_dir:
             # usd-core only when recording
             from twin.output.recording import RecordingLimits, RecordingSink  # noqa: PLC0415
@@ -453,19 +494,15 @@ class Mirror:
                 ),
                 open_next=lambda n: self._open_recorder(directory, n),
             )
-        if self._history_settings is not None:
-            from twin.output.history import HistorySink  # noqa: PLC0415 - heavy; only with history on
+        if self._history_link is not None:
+            from twin.output.history_feed import REJECTED_PAYLOAD_MAX_BYTES, HistoryFeed  # noqa: PLC0415
 
-            try:
-                self._history = HistorySink(self._history_settings)
-            except ValueError as exc:
-                self._close_sinks(time.monotonic() + 5.0)
-                raise OSError(f"history: {exc}") from exc
-        self._sinks = (
-            *((self._recording,) if self._recording else ()),
-            *((self._history,) if self._history else ()),
-            *self._extra_sinks,
-        )
+            self._history = HistoryFeed(
+                self._history_link,
+                max_pending=self.config.history.queue_max,
+                payload_max_bytes=REJECTED_PAYLOAD_MAX_BYTES,
+            )
+        self._sinks = (*((self._recording,) if self._recording else ()), *self._extra_sinks)
 
     def _open_recorder(self, directory: Path, rotation: int = 0) -> SessionRecorder:
         """A new session file: session-<UTC time>-<pid>.<format>, and -<n> after it for the n-th rotation."""
@@ -482,8 +519,9 @@ class Mirror:
             self._worker.join(timeout)
 
     def stop(self, timeout: float = 30.0) -> StopReport:
-        """Close the inbox, let the worker handle what it holds, close the sinks (final USD save, history's
-        last commit), all within `timeout` seconds; returns what could not be written. Idempotent."""
+        """Close the inbox, let the worker handle what it holds, close the sinks (final USD save, the rows
+        for history handed to its writer process), all within `timeout` seconds; returns what could not be
+        written. Idempotent."""
         deadline = time.monotonic() + timeout
         with self._stop_lock:
             if self._stopped:
@@ -499,25 +537,29 @@ class Mirror:
         return self.stop_report()
 
     def _close_sinks(self, deadline: float) -> None:
-        """Close every sink, the recording first and history (the longest: its last commit) before the extra
-        ones, each with what is left of the time until `deadline`."""
+        """Close every sink, the recording first, each with what is left of the time until `deadline`; then
+        the history feed (its rows go to the writer process, which commits them once every feed has
+        closed)."""
         sinks = self._sinks or (*((self._recording,) if self._recording else ()), *self._extra_sinks)
         for sink in sinks:
             try:
                 sink.close(max(1.0, deadline - time.monotonic()))
             except Exception:
                 log.exception("closing sink %s failed", sink.name)
+        if self._history is not None:
+            self._history.close(max(1.0, deadline - time.monotonic()))
 
     def stop_report(self) -> StopReport:
-        """After `stop`: what the sinks could not write (history's rows, every sink's queued samples) and
-        the alarms a restart must not forget."""
+        """After `stop`: what the sinks could not write (every sink's queued samples, the rows for history
+        the feed could not hand to the writer process) and the alarms a restart must not forget. The writer
+        process says itself what it could not commit (service.agent)."""
         unwritten: dict[str, int] = {}
         for sink in self._sinks:
             pending = sink.stats().pending
             if pending:
                 unwritten[f"{sink.name}_samples"] = pending
         if self._history is not None:
-            rows = self._history.writer.buffered_rows()
+            rows = self._history.stats().pending
             if rows:
                 unwritten["history_rows"] = rows
         with self._lock:
@@ -540,31 +582,32 @@ class Mirror:
     # ------------------------------------------------------------------------------------------ worker
 
     def _work(self) -> None:
+        name_native_thread()
         physics = self.mode is TwinMode.PHYSICS
         wake = 1.0 / self.config.twin.physics_rate_hz if physics else IDLE_WAKE_S
         last_step = last_freeze = self._clock()
         frozen_devices = 0
+        inbox = self._mailbox
+        stage_cpu = self._stage_cpu
+        cpu = time.thread_time
         while True:
-            items = self._mailbox.take_all(wake)
-            if not items and self._mailbox.closed:
+            started = cpu()
+            batch = inbox.take(wake)
+            stage_cpu["hand_over"] += cpu() - started
+            count = len(batch.payloads)
+            if not count and inbox.closed:
                 self._run_jobs()
                 return
-            dirty: set[str] = set()
-            if items and self._clock() - items[0][1].recv_mono > CATCH_UP_AFTER_S:
-                for key, item, telemetry in self._catch_up(items):
-                    device = self._process(key, item, telemetry)
-                    if device is not None:
-                        dirty.add(device)
-            else:
-                for key, item in items:
-                    device = self._process(key, item)
-                    if device is not None:
-                        dirty.add(device)
+            if count:
+                try:
+                    self._handle(batch)
+                except Exception:  # every stage guards its messages; this guards the mirror itself
+                    self._count_error(None, "handling a batch failed")
             if physics:
                 now = self._clock()
-                self._step_physics(min(now - last_step, MAX_PHYSICS_STEP_S), dirty)
+                self._step_physics(min(now - last_step, MAX_PHYSICS_STEP_S))
                 last_step = now
-            self._publish(dirty, took=bool(items))
+            self._publish(count)
             self._watch_statuses()
             if self._jobs:
                 self._run_jobs()
@@ -610,15 +653,15 @@ class Mirror:
             decided = self._decoder.decided_units()
             devices = {}
             for device, health in self._fleet.devices.items():
-                tracked = self._devices.get(device)
+                record = self._devices.get(device)
                 loss = self._loss.get(device)
                 devices[device] = DeviceCheckpoint(
                     health=health.checkpoint(),
                     loss=pickle.dumps(loss, protocol=pickle.HIGHEST_PROTOCOL) if loss is not None else b"",
                     units=decided.get(device),
-                    timestamp_ms=tracked.twin.last_timestamp_ms if tracked is not None else None,
-                    targets_rad=dict(tracked.twin.targets) if tracked is not None else None,
-                    gripper_percent=self._gripper.get(device),
+                    timestamp_ms=record.twin.last_timestamp_ms if record is not None else None,
+                    targets_rad=dict(record.twin.targets) if record is not None else None,
+                    gripper_percent=record.gripper_percent if record is not None else None,
                 )
             untracked = dict(self._fleet.untracked_rejected)
             batches = self.batches
@@ -631,7 +674,6 @@ class Mirror:
             untracked_rejected=untracked,
             alarms=alarms,
             alarm_counters=counters,
-            history=self._history_state(),
             tracking_since=self._fleet.started,
         )
 
@@ -666,7 +708,8 @@ class Mirror:
 
     def _restore_device(self, device: str, saved: DeviceCheckpoint) -> None:
         """Under the lock: one device's counters, loss estimate and twin (from its last applied pose)."""
-        self._fleet.device(device).restore(saved.health)
+        health = self._fleet.device(device)
+        health.restore(saved.health)
         if saved.loss:
             loss = pickle.loads(saved.loss)  # written by this agent's own previous worker process
             if isinstance(loss, DeviceLoss):
@@ -675,134 +718,312 @@ class Mirror:
             return
         if not self._budget.take(self._slot):
             return  # the place went to another worker's device meanwhile: it is admitted anew, if at all
-        tracked = self._new_device(device, replace=True)
-        tracked.twin.apply(saved.targets_rad, saved.timestamp_ms)
-        tracked.gripper_percent = saved.gripper_percent
-        self._gripper[device] = saved.gripper_percent
-        self._snapshots[device] = tracked.twin.snapshot()
-        if saved.units is not None:
-            self._units[device] = saved.units
+        twin = DeviceTwin(self.robot, device, self.mode)
+        twin.apply(saved.targets_rad, saved.timestamp_ms)
+        record = self._devices[device] = _Device(device, twin, health, self._loss_of(device))
+        record.gripper_percent = saved.gripper_percent
+        record.units = saved.units
 
-    def _step_physics(self, elapsed: float, dirty: set[str]) -> None:
-        for device, tracked in self._devices.items():
-            try:
-                tracked.twin.step(elapsed)
-            except Exception:
-                self._count_error(device, "physics step failed")
-            dirty.add(device)
+    def _step_physics(self, elapsed: float) -> None:
+        with self._lock:
+            for device, record in self._devices.items():
+                try:
+                    record.twin.step(elapsed)
+                except Exception:
+                    self._count_error(device, "physics step failed", locked=True)
 
-    def _publish(self, dirty: set[str], *, took: bool) -> None:
-        """Snapshots of the devices this batch changed, and the queue's drop counts, for the readers; `took`:
-        the batch had messages (it counts in `batches`)."""
-        snapshots = {}
-        for device in dirty:
-            tracked = self._devices.get(device)
-            if tracked is not None:
-                snapshots[device] = tracked.twin.snapshot()
+    def _publish(self, count: int) -> None:
+        """The batch's message count, and the queue's drop counts, for the readers (after every stage, so a
+        reader that sees `processed` grow sees all those messages handled)."""
         # Only devices whose messages the queue dropped have a count to copy (a full queue is rare).
         overwritten = self._mailbox.overflowed if self._mailbox.overflowed_total else {}
         with self._lock:
-            self._snapshots.update(snapshots)
-            for key, count in overwritten.items():
+            for key, n in overwritten.items():
                 health = self._fleet.get(key)
                 if health is not None:
-                    health.overwritten = count
-            if took:
+                    health.overwritten = n
+            if count:
                 self.batches += 1
+                self.processed += count
 
-    def _catch_up(self, items: list[tuple[str, Inbound]]) -> list[tuple[str, Inbound, Telemetry]]:
-        """A batch taken while behind: every message decoded (rejections counted as always), and of each
-        known arm only the newest valid message kept for the twin; the older valid ones are counted as
-        coalesced and still reach history. A garbage message never displaces a good one: only valid
-        messages compete. Arms not yet admitted keep every message (admission decides on them)."""
-        decoded: list[tuple[str, Inbound, Telemetry]] = []
-        for key, item in items:
+    # ------------------------------------------------------------------------------------- the stages
+
+    def _handle(self, batch: Batch) -> None:
+        """One batch through the stages (module doc). Never raises."""
+        cpu = time.thread_time
+        stage_cpu = self._stage_cpu
+        started = cpu()
+        admitted: set[int] = set()
+        # The loss estimators see the batch in arrival order, valid and rejected messages alike (a rejection
+        # only offsets a hole after the device's first valid sample), so they are fed here, once decoding has
+        # found which is which, under one hold of the lock.
+        losses: list[tuple[DeviceLoss, int | None]] = []
+        decoded = self._decode_all(batch, admitted, losses)
+        behind = self._clock() - batch.recv_mono[0] > CATCH_UP_AFTER_S
+        if behind and len(decoded) > 1:
+            decoded = self._catch_up(decoded, batch, admitted)
+        decoded_at = cpu()
+        stage_cpu["decode"] += decoded_at - started
+        if losses:
+            with self._lock:
+                now = self._clock()
+                for loss, timestamp_ms in losses:
+                    if timestamp_ms is None:
+                        loss.record_rejected()
+                    else:
+                        loss.observe(timestamp_ms, now)
+            stage_cpu["health_alarms"] += cpu() - decoded_at
+        for entries in _rounds(decoded):
+            started = cpu()
+            with self._lock:
+                applied = self._apply_all(entries, batch)
+                updated = self._clock()
+                twin_done = cpu()
+                stage_cpu["twin"] += twin_done - started
+                events = self._record_all(entries, applied, updated, batch)
+            started = cpu()
+            stage_cpu["health_alarms"] += started - twin_done
+            for message_events in events:
+                for event in message_events:
+                    _log_alarm_event(event)
+                    self._watch.alarm(event)
+            if self._sinks or self._history is not None:
+                self._hand_all(entries, applied, events, batch)
+                stage_cpu["sinks"] += cpu() - started
+
+    def _decode_all(
+        self, batch: Batch, admitted: set[int], losses: list[tuple[DeviceLoss, int | None]]
+    ) -> list[_Decoded]:
+        """Decode every message in arrival order: a rejection is counted and handed to the sinks at once; a
+        valid message's device is admitted (or refused) here, in arrival order too (the ids of the records
+        this batch admitted are added to `admitted`). What the loss estimators are to see is added to
+        `losses`, in order: (estimator, edge timestamp) for a valid message, (estimator, None) for a
+        rejected one."""
+        keys, _, payloads, _, _ = batch
+        decode = self._decoder.decode
+        devices = self._devices
+        out: list[_Decoded] = []
+        for i, payload in enumerate(payloads):
+            key = keys[i]
             topic_device = None if key == UNTRACKED_KEY else key
-            self.processed += 1
             try:
-                telemetry = self._decode(topic_device, item)
-            except Exception:
-                self._count_error(topic_device, "processing a message failed", topic=item.topic)
+                telemetry = decode(payload, topic_device=topic_device)
+            except TelemetryRejected as exc:
+                loss = self._rejected(topic_device, exc, batch, i)
+                if loss is not None:
+                    losses.append((loss, None))
                 continue
-            if telemetry is not None:
-                decoded.append((key, item, telemetry))
-        newest: dict[str, int] = {}
-        for i, (_key, _item, telemetry) in enumerate(decoded):
-            if telemetry.device_id in self._devices:
-                newest[telemetry.device_id] = i
+            except Exception:
+                self._count_error(topic_device, "processing a message failed", topic=batch.topics[i])
+                continue
+            record = devices.get(telemetry.device_id)
+            if record is None:
+                record = self._admit(telemetry.device_id)
+                if record is None:
+                    continue
+                admitted.add(id(record))
+            out.append((i, telemetry, record))
+            losses.append((record.loss, telemetry.timestamp_ms))
+        return out
+
+    def _catch_up(self, decoded: list[_Decoded], batch: Batch, admitted: set[int]) -> list[_Decoded]:
+        """A batch taken while behind: every message was decoded (rejections counted as always); of each arm
+        only the newest valid message is kept for the twin, the older valid ones are counted as coalesced and
+        still reach history. A garbage message never displaces a good one: only valid messages compete. Arms
+        this batch admitted keep every message (they had no twin to show a backlog on)."""
+        newest = {id(record): j for j, (_, _, record) in enumerate(decoded)}
         keep = []
-        for i, entry in enumerate(decoded):
-            device = entry[2].device_id
-            if newest.get(device, i) == i:
+        coalesced = []
+        for j, entry in enumerate(decoded):
+            key = id(entry[2])
+            if key in admitted or newest[key] == j:
                 keep.append(entry)
             else:
-                self._coalesce(entry[2], entry[1])
+                coalesced.append(entry)
+        if coalesced:
+            self._coalesce(coalesced, batch)
         return keep
 
-    def _coalesce(self, telemetry: Telemetry, item: Inbound) -> None:
+    def _coalesce(self, coalesced: list[_Decoded], batch: Batch) -> None:
         # Received and valid: the device is alive and this sample is no transit loss, only not shown.
-        device = telemetry.device_id
+        _, _, _, monos, walls = batch
         with self._lock:
-            health = self._fleet.device(device)
-            health.record_received()
-            health.record_decoded(item.recv_mono, item.recv_wall, telemetry.timestamp_ms)
-            health.record_coalesced()
-            self._loss_of(device).observe(telemetry.timestamp_ms)
-        if self._history is not None:
-            self._hand_history(telemetry, item)
+            for i, telemetry, record in coalesced:
+                health = record.health
+                health.record_received()
+                health.record_decoded(monos[i], walls[i], telemetry.timestamp_ms)
+                health.record_coalesced()
+        history = self._history
+        if history is not None:
+            for i, telemetry, _ in coalesced:
+                history.telemetry(_history_row(telemetry, batch, i))
 
-    def _process(self, key: str, item: Inbound, decoded: Telemetry | None = None) -> str | None:
-        """Handle one message; returns the device whose twin changed, if any. Never raises.
+    def _apply_all(self, entries: list[_Decoded], batch: Batch) -> list[bool]:
+        """The twin stage (under the lock): each message applied to its device's twin, or not (stale)."""
+        applied = []
+        for i, telemetry, record in entries:
+            try:
+                ok = self._apply(record, telemetry, batch.recv_mono[i])
+            except Exception:
+                self._count_error(record.device, "applying a message failed", locked=True)
+                ok = False
+            applied.append(ok)
+        return applied
 
-        The steps: decode (a rejection is counted and handed to the sinks; skipped when `decoded` is the
-        catch-up pass's result), admit the device (bounded by telemetry.max_devices), apply it to the twin
-        (with clock-jump detection), record health and latency, hand the applied sample to the sinks.
-        """
-        topic_device = None if key == UNTRACKED_KEY else key
-        try:
-            if decoded is None:
-                self.processed += 1
-                telemetry = self._decode(topic_device, item)
-            else:
-                telemetry = decoded
-            if telemetry is None:
-                return None
-            tracked = self._admit(telemetry.device_id)
-            if tracked is None:
-                return None
-            tracked.gripper_percent = telemetry.gripper_percent
-            result = self._apply(tracked, telemetry, item)
-            self._record_health(telemetry, item, result)
-            events: tuple[AlarmEvent, ...] = ()
-            if result.applied:
-                events = self._evaluate_alarms(telemetry, item, result.tracked)
-            if result.applied and self._sinks:
-                self._hand_applied(telemetry, item, result.tracked, events)
-            elif self._history is not None:
-                # History keeps every decoded message (issue 13: rows written = rows received), also one the
-                # twin did not apply because it came late or twice; the other sinks mirror the twin.
-                self._hand_history(telemetry, item)
-            return telemetry.device_id if result.applied else None
-        except Exception:
-            self._count_error(topic_device, "processing a message failed", topic=item.topic)
-            return None
+    def _apply(self, record: _Device, telemetry: Telemetry, recv_mono: float) -> bool:
+        """Apply to the twin. A long run of only-older messages means the edge clock jumped back (module doc):
+        the twin is then rebuilt on the new timeline."""
+        twin = record.twin
+        clamped_before = twin.clamped
+        if twin.apply(telemetry.angles_rad, telemetry.timestamp_ms):
+            record.stale_streak = 0
+            if twin.clamped != clamped_before:
+                record.health.clamped += twin.clamped - clamped_before
+            return True
+        if record.stale_streak == 0:
+            record.stale_since = recv_mono
+        record.stale_streak += 1
+        if (
+            record.stale_streak < CLOCK_RESET_MIN_MESSAGES
+            or recv_mono - record.stale_since < CLOCK_RESET_AFTER_S
+        ):
+            return False
+        device = record.device
+        previous = twin.last_timestamp_ms
+        twin = record.twin = DeviceTwin(self.robot, device, self.mode)
+        record.stale_streak = 0
+        applied = twin.apply(telemetry.angles_rad, telemetry.timestamp_ms)
+        record.health.clock_resets += 1
+        record.health.clamped += twin.clamped
+        log.warning(
+            "edge clock of %s jumped backwards; twin rebuilt on the new timeline",
+            device,
+            extra={"device": device, "last_ms": previous, "now_ms": telemetry.timestamp_ms},
+        )
+        self._watch.clock_reset(device, previous, telemetry.timestamp_ms)
+        return applied
 
-    def _decode(self, topic_device: str | None, item: Inbound) -> Telemetry | None:
-        """The decoded telemetry, or None after counting, logging and handing on the rejection."""
-        try:
-            return self._decoder.decode(item.payload, topic_device=topic_device)
-        except TelemetryRejected as exc:
-            rejected = exc
+    def _record_all(
+        self, entries: list[_Decoded], applied: list[bool], updated: float, batch: Batch
+    ) -> list[tuple[AlarmEvent, ...]]:
+        """The health and alarms stage (under the lock): health and latency of every message (its loss
+        estimate was fed in arrival order after decoding), servo alarms of every applied one (the round's at
+        once: ServoAlarms.evaluate_batch); returns each message's alarm events."""
+        _, _, _, monos, walls = batch
+        internal: list[float] = []
+        end_to_end: list[float] = []
+        events: list[tuple[AlarmEvent, ...]] = [()] * len(entries)
+        evaluate: list[int] = []  # positions in `entries` of the applied messages
+        for n, ((i, telemetry, record), ok) in enumerate(zip(entries, applied, strict=True)):
+            recv = monos[i]
+            timestamp_ms = telemetry.timestamp_ms
+            try:
+                record.health.record_message(recv, walls[i], timestamp_ms, ok, updated)
+                record.units = telemetry.units
+                record.gripper_percent = telemetry.gripper_percent
+                if not ok:
+                    continue
+                latency = updated - recv
+                internal.append(latency)
+                # Twin-updated wall time minus the edge stamp: only meaningful when the clocks agree (same
+                # host in `twin bench`); in the field it includes the edge clock's offset.
+                end_to_end.append(walls[i] + latency - timestamp_ms / 1000.0)
+                record.diagnostics = telemetry.diagnostics
+                evaluate.append(n)
+            except Exception:
+                self._count_error(record.device, "recording a message failed", locked=True)
+        self._internal_hist.add_many(internal)
+        self._end_to_end_hist.add_many(end_to_end)
+        if evaluate and self._alarms_on:
+            try:
+                self._evaluate_alarms(entries, evaluate, events, monos)
+            except Exception:
+                self._count_error(None, "evaluating servo alarms failed", locked=True)
+        return events
+
+    def _evaluate_alarms(
+        self,
+        entries: list[_Decoded],
+        evaluate: list[int],
+        events: list[tuple[AlarmEvent, ...]],
+        monos: Sequence[float],
+    ) -> None:
+        """Servo alarms for the round's applied messages (docs/servo-health.md), under the lock; state changes
+        become log lines and go to the sinks with the sample. Inverse dynamics runs only if a still joint's
+        model check or a reader needs it (core.alarms._Torques)."""
+        chosen = [entries[n] for n in evaluate]
+        if self._joint_order_is_the_contracts:
+            devices, diagnostics, messages, poses, stamps, received, torques = [], [], [], [], [], [], []
+            for i, telemetry, record in chosen:
+                twin = record.twin
+                pose = twin.target_values
+                devices.append(record.device)
+                diagnostics.append(telemetry.diagnostics)
+                messages.append(telemetry)
+                poses.append(pose)
+                stamps.append(telemetry.timestamp_ms)
+                received.append(monos[i])
+                torques.append(twin.holding_torques_at(pose))
+            found = self._alarms.evaluate_batch(
+                devices,
+                diagnostics,
+                columns=diagnostic_columns(messages),
+                angles=poses,
+                timestamps_ms=stamps,
+                now=received,
+                holding_torques_nm=torques,
+            )
+        else:
+            found = [
+                self._alarms.evaluate(
+                    record.device,
+                    telemetry.diagnostics,
+                    record.twin.holding_torques_when_read(),
+                    monos[i],
+                    angles_rad=record.twin.targets,
+                    timestamp_ms=telemetry.timestamp_ms,
+                )
+                for i, telemetry, record in chosen
+            ]
+        for n, message_events in zip(evaluate, found, strict=True):
+            if message_events:
+                events[n] = tuple(message_events)
+
+    def _hand_all(
+        self,
+        entries: list[_Decoded],
+        applied: list[bool],
+        events: list[tuple[AlarmEvent, ...]],
+        batch: Batch,
+    ) -> None:
+        """The sinks stage: every applied message to every sink; with history on, every message to its feed
+        (history keeps every decoded message, also one the twin did not apply because it came late or twice:
+        rows written = rows received; the other sinks mirror the twin)."""
+        if self._sinks:
+            for (i, telemetry, record), ok, alarm_events in zip(entries, applied, events, strict=True):
+                if ok:
+                    self._hand_applied(telemetry, batch, i, record.twin.targets, alarm_events)
+        history = self._history
+        if history is not None:
+            for i, telemetry, _ in entries:
+                history.telemetry(_history_row(telemetry, batch, i))
+
+    def _rejected(
+        self, topic_device: str | None, rejected: TelemetryRejected, batch: Batch, i: int
+    ) -> DeviceLoss | None:
+        """Count, log and hand on one rejection; the loss estimator of the topic's device, if it is tracked
+        (it arrived: the hole it leaves in the device's timestamps is not transit loss)."""
         reason = str(rejected.reason)
+        loss = None
         with self._lock:
             health = self._fleet.get(topic_device) if topic_device else None
             if topic_device is not None and health is not None:
                 health.record_received()
-                # It arrived: the hole it leaves in the device's timestamps is not transit loss.
-                self._loss_of(topic_device).record_rejected()
+                loss = self._loss_of(topic_device)
             self._fleet.record_rejected(topic_device, reason)
         if rejected.reason is not RejectReason.UNITS_UNDECIDED:
             self._rejections.rejected(topic_device, reason, str(rejected))
+        topic = batch.topics[i]
         self._reject_log.log(
             (topic_device, reason),
             # units=auto turning away a new arm's first messages while it gathers evidence is expected, not a
@@ -810,7 +1031,7 @@ class Mirror:
             logging.DEBUG if rejected.reason is RejectReason.UNITS_UNDECIDED else logging.WARNING,
             "telemetry rejected",
             device=topic_device,
-            topic=item.topic,
+            topic=topic,
             reason=reason,
             detail=str(rejected),
         )
@@ -818,22 +1039,33 @@ class Mirror:
             # Only the payload's first bytes: the sinks' queues must not hold every junk message whole.
             sample = rejected_sample(
                 topic_device,
-                item.topic,
-                received_wall_s=item.recv_wall,
+                topic,
+                received_wall_s=batch.recv_wall[i],
                 reason=reason,
                 detail=str(rejected),
-                payload=item.payload,
+                payload=batch.payloads[i],
             )
             for sink in self._sinks:
                 self._guard_sink(sink, sink.rejected, sample)
-        return None
+        history = self._history
+        if history is not None:
+            payload = batch.payloads[i]
+            history.rejected(
+                (
+                    batch.recv_wall[i],
+                    topic,
+                    topic_device,
+                    reason,
+                    str(rejected),
+                    bytes(payload[: history.payload_max_bytes]),
+                    len(payload),
+                )
+            )
+        return loss
 
-    def _admit(self, device: str) -> _Tracked | None:
-        """The device's tracked twin, created on its first valid message while the fleet's device budget
+    def _admit(self, device: str) -> _Device | None:
+        """A new device's record, created on its first valid message while the fleet's device budget
         (telemetry.max_devices, shared by every mirror) has a place."""
-        tracked = self._devices.get(device)
-        if tracked is not None:
-            return tracked
         if not self._budget.take(self._slot):
             with self._lock:
                 self._fleet.record_rejected(None, TOO_MANY_DEVICES)
@@ -849,85 +1081,13 @@ class Mirror:
                 max_devices=self._budget.limit,
             )
             return None
-        return self._new_device(device)
-
-    def _apply(self, tracked: _Tracked, telemetry: Telemetry, item: Inbound) -> _Applied:
-        """Apply to the twin. A long run of only-older messages means the edge clock jumped back (module doc):
-        the twin is then rebuilt on the new timeline."""
-        twin = tracked.twin
-        clamped_before = twin.clamped
-        applied = twin.apply(telemetry.angles_rad, telemetry.timestamp_ms)
-        updated = self._clock()
-        if applied:
-            tracked.stale_streak = 0
-            return _Applied(tracked, True, False, updated, twin.clamped - clamped_before)
-        if tracked.stale_streak == 0:
-            tracked.stale_since = item.recv_mono
-        tracked.stale_streak += 1
-        if (
-            tracked.stale_streak < CLOCK_RESET_MIN_MESSAGES
-            or item.recv_mono - tracked.stale_since < CLOCK_RESET_AFTER_S
-        ):
-            return _Applied(tracked, False, False, updated, 0)
-        device = telemetry.device_id
-        previous = twin.last_timestamp_ms
-        tracked = self._new_device(device, replace=True)
-        applied = tracked.twin.apply(telemetry.angles_rad, telemetry.timestamp_ms)
-        updated = self._clock()
-        log.warning(
-            "edge clock of %s jumped backwards; twin rebuilt on the new timeline",
-            device,
-            extra={"device": device, "last_ms": previous, "now_ms": telemetry.timestamp_ms},
-        )
-        self._watch.clock_reset(device, previous, telemetry.timestamp_ms)
-        return _Applied(tracked, applied, True, updated, tracked.twin.clamped)
-
-    def _record_health(self, telemetry: Telemetry, item: Inbound, result: _Applied) -> None:
-        device = telemetry.device_id
-        units = self._decoder.units_for(device)
+        twin = DeviceTwin(self.robot, device, self.mode)
         with self._lock:
-            health = self._fleet.device(device)
-            health.record_received()
-            health.record_decoded(item.recv_mono, item.recv_wall, telemetry.timestamp_ms)
-            self._loss_of(device).observe(telemetry.timestamp_ms)
-            health.clamped += result.clamped
-            if result.reset:
-                health.clock_resets += 1
-            if result.applied:
-                health.record_applied(item.recv_mono, result.updated_mono, telemetry.timestamp_ms)
-                internal = result.updated_mono - item.recv_mono
-                self._internal_hist.add(internal)
-                # Twin-updated wall time minus the edge stamp: only meaningful when the clocks agree (same
-                # host in `twin bench`); in the field it includes the edge clock's offset.
-                self._end_to_end_hist.add(item.recv_wall + internal - telemetry.timestamp_ms / 1000.0)
-            else:
-                health.record_ignored_stale()
-            self._units[device] = units
-            self._gripper[device] = result.tracked.gripper_percent
-
-    def _evaluate_alarms(
-        self, telemetry: Telemetry, item: Inbound, tracked: _Tracked
-    ) -> tuple[AlarmEvent, ...]:
-        """Servo alarms for this applied message (docs/servo-health.md); state changes become log lines and
-        go to the sinks with the sample."""
-        device = telemetry.device_id
-        twin = tracked.twin
-        # Inverse dynamics only if a still joint's model check or a reader needs it (core.alarms._Torques).
-        torques = twin.holding_torques_when_read()
-        with self._lock:
-            self._diagnostics[device] = telemetry.diagnostics
-            events = self._alarms.evaluate(
-                device,
-                telemetry.diagnostics,
-                torques,
-                item.recv_mono,
-                angles_rad=twin.targets,
-                timestamp_ms=telemetry.timestamp_ms,
+            record = self._devices[device] = _Device(
+                device, twin, self._fleet.device(device), self._loss_of(device)
             )
-        for event in events:
-            _log_alarm_event(event)
-            self._watch.alarm(event)
-        return tuple(events)
+        log.info("new device", extra={"device": device, "mode": str(self.mode)})
+        return record
 
     def _loss_of(self, device: str) -> DeviceLoss:
         """The device's loss estimator (under the lock). Its nominal period is the configured edge rate; a gap
@@ -944,32 +1104,24 @@ class Mirror:
         return loss
 
     def _hand_applied(
-        self, telemetry: Telemetry, item: Inbound, tracked: _Tracked, events: tuple[AlarmEvent, ...] = ()
+        self,
+        telemetry: Telemetry,
+        batch: Batch,
+        i: int,
+        joint_angles: dict[str, float],
+        events: tuple[AlarmEvent, ...] = (),
     ) -> None:
         sample = AppliedSample(
             device_id=telemetry.device_id,
-            received_wall_s=item.recv_wall,
-            received_mono_s=item.recv_mono,
+            received_wall_s=batch.recv_wall[i],
+            received_mono_s=batch.recv_mono[i],
             telemetry=telemetry,
-            joint_angles=tracked.twin.targets,
-            payload=item.payload,
+            joint_angles=joint_angles,
+            payload=batch.payloads[i],
             alarm_events=events,
         )
         for sink in self._sinks:
             self._guard_sink(sink, sink.applied, sample)
-
-    def _hand_history(self, telemetry: Telemetry, item: Inbound) -> None:
-        history = self._history
-        assert history is not None
-        sample = AppliedSample(
-            device_id=telemetry.device_id,
-            received_wall_s=item.recv_wall,
-            received_mono_s=item.recv_mono,
-            telemetry=telemetry,
-            joint_angles=telemetry.angles_rad,  # not applied: the decoded angles, unclamped
-            payload=item.payload,
-        )
-        self._guard_sink(history, history.applied, sample)
 
     def _guard_sink(self, sink: TwinSink, method: Callable[[_SampleT], None], sample: _SampleT) -> None:
         # A sink that raises (it should not: I/O sinks queue) must not cost the mirror or the other sinks.
@@ -978,21 +1130,22 @@ class Mirror:
         except Exception:
             self._count_error(None, f"sink {sink.name} failed", sink=sink.name)
 
-    def _new_device(self, device: str, *, replace: bool = False) -> _Tracked:
-        tracked = _Tracked(twin=DeviceTwin(self.robot, device, self.mode))
-        self._devices[device] = tracked
-        if not replace:
-            log.info("new device", extra={"device": device, "mode": str(self.mode)})
-        return tracked
-
-    def _count_error(self, device: str | None, msg: str, **fields: object) -> None:
+    def _count_error(self, device: str | None, msg: str, *, locked: bool = False, **fields: object) -> None:
+        """Count (and log, rate-limited) an error; `locked`: the caller holds the mirror's lock."""
         self.errors += 1
-        with self._lock:
-            health = self._fleet.get(device) if device else None
-            if health is not None:
-                health.record_error()
+        if device:
+            if locked:
+                self._record_error(device)
+            else:
+                with self._lock:
+                    self._record_error(device)
         # One traceback per interval; the rest are summarised as `suppressed` on the next line.
         self._error_log.log((device, msg), logging.ERROR, msg, exc_info=True, device=device, **fields)
+
+    def _record_error(self, device: str) -> None:
+        health = self._fleet.get(device)
+        if health is not None:
+            health.record_error()
 
     # ------------------------------------------------------------------------------------------ readers
 
@@ -1051,7 +1204,8 @@ class Mirror:
             for device, h in self._fleet.devices.items():
                 loss = self._loss.get(device)
                 received, lost = loss.recent(now) if loss is not None else (0, 0)
-                diagnostics = self._diagnostics.get(device, {})
+                record = self._devices.get(device)
+                diagnostics = record.diagnostics if record is not None and record.diagnostics else {}
                 last = h.last_message_mono
                 rows.append(
                     fleet_row(
@@ -1064,7 +1218,10 @@ class Mirror:
                         rejected=h.rejected_total,
                         alarm=worst.get(device),
                         uncalibrated=self._uncalibrated(
-                            device, self._units.get(device, self.config.telemetry.units)
+                            device,
+                            record.units
+                            if record is not None and record.units is not None
+                            else self.config.telemetry.units,
                         ),
                     )
                 )
@@ -1082,11 +1239,19 @@ class Mirror:
                 pending=len(self._mailbox),
             ),
             worker=WorkerState(
-                alive=self.running, batches=readout.batches, processed=self.processed, errors=self.errors
+                alive=self.running,
+                batches=readout.batches,
+                processed=readout.processed,
+                errors=self.errors,
+                stage_cpu_s=readout.stage_cpu_s,
             ),
             recording=self._recording_state(),
-            history=self._history_state(),
-            sinks=tuple(sink.stats() for sink in self._sinks),
+            # The agent has the history's own figures (its writer process); the feed's are a sink's.
+            history=None,
+            sinks=(
+                *(sink.stats() for sink in self._sinks),
+                *((self._history.stats(),) if self._history is not None else ()),
+            ),
             alarms=readout.alarms,
             internal=readout.internal,
             end_to_end=readout.end_to_end,
@@ -1096,25 +1261,34 @@ class Mirror:
         """Copy what the worker writes, under the lock, as briefly as possible."""
         with self._lock:
             now = self._clock()
+            devices = self._devices.values()
             return _Readout(
                 now=now,
                 health=self._fleet.snapshot(now),
-                snapshots=dict(self._snapshots),
-                units=dict(self._units),
-                gripper=dict(self._gripper),
+                snapshots={
+                    r.device: r.twin.snapshot() for r in devices if r.twin.last_timestamp_ms is not None
+                },
+                units={r.device: r.units for r in devices if r.units is not None},
+                gripper={r.device: r.gripper_percent for r in devices if r.units is not None},
                 untracked=dict(self._fleet.untracked_rejected),
                 batches=self.batches,
+                processed=self.processed,
+                stage_cpu_s=dict(self._stage_cpu),
                 internal=self._internal_hist.copy(),
                 end_to_end=self._end_to_end_hist.copy(),
-                servos={device: self._servo_readout(device) for device in self._diagnostics},
+                servos={
+                    r.device: self._servo_readout(r.device, r.diagnostics)
+                    for r in devices
+                    if r.diagnostics is not None
+                },
                 alarms=self._alarms_summary(),
                 loss={device: loss.snapshot(now) for device, loss in self._loss.items()},
             )
 
-    def _servo_readout(self, device: str) -> _ServoReadout:
+    def _servo_readout(self, device: str, diagnostics: Mapping[str, JointDiagnostics]) -> _ServoReadout:
         """Under the lock: the device's last diagnostics and the alarm engine's view of each joint."""
         alarms = self._alarms
-        return self._diagnostics[device], alarms.joint_health(device), alarms.worst_by_joint(device)
+        return diagnostics, alarms.joint_health(device), alarms.worst_by_joint(device)
 
     @staticmethod
     def _servo_states(readout: _ServoReadout) -> dict[str, ServoState]:
@@ -1204,28 +1378,6 @@ class Mirror:
     def _uncalibrated(self, device: str, units: Units) -> bool:
         return uncalibrated(self._calibration_source(device), units)
 
-    def _history_state(self) -> HistoryState | None:
-        if self._history is None:
-            return None
-        from twin.output.history import REJECTED_TABLE, TELEMETRY_TABLE  # noqa: PLC0415
-
-        stats = self._history.writer.stats()
-        rows = stats.tables[TELEMETRY_TABLE]
-        return HistoryState(
-            uri=self._history.writer.settings.uri,
-            storage_ok=stats.storage_ok,
-            rows_committed=rows.rows_committed,
-            commits=rows.commits,
-            commit_failures=sum(t.commit_failures for t in stats.tables.values()),
-            rows_dropped=sum(t.rows_dropped for t in stats.tables.values()) + stats.rows_lost_in_conversion,
-            rows_buffered=sum(t.rows_buffered for t in stats.tables.values()),
-            rejected_rows_committed=stats.tables[REJECTED_TABLE].rows_committed,
-            maintenance_runs=stats.maintenance_runs,
-            maintenance_failures=stats.maintenance_failures,
-            last_error=stats.last_error,
-            lag_s=stats.lag_s,
-        )
-
     def _recording_state(self) -> RecordingState | None:
         if self._recording is None:
             return None
@@ -1255,18 +1407,25 @@ class LocalShard:
         clock: Clock = time.monotonic,
         wall_clock: Clock = time.time,
         sinks: Sequence[TwinSink] = (),
+        history: HistoryLink | None = None,
     ) -> None:
-        self._inbox: InboundQueue[Inbound] = InboundQueue(
-            max_items=MAX_QUEUED_MESSAGES, max_bytes=MAX_QUEUED_BYTES
+        self._inbox: InboundQueue[QueuedMessage] = InboundQueue(
+            max_items=MAX_QUEUED_MESSAGES, max_bytes=MAX_QUEUED_BYTES, size_of=_payload_size
         )
         self.checkpoint: MirrorCheckpoint | None = None
         self.mirror = Mirror(
-            config, inbox=self._inbox, budget=budget, clock=clock, wall_clock=wall_clock, sinks=sinks
+            config,
+            inbox=QueueInbox(self._inbox),
+            budget=budget,
+            clock=clock,
+            wall_clock=wall_clock,
+            sinks=sinks,
+            history=history,
         )
         self._closed = False
 
     def put(self, key: str, topic: str, payload: bytes, recv_mono: float, recv_wall: float) -> None:
-        self._inbox.put(key, Inbound(topic, payload, recv_mono, recv_wall), len(payload))
+        self._inbox.put(key, (topic, payload, recv_mono, recv_wall))
 
     def launch(self) -> None:
         self.mirror.start()
@@ -1316,12 +1475,45 @@ class LocalShard:
     dropped_total = 0
 
 
+def _payload_size(message: QueuedMessage) -> int:
+    return len(message[1])
+
+
 def _copy_counters(counters: AlarmCounters) -> AlarmCounters:
     return AlarmCounters(
         raised=Counter(counters.raised),
         cleared=Counter(counters.cleared),
         acknowledged=Counter(counters.acknowledged),
     )
+
+
+def _history_row(telemetry: Telemetry, batch: Batch, i: int) -> TelemetryRow:
+    """A decoded message as its history row: its decoded angles (not the applied, clamped ones)."""
+    return (
+        telemetry.device_id,
+        batch.recv_wall[i],
+        telemetry.timestamp_ms,
+        telemetry.units.value,
+        tuple(telemetry.angles_rad.values()),
+        batch.payloads[i],
+    )
+
+
+def _rounds(decoded: list[_Decoded]) -> list[list[_Decoded]]:
+    """The batch's decoded messages in rounds, each device at most once a round and its messages in order
+    (module doc); one round in the usual case of one message per device."""
+    if len(decoded) < 2 or len({id(record) for _, _, record in decoded}) == len(decoded):
+        return [decoded]
+    rounds: list[list[_Decoded]] = []
+    seen: dict[int, int] = {}
+    for entry in decoded:
+        key = id(entry[2])
+        k = seen.get(key, 0)
+        seen[key] = k + 1
+        if k == len(rounds):
+            rounds.append([])
+        rounds[k].append(entry)
+    return rounds
 
 
 def _alarm_info(view: AlarmView, now_mono: float, now_wall: float) -> AlarmInfo:

@@ -65,6 +65,7 @@ from twin.service.admission import DeviceBudget
 from twin.service.config import AgentConfig, ConfigError
 from twin.service.console import FleetRow
 from twin.service.events import Event
+from twin.service.logs import name_native_thread
 from twin.service.state import (
     AgentInfo,
     AgentState,
@@ -83,6 +84,7 @@ from twin.transport.mailbox import MAX_OVERFLOW_KEYS, UNTRACKED_KEY, InboundQueu
 from twin.transport.pipe import Message, send_batch, send_end
 
 if TYPE_CHECKING:
+    from twin.output.history_feed import HistoryLink
     from twin.service.mirror import Mirror
 
 log = logging.getLogger(__name__)
@@ -103,13 +105,16 @@ MAX_UNCONFIRMED = 50_000
 CHECKPOINT_EVERY_S = 1.0
 # One pipe write carries at most this many messages: a backlog goes over in pieces the worker can start on.
 MAX_BATCH = 1000
-# Above this many messages a second for one worker, its sender pauses SEND_PAUSE_S after each hand-over
-# (unless it had a full batch), so messages arriving meanwhile go over together. Without the pause every
-# message woke the sender (a Condition notify costs more than routing the message) and crossed the pipe
-# alone: at 10,000 msg/s a worker the agent spent 26 us a message instead of 18. Below the rate the wake-ups
-# cost little and the pause would only add latency.
+# Above this many messages a second for one worker, its sender pauses after each hand-over (unless it had a
+# full batch), so messages arriving meanwhile go over together: long enough for about BATCH_TARGET messages,
+# at most MAX_SEND_PAUSE_S. Without the pause every message woke the sender and crossed the pipe alone (at
+# 10,000 msg/s a worker the agent spent 26 us a message instead of 18), and the mirror's stages cost about
+# 50-80 us a batch whatever its size (their timers, the lock, the numpy arrays of the servo alarms and the
+# latency histograms), over 5 us a message in batches of 10. Below the rate the wake-ups cost little and
+# the pause would only add latency (the 100-arm target: internal p99 <= 2 ms).
 PAUSE_ABOVE_RATE = 2000.0
-SEND_PAUSE_S = 0.002
+BATCH_TARGET = 64
+MAX_SEND_PAUSE_S = 0.008
 # Of the shutdown budget, a worker leaves this much to the agent (its own stop steps and the pipes).
 WORKER_BUDGET_MARGIN_S = 8.0
 # How long a worker may take to answer one request (a state of thousands of arms takes tens of ms).
@@ -558,13 +563,21 @@ class WorkerShard:
     marked `restarting`.
     """
 
-    def __init__(self, index: int, config: AgentConfig, budget: DeviceBudget, context: SpawnContext) -> None:
+    def __init__(
+        self,
+        index: int,
+        config: AgentConfig,
+        budget: DeviceBudget,
+        context: SpawnContext,
+        history: HistoryLink | None = None,
+    ) -> None:
         self.index = index
         self._config = config  # the worker's own (worker_config)
         self._budget = budget
+        self._history = history
         self._ctx = context
         self.queue: InboundQueue[tuple[str, bytes, float, float]] = InboundQueue(
-            MAX_QUEUED_PER_WORKER, max_bytes=MAX_QUEUED_BYTES_PER_WORKER
+            MAX_QUEUED_PER_WORKER, max_bytes=MAX_QUEUED_BYTES_PER_WORKER, size_of=_payload_size
         )
         self.process: SpawnProcess | None = None
         self.data: Connection | None = None
@@ -612,7 +625,7 @@ class WorkerShard:
         return False  # a dead worker is started again
 
     def put(self, key: str, topic: str, payload: bytes, recv_mono: float, recv_wall: float) -> None:
-        self.queue.put(key, (topic, payload, recv_mono, recv_wall), len(payload))
+        self.queue.put(key, (topic, payload, recv_mono, recv_wall))
 
     def dropped(self) -> dict[str, int]:
         with self._unconfirmed_lock:
@@ -633,6 +646,7 @@ class WorkerShard:
         process = self._ctx.Process(
             target=worker_main,
             args=(self.index, self._config, data_read, control_child, self._budget),
+            kwargs={"history": self._history},
             name=f"twin-worker-{self.index}",
         )
         process.start()
@@ -867,8 +881,9 @@ class WorkerShard:
 
     def _send_loop(self) -> None:
         """Hand the worker its queue in batches; while it is down, wait (the queue holds what arrives)."""
+        name_native_thread()
         queue = self.queue
-        window_start, window_count, pause = time.monotonic(), 0, False
+        window_start, window_count, pause = time.monotonic(), 0, 0.0
         while True:
             with self._send_lock:
                 while not self.ready and not self._closed:
@@ -881,12 +896,13 @@ class WorkerShard:
                     break
                 continue
             if pause and len(items) < MAX_BATCH:
-                time.sleep(SEND_PAUSE_S)
+                time.sleep(pause)
                 items += queue.take_all(0)
             window_count += len(items)
             now = time.monotonic()
             if now - window_start >= 1.0:
-                pause = window_count / (now - window_start) > PAUSE_ABOVE_RATE
+                rate = window_count / (now - window_start)
+                pause = min(MAX_SEND_PAUSE_S, BATCH_TARGET / rate) if rate > PAUSE_ABOVE_RATE else 0.0
                 window_start, window_count = now, 0
             for start in range(0, len(items), MAX_BATCH):
                 self._hand_over(items[start : start + MAX_BATCH])
@@ -998,6 +1014,10 @@ class WorkerShard:
         )
 
 
+def _payload_size(message: tuple[str, bytes, float, float]) -> int:
+    return len(message[1])
+
+
 def uncalibrated(calibration: str, units: Units) -> bool:
     """No calibration while the units need one: degrees are already relative to the arm's calibrated
     middle, ticks and range100 are not."""
@@ -1045,9 +1065,16 @@ _CONTROL_SEND = threading.Lock()
 
 
 def worker_main(
-    index: int, config: AgentConfig, data: Connection, control: Connection, budget: DeviceBudget
+    index: int,
+    config: AgentConfig,
+    data: Connection,
+    control: Connection,
+    budget: DeviceBudget,
+    *,
+    history: HistoryLink | None = None,
 ) -> None:
-    """A worker process: a Mirror fed from `data`, answering `control` (module doc)."""
+    """A worker process: a Mirror fed from `data`, answering `control` (module doc); with history on it
+    feeds the agent's history writer process at `history`."""
     # The agent decides when workers stop (the rest of the queue first, then the sinks flush); a Ctrl-C in a
     # terminal or systemd's SIGTERM reaches the whole process group.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -1063,7 +1090,9 @@ def worker_main(
     sinks: list[TwinSink] = []
     try:
         sinks = configured_sinks(config)
-        mirror = Mirror(config, inbox=PipeInbox(data), budget=budget, slot=index, sinks=sinks)
+        mirror = Mirror(
+            config, inbox=PipeInbox(data), budget=budget, slot=index, sinks=sinks, history=history
+        )
         mirror.start()
     except ConfigError as exc:
         # A setting the worker cannot work with (the ros2 extra missing, say): the agent exits as for any
@@ -1092,6 +1121,7 @@ def worker_main(
 
 def _serve_control(mirror: Mirror, control: Connection) -> None:
     """Answer the agent's calls, one at a time, in the order they come."""
+    name_native_thread()
     while True:
         try:
             call = control.recv()
@@ -1169,6 +1199,7 @@ def merge_reports(
                 batches=sum(r.worker.batches for r in reports),
                 processed=sum(r.worker.processed for r in reports),
                 errors=sum(r.worker.errors for r in reports),
+                stage_cpu_s=_merge_seconds([r.worker.stage_cpu_s for r in reports]),
             ),
             recording=_merge_recording([r.recording for r in reports if r.recording is not None]),
             history=_merge_history([r.history for r in reports if r.history is not None]),
@@ -1219,6 +1250,9 @@ def _merge_history(parts: list[HistoryState]) -> HistoryState | None:
         maintenance_runs=sum(p.maintenance_runs for p in parts),
         maintenance_failures=sum(p.maintenance_failures for p in parts),
         last_error=next((p.last_error for p in parts if p.last_error), ""),
+        writer_restarts=sum(p.writer_restarts for p in parts),
+        rows_received=sum(p.rows_received for p in parts),
+        rows_lost=sum(p.rows_lost for p in parts),
         lag_s=max(p.lag_s for p in parts),
     )
 
@@ -1247,6 +1281,14 @@ def _merge_counts(parts: Sequence[dict[str, int]]) -> dict[str, int]:
     for part in parts:
         total.update(part)
     return dict(sorted(total.items()))
+
+
+def _merge_seconds(parts: Sequence[dict[str, float]]) -> dict[str, float]:
+    total: dict[str, float] = {}
+    for part in parts:
+        for key, seconds in part.items():
+            total[key] = total.get(key, 0.0) + seconds
+    return total
 
 
 def _merge_alarms(parts: list[AlarmsSummary]) -> AlarmsSummary:

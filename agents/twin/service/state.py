@@ -214,6 +214,9 @@ class WorkerState:
     batches: int = 0
     processed: int = 0
     errors: int = 0
+    # CPU seconds the mirrors' worker threads spent in each stage since start (hand_over, decode, twin,
+    # health_alarms, sinks), summed over the workers: where the agent's CPU goes (`twin bench cost`).
+    stage_cpu_s: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, slots=True)
@@ -250,6 +253,13 @@ class HistoryState:
     last_error: str = ""
     # How long the oldest row not yet written has waited, seconds (0: nothing waits); grows in an outage.
     lag_s: float = 0.0
+    # The process that writes the history (its own, apart from the mirrors); None while it is not running.
+    writer_pid: int | None = None
+    # Times the writer process was started again after it died, the rows it received from the mirrors, and
+    # the rows lost with a writer that died holding them (not yet committed).
+    writer_restarts: int = 0
+    rows_received: int = 0
+    rows_lost: int = 0
 
 
 @dataclass(frozen=True, slots=True)

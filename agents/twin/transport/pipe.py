@@ -2,8 +2,14 @@
 
 The agent (service.shards, a sender thread per worker) and `twin bench worker` write batches with
 `send_batch` and end with `send_end`; the worker's PipeInbox (service.mirror) reads them with `read_batch`.
-One pipe message is a pickled list of (mailbox key, (topic, payload, receive monotonic, receive wall)): the
-key is the device, or transport.mailbox.UNTRACKED_KEY for a topic that names none. An empty message is the
+
+One pipe message is one batch as columns, in arrival order: the devices the topics name (the mailbox key,
+transport.mailbox.UNTRACKED_KEY for a topic that names none), the topics, the payloads (raw bytes), and the
+receive times on the agent's monotonic and wall clocks, pickled as five sequences at once. The receiving
+process hands over every message the fleet sends, so its cost per message is what counts: pickling the
+columns of 1,000 messages and reading them back took 0.35-0.4 us a message here, against 0.5 us for a list
+of per-message tuples and 0.6 us for a hand-made frame of lengths and offsets (slicing and decoding each
+topic and payload out of one bytes object costs more than pickle's C loop). An empty pipe message is the
 end marker.
 
 Light on purpose: the agent imports it, and must not load MuJoCo.
@@ -14,15 +20,39 @@ from __future__ import annotations
 import pickle
 from collections.abc import Sequence
 from multiprocessing.connection import Connection
+from typing import NamedTuple
 
+# One message as a shard's queue holds it: (mailbox key, (topic, payload, receive monotonic, receive wall)).
 Message = tuple[str, tuple[str, bytes, float, float]]
 
 _END = b""
 
 
+class Batch(NamedTuple):
+    """Messages in arrival order, as columns: what a mirror takes from its inbox."""
+
+    keys: Sequence[str]  # the device each topic names, or transport.mailbox.UNTRACKED_KEY
+    topics: Sequence[str]
+    payloads: Sequence[bytes]
+    recv_mono: Sequence[float]
+    recv_wall: Sequence[float]
+
+
+EMPTY = Batch((), (), (), (), ())
+
+
+def batch_of(messages: Sequence[Message]) -> Batch:
+    """`messages` (a shard queue's items) as columns."""
+    if not messages:
+        return EMPTY
+    keys, fields = zip(*messages, strict=True)
+    topics, payloads, monos, walls = zip(*fields, strict=True)
+    return Batch(keys, topics, payloads, monos, walls)
+
+
 def send_batch(conn: Connection, messages: Sequence[Message]) -> None:
     """Write one batch (one pipe message); raises OSError or ValueError when the pipe is closed or broken."""
-    conn.send_bytes(pickle.dumps(messages, protocol=pickle.HIGHEST_PROTOCOL))
+    conn.send_bytes(pickle.dumps(tuple(batch_of(messages)), protocol=pickle.HIGHEST_PROTOCOL))
 
 
 def send_end(conn: Connection) -> None:
@@ -30,10 +60,9 @@ def send_end(conn: Connection) -> None:
     conn.send_bytes(_END)
 
 
-def read_batch(raw: bytes) -> list[Message] | None:
+def read_batch(raw: bytes) -> Batch | None:
     """The messages of one pipe message (as `Connection.recv_bytes` returned it); None for the end marker."""
     if raw == _END:
         return None
     # Only this agent's own receiving process writes to the pipe (it is inherited, never listened on).
-    messages: list[Message] = pickle.loads(raw)
-    return messages
+    return Batch(*pickle.loads(raw))

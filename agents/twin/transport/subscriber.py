@@ -7,6 +7,7 @@ wait for anything (a blocking callback deadlocks the client). Broker settings li
 
 from __future__ import annotations
 
+import ctypes
 import dataclasses
 import functools
 import logging
@@ -52,6 +53,25 @@ class SubscriberStats:
 
 
 MessageHandler = Callable[[str, bytes, float], None]
+
+# awscrt calls into Python from its own event-loop threads, which CPython did not start. A thread without a
+# Python thread state of its own gets a new one for every call (PyGILState_Ensure) and loses it at the end
+# (PyGILState_Release), and in CPython 3.11 a new thread state maps its frame stack afresh: an mmap, page
+# faults and a munmap for every message, two thirds of the receiving process's CPU at 10,000 messages a
+# second (docs/performance.md, "Cost per message"). Taking the thread state once more on each such thread,
+# and never giving that back, keeps it for the thread's life; PyGILState_Ensure on a thread that already
+# holds the GIL only counts, so it is safe inside the callback. The event-loop threads live as long as the
+# process (awscrt's default event loop group), so this is one thread state per core, kept.
+_KEPT_THREAD_STATES: set[int] = set()
+
+
+def keep_thread_state() -> None:
+    """On a thread CPython did not start, keep its Python thread state from one callback to the next (above).
+    Call it with the GIL held, from the callback; cheap after the first call on a thread."""
+    ident = threading.get_ident()
+    if ident not in _KEPT_THREAD_STATES:
+        _KEPT_THREAD_STATES.add(ident)
+        ctypes.pythonapi.PyGILState_Ensure()
 
 
 class _PendingSubacks(TypedDict):
@@ -159,6 +179,8 @@ class TelemetrySubscriber:
 
     def _on_publish_received(self, data: mqtt5.PublishReceivedData) -> None:
         received = self._clock()
+        if threading.get_ident() not in _KEPT_THREAD_STATES:
+            keep_thread_state()
         packet = data.publish_packet
         self._stats.messages_received += 1
         self._stats.last_message_monotonic = received

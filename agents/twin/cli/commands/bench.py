@@ -80,6 +80,15 @@ def register(subparsers: Any) -> None:
     cs.add_argument("--rate", type=float, default=2.0, help="messages per second per arm")
     cs.add_argument("--runs", type=int, default=5, help="page loads timed")
     cs.add_argument("--seconds", type=float, default=20.0, help="CPU measurement window of each phase")
+    co = sub.add_parser(
+        "cost", help="the agent's CPU per message in units of json.loads of it, by stage, measured in one run"
+    )
+    co.add_argument("--arms", type=int, nargs="+", default=[100, 1000, 2000], help="fleet sizes, each a run")
+    co.add_argument("--rate", type=float, default=10.0, help="messages per second per arm")
+    co.add_argument("--seconds", type=float, default=20.0, help="how long each run publishes")
+    co.add_argument("--runs", type=int, default=1, help="runs of each fleet size (summarised)")
+    co.add_argument("--history", action="store_true", help="with the telemetry history on (a temp dir)")
+    co.add_argument("--workers", type=int, default=None, help="the agent's --workers (default: its own)")
 
     so = sub.add_parser(
         "soak", help="a fleet for minutes or hours with every sink on: RSS, files, disk, losses over time"
@@ -93,7 +102,7 @@ def register(subparsers: Any) -> None:
     al.add_argument("--seconds", type=float, default=20.0, help="throughput run length")
     al.add_argument("--plot", type=Path, default=Path("docs/performance.png"))
 
-    for p in (tp, fi, fo, hs, hr, hl, r2, rn, rr, qu, de, wo, cs, so, al):
+    for p in (tp, fi, fo, hs, hr, hl, r2, rn, rr, qu, de, wo, cs, co, so, al):
         p.add_argument("--json", action="store_true", help="print the figures as one JSON object")
         p.set_defaults(func=run)
 
@@ -141,8 +150,18 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
         )
     if args.scenario == "worker":
         return import_dev_tool("twin.bench.worker", "bench").run(arms=args.arms, rounds=args.rounds)
+    if args.scenario == "cost":
+        return import_dev_tool("twin.bench.cost", "bench").run(
+            arms=args.arms,
+            rate=args.rate,
+            seconds=args.seconds,
+            runs=args.runs,
+            history=args.history,
+            workers=args.workers,
+        )
     # all: the two throughput loads the targets name, fidelity, footprint, ROS 2, render, Rerun, the quota
-    # (one connection vs the pool), decode against json.loads and a worker's cost per message.
+    # (one connection vs the pool), decode against json.loads, a worker's cost per message, and the agent's
+    # whole cost per message in json.loads units.
     results = {
         "throughput": [
             throughput.run(arms=100, rate=10.0, seconds=args.seconds),
@@ -157,6 +176,7 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
         "decode": import_dev_tool("twin.bench.decode", "bench").run(),
         "worker": import_dev_tool("twin.bench.worker", "bench").run(),
         "console": import_dev_tool("twin.bench.console", "bench").run(seconds=args.seconds),
+        "cost": import_dev_tool("twin.bench.cost", "bench").run(seconds=args.seconds),
     }
     plot = import_dev_tool("twin.bench.plot", "bench")
     results["plot"] = str(plot.write(results, args.plot))

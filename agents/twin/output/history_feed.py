@@ -1,0 +1,676 @@
+"""The telemetry history in a process of its own, fed by the mirrors' batches.
+
+    mirror's worker thread --its sinks stage: a row per decoded or rejected message--> HistoryFeed
+      --the feed's own thread: the rows as columns, pickled, over a Unix socket-->
+    history writer process: Arrow tables (history.telemetry_table_of) -> HistoryWriter -> Delta Lake
+    agent --control pipe: stats, stop--> history writer process (HistoryProcess starts, watches, restarts it)
+
+Why a process: turning rows into Arrow, encoding Parquet and committing cost about 18 % of a core at 1,000
+arms, and on the mirrors' threads (and GIL) that work showed as the mirrors' latency (the p99 with history
+on was five times that without). Here a mirror only appends a row to a deque; its feed's thread hands the
+rows over every HAND_OFF_S; the writer process converts and commits with nothing of the mirror's to wait
+for. A mirror's process no longer loads pyarrow and deltalake either.
+
+Counting. Every row a mirror hands the feed is delivered over the socket, or dropped and counted when the
+feed's queue is full (the writer process has been gone longer than the queue lasts). The writer process
+counts the rows it received, committed and dropped (its write buffer, as before) in shared memory, so when
+it dies (a crash in a native library, say) the agent knows how many rows it held and counts them as lost,
+starts it again, and the feeds connect to the new one and carry on; rows a feed wrote to the socket of a
+writer that died before reading them show as the difference between the feeds' delivered rows and the rows
+the writers received. Nothing else is lost: at shutdown every feed delivers what it holds, and the writer
+commits it before it exits.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import itertools
+import logging
+import multiprocessing
+import os
+import pickle
+import secrets
+import shutil
+import signal
+import tempfile
+import threading
+import time
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass
+from multiprocessing.connection import Client, Connection, Listener, wait
+from multiprocessing.context import SpawnContext, SpawnProcess
+from multiprocessing.sharedctypes import SynchronizedArray
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from twin.output.sinks import SinkStats
+
+if TYPE_CHECKING:
+    from twin.output.history import RejectedRow, WriterStats
+
+log = logging.getLogger(__name__)
+
+# A feed hands its rows over this often (rows wait for a commit anyway: every 10 s by default).
+HAND_OFF_S = 0.05
+# A feed that cannot reach the writer tries again after this long.
+RECONNECT_S = 0.5
+# The writer process must be up within this (Python, pyarrow, deltalake; the table opened on first commit).
+START_TIMEOUT_S = 60.0
+# How long the writer may take to answer the agent's request for its figures.
+ASK_TIMEOUT_S = 10.0
+# A writer that dies within this long of starting is started again after a growing pause.
+QUICK_DEATH_S = 30.0
+MAX_RESTART_PAUSE_S = 60.0
+
+# A rejected message is kept up to this many bytes (its whole length is stored too): HistorySettings' default,
+# here so a mirror cuts the payload before it crosses the socket without loading pyarrow.
+REJECTED_PAYLOAD_MAX_BYTES = 4096
+
+# The writer process's counters in shared memory (int64 each), written by it alone.
+_RECEIVED, _REJECTED_RECEIVED, _COMMITTED, _REJECTED_COMMITTED, _DROPPED, _BUFFERED, _COMMITS = range(7)
+_COUNTERS = 7
+
+# One decoded message as the telemetry table keeps it: device, receive wall time, edge time (ms), units,
+# the six decoded angles (JOINTS order), payload.
+TelemetryRow = tuple[str, float, int, str, Sequence[float], bytes]
+
+
+@dataclass(frozen=True)
+class HistoryLink:
+    """Where the mirrors find the history writer process: its socket and the key that admits them."""
+
+    address: str
+    authkey: bytes
+
+
+@dataclass(frozen=True)
+class _Batch:
+    """What crosses the socket: a feed's telemetry rows as columns, and its rejected rows."""
+
+    device_ids: tuple[str, ...]
+    received_wall_s: tuple[float, ...]
+    edge_ms: tuple[int, ...]
+    units: tuple[str, ...]
+    angles: tuple[float, ...]
+    payloads: tuple[bytes, ...]
+    rejected: tuple[RejectedRow, ...]
+
+    @property
+    def rows(self) -> int:
+        return len(self.device_ids) + len(self.rejected)
+
+
+def _batch_of(telemetry: list[TelemetryRow], rejected: list[RejectedRow]) -> _Batch:
+    if telemetry:
+        devices, walls, stamps, units, angles, payloads = zip(*telemetry, strict=True)
+        flat = tuple(itertools.chain.from_iterable(angles))
+    else:
+        devices = walls = stamps = units = payloads = flat = ()
+    return _Batch(devices, walls, stamps, units, flat, payloads, tuple(rejected))
+
+
+# -------------------------------------------------------------------------------------------- the feed
+
+
+class HistoryFeed:
+    """A mirror's way to the history writer process (module doc). `telemetry()` and `rejected()` run on the
+    mirror's worker thread and only append; the feed's thread connects, hands the rows over and reconnects
+    after the writer was started again. `close()` delivers what is left, then disconnects."""
+
+    name = "history"
+
+    def __init__(self, link: HistoryLink, *, max_pending: int, payload_max_bytes: int) -> None:
+        self._link = link
+        self._max = max_pending
+        self.payload_max_bytes = payload_max_bytes
+        self._telemetry: deque[TelemetryRow] = deque()
+        self._rejected: deque[RejectedRow] = deque()
+        self._conn: Connection | None = None
+        self._closing = threading.Event()
+        self._drop_lock = threading.Lock()
+        self._handed = 0  # written by the mirror's thread only
+        self._delivered = 0
+        self._dropped = 0
+        self._errors = 0
+        self._last_error = ""
+        self._thread = threading.Thread(target=self._run, name="history-feed", daemon=True)
+        self._thread.start()
+
+    # -- the mirror's side ----------------------------------------------------------------------------
+
+    def telemetry(self, row: TelemetryRow) -> None:
+        self._handed += 1
+        rows = self._telemetry
+        rows.append(row)
+        if len(rows) > self._max:
+            self._drop(rows)
+
+    def rejected(self, row: RejectedRow) -> None:
+        self._handed += 1
+        rows = self._rejected
+        rows.append(row)
+        if len(rows) > self._max:
+            self._drop(rows)
+
+    def _drop(self, rows: deque[Any]) -> None:
+        # The writer has been out of reach for longer than the queue lasts: the oldest rows go, counted.
+        with self._drop_lock:
+            while len(rows) > self._max:
+                try:
+                    rows.popleft()
+                except IndexError:
+                    return
+                self._dropped += 1
+
+    def stats(self) -> SinkStats:
+        """As a sink's: rows delivered to the writer process, dropped, waiting (`skipped`: none)."""
+        return SinkStats(
+            name=self.name,
+            delivered=self._delivered,
+            dropped=self._dropped,
+            errors=self._errors,
+            pending=len(self._telemetry) + len(self._rejected),
+            last_error=self._last_error,
+        )
+
+    @property
+    def handed(self) -> int:
+        return self._handed
+
+    def close(self, timeout: float = 30.0) -> None:
+        """Deliver what is queued (until `timeout`), then disconnect. Idempotent."""
+        self._closing.set()
+        self._thread.join(timeout)
+        if self._thread.is_alive():
+            log.error("history feed: %d rows not delivered within %.0f s", self.stats().pending, timeout)
+
+    # -- the feed's thread ----------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        batch: _Batch | None = None
+        while True:
+            closing = self._closing.wait(HAND_OFF_S)
+            if batch is None:
+                batch = self._take()
+            if batch is not None and self._send(batch):
+                batch = None
+                continue
+            if closing and batch is None and not self._telemetry and not self._rejected:
+                break
+            if batch is not None:
+                # Not delivered (the writer is being started again): it waits, and the queue fills behind it.
+                time.sleep(RECONNECT_S)
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+
+    def _take(self) -> _Batch | None:
+        telemetry: list[TelemetryRow] = []
+        rejected: list[RejectedRow] = []
+        for rows, out in ((self._telemetry, telemetry), (self._rejected, rejected)):
+            popleft = rows.popleft
+            try:
+                for _ in range(len(rows)):
+                    out.append(popleft())  # type: ignore[arg-type]
+            except IndexError:  # dropped meanwhile (the queue was full)
+                pass
+        if not telemetry and not rejected:
+            return None
+        return _batch_of(telemetry, rejected)
+
+    def _send(self, batch: _Batch) -> bool:
+        """Hand `batch` over; False when the writer cannot be reached (the batch is kept and sent later: it
+        never reached a writer, so it is not written twice)."""
+        conn = self._conn
+        try:
+            if conn is None:
+                conn = self._conn = Client(self._link.address, family="AF_UNIX", authkey=self._link.authkey)
+            conn.send_bytes(pickle.dumps(batch, protocol=pickle.HIGHEST_PROTOCOL))
+        except (OSError, EOFError, multiprocessing.AuthenticationError) as exc:
+            if conn is not None:
+                with contextlib.suppress(OSError):
+                    conn.close()
+            self._conn = None
+            self._errors += 1
+            self._last_error = f"history writer out of reach: {exc}"
+            return False
+        self._delivered += batch.rows
+        return True
+
+
+# -------------------------------------------------------------------------------- the writer process
+
+
+@dataclass(frozen=True, slots=True)
+class _StatsRequest:
+    pass
+
+
+@dataclass(frozen=True, slots=True)
+class _Stop:
+    # What the agent's shutdown budget leaves the writer: the feeds' last rows and its last commit.
+    timeout_s: float = 30.0
+
+
+@dataclass(frozen=True, slots=True)
+class _Ready:
+    pid: int
+
+
+@dataclass(frozen=True, slots=True)
+class _Failed:
+    message: str
+    setting: bool  # a setting the writer cannot work with (the agent exits as for any configuration error)
+
+
+class HistoryStartError(OSError):
+    """The history writer process could not start; `setting`: because of a setting (`message` names it)."""
+
+    def __init__(self, message: str, *, setting: bool = False) -> None:
+        super().__init__(message)
+        self.setting = setting
+
+
+def writer_main(
+    settings: dict[str, Any], link: HistoryLink, control: Connection, counters: SynchronizedArray[int]
+) -> None:
+    """The history writer process: a HistoryWriter (made from `settings`, HistorySettings' fields) fed by
+    every mirror's HistoryFeed (module doc)."""
+    # The agent stops it in order (the feeds first, then a _Stop), so a Ctrl-C or systemd's SIGTERM to the
+    # process group must not cut its last commit short.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    # pyarrow and deltalake load here only: neither the receiving process nor a mirror carries them.
+    from twin.output.history import HistorySettings, HistoryWriter  # noqa: PLC0415
+
+    try:
+        writer = HistoryWriter(HistorySettings(**settings)).start()
+    except ValueError as exc:  # HistoryError: a setting
+        control.send(_Failed(f"[history]: {exc}", setting=True))
+        return
+    try:
+        with contextlib.suppress(FileNotFoundError):
+            Path(link.address).unlink()  # left by a writer that died
+        listener = Listener(link.address, family="AF_UNIX", authkey=link.authkey)
+    except Exception as exc:
+        log.exception("history writer could not start")
+        control.send(_Failed(f"history writer: {type(exc).__name__}: {exc}", setting=False))
+        return
+    control.send(_Ready(os.getpid()))
+    _Receiver(writer, listener, control, counters).run()
+
+
+class _Receiver:
+    """The writer process's loop: accept feeds, turn their batches into Arrow rows, answer the agent."""
+
+    def __init__(
+        self, writer: Any, listener: Listener, control: Connection, counters: SynchronizedArray[int]
+    ) -> None:
+        self.writer = writer
+        self.listener = listener
+        self.control = control
+        self.counters = counters
+        self.feeds: list[Connection] = []
+        self._lock = threading.Lock()
+        self._closed = False
+        self._stop_timeout_s = 30.0
+        threading.Thread(target=self._accept, name="history-accept", daemon=True).start()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                conn = self.listener.accept()
+            except Exception:  # closed at the end, or a caller without the key (AuthenticationError)
+                if self._closed:
+                    return
+                continue
+            with self._lock:
+                self.feeds.append(conn)
+
+    def run(self) -> None:
+        from twin.output.history import REJECTED_TABLE, TELEMETRY_TABLE  # noqa: PLC0415
+
+        while True:
+            with self._lock:
+                feeds = list(self.feeds)
+            for ready in wait([self.control, *feeds], timeout=0.2):
+                if ready is self.control:
+                    if not self._answer():
+                        self._finish(feeds)
+                        return
+                    continue
+                assert isinstance(ready, Connection)
+                try:
+                    batch = pickle.loads(ready.recv_bytes())
+                except (EOFError, OSError):
+                    self._forget(ready)
+                    continue
+                self._write(batch, TELEMETRY_TABLE, REJECTED_TABLE)
+            self._count()
+
+    def _write(self, batch: _Batch, telemetry_table: str, rejected_table: str) -> None:
+        from twin.output.history import rejected_table_of, telemetry_table_of  # noqa: PLC0415
+
+        if batch.device_ids:
+            self.counters[_RECEIVED] += len(batch.device_ids)
+            try:
+                rows, slow = telemetry_table_of(
+                    device_ids=batch.device_ids,
+                    received_wall_s=batch.received_wall_s,
+                    edge_ms=batch.edge_ms,
+                    units=batch.units,
+                    angles=batch.angles,
+                    payloads=batch.payloads,
+                )
+            except Exception as exc:
+                log.exception("history: %d rows could not be converted", len(batch.device_ids))
+                self.writer.count_conversion(
+                    lost_rows=len(batch.device_ids), error=f"{type(exc).__name__}: {exc}"
+                )
+            else:
+                if slow:
+                    self.writer.count_conversion(slow=True)
+                self.writer.add(telemetry_table, rows)
+        if batch.rejected:
+            self.counters[_REJECTED_RECEIVED] += len(batch.rejected)
+            self.writer.add(rejected_table, rejected_table_of(batch.rejected))
+
+    def _count(self) -> None:
+        from twin.output.history import REJECTED_TABLE, TELEMETRY_TABLE  # noqa: PLC0415
+
+        stats = self.writer.stats()
+        tables = stats.tables
+        self.counters[_COMMITTED] = tables[TELEMETRY_TABLE].rows_committed
+        self.counters[_REJECTED_COMMITTED] = tables[REJECTED_TABLE].rows_committed
+        self.counters[_DROPPED] = sum(t.rows_dropped for t in tables.values()) + stats.rows_lost_in_conversion
+        self.counters[_BUFFERED] = self.writer.buffered_rows()
+        self.counters[_COMMITS] = tables[TELEMETRY_TABLE].commits
+
+    def _answer(self) -> bool:
+        """One request of the agent; False to stop."""
+        try:
+            request = self.control.recv()
+        except (EOFError, OSError):
+            return False  # the agent is gone
+        if isinstance(request, _Stop):
+            self._stop_timeout_s = request.timeout_s
+            return False
+        self._count()
+        with contextlib.suppress(OSError, ValueError):
+            self.control.send(_figures_of(self.writer.stats(), self.writer.buffered_rows()))
+        return True
+
+    def _forget(self, conn: Connection) -> None:
+        with self._lock:
+            if conn in self.feeds:
+                self.feeds.remove(conn)
+        conn.close()
+
+    def _finish(self, feeds: list[Connection]) -> None:
+        """Read what the feeds still send until they hang up (they close after delivering), then commit."""
+        from twin.output.history import REJECTED_TABLE, TELEMETRY_TABLE  # noqa: PLC0415
+
+        started = time.monotonic()
+        budget = self._stop_timeout_s
+        deadline = started + min(5.0, budget / 4.0)
+        while feeds and time.monotonic() < deadline:
+            for ready in wait(feeds, timeout=0.2):
+                assert isinstance(ready, Connection)
+                try:
+                    self._write(pickle.loads(ready.recv_bytes()), TELEMETRY_TABLE, REJECTED_TABLE)
+                except (EOFError, OSError):
+                    feeds.remove(ready)
+                    ready.close()
+        self._closed = True
+        self.listener.close()
+        # Retrying the last commit for what is left of the budget, less a moment for the answer: the agent
+        # kills a writer that has not answered by then.
+        self.writer.close(timeout=max(1.0, budget - (time.monotonic() - started) - 2.0))
+        self._count()
+        with contextlib.suppress(OSError, ValueError):
+            self.control.send(_figures_of(self.writer.stats(), self.writer.buffered_rows()))
+
+
+# ------------------------------------------------------------------------------------- the agent's side
+
+
+@dataclass(frozen=True)
+class WriterFigures:
+    """What the writer process tells the agent of its HistoryWriter (plain values: the agent's process must
+    not load pyarrow to read them)."""
+
+    rows_committed: int = 0
+    rejected_rows_committed: int = 0
+    commits: int = 0
+    commit_failures: int = 0
+    rows_dropped: int = 0  # its write buffer was full, or a chunk could not be converted
+    rows_buffered: int = 0
+    maintenance_runs: int = 0
+    maintenance_failures: int = 0
+    storage_ok: bool = True
+    last_error: str = ""
+    # How long the oldest row not yet written has waited (0: none waits); it grows while commits fail.
+    lag_s: float = 0.0
+
+
+def _figures_of(stats: WriterStats, buffered: int) -> WriterFigures:
+    from twin.output.history import REJECTED_TABLE, TELEMETRY_TABLE  # noqa: PLC0415
+
+    tables = stats.tables
+    return WriterFigures(
+        rows_committed=tables[TELEMETRY_TABLE].rows_committed,
+        rejected_rows_committed=tables[REJECTED_TABLE].rows_committed,
+        commits=tables[TELEMETRY_TABLE].commits,
+        commit_failures=sum(t.commit_failures for t in tables.values()),
+        rows_dropped=sum(t.rows_dropped for t in tables.values()) + stats.rows_lost_in_conversion,
+        rows_buffered=buffered,
+        maintenance_runs=stats.maintenance_runs,
+        maintenance_failures=stats.maintenance_failures,
+        storage_ok=stats.storage_ok,
+        last_error=stats.last_error,
+        lag_s=stats.lag_s,
+    )
+
+
+@dataclass(frozen=True)
+class HistoryFigures:
+    """The writer process's figures for /state, over every process the agent started."""
+
+    stats: WriterFigures | None
+    pid: int | None
+    restarts: int
+    rows_received: int
+    rows_lost: int
+
+
+class HistoryProcess:
+    """The agent's handle on the history writer process: starts it (and its socket), answers for it in
+    /state, starts it again when it died (counting the rows it held), stops it last."""
+
+    def __init__(self, settings: dict[str, Any], context: SpawnContext) -> None:
+        self.settings = settings
+        self._ctx = context
+        self._dir = Path(tempfile.mkdtemp(prefix="twin-history-"))
+        self.link = HistoryLink(str(self._dir / "writer.sock"), secrets.token_bytes(32))
+        self._counters: SynchronizedArray[int] = context.Array("q", _COUNTERS, lock=False)
+        self._process: SpawnProcess | None = None
+        self._control: Connection | None = None
+        self._lock = threading.Lock()
+        self.pid: int | None = None
+        self.started_at = 0.0
+        self.restarts = 0
+        self._restart_at: float | None = None
+        # Over the processes that ended: what they received, committed and dropped, and the rows they held
+        # when they died (the figures of /state run on across restarts).
+        self._before = dict.fromkeys(range(_COUNTERS), 0)
+        self._rows_lost = 0
+        self._stopped = False
+        self._last: WriterFigures | None = None
+        self._last_at = 0.0  # when _last was answered (time.monotonic)
+        self._stop_answered = False
+
+    def launch(self) -> None:
+        """Start the writer process and wait until it listens; HistoryStartError when it cannot (`setting`:
+        because of a setting)."""
+        for i in range(_COUNTERS):
+            self._counters[i] = 0
+        control, child = self._ctx.Pipe()
+        process = self._ctx.Process(
+            target=writer_main,
+            args=(self.settings, self.link, child, self._counters),
+            name="twin-history-writer",
+        )
+        process.start()
+        child.close()
+        self._process, self._control = process, control
+        self.started_at = time.monotonic()
+        if not control.poll(START_TIMEOUT_S):
+            raise HistoryStartError(f"the history writer did not start within {START_TIMEOUT_S:.0f} s")
+        try:
+            hello = control.recv()
+        except (EOFError, OSError):
+            process.join(5.0)
+            raise HistoryStartError(
+                f"the history writer exited while starting (exit code {process.exitcode}); its log lines "
+                "above say why"
+            ) from None
+        if isinstance(hello, _Failed):
+            process.join(5.0)
+            raise HistoryStartError(hello.message, setting=hello.setting)
+        self.pid = hello.pid
+
+    @property
+    def alive(self) -> bool:
+        return self._process is not None and self._process.is_alive()
+
+    def figures(self) -> HistoryFigures:
+        """The writer's figures since the agent started, over every writer process: the current one's asked
+        of it (its last known while it is being started again), plus those of the ones that ended."""
+        stats = self._ask()
+        if stats is None and self._last is not None:
+            # The writer is not answering (being started again): its rows wait in the feeds, so history's
+            # lag keeps growing from what it last said.
+            stats = dataclasses.replace(self._last, lag_s=self._last.lag_s + time.monotonic() - self._last_at)
+        before = self._before
+        if stats is not None and self.restarts:
+            stats = dataclasses.replace(
+                stats,
+                rows_committed=stats.rows_committed + before[_COMMITTED],
+                rejected_rows_committed=stats.rejected_rows_committed + before[_REJECTED_COMMITTED],
+                commits=stats.commits + before[_COMMITS],
+                rows_dropped=stats.rows_dropped + before[_DROPPED],
+            )
+        counters = self._counters
+        received = counters[_RECEIVED] + counters[_REJECTED_RECEIVED]
+        return HistoryFigures(
+            stats=stats,
+            pid=self.pid if self.alive else None,
+            restarts=self.restarts,
+            rows_received=received + before[_RECEIVED] + before[_REJECTED_RECEIVED],
+            rows_lost=self._rows_lost,
+        )
+
+    def _ask(self) -> WriterFigures | None:
+        with self._lock:
+            conn = self._control
+            if conn is None or not self.alive:
+                return None
+            try:
+                conn.send(_StatsRequest())
+                if not conn.poll(ASK_TIMEOUT_S):
+                    log.warning("the history writer did not answer within %.0f s", ASK_TIMEOUT_S)
+                    return None
+                stats: WriterFigures = conn.recv()
+            except (EOFError, OSError, ValueError):
+                return None
+            self._last, self._last_at = stats, time.monotonic()
+            return stats
+
+    def supervise(self) -> None:
+        """Called every half second while the agent runs: start a dead writer again, counting what it held."""
+        process = self._process
+        if process is None or process.is_alive() or self._stopped:
+            return
+        now = time.monotonic()
+        if self._restart_at is None:
+            counters = self._counters
+            received = counters[_RECEIVED] + counters[_REJECTED_RECEIVED]
+            kept = counters[_COMMITTED] + counters[_REJECTED_COMMITTED] + counters[_DROPPED]
+            held = max(0, received - kept)
+            for i in range(_COUNTERS):
+                self._before[i] += counters[i]
+            self._rows_lost += held
+            quick = now - self.started_at < QUICK_DEATH_S
+            pause = min(MAX_RESTART_PAUSE_S, 2.0 ** min(self.restarts, 6)) if quick else 0.0
+            self._restart_at = now + pause
+            log.error(
+                "history writer exited (code %s) holding %d rows not yet written, lost; starting it again%s",
+                process.exitcode,
+                held,
+                f" in {pause:.0f} s" if pause else "",
+                extra={"exit_code": process.exitcode, "history_rows_lost": held},
+            )
+        if now < self._restart_at:
+            return
+        self._restart_at = None
+        self.restarts += 1
+        with self._lock:
+            if self._control is not None:
+                self._control.close()
+            try:
+                self.launch()
+            except HistoryStartError as exc:
+                log.error("the history writer could not be started again: %s", exc)
+                return
+        log.info("history writer running again", extra={"pid": self.pid})
+
+    def unwritten_rows(self) -> int:
+        """After `stop`: the rows the writer could not commit (its figures at the end), or, when it did not
+        answer in time, every row it received and had neither committed nor counted as dropped."""
+        if self._stop_answered and self._last is not None:
+            return self._last.rows_buffered
+        if self._restart_at is not None:
+            return 0  # it died before the stop: what it held is counted in rows_lost already
+        counters = self._counters
+        received = counters[_RECEIVED] + counters[_REJECTED_RECEIVED]
+        kept = counters[_COMMITTED] + counters[_REJECTED_COMMITTED] + counters[_DROPPED]
+        return max(0, received - kept)
+
+    def stop(self, timeout: float = 30.0) -> None:
+        """After the mirrors have closed their feeds: the writer commits what it holds (retrying for at most
+        `timeout` seconds), then exits; one that has not answered by then is killed."""
+        self._stopped = True
+        process, conn = self._process, self._control
+        if process is not None and conn is not None and process.is_alive():
+            with self._lock:
+                try:
+                    conn.send(_Stop(timeout_s=timeout))
+                    if conn.poll(timeout):
+                        self._last, self._last_at = conn.recv(), time.monotonic()
+                        self._stop_answered = True
+                except (EOFError, OSError, ValueError):
+                    pass
+        if process is not None:
+            process.join(5.0 if self._stop_answered else 1.0)
+            if process.is_alive():
+                log.error("the history writer did not stop in time; killing it")
+                process.kill()
+                process.join(5.0)
+        if conn is not None:
+            conn.close()
+        shutil.rmtree(self._dir, ignore_errors=True)
+
+
+__all__ = [
+    "REJECTED_PAYLOAD_MAX_BYTES",
+    "HistoryFeed",
+    "HistoryFigures",
+    "HistoryLink",
+    "HistoryProcess",
+    "HistoryStartError",
+    "TelemetryRow",
+    "WriterFigures",
+    "writer_main",
+]
