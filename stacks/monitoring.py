@@ -1,4 +1,4 @@
-"""The alarm topic and what notifies it: the host's servo alarms directly, and two CloudWatch alarms.
+"""The alarm topic and what notifies it: the host's servo alarms directly, and eight CloudWatch alarms.
 
 One SNS topic (encrypted, TLS only; an e-mail address subscribed when the settings give one):
 
@@ -12,13 +12,20 @@ One SNS topic (encrypted, TLS only; an e-mail address subscribed when the settin
   CPU, so stopping it (by hand or on the auto-stop schedule) does not page.
 - **arms stale** (CloudWatch): at least one arm STALE (publishing, but with gaps) for 3 minutes in a row. An
   arm that is switched off goes OFFLINE and is not paged: arms are switched off on schedules.
+- **what the twin loses** (CloudWatch, six alarms), so a loss that nobody reads in the logs still reaches
+  someone: messages dropped before they were decoded (a queue was full, or a dead worker took them); samples
+  a sink (USD recording, history's queue, Rerun, ROS 2) could not keep up with; a worker process that died
+  and was started again; history rows dropped (the writer's buffer overflowed: storage unreachable longer
+  than it holds); history commits failing for 5 minutes; history's oldest unwritten row over a minute old, 2
+  minutes running (storage slow or unreachable; rows are dropped once the buffer is full).
 
 The agent writes Embedded Metric Format lines (agents/twin/output/emf.py) to a file the CloudWatch agent ships
 to the host's log group; CloudWatch Logs turns them into metrics in the SO101Twin namespace with the dimension
 Agent = the stack name, which the alarms watch (docs/servo-health.md says what to do for each).
 
 A CloudWatch dashboard shows the same metrics over time: arms by status, the mirrored message rate, the
-estimated loss, the servo alarms present by severity and how far history lags, next to the two alarms.
+estimated loss, the servo alarms present by severity, how far history lags and what the twin lost, above
+the alarms.
 """
 
 from __future__ import annotations
@@ -39,13 +46,19 @@ from constructs import Construct
 NAMESPACE = "SO101Twin"
 AGENT_DIMENSION = "Agent"
 SEVERITY_DIMENSION = "Severity"
+# The loss metrics (agents/twin/output/emf.py, LOSS_METRICS).
+MESSAGES_DROPPED = "MessagesDropped"
+SINK_DROPS = "SinkDrops"
+WORKER_RESTARTS = "WorkerRestarts"
+HISTORY_ROWS_DROPPED = "HistoryRowsDropped"
+HISTORY_COMMIT_FAILURES = "HistoryCommitFailures"
+HISTORY_LAG = "HistoryLagSeconds"
 PERIOD = Duration.minutes(1)
+# History commits every 10 s by default (docs/history.md): a minute's lag means commits are failing.
+HISTORY_LAG_ALARM_S = 60
 # How long the agent may be silent on a running host before it pages (it restarts itself within seconds).
 SILENT_MINUTES = 5
 SEVERITIES = ("critical", "warning")
-# History's figures (emf.HISTORY_LAG, emf.HISTORY_ROWS_DROPPED where the agent defines them).
-HISTORY_LAG = "HistoryLagSeconds"
-HISTORY_ROWS_DROPPED = "HistoryRowsDropped"
 
 
 class TwinMonitoring(Construct):
@@ -171,6 +184,75 @@ class TwinMonitoring(Construct):
                 treat_missing_data=cw.TreatMissingData.NOT_BREACHING,
             ),
         }
+
+        agent_name = self.agent_name
+
+        def any_loss(id_: str, name: str, description: str) -> cw.Alarm:
+            """Alarm when `name` counted anything in a minute."""
+            return cw.Alarm(
+                self,
+                id_,
+                alarm_description=f'{description} docs/agent.md, "Bounds and restarts"',
+                metric=metric(name, "Sum"),
+                threshold=1,
+                comparison_operator=cw.ComparisonOperator.GREATER_THAN_OR_EQUAL_TO_THRESHOLD,
+                evaluation_periods=1,
+                # Nothing counted (or history off, or the agent silent: AgentSilent's case) is no loss.
+                treat_missing_data=cw.TreatMissingData.NOT_BREACHING,
+            )
+
+        self.alarms["MessagesDropped"] = any_loss(
+            "MessagesDropped",
+            MESSAGES_DROPPED,
+            f"The agent of {agent_name} dropped telemetry before decoding it: a queue was full (the host "
+            "cannot keep up) or a worker process died with messages it had not counted.",
+        )
+        self.alarms["SinkDrops"] = any_loss(
+            "SinkDrops",
+            SINK_DROPS,
+            f"An output of {agent_name} (USD recording, history, Rerun or ROS 2) dropped samples it could "
+            "not keep up with; /state agent.sinks says which.",
+        )
+        self.alarms["WorkerRestarts"] = any_loss(
+            "WorkerRestarts",
+            WORKER_RESTARTS,
+            f"A worker process of {agent_name}'s agent died and was started again; its log says why.",
+        )
+        self.alarms["HistoryRowsDropped"] = any_loss(
+            "HistoryRowsDropped",
+            HISTORY_ROWS_DROPPED,
+            f"Telemetry history of {agent_name} is being lost: storage was unreachable longer than the write "
+            "buffer holds (history.max_buffer_rows).",
+        )
+        self.alarms["HistoryCommitFailures"] = cw.Alarm(
+            self,
+            "HistoryCommitFailures",
+            alarm_description=(
+                f"History commits of {agent_name} have failed for 5 minutes: the bucket is unreachable or "
+                "refuses the role (/state agent.history.last_error). docs/history.md"
+            ),
+            metric=metric(HISTORY_COMMIT_FAILURES, "Sum"),
+            threshold=1,
+            comparison_operator=cw.ComparisonOperator.GREATER_THAN_OR_EQUAL_TO_THRESHOLD,
+            evaluation_periods=5,
+            datapoints_to_alarm=5,
+            treat_missing_data=cw.TreatMissingData.NOT_BREACHING,
+        )
+        self.alarms["HistoryLag"] = cw.Alarm(
+            self,
+            "HistoryLag",
+            alarm_description=(
+                f"History of {agent_name} lags: its oldest unwritten row has waited over "
+                f"{HISTORY_LAG_ALARM_S} s for 2 minutes; rows are dropped once the buffer is full. "
+                "docs/history.md"
+            ),
+            metric=metric(HISTORY_LAG, "Maximum"),
+            threshold=HISTORY_LAG_ALARM_S,
+            comparison_operator=cw.ComparisonOperator.GREATER_THAN_OR_EQUAL_TO_THRESHOLD,
+            evaluation_periods=2,
+            datapoints_to_alarm=2,
+            treat_missing_data=cw.TreatMissingData.NOT_BREACHING,
+        )
         action = cw_actions.SnsAction(self.topic)
         for alarm in self.alarms.values():
             alarm.add_alarm_action(action)
@@ -230,6 +312,16 @@ def _dashboard(
             [labelled(HISTORY_LAG, "Maximum", "lag s")],
             [labelled(HISTORY_ROWS_DROPPED, "Sum", "rows dropped per minute")],
         ),
-        cw.AlarmStatusWidget(title="Alarms", alarms=alarms, width=12, height=6),
+        graph(
+            "Lost: messages dropped, sink drops, worker restarts, history commit failures (per minute)",
+            [
+                labelled(MESSAGES_DROPPED, "Sum", "messages dropped"),
+                labelled(SINK_DROPS, "Sum", "sink drops"),
+                labelled(WORKER_RESTARTS, "Sum", "worker restarts"),
+                labelled(HISTORY_COMMIT_FAILURES, "Sum", "history commit failures"),
+            ],
+            left_y_axis=cw.YAxisProps(min=0),
+        ),
+        cw.AlarmStatusWidget(title="Alarms", alarms=alarms, width=24, height=6),
     )
     return dashboard

@@ -393,6 +393,39 @@ def test_motion_seen_in_the_pose_overrides_a_velocity_field_that_says_still() ->
 TS0 = 1_764_000_000_000
 
 
+# --- across restarts ----------------------------------------------------------------------------------------
+
+
+def test_records_restore_acknowledged_and_latched_alarms_into_a_new_engine() -> None:
+    old = ServoAlarms()
+    # Over-temperature on the elbow, acknowledged; over-current on the wrist, cleared unacknowledged: LATCHED.
+    run(old, [(0.0, {"temperature_c": 62.0}), (2.0, {"temperature_c": 62.0})])
+    old.acknowledge(alarm_id(DEV, "elbow_flex", AlarmKind.OVER_TEMPERATURE), 3.0)
+    run(old, [(4.0, {"current_a": 3.0}), (6.0, {"current_a": 3.0})], joint="wrist_flex")
+    run(old, [(7.0, {"current_a": 0.1}), (9.5, {"current_a": 0.1})], joint="wrist_flex")
+    records = old.records()
+    assert {(r.alarm_id, r.state) for r in records} == {
+        (alarm_id(DEV, "elbow_flex", AlarmKind.OVER_TEMPERATURE), AlarmState.ACKNOWLEDGED),
+        (alarm_id(DEV, "wrist_flex", AlarmKind.OVER_CURRENT), AlarmState.LATCHED),
+    }
+
+    new = ServoAlarms()
+    assert new.restore(records) == 2
+    new.restore_counters(old.counters)
+    assert state(new, AlarmKind.OVER_TEMPERATURE) is AlarmState.ACKNOWLEDGED
+    assert state(new, AlarmKind.OVER_CURRENT, "wrist_flex") is AlarmState.LATCHED
+    assert new.counters.acknowledged[AlarmKind.OVER_TEMPERATURE] == 1
+    # The old engine saw the elbow cool (35 C, the idle reading) from 4.0 s on: its clear timer carried over,
+    # so the new engine clears the alarm at its first cool reading 10 s after that, though it is a quiet one.
+    events = run(new, [(20.0, {"temperature_c": 40.0})])
+    assert events == [(20.0, "cleared", AlarmKind.OVER_TEMPERATURE, AlarmState.NORMAL)]
+    # The latched alarm stays until a person acknowledges it, as before the restart.
+    run(new, [(31.0, {"current_a": 0.1})], joint="wrist_flex")
+    assert state(new, AlarmKind.OVER_CURRENT, "wrist_flex") is AlarmState.LATCHED
+    new.acknowledge(alarm_id(DEV, "wrist_flex", AlarmKind.OVER_CURRENT), 32.0)
+    assert state(new, AlarmKind.OVER_CURRENT, "wrist_flex") is AlarmState.NORMAL
+
+
 # --- a round of messages at once ----------------------------------------------------------------------------
 
 

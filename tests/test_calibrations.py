@@ -5,6 +5,8 @@ decoding each arm with its own, flagging the arms that have none."""
 from __future__ import annotations
 
 import json
+import os
+import signal
 import time
 from pathlib import Path
 from typing import Any
@@ -279,5 +281,56 @@ def test_degrees_need_no_calibration_so_they_are_not_flagged(tmp_path: Path) -> 
         )
         state = wait_for(lambda: agent.state().devices["arm-001"].joints_rad and agent.state(), 30, "arm-001")
         assert state.devices["arm-001"].uncalibrated is False
+    finally:
+        agent.stop()
+
+
+@pytest.mark.slow
+def test_a_restarted_worker_decodes_with_the_arms_own_from_its_first_message(tmp_path: Path) -> None:
+    """The new process is handed the arms' calibrations before the messages it is sent again and those that
+    waited while it was down: not one of them decodes with the nominal arm's."""
+    store = DirectoryStore(tmp_path / "cal")
+    store.write("arm-001", EXAMPLE.read_bytes())
+    agent = agent_with_store(tmp_path / "cal", **{"twin.workers": 2})
+    agent.start()
+    try:
+        ts = [int(time.time() * 1000)]
+        feed_until(agent, "arm-001", pan_angle(EXAMPLE.read_bytes()), ts)
+        shard = agent._shards[agent.plan.worker_of("arm-001")]
+        wait_for(
+            lambda: shard.checkpoint is not None and "arm-001" in shard.checkpoint.devices, 30, "a checkpoint"
+        )
+        victim = agent.state().agent.workers[shard.index]
+        os.kill(victim.pid, signal.SIGKILL)
+        restarting = wait_for(
+            lambda: (
+                (d := agent.state().devices.get("arm-001")) is not None and d.mirror == "restarting" and d
+            ),
+            30,
+            "arm-001 shown as restarting",
+            interval=0.05,
+        )
+        assert restarting.calibration == str(tmp_path / "cal" / "arm-001.json")
+        assert not restarting.uncalibrated
+        # One message while its worker is down, then none: it is the first the new process decodes.
+        applied = restarting.health.counters.applied
+        ts[0] += 100
+        agent.feed(
+            "dt/lerobot/arm-001/telemetry",
+            ticks_message("arm-001", ts[0], (2500, 1800, 2200, 2100, 2048, 2500)),
+        )
+        back = wait_for(
+            lambda: (
+                (d := agent.state().devices.get("arm-001")) is not None
+                and d.mirror == "running"
+                and d.health.counters.applied > applied
+                and d
+            ),
+            60,
+            "the worker running again with the message applied",
+        )
+        assert back.timestamp_ms == ts[0]
+        assert back.joints_rad is not None
+        assert abs(back.joints_rad["shoulder_pan"] - pan_angle(EXAMPLE.read_bytes(), 2500)) < 1e-9
     finally:
         agent.stop()

@@ -9,6 +9,7 @@ itself tested on documents that break each rule, so it cannot pass everything.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -20,6 +21,7 @@ import pytest
 from conftest import wait_for
 from twin.output.emf import (
     AGENT_DIMENSION,
+    LOSS_METRICS,
     NAMESPACE,
     EmfFileWriter,
     EmfPublisher,
@@ -143,6 +145,9 @@ def test_fleet_lines_written_to_the_file_are_valid_emf(tmp_path: Path) -> None:
         "DevicesStale": "Count",
         "DevicesOffline": "Count",
         "InternalLatencyP99": "Milliseconds",
+        "MessagesDropped": "Count",
+        "SinkDrops": "Count",
+        "WorkerRestarts": "Count",
     }
     assert (fleet["MessagesPerSecond"], fleet["DevicesStale"], fleet["InternalLatencyP99"]) == (29.8, 1, 1.9)
     assert (critical["Severity"], critical["ActiveAlarms"]) == ("critical", 1)
@@ -313,3 +318,46 @@ def test_publisher_thread_writes_until_stopped(tmp_path: Path) -> None:
     assert count >= 2 and publisher.errors == 0
     time.sleep(0.15)  # three intervals of quiet: a thread still running would have published again
     assert publisher.published == count
+
+
+def test_losses_are_counted_per_interval_and_history_only_when_it_is_on(tmp_path: Path) -> None:
+    clock = [0.0]
+    base = FleetTotals(0, 0, 1, 0, 0, 0.0, None, {})
+    totals = [dataclasses.replace(base, history_rows_dropped=0, history_commit_failures=0, history_lag_s=0.5)]
+    writer = EmfFileWriter(tmp_path / "emf.log")
+    publisher = EmfPublisher(writer, "a", lambda: totals[-1], clock=lambda: clock[0], wall=lambda: 1.0)
+    publisher.publish_once()
+    clock[0] = 60.0
+    totals.append(
+        dataclasses.replace(
+            totals[-1],
+            messages_dropped=7,
+            sink_drops=3,
+            worker_restarts=1,
+            history_rows_dropped=5000,
+            history_commit_failures=4,
+            history_lag_s=75.0,
+        )
+    )
+    second = publisher.publish_once()
+    assert (second.messages_dropped, second.sink_drops, second.worker_restarts) == (7, 3, 1)
+    assert (second.history_rows_dropped, second.history_commit_failures, second.history_lag_s) == (
+        5000,
+        4,
+        75.0,
+    )
+    clock[0] = 120.0
+    # The history writer process was started again: its commit failures count from zero again, so a lower
+    # total is all new.
+    totals.append(dataclasses.replace(totals[-1], history_rows_dropped=200, history_commit_failures=4))
+    third = publisher.publish_once()
+    assert (third.history_rows_dropped, third.history_commit_failures, third.sink_drops) == (200, 0, 0)
+    docs = [validate_emf_line(line) for line in writer.path.read_text().splitlines()]
+    assert [d["HistoryRowsDropped"] for d in docs] == [0, 5000, 200]
+    assert [d["HistoryLagSeconds"] for d in docs] == [0.5, 75.0, 75.0]
+    assert {m["Name"]: m["Unit"] for m in docs[1]["_aws"]["CloudWatchMetrics"][0]["Metrics"]}[
+        "HistoryLagSeconds"
+    ] == "Seconds"
+    # History off: no history metric at all (the stack's alarms treat that as no loss).
+    off = fleet_documents(dataclasses.replace(FLEET), "a", 1)
+    assert not set(LOSS_METRICS[3:]) & set(off[0])

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 import pytest
-from conftest import wait_for, wait_handled
+from conftest import get_metrics, metric, wait_for, wait_handled
 from deltalake import CommitProperties, DeltaTable, Transaction, write_deltalake
 from moto_s3 import MotoS3
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
@@ -513,6 +513,14 @@ def test_the_writer_process_writes_what_it_received_and_a_crash_is_counted_and_s
 
         again = wait_for(restarted, 60, "the history writer started again")
         assert again.rows_lost == 7  # received, not committed when it died: counted
+        # ... and paged: CloudWatch's history drops include them, its worker restarts the writer's.
+        from twin.service.agent import fleet_totals
+
+        totals = fleet_totals(agent.state(), config.health.expected_rate_hz)
+        assert (totals.history_rows_dropped, totals.worker_restarts) == (7, 1)
+        samples = get_metrics(agent.http_url)
+        assert metric(samples, "twin_history_rows_lost_total") == 7
+        assert metric(samples, "twin_history_writer_restarts_total") == 1
         feed(27, 20)
         # The figures run on across the restart.
         wait_for(lambda: history().rows_committed == 40, 60, "the new writer's first commit")

@@ -297,7 +297,9 @@ def test_a_sharded_agent_mirrors_a_listed_fleet_through_the_quota(rig: LocalRig)
     assert [metric(metrics, "twin_worker_devices", worker=str(i)) for i in range(3)] == [10.0] * 3
 
 
-FAULTS = (ServoFault("heat", "wrist_roll", 0.5, 4.0),)  # above 60 C from about 1.3 s to 3.7 s
+# Above 60 C from about 1.6 s to 5.4 s: 1.7 s more than the 2 s the alarm waits, so a worker that falls
+# behind on a busy host (and coalesces) still sees the condition last.
+FAULTS = (ServoFault("heat", "wrist_roll", 0.5, 6.0),)
 
 
 @pytest.mark.slow
@@ -338,49 +340,6 @@ def test_a_sharded_wildcard_fleet_keeps_history_and_routes_acknowledgements(
 
     rows = pl.read_delta(str(history / "telemetry")).group_by("device_id").len()
     assert dict(rows.iter_rows()) == report.per_device
-
-
-@pytest.mark.slow
-def test_a_dead_worker_is_started_again(rig: LocalRig) -> None:
-    devices = FLEET[:4]
-    agent = rig.start_agent({"telemetry.devices": devices, "telemetry.units": "ticks"}, workers=2)
-    edge = rig.start_edge(devices, rate_hz=10.0, seconds=None)
-    wait_for(
-        lambda: (
-            len(agent.state().devices) == 4
-            and all(d.health.counters.applied for d in agent.state().devices.values())
-        ),
-        60,
-        "all arms mirrored",
-    )
-    victim = agent.state().agent.workers[1]
-    os.kill(victim.pid, signal.SIGKILL)
-
-    def back() -> Any:
-        state = agent.state()
-        worker = state.agent.workers[1]
-        return state if worker.alive and worker.restarts == 1 and worker.pid != victim.pid else None
-
-    wait_for(back, 60, "worker 1 to be started again")
-    # Its arms are mirrored again from their next message; what arrived while it was down is counted.
-    wait_for(
-        lambda: all(
-            d in state.devices and state.devices[d].health.counters.applied > 5
-            for state in [agent.state()]
-            for d in devices
-        ),
-        60,
-        "its arms mirrored again",
-    )
-    edge.stop()
-    state = agent.state()
-    lost_by_receiver = state.agent.workers[1].dropped
-    assert lost_by_receiver > 0
-    assert (
-        sum(state.devices[d].health.counters.overwritten for d in WorkerPlan(2, devices).devices_of(1))
-        == lost_by_receiver
-    )
-    assert state.agent.workers[0].restarts == 0
 
 
 @pytest.mark.slow

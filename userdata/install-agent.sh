@@ -71,6 +71,10 @@ LAUNCHER_TRUST="/home/${DESKTOP_USER}/.config/autostart/so101-twin-console-trust
 # The agent's own user and the only places it may write (its unit's StateDirectory= and LogsDirectory=).
 AGENT_USER=so101-twin
 AGENT_STATE=/var/lib/so101-twin-agent
+# The agent's shutdown budget and systemd's stop timeout, which must be longer (the margin: the agent's own
+# steps after its workers, and the interpreter's exit).
+SHUTDOWN_BUDGET_S=60
+TIMEOUT_STOP_S=$((SHUTDOWN_BUDGET_S + 30))
 SESSIONS="$AGENT_STATE/sessions"
 LOCK=requirements/host.txt
 PIP=(--disable-pip-version-check --no-input -q --timeout 60 --retries 5)
@@ -182,6 +186,10 @@ record_dir = "${RECORD_DIR}"
 # Worker processes (docs/scaling.md, "Workers"): 0 = one per vCPU for the whole fleet, fewer for a short
 # device list. systemd's stop reaches them through the agent, which lets each flush its history first.
 workers = 0
+# Acknowledged and latched servo alarms survive a restart or a reboot here (its StateDirectory=).
+state_file = "${AGENT_STATE}/state.json"
+# How long a stop may take (history's last commit); the unit's TimeoutStopSec= is longer.
+shutdown_budget_s = ${SHUTDOWN_BUDGET_S}
 
 [health]
 expected_rate_hz = 10.0
@@ -252,6 +260,9 @@ RestartSec=5
 # \`twin run\` exits 2 on a configuration error (agents/twin/cli/commands/run.py, EXIT_CONFIG) and logs
 # the setting: restarting cannot fix it, so systemd leaves it stopped and failed.
 RestartPreventExitStatus=2
+# The agent's stop takes up to [twin] shutdown_budget_s (its workers flush history, then are killed); systemd
+# must not SIGKILL it first.
+TimeoutStopSec=${TIMEOUT_STOP_S}
 SyslogIdentifier=so101-twin-agent
 StateDirectory=so101-twin-agent
 StateDirectoryMode=0750

@@ -10,6 +10,7 @@ import dataclasses
 import json
 from typing import Any
 
+import pytest
 from twin.output import emf
 
 from stacks import monitoring
@@ -36,6 +37,15 @@ def test_names_agree_with_the_agents_emf() -> None:
     assert monitoring.NAMESPACE == emf.NAMESPACE
     assert monitoring.AGENT_DIMENSION == emf.AGENT_DIMENSION
     assert monitoring.SEVERITY_DIMENSION == emf.SEVERITY_DIMENSION
+    stack_side = (
+        monitoring.MESSAGES_DROPPED,
+        monitoring.SINK_DROPS,
+        monitoring.WORKER_RESTARTS,
+        monitoring.HISTORY_ROWS_DROPPED,
+        monitoring.HISTORY_COMMIT_FAILURES,
+        monitoring.HISTORY_LAG,
+    )
+    assert stack_side == emf.LOSS_METRICS
 
 
 def test_topic_is_encrypted_tls_only_and_cloudwatch_may_publish(synth_default: Synth) -> None:
@@ -71,10 +81,11 @@ def test_alarm_email_subscribes_to_the_topic(synth_factory: Any) -> None:
     )
 
 
-def test_two_alarms_notify_the_topic_on_alarm_and_ok(synth_default: Synth) -> None:
+def test_every_alarm_notifies_the_topic_on_alarm_and_ok(synth_default: Synth) -> None:
     # Servo alarms reach the topic from the host directly (test_host_publishes_servo_alarms_to_the_topic_
-    # only), not through a CloudWatch alarm on a once-a-minute metric.
-    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 2)
+    # only), not through a CloudWatch alarm on a once-a-minute metric: agent silent, arms stale and the six
+    # loss alarms.
+    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 8)
     ref = topic_ref(synth_default)
     for props in synth_default.resources("AWS::CloudWatch::Alarm").values():
         assert props["Properties"]["AlarmActions"] == [ref]
@@ -175,9 +186,9 @@ def emitted_metrics() -> set[tuple[str, frozenset[tuple[str, str]]]]:
         "internal_latency_p99_ms": 3.0,
         "active_alarms": {"critical": 1, "warning": 2},
     }
-    # History's figures, where the agent reports them (only while history is on).
-    optional = {"history_lag_s": 1.5, "history_rows_dropped": 0, "history_commit_failures": 0}
-    values.update({name: value for name, value in optional.items() if name in fields})
+    # History's figures are written only while history is on: set here, so the document has them.
+    values.update({"history_lag_s": 1.5, "history_rows_dropped": 0, "history_commit_failures": 0})
+    assert set(values) <= fields
     out = set()
     for doc in emf.fleet_documents(emf.FleetMetrics(**values), "So101TwinStack", 0):
         (directive,) = doc["_aws"]["CloudWatchMetrics"]
@@ -207,16 +218,8 @@ def test_the_dashboard_draws_only_metrics_the_agent_emits(synth_default: Synth) 
     assert props["DashboardName"] == "So101TwinStack-fleet"
     drawn = dashboard_metrics(dashboard_body(synth_default))
     emitted = emitted_metrics()
-    # History's lag and drops come with the agent's history metrics (output/emf.py); until the agent
-    # defines them the dashboard already draws them, by the names agreed for them.
-    pending = (
-        set() if hasattr(emf, "HISTORY_LAG") else {monitoring.HISTORY_LAG, monitoring.HISTORY_ROWS_DROPPED}
-    )
-    missing = {(m, d) for _, m, d in drawn if (m, d) not in emitted and m not in pending}
+    missing = {(m, d) for _, m, d in drawn if (m, d) not in emitted}
     assert not missing, f"the dashboard draws metrics the agent never writes: {missing}"
-    if not pending:
-        assert monitoring.HISTORY_LAG == emf.HISTORY_LAG
-        assert monitoring.HISTORY_ROWS_DROPPED == emf.HISTORY_ROWS_DROPPED
     agent = frozenset({("Agent", "So101TwinStack")})
     by_metric = {(m, d) for _, m, d in drawn}
     # What an operator asks of the fleet: arms online, the mirrored rate, loss, alarms by severity, history.
@@ -225,12 +228,18 @@ def test_the_dashboard_draws_only_metrics_the_agent_emits(synth_default: Synth) 
     for severity in ("critical", "warning"):
         assert ("ActiveAlarms", agent | {("Severity", severity)}) in by_metric
     assert {(monitoring.HISTORY_LAG, agent), (monitoring.HISTORY_ROWS_DROPPED, agent)} <= by_metric
+    assert monitoring.HISTORY_LAG == emf.HISTORY_LAG
+    assert monitoring.HISTORY_ROWS_DROPPED == emf.HISTORY_ROWS_DROPPED
+    # ... and what the twin lost, each figure a loss alarm watches.
+    losses = {emf.MESSAGES_DROPPED, emf.SINK_DROPS, emf.WORKER_RESTARTS, emf.HISTORY_COMMIT_FAILURES}
+    assert {(name, agent) for name in losses} <= by_metric
 
 
-def test_the_dashboard_shows_the_two_alarms_and_is_an_output(synth_default: Synth) -> None:
+def test_the_dashboard_shows_every_alarm_and_is_an_output(synth_default: Synth) -> None:
     body = dashboard_body(synth_default)
     status = [w for w in body["widgets"] if w["type"] == "alarm"]
-    assert len(status) == 1 and len(status[0]["properties"]["alarms"]) == 2
+    alarms = synth_default.resources("AWS::CloudWatch::Alarm")
+    assert len(status) == 1 and len(status[0]["properties"]["alarms"]) == len(alarms) == 8
     # One point a minute, the agent's EMF interval, each with the statistic its figure needs.
     for widget in body["widgets"]:
         for row in widget["properties"].get("metrics", []):
@@ -252,3 +261,40 @@ def test_the_dashboard_follows_the_stack_name(synth_factory: Any) -> None:
     assert synth.one("AWS::CloudWatch::Dashboard")["Properties"]["DashboardName"] == "LabTwin-fleet"
     drawn = dashboard_metrics(dashboard_body(synth))
     assert drawn and all(("Agent", "LabTwin") in dims for _, _, dims in drawn)
+
+
+def _alarm_on(synth: Synth, metric_name: str) -> dict[str, Any]:
+    found = [
+        a["Properties"]
+        for a in synth.resources("AWS::CloudWatch::Alarm").values()
+        if a["Properties"].get("MetricName") == metric_name
+    ]
+    assert len(found) == 1, found
+    return found[0]
+
+
+@pytest.mark.parametrize(
+    "name",
+    [emf.MESSAGES_DROPPED, emf.SINK_DROPS, emf.WORKER_RESTARTS, emf.HISTORY_ROWS_DROPPED],
+)
+def test_any_loss_in_a_minute_alarms(synth_default: Synth, name: str) -> None:
+    props = _alarm_on(synth_default, name)
+    assert props["Namespace"] == emf.NAMESPACE
+    assert props["Dimensions"] == [{"Name": "Agent", "Value": "So101TwinStack"}]
+    assert (props["Statistic"], props["Period"]) == ("Sum", 60)
+    assert (props["ComparisonOperator"], props["Threshold"]) == ("GreaterThanOrEqualToThreshold", 1)
+    assert props["EvaluationPeriods"] == 1 and props["TreatMissingData"] == "notBreaching"
+
+
+def test_history_commit_failures_alarm_after_five_minutes_of_them(synth_default: Synth) -> None:
+    props = _alarm_on(synth_default, emf.HISTORY_COMMIT_FAILURES)
+    assert (props["Statistic"], props["Threshold"]) == ("Sum", 1)
+    assert (props["EvaluationPeriods"], props["DatapointsToAlarm"]) == (5, 5)
+
+
+def test_history_lag_alarms_over_a_minute_for_two(synth_default: Synth) -> None:
+    props = _alarm_on(synth_default, emf.HISTORY_LAG)
+    assert (props["Statistic"], props["Period"]) == ("Maximum", 60)
+    assert (props["ComparisonOperator"], props["Threshold"]) == ("GreaterThanOrEqualToThreshold", 60)
+    assert (props["EvaluationPeriods"], props["DatapointsToAlarm"]) == (2, 2)
+    assert props["TreatMissingData"] == "notBreaching"

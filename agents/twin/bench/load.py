@@ -76,6 +76,10 @@ def publish(
     counts = {"sent": 0, "failures": 0}
     late_slots = 0
     start = time.monotonic()
+    # Each sample is stamped with its slot's time on the wall clock, not the moment it goes out: an edge
+    # stamps a sample when it takes it, and a publisher starved of CPU for a moment (late slots) must not
+    # bunch its arms' timestamps, which the agent's loss estimate would read as gaps.
+    wall_start = time.time()
     end = start + seconds
     k = 0
     while True:
@@ -87,7 +91,8 @@ def publish(
             time.sleep(due - now)
         elif now - due > period:
             late_slots += 1
-        _send(publisher, schedule.slot(k, due, str(round(time.time() * 1000)).encode()), counts)
+        stamp = str(round((wall_start + (due - start)) * 1000)).encode()
+        _send(publisher, schedule.slot(k, due, stamp), counts)
         k += 1
     _send(publisher, schedule.rest(), counts)
     elapsed = time.monotonic() - start

@@ -288,6 +288,30 @@ class AlarmView:
     message: str
 
 
+@dataclass(frozen=True, slots=True)
+class AlarmRecord:
+    """What an alarm must carry across a restart: its state and the condition's debounce, the times on the
+    engine's clock (monotonic seconds). `ServoAlarms.records` exports them, `ServoAlarms.restore` takes them
+    back; the agent keeps them over a worker's restart and, for the states a person must see, in its state
+    file over its own (service.persist)."""
+
+    device: str
+    joint: str
+    kind: AlarmKind
+    state: AlarmState
+    since: float
+    present: bool
+    raised: int
+    value: float | None = None
+    message: str = ""
+    raise_since: float | None = None
+    clear_since: float | None = None
+
+    @property
+    def alarm_id(self) -> str:
+        return alarm_id(self.device, self.joint, self.kind)
+
+
 TorqueSource = Mapping[str, float] | Callable[[], Mapping[str, float]]
 
 
@@ -850,6 +874,76 @@ class ServoAlarms:
             for j, a in angles.items()
             if j in _JOINT_INDEX and not math.isnan(before[_JOINT_INDEX[j]])
         }
+
+    # -- restarts -------------------------------------------------------------------------------------------
+
+    def records(self, *, devices: Iterable[str] | None = None) -> list[AlarmRecord]:
+        """Every alarm that is not NORMAL or whose condition is present or timing a raise (a NORMAL, idle
+        alarm is made again from the next message), of `devices` or of all."""
+        fleet = self._fleet
+        if fleet is None:
+            return []
+        wanted = None if devices is None else set(devices)
+        out = []
+        for at in self._existing():
+            slot, j, n = at
+            device = self._devices[slot]
+            if wanted is not None and device not in wanted:
+                continue
+            state, present = int(fleet.state[at]), bool(fleet.present[at])
+            raise_since = _optional(float(fleet.raise_since[at]))
+            if state == _NORMAL and not present and raise_since is None:
+                continue
+            out.append(
+                AlarmRecord(
+                    device=device,
+                    joint=so101.JOINT_NAMES[j],
+                    kind=_KINDS[n],
+                    state=_STATES[state],
+                    since=float(fleet.since[at]),
+                    present=present,
+                    raised=int(fleet.raised[at]),
+                    value=_optional(float(fleet.value[at])),
+                    message=self._messages.get(at, ""),
+                    raise_since=raise_since,
+                    clear_since=_optional(float(fleet.clear_since[at])),
+                )
+            )
+        return out
+
+    def restore(self, records: Iterable[AlarmRecord]) -> int:
+        """Take back alarms `records` exported (after a restart, before any message of their devices): each
+        replaces what the engine has for its id. Records of joints or kinds this engine does not know are
+        skipped. Returns how many were restored."""
+        restored = 0
+        for record in records:
+            j = _JOINT_INDEX.get(record.joint)
+            n = _KIND_INDEX.get(record.kind)
+            if j is None or n is None:
+                continue
+            slot = self._row(record.device)
+            fleet = self._arrays()  # after _row: it may have grown the arrays
+            at = (slot, j, n)
+            fleet.exists[at] = True
+            fleet.state[at] = _CODE[record.state]
+            fleet.since[at] = record.since
+            fleet.present[at] = record.present
+            fleet.raised[at] = record.raised
+            fleet.value[at] = _float(record.value)
+            fleet.raise_since[at] = _float(record.raise_since)
+            fleet.clear_since[at] = _float(record.clear_since)
+            if record.message:
+                self._messages[at] = record.message
+            else:
+                self._messages.pop(at, None)
+            restored += 1
+        return restored
+
+    def restore_counters(self, counters: AlarmCounters) -> None:
+        """Add `counters` (a previous run's totals) to this engine's."""
+        self.counters.raised.update(counters.raised)
+        self.counters.cleared.update(counters.cleared)
+        self.counters.acknowledged.update(counters.acknowledged)
 
     # -- people ---------------------------------------------------------------------------------------------
 

@@ -102,6 +102,29 @@ class HealthSnapshot:
     internal_latency_s: WindowLatency = field(default_factory=WindowLatency)
 
 
+@dataclass(frozen=True, slots=True)
+class HealthCheckpoint:
+    """What a device's health must carry across a restart of its mirror: the counters and the times that
+    decide its status (the agent's monotonic clock, which every process of one host shares). The windows
+    behind the rate and the latencies start again empty."""
+
+    counters: DeviceCounters
+    last_message_mono: float | None = None
+    last_applied_mono: float | None = None
+    last_timestamp_ms: int | None = None
+
+    def snapshot(self, thresholds: HealthThresholds, now: float, since: float) -> HealthSnapshot:
+        """The health as far as the checkpoint knows it at `now` (no rate, no latencies); `since`: when
+        tracking began, for a device never heard from."""
+        last = self.last_message_mono if self.last_message_mono is not None else since
+        return HealthSnapshot(
+            status=thresholds.classify(max(0.0, now - last)),
+            age_s=None if self.last_message_mono is None else max(0.0, now - self.last_message_mono),
+            last_timestamp_ms=self.last_timestamp_ms,
+            counters=self.counters,
+        )
+
+
 def percentile(sorted_values: list[float], q: float) -> float | None:
     """Nearest-rank percentile (q in 0..1) of an ascending list; None when empty."""
     if not sorted_values:
@@ -253,6 +276,47 @@ class DeviceHealth:
     def record_coalesced(self) -> None:
         self.coalesced += 1
 
+    def checkpoint(self) -> HealthCheckpoint:
+        """The counters and times a restarted mirror takes back with `restore` (no windows)."""
+        return HealthCheckpoint(
+            counters=self._counters(),
+            last_message_mono=self.last_message_mono,
+            last_applied_mono=self.last_applied_mono,
+            last_timestamp_ms=self.last_timestamp_ms,
+        )
+
+    def restore(self, checkpoint: HealthCheckpoint) -> None:
+        """Take back what `checkpoint` carried; counts since it are added on top as messages arrive."""
+        c = checkpoint.counters
+        self.received = c.received
+        self.decoded = c.decoded
+        self.applied = c.applied
+        self.ignored_stale = c.ignored_stale
+        self.coalesced = c.coalesced
+        self.overwritten = c.overwritten
+        self.errors = c.errors
+        self.clock_resets = c.clock_resets
+        self.clamped = c.clamped
+        self.rejected = Counter(c.rejected)
+        self.last_message_mono = checkpoint.last_message_mono
+        self.last_applied_mono = checkpoint.last_applied_mono
+        self.last_timestamp_ms = checkpoint.last_timestamp_ms
+
+    def _counters(self) -> DeviceCounters:
+        return DeviceCounters(
+            received=self.received,
+            decoded=self.decoded,
+            applied=self.applied,
+            ignored_stale=self.ignored_stale,
+            coalesced=self.coalesced,
+            overwritten=self.overwritten,
+            errors=self.errors,
+            clock_resets=self.clock_resets,
+            rejected_total=self.rejected_total,
+            rejected=dict(sorted(self.rejected.items())),
+            clamped=self.clamped,
+        )
+
     def silent_for(self, now: float | None = None) -> float:
         now = self._clock() if now is None else now
         last = self.last_message_mono if self.last_message_mono is not None else self._since
@@ -279,19 +343,7 @@ class DeviceHealth:
             age_s=None if self.last_message_mono is None else max(0.0, now - self.last_message_mono),
             rate_hz=self._rate.rate(now),
             last_timestamp_ms=self.last_timestamp_ms,
-            counters=DeviceCounters(
-                received=self.received,
-                decoded=self.decoded,
-                applied=self.applied,
-                ignored_stale=self.ignored_stale,
-                coalesced=self.coalesced,
-                overwritten=self.overwritten,
-                errors=self.errors,
-                clock_resets=self.clock_resets,
-                rejected_total=self.rejected_total,
-                rejected=dict(sorted(self.rejected.items())),
-                clamped=self.clamped,
-            ),
+            counters=self._counters(),
             edge_clock_latency_s=edge,
             edge_clock_offset_s=offset,
             edge_transit_jitter_p99_s=None if offset is None or edge.p99 is None else edge.p99 - offset,
@@ -313,6 +365,7 @@ class FleetHealth:
         self.thresholds = thresholds
         self._clock = clock
         self._started = clock()
+        self.started = self._started
         self.configured: tuple[str, ...] = tuple(configured)
         self.devices: dict[str, DeviceHealth] = {}
         for device in self.configured:

@@ -274,6 +274,9 @@ PERCENT_MAX = 100.0
 # Auto mode keeps an evidence streak per device until it decides; cap the undecided ones so a flood of
 # made-up device ids cannot grow memory without bound.
 MAX_PENDING_DEVICES = 4096
+# units=auto's decisions are kept for at most this many devices (the agent's own limit on devices is lower:
+# telemetry.max_devices, at most 10,000, and it forgets every device it refuses).
+MAX_DECIDED_DEVICES = 10_000
 
 
 def decode_velocity(raw: float) -> float:
@@ -541,6 +544,30 @@ class TelemetryDecoder:
         if self.config.units is not Units.AUTO:
             return self.config.units
         return self._decided.get(device_id, Units.AUTO)
+
+    def decided_units(self) -> dict[str, Units]:
+        """units=auto's decisions so far, by device (for a restarted mirror to take back)."""
+        return dict(self._decided)
+
+    def restore_units(self, decided: Mapping[str, Units]) -> None:
+        """Take back decisions `decided_units` exported: those devices skip the evidence again."""
+        for device, units in decided.items():
+            if units is not Units.AUTO:
+                self._remember(device, units)
+
+    def forget(self, device_id: str) -> None:
+        """Drop what auto knows of a device the agent does not mirror (refused by its device limit), so
+        invented device ids cannot grow the table."""
+        self._decided.pop(device_id, None)
+        self._streaks.pop(device_id, None)
+
+    def _remember(self, device_id: str, units: Units) -> None:
+        decided = self._decided
+        if device_id not in decided and len(decided) >= MAX_DECIDED_DEVICES:
+            # A backstop: the agent forgets every device it refuses, so only a fleet larger than this (or a
+            # decoder used without the agent) gets here. The oldest decision goes; that arm decides again.
+            del decided[next(iter(decided))]
+        decided[device_id] = units
 
     def decode(self, payload: bytes | str, *, topic_device: str | None = None) -> Telemetry:
         """Validate and decode one message; raises TelemetryRejected (and nothing else) on bad input."""
@@ -921,7 +948,7 @@ class TelemetryDecoder:
                 f"units=auto is collecting evidence for {device_id} ({count} of {needed} messages agree on "
                 f"{kind.value}); set units explicitly to skip this",
             )
-        self._decided[device_id] = kind
+        self._remember(device_id, kind)
         if kind is Units.TICKS:
             log.info(
                 "device %s: units=auto decided ticks after %d agreeing messages (JSON integers 0..4095, some "

@@ -38,7 +38,23 @@ MAX_METRICS_PER_DIRECTIVE = 100
 MAX_DIMENSION_VALUE_CHARS = 1024
 MAX_EVENT_BYTES = 1024 * 1024
 # CloudWatch's unit names (MetricDatum); only the ones used here.
-UNITS = frozenset({"Count", "Count/Second", "Percent", "Milliseconds", "None"})
+UNITS = frozenset({"Count", "Count/Second", "Percent", "Milliseconds", "Seconds", "None"})
+# What was lost, per interval (counts) and how far history lags (a gauge): each has a stack alarm
+# (stacks/monitoring.py, whose names tests/infra/test_monitoring.py checks against these).
+MESSAGES_DROPPED = "MessagesDropped"  # dropped before they were decoded (a queue full, a worker lost)
+SINK_DROPS = "SinkDrops"  # samples a sink's queue dropped (it could not keep up)
+WORKER_RESTARTS = "WorkerRestarts"  # worker processes that died and were started again
+HISTORY_ROWS_DROPPED = "HistoryRowsDropped"  # history rows dropped: the write buffer was full (an outage)
+HISTORY_COMMIT_FAILURES = "HistoryCommitFailures"  # history commits that failed (retried)
+HISTORY_LAG = "HistoryLagSeconds"  # how long the oldest unwritten history row has waited
+LOSS_METRICS: tuple[str, ...] = (
+    MESSAGES_DROPPED,
+    SINK_DROPS,
+    WORKER_RESTARTS,
+    HISTORY_ROWS_DROPPED,
+    HISTORY_COMMIT_FAILURES,
+    HISTORY_LAG,
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -98,6 +114,13 @@ class FleetMetrics:
     devices_offline: int
     internal_latency_p99_ms: float | None  # receive -> twin updated; None when nothing was applied
     active_alarms: Mapping[str, int]  # severity -> alarms whose condition is present
+    # Losses during the interval (LOSS_METRICS); the history figures are None while history is off.
+    messages_dropped: int = 0
+    sink_drops: int = 0
+    worker_restarts: int = 0
+    history_rows_dropped: int | None = None
+    history_commit_failures: int | None = None
+    history_lag_s: float | None = None
 
 
 def fleet_documents(
@@ -116,6 +139,17 @@ def fleet_documents(
     ]
     if fleet.internal_latency_p99_ms is not None:
         metrics.append(Metric("InternalLatencyP99", fleet.internal_latency_p99_ms, "Milliseconds"))
+    metrics += [
+        Metric(MESSAGES_DROPPED, fleet.messages_dropped, "Count"),
+        Metric(SINK_DROPS, fleet.sink_drops, "Count"),
+        Metric(WORKER_RESTARTS, fleet.worker_restarts, "Count"),
+    ]
+    if fleet.history_lag_s is not None:
+        metrics += [
+            Metric(HISTORY_ROWS_DROPPED, fleet.history_rows_dropped or 0, "Count"),
+            Metric(HISTORY_COMMIT_FAILURES, fleet.history_commit_failures or 0, "Count"),
+            Metric(HISTORY_LAG, fleet.history_lag_s, "Seconds"),
+        ]
     docs = [emf_document(metrics, {AGENT_DIMENSION: agent}, timestamp_ms, namespace)]
     for severity, count in sorted(fleet.active_alarms.items()):
         docs.append(
@@ -192,6 +226,24 @@ class FleetTotals:
     loss_percent: float
     internal_latency_p99_ms: float | None
     active_alarms: Mapping[str, int]
+    # Running totals of what was lost (a restarted worker's count starts again: see EmfPublisher).
+    messages_dropped: int = 0
+    sink_drops: int = 0
+    worker_restarts: int = 0
+    # History's totals and its lag now; None while history is off.
+    history_rows_dropped: int | None = None
+    history_commit_failures: int | None = None
+    history_lag_s: float | None = None
+
+
+def increase(now: int | None, before: int | None) -> int:
+    """How much a running total grew since `before`; a total that went down was started again (a worker
+    restarted with its sinks), so all of it is new, as Prometheus treats a counter reset."""
+    if now is None:
+        return 0
+    if before is None or now < before:
+        return now
+    return now - before
 
 
 class EmfPublisher:
@@ -239,6 +291,7 @@ class EmfPublisher:
         span = max(now - since, 1e-9)
         decoded = totals.decoded - (before.decoded if before else 0)
         rejected = totals.rejected - (before.rejected if before else 0)
+        history = totals.history_lag_s is not None
         fleet = FleetMetrics(
             messages_per_s=max(0, decoded) / span,
             rejects=max(0, rejected),
@@ -248,6 +301,20 @@ class EmfPublisher:
             devices_offline=totals.devices_offline,
             internal_latency_p99_ms=totals.internal_latency_p99_ms,
             active_alarms=totals.active_alarms,
+            messages_dropped=increase(totals.messages_dropped, before.messages_dropped if before else None),
+            sink_drops=increase(totals.sink_drops, before.sink_drops if before else None),
+            worker_restarts=increase(totals.worker_restarts, before.worker_restarts if before else None),
+            history_rows_dropped=increase(
+                totals.history_rows_dropped, before.history_rows_dropped if before else None
+            )
+            if history
+            else None,
+            history_commit_failures=increase(
+                totals.history_commit_failures, before.history_commit_failures if before else None
+            )
+            if history
+            else None,
+            history_lag_s=totals.history_lag_s,
         )
         self.writer.write(fleet_documents(fleet, self.agent, round(self._wall() * 1000)))
         self.published += 1

@@ -330,7 +330,7 @@ def rejected_row(sample: RejectedSample, payload_max_bytes: int) -> RejectedRow:
         sample.reason,
         sample.detail,
         bytes(payload[:payload_max_bytes]),
-        len(payload),
+        sample.size,  # the whole message's, though the sample may carry only its first bytes
     )
 
 
@@ -380,6 +380,9 @@ class WriterStats:
     rows_lost_in_conversion: int = 0
     storage_ok: bool = True
     last_error: str = ""
+    # How long ago the oldest row not yet written arrived (0 when every row is written): history's lag behind
+    # the twin, which grows for as long as commits fail, rows dropped or not (CloudWatch alarms on it).
+    lag_s: float = 0.0
 
 
 @dataclass
@@ -450,6 +453,9 @@ class HistoryWriter:
             REJECTED_TABLE: max(1, settings.max_buffer_rows // 10),
         }
         self._inflight_rows = dict.fromkeys(SCHEMAS, 0)
+        # When the oldest row not yet written arrived (None: every row is written). Dropped rows do not move
+        # it: while commits fail, the lag keeps growing however many rows the bound drops.
+        self._unwritten_since: float | None = None
         self._seq = 0
         self._stats = WriterStats(tables={t: TableStats() for t in SCHEMAS})
         self._flush_requested = False
@@ -489,7 +495,10 @@ class HistoryWriter:
         with self._cond:
             queue = self._pending[table]
             stats = self._stats.tables[table]
-            queue.append(_Pending(rows, self._clock()))
+            now = self._clock()
+            queue.append(_Pending(rows, now))
+            if self._unwritten_since is None:
+                self._unwritten_since = now
             stats.rows_buffered += rows.num_rows
             dropped = self._trim(table)
             self._cond.notify()
@@ -559,8 +568,14 @@ class HistoryWriter:
     def stats(self) -> WriterStats:
         with self._cond:
             return dataclasses.replace(
-                self._stats, tables={k: dataclasses.replace(v) for k, v in self._stats.tables.items()}
+                self._stats,
+                tables={k: dataclasses.replace(v) for k, v in self._stats.tables.items()},
+                lag_s=self._lag(self._clock()),
             )
+
+    def _lag(self, now: float) -> float:
+        """Seconds since the oldest row not yet written arrived (lock held)."""
+        return 0.0 if self._unwritten_since is None else max(0.0, now - self._unwritten_since)
 
     def count_conversion(self, *, slow: bool = False, lost_rows: int = 0, error: str = "") -> None:
         with self._cond:
@@ -621,6 +636,10 @@ class HistoryWriter:
             with self._cond:
                 if batches:
                     self._stats.storage_ok = ok
+                    if ok:
+                        # Written up to here: the lag starts again from what arrived meanwhile.
+                        waiting = [q[0].since for q in self._pending.values() if q]
+                        self._unwritten_since = min(waiting) if waiting else None
                 if flush or closing:
                     self._flushes_done += 1
                     self._cond.notify_all()
@@ -940,6 +959,8 @@ class HistoryWorker:
         self._rejected: list[RejectedSample] = []
         self._applied_since = 0.0
         self._rejected_since = 0.0
+        # How long close() lets the writer retry its last commit; the sink sets it from its own close budget.
+        self.close_timeout_s = 25.0
 
     def handle_applied(self, sample: AppliedSample) -> None:
         if not self._applied:
@@ -975,9 +996,9 @@ class HistoryWorker:
     def close(self) -> None:
         self._convert_applied()
         self._convert_rejected()
-        # Shorter than the agent's 30 s wait for this sink, so a dead store is reported by the writer (with
-        # the count of rows it could not write) before the sink gives up on it.
-        self.writer.close(timeout=25.0)
+        # Shorter than the sink's own wait (HistorySink.close), so a dead store is reported by the writer
+        # (with the count of rows it could not write) before the sink gives up on it.
+        self.writer.close(timeout=self.close_timeout_s)
 
     def _convert_applied(self) -> None:
         samples, self._applied = self._applied, []
@@ -1016,5 +1037,7 @@ class HistorySink(QueuedSink):
         super().__init__("history", self.worker, max_pending=settings.queue_max, idle_s=0.25, hand_off_s=0.05)
 
     def close(self, timeout: float = 30.0) -> None:
-        # The queue drains first; the worker's close commits the rest (the writer bounds its own wait).
+        # The queue drains first; the worker's close commits the rest, retrying for all but the last few
+        # seconds of `timeout` (the writer bounds its own wait and reports the rows it could not write).
+        self.worker.close_timeout_s = max(1.0, timeout - 8.0)
         super().close(timeout)

@@ -250,7 +250,8 @@ class _StatsRequest:
 
 @dataclass(frozen=True, slots=True)
 class _Stop:
-    pass
+    # What the agent's shutdown budget leaves the writer: the feeds' last rows and its last commit.
+    timeout_s: float = 30.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -314,6 +315,7 @@ class _Receiver:
         self.feeds: list[Connection] = []
         self._lock = threading.Lock()
         self._closed = False
+        self._stop_timeout_s = 30.0
         threading.Thread(target=self._accept, name="history-accept", daemon=True).start()
 
     def _accept(self) -> None:
@@ -393,6 +395,7 @@ class _Receiver:
         except (EOFError, OSError):
             return False  # the agent is gone
         if isinstance(request, _Stop):
+            self._stop_timeout_s = request.timeout_s
             return False
         self._count()
         with contextlib.suppress(OSError, ValueError):
@@ -409,7 +412,9 @@ class _Receiver:
         """Read what the feeds still send until they hang up (they close after delivering), then commit."""
         from twin.output.history import REJECTED_TABLE, TELEMETRY_TABLE  # noqa: PLC0415
 
-        deadline = time.monotonic() + 5.0
+        started = time.monotonic()
+        budget = self._stop_timeout_s
+        deadline = started + min(5.0, budget / 4.0)
         while feeds and time.monotonic() < deadline:
             for ready in wait(feeds, timeout=0.2):
                 assert isinstance(ready, Connection)
@@ -420,7 +425,9 @@ class _Receiver:
                     ready.close()
         self._closed = True
         self.listener.close()
-        self.writer.close(timeout=25.0)
+        # Retrying the last commit for what is left of the budget, less a moment for the answer: the agent
+        # kills a writer that has not answered by then.
+        self.writer.close(timeout=max(1.0, budget - (time.monotonic() - started) - 2.0))
         self._count()
         with contextlib.suppress(OSError, ValueError):
             self.control.send(_figures_of(self.writer.stats(), self.writer.buffered_rows()))
@@ -444,6 +451,8 @@ class WriterFigures:
     maintenance_failures: int = 0
     storage_ok: bool = True
     last_error: str = ""
+    # How long the oldest row not yet written has waited (0: none waits); it grows while commits fail.
+    lag_s: float = 0.0
 
 
 def _figures_of(stats: WriterStats, buffered: int) -> WriterFigures:
@@ -461,6 +470,7 @@ def _figures_of(stats: WriterStats, buffered: int) -> WriterFigures:
         maintenance_failures=stats.maintenance_failures,
         storage_ok=stats.storage_ok,
         last_error=stats.last_error,
+        lag_s=stats.lag_s,
     )
 
 
@@ -498,6 +508,8 @@ class HistoryProcess:
         self._rows_lost = 0
         self._stopped = False
         self._last: WriterFigures | None = None
+        self._last_at = 0.0  # when _last was answered (time.monotonic)
+        self._stop_answered = False
 
     def launch(self) -> None:
         """Start the writer process and wait until it listens; HistoryStartError when it cannot (`setting`:
@@ -536,7 +548,11 @@ class HistoryProcess:
     def figures(self) -> HistoryFigures:
         """The writer's figures since the agent started, over every writer process: the current one's asked
         of it (its last known while it is being started again), plus those of the ones that ended."""
-        stats = self._ask() or self._last
+        stats = self._ask()
+        if stats is None and self._last is not None:
+            # The writer is not answering (being started again): its rows wait in the feeds, so history's
+            # lag keeps growing from what it last said.
+            stats = dataclasses.replace(self._last, lag_s=self._last.lag_s + time.monotonic() - self._last_at)
         before = self._before
         if stats is not None and self.restarts:
             stats = dataclasses.replace(
@@ -569,7 +585,7 @@ class HistoryProcess:
                 stats: WriterFigures = conn.recv()
             except (EOFError, OSError, ValueError):
                 return None
-            self._last = stats
+            self._last, self._last_at = stats, time.monotonic()
             return stats
 
     def supervise(self) -> None:
@@ -610,20 +626,34 @@ class HistoryProcess:
                 return
         log.info("history writer running again", extra={"pid": self.pid})
 
+    def unwritten_rows(self) -> int:
+        """After `stop`: the rows the writer could not commit (its figures at the end), or, when it did not
+        answer in time, every row it received and had neither committed nor counted as dropped."""
+        if self._stop_answered and self._last is not None:
+            return self._last.rows_buffered
+        if self._restart_at is not None:
+            return 0  # it died before the stop: what it held is counted in rows_lost already
+        counters = self._counters
+        received = counters[_RECEIVED] + counters[_REJECTED_RECEIVED]
+        kept = counters[_COMMITTED] + counters[_REJECTED_COMMITTED] + counters[_DROPPED]
+        return max(0, received - kept)
+
     def stop(self, timeout: float = 30.0) -> None:
-        """After the mirrors have closed their feeds: the writer commits what it holds, then exits."""
+        """After the mirrors have closed their feeds: the writer commits what it holds (retrying for at most
+        `timeout` seconds), then exits; one that has not answered by then is killed."""
         self._stopped = True
         process, conn = self._process, self._control
         if process is not None and conn is not None and process.is_alive():
             with self._lock:
                 try:
-                    conn.send(_Stop())
+                    conn.send(_Stop(timeout_s=timeout))
                     if conn.poll(timeout):
-                        self._last = conn.recv()
+                        self._last, self._last_at = conn.recv(), time.monotonic()
+                        self._stop_answered = True
                 except (EOFError, OSError, ValueError):
                     pass
         if process is not None:
-            process.join(5.0)
+            process.join(5.0 if self._stop_answered else 1.0)
             if process.is_alive():
                 log.error("the history writer did not stop in time; killing it")
                 process.kill()

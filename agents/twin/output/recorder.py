@@ -145,6 +145,10 @@ class SessionRecorder:
         self._min_time_code = math.inf
         self._max_time_code = -math.inf
         self._closed = False
+        # A save failed: usd-core (26.11) crashes the process when a usdc layer whose save failed (a full
+        # disk) is written to again, so nothing more is written to this session (RecordingSink starts a new
+        # one once it can).
+        self.broken = False
         # Counters for the agent's metrics.
         self.samples_written = 0
         self.samples_dropped = 0
@@ -207,9 +211,10 @@ class SessionRecorder:
         Bad input (no known body, non-finite or malformed pose, non-finite time) is logged and counted in
         samples_rejected, never raised, so a recording problem cannot take the twin service down.
         """
-        if self._closed:
+        if self._closed or self.broken:
             self.samples_dropped += 1
-            log.warning("record(%r) after %s was closed; sample dropped", device_id, self.path.name)
+            if not self.broken:
+                log.warning("record(%r) after %s was closed; sample dropped", device_id, self.path.name)
             return False
         try:
             if not math.isfinite(t_seconds):
@@ -273,7 +278,7 @@ class SessionRecorder:
 
     def flush_if_due(self) -> None:
         """Save when `flush_interval_s` has passed since the last save (record() and an idle sink call it)."""
-        if not self._closed and self._clock() - self._last_flush >= self.flush_interval_s:
+        if not self._closed and not self.broken and self._clock() - self._last_flush >= self.flush_interval_s:
             self.flush()
 
     def flush(self) -> None:
@@ -293,13 +298,20 @@ class SessionRecorder:
             self.flushes += 1
         else:
             self.flush_errors += 1
-            log.error("session %s could not be saved; check disk space and permissions", self.path)
+            self.broken = True
+            log.error(
+                "session %s could not be saved; check disk space and permissions. Nothing more is written to "
+                "it (what it held since its last save is lost); the recording goes on in a new session once "
+                "one can be saved",
+                self.path,
+            )
 
     def close(self) -> None:
-        """Final save; later calls do nothing."""
+        """Final save (none for a session whose save failed); later calls do nothing."""
         if self._closed:
             return
-        self.flush()
+        if not self.broken:
+            self.flush()
         self._closed = True
         log.info(
             "session %s closed: %d samples written, %d dropped, %d rejected, %d devices",
@@ -366,7 +378,9 @@ class SessionRecorder:
             track.translate_attrs[link.name] = translate.GetAttr()
             track.orient_attrs[link.name] = orient.GetAttr()
         self._devices[device_id] = track
-        log.info("session %s: device %r recorded at %s", self.path.name, device_id, track.prim_path)
+        # DEBUG: the mirror logs a new device once; every rotation registers each arm again (a 200-arm soak
+        # logged 200 lines a rotation at INFO).
+        log.debug("session %s: device %r recorded at %s", self.path.name, device_id, track.prim_path)
         return track
 
 

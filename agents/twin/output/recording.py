@@ -4,15 +4,27 @@ mirroring (twin.output.sinks describes the contract).
 
 The recorded pose is the applied (measured, clamped) pose: forward kinematics of `AppliedSample.joint_angles`
 on the sink thread's own MuJoCo scratch data (`RobotModel.body_poses`).
+
+Bounded three ways (`RecordingLimits`, the `[twin] record_*` settings). Each arm is recorded at most
+`rate_hz` times a second (the rest are counted as skipped: authoring a sample costs about a millisecond of
+the sink's thread, so a large fleet at 10 Hz is more than one thread records). A session rotates to a new
+file once its file reaches `max_bytes` or it is `max_age_s` old: a USD stage lives in memory while it records,
+and a long one is rewritten at every save, so an agent that runs for weeks must not keep one stage. And the
+session files in the directory are kept within `budget_bytes`, the one being recorded counted at its largest
+(`max_bytes`): at each rotation the oldest are deleted first, never the one being recorded.
 """
 
 from __future__ import annotations
 
 import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from twin.output.recorder import SessionRecorder
-from twin.output.sinks import AppliedSample, QueuedSink, RejectedSample
+from twin.output.sinks import AppliedSample, QueuedSink, RejectedSample, SinkStats
 from twin.robot.model import RobotModel
 
 log = logging.getLogger(__name__)
@@ -21,38 +33,230 @@ RECORDING_SINK = "usd"
 # A minute of 2,000 arms at 10 Hz would be 1.2 M samples; the recorder keeps at most 30 per arm per second
 # anyway, so a deeper queue would only hold poses it drops. Newest wins when it overflows (counted).
 MAX_PENDING_SAMPLES = 20_000
+# The session files the budget counts (the agent names them session-<UTC time>-<pid>[-<n>].<format>).
+SESSION_GLOB = "session-*.usd[ac]"
+# After a failed save or open (a full disk), a new session is tried this often.
+BROKEN_RETRY_S = 5.0
+
+
+@dataclass(frozen=True)
+class RecordingLimits:
+    """How far a recording may grow (module doc); the defaults are the `[twin] record_*` settings'."""
+
+    max_bytes: int = 256 * 2**20
+    max_age_s: float = 3600.0
+    budget_bytes: int = 4096 * 2**20
+    rate_hz: float = 10.0
+
+    def __post_init__(self) -> None:
+        if self.max_bytes < 1 or self.budget_bytes < self.max_bytes:
+            raise ValueError(
+                f"recording limits: max_bytes {self.max_bytes} must be positive and at most the budget "
+                f"{self.budget_bytes}"
+            )
+        if not (self.max_age_s > 0 and self.rate_hz > 0):
+            raise ValueError(f"recording limits: max_age_s and rate_hz must be positive, got {self}")
+
+
+@dataclass(frozen=True, slots=True)
+class RecordingTotals:
+    """The counters of every session this sink recorded, the current one included."""
+
+    path: str
+    samples_written: int = 0
+    samples_dropped: int = 0
+    flushes: int = 0
+    flush_errors: int = 0
+    rotations: int = 0
+    files_deleted: int = 0
 
 
 class _RecorderWorker:
     """The blocking half: runs on the sink's thread only."""
 
-    def __init__(self, recorder: SessionRecorder, robot: RobotModel) -> None:
-        self._recorder = recorder
+    def __init__(
+        self,
+        recorder: SessionRecorder,
+        robot: RobotModel,
+        *,
+        limits: RecordingLimits,
+        open_next: Callable[[int], SessionRecorder] | None,
+        clock: Callable[[], float],
+    ) -> None:
+        self.recorder = recorder
         self._robot = robot
+        self._limits = limits
+        self._open_next = open_next
+        self._clock = clock
+        self._opened = clock()
+        self._checked_flushes = 0
+        self._retry_at = 0.0
+        self._attempts = 0
+        self._lock = threading.Lock()  # the totals, read by the agent's threads
+        self._done = RecordingTotals(path="")
+        self.rotations = 0
+        self.files_deleted = 0
 
     def handle_applied(self, sample: AppliedSample) -> None:
         poses = self._robot.body_poses(sample.joint_angles)
-        self._recorder.record(sample.device_id, sample.received_mono_s, poses, sample.telemetry.diagnostics)
+        self.recorder.record(sample.device_id, sample.received_mono_s, poses, sample.telemetry.diagnostics)
+        self._rotate_if_due()
 
     def handle_rejected(self, sample: RejectedSample) -> None:
         """A rejected message moved no twin: nothing to record."""
 
     def idle(self) -> None:
-        self._recorder.flush_if_due()
+        self.recorder.flush_if_due()
+        self._rotate_if_due()
 
     def close(self) -> None:
-        self._recorder.close()
+        self.recorder.close()
+
+    def _rotate_if_due(self) -> None:
+        """After a save (the file's size is known then), or once the session is too old: a new session. And
+        after a failed save (a full disk), a new session as soon as one can be opened."""
+        recorder = self.recorder
+        if recorder.broken:
+            now = self._clock()
+            if now >= self._retry_at:
+                self._retry_at = now + BROKEN_RETRY_S
+                self._rotate(recorder, size=0, force=True)
+            return
+        saved = recorder.flushes != self._checked_flushes
+        old = self._clock() - self._opened >= self._limits.max_age_s
+        if not saved and not old:
+            return
+        self._checked_flushes = recorder.flushes
+        try:
+            size = recorder.path.stat().st_size
+        except OSError:
+            size = 0
+        if size < self._limits.max_bytes and not old:
+            return
+        self._rotate(recorder, size=size)
+
+    def _rotate(self, recorder: SessionRecorder, *, size: int, force: bool = False) -> None:
+        if self._open_next is None or (recorder.samples_written == 0 and not force):
+            return  # nothing to rotate to, or an empty session (an idle agent's keeps its file)
+        recorder.close()
+        # Every attempt gets a name of its own: a failed one may leave its file behind.
+        self._attempts += 1
+        try:
+            successor = self._open_next(self._attempts)
+        except Exception as exc:  # a full disk (pxr raises Tf.ErrorException): try again later
+            log.error("recording: the next session file could not be opened (%s); trying again later", exc)
+            recorder.broken = True  # closed, with no successor: the retry path takes it from here
+            self._retry_at = self._clock() + BROKEN_RETRY_S
+            return
+        with self._lock:
+            self._done = _add(self._done, recorder)
+            self.recorder = successor
+            self.rotations += 1
+        self._opened = self._clock()
+        self._checked_flushes = 0
+        log.info(
+            "recording rotated",
+            extra={"closed": str(recorder.path), "bytes": size, "next": str(successor.path)},
+        )
+        self._keep_within_budget(successor.path)
+
+    def _keep_within_budget(self, current: Path) -> None:
+        """Delete the oldest session files in the directory while they, and the session just begun at its
+        largest (max_bytes), would take more than the budget."""
+        files = []
+        for path in current.parent.glob(SESSION_GLOB):
+            if path == current:
+                continue
+            try:
+                st = path.stat()
+            except OSError:
+                continue
+            files.append((st.st_mtime, path, st.st_size))
+        total = sum(size for _, _, size in files) + self._limits.max_bytes
+        for _, path, size in sorted(files):
+            if total <= self._limits.budget_bytes:
+                break
+            try:
+                path.unlink()
+            except OSError as exc:
+                log.error("recording: %s could not be deleted to keep the disk budget: %s", path, exc)
+                continue
+            total -= size
+            with self._lock:
+                self.files_deleted += 1
+            log.info("recording: %s deleted to keep the disk budget", path.name, extra={"bytes": size})
+
+    def totals(self) -> RecordingTotals:
+        with self._lock:
+            totals = _add(self._done, self.recorder)
+            return replace(totals, rotations=self.rotations, files_deleted=self.files_deleted)
+
+
+def _add(totals: RecordingTotals, recorder: SessionRecorder) -> RecordingTotals:
+    # Counters written by the sink's thread; int reads are atomic, and a figure one sample behind is fine.
+    return RecordingTotals(
+        path=str(recorder.path),
+        samples_written=totals.samples_written + recorder.samples_written,
+        samples_dropped=totals.samples_dropped + recorder.samples_dropped,
+        flushes=totals.flushes + recorder.flushes,
+        flush_errors=totals.flush_errors + recorder.flush_errors,
+        rotations=totals.rotations,
+        files_deleted=totals.files_deleted,
+    )
 
 
 class RecordingSink(QueuedSink):
-    """A `SessionRecorder` behind a `QueuedSink`; `recorder` exposes the file and its counters."""
+    """A `SessionRecorder` behind a `QueuedSink`, rotating as `limits` say: `open_next(n)` opens the n-th
+    next session (None: never rotate). `totals()` sums every session's counters; `path` is the current
+    file."""
 
     def __init__(
-        self, recorder: SessionRecorder, robot: RobotModel, *, max_pending: int = MAX_PENDING_SAMPLES
+        self,
+        recorder: SessionRecorder,
+        robot: RobotModel,
+        *,
+        max_pending: int = MAX_PENDING_SAMPLES,
+        limits: RecordingLimits | None = None,
+        open_next: Callable[[int], SessionRecorder] | None = None,
+        clock: Callable[[], float] = time.monotonic,
     ):
-        super().__init__(RECORDING_SINK, _RecorderWorker(recorder, robot), max_pending=max_pending)
-        self.recorder = recorder
+        self.limits = limits or RecordingLimits()
+        self._worker_half = _RecorderWorker(
+            recorder, robot, limits=self.limits, open_next=open_next, clock=clock
+        )
+        super().__init__(RECORDING_SINK, self._worker_half, max_pending=max_pending)
+        # A token bucket per device holding a second of the cap: on the receive clock, like the Rerun sink's.
+        self._rate = self.limits.rate_hz
+        self._burst = max(1.0, self.limits.rate_hz)
+        self._buckets: dict[str, tuple[float, float]] = {}
+        self._skipped = 0
+        self._rate_lock = threading.Lock()
+
+    @property
+    def recorder(self) -> SessionRecorder:
+        """The session being recorded now."""
+        return self._worker_half.recorder
 
     @property
     def path(self) -> Path:
         return self.recorder.path
+
+    def totals(self) -> RecordingTotals:
+        return self._worker_half.totals()
+
+    def applied(self, sample: AppliedSample) -> None:
+        t = sample.received_mono_s
+        tokens, last = self._buckets.get(sample.device_id, (self._burst, t))
+        tokens = min(self._burst, tokens + max(0.0, t - last) * self._rate)
+        if tokens < 1.0:
+            self._buckets[sample.device_id] = (tokens, t)
+            with self._rate_lock:
+                self._skipped += 1
+            return
+        self._buckets[sample.device_id] = (tokens - 1.0, t)
+        super().applied(sample)
+
+    def stats(self) -> SinkStats:
+        with self._rate_lock:
+            skipped = self._skipped
+        return replace(super().stats(), skipped=skipped)

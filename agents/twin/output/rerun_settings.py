@@ -60,6 +60,12 @@ class RerunSettings:
     focus_device: str = ""
     # The sink's queue: samples waiting for the Rerun thread (the oldest are dropped beyond it).
     max_pending: int = 10_000
+    # The saved .rrd rotates once it reaches save_max_mb or is save_max_age_s old (it grows about 1.5 MB a
+    # second at 200 arms); the rotated files beside it are kept within save_budget_mb, the oldest deleted
+    # first (docs/web.md).
+    save_max_mb: float = 512.0
+    save_max_age_s: float = 3600.0
+    save_budget_mb: float = 4096.0
 
     @property
     def enabled(self) -> bool:
@@ -108,6 +114,15 @@ class RerunSettings:
             )
         if self.max_pending < 1:
             raise RerunSettingsError(f"rerun.max_pending = {self.max_pending} must be at least 1")
+        for key in ("save_max_mb", "save_max_age_s", "save_budget_mb"):
+            value = getattr(self, key)
+            if not (math.isfinite(value) and value > 0):
+                raise RerunSettingsError(f"rerun.{key} = {value!r} must be a number greater than 0")
+        if self.save_budget_mb < self.save_max_mb:
+            raise RerunSettingsError(
+                f"rerun.save_budget_mb = {self.save_budget_mb:g} is below save_max_mb = "
+                f"{self.save_max_mb:g}; the budget must hold at least one whole file"
+            )
         if self.save:
             path = Path(self.save)
             if path.suffix != ".rrd":

@@ -26,13 +26,14 @@ import functools
 import logging
 import math
 import operator
+import os
 import signal
 import socket
 import subprocess
 import threading
 import time
 import uuid
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from urllib.parse import quote
@@ -41,6 +42,7 @@ import numpy as np
 import pyarrow as pa
 import rerun as rr
 import rerun.blueprint as rrb
+import rerun_bindings
 from rerun.chunk import Chunk
 
 from twin.core.telemetry import JointDiagnostics
@@ -168,6 +170,107 @@ class _Arm:
         return row
 
 
+class _Tee:
+    """The sink's streams as one: every call goes to each (the file's and the served one)."""
+
+    def __init__(self, streams: list[rr.RecordingStream]) -> None:
+        self.streams = streams
+
+    def log(self, entity: str, *archetypes: object, static: bool = False) -> None:
+        for rec in self.streams:
+            rec.log(entity, *archetypes, static=static)  # type: ignore[arg-type]
+
+    def set_time(self, timeline: str, *, timestamp: float | np.datetime64) -> None:
+        for rec in self.streams:
+            rec.set_time(timeline, timestamp=timestamp)
+
+    def send_chunks(self, chunk: Chunk | list[Chunk]) -> None:
+        for rec in self.streams:
+            rr.send_chunks(chunk, recording=rec)
+
+    def send_blueprint(self, blueprint: rrb.Blueprint, **options: bool) -> None:
+        for rec in self.streams:
+            rec.send_blueprint(blueprint, **options)
+
+    def flush(self, timeout_sec: float) -> None:
+        for rec in self.streams:
+            rec.flush(timeout_sec=timeout_sec)
+
+    def disconnect(self) -> None:
+        for rec in self.streams:
+            rec.disconnect()
+
+
+class SaveRotation:
+    """When the saved .rrd rotates, and the disk budget of the saved files.
+
+    The live file is always `save` (what `rerun <save>` opens); at a rotation it is renamed
+    `<stem>-<UTC start time>-<n>.rrd` beside it, and the oldest of those are deleted while they, with
+    the live file at its largest (`save_max_mb`), would take more than `save_budget_mb`. Each file holds
+    the arms' static parts, so it opens on its own (the first one also the layout); `rerun` opens several
+    at once as one recording (they share its id)."""
+
+    CHECK_EVERY_S = 1.0
+
+    def __init__(
+        self, save: Path, settings: RerunSettings, *, clock: Callable[[], float] = time.monotonic
+    ) -> None:
+        self.save = save
+        self.max_bytes = int(settings.save_max_mb * 2**20)
+        self.max_age_s = settings.save_max_age_s
+        self.budget_bytes = int(settings.save_budget_mb * 2**20)
+        self._opened = clock()
+        self._opened_wall = time.time()
+        self._next_check = 0.0
+        self.rotations = 0
+        self.deleted = 0
+
+    def due(self, now: float) -> bool:
+        if now < self._next_check:
+            return False
+        self._next_check = now + self.CHECK_EVERY_S
+        if now - self._opened >= self.max_age_s:
+            return True
+        try:
+            return self.save.stat().st_size >= self.max_bytes
+        except OSError:
+            return False
+
+    def rotated(self, now: float) -> None:
+        """The live file is closed: rename it, keep the budget."""
+        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(self._opened_wall))
+        target = self.save.with_name(f"{self.save.stem}-{stamp}-{self.rotations + 1}{self.save.suffix}")
+        try:
+            os.replace(self.save, target)
+        except OSError as exc:
+            log.error("rerun: %s could not be renamed to %s: %s", self.save, target.name, exc)
+        self.rotations += 1
+        self._opened, self._opened_wall = now, time.time()
+        self._keep_within_budget()
+        log.info("rerun: recording rotated", extra={"closed": target.name, "rotations": self.rotations})
+
+    def _keep_within_budget(self) -> None:
+        """Delete the oldest rotated files while they, and the live file at its largest, exceed the budget."""
+        files = []
+        for path in self.save.parent.glob(f"{self.save.stem}-*{self.save.suffix}"):
+            try:
+                st = path.stat()
+            except OSError:
+                continue
+            files.append((st.st_mtime, path, st.st_size))
+        total = sum(size for _, _, size in files) + self.max_bytes
+        for _, path, size in sorted(files):
+            if total <= self.budget_bytes:
+                break
+            try:
+                path.unlink()
+            except OSError as exc:
+                log.error("rerun: %s could not be deleted to keep the disk budget: %s", path, exc)
+                continue
+            total -= size
+            self.deleted += 1
+
+
 class RerunWorker:
     """The blocking half of the sink (a `SinkWorker`): runs on the sink's own thread only, except the
     constructor, which opens the file, the gRPC server and the web viewer so that a taken port or a bad path
@@ -176,28 +279,26 @@ class RerunWorker:
     def __init__(self, robot: RobotModel, settings: RerunSettings) -> None:
         self.robot = robot
         self.settings = settings
-        self._rec = rr.RecordingStream(APPLICATION_ID, recording_id=uuid.uuid4())
-        # Only edge_time: the SDK's own log_time/log_tick timelines would put every sample on a second clock.
-        self._rec.set_log_time_enabled(False)
-        self._rec.set_log_tick_enabled(False)
+        # One recording, in up to two streams: the file's, rotated (SaveRotation), and the served one, which
+        # lives as long as the sink so a viewer's connection and the server's memory survive a rotation.
+        self._recording_id = uuid.uuid4()
         self.grpc_url: str | None = None
         self.viewer_url: str | None = None
         self.save_path: Path | None = Path(settings.save) if settings.save else None
         self._web: subprocess.Popen[bytes] | None = None
-        sinks: list[rr.FileSink | rr.GrpcServerSink] = []
+        self._file: rr.RecordingStream | None = None
+        self._served: rr.RecordingStream | None = None
         if self.save_path is not None:
             self.save_path.parent.mkdir(parents=True, exist_ok=True)
-            sinks.append(rr.FileSink(str(self.save_path)))
+            self._file = self._stream(rr.FileSink(str(self.save_path)))
         if settings.serve:
             grpc_port = bindable_port(settings.grpc_port, "rerun.grpc_port")
-            sinks.append(
+            self._served = self._stream(
                 rr.GrpcServerSink(LOOPBACK, grpc_port, server_memory_limit=settings.memory_limit.strip())
             )
             self.grpc_url = f"rerun+http://{LOOPBACK}:{grpc_port}/proxy"
-        self._rec.set_sinks(*sinks, default_blueprint=self._blueprint(None))
-        self._rec.send_recording_name("so101-twin fleet")
-        # MuJoCo's world is z-up; Rerun's 3D views follow what the root says.
-        self._rec.log(f"/{ROOT}", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        self._rec = _Tee([s for s in (self._file, self._served) if s is not None])
+        self._rotation = SaveRotation(self.save_path, settings) if self.save_path is not None else None
         if settings.serve:
             try:
                 web_port = bindable_port(settings.web_port, "rerun.web_port")
@@ -225,6 +326,61 @@ class RerunWorker:
         self.samples_logged = 0
         self.batches_sent = 0
 
+    def _stream(self, sink: rr.FileSink | rr.GrpcServerSink, *, layout: bool = True) -> rr.RecordingStream:
+        """A stream of this sink's one recording into `sink`, with the recording's name and root axes, and the
+        default layout unless `layout` is false."""
+        rec = rr.RecordingStream(APPLICATION_ID, recording_id=self._recording_id)
+        # Only edge_time: the SDK's own log_time/log_tick timelines would put every sample on a second clock.
+        rec.set_log_time_enabled(False)
+        rec.set_log_tick_enabled(False)
+        if layout:
+            rec.set_sinks(sink, default_blueprint=self._blueprint(None))
+        else:
+            rec.set_sinks(sink)
+        rec.send_recording_name("so101-twin fleet")
+        # MuJoCo's world is z-up; Rerun's 3D views follow what the root says.
+        rec.log(f"/{ROOT}", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        return rec
+
+    @property
+    def rotations(self) -> int:
+        return self._rotation.rotations if self._rotation is not None else 0
+
+    @property
+    def files_deleted(self) -> int:
+        return self._rotation.deleted if self._rotation is not None else 0
+
+    def _rotate_if_due(self, now: float) -> None:
+        """A new .rrd once the current one is too large or too old (SaveRotation); the arms' static parts
+        and the layout go into the new file, which then stands on its own."""
+        rotation, old = self._rotation, self._file
+        if rotation is None or old is None or not rotation.due(now):
+            return
+        for arm in self._arms.values():
+            if arm.n:
+                self._flush(arm)
+        # Nothing but `old` may hold the file's stream now, or it outlives the sweep below.
+        self._file = None
+        self._rec = _Tee([s for s in (self._served,) if s is not None])
+        old.flush(timeout_sec=30.0)
+        old.disconnect()  # writes the file's footer
+        del old
+        # A dropped stream keeps its batcher and writer threads until the SDK sweeps the orphans (two threads
+        # per rotation, for as long as the agent runs, otherwise).
+        rerun_bindings.flush_and_cleanup_orphaned_recordings()
+        rotation.rotated(now)
+        assert self.save_path is not None
+        # No layout in the new file: every blueprint the SDK (0.41) builds keeps a stream of its own, with two
+        # threads, for as long as the process runs, which a rotation every few minutes would pile up. A later
+        # file opens with Rerun's own layout; opened with the first one, it takes the first one's.
+        self._file = new = self._stream(rr.FileSink(str(self.save_path)), layout=False)
+        self._rec = _Tee([s for s in (new, self._served) if s is not None])
+        only_new = _Tee([new])
+        for arm in self._arms.values():
+            self._log_arm(arm, only_new)
+            arm.servo_styled.clear()  # logged again with the next batch
+            arm.status, arm.status_key = "", ()
+
     # --- SinkWorker ---------------------------------------------------------------------------------------
 
     def handle_applied(self, sample: AppliedSample) -> None:
@@ -248,6 +404,7 @@ class RerunWorker:
             self._flush(arm)
         if now >= self._next_sweep:
             self._sweep(now)
+            self._rotate_if_due(now)
 
     def handle_rejected(self, sample: RejectedSample) -> None:
         device = sample.device_id
@@ -268,7 +425,9 @@ class RerunWorker:
         self._rec.log(entity, rr.TextLog(text, level=rr.TextLogLevel.WARN))
 
     def idle(self) -> None:
-        self._sweep(time.monotonic())
+        now = time.monotonic()
+        self._sweep(now)
+        self._rotate_if_due(now)
 
     def close(self) -> None:
         try:
@@ -309,9 +468,10 @@ class RerunWorker:
             self._rec.send_blueprint(self._blueprint(device), make_active=True, make_default=True)
         return arm
 
-    def _log_arm(self, arm: _Arm) -> None:
-        """The static part of a device: its grid place, fixed bodies, meshes and plot styles."""
-        rec = self._rec
+    def _log_arm(self, arm: _Arm, rec: _Tee | None = None) -> None:
+        """The static part of a device: its grid place, fixed bodies, meshes and plot styles (into `rec`,
+        by default every stream)."""
+        rec = rec or self._rec
         rec.log(arm.entity, rr.Transform3D(translation=self._grid_position(arm.index)), static=True)
         reference = self.robot.body_poses({})
         for name in self._bodies:
@@ -430,9 +590,7 @@ class RerunWorker:
             if name in servo_names:
                 arrays.append(_six_per_row(servo[:, :, q], present[:, q]))
         arm.n = 0
-        rr.send_chunks(
-            Chunk.from_record_batch(pa.RecordBatch.from_arrays(arrays, schema=schema)), recording=self._rec
-        )
+        self._rec.send_chunks(Chunk.from_record_batch(pa.RecordBatch.from_arrays(arrays, schema=schema)))
         self.batches_sent += 1
 
     def _schema(self, arm: _Arm, servo_names: Sequence[str]) -> pa.Schema:

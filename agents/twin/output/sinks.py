@@ -56,9 +56,20 @@ class AppliedSample:
         return self.telemetry.timestamp_ms
 
 
+# A rejected message travels to the sinks with at most this many bytes of its payload (history keeps as much,
+# docs/history.md); its full size goes with it. A rejection may be a 128 KiB message (or a larger one refused
+# for its size): every sink queue holding the whole of it would make a flood of junk cost megabytes per sink.
+REJECTED_PAYLOAD_KEPT = 4096
+# What a queued sample weighs besides its payload (the decoded telemetry, its dicts and the sample itself),
+# for the queues' byte bounds: measured with tracemalloc on edge-mock samples, rounded up.
+SAMPLE_OVERHEAD_BYTES = 2048
+
+
 @dataclass(frozen=True, slots=True)
 class RejectedSample:
-    """One message the decoder refused, with the reason it was counted under."""
+    """One message the decoder refused, with the reason it was counted under: what its counters and history
+    need, so `payload` is the message's first bytes (`rejected_sample` keeps REJECTED_PAYLOAD_KEPT of them)
+    and `payload_bytes` its full size."""
 
     device_id: str | None
     topic: str
@@ -66,6 +77,32 @@ class RejectedSample:
     reason: str
     detail: str
     payload: bytes
+    payload_bytes: int = -1
+
+    @property
+    def size(self) -> int:
+        """The message's full size (`payload_bytes`, or the payload's when not given)."""
+        return self.payload_bytes if self.payload_bytes >= 0 else len(self.payload)
+
+
+def rejected_sample(
+    device_id: str | None, topic: str, *, received_wall_s: float, reason: str, detail: str, payload: bytes
+) -> RejectedSample:
+    """A RejectedSample that keeps only the payload's first REJECTED_PAYLOAD_KEPT bytes (and its size)."""
+    return RejectedSample(
+        device_id=device_id,
+        topic=topic,
+        received_wall_s=received_wall_s,
+        reason=reason,
+        detail=detail[:1024],
+        payload=bytes(payload[:REJECTED_PAYLOAD_KEPT]),
+        payload_bytes=len(payload),
+    )
+
+
+def sample_bytes(item: AppliedSample | RejectedSample) -> int:
+    """What a queued sample weighs, roughly: its payload plus a fixed overhead (SAMPLE_OVERHEAD_BYTES)."""
+    return len(item.payload) + SAMPLE_OVERHEAD_BYTES
 
 
 @dataclass(frozen=True, slots=True)
@@ -112,8 +149,13 @@ class SinkWorker(Protocol):
         ...
 
 
+# A queued sink holds at most this many bytes of samples (payloads and their overhead) besides its count.
+DEFAULT_MAX_PENDING_BYTES = 64 * 2**20
+
+
 class QueuedSink:
-    """Runs a `SinkWorker` on its own thread behind a bounded queue that drops the oldest when full.
+    """Runs a `SinkWorker` on its own thread behind a queue bounded by samples (`max_pending`) and by their
+    bytes (`max_pending_bytes`, sample_bytes), which drops the oldest when full.
 
     Errors raised by the worker are caught, counted and logged (at most once per `error_log_s`), never
     propagated: a broken sink must not stop the mirror or the other sinks.
@@ -125,17 +167,22 @@ class QueuedSink:
         worker: SinkWorker,
         *,
         max_pending: int = 10_000,
+        max_pending_bytes: int = DEFAULT_MAX_PENDING_BYTES,
         idle_s: float = 0.5,
         hand_off_s: float = 0.0,
     ) -> None:
         if max_pending < 1:
             raise ValueError(f"max_pending must be >= 1, got {max_pending}")
+        if max_pending_bytes < 1:
+            raise ValueError(f"max_pending_bytes must be >= 1, got {max_pending_bytes}")
         if hand_off_s < 0:
             raise ValueError(f"hand_off_s must be >= 0, got {hand_off_s}")
         self.name = name
         self._worker = worker
         self._queue: collections.deque[AppliedSample | RejectedSample] = collections.deque()
         self._max = max_pending
+        self._max_bytes = max_pending_bytes
+        self._bytes = 0
         self._cond = threading.Condition(threading.Lock())
         self._idle_s = idle_s
         # After each batch the thread pauses this long before it takes the next, so under load samples arrive
@@ -164,12 +211,14 @@ class QueuedSink:
             if self._closing:
                 self._dropped += 1
                 return
-            if len(self._queue) >= self._max:
-                # Newest wins: a live view wants the present, and history counts what it lost.
-                self._queue.popleft()
+            queue = self._queue
+            queue.append(item)
+            self._bytes += sample_bytes(item)
+            # Newest wins: a live view wants the present, and history counts what it lost.
+            while len(queue) > 1 and (len(queue) > self._max or self._bytes > self._max_bytes):
+                self._bytes -= sample_bytes(queue.popleft())
                 self._dropped += 1
-            self._queue.append(item)
-            if self._waiting and len(self._queue) == 1:
+            if self._waiting and len(queue) == 1:
                 self._cond.notify()
 
     def stats(self) -> SinkStats:
@@ -202,6 +251,7 @@ class QueuedSink:
                     self._waiting = False
                 items = list(self._queue)
                 self._queue.clear()
+                self._bytes = 0
                 self._in_flight = len(items)
                 closing = self._closing
             if not items:

@@ -37,7 +37,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from twin.core.alarms import worst_first
+from twin.core.alarms import AlarmRecord, worst_first
 from twin.core.health import DeviceStatus
 from twin.core.topics import device_from_topic
 from twin.output.alerts import Alert, AlertPublisher, sns_publisher
@@ -50,27 +50,35 @@ from twin.service.config import AgentConfig, ConfigError
 from twin.service.console import FleetRow, SessionCatalog, rerun_viewer_url
 from twin.service.events import Event, EventKind, EventLevel, EventQuery, EventStore, FleetWatch
 from twin.service.http_api import AgentHttpServer
+from twin.service.persist import StateFile
 from twin.service.shards import (
+    CHECKPOINT_EVERY_S,
     AckRequest,
     AlarmsRequest,
     CalibrationsRequest,
+    CheckpointRequest,
     EventsRequest,
     FleetRowsRequest,
+    MirrorCheckpoint,
     MirrorReport,
     Reply,
     ReportRequest,
     Request,
+    RestoreRequest,
     Shard,
+    StopReport,
     WorkerError,
     WorkerPlan,
     WorkerShard,
     alarm_of,
     alarms_of,
     applied_of,
+    checkpoint_of,
     events_of,
     fleet_rows_of,
     merge_reports,
     report_of,
+    restored_of,
     worker_config,
 )
 from twin.service.state import (
@@ -79,6 +87,7 @@ from twin.service.state import (
     AlarmInfo,
     BrokerState,
     ConnectionState,
+    DeviceState,
     HealthReport,
     HistoryState,
     WorkerInfo,
@@ -101,6 +110,11 @@ _T = TypeVar("_T")
 STATE_REUSE_S = 0.05
 # How often the agent looks for a worker process to start again.
 SUPERVISE_EVERY_S = 0.5
+# At a stop, the alert publisher has at least this long for what is pending, even when the workers' flush took
+# the whole shutdown budget (the unit's stop timeout leaves room for it: docs/host.md).
+ALERTS_STOP_MIN_S = 5.0
+# ... and the history writer at least this long for its last commit.
+HISTORY_STOP_MIN_S = 5.0
 # feed() remembers where each topic goes (its shard and mailbox key) for this many topics at most; beyond
 # that (junk on invented topics) it starts over, so memory stays bounded.
 MAX_ROUTES = 16_384
@@ -171,6 +185,10 @@ class AgentService:
         self._watch = FleetWatch(self._events)
         self._events_seen: dict[int, int] = {}
         self._workers_seen: dict[int, tuple[bool, int]] = {}
+        self._state_file = StateFile(config.twin.state_file) if config.twin.state_file else None
+        # Set to make the supervisor take checkpoints now (an acknowledgement must reach the state file).
+        self._wake = threading.Event()
+        self.stop_reports: dict[int, StopReport | None] = {}
         # Servo alarm transitions to the alarm topic (docs/servo-health.md, "Alarm e-mails"): the events
         # every mirror's alarms make, once collected here, go to the publisher.
         self._alerts = alert_publisher(config) if config.alerts.enabled else None
@@ -228,6 +246,7 @@ class AgentService:
                 shard.launch()
             for shard in self._shards:
                 shard.await_ready()
+            self._restore_state_file()
             if self._calibrations is not None:
                 # Before the subscription, so the first messages already decode with each arm's own.
                 self._calibrations.poll()
@@ -241,7 +260,7 @@ class AgentService:
                 rerun_url=rerun_viewer_url(self.sinks),
             )
         except BaseException:
-            self._stop_shards(timeout=10.0)
+            self._stop_shards(time.monotonic() + 10.0)
             if self._history is not None:
                 self._history.stop(timeout=10.0)
             raise
@@ -275,47 +294,88 @@ class AgentService:
             },
         )
 
-    def stop(self, timeout: float = 30.0) -> None:
+    def stop(self, timeout: float | None = None) -> None:
         """Unsubscribe, let every mirror handle what is queued for it, flush its sinks and end, stop the
-        metrics and HTTP. Idempotent."""
+        metrics and HTTP, all within `timeout` seconds (default: `[twin] shutdown_budget_s`); a worker still
+        running then is killed. Logs what could not be written, and keeps the alarms in the state file.
+        Idempotent."""
         with self._stop_lock:
             if self._stopping.is_set():
                 return
             self._stopping.set()
-        log.info("agent stopping")
+        budget = self.config.twin.shutdown_budget_s if timeout is None else timeout
+        deadline = time.monotonic() + budget
+        self._wake.set()
+        log.info("agent stopping", extra={"shutdown_budget_s": budget})
         if self._started_pool:
             try:
-                self._pool.stop(min(timeout, 5.0))
+                self._pool.stop(min(budget / 4.0, 5.0))
             except Exception:
                 log.exception("stopping the connection pool failed")
         if self._calibrations is not None:
-            self._calibrations.stop(min(timeout, 5.0))
-        self._stop_shards(timeout)
+            self._calibrations.stop(min(5.0, max(0.1, deadline - time.monotonic())))
         if self._supervisor is not None:
-            self._supervisor.join(timeout)
-        if self._alerts is not None:
-            # After the last events were collected: what is pending still goes out.
-            self._alerts.stop(min(timeout, 15.0))
+            # It may be starting a worker again (up to START_TIMEOUT_S): the budget does not wait for that.
+            self._supervisor.join(min(5.0, max(0.1, deadline - time.monotonic())))
+        self._stop_shards(deadline)
+        self._keep_state(final=True)
         if self._history is not None:
-            # Last: every mirror's feed has handed over its rows; the writer commits them, then exits.
-            self._history.stop(max(timeout, 30.0))
+            # Last of the budget: every mirror's feed has handed over its rows; the writer commits them (a
+            # store that fails is retried until the budget ends), then exits.
+            self._history.stop(max(HISTORY_STOP_MIN_S, deadline - time.monotonic()))
+        if self._alerts is not None:
+            # After the last events were collected: what is pending still goes out, with at least a few
+            # seconds of its own when the workers took the whole budget (systemd's stop timeout leaves them).
+            self._alerts.stop(min(15.0, max(ALERTS_STOP_MIN_S, deadline - time.monotonic())))
         if self._emf is not None:
-            self._emf.stop(timeout)
+            self._emf.stop(5.0)
         if self._http is not None:
             self._http.stop()
         self._running = False
-        log.info("agent stopped")
+        self._report_stop(budget)
 
-    def _stop_shards(self, timeout: float) -> None:
+    def _stop_shards(self, deadline: float) -> None:
         # Closed together, so the workers hand over and flush in parallel, then waited for one by one.
         for shard in self._shards:
             shard.close()
-        deadline = time.monotonic() + timeout
         for shard in self._shards:
-            shard.join(deadline)
+            self.stop_reports[shard.index] = shard.join(deadline)
+
+    def _report_stop(self, budget: float) -> None:
+        """One line: the agent stopped, and what it could not write (ERROR when anything)."""
+        unwritten: Counter[str] = Counter()
+        killed = []
+        for index, report in sorted(self.stop_reports.items()):
+            if report is None:
+                killed.append(index)
+            else:
+                unwritten.update(report.unwritten)
+        if self._history is not None:
+            # The writer process's own: what it could not commit before it ended.
+            rows = self._history.unwritten_rows()
+            if rows:
+                unwritten["history_rows"] += rows
+        fields = {"unwritten": dict(unwritten), "workers_killed": killed, "shutdown_budget_s": budget}
+        if unwritten or killed:
+            log.error(
+                "agent stopped; not everything was written: %s%s",
+                ", ".join(f"{n} {what}" for what, n in sorted(unwritten.items())) or "nothing counted",
+                f"; worker(s) {killed} killed at the {budget:g} s budget, what they held is lost"
+                if killed
+                else "",
+                extra=fields,
+            )
+        else:
+            log.info("agent stopped", extra=fields)
 
     def _supervise(self) -> None:
-        while not self._stopping.wait(SUPERVISE_EVERY_S):
+        next_checkpoint = time.monotonic() + CHECKPOINT_EVERY_S
+        while not self._stopping.is_set():
+            self._wake.wait(SUPERVISE_EVERY_S)
+            if self._stopping.is_set():
+                return
+            urgent = self._wake.is_set()
+            self._wake.clear()
             for shard in self._shards:
                 if self._stopping.is_set():
                     return
@@ -323,6 +383,63 @@ class AgentService:
             if self._history is not None:
                 self._history.supervise()
             self._collect_events()
+            now = time.monotonic()
+            if urgent or now >= next_checkpoint:
+                next_checkpoint = now + CHECKPOINT_EVERY_S
+                self._keep_state()
+
+    # ------------------------------------------------------------------------------------------ state kept
+
+    def _keep_state(self, *, final: bool = False) -> None:
+        """Each worker's checkpoint (its restart's starting point) and the alarms the state file keeps.
+        `final`: the shards have stopped; their stop reports hold their alarms."""
+        workers = self._mirror is None
+        if not workers and self._state_file is None:
+            return
+        records: list[AlarmRecord] = []
+        for shard in self._shards:
+            report = self.stop_reports.get(shard.index) if final else None
+            if report is not None:
+                records.extend(report.alarms)
+                continue
+            checkpoint = None if final else self._checkpoint(shard, alarms_only=not workers)
+            if checkpoint is None:
+                checkpoint = shard.checkpoint  # restarting, or gone: what it last said
+            if checkpoint is not None:
+                records.extend(checkpoint.alarms)
+        if self._state_file is not None:
+            self._state_file.save(records, time.monotonic(), time.time())
+
+    def _checkpoint(self, shard: Shard, *, alarms_only: bool) -> MirrorCheckpoint | None:
+        if not shard.answering:
+            return None
+        try:
+            checkpoint = checkpoint_of(shard.request(CheckpointRequest(alarms_only))())
+        except (WorkerError, TimeoutError) as exc:
+            log.warning("no checkpoint of shard %d: %s", shard.index, exc)
+            return None
+        shard.confirm(checkpoint)
+        return checkpoint
+
+    def _restore_state_file(self) -> None:
+        """Give each mirror the alarms the state file kept for its devices (before any message)."""
+        if self._state_file is None:
+            return
+        records = self._state_file.load(time.monotonic(), time.time())
+        by_shard: dict[int, list[AlarmRecord]] = {}
+        for record in records:
+            by_shard.setdefault(self.plan.worker_of(record.device), []).append(record)
+        for shard in self._shards:
+            mine = tuple(by_shard.get(shard.index, ()))
+            if not mine:
+                continue
+            restored = restored_of(shard.request(RestoreRequest(alarms=mine))())
+            # Also what the worker starts from if it dies before its first checkpoint.
+            shard.confirm(MirrorCheckpoint(alarms=mine, at=time.monotonic()))
+            log.info(
+                "alarms restored from the state file",
+                extra={"shard": shard.index, "alarms": restored.alarms, "path": str(self._state_file.path)},
+            )
 
     @staticmethod
     def _launch_history(history: HistoryProcess) -> None:
@@ -434,11 +551,22 @@ class AgentService:
                 return cached[1]
             now = self._clock()
             reports = {shard.index: report for shard, report in self._ask_all(ReportRequest(), report_of)}
+            restarting: dict[str, DeviceState] = {}
+            restarting_untracked = []
+            for shard in self._shards:
+                if shard.index not in reports and shard.restarting:
+                    # Worker processes share the host's monotonic clock, which their checkpoints are on.
+                    restarting.update(shard.restarting_devices(self.config.health, time.monotonic()))
+                    if shard.checkpoint is not None:
+                        restarting_untracked.append(shard.checkpoint.untracked_rejected)
             state = merge_reports(
                 self._info(now),
                 list(reports.values()),
                 self._worker_infos(reports),
                 dropped=self._dropped(),
+                dropped_total=sum(shard.dropped_total for shard in self._shards),
+                restarting=restarting,
+                restarting_untracked=restarting_untracked,
             )
             if self._history is not None:
                 state = dataclasses.replace(
@@ -467,6 +595,7 @@ class AgentService:
             writer_restarts=figures.restarts,
             rows_received=figures.rows_received,
             rows_lost=figures.rows_lost,
+            lag_s=stats.lag_s,
         )
 
     def _info(self, now: float) -> AgentInfo:
@@ -490,7 +619,7 @@ class AgentService:
         return tuple(info for info in infos if info is not None)
 
     def _dropped(self) -> Counter[str]:
-        """Messages of each device the agent could not hand to its mirror."""
+        """Messages of each device the agent could not hand to its mirror (the most recent devices)."""
         total: Counter[str] = Counter()
         for shard in self._shards:
             total.update(shard.dropped())
@@ -538,6 +667,7 @@ class AgentService:
         shard = self._shards[self.plan.worker_of(device)]
         info = alarm_of(shard.request(AckRequest(alarm_id))())
         self._cached = None
+        self._wake.set()  # into the state file (and the worker's checkpoint) now
         return info
 
     def _fleet_totals(self) -> FleetTotals:
@@ -586,11 +716,13 @@ class AgentService:
             self._events.emit(
                 EventKind.WORKER,
                 EventLevel.ERROR,
-                f"worker {shard.index} exited; it is started again and its arms start over",
+                f"worker {shard.index} exited; it is started again from its last checkpoint, its arms kept",
                 data={"worker": shard.index, "pid": info.pid},
             )
         if info.restarts > restarts and answering:
             self._events_seen[shard.index] = 0  # a new process numbers its events from 1
+            # It had them before its first message (WorkerShard.supervise); again, in case they changed
+            # while it was being started.
             self._hand_calibrations_to(shard, self._calibration_request)
             self._events.emit(
                 EventKind.WORKER,
@@ -623,6 +755,7 @@ class AgentService:
         )
         self._calibration_request = request
         for shard in self._shards:
+            shard.keep_calibrations(request)
             self._hand_calibrations_to(shard, request)
         self._cached = None
         for change in book.changes:
@@ -716,6 +849,7 @@ def fleet_totals(state: AgentState, expected_rate_hz: float) -> FleetTotals:
     p99s = [
         d.health.internal_latency_s.p99 for d in state.devices.values() if d.health.internal_latency_s.p99
     ]
+    history = state.agent.history
     return FleetTotals(
         decoded=sum(d.health.counters.decoded for d in state.devices.values()),
         rejected=sum(d.health.counters.rejected_total for d in state.devices.values())
@@ -726,6 +860,15 @@ def fleet_totals(state: AgentState, expected_rate_hz: float) -> FleetTotals:
         loss_percent=loss,
         internal_latency_p99_ms=max(p99s) * 1000.0 if p99s else None,
         active_alarms=state.agent.alarms.present,
+        messages_dropped=state.agent.mailbox.overwritten_total,
+        sink_drops=sum(s.dropped for s in state.agent.sinks),
+        # The history writer is a worker process too.
+        worker_restarts=sum(w.restarts for w in state.agent.workers)
+        + (history.writer_restarts if history is not None else 0),
+        # Rows the writer's buffer dropped, and rows lost with a writer that died holding them.
+        history_rows_dropped=history.rows_dropped + history.rows_lost if history is not None else None,
+        history_commit_failures=history.commit_failures if history is not None else None,
+        history_lag_s=history.lag_s if history is not None else None,
     )
 
 

@@ -89,6 +89,22 @@ class TwinSection:
     # Processes that mirror the fleet, each a share of the devices (docs/scaling.md, "Workers"); 0 = one per
     # usable core for the whole fleet, fewer for a small listed one (twin.service.shards.worker_count).
     workers: int = 0
+    # The recording rotates to a new session file once its file reaches record_max_mb or it is
+    # record_max_age_s old, and the oldest session files in record_dir are deleted while they take more than
+    # record_budget_mb together (docs/agent.md, "Bounds"). A USD stage also lives in memory while it records:
+    # rotation bounds that too.
+    record_max_mb: float = 256.0
+    record_max_age_s: float = 3600.0
+    record_budget_mb: float = 4096.0
+    # Each arm is recorded at most this often (samples a second; the rest are counted as skipped): authoring
+    # a USD sample costs about a millisecond, so a large fleet at 10 Hz is more than one thread can record.
+    record_rate_hz: float = 10.0
+    # Where the agent keeps the servo alarms a restart must not forget (ACTIVE, ACKNOWLEDGED, LATCHED;
+    # service.persist): a file under the service's state directory on the host; "" = not kept.
+    state_file: str = ""
+    # How long `stop` may take in all: the workers handle what is queued and flush their sinks (history's
+    # last commit) within it, and are killed after it. systemd's TimeoutStopSec must be longer.
+    shutdown_budget_s: float = 60.0
 
 
 # The [health] section is the health thresholds themselves: one definition, used as loaded.
@@ -444,6 +460,23 @@ def _validate_twin(tw: TwinSection) -> None:
         )
     _positive("twin.physics_rate_hz", tw.physics_rate_hz)
     _positive("twin.record_flush_s", tw.record_flush_s)
+    for key in ("record_max_mb", "record_max_age_s", "record_budget_mb", "record_rate_hz"):
+        _positive(f"twin.{key}", getattr(tw, key))
+    if tw.record_budget_mb < tw.record_max_mb:
+        raise ConfigError(
+            f"twin.record_budget_mb = {tw.record_budget_mb:g} is below record_max_mb = {tw.record_max_mb:g}: "
+            "the budget must hold at least the session being recorded; raise it or lower record_max_mb"
+        )
+    if tw.state_file and Path(tw.state_file).is_dir():
+        raise ConfigError(
+            f"twin.state_file = {tw.state_file!r} is a directory; give a file in it, e.g. "
+            f"{str(Path(tw.state_file) / 'state.json')!r}"
+        )
+    if not 10.0 <= tw.shutdown_budget_s <= 600.0:
+        raise ConfigError(
+            f"twin.shutdown_budget_s = {tw.shutdown_budget_s:g} is outside 10..600 seconds; the workers need "
+            "time to flush history on stop, and systemd's TimeoutStopSec must cover it"
+        )
     if not 0 <= tw.workers <= MAX_WORKERS:
         raise ConfigError(
             f"twin.workers = {tw.workers} is outside 0..{MAX_WORKERS}; 0 picks one per core, 1 runs "

@@ -128,8 +128,8 @@ KEY_DOCS: dict[str, str] = {
     ),
     "twin.model": "MJCF file. Empty = the bundled SO-101.",
     "twin.record_dir": (
-        "Record a USD session here (`session-<UTC time>-<pid>.<record_format>`, one per run). Empty ="
-        " no recording. Flag `--record-dir`."
+        "Record a USD session here (`session-<UTC time>-<pid>.<record_format>`, and `-<n>` before the"
+        " format for the n-th file after a rotation). Empty = no recording. Flag `--record-dir`."
     ),
     "twin.record_format": (
         "`usdc` (binary: each flush appends, constant cost, for long runs) or `usda` (text: readable,"
@@ -141,6 +141,32 @@ KEY_DOCS: dict[str, str] = {
         'Processes that mirror the fleet, each a share of the devices (docs/scaling.md, "Workers"). '
         "`0`: one per core for the whole fleet, one per 1,000 expected msg/s for a listed one, one "
         "while `[rerun]` is on; `1`: one process. At most 64. Flag `--workers`."
+    ),
+    "twin.record_max_mb": (
+        "The USD recording rotates to a new session file once its file reaches this size (a stage "
+        'also lives in memory while it records: rotation bounds that too). docs/agent.md, "Bounds and '
+        'restarts".'
+    ),
+    "twin.record_max_age_s": "... or once the session file is this old.",
+    "twin.record_budget_mb": (
+        "The session files in `record_dir` are kept within this, the live one counted at "
+        "`record_max_mb`: at each rotation the oldest are deleted. At least `record_max_mb`."
+    ),
+    "twin.record_rate_hz": (
+        "Each arm is recorded at most this many samples a second; the rest are counted as `skipped`. "
+        "Authoring a USD sample costs about a millisecond, so a large fleet at 10 Hz is more than the "
+        "recording's one thread can keep up with."
+    ),
+    "twin.state_file": (
+        "Where the servo alarms an agent restart must not forget (ACTIVE, ACKNOWLEDGED, LATCHED) are "
+        "kept, written atomically. Empty = not kept. The twin host's config names a file in the "
+        "service's state directory (`/var/lib/so101-twin-agent/state.json`)."
+    ),
+    "twin.shutdown_budget_s": (
+        "How long a stop may take in all: the workers handle what is queued and flush their sinks "
+        "(history's last commit) within it, what could not be written is logged, and a worker still "
+        "running then is killed. 10..600. systemd's `TimeoutStopSec` must be longer: the host's unit "
+        "has 90 s, so a budget above 60 s in `agent.local.toml` is cut short by systemd."
     ),
     "health.expected_rate_hz": "The edge's publish rate.",
     "health.stale_periods": (
@@ -338,6 +364,15 @@ KEY_DOCS: dict[str, str] = {
     "rerun.fleet_spacing_m": "Distance between arms in the fleet grid.",
     "rerun.focus_device": 'The arm the plots open on ("" = the first arm seen).',
     "rerun.max_pending": "The sink's queue; beyond it the oldest samples are dropped (counted).",
+    "rerun.save_max_mb": (
+        "The saved `.rrd` rotates to a new file once it reaches this size (it grows about 1.5 MB a "
+        'second at 200 arms; docs/web.md, "`.rrd` files").'
+    ),
+    "rerun.save_max_age_s": "... or once it is this old.",
+    "rerun.save_budget_mb": (
+        "The rotated files beside the saved one are kept within this, the live one counted at "
+        "`save_max_mb`; the oldest are deleted first. At least `save_max_mb`."
+    ),
 }
 
 

@@ -405,6 +405,10 @@ class FleetWatch:
         )
 
 
+# The throttle remembers at most this many (device, reason) keys.
+MAX_THROTTLE_KEYS = 4096
+
+
 class RejectionThrottle:
     """At most one "rejected" event per (device, reason) per `interval_s`; the next one carries how many
     rejections it stands for."""
@@ -431,6 +435,11 @@ class RejectionThrottle:
             return
         self._pending.pop(key, None)
         self._next[key] = now + self._interval_s
+        if len(self._next) > MAX_THROTTLE_KEYS:
+            # Device ids come from topics anyone may invent: the oldest keys go (dicts keep insertion order).
+            oldest = next(iter(self._next))
+            del self._next[oldest]
+            self._pending.pop(oldest, None)
         where = device or "a message with no usable device"
         times = f" ({count} since the last report)" if count > 1 else ""
         self._store.emit(

@@ -11,9 +11,11 @@ import ctypes
 import ctypes.util
 import json
 import logging
+import math
 import sys
 import threading
 import time
+from collections import OrderedDict
 from typing import Any, TextIO
 
 _PR_SET_NAME = 15
@@ -102,29 +104,69 @@ def setup_logging(level: str = "INFO", stream: TextIO | None = None) -> None:
 
 
 class RateLimitedLog:
-    """Logs at most one line per key per interval and counts what it held back.
+    """Logs at most one line per key per interval, and at most `max_lines` per interval in all, and counts
+    what it held back.
 
     A flood of malformed messages must not become a flood of log lines: the first rejection of a kind is
-    logged at once, later ones are summarised as `suppressed` on the next line allowed for that key.
+    logged at once, later ones are summarised as `suppressed` on the next line allowed for that key. Keys
+    come from the network (device ids from topics), so a publisher inventing a new device id for every
+    message would get a line each through a per-key limit alone: the overall budget holds those back too
+    (their count is `suppressed_elsewhere` on the next line that goes out), and the per-key tables keep at
+    most `max_keys` keys, the most recent.
     """
 
-    def __init__(self, logger: logging.Logger, interval_s: float = 10.0, clock: Any = time.monotonic) -> None:
+    def __init__(
+        self,
+        logger: logging.Logger,
+        interval_s: float = 10.0,
+        clock: Any = time.monotonic,
+        *,
+        max_lines: int = 50,
+        max_keys: int = 1024,
+    ) -> None:
         self._logger = logger
         self._interval = interval_s
         self._clock = clock
-        self._last: dict[Any, float] = {}
-        self._suppressed: dict[Any, int] = {}
+        self._max_lines = max_lines
+        self._max_keys = max_keys
+        self._last: OrderedDict[Any, float] = OrderedDict()
+        self._suppressed: OrderedDict[Any, int] = OrderedDict()
+        self._window_start = -math.inf
+        self._window_lines = 0
+        # Held back by the overall budget, or suppressed under a key that was since pushed out of the tables.
+        self._elsewhere = 0
 
     def log(self, key: Any, level: int, msg: str, *args: Any, exc_info: bool = False, **fields: Any) -> bool:
         now = self._clock()
-        if len(self._last) > 4096:
-            # Keys come from the network (device ids from topics): bound the memory they can take.
-            self._last.clear()
         last = self._last.get(key)
         if last is not None and now - last < self._interval:
-            self._suppressed[key] = self._suppressed.get(key, 0) + 1
+            self._count(self._suppressed, key)
             return False
+        if now - self._window_start >= self._interval:
+            self._window_start, self._window_lines = now, 0
+        if self._window_lines >= self._max_lines:
+            self._elsewhere += 1
+            return False
+        self._window_lines += 1
         self._last[key] = now
+        self._last.move_to_end(key)
+        if len(self._last) > self._max_keys:
+            self._last.popitem(last=False)
         suppressed = self._suppressed.pop(key, 0)
-        self._logger.log(level, msg, *args, exc_info=exc_info, extra={**fields, "suppressed": suppressed})
+        extra = {**fields, "suppressed": suppressed}
+        if self._elsewhere:
+            extra["suppressed_elsewhere"], self._elsewhere = self._elsewhere, 0
+        self._logger.log(level, msg, *args, exc_info=exc_info, extra=extra)
         return True
+
+    def _count(self, table: OrderedDict[Any, int], key: Any) -> None:
+        table[key] = table.get(key, 0) + 1
+        table.move_to_end(key)
+        if len(table) > self._max_keys:
+            _, count = table.popitem(last=False)
+            self._elsewhere += count
+
+    @property
+    def keys(self) -> int:
+        """Keys the limiter remembers (bounded by max_keys in each of its tables)."""
+        return max(len(self._last), len(self._suppressed))

@@ -136,9 +136,24 @@ def _history_families(h: HistoryState) -> Iterator[Metric]:
         "History rows dropped: the write buffer was full.",
         h.rows_dropped,
     )
+    yield _counter(
+        "twin_history_rows_lost_total",
+        "History rows lost with a history writer process that died holding them.",
+        h.rows_lost,
+    )
+    yield _counter(
+        "twin_history_writer_restarts_total",
+        "Times the history writer process was started again after it died.",
+        h.writer_restarts,
+    )
     yield _gauge("twin_history_rows_buffered", "History rows waiting for a commit.", h.rows_buffered)
     yield _gauge(
         "twin_history_storage_ok", "1 while the last history commit succeeded.", 1.0 if h.storage_ok else 0.0
+    )
+    yield _gauge(
+        "twin_history_lag_seconds",
+        "How long ago the oldest history row not yet written arrived (0: every row is written).",
+        h.lag_s,
     )
 
 

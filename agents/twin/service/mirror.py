@@ -48,9 +48,10 @@ from __future__ import annotations
 import gc
 import logging
 import os
+import pickle
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from itertools import chain
@@ -58,8 +59,17 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
 
-from twin.core.alarms import AlarmEvent, AlarmState, AlarmView, JointHealth, ServoAlarms, Severity
-from twin.core.health import DeviceHealth, FleetHealth, HealthSnapshot
+from twin.core.alarms import (
+    AlarmCounters,
+    AlarmEvent,
+    AlarmRecord,
+    AlarmState,
+    AlarmView,
+    JointHealth,
+    ServoAlarms,
+    Severity,
+)
+from twin.core.health import DeviceHealth, FleetHealth, HealthSnapshot, HealthThresholds
 from twin.core.latency import LatencyHistogram
 from twin.core.loss import DeviceLoss, LossSnapshot
 from twin.core.modes import TwinMode
@@ -74,7 +84,7 @@ from twin.core.telemetry import (
     diagnostic_columns,
 )
 from twin.core.twin import DeviceTwin, TwinSnapshot
-from twin.output.sinks import AppliedSample, RejectedSample, TwinSink
+from twin.output.sinks import AppliedSample, RejectedSample, TwinSink, rejected_sample
 
 # This module is the heavy end of the agent (MuJoCo, USD): the agent imports it only for an in-process
 # mirror, and worker processes import it; the agent with worker processes never does.
@@ -91,12 +101,19 @@ from twin.service.shards import (
     AckRequest,
     AlarmsRequest,
     CalibrationsRequest,
+    CheckpointRequest,
+    DeviceCheckpoint,
     EventsRequest,
     FleetRowsRequest,
+    MirrorCheckpoint,
     MirrorReport,
     Reply,
     ReportRequest,
     Request,
+    Restored,
+    RestoreRequest,
+    StopReport,
+    uncalibrated,
 )
 from twin.service.state import (
     AlarmInfo,
@@ -122,6 +139,7 @@ log = logging.getLogger(__name__)
 
 Clock = Callable[[], float]
 _SampleT = TypeVar("_SampleT", AppliedSample, RejectedSample)
+_T = TypeVar("_T")
 
 # A device whose valid messages have all been older than its last applied one for this long (and this many
 # messages) has had its edge clock jump backwards: rebuild its twin on the new timeline. Reordering and
@@ -148,6 +166,8 @@ CATCH_UP_AFTER_S = 0.05
 # The queue between the MQTT threads and the worker holds at most this many messages (about 40 MB of edge
 # payloads); beyond it the oldest are dropped and counted, so a stalled worker cannot exhaust memory.
 MAX_QUEUED_MESSAGES = 50_000
+# ... and at most this many bytes of payloads: fewer messages when they are large.
+MAX_QUEUED_BYTES = 64 * 2**20
 
 
 # A message in the shard queue of an in-process mirror: topic, payload, receive monotonic and wall time.
@@ -215,6 +235,29 @@ class _Readout:
     loss: dict[str, LossSnapshot]
 
 
+class _Job:
+    """Work another thread hands the worker thread, done between two batches (a checkpoint, a restore), so it
+    sees the mirror exactly as the messages taken so far left it."""
+
+    def __init__(self, fn: Callable[[], object]) -> None:
+        self.fn = fn
+        self.done = threading.Event()
+        self.result: object = None
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        try:
+            self.result = self.fn()
+        except BaseException as exc:  # handed back to the caller, on its own thread
+            self.error = exc
+        finally:
+            self.done.set()
+
+
+# How long a checkpoint or a restore may wait for the worker thread to finish its batch.
+JOB_TIMEOUT_S = 10.0
+
+
 class QueueInbox:
     """An in-process mirror's inbox: the shard's InboundQueue, taken as batches."""
 
@@ -235,7 +278,7 @@ class QueueInbox:
         return len(self.queue)
 
     @property
-    def overflowed(self) -> Counter[str]:
+    def overflowed(self) -> dict[str, int]:
         return self.queue.overflowed
 
     @property
@@ -295,8 +338,8 @@ class PipeInbox:
         return 0  # what waits in the pipe is the agent's to count (its queue for this worker)
 
     @property
-    def overflowed(self) -> Counter[str]:
-        return Counter()
+    def overflowed(self) -> dict[str, int]:
+        return {}
 
     @property
     def overflowed_total(self) -> int:
@@ -357,6 +400,7 @@ class Mirror:
         self._worker: threading.Thread | None = None
         self._stopped = False
         self._stop_lock = threading.Lock()
+        self._jobs: deque[_Job] = deque()
 
     def _init_fleet_state(self, config: AgentConfig, clock: Clock) -> None:
         """What the worker writes per device and the agent's threads read, and the lock that guards it."""
@@ -434,10 +478,21 @@ class Mirror:
         """The service's own sinks (the USD recording) before the extra ones, and the feed of the history
         writer process."""
         if self.config.twin.record_dir:
-            from twin.output.recording import RecordingSink  # noqa: PLC0415 - usd-core only when recording
+            # usd-core only when recording
+            from twin.output.recording import RecordingLimits, RecordingSink  # noqa: PLC0415
 
+            tw = self.config.twin
+            directory = Path(tw.record_dir)
             self._recording = RecordingSink(
-                self._open_recorder(Path(self.config.twin.record_dir)), self.robot
+                self._open_recorder(directory),
+                self.robot,
+                limits=RecordingLimits(
+                    max_bytes=int(tw.record_max_mb * 2**20),
+                    max_age_s=tw.record_max_age_s,
+                    budget_bytes=int(tw.record_budget_mb * 2**20),
+                    rate_hz=tw.record_rate_hz,
+                ),
+                open_next=lambda n: self._open_recorder(directory, n),
             )
         if self._history_link is not None:
             from twin.output.history_feed import REJECTED_PAYLOAD_MAX_BYTES, HistoryFeed  # noqa: PLC0415
@@ -449,11 +504,13 @@ class Mirror:
             )
         self._sinks = (*((self._recording,) if self._recording else ()), *self._extra_sinks)
 
-    def _open_recorder(self, directory: Path) -> SessionRecorder:
+    def _open_recorder(self, directory: Path, rotation: int = 0) -> SessionRecorder:
+        """A new session file: session-<UTC time>-<pid>.<format>, and -<n> after it for the n-th rotation."""
         from twin.output.recorder import SessionRecorder  # noqa: PLC0415 - usd-core only when recording
 
         stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(self._wall_clock()))
-        path = directory / f"session-{stamp}-{os.getpid()}.{self.config.twin.record_format}"
+        suffix = f"-{rotation}" if rotation else ""
+        path = directory / f"session-{stamp}-{os.getpid()}{suffix}.{self.config.twin.record_format}"
         return SessionRecorder(path, flush_interval_s=self.config.twin.record_flush_s)
 
     def join(self, timeout: float | None = None) -> None:
@@ -461,31 +518,53 @@ class Mirror:
         if self._worker is not None:
             self._worker.join(timeout)
 
-    def stop(self, timeout: float = 30.0) -> None:
-        """Close the inbox, let the worker handle what it holds, close the sinks (final USD save).
-        Idempotent."""
+    def stop(self, timeout: float = 30.0) -> StopReport:
+        """Close the inbox, let the worker handle what it holds, close the sinks (final USD save, the rows
+        for history handed to its writer process), all within `timeout` seconds; returns what could not be
+        written. Idempotent."""
+        deadline = time.monotonic() + timeout
         with self._stop_lock:
             if self._stopped:
-                return
+                return self.stop_report()
             self._stopped = True
         self._mailbox.close()
         if self._worker is not None:
             # The worker takes what is left, then sees the closed, empty inbox and returns.
-            self._worker.join(timeout)
+            self._worker.join(max(0.1, deadline - time.monotonic()))
             if self._worker.is_alive():
                 log.error("twin worker did not finish within %.1f s", timeout)
-        self._close_sinks(timeout)
+        self._close_sinks(deadline)
+        return self.stop_report()
 
-    def _close_sinks(self, timeout: float) -> None:
+    def _close_sinks(self, deadline: float) -> None:
+        """Close every sink, the recording first, each with what is left of the time until `deadline`; then
+        the history feed (its rows go to the writer process, which commits them once every feed has
+        closed)."""
         sinks = self._sinks or (*((self._recording,) if self._recording else ()), *self._extra_sinks)
         for sink in sinks:
             try:
-                sink.close(timeout)
+                sink.close(max(1.0, deadline - time.monotonic()))
             except Exception:
                 log.exception("closing sink %s failed", sink.name)
         if self._history is not None:
-            # Its rows go to the writer process, which commits them once every feed has closed.
-            self._history.close(max(timeout, 30.0))
+            self._history.close(max(1.0, deadline - time.monotonic()))
+
+    def stop_report(self) -> StopReport:
+        """After `stop`: what the sinks could not write (every sink's queued samples, the rows for history
+        the feed could not hand to the writer process) and the alarms a restart must not forget. The writer
+        process says itself what it could not commit (service.agent)."""
+        unwritten: dict[str, int] = {}
+        for sink in self._sinks:
+            pending = sink.stats().pending
+            if pending:
+                unwritten[f"{sink.name}_samples"] = pending
+        if self._history is not None:
+            rows = self._history.stats().pending
+            if rows:
+                unwritten["history_rows"] = rows
+        with self._lock:
+            alarms = tuple(self._alarms.records())
+        return StopReport(unwritten=unwritten, alarms=alarms)
 
     @property
     def running(self) -> bool:
@@ -517,6 +596,7 @@ class Mirror:
             stage_cpu["hand_over"] += cpu() - started
             count = len(batch.payloads)
             if not count and inbox.closed:
+                self._run_jobs()
                 return
             if count:
                 try:
@@ -529,6 +609,8 @@ class Mirror:
                 last_step = now
             self._publish(count)
             self._watch_statuses()
+            if self._jobs:
+                self._run_jobs()
             since = self._clock() - last_freeze
             grown = len(self._devices) != frozen_devices
             if since >= FREEZE_EVERY_S or (grown and since >= FREEZE_AFTER_NEW_S):
@@ -536,6 +618,111 @@ class Mirror:
                 gc.freeze()
                 last_freeze = self._clock()
                 frozen_devices = len(self._devices)
+
+    def _run_jobs(self) -> None:
+        while self._jobs:
+            self._jobs.popleft().run()
+
+    def _between_batches(self, fn: Callable[[], _T], timeout: float = JOB_TIMEOUT_S) -> _T:
+        """`fn()` on the worker thread between two batches (at once when it does not run, or when called on
+        it); TimeoutError when the worker does not get to it within `timeout`."""
+        worker = self._worker
+        if worker is None or not worker.is_alive() or threading.current_thread() is worker:
+            return fn()
+        job = _Job(fn)
+        self._jobs.append(job)
+        if not job.done.wait(timeout):
+            raise TimeoutError(f"the mirror's worker did not finish its batch within {timeout:.0f} s")
+        if job.error is not None:
+            raise job.error
+        return job.result  # type: ignore[return-value]
+
+    # --------------------------------------------------------------------------------------- checkpoints
+
+    def checkpoint(self, *, alarms_only: bool = False) -> MirrorCheckpoint:
+        """The mirror's state between two batches (service.shards, `MirrorCheckpoint`)."""
+        return self._between_batches(lambda: self._build_checkpoint(alarms_only))
+
+    def _build_checkpoint(self, alarms_only: bool) -> MirrorCheckpoint:
+        """On the worker thread (or with it stopped): nothing changes while this runs."""
+        with self._lock:
+            alarms = tuple(self._alarms.records())
+            counters = _copy_counters(self._alarms.counters)
+            if alarms_only:
+                return MirrorCheckpoint(alarms=alarms, alarm_counters=counters, at=self._clock())
+            decided = self._decoder.decided_units()
+            devices = {}
+            for device, health in self._fleet.devices.items():
+                record = self._devices.get(device)
+                loss = self._loss.get(device)
+                devices[device] = DeviceCheckpoint(
+                    health=health.checkpoint(),
+                    loss=pickle.dumps(loss, protocol=pickle.HIGHEST_PROTOCOL) if loss is not None else b"",
+                    units=decided.get(device),
+                    timestamp_ms=record.twin.last_timestamp_ms if record is not None else None,
+                    targets_rad=dict(record.twin.targets) if record is not None else None,
+                    gripper_percent=record.gripper_percent if record is not None else None,
+                )
+            untracked = dict(self._fleet.untracked_rejected)
+            batches = self.batches
+        return MirrorCheckpoint(
+            taken=self.processed,
+            errors=self.errors,
+            batches=batches,
+            at=self._clock(),
+            devices=devices,
+            untracked_rejected=untracked,
+            alarms=alarms,
+            alarm_counters=counters,
+            tracking_since=self._fleet.started,
+        )
+
+    def restore(self, checkpoint: MirrorCheckpoint | None, alarms: Sequence[AlarmRecord] = ()) -> Restored:
+        """Take back a checkpoint of this mirror's previous process and alarms kept over a restart of the
+        agent, before the first message; between batches on the worker thread."""
+        return self._between_batches(lambda: self._restore(checkpoint, tuple(alarms)))
+
+    def _restore(self, checkpoint: MirrorCheckpoint | None, alarms: tuple[AlarmRecord, ...]) -> Restored:
+        devices = 0
+        with self._lock:
+            if checkpoint is not None:
+                self.processed = checkpoint.taken
+                self.errors = checkpoint.errors
+                self.batches = checkpoint.batches
+                self._fleet.untracked_rejected.update(checkpoint.untracked_rejected)
+                self._alarms.restore_counters(checkpoint.alarm_counters)
+                for device, saved in checkpoint.devices.items():
+                    self._restore_device(device, saved)
+                    devices += 1
+                restored = self._alarms.restore(checkpoint.alarms)
+            else:
+                restored = 0
+            restored += self._alarms.restore(alarms)
+        if checkpoint is not None:
+            self._decoder.restore_units(
+                {device: saved.units for device, saved in checkpoint.devices.items() if saved.units}
+            )
+        if devices or restored:
+            log.info("mirror state restored", extra={"devices": devices, "alarms": restored})
+        return Restored(devices=devices, alarms=restored)
+
+    def _restore_device(self, device: str, saved: DeviceCheckpoint) -> None:
+        """Under the lock: one device's counters, loss estimate and twin (from its last applied pose)."""
+        health = self._fleet.device(device)
+        health.restore(saved.health)
+        if saved.loss:
+            loss = pickle.loads(saved.loss)  # written by this agent's own previous worker process
+            if isinstance(loss, DeviceLoss):
+                self._loss[device] = loss
+        if saved.timestamp_ms is None or saved.targets_rad is None or device in self._devices:
+            return
+        if not self._budget.take(self._slot):
+            return  # the place went to another worker's device meanwhile: it is admitted anew, if at all
+        twin = DeviceTwin(self.robot, device, self.mode)
+        twin.apply(saved.targets_rad, saved.timestamp_ms)
+        record = self._devices[device] = _Device(device, twin, health, self._loss_of(device))
+        record.gripper_percent = saved.gripper_percent
+        record.units = saved.units
 
     def _step_physics(self, elapsed: float) -> None:
         with self._lock:
@@ -849,9 +1036,10 @@ class Mirror:
             detail=str(rejected),
         )
         if self._sinks:
-            sample = RejectedSample(
-                device_id=topic_device,
-                topic=topic,
+            # Only the payload's first bytes: the sinks' queues must not hold every junk message whole.
+            sample = rejected_sample(
+                topic_device,
+                topic,
                 received_wall_s=batch.recv_wall[i],
                 reason=reason,
                 detail=str(rejected),
@@ -882,6 +1070,8 @@ class Mirror:
             with self._lock:
                 self._fleet.record_rejected(None, TOO_MANY_DEVICES)
             self._rejections.rejected(device, TOO_MANY_DEVICES, "telemetry.max_devices reached")
+            # units=auto may have decided this device's units already: an invented id must leave nothing.
+            self._decoder.forget(device)
             self._reject_log.log(
                 TOO_MANY_DEVICES,
                 logging.WARNING,
@@ -971,6 +1161,10 @@ class Mirror:
             return tuple(self.events(EventQuery(after_id=request.after_id, limit=EVENTS_PER_ASK)))
         if isinstance(request, FleetRowsRequest):
             return tuple(self.fleet_rows())
+        if isinstance(request, CheckpointRequest):
+            return self.checkpoint(alarms_only=request.alarms_only)
+        if isinstance(request, RestoreRequest):
+            return self.restore(request.checkpoint, request.alarms)
         if isinstance(request, CalibrationsRequest):
             return self.set_calibrations(request)
         raise TypeError(f"not a request to a mirror: {request!r}")
@@ -1182,21 +1376,20 @@ class Mirror:
         return self._calibration_sources.get(device) or self.config.telemetry.calibration
 
     def _uncalibrated(self, device: str, units: Units) -> bool:
-        """No calibration while the units need one: degrees are already relative to the arm's calibrated
-        middle, ticks and range100 are not."""
-        return not self._calibration_source(device) and units in (Units.TICKS, Units.RANGE100)
+        return uncalibrated(self._calibration_source(device), units)
 
     def _recording_state(self) -> RecordingState | None:
         if self._recording is None:
             return None
-        recorder = self._recording.recorder
-        # Counters written by the sink's thread; int reads are atomic, and a figure one sample behind is fine.
+        totals = self._recording.totals()
         return RecordingState(
-            path=str(recorder.path),
-            samples_written=recorder.samples_written,
-            samples_dropped=recorder.samples_dropped,
-            flushes=recorder.flushes,
-            flush_errors=recorder.flush_errors,
+            path=totals.path,
+            samples_written=totals.samples_written,
+            samples_dropped=totals.samples_dropped,
+            flushes=totals.flushes,
+            flush_errors=totals.flush_errors,
+            rotations=totals.rotations,
+            files_deleted=totals.files_deleted,
         )
 
 
@@ -1216,7 +1409,10 @@ class LocalShard:
         sinks: Sequence[TwinSink] = (),
         history: HistoryLink | None = None,
     ) -> None:
-        self._inbox: InboundQueue[QueuedMessage] = InboundQueue(max_items=MAX_QUEUED_MESSAGES)
+        self._inbox: InboundQueue[QueuedMessage] = InboundQueue(
+            max_items=MAX_QUEUED_MESSAGES, max_bytes=MAX_QUEUED_BYTES, size_of=_payload_size
+        )
+        self.checkpoint: MirrorCheckpoint | None = None
         self.mirror = Mirror(
             config,
             inbox=QueueInbox(self._inbox),
@@ -1241,11 +1437,22 @@ class LocalShard:
         self._closed = True
         self._inbox.close()
 
-    def join(self, deadline: float) -> None:
-        self.mirror.stop(max(0.1, deadline - time.monotonic()))
+    def join(self, deadline: float) -> StopReport | None:
+        return self.mirror.stop(max(0.1, deadline - time.monotonic()))
 
     def supervise(self) -> None:
         return  # nothing to start again: a dead worker thread is `failed`
+
+    restarting = False
+
+    def confirm(self, checkpoint: MirrorCheckpoint) -> None:
+        self.checkpoint = checkpoint
+
+    def restarting_devices(self, thresholds: HealthThresholds, now: float) -> dict[str, DeviceState]:
+        return {}  # never restarts: a dead worker thread is `failed`
+
+    def keep_calibrations(self, request: CalibrationsRequest) -> None:
+        return  # handed to the mirror itself, which never starts again
 
     @property
     def failed(self) -> bool:
@@ -1262,8 +1469,22 @@ class LocalShard:
     def describe(self, report: MirrorReport | None) -> WorkerInfo | None:
         return None  # `agent.workers` lists worker processes only
 
-    def dropped(self) -> Counter[str]:
-        return Counter()  # the mirror counts its own queue's drops
+    def dropped(self) -> dict[str, int]:
+        return {}  # the mirror counts its own queue's drops
+
+    dropped_total = 0
+
+
+def _payload_size(message: QueuedMessage) -> int:
+    return len(message[1])
+
+
+def _copy_counters(counters: AlarmCounters) -> AlarmCounters:
+    return AlarmCounters(
+        raised=Counter(counters.raised),
+        cleared=Counter(counters.cleared),
+        acknowledged=Counter(counters.acknowledged),
+    )
 
 
 def _history_row(telemetry: Telemetry, batch: Batch, i: int) -> TelemetryRow:

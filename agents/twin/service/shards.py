@@ -20,9 +20,11 @@ The agent asks the shards for their figures with typed requests (`ReportRequest`
 `AckRequest`); a worker answers over its control pipe, a local shard at once, and `merge_reports` makes one
 state of the answers, whatever the number of shards.
 
-A worker that dies (a crash in a native library, say) is started again; its devices lose their twins' state
-and start over from their next message (their places in the device budget are given back), and the messages
-that arrived while it was down are counted as dropped (`overwritten`) against their devices. Workers ignore
+A worker that dies (a crash in a native library, say) is started again from its last checkpoint (the agent
+takes one every CHECKPOINT_EVERY_S: counters, loss estimates, alarms, poses), is sent again every message the
+checkpoint does not count, then what arrived while it was down (`WorkerShard`); its arms show as `restarting`
+meanwhile and never leave `/state`. Messages are counted as dropped (`overwritten`) against their devices only
+when the queue or the messages kept for a restart overflowed. Workers ignore
 SIGINT and SIGTERM: the agent stops them in order (the rest of the queue, then an end marker), so each one
 flushes its sinks (USD recording, history) before it exits. A worker whose parent vanished sees its pipe close
 and exits too.
@@ -39,21 +41,25 @@ import itertools
 import logging
 import math
 import os
+import pickle
 import signal
 import threading
 import time
 import zlib
-from collections import Counter
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections import Counter, deque
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from enum import StrEnum
 from multiprocessing.connection import Connection
 from multiprocessing.context import SpawnContext, SpawnProcess
 from typing import TYPE_CHECKING, Protocol
 
-from twin.core.alarms import AlarmNotFound, NothingToAcknowledge
+from twin.core.alarms import AlarmCounters, AlarmNotFound, AlarmRecord, NothingToAcknowledge
+from twin.core.bounded import BoundedCounter, merged_counts
+from twin.core.health import HealthCheckpoint, HealthThresholds
 from twin.core.latency import LatencyHistogram
-from twin.core.loss import fleet_loss
+from twin.core.loss import DeviceLoss, LossSnapshot, fleet_loss
+from twin.core.units import Units
 from twin.output.sinks import SinkStats
 from twin.service.admission import DeviceBudget
 from twin.service.config import AgentConfig, ConfigError
@@ -69,11 +75,12 @@ from twin.service.state import (
     FleetLatency,
     HistoryState,
     MailboxState,
+    MirrorStatus,
     RecordingState,
     WorkerInfo,
     WorkerState,
 )
-from twin.transport.mailbox import InboundQueue
+from twin.transport.mailbox import MAX_OVERFLOW_KEYS, UNTRACKED_KEY, InboundQueue
 from twin.transport.pipe import Message, send_batch, send_end
 
 if TYPE_CHECKING:
@@ -89,6 +96,13 @@ WORKER_PLAN_RATE = 1000.0
 # Per worker, the agent queues at most this many messages for its pipe (about 40 MB of payloads across the
 # fleet's queues at most); beyond it the oldest are dropped and counted, as in an in-process mirror's queue.
 MAX_QUEUED_PER_WORKER = 25_000
+# ... and at most this many bytes of their payloads (a few large messages weigh as much as many small ones).
+MAX_QUEUED_BYTES_PER_WORKER = 32 * 2**20
+# The agent keeps each message it handed a worker until the worker's checkpoint counts it, at most this many
+# (a few seconds of a large fleet): a worker that dies is sent them again once it runs again.
+MAX_UNCONFIRMED = 50_000
+# How often the agent takes each worker's checkpoint (its supervisor thread; service.agent).
+CHECKPOINT_EVERY_S = 1.0
 # One pipe write carries at most this many messages: a backlog goes over in pieces the worker can start on.
 MAX_BATCH = 1000
 # Above this many messages a second for one worker, its sender pauses after each hand-over (unless it had a
@@ -101,6 +115,8 @@ MAX_BATCH = 1000
 PAUSE_ABOVE_RATE = 2000.0
 BATCH_TARGET = 64
 MAX_SEND_PAUSE_S = 0.008
+# Of the shutdown budget, a worker leaves this much to the agent (its own stop steps and the pipes).
+WORKER_BUDGET_MARGIN_S = 8.0
 # How long a worker may take to answer one request (a state of thousands of arms takes tens of ms).
 ASK_TIMEOUT_S = 10.0
 # A worker must be up within this (Python, MuJoCo and the sinks it opens, e.g. a Delta table on S3).
@@ -239,10 +255,97 @@ class CalibrationsRequest:
     problems: tuple[tuple[str, str], ...] = ()
 
 
-Request = ReportRequest | AlarmsRequest | AckRequest | EventsRequest | FleetRowsRequest | CalibrationsRequest
-Reply = MirrorReport | tuple[AlarmInfo, ...] | AlarmInfo | tuple[Event, ...] | tuple[FleetRow, ...] | int
 # Events a mirror hands over per request (the agent asks every supervisor round).
 EVENTS_PER_ASK = 5000
+# ----------------------------------------------------------------------------------- checkpoints (restarts)
+
+
+@dataclass(frozen=True, slots=True)
+class DeviceCheckpoint:
+    """What one device's mirror state must carry over a restart of its worker (its twin is rebuilt from the
+    last applied pose; health windows, latencies and the alarm engine's last evaluation start again)."""
+
+    health: HealthCheckpoint
+    # The loss estimator, pickled whole by the worker thread (a few small deques; it must not change while
+    # the checkpoint crosses the pipe).
+    loss: bytes = b""
+    units: Units | None = None  # units=auto's decision, so a restarted mirror rejects none of its messages
+    timestamp_ms: int | None = None  # the last applied pose
+    targets_rad: dict[str, float] | None = None
+    gripper_percent: float | None = None
+
+
+@dataclass(frozen=True)
+class MirrorCheckpoint:
+    """A mirror's state between two batches: what a restarted worker takes back (`RestoreRequest`) so its arms
+    keep their counters, loss estimates and alarms, and what `/state` shows of its arms while it restarts.
+    `taken` is how many messages the mirror had taken from its inbox: the agent sends the new worker every
+    message it handed the old one after those (service.shards, `WorkerShard`). Alarms only (no devices)
+    when asked for `alarms_only`."""
+
+    taken: int = 0
+    errors: int = 0
+    batches: int = 0
+    at: float = 0.0  # when it was taken (the host's monotonic clock)
+    devices: dict[str, DeviceCheckpoint] = field(default_factory=dict)
+    untracked_rejected: dict[str, int] = field(default_factory=dict)
+    alarms: tuple[AlarmRecord, ...] = ()
+    alarm_counters: AlarmCounters = field(default_factory=AlarmCounters)
+    history: HistoryState | None = None
+    tracking_since: float = 0.0  # when the mirror's health tracking began (for a device never heard from)
+
+
+@dataclass(frozen=True, slots=True)
+class CheckpointRequest:
+    """The mirror's `MirrorCheckpoint`, taken between two batches; only its alarms with `alarms_only`."""
+
+    alarms_only: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class RestoreRequest:
+    """Take back a checkpoint (a restarted worker, before any message) and alarms (the agent's state file,
+    at start): alarms replace what the mirror has for their ids."""
+
+    checkpoint: MirrorCheckpoint | None = None
+    alarms: tuple[AlarmRecord, ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
+class Restored:
+    devices: int
+    alarms: int
+
+
+@dataclass(frozen=True, slots=True)
+class StopReport:
+    """What a mirror could not write when it stopped (by sink: `history_rows`, `<sink>_samples`), and its
+    alarms for the agent's state file."""
+
+    unwritten: dict[str, int] = field(default_factory=dict)
+    alarms: tuple[AlarmRecord, ...] = ()
+
+
+Request = (
+    ReportRequest
+    | AlarmsRequest
+    | AckRequest
+    | EventsRequest
+    | FleetRowsRequest
+    | CalibrationsRequest
+    | CheckpointRequest
+    | RestoreRequest
+)
+Reply = (
+    MirrorReport
+    | tuple[AlarmInfo, ...]
+    | AlarmInfo
+    | tuple[Event, ...]
+    | tuple[FleetRow, ...]
+    | int
+    | MirrorCheckpoint
+    | Restored
+)
 
 
 def report_of(reply: Reply) -> MirrorReport:
@@ -271,6 +374,20 @@ def fleet_rows_of(reply: Reply) -> tuple[FleetRow, ...]:
     if not isinstance(reply, tuple) or not all(isinstance(r, FleetRow) for r in reply):
         raise WorkerError(f"fleet rows were asked for, the answer was {type(reply).__name__}")
     return tuple(r for r in reply if isinstance(r, FleetRow))
+
+
+def checkpoint_of(reply: Reply) -> MirrorCheckpoint:
+    """The answer to a CheckpointRequest; WorkerError for anything else."""
+    if not isinstance(reply, MirrorCheckpoint):
+        raise WorkerError(f"a checkpoint was asked for, the answer was {type(reply).__name__}")
+    return reply
+
+
+def restored_of(reply: Reply) -> Restored:
+    """The answer to a RestoreRequest; WorkerError for anything else."""
+    if not isinstance(reply, Restored):
+        raise WorkerError(f"a restore was asked for, the answer was {type(reply).__name__}")
+    return reply
 
 
 def applied_of(reply: Reply) -> int:
@@ -322,6 +439,13 @@ class Ready:
 
 
 @dataclass(frozen=True, slots=True)
+class Farewell:
+    """The worker's last word on its control pipe, after its sinks closed: its StopReport."""
+
+    report: StopReport
+
+
+@dataclass(frozen=True, slots=True)
 class StartFailed:
     """The worker could not start; `config_error`: because of a setting (`twin run` exits 2, `message`)."""
 
@@ -362,8 +486,9 @@ class Shard(Protocol):
         """No more messages: the mirror handles what is queued, flushes its sinks and ends."""
         ...
 
-    def join(self, deadline: float) -> None:
-        """Wait (until `deadline`, time.monotonic) for the mirror to end after `close`."""
+    def join(self, deadline: float) -> StopReport | None:
+        """Wait (until `deadline`, time.monotonic) for the mirror to end after `close`; what it could not
+        write (None when it had to be killed)."""
         ...
 
     def supervise(self) -> None:
@@ -389,8 +514,37 @@ class Shard(Protocol):
         """This shard as a worker in `agent.workers` (None for an in-process mirror)."""
         ...
 
-    def dropped(self) -> Counter[str]:
-        """Messages per device the agent could not hand to this mirror (its queue overflowed, it was down)."""
+    def dropped(self) -> Mapping[str, int]:
+        """Messages per device the agent could not hand to this mirror (its queue overflowed, they were lost
+        with a worker that died); the most recent devices only."""
+        ...
+
+    @property
+    def dropped_total(self) -> int:
+        """Every message `dropped` counts, also those of devices it no longer lists."""
+        ...
+
+    @property
+    def restarting(self) -> bool:
+        """The mirror's worker process died and is being started again."""
+        ...
+
+    @property
+    def checkpoint(self) -> MirrorCheckpoint | None:
+        """The mirror's latest checkpoint the agent holds (`confirm`)."""
+        ...
+
+    def confirm(self, checkpoint: MirrorCheckpoint) -> None:
+        """Keep `checkpoint` as the mirror's latest."""
+        ...
+
+    def restarting_devices(self, thresholds: HealthThresholds, now: float) -> dict[str, DeviceState]:
+        """While restarting: the mirror's devices as its latest checkpoint left them."""
+        ...
+
+    def keep_calibrations(self, request: CalibrationsRequest) -> None:
+        """The arms' own calibrations the agent last handed over: a worker started again gets them before
+        its first message."""
         ...
 
 
@@ -398,7 +552,16 @@ _CALL_IDS = itertools.count(1)
 
 
 class WorkerShard:
-    """A share of the fleet mirrored in a worker process: its process, pipes, queue and sender thread."""
+    """A share of the fleet mirrored in a worker process: its process, pipes, queue and sender thread.
+
+    The agent keeps what the worker needs to start again where it stopped: the worker's latest checkpoint
+    (taken every CHECKPOINT_EVERY_S by the agent's supervisor: counters, loss estimates, alarms, poses) and
+    every message it handed the worker since the checkpoint's `taken` (at most MAX_UNCONFIRMED). A worker
+    that dies is started again, given the checkpoint, then those messages again, then the queue, which held
+    what arrived meanwhile: its arms keep their counts and alarms, and no message is lost unless the queue
+    or the kept messages overflowed (counted). While it restarts `/state` shows its arms from the checkpoint,
+    marked `restarting`.
+    """
 
     def __init__(
         self,
@@ -413,19 +576,35 @@ class WorkerShard:
         self._budget = budget
         self._history = history
         self._ctx = context
-        self.queue: InboundQueue[tuple[str, bytes, float, float]] = InboundQueue(MAX_QUEUED_PER_WORKER)
+        self.queue: InboundQueue[tuple[str, bytes, float, float]] = InboundQueue(
+            MAX_QUEUED_PER_WORKER, max_bytes=MAX_QUEUED_BYTES_PER_WORKER, size_of=_payload_size
+        )
         self.process: SpawnProcess | None = None
         self.data: Connection | None = None
         self.control: Connection | None = None
         self._control_lock = threading.Lock()
+        # The data pipe's one writer at a time (the sender thread, or the supervisor replaying after a
+        # restart), and `ready` changes under it.
+        self._send_lock = threading.Condition(threading.Lock())
         self.ready = False
         self.pid = 0
         self.started_at = 0.0
         self.restarts = 0
         self._restart_at: float | None = None
         self._sender: threading.Thread | None = None
-        # Messages that could not be handed to the worker (it was down), by device.
-        self._dropped: Counter[str] = Counter()
+        # Messages taken from the queue while the worker was down: sent first once it runs again.
+        self._held: list[Message] = []
+        # Messages handed to the worker that its latest checkpoint does not count yet, in chunks with the
+        # index of their first message (the worker's count of messages taken), and the next index.
+        self._unconfirmed: deque[tuple[int, list[Message]]] = deque()
+        self._unconfirmed_count = 0
+        self._sent = 0
+        self._unconfirmed_lock = threading.Lock()
+        self.checkpoint: MirrorCheckpoint | None = None
+        # Messages lost for good, by device: handed to a worker that died before its checkpoint counted them
+        # and no longer kept (MAX_UNCONFIRMED), or still queued when the agent stopped during a restart.
+        self._lost: BoundedCounter[str] = BoundedCounter(MAX_OVERFLOW_KEYS)
+        self._calibrations: CalibrationsRequest | None = None
         self._closed = False
 
     @property
@@ -437,14 +616,27 @@ class WorkerShard:
         return self.alive
 
     @property
+    def restarting(self) -> bool:
+        """Started once and not running now: being started again (its arms show as restarting)."""
+        return self.pid != 0 and not self.alive and not self._closed
+
+    @property
     def failed(self) -> bool:
         return False  # a dead worker is started again
 
     def put(self, key: str, topic: str, payload: bytes, recv_mono: float, recv_wall: float) -> None:
         self.queue.put(key, (topic, payload, recv_mono, recv_wall))
 
-    def dropped(self) -> Counter[str]:
-        return self.queue.overflowed + self._dropped
+    def dropped(self) -> dict[str, int]:
+        with self._unconfirmed_lock:
+            lost = self._lost.counts()
+        return merged_counts(self.queue.overflowed, lost)
+
+    @property
+    def dropped_total(self) -> int:
+        with self._unconfirmed_lock:
+            lost = self._lost.total()
+        return self.queue.overflowed_total + lost
 
     # -- lifecycle -----------------------------------------------------------------------------------------
 
@@ -464,7 +656,8 @@ class WorkerShard:
         self.process, self.data, self.control = process, data_write, control
         self.started_at = time.monotonic()
 
-    def await_ready(self) -> None:
+    def _await_hello(self) -> None:
+        """Wait for the new process to say it runs (its pid), or raise why not."""
         assert self.control is not None and self.process is not None
         if not self.control.poll(START_TIMEOUT_S):
             raise WorkerError(f"worker {self.index} did not start within {START_TIMEOUT_S:.0f} s")
@@ -483,7 +676,12 @@ class WorkerShard:
         if not isinstance(hello, Ready):
             raise WorkerError(f"worker {self.index} said {hello!r} instead of being ready")
         self.pid = hello.pid
-        self.ready = True
+
+    def await_ready(self) -> None:
+        self._await_hello()
+        with self._send_lock:
+            self.ready = True
+            self._send_lock.notify_all()
         if self._sender is None:
             self._sender = threading.Thread(
                 target=self._send_loop, name=f"twin-send-{self.index}", daemon=True
@@ -491,13 +689,14 @@ class WorkerShard:
             self._sender.start()
 
     def supervise(self) -> None:
-        """Start the worker again if it died (module doc); its devices' twins start over."""
+        """Start the worker again if it died (class doc): its checkpoint, then the messages since."""
         process = self.process
         if process is None or process.is_alive() or self._closed:
             return
         now = time.monotonic()
         if self._restart_at is None:
-            self.ready = False
+            with self._send_lock:
+                self.ready = False
             quick = now - self.started_at < QUICK_DEATH_S
             pause = min(MAX_RESTART_PAUSE_S, 2.0 ** min(self.restarts, 6)) if quick else 0.0
             self._restart_at = now + pause
@@ -516,44 +715,181 @@ class WorkerShard:
             for conn in (self.data, self.control):
                 if conn is not None:
                     conn.close()
-            # Its devices are gone with it: their places count again from their next valid message.
+            # Its places in the device budget go with it; the checkpoint's arms take theirs again.
             self._budget.release(self.index)
             try:
                 self.launch()
-                self.await_ready()
+                self._await_hello()
+                restored = self._restore()
+                self._recalibrate()
             except (WorkerError, ConfigError) as exc:
                 log.error("worker %d could not be started again: %s", self.index, exc)
                 return
-        log.info("worker %d running again", self.index, extra={"worker": self.index, "pid": self.pid})
+        try:
+            replayed = self._replay()
+        except (OSError, ValueError) as exc:
+            log.error("worker %d died again while its messages were sent again: %s", self.index, exc)
+            return
+        log.info(
+            "worker %d running again",
+            self.index,
+            extra={
+                "worker": self.index,
+                "pid": self.pid,
+                "devices_restored": restored.devices,
+                "alarms_restored": restored.alarms,
+                "messages_sent_again": replayed,
+            },
+        )
+
+    def _restore(self) -> Restored:
+        """Hand the new process the latest checkpoint (control lock held)."""
+        assert self.control is not None
+        call_id = next(_CALL_IDS)
+        try:
+            self.control.send(Call(call_id, RestoreRequest(checkpoint=self.checkpoint)))
+        except (OSError, ValueError) as exc:
+            raise WorkerError(f"worker {self.index} is not reachable: {exc}") from exc
+        return restored_of(self._answer(call_id))
+
+    def _recalibrate(self) -> None:
+        """Hand the new process the arms' own calibrations before the messages it is sent again, so none of
+        them decodes with another calibration than the first time (control lock held)."""
+        request = self._calibrations
+        if request is None:
+            return
+        assert self.control is not None
+        call_id = next(_CALL_IDS)
+        try:
+            self.control.send(Call(call_id, request))
+        except (OSError, ValueError) as exc:
+            raise WorkerError(f"worker {self.index} is not reachable: {exc}") from exc
+        applied_of(self._answer(call_id))
+
+    def keep_calibrations(self, request: CalibrationsRequest) -> None:
+        self._calibrations = request
+
+    def _replay(self) -> int:
+        """Send the new process what the checkpoint does not count, then what was held; then it runs."""
+        with self._send_lock:
+            taken = self.checkpoint.taken if self.checkpoint is not None else 0
+            with self._unconfirmed_lock:
+                again: list[Message] = []
+                first = self._unconfirmed[0][0] if self._unconfirmed else self._sent
+                if first > taken:
+                    # Handed over, not counted by the checkpoint, and no longer kept: lost with the worker.
+                    log.error(
+                        "worker %d: %d messages it had taken were lost with it (more than %d since its last "
+                        "checkpoint)",
+                        self.index,
+                        first - taken,
+                        MAX_UNCONFIRMED,
+                    )
+                    self._lost.add(UNTRACKED_KEY, first - taken)
+                for start, chunk in self._unconfirmed:
+                    skip = max(0, taken - start)
+                    again.extend(chunk[skip:])
+                again.extend(self._held)
+                self._held = []
+                self._unconfirmed.clear()
+                self._unconfirmed_count = 0
+                self._sent = taken
+                chunks = [again[i : i + MAX_BATCH] for i in range(0, len(again), MAX_BATCH)]
+                # Kept as unconfirmed before they are sent: if this worker dies too, they go again.
+                for chunk in chunks:
+                    self._keep(chunk)
+            conn = self.data
+            assert conn is not None
+            for chunk in chunks:
+                send_batch(conn, chunk)
+            self.ready = True
+            self._send_lock.notify_all()
+            return len(again)
+
+    def _keep(self, chunk: list[Message]) -> None:
+        """Remember `chunk` as handed to the worker (unconfirmed lock held); beyond the bound, the oldest
+        go."""
+        self._unconfirmed.append((self._sent, chunk))
+        self._sent += len(chunk)
+        self._unconfirmed_count += len(chunk)
+        while len(self._unconfirmed) > 1 and self._unconfirmed_count > MAX_UNCONFIRMED:
+            _, oldest = self._unconfirmed.popleft()
+            self._unconfirmed_count -= len(oldest)
+
+    def confirm(self, checkpoint: MirrorCheckpoint) -> None:
+        """A checkpoint of the running worker: keep it, and forget the messages it counts."""
+        with self._unconfirmed_lock:
+            self.checkpoint = checkpoint
+            unconfirmed = self._unconfirmed
+            while unconfirmed and unconfirmed[0][0] + len(unconfirmed[0][1]) <= checkpoint.taken:
+                _, chunk = unconfirmed.popleft()
+                self._unconfirmed_count -= len(chunk)
 
     def close(self) -> None:
         self._closed = True
         self.queue.close()
+        with self._send_lock:
+            self._send_lock.notify_all()
 
-    def join(self, deadline: float) -> None:
+    def join(self, deadline: float) -> StopReport | None:
+        """Wait until `deadline` for the worker to finish and say what it could not write (its Farewell);
+        a worker still running then is killed (None: what it held is lost, its last checkpoint's alarms
+        stand for its own)."""
         if self._sender is not None:
             self._sender.join(max(0.1, deadline - time.monotonic()))
         elif self.data is not None:
             with contextlib.suppress(OSError, ValueError):
                 send_end(self.data)
+        report = self._farewell(deadline)
         process = self.process
         if process is not None:
             process.join(max(0.1, deadline - time.monotonic()))
             if process.is_alive():
-                log.error("worker %d did not stop in time; killing it", self.index)
+                log.error(
+                    "worker %d did not stop within the shutdown budget; killing it: what it had not written "
+                    "is lost",
+                    self.index,
+                    extra={"worker": self.index},
+                )
                 process.kill()
                 process.join(5.0)
         self.ready = False
         for conn in (self.data, self.control):
             if conn is not None:
                 conn.close()
+        return report
+
+    def _farewell(self, deadline: float) -> StopReport | None:
+        conn = self.control
+        if conn is None or self.process is None:
+            return None
+        if not self._control_lock.acquire(timeout=max(0.1, deadline - time.monotonic())):
+            return None
+        try:
+            while True:
+                remaining = deadline - time.monotonic()
+                try:
+                    if remaining <= 0 or not conn.poll(remaining):
+                        return None
+                    message = conn.recv()
+                except (EOFError, OSError):
+                    return None
+                if isinstance(message, Farewell):
+                    return message.report
+        finally:
+            self._control_lock.release()
 
     def _send_loop(self) -> None:
-        """Hand the worker its queue in batches; what cannot be handed over (it is down) is counted."""
+        """Hand the worker its queue in batches; while it is down, wait (the queue holds what arrives)."""
         name_native_thread()
         queue = self.queue
         window_start, window_count, pause = time.monotonic(), 0, 0.0
         while True:
+            with self._send_lock:
+                while not self.ready and not self._closed:
+                    self._send_lock.wait(0.2)
+                if not self.ready:
+                    break  # stopping while the worker is down: nothing will take the rest
             items = queue.take_all(0.2)
             if not items:
                 if queue.closed:
@@ -569,19 +905,36 @@ class WorkerShard:
                 pause = min(MAX_SEND_PAUSE_S, BATCH_TARGET / rate) if rate > PAUSE_ABOVE_RATE else 0.0
                 window_start, window_count = now, 0
             for start in range(0, len(items), MAX_BATCH):
-                chunk: list[Message] = items[start : start + MAX_BATCH]
-                conn = self.data
-                if not self.ready or conn is None:
-                    self._dropped.update(key for key, _ in chunk)
-                    continue
-                try:
-                    send_batch(conn, chunk)
-                except (OSError, ValueError):
-                    self.ready = False
-                    self._dropped.update(key for key, _ in chunk)
-        if self.data is not None and self.ready:
-            with contextlib.suppress(OSError, ValueError):
-                send_end(self.data)
+                self._hand_over(items[start : start + MAX_BATCH])
+        with self._send_lock:
+            if self.data is not None and self.ready:
+                with contextlib.suppress(OSError, ValueError):
+                    send_end(self.data)
+                return
+            left = [key for key, _ in self._held] + [key for key, _ in queue.take_all(0)]
+            self._held = []
+        if left:
+            log.error(
+                "worker %d was down when the agent stopped: %d messages it was to mirror are lost",
+                self.index,
+                len(left),
+            )
+            with self._unconfirmed_lock:
+                self._lost.update(left)
+
+    def _hand_over(self, chunk: list[Message]) -> None:
+        with self._send_lock:
+            conn = self.data
+            if not self.ready or conn is None:
+                self._held.extend(chunk)
+                return
+            with self._unconfirmed_lock:
+                self._keep(chunk)
+            try:
+                send_batch(conn, chunk)
+            except (OSError, ValueError):
+                # The worker died: the chunk is kept as unconfirmed, and goes again after the restart.
+                self.ready = False
 
     # -- requests ------------------------------------------------------------------------------------------
 
@@ -624,6 +977,26 @@ class WorkerShard:
             if isinstance(message, Refused) and message.call_id == call_id:
                 _raise_refusal(message, self.index)
 
+    def restarting_devices(self, thresholds: HealthThresholds, now: float) -> dict[str, DeviceState]:
+        """This worker's arms as its latest checkpoint left them, marked restarting (empty without one)."""
+        checkpoint = self.checkpoint
+        if checkpoint is None:
+            return {}
+        calibrations = self._calibrations or CalibrationsRequest()
+        sources = {device: source for device, source, _ in calibrations.files}
+        problems = dict(calibrations.problems)
+        devices = {}
+        for device, saved in checkpoint.devices.items():
+            state = checkpoint_device(device, saved, thresholds, now, checkpoint.tracking_since)
+            source = sources.get(device) or self._config.telemetry.calibration
+            devices[device] = dataclasses.replace(
+                state,
+                calibration=source,
+                uncalibrated=uncalibrated(source, state.units),
+                calibration_problem=problems.get(device, ""),
+            )
+        return devices
+
     def describe(self, report: MirrorReport | None) -> WorkerInfo:
         return WorkerInfo(
             index=self.index,
@@ -633,11 +1006,44 @@ class WorkerShard:
             restarts=self.restarts,
             devices=len(report.devices) if report is not None else 0,
             queued=len(self.queue),
-            dropped=self._dropped.total(),
+            dropped=self.dropped_total,
             processed=report.worker.processed if report is not None else 0,
             errors=report.worker.errors if report is not None else 0,
             recording=report.recording.path if report is not None and report.recording else "",
+            restarting=self.restarting,
         )
+
+
+def _payload_size(message: tuple[str, bytes, float, float]) -> int:
+    return len(message[1])
+
+
+def uncalibrated(calibration: str, units: Units) -> bool:
+    """No calibration while the units need one: degrees are already relative to the arm's calibrated
+    middle, ticks and range100 are not."""
+    return not calibration and units in (Units.TICKS, Units.RANGE100)
+
+
+def checkpoint_device(
+    device: str, saved: DeviceCheckpoint, thresholds: HealthThresholds, now: float, since: float
+) -> DeviceState:
+    """A device's state as a checkpoint knows it (its mirror is being started again)."""
+    loss = LossSnapshot()
+    if saved.loss:
+        estimator = pickle.loads(saved.loss)  # written by this agent's own worker process
+        if isinstance(estimator, DeviceLoss):
+            loss = estimator.snapshot(now)
+    return DeviceState(
+        device_id=device,
+        health=saved.health.snapshot(thresholds, now, since),
+        units=saved.units or Units.AUTO,
+        timestamp_ms=saved.timestamp_ms,
+        joints_rad=saved.targets_rad,
+        targets_rad=saved.targets_rad,
+        gripper_percent=saved.gripper_percent,
+        loss=loss,
+        mirror=MirrorStatus.RESTARTING,
+    )
 
 
 # ------------------------------------------------------------------------------------------ worker process
@@ -651,6 +1057,11 @@ class _WorkerLogFilter(logging.Filter):
     def filter(self, record: logging.LogRecord) -> bool:
         record.worker = self.index
         return True
+
+
+# A worker's control pipe has two writers once it stops (the answering thread, and the main thread's
+# Farewell); a Connection must not be written from two threads at once.
+_CONTROL_SEND = threading.Lock()
 
 
 def worker_main(
@@ -698,8 +1109,14 @@ def worker_main(
     threading.Thread(target=_serve_control, args=(mirror, control), name="twin-control", daemon=True).start()
     # The worker thread reads the pipe until the end marker (or the agent is gone), then ends.
     mirror.join()
-    mirror.stop(timeout=30.0)
-    log.info("agent stopped", extra={"processed": mirror.processed, "errors": mirror.errors})
+    # Within the agent's shutdown budget, less what it keeps for itself (it kills a worker at the budget).
+    report = mirror.stop(timeout=max(5.0, config.twin.shutdown_budget_s - WORKER_BUDGET_MARGIN_S))
+    with contextlib.suppress(OSError, ValueError), _CONTROL_SEND:
+        control.send(Farewell(report))
+    log.info(
+        "agent stopped",
+        extra={"processed": mirror.processed, "errors": mirror.errors, "unwritten": report.unwritten},
+    )
 
 
 def _serve_control(mirror: Mirror, control: Connection) -> None:
@@ -724,7 +1141,8 @@ def _serve_control(mirror: Mirror, control: Connection) -> None:
             log.exception("worker request %s failed", type(call.request).__name__)
             reply = Refused(call.call_id, Refusal.ERROR, f"{type(exc).__name__}: {exc}")
         try:
-            control.send(reply)
+            with _CONTROL_SEND:
+                control.send(reply)
         except (OSError, ValueError):
             return
 
@@ -737,15 +1155,26 @@ def merge_reports(
     reports: Sequence[MirrorReport],
     workers: tuple[WorkerInfo, ...],
     *,
-    dropped: Counter[str],
+    dropped: Mapping[str, int],
+    dropped_total: int | None = None,
+    restarting: Mapping[str, DeviceState] | None = None,
+    restarting_untracked: Sequence[Mapping[str, int]] = (),
 ) -> AgentState:
     """One fleet state from the mirrors' reports. `info` is the agent's own part (process, broker); `workers`
     its worker processes (empty when the mirror runs in-process); `dropped` the messages of each device it
-    could not hand to a mirror, counted with the mirror's own queue drops (`overwritten`).
+    could not hand to a mirror, counted with the mirror's own queue drops (`overwritten`), and
+    `dropped_total` all of them (per device only the most recent devices are kept; default: their sum).
+    `restarting` are the devices of workers being started again, as their last checkpoints left them, and
+    `restarting_untracked` those checkpoints' rejections of no device.
     """
     devices = {}
     untracked: Counter[str] = Counter()
     internal, end_to_end = LatencyHistogram(), LatencyHistogram()
+    for device, d in (restarting or {}).items():
+        extra = dropped.get(device, 0)
+        devices[device] = _with_dropped(d, extra) if extra else d
+    for part in restarting_untracked:
+        untracked.update(part)
     for report in reports:
         for device, d in report.devices.items():
             extra = dropped.get(device, 0)
@@ -759,7 +1188,8 @@ def merge_reports(
             info,
             running=info.running and workers_alive,
             mailbox=MailboxState(
-                overwritten_total=sum(r.mailbox.overwritten_total for r in reports) + dropped.total(),
+                overwritten_total=sum(r.mailbox.overwritten_total for r in reports)
+                + (sum(dropped.values()) if dropped_total is None else dropped_total),
                 refused_keys=0,
                 pending=sum(r.mailbox.pending for r in reports) + sum(w.queued for w in workers),
             ),
@@ -800,6 +1230,8 @@ def _merge_recording(parts: list[RecordingState]) -> RecordingState | None:
         samples_dropped=sum(p.samples_dropped for p in parts),
         flushes=sum(p.flushes for p in parts),
         flush_errors=sum(p.flush_errors for p in parts),
+        rotations=sum(p.rotations for p in parts),
+        files_deleted=sum(p.files_deleted for p in parts),
     )
 
 
@@ -821,6 +1253,7 @@ def _merge_history(parts: list[HistoryState]) -> HistoryState | None:
         writer_restarts=sum(p.writer_restarts for p in parts),
         rows_received=sum(p.rows_received for p in parts),
         rows_lost=sum(p.rows_lost for p in parts),
+        lag_s=max(p.lag_s for p in parts),
     )
 
 
@@ -873,21 +1306,30 @@ __all__ = [
     "AckRequest",
     "AlarmsRequest",
     "CalibrationsRequest",
+    "CheckpointRequest",
+    "DeviceCheckpoint",
     "EventsRequest",
     "FleetRowsRequest",
+    "MirrorCheckpoint",
     "MirrorReport",
     "Reply",
     "ReportRequest",
     "Request",
+    "RestoreRequest",
+    "Restored",
     "Shard",
+    "StopReport",
     "WorkerError",
     "WorkerPlan",
     "WorkerShard",
     "alarm_of",
     "alarms_of",
     "applied_of",
+    "checkpoint_of",
     "merge_reports",
     "report_of",
+    "restored_of",
+    "uncalibrated",
     "worker_config",
     "worker_count",
 ]

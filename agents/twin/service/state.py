@@ -14,6 +14,7 @@ default), and fields this version does not know are ignored.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import msgspec
 
@@ -41,6 +42,7 @@ __all__ = [
     "LatencySummary",
     "LossSnapshot",
     "MailboxState",
+    "MirrorStatus",
     "RecordingState",
     "ServoState",
     "SinkStats",
@@ -50,6 +52,14 @@ __all__ = [
 ]
 
 _ENCODER = msgspec.json.Encoder()
+
+
+class MirrorStatus(StrEnum):
+    """Whether a device's mirror runs: `restarting` while its worker process is being started again (the
+    device's figures are then its worker's last checkpoint, service.shards)."""
+
+    RUNNING = "running"
+    RESTARTING = "restarting"
 
 
 @dataclass(frozen=True, slots=True)
@@ -157,6 +167,9 @@ class DeviceState:
     uncalibrated: bool = False
     # Why its file in the calibration store was refused (it keeps the calibration it had); "" when it was not.
     calibration_problem: str = ""
+    # running, or restarting while its worker process is started again (the figures are then its last
+    # checkpoint's; the arm never leaves /state).
+    mirror: MirrorStatus = MirrorStatus.RUNNING
 
 
 @dataclass(frozen=True, slots=True)
@@ -217,6 +230,10 @@ class RecordingState:
     samples_dropped: int = 0
     flushes: int = 0
     flush_errors: int = 0
+    # New session files begun ([twin] record_max_mb, record_max_age_s) and old ones deleted to keep the
+    # directory within record_budget_mb.
+    rotations: int = 0
+    files_deleted: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -235,6 +252,8 @@ class HistoryState:
     maintenance_runs: int = 0
     maintenance_failures: int = 0
     last_error: str = ""
+    # How long the oldest row not yet written has waited, seconds (0: nothing waits); grows in an outage.
+    lag_s: float = 0.0
     # The process that writes the history (its own, apart from the mirrors); None while it is not running.
     writer_pid: int | None = None
     # Times the writer process was started again after it died, the rows it received from the mirrors, and
@@ -259,6 +278,8 @@ class WorkerInfo:
     processed: int = 0
     errors: int = 0
     recording: str = ""
+    # Died and being started again: its arms show as restarting until it runs.
+    restarting: bool = False
 
 
 @dataclass(frozen=True)

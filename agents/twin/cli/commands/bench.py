@@ -90,11 +90,19 @@ def register(subparsers: Any) -> None:
     co.add_argument("--history", action="store_true", help="with the telemetry history on (a temp dir)")
     co.add_argument("--workers", type=int, default=None, help="the agent's --workers (default: its own)")
 
+    so = sub.add_parser(
+        "soak", help="a fleet for minutes or hours with every sink on: RSS, files, disk, losses over time"
+    )
+    so.add_argument("--minutes", type=float, default=60.0)
+    so.add_argument("--arms", type=int, default=200)
+    so.add_argument("--rate", type=float, default=10.0, help="messages per second per arm")
+    so.add_argument("--out", type=Path, default=Path("out/soak"), help="where soak.json and soak.png go")
+
     al = sub.add_parser("all", help="every scenario as published in docs/performance.md, plus the plot")
     al.add_argument("--seconds", type=float, default=20.0, help="throughput run length")
     al.add_argument("--plot", type=Path, default=Path("docs/performance.png"))
 
-    for p in (tp, fi, fo, hs, hr, hl, r2, rn, rr, qu, de, wo, cs, co, al):
+    for p in (tp, fi, fo, hs, hr, hl, r2, rn, rr, qu, de, wo, cs, co, so, al):
         p.add_argument("--json", action="store_true", help="print the figures as one JSON object")
         p.set_defaults(func=run)
 
@@ -135,6 +143,10 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
     if args.scenario == "console":
         return import_dev_tool("twin.bench.console", "bench").run(
             arms=args.arms, cpu_arms=args.cpu_arms, rate=args.rate, runs=args.runs, seconds=args.seconds
+        )
+    if args.scenario == "soak":
+        return import_dev_tool("twin.bench.soak", "bench").run(
+            minutes=args.minutes, arms=args.arms, rate=args.rate, out=args.out
         )
     if args.scenario == "worker":
         return import_dev_tool("twin.bench.worker", "bench").run(arms=args.arms, rounds=args.rounds)

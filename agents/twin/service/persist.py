@@ -1,0 +1,182 @@
+"""The agent's state file: the servo alarms a person must still see after the agent restarts or the host
+reboots (`[twin] state_file`, under the service's state directory on the host).
+
+What it keeps: every alarm that is ACTIVE, ACKNOWLEDGED or LATCHED, with its state, when it last changed (wall
+clock), how often it was raised and its message. An acknowledgement is a person's decision and a LATCHED
+alarm is a condition nobody has seen yet: a restart must forget neither. NORMAL alarms are not kept (the next
+message makes them again), nor counters, health or poses: those start again with the agent.
+
+Written atomically (a temporary file in the same directory, flushed to disk, renamed over the old one, the
+directory flushed), so a crash or a power cut mid-write leaves the previous file or the new one, never half of
+one. Written when the kept alarms change (the agent checks every second) and when the agent stops. A file that
+cannot be read is reported and set aside; the agent starts without it rather than not at all.
+
+JSON, one object: {"version": 1, "written_at": <epoch s>, "alarms": [{...}, ...]}.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import math
+import os
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from twin.core.alarms import AlarmKind, AlarmRecord, AlarmState
+
+log = logging.getLogger(__name__)
+
+VERSION = 1
+# The states a restart must not forget.
+KEPT_STATES = frozenset({AlarmState.ACTIVE, AlarmState.ACKNOWLEDGED, AlarmState.LATCHED})
+
+
+class StateFileError(ValueError):
+    """The state file exists but is not one this agent wrote; the message says what is wrong."""
+
+
+class StateFile:
+    """Reads and writes the state file at `path` (see the module doc)."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.writes = 0
+        self.write_errors = 0
+        # What the last write held, by what identifies a change (not the wall time, which a clock slewed
+        # by NTP would move a little at every check).
+        self._last: list[tuple[str, str, int, float]] | None = None
+
+    # -- reading -------------------------------------------------------------------------------------------
+
+    def load(self, now_mono: float, now_wall: float) -> list[AlarmRecord]:
+        """The alarms the file keeps, with their times on this process's monotonic clock; [] when there is
+        no file. A file that cannot be parsed is renamed `<name>.bad` and reported; [] then too."""
+        try:
+            text = self.path.read_text(encoding="utf-8")
+        except FileNotFoundError:
+            return []
+        except OSError as exc:
+            log.error("state file %s cannot be read (%s); starting without it", self.path, exc)
+            return []
+        try:
+            records = parse(text, now_mono, now_wall)
+        except StateFileError as exc:
+            bad = self.path.with_name(self.path.name + ".bad")
+            with contextlib.suppress(OSError):
+                os.replace(self.path, bad)
+            log.error(
+                "state file %s is not valid (%s); moved to %s, starting without the alarms it kept",
+                self.path,
+                exc,
+                bad.name,
+            )
+            return []
+        log.info("state file read", extra={"path": str(self.path), "alarms": len(records)})
+        return records
+
+    # -- writing -------------------------------------------------------------------------------------------
+
+    def save(self, records: Sequence[AlarmRecord], now_mono: float, now_wall: float) -> bool:
+        """Write the kept alarms of `records` if they differ from the last write; True when written. A failed
+        write is logged and counted, never raised: the twin goes on without it."""
+        kept = sorted((r for r in records if r.state in KEPT_STATES), key=lambda r: r.alarm_id)
+        identity = [(r.alarm_id, str(r.state), r.raised, round(r.since, 3)) for r in kept]
+        if identity == self._last:
+            return False
+        entries = [entry(r, now_mono, now_wall) for r in kept]
+        document = {"version": VERSION, "written_at": now_wall, "alarms": entries}
+        try:
+            write_atomically(self.path, json.dumps(document, indent=1, sort_keys=True) + "\n")
+        except OSError as exc:
+            self.write_errors += 1
+            log.error(
+                "state file %s could not be written (%s): acknowledgements and latched alarms since the last "
+                "write would not survive a restart; check the state directory",
+                self.path,
+                exc,
+            )
+            return False
+        self._last = identity
+        self.writes += 1
+        return True
+
+
+def entry(record: AlarmRecord, now_mono: float, now_wall: float) -> dict[str, Any]:
+    """One alarm as the file keeps it: the change time on the wall clock (a reboot resets monotonic time)."""
+    return {
+        "alarm_id": record.alarm_id,
+        "device": record.device,
+        "joint": record.joint,
+        "kind": str(record.kind),
+        "state": str(record.state),
+        "changed_at": now_wall - (now_mono - record.since),
+        "raised": record.raised,
+        "value": record.value,
+        "message": record.message,
+    }
+
+
+def parse(text: str, now_mono: float, now_wall: float) -> list[AlarmRecord]:
+    """The records of a state file's text; StateFileError naming the first thing wrong."""
+    try:
+        document = json.loads(text)
+    except ValueError as exc:
+        raise StateFileError(f"not JSON: {exc}") from None
+    if not isinstance(document, dict) or document.get("version") != VERSION:
+        raise StateFileError(f"not a version-{VERSION} state file")
+    alarms = document.get("alarms")
+    if not isinstance(alarms, list):
+        raise StateFileError("'alarms' is not a list")
+    out = []
+    for i, item in enumerate(alarms):
+        try:
+            state = AlarmState(item["state"])
+            changed_at = float(item["changed_at"])
+            value = item.get("value")
+            record = AlarmRecord(
+                device=str(item["device"]),
+                joint=str(item["joint"]),
+                kind=AlarmKind(item["kind"]),
+                state=state,
+                # Back on this process's monotonic clock; a change "in the future" (a clock stepped back)
+                # is taken as now.
+                since=now_mono - max(0.0, now_wall - changed_at),
+                # The condition of an ACTIVE or ACKNOWLEDGED alarm is taken as still present: it clears by
+                # the usual rule once readings show it gone.
+                present=state is not AlarmState.LATCHED,
+                raised=int(item.get("raised", 1)),
+                value=float(value) if isinstance(value, int | float) and math.isfinite(value) else None,
+                message=str(item.get("message", "")),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise StateFileError(f"alarm {i}: {exc!r}") from None
+        if state not in KEPT_STATES:
+            raise StateFileError(f"alarm {i} is {state}, which the file never keeps")
+        out.append(record)
+    return out
+
+
+def write_atomically(path: Path, text: str) -> None:
+    """Replace `path` with `text` so that a crash at any point leaves the old file or the new one."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    # The rename itself is durable only once the directory is.
+    dir_fd = os.open(path.parent, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)

@@ -1,0 +1,221 @@
+"""Alarm states over restarts, end to end: servo faults from `twin edge-sim` through a real mosquitto.
+
+- A worker process SIGKILLed while an arm has an ACKNOWLEDGED over-temperature alarm: the restarted worker
+  takes back its checkpoint, the alarm is still ACKNOWLEDGED, and the arm never leaves /state (it shows as
+  restarting meanwhile).
+- The agent stopped and started again (a restart, or a reboot: the state file is all that survives): a
+  LATCHED alarm is still LATCHED, and an ACKNOWLEDGED one still ACKNOWLEDGED.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import random
+import signal
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from conftest import Publisher, get_state, wait_for
+from test_servo_alarms_e2e import alarms, by_key, post
+from twin.edge.payload import encode, make_payload
+from twin.edge.servo_faults import ServoFault
+from twin.rig.local import LocalRig
+from twin.service.shards import WorkerPlan
+
+pytestmark = pytest.mark.slow
+
+FLEET = ["arm-001", "arm-002", "arm-003", "arm-004"]
+HOT = ("wrist_roll", "over_temperature")
+
+
+class HotWrist:
+    """An arm whose wrist_roll servo reports 62 C (over the 60 C warning line) in every message, at 10 Hz,
+    until stopped: the condition lasts through a restart of its worker."""
+
+    def __init__(self, publisher: Publisher, device: str) -> None:
+        self._publisher = publisher
+        self._device = device
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        rng = random.Random(3)
+        t = 0.0
+        while not self._stop.wait(0.1):
+            doc = make_payload(self._device, t, "ticks", rng, timestamp_ms=int(time.time() * 1000))
+            doc["joints"]["wrist_roll"]["temp"] = 62
+            self._publisher.publish(self._device, encode(doc))
+            t += 0.1
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(10)
+
+
+def test_a_killed_worker_keeps_an_acknowledged_alarm_and_its_arm_never_leaves_state(
+    rig: LocalRig, publisher: Publisher
+) -> None:
+    plan = WorkerPlan(2, FLEET)
+    hot_arm = "arm-002"
+    worker = plan.worker_of(hot_arm)
+    agent = rig.start_agent({"telemetry.devices": FLEET, "telemetry.units": "ticks"}, workers=2)
+    url = agent.http_url
+    rig.start_edge([d for d in FLEET if d != hot_arm], variant="ticks", rate_hz=10.0, seed=7)
+    hot = HotWrist(publisher, hot_arm)
+    try:
+        alarm = f"{hot_arm}/{HOT[0]}/{HOT[1]}"
+        wait_for(
+            lambda: any(a.alarm_id == alarm and a.state == "ACTIVE" for a in alarms(url).alarms),
+            30,
+            "the over-temperature alarm to be raised",
+            interval=0.1,
+        )
+        status, body = post(f"{url}/alarms/{alarm}/ack")
+        assert status == 200 and body["alarms"][0]["state"] == "ACKNOWLEDGED", body
+        # The acknowledgement reaches the worker's checkpoint at once (it wakes the agent's supervisor).
+        shard = agent._shards[worker]
+        wait_for(
+            lambda: (
+                shard.checkpoint is not None
+                and any(r.alarm_id == alarm and r.state == "ACKNOWLEDGED" for r in shard.checkpoint.alarms)
+            ),
+            10,
+            "a checkpoint with the acknowledgement",
+        )
+        victim = get_state(url).agent.workers[worker]
+        os.kill(victim.pid, signal.SIGKILL)
+
+        states_seen: set[str] = set()
+
+        def running_again() -> bool:
+            state = get_state(url)
+            assert set(FLEET) <= set(state.devices), f"an arm left /state: {sorted(state.devices)}"
+            states_seen.add(state.devices[hot_arm].mirror)
+            info = state.agent.workers[worker]
+            return info.alive and info.restarts == 1 and info.pid != victim.pid
+
+        wait_for(running_again, 60, "the worker to run again", interval=0.05)
+        assert "restarting" in states_seen
+        assert by_key(alarms(url))[HOT] == "ACKNOWLEDGED"
+        # Still acknowledged after more hot readings, which the new worker evaluates against the restored one.
+        applied = get_state(url).devices[hot_arm].health.counters.applied
+        wait_for(
+            lambda: get_state(url).devices[hot_arm].health.counters.applied > applied + 20,
+            20,
+            "more messages",
+        )
+        assert by_key(alarms(url))[HOT] == "ACKNOWLEDGED"
+        assert get_state(url).devices[hot_arm].mirror == "running"
+    finally:
+        hot.stop()
+
+
+def test_an_agent_restart_keeps_latched_and_acknowledged_alarms(rig: LocalRig, tmp_path: Path) -> None:
+    state_file = tmp_path / "state" / "state.json"
+    overrides = {
+        "telemetry.devices": ["arm-001"],
+        "telemetry.units": "ticks",
+        "twin.state_file": str(state_file),
+        "alarms.temperature_clear_after_s": 2.0,
+    }
+    agent = rig.start_agent(overrides)
+    url = agent.http_url
+    # Heat on the wrist for 8 s (raised, then cleared unacknowledged: LATCHED), and an overload on the
+    # shoulder that lasts (its over-current alarm acknowledged while present).
+    faults = (ServoFault("heat", "wrist_roll", 0.5, 6.0), ServoFault("overload", "shoulder_lift", 0.5, 600.0))
+    rig.start_edge(["arm-001"], variant="ticks", rate_hz=10.0, servo_faults=faults, model_loads=True)
+    current = "arm-001/shoulder_lift/over_current"
+    wait_for(
+        lambda: any(a.alarm_id == current and a.state == "ACTIVE" for a in alarms(url).alarms),
+        60,
+        "the over-current alarm",
+        interval=0.1,
+    )
+    assert post(f"{url}/alarms/{current}/ack")[0] == 200
+    wait_for(lambda: by_key(alarms(url)).get(HOT) == "LATCHED", 60, "the heat alarm to latch", interval=0.1)
+    before = by_key(alarms(url))
+    assert before[("shoulder_lift", "over_current")] == "ACKNOWLEDGED"
+
+    agent.stop()  # the final write of the state file
+    kept = {a["alarm_id"]: a["state"] for a in json.loads(state_file.read_text())["alarms"]}
+    assert kept["arm-001/wrist_roll/over_temperature"] == "LATCHED"
+    assert kept[current] == "ACKNOWLEDGED"
+
+    again = rig.start_agent(overrides)
+    url = again.http_url
+    # Before any message of the arm: what the file kept.
+    after = by_key(alarms(url))
+    assert after[HOT] == "LATCHED" and after[("shoulder_lift", "over_current")] == "ACKNOWLEDGED"
+    # With the arm's messages flowing again (a cool wrist, the shoulder still overloaded): LATCHED waits for
+    # a person, the acknowledged condition stays acknowledged.
+    applied = lambda: get_state(url).devices["arm-001"].health.counters.applied  # noqa: E731
+    wait_for(lambda: applied() > 30, 30, "the arm mirrored again")
+    after = by_key(alarms(url))
+    assert after[HOT] == "LATCHED" and after[("shoulder_lift", "over_current")] == "ACKNOWLEDGED"
+    status, body = post(f"{url}/alarms/arm-001/wrist_roll/over_temperature/ack")
+    assert status == 200 and body["alarms"][0]["state"] == "NORMAL"
+
+
+def test_stop_keeps_its_budget_and_reports_what_it_could_not_write(
+    rig: LocalRig, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """History on a full disk (a real tmpfs) when the agent stops: the workers hand their rows to the history
+    writer process, which retries its last commit within the shutdown budget and says how many rows it could
+    not write; the agent logs them in one line."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(disk)], check=True)
+    try:
+        budget = 12.0
+        agent = rig.start_agent(
+            {
+                "telemetry.devices": FLEET,
+                "telemetry.units": "ticks",
+                "history.uri": str(disk / "history"),
+                "history.commit_every_s": 0.5,
+                "twin.shutdown_budget_s": budget,
+            },
+            workers=2,
+        )
+        rig.start_edge(FLEET, variant="ticks", rate_hz=10.0, seed=3)
+        wait_for(lambda: (agent.state().agent.history.commits or 0) >= 2, 30, "history committing")
+        try:
+            with (disk / "filler").open("wb") as fh:
+                while True:
+                    fh.write(b"\0" * 65536)
+                    fh.flush()
+        except OSError:
+            pass  # full
+        wait_for(
+            lambda: (
+                agent.state().agent.history.commit_failures > 0 and agent.state().agent.history.rows_buffered
+            ),
+            30,
+            "commits failing with rows waiting",
+            interval=0.2,
+        )
+        caplog.set_level(logging.INFO, logger="twin.service.agent")
+        started = time.monotonic()
+        agent.stop()
+        took = time.monotonic() - started
+        # Not a speed figure: the budget is a promise to systemd, whose stop timeout is longer.
+        assert took < budget + 10.0, took
+        reports = agent.stop_reports
+        assert set(reports) == {0, 1} and all(r is not None for r in reports.values())  # none killed
+        # Rows a worker's feed could not hand over (none: the writer process listened to the end), and the
+        # rows the writer could not commit.
+        handed = sum(r.unwritten.get("history_rows", 0) for r in reports.values() if r is not None)
+        assert agent._history is not None
+        unwritten = handed + agent._history.unwritten_rows()
+        assert unwritten > 0
+        line = next(r for r in caplog.records if r.getMessage().startswith("agent stopped"))
+        assert line.levelno == logging.ERROR and f"{unwritten} history_rows" in line.getMessage()
+        assert line.unwritten == {"history_rows": unwritten}  # type: ignore[attr-defined]
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], check=False)

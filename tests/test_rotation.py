@@ -1,0 +1,135 @@
+"""Recordings that rotate: the USD session and the Rerun .rrd start a new file once theirs is too large (or
+old), each file stands on its own, and the files kept stay within the disk budget, the oldest deleted first.
+Small limits so a few seconds of a real recorder and a real Rerun stream reach them."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import pytest
+from conftest import read_rrd, wait_for
+from pxr import Usd
+from test_rerun_sink import DEVICES, payload
+from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
+from twin.output.recorder import SessionRecorder
+from twin.output.recording import RecordingLimits, RecordingSink
+from twin.output.rerun_settings import RerunSettings, RerunSettingsError
+from twin.output.rerun_sink import RerunSink
+from twin.output.sinks import AppliedSample
+from twin.robot.model import RobotModel
+
+
+@pytest.fixture(scope="module")
+def robot() -> RobotModel:
+    return RobotModel.load()
+
+
+def _samples(n: int, devices: tuple[str, ...] = DEVICES, start_mono: float = 0.0) -> list[AppliedSample]:
+    decoder = TelemetryDecoder(DecoderConfig(units=Units.DEGREES))
+    out = []
+    for i in range(n):
+        for device in devices:
+            telemetry = decoder.decode(json.dumps(payload(device, i)), topic_device=device)
+            out.append(
+                AppliedSample(device, time.time(), start_mono + 0.1 * i, telemetry, telemetry.angles_rad)
+            )
+    return out
+
+
+def test_a_usd_session_rotates_by_size_and_keeps_its_directory_within_the_budget(
+    robot: RobotModel, tmp_path: Path
+) -> None:
+    opened: list[Path] = []
+    now = [0.0]  # the recorders' clock, which decides when they save
+
+    def open_next(n: int) -> SessionRecorder:
+        path = tmp_path / f"session-20261126T000000Z-1-{n}.usdc"
+        opened.append(path)
+        return SessionRecorder(path, flush_interval_s=1.0, clock=lambda: now[0])
+
+    # An old session of an earlier run, larger than the whole budget: the first rotation deletes it.
+    old = tmp_path / "session-20261125T000000Z-9.usdc"
+    old.write_bytes(b"\0" * 400_000)
+    first = SessionRecorder(
+        tmp_path / "session-20261126T000000Z-1.usdc", flush_interval_s=1.0, clock=lambda: now[0]
+    )
+    # Every save passes max_bytes, so each save rotates; the budget holds about three of the small files.
+    limits = RecordingLimits(max_bytes=1, budget_bytes=150_000, rate_hz=100.0)
+    sink = RecordingSink(first, robot, limits=limits, open_next=open_next)
+    samples = _samples(60)
+    for k in range(0, len(samples), len(DEVICES) * 5):
+        for sample in samples[k : k + len(DEVICES) * 5]:
+            sink.applied(sample)
+        wait_for(lambda: sink.stats().pending == 0, 30, "the recorder to write its queue")
+        now[0] += 1.5  # past the flush interval: the next sample saves, and the save rotates
+    sink.close()
+    totals = sink.totals()
+    assert totals.rotations >= 3 and len(opened) == totals.rotations
+    assert totals.samples_written == len(samples) == sink.stats().delivered
+    kept = sorted(tmp_path.glob("session-*.usdc"))
+    assert not old.exists() and totals.files_deleted >= 1
+    # The closed sessions fit the budget with room for the live one at its largest.
+    closed = [p for p in kept if p != sink.path]
+    assert sum(p.stat().st_size for p in closed) <= limits.budget_bytes - limits.max_bytes
+    # Each file left is a stage of its own: it opens, references the arm and holds time samples.
+    for path in kept:
+        stage = Usd.Stage.Open(str(path))
+        prims = [p for p in stage.GetPrimAtPath("/World").GetChildren()]
+        assert prims and stage.GetEndTimeCode() >= stage.GetStartTimeCode()
+
+
+def test_a_usd_recording_keeps_each_arm_to_its_rate(robot: RobotModel, tmp_path: Path) -> None:
+    recorder = SessionRecorder(tmp_path / "session.usdc", flush_interval_s=60.0)
+    sink = RecordingSink(recorder, robot, limits=RecordingLimits(rate_hz=2.0))
+    samples = _samples(50, devices=("arm-001",))  # 5 s at 10 Hz
+    for sample in samples:
+        sink.applied(sample)
+    sink.close()
+    stats = sink.stats()
+    # The bucket holds a second's worth (2) and refills at 2 a second over 4.9 s: 2 + 9.8 samples at most.
+    assert stats.delivered + stats.skipped == 50 and 11 <= stats.delivered <= 12
+
+
+def test_the_rerun_save_rotates_and_every_file_opens_on_its_own(robot: RobotModel, tmp_path: Path) -> None:
+    path = tmp_path / "twin.rrd"
+    # Coarse meshes, so the static part each file starts with is small next to the size limit.
+    settings = RerunSettings(
+        save=str(path),
+        flush_s=0.05,
+        save_max_mb=0.2,
+        save_budget_mb=2.0,
+        max_rate_hz=100.0,
+        mesh_faces_per_arm=500,
+        mesh_faces_far=200,
+    )
+    sink = RerunSink(robot, settings)
+    worker = sink.worker
+    start = time.monotonic()
+    i = 0
+    while worker.rotations < 4:
+        for sample in _samples(10, start_mono=start + i):
+            sink.applied(sample)
+        i += 1
+        assert time.monotonic() - start < 120, "the .rrd never reached its size limit"
+        time.sleep(0.2)
+    for sample in _samples(10, start_mono=start + i):  # the live file has samples of its own too
+        sink.applied(sample)
+    sink.close()
+    rotated = sorted(tmp_path.glob("twin-*.rrd"))
+    # Four rotations, and the budget (2 MB, a file of these being about 0.7 MB) kept the newest two.
+    assert worker.files_deleted >= 1 and len(rotated) >= 2 and path.exists()
+    assert sum(p.stat().st_size for p in rotated) <= (settings.save_budget_mb - settings.save_max_mb) * 2**20
+    # The newest file holds the arms' static parts too: its meshes and grid places, not only samples.
+    for rrd in (rotated[-1], path):
+        _, static = read_rrd(rrd)
+        names = {n.split(":", 1)[0] for n in static.schema.names if n.startswith("/arms/")}
+        assert {f"/arms/{d}" for d in DEVICES} <= names
+
+
+def test_rotation_settings_are_checked() -> None:
+    with pytest.raises(RerunSettingsError, match="save_budget_mb"):
+        RerunSettings(save="x.rrd", save_max_mb=100, save_budget_mb=10).validate()
+    with pytest.raises(ValueError, match="budget"):
+        RecordingLimits(max_bytes=100, budget_bytes=10)
