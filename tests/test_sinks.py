@@ -271,3 +271,17 @@ def test_body_pose_array_is_body_poses_stacked() -> None:
     again = robot.body_pose_array({})
     assert not np.shares_memory(stacked, again)
     assert not np.allclose(stacked, again)
+
+
+def test_device_rate_cap_holds_each_device_to_its_rate_after_the_burst() -> None:
+    from twin.output.sinks import DeviceRateCap
+
+    cap = DeviceRateCap(10.0, burst=3.0)
+    # A backlog released at once: the burst passes, the rest is held until the bucket refills.
+    assert [cap.take("arm-001", 100.0) for _ in range(5)] == [True, True, True, False, False]
+    # Another arm has its own bucket.
+    assert cap.take("arm-002", 100.0)
+    # A quarter of a second later two and a half tokens are back (10 a second): two samples pass.
+    assert [cap.take("arm-001", 100.25) for _ in range(3)] == [True, True, False]
+    # A long pause refills to the burst, never beyond it.
+    assert [cap.take("arm-001", 200.0) for _ in range(4)] == [True, True, True, False]

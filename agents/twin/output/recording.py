@@ -24,7 +24,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from twin.output.recorder import SessionRecorder
-from twin.output.sinks import AppliedSample, QueuedSink, RejectedSample, SinkStats
+from twin.output.sinks import AppliedSample, DeviceRateCap, QueuedSink, RejectedSample, SinkStats
 from twin.robot.model import RobotModel
 
 log = logging.getLogger(__name__)
@@ -226,9 +226,7 @@ class RecordingSink(QueuedSink):
         )
         super().__init__(RECORDING_SINK, self._worker_half, max_pending=max_pending)
         # A token bucket per device holding a second of the cap: on the receive clock, like the Rerun sink's.
-        self._rate = self.limits.rate_hz
-        self._burst = max(1.0, self.limits.rate_hz)
-        self._buckets: dict[str, tuple[float, float]] = {}
+        self._cap = DeviceRateCap(self.limits.rate_hz, burst=self.limits.rate_hz)
         self._skipped = 0
         self._rate_lock = threading.Lock()
 
@@ -245,15 +243,10 @@ class RecordingSink(QueuedSink):
         return self._worker_half.totals()
 
     def applied(self, sample: AppliedSample) -> None:
-        t = sample.received_mono_s
-        tokens, last = self._buckets.get(sample.device_id, (self._burst, t))
-        tokens = min(self._burst, tokens + max(0.0, t - last) * self._rate)
-        if tokens < 1.0:
-            self._buckets[sample.device_id] = (tokens, t)
+        if not self._cap.take(sample.device_id, sample.received_mono_s):
             with self._rate_lock:
                 self._skipped += 1
             return
-        self._buckets[sample.device_id] = (tokens - 1.0, t)
         super().applied(sample)
 
     def stats(self) -> SinkStats:

@@ -47,7 +47,7 @@ from rerun.chunk import Chunk
 
 from twin.core.telemetry import JointDiagnostics
 from twin.output.rerun_settings import RerunSettings
-from twin.output.sinks import AppliedSample, QueuedSink, RejectedSample, SinkStats
+from twin.output.sinks import AppliedSample, DeviceRateCap, QueuedSink, RejectedSample, SinkStats
 from twin.robot import so101
 from twin.robot.model import RobotModel
 from twin.robot.visuals import VisualGeom, fit_face_budget, visual_geoms
@@ -688,12 +688,10 @@ class RerunSink:
             idle_s=settings.flush_s / 2.0,
             hand_off_s=HANDOFF_S,
         )
-        self._rate = settings.max_rate_hz
         # A token bucket per device holding burst_s seconds of the cap: a backlog released at once (network
         # jitter, or the agent's own MQTT thread stalled for seconds on a loaded host) costs an arm under
         # the cap nothing, while a flood is held to the cap once the burst is spent.
-        self._burst = max(1.0, settings.max_rate_hz * settings.burst_s)
-        self._buckets: dict[str, tuple[float, float]] = {}  # device -> (tokens, receive time)
+        self._cap = DeviceRateCap(settings.max_rate_hz, burst=settings.max_rate_hz * settings.burst_s)
         self._skipped = 0
         self._lock = threading.Lock()
 
@@ -712,17 +710,10 @@ class RerunSink:
         return self.worker.save_path
 
     def applied(self, sample: AppliedSample) -> None:
-        # Rate cap on the agent's receive clock: the stream's cost follows messages arriving, whatever the
-        # edge clock says.
-        t = sample.received_mono_s
-        tokens, last = self._buckets.get(sample.device_id, (self._burst, t))
-        tokens = min(self._burst, tokens + max(0.0, t - last) * self._rate)
-        if tokens < 1.0:
-            self._buckets[sample.device_id] = (tokens, t)
+        if not self._cap.take(sample.device_id, sample.received_mono_s):
             with self._lock:
                 self._skipped += 1
             return
-        self._buckets[sample.device_id] = (tokens - 1.0, t)
         self._queue.applied(sample)
 
     def rejected(self, sample: RejectedSample) -> None:

@@ -153,6 +153,29 @@ class SinkWorker(Protocol):
 DEFAULT_MAX_PENDING_BYTES = 64 * 2**20
 
 
+class DeviceRateCap:
+    """A token bucket per device on the agent's receive clock: at most `rate_hz` samples a second, with up to
+    `burst` at once. The receive clock, not the edge's: a sink's cost follows the messages arriving,
+    whatever the edge's stamps say. One entry per admitted device, so the table is as bounded as the fleet."""
+
+    __slots__ = ("_buckets", "_burst", "_rate")
+
+    def __init__(self, rate_hz: float, burst: float) -> None:
+        self._rate = rate_hz
+        self._burst = max(1.0, burst)
+        self._buckets: dict[str, tuple[float, float]] = {}  # device -> (tokens, receive time)
+
+    def take(self, device: str, received_mono_s: float) -> bool:
+        """Whether `device` may have a sample received at `received_mono_s` (a token is spent if so)."""
+        tokens, last = self._buckets.get(device, (self._burst, received_mono_s))
+        tokens = min(self._burst, tokens + max(0.0, received_mono_s - last) * self._rate)
+        if tokens < 1.0:
+            self._buckets[device] = (tokens, received_mono_s)
+            return False
+        self._buckets[device] = (tokens - 1.0, received_mono_s)
+        return True
+
+
 class QueuedSink:
     """Runs a `SinkWorker` on its own thread behind a queue bounded by samples (`max_pending`) and by their
     bytes (`max_pending_bytes`, sample_bytes), which drops the oldest when full.
