@@ -22,6 +22,8 @@ def _fleet_load(
 
 
 def register(subparsers: Any) -> None:
+    # One flat table of argparse declarations, one per subcommand and flag, read top to bottom like --help;
+    # splitting it into functions would only scatter that table.
     parser = subparsers.add_parser(
         "bench",
         help="measure the agent (throughput, fidelity, footprint, history, quota, sinks ...); print figures",

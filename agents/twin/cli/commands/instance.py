@@ -64,6 +64,8 @@ CONSOLE_READY_TIMEOUT_S = 60.0
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    # One flat table of argparse declarations, one per subcommand and flag, read top to bottom like --help;
+    # splitting it into functions would only scatter that table.
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument(
         "--stack",
