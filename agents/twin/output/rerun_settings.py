@@ -99,14 +99,10 @@ class RerunSettings:
             raise RerunSettingsError(
                 f"rerun.flush_s = {self.flush_s} delays the stream by that long; use at most 10 s"
             )
-        if self.mesh_faces_per_arm < 100:
-            raise RerunSettingsError(
-                f"rerun.mesh_faces_per_arm = {self.mesh_faces_per_arm} leaves no arm to see; use at least 100"
-            )
-        if self.mesh_faces_far < 100:
-            raise RerunSettingsError(
-                f"rerun.mesh_faces_far = {self.mesh_faces_far} leaves no arm to see; use at least 100"
-            )
+        for key in ("mesh_faces_per_arm", "mesh_faces_far"):
+            faces = getattr(self, key)
+            if faces < 100:
+                raise RerunSettingsError(f"rerun.{key} = {faces} leaves no arm to see; use at least 100")
         if self.mesh_detailed_arms < 0:
             raise RerunSettingsError(
                 f"rerun.mesh_detailed_arms = {self.mesh_detailed_arms} must be 0 or more "
@@ -123,13 +119,16 @@ class RerunSettings:
                 f"rerun.save_budget_mb = {self.save_budget_mb:g} is below save_max_mb = "
                 f"{self.save_max_mb:g}; the budget must hold at least one whole file"
             )
-        if self.save:
-            path = Path(self.save)
-            if path.suffix != ".rrd":
-                raise RerunSettingsError(
-                    f"rerun.save = {self.save!r} must name a .rrd file (Rerun's recording format), "
-                    "e.g. twin.rrd"
-                )
-            if path.is_dir():
-                raise RerunSettingsError(f"rerun.save = {self.save!r} is a directory; give a file name")
+        self._validate_save()
         return self
+
+    def _validate_save(self) -> None:
+        if not self.save:
+            return
+        path = Path(self.save)
+        if path.suffix != ".rrd":
+            raise RerunSettingsError(
+                f"rerun.save = {self.save!r} must name a .rrd file (Rerun's recording format), e.g. twin.rrd"
+            )
+        if path.is_dir():
+            raise RerunSettingsError(f"rerun.save = {self.save!r} is a directory; give a file name")
