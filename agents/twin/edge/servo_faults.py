@@ -23,7 +23,6 @@ The alarms each fault should raise are listed in docs/servo-health.md.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 
 from twin.robot import so101, sts3215
@@ -126,25 +125,18 @@ class ModelLoads:
 
     def __init__(self, servo_version: str = sts3215.DEFAULT_SERVO_VERSION, supply_v: float = 5.0) -> None:
         # Imported here: only `--model-loads` pays for MuJoCo in the simulator.
-        from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units  # noqa: PLC0415
         from twin.core.twin import DeviceTwin  # noqa: PLC0415
+        from twin.edge.servo_physics import TickAngles  # noqa: PLC0415
         from twin.robot.model import RobotModel  # noqa: PLC0415
 
         self._servo = sts3215.servo_version(servo_version)
         self.supply_v = supply_v
-        self._decoder = TelemetryDecoder(DecoderConfig(units=Units.TICKS))
+        self._angles = TickAngles()
         self._twin = DeviceTwin(RobotModel.load(), "edge-sim")
-        self._stamp = 946_684_800_000  # any increasing edge time will do
 
     def percent(self, ticks: list[int]) -> dict[str, float]:
-        doc = {
-            "device_id": "edge-sim",
-            "timestamp": self._stamp,
-            "joints": {n: {"position": p} for n, p in zip(so101.JOINT_NAMES, ticks, strict=True)},
-        }
-        self._stamp += 1
-        angles = self._decoder.decode(json.dumps(doc)).angles_rad
-        self._twin.apply(angles, self._stamp)
+        angles = self._angles.decode(ticks)
+        self._twin.apply(angles, self._angles.stamp)
         return {
             joint: self._servo.load_percent(torque, self.supply_v)
             for joint, torque in self._twin.joint_torques.items()

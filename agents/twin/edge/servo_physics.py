@@ -157,6 +157,24 @@ class ServoReading:
     voltage_v: float
 
 
+class TickAngles:
+    """Raw tick positions -> joint angles (rad) through the agent's own decoder (ticks, no calibration file),
+    so the edge simulator's physics agree with the pose the agent will mirror."""
+
+    def __init__(self) -> None:
+        self._decoder = TelemetryDecoder(DecoderConfig(units=Units.TICKS))
+        self.stamp = 946_684_800_000  # any increasing edge time will do; advanced once per decode
+
+    def decode(self, ticks: Sequence[int]) -> dict[str, float]:
+        doc = {
+            "device_id": "edge-sim",
+            "timestamp": self.stamp,
+            "joints": {n: {"position": p} for n, p in zip(so101.JOINT_NAMES, ticks, strict=True)},
+        }
+        self.stamp += 1
+        return self._decoder.decode(json.dumps(doc)).angles_rad
+
+
 class ArmDynamics:
     """Tick positions, rates and accelerations -> joint torques on one robot model (with its payload).
 
@@ -167,19 +185,12 @@ class ArmDynamics:
 
     def __init__(self, robot: RobotModel) -> None:
         self.robot = robot
-        self._decoder = TelemetryDecoder(DecoderConfig(units=Units.TICKS))
-        self._stamp = 946_684_800_000  # any increasing edge time will do
+        self._angles = TickAngles()
 
     def torques(
         self, ticks: Sequence[int], rates: Sequence[float], accelerations: Sequence[float]
     ) -> dict[str, float]:
-        doc = {
-            "device_id": "edge-sim",
-            "timestamp": self._stamp,
-            "joints": {n: {"position": p} for n, p in zip(so101.JOINT_NAMES, ticks, strict=True)},
-        }
-        self._stamp += 1
-        angles = self._decoder.decode(json.dumps(doc)).angles_rad
+        angles = self._angles.decode(ticks)
         names = self.robot.joint_names
         return self.robot.inverse_dynamics(
             [angles[n] for n in names],
