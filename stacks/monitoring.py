@@ -9,7 +9,10 @@ One SNS topic (encrypted, TLS only; an e-mail address subscribed when the settin
   neither. Its role may `sns:Publish` on this topic only (`grant_host`).
 - **agent silent** (CloudWatch): the instance runs (EC2 reports its CPU) but the agent sent no AgentUp
   heartbeat for 5 minutes: the agent or the host's CloudWatch agent is down. A stopped instance reports no
-  CPU, so stopping it (by hand or on the auto-stop schedule) does not page.
+  CPU, so stopping it (by hand or on the auto-stop schedule) does not page. The template creates it with its
+  actions off and the host turns them on (userdata/lib.sh, `arm_silent_alarm`) once its first boot is over
+  and at every start: the first boot installs for longer than 5 minutes before the agent runs, and would
+  otherwise page on every new stack.
 - **arms stale** (CloudWatch): at least one arm STALE (publishing, but with gaps) for 3 minutes in a row. An
   arm that is switched off goes OFFLINE and is not paged: arms are switched off on schedules.
 - **what the twin loses** (CloudWatch, six alarms), so a loss that nobody reads in the logs still reaches
@@ -33,7 +36,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from aws_cdk import Duration, RemovalPolicy, Stack
+from aws_cdk import ArnFormat, Duration, RemovalPolicy, Stack
 from aws_cdk import aws_cloudwatch as cw
 from aws_cdk import aws_cloudwatch_actions as cw_actions
 from aws_cdk import aws_iam as iam
@@ -59,6 +62,13 @@ HISTORY_LAG_ALARM_S = 60
 # How long the agent may be silent on a running host before it pages (it restarts itself within seconds).
 SILENT_MINUTES = 5
 SEVERITIES = ("critical", "warning")
+
+
+def silent_alarm_name(agent_name: str) -> str:
+    """AgentSilent's name. Fixed, not generated: the host's role may enable the actions of this one alarm, and
+    naming it by the resource would make the role depend on the alarm, which depends on the instance, which
+    waits for the role."""
+    return f"{agent_name}-AgentSilent"
 
 
 class TwinMonitoring(Construct):
@@ -123,6 +133,22 @@ class TwinMonitoring(Construct):
                 resources=[self.key.key_arn],
             )
         )
+        stack = Stack.of(self)
+        role.add_to_principal_policy(
+            iam.PolicyStatement(
+                sid="AgentSilentArm",
+                # The host turns AgentSilent's actions on once it is up (module doc), this alarm's only.
+                actions=["cloudwatch:EnableAlarmActions"],
+                resources=[
+                    stack.format_arn(
+                        service="cloudwatch",
+                        resource="alarm",
+                        resource_name=silent_alarm_name(self.agent_name),
+                        arn_format=ArnFormat.COLON_RESOURCE_NAME,
+                    )
+                ],
+            )
+        )
 
     def watch_host(self, instance_id: str) -> None:
         """The CloudWatch alarms, which need the instance: its CPU metric tells a stopped host from a silent
@@ -148,6 +174,9 @@ class TwinMonitoring(Construct):
             "AgentSilent": cw.Alarm(
                 self,
                 "AgentSilent",
+                alarm_name=silent_alarm_name(self.agent_name),
+                # Off until the host is up (module doc): the host enables them.
+                actions_enabled=False,
                 alarm_description=(
                     f"The so101-twin agent of {self.agent_name} sent no heartbeat for 5 minutes while its "
                     "host runs: the agent or the host's CloudWatch agent is down (a stopped host does not "

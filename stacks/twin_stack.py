@@ -13,7 +13,7 @@ from stacks.auto_stop import AutoStop
 from stacks.history_bucket import HistoryBucket
 from stacks.identity import TwinIdentity
 from stacks.iot_endpoint import IotDataEndpoint
-from stacks.monitoring import TwinMonitoring
+from stacks.monitoring import TwinMonitoring, silent_alarm_name
 from stacks.network import DCV_PORT, TwinNetwork
 from stacks.settings import TwinSettings
 from stacks.twin_host import DESKTOP_USER, REPO_ROOT, TwinHost
@@ -103,6 +103,8 @@ class TwinStack(Stack):
                 # with alarmWarnings).
                 "ALERT_TOPIC_ARN": self.monitoring.topic.topic_arn,
                 "ALERT_WARNINGS": "true" if settings.alarm_warnings else "false",
+                # The host turns this alarm's actions on once it is up (stacks/monitoring.py).
+                "SILENT_ALARM": silent_alarm_name(settings.stack_name),
                 "RECORD_SESSIONS": "true" if settings.record_sessions else "false",
             },
             agent_source=agent_source or REPO_ROOT,

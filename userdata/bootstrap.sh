@@ -17,7 +17,8 @@
 #   display   X (GDM) first, then DCV, then the console session; the same order on every later start
 #   verify    host-check.sh: X on the GPU, the console session, the agent subscribed, the viewer stable for
 #             20 s, and a screenshot of the console that is not one flat colour
-# First boot (SO101_TWIN_MODE=boot) ends by signalling CloudFormation: SUCCESS after verify, FAILURE from
+#   alarms    the AgentSilent alarm's actions turned on (created off, so the install does not page)
+# First boot (SO101_TWIN_MODE=boot) ends by signalling CloudFormation: SUCCESS after alarms, FAILURE from
 # the first failing step with its name and the last log lines. An update (SO101_TWIN_MODE=update, the SSM
 # association) runs the same steps, which only change what differs, and reports through its exit status.
 set -Eeuo pipefail
@@ -592,6 +593,11 @@ step_verify() {
   verify_host || die "$VERIFY_SUMMARY"
 }
 
+# --- alarms: a silent agent pages from now on (userdata/lib.sh, arm_silent_alarm) -------------------------
+step_alarms() {
+  arm_silent_alarm
+}
+
 main() {
   log "$MODE of deployment $DEPLOYMENT_VERSION (settings $DEPLOYMENT)"
   run_step apt step_apt
@@ -604,6 +610,7 @@ main() {
   run_step dcv step_dcv
   run_step display step_display
   run_step verify step_verify
+  run_step alarms step_alarms
   STEP=finish
   local verified="X on the GPU, DCV console session of $DESKTOP_USER, agent subscribed, viewer stable, the"
   finish SUCCESS "deployment $DEPLOYMENT_VERSION verified: $verified console screenshot shows a desktop"

@@ -371,6 +371,9 @@ on_start_main() {
   log "start checks of boot $(boot_id), deployment ${DEPLOYMENT_VERSION:-unknown}"
   # A run that was killed while it held apt still left its record: give the timers back.
   restore_apt "${ROOT}${CHECK_STATE}" || log "could not restore the apt timers"
+  # The host is in service again: a silent agent pages (the first boot turned this on already; a deploy that
+  # changed the alarm may have turned it off). Not a check of its own: the verdict is about the desktop.
+  arm_silent_alarm || true
   if wait_for "$WAIT_X_TRIES" 5 "X on the GPU" check_x_on_gpu; then
     ensure_console_session || log "dcv-session: $DETAIL"
   fi

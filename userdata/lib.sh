@@ -99,7 +99,7 @@ apt_install() {
 # PIP_INDEX_URL or the like for the next root bootstrap.
 DEPLOYMENT_KEYS=(DEPLOYMENT_VERSION AGENT_URL SCRIPTS_URL DCV_SECRET_ARN AWS_REGION URL_SUFFIX TOPIC_PREFIX
   DEVICES UNITS ROS2 CLIENT_ID_PREFIX DESKTOP_USER LOG_GROUP AGENT_NAME HISTORY_URI CALIBRATIONS_URI
-  RECORD_SESSIONS ALERT_TOPIC_ARN ALERT_WARNINGS)
+  RECORD_SESSIONS ALERT_TOPIC_ARN ALERT_WARNINGS SILENT_ALARM)
 
 # load_env FILE [KEY...]: KEY=value lines into exported variables, without executing the file as shell code.
 # Only the listed keys are taken (default: DEPLOYMENT_KEYS); any other line is logged and ignored.
@@ -285,4 +285,22 @@ restore_apt() {
   if [ ${#active[@]} -gt 0 ]; then systemctl start "${active[@]}"; fi
   rm -f "$record"
   log "apt restored: unmasked ${APT_UNITS[*]}; started again: ${active[*]:-none}"
+}
+
+# arm_silent_alarm: turn on the actions of the stack's AgentSilent alarm (SILENT_ALARM; stacks/monitoring.py).
+# The template creates it with its actions off, because a first boot installs for longer than the alarm's
+# 5 minutes before the agent runs; the first boot's end, every update and every start turn them on (the
+# call is idempotent, and a deploy that changed the alarm may have turned them off again). Returns 1, with
+# FAIL_DETAIL saying why and what to do, when the call fails; nothing to do without SILENT_ALARM.
+arm_silent_alarm() {
+  local out
+  [ -n "${SILENT_ALARM:-}" ] || return 0
+  if out="$(aws cloudwatch enable-alarm-actions --region "$AWS_REGION" --alarm-names "$SILENT_ALARM" \
+    "${AWS_LIMITS[@]}" 2>&1)"; then
+    log "alarm $SILENT_ALARM armed: a silent agent pages from now on"
+    return 0
+  fi
+  FAIL_DETAIL="could not turn on the actions of alarm $SILENT_ALARM (${out:0:300}): a silent agent would page no one; the host role needs cloudwatch:EnableAlarmActions on it (stacks/monitoring.py)"
+  log "$FAIL_DETAIL"
+  return 1
 }

@@ -349,6 +349,14 @@ case "$1 $2" in
     case "$version" in v-2) echo "Gener4tedPassw0rdOfTwentyFour" ;; v-1) echo "PreviousPassw0rdNotToBeUsed" ;;
       *) echo "aws stand-in: get-secret-value without --version-id" >&2; exit 2 ;; esac ;;
   "cloudformation signal-resource") printf '%s\n' "$*" >>"$SIM/signals.log" ;;
+  "cloudwatch enable-alarm-actions")
+    # SIM/fail/cloudwatch: the role lacks the right (what CloudWatch answers then).
+    if [ -e "$SIM/fail/cloudwatch" ]; then
+      echo "An error occurred (AccessDenied) when calling the EnableAlarmActions operation" >&2; exit 254
+    fi
+    names=""; while [ $# -gt 0 ]; do [ "$1" = --alarm-names ] && names="$2"; shift; done
+    [ -n "$names" ] || { echo "aws stand-in: enable-alarm-actions without --alarm-names" >&2; exit 2; }
+    printf '%s\n' "$names" >>"$SIM/armed.log" ;;
   *) echo "aws stand-in: unsupported $*" >&2; exit 2 ;;
 esac
 """,
@@ -787,6 +795,11 @@ class HostSim:
 
     def signals(self) -> list[str]:
         path = self.sim / "signals.log"
+        return path.read_text().splitlines() if path.exists() else []
+
+    def armed(self) -> list[str]:
+        """The alarms whose actions the host turned on, in call order."""
+        path = self.sim / "armed.log"
         return path.read_text().splitlines() if path.exists() else []
 
     def handle_posts(self) -> list[dict[str, Any]]:

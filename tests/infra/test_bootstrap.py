@@ -35,6 +35,7 @@ from .hostsim import (
     LOG_GROUP,
     OLD_PASSWORD,
     PASSWORD,
+    REGION,
     SECRET_ARN,
     STACK_NAME,
     HostSim,
@@ -219,9 +220,14 @@ def test_first_boot_succeeds_and_signals_success_after_verifying(booted, deploye
         assert check in log
     # The capture a person would have seen is kept on the host.
     assert (host.root / "var/lib/so101-twin/console.png").stat().st_size > 1000
-    # The signal is the very last thing the boot does.
+    # The signal is the very last thing the boot does; just before it, once the host is verified, a silent
+    # agent starts to page (the alarm is created with its actions off, so the install does not).
     calls = host.calls()
     assert calls[-1].startswith("aws cloudformation signal-resource")
+    assert host.armed() == [f"{STACK_NAME}-AgentSilent"]
+    arm = next(i for i, c in enumerate(calls) if c.startswith("aws cloudwatch enable-alarm-actions"))
+    assert f"--region {REGION}" in calls[arm]
+    assert log.index("step verify: done") < log.index(f"alarm {STACK_NAME}-AgentSilent armed")
 
 
 def test_steps_run_in_order_apt_held_first_x_before_dcv(booted) -> None:
@@ -261,6 +267,7 @@ def test_steps_run_in_order_apt_held_first_x_before_dcv(booted) -> None:
         "dcv",
         "display",
         "verify",
+        "alarms",
     ]
     # The log holds the UserData's own first line: the file the CloudWatch agent ships from its beginning.
     assert log.splitlines()[0].startswith("so101-twin user-data: boot start")
@@ -476,6 +483,24 @@ def test_after_a_reboot_dcv_is_put_on_x_and_the_checks_report(booted, tmp_path: 
     assert metric["HostChecksFailed"] == 0 and metric["Agent"] == STACK_NAME
     assert metric["_aws"]["CloudWatchMetrics"][0]["Namespace"] == "SO101Twin"
     assert host.active("apt-daily.timer") and not host.masked("apt-daily.timer")
+    # Every start turns the silent alarm's actions on again (a deploy may have turned them off).
+    assert host.armed() == [f"{STACK_NAME}-AgentSilent"] * 2
+
+
+def test_a_start_whose_silent_alarm_cannot_be_armed_still_checks_and_says_why(booted, tmp_path: Path) -> None:
+    """The role lacks cloudwatch:EnableAlarmActions: the start's checks run and pass as before, and the log
+    names the alarm, the consequence and the missing right."""
+    source, result = booted
+    assert result.returncode == 0
+    host = copy_of(source, tmp_path)
+    host.fail("cloudwatch")
+    run = host.run(host.root / "opt/so101-twin/userdata/host-check.sh", "--on-start", AGENT_NAME=STACK_NAME)
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-2000:]
+    log = host.file("/var/log/so101-twin-start.log")
+    assert f"could not turn on the actions of alarm {STACK_NAME}-AgentSilent" in log
+    assert "AccessDenied" in log and "cloudwatch:EnableAlarmActions" in log
+    assert "verdict: PASS" in log
+    assert host.armed() == [f"{STACK_NAME}-AgentSilent"]  # the first boot's only
 
 
 def test_start_checks_fail_and_say_so_when_the_viewer_crash_loops(booted, tmp_path: Path) -> None:
@@ -604,6 +629,8 @@ def test_a_uniform_screen_is_a_failure_of_the_verify_step(
         "step verify failed (exit 1): screen: the console shows one flat colour (#000000"
     )
     assert "viewer:" not in reason.split("; last log lines:")[0]
+    # A boot that failed never armed the silent alarm (the stack rolls back).
+    assert host.armed() == []
     apt_restored(host)
 
 

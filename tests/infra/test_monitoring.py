@@ -116,6 +116,31 @@ def test_agent_silent_pages_only_while_the_host_runs(synth_default: Synth) -> No
     assert props["TreatMissingData"] == "notBreaching"
 
 
+def test_agent_silent_is_armed_by_the_host_once_it_is_up(synth_default: Synth) -> None:
+    """A first boot installs for longer than 5 minutes before the agent runs: the alarm is created with its
+    actions off, under a fixed name, and the host's role may turn on this alarm's actions and no other's
+    (the boot does it after verifying, every start again: tests/infra/test_bootstrap.py). Every other alarm
+    pages from the start."""
+    from .test_stack import policy_statements, statement
+
+    props = alarm(synth_default, "The so101-twin agent")
+    assert props["ActionsEnabled"] is False
+    assert props["AlarmName"] == "So101TwinStack-AgentSilent"
+    others = [
+        p["Properties"]
+        for p in synth_default.resources("AWS::CloudWatch::Alarm").values()
+        if p["Properties"].get("AlarmName") != "So101TwinStack-AgentSilent"
+    ]
+    assert len(others) == 7 and all(p.get("ActionsEnabled", True) for p in others)
+    arm = statement(policy_statements(synth_default, "IdentityHostRole"), "AgentSilentArm")
+    assert arm["Action"] == "cloudwatch:EnableAlarmActions"
+    resource = json.dumps(arm["Resource"])
+    assert ":cloudwatch:" in resource and ":alarm:So101TwinStack-AgentSilent" in resource
+    assert "*" not in resource
+    parameter = json.dumps(synth_default.one("AWS::SSM::Parameter")["Properties"]["Value"])
+    assert "SILENT_ALARM=So101TwinStack-AgentSilent" in parameter
+
+
 def test_arms_stale_counts_stale_arms_not_the_ones_switched_off(synth_default: Synth) -> None:
     props = alarm(synth_default, "At least one arm")
     assert (props["MetricName"], props["Statistic"], props["Period"]) == ("DevicesStale", "Maximum", 60)
@@ -153,6 +178,7 @@ def test_the_agent_name_follows_the_stack_name(synth_factory: Any) -> None:
     assert queries(props)["up"]["MetricStat"]["Metric"]["Dimensions"] == [
         {"Name": "Agent", "Value": "LabTwin"}
     ]
+    assert props["AlarmName"] == "LabTwin-AgentSilent"
 
 
 # --- the dashboard ---------------------------------------------------------------------------------------
