@@ -39,6 +39,7 @@ import json
 import os
 import shutil
 import statistics
+import subprocess
 import tempfile
 import time
 from collections.abc import Iterable
@@ -199,51 +200,73 @@ def _spread(values: list[float]) -> dict[str, float | int | None]:
     }
 
 
-def one_run(
-    rig: LocalRig,
-    arms: int,
-    rate: float,
-    seconds: float,
-    *,
-    history: str | None = None,
-    workers: int | None = None,
-) -> dict[str, Any]:
-    """One fleet size once: the agent's CPU per message over the window, divided by the probe's median."""
-    load_before = os.getloadavg()
+@dataclass(frozen=True)
+class _Window:
+    """What one run saw of the agent at both ends of its window: /state and every thread's CPU time."""
+
+    pid: int
+    start: float
+    end: float
+    sent: int
+    state0: AgentState
+    state1: AgentState
+    tree0: dict[int, _Threads]
+    tree1: dict[int, _Threads]
+
+
+def _start_probe(seconds: float) -> subprocess.Popen[str]:
+    """The json.loads yardstick, running before the agent starts so it covers the whole window."""
     probe = load_process("loads-probe", "--seconds", str(seconds + 120))
     assert probe.stdout is not None
     if '"ready"' not in probe.stdout.readline():
         probe.kill()
         raise RuntimeError("the json.loads probe did not start")
-    try:
-        with running_agent(rig, history=history, workers=workers) as (proc, base):
-            wait_subscribed(base, proc)
-            state0 = get_state(base)
-            worker_pids = {w.pid for w in state0.agent.workers}
-            history_pid = state0.agent.history.writer_pid if state0.agent.history else None
-            tree0 = _tree(proc.pid)
-            t0 = time.monotonic()
-            pubs = publishers(rig.broker.url, arms, rate, seconds)
-            sent = collect(pubs, timeout=seconds + 60)
-            # The end of the window: once the agent has gone quiet (it has handled what it received), read
-            # from outside; /state comes after, since answering it costs the agent CPU of its own.
-            _quiet(proc.pid)
-            tree1 = _tree(proc.pid)
-            t1 = time.monotonic()
-            state1 = drained(base)
-            if proc.poll() is not None:
-                raise RuntimeError(f"the agent exited during the run (code {proc.returncode})")
-    finally:
-        probe.terminate()
-        out, _ = probe.communicate(timeout=30)
-    rounds = _probe_rounds(out)
-    during = [us for at, us in rounds if t0 <= at <= t1]
-    loads = _spread(during)
+    return probe
+
+
+def _stop_probe(probe: subprocess.Popen[str]) -> str:
+    """Stop the probe; its output, one line a round."""
+    probe.terminate()
+    out, _ = probe.communicate(timeout=30)
+    return out
+
+
+def _measure_window(
+    rig: LocalRig, arms: int, rate: float, seconds: float, *, history: str | None, workers: int | None
+) -> _Window:
+    """Start the agent, publish the fleet's messages, and read the agent at both ends of the window."""
+    with running_agent(rig, history=history, workers=workers) as (proc, base):
+        wait_subscribed(base, proc)
+        state0 = get_state(base)
+        tree0 = _tree(proc.pid)
+        t0 = time.monotonic()
+        pubs = publishers(rig.broker.url, arms, rate, seconds)
+        sent = collect(pubs, timeout=seconds + 60)
+        # The end of the window: once the agent has gone quiet (it has handled what it received), read
+        # from outside; /state comes after, since answering it costs the agent CPU of its own.
+        _quiet(proc.pid)
+        tree1 = _tree(proc.pid)
+        t1 = time.monotonic()
+        state1 = drained(base)
+        if proc.poll() is not None:
+            raise RuntimeError(f"the agent exited during the run (code {proc.returncode})")
+    return _Window(proc.pid, t0, t1, sent["sent"], state0, state1, tree0, tree1)
+
+
+def _cost_per_message(window: _Window, loads: dict[str, float | int | None]) -> dict[str, Any]:
+    """The agent's CPU over the window, by process role and by stage, per message and in json.loads units."""
+    state0, state1 = window.state0, window.state1
     received = state1.agent.broker.messages - state0.agent.broker.messages
     mirrored = sum_devices(state1, "applied") - sum_devices(state0, "applied")
     stages = {k: v - _stage_cpu(state0).get(k, 0.0) for k, v in _stage_cpu(state1).items()}
+    history_pid = state0.agent.history.writer_pid if state0.agent.history else None
     roles, by_stage = _split(
-        tree0, tree1, receiving=proc.pid, workers=worker_pids, history_pid=history_pid, stages=stages
+        window.tree0,
+        window.tree1,
+        receiving=window.pid,
+        workers={w.pid for w in state0.agent.workers},
+        history_pid=history_pid,
+        stages=stages,
     )
     cpu = sum(roles.values())
     unit = loads["median"]
@@ -255,16 +278,12 @@ def one_run(
 
     history_state = state1.agent.history
     return {
-        "arms": arms,
-        "rate_hz": rate,
-        "seconds": seconds,
-        "history": history is not None,
         "workers": len(state1.agent.workers) or 1,
-        "sent": sent["sent"],
+        "sent": window.sent,
         "received": received,
         "mirrored": mirrored,
         "mirrored_of_received": mirrored / received if received else None,
-        "window_s": t1 - t0,
+        "window_s": window.end - window.start,
         "cpu_s": {**roles, "total": cpu},
         "cpu_us_per_received": per_received,
         "cpu_us_per_mirrored": per_mirrored,
@@ -283,6 +302,32 @@ def one_run(
             if history_state
             else None
         ),
+    }
+
+
+def one_run(
+    rig: LocalRig,
+    arms: int,
+    rate: float,
+    seconds: float,
+    *,
+    history: str | None = None,
+    workers: int | None = None,
+) -> dict[str, Any]:
+    """One fleet size once: the agent's CPU per message over the window, divided by the probe's median."""
+    load_before = os.getloadavg()
+    probe = _start_probe(seconds)
+    try:
+        window = _measure_window(rig, arms, rate, seconds, history=history, workers=workers)
+    finally:
+        out = _stop_probe(probe)
+    loads = _spread([us for at, us in _probe_rounds(out) if window.start <= at <= window.end])
+    return {
+        "arms": arms,
+        "rate_hz": rate,
+        "seconds": seconds,
+        "history": history is not None,
+        **_cost_per_message(window, loads),
         "load_average_1m": {"before": load_before[0], "after": os.getloadavg()[0]},
     }
 
