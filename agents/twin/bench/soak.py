@@ -35,6 +35,7 @@ import os
 import shutil
 import signal
 import statistics
+import subprocess
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -190,6 +191,58 @@ def _counts(base: str) -> dict[str, Any]:
     }
 
 
+def _fresh_data(out: Path) -> Path:
+    """The sinks' folders under `out`, emptied of an earlier run's (and the rig's workdir removed)."""
+    out.mkdir(parents=True, exist_ok=True)
+    data = out / "data"
+    shutil.rmtree(data, ignore_errors=True)
+    shutil.rmtree(out / "rig", ignore_errors=True)
+    for sub in ("usd", "rrd", "history"):
+        (data / sub).mkdir(parents=True, exist_ok=True)
+    return data
+
+
+def _sample(
+    t_s: float, base: str, data: Path, *, agent: psutil.Process, broker_pid: int | None, loads: list[Any]
+) -> dict[str, Any]:
+    """One sample: the load, every process, the disk each sink takes, and the agent's counts."""
+    return {
+        "t_s": t_s,
+        "load_average": list(os.getloadavg()),
+        "processes": _processes(agent, broker_pid, loads),
+        "disk": {
+            "history": _du(data / "history"),
+            "usd": _du(data / "usd", "session-*"),
+            "rrd": _du(data / "rrd", "*.rrd"),
+        },
+        "counts": _counts(base),
+    }
+
+
+def _sample_while_publishing(
+    proc: subprocess.Popen[bytes],
+    base: str,
+    data: Path,
+    *,
+    broker_pid: int | None,
+    loads: list[Any],
+    started: float,
+    interval: float,
+) -> list[dict[str, Any]]:
+    """A sample every `interval` until the publishers have finished, the last one taken after they did."""
+    agent = psutil.Process(proc.pid)
+    samples = []
+    while True:
+        done = all(p.poll() is not None for p in loads)
+        now = time.monotonic() - started
+        if proc.poll() is not None:
+            raise RuntimeError(f"the agent exited during the soak (code {proc.returncode})")
+        samples.append(_sample(now, base, data, agent=agent, broker_pid=broker_pid, loads=loads))
+        if done:
+            return samples
+        time.sleep(interval)  # the sampling period: a figure every `interval`, not synchronisation
+
+
 def measure(
     *,
     minutes: float,
@@ -206,44 +259,18 @@ def measure(
     seconds = minutes * 60.0
     warmup = min(WARMUP_S, seconds / 2.0)
     interval = sample_s if sample_s is not None else max(2.0, min(15.0, seconds / 60.0))
-    out.mkdir(parents=True, exist_ok=True)
-    data = out / "data"
-    shutil.rmtree(data, ignore_errors=True)
-    shutil.rmtree(out / "rig", ignore_errors=True)
-    for sub in ("usd", "rrd", "history"):
-        (data / sub).mkdir(parents=True, exist_ok=True)
-    samples: list[dict[str, Any]] = []
+    data = _fresh_data(out)
     load_before = os.getloadavg()
     with LocalRig(workdir=out / "rig") as rig:
         config = _config(data, caps, arms, ros2)
         args = ("--workers", "1", "--log-level", "INFO")
         with rig.agent_process(config_text=config, extra_args=args) as (proc, base):
             wait_subscribed(base, proc, timeout=120.0)
-            agent = psutil.Process(proc.pid)
-            broker_pid = rig.broker.pid
             loads = publishers(rig.broker.url, arms, rate, seconds)
             started = time.monotonic()
-            while True:
-                done = all(p.poll() is not None for p in loads)
-                now = time.monotonic() - started
-                if proc.poll() is not None:
-                    raise RuntimeError(f"the agent exited during the soak (code {proc.returncode})")
-                samples.append(
-                    {
-                        "t_s": now,
-                        "load_average": list(os.getloadavg()),
-                        "processes": _processes(agent, broker_pid, loads),
-                        "disk": {
-                            "history": _du(data / "history"),
-                            "usd": _du(data / "usd", "session-*"),
-                            "rrd": _du(data / "rrd", "*.rrd"),
-                        },
-                        "counts": _counts(base),
-                    }
-                )
-                if done:
-                    break
-                time.sleep(interval)  # the sampling period: a figure every `interval`, not synchronisation
+            samples = _sample_while_publishing(
+                proc, base, data, broker_pid=rig.broker.pid, loads=loads, started=started, interval=interval
+            )
             sent = collect(loads, timeout=120)
             final = _drained(base, sent["sent"])
             samples.append({**samples[-1], "t_s": time.monotonic() - started, "counts": final})
