@@ -330,21 +330,26 @@ def _agent_rss(sample: dict[str, Any]) -> float:
     return sum(p["rss_mb"] for p in sample["processes"] if p["role"].startswith("agent"))
 
 
-def verdicts(  # noqa: PLR0917 - the figures a soak produced, each its own
-    samples: list[dict[str, Any]],
-    sent: dict[str, Any],
-    history_rows: dict[str, int],
-    caps: Caps,
-    warmup_s: float,
-    exit_code: int,
-) -> dict[str, Any]:
-    """The three bounds (module doc), each with the figures it rests on."""
+def _rss_verdict(samples: list[dict[str, Any]], warmup_s: float) -> dict[str, Any]:
+    """The agent's RSS growth after the warm-up: the last quarter's median against the first quarter's."""
     after = [s for s in samples[:-1] if s["t_s"] >= warmup_s]
     quarter = max(1, len(after) // 4)
     first = statistics.median(_agent_rss(s) for s in after[:quarter]) if after else 0.0
     last = statistics.median(_agent_rss(s) for s in after[-quarter:]) if after else 0.0
     growth = (last - first) / first if first else 0.0
-    final = samples[-1]["counts"]
+    return {
+        "first_quarter_after_warmup_mb": first,
+        "last_quarter_mb": last,
+        "growth": growth,
+        "limit": RSS_GROWTH_LIMIT,
+        "ok": growth <= RSS_GROWTH_LIMIT,
+    }
+
+
+def _lost_verdict(
+    final: dict[str, Any], sent: dict[str, Any], history_rows: dict[str, int]
+) -> dict[str, Any]:
+    """Every message published, received, counted and kept in history; none dropped or estimated lost."""
     dropped = {
         "queue": final["queue_dropped"],
         "sinks": sum(final["sink_dropped"].values()),
@@ -357,6 +362,11 @@ def verdicts(  # noqa: PLR0917 - the figures a soak produced, each its own
         "not_in_history": final["decoded"] - history_rows.get("telemetry", 0),
         **dropped,
     }
+    return {**lost, "ok": all(v == 0 for v in lost.values())}
+
+
+def _disk_verdict(samples: list[dict[str, Any]], caps: Caps) -> dict[str, Any]:
+    """Each rotating sink within its budget once it reached half of it; history's size at the end."""
     budgets = {"usd": caps.record_budget_mb, "rrd": caps.rrd_budget_mb}
     disk: dict[str, Any] = {}
     for sink, budget in budgets.items():
@@ -374,22 +384,28 @@ def verdicts(  # noqa: PLR0917 - the figures a soak produced, each its own
             # second) and the closing flush add before it rotates: a tenth of the budget is the allowance.
             "flat": peak_after is None or peak_after <= FLAT_ALLOWANCE * budget,
         }
-    history_mb = [s["disk"]["history"][0] / 2**20 for s in samples]
+    history_mb = samples[-1]["disk"]["history"][0] / 2**20
+    return {**disk, "history_mb_end": history_mb, "ok": all(d["flat"] for d in disk.values())}
+
+
+def verdicts(  # noqa: PLR0917 - the figures a soak produced, each its own
+    samples: list[dict[str, Any]],
+    sent: dict[str, Any],
+    history_rows: dict[str, int],
+    caps: Caps,
+    warmup_s: float,
+    exit_code: int,
+) -> dict[str, Any]:
+    """The three bounds (module doc), each with the figures it rests on, and a clean stop."""
+    rss = _rss_verdict(samples, warmup_s)
+    lost = _lost_verdict(samples[-1]["counts"], sent, history_rows)
+    disk = _disk_verdict(samples, caps)
     return {
-        "rss": {
-            "first_quarter_after_warmup_mb": first,
-            "last_quarter_mb": last,
-            "growth": growth,
-            "limit": RSS_GROWTH_LIMIT,
-            "ok": growth <= RSS_GROWTH_LIMIT,
-        },
-        "lost": {**lost, "ok": all(v == 0 for v in lost.values())},
-        "disk": {**disk, "history_mb_end": history_mb[-1], "ok": all(d["flat"] for d in disk.values())},
+        "rss": rss,
+        "lost": lost,
+        "disk": disk,
         "clean_stop": {"exit_code": exit_code, "ok": exit_code == 0},
-        "ok": growth <= RSS_GROWTH_LIMIT
-        and all(v == 0 for v in lost.values())
-        and all(d["flat"] for d in disk.values())
-        and exit_code == 0,
+        "ok": rss["ok"] and lost["ok"] and disk["ok"] and exit_code == 0,
     }
 
 
