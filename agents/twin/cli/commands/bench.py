@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 from twin.cli.output import Console, import_dev_tool
@@ -109,51 +110,45 @@ def register(subparsers: Any) -> None:
         p.set_defaults(func=run)
 
 
-def _figures(args: argparse.Namespace) -> dict[str, Any]:
+def _bench(scenario: str) -> ModuleType:
     # Development tooling: absent from the agent package deployed to the instance (DevToolMissing says so).
-    throughput = import_dev_tool("twin.bench.throughput", "bench")
-    fidelity = import_dev_tool("twin.bench.fidelity", "bench")
-    footprint = import_dev_tool("twin.bench.footprint", "bench")
-    ros2 = import_dev_tool("twin.bench.ros2", "bench")
-    render = import_dev_tool("twin.bench.render", "bench")
-    rerun = import_dev_tool("twin.bench.rerun", "bench")
+    return import_dev_tool(f"twin.bench.{scenario}", "bench")
 
+
+def _figures(args: argparse.Namespace) -> dict[str, Any]:
     if args.scenario.startswith("history-"):
-        history = import_dev_tool("twin.bench.history", "bench")
+        history = _bench("history")
         if args.scenario == "history-storage":
             return history.storage(hours=args.hours, variant=args.variant)
         if args.scenario == "history-read":
             return history.read(arms=args.arms, minutes=args.minutes)
         return history.load(arms=args.arms, rate=args.rate, seconds=args.seconds)
     if args.scenario == "throughput":
-        return throughput.run(arms=args.arms, rate=args.rate, seconds=args.seconds)
+        return _bench("throughput").run(arms=args.arms, rate=args.rate, seconds=args.seconds)
     if args.scenario == "fidelity":
-        return fidelity.run(seconds=args.seconds)
+        return _bench("fidelity").run(seconds=args.seconds)
     if args.scenario == "footprint":
-        return footprint.run(fleet=args.arms, fleet_seconds=args.seconds)
+        return _bench("footprint").run(fleet=args.arms, fleet_seconds=args.seconds)
     if args.scenario == "ros2":
-        return ros2.run(arms=args.arms, rate=args.rate, seconds=args.seconds)
+        return _bench("ros2").run(arms=args.arms, rate=args.rate, seconds=args.seconds)
     if args.scenario == "render":
-        return render.run(frames=args.frames, width=args.width, height=args.height)
+        return _bench("render").run(frames=args.frames, width=args.width, height=args.height)
     if args.scenario == "rerun":
-        return rerun.run(arms=args.arms, rate=args.rate, seconds=args.seconds)
+        return _bench("rerun").run(arms=args.arms, rate=args.rate, seconds=args.seconds)
     if args.scenario == "quota":
-        quota = import_dev_tool("twin.bench.quota", "bench")
-        return quota.run(arms=args.arms, rate=args.rate, seconds=args.seconds)
+        return _bench("quota").run(arms=args.arms, rate=args.rate, seconds=args.seconds)
     if args.scenario == "decode":
-        return import_dev_tool("twin.bench.decode", "bench").run()
+        return _bench("decode").run()
     if args.scenario == "console":
-        return import_dev_tool("twin.bench.console", "bench").run(
+        return _bench("console").run(
             arms=args.arms, cpu_arms=args.cpu_arms, rate=args.rate, runs=args.runs, seconds=args.seconds
         )
     if args.scenario == "soak":
-        return import_dev_tool("twin.bench.soak", "bench").run(
-            minutes=args.minutes, arms=args.arms, rate=args.rate, out=args.out
-        )
+        return _bench("soak").run(minutes=args.minutes, arms=args.arms, rate=args.rate, out=args.out)
     if args.scenario == "worker":
-        return import_dev_tool("twin.bench.worker", "bench").run(arms=args.arms, rounds=args.rounds)
+        return _bench("worker").run(arms=args.arms, rounds=args.rounds)
     if args.scenario == "cost":
-        return import_dev_tool("twin.bench.cost", "bench").run(
+        return _bench("cost").run(
             arms=args.arms,
             rate=args.rate,
             seconds=args.seconds,
@@ -161,27 +156,31 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
             history=args.history,
             workers=args.workers,
         )
-    # all: the two throughput loads the targets name, fidelity, footprint, ROS 2, render, Rerun, the quota
-    # (one connection vs the pool), decode against json.loads, a worker's cost per message, and the agent's
-    # whole cost per message in json.loads units.
+    return _every_scenario(args)
+
+
+def _every_scenario(args: argparse.Namespace) -> dict[str, Any]:
+    """`twin bench all`: the two throughput loads the targets name, fidelity, footprint, ROS 2, render, Rerun,
+    the quota (one connection vs the pool), decode against json.loads, a worker's cost per message, and the
+    agent's whole cost per message in json.loads units; then the plot of them."""
+    throughput = _bench("throughput")
     results = {
         "throughput": [
             throughput.run(arms=100, rate=10.0, seconds=args.seconds),
             throughput.run(arms=2000, rate=10.0, seconds=args.seconds),
         ],
-        "fidelity": fidelity.run(),
-        "footprint": footprint.run(),
-        "ros2": ros2.run(arms=100, rate=10.0, seconds=args.seconds),
-        "render": render.run(),
-        "rerun": rerun.run(arms=100, rate=10.0, seconds=args.seconds),
-        "quota": import_dev_tool("twin.bench.quota", "bench").run(seconds=args.seconds),
-        "decode": import_dev_tool("twin.bench.decode", "bench").run(),
-        "worker": import_dev_tool("twin.bench.worker", "bench").run(),
-        "console": import_dev_tool("twin.bench.console", "bench").run(seconds=args.seconds),
-        "cost": import_dev_tool("twin.bench.cost", "bench").run(seconds=args.seconds),
+        "fidelity": _bench("fidelity").run(),
+        "footprint": _bench("footprint").run(),
+        "ros2": _bench("ros2").run(arms=100, rate=10.0, seconds=args.seconds),
+        "render": _bench("render").run(),
+        "rerun": _bench("rerun").run(arms=100, rate=10.0, seconds=args.seconds),
+        "quota": _bench("quota").run(seconds=args.seconds),
+        "decode": _bench("decode").run(),
+        "worker": _bench("worker").run(),
+        "console": _bench("console").run(seconds=args.seconds),
+        "cost": _bench("cost").run(seconds=args.seconds),
     }
-    plot = import_dev_tool("twin.bench.plot", "bench")
-    results["plot"] = str(plot.write(results, args.plot))
+    results["plot"] = str(_bench("plot").write(results, args.plot))
     return results
 
 
