@@ -5,14 +5,13 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-import signal
 import sys
-import threading
 import time
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
-from twin.cli.output import Console, DevToolMissing, import_dev_tool
+from twin.cli.output import Console, DevToolMissing, import_dev_tool, stop_on_signals
 
 console = Console("demo")
 
@@ -102,46 +101,28 @@ def run(args: argparse.Namespace) -> int:
     except DevToolMissing as exc:
         console.err(str(exc))
         return EXIT_FAILED
-    DemoConfig, DemoError, run_demo = demo.DemoConfig, demo.DemoError, demo.run_demo  # noqa: N806
     try:
-        config = DemoConfig(
-            seconds=args.seconds,
-            out_dir=Path(args.out),
-            variant=args.variant,
-            devices=args.devices,
-            rate_hz=args.rate,
-            rerun=not args.no_rerun,
-            rerun_serve=args.rerun_serve and not args.no_rerun,
-            servos=args.servos,
-            console=not args.no_console,
-            chromium=Path(args.chromium),
-        )
+        config = _demo_config(demo, args)
     except ValueError as exc:
         console.err(str(exc))
         return EXIT_USAGE
-
-    stop = threading.Event()
-
-    def _on_signal(signum: int, _frame: object) -> None:
-        # Not KeyboardInterrupt: the demo must get to its cleanup and still write what it has.
-        stop.set()
-
-    signal.signal(signal.SIGINT, _on_signal)
-    signal.signal(signal.SIGTERM, _on_signal)
     tty = sys.stdout.isatty()
     console.out(
         f"twin demo: {config.devices} simulated arm(s), {config.variant} payloads at {config.rate_hz:g} Hz "
         f"for {config.seconds:g} s -> {config.out_dir}"
     )
     try:
-        stats = run_demo(
-            config,
-            on_status=_status_printer(tty),
-            stop=stop,
-            on_viewer=lambda url: console.out(f"twin demo: Rerun web viewer at {url}"),
-            on_note=_note_printer(tty),
-        )
-    except DemoError as exc:
+        # A signal sets `stop`, not KeyboardInterrupt: the demo must get to its cleanup and still write what
+        # it has.
+        with stop_on_signals() as stop:
+            stats = demo.run_demo(
+                config,
+                on_status=_status_printer(tty),
+                stop=stop,
+                on_viewer=lambda url: console.out(f"twin demo: Rerun web viewer at {url}"),
+                on_note=_note_printer(tty),
+            )
+    except demo.DemoError as exc:
         if tty:
             sys.stdout.write("\n")
         console.err(f"failed: {exc}")
@@ -153,6 +134,22 @@ def run(args: argparse.Namespace) -> int:
         console.err("interrupted: the files above cover the run up to the interruption")
         return EXIT_INTERRUPTED
     return EXIT_OK
+
+
+def _demo_config(demo: ModuleType, args: argparse.Namespace) -> Any:
+    """The demo's DemoConfig from the flags (it raises ValueError naming a bad value)."""
+    return demo.DemoConfig(
+        seconds=args.seconds,
+        out_dir=Path(args.out),
+        variant=args.variant,
+        devices=args.devices,
+        rate_hz=args.rate,
+        rerun=not args.no_rerun,
+        rerun_serve=args.rerun_serve and not args.no_rerun,
+        servos=args.servos,
+        console=not args.no_console,
+        chromium=Path(args.chromium),
+    )
 
 
 def _status_printer(tty: bool) -> Any:
