@@ -233,56 +233,86 @@ def run(args: argparse.Namespace, twin: TwinInstance | None = None) -> int:
         lib.AwsCallError: EXIT_AWS,
     }
     twin = twin or lib.TwinInstance(args.stack, region=args.region)
-    wait = not args.no_wait
     try:
         if args.action == "url":
             console.out(twin.url())
-        elif args.action == "console":
+            return EXIT_OK
+        if args.action == "console":
             return _console(twin, args)
-        elif args.action == "settings":
-            deployed = twin.settings()
-            header = (
-                f"The settings of stack {twin.stack_name} in {twin.region}, as deployed (its Settings "
-                "output).\nSave as twin.settings.toml in the repository to keep them; commented lines are "
-                "defaults."
-            )
-            console.out(deployed.to_toml(header=header).rstrip("\n"))
-        elif args.action == "check":
-            from twin.ops.instance_check import check_twin
-
-            report = check_twin(twin, host_timeout_s=HOST_CHECK_TIMEOUT_S, screenshot=args.screenshot)
-            for line in report.render():
-                console.out(line)
-            return EXIT_OK if report.ok else EXIT_CHECK_FAILED
-        elif args.action == "stop":
-            outputs = twin.outputs()
-            state = twin.stop(wait=wait, timeout_s=args.timeout)
-            console.out(f"instance {outputs.instance_id}: {state}")
-            if not wait:
-                console.out("not waiting; follow it with `twin instance status`")
-        elif args.action == "start":
-            outputs = twin.outputs()
-            state = twin.start(wait=wait, timeout_s=args.timeout)
-            console.out(f"instance {outputs.instance_id}: {state}")
-            console.out(f"DCV URL: {outputs.dcv_url}")
-            if not wait:
-                console.out("not waiting; follow it with `twin instance status`")
-                return EXIT_OK
-            console.out(f"waiting up to {args.timeout:.0f} s for the host's checks after the start")
-            verdict = twin.start_verdict(args.timeout)
-            _print_verdict(verdict)
-            if verdict.state == lib.UNKNOWN:
-                return EXIT_WAIT
-            return EXIT_OK if verdict.state == lib.PASS else EXIT_CHECK_FAILED
-        else:
-            status = twin.status(check_health=True, health_timeout_s=HEALTH_TIMEOUT_S)
-            zone = f" in {status.availability_zone}" if status.availability_zone else ""
-            console.out(f"instance {status.instance_id}: {status.state} ({status.instance_type}{zone})")
-            console.out(f"DCV URL: {status.dcv_url}")
-            console.out(_health_line(status.health))
-            console.out(_version_line(status.host_version, status.expected_version))
+        if args.action == "settings":
+            return _settings(twin)
+        if args.action == "check":
+            return _check(twin, args)
+        if args.action == "stop":
+            return _stop(twin, args)
+        if args.action == "start":
+            return _start(twin, args)
+        return _status(twin)
     except lib.TwinInstanceError as exc:
         Console(f"instance {args.action}").err(str(exc))
         # By class, subclasses included: a missing Session Manager plugin is a setup error too.
         return next((code for cls, code in codes.items() if isinstance(exc, cls)), EXIT_AWS)
+
+
+def _settings(twin: TwinInstance) -> int:
+    """The settings the stack was deployed with, as a twin.settings.toml."""
+    deployed = twin.settings()
+    header = (
+        f"The settings of stack {twin.stack_name} in {twin.region}, as deployed (its Settings "
+        "output).\nSave as twin.settings.toml in the repository to keep them; commented lines are "
+        "defaults."
+    )
+    console.out(deployed.to_toml(header=header).rstrip("\n"))
+    return EXIT_OK
+
+
+def _check(twin: TwinInstance, args: argparse.Namespace) -> int:
+    """Every check of the deployed twin, as a table; fails when one does."""
+    from twin.ops.instance_check import check_twin
+
+    report = check_twin(twin, host_timeout_s=HOST_CHECK_TIMEOUT_S, screenshot=args.screenshot)
+    for line in report.render():
+        console.out(line)
+    return EXIT_OK if report.ok else EXIT_CHECK_FAILED
+
+
+def _stop(twin: TwinInstance, args: argparse.Namespace) -> int:
+    outputs = twin.outputs()
+    wait = not args.no_wait
+    state = twin.stop(wait=wait, timeout_s=args.timeout)
+    console.out(f"instance {outputs.instance_id}: {state}")
+    if not wait:
+        console.out("not waiting; follow it with `twin instance status`")
+    return EXIT_OK
+
+
+def _start(twin: TwinInstance, args: argparse.Namespace) -> int:
+    """Start the host and, unless --no-wait, wait for the verdict of the checks it runs after every start."""
+    from twin.ops.instance import PASS, UNKNOWN
+
+    outputs = twin.outputs()
+    wait = not args.no_wait
+    state = twin.start(wait=wait, timeout_s=args.timeout)
+    console.out(f"instance {outputs.instance_id}: {state}")
+    console.out(f"DCV URL: {outputs.dcv_url}")
+    if not wait:
+        console.out("not waiting; follow it with `twin instance status`")
+        return EXIT_OK
+    console.out(f"waiting up to {args.timeout:.0f} s for the host's checks after the start")
+    verdict = twin.start_verdict(args.timeout)
+    _print_verdict(verdict)
+    if verdict.state == UNKNOWN:
+        return EXIT_WAIT
+    return EXIT_OK if verdict.state == PASS else EXIT_CHECK_FAILED
+
+
+def _status(twin: TwinInstance) -> int:
+    """The instance's state, its DCV URL, the agent's health and the version it runs (exit 0 whatever the
+    health: module doc)."""
+    status = twin.status(check_health=True, health_timeout_s=HEALTH_TIMEOUT_S)
+    zone = f" in {status.availability_zone}" if status.availability_zone else ""
+    console.out(f"instance {status.instance_id}: {status.state} ({status.instance_type}{zone})")
+    console.out(f"DCV URL: {status.dcv_url}")
+    console.out(_health_line(status.health))
+    console.out(_version_line(status.host_version, status.expected_version))
     return EXIT_OK
