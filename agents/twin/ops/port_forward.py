@@ -181,25 +181,7 @@ def start_port_forward(
         "Parameters": {"portNumber": [str(remote_port)], "localPortNumber": [str(local_port)]},
     }
     response = ssm.start_session(**parameters)
-    session = json.dumps(
-        {key: response[key] for key in ("SessionId", "TokenValue", "StreamUrl")}, separators=(",", ":")
-    )
-    env = dict(os.environ)
-    version = plugin_version(path)
-    handed = session
-    if version is not None and version > LAST_PLUGIN_VERSION_WITHOUT_ENV:
-        # The token stays out of the process list.
-        env[RESPONSE_ENV] = session
-        handed = RESPONSE_ENV
-    argv = [
-        path,
-        handed,
-        ssm.meta.region_name,
-        "StartSession",
-        profile,
-        json.dumps(parameters),
-        ssm.meta.endpoint_url,
-    ]
+    argv, env = _plugin_invocation(path, ssm, response, parameters, profile=profile)
     try:
         process = subprocess.Popen(
             argv,
@@ -224,3 +206,30 @@ def start_port_forward(
         local_port=local_port,
         process=process,
     )
+
+
+def _plugin_invocation(
+    path: str, ssm: Any, response: dict[str, Any], parameters: dict[str, Any], *, profile: str
+) -> tuple[list[str], dict[str, str]]:
+    """The plugin's command line and environment: the session handed over the way the AWS CLI hands it
+    (module doc)."""
+    session = json.dumps(
+        {key: response[key] for key in ("SessionId", "TokenValue", "StreamUrl")}, separators=(",", ":")
+    )
+    env = dict(os.environ)
+    version = plugin_version(path)
+    handed = session
+    if version is not None and version > LAST_PLUGIN_VERSION_WITHOUT_ENV:
+        # The token stays out of the process list.
+        env[RESPONSE_ENV] = session
+        handed = RESPONSE_ENV
+    argv = [
+        path,
+        handed,
+        ssm.meta.region_name,
+        "StartSession",
+        profile,
+        json.dumps(parameters),
+        ssm.meta.endpoint_url,
+    ]
+    return argv, env
