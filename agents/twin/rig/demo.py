@@ -285,14 +285,28 @@ def run_demo(
     simulator while watching the agent's state and taking the pictures, then write stats.json, the PNG, the
     GIF (the recording is closed, with its final save, when the rig stops the agent).
     """
-    from twin.rig.local import LocalRig, RigError  # noqa: PLC0415 - MuJoCo, USD and awscrt load here
-
     stop = stop or threading.Event()
     note = on_note or (lambda line: log.info("%s", line))
     out_dir = Path(config.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     _clear_outputs(out_dir)
     devices = device_ids(config.devices)
+    run = _prepared_run(config, devices, note)
+    broker, service = _run_on_rig(
+        config, devices, out_dir, run, on_status=on_status, on_viewer=on_viewer, note=note, stop=stop
+    )
+    stats, final = _checked_stats(config, run, broker, service, interrupted=stop.is_set())
+    # History first: stats.json, written with the other outputs, says what the table holds.
+    _write_history_outputs(devices, stats, out_dir)
+    _write_outputs(
+        config=config, state=final, service=service, run=run, devices=devices, stats=stats, out_dir=out_dir
+    )
+    return stats
+
+
+def _prepared_run(config: DemoConfig, devices: list[str], note: Callable[[str], None]) -> _Run:
+    """The run's record before it starts: the story's arm and joint, and whether the console pictures can
+    be taken here (the note says why not)."""
     run = _Run(started=time.monotonic())
     if config.servos == "physical":
         run.story = _Story(devices[0], STORY_JOINT)
@@ -301,9 +315,27 @@ def run_demo(
         if missing:
             run.console["skipped"] = missing
             note(f"console pictures skipped: {missing}")
+    return run
+
+
+def _run_on_rig(
+    config: DemoConfig,
+    devices: list[str],
+    out_dir: Path,
+    run: _Run,
+    *,
+    on_status: Callable[[DemoStatus], None] | None,
+    on_viewer: Callable[[str], None] | None,
+    note: Callable[[str], None],
+    stop: threading.Event,
+) -> tuple[dict[str, Any], Any]:
+    """The local rig (broker and agent) while the edge simulator publishes and `_watch` follows the run into
+    `run`; returns (the broker's URL and pid, the stopped agent's service). DemoError when a part fails."""
+    from twin.rig.local import LocalRig, RigError  # noqa: PLC0415 - MuJoCo, USD and awscrt load here
+
     try:
         with LocalRig() as rig:
-            broker_url, broker_pid = rig.broker.url, rig.broker.pid
+            broker = {"url": rig.broker.url, "pid": rig.broker.pid}
             service = _start_agent(rig, config, devices, out_dir, on_viewer)
             # The agent listens on a free port: the operator needs to be told where its console is.
             note(f"console at {service.http_url}/ while the demo runs")
@@ -335,14 +367,7 @@ def run_demo(
         raise DemoError(str(exc)) from exc
     except (ConnectionError, ValueError) as exc:  # the edge simulator's failure, re-raised by join()
         raise DemoError(f"the edge simulator failed: {exc}") from exc
-    broker = {"url": broker_url, "pid": broker_pid}
-    stats, final = _checked_stats(config, run, broker, service, interrupted=stop.is_set())
-    # History first: stats.json, written with the other outputs, says what the table holds.
-    _write_history_outputs(devices, stats, out_dir)
-    _write_outputs(
-        config=config, state=final, service=service, run=run, devices=devices, stats=stats, out_dir=out_dir
-    )
-    return stats
+    return broker, service
 
 
 def _edge_options(config: DemoConfig, devices: list[str]) -> dict[str, Any]:
