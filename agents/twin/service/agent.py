@@ -120,6 +120,17 @@ HISTORY_STOP_MIN_S = 5.0
 MAX_ROUTES = 16_384
 
 
+def _check_workers(config: AgentConfig, workers: int, sinks: Sequence[TwinSink]) -> None:
+    """What only one process can do: extra sinks and the Rerun stream need the in-process mirror."""
+    if workers > 1 and sinks:
+        raise ValueError("extra sinks run in the agent's own process: pass them with workers=1")
+    if workers > 1 and config.rerun.enabled:
+        raise ConfigError(
+            "[rerun] streams one recording from one process: run with --workers 1 ([twin] workers = 1) "
+            "to stream to Rerun, or turn [rerun] off"
+        )
+
+
 class AgentService:
     """Config -> connection pool -> shards (mirrors) -> HTTP and metrics. See the module doc.
 
@@ -142,15 +153,10 @@ class AgentService:
         wall_clock: Clock = time.time,
         sessions: SessionCatalog | None = None,
     ) -> None:
-        if workers > 1 and sinks:
-            raise ValueError("extra sinks run in the agent's own process: pass them with workers=1")
-        if workers > 1 and config.rerun.enabled:
-            raise ConfigError(
-                "[rerun] streams one recording from one process: run with --workers 1 ([twin] workers = 1) "
-                "to stream to Rerun, or turn [rerun] off"
-            )
         # Everything that can be wrong with the configuration is found here (an in-process mirror loads the
         # model and the calibration now), before any thread or socket.
+        _check_workers(config, workers, sinks)
+        # Then the agent's parts and state, a declaration a line: one table, read whole, so kept in one piece.
         self.config = config
         self._clock = clock
         self._wall_clock = wall_clock
@@ -196,14 +202,17 @@ class AgentService:
             self._events.subscribe(self._offer_alert)
         # Each arm's own calibration (docs/agent.md, "Calibration"): watched here, once for every shard, and
         # handed to each; the last hand-over is kept for a worker that is started again.
-        self._calibrations: CalibrationWatcher | None = None
         self._calibration_request = CalibrationsRequest()
-        if t.calibrations:
-            store = open_store(t.calibrations, region=config.broker.region or config.history.region)
-            self._calibrations = CalibrationWatcher(
-                store, interval_s=t.calibration_poll_s, on_change=self._hand_calibrations
-            )
+        self._calibrations = self._calibration_watcher(config)
         self._routes: dict[str, tuple[Shard, str]] = {}
+
+    def _calibration_watcher(self, config: AgentConfig) -> CalibrationWatcher | None:
+        """The watcher of each arm's calibration file, when the config names where they are."""
+        t = config.telemetry
+        if not t.calibrations:
+            return None
+        store = open_store(t.calibrations, region=config.broker.region or config.history.region)
+        return CalibrationWatcher(store, interval_s=t.calibration_poll_s, on_change=self._hand_calibrations)
 
     def _build_shards(self, config: AgentConfig, sinks: Sequence[TwinSink]) -> list[Shard]:
         count = self.plan.count
