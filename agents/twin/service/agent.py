@@ -247,32 +247,7 @@ class AgentService:
             return
         self._started_mono = self._clock()
         self._started_wall = self._wall_clock()
-        try:
-            if self._history is not None:
-                # First, so the mirrors' feeds find it listening.
-                self._launch_history(self._history)
-            for shard in self._shards:
-                shard.launch()
-            for shard in self._shards:
-                shard.await_ready()
-            self._restore_state_file()
-            if self._calibrations is not None:
-                # Before the subscription, so the first messages already decode with each arm's own.
-                self._calibrations.poll()
-            self._http = AgentHttpServer(
-                self,
-                self.config.http.host,
-                self.config.http.port,
-                stream_rate_hz=self.config.http.stream_rate_hz,
-                settings=self.config.http,
-                sessions=self._sessions,
-                rerun_url=rerun_viewer_url(self.sinks),
-            )
-        except BaseException:
-            self._stop_shards(time.monotonic() + 10.0)
-            if self._history is not None:
-                self._history.stop(timeout=10.0)
-            raise
+        self._http = self._launch_mirrors()
         self._running = True
         self._supervisor = threading.Thread(target=self._supervise, name="twin-supervisor", daemon=True)
         self._supervisor.start()
@@ -302,6 +277,37 @@ class AgentService:
                 "worker_pids": [w.pid for w in workers],
             },
         )
+
+    def _launch_mirrors(self) -> AgentHttpServer:
+        """History's writer, every mirror (each waited for), the alarms of the state file and each arm's
+        calibration; then the HTTP server, bound but not serving yet. What was launched is stopped again when
+        a step fails."""
+        try:
+            if self._history is not None:
+                # First, so the mirrors' feeds find it listening.
+                self._launch_history(self._history)
+            for shard in self._shards:
+                shard.launch()
+            for shard in self._shards:
+                shard.await_ready()
+            self._restore_state_file()
+            if self._calibrations is not None:
+                # Before the subscription, so the first messages already decode with each arm's own.
+                self._calibrations.poll()
+            return AgentHttpServer(
+                self,
+                self.config.http.host,
+                self.config.http.port,
+                stream_rate_hz=self.config.http.stream_rate_hz,
+                settings=self.config.http,
+                sessions=self._sessions,
+                rerun_url=rerun_viewer_url(self.sinks),
+            )
+        except BaseException:
+            self._stop_shards(time.monotonic() + 10.0)
+            if self._history is not None:
+                self._history.stop(timeout=10.0)
+            raise
 
     def stop(self, timeout: float | None = None) -> None:
         """Unsubscribe, let every mirror handle what is queued for it, flush its sinks and end, stop the
