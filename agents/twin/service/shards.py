@@ -1167,40 +1167,15 @@ def merge_reports(
     `restarting` are the devices of workers being started again, as their last checkpoints left them, and
     `restarting_untracked` those checkpoints' rejections of no device.
     """
-    devices = {}
-    untracked: Counter[str] = Counter()
-    internal, end_to_end = LatencyHistogram(), LatencyHistogram()
-    for device, d in (restarting or {}).items():
-        extra = dropped.get(device, 0)
-        devices[device] = _with_dropped(d, extra) if extra else d
-    for part in restarting_untracked:
-        untracked.update(part)
-    for report in reports:
-        for device, d in report.devices.items():
-            extra = dropped.get(device, 0)
-            devices[device] = _with_dropped(d, extra) if extra else d
-        untracked.update(report.untracked_rejected)
-        internal.merge(report.internal)
-        end_to_end.merge(report.end_to_end)
+    devices, untracked = _merge_devices(reports, dropped, restarting or {}, restarting_untracked)
     workers_alive = all(w.alive for w in workers)
     return AgentState(
         agent=dataclasses.replace(
             info,
             running=info.running and workers_alive,
-            mailbox=MailboxState(
-                overwritten_total=sum(r.mailbox.overwritten_total for r in reports)
-                + (sum(dropped.values()) if dropped_total is None else dropped_total),
-                refused_keys=0,
-                pending=sum(r.mailbox.pending for r in reports) + sum(w.queued for w in workers),
-            ),
-            latency=FleetLatency(internal_s=internal.summary(), end_to_end_s=end_to_end.summary()),
-            worker=WorkerState(
-                alive=bool(reports) and workers_alive and all(r.worker.alive for r in reports),
-                batches=sum(r.worker.batches for r in reports),
-                processed=sum(r.worker.processed for r in reports),
-                errors=sum(r.worker.errors for r in reports),
-                stage_cpu_s=_merge_seconds([r.worker.stage_cpu_s for r in reports]),
-            ),
+            mailbox=_merge_mailbox(reports, workers, dropped, dropped_total),
+            latency=_merge_latency(reports),
+            worker=_merge_worker(reports, workers_alive=workers_alive),
             recording=_merge_recording([r.recording for r in reports if r.recording is not None]),
             history=_merge_history([r.history for r in reports if r.history is not None]),
             sinks=_merge_sinks([r.sinks for r in reports]),
@@ -1210,6 +1185,62 @@ def merge_reports(
         ),
         devices=dict(sorted(devices.items())),
         untracked_rejected=dict(sorted(untracked.items())),
+    )
+
+
+def _merge_devices(
+    reports: Sequence[MirrorReport],
+    dropped: Mapping[str, int],
+    restarting: Mapping[str, DeviceState],
+    restarting_untracked: Sequence[Mapping[str, int]],
+) -> tuple[dict[str, DeviceState], Counter[str]]:
+    """Every device, with the messages the agent dropped for it, and the rejections of no device: those of
+    workers being started again (their last checkpoints) first, then each mirror's."""
+    devices = {}
+    untracked: Counter[str] = Counter()
+    for device, d in restarting.items():
+        extra = dropped.get(device, 0)
+        devices[device] = _with_dropped(d, extra) if extra else d
+    for part in restarting_untracked:
+        untracked.update(part)
+    for report in reports:
+        for device, d in report.devices.items():
+            extra = dropped.get(device, 0)
+            devices[device] = _with_dropped(d, extra) if extra else d
+        untracked.update(report.untracked_rejected)
+    return devices, untracked
+
+
+def _merge_mailbox(
+    reports: Sequence[MirrorReport],
+    workers: tuple[WorkerInfo, ...],
+    dropped: Mapping[str, int],
+    dropped_total: int | None,
+) -> MailboxState:
+    """The mirrors' queues with the agent's hand-over: what either dropped, and what is pending in either."""
+    return MailboxState(
+        overwritten_total=sum(r.mailbox.overwritten_total for r in reports)
+        + (sum(dropped.values()) if dropped_total is None else dropped_total),
+        refused_keys=0,
+        pending=sum(r.mailbox.pending for r in reports) + sum(w.queued for w in workers),
+    )
+
+
+def _merge_latency(reports: Sequence[MirrorReport]) -> FleetLatency:
+    internal, end_to_end = LatencyHistogram(), LatencyHistogram()
+    for report in reports:
+        internal.merge(report.internal)
+        end_to_end.merge(report.end_to_end)
+    return FleetLatency(internal_s=internal.summary(), end_to_end_s=end_to_end.summary())
+
+
+def _merge_worker(reports: Sequence[MirrorReport], *, workers_alive: bool) -> WorkerState:
+    return WorkerState(
+        alive=bool(reports) and workers_alive and all(r.worker.alive for r in reports),
+        batches=sum(r.worker.batches for r in reports),
+        processed=sum(r.worker.processed for r in reports),
+        errors=sum(r.worker.errors for r in reports),
+        stage_cpu_s=_merge_seconds([r.worker.stage_cpu_s for r in reports]),
     )
 
 
