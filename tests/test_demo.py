@@ -47,6 +47,7 @@ MESSAGE_FIELDS = {
     "lost",
     "estimated_lost",
     "estimated_loss_ratio",
+    "edge_skipped",
 }
 
 
@@ -147,8 +148,12 @@ def test_demo_tells_the_story_leaves_valid_files_and_stops_its_broker(tmp_path):
     assert stats["duration_s"] >= 30.0 and messages["sent"] > 0
     assert messages["rejected"] == 0 and messages["rejected_by_reason"] == {}
     assert messages["received"] == messages["sent"], "loopback QoS 0 without faults should lose nothing"
-    # The agent's own loss estimate (edge timestamp gaps) agrees: nothing went missing.
-    assert messages["estimated_lost"] == 0 and messages["estimated_loss_ratio"] == 0.0
+    # The agent's own loss estimate (edge timestamp gaps) agrees: nothing went missing in transit. Only the
+    # samples the edge itself skipped (it skips ahead when over a second behind, on an overloaded machine)
+    # leave gaps, and those gaps are all the estimate may count.
+    assert messages["estimated_lost"] <= messages["edge_skipped"], messages
+    if messages["edge_skipped"] == 0:
+        assert messages["estimated_lost"] == 0 and messages["estimated_loss_ratio"] == 0.0
     for kind in ("end_to_end", "internal"):
         lat = stats["latency_s"][kind]
         # Seconds (milliseconds on loopback; the bound is loose because the cores may be busy with other runs:
