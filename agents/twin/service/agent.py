@@ -569,7 +569,11 @@ class AgentService:
             restarting: dict[str, DeviceState] = {}
             restarting_untracked = []
             for shard in self._shards:
-                if shard.index not in reports and shard.restarting:
+                # Every mirror that gave no report shows its arms from its checkpoint, whatever `restarting`
+                # reads now: a worker passed over while being started again may be running by the time
+                # `restarting` is read (its arms left /state for that read: seen under load), and one that
+                # did not answer is not serving them either. An arm never leaves /state while it restarts.
+                if shard.index not in reports:
                     # Worker processes share the host's monotonic clock, which their checkpoints are on.
                     restarting.update(shard.restarting_devices(self.config.health, time.monotonic()))
                     if shard.checkpoint is not None:
