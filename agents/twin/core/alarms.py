@@ -426,6 +426,11 @@ _N_KINDS = len(_KINDS)
 _KIND_INDEX = {kind: k for k, kind in enumerate(_KINDS)}
 # A fleet's arrays start with room for this many devices and double when full.
 _FIRST_CAPACITY = 64
+# Rounds of at most this many messages are evaluated row by row in plain Python (ServoAlarms._evaluate_one):
+# the array rules cost a few dozen numpy calls whatever the round's size (about 140 us, and some 6 us a
+# message more), which a small fleet's rounds of one or two messages would pay in full. Timed on the mirror
+# with 100 arms in rounds of 1 to 16 (docs/performance.md): row by row is cheaper up to 8, arrays at 16.
+SMALL_ROUND = 8
 
 
 def _np() -> Any:
@@ -517,8 +522,10 @@ class ServoAlarms:
     Python: a fleet's every applied message is evaluated. Only what is rare runs per item in Python: a model
     check (inverse dynamics), a state change and its event."""
 
-    def __init__(self, thresholds: AlarmThresholds | None = None) -> None:
+    def __init__(self, thresholds: AlarmThresholds | None = None, *, small_round: int = SMALL_ROUND) -> None:
         self.thresholds = thresholds or AlarmThresholds()
+        # Rounds up to this size go row by row (SMALL_ROUND); the tests set it to compare the two paths.
+        self.small_round = small_round
         self._servo = self.thresholds.servo
         self.counters = AlarmCounters()
         self._rules = {
@@ -536,6 +543,12 @@ class ServoAlarms:
         self._last_diagnostics: list[Mapping[str, JointDiagnostics] | None] = []
         self._last_torques: list[TorqueSource | _Torques | None] = []
         self._rule_arrays: tuple[Any, Any, Any, Any, Any] | None = None
+        # The same rules as lists, [joint][kind], for the row-by-row path (floats compare as numpy's do).
+        self._rule_lists = tuple(
+            [[getattr(self._rules[joint][kind], name) for kind in _KINDS] for joint in so101.JOINT_NAMES]
+            for name in ("raise_at", "clear_at", "raise_after_s", "clear_after_s")
+        )
+        self._check_joints = [joint in self._mismatch_joints for joint in so101.JOINT_NAMES]
 
     # -- rows -----------------------------------------------------------------------------------------------
 
@@ -594,21 +607,22 @@ class ServoAlarms:
         """
         if not self.thresholds.enabled:
             return []
-        np = _np()
-        rows = self._rows_of([device], [diagnostics], [holding_torques_nm], [now])
-        if angles_rad is not None and timestamp_ms is not None:
-            rows.angles[0] = [_float(angles_rad.get(j)) for j in so101.JOINT_NAMES]
-            rows.posed[0] = True
-            rows.stamps[0] = timestamp_ms
-        rows.stamps = np.asarray(rows.stamps, dtype=np.int64)
-        return self._evaluate(rows)[0]
+        pose = None if angles_rad is None else [_float(angles_rad.get(j)) for j in so101.JOINT_NAMES]
+        return self._evaluate_one(
+            self._row(device),
+            diagnostics,
+            angles=pose,
+            timestamp_ms=timestamp_ms,
+            now=now,
+            holding_torques_nm=holding_torques_nm,
+        )
 
     def evaluate_batch(
         self,
         devices: Sequence[str],
         diagnostics: Sequence[Mapping[str, JointDiagnostics]],
         *,
-        columns: DiagnosticColumns,
+        columns: DiagnosticColumns | Callable[[], DiagnosticColumns],
         angles: Sequence[Sequence[float]],
         timestamps_ms: Sequence[int],
         now: Sequence[float],
@@ -617,10 +631,25 @@ class ServoAlarms:
         """`evaluate` for many applied messages, each of another device: row k is `devices[k]`, its
         diagnostics (as `columns` row k holds them, where it knows them), its applied pose in JOINT_NAMES
         order with its edge time, its receive time and its holding torques. Returns each message's events,
-        as `evaluate` one by one would."""
+        as `evaluate` one by one would. `columns` may be a function that makes them: a small round (up to
+        `small_round` messages) goes row by row and does not need them."""
         count = len(devices)
         if not self.thresholds.enabled:
             return [[] for _ in range(count)]
+        if count <= self.small_round:
+            return [
+                self._evaluate_one(
+                    self._row(devices[k]),
+                    diagnostics[k],
+                    angles=angles[k],
+                    timestamp_ms=timestamps_ms[k],
+                    now=now[k],
+                    holding_torques_nm=holding_torques_nm[k],
+                )
+                for k in range(count)
+            ]
+        if callable(columns):
+            columns = columns()
         np = _np()
         slots = np.fromiter((self._row(d) for d in devices), dtype=np.int64, count=count)
         known = columns.known
@@ -647,34 +676,6 @@ class ServoAlarms:
                 rows.given[k] = False
                 self._fill(rows, k, diagnostics[k])
         return self._evaluate(rows)
-
-    def _rows_of(
-        self,
-        devices: Sequence[str],
-        diagnostics: Sequence[Mapping[str, JointDiagnostics]],
-        torques: Sequence[TorqueSource],
-        now: Sequence[float],
-    ) -> _Rows:
-        np = _np()
-        count = len(devices)
-        rows = _Rows(
-            slots=np.fromiter((self._row(d) for d in devices), dtype=np.int64, count=count),
-            diagnostics=diagnostics,
-            torques=list(torques),
-            now=np.asarray(now, dtype=np.float64),
-            given=np.zeros((count, _JOINTS), dtype=bool),
-            temperature=np.full((count, _JOINTS), np.nan),
-            current=np.full((count, _JOINTS), np.nan),
-            load=np.full((count, _JOINTS), np.nan),
-            velocity=np.full((count, _JOINTS), np.nan),
-            moving=np.full((count, _JOINTS), np.nan),
-            angles=np.full((count, _JOINTS), np.nan),
-            posed=np.zeros(count, dtype=bool),
-            stamps=[0] * count,
-        )
-        for k, diag in enumerate(diagnostics):
-            self._fill(rows, k, diag)
-        return rows
 
     @staticmethod
     def _fill(rows: _Rows, k: int, diagnostics: Mapping[str, JointDiagnostics]) -> None:
@@ -780,38 +781,185 @@ class ServoAlarms:
         return out
 
     def _changes(self, rows: _Rows, found: tuple[Any, Any, Any, Any], out: list[list[AlarmEvent]]) -> None:
-        """The rows' raises and clears (rare): states, counters, messages and events, each row's in the order
-        of its diagnostics' joints, then _KINDS."""
+        """The rows' raises and clears (rare): `_row_changes` of each row that has some."""
         np = _np()
+        raising, clearing, values, model = found
+        for k in np.flatnonzero((raising | clearing).any(axis=(1, 2))).tolist():
+            out[k].extend(
+                self._row_changes(
+                    int(rows.slots[k]),
+                    float(rows.now[k]),
+                    rows.diagnostics[k],
+                    (raising[k].tolist(), clearing[k].tolist(), values[k].tolist(), model[k].tolist()),
+                )
+            )
+
+    def _row_changes(
+        self,
+        slot: int,
+        now: float,
+        diagnostics: Mapping[str, JointDiagnostics],
+        found: tuple[list[list[bool]], list[list[bool]], list[list[float]], list[float]],
+    ) -> list[AlarmEvent]:
+        """One row's raises and clears ([joint][kind] lists): states, counters, messages and events, in the
+        order of its diagnostics' joints, then _KINDS."""
         raising, clearing, values, model = found
         fleet = self._arrays()
         latch = self.thresholds.latch
-        for k in np.flatnonzero((raising | clearing).any(axis=(1, 2))).tolist():
-            slot = int(rows.slots[k])
-            now = float(rows.now[k])
-            for joint in rows.diagnostics[k]:
-                j = _JOINT_INDEX.get(joint)
-                if j is None:
-                    continue
-                for n in range(_N_KINDS):
-                    kind = _KINDS[n]
+        out = []
+        for joint in diagnostics:
+            j = _JOINT_INDEX.get(joint)
+            if j is None:
+                continue
+            for n in range(_N_KINDS):
+                kind = _KINDS[n]
+                at = (slot, j, n)
+                if raising[j][n]:
+                    fleet.present[at] = True
+                    fleet.raise_since[at] = math.nan
+                    fleet.raised[at] += 1
                     rule = self._rules[joint][kind]
-                    value = float(values[k, j, n])
-                    at = (slot, j, n)
-                    if raising[k, j, n]:
-                        fleet.present[at] = True
-                        fleet.raise_since[at] = math.nan
-                        fleet.raised[at] += 1
-                        checked = _optional(float(model[k, j]))
-                        self._messages[at] = _describe(joint, kind, value, rule, checked)
-                        out[k].append(self._move(at, _ACTIVE, "raised", now=now))
-                        self.counters.raised[(kind, SEVERITY[kind])] += 1
-                    elif clearing[k, j, n]:
-                        fleet.present[at] = False
-                        fleet.clear_since[at] = math.nan
-                        self.counters.cleared[kind] += 1
-                        latched = fleet.state[at] == _ACTIVE and latch
-                        out[k].append(self._move(at, _LATCHED if latched else _NORMAL, "cleared", now=now))
+                    self._messages[at] = _describe(joint, kind, values[j][n], rule, _optional(model[j]))
+                    out.append(self._move(at, _ACTIVE, "raised", now=now))
+                    self.counters.raised[(kind, SEVERITY[kind])] += 1
+                elif clearing[j][n]:
+                    fleet.present[at] = False
+                    fleet.clear_since[at] = math.nan
+                    self.counters.cleared[kind] += 1
+                    latched = fleet.state[at] == _ACTIVE and latch
+                    out.append(self._move(at, _LATCHED if latched else _NORMAL, "cleared", now=now))
+        return out
+
+    def _evaluate_one(
+        self,
+        slot: int,
+        diagnostics: Mapping[str, JointDiagnostics],
+        *,
+        angles: Sequence[float] | None,
+        timestamp_ms: int | None,
+        now: float,
+        holding_torques_nm: TorqueSource,
+    ) -> list[AlarmEvent]:
+        """`_evaluate` for one row, in plain Python on the row's lists: the same rules and the same
+        arithmetic (IEEE doubles both; a NaN compares false in both), so the same state and events, for a
+        fraction of the array path's fixed cost. `angles` in JOINT_NAMES order (NaN: not given), None
+        without a pose."""
+        fleet = self._arrays()
+        nan, isnan = math.nan, math.isnan
+        limit = self.thresholds.still_velocity_rad_s
+        raise_at, clear_at, raise_after, clear_after = self._rule_lists
+        check_joints = self._check_joints
+
+        # The pose against the device's last one (edge clock), only for consecutive-looking samples.
+        speeds = [nan] * _JOINTS
+        if angles is not None and timestamp_ms is not None:
+            dt = (timestamp_ms - int(fleet.pose_ms[slot])) / 1000.0
+            if fleet.has_pose[slot] and 0.0 < dt <= MAX_POSE_GAP_S:
+                speeds = [abs(a - b) / dt for a, b in zip(angles, fleet.pose[slot].tolist(), strict=True)]
+            fleet.pose[slot] = angles
+            fleet.pose_ms[slot] = timestamp_ms
+            fleet.has_pose[slot] = True
+
+        # The readings per joint (as _fill), still (as _still) and the model check.
+        given = [False] * _JOINTS
+        readings: list[tuple[float, float, float, float, float]] = [(nan, nan, nan, nan, nan)] * _JOINTS
+        for joint, diag in diagnostics.items():
+            j = _JOINT_INDEX.get(joint)
+            if j is not None:
+                given[j] = True
+                readings[j] = (
+                    _float(diag.temperature_c),
+                    _float(diag.current_a),
+                    _float(diag.load_percent),
+                    _float(diag.velocity_rad_s),
+                    nan if diag.moving is None else float(bool(diag.moving)),
+                )
+        checked = [False] * _JOINTS
+        model = [nan] * _JOINTS
+        mismatch = [nan] * _JOINTS
+        torques: TorqueSource | _Torques = holding_torques_nm
+        for j in range(_JOINTS):
+            if not (given[j] and check_joints[j]):
+                continue
+            _, _, load, velocity, moving = readings[j]
+            speed = speeds[j]
+            if (
+                moving == 1.0
+                or abs(velocity) > limit
+                or speed > limit
+                or (isnan(velocity) and isnan(speed) and isnan(moving))
+                or isnan(load)
+            ):
+                continue
+            checked[j] = True
+            joint = so101.JOINT_NAMES[j]
+            if not isinstance(torques, _Torques):
+                torques = _Torques(torques)
+            value = _model_load(torques, self._servo, joint, diagnostics[joint].voltage_v)
+            if value is not None:
+                model[j] = value
+                mismatch[j] = abs(abs(load) - value)
+
+        # The rules per joint and kind, as _evaluate: values in _KINDS order.
+        exists = fleet.exists[slot].tolist()
+        present = fleet.present[slot].tolist()
+        raise_row = fleet.raise_since[slot].tolist()
+        clear_row = fleet.clear_since[slot].tolist()
+        value_row = fleet.value[slot].tolist()
+        raising = [[False] * _N_KINDS for _ in range(_JOINTS)]
+        clearing = [[False] * _N_KINDS for _ in range(_JOINTS)]
+        values_of = [[nan] * _N_KINDS for _ in range(_JOINTS)]
+        changed = False
+        for j in range(_JOINTS):
+            if not given[j]:
+                continue
+            temperature, current, load, _, _ = readings[j]
+            values = values_of[j] = [temperature, temperature, current, abs(load), mismatch[j]]
+            for n in range(_N_KINDS):
+                value = values[n]
+                if not exists[j][n]:
+                    if isnan(value):
+                        continue
+                    # An alarm comes to be when its kind first has a value.
+                    exists[j][n] = True
+                    fleet.exists[slot, j, n] = True
+                    fleet.since[slot, j, n] = now
+                value_row[j][n] = value
+                above = value >= raise_at[j][n]
+                below = value <= clear_at[j][n]
+                on = present[j][n]
+                since = raise_row[j][n]
+                if above and not on:
+                    if isnan(since):
+                        raise_row[j][n] = since = now
+                    raising[j][n] = now - since >= raise_after[j][n]
+                elif not isnan(since):
+                    raise_row[j][n] = nan
+                since = clear_row[j][n]
+                if below and on:
+                    if isnan(since):
+                        clear_row[j][n] = since = now
+                    clearing[j][n] = now - since >= clear_after[j][n]
+                elif not isnan(since):
+                    clear_row[j][n] = nan
+                changed = changed or raising[j][n] or clearing[j][n]
+        fleet.raise_since[slot] = raise_row
+        fleet.clear_since[slot] = clear_row
+        fleet.value[slot] = value_row
+        out = (
+            self._row_changes(slot, now, diagnostics, (raising, clearing, values_of, model))
+            if changed
+            else []
+        )
+
+        # What this evaluation saw, for JointHealth.
+        fleet.speeds[slot] = speeds
+        fleet.checked[slot] = checked
+        fleet.model[slot] = model
+        fleet.mismatch[slot] = mismatch
+        self._last_diagnostics[slot] = diagnostics
+        self._last_torques[slot] = torques
+        return out
 
     def _move(self, at: tuple[int, int, int], state: int, action: str, *, now: float) -> AlarmEvent:
         """Alarm `at` (row, joint, kind) to `state`; its event."""
