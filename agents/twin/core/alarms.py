@@ -1,8 +1,8 @@
 """Servo alarms: over-temperature, over-current, sustained overload and model mismatch, per joint of each arm.
 
 Pure and I/O free, with the time passed in (the agent's monotonic receive time), so every rule is tested
-without sleeping. The worker calls `ServoAlarms.evaluate` for each applied message; people acknowledge
-through the HTTP API (`acknowledge`).
+without sleeping. The worker calls `ServoAlarms.evaluate_batch` for each round of applied messages (one per
+device); people acknowledge through the HTTP API (`acknowledge`).
 
 States follow AWS IoT SiteWise / IoT Events alarms (iotevents-data API `AlarmState`):
 
@@ -520,7 +520,10 @@ class ServoAlarms:
     The state lives in flat arrays with a row per device (`_Fleet`), so `evaluate_batch` runs the rules for
     a round of messages (one per device) in a few array operations instead of a loop per joint and kind in
     Python: a fleet's every applied message is evaluated. Only what is rare runs per item in Python: a model
-    check (inverse dynamics), a state change and its event."""
+    check (inverse dynamics), a state change and its event. Those array operations cost the same whatever
+    the round's size, so a small round (`small_round`, and `evaluate`) runs the same rules row by row in
+    plain Python on the same arrays (`_evaluate_one`); the tests hold the two paths to the same events and
+    state."""
 
     def __init__(self, thresholds: AlarmThresholds | None = None, *, small_round: int = SMALL_ROUND) -> None:
         self.thresholds = thresholds or AlarmThresholds()
@@ -845,6 +848,7 @@ class ServoAlarms:
         fraction of the array path's fixed cost. `angles` in JOINT_NAMES order (NaN: not given), None
         without a pose."""
         fleet = self._arrays()
+        now = float(now)  # as the array path's float64: an event's time is a float whatever was passed
         nan, isnan = math.nan, math.isnan
         limit = self.thresholds.still_velocity_rad_s
         raise_at, clear_at, raise_after, clear_after = self._rule_lists
