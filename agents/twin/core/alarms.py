@@ -546,9 +546,9 @@ class ServoAlarms:
         self._last_diagnostics: list[Mapping[str, JointDiagnostics] | None] = []
         self._last_torques: list[TorqueSource | _Torques | None] = []
         self._rule_arrays: tuple[Any, Any, Any, Any, Any] | None = None
-        # The same rules as lists, [joint][kind], for the row-by-row path (floats compare as numpy's do).
+        # The same rules as flat lists (joint * kinds + kind) for the row path (floats compare as numpy's).
         self._rule_lists = tuple(
-            [[getattr(self._rules[joint][kind], name) for kind in _KINDS] for joint in so101.JOINT_NAMES]
+            [getattr(self._rules[joint][kind], name) for joint in so101.JOINT_NAMES for kind in _KINDS]
             for name in ("raise_at", "clear_at", "raise_after_s", "clear_after_s")
         )
         self._check_joints = [joint in self._mismatch_joints for joint in so101.JOINT_NAMES]
@@ -904,57 +904,63 @@ class ServoAlarms:
                 model[j] = value
                 mismatch[j] = abs(abs(load) - value)
 
-        # The rules per joint and kind, as _evaluate: values in _KINDS order.
-        exists = fleet.exists[slot].tolist()
-        present = fleet.present[slot].tolist()
-        raise_row = fleet.raise_since[slot].tolist()
-        clear_row = fleet.clear_since[slot].tolist()
-        value_row = fleet.value[slot].tolist()
-        raising = [[False] * _N_KINDS for _ in range(_JOINTS)]
-        clearing = [[False] * _N_KINDS for _ in range(_JOINTS)]
-        values_of = [[nan] * _N_KINDS for _ in range(_JOINTS)]
+        # The rules per joint and kind, as _evaluate: values in _KINDS order. The row's cells are read as
+        # flat lists (cell j * _N_KINDS + n: one numpy call each) and only what changed is written back, but
+        # the values, which change with nearly every message.
+        cells = _JOINTS * _N_KINDS
+        exists = fleet.exists.reshape(-1, cells)[slot].tolist()
+        present = fleet.present.reshape(-1, cells)[slot].tolist()
+        raise_row = fleet.raise_since.reshape(-1, cells)[slot].tolist()
+        clear_row = fleet.clear_since.reshape(-1, cells)[slot].tolist()
+        value_view = fleet.value.reshape(-1, cells)
+        value_row = value_view[slot].tolist()
+        raising = [False] * cells
+        clearing = [False] * cells
+        values_of = [nan] * cells
         changed = False
         for j in range(_JOINTS):
             if not given[j]:
                 continue
             temperature, current, load, _, _ = readings[j]
-            values = values_of[j] = [temperature, temperature, current, abs(load), mismatch[j]]
+            first = j * _N_KINDS
+            values_of[first : first + _N_KINDS] = (temperature, temperature, current, abs(load), mismatch[j])
             for n in range(_N_KINDS):
-                value = values[n]
-                if not exists[j][n]:
+                c = first + n
+                value = values_of[c]
+                if not exists[c]:
                     if isnan(value):
                         continue
                     # An alarm comes to be when its kind first has a value.
-                    exists[j][n] = True
                     fleet.exists[slot, j, n] = True
                     fleet.since[slot, j, n] = now
-                value_row[j][n] = value
-                above = value >= raise_at[j][n]
-                below = value <= clear_at[j][n]
-                on = present[j][n]
-                since = raise_row[j][n]
-                if above and not on:
+                value_row[c] = value
+                on = present[c]
+                since = raise_row[c]
+                if value >= raise_at[c] and not on:
                     if isnan(since):
-                        raise_row[j][n] = since = now
-                    raising[j][n] = now - since >= raise_after[j][n]
+                        since = now
+                        fleet.raise_since[slot, j, n] = now
+                    raising[c] = now - since >= raise_after[c]
+                    changed = changed or raising[c]
                 elif not isnan(since):
-                    raise_row[j][n] = nan
-                since = clear_row[j][n]
-                if below and on:
+                    fleet.raise_since[slot, j, n] = nan
+                since = clear_row[c]
+                if value <= clear_at[c] and on:
                     if isnan(since):
-                        clear_row[j][n] = since = now
-                    clearing[j][n] = now - since >= clear_after[j][n]
+                        since = now
+                        fleet.clear_since[slot, j, n] = now
+                    clearing[c] = now - since >= clear_after[c]
+                    changed = changed or clearing[c]
                 elif not isnan(since):
-                    clear_row[j][n] = nan
-                changed = changed or raising[j][n] or clearing[j][n]
-        fleet.raise_since[slot] = raise_row
-        fleet.clear_since[slot] = clear_row
-        fleet.value[slot] = value_row
-        out = (
-            self._row_changes(slot, now, diagnostics, (raising, clearing, values_of, model))
-            if changed
-            else []
-        )
+                    fleet.clear_since[slot, j, n] = nan
+        value_view[slot] = value_row
+        out = []
+        if changed:
+            nested = [
+                [found[j * _N_KINDS : (j + 1) * _N_KINDS] for j in range(_JOINTS)]
+                for found in (raising, clearing, values_of)
+            ]
+            out = self._row_changes(slot, now, diagnostics, (nested[0], nested[1], nested[2], model))
 
         # What this evaluation saw, for JointHealth.
         fleet.speeds[slot] = speeds
