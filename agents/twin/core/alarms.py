@@ -956,11 +956,14 @@ class ServoAlarms:
         value_view[slot] = value_row
         out = []
         if changed:
-            nested = [
-                [found[j * _N_KINDS : (j + 1) * _N_KINDS] for j in range(_JOINTS)]
-                for found in (raising, clearing, values_of)
-            ]
-            out = self._row_changes(slot, now, diagnostics, (nested[0], nested[1], nested[2], model))
+            by_joint = [slice(j * _N_KINDS, (j + 1) * _N_KINDS) for j in range(_JOINTS)]
+            found = (
+                [raising[cells_of] for cells_of in by_joint],
+                [clearing[cells_of] for cells_of in by_joint],
+                [values_of[cells_of] for cells_of in by_joint],
+                model,
+            )
+            out = self._row_changes(slot, now, diagnostics, found)
 
         # What this evaluation saw, for JointHealth.
         fleet.speeds[slot] = speeds
