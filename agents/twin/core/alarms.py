@@ -1,8 +1,8 @@
 """Servo alarms: over-temperature, over-current, sustained overload and model mismatch, per joint of each arm.
 
 Pure and I/O free, with the time passed in (the agent's monotonic receive time), so every rule is tested
-without sleeping. The worker calls `ServoAlarms.evaluate` for each applied message; people acknowledge
-through the HTTP API (`acknowledge`).
+without sleeping. The worker calls `ServoAlarms.evaluate_batch` for each round of applied messages (one per
+device); people acknowledge through the HTTP API (`acknowledge`).
 
 States follow AWS IoT SiteWise / IoT Events alarms (iotevents-data API `AlarmState`):
 
@@ -426,6 +426,11 @@ _N_KINDS = len(_KINDS)
 _KIND_INDEX = {kind: k for k, kind in enumerate(_KINDS)}
 # A fleet's arrays start with room for this many devices and double when full.
 _FIRST_CAPACITY = 64
+# Rounds of at most this many messages are evaluated row by row in plain Python (ServoAlarms._evaluate_one):
+# the array rules cost a few dozen numpy calls whatever the round's size (about 140 us, and some 6 us a
+# message more), which a small fleet's rounds of one or two messages would pay in full. Timed on the mirror
+# with 100 arms in rounds of 1 to 16 (docs/performance.md): row by row is cheaper up to 8, arrays at 16.
+SMALL_ROUND = 8
 
 
 def _np() -> Any:
@@ -515,10 +520,15 @@ class ServoAlarms:
     The state lives in flat arrays with a row per device (`_Fleet`), so `evaluate_batch` runs the rules for
     a round of messages (one per device) in a few array operations instead of a loop per joint and kind in
     Python: a fleet's every applied message is evaluated. Only what is rare runs per item in Python: a model
-    check (inverse dynamics), a state change and its event."""
+    check (inverse dynamics), a state change and its event. Those array operations cost the same whatever
+    the round's size, so a small round (`small_round`, and `evaluate`) runs the same rules row by row in
+    plain Python on the same arrays (`_evaluate_one`); the tests hold the two paths to the same events and
+    state."""
 
-    def __init__(self, thresholds: AlarmThresholds | None = None) -> None:
+    def __init__(self, thresholds: AlarmThresholds | None = None, *, small_round: int = SMALL_ROUND) -> None:
         self.thresholds = thresholds or AlarmThresholds()
+        # Rounds up to this size go row by row (SMALL_ROUND); the tests set it to compare the two paths.
+        self.small_round = small_round
         self._servo = self.thresholds.servo
         self.counters = AlarmCounters()
         self._rules = {
@@ -536,6 +546,12 @@ class ServoAlarms:
         self._last_diagnostics: list[Mapping[str, JointDiagnostics] | None] = []
         self._last_torques: list[TorqueSource | _Torques | None] = []
         self._rule_arrays: tuple[Any, Any, Any, Any, Any] | None = None
+        # The same rules as flat lists (joint * kinds + kind) for the row path (floats compare as numpy's).
+        self._rule_lists = tuple(
+            [getattr(self._rules[joint][kind], name) for joint in so101.JOINT_NAMES for kind in _KINDS]
+            for name in ("raise_at", "clear_at", "raise_after_s", "clear_after_s")
+        )
+        self._check_joints = [joint in self._mismatch_joints for joint in so101.JOINT_NAMES]
 
     # -- rows -----------------------------------------------------------------------------------------------
 
@@ -594,21 +610,22 @@ class ServoAlarms:
         """
         if not self.thresholds.enabled:
             return []
-        np = _np()
-        rows = self._rows_of([device], [diagnostics], [holding_torques_nm], [now])
-        if angles_rad is not None and timestamp_ms is not None:
-            rows.angles[0] = [_float(angles_rad.get(j)) for j in so101.JOINT_NAMES]
-            rows.posed[0] = True
-            rows.stamps[0] = timestamp_ms
-        rows.stamps = np.asarray(rows.stamps, dtype=np.int64)
-        return self._evaluate(rows)[0]
+        pose = None if angles_rad is None else [_float(angles_rad.get(j)) for j in so101.JOINT_NAMES]
+        return self._evaluate_one(
+            self._row(device),
+            diagnostics,
+            angles=pose,
+            timestamp_ms=timestamp_ms,
+            now=now,
+            holding_torques_nm=holding_torques_nm,
+        )
 
     def evaluate_batch(
         self,
         devices: Sequence[str],
         diagnostics: Sequence[Mapping[str, JointDiagnostics]],
         *,
-        columns: DiagnosticColumns,
+        columns: DiagnosticColumns | Callable[[], DiagnosticColumns],
         angles: Sequence[Sequence[float]],
         timestamps_ms: Sequence[int],
         now: Sequence[float],
@@ -617,10 +634,25 @@ class ServoAlarms:
         """`evaluate` for many applied messages, each of another device: row k is `devices[k]`, its
         diagnostics (as `columns` row k holds them, where it knows them), its applied pose in JOINT_NAMES
         order with its edge time, its receive time and its holding torques. Returns each message's events,
-        as `evaluate` one by one would."""
+        as `evaluate` one by one would. `columns` may be a function that makes them: a small round (up to
+        `small_round` messages) goes row by row and does not need them."""
         count = len(devices)
         if not self.thresholds.enabled:
             return [[] for _ in range(count)]
+        if count <= self.small_round:
+            return [
+                self._evaluate_one(
+                    self._row(devices[k]),
+                    diagnostics[k],
+                    angles=angles[k],
+                    timestamp_ms=timestamps_ms[k],
+                    now=now[k],
+                    holding_torques_nm=holding_torques_nm[k],
+                )
+                for k in range(count)
+            ]
+        if callable(columns):
+            columns = columns()
         np = _np()
         slots = np.fromiter((self._row(d) for d in devices), dtype=np.int64, count=count)
         known = columns.known
@@ -647,34 +679,6 @@ class ServoAlarms:
                 rows.given[k] = False
                 self._fill(rows, k, diagnostics[k])
         return self._evaluate(rows)
-
-    def _rows_of(
-        self,
-        devices: Sequence[str],
-        diagnostics: Sequence[Mapping[str, JointDiagnostics]],
-        torques: Sequence[TorqueSource],
-        now: Sequence[float],
-    ) -> _Rows:
-        np = _np()
-        count = len(devices)
-        rows = _Rows(
-            slots=np.fromiter((self._row(d) for d in devices), dtype=np.int64, count=count),
-            diagnostics=diagnostics,
-            torques=list(torques),
-            now=np.asarray(now, dtype=np.float64),
-            given=np.zeros((count, _JOINTS), dtype=bool),
-            temperature=np.full((count, _JOINTS), np.nan),
-            current=np.full((count, _JOINTS), np.nan),
-            load=np.full((count, _JOINTS), np.nan),
-            velocity=np.full((count, _JOINTS), np.nan),
-            moving=np.full((count, _JOINTS), np.nan),
-            angles=np.full((count, _JOINTS), np.nan),
-            posed=np.zeros(count, dtype=bool),
-            stamps=[0] * count,
-        )
-        for k, diag in enumerate(diagnostics):
-            self._fill(rows, k, diag)
-        return rows
 
     @staticmethod
     def _fill(rows: _Rows, k: int, diagnostics: Mapping[str, JointDiagnostics]) -> None:
@@ -780,38 +784,195 @@ class ServoAlarms:
         return out
 
     def _changes(self, rows: _Rows, found: tuple[Any, Any, Any, Any], out: list[list[AlarmEvent]]) -> None:
-        """The rows' raises and clears (rare): states, counters, messages and events, each row's in the order
-        of its diagnostics' joints, then _KINDS."""
+        """The rows' raises and clears (rare): `_row_changes` of each row that has some."""
         np = _np()
+        raising, clearing, values, model = found
+        for k in np.flatnonzero((raising | clearing).any(axis=(1, 2))).tolist():
+            out[k].extend(
+                self._row_changes(
+                    int(rows.slots[k]),
+                    float(rows.now[k]),
+                    rows.diagnostics[k],
+                    (raising[k].tolist(), clearing[k].tolist(), values[k].tolist(), model[k].tolist()),
+                )
+            )
+
+    def _row_changes(
+        self,
+        slot: int,
+        now: float,
+        diagnostics: Mapping[str, JointDiagnostics],
+        found: tuple[list[list[bool]], list[list[bool]], list[list[float]], list[float]],
+    ) -> list[AlarmEvent]:
+        """One row's raises and clears ([joint][kind] lists): states, counters, messages and events, in the
+        order of its diagnostics' joints, then _KINDS."""
         raising, clearing, values, model = found
         fleet = self._arrays()
         latch = self.thresholds.latch
-        for k in np.flatnonzero((raising | clearing).any(axis=(1, 2))).tolist():
-            slot = int(rows.slots[k])
-            now = float(rows.now[k])
-            for joint in rows.diagnostics[k]:
-                j = _JOINT_INDEX.get(joint)
-                if j is None:
-                    continue
-                for n in range(_N_KINDS):
-                    kind = _KINDS[n]
+        out = []
+        for joint in diagnostics:
+            j = _JOINT_INDEX.get(joint)
+            if j is None:
+                continue
+            for n in range(_N_KINDS):
+                kind = _KINDS[n]
+                at = (slot, j, n)
+                if raising[j][n]:
+                    fleet.present[at] = True
+                    fleet.raise_since[at] = math.nan
+                    fleet.raised[at] += 1
                     rule = self._rules[joint][kind]
-                    value = float(values[k, j, n])
-                    at = (slot, j, n)
-                    if raising[k, j, n]:
-                        fleet.present[at] = True
-                        fleet.raise_since[at] = math.nan
-                        fleet.raised[at] += 1
-                        checked = _optional(float(model[k, j]))
-                        self._messages[at] = _describe(joint, kind, value, rule, checked)
-                        out[k].append(self._move(at, _ACTIVE, "raised", now=now))
-                        self.counters.raised[(kind, SEVERITY[kind])] += 1
-                    elif clearing[k, j, n]:
-                        fleet.present[at] = False
-                        fleet.clear_since[at] = math.nan
-                        self.counters.cleared[kind] += 1
-                        latched = fleet.state[at] == _ACTIVE and latch
-                        out[k].append(self._move(at, _LATCHED if latched else _NORMAL, "cleared", now=now))
+                    self._messages[at] = _describe(joint, kind, values[j][n], rule, _optional(model[j]))
+                    out.append(self._move(at, _ACTIVE, "raised", now=now))
+                    self.counters.raised[(kind, SEVERITY[kind])] += 1
+                elif clearing[j][n]:
+                    fleet.present[at] = False
+                    fleet.clear_since[at] = math.nan
+                    self.counters.cleared[kind] += 1
+                    latched = fleet.state[at] == _ACTIVE and latch
+                    out.append(self._move(at, _LATCHED if latched else _NORMAL, "cleared", now=now))
+        return out
+
+    def _evaluate_one(
+        self,
+        slot: int,
+        diagnostics: Mapping[str, JointDiagnostics],
+        *,
+        angles: Sequence[float] | None,
+        timestamp_ms: int | None,
+        now: float,
+        holding_torques_nm: TorqueSource,
+    ) -> list[AlarmEvent]:
+        """`_evaluate` for one row, in plain Python on the row's lists: the same rules and the same
+        arithmetic (IEEE doubles both; a NaN compares false in both), so the same state and events, for a
+        fraction of the array path's fixed cost. `angles` in JOINT_NAMES order (NaN: not given), None
+        without a pose."""
+        fleet = self._arrays()
+        now = float(now)  # as the array path's float64: an event's time is a float whatever was passed
+        nan, isnan = math.nan, math.isnan
+        limit = self.thresholds.still_velocity_rad_s
+        raise_at, clear_at, raise_after, clear_after = self._rule_lists
+        check_joints = self._check_joints
+
+        # The pose against the device's last one (edge clock), only for consecutive-looking samples.
+        speeds = [nan] * _JOINTS
+        if angles is not None and timestamp_ms is not None:
+            dt = (timestamp_ms - int(fleet.pose_ms[slot])) / 1000.0
+            if fleet.has_pose[slot] and 0.0 < dt <= MAX_POSE_GAP_S:
+                speeds = [abs(a - b) / dt for a, b in zip(angles, fleet.pose[slot].tolist(), strict=True)]
+            fleet.pose[slot] = angles
+            fleet.pose_ms[slot] = timestamp_ms
+            fleet.has_pose[slot] = True
+
+        # The readings per joint (as _fill), still (as _still) and the model check.
+        given = [False] * _JOINTS
+        readings: list[tuple[float, float, float, float, float]] = [(nan, nan, nan, nan, nan)] * _JOINTS
+        for joint, diag in diagnostics.items():
+            j = _JOINT_INDEX.get(joint)
+            if j is not None:
+                given[j] = True
+                readings[j] = (
+                    _float(diag.temperature_c),
+                    _float(diag.current_a),
+                    _float(diag.load_percent),
+                    _float(diag.velocity_rad_s),
+                    nan if diag.moving is None else float(bool(diag.moving)),
+                )
+        checked = [False] * _JOINTS
+        model = [nan] * _JOINTS
+        mismatch = [nan] * _JOINTS
+        torques: TorqueSource | _Torques = holding_torques_nm
+        for j in range(_JOINTS):
+            if not (given[j] and check_joints[j]):
+                continue
+            _, _, load, velocity, moving = readings[j]
+            speed = speeds[j]
+            if (
+                moving == 1.0
+                or abs(velocity) > limit
+                or speed > limit
+                or (isnan(velocity) and isnan(speed) and isnan(moving))
+                or isnan(load)
+            ):
+                continue
+            checked[j] = True
+            joint = so101.JOINT_NAMES[j]
+            if not isinstance(torques, _Torques):
+                torques = _Torques(torques)
+            value = _model_load(torques, self._servo, joint, diagnostics[joint].voltage_v)
+            if value is not None:
+                model[j] = value
+                mismatch[j] = abs(abs(load) - value)
+
+        # The rules per joint and kind, as _evaluate: values in _KINDS order. The row's cells are read as
+        # flat lists (cell j * _N_KINDS + n: one numpy call each) and only what changed is written back, but
+        # the values, which change with nearly every message.
+        cells = _JOINTS * _N_KINDS
+        exists = fleet.exists.reshape(-1, cells)[slot].tolist()
+        present = fleet.present.reshape(-1, cells)[slot].tolist()
+        raise_row = fleet.raise_since.reshape(-1, cells)[slot].tolist()
+        clear_row = fleet.clear_since.reshape(-1, cells)[slot].tolist()
+        value_view = fleet.value.reshape(-1, cells)
+        value_row = value_view[slot].tolist()
+        raising = [False] * cells
+        clearing = [False] * cells
+        values_of = [nan] * cells
+        changed = False
+        for j in range(_JOINTS):
+            if not given[j]:
+                continue
+            temperature, current, load, _, _ = readings[j]
+            first = j * _N_KINDS
+            values_of[first : first + _N_KINDS] = (temperature, temperature, current, abs(load), mismatch[j])
+            for n in range(_N_KINDS):
+                c = first + n
+                value = values_of[c]
+                if not exists[c]:
+                    if isnan(value):
+                        continue
+                    # An alarm comes to be when its kind first has a value.
+                    fleet.exists[slot, j, n] = True
+                    fleet.since[slot, j, n] = now
+                value_row[c] = value
+                on = present[c]
+                since = raise_row[c]
+                if value >= raise_at[c] and not on:
+                    if isnan(since):
+                        since = now
+                        fleet.raise_since[slot, j, n] = now
+                    raising[c] = now - since >= raise_after[c]
+                    changed = changed or raising[c]
+                elif not isnan(since):
+                    fleet.raise_since[slot, j, n] = nan
+                since = clear_row[c]
+                if value <= clear_at[c] and on:
+                    if isnan(since):
+                        since = now
+                        fleet.clear_since[slot, j, n] = now
+                    clearing[c] = now - since >= clear_after[c]
+                    changed = changed or clearing[c]
+                elif not isnan(since):
+                    fleet.clear_since[slot, j, n] = nan
+        value_view[slot] = value_row
+        out = []
+        if changed:
+            by_joint = [slice(j * _N_KINDS, (j + 1) * _N_KINDS) for j in range(_JOINTS)]
+            found = (
+                [raising[cells_of] for cells_of in by_joint],
+                [clearing[cells_of] for cells_of in by_joint],
+                [values_of[cells_of] for cells_of in by_joint],
+                model,
+            )
+            out = self._row_changes(slot, now, diagnostics, found)
+
+        # What this evaluation saw, for JointHealth.
+        fleet.speeds[slot] = speeds
+        fleet.checked[slot] = checked
+        fleet.model[slot] = model
+        fleet.mismatch[slot] = mismatch
+        self._last_diagnostics[slot] = diagnostics
+        self._last_torques[slot] = torques
+        return out
 
     def _move(self, at: tuple[int, int, int], state: int, action: str, *, now: float) -> AlarmEvent:
         """Alarm `at` (row, joint, kind) to `state`; its event."""

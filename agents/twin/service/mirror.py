@@ -967,7 +967,8 @@ class Mirror:
             found = self._alarms.evaluate_batch(
                 devices,
                 diagnostics,
-                columns=diagnostic_columns(messages),
+                # Made only for a round the engine takes as arrays (ServoAlarms.small_round).
+                columns=lambda: diagnostic_columns(messages),
                 angles=poses,
                 timestamps_ms=stamps,
                 now=received,
