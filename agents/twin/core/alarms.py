@@ -696,6 +696,9 @@ class ServoAlarms:
 
     def _evaluate(self, rows: _Rows) -> list[list[AlarmEvent]]:
         """The rules for every row at once (module doc; each row a device of its own)."""
+        # Kept whole: one chain of array expressions (speeds -> still -> model check -> values -> timers),
+        # each step reading the ones before it, which named functions would hand a dozen arrays each; its
+        # twin `_evaluate_one` follows the same order line for line, so the two are read side by side.
         np = _np()
         fleet = self._arrays()
         slots = rows.slots
@@ -847,6 +850,9 @@ class ServoAlarms:
         arithmetic (IEEE doubles both; a NaN compares false in both), so the same state and events, for a
         fraction of the array path's fixed cost. `angles` in JOINT_NAMES order (NaN: not given), None
         without a pose."""
+        # Kept whole: the per-message path of small rounds, where a call per step (or per cell) is a cost
+        # the row path exists to avoid; it follows `_evaluate`'s steps in the same order, and the raise and
+        # clear timers below mirror each other on purpose (the same rule, either direction).
         fleet = self._arrays()
         now = float(now)  # as the array path's float64: an event's time is a float whatever was passed
         nan, isnan = math.nan, math.isnan
