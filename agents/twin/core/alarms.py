@@ -579,14 +579,17 @@ class ServoAlarms:
         check looks at."""
         arrays = self._rule_arrays
         if arrays is None:
+            # The row path's flat lists (joint * kinds + kind), shaped per joint and kind.
             np = _np()
-            rules = [[self._rules[joint][kind] for kind in _KINDS] for joint in so101.JOINT_NAMES]
+            raise_at, clear_at, raise_after, clear_after = (
+                np.array(values).reshape(_JOINTS, _N_KINDS) for values in self._rule_lists
+            )
             arrays = self._rule_arrays = (
-                np.array([[r.raise_at for r in row] for row in rules]),
-                np.array([[r.clear_at for r in row] for row in rules]),
-                np.array([[r.raise_after_s for r in row] for row in rules]),
-                np.array([[r.clear_after_s for r in row] for row in rules]),
-                np.array([joint in self._mismatch_joints for joint in so101.JOINT_NAMES]),
+                raise_at,
+                clear_at,
+                raise_after,
+                clear_after,
+                np.array(self._check_joints),
             )
         return arrays
 
