@@ -389,6 +389,28 @@ def test_a_failed_maintenance_process_is_counted_and_named(
     assert rows_of(uri).height == 10  # nothing of the table was touched
 
 
+def test_a_running_maintenance_process_is_stopped_at_shutdown(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    uri = str(tmp_path / "h")
+    started = tmp_path / "maintenance-started"
+    writer = HistoryWriter(HistorySettings(uri=uri, commit_every_s=3600, maintain_every_s=0.2))
+    # A maintenance process that would outlive any shutdown budget: it says it started, then sleeps.
+    writer.maintenance_command = [
+        sys.executable,
+        "-c",
+        "import pathlib, sys, time; pathlib.Path(sys.argv[1]).touch(); time.sleep(600)",
+        str(started),
+    ]
+    writer.start()
+    wait_for(started.exists, 60, "the committer to start its maintenance process")
+    writer.close(timeout=5)
+    # Stopped, not waited for: the committer thread ended within close's wait, and no failure is counted.
+    assert not writer._thread.is_alive()
+    assert writer.stats().maintenance_failures == 0
+    assert any("stopped by the shutdown" in r.getMessage() for r in caplog.records)
+
+
 def test_maintain_now_with_maintenance_off_does_not_make_the_committer_maintain(tmp_path: Path) -> None:
     uri = str(tmp_path / "h")
     writer = HistoryWriter(HistorySettings(uri=uri, commit_every_s=3600, maintain_every_s=0)).start()

@@ -420,9 +420,9 @@ def _writer_properties(level: int) -> Any:
 # zstd 3 for the frequent small commits (cheap), a stronger level when compaction rewrites them once.
 COMMIT_ZSTD_LEVEL = 3
 COMPACT_ZSTD_LEVEL = 12
-# A DeltaTable object's state holds every data file's metadata, and updating it in place keeps what the log
-# replaced too: the writer's RSS grew with every commit until it opened the table anew. Opening costs one
-# checkpoint read plus the JSON commits after it, small next to 50 commits' growth.
+# A DeltaTable object's state holds every data file's metadata and grows with each commit it is updated
+# with; a long-lived one kept the writer's RSS growing between compactions (docs/performance.md, "Soak").
+# Opening the table anew starts from the current state (one checkpoint read plus the JSON commits after it).
 REOPEN_EVERY_COMMITS = 50
 # A maintenance process still running after this long is stopped and counted as failed.
 MAINTENANCE_TIMEOUT_S = 1800.0
