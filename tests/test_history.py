@@ -13,6 +13,7 @@ import json
 import os
 import random
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -349,6 +350,102 @@ def test_maintenance_compacts_checkpoints_and_vacuums(tmp_path: Path) -> None:
     assert len(data_files) == 1  # the four small files were vacuumed
     assert list((location / "_delta_log").glob("*.checkpoint.parquet"))
     assert rows_of(uri).height == 400
+
+
+def test_maintenance_runs_in_a_process_that_exits_and_its_log_reaches_ours(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    uri = str(tmp_path / "h")
+    now = time.time()
+    writer = HistoryWriter(HistorySettings(uri=uri, commit_every_s=3600, maintain_every_s=0)).start()
+    for k in range(3):
+        writer.add(TELEMETRY_TABLE, telemetry_table(samples(100, start_s=now + 20 * k))[0])
+        assert writer.flush(10)
+    writer.close()
+    caplog.set_level("INFO", logger="twin.output.history")
+    writer.maintain_now()
+    assert writer.stats().maintenance_runs == 1  # the telemetry table; the rejected one does not exist
+    compacted = [r for r in caplog.records if r.getMessage().startswith("history: compacted telemetry/")]
+    # Logged by the maintenance process, which is gone: its pid is not ours.
+    assert compacted and getattr(compacted[0], "maintenance_pid", os.getpid()) != os.getpid()
+    assert getattr(compacted[0], "files_removed", None) == 3
+    assert rows_of(uri).height == 300
+
+
+def test_a_failed_maintenance_process_is_counted_and_named(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    uri = str(tmp_path / "h")
+    writer = HistoryWriter(HistorySettings(uri=uri, commit_every_s=3600, maintain_every_s=0)).start()
+    writer.add(TELEMETRY_TABLE, telemetry_table(samples(10))[0])
+    assert writer.flush(10)
+    writer.close()
+    writer.maintenance_command = [sys.executable, "-c", "import sys; sys.exit(3)"]
+    writer.maintain_now()
+    stats = writer.stats()
+    assert (stats.maintenance_runs, stats.maintenance_failures) == (0, 1)
+    assert "maintenance process failed" in stats.last_error and "exit code 3" in stats.last_error
+    assert any("the maintenance process failed" in r.getMessage() for r in caplog.records)
+    assert rows_of(uri).height == 10  # nothing of the table was touched
+
+
+def test_a_running_maintenance_process_is_stopped_at_shutdown(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    uri = str(tmp_path / "h")
+    started = tmp_path / "maintenance-started"
+    writer = HistoryWriter(HistorySettings(uri=uri, commit_every_s=3600, maintain_every_s=0.2))
+    # A maintenance process that would outlive any shutdown budget: it says it started, then sleeps.
+    writer.maintenance_command = [
+        sys.executable,
+        "-c",
+        "import pathlib, sys, time; pathlib.Path(sys.argv[1]).touch(); time.sleep(600)",
+        str(started),
+    ]
+    writer.start()
+    wait_for(started.exists, 60, "the committer to start its maintenance process")
+    writer.close(timeout=5)
+    # Stopped, not waited for: the committer thread ended within close's wait, and no failure is counted.
+    assert not writer._thread.is_alive()
+    assert writer.stats().maintenance_failures == 0
+    assert any("stopped by the shutdown" in r.getMessage() for r in caplog.records)
+
+
+def test_maintain_now_with_maintenance_off_does_not_make_the_committer_maintain(tmp_path: Path) -> None:
+    uri = str(tmp_path / "h")
+    writer = HistoryWriter(HistorySettings(uri=uri, commit_every_s=3600, maintain_every_s=0)).start()
+    try:
+        writer.add(TELEMETRY_TABLE, telemetry_table(samples(10))[0])
+        assert writer.flush(10)
+        writer.maintain_now()
+        assert writer.stats().maintenance_runs == 1
+        # The committer checks for due maintenance after each commit round: the second flush waits for
+        # whatever the first one's round started. Maintenance off means it started none.
+        writer.add(TELEMETRY_TABLE, telemetry_table(samples(10, start_s=T0 + 60))[0])
+        assert writer.flush(10)
+        assert writer.flush(10)
+        stats = writer.stats()
+        assert (stats.maintenance_runs, stats.maintenance_skipped) == (1, 0)
+    finally:
+        writer.close()
+
+
+def test_the_writer_opens_its_table_anew_every_n_commits(tmp_path: Path) -> None:
+    uri = str(tmp_path / "h")
+    writer = HistoryWriter(HistorySettings(uri=uri, commit_every_s=3600), reopen_every=2).start()
+    try:
+        for k in range(5):
+            writer.add(TELEMETRY_TABLE, telemetry_table(samples(20, start_s=T0 + 10 * k))[0])
+            assert writer.flush(10)
+        table = writer.stats().tables[TELEMETRY_TABLE]
+        # Opened for commits 1, 3 and 5; each commit still saw the versions before it.
+        assert (table.commits, table.opens) == (5, 3)
+        assert table.last_commit_version == 5  # version 0 is the table's creation
+    finally:
+        writer.close()
+    assert rows_of(uri).height == 100
+    with pytest.raises(ValueError, match="reopen_every"):
+        HistoryWriter(HistorySettings(uri=uri), reopen_every=0)
 
 
 def test_settings_refuse_bad_values_with_the_fix() -> None:

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import fed_agent, metric, parse_metrics, wait_for
+from twin.core import heap
 from twin.core.telemetry import Telemetry, Units
 from twin.core.twin import DeviceTwin
 from twin.output.sinks import AppliedSample, QueuedSink, RejectedSample, SinkStats
@@ -96,6 +97,26 @@ def test_a_stalled_worker_never_blocks_the_caller_and_drops_the_oldest() -> None
     assert stats.delivered == 11
     # Not a timing assertion of the design's speed: a generous bound that only a blocking put would break.
     assert put_time < 5.0
+
+
+def test_a_drained_backlog_gives_its_memory_back_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    trims: list[int] = []
+    monkeypatch.setattr(heap, "trim", lambda: trims.append(1) or True)
+    gate = threading.Event()
+    worker = _Recorder(gate=gate)
+    sink = QueuedSink("backlog", worker, max_pending=1000, idle_s=0.01)
+    sink.applied(_sample(0))
+    assert worker.entered.wait(30), "the sink's thread never took the first sample"
+    for i in range(1, 301):  # a batch of 300: at least max(256, max_pending // 10), a backlog
+        sink.applied(_sample(i))
+    assert trims == []  # nothing drained yet
+    gate.set()
+    wait_for(lambda: worker.idles >= 1 and len(worker.applied) == 301, 30, "the backlog drained")
+    wait_for(lambda: trims, 30, "a trim after the backlog")
+    sink.applied(_sample(301))  # small batches after it: no trim of their own
+    wait_for(lambda: worker.idles >= 3, 30, "idle again")
+    sink.close()
+    assert trims == [1]
 
 
 def test_a_failing_worker_is_counted_and_the_sink_keeps_going() -> None:

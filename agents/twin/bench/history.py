@@ -79,7 +79,8 @@ def storage(*, hours: float = 24.0, variant: str = "ticks", workdir: Path | None
         before, files_before = _active_bytes(uri)
         writer.close()
         started = time.monotonic()
-        # The writer's maintenance, run for the measured day (same target size and zstd level).
+        # The writer's maintenance, run for the measured day (same target size and zstd level), in its own
+        # process as the writer runs it: that process's start is part of compact_s.
         writer.maintain_now(today=dt.datetime.fromtimestamp(DAY_START_S, dt.UTC).date())
         compact_s = time.monotonic() - started
         after, files_after = _active_bytes(uri)

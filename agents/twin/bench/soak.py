@@ -184,6 +184,9 @@ def _counts(base: str) -> dict[str, Any]:
         "history_rows_committed": history.rows_committed if history else 0,
         "history_lag_s": history.lag_s if history else 0.0,
         "history_commit_failures": history.commit_failures if history else 0,
+        # Maintenance runs in a process of its own: these say it ran, and whether it failed.
+        "history_maintenance_runs": history.maintenance_runs if history else 0,
+        "history_maintenance_failures": history.maintenance_failures if history else 0,
         "recording_rotations": recording.rotations if recording else 0,
         "recording_files_deleted": recording.files_deleted if recording else 0,
         "internal_p99_ms": 1000 * (agent.latency.internal_s.p99 or 0.0),

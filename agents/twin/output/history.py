@@ -36,6 +36,7 @@ import logging
 import operator
 import os
 import socket
+import sys
 import threading
 import time
 import uuid
@@ -48,7 +49,9 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.json as pa_json
 
+from twin.core import heap
 from twin.output.history_feed import REJECTED_PAYLOAD_MAX_BYTES
+from twin.output.history_maintain import run_child
 from twin.output.sinks import AppliedSample, QueuedSink, RejectedSample
 from twin.robot import so101
 
@@ -363,6 +366,9 @@ class TableStats:
     rows_dropped: int = 0
     rows_buffered: int = 0
     duplicate_commits_skipped: int = 0
+    # Times the writer opened the table (the first append, after a failure or maintenance, every
+    # REOPEN_EVERY_COMMITS commits).
+    opens: int = 0
     last_commit_version: int | None = None
     last_error: str = ""
 
@@ -414,6 +420,14 @@ def _writer_properties(level: int) -> Any:
 # zstd 3 for the frequent small commits (cheap), a stronger level when compaction rewrites them once.
 COMMIT_ZSTD_LEVEL = 3
 COMPACT_ZSTD_LEVEL = 12
+# A DeltaTable object's state holds every data file's metadata and grows with each commit it is updated
+# with; a long-lived one kept the writer's RSS growing between compactions (docs/performance.md, "Soak").
+# Opening the table anew starts from the current state (one checkpoint read plus the JSON commits after it).
+REOPEN_EVERY_COMMITS = 50
+# A maintenance process still running after this long is stopped and counted as failed.
+MAINTENANCE_TIMEOUT_S = 1800.0
+# The maintenance process: a module-level entry point run by a fresh interpreter (see _maintain).
+MAINTENANCE_MODULE = "twin.output.history_maintain"
 TABLE_CONFIGURATION = {
     # A checkpoint every 100 commits keeps opening the table to one Parquet read plus a few JSON files.
     "delta.checkpointInterval": "100",
@@ -437,8 +451,16 @@ class HistoryWriter:
         clock: Callable[[], float] = time.monotonic,
         wall_clock: Callable[[], float] = time.time,
         writer_id: str | None = None,
+        maintain_in_child: bool = True,
+        reopen_every: int = REOPEN_EVERY_COMMITS,
     ) -> None:
+        if reopen_every < 1:
+            raise ValueError(f"reopen_every must be at least 1, got {reopen_every}")
         self.settings = settings
+        self._maintain_in_child = maintain_in_child
+        self._reopen_every = reopen_every
+        # What runs maintenance (module doc of twin.output.history_maintain); tests swap in a failing one.
+        self.maintenance_command: list[str] = [sys.executable, "-m", MAINTENANCE_MODULE]
         self._clock = clock
         self._wall = wall_clock
         self.writer_id = writer_id or (
@@ -464,10 +486,9 @@ class HistoryWriter:
         self._close_deadline = 0.0
         self._retry_at = 0.0
         self._backoff = settings.retry_min_s
-        self._next_maintenance = (
-            clock() + settings.maintain_every_s if settings.maintain_every_s > 0 else float("inf")
-        )
+        self._next_maintenance = self._maintenance_after(clock())
         self._tables: dict[str, Any] = {}
+        self._appends_since_open = dict.fromkeys(SCHEMAS, 0)
         self._error_logged_at = -1e9
         self._thread = threading.Thread(target=self._run, name="history-commit", daemon=True)
         self._started = False
@@ -633,6 +654,11 @@ class HistoryWriter:
             ok = True
             for table, items in batches.items():
                 ok = self._commit_round(table, items) and ok
+            if ok and sum(p.table.num_rows for items in batches.values() for p in items) >= (
+                self.settings.commit_every_rows
+            ):
+                # A burst (a backlog after an outage, a full buffer): its Arrow tables are freed now.
+                heap.trim()
             with self._cond:
                 if batches:
                     self._stats.storage_ok = ok
@@ -652,7 +678,7 @@ class HistoryWriter:
                     if time.monotonic() >= self._close_deadline:
                         return
             if self._clock() >= self._next_maintenance and not closing:
-                self._maintain()
+                self._maintain(interruptible=True)
 
     def _commit_round(self, table: str, items: list[_Pending]) -> bool:
         """Commit a batch attempted before (alone, with its sequence number), then everything else at once."""
@@ -697,11 +723,7 @@ class HistoryWriter:
         committed by an earlier attempt whose answer was lost."""
         from deltalake import CommitProperties, Transaction, write_deltalake  # noqa: PLC0415
 
-        uri = self.settings.table_uri(table)
-        dtable = self._tables.get(table)
-        if dtable is None:
-            dtable = self._open_or_create(table, uri)
-            self._tables[table] = dtable
+        dtable = self._table(table)
         dtable.update_incremental()
         done = dtable.transaction_version(self.writer_id)
         if done is not None and done >= seq:
@@ -724,6 +746,23 @@ class HistoryWriter:
             ),
         )
         return int(dtable.version())
+
+    def _table(self, table: str) -> Any:
+        """The open table, opened anew every `reopen_every` appends (REOPEN_EVERY_COMMITS says why)."""
+        dtable = self._tables.get(table)
+        if dtable is not None and self._appends_since_open[table] < self._reopen_every:
+            self._appends_since_open[table] += 1
+            return dtable
+        reopening = self._tables.pop(table, None) is not None
+        del dtable  # the old state must be gone before the trim below can give its pages back
+        dtable = self._open_or_create(table, self.settings.table_uri(table))
+        self._tables[table] = dtable
+        self._appends_since_open[table] = 1
+        with self._cond:
+            self._stats.tables[table].opens += 1
+        if reopening:
+            heap.trim()
+        return dtable
 
     def _open_or_create(self, table: str, uri: str) -> Any:
         """The table at `uri`, created first if missing. Created on its own (not by the first append) so two
@@ -822,12 +861,34 @@ class HistoryWriter:
             raise
         return True
 
-    def _maintain(self, today: dt.date | None = None) -> None:
-        """Compact today's and yesterday's partitions, checkpoint, vacuum replaced files, trim the log."""
+    def _maintenance_after(self, now: float) -> float:
+        """When maintenance is next due after `now` (never with maintain_every_s = 0)."""
+        every = self.settings.maintain_every_s
+        return now + every if every > 0 else float("inf")
+
+    def _maintain(self, today: dt.date | None = None, *, interruptible: bool = False) -> None:
+        """Compact today's and yesterday's partitions, checkpoint, vacuum replaced files, trim the log.
+
+        It runs in a process of its own (`maintenance_command`) unless the writer was made with
+        maintain_in_child=False: compaction reads and rewrites the day's files, and the hundreds of MB that
+        takes stayed in this process's RSS after it (glibc keeps freed arenas); a process that exits gives
+        them all back. The committer thread waits for it, so this writer commits nothing meanwhile (rows
+        queue within max_buffer_rows), exactly as when maintenance ran on the thread itself.
+        `interruptible`: stop the process if the writer is closed meanwhile (the committer's own runs).
+        """
+        self._next_maintenance = self._maintenance_after(self._clock())
+        today = today or dt.datetime.fromtimestamp(self._wall(), dt.UTC).date()
+        if self._maintain_in_child:
+            self._maintain_in_process_of_its_own(today, interruptible)
+        else:
+            self.maintain_here(today)
+        self._tables.clear()  # the next append reloads the table state maintenance changed
+        heap.trim()
+
+    def maintain_here(self, today: dt.date) -> None:
+        """Maintenance on the caller's thread, in this process (what the maintenance process runs)."""
         from deltalake.exceptions import CommitFailedError  # noqa: PLC0415
 
-        self._next_maintenance = self._clock() + self.settings.maintain_every_s
-        today = today or dt.datetime.fromtimestamp(self._wall(), dt.UTC).date()
         days = [today - dt.timedelta(days=1), today]
         for table in SCHEMAS:
             dtable = self._leased_table(table)
@@ -847,7 +908,6 @@ class HistoryWriter:
                 )
             except Exception as exc:
                 self._maintenance_failed(table, exc)
-        self._tables.clear()  # the next append reloads the table state maintenance changed
 
     def _leased_table(self, table: str) -> Any:
         """The table to maintain, or None: another writer holds the lease (counted as skipped), the table does
@@ -897,9 +957,59 @@ class HistoryWriter:
         dtable.cleanup_metadata()
 
     def maintain_now(self, today: dt.date | None = None) -> None:
-        """Run maintenance on the caller's thread, for `today` (UTC) and the day before; call it on a
-        writer whose committer is closed or has maintenance off (`maintain_every_s = 0`)."""
+        """Run maintenance now, waiting for it, for `today` (UTC) and the day before; call it on a writer
+        whose committer is closed or has maintenance off (`maintain_every_s = 0`)."""
         self._maintain(today)
+
+    def maintenance_request(self, today: dt.date) -> dict[str, Any]:
+        """What the maintenance process needs to maintain as this writer would (plain JSON values)."""
+        settings = dataclasses.asdict(self.settings)
+        settings["storage_options"] = dict(self.settings.storage_options)
+        return {"settings": settings, "writer_id": self.writer_id, "today": today.isoformat()}
+
+    def maintenance_result(self) -> dict[str, Any]:
+        """This writer's maintenance counters (what the maintenance process answers)."""
+        with self._cond:
+            stats = self._stats
+            return {
+                "maintenance_runs": stats.maintenance_runs,
+                "maintenance_failures": stats.maintenance_failures,
+                "maintenance_conflicts": stats.maintenance_conflicts,
+                "maintenance_skipped": stats.maintenance_skipped,
+                "last_error": stats.last_error,
+            }
+
+    def _maintain_in_process_of_its_own(self, today: dt.date, interruptible: bool) -> None:
+        try:
+            result = run_child(
+                self.maintenance_command,
+                self.maintenance_request(today),
+                timeout_s=MAINTENANCE_TIMEOUT_S,
+                stop=(lambda: self._closing) if interruptible else None,
+            )
+        except Exception as exc:
+            self._maintenance_process_failed(f"{type(exc).__name__}: {exc}")
+            return
+        if result is None:
+            log.warning("history: maintenance was stopped by the shutdown; it runs again at the next start")
+            return
+        with self._cond:
+            stats = self._stats
+            for name in ("maintenance_runs", "maintenance_failures", "maintenance_conflicts"):
+                setattr(stats, name, getattr(stats, name) + int(result.get(name, 0)))
+            stats.maintenance_skipped += int(result.get("maintenance_skipped", 0))
+            if result.get("maintenance_failures") and result.get("last_error"):
+                stats.last_error = str(result["last_error"])
+
+    def _maintenance_process_failed(self, message: str) -> None:
+        with self._cond:
+            self._stats.maintenance_failures += 1
+            self._stats.last_error = f"history maintenance process failed: {message}"
+        log.error(
+            "history: the maintenance process failed (%s); retried at the next interval",
+            message,
+            extra={"maintenance_failures": self._stats.maintenance_failures},
+        )
 
     def _maintenance_failed(self, table: str, exc: BaseException) -> None:
         message = _describe_storage_error(self.settings.uri, exc)

@@ -23,6 +23,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from twin.core import heap
 from twin.output.recorder import SessionRecorder
 from twin.output.sinks import AppliedSample, DeviceRateCap, QueuedSink, RejectedSample, SinkStats
 from twin.robot.model import RobotModel
@@ -159,6 +160,9 @@ class _RecorderWorker:
             extra={"closed": str(recorder.path), "bytes": size, "next": str(successor.path)},
         )
         self._keep_within_budget(successor.path)
+        # The closed session's stage (its layers, every sample authored) was freed: give its pages back, or
+        # each rotation's peak stays in the RSS.
+        heap.trim()
 
     def _keep_within_budget(self, current: Path) -> None:
         """Delete the oldest session files in the directory while they, and the session just begun at its

@@ -45,6 +45,7 @@ import rerun.blueprint as rrb
 import rerun_bindings
 from rerun.chunk import Chunk
 
+from twin.core import heap
 from twin.core.telemetry import JointDiagnostics
 from twin.output.rerun_settings import RerunSettings
 from twin.output.sinks import AppliedSample, DeviceRateCap, QueuedSink, RejectedSample, SinkStats
@@ -369,6 +370,8 @@ class RerunWorker:
         # per rotation, for as long as the agent runs, otherwise).
         rerun_bindings.flush_and_cleanup_orphaned_recordings()
         rotation.rotated(now)
+        # The old stream's buffers and threads are gone: give their pages back (twin.core.heap).
+        heap.trim()
         assert self.save_path is not None
         # No layout in the new file: every blueprint the SDK (0.41) builds keeps a stream of its own, with two
         # threads, for as long as the process runs, which a rotation every few minutes would pile up. A later

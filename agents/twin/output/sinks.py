@@ -22,6 +22,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
+from twin.core import heap
 from twin.core.alarms import AlarmEvent
 
 if TYPE_CHECKING:
@@ -215,6 +216,10 @@ class QueuedSink:
         self._hand_off_s = hand_off_s
         self._waiting = False
         self._in_flight = 0
+        # A batch this large is a backlog (the sink fell behind): once it has drained, the memory its samples
+        # and the worker's buffers took is free, and is given back to the system (twin.core.heap).
+        self._backlog_items = max(256, max_pending // 10)
+        self._in_backlog = False
         self._closing = False
         self._delivered = 0
         self._dropped = 0
@@ -282,6 +287,7 @@ class QueuedSink:
                     self._guard(worker.close)
                     return
                 self._guard(worker.idle)
+                self._backlog_check(0)
                 continue
             delivered = 0
             for item in items:
@@ -292,8 +298,18 @@ class QueuedSink:
             with self._cond:
                 self._delivered += delivered
                 self._in_flight = 0
+            self._backlog_check(len(items))
             if self._hand_off_s and not closing:
                 time.sleep(self._hand_off_s)
+
+    def _backlog_check(self, batch: int) -> None:
+        """After a batch of `batch` items: a large one starts a backlog, a small one after it ends it, and
+        then the memory the backlog took goes back to the system."""
+        if batch >= self._backlog_items:
+            self._in_backlog = True
+        elif self._in_backlog and batch < self._backlog_items // 4:
+            self._in_backlog = False
+            heap.trim()
 
     def _guard(self, fn: Callable[..., object], *args: object) -> bool:
         try:
