@@ -102,10 +102,10 @@ def test_untimed_batches_read_no_cpu_clock(fed: Feed) -> None:
     mirror = fed(clock, sampler, 200)
     worker = mirror.report().worker
     assert worker.batches == 200
-    # Batches of one message are timed on about 1 in 16 turns: far fewer clock reads than batches (timing
-    # every batch would read it at least 4 times each), but some (the stage split is still there).
+    # Batches of one message are timed on about 1 in 16 turns: under 2 clock reads a batch (timing every
+    # batch reads it at least 4 times each), but some (the stage split is still there).
     assert 0 < worker.stage_timed_batches < 200 // 4
-    assert 0 < clock.calls < 200
+    assert 0 < clock.calls < 2 * 200
     assert worker.stage_cpu_s["decode"] > 0
 
 

@@ -612,9 +612,12 @@ class Mirror:
             # (service.stagetiming); the others read no clock for them at all.
             sampled = sampler.sample()
             if sampled:
+                # Each timed span holds one reading's own cost (_handle says why it is taken off).
+                before = cpu()
                 started = cpu()
                 batch = inbox.take(wake)
-                stage_cpu["hand_over"] += (cpu() - started) * sampler.weight
+                spent = cpu() - started - (started - before)
+                stage_cpu["hand_over"] += spent * sampler.weight
             else:
                 batch = inbox.take(wake)
             count = len(batch.payloads)
@@ -780,7 +783,14 @@ class Mirror:
         else:
             cpu = _no_cpu_clock
         stage_cpu = self._stage_cpu
+        # Every timed span holds about one clock reading's own cost (the end of the reading that opens it and
+        # the start of the one that closes it). Timing every batch paid it every time; a sampled batch's
+        # figures are scaled up, and with them that cost, which the untimed batches no longer pay: left in,
+        # the scaled stages overstated the worker's CPU at batches of one (docs/performance.md). Two
+        # readings in a row measure it; it is taken off each span.
+        before = cpu()
         started = cpu()
+        read = started - before
         admitted: set[int] = set()
         # The loss estimators see the batch in arrival order, valid and rejected messages alike (a rejection
         # only offsets a hole after the device's first valid sample), so they are fed here, once decoding has
@@ -791,7 +801,7 @@ class Mirror:
         if behind and len(decoded) > 1:
             decoded = self._catch_up(decoded, batch, admitted)
         decoded_at = cpu()
-        stage_cpu["decode"] += (decoded_at - started) * weight
+        stage_cpu["decode"] += (decoded_at - started - read) * weight
         if losses:
             with self._lock:
                 now = self._clock()
@@ -800,24 +810,24 @@ class Mirror:
                         loss.record_rejected()
                     else:
                         loss.observe(timestamp_ms, now)
-            stage_cpu["health_alarms"] += (cpu() - decoded_at) * weight
+            stage_cpu["health_alarms"] += (cpu() - decoded_at - read) * weight
         for entries in _rounds(decoded):
             started = cpu()
             with self._lock:
                 applied = self._apply_all(entries, batch)
                 updated = self._clock()
                 twin_done = cpu()
-                stage_cpu["twin"] += (twin_done - started) * weight
+                stage_cpu["twin"] += (twin_done - started - read) * weight
                 events = self._record_all(entries, applied, updated, batch)
             started = cpu()
-            stage_cpu["health_alarms"] += (started - twin_done) * weight
+            stage_cpu["health_alarms"] += (started - twin_done - read) * weight
             for message_events in events:
                 for event in message_events:
                     _log_alarm_event(event)
                     self._watch.alarm(event)
             if self._sinks or self._history is not None:
                 self._hand_all(entries, applied, events, batch)
-                stage_cpu["sinks"] += (cpu() - started) * weight
+                stage_cpu["sinks"] += (cpu() - started - read) * weight
 
     def _decode_all(
         self, batch: Batch, admitted: set[int], losses: list[tuple[DeviceLoss, int | None]]

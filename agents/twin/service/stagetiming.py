@@ -16,6 +16,11 @@ bias, and an untimed turn reads no CPU clock at all.
   over its messages, is below a microsecond each, and the large batches, few but heavy, are where sampling
   would add the most noise. Its hand-over (read before the batch's size is known) is sampled like any turn.
 
+A timed span also holds about one clock reading's own cost, which the scaling would count for the untimed
+batches that no longer pay it; the mirror measures it on each timed batch and takes it off each span. Even
+so, measured at batches of one, the sampled stages read about 5 % high (docs/performance.md, "The stage
+timers, sampled"), evenly over the stages, so each stage's share holds.
+
 The totals per process (`twin bench cost` reads them from /proc through psutil) are exact either way; only
 their split by stage is an estimate, whose spread shrinks with the number of timed batches
 (`WorkerState.stage_timed_batches`).
