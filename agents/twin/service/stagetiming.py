@@ -5,8 +5,8 @@ divides by the messages) with `time.thread_time`, which on a virtual machine can
 call was measured on the project's 2-core VM, against 0.04 us for `time.monotonic`. A timed turn reads it
 about eight times, about 60 us, which at batches of one message is more than decoding the message. So the
 stages are timed on a sample of the turns and each timed figure is scaled by the inverse of its chance of
-being timed (the Horvitz-Thompson estimator): the sums then estimate the whole CPU of each stage without
-bias, and an untimed turn reads no CPU clock at all.
+being timed (the Horvitz-Thompson estimator): the sums then estimate the whole CPU of each stage, without
+bias from which turns are chosen, and an untimed turn reads no CPU clock at all.
 
 - Each turn is timed with probability 1 / `STAGE_SAMPLE_EVERY`, independently of the others (the gaps between
   timed turns are drawn from the geometric distribution). A fixed "every 16th turn" would be cheaper to
@@ -17,7 +17,8 @@ bias, and an untimed turn reads no CPU clock at all.
   would add the most noise. Its hand-over (read before the batch's size is known) is sampled like any turn.
 
 A timed span also holds about one clock reading's own cost, which the scaling would count for the untimed
-batches that no longer pay it; the mirror measures it on each timed batch and takes it off each span. Even
+batches that no longer pay it; the mirror measures it on each timed batch (two more readings: about ten a
+timed batch in all) and takes it off each span. Even
 so, measured at batches of one, the sampled stages read about 5 % high (docs/performance.md, "The stage
 timers, sampled"), evenly over the stages, so each stage's share holds.
 
@@ -31,8 +32,8 @@ from __future__ import annotations
 import math
 import random
 
-# One turn in this many, on average, is timed (batches of one message: 8 clock reads of ~7.8 us every 16
-# messages, about 4 us a message instead of 60).
+# One turn in this many, on average, is timed (batches of one message: about 10 clock reads of ~7.8 us every
+# 16 messages, about 5 us a message instead of 60).
 STAGE_SAMPLE_EVERY = 16
 # Batches of this many messages or more are always timed: the clock's ~60 us is under 0.5 us a message.
 STAGE_TIMED_FROM = 128
