@@ -220,4 +220,15 @@ def test_cost_reports_cpu_per_message_in_json_loads_and_by_stage() -> None:
     assert run["loads_per_received"] > 0 and run["loads_per_mirrored"] > 0
     assert set(run["stages_loads_per_received"]) == set(out["stages"])
     assert run["cpu_s"]["receiving_process"] > 0 and run["cpu_s"]["workers"] > 0
+    # The workers' stages are sampled: the output says so, and how many batches the estimate rests on (about
+    # 1 in 16 of a few hundred batches: none timed would be odds of about 1e-11).
+    assert "sampled" in out["stage_timing"]
+    batches = run["worker_batches"]
+    assert 0 < batches["stages_timed"] <= batches["handled"]
+    # The split covers the whole: the stages add up to at least the agent's total (more only when the
+    # sampled estimate of the workers' stages overshoots their measured CPU, which `other` cannot offset).
+    stages = run["stages_loads_per_received"]
+    assert all(v >= 0 for v in stages.values())
+    assert sum(stages.values()) >= run["loads_per_received"] * (1 - 1e-9)
+    assert stages["decode"] > 0 and stages["health_alarms"] > 0
     assert {"before", "after"} <= set(run["load_average_1m"])

@@ -13,14 +13,15 @@ shard runs one Mirror, in the agent's own process (`LocalShard`) or in a worker 
 Every message is decoded and counted, in arrival order, before anything is coalesced: a garbage message never
 displaces a good one, and every valid message is applied (the twin computes kinematics and dynamics when they
 are read, so applying costs microseconds). A batch goes through the stages one after the other (each stage
-over all its messages) rather than message by message: each stage's CPU time is measured once per batch
-(`WorkerState.stage_cpu_s`, what `twin bench cost` splits the agent's cost by), and the lock is taken once
-per batch instead of once per message. A device's messages keep their order in every stage; a batch holding
-two of one device's messages goes through the twin and health stages in rounds (each device at most once a
-round), so its alarms see the pose of the message they evaluate. The worker owns the decoder (not
-thread-safe: auto-units state) and every DeviceTwin; other threads see the twins only under the lock. Any
-exception while handling one message is caught, logged (rate-limited) and counted: a bad message never stops
-the mirror.
+over all its messages) rather than message by message: each stage's CPU time is measured per batch, not per
+message (`WorkerState.stage_cpu_s`, what `twin bench cost` splits the agent's cost by; on a sample of the
+batches, scaled, since reading the thread's CPU clock costs more than a small batch: service.stagetiming), and
+the lock is taken once per batch instead of once per message. A device's messages keep their order in every
+stage; a batch holding two of one device's messages goes through the twin and health stages in rounds (each
+device at most once a round), so its alarms see the pose of the message they evaluate. The worker owns the
+decoder (not thread-safe: auto-units state) and every DeviceTwin; other threads see the twins only under the
+lock. Any exception while handling one message is caught, logged (rate-limited) and counted: a bad message
+never stops the mirror.
 
 A device is admitted (gets a twin) on its first valid message, while the fleet's device budget has a place
 (service.admission, `telemetry.max_devices`, shared by every mirror of the agent); a message that does not
@@ -115,6 +116,7 @@ from twin.service.shards import (
     StopReport,
     uncalibrated,
 )
+from twin.service.stagetiming import StageSampler
 from twin.service.state import (
     AlarmInfo,
     AlarmsSummary,
@@ -176,6 +178,11 @@ QueuedMessage = tuple[str, bytes, float, float]
 STAGES = ("hand_over", "decode", "twin", "health_alarms", "sinks")
 
 
+def _no_cpu_clock() -> float:
+    """The stage timers' clock on a batch that is not timed: reads nothing (the real one is a system call)."""
+    return 0.0
+
+
 class _Device:
     """What the worker keeps per admitted device, in one place so a message finds all of it in one lookup:
     its twin, health record and loss estimator, the clock-jump streak, and what /state shows of its last
@@ -228,6 +235,7 @@ class _Readout:
     batches: int
     processed: int
     stage_cpu_s: dict[str, float]
+    stage_timed_batches: int
     internal: LatencyHistogram
     end_to_end: LatencyHistogram
     servos: dict[str, _ServoReadout]
@@ -358,6 +366,8 @@ class Mirror:
     and `acknowledge_alarm()` may be called from any thread. `sinks` are extra outputs; the mirror closes
     them in `stop()`. `slot` is this mirror's slot in the device budget (its shard's index). `history` is
     where the agent's history writer process listens (needed when the config turns history on).
+    `cpu_clock` (the worker thread's CPU time) and `stage_sampler` are the stage timers' clock and which
+    batches read it (service.stagetiming); tests inject them.
     """
 
     def __init__(
@@ -371,6 +381,8 @@ class Mirror:
         wall_clock: Clock = time.time,
         sinks: Sequence[TwinSink] = (),
         history: HistoryLink | None = None,
+        cpu_clock: Clock = time.thread_time,
+        stage_sampler: StageSampler | None = None,
     ) -> None:
         if config.history.enabled and history is None:
             raise ValueError("history is on: the mirror needs the link to the agent's history writer process")
@@ -378,6 +390,9 @@ class Mirror:
         self.config = config
         self._clock = clock
         self._wall_clock = wall_clock
+        # The stage timers' clock (the worker thread's CPU time) and which turns read it (tests inject both).
+        self._cpu_clock = cpu_clock
+        self._stage_sampler = stage_sampler if stage_sampler is not None else StageSampler()
         self._decoder = TelemetryDecoder(self._decoder_config(config))
         # Each arm's own calibration (the agent hands them over: set_calibrations): where it came from, and
         # why a newer file of it was refused; the config's file is every other arm's.
@@ -416,6 +431,7 @@ class Mirror:
         self._loss: dict[str, DeviceLoss] = {}
         self._lock = threading.Lock()
         self._stage_cpu = dict.fromkeys(STAGES, 0.0)
+        self._stage_timed_batches = 0
         self._reject_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
         self._error_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
         # The twin's events (the console's Events page): this mirror's, which the agent collects.
@@ -589,18 +605,28 @@ class Mirror:
         frozen_devices = 0
         inbox = self._mailbox
         stage_cpu = self._stage_cpu
-        cpu = time.thread_time
+        sampler = self._stage_sampler
+        cpu = self._cpu_clock
         while True:
-            started = cpu()
-            batch = inbox.take(wake)
-            stage_cpu["hand_over"] += cpu() - started
+            # The stage timers read the thread's CPU clock (a system call here) only on sampled turns
+            # (service.stagetiming); the others read no clock for them at all.
+            sampled = sampler.sample()
+            if sampled:
+                # Each timed span holds one reading's own cost (_handle says why it is taken off).
+                before = cpu()
+                started = cpu()
+                batch = inbox.take(wake)
+                spent = cpu() - started - (started - before)
+                stage_cpu["hand_over"] += spent * sampler.weight
+            else:
+                batch = inbox.take(wake)
             count = len(batch.payloads)
             if not count and inbox.closed:
                 self._run_jobs()
                 return
             if count:
                 try:
-                    self._handle(batch)
+                    self._handle(batch, sampler.batch_weight(sampled, count))
                 except Exception:  # every stage guards its messages; this guards the mirror itself
                     self._count_error(None, "handling a batch failed")
             if physics:
@@ -748,11 +774,23 @@ class Mirror:
 
     # ------------------------------------------------------------------------------------- the stages
 
-    def _handle(self, batch: Batch) -> None:
-        """One batch through the stages (module doc). Never raises."""
-        cpu = time.thread_time
+    def _handle(self, batch: Batch, weight: float) -> None:
+        """One batch through the stages (module doc). Never raises. Its stages are timed when `weight` is not
+        0, each figure counting `weight` times (service.stagetiming); otherwise no CPU clock is read."""
+        if weight:
+            cpu = self._cpu_clock
+            self._stage_timed_batches += 1
+        else:
+            cpu = _no_cpu_clock
         stage_cpu = self._stage_cpu
+        # Every timed span holds about one clock reading's own cost (the end of the reading that opens it and
+        # the start of the one that closes it). Timing every batch paid it every time; a sampled batch's
+        # figures are scaled up, and with them that cost, which the untimed batches no longer pay: left in,
+        # the scaled stages overstated the worker's CPU at batches of one (docs/performance.md). Two
+        # readings in a row measure it; it is taken off each span.
+        before = cpu()
         started = cpu()
+        read = started - before
         admitted: set[int] = set()
         # The loss estimators see the batch in arrival order, valid and rejected messages alike (a rejection
         # only offsets a hole after the device's first valid sample), so they are fed here, once decoding has
@@ -763,7 +801,7 @@ class Mirror:
         if behind and len(decoded) > 1:
             decoded = self._catch_up(decoded, batch, admitted)
         decoded_at = cpu()
-        stage_cpu["decode"] += decoded_at - started
+        stage_cpu["decode"] += (decoded_at - started - read) * weight
         if losses:
             with self._lock:
                 now = self._clock()
@@ -772,24 +810,24 @@ class Mirror:
                         loss.record_rejected()
                     else:
                         loss.observe(timestamp_ms, now)
-            stage_cpu["health_alarms"] += cpu() - decoded_at
+            stage_cpu["health_alarms"] += (cpu() - decoded_at - read) * weight
         for entries in _rounds(decoded):
             started = cpu()
             with self._lock:
                 applied = self._apply_all(entries, batch)
                 updated = self._clock()
                 twin_done = cpu()
-                stage_cpu["twin"] += twin_done - started
+                stage_cpu["twin"] += (twin_done - started - read) * weight
                 events = self._record_all(entries, applied, updated, batch)
             started = cpu()
-            stage_cpu["health_alarms"] += started - twin_done
+            stage_cpu["health_alarms"] += (started - twin_done - read) * weight
             for message_events in events:
                 for event in message_events:
                     _log_alarm_event(event)
                     self._watch.alarm(event)
             if self._sinks or self._history is not None:
                 self._hand_all(entries, applied, events, batch)
-                stage_cpu["sinks"] += cpu() - started
+                stage_cpu["sinks"] += (cpu() - started - read) * weight
 
     def _decode_all(
         self, batch: Batch, admitted: set[int], losses: list[tuple[DeviceLoss, int | None]]
@@ -1245,6 +1283,7 @@ class Mirror:
                 processed=readout.processed,
                 errors=self.errors,
                 stage_cpu_s=readout.stage_cpu_s,
+                stage_timed_batches=readout.stage_timed_batches,
             ),
             recording=self._recording_state(),
             # The agent has the history's own figures (its writer process); the feed's are a sink's.
@@ -1275,6 +1314,7 @@ class Mirror:
                 batches=self.batches,
                 processed=self.processed,
                 stage_cpu_s=dict(self._stage_cpu),
+                stage_timed_batches=self._stage_timed_batches,
                 internal=self._internal_hist.copy(),
                 end_to_end=self._end_to_end_hist.copy(),
                 servos={

@@ -216,8 +216,11 @@ class WorkerState:
     processed: int = 0
     errors: int = 0
     # CPU seconds the mirrors' worker threads spent in each stage since start (hand_over, decode, twin,
-    # health_alarms, sinks), summed over the workers: where the agent's CPU goes (`twin bench cost`).
+    # health_alarms, sinks), summed over the workers: where the agent's CPU goes (`twin bench cost`). An
+    # estimate: the stages are timed on a sample of the batches and scaled (service.stagetiming).
     stage_cpu_s: dict[str, float] = field(default_factory=dict)
+    # The batches whose stages were timed, summed over the workers (what the estimate rests on).
+    stage_timed_batches: int = 0
 
 
 @dataclass(frozen=True, slots=True)
