@@ -1298,6 +1298,25 @@ _STATE_ORDER = {
 }
 
 
+def record_view(record: AlarmRecord, thresholds: AlarmThresholds) -> AlarmView:
+    """An alarm as a checkpoint keeps it, as /alarms shows it: what a worker being started again still has
+    to show. Its value is the one it had at its device's last evaluation before the checkpoint."""
+    return AlarmView(
+        alarm_id=record.alarm_id,
+        device=record.device,
+        joint=record.joint,
+        kind=record.kind,
+        severity=SEVERITY[record.kind],
+        state=record.state,
+        value=record.value,
+        threshold=thresholds.rule(record.kind, record.joint).raise_at,
+        unit=UNITS[record.kind],
+        since=record.since,
+        raised=record.raised,
+        message=record.message,
+    )
+
+
 def worst_first(severity: Severity | str, state: AlarmState | str, alarm_id: str) -> tuple[int, int, str]:
     """The sort key of every list of alarms: critical before warning, then ACTIVE, LATCHED, ACKNOWLEDGED,
     NORMAL, then by id. Takes the enums or their values (an AlarmInfo carries strings)."""
