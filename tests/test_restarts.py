@@ -187,6 +187,9 @@ def assert_listed_from_the_checkpoint(
     alarm = f"{hot_arm}/{HOT[0]}/{HOT[1]}"
     assert listed[alarm].state == "ACKNOWLEDGED" and listed[alarm].severity == "warning"
     assert by_key(alarms(url))[HOT] == "ACKNOWLEDGED"
+    # Listed, but only its worker can change it: asked again later, not refused as unknown.
+    status, body = post(f"{url}/alarms/{alarm}/ack")
+    assert status == 503 and body["error"] == "worker_unavailable", body
     rows = {row.device: row for row in agent.fleet_rows()}
     assert set(rows) == set(FLEET)
     assert rows[hot_arm].mirror == "restarting"
