@@ -19,6 +19,8 @@ from twin.core.alarms import (
     ServoAlarms,
     Severity,
     alarm_id,
+    record_view,
+    worst_first,
 )
 from twin.core.telemetry import JointDiagnostics
 from twin.robot import so101, sts3215
@@ -386,8 +388,10 @@ def test_motion_seen_in_the_pose_overrides_a_velocity_field_that_says_still() ->
     events = [e for i in range(30, 42) for e in feed(i * 0.1, 0.9 + (i % 2) * 0.0015)]
     assert [(e.kind, e.state) for e in events] == [(AlarmKind.MODEL_MISMATCH, AlarmState.ACTIVE)]
     assert events[0].at == pytest.approx(4.1)  # still from the sample at 3.1 s (0.9 rad reached at 3.0 s)
-    # A gap of over a second says nothing about speed: the velocity field decides again.
-    assert alarms._pose_speeds(DEV, {"shoulder_lift": 2.0}, TS0 + 10_000) == {}
+    # A gap of over a second says nothing about speed: the velocity field (0.01 rad/s) decides again, so
+    # the joint is still although the pose moved 1.1 rad since the last sample (0.19 rad/s over the gap).
+    assert feed(10.0, 2.0) == []
+    assert alarms.joint_health(DEV)["shoulder_lift"].still is True
 
 
 TS0 = 1_764_000_000_000
@@ -424,6 +428,29 @@ def test_records_restore_acknowledged_and_latched_alarms_into_a_new_engine() -> 
     assert state(new, AlarmKind.OVER_CURRENT, "wrist_flex") is AlarmState.LATCHED
     new.acknowledge(alarm_id(DEV, "wrist_flex", AlarmKind.OVER_CURRENT), 32.0)
     assert state(new, AlarmKind.OVER_CURRENT, "wrist_flex") is AlarmState.NORMAL
+
+
+def test_a_record_shows_as_the_engine_that_took_it_back_shows_the_alarm() -> None:
+    """What /alarms lists of a worker being started again (record_view of its checkpoint's records) is what
+    its new process lists once it has taken them back, before any message."""
+    thresholds = AlarmThresholds(temperature_warning_c=58.0)
+    old = ServoAlarms(thresholds)
+    run(old, [(0.0, {"temperature_c": 62.0}), (2.0, {"temperature_c": 62.0})])
+    old.acknowledge(alarm_id(DEV, "elbow_flex", AlarmKind.OVER_TEMPERATURE), 3.0)
+    run(old, [(4.0, {"current_a": 3.0}), (6.0, {"current_a": 3.0})], joint="wrist_flex")
+    run(old, [(7.0, {"current_a": 0.1}), (9.5, {"current_a": 0.1})], joint="wrist_flex")
+    records = old.records()
+    new = ServoAlarms(thresholds)
+    new.restore(records)
+    shown = sorted(
+        (record_view(r, thresholds) for r in records),
+        key=lambda v: worst_first(v.severity, v.state, v.alarm_id),
+    )
+    assert shown == new.views(include_normal=True)
+    assert {(v.state, v.threshold) for v in shown} == {
+        (AlarmState.ACKNOWLEDGED, 58.0),
+        (AlarmState.LATCHED, thresholds.rule(AlarmKind.OVER_CURRENT, "wrist_flex").raise_at),
+    }
 
 
 # --- a round of messages at once ----------------------------------------------------------------------------

@@ -20,11 +20,12 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import Publisher, get_state, wait_for
+from conftest import Publisher, get_state, http_get, wait_for
 from test_servo_alarms_e2e import alarms, by_key, post
 from twin.edge.payload import encode, make_payload
 from twin.edge.servo_faults import ServoFault
 from twin.rig.local import LocalRig
+from twin.service.agent import AgentService
 from twin.service.shards import WorkerPlan
 
 pytestmark = pytest.mark.slow
@@ -114,6 +115,94 @@ def test_a_killed_worker_keeps_an_acknowledged_alarm_and_its_arm_never_leaves_st
         assert get_state(url).devices[hot_arm].mirror == "running"
     finally:
         hot.stop()
+
+
+def test_while_a_worker_restarts_alarms_and_fleet_rows_keep_its_arms_from_its_checkpoint(
+    rig: LocalRig, publisher: Publisher, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """/alarms and the console's fleet rows read the worker's checkpoint as /state does: an ACKNOWLEDGED
+    alarm of a restarting worker's arm is still listed, and the arm's row is there, marked restarting."""
+    plan = WorkerPlan(2, FLEET)
+    hot_arm = "arm-002"
+    worker = plan.worker_of(hot_arm)
+    agent = rig.start_agent({"telemetry.devices": FLEET, "telemetry.units": "ticks"}, workers=2)
+    url = agent.http_url
+    shard = agent._shards[worker]
+    # The restart is held where it begins (the supervisor waits to launch the new process), so the readers
+    # are asked while the worker is down however quickly the machine would have started it again.
+    launching, go_on = threading.Event(), threading.Event()
+    launch = shard.launch
+
+    def held_launch() -> None:
+        launching.set()
+        go_on.wait(120)
+        launch()
+
+    monkeypatch.setattr(shard, "launch", held_launch)
+    rig.start_edge([d for d in FLEET if d != hot_arm], variant="ticks", rate_hz=10.0, seed=7)
+    hot = HotWrist(publisher, hot_arm)
+    alarm = f"{hot_arm}/{HOT[0]}/{HOT[1]}"
+    try:
+        wait_for(
+            lambda: any(a.alarm_id == alarm and a.state == "ACTIVE" for a in alarms(url).alarms),
+            30,
+            "the over-temperature alarm to be raised",
+            interval=0.1,
+        )
+        assert post(f"{url}/alarms/{alarm}/ack")[0] == 200
+        wait_for(
+            lambda: (
+                shard.checkpoint is not None
+                and hot_arm in shard.checkpoint.devices
+                and any(r.alarm_id == alarm and r.state == "ACKNOWLEDGED" for r in shard.checkpoint.alarms)
+            ),
+            10,
+            "a checkpoint with the acknowledgement",
+        )
+        os.kill(get_state(url).agent.workers[worker].pid, signal.SIGKILL)
+        assert launching.wait(60), "the supervisor did not start the worker again"
+        try:
+            assert_listed_from_the_checkpoint(agent, url, hot_arm, worker, plan)
+        finally:
+            go_on.set()
+        wait_for(
+            lambda: (
+                get_state(url).agent.workers[worker].alive
+                and {row.device: row.mirror for row in agent.fleet_rows()}.get(hot_arm) == "running"
+            ),
+            60,
+            "the worker to run again",
+            interval=0.1,
+        )
+        assert by_key(alarms(url))[HOT] == "ACKNOWLEDGED"
+    finally:
+        hot.stop()
+
+
+def assert_listed_from_the_checkpoint(
+    agent: AgentService, url: str, hot_arm: str, worker: int, plan: WorkerPlan
+) -> None:
+    """While `worker` is down: its arm's acknowledged alarm in /alarms, its row in the fleet's, restarting."""
+    listed = {a.alarm_id: a for a in agent.alarms()}
+    alarm = f"{hot_arm}/{HOT[0]}/{HOT[1]}"
+    assert listed[alarm].state == "ACKNOWLEDGED" and listed[alarm].severity == "warning"
+    assert by_key(alarms(url))[HOT] == "ACKNOWLEDGED"
+    # Listed, but only its worker can change it: asked again later, not refused as unknown.
+    status, body = post(f"{url}/alarms/{alarm}/ack")
+    assert status == 503 and body["error"] == "worker_unavailable", body
+    rows = {row.device: row for row in agent.fleet_rows()}
+    assert set(rows) == set(FLEET)
+    assert rows[hot_arm].mirror == "restarting"
+    assert {rows[d].mirror for d in FLEET if plan.worker_of(d) != worker} == {"running"}
+    worst = next(a for a in agent.alarms() if a.device == hot_arm)
+    row = rows[hot_arm]
+    assert (row.alarm_severity, row.alarm_state, row.alarm_kind) == (worst.severity, worst.state, worst.kind)
+    assert get_state(url).devices[hot_arm].mirror == "restarting"
+    # The console's fleet page gets the same rows, with the column that says so.
+    fleet = json.loads(http_get(url + "/api/fleet")[2])
+    by_device = {r[0]: dict(zip(fleet["columns"], r, strict=True)) for r in fleet["rows"]}
+    assert by_device[hot_arm]["mirror"] == "restarting"
+    assert by_device[hot_arm]["alarm_state"] == worst.state
 
 
 def test_an_agent_restart_keeps_latched_and_acknowledged_alarms(rig: LocalRig, tmp_path: Path) -> None:

@@ -1019,32 +1019,6 @@ class ServoAlarms:
             message=message,
         )
 
-    def _pose_speeds(
-        self, device: str, angles: Mapping[str, float] | None, timestamp_ms: int | None
-    ) -> dict[str, float]:
-        """|dθ/dt| per joint between this pose and the device's last one (edge clock), when both are known;
-        the pose becomes the last one."""
-        if angles is None or timestamp_ms is None:
-            return {}
-        slot = self._row(device)
-        fleet = self._arrays()
-        before = fleet.pose[slot].copy()
-        had, last_ms = bool(fleet.has_pose[slot]), int(fleet.pose_ms[slot])
-        fleet.pose[slot] = [_float(angles.get(j)) for j in so101.JOINT_NAMES]
-        fleet.pose_ms[slot] = timestamp_ms
-        fleet.has_pose[slot] = True
-        if not had:
-            return {}
-        dt = (timestamp_ms - last_ms) / 1000.0
-        # Only consecutive-looking samples: across a gap of seconds the arm may have moved and come back.
-        if not 0.0 < dt <= MAX_POSE_GAP_S:
-            return {}
-        return {
-            j: abs(a - float(before[_JOINT_INDEX[j]])) / dt
-            for j, a in angles.items()
-            if j in _JOINT_INDEX and not math.isnan(before[_JOINT_INDEX[j]])
-        }
-
     # -- restarts -------------------------------------------------------------------------------------------
 
     def records(self, *, devices: Iterable[str] | None = None) -> list[AlarmRecord]:
@@ -1322,6 +1296,25 @@ _STATE_ORDER = {
     AlarmState.ACKNOWLEDGED: 2,
     AlarmState.NORMAL: 3,
 }
+
+
+def record_view(record: AlarmRecord, thresholds: AlarmThresholds) -> AlarmView:
+    """An alarm as a checkpoint keeps it, as /alarms shows it: what a worker being started again still has
+    to show. Its value is the one it had at its device's last evaluation before the checkpoint."""
+    return AlarmView(
+        alarm_id=record.alarm_id,
+        device=record.device,
+        joint=record.joint,
+        kind=record.kind,
+        severity=SEVERITY[record.kind],
+        state=record.state,
+        value=record.value,
+        threshold=thresholds.rule(record.kind, record.joint).raise_at,
+        unit=UNITS[record.kind],
+        since=record.since,
+        raised=record.raised,
+        message=record.message,
+    )
 
 
 def worst_first(severity: Severity | str, state: AlarmState | str, alarm_id: str) -> tuple[int, int, str]:

@@ -35,7 +35,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any, Generic, TypeVar
 
 from twin.core.alarms import AlarmRecord, worst_first
 from twin.core.health import DeviceStatus
@@ -47,7 +47,7 @@ from twin.output.sinks import TwinSink
 from twin.service.admission import DeviceBudget
 from twin.service.calibrations import CalibrationBook, CalibrationWatcher, open_store
 from twin.service.config import AgentConfig, ConfigError
-from twin.service.console import FleetRow, SessionCatalog, rerun_viewer_url
+from twin.service.console import FleetRow, SessionCatalog, device_rows, rerun_viewer_url
 from twin.service.events import Event, EventKind, EventLevel, EventQuery, EventStore, FleetWatch
 from twin.service.http_api import AgentHttpServer
 from twin.service.persist import StateFile
@@ -555,6 +555,35 @@ class AgentService:
                 log.warning("%s", exc)
         return answers
 
+    def _ask_fleet(self, request: Request, read: Callable[[Reply], _T]) -> _FleetAnswers[_T]:
+        """`_ask_all`, and the shards that gave no answer to it. Readers show those shards' arms and alarms
+        from their latest checkpoints, decided on this one read whatever `restarting` says afterwards: a
+        worker passed over while being started again may be running by the time `restarting` is read (its
+        arms left /state for that read: seen under load), and one that did not answer is not serving them
+        either. An arm and its alarms never leave a reader while its worker restarts."""
+        answers = self._ask_all(request, read)
+        answered = {shard.index for shard, _ in answers}
+        silent = tuple(shard for shard in self._shards if shard.index not in answered)
+        return _FleetAnswers(answers, silent)
+
+    def _checkpoint_devices(self, silent: Sequence[Shard]) -> dict[str, DeviceState]:
+        """The arms of shards that gave no answer, as their latest checkpoints left them (`_ask_fleet`)."""
+        # Worker processes share the host's monotonic clock, which their checkpoints are on.
+        now = time.monotonic()
+        devices: dict[str, DeviceState] = {}
+        for shard in silent:
+            devices.update(shard.restarting_devices(self.config.health, now))
+        return devices
+
+    def _checkpoint_alarms(self, silent: Sequence[Shard], *, include_normal: bool) -> list[AlarmInfo]:
+        """The alarms of shards that gave no answer, as their latest checkpoints left them (`_ask_fleet`)."""
+        # The host's clocks, as the workers read them (their checkpoints' times are on its monotonic one).
+        now, wall = time.monotonic(), time.time()
+        alarms: list[AlarmInfo] = []
+        for shard in silent:
+            alarms.extend(shard.restarting_alarms(now, wall, include_normal=include_normal))
+        return alarms
+
     # --------------------------------------------------------------------------------------------- readers
 
     def state(self) -> AgentState:
@@ -565,26 +594,18 @@ class AgentService:
             if cached is not None and time.monotonic() - cached[0] < self._reuse_s:
                 return cached[1]
             now = self._clock()
-            reports = {shard.index: report for shard, report in self._ask_all(ReportRequest(), report_of)}
-            restarting: dict[str, DeviceState] = {}
-            restarting_untracked = []
-            for shard in self._shards:
-                # Every mirror that gave no report shows its arms from its checkpoint, whatever `restarting`
-                # reads now: a worker passed over while being started again may be running by the time
-                # `restarting` is read (its arms left /state for that read: seen under load), and one that
-                # did not answer is not serving them either. An arm never leaves /state while it restarts.
-                if shard.index not in reports:
-                    # Worker processes share the host's monotonic clock, which their checkpoints are on.
-                    restarting.update(shard.restarting_devices(self.config.health, time.monotonic()))
-                    if shard.checkpoint is not None:
-                        restarting_untracked.append(shard.checkpoint.untracked_rejected)
+            asked = self._ask_fleet(ReportRequest(), report_of)
+            reports = {shard.index: report for shard, report in asked.answers}
+            restarting_untracked = [
+                shard.checkpoint.untracked_rejected for shard in asked.silent if shard.checkpoint is not None
+            ]
             state = merge_reports(
                 self._info(now),
                 list(reports.values()),
                 self._worker_infos(reports),
                 dropped=self._dropped(),
                 dropped_total=sum(shard.dropped_total for shard in self._shards),
-                restarting=restarting,
+                restarting=self._checkpoint_devices(asked.silent),
                 restarting_untracked=restarting_untracked,
             )
             if self._history is not None:
@@ -674,8 +695,11 @@ class AgentService:
         )
 
     def alarms(self, *, include_normal: bool = False) -> tuple[AlarmInfo, ...]:
-        """Servo alarms of every mirror, worst first (GET /alarms); NORMAL ones only when asked."""
-        merged = [a for _, alarms in self._ask_all(AlarmsRequest(include_normal), alarms_of) for a in alarms]
+        """Servo alarms of every mirror, worst first (GET /alarms); NORMAL ones only when asked. A worker
+        being started again lists its alarms from its latest checkpoint."""
+        asked = self._ask_fleet(AlarmsRequest(include_normal), alarms_of)
+        merged = [a for _, alarms in asked.answers for a in alarms]
+        merged.extend(self._checkpoint_alarms(asked.silent, include_normal=include_normal))
         return tuple(sorted(merged, key=alarm_order))
 
     def acknowledge_alarm(self, alarm_id: str) -> AlarmInfo:
@@ -696,8 +720,13 @@ class AgentService:
     # ------------------------------------------------------------------------------------------ console
 
     def fleet_rows(self) -> list[FleetRow]:
-        """The console's Fleet page: every mirror's row per arm (Mirror.fleet_rows), without their states."""
-        rows = [row for _, part in self._ask_all(FleetRowsRequest(), fleet_rows_of) for row in part]
+        """The console's Fleet page: every mirror's row per arm (Mirror.fleet_rows), without their states. A
+        worker being started again gives its arms' rows from its latest checkpoint, marked restarting."""
+        asked = self._ask_fleet(FleetRowsRequest(), fleet_rows_of)
+        rows = [row for _, part in asked.answers for row in part]
+        if asked.silent:
+            alarms = sorted(self._checkpoint_alarms(asked.silent, include_normal=False), key=alarm_order)
+            rows.extend(device_rows(self._checkpoint_devices(asked.silent), alarms, time.time()))
         return sorted(rows, key=lambda row: row.device)
 
     def events(self, query: EventQuery) -> list[Event]:
@@ -847,6 +876,14 @@ def _number(text: str) -> float | None:
         return float(text) if text else None
     except ValueError:
         return None
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class _FleetAnswers(Generic[_T]):
+    """One request's answers by shard, and the shards that gave none (AgentService._ask_fleet)."""
+
+    answers: list[tuple[Shard, _T]]
+    silent: tuple[Shard, ...]
 
 
 def alarm_order(info: AlarmInfo) -> tuple[int, int, str]:

@@ -23,7 +23,7 @@ from typing import NamedTuple, Protocol, runtime_checkable
 import msgspec
 
 from twin.service.events import Event, EventQuery
-from twin.service.state import AgentState, AlarmInfo
+from twin.service.state import AgentState, AlarmInfo, DeviceState
 
 __all__ = [
     "ASSETS",
@@ -35,6 +35,7 @@ __all__ = [
     "SessionCatalog",
     "SessionInfo",
     "arm_update",
+    "device_rows",
     "fleet_row",
     "fleet_rows",
     "fleet_summary",
@@ -58,6 +59,7 @@ FLEET_COLUMNS = (
     "hot_c",
     "rejected",  # messages rejected so far
     "uncalibrated",  # true: no LeRobot calibration while its units need one (docs/agent.md, "Calibration")
+    "mirror",  # running | restarting: its worker process is started again, the row is its last checkpoint
 )
 # What a session offers to download, with the media type of each.
 SESSION_FILE_KINDS: dict[str, tuple[str, str]] = {
@@ -138,6 +140,7 @@ class FleetRow(NamedTuple):
     hot_c: float | None
     rejected: int
     uncalibrated: bool = False
+    mirror: str = "running"
 
 
 @runtime_checkable
@@ -158,6 +161,7 @@ def fleet_row(
     rejected: int,
     alarm: tuple[str, str, str, str] | None,
     uncalibrated: bool = False,
+    mirror: str = "running",
 ) -> FleetRow:
     """A row from its parts; `alarm` is the worst one that is not NORMAL: (severity, state, kind, joint)."""
     hot_joint, hot_c = None, None
@@ -179,15 +183,22 @@ def fleet_row(
         _round(hot_c, 1),
         rejected,
         uncalibrated,
+        mirror,
     )
 
 
 def fleet_rows(state: AgentState, alarms: Sequence[AlarmInfo]) -> list[FleetRow]:
     """One row per device of a full state, sorted by device id (for a source without `fleet_rows`)."""
-    now = state.agent.time
+    return device_rows(state.devices, alarms, state.agent.time)
+
+
+def device_rows(
+    devices: Mapping[str, DeviceState], alarms: Sequence[AlarmInfo], now: float
+) -> list[FleetRow]:
+    """One row per device state, in the order given; `alarms` worst first, `now` the wall time."""
     worst = _worst_alarms(alarms)
     rows: list[FleetRow] = []
-    for device_id, d in state.devices.items():
+    for device_id, d in devices.items():
         a = worst.get(device_id)
         rows.append(
             fleet_row(
@@ -200,6 +211,7 @@ def fleet_rows(state: AgentState, alarms: Sequence[AlarmInfo]) -> list[FleetRow]
                 rejected=sum(d.health.counters.rejected.values()),
                 alarm=(a.severity, a.state, a.kind, a.joint) if a else None,
                 uncalibrated=d.uncalibrated,
+                mirror=str(d.mirror),
             )
         )
     return rows

@@ -74,6 +74,7 @@ from twin.service.http_guard import (
 )
 from twin.service.metrics import CONTENT_TYPE as PROMETHEUS_CONTENT_TYPE
 from twin.service.metrics import render_metrics
+from twin.service.shards import WorkerError
 from twin.service.state import AgentState, AlarmInfo, AlarmList, HealthReport
 from twin.service.stream_hub import ARM_PREFIX, FLEET, STATE, StreamHub, Subscription, encode_events
 
@@ -518,6 +519,14 @@ class AgentHttpServer:
             )
         except NothingToAcknowledge as exc:
             return _error(409, "nothing_to_acknowledge", detail=str(exc))
+        except WorkerError as exc:
+            # /alarms lists a restarting worker's alarms from its checkpoint; only the worker can change one.
+            return _error(
+                503,
+                "worker_unavailable",
+                alarm_id=alarm_id,
+                detail=f"{exc}; acknowledge again once it runs (GET /state, agent.workers)",
+            )
         return _json(200, AlarmList(alarms=(info,)).to_json())
 
     # ------------------------------------------------------------------------------------------ the console

@@ -65,7 +65,6 @@ from twin.core.alarms import (
     AlarmEvent,
     AlarmRecord,
     AlarmState,
-    AlarmView,
     JointHealth,
     ServoAlarms,
     Severity,
@@ -114,6 +113,7 @@ from twin.service.shards import (
     Restored,
     RestoreRequest,
     StopReport,
+    alarm_info,
     uncalibrated,
 )
 from twin.service.stagetiming import StageSampler
@@ -1378,7 +1378,7 @@ class Mirror:
             now = self._clock()
             views = self._alarms.views(include_normal=include_normal)
         wall = self._wall_clock()
-        return tuple(_alarm_info(v, now, wall) for v in views)
+        return tuple(alarm_info(v, now, wall) for v in views)
 
     def acknowledge_alarm(self, alarm_id: str) -> AlarmInfo:
         """ACTIVE -> ACKNOWLEDGED, LATCHED -> NORMAL. Raises twin.core.alarms.AlarmNotFound (unknown id) or
@@ -1389,7 +1389,7 @@ class Mirror:
             view = self._alarms.views_of((alarm_id,))[0]
         _log_alarm_event(event)
         self._watch.alarm(event)
-        return _alarm_info(view, now, self._wall_clock())
+        return alarm_info(view, now, self._wall_clock())
 
     def _device_state(self, device: str, health: HealthSnapshot, readout: _Readout) -> DeviceState:
         snap = readout.snapshots.get(device)
@@ -1492,6 +1492,9 @@ class LocalShard:
     def restarting_devices(self, thresholds: HealthThresholds, now: float) -> dict[str, DeviceState]:
         return {}  # never restarts: a dead worker thread is `failed`
 
+    def restarting_alarms(self, now: float, wall: float, *, include_normal: bool) -> list[AlarmInfo]:
+        return []  # never restarts (above)
+
     def keep_calibrations(self, request: CalibrationsRequest) -> None:
         return  # handed to the mirror itself, which never starts again
 
@@ -1555,24 +1558,6 @@ def _rounds(decoded: list[_Decoded]) -> list[list[_Decoded]]:
             rounds.append([])
         rounds[k].append(entry)
     return rounds
-
-
-def _alarm_info(view: AlarmView, now_mono: float, now_wall: float) -> AlarmInfo:
-    return AlarmInfo(
-        alarm_id=view.alarm_id,
-        device=view.device,
-        joint=view.joint,
-        kind=str(view.kind),
-        severity=str(view.severity),
-        state=str(view.state),
-        value=view.value,
-        threshold=view.threshold,
-        unit=view.unit,
-        # The engine keeps monotonic times; people want wall time.
-        changed_at=now_wall - (now_mono - view.since),
-        raised=view.raised,
-        message=view.message,
-    )
 
 
 _ALARM_LOG_LEVEL = {"raised": logging.WARNING, "cleared": logging.INFO}

@@ -54,7 +54,15 @@ from multiprocessing.connection import Connection
 from multiprocessing.context import SpawnContext, SpawnProcess
 from typing import TYPE_CHECKING, Protocol
 
-from twin.core.alarms import AlarmCounters, AlarmNotFound, AlarmRecord, NothingToAcknowledge
+from twin.core.alarms import (
+    AlarmCounters,
+    AlarmNotFound,
+    AlarmRecord,
+    AlarmState,
+    AlarmView,
+    NothingToAcknowledge,
+    record_view,
+)
 from twin.core.bounded import BoundedCounter, merged_counts
 from twin.core.health import HealthCheckpoint, HealthThresholds
 from twin.core.latency import LatencyHistogram
@@ -542,6 +550,11 @@ class Shard(Protocol):
         """While restarting: the mirror's devices as its latest checkpoint left them."""
         ...
 
+    def restarting_alarms(self, now: float, wall: float, *, include_normal: bool) -> list[AlarmInfo]:
+        """While restarting: the mirror's alarms as its latest checkpoint left them (`now`, `wall`: the
+        host's monotonic and wall clocks, read together)."""
+        ...
+
     def keep_calibrations(self, request: CalibrationsRequest) -> None:
         """The arms' own calibrations the agent last handed over: a worker started again gets them before
         its first message."""
@@ -997,6 +1010,19 @@ class WorkerShard:
             )
         return devices
 
+    def restarting_alarms(self, now: float, wall: float, *, include_normal: bool) -> list[AlarmInfo]:
+        """This worker's alarms as its latest checkpoint left them (empty without one): an ACKNOWLEDGED or
+        LATCHED alarm stays listed while its worker is started again."""
+        checkpoint = self.checkpoint
+        if checkpoint is None:
+            return []
+        thresholds = self._config.alarms
+        return [
+            alarm_info(record_view(record, thresholds), now, wall)
+            for record in checkpoint.alarms
+            if include_normal or record.state is not AlarmState.NORMAL
+        ]
+
     def describe(self, report: MirrorReport | None) -> WorkerInfo:
         return WorkerInfo(
             index=self.index,
@@ -1022,6 +1048,25 @@ def uncalibrated(calibration: str, units: Units) -> bool:
     """No calibration while the units need one: degrees are already relative to the arm's calibrated
     middle, ticks and range100 are not."""
     return not calibration and units in (Units.TICKS, Units.RANGE100)
+
+
+def alarm_info(view: AlarmView, now_mono: float, now_wall: float) -> AlarmInfo:
+    """An alarm as GET /alarms lists it; `now_mono` and `now_wall` are the same instant on both clocks."""
+    return AlarmInfo(
+        alarm_id=view.alarm_id,
+        device=view.device,
+        joint=view.joint,
+        kind=str(view.kind),
+        severity=str(view.severity),
+        state=str(view.state),
+        value=view.value,
+        threshold=view.threshold,
+        unit=view.unit,
+        # The engine keeps monotonic times; people want wall time.
+        changed_at=now_wall - (now_mono - view.since),
+        raised=view.raised,
+        message=view.message,
+    )
 
 
 def checkpoint_device(

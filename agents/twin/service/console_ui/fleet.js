@@ -77,12 +77,20 @@
     return r[c.hot_c] === null ? "–" : `${r[c.hot_joint]} ${Twin.num(r[c.hot_c], 0)} °C`;
   }
 
+  // Its worker process is being started again: the row is the worker's last checkpoint.
+  function restarting(r) {
+    return r[columns.mirror] === "restarting"
+      ? [" ", el("span", { class: "restarting", title: "its worker is being started again: figures from its last checkpoint", text: "restarting" })]
+      : [];
+  }
+
   function card(r, x, y) {
     const c = columns, id = r[c.device];
     const node = el("a", { class: "card " + r[c.status], href: "/arm/" + encodeURIComponent(id), role: "listitem",
       "data-device": id },
       el("div", { class: "id" }, id, ...(r[c.uncalibrated]
-        ? [" ", el("span", { class: "uncalibrated", title: "no LeRobot calibration: twin calibration push", text: "uncalibrated" })] : [])),
+        ? [" ", el("span", { class: "uncalibrated", title: "no LeRobot calibration: twin calibration push", text: "uncalibrated" })] : []),
+        ...restarting(r)),
       el("div", { class: "line" }, el("span", { class: "status " + r[c.status], text: r[c.status] }),
         " · " + Twin.ago(r[c.last_seen], now)),
       el("div", { class: "line", text: `${Twin.num(r[c.rate_hz], 1)} Hz · loss ${Twin.num(r[c.loss_pct], 1)} %` }),
@@ -97,7 +105,8 @@
   function listRow(r, y) {
     const c = columns, id = r[c.device];
     const node = el("a", { class: "row", href: "/arm/" + encodeURIComponent(id), role: "listitem", "data-device": id },
-      el("span", { text: id + (r[c.uncalibrated] ? " (no calibration)" : ""), class: r[c.uncalibrated] ? "uncalibrated" : "" }),
+      el("span", { text: id + (r[c.uncalibrated] ? " (no calibration)" : ""), class: r[c.uncalibrated] ? "uncalibrated" : "" },
+        ...restarting(r)),
       el("span", { class: "status " + r[c.status], text: r[c.status] }),
       el("span", { class: "wide", text: Twin.ago(r[c.last_seen], now) }),
       el("span", { text: Twin.num(r[c.rate_hz], 1) + " Hz" }),
