@@ -85,12 +85,28 @@ def active_heat_alarm(url: str, device: str) -> dict[str, Any] | None:
     )
 
 
+def wait_for_a_session(url: str, device: str) -> dict[str, Any]:
+    """The first session of `device` that the sessions API lists, once history has committed one: the test
+    that reads it may be the module's first (make test-stress shuffles the order)."""
+
+    def session() -> dict[str, Any] | None:
+        status, _, body = http_get(url + "/api/sessions")
+        if status != 200:
+            return None
+        return next((s for s in json.loads(body)["sessions"] if s["device"] == device), None)
+
+    return wait_for(session, TIMEOUT_S, f"history to hold a session of {device}")
+
+
 def test_the_fleet_page_lists_the_arms(console: str, page: Any, browser_errors: list[str]) -> None:
     page.goto(console + "/")
     for device in DEVICES:
         page.wait_for_selector(f'#fleet-view [data-device="{device}"]')
-    card = page.locator('#fleet-view [data-device="arm-003"]')
-    assert "ONLINE" in card.inner_text()
+    # A card can be drawn before its arm's first status reaches the page (or, on a loaded machine, while
+    # the arm is briefly STALE): wait for ONLINE rather than read the card once.
+    page.wait_for_function(
+        "() => document.querySelector('#fleet-view [data-device=\"arm-003\"]').innerText.includes('ONLINE')"
+    )
     # Raw ticks and no calibration anywhere: every arm is flagged.
     page.wait_for_function(
         "() => document.querySelector('#fleet-view [data-device=\"arm-003\"]')"
@@ -141,11 +157,7 @@ def test_curl_acknowledges_a_percent_encoded_id(console: str) -> None:
 def test_the_sessions_page_lists_a_session_and_its_csv_parses(
     console: str, page: Any, browser_errors: list[str], tmp_path: Path
 ) -> None:
-    def listed() -> bool:
-        status, _, body = http_get(console + "/api/sessions")
-        return status == 200 and any(s["device"] == "arm-003" for s in json.loads(body)["sessions"])
-
-    wait_for(listed, TIMEOUT_S, "history to hold a session of arm-003")
+    wait_for_a_session(console, "arm-003")
     page.goto(console + "/sessions")
     row = page.locator('#sessions tr[data-device="arm-003"]').first
     row.wait_for()
@@ -196,8 +208,7 @@ def test_the_events_page_tails_the_twins_events(console: str, page: Any, browser
 
 
 def test_a_sessions_other_files_are_made_from_history(console: str, tmp_path: Path) -> None:
-    status, _, body = http_get(console + "/api/sessions")
-    session = next(s for s in json.loads(body)["sessions"] if s["device"] == "arm-003")
+    session = wait_for_a_session(console, "arm-003")
     base = f"{console}/api/sessions/arm-003/{session['key']}/"
     files = {}
     for kind in ("parquet", "png", "rrd", "usd"):
