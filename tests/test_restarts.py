@@ -59,6 +59,18 @@ class HotWrist:
         self._thread.join(10)
 
 
+def acknowledge_once_active(url: str, alarm: str, timeout_s: float) -> None:
+    """Wait for `alarm` to be ACTIVE, then acknowledge it over HTTP and check the answer says so."""
+    wait_for(
+        lambda: any(a.alarm_id == alarm and a.state == "ACTIVE" for a in alarms(url).alarms),
+        timeout_s,
+        f"{alarm} to be raised",
+        interval=0.1,
+    )
+    status, body = post(f"{url}/alarms/{alarm}/ack")
+    assert status == 200 and body["alarms"][0]["state"] == "ACKNOWLEDGED", body
+
+
 def test_a_killed_worker_keeps_an_acknowledged_alarm_and_its_arm_never_leaves_state(
     rig: LocalRig, publisher: Publisher
 ) -> None:
@@ -71,14 +83,7 @@ def test_a_killed_worker_keeps_an_acknowledged_alarm_and_its_arm_never_leaves_st
     hot = HotWrist(publisher, hot_arm)
     try:
         alarm = f"{hot_arm}/{HOT[0]}/{HOT[1]}"
-        wait_for(
-            lambda: any(a.alarm_id == alarm and a.state == "ACTIVE" for a in alarms(url).alarms),
-            30,
-            "the over-temperature alarm to be raised",
-            interval=0.1,
-        )
-        status, body = post(f"{url}/alarms/{alarm}/ack")
-        assert status == 200 and body["alarms"][0]["state"] == "ACKNOWLEDGED", body
+        acknowledge_once_active(url, alarm, 30)
         # The acknowledgement reaches the worker's checkpoint at once (it wakes the agent's supervisor).
         shard = agent._shards[worker]
         wait_for(
@@ -143,13 +148,7 @@ def test_while_a_worker_restarts_alarms_and_fleet_rows_keep_its_arms_from_its_ch
     hot = HotWrist(publisher, hot_arm)
     alarm = f"{hot_arm}/{HOT[0]}/{HOT[1]}"
     try:
-        wait_for(
-            lambda: any(a.alarm_id == alarm and a.state == "ACTIVE" for a in alarms(url).alarms),
-            30,
-            "the over-temperature alarm to be raised",
-            interval=0.1,
-        )
-        assert post(f"{url}/alarms/{alarm}/ack")[0] == 200
+        acknowledge_once_active(url, alarm, 30)
         wait_for(
             lambda: (
                 shard.checkpoint is not None
@@ -220,13 +219,7 @@ def test_an_agent_restart_keeps_latched_and_acknowledged_alarms(rig: LocalRig, t
     faults = (ServoFault("heat", "wrist_roll", 0.5, 6.0), ServoFault("overload", "shoulder_lift", 0.5, 600.0))
     rig.start_edge(["arm-001"], variant="ticks", rate_hz=10.0, servo_faults=faults, model_loads=True)
     current = "arm-001/shoulder_lift/over_current"
-    wait_for(
-        lambda: any(a.alarm_id == current and a.state == "ACTIVE" for a in alarms(url).alarms),
-        60,
-        "the over-current alarm",
-        interval=0.1,
-    )
-    assert post(f"{url}/alarms/{current}/ack")[0] == 200
+    acknowledge_once_active(url, current, 60)
     wait_for(lambda: by_key(alarms(url)).get(HOT) == "LATCHED", 60, "the heat alarm to latch", interval=0.1)
     before = by_key(alarms(url))
     assert before[("shoulder_lift", "over_current")] == "ACKNOWLEDGED"
