@@ -187,6 +187,14 @@ def test_decode_compares_with_json_loads_in_one_run() -> None:
         assert case["ratio"] == case["decode_validate_us"] / case["json_loads_us"]
 
 
+def test_usd_times_every_sample_it_records_against_json_loads() -> None:
+    out = bench("usd", "--arms", "20", "--blocks", "3", timeout=120)
+    assert out["samples_written"] == 60 and out["blocks_timed"] == 2
+    figures = out["sample_in_json_loads"]
+    assert 0 < figures["min"] <= figures["median"] <= figures["max"]
+    assert out["sample_us"]["median"] > 0 and out["json_loads_us"]["median"] > 0
+
+
 def test_worker_handles_every_message_and_prints_its_cost() -> None:
     out = bench("worker", "--arms", "50", "--rounds", "5", timeout=120)
     assert [c["alarms"] for c in out["cases"]] == [True, False]

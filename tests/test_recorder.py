@@ -183,7 +183,12 @@ def test_bad_input_is_counted_not_raised(tmp_path: Path, mj, caplog: pytest.LogC
         assert not rec.record("arm", 0.0, short_quat)
         assert not rec.record("arm", float("nan"), good)
         assert not rec.record("arm", 0.0, [1, 2, 3])  # type: ignore[arg-type]
-    assert rec.samples_rejected == 6
+        assert not rec.record("arm", 0.0, dict(good, wrist=(good["wrist"][0], np.zeros(4))))
+        assert not rec.record("arm", 0.0, dict(good, wrist=("abc", good["wrist"][1])))
+        assert not rec.record(
+            "arm", 0.0, dict(good, wrist=(np.array(["a", "b", "c"], dtype=object), good["wrist"][1]))
+        )
+    assert rec.samples_rejected == 9
     assert "so101.BODY_NAMES" in caplog.text and "'wrist'" in caplog.text
     assert rec.record("arm", 0.0, good)
     rec.close()
@@ -364,3 +369,26 @@ def test_recorded_part_meshes_sit_where_mujoco_draws_them(tmp_path: Path, mj) ->
             )
             checked += 1
     assert checked == 9
+
+
+def test_poses_as_lists_integers_or_unnormalised_quaternions_are_recorded_as_floats(
+    tmp_path: Path, mj
+) -> None:
+    # The pose check converts to floats itself (not numpy): lists and integer arrays are poses too, and a
+    # quaternion off unit length is normalised, as with float arrays.
+    model, data = mj
+    good = _fk_poses(model, data, ANGLE_SETS[0])
+    as_lists = {name: (list(pos), [2.0 * q for q in quat]) for name, (pos, quat) in good.items()}
+    as_lists["base"] = (np.zeros(3, dtype=np.int64), np.array([1, 0, 0, 0]))
+    rec = SessionRecorder(tmp_path / "lists.usda")
+    assert rec.record("a", 0.0, good)
+    assert rec.record("b", 0.0, dict(good, base=(np.zeros(3), np.array([1.0, 0, 0, 0]))))
+    assert rec.record("c", 0.0, as_lists)
+    rec.close()
+    stage = Usd.Stage.Open(str(tmp_path / "lists.usda"))
+    cache = UsdGeom.XformCache(Usd.TimeCode(0.0))
+    b, c = (stage.GetPrimAtPath(rec.devices[d]) for d in ("b", "c"))
+    for child_b, child_c in zip(Usd.PrimRange(b), Usd.PrimRange(c), strict=True):
+        mb = cache.GetLocalToWorldTransform(child_b) * cache.GetLocalToWorldTransform(b).GetInverse()
+        mc = cache.GetLocalToWorldTransform(child_c) * cache.GetLocalToWorldTransform(c).GetInverse()
+        assert np.allclose(np.array(mb), np.array(mc), atol=1e-9), child_c.GetPath()

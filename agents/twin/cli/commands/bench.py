@@ -71,6 +71,10 @@ def register(subparsers: Any) -> None:
 
     de = sub.add_parser("decode", help="decode + validate of an edge message against json.loads of it")
 
+    us = sub.add_parser("usd", help="one USD recording sample (FK + record) against json.loads, per arm")
+    us.add_argument("--arms", type=int, default=200)
+    us.add_argument("--blocks", type=int, default=12, help="blocks of one sample per arm (the first untimed)")
+
     wo = sub.add_parser("worker", help="CPU per message of one worker process, fed through its pipe")
     wo.add_argument("--arms", type=int, default=1000)
     wo.add_argument("--rounds", type=int, default=40, help="messages per arm (10 Hz edge timestamps)")
@@ -105,7 +109,7 @@ def register(subparsers: Any) -> None:
     al.add_argument("--seconds", type=float, default=20.0, help="throughput run length")
     al.add_argument("--plot", type=Path, default=Path("docs/performance.png"))
 
-    for p in (tp, fi, fo, hs, hr, hl, r2, rn, rr, qu, de, wo, cs, co, so, al):
+    for p in (tp, fi, fo, hs, hr, hl, r2, rn, rr, qu, de, us, wo, cs, co, so, al):
         p.add_argument("--json", action="store_true", help="print the figures as one JSON object")
         p.set_defaults(func=run)
 
@@ -139,6 +143,8 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
         return _bench("quota").run(arms=args.arms, rate=args.rate, seconds=args.seconds)
     if args.scenario == "decode":
         return _bench("decode").run()
+    if args.scenario == "usd":
+        return _bench("usd").run(arms=args.arms, blocks=args.blocks)
     if args.scenario == "console":
         return _bench("console").run(
             arms=args.arms, cpu_arms=args.cpu_arms, rate=args.rate, runs=args.runs, seconds=args.seconds
@@ -161,8 +167,8 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
 
 def _every_scenario(args: argparse.Namespace) -> dict[str, Any]:
     """`twin bench all`: the two throughput loads the targets name, fidelity, footprint, ROS 2, render, Rerun,
-    the quota (one connection vs the pool), decode against json.loads, a worker's cost per message, and the
-    agent's whole cost per message in json.loads units; then the plot of them."""
+    the quota (one connection vs the pool), decode and a USD recording sample against json.loads, a worker's
+    cost per message, and the agent's whole cost per message in json.loads units; then the plot of them."""
     throughput = _bench("throughput")
     results = {
         "throughput": [
@@ -176,6 +182,7 @@ def _every_scenario(args: argparse.Namespace) -> dict[str, Any]:
         "rerun": _bench("rerun").run(arms=100, rate=10.0, seconds=args.seconds),
         "quota": _bench("quota").run(seconds=args.seconds),
         "decode": _bench("decode").run(),
+        "usd": _bench("usd").run(),
         "worker": _bench("worker").run(),
         "console": _bench("console").run(seconds=args.seconds),
         "cost": _bench("cost").run(seconds=args.seconds),
