@@ -154,8 +154,9 @@ KEY_DOCS: dict[str, str] = {
     ),
     "twin.record_rate_hz": (
         "Each arm is recorded at most this many samples a second; the rest are counted as `skipped`. "
-        "Authoring a USD sample costs about a millisecond, so a large fleet at 10 Hz is more than the "
-        "recording's one thread can keep up with."
+        "A USD sample costs the recording's one thread about 60 `json.loads` of an edge message (0.6 ms "
+        "where `json.loads` takes 10 µs; `twin bench usd`), so a large fleet at 10 Hz is more than it can "
+        "keep up with."
     ),
     "twin.state_file": (
         "Where the servo alarms an agent restart must not forget (ACTIVE, ACKNOWLEDGED, LATCHED) are "
