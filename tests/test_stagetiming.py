@@ -148,3 +148,28 @@ def test_batch_weights() -> None:
     assert all(every.sample() for _ in range(100)) and every.batch_weight(True, 1) == 1.0
     with pytest.raises(ValueError, match="at least 1"):
         StageSampler(every=0)
+
+
+class JumpingClock(CountingClock):
+    """The thread's CPU clock, but the second reading jumps `jump_s` ahead: CPU time charged to the thread
+    between two back-to-back readings, as an accounting tick or an interrupt under load can be."""
+
+    def __init__(self, jump_s: float) -> None:
+        super().__init__()
+        self.jump_s = jump_s
+
+    def __call__(self) -> float:
+        now = super().__call__()
+        return now + (self.jump_s if self.calls >= 2 else 0.0)
+
+
+def test_a_clock_reading_that_jumps_never_makes_a_stage_negative(fed: Feed) -> None:
+    # Each timed span has one reading's own cost taken off, measured by two readings in a row. A jump between
+    # those two (the first timed turn here) once made that turn's spans negative, and scaled by the sampling
+    # weight they outweighed a short run's whole stage: `twin bench cost` reported negative CPU under load.
+    clock = JumpingClock(jump_s=0.05)
+    mirror = fed(clock, StageSampler(every=1), 20)
+    worker = mirror.report().worker
+    assert worker.stage_timed_batches == 20
+    assert all(cpu >= 0.0 for cpu in worker.stage_cpu_s.values()), worker.stage_cpu_s
+    assert worker.stage_cpu_s["decode"] > 0

@@ -183,6 +183,15 @@ def _no_cpu_clock() -> float:
     return 0.0
 
 
+def _span(start: float, end: float, read: float) -> float:
+    """CPU seconds between two readings of the stage timers' clock, less one reading's own cost (`read`,
+    measured by two readings in a row), never below 0. Under load the thread can be charged CPU between those
+    two readings (an accounting tick, an interrupt), so `read` can exceed a short span; scaled by the sampling
+    weight, one such span outweighed a short run's whole stage (`twin bench cost` reported negative CPU)."""
+    spent = end - start - read
+    return spent if spent > 0.0 else 0.0
+
+
 class _Device:
     """What the worker keeps per admitted device, in one place so a message finds all of it in one lookup:
     its twin, health record and loss estimator, the clock-jump streak, and what /state shows of its last
@@ -616,8 +625,7 @@ class Mirror:
                 before = cpu()
                 started = cpu()
                 batch = inbox.take(wake)
-                spent = cpu() - started - (started - before)
-                stage_cpu["hand_over"] += spent * sampler.weight
+                stage_cpu["hand_over"] += _span(started, cpu(), started - before) * sampler.weight
             else:
                 batch = inbox.take(wake)
             count = len(batch.payloads)
@@ -801,7 +809,7 @@ class Mirror:
         if behind and len(decoded) > 1:
             decoded = self._catch_up(decoded, batch, admitted)
         decoded_at = cpu()
-        stage_cpu["decode"] += (decoded_at - started - read) * weight
+        stage_cpu["decode"] += _span(started, decoded_at, read) * weight
         if losses:
             with self._lock:
                 now = self._clock()
@@ -810,24 +818,24 @@ class Mirror:
                         loss.record_rejected()
                     else:
                         loss.observe(timestamp_ms, now)
-            stage_cpu["health_alarms"] += (cpu() - decoded_at - read) * weight
+            stage_cpu["health_alarms"] += _span(decoded_at, cpu(), read) * weight
         for entries in _rounds(decoded):
             started = cpu()
             with self._lock:
                 applied = self._apply_all(entries, batch)
                 updated = self._clock()
                 twin_done = cpu()
-                stage_cpu["twin"] += (twin_done - started - read) * weight
+                stage_cpu["twin"] += _span(started, twin_done, read) * weight
                 events = self._record_all(entries, applied, updated, batch)
             started = cpu()
-            stage_cpu["health_alarms"] += (started - twin_done - read) * weight
+            stage_cpu["health_alarms"] += _span(twin_done, started, read) * weight
             for message_events in events:
                 for event in message_events:
                     _log_alarm_event(event)
                     self._watch.alarm(event)
             if self._sinks or self._history is not None:
                 self._hand_all(entries, applied, events, batch)
-                stage_cpu["sinks"] += (cpu() - started - read) * weight
+                stage_cpu["sinks"] += _span(started, cpu(), read) * weight
 
     def _decode_all(
         self, batch: Batch, admitted: set[int], losses: list[tuple[DeviceLoss, int | None]]
