@@ -236,7 +236,17 @@ def test_cost_reports_cpu_per_message_in_json_loads_and_by_stage() -> None:
     # The split covers the whole: the stages add up to at least the agent's total (more only when the
     # sampled estimate of the workers' stages overshoots their measured CPU, which `other` cannot offset).
     stages = run["stages_loads_per_received"]
-    assert all(v >= 0 for v in stages.values())
+    assert all(v >= 0 for v in stages.values()), stages
     assert sum(stages.values()) >= run["loads_per_received"] * (1 - 1e-9)
     assert stages["decode"] > 0 and stages["health_alarms"] > 0
     assert {"before", "after"} <= set(run["load_average_1m"])
+
+
+def test_cost_counts_a_thread_under_a_reused_id_from_zero() -> None:
+    # Thread ids wrap at the host's pid_max: a thread with less CPU than the one its id had before the
+    # window is a new thread, and its CPU is all in the window (never a negative delta).
+    from twin.bench.cost import _delta, _Threads
+
+    before = _Threads(1, {10: ("twin-send-0", 2.0), 11: ("twin-crt", 0.5)})
+    after = _Threads(1, {10: ("twin-http", 0.25), 11: ("twin-crt", 0.75), 12: ("twin-new", 0.125)})
+    assert _delta(before, after) == {10: ("twin-http", 0.25), 11: ("twin-crt", 0.25), 12: ("twin-new", 0.125)}

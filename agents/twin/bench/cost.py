@@ -115,11 +115,17 @@ def _tree(pid: int) -> dict[int, _Threads]:
 
 
 def _delta(before: _Threads | None, after: _Threads | None) -> dict[int, tuple[str, float]]:
-    """Per thread, its CPU over the window (threads that ended in it are lost: the agent's do not)."""
+    """Per thread, its CPU over the window (threads that ended in it are lost: the agent's do not). A thread
+    whose CPU went down is a new one under an ended one's id (ids are reused once they wrap at the host's
+    pid_max, 32,768 on this machine), so all of its CPU is in the window."""
     if after is None:
         return {}
     old = before.cpu if before is not None else {}
-    return {tid: (name, cpu - old.get(tid, ("", 0.0))[1]) for tid, (name, cpu) in after.cpu.items()}
+    out = {}
+    for tid, (name, cpu) in after.cpu.items():
+        was = old.get(tid, ("", 0.0))[1]
+        out[tid] = (name, cpu - was if cpu >= was else cpu)
+    return out
 
 
 def _quiet(pid: int, *, below: float = 0.05, step_s: float = 0.25, timeout_s: float = 15.0) -> None:
