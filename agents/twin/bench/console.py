@@ -14,7 +14,6 @@ Publishers, broker, agent and browser share this host's cores: quote the load av
 from __future__ import annotations
 
 import os
-import statistics
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -22,7 +21,7 @@ from typing import Any
 
 import psutil
 
-from twin.bench.harness import ProcessSampler, publishers, running_agent, wait_subscribed
+from twin.bench.harness import ProcessSampler, publishers, running_agent, spread, wait_subscribed
 from twin.rig.console_shots import CHROMIUM, CHROMIUM_FLAGS, loopback_only
 from twin.rig.local import LocalRig
 
@@ -41,12 +40,6 @@ async (id) => {
   return performance.now() - t0;
 }
 """
-
-
-def _spread(values: list[float]) -> dict[str, float | None]:
-    if not values:
-        return {"median": None, "min": None, "max": None}
-    return {"median": statistics.median(values), "min": min(values), "max": max(values)}
 
 
 @contextmanager
@@ -115,9 +108,9 @@ def _interactive(rig: LocalRig, arms: int, rate: float, runs: int) -> dict[str, 
         "rate_hz": rate,
         "runs": runs,
         "fleet_listed_after_s": listed_s,
-        "ready_ms": _spread(ready),
-        "search_ms": _spread(search),
-        "update_ms": _spread(update),
+        "ready_ms": spread(ready),
+        "search_ms": spread(search),
+        "update_ms": spread(update),
     }
 
 

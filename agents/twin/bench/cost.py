@@ -42,7 +42,6 @@ import dataclasses
 import json
 import os
 import shutil
-import statistics
 import subprocess
 import tempfile
 import time
@@ -60,6 +59,7 @@ from twin.bench.harness import (
     load_process,
     publishers,
     running_agent,
+    spread,
     sum_devices,
     wait_subscribed,
 )
@@ -201,14 +201,8 @@ def _probe_rounds(text: str) -> list[tuple[float, float]]:
 
 
 def _spread(values: list[float]) -> dict[str, float | int | None]:
-    if not values:
-        return {"median": None, "min": None, "max": None, "samples": 0}
-    return {
-        "median": statistics.median(values),
-        "min": min(values),
-        "max": max(values),
-        "samples": len(values),
-    }
+    """`spread`, and how many figures it rests on (the probe's rounds in a window vary with the load)."""
+    return {**spread(values), "samples": len(values)}
 
 
 @dataclass(frozen=True)

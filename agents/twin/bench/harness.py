@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import json
 import math
+import statistics
 import subprocess
 import sys
 import threading
 import time
 import urllib.request
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any
 
@@ -218,6 +219,13 @@ def collect(procs: list[Any], timeout: float) -> dict[str, Any]:
         late += result["late_slots"]
         elapsed = max(elapsed, result["elapsed_s"])
     return {"sent": sent, "publish_failures": failures, "late_slots": late, "elapsed_s": elapsed}
+
+
+def spread(values: Sequence[float]) -> dict[str, float | None]:
+    """The median, smallest and largest of a scenario's repeated figures (each None when there are none)."""
+    if not values:
+        return {"median": None, "min": None, "max": None}
+    return {"median": statistics.median(values), "min": min(values), "max": max(values)}
 
 
 def sum_devices(state: AgentState, counter: str) -> int:

@@ -18,20 +18,24 @@ from __future__ import annotations
 import argparse
 import json
 import random
-import statistics
 import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
+from twin.bench.harness import spread
+from twin.core.telemetry import JointDiagnostics
+from twin.edge.payload import encode, make_payload
+from twin.output.recorder import SessionRecorder
+from twin.robot import so101
+from twin.robot.model import RobotModel
+
 LOADS_PER_BLOCK = 4000
 
 
 def _edge_message() -> bytes:
     """The edge's message as the throughput loads publish it (mock motion with servo diagnostics)."""
-    from twin.edge.payload import encode, make_payload  # noqa: PLC0415 - the bench imports what it measures late
-
     return encode(make_payload("arm-0001", 1.0, "ticks", random.Random(1), timestamp_ms=1_706_000_000_000))
 
 
@@ -39,11 +43,6 @@ def run(arms: int = 200, blocks: int = 12) -> dict[str, Any]:
     """Per-sample cost of FK + record over `blocks` blocks of `arms` samples (median and spread)."""
     if arms < 1 or blocks < 2:
         raise ValueError(f"arms must be >= 1 and blocks >= 2, got arms={arms}, blocks={blocks}")
-    from twin.core.telemetry import JointDiagnostics  # noqa: PLC0415
-    from twin.output.recorder import SessionRecorder  # noqa: PLC0415
-    from twin.robot import so101  # noqa: PLC0415
-    from twin.robot.model import RobotModel  # noqa: PLC0415
-
     robot = RobotModel.load(None)
     message = _edge_message()
     diagnostics = {
@@ -88,14 +87,10 @@ def run(arms: int = 200, blocks: int = 12) -> dict[str, Any]:
         "arms": arms,
         "blocks_timed": len(ratios),
         "samples_written": written,
-        "sample_in_json_loads": _spread(ratios),
-        "sample_us": _spread(sample_us),
-        "json_loads_us": _spread(loads_us),
+        "sample_in_json_loads": spread(ratios),
+        "sample_us": spread(sample_us),
+        "json_loads_us": spread(loads_us),
     }
-
-
-def _spread(values: list[float]) -> dict[str, float]:
-    return {"median": statistics.median(values), "min": min(values), "max": max(values)}
 
 
 def main(argv: list[str] | None = None) -> int:
