@@ -502,10 +502,6 @@ def _is_rigid(matrix: Gf.Matrix4d) -> bool:
 
 def _floats(value: ArrayLike, size: int) -> _Vec:
     """`value` as `size` floats; ValueError or TypeError if it is not that many numbers."""
-    if isinstance(value, np.ndarray) and value.shape == (size,):
-        out = tuple(value.tolist())  # FK's own arrays, every sample: no conversion through np.asarray
-    else:
-        out = tuple(np.asarray(value, dtype=float).reshape(size).tolist())
-    if not all(isinstance(v, float) for v in out):
-        out = tuple(float(v) for v in out)  # an integer or boolean array's items
-    return out
+    if isinstance(value, np.ndarray) and value.dtype == np.float64 and value.shape == (size,):
+        return tuple(value.tolist())  # FK's own arrays, every sample: no conversion through np.asarray
+    return tuple(np.asarray(value, dtype=float).reshape(size).tolist())
