@@ -133,3 +133,53 @@ def test_rotation_settings_are_checked() -> None:
         RerunSettings(save="x.rrd", save_max_mb=100, save_budget_mb=10).validate()
     with pytest.raises(ValueError, match="budget"):
         RecordingLimits(max_bytes=100, budget_bytes=10)
+
+
+def test_a_rerun_save_whose_meshes_fill_the_size_limit_rotates_at_twice_them(
+    robot: RobotModel, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # save_max_mb below the arms' static parts: without the raised limit every new file would be due at once,
+    # and the sink would rewrite the meshes each second instead of logging samples.
+    path = tmp_path / "twin.rrd"
+    settings = RerunSettings(
+        save=str(path),
+        flush_s=0.05,
+        save_max_mb=0.01,
+        save_budget_mb=4.0,
+        max_rate_hz=100.0,
+        mesh_faces_per_arm=2_000,
+        mesh_faces_far=2_000,
+    )
+    sink = RerunSink(robot, settings)
+    worker = sink.worker
+    rotation = worker._rotation
+    assert rotation is not None
+    # The limit each new file was opened with, in order (file n+1 of the rotated ones got limits[n]).
+    limits: list[int] = []
+    opened_with = rotation.opened_with
+
+    def measured(static_bytes: int) -> None:
+        opened_with(static_bytes)
+        limits.append(rotation.limit_bytes)
+
+    rotation.opened_with = measured  # type: ignore[method-assign]
+    start = time.monotonic()
+    i = 0
+    with caplog.at_level("WARNING", logger="twin.output.rerun_sink"):
+        while worker.rotations < 3:
+            for sample in _samples(10, start_mono=start + i):
+                sink.applied(sample)
+            i += 1
+            assert time.monotonic() - start < 120, "the .rrd never reached its size limit"
+            time.sleep(0.2)
+        sink.close()
+    max_bytes = settings.save_max_mb * 2**20
+    assert rotation.limit_bytes == 2 * rotation.static_bytes > max_bytes
+    # The first file rotated at save_max_mb; every later one only once it reached twice its static parts.
+    rotated = sorted(tmp_path.glob("twin-*.rrd"), key=lambda p: int(p.stem.rsplit("-", 1)[1]))
+    assert len(rotated) == worker.rotations == len(limits)
+    assert all(p.stat().st_size >= limit for p, limit in zip(rotated[1:], limits, strict=False))
+    # Said once per new limit (the fleet's second arm joined the second file), with the setting to raise.
+    warnings = [r.getMessage() for r in caplog.records if "static parts" in r.getMessage()]
+    assert 1 <= len(warnings) <= len(set(limits))
+    assert all("Raise rerun.save_max_mb to at least" in w for w in warnings)

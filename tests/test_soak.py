@@ -29,3 +29,11 @@ def test_two_minutes_of_50_arms_with_every_sink_stay_within_the_bounds(tmp_path:
     assert verdicts["disk"]["rrd"]["reached_at_s"] is not None
     assert verdicts["clean_stop"]["ok"] and verdicts["ok"]
     assert result["sent"]["sent"] == 50 * 10 * 120
+
+
+def test_the_short_caps_rrd_grows_with_the_fleet_past_50_arms() -> None:
+    # 200 arms' meshes (about 30 MB) fill the 20 MB file: each new file would start due to rotate.
+    assert soak.short_caps(50) == soak.SHORT_CAPS
+    big = soak.short_caps(200)
+    assert big.rrd_max_mb == pytest.approx(80.0) and big.rrd_budget_mb == pytest.approx(240.0)
+    assert big.record_max_mb == soak.SHORT_CAPS.record_max_mb

@@ -207,9 +207,13 @@ class SaveRotation:
 
     The live file is always `save` (what `rerun <save>` opens); at a rotation it is renamed
     `<stem>-<UTC start time>-<n>.rrd` beside it, and the oldest of those are deleted while they, with
-    the live file at its largest (`save_max_mb`), would take more than `save_budget_mb`. Each file holds
-    the arms' static parts, so it opens on its own (the first one also the layout); `rerun` opens several
-    at once as one recording (they share its id)."""
+    the live file at its largest, would take more than `save_budget_mb`. Each file holds the arms' static
+    parts, so it opens on its own (the first one also the layout); `rerun` opens several at once as one
+    recording (they share its id).
+
+    A file rotates at `save_max_mb`, or at twice its static parts (`opened_with`) if that is more: a fleet
+    whose meshes alone fill `save_max_mb` would otherwise start every new file already due, and rewrite
+    every arm's meshes once a second instead of logging samples."""
 
     CHECK_EVERY_S = 1.0
 
@@ -225,6 +229,29 @@ class SaveRotation:
         self._next_check = 0.0
         self.rotations = 0
         self.deleted = 0
+        # Bytes of the live file's static parts (0 until the first rotation measures them), and the size
+        # it rotates at.
+        self.static_bytes = 0
+        self.limit_bytes = self.max_bytes
+
+    def opened_with(self, static_bytes: int) -> None:
+        """The new live file holds `static_bytes` of static parts: rotate it at twice that if
+        `save_max_mb` is less, and say so, with the setting that would restore the limit."""
+        self.static_bytes = static_bytes
+        limit = max(self.max_bytes, 2 * static_bytes)
+        if limit > self.max_bytes and limit != self.limit_bytes:
+            log.warning(
+                "rerun: the arms' static parts take %.1f MB of each .rrd, more than half of "
+                "rerun.save_max_mb = %g; files rotate at %.1f MB instead. Raise rerun.save_max_mb to at "
+                "least %.0f (and save_budget_mb with it) to keep to the setting",
+                static_bytes / 2**20,
+                self.max_bytes / 2**20,
+                limit / 2**20,
+                math.ceil(limit / 2**20),
+            )
+        if limit != self.limit_bytes:
+            self.limit_bytes = limit
+            self._keep_within_budget()
 
     def due(self, now: float) -> bool:
         if now < self._next_check:
@@ -233,7 +260,7 @@ class SaveRotation:
         if now - self._opened >= self.max_age_s:
             return True
         try:
-            return self.save.stat().st_size >= self.max_bytes
+            return self.save.stat().st_size >= self.limit_bytes
         except OSError:
             return False
 
@@ -259,7 +286,7 @@ class SaveRotation:
             except OSError:
                 continue
             files.append((st.st_mtime, path, st.st_size))
-        total = sum(size for _, _, size in files) + self.max_bytes
+        total = sum(size for _, _, size in files) + self.limit_bytes
         for _, path, size in sorted(files):
             if total <= self.budget_bytes:
                 break
@@ -383,6 +410,12 @@ class RerunWorker:
             self._log_arm(arm, only_new)
             arm.servo_styled.clear()  # logged again with the next batch
             arm.status, arm.status_key = "", ()
+        # Written out, the file's size is its static parts, which decide where it rotates (SaveRotation).
+        new.flush(timeout_sec=30.0)
+        try:
+            rotation.opened_with(self.save_path.stat().st_size)
+        except OSError as exc:
+            log.error("rerun: %s could not be measured after a rotation: %s", self.save_path, exc)
 
     # --- SinkWorker ---------------------------------------------------------------------------------------
 

@@ -367,12 +367,13 @@ KEY_DOCS: dict[str, str] = {
     "rerun.max_pending": "The sink's queue; beyond it the oldest samples are dropped (counted).",
     "rerun.save_max_mb": (
         "The saved `.rrd` rotates to a new file once it reaches this size (it grows about 1.5 MB a "
-        'second at 200 arms; docs/web.md, "`.rrd` files").'
+        "second at 200 arms), or twice the arms' meshes it starts with if that is more (a warning says "
+        'so; docs/web.md, "`.rrd` files").'
     ),
     "rerun.save_max_age_s": "... or once it is this old.",
     "rerun.save_budget_mb": (
-        "The rotated files beside the saved one are kept within this, the live one counted at "
-        "`save_max_mb`; the oldest are deleted first. At least `save_max_mb`."
+        "The rotated files beside the saved one are kept within this, the live one counted at the "
+        "size it rotates at; the oldest are deleted first. At least `save_max_mb`."
     ),
 }
 
