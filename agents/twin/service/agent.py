@@ -596,9 +596,7 @@ class AgentService:
             now = self._clock()
             asked = self._ask_fleet(ReportRequest(), report_of)
             reports = {shard.index: report for shard, report in asked.answers}
-            restarting_untracked = [
-                shard.checkpoint.untracked_rejected for shard in asked.silent if shard.checkpoint is not None
-            ]
+            checkpoints = [shard.checkpoint for shard in asked.silent if shard.checkpoint is not None]
             state = merge_reports(
                 self._info(now),
                 list(reports.values()),
@@ -606,7 +604,8 @@ class AgentService:
                 dropped=self._dropped(),
                 dropped_total=sum(shard.dropped_total for shard in self._shards),
                 restarting=self._checkpoint_devices(asked.silent),
-                restarting_untracked=restarting_untracked,
+                restarting_untracked=[c.untracked_rejected for c in checkpoints],
+                restarting_alarms=[c.alarms_summary for c in checkpoints if c.alarms_summary is not None],
             )
             if self._history is not None:
                 state = dataclasses.replace(

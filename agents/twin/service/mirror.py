@@ -699,6 +699,7 @@ class Mirror:
                 )
             untracked = dict(self._fleet.untracked_rejected)
             batches = self.batches
+            summary = self._alarms_summary()
         return MirrorCheckpoint(
             taken=self.processed,
             errors=self.errors,
@@ -709,6 +710,7 @@ class Mirror:
             alarms=alarms,
             alarm_counters=counters,
             tracking_since=self._fleet.started,
+            alarms_summary=summary,
         )
 
     def restore(self, checkpoint: MirrorCheckpoint | None, alarms: Sequence[AlarmRecord] = ()) -> Restored:

@@ -301,6 +301,9 @@ class MirrorCheckpoint:
     alarm_counters: AlarmCounters = field(default_factory=AlarmCounters)
     history: HistoryState | None = None
     tracking_since: float = 0.0  # when the mirror's health tracking began (for a device never heard from)
+    # The fleet's alarm counts as the mirror had them (not with `alarms_only`): `/state` merges them for a
+    # worker being started again, so the summary does not dip while its arms show as restarting.
+    alarms_summary: AlarmsSummary | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -1204,13 +1207,15 @@ def merge_reports(
     dropped_total: int | None = None,
     restarting: Mapping[str, DeviceState] | None = None,
     restarting_untracked: Sequence[Mapping[str, int]] = (),
+    restarting_alarms: Sequence[AlarmsSummary] = (),
 ) -> AgentState:
     """One fleet state from the mirrors' reports. `info` is the agent's own part (process, broker); `workers`
     its worker processes (empty when the mirror runs in-process); `dropped` the messages of each device it
     could not hand to a mirror, counted with the mirror's own queue drops (`overwritten`), and
     `dropped_total` all of them (per device only the most recent devices are kept; default: their sum).
     `restarting` are the devices of workers being started again, as their last checkpoints left them, and
-    `restarting_untracked` those checkpoints' rejections of no device.
+    `restarting_untracked` those checkpoints' rejections of no device, `restarting_alarms` their alarm
+    counts.
     """
     devices, untracked = _merge_devices(reports, dropped, restarting or {}, restarting_untracked)
     workers_alive = all(w.alive for w in workers)
@@ -1224,7 +1229,7 @@ def merge_reports(
             recording=_merge_recording([r.recording for r in reports if r.recording is not None]),
             history=_merge_history([r.history for r in reports if r.history is not None]),
             sinks=_merge_sinks([r.sinks for r in reports]),
-            alarms=_merge_alarms([r.alarms for r in reports]),
+            alarms=_merge_alarms([r.alarms for r in reports] + list(restarting_alarms)),
             loss=fleet_loss(d.loss for d in devices.values()),
             workers=workers,
         ),
