@@ -513,7 +513,7 @@ def _rigid(matrix: Gf.Matrix4d) -> _Rigid:
 
 
 # Float quaternion math for _author. Plain floats, not numpy: for 3- and 4-vectors numpy's per-call overhead
-# is larger than the arithmetic (measured in the commit that added these).
+# is larger than the arithmetic (docs/performance.md, "USD recording, per sample").
 
 
 def _qmul(a: _Vec, b: _Vec) -> _Vec:
@@ -559,9 +559,10 @@ def _relative(parent: _Rigid, world: _Rigid) -> _Rigid:
 
 
 def _gf_sign(q: _Vec) -> _Vec:
-    """q or -q, whichever Gf.Matrix4d.ExtractRotationQuat returns for q's rotation: it makes w positive when
-    w^2 exceeds every x^2, y^2, z^2, else the largest of those (first on a tie between x, y and z; a matrix
-    diagonal entry is 2 (w^2 + x_i^2) - 1, which is what Gf compares), so a body's first sample matches."""
+    """q or -q, whichever Gf.Matrix4d.ExtractRotationQuat returns for q's rotation, so a body's first sample
+    has the sign the Gf code gave it: w positive when w^2 exceeds every x^2, y^2, z^2, else the largest of
+    those (the later one on a tie; Gf compares the matrix diagonal, whose entry i is 2 (w^2 + x_i^2) - 1).
+    On an exact tie Gf's choice is float rounding, so there the sign may differ; the rotation is the same."""
     w, x, y, z = q
     xx, yy, zz = x * x, y * y, z * z
     if xx > yy:
