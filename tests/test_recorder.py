@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 from pathlib import Path
@@ -392,3 +393,60 @@ def test_poses_as_lists_integers_or_unnormalised_quaternions_are_recorded_as_flo
         mb = cache.GetLocalToWorldTransform(child_b) * cache.GetLocalToWorldTransform(b).GetInverse()
         mc = cache.GetLocalToWorldTransform(child_c) * cache.GetLocalToWorldTransform(c).GetInverse()
         assert np.allclose(np.array(mb), np.array(mc), atol=1e-9), child_c.GetPath()
+
+
+def _random_quat(rng: np.random.Generator) -> tuple[float, ...]:
+    q = rng.normal(size=4)
+    return tuple((q / np.linalg.norm(q)).tolist())
+
+
+def _gf_matrix(quat: tuple[float, ...], pos: tuple[float, ...]) -> Gf.Matrix4d:
+    m = Gf.Matrix4d(1.0)
+    m.SetRotateOnly(Gf.Quatd(quat[0], Gf.Vec3d(*quat[1:])))
+    m.SetTranslateOnly(Gf.Vec3d(*pos))
+    return m
+
+
+def test_float_pose_math_equals_gf_matrices() -> None:
+    # The recorder composes poses with float quaternions; the values must be what Gf row-vector matrices give
+    # (world = local * parent), including the sign Gf's ExtractRotationQuat picks for a first sample.
+    from twin.output.recorder import _compose, _gf_sign, _relative
+
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        parent = (_random_quat(rng), tuple(rng.normal(size=3).tolist()))
+        world = (_random_quat(rng), tuple(rng.normal(size=3).tolist()))
+        gf_parent, gf_world = _gf_matrix(*parent), _gf_matrix(*world)
+        local = gf_world * gf_parent.GetInverse()
+        quat, pos = _relative(parent, world)
+        expected_quat = local.ExtractRotationQuat().GetNormalized()
+        np.testing.assert_allclose(pos, local.ExtractTranslation(), atol=1e-9)
+        np.testing.assert_allclose(
+            _gf_sign(quat), (expected_quat.GetReal(), *expected_quat.GetImaginary()), atol=1e-9
+        )
+        composed = _gf_matrix(*_compose(parent, (quat, pos)))
+        assert np.allclose(np.array(composed), np.array(gf_world), atol=1e-9)
+
+
+def test_orient_samples_stay_in_one_hemisphere_when_the_pose_quaternion_flips_sign(tmp_path: Path) -> None:
+    # The base turns about z in 40 degree steps past a full turn, its quaternion passed as w >= 0 and then
+    # negated on every other sample (the same rotations): the written orients must never jump to the other
+    # hemisphere, or orient interpolation between two samples takes the long way round.
+    session = tmp_path / "flip.usda"
+    angles = [math.radians(40.0 * k) for k in range(12)]
+    with SessionRecorder(session) as rec:
+        for k, angle in enumerate(angles):
+            quat = np.array([math.cos(angle / 2), 0.0, 0.0, math.sin(angle / 2)])
+            quat = quat if quat[0] >= 0 else -quat
+            assert rec.record("arm", float(k), {"base": (np.zeros(3), -quat if k % 2 else quat)})
+    stage = Usd.Stage.Open(str(session))
+    base = stage.GetPrimAtPath(f"/World/arm/{BODY_REL['base']}")
+    orient = base.GetAttribute("xformOp:orient:twin")
+    times = orient.GetTimeSamples()
+    assert len(times) == len(angles)
+    written = [orient.Get(t) for t in times]
+    for previous, current in itertools.pairwise(written):
+        assert Gf.Dot(previous, current) > 0.5  # 40 degrees apart: cos(20 degrees), never negative
+    for t, angle in zip(times, angles, strict=True):
+        expected = np.array([math.cos(angle / 2), 0.0, 0.0, math.sin(angle / 2)])
+        _assert_world_pose(base, t, np.zeros(3), expected, f"base @ {t}")

@@ -51,6 +51,8 @@ _PRIM_NAME_BAD = re.compile(r"[^A-Za-z0-9_]")
 BodyPoses = Mapping[str, tuple[ArrayLike, ArrayLike]]  # anything np.asarray takes: checked on arrival
 _Vec = tuple[float, ...]
 _Pose = tuple[_Vec, _Vec]  # a checked pose: position (3 floats, metres), unit quaternion (w, x, y, z)
+# A rigid transform as floats: p -> rotate(quat, p) + pos (column vectors), quat (w, x, y, z) unit.
+_Rigid = tuple[_Vec, _Vec]  # (quat, pos)
 # JointDiagnostics field -> USD attribute name part (units in the name: a USD reader sees no docstring).
 SERVO_READINGS: tuple[tuple[str, str], ...] = (
     ("velocity_rad_s", "velocityRadPerSecond"),
@@ -79,13 +81,13 @@ def sanitise_prim_name(device_id: str) -> str:
 
 @dataclass(frozen=True)
 class _BodyLink:
-    """Where a body sits in the asset. Matrices are Gf row-vector transforms (world = local * parent)."""
+    """Where a body sits in the asset. Transforms are float (quat, pos) pairs, see _Rigid."""
 
     name: str
     rel_path: str  # below the asset's default prim, e.g. "Geometry/base/shoulder"
     parent_body: str | None
-    offset: Gf.Matrix4d  # parent body frame (or device root) -> this body's parent prim
-    asset_local: Gf.Matrix4d  # the body's own local transform in the asset, used when its pose is missing
+    offset: _Rigid  # this body's parent prim in the parent body's frame (or the device root's)
+    asset_local: _Rigid  # the body's own local transform in the asset, used when its pose is missing
 
 
 @dataclass
@@ -94,7 +96,7 @@ class _DeviceTrack:
     prim_path: str
     translate_attrs: dict[str, Sdf.Path]
     orient_attrs: dict[str, Sdf.Path]
-    last_quat: dict[str, Gf.Quatd] = field(default_factory=dict)
+    last_quat: dict[str, _Vec] = field(default_factory=dict)  # the orient last written, (w, x, y, z)
     servo_attrs: dict[tuple[str, str], Sdf.Path] = field(default_factory=dict)
     last_time_code: float = -math.inf
     samples: int = 0
@@ -267,27 +269,31 @@ class SessionRecorder:
         The samples go straight into the session layer (`Sdf.Layer.SetTimeSample`), in one change block: the
         layer is the stage's edit target, so this is what `Usd.Attribute.Set` writes, without its per-call
         value resolution and notices (about 16 us a value, against 5 here; a sample has 14 pose values and up
-        to 30 servo readings, and the recording is one thread under the interpreter lock with the mirror)."""
-        worlds: dict[str, Gf.Matrix4d] = {}
+        to 30 servo readings, and the recording is one thread under the interpreter lock with the mirror).
+        The pose math is float quaternions (_compose etc.), not Gf matrices: composing and inverting 4x4
+        Gf.Matrix4d per body was about 40 % of a sample; the layer still gets the attributes' Gf types."""
+        worlds: dict[str, _Rigid] = {}
         layer = self._layer
+        s = self._units_per_metre
         with Sdf.ChangeBlock():
             for link in self._links:  # base to tip, so a parent's world is known before its children
-                parent = link.offset if link.parent_body is None else link.offset * worlds[link.parent_body]
+                parent = link.offset
+                if link.parent_body is not None:
+                    parent = _compose(worlds[link.parent_body], parent)
                 pose = poses.get(link.name)
                 if pose is None:
-                    local = link.asset_local
-                    worlds[link.name] = local * parent
+                    quat, pos = link.asset_local
+                    worlds[link.name] = _compose(parent, link.asset_local)
                 else:
-                    worlds[link.name] = self._world_matrix(*pose)
-                    local = worlds[link.name] * parent.GetInverse()
-                quat = local.ExtractRotationQuat().GetNormalized()
-                previous = track.last_quat.get(link.name)
-                # Same hemisphere as the previous sample, so orient interpolation takes the short arc.
-                if previous is not None and Gf.Dot(previous, quat) < 0:
-                    quat = -quat
+                    world = worlds[link.name] = (pose[1], (pose[0][0] * s, pose[0][1] * s, pose[0][2] * s))
+                    quat, pos = _relative(parent, world)
+                    quat = _gf_sign(quat)
+                quat = _continue_hemisphere(track.last_quat.get(link.name), quat)
                 track.last_quat[link.name] = quat
-                layer.SetTimeSample(track.translate_attrs[link.name], tc, local.ExtractTranslation())
-                layer.SetTimeSample(track.orient_attrs[link.name], tc, quat)
+                layer.SetTimeSample(track.translate_attrs[link.name], tc, Gf.Vec3d(pos[0], pos[1], pos[2]))
+                layer.SetTimeSample(
+                    track.orient_attrs[link.name], tc, Gf.Quatd(quat[0], quat[1], quat[2], quat[3])
+                )
             for path, value in readings:
                 layer.SetTimeSample(path, tc, value)
 
@@ -366,13 +372,6 @@ class SessionRecorder:
                     path = track.servo_attrs[(joint, reading)] = attr.GetPath()
                 readings.append((path, float(value)))
         return readings
-
-    def _world_matrix(self, pos: _Vec, quat: _Vec) -> Gf.Matrix4d:
-        s = self._units_per_metre
-        m = Gf.Matrix4d(1.0)
-        m.SetRotateOnly(Gf.Quatd(quat[0], Gf.Vec3d(quat[1], quat[2], quat[3])))
-        m.SetTranslateOnly(Gf.Vec3d(pos[0] * s, pos[1] * s, pos[2] * s))
-        return m
 
     def _add_device(self, device_id: str) -> _DeviceTrack:
         name = sanitise_prim_name(device_id)
@@ -486,8 +485,8 @@ def _inspect_asset(asset: Usd.Stage, asset_path: Path) -> list[_BodyLink]:
                 name=name,
                 rel_path=str(prim.GetPath().MakeRelativePath(root.GetPath())),
                 parent_body=parent_name,
-                offset=offset,
-                asset_local=asset_local,
+                offset=_rigid(offset),
+                asset_local=_rigid(asset_local),
             )
         )
     return links
@@ -496,8 +495,93 @@ def _inspect_asset(asset: Usd.Stage, asset_path: Path) -> list[_BodyLink]:
 def _is_rigid(matrix: Gf.Matrix4d) -> bool:
     m = np.array(matrix)
     rotation = m[:3, :3]
-    # Row-vector matrices keep the projective column (last column) at (0, 0, 0, 1).
-    return bool(np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-6) and np.allclose(m[:3, 3], 0))
+    # Row-vector matrices keep the projective column (last column) at (0, 0, 0, 1). A mirror (det -1) is
+    # orthonormal too but has no quaternion.
+    return bool(
+        np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-6)
+        and np.allclose(m[:3, 3], 0)
+        and np.linalg.det(rotation) > 0
+    )
+
+
+def _rigid(matrix: Gf.Matrix4d) -> _Rigid:
+    """A rigid Gf row-vector matrix as (quat, pos): the same rotation, the quaternion sign Gf extracts."""
+    q = matrix.ExtractRotationQuat().GetNormalized()
+    imaginary = np.array(q.GetImaginary(), dtype=float).tolist()
+    pos = np.array(matrix.ExtractTranslation(), dtype=float).tolist()
+    return (float(q.GetReal()), *imaginary), tuple(pos)
+
+
+# Float quaternion math for _author. Plain floats, not numpy: for 3- and 4-vectors numpy's per-call overhead
+# is larger than the arithmetic (docs/performance.md, "USD recording, per sample").
+
+
+def _qmul(a: _Vec, b: _Vec) -> _Vec:
+    """Hamilton product a * b (rotate by b, then by a)."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    )
+
+
+def _rotate(q: _Vec, v: _Vec) -> _Vec:
+    """v rotated by unit quaternion q: v + w t + u x t, with u = (x, y, z) and t = 2 u x v."""
+    w, x, y, z = q
+    vx, vy, vz = v
+    tx = 2.0 * (y * vz - z * vy)
+    ty = 2.0 * (z * vx - x * vz)
+    tz = 2.0 * (x * vy - y * vx)
+    return (vx + w * tx + y * tz - z * ty, vy + w * ty + z * tx - x * tz, vz + w * tz + x * ty - y * tx)
+
+
+def _compose(outer: _Rigid, inner: _Rigid) -> _Rigid:
+    """The transform that applies inner, then outer (Gf row-vector: inner * outer)."""
+    oq, op = outer
+    iq, ip = inner
+    p = _rotate(oq, ip)
+    return _qmul(oq, iq), (p[0] + op[0], p[1] + op[1], p[2] + op[2])
+
+
+def _relative(parent: _Rigid, world: _Rigid) -> _Rigid:
+    """local such that _compose(parent, local) == world (Gf: world * parent.GetInverse())."""
+    pq, pp = parent
+    wq, wp = world
+    inv = (pq[0], -pq[1], -pq[2], -pq[3])
+    q = _qmul(inv, wq)
+    norm = math.hypot(*q)  # unit up to rounding; Gf normalised its extracted quaternion too
+    return (q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm), _rotate(
+        inv, (wp[0] - pp[0], wp[1] - pp[1], wp[2] - pp[2])
+    )
+
+
+def _gf_sign(q: _Vec) -> _Vec:
+    """q or -q, whichever Gf.Matrix4d.ExtractRotationQuat returns for q's rotation, so a body's first sample
+    has the sign the Gf code gave it: w positive when w^2 exceeds every x^2, y^2, z^2, else the largest of
+    those (the later one on a tie; Gf compares the matrix diagonal, whose entry i is 2 (w^2 + x_i^2) - 1).
+    On an exact tie Gf's choice is float rounding, so there the sign may differ; the rotation is the same."""
+    w, x, y, z = q
+    xx, yy, zz = x * x, y * y, z * z
+    if xx > yy:
+        big, lead = (xx, x) if xx > zz else (zz, z)
+    else:
+        big, lead = (yy, y) if yy > zz else (zz, z)
+    if w * w > big:
+        lead = w
+    return q if lead >= 0.0 else (-w, -x, -y, -z)
+
+
+def _continue_hemisphere(previous: _Vec | None, q: _Vec) -> _Vec:
+    """q, or -q (the same rotation) when it is in the other hemisphere from the previous sample's, so orient
+    interpolation between the two takes the short arc."""
+    if previous is not None and (
+        previous[0] * q[0] + previous[1] * q[1] + previous[2] * q[2] + previous[3] * q[3] < 0.0
+    ):
+        return (-q[0], -q[1], -q[2], -q[3])
+    return q
 
 
 def _floats(value: ArrayLike, size: int) -> _Vec:
