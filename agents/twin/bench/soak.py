@@ -73,7 +73,7 @@ SOAK_CAPS = Caps(
     record_max_mb=32.0,
     record_max_age_s=120.0,
     record_budget_mb=160.0,
-    # Authoring a USD sample cost about 1.4 ms of the sink's thread (about 0.6 ms since; `twin bench usd`),
+    # Authoring a USD sample cost about 1.4 ms of the sink's thread (about 0.3 ms since; `twin bench usd`),
     # under the one interpreter lock with every other sink: 200 arms at 2 Hz kept up on a quiet host and fell
     # behind (the queue dropped) when the shared host's load average passed 10. A sample a second per arm
     # keeps the recording within reach, and the hour stays comparable with the runs documented before.

@@ -6,8 +6,8 @@ The recorded pose is the applied (measured, clamped) pose: forward kinematics of
 on the sink thread's own MuJoCo scratch data (`RobotModel.body_poses`).
 
 Bounded three ways (`RecordingLimits`, the `[twin] record_*` settings). Each arm is recorded at most
-`rate_hz` times a second (the rest are counted as skipped: a sample costs the sink's thread about 60
-`json.loads` of an edge message, 0.6 ms at 10 us each, `twin bench usd`, so a large fleet at 10 Hz is more
+`rate_hz` times a second (the rest are counted as skipped: a sample costs the sink's thread about 30
+`json.loads` of an edge message, 0.3 ms at 10 us each, `twin bench usd`, so a large fleet at 10 Hz is more
 than one thread records). A session rotates to a new file once its file reaches `max_bytes` or it is
 `max_age_s` old: a USD stage lives in memory while it records, and a long one is rewritten at every save, so
 an agent that runs for weeks must not keep one stage. And the session files in the directory are kept

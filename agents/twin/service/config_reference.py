@@ -154,7 +154,7 @@ KEY_DOCS: dict[str, str] = {
     ),
     "twin.record_rate_hz": (
         "Each arm is recorded at most this many samples a second; the rest are counted as `skipped`. "
-        "A USD sample costs the recording's one thread about 60 `json.loads` of an edge message (0.6 ms "
+        "A USD sample costs the recording's one thread about 30 `json.loads` of an edge message (0.3 ms "
         "where `json.loads` takes 10 µs; `twin bench usd`), so a large fleet at 10 Hz is more than it can "
         "keep up with."
     ),
