@@ -92,29 +92,35 @@ def test_a_usd_recording_keeps_each_arm_to_its_rate(robot: RobotModel, tmp_path:
     assert stats.delivered + stats.skipped == 50 and 11 <= stats.delivered <= 12
 
 
-def test_the_rerun_save_rotates_and_every_file_opens_on_its_own(robot: RobotModel, tmp_path: Path) -> None:
-    path = tmp_path / "twin.rrd"
-    # Coarse meshes, so the static part each file starts with is small next to the size limit.
-    settings = RerunSettings(
-        save=str(path),
-        flush_s=0.05,
-        save_max_mb=0.2,
-        save_budget_mb=2.0,
-        max_rate_hz=100.0,
-        mesh_faces_per_arm=500,
-        mesh_faces_far=200,
-    )
-    sink = RerunSink(robot, settings)
-    worker = sink.worker
+def _rerun_save(path: Path, **limits: float) -> RerunSettings:
+    """A saved .rrd with a short flush and a high rate limit, and `limits` (sizes, mesh budgets)."""
+    return RerunSettings(save=str(path), flush_s=0.05, max_rate_hz=100.0, **limits)  # type: ignore[arg-type]
+
+
+def _feed_until_rotated(sink: RerunSink, rotations: int) -> float:
+    """Two arms' samples, paced, until the sink's save rotated `rotations` times; returns the monotonic
+    time the next samples start at."""
     start = time.monotonic()
     i = 0
-    while worker.rotations < 4:
+    while sink.worker.rotations < rotations:
         for sample in _samples(10, start_mono=start + i):
             sink.applied(sample)
         i += 1
         assert time.monotonic() - start < 120, "the .rrd never reached its size limit"
-        time.sleep(0.2)
-    for sample in _samples(10, start_mono=start + i):  # the live file has samples of its own too
+        time.sleep(0.2)  # pacing the feed like an edge, not waiting for a result
+    return start + i
+
+
+def test_the_rerun_save_rotates_and_every_file_opens_on_its_own(robot: RobotModel, tmp_path: Path) -> None:
+    path = tmp_path / "twin.rrd"
+    # Coarse meshes, so the static part each file starts with is small next to the size limit.
+    settings = _rerun_save(
+        path, save_max_mb=0.2, save_budget_mb=2.0, mesh_faces_per_arm=500, mesh_faces_far=200
+    )
+    sink = RerunSink(robot, settings)
+    worker = sink.worker
+    after = _feed_until_rotated(sink, 4)
+    for sample in _samples(10, start_mono=after):  # the live file has samples of its own too
         sink.applied(sample)
     sink.close()
     rotated = sorted(tmp_path.glob("twin-*.rrd"))
@@ -141,14 +147,8 @@ def test_a_rerun_save_whose_meshes_fill_the_size_limit_rotates_at_twice_them(
     # save_max_mb below the arms' static parts: without the raised limit every new file would be due at once,
     # and the sink would rewrite the meshes each second instead of logging samples.
     path = tmp_path / "twin.rrd"
-    settings = RerunSettings(
-        save=str(path),
-        flush_s=0.05,
-        save_max_mb=0.01,
-        save_budget_mb=4.0,
-        max_rate_hz=100.0,
-        mesh_faces_per_arm=2_000,
-        mesh_faces_far=2_000,
+    settings = _rerun_save(
+        path, save_max_mb=0.01, save_budget_mb=4.0, mesh_faces_per_arm=2_000, mesh_faces_far=2_000
     )
     sink = RerunSink(robot, settings)
     worker = sink.worker
@@ -163,15 +163,8 @@ def test_a_rerun_save_whose_meshes_fill_the_size_limit_rotates_at_twice_them(
         limits.append(rotation.limit_bytes)
 
     rotation.opened_with = measured  # type: ignore[method-assign]
-    start = time.monotonic()
-    i = 0
     with caplog.at_level("WARNING", logger="twin.output.rerun_sink"):
-        while worker.rotations < 3:
-            for sample in _samples(10, start_mono=start + i):
-                sink.applied(sample)
-            i += 1
-            assert time.monotonic() - start < 120, "the .rrd never reached its size limit"
-            time.sleep(0.2)
+        _feed_until_rotated(sink, 3)
         sink.close()
     max_bytes = settings.save_max_mb * 2**20
     assert rotation.limit_bytes == 2 * rotation.static_bytes > max_bytes
