@@ -38,7 +38,7 @@ JAW_LO, JAW_HI = so101.JOINT_RANGES_RAD["gripper"]
 
 def payload(device: str, i: int) -> dict:
     """LeRobot degrees (variant B): arm joints in degrees, gripper 0..100 %, servo fields in raw units."""
-    d = DEVICES.index(device)
+    d = int(device.rsplit("-", 1)[1]) - 1  # arm-001 is 0: each arm its own phase
     joints = {}
     for k, name in enumerate(so101.ARM_JOINTS):
         lo, hi = (math.degrees(v) for v in so101.JOINT_RANGES_RAD[name])

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 from conftest import read_rrd, wait_for
@@ -97,13 +98,13 @@ def _rerun_save(path: Path, **limits: float) -> RerunSettings:
     return RerunSettings(save=str(path), flush_s=0.05, max_rate_hz=100.0, **limits)  # type: ignore[arg-type]
 
 
-def _feed_until_rotated(sink: RerunSink, rotations: int) -> float:
-    """Two arms' samples, paced, until the sink's save rotated `rotations` times; returns the monotonic
+def _feed_until_rotated(sink: RerunSink, rotations: int, devices: tuple[str, ...] = DEVICES) -> float:
+    """The arms' samples, paced, until the sink's save rotated `rotations` times; returns the monotonic
     time the next samples start at."""
     start = time.monotonic()
     i = 0
     while sink.worker.rotations < rotations:
-        for sample in _samples(10, start_mono=start + i):
+        for sample in _samples(10, devices, start_mono=start + i):
             sink.applied(sample)
         i += 1
         assert time.monotonic() - start < 120, "the .rrd never reached its size limit"
@@ -132,6 +133,49 @@ def test_the_rerun_save_rotates_and_every_file_opens_on_its_own(robot: RobotMode
         _, static = read_rrd(rrd)
         names = {n.split(":", 1)[0] for n in static.schema.names if n.startswith("/arms/")}
         assert {f"/arms/{d}" for d in DEVICES} <= names
+
+
+def test_a_rotation_logs_the_arms_static_parts_a_slice_at_a_time(robot: RobotModel, tmp_path: Path) -> None:
+    # All at once, 200 arms' meshes held the sink's thread for seconds and its queue overflowed: the new file
+    # gets them a slice at a time instead (one arm a slice here), and rotates only once they are all in.
+    path = tmp_path / "twin.rrd"
+    devices = tuple(f"arm-{i:03d}" for i in range(1, 7))
+    settings = _rerun_save(
+        path, save_max_mb=0.5, save_budget_mb=4.0, mesh_faces_per_arm=300, mesh_faces_far=100
+    )
+    sink = RerunSink(robot, settings)
+    worker = sink.worker
+    worker.relog_slice_s = 0.0
+    relogged: list[tuple[int, str]] = []  # (the live file's rotation count, device) per re-logged arm
+    per_slice: list[int] = []  # arms re-logged per call
+    log_arm, relog_some = worker._log_arm, worker._relog_some
+
+    def logged(arm: Any, rec: Any = None) -> None:
+        if rec is not None:  # into the new file only: a re-log, not an arm's first appearance
+            relogged.append((worker.rotations, arm.device))
+        log_arm(arm, rec)
+
+    def sliced(now: float) -> None:
+        before = len(relogged)
+        relog_some(now)
+        if len(relogged) > before:
+            per_slice.append(len(relogged) - before)
+
+    worker._log_arm = logged  # type: ignore[method-assign]
+    worker._relog_some = sliced  # type: ignore[method-assign]
+    after = _feed_until_rotated(sink, 3, devices)
+    for sample in _samples(10, devices, start_mono=after):  # the live file has samples of its own too
+        sink.applied(sample)
+    sink.close()
+    assert per_slice and max(per_slice) == 1
+    # Every file after the first got each arm's static parts once, all before it rotated in turn (the last
+    # file's rest at close).
+    for n in range(1, worker.rotations + 1):
+        assert sorted(d for k, d in relogged if k == n) == list(devices)
+    for rrd in [*tmp_path.glob("twin-*.rrd"), path]:
+        _, static = read_rrd(rrd)
+        names = {n.split(":", 1)[0] for n in static.schema.names if n.startswith("/arms/")}
+        assert {f"/arms/{d}" for d in devices} <= names, rrd.name
 
 
 def test_rotation_settings_are_checked() -> None:

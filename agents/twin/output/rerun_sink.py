@@ -33,6 +33,7 @@ import subprocess
 import threading
 import time
 import uuid
+from collections import deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -98,6 +99,13 @@ PLOT_WINDOW_S = 30.0
 # sink's, which at 100 arms x 10 Hz cost more CPU than the samples' own work (docs/web.md has the figures).
 # It adds nothing visible to a stream sent every flush_s.
 HANDOFF_S = 0.05
+# After a rotation the new .rrd gets every arm's static parts again, a slice of arms at a time: all at once,
+# 200 arms' meshes held the sink's thread for 3-6 s (a py-spy profile, docs/performance.md "Soak") while 2,000
+# samples a second arrived for a queue of 10,000, and every rotation dropped samples. A slice lasts about
+# RELOG_SLICE_S (one arm at least), and the next waits until the slices have had RELOG_DUTY of the thread:
+# 200 arms' statics then take about 15 s of a rotation every few minutes, samples keep flowing meanwhile.
+RELOG_SLICE_S = 0.02
+RELOG_DUTY = 0.25
 
 _V3 = pa.list_(pa.field("item", pa.float32(), nullable=False), 3)
 _Q4 = pa.list_(pa.field("item", pa.float32(), nullable=False), 4)
@@ -327,6 +335,12 @@ class RerunWorker:
             self.grpc_url = f"rerun+http://{LOOPBACK}:{grpc_port}/proxy"
         self._rec = _Tee([s for s in (self._file, self._served) if s is not None])
         self._rotation = SaveRotation(self.save_path, settings) if self.save_path is not None else None
+        # Arms whose static parts the live file still lacks after a rotation, their bytes so far, when the
+        # next slice may start (RELOG_SLICE_S), and the slice (a test sets 0: one arm a slice).
+        self._relog: deque[_Arm] = deque()
+        self._relog_bytes = 0
+        self._relog_resume = -math.inf
+        self.relog_slice_s = RELOG_SLICE_S
         if settings.serve:
             try:
                 web_port = bindable_port(settings.web_port, "rerun.web_port")
@@ -380,9 +394,10 @@ class RerunWorker:
 
     def _rotate_if_due(self, now: float) -> None:
         """A new .rrd once the current one is too large or too old (SaveRotation); the arms' static parts
-        and the layout go into the new file, which then stands on its own."""
+        follow into it a slice at a time (_relog_some), after which it stands on its own."""
         rotation, old = self._rotation, self._file
-        if rotation is None or old is None or not rotation.due(now):
+        # Not before the file holds every arm's static parts, or a rotated file would not open on its own.
+        if rotation is None or old is None or self._relog or not rotation.due(now):
             return
         for arm in self._arms.values():
             if arm.n:
@@ -405,17 +420,47 @@ class RerunWorker:
         # file opens with Rerun's own layout; opened with the first one, it takes the first one's.
         self._file = new = self._stream(rr.FileSink(str(self.save_path)), layout=False)
         self._rec = _Tee([s for s in (new, self._served) if s is not None])
-        only_new = _Tee([new])
         for arm in self._arms.values():
-            self._log_arm(arm, only_new)
             arm.servo_styled.clear()  # logged again with the next batch
             arm.status, arm.status_key = "", ()
-        # Written out, the file's size is its static parts, which decide where it rotates (SaveRotation).
-        new.flush(timeout_sec=30.0)
+        # Static data holds for every time, so an arm's may follow its first samples in the file
+        # (RELOG_SLICE_S).
+        self._relog.extend(self._arms.values())
+        self._relog_bytes = 0
+        self._relog_resume = -math.inf
+        self._relog_some(now)
+
+    def _relog_some(self, now: float) -> None:
+        """Log the static parts of the next pending arms into the new file, for about one slice, if the last
+        slice's pause is over; once all are in, the file's static parts decide where it rotates."""
+        relog, new, rotation = self._relog, self._file, self._rotation
+        if not relog or now < self._relog_resume or new is None or rotation is None:
+            return
+        only_new = _Tee([new])
+        start = time.monotonic()
+        # Measured around the slice, written out, so samples logged between slices are not counted as static.
+        before = self._flushed_size(new)
+        while True:
+            self._log_arm(relog.popleft(), only_new)
+            if not relog or time.monotonic() - start >= self.relog_slice_s:
+                break
+        after = self._flushed_size(new)
+        if before is not None and after is not None:
+            self._relog_bytes += after - before
+        end = time.monotonic()
+        self._relog_resume = end + (end - start) * (1.0 / RELOG_DUTY - 1.0)
+        if not relog:
+            rotation.opened_with(self._relog_bytes)
+
+    def _flushed_size(self, rec: rr.RecordingStream) -> int | None:
+        """The saved file's size once `rec` has written out what it holds (None, logged, if unreadable)."""
+        assert self.save_path is not None
+        rec.flush(timeout_sec=30.0)
         try:
-            rotation.opened_with(self.save_path.stat().st_size)
+            return self.save_path.stat().st_size
         except OSError as exc:
             log.error("rerun: %s could not be measured after a rotation: %s", self.save_path, exc)
+            return None
 
     # --- SinkWorker ---------------------------------------------------------------------------------------
 
@@ -441,6 +486,8 @@ class RerunWorker:
         if now >= self._next_sweep:
             self._sweep(now)
             self._rotate_if_due(now)
+        if self._relog:
+            self._relog_some(now)
 
     def handle_rejected(self, sample: RejectedSample) -> None:
         device = sample.device_id
@@ -464,9 +511,15 @@ class RerunWorker:
         now = time.monotonic()
         self._sweep(now)
         self._rotate_if_due(now)
+        self._relog_some(now)
 
     def close(self) -> None:
         try:
+            # The file stands on its own only with every arm's static parts, whatever the pace.
+            if self._file is not None:
+                only_file = _Tee([self._file])
+                while self._relog:
+                    self._log_arm(self._relog.popleft(), only_file)
             for arm in self._arms.values():
                 if arm.n:
                     self._flush(arm)
