@@ -128,11 +128,13 @@ def test_the_rerun_save_rotates_and_every_file_opens_on_its_own(robot: RobotMode
     # Four rotations, and the budget (2 MB, a file of these being about 0.7 MB) kept the newest two.
     assert worker.files_deleted >= 1 and len(rotated) >= 2 and path.exists()
     assert sum(p.stat().st_size for p in rotated) <= (settings.save_budget_mb - settings.save_max_mb) * 2**20
-    # The newest file holds the arms' static parts too: its meshes and grid places, not only samples.
+    # The newest file holds the arms' static parts too: its meshes, grid places and plot styles, not only
+    # samples.
     for rrd in (rotated[-1], path):
         _, static = read_rrd(rrd)
         names = {n.split(":", 1)[0] for n in static.schema.names if n.startswith("/arms/")}
         assert {f"/arms/{d}" for d in DEVICES} <= names
+        assert {f"/arms/{d}/servo/temperature_c" for d in DEVICES} <= names, rrd.name
 
 
 def test_a_rotation_logs_the_arms_static_parts_a_slice_at_a_time(robot: RobotModel, tmp_path: Path) -> None:
@@ -145,10 +147,10 @@ def test_a_rotation_logs_the_arms_static_parts_a_slice_at_a_time(robot: RobotMod
     )
     sink = RerunSink(robot, settings)
     worker = sink.worker
-    worker.relog_slice_s = 0.0
+    worker.statics_slice_s = 0.0
     relogged: list[tuple[int, str]] = []  # (the live file's rotation count, device) per re-logged arm
     per_slice: list[int] = []  # arms re-logged per call
-    log_arm, relog_some = worker._log_arm, worker._relog_some
+    log_arm, log_statics = worker._log_arm, worker._log_statics
 
     def logged(arm: Any, rec: Any = None) -> None:
         if rec is not None:  # into the new file only: a re-log, not an arm's first appearance
@@ -157,12 +159,12 @@ def test_a_rotation_logs_the_arms_static_parts_a_slice_at_a_time(robot: RobotMod
 
     def sliced(now: float) -> None:
         before = len(relogged)
-        relog_some(now)
+        log_statics(now)
         if len(relogged) > before:
             per_slice.append(len(relogged) - before)
 
     worker._log_arm = logged  # type: ignore[method-assign]
-    worker._relog_some = sliced  # type: ignore[method-assign]
+    worker._log_statics = sliced  # type: ignore[method-assign]
     after = _feed_until_rotated(sink, 3, devices)
     for sample in _samples(10, devices, start_mono=after):  # the live file has samples of its own too
         sink.applied(sample)

@@ -99,13 +99,14 @@ PLOT_WINDOW_S = 30.0
 # sink's, which at 100 arms x 10 Hz cost more CPU than the samples' own work (docs/web.md has the figures).
 # It adds nothing visible to a stream sent every flush_s.
 HANDOFF_S = 0.05
-# After a rotation the new .rrd gets every arm's static parts again, a slice of arms at a time: all at once,
-# 200 arms' meshes held the sink's thread for 3-6 s (a py-spy profile, docs/performance.md "Soak") while 2,000
-# samples a second arrived for a queue of 10,000, and every rotation dropped samples. A slice lasts about
-# RELOG_SLICE_S (one arm at least), and the next waits until the slices have had RELOG_DUTY of the thread:
-# 200 arms' statics then take about 15 s of a rotation every few minutes, samples keep flowing meanwhile.
-RELOG_SLICE_S = 0.02
-RELOG_DUTY = 0.25
+# The arms' static parts (meshes, grid places) are logged a slice of arms at a time, when an arm first
+# appears and again into each new .rrd after a rotation: all at once, 200 arms' meshes held the sink's thread
+# for 3-6 s (a py-spy profile, docs/performance.md "Soak") while 2,000 samples a second arrived for a queue of
+# 10,000, and the fleet's start and every rotation dropped samples. A slice lasts about STATICS_SLICE_S (one
+# arm at least), and the next waits until the slices have had STATICS_DUTY of the thread: 200 arms' statics
+# take about 15 s, and samples keep flowing meanwhile.
+STATICS_SLICE_S = 0.02
+STATICS_DUTY = 0.25
 
 _V3 = pa.list_(pa.field("item", pa.float32(), nullable=False), 3)
 _Q4 = pa.list_(pa.field("item", pa.float32(), nullable=False), 4)
@@ -335,12 +336,14 @@ class RerunWorker:
             self.grpc_url = f"rerun+http://{LOOPBACK}:{grpc_port}/proxy"
         self._rec = _Tee([s for s in (self._file, self._served) if s is not None])
         self._rotation = SaveRotation(self.save_path, settings) if self.save_path is not None else None
-        # Arms whose static parts the live file still lacks after a rotation, their bytes so far, when the
-        # next slice may start (RELOG_SLICE_S), and the slice (a test sets 0: one arm a slice).
-        self._relog: deque[_Arm] = deque()
-        self._relog_bytes = 0
-        self._relog_resume = -math.inf
-        self.relog_slice_s = RELOG_SLICE_S
+        # Arms whose static parts are still to be logged (STATICS_SLICE_S): True for every stream (a new arm),
+        # False for the new file only (after a rotation). While a new file takes them, `_statics_bytes` sums
+        # what they took of it. When the next slice may start, and the slice (a test sets 0: one arm a slice).
+        self._statics: deque[tuple[_Arm, bool]] = deque()
+        self._measuring = False
+        self._statics_bytes = 0
+        self._statics_resume = -math.inf
+        self.statics_slice_s = STATICS_SLICE_S
         if settings.serve:
             try:
                 web_port = bindable_port(settings.web_port, "rerun.web_port")
@@ -394,10 +397,10 @@ class RerunWorker:
 
     def _rotate_if_due(self, now: float) -> None:
         """A new .rrd once the current one is too large or too old (SaveRotation); the arms' static parts
-        follow into it a slice at a time (_relog_some), after which it stands on its own."""
+        follow into it a slice at a time (_log_statics), after which it stands on its own."""
         rotation, old = self._rotation, self._file
         # Not before the file holds every arm's static parts, or a rotated file would not open on its own.
-        if rotation is None or old is None or self._relog or not rotation.due(now):
+        if rotation is None or old is None or self._statics or not rotation.due(now):
             return
         for arm in self._arms.values():
             if arm.n:
@@ -424,33 +427,39 @@ class RerunWorker:
             arm.servo_styled.clear()  # logged again with the next batch
             arm.status, arm.status_key = "", ()
         # Static data holds for every time, so an arm's may follow its first samples in the file
-        # (RELOG_SLICE_S).
-        self._relog.extend(self._arms.values())
-        self._relog_bytes = 0
-        self._relog_resume = -math.inf
-        self._relog_some(now)
+        # (STATICS_SLICE_S).
+        self._statics.extend((arm, False) for arm in self._arms.values())
+        self._measuring, self._statics_bytes = True, 0
+        self._statics_resume = -math.inf
+        self._log_statics(now)
 
-    def _relog_some(self, now: float) -> None:
-        """Log the static parts of the next pending arms into the new file, for about one slice, if the last
-        slice's pause is over; once all are in, the file's static parts decide where it rotates."""
-        relog, new, rotation = self._relog, self._file, self._rotation
-        if not relog or now < self._relog_resume or new is None or rotation is None:
+    def _log_statics(self, now: float) -> None:
+        """Log the static parts of the next pending arms, for about one slice, if the last slice's pause is
+        over. After a rotation the slices are measured, and once all are in, the new file's static parts
+        decide where it rotates."""
+        pending = self._statics
+        if not pending or now < self._statics_resume:
             return
-        only_new = _Tee([new])
+        new = self._file if self._measuring else None
+        only_new = _Tee([new]) if new is not None else None
         start = time.monotonic()
         # Measured around the slice, written out, so samples logged between slices are not counted as static.
-        before = self._flushed_size(new)
+        before = self._flushed_size(new) if new is not None else None
         while True:
-            self._log_arm(relog.popleft(), only_new)
-            if not relog or time.monotonic() - start >= self.relog_slice_s:
+            arm, everywhere = pending.popleft()
+            self._log_arm(arm, None if everywhere else only_new)
+            if not pending or time.monotonic() - start >= self.statics_slice_s:
                 break
-        after = self._flushed_size(new)
-        if before is not None and after is not None:
-            self._relog_bytes += after - before
+        if new is not None:
+            after = self._flushed_size(new)
+            if before is not None and after is not None:
+                self._statics_bytes += after - before
         end = time.monotonic()
-        self._relog_resume = end + (end - start) * (1.0 / RELOG_DUTY - 1.0)
-        if not relog:
-            rotation.opened_with(self._relog_bytes)
+        self._statics_resume = end + (end - start) * (1.0 / STATICS_DUTY - 1.0)
+        if not pending and self._measuring:
+            self._measuring = False
+            if self._rotation is not None:
+                self._rotation.opened_with(self._statics_bytes)
 
     def _flushed_size(self, rec: rr.RecordingStream) -> int | None:
         """The saved file's size once `rec` has written out what it holds (None, logged, if unreadable)."""
@@ -486,8 +495,8 @@ class RerunWorker:
         if now >= self._next_sweep:
             self._sweep(now)
             self._rotate_if_due(now)
-        if self._relog:
-            self._relog_some(now)
+        if self._statics:
+            self._log_statics(now)
 
     def handle_rejected(self, sample: RejectedSample) -> None:
         device = sample.device_id
@@ -511,15 +520,16 @@ class RerunWorker:
         now = time.monotonic()
         self._sweep(now)
         self._rotate_if_due(now)
-        self._relog_some(now)
+        self._log_statics(now)
 
     def close(self) -> None:
         try:
             # The file stands on its own only with every arm's static parts, whatever the pace.
-            if self._file is not None:
-                only_file = _Tee([self._file])
-                while self._relog:
-                    self._log_arm(self._relog.popleft(), only_file)
+            only_file = _Tee([self._file]) if self._file is not None else None
+            while self._statics:
+                arm, everywhere = self._statics.popleft()
+                if everywhere or only_file is not None:
+                    self._log_arm(arm, None if everywhere else only_file)
             for arm in self._arms.values():
                 if arm.n:
                     self._flush(arm)
@@ -550,7 +560,7 @@ class RerunWorker:
             return arm
         arm = _Arm(device=device, entity=entity_of(device), index=len(self._arms), bodies=len(self._bodies))
         self._arms[device] = arm
-        self._log_arm(arm)
+        self._statics.append((arm, True))  # logged by _log_statics, a slice at a time
         focus = self.settings.focus_device
         if self._focus is None and (not focus or focus == device):
             self._focus = device
@@ -659,10 +669,12 @@ class RerunWorker:
         schema = arm.schemas.get(servo_names)
         if schema is None:
             schema = arm.schemas[servo_names] = self._schema(arm, servo_names)
-            for name in servo_names:
-                if name not in arm.servo_styled:
-                    arm.servo_styled.add(name)
-                    self._rec.log(f"{arm.entity}/servo/{name}", _series_style(), static=True)
+        # Checked per batch, not per new schema: a rotation clears servo_styled, and the new file needs the
+        # styles again for quantities whose schema is long known.
+        for name in servo_names:
+            if name not in arm.servo_styled:
+                arm.servo_styled.add(name)
+                self._rec.log(f"{arm.entity}/servo/{name}", _series_style(), static=True)
         poses = arm.poses[:k][:, self._moving_idx, :]  # (k, moving bodies, 7)
         # Body-major float32 copies, so each body's column is one contiguous slice. Every array handed to
         # Rerun owns its memory: Arrow wraps numpy buffers without copying, Rerun encodes later on its own
@@ -780,7 +792,11 @@ class RerunSink:
         # A token bucket per device holding burst_s seconds of the cap: a backlog released at once (network
         # jitter, or the agent's own MQTT thread stalled for seconds on a loaded host) costs an arm under
         # the cap nothing, while a flood is held to the cap once the burst is spent.
-        self._cap = DeviceRateCap(settings.max_rate_hz, burst=settings.max_rate_hz * settings.burst_s)
+        self._cap = DeviceRateCap(
+            settings.max_rate_hz,
+            burst=settings.max_rate_hz * settings.burst_s,
+            fleet_rate_hz=settings.max_fleet_rate_hz,
+        )
         self._skipped = 0
         self._lock = threading.Lock()
 
