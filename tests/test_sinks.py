@@ -294,6 +294,26 @@ def test_body_pose_array_is_body_poses_stacked() -> None:
     assert not np.allclose(stacked, again)
 
 
+def test_device_rate_cap_shares_a_fleet_budget_among_the_devices() -> None:
+    from twin.output.sinks import DeviceRateCap
+
+    def passed(devices: int, seconds: float = 20.0) -> list[int]:
+        cap = DeviceRateCap(10.0, burst=50.0, fleet_rate_hz=20.0)
+        counts = [0] * devices
+        for i in range(int(seconds * 10)):  # every device at 10 Hz, interleaved
+            for d in range(devices):
+                counts[d] += cap.take(f"arm-{d}", 100.0 + i / 10)
+        return counts
+
+    # Two arms at 10 Hz fit the fleet's 20 a second: nothing is held back.
+    assert passed(2) == [200, 200]
+    # Four get 5 a second each, after a burst scaled the same way (25 samples, 5 s of the share); the first,
+    # alone for its first sample, started with the full burst.
+    four = passed(4)
+    assert all(5 * 20 <= n <= 5 * 20 + 50 for n in four), four
+    assert sum(four[1:]) <= 3 * (5 * 20 + 25 + 1), four
+
+
 def test_device_rate_cap_holds_each_device_to_its_rate_after_the_burst() -> None:
     from twin.output.sinks import DeviceRateCap
 

@@ -39,6 +39,11 @@ class RerunSettings:
     # samples, while a flooding edge is still held to max_rate_hz once its burst is spent. 5 s at 20 Hz is
     # 100 samples: a 10 Hz arm's backlog of a stall up to 10 s.
     burst_s: float = 5.0
+    # ... and at most this many samples a second for the whole fleet: past it each device gets an equal share
+    # (1,000: 100 arms at 10 Hz pass whole, 200 arms get 5 Hz each). The sink's cost is per sample, on the
+    # mirror's interpreter lock: 200 arms at 10 Hz in the soak, on a 2-core host in a slow phase, dropped 12 %
+    # of the stream in seconds-long gaps. An even lower rate per arm keeps every arm moving instead.
+    max_fleet_rate_hz: float = 1_000.0
     # Samples are sent in columns, one batch per device at most every flush_s: the stream's delay, traded
     # against CPU (docs/web.md has the figures).
     flush_s: float = 0.5
@@ -86,7 +91,7 @@ class RerunSettings:
                 f"rerun.memory_limit = {self.memory_limit!r} is not a size; "
                 "use e.g. '512MiB', '2GiB' or '10%'"
             )
-        for key in ("max_rate_hz", "flush_s", "max_batches_per_s", "fleet_spacing_m"):
+        for key in ("max_rate_hz", "max_fleet_rate_hz", "flush_s", "max_batches_per_s", "fleet_spacing_m"):
             value = getattr(self, key)
             if not (math.isfinite(value) and value > 0):
                 raise RerunSettingsError(f"rerun.{key} = {value!r} must be a number greater than 0")

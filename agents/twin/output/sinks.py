@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -157,19 +158,30 @@ DEFAULT_MAX_PENDING_BYTES = 64 * 2**20
 class DeviceRateCap:
     """A token bucket per device on the agent's receive clock: at most `rate_hz` samples a second, with up to
     `burst` at once. The receive clock, not the edge's: a sink's cost follows the messages arriving,
-    whatever the edge's stamps say. One entry per admitted device, so the table is as bounded as the fleet."""
+    whatever the edge's stamps say. One entry per admitted device, so the table is as bounded as the fleet.
 
-    __slots__ = ("_buckets", "_burst", "_rate")
+    With `fleet_rate_hz`, a fleet of n devices gets at most that in all: each device `fleet_rate_hz / n`
+    when that is less than `rate_hz`, its burst scaled with it, so a sink whose cost is per sample keeps
+    up with a large fleet at a lower rate per arm instead of dropping whole seconds of it."""
 
-    def __init__(self, rate_hz: float, burst: float) -> None:
+    __slots__ = ("_buckets", "_burst", "_fleet_rate", "_rate")
+
+    def __init__(self, rate_hz: float, burst: float, fleet_rate_hz: float = math.inf) -> None:
         self._rate = rate_hz
         self._burst = max(1.0, burst)
+        self._fleet_rate = fleet_rate_hz
         self._buckets: dict[str, tuple[float, float]] = {}  # device -> (tokens, receive time)
 
     def take(self, device: str, received_mono_s: float) -> bool:
         """Whether `device` may have a sample received at `received_mono_s` (a token is spent if so)."""
-        tokens, last = self._buckets.get(device, (self._burst, received_mono_s))
-        tokens = min(self._burst, tokens + max(0.0, received_mono_s - last) * self._rate)
+        bucket = self._buckets.get(device)
+        rate, burst = self._rate, self._burst
+        devices = len(self._buckets) + (bucket is None)
+        if self._fleet_rate < rate * devices:
+            rate = self._fleet_rate / devices
+            burst = max(1.0, burst * rate / self._rate)
+        tokens, last = bucket if bucket is not None else (burst, received_mono_s)
+        tokens = min(burst, tokens + max(0.0, received_mono_s - last) * rate)
         if tokens < 1.0:
             self._buckets[device] = (tokens, received_mono_s)
             return False

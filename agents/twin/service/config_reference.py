@@ -352,6 +352,12 @@ KEY_DOCS: dict[str, str] = {
         "once, an arm under the cap loses nothing (a 10 Hz arm's stall of up to 10 s passes whole); a"
         " flooding edge gets the burst once, then the cap."
     ),
+    "rerun.max_fleet_rate_hz": (
+        "... and at most this many a second for the whole fleet: past it each device gets an equal share "
+        "(100 arms at 10 Hz pass whole, 200 get 5 Hz each), its burst scaled with it; the rest are "
+        "counted as `skipped`. The sink's cost is per sample: a lower rate per arm keeps a large fleet's "
+        "stream whole instead of dropping seconds of it (docs/web.md)."
+    ),
     "rerun.flush_s": "Samples are sent per device in batches at most this often: the stream's delay.",
     "rerun.max_batches_per_s": (
         "And at most this many device batches a second in all: with 100 arms each waits 5 s."
