@@ -528,8 +528,7 @@ class RerunWorker:
             only_file = _Tee([self._file]) if self._file is not None else None
             while self._statics:
                 arm, everywhere = self._statics.popleft()
-                if everywhere or only_file is not None:
-                    self._log_arm(arm, None if everywhere else only_file)
+                self._log_arm(arm, None if everywhere else only_file)
             for arm in self._arms.values():
                 if arm.n:
                     self._flush(arm)
