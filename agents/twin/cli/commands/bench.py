@@ -23,15 +23,26 @@ def _fleet_load(
 
 
 def register(subparsers: Any) -> None:
-    # One flat table of argparse declarations, one per subcommand and flag, read top to bottom like --help;
-    # splitting it into functions would only scatter that table.
     parser = subparsers.add_parser(
         "bench",
         help="measure the agent (throughput, fidelity, footprint, history, quota, sinks ...); print figures",
         description="Benchmarks print figures; they assert nothing. See docs/performance.md.",
     )
     sub = parser.add_subparsers(dest="scenario", metavar="SCENARIO", required=True)
+    # In the order --help lists them.
+    scenarios = [
+        *_twin_scenarios(sub),
+        *_history_scenarios(sub),
+        *_part_scenarios(sub),
+        *_long_scenarios(sub),
+    ]
+    for p in scenarios:
+        p.add_argument("--json", action="store_true", help="print the figures as one JSON object")
+        p.set_defaults(func=run)
 
+
+def _twin_scenarios(sub: Any) -> list[argparse.ArgumentParser]:
+    """The fleet through one agent, the twin's fidelity, and its start-up and memory."""
     tp = sub.add_parser("throughput", help="N arms at R Hz through a private mosquitto into one agent")
     _fleet_load(tp, arms=2000)
 
@@ -41,7 +52,11 @@ def register(subparsers: Any) -> None:
     fo = sub.add_parser("footprint", help="cold start to first pose; RSS idle and with a large fleet")
     fo.add_argument("--arms", type=int, default=1000)
     fo.add_argument("--seconds", type=float, default=8.0, help="how long the fleet publishes")
+    return [tp, fi, fo]
 
+
+def _history_scenarios(sub: Any) -> list[argparse.ArgumentParser]:
+    """The telemetry history: its storage, reading it back, and its load on the mirror."""
     hs = sub.add_parser("history-storage", help="bytes one arm's day of history takes (edge mock, compacted)")
     hs.add_argument("--hours", type=float, default=24.0, help="simulated hours written (scaled to a day)")
     hs.add_argument("--variant", choices=["ticks", "degrees"], default="ticks")
@@ -52,7 +67,11 @@ def register(subparsers: Any) -> None:
 
     hl = sub.add_parser("history-load", help="the mirror with history off vs on; rows written vs received")
     _fleet_load(hl, arms=1000)
+    return [hs, hr, hl]
 
+
+def _part_scenarios(sub: Any) -> list[argparse.ArgumentParser]:
+    """One part's cost each: the sinks, rendering, the IoT Core quota, decoding, USD, a worker process."""
     r2 = sub.add_parser("ros2", help="the ROS 2 bridge's cost: the same fleet without and with it")
     _fleet_load(r2, arms=100)
 
@@ -78,7 +97,11 @@ def register(subparsers: Any) -> None:
     wo = sub.add_parser("worker", help="CPU per message of one worker process, fed through its pipe")
     wo.add_argument("--arms", type=int, default=1000)
     wo.add_argument("--rounds", type=int, default=40, help="messages per arm (10 Hz edge timestamps)")
+    return [r2, rn, rr, qu, de, us, wo]
 
+
+def _long_scenarios(sub: Any) -> list[argparse.ArgumentParser]:
+    """The scenarios with several options: the console, the cost per message, the soak, and all of them."""
     cs = sub.add_parser(
         "console", help="the operator console: fleet page interactive at 2,000 arms, CPU of two consoles"
     )
@@ -87,6 +110,7 @@ def register(subparsers: Any) -> None:
     cs.add_argument("--rate", type=float, default=2.0, help="messages per second per arm")
     cs.add_argument("--runs", type=int, default=5, help="page loads timed")
     cs.add_argument("--seconds", type=float, default=20.0, help="CPU measurement window of each phase")
+
     co = sub.add_parser(
         "cost", help="the agent's CPU per message in units of json.loads of it, by stage, measured in one run"
     )
@@ -108,10 +132,7 @@ def register(subparsers: Any) -> None:
     al = sub.add_parser("all", help="every scenario as published in docs/performance.md, plus the plot")
     al.add_argument("--seconds", type=float, default=20.0, help="throughput run length")
     al.add_argument("--plot", type=Path, default=Path("docs/performance.png"))
-
-    for p in (tp, fi, fo, hs, hr, hl, r2, rn, rr, qu, de, us, wo, cs, co, so, al):
-        p.add_argument("--json", action="store_true", help="print the figures as one JSON object")
-        p.set_defaults(func=run)
+    return [cs, co, so, al]
 
 
 def _bench(scenario: str) -> ModuleType:
