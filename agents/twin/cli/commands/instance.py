@@ -63,27 +63,37 @@ HOST_CHECK_TIMEOUT_S = 90.0
 CONSOLE_READY_TIMEOUT_S = 60.0
 
 
+# Each action and its help (its description too).
+ACTIONS: tuple[tuple[str, str], ...] = (
+    (
+        "start",
+        "start the instance, wait until it runs and the host's own checks have passed (X, the DCV "
+        "console session, the agent, the viewer, the screen), print the DCV URL and their verdict",
+    ),
+    ("stop", "stop the instance (disk and Elastic IP are kept) and wait until stopped"),
+    ("status", "print instance state, type, DCV URL and agent health"),
+    ("url", "print only the DCV URL"),
+    (
+        "console",
+        "open the operator console here: forward the agent's port on the host to 127.0.0.1 through "
+        "Session Manager (needs the Session Manager plugin) and open it in the browser, until Ctrl-C",
+    ),
+    (
+        "settings",
+        "print the settings the deployed stack runs with, as a twin.settings.toml (save it to keep them: "
+        "twin instance settings > twin.settings.toml)",
+    ),
+    (
+        "check",
+        "say whether the twin works: stack and boot signal, instance, DCV port over TLS from here, "
+        "and on the host X on the GPU, the DCV session, the agent, telemetry, the viewer, a capture of "
+        "the console, the version",
+    ),
+)
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
-    # One flat table of argparse declarations, one per subcommand and flag, read top to bottom like --help;
-    # splitting it into functions would only scatter that table.
-    common = argparse.ArgumentParser(add_help=False)
-    common.add_argument(
-        "--stack",
-        default=None,
-        help="CloudFormation stack name (default: $SO101_TWIN_STACK, else stackName in ./twin.settings.toml, "
-        "else So101TwinStack)",
-    )
-    common.add_argument(
-        "--region", default=None, help="AWS region (default: from the AWS config / AWS_REGION)"
-    )
-    common.add_argument("--no-wait", action="store_true", help="return after the request, without waiting")
-    common.add_argument(
-        "--timeout",
-        type=float,
-        default=DEFAULT_TIMEOUT_S,
-        metavar="S",
-        help=f"seconds to wait for the instance state (default {DEFAULT_TIMEOUT_S:.0f})",
-    )
+    common = _common_arguments()
     parser = subparsers.add_parser(
         "instance",
         help="start, stop or inspect the cloud twin host (EC2 + DCV)",
@@ -92,32 +102,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
-    for name, help_text in (
-        (
-            "start",
-            "start the instance, wait until it runs and the host's own checks have passed (X, the DCV "
-            "console session, the agent, the viewer, the screen), print the DCV URL and their verdict",
-        ),
-        ("stop", "stop the instance (disk and Elastic IP are kept) and wait until stopped"),
-        ("status", "print instance state, type, DCV URL and agent health"),
-        ("url", "print only the DCV URL"),
-        (
-            "console",
-            "open the operator console here: forward the agent's port on the host to 127.0.0.1 through "
-            "Session Manager (needs the Session Manager plugin) and open it in the browser, until Ctrl-C",
-        ),
-        (
-            "settings",
-            "print the settings the deployed stack runs with, as a twin.settings.toml (save it to keep them: "
-            "twin instance settings > twin.settings.toml)",
-        ),
-        (
-            "check",
-            "say whether the twin works: stack and boot signal, instance, DCV port over TLS from here, "
-            "and on the host X on the GPU, the DCV session, the agent, telemetry, the viewer, a capture of "
-            "the console, the version",
-        ),
-    ):
+    for name, help_text in ACTIONS:
         action = actions.add_parser(
             name,
             parents=[common],
@@ -136,6 +121,29 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                 type=Path,
                 help="also bring back the capture of the console the host just checked (PNG) into FILE",
             )
+
+
+def _common_arguments() -> argparse.ArgumentParser:
+    """The flags every action takes: which stack, which region, and how long to wait."""
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument(
+        "--stack",
+        default=None,
+        help="CloudFormation stack name (default: $SO101_TWIN_STACK, else stackName in ./twin.settings.toml, "
+        "else So101TwinStack)",
+    )
+    common.add_argument(
+        "--region", default=None, help="AWS region (default: from the AWS config / AWS_REGION)"
+    )
+    common.add_argument("--no-wait", action="store_true", help="return after the request, without waiting")
+    common.add_argument(
+        "--timeout",
+        type=float,
+        default=DEFAULT_TIMEOUT_S,
+        metavar="S",
+        help=f"seconds to wait for the instance state (default {DEFAULT_TIMEOUT_S:.0f})",
+    )
+    return common
 
 
 def _add_console_arguments(action: argparse.ArgumentParser) -> None:
