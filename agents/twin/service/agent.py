@@ -156,7 +156,7 @@ class AgentService:
         # Everything that can be wrong with the configuration is found here (an in-process mirror loads the
         # model and the calibration now), before any thread or socket.
         _check_workers(config, workers, sinks)
-        # Then the agent's parts and state, a declaration a line: one table, read whole, so kept in one piece.
+        # Then the agent's parts and state, a declaration a line.
         self.config = config
         self._clock = clock
         self._wall_clock = wall_clock
@@ -173,17 +173,7 @@ class AgentService:
         self._pool = ConnectionPool(config.broker, self._pool_settings, self.feed, clock=clock)
         self.topic_filters = self._pool.topic_filters
         self._reuse_s = STATE_REUSE_S if self._mirror is None else 0.0
-        self._http: AgentHttpServer | None = None
-        self._emf: EmfPublisher | None = None
-        self._supervisor: threading.Thread | None = None
-        self._running = False
-        self._stopping = threading.Event()
-        self._stop_lock = threading.Lock()
-        self._started_pool = False
-        self._started_mono: float | None = None
-        self._started_wall: float | None = None
-        self._state_lock = threading.Lock()
-        self._cached: tuple[float, AgentState] | None = None
+        self._init_run_state()
         # The console: sessions from history (the reader lives in ops/; `twin run` hands it in), and the
         # twin's events: the agent's own (broker, workers) and every mirror's, collected by the supervisor.
         self._sessions = sessions
@@ -205,6 +195,21 @@ class AgentService:
         self._calibration_request = CalibrationsRequest()
         self._calibrations = self._calibration_watcher(config)
         self._routes: dict[str, tuple[Shard, str]] = {}
+
+    def _init_run_state(self) -> None:
+        """What start() and stop() set: the HTTP server, the metrics publisher, the supervisor, whether and
+        since when the agent runs, and the merged state it reuses for a moment."""
+        self._http: AgentHttpServer | None = None
+        self._emf: EmfPublisher | None = None
+        self._supervisor: threading.Thread | None = None
+        self._running = False
+        self._stopping = threading.Event()
+        self._stop_lock = threading.Lock()
+        self._started_pool = False
+        self._started_mono: float | None = None
+        self._started_wall: float | None = None
+        self._state_lock = threading.Lock()
+        self._cached: tuple[float, AgentState] | None = None
 
     def _calibration_watcher(self, config: AgentConfig) -> CalibrationWatcher | None:
         """The watcher of each arm's calibration file, when the config names where they are."""
