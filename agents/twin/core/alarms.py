@@ -399,6 +399,29 @@ def _still(diag: JointDiagnostics, pose_speed: float | None, limit: float) -> bo
     return True
 
 
+# One joint's readings for the rules: temperature, current, load, velocity, moving (NaN: not given).
+_Reading = tuple[float, float, float, float, float]
+
+
+def _row_readings(diagnostics: Mapping[str, JointDiagnostics]) -> tuple[list[bool], list[_Reading]]:
+    """`_fill` for one row, as lists: which joints were given, and their readings."""
+    nan = math.nan
+    given = [False] * _JOINTS
+    readings: list[_Reading] = [(nan, nan, nan, nan, nan)] * _JOINTS
+    for joint, diag in diagnostics.items():
+        j = _JOINT_INDEX.get(joint)
+        if j is not None:
+            given[j] = True
+            readings[j] = (
+                _float(diag.temperature_c),
+                _float(diag.current_a),
+                _float(diag.load_percent),
+                _float(diag.velocity_rad_s),
+                nan if diag.moving is None else float(bool(diag.moving)),
+            )
+    return given, readings
+
+
 def _model_load(
     torques: _Torques | None, servo: sts3215.ServoVersion | None, joint: str, voltage_v: float | None
 ) -> float | None:
@@ -698,18 +721,31 @@ class ServoAlarms:
             rows.moving[k, j] = math.nan if diag.moving is None else float(bool(diag.moving))
 
     def _evaluate(self, rows: _Rows) -> list[list[AlarmEvent]]:
-        """The rules for every row at once (module doc; each row a device of its own)."""
-        # Kept whole: one chain of array expressions (speeds -> still -> model check -> values -> timers),
-        # each step reading the ones before it, which named functions would hand a dozen arrays each; its
-        # twin `_evaluate_one` follows the same order line for line, so the two are read side by side.
+        """The rules for every row at once (module doc; each row a device of its own), in the steps
+        `_evaluate_one` takes for one row, in the same order."""
+        speeds = self._speeds(rows)
+        checked, model, mismatch = self._model_check(rows, speeds)
+        # The values of each kind, in _KINDS order: temperature twice, current, |load|, model mismatch.
+        values = _np().stack(
+            (rows.temperature, rows.temperature, rows.current, _np().abs(rows.load), mismatch), axis=2
+        )
+        raising, clearing = self._timers(rows, values)
+        out: list[list[AlarmEvent]] = [[] for _ in range(len(rows.slots))]
+        if raising.any() or clearing.any():
+            self._changes(rows, (raising, clearing, values, model), out)
+        self._record_seen(rows.slots, speeds, checked, model, mismatch)
+        last_diagnostics, last_torques = self._last_diagnostics, self._last_torques
+        for k, slot in enumerate(rows.slots.tolist()):
+            last_diagnostics[slot] = rows.diagnostics[k]
+            last_torques[slot] = rows.torques[k]
+        return out
+
+    def _speeds(self, rows: _Rows) -> Any:
+        """Each joint's speed against the device's last pose (edge clock), only for consecutive-looking
+        samples (NaN otherwise); the rows' poses become the devices' last."""
         np = _np()
         fleet = self._arrays()
         slots = rows.slots
-        count = len(slots)
-        raise_at, clear_at, raise_after, clear_after, check_joints = self._rules_as_arrays()
-        limit = self.thresholds.still_velocity_rad_s
-
-        # The pose against the device's last one (edge clock), only for consecutive-looking samples.
         before = fleet.pose[slots]
         dt = (rows.stamps - fleet.pose_ms[slots]) / 1000.0
         timed = rows.posed & fleet.has_pose[slots] & (dt > 0.0) & (dt <= MAX_POSE_GAP_S)
@@ -720,32 +756,41 @@ class ServoAlarms:
         fleet.pose[posed] = rows.angles[rows.posed]
         fleet.pose_ms[posed] = rows.stamps[rows.posed]
         fleet.has_pose[posed] = True
+        return speeds
 
+    def _model_check(self, rows: _Rows, speeds: Any) -> tuple[Any, Any, Any]:
+        """(checked, model load, mismatch) per row and joint: a still joint the model check looks at, with a
+        load, against its holding torque from inverse dynamics (one row at a time, only here)."""
+        np = _np()
+        limit = self.thresholds.still_velocity_rad_s
         # Still (as _still): no sign of motion, and some sign of rest.
         # (Comparisons with NaN, the unknown, are false.)
         motion = (rows.moving == 1.0) | (np.abs(rows.velocity) > limit) | (speeds > limit)
         still = ~motion & ~(np.isnan(rows.velocity) & np.isnan(speeds) & np.isnan(rows.moving))
-        # The model check: a still joint it looks at, with a load; its holding torque comes from inverse
-        # dynamics, one row at a time, only here.
+        check_joints = self._rules_as_arrays()[4]
         checked = rows.given & check_joints & still & ~np.isnan(rows.load)
+        count = len(rows.slots)
         model = np.full((count, _JOINTS), np.nan)
         mismatch = np.full((count, _JOINTS), np.nan)
         torques = rows.torques
-        if checked.any():
-            for k, j in zip(*np.nonzero(checked), strict=True):
-                joint = so101.JOINT_NAMES[j]
-                source = torques[k]
-                if not isinstance(source, _Torques):
-                    source = torques[k] = _Torques(source)
-                value = _model_load(source, self._servo, joint, rows.diagnostics[k][joint].voltage_v)
-                if value is not None:
-                    model[k, j] = value
-                    mismatch[k, j] = abs(abs(float(rows.load[k, j])) - value)
+        for k, j in zip(*np.nonzero(checked), strict=True):
+            joint = so101.JOINT_NAMES[j]
+            source = torques[k]
+            if not isinstance(source, _Torques):
+                source = torques[k] = _Torques(source)
+            value = _model_load(source, self._servo, joint, rows.diagnostics[k][joint].voltage_v)
+            if value is not None:
+                model[k, j] = value
+                mismatch[k, j] = abs(abs(float(rows.load[k, j])) - value)
+        return checked, model, mismatch
 
-        # The values of each kind, in _KINDS order: temperature twice, current, |load|, model mismatch.
-        values = np.stack(
-            (rows.temperature, rows.temperature, rows.current, np.abs(rows.load), mismatch), axis=2
-        )
+    def _timers(self, rows: _Rows, values: Any) -> tuple[Any, Any]:
+        """(raising, clearing) per row, joint and kind: each alarm's raise and clear timers against
+        `values`, and the alarms that come to be; the devices' state takes what this round saw."""
+        np = _np()
+        fleet = self._arrays()
+        slots = rows.slots
+        raise_at, clear_at, raise_after, clear_after, _ = self._rules_as_arrays()
         given = rows.given[:, :, None]
         exists = fleet.exists[slots]
         created = given & ~exists & ~np.isnan(values)
@@ -774,20 +819,15 @@ class ServoAlarms:
         fleet.raise_since[slots] = raise_since
         fleet.clear_since[slots] = clear_since
         fleet.value[slots] = np.where(evaluated, values, fleet.value[slots])
-        out: list[list[AlarmEvent]] = [[] for _ in range(count)]
-        if raising.any() or clearing.any():
-            self._changes(rows, (raising, clearing, values, model), out)
+        return raising, clearing
 
-        # What this evaluation saw, for JointHealth.
+    def _record_seen(self, slots: Any, speeds: Any, checked: Any, model: Any, mismatch: Any) -> None:
+        """What an evaluation saw, for JointHealth: rows `slots` (an index or an array of them)."""
+        fleet = self._arrays()
         fleet.speeds[slots] = speeds
         fleet.checked[slots] = checked
         fleet.model[slots] = model
         fleet.mismatch[slots] = mismatch
-        last_diagnostics, last_torques = self._last_diagnostics, self._last_torques
-        for k, slot in enumerate(slots.tolist()):
-            last_diagnostics[slot] = rows.diagnostics[k]
-            last_torques[slot] = torques[k]
-        return out
 
     def _changes(self, rows: _Rows, found: tuple[Any, Any, Any, Any], out: list[list[AlarmEvent]]) -> None:
         """The rows' raises and clears (rare): `_row_changes` of each row that has some."""
@@ -852,19 +892,33 @@ class ServoAlarms:
         """`_evaluate` for one row, in plain Python on the row's lists: the same rules and the same
         arithmetic (IEEE doubles both; a NaN compares false in both), so the same state and events, for a
         fraction of the array path's fixed cost. `angles` in JOINT_NAMES order (NaN: not given), None
-        without a pose."""
-        # Kept whole: the per-message path of small rounds, where a call per step (or per cell) is a cost
-        # the row path exists to avoid; it follows `_evaluate`'s steps in the same order, and the raise and
-        # clear timers below mirror each other on purpose (the same rule, either direction).
-        fleet = self._arrays()
+        without a pose. Its steps are `_evaluate`'s, in the same order; a call per step, never per cell."""
         now = float(now)  # as the array path's float64: an event's time is a float whatever was passed
-        nan, isnan = math.nan, math.isnan
-        limit = self.thresholds.still_velocity_rad_s
-        raise_at, clear_at, raise_after, clear_after = self._rule_lists
-        check_joints = self._check_joints
+        speeds = self._row_speeds(slot, angles, timestamp_ms)
+        given, readings = _row_readings(diagnostics)
+        checked, model, mismatch, torques = self._row_model_check(
+            diagnostics, given, readings, speeds, holding_torques_nm
+        )
+        raising, clearing, values_of = self._row_timers(slot, given, readings, mismatch, now)
+        out = []
+        if any(raising) or any(clearing):
+            by_joint = [slice(j * _N_KINDS, (j + 1) * _N_KINDS) for j in range(_JOINTS)]
+            found = (
+                [raising[cells_of] for cells_of in by_joint],
+                [clearing[cells_of] for cells_of in by_joint],
+                [values_of[cells_of] for cells_of in by_joint],
+                model,
+            )
+            out = self._row_changes(slot, now, diagnostics, found)
+        self._record_seen(slot, speeds, checked, model, mismatch)
+        self._last_diagnostics[slot] = diagnostics
+        self._last_torques[slot] = torques
+        return out
 
-        # The pose against the device's last one (edge clock), only for consecutive-looking samples.
-        speeds = [nan] * _JOINTS
+    def _row_speeds(self, slot: int, angles: Sequence[float] | None, timestamp_ms: int | None) -> list[float]:
+        """`_speeds` for one row."""
+        fleet = self._arrays()
+        speeds = [math.nan] * _JOINTS
         if angles is not None and timestamp_ms is not None:
             dt = (timestamp_ms - int(fleet.pose_ms[slot])) / 1000.0
             if fleet.has_pose[slot] and 0.0 < dt <= MAX_POSE_GAP_S:
@@ -872,21 +926,21 @@ class ServoAlarms:
             fleet.pose[slot] = angles
             fleet.pose_ms[slot] = timestamp_ms
             fleet.has_pose[slot] = True
+        return speeds
 
-        # The readings per joint (as _fill), still (as _still) and the model check.
-        given = [False] * _JOINTS
-        readings: list[tuple[float, float, float, float, float]] = [(nan, nan, nan, nan, nan)] * _JOINTS
-        for joint, diag in diagnostics.items():
-            j = _JOINT_INDEX.get(joint)
-            if j is not None:
-                given[j] = True
-                readings[j] = (
-                    _float(diag.temperature_c),
-                    _float(diag.current_a),
-                    _float(diag.load_percent),
-                    _float(diag.velocity_rad_s),
-                    nan if diag.moving is None else float(bool(diag.moving)),
-                )
+    def _row_model_check(
+        self,
+        diagnostics: Mapping[str, JointDiagnostics],
+        given: list[bool],
+        readings: list[_Reading],
+        speeds: list[float],
+        holding_torques_nm: TorqueSource,
+    ) -> tuple[list[bool], list[float], list[float], TorqueSource | _Torques]:
+        """`_model_check` for one row, with still (as _still) joint by joint; also the torques, computed
+        only if a joint was checked."""
+        nan, isnan = math.nan, math.isnan
+        limit = self.thresholds.still_velocity_rad_s
+        check_joints = self._check_joints
         checked = [False] * _JOINTS
         model = [nan] * _JOINTS
         mismatch = [nan] * _JOINTS
@@ -912,10 +966,18 @@ class ServoAlarms:
             if value is not None:
                 model[j] = value
                 mismatch[j] = abs(abs(load) - value)
+        return checked, model, mismatch, torques
 
-        # The rules per joint and kind, as _evaluate: values in _KINDS order. The row's cells are read as
-        # flat lists (cell j * _N_KINDS + n: one numpy call each) and only what changed is written back, but
-        # the values, which change with nearly every message.
+    def _row_timers(
+        self, slot: int, given: list[bool], readings: list[_Reading], mismatch: list[float], now: float
+    ) -> tuple[list[bool], list[bool], list[float]]:
+        """`_timers` for one row: (raising, clearing, values) per cell (j * _N_KINDS + n). The row's cells
+        are read as flat lists (one numpy call each) and only what changed is written back, but the values,
+        which change with nearly every message. The raise and clear timers mirror each other on purpose
+        (the same rule, either direction)."""
+        fleet = self._arrays()
+        nan, isnan = math.nan, math.isnan
+        raise_at, clear_at, raise_after, clear_after = self._rule_lists
         cells = _JOINTS * _N_KINDS
         exists = fleet.exists.reshape(-1, cells)[slot].tolist()
         present = fleet.present.reshape(-1, cells)[slot].tolist()
@@ -926,7 +988,6 @@ class ServoAlarms:
         raising = [False] * cells
         clearing = [False] * cells
         values_of = [nan] * cells
-        changed = False
         for j in range(_JOINTS):
             if not given[j]:
                 continue
@@ -950,7 +1011,6 @@ class ServoAlarms:
                         since = now
                         fleet.raise_since[slot, j, n] = now
                     raising[c] = now - since >= raise_after[c]
-                    changed = changed or raising[c]
                 elif not isnan(since):
                     fleet.raise_since[slot, j, n] = nan
                 since = clear_row[c]
@@ -959,29 +1019,10 @@ class ServoAlarms:
                         since = now
                         fleet.clear_since[slot, j, n] = now
                     clearing[c] = now - since >= clear_after[c]
-                    changed = changed or clearing[c]
                 elif not isnan(since):
                     fleet.clear_since[slot, j, n] = nan
         value_view[slot] = value_row
-        out = []
-        if changed:
-            by_joint = [slice(j * _N_KINDS, (j + 1) * _N_KINDS) for j in range(_JOINTS)]
-            found = (
-                [raising[cells_of] for cells_of in by_joint],
-                [clearing[cells_of] for cells_of in by_joint],
-                [values_of[cells_of] for cells_of in by_joint],
-                model,
-            )
-            out = self._row_changes(slot, now, diagnostics, found)
-
-        # What this evaluation saw, for JointHealth.
-        fleet.speeds[slot] = speeds
-        fleet.checked[slot] = checked
-        fleet.model[slot] = model
-        fleet.mismatch[slot] = mismatch
-        self._last_diagnostics[slot] = diagnostics
-        self._last_torques[slot] = torques
-        return out
+        return raising, clearing, values_of
 
     def _move(self, at: tuple[int, int, int], state: int, action: str, *, now: float) -> AlarmEvent:
         """Alarm `at` (row, joint, kind) to `state`; its event."""
