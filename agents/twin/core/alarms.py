@@ -723,11 +723,12 @@ class ServoAlarms:
     def _evaluate(self, rows: _Rows) -> list[list[AlarmEvent]]:
         """The rules for every row at once (module doc; each row a device of its own), in the steps
         `_evaluate_one` takes for one row, in the same order."""
+        np = _np()
         speeds = self._speeds(rows)
         checked, model, mismatch = self._model_check(rows, speeds)
         # The values of each kind, in _KINDS order: temperature twice, current, |load|, model mismatch.
-        values = _np().stack(
-            (rows.temperature, rows.temperature, rows.current, _np().abs(rows.load), mismatch), axis=2
+        values = np.stack(
+            (rows.temperature, rows.temperature, rows.current, np.abs(rows.load), mismatch), axis=2
         )
         raising, clearing = self._timers(rows, values)
         out: list[list[AlarmEvent]] = [[] for _ in range(len(rows.slots))]
