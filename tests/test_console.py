@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import urllib.error
 import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
@@ -66,7 +67,15 @@ def page(tmp_path_factory: pytest.TempPathFactory, browser_errors: list[str]) ->
             context.route("**/*", loopback_only)
             tab = context.new_page()
             tab.set_default_timeout(TIMEOUT_S * 1000)
-            tab.on("console", lambda m: browser_errors.append(m.text) if m.type == "error" else None)
+            # With where it came from: a failed request logs only its status in the text.
+            tab.on(
+                "console",
+                lambda m: (
+                    browser_errors.append(f"{m.text} ({m.location.get('url', '')}) on {tab.url}")
+                    if m.type == "error"
+                    else None
+                ),
+            )
             tab.on("pageerror", lambda e: browser_errors.append(str(e)))
             yield tab
         finally:
@@ -83,6 +92,24 @@ def active_heat_alarm(url: str, device: str) -> dict[str, Any] | None:
     return next(
         (a for a in alarms(url, device) if a["joint"] == "elbow_flex" and a["state"] == "ACTIVE"), None
     )
+
+
+def acknowledge_heat_alarm(url: str, device: str) -> dict[str, Any] | None:
+    """POST /alarms/<id>/ack for `device`'s heat alarm once it is ACTIVE; its answer, or None while there is
+    none to acknowledge: the alarm may clear between the GET that found it and the POST (409), which a
+    loaded machine stretches."""
+    alarm = active_heat_alarm(url, device)
+    if alarm is None:
+        return None
+    encoded = quote(alarm["alarm_id"], safe="")
+    request = urllib.request.Request(f"{url}/alarms/{encoded}/ack", data=b"", method="POST")
+    try:
+        with urllib.request.urlopen(request, timeout=30) as response:
+            return {"alarm_id": alarm["alarm_id"], "encoded": encoded, **json.loads(response.read())}
+    except urllib.error.HTTPError as exc:
+        if exc.code == 409:
+            return None
+        raise
 
 
 def wait_for_a_session(url: str, device: str) -> dict[str, Any]:
@@ -146,12 +173,11 @@ def test_acknowledge_moves_the_alarm_to_acknowledged(
 
 
 def test_curl_acknowledges_a_percent_encoded_id(console: str) -> None:
-    alarm = wait_for(lambda: active_heat_alarm(console, "arm-002"), TIMEOUT_S, "arm-002's heat alarm")
-    encoded = quote(alarm["alarm_id"], safe="")
-    assert "%2F" in encoded
-    request = urllib.request.Request(f"{console}/alarms/{encoded}/ack", data=b"", method="POST")
-    with urllib.request.urlopen(request, timeout=30) as response:
-        assert json.loads(response.read())["alarms"][0]["state"] == "ACKNOWLEDGED"
+    answer = wait_for(
+        lambda: acknowledge_heat_alarm(console, "arm-002"), TIMEOUT_S, "arm-002's heat alarm acknowledged"
+    )
+    assert "%2F" in answer["encoded"]
+    assert answer["alarms"][0]["state"] == "ACKNOWLEDGED"
 
 
 def test_the_sessions_page_lists_a_session_and_its_csv_parses(
@@ -179,12 +205,7 @@ def acknowledgement_logged(url: str, device: str) -> bool:
     _, _, body = http_get(f"{url}/api/events?device={quote(device)}&kind=alarm")
     if any("acknowledged" in e["message"] for e in json.loads(body)["events"]):
         return True
-    alarm = active_heat_alarm(url, device)
-    if alarm is not None:
-        encoded = quote(alarm["alarm_id"], safe="")
-        request = urllib.request.Request(f"{url}/alarms/{encoded}/ack", data=b"", method="POST")
-        with urllib.request.urlopen(request, timeout=30):
-            pass
+    acknowledge_heat_alarm(url, device)
     return False
 
 
