@@ -103,8 +103,8 @@ HANDOFF_S = 0.05
 # appears and again into each new .rrd after a rotation: all at once, 200 arms' meshes held the sink's thread
 # for 3-6 s (a py-spy profile, docs/performance.md "Soak") while 2,000 samples a second arrived for a queue of
 # 10,000, and the fleet's start and every rotation dropped samples. A slice lasts about STATICS_SLICE_S (one
-# arm at least), and the next waits until the slices have had STATICS_DUTY of the thread: 200 arms' statics
-# take about 15 s, and samples keep flowing meanwhile.
+# arm at least), and the next waits until the slices have had STATICS_DUTY of the thread: 200 arms' 3-6 s
+# of statics spread over 12-24 s, while samples keep flowing.
 STATICS_SLICE_S = 0.02
 STATICS_DUTY = 0.25
 
