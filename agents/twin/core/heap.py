@@ -9,18 +9,32 @@ soak saw RSS step up at such bursts and never come back down (docs/performance.m
 A trim walks the whole heap (a few milliseconds for a few hundred MB), so `Trimmer` does it at most once
 per `min_interval_s`; callers call `trim()` after each burst and the rate limit decides. Where glibc is
 absent (musl, macOS) `trim()` is a no-op that returns False.
+
+deltalake's native library does not allocate from glibc: it carries a jemalloc of its own, which
+malloc_trim does not reach and which reads its settings from one environment variable when it first
+allocates. `tune_deltalake_allocator()` sets them for a process that commits history.
 """
 
 from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import os
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, MutableMapping
 
 # Bursts that end less than this far apart share one trim.
 DEFAULT_MIN_INTERVAL_S = 30.0
+
+# The variable deltalake's jemalloc reads its settings from (its symbols carry the `_rjem_` prefix).
+DELTALAKE_ALLOCATOR_ENV = "_RJEM_MALLOC_CONF"
+# jemalloc's defaults keep freed pages for 10 s in each of 4 arenas per CPU. A history commit every 10 s
+# therefore never gave its peak back, and which arenas the library's threads happened to touch made the
+# writer process's RSS swing between 230 and 300 MB and creep over the soak's hour. One arena, with freed
+# pages handed back after 1 s by jemalloc's background thread, held the same commits flat at 222-226 MB
+# with no change in commit time (docs/performance.md, "Soak", has the runs).
+DELTALAKE_ALLOCATOR_SETTINGS = "narenas:1,background_thread:true,dirty_decay_ms:1000,muzzy_decay_ms:0"
 
 
 def load_malloc_trim(library: str | None = "c") -> Callable[[int], int] | None:
@@ -92,6 +106,14 @@ def process_trimmer() -> Trimmer:
         if _process_trimmer is None:
             _process_trimmer = Trimmer(load_malloc_trim())
         return _process_trimmer
+
+
+def tune_deltalake_allocator(environ: MutableMapping[str, str] | None = None) -> str:
+    """Give deltalake's allocator DELTALAKE_ALLOCATOR_SETTINGS in `environ` (the process's own by default)
+    unless the operator set DELTALAKE_ALLOCATOR_ENV already; returns the settings in effect. Call it before
+    deltalake is imported: the library reads them once. Child processes inherit them."""
+    target = os.environ if environ is None else environ
+    return target.setdefault(DELTALAKE_ALLOCATOR_ENV, DELTALAKE_ALLOCATOR_SETTINGS)
 
 
 def trim(*, force: bool = False) -> bool:

@@ -45,6 +45,7 @@ from multiprocessing.sharedctypes import SynchronizedArray
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from twin.core import heap
 from twin.output.sinks import SinkStats
 
 if TYPE_CHECKING:
@@ -282,6 +283,9 @@ def writer_main(
     # process group must not cut its last commit short.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    # Before deltalake loads (it reads them once): its allocator's settings for a process that commits every
+    # few seconds for weeks (twin.core.heap says why); the maintenance process inherits them.
+    heap.tune_deltalake_allocator()
     # pyarrow and deltalake load here only: neither the receiving process nor a mirror carries them.
     from twin.output.history import HistorySettings, HistoryWriter  # noqa: PLC0415
 
