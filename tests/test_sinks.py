@@ -314,6 +314,35 @@ def test_device_rate_cap_shares_a_fleet_budget_among_the_devices() -> None:
     assert sum(four[1:]) <= 3 * (5 * 20 + 25 + 1), four
 
 
+def test_device_rate_cap_forgets_devices_that_went_silent() -> None:
+    """The fleet's share counts the devices heard from lately: arms that left give their share back."""
+    from twin.output.sinks import FORGET_DEVICE_AFTER_S, DeviceRateCap
+
+    cap = DeviceRateCap(10.0, burst=10.0, fleet_rate_hz=20.0)
+
+    def second(devices: range, start: float) -> list[int]:
+        counts = [0] * len(devices)
+        for i in range(10):  # one second of every device at 10 Hz
+            for k, d in enumerate(devices):
+                counts[k] += cap.take(f"arm-{d}", start + i / 10)
+        return counts
+
+    for t in range(5):  # four arms for 5 s: 5 Hz each once their (scaled) burst is spent
+        second(range(4), 100.0 + t)
+    assert cap.devices == 4
+    # Two of them stop. While the other two are still counted as four, they get 5 Hz each ...
+    early = second(range(2), 105.0)
+    assert all(n <= 6 for n in early), early
+    # ... and once the silent two are forgotten, the fleet's 20 a second is theirs: 10 Hz each.
+    for t in range(1, int(FORGET_DEVICE_AFTER_S) + 2):
+        second(range(2), 105.0 + t)
+    assert cap.devices == 2
+    assert second(range(2), 120.0) == [10, 10]
+    # A device that comes back starts with a full bucket, as a bucket left alone that long would be.
+    assert [cap.take("arm-3", 121.0) for _ in range(4)] == [True, True, True, True]
+    assert cap.devices == 3
+
+
 def test_device_rate_cap_holds_each_device_to_its_rate_after_the_burst() -> None:
     from twin.output.sinks import DeviceRateCap
 

@@ -155,6 +155,10 @@ class SinkWorker(Protocol):
 DEFAULT_MAX_PENDING_BYTES = 64 * 2**20
 
 
+# DeviceRateCap forgets a device silent this long at least (longer when its bucket takes longer to refill).
+FORGET_DEVICE_AFTER_S = 10.0
+
+
 class DeviceRateCap:
     """A token bucket per device on the agent's receive clock: at most `rate_hz` samples a second, with up to
     `burst` at once. The receive clock, not the edge's: a sink's cost follows the messages arriving,
@@ -162,18 +166,32 @@ class DeviceRateCap:
 
     With `fleet_rate_hz`, a fleet of n devices gets at most that in all: each device `fleet_rate_hz / n`
     when that is less than `rate_hz`, its burst scaled with it, so a sink whose cost is per sample keeps
-    up with a large fleet at a lower rate per arm instead of dropping whole seconds of it."""
+    up with a large fleet at a lower rate per arm instead of dropping whole seconds of it. n counts the
+    devices heard from lately: a device silent for `forget_after_s` is forgotten, so arms that left do not
+    shrink the share of those still sending for the rest of the run."""
 
-    __slots__ = ("_buckets", "_burst", "_fleet_rate", "_rate")
+    __slots__ = ("_buckets", "_burst", "_fleet_rate", "_forget_after_s", "_next_sweep", "_rate")
 
     def __init__(self, rate_hz: float, burst: float, fleet_rate_hz: float = math.inf) -> None:
         self._rate = rate_hz
         self._burst = max(1.0, burst)
         self._fleet_rate = fleet_rate_hz
         self._buckets: dict[str, tuple[float, float]] = {}  # device -> (tokens, receive time)
+        # A bucket left alone for burst / rate seconds is full again (a share scales both alike), so
+        # forgetting it after that long changes nothing for its device when it comes back.
+        refill_s = self._burst / rate_hz if 0 < rate_hz < math.inf else 0.0
+        self._forget_after_s = max(FORGET_DEVICE_AFTER_S, refill_s)
+        self._next_sweep = -math.inf
+
+    @property
+    def devices(self) -> int:
+        """Devices with a bucket: those heard from within about `forget_after_s`."""
+        return len(self._buckets)
 
     def take(self, device: str, received_mono_s: float) -> bool:
         """Whether `device` may have a sample received at `received_mono_s` (a token is spent if so)."""
+        if received_mono_s >= self._next_sweep:
+            self._forget_silent(received_mono_s)
         bucket = self._buckets.get(device)
         rate, burst = self._rate, self._burst
         devices = len(self._buckets) + (bucket is None)
@@ -187,6 +205,14 @@ class DeviceRateCap:
             return False
         self._buckets[device] = (tokens - 1.0, received_mono_s)
         return True
+
+    def _forget_silent(self, now: float) -> None:
+        """Drop the buckets of devices silent for `forget_after_s`; runs twice in that time at most."""
+        horizon = now - self._forget_after_s
+        silent = [device for device, (_, last) in self._buckets.items() if last < horizon]
+        for device in silent:
+            del self._buckets[device]
+        self._next_sweep = now + self._forget_after_s / 2
 
 
 class QueuedSink:

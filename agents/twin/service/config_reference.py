@@ -354,7 +354,8 @@ KEY_DOCS: dict[str, str] = {
     ),
     "rerun.max_fleet_rate_hz": (
         "... and at most this many a second for the whole fleet: past it each device gets an equal share "
-        "(100 arms at 10 Hz pass whole, 200 get 5 Hz each), its burst scaled with it; the rest are "
+        "(100 arms at 10 Hz pass whole, 200 get 5 Hz each), its burst scaled with it; a device silent for "
+        "10 s no longer counts. The rest are "
         "counted as `skipped`. The sink's cost is per sample: a lower rate per arm keeps a large fleet's "
         "stream whole instead of dropping seconds of it (docs/web.md)."
     ),
