@@ -29,11 +29,11 @@ DEFAULT_MIN_INTERVAL_S = 30.0
 
 # The variable deltalake's jemalloc reads its settings from (its symbols carry the `_rjem_` prefix).
 DELTALAKE_ALLOCATOR_ENV = "_RJEM_MALLOC_CONF"
-# jemalloc's defaults keep freed pages for 10 s in each of 4 arenas per CPU. A history commit every 10 s
-# therefore never gave its peak back, and which arenas the library's threads happened to touch made the
-# writer process's RSS swing between 230 and 300 MB and creep over the soak's hour. One arena, with freed
-# pages handed back after 1 s by jemalloc's background thread, held the same commits flat at 222-226 MB
-# with no change in commit time (docs/performance.md, "Soak", has the runs).
+# jemalloc's defaults keep freed pages for 10 s in each of 4 arenas per CPU, so commits back to back (a
+# backlog) never gave their peak back: the writer's RSS swung between 230 and 300 MB with which arenas the
+# library's threads happened to touch. One arena, freed pages handed back after 1 s by jemalloc's background
+# thread, held the same commits at 220-227 MB with no change in commit time. At one commit every 10 s it
+# changes nothing measurable (docs/performance.md, "Soak", has the runs).
 DELTALAKE_ALLOCATOR_SETTINGS = "narenas:1,background_thread:true,dirty_decay_ms:1000,muzzy_decay_ms:0"
 
 
