@@ -768,7 +768,7 @@ class ServoAlarms:
         # (Comparisons with NaN, the unknown, are false.)
         motion = (rows.moving == 1.0) | (np.abs(rows.velocity) > limit) | (speeds > limit)
         still = ~motion & ~(np.isnan(rows.velocity) & np.isnan(speeds) & np.isnan(rows.moving))
-        check_joints = self._rules_as_arrays()[4]
+        *_, check_joints = self._rules_as_arrays()
         checked = rows.given & check_joints & still & ~np.isnan(rows.load)
         count = len(rows.slots)
         model = np.full((count, _JOINTS), np.nan)
