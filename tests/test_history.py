@@ -411,6 +411,89 @@ def test_a_running_maintenance_process_is_stopped_at_shutdown(
     assert any("stopped by the shutdown" in r.getMessage() for r in caplog.records)
 
 
+# The real maintenance process, held at its start until the test lets it go on.
+HELD_MAINTENANCE = (
+    "import pathlib, runpy, sys, time\n"
+    "started, release = map(pathlib.Path, sys.argv[1:3])\n"
+    "started.touch()\n"
+    "while not release.exists():\n"
+    "    time.sleep(0.05)\n"
+    "sys.argv = sys.argv[:1]\n"
+    "runpy.run_module('twin.output.history_maintain', run_name='__main__')\n"
+)
+
+
+def test_the_committer_keeps_committing_while_its_maintenance_runs(tmp_path: Path) -> None:
+    uri = str(tmp_path / "h")
+    started, release = tmp_path / "maintenance-started", tmp_path / "maintenance-may-go-on"
+    now = [0.0]
+    writer = HistoryWriter(
+        HistorySettings(uri=uri, commit_every_s=3600, maintain_every_s=100),
+        clock=lambda: now[0],
+        wall_clock=lambda: T0,
+    )
+    writer.maintenance_command = [sys.executable, "-c", HELD_MAINTENANCE, str(started), str(release)]
+    writer.start()
+    try:
+        for k in range(3):
+            writer.add(TELEMETRY_TABLE, telemetry_table(samples(100, start_s=T0 + 20 * k))[0])
+            assert writer.flush(10)
+        now[0] = 150.0  # maintenance is due: the committer sees it within a second
+        wait_for(started.exists, 60, "the committer to start its maintenance process")
+        for k in range(3, 6):
+            writer.add(TELEMETRY_TABLE, telemetry_table(samples(100, start_s=T0 + 20 * k))[0])
+            assert writer.flush(10), "a commit waited for the maintenance process"
+        stats = writer.stats()
+        assert stats.maintenance_runs == 0 and stats.tables[TELEMETRY_TABLE].commits == 6
+        assert stats.lag_s == 0.0
+        release.touch()
+        wait_for(lambda: writer.stats().maintenance_runs == 1, 120, "the maintenance run to finish")
+        # The next append reopens the table maintenance changed, and still lands.
+        writer.add(TELEMETRY_TABLE, telemetry_table(samples(100, start_s=T0 + 200))[0])
+        assert writer.flush(10)
+    finally:
+        writer.close()
+    stats = writer.stats()
+    assert stats.maintenance_failures == 0 and stats.tables[TELEMETRY_TABLE].opens == 2
+    assert rows_of(uri).height == 700
+
+
+def test_appends_during_a_compaction_of_their_partition_keep_every_row_once(tmp_path: Path) -> None:
+    uri = str(tmp_path / "h")
+    writer = HistoryWriter(HistorySettings(uri=uri, commit_every_s=3600, maintain_every_s=0)).start()
+    for k in range(40):
+        writer.add(TELEMETRY_TABLE, telemetry_table(samples(50, start_s=T0 + 10 * k))[0])
+        assert writer.flush(10)
+    compactor = HistoryWriter(
+        HistorySettings(uri=uri, maintain_every_s=0), writer_id="compactor", maintain_in_child=False
+    )
+    done = threading.Event()
+
+    def compact() -> None:
+        try:
+            compactor.maintain_now(today=dt.datetime.fromtimestamp(T0, dt.UTC).date())
+        finally:
+            done.set()
+
+    thread = threading.Thread(target=compact)
+    thread.start()
+    appended = 0
+    # Appends to the day being compacted, for as long as the compaction runs (at least three).
+    while not done.is_set() or appended < 3:
+        writer.add(TELEMETRY_TABLE, telemetry_table(samples(50, start_s=T0 + 400 + 10 * appended))[0])
+        assert writer.flush(10)
+        appended += 1
+    thread.join()
+    writer.close()
+    stats = compactor.stats()
+    assert (stats.maintenance_runs, stats.maintenance_failures, stats.maintenance_conflicts) == (1, 0, 0)
+    frame = rows_of(uri)
+    assert frame.height == 50 * (40 + appended)
+    assert frame.select("device_id", "received_at").is_duplicated().sum() == 0
+    operations = [h.get("operation") for h in DeltaTable(str(Path(uri) / TELEMETRY_TABLE)).history()]
+    assert "OPTIMIZE" in operations
+
+
 def test_maintain_now_with_maintenance_off_does_not_make_the_committer_maintain(tmp_path: Path) -> None:
     uri = str(tmp_path / "h")
     writer = HistoryWriter(HistorySettings(uri=uri, commit_every_s=3600, maintain_every_s=0)).start()

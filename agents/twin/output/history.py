@@ -489,6 +489,9 @@ class HistoryWriter:
         self._next_maintenance = self._maintenance_after(clock())
         self._tables: dict[str, Any] = {}
         self._appends_since_open = dict.fromkeys(SCHEMAS, 0)
+        # Set by a finished maintenance run; the committer reopens its tables before its next append.
+        self._tables_stale = False
+        self._maintenance_thread: threading.Thread | None = None
         self._error_logged_at = -1e9
         self._thread = threading.Thread(target=self._run, name="history-commit", daemon=True)
         self._started = False
@@ -571,6 +574,10 @@ class HistoryWriter:
             self._cond.notify()
         if self._started:
             self._thread.join(timeout + 5.0)
+        maintenance = self._maintenance_thread
+        if maintenance is not None:
+            # A running maintenance process sees `_closing` within a poll and is stopped (run_child).
+            maintenance.join(timeout + 10.0)
         left = self.buffered_rows()
         if left:
             log.error(
@@ -678,7 +685,7 @@ class HistoryWriter:
                     if time.monotonic() >= self._close_deadline:
                         return
             if self._clock() >= self._next_maintenance and not closing:
-                self._maintain(interruptible=True)
+                self._start_maintenance()
 
     def _commit_round(self, table: str, items: list[_Pending]) -> bool:
         """Commit a batch attempted before (alone, with its sequence number), then everything else at once."""
@@ -748,7 +755,12 @@ class HistoryWriter:
         return int(dtable.version())
 
     def _table(self, table: str) -> Any:
-        """The open table, opened anew every `reopen_every` appends (REOPEN_EVERY_COMMITS says why)."""
+        """The open table, opened anew every `reopen_every` appends (REOPEN_EVERY_COMMITS says why) and after
+        a maintenance run (its checkpoint makes the new state small)."""
+        with self._cond:
+            stale, self._tables_stale = self._tables_stale, False
+        if stale:
+            self._appends_since_open = dict.fromkeys(SCHEMAS, self._reopen_every)
         dtable = self._tables.get(table)
         if dtable is not None and self._appends_since_open[table] < self._reopen_every:
             self._appends_since_open[table] += 1
@@ -866,23 +878,53 @@ class HistoryWriter:
         every = self.settings.maintain_every_s
         return now + every if every > 0 else float("inf")
 
+    def _start_maintenance(self) -> None:
+        """Start the due maintenance on a thread of its own and return: the committer goes on committing
+        while it runs. A run still going when the next one is due makes that one wait an interval.
+
+        Appends and a compaction of the same partition commit side by side: the compaction removes only files
+        it read and adds their rows again (dataChange=false), an append only adds new files, and delta-rs
+        commits whichever comes second on top of the first (`tests/test_history.py` checks every row is
+        there once). Rewriting the day took longer as the day grew (49 s after 50 minutes at 200 arms,
+        docs/performance.md "Soak"); had the committer waited, the rows arriving meanwhile would have piled
+        up as one ever larger backlog and, past `max_buffer_rows`, been dropped.
+        """
+        self._next_maintenance = self._maintenance_after(self._clock())
+        running = self._maintenance_thread
+        if running is not None and running.is_alive():
+            log.warning(
+                "history: maintenance is still running after maintain_every_s = %.0f s; the next run waits "
+                "an interval",
+                self.settings.maintain_every_s,
+            )
+            return
+        self._maintenance_thread = threading.Thread(
+            target=self._maintain, kwargs={"interruptible": True}, name="history-maintain", daemon=True
+        )
+        self._maintenance_thread.start()
+
     def _maintain(self, today: dt.date | None = None, *, interruptible: bool = False) -> None:
         """Compact today's and yesterday's partitions, checkpoint, vacuum replaced files, trim the log.
 
         It runs in a process of its own (`maintenance_command`) unless the writer was made with
         maintain_in_child=False: compaction reads and rewrites the day's files, and the hundreds of MB that
         takes stayed in this process's RSS after it (glibc keeps freed arenas); a process that exits gives
-        them all back. The committer thread waits for it, so this writer commits nothing meanwhile (rows
-        queue within max_buffer_rows), exactly as when maintenance ran on the thread itself.
+        them all back. The committer's own runs are started by `_start_maintenance` and do not hold it up.
         `interruptible`: stop the process if the writer is closed meanwhile (the committer's own runs).
         """
-        self._next_maintenance = self._maintenance_after(self._clock())
+        started = time.monotonic()
         today = today or dt.datetime.fromtimestamp(self._wall(), dt.UTC).date()
         if self._maintain_in_child:
             self._maintain_in_process_of_its_own(today, interruptible)
         else:
             self.maintain_here(today)
-        self._tables.clear()  # the next append reloads the table state maintenance changed
+        with self._cond:
+            self._tables_stale = True
+        log.info(
+            "history: maintenance took %.1f s",
+            time.monotonic() - started,
+            extra={"maintenance_s": round(time.monotonic() - started, 3)},
+        )
         heap.trim()
 
     def maintain_here(self, today: dt.date) -> None:
