@@ -83,6 +83,9 @@ def test_footprint_reports_cold_start_and_memory() -> None:
     } <= set(figures)
     assert figures["fleet_devices_mirrored"] == 20
     assert figures["cold_start_to_first_pose_s"] > 0
+    # The agent and its workers, one figure each; the workers' fork server is reported on its own.
+    assert figures["processes"] == 1 + (figures["workers"] if figures["workers"] > 1 else 0)
+    assert (figures["rss_fork_server_mb"] is not None) == (figures["workers"] > 1)
 
 
 def test_history_storage_reports_bytes_per_arm_day() -> None:

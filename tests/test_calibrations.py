@@ -264,6 +264,37 @@ def test_each_arm_decodes_with_its_own_and_a_new_one_needs_no_restart(tmp_path: 
         agent.stop()
 
 
+@pytest.mark.parametrize("workers", [1, 2], ids=["in-process", "two-worker-processes"])
+def test_messages_that_arrive_while_the_mirrors_start_decode_with_the_arms_own(
+    tmp_path: Path, workers: int
+) -> None:
+    """The broker connection starts before the mirrors are ready (a cold start overlaps them), so messages can
+    arrive before the arm's calibration is read: they wait for it. Here they are queued before start()."""
+    store = DirectoryStore(tmp_path / "cal")
+    store.write("arm-001", EXAMPLE.read_bytes())
+    agent = agent_with_store(tmp_path / "cal", **{"twin.workers": workers})
+    ts = int(time.time() * 1000)
+    for k in range(3):
+        agent.feed("dt/lerobot/arm-001/telemetry", ticks_message("arm-001", ts + 100 * k))
+    agent.start()
+    try:
+        state = wait_for(
+            lambda: (
+                (s := agent.state()).devices.get("arm-001")
+                and s.devices["arm-001"].health.counters.applied == 3
+                and s
+            ),
+            60,
+            "arm-001's three queued messages applied",
+            interval=0.05,
+        )
+        pan = (state.devices["arm-001"].joints_rad or {})["shoulder_pan"]
+        assert abs(pan - pan_angle(EXAMPLE.read_bytes())) < 1e-9
+        assert state.devices["arm-001"].calibration == str(tmp_path / "cal" / "arm-001.json")
+    finally:
+        agent.stop()
+
+
 def _calibration_events() -> Any:
     from twin.service.events import EventQuery
 

@@ -6,6 +6,7 @@ import threading
 import time
 
 import pytest
+from twin.service.mirror import QueueInbox
 from twin.transport.mailbox import InboundQueue
 
 
@@ -97,3 +98,25 @@ def test_concurrent_producers_lose_nothing_under_the_bound() -> None:
     assert {key: values for key, values in taken.items()} == {
         f"arm-{i:03d}": list(range(per_producer)) for i in range(producers)
     }
+
+
+def test_a_closed_gate_holds_the_messages_and_opening_hands_them_over_in_order() -> None:
+    """An in-process mirror's inbox made shut (the agent opens it once the state file and the calibrations
+    are in): nothing is handed over, a take returns at its timeout, then everything in arrival order."""
+    queue: InboundQueue[tuple[str, bytes, float, float]] = InboundQueue(100)
+    gate = QueueInbox(queue, opened=False)
+    for k in range(3):
+        queue.put("arm-001", ("t", b"%d" % k, float(k), float(k)))
+    assert gate.take(0.01).payloads == ()
+    assert len(gate) == 3
+    gate.open()
+    assert gate.take(0.01).payloads == (b"0", b"1", b"2")
+
+
+def test_closing_a_shut_gate_lets_what_it_held_drain() -> None:
+    queue: InboundQueue[tuple[str, bytes, float, float]] = InboundQueue(100)
+    gate = QueueInbox(queue, opened=False)
+    queue.put("arm-001", ("t", b"x", 0.0, 0.0))
+    gate.close()
+    assert gate.take(0.01).payloads == (b"x",)
+    assert gate.take(0.01).payloads == () and gate.closed

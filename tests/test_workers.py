@@ -33,7 +33,7 @@ from twin.rig.local import LocalRig, child_env
 from twin.rig.mosquitto import free_port
 from twin.rig.quota_proxy import QuotaProxy
 from twin.service.config import ConfigError, load_config
-from twin.service.shards import MirrorReport, WorkerPlan, merge_reports, worker_config, worker_count
+from twin.service.shards import MirrorReport, WorkerPlan, merge_reports, worker_config
 from twin.service.state import (
     AgentInfo,
     AgentState,
@@ -47,6 +47,7 @@ from twin.service.state import (
     WorkerInfo,
     WorkerState,
 )
+from twin.service.workerstart import worker_count
 
 # --- the plan ---------------------------------------------------------------------------------------------
 

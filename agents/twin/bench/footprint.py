@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import time
+from collections.abc import Sequence
 from typing import Any
 
 import psutil
@@ -31,19 +32,31 @@ def _first_pose_s(base: str, proc: subprocess.Popen[bytes], started: float, time
     raise RuntimeError(f"no mirrored pose within {timeout} s")
 
 
-def _rss_mb(pid: int) -> list[float]:
-    """RSS (MB) of the agent process and of each of its workers (a sharded agent's), the agent first; the
-    multiprocessing resource tracker, which holds no agent state, is left out."""
-    process = psutil.Process(pid)
-    sizes = [process.memory_info().rss / 2**20]
-    for child in process.children(recursive=True):
+def _rss_mb(pid: int, workers: Sequence[int]) -> list[float]:
+    """RSS (MB) of the agent process and of each of its worker processes (pids from /state), the agent first;
+    the multiprocessing helpers (resource tracker, the workers' fork server) hold no agent state and are left
+    out (`_fork_server_mb`)."""
+    sizes = [psutil.Process(pid).memory_info().rss / 2**20]
+    for worker in workers:
         try:
-            if any("resource_tracker" in part for part in child.cmdline()):
-                continue
-            sizes.append(child.memory_info().rss / 2**20)
+            sizes.append(psutil.Process(worker).memory_info().rss / 2**20)
         except psutil.Error:
             continue
     return sizes
+
+
+def _fork_server_mb(pid: int, workers: Sequence[int]) -> float | None:
+    """RSS (MB) of the workers' fork server, the workers' parent when that is not the agent (it imported the
+    mirror once; most of its pages are shared with the workers forked from it, whose RSS counts them too);
+    None without one."""
+    for worker in workers:
+        try:
+            parent = psutil.Process(worker).ppid()
+            if parent != pid:
+                return psutil.Process(parent).memory_info().rss / 2**20
+        except psutil.Error:
+            continue
+    return None
 
 
 def _cold_start_s(rig: LocalRig) -> float:
@@ -66,17 +79,19 @@ def _memory(rig: LocalRig, fleet: int, rate: float, fleet_seconds: float) -> dic
     with running_agent(rig) as (proc, base):
         wait_subscribed(base, proc)
         time.sleep(2.0)
-        idle = _rss_mb(proc.pid)
+        workers = [w.pid for w in get_state(base, timeout=30).agent.workers if w.pid != proc.pid]
+        idle = _rss_mb(proc.pid, workers)
         half = fleet // 2
         pubs = [start_publisher(rig.broker.url, first, half, rate, fleet_seconds) for first in (1, 1 + half)]
         peak = idle
         while any(p.poll() is None for p in pubs):
-            now = _rss_mb(proc.pid)
+            now = _rss_mb(proc.pid, workers)
             peak = now if sum(now) > sum(peak) else peak
             time.sleep(0.25)
         time.sleep(1.0)
         state = get_state(base, timeout=30)
-        at_fleet = _rss_mb(proc.pid)
+        at_fleet = _rss_mb(proc.pid, workers)
+        fork_server = _fork_server_mb(proc.pid, workers)
     return {
         "processes": len(at_fleet),
         "workers": len(state.agent.workers) or 1,
@@ -88,6 +103,7 @@ def _memory(rig: LocalRig, fleet: int, rate: float, fleet_seconds: float) -> dic
         "rss_at_fleet_per_process_mb": at_fleet,
         "rss_at_fleet_largest_process_mb": max(at_fleet),
         "rss_peak_mb": max(sum(peak), sum(at_fleet)),
+        "rss_fork_server_mb": fork_server,
     }
 
 

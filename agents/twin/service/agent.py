@@ -26,6 +26,7 @@ timeline of their own; worker processes use the system clocks.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import multiprocessing
@@ -92,6 +93,7 @@ from twin.service.state import (
     HistoryState,
     WorkerInfo,
 )
+from twin.service.workerstart import start_fork_server, worker_context
 from twin.transport.mailbox import UNTRACKED_KEY
 from twin.transport.plan import PoolSettings, default_limit
 from twin.transport.pool import ConnectionPool
@@ -238,8 +240,11 @@ class AgentService:
             )
             self._mirror = local.mirror
             return [local]
+        # Workers are forked from a server that has imported the mirror (NumPy, MuJoCo) once: N workers
+        # started, or one started again after a crash, do not each pay the imports (service.workerstart).
+        workers = worker_context()
         return [
-            WorkerShard(i, worker_config(config, self.plan, i), budget, context, link) for i in range(count)
+            WorkerShard(i, worker_config(config, self.plan, i), budget, workers, link) for i in range(count)
         ]
 
     # -------------------------------------------------------------------------------------------- lifecycle
@@ -261,8 +266,6 @@ class AgentService:
         if self._alerts is not None:
             self._alerts.start()
         self._http.start()
-        self._pool.start()
-        self._started_pool = True
         cw = self.config.cloudwatch
         if cw.emf_file:
             self._emf = EmfPublisher(
@@ -284,12 +287,22 @@ class AgentService:
         )
 
     def _launch_mirrors(self) -> AgentHttpServer:
-        """History's writer, every mirror (each waited for), the alarms of the state file and each arm's
-        calibration; then the HTTP server, bound but not serving yet. What was launched is stopped again when
-        a step fails."""
+        """History's writer, every mirror (each waited for) and, while they start, the broker connection and
+        subscription; then the alarms of the state file and each arm's calibration, and only then does any
+        message reach a mirror (Shard.open). Returns the HTTP server, bound but not serving yet. What was
+        launched is stopped again when a step fails."""
         try:
+            if self.plan.count > 1:
+                # Already running when `twin run` started it; otherwise it starts importing now, beside what
+                # follows.
+                start_fork_server()
+            # Connecting and subscribing (TLS and SigV4 to IoT Core) overlap the processes' start, most of a
+            # cold start (docs/performance.md, "Footprint"): what arrives meanwhile waits in the shards'
+            # queues, bounded as always, and is handed over once each mirror has what it needs below.
+            self._pool.start()
+            self._started_pool = True
             if self._history is not None:
-                # First, so the mirrors' feeds find it listening.
+                # Before the mirrors, so their feeds find it listening.
                 self._launch_history(self._history)
             for shard in self._shards:
                 shard.launch()
@@ -297,8 +310,10 @@ class AgentService:
                 shard.await_ready()
             self._restore_state_file()
             if self._calibrations is not None:
-                # Before the subscription, so the first messages already decode with each arm's own.
+                # Before any message reaches a mirror, so the first ones already decode with each arm's own.
                 self._calibrations.poll()
+            for shard in self._shards:
+                shard.open()
             return AgentHttpServer(
                 self,
                 self.config.http.host,
@@ -309,6 +324,10 @@ class AgentService:
                 rerun_url=rerun_viewer_url(self.sinks),
             )
         except BaseException:
+            if self._started_pool:
+                with contextlib.suppress(Exception):
+                    self._pool.stop(5.0)
+                self._started_pool = False
             self._stop_shards(time.monotonic() + 10.0)
             if self._history is not None:
                 self._history.stop(timeout=10.0)

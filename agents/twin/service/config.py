@@ -87,7 +87,7 @@ class TwinSection:
     physics_rate_hz: float = 200.0
     record_flush_s: float = 2.0
     # Processes that mirror the fleet, each a share of the devices (docs/scaling.md, "Workers"); 0 = one per
-    # usable core for the whole fleet, fewer for a small listed one (twin.service.shards.worker_count).
+    # usable core for the whole fleet, fewer for a small listed one (twin.service.workerstart.worker_count).
     workers: int = 0
     # The recording rotates to a new session file once its file reaches record_max_mb or it is
     # record_max_age_s old, and the oldest session files in record_dir are deleted while they take more than

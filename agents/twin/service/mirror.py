@@ -276,16 +276,27 @@ JOB_TIMEOUT_S = 10.0
 
 
 class QueueInbox:
-    """An in-process mirror's inbox: the shard's InboundQueue, taken as batches."""
+    """An in-process mirror's inbox: the shard's InboundQueue, taken as batches. Made with `opened=False`
+    it hands over nothing until `open()` (or `close()`, which drains): messages wait in the queue."""
 
-    def __init__(self, queue: InboundQueue[QueuedMessage]) -> None:
+    def __init__(self, queue: InboundQueue[QueuedMessage], *, opened: bool = True) -> None:
         self.queue = queue
+        self._opened = threading.Event()
+        if opened:
+            self._opened.set()
 
     def take(self, timeout: float | None = None) -> Batch:
+        opened = self._opened
+        if not opened.is_set() and not opened.wait(timeout):
+            return EMPTY  # the worker loop runs its jobs (a restore, say) meanwhile
         return batch_of(self.queue.take_all(timeout))
+
+    def open(self) -> None:
+        self._opened.set()
 
     def close(self) -> None:
         self.queue.close()
+        self._opened.set()
 
     @property
     def closed(self) -> bool:
@@ -1464,9 +1475,10 @@ class LocalShard:
             max_items=MAX_QUEUED_MESSAGES, max_bytes=MAX_QUEUED_BYTES, size_of=_payload_size
         )
         self.checkpoint: MirrorCheckpoint | None = None
+        self._gate = QueueInbox(self._inbox, opened=False)
         self.mirror = Mirror(
             config,
-            inbox=QueueInbox(self._inbox),
+            inbox=self._gate,
             budget=budget,
             clock=clock,
             wall_clock=wall_clock,
@@ -1484,9 +1496,12 @@ class LocalShard:
     def await_ready(self) -> None:
         return  # running once launched
 
+    def open(self) -> None:
+        self._gate.open()
+
     def close(self) -> None:
         self._closed = True
-        self._inbox.close()
+        self._gate.close()
 
     def join(self, deadline: float) -> StopReport | None:
         return self.mirror.stop(max(0.1, deadline - time.monotonic()))

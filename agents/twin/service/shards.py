@@ -39,7 +39,6 @@ import contextlib
 import dataclasses
 import itertools
 import logging
-import math
 import os
 import pickle
 import signal
@@ -51,7 +50,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 from multiprocessing.connection import Connection
-from multiprocessing.context import SpawnContext, SpawnProcess
+from multiprocessing.context import ForkServerContext, ForkServerProcess, SpawnContext, SpawnProcess
 from typing import TYPE_CHECKING, Protocol
 
 from twin.core.alarms import (
@@ -97,10 +96,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-# Messages a second one worker is planned for when `[twin] workers = 0` chooses the count for a listed fleet:
-# about a third of what one worker mirrors on this project's 2-core development machine, so a fleet of up to
-# 100 arms at 10 Hz stays in one process (docs/scaling.md, "Workers").
-WORKER_PLAN_RATE = 1000.0
 # Per worker, the agent queues at most this many messages for its pipe (about 40 MB of payloads across the
 # fleet's queues at most); beyond it the oldest are dropped and counted, as in an in-process mirror's queue.
 MAX_QUEUED_PER_WORKER = 25_000
@@ -137,30 +132,6 @@ MAX_RESTART_PAUSE_S = 60.0
 
 class WorkerError(RuntimeError):
     """A worker process could not start, or did not answer."""
-
-
-def usable_cores() -> int:
-    """The cores this process may run on (its CPU affinity, which containers and taskset narrow)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):  # not Linux
-        return max(1, os.cpu_count() or 1)
-
-
-def worker_count(config: AgentConfig, cores: int | None = None) -> int:
-    """How many worker processes `config` asks for: `[twin] workers`, or when it is 0 one per usable core,
-    but one per WORKER_PLAN_RATE of a listed fleet's expected messages, and one when the Rerun stream is on
-    (one stream, one process). 1 means the mirror runs in the agent's own process."""
-    requested = config.twin.workers
-    if requested:
-        return requested
-    if config.rerun.enabled:
-        return 1
-    cores = usable_cores() if cores is None else cores
-    if config.telemetry.all_devices:
-        return cores
-    expected = len(config.telemetry.devices) * config.health.expected_rate_hz
-    return max(1, min(cores, len(config.telemetry.devices), math.ceil(expected / WORKER_PLAN_RATE)))
 
 
 class WorkerPlan:
@@ -486,11 +457,16 @@ class Shard(Protocol):
         ...
 
     def launch(self) -> None:
-        """Begin starting the mirror (a worker: spawn it; the agent waits for every shard afterwards)."""
+        """Begin starting the mirror (a worker: its process; the agent waits for every shard afterwards)."""
         ...
 
     def await_ready(self) -> None:
-        """Return once the mirror runs; ConfigError (a setting it cannot work with), WorkerError, OSError."""
+        """Return once the mirror runs and answers requests; ConfigError (a setting it cannot work with),
+        WorkerError, OSError. It is handed no message before `open()`."""
+        ...
+
+    def open(self) -> None:
+        """Hand the mirror its messages from now on: what was queued since `launch()` first, in order."""
         ...
 
     def close(self) -> None:
@@ -584,7 +560,7 @@ class WorkerShard:
         index: int,
         config: AgentConfig,
         budget: DeviceBudget,
-        context: SpawnContext,
+        context: SpawnContext | ForkServerContext,
         history: HistoryLink | None = None,
     ) -> None:
         self.index = index
@@ -595,7 +571,7 @@ class WorkerShard:
         self.queue: InboundQueue[tuple[str, bytes, float, float]] = InboundQueue(
             MAX_QUEUED_PER_WORKER, max_bytes=MAX_QUEUED_BYTES_PER_WORKER, size_of=_payload_size
         )
-        self.process: SpawnProcess | None = None
+        self.process: SpawnProcess | ForkServerProcess | None = None
         self.data: Connection | None = None
         self.control: Connection | None = None
         self._control_lock = threading.Lock()
@@ -698,6 +674,8 @@ class WorkerShard:
         with self._send_lock:
             self.ready = True
             self._send_lock.notify_all()
+
+    def open(self) -> None:
         if self._sender is None:
             self._sender = threading.Thread(
                 target=self._send_loop, name=f"twin-send-{self.index}", daemon=True
@@ -1413,5 +1391,4 @@ __all__ = [
     "restored_of",
     "uncalibrated",
     "worker_config",
-    "worker_count",
 ]

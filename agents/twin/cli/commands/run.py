@@ -193,12 +193,16 @@ def serve(config: AgentConfig, on_started: Callable[[AgentService], None] | None
 def _build_service(config: AgentConfig) -> AgentService | int:
     """The agent with as many worker processes as the config asks for (in-process for one); an exit code
     when the configuration is invalid or a sink cannot open."""
+    from twin.service.workerstart import start_fork_server, worker_count
+
+    workers = worker_count(config)
+    if workers > 1:
+        # First: the workers' fork server imports the mirror on another core while this process goes on.
+        start_fork_server()
     # awscrt (and for an in-process mirror MuJoCo and USD) load here, not at import: `twin --help` stays fast.
     from twin.ops.sessions import history_sessions
     from twin.service.agent import AgentService
-    from twin.service.shards import worker_count
 
-    workers = worker_count(config)
     sinks: list[TwinSink] = []
     if workers == 1:
         # Worker processes build their own sinks from the config; an in-process mirror takes these. (The
