@@ -920,11 +920,8 @@ class HistoryWriter:
             self.maintain_here(today)
         with self._cond:
             self._tables_stale = True
-        log.info(
-            "history: maintenance took %.1f s",
-            time.monotonic() - started,
-            extra={"maintenance_s": round(time.monotonic() - started, 3)},
-        )
+        took = time.monotonic() - started
+        log.info("history: maintenance took %.1f s", took, extra={"maintenance_s": round(took, 3)})
         heap.trim()
 
     def maintain_here(self, today: dt.date) -> None:
