@@ -287,10 +287,10 @@ class AgentService:
         )
 
     def _launch_mirrors(self) -> AgentHttpServer:
-        """History's writer, every mirror (each waited for) and, while they start, the broker connection and
-        subscription; then the alarms of the state file and each arm's calibration, and only then does any
-        message reach a mirror (Shard.open). Returns the HTTP server, bound but not serving yet. What was
-        launched is stopped again when a step fails."""
+        """The workers' fork server and the broker connection and subscription first, so they run while the
+        rest starts; then history's writer and every mirror (each waited for), the alarms of the state file
+        and each arm's calibration, and only then does any message reach a mirror (Shard.open). Returns the
+        HTTP server, bound but not serving yet. What was launched is stopped again when a step fails."""
         try:
             if self.plan.count > 1:
                 # Already running when `twin run` started it; otherwise it starts importing now, beside what

@@ -50,7 +50,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 from multiprocessing.connection import Connection
-from multiprocessing.context import ForkServerContext, ForkServerProcess, SpawnContext, SpawnProcess
+from multiprocessing.context import ForkServerContext, ForkServerProcess
 from typing import TYPE_CHECKING, Protocol
 
 from twin.core.alarms import (
@@ -560,7 +560,7 @@ class WorkerShard:
         index: int,
         config: AgentConfig,
         budget: DeviceBudget,
-        context: SpawnContext | ForkServerContext,
+        context: ForkServerContext,
         history: HistoryLink | None = None,
     ) -> None:
         self.index = index
@@ -571,7 +571,7 @@ class WorkerShard:
         self.queue: InboundQueue[tuple[str, bytes, float, float]] = InboundQueue(
             MAX_QUEUED_PER_WORKER, max_bytes=MAX_QUEUED_BYTES_PER_WORKER, size_of=_payload_size
         )
-        self.process: SpawnProcess | ForkServerProcess | None = None
+        self.process: ForkServerProcess | None = None
         self.data: Connection | None = None
         self.control: Connection | None = None
         self._control_lock = threading.Lock()
