@@ -206,3 +206,50 @@ def test_period_estimate_refuses_irregular_gaps() -> None:
     rng = random.Random(9)
     assert estimate_period_ms([rng.uniform(50, 5000) for _ in range(64)]) is None
     assert estimate_period_ms([]) is None
+
+
+def _plain(value: object) -> bool:
+    """Only what pickles without a call into Python: numbers, None and tuples of them."""
+    if isinstance(value, tuple):
+        return all(_plain(v) for v in value)
+    return value is None or type(value) in (int, float)
+
+
+@pytest.mark.parametrize(
+    "cut",
+    [
+        5,  # still early: the first gaps are recounted with each better estimate
+        90,  # settled
+        400,  # settled, after the rate change below
+    ],
+)
+def test_an_estimator_from_its_state_goes_on_as_the_original(cut: int) -> None:
+    """A restarted worker takes each arm's estimator back from its checkpoint (`state`, `from_state`): fed
+    the same messages after that, it must count exactly what the original counts."""
+    rng = random.Random(cut)
+    fast, _ = stream(300, drop=0.2, jitter_ms=3, seed=7)
+    slow = [fast[-1] + 200 * (k + 1) for k in range(300) if rng.random() >= 0.1]  # 5 Hz from here on
+    timestamps = fast + slow
+    timestamps[cut + 3], timestamps[cut + 4] = timestamps[cut + 4], timestamps[cut + 3]  # one late delivery
+    timestamps.insert(cut + 10, timestamps[cut + 8])  # a duplicate
+    timestamps.insert(cut + 1, timestamps[cut - 2])  # and one of a message from before the checkpoint
+    clock = Clock()
+    original = feed(timestamps[:cut], clock)
+    for _ in range(3):
+        original.record_rejected()
+    state = original.state()
+    assert _plain(state)
+    copy = DeviceLoss.from_state(state, clock)
+    assert copy.state() == state
+    for ts in timestamps[cut:]:
+        clock.now = (ts - T0) / 1000.0
+        original.observe(ts)
+        copy.observe(ts)
+        assert (copy.lost, copy.received, copy.duplicates) == (
+            original.lost,
+            original.received,
+            original.duplicates,
+        )
+    assert copy.state() == original.state()
+    assert copy.snapshot() == original.snapshot()
+    assert original.period_s == pytest.approx(0.2, rel=0.01)

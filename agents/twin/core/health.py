@@ -102,6 +102,14 @@ class HealthSnapshot:
     internal_latency_s: WindowLatency = field(default_factory=WindowLatency)
 
 
+# A HealthCheckpoint as plain values (`DeviceHealth.checkpoint_row`, `HealthCheckpoint.from_row`), which
+# pickle without a call into Python per object: received, decoded, applied, ignored_stale, coalesced,
+# overwritten, errors, clock_resets, clamped, the rejections by reason, then the three times.
+HealthRow = tuple[
+    int, int, int, int, int, int, int, int, int, dict[str, int], float | None, float | None, int | None
+]
+
+
 @dataclass(frozen=True, slots=True)
 class HealthCheckpoint:
     """What a device's health must carry across a restart of its mirror: the counters and the times that
@@ -112,6 +120,30 @@ class HealthCheckpoint:
     last_message_mono: float | None = None
     last_applied_mono: float | None = None
     last_timestamp_ms: int | None = None
+
+    @classmethod
+    def from_row(cls, row: HealthRow) -> HealthCheckpoint:
+        """The checkpoint `DeviceHealth.checkpoint_row` gave as plain values."""
+        received, decoded, applied, ignored, coalesced, overwritten, errors, resets, clamped = row[:9]
+        rejected = row[9]
+        return cls(
+            counters=DeviceCounters(
+                received=received,
+                decoded=decoded,
+                applied=applied,
+                ignored_stale=ignored,
+                coalesced=coalesced,
+                overwritten=overwritten,
+                errors=errors,
+                clock_resets=resets,
+                rejected_total=sum(rejected.values()),
+                rejected=dict(sorted(rejected.items())),
+                clamped=clamped,
+            ),
+            last_message_mono=row[10],
+            last_applied_mono=row[11],
+            last_timestamp_ms=row[12],
+        )
 
     def snapshot(self, thresholds: HealthThresholds, now: float, since: float) -> HealthSnapshot:
         """The health as far as the checkpoint knows it at `now` (no rate, no latencies); `since`: when
@@ -283,6 +315,25 @@ class DeviceHealth:
             last_message_mono=self.last_message_mono,
             last_applied_mono=self.last_applied_mono,
             last_timestamp_ms=self.last_timestamp_ms,
+        )
+
+    def checkpoint_row(self) -> HealthRow:
+        """`checkpoint()` as plain values, for a worker's checkpoint of all its arms
+        (`HealthCheckpoint.from_row`)."""
+        return (
+            self.received,
+            self.decoded,
+            self.applied,
+            self.ignored_stale,
+            self.coalesced,
+            self.overwritten,
+            self.errors,
+            self.clock_resets,
+            self.clamped,
+            dict(self.rejected),
+            self.last_message_mono,
+            self.last_applied_mono,
+            self.last_timestamp_ms,
         )
 
     def restore(self, checkpoint: HealthCheckpoint) -> None:

@@ -36,6 +36,15 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 Clock = Callable[[], float]
+# DeviceLoss.state(): plain values only (numbers, None and tuples of them), so it pickles without a call into
+# Python per object. In order: nominal, outage and reorder ms, window s, gaps, new gaps, settle at, period ms,
+# early gaps, early missing, missing, recent timestamps, jumps, jump fills, first, last, received,
+# duplicates, segments, rejected, window samples.
+LossState = tuple[
+    float | None, float, float, float, tuple[int, ...], int, int, float | None, tuple[int, ...] | None,
+    int, int, tuple[int, ...], int, int, int | None, int, int, int, int, int,
+    tuple[tuple[float, int, int], ...],
+]  # fmt: skip
 
 # Gaps kept for the period estimate. Once it is settled it is recomputed every GAP_HISTORY new gaps (tens of
 # microseconds each, so well under one per message); before that at 1, 2, 4, 8 and 16 gaps.
@@ -381,6 +390,72 @@ class DeviceLoss:
                 run = 0
                 start = i
         return gaps[start:]
+
+    # -- checkpoints ----------------------------------------------------------------------------------------
+
+    def state(self) -> LossState:
+        """Everything the estimate rests on, as one tuple of plain values: a worker's checkpoint carries it
+        for a thousand arms a second, and pickling the object itself (its deques and set, through the
+        object protocol) cost several times as much. `from_state` builds the estimator back."""
+        early = self._early
+        return (
+            self._nominal_ms,
+            self._outage_ms,
+            self._reorder_ms,
+            self._window_s,
+            tuple(self._gaps),
+            self._new_gaps,
+            self._settle_at,
+            self._period_ms,
+            None if early is None else tuple(early),
+            self._early_missing,
+            self._missing,
+            tuple(self._recent),
+            self._jumps,
+            self._jump_fills,
+            self._first,
+            self._last,
+            self.received,
+            self.duplicates,
+            self.segments,
+            self.rejected,
+            tuple(self._window),
+        )
+
+    @classmethod
+    def from_state(cls, state: LossState, clock: Clock = time.monotonic) -> DeviceLoss:
+        """The estimator `state()` was taken of, reading `clock` from now on (a checkpoint only crosses
+        between processes of one host, which share the monotonic clock its window is on)."""
+        (
+            nominal_ms, outage_ms, reorder_ms, window_s, gaps, new_gaps, settle_at, period_ms, early,
+            early_missing, missing, recent, jumps, jump_fills, first, last,
+            received, duplicates, segments, rejected, window,
+        ) = state  # fmt: skip
+        loss = cls.__new__(cls)
+        loss._nominal_ms = nominal_ms
+        loss._outage_ms = outage_ms
+        loss._reorder_ms = reorder_ms
+        loss._window_s = window_s
+        loss._clock = clock
+        loss._gaps = deque(gaps, maxlen=2 * GAP_HISTORY)
+        loss._new_gaps = new_gaps
+        loss._settle_at = settle_at
+        loss._period_ms = period_ms
+        loss._early = None if early is None else list(early)
+        loss._early_missing = early_missing
+        loss._missing = missing
+        loss._recent = deque(recent, maxlen=RECENT_TIMESTAMPS)
+        loss._recent_set = set(recent)
+        loss._jumps = jumps
+        loss._jump_fills = jump_fills
+        loss._first = first
+        loss._last = last
+        loss.received = received
+        loss.duplicates = duplicates
+        loss.segments = segments
+        loss.rejected = rejected
+        loss._window = deque(window)
+        return loss
 
     # -- readings -------------------------------------------------------------------------------------------
 

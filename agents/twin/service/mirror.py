@@ -49,7 +49,6 @@ from __future__ import annotations
 import gc
 import logging
 import os
-import pickle
 import threading
 import time
 from collections import Counter, deque
@@ -103,10 +102,12 @@ from twin.service.shards import (
     CalibrationsRequest,
     CheckpointRequest,
     DeviceCheckpoint,
+    DeviceRow,
     EventsRequest,
     FleetRowsRequest,
     MirrorCheckpoint,
     MirrorReport,
+    PackedDevices,
     Reply,
     ReportRequest,
     Request,
@@ -696,27 +697,32 @@ class Mirror:
             if alarms_only:
                 return MirrorCheckpoint(alarms=alarms, alarm_counters=counters, at=self._clock())
             decided = self._decoder.decided_units()
-            devices = {}
+            rows: list[DeviceRow] = []
             for device, health in self._fleet.devices.items():
                 record = self._devices.get(device)
                 loss = self._loss.get(device)
-                devices[device] = DeviceCheckpoint(
-                    health=health.checkpoint(),
-                    loss=pickle.dumps(loss, protocol=pickle.HIGHEST_PROTOCOL) if loss is not None else b"",
-                    units=decided.get(device),
-                    timestamp_ms=record.twin.last_timestamp_ms if record is not None else None,
-                    targets_rad=dict(record.twin.targets) if record is not None else None,
-                    gripper_percent=record.gripper_percent if record is not None else None,
+                units = decided.get(device)
+                rows.append(
+                    (
+                        device,
+                        health.checkpoint_row(),
+                        loss.state() if loss is not None else None,
+                        units.value if units is not None else None,
+                        record.twin.last_timestamp_ms if record is not None else None,
+                        record.twin.targets if record is not None else None,
+                        record.gripper_percent if record is not None else None,
+                    )
                 )
             untracked = dict(self._fleet.untracked_rejected)
             batches = self.batches
             summary = self._alarms_summary()
+        # The rows are copies: nothing the worker changes next reaches them.
         return MirrorCheckpoint(
             taken=self.processed,
             errors=self.errors,
             batches=batches,
             at=self._clock(),
-            devices=devices,
+            devices=PackedDevices.pack(rows),
             untracked_rejected=untracked,
             alarms=alarms,
             alarm_counters=counters,
@@ -757,10 +763,8 @@ class Mirror:
         """Under the lock: one device's counters, loss estimate and twin (from its last applied pose)."""
         health = self._fleet.device(device)
         health.restore(saved.health)
-        if saved.loss:
-            loss = pickle.loads(saved.loss)  # written by this agent's own previous worker process
-            if isinstance(loss, DeviceLoss):
-                self._loss[device] = loss
+        if saved.loss is not None:
+            self._loss[device] = DeviceLoss.from_state(saved.loss, self._clock)
         if saved.timestamp_ms is None or saved.targets_rad is None or device in self._devices:
             return
         if not self._budget.take(self._slot):

@@ -46,7 +46,7 @@ import threading
 import time
 import zlib
 from collections import Counter, deque
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 from multiprocessing.connection import Connection
@@ -63,9 +63,9 @@ from twin.core.alarms import (
     record_view,
 )
 from twin.core.bounded import BoundedCounter, merged_counts
-from twin.core.health import HealthCheckpoint, HealthThresholds
+from twin.core.health import HealthCheckpoint, HealthRow, HealthThresholds
 from twin.core.latency import LatencyHistogram
-from twin.core.loss import DeviceLoss, LossSnapshot, fleet_loss
+from twin.core.loss import DeviceLoss, LossSnapshot, LossState, fleet_loss
 from twin.core.units import Units
 from twin.output.sinks import SinkStats
 from twin.service.admission import DeviceBudget
@@ -245,13 +245,71 @@ class DeviceCheckpoint:
     last applied pose; health windows, latencies and the alarm engine's last evaluation start again)."""
 
     health: HealthCheckpoint
-    # The loss estimator, pickled whole by the worker thread (a few small deques; it must not change while
-    # the checkpoint crosses the pipe).
-    loss: bytes = b""
+    loss: LossState | None = None  # the loss estimator's (`DeviceLoss.from_state`)
     units: Units | None = None  # units=auto's decision, so a restarted mirror rejects none of its messages
     timestamp_ms: int | None = None  # the last applied pose
     targets_rad: dict[str, float] | None = None
     gripper_percent: float | None = None
+
+
+# One device of a checkpoint as plain values (`PackedDevices`): its id, health, loss estimator (or None),
+# units=auto's decision (the units' value, or None), last applied timestamp, targets and gripper percent.
+DeviceRow = tuple[
+    str, HealthRow, LossState | None, str | None, int | None, dict[str, float] | None, float | None
+]
+
+
+class PackedDevices(Mapping[str, DeviceCheckpoint]):
+    """A checkpoint's devices, pickled once by the worker thread as plain values (`DeviceRow`) and unpacked
+    only where they are read: by a restarted worker, or for `/state` while one restarts.
+
+    The agent takes each worker's checkpoint every second, and nearly always only keeps it. Built as
+    dataclasses with each arm's estimator pickled whole, at 1,000 arms it held the worker thread for 27-99 ms
+    (building and pickling it for the pipe) and the receiving process for 27-33 ms more to unpickle it,
+    every second (docs/performance.md). As one blob of tuples the pipe carries bytes and nothing is built
+    that is not read."""
+
+    __slots__ = ("_devices", "blob")
+
+    def __init__(self, blob: bytes = b"") -> None:
+        self.blob = blob
+        self._devices: dict[str, DeviceCheckpoint] | None = None
+
+    @classmethod
+    def pack(cls, rows: Sequence[DeviceRow]) -> PackedDevices:
+        return cls(pickle.dumps(rows, protocol=pickle.HIGHEST_PROTOCOL) if rows else b"")
+
+    def __reduce__(self) -> tuple[type[PackedDevices], tuple[bytes]]:
+        return PackedDevices, (self.blob,)  # the blob alone, whether unpacked here or not
+
+    def _unpacked(self) -> dict[str, DeviceCheckpoint]:
+        devices = self._devices
+        if devices is None:
+            # Written by this agent's own worker process; two threads unpacking at once build equal dicts.
+            rows: list[DeviceRow] = pickle.loads(self.blob) if self.blob else []
+            devices = self._devices = {row[0]: _unpack_device(row) for row in rows}
+        return devices
+
+    def __getitem__(self, device: str) -> DeviceCheckpoint:
+        return self._unpacked()[device]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._unpacked())
+
+    def __len__(self) -> int:
+        return len(self._unpacked())
+
+
+def _unpack_device(row: DeviceRow) -> DeviceCheckpoint:
+    _, health, loss, units, timestamp_ms, targets, gripper = row
+    return DeviceCheckpoint(
+        health=HealthCheckpoint.from_row(health),
+        loss=loss,
+        units=Units(units) if units is not None else None,
+        timestamp_ms=timestamp_ms,
+        targets_rad=targets,
+        gripper_percent=gripper,
+    )
 
 
 @dataclass(frozen=True)
@@ -266,7 +324,7 @@ class MirrorCheckpoint:
     errors: int = 0
     batches: int = 0
     at: float = 0.0  # when it was taken (the host's monotonic clock)
-    devices: dict[str, DeviceCheckpoint] = field(default_factory=dict)
+    devices: Mapping[str, DeviceCheckpoint] = field(default_factory=PackedDevices)
     untracked_rejected: dict[str, int] = field(default_factory=dict)
     alarms: tuple[AlarmRecord, ...] = ()
     alarm_counters: AlarmCounters = field(default_factory=AlarmCounters)
@@ -1054,11 +1112,7 @@ def checkpoint_device(
     device: str, saved: DeviceCheckpoint, thresholds: HealthThresholds, now: float, since: float
 ) -> DeviceState:
     """A device's state as a checkpoint knows it (its mirror is being started again)."""
-    loss = LossSnapshot()
-    if saved.loss:
-        estimator = pickle.loads(saved.loss)  # written by this agent's own worker process
-        if isinstance(estimator, DeviceLoss):
-            loss = estimator.snapshot(now)
+    loss = DeviceLoss.from_state(saved.loss).snapshot(now) if saved.loss is not None else LossSnapshot()
     return DeviceState(
         device_id=device,
         health=saved.health.snapshot(thresholds, now, since),
@@ -1368,10 +1422,12 @@ __all__ = [
     "CalibrationsRequest",
     "CheckpointRequest",
     "DeviceCheckpoint",
+    "DeviceRow",
     "EventsRequest",
     "FleetRowsRequest",
     "MirrorCheckpoint",
     "MirrorReport",
+    "PackedDevices",
     "Reply",
     "ReportRequest",
     "Request",
