@@ -493,6 +493,7 @@ def test_a_round_at_once_is_evaluate_one_by_one() -> None:
         return {j: 0.6 * math.sin(a) for j, a in zip(so101.JOINT_NAMES, pose, strict=True)}
 
     raised: set[AlarmKind] = set()
+    worst_states: set[AlarmState] = set()
     for step in range(160):
         now = step * 0.1
         messages = [decoder.decode(json.dumps(_round_payload(d, step, rng)).encode()) for d in devices]
@@ -528,7 +529,12 @@ def test_a_round_at_once_is_evaluate_one_by_one() -> None:
             a, b = one.joint_health(device), many.joint_health(device)
             assert {j: repr(h) for j, h in a.items()} == {j: repr(h) for j, h in b.items()}
             assert one.worst_by_joint(device) == many.worst_by_joint(device)
+        # A report of the fleet reads every device's worst alarms in one pass.
+        worst = {device: w for device in devices if (w := many.worst_by_joint(device))}
+        assert many.worst_by_device() == worst
+        worst_states |= {state for joints in worst.values() for _, state in joints.values()}
     assert raised == set(AlarmKind)  # every kind was raised, the model check's too
+    assert worst_states >= {AlarmState.ACTIVE, AlarmState.ACKNOWLEDGED}
     assert many.counts_by_state() == one.counts_by_state()
     assert many.present_by_severity() == one.present_by_severity()
     assert many.counters == one.counters

@@ -161,3 +161,20 @@ def test_percentile_nearest_rank() -> None:
     assert percentile(values, 0.99) == 99.0
     assert percentile([3.0], 0.99) == 3.0
     assert percentile([], 0.5) is None
+
+
+def test_a_reading_is_a_copy_summarised_later() -> None:
+    """A report copies each device's reading under the worker's lock and summarises it after: the reading
+    must not move with messages that arrive in between, and must summarise as `snapshot` did when taken."""
+    clock = FakeClock()
+    fleet = FleetHealth(TH, clock=clock)
+    feed(fleet, clock, "arm", 30, skew_s=0.5)
+    readings = fleet.readings()
+    then = fleet.snapshot()
+    feed(fleet, clock, "arm", 30, skew_s=3.0)  # arrives while the reader builds its report
+    feed(fleet, clock, "new", 5)
+    assert list(readings) == ["arm"]
+    assert {device: reading.snapshot() for device, reading in readings.items()} == then
+    assert then["arm"].edge_clock_offset_s == pytest.approx(0.52, abs=0.002)
+    assert then["arm"].counters.received == 30
+    assert fleet.snapshot()["arm"].counters.received == 60

@@ -1288,6 +1288,25 @@ class ServoAlarms:
         torques = self._last_torques[slot] = _Torques(source)
         return torques
 
+    def worst_by_device(self) -> dict[str, dict[str, tuple[Severity, AlarmState]]]:
+        """`worst_by_joint` of every device with an alarm that is not NORMAL, from one pass over the arrays
+        (a report of the fleet asked each device's with numpy calls of its own)."""
+        fleet = self._fleet
+        if fleet is None:
+            return {}
+        rows = len(self._devices)
+        states = fleet.state[:rows]
+        found = _np().argwhere(fleet.exists[:rows] & (states != _NORMAL))
+        out: dict[str, dict[str, tuple[Severity, AlarmState]]] = {}
+        for (slot, j, n), state in zip(found.tolist(), states[tuple(found.T)].tolist(), strict=True):
+            worst = out.setdefault(self._devices[slot], {})
+            joint = so101.JOINT_NAMES[j]
+            candidate = (SEVERITY[_KINDS[n]], _STATES[state])
+            current = worst.get(joint)
+            if current is None or _worse(candidate, current):
+                worst[joint] = candidate
+        return out
+
     def worst_by_joint(self, device: str) -> dict[str, tuple[Severity, AlarmState]]:
         """Per joint, the severity and state of its worst alarm that is not NORMAL (the viewer's colour)."""
         fleet = self._fleet

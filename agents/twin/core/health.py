@@ -187,13 +187,54 @@ class SampleWindow:
             self._samples.popleft()
         return [v for _, v in self._samples]
 
+    def samples(self, now: float) -> tuple[tuple[float, float], ...]:
+        """The window's (time, value) samples, copied (a copy of the deque costs a tenth of `values`)."""
+        horizon = now - self._window
+        while self._samples and self._samples[0][0] <= horizon:
+            self._samples.popleft()
+        return tuple(self._samples)
+
     def summary(self, now: float) -> tuple[WindowLatency, float | None]:
         """Percentiles over the window, and its minimum (None when empty)."""
-        values = sorted(self.values(now))
-        latency = WindowLatency(
-            p50=percentile(values, 0.50), p99=percentile(values, 0.99), samples=len(values)
+        return window_summary(self.values(now))
+
+
+def window_summary(values: list[float]) -> tuple[WindowLatency, float | None]:
+    """Percentiles of a window's values (sorted here, in place), and their minimum (None when empty)."""
+    values.sort()
+    latency = WindowLatency(p50=percentile(values, 0.50), p99=percentile(values, 0.99), samples=len(values))
+    return latency, (values[0] if values else None)
+
+
+@dataclass(frozen=True, slots=True)
+class HealthReading:
+    """A device's health as copied while its worker waits (`DeviceHealth.reading`): the latency windows'
+    samples as they are, summarised by `snapshot` afterwards. Summarising every window under the worker's
+    lock was most of the time a report held it at a large fleet (docs/performance.md)."""
+
+    status: DeviceStatus
+    age_s: float | None
+    rate_hz: float
+    last_timestamp_ms: int | None
+    counters: DeviceCounters
+    edge_latencies: tuple[tuple[float, float], ...]  # (receive time, latency) samples
+    internal_latencies: tuple[tuple[float, float], ...]
+
+    def snapshot(self) -> HealthSnapshot:
+        """The health this reading holds, as /state publishes it."""
+        edge, offset = window_summary([v for _, v in self.edge_latencies])
+        internal, _ = window_summary([v for _, v in self.internal_latencies])
+        return HealthSnapshot(
+            status=self.status,
+            age_s=self.age_s,
+            rate_hz=self.rate_hz,
+            last_timestamp_ms=self.last_timestamp_ms,
+            counters=self.counters,
+            edge_clock_latency_s=edge,
+            edge_clock_offset_s=offset,
+            edge_transit_jitter_p99_s=None if offset is None or edge.p99 is None else edge.p99 - offset,
+            internal_latency_s=internal,
         )
-        return latency, (values[0] if values else None)
 
 
 class RateMeter:
@@ -386,19 +427,20 @@ class DeviceHealth:
 
     def snapshot(self, now: float | None = None) -> HealthSnapshot:
         """This device's health now (an immutable copy, safe to hand to other threads)."""
+        return self.reading(now).snapshot()
+
+    def reading(self, now: float | None = None) -> HealthReading:
+        """What `snapshot` needs, copied (the windows trimmed to `now` first): a reader holding the worker's
+        lock takes this and builds the snapshot after letting go."""
         now = self._clock() if now is None else now
-        edge, offset = self._edge_latency.summary(now)
-        internal, _ = self._internal_latency.summary(now)
-        return HealthSnapshot(
+        return HealthReading(
             status=self.status(now),
             age_s=None if self.last_message_mono is None else max(0.0, now - self.last_message_mono),
             rate_hz=self._rate.rate(now),
             last_timestamp_ms=self.last_timestamp_ms,
             counters=self._counters(),
-            edge_clock_latency_s=edge,
-            edge_clock_offset_s=offset,
-            edge_transit_jitter_p99_s=None if offset is None or edge.p99 is None else edge.p99 - offset,
-            internal_latency_s=internal,
+            edge_latencies=self._edge_latency.samples(now),
+            internal_latencies=self._internal_latency.samples(now),
         )
 
 
@@ -451,3 +493,8 @@ class FleetHealth:
     def snapshot(self, now: float | None = None) -> dict[str, HealthSnapshot]:
         now = self._clock() if now is None else now
         return {device: health.snapshot(now) for device, health in sorted(self.devices.items())}
+
+    def readings(self, now: float | None = None) -> dict[str, HealthReading]:
+        """`snapshot` as readings, for a reader that holds the worker's lock (`HealthReading`)."""
+        now = self._clock() if now is None else now
+        return {device: health.reading(now) for device, health in sorted(self.devices.items())}

@@ -68,7 +68,7 @@ from twin.core.alarms import (
     ServoAlarms,
     Severity,
 )
-from twin.core.health import DeviceHealth, FleetHealth, HealthSnapshot, HealthThresholds
+from twin.core.health import DeviceHealth, FleetHealth, HealthReading, HealthSnapshot, HealthThresholds
 from twin.core.latency import LatencyHistogram
 from twin.core.loss import DeviceLoss, LossSnapshot
 from twin.core.modes import TwinMode
@@ -237,7 +237,7 @@ class _Readout:
     """Everything `report()` copies under the lock, to build the typed report outside it."""
 
     now: float
-    health: dict[str, HealthSnapshot]
+    health: dict[str, HealthReading]
     snapshots: dict[str, TwinSnapshot]
     units: dict[str, Units]
     gripper: dict[str, float | None]
@@ -1295,7 +1295,10 @@ class Mirror:
         """This mirror's part of the agent's state (docs/http-api.md describes every field)."""
         readout = self._read()
         return MirrorReport(
-            devices={device: self._device_state(device, h, readout) for device, h in readout.health.items()},
+            devices={
+                device: self._device_state(device, reading.snapshot(), readout)
+                for device, reading in readout.health.items()
+            },
             untracked_rejected=readout.untracked,
             mailbox=MailboxState(
                 overwritten_total=self._mailbox.overflowed_total,
@@ -1323,13 +1326,16 @@ class Mirror:
         )
 
     def _read(self) -> _Readout:
-        """Copy what the worker writes, under the lock, as briefly as possible."""
+        """Copy what the worker writes, under the lock, as briefly as possible: what takes time to derive
+        from the copies (the latency percentiles, the device states) is left to `report`, after it."""
+        alarms = self._alarms
         with self._lock:
             now = self._clock()
             devices = self._devices.values()
+            worst = alarms.worst_by_device()
             return _Readout(
                 now=now,
-                health=self._fleet.snapshot(now),
+                health=self._fleet.readings(now),
                 snapshots={
                     r.device: r.twin.snapshot() for r in devices if r.twin.last_timestamp_ms is not None
                 },
@@ -1343,18 +1349,13 @@ class Mirror:
                 internal=self._internal_hist.copy(),
                 end_to_end=self._end_to_end_hist.copy(),
                 servos={
-                    r.device: self._servo_readout(r.device, r.diagnostics)
+                    r.device: (r.diagnostics, alarms.joint_health(r.device), worst.get(r.device, {}))
                     for r in devices
                     if r.diagnostics is not None
                 },
                 alarms=self._alarms_summary(),
                 loss={device: loss.snapshot(now) for device, loss in self._loss.items()},
             )
-
-    def _servo_readout(self, device: str, diagnostics: Mapping[str, JointDiagnostics]) -> _ServoReadout:
-        """Under the lock: the device's last diagnostics and the alarm engine's view of each joint."""
-        alarms = self._alarms
-        return diagnostics, alarms.joint_health(device), alarms.worst_by_joint(device)
 
     @staticmethod
     def _servo_states(readout: _ServoReadout) -> dict[str, ServoState]:
