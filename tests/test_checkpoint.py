@@ -7,17 +7,21 @@ fed the edge's mock fleet is pickled as the pipe pickles it, and a second mirror
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 import pickle
+from collections.abc import Iterator
 from multiprocessing import Pipe
 from multiprocessing.connection import Connection
 
 import pytest
+import twin.core.loss as loss_module
 from twin.bench.worker import _feed, _fleet
 from twin.service.admission import DeviceBudget
 from twin.service.config import load_config
 from twin.service.mirror import Mirror, PipeInbox
 from twin.service.shards import MirrorCheckpoint, MirrorReport, PackedDevices
-from twin.transport.pipe import send_end
+from twin.transport.pipe import Batch, send_end
 
 ARMS = 12
 
@@ -45,14 +49,15 @@ def fed() -> tuple[MirrorReport, MirrorCheckpoint]:
         mirror.stop(timeout=30.0)
 
 
-def test_the_pipe_carries_the_devices_as_one_blob(fed: tuple[MirrorReport, MirrorCheckpoint]) -> None:
+def test_the_pipe_carries_the_devices_as_pickled_chunks(fed: tuple[MirrorReport, MirrorCheckpoint]) -> None:
     _, checkpoint = fed
     assert isinstance(checkpoint.devices, PackedDevices)
     wire = pickle.dumps(checkpoint, protocol=pickle.HIGHEST_PROTOCOL)
     copy = pickle.loads(wire)
     assert isinstance(copy.devices, PackedDevices)
-    assert copy.devices.blob == checkpoint.devices.blob
-    # Reading a device unpacks the blob; pickling again still carries the blob only.
+    assert copy.devices.blobs == checkpoint.devices.blobs
+    assert len(checkpoint.devices.blobs) == 1  # 12 arms, one chunk
+    # Reading a device unpacks the chunks; pickling again still carries the chunks only.
     assert len(copy.devices) == ARMS
     assert pickle.dumps(copy, protocol=pickle.HIGHEST_PROTOCOL) == wire
     assert copy == checkpoint
@@ -81,3 +86,82 @@ def test_a_mirror_restored_from_the_copy_has_each_arms_counters_loss_units_and_p
             before.loss.received,
             before.loss.period_s,
         )
+
+
+# --- taken across batches -----------------------------------------------------------------------------------
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def _batches(rounds: list[list[tuple[str, str, bytes]]], clock: _Clock, size: int) -> Iterator[Batch]:
+    """Each round in batches of `size`, received 0.1 s after the previous round on `clock`."""
+    for messages in rounds:
+        clock.now += 0.1
+        for i in range(0, len(messages), size):
+            part = messages[i : i + size]
+            n = len(part)
+            yield Batch(
+                tuple(d for d, _, _ in part),
+                tuple(t for _, t, _ in part),
+                tuple(p for _, _, p in part),
+                (clock.now,) * n,
+                (1.7e9 + clock.now,) * n,
+            )
+
+
+def _still_mirror(clock: _Clock) -> Mirror:
+    """A mirror whose worker never runs: the test hands it batches and checkpoint steps itself."""
+    config = load_config(
+        None, {"telemetry.devices": ["*"], "telemetry.units": "auto", "telemetry.max_devices": 64}
+    )
+    return Mirror(
+        config, inbox=PipeInbox(Pipe(duplex=False)[0]), budget=DeviceBudget(64), clock=clock, wall_clock=clock
+    )
+
+
+def test_rows_taken_over_later_batches_are_the_arms_as_they_were_when_it_began(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Copy before write (service.capture): a checkpoint whose rows are taken a few at a time while batches
+    go on changing the arms equals the one taken in one go at its start, on a second mirror fed the same
+    messages. A new arm after the start is not in it."""
+    rounds = _fleet(ARMS, 60)
+    del rounds[20][5]  # a loss to estimate
+    later = _fleet(ARMS + 1, 70)[60:]  # one more arm from here on
+
+    def fed(mirror: Mirror, clock: _Clock) -> None:
+        # Each arm's loss estimator settles at a moment drawn from a shared counter: the same on both.
+        monkeypatch.setattr(loss_module, "_STAGGER", itertools.count(0, 37))
+        for batch in _batches(rounds, clock, size=5):
+            mirror._handle(batch, 0)
+
+    clock_a, clock_b = _Clock(), _Clock()
+    at_once, spread = _still_mirror(clock_a), _still_mirror(clock_b)
+    fed(at_once, clock_a)
+    expected = at_once.checkpoint()
+    fed(spread, clock_b)
+    capture = spread._begin_capture(spread=True)
+    steps = 0
+    for batch in _batches(later, clock_b, size=5):
+        spread._handle(batch, 0)  # changes arms whose rows are still to take
+        if spread._capture is not None:
+            spread._step_capture(spread._capture, 1)
+            steps += 1
+    assert capture.done.is_set() and capture.error is None and capture.result is not None
+    assert steps > 1 and spread._capture is None
+    got = capture.result
+    assert isinstance(got.devices, PackedDevices) and len(got.devices.blobs) == 1
+    arms = sorted(f"arm-{i:04d}" for i in range(1, ARMS + 1))
+    assert sorted(got.devices) == sorted(expected.devices) == arms
+    assert dict(got.devices) == dict(expected.devices)
+    assert dataclasses.replace(got, at=0.0) == dataclasses.replace(expected, at=0.0)
+    # ... while the arms themselves moved on.
+    now = spread.report().devices
+    assert all(now[d].health.counters.received > got.devices[d].health.counters.received for d in got.devices)
+    assert f"arm-{ARMS + 1:04d}" in now

@@ -91,6 +91,8 @@ from twin.robot import so101
 from twin.robot.calibration import Calibration, load_calibration
 from twin.robot.model import ModelError, RobotModel
 from twin.service.admission import TOO_MANY_DEVICES, DeviceBudget
+from twin.service.capture import CHUNK as CAPTURE_CHUNK
+from twin.service.capture import Capture
 from twin.service.config import AgentConfig, ConfigError
 from twin.service.console import FleetRow, fleet_row
 from twin.service.events import Event, EventQuery, EventStore, FleetWatch, RejectionThrottle
@@ -107,7 +109,6 @@ from twin.service.shards import (
     FleetRowsRequest,
     MirrorCheckpoint,
     MirrorReport,
-    PackedDevices,
     Reply,
     ReportRequest,
     Request,
@@ -437,6 +438,7 @@ class Mirror:
         self._stopped = False
         self._stop_lock = threading.Lock()
         self._jobs: deque[_Job] = deque()
+        self._capture: Capture | None = None  # a checkpoint being taken (worker thread only)
 
     def _init_fleet_state(self, config: AgentConfig, clock: Clock) -> None:
         """What the worker writes per device and the agent's threads read, and the lock that guards it."""
@@ -643,6 +645,8 @@ class Mirror:
             count = len(batch.payloads)
             if not count and inbox.closed:
                 self._run_jobs()
+                if self._capture is not None:
+                    self._step_capture(self._capture, None)
                 return
             if count:
                 try:
@@ -657,6 +661,9 @@ class Mirror:
             self._watch_statuses()
             if self._jobs:
                 self._run_jobs()
+            if self._capture is not None:
+                # With nothing arriving, the rest at once; otherwise a chunk a turn (service.capture).
+                self._step_capture(self._capture, CAPTURE_CHUNK if count else None)
             since = self._clock() - last_freeze
             grown = len(self._devices) != frozen_devices
             if since >= FREEZE_EVERY_S or (grown and since >= FREEZE_AFTER_NEW_S):
@@ -686,48 +693,88 @@ class Mirror:
     # --------------------------------------------------------------------------------------- checkpoints
 
     def checkpoint(self, *, alarms_only: bool = False) -> MirrorCheckpoint:
-        """The mirror's state between two batches (service.shards, `MirrorCheckpoint`)."""
-        return self._between_batches(lambda: self._build_checkpoint(alarms_only))
+        """The mirror's state between two batches (service.shards, `MirrorCheckpoint`). The arms' rows are
+        taken over the batches that follow, each as it was at that point (service.capture); this returns
+        once the last is taken, within JOB_TIMEOUT_S."""
+        if alarms_only:
+            return self._between_batches(self._alarms_checkpoint)
+        deadline = time.monotonic() + JOB_TIMEOUT_S
+        capture = self._between_batches(self._begin_capture)
+        if not capture.done.wait(max(0.0, deadline - time.monotonic())):
+            raise TimeoutError(
+                f"the mirror's worker did not take its checkpoint within {JOB_TIMEOUT_S:.0f} s"
+            )
+        if capture.error is not None:
+            raise capture.error
+        assert capture.result is not None  # set with done, unless error is
+        return capture.result
 
-    def _build_checkpoint(self, alarms_only: bool) -> MirrorCheckpoint:
-        """On the worker thread (or with it stopped): nothing changes while this runs."""
+    def _alarms_checkpoint(self) -> MirrorCheckpoint:
         with self._lock:
             alarms = tuple(self._alarms.records())
             counters = _copy_counters(self._alarms.counters)
-            if alarms_only:
-                return MirrorCheckpoint(alarms=alarms, alarm_counters=counters, at=self._clock())
+        return MirrorCheckpoint(alarms=alarms, alarm_counters=counters, at=self._clock())
+
+    def _begin_capture(self, *, spread: bool | None = None) -> Capture:
+        """Between two batches (or with the worker stopped): fix `taken` and copy what is not per arm. With
+        `spread` (None: when called on the running worker thread) the worker takes the arms' rows over the
+        batches that follow (`_step_capture`, `_before_batch`), otherwise all of them now. A checkpoint asked
+        for while one is being taken is that one."""
+        if self._capture is not None:
+            return self._capture
+        with self._lock:
+            alarms = tuple(self._alarms.records())
+            counters = _copy_counters(self._alarms.counters)
             decided = self._decoder.decided_units()
-            rows: list[DeviceRow] = []
-            for device, health in self._fleet.devices.items():
-                record = self._devices.get(device)
-                loss = self._loss.get(device)
-                units = decided.get(device)
-                rows.append(
-                    (
-                        device,
-                        health.checkpoint_row(),
-                        loss.state() if loss is not None else None,
-                        units.value if units is not None else None,
-                        record.twin.last_timestamp_ms if record is not None else None,
-                        record.twin.targets if record is not None else None,
-                        record.gripper_percent if record is not None else None,
-                    )
-                )
-            untracked = dict(self._fleet.untracked_rejected)
-            batches = self.batches
-            summary = self._alarms_summary()
-        # The rows are copies: nothing the worker changes next reaches them.
-        return MirrorCheckpoint(
-            taken=self.processed,
-            errors=self.errors,
-            batches=batches,
-            at=self._clock(),
-            devices=PackedDevices.pack(rows),
-            untracked_rejected=untracked,
-            alarms=alarms,
-            alarm_counters=counters,
-            tracking_since=self._fleet.started,
-            alarms_summary=summary,
+            head = MirrorCheckpoint(
+                taken=self.processed,
+                errors=self.errors,
+                batches=self.batches,
+                at=self._clock(),
+                untracked_rejected=dict(self._fleet.untracked_rejected),
+                alarms=alarms,
+                alarm_counters=counters,
+                tracking_since=self._fleet.started,
+                alarms_summary=self._alarms_summary(),
+            )
+            capture = Capture(
+                head, list(self._fleet.devices), lambda device: self._checkpoint_row(device, decided)
+            )
+        if spread is None:
+            worker = self._worker
+            spread = worker is not None and worker.is_alive() and threading.current_thread() is worker
+        if spread:
+            self._capture = capture
+        else:
+            self._step_capture(capture, None)
+        return capture
+
+    def _step_capture(self, capture: Capture, limit: int | None) -> None:
+        """On the worker thread: take `limit` more rows of `capture` (None: all that are left)."""
+        try:
+            with self._lock:
+                done = capture.step(limit)
+        except Exception as exc:  # handed to the caller waiting for the checkpoint
+            log.exception("taking a checkpoint failed")
+            capture.fail(exc)
+            done = True
+        if done and self._capture is capture:
+            self._capture = None
+
+    def _checkpoint_row(self, device: str, decided: Mapping[str, Units]) -> DeviceRow:
+        """One arm's row as it is now (plain values, copies: nothing the worker changes next reaches them)."""
+        health = self._fleet.devices[device]
+        record = self._devices.get(device)
+        loss = self._loss.get(device)
+        units = decided.get(device)
+        return (
+            device,
+            health.checkpoint_row(),
+            loss.state() if loss is not None else None,
+            units.value if units is not None else None,
+            record.twin.last_timestamp_ms if record is not None else None,
+            record.twin.targets if record is not None else None,
+            record.gripper_percent if record is not None else None,
         )
 
     def restore(self, checkpoint: MirrorCheckpoint | None, alarms: Sequence[AlarmRecord] = ()) -> Restored:
@@ -813,6 +860,9 @@ class Mirror:
         # figures are scaled up, and with them that cost, which the untimed batches no longer pay: left in,
         # the scaled stages overstated the worker's CPU at batches of one (docs/performance.md). Two
         # readings in a row measure it; it is taken off each span.
+        capture = self._capture
+        if capture is not None:
+            self._before_batch(capture, batch.keys)
         before = cpu()
         started = cpu()
         read = started - before
@@ -853,6 +903,21 @@ class Mirror:
             if self._sinks or self._history is not None:
                 self._hand_all(entries, applied, events, batch)
                 stage_cpu["sinks"] += _span(started, cpu(), read) * weight
+
+    def _before_batch(self, capture: Capture, keys: Sequence[str]) -> None:
+        """Copy before write: the checkpoint rows of the batch's arms that are still to take. A message on a
+        topic the mailbox did not key may be any arm's (its payload says which): then all rows now."""
+        try:
+            with self._lock:
+                if UNTRACKED_KEY in keys:
+                    capture.step(None)
+                else:
+                    capture.before(keys)
+        except Exception as exc:
+            log.exception("taking a checkpoint failed")
+            capture.fail(exc)
+        if capture.done.is_set() and self._capture is capture:
+            self._capture = None
 
     def _decode_all(
         self, batch: Batch, admitted: set[int], losses: list[tuple[DeviceLoss, int | None]]

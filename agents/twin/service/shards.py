@@ -260,34 +260,41 @@ DeviceRow = tuple[
 
 
 class PackedDevices(Mapping[str, DeviceCheckpoint]):
-    """A checkpoint's devices, pickled once by the worker thread as plain values (`DeviceRow`) and unpacked
-    only where they are read: by a restarted worker, or for `/state` while one restarts.
+    """A checkpoint's devices, pickled by the worker thread as plain values (`DeviceRow`) in a few chunks,
+    and unpacked only where they are read: by a restarted worker, or for `/state` while one restarts.
 
     The agent takes each worker's checkpoint every second, and nearly always only keeps it. Built as
     dataclasses with each arm's estimator pickled whole, at 1,000 arms it held the worker thread for 27-99 ms
     (building and pickling it for the pipe) and the receiving process for 27-33 ms more to unpickle it,
-    every second (docs/performance.md). As one blob of tuples the pipe carries bytes and nothing is built
-    that is not read."""
+    every second (docs/performance.md). As chunks of tuples the pipe carries bytes and nothing is built that
+    is not read; the worker takes the chunks between batches (service.capture)."""
 
-    __slots__ = ("_devices", "blob")
+    __slots__ = ("_devices", "blobs")
 
-    def __init__(self, blob: bytes = b"") -> None:
-        self.blob = blob
+    def __init__(self, blobs: tuple[bytes, ...] = ()) -> None:
+        self.blobs = blobs
         self._devices: dict[str, DeviceCheckpoint] | None = None
+
+    @staticmethod
+    def pack_chunk(rows: Sequence[DeviceRow]) -> bytes:
+        return pickle.dumps(rows, protocol=pickle.HIGHEST_PROTOCOL)
 
     @classmethod
     def pack(cls, rows: Sequence[DeviceRow]) -> PackedDevices:
-        return cls(pickle.dumps(rows, protocol=pickle.HIGHEST_PROTOCOL) if rows else b"")
+        return cls((cls.pack_chunk(rows),) if rows else ())
 
-    def __reduce__(self) -> tuple[type[PackedDevices], tuple[bytes]]:
-        return PackedDevices, (self.blob,)  # the blob alone, whether unpacked here or not
+    def __reduce__(self) -> tuple[type[PackedDevices], tuple[tuple[bytes, ...]]]:
+        return PackedDevices, (self.blobs,)  # the chunks alone, whether unpacked here or not
 
     def _unpacked(self) -> dict[str, DeviceCheckpoint]:
         devices = self._devices
         if devices is None:
             # Written by this agent's own worker process; two threads unpacking at once build equal dicts.
-            rows: list[DeviceRow] = pickle.loads(self.blob) if self.blob else []
-            devices = self._devices = {row[0]: _unpack_device(row) for row in rows}
+            devices = {}
+            for blob in self.blobs:
+                rows: list[DeviceRow] = pickle.loads(blob)
+                devices.update((row[0], _unpack_device(row)) for row in rows)
+            self._devices = devices
         return devices
 
     def __getitem__(self, device: str) -> DeviceCheckpoint:
