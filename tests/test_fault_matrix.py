@@ -304,7 +304,9 @@ def test_s3_stopped_longer_than_the_history_buffer(
             s3.start()
         finally:
             fleet.stop()
-        state = settled(agent)
+        # Waited for until every sample the fleet published is counted: one still on its way when the count
+        # was read would become a table row the count does not have.
+        state = settled(agent, expect=sum(fleet.generated.values()) - fleet.failed)
         agent.stop()  # the last commit, with S3 back
         check_accounts(state)
         report = agent.stop_reports[0]
