@@ -7,6 +7,8 @@ servo facts (twin.robot.sts3215): the 7.4 V STS3215 stalls at 16.5 kg·cm = 1.61
 from __future__ import annotations
 
 import math
+import random
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import pytest
@@ -465,6 +467,8 @@ def _round_payload(device: str, step: int, rng: Any) -> dict[str, Any]:
     spell = (step // 25 + sum(map(ord, device))) % 4
     held = (step // 13) % 3 == 0
     payload = make_payload(device, 0.0 if held else step * 0.1, "ticks", rng, timestamp_ms=TS0 + 100 * step)
+    # The voltages from a generator of their own, so the other readings are those this stream always had.
+    supply = random.Random(f"{device}/{step}")
     for joint in payload["joints"].values():
         joint["temp"] = (35, 61, 67, 54)[spell] + rng.choice([0, 0, 0, -3])
         joint["current"] = (100, 210, 420, 160)[spell] + rng.choice([0, 0, 40, -40])
@@ -473,6 +477,13 @@ def _round_payload(device: str, step: int, rng: Any) -> dict[str, Any]:
             del joint["current"]
         if rng.random() < 0.03:
             joint["moving"] = rng.random() < 0.5
+        # The supply scales the model's expected load: the servo's 7.4 V, 12 V, none, and readings that are
+        # no supply voltage (0 and 25 V: the stall torque as quoted).
+        voltage = supply.choice([74, 74, 120, 0, 250, None])
+        if voltage is None:
+            joint.pop("voltage", None)
+        else:
+            joint["voltage"] = voltage
     return payload
 
 
@@ -487,10 +498,17 @@ def test_a_round_at_once_is_evaluate_one_by_one() -> None:
     rng = random.Random(11)
     decoder = TelemetryDecoder(DecoderConfig(units=Units.TICKS))
     devices = [f"arm-{i:02d}" for i in range(12)]
-    one, many = ServoAlarms(), ServoAlarms()
+    one, many, together = ServoAlarms(), ServoAlarms(), ServoAlarms()
 
     def torques_of(pose: tuple[float, ...]) -> dict[str, float]:
         return {j: 0.6 * math.sin(a) for j, a in zip(so101.JOINT_NAMES, pose, strict=True)}
+
+    asked: list[int] = []
+
+    def all_at_once(sources: Sequence[Any]) -> list[Mapping[str, float]]:
+        # The mirror's hook computes the batch's torques together; here it counts what it was asked for.
+        asked.append(len(sources))
+        return [source() for source in sources]
 
     raised: set[AlarmKind] = set()
     worst_states: set[AlarmState] = set()
@@ -519,22 +537,41 @@ def test_a_round_at_once_is_evaluate_one_by_one() -> None:
             holding_torques_nm=[(lambda p=pose: torques_of(p)) for pose in poses],
         )
         assert got == expected, step
+        assert (
+            together.evaluate_batch(
+                [m.device_id for m in messages],
+                [m.diagnostics for m in messages],
+                columns=diagnostic_columns(messages),
+                angles=poses,
+                timestamps_ms=[m.timestamp_ms for m in messages],
+                now=[now] * len(messages),
+                holding_torques_nm=[(lambda p=pose: torques_of(p)) for pose in poses],
+                torques_of=all_at_once,
+            )
+            == expected
+        ), step
         raised |= {e.kind for events in got for e in events if e.action == "raised"}
         if step % 25 == 24:  # people acknowledge what is up, on both
             for view in one.views():
                 if view.state in (AlarmState.ACTIVE, AlarmState.LATCHED):
                     assert one.acknowledge(view.alarm_id, now) == many.acknowledge(view.alarm_id, now)
+                    together.acknowledge(view.alarm_id, now)
         assert many.views(include_normal=True) == one.views(include_normal=True)
         for device in devices:
             a, b = one.joint_health(device), many.joint_health(device)
             assert {j: repr(h) for j, h in a.items()} == {j: repr(h) for j, h in b.items()}
             assert one.worst_by_joint(device) == many.worst_by_joint(device)
+            assert {j: repr(h) for j, h in together.joint_health(device).items()} == {
+                j: repr(h) for j, h in a.items()
+            }
         # A report of the fleet reads every device's worst alarms in one pass.
         worst = {device: w for device in devices if (w := many.worst_by_joint(device))}
         assert many.worst_by_device() == worst
         worst_states |= {state for joints in worst.values() for _, state in joints.values()}
     assert raised == set(AlarmKind)  # every kind was raised, the model check's too
     assert worst_states >= {AlarmState.ACTIVE, AlarmState.ACKNOWLEDGED}
+    # Asked once per round with still joints, for some of the round's rows only, never for none.
+    assert asked and min(asked) > 0 and max(asked) <= len(devices) and min(asked) < len(devices)
     assert many.counts_by_state() == one.counts_by_state()
     assert many.present_by_severity() == one.present_by_severity()
     assert many.counters == one.counters

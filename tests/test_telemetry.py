@@ -891,7 +891,10 @@ def test_diagnostic_columns_hold_what_joint_diagnostics_hold() -> None:
                 "load": rng.choice([0, 12, 1023, 1024, 1024 + 300, 2047, 2048, -50]),
                 "temp": rng.choice([30, 45.5, 70]),
                 "current": rng.choice([0, 100, 499, 12.5]),
+                "voltage": rng.choice([0, 74, 120, 121.5, 250]),
             }
+        if k % 5 == 0:
+            del joints["wrist_roll"]["voltage"]  # left out: the joint's voltage unknown, the row still known
         if k % 17 == 0:
             del joints["wrist_flex"]["temp"]
         if k % 19 == 0:
@@ -909,6 +912,10 @@ def test_diagnostic_columns_hold_what_joint_diagnostics_hold() -> None:
     }
     for k, message in enumerate(messages):
         assert bool(columns.known[k]) == (k % 17 != 0 and k % 19 != 0), k
+        # The supply voltage in every row, known or not; NaN where it was not sent.
+        volts = [message.diagnostics[name].voltage_v for name in so101.JOINT_NAMES]
+        assert [None if math.isnan(v) else v for v in columns.voltage_v[k].tolist()] == volts, k
+        assert (volts[4] is None) == (k % 5 == 0), k
         if not columns.known[k]:
             continue
         for j, name in enumerate(so101.JOINT_NAMES):

@@ -299,3 +299,50 @@ def test_holding_torques_are_reused_only_for_a_pose_that_close(robot: RobotModel
     far = {**near, "shoulder_lift": pose["shoulder_lift"] + 3 * HOLDING_POSE_RAD}
     twin.apply(far, 3)
     assert dict(twin.holding_torques_when_read()()) == twin.joint_torques != first
+
+
+def test_holding_torques_of_many_poses_are_inverse_dynamics_of_each(robot: RobotModel) -> None:
+    """The batch loop gives exactly what one call per pose gives, also after a caller left a velocity and an
+    acceleration in the shared workspace (which would add inertia and damping if the loop kept them)."""
+    rng = np.random.default_rng(3)
+    lo = np.array(robot.joint_tables.lo)
+    hi = np.array(robot.joint_tables.hi)
+    poses = [tuple(p) for p in rng.uniform(lo, hi, (40, 6)).tolist()]
+    robot.inverse_dynamics(poses[0], velocity=[1.0] * 6, acceleration=[5.0] * 6)
+    assert robot.holding_torques(poses) == [robot.inverse_dynamics(p) for p in poses]
+    assert robot.holding_torques([]) == []
+
+
+def test_holding_torques_of_sources_are_what_each_call_gives_and_kept_the_same_way(robot: RobotModel) -> None:
+    """`holding_torques_of` (the model check's batch) against each source called by itself: the same values
+    in the same order, the twin's kept torques reused within HOLDING_POSE_RAD (the same object), a fresh pose
+    computed and kept, the snapshot of that pose sharing them; other sources taken as they are."""
+    from twin.core.twin import HOLDING_POSE_RAD, holding_torques_of
+
+    rng = np.random.default_rng(4)
+    lo = np.array(robot.joint_tables.lo)
+    hi = np.array(robot.joint_tables.hi)
+    twins = [DeviceTwin(robot, f"arm-{i}") for i in range(6)]
+    for twin, pose in zip(twins, rng.uniform(lo, hi, (6, 6)).tolist(), strict=True):
+        twin.apply(dict(zip(so101.JOINT_NAMES, pose, strict=True)), 1)
+    kept = twins[0].holding_torques_at(twins[0].target_values)()  # twin 0 has its torques kept
+    near = {n: v + 0.5 * HOLDING_POSE_RAD for n, v in twins[0].targets.items()}
+    twins[0].apply(near, 2)
+    snapshots = [twin.snapshot() for twin in twins[:4]]  # twins 4 and 5 have none: nothing shares theirs
+    given = {"shoulder_pan": 0.25}
+    called = {"shoulder_pan": -0.5}
+    sources = [twin.holding_torques_at(twin.target_values) for twin in twins]
+    sources[3:3] = [given, lambda: called]
+    got = holding_torques_of(sources)
+    assert got[0] is kept  # reused, as the call would
+    assert got[3] is given and got[4] is called
+    fresh = got[1:3] + got[5:]
+    assert fresh == [robot.inverse_dynamics(twin.target_values) for twin in twins[1:]]
+    for twin, torques in zip(twins[1:], fresh, strict=True):
+        # Kept for the next message of a pose that close.
+        assert twin.holding_torques_at(twin.target_values)() is torques
+    for snapshot, torques in zip(snapshots[1:], fresh, strict=False):
+        assert snapshot.figures._torques is torques  # the snapshot of the pose reads them for free
+    # Asked again: every twin's kept torques, nothing computed.
+    again = holding_torques_of([twin.holding_torques_at(twin.target_values) for twin in twins])
+    assert all(a is b for a, b in zip(again, [kept, *fresh], strict=True))

@@ -313,6 +313,9 @@ class AlarmRecord:
 
 
 TorqueSource = Mapping[str, float] | Callable[[], Mapping[str, float]]
+# The holding torques of many sources at once, in their order: how a caller that can compute them together
+# (the mirror, service.mirror) hands the model check a batch's torques.
+TorquesOf = Callable[[Sequence[TorqueSource]], Sequence[Mapping[str, float]]]
 
 
 class _Torques:
@@ -506,13 +509,15 @@ class _Rows:
 
     slots: Any  # (K,) int64
     diagnostics: Sequence[Mapping[str, JointDiagnostics]]
-    torques: list[TorqueSource | _Torques]  # wrapped in _Torques when first asked for
+    torques: list[TorqueSource | _Torques]  # the model check replaces the sources it reads by their torques
+    torques_of: TorquesOf | None  # None: each source by itself
     now: Any  # (K,)
     given: Any  # (K, 6) bool: the joint is in the message's diagnostics
     temperature: Any
     current: Any
     load: Any  # signed
     velocity: Any
+    voltage: Any  # supply volts, NaN where not sent
     moving: Any  # 1.0 True, 0.0 False, NaN None
     angles: Any  # (K, 6), NaN where not given
     posed: Any  # (K,) bool: the evaluation came with a pose and its edge time
@@ -656,12 +661,14 @@ class ServoAlarms:
         timestamps_ms: Sequence[int],
         now: Sequence[float],
         holding_torques_nm: Sequence[TorqueSource],
+        torques_of: TorquesOf | None = None,
     ) -> list[list[AlarmEvent]]:
         """`evaluate` for many applied messages, each of another device: row k is `devices[k]`, its
         diagnostics (as `columns` row k holds them, where it knows them), its applied pose in JOINT_NAMES
         order with its edge time, its receive time and its holding torques. Returns each message's events,
         as `evaluate` one by one would. `columns` may be a function that makes them: a small round (up to
-        `small_round` messages) goes row by row and does not need them."""
+        `small_round` messages) goes row by row and does not need them. `torques_of`, if given, computes
+        the torques of the sources the model check needs all at once (values equal to the sources' own)."""
         count = len(devices)
         if not self.thresholds.enabled:
             return [[] for _ in range(count)]
@@ -687,12 +694,14 @@ class ServoAlarms:
             slots=slots,
             diagnostics=diagnostics,
             torques=list(holding_torques_nm),
+            torques_of=torques_of,
             now=np.asarray(now, dtype=np.float64),
             given=np.ones((count, _JOINTS), dtype=bool),
             temperature=columns.temperature_c,
             current=columns.current_a,
             load=columns.load_percent,
             velocity=columns.velocity_rad_s,
+            voltage=columns.voltage_v,
             moving=nan,
             angles=_matrix(angles, count),
             posed=np.ones(count, dtype=bool),
@@ -718,6 +727,7 @@ class ServoAlarms:
             rows.current[k, j] = _float(diag.current_a)
             rows.load[k, j] = _float(diag.load_percent)
             rows.velocity[k, j] = _float(diag.velocity_rad_s)
+            rows.voltage[k, j] = _float(diag.voltage_v)
             rows.moving[k, j] = math.nan if diag.moving is None else float(bool(diag.moving))
 
     def _evaluate(self, rows: _Rows) -> list[list[AlarmEvent]]:
@@ -761,7 +771,8 @@ class ServoAlarms:
 
     def _model_check(self, rows: _Rows, speeds: Any) -> tuple[Any, Any, Any]:
         """(checked, model load, mismatch) per row and joint: a still joint the model check looks at, with a
-        load, against its holding torque from inverse dynamics (one row at a time, only here)."""
+        load, against its holding torque from inverse dynamics (computed only for the rows with such a
+        joint, together when the caller can: `rows.torques_of`)."""
         np = _np()
         limit = self.thresholds.still_velocity_rad_s
         # Still (as _still): no sign of motion, and some sign of rest.
@@ -773,16 +784,32 @@ class ServoAlarms:
         count = len(rows.slots)
         model = np.full((count, _JOINTS), np.nan)
         mismatch = np.full((count, _JOINTS), np.nan)
-        torques = rows.torques
-        for k, j in zip(*np.nonzero(checked), strict=True):
-            joint = so101.JOINT_NAMES[j]
-            source = torques[k]
-            if not isinstance(source, _Torques):
-                source = torques[k] = _Torques(source)
-            value = _model_load(source, self._servo, joint, rows.diagnostics[k][joint].voltage_v)
-            if value is not None:
-                model[k, j] = value
-                mismatch[k, j] = abs(abs(float(rows.load[k, j])) - value)
+        needed = np.flatnonzero(checked.any(axis=1)).tolist()
+        servo = self._servo
+        if not needed or servo is None:
+            return checked, model, mismatch
+        sources = rows.torques
+        wanted = [sources[k] for k in needed]
+        if rows.torques_of is not None:
+            found = rows.torques_of(wanted)
+        else:
+            found = [source() if callable(source) else source for source in wanted]
+        held = array("d")
+        nan, names = math.nan, so101.JOINT_NAMES
+        for k, torques in zip(needed, found, strict=True):
+            sources[k] = torques
+            get = torques.get
+            held.extend([_float(get(joint)) for joint in names])
+        # ServoVersion.load_percent on arrays, operation for operation: the same values as one joint at a time
+        # (the row path's). A voltage outside 1-20 V, or none, takes the stall torque as quoted.
+        volts = rows.voltage[needed]
+        supplied = (volts >= 1.0) & (volts <= 20.0)
+        stall = np.where(supplied, servo.stall_torque_nm * volts / servo.quoted_at_v, servo.stall_torque_nm)
+        torque = np.abs(np.frombuffer(held, dtype=np.float64).reshape(len(needed), _JOINTS))
+        loads = 100.0 * torque / stall
+        cells = checked[needed] & ~np.isnan(torque)
+        model[needed] = np.where(cells, loads, nan)
+        mismatch[needed] = np.where(cells, np.abs(np.abs(rows.load[needed]) - loads), nan)
         return checked, model, mismatch
 
     def _timers(self, rows: _Rows, values: Any) -> tuple[Any, Any]:

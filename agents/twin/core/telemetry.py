@@ -1130,6 +1130,8 @@ class DiagnosticColumns:
     current_a: np.ndarray
     load_percent: np.ndarray
     velocity_rad_s: np.ndarray
+    # NaN where the joint sent no voltage (`JointDiagnostics.voltage_v` None), in every row `known` or not.
+    voltage_v: np.ndarray
 
 
 def diagnostic_columns(messages: Sequence[Telemetry]) -> DiagnosticColumns:
@@ -1139,10 +1141,17 @@ def diagnostic_columns(messages: Sequence[Telemetry]) -> DiagnosticColumns:
 
     count = len(messages)
     raw = array("d")
+    volts = array("d")
     known = np.ones(count, dtype=bool)
     nothing = [math.nan] * (4 * len(_JOINTS))
+    nan = math.nan
     for k, message in enumerate(messages):
         r0, r1, r2, r3, r4, r5 = message.readings
+        supply: list[Any] = [r0.voltage, r1.voltage, r2.voltage, r3.voltage, r4.voltage, r5.voltage]
+        try:
+            volts.fromlist(supply)
+        except TypeError:
+            volts.fromlist([nan if v is UNSET else v for v in supply])
         # One list display and one call: this runs for every applied message of the fleet.
         row: list[Any] = [
             *(r0.temp, r0.current, r0.load, r0.velocity),
@@ -1180,4 +1189,5 @@ def diagnostic_columns(messages: Sequence[Telemetry]) -> DiagnosticColumns:
         current_a=values[..., 1] * CURRENT_MA_PER_UNIT / 1000.0,
         load_percent=load,
         velocity_rad_s=steps * RAD_PER_STEP_S,
+        voltage_v=np.frombuffer(volts, dtype=np.float64).reshape(count, len(_JOINTS)) * VOLTAGE_V_PER_UNIT,
     )

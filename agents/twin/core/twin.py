@@ -30,15 +30,18 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from operator import sub
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple, cast
 
 import mujoco
 import numpy as np
 
 from twin.core.modes import TwinMode
 from twin.robot.model import RobotModel
+
+if TYPE_CHECKING:
+    from twin.core.alarms import TorqueSource
 
 log = logging.getLogger(__name__)
 
@@ -130,6 +133,45 @@ class _HeldTorques:
         computed = figures.torques
         twin._holding = (pose, computed)
         return computed
+
+
+def holding_torques_of(sources: Sequence[TorqueSource]) -> list[Mapping[str, float]]:
+    """The holding torques of many `DeviceTwin.holding_torques_at` sources (each of another twin), as each
+    would give them when called: a twin's kept torques of a near pose are reused, the others computed
+    together per model (RobotModel.holding_torques) and kept as the call would keep them. Any other source
+    is called (or taken) as it is. For the alarm engine's model check of a batch (core.alarms)."""
+    out: list[Mapping[str, float] | None] = []
+    missing: dict[int, list[int]] = {}  # id(robot) -> positions in `sources` whose torques are computed
+    robots: dict[int, RobotModel] = {}
+    for n, source in enumerate(sources):
+        if type(source) is not _HeldTorques:
+            out.append(source() if callable(source) else source)
+            continue
+        twin, pose = source._twin, source._pose
+        held = twin._holding
+        if held is not None and _near(held[0], pose, HOLDING_POSE_RAD):
+            out.append(held[1])
+            continue
+        figures = twin._figures
+        if figures is not None and figures.pose == pose and figures._torques is not None:
+            twin._holding = (pose, figures._torques)
+            out.append(figures._torques)
+            continue
+        out.append(None)
+        robots[id(twin.robot)] = twin.robot
+        missing.setdefault(id(twin.robot), []).append(n)
+    for key, positions in missing.items():
+        held_of = [cast(_HeldTorques, sources[n]) for n in positions]
+        computed = robots[key].holding_torques([h._pose for h in held_of])
+        for n, h, torques in zip(positions, held_of, computed, strict=True):
+            twin, pose = h._twin, h._pose
+            figures = twin._figures
+            if figures is not None and figures.pose == pose and figures._torques is None:
+                # The snapshot taken of this pose shares its figures: a reader gets these torques for free.
+                figures._torques = torques
+            twin._holding = (pose, torques)
+            out[n] = torques
+    return cast(list[Mapping[str, float]], out)
 
 
 class TwinSnapshot(NamedTuple):

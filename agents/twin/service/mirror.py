@@ -82,7 +82,7 @@ from twin.core.telemetry import (
     Units,
     diagnostic_columns,
 )
-from twin.core.twin import DeviceTwin, TwinSnapshot
+from twin.core.twin import DeviceTwin, TwinSnapshot, holding_torques_of
 from twin.output.sinks import AppliedSample, RejectedSample, TwinSink, rejected_sample
 
 # This module is the heavy end of the agent (MuJoCo, USD): the agent imports it only for an in-process
@@ -1101,6 +1101,8 @@ class Mirror:
                 timestamps_ms=stamps,
                 now=received,
                 holding_torques_nm=torques,
+                # The still arms' torques in one loop over MuJoCo rather than one call each.
+                torques_of=holding_torques_of,
             )
         else:
             found = [
