@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import msgspec
+import numpy as np
 import pytest
 from twin.core.telemetry import (
     DecoderConfig,
@@ -904,6 +905,9 @@ def test_diagnostic_columns_hold_what_joint_diagnostics_hold() -> None:
         payload = {"device_id": "arm-001", "timestamp": 1_706_000_000_000 + k, "joints": joints}
         messages.append(decoders[units].decode(json.dumps(payload).encode()))
     columns = diagnostic_columns(messages)
+    rows = [3, 0, 5, 5]
+    every = columns.voltage_v(range(len(messages)))
+    assert np.array_equal(columns.voltage_v(rows), every[rows], equal_nan=True)
     fields = {
         "temperature_c": columns.temperature_c,
         "current_a": columns.current_a,
@@ -914,7 +918,7 @@ def test_diagnostic_columns_hold_what_joint_diagnostics_hold() -> None:
         assert bool(columns.known[k]) == (k % 17 != 0 and k % 19 != 0), k
         # The supply voltage in every row, known or not; NaN where it was not sent.
         volts = [message.diagnostics[name].voltage_v for name in so101.JOINT_NAMES]
-        assert [None if math.isnan(v) else v for v in columns.voltage_v[k].tolist()] == volts, k
+        assert [None if math.isnan(v) else v for v in columns.voltage_v([k])[0].tolist()] == volts, k
         assert (volts[4] is None) == (k % 5 == 0), k
         if not columns.known[k]:
             continue

@@ -517,7 +517,7 @@ class _Rows:
     current: Any
     load: Any  # signed
     velocity: Any
-    voltage: Any  # supply volts, NaN where not sent
+    voltages: Callable[[list[int]], Any]  # rows -> (len(rows), 6) supply volts, NaN where not sent
     moving: Any  # 1.0 True, 0.0 False, NaN None
     angles: Any  # (K, 6), NaN where not given
     posed: Any  # (K,) bool: the evaluation came with a pose and its edge time
@@ -701,7 +701,7 @@ class ServoAlarms:
             current=columns.current_a,
             load=columns.load_percent,
             velocity=columns.velocity_rad_s,
-            voltage=columns.voltage_v,
+            voltages=columns.voltage_v,
             moving=nan,
             angles=_matrix(angles, count),
             posed=np.ones(count, dtype=bool),
@@ -727,7 +727,6 @@ class ServoAlarms:
             rows.current[k, j] = _float(diag.current_a)
             rows.load[k, j] = _float(diag.load_percent)
             rows.velocity[k, j] = _float(diag.velocity_rad_s)
-            rows.voltage[k, j] = _float(diag.voltage_v)
             rows.moving[k, j] = math.nan if diag.moving is None else float(bool(diag.moving))
 
     def _evaluate(self, rows: _Rows) -> list[list[AlarmEvent]]:
@@ -802,7 +801,7 @@ class ServoAlarms:
             held.extend([_float(get(joint)) for joint in names])
         # ServoVersion.load_percent on arrays, operation for operation: the same values as one joint at a time
         # (the row path's). A voltage outside 1-20 V, or none, takes the stall torque as quoted.
-        volts = rows.voltage[needed]
+        volts = rows.voltages(needed)
         supplied = (volts >= 1.0) & (volts <= 20.0)
         stall = np.where(supplied, servo.stall_torque_nm * volts / servo.quoted_at_v, servo.stall_torque_nm)
         torque = np.abs(np.frombuffer(held, dtype=np.float64).reshape(len(needed), _JOINTS))

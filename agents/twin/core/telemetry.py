@@ -1130,8 +1130,19 @@ class DiagnosticColumns:
     current_a: np.ndarray
     load_percent: np.ndarray
     velocity_rad_s: np.ndarray
-    # NaN where the joint sent no voltage (`JointDiagnostics.voltage_v` None), in every row `known` or not.
-    voltage_v: np.ndarray
+    messages: Sequence[Telemetry]
+
+    def voltage_v(self, rows: Sequence[int]) -> np.ndarray:
+        """(len(rows), 6) the supply voltage of those rows' joints, `known` or not; NaN where the joint sent
+        none (`JointDiagnostics.voltage_v` None). Read only for the rows that need it (the model check's): a
+        field most rows never need is not worth a column."""
+        import numpy as np  # noqa: PLC0415 - as diagnostic_columns
+
+        nan = math.nan
+        volts = array("d")
+        for k in rows:
+            volts.extend([nan if r.voltage is UNSET else r.voltage for r in self.messages[k].readings])
+        return np.frombuffer(volts, dtype=np.float64).reshape(len(rows), len(_JOINTS)) * VOLTAGE_V_PER_UNIT
 
 
 def diagnostic_columns(messages: Sequence[Telemetry]) -> DiagnosticColumns:
@@ -1141,17 +1152,10 @@ def diagnostic_columns(messages: Sequence[Telemetry]) -> DiagnosticColumns:
 
     count = len(messages)
     raw = array("d")
-    volts = array("d")
     known = np.ones(count, dtype=bool)
     nothing = [math.nan] * (4 * len(_JOINTS))
-    nan = math.nan
     for k, message in enumerate(messages):
         r0, r1, r2, r3, r4, r5 = message.readings
-        supply: list[Any] = [r0.voltage, r1.voltage, r2.voltage, r3.voltage, r4.voltage, r5.voltage]
-        try:
-            volts.fromlist(supply)
-        except TypeError:
-            volts.fromlist([nan if v is UNSET else v for v in supply])
         # One list display and one call: this runs for every applied message of the fleet.
         row: list[Any] = [
             *(r0.temp, r0.current, r0.load, r0.velocity),
@@ -1189,5 +1193,5 @@ def diagnostic_columns(messages: Sequence[Telemetry]) -> DiagnosticColumns:
         current_a=values[..., 1] * CURRENT_MA_PER_UNIT / 1000.0,
         load_percent=load,
         velocity_rad_s=steps * RAD_PER_STEP_S,
-        voltage_v=np.frombuffer(volts, dtype=np.float64).reshape(count, len(_JOINTS)) * VOLTAGE_V_PER_UNIT,
+        messages=messages,
     )
