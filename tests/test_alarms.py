@@ -510,6 +510,18 @@ def test_a_round_at_once_is_evaluate_one_by_one() -> None:
         asked.append(len(sources))
         return [source() for source in sources]
 
+    def batch(engine: ServoAlarms, messages: list[Any], poses: list[Any], now: float, **hook: Any) -> Any:
+        return engine.evaluate_batch(
+            [m.device_id for m in messages],
+            [m.diagnostics for m in messages],
+            columns=diagnostic_columns(messages),
+            angles=poses,
+            timestamps_ms=[m.timestamp_ms for m in messages],
+            now=[now] * len(messages),
+            holding_torques_nm=[(lambda p=pose: torques_of(p)) for pose in poses],
+            **hook,
+        )
+
     raised: set[AlarmKind] = set()
     worst_states: set[AlarmState] = set()
     for step in range(160):
@@ -527,29 +539,9 @@ def test_a_round_at_once_is_evaluate_one_by_one() -> None:
             )
             for m, pose in zip(messages, poses, strict=True)
         ]
-        got = many.evaluate_batch(
-            [m.device_id for m in messages],
-            [m.diagnostics for m in messages],
-            columns=diagnostic_columns(messages),
-            angles=poses,
-            timestamps_ms=[m.timestamp_ms for m in messages],
-            now=[now] * len(messages),
-            holding_torques_nm=[(lambda p=pose: torques_of(p)) for pose in poses],
-        )
+        got = batch(many, messages, poses, now)
         assert got == expected, step
-        assert (
-            together.evaluate_batch(
-                [m.device_id for m in messages],
-                [m.diagnostics for m in messages],
-                columns=diagnostic_columns(messages),
-                angles=poses,
-                timestamps_ms=[m.timestamp_ms for m in messages],
-                now=[now] * len(messages),
-                holding_torques_nm=[(lambda p=pose: torques_of(p)) for pose in poses],
-                torques_of=all_at_once,
-            )
-            == expected
-        ), step
+        assert batch(together, messages, poses, now, torques_of=all_at_once) == expected, step
         raised |= {e.kind for events in got for e in events if e.action == "raised"}
         if step % 25 == 24:  # people acknowledge what is up, on both
             for view in one.views():
