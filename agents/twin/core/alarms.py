@@ -686,7 +686,34 @@ class ServoAlarms:
             ]
         if callable(columns):
             columns = columns()
+        rows = self._rows_of(
+            devices,
+            diagnostics,
+            columns=columns,
+            angles=angles,
+            timestamps_ms=timestamps_ms,
+            now=now,
+            holding_torques_nm=holding_torques_nm,
+            torques_of=torques_of,
+        )
+        return self._evaluate(rows)
+
+    def _rows_of(
+        self,
+        devices: Sequence[str],
+        diagnostics: Sequence[Mapping[str, JointDiagnostics]],
+        *,
+        columns: DiagnosticColumns,
+        angles: Sequence[Sequence[float]],
+        timestamps_ms: Sequence[int],
+        now: Sequence[float],
+        holding_torques_nm: Sequence[TorqueSource],
+        torques_of: TorquesOf | None,
+    ) -> _Rows:
+        """`evaluate_batch`'s messages as arrays: the columns, and each row the columns do not know filled
+        from its diagnostics."""
         np = _np()
+        count = len(devices)
         slots = np.fromiter((self._row(d) for d in devices), dtype=np.int64, count=count)
         known = columns.known
         nan = np.full((count, _JOINTS), np.nan)
@@ -713,7 +740,7 @@ class ServoAlarms:
             for k in np.flatnonzero(~known).tolist():
                 rows.given[k] = False
                 self._fill(rows, k, diagnostics[k])
-        return self._evaluate(rows)
+        return rows
 
     @staticmethod
     def _fill(rows: _Rows, k: int, diagnostics: Mapping[str, JointDiagnostics]) -> None:
