@@ -146,9 +146,17 @@ def settled(agent: AgentService, timeout: float = 30.0, *, expect: int = 0) -> A
             and counted + state.agent.mailbox.overwritten_total == accepted
             and state.agent.worker.processed == counted
         )
+        last[:] = [accepted, counted, state.agent.mailbox.overwritten_total, state.agent.worker.processed]
         return state if quiet and accepted >= expect else None
 
-    return wait_for(done, timeout, "every accepted message counted or dropped", interval=0.1)
+    last: list[int] = []
+    try:
+        return wait_for(done, timeout, "every accepted message counted or dropped", interval=0.1)
+    except AssertionError as exc:
+        # What was short, for the next person: the agent behind, or messages that never reached it.
+        raise AssertionError(
+            f"{exc}: accepted, counted, overwritten, processed = {last}; expected at least {expect} accepted"
+        ) from None
 
 
 def check_accounts(state: AgentState) -> None:
