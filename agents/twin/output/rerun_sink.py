@@ -242,13 +242,18 @@ class SaveRotation:
         # it rotates at.
         self.static_bytes = 0
         self.limit_bytes = self.max_bytes
+        # The save_max_mb the last warning advised: the static parts of two files differ by some bytes (the
+        # samples logged between slices), so a warning for each new limit would repeat the same advice.
+        self._advised_mb = 0
 
     def opened_with(self, static_bytes: int) -> None:
         """The new live file holds `static_bytes` of static parts: rotate it at twice that if
         `save_max_mb` is less, and say so, with the setting that would restore the limit."""
         self.static_bytes = static_bytes
         limit = max(self.max_bytes, 2 * static_bytes)
-        if limit > self.max_bytes and limit != self.limit_bytes:
+        advice_mb = math.ceil(limit / 2**20)
+        if limit > self.max_bytes and advice_mb > self._advised_mb:
+            self._advised_mb = advice_mb
             log.warning(
                 "rerun: the arms' static parts take %.1f MB of each .rrd, more than half of "
                 "rerun.save_max_mb = %g; files rotate at %.1f MB instead. Raise rerun.save_max_mb to at "
@@ -256,7 +261,7 @@ class SaveRotation:
                 static_bytes / 2**20,
                 self.max_bytes / 2**20,
                 limit / 2**20,
-                math.ceil(limit / 2**20),
+                advice_mb,
             )
         if limit != self.limit_bytes:
             self.limit_bytes = limit
