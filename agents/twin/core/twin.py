@@ -123,21 +123,38 @@ class _HeldTorques:
         self._pose = pose
 
     def __call__(self) -> Mapping[str, float]:
+        torques = self.kept()
+        if torques is None:
+            torques = self._twin.robot.inverse_dynamics(self._pose)
+            self.keep(torques)
+        return torques
+
+    def kept(self) -> Mapping[str, float] | None:
+        """The torques a call reuses: the twin's kept ones of a near pose, or those its snapshot of this pose
+        already computed (kept from now on); None if they are to be computed."""
         twin, pose = self._twin, self._pose
         held = twin._holding
         if held is not None and _near(held[0], pose, HOLDING_POSE_RAD):
             return held[1]
         figures = twin._figures
-        if figures is None or figures.pose != pose:
-            figures = _Figures(twin.robot, pose)
-        computed = figures.torques
-        twin._holding = (pose, computed)
-        return computed
+        if figures is not None and figures.pose == pose and figures._torques is not None:
+            twin._holding = (pose, figures._torques)
+            return figures._torques
+        return None
+
+    def keep(self, torques: dict[str, float]) -> None:
+        """Keep computed torques for the twin's next near pose, and give them to its snapshot of this pose,
+        whose reader then gets them for free."""
+        twin, pose = self._twin, self._pose
+        figures = twin._figures
+        if figures is not None and figures.pose == pose and figures._torques is None:
+            figures._torques = torques
+        twin._holding = (pose, torques)
 
 
 def holding_torques_of(sources: Sequence[TorqueSource]) -> list[Mapping[str, float]]:
     """The holding torques of many `DeviceTwin.holding_torques_at` sources (each of another twin), as each
-    would give them when called: a twin's kept torques of a near pose are reused, the others computed
+    would give them when called: what a call would reuse is reused (_HeldTorques.kept), the others computed
     together per model (RobotModel.holding_torques) and kept as the call would keep them. Any other source
     is called (or taken) as it is. For the alarm engine's model check of a batch (core.alarms)."""
     out: list[Mapping[str, float] | None] = []
@@ -147,29 +164,17 @@ def holding_torques_of(sources: Sequence[TorqueSource]) -> list[Mapping[str, flo
         if type(source) is not _HeldTorques:
             out.append(source() if callable(source) else source)
             continue
-        twin, pose = source._twin, source._pose
-        held = twin._holding
-        if held is not None and _near(held[0], pose, HOLDING_POSE_RAD):
-            out.append(held[1])
-            continue
-        figures = twin._figures
-        if figures is not None and figures.pose == pose and figures._torques is not None:
-            twin._holding = (pose, figures._torques)
-            out.append(figures._torques)
-            continue
-        out.append(None)
-        robots[id(twin.robot)] = twin.robot
-        missing.setdefault(id(twin.robot), []).append(n)
+        kept = source.kept()
+        out.append(kept)
+        if kept is None:
+            robot = source._twin.robot
+            robots[id(robot)] = robot
+            missing.setdefault(id(robot), []).append(n)
     for key, positions in missing.items():
         held_of = [cast(_HeldTorques, sources[n]) for n in positions]
         computed = robots[key].holding_torques([h._pose for h in held_of])
         for n, h, torques in zip(positions, held_of, computed, strict=True):
-            twin, pose = h._twin, h._pose
-            figures = twin._figures
-            if figures is not None and figures.pose == pose and figures._torques is None:
-                # The snapshot taken of this pose shares its figures: a reader gets these torques for free.
-                figures._torques = torques
-            twin._holding = (pose, torques)
+            h.keep(torques)
             out[n] = torques
     return cast(list[Mapping[str, float]], out)
 
