@@ -87,6 +87,19 @@ FOLDED = ticks_of({"shoulder_lift": math.radians(-98.9), "elbow_flex": math.radi
 STRETCHED = ticks_of({"shoulder_lift": math.radians(60.0), "elbow_flex": math.radians(-60.0)})
 
 
+@pytest.mark.parametrize("version", sorted(sts3215.SERVO_VERSIONS))
+def test_load_percents_of_arrays_equal_load_percent_of_each_value(version: str) -> None:
+    # The alarm engine's batch path (load_percents) must give the row path's values exactly: the supply
+    # range's edges, just outside them, no supply (None; NaN in an array), and torques of either sign.
+    servo = sts3215.SERVO_VERSIONS[version]
+    supplies = [None, 0.0, 0.99, 1.0, 5.0, 7.4, 12.0, 20.0, 20.01, 25.0, -3.0]
+    torques = [0.0, 0.013, -0.25, 1.7, 3.1e-5]
+    volts = np.array([[math.nan if v is None else v] * len(torques) for v in supplies])
+    got = servo.load_percents(np.array([torques] * len(supplies)), volts)
+    want = [[servo.load_percent(t, v) for t in torques] for v in supplies]
+    assert got.tolist() == want
+
+
 def test_shoulder_load_follows_gravity_stretched_out_versus_folded(
     dynamics: ArmDynamics, robot: RobotModel
 ) -> None:

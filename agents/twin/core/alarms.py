@@ -826,13 +826,9 @@ class ServoAlarms:
             sources[k] = torques
             get = torques.get
             held.extend([_float(get(joint)) for joint in names])
-        # ServoVersion.load_percent on arrays, operation for operation: the same values as one joint at a time
-        # (the row path's). A voltage outside 1-20 V, or none, takes the stall torque as quoted.
-        volts = rows.voltages(needed)
-        supplied = (volts >= 1.0) & (volts <= 20.0)
-        stall = np.where(supplied, servo.stall_torque_nm * volts / servo.quoted_at_v, servo.stall_torque_nm)
+        # The same values as the row path's ServoVersion.load_percent, one joint at a time.
         torque = np.abs(np.frombuffer(held, dtype=np.float64).reshape(len(needed), _JOINTS))
-        loads = 100.0 * torque / stall
+        loads = servo.load_percents(torque, rows.voltages(needed))
         cells = checked[needed] & ~np.isnan(torque)
         model[needed] = np.where(cells, loads, nan)
         mismatch[needed] = np.where(cells, np.abs(np.abs(rows.load[needed]) - loads), nan)

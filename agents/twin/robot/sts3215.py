@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 # 1 kgf·cm in N·m (standard gravity 9.80665 m/s², 1 cm = 0.01 m): datasheets quote torque in kg·cm.
 NM_PER_KGF_CM = 9.80665 / 100.0
@@ -78,6 +79,11 @@ STALL_CURRENT_A = 2.7
 HEATING_C_PER_A2 = 11.1
 THERMAL_TIME_CONSTANT_S = 570.0
 
+# A Present_Voltage reading outside this range is no supply voltage (an unpowered bus, a bad read): the
+# figures that scale with the supply then take it as quoted.
+SUPPLY_V_MIN = 1.0
+SUPPLY_V_MAX = 20.0
+
 
 @dataclass(frozen=True, slots=True)
 class ServoVersion:
@@ -95,7 +101,7 @@ class ServoVersion:
         drive duty cycle: at standstill the load percent is the torque as a share of the stall torque at the
         present supply. A reading outside 1..20 V is no supply voltage and is ignored.
         """
-        if supply_v is None or not 1.0 <= supply_v <= 20.0:
+        if supply_v is None or not SUPPLY_V_MIN <= supply_v <= SUPPLY_V_MAX:
             return self.stall_torque_nm
         return self.stall_torque_nm * supply_v / self.quoted_at_v
 
@@ -103,10 +109,21 @@ class ServoVersion:
         """The load (percent of stall torque) a servo reports while holding `torque_nm` still."""
         return 100.0 * torque_nm / self.stall_torque_at(supply_v)
 
+    def load_percents(self, torques_nm: Any, supply_v: Any) -> Any:
+        """`load_percent` of numpy arrays (broadcast together; NaN for an unknown supply), element for element
+        the same values, in the same operations: for the alarm engine's model check of a batch."""
+        # Imported here: the agent's receiving process and `twin --help` import this module and must not load
+        # numpy (core.alarms says why).
+        import numpy as np  # noqa: PLC0415
+
+        supplied = (supply_v >= SUPPLY_V_MIN) & (supply_v <= SUPPLY_V_MAX)
+        stall = np.where(supplied, self.stall_torque_nm * supply_v / self.quoted_at_v, self.stall_torque_nm)
+        return 100.0 * torques_nm / stall
+
     def stall_current_at(self, supply_v: float | None = None) -> float:
         """Stall current (A) at `supply_v`: V/R, proportional to the supply like the stall torque
         (STALL_CURRENT_A at the quoted voltage; the same rule for a reading that is no supply voltage)."""
-        if supply_v is None or not 1.0 <= supply_v <= 20.0:
+        if supply_v is None or not SUPPLY_V_MIN <= supply_v <= SUPPLY_V_MAX:
             return STALL_CURRENT_A
         return STALL_CURRENT_A * supply_v / self.quoted_at_v
 
