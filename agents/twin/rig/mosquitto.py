@@ -131,11 +131,11 @@ class MosquittoBroker:
             # Telemetry is many small packets: without this, Nagle's algorithm holds them back for tens of
             # milliseconds on loopback, which the demo and the benchmark would report as network latency.
             "set_tcp_nodelay true",
-            # Mosquitto drops QoS 0 messages for an online subscriber once 1,000 wait in its queue (the default
-            # max_queued_messages; its log says "Outgoing messages are being dropped"), silently to the agent.
-            # A burst of a large fleet, or an agent starved of CPU for a moment, reaches that. The local broker
-            # holds up to 100,000 instead (about 10 s of 1,000 arms, some 30 MB), so a loss happens in the
-            # agent's mailbox, where it is counted and reported.
+            # Mosquitto drops QoS 0 messages for an online subscriber once 1,000 wait in its queue (the
+            # default max_queued_messages; its log says "Outgoing messages are being dropped"), unseen by
+            # the agent. A burst of a large fleet, or an agent starved of CPU for a moment, reaches that.
+            # The local broker holds up to 100,000 instead (about 10 s of 1,000 arms, some 30 MB), so a
+            # loss happens in the agent's mailbox, where it is counted and reported.
             "max_queued_messages 100000",
             # Started as root (CI containers), mosquitto would drop to the `mosquitto` user and lose access to
             # our private temp dir (log file, TLS key); keep it as the invoking user instead.
