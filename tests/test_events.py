@@ -12,6 +12,9 @@ from typing import Any
 
 import msgspec
 import pytest
+from conftest import wait_for
+from twin.core.health import DeviceStatus
+from twin.rig.local import LocalRig
 from twin.service.events import (
     BrokerWatch,
     Event,
@@ -200,3 +203,24 @@ def test_exports_neutralise_text_and_keep_numbers() -> None:
     doc = json.loads(events_json(s.query(EventQuery())))
     assert doc["events"][0]["message"].startswith("'=") and doc["events"][0]["data"] == {"reason": "'-x"}
     assert doc["events"][0]["time"] == 1000.0
+
+
+def test_an_arm_arrives_in_the_events_with_its_first_message_not_before(rig: LocalRig) -> None:
+    # Configured arms not heard from count as silent since start-up: STALE after 0.3 s, OFFLINE after
+    # offline_after_s. That is no arrival: arm-001 never sends and makes no status event, and arm-002's first
+    # status event is its arrival, made once its messages come (after both were OFFLINE, so status sweeps ran
+    # over the whole of their silence first).
+    overrides = {"telemetry.devices": ["arm-001", "arm-002"], "telemetry.units": "ticks"}
+    agent = rig.start_agent({**overrides, "health.offline_after_s": 2.0})
+    wait_for(
+        lambda: all(d.health.status is DeviceStatus.OFFLINE for d in agent.state().devices.values()),
+        30,
+        "both configured arms OFFLINE before any message",
+    )
+    rig.start_edge(["arm-002"], variant="ticks", rate_hz=10.0)
+    status = EventQuery(kinds=frozenset({EventKind.STATUS.value}))
+    wait_for(lambda: any(e.device == "arm-002" for e in agent.events(status)), 30, "arm-002's arrival event")
+    events = [(e.device, e.message) for e in agent.events(status)]
+    assert [d for d, _ in events] == ["arm-002"] * len(events), events
+    # ONLINE, or STALE if the sweep that first saw it came 0.3 s after its last message (a loaded machine).
+    assert events[0][1] in ("arm-002 is ONLINE (first message)", "arm-002 is STALE (first message)"), events

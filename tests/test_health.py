@@ -40,6 +40,22 @@ def feed(fleet: FleetHealth, clock: FakeClock, device: str, n: int, *, dt: float
         health.record_applied(clock.t, clock.t + 0.0005, ts_ms)
 
 
+def test_statuses_heard_only_leaves_out_devices_not_heard_from() -> None:
+    # The status events read these: a configured arm not heard from, or one whose messages were all turned
+    # away, is silent since start-up (STALE after 0.3 s) but has not arrived.
+    clock = FakeClock()
+    fleet = FleetHealth(TH, ["arm-001", "arm-002"], clock=clock)
+    fleet.device("junk-1").record_rejected("bad_json")
+    clock.advance(1.0)
+    feed(fleet, clock, "arm-002", 3)
+    assert fleet.statuses(heard_only=True) == {"arm-002": DeviceStatus.ONLINE}
+    assert fleet.statuses() == {
+        "arm-001": DeviceStatus.STALE,
+        "arm-002": DeviceStatus.ONLINE,
+        "junk-1": DeviceStatus.STALE,
+    }
+
+
 def test_thresholds_classify() -> None:
     assert TH.stale_after_s == pytest.approx(0.3)
     assert TH.classify(0.0) is DeviceStatus.ONLINE

@@ -1320,7 +1320,9 @@ class Mirror:
         if not self._watch.due(self._clock()):
             return
         with self._lock:
-            statuses = self._fleet.statuses()
+            # Heard from only: a configured arm not yet heard from would show STALE (silent since start-up)
+            # and make a "first message" event before any message came.
+            statuses = self._fleet.statuses(heard_only=True)
         self._watch.statuses(statuses)
 
     def fleet_rows(self) -> list[FleetRow]:
