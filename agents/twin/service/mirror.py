@@ -1320,9 +1320,8 @@ class Mirror:
         if not self._watch.due(self._clock()):
             return
         with self._lock:
-            # Heard from only: a configured arm not yet heard from would show STALE (silent since start-up)
-            # and make a "first message" event before any message came.
-            statuses = self._fleet.statuses(heard_only=True)
+            # Of the arms heard from only (FleetHealth.statuses): no "first message" event before one came.
+            statuses = self._fleet.statuses()
         self._watch.statuses(statuses)
 
     def fleet_rows(self) -> list[FleetRow]:
