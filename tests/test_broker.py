@@ -6,7 +6,7 @@ import socket
 from pathlib import Path
 
 import pytest
-from twin.bench.wire import WirePublisher, publish_packet, topic_field
+from twin.bench.wire import WirePublisher, publish_packet, remaining_length, topic_field
 from twin.rig import mosquitto as broker_mod
 from twin.rig.mosquitto import BrokerError, MosquittoBroker, MosquittoNotFound
 
@@ -68,7 +68,7 @@ def test_missing_binary_names_the_fix(monkeypatch: pytest.MonkeyPatch) -> None:
         MosquittoBroker()
 
 
-def _subscribe_raw(port: int, topic: bytes) -> socket.socket:
+def _subscribe_raw(port: int, topic: str) -> socket.socket:
     """An MQTT 3.1.1 subscriber on a bare socket with a small receive buffer, that reads nothing until told:
     a client too slow for a burst, as an agent starved of CPU is for a moment."""
     sock = socket.socket()
@@ -76,12 +76,12 @@ def _subscribe_raw(port: int, topic: bytes) -> socket.socket:
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
     sock.settimeout(10)
     sock.connect(("127.0.0.1", port))
-    client_id = b"slow-subscriber"
-    connect = b"\x00\x04MQTT\x04\x02\x00\x3c" + len(client_id).to_bytes(2, "big") + client_id
-    sock.sendall(bytes((0x10, len(connect))) + connect)
+    # Protocol "MQTT" level 4, clean session, keep-alive 60 s; strings length-prefixed as a topic is.
+    connect = topic_field("MQTT") + b"\x04\x02\x00\x3c" + topic_field("slow-subscriber")
+    sock.sendall(b"\x10" + remaining_length(len(connect)) + connect)
     assert sock.recv(4)[0] == 0x20  # CONNACK
-    subscribe = b"\x00\x01" + len(topic).to_bytes(2, "big") + topic + b"\x01"
-    sock.sendall(bytes((0x82, len(subscribe))) + subscribe)
+    subscribe = b"\x00\x01" + topic_field(topic) + b"\x01"  # packet id 1, QoS 1
+    sock.sendall(b"\x82" + remaining_length(len(subscribe)) + subscribe)
     assert sock.recv(5)[0] == 0x90  # SUBACK
     return sock
 
@@ -90,7 +90,7 @@ def test_a_burst_reaches_a_slow_subscriber_whole(mosquitto: MosquittoBroker) -> 
     # Mosquitto's default drops QoS 0 for a subscriber with 1,000 messages queued, which the agent could not
     # see or count (the fault matrix's flood of 20,000 lost some on a loaded machine). The rig's broker holds
     # a burst of that size whole.
-    sock = _subscribe_raw(mosquitto.port, b"burst/#")
+    sock = _subscribe_raw(mosquitto.port, "burst/#")
     payload = b"y" * 200
     count = 20_000
     publisher = WirePublisher(mosquitto.url, "burst-publisher")
