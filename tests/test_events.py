@@ -205,6 +205,7 @@ def test_exports_neutralise_text_and_keep_numbers() -> None:
     assert doc["events"][0]["time"] == 1000.0
 
 
+@pytest.mark.slow
 def test_an_arm_arrives_in_the_events_with_its_first_message_not_before(rig: LocalRig) -> None:
     # Configured arms not heard from count as silent since start-up: STALE after 0.3 s, OFFLINE after
     # offline_after_s. That is no arrival: arm-001 never sends and makes no status event, and arm-002's first
