@@ -10,6 +10,7 @@ import csv
 import io
 import json
 import math
+import re
 import time
 import urllib.error
 import urllib.request
@@ -249,6 +250,59 @@ def test_the_events_page_tails_the_twins_events(console: str, page: Any, browser
     assert status == 200 and ctype.startswith("text/csv")
     assert any(r["kind"] == "alarm" for r in csv.DictReader(io.StringIO(body.decode())))
     assert browser_errors == []
+
+
+def test_the_events_page_loads_again_after_a_failed_load(console: str, page: Any) -> None:
+    """The agent answers /api/events with 503 for a while (busy, or restarting): the page tries again until
+    it loads; a selection whose load fails shows none of the rows chosen by the filters before."""
+    tab = page.context.new_page()
+    tab.set_default_timeout(TIMEOUT_S * 1000)
+    errors: list[str] = []
+    tab.on("pageerror", lambda e: errors.append(str(e)))
+    failing = {"left": 2, "calls": 0}
+
+    def flaky(route: Any) -> None:
+        failing["calls"] += 1
+        if failing["left"] > 0:
+            failing["left"] -= 1
+            route.fulfill(status=503, body="busy")
+        else:
+            route.fallback()  # to the context's loopback-only handler, which lets it through
+
+    try:
+        tab.route(re.compile(r"/api/events\?"), flaky)
+        tab.goto(console + "/events")
+        # Two failed loads, then the third: without a retry the page would never get its first load.
+        tab.wait_for_function("() => document.body.dataset.ready === '1'")
+        assert (failing["left"], failing["calls"]) == (0, 3)
+        tab.wait_for_selector("#events tbody tr")
+        # Every state the counter shows from here on, with the devices of the rows beside it.
+        tab.evaluate(
+            """() => {
+              window.seen = [];
+              const counts = document.querySelector('.counts');
+              new MutationObserver(() => window.seen.push([counts.textContent,
+                  [...document.querySelectorAll('#events tbody tr')].map(r => r.children[3].textContent)]))
+                .observe(counts, { childList: true, characterData: true, subtree: true });
+            }"""
+        )
+        failing["left"] = 1
+        tab.get_by_label("device").fill("arm-002")
+        tab.wait_for_function(
+            """() => {
+              const rows = [...document.querySelectorAll('#events tbody tr')];
+              return document.body.dataset.ready === '1' && rows.length > 0
+                && rows.every(r => r.children[3].textContent === 'arm-002')
+                && !document.querySelector('.counts').textContent.includes('trying again');
+            }"""
+        )
+        seen = tab.evaluate("() => window.seen")
+        failed = [devices for text, devices in seen if "trying again" in text]
+        assert failed, seen
+        assert all(set(devices) <= {"arm-002"} for devices in failed), failed
+        assert failing["left"] == 0 and errors == []
+    finally:
+        tab.close()
 
 
 def test_a_sessions_other_files_are_made_from_history(console: str, tmp_path: Path) -> None:

@@ -5,6 +5,7 @@
 (() => {
   const { el, main } = Twin;
   const MAX_ROWS = 5000;
+  const RETRY_MAX_S = 30;
   const device = el("input", { type: "search", placeholder: "device", "aria-label": "device" });
   const level = el("select", { "aria-label": "level" }, el("option", { value: "", text: "any level" }),
     el("option", { value: "warning", text: "warning and worse" }), el("option", { value: "error", text: "errors" }));
@@ -75,20 +76,35 @@
     if (follow.checked) box.scrollTop = box.scrollHeight;
   }
 
-  let source = null;
+  // A load that fails (the agent busy or restarting) is tried again, sooner first, until one succeeds or
+  // the selection changes; meanwhile the table is emptied, since its rows were chosen by the filters before.
+  // Only the newest load may fill the table: an older one that answers late would show another selection.
+  let source = null, loads = 0, retry = null, failures = 0;
   async function load() {
+    const mine = ++loads;
+    clearTimeout(retry);
     csv.href = "/api/events.csv?" + params();
     json.href = "/api/events.json?" + params();
     try {
       const doc = await Twin.getJSON("/api/events?" + params({ limit: "2000" }));
+      if (mine !== loads) return;
+      failures = 0;
       events = doc.events;
       lastId = Math.max(lastId, doc.last_id);
       render();
       if (!document.body.dataset.ready) { document.body.dataset.ready = "1"; window.twinReadyAt = performance.now(); }
     } catch (_) {
+      if (mine !== loads) return;
+      const wait = Math.min(RETRY_MAX_S, 2 ** failures);
+      failures += 1;
+      events = [];
+      render();
+      count.textContent = `could not load the events; trying again in ${wait} s`;
       Twin.setLink(false, "agent unreachable");
+      retry = setTimeout(load, wait * 1000);
+    } finally {
+      if (source === null) source = Twin.stream("/api/stream/events?after=" + lastId, { events: append });
     }
-    if (source === null) source = Twin.stream("/api/stream/events?after=" + lastId, { events: append });
   }
   let timer = null;
   for (const input of [device, level, kind, text, since, until]) {
