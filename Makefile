@@ -32,6 +32,11 @@ export UV_PYTHON := python3
 export UV_PYTHON_DOWNLOADS := never
 # Hardlinks fail across filesystems (the cache may sit on another); copying is what uv falls back to anyway.
 export UV_LINK_MODE := copy
+# Bytecode compiled at install, as pip does on the instance. uv does not by default, and where
+# PYTHONDONTWRITEBYTECODE is set (this machine, many CI images) Python never writes it either: every agent,
+# edge simulator and test subprocess then compiled NumPy, msgspec, PyOpenGL and the rest at its start
+# (docs/performance.md, "Bytecode").
+export UV_COMPILE_BYTECODE := 1
 UV_SYNC := $(UV) sync --frozen --quiet
 # The runtime and the extras `make demo` runs with (history: the demo keeps and plots the arm's history).
 DEMO_STAMP := $(VENV)/.demo-stamp
@@ -73,8 +78,14 @@ help:
 
 setup: system-packages $(SETUP_STAMP) $(NODE_STAMP) $(CHECKOV_STAMP) $(ROS2_STAMP) $(ROS2_KILTED_STAMP) \
 	$(WHEELHOUSE_STAMP)
+	@$(call compile_sources,agents tests)
 
 setup-demo: demo-system-packages $(DEMO_STAMP)
+	@$(call compile_sources,agents)
+
+# The checkout's own modules are installed editable, so nothing compiles them at install: compiled here, every
+# time (only what changed since is compiled again), for the same reason as UV_COMPILE_BYTECODE above.
+compile_sources = $(PY) -m compileall -q -j 0 $(1) || { echo "setup: $(1) do not compile" >&2; exit 1; }
 
 # apt only when a tool is missing, so a second `make setup` does no network work. $(1): the packages.
 apt_install = if [ "$$(id -u)" != 0 ]; then echo "setup: need root to apt-get install $(1)" >&2; exit 1; fi; \

@@ -7,12 +7,16 @@ process, and that the JSON keeps every field the docs describe.
 
 from __future__ import annotations
 
+import importlib
 import json
 import os
+import py_compile
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
+from twin.bench.footprint import BYTECODE_PROBES, bytecode_cached
 
 pytestmark = pytest.mark.slow
 
@@ -86,6 +90,27 @@ def test_footprint_reports_cold_start_and_memory() -> None:
     # The agent and its workers, one figure each; the workers' fork server is reported on its own.
     assert figures["processes"] == 1 + (figures["workers"] if figures["workers"] > 1 else 0)
     assert (figures["rss_fork_server_mb"] is not None) == (figures["workers"] > 1)
+    # The installed libraries' bytecode is compiled by make setup (UV_COMPILE_BYTECODE), so the cold start
+    # does not measure compiling them; the checkout's own modules are compiled as of the last make setup.
+    cached = figures["bytecode_cached"]
+    assert set(cached) == set(BYTECODE_PROBES)
+    assert all(cached[name] for name in BYTECODE_PROBES if not name.startswith("twin.")), cached
+
+
+def test_bytecode_counts_only_what_python_would_load(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    source = tmp_path / "probe_module.py"
+    source.write_text("X = 1\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    importlib.invalidate_caches()
+    assert bytecode_cached(["probe_module", "no_such_module_here"]) == {
+        "probe_module": False,  # no __pycache__ file
+        "no_such_module_here": False,
+    }
+    py_compile.compile(str(source))
+    assert bytecode_cached(["probe_module"]) == {"probe_module": True}
+    # An edited source: its old bytecode would be compiled again at each start, never used.
+    source.write_text("X = 22\n")
+    assert bytecode_cached(["probe_module"]) == {"probe_module": False}
 
 
 def test_history_storage_reports_bytes_per_arm_day() -> None:

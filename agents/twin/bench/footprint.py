@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import importlib.util
+import os
+import struct
 import subprocess
 import time
 from collections.abc import Sequence
@@ -107,8 +110,50 @@ def _memory(rig: LocalRig, fleet: int, rate: float, fleet_seconds: float) -> dic
     }
 
 
+# Modules an agent's start imports, one per kind of install: the agent's own package (editable in a checkout),
+# and a few of the largest it imports from site-packages.
+BYTECODE_PROBES = ("twin.service.mirror", "numpy", "msgspec", "OpenGL")
+
+
+def bytecode_cached(modules: Sequence[str] = BYTECODE_PROBES) -> dict[str, bool]:
+    """Whether each module has bytecode Python would use (its __pycache__ file, made from the source as it is
+    now). Without it every process compiles the module at its start; where PYTHONDONTWRITEBYTECODE is set it
+    is never written, and a cold start measures the compiling (docs/performance.md, "Bytecode")."""
+    return {name: _has_bytecode(name) for name in modules}
+
+
+def _has_bytecode(module: str) -> bool:
+    try:
+        spec = importlib.util.find_spec(module)
+    except (ImportError, ValueError):
+        return False
+    origin = spec.origin if spec is not None else None
+    if not origin or not origin.endswith(".py"):
+        return False
+    try:
+        source = os.stat(origin)
+        with open(importlib.util.cache_from_source(origin), "rb") as pyc:
+            header = pyc.read(16)
+    except OSError:
+        return False
+    # PEP 552: magic, flags (0: checked against the source's mtime and size), mtime, size.
+    magic, flags, mtime, size = header[:4], *struct.unpack("<3I", header[4:16].ljust(12, b"\0"))
+    return (
+        magic == importlib.util.MAGIC_NUMBER
+        and flags == 0
+        and mtime == int(source.st_mtime) & 0xFFFFFFFF
+        and size == source.st_size & 0xFFFFFFFF
+    )
+
+
 def run(*, fleet: int = 1000, rate: float = 10.0, fleet_seconds: float = 8.0) -> dict[str, Any]:
+    cached = bytecode_cached()
     with LocalRig() as rig:
         cold = _cold_start_s(rig)
         memory = _memory(rig, fleet, rate, fleet_seconds)
-    return {"scenario": "footprint", "cold_start_to_first_pose_s": cold, **memory}
+    return {
+        "scenario": "footprint",
+        "cold_start_to_first_pose_s": cold,
+        "bytecode_cached": cached,
+        **memory,
+    }
