@@ -33,7 +33,7 @@ export UV_PYTHON_DOWNLOADS := never
 # Hardlinks fail across filesystems (the cache may sit on another); copying is what uv falls back to anyway.
 export UV_LINK_MODE := copy
 # Bytecode compiled at install, as pip does on the instance. uv does not by default, and where
-# PYTHONDONTWRITEBYTECODE is set (this machine, many CI images) Python never writes it either: every agent,
+# PYTHONDONTWRITEBYTECODE is set (as on this machine) Python never writes it either: every agent,
 # edge simulator and test subprocess then compiled NumPy, msgspec, PyOpenGL and the rest at its start
 # (docs/performance.md, "Bytecode").
 export UV_COMPILE_BYTECODE := 1
