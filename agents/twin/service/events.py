@@ -260,13 +260,30 @@ class EventStore:
 _STATUS_LEVEL = {"ONLINE": EventLevel.INFO, "STALE": EventLevel.WARNING, "OFFLINE": EventLevel.WARNING}
 
 
+# What StatusWatch holds for a device taken back from a checkpoint until a sweep reads its status.
+_RESTORED = "restored"
+
+
 class StatusWatch:
-    """Device status transitions from successive readings of the fleet's statuses. A device's first reading
-    is a transition from "new" (its first message), so the log shows when each arm came."""
+    """Device status transitions from successive readings of the fleet's statuses, and each device's arrival.
+    The arrival is told by the device's first valid message (`arrived`), not read by a later sweep: a sweep
+    that comes over the STALE time after that message (a busy host) would say the arm arrived STALE."""
 
     def __init__(self, store: EventStore) -> None:
         self._store = store
         self._last: dict[str, str] = {}
+
+    def arrived(self, device: str) -> None:
+        """`device` sent its first valid message since this watch began: it is ONLINE now. Nothing for a
+        device already known (restored from a checkpoint, or seen by a sweep)."""
+        if device in self._last:
+            return
+        self._last[device] = "ONLINE"
+        self._emit(device, "ONLINE", "", f"{device} is ONLINE (first message)")
+
+    def restored(self, device: str) -> None:
+        """`device` was taken back from a checkpoint: no arrival; the next sweep records its status."""
+        self._last.setdefault(device, _RESTORED)
 
     def sweep(self, statuses: Mapping[str, object]) -> None:
         """`statuses`: device -> its status now (a DeviceStatus or its string)."""
@@ -281,15 +298,20 @@ class StatusWatch:
                 if now == "OFFLINE":
                     continue  # configured but never heard from: nothing happened yet
                 message = f"{device} is {now} (first message)"
+            elif before == _RESTORED:
+                message, before = f"{device} is {now} (restored)", None
             else:
                 message = f"{device} went {now} (was {before})"
-            self._store.emit(
-                EventKind.STATUS,
-                _STATUS_LEVEL.get(now, EventLevel.INFO),
-                message,
-                device=device,
-                data={"status": now, "previous": before or ""},
-            )
+            self._emit(device, now, before or "", message)
+
+    def _emit(self, device: str, now: str, before: str, message: str) -> None:
+        self._store.emit(
+            EventKind.STATUS,
+            _STATUS_LEVEL.get(now, EventLevel.INFO),
+            message,
+            device=device,
+            data={"status": now, "previous": before},
+        )
 
 
 class ConnectionCounters(Protocol):
@@ -367,6 +389,12 @@ class FleetWatch:
 
     def statuses(self, statuses: Mapping[str, object]) -> None:
         self._statuses.sweep(statuses)
+
+    def arrived(self, device: str) -> None:
+        self._statuses.arrived(device)
+
+    def restored(self, device: str) -> None:
+        self._statuses.restored(device)
 
     def broker(self, connections: Iterable[ConnectionCounters]) -> None:
         self._broker.sweep(connections)

@@ -810,6 +810,7 @@ class Mirror:
         """Under the lock: one device's counters, loss estimate and twin (from its last applied pose)."""
         health = self._fleet.device(device)
         health.restore(saved.health)
+        self._watch.restored(device)
         if saved.loss is not None:
             self._loss[device] = DeviceLoss.from_state(saved.loss, self._clock)
         if saved.timestamp_ms is None or saved.targets_rad is None or device in self._devices:
@@ -1218,6 +1219,7 @@ class Mirror:
                 device, twin, self._fleet.device(device), self._loss_of(device)
             )
         log.info("new device", extra={"device": device, "mode": str(self.mode)})
+        self._watch.arrived(device)
         return record
 
     def _loss_of(self, device: str) -> DeviceLoss:
@@ -1320,7 +1322,7 @@ class Mirror:
         if not self._watch.due(self._clock()):
             return
         with self._lock:
-            # Of the arms heard from only (FleetHealth.statuses): no "first message" event before one came.
+            # Of the arms heard from only (FleetHealth.statuses): their arrivals were told by `_admit`.
             statuses = self._fleet.statuses()
         self._watch.statuses(statuses)
 
