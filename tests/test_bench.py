@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from twin.bench.footprint import BYTECODE_PROBES, bytecode_cached
+from twin.bench.footprint import BYTECODE_PROBES, HEALTHZ_CALLS, bytecode_cached
 
 pytestmark = pytest.mark.slow
 
@@ -90,6 +90,9 @@ def test_footprint_reports_cold_start_and_memory() -> None:
     # The agent and its workers, one figure each; the workers' fork server is reported on its own.
     assert figures["processes"] == 1 + (figures["workers"] if figures["workers"] > 1 else 0)
     assert (figures["rss_fork_server_mb"] is not None) == (figures["workers"] > 1)
+    # /healthz answered while the fleet published (in its second half).
+    assert 1 <= len(figures["healthz_ms_at_fleet"]) <= HEALTHZ_CALLS
+    assert all(ms > 0 for ms in figures["healthz_ms_at_fleet"])
     # The installed libraries' bytecode is compiled by make setup (UV_COMPILE_BYTECODE), so the cold start
     # does not measure compiling them; the checkout's own modules are compiled as of the last make setup.
     cached = figures["bytecode_cached"]

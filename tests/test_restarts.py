@@ -174,6 +174,14 @@ def test_while_a_worker_restarts_alarms_and_fleet_rows_keep_its_arms_from_its_ch
             interval=0.1,
         )
         assert by_key(alarms(url))[HOT] == "ACKNOWLEDGED"
+
+        # Running again: healthy once every listed arm is heard from (the edge sends throughout).
+        def healthy() -> dict[str, object] | None:
+            status_code, _, raw = http_get(url + "/healthz")
+            return json.loads(raw) if status_code == 200 else None
+
+        health = wait_for(healthy, 30, "/healthz to be 200 again", interval=0.1)
+        assert health["reasons"] == [] and set(health["devices"]) == set(FLEET), health
     finally:
         hot.stop()
 
@@ -198,6 +206,12 @@ def assert_listed_from_the_checkpoint(
     assert (row.alarm_severity, row.alarm_state, row.alarm_kind) == (worst.severity, worst.state, worst.kind)
     state = get_state(url)
     assert state.devices[hot_arm].mirror == "restarting"
+    # /healthz reads the statuses alone (not the state), and the same rules: the worker is down, its arms
+    # are there as the checkpoint left them.
+    status_code, _, raw = http_get(url + "/healthz")
+    health = json.loads(raw)
+    assert status_code == 503 and f"worker {worker} is not running" in health["reasons"], health
+    assert set(health["devices"]) == set(FLEET), health
     # The fleet's alarm counts take the restarting worker's from its checkpoint: no dip while it is down.
     summary = state.agent.alarms
     assert summary.by_state["warning"].get("ACKNOWLEDGED", 0) >= 1 and summary.present["warning"] >= 1

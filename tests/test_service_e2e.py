@@ -40,6 +40,7 @@ from twin.edge.payload import encode, make_payload
 from twin.rig.local import LocalRig
 from twin.robot import so101
 from twin.service.agent import AgentService
+from twin.service.mirror import Mirror
 from twin.service.state import AgentState
 
 pytestmark = pytest.mark.slow
@@ -155,6 +156,36 @@ def test_stale_and_offline_appear_and_clear(rig: LocalRig, publisher: Publisher)
     wait_handled(lambda: get_state(url), 18)
     assert status() is DeviceStatus.ONLINE
     assert get_health(url)[0] == 200
+
+
+def test_healthz_reads_the_statuses_without_building_the_state(
+    rig: LocalRig, publisher: Publisher, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Health checks come often: /healthz asks each mirror for its arms' statuses, not for the report (at
+    1,000 arms that took the workers over a second to build under load)."""
+    clock = ManualClock()
+    service = start_agent(rig, clock, **{"telemetry.devices": ["arm-001"], "telemetry.units": "ticks"})
+    publish_ticks(publisher, "arm-001", 6, int(time.time() * 1000))
+    wait_handled(lambda: get_state(service.http_url), 6)
+
+    def no_report(self: Mirror) -> None:
+        raise AssertionError("/healthz built a mirror report")
+
+    monkeypatch.setattr(Mirror, "report", no_report)
+    assert get_health(service.http_url) == (
+        200,
+        {
+            "status": "ok",
+            "running": True,
+            "broker_connected": True,
+            "devices": {"arm-001": "ONLINE"},
+            "reasons": [],
+        },
+    )
+    clock.advance(1.1)  # past FAST_HEALTH's offline time
+    status_code, body = get_health(service.http_url)
+    assert status_code == 503 and body["devices"] == {"arm-001": "OFFLINE"}
+    assert body["reasons"] == ["device arm-001 is OFFLINE"]
 
 
 def test_stream_follows_the_twin(agent: AgentService, publisher: Publisher) -> None:

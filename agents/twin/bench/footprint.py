@@ -7,6 +7,8 @@ import os
 import struct
 import subprocess
 import time
+import urllib.error
+import urllib.request
 from collections.abc import Sequence
 from typing import Any
 
@@ -87,9 +89,13 @@ def _memory(rig: LocalRig, fleet: int, rate: float, fleet_seconds: float) -> dic
         half = fleet // 2
         pubs = [start_publisher(rig.broker.url, first, half, rate, fleet_seconds) for first in (1, 1 + half)]
         peak = idle
+        healthz_ms: list[float] = []
+        started = time.monotonic()
         while any(p.poll() is None for p in pubs):
             now = _rss_mb(proc.pid, workers)
             peak = now if sum(now) > sum(peak) else peak
+            if time.monotonic() - started > fleet_seconds / 2 and len(healthz_ms) < HEALTHZ_CALLS:
+                healthz_ms.append(_healthz_ms(base))
             time.sleep(0.25)
         time.sleep(1.0)
         state = get_state(base, timeout=30)
@@ -107,7 +113,24 @@ def _memory(rig: LocalRig, fleet: int, rate: float, fleet_seconds: float) -> dic
         "rss_at_fleet_largest_process_mb": max(at_fleet),
         "rss_peak_mb": max(sum(peak), sum(at_fleet)),
         "rss_fork_server_mb": fork_server,
+        "healthz_ms_at_fleet": healthz_ms,
     }
+
+
+# /healthz calls timed in the second half of the fleet's publishing (health checks come often, whatever the
+# fleet's size: docs/http-api.md).
+HEALTHZ_CALLS = 4
+
+
+def _healthz_ms(base: str) -> float:
+    """Milliseconds of one GET /healthz (200 or 503 alike: the answer's time is what is measured)."""
+    started = time.perf_counter()
+    try:
+        with urllib.request.urlopen(f"{base}/healthz", timeout=30) as response:
+            response.read()
+    except urllib.error.HTTPError as err:
+        err.read()
+    return (time.perf_counter() - started) * 1000.0
 
 
 # Modules an agent's start imports, one per kind of install: the agent's own package (editable in a checkout),

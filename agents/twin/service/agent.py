@@ -67,6 +67,7 @@ from twin.service.shards import (
     Request,
     RestoreRequest,
     Shard,
+    StatusesRequest,
     StopReport,
     WorkerError,
     WorkerPlan,
@@ -80,6 +81,7 @@ from twin.service.shards import (
     merge_reports,
     report_of,
     restored_of,
+    statuses_of,
     worker_config,
 )
 from twin.service.state import (
@@ -695,7 +697,12 @@ class AgentService:
         With devices = ["*"] no device is configured, so the last rule does not apply: a fleet agent stays
         healthy while individual arms come and go (their status is in /state and /metrics).
         """
-        state = self.state()
+        # Each mirror's statuses only, not the state: health checks come often, and a report of 1,000 arms
+        # costs its worker the fleet's holding torques and tool points (docs/http-api.md, "GET /healthz").
+        asked = self._ask_fleet(StatusesRequest(), statuses_of)
+        statuses = {device: DeviceStatus(status) for _, pairs in asked.answers for device, status in pairs}
+        restarting = self._checkpoint_devices(asked.silent)
+        statuses.update({device: d.health.status for device, d in restarting.items()})
         connected = self._started_pool and self._pool.connected
         running = self.running
         reasons = []
@@ -703,9 +710,13 @@ class AgentService:
             reasons.append("service not running")
         if not connected:
             reasons.append("broker connection down")
-        reasons.extend(f"worker {w.index} is not running" for w in state.agent.workers if not w.alive)
+        # A worker process that did not answer is not running (dead, or being started again), as in /state.
+        reasons.extend(
+            f"worker {shard.index} is not running"
+            for shard in asked.silent
+            if shard.describe(None) is not None
+        )
         configured = () if self.config.telemetry.all_devices else self.config.telemetry.devices
-        statuses = {device: d.health.status for device, d in state.devices.items()}
         reasons.extend(
             f"device {d} is OFFLINE" for d in sorted(configured) if statuses.get(d) is DeviceStatus.OFFLINE
         )

@@ -68,7 +68,14 @@ from twin.core.alarms import (
     ServoAlarms,
     Severity,
 )
-from twin.core.health import DeviceHealth, FleetHealth, HealthReading, HealthSnapshot, HealthThresholds
+from twin.core.health import (
+    DeviceHealth,
+    DeviceStatus,
+    FleetHealth,
+    HealthReading,
+    HealthSnapshot,
+    HealthThresholds,
+)
 from twin.core.latency import LatencyHistogram
 from twin.core.loss import DeviceLoss, LossSnapshot
 from twin.core.modes import TwinMode
@@ -114,6 +121,7 @@ from twin.service.shards import (
     Request,
     Restored,
     RestoreRequest,
+    StatusesRequest,
     StopReport,
     alarm_info,
     uncalibrated,
@@ -1294,6 +1302,8 @@ class Mirror:
             return tuple(self.events(EventQuery(after_id=request.after_id, limit=EVENTS_PER_ASK)))
         if isinstance(request, FleetRowsRequest):
             return tuple(self.fleet_rows())
+        if isinstance(request, StatusesRequest):
+            return tuple((device, str(status)) for device, status in self.statuses().items())
         if isinstance(request, CheckpointRequest):
             return self.checkpoint(alarms_only=request.alarms_only)
         if isinstance(request, RestoreRequest):
@@ -1325,6 +1335,12 @@ class Mirror:
             # Of the arms heard from only (FleetHealth.statuses): their arrivals were told by `_admit`.
             statuses = self._fleet.statuses()
         self._watch.statuses(statuses)
+
+    def statuses(self) -> dict[str, DeviceStatus]:
+        """Each device's status now (those configured too, heard from or not), without the report."""
+        with self._lock:
+            now = self._clock()
+            return {device: h.status(now) for device, h in self._fleet.devices.items()}
 
     def fleet_rows(self) -> list[FleetRow]:
         """One row per arm for the console's Fleet page, read without building the report (no device

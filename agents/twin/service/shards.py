@@ -225,6 +225,12 @@ class FleetRowsRequest:
 
 
 @dataclass(frozen=True, slots=True)
+class StatusesRequest:
+    """The status of each of the mirror's devices, as (device, status) pairs: what /healthz needs, without
+    the report (a report of 1,000 arms takes the worker a fleet's holding torques and tool points)."""
+
+
+@dataclass(frozen=True, slots=True)
 class CalibrationsRequest:
     """Each arm's own calibration from now on (service.calibrations), replacing the previous set: per device
     its source and its LeRobot file as parsed JSON (a Calibration holds a mapping proxy, which does not
@@ -379,6 +385,7 @@ Request = (
     | AckRequest
     | EventsRequest
     | FleetRowsRequest
+    | StatusesRequest
     | CalibrationsRequest
     | CheckpointRequest
     | RestoreRequest
@@ -389,6 +396,7 @@ Reply = (
     | AlarmInfo
     | tuple[Event, ...]
     | tuple[FleetRow, ...]
+    | tuple[tuple[str, str], ...]
     | int
     | MirrorCheckpoint
     | Restored
@@ -421,6 +429,16 @@ def fleet_rows_of(reply: Reply) -> tuple[FleetRow, ...]:
     if not isinstance(reply, tuple) or not all(isinstance(r, FleetRow) for r in reply):
         raise WorkerError(f"fleet rows were asked for, the answer was {type(reply).__name__}")
     return tuple(r for r in reply if isinstance(r, FleetRow))
+
+
+def statuses_of(reply: Reply) -> tuple[tuple[str, str], ...]:
+    """The answer to a StatusesRequest; WorkerError for anything else."""
+    pairs = reply if isinstance(reply, tuple) else ()
+    if not isinstance(reply, tuple) or not all(
+        isinstance(p, tuple) and len(p) == 2 and all(isinstance(v, str) for v in p) for p in pairs
+    ):
+        raise WorkerError(f"statuses were asked for, the answer was {type(reply).__name__}")
+    return tuple((str(p[0]), str(p[1])) for p in pairs if isinstance(p, tuple))
 
 
 def checkpoint_of(reply: Reply) -> MirrorCheckpoint:
@@ -1441,6 +1459,7 @@ __all__ = [
     "RestoreRequest",
     "Restored",
     "Shard",
+    "StatusesRequest",
     "StopReport",
     "WorkerError",
     "WorkerPlan",
@@ -1452,6 +1471,7 @@ __all__ = [
     "merge_reports",
     "report_of",
     "restored_of",
+    "statuses_of",
     "uncalibrated",
     "worker_config",
 ]
