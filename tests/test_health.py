@@ -40,15 +40,17 @@ def feed(fleet: FleetHealth, clock: FakeClock, device: str, n: int, *, dt: float
         health.record_applied(clock.t, clock.t + 0.0005, ts_ms)
 
 
-def test_statuses_leave_out_devices_not_heard_from() -> None:
+def test_statuses_heard_only_leave_out_devices_not_heard_from() -> None:
     # The status events read these: a configured arm not heard from, or one whose messages were all turned
-    # away, is silent since start-up (STALE after 0.3 s) but has not arrived.
+    # away, is silent since start-up (STALE after 0.3 s) but has not arrived. The health check reads them all.
     clock = FakeClock()
     fleet = FleetHealth(TH, ["arm-001", "arm-002"], clock=clock)
     fleet.device("junk-1").record_rejected("bad_json")
     clock.advance(1.0)
     feed(fleet, clock, "arm-002", 3)
-    assert fleet.statuses() == {"arm-002": DeviceStatus.ONLINE}
+    assert fleet.statuses(heard_only=True) == {"arm-002": DeviceStatus.ONLINE}
+    stale = DeviceStatus.STALE
+    assert fleet.statuses() == {"arm-001": stale, "arm-002": DeviceStatus.ONLINE, "junk-1": stale}
     assert fleet.device("arm-001").status() is fleet.device("junk-1").status() is DeviceStatus.STALE
 
 

@@ -482,14 +482,15 @@ class FleetHealth:
         else:
             health.record_rejected(reason)
 
-    def statuses(self, now: float | None = None) -> dict[str, DeviceStatus]:
-        """The status of each device heard from (a decoded message), for the status events: a configured
-        device not yet heard from counts as silent since start-up, so its status says nothing of its own."""
+    def statuses(self, now: float | None = None, *, heard_only: bool = False) -> dict[str, DeviceStatus]:
+        """The status of each device. `heard_only` keeps the devices heard from (a decoded message), for the
+        status events: a configured device not yet heard from counts as silent since start-up, so its status
+        says nothing of its own (the health check still wants it: an arm expected and silent is OFFLINE)."""
         now = self._clock() if now is None else now
         return {
             device: health.status(now)
             for device, health in self.devices.items()
-            if health.last_message_mono is not None
+            if not heard_only or health.last_message_mono is not None
         }
 
     def offline_configured(self, now: float | None = None) -> list[str]:

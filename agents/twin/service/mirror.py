@@ -1332,15 +1332,14 @@ class Mirror:
         if not self._watch.due(self._clock()):
             return
         with self._lock:
-            # Of the arms heard from only (FleetHealth.statuses): their arrivals were told by `_admit`.
-            statuses = self._fleet.statuses()
+            # Of the arms heard from only: their arrivals were told by `_admit`.
+            statuses = self._fleet.statuses(heard_only=True)
         self._watch.statuses(statuses)
 
     def statuses(self) -> dict[str, DeviceStatus]:
         """Each device's status now (those configured too, heard from or not), without the report."""
         with self._lock:
-            now = self._clock()
-            return {device: h.status(now) for device, h in self._fleet.devices.items()}
+            return self._fleet.statuses()
 
     def fleet_rows(self) -> list[FleetRow]:
         """One row per arm for the console's Fleet page, read without building the report (no device
