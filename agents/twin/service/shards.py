@@ -433,12 +433,16 @@ def fleet_rows_of(reply: Reply) -> tuple[FleetRow, ...]:
 
 def statuses_of(reply: Reply) -> tuple[tuple[str, str], ...]:
     """The answer to a StatusesRequest; WorkerError for anything else."""
-    pairs = reply if isinstance(reply, tuple) else ()
-    if not isinstance(reply, tuple) or not all(
-        isinstance(p, tuple) and len(p) == 2 and all(isinstance(v, str) for v in p) for p in pairs
-    ):
+    if not isinstance(reply, tuple):
         raise WorkerError(f"statuses were asked for, the answer was {type(reply).__name__}")
-    return tuple((str(p[0]), str(p[1])) for p in pairs if isinstance(p, tuple))
+    pairs: list[tuple[str, str]] = []
+    for pair in reply:
+        match pair:
+            case (str() as device, str() as status) if isinstance(pair, tuple):
+                pairs.append((device, status))
+            case _:
+                raise WorkerError(f"statuses were asked for, the answer held {pair!r}")
+    return tuple(pairs)
 
 
 def checkpoint_of(reply: Reply) -> MirrorCheckpoint:
