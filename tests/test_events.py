@@ -124,16 +124,19 @@ def test_subscribers_see_every_new_event_once() -> None:
 def test_status_watch_reports_transitions_only() -> None:
     s, _ = store()
     watch = StatusWatch(s)
-    watch.sweep({"arm-001": "ONLINE", "arm-002": "OFFLINE"})  # arm-002 configured, never heard from
-    watch.sweep({"arm-001": "ONLINE", "arm-002": "OFFLINE"})
-    watch.sweep({"arm-001": "STALE", "arm-002": "OFFLINE"})
+    watch.arrived("arm-001")
+    watch.sweep({"arm-001": "ONLINE"})
+    watch.sweep({"arm-001": "ONLINE"})
+    watch.sweep({"arm-001": "STALE"})
+    # arm-002 was never told of: the first sweep that meets it is its baseline, no event; then its changes.
     watch.sweep({"arm-001": "OFFLINE", "arm-002": "ONLINE"})
+    watch.sweep({"arm-001": "OFFLINE", "arm-002": "STALE"})
     got = [(e.device, e.level, e.data["status"], e.data["previous"]) for e in s.query(EventQuery())]
     assert got == [
         ("arm-001", "info", "ONLINE", ""),
         ("arm-001", "warning", "STALE", "ONLINE"),
         ("arm-001", "warning", "OFFLINE", "STALE"),
-        ("arm-002", "info", "ONLINE", "OFFLINE"),
+        ("arm-002", "warning", "STALE", "ONLINE"),
     ]
 
 

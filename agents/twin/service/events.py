@@ -295,10 +295,10 @@ class StatusWatch:
                 continue
             last[device] = now
             if before is None:
-                if now == "OFFLINE":
-                    continue  # configured but never heard from: nothing happened yet
-                message = f"{device} is {now} (first message)"
-            elif before == _RESTORED:
+                # Never told of (`arrived` or `restored`): the mirror sweeps the arms heard from only, and
+                # tells each arrival first, so this is a baseline, not an event; its changes are reported.
+                continue
+            if before == _RESTORED:
                 message, before = f"{device} is {now} (restored)", None
             else:
                 message = f"{device} went {now} (was {before})"
