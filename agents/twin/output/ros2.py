@@ -37,7 +37,6 @@ import struct
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
-from xml.sax.saxutils import quoteattr
 
 from twin.output.sinks import AppliedSample, QueuedSink, RejectedSample
 from twin.robot import so101
@@ -444,6 +443,10 @@ def cyclone_config(settings: Ros2Settings, environ: Mapping[str, str] | None = N
 
     A user's own CYCLONEDDS_URI (files or XML) is appended, so anything set there wins over ours.
     """
+    # Here, not at the top: xml.sax.saxutils pulls in urllib.request and the email package (about 40 ms), and
+    # the config loader imports this module on every cold start (docs/performance.md, "Footprint").
+    from xml.sax.saxutils import quoteattr  # noqa: PLC0415
+
     general = ""
     if settings.interface:
         iface = settings.interface
