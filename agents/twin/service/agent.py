@@ -50,7 +50,6 @@ from twin.service.calibrations import CalibrationBook, CalibrationWatcher, open_
 from twin.service.config import AgentConfig, ConfigError
 from twin.service.console import FleetRow, SessionCatalog, device_rows, rerun_viewer_url
 from twin.service.events import Event, EventKind, EventLevel, EventQuery, EventStore, FleetWatch
-from twin.service.http_api import AgentHttpServer
 from twin.service.persist import StateFile
 from twin.service.shards import (
     CHECKPOINT_EVERY_S,
@@ -102,6 +101,7 @@ from twin.transport.pool import ConnectionPool
 
 if TYPE_CHECKING:
     from twin.robot.model import RobotModel
+    from twin.service.http_api import AgentHttpServer
     from twin.service.mirror import Mirror
 
 log = logging.getLogger(__name__)
@@ -303,6 +303,10 @@ class AgentService:
             # queues, bounded as always, and is handed over once each mirror has what it needs below.
             self._pool.start()
             self._started_pool = True
+            # The HTTP stack (Starlette, uvicorn; about 0.15 s) loads while the connection is made on awscrt's
+            # threads, not before it starts.
+            from twin.service.http_api import AgentHttpServer  # noqa: PLC0415
+
             if self._history is not None:
                 # Before the mirrors, so their feeds find it listening.
                 self._launch_history(self._history)
