@@ -16,8 +16,9 @@ import mujoco
 import pytest
 from twin.core.modes import TwinMode
 from twin.core.twin import DeviceTwin
+from twin.robot import model as model_module
 from twin.robot import so101
-from twin.robot.model import ModelError, RobotModel, default_model_path
+from twin.robot.model import ModelError, RobotModel, default_model_path, precompile
 
 BUNDLED_DIR = Path(default_model_path()).parent
 
@@ -79,6 +80,30 @@ def test_bundled_model_loads_with_everything_the_twin_needs() -> None:
     # The inverse-dynamics copy must not share option storage with the simulated model.
     assert robot.model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_CONSTRAINT == 0
     assert robot.inverse_model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_CONSTRAINT
+
+
+def test_a_precompiled_model_is_taken_by_the_next_load_only(tmp_path: Path) -> None:
+    # The workers' fork server compiles the bundled scene ahead (twin.service.worker_preload); each forked
+    # worker's first load takes that model, any later load compiles the file as it is then.
+    path = tmp_path / "arm.xml"
+    path.write_text(chain_mjcf(site="tcp"))
+    precompile(tmp_path / "." / "arm.xml")  # the same file by another spelling of its path
+    compiled = model_module._PRECOMPILED[path.resolve()]
+    first = RobotModel.load(path)
+    assert first.model is compiled
+    assert path.resolve() not in model_module._PRECOMPILED
+    second = RobotModel.load(path)
+    assert second.model is not compiled
+    assert second.joint_names == first.joint_names == so101.JOINT_NAMES
+
+
+def test_a_model_that_fails_to_precompile_is_reported_by_its_load(tmp_path: Path) -> None:
+    path = tmp_path / "broken.xml"
+    path.write_text("<mujoco><worldbody><body></mujoco>")
+    precompile(path)  # no error here: nothing is left for the load to take
+    assert path.resolve() not in model_module._PRECOMPILED
+    with pytest.raises(ModelError, match="could not be loaded by MuJoCo"):
+        RobotModel.load(path)
 
 
 def test_renamed_joint_is_named_in_the_error(tmp_path: Path) -> None:

@@ -36,6 +36,22 @@ _FIX_HINT = (
 )
 
 
+# Models compiled ahead of their first load, by resolved MJCF path. The workers' fork server compiles the
+# bundled scene while it imports the rest of the mirror (twin.service.worker_preload); each worker forked
+# from it takes its own copy-on-write copy here instead of compiling the meshes again (about 0.15 s).
+_PRECOMPILED: dict[Path, mujoco.MjModel] = {}
+
+
+def precompile(path: Path) -> None:
+    """Compile `path` now, for the next `RobotModel.load` of it in this process (or in a process forked from
+    it). A model that fails to compile is left out: that load compiles it again and reports the error."""
+    path = path.resolve()
+    try:
+        _PRECOMPILED[path] = mujoco.MjModel.from_xml_path(str(path))
+    except ValueError:
+        _PRECOMPILED.pop(path, None)
+
+
 class ModelError(ValueError):
     """The robot model cannot be used: the message lists what is wrong and how to fix it."""
 
@@ -120,8 +136,11 @@ class RobotModel:
                 "Set `[twin] model` in the agent config (or --model) to an existing MJCF file, "
                 "or leave it empty to use the bundled SO-101."
             )
+        # Taken once: a second load in the same process compiles the file as it is then.
+        model = _PRECOMPILED.pop(mjcf.resolve(), None)
         try:
-            model = mujoco.MjModel.from_xml_path(str(mjcf))
+            if model is None:
+                model = mujoco.MjModel.from_xml_path(str(mjcf))
         except ValueError as exc:  # mujoco reports XML, include and compile errors as ValueError
             raise ModelError(
                 f"robot model {mjcf} could not be loaded by MuJoCo: {str(exc).strip()}. "

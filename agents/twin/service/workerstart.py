@@ -2,9 +2,9 @@
 mirror once.
 
 Standard library only, so `twin run` can decide and start the server right after reading its config, before
-its own imports (the agent's runtime, awscrt, the HTTP framework): the server imports NumPy and MuJoCo on
-another core meanwhile (about 0.45 s of CPU), and each worker forked from it, at start or again after a
-crash, skips those imports. Measured in docs/performance.md ("Footprint").
+its own imports (the agent's runtime, awscrt, the HTTP framework): the server imports NumPy, MuJoCo and the
+mirror on another core meanwhile, and compiles the bundled model (twin.service.worker_preload); each worker
+forked from it, at start or again after a crash, skips both. Measured in docs/performance.md ("Footprint").
 """
 
 from __future__ import annotations
@@ -24,8 +24,8 @@ if TYPE_CHECKING:
 # 100 arms at 10 Hz stays in one process (docs/scaling.md, "Workers").
 WORKER_PLAN_RATE = 1000.0
 # What the fork server imports once, before it forks any worker: the worker's entry point and the mirror
-# with NumPy and MuJoCo (each worker then loads the model itself).
-WORKER_PRELOAD = ("twin.service.shards", "twin.service.mirror")
+# with NumPy and MuJoCo, and the bundled model compiled meanwhile (that module's doc).
+WORKER_PRELOAD = ("twin.service.worker_preload",)
 
 
 def usable_cores() -> int:
