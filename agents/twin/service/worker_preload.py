@@ -15,7 +15,6 @@ Measured in docs/performance.md ("Footprint").
 
 from __future__ import annotations
 
-import importlib
 import os
 import threading
 
@@ -26,6 +25,7 @@ from twin.robot.model import default_model_path, precompile
 
 _compile = threading.Thread(target=precompile, args=(default_model_path(),), name="twin-precompile")
 _compile.start()
-for _module in ("twin.service.shards", "twin.service.mirror"):
-    importlib.import_module(_module)
+import twin.service.mirror  # noqa: E402 - the worker's mirror, while the model compiles
+import twin.service.shards  # noqa: E402, F401 - the worker's entry point (worker_main)
+
 _compile.join()
