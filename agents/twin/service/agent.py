@@ -297,7 +297,7 @@ class AgentService:
             if self.plan.count > 1:
                 # Already running when `twin run` started it; otherwise it starts importing now, beside what
                 # follows.
-                start_fork_server()
+                start_fork_server(self.config.twin.model)
             # Connecting and subscribing (TLS and SigV4 to IoT Core) overlap the processes' start, most of a
             # cold start (docs/performance.md, "Footprint"): what arrives meanwhile waits in the shards'
             # queues, bounded as always, and is handed over once each mirror has what it needs below.

@@ -26,6 +26,9 @@ WORKER_PLAN_RATE = 1000.0
 # What the fork server imports once, before it forks any worker: the worker's entry point and the mirror
 # with NumPy and MuJoCo, and the bundled model compiled meanwhile (that module's doc).
 WORKER_PRELOAD = ("twin.service.worker_preload",)
+# The MJCF file the fork server compiles ahead, `[twin] model`: its environment at start is the only thing the
+# server takes from the agent besides its path, so it is passed there (empty: the bundled scene).
+WORKER_MODEL_ENV = "TWIN_WORKER_MODEL"
 
 
 def usable_cores() -> int:
@@ -59,8 +62,18 @@ def worker_context() -> ForkServerContext:
     return context
 
 
-def start_fork_server() -> None:
-    """Start the fork server now, if it does not run yet; it imports WORKER_PRELOAD in the background (a
-    worker's start waits for that, this call does not)."""
+def start_fork_server(model: str = "") -> None:
+    """Start the fork server now, if it does not run yet; it imports WORKER_PRELOAD and compiles `model`
+    (`[twin] model`, empty for the bundled scene) in the background (a worker's start waits for that, this
+    call does not). The variable is set for the server's start only: this process's other children do not
+    see it."""
     worker_context()
-    multiprocessing.forkserver.ensure_running()
+    before = os.environ.get(WORKER_MODEL_ENV)
+    os.environ[WORKER_MODEL_ENV] = os.path.abspath(model) if model else ""
+    try:
+        multiprocessing.forkserver.ensure_running()
+    finally:
+        if before is None:
+            del os.environ[WORKER_MODEL_ENV]
+        else:
+            os.environ[WORKER_MODEL_ENV] = before

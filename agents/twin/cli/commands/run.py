@@ -198,7 +198,7 @@ def _build_service(config: AgentConfig) -> AgentService | int:
     workers = worker_count(config)
     if workers > 1:
         # First: the workers' fork server imports the mirror on another core while this process goes on.
-        start_fork_server()
+        start_fork_server(config.twin.model)
     # awscrt (and for an in-process mirror MuJoCo and USD) load here, not at import: `twin --help` stays fast.
     from twin.ops.sessions import history_sessions
     from twin.service.agent import AgentService
