@@ -10,6 +10,7 @@ import subprocess
 import sys
 import textwrap
 from pathlib import Path
+from typing import Any
 
 import pytest
 from twin.rig.local import child_env
@@ -48,11 +49,12 @@ PROBE = textwrap.dedent(
 )
 
 
-def run_probe(env: dict[str, str]) -> dict[str, object]:
-    """PROBE in a process of its own: the preload imported as the fork server imports it."""
+def run_script(script: str, args: list[str], env: dict[str, str], cwd: Path | None = None) -> dict[str, Any]:
+    """`script` in a Python process of its own; what it printed last, as JSON."""
     done = subprocess.run(
-        [sys.executable, "-c", PROBE, *WORKER_PRELOAD],
+        [sys.executable, "-c", script, *args],
         env=env,
+        cwd=cwd,
         capture_output=True,
         text=True,
         timeout=120,
@@ -60,6 +62,11 @@ def run_probe(env: dict[str, str]) -> dict[str, object]:
     )
     assert done.returncode == 0, done.stderr
     return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def run_probe(env: dict[str, str]) -> dict[str, Any]:
+    """PROBE: the preload imported as the fork server imports it."""
+    return run_script(PROBE, list(WORKER_PRELOAD), env)
 
 
 def test_the_preload_binds_no_gl_imports_the_mirror_and_leaves_the_model_compiled() -> None:
@@ -111,15 +118,5 @@ def test_start_fork_server_passes_the_model_to_the_server_only(model: str, tmp_p
     # `[twin] model` is read from the agent's working directory), the agent's own environment does not.
     env = child_env()
     env.pop(WORKER_MODEL_ENV, None)
-    done = subprocess.run(
-        [sys.executable, "-c", START, model],
-        env=env,
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
-    assert done.returncode == 0, done.stderr
-    got = json.loads(done.stdout.strip().splitlines()[-1])
+    got = run_script(START, [model], env, cwd=tmp_path)
     assert got == {"server": str(tmp_path / model) if model else "", "agent": None}
