@@ -3,7 +3,7 @@ mirror once.
 
 Standard library only, so `twin run` can decide and start the server right after reading its config, before
 its own imports (the agent's runtime, awscrt, the HTTP framework): the server imports NumPy, MuJoCo and the
-mirror on another core meanwhile, and compiles the bundled model (twin.service.worker_preload); each worker
+mirror on another core meanwhile, and compiles the agent's model (twin.service.worker_preload); each worker
 forked from it, at start or again after a crash, skips both. Measured in docs/performance.md ("Footprint").
 """
 
@@ -24,10 +24,11 @@ if TYPE_CHECKING:
 # 100 arms at 10 Hz stays in one process (docs/scaling.md, "Workers").
 WORKER_PLAN_RATE = 1000.0
 # What the fork server imports once, before it forks any worker: the worker's entry point and the mirror
-# with NumPy and MuJoCo, and the bundled model compiled meanwhile (that module's doc).
+# with NumPy and MuJoCo, and the agent's model compiled meanwhile (that module's doc).
 WORKER_PRELOAD = ("twin.service.worker_preload",)
-# The MJCF file the fork server compiles ahead, `[twin] model`: its environment at start is the only thing the
-# server takes from the agent besides its path, so it is passed there (empty: the bundled scene).
+# The MJCF file the fork server compiles ahead, `[twin] model`: besides sys.path, the environment at its start
+# is all the server takes from the agent, so it is passed there (empty: the bundled scene). A server started
+# again by a worker's start (after it died) goes without, and compiles the bundled scene.
 WORKER_MODEL_ENV = "TWIN_WORKER_MODEL"
 
 
