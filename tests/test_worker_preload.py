@@ -102,8 +102,10 @@ START = textwrap.dedent(
     start_fork_server(sys.argv[1])
     proc = f"/proc/{multiprocessing.forkserver._forkserver._forkserver_pid}"
     deadline = time.monotonic() + 60
-    # Until the server has exec'd: before that, /proc shows the spawning fork, not the server.
-    while b"forkserver" not in open(f"{proc}/cmdline", "rb").read() and time.monotonic() < deadline:
+    # Until the server has exec'd: before that, /proc shows the spawning fork, with this script's command line
+    # and the environment this process started with. (Split, so this script's own text does not match.)
+    server_main = b"from multiprocessing.forkserver " + b"import main"
+    while server_main not in open(f"{proc}/cmdline", "rb").read() and time.monotonic() < deadline:
         time.sleep(0.01)
     with open(f"{proc}/environ", "rb") as env:
         server = dict(v.decode().split("=", 1) for v in env.read().split(b"\\0") if b"=" in v)
