@@ -14,6 +14,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 
 import json
 import random
+import shutil
 import threading
 import time
 import urllib.error
@@ -138,6 +139,18 @@ def wait_for(predicate: Callable[[], Any], timeout: float, what: str, interval: 
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout} s waiting for {what}")
         time.sleep(interval)
+
+
+def copy_bundled_scene(directory: Path) -> Path:
+    """The bundled SO-101 scene and arm copied into `directory`, their meshes linked (the MJCF's meshdir is
+    relative to it), for a test that edits or moves the model; returns the scene's path."""
+    from twin.robot.model import default_model_path
+
+    bundled = default_model_path().parent
+    for name in ("so101.xml", "scene.xml"):
+        shutil.copy(bundled / name, directory / name)
+    (directory / "meshes").symlink_to(bundled / "meshes")
+    return directory / "scene.xml"
 
 
 class ManualClock:

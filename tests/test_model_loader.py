@@ -9,18 +9,16 @@ import os
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import logging
-import shutil
 from pathlib import Path
 
 import mujoco
 import pytest
+from conftest import copy_bundled_scene
 from twin.core.modes import TwinMode
 from twin.core.twin import DeviceTwin
 from twin.robot import model as model_module
 from twin.robot import so101
 from twin.robot.model import ModelError, RobotModel, default_model_path, precompile
-
-BUNDLED_DIR = Path(default_model_path()).parent
 
 
 def chain_mjcf(*, site: str | None = None, actuators: str = "position", names: tuple[str, ...] = ()) -> str:
@@ -107,9 +105,7 @@ def test_a_model_that_fails_to_precompile_is_reported_by_its_load(tmp_path: Path
 
 
 def test_renamed_joint_is_named_in_the_error(tmp_path: Path) -> None:
-    for name in ("so101.xml", "scene.xml"):
-        shutil.copy(BUNDLED_DIR / name, tmp_path / name)
-    (tmp_path / "meshes").symlink_to(BUNDLED_DIR / "meshes")  # the MJCF's meshdir is relative to it
+    copy_bundled_scene(tmp_path)
     arm = tmp_path / "so101.xml"
     text = arm.read_text()
     assert 'joint name="elbow_flex"' in text

@@ -13,11 +13,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import copy_bundled_scene
 from twin.rig.local import child_env
-from twin.robot.model import default_model_path
 from twin.service.workerstart import WORKER_MODEL_ENV, WORKER_PRELOAD
-
-BUNDLED = default_model_path().parent
 
 PROBE = textwrap.dedent(
     """
@@ -82,10 +80,7 @@ def test_the_preload_binds_no_gl_imports_the_mirror_and_leaves_the_model_compile
 
 def test_the_preload_compiles_the_configured_model_instead_of_the_bundled_one(tmp_path: Path) -> None:
     # `[twin] model` names another MJCF: that one is compiled ahead, and the bundled scene is not.
-    for name in ("so101.xml", "scene.xml"):
-        (tmp_path / name).write_text((BUNDLED / name).read_text())
-    (tmp_path / "meshes").symlink_to(BUNDLED / "meshes")
-    scene = tmp_path / "scene.xml"
+    scene = copy_bundled_scene(tmp_path)
     env = child_env()
     env[WORKER_MODEL_ENV] = env["PROBE_MODEL"] = str(scene)
     got = run_probe(env)
@@ -96,17 +91,16 @@ def test_the_preload_compiles_the_configured_model_instead_of_the_bundled_one(tm
 
 START = textwrap.dedent(
     """
-    import json, multiprocessing.forkserver, os, sys, time
+    import json, multiprocessing.forkserver, os, pathlib, sys
+    from twin.rig.local import wait_until
     from twin.service.workerstart import WORKER_MODEL_ENV, start_fork_server
 
     start_fork_server(sys.argv[1])
     proc = f"/proc/{multiprocessing.forkserver._forkserver._forkserver_pid}"
-    deadline = time.monotonic() + 60
     # Until the server has exec'd: before that, /proc shows the spawning fork, with this script's command line
     # and the environment this process started with. (Split, so this script's own text does not match.)
     server_main = b"from multiprocessing.forkserver " + b"import main"
-    while server_main not in open(f"{proc}/cmdline", "rb").read() and time.monotonic() < deadline:
-        time.sleep(0.01)
+    wait_until(lambda: server_main in pathlib.Path(f"{proc}/cmdline").read_bytes(), 60, "the server's exec")
     with open(f"{proc}/environ", "rb") as env:
         server = dict(v.decode().split("=", 1) for v in env.read().split(b"\\0") if b"=" in v)
     print(json.dumps({"server": server.get(WORKER_MODEL_ENV), "agent": os.environ.get(WORKER_MODEL_ENV)}))
