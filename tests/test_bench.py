@@ -13,10 +13,12 @@ import os
 import py_compile
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 import pytest
-from twin.bench.footprint import BYTECODE_PROBES, HEALTHZ_CALLS, bytecode_cached
+from conftest import copy_bundled_scene
+from twin.bench.footprint import BYTECODE_PROBES, HEALTHZ_CALLS, bytecode_cached, model_config
 
 pytestmark = pytest.mark.slow
 
@@ -33,9 +35,10 @@ RUN_FIELDS = {
 }
 
 
-def bench(*args: str, timeout: float = 240) -> dict:
+def bench_process(*args: str, timeout: float = 240) -> subprocess.CompletedProcess[str]:
+    """`twin bench <args> --json` run to its end, whatever it returned."""
     env = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
-    proc = subprocess.run(
+    return subprocess.run(
         [sys.executable, "-m", "twin.cli", "bench", *args, "--json"],
         check=False,
         capture_output=True,
@@ -43,6 +46,10 @@ def bench(*args: str, timeout: float = 240) -> dict:
         timeout=timeout,
         env=env,
     )
+
+
+def bench(*args: str, timeout: float = 240) -> dict:
+    proc = bench_process(*args, timeout=timeout)
     assert proc.returncode == 0, proc.stderr[-2000:]
     return json.loads(proc.stdout)
 
@@ -98,6 +105,41 @@ def test_footprint_reports_cold_start_and_memory() -> None:
     cached = figures["bytecode_cached"]
     assert set(cached) == set(BYTECODE_PROBES)
     assert all(cached[name] for name in BYTECODE_PROBES if not name.startswith("twin.")), cached
+
+
+def test_footprint_runs_the_agent_on_the_model_it_is_given(tmp_path: Path) -> None:
+    scene = copy_bundled_scene(tmp_path)
+    figures = bench("footprint", "--arms", "4", "--seconds", "1", "--model", str(scene))
+    assert figures["model"] == str(scene.resolve())
+    assert figures["fleet_devices_mirrored"] == 4
+    # The agent really loads that file: one MuJoCo cannot parse stops it, and the bench says why.
+    broken = tmp_path / "broken.xml"
+    broken.write_text("<mujoco><worldbody>")
+    proc = bench_process("footprint", "--arms", "4", "--seconds", "1", "--model", str(broken))
+    assert proc.returncode == 1
+    assert "the agent exited with code 2" in proc.stderr
+    assert f"robot model {broken} could not be loaded by MuJoCo" in proc.stderr
+
+
+def test_footprint_model_must_be_a_file(tmp_path: Path) -> None:
+    missing = tmp_path / "no-scene.xml"
+    proc = bench_process("footprint", "--model", str(missing))
+    assert proc.returncode == 1
+    assert f"--model {missing}: no such file" in proc.stderr
+    assert proc.stdout == ""
+
+
+def test_model_config_reads_back_as_the_absolute_path(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Quotes and backslashes in a directory name must not break the TOML the agent reads.
+    odd = tmp_path / 'a "quoted" \\ dir'
+    odd.mkdir()
+    (odd / "scene.xml").write_text("<mujoco/>")
+    monkeypatch.chdir(odd)
+    text = model_config("scene.xml")
+    assert tomllib.loads(text) == {"twin": {"model": str(odd / "scene.xml")}}
+    assert model_config(None) == ""
 
 
 def test_bytecode_counts_only_what_python_would_load(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

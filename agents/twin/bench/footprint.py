@@ -1,8 +1,16 @@
-"""Footprint: cold start to the first mirrored pose, and the agent's memory idle and with a large fleet."""
+"""Footprint: cold start to the first mirrored pose, and the agent's memory idle and with a large fleet.
+
+    twin bench footprint [--arms 1000] [--seconds 8] [--model scene.xml] [--json]
+
+`--model` runs the agent with `[twin] model` set to that MJCF file (made absolute here, as the agent's own
+working directory is the rig's), so a custom model's cold start and memory are measured the same way as the
+bundled scene's.
+"""
 
 from __future__ import annotations
 
 import importlib.util
+import json
 import os
 import struct
 import subprocess
@@ -10,6 +18,7 @@ import time
 import urllib.error
 import urllib.request
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import psutil
@@ -64,24 +73,42 @@ def _fork_server_mb(pid: int, workers: Sequence[int]) -> float | None:
     return None
 
 
-def _cold_start_s(rig: LocalRig) -> float:
+def model_config(model: str | Path | None) -> str:
+    """The `[twin] model` section that runs the agent on `model` ("" for the bundled scene); RuntimeError
+    (what `twin bench` reports as a scenario that could not run) when the file is not there, before any
+    agent starts."""
+    if model is None:
+        return ""
+    path = Path(model).expanduser().resolve()
+    if not path.is_file():
+        raise RuntimeError(
+            f"--model {model}: no such file; give the path of an MJCF scene "
+            "(robots/so101/scene.xml is the bundled one)"
+        )
+    # A JSON string is a TOML basic string for any path (quotes, backslashes and non-ASCII escaped alike).
+    return f"[twin]\nmodel = {json.dumps(str(path))}\n"
+
+
+def _cold_start_s(rig: LocalRig, config_text: str = "") -> float:
     """One arm is already publishing when the agent process is spawned; the clock runs from spawn to the
     first pose visible in /state (imports, model load, connect, first message)."""
     pub = start_publisher(rig.broker.url, 1, 1, 10.0, 60.0)
     try:
         time.sleep(1.0)
         started = time.monotonic()
-        with running_agent(rig) as (proc, base):
+        with running_agent(rig, config_text=config_text) as (proc, base):
             return _first_pose_s(base, proc, started)
     finally:
         pub.kill()
         pub.wait(10)
 
 
-def _memory(rig: LocalRig, fleet: int, rate: float, fleet_seconds: float) -> dict[str, Any]:
+def _memory(
+    rig: LocalRig, fleet: int, rate: float, fleet_seconds: float, config_text: str = ""
+) -> dict[str, Any]:
     """RSS idle (connected, no traffic), then with `fleet` arms publishing at `rate` Hz: of each process (the
     agent, then its workers) and in all."""
-    with running_agent(rig) as (proc, base):
+    with running_agent(rig, config_text=config_text) as (proc, base):
         wait_subscribed(base, proc)
         time.sleep(2.0)
         workers = [w.pid for w in get_state(base, timeout=30).agent.workers if w.pid != proc.pid]
@@ -169,13 +196,18 @@ def _has_bytecode(module: str) -> bool:
     )
 
 
-def run(*, fleet: int = 1000, rate: float = 10.0, fleet_seconds: float = 8.0) -> dict[str, Any]:
+def run(
+    *, fleet: int = 1000, rate: float = 10.0, fleet_seconds: float = 8.0, model: str | Path | None = None
+) -> dict[str, Any]:
+    """The cold start and the memory of an agent on the bundled scene, or on `model` (an MJCF file)."""
+    config_text = model_config(model)
     cached = bytecode_cached()
     with LocalRig() as rig:
-        cold = _cold_start_s(rig)
-        memory = _memory(rig, fleet, rate, fleet_seconds)
+        cold = _cold_start_s(rig, config_text)
+        memory = _memory(rig, fleet, rate, fleet_seconds, config_text)
     return {
         "scenario": "footprint",
+        "model": str(Path(model).expanduser().resolve()) if model is not None else None,
         "cold_start_to_first_pose_s": cold,
         "bytecode_cached": cached,
         **memory,

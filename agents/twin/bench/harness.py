@@ -4,6 +4,7 @@ psutil."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import statistics
@@ -137,8 +138,33 @@ def running_agent(
     with rig.agent_process(
         config_text=f"[telemetry]\nmax_devices = {max_devices}\n{config_text}",
         extra_args=extra,
-    ) as running:
-        yield running
+    ) as (proc, base):
+        try:
+            yield proc, base
+        except RuntimeError as exc:
+            # A scenario that found the agent gone says so; the agent's own last word says why (a setting
+            # it refused, say), and its log goes with the rig's directory.
+            reason = exit_reason(rig, base) if proc.poll() is not None else ""
+            if not reason:
+                raise
+            raise RuntimeError(f"{exc}: {reason}") from exc
+
+
+def exit_reason(rig: LocalRig, base_url: str) -> str:
+    """What the agent at `base_url` printed when it exited (`twin run: ...`), from its log in the rig's
+    directory (LocalRig.agent_process names it by the HTTP port); "" when it printed none."""
+    port = base_url.rsplit(":", 1)[-1]
+    try:
+        lines = (rig.workdir / f"agent-{port}.log").read_text(errors="replace").splitlines()
+    except OSError:
+        return ""
+    starts = [i for i, line in enumerate(lines) if line.startswith("twin run: ")]
+    if not starts:
+        return ""
+    # The message may run over lines (a parser's own text); the JSON log lines after it are not part of it.
+    said = [lines[starts[-1]].removeprefix("twin run: ")]
+    said.extend(itertools.takewhile(lambda line: not line.startswith("{"), lines[starts[-1] + 1 :]))
+    return " ".join(line.strip() for line in said if line.strip())
 
 
 def wait_subscribed(base_url: str, proc: subprocess.Popen[bytes], timeout: float = 30.0) -> float:

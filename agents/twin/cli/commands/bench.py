@@ -52,6 +52,7 @@ def _twin_scenarios(sub: Any) -> list[argparse.ArgumentParser]:
     fo = sub.add_parser("footprint", help="cold start to first pose; RSS idle and with a large fleet")
     fo.add_argument("--arms", type=int, default=1000)
     fo.add_argument("--seconds", type=float, default=8.0, help="how long the fleet publishes")
+    fo.add_argument("--model", help="an MJCF scene for the agent's [twin] model (default: the bundled one)")
     return [tp, fi, fo]
 
 
@@ -153,7 +154,7 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
     if args.scenario == "fidelity":
         return _bench("fidelity").run(seconds=args.seconds)
     if args.scenario == "footprint":
-        return _bench("footprint").run(fleet=args.arms, fleet_seconds=args.seconds)
+        return _bench("footprint").run(fleet=args.arms, fleet_seconds=args.seconds, model=args.model)
     if args.scenario == "ros2":
         return _bench("ros2").run(arms=args.arms, rate=args.rate, seconds=args.seconds)
     if args.scenario == "render":
