@@ -30,7 +30,7 @@ from awscrt import mqtt5
 from prometheus_client.parser import text_string_to_metric_families
 from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
 from twin.edge.payload import encode, make_payload
-from twin.rig.local import LocalRig, RigError
+from twin.rig.local import LocalRig, RigError, wait_until
 from twin.rig.mosquitto import MosquittoBroker, MosquittoNotFound, free_port
 from twin.service.agent import AgentService
 from twin.service.config import load_config
@@ -130,15 +130,9 @@ def publisher(rig: LocalRig) -> Iterator[Publisher]:
 
 
 def wait_for(predicate: Callable[[], Any], timeout: float, what: str, interval: float = 0.02) -> Any:
-    """Poll until `predicate()` is truthy and return that value; AssertionError naming `what` on timeout."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(interval)
+    """Poll until `predicate()` is truthy and return that value; AssertionError naming `what` on timeout
+    (the rig's own wait, failing the test rather than the rig)."""
+    return wait_until(predicate, timeout, what, interval, error=AssertionError)
 
 
 def copy_bundled_scene(directory: Path) -> Path:

@@ -269,13 +269,21 @@ def _terminate(proc: subprocess.Popen[bytes], timeout: float = 15.0) -> None:
         proc.wait(5)
 
 
-def wait_until(predicate: Any, timeout: float, what: str, interval: float = 0.02) -> Any:
-    """Poll `predicate` until it returns something truthy (returned) or `timeout` s pass (RigError)."""
+def wait_until(
+    predicate: Any,
+    timeout: float,
+    what: str,
+    interval: float = 0.02,
+    *,
+    error: type[Exception] = RigError,
+) -> Any:
+    """Poll `predicate` until it returns something truthy (returned) or `timeout` s pass (`error`, naming
+    `what`: a RigError for the rig; the tests fail with an AssertionError instead)."""
     deadline = time.monotonic() + timeout
     while True:
         value = predicate()
         if value:
             return value
         if time.monotonic() > deadline:
-            raise RigError(f"timed out after {timeout} s waiting for {what}")
+            raise error(f"timed out after {timeout} s waiting for {what}")
         time.sleep(interval)
