@@ -20,7 +20,14 @@ from twin.core.alarms import AlarmState, ServoAlarms
 from twin.core.telemetry import RAD_PER_TICK, DecoderConfig, TelemetryDecoder, Units
 from twin.core.topics import DEFAULT_TOPIC_PREFIX, topic_filters
 from twin.core.twin import DeviceTwin
-from twin.edge.payload import encode, make_payload, mock_motion_rates, mock_motion_ticks, mock_ticks
+from twin.edge.payload import (
+    encode,
+    make_payload,
+    mock_motion_rates,
+    mock_motion_ticks,
+    mock_ticks,
+    physical_readings,
+)
 from twin.edge.servo_faults import ModelLoads, ServoFault
 from twin.edge.servo_physics import (
     ArmDynamics,
@@ -30,7 +37,7 @@ from twin.edge.servo_physics import (
     parse_speedup,
     payload_model,
 )
-from twin.edge.simulator import EdgeSimConfig
+from twin.edge.simulator import EdgeSimConfig, EdgeSimulator
 from twin.rig.demo import STORY_JOINT, STORY_PAYLOAD_KG, STORY_SPEEDUP
 from twin.rig.mosquitto import MosquittoBroker
 from twin.robot import so101, sts3215
@@ -349,6 +356,39 @@ def test_the_demo_story_raises_the_alarm_on_the_hot_servo_only(robot: RobotModel
     assert hot_kinds["over_temperature"] < 20.0 < hot_kinds["over_temperature_critical"] < 30.0
     assert {joint for joint, _, _ in raised["arm-001"]} == {STORY_JOINT}
     assert 65.0 < peak < sts3215.MAX_TEMPERATURE_C
+
+
+def test_ticks_the_simulator_skips_still_heat_its_servos() -> None:
+    """An edge simulator that fell over a second behind skips ticks unpublished; its servos ran on meanwhile,
+    so their temperatures must come out as if every tick had been taken. The demo once read 70 C after 7 s
+    skipped: the next sample's current had stood for the whole gap."""
+    hot = PhysicalServoConfig(payload_kg=STORY_PAYLOAD_KG, speedup={STORY_JOINT: STORY_SPEEDUP})
+    simulator = EdgeSimulator(
+        EdgeSimConfig(
+            broker=BrokerConfig(url="mqtt://127.0.0.1:1883"),
+            devices=["arm-001"],
+            servos="physical",
+            physical_by_device={"arm-001": hot},
+        )
+    )
+    arm = simulator._arms["arm-001"]
+    every_tick = PhysicalArm(hot, ArmDynamics(payload_model(STORY_PAYLOAD_KG)))
+    one_sample = PhysicalArm(hot, ArmDynamics(payload_model(STORY_PAYLOAD_KG)))
+    period = 0.1
+    for k in range(150):
+        for physical in (arm, every_tick, one_sample):
+            physical_readings(k * period, physical)
+    simulator._skip(150, 70, period)
+    for k in range(150, 220):
+        physical_readings(k * period, every_tick)
+    t = 220 * period
+    hot_after = physical_readings(t, arm)[1][STORY_JOINT].temperature_c
+    expected = physical_readings(t, every_tick)[1][STORY_JOINT].temperature_c
+    assert hot_after == pytest.approx(expected, abs=1e-9)
+    assert simulator.report.skipped_ticks == 70
+    # What the gap did before: one sample's current over 7 s, far from the servo's path and past its cut-out.
+    naive = physical_readings(t, one_sample)[1][STORY_JOINT].temperature_c
+    assert naive > sts3215.MAX_TEMPERATURE_C > expected + 5.0
 
 
 @pytest.mark.slow

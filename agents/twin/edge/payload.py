@@ -27,7 +27,7 @@ from twin.robot import so101, sts3215
 
 if TYPE_CHECKING:
     # Only the physical mode loads MuJoCo: the payloads of the mock mode need none of it.
-    from twin.edge.servo_physics import PhysicalArm
+    from twin.edge.servo_physics import PhysicalArm, ServoReading
 
 VARIANTS: tuple[str, ...] = ("ticks", "degrees")
 # Each kind breaks one rule of the contract a consumer must check; all must be rejected, none may crash it.
@@ -179,11 +179,12 @@ def _mock_joints(t: float, variant: str, rng: random.Random, load_sign: bool) ->
     return joints
 
 
-def _physical_joints(
-    t: float, variant: str, physical: PhysicalArm, faults: tuple[ServoFault, ...]
-) -> dict[str, dict[str, Any]]:
-    """Every joint's readings from the physical servos, encoded as the variant's registers. A joint a fault
-    holds still is computed still, where the fault holds it."""
+def physical_readings(
+    t: float, physical: PhysicalArm, faults: tuple[ServoFault, ...] = ()
+) -> tuple[list[int], dict[str, ServoReading]]:
+    """The mock motion's positions at edge time `t` (ticks, JOINT_NAMES order) and what `physical`'s servos
+    read there, their temperatures integrated up to `t`. A joint a fault holds still is computed still, where
+    the fault holds it. The edge simulator also calls it for ticks it skips without publishing."""
     ticks = mock_ticks(t)
     rates, accelerations = mock_motion_rates(t)
     overrides = overrides_at(faults, t)
@@ -192,7 +193,15 @@ def _physical_joints(
         if o is not None and o.hold_at_s is not None:
             ticks[i] = mock_ticks(o.hold_at_s)[i]
             rates[i] = accelerations[i] = 0.0
-    readings = physical.readings(t, ticks, rates, accelerations)
+    return ticks, physical.readings(t, ticks, rates, accelerations)
+
+
+def _physical_joints(
+    t: float, variant: str, physical: PhysicalArm, faults: tuple[ServoFault, ...]
+) -> dict[str, dict[str, Any]]:
+    """Every joint's readings from the physical servos (`physical_readings`), encoded as the variant's
+    registers."""
+    ticks, readings = physical_readings(t, physical, faults)
     joints: dict[str, dict[str, Any]] = {}
     for name, position in zip(so101.JOINT_NAMES, ticks, strict=True):
         r = readings[name]
