@@ -20,6 +20,7 @@ from twin.core.alarms import AlarmState, ServoAlarms
 from twin.core.telemetry import RAD_PER_TICK, DecoderConfig, TelemetryDecoder, Units
 from twin.core.topics import DEFAULT_TOPIC_PREFIX, topic_filters
 from twin.core.twin import DeviceTwin
+from twin.edge import simulator as simulator_module
 from twin.edge.payload import (
     encode,
     make_payload,
@@ -358,10 +359,9 @@ def test_the_demo_story_raises_the_alarm_on_the_hot_servo_only(robot: RobotModel
     assert 65.0 < peak < sts3215.MAX_TEMPERATURE_C
 
 
-def test_ticks_the_simulator_skips_still_heat_its_servos() -> None:
-    """An edge simulator that fell over a second behind skips ticks unpublished; its servos ran on meanwhile,
-    so their temperatures must come out as if every tick had been taken. The demo once read 70 C after 7 s
-    skipped: the next sample's current had stood for the whole gap."""
+def _skipped_temperature(start: int, gap: int) -> tuple[float, float, float, EdgeSimulator]:
+    """The story's servo at the tick after `gap` ticks skipped from tick `start`: (through the simulator's
+    skip, stepped through every tick, given only that next sample), and the simulator."""
     hot = PhysicalServoConfig(payload_kg=STORY_PAYLOAD_KG, speedup={STORY_JOINT: STORY_SPEEDUP})
     simulator = EdgeSimulator(
         EdgeSimConfig(
@@ -371,24 +371,51 @@ def test_ticks_the_simulator_skips_still_heat_its_servos() -> None:
             physical_by_device={"arm-001": hot},
         )
     )
-    arm = simulator._arms["arm-001"]
+    skipped = simulator._arms["arm-001"]
     every_tick = PhysicalArm(hot, ArmDynamics(payload_model(STORY_PAYLOAD_KG)))
     one_sample = PhysicalArm(hot, ArmDynamics(payload_model(STORY_PAYLOAD_KG)))
     period = 0.1
-    for k in range(150):
-        for physical in (arm, every_tick, one_sample):
+    for k in range(start):
+        for physical in (skipped, every_tick, one_sample):
             physical_readings(k * period, physical)
-    simulator._skip(150, 70, period)
-    for k in range(150, 220):
+    simulator._skip(start, gap, period)
+    for k in range(start, start + gap):
         physical_readings(k * period, every_tick)
-    t = 220 * period
-    hot_after = physical_readings(t, arm)[1][STORY_JOINT].temperature_c
-    expected = physical_readings(t, every_tick)[1][STORY_JOINT].temperature_c
-    assert hot_after == pytest.approx(expected, abs=1e-9)
+    t = (start + gap) * period
+    return (
+        physical_readings(t, skipped)[1][STORY_JOINT].temperature_c,
+        physical_readings(t, every_tick)[1][STORY_JOINT].temperature_c,
+        physical_readings(t, one_sample)[1][STORY_JOINT].temperature_c,
+        simulator,
+    )
+
+
+def test_ticks_the_simulator_skips_still_heat_its_servos() -> None:
+    """An edge simulator that fell over a second behind skips ticks unpublished; its servos ran on meanwhile,
+    so their temperatures must come out as if every tick had been taken. The demo once read 70 C after 7 s
+    skipped: the next sample's current had stood for the whole gap."""
+    skipped, expected, naive, simulator = _skipped_temperature(150, 70)
+    assert skipped == pytest.approx(expected, abs=1e-9)
     assert simulator.report.skipped_ticks == 70
     # What the gap did before: one sample's current over 7 s, far from the servo's path and past its cut-out.
-    naive = physical_readings(t, one_sample)[1][STORY_JOINT].temperature_c
     assert naive > sts3215.MAX_TEMPERATURE_C > expected + 5.0
+
+
+def test_a_long_skip_is_stepped_on_a_bounded_grid(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A large physical fleet must not fall further behind catching up: a skip takes at most
+    MAX_SKIPPED_READINGS readings in all, spread over the gap, and still lands near the servo's path."""
+    monkeypatch.setattr(simulator_module, "MAX_SKIPPED_READINGS", 10)
+    calls: list[float] = []
+    stepped = simulator_module.physical_readings
+
+    def counted(t: float, physical: PhysicalArm, faults: tuple = ()) -> object:
+        calls.append(t)
+        return stepped(t, physical, faults)
+
+    monkeypatch.setattr(simulator_module, "physical_readings", counted)
+    skipped, expected, naive, _ = _skipped_temperature(150, 70)
+    assert len(calls) == 10 and calls[-1] == pytest.approx(219 * 0.1)
+    assert abs(skipped - expected) < 1.0 < naive - expected
 
 
 @pytest.mark.slow

@@ -41,6 +41,9 @@ log = logging.getLogger(__name__)
 
 # IoT Core: at most 100 publishes/s per connection, excess discarded (docs/aws-facts.md, "IoT Core quotas").
 IOT_PUBLISHES_PER_CONNECTION = 100
+# A skip steps the physical servos' thermal models through at most this many readings in all (about 60 us
+# each): every skipped tick of a few arms, a coarser grid for many (EdgeSimulator._skip).
+MAX_SKIPPED_READINGS = 600
 
 
 @dataclass
@@ -294,15 +297,22 @@ class EdgeSimulator:
 
     def _skip(self, k: int, behind: int, period: float) -> None:
         """Ticks k .. k + behind - 1 go unpublished. The physical servos ran on meanwhile: their temperatures
-        integrate over each skipped tick as over a published one. Otherwise the next sample's current would
+        integrate over the skipped ticks as over published ones. Otherwise the next sample's current would
         stand for the whole gap (a gap of seconds at a thermal speed-up of 80 is minutes of heating at one
         instant's current: the demo's servo once read 70 C after 7 s skipped, where every tick taken keeps it
-        at or below 69 C for the demo's longest run)."""
+        at or below 69 C for the demo's longest run). At most MAX_SKIPPED_READINGS readings in all, spread
+        evenly over the gap and ending on its last tick: every tick for the demo's arms, fewer for a large
+        physical fleet, which must not fall further behind catching up."""
         self.report.skipped_ticks += behind
+        arms = self._arms
+        if not arms:
+            return
+        steps = max(1, min(behind, MAX_SKIPPED_READINGS // len(arms)))
         faults = self.config.servo_faults
-        for j in range(k, k + behind):
-            for arm in self._arms.values():
-                physical_readings(j * period, arm, faults)
+        for n in range(1, steps + 1):
+            t = (k - 1 + round(n * behind / steps)) * period
+            for arm in arms.values():
+                physical_readings(t, arm, faults)
 
     def _emit(self, device: str, t: float, now_ms: int, connection: _Connection) -> None:
         faults = self.config.faults
