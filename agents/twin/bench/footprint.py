@@ -73,13 +73,18 @@ def _fork_server_mb(pid: int, workers: Sequence[int]) -> float | None:
     return None
 
 
+def model_path(model: str | Path | None) -> Path | None:
+    """`model` as the absolute path the agent is given (None: the bundled scene)."""
+    return None if model is None else Path(model).expanduser().resolve()
+
+
 def model_config(model: str | Path | None) -> str:
     """The `[twin] model` section that runs the agent on `model` ("" for the bundled scene); RuntimeError
     (what `twin bench` reports as a scenario that could not run) when the file is not there, before any
     agent starts."""
-    if model is None:
+    path = model_path(model)
+    if path is None:
         return ""
-    path = Path(model).expanduser().resolve()
     if not path.is_file():
         raise RuntimeError(
             f"--model {model}: no such file; give the path of an MJCF scene "
@@ -207,7 +212,7 @@ def run(
         memory = _memory(rig, fleet, rate, fleet_seconds, config_text)
     return {
         "scenario": "footprint",
-        "model": str(Path(model).expanduser().resolve()) if model is not None else None,
+        "model": str(path) if (path := model_path(model)) is not None else None,
         "cold_start_to_first_pose_s": cold,
         "bytecode_cached": cached,
         **memory,

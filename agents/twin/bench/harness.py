@@ -152,10 +152,9 @@ def running_agent(
 
 def exit_reason(rig: LocalRig, base_url: str) -> str:
     """What the agent at `base_url` printed when it exited (`twin run: ...`), from its log in the rig's
-    directory (LocalRig.agent_process names it by the HTTP port); "" when it printed none."""
-    port = base_url.rsplit(":", 1)[-1]
+    directory (LocalRig.agent_log); "" when it printed none."""
     try:
-        lines = (rig.workdir / f"agent-{port}.log").read_text(errors="replace").splitlines()
+        lines = rig.agent_log(base_url.rsplit(":", 1)[-1]).read_text(errors="replace").splitlines()
     except OSError:
         return ""
     starts = [i for i, line in enumerate(lines) if line.startswith("twin run: ")]

@@ -189,7 +189,7 @@ class LocalRig:
             config = self.workdir / f"{log_name}-{port}.toml"
             config.write_text(config_text)
             config_args = ["--config", str(config)]
-        log_path = self.workdir / f"{log_name}-{port}.log"
+        log_path = self.agent_log(port, log_name)
         cmd = [
             sys.executable,
             "-m",
@@ -210,6 +210,11 @@ class LocalRig:
                 yield proc, f"http://127.0.0.1:{port}"
             finally:
                 _terminate(proc)
+
+    def agent_log(self, port: int | str, log_name: str = "agent") -> Path:
+        """Where `agent_process` writes the output of the agent serving HTTP on `port` (kept until the rig
+        closes)."""
+        return self.workdir / f"{log_name}-{port}.log"
 
     # -- the edge -----------------------------------------------------------------------------------------
 
