@@ -39,6 +39,7 @@ from twin.output.history import (
     raw_column,
     telemetry_table,
 )
+from twin.output.history_feed import WRITER_NICE
 from twin.output.sinks import AppliedSample, RejectedSample
 from twin.service.state import HistoryState
 
@@ -636,6 +637,18 @@ def test_the_agent_keeps_every_decoded_message_also_those_the_twin_ignores(tmp_p
     assert rows_of(uri, REJECTED_TABLE).height == 2
 
 
+def _thread_nices(pid: int) -> list[int]:
+    """The nice value of each thread of process `pid` (Linux keeps one per thread)."""
+    nices = []
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            nices.append(os.getpriority(os.PRIO_PROCESS, int(tid)))
+        except ProcessLookupError:  # a pool thread that ended after the listing
+            continue
+    assert nices, f"no threads listed for process {pid}"
+    return nices
+
+
 def test_the_writer_process_writes_what_it_received_and_a_crash_is_counted_and_survived(
     tmp_path: Path,
 ) -> None:
@@ -680,6 +693,11 @@ def test_the_writer_process_writes_what_it_received_and_a_crash_is_counted_and_s
 
         feed(0, 20)
         wait_for(lambda: history().rows_committed == 20, 60, "the first 20 rows committed")
+        writer_pid = history().writer_pid
+        assert writer_pid is not None
+        # It commits at a lower priority than the mirrors, in every thread (deltalake's have run by now).
+        assert set(_thread_nices(writer_pid)) == {min(19, os.nice(0) + WRITER_NICE)}
+        assert set(_thread_nices(os.getpid())) == {os.nice(0)}
         feed(20, 7)
         wait_for(lambda: history().rows_received == 27, 60, "7 more rows in the writer, not yet committed")
         first = history()
@@ -692,6 +710,8 @@ def test_the_writer_process_writes_what_it_received_and_a_crash_is_counted_and_s
             return state if state.writer_restarts == 1 and running else None
 
         again = wait_for(restarted, 60, "the history writer started again")
+        assert again.writer_pid is not None
+        assert set(_thread_nices(again.writer_pid)) == {min(19, os.nice(0) + WRITER_NICE)}
         assert again.rows_lost == 7  # received, not committed when it died: counted
         # ... and paged: CloudWatch's history drops include them, its worker restarts the writer's.
         from twin.service.agent import fleet_totals

@@ -64,6 +64,12 @@ ASK_TIMEOUT_S = 10.0
 # A writer that dies within this long of starting is started again after a growing pause.
 QUICK_DEATH_S = 30.0
 MAX_RESTART_PAUSE_S = 60.0
+# The writer process runs this much nicer than the mirrors (os.nice; its threads, deltalake's included, and
+# its maintenance process inherit it). Its commits are bursts of Parquet encoding every commit_every_s; at the
+# same priority they took the mirrors' cores and showed as their p99. At 5 its scheduler weight is a third of
+# a mirror's: on a host with a core to spare (1,000 arms here) it still gets all it needs; on a saturated one
+# it falls behind first, and its lag and the feeds' bounded queues take that (docs/performance.md, "History").
+WRITER_NICE = 5
 
 # A rejected message is kept up to this many bytes (its whole length is stored too): HistorySettings' default,
 # here so a mirror cuts the payload before it crosses the socket without loading pyarrow.
@@ -286,6 +292,8 @@ def writer_main(
     # Before deltalake loads (it reads them once): its allocator's settings for a process that commits every
     # few seconds for weeks (twin.core.heap says why); the maintenance process inherits them.
     heap.tune_deltalake_allocator()
+    # Before any thread starts: Linux keeps a nice value per thread, and a new thread takes its creator's.
+    os.nice(WRITER_NICE)
     # pyarrow and deltalake load here only: neither the receiving process nor a mirror carries them.
     from twin.output.history import HistorySettings, HistoryWriter  # noqa: PLC0415
 
@@ -669,6 +677,7 @@ class HistoryProcess:
 
 __all__ = [
     "REJECTED_PAYLOAD_MAX_BYTES",
+    "WRITER_NICE",
     "HistoryFeed",
     "HistoryFigures",
     "HistoryLink",
