@@ -207,7 +207,7 @@ KEY_DOCS: dict[str, str] = {
     ),
     "history.queue_max": (
         "Each mirror's queue of rows in front of the history writer process, which fills only while the "
-        "writer is out of reach; beyond, the oldest are dropped and counted."
+        "writer is out of reach or behind (a saturated host); beyond, the oldest are dropped and counted."
     ),
     "history.maintain_every_s": (
         "Compaction, checkpoint and vacuum interval; 0 = never (another writer maintains)."
