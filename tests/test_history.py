@@ -16,7 +16,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -637,16 +637,23 @@ def test_the_agent_keeps_every_decoded_message_also_those_the_twin_ignores(tmp_p
     assert rows_of(uri, REJECTED_TABLE).height == 2
 
 
-def _thread_nices(pid: int) -> list[int]:
-    """The nice value of each thread of process `pid` (Linux keeps one per thread)."""
+def _nices(thread_ids: Iterable[int | None]) -> list[int]:
+    """The nice value of each of these threads (Linux keeps one per thread) that is still running."""
     nices = []
-    for tid in os.listdir(f"/proc/{pid}/task"):
+    for tid in thread_ids:
+        if tid is None:
+            continue
         try:
-            nices.append(os.getpriority(os.PRIO_PROCESS, int(tid)))
+            nices.append(os.getpriority(os.PRIO_PROCESS, tid))
         except ProcessLookupError:  # a pool thread that ended after the listing
             continue
-    assert nices, f"no threads listed for process {pid}"
+    assert nices, "none of the threads is running"
     return nices
+
+
+def _thread_nices(pid: int) -> list[int]:
+    """The nice value of each thread of process `pid`."""
+    return _nices(int(tid) for tid in os.listdir(f"/proc/{pid}/task"))
 
 
 def test_the_writer_process_writes_what_it_received_and_a_crash_is_counted_and_survived(
@@ -697,7 +704,9 @@ def test_the_writer_process_writes_what_it_received_and_a_crash_is_counted_and_s
         assert writer_pid is not None
         # It commits at a lower priority than the mirrors, in every thread (deltalake's have run by now).
         assert set(_thread_nices(writer_pid)) == {min(19, os.nice(0) + WRITER_NICE)}
-        assert set(_thread_nices(os.getpid())) == {os.nice(0)}
+        # The agent's own threads keep the test's. Only the Python threads: a native library may run a thread
+        # of its own lower (Mesa's shader-cache thread runs at 19 once a test has rendered in this process).
+        assert set(_nices(t.native_id for t in threading.enumerate())) == {os.nice(0)}
         feed(20, 7)
         wait_for(lambda: history().rows_received == 27, 60, "7 more rows in the writer, not yet committed")
         first = history()
