@@ -703,7 +703,8 @@ def test_the_writer_process_writes_what_it_received_and_a_crash_is_counted_and_s
         writer_pid = history().writer_pid
         assert writer_pid is not None
         # It commits at a lower priority than the mirrors, in every thread (deltalake's have run by now).
-        assert set(_thread_nices(writer_pid)) == {min(19, os.nice(0) + WRITER_NICE)}
+        writer_nice = min(19, os.nice(0) + WRITER_NICE)
+        assert set(_thread_nices(writer_pid)) == {writer_nice}
         # The agent's own threads keep the test's. Only the Python threads: a native library may run a thread
         # of its own lower (Mesa's shader-cache thread runs at 19 once a test has rendered in this process).
         assert set(_nices(t.native_id for t in threading.enumerate())) == {os.nice(0)}
@@ -720,7 +721,7 @@ def test_the_writer_process_writes_what_it_received_and_a_crash_is_counted_and_s
 
         again = wait_for(restarted, 60, "the history writer started again")
         assert again.writer_pid is not None
-        assert set(_thread_nices(again.writer_pid)) == {min(19, os.nice(0) + WRITER_NICE)}
+        assert set(_thread_nices(again.writer_pid)) == {writer_nice}
         assert again.rows_lost == 7  # received, not committed when it died: counted
         # ... and paged: CloudWatch's history drops include them, its worker restarts the writer's.
         from twin.service.agent import fleet_totals
