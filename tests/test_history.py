@@ -10,6 +10,7 @@ from __future__ import annotations
 import datetime as dt
 import itertools
 import json
+import logging
 import os
 import random
 import subprocess
@@ -657,11 +658,12 @@ def _thread_nices(pid: int) -> list[int]:
 
 
 def test_the_writer_process_writes_what_it_received_and_a_crash_is_counted_and_survived(
-    tmp_path: Path,
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     """History is written by a process of its own. It commits every row the mirror handed it; when it dies
     holding rows not yet committed, the agent counts them as lost, starts it again, and the mirror's feed
-    carries on with the new one: nothing else goes missing."""
+    carries on with the new one. Rows the feed had written into the dead writer's socket are counted at the
+    stop: nothing goes missing uncounted."""
     import signal
 
     from twin.rig.mosquitto import free_port
@@ -684,6 +686,7 @@ def test_the_writer_process_writes_what_it_received_and_a_crash_is_counted_and_s
     )
     rng = random.Random(8)
     t0 = int(time.time() * 1000)
+    caplog.set_level(logging.INFO, logger="twin.service.agent")
     agent = AgentService(config)
     agent.start()
     try:
@@ -712,6 +715,16 @@ def test_the_writer_process_writes_what_it_received_and_a_crash_is_counted_and_s
         wait_for(lambda: history().rows_received == 27, 60, "7 more rows in the writer, not yet committed")
         first = history()
         assert first.writer_pid is not None and first.writer_pid != os.getpid()
+        # Stopped, it reads nothing more: 4 rows go into its socket, delivered as far as the feed can tell.
+        # (The agent's state would wait for the stopped writer's figures: the mirror's own report is read.)
+        os.kill(first.writer_pid, signal.SIGSTOP)
+        feed(27, 4)
+
+        def delivered() -> int:
+            assert agent._mirror is not None
+            return next(s.delivered for s in agent._mirror.report().sinks if s.name == "history")
+
+        wait_for(lambda: delivered() == 31, 60, "4 rows written into the stopped writer's socket")
         os.kill(first.writer_pid, signal.SIGKILL)
 
         def restarted() -> HistoryState | None:
@@ -731,17 +744,113 @@ def test_the_writer_process_writes_what_it_received_and_a_crash_is_counted_and_s
         samples = get_metrics(agent.http_url)
         assert metric(samples, "twin_history_rows_lost_total") == 7
         assert metric(samples, "twin_history_writer_restarts_total") == 1
-        feed(27, 20)
+        feed(31, 20)
         # The figures run on across the restart.
         wait_for(lambda: history().rows_committed == 40, 60, "the new writer's first commit")
         assert history().rows_received == 27 + 20
     finally:
         agent.stop()
+    # The 4 no writer read are counted at the stop, in the agent's last line and with the rows lost.
+    line = next(r for r in caplog.records if r.getMessage().startswith("agent stopped"))
+    assert line.levelno == logging.ERROR and "4 history_rows_unread" in line.getMessage()
+    assert line.unwritten == {"history_rows_unread": 4}  # type: ignore[attr-defined]
+    assert agent.state().agent.history.rows_lost == 7 + 4  # type: ignore[union-attr]
     rows = rows_of(uri)
-    # The 20 before the crash and the 20 after; the 7 the dead writer held are the ones counted lost.
+    # The 20 before the crash and the 20 after; the 7 the dead writer held and the 4 it never read are the
+    # ones counted lost.
     assert rows.height == 40
     stamps = sorted(rows["edge_time"].dt.epoch("ms").to_list())
-    assert stamps == [t0 + 100 * i for i in (*range(20), *range(27, 47))]
+    assert stamps == [t0 + 100 * i for i in (*range(20), *range(31, 51))]
+
+
+def test_rows_left_unread_in_a_dead_writers_socket_are_counted_at_the_stop(tmp_path: Path) -> None:
+    """A feed counts a row delivered once it is in the writer's socket. Rows a writer never read (it died, or
+    stopped reading at its budget) reach no table and no counter of the writer's: at the stop, the agent
+    gives the feeds' delivered rows to `count_unread`, which counts the difference as lost."""
+    import multiprocessing
+    import signal
+
+    from twin.output.history_feed import HistoryFeed, HistoryProcess
+
+    uri = str(tmp_path / "history")
+    # No commit before the stop: the rows a writer holds when it dies are its, the unread ones are not.
+    settings = {"uri": uri, "commit_every_s": 3600.0, "commit_every_rows": 10_000}
+    history = HistoryProcess(settings, multiprocessing.get_context("spawn"))
+    history.launch()
+    feed = HistoryFeed(history.link, max_pending=1000, payload_max_bytes=64)
+    stamp = itertools.count(1_700_000_000_000, 100)
+
+    def send(count: int) -> None:
+        for _ in range(count):
+            feed.telemetry(("arm-001", time.time(), next(stamp), "ticks", (0.0,) * 6, b"{}"))
+
+    try:
+        send(10)
+        wait_for(lambda: history.figures().rows_received == 10, 30, "10 rows read by the writer")
+        first = history.pid
+        assert first is not None
+        os.kill(first, signal.SIGSTOP)  # it reads nothing more; the socket takes what the feed writes
+        send(5)
+        wait_for(lambda: feed.stats().delivered == 15, 30, "5 more rows in the stopped writer's socket")
+        os.kill(first, signal.SIGKILL)
+
+        def restarted() -> bool:
+            history.supervise()
+            return history.alive and history.pid != first
+
+        wait_for(restarted, 120, "the writer started again")
+        # The 10 it had read are counted lost when it died; the 5 in its socket are not known yet.
+        assert history.figures().rows_lost == 10
+        send(3)
+        feed.close(timeout=30.0)  # the new writer gets these 3
+        assert feed.stats().delivered == 18 and feed.stats().pending == 0
+    finally:
+        feed.close(timeout=1.0)
+        history.stop(timeout=30.0)
+    assert history.figures().rows_received == 13
+    assert history.unwritten_rows() == 0  # the new writer committed its 3 at the stop
+    assert history.count_unread(feed.stats().delivered) == 5
+    assert history.figures().rows_lost == 10 + 5
+    assert rows_of(uri).height == 3
+
+
+def test_at_the_stop_the_writer_reads_each_feed_to_its_end_for_half_the_budget(tmp_path: Path) -> None:
+    """The agent stops the writer once every feed has closed, so what the sockets hold is all there is; the
+    writer reads it to the end for up to half its budget, however long that takes, then commits. Here a feed
+    still sends 6 s into the stop (as a writer that reads slowly on a saturated host sees it): with a 20 s
+    budget every row is written; a reading window of a fixed 5 s (as before) lost them."""
+    import multiprocessing
+
+    from twin.output.history_feed import HistoryFeed, HistoryProcess
+
+    uri = str(tmp_path / "history")
+    history = HistoryProcess(
+        {"uri": uri, "commit_every_s": 3600.0, "commit_every_rows": 10_000},
+        multiprocessing.get_context("spawn"),
+    )
+    history.launch()
+    feed = HistoryFeed(history.link, max_pending=1000, payload_max_bytes=64)
+    stamp = itertools.count(1_700_000_000_000, 100)
+
+    def send(count: int) -> None:
+        for _ in range(count):
+            feed.telemetry(("arm-001", time.time(), next(stamp), "ticks", (0.0,) * 6, b"{}"))
+
+    stopper = threading.Thread(target=history.stop, kwargs={"timeout": 20.0})
+    try:
+        send(10)
+        wait_for(lambda: history.figures().rows_received == 10, 30, "the feed connected and read")
+        stopper.start()
+        # Not a wait for something to happen: the late feed is the case under test (longer than 5 s).
+        time.sleep(6.0)
+        send(5)
+    finally:
+        feed.close(timeout=10.0)
+        stopper.join(30.0)
+    assert not stopper.is_alive()
+    assert feed.stats().delivered == 15
+    assert history.unwritten_rows() == 0 and history.count_unread(15) == 0
+    assert rows_of(uri).height == 15
 
 
 def test_a_feed_that_cannot_reach_the_writer_keeps_its_bound_and_counts_what_it_drops(tmp_path: Path) -> None:
@@ -756,11 +865,15 @@ def test_a_feed_that_cannot_reach_the_writer_keeps_its_bound_and_counts_what_it_
             feed.telemetry(("arm-001", 1.0 + i, 1_700_000_000_000 + i, "ticks", (0.0,) * 6, b"{}"))
         stats = feed.stats()
         assert feed.handed == 120
-        # At most max_pending wait; the feed's thread may hold one batch it took before the queue filled.
-        assert stats.dropped >= 120 - 2 * 50 and stats.pending <= 50
+        # At most max_pending wait in the queue, and the feed's thread may hold one batch it took before the
+        # queue filled.
+        assert stats.dropped >= 120 - 2 * 50 and stats.pending <= 2 * 50
         assert stats.delivered == 0
         wait_for(lambda: feed.stats().errors > 0, 30, "the feed to try the writer")
-        assert "history writer out of reach" in feed.stats().last_error
+        stats = feed.stats()
+        assert "history writer out of reach" in stats.last_error
+        # Every row handed is waiting (the batch in the thread's hand too) or dropped and counted.
+        assert stats.dropped + stats.pending == 120 and stats.delivered == 0
     finally:
         feed.close(timeout=1.0)
 

@@ -139,6 +139,7 @@ class HistoryFeed:
         self._closing = threading.Event()
         self._drop_lock = threading.Lock()
         self._handed = 0  # written by the mirror's thread only
+        self._in_hand = 0  # the rows of the batch the feed's thread took and has not delivered yet
         self._delivered = 0
         self._dropped = 0
         self._errors = 0
@@ -173,13 +174,14 @@ class HistoryFeed:
                 self._dropped += 1
 
     def stats(self) -> SinkStats:
-        """As a sink's: rows delivered to the writer process, dropped, waiting (`skipped`: none)."""
+        """As a sink's: rows delivered to the writer process, dropped, waiting (`skipped`: none; `pending`
+        includes the batch the feed's thread holds)."""
         return SinkStats(
             name=self.name,
             delivered=self._delivered,
             dropped=self._dropped,
             errors=self._errors,
-            pending=len(self._telemetry) + len(self._rejected),
+            pending=len(self._telemetry) + len(self._rejected) + self._in_hand,
             last_error=self._last_error,
         )
 
@@ -202,6 +204,7 @@ class HistoryFeed:
             closing = self._closing.wait(HAND_OFF_S)
             if batch is None:
                 batch = self._take()
+                self._in_hand = batch.rows if batch is not None else 0
             if batch is not None and self._send(batch):
                 batch = None
                 continue
@@ -245,6 +248,7 @@ class HistoryFeed:
             self._last_error = f"history writer out of reach: {exc}"
             return False
         self._delivered += batch.rows
+        self._in_hand = 0
         return True
 
 
@@ -351,7 +355,7 @@ class _Receiver:
             for ready in wait([self.control, *feeds], timeout=0.2):
                 if ready is self.control:
                     if not self._answer():
-                        self._finish(feeds)
+                        self._finish()
                         return
                     continue
                 assert isinstance(ready, Connection)
@@ -421,21 +425,37 @@ class _Receiver:
                 self.feeds.remove(conn)
         conn.close()
 
-    def _finish(self, feeds: list[Connection]) -> None:
-        """Read what the feeds still send until they hang up (they close after delivering), then commit."""
+    def _finish(self) -> None:
+        """Read what the feeds still send until every one has hung up (they close after delivering), then
+        commit."""
         from twin.output.history import REJECTED_TABLE, TELEMETRY_TABLE  # noqa: PLC0415
 
         started = time.monotonic()
         budget = self._stop_timeout_s
-        deadline = started + min(5.0, budget / 4.0)
-        while feeds and time.monotonic() < deadline:
+        # The agent stops the writer after every mirror has closed its feed, so what the sockets hold is all
+        # there is: read it to the end, for up to half the budget (the rest is the last commit's). A fixed 5 s
+        # could end first on a saturated host, where this writer runs nicer than everything else, and what it
+        # left in the sockets reached no table (the agent counts such rows at its stop: unread_rows).
+        deadline = started + budget / 2.0
+        while time.monotonic() < deadline:
+            with self._lock:
+                feeds = list(self.feeds)
+            if not feeds:
+                break
             for ready in wait(feeds, timeout=0.2):
                 assert isinstance(ready, Connection)
                 try:
                     self._write(pickle.loads(ready.recv_bytes()), TELEMETRY_TABLE, REJECTED_TABLE)
                 except (EOFError, OSError):
-                    feeds.remove(ready)
-                    ready.close()
+                    self._forget(ready)
+        with self._lock:
+            if self.feeds:
+                log.error(
+                    "history writer: %d feed(s) still sending after %.0f s of the stop; what they had not "
+                    "sent is not written",
+                    len(self.feeds),
+                    budget / 2.0,
+                )
         self._closed = True
         self.listener.close()
         # Retrying the last commit for what is left of the budget, less a moment for the answer: the agent
@@ -575,15 +595,30 @@ class HistoryProcess:
                 commits=stats.commits + before[_COMMITS],
                 rows_dropped=stats.rows_dropped + before[_DROPPED],
             )
-        counters = self._counters
-        received = counters[_RECEIVED] + counters[_REJECTED_RECEIVED]
         return HistoryFigures(
             stats=stats,
             pid=self.pid if self.alive else None,
             restarts=self.restarts,
-            rows_received=received + before[_RECEIVED] + before[_REJECTED_RECEIVED],
+            rows_received=self._received(),
             rows_lost=self._rows_lost,
         )
+
+    def _received(self) -> int:
+        """The rows every writer process read from the feeds, all told."""
+        before = self._before
+        received = before[_RECEIVED] + before[_REJECTED_RECEIVED]
+        if self._restart_at is None:  # else the dead writer's counters are in `before` already
+            counters = self._counters
+            received += counters[_RECEIVED] + counters[_REJECTED_RECEIVED]
+        return received
+
+    def count_unread(self, delivered: int) -> int:
+        """After `stop`, given the rows every feed wrote to a writer's socket (`delivered`, all told): those
+        no writer read, left in the socket of one that died or of the last one after it stopped reading.
+        They are counted as lost (`rows_lost`) and returned."""
+        unread = max(0, delivered - self._received())
+        self._rows_lost += unread
+        return unread
 
     def _ask(self) -> WriterFigures | None:
         with self._lock:

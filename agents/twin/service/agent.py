@@ -368,6 +368,7 @@ class AgentService:
             # Last of the budget: every mirror's feed has handed over its rows; the writer commits them (a
             # store that fails is retried until the budget ends), then exits.
             self._history.stop(max(HISTORY_STOP_MIN_S, deadline - time.monotonic()))
+        unwritten, killed = self._unwritten()
         if self._alerts is not None:
             # After the last events were collected: what is pending still goes out, with at least a few
             # seconds of its own when the workers took the whole budget (systemd's stop timeout leaves them).
@@ -377,7 +378,7 @@ class AgentService:
         if self._http is not None:
             self._http.stop()
         self._running = False
-        self._report_stop(budget)
+        self._report_stop(budget, unwritten, killed)
 
     def _stop_shards(self, deadline: float) -> None:
         # Closed together, so the workers hand over and flush in parallel, then waited for one by one.
@@ -386,8 +387,9 @@ class AgentService:
         for shard in self._shards:
             self.stop_reports[shard.index] = shard.join(deadline)
 
-    def _report_stop(self, budget: float) -> None:
-        """One line: the agent stopped, and what it could not write (ERROR when anything)."""
+    def _unwritten(self) -> tuple[Counter[str], list[int]]:
+        """After the shards and the history writer stopped: what they could not write, by kind
+        (`history_rows`, `history_rows_unread`, `<sink>_samples`), and the workers killed at the budget."""
         unwritten: Counter[str] = Counter()
         killed = []
         for index, report in sorted(self.stop_reports.items()):
@@ -395,11 +397,20 @@ class AgentService:
                 killed.append(index)
             else:
                 unwritten.update(report.unwritten)
-        if self._history is not None:
+        history = self._history
+        if history is not None:
             # The writer process's own: what it could not commit before it ended.
-            rows = self._history.unwritten_rows()
-            if rows:
-                unwritten["history_rows"] += rows
+            unwritten["history_rows"] += history.unwritten_rows()
+            # What the feeds wrote to a writer's socket and no writer read (one died, or the last stopped
+            # reading at its budget): nothing else sees these. A worker started again took its feed's figure
+            # with it, and a killed one never said it: then the sum is not known.
+            if not killed and not any(shard.restarts for shard in self._shards):
+                delivered = sum(r.history_delivered for r in self.stop_reports.values() if r is not None)
+                unwritten["history_rows_unread"] += history.count_unread(delivered)
+        return +unwritten, killed  # unary plus: the kinds with nothing unwritten go
+
+    def _report_stop(self, budget: float, unwritten: Counter[str], killed: list[int]) -> None:
+        """One line: the agent stopped, and what it could not write (ERROR when anything)."""
         fields = {"unwritten": dict(unwritten), "workers_killed": killed, "shutdown_budget_s": budget}
         if unwritten or killed:
             log.error(

@@ -605,13 +605,15 @@ class Mirror:
             pending = sink.stats().pending
             if pending:
                 unwritten[f"{sink.name}_samples"] = pending
+        delivered = 0
         if self._history is not None:
-            rows = self._history.stats().pending
-            if rows:
-                unwritten["history_rows"] = rows
+            feed = self._history.stats()
+            if feed.pending:
+                unwritten["history_rows"] = feed.pending
+            delivered = feed.delivered
         with self._lock:
             alarms = tuple(self._alarms.records())
-        return StopReport(unwritten=unwritten, alarms=alarms)
+        return StopReport(unwritten=unwritten, alarms=alarms, history_delivered=delivered)
 
     @property
     def running(self) -> bool:
@@ -1550,6 +1552,7 @@ class LocalShard:
     demo, the tests): the agent's queue is the mirror's inbox (service.shards, `Shard`)."""
 
     index = 0
+    restarts = 0  # a dead worker thread is `failed`, never started again
 
     def __init__(
         self,
