@@ -682,6 +682,9 @@ def test_the_writer_process_writes_what_it_received_and_a_crash_is_counted_and_s
             # A commit per 20 rows and none by time: rows 21..27 wait in the writer when it is killed.
             "history.commit_every_rows": 20,
             "history.commit_every_s": 3600.0,
+            # CloudWatch's documents: none within the test but the one the agent writes at its stop.
+            "cloudwatch.emf_file": str(tmp_path / "emf.log"),
+            "cloudwatch.interval_s": 3600.0,
         },
     )
     rng = random.Random(8)
@@ -755,6 +758,11 @@ def test_the_writer_process_writes_what_it_received_and_a_crash_is_counted_and_s
     assert line.levelno == logging.ERROR and "4 history_rows_unread" in line.getMessage()
     assert line.unwritten == {"history_rows_unread": 4}  # type: ignore[attr-defined]
     assert agent.state().agent.history.rows_lost == 7 + 4  # type: ignore[union-attr]
+    # ... and CloudWatch has them: the document written at the stop counts every lost row.
+    from test_emf import validate_emf_line
+
+    docs = [validate_emf_line(text) for text in (tmp_path / "emf.log").read_text().splitlines()]
+    assert sum(d.get("HistoryRowsDropped", 0) for d in docs) == 7 + 4
     rows = rows_of(uri)
     # The 20 before the crash and the 20 after; the 7 the dead writer held and the 4 it never read are the
     # ones counted lost.

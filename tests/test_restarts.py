@@ -267,9 +267,12 @@ def test_stop_keeps_its_budget_and_reports_what_it_could_not_write(
 ) -> None:
     """History on a full disk (a real tmpfs) when the agent stops: the workers hand their rows to the history
     writer process, which retries its last commit within the shutdown budget and says how many rows it could
-    not write; the agent logs them in one line."""
+    not write; the agent logs them in one line, and its last CloudWatch document counts them as dropped."""
+    from test_emf import validate_emf_line
+
     disk = tmp_path / "disk"
     disk.mkdir()
+    emf = tmp_path / "emf.log"
     subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(disk)], check=True)
     try:
         budget = 12.0
@@ -280,6 +283,9 @@ def test_stop_keeps_its_budget_and_reports_what_it_could_not_write(
                 "history.uri": str(disk / "history"),
                 "history.commit_every_s": 0.5,
                 "twin.shutdown_budget_s": budget,
+                "cloudwatch.emf_file": str(emf),
+                "cloudwatch.agent_name": "stop",
+                "cloudwatch.interval_s": 0.5,
             },
             workers=2,
         )
@@ -316,6 +322,14 @@ def test_stop_keeps_its_budget_and_reports_what_it_could_not_write(
         assert unwritten > 0
         line = next(r for r in caplog.records if r.getMessage().startswith("agent stopped"))
         assert line.levelno == logging.ERROR and f"{unwritten} history_rows" in line.getMessage()
+        # Every row the feeds wrote to the writer's socket was read (nothing `history_rows_unread`).
         assert line.unwritten == {"history_rows": unwritten}  # type: ignore[attr-defined]
+        # The EMF documents, the one written at the stop last, add up to every history row lost: dropped by
+        # the writer's full buffer, and not written at the stop.
+        history = agent.state().agent.history
+        assert history is not None
+        docs = [validate_emf_line(text) for text in emf.read_text().splitlines()]
+        dropped = sum(d.get("HistoryRowsDropped", 0) for d in docs)
+        assert dropped == history.rows_dropped + history.rows_lost + unwritten
     finally:
         subprocess.run(["umount", "-l", str(disk)], check=False)

@@ -278,11 +278,13 @@ class EmfPublisher:
         self.published = 0
         self.errors = 0
 
-    def publish_once(self) -> FleetMetrics:
-        """Sample, write this interval's documents, return the figures (the first call covers since start
-        of tracking: totals are taken as rising from zero)."""
+    def publish_once(self, totals: FleetTotals | None = None) -> FleetMetrics:
+        """Sample (or take `totals`: the agent's last document, at its stop), write this interval's documents,
+        return the figures (the first call covers since start of tracking: totals are taken as rising from
+        zero)."""
         now = self._clock()
-        totals = self._sample()
+        if totals is None:
+            totals = self._sample()
         if self._last is None:
             since, before = now - self.interval_s, None
         else:

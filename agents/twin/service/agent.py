@@ -362,6 +362,11 @@ class AgentService:
         if self._supervisor is not None:
             # It may be starting a worker again (up to START_TIMEOUT_S): the budget does not wait for that.
             self._supervisor.join(min(5.0, max(0.1, deadline - time.monotonic())))
+        last_totals = None
+        if self._emf is not None:
+            # Its thread stops first, so the last document below follows the last one it wrote.
+            self._emf.stop(5.0)
+            last_totals = self._last_totals()
         self._stop_shards(deadline)
         self._keep_state(final=True)
         if self._history is not None:
@@ -369,12 +374,12 @@ class AgentService:
             # store that fails is retried until the budget ends), then exits.
             self._history.stop(max(HISTORY_STOP_MIN_S, deadline - time.monotonic()))
         unwritten, killed = self._unwritten()
+        if last_totals is not None:
+            self._publish_last(last_totals, unwritten)
         if self._alerts is not None:
             # After the last events were collected: what is pending still goes out, with at least a few
             # seconds of its own when the workers took the whole budget (systemd's stop timeout leaves them).
             self._alerts.stop(min(15.0, max(ALERTS_STOP_MIN_S, deadline - time.monotonic())))
-        if self._emf is not None:
-            self._emf.stop(5.0)
         if self._http is not None:
             self._http.stop()
         self._running = False
@@ -408,6 +413,37 @@ class AgentService:
                 delivered = sum(r.history_delivered for r in self.stop_reports.values() if r is not None)
                 unwritten["history_rows_unread"] += history.count_unread(delivered)
         return +unwritten, killed  # unary plus: the kinds with nothing unwritten go
+
+    def _last_totals(self) -> FleetTotals | None:
+        """Before the workers stop: the CloudWatch totals the last EMF document starts from (after the stop
+        they could only be pieced together from checkpoints). Asked of every worker, as a /metrics scrape
+        is: one that does not answer costs its ask timeout of the budget, and would be killed anyway."""
+        try:
+            return self._fleet_totals()
+        except Exception:
+            log.exception("the CloudWatch totals could not be read at the stop")
+            return None
+
+    def _publish_last(self, totals: FleetTotals, unwritten: Counter[str]) -> None:
+        """The last EMF document: the totals read before the workers stopped, with history's as it ended,
+        plus what the stop could not write, so a loss at shutdown reaches HistoryRowsDropped and SinkDrops
+        (and their alarms) too."""
+        assert self._emf is not None
+        history = self._history
+        if history is not None and totals.history_rows_dropped is not None:
+            # After its stop: the writer's last answer (its drops while stopping) and the rows lost, the
+            # unread ones included (count_unread).
+            figures = history.figures()
+            ended = (figures.stats.rows_dropped if figures.stats is not None else 0) + figures.rows_lost
+            dropped = max(totals.history_rows_dropped, ended) + unwritten["history_rows"]
+            totals = dataclasses.replace(totals, history_rows_dropped=dropped)
+        samples = sum(n for kind, n in unwritten.items() if kind.endswith("_samples"))
+        totals = dataclasses.replace(totals, sink_drops=totals.sink_drops + samples)
+        try:
+            self._emf.publish_once(totals)
+        except Exception:
+            self._emf.errors += 1
+            log.exception("the last CloudWatch metrics could not be written")
 
     def _report_stop(self, budget: float, unwritten: Counter[str], killed: list[int]) -> None:
         """One line: the agent stopped, and what it could not write (ERROR when anything)."""
