@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any
 
 from twin.core.topics import DEFAULT_TOPIC_PREFIX
 from twin.rig.mosquitto import MosquittoBroker, MosquittoNotFound, free_port
-from twin.service.config import AgentConfig, load_config
+from twin.service.config import AgentConfig, ConfigError, load_config
 from twin.transport.broker import BrokerConfig
 
 if TYPE_CHECKING:
@@ -40,6 +40,9 @@ log = logging.getLogger(__name__)
 AGENT_CLIENT_PREFIX = "so101-rig-agent-"
 EDGE_CLIENT_PREFIX = "so101-rig-edge-"
 SUBSCRIBE_TIMEOUT_S = 15.0
+# An agent the rig started is killed this long after its shutdown budget (the host's unit gives systemd's
+# stop timeout the same margin: userdata/install-agent.sh).
+STOP_MARGIN_S = 30.0
 
 
 class RigError(RuntimeError):
@@ -180,15 +183,19 @@ class LocalRig:
         """`twin run` as a child process on this rig's broker; yields (process, HTTP base URL).
 
         `config_text` is written as its TOML config (None: no --config, the defaults and the flags only);
-        stdout and stderr go to `<workdir>/<log_name>-<port>.log`. Stopped with SIGTERM on exit (SIGKILL
-        after 15 s).
+        stdout and stderr go to `<workdir>/<log_name>-<port>.log`. Stopped with SIGTERM on exit, and killed
+        only once its `[twin] shutdown_budget_s` and STOP_MARGIN_S have passed, as systemd does on the host:
+        a stop that needs its budget (history's last commit, say) ends as it would in the field.
         """
         port = free_port()
         config_args: list[str] = []
+        budget = AgentConfig().twin.shutdown_budget_s
         if config_text is not None:
             config = self.workdir / f"{log_name}-{port}.toml"
             config.write_text(config_text)
             config_args = ["--config", str(config)]
+            with contextlib.suppress(ConfigError):  # the agent itself says what is wrong, and exits
+                budget = load_config(config).twin.shutdown_budget_s
         log_path = self.agent_log(port, log_name)
         cmd = [
             sys.executable,
@@ -209,7 +216,7 @@ class LocalRig:
             try:
                 yield proc, f"http://127.0.0.1:{port}"
             finally:
-                _terminate(proc)
+                _terminate(proc, budget + STOP_MARGIN_S)
 
     def agent_log(self, port: int | str, log_name: str = "agent") -> Path:
         """Where `agent_process` writes the output of the agent serving HTTP on `port` (kept until the rig
@@ -263,7 +270,7 @@ def child_env() -> dict[str, str]:
     return env
 
 
-def _terminate(proc: subprocess.Popen[bytes], timeout: float = 15.0) -> None:
+def _terminate(proc: subprocess.Popen[bytes], timeout: float) -> None:
     if proc.poll() is not None:
         return
     proc.terminate()
