@@ -66,6 +66,7 @@ def test_throughput_reports_ceiling_agent_and_latencies() -> None:
     # The run really carried traffic through the agent (not a figure check: 400 messages were offered).
     assert agent["received"] > 0 and agent["applied"] > 0
     assert agent["devices_seen"] == 20
+    assert agent["stop"]["exit_code"] == 0 and {"stop_s", "unwritten", "workers_killed"} <= set(agent["stop"])
 
 
 def test_fidelity_compares_hold_and_prediction_at_both_jitters() -> None:
@@ -182,6 +183,44 @@ def test_history_load_compares_the_mirror_with_history_off_and_on() -> None:
     assert figures["on"]["history"] is not None and figures["off"]["history"] is None
     # Every message the agent handed to history is a row once SIGTERM's final commit is done.
     assert figures["rows_written"] == figures["rows_handed_to_history"] > 0
+    assert figures["rows_counted_unwritten"] == figures["rows_unaccounted"] == 0
+    # The agent's stop: a clean exit, nothing it said it could not write.
+    assert figures["on"]["stop"]["exit_code"] == 0
+    assert figures["on"]["stop"]["unwritten"] == {} and figures["on"]["stop"]["workers_killed"] == []
+
+
+def test_stop_figures_read_the_agent_stopped_line_of_the_agents_log(tmp_path: Path) -> None:
+    """The benchmarks' `stop` figures come from the agent's own JSON log line; a log without one (everything
+    written, logged at INFO below the run's WARNING) gives nothing unwritten."""
+    import io
+    import logging
+    from types import SimpleNamespace
+    from typing import Any, cast
+
+    from twin.bench.harness import stop_figures
+    from twin.service.logs import JsonLinesFormatter
+
+    log_path = tmp_path / "agent-8080.log"
+    rig = cast(Any, SimpleNamespace(agent_log=lambda port: log_path if port == "8080" else tmp_path / "none"))
+    log_path.write_text("twin: starting\n")
+    assert stop_figures(rig, "http://127.0.0.1:8080") == {"unwritten": {}, "workers_killed": []}
+    stream = io.StringIO()
+    handler = logging.StreamHandler(stream)
+    handler.setFormatter(JsonLinesFormatter())
+    logger = logging.getLogger("test_bench.stop_figures")
+    logger.addHandler(handler)
+    try:
+        logger.error(
+            "agent stopped; not everything was written: 4 history_rows_unread",
+            extra={"unwritten": {"history_rows_unread": 4}, "workers_killed": [1], "shutdown_budget_s": 60},
+        )
+    finally:
+        logger.removeHandler(handler)
+    log_path.write_text("twin: starting\n" + stream.getvalue())
+    assert stop_figures(rig, "http://127.0.0.1:8080") == {
+        "unwritten": {"history_rows_unread": 4},
+        "workers_killed": [1],
+    }
 
 
 def test_ros2_reports_the_bridge_cost_and_that_samples_reached_a_reader() -> None:

@@ -166,6 +166,30 @@ def exit_reason(rig: LocalRig, base_url: str) -> str:
     return " ".join(line.strip() for line in said if line.strip())
 
 
+def stop_figures(rig: LocalRig, base_url: str) -> dict[str, Any]:
+    """What the stopped agent at `base_url` said it could not write, from its `agent stopped` line in its log
+    (the line's `unwritten` and `workers_killed`); both empty when it logged no such line at the run's level
+    (it logs one at INFO when everything was written)."""
+    figures: dict[str, Any] = {"unwritten": {}, "workers_killed": []}
+    try:
+        lines = rig.agent_log(base_url.rsplit(":", 1)[-1]).read_text(errors="replace").splitlines()
+    except OSError:
+        return figures
+    for line in lines:
+        if not line.startswith("{"):
+            continue
+        try:
+            record = json.loads(line)
+        except ValueError:
+            continue
+        if str(record.get("msg", "")).startswith("agent stopped"):
+            figures = {
+                "unwritten": record.get("unwritten", {}),
+                "workers_killed": record.get("workers_killed", []),
+            }
+    return figures
+
+
 def wait_subscribed(base_url: str, proc: subprocess.Popen[bytes], timeout: float = 30.0) -> float:
     """Poll /state until the agent's broker connection is subscribed; returns when (monotonic)."""
     deadline = time.monotonic() + timeout

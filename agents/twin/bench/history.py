@@ -216,6 +216,10 @@ def load(*, arms: int = 1000, rate: float = 10.0, seconds: float = 20.0) -> dict
         rows = sum(d.rows for d in reader.summary())
         rejected_rows = sum(reader.rejected_counts().values())
         handed = on["decoded"] + on["rejected"]
+        # What the agent's stop said it could not write: history rows it could not commit or hand over, and
+        # those its feeds wrote to a writer that never read them.
+        unwritten = on["stop"]["unwritten"]
+        counted = unwritten.get("history_rows", 0) + unwritten.get("history_rows_unread", 0)
 
         def ratio(key: str, sub: str | None = None) -> float | None:
             a = off[key] if sub is None else off[key][sub]
@@ -236,6 +240,9 @@ def load(*, arms: int = 1000, rate: float = 10.0, seconds: float = 20.0) -> dict
             "rejected_rows": rejected_rows,
             "rows_handed_to_history": handed,
             "rows_equal": rows + rejected_rows == handed,
+            "rows_counted_unwritten": counted,
+            # Handed, and neither written nor counted as lost: 0 unless rows go missing unseen.
+            "rows_unaccounted": handed - (rows + rejected_rows) - counted,
             "table_bytes": _dir_bytes(tmp / "history"),
         }
     finally:

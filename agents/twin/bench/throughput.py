@@ -24,6 +24,7 @@ from twin.bench.harness import (
     load_process,
     publishers,
     running_agent,
+    stop_figures,
     sum_devices,
     wait_subscribed,
 )
@@ -85,6 +86,14 @@ def agent_phase(
         usage = sampler.stop()
         if proc.poll() is not None:
             raise RuntimeError(f"the agent exited during the run (code {proc.returncode})")
+        stopping = time.monotonic()
+    stop = {
+        # SIGTERM to exit (the rig waits out the agent's shutdown budget), and what the agent said it could
+        # not write: its `agent stopped` line is logged only then (at ERROR; the run logs WARNING and up).
+        "stop_s": round(time.monotonic() - stopping, 3),
+        "exit_code": proc.returncode,
+        **stop_figures(rig, base),
+    }
     received = state.agent.broker.messages - before.agent.broker.messages
     applied = sum_devices(state, "applied")
     elapsed = sent["elapsed_s"]
@@ -112,6 +121,7 @@ def agent_phase(
         "internal_latency_s": dataclasses.asdict(state.agent.latency.internal_s),
         "end_to_end_latency_s": dataclasses.asdict(state.agent.latency.end_to_end_s),
         "sinks": [dataclasses.asdict(sink) for sink in state.agent.sinks],
+        "stop": stop,
         **usage,
     }
 
