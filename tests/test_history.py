@@ -778,11 +778,11 @@ def test_rows_left_unread_in_a_dead_writers_socket_are_counted_at_the_stop(tmp_p
     import multiprocessing
     import signal
 
-    from twin.output.history_feed import HistoryFeed, HistoryProcess
+    from twin.output.history_feed import HistoryFeed, HistoryProcess, WriterFigures
 
     uri = str(tmp_path / "history")
-    # No commit before the stop: the rows a writer holds when it dies are its, the unread ones are not.
-    settings = {"uri": uri, "commit_every_s": 3600.0, "commit_every_rows": 10_000}
+    # A commit per 5 rows, none by time: the first writer commits its 10 rows before it dies.
+    settings = {"uri": uri, "commit_every_s": 3600.0, "commit_every_rows": 5}
     history = HistoryProcess(settings, multiprocessing.get_context("spawn"))
     history.launch()
     feed = HistoryFeed(history.link, max_pending=1000, payload_max_bytes=64)
@@ -794,21 +794,29 @@ def test_rows_left_unread_in_a_dead_writers_socket_are_counted_at_the_stop(tmp_p
 
     try:
         send(10)
-        wait_for(lambda: history.figures().rows_received == 10, 30, "10 rows read by the writer")
+        wait_for(
+            lambda: (history.figures().stats or WriterFigures()).rows_committed == 10, 30, "10 rows committed"
+        )
         first = history.pid
         assert first is not None
         os.kill(first, signal.SIGSTOP)  # it reads nothing more; the socket takes what the feed writes
         send(5)
         wait_for(lambda: feed.stats().delivered == 15, 30, "5 more rows in the stopped writer's socket")
         os.kill(first, signal.SIGKILL)
+        wait_for(lambda: not history.alive, 30, "the writer gone")
+        history.supervise()  # it died within 30 s of its start: started again after a pause, not yet
+        # Meanwhile its figures are what it said last, once: it held nothing uncommitted, and the 5 rows in
+        # its socket are not known yet.
+        during = history.figures()
+        assert during.pid is None and during.stats is not None
+        assert (during.stats.rows_committed, during.rows_received, during.rows_lost) == (10, 10, 0)
 
         def restarted() -> bool:
             history.supervise()
             return history.alive and history.pid != first
 
         wait_for(restarted, 120, "the writer started again")
-        # The 10 it had read are counted lost when it died; the 5 in its socket are not known yet.
-        assert history.figures().rows_lost == 10
+        assert history.restarts == 1
         send(3)
         feed.close(timeout=30.0)  # the new writer gets these 3
         assert feed.stats().delivered == 18 and feed.stats().pending == 0
@@ -818,8 +826,9 @@ def test_rows_left_unread_in_a_dead_writers_socket_are_counted_at_the_stop(tmp_p
     assert history.figures().rows_received == 13
     assert history.unwritten_rows() == 0  # the new writer committed its 3 at the stop
     assert history.count_unread(feed.stats().delivered) == 5
-    assert history.figures().rows_lost == 10 + 5
-    assert rows_of(uri).height == 3
+    after = history.figures()
+    assert after.rows_lost == 5 and after.stats is not None and after.stats.rows_committed == 13
+    assert rows_of(uri).height == 13
 
 
 def test_at_the_stop_the_writer_reads_each_feed_to_its_end_for_half_the_budget(tmp_path: Path) -> None:

@@ -587,13 +587,17 @@ class HistoryProcess:
             # lag keeps growing from what it last said.
             stats = dataclasses.replace(self._last, lag_s=self._last.lag_s + time.monotonic() - self._last_at)
         before = self._before
-        if stats is not None and self.restarts:
+        dead = self._restart_at is not None
+        if stats is not None and (self.restarts or dead):
+            # While a dead writer waits to be started again, its counts are in `before` already: its last
+            # answer (`stats`) gives the rest, not these.
+            own = WriterFigures() if dead else stats
             stats = dataclasses.replace(
                 stats,
-                rows_committed=stats.rows_committed + before[_COMMITTED],
-                rejected_rows_committed=stats.rejected_rows_committed + before[_REJECTED_COMMITTED],
-                commits=stats.commits + before[_COMMITS],
-                rows_dropped=stats.rows_dropped + before[_DROPPED],
+                rows_committed=own.rows_committed + before[_COMMITTED],
+                rejected_rows_committed=own.rejected_rows_committed + before[_REJECTED_COMMITTED],
+                commits=own.commits + before[_COMMITS],
+                rows_dropped=own.rows_dropped + before[_DROPPED],
             )
         return HistoryFigures(
             stats=stats,
