@@ -17,7 +17,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +40,7 @@ from twin.output.history import (
     raw_column,
     telemetry_table,
 )
-from twin.output.history_feed import WRITER_NICE
+from twin.output.history_feed import WRITER_NICE, HistoryFeed, HistoryProcess, WriterFigures
 from twin.output.sinks import AppliedSample, RejectedSample
 from twin.service.state import HistoryState
 
@@ -771,19 +771,17 @@ def test_the_writer_process_writes_what_it_received_and_a_crash_is_counted_and_s
     assert stamps == [t0 + 100 * i for i in (*range(20), *range(31, 51))]
 
 
-def test_rows_left_unread_in_a_dead_writers_socket_are_counted_at_the_stop(tmp_path: Path) -> None:
-    """A feed counts a row delivered once it is in the writer's socket. Rows a writer never read (it died, or
-    stopped reading at its budget) reach no table and no counter of the writer's: at the stop, the agent
-    gives the feeds' delivered rows to `count_unread`, which counts the difference as lost."""
+def _writer_and_feed(
+    uri: str, *, commit_every_rows: int
+) -> tuple[HistoryProcess, HistoryFeed, Callable[[int], None]]:
+    """A history writer process at `uri` with no agent around it (no commits by time), one feed to it, and
+    `send(n)`: n more rows of arm-001 through that feed."""
     import multiprocessing
-    import signal
 
-    from twin.output.history_feed import HistoryFeed, HistoryProcess, WriterFigures
-
-    uri = str(tmp_path / "history")
-    # A commit per 5 rows, none by time: the first writer commits its 10 rows before it dies.
-    settings = {"uri": uri, "commit_every_s": 3600.0, "commit_every_rows": 5}
-    history = HistoryProcess(settings, multiprocessing.get_context("spawn"))
+    history = HistoryProcess(
+        {"uri": uri, "commit_every_s": 3600.0, "commit_every_rows": commit_every_rows},
+        multiprocessing.get_context("spawn"),
+    )
     history.launch()
     feed = HistoryFeed(history.link, max_pending=1000, payload_max_bytes=64)
     stamp = itertools.count(1_700_000_000_000, 100)
@@ -792,6 +790,18 @@ def test_rows_left_unread_in_a_dead_writers_socket_are_counted_at_the_stop(tmp_p
         for _ in range(count):
             feed.telemetry(("arm-001", time.time(), next(stamp), "ticks", (0.0,) * 6, b"{}"))
 
+    return history, feed, send
+
+
+def test_rows_left_unread_in_a_dead_writers_socket_are_counted_at_the_stop(tmp_path: Path) -> None:
+    """A feed counts a row delivered once it is in the writer's socket. Rows a writer never read (it died, or
+    stopped reading at its budget) reach no table and no counter of the writer's: at the stop, the agent
+    gives the feeds' delivered rows to `count_unread`, which counts the difference as lost."""
+    import signal
+
+    uri = str(tmp_path / "history")
+    # A commit per 5 rows: the first writer commits its 10 rows before it dies.
+    history, feed, send = _writer_and_feed(uri, commit_every_rows=5)
     try:
         send(10)
         wait_for(
@@ -836,23 +846,8 @@ def test_at_the_stop_the_writer_reads_each_feed_to_its_end_for_half_the_budget(t
     writer reads it to the end for up to half its budget, however long that takes, then commits. Here a feed
     still sends 6 s into the stop (as a writer that reads slowly on a saturated host sees it): with a 20 s
     budget every row is written; a reading window of a fixed 5 s (as before) lost them."""
-    import multiprocessing
-
-    from twin.output.history_feed import HistoryFeed, HistoryProcess
-
     uri = str(tmp_path / "history")
-    history = HistoryProcess(
-        {"uri": uri, "commit_every_s": 3600.0, "commit_every_rows": 10_000},
-        multiprocessing.get_context("spawn"),
-    )
-    history.launch()
-    feed = HistoryFeed(history.link, max_pending=1000, payload_max_bytes=64)
-    stamp = itertools.count(1_700_000_000_000, 100)
-
-    def send(count: int) -> None:
-        for _ in range(count):
-            feed.telemetry(("arm-001", time.time(), next(stamp), "ticks", (0.0,) * 6, b"{}"))
-
+    history, feed, send = _writer_and_feed(uri, commit_every_rows=10_000)
     stopper = threading.Thread(target=history.stop, kwargs={"timeout": 20.0})
     try:
         send(10)
@@ -871,7 +866,7 @@ def test_at_the_stop_the_writer_reads_each_feed_to_its_end_for_half_the_budget(t
 
 
 def test_a_feed_that_cannot_reach_the_writer_keeps_its_bound_and_counts_what_it_drops(tmp_path: Path) -> None:
-    from twin.output.history_feed import HistoryFeed, HistoryLink
+    from twin.output.history_feed import HistoryLink
 
     # Nobody listens here: the feed keeps trying, its queue holds at most max_pending rows.
     feed = HistoryFeed(
