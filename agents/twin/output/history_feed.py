@@ -435,7 +435,7 @@ class _Receiver:
         # The agent stops the writer after every mirror has closed its feed, so what the sockets hold is all
         # there is: read it to the end, for up to half the budget (the rest is the last commit's). A fixed 5 s
         # could end first on a saturated host, where this writer runs nicer than everything else, and what it
-        # left in the sockets reached no table (the agent counts such rows at its stop: unread_rows).
+        # left in the sockets reached no table (now the agent counts such rows at its stop: count_unread).
         deadline = started + budget / 2.0
         while time.monotonic() < deadline:
             with self._lock:
@@ -619,7 +619,7 @@ class HistoryProcess:
     def count_unread(self, delivered: int) -> int:
         """After `stop`, given the rows every feed wrote to a writer's socket (`delivered`, all told): those
         no writer read, left in the socket of one that died or of the last one after it stopped reading.
-        They are counted as lost (`rows_lost`) and returned."""
+        They are counted as lost (`rows_lost`) and returned. Called once, by the agent's stop."""
         unread = max(0, delivered - self._received())
         self._rows_lost += unread
         return unread
