@@ -150,13 +150,19 @@ def running_agent(
             raise RuntimeError(f"{exc}: {reason}") from exc
 
 
+def _agent_log_lines(rig: LocalRig, base_url: str) -> list[str]:
+    """The lines of the log of the agent at `base_url` in the rig's directory (LocalRig.agent_log); none when
+    there is no log."""
+    try:
+        return rig.agent_log(base_url.rsplit(":", 1)[-1]).read_text(errors="replace").splitlines()
+    except OSError:
+        return []
+
+
 def exit_reason(rig: LocalRig, base_url: str) -> str:
     """What the agent at `base_url` printed when it exited (`twin run: ...`), from its log in the rig's
     directory (LocalRig.agent_log); "" when it printed none."""
-    try:
-        lines = rig.agent_log(base_url.rsplit(":", 1)[-1]).read_text(errors="replace").splitlines()
-    except OSError:
-        return ""
+    lines = _agent_log_lines(rig, base_url)
     starts = [i for i, line in enumerate(lines) if line.startswith("twin run: ")]
     if not starts:
         return ""
@@ -171,11 +177,7 @@ def stop_figures(rig: LocalRig, base_url: str) -> dict[str, Any]:
     (the line's `unwritten` and `workers_killed`); both empty when it logged no such line at the run's level
     (it logs one at INFO when everything was written)."""
     figures: dict[str, Any] = {"unwritten": {}, "workers_killed": []}
-    try:
-        lines = rig.agent_log(base_url.rsplit(":", 1)[-1]).read_text(errors="replace").splitlines()
-    except OSError:
-        return figures
-    for line in lines:
+    for line in _agent_log_lines(rig, base_url):
         if not line.startswith("{"):
             continue
         try:
