@@ -362,3 +362,16 @@ def test_cost_counts_a_thread_under_a_reused_id_from_zero() -> None:
     before = _Threads(1, {10: ("twin-send-0", 2.0), 11: ("twin-crt", 0.5)})
     after = _Threads(1, {10: ("twin-http", 0.25), 11: ("twin-crt", 0.75), 12: ("twin-new", 0.125)})
     assert _delta(before, after) == {10: ("twin-http", 0.25), 11: ("twin-crt", 0.25), 12: ("twin-new", 0.125)}
+
+
+def test_cost_split_never_reads_a_stage_below_zero() -> None:
+    # The receiving process's threads: the event loop and a sender used CPU in the window, its other threads
+    # none. 1.69 + 2.5 - 1.69 - 2.5 is -4.4e-16 in floating point; the split must give `other` exactly 0.
+    from twin.bench.cost import STAGES, _split, _Threads
+
+    before = {1: _Threads(1, {10: ("AwsEventLoop 1", 0.0), 11: ("twin-send-0", 0.0), 12: ("twin-http", 3.0)})}
+    after = {1: _Threads(1, {10: ("AwsEventLoop 1", 1.69), 11: ("twin-send-0", 2.5), 12: ("twin-http", 3.0)})}
+    roles, by_stage = _split(before, after, receiving=1, workers=(), history_pid=None, stages={})
+    assert roles["receiving_process"] == 1.69 + 2.5
+    assert by_stage == {**dict.fromkeys(STAGES, 0.0), "receive": 1.69, "hand_over": 2.5}
+    assert all(v >= 0 for v in by_stage.values())

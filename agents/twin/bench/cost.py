@@ -166,11 +166,15 @@ def _split(
         total = sum(cpu for _, cpu in threads.values())
         if pid == receiving:
             roles["receiving_process"] += total
-            crt = sum(cpu for name, cpu in threads.values() if name.startswith(CRT_THREAD_PREFIX))
-            senders = sum(cpu for name, cpu in threads.values() if name.startswith(SENDER_THREAD_PREFIX))
-            by_stage["receive"] += crt
-            by_stage["hand_over"] += senders
-            by_stage["other"] += total - crt - senders
+            # Each thread's CPU goes to one stage, summed thread by thread: `total - crt - senders` would
+            # read a hair below zero (-4e-16) when the other threads used none in the window.
+            for name, cpu in threads.values():
+                if name.startswith(CRT_THREAD_PREFIX):
+                    by_stage["receive"] += cpu
+                elif name.startswith(SENDER_THREAD_PREFIX):
+                    by_stage["hand_over"] += cpu
+                else:
+                    by_stage["other"] += cpu
         elif pid in workers:
             roles["workers"] += total
         elif pid == history_pid:
