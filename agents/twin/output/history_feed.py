@@ -43,7 +43,7 @@ from multiprocessing.connection import Client, Connection, Listener, wait
 from multiprocessing.context import SpawnContext, SpawnProcess
 from multiprocessing.sharedctypes import SynchronizedArray
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from twin.core import heap
 from twin.output.sinks import SinkStats
@@ -79,6 +79,24 @@ REJECTED_PAYLOAD_MAX_BYTES = 4096
 # The writer process's counters in shared memory (int64 each), written by it alone.
 _RECEIVED, _REJECTED_RECEIVED, _COMMITTED, _REJECTED_COMMITTED, _DROPPED, _BUFFERED, _COMMITS = range(7)
 _COUNTERS = 7
+
+
+class _Counters(Protocol):
+    """A writer's counters: the shared array, or the sums of the writers that ended."""
+
+    def __getitem__(self, index: int, /) -> int: ...
+
+
+def _read(counters: _Counters) -> int:
+    """The rows a writer read from the feeds, by its counters."""
+    return counters[_RECEIVED] + counters[_REJECTED_RECEIVED]
+
+
+def _held(counters: _Counters) -> int:
+    """The rows a writer read and had neither committed nor counted as dropped, by its counters."""
+    kept = counters[_COMMITTED] + counters[_REJECTED_COMMITTED] + counters[_DROPPED]
+    return max(0, _read(counters) - kept)
+
 
 # One decoded message as the telemetry table keeps it: device, receive wall time, edge time (ms), units,
 # the six decoded angles (JOINTS order), payload.
@@ -609,11 +627,9 @@ class HistoryProcess:
 
     def _received(self) -> int:
         """The rows every writer process read from the feeds, all told."""
-        before = self._before
-        received = before[_RECEIVED] + before[_REJECTED_RECEIVED]
+        received = _read(self._before)
         if self._restart_at is None:  # else the dead writer's counters are in `before` already
-            counters = self._counters
-            received += counters[_RECEIVED] + counters[_REJECTED_RECEIVED]
+            received += _read(self._counters)
         return received
 
     def count_unread(self, delivered: int) -> int:
@@ -648,9 +664,7 @@ class HistoryProcess:
         now = time.monotonic()
         if self._restart_at is None:
             counters = self._counters
-            received = counters[_RECEIVED] + counters[_REJECTED_RECEIVED]
-            kept = counters[_COMMITTED] + counters[_REJECTED_COMMITTED] + counters[_DROPPED]
-            held = max(0, received - kept)
+            held = _held(counters)
             for i in range(_COUNTERS):
                 self._before[i] += counters[i]
             self._rows_lost += held
@@ -685,10 +699,7 @@ class HistoryProcess:
             return self._last.rows_buffered
         if self._restart_at is not None:
             return 0  # it died before the stop: what it held is counted in rows_lost already
-        counters = self._counters
-        received = counters[_RECEIVED] + counters[_REJECTED_RECEIVED]
-        kept = counters[_COMMITTED] + counters[_REJECTED_COMMITTED] + counters[_DROPPED]
-        return max(0, received - kept)
+        return _held(self._counters)
 
     def stop(self, timeout: float = 30.0) -> None:
         """After the mirrors have closed their feeds: the writer commits what it holds (retrying for at most
