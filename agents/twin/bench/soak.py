@@ -190,8 +190,7 @@ def _counts(base: str) -> dict[str, Any]:
         "sink_dropped": {name: s.dropped for name, s in sinks.items()},
         "sink_skipped": {name: s.skipped for name, s in sinks.items()},
         "sink_pending": {name: s.pending for name, s in sinks.items()},
-        # Dropped by the writer's buffer, and lost with a writer process that died holding them.
-        "history_rows_dropped": history.rows_dropped + history.rows_lost if history else 0,
+        "history_rows_dropped": history.rows_not_written if history else 0,
         "history_rows_committed": history.rows_committed if history else 0,
         "history_lag_s": history.lag_s if history else 0.0,
         "history_commit_failures": history.commit_failures if history else 0,

@@ -535,6 +535,11 @@ class HistoryFigures:
     rows_received: int
     rows_lost: int
 
+    @property
+    def rows_not_written(self) -> int:
+        """As `HistoryState.rows_not_written`: the writer's drops plus the rows lost."""
+        return (self.stats.rows_dropped if self.stats is not None else 0) + self.rows_lost
+
 
 class HistoryProcess:
     """The agent's handle on the history writer process: starts it (and its socket), answers for it in

@@ -433,9 +433,8 @@ class AgentService:
         if history is not None and totals.history_rows_dropped is not None:
             # After its stop: the writer's last answer (its drops while stopping) and the rows lost, the
             # unread ones included (count_unread).
-            figures = history.figures()
-            ended = (figures.stats.rows_dropped if figures.stats is not None else 0) + figures.rows_lost
-            dropped = max(totals.history_rows_dropped, ended) + unwritten["history_rows"]
+            dropped = max(totals.history_rows_dropped, history.figures().rows_not_written)
+            dropped += unwritten["history_rows"]
             totals = dataclasses.replace(totals, history_rows_dropped=dropped)
         samples = sum(n for kind, n in unwritten.items() if kind.endswith("_samples"))
         totals = dataclasses.replace(totals, sink_drops=totals.sink_drops + samples)
@@ -1006,8 +1005,7 @@ def fleet_totals(state: AgentState, expected_rate_hz: float) -> FleetTotals:
         # The history writer is a worker process too.
         worker_restarts=sum(w.restarts for w in state.agent.workers)
         + (history.writer_restarts if history is not None else 0),
-        # Rows the writer's buffer dropped, and rows lost with a writer that died holding them.
-        history_rows_dropped=history.rows_dropped + history.rows_lost if history is not None else None,
+        history_rows_dropped=history.rows_not_written if history is not None else None,
         history_commit_failures=history.commit_failures if history is not None else None,
         history_lag_s=history.lag_s if history is not None else None,
     )

@@ -265,6 +265,12 @@ class HistoryState:
     rows_received: int = 0
     rows_lost: int = 0
 
+    @property
+    def rows_not_written(self) -> int:
+        """Rows that will never be written: dropped by the writer's buffer, or lost with a writer process
+        that died holding them (what CloudWatch's HistoryRowsDropped counts)."""
+        return self.rows_dropped + self.rows_lost
+
 
 @dataclass(frozen=True, slots=True)
 class WorkerInfo:
