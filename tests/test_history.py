@@ -771,6 +771,93 @@ def test_the_writer_process_writes_what_it_received_and_a_crash_is_counted_and_s
     assert stamps == [t0 + 100 * i for i in (*range(20), *range(31, 51))]
 
 
+@pytest.mark.slow
+def test_rows_no_writer_read_are_counted_at_the_stop_after_a_worker_restart(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The feeds count the rows they deliver in memory the agent shares with its workers, so a worker
+    process that died and was started again does not take its count with it: rows left unread in a dead
+    writer's socket are still counted at the stop (before, a worker restart skipped the check)."""
+    import signal
+
+    from twin.rig.mosquitto import free_port
+    from twin.service.agent import AgentService
+    from twin.service.config import load_config
+
+    config = load_config(
+        None,
+        {
+            "broker.url": f"mqtt://127.0.0.1:{free_port()}",  # never answers: fed through feed()
+            "http.listen": "127.0.0.1:0",
+            "telemetry.devices": ["arm-001"],
+            "telemetry.units": "ticks",
+            "history.uri": str(tmp_path / "history"),
+            "history.commit_every_s": 3600.0,  # no commit by time: the rows wait in the writer
+        },
+    )
+    rng = random.Random(9)
+    t0 = int(time.time() * 1000)
+    caplog.set_level(logging.INFO, logger="twin.service.agent")
+    agent = AgentService(config, workers=2)
+    agent.start()
+    history_process = agent._history
+    assert history_process is not None
+    try:
+
+        def feed(first: int, count: int) -> None:
+            for i in range(first, first + count):
+                payload = encode(make_payload("arm-001", 0.1 * i, "ticks", rng, timestamp_ms=t0 + 100 * i))
+                agent.feed("dt/lerobot/arm-001/telemetry", payload)
+
+        def settled(decoded: int) -> HistoryState | None:
+            # Every message decoded (the checkpoint's and the replayed ones after a restart), every row
+            # handed over, and the writer has read all the feeds delivered.
+            state = agent.state()
+            device = state.devices.get("arm-001")
+            feed_pending = sum(s.pending for s in state.agent.sinks if s.name == "history")
+            history = state.agent.history
+            assert history is not None
+            done = device is not None and device.health.counters.decoded >= decoded and feed_pending == 0
+            return history if done and history.rows_received == history_process.delivered() else None
+
+        feed(0, 10)
+        wait_for(lambda: settled(10), 60, "10 rows read by the writer")
+        (worker,) = [w for w in agent.state().agent.workers if w.devices]
+        os.kill(worker.pid, signal.SIGKILL)
+
+        def restarted() -> bool:
+            info = agent.state().agent.workers[worker.index]
+            return info.restarts == 1 and info.pid not in (0, worker.pid) and info.alive
+
+        wait_for(restarted, 120, "the worker started again")
+        feed(10, 5)
+        first = wait_for(lambda: settled(15), 60, "the restarted worker's rows read by the writer")
+        assert first.writer_pid is not None
+        delivered = history_process.delivered()
+        # Stopped, the writer reads nothing more: the 4 rows go into its socket, delivered as far as the new
+        # worker's feed can tell (read from the shared counts: the agent's state would wait for the writer).
+        os.kill(first.writer_pid, signal.SIGSTOP)
+        feed(15, 4)
+        wait_for(
+            lambda: history_process.delivered() == delivered + 4, 60, "4 rows in the stopped writer's socket"
+        )
+        os.kill(first.writer_pid, signal.SIGKILL)
+
+        def writer_again() -> HistoryState | None:
+            state = agent.state().agent.history
+            assert state is not None
+            running = state.writer_pid is not None and state.writer_pid != first.writer_pid
+            return state if state.writer_restarts == 1 and running else None
+
+        held = wait_for(writer_again, 60, "the history writer started again").rows_lost
+        assert held == first.rows_received  # none committed: every row it read was lost with it
+    finally:
+        agent.stop()
+    line = next(r for r in caplog.records if r.getMessage().startswith("agent stopped"))
+    assert line.unwritten == {"history_rows_unread": 4}  # type: ignore[attr-defined]
+    assert agent.state().agent.history.rows_lost == held + 4  # type: ignore[union-attr]
+
+
 def _writer_and_feed(
     uri: str, *, commit_every_rows: int
 ) -> tuple[HistoryProcess, HistoryFeed, Callable[[int], None]]:
@@ -835,7 +922,9 @@ def test_rows_left_unread_in_a_dead_writers_socket_are_counted_at_the_stop(tmp_p
         history.stop(timeout=30.0)
     assert history.figures().rows_received == 13
     assert history.unwritten_rows() == 0  # the new writer committed its 3 at the stop
-    assert history.count_unread(feed.stats().delivered) == 5
+    # The feed counted its rows in the link's shared memory too: the stop reads them there.
+    assert history.delivered() == feed.stats().delivered == 18
+    assert history.count_unread() == 5
     after = history.figures()
     assert after.rows_lost == 5 and after.stats is not None and after.stats.rows_committed == 13
     assert rows_of(uri).height == 13
@@ -861,7 +950,7 @@ def test_at_the_stop_the_writer_reads_each_feed_to_its_end_for_half_the_budget(t
         stopper.join(30.0)
     assert not stopper.is_alive()
     assert feed.stats().delivered == 15
-    assert history.unwritten_rows() == 0 and history.count_unread(15) == 0
+    assert history.unwritten_rows() == 0 and history.delivered() == 15 and history.count_unread() == 0
     assert rows_of(uri).height == 15
 
 
@@ -1057,3 +1146,19 @@ def test_replay_publishes_what_was_recorded_and_the_agent_mirrors_it(
     assert set(rejected["reason"].to_list()) == {"units_undecided"}
     history = state.agent.history
     assert history is not None and history.storage_ok and history.commit_failures == 0
+
+
+def test_every_worker_has_a_slot_for_its_feeds_delivered_count(tmp_path: Path) -> None:
+    # One slot per mirror, by its shard's index: as many as twin.workers allows, and a feed outside them is
+    # refused when it is made, not when its thread first delivers.
+    from twin.output.history_feed import FEED_SLOTS, HistoryLink
+    from twin.service.config import MAX_WORKERS
+
+    assert FEED_SLOTS >= MAX_WORKERS
+    import multiprocessing
+
+    link = HistoryLink(
+        str(tmp_path / "nobody.sock"), b"key", multiprocessing.get_context("spawn").Array("q", 2, lock=False)
+    )
+    with pytest.raises(ValueError, match=r"slot is 0\.\.1, not 2"):
+        HistoryFeed(link, max_pending=10, payload_max_bytes=8, slot=2)

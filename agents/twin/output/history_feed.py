@@ -16,9 +16,10 @@ feed's queue is full (the writer process has been gone longer than the queue las
 counts the rows it received, committed and dropped (its write buffer, as before) in shared memory, so when
 it dies (a crash in a native library, say) the agent knows how many rows it held and counts them as lost,
 starts it again, and the feeds connect to the new one and carry on; rows a feed wrote to the socket of a
-writer that died before reading them show as the difference between the feeds' delivered rows and the rows
-the writers received. Nothing else is lost: at shutdown every feed delivers what it holds, and the writer
-commits it before it exits.
+writer that died before reading them show as the difference between the feeds' delivered rows (counted in
+memory shared with the agent, so a worker started again keeps its count) and the rows the writers
+received. Nothing else is lost: at shutdown every feed delivers what it holds, and the writer commits it
+before it exits.
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from multiprocessing.connection import Client, Connection, Listener, wait
 from multiprocessing.context import SpawnContext, SpawnProcess
 from multiprocessing.sharedctypes import SynchronizedArray
@@ -103,12 +104,20 @@ def _held(counters: _Counters) -> int:
 TelemetryRow = tuple[str, float, int, str, Sequence[float], bytes]
 
 
+# Slots of the feeds' delivered counts: one per mirror (its shard's index), at most twin.workers' maximum.
+FEED_SLOTS = 64
+
+
 @dataclass(frozen=True)
 class HistoryLink:
-    """Where the mirrors find the history writer process: its socket and the key that admits them."""
+    """Where the mirrors find the history writer process: its socket and the key that admits them; and,
+    in shared memory, the rows each mirror's feed has written to a writer's socket, by the mirror's slot.
+    A worker started again takes up its slot's count where the dead one left it, so the agent's stop knows
+    every row delivered, whichever process delivered it (`HistoryProcess.count_unread`)."""
 
     address: str
     authkey: bytes
+    delivered: SynchronizedArray[int] | None = field(default=None, compare=False)
 
 
 @dataclass(frozen=True)
@@ -147,8 +156,11 @@ class HistoryFeed:
 
     name = "history"
 
-    def __init__(self, link: HistoryLink, *, max_pending: int, payload_max_bytes: int) -> None:
+    def __init__(self, link: HistoryLink, *, max_pending: int, payload_max_bytes: int, slot: int = 0) -> None:
+        if link.delivered is not None and not 0 <= slot < len(link.delivered):
+            raise ValueError(f"a history feed's slot is 0..{len(link.delivered) - 1}, not {slot}")
         self._link = link
+        self._slot = slot
         self._max = max_pending
         self.payload_max_bytes = payload_max_bytes
         self._telemetry: deque[TelemetryRow] = deque()
@@ -266,6 +278,10 @@ class HistoryFeed:
             self._last_error = f"history writer out of reach: {exc}"
             return False
         self._delivered += batch.rows
+        shared = self._link.delivered
+        if shared is not None:
+            # This feed's thread is the slot's only writer while its process lives.
+            shared[self._slot] += batch.rows
         self._in_hand = 0
         return True
 
@@ -549,7 +565,11 @@ class HistoryProcess:
         self.settings = settings
         self._ctx = context
         self._dir = Path(tempfile.mkdtemp(prefix="twin-history-"))
-        self.link = HistoryLink(str(self._dir / "writer.sock"), secrets.token_bytes(32))
+        self.link = HistoryLink(
+            str(self._dir / "writer.sock"),
+            secrets.token_bytes(32),
+            context.Array("q", FEED_SLOTS, lock=False),
+        )
         self._counters: SynchronizedArray[int] = context.Array("q", _COUNTERS, lock=False)
         self._process: SpawnProcess | None = None
         self._control: Connection | None = None
@@ -637,11 +657,18 @@ class HistoryProcess:
             received += _read(self._counters)
         return received
 
-    def count_unread(self, delivered: int) -> int:
-        """After `stop`, given the rows every feed wrote to a writer's socket (`delivered`, all told): those
-        no writer read, left in the socket of one that died or of the last one after it stopped reading.
-        They are counted as lost (`rows_lost`) and returned. Called once, by the agent's stop."""
-        unread = max(0, delivered - self._received())
+    def delivered(self) -> int:
+        """The rows every feed wrote to a writer's socket, all told (the link's shared counts: those of
+        worker processes that ended, or were started again, included)."""
+        shared = self.link.delivered
+        return sum(shared[:]) if shared is not None else 0
+
+    def count_unread(self) -> int:
+        """After `stop`, once every feed has closed: the rows delivered that no writer read, left in the
+        socket of one that died or of the last one after it stopped reading. They are counted as lost
+        (`rows_lost`) and returned. Called once, by the agent's stop. (A worker killed between writing a
+        batch and counting it leaves those rows uncounted: fewer unread, never more.)"""
+        unread = max(0, self.delivered() - self._received())
         self._rows_lost += unread
         return unread
 

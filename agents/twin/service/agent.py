@@ -407,11 +407,9 @@ class AgentService:
             # The writer process's own: what it could not commit before it ended.
             unwritten["history_rows"] += history.unwritten_rows()
             # What the feeds wrote to a writer's socket and no writer read (one died, or the last stopped
-            # reading at its budget): nothing else sees these. A worker started again took its feed's figure
-            # with it, and a killed one never said it: then the sum is not known.
-            if not killed and not any(shard.restarts for shard in self._shards):
-                delivered = sum(r.history_delivered for r in self.stop_reports.values() if r is not None)
-                unwritten["history_rows_unread"] += history.count_unread(delivered)
+            # reading at its budget): nothing else sees these. The feeds count it in shared memory, so the
+            # figure holds across workers started again or killed at the budget.
+            unwritten["history_rows_unread"] += history.count_unread()
         return +unwritten, killed  # unary plus: the kinds with nothing unwritten go
 
     def _last_totals(self) -> FleetTotals | None:

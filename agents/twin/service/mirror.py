@@ -548,6 +548,7 @@ class Mirror:
                 self._history_link,
                 max_pending=self.config.history.queue_max,
                 payload_max_bytes=REJECTED_PAYLOAD_MAX_BYTES,
+                slot=self._slot,
             )
         self._sinks = (*((self._recording,) if self._recording else ()), *self._extra_sinks)
 
@@ -605,15 +606,13 @@ class Mirror:
             pending = sink.stats().pending
             if pending:
                 unwritten[f"{sink.name}_samples"] = pending
-        delivered = 0
         if self._history is not None:
-            feed = self._history.stats()
-            if feed.pending:
-                unwritten["history_rows"] = feed.pending
-            delivered = feed.delivered
+            pending = self._history.stats().pending
+            if pending:
+                unwritten["history_rows"] = pending
         with self._lock:
             alarms = tuple(self._alarms.records())
-        return StopReport(unwritten=unwritten, alarms=alarms, history_delivered=delivered)
+        return StopReport(unwritten=unwritten, alarms=alarms)
 
     @property
     def running(self) -> bool:
@@ -1552,7 +1551,6 @@ class LocalShard:
     demo, the tests): the agent's queue is the mirror's inbox (service.shards, `Shard`)."""
 
     index = 0
-    restarts = 0  # a dead worker thread is `failed`, never started again
 
     def __init__(
         self,

@@ -377,9 +377,6 @@ class StopReport:
 
     unwritten: dict[str, int] = field(default_factory=dict)
     alarms: tuple[AlarmRecord, ...] = ()
-    # The rows its history feed wrote to the writer's socket over its life: the agent compares them with what
-    # the writer read (service.agent, unread history rows).
-    history_delivered: int = 0
 
 
 Request = (
@@ -540,7 +537,6 @@ class Shard(Protocol):
     """What the agent needs of one share of the fleet, whether its mirror runs in-process or in a worker."""
 
     index: int
-    restarts: int  # how often its mirror was started again (a worker process that died)
 
     def put(self, key: str, topic: str, payload: bytes, recv_mono: float, recv_wall: float) -> None:
         """Queue one message for the mirror (`key`: its device, or UNTRACKED_KEY); on a CRT thread, never
