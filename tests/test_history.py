@@ -625,11 +625,13 @@ def test_the_agent_keeps_every_decoded_message_also_those_the_twin_ignores(tmp_p
     with fed_agent(12, **{"history.uri": uri, "history.commit_every_s": 0.2}) as agent:
         t0 = agent.state().devices["arm-001"].timestamp_ms - 1100
         # A late message (between two applied ones) and a repeat of the last: valid, decoded, not applied.
-        for stamp in (t0 + 150, t0 + 1100):
+        # Each is handled before the next goes in: two in one batch that the worker takes late (a loaded
+        # host) would be caught up, the older one coalesced rather than ignored as stale.
+        for handled, stamp in ((15, t0 + 150), (16, t0 + 1100)):
             payload = encode(make_payload("arm-001", 0.0, "ticks", random.Random(1), timestamp_ms=stamp))
             agent.feed("dt/lerobot/arm-001/telemetry", payload)
-        # Counted once handled (`processed` counts a message when the worker takes it, before that).
-        counters = wait_handled(agent.state, 16).devices["arm-001"].health.counters
+            # Counted once handled (`processed` counts a message when the worker takes it, before that).
+            counters = wait_handled(agent.state, handled).devices["arm-001"].health.counters
     assert (counters.decoded, counters.applied, counters.ignored_stale) == (14, 12, 2)
     rows = rows_of(uri)
     assert rows.height == 14  # every decoded message, applied or not
