@@ -222,7 +222,10 @@ def _publish_rows(
 
     topic = telemetry_topic(config.topic_prefix, config.target_device)
     started = time.monotonic()
-    now_ms = time.time() * 1000.0
+    # Whole milliseconds: each stamp is this plus its rounded offset, so the replayed spacing is the
+    # recording's (scaled) exactly; a fractional base made a half-millisecond tie round a gap one way or the
+    # other about once in 4,096 replays.
+    now_ms = round(time.time() * 1000.0)
     first_received = first_edge_ms = None
     for row in rows:
         if first_received is None:
@@ -244,7 +247,7 @@ def _publish_rows(
         if config.original_timestamps:
             stamp = round(edge_ms)
         else:
-            stamp = round(now_ms + (edge_ms - first_edge_ms) / config.speed)
+            stamp = now_ms + round((edge_ms - first_edge_ms) / config.speed)
         outstanding.add()
         future = client.publish(
             mqtt5.PublishPacket(
