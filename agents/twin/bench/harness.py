@@ -284,14 +284,22 @@ def sum_devices(state: AgentState, counter: str) -> int:
     return sum(getattr(d.health.counters, counter) for d in state.devices.values())
 
 
-def drained(base: str) -> AgentState:
-    """The state once the worker has drained what it already received (processed stops growing; bounded)."""
-    deadline = time.monotonic() + 10
+def drained(base: str, timeout: float = 30.0) -> AgentState:
+    """The state once the agent has handled what it already received: nothing queued for a mirror, no
+    sink holding a sample, and neither the messages received nor those processed moved over half a second
+    (a half-second stall alone, on a loaded host, is not the end). Bounded by `timeout`: a sink that cannot
+    deliver (its store down) must not hang the benchmark; its figures then show it."""
+    deadline = time.monotonic() + timeout
     state = get_state(base, timeout=30)
     while time.monotonic() < deadline:
         time.sleep(0.5)
         newer = get_state(base, timeout=30)
-        if newer.agent.worker.processed == state.agent.worker.processed:
+        agent = newer.agent
+        still = (agent.broker.messages, agent.worker.processed) == (
+            state.agent.broker.messages,
+            state.agent.worker.processed,
+        )
+        if still and agent.mailbox.pending == 0 and all(s.pending == 0 for s in agent.sinks):
             return newer
         state = newer
     return state
