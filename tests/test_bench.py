@@ -339,7 +339,10 @@ def test_cost_reports_cpu_per_message_in_json_loads_and_by_stage() -> None:
     assert run["json_loads_us"]["samples"] > 0 and run["json_loads_us"]["median"] > 0
     assert run["loads_per_received"] > 0 and run["loads_per_mirrored"] > 0
     assert set(run["stages_loads_per_received"]) == set(out["stages"])
-    assert run["cpu_s"]["receiving_process"] > 0 and run["cpu_s"]["workers"] > 0
+    # The workers decode and apply every message: CPU they must show. The receiving process's few tens of
+    # ms over 2 s are spread over several threads, each read in whole 10 ms ticks (psutil), so on a fast
+    # machine it can read 0; it is only required to be there.
+    assert run["cpu_s"]["workers"] > 0 and run["cpu_s"]["receiving_process"] >= 0
     # The workers' stages are sampled: the output says so, and how many batches the estimate rests on (about
     # 1 in 16 of a few hundred batches: none timed would be odds of about 1e-11).
     assert "sampled" in out["stage_timing"]
