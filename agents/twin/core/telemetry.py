@@ -24,6 +24,7 @@ never accepts a message the explanation would reject.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import math
@@ -498,6 +499,32 @@ class _PositionMap:
         return cls(affine, affine[Units.TICKS], so101.TICK_HOME - half, so101.TICK_HOME + half, False)
 
 
+# Decoders with the same default map share one set of tables, read only: a map's tables hold 1.1 MB
+# (tracemalloc) and take about 0.5 ms to make, and a process may hold many decoders (the property tests make
+# thousands, which spent most of their time here).
+@functools.lru_cache(maxsize=4)
+def _tick_tables_of(
+    affine: tuple[tuple[float, float], ...], grip: tuple[float, float, bool], jaw: tuple[float, float]
+) -> tuple[list[list[float]], list[tuple[float, float]]]:
+    """Per arm joint (`affine`: its ticks map), the angle of every whole tick 0..TICK_MAX; for the gripper
+    (`grip`: its tick range and whether it is inverted; `jaw`: the jaw's lowest angle and span), its
+    (angle, percent): `_angles`' arithmetic done once per tick value, so a message's conversion is six
+    lookups (a fleet's every message goes through it)."""
+    import numpy as np  # noqa: PLC0415 - the mirror has it loaded (MuJoCo); this module stays light
+
+    # The same arithmetic as `_angles`, element by element in IEEE double: the same values, in microseconds.
+    ticks = np.arange(so101.TICK_MAX + 1, dtype=np.float64)
+    arm = [(a + b * ticks).tolist() for a, b in affine]
+    (lo, hi, grip_inverted), (jaw_lo, jaw_span) = grip, jaw
+    # LeRobot RANGE_0_100: clamp into the calibrated range, then scale; drive_mode 1 inverts.
+    percent = (np.where(ticks < lo, lo, np.where(ticks > hi, hi, ticks)) - lo) / (hi - lo) * PERCENT_MAX
+    if grip_inverted:
+        percent = PERCENT_MAX - percent
+    angle = jaw_lo + percent / PERCENT_MAX * jaw_span
+    gripper = list(zip(angle.tolist(), percent.tolist(), strict=True))
+    return arm, gripper
+
+
 class TelemetryDecoder:
     """Validates and decodes edge messages. Not thread-safe (auto-units state): one per consuming thread."""
 
@@ -514,7 +541,7 @@ class TelemetryDecoder:
         self._calibrations: dict[str, Calibration] = {}
         # The default map's angle of every whole tick (_tick_tables), made on the first message in ticks. Only
         # the default's: an arm with its own calibration converts by arithmetic, since a table per arm would
-        # cost about 0.8 MB each (2,000 calibrated arms: 1.5 GB).
+        # cost about 1.1 MB each (2,000 calibrated arms: 2.2 GB).
         self._tables: tuple[list[list[float]], list[tuple[float, float]]] | None = None
         self._decided: dict[str, Units] = {}
         self._streaks: dict[str, tuple[Units, int]] = {}
@@ -818,24 +845,14 @@ class TelemetryDecoder:
         return self._angles(units, positions, mapping)
 
     def _tick_tables(self) -> tuple[list[list[float]], list[tuple[float, float]]]:
-        """Per arm joint, the angle of every whole tick 0..TICK_MAX under the default map; for the gripper,
-        its (angle, percent): `_angles`' arithmetic done once per tick value, so a message's conversion is six
-        lookups (a fleet's every message goes through it). Made on the first message in ticks."""
-        import numpy as np  # noqa: PLC0415 - the mirror has it loaded (MuJoCo); this module stays light
-
-        mapping = self._default
-        # The same arithmetic as below, element by element in IEEE double: the same values, in microseconds.
-        ticks = np.arange(so101.TICK_MAX + 1, dtype=np.float64)
-        arm = [(a + b * ticks).tolist() for a, b in mapping.ticks]
-        lo, hi = mapping.grip_min, mapping.grip_max
-        # LeRobot RANGE_0_100: clamp into the calibrated range, then scale; drive_mode 1 inverts.
-        percent = (np.where(ticks < lo, lo, np.where(ticks > hi, hi, ticks)) - lo) / (hi - lo) * PERCENT_MAX
-        if mapping.grip_inverted:
-            percent = PERCENT_MAX - percent
-        angle = self._jaw_lo + percent / PERCENT_MAX * self._jaw_span
-        gripper = list(zip(angle.tolist(), percent.tolist(), strict=True))
-        self._tables = arm, gripper
-        return arm, gripper
+        """The default map's tick tables (`_tick_tables_of`), on the first message in ticks."""
+        m = self._default
+        # (functools' cache types its arguments as any hashables: the call is not checked against them.)
+        tables = _tick_tables_of(
+            m.ticks, (m.grip_min, m.grip_max, m.grip_inverted), (self._jaw_lo, self._jaw_span)
+        )
+        self._tables = tables
+        return tables
 
     def _angles(
         self, units: Units, positions: list[int | float], mapping: _PositionMap
