@@ -19,6 +19,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import polars as pl
@@ -42,6 +43,7 @@ from twin.output.history import (
 )
 from twin.output.history_feed import WRITER_NICE, HistoryFeed, HistoryProcess, WriterFigures
 from twin.output.sinks import AppliedSample, RejectedSample
+from twin.service.config import AgentConfig, load_config
 from twin.service.state import HistoryState
 
 T0 = 1_795_000_000.0  # 2026-11-18T09:46:40Z
@@ -668,27 +670,17 @@ def test_the_writer_process_writes_what_it_received_and_a_crash_is_counted_and_s
     stop: nothing goes missing uncounted."""
     import signal
 
-    from twin.rig.mosquitto import free_port
     from twin.service.agent import AgentService
-    from twin.service.config import load_config
 
     uri = str(tmp_path / "history")
-    config = load_config(
-        None,
-        {
-            "broker.url": f"mqtt://127.0.0.1:{free_port()}",  # never answers: fed through feed()
-            "http.listen": "127.0.0.1:0",
-            "telemetry.devices": ["arm-001"],
-            "telemetry.units": "ticks",
-            "history.uri": uri,
-            # A commit per 20 rows and none by time: rows 21..27 wait in the writer when it is killed.
-            "history.commit_every_rows": 20,
-            "history.commit_every_s": 3600.0,
-            # CloudWatch's documents: none within the test but the one the agent writes at its stop.
-            "cloudwatch.emf_file": str(tmp_path / "emf.log"),
-            "cloudwatch.interval_s": 3600.0,
-        },
-    )
+    overrides = {
+        # A commit per 20 rows and none by time: rows 21..27 wait in the writer when it is killed.
+        "history.commit_every_rows": 20,
+        # CloudWatch's documents: none within the test but the one the agent writes at its stop.
+        "cloudwatch.emf_file": str(tmp_path / "emf.log"),
+        "cloudwatch.interval_s": 3600.0,
+    }
+    config = _fed_agent_config(uri, **overrides)
     rng = random.Random(8)
     t0 = int(time.time() * 1000)
     caplog.set_level(logging.INFO, logger="twin.service.agent")
@@ -782,21 +774,9 @@ def test_rows_no_writer_read_are_counted_at_the_stop_after_a_worker_restart(
     writer's socket are still counted at the stop (before, a worker restart skipped the check)."""
     import signal
 
-    from twin.rig.mosquitto import free_port
     from twin.service.agent import AgentService
-    from twin.service.config import load_config
 
-    config = load_config(
-        None,
-        {
-            "broker.url": f"mqtt://127.0.0.1:{free_port()}",  # never answers: fed through feed()
-            "http.listen": "127.0.0.1:0",
-            "telemetry.devices": ["arm-001"],
-            "telemetry.units": "ticks",
-            "history.uri": str(tmp_path / "history"),
-            "history.commit_every_s": 3600.0,  # no commit by time: the rows wait in the writer
-        },
-    )
+    config = _fed_agent_config(str(tmp_path / "history"))
     rng = random.Random(9)
     t0 = int(time.time() * 1000)
     caplog.set_level(logging.INFO, logger="twin.service.agent")
@@ -858,6 +838,25 @@ def test_rows_no_writer_read_are_counted_at_the_stop_after_a_worker_restart(
     line = next(r for r in caplog.records if r.getMessage().startswith("agent stopped"))
     assert line.unwritten == {"history_rows_unread": 4}  # type: ignore[attr-defined]
     assert agent.state().agent.history.rows_lost == held + 4  # type: ignore[union-attr]
+
+
+def _fed_agent_config(uri: str, **overrides: Any) -> AgentConfig:
+    """An agent for arm-001 in ticks, fed through `feed()` (its broker never answers), with history at `uri`
+    committed by row count only (no commit by time: rows wait in the writer until `overrides` say)."""
+    from twin.rig.mosquitto import free_port
+
+    return load_config(
+        None,
+        {
+            "broker.url": f"mqtt://127.0.0.1:{free_port()}",
+            "http.listen": "127.0.0.1:0",
+            "telemetry.devices": ["arm-001"],
+            "telemetry.units": "ticks",
+            "history.uri": uri,
+            "history.commit_every_s": 3600.0,
+            **overrides,
+        },
+    )
 
 
 def _writer_and_feed(
