@@ -104,6 +104,10 @@ def _held(counters: _Counters) -> int:
 TelemetryRow = tuple[str, float, int, str, Sequence[float], bytes]
 
 
+# What the writer says on a feed's connection once the connection is in its list (the feed waits for it).
+_REGISTERED = b"listed"
+REGISTER_TIMEOUT_S = 5.0
+
 # Slots of the feeds' delivered counts: one per mirror (its shard's index), at most twin.workers' maximum.
 FEED_SLOTS = 64
 
@@ -268,6 +272,13 @@ class HistoryFeed:
         try:
             if conn is None:
                 conn = self._conn = Client(self._link.address, family="AF_UNIX", authkey=self._link.authkey)
+                # Rows go only to a writer that has taken the connection into its list: the handshake ends
+                # inside its accept(), before it lists the connection, and a stop in between read nothing of
+                # it. A writer that does not say so in time (stopped, say) is out of reach for now.
+                if not conn.poll(REGISTER_TIMEOUT_S) or conn.recv_bytes() != _REGISTERED:
+                    raise OSError(
+                        f"the history writer did not take the connection within {REGISTER_TIMEOUT_S} s"
+                    )
             conn.send_bytes(pickle.dumps(batch, protocol=pickle.HIGHEST_PROTOCOL))
         except (OSError, EOFError, multiprocessing.AuthenticationError) as exc:
             if conn is not None:
@@ -379,6 +390,9 @@ class _Receiver:
                 continue
             with self._lock:
                 self.feeds.append(conn)
+            # The feed sends nothing before this (HistoryFeed._send): what it sends, a stop's `_finish` reads.
+            with contextlib.suppress(OSError):
+                conn.send_bytes(_REGISTERED)
 
     def run(self) -> None:
         from twin.output.history import REJECTED_TABLE, TELEMETRY_TABLE  # noqa: PLC0415
@@ -428,16 +442,19 @@ class _Receiver:
             self.counters[_REJECTED_RECEIVED] += len(batch.rejected)
             self.writer.add(rejected_table, rejected_table_of(batch.rejected))
 
-    def _count(self) -> None:
-        from twin.output.history import REJECTED_TABLE, TELEMETRY_TABLE  # noqa: PLC0415
-
-        stats = self.writer.stats()
-        tables = stats.tables
-        self.counters[_COMMITTED] = tables[TELEMETRY_TABLE].rows_committed
-        self.counters[_REJECTED_COMMITTED] = tables[REJECTED_TABLE].rows_committed
-        self.counters[_DROPPED] = sum(t.rows_dropped for t in tables.values()) + stats.rows_lost_in_conversion
-        self.counters[_BUFFERED] = self.writer.buffered_rows()
-        self.counters[_COMMITS] = tables[TELEMETRY_TABLE].commits
+    def _count(self) -> WriterFigures:
+        """The writer's figures now, written to the shared counters (what the agent reads if this process
+        dies) before anyone is told them: an answer never runs ahead of the counters. (Two reads of the
+        writer's stats, one for each, could straddle a commit on its thread: the agent was then told 10 rows
+        committed while the counters, read after a crash, still said 5.)"""
+        figures = _figures_of(self.writer.stats(), self.writer.buffered_rows())
+        counters = self.counters
+        counters[_COMMITTED] = figures.rows_committed
+        counters[_REJECTED_COMMITTED] = figures.rejected_rows_committed
+        counters[_DROPPED] = figures.rows_dropped
+        counters[_BUFFERED] = figures.rows_buffered
+        counters[_COMMITS] = figures.commits
+        return figures
 
     def _answer(self) -> bool:
         """One request of the agent; False to stop."""
@@ -448,9 +465,9 @@ class _Receiver:
         if isinstance(request, _Stop):
             self._stop_timeout_s = request.timeout_s
             return False
-        self._count()
+        figures = self._count()
         with contextlib.suppress(OSError, ValueError):
-            self.control.send(_figures_of(self.writer.stats(), self.writer.buffered_rows()))
+            self.control.send(figures)
         return True
 
     def _forget(self, conn: Connection) -> None:
@@ -495,9 +512,9 @@ class _Receiver:
         # Retrying the last commit for what is left of the budget, less a moment for the answer: the agent
         # kills a writer that has not answered by then.
         self.writer.close(timeout=max(1.0, budget - (time.monotonic() - started) - 2.0))
-        self._count()
+        figures = self._count()
         with contextlib.suppress(OSError, ValueError):
-            self.control.send(_figures_of(self.writer.stats(), self.writer.buffered_rows()))
+            self.control.send(figures)
 
 
 # ------------------------------------------------------------------------------------- the agent's side
