@@ -1152,12 +1152,12 @@ def test_replay_publishes_what_was_recorded_and_the_agent_mirrors_it(
 def test_every_worker_has_a_slot_for_its_feeds_delivered_count(tmp_path: Path) -> None:
     # One slot per mirror, by its shard's index: as many as twin.workers allows, and a feed outside them is
     # refused when it is made, not when its thread first delivers.
+    import multiprocessing
+
     from twin.output.history_feed import FEED_SLOTS, HistoryLink
     from twin.service.config import MAX_WORKERS
 
     assert FEED_SLOTS >= MAX_WORKERS
-    import multiprocessing
-
     link = HistoryLink(
         str(tmp_path / "nobody.sock"), b"key", multiprocessing.get_context("spawn").Array("q", 2, lock=False)
     )
