@@ -46,9 +46,13 @@ def listening(proc: subprocess.Popen[str]) -> list[tuple[str, int]]:
     out = []
     tree = [psutil.Process(proc.pid), *psutil.Process(proc.pid).children(recursive=True)]
     for p in tree:
-        for conn in p.net_connections(kind="tcp"):
-            if conn.status == psutil.CONN_LISTEN:
-                out.append((conn.laddr.ip, conn.laddr.port))
+        try:
+            connections = p.net_connections(kind="tcp")
+        except psutil.NoSuchProcess:
+            # A short-lived child (a fork about to exec, ctypes' `ldconfig -p`) that ended after the listing
+            # listens on nothing: CI once met one gone between the two calls.
+            continue
+        out.extend((c.laddr.ip, c.laddr.port) for c in connections if c.status == psutil.CONN_LISTEN)
     return out
 
 
