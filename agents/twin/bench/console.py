@@ -13,6 +13,7 @@ Publishers, broker, agent and browser share this host's cores: quote the load av
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from collections.abc import Iterator
@@ -183,9 +184,13 @@ def _figure(value: float | None) -> float:
 
 def _chromium_pid() -> int | None:
     """The newest chromium process started by this one (Playwright's browser)."""
-    me = psutil.Process(os.getpid())
-    candidates = [p for p in me.children(recursive=True) if "chrom" in p.name()]
-    return min(candidates, key=lambda p: p.create_time()).pid if candidates else None
+    candidates = []
+    for p in psutil.Process(os.getpid()).children(recursive=True):
+        # Chromium starts and ends helper processes all the time: one may be gone once listed.
+        with contextlib.suppress(psutil.Error):
+            if "chrom" in p.name():
+                candidates.append((p.create_time(), p.pid))
+    return min(candidates)[1] if candidates else None
 
 
 def run(

@@ -29,6 +29,7 @@ by default), so an hour at the default interval never reaches that bound (docs/p
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import json
 import os
@@ -160,9 +161,12 @@ def _processes(agent: psutil.Process, broker_pid: int | None, loads: list[Any]) 
         tree = [(agent, "agent"), *((c, "agent child") for c in agent.children(recursive=True))]
     except psutil.Error:
         tree = [(agent, "agent")]
-    if broker_pid is not None:
-        tree.append((psutil.Process(broker_pid), "broker"))
-    tree += [(psutil.Process(p.pid), "publisher") for p in loads if p.poll() is None]
+    others = [(broker_pid, "broker")] if broker_pid is not None else []
+    others += [(p.pid, "publisher") for p in loads if p.poll() is None]
+    for pid, role in others:
+        # A publisher may end between its poll() and here: it is then not sampled.
+        with contextlib.suppress(psutil.Error):
+            tree.append((psutil.Process(pid), role))
     for proc, role in tree:
         sample = _process(proc, role)
         if sample is not None:
