@@ -12,6 +12,7 @@ import logging
 from pathlib import Path
 
 import mujoco
+import numpy as np
 import pytest
 from conftest import copy_bundled_scene
 from twin.core.modes import TwinMode
@@ -191,3 +192,22 @@ def test_missing_position_actuators_only_block_physics_mode(tmp_path: Path) -> N
             DeviceTwin(robot, "arm", TwinMode.PHYSICS)
         assert "physics mode" in str(err.value)
         assert "shoulder_pan" in str(err.value)
+
+
+def test_holding_torques_read_the_joints_wherever_the_model_keeps_them(tmp_path: Path) -> None:
+    """The batch of holding torques indexes the joints by a slice where their addresses are consecutive and
+    by a list otherwise: both give exactly what one inverse_dynamics call per pose gives."""
+    reverse = RobotModel.load(
+        write(tmp_path, chain_mjcf(site="tcp", names=tuple(reversed(so101.JOINT_NAMES))), "reverse.xml")
+    )
+    box = '<body name="box" pos="1 0 0"><freejoint/><geom type="box" size=".01 .01 .01"/></body>'
+    floating = RobotModel.load(
+        write(tmp_path, chain_mjcf(site="tcp").replace("<worldbody>", f"<worldbody>{box}", 1), "floating.xml")
+    )
+    assert reverse._joint_indexes == ([5, 4, 3, 2, 1, 0], [5, 4, 3, 2, 1, 0])
+    assert floating._joint_indexes == (slice(7, 13), slice(6, 12))
+    rng = np.random.default_rng(5)
+    for robot in (reverse, floating, RobotModel.load()):
+        lo, hi = np.array(robot.joint_tables.lo), np.array(robot.joint_tables.hi)
+        poses = [tuple(p) for p in rng.uniform(lo, hi, (8, 6)).tolist()]
+        assert robot.holding_torques(poses) == [robot.inverse_dynamics(p) for p in poses]

@@ -204,6 +204,14 @@ class RobotModel:
             ),
         )
 
+    @functools.cached_property
+    def _joint_indexes(self) -> tuple[slice | list[int], slice | list[int]]:
+        """The joints' qpos and dof addresses (`joint_tables` order) as numpy indexes: a slice where they are
+        consecutive, as in the bundled model, since a slice reads and writes a row of six in about a third
+        less time than a list of addresses does, and `holding_torques` does both per pose."""
+        tables = self.joint_tables
+        return _index(tables.qpos), _index(tables.dof)
+
     def workspace(self) -> tuple[mujoco.MjData, mujoco.MjData]:
         """This thread's scratch MjData for `model` and for `inverse_model`, made on first use.
 
@@ -256,8 +264,7 @@ class RobotModel:
         if not poses:
             return []
         scratch = self.workspace()[1]
-        tables = self.joint_tables
-        qadr, dofs = list(tables.qpos), list(tables.dof)
+        qadr, dofs = self._joint_indexes
         # Written for every batch: the scratch is shared, and mj_inverse reads whatever the last caller left.
         scratch.qvel[dofs] = 0.0
         scratch.qacc[dofs] = 0.0
@@ -314,6 +321,14 @@ class RobotModel:
                 f"{', '.join(self.missing_actuators)}. Add one <position joint=...> actuator per joint, use "
                 '`[twin] mode = "kinematic"`, or set `[twin] model` to an MJCF with position actuators.'
             )
+
+
+def _index(addresses: tuple[int, ...]) -> slice | list[int]:
+    """`addresses` as a numpy index: the slice that selects them if they are consecutive and ascending."""
+    first = addresses[0] if addresses else 0
+    if addresses == tuple(range(first, first + len(addresses))):
+        return slice(first, first + len(addresses))
+    return list(addresses)
 
 
 def _joint_ids(model: mujoco.MjModel, mjcf: Path) -> dict[str, int]:
