@@ -36,6 +36,7 @@ from collections import Counter
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum, StrEnum
+from operator import itemgetter
 from typing import TYPE_CHECKING, Any, Final
 
 from twin.robot import so101, sts3215
@@ -533,6 +534,10 @@ def _matrix(rows: Sequence[Sequence[float]], count: int) -> Any:
     return _np().frombuffer(flat, dtype=_np().float64).reshape(count, _JOINTS).copy()
 
 
+# A mapping's values of every SO-101 joint in JOINT_NAMES order, in one call (KeyError if one is missing).
+_EVERY_JOINT = itemgetter(*so101.JOINT_NAMES)
+
+
 def _float(value: float | None) -> float:
     return math.nan if value is None else float(value)
 
@@ -824,8 +829,15 @@ class ServoAlarms:
         nan, names = math.nan, so101.JOINT_NAMES
         for k, torques in zip(needed, found, strict=True):
             sources[k] = torques
-            get = torques.get
-            held.extend([_float(get(joint)) for joint in names])
+            try:
+                # Computed torques have every joint, each a number: one lookup of all six and one conversion.
+                # The row is whole before `held` takes it, so a failure leaves `held` as it was.
+                row = array("d", _EVERY_JOINT(torques))
+            except (KeyError, TypeError):
+                # A joint left out, or None: NaN, as `_float` reads it on the row path.
+                get = torques.get
+                row = array("d", [_float(get(joint)) for joint in names])
+            held.extend(row)
         # The same values as the row path's ServoVersion.load_percent, one joint at a time.
         torque = np.abs(np.frombuffer(held, dtype=np.float64).reshape(len(needed), _JOINTS))
         loads = servo.load_percents(torque, rows.voltages(needed))
@@ -858,12 +870,12 @@ class ServoAlarms:
         # The raise timer runs while the value stays at or above the line and the condition is not yet
         # present; the clear timer while it stays at or below the clear line and the condition is present.
         # Anything else stops both: unknown, or between the lines (hold, and start afresh next time).
-        raise_since = fleet.raise_since[slots]
-        raise_since = np.where(above & ~present, np.where(np.isnan(raise_since), now, raise_since), np.nan)
-        raise_since = np.where(evaluated, raise_since, fleet.raise_since[slots])
-        clear_since = fleet.clear_since[slots]
-        clear_since = np.where(below & present, np.where(np.isnan(clear_since), now, clear_since), np.nan)
-        clear_since = np.where(evaluated, clear_since, fleet.clear_since[slots])
+        held = fleet.raise_since[slots]
+        raise_since = np.where(above & ~present, np.where(np.isnan(held), now, held), np.nan)
+        raise_since = np.where(evaluated, raise_since, held)
+        held = fleet.clear_since[slots]
+        clear_since = np.where(below & present, np.where(np.isnan(held), now, held), np.nan)
+        clear_since = np.where(evaluated, clear_since, held)
         raising = above & ~present & (now - raise_since >= raise_after)
         clearing = below & present & (now - clear_since >= clear_after)
         fleet.raise_since[slots] = raise_since
