@@ -192,6 +192,33 @@ def test_commits_follow_the_row_and_time_settings(tmp_path: Path) -> None:
     assert rows_of(uri).height == 50
 
 
+def test_the_writer_process_counts_a_commit_in_its_shared_counters_as_it_is_made(tmp_path: Path) -> None:
+    """The writer process's shared counters (what the agent reads of a writer that died) hold a commit once it
+    is made, on the committer thread, not at the receiving loop's next turn up to 0.2 s later: a writer
+    killed right after a commit has none of the rows it committed counted as lost."""
+    from multiprocessing import Array, Pipe
+    from multiprocessing.connection import Listener
+
+    from twin.output.history_feed import _COMMITS, _COMMITTED, _COUNTERS, _Receiver
+
+    writer = HistoryWriter(
+        HistorySettings(uri=str(tmp_path / "h"), commit_every_s=3600.0, commit_every_rows=10_000)
+    ).start()
+    listener = Listener(str(tmp_path / "feeds.sock"), family="AF_UNIX")
+    control, _agent_end = Pipe()
+    counters = Array("q", _COUNTERS, lock=False)
+    receiver = _Receiver(writer, listener, control, counters)
+    try:
+        writer.add(TELEMETRY_TABLE, telemetry_table(samples(50))[0])
+        assert writer.flush()
+        # The flush returns after the commit: the counters have it, and the receiver's loop never ran.
+        assert (counters[_COMMITTED], counters[_COMMITS]) == (50, 1)
+    finally:
+        receiver._closed = True  # its accept thread ends with the listener, as at a stop
+        listener.close()
+        writer.close()
+
+
 def test_an_outage_keeps_rows_bounded_counts_drops_and_recovers(tmp_path: Path) -> None:
     base = tmp_path / "h"
     base.mkdir()

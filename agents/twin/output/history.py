@@ -493,6 +493,9 @@ class HistoryWriter:
         self._tables_stale = False
         self._maintenance_thread: threading.Thread | None = None
         self._error_logged_at = -1e9
+        # Called on the committer thread after each commit is counted, outside the writer's lock: the history
+        # writer process writes its shared counters there, so a crash right after a commit finds it counted.
+        self.on_commit: Callable[[], object] | None = None
         self._thread = threading.Thread(target=self._run, name="history-commit", daemon=True)
         self._started = False
         if not settings.is_s3:
@@ -723,6 +726,12 @@ class HistoryWriter:
                 log.warning("history: writing to %s works again", self.settings.uri)
             self._stats.storage_ok = True
             self._backoff = self.settings.retry_min_s
+        hook = self.on_commit
+        if hook is not None:
+            try:
+                hook()
+            except Exception:  # the commit stands; whoever reads the figures later reads them then
+                log.exception("history: the commit hook failed")
         return True
 
     def _append(self, table: str, rows: pa.Table, seq: int) -> int | None:

@@ -376,6 +376,10 @@ class _Receiver:
         self.counters = counters
         self.feeds: list[Connection] = []
         self._lock = threading.Lock()
+        # The run loop and the committer thread (after each commit) both write the counters: one at a time,
+        # each from the writer's figures read under this lock, so a later write never holds older figures.
+        self._count_lock = threading.Lock()
+        writer.on_commit = self._count
         self._closed = False
         self._stop_timeout_s = 30.0
         threading.Thread(target=self._accept, name="history-accept", daemon=True).start()
@@ -447,13 +451,14 @@ class _Receiver:
         dies) before anyone is told them: an answer never runs ahead of the counters. (Two reads of the
         writer's stats, one for each, could straddle a commit on its thread: the agent was then told 10 rows
         committed while the counters, read after a crash, still said 5.)"""
-        figures = _figures_of(self.writer.stats(), self.writer.buffered_rows())
-        counters = self.counters
-        counters[_COMMITTED] = figures.rows_committed
-        counters[_REJECTED_COMMITTED] = figures.rejected_rows_committed
-        counters[_DROPPED] = figures.rows_dropped
-        counters[_BUFFERED] = figures.rows_buffered
-        counters[_COMMITS] = figures.commits
+        with self._count_lock:
+            figures = _figures_of(self.writer.stats(), self.writer.buffered_rows())
+            counters = self.counters
+            counters[_COMMITTED] = figures.rows_committed
+            counters[_REJECTED_COMMITTED] = figures.rejected_rows_committed
+            counters[_DROPPED] = figures.rows_dropped
+            counters[_BUFFERED] = figures.rows_buffered
+            counters[_COMMITS] = figures.commits
         return figures
 
     def _answer(self) -> bool:
