@@ -437,6 +437,20 @@ TABLE_CONFIGURATION = {
 }
 
 
+def _make_local_directory(settings: HistorySettings) -> None:
+    """A local history uri's directory, made now: a writer that cannot write there fails at its start, with
+    the fix, rather than at its first commit. An S3 uri has nothing to make."""
+    if settings.is_s3:
+        return
+    path = settings.uri.removeprefix("file://")
+    try:
+        Path(path).mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise HistoryError(
+            f"history uri {settings.uri!r} cannot be created ({exc}); give a writable directory"
+        ) from exc
+
+
 class HistoryWriter:
     """Appends Arrow tables to the history tables from a committer thread of its own.
 
@@ -498,14 +512,7 @@ class HistoryWriter:
         self.on_commit: Callable[[], object] | None = None
         self._thread = threading.Thread(target=self._run, name="history-commit", daemon=True)
         self._started = False
-        if not settings.is_s3:
-            path = settings.uri.removeprefix("file://")
-            try:
-                Path(path).mkdir(parents=True, exist_ok=True)
-            except OSError as exc:
-                raise HistoryError(
-                    f"history uri {settings.uri!r} cannot be created ({exc}); give a writable directory"
-                ) from exc
+        _make_local_directory(settings)
 
     # -- producer side (the sink thread) ---------------------------------------------------------------
 
