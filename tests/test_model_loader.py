@@ -204,8 +204,8 @@ def test_holding_torques_read_the_joints_wherever_the_model_keeps_them(tmp_path:
     floating = RobotModel.load(
         write(tmp_path, chain_mjcf(site="tcp").replace("<worldbody>", f"<worldbody>{box}", 1), "floating.xml")
     )
-    assert reverse._joint_indexes == ([5, 4, 3, 2, 1, 0], [5, 4, 3, 2, 1, 0])
-    assert floating._joint_indexes == (slice(7, 13), slice(6, 12))
+    assert reverse.joint_indexes == ([5, 4, 3, 2, 1, 0], [5, 4, 3, 2, 1, 0])
+    assert floating.joint_indexes == (slice(7, 13), slice(6, 12))
     rng = np.random.default_rng(5)
     for robot in (reverse, floating, RobotModel.load()):
         lo, hi = np.array(robot.joint_tables.lo), np.array(robot.joint_tables.hi)

@@ -77,7 +77,7 @@ class _Figures:
 
     def _write(self, data: mujoco.MjData) -> None:
         # One indexed assignment (qpos addresses in joint_names order, as the pose is).
-        data.qpos[list(self._robot.joint_tables.qpos)] = self._pose
+        data.qpos[self._robot.joint_indexes[0]] = self._pose
 
     @property
     def tcp(self) -> tuple[float, float, float]:

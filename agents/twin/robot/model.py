@@ -205,10 +205,10 @@ class RobotModel:
         )
 
     @functools.cached_property
-    def _joint_indexes(self) -> tuple[slice | list[int], slice | list[int]]:
-        """The joints' qpos and dof addresses (`joint_tables` order) as numpy indexes: a slice where they are
-        consecutive, as in the bundled model, since a slice reads and writes a row of six in about a third
-        less time than a list of addresses does, and `holding_torques` does both per pose."""
+    def joint_indexes(self) -> tuple[slice | list[int], slice | list[int]]:
+        """The joints' qpos and dof addresses (`joint_tables` order) as numpy indexes, for writing a pose into
+        MjData and reading its joints back: a slice where they are consecutive, as in the bundled model, since
+        a slice reads and writes a row of six in about a third less time than a list of addresses does."""
         tables = self.joint_tables
         return _index(tables.qpos), _index(tables.dof)
 
@@ -243,19 +243,17 @@ class RobotModel:
         With neither velocity nor acceleration this is the holding torque the twin's model check compares
         with the servos' load (twin.core.twin); the edge simulator's physical servos add the motion."""
         scratch = self.workspace()[1]
-        tables = self.joint_tables
-        qpos, qvel, qacc = scratch.qpos, scratch.qvel, scratch.qacc
-        for i, (qadr, dof) in enumerate(zip(tables.qpos, tables.dof, strict=True)):
-            qpos[qadr] = pose[i]
-            # Written every call: the scratch is shared, and mj_inverse reads whatever the last caller left.
-            qvel[dof] = 0.0 if velocity is None else velocity[i]
-            qacc[dof] = 0.0 if acceleration is None else acceleration[i]
+        qadr, dofs = self.joint_indexes
+        scratch.qpos[qadr] = pose
+        # Written every call: the scratch is shared, and mj_inverse reads whatever the last caller left.
+        scratch.qvel[dofs] = 0.0 if velocity is None else velocity
+        scratch.qacc[dofs] = 0.0 if acceleration is None else acceleration
         mujoco.mj_inverse(self.inverse_model, scratch)
         forces = scratch.qfrc_inverse
         if not passive:
             # mj_inverse subtracts the passive forces (qfrc_inverse = M qacc + bias - passive); add them back.
             forces = forces + scratch.qfrc_passive
-        return {name: float(forces[dof]) for name, dof in zip(self.joint_names, tables.dof, strict=True)}
+        return dict(zip(self.joint_names, forces[dofs].tolist(), strict=True))
 
     def holding_torques(self, poses: Sequence[Sequence[float]]) -> list[dict[str, float]]:
         """`inverse_dynamics(pose)` of each pose (no velocity, no acceleration, with the passive forces), in
@@ -264,7 +262,7 @@ class RobotModel:
         if not poses:
             return []
         scratch = self.workspace()[1]
-        qadr, dofs = self._joint_indexes
+        qadr, dofs = self.joint_indexes
         # Written for every batch: the scratch is shared, and mj_inverse reads whatever the last caller left.
         scratch.qvel[dofs] = 0.0
         scratch.qacc[dofs] = 0.0
