@@ -340,11 +340,13 @@ def test_two_writers_append_to_one_table_and_a_stale_commit_is_retried(tmp_path:
 
 def test_only_one_of_two_writers_maintains_a_table_per_window(tmp_path: Path) -> None:
     uri = str(tmp_path / "h")
-    now = time.time()
     settings = HistorySettings(uri=uri, commit_every_s=3600, maintain_every_s=3600)
-    writers = [HistoryWriter(settings, writer_id=f"m{i}").start() for i in range(2)]
+    # One wall clock for both, read by their maintenance processes too: the two runs are in one lease
+    # window and the rows in one day whenever the test runs (on the real clock, a run across an hour's
+    # turn leased two windows, and one across 00:00 UTC wrote two days).
+    writers = [HistoryWriter(settings, writer_id=f"m{i}", wall_clock=lambda: T0).start() for i in range(2)]
     for k in range(5):
-        writers[k % 2].add(TELEMETRY_TABLE, telemetry_table(samples(100, start_s=now + 20 * k))[0])
+        writers[k % 2].add(TELEMETRY_TABLE, telemetry_table(samples(100, start_s=T0 + 20 * k))[0])
         assert writers[k % 2].flush(10)
     for w in writers:
         w.close()
@@ -360,16 +362,20 @@ def test_only_one_of_two_writers_maintains_a_table_per_window(tmp_path: Path) ->
     assert sum(s.maintenance_failures for s in stats) == 0
     assert len(DeltaTable(str(Path(uri) / TELEMETRY_TABLE)).file_uris()) == 1
     assert rows_of(uri).height == 500
+    # The maintenance processes leased the window their writers asked in, by the writers' clock.
+    window = int(T0 // 3600)
+    leases = sorted(p.name for p in (Path(uri) / "_maintenance").glob("*.lease"))
+    assert leases == sorted(f"{table}-{window}.lease" for table in (TELEMETRY_TABLE, REJECTED_TABLE))
 
 
 def test_maintenance_compacts_checkpoints_and_vacuums(tmp_path: Path) -> None:
     uri = str(tmp_path / "h")
-    now = time.time()
     writer = HistoryWriter(
-        HistorySettings(uri=uri, commit_every_s=3600, maintain_every_s=0, vacuum_retention_hours=0)
+        HistorySettings(uri=uri, commit_every_s=3600, maintain_every_s=0, vacuum_retention_hours=0),
+        wall_clock=lambda: T0,  # the rows' day is the day maintained, whenever the test runs
     ).start()
     for k in range(4):
-        writer.add(TELEMETRY_TABLE, telemetry_table(samples(100, start_s=now + 20 * k))[0])
+        writer.add(TELEMETRY_TABLE, telemetry_table(samples(100, start_s=T0 + 20 * k))[0])
         assert writer.flush(10)
     writer.close()
     writer.maintain_now()
@@ -387,10 +393,11 @@ def test_maintenance_runs_in_a_process_that_exits_and_its_log_reaches_ours(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     uri = str(tmp_path / "h")
-    now = time.time()
-    writer = HistoryWriter(HistorySettings(uri=uri, commit_every_s=3600, maintain_every_s=0)).start()
+    writer = HistoryWriter(
+        HistorySettings(uri=uri, commit_every_s=3600, maintain_every_s=0), wall_clock=lambda: T0
+    ).start()
     for k in range(3):
-        writer.add(TELEMETRY_TABLE, telemetry_table(samples(100, start_s=now + 20 * k))[0])
+        writer.add(TELEMETRY_TABLE, telemetry_table(samples(100, start_s=T0 + 20 * k))[0])
         assert writer.flush(10)
     writer.close()
     caplog.set_level("INFO", logger="twin.output.history")

@@ -1017,10 +1017,19 @@ class HistoryWriter:
         self._maintain(today)
 
     def maintenance_request(self, today: dt.date) -> dict[str, Any]:
-        """What the maintenance process needs to maintain as this writer would (plain JSON values)."""
+        """What the maintenance process needs to maintain as this writer would (plain JSON values).
+
+        `wall` is this writer's clock as it asks: the process takes its lease for that window, not for the
+        one its own clock reads once it has started, so a run asked for just before a window's end is
+        still leased in the window it was due in (and a test's clock reaches the process)."""
         settings = dataclasses.asdict(self.settings)
         settings["storage_options"] = dict(self.settings.storage_options)
-        return {"settings": settings, "writer_id": self.writer_id, "today": today.isoformat()}
+        return {
+            "settings": settings,
+            "writer_id": self.writer_id,
+            "today": today.isoformat(),
+            "wall": self._wall(),
+        }
 
     def maintenance_result(self) -> dict[str, Any]:
         """This writer's maintenance counters (what the maintenance process answers)."""

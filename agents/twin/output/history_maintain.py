@@ -58,7 +58,10 @@ def main() -> int:
     root.handlers[:] = [_Forward()]
     root.setLevel(logging.INFO)
     request = json.loads(sys.stdin.read())
-    writer = HistoryWriter(HistorySettings(**request["settings"]), writer_id=request["writer_id"])
+    asked_at = float(request.get("wall", time.time()))
+    writer = HistoryWriter(
+        HistorySettings(**request["settings"]), writer_id=request["writer_id"], wall_clock=lambda: asked_at
+    )
     writer.maintain_here(dt.date.fromisoformat(request["today"]))
     sys.stdout.write(json.dumps({"result": writer.maintenance_result()}) + "\n")
     return 0
