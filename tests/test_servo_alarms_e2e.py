@@ -75,23 +75,30 @@ def test_each_servo_fault_raises_and_clears_its_alarms(
     caplog.set_level(logging.INFO, logger="twin.service")
     rig.start_edge(["arm-001"], variant="ticks", rate_hz=10.0, servo_faults=FAULTS, model_loads=True)
 
-    # Raised: every expected alarm ACTIVE (and nothing else).
+    # Raised: every expected alarm ACTIVE (and nothing else). The wrist's temperature gauge is read on each
+    # look: the heat is over 60 C only from about 2 to 7.5 s into the run, and a busy machine may take most
+    # of that to see every alarm raised, so the hottest reading seen is what is checked.
+    hottest = [float("-inf")]
+
     def all_raised() -> dict[tuple[str, str], str] | None:
+        samples = get_metrics(url)
+        key = ("twin_servo_temperature_celsius", (("device", "arm-001"), ("joint", "wrist_roll")))
+        hottest[0] = max(hottest[0], samples.get(key, float("-inf")))
         seen = by_key(alarms(url))
         return seen if set(seen) >= EXPECTED else None
 
     raised = wait_for(all_raised, 60, "every fault's alarms to be raised", interval=0.1)
     assert set(raised) == EXPECTED, raised
 
-    # The readings are in /state and /metrics while the faults run: read first, as the heat lasts only until
-    # about 7 s into the run and a busy machine may have taken some of that to see every alarm raised.
+    # The readings are in /state and /metrics while the faults run: read first, as the faults end about 7 s
+    # into the run.
     with urllib.request.urlopen(url + "/state", timeout=30) as resp:
         state = AgentState.from_json(resp.read())
     servos = state.devices["arm-001"].servos
     assert servos is not None and servos["shoulder_lift"].voltage_v == 5.0
     assert servos["elbow_flex"].model_load_percent is not None
     metrics = get_metrics(url)
-    assert metric(metrics, "twin_servo_temperature_celsius", device="arm-001", joint="wrist_roll") >= 60.0
+    assert hottest[0] >= 60.0, f"the wrist's temperature gauge read at most {hottest[0]} C during the heat"
     assert abs(metric(metrics, "twin_servo_load_percent", device="arm-001", joint="shoulder_lift")) <= 100.0
     assert metric(metrics, "twin_servo_alarms_raised_total", kind="overload") == 1.0
     assert metric(metrics, "twin_servo_alarms_present", severity="critical") >= 1.0
