@@ -354,7 +354,15 @@ def test_cost_reports_cpu_per_message_in_json_loads_and_by_stage() -> None:
     assert all(v >= 0 for v in stages.values()), stages
     assert sum(stages.values()) >= run["loads_per_received"] * (1 - 1e-9)
     assert stages["decode"] > 0 and stages["health_alarms"] > 0
+    assert 0 < run["alarm_evaluations"] <= run["mirrored"]
     assert {"before", "after"} <= set(run["load_average_1m"])
+
+
+def test_cost_without_the_alarm_stage_runs_the_agent_with_alarms_off() -> None:
+    out = bench("cost", "--arms", "20", "--seconds", "2", "--no-alarms", timeout=180)
+    ((run,),) = [size["runs"] for size in out["sizes"]]
+    assert run["alarms"] is False and run["received"] > 0 and run["mirrored"] > 0
+    assert run["alarm_evaluations"] == 0, run["alarm_evaluations"]
 
 
 def test_cost_counts_a_thread_under_a_reused_id_from_zero() -> None:

@@ -32,7 +32,8 @@ microseconds and in `json.loads` units, the stages in `json.loads` units per rec
 median and spread, internal latency, and the 1-minute load average before and after. With `runs` > 1 each
 fleet size is run that many times and summarised (median, min, max).
 
-    twin bench cost [--arms 100 1000 2000] [--seconds 20] [--runs 3] [--history] [--workers N] [--json]
+    twin bench cost [--arms 100 1000 2000] [--seconds 20] [--runs 3] [--history] [--workers N] [--no-alarms]
+                    [--json]
 """
 
 from __future__ import annotations
@@ -241,10 +242,18 @@ def _stop_probe(probe: subprocess.Popen[str]) -> str:
 
 
 def _measure_window(
-    rig: LocalRig, arms: int, rate: float, seconds: float, *, history: str | None, workers: int | None
+    rig: LocalRig,
+    arms: int,
+    rate: float,
+    seconds: float,
+    *,
+    history: str | None,
+    workers: int | None,
+    alarms: bool = True,
 ) -> _Window:
     """Start the agent, publish the fleet's messages, and read the agent at both ends of the window."""
-    with running_agent(rig, history=history, workers=workers) as (proc, base):
+    config_text = "" if alarms else "[alarms]\nenabled = false\n"
+    with running_agent(rig, history=history, workers=workers, config_text=config_text) as (proc, base):
         wait_subscribed(base, proc)
         state0 = get_state(base)
         tree0 = _tree(proc.pid)
@@ -306,6 +315,8 @@ def _cost_per_message(window: _Window, loads: dict[str, float | int | None]) -> 
         },
         # What the workers' sampled stage figures rest on: batches handled, and how many were timed.
         "worker_batches": {"handled": batches, "stages_timed": timed},
+        # Messages the servo alarm engine evaluated in the window (none with --no-alarms).
+        "alarm_evaluations": state1.agent.worker.alarm_rows - state0.agent.worker.alarm_rows,
         "internal_latency_s": dataclasses.asdict(state1.agent.latency.internal_s),
         "history_rows": (
             {
@@ -326,12 +337,14 @@ def one_run(
     *,
     history: str | None = None,
     workers: int | None = None,
+    alarms: bool = True,
 ) -> dict[str, Any]:
-    """One fleet size once: the agent's CPU per message over the window, divided by the probe's median."""
+    """One fleet size once: the agent's CPU per message over the window, divided by the probe's median.
+    `alarms` False runs the agent with `[alarms] enabled = false`: what the rest of the agent costs."""
     load_before = os.getloadavg()
     probe = _start_probe(seconds)
     try:
-        window = _measure_window(rig, arms, rate, seconds, history=history, workers=workers)
+        window = _measure_window(rig, arms, rate, seconds, history=history, workers=workers, alarms=alarms)
     finally:
         out = _stop_probe(probe)
     loads = _spread([us for at, us in _probe_rounds(out) if window.start <= at <= window.end])
@@ -340,6 +353,7 @@ def one_run(
         "rate_hz": rate,
         "seconds": seconds,
         "history": history is not None,
+        "alarms": alarms,
         **_cost_per_message(window, loads),
         "load_average_1m": {"before": load_before[0], "after": os.getloadavg()[0]},
     }
@@ -371,6 +385,7 @@ def run(
     runs: int = 1,
     history: bool = False,
     workers: int | None = None,
+    alarms: bool = True,
 ) -> dict[str, Any]:
     """Every fleet size `runs` times (the sizes interleaved, so a slow spell of the machine does not fall on
     one size only); per size its runs and their summary."""
@@ -382,7 +397,9 @@ def run(
             for k in range(runs):
                 for n in sizes:
                     uri = str(tmp / f"history-{n}-{k}") if tmp is not None else None
-                    results[n].append(one_run(rig, n, rate, seconds, history=uri, workers=workers))
+                    results[n].append(
+                        one_run(rig, n, rate, seconds, history=uri, workers=workers, alarms=alarms)
+                    )
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)

@@ -255,6 +255,7 @@ class _Readout:
     processed: int
     stage_cpu_s: dict[str, float]
     stage_timed_batches: int
+    alarm_rows: int
     internal: LatencyHistogram
     end_to_end: LatencyHistogram
     servos: dict[str, _ServoReadout]
@@ -475,6 +476,7 @@ class Mirror:
         self._internal_hist = LatencyHistogram()
         self._end_to_end_hist = LatencyHistogram()
         self.processed = 0
+        self.alarm_rows = 0
         self.errors = 0
 
     @staticmethod
@@ -1073,6 +1075,7 @@ class Mirror:
         self._internal_hist.add_many(internal)
         self._end_to_end_hist.add_many(end_to_end)
         if evaluate and self._alarms_on:
+            self.alarm_rows += len(evaluate)
             try:
                 self._evaluate_alarms(entries, evaluate, events, monos)
             except Exception:
@@ -1398,6 +1401,7 @@ class Mirror:
                 errors=self.errors,
                 stage_cpu_s=readout.stage_cpu_s,
                 stage_timed_batches=readout.stage_timed_batches,
+                alarm_rows=readout.alarm_rows,
             ),
             recording=self._recording_state(),
             # The agent has the history's own figures (its writer process); the feed's are a sink's.
@@ -1432,6 +1436,7 @@ class Mirror:
                 processed=self.processed,
                 stage_cpu_s=dict(self._stage_cpu),
                 stage_timed_batches=self._stage_timed_batches,
+                alarm_rows=self.alarm_rows,
                 internal=self._internal_hist.copy(),
                 end_to_end=self._end_to_end_hist.copy(),
                 servos={

@@ -1353,6 +1353,7 @@ def _merge_worker(reports: Sequence[MirrorReport], *, workers_alive: bool) -> Wo
         errors=sum(r.worker.errors for r in reports),
         stage_cpu_s=_merge_seconds([r.worker.stage_cpu_s for r in reports]),
         stage_timed_batches=sum(r.worker.stage_timed_batches for r in reports),
+        alarm_rows=sum(r.worker.alarm_rows for r in reports),
     )
 
 

@@ -221,6 +221,9 @@ class WorkerState:
     stage_cpu_s: dict[str, float] = field(default_factory=dict)
     # The batches whose stages were timed, summed over the workers (what the estimate rests on).
     stage_timed_batches: int = 0
+    # Messages the servo alarm engine evaluated, summed over the workers since each started: 0 with
+    # [alarms] enabled = false (`twin bench cost --no-alarms` shows it was).
+    alarm_rows: int = 0
 
 
 @dataclass(frozen=True, slots=True)

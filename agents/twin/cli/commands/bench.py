@@ -121,6 +121,12 @@ def _long_scenarios(sub: Any) -> list[argparse.ArgumentParser]:
     co.add_argument("--runs", type=int, default=1, help="runs of each fleet size (summarised)")
     co.add_argument("--history", action="store_true", help="with the telemetry history on (a temp dir)")
     co.add_argument("--workers", type=int, default=None, help="the agent's --workers (default: its own)")
+    co.add_argument(
+        "--no-alarms",
+        dest="alarms",
+        action="store_false",
+        help="with [alarms] enabled = false: what the agent costs without the servo alarm stage",
+    )
 
     so = sub.add_parser(
         "soak", help="a fleet for minutes or hours with every sink on: RSS, files, disk, losses over time"
@@ -183,6 +189,7 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
             runs=args.runs,
             history=args.history,
             workers=args.workers,
+            alarms=args.alarms,
         )
     return _every_scenario(args)
 
