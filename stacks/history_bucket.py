@@ -39,28 +39,7 @@ class HistoryBucket(Construct):
             block_public_access=s3.BlockPublicAccess.BLOCK_ALL,
             enforce_ssl=True,
             object_ownership=s3.ObjectOwnership.BUCKET_OWNER_ENFORCED,
-            lifecycle_rules=[
-                s3.LifecycleRule(
-                    id="HistoryToInfrequentAccess",
-                    prefix=f"{HISTORY_PREFIX}/",
-                    object_size_greater_than=IA_MIN_OBJECT_BYTES,
-                    transitions=[
-                        s3.Transition(
-                            storage_class=s3.StorageClass.INFREQUENT_ACCESS,
-                            transition_after=Duration.days(infrequent_access_after_days),
-                        )
-                    ],
-                ),
-                # One lease object per table and maintenance window (docs/history.md, Maintenance).
-                s3.LifecycleRule(
-                    id="ExpireMaintenanceLeases",
-                    prefix=f"{HISTORY_PREFIX}/_maintenance/",
-                    expiration=Duration.days(2),
-                ),
-                s3.LifecycleRule(
-                    id="AbortIncompleteUploads", abort_incomplete_multipart_upload_after=Duration.days(1)
-                ),
-            ],
+            lifecycle_rules=_lifecycle_rules(infrequent_access_after_days),
             # History outlives the instance: by default `cdk destroy` leaves the bucket (docs/deploy.md says
             # how to delete it). With retainHistory=false the stack empties and deletes it.
             removal_policy=RemovalPolicy.RETAIN if retain else RemovalPolicy.DESTROY,
@@ -146,3 +125,29 @@ class HistoryBucket(Construct):
                 "under keys it chooses; the wildcard is the history prefix of this stack's own bucket only.",
             )
         )
+
+
+def _lifecycle_rules(infrequent_access_after_days: int) -> list[s3.LifecycleRule]:
+    """History objects to Standard-IA, maintenance leases expired, incomplete uploads aborted."""
+    return [
+        s3.LifecycleRule(
+            id="HistoryToInfrequentAccess",
+            prefix=f"{HISTORY_PREFIX}/",
+            object_size_greater_than=IA_MIN_OBJECT_BYTES,
+            transitions=[
+                s3.Transition(
+                    storage_class=s3.StorageClass.INFREQUENT_ACCESS,
+                    transition_after=Duration.days(infrequent_access_after_days),
+                )
+            ],
+        ),
+        # One lease object per table and maintenance window (docs/history.md, Maintenance).
+        s3.LifecycleRule(
+            id="ExpireMaintenanceLeases",
+            prefix=f"{HISTORY_PREFIX}/_maintenance/",
+            expiration=Duration.days(2),
+        ),
+        s3.LifecycleRule(
+            id="AbortIncompleteUploads", abort_incomplete_multipart_upload_after=Duration.days(1)
+        ),
+    ]

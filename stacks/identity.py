@@ -55,27 +55,25 @@ class TwinIdentity(Construct):
         )
         self._grant_ssm_agent(stack)
 
+        fleet = devices == ("*",)
+        client_ids, filters, topics = _telemetry_resources(fleet, topic_prefix, devices, client_id_prefix)
+        self._grant_iot_telemetry(stack, client_ids, filters, topics)
+        dcv_license = f"arn:{stack.partition}:s3:::dcv-license.{stack.region}/*"
+        self.role.add_to_policy(
+            iam.PolicyStatement(sid="DcvLicense", actions=["s3:GetObject"], resources=[dcv_license])
+        )
+
+        self.agent_log_group = self._agent_log_group(stack_name)
+        self._acknowledge_wildcards(stack, client_ids, topics, fleet)
+
+    def _grant_iot_telemetry(
+        self, stack: Stack, client_ids: list[str], filters: list[str], topics: list[str]
+    ) -> None:
+        """IoT Core: connect as the pool's client ids, subscribe and receive telemetry, find the endpoint."""
+
         def iot_arn(resource: str) -> str:
             return stack.format_arn(service="iot", resource=resource)
 
-        fleet = devices == ("*",)
-        # IoT Core delivers at most 100 publishes/s per connection, so the agent receives over a pool of
-        # connections (twin.transport.pool) with client ids `<prefix><random>-<index>`: the policy allows
-        # exactly those indexes. Listed devices are subscribed one filter each; the whole fleet through the
-        # shared subscription `$share/<group>/<prefix>/+/telemetry` (MQTT '+' is literal in a policy
-        # resource, so the filter is granted exactly; Receive matches the shared topic form per device).
-        if fleet:
-            connections = DEFAULT_MAX_CONNECTIONS
-            group = shared_group(client_id_prefix)
-            filters = [f"$share/{group}/{topic_prefix}/+/{TELEMETRY_SUFFIX}"]
-            topics = [f"$share/{group}/{topic_prefix}/*/{TELEMETRY_SUFFIX}"]
-        else:
-            connections = listed_connections(
-                devices, rate_hz=EDGE_RATE_HZ, limit=IOT_PUBLISHES_PER_CONNECTION, iot=True
-            )
-            filters = [f"{topic_prefix}/{d}/{TELEMETRY_SUFFIX}" for d in devices]
-            topics = filters
-        client_ids = pool_client_ids(client_id_prefix, connections)
         self.role.add_to_policy(
             iam.PolicyStatement(
                 sid="IotConnectAsAgent",
@@ -100,27 +98,30 @@ class TwinIdentity(Construct):
         self.role.add_to_policy(
             iam.PolicyStatement(sid="IotFindEndpoint", actions=["iot:DescribeEndpoint"], resources=["*"])
         )
-        dcv_license = f"arn:{stack.partition}:s3:::dcv-license.{stack.region}/*"
-        self.role.add_to_policy(
-            iam.PolicyStatement(sid="DcvLicense", actions=["s3:GetObject"], resources=[dcv_license])
-        )
 
-        self.agent_log_group = logs.LogGroup(
+    def _agent_log_group(self, stack_name: str) -> logs.LogGroup:
+        """The host's log group, which the role may write streams to."""
+        agent_log_group = logs.LogGroup(
             self,
             "AgentLogGroup",
             log_group_name=f"/so101-twin/{stack_name}/host",
             retention=logs.RetentionDays.ONE_YEAR,
             removal_policy=RemovalPolicy.DESTROY,
         )
-        skip_checkov(self.agent_log_group, {"CKV_AWS_158": LOG_GROUP_KMS})
+        skip_checkov(agent_log_group, {"CKV_AWS_158": LOG_GROUP_KMS})
         self.role.add_to_policy(
             iam.PolicyStatement(
                 sid="HostLogs",
                 actions=["logs:CreateLogStream", "logs:PutLogEvents", "logs:DescribeLogStreams"],
-                resources=[self.agent_log_group.log_group_arn],
+                resources=[agent_log_group.log_group_arn],
             )
         )
+        return agent_log_group
 
+    def _acknowledge_wildcards(
+        self, stack: Stack, client_ids: list[str], topics: list[str], fleet: bool
+    ) -> None:
+        """The role's cdk-nag acknowledgements (AwsSolutions-IAM5)."""
         # One acknowledgement per wildcard, each saying why it cannot be narrower.
         client_reason = (
             "Each agent process connects with unique client ids (fixed prefix, a random part so two agents "
@@ -217,3 +218,26 @@ class TwinIdentity(Construct):
                 "actions take no resource ARN that could narrow them."
             },
         )
+
+
+def _telemetry_resources(
+    fleet: bool, topic_prefix: str, devices: tuple[str, ...], client_id_prefix: str
+) -> tuple[list[str], list[str], list[str]]:
+    """The agent's pool client ids, the topic filters it subscribes and the topics it receives."""
+    # IoT Core delivers at most 100 publishes/s per connection, so the agent receives over a pool of
+    # connections (twin.transport.pool) with client ids `<prefix><random>-<index>`: the policy allows
+    # exactly those indexes. Listed devices are subscribed one filter each; the whole fleet through the
+    # shared subscription `$share/<group>/<prefix>/+/telemetry` (MQTT '+' is literal in a policy
+    # resource, so the filter is granted exactly; Receive matches the shared topic form per device).
+    if fleet:
+        connections = DEFAULT_MAX_CONNECTIONS
+        group = shared_group(client_id_prefix)
+        filters = [f"$share/{group}/{topic_prefix}/+/{TELEMETRY_SUFFIX}"]
+        topics = [f"$share/{group}/{topic_prefix}/*/{TELEMETRY_SUFFIX}"]
+    else:
+        connections = listed_connections(
+            devices, rate_hz=EDGE_RATE_HZ, limit=IOT_PUBLISHES_PER_CONNECTION, iot=True
+        )
+        filters = [f"{topic_prefix}/{d}/{TELEMETRY_SUFFIX}" for d in devices]
+        topics = filters
+    return pool_client_ids(client_id_prefix, connections), filters, topics

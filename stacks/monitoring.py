@@ -153,16 +153,30 @@ class TwinMonitoring(Construct):
     def watch_host(self, instance_id: str) -> None:
         """The CloudWatch alarms, which need the instance: its CPU metric tells a stopped host from a silent
         agent."""
+        self.alarms = {
+            "AgentSilent": self._agent_silent_alarm(instance_id),
+            "ArmsStale": self._arms_stale_alarm(),
+        }
+        self._alarms_for_loss()
+        self._alarms_for_history()
+        action = cw_actions.SnsAction(self.topic)
+        for alarm in self.alarms.values():
+            alarm.add_alarm_action(action)
+            alarm.add_ok_action(action)
+        self.dashboard = _dashboard(self, self.agent_name, self._metric, list(self.alarms.values()))
 
-        def metric(name: str, statistic: str, **extra: str) -> cw.Metric:
-            return cw.Metric(
-                namespace=NAMESPACE,
-                metric_name=name,
-                dimensions_map={AGENT_DIMENSION: self.agent_name, **extra},
-                statistic=statistic,
-                period=PERIOD,
-            )
+    def _metric(self, name: str, statistic: str, **extra: str) -> cw.Metric:
+        """One of the agent's EMF metrics, per minute, for this agent (and the `extra` dimensions)."""
+        return cw.Metric(
+            namespace=NAMESPACE,
+            metric_name=name,
+            dimensions_map={AGENT_DIMENSION: self.agent_name, **extra},
+            statistic=statistic,
+            period=PERIOD,
+        )
 
+    def _agent_silent_alarm(self, instance_id: str) -> cw.Alarm:
+        """AgentSilent: the instance runs, but the agent sent no heartbeat for SILENT_MINUTES."""
         running = cw.Metric(
             namespace="AWS/EC2",
             metric_name="CPUUtilization",
@@ -170,89 +184,95 @@ class TwinMonitoring(Construct):
             statistic="SampleCount",
             period=PERIOD,
         )
-        self.alarms = {
-            "AgentSilent": cw.Alarm(
-                self,
-                "AgentSilent",
-                alarm_name=silent_alarm_name(self.agent_name),
-                # Off until the host is up (module doc): the host enables them.
-                actions_enabled=False,
-                alarm_description=(
-                    f"The so101-twin agent of {self.agent_name} sent no heartbeat for 5 minutes while its "
-                    "host runs: the agent or the host's CloudWatch agent is down (a stopped host does not "
-                    "count). docs/servo-health.md"
-                ),
-                # 1 while the instance reports CPU (it runs) and the agent no heartbeat; a stopped instance
-                # reports nothing, which FILL makes 0: not breaching.
-                metric=cw.MathExpression(
-                    expression="IF(FILL(running, 0) > 0 AND FILL(up, 0) < 1, 1, 0)",
-                    using_metrics={"running": running, "up": metric("AgentUp", "SampleCount")},
-                    label="Host runs, agent silent",
-                    period=PERIOD,
-                ),
-                threshold=1,
-                comparison_operator=cw.ComparisonOperator.GREATER_THAN_OR_EQUAL_TO_THRESHOLD,
-                evaluation_periods=SILENT_MINUTES,
-                datapoints_to_alarm=SILENT_MINUTES,
-                treat_missing_data=cw.TreatMissingData.NOT_BREACHING,
+        return cw.Alarm(
+            self,
+            "AgentSilent",
+            alarm_name=silent_alarm_name(self.agent_name),
+            # Off until the host is up (module doc): the host enables them.
+            actions_enabled=False,
+            alarm_description=(
+                f"The so101-twin agent of {self.agent_name} sent no heartbeat for 5 minutes while its "
+                "host runs: the agent or the host's CloudWatch agent is down (a stopped host does not "
+                "count). docs/servo-health.md"
             ),
-            "ArmsStale": cw.Alarm(
-                self,
-                "ArmsStale",
-                alarm_description=(
-                    f"At least one arm of {self.agent_name} has been STALE for 3 minutes: it publishes with "
-                    "gaps (a weak network, an overloaded edge). Arms switched off go OFFLINE and are not "
-                    "paged. docs/servo-health.md"
-                ),
-                metric=metric("DevicesStale", "Maximum"),
-                threshold=1,
-                comparison_operator=cw.ComparisonOperator.GREATER_THAN_OR_EQUAL_TO_THRESHOLD,
-                evaluation_periods=3,
-                datapoints_to_alarm=3,
-                # A silent agent is AgentSilent's to report; this one judges the arms it can see.
-                treat_missing_data=cw.TreatMissingData.NOT_BREACHING,
+            # 1 while the instance reports CPU (it runs) and the agent no heartbeat; a stopped instance
+            # reports nothing, which FILL makes 0: not breaching.
+            metric=cw.MathExpression(
+                expression="IF(FILL(running, 0) > 0 AND FILL(up, 0) < 1, 1, 0)",
+                using_metrics={"running": running, "up": self._metric("AgentUp", "SampleCount")},
+                label="Host runs, agent silent",
+                period=PERIOD,
             ),
-        }
+            threshold=1,
+            comparison_operator=cw.ComparisonOperator.GREATER_THAN_OR_EQUAL_TO_THRESHOLD,
+            evaluation_periods=SILENT_MINUTES,
+            datapoints_to_alarm=SILENT_MINUTES,
+            treat_missing_data=cw.TreatMissingData.NOT_BREACHING,
+        )
 
+    def _arms_stale_alarm(self) -> cw.Alarm:
+        """ArmsStale: at least one arm STALE for 3 minutes in a row."""
+        return cw.Alarm(
+            self,
+            "ArmsStale",
+            alarm_description=(
+                f"At least one arm of {self.agent_name} has been STALE for 3 minutes: it publishes with "
+                "gaps (a weak network, an overloaded edge). Arms switched off go OFFLINE and are not "
+                "paged. docs/servo-health.md"
+            ),
+            metric=self._metric("DevicesStale", "Maximum"),
+            threshold=1,
+            comparison_operator=cw.ComparisonOperator.GREATER_THAN_OR_EQUAL_TO_THRESHOLD,
+            evaluation_periods=3,
+            datapoints_to_alarm=3,
+            # A silent agent is AgentSilent's to report; this one judges the arms it can see.
+            treat_missing_data=cw.TreatMissingData.NOT_BREACHING,
+        )
+
+    def _any_loss_alarm(self, id_: str, name: str, description: str) -> cw.Alarm:
+        """Alarm when `name` counted anything in a minute."""
+        return cw.Alarm(
+            self,
+            id_,
+            alarm_description=f'{description} docs/agent.md, "Bounds and restarts"',
+            metric=self._metric(name, "Sum"),
+            threshold=1,
+            comparison_operator=cw.ComparisonOperator.GREATER_THAN_OR_EQUAL_TO_THRESHOLD,
+            evaluation_periods=1,
+            # Nothing counted (or history off, or the agent silent: AgentSilent's case) is no loss.
+            treat_missing_data=cw.TreatMissingData.NOT_BREACHING,
+        )
+
+    def _alarms_for_loss(self) -> None:
+        """The four alarms on anything lost in a minute: messages, sink samples, workers, history rows."""
         agent_name = self.agent_name
-
-        def any_loss(id_: str, name: str, description: str) -> cw.Alarm:
-            """Alarm when `name` counted anything in a minute."""
-            return cw.Alarm(
-                self,
-                id_,
-                alarm_description=f'{description} docs/agent.md, "Bounds and restarts"',
-                metric=metric(name, "Sum"),
-                threshold=1,
-                comparison_operator=cw.ComparisonOperator.GREATER_THAN_OR_EQUAL_TO_THRESHOLD,
-                evaluation_periods=1,
-                # Nothing counted (or history off, or the agent silent: AgentSilent's case) is no loss.
-                treat_missing_data=cw.TreatMissingData.NOT_BREACHING,
-            )
-
-        self.alarms["MessagesDropped"] = any_loss(
+        self.alarms["MessagesDropped"] = self._any_loss_alarm(
             "MessagesDropped",
             MESSAGES_DROPPED,
             f"The agent of {agent_name} dropped telemetry before decoding it: a queue was full (the host "
             "cannot keep up) or a worker process died with messages it had not counted.",
         )
-        self.alarms["SinkDrops"] = any_loss(
+        self.alarms["SinkDrops"] = self._any_loss_alarm(
             "SinkDrops",
             SINK_DROPS,
             f"An output of {agent_name} (USD recording, history, Rerun or ROS 2) dropped samples it could "
             "not keep up with; /state agent.sinks says which.",
         )
-        self.alarms["WorkerRestarts"] = any_loss(
+        self.alarms["WorkerRestarts"] = self._any_loss_alarm(
             "WorkerRestarts",
             WORKER_RESTARTS,
             f"A worker process of {agent_name}'s agent died and was started again; its log says why.",
         )
-        self.alarms["HistoryRowsDropped"] = any_loss(
+        self.alarms["HistoryRowsDropped"] = self._any_loss_alarm(
             "HistoryRowsDropped",
             HISTORY_ROWS_DROPPED,
             f"Telemetry history of {agent_name} is being lost: storage was unreachable longer than the write "
             "buffer holds (history.max_buffer_rows).",
         )
+
+    def _alarms_for_history(self) -> None:
+        """History's two alarms of its own: commits failing, and the oldest unwritten row waiting too long."""
+        agent_name = self.agent_name
         self.alarms["HistoryCommitFailures"] = cw.Alarm(
             self,
             "HistoryCommitFailures",
@@ -260,7 +280,7 @@ class TwinMonitoring(Construct):
                 f"History commits of {agent_name} have failed for 5 minutes: the bucket is unreachable or "
                 "refuses the role (/state agent.history.last_error). docs/history.md"
             ),
-            metric=metric(HISTORY_COMMIT_FAILURES, "Sum"),
+            metric=self._metric(HISTORY_COMMIT_FAILURES, "Sum"),
             threshold=1,
             comparison_operator=cw.ComparisonOperator.GREATER_THAN_OR_EQUAL_TO_THRESHOLD,
             evaluation_periods=5,
@@ -275,29 +295,19 @@ class TwinMonitoring(Construct):
                 f"{HISTORY_LAG_ALARM_S} s for 2 minutes; rows are dropped once the buffer is full. "
                 "docs/history.md"
             ),
-            metric=metric(HISTORY_LAG, "Maximum"),
+            metric=self._metric(HISTORY_LAG, "Maximum"),
             threshold=HISTORY_LAG_ALARM_S,
             comparison_operator=cw.ComparisonOperator.GREATER_THAN_OR_EQUAL_TO_THRESHOLD,
             evaluation_periods=2,
             datapoints_to_alarm=2,
             treat_missing_data=cw.TreatMissingData.NOT_BREACHING,
         )
-        action = cw_actions.SnsAction(self.topic)
-        for alarm in self.alarms.values():
-            alarm.add_alarm_action(action)
-            alarm.add_ok_action(action)
-        self.dashboard = _dashboard(self, self.agent_name, metric, list(self.alarms.values()))
 
 
 def _dashboard(
     scope: Construct, agent_name: str, metric: Callable[..., cw.Metric], alarms: list[cw.Alarm]
 ) -> cw.Dashboard:
     """The fleet at a glance, one graph per question an operator asks, each from the agent's EMF metrics."""
-
-    def graph(
-        title: str, left: list[cw.IMetric], right: list[cw.IMetric] | None = None, **options: Any
-    ) -> cw.GraphWidget:
-        return cw.GraphWidget(title=title, left=left, right=right or [], width=12, height=6, **options)
 
     def labelled(name: str, statistic: str, label: str, **extra: str) -> cw.Metric:
         return metric(name, statistic, **extra).with_(label=label)
@@ -309,7 +319,23 @@ def _dashboard(
         default_interval=Duration.hours(3),
     )
     dashboard.add_widgets(
-        graph(
+        *_fleet_graphs(labelled),
+        cw.AlarmStatusWidget(title="Alarms", alarms=alarms, width=24, height=6),
+    )
+    return dashboard
+
+
+def _graph(
+    title: str, left: list[cw.IMetric], right: list[cw.IMetric] | None = None, **options: Any
+) -> cw.GraphWidget:
+    """A half-width graph of the dashboard."""
+    return cw.GraphWidget(title=title, left=left, right=right or [], width=12, height=6, **options)
+
+
+def _fleet_graphs(labelled: Callable[..., cw.Metric]) -> list[cw.GraphWidget]:
+    """The dashboard's graphs, in order: arms, messages, loss, servo alarms, history, what was lost."""
+    return [
+        _graph(
             "Arms by status",
             [
                 labelled("DevicesOnline", "Maximum", "online"),
@@ -318,17 +344,17 @@ def _dashboard(
             ],
             stacked=True,
         ),
-        graph(
+        _graph(
             "Mirrored messages per second (all arms) and rejected messages",
             [labelled("MessagesPerSecond", "Average", "mirrored msg/s")],
             [labelled("Rejects", "Sum", "rejected per minute")],
         ),
-        graph(
+        _graph(
             "Loss: share of expected messages that never arrived (%)",
             [labelled("LossPercent", "Maximum", "loss %")],
             left_y_axis=cw.YAxisProps(min=0),
         ),
-        graph(
+        _graph(
             "Servo alarms present, by severity",
             [
                 labelled("ActiveAlarms", "Maximum", severity, **{SEVERITY_DIMENSION: severity})
@@ -336,12 +362,12 @@ def _dashboard(
             ],
             left_y_axis=cw.YAxisProps(min=0),
         ),
-        graph(
+        _graph(
             "History: lag of the oldest unwritten row (s) and rows dropped",
             [labelled(HISTORY_LAG, "Maximum", "lag s")],
             [labelled(HISTORY_ROWS_DROPPED, "Sum", "rows dropped per minute")],
         ),
-        graph(
+        _graph(
             "Lost: messages dropped, sink drops, worker restarts, history commit failures (per minute)",
             [
                 labelled(MESSAGES_DROPPED, "Sum", "messages dropped"),
@@ -351,6 +377,4 @@ def _dashboard(
             ],
             left_y_axis=cw.YAxisProps(min=0),
         ),
-        cw.AlarmStatusWidget(title="Alarms", alarms=alarms, width=24, height=6),
-    )
-    return dashboard
+    ]

@@ -30,10 +30,23 @@ class TwinNetwork(Construct):
         availability_zone: str | None,
     ) -> None:
         super().__init__(scope, id_)
+        self.vpc = self._vpc(availability_zone)
+        self.flow_log_group = self._flow_log()
+
+        # Flag restrictDefaultSecurityGroup adds a deploy-time Lambda (stack-level singleton) that strips
+        # the default security group's rules.
+        provider = Stack.of(self).node.try_find_child("Custom::VpcRestrictDefaultSGCustomResourceProvider")
+        if provider is not None:
+            skip_checkov(provider.node.find_child("Handler"), LAMBDA_DEPLOY_TIME_ONLY)
+
+        self.security_group = self._security_group(client_cidr, allow_any_client)
+
+    def _vpc(self, availability_zone: str | None) -> ec2.Vpc:
+        """The VPC: one public subnet in one AZ (the given one, else any), no NAT."""
         zone_options: dict = (
             {"availability_zones": [availability_zone]} if availability_zone else {"max_azs": 1}
         )
-        self.vpc = ec2.Vpc(
+        return ec2.Vpc(
             self,
             "Vpc",
             ip_addresses=ec2.IpAddresses.cidr(VPC_CIDR),
@@ -48,26 +61,26 @@ class TwinNetwork(Construct):
             ],
             **zone_options,
         )
-        self.flow_log_group = logs.LogGroup(
+
+    def _flow_log(self) -> logs.LogGroup:
+        """The VPC's flow log of all traffic, and the log group it goes to."""
+        flow_log_group = logs.LogGroup(
             self,
             "FlowLogGroup",
             retention=logs.RetentionDays.ONE_YEAR,
             removal_policy=RemovalPolicy.DESTROY,
         )
-        skip_checkov(self.flow_log_group, {"CKV_AWS_158": LOG_GROUP_KMS})
+        skip_checkov(flow_log_group, {"CKV_AWS_158": LOG_GROUP_KMS})
         self.vpc.add_flow_log(
             "FlowLog",
-            destination=ec2.FlowLogDestination.to_cloud_watch_logs(self.flow_log_group),
+            destination=ec2.FlowLogDestination.to_cloud_watch_logs(flow_log_group),
             traffic_type=ec2.FlowLogTrafficType.ALL,
         )
+        return flow_log_group
 
-        # Flag restrictDefaultSecurityGroup adds a deploy-time Lambda (stack-level singleton) that strips
-        # the default security group's rules.
-        provider = Stack.of(self).node.try_find_child("Custom::VpcRestrictDefaultSGCustomResourceProvider")
-        if provider is not None:
-            skip_checkov(provider.node.find_child("Handler"), LAMBDA_DEPLOY_TIME_ONLY)
-
-        self.security_group = ec2.SecurityGroup(
+    def _security_group(self, client_cidr: str | None, allow_any_client: bool) -> ec2.SecurityGroup:
+        """The host's security group: DCV in from the client CIDR, HTTPS and HTTP out."""
+        security_group = ec2.SecurityGroup(
             self,
             "HostSecurityGroup",
             vpc=self.vpc,
@@ -76,10 +89,8 @@ class TwinNetwork(Construct):
             # Manager, pip, the DCV download) and HTTP (the Ubuntu apt mirrors serve plain HTTP, signed).
             allow_all_outbound=False,
         )
-        self.security_group.add_egress_rule(
-            ec2.Peer.any_ipv4(), ec2.Port.tcp(443), "HTTPS to AWS APIs and PyPI"
-        )
-        self.security_group.add_egress_rule(
+        security_group.add_egress_rule(ec2.Peer.any_ipv4(), ec2.Port.tcp(443), "HTTPS to AWS APIs and PyPI")
+        security_group.add_egress_rule(
             ec2.Peer.any_ipv4(), ec2.Port.tcp(80), "HTTP to the Ubuntu apt mirrors"
         )
         # IPv4 only: the settings refuse an IPv6 client because nothing here has an IPv6 address. Without a
@@ -87,18 +98,19 @@ class TwinNetwork(Construct):
         # nothing is admitted.
         if client_cidr is not None:
             peer = ec2.Peer.ipv4(client_cidr)
-            self.security_group.add_ingress_rule(
+            security_group.add_ingress_rule(
                 peer, ec2.Port.tcp(DCV_PORT), "DCV web client and native client (HTTPS/WebSocket)"
             )
-            self.security_group.add_ingress_rule(
+            security_group.add_ingress_rule(
                 peer, ec2.Port.udp(DCV_PORT), "DCV QUIC transport (native client)"
             )
         if allow_any_client:
             # Settings refuse an open CIDR unless the deployer passed allowAnyClient=true on purpose.
-            Validations.of(self.security_group).acknowledge(
+            Validations.of(security_group).acknowledge(
                 Acknowledgment(
                     id="AwsSolutions-EC23",
                     reason="The deployer explicitly passed -c allowAnyClient=true (e.g. roaming between "
                     "networks); DCV still requires the generated password, and no other port is open.",
                 )
             )
+        return security_group

@@ -76,7 +76,18 @@ class TwinStack(Stack):
             self, "Monitoring", agent_name=settings.stack_name, alarm_email=settings.alarm_email
         )
         self.monitoring.grant_host(self.identity.role)
-        self.host = TwinHost(
+        self.host = self._host(settings, agent_source)
+        self.monitoring.watch_host(self.host.instance.instance_id)
+        self.iot_endpoint = IotDataEndpoint(self, "IotEndpointLookup")
+        self.auto_stop = self._auto_stop(settings)
+
+        self._access_outputs()
+        self._alarm_and_data_outputs(settings)
+        self._operation_outputs(settings, settings_output)
+
+    def _host(self, settings: TwinSettings, agent_source: Path | None) -> TwinHost:
+        """The twin host, on the network with the identity's role, and the settings its agent runs with."""
+        return TwinHost(
             self,
             "Host",
             vpc=self.network.vpc,
@@ -109,9 +120,10 @@ class TwinStack(Stack):
             },
             agent_source=agent_source or REPO_ROOT,
         )
-        self.monitoring.watch_host(self.host.instance.instance_id)
-        self.iot_endpoint = IotDataEndpoint(self, "IotEndpointLookup")
-        self.auto_stop = (
+
+    def _auto_stop(self, settings: TwinSettings) -> AutoStop | None:
+        """The host's stop schedule, when the settings give one."""
+        return (
             AutoStop(
                 self,
                 "AutoStop",
@@ -123,6 +135,8 @@ class TwinStack(Stack):
             else None
         )
 
+    def _access_outputs(self) -> None:
+        """Outputs for reaching the host: the DCV URL and password, the instance, the IoT endpoint."""
         secret_arn = self.host.password_secret.secret_arn
         CfnOutput(
             self,
@@ -152,6 +166,9 @@ class TwinStack(Stack):
             "--query SecretString --output text",
             description="Prints the DCV password",
         )
+
+    def _alarm_and_data_outputs(self, settings: TwinSettings) -> None:
+        """Outputs for the alarms (topic, dashboard) and the data the stack keeps (history, calibrations)."""
         CfnOutput(
             self,
             "AlarmTopic",
@@ -184,6 +201,9 @@ class TwinStack(Stack):
             description="Where each arm's LeRobot calibration is kept (<device>.json); `twin calibration "
             "push ARM FILE` uploads one and the agent picks it up within calibration_poll_s",
         )
+
+    def _operation_outputs(self, settings: TwinSettings, settings_output: str) -> None:
+        """Outputs for operating the host: what it runs with which settings, its update, logs and shell."""
         CfnOutput(
             self,
             "DeploymentVersion",
