@@ -124,16 +124,19 @@ load_env() {
 # The key is fetched with the download it signs, so it proves nothing by itself: its fingerprint is pinned
 # (userdata/releases.env) and checked before anything is verified with it.
 
+# Every gpg call here runs with --no-autostart: checking a signature needs only the public key, never
+# gpg-agent, and an agent keeps its sockets in the keyring's directory, whose path must fit a Unix socket's
+# 108 bytes: under a long TMPDIR (a test runner's, say) the agent could not start. gpg still tries to reach
+# one at the end of an import and exits 2 when the path is too long for that, with the key imported; so
+# what decides is the keyring's listing (the pinned fingerprint), not the import's exit code.
+
 # gpg_home KEYFILE FINGERPRINT: a throw-away keyring holding KEYFILE, whose primary key must have
 # FINGERPRINT; prints the keyring's directory.
 gpg_home() {
-  local home listing fpr="" line
+  local home listing fpr="" line said
   home="$(mktemp -d)"
-  gpg --homedir "$home" --batch --quiet --import "$1" >/dev/null 2>&1 || {
-    echo "gpg could not import $1" >&2
-    return 1
-  }
-  listing="$(gpg --homedir "$home" --batch --with-colons --fingerprint 2>/dev/null)"
+  said="$(gpg --no-autostart --homedir "$home" --batch --quiet --import "$1" 2>&1 >/dev/null)" || true
+  listing="$(gpg --no-autostart --homedir "$home" --batch --with-colons --fingerprint 2>/dev/null)" || true
   # The first fpr line after pub is the primary key's.
   while IFS= read -r line; do
     if [[ $line == fpr:* ]]; then
@@ -141,8 +144,14 @@ gpg_home() {
       break
     fi
   done <<<"$listing"
+  if [ -z "$fpr" ]; then
+    echo "gpg could not import $1: ${said//$'\n'/; }" >&2
+    rm -rf "$home"
+    return 1
+  fi
   if [ "$fpr" != "$2" ]; then
-    echo "the key in $1 has fingerprint ${fpr:-none}, not the pinned $2" >&2
+    echo "the key in $1 has fingerprint $fpr, not the pinned $2" >&2
+    rm -rf "$home"
     return 1
   fi
   echo "$home"
@@ -154,7 +163,7 @@ gpg_home() {
 signed_by() {
   local home="$1" fpr="$2" status line
   shift 2
-  status="$(gpg --homedir "$home" --batch --status-fd 1 "$@" 2>/dev/null)" || true
+  status="$(gpg --no-autostart --homedir "$home" --batch --status-fd 1 "$@" 2>/dev/null)" || true
   while IFS= read -r line; do
     if [[ $line == "[GNUPG:] VALIDSIG "* && $line == *" $fpr" ]]; then return 0; fi
   done <<<"$status"
@@ -166,7 +175,6 @@ verify_detached() {
   local home ok=0
   home="$(gpg_home "$1" "$2")" || return 1
   signed_by "$home" "$2" --verify "$3" "$4" || ok=1
-  gpgconf --homedir "$home" --kill all >/dev/null 2>&1 || true
   rm -rf "$home"
   if [ "$ok" = 1 ]; then
     echo "$4: no valid signature by $2 in $3" >&2
@@ -205,7 +213,6 @@ verify_deb() {
       fi
     done <<<"$members"
   fi
-  gpgconf --homedir "$home" --kill all >/dev/null 2>&1 || true
   rm -rf "$home" "$work"
   if [ -n "$problem" ]; then
     echo "$problem" >&2

@@ -841,6 +841,37 @@ def test_verify_detached_needs_the_pinned_key(signer: TestSigner, tmp_path: Path
     assert refused.returncode == 1 and "no valid signature by" in refused.stderr
 
 
+def test_signatures_verify_under_a_temporary_directory_too_long_for_an_agent_socket(
+    signer: TestSigner, tmp_path: Path
+) -> None:
+    """The keyrings are made under TMPDIR; a gpg-agent's socket in one must fit 108 bytes. No agent is
+    started (--no-autostart), so a long TMPDIR (a test runner's, a host's) does not fail the import."""
+    long_tmp = tmp_path / ("t" * 90)
+    long_tmp.mkdir()
+    key = tmp_path / "key.asc"
+    key.write_bytes(signer.public_key())
+    package = tmp_path / "agent.deb"
+    package.write_bytes(b"Package: amazon-cloudwatch-agent\n")
+    sig = tmp_path / "agent.deb.sig"
+    sig.write_bytes(signer.detach_sign(package.read_bytes()))
+    ok = lib_call(
+        'verify_detached "$@"', str(key), signer.fingerprint, str(sig), str(package), TMPDIR=str(long_tmp)
+    )
+    assert ok.returncode == 0, ok.stderr
+    good = make_deb(tmp_path / "good_1_amd64.deb", "good", b"payload" * 100, signer)
+    ok = lib_call('verify_deb "$1" "$2" "$3"', str(key), signer.fingerprint, str(good), TMPDIR=str(long_tmp))
+    assert ok.returncode == 0, ok.stderr
+    # A key file that is no key: refused, saying what gpg said.
+    garbage = tmp_path / "garbage.asc"
+    garbage.write_text("<html>Access Denied</html>\n")
+    refused = lib_call(
+        'verify_detached "$@"', str(garbage), signer.fingerprint, str(sig), str(package), TMPDIR=str(long_tmp)
+    )
+    assert refused.returncode == 1
+    assert f"gpg could not import {garbage}: " in refused.stderr and "no valid OpenPGP data" in refused.stderr
+    assert list(long_tmp.iterdir()) == []  # the keyrings and work directories are gone, refused or not
+
+
 def test_the_pinned_downloads_are_one_well_formed_file_in_the_scripts_asset(synth_default: Synth) -> None:
     text = (USERDATA / "releases.env").read_text()
     pins = dict(line.split("=", 1) for line in text.splitlines() if line and not line.startswith("#"))
