@@ -53,8 +53,10 @@ ROS2_VENV := .venv-ros2
 ROS2_STAMP := $(ROS2_VENV)/.setup-stamp
 ROS2_KILTED_VENV := .venv-ros2-kilted
 ROS2_KILTED_STAMP := $(ROS2_KILTED_VENV)/.setup-stamp
-# `make test` runs the suite in a fixed order; `make test-stress` shuffles it (pytest-randomly).
-PYTEST := $(VENV)/bin/pytest -p no:randomly
+# `make test` runs the suite in a fixed order; `make test-stress` shuffles it (pytest-randomly). Both run it
+# on every core (pytest-xdist, one worker process per core): the tests wait on conditions, not on time, so
+# sharing the cores with another test is what `make test-stress` already puts them through.
+PYTEST := $(VENV)/bin/pytest -p no:randomly -n auto
 # The host builds the agent with --no-build-isolation from requirements/host.txt, which holds its build
 # backend; the installer tests do the same, offline, from these wheels of it (tests/infra/hostsim.py): the
 # backend, and Pillow, which the host's screen check runs on.
@@ -188,8 +190,7 @@ lint: setup
 	$(VENV)/bin/mypy
 	shellcheck userdata/*.sh tests/stress.sh
 
-# The 30 slowest tests are listed at the end: the suite is over its 10-minute goal, and CI's log says where
-# the time goes.
+# The 30 slowest tests are listed at the end: CI's log says where the time goes.
 test: setup lint check-lock
 	$(PYTEST) --durations=30
 
