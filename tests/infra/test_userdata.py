@@ -823,21 +823,29 @@ def test_verify_deb_checks_the_builder_signature_and_every_member(signer: TestSi
     )
 
 
-def test_verify_detached_needs_the_pinned_key(signer: TestSigner, tmp_path: Path) -> None:
-    key = tmp_path / "key.asc"
+def signed_package(signer: TestSigner, where: Path) -> tuple[Path, Path, Path]:
+    """(the signer's public key file, a package, its detached signature), written under `where`."""
+    key = where / "key.asc"
     key.write_bytes(signer.public_key())
-    package = tmp_path / "agent.deb"
+    package = where / "agent.deb"
     package.write_bytes(b"Package: amazon-cloudwatch-agent\n")
-    sig = tmp_path / "agent.deb.sig"
+    sig = where / "agent.deb.sig"
     sig.write_bytes(signer.detach_sign(package.read_bytes()))
-    ok = lib_call(
-        'verify_detached "$@"', str(key), signer.fingerprint, str(sig), str(package), TMPDIR=str(tmp_path)
-    )
+    return key, package, sig
+
+
+def verify_detached(
+    key: Path, fingerprint: str, sig: Path, package: Path, tmp: Path
+) -> subprocess.CompletedProcess[str]:
+    return lib_call('verify_detached "$@"', str(key), fingerprint, str(sig), str(package), TMPDIR=str(tmp))
+
+
+def test_verify_detached_needs_the_pinned_key(signer: TestSigner, tmp_path: Path) -> None:
+    key, package, sig = signed_package(signer, tmp_path)
+    ok = verify_detached(key, signer.fingerprint, sig, package, tmp_path)
     assert ok.returncode == 0, ok.stderr
     package.write_bytes(b"Package: something-else\n")
-    refused = lib_call(
-        'verify_detached "$@"', str(key), signer.fingerprint, str(sig), str(package), TMPDIR=str(tmp_path)
-    )
+    refused = verify_detached(key, signer.fingerprint, sig, package, tmp_path)
     assert refused.returncode == 1 and "no valid signature by" in refused.stderr
 
 
@@ -848,15 +856,8 @@ def test_signatures_verify_under_a_temporary_directory_too_long_for_an_agent_soc
     started (--no-autostart), so a long TMPDIR (a test runner's, a host's) does not fail the import."""
     long_tmp = tmp_path / ("t" * 90)
     long_tmp.mkdir()
-    key = tmp_path / "key.asc"
-    key.write_bytes(signer.public_key())
-    package = tmp_path / "agent.deb"
-    package.write_bytes(b"Package: amazon-cloudwatch-agent\n")
-    sig = tmp_path / "agent.deb.sig"
-    sig.write_bytes(signer.detach_sign(package.read_bytes()))
-    ok = lib_call(
-        'verify_detached "$@"', str(key), signer.fingerprint, str(sig), str(package), TMPDIR=str(long_tmp)
-    )
+    key, package, sig = signed_package(signer, tmp_path)
+    ok = verify_detached(key, signer.fingerprint, sig, package, long_tmp)
     assert ok.returncode == 0, ok.stderr
     good = make_deb(tmp_path / "good_1_amd64.deb", "good", b"payload" * 100, signer)
     ok = lib_call('verify_deb "$1" "$2" "$3"', str(key), signer.fingerprint, str(good), TMPDIR=str(long_tmp))
@@ -864,9 +865,7 @@ def test_signatures_verify_under_a_temporary_directory_too_long_for_an_agent_soc
     # A key file that is no key: refused, saying what gpg said.
     garbage = tmp_path / "garbage.asc"
     garbage.write_text("<html>Access Denied</html>\n")
-    refused = lib_call(
-        'verify_detached "$@"', str(garbage), signer.fingerprint, str(sig), str(package), TMPDIR=str(long_tmp)
-    )
+    refused = verify_detached(garbage, signer.fingerprint, sig, package, long_tmp)
     assert refused.returncode == 1
     assert f"gpg could not import {garbage}: " in refused.stderr and "no valid OpenPGP data" in refused.stderr
     assert list(long_tmp.iterdir()) == []  # the keyrings and work directories are gone, refused or not
