@@ -32,6 +32,7 @@ from twin.edge.servo_faults import ServoFault
 from twin.rig.local import LocalRig, child_env
 from twin.rig.mosquitto import free_port
 from twin.rig.quota_proxy import QuotaProxy
+from twin.service.admission import DeviceBudget
 from twin.service.config import ConfigError, load_config
 from twin.service.shards import MirrorReport, WorkerPlan, merge_reports, worker_config
 from twin.service.state import (
@@ -255,6 +256,49 @@ def test_a_worker_that_does_not_answer_is_not_running_in_the_merged_state() -> N
     )
     assert state.agent.running is False and state.agent.worker.alive is False
     assert list(state.devices) == ["a"]
+
+
+class _SilentWorker:
+    """A worker process that lives and never answers, and a control pipe that records how long each wait
+    on it was allowed to take."""
+
+    def __init__(self) -> None:
+        self.polled: list[float] = []
+
+    def is_alive(self) -> bool:
+        return True
+
+    def send(self, message: Any) -> None:
+        pass
+
+    def poll(self, timeout: float) -> bool:
+        self.polled.append(timeout)
+        return False
+
+
+def test_asking_every_worker_waits_out_one_timeout_for_all_not_one_each(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from twin.service import shards
+
+    now = [1000.0]
+    monkeypatch.setattr(shards.time, "monotonic", lambda: now[0])
+    config = load_config(None, {"telemetry.devices": ["*"]})
+    silent = []
+    for index in range(2):
+        shard = shards.WorkerShard(index, config, DeviceBudget(10), context=None)  # type: ignore[arg-type]
+        worker = _SilentWorker()
+        shard.process, shard.control, shard.ready = worker, worker, True  # type: ignore[assignment]
+        silent.append((shard, worker))
+    # As the agent asks (AgentService._ask_all): every worker first, then each answer in turn.
+    waits = [shard.request(shards.ReportRequest()) for shard, _ in silent]
+    with pytest.raises(shards.WorkerError, match="did not answer"):
+        waits[0]()
+    assert silent[0][1].polled == [shards.ASK_TIMEOUT_S]
+    now[0] += shards.ASK_TIMEOUT_S  # the first wait took its whole timeout
+    with pytest.raises(shards.WorkerError, match="did not answer"):
+        waits[1]()
+    assert silent[1][1].polled == []  # no second timeout: the ask's own deadline had passed with the first
 
 
 # --- for real ---------------------------------------------------------------------------------------------

@@ -1030,21 +1030,25 @@ class WorkerShard:
         except (OSError, ValueError) as exc:
             self._control_lock.release()
             raise WorkerError(f"worker {self.index} is not reachable: {exc}") from exc
+        # From the ask, not from the wait: the agent asks every worker, then waits for each in turn, and
+        # this way two workers that hang cost ASK_TIMEOUT_S of a stop's budget, not twice that.
+        deadline = time.monotonic() + ASK_TIMEOUT_S
 
         def wait() -> Reply:
             try:
-                return self._answer(call_id)
+                return self._answer(call_id, deadline)
             finally:
                 self._control_lock.release()
 
         return wait
 
-    def _answer(self, call_id: int) -> Reply:
-        """The answer to `call_id` (under the control lock); late answers to calls that timed out are
-        skipped."""
+    def _answer(self, call_id: int, deadline: float | None = None) -> Reply:
+        """The answer to `call_id` (under the control lock) by `deadline` (monotonic; None: ASK_TIMEOUT_S
+        from now); late answers to calls that timed out are skipped."""
         conn = self.control
         assert conn is not None
-        deadline = time.monotonic() + ASK_TIMEOUT_S
+        if deadline is None:
+            deadline = time.monotonic() + ASK_TIMEOUT_S
         while True:
             remaining = deadline - time.monotonic()
             try:
