@@ -301,6 +301,54 @@ def test_asking_every_worker_waits_out_one_timeout_for_all_not_one_each(
     assert silent[1][1].polled == []  # no second timeout: the ask's own deadline had passed with the first
 
 
+def _messages(first: int, count: int) -> list[tuple[str, tuple[str, bytes, float, float]]]:
+    return [
+        (f"arm-{i % 3}", (f"dt/lerobot/arm-{i % 3}/telemetry", b'{"n": %d}' % i, 10.0 + i, 1.7e9 + i))
+        for i in range(first, first + count)
+    ]
+
+
+def test_a_restarted_worker_is_sent_again_exactly_what_its_checkpoint_did_not_count(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The shard keeps what it handed over as the bytes it sent; the checkpoint can fall inside one of those
+    pipe messages, and the new worker gets the rest of it, then the later ones, then what was held."""
+    import multiprocessing
+
+    from twin.service import shards
+    from twin.transport.pipe import messages_of
+
+    monkeypatch.setattr(shards, "MAX_UNCONFIRMED", 250)
+    config = load_config(None, {"telemetry.devices": ["*"]})
+    shard = shards.WorkerShard(0, config, DeviceBudget(10), context=None)  # type: ignore[arg-type]
+    theirs, ours = multiprocessing.Pipe(duplex=False)
+    shard.data, shard.ready = ours, True
+    for first in range(0, 300, 100):  # three pipe messages of 100: 0-99, 100-199, 200-299
+        shard._hand_over(_messages(first, 100))
+    # Beyond the bound the oldest pipe message goes whole: 200 kept, and 0-99 no longer.
+    assert [(start, count) for start, count, _ in shard._unconfirmed] == [(100, 100), (200, 100)]
+    assert all(isinstance(raw, bytes) for _, _, raw in shard._unconfirmed)
+    sent = [messages_of(theirs.recv_bytes()) for _ in range(3)]
+    assert sent == [_messages(0, 100), _messages(100, 100), _messages(200, 100)]
+
+    # The worker counted 150 when it checkpointed: the first kept message is only partly counted, so kept.
+    shard.confirm(shards.MirrorCheckpoint(taken=150))
+    assert [(start, count) for start, count, _ in shard._unconfirmed] == [(100, 100), (200, 100)]
+    # It died; two messages came in meanwhile (held), then the new process is sent the rest.
+    shard.ready = False
+    shard._hand_over(_messages(300, 2))
+    assert shard._replay() == 152
+    again = []
+    while theirs.poll(0):
+        again.extend(messages_of(theirs.recv_bytes()))
+    assert again == _messages(150, 152)
+    # Sent again and kept again, counted from the checkpoint: a checkpoint that counts them all frees them.
+    assert [(start, count) for start, count, _ in shard._unconfirmed] == [(150, 152)]
+    shard.confirm(shards.MirrorCheckpoint(taken=302))
+    assert not shard._unconfirmed and shard._unconfirmed_count == 0
+    assert shard.dropped_total == 0
+
+
 # --- for real ---------------------------------------------------------------------------------------------
 
 FLEET = [f"arm-{i:03d}" for i in range(1, 31)]

@@ -2,6 +2,8 @@
 
 The agent (service.shards, a sender thread per worker) and `twin bench worker` write batches with
 `send_batch` and end with `send_end`; the worker's PipeInbox (service.mirror) reads them with `read_batch`.
+A shard encodes a batch once (`encode_batch`), sends those bytes (`send_encoded`) and keeps them until the
+worker's checkpoint counts them; after a restart `messages_of` gives them back to be sent again.
 
 One pipe message is one batch as columns, in arrival order: the devices the topics name (the mailbox key,
 transport.mailbox.UNTRACKED_KEY for a topic that names none), the topics, the payloads (raw bytes), and the
@@ -50,9 +52,33 @@ def batch_of(messages: Sequence[Message]) -> Batch:
     return Batch(keys, topics, payloads, monos, walls)
 
 
+def encode_batch(messages: Sequence[Message]) -> bytes:
+    """`messages` as one pipe message (not empty: an empty pipe message is the end marker)."""
+    return pickle.dumps(tuple(batch_of(messages)), protocol=pickle.HIGHEST_PROTOCOL)
+
+
+def messages_of(raw: bytes) -> list[Message]:
+    """The messages `encode_batch` encoded into `raw`, as a shard's queue held them."""
+    batch = read_batch(raw)
+    if batch is None:
+        return []
+    return list(
+        zip(
+            batch.keys,
+            zip(batch.topics, batch.payloads, batch.recv_mono, batch.recv_wall, strict=True),
+            strict=True,
+        )
+    )
+
+
 def send_batch(conn: Connection, messages: Sequence[Message]) -> None:
     """Write one batch (one pipe message); raises OSError or ValueError when the pipe is closed or broken."""
-    conn.send_bytes(pickle.dumps(tuple(batch_of(messages)), protocol=pickle.HIGHEST_PROTOCOL))
+    conn.send_bytes(encode_batch(messages))
+
+
+def send_encoded(conn: Connection, raw: bytes) -> None:
+    """Write one batch `encode_batch` encoded; raises OSError or ValueError as `send_batch` does."""
+    conn.send_bytes(raw)
 
 
 def send_end(conn: Connection) -> None:
