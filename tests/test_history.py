@@ -199,7 +199,15 @@ def test_the_writer_process_counts_a_commit_in_its_shared_counters_as_it_is_made
     from multiprocessing import Array, Pipe
     from multiprocessing.connection import Listener
 
-    from twin.output.history_feed import _COMMITS, _COMMITTED, _COUNTERS, _Receiver
+    from twin.output.history_feed import (
+        _COMMITS,
+        _COMMITTED,
+        _COUNTERS,
+        _IN_ROWS,
+        _IN_SEQ,
+        _IN_TABLE,
+        _Receiver,
+    )
 
     writer = HistoryWriter(
         HistorySettings(uri=str(tmp_path / "h"), commit_every_s=3600.0, commit_every_rows=10_000)
@@ -213,6 +221,8 @@ def test_the_writer_process_counts_a_commit_in_its_shared_counters_as_it_is_made
         assert writer.flush()
         # The flush returns after the commit: the counters have it, and the receiver's loop never ran.
         assert (counters[_COMMITTED], counters[_COMMITS]) == (50, 1)
+        # The commit it was in (seq 1, 50 rows) was recorded before the append and is no longer in doubt.
+        assert (counters[_IN_TABLE], counters[_IN_SEQ], counters[_IN_ROWS]) == (0, 1, 50)
     finally:
         receiver._closed = True  # its accept thread ends with the listener, as at a stop
         listener.close()
@@ -963,6 +973,95 @@ def test_rows_left_unread_in_a_dead_writers_socket_are_counted_at_the_stop(tmp_p
     after = history.figures()
     assert after.rows_lost == 5 and after.stats is not None and after.stats.rows_committed == 13
     assert rows_of(uri).height == 13
+
+
+def _writer_killed_in_its_first_commit(*args: Any) -> None:
+    """The history writer process, killed (SIGKILL) in its first commit if $TWIN_TEST_DIE_MARKER's file
+    exists (it is removed, so a writer started again runs normally): "after" once Delta has accepted the
+    append, before the writer counts it; "before" as the append begins, once the commit is recorded."""
+    import signal
+
+    from twin.output import history as module
+    from twin.output.history_feed import writer_main
+
+    marker = Path(os.environ["TWIN_TEST_DIE_MARKER"])
+    if marker.exists():
+        when = marker.read_text()
+        marker.unlink()
+        append = module.HistoryWriter._append
+
+        def dying_append(self: Any, *a: Any, **k: Any) -> int | None:
+            if when == "after":
+                append(self, *a, **k)
+            os.kill(os.getpid(), signal.SIGKILL)
+            return None
+
+        module.HistoryWriter._append = dying_append  # type: ignore[method-assign]
+    writer_main(*args)
+
+
+@pytest.mark.parametrize(("when", "landed"), [("after", True), ("before", False)])
+def test_a_writer_killed_in_a_commit_has_the_next_writer_ask_the_table_whether_it_landed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture, when: str, landed: bool
+) -> None:
+    """A writer killed after Delta accepted its commit and before it counted it had written those rows;
+    counting them as lost overstated the losses CloudWatch pages on. The writer records the commit it is in;
+    the agent counts those rows as neither until the next writer has asked the table for the dead writer's
+    app transaction: written if it landed, lost if not."""
+    import multiprocessing
+
+    uri = str(tmp_path / "history")
+    marker = tmp_path / "die"
+    marker.write_text(when)
+    monkeypatch.setenv("TWIN_TEST_DIE_MARKER", str(marker))
+    caplog.set_level(logging.INFO, logger="twin.output.history_feed")
+    history = HistoryProcess(
+        {"uri": uri, "commit_every_s": 3600.0, "commit_every_rows": 7}, multiprocessing.get_context("spawn")
+    )
+    history.target = _writer_killed_in_its_first_commit
+    history.launch()
+    feed = HistoryFeed(history.link, max_pending=1000, payload_max_bytes=64)
+    stamp = itertools.count(1_700_000_000_000, 100)
+
+    def send(count: int) -> None:
+        for _ in range(count):
+            feed.telemetry(("arm-001", time.time(), next(stamp), "ticks", (0.0,) * 6, b"{}"))
+
+    try:
+        first, first_id = history.pid, history.writer_id
+        send(7)  # its first commit, of these 7 rows
+        wait_for(lambda: not history.alive, 60, "the writer killed in its first commit")
+        assert not marker.exists()
+
+        def restarted() -> bool:
+            history.supervise()
+            return history.alive and history.pid != first
+
+        wait_for(restarted, 120, "the writer started again")
+        assert history.writer_id != first_id
+        figures = history.figures()
+        assert figures.stats is not None and figures.rows_received == 7
+        assert (figures.stats.rows_committed, figures.rows_lost) == ((7, 0) if landed else (0, 7))
+        said = [r.getMessage() for r in caplog.records]
+        assert any("and 7 in a commit the next writer checks" in m for m in said), said
+        if landed:
+            assert any("had committed its last 7 rows to telemetry: written, not lost" in m for m in said)
+        else:
+            assert any("(7 rows to telemetry) did not land: counted as lost" in m for m in said)
+        send(3)
+        feed.close(timeout=30.0)
+    finally:
+        feed.close(timeout=1.0)
+        history.stop(timeout=30.0)
+    after = history.figures()
+    assert after.stats is not None and after.rows_received == 10
+    written = 10 if landed else 3
+    assert (after.stats.rows_committed, after.rows_lost) == (written, 10 - written)
+    assert rows_of(uri).height == written
+    # The table names the dead writer's commit as its own: 1 if it landed.
+    assert DeltaTable(str(Path(uri) / TELEMETRY_TABLE)).transaction_version(first_id) == (
+        1 if landed else None
+    )
 
 
 def test_at_the_stop_the_writer_reads_each_feed_to_its_end_for_half_the_budget(tmp_path: Path) -> None:

@@ -510,6 +510,10 @@ class HistoryWriter:
         # Called on the committer thread after each commit is counted, outside the writer's lock: the history
         # writer process writes its shared counters there, so a crash right after a commit finds it counted.
         self.on_commit: Callable[[], object] | None = None
+        # Called on the committer thread just before each append, with (table, seq, rows, the table's rows
+        # committed so far): the writer process records the commit it is in, so that if it dies before
+        # counting it, the next writer can ask the table whether it landed.
+        self.before_append: Callable[[str, int, int, int], object] | None = None
         self._thread = threading.Thread(target=self._run, name="history-commit", daemon=True)
         self._started = False
         _make_local_directory(settings)
@@ -714,6 +718,11 @@ class HistoryWriter:
         if seq is None:
             self._seq += 1
             seq = self._seq
+        announce = self.before_append
+        if announce is not None:
+            with self._cond:
+                committed = self._stats.tables[table].rows_committed
+            announce(table, seq, n, committed)
         try:
             version = self._append(table, rows, seq)
         except Exception as exc:
@@ -791,6 +800,19 @@ class HistoryWriter:
         if reopening:
             heap.trim()
         return dtable
+
+    def landed(self, table: str, writer_id: str, seq: int) -> bool:
+        """Whether `table` holds the commit `seq` of writer `writer_id` (its app transaction): how a writer
+        started after one that died learns whether the commit that one was in landed."""
+        from deltalake import DeltaTable  # noqa: PLC0415
+        from deltalake.exceptions import TableNotFoundError  # noqa: PLC0415
+
+        try:
+            dtable = DeltaTable(self.settings.table_uri(table), storage_options=self._options)
+        except TableNotFoundError:
+            return False
+        done = dtable.transaction_version(writer_id)
+        return done is not None and done >= seq
 
     def _open_or_create(self, table: str, uri: str) -> Any:
         """The table at `uri`, created first if missing. Created on its own (not by the first append) so two

@@ -14,7 +14,8 @@ for. A mirror's process no longer loads pyarrow and deltalake either.
 Counting. Every row a mirror hands the feed is delivered over the socket, or dropped and counted when the
 feed's queue is full (the writer process has been gone longer than the queue lasts). The writer process
 counts the rows it received, committed and dropped (its write buffer, as before) in shared memory, so when
-it dies (a crash in a native library, say) the agent knows how many rows it held and counts them as lost,
+it dies (a crash in a native library, say) the agent knows how many rows it held and counts them as lost
+(but for the commit it was in, which may have landed: the next writer asks the table, `_InDoubt`),
 starts it again, and the feeds connect to the new one and carry on; rows a feed wrote to the socket of a
 writer that died before reading them show as the difference between the feeds' delivered rows (counted in
 memory shared with the agent, so a worker started again keeps its count) and the rows the writers
@@ -34,11 +35,13 @@ import pickle
 import secrets
 import shutil
 import signal
+import socket
 import tempfile
 import threading
 import time
+import uuid
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from multiprocessing.connection import Client, Connection, Listener, wait
 from multiprocessing.context import SpawnContext, SpawnProcess
@@ -79,7 +82,15 @@ REJECTED_PAYLOAD_MAX_BYTES = 4096
 
 # The writer process's counters in shared memory (int64 each), written by it alone.
 _RECEIVED, _REJECTED_RECEIVED, _COMMITTED, _REJECTED_COMMITTED, _DROPPED, _BUFFERED, _COMMITS = range(7)
-_COUNTERS = 7
+_COUNTED = 7
+# ... and the commit it is in: its table (0: none; 1 + its index in _TABLES), sequence number, rows, and the
+# table's rows committed before it. Set before each append, cleared once the commit is counted; a writer that
+# dies with it set may or may not have committed those rows, and the next writer asks the table (_InDoubt).
+_IN_TABLE, _IN_SEQ, _IN_ROWS, _IN_BASE = range(_COUNTED, _COUNTED + 4)
+_COUNTERS = _COUNTED + 4
+# twin.output.history's table names (not imported here: it loads pyarrow), with the counter of each's commits.
+_TABLES = ("telemetry", "rejected")
+_COMMITTED_OF = (_COMMITTED, _REJECTED_COMMITTED)
 
 
 class _Counters(Protocol):
@@ -312,8 +323,29 @@ class _Stop:
 
 
 @dataclass(frozen=True, slots=True)
+class _InDoubt:
+    """A commit a writer that died was in, not counted: did writer `writer_id`'s `seq` land in `table`?"""
+
+    writer_id: str
+    table: str
+    seq: int
+    rows: int
+
+
+@dataclass(frozen=True, slots=True)
+class _Launch:
+    """Who a new writer process commits as, and the commit in doubt it is to check first, if any."""
+
+    writer_id: str
+    in_doubt: _InDoubt | None = None
+
+
+@dataclass(frozen=True, slots=True)
 class _Ready:
     pid: int
+    # The answer about the _InDoubt commit the writer was given: None when there was none or the table could
+    # not be read.
+    landed: bool | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -331,10 +363,15 @@ class HistoryStartError(OSError):
 
 
 def writer_main(
-    settings: dict[str, Any], link: HistoryLink, control: Connection, counters: SynchronizedArray[int]
+    settings: dict[str, Any],
+    link: HistoryLink,
+    control: Connection,
+    counters: SynchronizedArray[int],
+    launch: _Launch | None = None,
 ) -> None:
-    """The history writer process: a HistoryWriter (made from `settings`, HistorySettings' fields) fed by
-    every mirror's HistoryFeed (module doc)."""
+    """The history writer process: a HistoryWriter (made from `settings`, HistorySettings' fields, and
+    committing as `launch.writer_id`) fed by every mirror's HistoryFeed (module doc). It first checks
+    `launch.in_doubt`."""
     # The agent stops it in order (the feeds first, then a _Stop), so a Ctrl-C or systemd's SIGTERM to the
     # process group must not cut its last commit short.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -348,10 +385,12 @@ def writer_main(
     from twin.output.history import HistorySettings, HistoryWriter  # noqa: PLC0415
 
     try:
-        writer = HistoryWriter(HistorySettings(**settings)).start()
+        writer = HistoryWriter(HistorySettings(**settings), writer_id=launch.writer_id if launch else None)
     except ValueError as exc:  # HistoryError: a setting
         control.send(_Failed(f"[history]: {exc}", setting=True))
         return
+    landed = _landed(writer, launch.in_doubt if launch else None)
+    writer.start()
     try:
         with contextlib.suppress(FileNotFoundError):
             Path(link.address).unlink()  # left by a writer that died
@@ -360,8 +399,19 @@ def writer_main(
         log.exception("history writer could not start")
         control.send(_Failed(f"history writer: {type(exc).__name__}: {exc}", setting=False))
         return
-    control.send(_Ready(os.getpid()))
+    control.send(_Ready(os.getpid(), landed))
     _Receiver(writer, listener, control, counters).run()
+
+
+def _landed(writer: Any, in_doubt: _InDoubt | None) -> bool | None:
+    """Whether the commit a dead writer was in landed; None when there was none or the table says nothing."""
+    if in_doubt is None:
+        return None
+    try:
+        return bool(writer.landed(in_doubt.table, in_doubt.writer_id, in_doubt.seq))
+    except Exception:
+        log.exception("history: could not read whether the last writer's last commit landed")
+        return None
 
 
 class _Receiver:
@@ -379,7 +429,8 @@ class _Receiver:
         # The run loop and the committer thread (after each commit) both write the counters: one at a time,
         # each from the writer's figures read under this lock, so a later write never holds older figures.
         self._count_lock = threading.Lock()
-        writer.on_commit = self._count
+        writer.before_append = self._appending
+        writer.on_commit = self._committed
         self._closed = False
         self._stop_timeout_s = 30.0
         threading.Thread(target=self._accept, name="history-accept", daemon=True).start()
@@ -460,6 +511,19 @@ class _Receiver:
             counters[_BUFFERED] = figures.rows_buffered
             counters[_COMMITS] = figures.commits
         return figures
+
+    def _appending(self, table: str, seq: int, rows: int, committed: int) -> None:
+        """The commit the writer is about to make, recorded for the agent in case this process dies in it
+        (the table last: a reader that finds it set finds the rest written)."""
+        counters = self.counters
+        counters[_IN_SEQ], counters[_IN_ROWS], counters[_IN_BASE] = seq, rows, committed
+        counters[_IN_TABLE] = 1 + _TABLES.index(table)
+
+    def _committed(self) -> None:
+        """After a commit: counted, then no longer in doubt (dying between the two leaves it counted and
+        still recorded; the agent sees the count has it: `_in_doubt`)."""
+        self._count()
+        self.counters[_IN_TABLE] = 0
 
     def _answer(self) -> bool:
         """One request of the agent; False to stop."""
@@ -586,6 +650,8 @@ class HistoryProcess:
     def __init__(self, settings: dict[str, Any], context: SpawnContext) -> None:
         self.settings = settings
         self._ctx = context
+        # What the writer process runs (tests swap in one that dies at a chosen point).
+        self.target: Callable[..., None] = writer_main
         self._dir = Path(tempfile.mkdtemp(prefix="twin-history-"))
         self.link = HistoryLink(
             str(self._dir / "writer.sock"),
@@ -602,8 +668,12 @@ class HistoryProcess:
         self._restart_at: float | None = None
         # Over the processes that ended: what they received, committed and dropped, and the rows they held
         # when they died (the figures of /state run on across restarts).
-        self._before = dict.fromkeys(range(_COUNTERS), 0)
+        self._before = dict.fromkeys(range(_COUNTED), 0)
         self._rows_lost = 0
+        # The id the current writer commits as (new for each process), and the commit a dead one was in that
+        # the next one is to check (counted as neither written nor lost until then).
+        self.writer_id = ""
+        self._in_doubt: _InDoubt | None = None
         self._stopped = False
         self._last: WriterFigures | None = None
         self._last_at = 0.0  # when _last was answered (time.monotonic)
@@ -614,10 +684,11 @@ class HistoryProcess:
         because of a setting)."""
         for i in range(_COUNTERS):
             self._counters[i] = 0
+        self.writer_id = f"so101-twin-{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
         control, child = self._ctx.Pipe()
         process = self._ctx.Process(
-            target=writer_main,
-            args=(self.settings, self.link, child, self._counters),
+            target=self.target,
+            args=(self.settings, self.link, child, self._counters, _Launch(self.writer_id, self._in_doubt)),
             name="twin-history-writer",
         )
         process.start()
@@ -638,6 +709,42 @@ class HistoryProcess:
             process.join(5.0)
             raise HistoryStartError(hello.message, setting=hello.setting)
         self.pid = hello.pid
+        self._settle(hello.landed)
+
+    def _doubt(self) -> _InDoubt | None:
+        """The commit a writer that died was in and had not counted, by its counters."""
+        counters = self._counters
+        code = counters[_IN_TABLE]
+        if not 1 <= code <= len(_TABLES):
+            return None
+        if counters[_COMMITTED_OF[code - 1]] >= counters[_IN_BASE] + counters[_IN_ROWS]:
+            return None  # it died after counting the commit, before clearing the record
+        return _InDoubt(self.writer_id, _TABLES[code - 1], counters[_IN_SEQ], counters[_IN_ROWS])
+
+    def _settle(self, landed: bool | None) -> None:
+        """The dead writer's commit in doubt, as the new writer found it: written, or lost."""
+        doubt, self._in_doubt = self._in_doubt, None
+        if doubt is None:
+            return
+        if landed:
+            index = _TABLES.index(doubt.table)
+            self._before[_COMMITTED_OF[index]] += doubt.rows
+            self._before[_COMMITS] += index == 0
+            log.info(
+                "the history writer that died had committed its last %d rows to %s: written, not lost",
+                doubt.rows,
+                doubt.table,
+                extra={"history_rows_committed_before_death": doubt.rows},
+            )
+            return
+        self._rows_lost += doubt.rows
+        log.error(
+            "the last commit of the history writer that died (%d rows to %s) %s: counted as lost",
+            doubt.rows,
+            doubt.table,
+            "did not land" if landed is False else "could not be checked",
+            extra={"history_rows_lost": doubt.rows},
+        )
 
     @property
     def alive(self) -> bool:
@@ -717,21 +824,7 @@ class HistoryProcess:
             return
         now = time.monotonic()
         if self._restart_at is None:
-            counters = self._counters
-            held = _held(counters)
-            for i in range(_COUNTERS):
-                self._before[i] += counters[i]
-            self._rows_lost += held
-            quick = now - self.started_at < QUICK_DEATH_S
-            pause = min(MAX_RESTART_PAUSE_S, 2.0 ** min(self.restarts, 6)) if quick else 0.0
-            self._restart_at = now + pause
-            log.error(
-                "history writer exited (code %s) holding %d rows not yet written, lost; starting it again%s",
-                process.exitcode,
-                held,
-                f" in {pause:.0f} s" if pause else "",
-                extra={"exit_code": process.exitcode, "history_rows_lost": held},
-            )
+            self._restart_at = self._count_dead(process.exitcode, now)
         if now < self._restart_at:
             return
         self._restart_at = None
@@ -745,6 +838,29 @@ class HistoryProcess:
                 log.error("the history writer could not be started again: %s", exc)
                 return
         log.info("history writer running again", extra={"pid": self.pid})
+
+    def _count_dead(self, exitcode: int | None, now: float) -> float:
+        """A writer that died: what it held is lost, but a commit it was in, which the next writer checks.
+        Returns when to start it again."""
+        counters = self._counters
+        held = _held(counters)
+        doubt = self._doubt()
+        doubtful = min(doubt.rows, held) if doubt is not None else 0
+        for i in range(_COUNTED):
+            self._before[i] += counters[i]
+        self._rows_lost += held - doubtful
+        self._in_doubt = dataclasses.replace(doubt, rows=doubtful) if doubt is not None and doubtful else None
+        quick = now - self.started_at < QUICK_DEATH_S
+        pause = min(MAX_RESTART_PAUSE_S, 2.0 ** min(self.restarts, 6)) if quick else 0.0
+        log.error(
+            "history writer exited (code %s) holding %d rows not yet written, lost%s; starting it again%s",
+            exitcode,
+            held - doubtful,
+            f" (and {doubtful} in a commit the next writer checks)" if doubtful else "",
+            f" in {pause:.0f} s" if pause else "",
+            extra={"exit_code": exitcode, "history_rows_lost": held - doubtful},
+        )
+        return now + pause
 
     def unwritten_rows(self) -> int:
         """After `stop`: the rows the writer could not commit (its figures at the end), or, when it did not
@@ -777,6 +893,8 @@ class HistoryProcess:
                 process.join(5.0)
         if conn is not None:
             conn.close()
+        # A dead writer's commit no writer was started to check (the agent stopped first) is counted as lost.
+        self._settle(None)
         shutil.rmtree(self._dir, ignore_errors=True)
 
 
