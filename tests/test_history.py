@@ -1282,6 +1282,79 @@ def test_replay_publishes_what_was_recorded_and_the_agent_mirrors_it(
     assert history is not None and history.storage_ok and history.commit_failures == 0
 
 
+@pytest.mark.slow
+def test_replay_refuses_an_arm_that_is_live_and_replays_it_under_another_id(
+    tmp_path: Path, mosquitto: object
+) -> None:
+    """A replay under the id of an arm that is publishing would interleave two arms' poses in one twin (and
+    its history and alarms): the replay listens on the topic first and refuses, naming the fix. Under
+    another id it goes ahead beside the live arm; a retained message is not an arm publishing."""
+    from awscrt import mqtt5
+    from conftest import Publisher
+    from twin.ops.replay import ReplayConfig, ReplayRefusedError, replay
+    from twin.transport.broker import BrokerConfig
+    from twin.transport.subscriber import TelemetrySubscriber
+
+    uri = _history_with(tmp_path, samples(40))
+    received: dict[str, list[bytes]] = {}
+    sub = TelemetrySubscriber(
+        BrokerConfig(url=mosquitto.url, client_id_prefix="replay-test-"),
+        ["dt/lerobot/+/telemetry"],
+        lambda topic, payload, _t: received.setdefault(topic.split("/")[2], []).append(payload),
+    )
+    live = b'{"live": true}'
+    edge = Publisher(mosquitto.url)
+    running = threading.Event()
+
+    def publish_live() -> None:
+        while not running.wait(0.1):  # the edge's 10 Hz
+            edge.publish("arm-001", live)
+
+    publisher = threading.Thread(target=publish_live, daemon=True)
+    sub.start()
+    try:
+        assert sub.wait_subscribed(30)
+        publisher.start()
+        wait_for(lambda: len(received.get("arm-001", [])) >= 3, 30, "the live arm at the subscriber")
+        # What an earlier run left retained on arm-002's topic is delivered on subscribing, not published.
+        edge.client.publish(
+            mqtt5.PublishPacket(
+                topic="dt/lerobot/arm-002/telemetry", payload=live, qos=mqtt5.QoS.AT_LEAST_ONCE, retain=True
+            )
+        ).result(30)
+
+        def config(**extra: Any) -> ReplayConfig:
+            return ReplayConfig(
+                uri=uri,
+                device="arm-001",
+                start=dt.datetime.fromtimestamp(T0 - 1, dt.UTC),
+                end=dt.datetime.fromtimestamp(T0 + 60, dt.UTC),
+                broker=BrokerConfig(url=mosquitto.url, client_id_prefix="replay-"),
+                speed=8.0,
+                **extra,
+            )
+
+        with pytest.raises(ReplayRefusedError) as refused:
+            replay(config())
+        said = str(refused.value)
+        assert "arm-001 is live" in said and "--as-device arm-001-replay" in said, said
+        for target in ("arm-001-replay", "arm-002"):
+            report = replay(config(as_device=target))
+            assert report.published == 40 and report.publish_failures == 0
+            wait_for(lambda t=target: len(received.get(t, [])) >= 40, 60, f"the replay as {target}")
+    finally:
+        running.set()
+        publisher.join(5)
+        edge.client.publish(  # the retained message cleared, as a broker's owner would
+            mqtt5.PublishPacket(topic="dt/lerobot/arm-002/telemetry", payload=b"", retain=True)
+        ).result(30)
+        edge.close()
+        sub.stop()
+    # Nothing of the refused replay reached the live arm's topic: only the live arm's own messages.
+    assert set(received["arm-001"]) == {live}
+    assert all(json.loads(p)["device_id"] == "arm-001-replay" for p in received["arm-001-replay"])
+
+
 def test_every_worker_has_a_slot_for_its_feeds_delivered_count(tmp_path: Path) -> None:
     # One slot per mirror, by its shard's index: as many as twin.workers allows, and a feed outside them is
     # refused when it is made, not when its thread first delivers.

@@ -7,6 +7,10 @@ awscrt client (twin.transport.subscriber.build_mqtt5_client), QoS 0 like the edg
 the first replayed message carries "now" and the rest keep their edge spacing (divided by `speed`): an agent
 that has mirrored the live arm would otherwise ignore a replay as older than what it has. `--original-
 timestamps` keeps them as recorded.
+
+A replay under the id of an arm that is publishing would interleave two arms' poses in one twin, and its
+history and alarms with them: before it publishes, the replay listens on its topic for LIVE_CHECK_S and
+refuses (ReplayRefusedError, naming the fix) if anything other than a retained message arrives.
 """
 
 from __future__ import annotations
@@ -34,6 +38,12 @@ IOT_PUBLISHES_PER_S = 100
 READ_WINDOW = dt.timedelta(minutes=10)
 # How long a replay waits, once every row is handed to the client, for its publishes to reach the socket.
 FLUSH_TIMEOUT_S = 30.0
+# How long a replay listens on its topic for a live arm first: the edge publishes at 10 Hz, so about 20 times.
+LIVE_CHECK_S = 2.0
+
+
+class ReplayRefusedError(Exception):
+    """The replay would publish under the id of an arm that is live, or could not check that it is not."""
 
 
 @dataclass(frozen=True)
@@ -49,8 +59,11 @@ class ReplayConfig:
     original_timestamps: bool = False
     storage_options: Mapping[str, str] = field(default_factory=dict)
     connect_timeout_s: float = 15.0
+    live_check_s: float = LIVE_CHECK_S
 
     def __post_init__(self) -> None:
+        if self.live_check_s <= 0:
+            raise ValueError(f"live_check_s {self.live_check_s} must be positive")
         if not 0 < self.speed <= 1000:
             raise ValueError(f"--speed {self.speed} must be in (0, 1000]")
         if self.end <= self.start:
@@ -114,7 +127,8 @@ def replay(
     reader: HistoryReader | None = None,
     on_progress: Callable[[ReplayReport], None] | None = None,
 ) -> ReplayReport:
-    """Publish the recorded window; returns the counts. Raises HistoryReadError when there is nothing."""
+    """Publish the recorded window; returns the counts. Raises HistoryReadError when there is nothing, and
+    ReplayRefusedError when the target device is live (or that could not be checked)."""
     stop = stop or threading.Event()
     reader = reader or HistoryReader(config.uri, config.storage_options)
     rows = recorded_rows(reader, config.device, config.start, config.end)
@@ -133,13 +147,17 @@ def replay(
             IOT_PUBLISHES_PER_S,
         )
     report = ReplayReport()
-    client, connected, on_done, outstanding = _client(config, report)
+    heard = _Heard()
+    client, connected, on_done, outstanding = _client(config, report, heard)
     try:
         if not connected.wait(config.connect_timeout_s):
             raise HistoryReadError(
                 f"could not connect to the broker {config.broker.url} within "
                 f"{config.connect_timeout_s:.0f} s; check --broker and that the broker runs"
             )
+        if not _check_not_live(config, client, heard, stop):
+            report.stopped = True
+            return report
         _publish_rows(
             config,
             client,
@@ -158,6 +176,53 @@ def replay(
     finally:
         client.stop()
     return report
+
+
+class _Heard:
+    """Messages the replay's client received on the target topic while it listened for a live arm."""
+
+    def __init__(self) -> None:
+        self.count = 0
+
+    def on_publish(self, data: Any) -> None:
+        # A retained message is the broker's memory, not an arm publishing now.
+        if not data.publish_packet.retain:
+            self.count += 1
+
+
+def _check_not_live(config: ReplayConfig, client: Any, heard: _Heard, stop: threading.Event) -> bool:
+    """Listen on the target topic for `live_check_s`; ReplayRefusedError if an arm publishes there, or if the
+    broker does not let the replay listen. False when stopped meanwhile."""
+    from awscrt import mqtt5  # noqa: PLC0415
+
+    device = config.target_device
+    topic = telemetry_topic(config.topic_prefix, device)
+    refused = (
+        f"could not check that {device} is not live on {config.broker.url}: the subscription to {topic} "
+        "was refused ({}); the replay needs to subscribe to and receive its topic (iot:Subscribe and "
+        "iot:Receive on IoT Core, as the agent has)"
+    )
+    packet = mqtt5.SubscribePacket(
+        subscriptions=[mqtt5.Subscription(topic_filter=topic, qos=mqtt5.QoS.AT_MOST_ONCE)]
+    )
+    try:
+        suback = client.subscribe(packet).result(config.connect_timeout_s)
+    except Exception as exc:
+        raise ReplayRefusedError(refused.format(f"{type(exc).__name__}: {exc}")) from exc
+    failed = [code for code in suback.reason_codes if code.value >= 0x80]
+    if failed:
+        raise ReplayRefusedError(refused.format(failed[0].name))
+    if stop.wait(config.live_check_s):
+        return False
+    # Stop listening before publishing: its own messages would come back to it.
+    client.unsubscribe(mqtt5.UnsubscribePacket(topic_filters=[topic])).result(config.connect_timeout_s)
+    if heard.count:
+        raise ReplayRefusedError(
+            f"{device} is live: {heard.count} messages on {topic} within {config.live_check_s:.0f} s. A "
+            "replay under its id would mix two arms' poses in its twin, history and alarms; replay under "
+            f"another id (--as-device {device}-replay), or once the arm is off"
+        )
+    return True
 
 
 class _Outstanding:
@@ -183,10 +248,10 @@ class _Outstanding:
 
 
 def _client(
-    config: ReplayConfig, report: ReplayReport
+    config: ReplayConfig, report: ReplayReport, heard: _Heard
 ) -> tuple[Any, threading.Event, Callable[[Any], None], _Outstanding]:
     """A started MQTT5 client, its connected event, the publish callback that counts failures in `report`,
-    and the count of publishes not yet completed."""
+    and the count of publishes not yet completed. What it receives is counted in `heard`."""
     connected = threading.Event()
     lock = threading.Lock()
     outstanding = _Outstanding()
@@ -200,6 +265,7 @@ def _client(
     client = build_mqtt5_client(
         config.broker,
         new_client_id(config.broker.client_id_prefix),
+        on_publish_received=heard.on_publish,
         on_connection_success=lambda _data: connected.set(),
     )
     client.start()

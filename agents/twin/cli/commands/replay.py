@@ -1,7 +1,7 @@
 """`twin replay`: publish a device's recorded telemetry again, so the agent and the viewer mirror the past.
 
-Exit codes: 0 replayed (or stopped by Ctrl-C / SIGTERM), 1 nothing recorded in the window or the broker is
-unreachable (the reason on stderr), 2 bad arguments.
+Exit codes: 0 replayed (or stopped by Ctrl-C / SIGTERM), 1 nothing recorded in the window, the broker is
+unreachable, or the target device is live on it (the reason on stderr), 2 bad arguments.
 """
 
 from __future__ import annotations
@@ -26,7 +26,8 @@ def register(subparsers: Any) -> None:
         description=(
             "Rebuild the edge messages of DEVICE between --from and --to from the history and publish them "
             "at their recorded pace (divided by --speed). Timestamps are shifted to start now unless "
-            "--original-timestamps. docs/history.md explains the rules."
+            "--original-timestamps. Refuses a device that is publishing (use --as-device). "
+            "docs/history.md explains the rules."
         ),
     )
     add_uri_argument(parser)
@@ -58,7 +59,7 @@ def register(subparsers: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from twin.ops.history import HistoryReadError, parse_time
-    from twin.ops.replay import ReplayConfig, replay
+    from twin.ops.replay import ReplayConfig, ReplayRefusedError, replay
     from twin.transport.broker import BrokerConfig, BrokerConfigError
 
     try:
@@ -79,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     with stop_on_signals() as stop:
         try:
             report = replay(config, stop=stop)
-        except HistoryReadError as exc:
+        except (HistoryReadError, ReplayRefusedError) as exc:
             console.err(str(exc))
             return EXIT_FAILED
     if args.json:
