@@ -1000,21 +1000,16 @@ def _writer_killed_in_its_first_commit(*args: Any) -> None:
     writer_main(*args)
 
 
-@pytest.mark.parametrize(("when", "landed"), [("after", True), ("before", False)])
-def test_a_writer_killed_in_a_commit_has_the_next_writer_ask_the_table_whether_it_landed(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture, when: str, landed: bool
-) -> None:
-    """A writer killed after Delta accepted its commit and before it counted it had written those rows;
-    counting them as lost overstated the losses CloudWatch pages on. The writer records the commit it is in;
-    the agent counts those rows as neither until the next writer has asked the table for the dead writer's
-    app transaction: written if it landed, lost if not."""
+def _writer_to_kill_in_a_commit(
+    uri: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, when: str
+) -> tuple[HistoryProcess, HistoryFeed, Callable[[int], None]]:
+    """A history writer process at `uri` that commits every 7 rows and is killed in its first commit (`when`:
+    _writer_killed_in_its_first_commit), one feed to it, and `send(n)`: n more rows through that feed."""
     import multiprocessing
 
-    uri = str(tmp_path / "history")
     marker = tmp_path / "die"
     marker.write_text(when)
     monkeypatch.setenv("TWIN_TEST_DIE_MARKER", str(marker))
-    caplog.set_level(logging.INFO, logger="twin.output.history_feed")
     history = HistoryProcess(
         {"uri": uri, "commit_every_s": 3600.0, "commit_every_rows": 7}, multiprocessing.get_context("spawn")
     )
@@ -1027,11 +1022,24 @@ def test_a_writer_killed_in_a_commit_has_the_next_writer_ask_the_table_whether_i
         for _ in range(count):
             feed.telemetry(("arm-001", time.time(), next(stamp), "ticks", (0.0,) * 6, b"{}"))
 
+    return history, feed, send
+
+
+@pytest.mark.parametrize(("when", "landed"), [("after", True), ("before", False)])
+def test_a_writer_killed_in_a_commit_has_the_next_writer_ask_the_table_whether_it_landed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture, when: str, landed: bool
+) -> None:
+    """A writer killed after Delta accepted its commit and before it counted it had written those rows;
+    counting them as lost overstated the losses CloudWatch pages on. The writer records the commit it is in;
+    the agent counts those rows as neither until the next writer has asked the table for the dead writer's
+    app transaction: written if it landed, lost if not."""
+    uri = str(tmp_path / "history")
+    caplog.set_level(logging.INFO, logger="twin.output.history_feed")
+    history, feed, send = _writer_to_kill_in_a_commit(uri, tmp_path, monkeypatch, when)
     try:
         first, first_id = history.pid, history.writer_id
         send(7)  # its first commit, of these 7 rows
         wait_for(lambda: not history.alive, 60, "the writer killed in its first commit")
-        assert not marker.exists()
 
         def restarted() -> bool:
             history.supervise()
@@ -1062,6 +1070,30 @@ def test_a_writer_killed_in_a_commit_has_the_next_writer_ask_the_table_whether_i
     assert DeltaTable(str(Path(uri) / TELEMETRY_TABLE)).transaction_version(first_id) == (
         1 if landed else None
     )
+
+
+def test_a_commit_in_doubt_when_the_agent_stops_first_is_counted_as_lost(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A writer killed in a commit while the agent stops, before another writer could ask the table: the
+    rows of that commit are counted as lost (they may well be in the table; a loss is never left uncounted),
+    and the log says they could not be checked."""
+    uri = str(tmp_path / "history")
+    caplog.set_level(logging.INFO, logger="twin.output.history_feed")
+    history, feed, send = _writer_to_kill_in_a_commit(uri, tmp_path, monkeypatch, "after")
+    try:
+        send(7)
+        wait_for(lambda: not history.alive, 60, "the writer killed in its first commit")
+        history.supervise()  # it died within 30 s of its start: started again after a pause, not yet
+        during = history.figures()
+        assert (during.rows_received, during.rows_lost) == (7, 0)  # in doubt: neither written nor lost yet
+    finally:
+        feed.close(timeout=1.0)
+        history.stop(timeout=30.0)
+    assert history.figures().rows_lost == 7 and history.unwritten_rows() == 0
+    said = [r.getMessage() for r in caplog.records]
+    assert any("(7 rows to telemetry) could not be checked: counted as lost" in m for m in said), said
+    assert rows_of(uri).height == 7
 
 
 def test_at_the_stop_the_writer_reads_each_feed_to_its_end_for_half_the_budget(tmp_path: Path) -> None:
