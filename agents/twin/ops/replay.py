@@ -214,8 +214,12 @@ def _check_not_live(config: ReplayConfig, client: Any, heard: _Heard, stop: thre
         raise ReplayRefusedError(refused.format(failed[0].name))
     if stop.wait(config.live_check_s):
         return False
-    # Stop listening before publishing: its own messages would come back to it.
-    client.unsubscribe(mqtt5.UnsubscribePacket(topic_filters=[topic])).result(config.connect_timeout_s)
+    # Stop listening before publishing: its own messages would come back to it. A failure here is the
+    # connection's, which the publishes then meet and count.
+    try:
+        client.unsubscribe(mqtt5.UnsubscribePacket(topic_filters=[topic])).result(config.connect_timeout_s)
+    except Exception as exc:
+        log.warning("replay: unsubscribing from %s failed (%s: %s)", topic, type(exc).__name__, exc)
     if heard.count:
         raise ReplayRefusedError(
             f"{device} is live: {heard.count} messages on {topic} within {config.live_check_s:.0f} s. A "
