@@ -904,16 +904,18 @@ def _fed_agent_config(uri: str, **overrides: Any) -> AgentConfig:
 
 
 def _writer_and_feed(
-    uri: str, *, commit_every_rows: int
+    uri: str, *, commit_every_rows: int, target: Callable[..., None] | None = None
 ) -> tuple[HistoryProcess, HistoryFeed, Callable[[int], None]]:
-    """A history writer process at `uri` with no agent around it (no commits by time), one feed to it, and
-    `send(n)`: n more rows of arm-001 through that feed."""
+    """A history writer process at `uri` with no agent around it (no commits by time; `target`, if given,
+    what the process runs), one feed to it, and `send(n)`: n more rows of arm-001 through that feed."""
     import multiprocessing
 
     history = HistoryProcess(
         {"uri": uri, "commit_every_s": 3600.0, "commit_every_rows": commit_every_rows},
         multiprocessing.get_context("spawn"),
     )
+    if target is not None:
+        history.target = target
     history.launch()
     feed = HistoryFeed(history.link, max_pending=1000, payload_max_bytes=64)
     stamp = itertools.count(1_700_000_000_000, 100)
@@ -1003,26 +1005,12 @@ def _writer_killed_in_its_first_commit(*args: Any) -> None:
 def _writer_to_kill_in_a_commit(
     uri: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, when: str
 ) -> tuple[HistoryProcess, HistoryFeed, Callable[[int], None]]:
-    """A history writer process at `uri` that commits every 7 rows and is killed in its first commit (`when`:
-    _writer_killed_in_its_first_commit), one feed to it, and `send(n)`: n more rows through that feed."""
-    import multiprocessing
-
+    """`_writer_and_feed` with a writer that commits every 7 rows and is killed in its first commit (`when`:
+    _writer_killed_in_its_first_commit)."""
     marker = tmp_path / "die"
     marker.write_text(when)
     monkeypatch.setenv("TWIN_TEST_DIE_MARKER", str(marker))
-    history = HistoryProcess(
-        {"uri": uri, "commit_every_s": 3600.0, "commit_every_rows": 7}, multiprocessing.get_context("spawn")
-    )
-    history.target = _writer_killed_in_its_first_commit
-    history.launch()
-    feed = HistoryFeed(history.link, max_pending=1000, payload_max_bytes=64)
-    stamp = itertools.count(1_700_000_000_000, 100)
-
-    def send(count: int) -> None:
-        for _ in range(count):
-            feed.telemetry(("arm-001", time.time(), next(stamp), "ticks", (0.0,) * 6, b"{}"))
-
-    return history, feed, send
+    return _writer_and_feed(uri, commit_every_rows=7, target=_writer_killed_in_its_first_commit)
 
 
 @pytest.mark.parametrize(("when", "landed"), [("after", True), ("before", False)])
