@@ -978,9 +978,10 @@ def test_rows_left_unread_in_a_dead_writers_socket_are_counted_at_the_stop(tmp_p
 
 
 def _writer_killed_in_its_first_commit(*args: Any) -> None:
-    """The history writer process, killed (SIGKILL) in its first commit if $TWIN_TEST_DIE_MARKER's file
-    exists (it is removed, so a writer started again runs normally): "after" once Delta has accepted the
-    append, before the writer counts it; "before" as the append begins, once the commit is recorded."""
+    """The history writer process, killed (SIGKILL) as $TWIN_TEST_DIE_MARKER's file says, one word per
+    process started (a comma-separated list, each process taking the first; once it is empty, a writer runs
+    normally): "after": in its first commit once Delta has accepted the append, before the writer counts it;
+    "before": as that append begins, once the commit is recorded; "start": before it says it is ready."""
     import signal
 
     from twin.output import history as module
@@ -988,8 +989,13 @@ def _writer_killed_in_its_first_commit(*args: Any) -> None:
 
     marker = Path(os.environ["TWIN_TEST_DIE_MARKER"])
     if marker.exists():
-        when = marker.read_text()
-        marker.unlink()
+        when, *rest = marker.read_text().split(",")
+        if rest:
+            marker.write_text(",".join(rest))
+        else:
+            marker.unlink()
+        if when == "start":
+            os.kill(os.getpid(), signal.SIGKILL)
         append = module.HistoryWriter._append
 
         def dying_append(self: Any, *a: Any, **k: Any) -> int | None:
@@ -1058,6 +1064,36 @@ def test_a_writer_killed_in_a_commit_has_the_next_writer_ask_the_table_whether_i
     assert DeltaTable(str(Path(uri) / TELEMETRY_TABLE)).transaction_version(first_id) == (
         1 if landed else None
     )
+
+
+def test_a_commit_in_doubt_waits_for_a_writer_that_starts(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A writer killed in a commit, then one that dies before it is ready (it checked nothing): the commit
+    stays in doubt until a writer starts and asks the table. Before, the second death wiped it, and the 7
+    rows were neither written nor lost in the figures."""
+    uri = str(tmp_path / "history")
+    caplog.set_level(logging.INFO, logger="twin.output.history_feed")
+    history, feed, send = _writer_to_kill_in_a_commit(uri, tmp_path, monkeypatch, "after,start")
+    try:
+        send(7)
+        wait_for(lambda: not history.alive, 60, "the writer killed in its first commit")
+
+        def running() -> bool:
+            history.supervise()
+            return history.alive
+
+        wait_for(running, 120, "a writer that starts, after one that did not")
+        assert history.restarts == 2
+        figures = history.figures()
+        assert figures.stats is not None and figures.rows_received == 7
+        assert (figures.stats.rows_committed, figures.rows_lost) == (7, 0)
+    finally:
+        feed.close(timeout=1.0)
+        history.stop(timeout=30.0)
+    said = [r.getMessage() for r in caplog.records]
+    assert any("could not be started again" in m for m in said), said
+    assert any("had committed its last 7 rows to telemetry: written, not lost" in m for m in said), said
 
 
 def test_a_commit_in_doubt_when_the_agent_stops_first_is_counted_as_lost(

@@ -849,7 +849,10 @@ class HistoryProcess:
         for i in range(_COUNTED):
             self._before[i] += counters[i]
         self._rows_lost += held - doubtful
-        self._in_doubt = dataclasses.replace(doubt, rows=doubtful) if doubt is not None and doubtful else None
+        # A writer that never got as far as committing leaves an earlier writer's commit in doubt as it was.
+        if doubt is not None and doubtful:
+            self._settle(None)  # (an older one would have been checked by the writer that made this commit)
+            self._in_doubt = dataclasses.replace(doubt, rows=doubtful)
         quick = now - self.started_at < QUICK_DEATH_S
         pause = min(MAX_RESTART_PAUSE_S, 2.0 ** min(self.restarts, 6)) if quick else 0.0
         log.error(
