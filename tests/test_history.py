@@ -26,6 +26,7 @@ import polars as pl
 import pytest
 from conftest import get_metrics, metric, wait_for, wait_handled
 from deltalake import CommitProperties, DeltaTable, Transaction, write_deltalake
+from dying_writer import writer_killed_in_its_first_commit
 from moto_s3 import MotoS3
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
 from twin.edge.payload import encode, make_payload
@@ -977,46 +978,15 @@ def test_rows_left_unread_in_a_dead_writers_socket_are_counted_at_the_stop(tmp_p
     assert rows_of(uri).height == 13
 
 
-def _writer_killed_in_its_first_commit(*args: Any) -> None:
-    """The history writer process, killed (SIGKILL) as $TWIN_TEST_DIE_MARKER's file says, one word per
-    process started (a comma-separated list, each process taking the first; once it is empty, a writer runs
-    normally): "after": in its first commit once Delta has accepted the append, before the writer counts it;
-    "before": as that append begins, once the commit is recorded; "start": before it says it is ready."""
-    import signal
-
-    from twin.output import history as module
-    from twin.output.history_feed import writer_main
-
-    marker = Path(os.environ["TWIN_TEST_DIE_MARKER"])
-    if marker.exists():
-        when, *rest = marker.read_text().split(",")
-        if rest:
-            marker.write_text(",".join(rest))
-        else:
-            marker.unlink()
-        if when == "start":
-            os.kill(os.getpid(), signal.SIGKILL)
-        append = module.HistoryWriter._append
-
-        def dying_append(self: Any, *a: Any, **k: Any) -> int | None:
-            if when == "after":
-                append(self, *a, **k)
-            os.kill(os.getpid(), signal.SIGKILL)
-            return None
-
-        module.HistoryWriter._append = dying_append  # type: ignore[method-assign]
-    writer_main(*args)
-
-
 def _writer_to_kill_in_a_commit(
     uri: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, when: str
 ) -> tuple[HistoryProcess, HistoryFeed, Callable[[int], None]]:
     """`_writer_and_feed` with a writer that commits every 7 rows and is killed in its first commit (`when`:
-    _writer_killed_in_its_first_commit)."""
+    writer_killed_in_its_first_commit)."""
     marker = tmp_path / "die"
     marker.write_text(when)
     monkeypatch.setenv("TWIN_TEST_DIE_MARKER", str(marker))
-    return _writer_and_feed(uri, commit_every_rows=7, target=_writer_killed_in_its_first_commit)
+    return _writer_and_feed(uri, commit_every_rows=7, target=writer_killed_in_its_first_commit)
 
 
 @pytest.mark.parametrize(("when", "landed"), [("after", True), ("before", False)])
