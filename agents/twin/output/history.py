@@ -400,6 +400,12 @@ class _Pending:
     seq: int | None = None
 
 
+def _has_committed(dtable: Any, writer_id: str, seq: int) -> bool:
+    """Whether the open table holds writer `writer_id`'s commit `seq` (its app transaction's version)."""
+    done = dtable.transaction_version(writer_id)
+    return done is not None and done >= seq
+
+
 def _writer_properties(level: int) -> Any:
     from deltalake import ColumnProperties, WriterProperties  # noqa: PLC0415 - heavy, only when writing
 
@@ -757,8 +763,7 @@ class HistoryWriter:
 
         dtable = self._table(table)
         dtable.update_incremental()
-        done = dtable.transaction_version(self.writer_id)
-        if done is not None and done >= seq:
+        if _has_committed(dtable, self.writer_id, seq):
             return None
         if table == TELEMETRY_TABLE:
             rows = rows.sort_by([("device_id", "ascending"), ("received_at", "ascending")])
@@ -811,8 +816,7 @@ class HistoryWriter:
             dtable = DeltaTable(self.settings.table_uri(table), storage_options=self._options)
         except TableNotFoundError:
             return False
-        done = dtable.transaction_version(writer_id)
-        return done is not None and done >= seq
+        return _has_committed(dtable, writer_id, seq)
 
     def _open_or_create(self, table: str, uri: str) -> Any:
         """The table at `uri`, created first if missing. Created on its own (not by the first append) so two
