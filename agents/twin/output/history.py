@@ -50,15 +50,13 @@ import pyarrow as pa
 import pyarrow.json as pa_json
 
 from twin.core import heap
-from twin.output.history_feed import REJECTED_PAYLOAD_MAX_BYTES
+from twin.output.history_feed import REJECTED_PAYLOAD_MAX_BYTES, REJECTED_TABLE, TELEMETRY_TABLE
 from twin.output.history_maintain import run_child
 from twin.output.sinks import AppliedSample, QueuedSink, RejectedSample
 from twin.robot import so101
 
 log = logging.getLogger(__name__)
 
-TELEMETRY_TABLE = "telemetry"
-REJECTED_TABLE = "rejected"
 PARTITION_COLUMN = "date"
 JOINTS: tuple[str, ...] = so101.JOINT_NAMES
 # Per-joint fields of an edge message, stored exactly as sent (float64 holds every tick count exactly).

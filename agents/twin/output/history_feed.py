@@ -79,6 +79,10 @@ WRITER_NICE = 5
 # A rejected message is kept up to this many bytes (its whole length is stored too): HistorySettings' default,
 # here so a mirror cuts the payload before it crosses the socket without loading pyarrow.
 REJECTED_PAYLOAD_MAX_BYTES = 4096
+# The history tables' names (twin.output.history takes them from here: this module must not load pyarrow,
+# and the agent counts each table's commits by name).
+TELEMETRY_TABLE = "telemetry"
+REJECTED_TABLE = "rejected"
 
 # The writer process's counters in shared memory (int64 each), written by it alone.
 _RECEIVED, _REJECTED_RECEIVED, _COMMITTED, _REJECTED_COMMITTED, _DROPPED, _BUFFERED, _COMMITS = range(7)
@@ -88,8 +92,8 @@ _COUNTED = 7
 # dies with it set may or may not have committed those rows, and the next writer asks the table (_InDoubt).
 _IN_TABLE, _IN_SEQ, _IN_ROWS, _IN_BASE = range(_COUNTED, _COUNTED + 4)
 _COUNTERS = _COUNTED + 4
-# twin.output.history's table names (not imported here: it loads pyarrow), with the counter of each's commits.
-_TABLES = ("telemetry", "rejected")
+# The tables, with the counter of each's commits.
+_TABLES = (TELEMETRY_TABLE, REJECTED_TABLE)
 _COMMITTED_OF = (_COMMITTED, _REJECTED_COMMITTED)
 
 
@@ -450,8 +454,6 @@ class _Receiver:
                 conn.send_bytes(_REGISTERED)
 
     def run(self) -> None:
-        from twin.output.history import REJECTED_TABLE, TELEMETRY_TABLE  # noqa: PLC0415
-
         while True:
             with self._lock:
                 feeds = list(self.feeds)
@@ -548,8 +550,6 @@ class _Receiver:
     def _finish(self) -> None:
         """Read what the feeds still send until every one has hung up (they close after delivering), then
         commit."""
-        from twin.output.history import REJECTED_TABLE, TELEMETRY_TABLE  # noqa: PLC0415
-
         started = time.monotonic()
         budget = self._stop_timeout_s
         # The agent stops the writer after every mirror has closed its feed, so what the sockets hold is all
@@ -609,8 +609,6 @@ class WriterFigures:
 
 
 def _figures_of(stats: WriterStats, buffered: int) -> WriterFigures:
-    from twin.output.history import REJECTED_TABLE, TELEMETRY_TABLE  # noqa: PLC0415
-
     tables = stats.tables
     return WriterFigures(
         rows_committed=tables[TELEMETRY_TABLE].rows_committed,
@@ -903,6 +901,8 @@ class HistoryProcess:
 
 __all__ = [
     "REJECTED_PAYLOAD_MAX_BYTES",
+    "REJECTED_TABLE",
+    "TELEMETRY_TABLE",
     "WRITER_NICE",
     "HistoryFeed",
     "HistoryFigures",
