@@ -73,11 +73,13 @@ def test_example_config_loads() -> None:
 
 def test_history_section_defaults_match_the_writers() -> None:
     from twin.output.history import HistorySettings
+    from twin.output.history_feed import WRITER_NICE
 
     section, writer = HistorySection(), HistorySettings(uri="x")
     for key in ("commit_every_s", "commit_every_rows", "max_buffer_rows", "queue_max", "maintain_every_s"):
         assert getattr(section, key) == getattr(writer, key), key
     assert section.vacuum_retention_hours == writer.vacuum_retention_hours
+    assert section.writer_nice == WRITER_NICE
     assert not section.enabled
 
 
@@ -89,6 +91,8 @@ def test_history_section_defaults_match_the_writers() -> None:
         ('[history]\nuri = "h"\ncommit_every_s = 0', "history.commit_every_s = 0.0 must be greater than 0"),
         ('[history]\nuri = "h"\nmax_buffer_rows = 10', "must be at least commit_every_rows"),
         ('[history]\nuri = "h"\nurl = "x"', "unknown key 'history.url'"),
+        ('[history]\nuri = "h"\nwriter_nice = -1', "history.writer_nice = -1 must be from 0"),
+        ('[history]\nuri = "h"\nwriter_nice = 20', "history.writer_nice = 20 must be from 0"),
     ],
 )
 def test_history_settings_are_checked(tmp_path: Path, toml: str, message: str) -> None:

@@ -928,6 +928,34 @@ def _writer_and_feed(
     return history, feed, send
 
 
+def test_the_writer_runs_as_much_nicer_as_the_config_says(tmp_path: Path) -> None:
+    """[history] writer_nice reaches the writer process: every thread of it, deltalake's included, runs that
+    much nicer than the agent (2 here: neither the default 5 nor the agent's own priority)."""
+    import multiprocessing
+
+    from twin.service.agent import history_settings
+
+    overrides = {
+        "history.uri": str(tmp_path / "history"),
+        "history.writer_nice": 2,
+        "history.commit_every_rows": 1,
+    }
+    settings = history_settings(load_config(None, overrides))
+    assert settings is not None
+    history = HistoryProcess(settings, multiprocessing.get_context("spawn"))
+    history.launch()
+    feed = HistoryFeed(history.link, max_pending=1000, payload_max_bytes=64)
+    try:
+        # A commit first, so that deltalake's threads have started when they are looked at.
+        feed.telemetry(("arm-001", time.time(), 1_700_000_000_000, "ticks", (0.0,) * 6, b"{}"))
+        wait_for(lambda: (history.figures().stats or WriterFigures()).rows_committed == 1, 30, "a commit")
+        assert history.pid is not None
+        assert set(_thread_nices(history.pid)) == {min(19, os.nice(0) + 2)}
+    finally:
+        feed.close()
+        history.stop()
+
+
 def test_rows_left_unread_in_a_dead_writers_socket_are_counted_at_the_stop(tmp_path: Path) -> None:
     """A feed counts a row delivered once it is in the writer's socket. Rows a writer never read (it died, or
     stopped reading at its budget) reach no table and no counter of the writer's: at the stop, the agent

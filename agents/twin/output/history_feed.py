@@ -73,7 +73,7 @@ MAX_RESTART_PAUSE_S = 60.0
 # same priority they took the mirrors' cores and showed as their p99. At 5 its scheduler weight is a third of
 # a mirror's: on a host with a core to spare (1,000 arms here) it still gets all it needs; on a saturated one
 # it falls behind first, and its lag and the feeds' bounded queues take that (docs/history.md; measured in
-# docs/performance.md, "History's writer at a lower priority").
+# docs/performance.md, "History's writer at a lower priority"). The default of [history] writer_nice.
 WRITER_NICE = 5
 
 # A rejected message is kept up to this many bytes (its whole length is stored too): HistorySettings' default,
@@ -375,7 +375,8 @@ def writer_main(
 ) -> None:
     """The history writer process: a HistoryWriter (made from `settings`, HistorySettings' fields, and
     committing as `launch.writer_id`) fed by every mirror's HistoryFeed (module doc). It first checks
-    `launch.in_doubt`."""
+    `launch.in_doubt`. `settings["writer_nice"]`, if given, is how much nicer than the agent it runs
+    (WRITER_NICE by default)."""
     # The agent stops it in order (the feeds first, then a _Stop), so a Ctrl-C or systemd's SIGTERM to the
     # process group must not cut its last commit short.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -384,7 +385,8 @@ def writer_main(
     # few seconds for weeks (twin.core.heap says why); the maintenance process inherits them.
     heap.tune_deltalake_allocator()
     # Before any thread starts: Linux keeps a nice value per thread, and a new thread takes its creator's.
-    os.nice(WRITER_NICE)
+    settings = dict(settings)
+    os.nice(settings.pop("writer_nice", WRITER_NICE))
     # pyarrow and deltalake load here only: neither the receiving process nor a mirror carries them.
     from twin.output.history import HistorySettings, HistoryWriter  # noqa: PLC0415
 

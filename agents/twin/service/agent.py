@@ -1046,8 +1046,9 @@ def broker_state(url: str, settings: PoolSettings, pool: ConnectionPool, started
 
 
 def history_settings(config: AgentConfig) -> dict[str, Any] | None:
-    """HistorySettings' fields from the config's [history] (None when it is off); the writer process makes
-    the settings (and checks them: a bad one stops the agent as a configuration error)."""
+    """HistorySettings' fields from the config's [history] (None when it is off), and the writer process's
+    nice value; the writer process makes the settings (and checks them: a bad one stops the agent as a
+    configuration error)."""
     h = config.history
     if not h.enabled:
         return None
@@ -1060,6 +1061,7 @@ def history_settings(config: AgentConfig) -> dict[str, Any] | None:
         "maintain_every_s": h.maintain_every_s,
         "vacuum_retention_hours": h.vacuum_retention_hours,
         "storage_options": {"AWS_REGION": h.region} if h.region else {},
+        "writer_nice": h.writer_nice,  # the writer process's own, not HistorySettings'
     }
 
 

@@ -42,6 +42,8 @@ MAX_WORKERS = 64
 MAX_PAYLOAD_LIMIT_BYTES = 1 << 20
 # twin.output.alerts.MAX_FLUSH_S, as a plain number so loading a config imports no output module.
 MAX_ALERT_FLUSH_S = 9.5
+# Linux's lowest priority (the largest nice value).
+MAX_NICE = 19
 _SNS_ARN_RE = re.compile(r"^arn:aws[a-z-]*:sns:[a-z0-9-]+:\d{12}:[A-Za-z0-9_-]{1,256}(\.fifo)?$")
 
 
@@ -153,6 +155,9 @@ class HistorySection:
     queue_max: int = 30_000
     maintain_every_s: float = 3600.0
     vacuum_retention_hours: float = 24.0
+    # How much nicer than the mirrors the writer process runs (twin.output.history_feed.WRITER_NICE says why
+    # 5; a host with cores to spare may run it at 0).
+    writer_nice: int = 5
 
     @property
     def enabled(self) -> bool:
@@ -546,6 +551,11 @@ def _validate_history(hs: HistorySection) -> None:
         raise ConfigError(
             f"history.max_buffer_rows = {hs.max_buffer_rows} must be at least commit_every_rows = "
             f"{hs.commit_every_rows}"
+        )
+    if not 0 <= hs.writer_nice <= MAX_NICE:
+        raise ConfigError(
+            f"history.writer_nice = {hs.writer_nice} must be from 0 (the mirrors' priority) to {MAX_NICE} "
+            "(the lowest): the writer may only run at a lower priority than the mirrors, never a higher one"
         )
 
 

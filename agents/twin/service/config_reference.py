@@ -213,6 +213,10 @@ KEY_DOCS: dict[str, str] = {
         "Compaction, checkpoint and vacuum interval; 0 = never (another writer maintains)."
     ),
     "history.vacuum_retention_hours": "Files replaced by compaction are deleted after this long.",
+    "history.writer_nice": (
+        "How much nicer than the mirrors the history writer process runs, 0 to 19: its commits' bursts of "
+        "Parquet encoding then yield to the mirrors (docs/history.md). 0 on a host with cores to spare."
+    ),
     "log.level": "`DEBUG`, `INFO`, `WARNING` or `ERROR`. Flag `--log-level`.",
     "alarms.enabled": "Evaluate the servo alarms at all (docs/servo-health.md).",
     "alarms.latch": (
