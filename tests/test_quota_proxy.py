@@ -9,14 +9,16 @@ from typing import Any
 
 import pytest
 from awscrt import mqtt5
-from conftest import wait_for
+from conftest import Publisher, wait_for
 from twin.rig.mosquitto import MosquittoBroker
 from twin.rig.quota_proxy import (
     ProxyError,
     QuotaProxy,
     TokenBucket,
     connect_client_id,
+    parse_subscribe,
     split_packets,
+    suback_with,
 )
 from twin.transport.subscriber import BrokerConfig, TelemetrySubscriber, build_mqtt5_client
 
@@ -221,3 +223,69 @@ def test_under_budget_everything_passes_and_unlimited_is_a_plain_proxy(mosquitto
         assert totals["dropped"] == 0
         assert len(received) == count
         assert totals["connections"] == 2
+
+
+# --- the policy stand-in: a SUBSCRIBE refused per filter, as IoT Core refuses what a policy does not allow -
+
+
+def test_a_subscribe_is_taken_apart_and_its_suback_gets_the_failures_back_in_order() -> None:
+    entries = [(name, len(name).to_bytes(2, "big") + name.encode() + b"\x00") for name in ("a/b", "c", "d/+")]
+    for level, props in ((5, b"\x00"), (4, b"")):
+        subscribe = _packet(8, b"\x12\x34" + props + b"".join(e for _, e in entries), flags=2)
+        parsed = parse_subscribe(subscribe, level)
+        assert (parsed.packet_id, parsed.head) == (0x1234, b"\x12\x34" + props)
+        assert parsed.entries == tuple(entries)
+        # The broker granted the two filters it was sent (QoS 0 and 1); the first one was denied.
+        suback = _packet(9, b"\x12\x34" + props + b"\x00\x01")
+        assert suback_with(suback, level, {0: 0x87}) == _packet(9, b"\x12\x34" + props + b"\x87\x00\x01")
+        assert suback_with(suback, level, {1: 0x80}) == _packet(9, b"\x12\x34" + props + b"\x00\x80\x01")
+    with pytest.raises(ValueError, match="runs past its end"):
+        parse_subscribe(_packet(8, b"\x00\x01\x00\x00\x09ab", flags=2), 5)
+
+
+def _subscribe(client: mqtt5.Client, *filters: str) -> list[mqtt5.SubackReasonCode]:
+    packet = mqtt5.SubscribePacket(
+        subscriptions=[mqtt5.Subscription(topic_filter=f, qos=mqtt5.QoS.AT_MOST_ONCE) for f in filters]
+    )
+    return list(client.subscribe(packet).result(30).reason_codes)
+
+
+@pytest.mark.slow
+def test_denied_filters_are_refused_as_iot_core_refuses_them_and_allow_lifts_it(
+    mosquitto: MosquittoBroker,
+) -> None:
+    denied, other = TOPIC, "dt/lerobot/arm-002/telemetry"
+    received: list[str] = []
+    connected = threading.Event()
+    publisher = Publisher(mosquitto.url)
+    with QuotaProxy("127.0.0.1", mosquitto.port, budget=None, denied_filters=[denied]) as proxy:
+        client = build_mqtt5_client(
+            BrokerConfig(url=proxy.url, client_id_prefix="proxy-test-policy-"),
+            "proxy-test-policy",
+            on_publish_received=lambda d: received.append(d.publish_packet.topic),
+            on_connection_success=lambda _d: connected.set(),
+        )
+        client.start()
+        try:
+            assert connected.wait(30)
+            granted = mqtt5.SubackReasonCode.GRANTED_QOS_0
+            refused = mqtt5.SubackReasonCode.NOT_AUTHORIZED
+            # Both in one SUBSCRIBE: the denied one refused, the other granted, in the client's order.
+            assert _subscribe(client, denied, other) == [refused, granted]
+            # Alone: refused without reaching the broker.
+            assert _subscribe(client, denied) == [refused]
+            # The broker holds only the granted subscription: of one publisher's messages on the two topics,
+            # in this order, the one on the granted topic arrives and the one before it does not.
+            publisher.publish("arm-001", b"1")
+            publisher.publish("arm-002", b"2")
+            wait_for(lambda: other in received, 30, "the message on the granted topic")
+            assert denied not in received
+            proxy.allow(denied)  # the policy corrected: the same SUBSCRIBE now goes through
+            assert _subscribe(client, denied) == [granted]
+            publisher.publish("arm-001", b"3")
+            wait_for(lambda: denied in received, 30, "the message on the topic allowed since")
+        finally:
+            client.stop()
+            publisher.close()
+        (conn,) = proxy.connections()
+    assert conn.level == 5 and conn.subscriptions_denied == 2

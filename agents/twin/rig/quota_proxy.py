@@ -13,10 +13,17 @@ directions draw from the same bucket, as IoT Core counts inbound plus outbound. 
 metered; CONNECT, SUBSCRIBE, PINGREQ and the acknowledgements always pass. The project publishes telemetry at
 QoS 0; a dropped QoS 1 PUBLISH would be redelivered by its sender, which this proxy does not model.
 
+It also stands in for an IoT policy that does not allow `iot:Subscribe` on some topic filters
+(`denied_filters`, matched as written, which is how IoT Core matches a `topicfilter/` resource). IoT Core
+answers such a subscription with a SUBACK whose reason code for that filter is 0x87, Not authorized (0x80,
+Failure, under MQTT 3.1.1), and grants the others of the same SUBSCRIBE. The proxy does the same: it forwards
+the SUBSCRIBE without the denied filters (or not at all when every one is denied) and puts their failure
+codes back into the SUBACK in the client's order. `allow` lifts a denial, as a corrected policy would.
+
 Packets are framed by the MQTT fixed header (packet type, then the remaining length as a variable-byte
 integer), which MQTT 3.1.1 and 5 share; the CONNECT packet is read far enough to label a connection with its
-client id. For tests and benchmarks only: it listens on loopback, forwards to loopback, and runs its own
-asyncio loop in a background thread.
+client id and protocol level. For tests and benchmarks only: it listens on loopback, forwards to loopback, and
+runs its own asyncio loop in a background thread.
 """
 
 from __future__ import annotations
@@ -28,14 +35,19 @@ import logging
 import socket
 import threading
 import time
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
 from typing import Any
 
 log = logging.getLogger(__name__)
 
 PUBLISH = 3
 CONNECT = 1
+SUBSCRIBE = 8
+SUBACK = 9
+# A denied filter's SUBACK reason code: MQTT 5's Not authorized, MQTT 3.1.1's only failure code.
+NOT_AUTHORIZED = 0x87
+FAILURE_V311 = 0x80
 # The variable-byte remaining length has at most four bytes (MQTT 3.1.1 2.2.3, MQTT 5 1.5.5).
 _MAX_LENGTH_BYTES = 4
 _READ_CHUNK = 1 << 16
@@ -51,11 +63,15 @@ class ConnectionStats:
 
     number: int
     client_id: str = ""
+    # The CONNECT's protocol level: 4 is MQTT 3.1.1, 5 is MQTT 5.
+    level: int = 4
     open: bool = True
     forwarded_to_broker: int = 0
     forwarded_to_client: int = 0
     dropped_to_broker: int = 0
     dropped_to_client: int = 0
+    # Topic filters refused as an IoT policy without iot:Subscribe on them would (`denied_filters`).
+    subscriptions_denied: int = 0
 
     @property
     def dropped(self) -> int:
@@ -153,6 +169,92 @@ def connect_client_id(packet: bytes) -> str:
         return ""
 
 
+def connect_level(packet: bytes) -> int:
+    """The protocol level of an MQTT CONNECT packet (4: 3.1.1, 5: MQTT 5), or 4 if it cannot be read."""
+    try:
+        i = 1
+        while packet[i] & 0x80:  # skip the remaining length
+            i += 1
+        i += 1
+        name_len = int.from_bytes(packet[i : i + 2], "big")
+        return packet[i + 2 + name_len]
+    except IndexError:
+        return 4
+
+
+def _varint(value: int) -> bytes:
+    out = bytearray()
+    while True:
+        byte, value = value & 0x7F, value >> 7
+        out.append(byte | (0x80 if value else 0))
+        if not value:
+            return bytes(out)
+
+
+def _read_varint(packet: bytes, i: int) -> tuple[int, int]:
+    """A variable-byte integer at `i`: (value, index after it)."""
+    value, shift = 0, 0
+    while True:
+        byte = packet[i]
+        i += 1
+        value |= (byte & 0x7F) << shift
+        shift += 7
+        if not byte & 0x80:
+            return value, i
+
+
+@dataclass(frozen=True)
+class _Subscribe:
+    """A SUBSCRIBE taken apart: its packet id, what precedes the filters (packet id and, in MQTT 5, the
+    properties), and each filter with its entry's bytes (length, name, options)."""
+
+    packet_id: int
+    head: bytes
+    entries: tuple[tuple[str, bytes], ...]
+
+
+def parse_subscribe(packet: bytes, level: int) -> _Subscribe:
+    """A SUBSCRIBE packet of protocol `level` taken apart (ValueError if it is not one)."""
+    try:
+        _, i = _read_varint(packet, 1)
+        start = i
+        packet_id = int.from_bytes(packet[i : i + 2], "big")
+        i += 2
+        if level == 5:
+            props, i = _read_varint(packet, i)
+            i += props
+        head = packet[start:i]
+        entries = []
+        while i < len(packet):
+            length = int.from_bytes(packet[i : i + 2], "big")
+            end = i + 2 + length + 1  # the filter and its options byte
+            if end > len(packet):
+                raise ValueError("a SUBSCRIBE's topic filter runs past its end")
+            entries.append((packet[i + 2 : i + 2 + length].decode("utf-8"), packet[i:end]))
+            i = end
+    except (IndexError, UnicodeDecodeError) as exc:
+        raise ValueError(f"not a SUBSCRIBE packet: {exc}") from exc
+    return _Subscribe(packet_id, head, tuple(entries))
+
+
+def _packet_of(first_byte: int, body: bytes) -> bytes:
+    return bytes([first_byte]) + _varint(len(body)) + body
+
+
+def suback_with(packet: bytes, level: int, denied: dict[int, int]) -> bytes:
+    """The SUBACK `packet` with failure codes put back at the client's positions: `denied` maps a position
+    in the client's SUBSCRIBE to its code; the broker's codes fill the other positions in order."""
+    _, i = _read_varint(packet, 1)
+    head_end = i + 2
+    if level == 5:
+        props, head_end = _read_varint(packet, head_end)
+        head_end += props
+    granted = iter(packet[head_end:])
+    total = len(packet) - head_end + len(denied)
+    codes = bytes(denied[k] if k in denied else next(granted) for k in range(total))
+    return _packet_of(packet[0], packet[i:head_end] + codes)
+
+
 def _require_loopback(what: str, host: str) -> None:
     try:
         loopback = ipaddress.ip_address(host).is_loopback
@@ -178,6 +280,7 @@ class QuotaProxy:
         listen_host: str = "127.0.0.1",
         listen_port: int = 0,
         clock: Callable[[], float] = time.monotonic,
+        denied_filters: Iterable[str] = (),
     ) -> None:
         _require_loopback("upstream host", upstream_host)
         _require_loopback("listen host", listen_host)
@@ -190,6 +293,7 @@ class QuotaProxy:
         self.burst_s = burst_s
         self._listen = (listen_host, listen_port)
         self._clock = clock
+        self._denied = frozenset(denied_filters)
         self._connections: list[ConnectionStats] = []
         self._lock = threading.Lock()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -229,6 +333,10 @@ class QuotaProxy:
                 loop.call_soon_threadsafe(shutdown.set)
         thread.join(timeout)
         self._thread = None
+
+    def allow(self, topic_filter: str) -> None:
+        """Stop denying `topic_filter` (a corrected policy): the next SUBSCRIBE to it is forwarded."""
+        self._denied = self._denied - {topic_filter}
 
     def __enter__(self) -> QuotaProxy:
         return self.start()
@@ -310,12 +418,9 @@ class QuotaProxy:
         bucket = None
         if self.budget is not None:
             bucket = TokenBucket(self.budget, self.budget * self.burst_s, self._clock)
-        upstream = asyncio.create_task(
-            self._pump(client_reader, broker_writer, bucket, stats, to_broker=True)
-        )
-        downstream = asyncio.create_task(
-            self._pump(broker_reader, client_writer, bucket, stats, to_broker=False)
-        )
+        link = _Link(client_writer, stats, bucket)
+        upstream = asyncio.create_task(self._pump(client_reader, broker_writer, link, to_broker=True))
+        downstream = asyncio.create_task(self._pump(broker_reader, client_writer, link, to_broker=False))
         try:
             # Either side hanging up ends the connection, as a broker closing its socket would.
             await asyncio.wait({upstream, downstream}, return_when=asyncio.FIRST_COMPLETED)
@@ -330,13 +435,7 @@ class QuotaProxy:
             stats.open = False
 
     async def _pump(
-        self,
-        reader: asyncio.StreamReader,
-        writer: asyncio.StreamWriter,
-        bucket: TokenBucket | None,
-        stats: ConnectionStats,
-        *,
-        to_broker: bool,
+        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, link: _Link, *, to_broker: bool
     ) -> None:
         buffer = bytearray()
         while True:
@@ -347,28 +446,80 @@ class QuotaProxy:
             try:
                 packets, used = split_packets(buffer)
             except ValueError as exc:
-                log.warning("quota proxy: connection %d: %s; closing it", stats.number, exc)
+                log.warning("quota proxy: connection %d: %s; closing it", link.stats.number, exc)
                 return
             del buffer[:used]
-            out = []
-            for kind, packet in packets:
-                if kind == CONNECT and to_broker and not stats.client_id:
-                    stats.client_id = connect_client_id(packet)
-                if kind == PUBLISH:
-                    if bucket is not None and not bucket.take():
-                        if to_broker:
-                            stats.dropped_to_broker += 1
-                        else:
-                            stats.dropped_to_client += 1
-                        continue
-                    if to_broker:
-                        stats.forwarded_to_broker += 1
-                    else:
-                        stats.forwarded_to_client += 1
-                out.append(packet)
+            out = [p for kind, packet in packets if (p := self._forward(kind, packet, link, to_broker))]
             if out:
                 writer.write(b"".join(out))
                 await writer.drain()
+
+    def _forward(self, kind: int, packet: bytes, link: _Link, to_broker: bool) -> bytes | None:
+        """What goes on of one packet (None: nothing): counted, metered, policed."""
+        stats = link.stats
+        if kind == CONNECT and to_broker and not stats.client_id:
+            stats.client_id = connect_client_id(packet)
+            stats.level = connect_level(packet)
+        if kind == PUBLISH:
+            if link.bucket is not None and not link.bucket.take():
+                if to_broker:
+                    stats.dropped_to_broker += 1
+                else:
+                    stats.dropped_to_client += 1
+                return None
+            if to_broker:
+                stats.forwarded_to_broker += 1
+            else:
+                stats.forwarded_to_client += 1
+        elif kind == SUBSCRIBE and to_broker and self._denied:
+            return self._police(packet, link)
+        elif kind == SUBACK and not to_broker and link.denials:
+            return _suback_for(packet, link)
+        return packet
+
+    def _police(self, packet: bytes, link: _Link) -> bytes | None:
+        """A SUBSCRIBE as the policy lets it through: without its denied filters (their codes kept for the
+        SUBACK), or None when every filter is denied and the client has been answered here."""
+        stats = link.stats
+        try:
+            subscribe = parse_subscribe(packet, stats.level)
+        except ValueError as exc:
+            log.warning("quota proxy: connection %d: %s; forwarded as it is", stats.number, exc)
+            return packet
+        code = NOT_AUTHORIZED if stats.level == 5 else FAILURE_V311
+        denied = {k: code for k, (name, _) in enumerate(subscribe.entries) if name in self._denied}
+        if not denied:
+            return packet
+        stats.subscriptions_denied += len(denied)
+        if len(denied) == len(subscribe.entries):
+            head = subscribe.head[:2] + (b"\x00" if stats.level == 5 else b"")
+            link.client.write(_packet_of(SUBACK << 4, head + bytes(denied.values())))
+            return None
+        link.denials[subscribe.packet_id] = denied
+        kept = b"".join(entry for k, (_, entry) in enumerate(subscribe.entries) if k not in denied)
+        return _packet_of(packet[0], subscribe.head + kept)
+
+
+@dataclass
+class _Link:
+    """One client connection as both of its pumps share it: the client's writer (a SUBSCRIBE the policy
+    refuses whole is answered on it), its counts and budget, and the failure codes a SUBACK on its way back
+    must carry, by packet id."""
+
+    client: asyncio.StreamWriter
+    stats: ConnectionStats
+    bucket: TokenBucket | None
+    denials: dict[int, dict[int, int]] = field(default_factory=dict)
+
+
+def _suback_for(packet: bytes, link: _Link) -> bytes:
+    try:
+        _, i = _read_varint(packet, 1)
+        packet_id = int.from_bytes(packet[i : i + 2], "big")
+    except IndexError:
+        return packet
+    denied = link.denials.pop(packet_id, None)
+    return packet if denied is None else suback_with(packet, link.stats.level, denied)
 
 
 def _nodelay(writer: asyncio.StreamWriter) -> None:
