@@ -56,6 +56,8 @@ WORKER_RESTARTS = "WorkerRestarts"
 HISTORY_ROWS_DROPPED = "HistoryRowsDropped"
 HISTORY_COMMIT_FAILURES = "HistoryCommitFailures"
 HISTORY_LAG = "HistoryLagSeconds"
+# Topic filters the broker refuses the agent (agents/twin/output/emf.py, SUBSCRIPTIONS_REFUSED).
+SUBSCRIPTIONS_REFUSED = "SubscriptionsRefused"
 PERIOD = Duration.minutes(1)
 # History commits every 10 s by default (docs/history.md): a minute's lag means commits are failing.
 HISTORY_LAG_ALARM_S = 60
@@ -159,6 +161,7 @@ class TwinMonitoring(Construct):
         }
         self._alarms_for_loss()
         self._alarms_for_history()
+        self.alarms["SubscriptionsRefused"] = self._subscriptions_refused_alarm()
         action = cw_actions.SnsAction(self.topic)
         for alarm in self.alarms.values():
             alarm.add_alarm_action(action)
@@ -297,6 +300,27 @@ class TwinMonitoring(Construct):
             ),
             metric=self._metric(HISTORY_LAG, "Maximum"),
             threshold=HISTORY_LAG_ALARM_S,
+            comparison_operator=cw.ComparisonOperator.GREATER_THAN_OR_EQUAL_TO_THRESHOLD,
+            evaluation_periods=2,
+            datapoints_to_alarm=2,
+            treat_missing_data=cw.TreatMissingData.NOT_BREACHING,
+        )
+
+    def _subscriptions_refused_alarm(self) -> cw.Alarm:
+        """SubscriptionsRefused: IoT Core refused a topic filter for 2 minutes (the agent asks again every
+        30 s, so a passing refusal clears before it pages). The agent runs and is connected, so neither
+        AgentSilent nor ArmsStale would say it: the arms of that filter are simply never heard."""
+        return cw.Alarm(
+            self,
+            "SubscriptionsRefused",
+            alarm_description=(
+                f"IoT Core refuses {self.agent_name}'s agent a telemetry subscription, so the arms of that "
+                "topic filter are not mirrored: its IAM role does not allow iot:Subscribe on it (the agent's "
+                "[telemetry] settings and the stack's differ). The agent's log and /healthz name the filter. "
+                "docs/deploy.md, Troubleshooting"
+            ),
+            metric=self._metric(SUBSCRIPTIONS_REFUSED, "Maximum"),
+            threshold=1,
             comparison_operator=cw.ComparisonOperator.GREATER_THAN_OR_EQUAL_TO_THRESHOLD,
             evaluation_periods=2,
             datapoints_to_alarm=2,

@@ -148,6 +148,7 @@ def test_fleet_lines_written_to_the_file_are_valid_emf(tmp_path: Path) -> None:
         "MessagesDropped": "Count",
         "SinkDrops": "Count",
         "WorkerRestarts": "Count",
+        "SubscriptionsRefused": "Count",
     }
     assert (fleet["MessagesPerSecond"], fleet["DevicesStale"], fleet["InternalLatencyP99"]) == (29.8, 1, 1.9)
     assert (critical["Severity"], critical["ActiveAlarms"]) == ("critical", 1)
@@ -361,3 +362,17 @@ def test_losses_are_counted_per_interval_and_history_only_when_it_is_on(tmp_path
     # History off: no history metric at all (the stack's alarms treat that as no loss).
     off = fleet_documents(dataclasses.replace(FLEET), "a", 1)
     assert not set(LOSS_METRICS[3:]) & set(off[0])
+
+
+def test_refused_subscriptions_are_reported_as_they_are_not_as_an_increase(tmp_path: Path) -> None:
+    """SubscriptionsRefused is a state (filters refused now), so the stack's alarm sees 2 in every interval
+    the refusal lasts, not 2 once and then 0."""
+    clock = [0.0]
+    totals = FleetTotals(0, 0, 1, 0, 0, 0.0, None, {}, subscriptions_refused=2)
+    writer = EmfFileWriter(tmp_path / "emf.log")
+    publisher = EmfPublisher(writer, "a", lambda: totals, clock=lambda: clock[0], wall=lambda: 1.0)
+    for _ in range(3):
+        publisher.publish_once()
+        clock[0] += 60.0
+    docs = [validate_emf_line(line) for line in writer.path.read_text().splitlines()]
+    assert [d["SubscriptionsRefused"] for d in docs] == [2, 2, 2]

@@ -161,13 +161,16 @@ def test_an_arrival_is_told_by_its_message_and_a_late_sweep_only_adds_a_transiti
 
 
 class Conn:
-    def __init__(self, successes: int, disconnections: int, last_error: str = "") -> None:
+    def __init__(
+        self, successes: int, disconnections: int, last_error: str = "", refused: tuple[str, ...] = ()
+    ) -> None:
         self.index, self.client_id = 0, "so101-twin-x-0"
         self.connection_successes, self.disconnections, self.last_error = (
             successes,
             disconnections,
             last_error,
         )
+        self.refused = refused
 
 
 def test_broker_watch_reports_connects_losses_and_reconnects() -> None:
@@ -182,6 +185,26 @@ def test_broker_watch_reports_connects_losses_and_reconnects() -> None:
         "broker connection 0 lost: AWS_ERROR_MQTT_UNEXPECTED_HANGUP",
         "broker connection 0 reconnected",
     ]
+
+
+def test_broker_watch_reports_a_refused_subscription_once_and_its_grant() -> None:
+    s, _ = store()
+    watch = BrokerWatch(s)
+    topic = "dt/lerobot/arm-001/telemetry"
+    watch.sweep([Conn(1, 0)])
+    for _ in range(3):  # refused for three sweeps: one event
+        watch.sweep([Conn(1, 0, "subscribe: refused (NOT_AUTHORIZED)", refused=(topic,))])
+    watch.sweep([Conn(1, 0)])
+    events = s.query(EventQuery(kinds=frozenset({"broker"})))
+    assert [(e.level, e.message) for e in events[1:]] == [
+        (
+            "error",
+            f"broker connection 0: the subscription to {topic} is refused, so its arms are not heard; the "
+            "agent's IAM identity must allow iot:Subscribe on it",
+        ),
+        ("info", f"broker connection 0: the subscription to {topic} is granted now"),
+    ]
+    assert events[1].data["error"] == "subscribe: refused (NOT_AUTHORIZED)"
 
 
 def test_a_rejection_flood_makes_one_event_per_interval_with_its_count() -> None:

@@ -1409,6 +1409,37 @@ def test_replay_refuses_an_arm_that_is_live_and_replays_it_under_another_id(
     assert all(json.loads(p)["device_id"] == "arm-001-replay" for p in received["arm-001-replay"])
 
 
+def test_replay_refused_its_topic_by_the_broker_publishes_nothing_and_names_the_rights(
+    tmp_path: Path, mosquitto: object
+) -> None:
+    """On IoT Core, a replay whose identity may publish but not subscribe to the arm's topic cannot check that
+    the arm is not live: the SUBACK refuses the filter (the quota proxy's policy stand-in does as IoT Core
+    does), and the replay refuses to go ahead, naming the two rights it needs."""
+    from twin.ops.replay import ReplayConfig, ReplayRefusedError, replay
+    from twin.rig.quota_proxy import QuotaProxy
+    from twin.transport.broker import BrokerConfig
+
+    uri = _history_with(tmp_path, samples(5))
+    topic = "dt/lerobot/arm-001/telemetry"
+    with QuotaProxy("127.0.0.1", mosquitto.port, budget=None, denied_filters=[topic]) as proxy:
+        config = ReplayConfig(
+            uri=uri,
+            device="arm-001",
+            start=dt.datetime.fromtimestamp(T0 - 1, dt.UTC),
+            end=dt.datetime.fromtimestamp(T0 + 60, dt.UTC),
+            broker=BrokerConfig(url=proxy.url, client_id_prefix="replay-"),
+            speed=8.0,
+        )
+        with pytest.raises(ReplayRefusedError) as refused:
+            replay(config)
+        (connection,) = proxy.connections()
+    assert connection.subscriptions_denied == 1
+    assert connection.forwarded_to_broker == 0  # not one message published
+    said = str(refused.value)
+    assert f"the subscription to {topic} was refused (NOT_AUTHORIZED)" in said, said
+    assert "iot:Subscribe and iot:Receive" in said
+
+
 def test_every_worker_has_a_slot_for_its_feeds_delivered_count(tmp_path: Path) -> None:
     # One slot per mirror, by its shard's index: as many as twin.workers allows, and a feed outside them is
     # refused when it is made, not when its thread first delivers.

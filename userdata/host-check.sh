@@ -143,6 +143,10 @@ if not broker.get("connected"):
     problems.append(f"not connected to the broker ({broker.get('last_error') or 'no error recorded'})")
 if not subscribed:
     problems.append("no subscription acknowledged (IAM may deny iot:Subscribe)")
+# A filter IoT Core refused (SUBACK Not authorized) while others were granted: those arms are never heard.
+refused = sorted({f for c in broker.get("connections", []) for f in c.get("refused", [])})
+if refused:
+    problems.append(f"IoT Core refuses the subscription to {', '.join(refused)} (the role must allow iot:Subscribe on it)")
 filters = ", ".join(agent.get("topic_filters", [])) or "none"
 if problems:
     print(f"FAIL\t{'; '.join(problems)}; filters {filters}")

@@ -443,6 +443,25 @@ def test_host_check_reports_every_line(booted, tmp_path: Path) -> None:
     assert "arm-001 OFFLINE 0.0 Hz, never seen" in details["telemetry"]
 
 
+def test_host_check_fails_the_agent_line_when_iot_core_refuses_a_filter(booted, tmp_path: Path) -> None:
+    """One filter refused, another granted: the agent is connected and has a subscription, yet the refused
+    filter's arms are never heard, and the check says which filter and which right."""
+    source, _ = booted
+    host = copy_of(source, tmp_path)
+    refused = "dt/lerobot/arm-002/telemetry"
+    served = host.sim / "agent" / "state.json"  # what the host's agent answers on /state
+    state = json.loads(served.read_text())
+    state["agent"]["broker"]["connections"] = [{"index": 0, "state": "refused", "refused": [refused]}]
+    served.write_text(json.dumps(state))
+    result = host.run(host.root / "opt/so101-twin/userdata/host-check.sh")
+    lines = [line.split("\t") for line in result.stdout.splitlines()]
+    status, detail = next((state, detail) for name, state, detail in lines if name == "agent")
+    assert status == "FAIL", detail
+    assert (
+        f"IoT Core refuses the subscription to {refused} (the role must allow iot:Subscribe on it)" in detail
+    )
+
+
 # --- after every start --------------------------------------------------------------------------------------
 
 

@@ -46,6 +46,7 @@ def test_names_agree_with_the_agents_emf() -> None:
         monitoring.HISTORY_LAG,
     )
     assert stack_side == emf.LOSS_METRICS
+    assert monitoring.SUBSCRIPTIONS_REFUSED == emf.SUBSCRIPTIONS_REFUSED
 
 
 def test_topic_is_encrypted_tls_only_and_cloudwatch_may_publish(synth_default: Synth) -> None:
@@ -85,7 +86,7 @@ def test_every_alarm_notifies_the_topic_on_alarm_and_ok(synth_default: Synth) ->
     # Servo alarms reach the topic from the host directly (test_host_publishes_servo_alarms_to_the_topic_
     # only), not through a CloudWatch alarm on a once-a-minute metric: agent silent, arms stale and the six
     # loss alarms.
-    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 8)
+    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 9)
     ref = topic_ref(synth_default)
     for props in synth_default.resources("AWS::CloudWatch::Alarm").values():
         assert props["Properties"]["AlarmActions"] == [ref]
@@ -131,7 +132,7 @@ def test_agent_silent_is_armed_by_the_host_once_it_is_up(synth_default: Synth) -
         for p in synth_default.resources("AWS::CloudWatch::Alarm").values()
         if p["Properties"].get("AlarmName") != "So101TwinStack-AgentSilent"
     ]
-    assert len(others) == 7 and all(p.get("ActionsEnabled", True) for p in others)
+    assert len(others) == 8 and all(p.get("ActionsEnabled", True) for p in others)
     arm = statement(policy_statements(synth_default, "IdentityHostRole"), "AgentSilentArm")
     assert arm["Action"] == "cloudwatch:EnableAlarmActions"
     resource = json.dumps(arm["Resource"])
@@ -265,7 +266,7 @@ def test_the_dashboard_shows_every_alarm_and_is_an_output(synth_default: Synth) 
     body = dashboard_body(synth_default)
     status = [w for w in body["widgets"] if w["type"] == "alarm"]
     alarms = synth_default.resources("AWS::CloudWatch::Alarm")
-    assert len(status) == 1 and len(status[0]["properties"]["alarms"]) == len(alarms) == 8
+    assert len(status) == 1 and len(status[0]["properties"]["alarms"]) == len(alarms) == 9
     # One point a minute, the agent's EMF interval, each with the statistic its figure needs.
     for widget in body["widgets"]:
         for row in widget["properties"].get("metrics", []):
@@ -324,3 +325,16 @@ def test_history_lag_alarms_over_a_minute_for_two(synth_default: Synth) -> None:
     assert (props["ComparisonOperator"], props["Threshold"]) == ("GreaterThanOrEqualToThreshold", 60)
     assert (props["EvaluationPeriods"], props["DatapointsToAlarm"]) == (2, 2)
     assert props["TreatMissingData"] == "notBreaching"
+
+
+def test_a_refused_subscription_alarms_after_two_minutes_of_it(synth_default: Synth) -> None:
+    """The agent runs and stays connected while IoT Core refuses it a filter, so AgentSilent and ArmsStale
+    stay quiet: this alarm is what pages."""
+    props = _alarm_on(synth_default, emf.SUBSCRIPTIONS_REFUSED)
+    assert props["Namespace"] == emf.NAMESPACE
+    assert props["Dimensions"] == [{"Name": "Agent", "Value": "So101TwinStack"}]
+    assert (props["Statistic"], props["Period"]) == ("Maximum", 60)
+    assert (props["ComparisonOperator"], props["Threshold"]) == ("GreaterThanOrEqualToThreshold", 1)
+    assert (props["EvaluationPeriods"], props["DatapointsToAlarm"]) == (2, 2)
+    assert props["TreatMissingData"] == "notBreaching"
+    assert "iot:Subscribe" in props["AlarmDescription"]

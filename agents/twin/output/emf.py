@@ -47,6 +47,7 @@ WORKER_RESTARTS = "WorkerRestarts"  # worker processes that died and were starte
 HISTORY_ROWS_DROPPED = "HistoryRowsDropped"  # history rows dropped: the write buffer was full (an outage)
 HISTORY_COMMIT_FAILURES = "HistoryCommitFailures"  # history commits that failed (retried)
 HISTORY_LAG = "HistoryLagSeconds"  # how long the oldest unwritten history row has waited
+SUBSCRIPTIONS_REFUSED = "SubscriptionsRefused"  # topic filters the broker refuses now (an IAM policy)
 LOSS_METRICS: tuple[str, ...] = (
     MESSAGES_DROPPED,
     SINK_DROPS,
@@ -118,6 +119,8 @@ class FleetMetrics:
     messages_dropped: int = 0
     sink_drops: int = 0
     worker_restarts: int = 0
+    # Topic filters the broker refuses at the end of the interval: their telemetry does not arrive.
+    subscriptions_refused: int = 0
     history_rows_dropped: int | None = None
     history_commit_failures: int | None = None
     history_lag_s: float | None = None
@@ -143,6 +146,7 @@ def fleet_documents(
         Metric(MESSAGES_DROPPED, fleet.messages_dropped, "Count"),
         Metric(SINK_DROPS, fleet.sink_drops, "Count"),
         Metric(WORKER_RESTARTS, fleet.worker_restarts, "Count"),
+        Metric(SUBSCRIPTIONS_REFUSED, fleet.subscriptions_refused, "Count"),
     ]
     if fleet.history_lag_s is not None:
         metrics += [
@@ -230,6 +234,7 @@ class FleetTotals:
     messages_dropped: int = 0
     sink_drops: int = 0
     worker_restarts: int = 0
+    subscriptions_refused: int = 0  # now, not a running total
     # History's totals and its lag now; None while history is off.
     history_rows_dropped: int | None = None
     history_commit_failures: int | None = None
@@ -306,6 +311,7 @@ class EmfPublisher:
             messages_dropped=increase(totals.messages_dropped, before.messages_dropped if before else None),
             sink_drops=increase(totals.sink_drops, before.sink_drops if before else None),
             worker_restarts=increase(totals.worker_restarts, before.worker_restarts if before else None),
+            subscriptions_refused=totals.subscriptions_refused,
             history_rows_dropped=increase(
                 totals.history_rows_dropped, before.history_rows_dropped if before else None
             )

@@ -739,8 +739,8 @@ class AgentService:
         return total
 
     def healthz(self) -> HealthReport:
-        """Healthy = the agent runs, the broker connection is up, every worker process runs and no configured
-        device is OFFLINE.
+        """Healthy = the agent runs, the broker connection is up and refuses none of its subscriptions, every
+        worker process runs and no configured device is OFFLINE.
 
         With devices = ["*"] no device is configured, so the last rule does not apply: a fleet agent stays
         healthy while individual arms come and go (their status is in /state and /metrics).
@@ -758,6 +758,12 @@ class AgentService:
             reasons.append("service not running")
         if not connected:
             reasons.append("broker connection down")
+        elif self._started_pool:
+            reasons.extend(
+                f"the broker refused the subscription to {f} ({reason}): no telemetry of it arrives; the "
+                "agent's IAM identity must allow iot:Subscribe on it (docs/agent.md, IAM permissions)"
+                for f, reason in sorted(self._pool.refused().items())
+            )
         # A worker process that did not answer is not running (dead, or being started again), as in /state.
         reasons.extend(
             f"worker {shard.index} is not running"
@@ -1003,6 +1009,7 @@ def fleet_totals(state: AgentState, expected_rate_hz: float) -> FleetTotals:
         # The history writer is a worker process too.
         worker_restarts=sum(w.restarts for w in state.agent.workers)
         + (history.writer_restarts if history is not None else 0),
+        subscriptions_refused=state.agent.broker.subscriptions_refused,
         history_rows_dropped=history.rows_not_written if history is not None else None,
         history_commit_failures=history.commit_failures if history is not None else None,
         history_lag_s=history.lag_s if history is not None else None,
@@ -1028,6 +1035,7 @@ def broker_state(url: str, settings: PoolSettings, pool: ConnectionPool, started
         last_error=next((st.last_error for st in stats if st.last_error), ""),
         per_connection_limit=limit,
         rate_hz=pool.rate_hz,
+        subscriptions_refused=sum(len(c.refused) for c in infos),
         connections=tuple(
             ConnectionState(
                 index=c.index,
@@ -1039,6 +1047,7 @@ def broker_state(url: str, settings: PoolSettings, pool: ConnectionPool, started
                 connection_successes=c.connection_successes,
                 disconnections=c.disconnections,
                 last_error=c.last_error,
+                refused=c.refused,
             )
             for c in infos
         ),

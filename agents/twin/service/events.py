@@ -327,6 +327,8 @@ class ConnectionCounters(Protocol):
     def disconnections(self) -> int: ...
     @property
     def last_error(self) -> str: ...
+    @property
+    def refused(self) -> tuple[str, ...]: ...
 
 
 class BrokerWatch:
@@ -336,6 +338,7 @@ class BrokerWatch:
     def __init__(self, store: EventStore) -> None:
         self._store = store
         self._seen: dict[int, tuple[int, int]] = {}
+        self._refused: dict[int, frozenset[str]] = {}
 
     def sweep(self, connections: Iterable[ConnectionCounters]) -> None:
         """`connections`: the pool's connections now (twin.transport.pool.ConnectionInfo)."""
@@ -362,6 +365,32 @@ class BrokerWatch:
                     f"broker connection {index} {'reconnected' if again else 'connected'}",
                     data={"connection": index, "client_id": client_id, "connects": successes},
                 )
+            self._sweep_refused(index, client_id, frozenset(c.refused), last_error)
+
+    def _sweep_refused(self, index: int, client_id: str, refused: frozenset[str], last_error: str) -> None:
+        """A filter the broker began to refuse (an IoT policy that does not allow it), or granted again."""
+        before = self._refused.get(index, frozenset())
+        self._refused[index] = refused
+        for topic_filter in sorted(refused - before):
+            self._store.emit(
+                EventKind.BROKER,
+                EventLevel.ERROR,
+                f"broker connection {index}: the subscription to {topic_filter} is refused, so its arms are "
+                "not heard; the agent's IAM identity must allow iot:Subscribe on it",
+                data={
+                    "connection": index,
+                    "client_id": client_id,
+                    "filter": topic_filter,
+                    "error": last_error,
+                },
+            )
+        for topic_filter in sorted(before - refused):
+            self._store.emit(
+                EventKind.BROKER,
+                EventLevel.INFO,
+                f"broker connection {index}: the subscription to {topic_filter} is granted now",
+                data={"connection": index, "client_id": client_id, "filter": topic_filter},
+            )
 
 
 _ALARM_LEVEL = {"raised": EventLevel.WARNING, "cleared": EventLevel.INFO}

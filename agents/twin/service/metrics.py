@@ -254,13 +254,19 @@ def _pool_families(agent: AgentInfo) -> Iterator[Metric]:
     reconnects = CounterMetricFamily(
         "twin_connection_disconnections_total", "Times this connection was lost.", labels=labels
     )
+    refused = GaugeMetricFamily(
+        "twin_connection_refused_filters",
+        "Topic filters the broker refused on this connection (an IoT policy that does not allow them).",
+        labels=labels,
+    )
     for c in broker.connections:
         key = [str(c.index), c.client_id]
-        up.add_metric(key, 1 if c.state == "connected" else 0)
+        up.add_metric(key, 1 if c.state in ("connected", "refused") else 0)
         rate.add_metric(key, c.rate_hz)
         messages.add_metric(key, c.messages)
         reconnects.add_metric(key, c.disconnections)
-    yield from (up, rate, messages, reconnects)
+        refused.add_metric(key, len(c.refused))
+    yield from (up, rate, messages, reconnects, refused)
 
 
 class _DeviceFamilies:

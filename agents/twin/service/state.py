@@ -137,6 +137,8 @@ class ConnectionState:
     connection_successes: int = 0
     disconnections: int = 0
     last_error: str = ""
+    # Topic filters the broker refused on this connection (state "refused"): their telemetry does not arrive.
+    refused: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -188,6 +190,8 @@ class BrokerState:
     # Publishes per second one connection may carry (None: unlimited), and the pool's measured total rate.
     per_connection_limit: float | None = None
     rate_hz: float = 0.0
+    # Topic filters refused now, over every connection (an IoT policy that does not allow them).
+    subscriptions_refused: int = 0
     connections: tuple[ConnectionState, ...] = ()
 
 

@@ -61,13 +61,16 @@ class ConnectionInfo:
 
     index: int
     client_id: str
-    state: str  # "connected", "connecting" or "stopped"
+    # "connected", "connecting", "stopped", or "refused": connected, but the broker refused a filter (an IoT
+    # policy that does not allow it), whose telemetry does not arrive.
+    state: str
     filters: tuple[str, ...]
     rate_hz: float
     messages: int
     connection_successes: int
     disconnections: int
     last_error: str
+    refused: tuple[str, ...] = ()
 
 
 class _Connection:
@@ -196,6 +199,12 @@ class ConnectionPool:
             c.subscriber.wait_subscribed(max(0.0, deadline - time.monotonic())) for c in connections
         )
 
+    def refused(self) -> dict[str, str]:
+        """The topic filters the broker refused, over every connection, each with the SUBACK's reason."""
+        with self._lock:
+            connections = list(self._connections)
+        return {f: reason for c in connections for f, reason in c.subscriber.refused.items()}
+
     def connections(self) -> list[ConnectionInfo]:
         with self._lock:
             connections = list(self._connections)
@@ -203,17 +212,20 @@ class ConnectionPool:
         for c in connections:
             sub = c.subscriber
             stats = sub.stats
+            refused = tuple(sub.refused)
+            connected = "refused" if refused else "connected"
             out.append(
                 ConnectionInfo(
                     index=c.index,
                     client_id=sub.client_id,
-                    state="connected" if sub.connected else "connecting",
+                    state=connected if sub.connected else "connecting",
                     filters=tuple(sub.topic_filters),
                     rate_hz=c.rate_hz,
                     messages=stats.messages_received,
                     connection_successes=stats.connection_successes,
                     disconnections=stats.disconnects,
                     last_error=stats.last_error,
+                    refused=refused,
                 )
             )
         return out
@@ -242,6 +254,13 @@ class ConnectionPool:
                 self.rescale(self._clock())
             except Exception:
                 log.exception("connection pool: rescaling failed (the pool keeps its size)")
+            with self._lock:
+                subscribers = [c.subscriber for c in self._connections]
+            for subscriber in subscribers:
+                try:
+                    subscriber.retry_refused()  # each waits RESUBSCRIBE_S between its own tries
+                except Exception:
+                    log.exception("connection pool: asking again for a refused subscription failed")
 
     def rescale(self, now: float) -> int:
         """Measure each connection's rate and, for a shared subscription, grow or shrink K; returns K."""

@@ -29,6 +29,9 @@ log = logging.getLogger(__name__)
 
 # IoT Core takes at most 8 topic filters per SUBSCRIBE packet (docs/aws-facts.md, "IoT Core quotas").
 _FILTERS_PER_SUBSCRIBE = 8
+# A filter the broker refused (a SUBACK failure code: on IoT Core, a policy without iot:Subscribe on it) is
+# asked for again this often while the connection lasts, so a corrected policy takes effect without a restart.
+RESUBSCRIBE_S = 30.0
 Clock = Callable[[], float]
 
 
@@ -44,6 +47,8 @@ class SubscriberStats:
     subscribes_sent: int = 0
     subscribes_acked: int = 0
     subscribe_failures: int = 0
+    # Filters the broker refused in a SUBACK, each refusal counted (a retry refused again counts again).
+    subscribe_refusals: int = 0
     messages_received: int = 0
     callback_errors: int = 0
     last_connected_monotonic: float | None = None
@@ -115,6 +120,10 @@ class TelemetrySubscriber:
         self._stopped = threading.Event()
         self._started = False
         self._stopping = False
+        # The filters the broker refused in its last answer to each, with the SUBACK's reason, and when they
+        # were last asked for (the clock's time); guarded by _stats_lock.
+        self._refused: dict[str, str] = {}
+        self._refused_at = 0.0
 
     # -- public API -------------------------------------------------------------------------------------
 
@@ -172,6 +181,27 @@ class TelemetrySubscriber:
         """Block (not from a callback!) until the current connection's subscriptions are acknowledged."""
         return self._subscribed.wait(timeout)
 
+    @property
+    def refused(self) -> dict[str, str]:
+        """The topic filters the broker refused in its last answer to each, with the SUBACK's reason."""
+        with self._stats_lock:
+            return dict(self._refused)
+
+    def retry_refused(self) -> bool:
+        """Ask again for the filters the broker refused, once RESUBSCRIBE_S has passed since they were last
+        asked for; True if it asked. Called from the pool's thread, not from a callback."""
+        client = self._client
+        with self._stats_lock:
+            filters = list(self._refused)
+            if not filters or client is None or not self.connected:
+                return False
+            if self._clock() - self._refused_at < RESUBSCRIBE_S:
+                return False
+            self._refused_at = self._clock()
+        log.info("subscriber %s: asking again for %s, refused before", self.client_id, ", ".join(filters))
+        self._subscribe(client, filters)
+        return True
+
     # -- CRT callbacks: count, log, hand on; never block -------------------------------------------------
 
     def _where(self) -> str:
@@ -219,11 +249,15 @@ class TelemetrySubscriber:
         client = self._client
         if client is None:
             return
-        # Clean session: the broker forgot our subscriptions, so subscribe again on every connection. The
-        # SUBACK arrives on this same thread later; waiting for it here would deadlock the client.
+        # Clean session: the broker forgot our subscriptions, so subscribe again on every connection. A filter
+        # refused before stays refused until a SUBACK grants it (no "granted" between two refusals).
+        self._subscribe(client, self.topic_filters)
+
+    def _subscribe(self, client: mqtt5.Client, filters: list[str]) -> None:
+        """SUBSCRIBE to `filters`, at most _FILTERS_PER_SUBSCRIBE in a packet. The SUBACK arrives on the
+        client's thread later; waiting for it here would deadlock the client."""
         chunks = [
-            self.topic_filters[i : i + _FILTERS_PER_SUBSCRIBE]
-            for i in range(0, len(self.topic_filters), _FILTERS_PER_SUBSCRIBE)
+            filters[i : i + _FILTERS_PER_SUBSCRIBE] for i in range(0, len(filters), _FILTERS_PER_SUBSCRIBE)
         ]
         pending: _PendingSubacks = {"left": len(chunks), "ok": True}
         for chunk in chunks:
@@ -252,27 +286,54 @@ class TelemetrySubscriber:
         for topic_filter, code in zip(chunk, codes, strict=False):
             if int(code) >= 0x80:
                 ok = False
-                self._subscribe_failed([topic_filter], RuntimeError(f"SUBACK reason {code!r}"))
+                self._refuse(topic_filter, code)
             else:
                 with self._stats_lock:
                     self._stats.subscribes_acked += 1
                     granted = self._stats.per_filter_granted
                     granted[topic_filter] = granted.get(topic_filter, 0) + 1
+                    was_refused = self._refused.pop(topic_filter, None) is not None
+                if was_refused:
+                    log.info("subscriber %s: %s granted now, refused before", self.client_id, topic_filter)
         pending["left"] -= 1
         pending["ok"] = pending["ok"] and ok
-        if pending["left"] == 0 and pending["ok"]:
+        if pending["left"] == 0 and pending["ok"] and not self.refused:
             log.info("subscriber %s subscribed to %s", self.client_id, ", ".join(self.topic_filters))
             self._subscribed.set()
+
+    def _refuse(self, topic_filter: str, code: object) -> None:
+        """The broker refused `topic_filter` (a SUBACK failure code): count it, say what to fix, and ask
+        again every RESUBSCRIBE_S (retry_refused)."""
+        reason = getattr(code, "name", None) or str(code)
+        with self._stats_lock:
+            self._stats.subscribe_failures += 1
+            self._stats.subscribe_refusals += 1
+            self._stats.last_error = f"subscribe {topic_filter}: refused by the broker ({reason})"
+            first = topic_filter not in self._refused
+            self._refused[topic_filter] = reason
+            self._refused_at = self._clock()
+        # Once per connection and filter: the retries' refusals are counted, not logged again.
+        if first:
+            log.error(
+                "subscriber %s: the broker refused the subscription to %s (%s), so no telemetry of it "
+                "arrives. On AWS IoT Core the agent's IAM role must allow iot:Subscribe on topicfilter/%s "
+                "and iot:Receive on its topics; the stack's role allows those of the topic prefix and "
+                "devices it was deployed with. Asked for again every %.0f s.",
+                self.client_id,
+                topic_filter,
+                reason,
+                topic_filter,
+                RESUBSCRIBE_S,
+            )
 
     def _subscribe_failed(self, filters: list[str], exc: BaseException) -> None:
         with self._stats_lock:
             self._stats.subscribe_failures += 1
             self._stats.last_error = f"subscribe {filters}: {exc}"
-        # Usually a disconnect raced the SUBACK (the next connection subscribes again) or the IAM policy
-        # does not allow iot:Subscribe on the filter (then the fix is in the policy).
+        # No SUBACK (a refusal has one: _refuse): usually a disconnect raced it, and the next connection
+        # subscribes again.
         log.warning(
-            "subscriber %s: subscribe to %s failed: %s (retried on the next connection; if it persists, "
-            "check that the IAM policy allows iot:Subscribe/iot:Receive for these topics)",
+            "subscriber %s: subscribe to %s failed: %s (retried on the next connection)",
             self.client_id,
             ", ".join(filters),
             exc,
