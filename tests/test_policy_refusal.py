@@ -1,13 +1,14 @@
 """A subscription the broker refuses, as AWS IoT Core refuses a topic filter the agent's IAM identity does not
 allow (SUBACK reason 0x87, Not authorized). mosquitto's ACLs cannot show this (they acknowledge and withhold),
 so the agent subscribes through the quota proxy's policy stand-in (twin.rig.quota_proxy, `denied_filters`):
-the refusal is named in the log, /healthz, /state and /metrics, the other arms are mirrored as before, and a
-corrected policy takes effect without a restart."""
+the refusal is named in the log, /healthz, /state, /metrics, the console's events and its fleet page, the
+other arms are mirrored as before, and a corrected policy takes effect without a restart."""
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Iterator
+from typing import Any
 
 import pytest
 from conftest import get_health, get_metrics, metric, wait_for
@@ -36,7 +37,11 @@ def proxy(rig: LocalRig) -> Iterator[QuotaProxy]:
 
 
 def test_a_refused_subscription_is_reported_and_a_corrected_policy_is_taken_up(
-    rig: LocalRig, proxy: QuotaProxy, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+    rig: LocalRig,
+    proxy: QuotaProxy,
+    caplog: pytest.LogCaptureFixture,
+    monkeypatch: pytest.MonkeyPatch,
+    chromium_page: Any,
 ) -> None:
     # The refused filter is asked for again every second here (30 s in service), so the test sees the retry.
     monkeypatch.setattr(subscriber, "RESUBSCRIBE_S", 1.0)
@@ -75,6 +80,13 @@ def test_a_refused_subscription_is_reported_and_a_corrected_policy_is_taken_up(
         refusals = [e for e in broker_events(agent) if "refused" in e.message]
         assert len(refusals) == 1 and refusals[0].level == "error" and REFUSED_FILTER in refusals[0].message
 
+        # The console's fleet page says it above the arms, where an operator looks first.
+        page = chromium_page
+        page.goto(agent.http_url + "/")
+        notice = page.wait_for_selector("#fleet-notices p", timeout=30_000)
+        assert notice is not None
+        assert REFUSED_FILTER in notice.inner_text() and "iot:Subscribe" in notice.inner_text()
+
         proxy.allow(REFUSED_FILTER)  # the policy corrected
         wait_for(
             lambda: agent.state().devices[REFUSED].timestamp_ms is not None,
@@ -86,6 +98,8 @@ def test_a_refused_subscription_is_reported_and_a_corrected_policy_is_taken_up(
         wait_for(lambda: get_health(agent.http_url)[0] == 200, 30, "healthy once nothing is refused")
         assert any(f"{REFUSED_FILTER} granted now" in r.getMessage() for r in caplog.records)
         wait_for(lambda: any("granted now" in e.message for e in broker_events(agent)), 30, "the grant event")
+        # The page's live stream takes the notice away.
+        page.wait_for_selector("#fleet-notices", state="hidden", timeout=30_000)
     finally:
         edge.stop()
         edge.join(30)

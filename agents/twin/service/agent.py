@@ -738,6 +738,17 @@ class AgentService:
             total.update(shard.dropped())
         return total
 
+    def notices(self) -> list[str]:
+        """What the console's fleet page shows above the arms, and /healthz among its reasons: each topic
+        filter the broker refuses (the arms it covers are never heard, so no card can say it)."""
+        if not self._started_pool:
+            return []
+        return [
+            f"the broker refused the subscription to {f} ({reason}): no telemetry of it arrives; the agent's "
+            "IAM identity must allow iot:Subscribe on it (docs/agent.md, IAM permissions)"
+            for f, reason in sorted(self._pool.refused().items())
+        ]
+
     def healthz(self) -> HealthReport:
         """Healthy = the agent runs, the broker connection is up and refuses none of its subscriptions, every
         worker process runs and no configured device is OFFLINE.
@@ -758,12 +769,8 @@ class AgentService:
             reasons.append("service not running")
         if not connected:
             reasons.append("broker connection down")
-        elif self._started_pool:
-            reasons.extend(
-                f"the broker refused the subscription to {f} ({reason}): no telemetry of it arrives; the "
-                "agent's IAM identity must allow iot:Subscribe on it (docs/agent.md, IAM permissions)"
-                for f, reason in sorted(self._pool.refused().items())
-            )
+        else:
+            reasons.extend(self.notices())
         # A worker process that did not answer is not running (dead, or being started again), as in /state.
         reasons.extend(
             f"worker {shard.index} is not running"

@@ -3,7 +3,8 @@
 The fleet page of a 2,000-arm fleet must not receive 2,000 full device states (~3 kB each) every tick: it
 gets one row per arm with what a card shows (status, last seen, rate, loss, worst alarm, hottest servo), as
 arrays under one list of column names, built once per tick from the state every client shares
-(`fleet_summary`). An arm's page gets that arm's full state and its alarms (`arm_update`).
+(`fleet_summary`), with the notices a card cannot show (a subscription the broker refuses). An arm's page
+gets that arm's full state and its alarms (`arm_update`).
 
 Sessions come from the telemetry history, which the service layer cannot read itself (the reader lives with
 the tools, above it): whoever runs the agent hands the HTTP server a `SessionCatalog` (the CLI's
@@ -32,6 +33,7 @@ __all__ = [
     "EventSource",
     "FleetRow",
     "FleetRowSource",
+    "NoticeSource",
     "SessionCatalog",
     "SessionInfo",
     "arm_update",
@@ -150,6 +152,14 @@ class FleetRowSource(Protocol):
     def fleet_rows(self) -> list[FleetRow]: ...
 
 
+@runtime_checkable
+class NoticeSource(Protocol):
+    """The optional part of the service surface that says what the fleet page must show above the arms: a
+    problem no arm's card can show (a subscription the broker refuses, whose arms are never heard)."""
+
+    def notices(self) -> list[str]: ...
+
+
 def fleet_row(
     device: str,
     *,
@@ -217,8 +227,8 @@ def device_rows(
     return rows
 
 
-def fleet_summary(rows: Sequence[FleetRow], time_s: float) -> bytes:
-    """The fleet page's document: {"time", "columns", "rows", "counts"} (module doc)."""
+def fleet_summary(rows: Sequence[FleetRow], time_s: float, notices: Sequence[str] = ()) -> bytes:
+    """The fleet page's document: {"time", "columns", "rows", "counts", "notices"} (module doc)."""
     statuses: dict[str, int] = {"ONLINE": 0, "STALE": 0, "OFFLINE": 0}
     severities: dict[str, int] = {"critical": 0, "warning": 0}
     for row in rows:
@@ -231,6 +241,7 @@ def fleet_summary(rows: Sequence[FleetRow], time_s: float) -> bytes:
             "columns": FLEET_COLUMNS,
             "rows": rows,
             "counts": {"status": statuses, "alarmed_devices": severities, "devices": len(rows)},
+            "notices": list(notices),
         }
     )
 

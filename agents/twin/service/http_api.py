@@ -57,6 +57,7 @@ from twin.service.console import (
     SESSION_FILE_KINDS,
     EventSource,
     FleetRowSource,
+    NoticeSource,
     SessionCatalog,
     SessionInfo,
     arm_update,
@@ -563,7 +564,8 @@ class AgentHttpServer:
         else:
             state = await self._call(source.state)
             rows = fleet_rows(state, await self._alarm_list())
-        return _json(200, fleet_summary(rows, time.time()))
+        notices = await self._call(source.notices) if isinstance(source, NoticeSource) else []
+        return _json(200, fleet_summary(rows, time.time(), notices))
 
     async def _api_arm(self, request: Request) -> Response:
         device = request.path_params["device"]

@@ -25,7 +25,14 @@ from typing import Protocol, runtime_checkable
 
 import msgspec
 
-from twin.service.console import EventSource, FleetRowSource, arm_update, fleet_rows, fleet_summary
+from twin.service.console import (
+    EventSource,
+    FleetRowSource,
+    NoticeSource,
+    arm_update,
+    fleet_rows,
+    fleet_summary,
+)
 from twin.service.events import Event, EventQuery
 from twin.service.state import AgentState, AlarmInfo
 
@@ -184,7 +191,8 @@ class StreamHub:
             else:
                 assert state is not None
                 rows = fleet_rows(state, alarms)
-            self._publish(FLEET, sse_frame("fleet", fleet_summary(rows, time.time())))
+            notices = await asyncio.to_thread(source.notices) if isinstance(source, NoticeSource) else []
+            self._publish(FLEET, sse_frame("fleet", fleet_summary(rows, time.time(), notices)))
         for topic in arms:
             assert state is not None
             self._publish(topic, sse_frame("arm", arm_update(state, topic[len(ARM_PREFIX) :], alarms)))

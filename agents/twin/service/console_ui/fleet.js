@@ -22,10 +22,14 @@
   const gridButton = el("button", { type: "button", text: "Grid", onclick: () => setMode("grid") });
   const listButton = el("button", { type: "button", text: "List", onclick: () => setMode("list") });
   const counts = el("span", { class: "counts" });
+  // What no card can show: a subscription the broker refuses, whose arms are never heard.
+  const notices = el("div", { class: "notices", id: "fleet-notices", role: "alert" });
+  notices.hidden = true;
   const viewport = el("div", { class: "viewport", id: "fleet-view", role: "list" });
   const spacer = el("div", { class: "spacer" });
   viewport.append(spacer);
   main.append(
+    notices,
     el("div", { class: "toolbar" }, search, status, alarm, sort,
       el("span", { class: "toggle" }, gridButton, listButton), counts),
     viewport);
@@ -165,6 +169,8 @@
       el("span", { class: "status OFFLINE", text: `${s.OFFLINE} offline` }), " · ",
       el("span", { class: "sev-critical", text: `${a.critical} critical` }), " · ",
       el("span", { class: "sev-warning", text: `${a.warning} warning` }));
+    notices.replaceChildren(...(doc.notices || []).map((text) => el("p", { text })));
+    notices.hidden = !notices.childElementCount;
     filter();
     render();
     // What `twin bench console` reads: rows shown, updates handled and the mean time each took.
