@@ -42,6 +42,26 @@ from twin.transport.client import build_mqtt5_client
 AWS_TEST_REGION = "us-east-1"
 
 
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The tests marked `long(seconds)` (most of it waiting on real time) go first, the longest first. xdist
+    hands tests to its workers in this order, and a long one handed out near the end kept one worker busy
+    long after the other had run out of tests. trylast: after pytest-randomly's shuffle, which the rest
+    keep (the sort is stable)."""
+
+    def seconds(item: pytest.Item) -> float:
+        mark = item.get_closest_marker("long")
+        if mark is None:
+            return 0.0
+        if "seconds" not in mark.kwargs:
+            raise pytest.UsageError(
+                f"{item.nodeid}: write @pytest.mark.long(seconds=<about how long it takes>)"
+            )
+        return -float(mark.kwargs["seconds"])
+
+    items.sort(key=seconds)
+
+
 @pytest.fixture
 def aws_env(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     """Fake credentials and a region for moto; never the developer's real AWS config files."""

@@ -93,6 +93,7 @@ def assert_png(path: Path, width: int, min_height: int, max_height: int) -> None
 
 
 @pytest.mark.slow
+@pytest.mark.long(seconds=50)
 @pytest.mark.timeout(300)
 def test_demo_tells_the_story_leaves_valid_files_and_stops_its_broker(tmp_path):
     """`twin demo` as `make demo` runs it (the defaults): the first arm's shoulder overheats until the agent

@@ -15,6 +15,7 @@ from twin.bench import soak
 pytestmark = pytest.mark.slow
 
 
+@pytest.mark.long(seconds=130)
 def test_two_minutes_of_50_arms_with_every_sink_stay_within_the_bounds(tmp_path: Path) -> None:
     result = soak.run(minutes=2.0, arms=50, out=tmp_path)
     saved = json.loads((tmp_path / "soak.json").read_text())
