@@ -47,8 +47,6 @@ class SubscriberStats:
     subscribes_sent: int = 0
     subscribes_acked: int = 0
     subscribe_failures: int = 0
-    # Filters the broker refused in a SUBACK, each refusal counted (a retry refused again counts again).
-    subscribe_refusals: int = 0
     messages_received: int = 0
     callback_errors: int = 0
     last_connected_monotonic: float | None = None
@@ -307,12 +305,11 @@ class TelemetrySubscriber:
         reason = getattr(code, "name", None) or str(code)
         with self._stats_lock:
             self._stats.subscribe_failures += 1
-            self._stats.subscribe_refusals += 1
             self._stats.last_error = f"subscribe {topic_filter}: refused by the broker ({reason})"
             first = topic_filter not in self._refused
             self._refused[topic_filter] = reason
             self._refused_at = self._clock()
-        # Once per connection and filter: the retries' refusals are counted, not logged again.
+        # Once until the filter is granted: the retries' refusals are counted, not logged again.
         if first:
             log.error(
                 "subscriber %s: the broker refused the subscription to %s (%s), so no telemetry of it "
