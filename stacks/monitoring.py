@@ -215,20 +215,31 @@ class TwinMonitoring(Construct):
 
     def _arms_stale_alarm(self) -> cw.Alarm:
         """ArmsStale: at least one arm STALE for 3 minutes in a row."""
+        # A silent agent is AgentSilent's to report; this one judges the arms it can see.
+        return self._sustained_alarm(
+            "ArmsStale",
+            f"At least one arm of {self.agent_name} has been STALE for 3 minutes: it publishes with "
+            "gaps (a weak network, an overloaded edge). Arms switched off go OFFLINE and are not "
+            "paged. docs/servo-health.md",
+            self._metric("DevicesStale", "Maximum"),
+            threshold=1,
+            minutes=3,
+        )
+
+    def _sustained_alarm(
+        self, id_: str, description: str, metric: cw.Metric, threshold: float, minutes: int
+    ) -> cw.Alarm:
+        """Alarm when `metric` is at or above `threshold` in each of `minutes` minutes in a row; no data (the
+        agent silent, history off) is not breaching: AgentSilent says that."""
         return cw.Alarm(
             self,
-            "ArmsStale",
-            alarm_description=(
-                f"At least one arm of {self.agent_name} has been STALE for 3 minutes: it publishes with "
-                "gaps (a weak network, an overloaded edge). Arms switched off go OFFLINE and are not "
-                "paged. docs/servo-health.md"
-            ),
-            metric=self._metric("DevicesStale", "Maximum"),
-            threshold=1,
+            id_,
+            alarm_description=description,
+            metric=metric,
+            threshold=threshold,
             comparison_operator=cw.ComparisonOperator.GREATER_THAN_OR_EQUAL_TO_THRESHOLD,
-            evaluation_periods=3,
-            datapoints_to_alarm=3,
-            # A silent agent is AgentSilent's to report; this one judges the arms it can see.
+            evaluation_periods=minutes,
+            datapoints_to_alarm=minutes,
             treat_missing_data=cw.TreatMissingData.NOT_BREACHING,
         )
 
@@ -276,55 +287,37 @@ class TwinMonitoring(Construct):
     def _alarms_for_history(self) -> None:
         """History's two alarms of its own: commits failing, and the oldest unwritten row waiting too long."""
         agent_name = self.agent_name
-        self.alarms["HistoryCommitFailures"] = cw.Alarm(
-            self,
+        self.alarms["HistoryCommitFailures"] = self._sustained_alarm(
             "HistoryCommitFailures",
-            alarm_description=(
-                f"History commits of {agent_name} have failed for 5 minutes: the bucket is unreachable or "
-                "refuses the role (/state agent.history.last_error). docs/history.md"
-            ),
-            metric=self._metric(HISTORY_COMMIT_FAILURES, "Sum"),
+            f"History commits of {agent_name} have failed for 5 minutes: the bucket is unreachable or "
+            "refuses the role (/state agent.history.last_error). docs/history.md",
+            self._metric(HISTORY_COMMIT_FAILURES, "Sum"),
             threshold=1,
-            comparison_operator=cw.ComparisonOperator.GREATER_THAN_OR_EQUAL_TO_THRESHOLD,
-            evaluation_periods=5,
-            datapoints_to_alarm=5,
-            treat_missing_data=cw.TreatMissingData.NOT_BREACHING,
+            minutes=5,
         )
-        self.alarms["HistoryLag"] = cw.Alarm(
-            self,
+        self.alarms["HistoryLag"] = self._sustained_alarm(
             "HistoryLag",
-            alarm_description=(
-                f"History of {agent_name} lags: its oldest unwritten row has waited over "
-                f"{HISTORY_LAG_ALARM_S} s for 2 minutes; rows are dropped once the buffer is full. "
-                "docs/history.md"
-            ),
-            metric=self._metric(HISTORY_LAG, "Maximum"),
+            f"History of {agent_name} lags: its oldest unwritten row has waited over "
+            f"{HISTORY_LAG_ALARM_S} s for 2 minutes; rows are dropped once the buffer is full. "
+            "docs/history.md",
+            self._metric(HISTORY_LAG, "Maximum"),
             threshold=HISTORY_LAG_ALARM_S,
-            comparison_operator=cw.ComparisonOperator.GREATER_THAN_OR_EQUAL_TO_THRESHOLD,
-            evaluation_periods=2,
-            datapoints_to_alarm=2,
-            treat_missing_data=cw.TreatMissingData.NOT_BREACHING,
+            minutes=2,
         )
 
     def _subscriptions_refused_alarm(self) -> cw.Alarm:
         """SubscriptionsRefused: IoT Core refused a topic filter for 2 minutes (the agent asks again every
         30 s, so a passing refusal clears before it pages). The agent runs and is connected, so neither
         AgentSilent nor ArmsStale would say it: the arms of that filter are simply never heard."""
-        return cw.Alarm(
-            self,
+        return self._sustained_alarm(
             "SubscriptionsRefused",
-            alarm_description=(
-                f"IoT Core refuses {self.agent_name}'s agent a telemetry subscription, so the arms of that "
-                "topic filter are not mirrored: its IAM role does not allow iot:Subscribe on it (the agent's "
-                "[telemetry] settings and the stack's differ). The agent's log and /healthz name the filter. "
-                "docs/deploy.md, Troubleshooting"
-            ),
-            metric=self._metric(SUBSCRIPTIONS_REFUSED, "Maximum"),
+            f"IoT Core refuses {self.agent_name}'s agent a telemetry subscription, so the arms of that "
+            "topic filter are not mirrored: its IAM role does not allow iot:Subscribe on it (the agent's "
+            "[telemetry] settings and the stack's differ). The agent's log and /healthz name the filter. "
+            "docs/deploy.md, Troubleshooting",
+            self._metric(SUBSCRIPTIONS_REFUSED, "Maximum"),
             threshold=1,
-            comparison_operator=cw.ComparisonOperator.GREATER_THAN_OR_EQUAL_TO_THRESHOLD,
-            evaluation_periods=2,
-            datapoints_to_alarm=2,
-            treat_missing_data=cw.TreatMissingData.NOT_BREACHING,
+            minutes=2,
         )
 
 

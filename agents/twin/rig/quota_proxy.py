@@ -142,26 +142,20 @@ def split_packets(buffer: bytearray) -> tuple[list[tuple[int, bytes]], int]:
     return packets, pos
 
 
+def _level_at(packet: bytes) -> int:
+    """Where a CONNECT packet's protocol level is: after the fixed header and the protocol name."""
+    _, i = _read_varint(packet, 1)
+    return i + 2 + int.from_bytes(packet[i : i + 2], "big")
+
+
 def connect_client_id(packet: bytes) -> str:
     """The client id of an MQTT 3.1.1 or 5 CONNECT packet, or "" if it cannot be read."""
     try:
-        i = 1
-        while packet[i] & 0x80:  # skip the remaining length
-            i += 1
-        i += 1
-        name_len = int.from_bytes(packet[i : i + 2], "big")
-        i += 2 + name_len
+        i = _level_at(packet)
         level = packet[i]
         i += 1 + 1 + 2  # level, flags, keep alive
         if level == 5:
-            props, shift = 0, 0
-            while True:  # properties length, a variable-byte integer
-                byte = packet[i]
-                i += 1
-                props |= (byte & 0x7F) << shift
-                shift += 7
-                if not byte & 0x80:
-                    break
+            props, i = _read_varint(packet, i)
             i += props
         id_len = int.from_bytes(packet[i : i + 2], "big")
         return packet[i + 2 : i + 2 + id_len].decode("utf-8", "replace")
@@ -172,12 +166,7 @@ def connect_client_id(packet: bytes) -> str:
 def connect_level(packet: bytes) -> int:
     """The protocol level of an MQTT CONNECT packet (4: 3.1.1, 5: MQTT 5), or 4 if it cannot be read."""
     try:
-        i = 1
-        while packet[i] & 0x80:  # skip the remaining length
-            i += 1
-        i += 1
-        name_len = int.from_bytes(packet[i : i + 2], "big")
-        return packet[i + 2 + name_len]
+        return packet[_level_at(packet)]
     except IndexError:
         return 4
 
