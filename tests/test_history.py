@@ -19,7 +19,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import polars as pl
@@ -46,6 +46,9 @@ from twin.output.history_feed import WRITER_NICE, HistoryFeed, HistoryProcess, W
 from twin.output.sinks import AppliedSample, RejectedSample
 from twin.service.config import AgentConfig, load_config
 from twin.service.state import HistoryState
+
+if TYPE_CHECKING:
+    from twin.ops.replay import ReplayConfig
 
 T0 = 1_795_000_000.0  # 2026-11-18T09:46:40Z
 
@@ -1186,6 +1189,22 @@ def _history_with(tmp_path: Path, batch: list[AppliedSample]) -> str:
     return uri
 
 
+def _replay_config(uri: str, broker_url: str, *, speed: float = 8.0, **extra: Any) -> ReplayConfig:
+    """Arm-001's replay of the window the samples of these tests are stamped in, through `broker_url`."""
+    from twin.ops.replay import ReplayConfig
+    from twin.transport.broker import BrokerConfig
+
+    return ReplayConfig(
+        uri=uri,
+        device="arm-001",
+        start=dt.datetime.fromtimestamp(T0 - 1, dt.UTC),
+        end=dt.datetime.fromtimestamp(T0 + 60, dt.UTC),
+        broker=BrokerConfig(url=broker_url, client_id_prefix="replay-"),
+        speed=speed,
+        **extra,
+    )
+
+
 @pytest.mark.slow
 def test_history_commands_list_plot_and_export(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from PIL import Image
@@ -1245,7 +1264,7 @@ def test_history_commands_list_plot_and_export(tmp_path: Path, capsys: pytest.Ca
 def test_replay_publishes_what_was_recorded_and_the_agent_mirrors_it(
     tmp_path: Path, mosquitto: object, variant: str
 ) -> None:
-    from twin.ops.replay import ReplayConfig, replay
+    from twin.ops.replay import replay
     from twin.service.agent import AgentService
     from twin.service.config import config_from_mapping
     from twin.transport.broker import BrokerConfig
@@ -1275,16 +1294,7 @@ def test_replay_publishes_what_was_recorded_and_the_agent_mirrors_it(
     try:
         assert sub.wait_subscribed(30) and agent.wait_subscribed(30)
         started = time.time()
-        report = replay(
-            ReplayConfig(
-                uri=uri,
-                device="arm-001",
-                start=dt.datetime.fromtimestamp(T0 - 1, dt.UTC),
-                end=dt.datetime.fromtimestamp(T0 + 60, dt.UTC),
-                broker=BrokerConfig(url=mosquitto.url, client_id_prefix="replay-"),
-                speed=4.0,
-            )
-        )
+        report = replay(_replay_config(uri, mosquitto.url, speed=4.0))
         wait_for(lambda: len(received) >= 40, 60, "the replayed messages at the subscriber")
         # The agent is a second subscriber: it is done once it has counted all 40 and its twin shows the last.
         wait_handled(agent.state, 40)
@@ -1345,7 +1355,7 @@ def test_replay_refuses_an_arm_that_is_live_and_replays_it_under_another_id(
     another id it goes ahead beside the live arm; a retained message is not an arm publishing."""
     from awscrt import mqtt5
     from conftest import Publisher
-    from twin.ops.replay import ReplayConfig, ReplayRefusedError, replay
+    from twin.ops.replay import ReplayRefusedError, replay
     from twin.transport.broker import BrokerConfig
     from twin.transport.subscriber import TelemetrySubscriber
 
@@ -1378,15 +1388,7 @@ def test_replay_refuses_an_arm_that_is_live_and_replays_it_under_another_id(
         ).result(30)
 
         def config(**extra: Any) -> ReplayConfig:
-            return ReplayConfig(
-                uri=uri,
-                device="arm-001",
-                start=dt.datetime.fromtimestamp(T0 - 1, dt.UTC),
-                end=dt.datetime.fromtimestamp(T0 + 60, dt.UTC),
-                broker=BrokerConfig(url=mosquitto.url, client_id_prefix="replay-"),
-                speed=8.0,
-                **extra,
-            )
+            return _replay_config(uri, mosquitto.url, **extra)
 
         with pytest.raises(ReplayRefusedError) as refused:
             replay(config())
@@ -1415,21 +1417,13 @@ def test_replay_refused_its_topic_by_the_broker_publishes_nothing_and_names_the_
     """On IoT Core, a replay whose identity may publish but not subscribe to the arm's topic cannot check that
     the arm is not live: the SUBACK refuses the filter (the quota proxy's policy stand-in does as IoT Core
     does), and the replay refuses to go ahead, naming the two rights it needs."""
-    from twin.ops.replay import ReplayConfig, ReplayRefusedError, replay
+    from twin.ops.replay import ReplayRefusedError, replay
     from twin.rig.quota_proxy import QuotaProxy
-    from twin.transport.broker import BrokerConfig
 
     uri = _history_with(tmp_path, samples(5))
     topic = "dt/lerobot/arm-001/telemetry"
     with QuotaProxy("127.0.0.1", mosquitto.port, budget=None, denied_filters=[topic]) as proxy:
-        config = ReplayConfig(
-            uri=uri,
-            device="arm-001",
-            start=dt.datetime.fromtimestamp(T0 - 1, dt.UTC),
-            end=dt.datetime.fromtimestamp(T0 + 60, dt.UTC),
-            broker=BrokerConfig(url=proxy.url, client_id_prefix="replay-"),
-            speed=8.0,
-        )
+        config = _replay_config(uri, proxy.url)
         with pytest.raises(ReplayRefusedError) as refused:
             replay(config)
         (connection,) = proxy.connections()

@@ -27,6 +27,7 @@ import msgspec
 
 from twin.service.console import (
     EventSource,
+    FleetRow,
     FleetRowSource,
     NoticeSource,
     arm_update,
@@ -60,6 +61,18 @@ class StateSource(Protocol):
 def sse_frame(event: str, data: bytes) -> bytes:
     """One Server-Sent Event; `data` is one line of JSON (msgspec never puts a newline inside)."""
     return b"event: " + event.encode() + b"\ndata: " + data + b"\n\n"
+
+
+def _fleet_parts(
+    source: StateSource, state: AgentState | None, alarms: Sequence[AlarmInfo]
+) -> tuple[Sequence[FleetRow], list[str]]:
+    """The fleet page's rows (the source's own, or made from `state`) and its notices; run in a thread."""
+    if isinstance(source, FleetRowSource):
+        rows: Sequence[FleetRow] = source.fleet_rows()
+    else:
+        assert state is not None
+        rows = fleet_rows(state, alarms)
+    return rows, source.notices() if isinstance(source, NoticeSource) else []
 
 
 class Subscription:
@@ -186,12 +199,8 @@ class StreamHub:
         if (arms or (fleet and not rows_only)) and isinstance(source, AlarmLister):
             alarms = await asyncio.to_thread(source.alarms)
         if fleet:
-            if isinstance(source, FleetRowSource):
-                rows = await asyncio.to_thread(source.fleet_rows)
-            else:
-                assert state is not None
-                rows = fleet_rows(state, alarms)
-            notices = await asyncio.to_thread(source.notices) if isinstance(source, NoticeSource) else []
+            # The rows and the notices in one hop to a thread: both read the agent under its locks.
+            rows, notices = await asyncio.to_thread(_fleet_parts, source, state, alarms)
             self._publish(FLEET, sse_frame("fleet", fleet_summary(rows, time.time(), notices)))
         for topic in arms:
             assert state is not None

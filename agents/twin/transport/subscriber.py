@@ -193,9 +193,10 @@ class TelemetrySubscriber:
             filters = list(self._refused)
             if not filters or client is None or not self.connected:
                 return False
-            if self._clock() - self._refused_at < RESUBSCRIBE_S:
+            now = self._clock()
+            if now - self._refused_at < RESUBSCRIBE_S:
                 return False
-            self._refused_at = self._clock()
+            self._refused_at = now
         log.info("subscriber %s: asking again for %s, refused before", self.client_id, ", ".join(filters))
         self._subscribe(client, filters)
         return True
