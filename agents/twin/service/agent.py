@@ -48,7 +48,7 @@ from twin.output.sinks import TwinSink
 from twin.service.admission import DeviceBudget
 from twin.service.calibrations import CalibrationBook, CalibrationWatcher, open_store
 from twin.service.config import AgentConfig, ConfigError
-from twin.service.console import FleetRow, SessionCatalog, device_rows, rerun_viewer_url
+from twin.service.console import FleetRow, Listening, SessionCatalog, device_rows, rerun_viewer_url
 from twin.service.events import Event, EventKind, EventLevel, EventQuery, EventStore, FleetWatch
 from twin.service.persist import StateFile
 from twin.service.shards import (
@@ -748,6 +748,11 @@ class AgentService:
             "IAM identity must allow iot:Subscribe on it (docs/agent.md, IAM permissions)"
             for f, reason in sorted(self._pool.refused().items())
         ]
+
+    def listening(self) -> Listening:
+        """The topic filters the agent subscribes to, and whether every connection of its pool is up (the
+        console's fleet page says so while no arm has been heard from)."""
+        return Listening(tuple(self.topic_filters), self._started_pool and self._pool.connected)
 
     def healthz(self) -> HealthReport:
         """Healthy = the agent runs, the broker connection is up and refuses none of its subscriptions, every

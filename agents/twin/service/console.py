@@ -3,7 +3,8 @@
 The fleet page of a 2,000-arm fleet must not receive 2,000 full device states (~3 kB each) every tick: it
 gets one row per arm with what a card shows (status, last seen, rate, loss, worst alarm, hottest servo), as
 arrays under one list of column names, built once per tick from the state every client shares
-(`fleet_summary`), with the notices a card cannot show (a subscription the broker refuses). An arm's page
+(`fleet_summary`), with the notices a card cannot show (a subscription the broker refuses) and what the agent
+listens on (for the page's word while no arm has been heard from). An arm's page
 gets that arm's full state and its alarms (`arm_update`).
 
 Sessions come from the telemetry history, which the service layer cannot read itself (the reader lives with
@@ -33,11 +34,14 @@ __all__ = [
     "EventSource",
     "FleetRow",
     "FleetRowSource",
+    "Listening",
+    "ListeningSource",
     "NoticeSource",
     "SessionCatalog",
     "SessionInfo",
     "arm_update",
     "device_rows",
+    "fleet_notes",
     "fleet_row",
     "fleet_rows",
     "fleet_summary",
@@ -160,6 +164,29 @@ class NoticeSource(Protocol):
     def notices(self) -> list[str]: ...
 
 
+class Listening(NamedTuple):
+    """What the agent subscribes to, and whether every connection to its broker is up: the fleet page says so
+    while no arm has been heard from, the moment a new user is most likely to be looking at an empty page."""
+
+    filters: tuple[str, ...]
+    connected: bool
+
+
+@runtime_checkable
+class ListeningSource(Protocol):
+    """The optional part of the service surface that says what it listens on (`Listening`)."""
+
+    def listening(self) -> Listening: ...
+
+
+def fleet_notes(source: object) -> tuple[list[str], Listening | None]:
+    """The fleet page's notices and what the agent listens on, from a source that says (else none of
+    either). Blocking: both read the agent under its locks."""
+    notices = source.notices() if isinstance(source, NoticeSource) else []
+    listening = source.listening() if isinstance(source, ListeningSource) else None
+    return notices, listening
+
+
 def fleet_row(
     device: str,
     *,
@@ -227,8 +254,14 @@ def device_rows(
     return rows
 
 
-def fleet_summary(rows: Sequence[FleetRow], time_s: float, notices: Sequence[str] = ()) -> bytes:
-    """The fleet page's document: {"time", "columns", "rows", "counts", "notices"} (module doc)."""
+def fleet_summary(
+    rows: Sequence[FleetRow],
+    time_s: float,
+    notices: Sequence[str] = (),
+    listening: Listening | None = None,
+) -> bytes:
+    """The fleet page's document: {"time", "columns", "rows", "counts", "notices", "listening"} (module
+    doc); "listening" is {"filters", "connected"}, or null from a source that does not say."""
     statuses: dict[str, int] = {"ONLINE": 0, "STALE": 0, "OFFLINE": 0}
     severities: dict[str, int] = {"critical": 0, "warning": 0}
     for row in rows:
@@ -242,6 +275,11 @@ def fleet_summary(rows: Sequence[FleetRow], time_s: float, notices: Sequence[str
             "rows": rows,
             "counts": {"status": statuses, "alarmed_devices": severities, "devices": len(rows)},
             "notices": list(notices),
+            "listening": (
+                None
+                if listening is None
+                else {"filters": list(listening.filters), "connected": listening.connected}
+            ),
         }
     )
 

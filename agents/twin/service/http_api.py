@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import re
 import shutil
@@ -57,10 +58,10 @@ from twin.service.console import (
     SESSION_FILE_KINDS,
     EventSource,
     FleetRowSource,
-    NoticeSource,
     SessionCatalog,
     SessionInfo,
     arm_update,
+    fleet_notes,
     fleet_rows,
     fleet_summary,
     render_page,
@@ -564,8 +565,8 @@ class AgentHttpServer:
         else:
             state = await self._call(source.state)
             rows = fleet_rows(state, await self._alarm_list())
-        notices = await self._call(source.notices) if isinstance(source, NoticeSource) else []
-        return _json(200, fleet_summary(rows, time.time(), notices))
+        notices, listening = await self._call(functools.partial(fleet_notes, source))
+        return _json(200, fleet_summary(rows, time.time(), notices, listening))
 
     async def _api_arm(self, request: Request) -> Response:
         device = request.path_params["device"]

@@ -29,8 +29,9 @@ from twin.service.console import (
     EventSource,
     FleetRow,
     FleetRowSource,
-    NoticeSource,
+    Listening,
     arm_update,
+    fleet_notes,
     fleet_rows,
     fleet_summary,
 )
@@ -65,14 +66,15 @@ def sse_frame(event: str, data: bytes) -> bytes:
 
 def _fleet_parts(
     source: StateSource, state: AgentState | None, alarms: Sequence[AlarmInfo]
-) -> tuple[Sequence[FleetRow], list[str]]:
-    """The fleet page's rows (the source's own, or made from `state`) and its notices; run in a thread."""
+) -> tuple[Sequence[FleetRow], list[str], Listening | None]:
+    """The fleet page's rows (the source's own, or made from `state`), its notices and what the agent
+    listens on (console.fleet_notes); run in a thread."""
     if isinstance(source, FleetRowSource):
         rows: Sequence[FleetRow] = source.fleet_rows()
     else:
         assert state is not None
         rows = fleet_rows(state, alarms)
-    return rows, source.notices() if isinstance(source, NoticeSource) else []
+    return rows, *fleet_notes(source)
 
 
 class Subscription:
@@ -200,8 +202,8 @@ class StreamHub:
             alarms = await asyncio.to_thread(source.alarms)
         if fleet:
             # The rows and the notices in one hop to a thread: both read the agent under its locks.
-            rows, notices = await asyncio.to_thread(_fleet_parts, source, state, alarms)
-            self._publish(FLEET, sse_frame("fleet", fleet_summary(rows, time.time(), notices)))
+            rows, notices, listening = await asyncio.to_thread(_fleet_parts, source, state, alarms)
+            self._publish(FLEET, sse_frame("fleet", fleet_summary(rows, time.time(), notices, listening)))
         for topic in arms:
             assert state is not None
             self._publish(topic, sse_frame("arm", arm_update(state, topic[len(ARM_PREFIX) :], alarms)))

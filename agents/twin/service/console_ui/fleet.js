@@ -5,7 +5,7 @@
 (() => {
   const { el, main } = Twin;
   const CARD_W = 230, CARD_H = 124, GAP = 8, ROW_H = 30;
-  let columns = {}, rows = [], shown = [], now = Date.now() / 1000;
+  let columns = {}, rows = [], shown = [], now = Date.now() / 1000, listening = null;
   let mode = localStorage.getItem("twin.fleet.view") === "list" ? "list" : "grid";
 
   const search = el("input", { type: "search", placeholder: "search arm id", "aria-label": "search by id" });
@@ -152,8 +152,18 @@
       const last = Math.min(shown.length, Math.ceil((top + height) / ROW_H) + 2);
       for (let i = first; i < last; i++) nodes.push(listRow(shown[i], (i + 1) * ROW_H));
     }
-    if (!shown.length) nodes.push(el("div", { class: "empty", text: rows.length ? "no arm matches the filters" : "no arm has been heard from yet" }));
+    if (!shown.length) nodes.push(el("div", { class: "empty", id: "fleet-empty", text: rows.length ? "no arm matches the filters" : unheard() }));
     spacer.replaceChildren(...nodes);
+  }
+
+  // The page a new user first sees is often empty: say what the agent listens on and what to check.
+  function unheard() {
+    const said = "no arm has been heard from yet";
+    if (!listening) return said;
+    if (!listening.connected) return `${said}: the agent is not connected to its broker (GET /healthz says why)`;
+    return `${said}. The agent listens on ${listening.filters.join(", ")}. If your arms publish and none ` +
+      "appears, check that they publish on that topic, and that the agent's identity may receive it: " +
+      "IoT Core drops, without a word, what an identity may not iot:Receive (docs/agent.md, IAM permissions).";
   }
 
   let updates = 0, updateTotalMs = 0;
@@ -161,6 +171,7 @@
     const t0 = performance.now();
     columns = Object.fromEntries(doc.columns.map((name, i) => [name, i]));
     rows = doc.rows;
+    listening = doc.listening || null;
     now = doc.time || Date.now() / 1000;
     const s = doc.counts.status, a = doc.counts.alarmed_devices;
     counts.replaceChildren(el("b", { text: String(doc.counts.devices) }), " arms · ",

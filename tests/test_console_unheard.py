@@ -1,0 +1,72 @@
+"""The fleet page while no arm has been heard from: what a new user sees first after a deploy or `twin run`.
+
+An empty page said only "no arm has been heard from yet", whatever the cause. IoT Core drops, without a word,
+the messages an identity may subscribe to but not receive, so the agent cannot tell that from arms that are
+off; what it can say is what it listens on and whether it is connected, and the page says both (the fleet
+document's "listening"), in chromium against a real agent and broker."""
+
+from __future__ import annotations
+
+import json
+import socket
+from typing import Any
+
+import pytest
+from conftest import wait_for
+from twin.rig.local import LocalRig
+from twin.service.console import Listening, fleet_summary
+
+pytestmark = pytest.mark.slow
+
+
+def fleet_document(url: str) -> dict[str, Any]:
+    import urllib.request
+
+    with urllib.request.urlopen(url + "/api/fleet", timeout=10) as response:
+        document: dict[str, Any] = json.load(response)
+    return document
+
+
+def empty_text(page: Any) -> str:
+    text: str = page.wait_for_selector("#fleet-empty", timeout=30_000).inner_text()
+    return text
+
+
+def test_the_document_says_what_the_agent_listens_on_or_nothing() -> None:
+    said = json.loads(fleet_summary([], 1.0, listening=Listening(("dt/lerobot/+/telemetry",), False)))
+    assert said["listening"] == {"filters": ["dt/lerobot/+/telemetry"], "connected": False}
+    assert json.loads(fleet_summary([], 1.0))["listening"] is None  # a source that does not say
+
+
+def test_an_empty_fleet_page_names_the_filter_and_what_to_check_until_an_arm_is_heard(
+    rig: LocalRig, chromium_page: Any
+) -> None:
+    agent = rig.start_agent({"telemetry.devices": ["*"], "telemetry.units": "ticks"})
+    # A local broker has no per-connection quota, so one connection subscribes the plain fleet filter.
+    (topic_filter,) = agent.topic_filters
+    assert topic_filter == "dt/lerobot/+/telemetry"
+    assert fleet_document(agent.http_url)["listening"] == {"filters": [topic_filter], "connected": True}
+
+    page = chromium_page
+    page.goto(agent.http_url + "/")
+    text = empty_text(page)
+    assert text.startswith("no arm has been heard from yet.") and topic_filter in text, text
+    assert "iot:Receive" in text and "docs/agent.md" in text
+
+    rig.start_edge(["arm-001"], seconds=None, rate_hz=10.0)
+    page.wait_for_selector("text=arm-001", timeout=30_000)
+    wait_for(lambda: page.query_selector("#fleet-empty") is None, 30, "the empty-page text gone")
+
+
+def test_an_empty_fleet_page_says_when_the_agent_is_not_connected(rig: LocalRig, chromium_page: Any) -> None:
+    with socket.socket() as closed:  # a loopback port nothing listens on: every connect is refused
+        closed.bind(("127.0.0.1", 0))
+        port = closed.getsockname()[1]
+    agent = rig.start_agent(
+        {"broker.url": f"mqtt://127.0.0.1:{port}", "telemetry.devices": ["*"]}, wait_subscribed=False
+    )
+    assert fleet_document(agent.http_url)["listening"]["connected"] is False
+    page = chromium_page
+    page.goto(agent.http_url + "/")
+    text = empty_text(page)
+    assert "the agent is not connected to its broker" in text and "/healthz" in text, text
