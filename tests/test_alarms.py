@@ -129,6 +129,8 @@ def test_over_temperature_raised_acknowledged_cleared() -> None:
         1,
     )
     assert "61 C" in view.message and "70 C" in view.message
+    # The servo as a person at the arm finds it: its joint and its bus id (LeRobot's 1..6).
+    assert view.message.startswith("elbow_flex servo (motor id 3) at 61 C"), view.message
 
     ack = alarms.acknowledge(view.alarm_id, 4.0)
     assert (ack.previous, ack.state, ack.action) == (
@@ -290,6 +292,7 @@ def test_contact_while_still_is_a_model_mismatch() -> None:
     view = alarms.get(alarm_id(DEV, "shoulder_lift", AlarmKind.MODEL_MISMATCH))
     assert view is not None and view.value == pytest.approx(39.099509, abs=1e-6)
     assert "contact, a payload or a failing servo" in view.message and "30.9 %" in view.message
+    assert view.message.startswith("shoulder_lift servo (motor id 2) load differs"), view.message
     ack = alarms.acknowledge(view.alarm_id, 3.0)
     assert ack.state is AlarmState.ACKNOWLEDGED
     # Contact released: the load falls back to the model's (|32 - 30.9| <= 10) for 2 s.

@@ -68,7 +68,7 @@ def test_one_transition_is_one_message_that_says_what() -> None:
     assert p.flush() is True
     ((subject, body),) = sent
     assert subject == "[LabTwin] CRITICAL arm-003 elbow_flex over_temperature_critical raised"
-    assert "arm arm-003, servo elbow_flex" in body
+    assert "arm arm-003, elbow_flex servo (motor id 3)" in body
     assert "now ACTIVE; value 67 C, threshold 65 C" in body
     assert "near the 70 C cut-out" in body
     assert body.rstrip().endswith(f"How to acknowledge:\n{ACK}")
@@ -86,7 +86,7 @@ def test_a_flapping_servo_makes_one_message_per_flush_not_one_per_change() -> No
     assert subject.endswith("(+1 more)")
     assert "(5 changes since the last message: raised, cleared, raised, cleared, raised)" in body
     # The critical one first.
-    assert body.index("servo elbow_flex") < body.index("servo wrist_roll")
+    assert body.index("elbow_flex servo (motor id 3)") < body.index("wrist_roll servo (motor id 5)")
 
 
 def test_the_rate_limit_holds_transitions_back_and_sends_them_together_later() -> None:
@@ -228,7 +228,7 @@ def test_an_alarm_transition_reaches_sns_as_one_message_naming_arm_and_servo(top
             == "[LabTwin] CRITICAL arm-003 elbow_flex over_temperature_critical raised"
         )
         body = notification["Message"]
-        assert "arm arm-003, servo elbow_flex" in body
+        assert "arm arm-003, elbow_flex servo (motor id 3)" in body
         assert "now ACTIVE; value 68 C, threshold 65 C" in body
         assert "How to acknowledge:" in body and "/alarms/<alarm id>/ack" in body
         assert "over_temperature raised" not in body  # the warning: not sent unless asked for
@@ -252,4 +252,5 @@ def test_warnings_go_too_when_asked(topic: Any) -> None:
     finally:
         agent.stop()
     assert notification["Subject"].endswith("(+1 more)")
-    assert "WARNING raised: arm arm-003, servo elbow_flex, over_temperature" in notification["Message"]
+    said = notification["Message"]
+    assert "WARNING raised: arm arm-003, elbow_flex servo (motor id 3), over_temperature" in said

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -206,3 +207,11 @@ def test_position_actuator_settles_a_shoulder_lift_step(model: mujoco.MjModel) -
     settle = times[outside[-1] + 1] if outside.size else times[0]
     assert settle < SETTLE_LIMIT_S, f"settled after {settle:.3f} s"
     assert err[-1] < 0.005  # gravity offset of a kp ~ 1000 servo stays well under a degree
+
+
+def test_the_servo_ids_alarms_name_are_lerobots() -> None:
+    # LeRobot's calibration file records each motor's bus id; alarms name the servo by it (so101.servo_name).
+    calibration = json.loads((ROBOT_DIR / "calibration" / "so101_follower_example.json").read_text())
+    assert {joint: entry["id"] for joint, entry in calibration.items()} == so101.MOTOR_IDS
+    assert so101.servo_name("gripper") == "gripper servo (motor id 6)"
+    assert so101.servo_name("tool") == "tool servo"  # a joint outside the six keeps its name alone

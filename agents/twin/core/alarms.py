@@ -1455,18 +1455,19 @@ def _worse(a: tuple[Severity, AlarmState], b: tuple[Severity, AlarmState]) -> bo
 
 
 def _describe(joint: str, kind: AlarmKind, value: float, rule: Hysteresis, model: float | None) -> str:
+    servo = so101.servo_name(joint)
     if kind is AlarmKind.OVER_TEMPERATURE:
-        return f"{joint} servo at {value:.0f} C (warning at {rule.raise_at:g} C; the servo cuts out at 70 C)"
+        return f"{servo} at {value:.0f} C (warning at {rule.raise_at:g} C; the servo cuts out at 70 C)"
     if kind is AlarmKind.OVER_TEMPERATURE_CRITICAL:
-        return f"{joint} servo at {value:.0f} C, near the 70 C cut-out (critical at {rule.raise_at:g} C)"
+        return f"{servo} at {value:.0f} C, near the 70 C cut-out (critical at {rule.raise_at:g} C)"
     if kind is AlarmKind.OVER_CURRENT:
-        return f"{joint} servo draws {value:.2f} A (alarm at {rule.raise_at:.2f} A)"
+        return f"{servo} draws {value:.2f} A (alarm at {rule.raise_at:.2f} A)"
     if kind is AlarmKind.OVERLOAD:
         return (
-            f"{joint} servo load {value:.1f} % of stall torque held over {rule.raise_after_s:g} s "
+            f"{servo} load {value:.1f} % of stall torque held over {rule.raise_after_s:g} s "
             f"(alarm at {rule.raise_at:g} %)"
         )
     return (
-        f"{joint} load differs from the model's holding load ({model or 0.0:.1f} %) by {value:.1f} points "
+        f"{servo} load differs from the model's holding load ({model or 0.0:.1f} %) by {value:.1f} points "
         f"while still (alarm at {rule.raise_at:g}): contact, a payload or a failing servo"
     )

@@ -27,6 +27,8 @@ from collections import OrderedDict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
+from twin.robot import so101
+
 log = logging.getLogger(__name__)
 
 # A transition is published on the flush after it arrives; the agent collects its mirrors' events every
@@ -197,8 +199,9 @@ class AlertPublisher:
                 if entry.changes > 1
                 else ""
             )
+            servo = so101.servo_name(a.joint)
             lines += [
-                f"{a.severity.upper()} {a.action}: arm {a.device}, servo {a.joint}, {a.kind}{history}",
+                f"{a.severity.upper()} {a.action}: arm {a.device}, {servo}, {a.kind}{history}",
                 f"  now {a.state}; value {value}{threshold}",
                 f"  {a.message}",
                 f"  alarm id {a.alarm_id}, at {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime(a.at))}",

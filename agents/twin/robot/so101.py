@@ -19,6 +19,9 @@ JOINT_NAMES: tuple[str, ...] = (
     "gripper",
 )
 ARM_JOINTS: tuple[str, ...] = JOINT_NAMES[:5]
+# The bus id of each joint's servo (LeRobot's SO-101 follower sets them 1..6 at motor setup, and its
+# calibration file records them): what a person at the arm finds the servo by, so alarms name it too.
+MOTOR_IDS: dict[str, int] = {name: i for i, name in enumerate(JOINT_NAMES, start=1)}
 GRIPPER = "gripper"
 
 # Joint ranges of the "new calibration" model, radians. LeRobot degrees map onto these 1:1 (zero = middle of
@@ -55,3 +58,10 @@ VISUAL_GROUP = 2
 COLLISION_GROUP = 3
 
 DEG = math.pi / 180.0
+
+
+def servo_name(joint: str) -> str:
+    """`joint`'s servo as a person at the arm finds it: "elbow_flex servo (motor id 3)"; a joint outside the
+    SO-101's six keeps its name alone."""
+    motor = MOTOR_IDS.get(joint)
+    return f"{joint} servo" if motor is None else f"{joint} servo (motor id {motor})"
