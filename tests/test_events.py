@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import logging
 import pickle
 import threading
 from typing import Any
@@ -15,6 +16,7 @@ import pytest
 from conftest import wait_for
 from twin.core.health import DeviceStatus
 from twin.rig.local import LocalRig
+from twin.service import events
 from twin.service.events import (
     BrokerWatch,
     Event,
@@ -22,6 +24,7 @@ from twin.service.events import (
     EventLevel,
     EventQuery,
     EventStore,
+    RateWatch,
     RejectionThrottle,
     StatusWatch,
     events_csv,
@@ -252,6 +255,61 @@ def test_exports_neutralise_text_and_keep_numbers() -> None:
 
 
 @pytest.mark.slow
+def test_rate_watch_reports_a_device_held_over_the_line_once_and_its_return() -> None:
+    s, _ = store()
+    watch = RateWatch(s, expected_rate_hz=10.0)
+    hold = events.CROWDED_HOLD_S
+
+    def sweep(at: float, **rates: float) -> list[tuple[str, str, str, float]]:
+        watch.sweep({d.replace("_", "-"): r for d, r in rates.items()}, at)
+        return [(e.device, e.level, e.data["rate"], float(e.data["rate_hz"])) for e in s.query(EventQuery())]
+
+    # A burst shorter than the hold (a spooled backlog after a reconnect) is no report.
+    assert sweep(0.0, arm_001=25.0, arm_002=10.0) == []
+    assert sweep(hold - 1.0, arm_001=25.0, arm_002=10.0) == []
+    assert sweep(hold, arm_001=10.0, arm_002=10.0) == []
+    # Held over the line for the hold: once, however long it lasts.
+    assert sweep(hold + 1.0, arm_001=20.0, arm_002=10.0) == []
+    assert sweep(2 * hold + 1.0, arm_001=20.0, arm_002=10.0) == [("arm-001", "warning", "crowded", 20.0)]
+    assert len(sweep(3 * hold, arm_001=19.0, arm_002=10.0)) == 1
+    # Under the report line but over the clearing one: still reported, no new event.
+    assert len(sweep(3 * hold + 5.0, arm_001=15.0, arm_002=10.0)) == 1
+    assert watch.reported == ("arm-001",)
+    # Back near the expected rate: one info event.
+    assert sweep(3 * hold + 10.0, arm_001=10.2, arm_002=10.0)[1:] == [("arm-001", "info", "expected", 10.2)]
+    assert watch.reported == ()
+    (warning, back) = s.query(EventQuery())
+    assert warning.kind == "twin" and "two edges may publish under its device id" in warning.message
+    assert "2.0 times the expected 10 Hz" in warning.message and "arm-001 sends 10.2" in back.message
+    # A device no longer heard from (evicted, or moved to another worker) is forgotten, not cleared.
+    sweep(4 * hold, arm_002=30.0)
+    sweep(5 * hold + 1.0, arm_002=30.0)
+    assert watch.reported == ("arm-002",)
+    sweep(5 * hold + 2.0, arm_001=10.0)
+    assert watch.reported == () and len(s.query(EventQuery())) == 3
+
+
+def test_two_edges_under_one_device_id_are_reported(
+    rig: LocalRig, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    # The edge component's default id is arm-001 on every arm: two simulators publish as arm-001 at 10 Hz
+    # each. The hold and the sweep interval are shortened here (30 s and 5 s in service).
+    monkeypatch.setattr(events, "CROWDED_HOLD_S", 2.0)
+    monkeypatch.setattr(events, "RATE_INTERVAL_S", 0.5)
+    caplog.set_level(logging.WARNING, logger="twin.service.events")
+    agent = rig.start_agent({"telemetry.devices": ["*"], "telemetry.units": "ticks"})
+    rig.start_edge(["arm-001", "arm-002"], rate_hz=10.0, seed=1)
+    rig.start_edge(["arm-001"], rate_hz=10.0, seed=2)
+    twin = EventQuery(kinds=frozenset({EventKind.TWIN.value}))
+    wait_for(lambda: agent.events(twin), 60, "the crowded arm's event")
+    (event,) = agent.events(twin)
+    assert event.device == "arm-001" and event.level == "warning", event
+    assert float(event.data["rate_hz"]) >= 18.0 and "each arm needs its own deviceId" in event.message
+    (logged,) = [r.getMessage() for r in caplog.records if "two edges may publish" in r.getMessage()]
+    assert logged == event.message
+    assert agent.state().devices["arm-002"].health.rate_hz < 15.0  # the other arm, alone on its id
+
+
 def test_an_arm_arrives_in_the_events_with_its_first_message_not_before(rig: LocalRig) -> None:
     # Configured arms not heard from count as silent since start-up: STALE after 0.3 s, OFFLINE after
     # offline_after_s. That is no arrival: arm-001 never sends and makes no status event, and arm-002's first

@@ -25,6 +25,7 @@ from __future__ import annotations
 import csv
 import io
 import itertools
+import logging
 import threading
 import time
 from collections import deque
@@ -38,6 +39,8 @@ import msgspec
 from twin.core.alarms import UNITS as ALARM_UNITS
 from twin.core.alarms import AlarmEvent
 
+log = logging.getLogger(__name__)
+
 __all__ = [
     "BrokerWatch",
     "Event",
@@ -46,6 +49,7 @@ __all__ = [
     "EventQuery",
     "EventStore",
     "FleetWatch",
+    "RateWatch",
     "RejectionThrottle",
     "StatusWatch",
     "events_csv",
@@ -88,7 +92,7 @@ class EventKind(StrEnum):
     REJECTED = "rejected"  # telemetry the decoder refused, by reason
     BROKER = "broker"  # a broker connection went down or came (back) up
     WORKER = "worker"  # a worker process of a sharded agent exited or runs again
-    TWIN = "twin"  # a device's twin was rebuilt (its edge clock jumped back)
+    TWIN = "twin"  # a device's twin was rebuilt (its edge clock jumped back), or its rate is far too high
     CALIBRATION = "calibration"  # an arm's calibration was picked up, refused or removed
 
 
@@ -393,9 +397,86 @@ class BrokerWatch:
             )
 
 
+# A device whose valid messages arrive at CROWDED_RATIO times [health] expected_rate_hz or more, for
+# CROWDED_HOLD_S, is reported (a warning), and again (info) once back under CLEAR_RATIO times. The likeliest
+# cause is two edges publishing under one device id (the edge component's default is arm-001 on every arm),
+# which makes one twin jump between poses; the other, an edge that really publishes faster than the setting.
+# The hold lets an edge's burst after a reconnect (a spooled backlog) pass; the gap between the two ratios
+# keeps a rate near the line from reporting at every sweep.
+CROWDED_RATIO = 1.8
+CROWDED_CLEAR_RATIO = 1.3
+CROWDED_HOLD_S = 30.0
+
+
+class RateWatch:
+    """Devices publishing well above the expected rate, from successive readings of their rates (`sweep`).
+    Holds only the devices over the line now or reported and not yet back: bounded by the fleet."""
+
+    def __init__(self, store: EventStore, expected_rate_hz: float) -> None:
+        self._store = store
+        self._expected = expected_rate_hz
+        self._over_since: dict[str, float] = {}
+        self._reported: dict[str, float] = {}  # device -> the rate it was reported at
+
+    @property
+    def reported(self) -> tuple[str, ...]:
+        return tuple(sorted(self._reported))
+
+    def sweep(self, rates: Mapping[str, float], now: float) -> None:
+        """`rates`: each device heard from -> its valid messages per second now; `now` a monotonic time."""
+        expected = self._expected
+        for device in [d for d in self._over_since if d not in rates]:
+            del self._over_since[device]
+        for device in [d for d in self._reported if d not in rates]:
+            del self._reported[device]  # evicted or restarted elsewhere: nothing to clear here
+        for device, rate in rates.items():
+            if device in self._reported:
+                if rate < CROWDED_CLEAR_RATIO * expected:
+                    del self._reported[device]
+                    self._back(device, rate)
+                continue
+            if rate < CROWDED_RATIO * expected:
+                self._over_since.pop(device, None)
+                continue
+            since = self._over_since.setdefault(device, now)
+            if now - since >= CROWDED_HOLD_S:
+                del self._over_since[device]
+                self._reported[device] = rate
+                self._crowded(device, rate)
+
+    def _crowded(self, device: str, rate: float) -> None:
+        message = (
+            f"{device} sends {rate:.1f} valid messages/s, {rate / self._expected:.1f} times the expected "
+            f"{self._expected:g} Hz, for {CROWDED_HOLD_S:.0f} s: two edges may publish under its device id "
+            "(each arm needs its own deviceId; the twin jumps between their poses), or the edge publishes "
+            "faster than [health] expected_rate_hz says"
+        )
+        log.warning("%s", message, extra={"event": "device_crowded", "device": device, "rate_hz": rate})
+        self._store.emit(
+            EventKind.TWIN,
+            EventLevel.WARNING,
+            message,
+            device=device,
+            data={"rate_hz": f"{rate:.2f}", "expected_rate_hz": f"{self._expected:g}", "rate": "crowded"},
+        )
+
+    def _back(self, device: str, rate: float) -> None:
+        message = f"{device} sends {rate:.1f} valid messages/s again, near the expected {self._expected:g} Hz"
+        log.info("%s", message, extra={"event": "device_crowded", "device": device, "rate_hz": rate})
+        self._store.emit(
+            EventKind.TWIN,
+            EventLevel.INFO,
+            message,
+            device=device,
+            data={"rate_hz": f"{rate:.2f}", "expected_rate_hz": f"{self._expected:g}", "rate": "expected"},
+        )
+
+
 _ALARM_LEVEL = {"raised": EventLevel.WARNING, "cleared": EventLevel.INFO}
 # How often FleetWatch reads the fleet's statuses and the broker's counters.
 WATCH_INTERVAL_S = 0.5
+# How often it reads the devices' rates (RateWatch): a sum over each one's rate buckets, not every sweep.
+RATE_INTERVAL_S = 5.0
 
 
 class FleetWatch:
@@ -404,17 +485,28 @@ class FleetWatch:
 
     interval_s = WATCH_INTERVAL_S
 
-    def __init__(self, store: EventStore) -> None:
+    def __init__(self, store: EventStore, *, expected_rate_hz: float = 10.0) -> None:
         self.store = store
         self._statuses = StatusWatch(store)
         self._broker = BrokerWatch(store)
+        self._rates = RateWatch(store, expected_rate_hz)
         self._next = 0.0
+        self._next_rates = 0.0
 
     def due(self, now: float) -> bool:
         if now < self._next:
             return False
         self._next = now + self.interval_s
         return True
+
+    def rates_due(self, now: float) -> bool:
+        if now < self._next_rates:
+            return False
+        self._next_rates = now + RATE_INTERVAL_S
+        return True
+
+    def rates(self, rates: Mapping[str, float], now: float) -> None:
+        self._rates.sweep(rates, now)
 
     def statuses(self, statuses: Mapping[str, object]) -> None:
         self._statuses.sweep(statuses)

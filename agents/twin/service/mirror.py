@@ -468,7 +468,7 @@ class Mirror:
         self._error_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
         # The twin's events (the console's Events page): this mirror's, which the agent collects.
         self._events = EventStore(wall_clock=self._wall_clock)
-        self._watch = FleetWatch(self._events)
+        self._watch = FleetWatch(self._events, expected_rate_hz=config.health.expected_rate_hz)
         self._rejections = RejectionThrottle(self._events, clock=clock)
         self.batches = 0
         # Fleet-wide distributions since start (every applied message of every device), for `twin bench`
@@ -1332,13 +1332,19 @@ class Mirror:
 
     def _watch_statuses(self) -> None:
         """On the worker thread: status transitions become events, read at most every FleetWatch.interval_s
-        (statuses change by the passing of time, not by a message, so they are read, not told)."""
-        if not self._watch.due(self._clock()):
+        (statuses change by the passing of time, not by a message, so they are read, not told); so does a
+        device publishing well above the expected rate (events.RateWatch), read every RATE_INTERVAL_S."""
+        now = self._clock()
+        if not self._watch.due(now):
             return
         with self._lock:
             # Of the arms heard from only: their arrivals were told by `_admit`.
             statuses = self._fleet.statuses(heard_only=True)
         self._watch.statuses(statuses)
+        if self._watch.rates_due(now):
+            with self._lock:
+                rates = self._fleet.rates(now)
+            self._watch.rates(rates, now)
 
     def statuses(self) -> dict[str, DeviceStatus]:
         """Each device's status now (those configured too, heard from or not), without the report."""
