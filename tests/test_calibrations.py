@@ -184,6 +184,23 @@ def test_push_refuses_what_is_not_a_calibration(tmp_path: Path, capsys: pytest.C
     assert not (tmp_path / "cal").exists()
 
 
+def test_push_refuses_a_leader_arms_calibration(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # LeRobot calibrates both arms of a teleoperation pair and keeps their files side by side, with the same
+    # motor names; the edge reads the follower. A leader's file would decode the follower at wrong angles.
+    leader = tmp_path / "calibration" / "teleoperators" / "so_leader" / "arm-001.json"
+    leader.parent.mkdir(parents=True)
+    leader.write_bytes(EXAMPLE.read_bytes())
+    store = str(tmp_path / "cal")
+    assert main(["calibration", "push", "arm-001", str(leader), "--store", store]) == cmd.EXIT_USAGE
+    err = capsys.readouterr().err
+    assert "a leader arm's calibration" in err and "robots/so_follower/<id>.json" in err, err
+    assert not (tmp_path / "cal").exists()
+    follower = tmp_path / "calibration" / "robots" / "so_follower" / "arm-001.json"
+    follower.parent.mkdir(parents=True)
+    follower.write_bytes(EXAMPLE.read_bytes())
+    assert main(["calibration", "push", "arm-001", str(follower), "--store", store]) == cmd.EXIT_OK
+
+
 def test_push_goes_to_the_stacks_calibration_uri(s3: Any, capsys: pytest.CaptureFixture[str]) -> None:
     template = {
         "Resources": {"Topic": {"Type": "AWS::SNS::Topic"}},

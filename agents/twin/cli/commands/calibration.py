@@ -35,6 +35,10 @@ EXIT_SETUP = 3
 EXIT_NO_STACK = 4
 EXIT_NO_OUTPUTS = 5
 
+# Where LeRobot keeps a leader arm's calibration (calibration/teleoperators/so_leader/<id>.json, beside the
+# follower's robots/so_follower/): the same six motor names, so only its place tells it apart.
+LEADER_DIRECTORIES = frozenset({"teleoperators", "so_leader", "so100_leader", "so101_leader"})
+
 EPILOG = """examples:
   twin calibration push arm-003 ~/.cache/huggingface/lerobot/calibration/robots/so_follower/arm-003.json
   twin calibration ls
@@ -119,6 +123,14 @@ def run(args: argparse.Namespace) -> int:
             return EXIT_USAGE
     data = b""
     if args.action == "push":
+        leader = LEADER_DIRECTORIES.intersection(args.file.expanduser().parts)
+        if leader:
+            console.err(
+                f"{args.file} is a leader arm's calibration (LeRobot keeps those under "
+                f"{sorted(leader)[0]}/): the edge reads the follower arm, whose file is "
+                "~/.cache/huggingface/lerobot/calibration/robots/so_follower/<id>.json; push that one"
+            )
+            return EXIT_USAGE
         try:
             data = args.file.expanduser().read_bytes()
             calibration = parse_calibration(data, str(args.file))
