@@ -451,25 +451,23 @@ class RateWatch:
             "(each arm needs its own deviceId; the twin jumps between their poses), or the edge publishes "
             "faster than [health] expected_rate_hz says"
         )
-        log.warning("%s", message, extra={"event": "device_crowded", "device": device, "rate_hz": rate})
-        self._store.emit(
-            EventKind.TWIN,
-            EventLevel.WARNING,
-            message,
-            device=device,
-            data={"rate_hz": f"{rate:.2f}", "expected_rate_hz": f"{self._expected:g}", "rate": "crowded"},
-        )
+        self._say(device, rate, "crowded", message)
 
     def _back(self, device: str, rate: float) -> None:
         message = f"{device} sends {rate:.1f} valid messages/s again, near the expected {self._expected:g} Hz"
-        log.info("%s", message, extra={"event": "device_crowded", "device": device, "rate_hz": rate})
-        self._store.emit(
-            EventKind.TWIN,
-            EventLevel.INFO,
+        self._say(device, rate, "expected", message)
+
+    def _say(self, device: str, rate: float, state: str, message: str) -> None:
+        """One log line and one event: a warning when `state` is "crowded", info when back to "expected"."""
+        level = EventLevel.WARNING if state == "crowded" else EventLevel.INFO
+        log.log(
+            logging.WARNING if state == "crowded" else logging.INFO,
+            "%s",
             message,
-            device=device,
-            data={"rate_hz": f"{rate:.2f}", "expected_rate_hz": f"{self._expected:g}", "rate": "expected"},
+            extra={"event": "device_rate", "device": device, "rate_hz": rate, "rate": state},
         )
+        data = {"rate_hz": f"{rate:.2f}", "expected_rate_hz": f"{self._expected:g}", "rate": state}
+        self._store.emit(EventKind.TWIN, level, message, device=device, data=data)
 
 
 _ALARM_LEVEL = {"raised": EventLevel.WARNING, "cleared": EventLevel.INFO}
