@@ -454,7 +454,11 @@ class RateWatch:
         self._say(device, rate, "crowded", message)
 
     def _back(self, device: str, rate: float) -> None:
-        message = f"{device} sends {rate:.1f} valid messages/s again, near the expected {self._expected:g} Hz"
+        # Also what an arm that stops says on its way down: its status events tell that part.
+        message = (
+            f"{device} sends {rate:.1f} valid messages/s now, no longer far above the expected "
+            f"{self._expected:g} Hz"
+        )
         self._say(device, rate, "expected", message)
 
     def _say(self, device: str, rate: float, state: str, message: str) -> None:
