@@ -295,22 +295,25 @@ def test_rate_watch_reports_a_device_held_over_the_line_once_and_its_return() ->
 def test_two_edges_under_one_device_id_are_reported(
     rig: LocalRig, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
-    # The edge component's default id is arm-001 on every arm: two simulators publish as arm-001 at 10 Hz
-    # each. The hold and the sweep interval are shortened here (30 s and 5 s in service).
+    # The edge component's default id is arm-001 on every arm: three simulators publish as arm-001 at 10 Hz
+    # each (30 Hz against the 18 Hz line: a margin for a loaded host's slower edges), one of them arm-002
+    # too. The hold and the sweep interval are shortened here (30 s and 5 s in service).
     monkeypatch.setattr(events, "CROWDED_HOLD_S", 2.0)
     monkeypatch.setattr(events, "RATE_INTERVAL_S", 0.5)
     caplog.set_level(logging.WARNING, logger="twin.service.events")
     agent = rig.start_agent({"telemetry.devices": ["*"], "telemetry.units": "ticks"})
     rig.start_edge(["arm-001", "arm-002"], rate_hz=10.0, seed=1)
     rig.start_edge(["arm-001"], rate_hz=10.0, seed=2)
-    twin = EventQuery(kinds=frozenset({EventKind.TWIN.value}))
-    wait_for(lambda: agent.events(twin), 60, "the crowded arm's event")
-    (event,) = agent.events(twin)
-    assert event.device == "arm-001" and event.level == "warning", event
-    assert float(event.data["rate_hz"]) >= 18.0 and "each arm needs its own deviceId" in event.message
-    (logged,) = [r.getMessage() for r in caplog.records if "two edges may publish" in r.getMessage()]
-    assert logged == event.message
-    assert agent.state().devices["arm-002"].health.rate_hz < 15.0  # the other arm, alone on its id
+    rig.start_edge(["arm-001"], rate_hz=10.0, seed=3)
+    # Only arm-001's are looked at: the thresholds themselves are the test above's (a loaded host's edge
+    # that stalls and catches up could hold arm-002 over the line for the shortened hold).
+    crowded = EventQuery(kinds=frozenset({EventKind.TWIN.value}), device="arm-001")
+    wait_for(lambda: agent.events(crowded), 60, "the crowded arm's event")
+    (event, *_) = agent.events(crowded)
+    assert event.level == "warning" and float(event.data["rate_hz"]) >= 18.0, event
+    assert "each arm needs its own deviceId" in event.message
+    logged = [r.getMessage() for r in caplog.records if r.getMessage().startswith("arm-001 sends")]
+    assert logged[0] == event.message
 
 
 def test_an_arm_arrives_in_the_events_with_its_first_message_not_before(rig: LocalRig) -> None:
