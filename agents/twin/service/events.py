@@ -398,9 +398,10 @@ class BrokerWatch:
 
 
 # A device whose valid messages arrive at CROWDED_RATIO times [health] expected_rate_hz or more, for
-# CROWDED_HOLD_S, is reported (a warning), and again (info) once back under CLEAR_RATIO times. The likeliest
-# cause is two edges publishing under one device id (the edge component's default is arm-001 on every arm),
-# which makes one twin jump between poses; the other, an edge that really publishes faster than the setting.
+# CROWDED_HOLD_S, is reported (a warning), and again (info) once under CROWDED_CLEAR_RATIO times. The
+# likeliest cause is two edges publishing under one device id (the edge component's default is arm-001 on
+# every arm), which makes one twin jump between poses; the other, an edge that really publishes faster than
+# the setting.
 # The hold lets an edge's burst after a reconnect (a spooled backlog) pass; the gap between the two ratios
 # keeps a rate near the line from reporting at every sweep.
 CROWDED_RATIO = 1.8
