@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import socket
+import urllib.request
 from typing import Any
 
 import pytest
@@ -20,8 +21,6 @@ pytestmark = pytest.mark.slow
 
 
 def fleet_document(url: str) -> dict[str, Any]:
-    import urllib.request
-
     with urllib.request.urlopen(url + "/api/fleet", timeout=10) as response:
         document: dict[str, Any] = json.load(response)
     return document
