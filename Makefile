@@ -54,9 +54,12 @@ ROS2_STAMP := $(ROS2_VENV)/.setup-stamp
 ROS2_KILTED_VENV := .venv-ros2-kilted
 ROS2_KILTED_STAMP := $(ROS2_KILTED_VENV)/.setup-stamp
 # `make test` runs the suite in a fixed order; `make test-stress` shuffles it (pytest-randomly). Both run it
-# on every core (pytest-xdist, one worker process per core): the tests wait on conditions, not on time, so
-# sharing the cores with another test is what `make test-stress` already puts them through.
-PYTEST := $(VENV)/bin/pytest -p no:randomly -n auto
+# on one more pytest-xdist worker process than there are cores: with one a core, the cores sat idle 44 %
+# of the run while tests waited on brokers, agents and browsers; one more filled most of that
+# (docs/development.md). The tests wait on conditions, not on time, so sharing the cores is what
+# `make test-stress` puts them through.
+XDIST_WORKERS ?= $(shell echo $$(( $$(nproc) + 1 )))
+PYTEST := $(VENV)/bin/pytest -p no:randomly -n $(XDIST_WORKERS)
 # The host builds the agent with --no-build-isolation from requirements/host.txt, which holds its build
 # backend; the installer tests do the same, offline, from these wheels of it (tests/infra/hostsim.py): the
 # backend, and Pillow, which the host's screen check runs on.

@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # make test-stress: the whole suite RUNS times in a row, each in a new random order (pytest-randomly) on one
-# xdist worker per core, as `make test` runs it, with one busy process per core competing with it. A test
-# that waits on a sleep, on one thread's timing or on another test's leftovers fails here long before it
-# fails one CI run in ten. Extra arguments go to pytest.
+# more xdist worker than cores, as `make test` runs it, with one busy process per core competing with it.
+# A test that waits on a sleep, on one thread's timing or on another test's leftovers fails here long before
+# it fails one CI run in ten. Extra arguments go to pytest.
 set -Eeuo pipefail
 cd "$(dirname "$0")/.."
 
@@ -30,7 +30,7 @@ for run in $(seq "$runs"); do
   seed="$(od -An -N4 -tu4 /dev/urandom | tr -d ' ')"
   echo "test-stress: run ${run}/${runs}, seed ${seed} (to reproduce: .venv/bin/pytest --randomly-seed=${seed})"
   started="$(date +%s)"
-  if ! .venv/bin/pytest --randomly-seed="$seed" -n auto -q "$@"; then
+  if ! .venv/bin/pytest --randomly-seed="$seed" -n "$(( cores + 1 ))" -q "$@"; then
     echo "test-stress: run ${run} FAILED after $(( $(date +%s) - started )) s; seed ${seed}" >&2
     exit 1
   fi
