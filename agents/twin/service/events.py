@@ -417,7 +417,7 @@ class RateWatch:
         self._store = store
         self._expected = expected_rate_hz
         self._over_since: dict[str, float] = {}
-        self._reported: dict[str, float] = {}  # device -> the rate it was reported at
+        self._reported: set[str] = set()
 
     @property
     def reported(self) -> tuple[str, ...]:
@@ -428,12 +428,12 @@ class RateWatch:
         expected = self._expected
         for device in [d for d in self._over_since if d not in rates]:
             del self._over_since[device]
-        for device in [d for d in self._reported if d not in rates]:
-            del self._reported[device]  # evicted or restarted elsewhere: nothing to clear here
+        # Evicted or restarted elsewhere: nothing to clear here.
+        self._reported.intersection_update(rates)
         for device, rate in rates.items():
             if device in self._reported:
                 if rate < CROWDED_CLEAR_RATIO * expected:
-                    del self._reported[device]
+                    self._reported.discard(device)
                     self._back(device, rate)
                 continue
             if rate < CROWDED_RATIO * expected:
@@ -442,7 +442,7 @@ class RateWatch:
             since = self._over_since.setdefault(device, now)
             if now - since >= CROWDED_HOLD_S:
                 del self._over_since[device]
-                self._reported[device] = rate
+                self._reported.add(device)
                 self._crowded(device, rate)
 
     def _crowded(self, device: str, rate: float) -> None:
@@ -464,9 +464,11 @@ class RateWatch:
 
     def _say(self, device: str, rate: float, state: str, message: str) -> None:
         """One log line and one event: a warning when `state` is "crowded", info when back to "expected"."""
-        level = EventLevel.WARNING if state == "crowded" else EventLevel.INFO
+        level, log_level = (
+            (EventLevel.WARNING, logging.WARNING) if state == "crowded" else (EventLevel.INFO, logging.INFO)
+        )
         log.log(
-            logging.WARNING if state == "crowded" else logging.INFO,
+            log_level,
             "%s",
             message,
             extra={"event": "device_rate", "device": device, "rate_hz": rate, "rate": state},
