@@ -179,6 +179,40 @@ class ListeningSource(Protocol):
     def listening(self) -> Listening: ...
 
 
+@runtime_checkable
+class AlarmLister(Protocol):
+    """The part of the service surface that lists the alarms (worst first)."""
+
+    def alarms(self, *, include_normal: bool = False) -> tuple[AlarmInfo, ...]: ...
+
+
+class StateReader(Protocol):
+    """The part of the service surface that builds the whole agent state."""
+
+    def state(self) -> AgentState: ...
+
+
+FleetParts = tuple[Sequence[FleetRow], list[str], Listening | None]
+
+
+def fleet_parts(
+    source: StateReader, state: AgentState | None = None, alarms: Sequence[AlarmInfo] | None = None
+) -> FleetParts:
+    """The fleet document's parts: its rows, its notices and what the agent listens on. The rows are the
+    source's own when it can give them without its whole state (`FleetRowSource`), else made from `state`
+    and `alarms`, each read from the source when not given. Blocking (it reads the agent under its locks):
+    the console's HTTP handler and its stream both call it in one hop to a thread."""
+    if isinstance(source, FleetRowSource):
+        rows: Sequence[FleetRow] = source.fleet_rows()
+    else:
+        if state is None:
+            state = source.state()
+        if alarms is None:
+            alarms = source.alarms() if isinstance(source, AlarmLister) else ()
+        rows = fleet_rows(state, alarms)
+    return rows, *fleet_notes(source)
+
+
 def fleet_notes(source: object) -> tuple[list[str], Listening | None]:
     """The fleet page's notices and what the agent listens on, from a source that says (else none of
     either). Blocking: both read the agent under its locks."""

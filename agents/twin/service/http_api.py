@@ -57,12 +57,10 @@ from twin.service.console import (
     ASSETS,
     SESSION_FILE_KINDS,
     EventSource,
-    FleetRowSource,
     SessionCatalog,
     SessionInfo,
     arm_update,
-    fleet_notes,
-    fleet_rows,
+    fleet_parts,
     fleet_summary,
     render_page,
 )
@@ -559,13 +557,7 @@ class AgentHttpServer:
         return await self._call(source.alarms)
 
     async def _api_fleet(self, request: Request) -> Response:
-        source = self._source
-        if isinstance(source, FleetRowSource):
-            rows = await self._call(source.fleet_rows)
-        else:
-            state = await self._call(source.state)
-            rows = fleet_rows(state, await self._alarm_list())
-        notices, listening = await self._call(functools.partial(fleet_notes, source))
+        rows, notices, listening = await self._call(functools.partial(fleet_parts, self._source))
         return _json(200, fleet_summary(rows, time.time(), notices, listening))
 
     async def _api_arm(self, request: Request) -> Response:

@@ -21,18 +21,16 @@ import logging
 import time
 from collections import deque
 from collections.abc import Sequence
-from typing import Protocol, runtime_checkable
 
 import msgspec
 
 from twin.service.console import (
+    AlarmLister,
     EventSource,
-    FleetRow,
     FleetRowSource,
-    Listening,
+    StateReader,
     arm_update,
-    fleet_notes,
-    fleet_rows,
+    fleet_parts,
     fleet_summary,
 )
 from twin.service.events import Event, EventQuery
@@ -50,31 +48,9 @@ EVENT_BACKLOG = 64
 EVENTS_PER_TICK = 2000
 
 
-@runtime_checkable
-class AlarmLister(Protocol):
-    def alarms(self, *, include_normal: bool = False) -> tuple[AlarmInfo, ...]: ...
-
-
-class StateSource(Protocol):
-    def state(self) -> AgentState: ...
-
-
 def sse_frame(event: str, data: bytes) -> bytes:
     """One Server-Sent Event; `data` is one line of JSON (msgspec never puts a newline inside)."""
     return b"event: " + event.encode() + b"\ndata: " + data + b"\n\n"
-
-
-def _fleet_parts(
-    source: StateSource, state: AgentState | None, alarms: Sequence[AlarmInfo]
-) -> tuple[Sequence[FleetRow], list[str], Listening | None]:
-    """The fleet page's rows (the source's own, or made from `state`), its notices and what the agent
-    listens on (console.fleet_notes); run in a thread."""
-    if isinstance(source, FleetRowSource):
-        rows: Sequence[FleetRow] = source.fleet_rows()
-    else:
-        assert state is not None
-        rows = fleet_rows(state, alarms)
-    return rows, *fleet_notes(source)
 
 
 class Subscription:
@@ -112,7 +88,7 @@ class Subscription:
 class StreamHub:
     """The shared ticker (module doc). Create and use it on the server's event loop."""
 
-    def __init__(self, source: StateSource, *, state_rate_hz: float, console_rate_hz: float) -> None:
+    def __init__(self, source: StateReader, *, state_rate_hz: float, console_rate_hz: float) -> None:
         self._source = source
         self._state_interval = 1.0 / state_rate_hz
         self._console_interval = 1.0 / console_rate_hz
@@ -202,7 +178,7 @@ class StreamHub:
             alarms = await asyncio.to_thread(source.alarms)
         if fleet:
             # The rows and the notices in one hop to a thread: both read the agent under its locks.
-            rows, notices, listening = await asyncio.to_thread(_fleet_parts, source, state, alarms)
+            rows, notices, listening = await asyncio.to_thread(fleet_parts, source, state, alarms)
             self._publish(FLEET, sse_frame("fleet", fleet_summary(rows, time.time(), notices, listening)))
         for topic in arms:
             assert state is not None
