@@ -49,7 +49,7 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     long after the other had run out of tests. trylast: after pytest-randomly's shuffle, which the rest
     keep (the sort is stable)."""
 
-    def seconds(item: pytest.Item) -> float:
+    def expected_seconds(item: pytest.Item) -> float:
         mark = item.get_closest_marker("long")
         if mark is None:
             return 0.0
@@ -57,9 +57,9 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
             raise pytest.UsageError(
                 f"{item.nodeid}: write @pytest.mark.long(seconds=<about how long it takes>)"
             )
-        return -float(mark.kwargs["seconds"])
+        return float(mark.kwargs["seconds"])
 
-    items.sort(key=seconds)
+    items.sort(key=expected_seconds, reverse=True)
 
 
 @pytest.fixture
