@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import pickle
+import random
 from collections.abc import Iterator
 from multiprocessing import Pipe
 from multiprocessing.connection import Connection
@@ -17,8 +18,11 @@ from multiprocessing.connection import Connection
 import pytest
 import twin.core.loss as loss_module
 from twin.bench.worker import _feed, _fleet
+from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
+from twin.edge.payload import encode, make_payload
 from twin.service.admission import DeviceBudget
 from twin.service.config import load_config
+from twin.service.events import CROWDED_HOLD_S, RATE_INTERVAL_S, RESTORED_SETTLE_S, EventKind, EventQuery
 from twin.service.mirror import Mirror, PipeInbox
 from twin.service.shards import MirrorCheckpoint, MirrorReport, PackedDevices
 from twin.transport.pipe import Batch, send_end
@@ -165,3 +169,52 @@ def test_rows_taken_over_later_batches_are_the_arms_as_they_were_when_it_began(
     now = spread.report().devices
     assert all(now[d].health.counters.received > got.devices[d].health.counters.received for d in got.devices)
     assert f"arm-{ARMS + 1:04d}" in now
+
+
+# --- the rate watch's reports -------------------------------------------------------------------------------
+
+
+def _crowded_rounds(mirror: Mirror, clock: _Clock, rng: random.Random, seconds: float, hz: int) -> None:
+    """arm-001 at `hz` valid messages a second (two edges under its id at 20), a batch every 0.1 s, each
+    followed by the worker's sweep of statuses and rates."""
+    for _ in range(round(seconds * 10)):
+        clock.now += 0.1
+        stamps = [round((1.7e9 + clock.now) * 1000) + 100 * k // (hz // 10) for k in range(hz // 10)]
+        payloads = tuple(
+            encode(make_payload("arm-001", s / 1000, "ticks", rng, timestamp_ms=s)) for s in stamps
+        )
+        n = len(payloads)
+        mirror._handle(
+            Batch(
+                ("arm-001",) * n,
+                (telemetry_topic(DEFAULT_TOPIC_PREFIX, "arm-001"),) * n,
+                payloads,
+                (clock.now,) * n,
+                (1.7e9 + clock.now,) * n,
+            ),
+            0,
+        )
+        mirror._watch_statuses()
+
+
+def _rate_events(mirror: Mirror) -> list[tuple[str, str]]:
+    found = mirror.events(EventQuery(kinds=frozenset({EventKind.TWIN.value}), device="arm-001"))
+    return [(e.level, e.data["rate"]) for e in found if "rate" in e.data]
+
+
+def test_a_mirror_started_again_does_not_report_a_crowded_arm_twice() -> None:
+    """The checkpoint carries the devices the rate watch reported: the mirror started from it says nothing
+    while the arm stays over the line, and says it is back once it is (which it could not have without)."""
+    clock, rng = _Clock(), random.Random(5)
+    first = _still_mirror(clock)
+    _crowded_rounds(first, clock, rng, CROWDED_HOLD_S + 2 * RATE_INTERVAL_S + 2, hz=20)
+    assert _rate_events(first) == [("warning", "crowded")]
+    checkpoint = pickle.loads(pickle.dumps(first.checkpoint(), protocol=pickle.HIGHEST_PROTOCOL))
+    assert checkpoint.crowded == ("arm-001",)
+
+    again = _still_mirror(clock)
+    again.restore(checkpoint)
+    _crowded_rounds(again, clock, rng, CROWDED_HOLD_S + 2 * RATE_INTERVAL_S + 2, hz=20)
+    assert _rate_events(again) == []
+    _crowded_rounds(again, clock, rng, RESTORED_SETTLE_S + 2 * RATE_INTERVAL_S + 2, hz=10)
+    assert _rate_events(again) == [("info", "expected")]

@@ -292,6 +292,24 @@ def test_rate_watch_reports_a_device_held_over_the_line_once_and_its_return() ->
     assert watch.reported == () and len(s.query(EventQuery())) == 3
 
 
+def test_rate_watch_takes_back_a_report_and_waits_for_the_rates_to_fill_before_a_return() -> None:
+    # What a restarted worker does with its checkpoint's crowded devices: no second report while the arm stays
+    # over the line; the rates start again from nothing, so no "back" before the settle time either.
+    s, _ = store()
+    watch = RateWatch(s, expected_rate_hz=10.0)
+    settle = events.RESTORED_SETTLE_S
+    watch.restore(["arm-001", "arm-009"], 100.0)
+    assert watch.reported == ("arm-001", "arm-009")
+    watch.sweep({"arm-001": 0.5}, 100.0 + settle / 2)  # a fresh meter's first reading; arm-009 not heard
+    assert watch.reported == ("arm-001",) and s.query(EventQuery()) == []
+    for at in (120.0, 140.0, 160.0):
+        watch.sweep({"arm-001": 20.0}, at)
+    assert s.query(EventQuery()) == []
+    watch.sweep({"arm-001": 10.0}, 165.0)
+    (back,) = s.query(EventQuery())
+    assert (back.level, back.data["rate"]) == ("info", "expected") and watch.reported == ()
+
+
 def test_two_edges_under_one_device_id_are_reported(
     rig: LocalRig, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -407,6 +407,9 @@ class BrokerWatch:
 CROWDED_RATIO = 1.8
 CROWDED_CLEAR_RATIO = 1.3
 CROWDED_HOLD_S = 30.0
+# A device reported before its worker was started again (the checkpoint carries the reported devices): its
+# rate starts again from nothing in the new process, so it is not said to be back for this long.
+RESTORED_SETTLE_S = 10.0
 
 
 class RateWatch:
@@ -418,10 +421,19 @@ class RateWatch:
         self._expected = expected_rate_hz
         self._over_since: dict[str, float] = {}
         self._reported: set[str] = set()
+        self._settling: dict[str, float] = {}  # restored device -> until when it cannot be back
 
     @property
     def reported(self) -> tuple[str, ...]:
         return tuple(sorted(self._reported))
+
+    def restore(self, devices: Iterable[str], now: float) -> None:
+        """Devices a checkpoint says were reported (`reported`, before the mirror's process was started
+        again): not reported a second time while they stay over the line, and not said to be back before
+        RESTORED_SETTLE_S, while their rates fill again."""
+        for device in devices:
+            self._reported.add(device)
+            self._settling[device] = now + RESTORED_SETTLE_S
 
     def sweep(self, rates: Mapping[str, float], now: float) -> None:
         """`rates`: each device heard from -> its valid messages per second now; `now` a monotonic time."""
@@ -430,9 +442,11 @@ class RateWatch:
             del self._over_since[device]
         # Evicted or restarted elsewhere: nothing to clear here.
         self._reported.intersection_update(rates)
+        for device in [d for d, until in self._settling.items() if d not in self._reported or now >= until]:
+            del self._settling[device]
         for device, rate in rates.items():
             if device in self._reported:
-                if rate < CROWDED_CLEAR_RATIO * expected:
+                if device not in self._settling and rate < CROWDED_CLEAR_RATIO * expected:
                     self._reported.discard(device)
                     self._back(device, rate)
                 continue
@@ -512,6 +526,15 @@ class FleetWatch:
 
     def rates(self, rates: Mapping[str, float], now: float) -> None:
         self._rates.sweep(rates, now)
+
+    @property
+    def crowded(self) -> tuple[str, ...]:
+        """The devices reported publishing far above the expected rate and not yet back (RateWatch)."""
+        return self._rates.reported
+
+    def crowded_restored(self, devices: Iterable[str], now: float) -> None:
+        """Devices a checkpoint carried as `crowded`: RateWatch.restore."""
+        self._rates.restore(devices, now)
 
     def statuses(self, statuses: Mapping[str, object]) -> None:
         self._statuses.sweep(statuses)

@@ -747,6 +747,7 @@ class Mirror:
                 alarm_counters=counters,
                 tracking_since=self._fleet.started,
                 alarms_summary=self._alarms_summary(),
+                crowded=self._watch.crowded,
             )
             capture = Capture(
                 head, list(self._fleet.devices), lambda device: self._checkpoint_row(device, decided)
@@ -806,6 +807,7 @@ class Mirror:
                     self._restore_device(device, saved)
                     devices += 1
                 restored = self._alarms.restore(checkpoint.alarms)
+                self._watch.crowded_restored(checkpoint.crowded, self._clock())
             else:
                 restored = 0
             restored += self._alarms.restore(alarms)

@@ -346,6 +346,9 @@ class MirrorCheckpoint:
     # The fleet's alarm counts as the mirror had them (not with `alarms_only`): `/state` merges them for a
     # worker being started again, so the summary does not dip while its arms show as restarting.
     alarms_summary: AlarmsSummary | None = None
+    # The devices the rate watch has reported publishing far above the expected rate (events.RateWatch), so a
+    # restarted worker does not report them again.
+    crowded: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)
