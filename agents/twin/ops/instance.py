@@ -36,6 +36,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Literal
 
+from twin.core.aws import region_or_env
 from twin.service.config import DEFAULT_AGENT_URL
 
 if TYPE_CHECKING:
@@ -321,7 +322,7 @@ class TwinInstance:
                 if self._session is None:
                     import boto3  # noqa: PLC0415 - keeps `twin --help` free of boto3's import time
 
-                    self._session = boto3.session.Session(region_name=self._region)
+                    self._session = boto3.session.Session(region_name=region_or_env(self._region))
                 client = self._session.client(service)
             self._clients[service] = client
         return client

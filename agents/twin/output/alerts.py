@@ -27,6 +27,7 @@ from collections import OrderedDict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
+from twin.core.aws import region_or_env
 from twin.robot import so101
 
 log = logging.getLogger(__name__)
@@ -277,7 +278,7 @@ def sns_publisher(topic_arn: str, region: str = "", client: object = None) -> Pu
 
             sns = boto3.client(
                 "sns",
-                region_name=region or None,
+                region_name=region_or_env(region),
                 config=Config(connect_timeout=5, read_timeout=10, retries={"max_attempts": 3}),
             )
             state["client"] = sns

@@ -50,6 +50,7 @@ import pyarrow as pa
 import pyarrow.json as pa_json
 
 from twin.core import heap
+from twin.core.aws import region_or_env
 from twin.output.history_feed import REJECTED_PAYLOAD_MAX_BYTES, REJECTED_TABLE, TELEMETRY_TABLE
 from twin.output.history_maintain import run_child
 from twin.output.sinks import AppliedSample, QueuedSink, RejectedSample
@@ -1122,6 +1123,8 @@ def _s3_client(options: Mapping[str, str]) -> Any:
         value = options.get(key) or options.get(key.lower())
         if value:
             kwargs[arg] = value
+    # delta-rs reads AWS_REGION itself; boto3 does not (twin.core.aws).
+    kwargs.setdefault("region_name", region_or_env())
     return boto3.client("s3", **kwargs)
 
 

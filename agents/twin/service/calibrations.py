@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
+from twin.core.aws import region_or_env
 from twin.core.topics import device_id_problem
 from twin.robot.calibration import MAX_FILE_BYTES, Calibration, parse_calibration
 
@@ -155,7 +156,7 @@ class S3Store:
 
             self.client = boto3.client(
                 "s3",
-                region_name=self.region or None,
+                region_name=region_or_env(self.region),
                 config=Config(connect_timeout=5, read_timeout=10, retries={"max_attempts": 3}),
             )
         return self.client

@@ -50,7 +50,7 @@ KEY_DOCS: dict[str, str] = {
         '`"iot"` = AWS IoT Core over WebSocket with SigV4. `"mqtt://host:port"` = plain MQTT 5. '
         '`"mqtts://host:port"` = MQTT 5 over TLS. Flag `--broker`.'
     ),
-    "broker.region": "iot only. Empty = the region from the AWS config or environment (`AWS_REGION`).",
+    "broker.region": "iot only. Empty = `AWS_REGION`, else `AWS_DEFAULT_REGION` or the AWS config's region.",
     "broker.endpoint": "iot only. Empty = looked up with `iot:DescribeEndpoint` (`iot:Data-ATS`).",
     "broker.client_id_prefix": (
         "The client id is this prefix plus 12 random hex digits, and the fleet's shared-subscription "

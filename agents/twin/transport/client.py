@@ -14,6 +14,7 @@ from typing import TypedDict
 from awscrt import auth, io, mqtt5
 from awsiot import mqtt5_client_builder
 
+from twin.core.aws import region_or_env
 from twin.transport.broker import BrokerConfig, BrokerConfigError
 
 
@@ -24,8 +25,8 @@ def resolve_iot_endpoint(config: BrokerConfig) -> str:
     import boto3  # noqa: PLC0415 - slow to import; only the "iot" path needs it
 
     try:
-        # No region: boto3's default chain decides (AWS_REGION, the AWS config, IMDS).
-        client = boto3.client("iot", region_name=config.region or None)
+        # No region set: AWS_REGION, else boto3's own chain (AWS_DEFAULT_REGION, the profile's config).
+        client = boto3.client("iot", region_name=region_or_env(config.region))
         response = client.describe_endpoint(endpointType="iot:Data-ATS")
     except Exception as exc:
         raise BrokerConfigError(
@@ -36,8 +37,9 @@ def resolve_iot_endpoint(config: BrokerConfig) -> str:
 
 
 def _region(config: BrokerConfig) -> str:
-    if config.region:
-        return config.region
+    region = region_or_env(config.region)
+    if region:
+        return region
     import boto3  # noqa: PLC0415 - see resolve_iot_endpoint
 
     region = boto3.session.Session().region_name

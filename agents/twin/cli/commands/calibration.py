@@ -56,7 +56,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="s3://bucket/prefix or a directory (default: the deployed stack's CalibrationUri output)",
     )
     common.add_argument("--stack", default=None, help="stack whose store to use (default: as twin instance)")
-    common.add_argument("--region", default=None, help="AWS region (default: from the AWS config)")
+    common.add_argument(
+        "--region", default=None, help="AWS region (default: AWS_REGION, else the AWS config)"
+    )
     parser = subparsers.add_parser(
         "calibration",
         help="store each arm's LeRobot calibration where the agent picks it up",

@@ -65,7 +65,9 @@ def _add_broker_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="URL",
         help='mqtt://host:port, mqtts://host:port, or "iot" for AWS IoT Core (default %(default)s)',
     )
-    parser.add_argument("--region", default="", help="iot: AWS region (default: the AWS config)")
+    parser.add_argument(
+        "--region", default="", help="iot: AWS region (default: AWS_REGION, else the AWS config)"
+    )
     parser.add_argument("--endpoint", default="", help="iot: data endpoint (default: iot:DescribeEndpoint)")
     parser.add_argument(
         "--ca-file", default="", help="mqtts: PEM CA bundle that signed the broker certificate"

@@ -2,7 +2,7 @@
 the CDK stack, open its operator console here, and print the settings it runs with.
 
 The stack defaults to $SO101_TWIN_STACK, else the stackName of ./twin.settings.toml, else So101TwinStack; the
-region to --region, else the AWS config.
+region to --region, else AWS_REGION, else the AWS config.
 
 Exit codes:
   0  done
@@ -133,7 +133,7 @@ def _common_arguments() -> argparse.ArgumentParser:
         "else So101TwinStack)",
     )
     common.add_argument(
-        "--region", default=None, help="AWS region (default: from the AWS config / AWS_REGION)"
+        "--region", default=None, help="AWS region (default: AWS_REGION, else the AWS config)"
     )
     common.add_argument("--no-wait", action="store_true", help="return after the request, without waiting")
     common.add_argument(

@@ -47,7 +47,12 @@ def register(subparsers: Any) -> None:
         default="mqtt://127.0.0.1:1883",
         help='"iot" (AWS IoT Core), mqtt://host:port or mqtts://host:port (default mqtt://127.0.0.1:1883)',
     )
-    parser.add_argument("--region", metavar="R", default="", help="AWS region of IoT Core (broker iot)")
+    parser.add_argument(
+        "--region",
+        metavar="R",
+        default="",
+        help="AWS region of IoT Core (broker iot; default: AWS_REGION, else the AWS config)",
+    )
     parser.add_argument("--topic-prefix", metavar="PREFIX", default="dt/lerobot")
     parser.add_argument("--as-device", metavar="ID", help="publish under another device id")
     parser.add_argument(

@@ -69,6 +69,11 @@ def add_agent_arguments(parser: argparse.ArgumentParser) -> None:
         "--broker", metavar="URL", help='"iot" (AWS IoT Core), mqtt://host:port or mqtts://host:port'
     )
     parser.add_argument(
+        "--region",
+        metavar="R",
+        help="iot only: the AWS region of IoT Core (default: AWS_REGION, else the AWS config)",
+    )
+    parser.add_argument(
         "--http",
         metavar="HOST:PORT",
         help=f"HTTP listen address (default {DEFAULT_HTTP_HOST}:{DEFAULT_HTTP_PORT})",
@@ -119,6 +124,7 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
     """Flag values as dotted config keys; unset flags are None and leave the file's value."""
     return {
         "broker.url": args.broker,
+        "broker.region": args.region,
         "broker.per_connection_limit": args.per_connection_limit,
         "http.listen": args.http,
         "telemetry.units": args.units,

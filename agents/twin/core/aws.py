@@ -1,0 +1,20 @@
+"""The AWS region a command uses when none is set, standard library only.
+
+boto3 reads `AWS_DEFAULT_REGION` and the profile's config file, but not `AWS_REGION` (botocore 1.44's
+configprovider maps the region to `AWS_DEFAULT_REGION` alone), while the AWS CLI v2, the CDK CLI and AWS's
+other SDKs read `AWS_REGION` first. Our docs tell people to set `AWS_REGION`, as AWS's own guides do, so every
+boto3 client and session the twin makes takes its region from `region_or_env`: with `AWS_REGION` set and no
+region given, a command works as the AWS CLI would in the same shell.
+"""
+
+from __future__ import annotations
+
+import os
+
+
+def region_or_env(region: str | None = None) -> str | None:
+    """`region` when set, else `AWS_REGION` when set, else None (boto3 then reads `AWS_DEFAULT_REGION` and
+    the profile's config): the AWS CLI's order."""
+    if region:
+        return region
+    return os.environ.get("AWS_REGION", "").strip() or None

@@ -1,0 +1,91 @@
+"""AWS_REGION is the region a command uses when none is given, as with the AWS CLI (twin.core.aws).
+
+boto3 itself reads only AWS_DEFAULT_REGION and the profile's config, and the docs tell people to set
+AWS_REGION. moto stands in for AWS: in-process for IoT Core's DescribeEndpoint, and its server on loopback
+for the commands run as a user runs them (AWS_ENDPOINT_URL points boto3 at it).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from moto import mock_aws
+from moto_s3 import MotoS3
+from twin.core.aws import region_or_env
+from twin.transport import client
+from twin.transport.broker import BrokerConfig
+
+REPO = Path(__file__).resolve().parents[1]
+EXAMPLE = REPO / "robots" / "so101" / "calibration" / "so101_follower_example.json"
+
+
+@pytest.fixture
+def aws_region_only(aws_env: None, monkeypatch: pytest.MonkeyPatch) -> None:
+    """moto's fake credentials, empty AWS config files, and the region in AWS_REGION alone."""
+    monkeypatch.delenv("AWS_DEFAULT_REGION")
+    monkeypatch.setenv("AWS_REGION", "eu-west-1")
+
+
+def test_a_given_region_then_aws_region_then_boto3s_own_chain(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("AWS_REGION", "eu-west-1")
+    assert region_or_env("us-east-2") == "us-east-2"
+    assert region_or_env("") == region_or_env(None) == "eu-west-1"
+    monkeypatch.setenv("AWS_REGION", " ")
+    assert region_or_env() is None  # boto3 then reads AWS_DEFAULT_REGION and the profile's config
+    monkeypatch.delenv("AWS_REGION")
+    assert region_or_env() is None
+
+
+def test_iot_core_is_found_in_the_region_aws_region_names(aws_region_only: None) -> None:
+    config = BrokerConfig(url="iot")
+    assert client._region(config) == "eu-west-1"
+    with mock_aws():
+        assert ".iot.eu-west-1.amazonaws.com" in client.resolve_iot_endpoint(config)
+    # A region in the agent's config (or --region) still comes first.
+    assert client._region(BrokerConfig(url="iot", region="us-east-2")) == "us-east-2"
+
+
+@pytest.mark.slow
+def test_the_aws_commands_work_with_aws_region_alone(tmp_path: Path) -> None:
+    server = MotoS3(bucket="so101-calibration")
+    try:
+        empty = tmp_path / "empty"
+        empty.write_text("")
+        env = {k: v for k, v in os.environ.items() if not k.startswith("AWS_")}
+        env.update(
+            AWS_REGION="us-east-1",
+            AWS_ENDPOINT_URL=server.endpoint,
+            AWS_ACCESS_KEY_ID="testing",
+            AWS_SECRET_ACCESS_KEY="testing",
+            AWS_CONFIG_FILE=str(empty),
+            AWS_SHARED_CREDENTIALS_FILE=str(empty),
+            AWS_EC2_METADATA_DISABLED="true",
+        )
+        env.pop("SO101_TWIN_STACK", None)
+
+        def twin(*args: str) -> subprocess.CompletedProcess[str]:
+            return subprocess.run(
+                [sys.executable, "-m", "twin.cli", *args],
+                check=False,
+                env=env,
+                cwd=tmp_path,
+                capture_output=True,
+                text=True,
+                timeout=120,
+            )
+
+        store = "s3://so101-calibration/calibration"
+        pushed = twin("calibration", "push", "arm-001", str(EXAMPLE), "--store", store)
+        assert pushed.returncode == 0, pushed.stderr
+        listed = twin("calibration", "ls", "--store", store)
+        assert listed.returncode == 0 and "arm-001" in listed.stdout, listed.stderr
+        # No stack in this (moto) account: "stack not found" (4), not "no AWS region" (3).
+        status = twin("instance", "status")
+        assert status.returncode == 4, status.stderr
+        assert "no AWS region" not in status.stderr and "us-east-1" in status.stderr, status.stderr
+    finally:
+        server.close()
