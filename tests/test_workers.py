@@ -12,8 +12,10 @@ import json
 import os
 import random
 import signal
+import socket
 import subprocess
 import sys
+import time
 import urllib.request
 from collections import Counter
 from pathlib import Path
@@ -24,6 +26,7 @@ import pytest
 from awscrt import mqtt5
 from conftest import Publisher, get_metrics, get_state, metric, wait_for, wait_handled
 from test_servo_alarms_e2e import alarms, post
+from twin.core.alarms import AlarmKind, AlarmRecord, AlarmState
 from twin.core.health import DeviceCounters, DeviceStatus, HealthSnapshot
 from twin.core.latency import LatencyHistogram
 from twin.core.topics import DEFAULT_TOPIC_PREFIX
@@ -34,6 +37,7 @@ from twin.rig.mosquitto import free_port
 from twin.rig.quota_proxy import QuotaProxy
 from twin.service.admission import DeviceBudget
 from twin.service.config import ConfigError, load_config
+from twin.service.persist import StateFile
 from twin.service.shards import MirrorReport, WorkerPlan, merge_reports, worker_config
 from twin.service.state import (
     AgentInfo,
@@ -564,3 +568,60 @@ def test_a_setting_only_a_worker_can_check_stops_twin_run_with_exit_code_2(tmp_p
     assert done.returncode == 2, done.stderr
     assert "configuration error: telemetry.calibration" in done.stderr
     assert str(calibration) in done.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("failure", ["http_address_taken", "no_aws_region"])
+def test_a_start_that_fails_reports_only_the_stop_it_made(tmp_path: Path, failure: str) -> None:
+    # `twin run` that cannot start exits 1 (docs/agent.md, "Exit codes"). It used to stop its workers twice:
+    # the second stop found their pipes closed, logged an ERROR that both were killed at the 60 s budget with
+    # what they held lost, and saved an empty state file over the alarms it kept. Here the workers start and
+    # stop cleanly (HTTP address taken), or are never launched (no region for IoT Core).
+    state_file = tmp_path / "state.json"
+    latched = AlarmRecord(
+        device="arm-001",
+        joint="elbow_flex",
+        kind=AlarmKind.OVER_TEMPERATURE,
+        state=AlarmState.LATCHED,
+        since=time.monotonic(),
+        present=False,
+        raised=1,
+        value=63.0,
+        message="elbow_flex servo at 63 C",
+    )
+    assert StateFile(state_file).save([latched], time.monotonic(), time.time())
+    config = tmp_path / "agent.toml"
+    config.write_text(f'[twin]\nstate_file = "{state_file}"\n')
+    env = child_env()
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        if failure == "http_address_taken":
+            broker, http = f"mqtt://127.0.0.1:{free_port()}", f"127.0.0.1:{taken.getsockname()[1]}"
+        else:
+            broker, http = "iot", "127.0.0.1:0"
+            empty = tmp_path / "aws-config"
+            empty.write_text("")
+            env = {k: v for k, v in env.items() if k not in ("AWS_REGION", "AWS_DEFAULT_REGION")}
+            env |= {"AWS_CONFIG_FILE": str(empty), "AWS_SHARED_CREDENTIALS_FILE": str(empty)}
+        run = ["run", "--config", str(config), "--workers", "2", "--broker", broker, "--http", http]
+        done = subprocess.run(
+            [sys.executable, "-m", "twin.cli", *run],
+            check=False,
+            capture_output=True,
+            text=True,
+            timeout=180,
+            env=env,
+        )
+    assert done.returncode == 1, done.stderr
+    assert "cannot start" in done.stderr
+    lines = [json.loads(line) for line in done.stdout.splitlines() if line.startswith("{")]
+    stopped = [
+        (line["level"], line["workers_killed"], line["unwritten"])
+        for line in lines
+        if line["logger"] == "twin.service.agent" and line["msg"].startswith("agent stopped")
+    ]
+    assert stopped == [("INFO", [], {})], done.stdout
+    assert [line["msg"] for line in lines if line["level"] == "ERROR"] == ["cannot start"], done.stdout
+    kept = StateFile(state_file).load(time.monotonic(), time.time())
+    assert [(r.alarm_id, r.state) for r in kept] == [(latched.alarm_id, AlarmState.LATCHED)]

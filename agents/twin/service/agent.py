@@ -119,6 +119,8 @@ SUPERVISE_EVERY_S = 0.5
 ALERTS_STOP_MIN_S = 5.0
 # ... and the history writer at least this long for its last commit.
 HISTORY_STOP_MIN_S = 5.0
+# What a failed start gives what it launched to stop (the workers, then the history writer), each.
+FAILED_START_STOP_S = 10.0
 # feed() remembers where each topic goes (its shard and mailbox key) for this many topics at most; beyond
 # that (junk on invented topics) it starts over, so memory stays bounded.
 MAX_ROUTES = 16_384
@@ -293,6 +295,7 @@ class AgentService:
         rest starts; then history's writer and every mirror (each waited for), the alarms of the state file
         and each arm's calibration, and only then does any message reach a mirror (Shard.open). Returns the
         HTTP server, bound but not serving yet. What was launched is stopped again when a step fails."""
+        opened = False
         try:
             if self.plan.count > 1:
                 # Already running when `twin run` started it; otherwise it starts importing now, beside what
@@ -320,6 +323,7 @@ class AgentService:
                 self._calibrations.poll()
             for shard in self._shards:
                 shard.open()
+            opened = True
             return AgentHttpServer(
                 self,
                 self.config.http.host,
@@ -330,20 +334,35 @@ class AgentService:
                 rerun_url=rerun_viewer_url(self.sinks),
             )
         except BaseException:
-            if self._started_pool:
-                with contextlib.suppress(Exception):
-                    self._pool.stop(5.0)
-                self._started_pool = False
-            self._stop_shards(time.monotonic() + 10.0)
-            if self._history is not None:
-                self._history.stop(timeout=10.0)
+            self._abandon_start(opened=opened)
             raise
+
+    def _abandon_start(self, *, opened: bool) -> None:
+        """A start that failed: stop what it launched and report that stop, from what each shard said as it
+        ended, once. The agent counts as stopped: the stop() a caller makes next (`twin run` does) returns
+        at once. Were it to stop the shards again, it would find their pipes closed, take every worker for
+        one killed at the budget, and save an empty state file over the alarms it kept."""
+        with self._stop_lock:
+            self._stopping.set()
+        if self._started_pool:
+            with contextlib.suppress(Exception):
+                self._pool.stop(5.0)
+            self._started_pool = False
+        self._stop_shards(time.monotonic() + FAILED_START_STOP_S)
+        if opened:
+            # Messages reached the mirrors, which had the state file's alarms: what they hold now is kept.
+            # Before that the file is left as it is: nothing has changed what it holds.
+            self._keep_state(final=True)
+        if self._history is not None:
+            self._history.stop(timeout=FAILED_START_STOP_S)
+        unwritten, killed = self._unwritten()
+        self._report_stop(FAILED_START_STOP_S, unwritten, killed)
 
     def stop(self, timeout: float | None = None) -> None:
         """Unsubscribe, let every mirror handle what is queued for it, flush its sinks and end, stop the
         metrics and HTTP, all within `timeout` seconds (default: `[twin] shutdown_budget_s`); a worker still
         running then is killed. Logs what could not be written, and keeps the alarms in the state file.
-        Idempotent."""
+        Idempotent; nothing to do after a start() that failed (it stopped what it launched itself)."""
         with self._stop_lock:
             if self._stopping.is_set():
                 return

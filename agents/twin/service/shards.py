@@ -922,7 +922,7 @@ class WorkerShard:
     def join(self, deadline: float) -> StopReport | None:
         """Wait until `deadline` for the worker to finish and say what it could not write (its Farewell);
         a worker still running then is killed (None: what it held is lost, its last checkpoint's alarms
-        stand for its own)."""
+        stand for its own). Called once, after `close`."""
         if self._sender is not None:
             self._sender.join(max(0.1, deadline - time.monotonic()))
         elif self.data is not None:
@@ -945,6 +945,11 @@ class WorkerShard:
         for conn in (self.data, self.control):
             if conn is not None:
                 conn.close()
+        if report is None and self._sender is None:
+            # Never opened: the agent's start failed first. Never launched, or it could not start (no
+            # Farewell then), or it was killed just now: either way it was never handed a message, so it held
+            # nothing to lose (None would be reported as a worker killed with what it held).
+            return StopReport()
         return report
 
     def _farewell(self, deadline: float) -> StopReport | None:
