@@ -15,6 +15,8 @@ from pathlib import Path
 import pytest
 from moto import mock_aws
 from moto_s3 import MotoS3
+from twin.cli.commands.run import overrides_from_args
+from twin.cli.main import build_parser
 from twin.core.aws import region_or_env
 from twin.transport import client
 from twin.transport.broker import BrokerConfig
@@ -89,3 +91,9 @@ def test_the_aws_commands_work_with_aws_region_alone(tmp_path: Path) -> None:
         assert "no AWS region" not in status.stderr and "us-east-1" in status.stderr, status.stderr
     finally:
         server.close()
+
+
+def test_twin_run_takes_the_region_its_error_names() -> None:
+    args = build_parser().parse_args(["run", "--broker", "iot", "--region", "eu-north-1"])
+    assert overrides_from_args(args)["broker.region"] == "eu-north-1"
+    assert overrides_from_args(build_parser().parse_args(["run"]))["broker.region"] is None

@@ -65,14 +65,7 @@ def add_agent_arguments(parser: argparse.ArgumentParser) -> None:
         help="agent config file (TOML); give it again to layer another file on top, key by key (the twin "
         "host runs with its generated config and then /etc/so101-twin/agent.local.toml)",
     )
-    parser.add_argument(
-        "--broker", metavar="URL", help='"iot" (AWS IoT Core), mqtt://host:port or mqtts://host:port'
-    )
-    parser.add_argument(
-        "--region",
-        metavar="R",
-        help="iot only: the AWS region of IoT Core (default: AWS_REGION, else the AWS config)",
-    )
+    _add_broker_arguments(parser)
     parser.add_argument(
         "--http",
         metavar="HOST:PORT",
@@ -117,6 +110,17 @@ def add_agent_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         default=None,
         help="publish every arm as ROS 2 sensor_msgs/JointState ([ros2] settings; needs the ros2 extra)",
+    )
+
+
+def _add_broker_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--broker", metavar="URL", help='"iot" (AWS IoT Core), mqtt://host:port or mqtts://host:port'
+    )
+    parser.add_argument(
+        "--region",
+        metavar="R",
+        help="iot only: the AWS region of IoT Core (default: AWS_REGION, else the AWS config)",
     )
 
 
