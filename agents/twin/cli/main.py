@@ -9,12 +9,16 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import pkgutil
 import sys
 from collections.abc import Sequence
 
 from twin.cli import commands
 from twin.cli.output import Console, missing_extra_message
+
+# 128 + SIGPIPE: what a shell reports for a command whose reader closed the pipe.
+EXIT_READER_GONE = 141
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -34,7 +38,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
+        # Flushed here rather than at exit, so a reader that has gone is met below, not in a traceback.
+        sys.stdout.flush()
+        return code
+    except BrokenPipeError:
+        return _reader_gone()
     except KeyboardInterrupt:
         return 130
     except ModuleNotFoundError as exc:
@@ -43,6 +52,16 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         Console(args.command).err(message)
         return 1
+
+
+def _reader_gone() -> int:
+    """The process reading our output went away (`twin history ls | head`): stop quietly with the exit code
+    of a process SIGPIPE ended, as Unix tools do. What is still buffered goes to /dev/null, so the flush at
+    exit does not print a second error."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
+    return EXIT_READER_GONE
 
 
 if __name__ == "__main__":
