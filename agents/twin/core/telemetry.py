@@ -437,6 +437,10 @@ def _check_number(joint: str, name: str, value: object) -> float:
     )
 
 
+def _messages(count: int) -> str:
+    return "message" if count == 1 else "messages"
+
+
 def _check_device_id(device_id: object) -> str:
     """`device_id` if it passes the device-id rule of twin.core.topics, else a rejection saying why."""
     problem = device_id_problem(device_id)
@@ -968,19 +972,21 @@ class TelemetryDecoder:
         self._remember(device_id, kind)
         if kind is Units.TICKS:
             log.info(
-                "device %s: units=auto decided ticks after %d agreeing messages (JSON integers 0..4095, some "
+                "device %s: units=auto decided ticks after %d agreeing %s (JSON integers 0..4095, some "
                 "above 360); this stays fixed until restart",
                 device_id,
                 needed,
+                _messages(needed),
             )
         else:
             log.warning(
-                "device %s: units=auto decided degrees after %d agreeing messages (negative or fractional "
+                "device %s: units=auto decided degrees after %d agreeing %s (negative or fractional "
                 "positions: LeRobot-normalised). LeRobot's range100 (-100..100) cannot be told from degrees "
                 "by value: if this arm runs LeRobot without use_degrees (before 0.4.4), set units=range100 "
                 "explicitly. This stays fixed until restart.",
                 device_id,
                 needed,
+                _messages(needed),
             )
 
 

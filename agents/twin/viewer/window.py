@@ -213,7 +213,7 @@ class TwinViewer:
             raise ViewerError(
                 f"cannot open the viewer window ({exc}). `twin view` needs a desktop session: run it in the "
                 "DCV console session or set DISPLAY (e.g. DISPLAY=:0); for images without a display use "
-                "`twin demo` or twin.output.render."
+                "`twin demo` or `twin render`."
             ) from exc
         self.feed.start()
         try:
@@ -319,7 +319,7 @@ def check_display(environ: Mapping[str, str] | None = None) -> None:
     display = env.get("DISPLAY", "")
     hint = (
         "`twin view` needs a desktop session: run it in the DCV console session or set DISPLAY (e.g. "
-        "DISPLAY=:0); for images without a display use `twin demo` or twin.output.render."
+        "DISPLAY=:0); for images without a display use `twin demo` or `twin render`."
     )
     if not display:
         raise ViewerError(f"no display: DISPLAY is not set. {hint}")
