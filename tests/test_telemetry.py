@@ -26,6 +26,7 @@ from twin.core.telemetry import (
     Units,
     decode_load,
     decode_velocity,
+    diagnostic_columns,
 )
 from twin.robot import so101
 from twin.robot.calibration import Calibration, MotorCalibration, load_calibration
@@ -396,6 +397,19 @@ def test_ticks_diagnostics_are_sign_decoded_and_scaled() -> None:
         status=0,
         moving=True,
     )
+
+
+def test_tenth_unit_registers_read_as_the_decimal_they_stand_for() -> None:
+    # 12 units of 0.1 % are 1.2 %, not 12 * 0.1 = 1.2000000000000002; the same for 0.1 V. The alarm engine's
+    # columns agree with the per-message diagnostics.
+    t = decoder(Units.TICKS).decode(
+        payload(TICKS_EXAMPLE, velocity=0, load=1036, temp=41, current=100, voltage=121)
+    )
+    assert (t.diagnostics["elbow_flex"].load_percent, t.diagnostics["elbow_flex"].voltage_v) == (-1.2, 12.1)
+    assert str(t.diagnostics["elbow_flex"].load_percent) == "-1.2"
+    columns = diagnostic_columns([t])
+    joint = list(so101.JOINT_NAMES).index("elbow_flex")
+    assert columns.load_percent[0, joint] == -1.2 and columns.voltage_v([0])[0, joint] == 12.1
 
 
 def test_float_variant_diagnostics_keep_the_signed_velocity() -> None:

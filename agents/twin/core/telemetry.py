@@ -262,8 +262,8 @@ RAD_PER_TICK = 2.0 * math.pi / so101.TICK_MAX
 # Diagnostic register scales: twin.robot.sts3215 holds them with their sources.
 RAD_PER_STEP_S = sts3215.RAD_PER_STEP
 CURRENT_MA_PER_UNIT = sts3215.CURRENT_MA_PER_UNIT
-VOLTAGE_V_PER_UNIT = sts3215.VOLTAGE_V_PER_UNIT
-LOAD_PERCENT_PER_UNIT = sts3215.LOAD_PERCENT_PER_UNIT
+VOLTAGE_UNITS_PER_VOLT = sts3215.VOLTAGE_UNITS_PER_VOLT
+LOAD_UNITS_PER_PERCENT = sts3215.LOAD_UNITS_PER_PERCENT
 
 # Bounds a message must respect; docs/telemetry.md lists them (device ids: twin.core.topics).
 TIMESTAMP_MIN_MS = 946_684_800_000  # 2000-01-01: an edge clock before this is unset, or it sends seconds
@@ -1094,11 +1094,11 @@ def _converted(
     return JointDiagnostics(
         steps,
         rad_s,
-        None if load is None else decode_load(load) * LOAD_PERCENT_PER_UNIT,
+        None if load is None else decode_load(load) / LOAD_UNITS_PER_PERCENT,
         None if temp is None else float(temp),
         # Divided last so whole mA stay exact: 100 units -> 650 mA -> 0.65 A.
         None if current is None else current * CURRENT_MA_PER_UNIT / 1000.0,
-        None if voltage is None else voltage * VOLTAGE_V_PER_UNIT,
+        None if voltage is None else voltage / VOLTAGE_UNITS_PER_VOLT,
         status,
         None if moving is None else bool(moving),
     )
@@ -1165,7 +1165,8 @@ class DiagnosticColumns:
         volts = array("d")
         for k in rows:
             volts.extend([nan if r.voltage is UNSET else r.voltage for r in self.messages[k].readings])
-        return np.frombuffer(volts, dtype=np.float64).reshape(len(rows), len(_JOINTS)) * VOLTAGE_V_PER_UNIT
+        registers = np.frombuffer(volts, dtype=np.float64).reshape(len(rows), len(_JOINTS))
+        return registers / VOLTAGE_UNITS_PER_VOLT
 
 
 def diagnostic_columns(messages: Sequence[Telemetry]) -> DiagnosticColumns:
@@ -1207,7 +1208,7 @@ def diagnostic_columns(messages: Sequence[Telemetry]) -> DiagnosticColumns:
     load = values[..., 2]
     velocity = values[..., 3]
     # decode_load and decode_velocity (sign in bit 10 and bit 15), then the registers' scales, as _converted.
-    load = np.where((load >= 1024) & (load <= 2047), -(load - 1024), load) * LOAD_PERCENT_PER_UNIT
+    load = np.where((load >= 1024) & (load <= 2047), -(load - 1024), load) / LOAD_UNITS_PER_PERCENT
     signed = np.where((velocity >= 32768) & (velocity <= 65535), -(velocity - 32768), velocity)
     steps = np.where(float_variant[:, None], velocity, signed)
     return DiagnosticColumns(

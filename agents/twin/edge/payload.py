@@ -46,7 +46,7 @@ MALFORMED_KINDS: tuple[str, ...] = (
 # STS3215 registers: velocity is sign-magnitude with the sign in bit 15, load has its sign in bit 10.
 VELOCITY_SIGN_BIT = sts3215.VELOCITY_SIGN_BIT
 LOAD_SIGN_BIT = sts3215.LOAD_SIGN_BIT
-VOLTAGE_V_PER_UNIT = sts3215.VOLTAGE_V_PER_UNIT
+VOLTAGE_UNITS_PER_VOLT = sts3215.VOLTAGE_UNITS_PER_VOLT
 # Default calibration for the "degrees" variant: arm joints centred on the LeRobot home tick; the gripper's
 # calibrated range is the mock motion's span, so it sweeps 0..100 % (closed..open).
 DEGREES_PER_TICK = 360.0 / so101.TICK_MAX
@@ -208,7 +208,7 @@ def _physical_joints(
         steps = round(r.velocity_steps_s)
         # Present_Temperature reads whole degrees, whichever way the edge forwards it.
         temperature = round(r.temperature_c)
-        volts = r.voltage_v / VOLTAGE_V_PER_UNIT
+        volts = r.voltage_v * VOLTAGE_UNITS_PER_VOLT
         if variant == "ticks":
             joints[name] = {
                 "position": position,
@@ -254,7 +254,7 @@ def _apply_servo_faults(
     loads = None
     if model_loads is not None:
         loads = model_loads.percent(positions)
-        volts = model_loads.supply_v / VOLTAGE_V_PER_UNIT
+        volts = model_loads.supply_v * VOLTAGE_UNITS_PER_VOLT
         for fields in joints.values():
             fields["voltage"] = round(volts) if ticks_variant else round(volts, 1)
     for i, (name, fields) in enumerate(joints.items()):

@@ -145,7 +145,7 @@ class ModelLoads:
 
 def load_register(percent: float) -> int:
     """Signed load percent -> Present_Load register (0.1 % units, direction in bit 10)."""
-    units = min(1000, round(abs(percent) / sts3215.LOAD_PERCENT_PER_UNIT))
+    units = min(1000, round(abs(percent) * sts3215.LOAD_UNITS_PER_PERCENT))
     return units + sts3215.LOAD_SIGN_BIT if percent < 0 else units
 
 

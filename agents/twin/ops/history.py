@@ -91,12 +91,12 @@ def with_decoded(frame: pl.LazyFrame) -> pl.LazyFrame:
         load_units = pl.when(load.is_between(1024, 2047)).then(-(load - 1024)).otherwise(load)
         exprs += [
             (steps * tm.RAD_PER_STEP_S).alias(f"{joint}_velocity_rad_s"),
-            (load_units * tm.LOAD_PERCENT_PER_UNIT).alias(f"{joint}_load_percent"),
+            (load_units / tm.LOAD_UNITS_PER_PERCENT).alias(f"{joint}_load_percent"),
             pl.col(raw_column(joint, "temp")).alias(f"{joint}_temperature_c"),
             (pl.col(raw_column(joint, "current")) * tm.CURRENT_MA_PER_UNIT / 1000.0).alias(
                 f"{joint}_current_a"
             ),
-            (pl.col(raw_column(joint, "voltage")) * tm.VOLTAGE_V_PER_UNIT).alias(f"{joint}_voltage_v"),
+            (pl.col(raw_column(joint, "voltage")) / tm.VOLTAGE_UNITS_PER_VOLT).alias(f"{joint}_voltage_v"),
         ]
     return frame.with_columns(exprs)
 

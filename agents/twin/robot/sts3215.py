@@ -36,11 +36,13 @@ VELOCITY_SIGN_BIT = 1 << 15
 # Present_Load (address 60): "the voltage duty cycle of the current control output driving the motor",
 # magnitude 0..1000 in 0.1 % units with the direction in bit 10 (1024 + n means -n).
 LOAD_SIGN_BIT = 1 << 10
-LOAD_PERCENT_PER_UNIT = 0.1
+# The 0.1 % and 0.1 V registers are divided by 10, not multiplied by 0.1: a register of 12 then reads 1.2,
+# the nearest double to the decimal, where 12 * 0.1 gave 1.2000000000000002.
+LOAD_UNITS_PER_PERCENT = 10
 # Present_Current (address 69): 6.5 mA per unit, at most 500 units (3.25 A) measurable.
 CURRENT_MA_PER_UNIT = 6.5
 # Present_Voltage (address 62): 0.1 V per unit.
-VOLTAGE_V_PER_UNIT = 0.1
+VOLTAGE_UNITS_PER_VOLT = 10
 
 # --- factory protection settings (FT-TBL, EEPROM defaults) -------------------------------------------------
 
