@@ -184,6 +184,27 @@ def test_push_refuses_what_is_not_a_calibration(tmp_path: Path, capsys: pytest.C
     assert not (tmp_path / "cal").exists()
 
 
+@pytest.mark.parametrize(
+    "device", ["arm 9", "a" * 65, "ärm", "arm.9"], ids=["space", "65-chars", "non-ascii", "dot"]
+)
+def test_push_and_rm_refuse_an_id_the_stack_would_not_mirror(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], device: str
+) -> None:
+    """The device id rule of docs/getting-started.md part 3 (twin.core.topics, the deployment's), for every
+    store: refused as bad input, with the rule and the fix, and nothing written."""
+    store = str(tmp_path / "cal")
+    for argv in (["push", device, str(EXAMPLE)], ["rm", device]):
+        assert main(["calibration", *argv, "--store", store]) == cmd.EXIT_USAGE
+        err = capsys.readouterr().err
+        assert f"ARM {device!r} is not a device id" in err, err
+        assert "1..64 letters, digits, '-' or '_'" in err and "deviceId" in err, err
+    assert not (tmp_path / "cal").exists()
+    # The longest id the rule allows is stored, and a file the rule refuses names no arm in a store.
+    assert main(["calibration", "push", "a" * 64, str(EXAMPLE), "--store", store]) == cmd.EXIT_OK
+    (tmp_path / "cal" / f"{device}.json").write_bytes(EXAMPLE.read_bytes())
+    assert set(DirectoryStore(tmp_path / "cal").listing()) == {"a" * 64}
+
+
 def test_push_refuses_a_leader_arms_calibration(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     # LeRobot calibrates both arms of a teleoperation pair and keeps their files side by side, with the same
     # motor names; the edge reads the follower. A leader's file would decode the follower at wrong angles.

@@ -11,7 +11,8 @@ Two device-id rules, one narrower than the other:
   without `/`, `+`, `#` or surrounding spaces). An edge's id is not ours to choose, so this is generous.
 - `policy_device_id_problem`: what a deployment may list in `-c devices=...`. Those ids are also written into
   IAM policy resource ARNs, so the stack takes only letters, digits, `-` and `_` (at most 64). Every id this
-  rule accepts is also accepted by the first (tests/test_topics.py checks both on one table).
+  rule accepts is also accepted by the first (tests/test_topics.py checks both on one table). A calibration
+  store keeps files for these ids only (twin.service.calibrations, `twin calibration push`).
 """
 
 from __future__ import annotations

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from twin.core.aws import region_or_env
-from twin.core.topics import device_id_problem
+from twin.core.topics import POLICY_DEVICE_ID_RULE, policy_device_id_problem
 from twin.robot.calibration import MAX_FILE_BYTES, Calibration, parse_calibration
 
 log = logging.getLogger(__name__)
@@ -66,19 +66,23 @@ class CalibrationStore(Protocol):
     def uri_of(self, device: str) -> str: ...
 
 
+# A store keeps calibrations only for the device ids a deployment may list (twin.core.topics, the stricter
+# of its two rules), a directory as much as the stack's bucket: the ids are typed at a shell and become file
+# names and S3 keys, and a file pushed to a laptop's directory can then go to the stack's store as it is.
+
+
 def device_of(name: str) -> str | None:
     """The device id a file name in the store stands for, or None when it names no device."""
     if not name.endswith(SUFFIX):
         return None
     device = name[: -len(SUFFIX)]
-    return device if device_id_problem(device) is None and "/" not in device else None
+    return device if policy_device_id_problem(device) is None else None
 
 
 def check_device(device: str) -> None:
     """ValueError naming the rule when `device` cannot be an arm's file name in a store."""
-    problem = device_id_problem(device)
-    if problem is not None:
-        raise ValueError(f"{device!r} is not a device id: {problem}")
+    if policy_device_id_problem(device) is not None:
+        raise ValueError(f"{device!r} is not a device id: a device id is {POLICY_DEVICE_ID_RULE}")
 
 
 @dataclass(frozen=True)

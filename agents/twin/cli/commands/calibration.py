@@ -11,7 +11,8 @@ names: s3://bucket/prefix, or a directory for an agent on this machine ([telemet
 Exit codes:
   0  done
   1  the store could not be read or written (the message says why), or `rm` found nothing to remove
-  2  bad command line, or FILE is not an SO-101 calibration, or ARM is not a device id
+  2  bad command line, or FILE is not an SO-101 calibration, or ARM is not a device id (1 to 64 letters,
+     digits, '-' or '_': the ids the stack mirrors, for every store)
   3  no AWS credentials or region; 4 stack not found; 5 the stack has no CalibrationUri output
 """
 
@@ -43,8 +44,9 @@ EPILOG = """examples:
   twin calibration push arm-003 ~/.cache/huggingface/lerobot/calibration/robots/so_follower/arm-003.json
   twin calibration ls
   twin calibration push arm-001 robots/so101/calibration/so101_follower_example.json --store out/calibration
-exit codes: 0 done; 1 store error (or rm: nothing there); 2 bad file, device id or command line;
-  3 no AWS credentials or region; 4 stack not found; 5 the stack has no CalibrationUri output
+exit codes: 0 done; 1 store error (or rm: nothing there); 2 bad file or command line, or ARM is not
+  1..64 letters, digits, '-' or '_'; 3 no AWS credentials or region; 4 stack not found; 5 the stack has
+  no CalibrationUri output
 store: --store, else the CalibrationUri output of --stack (default $SO101_TWIN_STACK, else So101TwinStack)"""
 
 
@@ -121,7 +123,11 @@ def run(args: argparse.Namespace) -> int:
         try:
             check_device(args.arm)
         except ValueError as exc:
-            console.err(f"ARM {exc}; use the device id the arm's edge publishes as")
+            done = "stored" if args.action == "push" else "removed"
+            console.err(
+                f"ARM {exc}; use the device id the arm's edge publishes as, and give an edge whose id breaks "
+                f"this rule a new one (its deviceId: docs/getting-started.md, part 3). Nothing was {done}"
+            )
             return EXIT_USAGE
     data = b""
     if args.action == "push":
