@@ -115,20 +115,28 @@ def _store(args: argparse.Namespace) -> CalibrationStore | int:
     return open_store(outputs.calibration_uri, region=twin.region)
 
 
+def _arm_is_a_device_id(args: argparse.Namespace) -> bool:
+    """False, having said why and what to do, when ARM breaks the device id rule a store keeps."""
+    from twin.service.calibrations import check_device
+
+    try:
+        check_device(args.arm)
+    except ValueError as exc:
+        done = "stored" if args.action == "push" else "removed"
+        console.err(
+            f"ARM {exc}; use the device id the arm's edge publishes as, and give an edge whose id breaks "
+            f"this rule a new one (its deviceId: docs/getting-started.md, part 3). Nothing was {done}"
+        )
+        return False
+    return True
+
+
 def run(args: argparse.Namespace) -> int:
     from twin.robot.calibration import parse_calibration
-    from twin.service.calibrations import CalibrationStoreError, check_device
+    from twin.service.calibrations import CalibrationStoreError
 
-    if args.action in ("push", "rm"):
-        try:
-            check_device(args.arm)
-        except ValueError as exc:
-            done = "stored" if args.action == "push" else "removed"
-            console.err(
-                f"ARM {exc}; use the device id the arm's edge publishes as, and give an edge whose id breaks "
-                f"this rule a new one (its deviceId: docs/getting-started.md, part 3). Nothing was {done}"
-            )
-            return EXIT_USAGE
+    if args.action in ("push", "rm") and not _arm_is_a_device_id(args):
+        return EXIT_USAGE
     data = b""
     if args.action == "push":
         leader = LEADER_DIRECTORIES.intersection(args.file.expanduser().parts)
