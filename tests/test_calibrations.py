@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import shlex
 import signal
 import time
 from pathlib import Path
@@ -13,7 +14,7 @@ from typing import Any
 
 import boto3
 import pytest
-from conftest import AWS_TEST_REGION, wait_for
+from conftest import AWS_TEST_REGION, http_get, wait_for
 from moto import mock_aws
 from twin.cli import main
 from twin.cli.commands import calibration as cmd
@@ -23,6 +24,7 @@ from twin.robot import so101
 from twin.robot.calibration import load_calibration
 from twin.service.agent import AgentService
 from twin.service.calibrations import (
+    STACK_PREFIX,
     CalibrationBook,
     CalibrationWatcher,
     DirectoryStore,
@@ -140,6 +142,12 @@ def test_the_s3_store_lists_one_object_per_arm(s3: Any) -> None:
     assert store.delete("arm-003") and store.listing() == {}
 
 
+def test_the_stacks_prefix_is_the_one_a_plain_push_is_told_for() -> None:
+    # The console tells the twin host's agent (s3://<bucket>/calibration) to push without --store.
+    source = (REPO / "stacks" / "history_bucket.py").read_text()
+    assert f'CALIBRATION_PREFIX = "{STACK_PREFIX}"' in source
+
+
 def test_store_uris_are_checked() -> None:
     assert isinstance(open_store("out/calibration"), DirectoryStore)
     assert isinstance(open_store("file:///tmp/cal"), DirectoryStore)
@@ -244,7 +252,7 @@ def test_push_goes_to_the_stacks_calibration_uri(s3: Any, capsys: pytest.Capture
 # --- the agent --------------------------------------------------------------------------------------------
 
 
-def agent_with_store(store: Path, **overrides: Any) -> AgentService:
+def agent_with_store(store: Path | str, **overrides: Any) -> AgentService:
     config = load_config(
         None,
         {
@@ -329,6 +337,76 @@ def test_messages_that_arrive_while_the_mirrors_start_decode_with_the_arms_own(
         pan = (state.devices["arm-001"].joints_rad or {})["shoulder_pan"]
         assert abs(pan - pan_angle(EXAMPLE.read_bytes())) < 1e-9
         assert state.devices["arm-001"].calibration == str(tmp_path / "cal" / "arm-001.json")
+    finally:
+        agent.stop()
+
+
+def create_stack(calibration_uri: str) -> None:
+    """A stack in moto whose CalibrationUri output is `calibration_uri` (what a plain push writes to)."""
+    template = {
+        "Resources": {"Topic": {"Type": "AWS::SNS::Topic"}},
+        "Outputs": {
+            "InstanceId": {"Value": "i-0123456789abcdef0"},
+            "DcvUrl": {"Value": "https://192.0.2.1:8443/#console"},
+            "CalibrationUri": {"Value": calibration_uri},
+        },
+    }
+    boto3.client("cloudformation", region_name=AWS_TEST_REGION).create_stack(
+        StackName="So101TwinStack", TemplateBody=json.dumps(template)
+    )
+
+
+def arm_flagged(agent: AgentService, device: str) -> bool:
+    state = agent.state().devices.get(device)
+    return state is not None and state.uncalibrated
+
+
+def arm_document(agent: AgentService, device: str) -> dict[str, Any]:
+    """GET /api/arm/<device> (what the console's Arm page reads) once the agent flags the arm uncalibrated."""
+    agent.feed(f"dt/lerobot/{device}/telemetry", ticks_message(device, int(time.time() * 1000)))
+    wait_for(
+        lambda: (d := agent.state().devices.get(device)) and d.uncalibrated, 30, f"{device} uncalibrated"
+    )
+    status, _, body = http_get(f"{agent.http_url}/api/arm/{device}")
+    assert status == 200, body
+    return dict(json.loads(body))
+
+
+@pytest.mark.parametrize("store", ["directory", "stack", "none"])
+def test_the_arm_document_says_how_to_push_to_the_store_this_agent_reads(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, request: pytest.FixtureRequest, store: str
+) -> None:
+    """The Arm page's hint is the command that gives the arm a calibration this very agent picks up: `--store`
+    with the agent's own directory (absolute: the agent resolved it in its working directory), the plain
+    command for the stack's bucket (it writes to the stack's CalibrationUri), and for an agent without a
+    store, the setting to set first."""
+    monkeypatch.chdir(tmp_path)
+    setting = {"directory": "cal", "stack": "s3://twin-bucket/calibration", "none": ""}[store]
+    if store == "stack":
+        request.getfixturevalue("s3")
+        create_stack(setting)
+    agent = agent_with_store(setting)
+    agent.start()
+    try:
+        push = arm_document(agent, "arm-002")["calibration_push"]
+        expected = {
+            "directory": f"twin calibration push arm-002 FILE --store {shlex.quote(str(tmp_path / 'cal'))}",
+            "stack": "twin calibration push arm-002 FILE",
+            "none": "twin calibration push arm-002 FILE --store DIR",
+        }[store]
+        assert push["command"] == expected and expected in push["text"], push
+        assert push["store"] == {"directory": str(tmp_path / "cal"), "stack": setting, "none": ""}[store]
+        assert agent.state().agent.calibration_store == push["store"]
+        if store == "none":
+            assert "reads no per-arm calibrations" in push["text"]
+            assert '[telemetry] calibrations = "DIR"' in push["text"], push
+            return
+        # The command as the page shows it, run from elsewhere: the agent picks the file up, no restart.
+        monkeypatch.chdir(tmp_path.parent)
+        argv = [EXAMPLE.as_posix() if a == "FILE" else a for a in shlex.split(push["command"])]
+        assert main(argv[1:]) == cmd.EXIT_OK
+        feed_until(agent, "arm-002", pan_angle(EXAMPLE.read_bytes()), [int(time.time() * 1000) + 100])
+        assert not agent.state().devices["arm-002"].uncalibrated
     finally:
         agent.stop()
 

@@ -11,6 +11,7 @@ import io
 import json
 import math
 import re
+import shlex
 import time
 import urllib.error
 import urllib.request
@@ -37,13 +38,19 @@ TIMEOUT_S = 90.0
 
 
 @pytest.fixture(scope="module")
-def console(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
-    """The live agent's URL (history on, so sessions exist)."""
-    workdir = tmp_path_factory.mktemp("console")
+def workdir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("console")
+
+
+@pytest.fixture(scope="module")
+def console(workdir: Path) -> Iterator[str]:
+    """The live agent's URL (history on, so sessions exist; a calibration store of its own, left empty, as a
+    local agent reads one)."""
     with LocalRig(workdir=workdir / "rig") as rig:
         agent = rig.start_agent(
             {
                 "telemetry.units": "ticks",
+                "telemetry.calibrations": str(workdir / "calibration"),
                 "history.uri": str(workdir / "history"),
                 "history.commit_every_s": 1.0,
             }
@@ -171,7 +178,18 @@ def test_an_arm_page_draws_its_charts(console: str, page: Any, browser_errors: l
     page.goto(console + "/arm/arm-003")
     wait_for_charts(page, TIMEOUT_S)
     assert page.locator("canvas[data-chart]").count() == 4
-    assert "twin calibration push arm-003 FILE" in page.locator("#uncalibrated").inner_text()
+    assert browser_errors == []
+
+
+def test_an_arm_page_says_how_to_push_to_this_agents_calibration_store(
+    console: str, workdir: Path, page: Any, browser_errors: list[str]
+) -> None:
+    """A local agent reads its own directory, not the stack's store: the page gives the command for it."""
+    page.goto(console + "/arm/arm-003")
+    hint = page.locator("#uncalibrated")
+    hint.wait_for()
+    command = f"twin calibration push arm-003 FILE --store {shlex.quote(str(workdir / 'calibration'))}"
+    assert command in hint.inner_text() and hint.get_attribute("data-command") == command
     assert browser_errors == []
 
 

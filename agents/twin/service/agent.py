@@ -46,7 +46,7 @@ from twin.output.emf import EmfFileWriter, EmfPublisher, FleetTotals
 from twin.output.history_feed import HistoryProcess, HistoryStartError, WriterFigures
 from twin.output.sinks import TwinSink
 from twin.service.admission import DeviceBudget
-from twin.service.calibrations import CalibrationBook, CalibrationWatcher, open_store
+from twin.service.calibrations import CalibrationBook, CalibrationWatcher, open_store, store_location
 from twin.service.config import AgentConfig, ConfigError
 from twin.service.console import FleetRow, Listening, SessionCatalog, device_rows, rerun_viewer_url
 from twin.service.events import Event, EventKind, EventLevel, EventQuery, EventStore, FleetWatch
@@ -200,6 +200,7 @@ class AgentService:
         # handed to each; the last hand-over is kept for a worker that is started again.
         self._calibration_request = CalibrationsRequest()
         self._calibrations = self._calibration_watcher(config)
+        self._calibration_store = store_location(self._calibrations.store if self._calibrations else None)
         self._routes: dict[str, tuple[Shard, str]] = {}
 
     def _init_run_state(self) -> None:
@@ -744,6 +745,7 @@ class AgentService:
             devices=tuple(self.config.telemetry.devices),
             topic_filters=tuple(self.topic_filters),
             broker=broker_state(self.config.broker.url, self._pool_settings, self._pool, self._started_pool),
+            calibration_store=self._calibration_store,
         )
 
     def _worker_infos(self, reports: dict[int, MirrorReport]) -> tuple[WorkerInfo, ...]:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import os
+import shlex
 import threading
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
@@ -37,6 +38,12 @@ log = logging.getLogger(__name__)
 
 SUFFIX = ".json"
 DEFAULT_POLL_S = 30.0
+# The agent setting that names the store, as the console names it.
+SETTING = "[telemetry] calibrations"
+# The prefix the stack keeps the calibrations under in its bucket (stacks/history_bucket.py): an agent that
+# reads s3://<bucket>/calibration is the twin host, whose store a plain `twin calibration push` writes to
+# (the stack's CalibrationUri output).
+STACK_PREFIX = "calibration"
 
 
 class CalibrationStoreError(Exception):
@@ -237,7 +244,60 @@ def open_store(uri: str, *, region: str = "", s3_client: Any = None) -> Calibrat
         return S3Store(bucket, prefix.strip("/"), region, s3_client)
     if "://" in uri and not uri.startswith("file://"):
         raise ValueError(f"{uri!r} is not a directory or s3://bucket/prefix")
-    return DirectoryStore(Path(uri.removeprefix("file://")).expanduser())
+    # Absolute: an agent keeps watching the directory it started with, the one its console tells people to
+    # push to (push_hint), whatever its working directory is later.
+    return DirectoryStore(Path(uri.removeprefix("file://")).expanduser().absolute())
+
+
+def store_location(store: CalibrationStore | None) -> str:
+    """Where an agent reads the arms' calibrations from, as a `--store` that means the same from any working
+    directory: s3://bucket/prefix or an absolute path; "" when it reads none."""
+    if store is None:
+        return ""
+    if isinstance(store, DirectoryStore):
+        # One made by hand may be relative: resolved in the agent's working directory, not the shell's.
+        return str(store.path.absolute())
+    return store.uri
+
+
+@dataclass(frozen=True)
+class PushHint:
+    """How to give an arm a calibration that the agent serving the console reads (its Arm page says it)."""
+
+    store: str  # store_location of the agent's store ("" for none)
+    command: str  # the command to run, FILE standing for the arm's LeRobot calibration ("" when none can be)
+    text: str  # the sentence the page shows, the command in it
+
+
+def push_hint(device: str, store: str) -> PushHint:
+    """What to run so the agent whose store is `store` (store_location) picks up `device`'s calibration:
+    `--store` for a directory, nothing more for the stack's bucket (the command's default), and for no store
+    the setting to set first."""
+    if policy_device_id_problem(device) is not None:
+        return PushHint(
+            store,
+            "",
+            f"no calibration can be kept for {device!r}: a device id is {POLICY_DEVICE_ID_RULE}; give the "
+            "arm's edge one that is (its deviceId)",
+        )
+    push = f"twin calibration push {device} FILE"
+    if not store:
+        command = f"{push} --store DIR"
+        return PushHint(
+            store,
+            command,
+            f'this agent reads no per-arm calibrations: set {SETTING} = "DIR" in its config, restart it, '
+            f"then run {command}",
+        )
+    if store.startswith("s3://") and store.removeprefix("s3://").partition("/")[2] == STACK_PREFIX:
+        return PushHint(
+            store,
+            push,
+            f"push one: {push} (it writes to the deployed stack's CalibrationUri, {store}, which this agent "
+            "reads)",
+        )
+    command = f"{push} --store {shlex.quote(store)}"
+    return PushHint(store, command, f"push one: {command} (this agent reads {store})")
 
 
 @dataclass(frozen=True)

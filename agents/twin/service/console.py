@@ -24,6 +24,7 @@ from typing import NamedTuple, Protocol, runtime_checkable
 
 import msgspec
 
+from twin.service.calibrations import push_hint
 from twin.service.events import Event, EventQuery
 from twin.service.state import AgentState, AlarmInfo, DeviceState
 
@@ -319,11 +320,20 @@ def fleet_summary(
 
 
 def arm_update(state: AgentState, device: str, alarms: Sequence[AlarmInfo]) -> bytes:
-    """An arm page's document: {"time", "device": DeviceState or null, "alarms": [...]}; its alarms are every
-    one that is not NORMAL, worst first."""
+    """An arm page's document: {"time", "device": DeviceState or null, "alarms": [...], "calibration_push":
+    {"store", "command", "text"}}; its alarms are every one that is not NORMAL, worst first, and
+    "calibration_push" says how to give the arm a calibration this agent reads (calibrations.push_hint)."""
     mine = [a for a in alarms if a.device == device]
+    # Made here, not in the page: only the agent knows its store, and a command for another store (the
+    # stack's, from a laptop's agent) would push a file this agent never reads.
+    hint = push_hint(device, state.agent.calibration_store)
     return msgspec.json.encode(
-        {"time": state.agent.time, "device": state.devices.get(device), "alarms": mine}
+        {
+            "time": state.agent.time,
+            "device": state.devices.get(device),
+            "alarms": mine,
+            "calibration_push": {"store": hint.store, "command": hint.command, "text": hint.text},
+        }
     )
 
 

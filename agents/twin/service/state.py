@@ -320,6 +320,9 @@ class AgentInfo:
     loss: FleetLoss = field(default_factory=FleetLoss)
     # A sharded agent's worker processes (empty when one process does everything).
     workers: tuple[WorkerInfo, ...] = ()
+    # Where it reads each arm's own calibration ([telemetry] calibrations): s3://bucket/prefix or an absolute
+    # directory, "" for none. The console's Arm page says how to push to it (docs/agent.md, "Calibration").
+    calibration_store: str = ""
 
 
 @dataclass(frozen=True)

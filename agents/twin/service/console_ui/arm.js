@@ -47,12 +47,13 @@
     el("h2", { text: "live, last 5 minutes" }),
     el("div", { class: "grid2" }, ...charts.map((c) => c.panel)));
 
-  // Where the arm's LeRobot calibration came from; flagged when it has none while its units need one.
-  function calibration(d) {
+  // Where the arm's LeRobot calibration came from; flagged when it has none while its units need one, with
+  // how to push one to the store this agent reads: the agent writes that sentence, since only it knows its store.
+  function calibration(d, push) {
     const problem = d.calibration_problem ? ` (newest file refused: ${d.calibration_problem})` : "";
     if (d.uncalibrated) {
-      return el("span", { class: "uncalibrated", id: "uncalibrated",
-        text: `none: the nominal SO-101's zero and range, not this arm's (twin calibration push ${device} FILE)${problem}` });
+      return el("span", { class: "uncalibrated", id: "uncalibrated", "data-command": push.command,
+        text: `none: the nominal SO-101's zero and range, not this arm's; ${push.text}${problem}` });
     }
     return el("span", { text: (d.calibration || "not needed for these units") + problem });
   }
@@ -150,7 +151,7 @@
       ["last seen", h.age_s === null ? "never" : `${Twin.num(h.age_s, 1)} s ago`],
       ["rate", `${Twin.num(h.rate_hz, 1)} Hz`],
       ["units", d.units], ["mode", d.mode],
-      ["calibration", calibration(d)],
+      ["calibration", calibration(d, doc.calibration_push)],
       ["messages", `${h.counters.received} received, ${h.counters.applied} applied`],
     ]);
     kv(lossBox, [

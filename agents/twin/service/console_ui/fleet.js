@@ -93,7 +93,7 @@
     const node = el("a", { class: "card " + r[c.status], href: "/arm/" + encodeURIComponent(id), role: "listitem",
       "data-device": id },
       el("div", { class: "id" }, id, ...(r[c.uncalibrated]
-        ? [" ", el("span", { class: "uncalibrated", title: "no LeRobot calibration: twin calibration push", text: "uncalibrated" })] : []),
+        ? [" ", el("span", { class: "uncalibrated", title: "no LeRobot calibration: its page says how to push one", text: "uncalibrated" })] : []),
         ...restarting(r)),
       el("div", { class: "line" }, el("span", { class: "status " + r[c.status], text: r[c.status] }),
         " · " + Twin.ago(r[c.last_seen], now)),
