@@ -104,7 +104,9 @@ KEY_DOCS: dict[str, str] = {
     ),
     "telemetry.calibrations": (
         "Where each arm's own calibration is kept, as `<device>.json`: a directory or "
-        "`s3://bucket/prefix` (the twin host: the stack's `CalibrationUri`). Watched; empty = none."
+        "`s3://bucket/prefix` (the twin host: the stack's `CalibrationUri`). Watched; empty = none. "
+        "Fill a directory with `twin calibration push ARM FILE --store DIR` (without `--store`, push "
+        "writes to the stack's store)."
     ),
     "telemetry.calibration_poll_s": (
         "How often the store of `calibrations` is listed (1..3600). A new or changed file takes "
