@@ -164,6 +164,8 @@ def test_demo_tells_the_story_leaves_valid_files_and_stops_its_broker(tmp_path):
     # came during the simulator's shutdown, 0.3 s (three periods) after its last message, which a busy
     # machine makes likely. Never OFFLINE.
     assert {stats["per_device"][d]["status"] for d in devices} <= {"ONLINE", "STALE"}
+    # Once the edge stopped, the agent noticed the silence (docs/viewer.md, stats.json).
+    assert {stats["per_device"][d]["status_after_stop"] for d in devices} == {"STALE"}
 
     assert_not_blank(out / files["png"])
     with Image.open(out / files["gif"]) as gif:
@@ -233,6 +235,7 @@ def test_demo_without_chromium_says_so_and_skips_only_the_console_pictures(tmp_p
     # Nothing tries, or waits for, pictures that cannot be taken.
     assert "taking the console pictures" not in proc.stdout
     assert stats["messages"]["received"] > 0
+    assert stats["per_device"]["arm-001"]["status_after_stop"] == "STALE"
     assert_broker_gone(stats)
 
 

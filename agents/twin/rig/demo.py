@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from twin.core.health import DeviceStatus
 from twin.edge.payload import device_ids
 from twin.edge.servo_physics import SERVO_MODES, PhysicalServoConfig
 from twin.rig.console_shots import CHROMIUM, ConsoleShotError, console_screenshots, missing_for_shots
@@ -62,6 +63,9 @@ RRD_NAME = "twin.rrd"
 STATUS_INTERVAL_S = 0.25
 # How long the end of a run waits for the last published messages to be counted by the agent.
 SETTLE_TIMEOUT_S = 10.0
+# How long past the stale time (health.stale_periods expected periods) the end of a run waits for every arm to
+# be reported STALE, stats.json's status_after_stop: on a busy machine the agent may see the silence late.
+AFTER_STOP_GRACE_S = 5.0
 
 # The story (module doc). 220 g at the tip keeps the shoulder at three quarters of its stall torque on average
 # through the mock motion (at stall a quarter of the time); at 80x its thermal time constant (9.5 minutes,
@@ -259,6 +263,7 @@ class _Run:
 
     frames: list[dict[str, float]] = field(default_factory=list)
     running_statuses: dict[str, str] = field(default_factory=dict)
+    after_stop_statuses: dict[str, str] = field(default_factory=dict)
     started: float = 0.0
     final_state: AgentState | None = None
     report: Any = None
@@ -363,6 +368,7 @@ def _run_on_rig(
                 stop=stop,
                 out_dir=out_dir,
             )
+            run.after_stop_statuses = _statuses_after_stop(service)
     except RigError as exc:
         raise DemoError(str(exc)) from exc
     except (ConnectionError, ValueError) as exc:  # the edge simulator's failure, re-raised by join()
@@ -519,6 +525,19 @@ def _settled_state(service: Any, published: int) -> AgentState:
     return state
 
 
+def _statuses_after_stop(service: Any) -> dict[str, str]:
+    """Each arm's health once the agent has noticed that the edge went silent: polled until no arm is ONLINE
+    (STALE after the stale time), or for at most AFTER_STOP_GRACE_S past that time, then as it is. The
+    settled state comes too early for it: it is read as soon as the last message is counted, well inside the
+    stale time, so every arm is still ONLINE there."""
+    deadline = time.monotonic() + service.config.health.stale_after_s + AFTER_STOP_GRACE_S
+    while True:
+        statuses = {device: str(d.health.status) for device, d in service.state().devices.items()}
+        if DeviceStatus.ONLINE not in statuses.values() or time.monotonic() >= deadline:
+            return statuses
+        time.sleep(0.05)
+
+
 def _follow_story(
     story: _Story, service: Any, state: AgentState, elapsed_s: float, note: Callable[[str], None]
 ) -> None:
@@ -571,9 +590,9 @@ def _status(state: AgentState, sent: int, elapsed: float) -> DemoStatus:
 
 def _device_stats(run: _Run, device: str, d: DeviceState) -> dict[str, Any]:
     return {
-        # Health at the end of the publishing run (a moment later every arm is STALE: the edge stopped).
+        # Health at the end of the publishing run, and once the agent noticed the edge stop (STALE).
         "status": run.running_statuses.get(device, str(d.health.status)),
-        "status_after_stop": str(d.health.status),
+        "status_after_stop": run.after_stop_statuses.get(device, str(d.health.status)),
         "received": d.health.counters.received,
         "applied": d.health.counters.applied,
         "rejected": dict(d.health.counters.rejected),
