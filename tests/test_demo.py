@@ -92,6 +92,32 @@ def assert_png(path: Path, width: int, min_height: int, max_height: int) -> None
     assert rgb.std() > 10, f"{path} is a flat image"
 
 
+def arm_box(path: Path, frame: int = 0) -> tuple[float, float, float, float]:
+    """Where the (yellow) arm is in a picture or a GIF frame, as fractions of its height and width: top,
+    bottom, left, right. The top twelfth, where the PNG's label is, does not count."""
+    with Image.open(path) as image:
+        image.seek(frame)
+        rgb = np.asarray(image.convert("RGB"))
+    r, g, b = (rgb[..., i].astype(int) for i in range(3))
+    arm = (r > 120) & (g > 80) & (b < 90) & (r - b > 90)
+    arm[: rgb.shape[0] // 12] = False
+    rows, cols = np.nonzero(arm)
+    assert rows.size > 100, f"{path} frame {frame} does not show the arm"
+    height, width = arm.shape
+    return rows.min() / height, (rows.max() + 1) / height, cols.min() / width, (cols.max() + 1) / width
+
+
+def assert_framed_like_the_gif(png: Path, gif: Path) -> None:
+    """The final picture shows the whole arm as the GIF's last frame, the same pose, does: the same place and
+    size in the picture, clear of its borders, not a close-up of it."""
+    with Image.open(gif) as image:
+        last = image.n_frames - 1
+    final, animated = arm_box(png), arm_box(gif, last)
+    assert all(abs(a - b) < 0.03 for a, b in zip(final, animated, strict=True)), (final, animated)
+    _, bottom, left, right = final  # the top is the GIF's: the PNG's label covers its top twelfth
+    assert bottom < 1 and left > 0 and right < 1, final
+
+
 @pytest.mark.slow
 @pytest.mark.long(seconds=50)
 @pytest.mark.timeout(300)
@@ -168,6 +194,7 @@ def test_demo_tells_the_story_leaves_valid_files_and_stops_its_broker(tmp_path):
     assert {stats["per_device"][d]["status_after_stop"] for d in devices} == {"STALE"}
 
     assert_not_blank(out / files["png"])
+    assert_framed_like_the_gif(out / files["png"], out / files["gif"])
     with Image.open(out / files["gif"]) as gif:
         # A frame each time the demo's status poll (every 0.25 s) finds the next one due, one a second over
         # the 30 s run: fewer when the machine is busy.

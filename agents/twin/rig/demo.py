@@ -14,8 +14,9 @@ Fleet page and the hot arm's page are photographed in headless Chromium (twin.ri
 Chromium or Playwright the demo says so and goes on without the two pictures.
 
 Afterwards the output directory holds:
-  twin.png    the twin's pose: written as soon as the first arm is mirrored, then again with its final pose
-  twin.gif    a ~30-frame animation of the run (first device), rendered offscreen
+  twin.png    the twin's pose: written as soon as the first arm is mirrored, then again with its final pose,
+              framed as the GIF is
+  twin.gif    a ~30-frame animation of the run (first device) ending on its final pose, rendered offscreen
   console-fleet.png, console-arm.png  the operator console while the hot servo's alarm is up
   session-*.usda  the agent's USD session recording
   twin.rrd    the fleet as a Rerun recording (`rerun twin.rrd` opens it; docs/web.md)
@@ -61,6 +62,8 @@ OUTPUT_PATTERNS = (
 HISTORY_DIR = "history"
 RRD_NAME = "twin.rrd"
 STATUS_INTERVAL_S = 0.25
+# The final twin.png: twice the GIF's size, the same shape, so it frames the arm as the GIF does.
+PNG_SIZE = (640, 480)
 # How long the end of a run waits for the last published messages to be counted by the agent.
 SETTLE_TIMEOUT_S = 10.0
 # How long past the stale time (health.stale_periods expected periods) the end of a run waits for every arm to
@@ -681,7 +684,7 @@ def _write_outputs(
     stats: dict[str, Any],
     out_dir: Path,
 ) -> None:
-    from twin.output.render import RenderError, render_png  # noqa: PLC0415
+    from twin.output.render import RenderError, framing_camera, render_png  # noqa: PLC0415
 
     first = state.devices.get(devices[0])
     joints = first.joints_rad if first is not None else None
@@ -689,16 +692,25 @@ def _write_outputs(
         raise DemoError(f"device {devices[0]} was never mirrored: nothing to render (see stats above)")
     files: dict[str, str] = {}
     status = stats["per_device"][devices[0]]["status"]
+    # The GIF ends on the final pose, and the final picture is framed as the GIF is, over every pose of the
+    # run. Framed on its own pose alone (render_png's default, which the first picture keeps: it has no other
+    # pose) the arm fills the picture to the framing's 8 % margin from a camera about a third of a metre
+    # away: a close-up whose near parts loom, with less room at its top than the label takes.
+    frames = [*run.frames, dict(joints)]
+    width, height = PNG_SIZE
     try:
         png = render_png(
             service.robot,
             joints,
             out_dir / "twin.png",
+            width=width,
+            height=height,
+            camera=framing_camera(service.robot, frames, aspect=width / height),
             text=f"{devices[0]}  {status}  after {stats['duration_s']:.0f} s",
         )
         files["png"] = png.name
         if len(run.frames) >= 2:
-            files["gif"] = _write_gif(service.robot, run.frames, out_dir / "twin.gif", config.gif_size).name
+            files["gif"] = _write_gif(service.robot, frames, out_dir / "twin.gif", config.gif_size).name
     except RenderError as exc:
         raise DemoError(f"rendering failed: {exc}") from exc
     recording = service.recording_path
