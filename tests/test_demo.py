@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import os
 import re
+import shlex
+import shutil
 import signal
 import subprocess
 import sys
@@ -90,6 +92,32 @@ def assert_png(path: Path, width: int, min_height: int, max_height: int) -> None
         assert image.width == width and min_height <= image.height <= max_height, (path, image.size)
         rgb = np.asarray(image.convert("RGB"))
     assert rgb.std() > 10, f"{path} is a flat image"
+
+
+def printed_commands(stdout: str) -> list[list[str]]:
+    """The commands the demo prints, between backticks (a span without a space, like the `demo` extra, names
+    a thing rather than a command)."""
+    return [shlex.split(span) for span in re.findall(r"`([^`\n]+)`", stdout) if " " in span]
+
+
+def assert_runnable_as_printed(stdout: str, cwd: Path) -> list[list[str]]:
+    """Every command the demo printed names a program that exists as printed: a path from `cwd`, the demo's
+    directory, or a name on PATH without the venv's bin/ (`make demo` does not activate the venv)."""
+    venv_bin = Path(sys.executable).parent.resolve()
+    path = os.pathsep.join(
+        entry
+        for entry in os.environ.get("PATH", "").split(os.pathsep)
+        if entry and Path(entry).resolve() != venv_bin
+    )
+    commands = printed_commands(stdout)
+    for argv in commands:
+        program = argv[0]
+        if os.sep in program:
+            exe = cwd / program
+            assert exe.is_file() and os.access(exe, os.X_OK), f"{shlex.join(argv)}: no program {exe}"
+        else:
+            assert shutil.which(program, path=path), f"{shlex.join(argv)}: {program} is not on PATH"
+    return commands
 
 
 def arm_box(path: Path, frame: int = 0) -> tuple[float, float, float, float]:
@@ -227,8 +255,9 @@ def test_demo_tells_the_story_leaves_valid_files_and_stops_its_broker(tmp_path):
     # The Rerun recording: the arm's tree, a pose per applied message (Rerun's own reader; the values are
     # checked against MuJoCo in test_rerun_sink.py).
     assert files["rrd"] == "twin.rrd"
-    assert "rerun " + str(out / "twin.rrd") in proc.stdout
-    assert f"twin history ls --history {out / 'history'}" in proc.stdout
+    commands = assert_runnable_as_printed(proc.stdout, Path.cwd())
+    assert [argv[1:] for argv in commands if argv[-1].endswith(".rrd")] == [[str(out / "twin.rrd")]]
+    assert ["history", "ls", "--history", str(out / "history")] in [argv[1:] for argv in commands]
     temporal, static = read_rrd(out / "twin.rrd")
     assert "/arms/arm-001:Transform3D:translation" in static.schema.names
     poses = [v for v in temporal.column("/arms/arm-001/wrist:Transform3D:translation").to_pylist() if v]
@@ -263,7 +292,36 @@ def test_demo_without_chromium_says_so_and_skips_only_the_console_pictures(tmp_p
     assert "taking the console pictures" not in proc.stdout
     assert stats["messages"]["received"] > 0
     assert stats["per_device"]["arm-001"]["status_after_stop"] == "STALE"
+    assert_runnable_as_printed(proc.stdout, Path.cwd())
     assert_broker_gone(stats)
+
+
+def test_the_summary_names_its_programs_by_paths_that_run_from_here(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """From the directory holding the venv, as `make demo` runs in the repository beside .venv, the commands
+    the summary prints name twin and rerun by their paths from there: without an activated venv a bare
+    `twin` or `rerun` is not found."""
+    from twin.cli.commands.demo import _summary
+
+    here = Path(sys.executable).parent.parent.parent
+    monkeypatch.chdir(here)
+    stats = {
+        "duration_s": 30.0,
+        "messages": {"sent": 10, "received": 10, "rejected": 0},
+        "latency_s": {"end_to_end": {"p50": 0.004, "p99": 0.05}},
+        "files": {"png": "twin.png", "rrd": "twin.rrd"},
+        "history": {"uri": "history", "plot": "history.png"},
+        "story": None,
+        "console": {"taken": False, "skipped": None},
+    }
+    _summary(stats, Path("out/demo"))
+    commands = assert_runnable_as_printed(capsys.readouterr().out, here)
+    twin = os.path.relpath(Path(sys.executable).with_name("twin"), here)
+    rerun = os.path.relpath(Path(sys.executable).with_name("rerun"), here)
+    assert sorted(commands) == sorted(
+        [[twin, "history", "ls", "--history", "out/demo/history"], [rerun, "out/demo/twin.rrd"]]
+    )
 
 
 def test_missing_playwright_is_named_with_the_way_to_install_it():

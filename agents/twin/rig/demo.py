@@ -19,7 +19,7 @@ Afterwards the output directory holds:
   twin.gif    a ~30-frame animation of the run (first device) ending on its final pose, rendered offscreen
   console-fleet.png, console-arm.png  the operator console while the hot servo's alarm is up
   session-*.usda  the agent's USD session recording
-  twin.rrd    the fleet as a Rerun recording (`rerun twin.rrd` opens it; docs/web.md)
+  twin.rrd    the fleet as a Rerun recording (`.venv/bin/rerun out/demo/twin.rrd` opens it; docs/web.md)
   stats.json  what was sent, received, rejected (by reason), latencies, per-device health, the story
   history/    the agent's telemetry history (Delta Lake tables, docs/history.md)
   history.png the first device's joint angles, temperature, load and current, drawn from that history
