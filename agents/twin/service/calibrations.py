@@ -94,9 +94,14 @@ def check_device(device: str) -> None:
 
 @dataclass(frozen=True)
 class DirectoryStore:
-    """A directory of `<device>.json` files (a laptop's agent, the tests)."""
+    """A directory of `<device>.json` files (a laptop's agent, the tests). Its path is made absolute: an
+    agent keeps watching the directory it started with, the one its console tells people to push to
+    (push_hint), whatever its working directory is later."""
 
     path: Path
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "path", self.path.absolute())
 
     @property
     def uri(self) -> str:
@@ -244,20 +249,13 @@ def open_store(uri: str, *, region: str = "", s3_client: Any = None) -> Calibrat
         return S3Store(bucket, prefix.strip("/"), region, s3_client)
     if "://" in uri and not uri.startswith("file://"):
         raise ValueError(f"{uri!r} is not a directory or s3://bucket/prefix")
-    # Absolute: an agent keeps watching the directory it started with, the one its console tells people to
-    # push to (push_hint), whatever its working directory is later.
-    return DirectoryStore(Path(uri.removeprefix("file://")).expanduser().absolute())
+    return DirectoryStore(Path(uri.removeprefix("file://")).expanduser())
 
 
 def store_location(store: CalibrationStore | None) -> str:
     """Where an agent reads the arms' calibrations from, as a `--store` that means the same from any working
     directory: s3://bucket/prefix or an absolute path; "" when it reads none."""
-    if store is None:
-        return ""
-    if isinstance(store, DirectoryStore):
-        # One made by hand may be relative: resolved in the agent's working directory, not the shell's.
-        return str(store.path.absolute())
-    return store.uri
+    return "" if store is None else store.uri
 
 
 @dataclass(frozen=True)
@@ -273,13 +271,11 @@ def push_hint(device: str, store: str) -> PushHint:
     """What to run so the agent whose store is `store` (store_location) picks up `device`'s calibration:
     `--store` for a directory, nothing more for the stack's bucket (the command's default), and for no store
     the setting to set first."""
-    if policy_device_id_problem(device) is not None:
-        return PushHint(
-            store,
-            "",
-            f"no calibration can be kept for {device!r}: a device id is {POLICY_DEVICE_ID_RULE}; give the "
-            "arm's edge one that is (its deviceId)",
-        )
+    try:
+        check_device(device)
+    except ValueError as exc:
+        text = f"no calibration can be kept: {exc}; give the arm's edge one that is (its deviceId)"
+        return PushHint(store, "", text)
     push = f"twin calibration push {device} FILE"
     if not store:
         command = f"{push} --store DIR"
