@@ -37,7 +37,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from twin.core.health import DeviceStatus
 from twin.edge.payload import device_ids
@@ -62,6 +62,7 @@ OUTPUT_PATTERNS = (
 HISTORY_DIR = "history"
 RRD_NAME = "twin.rrd"
 STATUS_INTERVAL_S = 0.25
+_T = TypeVar("_T")
 # The final twin.png: twice the GIF's size, the same shape, so it frames the arm as the GIF does.
 PNG_SIZE = (640, 480)
 # How long the end of a run waits for the last published messages to be counted by the agent.
@@ -517,14 +518,21 @@ def _watch(
         on_status(_status(run.final_state, run.report.published, time.monotonic() - run.started))
 
 
+def _poll(read: Callable[[], _T], done: Callable[[_T], bool], timeout_s: float) -> _T:
+    """`read()` again every 50 ms until `done` holds for what it returned, or `timeout_s` has passed: then
+    what it returned last (the end of a run reports what it saw rather than fail)."""
+    deadline = time.monotonic() + timeout_s
+    value = read()
+    while not done(value) and time.monotonic() < deadline:
+        time.sleep(0.05)
+        value = read()
+    return value
+
+
 def _settled_state(service: Any, published: int) -> AgentState:
     """The agent's state once it has counted every published message (the last ones are still crossing the
     broker and the mirror when the edge stops), or after SETTLE_TIMEOUT_S if some never arrive."""
-    deadline = time.monotonic() + SETTLE_TIMEOUT_S
-    state: AgentState = service.state()
-    while state.messages_handled() < published and time.monotonic() < deadline:
-        time.sleep(0.05)
-        state = service.state()
+    state: AgentState = _poll(service.state, lambda s: s.messages_handled() >= published, SETTLE_TIMEOUT_S)
     return state
 
 
@@ -533,12 +541,12 @@ def _statuses_after_stop(service: Any) -> dict[str, str]:
     (STALE after the stale time), or for at most AFTER_STOP_GRACE_S past that time, then as it is. The
     settled state comes too early for it: it is read as soon as the last message is counted, well inside the
     stale time, so every arm is still ONLINE there."""
-    deadline = time.monotonic() + service.config.health.stale_after_s + AFTER_STOP_GRACE_S
-    while True:
-        statuses = {device: str(d.health.status) for device, d in service.state().devices.items()}
-        if DeviceStatus.ONLINE not in statuses.values() or time.monotonic() >= deadline:
-            return statuses
-        time.sleep(0.05)
+
+    def statuses() -> dict[str, str]:
+        return {device: str(d.health.status) for device, d in service.state().devices.items()}
+
+    timeout_s = service.config.health.stale_after_s + AFTER_STOP_GRACE_S
+    return _poll(statuses, lambda now: DeviceStatus.ONLINE not in now.values(), timeout_s)
 
 
 def _follow_story(
