@@ -15,11 +15,13 @@ os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 import json
 import random
 import shutil
+import subprocess
+import sys
 import threading
 import time
 import urllib.error
 import urllib.request
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -153,6 +155,21 @@ def wait_for(predicate: Callable[[], Any], timeout: float, what: str, interval: 
     """Poll until `predicate()` is truthy and return that value; AssertionError naming `what` on timeout
     (the rig's own wait, failing the test rather than the rig)."""
     return wait_until(predicate, timeout, what, interval, error=AssertionError)
+
+
+def run_twin(
+    args: Sequence[str], env: Mapping[str, str], cwd: Path | None = None, timeout: float = 180.0
+) -> subprocess.CompletedProcess[str]:
+    """`twin <args>` as a user runs it, in a process of its own, to its exit (its output captured)."""
+    return subprocess.run(
+        [sys.executable, "-m", "twin.cli", *args],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=dict(env),
+        cwd=cwd,
+    )
 
 
 def copy_bundled_scene(directory: Path) -> Path:

@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import os
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from conftest import run_twin
 from moto import mock_aws
 from moto_s3 import MotoS3
 from twin.cli.commands.run import overrides_from_args
@@ -70,15 +70,7 @@ def test_the_aws_commands_work_with_aws_region_alone(tmp_path: Path) -> None:
         env.pop("SO101_TWIN_STACK", None)
 
         def twin(*args: str) -> subprocess.CompletedProcess[str]:
-            return subprocess.run(
-                [sys.executable, "-m", "twin.cli", *args],
-                check=False,
-                env=env,
-                cwd=tmp_path,
-                capture_output=True,
-                text=True,
-                timeout=120,
-            )
+            return run_twin(args, env, cwd=tmp_path, timeout=120)
 
         store = "s3://so101-calibration/calibration"
         pushed = twin("calibration", "push", "arm-001", str(EXAMPLE), "--store", store)

@@ -24,7 +24,7 @@ from typing import Any
 import psutil
 import pytest
 from awscrt import mqtt5
-from conftest import Publisher, get_metrics, get_state, metric, wait_for, wait_handled
+from conftest import Publisher, get_metrics, get_state, metric, run_twin, wait_for, wait_handled
 from test_servo_alarms_e2e import alarms, post
 from twin.core.alarms import AlarmKind, AlarmRecord, AlarmState
 from twin.core.health import DeviceCounters, DeviceStatus, HealthSnapshot
@@ -548,18 +548,6 @@ def test_junk_takes_no_place_and_the_device_limit_holds_across_workers(rig: Loca
         assert [w.devices for w in state.agent.workers] == [2, 1]
 
 
-def _twin_run(args: list[str], env: dict[str, str]) -> subprocess.CompletedProcess[str]:
-    """`twin <args>` in a process of its own, to its exit (its output captured)."""
-    return subprocess.run(
-        [sys.executable, "-m", "twin.cli", *args],
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=180,
-        env=env,
-    )
-
-
 @pytest.mark.slow
 def test_a_setting_only_a_worker_can_check_stops_twin_run_with_exit_code_2(tmp_path: Path) -> None:
     # The calibration file exists (the config loads), but only a mirror reads it: in a worker process here.
@@ -569,7 +557,7 @@ def test_a_setting_only_a_worker_can_check_stops_twin_run_with_exit_code_2(tmp_p
     config.write_text(f'[telemetry]\ncalibration = "{calibration}"\n')
     broker = f"mqtt://127.0.0.1:{free_port()}"  # never reached: the workers fail before the pool starts
     run = ["run", "--config", str(config), "--workers", "2", "--broker", broker, "--http", "127.0.0.1:0"]
-    done = _twin_run(run, child_env())
+    done = run_twin(run, child_env())
     assert done.returncode == 2, done.stderr
     assert "configuration error: telemetry.calibration" in done.stderr
     assert str(calibration) in done.stderr
@@ -610,7 +598,7 @@ def test_a_start_that_fails_reports_only_the_stop_it_made(tmp_path: Path, failur
             env = {k: v for k, v in env.items() if k not in ("AWS_REGION", "AWS_DEFAULT_REGION")}
             env |= {"AWS_CONFIG_FILE": str(empty), "AWS_SHARED_CREDENTIALS_FILE": str(empty)}
         run = ["run", "--config", str(config), "--workers", "2", "--broker", broker, "--http", http]
-        done = _twin_run(run, env)
+        done = run_twin(run, env)
     assert done.returncode == 1, done.stderr
     assert "cannot start" in done.stderr
     lines = [json.loads(line) for line in done.stdout.splitlines() if line.startswith("{")]
