@@ -26,6 +26,7 @@ from twin.service.agent import AgentService
 from twin.service.calibrations import (
     STACK_PREFIX,
     CalibrationBook,
+    CalibrationStoreError,
     CalibrationWatcher,
     DirectoryStore,
     S3Store,
@@ -247,6 +248,100 @@ def test_push_goes_to_the_stacks_calibration_uri(s3: Any, capsys: pytest.Capture
     body = s3.get_object(Bucket="twin-bucket", Key="calibration/arm-005.json")["Body"].read()
     assert body == EXAMPLE.read_bytes()
     assert main(["calibration", "ls", "--stack", "Missing"]) == cmd.EXIT_NO_STACK
+
+
+def kept_cycle(store_arg: list[str], store: Any, capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    """push over another calibration, rm and restore keep what they replace (one per arm), for `store`."""
+    newer = tmp_path / "newer.json"
+    newer.write_bytes(shifted(100))
+    push = ["calibration", "push", "arm-001"]
+    assert main([*push, str(EXAMPLE), *store_arg]) == cmd.EXIT_OK
+    assert "kept at" not in capsys.readouterr().out and store.read_kept("arm-001") is None
+    # The same file again writes nothing (the agent has nothing to read again).
+    assert main([*push, str(EXAMPLE), *store_arg]) == cmd.EXIT_OK
+    assert "already holds this calibration; nothing written" in capsys.readouterr().out
+    # Over another: the one it replaces is kept, and is no arm's in the listing.
+    assert main([*push, str(newer), *store_arg]) == cmd.EXIT_OK
+    out = capsys.readouterr().out
+    assert "the one it replaced is kept at" in out and "twin calibration restore arm-001" in out, out
+    assert store.read("arm-001") == shifted(100) and store.read_kept("arm-001") == EXAMPLE.read_bytes()
+    assert list(store.listing()) == ["arm-001"]
+    # restore swaps them, and again swaps back.
+    restore = ["calibration", "restore", "arm-001", *store_arg]
+    assert main(restore) == cmd.EXIT_OK
+    assert store.read("arm-001") == EXAMPLE.read_bytes() and store.read_kept("arm-001") == shifted(100)
+    assert main(restore) == cmd.EXIT_OK
+    assert store.read("arm-001") == shifted(100) and store.read_kept("arm-001") == EXAMPLE.read_bytes()
+    capsys.readouterr()
+    # rm keeps what it removes; restore puts it back and then has nothing more to put back.
+    assert main(["calibration", "rm", "arm-001", *store_arg]) == cmd.EXIT_OK
+    assert "kept at" in capsys.readouterr().out
+    assert store.listing() == {} and store.read_kept("arm-001") == shifted(100)
+    assert main(restore) == cmd.EXIT_OK
+    assert "holds the calibration rm removed again" in capsys.readouterr().out
+    assert store.read("arm-001") == shifted(100) and store.read_kept("arm-001") is None
+    assert main(restore) == cmd.EXIT_STORE
+    assert "arm-001 has no kept calibration" in capsys.readouterr().err
+    assert store.read("arm-001") == shifted(100)
+
+
+def test_a_directory_store_keeps_what_push_and_rm_replace(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    kept_cycle(["--store", str(tmp_path / "cal")], DirectoryStore(tmp_path / "cal"), capsys, tmp_path)
+    assert sorted(p.name for p in (tmp_path / "cal").iterdir()) == ["arm-001.json"]
+
+
+def test_the_stacks_store_keeps_what_push_and_rm_replace(
+    s3: Any, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # moto stands in for S3 (AWS cannot be reached from here); the stack's bucket keeps no versions.
+    store = open_store("s3://twin-bucket/calibration", s3_client=s3)
+    kept_cycle(["--store", "s3://twin-bucket/calibration"], store, capsys, tmp_path)
+    keys = [o["Key"] for o in s3.list_objects_v2(Bucket="twin-bucket")["Contents"]]
+    assert keys == ["calibration/arm-001.json"]
+
+
+def test_a_restore_that_fails_halfway_saves_the_kept_calibration_here(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """restore keeps the current calibration in the kept one's place first; when writing the kept one back
+    then fails, it exists only in the command's memory, so it is saved in the working directory."""
+    newer = tmp_path / "newer.json"
+    newer.write_bytes(shifted(100))
+    store = ["--store", str(tmp_path / "cal")]
+    for file in (EXAMPLE, newer):
+        assert main(["calibration", "push", "arm-001", str(file), *store]) == cmd.EXIT_OK
+    capsys.readouterr()
+
+    def refused(self: DirectoryStore, device: str, data: bytes) -> str:
+        raise CalibrationStoreError(f"cannot write to {self.uri}: disk full")
+
+    monkeypatch.setattr(DirectoryStore, "write", refused)
+    monkeypatch.chdir(tmp_path)
+    assert main(["calibration", "restore", "arm-001", *store]) == cmd.EXIT_STORE
+    err = capsys.readouterr().err
+    saved = tmp_path / "arm-001.json.previous"
+    assert f"saved in {saved}" in err and "disk full" in err, err
+    assert saved.read_bytes() == EXAMPLE.read_bytes()
+    assert DirectoryStore(tmp_path / "cal").read("arm-001") == shifted(100)
+
+
+def test_a_file_named_for_another_arm_is_stored_with_a_warning(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # LeRobot names each file for the arm it calibrated: arm-002's file pushed as arm-003 is likely a slip.
+    own = tmp_path / "arm-002.json"
+    own.write_bytes(shifted(40))
+    store = ["--store", str(tmp_path / "cal")]
+    assert main(["calibration", "push", "arm-003", str(own), *store]) == cmd.EXIT_OK
+    assert "warning" not in capsys.readouterr().err  # arm-002 has no calibration in the store
+    assert main(["calibration", "push", "arm-002", str(own), *store]) == cmd.EXIT_OK
+    assert main(["calibration", "push", "arm-004", str(own), *store]) == cmd.EXIT_OK
+    err = capsys.readouterr().err
+    assert "arm-002.json is named for arm-002, which has a calibration of its own" in err, err
+    assert "stored as arm-004's" in err and "twin calibration restore arm-004" in err, err
+    assert DirectoryStore(tmp_path / "cal").read("arm-004") == shifted(40)
 
 
 # --- the agent --------------------------------------------------------------------------------------------

@@ -37,6 +37,10 @@ from twin.robot.calibration import MAX_FILE_BYTES, Calibration, parse_calibratio
 log = logging.getLogger(__name__)
 
 SUFFIX = ".json"
+# The calibration a push or rm replaced, kept beside the arm's own under this name's ending, one per arm:
+# the store may be a bucket without versioning (the stack's, as Delta's files want), and a calibration is an
+# hour with the arm. Not `.json`, so no listing takes it for an arm's.
+KEPT_SUFFIX = ".json.previous"
 DEFAULT_POLL_S = 30.0
 # The agent setting that names the store, as the console names it.
 SETTING = "[telemetry] calibrations"
@@ -71,6 +75,18 @@ class CalibrationStore(Protocol):
         ...
 
     def uri_of(self, device: str) -> str: ...
+
+    def read_kept(self, device: str) -> bytes | None:
+        """The calibration the device's last push or rm replaced (KEPT_SUFFIX), None when none is kept."""
+        ...
+
+    def write_kept(self, device: str, data: bytes) -> str:
+        """Keep `data` as the calibration the device's file replaced; returns where it went."""
+        ...
+
+    def delete_kept(self, device: str) -> None:
+        """Forget the kept calibration, if any."""
+        ...
 
 
 # A store keeps calibrations only for the device ids a deployment may list (twin.core.topics, the stricter
@@ -124,22 +140,13 @@ class DirectoryStore:
         return found
 
     def read(self, device: str) -> bytes:
-        path = self.path / f"{device}{SUFFIX}"
-        try:
-            with path.open("rb") as fh:
-                return fh.read(MAX_FILE_BYTES + 1)
-        except OSError as exc:
-            raise CalibrationStoreError(f"cannot read {path}: {exc}") from exc
+        found = self._get(f"{device}{SUFFIX}", missing_ok=False)
+        assert found is not None  # a missing file raised
+        return found
 
     def write(self, device: str, data: bytes) -> str:
         check_device(device)
-        self.path.mkdir(parents=True, exist_ok=True)
-        path = self.path / f"{device}{SUFFIX}"
-        tmp = path.with_name(f".{path.name}.tmp")
-        tmp.write_bytes(data)
-        # A rename, so the watcher never reads half a file.
-        tmp.replace(path)
-        return str(path)
+        return self._put(f"{device}{SUFFIX}", data)
 
     def delete(self, device: str) -> bool:
         try:
@@ -150,6 +157,37 @@ class DirectoryStore:
 
     def uri_of(self, device: str) -> str:
         return str(self.path / f"{device}{SUFFIX}")
+
+    def read_kept(self, device: str) -> bytes | None:
+        return self._get(f"{device}{KEPT_SUFFIX}", missing_ok=True)
+
+    def write_kept(self, device: str, data: bytes) -> str:
+        check_device(device)
+        return self._put(f"{device}{KEPT_SUFFIX}", data)
+
+    def delete_kept(self, device: str) -> None:
+        (self.path / f"{device}{KEPT_SUFFIX}").unlink(missing_ok=True)
+
+    def _get(self, name: str, *, missing_ok: bool) -> bytes | None:
+        path = self.path / name
+        try:
+            with path.open("rb") as fh:
+                return fh.read(MAX_FILE_BYTES + 1)
+        except FileNotFoundError as exc:
+            if missing_ok:
+                return None
+            raise CalibrationStoreError(f"cannot read {path}: {exc}") from exc
+        except OSError as exc:
+            raise CalibrationStoreError(f"cannot read {path}: {exc}") from exc
+
+    def _put(self, name: str, data: bytes) -> str:
+        self.path.mkdir(parents=True, exist_ok=True)
+        path = self.path / name
+        tmp = path.with_name(f".{name}.tmp")
+        tmp.write_bytes(data)
+        # A rename, so the watcher never reads half a file.
+        tmp.replace(path)
+        return str(path)
 
 
 @dataclass
@@ -177,8 +215,8 @@ class S3Store:
             )
         return self.client
 
-    def _key(self, device: str) -> str:
-        return f"{self.prefix}/{device}{SUFFIX}" if self.prefix else f"{device}{SUFFIX}"
+    def _key(self, device: str, suffix: str = SUFFIX) -> str:
+        return f"{self.prefix}/{device}{suffix}" if self.prefix else f"{device}{suffix}"
 
     def _call(self, action: str, fn: Callable[[], Any]) -> Any:
         from botocore.exceptions import BotoCoreError, ClientError  # noqa: PLC0415
@@ -210,24 +248,13 @@ class S3Store:
         return found
 
     def read(self, device: str) -> bytes:
-        def get() -> bytes:
-            body = self._s3().get_object(Bucket=self.bucket, Key=self._key(device))["Body"]
-            try:
-                return bytes(body.read(MAX_FILE_BYTES + 1))
-            finally:
-                body.close()
-
-        return bytes(self._call("read", get))
+        found = self._get(self._key(device), missing_ok=False)
+        assert found is not None  # a missing object raised
+        return found
 
     def write(self, device: str, data: bytes) -> str:
         check_device(device)
-        self._call(
-            "write to",
-            lambda: self._s3().put_object(
-                Bucket=self.bucket, Key=self._key(device), Body=data, ContentType="application/json"
-            ),
-        )
-        return self.uri_of(device)
+        return self._put(self._key(device), data)
 
     def delete(self, device: str) -> bool:
         if device not in self.listing():
@@ -237,6 +264,45 @@ class S3Store:
 
     def uri_of(self, device: str) -> str:
         return f"s3://{self.bucket}/{self._key(device)}"
+
+    def read_kept(self, device: str) -> bytes | None:
+        return self._get(self._key(device, KEPT_SUFFIX), missing_ok=True)
+
+    def write_kept(self, device: str, data: bytes) -> str:
+        check_device(device)
+        return self._put(self._key(device, KEPT_SUFFIX), data)
+
+    def delete_kept(self, device: str) -> None:
+        key = self._key(device, KEPT_SUFFIX)
+        # Deleting a key that is not there is no error in S3.
+        self._call("delete from", lambda: self._s3().delete_object(Bucket=self.bucket, Key=key))
+
+    def _get(self, key: str, *, missing_ok: bool) -> bytes | None:
+        from botocore.exceptions import ClientError  # noqa: PLC0415
+
+        def get() -> bytes | None:
+            try:
+                body = self._s3().get_object(Bucket=self.bucket, Key=key)["Body"]
+            except ClientError as exc:
+                if missing_ok and exc.response.get("Error", {}).get("Code") in ("NoSuchKey", "404"):
+                    return None
+                raise
+            try:
+                return bytes(body.read(MAX_FILE_BYTES + 1))
+            finally:
+                body.close()
+
+        found = self._call("read", get)
+        return None if found is None else bytes(found)
+
+    def _put(self, key: str, data: bytes) -> str:
+        self._call(
+            "write to",
+            lambda: self._s3().put_object(
+                Bucket=self.bucket, Key=key, Body=data, ContentType="application/json"
+            ),
+        )
+        return f"s3://{self.bucket}/{key}"
 
 
 def open_store(uri: str, *, region: str = "", s3_client: Any = None) -> CalibrationStore:

@@ -1,4 +1,4 @@
-"""`twin calibration push|ls|rm`: each arm's LeRobot calibration, in the store the agent watches.
+"""`twin calibration push|ls|rm|restore`: each arm's LeRobot calibration, in the store the agent watches.
 
 LeRobot writes one calibration file per arm when it is calibrated (`lerobot-calibrate`), under
 ~/.cache/huggingface/lerobot/calibration/robots/so_follower/<id>.json. `push ARM FILE` checks the file is a
@@ -8,9 +8,14 @@ by default), without a redeploy or a restart (docs/agent.md, "Calibration").
 The store is the deployed stack's (its CalibrationUri output: s3://<bucket>/calibration), or the one --store
 names: s3://bucket/prefix, or a directory for an agent on this machine ([telemetry] calibrations).
 
+A push over another calibration, and `rm`, keep the one they replace beside it (`<ARM>.json.previous`, one
+per arm; the stack's bucket keeps no versions), and `restore ARM` swaps it back in. A file named for another
+arm that has a calibration of its own in the store is stored as asked, with a warning.
+
 Exit codes:
   0  done
-  1  the store could not be read or written (the message says why), or `rm` found nothing to remove
+  1  the store could not be read or written (the message says why), `rm` found nothing to remove, or
+     `restore` found nothing kept
   2  bad command line, or FILE is not an SO-101 calibration, or ARM is not a device id (1 to 64 letters,
      digits, '-' or '_': the ids the stack mirrors, for every store)
   3  no AWS credentials or region; 4 stack not found; 5 the stack has no CalibrationUri output
@@ -43,8 +48,9 @@ LEADER_DIRECTORIES = frozenset({"teleoperators", "so_leader", "so100_leader", "s
 EPILOG = """examples:
   twin calibration push arm-003 ~/.cache/huggingface/lerobot/calibration/robots/so_follower/arm-003.json
   twin calibration ls
+  twin calibration restore arm-003     # the calibration the last push or rm replaced, back in
   twin calibration push arm-001 robots/so101/calibration/so101_follower_example.json --store out/calibration
-exit codes: 0 done; 1 store error (or rm: nothing there); 2 bad file or command line, or ARM is not
+exit codes: 0 done; 1 store error (or rm, restore: nothing there); 2 bad file or command line, or ARM is not
   1..64 letters, digits, '-' or '_'; 3 no AWS credentials or region; 4 stack not found; 5 the stack has
   no CalibrationUri output
 store: --store, else the CalibrationUri output of --stack (default $SO101_TWIN_STACK, else So101TwinStack)"""
@@ -83,7 +89,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "rm", parents=[common], help="remove ARM's calibration (the arm decodes with the config's again)"
     )
     rm.add_argument("arm", metavar="ARM")
-    for action in (push, ls, rm):
+    restore = actions.add_parser(
+        "restore",
+        parents=[common],
+        help="put back the calibration ARM's last push or rm replaced (run again to swap back)",
+    )
+    restore.add_argument("arm", metavar="ARM")
+    for action in (push, ls, rm, restore):
         action.set_defaults(func=run)
 
 
@@ -122,7 +134,7 @@ def _arm_is_a_device_id(args: argparse.Namespace) -> bool:
     try:
         check_device(args.arm)
     except ValueError as exc:
-        done = "stored" if args.action == "push" else "removed"
+        done = {"push": "stored", "rm": "removed"}.get(args.action, "changed")
         console.err(
             f"ARM {exc}; use the device id the arm's edge publishes as, and give an edge whose id breaks "
             f"this rule a new one (its deviceId: docs/getting-started.md, part 3). Nothing was {done}"
@@ -132,55 +144,142 @@ def _arm_is_a_device_id(args: argparse.Namespace) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
-    from twin.robot.calibration import parse_calibration
     from twin.service.calibrations import CalibrationStoreError
 
-    if args.action in ("push", "rm") and not _arm_is_a_device_id(args):
+    if args.action in ("push", "rm", "restore") and not _arm_is_a_device_id(args):
         return EXIT_USAGE
     data = b""
     if args.action == "push":
-        leader = LEADER_DIRECTORIES.intersection(args.file.expanduser().parts)
-        if leader:
-            console.err(
-                f"{args.file} is a leader arm's calibration (LeRobot keeps those under "
-                f"{sorted(leader)[0]}/): the edge reads the follower arm, whose file is "
-                "~/.cache/huggingface/lerobot/calibration/robots/so_follower/<id>.json; push that one"
-            )
-            return EXIT_USAGE
-        try:
-            data = args.file.expanduser().read_bytes()
-            calibration = parse_calibration(data, str(args.file))
-        except OSError as exc:
-            console.err(f"cannot read {args.file}: {exc}")
-            return EXIT_USAGE
-        except ValueError as exc:
-            console.err(str(exc))
-            return EXIT_USAGE
-        # Stored as LeRobot wrote it, once it parsed as a complete SO-101 calibration.
-        console.out(f"{args.file}: an SO-101 calibration of motors {', '.join(calibration)}")
+        read = _calibration_file(args.file)
+        if isinstance(read, int):
+            return read
+        data = read
     store = _store(args)
     if isinstance(store, int):
         return store
     try:
         if args.action == "push":
-            where = store.write(args.arm, data)
-            console.out(
-                f"{args.arm}: {where} (the agent picks it up within its calibration_poll_s, 30 s by default)"
-            )
-        elif args.action == "rm":
-            if not store.delete(args.arm):
-                console.err(f"{args.arm} has no calibration in {store.uri}")
-                return EXIT_STORE
-            console.out(
-                f"{args.arm}: removed from {store.uri}; it decodes with the config's calibration again"
-            )
-        else:
-            listing = store.listing()
-            if not listing:
-                console.out(f"no calibration in {store.uri}")
-            for device in sorted(listing):
-                console.out(f"{device}\t{store.uri_of(device)}")
+            return _push(store, args.arm, args.file, data)
+        if args.action == "rm":
+            return _rm(store, args.arm)
+        if args.action == "restore":
+            return _restore(store, args.arm)
+        listing = store.listing()
+        if not listing:
+            console.out(f"no calibration in {store.uri}")
+        for device in sorted(listing):
+            console.out(f"{device}\t{store.uri_of(device)}")
     except CalibrationStoreError as exc:
         console.err(str(exc))
         return EXIT_STORE
+    return EXIT_OK
+
+
+def _calibration_file(file: Path) -> bytes | int:
+    """FILE's bytes once it parsed as a complete follower arm's SO-101 calibration; else an exit code, having
+    said why."""
+    from twin.robot.calibration import parse_calibration
+
+    leader = LEADER_DIRECTORIES.intersection(file.expanduser().parts)
+    if leader:
+        console.err(
+            f"{file} is a leader arm's calibration (LeRobot keeps those under "
+            f"{sorted(leader)[0]}/): the edge reads the follower arm, whose file is "
+            "~/.cache/huggingface/lerobot/calibration/robots/so_follower/<id>.json; push that one"
+        )
+        return EXIT_USAGE
+    try:
+        data = file.expanduser().read_bytes()
+        calibration = parse_calibration(data, str(file))
+    except OSError as exc:
+        console.err(f"cannot read {file}: {exc}")
+        return EXIT_USAGE
+    except ValueError as exc:
+        console.err(str(exc))
+        return EXIT_USAGE
+    # Stored as LeRobot wrote it, once it parsed as a complete SO-101 calibration.
+    console.out(f"{file}: an SO-101 calibration of motors {', '.join(calibration)}")
+    return data
+
+
+def _current(store: CalibrationStore, arm: str) -> tuple[bytes | None, dict[str, str]]:
+    """ARM's calibration in the store (None: it has none), and the store's listing."""
+    listing = store.listing()
+    return (store.read(arm) if arm in listing else None), listing
+
+
+def _push(store: CalibrationStore, arm: str, file: Path, data: bytes) -> int:
+    current, listing = _current(store, arm)
+    named_for = file.stem
+    if named_for != arm and named_for in listing:
+        # LeRobot names the file for the arm it calibrated: this may be another arm's, pushed by mistake.
+        console.err(
+            f"warning: {file.name} is named for {named_for}, which has a calibration of its own in "
+            f"{store.uri}; it is stored as {arm}'s, as asked (if that was a slip: "
+            f"`twin calibration restore {arm}`)"
+        )
+    if current == data:
+        console.out(f"{arm}: {store.uri_of(arm)} already holds this calibration; nothing written")
+        return EXIT_OK
+    # The one it replaces is kept first: if that fails, nothing has changed.
+    kept = None if current is None else store.write_kept(arm, current)
+    where = store.write(arm, data)
+    console.out(f"{arm}: {where} (the agent picks it up within its calibration_poll_s, 30 s by default)")
+    if kept is not None:
+        console.out(f"{arm}: the one it replaced is kept at {kept} (`twin calibration restore {arm}`)")
+    return EXIT_OK
+
+
+def _rm(store: CalibrationStore, arm: str) -> int:
+    current, _ = _current(store, arm)
+    if current is None:
+        console.err(f"{arm} has no calibration in {store.uri}")
+        return EXIT_STORE
+    kept = store.write_kept(arm, current)
+    store.delete(arm)
+    console.out(
+        f"{arm}: removed from {store.uri}; it decodes with the config's calibration again (kept at {kept}: "
+        f"`twin calibration restore {arm}`)"
+    )
+    return EXIT_OK
+
+
+def _restore(store: CalibrationStore, arm: str) -> int:
+    """The kept calibration becomes ARM's again, and the one it replaces is kept in its place: a second
+    restore swaps back."""
+    from twin.robot.calibration import parse_calibration
+    from twin.service.calibrations import KEPT_SUFFIX, CalibrationStoreError
+
+    kept = store.read_kept(arm)
+    if kept is None:
+        console.err(
+            f"{arm} has no kept calibration in {store.uri}: push and rm keep the one they replace, and "
+            "nothing was replaced yet"
+        )
+        return EXIT_STORE
+    try:
+        parse_calibration(kept, f"{arm}'s kept calibration")
+    except ValueError as exc:
+        console.err(f"{exc}; nothing restored")
+        return EXIT_STORE
+    current, _ = _current(store, arm)
+    if current is None:
+        where = store.write(arm, kept)
+        store.delete_kept(arm)
+        console.out(f"{arm}: {where} holds the calibration rm removed again")
+        return EXIT_OK
+    store.write_kept(arm, current)
+    try:
+        where = store.write(arm, kept)
+    except CalibrationStoreError:
+        # The kept one's place now holds the current one: the kept one is only here. Saved where its
+        # owner can push it again rather than lost.
+        saved = Path(f"{arm}{KEPT_SUFFIX}").absolute()
+        saved.write_bytes(kept)
+        console.err(f"{arm}'s kept calibration is saved in {saved}: `twin calibration push {arm} {saved}`")
+        raise
+    console.out(
+        f"{arm}: {where} holds the kept calibration again; the one it replaced is kept in its place "
+        "(restore again to swap back)"
+    )
     return EXIT_OK
