@@ -1205,6 +1205,26 @@ def _replay_config(uri: str, broker_url: str, *, speed: float = 8.0, **extra: An
     )
 
 
+def test_history_ls_splits_sessions_as_the_console_does(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """One meaning of "session": `twin history ls` splits at the console's gap ([http] session_gap_s) unless
+    told otherwise; a 20 s pause is one session on both, two with --gap 10."""
+    from twin.cli import main
+    from twin.cli.commands.history import SESSION_GAP_S
+    from twin.ops.history import DEFAULT_SESSION_GAP_S
+    from twin.service.config import load_config
+
+    assert SESSION_GAP_S == DEFAULT_SESSION_GAP_S == load_config(None, {}).http.session_gap_s
+    # 10 s of messages, a 20 s pause, 10 s more.
+    uri = _history_with(tmp_path, samples(100) + samples(100, start_s=T0 + 30, seed=2))
+    counts = []
+    for extra in ([], ["--gap", "10"]):
+        assert main(["history", "ls", "--history", uri, "--json", *extra]) == 0
+        counts.append(len(json.loads(capsys.readouterr().out)["devices"][0]["sessions"]))
+    assert counts == [1, 2]
+
+
 @pytest.mark.slow
 def test_history_commands_list_plot_and_export(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from PIL import Image

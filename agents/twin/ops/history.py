@@ -34,9 +34,12 @@ from twin.output.history import (
 
 log = logging.getLogger(__name__)
 
-# A device's rows belong to one session while consecutive messages are at most this far apart: the agent's
-# default offline_after_s, after which a silent arm counts as gone.
-DEFAULT_SESSION_GAP_S = 10.0
+# A device's rows belong to one session while consecutive messages are at most this far apart: the console's
+# default ([http] session_gap_s), so `twin history ls` and the Sessions page count the same sessions.
+DEFAULT_SESSION_GAP_S = 30.0
+# A plot breaks its lines where messages lie further apart than this: the agent's default offline_after_s,
+# after which a silent arm counts as gone, so a line never bridges a time the arm was offline.
+PLOT_GAP_S = 10.0
 # Plots draw at most this many points per line; longer windows are averaged into equal time buckets.
 PLOT_MAX_POINTS = 4000
 EXPORT_FORMATS = ("parquet", "csv")
@@ -354,7 +357,7 @@ def plot(
     *,
     since: dt.datetime | None = None,
     until: dt.datetime | None = None,
-    gap_s: float = DEFAULT_SESSION_GAP_S,
+    gap_s: float = PLOT_GAP_S,
     max_points: int = PLOT_MAX_POINTS,
 ) -> dict[str, Any]:
     """Joint angles, temperature, load and current of one device on a shared time axis, as a PNG."""

@@ -16,6 +16,9 @@ from typing import Any
 from twin.cli.output import Console
 
 DEFAULT_URI = "out/history"
+# twin.ops.history.DEFAULT_SESSION_GAP_S, the console's [http] session_gap_s, as a plain number: `twin --help`
+# must not import polars. A test holds the three equal.
+SESSION_GAP_S = 30.0
 EXIT_EMPTY = 1
 EXIT_USAGE = 2
 
@@ -47,7 +50,10 @@ def register(subparsers: Any) -> None:
     add_window_arguments(ls)
     ls.add_argument("--device", metavar="D", help="only this device")
     ls.add_argument(
-        "--gap", type=float, default=10.0, help="seconds without a message that end a session (default 10)"
+        "--gap",
+        type=float,
+        default=SESSION_GAP_S,
+        help=f"seconds without a message that end a session (default {SESSION_GAP_S:g}, as on the console)",
     )
     ls.add_argument("--json", action="store_true", help="print one JSON object")
     ls.set_defaults(func=run_ls)
