@@ -315,6 +315,22 @@ def test_worker_handles_every_message_and_prints_its_cost() -> None:
         assert case["first_message_us"] > 0 and case["message_us"] > 0
 
 
+def test_worker_by_batch_size_reports_each_size_and_the_cost_of_a_batch() -> None:
+    out = bench("worker", "--arms", "40", "--rounds", "2", "--batch", "4", "40", timeout=120)
+    assert out["scenario"] == "worker-batches" and out["errors"] == 0
+    assert [row["batch"] for row in out["sizes"]] == [4, 40]
+    for row in out["sizes"]:
+        assert row["message_us"] > 0 and row["json_loads_us"] > 0
+        assert row["loads"] == pytest.approx(row["message_us"] / row["json_loads_us"])
+    fit = out["fit"]
+    # Two sizes: the line goes through both points.
+    for row in out["sizes"]:
+        batch_us = fit["per_batch_us"] + fit["per_message_us"] * row["batch"]
+        assert batch_us == pytest.approx(row["message_us"] * row["batch"])
+    refused = bench_process("worker", "--batch", "0")
+    assert refused.returncode == 2 and "a batch holds at least 1 message, got 0" in refused.stderr
+
+
 def test_console_reports_time_to_interactive_and_the_cpu_of_two_consoles() -> None:
     out = bench("console", "--arms", "20", "--cpu-arms", "10", "--runs", "2", "--seconds", "2", timeout=300)
     assert out["scenario"] == "console"

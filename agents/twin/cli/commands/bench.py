@@ -71,6 +71,13 @@ def _history_scenarios(sub: Any) -> list[argparse.ArgumentParser]:
     return [hs, hr, hl]
 
 
+def _batch_size(text: str) -> int:
+    size = int(text)
+    if size < 1:
+        raise argparse.ArgumentTypeError(f"a batch holds at least 1 message, got {size}")
+    return size
+
+
 def _part_scenarios(sub: Any) -> list[argparse.ArgumentParser]:
     """One part's cost each: the sinks, rendering, the IoT Core quota, decoding, USD, a worker process."""
     r2 = sub.add_parser("ros2", help="the ROS 2 bridge's cost: the same fleet without and with it")
@@ -98,6 +105,13 @@ def _part_scenarios(sub: Any) -> list[argparse.ArgumentParser]:
     wo = sub.add_parser("worker", help="CPU per message of one worker process, fed through its pipe")
     wo.add_argument("--arms", type=int, default=1000)
     wo.add_argument("--rounds", type=int, default=40, help="messages per arm (10 Hz edge timestamps)")
+    wo.add_argument(
+        "--batch",
+        type=_batch_size,
+        nargs="+",
+        metavar="N",
+        help="instead: CPU per message at these batch sizes, the worker idle between batches (alarms on)",
+    )
     return [r2, rn, rr, qu, de, us, wo]
 
 
@@ -180,7 +194,7 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
     if args.scenario == "soak":
         return _bench("soak").run(minutes=args.minutes, arms=args.arms, rate=args.rate, out=args.out)
     if args.scenario == "worker":
-        return _bench("worker").run(arms=args.arms, rounds=args.rounds)
+        return _bench("worker").run(arms=args.arms, rounds=args.rounds, batches=args.batch)
     if args.scenario == "cost":
         return _bench("cost").run(
             arms=args.arms,
