@@ -11,13 +11,12 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import subprocess
-import sys
 import xml.etree.ElementTree as ET
 
 import msgspec
 import numpy as np
 import pytest
+from conftest import run_twin
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from rosbags.typesys import Stores, get_typestore
@@ -314,13 +313,6 @@ def test_twin_run_ros2_without_the_extra_exits_2_and_says_how_to_install(tmp_pat
     fake.mkdir(parents=True)
     (fake / "__init__.py").write_text('raise ImportError("No module named cyclonedds")\n')
     env = {**os.environ, "PYTHONPATH": str(tmp_path / "site")}
-    proc = subprocess.run(
-        [sys.executable, "-m", "twin.cli", "run", "--ros2", "--broker", "mqtt://127.0.0.1:1"],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
+    proc = run_twin(["run", "--ros2", "--broker", "mqtt://127.0.0.1:1"], env, timeout=60)
     assert proc.returncode == 2, proc.stderr
     assert "pip install 'so101-twin[ros2]'" in proc.stderr

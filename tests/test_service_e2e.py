@@ -30,6 +30,7 @@ from conftest import (
     get_metrics,
     get_state,
     metric,
+    run_twin,
     start_agent_on_clock,
     wait_for,
     wait_handled,
@@ -297,13 +298,7 @@ def test_sigterm_flushes_the_recording_and_exits_zero(rig: LocalRig, tmp_path: P
 def test_bad_config_exits_2_with_the_reason(tmp_path: Path) -> None:
     config = tmp_path / "bad.toml"
     config.write_text("[health]\noffline_after = 3\n")
-    proc = subprocess.run(
-        [sys.executable, "-m", "twin.cli", "run", "--config", str(config)],
-        capture_output=True,
-        text=True,
-        timeout=30,
-        check=False,
-    )
+    proc = run_twin(["run", "--config", str(config)], os.environ, timeout=30)
     assert proc.returncode == 2
     assert "health.offline_after" in proc.stderr and "offline_after_s" in proc.stderr
     line = json.loads(proc.stdout.strip().splitlines()[-1])
