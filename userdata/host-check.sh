@@ -135,7 +135,7 @@ if not isinstance(health, dict) or not isinstance(state, dict):
     raise SystemExit(0)
 agent = state.get("agent", {})
 broker = agent.get("broker", {})
-subscribed = broker.get("subscribed", broker.get("subscribes", 0))
+subscribed = broker.get("subscribes", 0)  # SUBSCRIBE requests the broker acknowledged (/state)
 problems = []
 if not agent.get("running"):
     problems.append("service not running")
