@@ -48,12 +48,13 @@ LEADER_DIRECTORIES = frozenset({"teleoperators", "so_leader", "so100_leader", "s
 EPILOG = """examples:
   twin calibration push arm-003 ~/.cache/huggingface/lerobot/calibration/robots/so_follower/arm-003.json
   twin calibration ls
-  twin calibration restore arm-003     # the calibration the last push or rm replaced, back in
   twin calibration push arm-001 robots/so101/calibration/so101_follower_example.json --store out/calibration
 exit codes: 0 done; 1 store error (or rm, restore: nothing there); 2 bad file or command line, or ARM is not
   1..64 letters, digits, '-' or '_'; 3 no AWS credentials or region; 4 stack not found; 5 the stack has
   no CalibrationUri output
-store: --store, else the CalibrationUri output of --stack (default $SO101_TWIN_STACK, else So101TwinStack)"""
+store: --store, else the CalibrationUri output of --stack (default $SO101_TWIN_STACK, else So101TwinStack)
+kept: a push over an arm's calibration, and rm, keep the one they replace (<ARM>.json.previous);
+  `twin calibration restore ARM` puts it back, and again swaps back"""
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
