@@ -1,5 +1,5 @@
 """The operator console in a real browser (Debian's chromium, driven by Playwright), against a live agent
-fed by the edge simulator through a real mosquitto, with a servo heating up on arm-001 and arm-002.
+fed by the edge simulator through a real mosquitto, with a servo heating up on every arm.
 
 One agent, one edge simulator and one browser for the whole module: the pages are read in the order an
 operator would (fleet, an arm, acknowledging its alarm, sessions, events), and no page may log an error."""
@@ -207,6 +207,39 @@ def test_acknowledge_moves_the_alarm_to_acknowledged(
     page.wait_for_selector(f'#alarms tr[data-alarm="{alarm["alarm_id"]}"][data-state="ACKNOWLEDGED"]')
     after = {a["alarm_id"]: a["state"] for a in alarms(console, "arm-001")}
     assert after[alarm["alarm_id"]] == "ACKNOWLEDGED"
+    assert browser_errors == []
+
+
+def test_a_refused_acknowledge_says_why_and_what_to_do(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """The page an operator left open while the agent restarted carries a CSRF token the new agent does not
+    know (each start makes one): the refusal must say so on the page, in the agent's words (reload), and stay
+    there while the live stream redraws the alarms; and a POST that gets no answer must say that."""
+    alarm = wait_for(
+        lambda: active_heat_alarm(console, "arm-003", raised_within_s=FRESH_ALARM_S),
+        TIMEOUT_S,
+        f"arm-003's heat alarm, raised within {FRESH_ALARM_S:.0f} s",
+    )
+    errors_before = len(browser_errors)
+    page.goto(console + "/arm/arm-003")
+    # What a page loaded before the agent's restart holds: a token this agent never issued.
+    page.evaluate("document.querySelector('meta[name=csrf-token]').content = 'from-the-agent-before'")
+    button = page.locator(f'#alarms tr[data-alarm="{alarm["alarm_id"]}"]').get_by_role("button")
+    button.click()
+    result = page.locator("#ack-result")
+    result.filter(has_text="reload the console page").wait_for(timeout=15_000)
+    assert alarm["alarm_id"] in result.inner_text() and "csrf_token_invalid" in result.inner_text()
+    assert {a["alarm_id"]: a["state"] for a in alarms(console, "arm-003")}[alarm["alarm_id"]] == "ACTIVE"
+
+    page.route("**/ack", lambda route: route.abort())  # the agent gone: no answer at all
+    button.click()
+    result.filter(has_text="the agent did not answer").wait_for(timeout=15_000)
+    page.unroute("**/ack")
+    # The browser logs each failed POST; they are this test's doing, and only they may be there.
+    ours = browser_errors[errors_before:]
+    assert len(ours) == 2 and all("Failed to load resource" in e for e in ours), ours
+    del browser_errors[errors_before:]
     assert browser_errors == []
 
 

@@ -32,6 +32,9 @@
     return { ...c, canvas, legend, panel: el("div", { class: "panel" }, el("h2", { text: c.title }), canvas, legend) };
   });
   const alarmsBody = el("tbody");
+  // The outcome of the last Acknowledge, kept outside the table: the live stream redraws the table whenever
+  // a reading changes an alarm's value, and would wipe a refusal written into its row.
+  const ackResult = el("p", { id: "ack-result", role: "status", hidden: true });
   const lossBox = el("div", { class: "kv" });
   const rejectsBody = el("tbody");
   main.append(
@@ -42,7 +45,7 @@
         el("span", { class: "muted", text: ` (this arm is arms/${device})` }))),
       el("div", { class: "panel" }, el("h2", { text: "loss" }), lossBox, el("h2", { text: "rejected messages by reason" }),
         el("table", {}, el("thead", {}, el("tr", {}, el("th", { text: "reason" }), el("th", { text: "messages" }))), rejectsBody))),
-    el("h2", { text: "alarms" }),
+    el("h2", { text: "alarms" }), ackResult,
     el("table", { id: "alarms" }, el("thead", {}, el("tr", {}, ...["alarm", "severity", "state", "value", "since", "message", ""].map((t) => el("th", { text: t })))), alarmsBody),
     el("h2", { text: "live, last 5 minutes" }),
     el("div", { class: "grid2" }, ...charts.map((c) => c.panel)));
@@ -116,12 +119,40 @@
     }
   }
 
+  // What the agent answered, in its own words: a refusal's detail says what to do (after the agent
+  // restarted, the page's CSRF token is stale and the detail says to reload), which a bare status does not.
+  function ackOutcome(alarm, result) {
+    if (result.ok) {
+      const now = result.payload && result.payload.alarms && result.payload.alarms[0];
+      return `${alarm.alarm_id} acknowledged${now ? `: now ${now.state}` : ""}`;
+    }
+    if (!result.status) {
+      return `${alarm.alarm_id} was not acknowledged: the agent did not answer (it may be restarting); ` +
+        "try again once the header says live";
+    }
+    const p = result.payload || {};
+    const why = p.detail || `the agent answered ${result.status}`;
+    return `${alarm.alarm_id} was not acknowledged: ${why} (${result.status}${p.error ? ` ${p.error}` : ""})`;
+  }
+
   async function acknowledge(alarm, button) {
     button.disabled = true;
     const id = alarm.alarm_id.split("/").map(encodeURIComponent).join("/");
-    const result = await Twin.post(`/alarms/${id}/ack`);
-    button.textContent = result.ok ? "acknowledged" : `refused (${result.status})`;
-    if (result.ok) renderAlarms((await Twin.getJSON("/alarms?device=" + encodeURIComponent(device))).alarms);
+    let result;
+    try {
+      result = await Twin.post(`/alarms/${id}/ack`);
+    } catch (_) {
+      result = { ok: false, status: 0, payload: null };  // no answer at all: the agent is down or restarting
+    }
+    button.disabled = false;
+    ackResult.hidden = false;
+    ackResult.className = result.ok ? "ack-ok" : "ack-refused";
+    ackResult.textContent = ackOutcome(alarm, result);
+    if (result.ok) {
+      // The stream shows the new state within a tick anyway; this only shows it sooner.
+      Twin.getJSON("/alarms?device=" + encodeURIComponent(device))
+        .then((doc) => renderAlarms(doc.alarms), () => {});
+    }
   }
 
   let shownAlarms = null;
