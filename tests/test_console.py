@@ -1,8 +1,9 @@
 """The operator console in a real browser (Debian's chromium, driven by Playwright), against a live agent
 fed by the edge simulator through a real mosquitto, with a servo heating up on every arm.
 
-One agent, one edge simulator and one browser for the whole module: the pages are read in the order an
-operator would (fleet, an arm, acknowledging its alarm, sessions, events), and no page may log an error."""
+One agent, one edge simulator (and a second one for an arm that goes quiet) and one browser for the whole
+module: the pages are read in the order an operator would (fleet, an arm, acknowledging its alarm, sessions,
+events), and no page may log an error."""
 
 from __future__ import annotations
 
@@ -43,20 +44,25 @@ def workdir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def console(workdir: Path) -> Iterator[str]:
+def rig(workdir: Path) -> Iterator[LocalRig]:
+    with LocalRig(workdir=workdir / "rig") as rig:
+        yield rig
+
+
+@pytest.fixture(scope="module")
+def console(workdir: Path, rig: LocalRig) -> str:
     """The live agent's URL (history on, so sessions exist; a calibration store of its own, left empty, as a
     local agent reads one)."""
-    with LocalRig(workdir=workdir / "rig") as rig:
-        agent = rig.start_agent(
-            {
-                "telemetry.units": "ticks",
-                "telemetry.calibrations": str(workdir / "calibration"),
-                "history.uri": str(workdir / "history"),
-                "history.commit_every_s": 1.0,
-            }
-        )
-        rig.start_edge(DEVICES, variant="ticks", rate_hz=10.0, servo_faults=HEAT)
-        yield agent.http_url
+    agent = rig.start_agent(
+        {
+            "telemetry.units": "ticks",
+            "telemetry.calibrations": str(workdir / "calibration"),
+            "history.uri": str(workdir / "history"),
+            "history.commit_every_s": 1.0,
+        }
+    )
+    rig.start_edge(DEVICES, variant="ticks", rate_hz=10.0, servo_faults=HEAT)
+    return agent.http_url
 
 
 @pytest.fixture(scope="module")
@@ -178,6 +184,25 @@ def test_an_arm_page_draws_its_charts(console: str, page: Any, browser_errors: l
     page.goto(console + "/arm/arm-003")
     wait_for_charts(page, TIMEOUT_S)
     assert page.locator("canvas[data-chart]").count() == 4
+    assert browser_errors == []
+
+
+def test_an_arm_page_breaks_its_lines_where_the_arm_was_silent(
+    console: str, rig: LocalRig, page: Any, browser_errors: list[str]
+) -> None:
+    """An arm that goes quiet and comes back: its charts show the silence as a break in the lines, not a
+    straight line across it as if readings had come."""
+    rig.start_edge(["arm-quiet"], variant="ticks", rate_hz=10.0, seconds=3.0, seed=7)
+    page.goto(console + "/arm/arm-quiet")
+    angles = page.locator('canvas[data-chart="angle"]')
+    page.wait_for_function(
+        "() => Number(document.querySelector('canvas[data-chart=angle]').dataset.points) > 0"
+    )
+    page.locator(".status.STALE").wait_for()  # the edge has stopped: the arm is silent
+    rig.start_edge(["arm-quiet"], variant="ticks", rate_hz=10.0, seed=8)
+    page.locator(".status.ONLINE").wait_for()
+    page.wait_for_function("() => document.querySelector('canvas[data-chart=angle]').dataset.gaps === '1'")
+    assert angles.get_attribute("data-gaps") == "1"
     assert browser_errors == []
 
 

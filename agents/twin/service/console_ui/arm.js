@@ -18,8 +18,11 @@
   }
 
   let joints = [];
-  const samples = [];  // [time, {chart key: [value per joint]}]
+  const samples = [];  // [time, {chart key: [value per joint]}, true: the arm went silent before it]
   let lastTimestamp = null;
+  // The arm was STALE or OFFLINE at some tick since the last sample: the next sample starts a new line, so
+  // the charts do not draw a straight line across a silence as if readings had come.
+  let silent = false;
 
   const title = el("h1", { text: device });
   const summary = el("div", { class: "kv" });
@@ -66,13 +69,15 @@
   }
 
   function record(d, now) {
+    if (d.health.status !== "ONLINE") silent = true;
     if (!d.joints_rad) return;
     if (d.timestamp_ms === lastTimestamp) return;  // nothing new since the last tick
     lastTimestamp = d.timestamp_ms;
     if (!joints.length) joints = Object.keys(d.joints_rad);
     const values = {};
     for (const c of CHARTS) values[c.key] = joints.map((j) => c.pick(d, j));
-    samples.push([now, values]);
+    samples.push([now, values, silent && samples.length > 0]);
+    silent = false;
     while (samples.length && samples[0][0] < now - WINDOW_S) samples.shift();
   }
 
@@ -83,8 +88,9 @@
     const ctx = canvas.getContext("2d");
     ctx.setTransform(ratio, 0, 0, ratio, 0, 0);
     ctx.clearRect(0, 0, w, h);
-    let lo = Infinity, hi = -Infinity, points = 0;
-    for (const [, values] of samples) {
+    let lo = Infinity, hi = -Infinity, points = 0, gaps = 0;
+    for (const [, values, gap] of samples) {
+      if (gap) gaps++;  // silences drawn as breaks in the lines
       let any = false;
       for (const v of values[chart.key]) if (v !== null) { lo = Math.min(lo, v); hi = Math.max(hi, v); any = true; }
       if (any) points++;  // readings drawn: samples with at least one value
@@ -97,6 +103,7 @@
     ctx.fillText(span >= 90 ? `-${Math.round(span / 60)} min` : `-${Math.round(span)} s`, left, h - 4);
     ctx.fillText("now", w - right - 22, h - 4);
     canvas.dataset.points = String(points);
+    canvas.dataset.gaps = String(gaps);
     if (!points) { ctx.fillText("no readings yet", left + 8, top + 16); return; }
     if (hi - lo < 1e-6) { hi += 1; lo -= 1; }
     const pad = (hi - lo) * 0.08; hi += pad; lo -= pad;
@@ -107,8 +114,9 @@
     joints.forEach((joint, k) => {
       ctx.strokeStyle = COLORS[k % COLORS.length]; ctx.lineWidth = 1.5; ctx.beginPath();
       let pen = false;
-      for (const [t, values] of samples) {
+      for (const [t, values, gap] of samples) {
         const v = values[chart.key][k];
+        if (gap) pen = false;
         if (v === null) { pen = false; continue; }
         if (pen) ctx.lineTo(x(t), y(v)); else { ctx.moveTo(x(t), y(v)); pen = true; }
       }
