@@ -308,6 +308,23 @@ def test_only_loopback_clients_may_acknowledge_alarms(address: str, loopback: bo
     assert is_loopback_client(address) is loopback
 
 
+def test_a_browser_gets_a_page_for_an_unknown_path(server) -> None:
+    """A mistyped address in the browser is a page that names it and links to the console's pages, not a raw
+    JSON error; a script still gets the JSON one."""
+    srv, _ = server
+    req = urllib.request.Request(srv.url + "/arms/%3Cb%3Ex", headers={"Accept": "text/html,*/*;q=0.8"})
+    with pytest.raises(urllib.error.HTTPError) as info:
+        urllib.request.urlopen(req, timeout=5)
+    assert info.value.code == 404
+    assert info.value.headers["content-type"].startswith("text/html")
+    assert "content-security-policy" in info.value.headers
+    page = info.value.read().decode()
+    assert "/arms/&lt;b&gt;x" in page and "<b>" not in page  # the path is shown as text, never as markup
+    assert '<a href="/">Fleet</a>' in page and "/arm/&lt;device&gt;" in page
+    status, ctype, body = get(srv.url + "/arms/x")
+    assert status == 404 and ctype == "application/json" and json.loads(body)["error"] == "not_found"
+
+
 def test_a_source_without_alarms_has_no_alarm_endpoints(server) -> None:
     srv, _ = server
     status, _, body = get(srv.url + "/alarms")

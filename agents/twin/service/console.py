@@ -46,6 +46,7 @@ __all__ = [
     "fleet_row",
     "fleet_rows",
     "fleet_summary",
+    "not_found_page",
     "render_page",
     "rerun_viewer_url",
 ]
@@ -350,6 +351,22 @@ def render_page(page: str, *, csrf_token: str, device: str = "", rerun_url: str 
         device=html.escape(device),
         rerun=html.escape(rerun_url),
     ).encode("utf-8")
+
+
+def not_found_page(path: str) -> bytes:
+    """What a browser gets for a path the agent does not serve: a page in the console's look that names the
+    path and links to the pages there are (a script or curl still gets the JSON error with the endpoints)."""
+    links = "".join(
+        f'<li><a href="{href}">{name}</a></li>'
+        for name, href in (("Fleet", "/"), ("Sessions", "/sessions"), ("Events", "/events"))
+    )
+    return (
+        '<!doctype html>\n<html lang="en"><head><meta charset="utf-8"><title>Not found · so101-twin console'
+        '</title><link rel="icon" href="data:,"><link rel="stylesheet" href="/static/console.css"></head>'
+        '<body><main id="main"><h1>Nothing here</h1><p id="not-found">This agent serves no page at '
+        f"<code>{html.escape(path)}</code>. An arm's page is <code>/arm/&lt;device&gt;</code>; the Fleet "
+        f"page lists the arms this agent knows.</p><ul>{links}</ul></main></body></html>\n"
+    ).encode()
 
 
 def severity_rank(severity: str | None) -> int:

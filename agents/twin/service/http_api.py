@@ -62,6 +62,7 @@ from twin.service.console import (
     arm_update,
     fleet_parts,
     fleet_summary,
+    not_found_page,
     render_page,
 )
 from twin.service.events import Event, EventKind, EventLevel, EventQuery, events_csv, events_json
@@ -448,6 +449,9 @@ class AgentHttpServer:
     async def _not_found(self, request: Request, exc: Exception) -> Response:
         if request.method not in ("GET", "HEAD"):
             return await self._not_allowed(request, exc)
+        if "text/html" in request.headers.get("accept", ""):
+            # A mistyped address in the browser: a page that says where to go, not a JSON error shown raw.
+            return self._html(not_found_page(request.url.path), status_code=404)
         return _error(404, "not_found", path=request.url.path, endpoints=list(ENDPOINTS))
 
     async def _not_allowed(self, request: Request, exc: Exception) -> Response:
@@ -531,9 +535,10 @@ class AgentHttpServer:
 
     # ------------------------------------------------------------------------------------------ the console
 
-    def _html(self, body: bytes) -> Response:
+    def _html(self, body: bytes, status_code: int = 200) -> Response:
         return Response(
             body,
+            status_code=status_code,
             media_type="text/html; charset=utf-8",
             headers={**SECURITY_HEADERS, "content-security-policy": PAGE_CSP},
         )
