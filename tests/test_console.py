@@ -206,6 +206,20 @@ def test_an_arm_page_breaks_its_lines_where_the_arm_was_silent(
     assert browser_errors == []
 
 
+def test_a_long_device_id_wraps_on_its_page(
+    console: str, rig: LocalRig, page: Any, browser_errors: list[str]
+) -> None:
+    """A device id may be 128 characters without a space: its page wraps it instead of growing sideways."""
+    device = "x" * 128
+    rig.start_edge([device], variant="ticks", rate_hz=10.0, seed=9)
+    page.goto(console + "/arm/" + device)
+    page.locator(".status.ONLINE").wait_for()
+    page.wait_for_function("() => Number(document.querySelector('canvas[data-chart=angle]').dataset.points)")
+    width = page.evaluate("[document.documentElement.scrollWidth, document.documentElement.clientWidth]")
+    assert width[0] <= width[1], f"the page is {width[0]} px wide in a {width[1]} px window"
+    assert browser_errors == []
+
+
 def test_an_arm_page_says_how_to_push_to_this_agents_calibration_store(
     console: str, workdir: Path, page: Any, browser_errors: list[str]
 ) -> None:
