@@ -249,6 +249,27 @@ def test_acknowledge_moves_the_alarm_to_acknowledged(
     assert browser_errors == []
 
 
+def test_an_alarms_row_and_its_button_stay_put_while_its_value_changes(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """The live stream changes an alarm's value at each tick while the servo heats or cools: the row is
+    updated in place, so the Acknowledge button under the operator's pointer is the same element before and
+    after (a click pressed on a replaced button and released on its successor is lost)."""
+    alarm = wait_for(lambda: active_heat_alarm(console, "arm-003"), TIMEOUT_S, "arm-003's heat alarm")
+    page.goto(console + "/arm/arm-003")
+    row = f'#alarms tr[data-alarm="{alarm["alarm_id"]}"]'
+    page.locator(row + " button").wait_for()
+    before = page.locator(row + " td").nth(3).inner_text()
+    page.evaluate(f"document.querySelector('{row} button').dataset.kept = 'yes'")
+    page.wait_for_function(
+        "([row, before]) => { const r = document.querySelector(row);"
+        " return r && r.children[3].textContent !== before; }",
+        arg=[row, before],
+    )
+    assert page.locator(row + " button[data-kept]").count() == 1
+    assert browser_errors == []
+
+
 def test_a_refused_acknowledge_says_why_and_what_to_do(
     console: str, page: Any, browser_errors: list[str]
 ) -> None:

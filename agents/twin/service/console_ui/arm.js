@@ -163,21 +163,56 @@
     }
   }
 
-  let shownAlarms = null;
+  // One row per alarm, kept across updates and changed in place. A reading changes an alarm's value at each
+  // tick while the servo heats or cools; a row rebuilt then replaced the button under the operator's
+  // pointer, and a click pressed on the old button and released on the new one was lost without a word.
+  const alarmRows = new Map();  // alarm_id -> { tr, cells, button, alarm }
+  const noAlarm = el("tr", {}, el("td", { colspan: 7, class: "muted", text: "no alarm" }));
+
+  function setText(node, text) {
+    if (node.textContent !== text) node.textContent = text;
+  }
+
+  function alarmRow(a) {
+    const button = el("button", { type: "button", class: "primary", "data-alarm": a.alarm_id, text: "Acknowledge" });
+    const cells = { name: el("td"), severity: el("td"), state: el("td", { class: "alarm-state" }), value: el("td"),
+      since: el("td"), message: el("td", { class: "msg" }) };
+    const row = { tr: el("tr", { "data-alarm": a.alarm_id }, ...Object.values(cells), el("td", {}, button)),
+      cells, button, alarm: a };
+    button.addEventListener("click", () => acknowledge(row.alarm, button));
+    return row;
+  }
+
+  function fillAlarmRow(row, a) {
+    const c = row.cells;
+    row.alarm = a;
+    row.tr.dataset.state = a.state;
+    setText(c.name, `${a.joint} ${a.kind}`);
+    setText(c.severity, a.severity);
+    c.severity.className = "sev-" + a.severity;
+    setText(c.state, a.state);
+    setText(c.value, `${Twin.num(a.value, 1)} ${a.unit} (limit ${a.threshold})`);
+    setText(c.since, Twin.time(a.changed_at));
+    setText(c.message, a.message);
+    row.button.hidden = !(a.state === "ACTIVE" || a.state === "LATCHED");
+  }
+
   function renderAlarms(alarms) {
-    const key = JSON.stringify(alarms);
-    if (key === shownAlarms) return;  // unchanged: keep the buttons where they are
-    shownAlarms = key;
-    if (!alarms.length) { alarmsBody.replaceChildren(el("tr", {}, el("td", { colspan: 7, class: "muted", text: "no alarm" }))); return; }
-    alarmsBody.replaceChildren(...alarms.map((a) => {
-      const button = el("button", { type: "button", class: "primary", "data-alarm": a.alarm_id, text: "Acknowledge" });
-      button.addEventListener("click", () => acknowledge(a, button));
-      const can = a.state === "ACTIVE" || a.state === "LATCHED";
-      return el("tr", { "data-alarm": a.alarm_id, "data-state": a.state },
-        el("td", { text: `${a.joint} ${a.kind}` }), el("td", { class: "sev-" + a.severity, text: a.severity }),
-        el("td", { class: "alarm-state", text: a.state }), el("td", { text: `${Twin.num(a.value, 1)} ${a.unit} (limit ${a.threshold})` }),
-        el("td", { text: Twin.time(a.changed_at) }), el("td", { class: "msg", text: a.message }), el("td", {}, can ? button : ""));
-    }));
+    const ids = new Set(alarms.map((a) => a.alarm_id));
+    for (const id of [...alarmRows.keys()]) if (!ids.has(id)) alarmRows.delete(id);
+    if (!alarms.length) {
+      if (alarmsBody.firstChild !== noAlarm) alarmsBody.replaceChildren(noAlarm);
+      return;
+    }
+    const order = alarms.map((a) => {
+      let row = alarmRows.get(a.alarm_id);
+      if (!row) { row = alarmRow(a); alarmRows.set(a.alarm_id, row); }
+      fillAlarmRow(row, a);
+      return row.tr;
+    });
+    // Rows move only when the set or the order of alarms changes.
+    const shown = [...alarmsBody.children];
+    if (order.length !== shown.length || order.some((tr, i) => tr !== shown[i])) alarmsBody.replaceChildren(...order);
   }
 
   function update(doc) {
