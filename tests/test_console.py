@@ -26,6 +26,7 @@ from conftest import CHROMIUM, CHROMIUM_FLAGS, http_get, read_rrd, wait_for
 from twin.edge.servo_faults import ServoFault
 from twin.rig.console_shots import loopback_only, wait_for_charts
 from twin.rig.local import LocalRig
+from twin.rig.mosquitto import free_port
 
 pytestmark = pytest.mark.slow
 
@@ -360,6 +361,44 @@ def test_the_events_page_tails_the_twins_events(console: str, page: Any, browser
     assert status == 200 and ctype.startswith("text/csv")
     assert any(r["kind"] == "alarm" for r in csv.DictReader(io.StringIO(body.decode())))
     assert browser_errors == []
+
+
+def test_the_events_page_follows_an_agent_that_restarted(
+    console: str, rig: LocalRig, page: Any, browser_errors: list[str]
+) -> None:
+    """An Events page left open while its agent restarts: the new agent numbers its events from 1 again,
+    and the page must show them, not keep the old agent's list while its header says live. Two agents in
+    turn on one port, each listening to one arm the module's edge publishes, so each has an event only it
+    can make."""
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+
+    def agent(device: str) -> Any:
+        return rig.start_agent(
+            {
+                "http.listen": f"127.0.0.1:{port}",
+                "broker.client_id_prefix": "restart-",
+                "telemetry.devices": [device],
+            }
+        )
+
+    first = agent("arm-001")
+    page.goto(url + "/events")
+    page.locator("#events tr", has_text="arm-001 is ONLINE").wait_for()
+    page.locator("#link-state", has_text="live").wait_for()
+    first.stop()
+    page.locator("#link-state", has_text="reconnecting").wait_for()
+    second = agent("arm-002")
+    try:
+        page.locator("#events tr", has_text="arm-002 is ONLINE").wait_for()
+        # The list is the new agent's own: the old agent's arrival is gone with it.
+        assert page.locator("#events tr", has_text="arm-001 is ONLINE").count() == 0
+    finally:
+        second.stop()
+    # The stream's reconnection attempts while no agent listened are the browser's to log, and only those.
+    ours = [e for e in browser_errors if "/api/stream/events" in e or "ERR_CONNECTION_REFUSED" in e]
+    assert len(ours) == len(browser_errors), browser_errors
+    browser_errors.clear()
 
 
 def test_the_events_page_loads_again_after_a_failed_load(console: str, page: Any) -> None:

@@ -103,8 +103,21 @@
       Twin.setLink(false, "agent unreachable");
       retry = setTimeout(load, wait * 1000);
     } finally {
-      if (source === null) source = Twin.stream("/api/stream/events?after=" + lastId, { events: append });
+      if (source === null) {
+        source = Twin.stream("/api/stream/events?after=" + lastId, { events: append });
+        source.addEventListener("open", reconnected);
+      }
     }
+  }
+
+  // The stream came back after a break: the agent may have restarted, and a new agent numbers its events
+  // from 1 again, so every one of them would be at or under the last id this page saw and `append` would
+  // drop them all while the header says live. The selection is loaded afresh, its ids counted from nothing.
+  let opened = false;
+  function reconnected() {
+    if (!opened) { opened = true; return; }  // the first connection: load() has just read the selection
+    lastId = 0;
+    load();
   }
   let timer = null;
   for (const input of [device, level, kind, text, since, until]) {
