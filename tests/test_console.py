@@ -363,6 +363,41 @@ def test_the_events_page_tails_the_twins_events(console: str, page: Any, browser
     assert browser_errors == []
 
 
+def agent_on(rig: LocalRig, port: int, device: str) -> Any:
+    """An agent of its own on `port`, listening to one arm only (the module's agent keeps the rest): stopped
+    and started again on the same port, it is what a page left open sees of an agent that restarts."""
+    return rig.start_agent(
+        {
+            "http.listen": f"127.0.0.1:{port}",
+            "broker.client_id_prefix": "restart-",
+            "telemetry.devices": [device],
+        }
+    )
+
+
+def test_a_page_says_its_figures_are_not_live_while_the_agent_is_away(
+    console: str, rig: LocalRig, page: Any, browser_errors: list[str]
+) -> None:
+    """The agent stopped under an open Fleet page: the cards keep the last figures (ONLINE, seen "now"), so
+    the page must say they are not live, and stop saying so once the agent answers again."""
+    port = free_port()
+    first = agent_on(rig, port, "arm-001")
+    page.goto(f"http://127.0.0.1:{port}/")
+    page.locator('#fleet-view [data-device="arm-001"]', has_text="ONLINE").wait_for()
+    banner = page.locator("#link-banner")
+    assert banner.is_hidden()
+    first.stop()
+    banner.filter(has_text="not live").wait_for()
+    second = agent_on(rig, port, "arm-001")
+    try:
+        banner.wait_for(state="hidden")
+    finally:
+        second.stop()
+    # The stream's reconnection attempts while no agent listened are the browser's to log, and only those.
+    assert all("ERR_CONNECTION_REFUSED" in e or "/api/stream/" in e for e in browser_errors), browser_errors
+    browser_errors.clear()
+
+
 def test_the_events_page_follows_an_agent_that_restarted(
     console: str, rig: LocalRig, page: Any, browser_errors: list[str]
 ) -> None:
@@ -372,23 +407,13 @@ def test_the_events_page_follows_an_agent_that_restarted(
     can make."""
     port = free_port()
     url = f"http://127.0.0.1:{port}"
-
-    def agent(device: str) -> Any:
-        return rig.start_agent(
-            {
-                "http.listen": f"127.0.0.1:{port}",
-                "broker.client_id_prefix": "restart-",
-                "telemetry.devices": [device],
-            }
-        )
-
-    first = agent("arm-001")
+    first = agent_on(rig, port, "arm-001")
     page.goto(url + "/events")
     page.locator("#events tr", has_text="arm-001 is ONLINE").wait_for()
     page.locator("#link-state", has_text="live").wait_for()
     first.stop()
     page.locator("#link-state", has_text="reconnecting").wait_for()
-    second = agent("arm-002")
+    second = agent_on(rig, port, "arm-002")
     try:
         page.locator("#events tr", has_text="arm-002 is ONLINE").wait_for()
         # The list is the new agent's own: the old agent's arrival is gone with it.

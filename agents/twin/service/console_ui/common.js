@@ -22,10 +22,29 @@ const Twin = (() => {
     return node;
   }
 
+  // While the agent does not answer, a page keeps the last figures it was sent, and they read as current (an
+  // arm ONLINE, last seen "now"); the corner's "reconnecting…" alone was easy to miss. A banner says they are
+  // not live, and since when, until the agent answers again.
+  const banner = el("p", { id: "link-banner", role: "alert", hidden: true });
+  document.getElementById("main").before(banner);
+  let downSince = null;
+
   function setLink(live, text) {
-    if (!linkState) return;
-    linkState.className = "link " + (live ? "live" : "down");
-    linkState.textContent = text;
+    if (linkState) {
+      linkState.className = "link " + (live ? "live" : "down");
+      linkState.textContent = text;
+    }
+    if (live) {
+      downSince = null;
+      banner.hidden = true;
+      body.classList.remove("link-down");
+      return;
+    }
+    if (downSince === null) downSince = Date.now() / 1000;
+    banner.textContent = `Out of touch with the agent since ${time(downSince)}: what this page shows is from ` +
+      "then, not live. The agent may be restarting or stopped; the page reconnects by itself.";
+    banner.hidden = false;
+    body.classList.add("link-down");
   }
 
   // An EventSource that shows its state in the header; the browser reconnects by itself (retry: 1000).
