@@ -221,6 +221,17 @@ def test_a_long_device_id_wraps_on_its_page(
     assert browser_errors == []
 
 
+def test_an_unknown_arms_page_says_what_to_check(console: str, page: Any, browser_errors: list[str]) -> None:
+    """A mistyped id, or an arm not heard yet: the page says so and where the known arms are listed, rather
+    than empty panels under a bare "not known"."""
+    page.goto(console + "/arm/arm-never-heard")
+    page.locator("#unknown", has_text="Fleet page").wait_for()
+    assert page.locator("h1").inner_text() == "arm-never-heard: not known to this agent"
+    # Its first read is the API's 404 for the id, which the browser logs; nothing else may be there.
+    assert all("/api/arm/arm-never-heard" in e for e in browser_errors), browser_errors
+    browser_errors.clear()
+
+
 def test_an_arm_page_says_how_to_push_to_this_agents_calibration_store(
     console: str, workdir: Path, page: Any, browser_errors: list[str]
 ) -> None:

@@ -215,9 +215,18 @@
     if (order.length !== shown.length || order.some((tr, i) => tr !== shown[i])) alarmsBody.replaceChildren(...order);
   }
 
+  // An id this agent has had no valid message from (mistyped, or an arm not heard yet): the page says what
+  // to check instead of empty panels under a bare "not known", and fills in by itself once the arm is heard.
+  function unknown() {
+    title.textContent = `${device}: not known to this agent`;
+    summary.replaceChildren(el("p", { id: "unknown", text: "This agent has had no valid message from an arm " +
+      "with this id since it started. Check the id against the Fleet page, which lists every arm it has " +
+      "heard; this page fills in by itself once the arm is heard." }));
+  }
+
   function update(doc) {
     const d = doc.device;
-    if (!d) { title.textContent = `${device}: not known to the agent`; return; }
+    if (!d) { unknown(); return; }
     title.textContent = device;
     const now = doc.time, h = d.health;
     kv(summary, [
@@ -241,6 +250,6 @@
     if (!document.body.dataset.ready) { document.body.dataset.ready = "1"; window.twinReadyAt = performance.now(); }
   }
 
-  Twin.getJSON("/api/arm/" + encodeURIComponent(device)).then(update).catch(() => { title.textContent = `${device}: not known to the agent (yet)`; });
+  Twin.getJSON("/api/arm/" + encodeURIComponent(device)).then(update).catch(unknown);
   Twin.stream("/api/stream/arm/" + encodeURIComponent(device), { arm: update });
 })();
