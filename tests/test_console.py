@@ -199,11 +199,13 @@ def test_an_arm_page_breaks_its_lines_where_the_arm_was_silent(
     page.wait_for_function(
         "() => Number(document.querySelector('canvas[data-chart=angle]').dataset.points) > 0"
     )
-    page.locator(".status.STALE").wait_for()  # the edge has stopped: the arm is silent
+    # The edge has stopped: the arm is silent (OFFLINE, not STALE, if a loaded machine took 10 s to get here).
+    page.locator(":is(.status.STALE, .status.OFFLINE)").wait_for()
     rig.start_edge(["arm-quiet"], variant="ticks", rate_hz=10.0, seed=8)
     page.locator(".status.ONLINE").wait_for()
-    page.wait_for_function("() => document.querySelector('canvas[data-chart=angle]').dataset.gaps === '1'")
-    assert angles.get_attribute("data-gaps") == "1"
+    # At least the one break: an edge that a loaded machine holds back for 0.3 s makes the arm STALE too.
+    page.wait_for_function("() => Number(document.querySelector('canvas[data-chart=angle]').dataset.gaps)")
+    assert int(angles.get_attribute("data-gaps") or 0) >= 1
     assert browser_errors == []
 
 
