@@ -4,6 +4,8 @@ read back on another process's clock, and a broken file set aside instead of sto
 from __future__ import annotations
 
 import json
+import logging
+import os
 from pathlib import Path
 
 import pytest
@@ -85,3 +87,37 @@ def test_a_failed_write_leaves_the_previous_file_whole(tmp_path: Path) -> None:
     with pytest.raises(TypeError):
         write_atomically(path, None)  # type: ignore[arg-type]  # fails mid-write
     assert path.read_text() == "old\n" and [p.name for p in tmp_path.iterdir()] == ["state.json"]
+
+
+def _warnings_of_an_unclean_stop(caplog: pytest.LogCaptureFixture) -> list[logging.LogRecord]:
+    return [r for r in caplog.records if r.levelno == logging.WARNING and "did not stop" in r.getMessage()]
+
+
+def test_a_file_left_by_a_run_that_never_stopped_says_so_at_the_next_start(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # A `kill -9` (or an OOM kill, a power cut) leaves no line in the log; the state file is what the next
+    # start has of the run before it, so it must tell a run that stopped from one that did not.
+    path = tmp_path / "state.json"
+    run = StateFile(path)
+    latched = [_record(AlarmState.LATCHED)]
+    assert run.save(latched, now_mono=110.0, now_wall=1_000_010.0)  # the run's first check
+    caplog.set_level(logging.INFO, logger="twin.service.persist")
+    assert [r.state for r in StateFile(path).load(5.0, 1_000_060.0)] == [AlarmState.LATCHED]
+    (warning,) = _warnings_of_an_unclean_stop(caplog)
+    assert warning.previous_pid == os.getpid()  # type: ignore[attr-defined]
+    assert "lost without a count" in warning.getMessage()
+
+    # The same run's stop is written even though its alarms did not change, and then nothing is reported.
+    assert run.save(latched, now_mono=111.0, now_wall=1_000_011.0, stopped=True)
+    assert not run.save(latched, now_mono=112.0, now_wall=1_000_012.0, stopped=True)
+    caplog.clear()
+    assert len(StateFile(path).load(5.0, 1_000_060.0)) == 1
+    assert not _warnings_of_an_unclean_stop(caplog)
+
+    # An older agent's file, which does not say: nothing either.
+    document = json.loads(path.read_text())
+    del document["stopped"]
+    path.write_text(json.dumps(document))
+    assert len(StateFile(path).load(5.0, 1_000_060.0)) == 1
+    assert not _warnings_of_an_unclean_stop(caplog)

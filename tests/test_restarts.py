@@ -5,6 +5,8 @@
   restarting meanwhile).
 - The agent stopped and started again (a restart, or a reboot: the state file is all that survives): a
   LATCHED alarm is still LATCHED, and an ACKNOWLEDGED one still ACKNOWLEDGED.
+- `twin run` killed (SIGKILL) and started again: no process of it outlives it, the acknowledgement is back,
+  and the next start's log says the run before did not stop.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import threading
 import time
 from pathlib import Path
 
+import psutil
 import pytest
 from conftest import Publisher, get_state, http_get, wait_for
 from test_servo_alarms_e2e import alarms, by_key, post
@@ -333,3 +336,52 @@ def test_stop_keeps_its_budget_and_reports_what_it_could_not_write(
         assert dropped == history.rows_dropped + history.rows_lost + unwritten
     finally:
         subprocess.run(["umount", "-l", str(disk)], check=False)
+
+
+def _answering(url: str) -> bool:
+    try:
+        return bool(get_state(url).agent.broker.subscribes)
+    except OSError:
+        return False
+
+
+def test_a_killed_agent_leaves_no_process_and_its_next_start_says_it_did_not_stop(
+    rig: LocalRig, publisher: Publisher, tmp_path: Path
+) -> None:
+    state_file = tmp_path / "state.json"
+    config = f'[twin]\nstate_file = "{state_file}"\nworkers = 2\n[telemetry]\nunits = "ticks"\n'
+    alarm = f"arm-002/{HOT[0]}/{HOT[1]}"
+
+    def kept() -> dict[str, str]:
+        document = json.loads(state_file.read_text()) if state_file.exists() else {"alarms": []}
+        return {a["alarm_id"]: a["state"] for a in document["alarms"]}
+
+    hot = HotWrist(publisher, "arm-002")
+    try:
+        with rig.agent_process(devices=",".join(FLEET), config_text=config, log_name="killed") as (proc, url):
+            wait_for(lambda: _answering(url), 60, "the agent", interval=0.2)
+            acknowledge_once_active(url, alarm, 30)
+            wait_for(lambda: kept().get(alarm) == "ACKNOWLEDGED", 30, "the acknowledgement in the state file")
+            family = psutil.Process(proc.pid).children(recursive=True)
+            assert len(family) >= 3  # its fork server and two workers at least
+            proc.kill()
+            proc.wait(10)
+            # The workers see their pipes close, flush and exit; the fork server goes with the agent.
+            wait_for(
+                lambda: not [p for p in family if p.is_running() and p.status() != psutil.STATUS_ZOMBIE],
+                30,
+                "no process of the killed agent left",
+                interval=0.1,
+            )
+        assert json.loads(state_file.read_text())["stopped"] is False
+
+        with rig.agent_process(devices=",".join(FLEET), config_text=config, log_name="again") as (_, url):
+            wait_for(lambda: _answering(url), 60, "the agent again", interval=0.2)
+            assert by_key(alarms(url))[HOT] == "ACKNOWLEDGED"
+            log_path = rig.agent_log(url.rsplit(":", 1)[1], "again")
+            lines = [json.loads(t) for t in log_path.read_text().splitlines() if t.startswith("{")]
+            warned = [ln for ln in lines if ln["level"] == "WARNING" and "did not stop" in ln["msg"]]
+            assert [ln["previous_pid"] for ln in warned] == [proc.pid], lines
+    finally:
+        hot.stop()
+    assert json.loads(state_file.read_text())["stopped"] is True  # SIGTERM: the stop's own write

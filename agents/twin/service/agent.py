@@ -517,7 +517,9 @@ class AgentService:
             if checkpoint is not None:
                 records.extend(checkpoint.alarms)
         if self._state_file is not None:
-            self._state_file.save(records, time.monotonic(), time.time())
+            # `stopped` only on the stop's write: a file that still says it ran tells the next start this
+            # run ended without stopping (persist's module doc).
+            self._state_file.save(records, time.monotonic(), time.time(), stopped=final)
 
     def _checkpoint(self, shard: Shard, *, alarms_only: bool) -> MirrorCheckpoint | None:
         if not shard.answering:

@@ -8,10 +8,17 @@ message makes them again), nor counters, health or poses: those start again with
 
 Written atomically (a temporary file in the same directory, flushed to disk, renamed over the old one, the
 directory flushed), so a crash or a power cut mid-write leaves the previous file or the new one, never half of
-one. Written when the kept alarms change (the agent checks every second) and when the agent stops. A file that
-cannot be read is reported and set aside; the agent starts without it rather than not at all.
+one. Written when the kept alarms change (the agent checks every second), at the first check after it starts,
+and when it stops. A file that cannot be read is reported and set aside; the agent starts without it rather
+than not at all.
 
-JSON, one object: {"version": 1, "written_at": <epoch s>, "alarms": [{...}, ...]}.
+It also says whether the run that wrote it stopped: `stopped` is false from that first write until the stop's.
+A file that still says false when an agent starts was left by a run that was killed, crashed or lost its host,
+which nothing else tells the next run (the log just ends, without the `agent stopped` line): `load` logs a
+warning naming that run and what such an end loses.
+
+JSON, one object: {"version": 1, "written_at": <epoch s>, "pid": <the writer's pid>, "stopped": <bool>,
+"alarms": [{...}, ...]}. A file without `stopped` (an older agent's) says nothing about how its run ended.
 """
 
 from __future__ import annotations
@@ -22,6 +29,7 @@ import logging
 import math
 import os
 import tempfile
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -47,8 +55,8 @@ class StateFile:
         self.writes = 0
         self.write_errors = 0
         # What the last write held, by what identifies a change (not the wall time, which a clock slewed
-        # by NTP would move a little at every check).
-        self._last: list[tuple[str, str, int, float]] | None = None
+        # by NTP would move a little at every check), and whether it said the run had stopped.
+        self._last: tuple[list[tuple[str, str, int, float]], bool] | None = None
 
     # -- reading -------------------------------------------------------------------------------------------
 
@@ -76,19 +84,30 @@ class StateFile:
             )
             return []
         log.info("state file read", extra={"path": str(self.path), "alarms": len(records)})
+        _report_unclean_stop(self.path, text)
         return records
 
     # -- writing -------------------------------------------------------------------------------------------
 
-    def save(self, records: Sequence[AlarmRecord], now_mono: float, now_wall: float) -> bool:
-        """Write the kept alarms of `records` if they differ from the last write; True when written. A failed
-        write is logged and counted, never raised: the twin goes on without it."""
+    def save(
+        self, records: Sequence[AlarmRecord], now_mono: float, now_wall: float, *, stopped: bool = False
+    ) -> bool:
+        """Write the kept alarms of `records` if they, or `stopped` (the agent's last write, as it stops),
+        differ from the last write; True when written. The first call always writes: it marks the run as
+        running (module doc). A failed write is logged and counted, never raised: the twin goes on without
+        it."""
         kept = sorted((r for r in records if r.state in KEPT_STATES), key=lambda r: r.alarm_id)
-        identity = [(r.alarm_id, str(r.state), r.raised, round(r.since, 3)) for r in kept]
+        identity = ([(r.alarm_id, str(r.state), r.raised, round(r.since, 3)) for r in kept], stopped)
         if identity == self._last:
             return False
         entries = [entry(r, now_mono, now_wall) for r in kept]
-        document = {"version": VERSION, "written_at": now_wall, "alarms": entries}
+        document = {
+            "version": VERSION,
+            "written_at": now_wall,
+            "pid": os.getpid(),
+            "stopped": stopped,
+            "alarms": entries,
+        }
         try:
             write_atomically(self.path, json.dumps(document, indent=1, sort_keys=True) + "\n")
         except OSError as exc:
@@ -103,6 +122,30 @@ class StateFile:
         self._last = identity
         self.writes += 1
         return True
+
+
+def _report_unclean_stop(path: Path, text: str) -> None:
+    """Warn when the file was left by a run that never made its stop's write (module doc)."""
+    with contextlib.suppress(ValueError):
+        document = json.loads(text)
+        if document.get("stopped") is False:
+            pid = document.get("pid")
+            written_at = document.get("written_at")
+            when = (
+                time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(written_at))
+                if isinstance(written_at, int | float) and math.isfinite(written_at)
+                else "an unknown time"
+            )
+            log.warning(
+                "the agent's previous run (pid %s) did not stop: killed, crashed or its host went down. Its "
+                "alarms are back as of its last check (at most a second before it ended; this file was last "
+                "changed at %s); its counters start again, and the messages it still held, or that arrived "
+                "while no agent ran, are lost without a count. Its workers' and history writer's last log "
+                "lines say what they still wrote. Look for why it ended (journalctl, the kernel's OOM log)",
+                pid,
+                when,
+                extra={"path": str(path), "previous_pid": pid, "state_written_at": written_at},
+            )
 
 
 def entry(record: AlarmRecord, now_mono: float, now_wall: float) -> dict[str, Any]:
