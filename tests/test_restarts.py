@@ -374,6 +374,10 @@ def test_a_killed_agent_leaves_no_process_and_its_next_start_says_it_did_not_sto
                 interval=0.1,
             )
         assert json.loads(state_file.read_text())["stopped"] is False
+        killed_log = rig.agent_log(url.rsplit(":", 1)[1], "killed").read_text().splitlines()
+        said = [json.loads(t)["msg"] for t in killed_log if t.startswith("{")]
+        # Each worker says it stopped, and nothing says the agent did: it was killed.
+        assert said.count("worker stopped") == 2 and "agent stopped" not in said, said
 
         with rig.agent_process(devices=",".join(FLEET), config_text=config, log_name="again") as (_, url):
             wait_for(lambda: _answering(url), 60, "the agent again", interval=0.2)

@@ -1239,8 +1239,10 @@ def worker_main(
     report = mirror.stop(timeout=max(5.0, config.twin.shutdown_budget_s - WORKER_BUDGET_MARGIN_S))
     with contextlib.suppress(OSError, ValueError), _CONTROL_SEND:
         control.send(Farewell(report))
+    # Not "agent stopped": that is the agent's own line, the one that says a run stopped; a worker's came
+    # after the agent was killed too, and read as a clean stop.
     log.info(
-        "agent stopped",
+        "worker stopped",
         extra={"processed": mirror.processed, "errors": mirror.errors, "unwritten": report.unwritten},
     )
 
