@@ -473,6 +473,48 @@ def test_twin_run_with_workers_stops_them_all_on_sigterm(rig: LocalRig) -> None:
     assert [line.get("worker") for line in stopped] == [None]  # the receiving process's own line, once
 
 
+@pytest.mark.slow
+def test_a_killed_fork_server_is_named_and_its_workers_run_again(rig: LocalRig) -> None:
+    # The workers' exit codes come through their fork server: with it killed, multiprocessing reports 255
+    # for workers that still run. The log said each "exited (code 255)", and nothing of the fork server.
+    fleet = ["arm-001", "arm-002", "arm-003", "arm-004"]
+    extra = ("--workers", "2", "--units", "ticks")
+    with rig.agent_process(devices=",".join(fleet), extra_args=extra, log_name="forkserver") as (proc, base):
+
+        def workers() -> list[Any]:
+            try:
+                return list(get_state(base).agent.workers)
+            except OSError:
+                return []
+
+        first = wait_for(
+            lambda: [w for w in workers() if w.alive] if len(workers()) == 2 else None, 60, "2 workers"
+        )
+        (server,) = [p for p in psutil.Process(proc.pid).children() if "forkserver" in " ".join(p.cmdline())]
+        server.kill()
+        wait_for(
+            lambda: all(w.alive and w.restarts == 1 for w in workers()) and len(workers()) == 2,
+            60,
+            "both workers running again",
+            interval=0.1,
+        )
+        old = [psutil.Process(w.pid) for w in first if psutil.pid_exists(w.pid)]
+        wait_for(
+            lambda: not [p for p in old if p.is_running() and p.status() != psutil.STATUS_ZOMBIE],
+            30,
+            "the old workers to stop",
+            interval=0.1,
+        )
+        lines = [
+            json.loads(t)
+            for t in rig.agent_log(base.rsplit(":", 1)[1], "forkserver").read_text().splitlines()
+            if t.startswith("{")
+        ]
+    errors = [ln["msg"] for ln in lines if ln["level"] == "ERROR"]
+    assert len(errors) == 2 and all("the fork server that started it is gone" in m for m in errors), errors
+    assert {ln["worker"] for ln in lines if ln["level"] == "ERROR"} == {0, 1}
+
+
 # Junk that must take no place in the device budget: garbage on invented devices' topics (on both workers),
 # JSON that is not telemetry, a valid message on another device's topic, and a topic that names no device.
 JUNK_DEVICES = [f"junk-{i}" for i in range(8)] + [f"ghost-{i}" for i in range(8)]

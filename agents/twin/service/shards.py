@@ -787,9 +787,8 @@ class WorkerShard:
             pause = min(MAX_RESTART_PAUSE_S, 2.0 ** min(self.restarts, 6)) if quick else 0.0
             self._restart_at = now + pause
             log.error(
-                "worker %d exited (code %s); starting it again%s",
-                self.index,
-                process.exitcode,
+                "%s; starting it again%s",
+                _how_it_ended(self.index, process.exitcode, self.pid),
                 f" in {pause:.0f} s" if pause else "",
                 extra={"worker": self.index, "exit_code": process.exitcode},
             )
@@ -1123,6 +1122,27 @@ class WorkerShard:
             recording=report.recording.path if report is not None and report.recording else "",
             restarting=self.restarting,
         )
+
+
+def _how_it_ended(index: int, exitcode: int | None, pid: int) -> str:
+    """What the log says of a worker no longer seen running. A worker's exit code reaches the agent through
+    the fork server that started it; with that process gone (killed), multiprocessing reports 255 while the
+    worker may well still run. It is then started again all the same (the agent has lost sight of it, and
+    it stops once the agent closes its pipes), but the log must not blame a worker that did not exit."""
+    if exitcode == 255 and pid > 0 and _still_runs(pid):
+        return (
+            f"worker {index} (pid {pid}) can no longer be watched: the fork server that started it is gone "
+            "(killed?); the worker is stopped and a new fork server starts"
+        )
+    return f"worker {index} exited (code {exitcode})"
+
+
+def _still_runs(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except OSError:  # gone; or another user's, so not our worker (its pid was reused)
+        return False
+    return True
 
 
 def _payload_size(message: tuple[str, bytes, float, float]) -> int:
