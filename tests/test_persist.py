@@ -115,8 +115,14 @@ def test_a_file_left_by_a_run_that_never_stopped_says_so_at_the_next_start(
     assert len(StateFile(path).load(5.0, 1_000_060.0)) == 1
     assert not _warnings_of_an_unclean_stop(caplog)
 
-    # An older agent's file, which does not say: nothing either.
+    # A time no clock can show only words the warning: the start goes on with the alarms.
     document = json.loads(path.read_text())
+    path.write_text(json.dumps(document | {"stopped": False, "written_at": 1e300}))
+    assert len(StateFile(path).load(5.0, 1_000_060.0)) == 1
+    assert "an unknown time" in _warnings_of_an_unclean_stop(caplog)[0].getMessage()
+    caplog.clear()
+
+    # An older agent's file, which does not say: nothing either.
     del document["stopped"]
     path.write_text(json.dumps(document))
     assert len(StateFile(path).load(5.0, 1_000_060.0)) == 1

@@ -128,24 +128,29 @@ def _report_unclean_stop(path: Path, text: str) -> None:
     """Warn when the file was left by a run that never made its stop's write (module doc)."""
     with contextlib.suppress(ValueError):
         document = json.loads(text)
-        if document.get("stopped") is False:
-            pid = document.get("pid")
-            written_at = document.get("written_at")
-            when = (
-                time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(written_at))
-                if isinstance(written_at, int | float) and math.isfinite(written_at)
-                else "an unknown time"
-            )
-            log.warning(
-                "the agent's previous run (pid %s) did not stop: killed, crashed or its host went down. Its "
-                "alarms are back as of its last check (at most a second before it ended; this file was last "
-                "changed at %s); its counters start again, and the messages it still held, or that arrived "
-                "while no agent ran, are lost without a count. Its workers' and history writer's last log "
-                "lines say what they still wrote. Look for why it ended (journalctl, the kernel's OOM log)",
-                pid,
-                when,
-                extra={"path": str(path), "previous_pid": pid, "state_written_at": written_at},
-            )
+        if document.get("stopped") is not False:
+            return
+        pid = document.get("pid")
+        written_at = document.get("written_at")
+        log.warning(
+            "the agent's previous run (pid %s) did not stop: killed, crashed or its host went down. Its "
+            "alarms are back as of its last check (it checked every second; this file last changed at %s); "
+            "its counters start again, and the messages it still held, or that arrived while no agent ran, "
+            "are lost without a count. Its workers' `worker stopped` lines say what they could not write, "
+            "and its history writer logs any rows it could not commit. Look for why it ended (journalctl, "
+            "the kernel's OOM log)",
+            pid,
+            _utc(written_at),
+            extra={"path": str(path), "previous_pid": pid, "state_written_at": written_at},
+        )
+
+
+def _utc(epoch_s: object) -> str:
+    """`epoch_s` as an ISO UTC time, whatever the file holds (this only words a warning)."""
+    try:
+        return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(float(epoch_s)))  # type: ignore[arg-type]
+    except (TypeError, ValueError, OverflowError, OSError):
+        return "an unknown time"
 
 
 def entry(record: AlarmRecord, now_mono: float, now_wall: float) -> dict[str, Any]:
