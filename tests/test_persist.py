@@ -127,3 +127,19 @@ def test_a_file_left_by_a_run_that_never_stopped_says_so_at_the_next_start(
     path.write_text(json.dumps(document))
     assert len(StateFile(path).load(5.0, 1_000_060.0)) == 1
     assert not _warnings_of_an_unclean_stop(caplog)
+
+
+def test_temporary_files_of_writes_a_kill_cut_short_are_removed_at_the_start(tmp_path: Path) -> None:
+    # write_atomically removes its temporary file when the write fails, but a SIGKILL between mkstemp and the
+    # rename leaves it, as large as the state file, and each such crash added one.
+    path = tmp_path / "state.json"
+    assert StateFile(path).save([_record(AlarmState.LATCHED)], 110.0, 1_000_010.0)
+    left = [tmp_path / ".state.json.k1ll3d_1.tmp", tmp_path / ".state.json.k1ll3d_2.tmp"]
+    for leftover in left:
+        leftover.write_text('{"version": 1, "al')
+    others = [tmp_path / ".other.json.abc.tmp", tmp_path / "state.json.bad"]
+    for other in others:
+        other.write_text("not ours to remove")
+    assert len(StateFile(path).load(5.0, 1_000_060.0)) == 1
+    assert not [p for p in left if p.exists()]
+    assert all(p.exists() for p in others)

@@ -24,6 +24,7 @@ JSON, one object: {"version": 1, "written_at": <epoch s>, "pid": <the writer's p
 from __future__ import annotations
 
 import contextlib
+import glob
 import json
 import logging
 import math
@@ -62,7 +63,9 @@ class StateFile:
 
     def load(self, now_mono: float, now_wall: float) -> list[AlarmRecord]:
         """The alarms the file keeps, with their times on this process's monotonic clock; [] when there is
-        no file. A file that cannot be parsed is renamed `<name>.bad` and reported; [] then too."""
+        no file. A file that cannot be parsed is renamed `<name>.bad` and reported; [] then too. Temporary
+        files that writes cut short by a kill left beside it are removed first."""
+        self._remove_leftovers()
         try:
             text = self.path.read_text(encoding="utf-8")
         except FileNotFoundError:
@@ -86,6 +89,22 @@ class StateFile:
         log.info("state file read", extra={"path": str(self.path), "alarms": len(records)})
         _report_unclean_stop(self.path, text)
         return records
+
+    def _remove_leftovers(self) -> None:
+        """A write killed between its temporary file's creation and the rename leaves that file (each as
+        large as the state file), and nothing else ever removes it: crash after crash they would pile up.
+        Called as the agent starts, before this process writes any."""
+        removed = 0
+        for leftover in self.path.parent.glob(f".{glob.escape(self.path.name)}.*.tmp"):
+            with contextlib.suppress(OSError):
+                leftover.unlink()
+                removed += 1
+        if removed:
+            log.info(
+                "state file: removed %d temporary file(s) left by writes a kill cut short",
+                removed,
+                extra={"path": str(self.path)},
+            )
 
     # -- writing -------------------------------------------------------------------------------------------
 
