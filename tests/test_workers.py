@@ -25,6 +25,7 @@ import psutil
 import pytest
 from awscrt import mqtt5
 from conftest import Publisher, get_metrics, get_state, metric, run_twin, wait_for, wait_handled
+from test_restarts import running
 from test_servo_alarms_e2e import alarms, post
 from twin.core.alarms import AlarmKind, AlarmRecord, AlarmState
 from twin.core.health import DeviceCounters, DeviceStatus, HealthSnapshot
@@ -487,24 +488,17 @@ def test_a_killed_fork_server_is_named_and_its_workers_run_again(rig: LocalRig) 
             except OSError:
                 return []
 
-        first = wait_for(
-            lambda: [w for w in workers() if w.alive] if len(workers()) == 2 else None, 60, "2 workers"
-        )
+        def both(restarts: int) -> list[Any] | None:
+            now = workers()
+            ok = len(now) == 2 and all(w.alive and w.restarts == restarts for w in now)
+            return now if ok else None
+
+        first = wait_for(lambda: both(0), 60, "2 workers")
         (server,) = [p for p in psutil.Process(proc.pid).children() if "forkserver" in " ".join(p.cmdline())]
+        old = [psutil.Process(w.pid) for w in first]
         server.kill()
-        wait_for(
-            lambda: all(w.alive and w.restarts == 1 for w in workers()) and len(workers()) == 2,
-            60,
-            "both workers running again",
-            interval=0.1,
-        )
-        old = [psutil.Process(w.pid) for w in first if psutil.pid_exists(w.pid)]
-        wait_for(
-            lambda: not [p for p in old if p.is_running() and p.status() != psutil.STATUS_ZOMBIE],
-            30,
-            "the old workers to stop",
-            interval=0.1,
-        )
+        wait_for(lambda: both(1), 60, "both workers running again", interval=0.1)
+        wait_for(lambda: not running(old), 30, "the old workers to stop", interval=0.1)
         lines = [
             json.loads(t)
             for t in rig.agent_log(base.rsplit(":", 1)[1], "forkserver").read_text().splitlines()
