@@ -504,9 +504,11 @@ def test_a_killed_fork_server_is_named_and_its_workers_run_again(rig: LocalRig) 
             for t in rig.agent_log(base.rsplit(":", 1)[1], "forkserver").read_text().splitlines()
             if t.startswith("{")
         ]
-    errors = [ln["msg"] for ln in lines if ln["level"] == "ERROR"]
-    assert len(errors) == 2 and all("the fork server that started it is gone" in m for m in errors), errors
-    assert {ln["worker"] for ln in lines if ln["level"] == "ERROR"} == {0, 1}
+    errors = [ln for ln in lines if ln["level"] == "ERROR"]
+    # Each worker's line names the fork server; none blames a worker that did not exit.
+    named = [ln for ln in errors if "the fork server that started it is gone" in ln["msg"]]
+    assert sorted(ln["worker"] for ln in named) == [0, 1], errors
+    assert not [ln for ln in errors if "exited (code 255)" in ln["msg"]], errors
 
 
 # Junk that must take no place in the device budget: garbage on invented devices' topics (on both workers),
