@@ -176,8 +176,34 @@ def test_the_fleet_page_lists_the_arms(console: str, page: Any, browser_errors: 
         "() => [...document.querySelectorAll('#fleet-view [data-device]')].map(e => e.dataset.device)"
         ".join() === 'arm-002'"
     )
+    # The list says "uncalibrated" as the cards do.
+    row = page.locator('#fleet-view [data-device="arm-002"]')
+    assert "(uncalibrated)" in row.inner_text(), row.inner_text()
     page.get_by_label("search by id").fill("")
     page.get_by_role("button", name="Grid").click()
+    assert browser_errors == []
+
+
+def silent_devices(fleet: dict[str, Any]) -> set[str]:
+    """The arms /api/fleet shows as not ONLINE (its rows are lists in its `columns` order)."""
+    device, status = fleet["columns"].index("device"), fleet["columns"].index("status")
+    return {row[device] for row in fleet["rows"] if row[status] != "ONLINE"}
+
+
+def test_a_silent_arms_card_says_its_hottest_reading_is_its_last(
+    console: str, rig: LocalRig, page: Any, browser_errors: list[str]
+) -> None:
+    """An arm that has gone quiet keeps its last temperature on its card: the card says it is the last one
+    heard, so an old reading does not read as now."""
+    rig.start_edge(["arm-gone"], variant="ticks", rate_hz=10.0, seconds=2.0, seed=5)
+
+    def silent() -> bool:
+        status, _, body = http_get(console + "/api/fleet")
+        return status == 200 and "arm-gone" in silent_devices(json.loads(body))
+
+    wait_for(silent, TIMEOUT_S, "arm-gone heard, then silent")
+    page.goto(console + "/")
+    page.locator('#fleet-view [data-device="arm-gone"]', has_text="when last heard").wait_for()
     assert browser_errors == []
 
 

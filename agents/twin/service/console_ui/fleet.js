@@ -78,7 +78,10 @@
 
   function hotText(r) {
     const c = columns;
-    return r[c.hot_c] === null ? "–" : `${r[c.hot_joint]} ${Twin.num(r[c.hot_c], 0)} °C`;
+    if (r[c.hot_c] === null) return "–";
+    // A silent arm's reading is its last one: said so, so an old temperature does not read as now.
+    const when = r[c.status] === "ONLINE" ? "" : " when last heard";
+    return `${r[c.hot_joint]} ${Twin.num(r[c.hot_c], 0)} °C${when}`;
   }
 
   // Its worker process is being started again: the row is the worker's last checkpoint.
@@ -109,7 +112,7 @@
   function listRow(r, y) {
     const c = columns, id = r[c.device];
     const node = el("a", { class: "row", href: "/arm/" + encodeURIComponent(id), role: "listitem", "data-device": id },
-      el("span", { text: id + (r[c.uncalibrated] ? " (no calibration)" : ""), class: r[c.uncalibrated] ? "uncalibrated" : "" },
+      el("span", { text: id + (r[c.uncalibrated] ? " (uncalibrated)" : ""), class: r[c.uncalibrated] ? "uncalibrated" : "" },
         ...restarting(r)),
       el("span", { class: "status " + r[c.status], text: r[c.status] }),
       el("span", { class: "wide", text: Twin.ago(r[c.last_seen], now) }),
