@@ -396,3 +396,44 @@ def test_a_killed_agent_leaves_no_process_and_its_next_start_says_it_did_not_sto
     finally:
         hot.stop()
     assert json.loads(state_file.read_text())["stopped"] is True  # SIGTERM: the stop's own write
+
+
+@pytest.mark.parametrize("workers", [1, 2], ids=["in-process", "two-worker-processes"])
+def test_an_acknowledgement_is_in_the_state_file_when_it_is_answered(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, workers: int
+) -> None:
+    """A person's acknowledgement must survive a kill that comes right after its answer: the agent writes
+    the state file before answering, not at its supervisor's next check (a second or two later at a large
+    fleet, with workers). The supervisor's own writes are switched off here, so only that one can write."""
+    from test_alerts import hot
+    from twin.rig.mosquitto import free_port
+    from twin.service.config import load_config
+
+    state_file = tmp_path / "state.json"
+    config = load_config(
+        None,
+        {
+            "broker.url": f"mqtt://127.0.0.1:{free_port()}",  # nobody answers: fed through feed()
+            "http.listen": "127.0.0.1:0",
+            "telemetry.devices": ["arm-003"],
+            "telemetry.units": "ticks",
+            "alarms.temperature_raise_after_s": 0.0,
+            "twin.state_file": str(state_file),
+        },
+    )
+    agent = AgentService(config, workers=workers)
+    agent.start()
+    try:
+        monkeypatch.setattr(agent, "_keep_state", lambda **_: None)
+        alarm_id = "arm-003/elbow_flex/over_temperature_critical"
+
+        def active() -> bool:
+            agent.feed("dt/lerobot/arm-003/telemetry", hot("arm-003", int(time.time() * 1000), 68))
+            return any(a.alarm_id == alarm_id and a.state == "ACTIVE" for a in agent.alarms())
+
+        wait_for(active, 60, "the critical heat alarm ACTIVE", interval=0.2)
+        agent.acknowledge_alarm(alarm_id)
+        kept = {a["alarm_id"]: a["state"] for a in json.loads(state_file.read_text())["alarms"]}
+        assert kept[alarm_id] == "ACKNOWLEDGED", kept
+    finally:
+        agent.stop()

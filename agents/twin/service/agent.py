@@ -833,8 +833,30 @@ class AgentService:
         shard = self._shards[self.plan.worker_of(device)]
         info = alarm_of(shard.request(AckRequest(alarm_id))())
         self._cached = None
-        self._wake.set()  # into the state file (and the worker's checkpoint) now
+        self._save_alarms_now()
+        self._wake.set()  # into the worker's checkpoint now
         return info
+
+    def _save_alarms_now(self) -> None:
+        """Every mirror's alarms into the state file before an acknowledgement is answered: a person's act
+        must survive a kill that comes before the supervisor's next check (which, with workers, takes a
+        whole checkpoint: up to a second or two at a large fleet). Alarms only, so quick, and no checkpoint:
+        confirming one would drop messages a worker's restart is to replay."""
+        if self._state_file is None or self._stopping.is_set():
+            return  # a stop makes its own last write, which says the run stopped
+        records: list[AlarmRecord] = []
+        for shard in self._shards:
+            checkpoint = None
+            if shard.answering:
+                try:
+                    checkpoint = checkpoint_of(shard.request(CheckpointRequest(alarms_only=True))())
+                except (WorkerError, TimeoutError) as exc:
+                    log.warning("no alarms of shard %d for the state file: %s", shard.index, exc)
+            if checkpoint is None:
+                checkpoint = shard.checkpoint  # restarting, or gone: what it last said
+            if checkpoint is not None:
+                records.extend(checkpoint.alarms)
+        self._state_file.save(records, time.monotonic(), time.time())
 
     def _fleet_totals(self) -> FleetTotals:
         """Running totals and gauges for the CloudWatch metrics (EmfPublisher thread)."""

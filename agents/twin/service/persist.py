@@ -30,6 +30,7 @@ import logging
 import math
 import os
 import tempfile
+import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -58,6 +59,9 @@ class StateFile:
         # What the last write held, by what identifies a change (not the wall time, which a clock slewed
         # by NTP would move a little at every check), and whether it said the run had stopped.
         self._last: tuple[list[tuple[str, str, int, float]], bool] | None = None
+        # The agent's supervisor and an acknowledgement's own write (AgentService) may both save: one at a
+        # time, so `_last` always describes the file on disk.
+        self._write_lock = threading.Lock()
 
     # -- reading -------------------------------------------------------------------------------------------
 
@@ -115,6 +119,10 @@ class StateFile:
         differ from the last write; True when written. The first call always writes: it marks the run as
         running (module doc). A failed write is logged and counted, never raised: the twin goes on without
         it."""
+        with self._write_lock:
+            return self._save(records, now_mono, now_wall, stopped)
+
+    def _save(self, records: Sequence[AlarmRecord], now_mono: float, now_wall: float, stopped: bool) -> bool:
         kept = sorted((r for r in records if r.state in KEPT_STATES), key=lambda r: r.alarm_id)
         identity = ([(r.alarm_id, str(r.state), r.raised, round(r.since, 3)) for r in kept], stopped)
         if identity == self._last:
