@@ -192,23 +192,29 @@ def hot(device: str, ts: int, temp: float) -> bytes:
     return json.dumps({"device_id": device, "timestamp": ts, "joints": joints}).encode()
 
 
+def hot_arm_settings(**overrides: Any) -> dict[str, Any]:
+    """An agent of arm-003 alone, fed through feed() (no broker answers), whose heat alarms raise at once."""
+    return {
+        "broker.url": f"mqtt://127.0.0.1:{free_port()}",
+        "http.listen": "127.0.0.1:0",
+        "telemetry.devices": ["arm-003"],
+        "telemetry.units": "ticks",
+        "alarms.temperature_raise_after_s": 0.0,
+        **overrides,
+    }
+
+
 def agent_with_topic(arn: str, **overrides: Any) -> AgentService:
-    config = load_config(
-        None,
-        {
-            "broker.url": f"mqtt://127.0.0.1:{free_port()}",  # nobody answers: fed through feed()
-            "http.listen": "127.0.0.1:0",
-            "telemetry.devices": ["arm-003"],
-            "telemetry.units": "ticks",
-            "alarms.temperature_raise_after_s": 0.0,
+    settings = hot_arm_settings(
+        **{
             "alerts.topic_arn": arn,
             "alerts.region": AWS_TEST_REGION,
             "alerts.flush_s": 1.0,
             "cloudwatch.agent_name": "LabTwin",
             **overrides,
-        },
+        }
     )
-    return AgentService(config)
+    return AgentService(load_config(None, settings))
 
 
 def test_an_alarm_transition_reaches_sns_as_one_message_naming_arm_and_servo(topic: Any) -> None:

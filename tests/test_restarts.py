@@ -405,22 +405,11 @@ def test_an_acknowledgement_is_in_the_state_file_when_it_is_answered(
     """A person's acknowledgement must survive a kill that comes right after its answer: the agent writes
     the state file before answering, not at its supervisor's next check (a second or two later at a large
     fleet, with workers). The supervisor's own writes are switched off here, so only that one can write."""
-    from test_alerts import hot
-    from twin.rig.mosquitto import free_port
+    from test_alerts import hot, hot_arm_settings
     from twin.service.config import load_config
 
     state_file = tmp_path / "state.json"
-    config = load_config(
-        None,
-        {
-            "broker.url": f"mqtt://127.0.0.1:{free_port()}",  # nobody answers: fed through feed()
-            "http.listen": "127.0.0.1:0",
-            "telemetry.devices": ["arm-003"],
-            "telemetry.units": "ticks",
-            "alarms.temperature_raise_after_s": 0.0,
-            "twin.state_file": str(state_file),
-        },
-    )
+    config = load_config(None, hot_arm_settings(**{"twin.state_file": str(state_file)}))
     agent = AgentService(config, workers=workers)
     agent.start()
     try:
