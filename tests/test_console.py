@@ -414,6 +414,12 @@ def agent_on(rig: LocalRig, port: int, device: str) -> Any:
     )
 
 
+def leave(page: Any) -> None:
+    """Off a page whose agent is about to stop: left on it, it would go on trying to reconnect, and the
+    browser would log each refused attempt into whichever test runs next."""
+    page.goto("about:blank")
+
+
 def test_a_page_says_its_figures_are_not_live_while_the_agent_is_away(
     console: str, rig: LocalRig, page: Any, browser_errors: list[str]
 ) -> None:
@@ -431,6 +437,7 @@ def test_a_page_says_its_figures_are_not_live_while_the_agent_is_away(
     try:
         banner.wait_for(state="hidden")
     finally:
+        leave(page)
         second.stop()
     # The stream's reconnection attempts while no agent listened are the browser's to log, and only those.
     assert all("ERR_CONNECTION_REFUSED" in e or "/api/stream/" in e for e in browser_errors), browser_errors
@@ -458,6 +465,7 @@ def test_the_events_page_follows_an_agent_that_restarted(
         # The list is the new agent's own: the old agent's arrival is gone with it.
         assert page.locator("#events tr", has_text="arm-001 is ONLINE").count() == 0
     finally:
+        leave(page)
         second.stop()
     # The stream's reconnection attempts while no agent listened are the browser's to log, and only those.
     ours = [e for e in browser_errors if "/api/stream/events" in e or "ERR_CONNECTION_REFUSED" in e]

@@ -27,7 +27,9 @@ def fleet_document(url: str) -> dict[str, Any]:
 
 
 def empty_text(page: Any) -> str:
-    text: str = page.wait_for_selector("#fleet-empty", timeout=30_000).inner_text()
+    """The empty fleet page's text once the agent's first document has arrived (before it, the page says it
+    is loading: a slow first answer must not be read as the agent's word)."""
+    text: str = page.wait_for_selector('#fleet-empty[data-loaded="true"]', timeout=30_000).inner_text()
     return text
 
 
@@ -47,7 +49,22 @@ def test_an_empty_fleet_page_names_the_filter_and_what_to_check_until_an_arm_is_
     assert fleet_document(agent.http_url)["listening"] == {"filters": [topic_filter], "connected": True}
 
     page = chromium_page
+    # The agent's first document held back (a loaded host answers late): the page says it is loading, not
+    # that no arm has been heard from, which it cannot know yet.
+    held: list[Any] = []
+
+    def fleet_url(url: str) -> bool:
+        return url.endswith("/api/fleet") or "/api/stream/fleet" in url
+
+    def hold(route: Any) -> None:
+        held.append(route)
+
+    page.route(fleet_url, hold)
     page.goto(agent.http_url + "/")
+    loading = page.wait_for_selector('#fleet-empty[data-loaded="false"]', timeout=30_000)
+    assert loading.inner_text() == "loading the fleet…"
+    assert held  # the page asked, and waits
+    page.unroute(fleet_url)  # lets the held requests go on
     text = empty_text(page)
     assert text.startswith("no arm has been heard from yet.") and topic_filter in text, text
     assert "iot:Receive" in text and "docs/agent.md" in text

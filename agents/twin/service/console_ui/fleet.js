@@ -6,6 +6,9 @@
   const { el, main } = Twin;
   const CARD_W = 230, CARD_H = 124, GAP = 8, ROW_H = 30;
   let columns = {}, rows = [], shown = [], now = Date.now() / 1000, listening = null;
+  // Until the agent's first document arrives the page knows nothing of the fleet: it must not say that no
+  // arm has been heard from (a slow first answer showed that bare line to a new user).
+  let loaded = false;
   let mode = localStorage.getItem("twin.fleet.view") === "list" ? "list" : "grid";
 
   const search = el("input", { type: "search", placeholder: "search arm id", "aria-label": "search by id" });
@@ -155,7 +158,10 @@
       const last = Math.min(shown.length, Math.ceil((top + height) / ROW_H) + 2);
       for (let i = first; i < last; i++) nodes.push(listRow(shown[i], (i + 1) * ROW_H));
     }
-    if (!shown.length) nodes.push(el("div", { class: "empty", id: "fleet-empty", text: rows.length ? "no arm matches the filters" : unheard() }));
+    if (!shown.length) {
+      const text = !loaded ? "loading the fleet…" : rows.length ? "no arm matches the filters" : unheard();
+      nodes.push(el("div", { class: "empty", id: "fleet-empty", "data-loaded": String(loaded), text }));
+    }
     spacer.replaceChildren(...nodes);
   }
 
@@ -174,6 +180,7 @@
     const t0 = performance.now();
     columns = Object.fromEntries(doc.columns.map((name, i) => [name, i]));
     rows = doc.rows;
+    loaded = true;
     listening = doc.listening || null;
     now = doc.time || Date.now() / 1000;
     const s = doc.counts.status, a = doc.counts.alarmed_devices;
