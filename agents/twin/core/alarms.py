@@ -1199,6 +1199,41 @@ class ServoAlarms:
 
     # -- people ---------------------------------------------------------------------------------------------
 
+    def forget(self, device: str) -> Counter[AlarmState]:
+        """Remove every alarm of `device` (any state) and its last evaluation: an arm retired by an operator.
+        Returns how many of its alarms were in each state other than NORMAL. Its row goes to the last
+        device's (the rows stay dense, as every array operation takes the first len(_devices)); a later
+        message of the device makes a fresh row. The counters (raised, cleared, acknowledged) stay: they are
+        the engine's totals since start, not the arm's."""
+        removed: Counter[AlarmState] = Counter()
+        slot = self._slot.pop(device, None)
+        if slot is None:
+            return removed
+        fleet = self._arrays()
+        for code in fleet.state[slot][fleet.exists[slot]].tolist():
+            if code != _NORMAL:
+                removed[_STATES[code]] += 1
+        last = len(self._devices) - 1
+        messages = {at: text for at, text in self._messages.items() if at[0] not in (slot, last)}
+        if slot != last:
+            moved = self._devices[last]
+            self._devices[slot] = moved
+            self._slot[moved] = slot
+            self._last_diagnostics[slot] = self._last_diagnostics[last]
+            self._last_torques[slot] = self._last_torques[last]
+            for name, column in vars(fleet).items():
+                if name != "capacity":
+                    column[slot] = column[last]
+            messages.update({(slot, j, n): text for (s, j, n), text in self._messages.items() if s == last})
+        self._messages = messages
+        # The freed last row as a new row starts (a device that arrives next takes it).
+        blank = _Fleet(1)
+        for name, column in vars(fleet).items():
+            if name != "capacity":
+                column[last] = getattr(blank, name)[0]
+        del self._devices[last], self._last_diagnostics[last], self._last_torques[last]
+        return removed
+
     def _find(self, alarm_id_: str) -> tuple[int, int, int] | None:
         device, _, rest = alarm_id_.partition("/")
         joint, _, kind_name = rest.partition("/")

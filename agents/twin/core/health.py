@@ -483,6 +483,13 @@ class FleetHealth:
     def get(self, device_id: str) -> DeviceHealth | None:
         return self.devices.get(device_id)
 
+    def forget(self, device_id: str) -> DeviceHealth | None:
+        """Stop tracking a device that is not configured (an operator retired it); its health record, or None
+        for a device not tracked. A configured device stays: the config says it is expected."""
+        if device_id in self.configured:
+            raise ValueError(f"{device_id} is configured (telemetry.devices): it cannot be forgotten")
+        return self.devices.pop(device_id, None)
+
     def record_rejected(self, device_id: str | None, reason: str) -> None:
         health = self.devices.get(device_id) if device_id is not None else None
         if health is None:

@@ -44,6 +44,12 @@ class DeviceBudget:
             self._taken[mirror] += 1
             return True
 
+    def give_back(self, mirror: int) -> None:
+        """Give back one place of `mirror` (one of its devices was forgotten by an operator)."""
+        with self._taken.get_lock():
+            if self._taken[mirror] > 0:
+                self._taken[mirror] -= 1
+
     def release(self, mirror: int) -> None:
         """Give back every place `mirror` holds (its devices are gone: its process is started again)."""
         with self._taken.get_lock():

@@ -92,7 +92,8 @@ class EventKind(StrEnum):
     REJECTED = "rejected"  # telemetry the decoder refused, by reason
     BROKER = "broker"  # a broker connection went down or came (back) up
     WORKER = "worker"  # a worker process of a sharded agent exited or runs again
-    TWIN = "twin"  # a device's twin was rebuilt (its edge clock jumped back), or its rate is far too high
+    # a device's twin was rebuilt (its edge clock jumped back), its rate is far too high, or it was forgotten
+    TWIN = "twin"
     CALIBRATION = "calibration"  # an arm's calibration was picked up, refused or removed
 
 
@@ -289,6 +290,10 @@ class StatusWatch:
         """`device` was taken back from a checkpoint: no arrival; the next sweep records its status."""
         self._last.setdefault(device, _RESTORED)
 
+    def forget(self, device: str) -> None:
+        """`device` was forgotten: if it publishes again, it arrives anew."""
+        self._last.pop(device, None)
+
     def sweep(self, statuses: Mapping[str, object]) -> None:
         """`statuses`: device -> its status now (a DeviceStatus or its string)."""
         last = self._last
@@ -435,6 +440,12 @@ class RateWatch:
             self._reported.add(device)
             self._settling[device] = now + RESTORED_SETTLE_S
 
+    def forget(self, device: str) -> None:
+        """`device` was forgotten: nothing of it stays (it is judged anew if it publishes again)."""
+        self._over_since.pop(device, None)
+        self._reported.discard(device)
+        self._settling.pop(device, None)
+
     def sweep(self, rates: Mapping[str, float], now: float) -> None:
         """`rates`: each device heard from -> its valid messages per second now; `now` a monotonic time."""
         expected = self._expected
@@ -547,6 +558,25 @@ class FleetWatch:
 
     def broker(self, connections: Iterable[ConnectionCounters]) -> None:
         self._broker.sweep(connections)
+
+    def forgotten(self, device: str, status: str, alarms_removed: Mapping[str, int]) -> None:
+        """An operator forgot `device` (it was `status`): its memory here goes, and one event says what was
+        removed with it."""
+        self._statuses.forget(device)
+        self._rates.forget(device)
+        alarms = ", ".join(f"{n} {state}" for state, n in sorted(alarms_removed.items())) or "none"
+        self.store.emit(
+            EventKind.TWIN,
+            EventLevel.INFO,
+            f"{device} forgotten by an operator (it was {status}): its twin, health and counters removed; "
+            f"alarms removed: {alarms}",
+            device=device,
+            data={
+                "action": "forgotten",
+                "status": status,
+                **{f"alarms_{state}": n for state, n in sorted(alarms_removed.items())},
+            },
+        )
 
     def alarm(self, event: AlarmEvent) -> None:
         level = _ALARM_LEVEL.get(event.action, EventLevel.INFO)
