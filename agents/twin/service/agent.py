@@ -55,10 +55,12 @@ from twin.service.shards import (
     CHECKPOINT_EVERY_S,
     AckRequest,
     AlarmsRequest,
+    ArmForgotten,
     CalibrationsRequest,
     CheckpointRequest,
     EventsRequest,
     FleetRowsRequest,
+    ForgetRequest,
     MirrorCheckpoint,
     MirrorReport,
     Reply,
@@ -77,6 +79,7 @@ from twin.service.shards import (
     checkpoint_of,
     events_of,
     fleet_rows_of,
+    forgotten_of,
     merge_reports,
     report_of,
     restored_of,
@@ -837,11 +840,24 @@ class AgentService:
         self._wake.set()  # into the worker's checkpoint now
         return info
 
+    def forget_arm(self, device: str) -> ArmForgotten:
+        """Remove an OFFLINE arm from the fleet, by the mirror of its device (Mirror.forget_arm). Raises
+        ArmNotFoundError, ArmNotForgettableError (not OFFLINE, or configured), or WorkerError when that
+        device's worker is being started again."""
+        shard = self._shards[self.plan.worker_of(device)]
+        if not shard.answering:
+            raise WorkerError(f"worker {shard.index} is being started again")
+        forgotten = forgotten_of(shard.request(ForgetRequest(device))())
+        self._cached = None
+        self._save_alarms_now()  # its alarms out of the state file before the answer, as an ack's go in
+        self._wake.set()  # and out of the worker's checkpoint now
+        return forgotten
+
     def _save_alarms_now(self) -> None:
-        """Every mirror's alarms into the state file before an acknowledgement is answered: a person's act
-        must survive a kill that comes before the supervisor's next check (which, with workers, takes a
-        whole checkpoint: up to a second or two at a large fleet). Alarms only, so quick, and no checkpoint:
-        confirming one would drop messages a worker's restart is to replay."""
+        """Every mirror's alarms into the state file before an acknowledgement or a forget is answered: a
+        person's act must survive a kill that comes before the supervisor's next check (which, with workers,
+        takes a whole checkpoint: up to a second or two at a large fleet). Alarms only, so quick, and no
+        checkpoint: confirming one would drop messages a worker's restart is to replay."""
         if self._state_file is None or self._stopping.is_set():
             return  # a stop makes its own last write, which says the run stopped
         records: list[AlarmRecord] = []

@@ -15,6 +15,8 @@ Endpoints (docs/http-api.md has examples; docs/console.md the console's own API)
 - POST /alarms/<device>/<joint>/<kind>/ack  acknowledge one (ACTIVE -> ACKNOWLEDGED, LATCHED -> NORMAL); the
                 id may also come percent-encoded as one segment. Loopback clients only; a browser's request
                 only from the console's origin with its CSRF token (twin.service.http_guard)
+- POST /api/arm/<device>/forget  remove an OFFLINE arm (its twin, health, alarms) from the fleet; guarded
+                like the acknowledgement
 - GET /  (a browser) the console; (anything else) the list of endpoints, as before
 
 Bounded (each limit a `[http]` key): at most `max_connections` connections (more get 503), a request head or
@@ -75,7 +77,7 @@ from twin.service.http_guard import (
 )
 from twin.service.metrics import CONTENT_TYPE as PROMETHEUS_CONTENT_TYPE
 from twin.service.metrics import render_metrics
-from twin.service.shards import WorkerError
+from twin.service.shards import ArmForgotten, ArmNotForgettableError, ArmNotFoundError, WorkerError
 from twin.service.state import AgentState, AlarmInfo, AlarmList, HealthReport
 from twin.service.stream_hub import ARM_PREFIX, FLEET, STATE, StreamHub, Subscription, encode_events
 
@@ -85,6 +87,7 @@ __all__ = [
     "ENDPOINTS",
     "AgentHttpServer",
     "AlarmSource",
+    "ArmSource",
     "StateSource",
     "is_loopback_client",
 ]
@@ -128,6 +131,13 @@ class AlarmSource(Protocol):
     def alarms(self, *, include_normal: bool = False) -> tuple[AlarmInfo, ...]: ...
 
     def acknowledge_alarm(self, alarm_id: str) -> AlarmInfo: ...
+
+
+@runtime_checkable
+class ArmSource(Protocol):
+    """What forgetting an arm needs (the agent service has it; a source without it answers 404)."""
+
+    def forget_arm(self, device: str) -> ArmForgotten: ...
 
 
 # ------------------------------------------------------------------------------------------- connections
@@ -415,6 +425,7 @@ class AgentHttpServer:
             Route("/events", r(self._page("events"))),
             Route("/api/fleet", r(self._api_fleet)),
             Route("/api/arm/{device}", r(self._api_arm)),
+            Route("/api/arm/{device}/forget", r(self._forget), methods=["POST"]),
             Route("/api/stream/fleet", r(self._stream_fleet)),
             Route("/api/stream/arm/{device}", r(self._stream_arm)),
             Route("/api/events", r(self._api_events)),
@@ -455,7 +466,11 @@ class AgentHttpServer:
         return _error(404, "not_found", path=request.url.path, endpoints=list(ENDPOINTS))
 
     async def _not_allowed(self, request: Request, exc: Exception) -> Response:
-        return _error(405, "method_not_allowed", allowed=["GET", "POST /alarms/<id>/ack"])
+        return _error(
+            405,
+            "method_not_allowed",
+            allowed=["GET", "POST /alarms/<id>/ack", "POST /api/arm/<device>/forget"],
+        )
 
     async def _call(self, fn: Callable[[], _T]) -> _T:
         """Run a blocking source call off the event loop (the state of a sharded agent asks its workers)."""
@@ -499,9 +514,10 @@ class AgentHttpServer:
             alarms = tuple(a for a in alarms if a.device == device)
         return _json(200, AlarmList(alarms=alarms).to_json())
 
-    async def _acknowledge(self, request: Request) -> Response:
+    async def _read_body(self, request: Request) -> Response | None:
+        """Read a POST's body, which is not used, within the limits (so the connection stays in step); the
+        refusal when it is too large or too slow."""
         try:
-            # The body, if any, is not used; it is read (within the limits) so the connection stays in step.
             await asyncio.wait_for(request.body(), self.settings.timeout_s)
         except BodyTooLarge as exc:
             return _error(413, "body_too_large", detail=str(exc))
@@ -511,6 +527,35 @@ class AgentHttpServer:
                 "request_timeout",
                 detail=f"the request body did not arrive within {self.settings.timeout_s} s",
             )
+        return None
+
+    async def _forget(self, request: Request) -> Response:
+        refused = await self._read_body(request)
+        if refused is not None:
+            return refused
+        source = self._source
+        if not isinstance(source, ArmSource):
+            return _error(404, "not_found", detail="this source has no arms to forget")
+        device = request.path_params["device"]
+        try:
+            forgotten = await self._call(lambda: source.forget_arm(device))
+        except ArmNotFoundError:
+            return _error(404, "arm_not_found", device=device, detail="GET /api/fleet lists every arm")
+        except ArmNotForgettableError as exc:
+            return _error(409, exc.code, device=device, detail=str(exc))
+        except WorkerError as exc:
+            return _error(503, "worker_unavailable", device=device, detail=f"{exc}; try again once it runs")
+        body = {
+            "device": forgotten.device,
+            "status": forgotten.status,
+            "alarms_removed": forgotten.alarms_removed,
+        }
+        return JSONResponse(body, headers=SECURITY_HEADERS)
+
+    async def _acknowledge(self, request: Request) -> Response:
+        refused = await self._read_body(request)
+        if refused is not None:
+            return refused
         source = self._source
         if not isinstance(source, AlarmSource):
             return _error(404, "not_found", detail="this source has no alarms")

@@ -139,8 +139,9 @@ class RequestGuard:
             return (
                 403,
                 "forbidden",
-                f"changing state (acknowledging alarms) is allowed from this host only (loopback), not "
-                f"{address}; open a shell on the host (the stack's SsmSessionCommand) and ask there",
+                f"changing state (acknowledging alarms, forgetting arms) is allowed from this host only "
+                f"(loopback), not {address}; open a shell on the host (the stack's SsmSessionCommand) and "
+                "ask there",
             )
         return self._browser_check(headers, host)
 

@@ -105,15 +105,21 @@ from twin.service.console import FleetRow, fleet_row
 from twin.service.events import Event, EventQuery, EventStore, FleetWatch, RejectionThrottle
 from twin.service.logs import RateLimitedLog, name_native_thread
 from twin.service.shards import (
+    ARM_CONFIGURED,
+    ARM_NOT_OFFLINE,
     EVENTS_PER_ASK,
     AckRequest,
     AlarmsRequest,
+    ArmForgotten,
+    ArmNotForgettableError,
+    ArmNotFoundError,
     CalibrationsRequest,
     CheckpointRequest,
     DeviceCheckpoint,
     DeviceRow,
     EventsRequest,
     FleetRowsRequest,
+    ForgetRequest,
     MirrorCheckpoint,
     MirrorReport,
     Reply,
@@ -1304,6 +1310,8 @@ class Mirror:
             return self.alarms(include_normal=request.include_normal)
         if isinstance(request, AckRequest):
             return self.acknowledge_alarm(request.alarm_id)
+        if isinstance(request, ForgetRequest):
+            return self.forget_arm(request.device)
         if isinstance(request, EventsRequest):
             return tuple(self.events(EventQuery(after_id=request.after_id, limit=EVENTS_PER_ASK)))
         if isinstance(request, FleetRowsRequest):
@@ -1515,6 +1523,45 @@ class Mirror:
         _log_alarm_event(event)
         self._watch.alarm(event)
         return alarm_info(view, now, self._wall_clock())
+
+    def forget_arm(self, device: str) -> ArmForgotten:
+        """Remove an OFFLINE arm an operator retired (docs/console.md, "Forget an arm"): its twin, health and
+        counters, loss estimator, units decision and every alarm, and give its place in the device budget
+        back. Between two batches on the worker thread (the decoder is the worker's alone). Raises
+        ArmNotFoundError (not tracked here) or ArmNotForgettableError (not OFFLINE, or configured)."""
+        return self._between_batches(lambda: self._forget_arm(device))
+
+    def _forget_arm(self, device: str) -> ArmForgotten:
+        if self._capture is not None:
+            # A checkpoint being taken would carry the arm's row and alarms: finish it first, so the one the
+            # agent takes next (it is woken for it) no longer holds them.
+            self._step_capture(self._capture, None)
+        with self._lock:
+            health = self._fleet.get(device)
+            if health is None:
+                raise ArmNotFoundError(device)
+            status = health.status(self._clock())
+            if device in self._fleet.configured:
+                raise ArmNotForgettableError(
+                    ARM_CONFIGURED,
+                    f"{device} is listed in telemetry.devices: take it out of the config instead",
+                )
+            if status is not DeviceStatus.OFFLINE:
+                raise ArmNotForgettableError(
+                    ARM_NOT_OFFLINE,
+                    f"{device} is {status}: only an OFFLINE arm (silent for health.offline_after_s = "
+                    f"{self.config.health.offline_after_s:g} s) can be forgotten",
+                )
+            self._fleet.forget(device)
+            record = self._devices.pop(device, None)
+            self._loss.pop(device, None)
+            removed = {str(state): n for state, n in sorted(self._alarms.forget(device).items())}
+        self._decoder.forget(device)
+        if record is not None:
+            self._budget.give_back(self._slot)
+        self._watch.forgotten(device, str(status), removed)
+        log.info("device forgotten", extra={"device": device, "alarms_removed": removed})
+        return ArmForgotten(device=device, status=str(status), alarms_removed=removed)
 
     def _device_state(self, device: str, health: HealthSnapshot, readout: _Readout) -> DeviceState:
         snap = readout.snapshots.get(device)

@@ -213,6 +213,39 @@ class AckRequest:
 
 
 @dataclass(frozen=True, slots=True)
+class ForgetRequest:
+    """Forget one OFFLINE arm of the mirror's devices (its twin, health, alarms, budget place); answered
+    with ArmForgotten, refused as ArmNotFoundError or ArmNotForgettableError."""
+
+    device: str
+
+
+@dataclass(frozen=True, slots=True)
+class ArmForgotten:
+    """What forgetting an arm removed: its status then, and its alarms by state (NORMAL ones not counted)."""
+
+    device: str
+    status: str
+    alarms_removed: dict[str, int] = field(default_factory=dict)
+
+
+class ArmNotFoundError(KeyError):
+    """No mirror tracks this arm (never heard from, or forgotten already): HTTP 404."""
+
+
+class ArmNotForgettableError(ValueError):
+    """The arm may not be forgotten now (`code`: ARM_NOT_OFFLINE, ARM_CONFIGURED): HTTP 409."""
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+ARM_NOT_OFFLINE = "arm_not_offline"
+ARM_CONFIGURED = "arm_configured"
+
+
+@dataclass(frozen=True, slots=True)
 class EventsRequest:
     """The mirror's events after `after_id` (its own numbering), oldest first, at most EVENTS_PER_ASK."""
 
@@ -386,6 +419,7 @@ Request = (
     ReportRequest
     | AlarmsRequest
     | AckRequest
+    | ForgetRequest
     | EventsRequest
     | FleetRowsRequest
     | StatusesRequest
@@ -397,6 +431,7 @@ Reply = (
     MirrorReport
     | tuple[AlarmInfo, ...]
     | AlarmInfo
+    | ArmForgotten
     | tuple[Event, ...]
     | tuple[FleetRow, ...]
     | tuple[tuple[str, str], ...]
@@ -476,6 +511,13 @@ def alarm_of(reply: Reply) -> AlarmInfo:
     return reply
 
 
+def forgotten_of(reply: Reply) -> ArmForgotten:
+    """The answer to a ForgetRequest; WorkerError for anything else."""
+    if not isinstance(reply, ArmForgotten):
+        raise WorkerError(f"an arm was to be forgotten, the answer was {type(reply).__name__}")
+    return reply
+
+
 # What crosses a worker's control pipe (pickled): the agent's calls, and the worker's answers and refusals,
 # matched by call id; when it starts, the worker says once whether it runs.
 
@@ -495,6 +537,9 @@ class Answer:
 class Refusal(StrEnum):
     ALARM_NOT_FOUND = "alarm_not_found"
     NOTHING_TO_ACKNOWLEDGE = "nothing_to_acknowledge"
+    ARM_NOT_FOUND = "arm_not_found"
+    ARM_NOT_OFFLINE = ARM_NOT_OFFLINE
+    ARM_CONFIGURED = ARM_CONFIGURED
     ERROR = "error"
 
 
@@ -530,6 +575,10 @@ def _raise_refusal(refused: Refused, worker: int) -> None:
         raise AlarmNotFound(refused.message)
     if refused.refusal is Refusal.NOTHING_TO_ACKNOWLEDGE:
         raise NothingToAcknowledge(refused.message)
+    if refused.refusal is Refusal.ARM_NOT_FOUND:
+        raise ArmNotFoundError(refused.message)
+    if refused.refusal in (Refusal.ARM_NOT_OFFLINE, Refusal.ARM_CONFIGURED):
+        raise ArmNotForgettableError(str(refused.refusal), refused.message)
     raise WorkerError(f"worker {worker}: {refused.message}")
 
 
@@ -584,7 +633,8 @@ class Shard(Protocol):
 
     def request(self, request: Request) -> Callable[[], Reply]:
         """Send `request`; the returned function (call it exactly once) waits for and returns the reply, or
-        raises AlarmNotFound, NothingToAcknowledge or WorkerError."""
+        raises AlarmNotFound, NothingToAcknowledge, ArmNotFoundError, ArmNotForgettableError or
+        WorkerError."""
         ...
 
     def describe(self, report: MirrorReport | None) -> WorkerInfo | None:
@@ -1285,6 +1335,10 @@ def _serve_control(mirror: Mirror, control: Connection) -> None:
             reply = Refused(call.call_id, Refusal.ALARM_NOT_FOUND, str(exc.args[0]) if exc.args else "")
         except NothingToAcknowledge as exc:
             reply = Refused(call.call_id, Refusal.NOTHING_TO_ACKNOWLEDGE, str(exc))
+        except ArmNotFoundError as exc:
+            reply = Refused(call.call_id, Refusal.ARM_NOT_FOUND, str(exc.args[0]) if exc.args else "")
+        except ArmNotForgettableError as exc:
+            reply = Refused(call.call_id, Refusal(exc.code), str(exc))
         except Exception as exc:
             log.exception("worker request %s failed", type(call.request).__name__)
             reply = Refused(call.call_id, Refusal.ERROR, f"{type(exc).__name__}: {exc}")
@@ -1486,14 +1540,20 @@ def _merge_alarms(parts: list[AlarmsSummary]) -> AlarmsSummary:
 
 
 __all__ = [
+    "ARM_CONFIGURED",
+    "ARM_NOT_OFFLINE",
     "AckRequest",
     "AlarmsRequest",
+    "ArmForgotten",
+    "ArmNotForgettableError",
+    "ArmNotFoundError",
     "CalibrationsRequest",
     "CheckpointRequest",
     "DeviceCheckpoint",
     "DeviceRow",
     "EventsRequest",
     "FleetRowsRequest",
+    "ForgetRequest",
     "MirrorCheckpoint",
     "MirrorReport",
     "PackedDevices",
@@ -1512,6 +1572,7 @@ __all__ = [
     "alarms_of",
     "applied_of",
     "checkpoint_of",
+    "forgotten_of",
     "merge_reports",
     "report_of",
     "restored_of",

@@ -1,0 +1,279 @@
+"""Forgetting an arm (docs/console.md, "Forget an arm"): an OFFLINE arm an operator retired leaves the fleet.
+
+The alarm engine and the mirror are driven here on a clock of their own; the HTTP endpoint on an agent with
+two worker processes behind a real mosquitto.
+"""
+
+from __future__ import annotations
+
+import json
+import random
+import urllib.error
+import urllib.request
+from multiprocessing import Pipe
+from pathlib import Path
+from typing import Any
+
+import pytest
+from conftest import wait_for
+from test_servo_alarms_e2e import alarms, post
+from twin.core.alarms import AlarmKind, AlarmRecord, AlarmState, ServoAlarms
+from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
+from twin.edge.payload import encode, make_payload
+from twin.edge.servo_faults import ServoFault
+from twin.rig.local import LocalRig
+from twin.service.admission import DeviceBudget
+from twin.service.config import load_config
+from twin.service.events import EventKind, EventQuery
+from twin.service.mirror import Mirror, PipeInbox
+from twin.service.shards import ArmNotForgettableError, ArmNotFoundError, WorkerPlan
+from twin.transport.pipe import Batch
+
+# --- the alarm engine ---------------------------------------------------------------------------------------
+
+
+def _record(device: str, joint: str, kind: AlarmKind, state: AlarmState, message: str) -> AlarmRecord:
+    return AlarmRecord(
+        device=device, joint=joint, kind=kind, state=state, since=5.0, present=True, raised=1, message=message
+    )
+
+
+def test_the_engine_forgets_every_alarm_of_one_arm_and_keeps_the_others_rows() -> None:
+    engine = ServoAlarms()
+    engine.restore(
+        [
+            _record("a", "wrist_roll", AlarmKind.OVER_TEMPERATURE, AlarmState.ACTIVE, "a hot"),
+            _record("b", "wrist_roll", AlarmKind.OVER_TEMPERATURE, AlarmState.ACKNOWLEDGED, "b hot"),
+            _record("b", "gripper", AlarmKind.OVER_CURRENT, AlarmState.ACKNOWLEDGED, "b current"),
+            _record("b", "elbow_flex", AlarmKind.OVERLOAD, AlarmState.LATCHED, "b load"),
+            _record("c", "shoulder_pan", AlarmKind.OVERLOAD, AlarmState.LATCHED, "c load"),
+        ]
+    )
+    before = {v.alarm_id: v for v in engine.views() if v.device != "b"}
+    removed = engine.forget("b")
+    assert removed == {AlarmState.ACKNOWLEDGED: 2, AlarmState.LATCHED: 1}
+    # The last arm's row moved into b's: its alarms are the same, messages and all.
+    assert {v.alarm_id: v for v in engine.views(include_normal=True)} == before
+    assert {r.device for r in engine.records()} == {"a", "c"}
+    assert engine.worst_by_device().keys() == {"a", "c"}
+    assert engine.forget("b") == {}  # gone already
+    # A later message of the same id makes a fresh row: nothing of before.
+    engine.restore([_record("b", "gripper", AlarmKind.OVER_CURRENT, AlarmState.ACTIVE, "b again")])
+    assert [(v.alarm_id, v.state, v.message) for v in engine.views(device="b")] == [
+        ("b/gripper/over_current", AlarmState.ACTIVE, "b again")
+    ]
+    assert {v.alarm_id for v in engine.views()} == {*before, "b/gripper/over_current"}
+
+
+# --- the mirror -------------------------------------------------------------------------------------------
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+OFFLINE_AFTER_S = 3.0
+HOT = (ServoFault("heat", "wrist_roll", 0.0, 30.0),)
+
+
+def _round(mirror: Mirror, clock: _Clock, devices: list[str], rng: random.Random, t: float) -> None:
+    """One message of each of `devices` (edge time `t`, hot wrist for arm-002), 0.1 s after the last."""
+    clock.now += 0.1
+    payloads = tuple(
+        encode(
+            make_payload(
+                d,
+                t,
+                "ticks",
+                rng,
+                timestamp_ms=round((1.7e9 + clock.now) * 1000),
+                servo_faults=HOT if d == "arm-002" else (),
+            )
+        )
+        for d in devices
+    )
+    n = len(devices)
+    topics = tuple(telemetry_topic(DEFAULT_TOPIC_PREFIX, d) for d in devices)
+    mirror._handle(Batch(tuple(devices), topics, payloads, (clock.now,) * n, (1.7e9 + clock.now,) * n), 0)
+    mirror._watch_statuses()
+
+
+def test_a_mirror_forgets_an_offline_arm_and_a_later_message_makes_a_new_arm() -> None:
+    clock, rng = _Clock(), random.Random(3)
+    config = load_config(
+        None,
+        {
+            "telemetry.devices": ["*"],
+            "telemetry.units": "ticks",
+            "health.offline_after_s": OFFLINE_AFTER_S,
+        },
+    )
+    budget = DeviceBudget(3)
+    mirror = Mirror(
+        config, inbox=PipeInbox(Pipe(duplex=False)[0]), budget=budget, clock=clock, wall_clock=clock
+    )
+    arms = ["arm-001", "arm-002", "arm-003"]
+    t = 0.0
+    while not any(a.device == "arm-002" for a in mirror.alarms()):
+        assert t < 20.0, "arm-002's hot wrist raised no alarm"
+        t += 0.1
+        _round(mirror, clock, arms, rng, t)
+    hot = mirror.alarms()[0].alarm_id
+    mirror.acknowledge_alarm(hot)
+    with pytest.raises(ArmNotForgettableError) as refused:
+        mirror.forget_arm("arm-002")
+    assert refused.value.code == "arm_not_offline" and "ONLINE" in str(refused.value)
+    with pytest.raises(ArmNotFoundError):
+        mirror.forget_arm("arm-404")
+    others_before = mirror.report().devices["arm-001"].health.counters
+    for _ in range(round(OFFLINE_AFTER_S * 10) + 1):
+        t += 0.1
+        _round(mirror, clock, ["arm-001", "arm-003"], rng, t)
+    assert mirror.statuses()["arm-002"] == "OFFLINE"
+    assert budget.taken == 3
+
+    forgotten = mirror.forget_arm("arm-002")
+
+    assert forgotten.status == "OFFLINE" and forgotten.alarms_removed.get("ACKNOWLEDGED", 0) >= 1
+    assert budget.taken == 2  # its place is free
+    report = mirror.report()
+    assert sorted(report.devices) == ["arm-001", "arm-003"]
+    assert sum(report.alarms.present.values()) == 0
+    assert not [a for a in mirror.alarms(include_normal=True) if a.device == "arm-002"]
+    assert [r.device for r in mirror.fleet_rows()] == ["arm-001", "arm-003"]
+    assert all(r.device != "arm-002" for r in mirror.checkpoint().alarms)
+    assert report.devices["arm-001"].health.counters.received > others_before.received
+    event = mirror.events(EventQuery(kinds=frozenset({EventKind.TWIN.value}), device="arm-002"))[-1]
+    assert event.data["action"] == "forgotten" and "forgotten by an operator" in event.message
+    # It publishes again: a new arm, counted from its first message, ONLINE on arrival, no alarm of before.
+    t += 0.1
+    _round(mirror, clock, ["arm-002"], rng, 0.0)
+    again = mirror.report().devices["arm-002"]
+    assert again.health.counters.received == 1 and again.health.status == "ONLINE"
+    assert budget.taken == 3
+    assert not [a for a in mirror.alarms() if a.device == "arm-002"]
+    statuses = mirror.events(EventQuery(kinds=frozenset({EventKind.STATUS.value}), device="arm-002"))
+    assert statuses[-1].message == "arm-002 is ONLINE (first message)"
+
+
+def test_a_configured_arm_is_not_forgotten() -> None:
+    clock = _Clock()
+    config = load_config(None, {"telemetry.devices": ["arm-001"], "health.offline_after_s": 1.0})
+    mirror = Mirror(
+        config, inbox=PipeInbox(Pipe(duplex=False)[0]), budget=DeviceBudget(3), clock=clock, wall_clock=clock
+    )
+    clock.now += 2.0
+    assert mirror.statuses()["arm-001"] == "OFFLINE"
+    with pytest.raises(ArmNotForgettableError) as refused:
+        mirror.forget_arm("arm-001")
+    assert refused.value.code == "arm_configured"
+    assert "arm-001" in mirror.statuses()
+
+
+# --- the HTTP endpoint, two worker processes ------------------------------------------------------------
+
+
+def _post(url: str, headers: dict[str, str]) -> tuple[int, Any]:
+    request = urllib.request.Request(url, data=b"", method="POST", headers=headers)
+    try:
+        with urllib.request.urlopen(request, timeout=30) as resp:
+            return resp.status, json.loads(resp.read())
+    except urllib.error.HTTPError as err:
+        return err.code, json.loads(err.read())
+
+
+def _get(url: str) -> Any:
+    with urllib.request.urlopen(url, timeout=30) as resp:
+        return json.loads(resp.read())
+
+
+@pytest.mark.slow
+def test_forgetting_an_arm_over_http_on_a_sharded_agent(rig: LocalRig, tmp_path: Path) -> None:
+    plan = WorkerPlan(2)
+    retired, kept = "arm-002", ["arm-001", "arm-003", "arm-004"]
+    assert {plan.worker_of(d) for d in [retired, *kept]} == {0, 1}  # both workers hold arms
+    state_file = tmp_path / "state.json"
+    agent = rig.start_agent(
+        {
+            "telemetry.units": "ticks",
+            "health.offline_after_s": 2.0,
+            "twin.state_file": str(state_file),
+        },
+        workers=2,
+    )
+    url = agent.http_url
+    faults = (ServoFault("heat", "wrist_roll", 0.0, 60.0),)
+    edge = rig.start_edge([retired], rate_hz=10.0, servo_faults=faults, seconds=60.0)
+    others = rig.start_edge(kept, rate_hz=10.0)
+    try:
+        wait_for(
+            lambda: any(a.device == retired for a in alarms(url).alarms),
+            60,
+            f"an alarm of {retired}",
+            interval=0.2,
+        )
+        wait_for(
+            lambda: retired in {a["alarm_id"].split("/")[0] for a in _saved_alarms(state_file)},
+            30,
+            f"{retired}'s alarm in the state file",
+            interval=0.2,
+        )
+        # While it publishes: refused, naming its status and the rule.
+        status, body = post(f"{url}/api/arm/{retired}/forget")
+        assert status == 409 and body["error"] == "arm_not_offline", body
+        assert "ONLINE" in body["detail"] and "offline_after_s" in body["detail"]
+        status, body = post(f"{url}/api/arm/arm-404/forget")
+        assert status == 404 and body["error"] == "arm_not_found", body
+        edge.stop()
+        wait_for(lambda: agent.state().devices[retired].health.status == "OFFLINE", 30, f"{retired} OFFLINE")
+        before = {d: agent.state().devices[d].health.counters.received for d in kept}
+        # A browser request without the console's CSRF token is refused by the guard: the arm stays.
+        status, body = _post(f"{url}/api/arm/{retired}/forget", {"Origin": url.rstrip("/")})
+        assert status == 403 and body["error"] == "csrf_token_missing", body
+        assert retired in _get(f"{url}/state")["devices"]
+
+        status, body = post(f"{url}/api/arm/{retired}/forget")
+
+        assert status == 200, body
+        assert body["device"] == retired and sum(body["alarms_removed"].values()) >= 1, body
+        assert retired not in _get(f"{url}/state")["devices"]
+        assert not [a for a in alarms(url, everything=True).alarms if a.device == retired]
+        assert retired not in json.dumps(_get(f"{url}/api/fleet")["rows"])
+        wait_for(
+            lambda: retired not in {a["alarm_id"].split("/")[0] for a in _saved_alarms(state_file)},
+            30,
+            f"{retired}'s alarms gone from the state file",
+            interval=0.1,
+        )
+        wait_for(
+            lambda: any(
+                e["data"].get("action") == "forgotten"
+                for e in _get(f"{url}/api/events?device={retired}&kind=twin")["events"]
+            ),
+            30,
+            "an event of the arm forgotten",
+            interval=0.1,
+        )
+        status, body = post(f"{url}/api/arm/{retired}/forget")
+        assert status == 404, body
+        # The other arms go on as before.
+        wait_for(
+            lambda: all(agent.state().devices[d].health.counters.received > before[d] for d in kept),
+            30,
+            "the other arms still counted",
+        )
+        assert all(agent.state().devices[d].health.status == "ONLINE" for d in kept)
+    finally:
+        edge.stop()
+        others.stop()
+
+
+def _saved_alarms(state_file: Path) -> list[dict[str, Any]]:
+    if not state_file.exists():
+        return []
+    alarms_: list[dict[str, Any]] = json.loads(state_file.read_text())["alarms"]
+    return alarms_
