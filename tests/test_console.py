@@ -548,3 +548,55 @@ def test_a_sessions_other_files_are_made_from_history(console: str, tmp_path: Pa
     stage = Usd.Stage.Open(str(files["usd"]))
     assert stage.GetEndTimeCode() > stage.GetStartTimeCode()
     assert http_get(base + "exe")[0] == 404
+
+
+def test_an_offline_arm_is_forgotten_from_its_page(
+    rig: LocalRig, page: Any, browser_errors: list[str]
+) -> None:
+    """An arm that went OFFLINE shows "Forget this arm"; the confirmation says what goes, a refusal shows in
+    the agent's words, and once forgotten the page says so and links to the Fleet page. An agent of its own,
+    quick to call an arm OFFLINE, so the module's arms stay as they are."""
+    port = free_port()
+    agent = rig.start_agent(
+        {
+            "http.listen": f"127.0.0.1:{port}",
+            "broker.client_id_prefix": "forget-",
+            "telemetry.units": "ticks",
+            "health.offline_after_s": 1.5,
+        }
+    )
+    url = f"http://127.0.0.1:{port}"
+    rig.start_edge(["arm-retired"], variant="ticks", rate_hz=10.0, seconds=2.0, seed=11)
+    page.goto(url + "/arm/arm-retired")
+    page.locator(".status.OFFLINE").wait_for()
+    button = page.get_by_role("button", name="Forget this arm")
+    asked: list[str] = []
+
+    def confirm(dialog: Any) -> None:
+        asked.append(dialog.message)
+        dialog.accept()
+
+    page.on("dialog", confirm)
+    try:
+        # A page whose token the agent does not know (it restarted since): refused, in the agent's words.
+        token = page.evaluate("document.querySelector('meta[name=csrf-token]').content")
+        page.evaluate("document.querySelector('meta[name=csrf-token]').content = 'from-the-agent-before'")
+        button.click()
+        result = page.locator("#forget-result")
+        result.filter(has_text="reload the console page").wait_for(timeout=15_000)
+        assert "was not forgotten" in result.inner_text() and "csrf_token_invalid" in result.inner_text()
+        assert "arm-retired" in agent.state().devices
+        page.evaluate(f"document.querySelector('meta[name=csrf-token]').content = {json.dumps(token)}")
+        button.click()
+        result.filter(has_text="arm-retired is forgotten").wait_for(timeout=15_000)
+    finally:
+        page.remove_listener("dialog", confirm)
+    assert len(asked) == 2 and "Forget arm-retired?" in asked[0], asked
+    assert "twin" in asked[0] and "no alarm" in asked[0] and "new arm" in asked[0], asked
+    assert page.locator("#forget-result a#forget-fleet").get_attribute("href") == "/"
+    page.locator("h1", has_text="arm-retired: forgotten").wait_for()
+    assert "arm-retired" not in agent.state().devices
+    # The browser logs the refused POST; it is this test's doing, and only it may be there.
+    assert len(browser_errors) == 1 and "Failed to load resource" in browser_errors[0], browser_errors
+    browser_errors.clear()
+    agent.stop()

@@ -1,5 +1,6 @@
 // One arm: live charts (joint angles; servo temperature, load and current) over the last minutes, its
-// alarms with Acknowledge, loss and rejections by reason, and a link to the Rerun view.
+// alarms with Acknowledge, loss and rejections by reason, a link to the Rerun view, and for an OFFLINE arm a
+// button that forgets it (an arm retired for good).
 "use strict";
 
 (() => {
@@ -38,6 +39,11 @@
   // The outcome of the last Acknowledge, kept outside the table: the live stream redraws the table whenever
   // a reading changes an alarm's value, and would wipe a refusal written into its row.
   const ackResult = el("p", { id: "ack-result", role: "status", hidden: true });
+  // Forget: offered for an OFFLINE arm only (the agent refuses any other); its outcome stays on the page.
+  const forgetButton = el("button", { type: "button", id: "forget", hidden: true, text: "Forget this arm" });
+  const forgetResult = el("p", { id: "forget-result", role: "status", hidden: true });
+  let forgotten = false;
+  let shownAlarms = [];
   const lossBox = el("div", { class: "kv" });
   const rejectsBody = el("tbody");
   main.append(
@@ -45,7 +51,7 @@
     title,
     el("div", { class: "grid2" },
       el("div", { class: "panel" }, summary, el("p", {}, rerun,
-        el("span", { class: "muted", text: ` (this arm is arms/${device})` }))),
+        el("span", { class: "muted", text: ` (this arm is arms/${device})` })), forgetButton, forgetResult),
       el("div", { class: "panel" }, el("h2", { text: "loss" }), lossBox, el("h2", { text: "rejected messages by reason" }),
         el("table", {}, el("thead", {}, el("tr", {}, el("th", { text: "reason" }), el("th", { text: "messages" }))), rejectsBody))),
     el("h2", { text: "alarms" }), ackResult,
@@ -163,6 +169,60 @@
     }
   }
 
+  // What forgetting removes, said before the operator confirms: the alarms are the ones this page shows.
+  function forgetQuestion() {
+    const byState = {};
+    for (const a of shownAlarms) byState[a.state] = (byState[a.state] || 0) + 1;
+    const alarmsText = Object.keys(byState).length
+      ? Object.entries(byState).map(([state, n]) => `${n} ${state}`).join(", ") + " alarm(s)"
+      : "no alarm";
+    return `Forget ${device}? The agent removes its twin, its health and message counters, its loss ` +
+      `estimate and ${alarmsText} (also from the state file); it leaves the Fleet page. If it publishes ` +
+      "again it comes back as a new arm.";
+  }
+
+  function forgetOutcome(result) {
+    if (result.ok) {
+      const removed = Object.entries((result.payload && result.payload.alarms_removed) || {});
+      const alarmsText = removed.length ? removed.map(([state, n]) => `${n} ${state}`).join(", ") : "none";
+      return `${device} is forgotten: its twin, health and counters are removed; alarms removed: ${alarmsText}. `;
+    }
+    if (!result.status) return `${device} was not forgotten: the agent did not answer (it may be restarting)`;
+    const p = result.payload || {};
+    const why = p.detail || `the agent answered ${result.status}`;
+    return `${device} was not forgotten: ${why} (${result.status}${p.error ? ` ${p.error}` : ""})`;
+  }
+
+  async function forget() {
+    if (!window.confirm(forgetQuestion())) return;
+    forgetButton.disabled = true;
+    let result;
+    try {
+      result = await Twin.post(`/api/arm/${encodeURIComponent(device)}/forget`);
+    } catch (_) {
+      result = { ok: false, status: 0, payload: null };
+    }
+    forgetButton.disabled = false;
+    forgetResult.hidden = false;
+    forgetResult.className = result.ok ? "ack-ok" : "ack-refused";
+    forgetResult.textContent = forgetOutcome(result);
+    if (result.ok) {
+      forgotten = true;
+      forgetResult.append(el("a", { href: "/", id: "forget-fleet", text: "back to the Fleet page" }));
+      showForgotten();
+    }
+  }
+  forgetButton.addEventListener("click", forget);
+
+  // After a forget the agent no longer knows the arm: the page says so instead of "not known".
+  function showForgotten() {
+    title.textContent = `${device}: forgotten`;
+    forgetButton.hidden = true;
+    summary.replaceChildren(el("p", { id: "forgotten", text: "This arm was forgotten by this agent. If it " +
+      "publishes again it comes back as a new arm, and this page fills in by itself." }));
+    renderAlarms([]);
+  }
+
   // One row per alarm, kept across updates and changed in place. A reading changes an alarm's value at each
   // tick while the servo heats or cools; a row rebuilt then replaced the button under the operator's
   // pointer, and a click pressed on the old button and released on the new one was lost without a word.
@@ -226,8 +286,10 @@
 
   function update(doc) {
     const d = doc.device;
-    if (!d) { unknown(); return; }
+    if (!d) { if (forgotten) showForgotten(); else unknown(); return; }
     title.textContent = device;
+    shownAlarms = doc.alarms;
+    forgetButton.hidden = d.health.status !== "OFFLINE";
     const now = doc.time, h = d.health;
     kv(summary, [
       ["status", el("span", { class: "status " + h.status, text: h.status })],
