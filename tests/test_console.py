@@ -567,7 +567,15 @@ def test_an_offline_arm_is_forgotten_from_its_page(
     )
     url = f"http://127.0.0.1:{port}"
     rig.start_edge(["arm-retired"], variant="ticks", rate_hz=10.0, seconds=2.0, seed=11)
+
+    def offline() -> bool:
+        arm = agent.state().devices.get("arm-retired")
+        return arm is not None and arm.health.status == "OFFLINE"
+
+    wait_for(offline, TIMEOUT_S, "arm-retired heard, then OFFLINE")
     page.goto(url + "/arm/arm-retired")
+    # A page left before (one whose agent stopped) may have logged its stream's retries up to here.
+    errors_before = len(browser_errors)
     page.locator(".status.OFFLINE").wait_for()
     button = page.get_by_role("button", name="Forget this arm")
     asked: list[str] = []
@@ -597,6 +605,9 @@ def test_an_offline_arm_is_forgotten_from_its_page(
     page.locator("h1", has_text="arm-retired: forgotten").wait_for()
     assert "arm-retired" not in agent.state().devices
     # The browser logs the refused POST; it is this test's doing, and only it may be there.
-    assert len(browser_errors) == 1 and "Failed to load resource" in browser_errors[0], browser_errors
-    browser_errors.clear()
+    ours = browser_errors[errors_before:]
+    assert len(ours) == 1 and "Failed to load resource" in ours[0], ours
+    del browser_errors[errors_before:]
+    # Off the page before its agent stops: its stream's retries would be logged as the next test's errors.
+    page.goto("about:blank")
     agent.stop()
