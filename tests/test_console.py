@@ -566,7 +566,9 @@ def test_an_offline_arm_is_forgotten_from_its_page(
         }
     )
     url = f"http://127.0.0.1:{port}"
-    rig.start_edge(["arm-retired"], variant="ticks", rate_hz=10.0, seconds=2.0, seed=11)
+    edge = rig.start_edge(["arm-retired"], variant="ticks", rate_hz=10.0, seconds=2.0, seed=11)
+    # Its edge done first: one held back 1.5 s by a loaded machine would make the arm OFFLINE, then ONLINE.
+    edge.join(TIMEOUT_S)
 
     def offline() -> bool:
         arm = agent.state().devices.get("arm-retired")
