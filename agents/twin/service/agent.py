@@ -508,23 +508,40 @@ class AgentService:
         workers = self._mirror is None
         if not workers and self._state_file is None:
             return
-        records: list[AlarmRecord] = []
-        for shard in self._shards:
-            report = self.stop_reports.get(shard.index) if final else None
-            if report is not None:
-                records.extend(report.alarms)
-                continue
-            checkpoint = None if final else self._checkpoint(shard, alarms_only=not workers)
-            if checkpoint is None:
-                checkpoint = shard.checkpoint  # restarting, or gone: what it last said
-            if checkpoint is not None:
-                records.extend(checkpoint.alarms)
+
+        def alarms_of(shard: Shard) -> tuple[AlarmRecord, ...] | None:
+            if final:
+                report = self.stop_reports.get(shard.index)
+                return None if report is None else report.alarms
+            checkpoint = self._checkpoint(shard, alarms_only=not workers)
+            return None if checkpoint is None else checkpoint.alarms
+
+        records = self._alarm_records(alarms_of)
         if self._state_file is not None:
             # `stopped` only on the stop's write: a file that still says it ran tells the next start this
             # run ended without stopping (persist's module doc).
             self._state_file.save(records, time.monotonic(), time.time(), stopped=final)
 
-    def _checkpoint(self, shard: Shard, *, alarms_only: bool) -> MirrorCheckpoint | None:
+    def _alarm_records(
+        self, alarms_of: Callable[[Shard], tuple[AlarmRecord, ...] | None]
+    ) -> list[AlarmRecord]:
+        """Every shard's alarms as `alarms_of` gets them, else as its last checkpoint said (restarting, or
+        gone)."""
+        records: list[AlarmRecord] = []
+        for shard in self._shards:
+            alarms = alarms_of(shard)
+            if alarms is None:
+                checkpoint = shard.checkpoint
+                alarms = () if checkpoint is None else checkpoint.alarms
+            records.extend(alarms)
+        return records
+
+    def _checkpoint(
+        self, shard: Shard, *, alarms_only: bool, confirm: bool = True
+    ) -> MirrorCheckpoint | None:
+        """The shard's checkpoint, None when it cannot give one. `confirm`: the agent may drop the messages
+        it counts (shard.confirm); not for one taken only for the state file between two of the
+        supervisor's."""
         if not shard.answering:
             return None
         try:
@@ -532,7 +549,8 @@ class AgentService:
         except (WorkerError, TimeoutError) as exc:
             log.warning("no checkpoint of shard %d: %s", shard.index, exc)
             return None
-        shard.confirm(checkpoint)
+        if confirm:
+            shard.confirm(checkpoint)
         return checkpoint
 
     def _restore_state_file(self) -> None:
@@ -856,22 +874,16 @@ class AgentService:
     def _save_alarms_now(self) -> None:
         """Every mirror's alarms into the state file before an acknowledgement or a forget is answered: a
         person's act must survive a kill that comes before the supervisor's next check (which, with workers,
-        takes a whole checkpoint: up to a second or two at a large fleet). Alarms only, so quick, and no
-        checkpoint: confirming one would drop messages a worker's restart is to replay."""
+        takes a whole checkpoint: up to a second or two at a large fleet). Alarms only, so quick, and not
+        confirmed: an alarms-only checkpoint is no restart's starting point for the messages it would drop."""
         if self._state_file is None or self._stopping.is_set():
             return  # a stop makes its own last write, which says the run stopped
-        records: list[AlarmRecord] = []
-        for shard in self._shards:
-            checkpoint = None
-            if shard.answering:
-                try:
-                    checkpoint = checkpoint_of(shard.request(CheckpointRequest(alarms_only=True))())
-                except (WorkerError, TimeoutError) as exc:
-                    log.warning("no alarms of shard %d for the state file: %s", shard.index, exc)
-            if checkpoint is None:
-                checkpoint = shard.checkpoint  # restarting, or gone: what it last said
-            if checkpoint is not None:
-                records.extend(checkpoint.alarms)
+
+        def alarms_of(shard: Shard) -> tuple[AlarmRecord, ...] | None:
+            checkpoint = self._checkpoint(shard, alarms_only=True, confirm=False)
+            return None if checkpoint is None else checkpoint.alarms
+
+        records = self._alarm_records(alarms_of)
         self._state_file.save(records, time.monotonic(), time.time())
 
     def _fleet_totals(self) -> FleetTotals:
