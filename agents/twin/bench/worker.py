@@ -34,7 +34,7 @@ from typing import Any
 from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
 from twin.edge.payload import encode, make_payload
 from twin.service.admission import DeviceBudget
-from twin.service.config import load_config
+from twin.service.config import AgentConfig, load_config
 from twin.service.mirror import Mirror, PipeInbox
 from twin.service.shards import MAX_BATCH
 from twin.transport.pipe import Message, send_batch, send_end
@@ -68,8 +68,9 @@ def _fleet(arms: int, rounds: int, seed: int = 1) -> list[list[tuple[str, str, b
     return out
 
 
-def _case(arms: int, rounds: int, *, alarms: bool) -> dict[str, Any]:
-    config = load_config(
+def _config(arms: int, *, alarms: bool) -> AgentConfig:
+    """A worker's config for the whole fleet in ticks, the alarm engine on or off."""
+    return load_config(
         None,
         {
             "telemetry.devices": ["*"],
@@ -79,6 +80,10 @@ def _case(arms: int, rounds: int, *, alarms: bool) -> dict[str, Any]:
             "log.level": "WARNING",
         },
     )
+
+
+def _case(arms: int, rounds: int, *, alarms: bool) -> dict[str, Any]:
+    config = _config(arms, alarms=alarms)
     fleet = _fleet(arms, rounds)
     reader, writer = Pipe(duplex=False)
     service = Mirror(config, inbox=PipeInbox(reader), budget=DeviceBudget(config.telemetry.max_devices))
@@ -152,15 +157,7 @@ def run(*, arms: int = 1000, rounds: int = 40, batches: list[int] | None = None)
 def _by_batch(arms: int, rounds: int, sizes: list[int]) -> dict[str, Any]:
     """CPU per message at each batch size (one mirror, its arms known from a first round), and the line
     through them."""
-    config = load_config(
-        None,
-        {
-            "telemetry.devices": ["*"],
-            "telemetry.units": "ticks",
-            "telemetry.max_devices": max(64, arms),
-            "log.level": "WARNING",
-        },
-    )
+    config = _config(arms, alarms=True)
     fleet = _fleet(arms, 1 + rounds * len(sizes))
     probe_message = fleet[0][0][2]
     reader, writer = Pipe(duplex=False)
