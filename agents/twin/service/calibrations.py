@@ -173,11 +173,9 @@ class DirectoryStore:
         try:
             with path.open("rb") as fh:
                 return fh.read(MAX_FILE_BYTES + 1)
-        except FileNotFoundError as exc:
-            if missing_ok:
-                return None
-            raise CalibrationStoreError(f"cannot read {path}: {exc}") from exc
         except OSError as exc:
+            if missing_ok and isinstance(exc, FileNotFoundError):
+                return None
             raise CalibrationStoreError(f"cannot read {path}: {exc}") from exc
 
     def _put(self, name: str, data: bytes) -> str:
