@@ -265,7 +265,13 @@ def kept_cycle(store_arg: list[str], store: Any, capsys: pytest.CaptureFixture[s
     out = capsys.readouterr().out
     assert "the one it replaced is kept at" in out and "twin calibration restore arm-001" in out, out
     assert store.read("arm-001") == shifted(100) and store.read_kept("arm-001") == EXAMPLE.read_bytes()
-    assert list(store.listing()) == ["arm-001"]
+    assert list(store.listing()) == ["arm-001"] and store.kept_listing() == {"arm-001"}
+    # ls shows the kept one beside the arm's own, before anyone needs it.
+    place = store.uri_of("arm-001")
+    assert main(["calibration", "ls", *store_arg]) == cmd.EXIT_OK
+    listed = capsys.readouterr()
+    assert listed.out == f"arm-001\t{place}\tkept: {place}.previous\n", listed.out
+    assert "twin calibration restore ARM" in listed.err
     # restore swaps them, and again swaps back.
     restore = ["calibration", "restore", "arm-001", *store_arg]
     assert main(restore) == cmd.EXIT_OK
@@ -277,9 +283,14 @@ def kept_cycle(store_arg: list[str], store: Any, capsys: pytest.CaptureFixture[s
     assert main(["calibration", "rm", "arm-001", *store_arg]) == cmd.EXIT_OK
     assert "kept at" in capsys.readouterr().out
     assert store.listing() == {} and store.read_kept("arm-001") == shifted(100)
+    assert main(["calibration", "ls", *store_arg]) == cmd.EXIT_OK
+    assert capsys.readouterr().out == f"arm-001\t(removed)\tkept: {place}.previous\n"
     assert main(restore) == cmd.EXIT_OK
     assert "holds the calibration rm removed again" in capsys.readouterr().out
     assert store.read("arm-001") == shifted(100) and store.read_kept("arm-001") is None
+    assert store.kept_listing() == set()
+    assert main(["calibration", "ls", *store_arg]) == cmd.EXIT_OK
+    assert capsys.readouterr().out == f"arm-001\t{place}\n"
     assert main(restore) == cmd.EXIT_STORE
     assert "arm-001 has no kept calibration" in capsys.readouterr().err
     assert store.read("arm-001") == shifted(100)

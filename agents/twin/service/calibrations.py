@@ -80,6 +80,10 @@ class CalibrationStore(Protocol):
         """The calibration the device's last push or rm replaced (KEPT_SUFFIX), None when none is kept."""
         ...
 
+    def kept_listing(self) -> set[str]:
+        """The devices that have a kept calibration (KEPT_SUFFIX), with or without one of their own."""
+        ...
+
     def write_kept(self, device: str, data: bytes) -> str:
         """Keep `data` as the calibration the device's file replaced; returns where it went."""
         ...
@@ -94,11 +98,12 @@ class CalibrationStore(Protocol):
 # names and S3 keys, and a file pushed to a laptop's directory can then go to the stack's store as it is.
 
 
-def device_of(name: str) -> str | None:
-    """The device id a file name in the store stands for, or None when it names no device."""
-    if not name.endswith(SUFFIX):
+def device_of(name: str, suffix: str = SUFFIX) -> str | None:
+    """The device id a file name in the store stands for, or None when it names no device; with KEPT_SUFFIX,
+    the device whose kept calibration it is."""
+    if not name.endswith(suffix):
         return None
-    device = name[: -len(SUFFIX)]
+    device = name[: -len(suffix)]
     return device if policy_device_id_problem(device) is None else None
 
 
@@ -124,6 +129,13 @@ class DirectoryStore:
         return str(self.path)
 
     def listing(self) -> dict[str, str]:
+        return self._scan(SUFFIX)
+
+    def kept_listing(self) -> set[str]:
+        return set(self._scan(KEPT_SUFFIX))
+
+    def _scan(self, suffix: str) -> dict[str, str]:
+        """Device id -> modification time and size, of the files with `suffix`."""
         try:
             entries = list(os.scandir(self.path))
         except FileNotFoundError:
@@ -132,7 +144,7 @@ class DirectoryStore:
             raise CalibrationStoreError(f"cannot list {self.path}: {exc}") from exc
         found = {}
         for entry in entries:
-            device = device_of(entry.name)
+            device = device_of(entry.name, suffix)
             if device is None or not entry.is_file():
                 continue
             st = entry.stat()
@@ -230,6 +242,13 @@ class S3Store:
             raise CalibrationStoreError(f"cannot {action} {self.uri}: {exc}") from exc
 
     def listing(self) -> dict[str, str]:
+        return self._scan(SUFFIX)
+
+    def kept_listing(self) -> set[str]:
+        return set(self._scan(KEPT_SUFFIX))
+
+    def _scan(self, suffix: str) -> dict[str, str]:
+        """Device id -> ETag and size, of the objects with `suffix` right under the prefix."""
         start = f"{self.prefix}/" if self.prefix else ""
 
         def pages() -> list[dict[str, Any]]:
@@ -240,7 +259,7 @@ class S3Store:
         for page in self._call("list", pages):
             for obj in page.get("Contents", []):
                 name = obj["Key"][len(start) :]
-                device = device_of(name) if "/" not in name else None
+                device = device_of(name, suffix) if "/" not in name else None
                 if device is not None:
                     found[device] = str(obj.get("ETag", "")) + f":{obj.get('Size', 0)}"
         return found

@@ -53,8 +53,8 @@ exit codes: 0 done; 1 store error (or rm, restore: nothing there); 2 bad file or
   1..64 letters, digits, '-' or '_'; 3 no AWS credentials or region; 4 stack not found; 5 the stack has
   no CalibrationUri output
 store: --store, else the CalibrationUri output of --stack (default $SO101_TWIN_STACK, else So101TwinStack)
-kept: a push over an arm's calibration, and rm, keep the one they replace (<ARM>.json.previous);
-  `twin calibration restore ARM` puts it back, and again swaps back"""
+kept: a push over an arm's calibration, and rm, keep the one they replace (<ARM>.json.previous; ls shows
+  it); `twin calibration restore ARM` puts it back, and again swaps back"""
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -165,14 +165,28 @@ def run(args: argparse.Namespace) -> int:
             return _rm(store, args.arm)
         if args.action == "restore":
             return _restore(store, args.arm)
-        listing = store.listing()
-        if not listing:
-            console.out(f"no calibration in {store.uri}")
-        for device in sorted(listing):
-            console.out(f"{device}\t{store.uri_of(device)}")
+        return _ls(store)
     except CalibrationStoreError as exc:
         console.err(str(exc))
         return EXIT_STORE
+
+
+def _ls(store: CalibrationStore) -> int:
+    """A line per arm: its calibration's place, and the kept one's when there is one (an arm whose own was
+    removed shows `(removed)`), so what `restore` would bring back is seen before it is needed."""
+    from twin.service.calibrations import KEPT_SUFFIX, SUFFIX
+
+    listing, kept = store.listing(), store.kept_listing()
+    if not listing and not kept:
+        console.out(f"no calibration in {store.uri}")
+    for device in sorted(listing.keys() | kept):
+        place = store.uri_of(device)
+        line = f"{device}\t{place if device in listing else '(removed)'}"
+        if device in kept:
+            line += f"\tkept: {place.removesuffix(SUFFIX)}{KEPT_SUFFIX}"
+        console.out(line)
+    if kept:
+        console.err("kept: what a push or rm replaced; `twin calibration restore ARM` swaps it back in")
     return EXIT_OK
 
 
