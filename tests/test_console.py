@@ -369,6 +369,39 @@ def test_the_sessions_page_lists_a_session_and_its_csv_parses(
     assert browser_errors == []
 
 
+def test_a_session_file_that_cannot_be_made_says_why_on_the_page(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """A plain download link that meets an error ends in the browser's "download failed", with no reason: the
+    page fetches the file itself and shows the agent's. The agent's refusal is stood in for at the browser
+    (the real ways to make one, history gone unreadable, would break the module's other tests); its shape is
+    http_api's `_error`."""
+    wait_for_a_session(console, "arm-003")
+    detail = "cannot read history at out/history: the table is gone"
+
+    def refuse(route: Any) -> None:
+        route.fulfill(status=409, json={"error": "session_file_failed", "detail": detail})
+
+    page.route("**/api/sessions/arm-003/*/parquet", refuse)
+    page.goto(console + "/sessions")
+    row = page.locator('#sessions tr[data-device="arm-003"]').first
+    row.locator('a[data-kind="parquet"]').click()
+    result = page.locator("#file-result")
+    result.wait_for()
+    text = result.inner_text()
+    assert "The Parquet of arm-003's session from" in text and detail in text, text
+    assert "409 session_file_failed" in text, text
+    page.unroute("**/api/sessions/arm-003/*/parquet")
+    # The next file that can be made is downloaded, and the reason goes.
+    with page.expect_download() as download:
+        row.locator('a[data-kind="csv"]').click()
+    assert download.value.suggested_filename.endswith(".csv")
+    assert result.is_hidden()
+    # The refused request is the browser's to log, and only it.
+    assert all("/parquet" in e for e in browser_errors), browser_errors
+    browser_errors.clear()
+
+
 def acknowledgement_logged(url: str, device: str) -> bool:
     """Whether `device` has an acknowledgement in the event log; while it has none, acknowledges its heat
     alarm over HTTP once that is ACTIVE, so the events test does not depend on running after the Acknowledge

@@ -133,20 +133,13 @@
     }
   }
 
-  // What the agent answered, in its own words: a refusal's detail says what to do (after the agent
-  // restarted, the page's CSRF token is stale and the detail says to reload), which a bare status does not.
+  // What the agent answered, in its own words (Twin.refusal).
   function ackOutcome(alarm, result) {
     if (result.ok) {
       const now = result.payload && result.payload.alarms && result.payload.alarms[0];
       return `${alarm.alarm_id} acknowledged${now ? `: now ${now.state}` : ""}`;
     }
-    if (!result.status) {
-      return `${alarm.alarm_id} was not acknowledged: the agent did not answer (it may be restarting); ` +
-        "try again once the header says live";
-    }
-    const p = result.payload || {};
-    const why = p.detail || `the agent answered ${result.status}`;
-    return `${alarm.alarm_id} was not acknowledged: ${why} (${result.status}${p.error ? ` ${p.error}` : ""})`;
+    return `${alarm.alarm_id} was not acknowledged: ${Twin.refusal(result)}`;
   }
 
   async function acknowledge(alarm, button) {
@@ -187,10 +180,7 @@
       const alarmsText = removed.length ? removed.map(([state, n]) => `${n} ${state}`).join(", ") : "none";
       return `${device} is forgotten: its twin, health and counters are removed; alarms removed: ${alarmsText}. `;
     }
-    if (!result.status) return `${device} was not forgotten: the agent did not answer (it may be restarting)`;
-    const p = result.payload || {};
-    const why = p.detail || `the agent answered ${result.status}`;
-    return `${device} was not forgotten: ${why} (${result.status}${p.error ? ` ${p.error}` : ""})`;
+    return `${device} was not forgotten: ${Twin.refusal(result)}`;
   }
 
   async function forget() {

@@ -76,6 +76,16 @@ const Twin = (() => {
     return { ok: response.ok, status: response.status, payload };
   }
 
+  // Why a request was not done, in the agent's words: a refusal's detail says what to do (a stale CSRF token
+  // after an agent restart: reload), which a bare status does not. `result` is post's, or status 0 when no
+  // answer came at all.
+  function refusal(result) {
+    if (!result.status) return "the agent did not answer (it may be restarting); try again once the header says live";
+    const p = result.payload || {};
+    const why = p.detail || `the agent answered ${result.status}`;
+    return `${why} (${result.status}${p.error ? ` ${p.error}` : ""})`;
+  }
+
   function ago(epoch, now) {
     if (epoch === null || epoch === undefined) return "never";
     const s = Math.max(0, now - epoch);
@@ -110,6 +120,6 @@ const Twin = (() => {
     if (a.dataset.nav === page || (page === "arm" && a.dataset.nav === "fleet")) a.classList.add("active");
   }
 
-  return { el, stream, getJSON, post, ago, time, duration, num, setLink, main: document.getElementById("main"),
+  return { el, stream, getJSON, post, refusal, ago, time, duration, num, setLink, main: document.getElementById("main"),
     device: body.dataset.device, rerun: body.dataset.rerun };
 })();

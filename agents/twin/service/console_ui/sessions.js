@@ -10,8 +10,10 @@
     el("option", { value: "active", text: "active" }), el("option", { value: "completed", text: "completed" }));
   const note = el("span", { class: "counts" });
   const body = el("tbody");
+  const fileResult = el("p", { id: "file-result", class: "ack-refused", role: "status", hidden: "" });
   main.append(el("h1", { text: "Sessions" }),
     el("div", { class: "toolbar" }, device, state, el("button", { type: "button", text: "Refresh", onclick: load }), note),
+    fileResult,
     el("table", { id: "sessions" }, el("thead", {}, el("tr", {}, ...["device", "start", "duration", "messages", "alarms raised", "status", "files"].map((t) => el("th", { text: t })))), body));
   let doc = null;
 
@@ -27,7 +29,8 @@
     if (!rows.length) { body.replaceChildren(el("tr", {}, el("td", { colspan: 7, class: "empty", text: "no session yet" }))); return; }
     body.replaceChildren(...rows.map((s) => {
       const base = `/api/sessions/${encodeURIComponent(s.device)}/${s.key}/`;
-      const files = doc.kinds.map((k) => el("a", { href: base + k, download: "", "data-kind": k, text: LABELS[k] || k }));
+      const files = doc.kinds.map((k) => el("a", { href: base + k, download: "", "data-kind": k, text: LABELS[k] || k,
+        onclick: (event) => download(event, s, LABELS[k] || k) }));
       const cell = el("td", {});
       files.forEach((a, i) => { if (i) cell.append(" · "); cell.append(a); });
       return el("tr", { "data-device": s.device, "data-key": s.key },
@@ -36,6 +39,40 @@
         el("td", { text: String(s.messages) }), el("td", { text: String(s.alarms_raised) }),
         el("td", { class: "session-status", text: s.status }), cell);
     }));
+  }
+
+  // A file is made on demand and can fail (history unreadable, a session that changed since the list was
+  // read); a plain download link then ends in the browser's "download failed" with no reason. So the page
+  // fetches the file itself and hands the browser the bytes, or shows the agent's reason.
+  async function download(event, session, label) {
+    event.preventDefault();
+    const link = event.currentTarget;
+    if (link.getAttribute("aria-busy") === "true") return;
+    link.setAttribute("aria-busy", "true");
+    fileResult.hidden = true;
+    let response = null;
+    try { response = await fetch(link.href); } catch (_) { response = null; }
+    try {
+      if (response && response.ok) {
+        const blob = await response.blob();
+        const named = /filename="?([^";]+)"?/.exec(response.headers.get("content-disposition") || "");
+        const url = URL.createObjectURL(blob);
+        const save = el("a", { href: url, download: named ? named[1] : "" });
+        document.body.append(save);
+        save.click();
+        save.remove();
+        setTimeout(() => URL.revokeObjectURL(url), 60000);
+        return;
+      }
+      let payload = null;
+      if (response) { try { payload = await response.json(); } catch (_) { payload = null; } }
+      const result = { status: response ? response.status : 0, payload };
+      fileResult.textContent = `The ${label} of ${session.device}'s session from ${Twin.time(session.start)} ` +
+        `could not be made: ${Twin.refusal(result)}`;
+      fileResult.hidden = false;
+    } finally {
+      link.removeAttribute("aria-busy");
+    }
   }
 
   async function load() {
