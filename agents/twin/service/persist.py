@@ -78,7 +78,8 @@ class StateFile:
             log.error("state file %s cannot be read (%s); starting without it", self.path, exc)
             return []
         try:
-            records = parse(text, now_mono, now_wall)
+            document = _document_of(text)
+            records = records_of(document, now_mono, now_wall)
         except StateFileError as exc:
             bad = self.path.with_name(self.path.name + ".bad")
             with contextlib.suppress(OSError):
@@ -91,7 +92,7 @@ class StateFile:
             )
             return []
         log.info("state file read", extra={"path": str(self.path), "alarms": len(records)})
-        _report_unclean_stop(self.path, text)
+        _report_unclean_stop(self.path, document)
         return records
 
     def _remove_leftovers(self) -> None:
@@ -151,12 +152,9 @@ class StateFile:
         return True
 
 
-def _report_unclean_stop(path: Path, text: str) -> None:
+def _report_unclean_stop(path: Path, document: dict[str, Any]) -> None:
     """Warn when the file was left by a run that never made its stop's write (module doc)."""
-    with contextlib.suppress(ValueError):
-        document = json.loads(text)
-        if document.get("stopped") is not False:
-            return
+    if document.get("stopped") is False:
         pid = document.get("pid")
         written_at = document.get("written_at")
         log.warning(
@@ -197,12 +195,24 @@ def entry(record: AlarmRecord, now_mono: float, now_wall: float) -> dict[str, An
 
 def parse(text: str, now_mono: float, now_wall: float) -> list[AlarmRecord]:
     """The records of a state file's text; StateFileError naming the first thing wrong."""
+    return records_of(_document_of(text), now_mono, now_wall)
+
+
+def _document_of(text: str) -> dict[str, Any]:
+    """A state file's text as its document, read once (a 600-arm fleet's file is megabytes); StateFileError
+    when it is not JSON or not this version's."""
     try:
         document = json.loads(text)
     except ValueError as exc:
         raise StateFileError(f"not JSON: {exc}") from None
     if not isinstance(document, dict) or document.get("version") != VERSION:
         raise StateFileError(f"not a version-{VERSION} state file")
+    return document
+
+
+def records_of(document: dict[str, Any], now_mono: float, now_wall: float) -> list[AlarmRecord]:
+    """The records of a state file's document (`_document_of`); StateFileError naming the first thing
+    wrong."""
     alarms = document.get("alarms")
     if not isinstance(alarms, list):
         raise StateFileError("'alarms' is not a list")
