@@ -32,6 +32,7 @@ from twin.service.calibrations import (
     S3Store,
     device_of,
     open_store,
+    scan_of,
 )
 from twin.service.config import ConfigError, load_config
 
@@ -71,6 +72,46 @@ def test_file_names_are_device_ids() -> None:
     assert device_of("arm-001.json") == "arm-001"
     assert device_of("arm-001.txt") is None
     assert device_of("+.json") is None and device_of(".json") is None
+
+
+def test_a_scan_sorts_the_arms_the_kept_and_the_files_no_arm_reads() -> None:
+    found = scan_of(
+        [
+            ("arm-001.json", "v1"),
+            ("arm-001.json.previous", "k1"),
+            ("arm-002.json.previous", "k2"),
+            ("arm 9.json", "x"),  # a space: no device id
+            ("ARM-003.JSON", "x"),  # the suffix is lower case
+            ("arm.4.json.previous", "x"),
+            ("notes.txt", "x"),  # not a calibration at all: not reported
+        ]
+    )
+    assert found.calibrations == {"arm-001": "v1"} and found.kept == {"arm-001", "arm-002"}
+    assert found.ignored == ("ARM-003.JSON", "arm 9.json", "arm.4.json.previous")
+
+
+def test_the_watcher_warns_once_of_a_file_no_arm_reads(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, capsys: pytest.CaptureFixture[str]
+) -> None:
+    store = DirectoryStore(tmp_path / "cal")
+    store.write("arm-001", EXAMPLE.read_bytes())
+    (tmp_path / "cal" / "arm 9.json").write_bytes(EXAMPLE.read_bytes())  # copied in by hand
+    watcher = CalibrationWatcher(store)
+
+    def warnings() -> list[str]:
+        return [r.getMessage() for r in caplog.records if getattr(r, "event", "") == "calibration_ignored"]
+
+    with caplog.at_level("WARNING", logger="twin.service.calibrations"):
+        assert watcher.poll() is True
+        assert set(watcher.book.entries) == {"arm-001"}
+        assert len(warnings()) == 1 and "arm 9.json" in warnings()[0], warnings()
+        assert "twin calibration push ARM FILE" in warnings()[0]
+        watcher.poll()
+        assert len(warnings()) == 1  # once, not every poll
+    assert main(["calibration", "ls", "--store", str(tmp_path / "cal")]) == cmd.EXIT_OK
+    listed = capsys.readouterr()
+    assert listed.out == f"arm-001\t{tmp_path / 'cal' / 'arm-001.json'}\n"
+    assert "ignored: arm 9.json (no arm reads it" in listed.err, listed.err
 
 
 def test_the_watcher_picks_up_changes_refuses_bad_files_and_keeps_what_it_had(tmp_path: Path) -> None:
@@ -136,6 +177,9 @@ def test_the_s3_store_lists_one_object_per_arm(s3: Any) -> None:
     s3.put_object(Bucket="twin-bucket", Key="calibration/notes.txt", Body=b"")
     listing = store.listing()
     assert list(listing) == ["arm-003"]
+    # A calibration-like name right under the prefix that names no device is reported, not read.
+    s3.put_object(Bucket="twin-bucket", Key="calibration/arm 9.json", Body=b"{}")
+    assert store.scan().ignored == ("arm 9.json",) and list(store.listing()) == ["arm-003"]
     assert store.read("arm-003") == EXAMPLE.read_bytes()
     version = listing["arm-003"]
     store.write("arm-003", shifted(5))
@@ -265,7 +309,7 @@ def kept_cycle(store_arg: list[str], store: Any, capsys: pytest.CaptureFixture[s
     out = capsys.readouterr().out
     assert "the one it replaced is kept at" in out and "twin calibration restore arm-001" in out, out
     assert store.read("arm-001") == shifted(100) and store.read_kept("arm-001") == EXAMPLE.read_bytes()
-    assert list(store.listing()) == ["arm-001"] and store.kept_listing() == {"arm-001"}
+    assert list(store.listing()) == ["arm-001"] and store.scan().kept == {"arm-001"}
     # ls shows the kept one beside the arm's own, before anyone needs it.
     place = store.uri_of("arm-001")
     assert main(["calibration", "ls", *store_arg]) == cmd.EXIT_OK
@@ -288,7 +332,7 @@ def kept_cycle(store_arg: list[str], store: Any, capsys: pytest.CaptureFixture[s
     assert main(restore) == cmd.EXIT_OK
     assert "holds the calibration rm removed again" in capsys.readouterr().out
     assert store.read("arm-001") == shifted(100) and store.read_kept("arm-001") is None
-    assert store.kept_listing() == set()
+    assert store.scan().kept == set()
     assert main(["calibration", "ls", *store_arg]) == cmd.EXIT_OK
     assert capsys.readouterr().out == f"arm-001\t{place}\n"
     assert main(restore) == cmd.EXIT_STORE

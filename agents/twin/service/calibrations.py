@@ -25,7 +25,7 @@ import logging
 import os
 import shlex
 import threading
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -80,8 +80,9 @@ class CalibrationStore(Protocol):
         """The calibration the device's last push or rm replaced (KEPT_SUFFIX), None when none is kept."""
         ...
 
-    def kept_listing(self) -> set[str]:
-        """The devices that have a kept calibration (KEPT_SUFFIX), with or without one of their own."""
+    def scan(self) -> StoreScan:
+        """One listing of the store: the arms' calibrations, the kept ones, and the files that look like
+        calibrations but are named for no device id (which no arm reads)."""
         ...
 
     def write_kept(self, device: str, data: bytes) -> str:
@@ -96,6 +97,35 @@ class CalibrationStore(Protocol):
 # A store keeps calibrations only for the device ids a deployment may list (twin.core.topics, the stricter
 # of its two rules), a directory as much as the stack's bucket: the ids are typed at a shell and become file
 # names and S3 keys, and a file pushed to a laptop's directory can then go to the stack's store as it is.
+
+
+@dataclass(frozen=True)
+class StoreScan:
+    """What one listing of a store found (`CalibrationStore.scan`)."""
+
+    calibrations: dict[str, str]  # device id -> a version that changes whenever its file does
+    kept: frozenset[str]  # the device ids with a kept calibration (KEPT_SUFFIX)
+    # Names ending in `.json` (or KEPT_SUFFIX) that name no device id: `arm 9.json`, `ARM-001.JSON`. No arm
+    # reads them, so a person who copied a file in by hand is told rather than left to wonder.
+    ignored: tuple[str, ...]
+
+
+def scan_of(names: Iterable[tuple[str, str]]) -> StoreScan:
+    """A store's (file name, version) pairs, sorted into a StoreScan."""
+    calibrations: dict[str, str] = {}
+    kept: set[str] = set()
+    ignored: list[str] = []
+    for name, version in names:
+        device = device_of(name)
+        if device is not None:
+            calibrations[device] = version
+            continue
+        device = device_of(name, KEPT_SUFFIX)
+        if device is not None:
+            kept.add(device)
+        elif name.lower().endswith((SUFFIX, KEPT_SUFFIX)):
+            ignored.append(name)
+    return StoreScan(calibrations, frozenset(kept), tuple(sorted(ignored)))
 
 
 def device_of(name: str, suffix: str = SUFFIX) -> str | None:
@@ -129,27 +159,22 @@ class DirectoryStore:
         return str(self.path)
 
     def listing(self) -> dict[str, str]:
-        return self._scan(SUFFIX)
+        return self.scan().calibrations
 
-    def kept_listing(self) -> set[str]:
-        return set(self._scan(KEPT_SUFFIX))
-
-    def _scan(self, suffix: str) -> dict[str, str]:
-        """Device id -> modification time and size, of the files with `suffix`."""
+    def scan(self) -> StoreScan:
+        """The files' versions are their modification time and size."""
         try:
             entries = list(os.scandir(self.path))
         except FileNotFoundError:
-            return {}
+            return scan_of(())
         except OSError as exc:
             raise CalibrationStoreError(f"cannot list {self.path}: {exc}") from exc
-        found = {}
+        files = []
         for entry in entries:
-            device = device_of(entry.name, suffix)
-            if device is None or not entry.is_file():
-                continue
-            st = entry.stat()
-            found[device] = f"{st.st_mtime_ns}:{st.st_size}"
-        return found
+            if entry.is_file():
+                st = entry.stat()
+                files.append((entry.name, f"{st.st_mtime_ns}:{st.st_size}"))
+        return scan_of(files)
 
     def read(self, device: str) -> bytes:
         found = self._get(f"{device}{SUFFIX}", missing_ok=False)
@@ -242,27 +267,23 @@ class S3Store:
             raise CalibrationStoreError(f"cannot {action} {self.uri}: {exc}") from exc
 
     def listing(self) -> dict[str, str]:
-        return self._scan(SUFFIX)
+        return self.scan().calibrations
 
-    def kept_listing(self) -> set[str]:
-        return set(self._scan(KEPT_SUFFIX))
-
-    def _scan(self, suffix: str) -> dict[str, str]:
-        """Device id -> ETag and size, of the objects with `suffix` right under the prefix."""
+    def scan(self) -> StoreScan:
+        """The objects right under the prefix (one LIST, paged); their versions are the ETag and size."""
         start = f"{self.prefix}/" if self.prefix else ""
 
         def pages() -> list[dict[str, Any]]:
             paginator = self._s3().get_paginator("list_objects_v2")
             return list(paginator.paginate(Bucket=self.bucket, Prefix=start))
 
-        found = {}
+        objects = []
         for page in self._call("list", pages):
             for obj in page.get("Contents", []):
                 name = obj["Key"][len(start) :]
-                device = device_of(name, suffix) if "/" not in name else None
-                if device is not None:
-                    found[device] = str(obj.get("ETag", "")) + f":{obj.get('Size', 0)}"
-        return found
+                if "/" not in name:
+                    objects.append((name, str(obj.get("ETag", "")) + f":{obj.get('Size', 0)}"))
+        return scan_of(objects)
 
     def read(self, device: str) -> bytes:
         found = self._get(self._key(device), missing_ok=False)
@@ -441,6 +462,8 @@ class CalibrationWatcher:
         self.polls = 0
         self.failures = 0
         self.last_error = ""
+        # The ignored names already warned about: once each, not every poll.
+        self._ignored: set[str] = set()
 
     @property
     def book(self) -> CalibrationBook:
@@ -450,13 +473,15 @@ class CalibrationWatcher:
         """One round; True when the book changed (and `on_change` was called)."""
         self.polls += 1
         try:
-            listing = self.store.listing()
+            found = self.store.scan()
         except CalibrationStoreError as exc:
             self.failures += 1
             self.last_error = str(exc)
             log.warning("calibrations not refreshed: %s", exc, extra={"event": "calibration_store"})
             return False
         self.last_error = ""
+        self._warn_ignored(found.ignored)
+        listing = found.calibrations
         entries = dict(self._book.entries)
         problems = {d: p for d, p in self._book.problems.items() if d in listing}
         changes: list[CalibrationChange] = []
@@ -496,6 +521,18 @@ class CalibrationWatcher:
         self._book = CalibrationBook(entries, problems, tuple(changes))
         self._on_change(self._book)
         return True
+
+    def _warn_ignored(self, ignored: Sequence[str]) -> None:
+        for name in sorted(set(ignored) - self._ignored):
+            log.warning(
+                "%s in %s is ignored: no arm reads it, because a calibration is named <device id>.json and a "
+                "device id is %s; push it as the arm's (`twin calibration push ARM FILE`)",
+                name,
+                self.store.uri,
+                POLICY_DEVICE_ID_RULE,
+                extra={"event": "calibration_ignored", "file": name},
+            )
+        self._ignored = set(ignored)
 
     def start(self) -> None:
         if self._thread is not None:

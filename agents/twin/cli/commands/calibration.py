@@ -173,10 +173,13 @@ def run(args: argparse.Namespace) -> int:
 
 def _ls(store: CalibrationStore) -> int:
     """A line per arm: its calibration's place, and the kept one's when there is one (an arm whose own was
-    removed shows `(removed)`), so what `restore` would bring back is seen before it is needed."""
+    removed shows `(removed)`), so what `restore` would bring back is seen before it is needed. Files no arm
+    reads (named for no device id) are named on stderr."""
+    from twin.core.topics import POLICY_DEVICE_ID_RULE
     from twin.service.calibrations import KEPT_SUFFIX, SUFFIX
 
-    listing, kept = store.listing(), store.kept_listing()
+    found = store.scan()
+    listing, kept = found.calibrations, found.kept
     if not listing and not kept:
         console.out(f"no calibration in {store.uri}")
     for device in sorted(listing.keys() | kept):
@@ -187,6 +190,11 @@ def _ls(store: CalibrationStore) -> int:
         console.out(line)
     if kept:
         console.err("kept: what a push or rm replaced; `twin calibration restore ARM` swaps it back in")
+    for name in found.ignored:
+        console.err(
+            f"ignored: {name} (no arm reads it: a device id is {POLICY_DEVICE_ID_RULE}; "
+            "push it as the arm's with `twin calibration push ARM FILE`)"
+        )
     return EXIT_OK
 
 
