@@ -132,6 +132,8 @@ class HttpSection:
     console_rate_hz: float = 2.0
     # A device's telemetry history splits into sessions at gaps longer than this (the Sessions page).
     session_gap_s: float = 30.0
+    # The Sessions page's files kept on disk for the next request, at most this much in all (MB).
+    session_files_mb: int = 1024
 
     @property
     def host(self) -> str:
@@ -382,6 +384,8 @@ def _validate_http(h: HttpSection) -> None:
     _positive("http.timeout_s", h.timeout_s)
     _positive("http.console_rate_hz", h.console_rate_hz)
     _positive("http.session_gap_s", h.session_gap_s)
+    if not 1 <= h.session_files_mb <= 1_000_000:
+        raise ConfigError(f"http.session_files_mb = {h.session_files_mb} is outside 1..1000000")
     if h.console_rate_hz > h.stream_rate_hz:
         raise ConfigError(
             f"http.console_rate_hz = {h.console_rate_hz} is above stream_rate_hz = {h.stream_rate_hz}; the "

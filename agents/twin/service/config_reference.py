@@ -198,6 +198,10 @@ KEY_DOCS: dict[str, str] = {
     "http.max_body_bytes": "The largest request body (1024 .. 1 MiB); a larger one gets 413.",
     "http.console_rate_hz": "How often the operator console's pages are updated (at most `stream_rate_hz`).",
     "http.session_gap_s": "A gap this long ends a session on the console's Sessions page (docs/console.md).",
+    "http.session_files_mb": (
+        "The Sessions page's files kept on disk to serve again, at most this many MB; beyond, the ones "
+        "used longest ago are removed (and made again if asked for)."
+    ),
     "history.uri": (
         'A directory (`"out/history"`) or `"s3://<bucket>/history"`. Empty = no history. Flag `--history`.'
     ),

@@ -21,7 +21,8 @@ Endpoints (docs/http-api.md has examples; docs/console.md the console's own API)
 
 Bounded (each limit a `[http]` key): at most `max_connections` connections (more get 503), a request head or
 body that stalls, or a client that stops reading what it is sent, is cut off after `timeout_s`, and a body
-over `max_body_bytes` gets 413. Live updates are built once per tick and shared by every client
+over `max_body_bytes` gets 413, and the Sessions page's files kept on disk stay under `session_files_mb`
+(twin.service.session_files). Live updates are built once per tick and shared by every client
 (twin.service.stream_hub).
 """
 
@@ -32,13 +33,10 @@ import contextlib
 import functools
 import logging
 import re
-import shutil
 import socket
-import tempfile
 import threading
 import time
 from collections.abc import Awaitable, Callable, Sequence
-from pathlib import Path
 from typing import Protocol, TypeVar, cast, runtime_checkable
 from urllib.parse import unquote
 
@@ -77,6 +75,7 @@ from twin.service.http_guard import (
 )
 from twin.service.metrics import CONTENT_TYPE as PROMETHEUS_CONTENT_TYPE
 from twin.service.metrics import render_metrics
+from twin.service.session_files import SessionFiles
 from twin.service.shards import ArmForgotten, ArmNotForgettableError, ArmNotFoundError, WorkerError
 from twin.service.state import AgentState, AlarmInfo, AlarmList, HealthReport
 from twin.service.stream_hub import ARM_PREFIX, FLEET, STATE, StreamHub, Subscription, encode_events
@@ -320,7 +319,7 @@ class AgentHttpServer:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._hub: StreamHub | None = None
         self._started = threading.Event()
-        self._files_dir: Path | None = None
+        self._session_files = SessionFiles(self.settings.session_files_mb * 2**20)
         self._file_locks: dict[str, asyncio.Lock] = {}
         self._sessions_cache: tuple[float, list[SessionInfo]] | None = None
 
@@ -392,9 +391,7 @@ class AgentHttpServer:
                 log.error("http server thread did not stop within 10 s")
         self._thread = None
         self._socket.close()
-        if self._files_dir is not None:
-            shutil.rmtree(self._files_dir, ignore_errors=True)
-            self._files_dir = None
+        self._session_files.close()
 
     def _shutdown(self) -> None:
         if self._hub is not None:
@@ -749,7 +746,8 @@ class AgentHttpServer:
                 404, "session_not_found", device=device, start=start, detail="GET /api/sessions lists them"
             )
         media_type, ext = SESSION_FILE_KINDS[kind]
-        directory = self._files()
+        files = self._session_files
+        directory = files.directory
         name = f"{_DEVICE_FILE.sub('_', device)}-{session.key}.{ext}"
         lock = self._file_locks.setdefault(name, asyncio.Lock())
         async with lock:
@@ -760,12 +758,12 @@ class AgentHttpServer:
                     path = await self._call(lambda: catalog.session_file(session, kind, directory))
                 except ValueError as exc:
                     return _error(409, "session_file_failed", detail=str(exc))
+            files.used(path)
+        for gone in files.trim():
+            held = self._file_locks.get(gone)
+            if held is not None and not held.locked():
+                del self._file_locks[gone]
         return FileResponse(path, media_type=media_type, filename=name, headers=SECURITY_HEADERS)
-
-    def _files(self) -> Path:
-        if self._files_dir is None:
-            self._files_dir = Path(tempfile.mkdtemp(prefix="twin-console-"))
-        return self._files_dir
 
 
 # ----------------------------------------------------------------------------------------------- helpers

@@ -1,0 +1,130 @@
+"""The console's session files stay within `[http] session_files_mb` (twin.service.session_files).
+
+The cache's rule on a test clock first; then through the agent's HTTP server, with a catalog that makes
+files of a known size in place of history's (the real catalog, which rebuilds them from a Delta table, is
+tested in tests/test_console.py; here only the size matters)."""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Sequence
+from pathlib import Path
+
+import pytest
+from conftest import http_get
+from test_http_api import StubSource
+from twin.service import session_files
+from twin.service.config import ConfigError, HttpSection, load_config
+from twin.service.console import SessionInfo
+from twin.service.http_api import AgentHttpServer
+from twin.service.session_files import KEEP_S, SessionFiles
+
+MB = 2**20
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def made(files: SessionFiles, name: str, size: int) -> Path:
+    path = files.directory / name
+    path.write_bytes(b"x" * size)
+    files.used(path)
+    return path
+
+
+def test_the_files_used_longest_ago_go_first_once_over_the_bound() -> None:
+    clock = Clock()
+    files = SessionFiles(3 * MB, clock=clock)
+    try:
+        for name in ("a.csv", "b.csv", "c.csv"):
+            made(files, name, MB)
+            clock.now += KEEP_S + 1
+        assert files.trim() == []  # 3 MB: within the bound
+        files.used(files.directory / "a.csv")  # served again: now the newest
+        (files.directory / "d.csv.part").write_bytes(b"x" * MB)  # being written: not counted or removed
+        made(files, "d.csv", MB)
+        assert files.trim() == ["b.csv"]
+        assert sorted(p.name for p in files.directory.iterdir()) == ["a.csv", "c.csv", "d.csv", "d.csv.part"]
+        assert files.removed == 1
+    finally:
+        directory = files.directory
+        files.close()
+    assert not directory.exists()
+
+
+def test_a_file_used_within_keep_s_is_kept_over_the_bound() -> None:
+    """Its download may still be reading it: the bound waits, and is kept once the file is old enough."""
+    clock = Clock()
+    files = SessionFiles(1 * MB, clock=clock)
+    try:
+        made(files, "a.usd", MB)
+        clock.now += 10
+        made(files, "b.usd", MB)
+        assert files.trim() == []  # both used within KEEP_S
+        clock.now += KEEP_S - 5  # a.usd is past KEEP_S, b.usd not yet
+        assert files.trim() == ["a.usd"]
+        clock.now += 10
+        assert files.trim() == []  # b.usd alone fits
+    finally:
+        files.close()
+
+
+def test_the_bound_is_a_setting_with_a_range() -> None:
+    assert load_config(None, {}).http.session_files_mb == 1024
+    assert load_config(None, {"http.session_files_mb": 5}).http.session_files_mb == 5
+    with pytest.raises(ConfigError, match=r"session_files_mb = 0 is outside 1\.\.1000000"):
+        load_config(None, {"http.session_files_mb": 0})
+
+
+class SizedCatalog:
+    """Completed sessions whose every file is `size` bytes; counts what it makes."""
+
+    def __init__(self, sessions: Sequence[SessionInfo], size: int) -> None:
+        self._sessions = list(sessions)
+        self.size = size
+        self.made: Counter[str] = Counter()
+
+    def sessions(self, gap_s: float) -> Sequence[SessionInfo]:
+        return self._sessions
+
+    def session_file(self, session: SessionInfo, kind: str, directory: Path) -> Path:
+        path = directory / f"{session.device}-{session.key}.{kind}"
+        path.write_bytes(b"x" * self.size)
+        self.made[session.device] += 1
+        return path
+
+
+def test_the_servers_session_files_stay_within_the_bound(monkeypatch: pytest.MonkeyPatch) -> None:
+    # Files count as old at once here, so each request past the bound removes what it can.
+    monkeypatch.setattr(session_files, "KEEP_S", 0.0)
+    arms = [SessionInfo(f"arm-00{i}", start=1_000.0 + i, end=1_010.0 + i, messages=100) for i in range(3)]
+    catalog = SizedCatalog(arms, 600 * 1024)
+    server = AgentHttpServer(
+        StubSource(), "127.0.0.1", 0, settings=HttpSection(session_files_mb=1), sessions=catalog
+    )
+    server.start()
+    try:
+        url = f"http://127.0.0.1:{server.port}/api/sessions"
+
+        def fetch(session: SessionInfo) -> None:
+            status, _, body = http_get(f"{url}/{session.device}/{session.key}/parquet")
+            assert status == 200 and len(body) == catalog.size
+
+        fetch(arms[0])
+        fetch(arms[0])
+        assert catalog.made == {"arm-000": 1}  # a completed session's file is made once
+        fetch(arms[1])  # 1.2 MB: arm-000's, used longest ago, goes
+        fetch(arms[2])  # and then arm-001's
+        directory = server._session_files.directory
+        assert sorted(p.name for p in directory.iterdir()) == [f"arm-002-{arms[2].key}.parquet"]
+        fetch(arms[0])  # removed, so made again
+        assert catalog.made == {"arm-000": 2, "arm-001": 1, "arm-002": 1}
+        assert sum(p.stat().st_size for p in directory.iterdir()) <= MB
+    finally:
+        server.stop()
+    assert not directory.exists()
