@@ -125,6 +125,12 @@ REGISTER_TIMEOUT_S = 5.0
 
 # Slots of the feeds' delivered counts: one per mirror (its shard's index), at most twin.workers' maximum.
 FEED_SLOTS = 64
+# Per slot, in `HistoryLink.progress`: where the slot's feeds have reached (the mirror's stream position
+# every message before which has its row delivered or dropped, and the rows handed up to there, over every
+# process of the slot) as two pairs and which of them holds it (a process killed while writing one pair
+# leaves the other whole); and the rows the agent counted lost when it started the slot's worker again.
+_WHICH, _PAIRS, _LOST_AT_RESTART = 0, 1, 5
+_PROGRESS = 6
 
 
 @dataclass(frozen=True)
@@ -137,6 +143,74 @@ class HistoryLink:
     address: str
     authkey: bytes
     delivered: SynchronizedArray[int] | None = field(default=None, compare=False)
+    # Where each slot's feeds have reached in their mirror's stream (`reached`), for a worker started again
+    # to hand history only the rows not yet delivered (`HistoryFeed.mark`).
+    progress: SynchronizedArray[int] | None = field(default=None, compare=False)
+
+    def reached(self, slot: int) -> tuple[int, int]:
+        """(position, rows): every message of slot `slot`'s stream before `position` has had its row
+        delivered to a writer (or dropped, counted); `rows` is how many rows its feeds were handed up to
+        there, over every process of the slot. (0, 0) before any delivery."""
+        progress = self.progress
+        if progress is None:
+            return 0, 0
+        base = slot * _PROGRESS + _PAIRS + 2 * progress[slot * _PROGRESS + _WHICH]
+        return progress[base], progress[base + 1]
+
+    def record_reached(self, slot: int, position: int, rows: int) -> None:
+        """The feed's thread of slot `slot`, after a delivery: the pair not in use, then the switch to it."""
+        progress = self.progress
+        if progress is None:
+            return
+        which = slot * _PROGRESS + _WHICH
+        other = 1 - progress[which]
+        base = slot * _PROGRESS + _PAIRS + 2 * other
+        progress[base], progress[base + 1] = position, rows
+        progress[which] = other
+
+    def count_lost_at_restart(self, slot: int, rows: int) -> None:
+        """The agent, starting slot `slot`'s worker again: `rows` its dead feed held and nothing replays."""
+        if self.progress is not None:
+            self.progress[slot * _PROGRESS + _LOST_AT_RESTART] += rows
+
+    def lost_at_restarts(self) -> int:
+        progress = self.progress
+        if progress is None:
+            return 0
+        return sum(progress[_LOST_AT_RESTART::_PROGRESS])
+
+
+@dataclass(frozen=True, slots=True)
+class Resume:
+    """Where a worker started again takes up history: the messages it is sent again before stream position
+    `skip_to` had their rows delivered by the dead one (they are not handed to history again), and `rows`
+    is how many rows the slot's feeds were handed up to where this one starts (`HistoryFeed.resume`)."""
+
+    skip_to: int
+    rows: int
+
+
+def resume_point(link: HistoryLink, slot: int, *, taken: int, taken_rows: int, replay_from: int) -> Resume:
+    """The agent, starting slot `slot`'s worker again from a checkpoint that counts `taken` messages (and
+    `taken_rows` rows handed to history for them), then sending it its messages again from the one the dead
+    worker knew as `replay_from` (later than `taken` when the agent no longer kept them all): where its
+    history takes up. Rows the dead feed held for messages the checkpoint counts are sent again by nobody:
+    counted as lost here, once (the slot is then recorded as reached there)."""
+    position, rows = link.reached(slot)
+    if position >= taken:
+        # Replayed messages are renumbered from `taken` on; the dead feed delivered up to `position`.
+        return Resume(taken + max(0, position - replay_from), rows)
+    lost = max(0, taken_rows - rows)
+    if lost:
+        link.count_lost_at_restart(slot, lost)
+        log.error(
+            "history: %d rows of messages worker %d had handled were still in its queue when it died: lost",
+            lost,
+            slot,
+            extra={"worker": slot, "history_rows_lost": lost},
+        )
+    link.record_reached(slot, taken, taken_rows)
+    return Resume(taken, taken_rows)
 
 
 @dataclass(frozen=True)
@@ -186,8 +260,17 @@ class HistoryFeed:
         self._rejected: deque[RejectedRow] = deque()
         self._conn: Connection | None = None
         self._closing = threading.Event()
+        # Held by whoever takes rows from the left of the queues: the feed's thread, and the mirror's when
+        # it drops. Each queue's rows are numbered in the order they came (`_in`: written by the mirror's
+        # thread only) and `_out` counts those that left (taken or dropped), so the feed's thread knows which
+        # rows a mark covers.
         self._drop_lock = threading.Lock()
-        self._handed = 0  # written by the mirror's thread only
+        self._telemetry_in = self._rejected_in = 0
+        self._telemetry_out = self._rejected_out = 0
+        # The mirror's last mark: the rows of each queue handed before it, and its stream position then.
+        self._mark: tuple[int, int, int] | None = None
+        # The rows this slot's feeds were handed before this one took over (a worker started again: resume).
+        self._base = 0
         self._in_hand = 0  # the rows of the batch the feed's thread took and has not delivered yet
         self._delivered = 0
         self._dropped = 0
@@ -199,14 +282,14 @@ class HistoryFeed:
     # -- the mirror's side ----------------------------------------------------------------------------
 
     def telemetry(self, row: TelemetryRow) -> None:
-        self._handed += 1
+        self._telemetry_in += 1
         rows = self._telemetry
         rows.append(row)
         if len(rows) > self._max:
             self._drop(rows)
 
     def rejected(self, row: RejectedRow) -> None:
-        self._handed += 1
+        self._rejected_in += 1
         rows = self._rejected
         rows.append(row)
         if len(rows) > self._max:
@@ -215,12 +298,26 @@ class HistoryFeed:
     def _drop(self, rows: deque[Any]) -> None:
         # The writer has been out of reach for longer than the queue lasts: the oldest rows go, counted.
         with self._drop_lock:
-            while len(rows) > self._max:
-                try:
-                    rows.popleft()
-                except IndexError:
-                    return
-                self._dropped += 1
+            gone = max(0, len(rows) - self._max)
+            for _ in range(gone):
+                rows.popleft()  # only holders of the lock take from the left
+            self._dropped += gone
+            if rows is self._telemetry:
+                self._telemetry_out += gone
+            else:
+                self._rejected_out += gone
+
+    def mark(self, position: int) -> None:
+        """The mirror's thread, after a batch: every row of the messages before stream position `position`
+        has been handed over. From the first mark on, the feed's thread delivers whole batches only (the rows
+        up to the latest mark) and records, once they are delivered, the position they reach
+        (`HistoryLink.reached`): a worker started again hands history no row a dead one delivered. A feed
+        never marked delivers every row it holds."""
+        self._mark = (self._telemetry_in, self._rejected_in, position)
+
+    def resume(self, rows: int) -> None:
+        """Before the first row: this slot's feeds were handed `rows` rows before this one takes over."""
+        self._base = rows
 
     def stats(self) -> SinkStats:
         """As a sink's: rows delivered to the writer process, dropped, waiting (`skipped`: none; `pending`
@@ -236,7 +333,12 @@ class HistoryFeed:
 
     @property
     def handed(self) -> int:
-        return self._handed
+        return self._telemetry_in + self._rejected_in
+
+    @property
+    def handed_in_all(self) -> int:
+        """The rows this slot's feeds were handed, this one's and its predecessors' (`resume`)."""
+        return self._base + self._telemetry_in + self._rejected_in
 
     def close(self, timeout: float = 30.0) -> None:
         """Deliver what is queued (until `timeout`), then disconnect. Idempotent."""
@@ -249,12 +351,15 @@ class HistoryFeed:
 
     def _run(self) -> None:
         batch: _Batch | None = None
+        reached: tuple[int, int] | None = None
         while True:
             closing = self._closing.wait(HAND_OFF_S)
             if batch is None:
-                batch = self._take()
+                batch, reached = self._take(everything=closing)
                 self._in_hand = batch.rows if batch is not None else 0
             if batch is not None and self._send(batch):
+                if reached is not None:
+                    self._link.record_reached(self._slot, *reached)
                 batch = None
                 continue
             if closing and batch is None and not self._telemetry and not self._rejected:
@@ -266,19 +371,26 @@ class HistoryFeed:
             self._conn.close()
             self._conn = None
 
-    def _take(self) -> _Batch | None:
-        telemetry: list[TelemetryRow] = []
-        rejected: list[RejectedRow] = []
-        for rows, out in ((self._telemetry, telemetry), (self._rejected, rejected)):
-            popleft = rows.popleft
-            try:
-                for _ in range(len(rows)):
-                    out.append(popleft())  # type: ignore[arg-type]
-            except IndexError:  # dropped meanwhile (the queue was full)
-                pass
+    def _take(self, *, everything: bool) -> tuple[_Batch | None, tuple[int, int] | None]:
+        """The rows up to the mirror's latest mark (`everything`, or never marked: all there are), and the
+        (position, rows handed in all) they reach once delivered (None: unknown, not recorded)."""
+        mark = self._mark
+        with self._drop_lock:
+            if mark is None or everything:
+                telemetry_count, rejected_count = len(self._telemetry), len(self._rejected)
+            else:
+                telemetry_count = mark[0] - self._telemetry_out
+                rejected_count = mark[1] - self._rejected_out
+            telemetry = _popped(self._telemetry, telemetry_count)
+            rejected = _popped(self._rejected, rejected_count)
+            self._telemetry_out += len(telemetry)
+            self._rejected_out += len(rejected)
         if not telemetry and not rejected:
-            return None
-        return _batch_of(telemetry, rejected)
+            return None, None
+        reached = None
+        if mark is not None and self._telemetry_out >= mark[0] and self._rejected_out >= mark[1]:
+            reached = (mark[2], self._base + mark[0] + mark[1])
+        return _batch_of(telemetry, rejected), reached
 
     def _send(self, batch: _Batch) -> bool:
         """Hand `batch` over; False when the writer cannot be reached (the batch is kept and sent later: it
@@ -310,6 +422,12 @@ class HistoryFeed:
             shared[self._slot] += batch.rows
         self._in_hand = 0
         return True
+
+
+def _popped(rows: deque[Any], count: int) -> list[Any]:
+    """The first `count` rows of `rows` (fewer when it holds fewer), taken off it."""
+    popleft = rows.popleft
+    return [popleft() for _ in range(min(count, len(rows)))]
 
 
 # -------------------------------------------------------------------------------- the writer process
@@ -657,6 +775,7 @@ class HistoryProcess:
             str(self._dir / "writer.sock"),
             secrets.token_bytes(32),
             context.Array("q", FEED_SLOTS, lock=False),
+            context.Array("q", FEED_SLOTS * _PROGRESS, lock=False),
         )
         self._counters: SynchronizedArray[int] = context.Array("q", _COUNTERS, lock=False)
         self._process: SpawnProcess | None = None
@@ -776,7 +895,7 @@ class HistoryProcess:
             pid=self.pid if self.alive else None,
             restarts=self.restarts,
             rows_received=self._received(),
-            rows_lost=self._rows_lost,
+            rows_lost=self._rows_lost + self.link.lost_at_restarts(),
         )
 
     def _received(self) -> int:
@@ -911,7 +1030,9 @@ __all__ = [
     "HistoryLink",
     "HistoryProcess",
     "HistoryStartError",
+    "Resume",
     "TelemetryRow",
     "WriterFigures",
+    "resume_point",
     "writer_main",
 ]

@@ -149,7 +149,7 @@ from twin.transport.pipe import EMPTY, Batch, batch_of, read_batch
 if TYPE_CHECKING:
     # pyarrow and deltalake (~70 MB resident) load only when history is on, usd-core (~80 MB) only when
     # recording: every worker process pays for what it imports.
-    from twin.output.history_feed import HistoryFeed, HistoryLink, TelemetryRow
+    from twin.output.history_feed import HistoryFeed, HistoryLink, Resume, TelemetryRow
     from twin.output.recorder import SessionRecorder
     from twin.output.recording import RecordingSink
 
@@ -447,6 +447,11 @@ class Mirror:
         self._mailbox = inbox
         self._recording: RecordingSink | None = None
         self._history: HistoryFeed | None = None
+        # The feed the stages hand rows to (worker thread only): the history feed, or None while the batch
+        # holds messages sent again after a restart whose rows the dead worker delivered, which end at
+        # stream position `_history_from` (`_handle_batch`).
+        self._rows: HistoryFeed | None = None
+        self._history_from = 0
         self._extra_sinks: tuple[TwinSink, ...] = tuple(sinks)
         self._sinks: tuple[TwinSink, ...] = ()
         self._worker: threading.Thread | None = None
@@ -558,6 +563,7 @@ class Mirror:
                 payload_max_bytes=REJECTED_PAYLOAD_MAX_BYTES,
                 slot=self._slot,
             )
+            self._rows = self._history
         self._sinks = (*((self._recording,) if self._recording else ()), *self._extra_sinks)
 
     def _open_recorder(self, directory: Path, rotation: int = 0) -> SessionRecorder:
@@ -667,7 +673,7 @@ class Mirror:
                 return
             if count:
                 try:
-                    self._handle(batch, sampler.batch_weight(sampled, count))
+                    self._handle_batch(batch, sampler.batch_weight(sampled, count))
                 except Exception:  # every stage guards its messages; this guards the mirror itself
                     self._count_error(None, "handling a batch failed")
             if physics:
@@ -754,6 +760,7 @@ class Mirror:
                 tracking_since=self._fleet.started,
                 alarms_summary=self._alarms_summary(),
                 crowded=self._watch.crowded,
+                history_rows=self._history.handed_in_all if self._history is not None else 0,
             )
             capture = Capture(
                 head, list(self._fleet.devices), lambda device: self._checkpoint_row(device, decided)
@@ -795,12 +802,23 @@ class Mirror:
             record.gripper_percent if record is not None else None,
         )
 
-    def restore(self, checkpoint: MirrorCheckpoint | None, alarms: Sequence[AlarmRecord] = ()) -> Restored:
+    def restore(
+        self,
+        checkpoint: MirrorCheckpoint | None,
+        alarms: Sequence[AlarmRecord] = (),
+        history: Resume | None = None,
+    ) -> Restored:
         """Take back a checkpoint of this mirror's previous process and alarms kept over a restart of the
-        agent, before the first message; between batches on the worker thread."""
-        return self._between_batches(lambda: self._restore(checkpoint, tuple(alarms)))
+        agent, and where its history takes up (`history`: the messages sent again whose rows the previous
+        process delivered), before the first message; between batches on the worker thread."""
+        return self._between_batches(lambda: self._restore(checkpoint, tuple(alarms), history))
 
-    def _restore(self, checkpoint: MirrorCheckpoint | None, alarms: tuple[AlarmRecord, ...]) -> Restored:
+    def _restore(
+        self, checkpoint: MirrorCheckpoint | None, alarms: tuple[AlarmRecord, ...], history: Resume | None
+    ) -> Restored:
+        if history is not None and self._history is not None:
+            self._history.resume(history.rows)
+            self._history_from = history.skip_to
         devices = 0
         with self._lock:
             if checkpoint is not None:
@@ -866,6 +884,27 @@ class Mirror:
 
     # ------------------------------------------------------------------------------------- the stages
 
+    def _handle_batch(self, batch: Batch, weight: float) -> None:
+        """One batch (`_handle`), then its mark in the history feed (once per batch: HistoryFeed.mark). After
+        a restart, the messages sent again up to `_history_from` go through every stage but history's: the
+        dead worker's feed delivered their rows (a batch reaching past it is handled in two parts)."""
+        start = self.processed
+        count = len(batch.payloads)
+        delivered = self._history_from - start
+        if delivered <= 0:
+            self._handle(batch, weight)
+        else:
+            rows, self._rows = self._rows, None
+            try:
+                self._handle(_sliced(batch, 0, delivered) if delivered < count else batch, weight)
+            finally:
+                self._rows = rows
+            if delivered < count:
+                self._handle(_sliced(batch, delivered, count), weight)
+        history = self._history
+        if history is not None:
+            history.mark(start + count)
+
     def _handle(self, batch: Batch, weight: float) -> None:
         """One batch through the stages (module doc). Never raises. Its stages are timed when `weight` is not
         0, each figure counting `weight` times (service.stagetiming); otherwise no CPU clock is read."""
@@ -920,7 +959,7 @@ class Mirror:
                 for event in message_events:
                     _log_alarm_event(event)
                     self._watch.alarm(event)
-            if self._sinks or self._history is not None:
+            if self._sinks or self._rows is not None:
                 self._hand_all(entries, applied, events, batch)
                 stage_cpu["sinks"] += _span(started, cpu(), read) * weight
 
@@ -1001,7 +1040,7 @@ class Mirror:
                 health.record_received()
                 health.record_decoded(monos[i], walls[i], telemetry.timestamp_ms)
                 health.record_coalesced()
-        history = self._history
+        history = self._rows
         if history is not None:
             for i, telemetry, _ in coalesced:
                 history.telemetry(_history_row(telemetry, batch, i))
@@ -1155,7 +1194,7 @@ class Mirror:
             for (i, telemetry, record), ok, alarm_events in zip(entries, applied, events, strict=True):
                 if ok:
                     self._hand_applied(telemetry, batch, i, record.twin.targets, alarm_events)
-        history = self._history
+        history = self._rows
         if history is not None:
             for i, telemetry, _ in entries:
                 history.telemetry(_history_row(telemetry, batch, i))
@@ -1199,7 +1238,7 @@ class Mirror:
             )
             for sink in self._sinks:
                 self._guard_sink(sink, sink.rejected, sample)
-        history = self._history
+        history = self._rows
         if history is not None:
             payload = batch.payloads[i]
             history.rejected(
@@ -1321,7 +1360,7 @@ class Mirror:
         if isinstance(request, CheckpointRequest):
             return self.checkpoint(alarms_only=request.alarms_only)
         if isinstance(request, RestoreRequest):
-            return self.restore(request.checkpoint, request.alarms)
+            return self.restore(request.checkpoint, request.alarms, request.history)
         if isinstance(request, CalibrationsRequest):
             return self.set_calibrations(request)
         raise TypeError(f"not a request to a mirror: {request!r}")
@@ -1705,6 +1744,12 @@ def _copy_counters(counters: AlarmCounters) -> AlarmCounters:
         cleared=Counter(counters.cleared),
         acknowledged=Counter(counters.acknowledged),
     )
+
+
+def _sliced(batch: Batch, start: int, end: int) -> Batch:
+    """Messages `start` to `end` of `batch`."""
+    keys, topics, payloads, monos, walls = batch
+    return Batch(keys[start:end], topics[start:end], payloads[start:end], monos[start:end], walls[start:end])
 
 
 def _history_row(telemetry: Telemetry, batch: Batch, i: int) -> TelemetryRow:

@@ -91,7 +91,7 @@ from twin.transport.mailbox import MAX_OVERFLOW_KEYS, UNTRACKED_KEY, InboundQueu
 from twin.transport.pipe import Message, encode_batch, messages_of, send_encoded, send_end
 
 if TYPE_CHECKING:
-    from twin.output.history_feed import HistoryLink
+    from twin.output.history_feed import HistoryLink, Resume
     from twin.service.mirror import Mirror
 
 log = logging.getLogger(__name__)
@@ -382,6 +382,9 @@ class MirrorCheckpoint:
     # The devices the rate watch has reported publishing far above the expected rate (events.RateWatch), so a
     # restarted worker does not report them again.
     crowded: tuple[str, ...] = ()
+    # The rows handed to history for the messages `taken` counts, over every process of the worker (its
+    # restart counts those its dead feed held and nothing sends again: history_feed.resume_point).
+    history_rows: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -398,6 +401,8 @@ class RestoreRequest:
 
     checkpoint: MirrorCheckpoint | None = None
     alarms: tuple[AlarmRecord, ...] = ()
+    # With history on, a restarted worker's: which messages sent again had their rows delivered already.
+    history: Resume | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -881,11 +886,31 @@ class WorkerShard:
         """Hand the new process the latest checkpoint (control lock held)."""
         assert self.control is not None
         call_id = next(_CALL_IDS)
+        request = RestoreRequest(checkpoint=self.checkpoint, history=self._history_resume())
         try:
-            self.control.send(Call(call_id, RestoreRequest(checkpoint=self.checkpoint)))
+            self.control.send(Call(call_id, request))
         except (OSError, ValueError) as exc:
             raise WorkerError(f"worker {self.index} is not reachable: {exc}") from exc
         return restored_of(self._answer(call_id))
+
+    def _history_resume(self) -> Resume | None:
+        """With history on: where the new process's feed takes up (history_feed.resume_point), so the
+        messages sent again whose rows the dead one delivered are not written twice."""
+        if self._history is None:
+            return None
+        from twin.output.history_feed import resume_point  # noqa: PLC0415 - only with history on
+
+        checkpoint = self.checkpoint
+        taken = checkpoint.taken if checkpoint is not None else 0
+        with self._unconfirmed_lock:
+            first = self._unconfirmed[0][0] if self._unconfirmed else self._sent
+        return resume_point(
+            self._history,
+            self.index,
+            taken=taken,
+            taken_rows=checkpoint.history_rows if checkpoint is not None else 0,
+            replay_from=max(first, taken),
+        )
 
     def _recalibrate(self) -> None:
         """Hand the new process the arms' own calibrations before the messages it is sent again, so none of
