@@ -43,7 +43,7 @@ from twin.output.history import (
     telemetry_table,
 )
 from twin.output.history_feed import WRITER_NICE, HistoryFeed, HistoryProcess, WriterFigures
-from twin.output.sinks import AppliedSample, RejectedSample
+from twin.output.sinks import AppliedSample, RejectedSample, SinkStats
 from twin.service.config import AgentConfig, load_config
 from twin.service.state import HistoryState
 
@@ -886,6 +886,105 @@ def test_rows_no_writer_read_are_counted_at_the_stop_after_a_worker_restart(
     line = next(r for r in caplog.records if r.getMessage().startswith("agent stopped"))
     assert line.unwritten == {"history_rows_unread": 4}  # type: ignore[attr-defined]
     assert agent.state().agent.history.rows_lost == held + 4  # type: ignore[union-attr]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("checkpoint_before_kill", [False, True], ids=["replayed", "checkpointed"])
+def test_a_killed_worker_s_messages_reach_history_once_whichever_its_feed_had_delivered(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, checkpoint_before_kill: bool
+) -> None:
+    """A worker with history on is killed after its feed delivered some rows and while it holds others (the
+    writer, stopped, reads nothing, so the feed's socket fills and the rest wait in its queue). Replayed:
+    no checkpoint counts the messages, the new worker is sent every one again and hands history only the
+    rows the dead feed had not delivered. Checkpointed: a checkpoint counts them all, nothing is sent again,
+    and the rows the dead feed still held are counted as lost. Either way each message is written at most
+    once, and rows written + rows counted lost = messages handled."""
+    import signal
+
+    import twin.service.agent as agent_module
+    from twin.service.agent import AgentService
+    from twin.service.shards import ReportRequest, report_of
+
+    # No checkpoint but those the test takes: the kill comes before any other could count the messages.
+    monkeypatch.setattr(agent_module, "CHECKPOINT_EVERY_S", 3600.0)
+    uri = str(tmp_path / "history")
+    agent = AgentService(_fed_agent_config(uri, **{"history.commit_every_s": 0.2}), workers=2)
+    agent.start()
+    history_process = agent._history
+    assert history_process is not None
+    rng = random.Random(11)
+    t0 = int(time.time() * 1000)
+    fed = itertools.count()
+    garbage = 0
+
+    def feed(count: int) -> None:
+        nonlocal garbage
+        for _ in range(count):
+            i = next(fed)
+            if i % 100 == 7:  # a rejected row now and then: they are replayed and skipped alike
+                agent.feed("dt/lerobot/arm-001/telemetry", b"not telemetry")
+                garbage += 1
+            payload = encode(make_payload("arm-001", 0.1 * i, "ticks", rng, timestamp_ms=t0 + 10 * i))
+            agent.feed("dt/lerobot/arm-001/telemetry", payload)
+
+    (worker,) = [w for w in agent.state().agent.workers if w.devices]
+    shard = agent._shards[worker.index]
+
+    def feed_figures() -> SinkStats:
+        # The worker's own report: the agent's state would ask the stopped writer and wait.
+        report = report_of(shard.request(ReportRequest())())
+        return next(s for s in report.sinks if s.name == "history")
+
+    writer_pid = None
+    try:
+        feed(30)
+        wait_for(lambda: history_process.delivered() == 30 + garbage, 60, "the first rows delivered")
+        writer_pid = agent.state().agent.history.writer_pid  # type: ignore[union-attr]
+        assert writer_pid is not None
+        os.kill(writer_pid, signal.SIGSTOP)
+        # Far more than the writer's socket holds: the feed blocks in a write, the rest wait in its queue.
+        feed(3000)
+        total = next(fed) + garbage  # every message fed, each a row
+        wait_for(lambda: feed_figures().pending + feed_figures().delivered >= total, 120, "every row handed")
+        assert history_process.delivered() < total  # some still held by the worker when it dies
+        if checkpoint_before_kill:
+            agent._keep_state()
+            assert shard.checkpoint is not None and shard.checkpoint.taken == total
+        os.kill(worker.pid, signal.SIGKILL)
+
+        def restarted() -> bool:
+            return shard.restarts == 1 and shard.alive
+
+        wait_for(restarted, 120, "the worker started again")
+        os.kill(writer_pid, signal.SIGCONT)
+        writer_pid = None
+
+        def settled() -> bool:
+            state = agent.state()
+            feed_pending = sum(s.pending for s in state.agent.sinks if s.name == "history")
+            history = state.agent.history
+            assert history is not None
+            device = state.devices.get("arm-001")
+            handled = device is not None and device.health.counters.received >= total
+            return handled and feed_pending == 0 and history.rows_received == history_process.delivered()
+
+        wait_for(settled, 120, "every row the new worker handed read by the writer")
+    finally:
+        if writer_pid is not None:
+            os.kill(writer_pid, signal.SIGCONT)
+        agent.stop()
+    history = agent.state().agent.history
+    assert history is not None
+    rows, rejected = rows_of(uri), rows_of(uri, REJECTED_TABLE)
+    # Each message at most once: one row per edge timestamp.
+    assert rows["edge_time"].n_unique() == rows.height
+    written = rows.height + rejected.height
+    assert written + history.rows_not_written == total
+    if checkpoint_before_kill:
+        assert history.rows_lost > 0  # what the dead feed held: nothing sends those messages again
+    else:
+        assert history.rows_not_written == 0
+        assert (rows.height, rejected.height) == (total - garbage, garbage)
 
 
 def _fed_agent_config(uri: str, **overrides: Any) -> AgentConfig:
