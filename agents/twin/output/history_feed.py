@@ -21,6 +21,19 @@ writer that died before reading them show as the difference between the feeds' d
 memory shared with the agent, so a worker started again keeps its count) and the rows the writers
 received. Nothing else is lost: at shutdown every feed delivers what it holds, and the writer commits it
 before it exits.
+
+Once each. A worker that dies is started again and sent every message its last checkpoint does not count
+(service.shards); some of their rows the dead feed had delivered. The mirror marks, after each batch, its
+stream position in its feed (`HistoryFeed.mark`: once a batch, nothing per message); the feed's thread
+hands over the rows up to the latest mark only, so a hand-over ends where a batch of the mirror ended, and
+after it went through records the position it reached, with the rows handed up to there, in the memory it
+shares with the agent (`HistoryLink.reached`). A hand-over is one message on the socket: a worker killed
+in the middle of it leaves the writer a cut-off message, which it drops (EOF), so a batch reaches the writer
+whole or not at all. The agent gives the new worker that position (`resume_point`): the messages sent again
+before it skip history's stage, the later ones (their rows were still in the dead feed's queue) are written.
+Rows the dead feed held for messages the checkpoint already counts are sent again by nobody: counted lost,
+so rows written + rows lost = messages handled. A kill between a hand-over going through and its record
+(a few bytecodes) has that one batch written twice.
 """
 
 from __future__ import annotations
