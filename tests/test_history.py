@@ -1269,6 +1269,37 @@ def test_a_feed_that_cannot_reach_the_writer_keeps_its_bound_and_counts_what_it_
         feed.close(timeout=1.0)
 
 
+def test_a_marked_feed_hands_over_whole_batches_and_records_where_they_reach(tmp_path: Path) -> None:
+    """Once its mirror marks it, a feed hands the writer the rows up to the latest mark only (a hand-over
+    ends where a batch of the mirror ended) and records, in the memory it shares with the agent, the stream
+    position its deliveries reached and the rows handed up to there, over the slot's processes (`resume`)."""
+    from twin.output.history_feed import resume_point
+
+    history, feed, send = _writer_and_feed(str(tmp_path / "history"), commit_every_rows=1000)
+    try:
+        feed.resume(100)  # the rows a dead predecessor of this slot was handed
+        send(3)
+        feed.mark(10)  # 3 rows of the messages before position 10
+        feed.rejected((1.0, "dt/lerobot/arm-001/telemetry", "arm-001", "bad", "detail", b"x", 1))
+        feed.mark(12)
+        send(2)  # a batch not marked yet: its rows wait
+        wait_for(lambda: history.link.reached(0) == (12, 104), 30, "the marked rows delivered")
+        assert (feed.stats().delivered, feed.stats().pending, feed.handed_in_all) == (4, 2, 106)
+        feed.mark(15)
+        wait_for(lambda: history.link.reached(0) == (15, 106), 30, "the next batch delivered")
+        # A worker of slot 0 started again from a checkpoint at 13 resumes at 15, replaying from 13.
+        assert resume_point(history.link, 0, taken=13, taken_rows=105, replay_from=13).skip_to == 15
+        # From one at 20 (rows its feed held for 15..20 are sent again by nobody): counted lost, once.
+        for _ in range(2):
+            again = resume_point(history.link, 0, taken=20, taken_rows=109, replay_from=20)
+            assert (again.skip_to, again.rows) == (20, 109)
+        assert history.link.lost_at_restarts() == 3
+        assert history.figures().rows_lost == 3
+    finally:
+        feed.close(timeout=10.0)
+        history.stop(timeout=10.0)
+
+
 def test_demo_style_uri_is_created(tmp_path: Path) -> None:
     nested = tmp_path / "a" / "b" / "history"
     HistoryWriter(HistorySettings(uri=str(nested))).close()
