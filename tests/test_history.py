@@ -914,13 +914,12 @@ def test_a_killed_worker_s_messages_reach_history_once_whichever_its_feed_had_de
     assert history_process is not None
     rng = random.Random(11)
     t0 = int(time.time() * 1000)
-    fed = itertools.count()
-    garbage = 0
+    fed = garbage = 0
 
     def feed(count: int) -> None:
-        nonlocal garbage
+        nonlocal fed, garbage
         for _ in range(count):
-            i = next(fed)
+            i, fed = fed, fed + 1
             if i % 100 == 7:  # a rejected row now and then: they are replayed and skipped alike
                 agent.feed("dt/lerobot/arm-001/telemetry", b"not telemetry")
                 garbage += 1
@@ -942,11 +941,23 @@ def test_a_killed_worker_s_messages_reach_history_once_whichever_its_feed_had_de
         writer_pid = agent.state().agent.history.writer_pid  # type: ignore[union-attr]
         assert writer_pid is not None
         os.kill(writer_pid, signal.SIGSTOP)
-        # Far more than the writer's socket holds: the feed blocks in a write, the rest wait in its queue.
-        feed(3000)
-        total = next(fed) + garbage  # every message fed, each a row
-        wait_for(lambda: feed_figures().pending + feed_figures().delivered >= total, 120, "every row handed")
-        assert history_process.delivered() < total  # some still held by the worker when it dies
+
+        def stuck() -> bool | None:
+            # Every row handed to the feed (None until then), and some not delivered.
+            figures = feed_figures()
+            if figures.pending + figures.delivered < fed + garbage:
+                return None
+            return history_process.delivered() < fed + garbage
+
+        # More than the writer's socket holds: the feed blocks in a write, the rest wait in its queue (a
+        # thousand more while this host's socket takes them all).
+        for _ in range(20):
+            feed(1000)
+            wait_for(lambda: stuck() is not None, 120, "every row handed")
+            if stuck():
+                break
+        assert stuck()  # some rows still held by the worker when it dies
+        total = fed + garbage  # every message fed, each a row
         if checkpoint_before_kill:
             agent._keep_state()
             assert shard.checkpoint is not None and shard.checkpoint.taken == total
