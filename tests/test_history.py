@@ -1283,12 +1283,16 @@ def test_a_feed_that_cannot_reach_the_writer_keeps_its_bound_and_counts_what_it_
 def test_a_marked_feed_hands_over_whole_batches_and_records_where_they_reach(tmp_path: Path) -> None:
     """Once its mirror marks it, a feed hands the writer the rows up to the latest mark only (a hand-over
     ends where a batch of the mirror ended) and records, in the memory it shares with the agent, the stream
-    position its deliveries reached and the rows handed up to there, over the slot's processes (`resume`)."""
-    from twin.output.history_feed import resume_point
+    position its deliveries reached and the rows handed up to there, over the slot's processes (`resume`).
+    A restart counts the rows handed before where it takes up that no feed delivered, once."""
+    from twin.output.history_feed import Resume, resume_point
 
     history, feed, send = _writer_and_feed(str(tmp_path / "history"), commit_every_rows=1000)
+    small = HistoryFeed(history.link, max_pending=2, payload_max_bytes=64, slot=1)
     try:
-        feed.resume(100)  # the rows a dead predecessor of this slot was handed
+        feed.resume(100)  # the rows a dead predecessor of this slot was handed, and delivered
+        assert history.link.delivered is not None
+        history.link.delivered[0] = 100
         send(3)
         feed.mark(10)  # 3 rows of the messages before position 10
         feed.rejected((1.0, "dt/lerobot/arm-001/telemetry", "arm-001", "bad", "detail", b"x", 1))
@@ -1305,8 +1309,19 @@ def test_a_marked_feed_hands_over_whole_batches_and_records_where_they_reach(tmp
             again = resume_point(history.link, 0, taken=20, taken_rows=109, replay_from=20)
             assert (again.skip_to, again.rows) == (20, 109)
         assert history.link.lost_at_restarts() == 3
-        assert history.figures().rows_lost == 3
+        # A feed whose queue overflowed: 5 rows of one batch (waiting for its mark), 3 of them dropped.
+        small.mark(0)
+        for i in range(5):
+            small.telemetry(("arm-002", time.time(), 1_700_000_000_000 + i, "ticks", (0.0,) * 6, b"{}"))
+        small.mark(5)
+        wait_for(lambda: history.link.reached(1) == (5, 5), 30, "the 2 rows left delivered")
+        assert small.stats().dropped == 3
+        # Its process dies, and the count with it: the restart counts them, once.
+        for _ in range(2):
+            assert resume_point(history.link, 1, taken=5, taken_rows=5, replay_from=5) == Resume(5, 5)
+        assert history.figures().rows_lost == 3 + 3
     finally:
+        small.close(timeout=10.0)
         feed.close(timeout=10.0)
         history.stop(timeout=10.0)
 

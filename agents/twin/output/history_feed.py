@@ -31,9 +31,10 @@ shares with the agent (`HistoryLink.reached`). A hand-over is one message on the
 in the middle of it leaves the writer a cut-off message, which it drops (EOF), so a batch reaches the writer
 whole or not at all. The agent gives the new worker that position (`resume_point`): the messages sent again
 before it skip history's stage, the later ones (their rows were still in the dead feed's queue) are written.
-Rows the dead feed held for messages the checkpoint already counts are sent again by nobody: counted lost,
-so rows written + rows lost = messages handled. A kill between a hand-over going through and its record
-(a few bytecodes) has that one batch written twice.
+Rows the dead feed held for messages the checkpoint already counts are sent again by nobody, and those it
+dropped before the position are not written again: both are counted lost at the restart (the dead worker's
+count of its drops went with it), so rows written + rows lost = messages handled. A kill between a
+hand-over going through and its record (a few bytecodes) has that one batch written twice.
 """
 
 from __future__ import annotations
@@ -141,9 +142,10 @@ FEED_SLOTS = 64
 # Per slot, in `HistoryLink.progress`: where the slot's feeds have reached (the mirror's stream position
 # every message before which has its row delivered or dropped, and the rows handed up to there, over every
 # process of the slot) as two pairs and which of them holds it (a process killed while writing one pair
-# leaves the other whole); and the rows the agent counted lost when it started the slot's worker again.
-_WHICH, _PAIRS, _LOST_AT_RESTART = 0, 1, 5
-_PROGRESS = 6
+# leaves the other whole); the rows the agent counted lost when it started the slot's worker again; and of
+# the rows handed up to where a restarted worker took up, those not delivered that it has counted so far.
+_WHICH, _PAIRS, _LOST_AT_RESTART, _UNDELIVERED = 0, 1, 5, 6
+_PROGRESS = 7
 
 
 @dataclass(frozen=True)
@@ -181,10 +183,19 @@ class HistoryLink:
         progress[base], progress[base + 1] = position, rows
         progress[which] = other
 
-    def count_lost_at_restart(self, slot: int, rows: int) -> None:
-        """The agent, starting slot `slot`'s worker again: `rows` its dead feed held and nothing replays."""
-        if self.progress is not None:
-            self.progress[slot * _PROGRESS + _LOST_AT_RESTART] += rows
+    def count_lost_at_restart(self, slot: int, rows: int) -> int:
+        """The agent, starting slot `slot`'s worker again where the slot's feeds were handed `rows` rows in
+        all: those not delivered (dropped by a full queue, or held by the dead feed for messages no one sends
+        again) and not counted at an earlier restart are counted as lost, and returned."""
+        progress, delivered = self.progress, self.delivered
+        if progress is None or delivered is None:
+            return 0
+        undelivered = rows - delivered[slot]
+        counted = slot * _PROGRESS + _UNDELIVERED
+        lost = max(0, undelivered - progress[counted])
+        progress[counted] = max(progress[counted], undelivered)
+        progress[slot * _PROGRESS + _LOST_AT_RESTART] += lost
+        return lost
 
     def lost_at_restarts(self) -> int:
         progress = self.progress
@@ -207,23 +218,27 @@ def resume_point(link: HistoryLink, slot: int, *, taken: int, taken_rows: int, r
     """The agent, starting slot `slot`'s worker again from a checkpoint that counts `taken` messages (and
     `taken_rows` rows handed to history for them), then sending it its messages again from the one the dead
     worker knew as `replay_from` (later than `taken` when the agent no longer kept them all): where its
-    history takes up. Rows the dead feed held for messages the checkpoint counts are sent again by nobody:
-    counted as lost here, once (the slot is then recorded as reached there)."""
+    history takes up. The rows handed for the messages before it that no feed delivered are counted as lost
+    here, once: those the dead feed dropped (its queue was full; the count went with its process) and, when
+    the checkpoint counts messages past where the dead feed reached, those it still held for them, which
+    nobody sends again (the slot is then recorded as reached at the checkpoint)."""
     position, rows = link.reached(slot)
     if position >= taken:
         # Replayed messages are renumbered from `taken` on; the dead feed delivered up to `position`.
-        return Resume(taken + max(0, position - replay_from), rows)
-    lost = max(0, taken_rows - rows)
+        resume = Resume(taken + max(0, position - replay_from), rows)
+    else:
+        resume = Resume(taken, max(rows, taken_rows))
+        link.record_reached(slot, resume.skip_to, resume.rows)
+    lost = link.count_lost_at_restart(slot, resume.rows)
     if lost:
-        link.count_lost_at_restart(slot, lost)
         log.error(
-            "history: %d rows of messages worker %d had handled were still in its queue when it died: lost",
+            "history: %d rows of messages worker %d had handled were dropped or still queued when it died, "
+            "and are not sent again: lost",
             lost,
             slot,
             extra={"worker": slot, "history_rows_lost": lost},
         )
-    link.record_reached(slot, taken, taken_rows)
-    return Resume(taken, taken_rows)
+    return resume
 
 
 @dataclass(frozen=True)
