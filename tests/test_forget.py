@@ -7,7 +7,10 @@ two worker processes behind a real mosquitto.
 from __future__ import annotations
 
 import json
+import os
 import random
+import signal
+import time
 import urllib.error
 import urllib.request
 from multiprocessing import Pipe
@@ -16,6 +19,7 @@ from typing import Any
 
 import pytest
 from conftest import wait_for
+from test_alerts import hot, hot_arm_settings
 from test_servo_alarms_e2e import alarms, post
 from twin.core.alarms import AlarmKind, AlarmRecord, AlarmState, ServoAlarms
 from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
@@ -23,10 +27,11 @@ from twin.edge.payload import encode, make_payload
 from twin.edge.servo_faults import ServoFault
 from twin.rig.local import LocalRig
 from twin.service.admission import DeviceBudget
+from twin.service.agent import AgentService
 from twin.service.config import load_config
 from twin.service.events import EventKind, EventQuery
 from twin.service.mirror import Mirror, PipeInbox
-from twin.service.shards import ArmNotForgettableError, ArmNotFoundError, WorkerPlan
+from twin.service.shards import ArmNotForgettableError, ArmNotFoundError, WorkerPlan, WorkerShard
 from twin.transport.pipe import Batch
 
 # --- the alarm engine ---------------------------------------------------------------------------------------
@@ -277,3 +282,88 @@ def _saved_alarms(state_file: Path) -> list[dict[str, Any]]:
         return []
     alarms_: list[dict[str, Any]] = json.loads(state_file.read_text())["alarms"]
     return alarms_
+
+
+# --- durable: neither a worker restart nor an agent restart brings it back ----------------------------------
+
+
+def _hot_arm_agent(state_file: Path, workers: int) -> AgentService:
+    """An agent of the whole fleet (`*`: a listed arm cannot be forgotten), fed through feed(), whose heat
+    alarms raise at once and whose arms go OFFLINE after 2 s of silence."""
+    settings = hot_arm_settings(
+        **{
+            "telemetry.devices": ["*"],
+            "health.offline_after_s": 2.0,
+            "twin.state_file": str(state_file),
+        }
+    )
+    return AgentService(load_config(None, settings), workers=workers)
+
+
+def _heat_until_alarmed(agent: AgentService, device: str) -> None:
+    def alarmed() -> bool:
+        agent.feed(f"dt/lerobot/{device}/telemetry", hot(device, int(time.time() * 1000), 68))
+        return any(a.device == device for a in agent.alarms())
+
+    wait_for(alarmed, 60, f"a heat alarm of {device}", interval=0.1)
+
+
+def _gone(agent: AgentService, device: str) -> bool:
+    """`device` in none of the agent's readers (its state, its alarms, the console's fleet rows)."""
+    return (
+        device not in agent.state().devices
+        and not [a for a in agent.alarms(include_normal=True) if a.device == device]
+        and device not in [row.device for row in agent.fleet_rows()]
+    )
+
+
+@pytest.mark.slow
+def test_a_forgotten_arm_stays_forgotten_when_its_worker_dies_before_the_next_checkpoint(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The agent holds each worker's last checkpoint: a worker killed right after a forget, before the
+    supervisor's next checkpoint, is started again from the one the forget took, not from one that holds the
+    arm. The supervisor's checkpoints are switched off meanwhile, so only the forget's can count. Then the
+    agent starts again from its state file: the arm is not back either."""
+    retired = "arm-002"
+    state_file = tmp_path / "state.json"
+    agent = _hot_arm_agent(state_file, workers=2)
+    agent.start()
+    try:
+        shard = agent._shards[agent.plan.worker_of(retired)]
+        assert isinstance(shard, WorkerShard)
+        _heat_until_alarmed(agent, retired)
+        wait_for(
+            lambda: (
+                shard.checkpoint is not None
+                and retired in shard.checkpoint.devices
+                and any(r.device == retired for r in shard.checkpoint.alarms)
+            ),
+            30,
+            f"a held checkpoint with {retired} and its alarm",
+        )
+        monkeypatch.setattr(agent, "_keep_state", lambda **_: None)
+        wait_for(lambda: agent.state().devices[retired].health.status == "OFFLINE", 30, f"{retired} OFFLINE")
+        agent.forget_arm(retired)
+        victim = shard.pid
+        os.kill(victim, signal.SIGKILL)
+        wait_for(
+            lambda: shard.restarts == 1 and shard.answering and shard.pid != victim,
+            60,
+            "the worker to run again",
+            interval=0.1,
+        )
+        assert _gone(agent, retired)
+        # The supervisor's checkpoints again (one taken here, as its next round takes it): what the restarted
+        # worker holds reaches the state file.
+        monkeypatch.undo()
+        agent._keep_state()
+        assert retired not in {a["alarm_id"].split("/")[0] for a in _saved_alarms(state_file)}
+    finally:
+        agent.stop()
+    again = _hot_arm_agent(state_file, workers=2)
+    again.start()
+    try:
+        assert _gone(again, retired)
+    finally:
+        again.stop()

@@ -193,6 +193,9 @@ class AgentService:
         self._state_file = StateFile(config.twin.state_file) if config.twin.state_file else None
         # Set to make the supervisor take checkpoints now (an acknowledgement must reach the state file).
         self._wake = threading.Event()
+        # Held while the supervisor takes, confirms and saves checkpoints, and while a forget does: a
+        # checkpoint taken before a forget must not replace the one taken after it (forget_arm).
+        self._keep_lock = threading.Lock()
         self.stop_reports: dict[int, StopReport | None] = {}
         # Servo alarm transitions to the alarm topic (docs/servo-health.md, "Alarm e-mails"): the events
         # every mirror's alarms make, once collected here, go to the publisher.
@@ -508,6 +511,11 @@ class AgentService:
         workers = self._mirror is None
         if not workers and self._state_file is None:
             return
+        with self._keep_lock:
+            self._keep_state_now(workers, final=final)
+
+    def _keep_state_now(self, workers: bool, *, final: bool) -> None:
+        """`_keep_state`, under the lock a forget takes too."""
 
         def alarms_of(shard: Shard) -> tuple[AlarmRecord, ...] | None:
             if final:
@@ -865,11 +873,19 @@ class AgentService:
         shard = self._shards[self.plan.worker_of(device)]
         if not shard.answering:
             raise WorkerError(f"worker {shard.index} is being started again")
-        forgotten = forgotten_of(shard.request(ForgetRequest(device))())
-        self._cached = None
-        self._save_alarms_now()  # its alarms out of the state file before the answer, as an ack's go in
-        self._wake.set()  # and out of the worker's checkpoint now
-        return forgotten
+        # Out of everything a restart starts from before the answer: a forget is a person's act, like an
+        # acknowledgement. The lock keeps the supervisor from confirming or saving a checkpoint it took
+        # before the forget over the ones taken here.
+        with self._keep_lock:
+            forgotten = forgotten_of(shard.request(ForgetRequest(device, checkpoint=self._mirror is None))())
+            if forgotten.checkpoint is not None:
+                # The worker's restart point from now on: its held checkpoint, and the messages since, would
+                # give a worker that dies before the supervisor's next checkpoint the arm back.
+                shard.confirm(forgotten.checkpoint)
+            self._cached = None
+            self._save_alarms_now()  # its alarms out of the state file before the answer, as an ack's go in
+        self._wake.set()
+        return dataclasses.replace(forgotten, checkpoint=None)
 
     def _save_alarms_now(self) -> None:
         """Every mirror's alarms into the state file before an acknowledgement or a forget is answered: a

@@ -46,6 +46,7 @@ Tests drive the mirror on a timeline of their own through the agent.
 
 from __future__ import annotations
 
+import dataclasses
 import gc
 import logging
 import os
@@ -722,7 +723,11 @@ class Mirror:
         if alarms_only:
             return self._between_batches(self._alarms_checkpoint)
         deadline = time.monotonic() + JOB_TIMEOUT_S
-        capture = self._between_batches(self._begin_capture)
+        return self._captured(self._between_batches(self._begin_capture), deadline)
+
+    @staticmethod
+    def _captured(capture: Capture, deadline: float) -> MirrorCheckpoint:
+        """The checkpoint `capture` takes over the batches that follow, once taken (by `deadline`)."""
         if not capture.done.wait(max(0.0, deadline - time.monotonic())):
             raise TimeoutError(
                 f"the mirror's worker did not take its checkpoint within {JOB_TIMEOUT_S:.0f} s"
@@ -1350,7 +1355,7 @@ class Mirror:
         if isinstance(request, AckRequest):
             return self.acknowledge_alarm(request.alarm_id)
         if isinstance(request, ForgetRequest):
-            return self.forget_arm(request.device)
+            return self.forget_arm(request.device, checkpoint=request.checkpoint)
         if isinstance(request, EventsRequest):
             return tuple(self.events(EventQuery(after_id=request.after_id, limit=EVENTS_PER_ASK)))
         if isinstance(request, FleetRowsRequest):
@@ -1563,12 +1568,18 @@ class Mirror:
         self._watch.alarm(event)
         return alarm_info(view, now, self._wall_clock())
 
-    def forget_arm(self, device: str) -> ArmForgotten:
+    def forget_arm(self, device: str, *, checkpoint: bool = False) -> ArmForgotten:
         """Remove an OFFLINE arm an operator retired (docs/console.md, "Forget an arm"): its twin, health and
         counters, loss estimator, units decision and every alarm, and give its place in the device budget
         back. Between two batches on the worker thread (the decoder is the worker's alone). Raises
-        ArmNotFoundError (not tracked here) or ArmNotForgettableError (not OFFLINE, or configured)."""
-        return self._between_batches(lambda: self._forget_arm(device))
+        ArmNotFoundError (not tracked here) or ArmNotForgettableError (not OFFLINE, or configured). With
+        `checkpoint`, the mirror's checkpoint begun between the same two batches comes with the answer: a
+        worker's restart point without the arm, with no message in between that could still hold it."""
+        if not checkpoint:
+            return self._between_batches(lambda: self._forget_arm(device))
+        deadline = time.monotonic() + JOB_TIMEOUT_S
+        forgotten, capture = self._between_batches(lambda: (self._forget_arm(device), self._begin_capture()))
+        return dataclasses.replace(forgotten, checkpoint=self._captured(capture, deadline))
 
     def _forget_arm(self, device: str) -> ArmForgotten:
         if self._capture is not None:

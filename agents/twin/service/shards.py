@@ -215,18 +215,23 @@ class AckRequest:
 @dataclass(frozen=True, slots=True)
 class ForgetRequest:
     """Forget one OFFLINE arm of the mirror's devices (its twin, health, alarms, budget place); answered
-    with ArmForgotten, refused as ArmNotFoundError or ArmNotForgettableError."""
+    with ArmForgotten, refused as ArmNotFoundError or ArmNotForgettableError. With `checkpoint`, the answer
+    carries the mirror's checkpoint begun right after the forget, between the same two batches: a worker's
+    restart point that no longer holds the arm (service.agent keeps it at once)."""
 
     device: str
+    checkpoint: bool = False
 
 
 @dataclass(frozen=True, slots=True)
 class ArmForgotten:
-    """What forgetting an arm removed: its status then, and its alarms by state (NORMAL ones not counted)."""
+    """What forgetting an arm removed: its status then, and its alarms by state (NORMAL ones not counted);
+    the mirror's checkpoint after it when the request asked for one."""
 
     device: str
     status: str
     alarms_removed: dict[str, int] = field(default_factory=dict)
+    checkpoint: MirrorCheckpoint | None = None
 
 
 class ArmNotFoundError(KeyError):
