@@ -44,6 +44,12 @@ def test_a_bounded_counter_keeps_the_recent_keys_and_an_exact_total() -> None:
     assert merged_counts({"a": 1}, counter.counts()) == {"a": 4, "d": 1, "e": 1}
     with pytest.raises(ValueError, match="max_keys"):
         BoundedCounter(0)
+    # A key discarded (its arm forgotten) is counted afresh; the total keeps what it had.
+    counter.discard("a")
+    counter.discard("never")
+    assert counter.counts() == {"d": 1, "e": 1} and counter.total() == 7
+    counter.add("a")
+    assert counter.get("a") == 1 and counter.total() == 8
 
 
 # --- queues bounded by bytes ----------------------------------------------------------------------------

@@ -32,6 +32,7 @@ from twin.service.config import load_config
 from twin.service.events import EventKind, EventQuery
 from twin.service.mirror import Mirror, PipeInbox
 from twin.service.shards import ArmNotForgettableError, ArmNotFoundError, WorkerPlan, WorkerShard
+from twin.transport.mailbox import InboundQueue
 from twin.transport.pipe import Batch
 
 # --- the alarm engine ---------------------------------------------------------------------------------------
@@ -367,3 +368,42 @@ def test_a_forgotten_arm_stays_forgotten_when_its_worker_dies_before_the_next_ch
         assert _gone(again, retired)
     finally:
         again.stop()
+
+
+def _queue_of(agent: AgentService, device: str) -> InboundQueue[Any]:
+    """The agent's queue that `device`'s messages wait in: its worker's, or the in-process mirror's inbox."""
+    shard = agent._shards[agent.plan.worker_of(device)]
+    return shard.queue if isinstance(shard, WorkerShard) else shard._inbox  # type: ignore[attr-defined]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("workers", [1, 2], ids=["in-process", "two-worker-processes"])
+def test_a_forgotten_arm_that_publishes_again_has_no_drops_of_before(tmp_path: Path, workers: int) -> None:
+    """The agent's queue counts the messages it drops per device: a forget clears the arm's count, so the
+    arm that publishes again starts from nothing there too; the fleet's total keeps what was dropped."""
+    retired = "arm-002"
+    agent = _hot_arm_agent(tmp_path / "state.json", workers=workers)
+    agent.start()
+    try:
+        queue = _queue_of(agent, retired)
+        roomy, queue.max_items = queue.max_items, 4  # a queue this short drops some of a burst
+
+        def dropped() -> bool:
+            for _ in range(200):
+                agent.feed(f"dt/lerobot/{retired}/telemetry", hot(retired, int(time.time() * 1000), 35))
+            device = agent.state().devices.get(retired)
+            return device is not None and device.health.counters.overwritten > 0
+
+        wait_for(dropped, 60, f"messages of {retired} dropped by the agent's queue", interval=0.1)
+        queue.max_items = roomy
+        total = agent.state().agent.mailbox.overwritten_total
+        wait_for(lambda: agent.state().devices[retired].health.status == "OFFLINE", 30, f"{retired} OFFLINE")
+        agent.forget_arm(retired)
+        agent.feed(f"dt/lerobot/{retired}/telemetry", hot(retired, int(time.time() * 1000), 35))
+        again = wait_for(
+            lambda: agent.state().devices.get(retired), 30, f"{retired} heard from again", interval=0.1
+        )
+        assert again.health.counters.received == 1 and again.health.counters.overwritten == 0, again.health
+        assert agent.state().agent.mailbox.overwritten_total >= total
+    finally:
+        agent.stop()

@@ -45,6 +45,11 @@ class BoundedCounter(Generic[K]):
         for key in keys:
             self.add(key)
 
+    def discard(self, key: K) -> None:
+        """Stop counting `key` apart (an arm forgotten): its count moves to `evicted`, so `total()` stays
+        exact and a later count of `key` starts from nothing."""
+        self.evicted += self._counts.pop(key, 0)
+
     def get(self, key: K, default: int = 0) -> int:
         return self._counts.get(key, default)
 

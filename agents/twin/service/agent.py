@@ -882,6 +882,7 @@ class AgentService:
                 # The worker's restart point from now on: its held checkpoint, and the messages since, would
                 # give a worker that dies before the supervisor's next checkpoint the arm back.
                 shard.confirm(forgotten.checkpoint)
+            shard.forget(device)  # the agent's own counts of it (its queue's drops), as the mirror's went
             self._cached = None
             self._save_alarms_now()  # its alarms out of the state file before the answer, as an ack's go in
         self._wake.set()

@@ -327,6 +327,9 @@ class QueueInbox:
     def overflowed(self) -> dict[str, int]:
         return self.queue.overflowed
 
+    def forget(self, device: str) -> None:
+        self.queue.forget(device)
+
     @property
     def overflowed_total(self) -> int:
         return self.queue.overflowed_total
@@ -386,6 +389,9 @@ class PipeInbox:
     @property
     def overflowed(self) -> dict[str, int]:
         return {}
+
+    def forget(self, device: str) -> None:
+        return  # the agent's queue for this worker counts the drops (WorkerShard.forget)
 
     @property
     def overflowed_total(self) -> int:
@@ -1607,6 +1613,8 @@ class Mirror:
             self._loss.pop(device, None)
             removed = {str(state): n for state, n in sorted(self._alarms.forget(device).items())}
         self._decoder.forget(device)
+        # The queue's drop count of it too: copied into the health of whatever arm of that name comes next.
+        self._mailbox.forget(device)
         if record is not None:
             self._budget.give_back(self._slot)
         self._watch.forgotten(device, str(status), removed)
@@ -1741,6 +1749,9 @@ class LocalShard:
 
     def dropped(self) -> dict[str, int]:
         return {}  # the mirror counts its own queue's drops
+
+    def forget(self, device: str) -> None:
+        return  # the mirror forgot its queue's count of it (Mirror.forget_arm)
 
     dropped_total = 0
 

@@ -656,6 +656,10 @@ class Shard(Protocol):
         with a worker that died); the most recent devices only."""
         ...
 
+    def forget(self, device: str) -> None:
+        """Forget the agent's own per-device counts of `device` (an arm forgotten: `dropped`)."""
+        ...
+
     @property
     def dropped_total(self) -> int:
         """Every message `dropped` counts, also those of devices it no longer lists."""
@@ -781,6 +785,13 @@ class WorkerShard:
         with self._unconfirmed_lock:
             lost = self._lost.total()
         return self.queue.overflowed_total + lost
+
+    def forget(self, device: str) -> None:
+        """A forgotten arm's own counts of messages dropped or lost (the totals keep them): a later arm of
+        that name starts from nothing, as its mirror does."""
+        self.queue.forget(device)
+        with self._unconfirmed_lock:
+            self._lost.discard(device)
 
     # -- lifecycle -----------------------------------------------------------------------------------------
 

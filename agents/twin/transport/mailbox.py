@@ -196,6 +196,11 @@ class InboundQueue(Generic[T]):
         with self._lock:
             return self._overflowed.counts()
 
+    def forget(self, key: str) -> None:
+        """Drop `key`'s own count of dropped items (its device was forgotten); `overflowed_total` keeps it."""
+        with self._lock:
+            self._overflowed.discard(key)
+
     @property
     def overflowed_keys(self) -> int:
         with self._lock:
