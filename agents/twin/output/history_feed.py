@@ -50,7 +50,6 @@ import secrets
 import shutil
 import signal
 import socket
-import tempfile
 import threading
 import time
 import uuid
@@ -64,6 +63,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 from twin.core import heap
+from twin.output.scratch import owned_tempdir
 from twin.output.sinks import SinkStats
 
 if TYPE_CHECKING:
@@ -798,7 +798,8 @@ class HistoryProcess:
         self._ctx = context
         # What the writer process runs (tests swap in one that dies at a chosen point).
         self.target: Callable[..., None] = writer_main
-        self._dir = Path(tempfile.mkdtemp(prefix="twin-history-"))
+        # Named for this process, so an agent started after a kill of this one removes it (output.scratch).
+        self._dir = owned_tempdir("twin-history-")
         self.link = HistoryLink(
             str(self._dir / "writer.sock"),
             secrets.token_bytes(32),
