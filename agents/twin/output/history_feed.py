@@ -75,6 +75,9 @@ log = logging.getLogger(__name__)
 HAND_OFF_S = 0.05
 # A feed that cannot reach the writer tries again after this long.
 RECONNECT_S = 0.5
+# Made beside the writer's socket when the agent stops with no writer running (it died, and the stop starts
+# none again): a closing feed then stops waiting for one, and what it holds is counted as not written.
+NO_WRITER = "no-writer"
 # The writer process must be up within this (Python, pyarrow, deltalake; the table opened on first commit).
 START_TIMEOUT_S = 60.0
 # How long the writer may take to answer the agent's request for its figures.
@@ -393,6 +396,8 @@ class HistoryFeed:
             if closing and batch is None and not self._telemetry and not self._rejected:
                 break
             if batch is not None:
+                if closing and Path(self._link.address).with_name(NO_WRITER).exists():
+                    break  # none will come (HistoryProcess.stopping): its rows stay pending, counted
                 # Not delivered (the writer is being started again): it waits, and the queue fills behind it.
                 time.sleep(RECONNECT_S)
         if self._conn is not None:
@@ -1021,6 +1026,16 @@ class HistoryProcess:
         if self._restart_at is not None:
             return 0  # it died before the stop: what it held is counted in rows_lost already
         return _held(self._counters)
+
+    def stopping(self) -> None:
+        """The agent's stop begins, before it closes the mirrors' feeds: no writer is started again from now
+        on. With none running (one died, and waits out its restart pause, say), the feeds are told so
+        (NO_WRITER), so their close does not wait the whole shutdown budget for a writer that will not come;
+        what they hold is counted as not written, as at the end of that budget."""
+        self._stopped = True
+        if not self.alive:
+            with contextlib.suppress(OSError):
+                (self._dir / NO_WRITER).touch()
 
     def stop(self, timeout: float = 30.0) -> None:
         """After the mirrors have closed their feeds: the writer commits what it holds (retrying for at most

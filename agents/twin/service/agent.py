@@ -355,6 +355,8 @@ class AgentService:
             with contextlib.suppress(Exception):
                 self._pool.stop(5.0)
             self._started_pool = False
+        if self._history is not None:
+            self._history.stopping()
         self._stop_shards(time.monotonic() + FAILED_START_STOP_S)
         if opened:
             # Messages reached the mirrors, which had the state file's alarms: what they hold now is kept.
@@ -393,6 +395,9 @@ class AgentService:
             # Its thread stops first, so the last document below follows the last one it wrote.
             self._emf.stop(5.0)
             last_totals = self._last_totals()
+        if self._history is not None:
+            # No writer started again from here: one that is down (its restart pause) is not waited for.
+            self._history.stopping()
         self._stop_shards(deadline)
         self._keep_state(final=True)
         if self._history is not None:
