@@ -6,6 +6,10 @@ tested in tests/test_console.py; here only the size matters)."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+import tempfile
 from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
@@ -13,11 +17,12 @@ from pathlib import Path
 import pytest
 from conftest import http_get
 from test_http_api import StubSource
+from twin.output import scratch
 from twin.service import session_files
 from twin.service.config import ConfigError, HttpSection, load_config
 from twin.service.console import SessionInfo
 from twin.service.http_api import AgentHttpServer
-from twin.service.session_files import KEEP_S, SessionFiles
+from twin.service.session_files import KEEP_S, PREFIX, SessionFiles
 
 MB = 2**20
 
@@ -128,3 +133,27 @@ def test_the_servers_session_files_stay_within_the_bound(monkeypatch: pytest.Mon
     finally:
         server.stop()
     assert not directory.exists()
+
+
+def test_a_killed_agents_session_files_go_when_the_next_server_starts(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The directory is named for its agent's process (output.scratch): the next agent's server removes
+    the one a `kill -9` left (its owner is gone) as it starts, and never one whose owner runs."""
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    gone = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], check=True, capture_output=True, text=True
+    )
+    dead = tmp_path / f"{PREFIX}{int(gone.stdout)}-1-abcd1234"
+    (dead / "arm-001-1.usd").parent.mkdir()
+    (dead / "arm-001-1.usd").write_bytes(b"x" * 1024)
+    own = SessionFiles(MB)
+    live = own.directory  # this process's: it runs
+    assert live.name.startswith(f"{PREFIX}{os.getpid()}-{scratch._start_time(os.getpid())}-")
+    server = AgentHttpServer(StubSource(), "127.0.0.1", 0)
+    server.start()
+    try:
+        assert not dead.exists() and live.is_dir()
+    finally:
+        server.stop()
+        own.close()

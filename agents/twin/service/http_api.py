@@ -52,6 +52,7 @@ from starlette.types import Receive, Scope, Send
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from twin.core.alarms import AlarmNotFound, NothingToAcknowledge
+from twin.service import session_files
 from twin.service.config import DEFAULT_HTTP_HOST, DEFAULT_HTTP_PORT, HttpSection
 from twin.service.console import (
     ASSETS,
@@ -351,6 +352,8 @@ class AgentHttpServer:
     def start(self) -> None:
         if self._thread is not None:
             return
+        # What a killed agent's server left in /tmp (its session files) goes now, not at the first download.
+        session_files.remove_orphans()
         self._thread = threading.Thread(target=self._serve, name="twin-http", daemon=True)
         self._thread.start()
         if not self._started.wait(10.0):

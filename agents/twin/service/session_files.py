@@ -8,6 +8,9 @@ without end. So the files together stay under `[http] session_files_mb`: once a 
 ones used longest ago go first. A file used within the last KEEP_S is never removed, because its download may
 still be running (the response opens the file after the handler returned); the bound can be passed for that
 long, never for good. A removed file is made again when asked for.
+
+The directory is named for the agent's process (output.scratch), so one that a `kill -9` left behind is
+removed when the next agent starts (`remove_orphans`), not left in /tmp for good.
 """
 
 from __future__ import annotations
@@ -15,10 +18,11 @@ from __future__ import annotations
 import contextlib
 import logging
 import shutil
-import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
+
+from twin.output import scratch
 
 log = logging.getLogger(__name__)
 
@@ -26,6 +30,12 @@ log = logging.getLogger(__name__)
 KEEP_S = 300.0
 # Files being written have this suffix (ops.sessions): not the cache's yet.
 PART_SUFFIX = ".part"
+PREFIX = "twin-console-"
+
+
+def remove_orphans() -> None:
+    """Remove the session-file directories of agents that no longer run (killed before their stop)."""
+    scratch.remove_orphans(PREFIX)
 
 
 class SessionFiles:
@@ -42,7 +52,7 @@ class SessionFiles:
     @property
     def directory(self) -> Path:
         if self._dir is None:
-            self._dir = Path(tempfile.mkdtemp(prefix="twin-console-"))
+            self._dir = scratch.owned_tempdir(PREFIX)
         return self._dir
 
     def used(self, path: Path) -> None:
