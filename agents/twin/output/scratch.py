@@ -1,8 +1,9 @@
 """Scratch directories of a running agent under the system's temporary directory, and the ones killed agents
 left there.
 
-The history writer's socket lives in such a directory (output.history_feed); a clean stop removes it, a
-`kill -9` of `twin run` cannot, and a host that runs for weeks gathered one a kill. So a directory's name says
+The history writer's socket lives in such a directory (output.history_feed), and so do the console's
+session files (service.session_files); a clean stop removes them, a `kill -9` of `twin run` cannot, and a
+host that runs for weeks gathered them kill after kill. So a directory's name says
 whose it is: the owner's pid and when that process started (the kernel's start time, so a pid used again by
 another process is not taken for the owner), e.g. `twin-history-4242-987654-k3j2h1x0`. Making one first
 removes those of the same prefix whose owner is gone, and never one whose owner runs: several agents may run
