@@ -370,6 +370,49 @@ def test_a_forgotten_arm_stays_forgotten_when_its_worker_dies_before_the_next_ch
         again.stop()
 
 
+@pytest.mark.slow
+def test_an_acknowledgement_survives_a_worker_that_dies_before_the_next_checkpoint(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An acknowledgement is a person's act, kept like a forget: a worker killed right after it, before the
+    supervisor's next checkpoint, starts again from the checkpoint the acknowledgement took, and the alarm
+    comes back ACKNOWLEDGED, not ACTIVE (the supervisor's checkpoints are switched off meanwhile, so only
+    the acknowledgement's can count); the state file says so too."""
+    device = "arm-002"
+    state_file = tmp_path / "state.json"
+    agent = _hot_arm_agent(state_file, workers=2)
+    agent.start()
+    try:
+        shard = agent._shards[agent.plan.worker_of(device)]
+        assert isinstance(shard, WorkerShard)
+        _heat_until_alarmed(agent, device)
+        alarm = next(a for a in agent.alarms() if a.device == device)
+        wait_for(
+            lambda: (
+                shard.checkpoint is not None
+                and any(r.alarm_id == alarm.alarm_id and r.state == "ACTIVE" for r in shard.checkpoint.alarms)
+            ),
+            30,
+            f"a held checkpoint with {alarm.alarm_id} ACTIVE",
+        )
+        monkeypatch.setattr(agent, "_keep_state", lambda **_: None)
+        assert agent.acknowledge_alarm(alarm.alarm_id).state == "ACKNOWLEDGED"
+        victim = shard.pid
+        os.kill(victim, signal.SIGKILL)
+        wait_for(
+            lambda: shard.restarts == 1 and shard.answering and shard.pid != victim,
+            60,
+            "the worker to run again",
+            interval=0.1,
+        )
+        states = {a.alarm_id: a.state for a in agent.alarms(include_normal=True)}
+        assert states.get(alarm.alarm_id) == "ACKNOWLEDGED", states
+        saved = {a["alarm_id"]: a["state"] for a in _saved_alarms(state_file)}
+        assert saved.get(alarm.alarm_id) == "ACKNOWLEDGED", saved
+    finally:
+        agent.stop()
+
+
 def _queue_of(agent: AgentService, device: str) -> InboundQueue[Any]:
     """The agent's queue that `device`'s messages wait in: its worker's, or the in-process mirror's inbox."""
     shard = agent._shards[agent.plan.worker_of(device)]

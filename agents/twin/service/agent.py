@@ -73,7 +73,7 @@ from twin.service.shards import (
     WorkerError,
     WorkerPlan,
     WorkerShard,
-    alarm_of,
+    acknowledged_of,
     alarms_of,
     applied_of,
     checkpoint_of,
@@ -865,10 +865,18 @@ class AgentService:
         WorkerError when that device's worker is being started again."""
         device = alarm_id.split("/", 1)[0]
         shard = self._shards[self.plan.worker_of(device)]
-        info = alarm_of(shard.request(AckRequest(alarm_id))())
-        self._cached = None
-        self._save_alarms_now()
-        self._wake.set()  # into the worker's checkpoint now
+        # A person's act, kept before the answer as a forget is: with worker processes, the checkpoint taken
+        # right after it becomes the worker's restart point (the one held before would bring the alarm back
+        # ACTIVE to a worker that dies before the supervisor's next), and the lock keeps the supervisor from
+        # saving alarms it read before the acknowledgement over the ones saved here.
+        with self._keep_lock:
+            reply = shard.request(AckRequest(alarm_id, checkpoint=self._mirror is None))()
+            info, checkpoint = acknowledged_of(reply)
+            if checkpoint is not None:
+                shard.confirm(checkpoint)
+            self._cached = None
+            self._save_alarms_now()
+        self._wake.set()
         return info
 
     def forget_arm(self, device: str) -> ArmForgotten:

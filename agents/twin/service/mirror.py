@@ -109,6 +109,7 @@ from twin.service.shards import (
     ARM_CONFIGURED,
     ARM_NOT_OFFLINE,
     EVENTS_PER_ASK,
+    Acknowledged,
     AckRequest,
     AlarmsRequest,
     ArmForgotten,
@@ -1359,6 +1360,8 @@ class Mirror:
         if isinstance(request, AlarmsRequest):
             return self.alarms(include_normal=request.include_normal)
         if isinstance(request, AckRequest):
+            if request.checkpoint:
+                return self.acknowledge_checkpointed(request.alarm_id)
             return self.acknowledge_alarm(request.alarm_id)
         if isinstance(request, ForgetRequest):
             return self.forget_arm(request.device, checkpoint=request.checkpoint)
@@ -1573,6 +1576,21 @@ class Mirror:
         _log_alarm_event(event)
         self._watch.alarm(event)
         return alarm_info(view, now, self._wall_clock())
+
+    def acknowledge_checkpointed(self, alarm_id: str) -> Acknowledged:
+        """`acknowledge_alarm`, and the mirror's checkpoint begun right after it between the same two batches:
+        a worker's restart point that holds the acknowledgement, so a worker that dies before the agent's next
+        checkpoint does not come back with the alarm ACTIVE (or LATCHED) again."""
+        deadline = time.monotonic() + JOB_TIMEOUT_S
+
+        def act() -> tuple[AlarmInfo, Capture]:
+            if self._capture is not None:
+                # One begun before the acknowledgement would not hold it: finish it, and begin another.
+                self._step_capture(self._capture, None)
+            return self.acknowledge_alarm(alarm_id), self._begin_capture()
+
+        info, capture = self._between_batches(act)
+        return Acknowledged(info, self._captured(capture, deadline))
 
     def forget_arm(self, device: str, *, checkpoint: bool = False) -> ArmForgotten:
         """Remove an OFFLINE arm an operator retired (docs/console.md, "Forget an arm"): its twin, health and

@@ -207,9 +207,21 @@ class AlarmsRequest:
 
 @dataclass(frozen=True, slots=True)
 class AckRequest:
-    """Acknowledge one alarm of the mirror's devices; refused as AlarmNotFound or NothingToAcknowledge."""
+    """Acknowledge one alarm of the mirror's devices; refused as AlarmNotFound or NothingToAcknowledge.
+    Answered with the alarm (AlarmInfo); with `checkpoint`, with Acknowledged: the alarm and the mirror's
+    checkpoint begun right after the acknowledgement, between the same two batches, a worker's restart point
+    that holds it (service.agent keeps it at once)."""
 
     alarm_id: str
+    checkpoint: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class Acknowledged:
+    """The answer to an AckRequest that asked for a checkpoint."""
+
+    alarm: AlarmInfo
+    checkpoint: MirrorCheckpoint
 
 
 @dataclass(frozen=True, slots=True)
@@ -441,6 +453,7 @@ Reply = (
     MirrorReport
     | tuple[AlarmInfo, ...]
     | AlarmInfo
+    | Acknowledged
     | ArmForgotten
     | tuple[Event, ...]
     | tuple[FleetRow, ...]
@@ -519,6 +532,13 @@ def alarm_of(reply: Reply) -> AlarmInfo:
     if not isinstance(reply, AlarmInfo):
         raise WorkerError(f"an acknowledged alarm was asked for, the answer was {type(reply).__name__}")
     return reply
+
+
+def acknowledged_of(reply: Reply) -> tuple[AlarmInfo, MirrorCheckpoint | None]:
+    """The answer to an AckRequest, with or without its checkpoint; WorkerError for anything else."""
+    if isinstance(reply, Acknowledged):
+        return reply.alarm, reply.checkpoint
+    return alarm_of(reply), None
 
 
 def forgotten_of(reply: Reply) -> ArmForgotten:
@@ -1584,6 +1604,7 @@ __all__ = [
     "ARM_CONFIGURED",
     "ARM_NOT_OFFLINE",
     "AckRequest",
+    "Acknowledged",
     "AlarmsRequest",
     "ArmForgotten",
     "ArmNotForgettableError",
@@ -1609,6 +1630,7 @@ __all__ = [
     "WorkerError",
     "WorkerPlan",
     "WorkerShard",
+    "acknowledged_of",
     "alarm_of",
     "alarms_of",
     "applied_of",
