@@ -33,7 +33,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
 from twin.edge.payload import encode, make_payload
 from twin.rig.local import LocalRig, RigError, wait_until
-from twin.rig.mosquitto import MosquittoBroker, MosquittoNotFound, free_port
+from twin.rig.mosquitto import MosquittoBroker, MosquittoNotFound
 from twin.service.agent import AgentService
 from twin.service.config import load_config
 from twin.service.state import AgentState, DeviceState
@@ -42,6 +42,10 @@ from twin.transport.client import build_mqtt5_client
 
 # The region the moto-backed AWS tests (twin instance, twin instance check) create their resources in.
 AWS_TEST_REGION = "us-east-1"
+# The broker of an agent fed through feed(): nothing listens on port 1 here and free_port never hands it out
+# (it is below the ephemeral range), so no other test's mosquitto, started in parallel, can take the port
+# and feed such an agent arms of its own (a port merely free when asked could be).
+NO_BROKER = "mqtt://127.0.0.1:1"
 
 
 @pytest.hookimpl(trylast=True)
@@ -274,7 +278,7 @@ def fed_agent(messages: int = 12, *, sinks: Sequence[Any] = (), **overrides: Any
     config = load_config(
         None,
         {
-            "broker.url": f"mqtt://127.0.0.1:{free_port()}",
+            "broker.url": NO_BROKER,
             "http.listen": "127.0.0.1:0",
             "telemetry.devices": ["arm-001", "arm-002"],
             "telemetry.units": "ticks",

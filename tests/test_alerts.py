@@ -10,10 +10,9 @@ from typing import Any
 
 import boto3
 import pytest
-from conftest import AWS_TEST_REGION, wait_for
+from conftest import AWS_TEST_REGION, NO_BROKER, wait_for
 from moto import mock_aws
 from twin.output.alerts import MAX_FLUSH_S, SUBJECT_MAX, Alert, AlertPublisher
-from twin.rig.mosquitto import free_port
 from twin.robot import so101
 from twin.service.agent import AgentService
 from twin.service.config import ConfigError, load_config
@@ -195,7 +194,7 @@ def hot(device: str, ts: int, temp: float) -> bytes:
 def hot_arm_settings(**overrides: Any) -> dict[str, Any]:
     """An agent of arm-003 alone, fed through feed() (no broker answers), whose heat alarms raise at once."""
     return {
-        "broker.url": f"mqtt://127.0.0.1:{free_port()}",
+        "broker.url": NO_BROKER,
         "http.listen": "127.0.0.1:0",
         "telemetry.devices": ["arm-003"],
         "telemetry.units": "ticks",

@@ -12,7 +12,7 @@ import random
 import threading
 
 import pytest
-from conftest import wait_for
+from conftest import NO_BROKER, wait_for
 from twin.core.bounded import BoundedCounter, merged_counts
 from twin.core.telemetry import MAX_DECIDED_DEVICES, DecoderConfig, TelemetryDecoder
 from twin.core.units import Units
@@ -24,7 +24,6 @@ from twin.output.sinks import (
     RejectedSample,
     rejected_sample,
 )
-from twin.rig.mosquitto import free_port
 from twin.service.agent import MAX_ROUTES, AgentService
 from twin.service.config import load_config
 from twin.service.events import MAX_THROTTLE_KEYS
@@ -194,7 +193,7 @@ def test_100000_junk_device_ids_leave_every_per_device_table_within_its_cap() ->
     config = load_config(
         None,
         {
-            "broker.url": f"mqtt://127.0.0.1:{free_port()}",  # never answers: the test feeds the agent
+            "broker.url": NO_BROKER,  # never answers: the test feeds the agent
             "http.listen": "127.0.0.1:0",
             "telemetry.units": "auto",
             "telemetry.max_devices": MAX_DEVICES,

@@ -14,12 +14,11 @@ from typing import Any
 
 import boto3
 import pytest
-from conftest import AWS_TEST_REGION, http_get, wait_for
+from conftest import AWS_TEST_REGION, NO_BROKER, http_get, wait_for
 from moto import mock_aws
 from twin.cli import main
 from twin.cli.commands import calibration as cmd
 from twin.edge.payload import encode
-from twin.rig.mosquitto import free_port
 from twin.robot import so101
 from twin.robot.calibration import load_calibration
 from twin.service.agent import AgentService
@@ -406,7 +405,7 @@ def agent_with_store(store: Path | str, **overrides: Any) -> AgentService:
     config = load_config(
         None,
         {
-            "broker.url": f"mqtt://127.0.0.1:{free_port()}",  # nobody answers: fed through feed()
+            "broker.url": NO_BROKER,  # nobody answers: fed through feed()
             "http.listen": "127.0.0.1:0",
             "telemetry.devices": ["arm-001", "arm-002"],
             "telemetry.units": "ticks",

@@ -14,10 +14,9 @@ import time
 from collections.abc import Iterator
 
 import pytest
-from conftest import ManualClock, wait_for
+from conftest import NO_BROKER, ManualClock, wait_for
 from twin.edge.payload import encode, make_payload
 from twin.output.sinks import AppliedSample, RejectedSample, SinkStats
-from twin.rig.mosquitto import free_port
 from twin.service.agent import AgentService
 from twin.service.config import load_config
 from twin.service.mirror import CATCH_UP_AFTER_S
@@ -57,7 +56,7 @@ def gated() -> Iterator[tuple[AgentService, GateSink, ManualClock]]:
     config = load_config(
         None,
         {
-            "broker.url": f"mqtt://127.0.0.1:{free_port()}",
+            "broker.url": NO_BROKER,
             "http.listen": "127.0.0.1:0",
             "telemetry.devices": ["arm-001"],
             "telemetry.units": "ticks",

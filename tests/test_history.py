@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import polars as pl
 import pytest
-from conftest import get_metrics, metric, wait_for, wait_handled
+from conftest import NO_BROKER, get_metrics, metric, wait_for, wait_handled
 from deltalake import CommitProperties, DeltaTable, Transaction, write_deltalake
 from dying_writer import writer_killed_in_its_first_commit
 from moto_s3 import MotoS3
@@ -1001,12 +1001,11 @@ def test_a_killed_worker_s_messages_reach_history_once_whichever_its_feed_had_de
 def _fed_agent_config(uri: str, **overrides: Any) -> AgentConfig:
     """An agent for arm-001 in ticks, fed through `feed()` (its broker never answers), with history at `uri`
     committed by row count only (no commit by time: rows wait in the writer until `overrides` say)."""
-    from twin.rig.mosquitto import free_port
 
     return load_config(
         None,
         {
-            "broker.url": f"mqtt://127.0.0.1:{free_port()}",
+            "broker.url": NO_BROKER,
             "http.listen": "127.0.0.1:0",
             "telemetry.devices": ["arm-001"],
             "telemetry.units": "ticks",

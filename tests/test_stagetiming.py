@@ -13,9 +13,8 @@ import time
 from collections.abc import Callable, Iterator
 
 import pytest
-from conftest import wait_for
+from conftest import NO_BROKER, wait_for
 from twin.edge.payload import encode, make_payload
-from twin.rig.mosquitto import free_port
 from twin.service.admission import DeviceBudget
 from twin.service.config import load_config
 from twin.service.mirror import STAGES, Mirror, QueuedMessage, QueueInbox
@@ -45,7 +44,7 @@ def _mirror(clock: CountingClock, sampler: StageSampler) -> tuple[Mirror, Inboun
     config = load_config(
         None,
         {
-            "broker.url": f"mqtt://127.0.0.1:{free_port()}",
+            "broker.url": NO_BROKER,
             "telemetry.devices": [DEVICE],
             "telemetry.units": "ticks",
         },

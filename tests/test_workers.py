@@ -24,7 +24,7 @@ from typing import Any
 import psutil
 import pytest
 from awscrt import mqtt5
-from conftest import Publisher, get_metrics, get_state, metric, run_twin, wait_for, wait_handled
+from conftest import NO_BROKER, Publisher, get_metrics, get_state, metric, run_twin, wait_for, wait_handled
 from test_restarts import running
 from test_servo_alarms_e2e import alarms, post
 from twin.core.alarms import AlarmKind, AlarmRecord, AlarmState
@@ -595,7 +595,7 @@ def test_a_setting_only_a_worker_can_check_stops_twin_run_with_exit_code_2(tmp_p
     calibration.write_text("{not a calibration")
     config = tmp_path / "agent.toml"
     config.write_text(f'[telemetry]\ncalibration = "{calibration}"\n')
-    broker = f"mqtt://127.0.0.1:{free_port()}"  # never reached: the workers fail before the pool starts
+    broker = NO_BROKER  # never reached: the workers fail before the pool starts
     run = ["run", "--config", str(config), "--workers", "2", "--broker", broker, "--http", "127.0.0.1:0"]
     done = run_twin(run, child_env())
     assert done.returncode == 2, done.stderr
