@@ -1325,6 +1325,26 @@ def test_a_marked_feed_hands_over_whole_batches_and_records_where_they_reach(tmp
         history.stop(timeout=10.0)
 
 
+def test_a_second_restart_takes_up_history_in_the_renumbered_stream() -> None:
+    """The agent kept fewer messages than the checkpoint missed (first kept 150, checkpoint at 100): the new
+    worker numbers them from 100, so the dead feed's position 170 is 120 in its numbers. A worker that dies
+    again before its feed records a delivery of its own must take up at 120 again, not at 170 (which would
+    skip, uncounted, rows never written)."""
+    import multiprocessing
+
+    from twin.output.history_feed import HistoryLink, Resume, resume_point
+
+    link = HistoryLink.new("unused.sock", b"k", multiprocessing.get_context("spawn"))
+    assert link.delivered is not None
+    link.record_reached(0, 170, 170)
+    link.delivered[0] = 170
+    first = resume_point(link, 0, taken=100, taken_rows=100, replay_from=150)
+    assert first == Resume(120, 170)
+    again = resume_point(link, 0, taken=100, taken_rows=100, replay_from=100)
+    assert again == Resume(120, 170)
+    assert link.lost_at_restarts() == 0
+
+
 def test_demo_style_uri_is_created(tmp_path: Path) -> None:
     nested = tmp_path / "a" / "b" / "history"
     HistoryWriter(HistorySettings(uri=str(nested))).close()

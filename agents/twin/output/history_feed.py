@@ -165,6 +165,16 @@ class HistoryLink:
     # to hand history only the rows not yet delivered (`HistoryFeed.mark`).
     progress: SynchronizedArray[int] | None = field(default=None, compare=False)
 
+    @classmethod
+    def new(cls, address: str, authkey: bytes, context: SpawnContext) -> HistoryLink:
+        """A link with its shared counts, in memory the agent's processes share (made by `context`)."""
+        return cls(
+            address,
+            authkey,
+            context.Array("q", FEED_SLOTS, lock=False),
+            context.Array("q", FEED_SLOTS * _PROGRESS, lock=False),
+        )
+
     def reached(self, slot: int) -> tuple[int, int]:
         """(position, rows): every message of slot `slot`'s stream before `position` has had its row
         delivered to a writer (or dropped, counted); `rows` is how many rows its feeds were handed up to
@@ -231,7 +241,10 @@ def resume_point(link: HistoryLink, slot: int, *, taken: int, taken_rows: int, r
         resume = Resume(taken + max(0, position - replay_from), rows)
     else:
         resume = Resume(taken, max(rows, taken_rows))
-        link.record_reached(slot, resume.skip_to, resume.rows)
+    # Recorded in the new numbering at once (nothing of the slot runs yet): a worker that dies again before
+    # its feed records a delivery of its own (in the skipped part of the replay, say) is then started from
+    # this point, not from the dead one's position in numbers that no longer hold.
+    link.record_reached(slot, resume.skip_to, resume.rows)
     lost = link.count_lost_at_restart(slot, resume.rows)
     if lost:
         log.error(
@@ -805,12 +818,7 @@ class HistoryProcess:
         self.target: Callable[..., None] = writer_main
         # Named for this process, so an agent started after a kill of this one removes it (output.scratch).
         self._dir = owned_tempdir("twin-history-")
-        self.link = HistoryLink(
-            str(self._dir / "writer.sock"),
-            secrets.token_bytes(32),
-            context.Array("q", FEED_SLOTS, lock=False),
-            context.Array("q", FEED_SLOTS * _PROGRESS, lock=False),
-        )
+        self.link = HistoryLink.new(str(self._dir / "writer.sock"), secrets.token_bytes(32), context)
         self._counters: SynchronizedArray[int] = context.Array("q", _COUNTERS, lock=False)
         self._process: SpawnProcess | None = None
         self._control: Connection | None = None

@@ -572,6 +572,8 @@ class Mirror:
                 slot=self._slot,
             )
             self._rows = self._history
+            # Marked from the start: the feed never hands over part of a batch unrecorded (HistoryFeed.mark).
+            self._history.mark(self.processed)
         self._sinks = (*((self._recording,) if self._recording else ()), *self._extra_sinks)
 
     def _open_recorder(self, directory: Path, rotation: int = 0) -> SessionRecorder:
