@@ -337,12 +337,16 @@ def test_a_restarted_worker_is_sent_again_exactly_what_its_checkpoint_did_not_co
     assert sent == [_messages(0, 100), _messages(100, 100), _messages(200, 100)]
 
     # The worker counted 150 when it checkpointed: the first kept message is only partly counted, so kept.
-    shard.confirm(shards.MirrorCheckpoint(taken=150))
+    assert shard.confirm(shards.MirrorCheckpoint(taken=150), restarts=0)
+    # One asked of a process that died as it answered (a restart began since): not the restart point.
+    shard.restarts = 1
+    assert not shard.confirm(shards.MirrorCheckpoint(taken=280), restarts=0)
+    assert shard.checkpoint is not None and shard.checkpoint.taken == 150
     assert [(start, count) for start, count, _ in shard._unconfirmed] == [(100, 100), (200, 100)]
     # It died; two messages came in meanwhile (held), then the new process is sent the rest.
     shard.ready = False
     shard._hand_over(_messages(300, 2))
-    assert shard._replay() == 152
+    assert shard._replay(shard.checkpoint) == 152
     again = []
     while theirs.poll(0):
         again.extend(messages_of(theirs.recv_bytes()))

@@ -870,10 +870,11 @@ class AgentService:
         # ACTIVE to a worker that dies before the supervisor's next), and the lock keeps the supervisor from
         # saving alarms it read before the acknowledgement over the ones saved here.
         with self._keep_lock:
+            restarts = shard.restarts
             reply = shard.request(AckRequest(alarm_id, checkpoint=self._mirror is None))()
             info, checkpoint = acknowledged_of(reply)
-            if checkpoint is not None:
-                shard.confirm(checkpoint)
+            if checkpoint is not None and not shard.confirm(checkpoint, restarts=restarts):
+                raise WorkerError(_DIED_AFTER.format(index=shard.index, act="acknowledgement"))
             self._cached = None
             self._save_alarms_now()
         self._wake.set()
@@ -890,11 +891,14 @@ class AgentService:
         # acknowledgement. The lock keeps the supervisor from confirming or saving a checkpoint it took
         # before the forget over the ones taken here.
         with self._keep_lock:
+            restarts = shard.restarts
             forgotten = forgotten_of(shard.request(ForgetRequest(device, checkpoint=self._mirror is None))())
-            if forgotten.checkpoint is not None:
-                # The worker's restart point from now on: its held checkpoint, and the messages since, would
-                # give a worker that dies before the supervisor's next checkpoint the arm back.
-                shard.confirm(forgotten.checkpoint)
+            # The worker's restart point from now on: its held checkpoint, and the messages since, would give
+            # a worker that dies before the supervisor's next checkpoint the arm back.
+            if forgotten.checkpoint is not None and not shard.confirm(
+                forgotten.checkpoint, restarts=restarts
+            ):
+                raise WorkerError(_DIED_AFTER.format(index=shard.index, act="forget"))
             shard.forget(device)  # the agent's own counts of it (its queue's drops), as the mirror's went
             self._cached = None
             self._save_alarms_now()  # its alarms out of the state file before the answer, as an ack's go in
@@ -1087,6 +1091,11 @@ class _FleetAnswers(Generic[_T]):
 
     answers: list[tuple[Shard, _T]]
     silent: tuple[Shard, ...]
+
+
+# An acknowledgement or a forget its worker answered just before it died: the restart takes up from the
+# checkpoint before, which does not hold it (the HTTP API answers 503: make it again once the worker runs).
+_DIED_AFTER = "worker {index} died as it answered, and is being started again without this {act}"
 
 
 def alarm_order(info: AlarmInfo) -> tuple[int, int, str]:

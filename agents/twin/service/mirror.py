@@ -1689,6 +1689,7 @@ class LocalShard:
     demo, the tests): the agent's queue is the mirror's inbox (service.shards, `Shard`)."""
 
     index = 0
+    restarts = 0  # a dead worker thread is `failed`, never started again
 
     def __init__(
         self,
@@ -1740,8 +1741,9 @@ class LocalShard:
 
     restarting = False
 
-    def confirm(self, checkpoint: MirrorCheckpoint) -> None:
-        self.checkpoint = checkpoint
+    def confirm(self, checkpoint: MirrorCheckpoint, *, restarts: int | None = None) -> bool:
+        self.checkpoint = checkpoint  # never restarts
+        return True
 
     def restarting_devices(self, thresholds: HealthThresholds, now: float) -> dict[str, DeviceState]:
         return {}  # never restarts: a dead worker thread is `failed`

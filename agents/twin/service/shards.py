@@ -619,6 +619,7 @@ class Shard(Protocol):
     """What the agent needs of one share of the fleet, whether its mirror runs in-process or in a worker."""
 
     index: int
+    restarts: int  # how often its mirror was started again (a worker's process); 0 in-process
 
     def put(self, key: str, topic: str, payload: bytes, recv_mono: float, recv_wall: float) -> None:
         """Queue one message for the mirror (`key`: its device, or UNTRACKED_KEY); on a CRT thread, never
@@ -695,8 +696,9 @@ class Shard(Protocol):
         """The mirror's latest checkpoint the agent holds (`confirm`)."""
         ...
 
-    def confirm(self, checkpoint: MirrorCheckpoint) -> None:
-        """Keep `checkpoint` as the mirror's latest."""
+    def confirm(self, checkpoint: MirrorCheckpoint, *, restarts: int | None = None) -> bool:
+        """Keep `checkpoint` as the mirror's latest; with `restarts` (the shard's count when the checkpoint
+        was asked for), only if no restart began since (False then: it is the dead process's)."""
         ...
 
     def restarting_devices(self, thresholds: HealthThresholds, now: float) -> dict[str, DeviceState]:
@@ -886,7 +888,12 @@ class WorkerShard:
         if now < self._restart_at:
             return
         self._restart_at = None
-        self.restarts += 1
+        with self._unconfirmed_lock:
+            # From here on a checkpoint asked of the dead process is not confirmed (an acknowledgement's,
+            # answered just before it died), and this restart starts from the one held now, both in the
+            # process's restore and in what it is sent again.
+            self.restarts += 1
+            start = self.checkpoint
         with self._control_lock:
             for conn in (self.data, self.control):
                 if conn is not None:
@@ -896,13 +903,13 @@ class WorkerShard:
             try:
                 self.launch()
                 self._await_hello()
-                restored = self._restore()
+                restored = self._restore(start)
                 self._recalibrate()
             except (WorkerError, ConfigError) as exc:
                 log.error("worker %d could not be started again: %s", self.index, exc)
                 return
         try:
-            replayed = self._replay()
+            replayed = self._replay(start)
         except (OSError, ValueError) as exc:
             log.error("worker %d died again while its messages were sent again: %s", self.index, exc)
             return
@@ -918,25 +925,24 @@ class WorkerShard:
             },
         )
 
-    def _restore(self) -> Restored:
-        """Hand the new process the latest checkpoint (control lock held)."""
+    def _restore(self, checkpoint: MirrorCheckpoint | None) -> Restored:
+        """Hand the new process `checkpoint`, the latest when the restart began (control lock held)."""
         assert self.control is not None
         call_id = next(_CALL_IDS)
-        request = RestoreRequest(checkpoint=self.checkpoint, history=self._history_resume())
+        request = RestoreRequest(checkpoint=checkpoint, history=self._history_resume(checkpoint))
         try:
             self.control.send(Call(call_id, request))
         except (OSError, ValueError) as exc:
             raise WorkerError(f"worker {self.index} is not reachable: {exc}") from exc
         return restored_of(self._answer(call_id))
 
-    def _history_resume(self) -> Resume | None:
+    def _history_resume(self, checkpoint: MirrorCheckpoint | None) -> Resume | None:
         """With history on: where the new process's feed takes up (history_feed.resume_point), so the
         messages sent again whose rows the dead one delivered are not written twice."""
         if self._history is None:
             return None
         from twin.output.history_feed import resume_point  # noqa: PLC0415 - only with history on
 
-        checkpoint = self.checkpoint
         taken = checkpoint.taken if checkpoint is not None else 0
         with self._unconfirmed_lock:
             first = self._unconfirmed[0][0] if self._unconfirmed else self._sent
@@ -965,10 +971,11 @@ class WorkerShard:
     def keep_calibrations(self, request: CalibrationsRequest) -> None:
         self._calibrations = request
 
-    def _replay(self) -> int:
-        """Send the new process what the checkpoint does not count, then what was held; then it runs."""
+    def _replay(self, checkpoint: MirrorCheckpoint | None) -> int:
+        """Send the new process what `checkpoint` (the one it was restored from) does not count, then what was
+        held; then it runs."""
         with self._send_lock:
-            taken = self.checkpoint.taken if self.checkpoint is not None else 0
+            taken = checkpoint.taken if checkpoint is not None else 0
             with self._unconfirmed_lock:
                 again: list[Message] = []
                 first = self._unconfirmed[0][0] if self._unconfirmed else self._sent
@@ -1014,14 +1021,18 @@ class WorkerShard:
             _, oldest, _ = self._unconfirmed.popleft()
             self._unconfirmed_count -= oldest
 
-    def confirm(self, checkpoint: MirrorCheckpoint) -> None:
-        """A checkpoint of the running worker: keep it, and forget the messages it counts."""
+    def confirm(self, checkpoint: MirrorCheckpoint, *, restarts: int | None = None) -> bool:
+        """A checkpoint of the running worker: keep it, and forget the messages it counts. With `restarts`,
+        not if a restart began since it was asked for (False)."""
         with self._unconfirmed_lock:
+            if restarts is not None and restarts != self.restarts:
+                return False
             self.checkpoint = checkpoint
             unconfirmed = self._unconfirmed
             while unconfirmed and unconfirmed[0][0] + unconfirmed[0][1] <= checkpoint.taken:
                 _, count, _ = unconfirmed.popleft()
                 self._unconfirmed_count -= count
+        return True
 
     def close(self) -> None:
         self._closed = True
