@@ -292,6 +292,10 @@ class _Job:
 
 # How long a checkpoint or a restore may wait for the worker thread to finish its batch.
 JOB_TIMEOUT_S = 10.0
+# How long an acknowledgement or a forget waits for the checkpoint taken with it: well inside the agent's wait
+# for the answer (shards.ASK_TIMEOUT_S), so the act, done by then, is answered as done. Without it the act is
+# still in the state file, and the supervisor's next checkpoint holds it.
+ACT_CHECKPOINT_S = 5.0
 
 
 class QueueInbox:
@@ -1583,7 +1587,6 @@ class Mirror:
         """`acknowledge_alarm`, and the mirror's checkpoint begun right after it between the same two batches:
         a worker's restart point that holds the acknowledgement, so a worker that dies before the agent's next
         checkpoint does not come back with the alarm ACTIVE (or LATCHED) again."""
-        deadline = time.monotonic() + JOB_TIMEOUT_S
 
         def act() -> tuple[AlarmInfo, Capture]:
             if self._capture is not None:
@@ -1592,7 +1595,19 @@ class Mirror:
             return self.acknowledge_alarm(alarm_id), self._begin_capture()
 
         info, capture = self._between_batches(act)
-        return Acknowledged(info, self._captured(capture, deadline))
+        return Acknowledged(info, self._act_checkpoint(capture))
+
+    def _act_checkpoint(self, capture: Capture) -> MirrorCheckpoint | None:
+        """The checkpoint an acknowledgement or a forget began, if taken within ACT_CHECKPOINT_S."""
+        try:
+            return self._captured(capture, time.monotonic() + ACT_CHECKPOINT_S)
+        except TimeoutError:
+            log.warning(
+                "the checkpoint taken with an acknowledgement or a forget took over %.0f s; the act is done, "
+                "and the next checkpoint holds it",
+                ACT_CHECKPOINT_S,
+            )
+            return None
 
     def forget_arm(self, device: str, *, checkpoint: bool = False) -> ArmForgotten:
         """Remove an OFFLINE arm an operator retired (docs/console.md, "Forget an arm"): its twin, health and
@@ -1603,9 +1618,8 @@ class Mirror:
         worker's restart point without the arm, with no message in between that could still hold it."""
         if not checkpoint:
             return self._between_batches(lambda: self._forget_arm(device))
-        deadline = time.monotonic() + JOB_TIMEOUT_S
         forgotten, capture = self._between_batches(lambda: (self._forget_arm(device), self._begin_capture()))
-        return dataclasses.replace(forgotten, checkpoint=self._captured(capture, deadline))
+        return dataclasses.replace(forgotten, checkpoint=self._act_checkpoint(capture))
 
     def _forget_arm(self, device: str) -> ArmForgotten:
         if self._capture is not None:

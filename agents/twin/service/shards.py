@@ -221,7 +221,7 @@ class Acknowledged:
     """The answer to an AckRequest that asked for a checkpoint."""
 
     alarm: AlarmInfo
-    checkpoint: MirrorCheckpoint
+    checkpoint: MirrorCheckpoint | None  # None: not taken in time (the next one holds the acknowledgement)
 
 
 @dataclass(frozen=True, slots=True)
