@@ -10,6 +10,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import time
 from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
@@ -56,6 +57,16 @@ def test_the_files_used_longest_ago_go_first_once_over_the_bound() -> None:
         assert files.trim() == ["b.csv"]
         assert sorted(p.name for p in files.directory.iterdir()) == ["a.csv", "c.csv", "d.csv", "d.csv.part"]
         assert files.removed == 1
+        # A file not served yet is being made while it is young (a plot's name of its own): kept; once old
+        # (a leftover), it goes first.
+        making = files.directory / "e.png.png"
+        making.write_bytes(b"x" * MB)
+        clock.now += KEEP_S + 1
+        assert files.trim() == ["c.csv"]  # 4 MB: the oldest served one goes, the young one stays
+        old = time.time() - KEEP_S - 1
+        os.utime(making, (old, old))
+        made(files, "f.csv", MB)
+        assert files.trim() == ["e.png.png"]
     finally:
         directory = files.directory
         files.close()

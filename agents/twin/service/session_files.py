@@ -65,19 +65,25 @@ class SessionFiles:
         if self._dir is None:
             return []
         sizes: dict[str, int] = {}
+        young: set[str] = set()  # not served yet and written within KEEP_S: being made, most likely
+        wall = time.time()
         for path in self._dir.iterdir():
             if path.name.endswith(PART_SUFFIX):
                 continue
             with contextlib.suppress(OSError):
-                sizes[path.name] = path.stat().st_size
+                info = path.stat()
+                sizes[path.name] = info.st_size
+                if path.name not in self._used and wall - info.st_mtime < KEEP_S:
+                    young.add(path.name)
         total = sum(sizes.values())
         now = self._clock()
         removed: list[str] = []
-        # A file the cache has no time for (none made in this run should lack one) goes first.
+        # A file not served yet goes first, unless it is young: a plot or a USD session is written under a
+        # name of its own while it is made (ops.sessions), and a file being made is not the cache's to remove.
         for name in sorted(sizes, key=lambda n: self._used.get(n, -1.0)):
             if total <= self.max_bytes:
                 break
-            if now - self._used.get(name, -KEEP_S * 2) < KEEP_S:
+            if name in young or now - self._used.get(name, -KEEP_S * 2) < KEEP_S:
                 continue
             with contextlib.suppress(OSError):
                 (self._dir / name).unlink()
