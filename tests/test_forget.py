@@ -6,6 +6,7 @@ two worker processes behind a real mosquitto.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import random
@@ -13,6 +14,7 @@ import signal
 import time
 import urllib.error
 import urllib.request
+from collections.abc import Iterator
 from multiprocessing import Pipe
 from pathlib import Path
 from typing import Any
@@ -318,6 +320,34 @@ def _gone(agent: AgentService, device: str) -> bool:
     )
 
 
+@contextlib.contextmanager
+def _two_workers_alarmed(state_file: Path, device: str) -> Iterator[tuple[AgentService, WorkerShard]]:
+    """A started agent of two worker processes whose `device` has raised a heat alarm, and that device's
+    shard; stopped after."""
+    agent = _hot_arm_agent(state_file, workers=2)
+    agent.start()
+    try:
+        shard = agent._shards[agent.plan.worker_of(device)]
+        assert isinstance(shard, WorkerShard)
+        _heat_until_alarmed(agent, device)
+        yield agent, shard
+    finally:
+        agent.stop()
+
+
+def _kill_and_await_restart(shard: WorkerShard) -> None:
+    """SIGKILL the shard's worker process and wait until the one started again runs."""
+    victim = shard.pid
+    assert victim is not None
+    os.kill(victim, signal.SIGKILL)
+    wait_for(
+        lambda: shard.restarts == 1 and shard.answering and shard.pid != victim,
+        60,
+        "the worker to run again",
+        interval=0.1,
+    )
+
+
 @pytest.mark.slow
 def test_a_forgotten_arm_stays_forgotten_when_its_worker_dies_before_the_next_checkpoint(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
@@ -328,12 +358,7 @@ def test_a_forgotten_arm_stays_forgotten_when_its_worker_dies_before_the_next_ch
     agent starts again from its state file: the arm is not back either."""
     retired = "arm-002"
     state_file = tmp_path / "state.json"
-    agent = _hot_arm_agent(state_file, workers=2)
-    agent.start()
-    try:
-        shard = agent._shards[agent.plan.worker_of(retired)]
-        assert isinstance(shard, WorkerShard)
-        _heat_until_alarmed(agent, retired)
+    with _two_workers_alarmed(state_file, retired) as (agent, shard):
         wait_for(
             lambda: (
                 shard.checkpoint is not None
@@ -346,22 +371,13 @@ def test_a_forgotten_arm_stays_forgotten_when_its_worker_dies_before_the_next_ch
         monkeypatch.setattr(agent, "_keep_state", lambda **_: None)
         wait_for(lambda: agent.state().devices[retired].health.status == "OFFLINE", 30, f"{retired} OFFLINE")
         agent.forget_arm(retired)
-        victim = shard.pid
-        os.kill(victim, signal.SIGKILL)
-        wait_for(
-            lambda: shard.restarts == 1 and shard.answering and shard.pid != victim,
-            60,
-            "the worker to run again",
-            interval=0.1,
-        )
+        _kill_and_await_restart(shard)
         assert _gone(agent, retired)
         # The supervisor's checkpoints again (one taken here, as its next round takes it): what the restarted
         # worker holds reaches the state file.
         monkeypatch.undo()
         agent._keep_state()
         assert retired not in {a["alarm_id"].split("/")[0] for a in _saved_alarms(state_file)}
-    finally:
-        agent.stop()
     again = _hot_arm_agent(state_file, workers=2)
     again.start()
     try:
@@ -380,12 +396,7 @@ def test_an_acknowledgement_survives_a_worker_that_dies_before_the_next_checkpoi
     the acknowledgement's can count); the state file says so too."""
     device = "arm-002"
     state_file = tmp_path / "state.json"
-    agent = _hot_arm_agent(state_file, workers=2)
-    agent.start()
-    try:
-        shard = agent._shards[agent.plan.worker_of(device)]
-        assert isinstance(shard, WorkerShard)
-        _heat_until_alarmed(agent, device)
+    with _two_workers_alarmed(state_file, device) as (agent, shard):
         alarm = next(a for a in agent.alarms() if a.device == device)
         wait_for(
             lambda: (
@@ -397,20 +408,11 @@ def test_an_acknowledgement_survives_a_worker_that_dies_before_the_next_checkpoi
         )
         monkeypatch.setattr(agent, "_keep_state", lambda **_: None)
         assert agent.acknowledge_alarm(alarm.alarm_id).state == "ACKNOWLEDGED"
-        victim = shard.pid
-        os.kill(victim, signal.SIGKILL)
-        wait_for(
-            lambda: shard.restarts == 1 and shard.answering and shard.pid != victim,
-            60,
-            "the worker to run again",
-            interval=0.1,
-        )
+        _kill_and_await_restart(shard)
         states = {a.alarm_id: a.state for a in agent.alarms(include_normal=True)}
         assert states.get(alarm.alarm_id) == "ACKNOWLEDGED", states
         saved = {a["alarm_id"]: a["state"] for a in _saved_alarms(state_file)}
         assert saved.get(alarm.alarm_id) == "ACKNOWLEDGED", saved
-    finally:
-        agent.stop()
 
 
 def _queue_of(agent: AgentService, device: str) -> InboundQueue[Any]:
