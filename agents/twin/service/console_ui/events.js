@@ -112,11 +112,16 @@
 
   // The stream came back after a break: the agent may have restarted, and a new agent numbers its events
   // from 1 again, so every one of them would be at or under the last id this page saw and `append` would
-  // drop them all while the header says live. The selection is loaded afresh, its ids counted from nothing.
+  // drop them all while the header says live. The selection is loaded afresh, its ids counted from nothing;
+  // the old rows go at once, or the new agent's first events, streamed before the load answers, would be
+  // shown below the old agent's as if one list.
   let opened = false;
   function reconnected() {
     if (!opened) { opened = true; return; }  // the first connection: load() has just read the selection
     lastId = 0;
+    events = [];
+    render();
+    count.textContent = "the agent is back: loading its events…";
     load();
   }
   let timer = null;
