@@ -865,20 +865,11 @@ class AgentService:
         WorkerError when that device's worker is being started again."""
         device = alarm_id.split("/", 1)[0]
         shard = self._shards[self.plan.worker_of(device)]
-        # A person's act, kept before the answer as a forget is: with worker processes, the checkpoint taken
-        # right after it becomes the worker's restart point (the one held before would bring the alarm back
-        # ACTIVE to a worker that dies before the supervisor's next), and the lock keeps the supervisor from
-        # saving alarms it read before the acknowledgement over the ones saved here.
-        with self._keep_lock:
-            restarts = shard.restarts
-            reply = shard.request(AckRequest(alarm_id, checkpoint=self._mirror is None))()
-            info, checkpoint = acknowledged_of(reply)
-            if checkpoint is not None and not shard.confirm(checkpoint, restarts=restarts):
-                raise WorkerError(_DIED_AFTER.format(index=shard.index, act="acknowledgement"))
-            self._cached = None
-            self._save_alarms_now()
-        self._wake.set()
-        return info
+        return self._keep_act(
+            shard,
+            "acknowledgement",
+            lambda checkpoint: acknowledged_of(shard.request(AckRequest(alarm_id, checkpoint=checkpoint))()),
+        )
 
     def forget_arm(self, device: str) -> ArmForgotten:
         """Remove an OFFLINE arm from the fleet, by the mirror of its device (Mirror.forget_arm). Raises
@@ -887,23 +878,36 @@ class AgentService:
         shard = self._shards[self.plan.worker_of(device)]
         if not shard.answering:
             raise WorkerError(f"worker {shard.index} is being started again")
-        # Out of everything a restart starts from before the answer: a forget is a person's act, like an
-        # acknowledgement. The lock keeps the supervisor from confirming or saving a checkpoint it took
-        # before the forget over the ones taken here.
+
+        def forget(checkpoint: bool) -> tuple[ArmForgotten, MirrorCheckpoint | None]:
+            forgotten = forgotten_of(shard.request(ForgetRequest(device, checkpoint=checkpoint))())
+            return dataclasses.replace(forgotten, checkpoint=None), forgotten.checkpoint
+
+        # Once kept: the agent's own counts of it (its queue's drops) go, as the mirror's went.
+        return self._keep_act(shard, "forget", forget, kept=lambda: shard.forget(device))
+
+    def _keep_act(
+        self,
+        shard: Shard,
+        act: str,
+        ask: Callable[[bool], tuple[_T, MirrorCheckpoint | None]],
+        kept: Callable[[], None] = lambda: None,
+    ) -> _T:
+        """A person's act (an acknowledgement, a forget) by `shard`'s mirror, kept before it is answered.
+        `ask(checkpoint)` makes it, with worker processes asking for the checkpoint begun right after it:
+        that becomes the worker's restart point (the one held before would give a worker that dies before
+        the supervisor's next checkpoint the alarm back ACTIVE, or the forgotten arm back). The lock keeps
+        the supervisor from confirming or saving a checkpoint it took before the act over the ones here."""
         with self._keep_lock:
             restarts = shard.restarts
-            forgotten = forgotten_of(shard.request(ForgetRequest(device, checkpoint=self._mirror is None))())
-            # The worker's restart point from now on: its held checkpoint, and the messages since, would give
-            # a worker that dies before the supervisor's next checkpoint the arm back.
-            if forgotten.checkpoint is not None and not shard.confirm(
-                forgotten.checkpoint, restarts=restarts
-            ):
-                raise WorkerError(_DIED_AFTER.format(index=shard.index, act="forget"))
-            shard.forget(device)  # the agent's own counts of it (its queue's drops), as the mirror's went
+            result, checkpoint = ask(self._mirror is None)
+            if checkpoint is not None and not shard.confirm(checkpoint, restarts=restarts):
+                raise WorkerError(_DIED_AFTER.format(index=shard.index, act=act))
+            kept()
             self._cached = None
-            self._save_alarms_now()  # its alarms out of the state file before the answer, as an ack's go in
+            self._save_alarms_now()  # the state file has it before the answer
         self._wake.set()
-        return dataclasses.replace(forgotten, checkpoint=None)
+        return result
 
     def _save_alarms_now(self) -> None:
         """Every mirror's alarms into the state file before an acknowledgement or a forget is answered: a
