@@ -682,8 +682,7 @@ class Mirror:
             count = len(batch.payloads)
             if not count and inbox.closed:
                 self._run_jobs()
-                if self._capture is not None:
-                    self._step_capture(self._capture, None)
+                self._finish_capture()
                 return
             if count:
                 try:
@@ -791,6 +790,11 @@ class Mirror:
         else:
             self._step_capture(capture, None)
         return capture
+
+    def _finish_capture(self) -> None:
+        """On the worker thread: take the rest of the checkpoint being taken, if there is one, now."""
+        if self._capture is not None:
+            self._step_capture(self._capture, None)
 
     def _step_capture(self, capture: Capture, limit: int | None) -> None:
         """On the worker thread: take `limit` more rows of `capture` (None: all that are left)."""
@@ -1589,9 +1593,7 @@ class Mirror:
         checkpoint does not come back with the alarm ACTIVE (or LATCHED) again."""
 
         def act() -> tuple[AlarmInfo, Capture]:
-            if self._capture is not None:
-                # One begun before the acknowledgement would not hold it: finish it, and begin another.
-                self._step_capture(self._capture, None)
+            self._finish_capture()  # one begun before the acknowledgement would not hold it
             return self.acknowledge_alarm(alarm_id), self._begin_capture()
 
         info, capture = self._between_batches(act)
@@ -1622,10 +1624,9 @@ class Mirror:
         return dataclasses.replace(forgotten, checkpoint=self._act_checkpoint(capture))
 
     def _forget_arm(self, device: str) -> ArmForgotten:
-        if self._capture is not None:
-            # A checkpoint being taken would carry the arm's row and alarms: finish it first, so the one the
-            # agent takes next (it is woken for it) no longer holds them.
-            self._step_capture(self._capture, None)
+        # A checkpoint being taken would carry the arm's row and alarms: finish it first, so the one the agent
+        # takes next (it is woken for it) no longer holds them.
+        self._finish_capture()
         with self._lock:
             health = self._fleet.get(device)
             if health is None:

@@ -943,9 +943,8 @@ class WorkerShard:
             return None
         from twin.output.history_feed import resume_point  # noqa: PLC0415 - only with history on
 
-        taken = checkpoint.taken if checkpoint is not None else 0
         with self._unconfirmed_lock:
-            first = self._unconfirmed[0][0] if self._unconfirmed else self._sent
+            taken, first = self._taken_and_first(checkpoint)
         return resume_point(
             self._history,
             self.index,
@@ -953,6 +952,12 @@ class WorkerShard:
             taken_rows=checkpoint.history_rows if checkpoint is not None else 0,
             replay_from=max(first, taken),
         )
+
+    def _taken_and_first(self, checkpoint: MirrorCheckpoint | None) -> tuple[int, int]:
+        """(the messages `checkpoint` counts, the first one still kept to be sent again), in this worker's
+        numbering; the unconfirmed lock held."""
+        taken = checkpoint.taken if checkpoint is not None else 0
+        return taken, self._unconfirmed[0][0] if self._unconfirmed else self._sent
 
     def _recalibrate(self) -> None:
         """Hand the new process the arms' own calibrations before the messages it is sent again, so none of
@@ -975,10 +980,9 @@ class WorkerShard:
         """Send the new process what `checkpoint` (the one it was restored from) does not count, then what was
         held; then it runs."""
         with self._send_lock:
-            taken = checkpoint.taken if checkpoint is not None else 0
             with self._unconfirmed_lock:
                 again: list[Message] = []
-                first = self._unconfirmed[0][0] if self._unconfirmed else self._sent
+                taken, first = self._taken_and_first(checkpoint)
                 if first > taken:
                     # Handed over, not counted by the checkpoint, and no longer kept: lost with the worker.
                     log.error(
