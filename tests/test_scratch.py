@@ -1,5 +1,6 @@
 """Scratch directories (output.scratch): the history writer's socket directory of an agent killed with
-`kill -9` is removed by the next agent that starts, and never one of an agent that runs.
+`kill -9` is removed by the next agent that starts, and never one of an agent that runs, in a PID namespace of
+its own too (its lock says so where its pid cannot).
 
 Real processes, each making the HistoryProcess an agent makes, in a temporary directory of the test's own
 (TMPDIR for the children, `tempfile.tempdir` here), so tests running in parallel never see each other's.
@@ -13,6 +14,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -103,3 +105,46 @@ def test_only_this_user_s_named_directories_of_gone_owners_are_removed(tmp_dir: 
     assert not gone.exists() and not reused.exists()
     assert all(p.exists() for p in (mine, unknown_start, older, other_prefix, a_file))
     assert theirs.exists() or os.getuid() != 0
+
+
+def test_a_running_agent_in_another_pid_namespace_keeps_its_directory(tmp_dir: Path) -> None:
+    # An agent in a container of its own sharing this /tmp: its pid (1, in its namespace) names a process
+    # here that is not it, so the pid cannot tell whether it runs; its lock on the directory can.
+    env = {**os.environ, "TMPDIR": str(tmp_dir), "PYTHONPATH": str(AGENTS)}
+    command = ["unshare", "--pid", "--mount-proc", "--kill-child=SIGKILL", sys.executable, "-c", HOLDER]
+    contained = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        assert contained.stdout is not None
+        line = contained.stdout.readline().strip()
+        assert line, f"unshare exited with {contained.wait(30)}: a PID namespace needs root (CAP_SYS_ADMIN)"
+        directory = Path(line).parent
+        pid = int(directory.name.split("-")[2])
+        assert pid != contained.pid  # named for its pid in its own namespace
+        assert not scratch._runs(pid, int(directory.name.split("-")[3]))  # which says gone here
+
+        assert scratch.remove_orphans("twin-history-") == []
+        assert directory.is_dir()
+
+        contained.kill()  # kill -9 of the container's agent (--kill-child: the kernel ends the holder too)
+        contained.wait(30)
+        removed: list[Path] = []
+        deadline = time.monotonic() + 30.0
+        while time.monotonic() < deadline:  # its lock goes once the kernel has ended it
+            removed = scratch.remove_orphans("twin-history-")
+            if removed:
+                break
+            time.sleep(0.05)
+        assert removed == [directory] and not directory.exists()
+    finally:
+        contained.kill()
+        contained.wait(30)
+
+
+def test_a_directory_is_locked_before_it_has_its_name_and_released_when_removed(tmp_dir: Path) -> None:
+    made = scratch.owned_tempdir("twin-test-")
+    assert made.parent == tmp_dir and made.name.startswith(f"twin-test-{os.getpid()}-")
+    assert scratch._locked(made)  # the lock file, held by this process
+    assert not list(tmp_dir.glob(".twin-test-*"))  # the hidden name it was made under is gone
+    scratch.remove(made)
+    assert not made.exists() and made not in scratch._owned
+    scratch.remove(made)  # twice: nothing more to do

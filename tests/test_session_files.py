@@ -55,7 +55,13 @@ def test_the_files_used_longest_ago_go_first_once_over_the_bound() -> None:
         (files.directory / "d.csv.part").write_bytes(b"x" * MB)  # being written: not counted or removed
         made(files, "d.csv", MB)
         assert files.trim() == ["b.csv"]
-        assert sorted(p.name for p in files.directory.iterdir()) == ["a.csv", "c.csv", "d.csv", "d.csv.part"]
+        assert sorted(p.name for p in files.directory.iterdir()) == [
+            ".owner",  # the directory's lock (output.scratch): never the cache's to remove
+            "a.csv",
+            "c.csv",
+            "d.csv",
+            "d.csv.part",
+        ]
         assert files.removed == 1
         # A file not served yet is being made while it is young (a plot's name of its own): kept; once old
         # (a leftover), it goes first.
@@ -137,7 +143,7 @@ def test_the_servers_session_files_stay_within_the_bound(monkeypatch: pytest.Mon
         fetch(arms[1])  # 1.2 MB: arm-000's, used longest ago, goes
         fetch(arms[2])  # and then arm-001's
         directory = server._session_files.directory
-        assert sorted(p.name for p in directory.iterdir()) == [f"arm-002-{arms[2].key}.parquet"]
+        assert sorted(p.name for p in directory.iterdir()) == [".owner", f"arm-002-{arms[2].key}.parquet"]
         fetch(arms[0])  # removed, so made again
         assert catalog.made == {"arm-000": 2, "arm-001": 1, "arm-002": 1}
         assert sum(p.stat().st_size for p in directory.iterdir()) <= MB

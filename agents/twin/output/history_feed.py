@@ -47,7 +47,6 @@ import multiprocessing
 import os
 import pickle
 import secrets
-import shutil
 import signal
 import socket
 import threading
@@ -63,7 +62,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 from twin.core import heap
-from twin.output.scratch import owned_tempdir
+from twin.output import scratch
 from twin.output.sinks import SinkStats
 
 if TYPE_CHECKING:
@@ -817,7 +816,7 @@ class HistoryProcess:
         # What the writer process runs (tests swap in one that dies at a chosen point).
         self.target: Callable[..., None] = writer_main
         # Named for this process, so an agent started after a kill of this one removes it (output.scratch).
-        self._dir = owned_tempdir("twin-history-")
+        self._dir = scratch.owned_tempdir("twin-history-")
         self.link = HistoryLink.new(str(self._dir / "writer.sock"), secrets.token_bytes(32), context)
         self._counters: SynchronizedArray[int] = context.Array("q", _COUNTERS, lock=False)
         self._process: SpawnProcess | None = None
@@ -1069,7 +1068,7 @@ class HistoryProcess:
             conn.close()
         # A dead writer's commit no writer was started to check (the agent stopped first) is counted as lost.
         self._settle(None)
-        shutil.rmtree(self._dir, ignore_errors=True)
+        scratch.remove(self._dir)
 
 
 __all__ = [

@@ -10,10 +10,19 @@ removes those of the same prefix whose owner is gone, and never one whose owner 
 at once (the tests in parallel, two of a person's). Only directories in `tempfile.gettempdir()`, of this
 user, whose names have the prefix and an owner are looked at; directories made by agents older than this
 naming say no owner and are left alone.
+
+A pid means something only in its own PID namespace: an agent in a container that shares the host's /tmp
+has pids the host does not know, or knows as other processes. So the owner also holds an exclusive `flock`
+on a file in its directory (OWNER_FILE) for as long as it lives, and the kernel drops it when the process
+ends, however it ends; a lock is the same lock in every namespace on the host. A directory whose pid says
+its owner is gone is removed only when its lock can be taken. The lock is taken before the directory gets
+its name (it is made under a hidden one, locked, then renamed), so no other agent ever sees it named and
+unlocked.
 """
 
 from __future__ import annotations
 
+import fcntl
 import logging
 import os
 import re
@@ -25,14 +34,36 @@ from pathlib import Path
 log = logging.getLogger(__name__)
 
 _PROC = Path("/proc")
+OWNER_FILE = ".owner"
+# The directories this process made, and the open file of each one's lock (the lock lasts while it is open).
+_owned: dict[Path, int] = {}
 
 
 def owned_tempdir(prefix: str) -> Path:
-    """A new directory in the system's temporary directory, named for this process (module doc); the ones of
-    `prefix` left by processes that no longer run are removed first."""
+    """A new directory in the system's temporary directory, named for this process and locked by it (module
+    doc); the ones of `prefix` left by processes that no longer run are removed first. `remove` it."""
     remove_orphans(prefix)
     pid = os.getpid()
-    return Path(tempfile.mkdtemp(prefix=f"{prefix}{pid}-{_start_time(pid) or 0}-"))
+    hidden = Path(tempfile.mkdtemp(prefix=f".{prefix}"))
+    fd = os.open(hidden / OWNER_FILE, os.O_RDWR | os.O_CREAT, 0o600)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        named = hidden.with_name(f"{prefix}{pid}-{_start_time(pid) or 0}-{hidden.name[len(prefix) + 1 :]}")
+        os.rename(hidden, named)
+    except OSError:
+        os.close(fd)
+        shutil.rmtree(hidden, ignore_errors=True)
+        raise
+    _owned[named] = fd
+    return named
+
+
+def remove(directory: Path) -> None:
+    """Remove a directory `owned_tempdir` made, then let go of its lock. Idempotent."""
+    shutil.rmtree(directory, ignore_errors=True)
+    fd = _owned.pop(directory, None)
+    if fd is not None:
+        os.close(fd)
 
 
 def remove_orphans(prefix: str) -> list[Path]:
@@ -53,7 +84,7 @@ def remove_orphans(prefix: str) -> list[Path]:
             info = entry.stat(follow_symlinks=False)
         except OSError:
             continue  # gone meanwhile
-        if not stat.S_ISDIR(info.st_mode) or info.st_uid != os.getuid():
+        if not stat.S_ISDIR(info.st_mode) or info.st_uid != os.getuid() or _locked(Path(entry.path)):
             continue
         shutil.rmtree(entry.path, ignore_errors=True)
         removed.append(Path(entry.path))
@@ -64,6 +95,24 @@ def remove_orphans(prefix: str) -> list[Path]:
             extra={"directories": [str(p) for p in removed]},
         )
     return removed
+
+
+def _locked(directory: Path) -> bool:
+    """Whether a live process holds `directory`'s lock (its owner, in a PID namespace of its own maybe).
+    Without the lock file (an agent older than the lock made it), the pid alone decides, as it did then."""
+    try:
+        fd = os.open(directory / OWNER_FILE, os.O_RDONLY)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    except OSError:
+        return False
+    finally:
+        os.close(fd)  # (which lets go of the lock, if it was taken)
+    return False
 
 
 def _runs(pid: int, started: int) -> bool:

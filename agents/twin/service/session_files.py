@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import shutil
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -68,8 +67,8 @@ class SessionFiles:
         young: set[str] = set()  # not served yet and written within KEEP_S: being made, most likely
         wall = time.time()
         for path in self._dir.iterdir():
-            if path.name.endswith(PART_SUFFIX):
-                continue
+            if path.name.endswith(PART_SUFFIX) or path.name == scratch.OWNER_FILE:
+                continue  # a file being made, or the directory's lock (output.scratch)
             with contextlib.suppress(OSError):
                 info = path.stat()
                 sizes[path.name] = info.st_size
@@ -103,6 +102,6 @@ class SessionFiles:
 
     def close(self) -> None:
         if self._dir is not None:
-            shutil.rmtree(self._dir, ignore_errors=True)
+            scratch.remove(self._dir)
             self._dir = None
         self._used.clear()
