@@ -8,15 +8,20 @@ import io
 import json
 import logging
 import pickle
+import random
 import threading
+from pathlib import Path
 from typing import Any
 
 import msgspec
 import pytest
-from conftest import wait_for
+from conftest import NO_BROKER, wait_for
 from twin.core.health import DeviceStatus
+from twin.edge.payload import encode, make_payload
 from twin.rig.local import LocalRig
 from twin.service import events
+from twin.service.agent import AgentService
+from twin.service.config import load_config
 from twin.service.events import (
     BrokerWatch,
     Event,
@@ -31,6 +36,7 @@ from twin.service.events import (
     events_json,
     neutralise_cell,
 )
+from twin.service.shards import WorkerPlan
 
 
 class Clock:
@@ -352,3 +358,43 @@ def test_an_arm_arrives_in_the_events_with_its_first_message_not_before(rig: Loc
     events = [(e.device, e.message) for e in agent.events(status)]
     assert [d for d, _ in events] == ["arm-002"] * len(events), events
     assert events[0][1] == "arm-002 is ONLINE (first message)", events
+
+
+@pytest.mark.slow
+def test_two_workers_arrivals_are_numbered_in_the_order_they_happened(tmp_path: Path) -> None:
+    # Each worker's events reach the agent's store every half second; one round's are merged by time, so
+    # arrivals handled alternately by the two workers come out alternately, not one worker's all first.
+    plan = WorkerPlan(2)
+    names = (f"arm-{n:03d}" for n in range(1, 100))
+    by_worker: dict[int, list[str]] = {0: [], 1: []}
+    for name in names:
+        if len(by_worker[plan.worker_of(name)]) < 4:
+            by_worker[plan.worker_of(name)].append(name)
+    alternate = [d for pair in zip(by_worker[0], by_worker[1], strict=True) for d in pair]
+    config = load_config(
+        None,
+        {
+            "broker.url": NO_BROKER,
+            "http.listen": "127.0.0.1:0",
+            "telemetry.units": "ticks",
+            "twin.state_file": str(tmp_path / "state.json"),
+        },
+    )
+    agent = AgentService(config, workers=2)
+    agent.start()
+    try:
+        rng = random.Random(3)
+        for device in alternate:  # each handled before the next is fed: the order they happened in
+            agent.feed(f"dt/lerobot/{device}/telemetry", encode(make_payload(device, 0.0, "ticks", rng)))
+            wait_for(lambda d=device: d in agent.state().devices, 30, f"{device} handled")
+        status = EventQuery(kinds=frozenset({EventKind.STATUS.value}))
+
+        def arrivals() -> list[Event]:  # (each arm, silent after its message, goes STALE later on)
+            return [e for e in agent.events(status) if e.message.endswith("(first message)")]
+
+        wait_for(lambda: len(arrivals()) == len(alternate), 30, "every arm's arrival collected")
+        arrived = arrivals()
+        assert [e.device for e in arrived] == alternate, [(e.device, e.time) for e in arrived]
+        assert [e.time for e in arrived] == sorted(e.time for e in arrived)
+    finally:
+        agent.stop()

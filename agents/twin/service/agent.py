@@ -28,13 +28,16 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import heapq
 import logging
 import multiprocessing
 import os
 import threading
 import time
+from bisect import bisect_right
 from collections import Counter
 from collections.abc import Callable, Sequence
+from operator import attrgetter
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Generic, TypeVar
 
@@ -189,6 +192,7 @@ class AgentService:
         self._events = EventStore(wall_clock=wall_clock)
         self._watch = FleetWatch(self._events)
         self._events_seen: dict[int, int] = {}
+        self._events_held: list[Event] = []  # collected from a mirror, for the next round (_collect_events)
         self._workers_seen: dict[int, tuple[bool, int]] = {}
         self._state_file = StateFile(config.twin.state_file) if config.twin.state_file else None
         # Set to make the supervisor take checkpoints now (an acknowledgement must reach the state file).
@@ -947,22 +951,37 @@ class AgentService:
 
     def _collect_events(self) -> None:
         """On the supervisor thread: broker reconnects, worker exits and restarts, and each mirror's new
-        events, into the agent's store (numbered anew in the order they are collected)."""
+        events, into the agent's store, numbered anew in the order they happened (a merge by time of the
+        mirrors' lists, each kept in its order), so one mirror's do not all follow another's."""
         if self._started_pool:
             self._watch.broker(self._pool.connections())
+        collected: list[Sequence[Event]] = []
+        line: float | None = None
         for shard in self._shards:
             self._watch_worker(shard)
             if not shard.answering:
                 continue
             after = self._events_seen.get(shard.index, 0)
+            asked = self._wall_clock()
             try:
                 fresh = events_of(shard.request(EventsRequest(after))())
             except WorkerError as exc:
                 log.debug("events of shard %d not collected: %s", shard.index, exc)
                 continue
+            line = asked if line is None else line
             if fresh:
                 self._events_seen[shard.index] = fresh[-1].id
-                self._events.ingest(fresh)
+                collected.append(fresh)
+        # A mirror asked after the first may answer with events newer than what the first one makes next:
+        # those wait for the next round (one round at most), so they do not go before older ones.
+        held, self._events_held = self._events_held, []
+        ready: list[Sequence[Event]] = [held]
+        for events in collected:
+            cut = len(events) if line is None else bisect_right(events, line, key=attrgetter("time"))
+            ready.append(events[:cut])
+            self._events_held.extend(events[cut:])
+        if any(ready):
+            self._events.ingest(heapq.merge(*ready, key=attrgetter("time")))
 
     def _watch_worker(self, shard: Shard) -> None:
         info = shard.describe(None)
