@@ -398,3 +398,32 @@ def test_two_workers_arrivals_are_numbered_in_the_order_they_happened(tmp_path: 
         assert [e.time for e in arrived] == sorted(e.time for e in arrived)
     finally:
         agent.stop()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("workers", [1, 2], ids=["in-process", "two-worker-processes"])
+def test_events_a_mirror_makes_as_the_agent_stops_are_listed(tmp_path: Path, workers: int) -> None:
+    # Fed and stopped at once: the messages are handled while the mirrors drain their queues at the stop,
+    # after the last round that collects events. Their arrivals (an alarm's raise, likewise) still reach the
+    # agent's list, and through it the alert publisher.
+    config = load_config(
+        None,
+        {
+            "broker.url": NO_BROKER,
+            "http.listen": "127.0.0.1:0",
+            "telemetry.units": "ticks",
+            "twin.state_file": str(tmp_path / "state.json"),
+        },
+    )
+    agent = AgentService(config, workers=workers)
+    agent.start()
+    devices = [f"arm-{n:03d}" for n in range(1, 5)]
+    try:
+        rng = random.Random(4)
+        for device in devices:
+            agent.feed(f"dt/lerobot/{device}/telemetry", encode(make_payload(device, 0.0, "ticks", rng)))
+    finally:
+        agent.stop()
+    status = EventQuery(kinds=frozenset({EventKind.STATUS.value}))
+    arrived = [e.device for e in agent.events(status) if e.message.endswith("(first message)")]
+    assert sorted(arrived) == devices

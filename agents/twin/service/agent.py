@@ -56,6 +56,7 @@ from twin.service.events import Event, EventKind, EventLevel, EventQuery, EventS
 from twin.service.persist import StateFile
 from twin.service.shards import (
     CHECKPOINT_EVERY_S,
+    EVENTS_PER_ASK,
     AckRequest,
     AlarmsRequest,
     ArmForgotten,
@@ -362,6 +363,7 @@ class AgentService:
         if self._history is not None:
             self._history.stopping()
         self._stop_shards(time.monotonic() + FAILED_START_STOP_S)
+        self._collect_last_events()
         if opened:
             # Messages reached the mirrors, which had the state file's alarms: what they hold now is kept.
             # Before that the file is left as it is: nothing has changed what it holds.
@@ -403,6 +405,7 @@ class AgentService:
             # No writer started again from here: one that is down (its restart pause) is not waited for.
             self._history.stopping()
         self._stop_shards(deadline)
+        self._collect_last_events()
         self._keep_state(final=True)
         if self._history is not None:
             # Last of the budget: every mirror's feed has handed over its rows; the writer commits them (a
@@ -980,6 +983,29 @@ class AgentService:
             cut = len(events) if line is None else bisect_right(events, line, key=attrgetter("time"))
             ready.append(events[:cut])
             self._events_held.extend(events[cut:])
+        if any(ready):
+            self._events.ingest(heapq.merge(*ready, key=attrgetter("time")))
+
+    def _collect_last_events(self) -> None:
+        """After the shards stopped: the events no round collected (held over, made in the last half second
+        or as the mirrors handled what was queued), from their stop reports, so an alarm raised then is
+        listed and alerted too."""
+        ready: list[Sequence[Event]] = [self._events_held]
+        self._events_held = []
+        for index, report in sorted(self.stop_reports.items()):
+            if report is None or not report.events:
+                continue
+            seen = self._events_seen.get(index, 0)
+            fresh = [e for e in report.events if e.id > seen]
+            missed = fresh[0].id - seen - 1 if fresh else 0
+            if missed > 0:
+                log.warning(
+                    "%d events of mirror %d are not listed: over %d since the last round, at the stop",
+                    missed,
+                    index,
+                    EVENTS_PER_ASK,
+                )
+            ready.append(fresh)
         if any(ready):
             self._events.ingest(heapq.merge(*ready, key=attrgetter("time")))
 

@@ -640,7 +640,8 @@ class Mirror:
                 unwritten["history_rows"] = pending
         with self._lock:
             alarms = tuple(self._alarms.records())
-        return StopReport(unwritten=unwritten, alarms=alarms)
+        events = tuple(self._events.after(max(0, self._events.last_id - EVENTS_PER_ASK)))
+        return StopReport(unwritten=unwritten, alarms=alarms, events=events)
 
     @property
     def running(self) -> bool:

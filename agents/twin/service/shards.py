@@ -430,11 +430,13 @@ class Restored:
 
 @dataclass(frozen=True, slots=True)
 class StopReport:
-    """What a mirror could not write when it stopped (by sink: `history_rows`, `<sink>_samples`), and its
-    alarms for the agent's state file."""
+    """What a mirror could not write when it stopped (by sink: `history_rows`, `<sink>_samples`), its alarms
+    for the agent's state file, and its newest events (at most EVENTS_PER_ASK, oldest first): those the agent
+    has not collected yet, made in its last half second or as it handled what was queued at the stop."""
 
     unwritten: dict[str, int] = field(default_factory=dict)
     alarms: tuple[AlarmRecord, ...] = ()
+    events: tuple[Event, ...] = ()
 
 
 Request = (
