@@ -552,7 +552,13 @@ def test_a_round_at_once_is_evaluate_one_by_one() -> None:
                     assert one.acknowledge(view.alarm_id, now) == many.acknowledge(view.alarm_id, now)
                     together.acknowledge(view.alarm_id, now)
         assert many.views(include_normal=True) == one.views(include_normal=True)
+        # Without NORMAL ones (picked out by the arrays): the same, less those, of the fleet and of each arm.
+        every = many.views(include_normal=True)
+        assert many.views() == [v for v in every if v.state is not AlarmState.NORMAL]
         for device in devices:
+            assert many.views(device=device) == [
+                v for v in every if v.device == device and v.state is not AlarmState.NORMAL
+            ]
             a, b = one.joint_health(device), many.joint_health(device)
             assert {j: repr(h) for j, h in a.items()} == {j: repr(h) for j, h in b.items()}
             assert one.worst_by_joint(device) == many.worst_by_joint(device)
