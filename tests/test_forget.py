@@ -28,6 +28,7 @@ from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
 from twin.edge.payload import encode, make_payload
 from twin.edge.servo_faults import ServoFault
 from twin.rig.local import LocalRig
+from twin.service import mirror as mirror_module
 from twin.service.admission import DeviceBudget
 from twin.service.agent import AgentService
 from twin.service.config import load_config
@@ -166,6 +167,47 @@ def test_a_mirror_forgets_an_offline_arm_and_a_later_message_makes_a_new_arm() -
     assert not [a for a in mirror.alarms() if a.device == "arm-002"]
     statuses = mirror.events(EventQuery(kinds=frozenset({EventKind.STATUS.value}), device="arm-002"))
     assert statuses[-1].message == "arm-002 is ONLINE (first message)"
+
+
+class _CountingLock:
+    """The mirror's lock, recording how many Fleet rows each hold of it built."""
+
+    def __init__(self, lock: Any) -> None:
+        self._lock = lock
+        self.rows_per_hold: list[int] = []
+
+    def __enter__(self) -> None:
+        self._lock.__enter__()
+        self.rows_per_hold.append(0)
+
+    def __exit__(self, *exc: object) -> None:
+        self._lock.__exit__(*exc)
+
+
+def test_the_fleet_rows_are_read_a_chunk_of_arms_per_hold_of_the_lock(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # The worker thread needs the lock for every batch: a console tick must not hold it for the whole fleet.
+    monkeypatch.setattr(mirror_module, "FLEET_ROWS_CHUNK", 40)
+    clock, rng = _Clock(), random.Random(4)
+    config = load_config(None, {"telemetry.devices": ["*"], "telemetry.units": "ticks"})
+    inbox = PipeInbox(Pipe(duplex=False)[0])
+    mirror = Mirror(config, inbox=inbox, budget=DeviceBudget(200), clock=clock, wall_clock=clock)
+    arms = [f"arm-{n:03d}" for n in range(101)]
+    _round(mirror, clock, arms, rng, 0.0)
+    lock = mirror._lock = _CountingLock(mirror._lock)  # type: ignore[assignment]
+    row_of = mirror._fleet_row
+
+    def counted(*args: Any) -> Any:
+        lock.rows_per_hold[-1] += 1
+        return row_of(*args)
+
+    monkeypatch.setattr(mirror, "_fleet_row", counted)
+
+    rows = mirror.fleet_rows()
+
+    assert [r.device for r in rows] == arms
+    assert lock.rows_per_hold == [0, 40, 40, 21]  # the alarms and the arms' names first, then 40 arms a hold
 
 
 def test_a_configured_arm_is_not_forgotten() -> None:
