@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import urllib.request
 from typing import Any
 
 import pytest
@@ -73,3 +74,54 @@ def test_a_sharded_agent_serves_the_fleet_rows_and_every_workers_events(rig: Loc
     )
     worker_events = messages(url, kind="worker", level="error")
     assert any(m.startswith("worker 1 exited") for m in worker_events)
+
+
+def test_an_arm_page_is_read_from_its_own_worker_without_the_fleet_state(rig: LocalRig) -> None:
+    # The arm page's document, twice a second while it is open, was cut from the whole state of the fleet,
+    # built in every worker; it is asked of the arm's own worker now, and says what the whole state says.
+    agent = rig.start_agent(
+        {"telemetry.devices": DEVICES, "telemetry.units": "ticks", "health.offline_after_s": 600.0}, workers=2
+    )
+    url = agent.http_url
+    edge = rig.start_edge(DEVICES, rate_hz=10.0, seconds=None)
+    wait_for(lambda: all(r[1] == "ONLINE" for r in get_json(url + "/api/fleet")["rows"]), 60, "arms ONLINE")
+    whole_reads: list[int] = []
+    whole = agent.state
+
+    def counted_state() -> Any:
+        whole_reads.append(1)
+        return whole()
+
+    agent.state = counted_state  # type: ignore[method-assign]
+    for device in DEVICES:
+        doc = get_json(f"{url}/api/arm/{device}")
+        assert doc["device"]["device_id"] == device and doc["device"]["health"]["status"] == "ONLINE"
+        assert doc["calibration_push"]["command"]
+    with urllib.request.urlopen(f"{url}/api/stream/arm/{DEVICES[1]}", timeout=30) as stream:
+        frame = next(json.loads(line[len(b"data: ") :]) for line in stream if line.startswith(b"data: "))
+    assert frame["device"]["device_id"] == DEVICES[1]
+    status, _, body = http_get(f"{url}/api/arm/arm-404")
+    assert status == 404 and json.loads(body)["error"] == "device_not_found"
+    assert whole_reads == []  # neither the page's document nor its stream read the fleet
+
+    # Once the arms are quiet, each arm's view is its part of the whole state, alarms and all.
+    edge.stop()
+    published = edge.join(30).published
+
+    def every_message_handled() -> bool:
+        return sum(d.health.counters.received for d in whole().devices.values()) == published
+
+    wait_for(every_message_handled, 30, "every message published handled")
+    state, alarms = whole(), agent.alarms()
+    for device in DEVICES:
+        view = agent.arm_view(device)
+        assert view.state is not None
+        mine, got = state.devices[device], view.state
+        # (The loss estimate's recent window moves with the clock: its totals are compared.)
+        assert (got.health.counters, got.joints_rad, got.servos, got.loss.lost) == (
+            mine.health.counters,
+            mine.joints_rad,
+            mine.servos,
+            mine.loss.lost,
+        )
+        assert [a.alarm_id for a in view.alarms] == [a.alarm_id for a in alarms if a.device == device]

@@ -51,7 +51,14 @@ from twin.output.sinks import TwinSink
 from twin.service.admission import DeviceBudget
 from twin.service.calibrations import CalibrationBook, CalibrationWatcher, open_store, store_location
 from twin.service.config import AgentConfig, ConfigError
-from twin.service.console import FleetRow, Listening, SessionCatalog, device_rows, rerun_viewer_url
+from twin.service.console import (
+    ArmView,
+    FleetRow,
+    Listening,
+    SessionCatalog,
+    device_rows,
+    rerun_viewer_url,
+)
 from twin.service.events import Event, EventKind, EventLevel, EventQuery, EventStore, FleetWatch
 from twin.service.persist import StateFile
 from twin.service.shards import (
@@ -60,6 +67,7 @@ from twin.service.shards import (
     AckRequest,
     AlarmsRequest,
     ArmForgotten,
+    ArmRequest,
     CalibrationsRequest,
     CheckpointRequest,
     EventsRequest,
@@ -80,6 +88,7 @@ from twin.service.shards import (
     acknowledged_of,
     alarms_of,
     applied_of,
+    arm_reply_of,
     checkpoint_of,
     events_of,
     fleet_rows_of,
@@ -88,6 +97,7 @@ from twin.service.shards import (
     report_of,
     restored_of,
     statuses_of,
+    with_dropped,
     worker_config,
 )
 from twin.service.state import (
@@ -946,6 +956,26 @@ class AgentService:
             alarms = sorted(self._checkpoint_alarms(asked.silent, include_normal=False), key=alarm_order)
             rows.extend(device_rows(self._checkpoint_devices(asked.silent), alarms, time.time()))
         return sorted(rows, key=lambda row: row.device)
+
+    def arm_view(self, device: str) -> ArmView:
+        """The console's arm page: one arm, asked of its own mirror only (Mirror.arm), with the messages the
+        agent dropped for it, as the whole state would show it. A worker being started again: from the whole
+        state, which gives its arms as its latest checkpoint left them."""
+        shard = self._shards[self.plan.worker_of(device)]
+        if shard.answering:
+            try:
+                reply = arm_reply_of(shard.request(ArmRequest(device))())
+            except WorkerError as exc:
+                log.debug("arm %s asked of its mirror: %s; read from the whole state", device, exc)
+            else:
+                state = reply.state
+                dropped = shard.dropped().get(device, 0) if state is not None else 0
+                if state is not None and dropped:
+                    state = with_dropped(state, dropped)
+                return ArmView(self._wall_clock(), state, reply.alarms, self._calibration_store)
+        whole = self.state()
+        alarms = [a for a in self.alarms() if a.device == device]
+        return ArmView(whole.agent.time, whole.devices.get(device), alarms, whole.agent.calibration_store)
 
     def events(self, query: EventQuery) -> list[Event]:
         """The twin's events that match `query` (docs/console.md): the agent's own and every mirror's,

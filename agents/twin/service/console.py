@@ -5,7 +5,8 @@ gets one row per arm with what a card shows (status, last seen, rate, loss, wors
 arrays under one list of column names, built once per tick from the state every client shares
 (`fleet_summary`), with the notices a card cannot show (a subscription the broker refuses) and what the agent
 listens on (for the page's word while no arm has been heard from). An arm's page
-gets that arm's full state and its alarms (`arm_update`).
+gets that arm's full state and its alarms (`arm_document`), read from its own mirror where the source can
+(`ArmViewSource`), otherwise cut from the whole state (`arm_update`).
 
 Sessions come from the telemetry history, which the service layer cannot read itself (the reader lives with
 the tools, above it): whoever runs the agent hands the HTTP server a `SessionCatalog` (the CLI's
@@ -32,6 +33,8 @@ __all__ = [
     "ASSETS",
     "FLEET_COLUMNS",
     "SESSION_FILE_KINDS",
+    "ArmView",
+    "ArmViewSource",
     "EventSource",
     "FleetRow",
     "FleetRowSource",
@@ -40,6 +43,7 @@ __all__ = [
     "NoticeSource",
     "SessionCatalog",
     "SessionInfo",
+    "arm_document",
     "arm_update",
     "device_rows",
     "fleet_notes",
@@ -156,6 +160,24 @@ class FleetRowSource(Protocol):
     """The optional part of the service surface that reads the fleet's rows without its whole state."""
 
     def fleet_rows(self) -> list[FleetRow]: ...
+
+
+class ArmView(NamedTuple):
+    """What an arm page shows of one arm: its state (None: no mirror tracks it), its alarms that are not
+    NORMAL, worst first, the agent's wall time and its calibration store."""
+
+    time: float
+    state: DeviceState | None
+    alarms: Sequence[AlarmInfo]
+    calibration_store: str
+
+
+@runtime_checkable
+class ArmViewSource(Protocol):
+    """The optional part of the service surface that reads one arm without the whole fleet's state (which an
+    arm page would otherwise build twice a second, in every worker, for one arm)."""
+
+    def arm_view(self, device: str) -> ArmView: ...
 
 
 @runtime_checkable
@@ -321,18 +343,24 @@ def fleet_summary(
 
 
 def arm_update(state: AgentState, device: str, alarms: Sequence[AlarmInfo]) -> bytes:
+    """`arm_document` of one arm, from the whole state and every alarm (a source that is no ArmViewSource)."""
+    mine = [a for a in alarms if a.device == device]
+    view = ArmView(state.agent.time, state.devices.get(device), mine, state.agent.calibration_store)
+    return arm_document(device, view)
+
+
+def arm_document(device: str, view: ArmView) -> bytes:
     """An arm page's document: {"time", "device": DeviceState or null, "alarms": [...], "calibration_push":
     {"store", "command", "text"}}; its alarms are every one that is not NORMAL, worst first, and
     "calibration_push" says how to give the arm a calibration this agent reads (calibrations.push_hint)."""
-    mine = [a for a in alarms if a.device == device]
     # Made here, not in the page: only the agent knows its store, and a command for another store (the
     # stack's, from a laptop's agent) would push a file this agent never reads.
-    hint = push_hint(device, state.agent.calibration_store)
+    hint = push_hint(device, view.calibration_store)
     return msgspec.json.encode(
         {
-            "time": state.agent.time,
-            "device": state.devices.get(device),
-            "alarms": mine,
+            "time": view.time,
+            "device": view.state,
+            "alarms": view.alarms,
             "calibration_push": {"store": hint.store, "command": hint.command, "text": hint.text},
         }
     )

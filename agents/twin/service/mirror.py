@@ -53,7 +53,7 @@ import os
 import threading
 import time
 from collections import Counter, deque
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from itertools import chain
 from multiprocessing.connection import Connection
@@ -115,6 +115,8 @@ from twin.service.shards import (
     ArmForgotten,
     ArmNotForgettableError,
     ArmNotFoundError,
+    ArmReply,
+    ArmRequest,
     CalibrationsRequest,
     CheckpointRequest,
     DeviceCheckpoint,
@@ -1382,6 +1384,8 @@ class Mirror:
             return tuple(self.events(EventQuery(after_id=request.after_id, limit=EVENTS_PER_ASK)))
         if isinstance(request, FleetRowsRequest):
             return tuple(self.fleet_rows())
+        if isinstance(request, ArmRequest):
+            return self.arm(request.device)
         if isinstance(request, StatusesRequest):
             return tuple((device, str(status)) for device, status in self.statuses().items())
         if isinstance(request, CheckpointRequest):
@@ -1509,17 +1513,28 @@ class Mirror:
             end_to_end=readout.end_to_end,
         )
 
-    def _read(self) -> _Readout:
+    def _read(self, only: str | None = None) -> _Readout:
         """Copy what the worker writes, under the lock, as briefly as possible: what takes time to derive
-        from the copies (the latency percentiles, the device states) is left to `report`, after it."""
+        from the copies (the latency percentiles, the device states) is left to `report`, after it. With
+        `only`, of that one device alone (an arm page's: a fleet's read is far longer)."""
         alarms = self._alarms
         with self._lock:
             now = self._clock()
-            devices = self._devices.values()
-            worst = alarms.worst_by_device()
+            if only is None:
+                devices: Iterable[_Device] = self._devices.values()
+                health = self._fleet.readings(now)
+                worst = alarms.worst_by_device()
+                losses: Iterable[tuple[str, DeviceLoss]] = self._loss.items()
+            else:
+                record, known = self._devices.get(only), self._fleet.devices.get(only)
+                loss = self._loss.get(only)
+                devices = [record] if record is not None else []
+                health = {only: known.reading(now)} if known is not None else {}
+                worst = {only: alarms.worst_by_joint(only)}
+                losses = [(only, loss)] if loss is not None else []
             return _Readout(
                 now=now,
-                health=self._fleet.readings(now),
+                health=health,
                 snapshots={
                     r.device: r.twin.snapshot() for r in devices if r.twin.last_timestamp_ms is not None
                 },
@@ -1539,8 +1554,22 @@ class Mirror:
                     if r.diagnostics is not None
                 },
                 alarms=self._alarms_summary(),
-                loss={device: loss.snapshot(now) for device, loss in self._loss.items()},
+                loss={device: loss.snapshot(now) for device, loss in losses},
             )
+
+    def arm(self, device: str) -> ArmReply:
+        """One arm's state (as `report` has it; None when this mirror does not track it) and its alarms that
+        are not NORMAL, worst first: an arm page's, without reading the fleet."""
+        readout = self._read(device)
+        reading = readout.health.get(device)
+        with self._lock:
+            now = self._clock()
+            views = self._alarms.views(device=device)
+        wall = self._wall_clock()
+        return ArmReply(
+            state=self._device_state(device, reading.snapshot(), readout) if reading is not None else None,
+            alarms=tuple(alarm_info(v, now, wall) for v in views),
+        )
 
     @staticmethod
     def _servo_states(readout: _ServoReadout) -> dict[str, ServoState]:

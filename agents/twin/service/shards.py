@@ -275,6 +275,22 @@ class FleetRowsRequest:
 
 
 @dataclass(frozen=True, slots=True)
+class ArmRequest:
+    """One arm's state and its alarms that are not NORMAL (an ArmReply): the console's arm page, without the
+    report of the whole fleet."""
+
+    device: str
+
+
+@dataclass(frozen=True, slots=True)
+class ArmReply:
+    """`Mirror.arm`: the arm's state (None: not tracked by this mirror) and its alarms, worst first."""
+
+    state: DeviceState | None
+    alarms: tuple[AlarmInfo, ...]
+
+
+@dataclass(frozen=True, slots=True)
 class StatusesRequest:
     """The status of each of the mirror's devices, as (device, status) pairs: what /healthz needs, without
     the report (a report of 1,000 arms takes the worker a fleet's holding torques and tool points)."""
@@ -446,6 +462,7 @@ Request = (
     | ForgetRequest
     | EventsRequest
     | FleetRowsRequest
+    | ArmRequest
     | StatusesRequest
     | CalibrationsRequest
     | CheckpointRequest
@@ -459,6 +476,7 @@ Reply = (
     | ArmForgotten
     | tuple[Event, ...]
     | tuple[FleetRow, ...]
+    | ArmReply
     | tuple[tuple[str, str], ...]
     | int
     | MirrorCheckpoint
@@ -492,6 +510,20 @@ def fleet_rows_of(reply: Reply) -> tuple[FleetRow, ...]:
     if not isinstance(reply, tuple) or not all(isinstance(r, FleetRow) for r in reply):
         raise WorkerError(f"fleet rows were asked for, the answer was {type(reply).__name__}")
     return tuple(r for r in reply if isinstance(r, FleetRow))
+
+
+def arm_reply_of(reply: Reply) -> ArmReply:
+    """The answer to an ArmRequest; WorkerError for anything else."""
+    if not isinstance(reply, ArmReply):
+        raise WorkerError(f"an arm was asked for, the answer was {type(reply).__name__}")
+    return reply
+
+
+def with_dropped(device: DeviceState, dropped: int) -> DeviceState:
+    """`device` with `dropped` more messages counted as overwritten (the agent could not hand them over)."""
+    counters = device.health.counters
+    counters = dataclasses.replace(counters, overwritten=counters.overwritten + dropped)
+    return dataclasses.replace(device, health=dataclasses.replace(device.health, counters=counters))
 
 
 def statuses_of(reply: Reply) -> tuple[tuple[str, str], ...]:
@@ -1482,13 +1514,13 @@ def _merge_devices(
     untracked: Counter[str] = Counter()
     for device, d in restarting.items():
         extra = dropped.get(device, 0)
-        devices[device] = _with_dropped(d, extra) if extra else d
+        devices[device] = with_dropped(d, extra) if extra else d
     for part in restarting_untracked:
         untracked.update(part)
     for report in reports:
         for device, d in report.devices.items():
             extra = dropped.get(device, 0)
-            devices[device] = _with_dropped(d, extra) if extra else d
+            devices[device] = with_dropped(d, extra) if extra else d
         untracked.update(report.untracked_rejected)
     return devices, untracked
 
@@ -1526,13 +1558,6 @@ def _merge_worker(reports: Sequence[MirrorReport], *, workers_alive: bool) -> Wo
         stage_timed_batches=sum(r.worker.stage_timed_batches for r in reports),
         alarm_rows=sum(r.worker.alarm_rows for r in reports),
     )
-
-
-def _with_dropped(device: DeviceState, dropped: int) -> DeviceState:
-    """`device` with `dropped` more messages counted as overwritten (the agent could not hand them over)."""
-    counters = device.health.counters
-    counters = dataclasses.replace(counters, overwritten=counters.overwritten + dropped)
-    return dataclasses.replace(device, health=dataclasses.replace(device.health, counters=counters))
 
 
 def _merge_recording(parts: list[RecordingState]) -> RecordingState | None:

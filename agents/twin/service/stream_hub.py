@@ -26,9 +26,11 @@ import msgspec
 
 from twin.service.console import (
     AlarmLister,
+    ArmViewSource,
     EventSource,
     FleetRowSource,
     StateReader,
+    arm_document,
     arm_update,
     fleet_parts,
     fleet_summary,
@@ -168,21 +170,29 @@ class StreamHub:
         # The fleet's rows come without the whole state when the source can give them (building a state of
         # thousands of arms, in every worker of a sharded agent, is most of what a tick costs).
         rows_only = isinstance(source, FleetRowSource)
+        # Likewise an arm page's arm, asked of its own mirror.
+        arm_only = isinstance(source, ArmViewSource)
+        whole_for_arms = bool(arms) and not arm_only
         state: AgentState | None = None
-        if state_due or arms or (fleet and not rows_only):
+        if state_due or whole_for_arms or (fleet and not rows_only):
             state = await asyncio.to_thread(source.state)
         if state_due and state is not None:
             self._publish(STATE, sse_frame("state", state.to_json()))
         alarms: Sequence[AlarmInfo] = ()
-        if (arms or (fleet and not rows_only)) and isinstance(source, AlarmLister):
+        if (whole_for_arms or (fleet and not rows_only)) and isinstance(source, AlarmLister):
             alarms = await asyncio.to_thread(source.alarms)
         if fleet:
             # The rows and the notices in one hop to a thread: both read the agent under its locks.
             rows, notices, listening = await asyncio.to_thread(fleet_parts, source, state, alarms)
             self._publish(FLEET, sse_frame("fleet", fleet_summary(rows, time.time(), notices, listening)))
         for topic in arms:
-            assert state is not None
-            self._publish(topic, sse_frame("arm", arm_update(state, topic[len(ARM_PREFIX) :], alarms)))
+            device = topic[len(ARM_PREFIX) :]
+            if isinstance(source, ArmViewSource):
+                view = await asyncio.to_thread(source.arm_view, device)
+                self._publish(topic, sse_frame("arm", arm_document(device, view)))
+            else:
+                assert state is not None
+                self._publish(topic, sse_frame("arm", arm_update(state, device, alarms)))
         if console_due and EVENTS in self._subs and isinstance(source, EventSource):
             await self._tick_events(source)
 
