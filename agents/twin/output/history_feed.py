@@ -75,7 +75,8 @@ HAND_OFF_S = 0.05
 # A feed that cannot reach the writer tries again after this long.
 RECONNECT_S = 0.5
 # Made beside the writer's socket when the agent stops with no writer running (it died, and the stop starts
-# none again): a closing feed then stops waiting for one, and what it holds is counted as not written.
+# none again), or when the writer dies once the stop has begun: a closing feed then stops waiting for one, and
+# what it holds is counted as not written.
 NO_WRITER = "no-writer"
 # The writer process must be up within this (Python, pyarrow, deltalake; the table opened on first commit).
 START_TIMEOUT_S = 60.0
@@ -835,6 +836,8 @@ class HistoryProcess:
         self.writer_id = ""
         self._in_doubt: _InDoubt | None = None
         self._stopped = False
+        # From the stop's start: waits for the writer to exit, then tells the feeds none will come (stopping).
+        self._watch: threading.Thread | None = None
         self._last: WriterFigures | None = None
         self._last_at = 0.0  # when _last was answered (time.monotonic)
         self._stop_answered = False
@@ -1038,11 +1041,31 @@ class HistoryProcess:
         """The agent's stop begins, before it closes the mirrors' feeds: no writer is started again from now
         on. With none running (one died, and waits out its restart pause, say), the feeds are told so
         (NO_WRITER), so their close does not wait the whole shutdown budget for a writer that will not come;
-        what they hold is counted as not written, as at the end of that budget."""
+        what they hold is counted as not written, as at the end of that budget. With one running, they are
+        told the moment it exits: it may die while they close, and the supervisor that would notice is gone.
+        (A writer that exits at the end of a stop that went well is told of too, but by then every feed has
+        closed or been given up at the budget, its rows counted: the counts stay as they were.)"""
         self._stopped = True
-        if not self.alive:
-            with contextlib.suppress(OSError):
-                (self._dir / NO_WRITER).touch()
+        process = self._process
+        if process is None or not process.is_alive():
+            self._no_writer()
+        elif self._watch is None:
+            # Watched here, not guessed at in the feeds: one that cannot connect cannot tell a writer dead for
+            # good from one being started again, and only this process holds the writer's exit.
+            self._watch = threading.Thread(
+                target=self._watch_writer, args=(process,), name="history-writer-watch", daemon=True
+            )
+            self._watch.start()
+
+    def _watch_writer(self, process: SpawnProcess) -> None:
+        """The stop's watch on the writer: it ends with the writer process (stop() sees to that)."""
+        wait([process.sentinel])
+        self._no_writer()
+
+    def _no_writer(self) -> None:
+        # Suppressed: after stop() removed the directory there is no feed left to tell.
+        with contextlib.suppress(OSError):
+            (self._dir / NO_WRITER).touch()
 
     def stop(self, timeout: float = 30.0) -> None:
         """After the mirrors have closed their feeds: the writer commits what it holds (retrying for at most
@@ -1064,6 +1087,8 @@ class HistoryProcess:
                 log.error("the history writer did not stop in time; killing it")
                 process.kill()
                 process.join(5.0)
+        if self._watch is not None and process is not None and not process.is_alive():
+            self._watch.join(5.0)  # it has seen the exit: NO_WRITER is made before the directory goes
         if conn is not None:
             conn.close()
         # A dead writer's commit no writer was started to check (the agent stopped first) is counted as lost.
