@@ -298,6 +298,8 @@ def kept_cycle(store_arg: list[str], store: Any, capsys: pytest.CaptureFixture[s
     newer = tmp_path / "newer.json"
     newer.write_bytes(shifted(100))
     push = ["calibration", "push", "arm-001"]
+    # Each command the output names reaches this store: without --store it would reach the stack's.
+    again = " " + shlex.join(store_arg)
     assert main([*push, str(EXAMPLE), *store_arg]) == cmd.EXIT_OK
     assert "kept at" not in capsys.readouterr().out and store.read_kept("arm-001") is None
     # The same file again writes nothing (the agent has nothing to read again).
@@ -306,7 +308,7 @@ def kept_cycle(store_arg: list[str], store: Any, capsys: pytest.CaptureFixture[s
     # Over another: the one it replaces is kept, and is no arm's in the listing.
     assert main([*push, str(newer), *store_arg]) == cmd.EXIT_OK
     out = capsys.readouterr().out
-    assert "the one it replaced is kept at" in out and "twin calibration restore arm-001" in out, out
+    assert "the one it replaced is kept at" in out and f"twin calibration restore arm-001{again}`" in out, out
     assert store.read("arm-001") == shifted(100) and store.read_kept("arm-001") == EXAMPLE.read_bytes()
     assert list(store.listing()) == ["arm-001"] and store.scan().kept == {"arm-001"}
     # ls shows the kept one beside the arm's own, before anyone needs it.
@@ -314,7 +316,7 @@ def kept_cycle(store_arg: list[str], store: Any, capsys: pytest.CaptureFixture[s
     assert main(["calibration", "ls", *store_arg]) == cmd.EXIT_OK
     listed = capsys.readouterr()
     assert listed.out == f"arm-001\t{place}\tkept: {place}.previous\n", listed.out
-    assert "twin calibration restore ARM" in listed.err
+    assert f"twin calibration restore ARM{again}`" in listed.err
     # restore swaps them, and again swaps back.
     restore = ["calibration", "restore", "arm-001", *store_arg]
     assert main(restore) == cmd.EXIT_OK
@@ -324,7 +326,7 @@ def kept_cycle(store_arg: list[str], store: Any, capsys: pytest.CaptureFixture[s
     capsys.readouterr()
     # rm keeps what it removes; restore puts it back and then has nothing more to put back.
     assert main(["calibration", "rm", "arm-001", *store_arg]) == cmd.EXIT_OK
-    assert "kept at" in capsys.readouterr().out
+    assert f"twin calibration restore arm-001{again}`" in capsys.readouterr().out
     assert store.listing() == {} and store.read_kept("arm-001") == shifted(100)
     assert main(["calibration", "ls", *store_arg]) == cmd.EXIT_OK
     assert capsys.readouterr().out == f"arm-001\t(removed)\tkept: {place}.previous\n"
@@ -394,8 +396,27 @@ def test_a_file_named_for_another_arm_is_stored_with_a_warning(
     assert main(["calibration", "push", "arm-004", str(own), *store]) == cmd.EXIT_OK
     err = capsys.readouterr().err
     assert "arm-002.json is named for arm-002, which has a calibration of its own" in err, err
-    assert "stored as arm-004's" in err and "twin calibration restore arm-004" in err, err
+    # arm-004 had none, so nothing was kept for restore: rm undoes it, in the store just written to.
+    again = " " + shlex.join(store)
+    assert "stored as arm-004's" in err and f"`twin calibration rm arm-004{again}`" in err, err
     assert DirectoryStore(tmp_path / "cal").read("arm-004") == shifted(40)
+    # Over an arm's own calibration, push keeps it, so restore undoes the slip.
+    assert main(["calibration", "push", "arm-003", str(EXAMPLE), *store]) == cmd.EXIT_OK
+    assert main(["calibration", "push", "arm-003", str(own), *store]) == cmd.EXIT_OK
+    assert f"`twin calibration restore arm-003{again}`" in capsys.readouterr().err
+    assert main(["calibration", "restore", "arm-003", *store]) == cmd.EXIT_OK
+    assert DirectoryStore(tmp_path / "cal").read("arm-003") == EXAMPLE.read_bytes()
+
+
+def test_without_aws_push_names_the_store_of_an_agent_on_this_machine(
+    aws_env: None, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A laptop without AWS: the user likelier means their own agent's store than the stack's.
+    monkeypatch.delenv("AWS_DEFAULT_REGION")
+    assert main(["calibration", "push", "arm-001", str(EXAMPLE)]) == cmd.EXIT_SETUP
+    err = capsys.readouterr().err
+    assert "no AWS region configured" in err and "--store DIR" in err, err
+    assert "[telemetry] calibrations" in err, err
 
 
 # --- the agent --------------------------------------------------------------------------------------------

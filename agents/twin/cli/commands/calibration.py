@@ -24,6 +24,7 @@ Exit codes:
 from __future__ import annotations
 
 import argparse
+import shlex
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -117,7 +118,9 @@ def _store(args: argparse.Namespace) -> CalibrationStore | int:
     try:
         outputs = twin.outputs()
     except lib.TwinInstanceError as exc:
-        console.err(str(exc))
+        # Without AWS the likelier wish is the local agent's store, which only --store reaches.
+        local = " (or, for an agent on this machine, --store DIR: its [telemetry] calibrations)"
+        console.err(f"{exc}{local if isinstance(exc, lib.AwsSetupError) else ''}")
         return codes.get(type(exc), EXIT_NO_OUTPUTS if isinstance(exc, lib.StackOutputsError) else EXIT_STORE)
     if not outputs.calibration_uri:
         console.err(
@@ -126,6 +129,13 @@ def _store(args: argparse.Namespace) -> CalibrationStore | int:
         )
         return EXIT_NO_OUTPUTS
     return open_store(outputs.calibration_uri, region=twin.region)
+
+
+def _store_flags(args: argparse.Namespace) -> str:
+    """The flags that chose the store, for each command this one tells the user to run next: without them
+    that command would reach another store (the stack's, not the directory this one wrote to)."""
+    chosen = (("--store", args.store), ("--stack", args.stack), ("--region", args.region))
+    return "".join(f" {flag} {shlex.quote(value)}" for flag, value in chosen if value)
 
 
 def _arm_is_a_device_id(args: argparse.Namespace) -> bool:
@@ -158,20 +168,21 @@ def run(args: argparse.Namespace) -> int:
     store = _store(args)
     if isinstance(store, int):
         return store
+    again = _store_flags(args)
     try:
         if args.action == "push":
-            return _push(store, args.arm, args.file, data)
+            return _push(store, args.arm, args.file, data, again)
         if args.action == "rm":
-            return _rm(store, args.arm)
+            return _rm(store, args.arm, again)
         if args.action == "restore":
-            return _restore(store, args.arm)
-        return _ls(store)
+            return _restore(store, args.arm, again)
+        return _ls(store, again)
     except CalibrationStoreError as exc:
         console.err(str(exc))
         return EXIT_STORE
 
 
-def _ls(store: CalibrationStore) -> int:
+def _ls(store: CalibrationStore, again: str) -> int:
     """A line per arm: its calibration's place, and the kept one's when there is one (an arm whose own was
     removed shows `(removed)`), so what `restore` would bring back is seen before it is needed. Files no arm
     reads (named for no device id) are named on stderr."""
@@ -189,7 +200,9 @@ def _ls(store: CalibrationStore) -> int:
             line += f"\tkept: {place.removesuffix(SUFFIX)}{KEPT_SUFFIX}"
         console.out(line)
     if kept:
-        console.err("kept: what a push or rm replaced; `twin calibration restore ARM` swaps it back in")
+        console.err(
+            f"kept: what a push or rm replaced; `twin calibration restore ARM{again}` swaps it back in"
+        )
     for name in found.ignored:
         console.err(
             f"ignored: {name} (no arm reads it: a device id is {POLICY_DEVICE_ID_RULE}; "
@@ -231,15 +244,17 @@ def _current(store: CalibrationStore, arm: str) -> tuple[bytes | None, dict[str,
     return (store.read(arm) if arm in listing else None), listing
 
 
-def _push(store: CalibrationStore, arm: str, file: Path, data: bytes) -> int:
+def _push(store: CalibrationStore, arm: str, file: Path, data: bytes, again: str) -> int:
     current, listing = _current(store, arm)
     named_for = file.stem
     if named_for != arm and named_for in listing:
         # LeRobot names the file for the arm it calibrated: this may be another arm's, pushed by mistake.
+        # Undone by restore when it replaces one (which push keeps), else by rm: restore would find none.
+        undo = "restore" if current is not None else "rm"
         console.err(
             f"warning: {file.name} is named for {named_for}, which has a calibration of its own in "
             f"{store.uri}; it is stored as {arm}'s, as asked (if that was a slip: "
-            f"`twin calibration restore {arm}`)"
+            f"`twin calibration {undo} {arm}{again}`)"
         )
     if current == data:
         console.out(f"{arm}: {store.uri_of(arm)} already holds this calibration; nothing written")
@@ -249,11 +264,11 @@ def _push(store: CalibrationStore, arm: str, file: Path, data: bytes) -> int:
     where = store.write(arm, data)
     console.out(f"{arm}: {where} (the agent picks it up within its calibration_poll_s, 30 s by default)")
     if kept is not None:
-        console.out(f"{arm}: the one it replaced is kept at {kept} (`twin calibration restore {arm}`)")
+        console.out(f"{arm}: the one it replaced is kept at {kept} (`twin calibration restore {arm}{again}`)")
     return EXIT_OK
 
 
-def _rm(store: CalibrationStore, arm: str) -> int:
+def _rm(store: CalibrationStore, arm: str, again: str) -> int:
     current, _ = _current(store, arm)
     if current is None:
         console.err(f"{arm} has no calibration in {store.uri}")
@@ -262,12 +277,12 @@ def _rm(store: CalibrationStore, arm: str) -> int:
     store.delete(arm)
     console.out(
         f"{arm}: removed from {store.uri}; it decodes with the config's calibration again (kept at {kept}: "
-        f"`twin calibration restore {arm}`)"
+        f"`twin calibration restore {arm}{again}`)"
     )
     return EXIT_OK
 
 
-def _restore(store: CalibrationStore, arm: str) -> int:
+def _restore(store: CalibrationStore, arm: str, again: str) -> int:
     """The kept calibration becomes ARM's again, and the one it replaces is kept in its place: a second
     restore swaps back."""
     from twin.robot.calibration import parse_calibration
@@ -299,7 +314,9 @@ def _restore(store: CalibrationStore, arm: str) -> int:
         # owner can push it again rather than lost.
         saved = Path(f"{arm}{KEPT_SUFFIX}").absolute()
         saved.write_bytes(kept)
-        console.err(f"{arm}'s kept calibration is saved in {saved}: `twin calibration push {arm} {saved}`")
+        console.err(
+            f"{arm}'s kept calibration is saved in {saved}: `twin calibration push {arm} {saved}{again}`"
+        )
         raise
     console.out(
         f"{arm}: {where} holds the kept calibration again; the one it replaced is kept in its place "
