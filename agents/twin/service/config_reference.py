@@ -162,8 +162,10 @@ KEY_DOCS: dict[str, str] = {
     ),
     "twin.state_file": (
         "Where the servo alarms an agent restart must not forget (ACTIVE, ACKNOWLEDGED, LATCHED) are "
-        "kept, written atomically. Empty = not kept. The twin host's config names a file in the "
-        "service's state directory (`/var/lib/so101-twin-agent/state.json`)."
+        "kept, written atomically. Empty = not kept: a restart starts with every alarm NORMAL and "
+        "forgets each acknowledgement, so set it for an agent of your own beside real arms "
+        "(`\"out/state.json\"`). The twin host's config names a file in the service's state "
+        "directory (`/var/lib/so101-twin-agent/state.json`)."
     ),
     "twin.shutdown_budget_s": (
         "How long a stop may take in all: the workers handle what is queued and flush their sinks "
