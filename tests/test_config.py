@@ -236,8 +236,10 @@ def test_bad_flag_is_reported_like_a_bad_key() -> None:
 
 
 def test_file_errors(tmp_path: Path) -> None:
-    with pytest.raises(ConfigError, match="not found"):
+    with pytest.raises(ConfigError, match="not found") as missing:
         load_config(tmp_path / "missing.toml")
+    # The fix fits `twin config check FILE` as well as `twin run --config FILE`.
+    assert "`twin config example > FILE`" in str(missing.value) and "--config" not in str(missing.value)
     with pytest.raises(ConfigError, match="not valid TOML"):
         load_config(write(tmp_path, "[broker\n"))
 

@@ -587,7 +587,11 @@ def read_toml(path: str | Path) -> dict[str, Any]:
         with path.open("rb") as fh:
             return tomllib.load(fh)
     except FileNotFoundError as exc:
-        raise ConfigError(f"config file {str(path)!r} not found; pass an existing file to --config") from exc
+        # Read for `twin run --config` and `twin config check` alike: the fix names neither flag.
+        raise ConfigError(
+            f"config file {str(path)!r} not found; check the path, or write one with "
+            "`twin config example > FILE`"
+        ) from exc
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"config file {str(path)!r} is not valid TOML: {exc}") from exc
     except OSError as exc:
