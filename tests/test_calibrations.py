@@ -104,13 +104,15 @@ def test_the_watcher_warns_once_of_a_file_no_arm_reads(
         assert watcher.poll() is True
         assert set(watcher.book.entries) == {"arm-001"}
         assert len(warnings()) == 1 and "arm 9.json" in warnings()[0], warnings()
-        assert "twin calibration push ARM FILE" in warnings()[0]
+        # A plain push would reach the stack's store, not this directory.
+        assert f"twin calibration push ARM FILE --store {tmp_path / 'cal'}`" in warnings()[0], warnings()
         watcher.poll()
         assert len(warnings()) == 1  # once, not every poll
     assert main(["calibration", "ls", "--store", str(tmp_path / "cal")]) == cmd.EXIT_OK
     listed = capsys.readouterr()
     assert listed.out == f"arm-001\t{tmp_path / 'cal' / 'arm-001.json'}\n"
     assert "ignored: arm 9.json (no arm reads it" in listed.err, listed.err
+    assert f"twin calibration push ARM FILE --store {tmp_path / 'cal'}`" in listed.err, listed.err
 
 
 def test_the_watcher_picks_up_changes_refuses_bad_files_and_keeps_what_it_had(tmp_path: Path) -> None:

@@ -523,13 +523,16 @@ class CalibrationWatcher:
         return True
 
     def _warn_ignored(self, ignored: Sequence[str]) -> None:
+        # The command that reaches this store (`--store DIR` for a directory): plain push is the stack's.
+        push = push_hint("ARM", self.store.uri).command
         for name in sorted(set(ignored) - self._ignored):
             log.warning(
                 "%s in %s is ignored: no arm reads it, because a calibration is named <device id>.json and a "
-                "device id is %s; push it as the arm's (`twin calibration push ARM FILE`)",
+                "device id is %s; push it as the arm's (`%s`)",
                 name,
                 self.store.uri,
                 POLICY_DEVICE_ID_RULE,
+                push,
                 extra={"event": "calibration_ignored", "file": name},
             )
         self._ignored = set(ignored)

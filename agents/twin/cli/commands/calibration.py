@@ -206,7 +206,7 @@ def _ls(store: CalibrationStore, again: str) -> int:
     for name in found.ignored:
         console.err(
             f"ignored: {name} (no arm reads it: a device id is {POLICY_DEVICE_ID_RULE}; "
-            "push it as the arm's with `twin calibration push ARM FILE`)"
+            f"push it as the arm's with `twin calibration push ARM FILE{again}`)"
         )
     return EXIT_OK
 
