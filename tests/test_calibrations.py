@@ -188,6 +188,16 @@ def test_the_s3_store_lists_one_object_per_arm(s3: Any) -> None:
     assert store.delete("arm-003") and store.listing() == {}
 
 
+def test_an_s3_store_without_credentials_says_how_to_give_some(
+    aws_env: None, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    for name in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY"):
+        monkeypatch.delenv(name)
+    assert main(["calibration", "ls", "--store", "s3://twin-bucket/calibration"]) == cmd.EXIT_STORE
+    err = capsys.readouterr().err
+    assert "cannot list s3://twin-bucket/calibration" in err and "aws configure" in err, err
+
+
 def test_the_stacks_prefix_is_the_one_a_plain_push_is_told_for() -> None:
     # The console tells the twin host's agent (s3://<bucket>/calibration) to push without --store.
     source = (REPO / "stacks" / "history_bucket.py").read_text()

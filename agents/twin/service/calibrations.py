@@ -254,10 +254,21 @@ class S3Store:
         return f"{self.prefix}/{device}{suffix}" if self.prefix else f"{device}{suffix}"
 
     def _call(self, action: str, fn: Callable[[], Any]) -> Any:
-        from botocore.exceptions import BotoCoreError, ClientError  # noqa: PLC0415
+        from botocore.exceptions import (  # noqa: PLC0415
+            BotoCoreError,
+            ClientError,
+            NoCredentialsError,
+            PartialCredentialsError,
+        )
 
         try:
             return fn()
+        except (NoCredentialsError, PartialCredentialsError) as exc:
+            # botocore's "Unable to locate credentials" names no way to give this machine some.
+            raise CalibrationStoreError(
+                f"cannot {action} {self.uri}: {exc}: run `aws configure` or `aws sso login`, set "
+                "AWS_PROFILE, or export AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY"
+            ) from exc
         except ClientError as exc:
             error = exc.response.get("Error", {})
             raise CalibrationStoreError(
