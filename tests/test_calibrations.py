@@ -349,7 +349,8 @@ def kept_cycle(store_arg: list[str], store: Any, capsys: pytest.CaptureFixture[s
     assert main(["calibration", "ls", *store_arg]) == cmd.EXIT_OK
     assert capsys.readouterr().out == f"arm-001\t{place}\n"
     assert main(restore) == cmd.EXIT_STORE
-    assert "arm-001 has no kept calibration" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "arm-001 has no kept calibration" in err and f"`twin calibration rm arm-001{again}`" in err, err
     assert store.read("arm-001") == shifted(100)
 
 

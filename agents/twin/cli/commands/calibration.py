@@ -290,9 +290,12 @@ def _restore(store: CalibrationStore, arm: str, again: str) -> int:
 
     kept = store.read_kept(arm)
     if kept is None:
+        # Also after rm then restore, which kept nothing (there was no calibration to keep): rm goes back.
+        current, _ = _current(store, arm)
+        back = f"; `twin calibration rm {arm}{again}` removes the one it has" if current is not None else ""
         console.err(
-            f"{arm} has no kept calibration in {store.uri}: push and rm keep the one they replace, and "
-            "nothing was replaced yet"
+            f"{arm} has no kept calibration in {store.uri}: push and rm keep the one they replace, and a "
+            f"restore of what rm removed keeps none{back}"
         )
         return EXIT_STORE
     try:
