@@ -173,7 +173,7 @@ BYTECODE_PROBES = ("twin.service.mirror", "numpy", "msgspec", "OpenGL")
 def bytecode_cached(modules: Sequence[str] = BYTECODE_PROBES) -> dict[str, bool]:
     """Whether each module has bytecode Python would use (its __pycache__ file, made from the source as it is
     now). Without it every process compiles the module at its start; where PYTHONDONTWRITEBYTECODE is set it
-    is never written, and a cold start measures the compiling (docs/performance.md, "Bytecode")."""
+    is never written, and a cold start measures the compiling (docs/cost-per-message.md, "Bytecode")."""
     return {name: _has_bytecode(name) for name in modules}
 
 

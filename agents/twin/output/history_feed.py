@@ -90,7 +90,7 @@ MAX_RESTART_PAUSE_S = 60.0
 # same priority they took the mirrors' cores and showed as their p99. At 5 its scheduler weight is a third of
 # a mirror's: on a host with a core to spare (1,000 arms here) it still gets all it needs; on a saturated one
 # it falls behind first, and its lag and the feeds' bounded queues take that (docs/history.md; measured in
-# docs/performance.md, "History's writer at a lower priority"). The default of [history] writer_nice.
+# docs/cost-per-message.md, "History's writer at a lower priority"). The default of [history] writer_nice.
 WRITER_NICE = 5
 
 # A rejected message is kept up to this many bytes (its whole length is stored too): HistorySettings' default,

@@ -19,8 +19,8 @@ bias from which turns are chosen, and an untimed turn reads no CPU clock at all.
 A timed span also holds about one clock reading's own cost, which the scaling would count for the untimed
 batches that no longer pay it; the mirror measures it on each timed batch (two more readings: about ten a
 timed batch in all) and takes it off each span, never below zero (`mirror._span` says why). Even so, measured
-at batches of one, the sampled stages read about 5 % high (docs/performance.md, "The stage timers, sampled"),
-evenly over the stages, so each stage's share holds.
+at batches of one, the sampled stages read about 5 % high (docs/cost-per-message.md, "The stage timers,
+sampled"), evenly over the stages, so each stage's share holds.
 
 The totals per process (`twin bench cost` reads them from /proc through psutil) are exact either way; only
 their split by stage is an estimate, whose spread shrinks with the number of timed batches
