@@ -342,6 +342,7 @@ def test_console_reports_time_to_interactive_and_the_cpu_of_two_consoles() -> No
     cpu = out["cpu"]
     assert cpu["consoles"] == 2 and cpu["agent_cpu_percent_with"] > 0
     assert all(n >= 1 for n in cpu["updates_per_console"])
+    assert cpu["agent_cpu_percent_with_arm_page"] > 0  # then one arm's page, open for as long
 
 
 def test_cost_reports_cpu_per_message_in_json_loads_and_by_stage() -> None:

@@ -7,7 +7,7 @@ Two phases, each against a `twin run` child process on a private broker with the
    live update (`window.twinUpdateMs`, the mean over the updates it handled). Reported as median, min, max.
 2. cpu: the agent's CPU (its process tree) at 1,000 arms for `seconds` with no console open, then the same
    with two Fleet pages open; the difference is what two consoles cost the agent. The browser's own CPU is
-   reported too (it runs on the same cores).
+   reported too (it runs on the same cores). Then `seconds` with one arm's page open instead.
 Publishers, broker, agent and browser share this host's cores: quote the load average with the figures.
 """
 
@@ -160,6 +160,7 @@ def _cpu(rig: LocalRig, arms: int, rate: float, seconds: float, consoles: int) -
                 with_consoles = sampler.stop()
                 updates = [p.evaluate("window.twinUpdates") for p in pages]
                 context.close()
+                arm_page = _arm_page_cpu(browser, base, proc.pid, seconds)
         finally:
             for p in pubs:
                 p.kill()
@@ -173,9 +174,27 @@ def _cpu(rig: LocalRig, arms: int, rate: float, seconds: float, consoles: int) -
         "agent_cpu_percent_with": _figure(with_consoles["cpu_percent"]),
         "agent_cpu_percent_cost": _figure(with_consoles["cpu_percent"]) - _figure(without["cpu_percent"]),
         "browser_cpu_percent": 100.0 * browser_s / seconds,
+        # One arm's page instead: the agent reads that arm alone, in the worker that holds it.
+        "agent_cpu_percent_with_arm_page": arm_page,
+        "arm_page_cpu_percent_cost": arm_page - _figure(without["cpu_percent"]),
         "host_cpu_percent_with": with_consoles["host_cpu_percent"],
         "updates_per_console": updates,
     }
+
+
+def _arm_page_cpu(browser: Any, base: str, pid: int, seconds: float) -> float:
+    """The agent's CPU (% of a core) over `seconds` with one arm's page open (the fleet's first arm)."""
+    context = browser.new_context(viewport={"width": 1280, "height": 800})
+    page = context.new_page()
+    page.route("**/*", loopback_only)
+    page.set_default_timeout(FLEET_TIMEOUT_S * 1000)
+    page.goto(base + "/arm/arm-0001")
+    page.wait_for_function("() => window.twinReadyAt")
+    sampler = ProcessSampler(pid).start()
+    time.sleep(seconds)
+    measured = sampler.stop()
+    context.close()
+    return _figure(measured["cpu_percent"])
 
 
 def _figure(value: float | None) -> float:
