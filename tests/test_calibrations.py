@@ -286,6 +286,25 @@ def test_push_refuses_a_leader_arms_calibration(tmp_path: Path, capsys: pytest.C
     assert main(["calibration", "push", "arm-001", str(follower), "--store", store]) == cmd.EXIT_OK
 
 
+def test_decode_and_the_config_refuse_a_leader_arms_calibration_as_push_does(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # The same file push refuses: it parses, but would decode the follower at a leader's angles.
+    leader = tmp_path / "calibration" / "teleoperators" / "so_leader" / "arm-001.json"
+    leader.parent.mkdir(parents=True)
+    leader.write_bytes(EXAMPLE.read_bytes())
+    payload = str(REPO / "examples" / "payload-ticks.json")
+    assert main(["decode", payload, "--calibration", str(leader)]) == 1
+    out, err = capsys.readouterr()
+    assert out == "" and "a leader arm's calibration" in err and "robots/so_follower/<id>.json" in err, err
+    config = tmp_path / "agent.toml"
+    config.write_text(f"[telemetry]\ncalibration = {json.dumps(str(leader))}\n")
+    with pytest.raises(ConfigError, match=r"telemetry\.calibration = .* is a leader arm's calibration"):
+        load_config(config)
+    assert main(["config", "check", str(config)]) == 2
+    assert "robots/so_follower/<id>.json; give that one" in capsys.readouterr().err
+
+
 def test_push_goes_to_the_stacks_calibration_uri(s3: Any, capsys: pytest.CaptureFixture[str]) -> None:
     template = {
         "Resources": {"Topic": {"Type": "AWS::SNS::Topic"}},

@@ -25,6 +25,10 @@ _FIELDS = ("id", "drive_mode", "homing_offset", "range_min", "range_max")
 _HOMING_LIMIT = 2047
 # A file of six motors is about 1 KB; anything far larger is not a calibration (and is not read whole).
 MAX_FILE_BYTES = 64 * 1024
+# Where LeRobot keeps a leader arm's calibration (calibration/teleoperators/so_leader/<id>.json, beside the
+# follower's robots/so_follower/): the same six motor names, so only its place tells it apart.
+LEADER_DIRECTORIES = frozenset({"teleoperators", "so_leader", "so100_leader", "so101_leader"})
+FOLLOWER_FILE = "~/.cache/huggingface/lerobot/calibration/robots/so_follower/<id>.json"
 
 
 @dataclass(frozen=True, slots=True)
@@ -137,9 +141,25 @@ def _validate_motors(motors: Mapping[str, MotorCalibration], source: str) -> dic
     return ordered
 
 
+def leader_problem(path: str | Path) -> str | None:
+    """What is wrong when `path` is where LeRobot keeps a leader arm's calibration, to follow the path in a
+    message (the caller adds what to do with the follower's file); None when it is not there."""
+    leader = LEADER_DIRECTORIES.intersection(Path(path).expanduser().parts)
+    if not leader:
+        return None
+    # A leader's file parses like the follower's, and would decode the follower at wrong angles.
+    return (
+        f"is a leader arm's calibration (LeRobot keeps those under {sorted(leader)[0]}/): the edge reads the "
+        f"follower arm, whose file is {FOLLOWER_FILE}"
+    )
+
+
 def load_calibration(path: str | Path) -> Calibration:
-    """Read a LeRobot calibration JSON file; ValueError names the problem and the fix."""
+    """Read a LeRobot follower arm's calibration JSON file; ValueError names the problem and the fix."""
     p = Path(path).expanduser()
+    problem = leader_problem(p)
+    if problem:
+        raise ValueError(f"calibration file {p} {problem}; use that one")
     try:
         data = p.read_bytes()
     except FileNotFoundError:

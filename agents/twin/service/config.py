@@ -27,6 +27,7 @@ from twin.core.topics import ALL_DEVICES, DEFAULT_TOPIC_PREFIX, TopicError, chec
 from twin.core.units import MAX_PAYLOAD_BYTES, Units
 from twin.output.rerun_settings import RerunSettings, RerunSettingsError
 from twin.output.ros2 import Ros2Error, Ros2Settings
+from twin.robot.calibration import leader_problem
 from twin.transport.broker import BrokerConfig, BrokerConfigError
 
 RECORD_FORMAT_CHOICES: tuple[str, ...] = ("usdc", "usda")
@@ -421,6 +422,9 @@ def _validate_telemetry(t: TelemetrySection) -> None:
             f"telemetry.calibration = {t.calibration!r} does not exist; give the LeRobot calibration JSON "
             "(~/.cache/huggingface/lerobot/calibration/robots/so_follower/<id>.json) or leave it empty"
         )
+    problem = leader_problem(t.calibration) if t.calibration else None
+    if problem:
+        raise ConfigError(f"telemetry.calibration = {t.calibration!r} {problem}; give that one")
     store = t.calibrations.strip()
     if "://" in store and not store.startswith(("s3://", "file://")):
         raise ConfigError(

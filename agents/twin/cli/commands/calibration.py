@@ -42,10 +42,6 @@ EXIT_SETUP = 3
 EXIT_NO_STACK = 4
 EXIT_NO_OUTPUTS = 5
 
-# Where LeRobot keeps a leader arm's calibration (calibration/teleoperators/so_leader/<id>.json, beside the
-# follower's robots/so_follower/): the same six motor names, so only its place tells it apart.
-LEADER_DIRECTORIES = frozenset({"teleoperators", "so_leader", "so100_leader", "so101_leader"})
-
 EPILOG = """examples:
   twin calibration push arm-003 ~/.cache/huggingface/lerobot/calibration/robots/so_follower/arm-003.json
   twin calibration ls
@@ -214,15 +210,11 @@ def _ls(store: CalibrationStore, again: str) -> int:
 def _calibration_file(file: Path) -> bytes | int:
     """FILE's bytes once it parsed as a complete follower arm's SO-101 calibration; else an exit code, having
     said why."""
-    from twin.robot.calibration import parse_calibration
+    from twin.robot.calibration import leader_problem, parse_calibration
 
-    leader = LEADER_DIRECTORIES.intersection(file.expanduser().parts)
-    if leader:
-        console.err(
-            f"{file} is a leader arm's calibration (LeRobot keeps those under "
-            f"{sorted(leader)[0]}/): the edge reads the follower arm, whose file is "
-            "~/.cache/huggingface/lerobot/calibration/robots/so_follower/<id>.json; push that one"
-        )
+    problem = leader_problem(file)
+    if problem:
+        console.err(f"{file} {problem}; push that one")
         return EXIT_USAGE
     try:
         data = file.expanduser().read_bytes()
