@@ -20,7 +20,7 @@ from typing import Any
 
 import pytest
 from awscrt import mqtt5
-from conftest import wait_for
+from conftest import NO_BROKER, wait_for
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
@@ -31,6 +31,8 @@ from twin.core.topics import device_from_topic, topic_filters
 from twin.edge.payload import device_ids, mock_ticks
 from twin.edge.simulator import EdgeSimConfig, EdgeSimulator
 from twin.rig.mosquitto import MosquittoBroker
+from twin.service.agent import AgentService
+from twin.service.config import load_config
 from twin.transport import client as client_mod
 from twin.transport.broker import CLIENT_ID_PREFIX_MAX, BrokerConfig, BrokerConfigError, new_client_id
 from twin.transport.client import build_mqtt5_client, resolve_iot_endpoint
@@ -458,3 +460,22 @@ def test_survives_broker_restarts(
     assert sim.report.published > sim.report.publish_failures
     # Messages flowed after the last restart too, for both devices.
     assert any(t > back for t in arrivals)
+
+
+def test_a_refused_connection_says_what_to_check(caplog: pytest.LogCaptureFixture) -> None:
+    # A real agent pointed at a closed loopback port: awscrt's own words name the error, not the fix.
+    caplog.set_level("WARNING", logger="twin.transport")
+    agent = AgentService(load_config(None, {"broker.url": NO_BROKER, "http.listen": "127.0.0.1:0"}))
+    agent.start()
+    try:
+
+        def failures() -> list[str]:
+            return [r.getMessage() for r in caplog.records if " could not connect to " in r.getMessage()]
+
+        lines = wait_for(lambda: failures()[1:] and failures(), 60, "two connection failures logged")
+    finally:
+        agent.stop()
+    assert all("CONNECTION_REFUSED" in line for line in lines), lines
+    for line in lines:  # the hint rides on each failure's line, once
+        assert line.count("Is a broker listening on 127.0.0.1 port 1") == 1, line
+        assert "`mosquitto -p 1`" in line and "--broker or [broker] url" in line, line

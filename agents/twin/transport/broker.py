@@ -162,6 +162,18 @@ class BrokerConfig:
         return self.url if self.kind != IOT else f"IoT Core ({self.region or 'default region'})"
 
 
+def connect_hint(config: BrokerConfig, error: BaseException | None) -> str:
+    """What to check after a failed connect, when awscrt's error (named, not fixed) says what went wrong;
+    "" when there is nothing more to say than the error."""
+    # Only a refusal is certain: nothing listens there. IoT Core always listens: its problems are elsewhere.
+    if getattr(error, "name", "") != "AWS_IO_SOCKET_CONNECTION_REFUSED" or config.kind == IOT:
+        return ""
+    return (
+        f"Is a broker listening on {config.host} port {config.port} (a local one: `mosquitto -p "
+        f"{config.port}`)? Else fix the URL in --broker or [broker] url"
+    )
+
+
 def agent_client_id_prefix(name: str) -> str:
     """`so101-twin-<name>-`, the client id prefix (and shared-subscription group) of the agent `name` stands
     for: a stack's name, a host name. Characters a client id may not hold become '-'; long names are cut so

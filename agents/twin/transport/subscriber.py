@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, TypedDict
 
 from awscrt import mqtt5
 
-from twin.transport.broker import BrokerConfig, new_client_id
+from twin.transport.broker import BrokerConfig, connect_hint, new_client_id
 from twin.transport.client import build_mqtt5_client
 
 if TYPE_CHECKING:
@@ -343,13 +343,15 @@ class TelemetrySubscriber:
             self._stats.last_error = f"connect: {data.exception}"
             failures = self._stats.connection_failures
         # Backoff retries run until stop(); one line per attempt is fine at <= 4 attempts/s, and the count
-        # says how long an outage has lasted.
+        # says how long an outage has lasted. The hint rides on each line: the first may have scrolled away.
+        hint = connect_hint(self.config, data.exception)
         log.warning(
-            "subscriber %s could not connect to %s (failure #%d): %s; retrying with backoff",
+            "subscriber %s could not connect to %s (failure #%d): %s; retrying with backoff%s",
             self.client_id,
             self._where(),
             failures,
             data.exception,
+            f". {hint}" if hint else "",
         )
 
     def _on_disconnection(self, data: mqtt5.LifecycleDisconnectData) -> None:
