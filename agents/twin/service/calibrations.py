@@ -54,6 +54,11 @@ class CalibrationStoreError(Exception):
     """The store could not be listed or read (no access, no network, no such bucket or directory)."""
 
 
+class StoreCredentialsError(CalibrationStoreError):
+    """An S3 store could not be reached because this machine has no AWS credentials (the message says how to
+    give it some): a setup problem, which `twin calibration` reports apart from the store's own errors."""
+
+
 class CalibrationStore(Protocol):
     """Where the arms' calibration files are kept."""
 
@@ -265,7 +270,7 @@ class S3Store:
             return fn()
         except (NoCredentialsError, PartialCredentialsError) as exc:
             # botocore's "Unable to locate credentials" names no way to give this machine some.
-            raise CalibrationStoreError(
+            raise StoreCredentialsError(
                 f"cannot {action} {self.uri}: {exc}: run `aws configure` or `aws sso login`, set "
                 "AWS_PROFILE, or export AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY"
             ) from exc

@@ -151,7 +151,7 @@ def _arm_is_a_device_id(args: argparse.Namespace) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
-    from twin.service.calibrations import CalibrationStoreError
+    from twin.service.calibrations import CalibrationStoreError, StoreCredentialsError
 
     if args.action in ("push", "rm", "restore") and not _arm_is_a_device_id(args):
         return EXIT_USAGE
@@ -175,7 +175,8 @@ def run(args: argparse.Namespace) -> int:
         return _ls(store, again)
     except CalibrationStoreError as exc:
         console.err(str(exc))
-        return EXIT_STORE
+        # No credentials is the setup problem exit 3 stands for, as without --store (the stack's lookup).
+        return EXIT_SETUP if isinstance(exc, StoreCredentialsError) else EXIT_STORE
 
 
 def _ls(store: CalibrationStore, again: str) -> int:
