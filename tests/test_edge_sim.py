@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import wait_for
+from conftest import NO_BROKER, wait_for
 from twin.cli import main
 from twin.core.telemetry import (
     MAX_PAYLOAD_BYTES,
@@ -25,7 +25,7 @@ from twin.core.telemetry import (
     TelemetryRejected,
     Units,
 )
-from twin.core.topics import device_from_topic, topic_filters
+from twin.core.topics import POLICY_DEVICE_ID_RULE, device_from_topic, topic_filters
 from twin.edge.payload import (
     MALFORMED_KINDS,
     device_ids,
@@ -374,3 +374,19 @@ def test_stop_event_ends_a_forever_run(mosquitto: MosquittoBroker) -> None:
     assert ticks_at_stop, "the run ended before the stop event was set"
     # Once the event is set no new tick starts; at most the one under way when it was set finishes.
     assert ticks_at_stop[0] <= report.ticks <= ticks_at_stop[0] + 1
+
+
+def test_a_device_id_the_stack_refuses_is_refused_at_argument_time(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    # The rule twin calibration keeps: "bad id" would have been published as dt/lerobot/bad id/telemetry.
+    with pytest.raises(SystemExit) as exited:
+        main(
+            ["edge-sim", "--broker", NO_BROKER, "--device", "arm-001", "--device", "bad id", "--seconds", "1"]
+        )
+    assert exited.value.code == 2
+    err = capsys.readouterr().err
+    assert "argument --device: 'bad id' is not a device id" in err, err
+    assert POLICY_DEVICE_ID_RULE in err and "pass --device such an id (as the arm's edge publishes)" in err, (
+        err
+    )

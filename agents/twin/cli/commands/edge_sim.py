@@ -28,6 +28,20 @@ def _positive(text: str) -> float:
     return value
 
 
+def _device_id(text: str) -> str:
+    """An id the stack mirrors (the rule `twin calibration` keeps): another would publish to a topic that
+    no deployed agent subscribes to, or that IoT Core's policy refuses."""
+    from twin.service.calibrations import check_device
+
+    try:
+        check_device(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(
+            f"{exc}; pass --device such an id (as the arm's edge publishes)"
+        ) from None
+    return text
+
+
 def register(subparsers: Any) -> None:
     parser = subparsers.add_parser(
         "edge-sim",
@@ -52,7 +66,13 @@ def _add_fleet_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--variant", choices=("ticks", "degrees"), default="ticks", help="payload format")
     who = parser.add_mutually_exclusive_group()
     who.add_argument("--devices", type=int, metavar="N", help="simulate arm-001..arm-00N (default 1)")
-    who.add_argument("--device", action="append", metavar="ID", help="device id (repeatable)")
+    who.add_argument(
+        "--device",
+        action="append",
+        type=_device_id,
+        metavar="ID",
+        help="device id: 1..64 letters, digits, '-' or '_' (repeatable)",
+    )
     parser.add_argument("--rate", type=_positive, default=10.0, metavar="HZ", help="messages/s per device")
     parser.add_argument("--seconds", type=_positive, metavar="S", help="run time (default: until stopped)")
 
