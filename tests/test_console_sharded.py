@@ -5,14 +5,20 @@ from __future__ import annotations
 
 import json
 import os
+import random
 import signal
 import urllib.request
+from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import http_get, wait_for
+from conftest import NO_BROKER, http_get, wait_for
+from twin.edge.payload import encode, make_payload
 from twin.rig.local import LocalRig
+from twin.service.agent import AgentService
+from twin.service.config import load_config
 from twin.service.console import FLEET_COLUMNS, fleet_rows
+from twin.service.shards import WorkerError
 
 pytestmark = pytest.mark.slow
 
@@ -125,3 +131,39 @@ def test_an_arm_page_is_read_from_its_own_worker_without_the_fleet_state(rig: Lo
             mine.loss.lost,
         )
         assert [a.alarm_id for a in view.alarms] == [a.alarm_id for a in alarms if a.device == device]
+
+
+def test_an_arm_whose_worker_does_not_answer_is_shown_from_its_checkpoint(tmp_path: Path) -> None:
+    # One ask per arm and tick, not two: a worker that does not answer is not asked again for the whole state.
+    config = load_config(
+        None,
+        {
+            "broker.url": NO_BROKER,
+            "http.listen": "127.0.0.1:0",
+            "telemetry.units": "ticks",
+            "twin.state_file": str(tmp_path / "state.json"),
+        },
+    )
+    agent = AgentService(config, workers=2)
+    agent.start()
+    try:
+        device = next(d for d in DEVICES if agent.plan.worker_of(d) == 1)
+        payload = encode(make_payload(device, 0.0, "ticks", random.Random(2)))
+        agent.feed(f"dt/lerobot/{device}/telemetry", payload)
+        shard = agent._shards[1]
+        wait_for(lambda: (c := shard.checkpoint) is not None and c.taken >= 1, 30, "a checkpoint of the arm")
+        asked: list[object] = []
+
+        def silent(request: object) -> Any:
+            asked.append(request)
+            raise WorkerError("worker 1 did not answer within 10 s")
+
+        shard.request = silent  # type: ignore[method-assign]
+        view = agent.arm_view(device)
+        assert len(asked) == 1  # the arm's own ask, and no whole state after it
+        assert view.state is not None and view.state.device_id == device
+        assert view.state.health.counters.received == 1
+        assert agent.arm_view("arm-404").state is None
+    finally:
+        del shard.request
+        agent.stop()

@@ -7,8 +7,10 @@ import csv
 import io
 import json
 import logging
+import os
 import pickle
 import random
+import signal
 import threading
 from pathlib import Path
 from typing import Any
@@ -427,3 +429,45 @@ def test_events_a_mirror_makes_as_the_agent_stops_are_listed(tmp_path: Path, wor
     status = EventQuery(kinds=frozenset({EventKind.STATUS.value}))
     arrived = [e.device for e in agent.events(status) if e.message.endswith("(first message)")]
     assert sorted(arrived) == devices
+
+
+@pytest.mark.slow
+def test_a_worker_started_again_just_before_the_stop_has_its_last_events_listed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The supervisor's restart can end as the stop begins, before a round notices the new process, which
+    # numbers its events from 1: the stop must not take them for ones it collected from the old process.
+    config = load_config(
+        None,
+        {
+            "broker.url": NO_BROKER,
+            "http.listen": "127.0.0.1:0",
+            "telemetry.units": "ticks",
+            "twin.state_file": str(tmp_path / "state.json"),
+        },
+    )
+    agent = AgentService(config, workers=2)
+    agent.start()
+    plan, rng = WorkerPlan(2), random.Random(5)
+    mine = [d for d in (f"arm-{n:03d}" for n in range(1, 200)) if plan.worker_of(d) == 0][:7]
+    status = EventQuery(kinds=frozenset({EventKind.STATUS.value}))
+
+    def arrived() -> list[str]:
+        return [e.device for e in agent.events(status) if e.message.endswith("(first message)")]
+
+    try:
+        for device in mine[:6]:  # worker 0's events numbered past what its next process will make
+            agent.feed(f"dt/lerobot/{device}/telemetry", encode(make_payload(device, 0.0, "ticks", rng)))
+        wait_for(lambda: len(arrived()) == 6, 30, "the first arrivals collected")
+        shard = agent._shards[0]
+        # In its checkpoint too, so the next process, restored from it, is sent none of them again.
+        wait_for(lambda: (c := shard.checkpoint) is not None and c.taken >= 6, 30, "a checkpoint with them")
+        monkeypatch.setattr(agent, "_collect_events", lambda: None)  # no round sees what follows
+        os.kill(shard.pid, signal.SIGKILL)
+        wait_for(lambda: shard.restarts == 1 and shard.answering, 60, "worker 0 running again")
+        last = mine[6]
+        agent.feed(f"dt/lerobot/{last}/telemetry", encode(make_payload(last, 0.0, "ticks", rng)))
+        wait_for(lambda: last in agent.state().devices, 30, f"{last} handled by the new process")
+    finally:
+        agent.stop()
+    assert arrived() == [*mine[:6], last]

@@ -204,6 +204,7 @@ class AgentService:
         self._watch = FleetWatch(self._events)
         self._events_seen: dict[int, int] = {}
         self._events_held: list[Event] = []  # collected from a mirror, for the next round (_collect_events)
+        self._events_lock = threading.Lock()  # a supervisor round and the stop's last collection
         self._workers_seen: dict[int, tuple[bool, int]] = {}
         self._state_file = StateFile(config.twin.state_file) if config.twin.state_file else None
         # Set to make the supervisor take checkpoints now (an acknowledgement must reach the state file).
@@ -959,23 +960,30 @@ class AgentService:
 
     def arm_view(self, device: str) -> ArmView:
         """The console's arm page: one arm, asked of its own mirror only (Mirror.arm), with the messages the
-        agent dropped for it, as the whole state would show it. A worker being started again: from the whole
-        state, which gives its arms as its latest checkpoint left them."""
+        agent dropped for it, as the whole state would show it. A worker being started again, or one that
+        does not answer in time: as its latest checkpoint left the arm (as the whole state shows it then),
+        without asking any worker again."""
         shard = self._shards[self.plan.worker_of(device)]
         if shard.answering:
             try:
                 reply = arm_reply_of(shard.request(ArmRequest(device))())
             except WorkerError as exc:
-                log.debug("arm %s asked of its mirror: %s; read from the whole state", device, exc)
+                log.debug("arm %s asked of its mirror: %s; shown from its checkpoint", device, exc)
             else:
                 state = reply.state
                 dropped = shard.dropped().get(device, 0) if state is not None else 0
                 if state is not None and dropped:
                     state = with_dropped(state, dropped)
                 return ArmView(self._wall_clock(), state, reply.alarms, self._calibration_store)
-        whole = self.state()
-        alarms = [a for a in self.alarms() if a.device == device]
-        return ArmView(whole.agent.time, whole.devices.get(device), alarms, whole.agent.calibration_store)
+        state = self._checkpoint_devices([shard]).get(device)
+        dropped = shard.dropped().get(device, 0) if state is not None else 0
+        if state is not None and dropped:
+            state = with_dropped(state, dropped)
+        alarms = sorted(
+            (a for a in self._checkpoint_alarms([shard], include_normal=False) if a.device == device),
+            key=alarm_order,
+        )
+        return ArmView(self._wall_clock(), state, alarms, self._calibration_store)
 
     def events(self, query: EventQuery) -> list[Event]:
         """The twin's events that match `query` (docs/console.md): the agent's own and every mirror's,
@@ -986,6 +994,13 @@ class AgentService:
         """On the supervisor thread: broker reconnects, worker exits and restarts, and each mirror's new
         events, into the agent's store, numbered anew in the order they happened (a merge by time of the
         mirrors' lists, each kept in its order), so one mirror's do not all follow another's."""
+        with self._events_lock:
+            if self._stopping.is_set():
+                return  # the stop collects what is left (_collect_last_events), once the shards ended
+            self._collect_round()
+
+    def _collect_round(self) -> None:
+        """`_collect_events`, its lock held."""
         if self._started_pool:
             self._watch.broker(self._pool.connections())
         collected: list[Sequence[Event]] = []
@@ -1019,13 +1034,18 @@ class AgentService:
     def _collect_last_events(self) -> None:
         """After the shards stopped: the events no round collected (held over, made in the last half second
         or as the mirrors handled what was queued), from their stop reports, so an alarm raised then is
-        listed and alerted too."""
+        listed and alerted too. A supervisor round still under way (the stop waits for it a few seconds at
+        most) finishes first: they share what was collected."""
+        with self._events_lock:
+            self._collect_from_reports()
+
+    def _collect_from_reports(self) -> None:
         ready: list[Sequence[Event]] = [self._events_held]
         self._events_held = []
         for index, report in sorted(self.stop_reports.items()):
             if report is None or not report.events:
                 continue
-            seen = self._events_seen.get(index, 0)
+            seen = self._events_seen_of(self._shards[index])
             fresh = [e for e in report.events if e.id > seen]
             missed = fresh[0].id - seen - 1 if fresh else 0
             if missed > 0:
@@ -1038,6 +1058,15 @@ class AgentService:
             ready.append(fresh)
         if any(ready):
             self._events.ingest(heapq.merge(*ready, key=attrgetter("time")))
+
+    def _events_seen_of(self, shard: Shard) -> int:
+        """The id of the last event of the shard's process that a round collected: 0 for a process started
+        again since the last round (the supervisor's restart can end just as a stop begins, and the round
+        that would have seen it is not made), which numbers its events from 1."""
+        info = shard.describe(None)
+        if info is not None and info.restarts != self._workers_seen.get(shard.index, (True, 0))[1]:
+            return 0
+        return self._events_seen.get(shard.index, 0)
 
     def _watch_worker(self, shard: Shard) -> None:
         info = shard.describe(None)
