@@ -45,13 +45,15 @@ def owned_tempdir(prefix: str) -> Path:
     remove_orphans(prefix)
     pid = os.getpid()
     hidden = Path(tempfile.mkdtemp(prefix=f".{prefix}"))
-    fd = os.open(hidden / OWNER_FILE, os.O_RDWR | os.O_CREAT, 0o600)
+    fd = -1
     try:
+        fd = os.open(hidden / OWNER_FILE, os.O_RDWR | os.O_CREAT, 0o600)
         fcntl.flock(fd, fcntl.LOCK_EX)
         named = hidden.with_name(f"{prefix}{pid}-{_start_time(pid) or 0}-{hidden.name[len(prefix) + 1 :]}")
         os.rename(hidden, named)
     except OSError:
-        os.close(fd)
+        if fd >= 0:
+            os.close(fd)
         shutil.rmtree(hidden, ignore_errors=True)
         raise
     _owned[named] = fd
@@ -98,18 +100,21 @@ def remove_orphans(prefix: str) -> list[Path]:
 
 
 def _locked(directory: Path) -> bool:
-    """Whether a live process holds `directory`'s lock (its owner, in a PID namespace of its own maybe).
-    Without the lock file (an agent older than the lock made it), the pid alone decides, as it did then."""
+    """Whether a live process may hold `directory`'s lock (its owner, in a PID namespace of its own maybe).
+    Without the lock file (an agent older than the lock made it), the pid alone decides, as it did then. A
+    lock that cannot be tried (a filesystem without flock, say) counts as held: a directory left behind
+    costs little, one removed under a running agent costs its socket."""
     try:
-        fd = os.open(directory / OWNER_FILE, os.O_RDONLY)
-    except OSError:
+        # Opened for writing: where flock is emulated with byte-range locks (NFS), an exclusive one needs it.
+        fd = os.open(directory / OWNER_FILE, os.O_RDWR)
+    except FileNotFoundError:
         return False
+    except OSError:
+        return True
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        return True
     except OSError:
-        return False
+        return True  # held (BlockingIOError), or not to be tried
     finally:
         os.close(fd)  # (which lets go of the lock, if it was taken)
     return False
