@@ -439,6 +439,18 @@ def test_a_file_named_for_another_arm_is_stored_with_a_warning(
     assert f"`twin calibration restore arm-003{again}`" in capsys.readouterr().err
     assert main(["calibration", "restore", "arm-003", *store]) == cmd.EXIT_OK
     assert DirectoryStore(tmp_path / "cal").read("arm-003") == EXAMPLE.read_bytes()
+    # An arm whose own was removed has it kept: rm would keep the slip in its place, so that is not the undo.
+    assert main(["calibration", "rm", "arm-003", *store]) == cmd.EXIT_OK
+    capsys.readouterr()
+    assert main(["calibration", "push", "arm-003", str(own), *store]) == cmd.EXIT_OK
+    err = capsys.readouterr().err
+    assert "keeps it in place of the calibration kept from before" in err, err
+    assert "save that one first" in err, err
+    assert DirectoryStore(tmp_path / "cal").read_kept("arm-003") == EXAMPLE.read_bytes()
+    # The same file again writes nothing, and warns of no slip.
+    assert main(["calibration", "push", "arm-003", str(own), *store]) == cmd.EXIT_OK
+    out, err = capsys.readouterr()
+    assert "nothing written" in out and "warning" not in err, err
 
 
 def test_without_aws_push_names_the_store_of_an_agent_on_this_machine(

@@ -239,19 +239,16 @@ def _current(store: CalibrationStore, arm: str) -> tuple[bytes | None, dict[str,
 
 def _push(store: CalibrationStore, arm: str, file: Path, data: bytes, again: str) -> int:
     current, listing = _current(store, arm)
-    named_for = file.stem
-    if named_for != arm and named_for in listing:
-        # LeRobot names the file for the arm it calibrated: this may be another arm's, pushed by mistake.
-        # Undone by restore when it replaces one (which push keeps), else by rm: restore would find none.
-        undo = "restore" if current is not None else "rm"
-        console.err(
-            f"warning: {file.name} is named for {named_for}, which has a calibration of its own in "
-            f"{store.uri}; it is stored as {arm}'s, as asked (if that was a slip: "
-            f"`twin calibration {undo} {arm}{again}`)"
-        )
     if current == data:
         console.out(f"{arm}: {store.uri_of(arm)} already holds this calibration; nothing written")
         return EXIT_OK
+    named_for = file.stem
+    if named_for != arm and named_for in listing:
+        # LeRobot names the file for the arm it calibrated: this may be another arm's, pushed by mistake.
+        console.err(
+            f"warning: {file.name} is named for {named_for}, which has a calibration of its own in "
+            f"{store.uri}; it is stored as {arm}'s, as asked ({_undo(store, arm, current, again)})"
+        )
     # The one it replaces is kept first: if that fails, nothing has changed.
     kept = None if current is None else store.write_kept(arm, current)
     where = store.write(arm, data)
@@ -259,6 +256,19 @@ def _push(store: CalibrationStore, arm: str, file: Path, data: bytes, again: str
     if kept is not None:
         console.out(f"{arm}: the one it replaced is kept at {kept} (`twin calibration restore {arm}{again}`)")
     return EXIT_OK
+
+
+def _undo(store: CalibrationStore, arm: str, current: bytes | None, again: str) -> str:
+    """How a push about to replace `current` (None: the arm has none) is undone, if it was a slip."""
+    if current is not None:
+        return f"if that was a slip: `twin calibration restore {arm}{again}`"  # push keeps what it replaces
+    if store.read_kept(arm) is None:
+        return f"if that was a slip: `twin calibration rm {arm}{again}`"
+    # rm keeps what it removes, in place of the calibration kept from before (an rm's): that one would go.
+    return (
+        f"if that was a slip, `twin calibration rm {arm}{again}` takes it out but keeps it in place of the "
+        f"calibration kept from before, which `twin calibration ls{again}` shows: save that one first"
+    )
 
 
 def _rm(store: CalibrationStore, arm: str, again: str) -> int:
