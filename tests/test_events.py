@@ -12,6 +12,7 @@ import pickle
 import random
 import signal
 import threading
+from multiprocessing import Pipe
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +23,7 @@ from twin.core.health import DeviceStatus
 from twin.edge.payload import encode, make_payload
 from twin.rig.local import LocalRig
 from twin.service import events
+from twin.service.admission import DeviceBudget
 from twin.service.agent import AgentService
 from twin.service.config import load_config
 from twin.service.events import (
@@ -38,7 +40,8 @@ from twin.service.events import (
     events_json,
     neutralise_cell,
 )
-from twin.service.shards import WorkerPlan
+from twin.service.mirror import Mirror, PipeInbox
+from twin.service.shards import EVENTS_PER_ASK, EventsRequest, WorkerPlan, events_of
 
 
 class Clock:
@@ -112,6 +115,24 @@ def test_an_event_crosses_a_process_boundary_and_is_renumbered() -> None:
     front.emit(EventKind.WORKER, EventLevel.INFO, "worker 0 running again")
     (ingested,) = front.ingest([copied])
     assert ingested.id == 2 and ingested.message == "hot" and ingested.time == event.time
+
+
+def test_a_mirror_hands_a_burst_of_events_over_oldest_first_over_the_rounds() -> None:
+    # More than one ask's worth between two rounds (2,000 arms going STALE at once, say): each ask takes the
+    # next EVENTS_PER_ASK after the last one collected, so none is skipped.
+    config = load_config(None, {"telemetry.devices": ["*"], "telemetry.units": "ticks"})
+    mirror = Mirror(config, inbox=PipeInbox(Pipe(duplex=False)[0]), budget=DeviceBudget(4))
+    burst = 2 * EVENTS_PER_ASK + 7
+    for n in range(burst):
+        device = f"arm-{n:05d}"
+        mirror._events.emit(EventKind.STATUS, EventLevel.WARNING, f"{device} is STALE", device=device)
+    handed: list[Event] = []
+    while len(handed) < burst:
+        answer = events_of(mirror.answer(EventsRequest(handed[-1].id if handed else 0)))
+        assert 0 < len(answer) <= EVENTS_PER_ASK
+        handed.extend(answer)
+    assert [e.id for e in handed] == list(range(1, burst + 1))
+    assert events_of(mirror.answer(EventsRequest(burst))) == ()
 
 
 def test_subscribers_see_every_new_event_once() -> None:

@@ -1018,6 +1018,9 @@ class AgentService:
                 continue
             line = asked if line is None else line
             if fresh:
+                missed = fresh[0].id - after - 1  # its store keeps the newest 20,000: it went past them
+                if missed > 0:
+                    log.warning("%d events of mirror %d were not collected", missed, shard.index)
                 self._events_seen[shard.index] = fresh[-1].id
                 collected.append(fresh)
         # A mirror asked after the first may answer with events newer than what the first one makes next:

@@ -264,7 +264,8 @@ ARM_CONFIGURED = "arm_configured"
 
 @dataclass(frozen=True, slots=True)
 class EventsRequest:
-    """The mirror's events after `after_id` (its own numbering), oldest first, at most EVENTS_PER_ASK."""
+    """The mirror's events after `after_id` (its own numbering), oldest first: the first EVENTS_PER_ASK of
+    them (the next request asks after the last)."""
 
     after_id: int = 0
 
