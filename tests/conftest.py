@@ -269,6 +269,24 @@ def metric(samples: dict[tuple[str, tuple[tuple[str, str], ...]], float], name: 
     return samples[key]
 
 
+def unbrokered_agent(tmp_path: Path, workers: int = 2) -> AgentService:
+    """A started AgentService fed only through `feed` (its broker, NO_BROKER, never answers), ticks telemetry,
+    its alarms kept in tmp_path/state.json, `workers` worker processes (1: the mirror in-process). The
+    caller stops it."""
+    config = load_config(
+        None,
+        {
+            "broker.url": NO_BROKER,
+            "http.listen": "127.0.0.1:0",
+            "telemetry.units": "ticks",
+            "twin.state_file": str(tmp_path / "state.json"),
+        },
+    )
+    agent = AgentService(config, workers=workers)
+    agent.start()
+    return agent
+
+
 @contextmanager
 def fed_agent(messages: int = 12, *, sinks: Sequence[Any] = (), **overrides: Any) -> Iterator[AgentService]:
     """A started AgentService fed through `feed` (no broker needed: the configured one never

@@ -12,11 +12,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import NO_BROKER, http_get, wait_for
+from conftest import http_get, unbrokered_agent, wait_for
 from twin.edge.payload import encode, make_payload
 from twin.rig.local import LocalRig
-from twin.service.agent import AgentService
-from twin.service.config import load_config
 from twin.service.console import FLEET_COLUMNS, fleet_rows
 from twin.service.shards import WorkerError
 
@@ -135,17 +133,7 @@ def test_an_arm_page_is_read_from_its_own_worker_without_the_fleet_state(rig: Lo
 
 def test_an_arm_whose_worker_does_not_answer_is_shown_from_its_checkpoint(tmp_path: Path) -> None:
     # One ask per arm and tick, not two: a worker that does not answer is not asked again for the whole state.
-    config = load_config(
-        None,
-        {
-            "broker.url": NO_BROKER,
-            "http.listen": "127.0.0.1:0",
-            "telemetry.units": "ticks",
-            "twin.state_file": str(tmp_path / "state.json"),
-        },
-    )
-    agent = AgentService(config, workers=2)
-    agent.start()
+    agent = unbrokered_agent(tmp_path, 2)
     try:
         device = next(d for d in DEVICES if agent.plan.worker_of(d) == 1)
         payload = encode(make_payload(device, 0.0, "ticks", random.Random(2)))

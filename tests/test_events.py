@@ -18,13 +18,12 @@ from typing import Any
 
 import msgspec
 import pytest
-from conftest import NO_BROKER, wait_for
+from conftest import unbrokered_agent, wait_for
 from twin.core.health import DeviceStatus
 from twin.edge.payload import encode, make_payload
 from twin.rig.local import LocalRig
 from twin.service import events
 from twin.service.admission import DeviceBudget
-from twin.service.agent import AgentService
 from twin.service.config import load_config
 from twin.service.events import (
     BrokerWatch,
@@ -394,17 +393,7 @@ def test_two_workers_arrivals_are_numbered_in_the_order_they_happened(tmp_path: 
         if len(by_worker[plan.worker_of(name)]) < 4:
             by_worker[plan.worker_of(name)].append(name)
     alternate = [d for pair in zip(by_worker[0], by_worker[1], strict=True) for d in pair]
-    config = load_config(
-        None,
-        {
-            "broker.url": NO_BROKER,
-            "http.listen": "127.0.0.1:0",
-            "telemetry.units": "ticks",
-            "twin.state_file": str(tmp_path / "state.json"),
-        },
-    )
-    agent = AgentService(config, workers=2)
-    agent.start()
+    agent = unbrokered_agent(tmp_path, 2)
     try:
         rng = random.Random(3)
         for device in alternate:  # each handled before the next is fed: the order they happened in
@@ -429,17 +418,7 @@ def test_events_a_mirror_makes_as_the_agent_stops_are_listed(tmp_path: Path, wor
     # Fed and stopped at once: the messages are handled while the mirrors drain their queues at the stop,
     # after the last round that collects events. Their arrivals (an alarm's raise, likewise) still reach the
     # agent's list, and through it the alert publisher.
-    config = load_config(
-        None,
-        {
-            "broker.url": NO_BROKER,
-            "http.listen": "127.0.0.1:0",
-            "telemetry.units": "ticks",
-            "twin.state_file": str(tmp_path / "state.json"),
-        },
-    )
-    agent = AgentService(config, workers=workers)
-    agent.start()
+    agent = unbrokered_agent(tmp_path, workers)
     devices = [f"arm-{n:03d}" for n in range(1, 5)]
     try:
         rng = random.Random(4)
@@ -458,17 +437,7 @@ def test_a_worker_started_again_just_before_the_stop_has_its_last_events_listed(
 ) -> None:
     # The supervisor's restart can end as the stop begins, before a round notices the new process, which
     # numbers its events from 1: the stop must not take them for ones it collected from the old process.
-    config = load_config(
-        None,
-        {
-            "broker.url": NO_BROKER,
-            "http.listen": "127.0.0.1:0",
-            "telemetry.units": "ticks",
-            "twin.state_file": str(tmp_path / "state.json"),
-        },
-    )
-    agent = AgentService(config, workers=2)
-    agent.start()
+    agent = unbrokered_agent(tmp_path, 2)
     plan, rng = WorkerPlan(2), random.Random(5)
     mine = [d for d in (f"arm-{n:03d}" for n in range(1, 200)) if plan.worker_of(d) == 0][:7]
     status = EventQuery(kinds=frozenset({EventKind.STATUS.value}))
