@@ -964,25 +964,21 @@ class AgentService:
         does not answer in time: as its latest checkpoint left the arm (as the whole state shows it then),
         without asking any worker again."""
         shard = self._shards[self.plan.worker_of(device)]
+        reply = None
         if shard.answering:
             try:
                 reply = arm_reply_of(shard.request(ArmRequest(device))())
             except WorkerError as exc:
                 log.debug("arm %s asked of its mirror: %s; shown from its checkpoint", device, exc)
-            else:
-                state = reply.state
-                dropped = shard.dropped().get(device, 0) if state is not None else 0
-                if state is not None and dropped:
-                    state = with_dropped(state, dropped)
-                return ArmView(self._wall_clock(), state, reply.alarms, self._calibration_store)
-        state = self._checkpoint_devices([shard]).get(device)
+        if reply is not None:
+            state, alarms = reply.state, list(reply.alarms)
+        else:
+            state = self._checkpoint_devices([shard]).get(device)
+            silent = self._checkpoint_alarms([shard], include_normal=False)
+            alarms = sorted((a for a in silent if a.device == device), key=alarm_order)
         dropped = shard.dropped().get(device, 0) if state is not None else 0
         if state is not None and dropped:
             state = with_dropped(state, dropped)
-        alarms = sorted(
-            (a for a in self._checkpoint_alarms([shard], include_normal=False) if a.device == device),
-            key=alarm_order,
-        )
         return ArmView(self._wall_clock(), state, alarms, self._calibration_store)
 
     def events(self, query: EventQuery) -> list[Event]:

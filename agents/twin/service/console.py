@@ -6,7 +6,7 @@ arrays under one list of column names, built once per tick from the state every 
 (`fleet_summary`), with the notices a card cannot show (a subscription the broker refuses) and what the agent
 listens on (for the page's word while no arm has been heard from). An arm's page
 gets that arm's full state and its alarms (`arm_document`), read from its own mirror where the source can
-(`ArmViewSource`), otherwise cut from the whole state (`arm_update`).
+(`ArmViewSource`), otherwise cut from the whole state (`arm_view_of`).
 
 Sessions come from the telemetry history, which the service layer cannot read itself (the reader lives with
 the tools, above it): whoever runs the agent hands the HTTP server a `SessionCatalog` (the CLI's
@@ -44,7 +44,7 @@ __all__ = [
     "SessionCatalog",
     "SessionInfo",
     "arm_document",
-    "arm_update",
+    "arm_view_of",
     "device_rows",
     "fleet_notes",
     "fleet_row",
@@ -342,11 +342,22 @@ def fleet_summary(
     )
 
 
-def arm_update(state: AgentState, device: str, alarms: Sequence[AlarmInfo]) -> bytes:
-    """`arm_document` of one arm, from the whole state and every alarm (a source that is no ArmViewSource)."""
+def arm_view_of(
+    source: StateReader,
+    device: str,
+    state: AgentState | None = None,
+    alarms: Sequence[AlarmInfo] | None = None,
+) -> ArmView:
+    """One arm's view (blocking): asked of its own mirror when the source can (ArmViewSource), otherwise
+    cut from the whole state and every alarm (those given, else read here), as `fleet_parts` does for rows."""
+    if isinstance(source, ArmViewSource):
+        return source.arm_view(device)
+    if state is None:
+        state = source.state()
+    if alarms is None:
+        alarms = source.alarms() if isinstance(source, AlarmLister) else ()
     mine = [a for a in alarms if a.device == device]
-    view = ArmView(state.agent.time, state.devices.get(device), mine, state.agent.calibration_store)
-    return arm_document(device, view)
+    return ArmView(state.agent.time, state.devices.get(device), mine, state.agent.calibration_store)
 
 
 def arm_document(device: str, view: ArmView) -> bytes:

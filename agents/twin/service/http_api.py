@@ -57,12 +57,11 @@ from twin.service.config import DEFAULT_HTTP_HOST, DEFAULT_HTTP_PORT, HttpSectio
 from twin.service.console import (
     ASSETS,
     SESSION_FILE_KINDS,
-    ArmViewSource,
     EventSource,
     SessionCatalog,
     SessionInfo,
     arm_document,
-    arm_update,
+    arm_view_of,
     fleet_parts,
     fleet_summary,
     not_found_page,
@@ -614,16 +613,10 @@ class AgentHttpServer:
 
     async def _api_arm(self, request: Request) -> Response:
         device = request.path_params["device"]
-        source = self._source
-        if isinstance(source, ArmViewSource):
-            view = await self._call(lambda: source.arm_view(device))
-            if view.state is not None:
-                return _json(200, arm_document(device, view))
-        else:
-            state = await self._call(source.state)
-            if device in state.devices:
-                return _json(200, arm_update(state, device, await self._alarm_list()))
-        return _error(404, "device_not_found", device=device, detail="GET /api/fleet lists every device")
+        view = await self._call(lambda: arm_view_of(self._source, device))
+        if view.state is None:
+            return _error(404, "device_not_found", device=device, detail="GET /api/fleet lists every device")
+        return _json(200, arm_document(device, view))
 
     async def _stream_fleet(self, request: Request) -> Response:
         return self._subscribe(FLEET)

@@ -1563,13 +1563,9 @@ class Mirror:
         are not NORMAL, worst first: an arm page's, without reading the fleet."""
         readout = self._read(device)
         reading = readout.health.get(device)
-        with self._lock:
-            now = self._clock()
-            views = self._alarms.views(device=device)
-        wall = self._wall_clock()
         return ArmReply(
             state=self._device_state(device, reading.snapshot(), readout) if reading is not None else None,
-            alarms=tuple(alarm_info(v, now, wall) for v in views),
+            alarms=self.alarms(device=device),
         )
 
     @staticmethod
@@ -1613,11 +1609,11 @@ class Mirror:
 
     # ------------------------------------------------------------------------------------ alarms (people)
 
-    def alarms(self, *, include_normal: bool = False) -> tuple[AlarmInfo, ...]:
-        """Servo alarms, worst first (GET /alarms); NORMAL ones only when asked."""
+    def alarms(self, *, include_normal: bool = False, device: str | None = None) -> tuple[AlarmInfo, ...]:
+        """Servo alarms, worst first (GET /alarms), of every arm or of `device`; NORMAL ones if asked."""
         with self._lock:
             now = self._clock()
-            views = self._alarms.views(include_normal=include_normal)
+            views = self._alarms.views(include_normal=include_normal, device=device)
         wall = self._wall_clock()
         return tuple(alarm_info(v, now, wall) for v in views)
 

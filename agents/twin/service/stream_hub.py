@@ -31,7 +31,7 @@ from twin.service.console import (
     FleetRowSource,
     StateReader,
     arm_document,
-    arm_update,
+    arm_view_of,
     fleet_parts,
     fleet_summary,
 )
@@ -187,12 +187,8 @@ class StreamHub:
             self._publish(FLEET, sse_frame("fleet", fleet_summary(rows, time.time(), notices, listening)))
         for topic in arms:
             device = topic[len(ARM_PREFIX) :]
-            if isinstance(source, ArmViewSource):
-                view = await asyncio.to_thread(source.arm_view, device)
-                self._publish(topic, sse_frame("arm", arm_document(device, view)))
-            else:
-                assert state is not None
-                self._publish(topic, sse_frame("arm", arm_update(state, device, alarms)))
+            view = await asyncio.to_thread(arm_view_of, source, device, state, alarms)
+            self._publish(topic, sse_frame("arm", arm_document(device, view)))
         if console_due and EVENTS in self._subs and isinstance(source, EventSource):
             await self._tick_events(source)
 
