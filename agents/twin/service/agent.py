@@ -63,7 +63,6 @@ from twin.service.events import Event, EventKind, EventLevel, EventQuery, EventS
 from twin.service.persist import StateFile
 from twin.service.shards import (
     CHECKPOINT_EVERY_S,
-    EVENTS_PER_ASK,
     AckRequest,
     AlarmsRequest,
     ArmForgotten,
@@ -1014,11 +1013,8 @@ class AgentService:
                 continue
             line = asked if line is None else line
             if fresh:
-                missed = fresh[0].id - after - 1  # its store keeps the newest 20,000: it went past them
-                if missed > 0:
-                    log.warning("%d events of mirror %d were not collected", missed, shard.index)
                 self._events_seen[shard.index] = fresh[-1].id
-                collected.append(fresh)
+                collected.append(_new_events(shard.index, fresh, after))
         # A mirror asked after the first may answer with events newer than what the first one makes next:
         # those wait for the next round (one round at most), so they do not go before older ones.
         held, self._events_held = self._events_held, []
@@ -1027,6 +1023,10 @@ class AgentService:
             cut = len(events) if line is None else bisect_right(events, line, key=attrgetter("time"))
             ready.append(events[:cut])
             self._events_held.extend(events[cut:])
+        self._ingest_in_order(ready)
+
+    def _ingest_in_order(self, ready: Sequence[Sequence[Event]]) -> None:
+        """Lists of events, each in its mirror's order, into the store merged by the time they happened."""
         if any(ready):
             self._events.ingest(heapq.merge(*ready, key=attrgetter("time")))
 
@@ -1044,19 +1044,8 @@ class AgentService:
         for index, report in sorted(self.stop_reports.items()):
             if report is None or not report.events:
                 continue
-            seen = self._events_seen_of(self._shards[index])
-            fresh = [e for e in report.events if e.id > seen]
-            missed = fresh[0].id - seen - 1 if fresh else 0
-            if missed > 0:
-                log.warning(
-                    "%d events of mirror %d are not listed: over %d since the last round, at the stop",
-                    missed,
-                    index,
-                    EVENTS_PER_ASK,
-                )
-            ready.append(fresh)
-        if any(ready):
-            self._events.ingest(heapq.merge(*ready, key=attrgetter("time")))
+            ready.append(_new_events(index, report.events, self._events_seen_of(self._shards[index])))
+        self._ingest_in_order(ready)
 
     def _events_seen_of(self, shard: Shard) -> int:
         """The id of the last event of the shard's process that a round collected: 0 for a process started
@@ -1208,6 +1197,16 @@ _DIED_AFTER = "worker {index} died as it answered, and is being started again wi
 def alarm_order(info: AlarmInfo) -> tuple[int, int, str]:
     """Worst first, as ServoAlarms.views orders them (core.alarms.worst_first)."""
     return worst_first(info.severity, info.state, info.alarm_id)
+
+
+def _new_events(index: int, events: Sequence[Event], seen: int) -> Sequence[Event]:
+    """A mirror's `events` (its numbering, oldest first) after the `seen` one, saying how many between were
+    never collected: its store keeps the newest 20,000, and a stop report the newest EVENTS_PER_ASK."""
+    fresh = [e for e in events if e.id > seen]
+    missed = fresh[0].id - seen - 1 if fresh else 0
+    if missed > 0:
+        log.warning("%d events of mirror %d were not collected", missed, index)
+    return fresh
 
 
 def fleet_totals(state: AgentState, expected_rate_hz: float) -> FleetTotals:
