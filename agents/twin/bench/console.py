@@ -73,13 +73,18 @@ def _wait_fleet(base: str, arms: int, proc: Any) -> float:
     raise RuntimeError(f"the agent did not list {arms} arms within {FLEET_TIMEOUT_S:.0f} s")
 
 
-def _open_fleet(context: Any, base: str, arms: int) -> Any:
+def _open(context: Any, url: str, ready: str) -> Any:
+    """A console page at `url`, loopback only, once the `ready` expression holds in it."""
     page = context.new_page()
     page.route("**/*", loopback_only)
     page.set_default_timeout(FLEET_TIMEOUT_S * 1000)
-    page.goto(base + "/")
-    page.wait_for_function(f"() => window.twinReadyAt && window.twinRows >= {arms}")
+    page.goto(url)
+    page.wait_for_function(f"() => {ready}")
     return page
+
+
+def _open_fleet(context: Any, base: str, arms: int) -> Any:
+    return _open(context, base + "/", f"window.twinReadyAt && window.twinRows >= {arms}")
 
 
 def _interactive(rig: LocalRig, arms: int, rate: float, runs: int) -> dict[str, Any]:
@@ -185,11 +190,7 @@ def _cpu(rig: LocalRig, arms: int, rate: float, seconds: float, consoles: int) -
 def _arm_page_cpu(browser: Any, base: str, pid: int, seconds: float) -> float:
     """The agent's CPU (% of a core) over `seconds` with one arm's page open (the fleet's first arm)."""
     context = browser.new_context(viewport={"width": 1280, "height": 800})
-    page = context.new_page()
-    page.route("**/*", loopback_only)
-    page.set_default_timeout(FLEET_TIMEOUT_S * 1000)
-    page.goto(base + "/arm/arm-0001")
-    page.wait_for_function("() => window.twinReadyAt")
+    _open(context, base + "/arm/arm-0001", "window.twinReadyAt")
     sampler = ProcessSampler(pid).start()
     time.sleep(seconds)
     measured = sampler.stop()
