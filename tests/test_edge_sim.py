@@ -390,3 +390,18 @@ def test_a_device_id_the_stack_refuses_is_refused_at_argument_time(
     assert POLICY_DEVICE_ID_RULE in err and "pass --device such an id (as the arm's edge publishes)" in err, (
         err
     )
+
+
+def test_a_refused_connection_names_the_broker_and_what_to_check(caplog: pytest.LogCaptureFixture) -> None:
+    # Nothing listens on NO_BROKER's port: the simulator gives up at its connect timeout with the last error
+    # and the hint (is a broker there, else the URL), in its log line and in what it raises, so a user who
+    # started it before the broker sees what to do.
+    config = EdgeSimConfig(broker=BrokerConfig(url=NO_BROKER), seconds=1.0, connect_timeout_s=3.0)
+    with caplog.at_level("WARNING", logger="twin.edge"), pytest.raises(ConnectionError) as raised:
+        EdgeSimulator(config).run()
+    message = str(raised.value)
+    assert message.startswith(f"edge-sim could not connect to {NO_BROKER} within 3 s: "), message
+    assert "Is a broker listening on 127.0.0.1 port 1 (a local one: `mosquitto -p 1`)?" in message, message
+    assert "Else fix the URL in --broker" in message, message
+    lines = [r.getMessage() for r in caplog.records if "could not connect to" in r.getMessage()]
+    assert lines and "Is a broker listening on 127.0.0.1 port 1" in lines[0], lines

@@ -34,7 +34,7 @@ from twin.edge.servo_faults import ModelLoads, ServoFault
 from twin.edge.servo_physics import SERVO_MODES, PhysicalServoConfig
 
 __all__ = ["EdgeSimConfig", "EdgeSimReport", "EdgeSimulator", "FaultConfig", "device_ids"]
-from twin.transport.broker import BrokerConfig, new_client_id
+from twin.transport.broker import BrokerConfig, connect_hint, new_client_id
 from twin.transport.client import build_mqtt5_client
 
 log = logging.getLogger(__name__)
@@ -151,11 +151,27 @@ def _physical_arms(config: EdgeSimConfig) -> dict[str, Any]:
     return arms
 
 
+def _not_connected(config: EdgeSimConfig, failure: str) -> str:
+    """Why the simulator gives up: where it tried, for how long, and the last error with what to check."""
+    why = (
+        f": {failure}"
+        if failure
+        else " (no answer at all: is the broker running and the URL's host and port right?)"
+    )
+    return (
+        f"edge-sim could not connect to {config.broker.where()} within {config.connect_timeout_s:.0f} s{why}"
+    )
+
+
 class _Connection:
     """One MQTT5 client plus the bookkeeping the simulator needs, filled in from CRT callbacks."""
 
     def __init__(self, config: BrokerConfig, report: EdgeSimReport, lock: threading.Lock) -> None:
         self.client_id = new_client_id(config.client_id_prefix)
+        self._config = config
+        # The last failed connect's error and what to check (connect_hint), for the give-up message: the
+        # log's lines may have scrolled away by then.
+        self.failure = ""
         self.connected = threading.Event()
         self.stopped = threading.Event()
         self._report = report
@@ -175,7 +191,14 @@ class _Connection:
         self.connected.set()
 
     def _on_failure(self, data: Any) -> None:
-        log.warning("edge-sim %s could not connect: %s", self.client_id, data.exception)
+        hint = connect_hint(self._config, data.exception)
+        self.failure = f"{data.exception}{f'. {hint}' if hint else ''}"
+        log.warning(
+            "edge-sim %s could not connect to %s: %s; retrying",
+            self.client_id,
+            self._config.where(),
+            self.failure,
+        )
 
     def _on_disconnection(self, data: Any) -> None:
         self.connected.clear()
@@ -251,10 +274,7 @@ class EdgeSimulator:
         try:
             for connection in connections:
                 if not connection.connected.wait(config.connect_timeout_s):
-                    raise ConnectionError(
-                        f"edge-sim could not connect to {config.broker.url} within "
-                        f"{config.connect_timeout_s:.0f} s; is the broker running? (the log shows the error)"
-                    )
+                    raise ConnectionError(_not_connected(config, connection.failure))
             self._loop(stop_event, route)
             self._flush(route)
             self._wait_outstanding(connections, timeout=10.0)
