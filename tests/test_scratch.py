@@ -8,6 +8,7 @@ Real processes, each making the HistoryProcess an agent makes, in a temporary di
 
 from __future__ import annotations
 
+import fcntl
 import multiprocessing
 import os
 import signal
@@ -148,3 +149,30 @@ def test_a_directory_is_locked_before_it_has_its_name_and_released_when_removed(
     scratch.remove(made)
     assert not made.exists() and made not in scratch._owned
     scratch.remove(made)  # twice: nothing more to do
+
+
+def test_a_hidden_directory_a_kill_left_before_its_rename_goes_once_old_and_unlocked(tmp_dir: Path) -> None:
+    # owned_tempdir makes a hidden directory, locks it and renames it; a kill in between leaves the hidden
+    # one, which names no owner. Only an old one is a killed maker's (a young one is being made), and a
+    # locked one is a maker's that is about to rename it.
+    old = time.time() - scratch.HIDDEN_GRACE_S - 5
+    left = tmp_dir / ".twin-history-k1ll3d00"
+    young = tmp_dir / ".twin-history-m4k1ng00"
+    held = tmp_dir / ".twin-history-l0ck3d00"
+    other_prefix = tmp_dir / ".twin-other-k1ll3d00"
+    for directory in (left, young, held, other_prefix):
+        directory.mkdir()
+        (directory / scratch.OWNER_FILE).touch()
+    for directory in (left, held, other_prefix):
+        os.utime(directory, (old, old))
+    # Another open file description of the lock file: the same conflict as another process's flock.
+    fd = os.open(held / scratch.OWNER_FILE, os.O_RDWR)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        removed = scratch.remove_orphans("twin-history-")
+    finally:
+        os.close(fd)
+
+    assert removed == [left]
+    assert not left.exists()
+    assert young.exists() and held.exists() and other_prefix.exists()

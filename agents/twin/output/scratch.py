@@ -17,7 +17,9 @@ on a file in its directory (OWNER_FILE) for as long as it lives, and the kernel 
 ends, however it ends; a lock is the same lock in every namespace on the host. A directory whose pid says
 its owner is gone is removed only when its lock can be taken. The lock is taken before the directory gets
 its name (it is made under a hidden one, locked, then renamed), so no other agent ever sees it named and
-unlocked.
+unlocked. A process killed in that instant leaves the hidden one, which names no owner: it is removed once
+it is older than HIDDEN_GRACE_S and unlocked, since the steps from its making to its rename take
+microseconds.
 """
 
 from __future__ import annotations
@@ -29,12 +31,15 @@ import re
 import shutil
 import stat
 import tempfile
+import time
 from pathlib import Path
 
 log = logging.getLogger(__name__)
 
 _PROC = Path("/proc")
 OWNER_FILE = ".owner"
+# A hidden directory (still to be locked and named) this old is a killed maker's, not one being made.
+HIDDEN_GRACE_S = 60.0
 # The directories this process made, and the open file of each one's lock (the lock lasts while it is open).
 _owned: dict[Path, int] = {}
 
@@ -72,6 +77,8 @@ def remove_orphans(prefix: str) -> list[Path]:
     """Remove this user's directories of `prefix` whose owner no longer runs; returns them."""
     root = Path(tempfile.gettempdir())
     named = re.compile(re.escape(prefix) + r"(\d+)-(\d+)-[^/]+")
+    hidden = re.compile(r"\." + re.escape(prefix) + r"[^/]+")
+    now = time.time()
     removed: list[Path] = []
     try:
         entries = list(os.scandir(root))
@@ -80,13 +87,20 @@ def remove_orphans(prefix: str) -> list[Path]:
         return removed
     for entry in entries:
         owner = named.fullmatch(entry.name)
-        if owner is None or _runs(int(owner[1]), int(owner[2])):
+        if owner is None:
+            if hidden.fullmatch(entry.name) is None:
+                continue
+        elif _runs(int(owner[1]), int(owner[2])):
             continue
         try:
             info = entry.stat(follow_symlinks=False)
         except OSError:
             continue  # gone meanwhile
-        if not stat.S_ISDIR(info.st_mode) or info.st_uid != os.getuid() or _locked(Path(entry.path)):
+        if not stat.S_ISDIR(info.st_mode) or info.st_uid != os.getuid():
+            continue
+        if owner is None and now - info.st_mtime < HIDDEN_GRACE_S:
+            continue  # being made, most likely: locked and named in a moment
+        if _locked(Path(entry.path)):
             continue
         shutil.rmtree(entry.path, ignore_errors=True)
         removed.append(Path(entry.path))
