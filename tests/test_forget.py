@@ -35,6 +35,7 @@ from twin.service.config import load_config
 from twin.service.events import EventKind, EventQuery
 from twin.service.mirror import Mirror, PipeInbox
 from twin.service.shards import ArmNotForgettableError, ArmNotFoundError, WorkerPlan, WorkerShard
+from twin.service.state import DeviceState
 from twin.transport.mailbox import InboundQueue
 from twin.transport.pipe import Batch
 
@@ -487,9 +488,14 @@ def test_a_forgotten_arm_that_publishes_again_has_no_drops_of_before(tmp_path: P
         wait_for(lambda: agent.state().devices[retired].health.status == "OFFLINE", 30, f"{retired} OFFLINE")
         agent.forget_arm(retired)
         agent.feed(f"dt/lerobot/{retired}/telemetry", hot(retired, int(time.time() * 1000), 35))
-        again = wait_for(
-            lambda: agent.state().devices.get(retired), 30, f"{retired} heard from again", interval=0.1
-        )
+
+        # Heard from again once its message is counted: a read in the middle of the worker's batch can list
+        # the arm it admitted before the batch's counts reach it (the counts are what this test is about).
+        def heard() -> DeviceState | None:
+            device = agent.state().devices.get(retired)
+            return device if device is not None and device.health.counters.received else None
+
+        again = wait_for(heard, 30, f"{retired} heard from again", interval=0.1)
         assert again.health.counters.received == 1 and again.health.counters.overwritten == 0, again.health
         assert agent.state().agent.mailbox.overwritten_total >= total
     finally:
