@@ -1,6 +1,7 @@
-"""The stack's bucket: Delta tables the host's agent writes under `history/` (docs/history.md), and each arm's
+"""The stack's bucket: Delta tables the host's agent writes under `history/` (docs/history.md), each arm's
 LeRobot calibration under `calibration/<device>.json`, which `twin calibration push` writes and the agent
-reads (docs/agent.md, "Calibration")."""
+reads (docs/agent.md, "Calibration"), and under `host/` the copy of the operator's own agent settings the host
+keeps, so that a host replacing it starts with them (docs/deploy.md, "Changes that replace the instance")."""
 
 from __future__ import annotations
 
@@ -15,6 +16,9 @@ from stacks.skips import skip_checkov
 
 HISTORY_PREFIX = "history"
 CALIBRATION_PREFIX = "calibration"
+HOST_STATE_PREFIX = "host"
+# The one object under it: /etc/so101-twin/agent.local.toml (userdata/save-local-config.sh).
+LOCAL_CONFIG_KEY = f"{HOST_STATE_PREFIX}/agent.local.toml"
 # S3 Standard-IA bills every object as at least 128 KB; Delta's small log files stay in Standard.
 IA_MIN_OBJECT_BYTES = 128 * 1024
 
@@ -24,8 +28,8 @@ class HistoryBucket(Construct):
     `infrequent_access_after_days`; kept on `cdk destroy` unless `retain` is false.
 
     Attributes: `bucket`, `uri` (what the agent config's [history] uri is set to), `calibration_uri` (its
-    [telemetry] calibrations). `grant_agent(role)` gives a role exactly the history prefix, and read access to
-    the calibration prefix.
+    [telemetry] calibrations), `host_state_uri` (the host's HOST_STATE_URI). `grant_agent(role)` gives a role
+    exactly the history prefix, read access to the calibration prefix, and the one object of the host's.
     """
 
     def __init__(
@@ -53,6 +57,7 @@ class HistoryBucket(Construct):
         )
         self.uri = f"s3://{self.bucket.bucket_name}/{HISTORY_PREFIX}"
         self.calibration_uri = f"s3://{self.bucket.bucket_name}/{CALIBRATION_PREFIX}"
+        self.host_state_uri = f"s3://{self.bucket.bucket_name}/{HOST_STATE_PREFIX}"
         Validations.of(self.bucket).acknowledge(
             Acknowledgment(
                 id="AwsSolutions-S1",
@@ -73,7 +78,8 @@ class HistoryBucket(Construct):
         )
 
     def grant_agent(self, role: iam.IRole) -> None:
-        """Read, write and delete under `history/` only; list only that prefix."""
+        """Read, write and delete under `history/` only, and list only that prefix; read and list the
+        calibrations; read and write the host's copy of agent.local.toml, and list only its key."""
         stack = Stack.of(self)
         # An L2 Bucket's default child is the CfnBucket it wraps; the construct tree types it as a construct.
         cfn_bucket = cast(s3.CfnBucket, self.bucket.node.default_child)
@@ -107,6 +113,23 @@ class HistoryBucket(Construct):
                 actions=["s3:ListBucket"],
                 resources=[self.bucket.bucket_arn],
                 conditions={"StringLike": {"s3:prefix": [f"{CALIBRATION_PREFIX}/*", CALIBRATION_PREFIX]}},
+            )
+        )
+        # The operator's agent.local.toml: that one object, read at a new host's first boot and written when
+        # it changes; the listing (of its own key only) tells a missing copy from one the host cannot read.
+        role.add_to_principal_policy(
+            iam.PolicyStatement(
+                sid="HostLocalConfig",
+                actions=["s3:GetObject", "s3:PutObject"],
+                resources=[self.bucket.arn_for_objects(LOCAL_CONFIG_KEY)],
+            )
+        )
+        role.add_to_principal_policy(
+            iam.PolicyStatement(
+                sid="HostLocalConfigList",
+                actions=["s3:ListBucket"],
+                resources=[self.bucket.bucket_arn],
+                conditions={"StringEquals": {"s3:prefix": [LOCAL_CONFIG_KEY]}},
             )
         )
         Validations.of(role).acknowledge(

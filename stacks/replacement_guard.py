@@ -56,8 +56,8 @@ def replacement_refusal(
         return None
     return (
         f"this deploy would replace the twin host of {stack_name} ({'; '.join(changes)}): a new root "
-        "disk and a new first boot (~15 min), and anything kept on the old disk is lost: your "
-        "/etc/so101-twin/agent.local.toml (copy it off first), the servo alarms' states and "
-        "acknowledgements, the USD recordings (history and calibrations are in S3 and stay). Keep the "
+        "disk and a new first boot (~15 min), and anything kept on the old disk is lost: the servo "
+        "alarms' states and acknowledgements, the USD recordings (history, calibrations and your "
+        "/etc/so101-twin/agent.local.toml are in S3 and stay). Keep the "
         f"deployed values (in twin.settings.toml), or confirm with -c {CONFIRM_FLAG}=true"
     )

@@ -110,6 +110,8 @@ class TwinStack(Stack):
                 "AGENT_NAME": settings.stack_name,
                 "HISTORY_URI": self.history.uri,
                 "CALIBRATIONS_URI": self.history.calibration_uri,
+                # The copy of the operator's agent.local.toml: a host that replaces this one starts with it.
+                "HOST_STATE_URI": self.history.host_state_uri,
                 # The host's agent publishes servo alarm transitions here (critical ones; warnings too
                 # with alarmWarnings).
                 "ALERT_TOPIC_ARN": self.monitoring.topic.topic_arn,

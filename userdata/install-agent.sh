@@ -24,6 +24,9 @@
 #   CALIBRATIONS_URI  where each arm's LeRobot calibration is kept (s3://<bucket>/calibration); empty = none
 #   ALERT_TOPIC_ARN  the SNS topic servo alarm transitions are published to; empty = none
 #   ALERT_WARNINGS   true: warnings too, not only critical alarms (default false)
+#   HOST_STATE_URI  where the host keeps a copy of what lives only on its disk (s3://<bucket>/host): the
+#               operator's agent.local.toml, saved whenever it changes and put back by a new host's first
+#               boot; empty = not kept
 #   ROS2         true: publish the arms as ROS 2 JointState (default false; the lock holds the ros2 extra)
 # Idempotent: each file is written only when its content differs, pip runs only when the source or the lock
 # changed.
@@ -48,14 +51,17 @@ RECORD_SESSIONS="${RECORD_SESSIONS:-false}"
 AGENT_NAME="${AGENT_NAME:-so101-twin}"
 HISTORY_URI="${HISTORY_URI:-}"
 CALIBRATIONS_URI="${CALIBRATIONS_URI:-}"
+HOST_STATE_URI="${HOST_STATE_URI:-}"
 ALERT_TOPIC_ARN="${ALERT_TOPIC_ARN:-}"
 ALERT_WARNINGS="${ALERT_WARNINGS:-false}"
 
 VENV=/opt/so101-twin/venv
-# Generated from the stack's settings on every run; the operator's own changes go in LOCAL_CONFIG, which the
-# agent reads after it (key by key) and this script creates once and never writes again.
+# Generated from the stack's settings on every run; the operator's own changes go in LOCAL_CONFIG (lib.sh),
+# which the agent reads after it (key by key) and this script creates once and never writes again.
 CONFIG=/etc/so101-twin/agent.toml
-LOCAL_CONFIG=/etc/so101-twin/agent.local.toml
+# LOCAL_CONFIG's copy in the stack's bucket (save-local-config.sh), put back by a new host's first boot.
+LOCAL_BACKUP="${HOST_STATE_URI:+${HOST_STATE_URI%/}/agent.local.toml}"
+LOCAL_SAVER=so101-twin-local-config
 UNIT=/etc/systemd/system/so101-twin-agent.service
 AUTOSTART="/home/${DESKTOP_USER}/.config/autostart/so101-twin-view.desktop"
 SUPERVISOR=/opt/so101-twin/bin/twin-view-supervised
@@ -223,17 +229,68 @@ warnings = ${ALERT_WARNINGS}
 enabled = ${ROS2}
 TOML
 
-# The operator's file: written only when it is missing, so a hand edit survives every deploy.
-if [ ! -f "${ROOT}${LOCAL_CONFIG}" ]; then
-  write_file "$LOCAL_CONFIG" 0644 <<TOML
+# --- the operator's file ----------------------------------------------------------------------------
+# Written only when it is missing, so a hand edit survives every deploy; a new host (a change that replaced
+# the instance) gets the copy the old one saved in the stack's bucket, if there is one.
+local_default() {
+  cat <<TOML
 # Your own agent settings on this host: any key of the agent config (docs/configuration.md), read after
-# ${CONFIG}, whose keys it overrides one by one. Deploys never change this file.
+# ${CONFIG}, whose keys it overrides one by one. Deploys never change this file; a copy is kept in the
+# stack's bucket whenever it changes, and a host that replaces this one starts with it.
 # Apply a change with: sudo systemctl restart so101-twin-agent
 #
 # [alarms]
 # temperature_warning_c = 55.0
 TOML
+}
+local_placeholder() {
+  echo "$LOCAL_CONFIG_PLACEHOLDER"
+  echo "# (from ${LOCAL_BACKUP}; until then this file holds no settings of yours and is not saved)"
+  local_default
+}
+
+# restore_local_config: 0 the saved copy is in place, 1 none is saved, 2 it could not be read (logged).
+# Listed first: S3 answers a GET of a missing key with 403, not 404, to a role that may not list the bucket,
+# and the listing's count tells "none saved" from "not readable" either way.
+restore_local_config() {
+  local bucket="${LOCAL_BACKUP#s3://}" key count tmp region=()
+  key="${bucket#*/}"
+  bucket="${bucket%%/*}"
+  [ -z "$AWS_REGION" ] || region=(--region "$AWS_REGION")
+  if ! count="$(aws s3api list-objects-v2 "${AWS_LIMITS[@]}" "${region[@]}" --bucket "$bucket" \
+    --prefix "$key" --query KeyCount --output text 2>&1)"; then
+    log "could not look for the saved ${LOCAL_CONFIG} at ${LOCAL_BACKUP}: ${count}"
+    return 2
+  fi
+  [ "$count" != 0 ] || return 1
+  tmp="$(mktemp "$(dirname "${ROOT}${LOCAL_CONFIG}")/.so101-twin.XXXXXX")"
+  if ! aws s3 cp "${AWS_LIMITS[@]}" "${region[@]}" --only-show-errors "$LOCAL_BACKUP" "$tmp"; then
+    rm -f "$tmp"
+    log "could not read the saved ${LOCAL_CONFIG} at ${LOCAL_BACKUP}"
+    return 2
+  fi
+  chmod 0644 "$tmp"
+  mv -f "$tmp" "${ROOT}${LOCAL_CONFIG}"
+  CHANGED=1
+}
+
+mkdir -p "$(dirname "${ROOT}${LOCAL_CONFIG}")"
+# Tried again while the file is the untouched placeholder of a copy that could not be read.
+if [ -n "$LOCAL_BACKUP" ] && { [ ! -f "${ROOT}${LOCAL_CONFIG}" ] ||
+  cmp -s <(local_placeholder) "${ROOT}${LOCAL_CONFIG}"; }; then
+  outcome=0
+  restore_local_config || outcome=$?
+  case "$outcome" in
+    0) log "restored ${LOCAL_CONFIG} from ${LOCAL_BACKUP}" ;;
+    1) write_file "$LOCAL_CONFIG" 0644 < <(local_default) ;;
+    *)
+      [ -f "${ROOT}${LOCAL_CONFIG}" ] || write_file "$LOCAL_CONFIG" 0644 < <(local_placeholder)
+      log "warning: ${LOCAL_CONFIG} is a placeholder until the saved copy can be read (the next deploy" \
+        "tries again); the agent runs without those settings meanwhile"
+      ;;
+  esac
 fi
+[ -f "${ROOT}${LOCAL_CONFIG}" ] || write_file "$LOCAL_CONFIG" 0644 < <(local_default)
 
 # --- the agent service ----------------------------------------------------------------------------
 # Its own user, no capabilities, a read-only system but for its state and log directories: the agent
@@ -289,6 +346,34 @@ UMask=0027
 [Install]
 WantedBy=multi-user.target
 UNIT
+
+# --- a copy of the operator's file in the stack's bucket, whenever it changes -----------------------
+# A path unit starts the saver when the file is written (an editor's save, or a restore above); the saver
+# runs the host's own copy of save-local-config.sh, as root, which alone may read all of /etc here.
+if [ -n "$LOCAL_BACKUP" ]; then
+  write_file "/etc/systemd/system/${LOCAL_SAVER}.service" 0644 <<UNIT
+[Unit]
+Description=so101-twin: save the operator's agent settings (${LOCAL_CONFIG}) to the stack's bucket
+Wants=network-online.target
+After=network-online.target
+
+[Service]
+Type=oneshot
+ExecStart=/bin/bash /opt/so101-twin/userdata/save-local-config.sh ${LOCAL_BACKUP}
+Environment=AWS_REGION=${AWS_REGION}
+SyslogIdentifier=${LOCAL_SAVER}
+UNIT
+  write_file "/etc/systemd/system/${LOCAL_SAVER}.path" 0644 <<UNIT
+[Unit]
+Description=so101-twin: keep a copy of the operator's agent settings (${LOCAL_CONFIG}) when they change
+
+[Path]
+PathChanged=${LOCAL_CONFIG}
+
+[Install]
+WantedBy=multi-user.target
+UNIT
+fi
 
 # --- the viewer in the DCV console session --------------------------------------------------------
 # GNOME starts autostart entries once per login and never again; the supervisor restarts the viewer when
@@ -347,6 +432,13 @@ if id -u "$DESKTOP_USER" >/dev/null 2>&1; then
 fi
 systemctl daemon-reload
 systemctl enable so101-twin-agent.service >/dev/null 2>&1
+if [ -n "$LOCAL_BACKUP" ]; then
+  systemctl enable --now "${LOCAL_SAVER}.path" >/dev/null 2>&1
+  # Saved now too: the path unit sees changes from here on, and a host that ran before it existed has a
+  # file nobody saved yet. A failure only delays the copy to the file's next change or the next deploy.
+  bash "$HERE/save-local-config.sh" "$LOCAL_BACKUP" ||
+    log "warning: ${LOCAL_CONFIG} could not be saved to ${LOCAL_BACKUP} now; it is saved at its next change"
+fi
 if [ "$CHANGED" = 1 ] || ! systemctl is-active --quiet so101-twin-agent.service; then
   systemctl restart so101-twin-agent.service
   log "agent service (re)started"

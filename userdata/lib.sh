@@ -69,6 +69,14 @@ installed() {
   [ "$status" = "install ok installed" ]
 }
 
+# The operator's own agent settings on the host (install-agent.sh creates it once and never writes it again;
+# save-local-config.sh keeps a copy in the stack's bucket), and the line that marks the placeholder written
+# when that copy could not be read at install: such a file is not saved, and the next install tries again.
+# shellcheck disable=SC2034 # used by the scripts that source this file
+LOCAL_CONFIG=/etc/so101-twin/agent.local.toml
+# shellcheck disable=SC2034
+LOCAL_CONFIG_PLACEHOLDER="# so101-twin: placeholder, the saved settings could not be read; the next deploy tries again"
+
 # The AWS CLI's own time limits (it retries by itself), so no call hangs a boot.
 # shellcheck disable=SC2034 # used by the scripts that source this file
 AWS_LIMITS=(--cli-connect-timeout 10 --cli-read-timeout 60)
@@ -99,7 +107,7 @@ apt_install() {
 # PIP_INDEX_URL or the like for the next root bootstrap.
 DEPLOYMENT_KEYS=(DEPLOYMENT_VERSION AGENT_URL SCRIPTS_URL DCV_SECRET_ARN AWS_REGION URL_SUFFIX TOPIC_PREFIX
   DEVICES UNITS ROS2 CLIENT_ID_PREFIX DESKTOP_USER LOG_GROUP AGENT_NAME HISTORY_URI CALIBRATIONS_URI
-  RECORD_SESSIONS ALERT_TOPIC_ARN ALERT_WARNINGS SILENT_ALARM)
+  HOST_STATE_URI RECORD_SESSIONS ALERT_TOPIC_ARN ALERT_WARNINGS SILENT_ALARM)
 
 # load_env FILE [KEY...]: KEY=value lines into exported variables, without executing the file as shell code.
 # Only the listed keys are taken (default: DEPLOYMENT_KEYS); any other line is logged and ignored.

@@ -332,14 +332,39 @@ esac
 case "$1 $2" in
   "ssm get-parameter") cat "$SIM/parameter" ;;
   "s3 cp")
-    for a in "$@"; do case "$a" in s3://*) src="${a#s3://}" ;; esac; done
-    dst="${!#}"
-    if [ ! -f "$SIM/s3/$src" ]; then
-      echo "fatal error: An error occurred (404) when calling the HeadObject operation:" \
-        "Key \"$src\" does not exist" >&2
-      exit 1
+    # The scripts give the options first, then SOURCE DESTINATION: a download, or an upload to s3://.
+    # SIM/fail/s3: the bucket refuses this role (what S3 answers then).
+    src="${*: -2:1}"; dst="${!#}"
+    if [ -e "$SIM/fail/s3" ]; then
+      echo "fatal error: An error occurred (403) when calling the HeadObject operation: Forbidden" >&2; exit 1
     fi
-    cp "$SIM/s3/$src" "$dst" ;;
+    case "$src" in
+      s3://*)
+        src="${src#s3://}"
+        if [ ! -f "$SIM/s3/$src" ]; then
+          echo "fatal error: An error occurred (404) when calling the HeadObject operation:" \
+            "Key \"$src\" does not exist" >&2
+          exit 1
+        fi
+        cp "$SIM/s3/$src" "$dst" ;;
+      *)
+        [ -f "$src" ] || { echo "The user-provided path $src does not exist." >&2; exit 255; }
+        mkdir -p "$(dirname "$SIM/s3/${dst#s3://}")"
+        cp "$src" "$SIM/s3/${dst#s3://}" ;;
+    esac ;;
+  "s3api list-objects-v2")
+    # --bucket B --prefix P --query KeyCount --output text: how many objects' keys start with P.
+    bucket=""; prefix=""
+    while [ $# -gt 0 ]; do
+      case "$1" in --bucket) bucket="$2"; shift ;; --prefix) prefix="$2"; shift ;; esac; shift
+    done
+    if [ -e "$SIM/fail/s3" ]; then
+      echo "An error occurred (AccessDenied) when calling the ListObjectsV2 operation: Access Denied" >&2
+      exit 254
+    fi
+    count=0
+    for object in "$SIM/s3/$bucket/$prefix"*; do [ -f "$object" ] && count=$((count + 1)); done
+    echo "$count" ;;
   "secretsmanager describe-secret")
     # The map's first key is the previous version: the boot must pick the one staged AWSCURRENT.
     echo '{"Name": "HostDcvPassword",'

@@ -94,9 +94,24 @@ def test_host_role_gets_exactly_the_history_prefix(synth_default: Synth) -> None
     assert calibration["Resource"]["Fn::Join"][1][1] == "/calibration/*"
     calibration_list = statement(statements, "CalibrationList")
     assert calibration_list["Condition"] == {"StringLike": {"s3:prefix": ["calibration/*", "calibration"]}}
+    # The host's copy of the operator's agent.local.toml: that one object, and a listing of its key only
+    # (userdata/install-agent.sh tells a missing copy from one it may not read by the listing).
+    local_config = statement(statements, "HostLocalConfig")
+    assert sorted(local_config["Action"]) == ["s3:GetObject", "s3:PutObject"]
+    assert local_config["Resource"]["Fn::Join"][1][1] == "/host/agent.local.toml"
+    local_list = statement(statements, "HostLocalConfigList")
+    assert local_list["Action"] == "s3:ListBucket"
+    assert local_list["Condition"] == {"StringEquals": {"s3:prefix": ["host/agent.local.toml"]}}
     # No other statement reaches the bucket.
     others = [s.get("Sid") for s in statements if "HistoryBucket" in flatten(s["Resource"])]
-    assert sorted(others) == ["CalibrationList", "CalibrationRead", "HistoryList", "HistoryObjects"]
+    assert sorted(others) == [
+        "CalibrationList",
+        "CalibrationRead",
+        "HistoryList",
+        "HistoryObjects",
+        "HostLocalConfig",
+        "HostLocalConfigList",
+    ]
 
 
 def test_host_agent_writes_history_to_the_bucket(synth_default: Synth) -> None:
@@ -104,7 +119,11 @@ def test_host_agent_writes_history_to_the_bucket(synth_default: Synth) -> None:
     value = synth_default.one("AWS::SSM::Parameter")["Properties"]["Value"]["Fn::Join"][1]
     refs = [i for i, part in enumerate(value) if part == {"Ref": bucket_id(synth_default)}]
     uris = {value[i - 1].rsplit("\n", 1)[1] + "<bucket>" + value[i + 1].split("\n", 1)[0] for i in refs}
-    assert uris == {"HISTORY_URI=s3://<bucket>/history", "CALIBRATIONS_URI=s3://<bucket>/calibration"}
+    assert uris == {
+        "HISTORY_URI=s3://<bucket>/history",
+        "CALIBRATIONS_URI=s3://<bucket>/calibration",
+        "HOST_STATE_URI=s3://<bucket>/host",
+    }
     assert "HISTORY_URI" not in user_data_text(synth_default)
     output = synth_default.json["Outputs"]["HistoryUri"]
     assert "aws s3 rb" in output["Description"]

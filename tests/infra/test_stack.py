@@ -620,6 +620,7 @@ def test_agent_asset_holds_only_the_distribution(synth_default: Synth) -> None:
         "lib.sh",
         "host-check.sh",
         "view-supervisor.sh",
+        "save-local-config.sh",
         "releases.env",
     }
 

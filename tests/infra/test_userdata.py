@@ -46,6 +46,7 @@ def test_shellcheck_is_clean() -> None:
         "lib.sh",
         "host-check.sh",
         "view-supervisor.sh",
+        "save-local-config.sh",
     }
     shellcheck = shutil.which("shellcheck")
     if shellcheck is None:
@@ -151,6 +152,7 @@ def run_installer(root: Path, source: Path, **env: str) -> subprocess.CompletedP
         "DESKTOP_USER": "ubuntu",
         "HISTORY_URI": "s3://twin-history-bucket/history",
         "CALIBRATIONS_URI": "s3://twin-history-bucket/calibration",
+        "HOST_STATE_URI": "s3://twin-history-bucket/host",
         **env,
     }
     return subprocess.run(
@@ -309,20 +311,20 @@ def test_the_agent_runs_as_its_own_user_in_a_sandbox(installed: tuple[Path, Path
 
 
 def test_the_unit_is_valid_for_systemd(installed: tuple[Path, Path], tmp_path: Path) -> None:
-    """systemd's own parser reads the unit without a complaint about any directive."""
+    """systemd's own parser reads the units without a complaint about any directive."""
     systemd_analyze = shutil.which("systemd-analyze")
     if systemd_analyze is None:
         pytest.fail("systemd-analyze is missing (package systemd)")
     root, _ = installed
-    unit = tmp_path / "so101-twin-agent.service"
-    # The venv's twin lives under the test's root: point ExecStart there so only the directives are judged.
-    unit.write_text(
-        (root / "etc/systemd/system/so101-twin-agent.service")
-        .read_text()
-        .replace("ExecStart=/opt/so101-twin/venv/bin/twin", f"ExecStart={root}/opt/so101-twin/venv/bin/twin")
-    )
+    names = ("so101-twin-agent.service", "so101-twin-local-config.service", "so101-twin-local-config.path")
+    units = [tmp_path / name for name in names]
+    for unit in units:
+        # The venv's twin lives under the test's root: point ExecStart there so only the directives are
+        # judged.
+        text = (root / "etc/systemd/system" / unit.name).read_text()
+        unit.write_text(text.replace("=/opt/so101-twin/venv/", f"={root}/opt/so101-twin/venv/"))
     result = subprocess.run(
-        [systemd_analyze, "verify", "--man=no", str(unit)],
+        [systemd_analyze, "verify", "--man=no", *map(str, units)],
         capture_output=True,
         text=True,
         timeout=60,
@@ -331,8 +333,8 @@ def test_the_unit_is_valid_for_systemd(installed: tuple[Path, Path], tmp_path: P
     complaints = [
         line
         for line in (result.stdout + result.stderr).splitlines()
-        if "so101-twin-agent.service" in line
-        and ("Unknown" in line or "Invalid" in line or "Failed to parse" in line)
+        if any(name in line for name in names)
+        and any(word in line for word in ("Unknown", "Invalid", "Failed to parse", "Refusing", "bad unit"))
     ]
     assert complaints == []
 
@@ -422,6 +424,117 @@ def test_the_operators_own_file_survives_every_deploy(installed: tuple[Path, Pat
     loaded = load_config([root / "etc/so101-twin/agent.toml", local])
     assert loaded.alarms.temperature_warning_c == 52.0
     assert list(loaded.telemetry.devices) == ["arm-001", "arm-002", "arm-003"]
+
+
+SAVED_LOCAL = "twin-history-bucket/host/agent.local.toml"
+
+
+def _new_host(installed: tuple[Path, Path], tmp_path: Path, saved: str | None) -> Path:
+    """A host that replaces the installed one: its disk as the installer left it but without the operator's
+    file (what a first boot finds), and the stack's bucket holding `saved` as that file's copy."""
+    root = tmp_path / "root"
+    shutil.copytree(installed[0], root, symlinks=True)
+    (root / "etc/so101-twin/agent.local.toml").unlink()
+    if saved is not None:
+        copy = tmp_path / "root-sim" / "sim" / "s3" / SAVED_LOCAL
+        copy.parent.mkdir(parents=True)
+        copy.write_text(saved)
+    return root
+
+
+def test_the_operators_file_is_saved_whenever_it_changes_and_a_new_host_starts_with_it(
+    installed: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """A change that replaces the instance (a new disk) keeps the operator's agent.local.toml: the host saves
+    it to the stack's bucket at every install and, through a path unit, at every change; a new host's
+    install puts it back before the agent starts."""
+    root, _ = installed
+    saver = (root / "etc/systemd/system/so101-twin-local-config.service").read_text()
+    assert (
+        "ExecStart=/bin/bash /opt/so101-twin/userdata/save-local-config.sh "
+        "s3://twin-history-bucket/host/agent.local.toml\n"
+    ) in saver
+    assert "Type=oneshot" in saver and "Environment=AWS_REGION=eu-central-1" in saver
+    watch = (root / "etc/systemd/system/so101-twin-local-config.path").read_text()
+    assert "PathChanged=/etc/so101-twin/agent.local.toml\n" in watch and "WantedBy=multi-user.target" in watch
+    # The installer saved the new file at once (the bucket held none, so the host wrote the default).
+    saved = root.parent / f"{root.name}-sim" / "sim" / "s3" / SAVED_LOCAL
+    assert saved.read_text() == (root / "etc/so101-twin/agent.local.toml").read_text()
+
+    # The operator edits the file; systemd's path unit runs the saver, as here.
+    edited = tmp_path / "edited"
+    shutil.copytree(root, edited / "root", symlinks=True)
+    local = edited / "root/etc/so101-twin/agent.local.toml"
+    local.write_text("[alarms]\ntemperature_warning_c = 52.0\ntemperature_warning_clear_c = 48.0\n")
+    host = HostSim(edited / "sim")
+    result = host.run(USERDATA / "save-local-config.sh", f"s3://{SAVED_LOCAL}", ROOT=str(edited / "root"))
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "saved /etc/so101-twin/agent.local.toml to s3://" in result.stdout
+    kept = (host.sim / "s3" / SAVED_LOCAL).read_text()
+    assert kept == local.read_text()
+
+    # A new host (the bucket has the copy): its file is the operator's, and the agent reads it.
+    new_root = _new_host(installed, tmp_path / "new", kept)
+    result = run_installer(new_root, installed[1])
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert (
+        "restored /etc/so101-twin/agent.local.toml from s3://twin-history-bucket/host/agent.local.toml"
+        in (result.stdout)
+    )
+    restored = new_root / "etc/so101-twin/agent.local.toml"
+    assert restored.read_text() == kept
+    assert oct(restored.stat().st_mode & 0o777) == "0o644"
+    from twin.service.config import load_config
+
+    loaded = load_config([new_root / "etc/so101-twin/agent.toml", restored])
+    assert loaded.alarms.temperature_warning_c == 52.0
+
+
+def test_a_saved_copy_that_cannot_be_read_is_never_overwritten_and_is_restored_later(
+    installed: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """The bucket refuses the new host for a while: the agent starts with a placeholder, which is not saved
+    over the operator's copy; the next install (a deploy) puts the copy in place."""
+    settings = "[alarms]\ntemperature_warning_c = 50.0\ntemperature_warning_clear_c = 46.0\n"
+    root = _new_host(installed, tmp_path, settings)
+    host = HostSim.attach(tmp_path / "root-sim")
+    (host.sim / "fail").mkdir(parents=True)
+    host.fail("s3")  # the bucket refuses this role (tests/infra/hostsim.py, the aws stand-in)
+    result = run_installer(root, installed[1])
+    assert result.returncode == 0, result.stdout + result.stderr
+    out = result.stdout
+    assert "could not look for the saved /etc/so101-twin/agent.local.toml at s3://" in out, out
+    assert "AccessDenied" in out and "is a placeholder until the saved copy can be read" in out, out
+    assert "not saved: /etc/so101-twin/agent.local.toml is the placeholder" in out, out
+    local = root / "etc/so101-twin/agent.local.toml"
+    assert tomllib.loads(local.read_text()) == {}  # the agent starts with no setting of it
+    assert (host.sim / "s3" / SAVED_LOCAL).read_text() == settings  # the copy stays as it was
+
+    (host.sim / "fail" / "s3").unlink()
+    result = run_installer(root, installed[1])
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert local.read_text() == settings
+    assert "restored /etc/so101-twin/agent.local.toml" in result.stdout
+
+
+def test_an_edited_placeholder_is_the_operators_and_stays(
+    installed: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """Once the operator edits the placeholder it is theirs: a later install neither restores over it nor
+    saves it while it still carries the placeholder's line (the saver says how to keep it)."""
+    root = _new_host(installed, tmp_path, "[alarms]\ntemperature_warning_c = 50.0\n")
+    host = HostSim.attach(tmp_path / "root-sim")
+    (host.sim / "fail").mkdir(parents=True)
+    host.fail("s3")  # the bucket refuses this role (tests/infra/hostsim.py, the aws stand-in)
+    assert run_installer(root, installed[1]).returncode == 0
+    local = root / "etc/so101-twin/agent.local.toml"
+    local.write_text(local.read_text() + "[twin]\nshutdown_budget_s = 30.0\n")
+    (host.sim / "fail" / "s3").unlink()
+    result = run_installer(root, installed[1])
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "shutdown_budget_s = 30.0" in local.read_text()
+    assert "delete its line" in result.stdout
+    assert (host.sim / "s3" / SAVED_LOCAL).read_text() == "[alarms]\ntemperature_warning_c = 50.0\n"
 
 
 def test_two_arms_decode_each_with_its_own_calibration_on_the_installed_host(
