@@ -25,10 +25,26 @@ if [ ! -f "$FILE" ]; then
 fi
 if grep -qxF "$LOCAL_CONFIG_PLACEHOLDER" "$FILE"; then
   log "not saved: ${LOCAL_CONFIG} is the placeholder for settings that could not be read from ${TARGET};" \
-    "the next deploy tries again (or delete its line '${LOCAL_CONFIG_PLACEHOLDER}' to keep this file as it is)"
+    "the next deploy tries again (or delete its line '${LOCAL_CONFIG_PLACEHOLDER}'" \
+    "to keep this file as it is)"
   exit 0
 fi
 region=()
 [ -z "${AWS_REGION:-}" ] || region=(--region "$AWS_REGION")
-aws s3 cp "${AWS_LIMITS[@]}" "${region[@]}" --only-show-errors "$FILE" "$TARGET"
-log "saved ${LOCAL_CONFIG} to ${TARGET}"
+# What is uploaded is a copy taken first, and the file is compared with it afterwards: systemd does not start
+# this unit again for a change made while it runs (the path unit's start merges into the running job), so a
+# second save during the upload is caught here and uploaded in turn.
+copy="$(mktemp "${TMPDIR:-/tmp}/so101-twin-local-config.XXXXXX")"
+trap 'rm -f "$copy"' EXIT
+for _ in 1 2 3 4 5; do
+  cp "$FILE" "$copy"
+  aws s3 cp "${AWS_LIMITS[@]}" "${region[@]}" --only-show-errors "$copy" "$TARGET"
+  if cmp -s "$copy" "$FILE"; then
+    log "saved ${LOCAL_CONFIG} to ${TARGET}"
+    exit 0
+  fi
+  log "${LOCAL_CONFIG} changed while it was saved; saving it again"
+done
+log "${LOCAL_CONFIG} kept changing while it was saved; the copy at ${TARGET} may be behind:" \
+  "its next change saves it"
+exit 1

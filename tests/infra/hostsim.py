@@ -350,7 +350,9 @@ case "$1 $2" in
       *)
         [ -f "$src" ] || { echo "The user-provided path $src does not exist." >&2; exit 255; }
         mkdir -p "$(dirname "$SIM/s3/${dst#s3://}")"
-        cp "$src" "$SIM/s3/${dst#s3://}" ;;
+        cp "$src" "$SIM/s3/${dst#s3://}"
+        # SIM/on-upload: what happens meanwhile (a person saving a file again), run once.
+        if [ -x "$SIM/on-upload" ]; then mv "$SIM/on-upload" "$SIM/on-upload.ran"; "$SIM/on-upload.ran"; fi ;;
     esac ;;
   "s3api list-objects-v2")
     # --bucket B --prefix P --query KeyCount --output text: how many objects' keys start with P.

@@ -490,6 +490,28 @@ def test_the_operators_file_is_saved_whenever_it_changes_and_a_new_host_starts_w
     assert loaded.alarms.temperature_warning_c == 52.0
 
 
+def test_a_change_made_while_the_file_is_saved_is_saved_too(
+    installed: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """systemd does not start the saver again for a change made while it runs (the path unit's start merges
+    into the running job), so the saver itself uploads again when the file changed during its upload."""
+    root = tmp_path / "root"
+    shutil.copytree(installed[0], root, symlinks=True)
+    local = root / "etc/so101-twin/agent.local.toml"
+    local.write_text("[alarms]\ntemperature_warning_c = 52.0\n")
+    host = HostSim(tmp_path / "host")
+    second = "[alarms]\ntemperature_warning_c = 51.0\n"
+    hook = host.sim / "on-upload"
+    hook.write_text(f"#!/usr/bin/env bash\nprintf '%s' '{second}' > '{local}'\n")
+    hook.chmod(0o755)
+    result = host.run(USERDATA / "save-local-config.sh", f"s3://{SAVED_LOCAL}", ROOT=str(root))
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "changed while it was saved; saving it again" in result.stdout
+    assert (host.sim / "s3" / SAVED_LOCAL).read_text() == second == local.read_text()
+    uploads = [c for c in host.calls() if c.startswith("aws s3 cp")]
+    assert len(uploads) == 2, uploads
+
+
 def test_a_saved_copy_that_cannot_be_read_is_never_overwritten_and_is_restored_later(
     installed: tuple[Path, Path], tmp_path: Path
 ) -> None:
