@@ -406,6 +406,16 @@ def test_agent_config_and_its_own_user(booted, deployed: Deployed) -> None:
     assert config["cloudwatch"]["emf_file"] == "/var/log/so101-twin/emf.log"
     assert (host.sim / "users" / "so101-twin").exists()
     assert "User=so101-twin\n" in host.file("/etc/systemd/system/so101-twin-agent.service")
+    # The operator's own file: the first boot saved it to the stack's bucket (through the deployment
+    # parameter's HOST_STATE_URI), a path unit saves it at every change, and the saver's lines reach the
+    # agent's log file, which CloudWatch follows.
+    saved = host.sim / "s3" / HISTORY_BUCKET / "host" / "agent.local.toml"
+    assert saved.read_text() == host.file("/etc/so101-twin/agent.local.toml")
+    assert "PathChanged=/etc/so101-twin/agent.local.toml\n" in host.file(
+        "/etc/systemd/system/so101-twin-local-config.path"
+    )
+    rules = host.file("/etc/rsyslog.d/30-so101-twin.conf")
+    assert ':programname, isequal, "so101-twin-local-config" /var/log/so101-twin-agent.log' in rules
     # The lock was installed (its probe wheel is in the venv).
     probe = subprocess.run(
         [
