@@ -80,15 +80,17 @@ class HistoryBucket(Construct):
     def grant_agent(self, role: iam.IRole) -> None:
         """Read, write and delete under `history/` only, and list only that prefix; read and list the
         calibrations; read and write the host's copy of agent.local.toml, and list only its key."""
-        stack = Stack.of(self)
-        # An L2 Bucket's default child is the CfnBucket it wraps; the construct tree types it as a construct.
-        cfn_bucket = cast(s3.CfnBucket, self.bucket.node.default_child)
-        objects = self.bucket.arn_for_objects(f"{HISTORY_PREFIX}/*")
+        self._grant_history(role)
+        self._grant_calibrations(role)
+        self._grant_local_config(role)
+        self._acknowledge_wildcards(role)
+
+    def _grant_history(self, role: iam.IRole) -> None:
         role.add_to_principal_policy(
             iam.PolicyStatement(
                 sid="HistoryObjects",
                 actions=["s3:GetObject", "s3:PutObject", "s3:DeleteObject"],
-                resources=[objects],
+                resources=[self.bucket.arn_for_objects(f"{HISTORY_PREFIX}/*")],
             )
         )
         role.add_to_principal_policy(
@@ -99,6 +101,8 @@ class HistoryBucket(Construct):
                 conditions={"StringLike": {"s3:prefix": [f"{HISTORY_PREFIX}/*", HISTORY_PREFIX]}},
             )
         )
+
+    def _grant_calibrations(self, role: iam.IRole) -> None:
         # The arms' calibrations: read only (people push them with their own credentials), list that prefix.
         role.add_to_principal_policy(
             iam.PolicyStatement(
@@ -115,6 +119,8 @@ class HistoryBucket(Construct):
                 conditions={"StringLike": {"s3:prefix": [f"{CALIBRATION_PREFIX}/*", CALIBRATION_PREFIX]}},
             )
         )
+
+    def _grant_local_config(self, role: iam.IRole) -> None:
         # The operator's agent.local.toml: that one object, read at a new host's first boot and written when
         # it changes; the listing (of its own key only) tells a missing copy from one the host cannot read.
         role.add_to_principal_policy(
@@ -132,6 +138,12 @@ class HistoryBucket(Construct):
                 conditions={"StringEquals": {"s3:prefix": [LOCAL_CONFIG_KEY]}},
             )
         )
+
+    def _acknowledge_wildcards(self, role: iam.IRole) -> None:
+        """cdk-nag's IAM5 on the two prefixes whose keys the agent and the fleet choose."""
+        stack = Stack.of(self)
+        # An L2 Bucket's default child is the CfnBucket it wraps; the construct tree types it as a construct.
+        cfn_bucket = cast(s3.CfnBucket, self.bucket.node.default_child)
         Validations.of(role).acknowledge(
             Acknowledgment(
                 id=f"AwsSolutions-IAM5[Resource::<{stack.get_logical_id(cfn_bucket)}.Arn>/"
