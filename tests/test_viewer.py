@@ -9,27 +9,38 @@ out/viewer/.
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
+import random
 import shutil
 import signal
 import struct
 import subprocess
 import sys
 import time
+import urllib.parse
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import wait_for
+from conftest import http_get, unbrokered_agent, wait_for
 from twin.core.health import DeviceStatus, HealthSnapshot, WindowLatency
+from twin.edge.payload import encode, make_payload
 from twin.rig.local import LocalRig
 from twin.rig.mosquitto import free_port
 from twin.robot import so101
-from twin.service.state import AgentInfo, AgentState, DeviceState, LossSnapshot, ServoState
+from twin.service.state import AgentInfo, AgentState, DeviceState, DeviceView, LossSnapshot, ServoState
 from twin.viewer.config import ViewerConfig
-from twin.viewer.feed import describe_error, iter_sse_data
-from twin.viewer.fleet import KEY_PAGE_DOWN, KEY_PAGE_UP, LINK_UNREACHABLE, DevicePicker, FleetView
+from twin.viewer.feed import AgentFeed, describe_error, iter_sse_data, iter_sse_events
+from twin.viewer.fleet import (
+    KEY_PAGE_DOWN,
+    KEY_PAGE_UP,
+    LINK_STREAM,
+    LINK_UNREACHABLE,
+    DevicePicker,
+    FleetView,
+)
 from twin.viewer.window import (
     ALARM_COLOURS,
     JointTint,
@@ -87,6 +98,82 @@ def test_fleet_feeds_estimators_and_ignores_repeats():
     # A linear ramp is predicted exactly between samples, so repeats did not distort the estimate.
     assert fleet.pose("arm-001", 50.45)["elbow_flex"] == pytest.approx(0.45, abs=1e-6)
     assert fleet.pose("arm-002", 50.4) is None
+
+
+def test_sse_events_carry_their_names():
+    lines = [b"event: device\n", b'data: {"a": 1}\n', b"\n", b"data: 2\n", b"\n"]
+    lines += [b"event: state\n", b"data: 3\n", b"\n"]
+    assert list(iter_sse_events(lines)) == [("device", '{"a": 1}'), ("message", "2"), ("state", "3")]
+
+
+def test_a_view_updates_its_arm_and_lists_the_fleet():
+    """`/stream?device=` frames: the shown arm's figures and pose, and the agent's ids (which replace the
+    list: an arm the agent forgot drops out)."""
+    fleet = FleetView()
+    base = 1_706_000_000_000
+    for k in range(3):
+        arm = dataclasses.replace(device_state(base + 100 * k, 0.1 * k), device_id="arm-001")
+        view = DeviceView(1.0, arm, ["arm-001", "arm-002", "arm-003"])
+        assert fleet.update_view_json(view.to_json(), 50.0 + 0.1 * k) == 1
+    assert fleet.devices() == ["arm-001", "arm-002", "arm-003"]
+    assert fleet.info("arm-001").status == "ONLINE"
+    assert fleet.info("arm-002") is None  # listed, not streamed
+    assert fleet.pose("arm-001", 50.2)["shoulder_pan"] == pytest.approx(0.2, abs=1e-9)
+    assert fleet.update_view_json(DeviceView(2.0, None, ["arm-001", "arm-003"]).to_json(), 51.0) == 0
+    assert fleet.devices() == ["arm-001", "arm-003"]
+    assert fleet.update_view_json(b'{"time": 1.0, "device": 3, "devices": []}', 52.0) == 0
+    assert fleet.bad_snapshots == 1 and fleet.snapshots == 4
+
+
+@pytest.mark.parametrize("workers", [1, 2], ids=["in-process", "two-worker-processes"])
+def test_the_viewer_asks_the_agent_for_the_arm_it_shows(
+    tmp_path: Path, workers: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The feed reads `/stream?device=<shown>`: the agent sends that arm and the fleet's ids, asked of the
+    arm's own mirror, and never builds its whole state for it (most of a core at 1,000 arms);
+    paging to another arm switches the stream."""
+    devices = ["arm-001", "arm-002", "arm-003"]
+    agent = unbrokered_agent(tmp_path, workers)
+    try:
+        rng = random.Random(2)
+        for device in devices:
+            agent.feed(f"dt/lerobot/{device}/telemetry", encode(make_payload(device, 0.0, "ticks", rng)))
+        wait_for(
+            lambda: all((d := agent.state().devices.get(n)) and d.health.counters.applied for n in devices),
+            30,
+            "three arms mirrored",
+        )
+        whole = []
+        state = agent.state
+        monkeypatch.setattr(agent, "state", lambda: whole.append(1) or state())
+        fleet = FleetView()
+        picker = DevicePicker("arm-002")
+        feed = AgentFeed(ViewerConfig(agent_url=agent.http_url), fleet, wanted=lambda: picker.selected)
+        feed.start()
+        try:
+            wait_for(lambda: fleet.info("arm-002") is not None, 30, "arm-002 in the viewer")
+            assert fleet.devices() == devices and fleet.link == LINK_STREAM
+            assert fleet.info("arm-001") is None and fleet.info("arm-003") is None  # the shown arm only
+            assert fleet.pose("arm-002", time.monotonic()) is not None
+            picker.on_key(KEY_PAGE_DOWN)
+            assert picker.current(fleet.devices()) == "arm-003"
+            wait_for(lambda: fleet.info("arm-003") is not None, 30, "arm-003 in the viewer after paging")
+        finally:
+            feed.stop()
+        assert whole == []  # no whole state was built for the viewer
+    finally:
+        agent.stop()
+
+
+def test_a_bad_device_in_the_stream_request_is_refused_with_the_rule(tmp_path: Path) -> None:
+    agent = unbrokered_agent(tmp_path, 1)
+    try:
+        status, _, body = http_get(agent.http_url + "/stream?device=" + urllib.parse.quote("a/b", safe=""))
+    finally:
+        agent.stop()
+    assert status == 400
+    answer = json.loads(body)
+    assert answer["error"] == "bad_device" and "MQTT topic character" in answer["detail"], answer
 
 
 def test_fleet_tolerates_bad_documents():

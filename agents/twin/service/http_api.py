@@ -52,6 +52,7 @@ from starlette.types import Receive, Scope, Send
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from twin.core.alarms import AlarmNotFound, NothingToAcknowledge
+from twin.core.topics import device_id_problem
 from twin.service import session_files
 from twin.service.config import DEFAULT_HTTP_HOST, DEFAULT_HTTP_PORT, HttpSection
 from twin.service.console import (
@@ -80,7 +81,15 @@ from twin.service.metrics import render_metrics
 from twin.service.session_files import SessionFiles
 from twin.service.shards import ArmForgotten, ArmNotForgettableError, ArmNotFoundError, WorkerError
 from twin.service.state import AgentState, AlarmInfo, AlarmList, HealthReport
-from twin.service.stream_hub import ARM_PREFIX, FLEET, STATE, StreamHub, Subscription, encode_events
+from twin.service.stream_hub import (
+    ARM_PREFIX,
+    FLEET,
+    STATE,
+    VIEW_PREFIX,
+    StreamHub,
+    Subscription,
+    encode_events,
+)
 
 log = logging.getLogger(__name__)
 
@@ -502,7 +511,15 @@ class AgentHttpServer:
         return _json(200 if report.healthy else 503, report.to_json())
 
     async def _stream(self, request: Request) -> Response:
-        return self._subscribe(STATE)
+        """The whole state at the stream rate, or with `?device=<id>` that one arm and the fleet's ids
+        (stream_hub, `view:`); an empty id gives the ids alone, for a viewer that has not chosen yet."""
+        device = request.query_params.get("device")
+        if device is None:
+            return self._subscribe(STATE)
+        problem = device_id_problem(device) if device else None
+        if problem is not None:
+            return _error(400, "bad_device", detail=f"?device={device[:140]!r}: {problem}")
+        return self._subscribe(VIEW_PREFIX + device)
 
     async def _alarms(self, request: Request) -> Response:
         source = self._source

@@ -35,6 +35,7 @@ __all__ = [
     "ConnectionState",
     "DeviceCounters",
     "DeviceState",
+    "DeviceView",
     "FleetLatency",
     "FleetLoss",
     "HealthReport",
@@ -348,6 +349,26 @@ class AgentState:
     @classmethod
     def from_json(cls, data: bytes | str) -> AgentState:
         """Parse a /state document; raises ValueError (msgspec.ValidationError) naming the bad field."""
+        return msgspec.json.decode(data, type=cls)
+
+
+@dataclass(frozen=True)
+class DeviceView:
+    """One arm as `GET /stream?device=<id>` sends it (what `twin view` follows): the agent's wall time, the
+    arm (None while no mirror tracks it) and every device id the agent tracks, so a viewer can page through
+    the fleet without the whole fleet's state at every frame."""
+
+    time: float
+    device: DeviceState | None
+    devices: list[str]
+
+    def to_json(self) -> bytes:
+        """The JSON document (UTF-8); NaN and infinities become null."""
+        return _ENCODER.encode(self)
+
+    @classmethod
+    def from_json(cls, data: bytes | str) -> DeviceView:
+        """Parse one such document; raises ValueError (msgspec.ValidationError) naming the bad field."""
         return msgspec.json.decode(data, type=cls)
 
 

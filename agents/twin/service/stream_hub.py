@@ -4,7 +4,12 @@ Before, every `/stream` client asked the agent for its whole state 30 times a se
 times the state-building, and at a large fleet each state takes milliseconds. Here one task asks once per
 tick, encodes each topic's frame once, and hands the same bytes to every subscriber of that topic:
 
-- `state`: the /state document as an SSE frame, at `state_rate_hz` (what `twin view` reads);
+- `state`: the /state document as an SSE frame, at `state_rate_hz`;
+- `view:<device>`: one arm and the fleet's device ids (`DeviceView`), at `state_rate_hz`: what `twin view`
+  reads. Asked of the arm's own mirror where the source can (console.ArmViewSource), so a viewer costs the
+  same at two arms and at two thousand; the ids are read at most once a second. The whole state at
+  `state_rate_hz` cost the agent 90 % of a core at 1,000 arms for a viewer that shows one arm, one arm's
+  view 10 % (docs/performance.md, "The viewer's stream");
 - `fleet`: the fleet summary (twin.service.console), at `console_rate_hz`;
 - `arm:<device>`: one arm's state and alarms, at `console_rate_hz`, built only for devices someone watches;
 - `events`: new events since the last tick, at `console_rate_hz`.
@@ -36,7 +41,7 @@ from twin.service.console import (
     fleet_summary,
 )
 from twin.service.events import Event, EventQuery
-from twin.service.state import AgentState, AlarmInfo
+from twin.service.state import AgentState, AlarmInfo, DeviceView
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +49,9 @@ STATE = "state"
 FLEET = "fleet"
 EVENTS = "events"
 ARM_PREFIX = "arm:"
+VIEW_PREFIX = "view:"
+# How old the device ids a view frame carries may be: a new arm shows in a viewer's list within this.
+DEVICE_IDS_EVERY_S = 1.0
 # Event batches a subscriber may fall behind before the oldest are dropped (the page then reloads the list).
 EVENT_BACKLOG = 64
 # Events fetched per tick at most; a burst larger than this arrives over the next ticks.
@@ -87,6 +95,11 @@ class Subscription:
         return out
 
 
+def _state_rate(topic: str) -> bool:
+    """Whether `topic` goes out at `state_rate_hz` (else at `console_rate_hz`)."""
+    return topic == STATE or topic.startswith(VIEW_PREFIX)
+
+
 class StreamHub:
     """The shared ticker (module doc). Create and use it on the server's event loop."""
 
@@ -98,6 +111,7 @@ class StreamHub:
         self._changed = asyncio.Event()
         self._closed = False
         self._event_cursor: int | None = None
+        self._device_ids: tuple[float, list[str]] | None = None  # (when read, on the loop's clock; the ids)
         self.ticks = 0
 
     @property
@@ -140,8 +154,10 @@ class StreamHub:
                 next_state = next_console = loop.time()
                 continue
             now = loop.time()
-            state_due = STATE in self._subs and now >= next_state
-            console_due = any(t != STATE for t in self._subs) and now >= next_console
+            state_topics = any(_state_rate(t) for t in self._subs)
+            console_topics = any(not _state_rate(t) for t in self._subs)
+            state_due = state_topics and now >= next_state
+            console_due = console_topics and now >= next_console
             if state_due or console_due:
                 try:
                     await self._tick(state_due, console_due)
@@ -154,8 +170,8 @@ class StreamHub:
                 if console_due:
                     next_console = max(next_console + self._console_interval, now)
             wake = min(
-                next_state if STATE in self._subs else float("inf"),
-                next_console if any(t != STATE for t in self._subs) else float("inf"),
+                next_state if any(_state_rate(t) for t in self._subs) else float("inf"),
+                next_console if any(not _state_rate(t) for t in self._subs) else float("inf"),
             )
             self._changed.clear()
             if wake != float("inf"):
@@ -166,18 +182,22 @@ class StreamHub:
     async def _tick(self, state_due: bool, console_due: bool) -> None:
         source = self._source
         arms = [t for t in self._subs if t.startswith(ARM_PREFIX)] if console_due else []
+        views = [t for t in self._subs if t.startswith(VIEW_PREFIX)] if state_due else []
+        whole = state_due and STATE in self._subs
         fleet = console_due and FLEET in self._subs
         # The fleet's rows come without the whole state when the source can give them (building a state of
         # thousands of arms, in every worker of a sharded agent, is most of what a tick costs).
         rows_only = isinstance(source, FleetRowSource)
         # Likewise an arm page's arm, asked of its own mirror.
         arm_only = isinstance(source, ArmViewSource)
-        whole_for_arms = bool(arms) and not arm_only
+        whole_for_arms = bool(arms or views) and not arm_only
         state: AgentState | None = None
-        if state_due or whole_for_arms or (fleet and not rows_only):
+        if whole or whole_for_arms or (fleet and not rows_only):
             state = await asyncio.to_thread(source.state)
-        if state_due and state is not None:
+        if whole and state is not None:
             self._publish(STATE, sse_frame("state", state.to_json()))
+        if views:
+            await self._tick_views(views, state)
         alarms: Sequence[AlarmInfo] = ()
         if (whole_for_arms or (fleet and not rows_only)) and isinstance(source, AlarmLister):
             alarms = await asyncio.to_thread(source.alarms)
@@ -191,6 +211,36 @@ class StreamHub:
             self._publish(topic, sse_frame("arm", arm_document(device, view)))
         if console_due and EVENTS in self._subs and isinstance(source, EventSource):
             await self._tick_events(source)
+
+    async def _tick_views(self, views: list[str], state: AgentState | None) -> None:
+        """Each watched arm's view frame (module doc): the arm, and the device ids as last read."""
+        ids = await self._ids(state)
+        for topic in views:
+            device = topic[len(VIEW_PREFIX) :]
+            if state is not None:
+                view = DeviceView(state.agent.time, state.devices.get(device), ids)
+            else:
+                arm = await asyncio.to_thread(arm_view_of, self._source, device, None, ())
+                view = DeviceView(arm.time, arm.state, ids)
+            self._publish(topic, sse_frame("device", view.to_json()))
+
+    async def _ids(self, state: AgentState | None) -> list[str]:
+        """The fleet's device ids, sorted: from `state` when there is one, else the source's fleet rows (or
+        its state), read again when older than DEVICE_IDS_EVERY_S."""
+        if state is not None:
+            return sorted(state.devices)
+        now = asyncio.get_running_loop().time()
+        cached = self._device_ids
+        if cached is not None and now - cached[0] < DEVICE_IDS_EVERY_S:
+            return cached[1]
+        source = self._source
+        if isinstance(source, FleetRowSource):
+            rows = await asyncio.to_thread(source.fleet_rows)
+            ids = sorted(row.device for row in rows)
+        else:
+            ids = sorted((await asyncio.to_thread(source.state)).devices)
+        self._device_ids = (now, ids)
+        return ids
 
     async def subscribe_events(self, after_id: int) -> Subscription:
         """A subscription to the events topic whose first frame holds the events after `after_id` (those a

@@ -11,6 +11,7 @@ import logging
 import threading
 import time
 import urllib.error
+import urllib.parse
 import urllib.request
 from collections.abc import Callable, Iterable, Iterator
 
@@ -22,21 +23,32 @@ log = logging.getLogger(__name__)
 Clock = Callable[[], float]
 
 
-def iter_sse_data(lines: Iterable[bytes]) -> Iterator[str]:
-    """The `data` payload of each Server-Sent Event in a line stream (multi-line data joined by newlines)."""
+def iter_sse_events(lines: Iterable[bytes]) -> Iterator[tuple[str, str]]:
+    """(event name, data) of each Server-Sent Event in a line stream: the name "message" when the event
+    gives none (the SSE default), multi-line data joined by newlines."""
     data: list[str] = []
+    event = "message"
     for raw in lines:
         line = raw.decode("utf-8", errors="replace").rstrip("\r\n")
         if not line:
             if data:
-                yield "\n".join(data)
+                yield event, "\n".join(data)
                 data = []
+            event = "message"
             continue
         if line.startswith(":"):
             continue  # comment / keep-alive
         field, _, value = line.partition(":")
         if field == "data":
             data.append(value.removeprefix(" "))
+        elif field == "event":
+            event = value.removeprefix(" ")
+
+
+def iter_sse_data(lines: Iterable[bytes]) -> Iterator[str]:
+    """The `data` payload of each Server-Sent Event in a line stream (multi-line data joined by newlines)."""
+    for _, data in iter_sse_events(lines):
+        yield data
 
 
 def describe_error(exc: BaseException) -> str:
@@ -56,12 +68,24 @@ def describe_error(exc: BaseException) -> str:
 
 
 class AgentFeed:
-    """Background reader of the agent's live state into a FleetView; retries forever, never raises."""
+    """Background reader of the agent's live state into a FleetView; retries forever, never raises.
 
-    def __init__(self, config: ViewerConfig, fleet: FleetView, clock: Clock = time.monotonic) -> None:
+    With `wanted` (the device the window shows, None before one is chosen) it reads that one arm and the
+    fleet's ids (`/stream?device=`), and reconnects when the choice changes: the agent then builds one arm's
+    view per frame, not its whole state (docs/viewer.md). Without it, or from an agent that sends its whole
+    state anyway, every device comes in every frame."""
+
+    def __init__(
+        self,
+        config: ViewerConfig,
+        fleet: FleetView,
+        clock: Clock = time.monotonic,
+        wanted: Callable[[], str | None] | None = None,
+    ) -> None:
         self.config = config
         self.fleet = fleet
         self._clock = clock
+        self._wanted = wanted
         self._base = config.agent_url.rstrip("/")
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -107,19 +131,27 @@ class AgentFeed:
         return urllib.request.urlopen(request, timeout=self.config.read_timeout_s)
 
     def _read_stream(self) -> None:
-        response = self._open("/stream")
+        wanted = self._wanted
+        asked = wanted() if wanted is not None else None
+        path = "/stream" if wanted is None else "/stream?device=" + urllib.parse.quote(asked or "", safe="")
+        response = self._open(path)
         self._response = response
         try:
             content_type = response.headers.get("Content-Type", "")
             if "text/event-stream" not in content_type:
                 raise ValueError(f"/stream answered {content_type or 'no content type'}, not an SSE stream")
             try:
-                for data in iter_sse_data(response):
+                for event, data in iter_sse_events(response):
                     if self._stop.is_set():
                         return
-                    self.fleet.update_json(data, self._clock())
+                    if event == "device":
+                        self.fleet.update_view_json(data, self._clock())
+                    else:
+                        self.fleet.update_json(data, self._clock())
                     if self.fleet.link != LINK_STREAM:
                         self.fleet.set_link(LINK_STREAM)
+                    if wanted is not None and wanted() != asked:
+                        return  # another device chosen: ask for it (the caller reconnects at once)
             except AttributeError:
                 # stop() closed the response under this read: http.client, in the middle of a chunked
                 # body (the agent's stream is chunked), then reads from a file it has already dropped.

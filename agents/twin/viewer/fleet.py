@@ -13,7 +13,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from twin.core.smoothing import PoseEstimator, make_estimator
-from twin.service.state import AgentState, ServoState
+from twin.service.state import AgentState, DeviceState, DeviceView, ServoState
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +64,8 @@ class FleetView:
         self.link_since: float = time.monotonic()
         self.snapshots = 0
         self.bad_snapshots = 0
+        # The agent's device ids as it last listed them (None until it has: then the devices seen so far).
+        self._listed: list[str] | None = None
 
     def set_link(self, link: str, error: str | None = None, now: float | None = None) -> None:
         with self._lock:
@@ -92,33 +94,61 @@ class FleetView:
         """Take one agent state; returns the number of devices in it."""
         with self._lock:
             self.snapshots += 1
+            self._listed = sorted(state.devices)
             for device_id, d in state.devices.items():
-                info = self._info.setdefault(device_id, DeviceInfo())
-                info.status = str(d.health.status)
-                info.age_s = d.health.age_s
-                info.rate_hz = d.health.rate_hz
-                info.latency_p50_s = d.health.edge_clock_latency_s.p50
-                info.latency_p99_s = d.health.edge_clock_latency_s.p99
-                info.internal_p99_s = d.health.internal_latency_s.p99
-                info.received_s = received_s
-                info.servos = d.servos
-                info.losing = d.loss.losing
-                info.recent_loss_ratio = d.loss.recent_loss_ratio
-                info.lost = d.loss.lost
-                # timestamp_ms belongs to the same twin snapshot as joints_rad (last_timestamp_ms: health's).
-                if d.timestamp_ms is not None and d.joints_rad is not None:
-                    info.last_timestamp_ms = d.timestamp_ms
-                    estimator = self._estimators.get(device_id)
-                    if estimator is None:
-                        estimator = self._estimators[device_id] = self._factory()
-                    # The stream repeats the same sample until the agent applies a newer one; the estimator
-                    # drops duplicates by timestamp, so only genuine new samples move it.
-                    estimator.add(d.timestamp_ms, d.joints_rad, received_s)
+                self._take(device_id, d, received_s)
             return len(state.devices)
 
-    def devices(self) -> list[str]:
+    def update_view_json(self, document: bytes | str, received_s: float) -> int:
+        """Take one arm's view (a `/stream?device=` event: DeviceView); returns the devices it carries (0 or
+        1). A document that is not one is counted and logged, as in `update_json`."""
+        try:
+            view = DeviceView.from_json(document)
+        except ValueError as exc:
+            with self._lock:
+                self.bad_snapshots += 1
+            log.warning("agent view not understood (%s); is --agent pointing at a twin agent?", exc)
+            return 0
+        return self.update_view(view, received_s)
+
+    def update_view(self, view: DeviceView, received_s: float) -> int:
+        """Take one arm's view: the arm's figures and pose, and the agent's device ids."""
         with self._lock:
-            return sorted(self._info)
+            self.snapshots += 1
+            self._listed = list(view.devices)
+            if view.device is None:
+                return 0
+            self._take(view.device.device_id, view.device, received_s)
+            return 1
+
+    def _take(self, device_id: str, d: DeviceState, received_s: float) -> None:
+        # (Under the lock.)
+        info = self._info.setdefault(device_id, DeviceInfo())
+        info.status = str(d.health.status)
+        info.age_s = d.health.age_s
+        info.rate_hz = d.health.rate_hz
+        info.latency_p50_s = d.health.edge_clock_latency_s.p50
+        info.latency_p99_s = d.health.edge_clock_latency_s.p99
+        info.internal_p99_s = d.health.internal_latency_s.p99
+        info.received_s = received_s
+        info.servos = d.servos
+        info.losing = d.loss.losing
+        info.recent_loss_ratio = d.loss.recent_loss_ratio
+        info.lost = d.loss.lost
+        # timestamp_ms belongs to the same twin snapshot as joints_rad (last_timestamp_ms: health's).
+        if d.timestamp_ms is not None and d.joints_rad is not None:
+            info.last_timestamp_ms = d.timestamp_ms
+            estimator = self._estimators.get(device_id)
+            if estimator is None:
+                estimator = self._estimators[device_id] = self._factory()
+            # The stream repeats the same sample until the agent applies a newer one; the estimator drops
+            # duplicates by timestamp, so only genuine new samples move it.
+            estimator.add(d.timestamp_ms, d.joints_rad, received_s)
+
+    def devices(self) -> list[str]:
+        """The agent's device ids as it last listed them (an arm it forgot drops out), sorted."""
+        with self._lock:
+            return sorted(self._info) if self._listed is None else list(self._listed)
 
     def info(self, device_id: str) -> DeviceInfo | None:
         with self._lock:
@@ -146,6 +176,12 @@ class DevicePicker:
                 self._step += 1
             elif key == KEY_PAGE_UP:
                 self._step -= 1
+
+    @property
+    def selected(self) -> str | None:
+        """The device chosen last (what the feed asks the agent for); None before any."""
+        with self._lock:
+            return self._selected
 
     def current(self, devices: list[str]) -> str | None:
         with self._lock:

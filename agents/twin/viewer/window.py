@@ -181,7 +181,8 @@ class TwinViewer:
         self._stop = threading.Event()
         self.fleet = FleetView(lambda: make_estimator(config.smoothing))
         self.picker = DevicePicker(config.device)
-        self.feed = AgentFeed(config, self.fleet, clock)
+        # The feed asks the agent for the device the picker shows, so the agent builds one arm per frame.
+        self.feed = AgentFeed(config, self.fleet, clock, wanted=lambda: self.picker.selected)
         self.frames = 0
 
     def stop(self) -> None:
