@@ -343,6 +343,9 @@ def test_console_reports_time_to_interactive_and_the_cpu_of_two_consoles() -> No
     assert cpu["consoles"] == 2 and cpu["agent_cpu_percent_with"] > 0
     assert all(n >= 1 for n in cpu["updates_per_console"])
     assert cpu["agent_cpu_percent_with_arm_page"] > 0  # then one arm's page, open for as long
+    # Then the viewer's stream of one arm, and the whole state's: each delivered frames while measured.
+    assert cpu["viewer_frames_per_s"] > 0 and cpu["whole_state_stream_frames_per_s"] > 0
+    assert "viewer_cpu_percent_cost" in cpu and "whole_state_stream_cpu_percent_cost" in cpu
 
 
 def test_cost_reports_cpu_per_message_in_json_loads_and_by_stage() -> None:

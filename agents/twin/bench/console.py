@@ -7,7 +7,10 @@ Two phases, each against a `twin run` child process on a private broker with the
    live update (`window.twinUpdateMs`, the mean over the updates it handled). Reported as median, min, max.
 2. cpu: the agent's CPU (its process tree) at 1,000 arms for `seconds` with no console open, then the same
    with two Fleet pages open; the difference is what two consoles cost the agent. The browser's own CPU is
-   reported too (it runs on the same cores). Then `seconds` with one arm's page open instead.
+   reported too (it runs on the same cores). Then `seconds` with one arm's page open instead. Then
+   `seconds` with a reader of the stream `twin view` follows (`/stream?device=<first arm>`), and `seconds`
+   with a reader of the whole state's stream (`/stream`, what it followed before): their cost to the agent
+   and the frames each delivered.
 Publishers, broker, agent and browser share this host's cores: quote the load average with the figures.
 """
 
@@ -15,7 +18,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+import threading
 import time
+import urllib.request
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
@@ -166,6 +171,8 @@ def _cpu(rig: LocalRig, arms: int, rate: float, seconds: float, consoles: int) -
                 updates = [p.evaluate("window.twinUpdates") for p in pages]
                 context.close()
                 arm_page = _arm_page_cpu(browser, base, proc.pid, seconds)
+            viewer = _stream_cpu(base, "/stream?device=arm-0001", proc.pid, seconds)
+            whole = _stream_cpu(base, "/stream", proc.pid, seconds)
         finally:
             for p in pubs:
                 p.kill()
@@ -182,6 +189,11 @@ def _cpu(rig: LocalRig, arms: int, rate: float, seconds: float, consoles: int) -
         # One arm's page instead: the agent reads that arm alone, in the worker that holds it.
         "agent_cpu_percent_with_arm_page": arm_page,
         "arm_page_cpu_percent_cost": arm_page - _figure(without["cpu_percent"]),
+        # A viewer (`twin view`) following one arm, and a reader of the whole state's stream.
+        "viewer_cpu_percent_cost": viewer[0] - _figure(without["cpu_percent"]),
+        "viewer_frames_per_s": viewer[1],
+        "whole_state_stream_cpu_percent_cost": whole[0] - _figure(without["cpu_percent"]),
+        "whole_state_stream_frames_per_s": whole[1],
         "host_cpu_percent_with": with_consoles["host_cpu_percent"],
         "updates_per_console": updates,
     }
@@ -196,6 +208,35 @@ def _arm_page_cpu(browser: Any, base: str, pid: int, seconds: float) -> float:
     measured = sampler.stop()
     context.close()
     return _figure(measured["cpu_percent"])
+
+
+def _stream_cpu(base: str, path: str, pid: int, seconds: float) -> tuple[float, float]:
+    """The agent's CPU (% of a core) over `seconds` with one reader of the SSE stream at `path`, and the
+    frames a second it delivered."""
+    frames = 0
+    request = urllib.request.Request(base + path, headers={"Accept": "text/event-stream"})
+    response = urllib.request.urlopen(request, timeout=30)
+
+    def read() -> None:
+        nonlocal frames
+        # Ends when the response is closed below (the read then fails), so the next phase has no reader.
+        with contextlib.suppress(OSError, ValueError, AttributeError):
+            for line in response:
+                if line.startswith(b"event: "):
+                    frames += 1
+
+    reader = threading.Thread(target=read, name="bench-stream-reader", daemon=True)
+    reader.start()
+    time.sleep(1.0)  # past its first frame
+    first = frames
+    sampler = ProcessSampler(pid).start()
+    time.sleep(seconds)
+    measured = sampler.stop()
+    delivered = frames - first
+    with contextlib.suppress(OSError):
+        response.close()
+    reader.join(5.0)
+    return _figure(measured["cpu_percent"]), delivered / seconds
 
 
 def _figure(value: float | None) -> float:
