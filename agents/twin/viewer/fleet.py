@@ -11,11 +11,14 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TypeVar
 
 from twin.core.smoothing import PoseEstimator, make_estimator
 from twin.service.state import AgentState, DeviceState, DeviceView, ServoState
 
 log = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 # GLFW key codes (stable across GLFW 3.x). The simulate UI already binds letters (visual flags), digits (geom
 # groups: group 2 is the arm itself), arrows (stepping) and [ ] (cameras); Page Up/Down only select a parent
@@ -81,14 +84,8 @@ class FleetView:
         A document that is not an agent state (another service on that port, a truncated body) is counted
         in `bad_snapshots` and logged, never raised: the feed keeps reading.
         """
-        try:
-            state = AgentState.from_json(document)
-        except ValueError as exc:
-            with self._lock:
-                self.bad_snapshots += 1
-            log.warning("agent state not understood (%s); is --agent pointing at a twin agent?", exc)
-            return 0
-        return self.update(state, received_s)
+        state = self._parsed(AgentState.from_json, document, "state")
+        return 0 if state is None else self.update(state, received_s)
 
     def update(self, state: AgentState, received_s: float) -> int:
         """Take one agent state; returns the number of devices in it."""
@@ -102,14 +99,18 @@ class FleetView:
     def update_view_json(self, document: bytes | str, received_s: float) -> int:
         """Take one arm's view (a `/stream?device=` event: DeviceView); returns the devices it carries (0 or
         1). A document that is not one is counted and logged, as in `update_json`."""
+        view = self._parsed(DeviceView.from_json, document, "view")
+        return 0 if view is None else self.update_view(view, received_s)
+
+    def _parsed(self, parse: Callable[[bytes | str], T], document: bytes | str, what: str) -> T | None:
+        """`parse(document)`, or None for a document that is not what the agent sends (counted, logged)."""
         try:
-            view = DeviceView.from_json(document)
+            return parse(document)
         except ValueError as exc:
             with self._lock:
                 self.bad_snapshots += 1
-            log.warning("agent view not understood (%s); is --agent pointing at a twin agent?", exc)
-            return 0
-        return self.update_view(view, received_s)
+            log.warning("agent %s not understood (%s); is --agent pointing at a twin agent?", what, exc)
+            return None
 
     def update_view(self, view: DeviceView, received_s: float) -> int:
         """Take one arm's view: the arm's figures and pose, and the agent's device ids."""
