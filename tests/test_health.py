@@ -211,3 +211,21 @@ def test_a_reading_is_a_copy_summarised_later() -> None:
     assert then["arm"].edge_clock_offset_s == pytest.approx(0.52, abs=0.002)
     assert then["arm"].counters.received == 30
     assert fleet.snapshot()["arm"].counters.received == 60
+
+
+def test_a_discovered_device_is_listed_once_it_has_counted_something() -> None:
+    # The mirror makes a discovered arm's record when its first valid message is decoded, and counts that
+    # message a stage later: listed in between, the arm read OFFLINE with nothing received. A configured arm
+    # is expected, so it is listed before it is heard from.
+    clock = FakeClock()
+    fleet = FleetHealth(TH, ["arm-001"], clock=clock)
+    fleet.device("arm-new")
+    fleet.device("arm-junk")
+    assert fleet.listed() == ["arm-001"]
+    assert list(fleet.readings()) == list(fleet.snapshot()) == list(fleet.statuses()) == ["arm-001"]
+    feed(fleet, clock, "arm-new", 1)
+    fleet.record_rejected("arm-junk", "bad_json")
+    assert fleet.listed() == ["arm-001", "arm-new", "arm-junk"]
+    assert list(fleet.readings()) == ["arm-001", "arm-junk", "arm-new"]
+    assert fleet.statuses()["arm-new"] is DeviceStatus.ONLINE
+    assert fleet.readings()["arm-new"].snapshot().counters.received == 1

@@ -468,6 +468,7 @@ class FleetHealth:
         self._started = clock()
         self.started = self._started
         self.configured: tuple[str, ...] = tuple(configured)
+        self._configured = frozenset(self.configured)
         self.devices: dict[str, DeviceHealth] = {}
         for device in self.configured:
             self.device(device)
@@ -490,6 +491,22 @@ class FleetHealth:
             raise ValueError(f"{device_id} is configured (telemetry.devices): it cannot be forgotten")
         return self.devices.pop(device_id, None)
 
+    def shown(self, device_id: str, health: DeviceHealth) -> bool:
+        """Whether readers list the device: configured (expected, so shown even silent) or with something
+        counted. A discovered arm gets its record when its first valid message is decoded and that message is
+        counted a stage later (service.mirror); listed in between, it read OFFLINE with nothing received."""
+        return bool(
+            health.received
+            or health.rejected
+            or health.errors
+            or health.overwritten
+            or device_id in self._configured
+        )
+
+    def listed(self) -> list[str]:
+        """The ids readers list (`shown`), in table order."""
+        return [device for device, health in self.devices.items() if self.shown(device, health)]
+
     def record_rejected(self, device_id: str | None, reason: str) -> None:
         health = self.devices.get(device_id) if device_id is not None else None
         if health is None:
@@ -505,7 +522,7 @@ class FleetHealth:
         return {
             device: health.status(now)
             for device, health in self.devices.items()
-            if not heard_only or health.last_message_mono is not None
+            if (health.last_message_mono is not None if heard_only else self.shown(device, health))
         }
 
     def rates(self, now: float | None = None) -> dict[str, float]:
@@ -523,9 +540,17 @@ class FleetHealth:
 
     def snapshot(self, now: float | None = None) -> dict[str, HealthSnapshot]:
         now = self._clock() if now is None else now
-        return {device: health.snapshot(now) for device, health in sorted(self.devices.items())}
+        return {
+            device: health.snapshot(now)
+            for device, health in sorted(self.devices.items())
+            if self.shown(device, health)
+        }
 
     def readings(self, now: float | None = None) -> dict[str, HealthReading]:
         """`snapshot` as readings, for a reader that holds the worker's lock (`HealthReading`)."""
         now = self._clock() if now is None else now
-        return {device: health.reading(now) for device, health in sorted(self.devices.items())}
+        return {
+            device: health.reading(now)
+            for device, health in sorted(self.devices.items())
+            if self.shown(device, health)
+        }

@@ -1442,7 +1442,7 @@ class Mirror:
             worst: dict[str, tuple[str, str, str, str]] = {}
             for v in self._alarms.views():  # worst first
                 worst.setdefault(v.device, (str(v.severity), str(v.state), str(v.kind), v.joint))
-            devices = list(self._fleet.devices)
+            devices = self._fleet.listed()
         rows = []
         for start in range(0, len(devices), FLEET_ROWS_CHUNK):
             with self._lock:
@@ -1528,6 +1528,8 @@ class Mirror:
                 losses: Iterable[tuple[str, DeviceLoss]] = self._loss.items()
             else:
                 record, known = self._devices.get(only), self._fleet.devices.get(only)
+                if known is not None and not self._fleet.shown(only, known):
+                    known = None  # admitted, its first message not yet counted (FleetHealth.shown)
                 loss = self._loss.get(only)
                 devices = [record] if record is not None else []
                 health = {only: known.reading(now)} if known is not None else {}
