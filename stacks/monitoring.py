@@ -1,4 +1,4 @@
-"""The alarm topic and what notifies it: the host's servo alarms directly, and eight CloudWatch alarms.
+"""The alarm topic and what notifies it: the host's servo alarms directly, and eleven CloudWatch alarms.
 
 One SNS topic (encrypted, TLS only; an e-mail address subscribed when the settings give one):
 
@@ -21,6 +21,10 @@ One SNS topic (encrypted, TLS only; an e-mail address subscribed when the settin
   and was started again; history rows dropped (the writer's buffer overflowed: storage unreachable longer
   than it holds); history commits failing for 5 minutes; history's oldest unwritten row over a minute old, 2
   minutes running (storage slow or unreachable; rows are dropped once the buffer is full).
+- **a refused subscription** (CloudWatch): IoT Core refuses the agent a topic filter for 2 minutes.
+- **the host's own scripts** (CloudWatch, two alarms): the checks after a start failed (host-check.sh), and
+  the bucket does not hold the operator's agent.local.toml as it is (save-local-config.sh). Each holds its
+  state until the script's next run says otherwise.
 
 The agent writes Embedded Metric Format lines (agents/twin/output/emf.py) to a file the CloudWatch agent ships
 to the host's log group; CloudWatch Logs turns them into metrics in the SO101Twin namespace with the dimension
@@ -58,6 +62,10 @@ HISTORY_COMMIT_FAILURES = "HistoryCommitFailures"
 HISTORY_LAG = "HistoryLagSeconds"
 # Topic filters the broker refuses the agent (agents/twin/output/emf.py, SUBSCRIPTIONS_REFUSED).
 SUBSCRIPTIONS_REFUSED = "SubscriptionsRefused"
+# The host scripts' own metrics (userdata/lib.sh, emit_host_metrics): the verdict of the checks after each
+# start (host-check.sh), and whether the bucket holds the operator's agent.local.toml (save-local-config.sh).
+HOST_CHECKS_FAILED = "HostChecksFailed"
+LOCAL_CONFIG_NOT_SAVED = "LocalConfigNotSaved"
 PERIOD = Duration.minutes(1)
 # History commits every 10 s by default (docs/history.md): a minute's lag means commits are failing.
 HISTORY_LAG_ALARM_S = 60
@@ -162,6 +170,7 @@ class TwinMonitoring(Construct):
         self._alarms_for_loss()
         self._alarms_for_history()
         self.alarms["SubscriptionsRefused"] = self._subscriptions_refused_alarm()
+        self._alarms_for_host_scripts()
         action = cw_actions.SnsAction(self.topic)
         for alarm in self.alarms.values():
             alarm.add_alarm_action(action)
@@ -318,6 +327,42 @@ class TwinMonitoring(Construct):
             self._metric(SUBSCRIPTIONS_REFUSED, "Maximum"),
             threshold=1,
             minutes=2,
+        )
+
+    def _outcome_alarm(self, id_: str, name: str, description: str) -> cw.Alarm:
+        """Alarm on the last outcome a host script wrote to `name` (1: failed, 0: fine). The scripts write
+        only when they run (a start, a save), so a minute without data keeps the alarm as it is (IGNORE): a
+        failure pages until a run that succeeds clears it."""
+        return cw.Alarm(
+            self,
+            id_,
+            alarm_description=description,
+            metric=self._metric(name, "Maximum"),
+            threshold=1,
+            comparison_operator=cw.ComparisonOperator.GREATER_THAN_OR_EQUAL_TO_THRESHOLD,
+            evaluation_periods=1,
+            treat_missing_data=cw.TreatMissingData.IGNORE,
+        )
+
+    def _alarms_for_host_scripts(self) -> None:
+        """What the host finds about itself, outside the agent: a start whose checks failed, and the
+        operator's settings not kept in the bucket."""
+        agent_name = self.agent_name
+        self.alarms["HostChecksFailed"] = self._outcome_alarm(
+            "HostChecksFailed",
+            HOST_CHECKS_FAILED,
+            f"The checks after the last start of {agent_name}'s host failed: the desktop a person reaches "
+            "through DCV is not working (X, the DCV session, the agent, the viewer or the screen). "
+            "`twin instance check` names the check; the next start that passes clears this. "
+            "docs/deploy.md, Troubleshooting",
+        )
+        self.alarms["LocalConfigNotSaved"] = self._outcome_alarm(
+            "LocalConfigNotSaved",
+            LOCAL_CONFIG_NOT_SAVED,
+            f"The stack's bucket does not hold {agent_name}'s /etc/so101-twin/agent.local.toml as it is: "
+            "its upload failed, or the host runs a placeholder because the saved copy could not be read. "
+            "A host that replaces this one would start without those settings. The host's agent log names "
+            "the cause; the next save that succeeds clears this. docs/deploy.md",
         )
 
 

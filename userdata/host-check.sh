@@ -18,9 +18,8 @@ CHECK_STATE=/var/lib/so101-twin
 # The last capture of the console, kept on the host (`twin instance check --screenshot FILE` fetches it).
 SCREENSHOT="$CHECK_STATE/console.png"
 LAST_START="$CHECK_STATE/last-start"
-# The on-start run's log and its metric lines, both shipped to CloudWatch (bootstrap.sh, step logs).
+# The on-start run's log, shipped to CloudWatch (bootstrap.sh, step logs); its metric lines: lib.sh.
 START_LOG=/var/log/so101-twin-start.log
-HOST_EMF_FILE=/var/log/so101-twin-host-emf.log
 # A viewer counts once the same process has run this long: its supervisor restarts a crashing one within
 # seconds, so "a process exists" proves nothing.
 VIEWER_STABLE_S=20
@@ -349,17 +348,9 @@ host_check_main() {
 # tell this start's verdict from the previous one's.
 boot_id() { cat "${ROOT}/proc/sys/kernel/random/boot_id" 2>/dev/null || echo unknown; }
 
-# emit_metric FAILED: one EMF line (namespace SO101Twin, dimension Agent) the CloudWatch agent ships.
+# emit_metric FAILED: the verdict as metrics (lib.sh), which the stack's HostChecksFailed alarm watches.
 emit_metric() {
-  "${ROOT}${CHECK_VENV}/bin/python" - "${AGENT_NAME:-so101-twin}" "$1" >>"${ROOT}${HOST_EMF_FILE}" <<'PY'
-import json, sys, time
-
-from twin.output.emf import AGENT_DIMENSION, Metric, emf_document
-
-agent, failed = sys.argv[1], int(sys.argv[2])
-metrics = [Metric("HostChecksFailed", float(failed), "Count"), Metric("HostStartsVerified", float(not failed), "Count")]
-print(json.dumps(emf_document(metrics, {AGENT_DIMENSION: agent}, int(time.time() * 1000)), separators=(",", ":")))
-PY
+  emit_host_metrics "$CHECK_VENV" HostChecksFailed="$1" HostStartsVerified="$((1 - $1))"
 }
 
 # After every start (so101-twin-start.service): the console session on X, every check waited for, one

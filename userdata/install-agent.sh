@@ -360,7 +360,7 @@ After=network-online.target
 [Service]
 Type=oneshot
 ExecStart=/bin/bash /opt/so101-twin/userdata/save-local-config.sh ${LOCAL_BACKUP}
-Environment=AWS_REGION=${AWS_REGION}
+Environment=AWS_REGION=${AWS_REGION} AGENT_NAME=${AGENT_NAME}
 SyslogIdentifier=${LOCAL_SAVER}
 UNIT
   write_file "/etc/systemd/system/${LOCAL_SAVER}.path" 0644 <<UNIT
@@ -436,7 +436,7 @@ if [ -n "$LOCAL_BACKUP" ]; then
   systemctl enable --now "${LOCAL_SAVER}.path" >/dev/null 2>&1
   # Saved now too: the path unit sees changes from here on, and a host that ran before it existed has a
   # file nobody saved yet. A failure only delays the copy to the file's next change or the next deploy.
-  bash "$HERE/save-local-config.sh" "$LOCAL_BACKUP" ||
+  AGENT_NAME="$AGENT_NAME" bash "$HERE/save-local-config.sh" "$LOCAL_BACKUP" ||
     log "warning: ${LOCAL_CONFIG} could not be saved to ${LOCAL_BACKUP} now; it is saved at its next change"
 fi
 if [ "$CHANGED" = 1 ] || ! systemctl is-active --quiet so101-twin-agent.service; then

@@ -11,6 +11,28 @@ CHANGED="${CHANGED:-0}"
 
 log() { echo "${LOG_TAG:-so101-twin}: $(date -Is) $*"; }
 
+# The host scripts' own metric lines (EMF), which the CloudWatch agent ships (bootstrap.sh, step logs) and the
+# stack's alarms watch (stacks/monitoring.py).
+HOST_EMF_FILE=/var/log/so101-twin-host-emf.log
+
+# emit_host_metrics VENV NAME=COUNT...: one EMF line with these counts (namespace SO101Twin, dimension Agent =
+# AGENT_NAME), written by the agent's own EMF code in VENV (agents/twin/output/emf.py), so the host's lines
+# and the agent's cannot differ in form.
+emit_host_metrics() {
+  local venv="$1"
+  shift
+  mkdir -p "$(dirname "${ROOT}${HOST_EMF_FILE}")"
+  "${ROOT}${venv}/bin/python" - "${AGENT_NAME:-so101-twin}" "$@" >>"${ROOT}${HOST_EMF_FILE}" <<'PY'
+import json, sys, time
+
+from twin.output.emf import AGENT_DIMENSION, Metric, emf_document
+
+agent, pairs = sys.argv[1], [arg.split("=", 1) for arg in sys.argv[2:]]
+metrics = [Metric(name, float(count), "Count") for name, count in pairs]
+print(json.dumps(emf_document(metrics, {AGENT_DIMENSION: agent}, int(time.time() * 1000)), separators=(",", ":")))
+PY
+}
+
 # retry CMD...: three tries, 10 and 20 s apart (mirrors and CDNs have bad minutes, not bad hours). Each
 # command bounds its own time (curl --max-time, apt's timeouts), so a retried step is bounded too.
 retry() {

@@ -5,10 +5,13 @@
 # so101-twin-local-config.service, which a systemd path unit starts whenever the file changes, and once by
 # every run of install-agent.sh.
 #   save-local-config.sh S3_URI   where to keep the file (s3://<bucket>/host/agent.local.toml)
-#   ROOT   prefix for the file (tests); AWS_REGION the bucket's region
+#   ROOT   prefix for the file (tests); AWS_REGION the bucket's region; AGENT_NAME the metrics' Agent
 # A file that is still the placeholder install-agent.sh writes when the saved copy could not be read is not
 # saved: it would replace the settings it stands in for. Exits 0 when there is nothing to save, 1 when the
-# upload failed (the unit's journal has the AWS CLI's error).
+# upload failed (the unit's journal has the AWS CLI's error). Each run ends with the metric LocalConfigNotSaved
+# (lib.sh, emit_host_metrics): 1 while the bucket does not hold this host's settings as they are (the upload
+# failed, or the file is that placeholder), else 0; the stack's alarm of that name pages on 1 and clears on
+# the next 0.
 set -Eeuo pipefail
 
 HERE="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
@@ -19,14 +22,23 @@ LOG_TAG=save-local-config
 TARGET="${1:?usage: save-local-config.sh s3://<bucket>/host/agent.local.toml}"
 FILE="${ROOT}${LOCAL_CONFIG}"
 
+# not_saved 0|1: the run's outcome as the LocalConfigNotSaved metric; a metric that cannot be written is
+# logged, and does not change what the run did.
+not_saved() {
+  emit_host_metrics "${VENV:-/opt/so101-twin/venv}" LocalConfigNotSaved="$1" ||
+    log "could not write the LocalConfigNotSaved metric line"
+}
+
 if [ ! -f "$FILE" ]; then
   log "nothing to save: ${LOCAL_CONFIG} does not exist"
+  not_saved 0
   exit 0
 fi
 if grep -qxF "$LOCAL_CONFIG_PLACEHOLDER" "$FILE"; then
   log "not saved: ${LOCAL_CONFIG} is the placeholder for settings that could not be read from ${TARGET};" \
     "the next deploy tries again (or delete its line '${LOCAL_CONFIG_PLACEHOLDER}'" \
     "to keep this file as it is)"
+  not_saved 1
   exit 0
 fi
 region=()
@@ -38,13 +50,21 @@ copy="$(mktemp "${TMPDIR:-/tmp}/so101-twin-local-config.XXXXXX")"
 trap 'rm -f "$copy"' EXIT
 for _ in 1 2 3 4 5; do
   cp "$FILE" "$copy"
-  aws s3 cp "${AWS_LIMITS[@]}" "${region[@]}" --only-show-errors "$copy" "$TARGET"
+  if ! aws s3 cp "${AWS_LIMITS[@]}" "${region[@]}" --only-show-errors "$copy" "$TARGET"; then
+    log "not saved: ${LOCAL_CONFIG} could not be uploaded to ${TARGET} (the AWS CLI's error is above), so" \
+      "a host that replaces this one would start without it. Check the host role's s3:PutObject on that" \
+      "key and the host's network; its next change, or 'systemctl start so101-twin-local-config', saves it"
+    not_saved 1
+    exit 1
+  fi
   if cmp -s "$copy" "$FILE"; then
     log "saved ${LOCAL_CONFIG} to ${TARGET}"
+    not_saved 0
     exit 0
   fi
   log "${LOCAL_CONFIG} changed while it was saved; saving it again"
 done
-log "${LOCAL_CONFIG} kept changing while it was saved; the copy at ${TARGET} may be behind:" \
+log "not saved: ${LOCAL_CONFIG} kept changing while it was saved; the copy at ${TARGET} may be behind:" \
   "its next change saves it"
+not_saved 1
 exit 1

@@ -25,6 +25,8 @@ from typing import Any
 
 import pytest
 
+from stacks import monitoring
+
 from .hostsim import (
     ALARM_TOPIC_ARN,
     APT_UNITS,
@@ -509,7 +511,7 @@ def test_after_a_reboot_dcv_is_put_on_x_and_the_checks_report(booted, tmp_path: 
     }
     assert "verdict: PASS" in host.file("/var/log/so101-twin-start.log")
     metric = json.loads(host.file("/var/log/so101-twin-host-emf.log").splitlines()[-1])
-    assert metric["HostChecksFailed"] == 0 and metric["Agent"] == STACK_NAME
+    assert metric[monitoring.HOST_CHECKS_FAILED] == 0 and metric["Agent"] == STACK_NAME
     assert metric["_aws"]["CloudWatchMetrics"][0]["Namespace"] == "SO101Twin"
     assert host.active("apt-daily.timer") and not host.masked("apt-daily.timer")
     # Every start turns the silent alarm's actions on again (a deploy may have turned them off).
@@ -541,7 +543,7 @@ def test_start_checks_fail_and_say_so_when_the_viewer_crash_loops(booted, tmp_pa
     head = host.file("/var/lib/so101-twin/last-start").splitlines()[0]
     assert f"boot={BOOT_ID} " in head and " FAIL viewer: twin view keeps restarting" in head
     metric = json.loads(host.file("/var/log/so101-twin-host-emf.log").splitlines()[-1])
-    assert metric["HostChecksFailed"] == 1
+    assert metric[monitoring.HOST_CHECKS_FAILED] == 1
 
 
 # --- second run: the update path changes nothing -----------------------------------------------------------

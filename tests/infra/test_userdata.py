@@ -8,6 +8,7 @@ dependency lock is swapped for one that pins a small local wheel (tests/infra/ho
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -19,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from stacks import twin_host
+from stacks import monitoring, twin_host
 
 from .hostsim import (
     HostSim,
@@ -385,21 +386,21 @@ def test_installer_installs_the_real_package_with_the_robot_model(installed: tup
 
 def test_second_run_changes_nothing(installed: tuple[Path, Path]) -> None:
     root, source = installed
-    before = tree_digest(root)
+    before = host_state(root)
     result = run_installer(root, source)
     assert result.returncode == 0, result.stderr
     assert "changed=0" in result.stdout
     assert "installing" not in result.stdout
-    assert tree_digest(root) == before
+    assert host_state(root) == before
 
 
 def test_changed_settings_rewrite_only_the_config(installed: tuple[Path, Path], tmp_path: Path) -> None:
     root = tmp_path / "root"
     shutil.copytree(installed[0], root, symlinks=True)
-    before = tree_digest(root)
+    before = host_state(root)
     result = run_installer(root, installed[1], DEVICES="*", UNITS="auto", RECORD_SESSIONS="true")
     assert result.returncode == 0, result.stderr
-    after = tree_digest(root)
+    after = host_state(root)
     changed = sorted(k for k in after if before.get(k) != after[k])
     assert changed == ["etc/so101-twin/agent.toml"]
     config = tomllib.loads((root / "etc/so101-twin/agent.toml").read_text())
@@ -426,7 +427,25 @@ def test_the_operators_own_file_survives_every_deploy(installed: tuple[Path, Pat
     assert list(loaded.telemetry.devices) == ["arm-001", "arm-002", "arm-003"]
 
 
+def host_state(root: Path) -> dict[str, str]:
+    """tree_digest of the host without its logs: each run appends to them (the saver's metric line at every
+    install), and "a re-run changes nothing" is about what the host runs, not what it has recorded."""
+    return {k: v for k, v in tree_digest(root).items() if not k.startswith("var/log/")}
+
+
 SAVED_LOCAL = "twin-history-bucket/host/agent.local.toml"
+SAVER = USERDATA / "save-local-config.sh"
+
+
+def not_saved_metric(root: Path) -> tuple[float, str]:
+    """The last LocalConfigNotSaved the saver wrote on the host at `root` (userdata/lib.sh,
+    emit_host_metrics), with its Agent dimension: what the stack's alarm of that name watches."""
+    lines = (root / "var/log/so101-twin-host-emf.log").read_text().splitlines()
+    documents = [json.loads(line) for line in lines]
+    last = [d for d in documents if monitoring.LOCAL_CONFIG_NOT_SAVED in d][-1]
+    (directive,) = last["_aws"]["CloudWatchMetrics"]
+    assert directive["Namespace"] == monitoring.NAMESPACE and directive["Dimensions"] == [["Agent"]]
+    return last[monitoring.LOCAL_CONFIG_NOT_SAVED], last["Agent"]
 
 
 def _new_host(installed: tuple[Path, Path], tmp_path: Path, saved: str | None) -> Path:
@@ -454,12 +473,13 @@ def test_the_operators_file_is_saved_whenever_it_changes_and_a_new_host_starts_w
         "ExecStart=/bin/bash /opt/so101-twin/userdata/save-local-config.sh "
         "s3://twin-history-bucket/host/agent.local.toml\n"
     ) in saver
-    assert "Type=oneshot" in saver and "Environment=AWS_REGION=eu-central-1" in saver
+    assert "Type=oneshot" in saver and "Environment=AWS_REGION=eu-central-1 AGENT_NAME=LabTwin\n" in saver
     watch = (root / "etc/systemd/system/so101-twin-local-config.path").read_text()
     assert "PathChanged=/etc/so101-twin/agent.local.toml\n" in watch and "WantedBy=multi-user.target" in watch
     # The installer saved the new file at once (the bucket held none, so the host wrote the default).
     saved = root.parent / f"{root.name}-sim" / "sim" / "s3" / SAVED_LOCAL
     assert saved.read_text() == (root / "etc/so101-twin/agent.local.toml").read_text()
+    assert not_saved_metric(root) == (0, "LabTwin")
 
     # The operator edits the file; systemd's path unit runs the saver, as here.
     edited = tmp_path / "edited"
@@ -467,9 +487,10 @@ def test_the_operators_file_is_saved_whenever_it_changes_and_a_new_host_starts_w
     local = edited / "root/etc/so101-twin/agent.local.toml"
     local.write_text("[alarms]\ntemperature_warning_c = 52.0\ntemperature_warning_clear_c = 48.0\n")
     host = HostSim(edited / "sim")
-    result = host.run(USERDATA / "save-local-config.sh", f"s3://{SAVED_LOCAL}", ROOT=str(edited / "root"))
+    result = host.run(SAVER, f"s3://{SAVED_LOCAL}", ROOT=str(edited / "root"), AGENT_NAME="LabTwin")
     assert result.returncode == 0, result.stdout + result.stderr
     assert "saved /etc/so101-twin/agent.local.toml to s3://" in result.stdout
+    assert not_saved_metric(edited / "root") == (0, "LabTwin")
     kept = (host.sim / "s3" / SAVED_LOCAL).read_text()
     assert kept == local.read_text()
 
@@ -512,6 +533,33 @@ def test_a_change_made_while_the_file_is_saved_is_saved_too(
     assert len(uploads) == 2, uploads
 
 
+def test_an_upload_that_fails_says_what_to_check_and_pages_until_a_save_succeeds(
+    installed: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """The bucket refuses the upload: the saver fails with the reason and the fix in the agent's log, and
+    writes the metric that pages (LocalConfigNotSaved = 1); the next save that succeeds writes 0."""
+    root = tmp_path / "root"
+    shutil.copytree(installed[0], root, symlinks=True)
+    local = root / "etc/so101-twin/agent.local.toml"
+    local.write_text("[alarms]\ntemperature_warning_c = 52.0\n")
+    host = HostSim(tmp_path / "host")
+    host.fail("s3")  # the bucket refuses this role (tests/infra/hostsim.py, the aws stand-in)
+    result = host.run(SAVER, f"s3://{SAVED_LOCAL}", ROOT=str(root), AGENT_NAME="Lab")
+    assert result.returncode == 1, result.stdout + result.stderr
+    out = result.stdout + result.stderr
+    assert "Forbidden" in out, out  # the AWS CLI's own error, in the unit's journal
+    assert "not saved: /etc/so101-twin/agent.local.toml could not be uploaded to s3://" in out, out
+    assert "s3:PutObject" in out and "systemctl start so101-twin-local-config" in out, out
+    assert not_saved_metric(root) == (1, "Lab")
+    assert not (host.sim / "s3" / SAVED_LOCAL).exists()
+
+    (host.sim / "fail" / "s3").unlink()
+    result = host.run(SAVER, f"s3://{SAVED_LOCAL}", ROOT=str(root), AGENT_NAME="Lab")
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert (host.sim / "s3" / SAVED_LOCAL).read_text() == local.read_text()
+    assert not_saved_metric(root) == (0, "Lab")
+
+
 def test_a_saved_copy_that_cannot_be_read_is_never_overwritten_and_is_restored_later(
     installed: tuple[Path, Path], tmp_path: Path
 ) -> None:
@@ -531,12 +579,15 @@ def test_a_saved_copy_that_cannot_be_read_is_never_overwritten_and_is_restored_l
     local = root / "etc/so101-twin/agent.local.toml"
     assert tomllib.loads(local.read_text()) == {}  # the agent starts with no setting of it
     assert (host.sim / "s3" / SAVED_LOCAL).read_text() == settings  # the copy stays as it was
+    # The host runs without the operator's settings: that pages (stacks/monitoring.py) until it is mended.
+    assert not_saved_metric(root) == (1, "LabTwin")
 
     (host.sim / "fail" / "s3").unlink()
     result = run_installer(root, installed[1])
     assert result.returncode == 0, result.stdout + result.stderr
     assert local.read_text() == settings
     assert "restored /etc/so101-twin/agent.local.toml" in result.stdout
+    assert not_saved_metric(root) == (0, "LabTwin")
 
 
 def test_an_edited_placeholder_is_the_operators_and_stays(
@@ -679,12 +730,12 @@ def test_ros2_enables_the_bridge_from_the_lock_it_already_has(
 ) -> None:
     root = tmp_path / "root"
     shutil.copytree(installed[0], root, symlinks=True)
-    before = tree_digest(root)
+    before = host_state(root)
     result = run_installer(root, installed[1], ROS2="true")
     assert result.returncode == 0, result.stderr
     # The lock holds the ros2 extra's packages already: only the config changes, pip does not run again.
     assert "installing" not in result.stdout
-    after = tree_digest(root)
+    after = host_state(root)
     assert sorted(k for k in after if before.get(k) != after[k]) == ["etc/so101-twin/agent.toml"]
     from twin.service.config import load_config
 
