@@ -46,6 +46,7 @@ from twin.viewer.window import (
     JointTint,
     ViewerError,
     check_display,
+    device_window,
     overlay_lines,
     servo_rows,
 )
@@ -206,6 +207,21 @@ def test_picker_defaults_to_first_and_cycles_with_page_keys():
     preferred = DevicePicker("arm-002")
     assert preferred.current([]) == "arm-002"  # waits for its device rather than jumping to another
     assert preferred.current(devices) == "arm-002"
+
+
+def test_the_devices_line_shows_the_arms_around_the_shown_one_at_fleet_scale():
+    fleet = [f"arm-{i:04d}" for i in range(1, 1001)]
+    assert device_window(fleet, "arm-0501") == (
+        "(497 before)  arm-0498  arm-0499  arm-0500  [arm-0501]  arm-0502  arm-0503  arm-0504  (496 after)"
+    )
+    assert device_window(fleet, "arm-0001").startswith("[arm-0001]  arm-0002")
+    assert device_window(fleet, "arm-0001").endswith("arm-0007  (993 after)")
+    assert device_window(fleet, "arm-1000") == (
+        "(993 before)  arm-0994  arm-0995  arm-0996  arm-0997  arm-0998  arm-0999  [arm-1000]"
+    )
+    assert device_window(["arm-001", "arm-002", "arm-003"], "arm-002") == "arm-001  [arm-002]  arm-003"
+    # An arm the agent no longer lists: the start of the list, none in brackets.
+    assert device_window(fleet, "arm-9999").endswith("(993 after)")
 
 
 def test_overlay_shows_figures_and_unreachable_agent():

@@ -33,6 +33,9 @@ from twin.viewer.fleet import LINK_CONNECTING, LINK_UNREACHABLE, DevicePicker, F
 log = logging.getLogger(__name__)
 
 Clock = Callable[[], float]
+# Ids on the overlay's Devices line: the shown arm and its neighbours. The whole list ran off the screen at
+# fleet scale (the Device line says where the shown arm is in it).
+DEVICES_SHOWN = 7
 
 
 def _fmt(value: float | None, unit: str, scale: float = 1.0, digits: int = 1) -> str:
@@ -81,10 +84,25 @@ def overlay_lines(
                 )
             )
     if len(devices) > 1:
-        rows.append(("Devices", "  ".join(f"[{d}]" if d == device else d for d in devices)))
+        rows.append(("Devices", device_window(devices, device)))
         rows.append(("Keys", "Page Up / Page Down: previous / next device"))
     rows.append(("View", f"{fps:.0f} fps, smoothing {config.smoothing}"))
     return "\n".join(r[0] for r in rows), "\n".join(r[1] for r in rows)
+
+
+def device_window(devices: list[str], device: str | None, width: int = DEVICES_SHOWN) -> str:
+    """The Devices line: up to `width` ids around the shown one (in brackets), and how many are left out on
+    each side."""
+    i = devices.index(device) if device in devices else 0
+    start = max(0, min(i - width // 2, len(devices) - width))
+    shown = devices[start : start + width]
+    parts = [f"[{d}]" if d == device else d for d in shown]
+    after = len(devices) - start - len(shown)
+    if start:
+        parts.insert(0, f"({start} before)")
+    if after:
+        parts.append(f"({after} after)")
+    return "  ".join(parts)
 
 
 def servo_rows(servos: Mapping[str, ServoState] | None) -> list[tuple[str, str]]:
