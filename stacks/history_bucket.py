@@ -17,8 +17,10 @@ from stacks.skips import skip_checkov
 HISTORY_PREFIX = "history"
 CALIBRATION_PREFIX = "calibration"
 HOST_STATE_PREFIX = "host"
-# The one object under it: /etc/so101-twin/agent.local.toml (userdata/save-local-config.sh).
+# Under it: /etc/so101-twin/agent.local.toml (userdata/save-local-config.sh), and each host's copy of the
+# agent's servo alarm state, <host id>.json (userdata/save-alarm-state.sh).
 LOCAL_CONFIG_KEY = f"{HOST_STATE_PREFIX}/agent.local.toml"
+ALARM_STATE_PREFIX = f"{HOST_STATE_PREFIX}/alarm-state/"
 # S3 Standard-IA bills every object as at least 128 KB; Delta's small log files stay in Standard.
 IA_MIN_OBJECT_BYTES = 128 * 1024
 
@@ -29,7 +31,8 @@ class HistoryBucket(Construct):
 
     Attributes: `bucket`, `uri` (what the agent config's [history] uri is set to), `calibration_uri` (its
     [telemetry] calibrations), `host_state_uri` (the host's HOST_STATE_URI). `grant_agent(role)` gives a role
-    exactly the history prefix, read access to the calibration prefix, and the one object of the host's.
+    exactly the history prefix, read access to the calibration prefix, the host's one object and its alarm
+    state prefix.
     """
 
     def __init__(
@@ -79,10 +82,12 @@ class HistoryBucket(Construct):
 
     def grant_agent(self, role: iam.IRole) -> None:
         """Read, write and delete under `history/` only, and list only that prefix; read and list the
-        calibrations; read and write the host's copy of agent.local.toml, and list only its key."""
+        calibrations; read and write the host's copy of agent.local.toml, and list only its key; read and
+        write the hosts' copies of the alarm state, and list only their prefix."""
         self._grant_history(role)
         self._grant_calibrations(role)
         self._grant_local_config(role)
+        self._grant_alarm_state(role)
         self._acknowledge_wildcards(role)
 
     def _grant_history(self, role: iam.IRole) -> None:
@@ -139,6 +144,25 @@ class HistoryBucket(Construct):
             )
         )
 
+    def _grant_alarm_state(self, role: iam.IRole) -> None:
+        # Each host writes its own copy under its host id; a new host's first boot lists them and reads the
+        # one written last (userdata/install-agent.sh).
+        role.add_to_principal_policy(
+            iam.PolicyStatement(
+                sid="HostAlarmState",
+                actions=["s3:GetObject", "s3:PutObject"],
+                resources=[self.bucket.arn_for_objects(f"{ALARM_STATE_PREFIX}*")],
+            )
+        )
+        role.add_to_principal_policy(
+            iam.PolicyStatement(
+                sid="HostAlarmStateList",
+                actions=["s3:ListBucket"],
+                resources=[self.bucket.bucket_arn],
+                conditions={"StringEquals": {"s3:prefix": [ALARM_STATE_PREFIX]}},
+            )
+        )
+
     def _acknowledge_wildcards(self, role: iam.IRole) -> None:
         """cdk-nag's IAM5 on the two prefixes whose keys the agent and the fleet choose."""
         stack = Stack.of(self)
@@ -158,6 +182,14 @@ class HistoryBucket(Construct):
                 f"{HISTORY_PREFIX}/*]",
                 reason="Delta Lake writes a new object per commit (Parquet files, log entries, checkpoints) "
                 "under keys it chooses; the wildcard is the history prefix of this stack's own bucket only.",
+            )
+        )
+        Validations.of(role).acknowledge(
+            Acknowledgment(
+                id=f"AwsSolutions-IAM5[Resource::<{stack.get_logical_id(cfn_bucket)}.Arn>/"
+                f"{ALARM_STATE_PREFIX}*]",
+                reason="One object per twin host, named for the host id its first boot makes, so that a "
+                "host and the one replacing it never write the same key; read and write only, no delete.",
             )
         )
 

@@ -1,4 +1,4 @@
-"""The alarm topic and what notifies it: the host's servo alarms directly, and eleven CloudWatch alarms.
+"""The alarm topic and what notifies it: the host's servo alarms directly, and twelve CloudWatch alarms.
 
 One SNS topic (encrypted, TLS only; an e-mail address subscribed when the settings give one):
 
@@ -22,9 +22,10 @@ One SNS topic (encrypted, TLS only; an e-mail address subscribed when the settin
   than it holds); history commits failing for 5 minutes; history's oldest unwritten row over a minute old, 2
   minutes running (storage slow or unreachable; rows are dropped once the buffer is full).
 - **a refused subscription** (CloudWatch): IoT Core refuses the agent a topic filter for 2 minutes.
-- **the host's own scripts** (CloudWatch, two alarms): the checks after a start failed (host-check.sh), and
-  the bucket does not hold the operator's agent.local.toml as it is (save-local-config.sh). Each holds its
-  state until the script's next run says otherwise.
+- **the host's own scripts** (CloudWatch, three alarms): the checks after a start failed (host-check.sh);
+  the bucket does not hold the operator's agent.local.toml as it is (save-local-config.sh), or the servo
+  alarm state as the agent last wrote it (save-alarm-state.sh). Each holds its state until the script's next
+  run says otherwise.
 
 The agent writes Embedded Metric Format lines (agents/twin/output/emf.py) to a file the CloudWatch agent ships
 to the host's log group; CloudWatch Logs turns them into metrics in the SO101Twin namespace with the dimension
@@ -63,9 +64,11 @@ HISTORY_LAG = "HistoryLagSeconds"
 # Topic filters the broker refuses the agent (agents/twin/output/emf.py, SUBSCRIPTIONS_REFUSED).
 SUBSCRIPTIONS_REFUSED = "SubscriptionsRefused"
 # The host scripts' own metrics (userdata/lib.sh, emit_host_metrics): the verdict of the checks after each
-# start (host-check.sh), and whether the bucket holds the operator's agent.local.toml (save-local-config.sh).
+# start (host-check.sh), and whether the bucket holds the operator's agent.local.toml (save-local-config.sh)
+# and the agent's servo alarm state (save-alarm-state.sh).
 HOST_CHECKS_FAILED = "HostChecksFailed"
 LOCAL_CONFIG_NOT_SAVED = "LocalConfigNotSaved"
+ALARM_STATE_NOT_SAVED = "AlarmStateNotSaved"
 PERIOD = Duration.minutes(1)
 # History commits every 10 s by default (docs/history.md): a minute's lag means commits are failing.
 HISTORY_LAG_ALARM_S = 60
@@ -346,7 +349,7 @@ class TwinMonitoring(Construct):
 
     def _alarms_for_host_scripts(self) -> None:
         """What the host finds about itself, outside the agent: a start whose checks failed, and the
-        operator's settings not kept in the bucket."""
+        operator's settings or the servo alarm state not kept in the bucket."""
         agent_name = self.agent_name
         self.alarms["HostChecksFailed"] = self._outcome_alarm(
             "HostChecksFailed",
@@ -363,6 +366,13 @@ class TwinMonitoring(Construct):
             "its upload failed, or the host runs a placeholder because the saved copy could not be read. "
             "A host that replaces this one would start without those settings. The host's agent log names "
             "the cause; the next save that succeeds clears this. docs/deploy.md",
+        )
+        self.alarms["AlarmStateNotSaved"] = self._outcome_alarm(
+            "AlarmStateNotSaved",
+            ALARM_STATE_NOT_SAVED,
+            f"The stack's bucket does not hold {agent_name}'s servo alarm state as the agent last wrote it: "
+            "a host that replaces this one would start without its acknowledged and latched alarms. The "
+            "host's agent log names the cause; the next save that succeeds clears this. docs/deploy.md",
         )
 
 

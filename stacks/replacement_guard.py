@@ -56,8 +56,9 @@ def replacement_refusal(
         return None
     return (
         f"this deploy would replace the twin host of {stack_name} ({'; '.join(changes)}): a new root "
-        "disk and a new first boot (~15 min), and anything kept on the old disk is lost: the servo "
-        "alarms' states and acknowledgements, the USD recordings (history, calibrations and your "
-        "/etc/so101-twin/agent.local.toml are in S3 and stay). Keep the "
+        "disk and a new first boot (~15 min), and anything kept on the old disk is lost: the USD "
+        "recordings, and servo alarm changes made on the old host while the new one boots (history, "
+        "calibrations, your /etc/so101-twin/agent.local.toml and the servo alarms as the new host "
+        "boots are in S3 and stay). Keep the "
         f"deployed values (in twin.settings.toml), or confirm with -c {CONFIRM_FLAG}=true"
     )

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 from twin.core.alarms import AlarmKind, AlarmRecord, AlarmState
-from twin.service.persist import StateFile, parse, write_atomically
+from twin.service.persist import StateFile, StateFileError, adopt_file, parse, write_atomically
 
 
 def _record(state: AlarmState, joint: str = "elbow_flex", since: float = 100.0) -> AlarmRecord:
@@ -143,3 +143,29 @@ def test_temporary_files_of_writes_a_kill_cut_short_are_removed_at_the_start(tmp
     assert len(StateFile(path).load(5.0, 1_000_060.0)) == 1
     assert not [p for p in left if p.exists()]
     assert all(p.exists() for p in others)
+
+
+def test_another_hosts_file_is_adopted_with_its_alarms_and_no_word_on_how_its_run_ended(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # A replacement host starts with the replaced host's copy, written while that host still ran
+    # (`stopped` false): its alarms come back, and no unclean stop of this host's own is reported.
+    theirs = tmp_path / "theirs.json"
+    StateFile(theirs).save(
+        [_record(AlarmState.LATCHED), _record(AlarmState.ACKNOWLEDGED, "wrist_flex")], 110.0, 1e6
+    )
+    assert json.loads(theirs.read_text())["stopped"] is False
+    ours = tmp_path / "agent" / "state.json"
+    assert adopt_file(str(theirs), str(ours)) == 2
+    assert "stopped" not in json.loads(ours.read_text())
+    caplog.set_level(logging.INFO, logger="twin.service.persist")
+    back = StateFile(ours).load(5.0, 1_000_060.0)
+    assert sorted(str(r.state) for r in back) == ["ACKNOWLEDGED", "LATCHED"]
+    assert not _warnings_of_an_unclean_stop(caplog)
+
+    # A copy that is not a state file is refused, and nothing is put in place.
+    theirs.write_text('{"version": 1, "alarms": [{"state": "NORMAL"}]}')
+    elsewhere = tmp_path / "other" / "state.json"
+    with pytest.raises(StateFileError):
+        adopt_file(str(theirs), str(elsewhere))
+    assert not elsewhere.exists()

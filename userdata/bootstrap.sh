@@ -177,11 +177,13 @@ step_logs() {
   fi
   CHANGED=0
   # rsyslog copies the agent's journal lines to a file the CloudWatch agent can follow, and with them the
-  # lines of the saver of agent.local.toml (install-agent.sh): a copy that could not be saved is seen there.
+  # lines of the savers of agent.local.toml and of the alarm state (install-agent.sh): a copy that could not
+  # be saved is seen there.
   write_file /etc/rsyslog.d/30-so101-twin.conf 0644 <<'RSYSLOG'
 # Managed by so101-twin bootstrap.sh: the agent's log as a file for the CloudWatch agent.
 :programname, isequal, "so101-twin-agent" /var/log/so101-twin-agent.log
 :programname, isequal, "so101-twin-local-config" /var/log/so101-twin-agent.log
+:programname, isequal, "so101-twin-alarm-state" /var/log/so101-twin-agent.log
 RSYSLOG
   # rsyslog ships with Ubuntu server images; the packages step installs it otherwise and it reads the rule then.
   if [ "$CHANGED" = 1 ] && installed rsyslog; then systemctl restart rsyslog; fi

@@ -26,7 +26,8 @@
 #   ALERT_WARNINGS   true: warnings too, not only critical alarms (default false)
 #   HOST_STATE_URI  where the host keeps a copy of what lives only on its disk (s3://<bucket>/host): the
 #               operator's agent.local.toml, saved whenever it changes and put back by a new host's first
-#               boot; empty = not kept
+#               boot; the servo alarm state, saved under this host's id whenever the agent writes it, and the
+#               newest other host's adopted at a new disk's first install; empty = not kept
 #   ROS2         true: publish the arms as ROS 2 JointState (default false; the lock holds the ros2 extra)
 # Idempotent: each file is written only when its content differs, pip runs only when the source or the lock
 # changed.
@@ -62,6 +63,9 @@ CONFIG=/etc/so101-twin/agent.toml
 # LOCAL_CONFIG's copy in the stack's bucket (save-local-config.sh), put back by a new host's first boot.
 LOCAL_BACKUP="${HOST_STATE_URI:+${HOST_STATE_URI%/}/agent.local.toml}"
 LOCAL_SAVER=so101-twin-local-config
+# The hosts' copies of the servo alarm state (save-alarm-state.sh), one per host id.
+ALARM_BACKUP="${HOST_STATE_URI:+${HOST_STATE_URI%/}/alarm-state/}"
+ALARM_SAVER=so101-twin-alarm-state
 UNIT=/etc/systemd/system/so101-twin-agent.service
 AUTOSTART="/home/${DESKTOP_USER}/.config/autostart/so101-twin-view.desktop"
 SUPERVISOR=/opt/so101-twin/bin/twin-view-supervised
@@ -193,7 +197,7 @@ record_dir = "${RECORD_DIR}"
 # device list. systemd's stop reaches them through the agent, which lets each flush its history first.
 workers = 0
 # Acknowledged and latched servo alarms survive a restart or a reboot here (its StateDirectory=).
-state_file = "${AGENT_STATE}/state.json"
+state_file = "${ALARM_STATE}"
 # How long a stop may take (history's last commit); the unit's TimeoutStopSec= is longer.
 shutdown_budget_s = ${SHUTDOWN_BUDGET_S}
 
@@ -292,6 +296,69 @@ if [ -n "$LOCAL_BACKUP" ] && { [ ! -f "${ROOT}${LOCAL_CONFIG}" ] ||
 fi
 [ -f "${ROOT}${LOCAL_CONFIG}" ] || write_file "$LOCAL_CONFIG" 0644 < <(local_default)
 
+# --- the servo alarms of the host this one replaces -----------------------------------------------
+# adopt_alarm_state: 0 the newest other host's copy is in place (ADOPTED says which, with its alarms), 1 no
+# other host saved one, 2 it could not be read or is not a valid state file (logged).
+adopt_alarm_state() {
+  local bucket="${ALARM_BACKUP#s3://}" prefix listing own newest tmp out region=()
+  prefix="${bucket#*/}"
+  bucket="${bucket%%/*}"
+  own="${prefix}$(cat "${ROOT}${HOST_ID_FILE}").json"
+  [ -z "$AWS_REGION" ] || region=(--region "$AWS_REGION")
+  if ! listing="$(aws s3api list-objects-v2 "${AWS_LIMITS[@]}" "${region[@]}" --bucket "$bucket" \
+    --prefix "$prefix" --query 'Contents[].[LastModified,Key]' --output text 2>&1)"; then
+    log "could not look for the servo alarm state saved at ${ALARM_BACKUP}: ${listing}"
+    return 2
+  fi
+  # The copy written last (S3's LastModified, ISO 8601 in UTC, sorts as text): the host in service writes
+  # its copy at every start and stop of its agent, while one whose first boot failed and was rolled back
+  # wrote only then. One line per key, "None" for no key.
+  newest="$(printf '%s\n' "$listing" | awk -v own="$own" 'NF == 2 && $2 != own' | sort | tail -n 1 |
+    cut -f 2)"
+  [ -n "$newest" ] || return 1
+  tmp="$(mktemp "${TMPDIR:-/tmp}/so101-twin-alarm-state.XXXXXX")"
+  if ! aws s3 cp "${AWS_LIMITS[@]}" "${region[@]}" --only-show-errors "s3://${bucket}/${newest}" "$tmp"; then
+    rm -f "$tmp"
+    log "could not read the servo alarm state saved at s3://${bucket}/${newest}"
+    return 2
+  fi
+  if ! out="$("${ROOT}${VENV}/bin/python" -c 'import sys
+from twin.service.persist import adopt_file
+print(adopt_file(sys.argv[1], sys.argv[2]))' "$tmp" "${ROOT}${ALARM_STATE}" 2>&1)"; then
+    rm -f "$tmp"
+    log "the servo alarm state saved at s3://${bucket}/${newest} is not one the agent can read; not used:" \
+      "${out##*$'\n'}"
+    return 2
+  fi
+  rm -f "$tmp"
+  chown -R "${AGENT_USER}:" "${ROOT}${AGENT_STATE}"
+  ADOPTED="s3://${bucket}/${newest} (${out} alarms)"
+}
+
+# A new disk (no host id yet) is a new host: its agent starts with the alarms the host it replaces kept,
+# acknowledgements included. Tried once, before its agent first runs; afterwards the agent's own file is
+# the host's state.
+if [ ! -s "${ROOT}${HOST_ID_FILE}" ]; then
+  mkdir -p "$(dirname "${ROOT}${HOST_ID_FILE}")"
+  printf '%s-%s\n' "$(date -u +%Y%m%dT%H%M%SZ)" "$(od -An -N4 -tx4 /dev/urandom | tr -d ' ')" \
+    >"${ROOT}${HOST_ID_FILE}"
+  log "host id $(cat "${ROOT}${HOST_ID_FILE}")"
+  if [ -n "$ALARM_BACKUP" ] && [ ! -e "${ROOT}${ALARM_STATE}" ]; then
+    mkdir -p "${ROOT}${AGENT_STATE}"
+    ADOPTED=""
+    outcome=0
+    adopt_alarm_state || outcome=$?
+    case "$outcome" in
+      0) log "servo alarm state adopted from ${ADOPTED}" ;;
+      1) log "no other host saved a servo alarm state at ${ALARM_BACKUP}: the agent starts without one" ;;
+      *)
+        log "warning: the servo alarms of the host this one replaces are not carried over (above); their" \
+          "e-mails were sent when they changed, and their copy stays in the bucket under ${ALARM_BACKUP}"
+        ;;
+    esac
+  fi
+fi
+
 # --- the agent service ----------------------------------------------------------------------------
 # Its own user, no capabilities, a read-only system but for its state and log directories: the agent
 # parses untrusted MQTT payloads with native parsers, so what it can reach is kept small.
@@ -346,6 +413,33 @@ UMask=0027
 [Install]
 WantedBy=multi-user.target
 UNIT
+
+# --- a copy of the servo alarm state in the stack's bucket, whenever the agent writes it ----------------
+# The agent writes its state file atomically (a rename), which a path unit sees as a change of the path.
+if [ -n "$ALARM_BACKUP" ]; then
+  write_file "/etc/systemd/system/${ALARM_SAVER}.service" 0644 <<UNIT
+[Unit]
+Description=so101-twin: save the agent's servo alarm state (${ALARM_STATE}) to the stack's bucket
+Wants=network-online.target
+After=network-online.target
+
+[Service]
+Type=oneshot
+ExecStart=/bin/bash /opt/so101-twin/userdata/save-alarm-state.sh ${ALARM_BACKUP}
+Environment=AWS_REGION=${AWS_REGION} AGENT_NAME=${AGENT_NAME}
+SyslogIdentifier=${ALARM_SAVER}
+UNIT
+  write_file "/etc/systemd/system/${ALARM_SAVER}.path" 0644 <<UNIT
+[Unit]
+Description=so101-twin: keep a copy of the agent's servo alarm state (${ALARM_STATE}) when it changes
+
+[Path]
+PathChanged=${ALARM_STATE}
+
+[Install]
+WantedBy=multi-user.target
+UNIT
+fi
 
 # --- a copy of the operator's file in the stack's bucket, whenever it changes -----------------------
 # A path unit starts the saver when the file is written (an editor's save, or a restore above); the saver
@@ -438,6 +532,12 @@ if [ -n "$LOCAL_BACKUP" ]; then
   # file nobody saved yet. A failure only delays the copy to the file's next change or the next deploy.
   AGENT_NAME="$AGENT_NAME" bash "$HERE/save-local-config.sh" "$LOCAL_BACKUP" ||
     log "warning: ${LOCAL_CONFIG} could not be saved to ${LOCAL_BACKUP} now; it is saved at its next change"
+fi
+if [ -n "$ALARM_BACKUP" ]; then
+  systemctl enable --now "${ALARM_SAVER}.path" >/dev/null 2>&1
+  # Saved now too, for a host whose agent wrote its file before the path unit existed (an update).
+  AGENT_NAME="$AGENT_NAME" bash "$HERE/save-alarm-state.sh" "$ALARM_BACKUP" ||
+    log "warning: ${ALARM_STATE} could not be saved to ${ALARM_BACKUP} now; it is saved at its next change"
 fi
 if [ "$CHANGED" = 1 ] || ! systemctl is-active --quiet so101-twin-agent.service; then
   systemctl restart so101-twin-agent.service

@@ -99,9 +99,41 @@ LOCAL_CONFIG=/etc/so101-twin/agent.local.toml
 # shellcheck disable=SC2034
 LOCAL_CONFIG_PLACEHOLDER="# so101-twin: placeholder, the saved settings could not be read; the next deploy tries again"
 
+# The agent's servo alarm state file (its [twin] state_file: twin.service.persist) and this disk's host id,
+# made at its first install: the alarm state's copy in the stack's bucket is kept under that id
+# (save-alarm-state.sh), and a host that replaces this one adopts the newest host's (install-agent.sh).
+# shellcheck disable=SC2034
+ALARM_STATE=/var/lib/so101-twin-agent/state.json
+# shellcheck disable=SC2034
+HOST_ID_FILE=/var/lib/so101-twin/host-id
+
 # The AWS CLI's own time limits (it retries by itself), so no call hangs a boot.
 # shellcheck disable=SC2034 # used by the scripts that source this file
 AWS_LIMITS=(--cli-connect-timeout 10 --cli-read-timeout 60)
+
+# upload_file FILE S3_URI: a copy of FILE taken first is uploaded, and FILE is compared with it afterwards:
+# systemd does not start a path unit's service again for a change made while it runs (the start merges into
+# the running job), so a change during the upload is caught here and uploaded in turn (up to 5 uploads).
+# 0 saved as it is; 1 an upload failed (the AWS CLI's error on stderr); 2 FILE kept changing.
+upload_file() {
+  local file="$1" target="$2" copy region=() n
+  [ -z "${AWS_REGION:-}" ] || region=(--region "$AWS_REGION")
+  copy="$(mktemp "${TMPDIR:-/tmp}/so101-twin-upload.XXXXXX")"
+  for n in 1 2 3 4 5; do
+    cp "$file" "$copy"
+    if ! aws s3 cp "${AWS_LIMITS[@]}" "${region[@]}" --only-show-errors "$copy" "$target"; then
+      rm -f "$copy"
+      return 1
+    fi
+    if cmp -s "$copy" "$file"; then
+      rm -f "$copy"
+      return 0
+    fi
+    [ "$n" = 5 ] || log "${file#"${ROOT}"} changed while it was saved; saving it again"
+  done
+  rm -f "$copy"
+  return 2
+}
 
 # apt's own limits: the boot holds automatic updates still and checks the dpkg lock first (bootstrap.sh,
 # step apt), so a lock wait here is short; downloads time out and are retried instead of hanging.

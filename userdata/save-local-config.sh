@@ -7,11 +7,11 @@
 #   save-local-config.sh S3_URI   where to keep the file (s3://<bucket>/host/agent.local.toml)
 #   ROOT   prefix for the file (tests); AWS_REGION the bucket's region; AGENT_NAME the metrics' Agent
 # A file that is still the placeholder install-agent.sh writes when the saved copy could not be read is not
-# saved: it would replace the settings it stands in for. Exits 0 when there is nothing to save, 1 when the
-# upload failed (the unit's journal has the AWS CLI's error). Each run ends with the metric LocalConfigNotSaved
-# (lib.sh, emit_host_metrics): 1 while the bucket does not hold this host's settings as they are (the upload
-# failed, or the file is that placeholder), else 0; the stack's alarm of that name pages on 1 and clears on
-# the next 0.
+# saved: it would replace the settings it stands in for. Exits 0 when saved or there is nothing to save, 1
+# when it could not be saved (lib.sh, upload_file; the unit's journal has the AWS CLI's error). Each run ends
+# with the metric LocalConfigNotSaved (lib.sh, emit_host_metrics): 1 while the bucket does not hold this
+# host's settings as they are (the upload failed, or the file is that placeholder), else 0; the stack's alarm
+# of that name pages on 1 and clears on the next 0.
 set -Eeuo pipefail
 
 HERE="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
@@ -41,30 +41,24 @@ if grep -qxF "$LOCAL_CONFIG_PLACEHOLDER" "$FILE"; then
   not_saved 1
   exit 0
 fi
-region=()
-[ -z "${AWS_REGION:-}" ] || region=(--region "$AWS_REGION")
-# What is uploaded is a copy taken first, and the file is compared with it afterwards: systemd does not start
-# this unit again for a change made while it runs (the path unit's start merges into the running job), so a
-# second save during the upload is caught here and uploaded in turn.
-copy="$(mktemp "${TMPDIR:-/tmp}/so101-twin-local-config.XXXXXX")"
-trap 'rm -f "$copy"' EXIT
-for _ in 1 2 3 4 5; do
-  cp "$FILE" "$copy"
-  if ! aws s3 cp "${AWS_LIMITS[@]}" "${region[@]}" --only-show-errors "$copy" "$TARGET"; then
+outcome=0
+upload_file "$FILE" "$TARGET" || outcome=$?
+case "$outcome" in
+  0)
+    log "saved ${LOCAL_CONFIG} to ${TARGET}"
+    not_saved 0
+    ;;
+  1)
     log "not saved: ${LOCAL_CONFIG} could not be uploaded to ${TARGET} (the AWS CLI's error is above), so" \
       "a host that replaces this one would start without it. Check the host role's s3:PutObject on that" \
       "key and the host's network; its next change, or 'systemctl start so101-twin-local-config', saves it"
     not_saved 1
     exit 1
-  fi
-  if cmp -s "$copy" "$FILE"; then
-    log "saved ${LOCAL_CONFIG} to ${TARGET}"
-    not_saved 0
-    exit 0
-  fi
-  log "${LOCAL_CONFIG} changed while it was saved; saving it again"
-done
-log "not saved: ${LOCAL_CONFIG} kept changing while it was saved; the copy at ${TARGET} may be behind:" \
-  "its next change saves it"
-not_saved 1
-exit 1
+    ;;
+  *)
+    log "not saved: ${LOCAL_CONFIG} kept changing while it was saved; the copy at ${TARGET} may be behind:" \
+      "its next change saves it"
+    not_saved 1
+    exit 1
+    ;;
+esac

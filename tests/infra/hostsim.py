@@ -355,18 +355,32 @@ case "$1 $2" in
         if [ -x "$SIM/on-upload" ]; then mv "$SIM/on-upload" "$SIM/on-upload.ran"; "$SIM/on-upload.ran"; fi ;;
     esac ;;
   "s3api list-objects-v2")
-    # --bucket B --prefix P --query KeyCount --output text: how many objects' keys start with P.
-    bucket=""; prefix=""
+    # --bucket B --prefix P --output text and --query KeyCount: how many objects' keys start with P; or
+    # --query 'Contents[].[LastModified,Key]': one "<ISO time in UTC>TAB<key>" line per object (a file's
+    # mtime stands for LastModified), "None" for none, as the AWS CLI prints them.
+    bucket=""; prefix=""; query=""
     while [ $# -gt 0 ]; do
-      case "$1" in --bucket) bucket="$2"; shift ;; --prefix) prefix="$2"; shift ;; esac; shift
+      case "$1" in
+        --bucket) bucket="$2"; shift ;; --prefix) prefix="$2"; shift ;; --query) query="$2"; shift ;;
+      esac; shift
     done
     if [ -e "$SIM/fail/s3" ]; then
       echo "An error occurred (AccessDenied) when calling the ListObjectsV2 operation: Access Denied" >&2
       exit 254
     fi
     count=0
-    for object in "$SIM/s3/$bucket/$prefix"*; do [ -f "$object" ] && count=$((count + 1)); done
-    echo "$count" ;;
+    for object in "$SIM/s3/$bucket/$prefix"*; do
+      [ -f "$object" ] || continue
+      count=$((count + 1))
+      if [ "$query" = "Contents[].[LastModified,Key]" ]; then
+        printf '%s\t%s\n' "$(date -u -r "$object" +%Y-%m-%dT%H:%M:%S+00:00)" "${object#"$SIM/s3/$bucket/"}"
+      fi
+    done
+    case "$query" in
+      KeyCount) echo "$count" ;;
+      "Contents[].[LastModified,Key]") [ "$count" -gt 0 ] || echo None ;;
+      *) echo "aws stand-in: unsupported --query $query" >&2; exit 2 ;;
+    esac ;;
   "secretsmanager describe-secret")
     # The map's first key is the previous version: the boot must pick the one staged AWSCURRENT.
     echo '{"Name": "HostDcvPassword",'

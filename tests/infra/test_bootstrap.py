@@ -418,6 +418,15 @@ def test_agent_config_and_its_own_user(booted, deployed: Deployed) -> None:
     )
     rules = host.file("/etc/rsyslog.d/30-so101-twin.conf")
     assert ':programname, isequal, "so101-twin-local-config" /var/log/so101-twin-agent.log' in rules
+    # The servo alarm state's copy: under this host's id, saved whenever the agent writes its state file.
+    assert (
+        f"ExecStart=/bin/bash /opt/so101-twin/userdata/save-alarm-state.sh s3://{HISTORY_BUCKET}/host/alarm-state/"
+        in host.file("/etc/systemd/system/so101-twin-alarm-state.service")
+    )
+    assert "PathChanged=/var/lib/so101-twin-agent/state.json\n" in host.file(
+        "/etc/systemd/system/so101-twin-alarm-state.path"
+    )
+    assert ':programname, isequal, "so101-twin-alarm-state" /var/log/so101-twin-agent.log' in rules
     # The lock was installed (its probe wheel is in the venv).
     probe = subprocess.run(
         [

@@ -102,6 +102,14 @@ def test_host_role_gets_exactly_the_history_prefix(synth_default: Synth) -> None
     local_list = statement(statements, "HostLocalConfigList")
     assert local_list["Action"] == "s3:ListBucket"
     assert local_list["Condition"] == {"StringEquals": {"s3:prefix": ["host/agent.local.toml"]}}
+    # The hosts' copies of the servo alarm state: read and write one per host id, no delete; a listing of
+    # that prefix only (a new host picks the copy written last: userdata/install-agent.sh).
+    alarm_state = statement(statements, "HostAlarmState")
+    assert sorted(alarm_state["Action"]) == ["s3:GetObject", "s3:PutObject"]
+    assert alarm_state["Resource"]["Fn::Join"][1][1] == "/host/alarm-state/*"
+    alarm_list = statement(statements, "HostAlarmStateList")
+    assert alarm_list["Action"] == "s3:ListBucket"
+    assert alarm_list["Condition"] == {"StringEquals": {"s3:prefix": ["host/alarm-state/"]}}
     # No other statement reaches the bucket.
     others = [s.get("Sid") for s in statements if "HistoryBucket" in flatten(s["Resource"])]
     assert sorted(others) == [
@@ -109,6 +117,8 @@ def test_host_role_gets_exactly_the_history_prefix(synth_default: Synth) -> None
         "CalibrationRead",
         "HistoryList",
         "HistoryObjects",
+        "HostAlarmState",
+        "HostAlarmStateList",
         "HostLocalConfig",
         "HostLocalConfigList",
     ]

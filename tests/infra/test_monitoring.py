@@ -85,8 +85,8 @@ def test_alarm_email_subscribes_to_the_topic(synth_factory: Any) -> None:
 def test_every_alarm_notifies_the_topic_on_alarm_and_ok(synth_default: Synth) -> None:
     # Servo alarms reach the topic from the host directly (test_host_publishes_servo_alarms_to_the_topic_
     # only), not through a CloudWatch alarm on a once-a-minute metric: agent silent, arms stale, the six
-    # loss alarms, a refused subscription and the host scripts' two.
-    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 11)
+    # loss alarms, a refused subscription and the host scripts' three.
+    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 12)
     ref = topic_ref(synth_default)
     for props in synth_default.resources("AWS::CloudWatch::Alarm").values():
         assert props["Properties"]["AlarmActions"] == [ref]
@@ -132,7 +132,7 @@ def test_agent_silent_is_armed_by_the_host_once_it_is_up(synth_default: Synth) -
         for p in synth_default.resources("AWS::CloudWatch::Alarm").values()
         if p["Properties"].get("AlarmName") != "So101TwinStack-AgentSilent"
     ]
-    assert len(others) == 10 and all(p.get("ActionsEnabled", True) for p in others)
+    assert len(others) == 11 and all(p.get("ActionsEnabled", True) for p in others)
     arm = statement(policy_statements(synth_default, "IdentityHostRole"), "AgentSilentArm")
     assert arm["Action"] == "cloudwatch:EnableAlarmActions"
     resource = json.dumps(arm["Resource"])
@@ -266,7 +266,7 @@ def test_the_dashboard_shows_every_alarm_and_is_an_output(synth_default: Synth) 
     body = dashboard_body(synth_default)
     status = [w for w in body["widgets"] if w["type"] == "alarm"]
     alarms = synth_default.resources("AWS::CloudWatch::Alarm")
-    assert len(status) == 1 and len(status[0]["properties"]["alarms"]) == len(alarms) == 11
+    assert len(status) == 1 and len(status[0]["properties"]["alarms"]) == len(alarms) == 12
     # One point a minute, the agent's EMF interval, each with the statistic its figure needs.
     for widget in body["widgets"]:
         for row in widget["properties"].get("metrics", []):
@@ -340,7 +340,10 @@ def test_a_refused_subscription_alarms_after_two_minutes_of_it(synth_default: Sy
     assert "iot:Subscribe" in props["AlarmDescription"]
 
 
-@pytest.mark.parametrize("name", [monitoring.HOST_CHECKS_FAILED, monitoring.LOCAL_CONFIG_NOT_SAVED])
+@pytest.mark.parametrize(
+    "name",
+    [monitoring.HOST_CHECKS_FAILED, monitoring.LOCAL_CONFIG_NOT_SAVED, monitoring.ALARM_STATE_NOT_SAVED],
+)
 def test_a_host_scripts_failure_pages_until_a_later_run_succeeds(synth_default: Synth, name: str) -> None:
     """The host's scripts write their outcome (1 failed, 0 fine) only when they run, a start or a save, often
     days apart: a minute without data must keep the alarm as it is, not clear it (notBreaching would)."""

@@ -92,9 +92,10 @@ def test_a_replacing_change_is_refused_with_the_fix(cfn) -> None:
     assert "volumeGb: 100 -> 200" in message
     assert "-c replaceInstance=true" in message
     assert "first boot" in message
-    # What is lost, and what stays: the operator's own settings file is kept in S3 by the host.
-    assert "the servo alarms' states and acknowledgements, the USD recordings" in message
-    assert "your /etc/so101-twin/agent.local.toml are in S3 and stay" in message
+    # What is lost, and what stays: the operator's own settings file and the servo alarm state are kept in
+    # S3 by the host.
+    assert "is lost: the USD recordings, and servo alarm changes made on the old host" in message
+    assert "your /etc/so101-twin/agent.local.toml and the servo alarms as the new host boots" in message
 
 
 def test_confirmed_or_unchanged_passes(cfn) -> None:

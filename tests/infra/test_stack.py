@@ -621,6 +621,7 @@ def test_agent_asset_holds_only_the_distribution(synth_default: Synth) -> None:
         "host-check.sh",
         "view-supervisor.sh",
         "save-local-config.sh",
+        "save-alarm-state.sh",
         "releases.env",
     }
 

@@ -48,6 +48,7 @@ def test_shellcheck_is_clean() -> None:
         "host-check.sh",
         "view-supervisor.sh",
         "save-local-config.sh",
+        "save-alarm-state.sh",
     }
     shellcheck = shutil.which("shellcheck")
     if shellcheck is None:
@@ -317,7 +318,13 @@ def test_the_unit_is_valid_for_systemd(installed: tuple[Path, Path], tmp_path: P
     if systemd_analyze is None:
         pytest.fail("systemd-analyze is missing (package systemd)")
     root, _ = installed
-    names = ("so101-twin-agent.service", "so101-twin-local-config.service", "so101-twin-local-config.path")
+    names = (
+        "so101-twin-agent.service",
+        "so101-twin-local-config.service",
+        "so101-twin-local-config.path",
+        "so101-twin-alarm-state.service",
+        "so101-twin-alarm-state.path",
+    )
     units = [tmp_path / name for name in names]
     for unit in units:
         # The venv's twin lives under the test's root: point ExecStart there so only the directives are
@@ -437,15 +444,15 @@ SAVED_LOCAL = "twin-history-bucket/host/agent.local.toml"
 SAVER = USERDATA / "save-local-config.sh"
 
 
-def not_saved_metric(root: Path) -> tuple[float, str]:
-    """The last LocalConfigNotSaved the saver wrote on the host at `root` (userdata/lib.sh,
-    emit_host_metrics), with its Agent dimension: what the stack's alarm of that name watches."""
+def not_saved_metric(root: Path, name: str = monitoring.LOCAL_CONFIG_NOT_SAVED) -> tuple[float, str]:
+    """The last `name` a saver wrote on the host at `root` (userdata/lib.sh, emit_host_metrics), with its
+    Agent dimension: what the stack's alarm of that name watches."""
     lines = (root / "var/log/so101-twin-host-emf.log").read_text().splitlines()
     documents = [json.loads(line) for line in lines]
-    last = [d for d in documents if monitoring.LOCAL_CONFIG_NOT_SAVED in d][-1]
+    last = [d for d in documents if name in d][-1]
     (directive,) = last["_aws"]["CloudWatchMetrics"]
     assert directive["Namespace"] == monitoring.NAMESPACE and directive["Dimensions"] == [["Agent"]]
-    return last[monitoring.LOCAL_CONFIG_NOT_SAVED], last["Agent"]
+    return last[name], last["Agent"]
 
 
 def _new_host(installed: tuple[Path, Path], tmp_path: Path, saved: str | None) -> Path:
@@ -454,6 +461,7 @@ def _new_host(installed: tuple[Path, Path], tmp_path: Path, saved: str | None) -
     root = tmp_path / "root"
     shutil.copytree(installed[0], root, symlinks=True)
     (root / "etc/so101-twin/agent.local.toml").unlink()
+    (root / "var/lib/so101-twin/host-id").unlink()  # made at a disk's first install
     if saved is not None:
         copy = tmp_path / "root-sim" / "sim" / "s3" / SAVED_LOCAL
         copy.parent.mkdir(parents=True)
@@ -560,6 +568,97 @@ def test_an_upload_that_fails_says_what_to_check_and_pages_until_a_save_succeeds
     assert not_saved_metric(root) == (0, "Lab")
 
 
+SAVED_ALARMS = "twin-history-bucket/host/alarm-state"
+ALARM_SAVER = USERDATA / "save-alarm-state.sh"
+AGENT_STATE_FILE = "var/lib/so101-twin-agent/state.json"
+
+
+def write_alarm_state(path: Path, *, joint: str, wall: float) -> None:
+    """The agent's state file as its running agent writes it (`stopped` false): `joint`'s over-temperature
+    alarm LATCHED and the gripper's ACKNOWLEDGED."""
+    from twin.core.alarms import AlarmKind, AlarmRecord, AlarmState
+    from twin.service.persist import StateFile
+
+    records = [
+        AlarmRecord(
+            "arm-001", joint, AlarmKind.OVER_TEMPERATURE, AlarmState.LATCHED, 100.0, False, 2, 66.0, "hot"
+        ),
+        AlarmRecord(
+            "arm-001", "gripper", AlarmKind.OVERLOAD, AlarmState.ACKNOWLEDGED, 90.0, True, 1, 95.0, "x"
+        ),
+    ]
+    assert StateFile(path).save(records, now_mono=110.0, now_wall=wall)
+
+
+def test_a_new_host_starts_with_the_servo_alarms_of_the_host_it_replaces(
+    installed: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """Acknowledged and latched servo alarms survive a change that replaces the instance: each host saves
+    the agent's state file under its own id whenever the agent writes it, and a new disk's first install
+    adopts the copy written last, before its agent first runs."""
+    root, source = installed
+    host_id = (root / "var/lib/so101-twin/host-id").read_text().strip()
+    assert re.fullmatch(r"\d{8}T\d{6}Z-[0-9a-f]{8}", host_id), host_id
+    saver = (root / "etc/systemd/system/so101-twin-alarm-state.service").read_text()
+    assert f"ExecStart=/bin/bash /opt/so101-twin/userdata/save-alarm-state.sh s3://{SAVED_ALARMS}/\n" in saver
+    watch = (root / "etc/systemd/system/so101-twin-alarm-state.path").read_text()
+    assert "PathChanged=/var/lib/so101-twin-agent/state.json\n" in watch
+    assert (
+        'state_file = "/var/lib/so101-twin-agent/state.json"'
+        in (root / "etc/so101-twin/agent.toml").read_text()
+    )
+
+    # The running agent writes its file; the path unit runs the saver, as here.
+    old = tmp_path / "old"
+    shutil.copytree(root, old / "root", symlinks=True)
+    write_alarm_state(old / "root" / AGENT_STATE_FILE, joint="elbow_flex", wall=time.time())
+    host = HostSim(old / "sim")
+    result = host.run(ALARM_SAVER, f"s3://{SAVED_ALARMS}/", ROOT=str(old / "root"), AGENT_NAME="LabTwin")
+    assert result.returncode == 0, result.stdout + result.stderr
+    saved = host.sim / "s3" / SAVED_ALARMS / f"{host_id}.json"
+    assert (
+        f"saved /var/lib/so101-twin-agent/state.json to s3://{SAVED_ALARMS}/{host_id}.json" in result.stdout
+    )
+    assert saved.read_text() == (old / "root" / AGENT_STATE_FILE).read_text()
+
+    # A new host. The bucket holds that copy and an older host's (a first boot that failed and was rolled
+    # back writes a greater host id, but only once: the copy written last is the one in service).
+    new_root = _new_host(installed, tmp_path / "new", None)
+    bucket = tmp_path / "new" / "root-sim" / "sim" / "s3" / SAVED_ALARMS
+    bucket.mkdir(parents=True)
+    shutil.copy(saved, bucket / f"{host_id}.json")
+    rolled_back = bucket / "29990101T000000Z-0000beef.json"
+    write_alarm_state(rolled_back, joint="wrist_roll", wall=time.time() - 7200)
+    os.utime(rolled_back, (time.time() - 3600, time.time() - 3600))
+    result = run_installer(new_root, source)
+    assert result.returncode == 0, result.stdout + result.stderr
+    expected = f"servo alarm state adopted from s3://{SAVED_ALARMS}/{host_id}.json (2 alarms)"
+    assert expected in result.stdout, result.stdout
+    adopted = json.loads((new_root / AGENT_STATE_FILE).read_text())
+    assert (
+        "stopped" not in adopted
+    )  # another host's run: this host's agent reports no unclean stop of its own
+    assert adopted["alarms"] == json.loads(saved.read_text())["alarms"]
+    from twin.service.persist import StateFile
+
+    back = StateFile(new_root / AGENT_STATE_FILE).load(now_mono=5.0, now_wall=time.time())
+    assert sorted((r.joint, str(r.state)) for r in back) == [
+        ("elbow_flex", "LATCHED"),
+        ("gripper", "ACKNOWLEDGED"),
+    ]
+    # The new host saves its own copy under its own id; the old host's stays as it was.
+    new_id = (new_root / "var/lib/so101-twin/host-id").read_text().strip()
+    assert new_id != host_id
+    assert (bucket / f"{new_id}.json").read_text() == (new_root / AGENT_STATE_FILE).read_text()
+    assert not_saved_metric(new_root, monitoring.ALARM_STATE_NOT_SAVED) == (0, "LabTwin")
+
+    # Adopted once, at the disk's first install: a deploy later leaves the agent's own file alone.
+    write_alarm_state(bucket / "30000101T000000Z-00000001.json", joint="shoulder_pan", wall=time.time())
+    before = (new_root / AGENT_STATE_FILE).read_text()
+    assert run_installer(new_root, source).returncode == 0
+    assert (new_root / AGENT_STATE_FILE).read_text() == before
+
+
 def test_a_saved_copy_that_cannot_be_read_is_never_overwritten_and_is_restored_later(
     installed: tuple[Path, Path], tmp_path: Path
 ) -> None:
@@ -576,6 +675,11 @@ def test_a_saved_copy_that_cannot_be_read_is_never_overwritten_and_is_restored_l
     assert "could not look for the saved /etc/so101-twin/agent.local.toml at s3://" in out, out
     assert "AccessDenied" in out and "is a placeholder until the saved copy can be read" in out, out
     assert "not saved: /etc/so101-twin/agent.local.toml is the placeholder" in out, out
+    assert (
+        "could not look for the servo alarm state saved at s3://twin-history-bucket/host/alarm-state/" in out
+    )
+    assert "the servo alarms of the host this one replaces are not carried over" in out, out
+    assert not (root / AGENT_STATE_FILE).exists()
     local = root / "etc/so101-twin/agent.local.toml"
     assert tomllib.loads(local.read_text()) == {}  # the agent starts with no setting of it
     assert (host.sim / "s3" / SAVED_LOCAL).read_text() == settings  # the copy stays as it was

@@ -19,6 +19,10 @@ warning naming that run and what such an end loses.
 
 JSON, one object: {"version": 1, "written_at": <epoch s>, "pid": <the writer's pid>, "stopped": <bool>,
 "alarms": [{...}, ...]}. A file without `stopped` (an older agent's) says nothing about how its run ended.
+
+On the twin host a copy of the file is kept in the stack's bucket whenever it changes, and a host that
+replaces this one starts with the newest host's copy (userdata/install-agent.sh, `adopt`): the alarms carry
+over, and since the run that wrote it was another host's, the copy says nothing about how that run ended.
 """
 
 from __future__ import annotations
@@ -243,6 +247,23 @@ def records_of(document: dict[str, Any], now_mono: float, now_wall: float) -> li
             raise StateFileError(f"alarm {i} is {state}, which the file never keeps")
         out.append(record)
     return out
+
+
+def adopt(text: str) -> str:
+    """Another host's state file as this host's first one: the same alarms, without `stopped` (that run was
+    not this host's, and it may still be running while its replacement boots, so it ended neither cleanly
+    nor not). StateFileError when the text is not a valid state file: a bad copy is not put in place."""
+    document = _document_of(text)
+    records_of(document, time.monotonic(), time.time())
+    document.pop("stopped", None)
+    return json.dumps(document, indent=1, sort_keys=True) + "\n"
+
+
+def adopt_file(source: str, target: str) -> int:
+    """`adopt` from file to file (install-agent.sh runs it), written atomically; the number of alarms."""
+    adopted = adopt(Path(source).read_text(encoding="utf-8"))
+    write_atomically(Path(target), adopted)
+    return len(json.loads(adopted)["alarms"])
 
 
 def write_atomically(path: Path, text: str) -> None:
