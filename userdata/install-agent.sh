@@ -536,7 +536,7 @@ fi
 if [ -n "$ALARM_BACKUP" ]; then
   systemctl enable --now "${ALARM_SAVER}.path" >/dev/null 2>&1
   # Saved now too, for a host whose agent wrote its file before the path unit existed (an update).
-  AGENT_NAME="$AGENT_NAME" bash "$HERE/save-alarm-state.sh" "$ALARM_BACKUP" ||
+  AGENT_NAME="$AGENT_NAME" SAVE_EVERY_S=0 bash "$HERE/save-alarm-state.sh" "$ALARM_BACKUP" ||
     log "warning: ${ALARM_STATE} could not be saved to ${ALARM_BACKUP} now; it is saved at its next change"
 fi
 if [ "$CHANGED" = 1 ] || ! systemctl is-active --quiet so101-twin-agent.service; then

@@ -111,22 +111,26 @@ HOST_ID_FILE=/var/lib/so101-twin/host-id
 # shellcheck disable=SC2034 # used by the scripts that source this file
 AWS_LIMITS=(--cli-connect-timeout 10 --cli-read-timeout 60)
 
-# upload_file FILE S3_URI: a copy of FILE taken first is uploaded, and FILE is compared with it afterwards:
-# systemd does not start a path unit's service again for a change made while it runs (the start merges into
-# the running job), so a change during the upload is caught here and uploaded in turn (up to 5 uploads).
-# 0 saved as it is; 1 an upload failed (the AWS CLI's error on stderr); 2 FILE kept changing.
+# upload_file FILE S3_URI [KEEP]: a copy of FILE taken first is uploaded, and FILE is compared with it
+# afterwards: systemd does not start a path unit's service again for a change made while it runs (the start
+# merges into the running job), so a change during the upload is caught here and uploaded in turn (up to 5
+# uploads). 0 saved as it is (the copy uploaded left at KEEP when given); 1 an upload failed (the AWS CLI's
+# error on stderr); 2 FILE kept changing.
 upload_file() {
-  local file="$1" target="$2" copy region=() n
+  local file="$1" target="$2" keep="${3:-}" copy region=() n
   [ -z "${AWS_REGION:-}" ] || region=(--region "$AWS_REGION")
   copy="$(mktemp "${TMPDIR:-/tmp}/so101-twin-upload.XXXXXX")"
   for n in 1 2 3 4 5; do
-    cp "$file" "$copy"
+    if ! cp "$file" "$copy"; then
+      rm -f "$copy"
+      return 1
+    fi
     if ! aws s3 cp "${AWS_LIMITS[@]}" "${region[@]}" --only-show-errors "$copy" "$target"; then
       rm -f "$copy"
       return 1
     fi
     if cmp -s "$copy" "$file"; then
-      rm -f "$copy"
+      if [ -n "$keep" ]; then mv -f "$copy" "$keep"; else rm -f "$copy"; fi
       return 0
     fi
     [ "$n" = 5 ] || log "${file#"${ROOT}"} changed while it was saved; saving it again"

@@ -6,11 +6,15 @@
 # so101-twin-alarm-state.service, which a systemd path unit starts whenever the agent writes the file (when
 # its kept alarms change, at its start and at its stop), and once by every run of install-agent.sh.
 #   save-alarm-state.sh S3_PREFIX   where the hosts keep their copies (s3://<bucket>/host/alarm-state/)
-#   ROOT   prefix for the files (tests); AWS_REGION the bucket's region; AGENT_NAME the metrics' Agent
+#   ROOT   prefix for the files (tests); AWS_REGION the bucket's region; AGENT_NAME the metrics' Agent;
+#   SAVE_EVERY_S   the least time between two uploads (default 30; install-agent.sh gives 0)
 # The key is <S3_PREFIX><host id>.json (lib.sh HOST_ID_FILE: the time of this disk's first install, then a
 # random part): during a replacement the old host and its successor run side by side, and each keeps its
-# own copy, so the old host's last writes cannot overwrite its successor's. Exits 0 when saved or there is
-# nothing to save, 1 when it could not be saved. Each run ends with the metric AlarmStateNotSaved (1 or 0),
+# own copy, so the old host's last writes cannot overwrite its successor's. The agent may rewrite the file
+# every second while alarms flap across a fleet, and each upload starts the AWS CLI (a fraction of a second
+# of CPU): after an upload the saver waits SAVE_EVERY_S and uploads again only if the file changed meanwhile,
+# so it uploads at most once in that time and still ends with the file as it is (a start asked for while it
+# runs merges into this run). Exits 0 when saved or there is nothing to save, 1 when it could not be saved. Each run ends with the metric AlarmStateNotSaved (1 or 0),
 # which the stack's alarm of that name watches.
 set -Eeuo pipefail
 
@@ -38,13 +42,19 @@ if ! host_id="$(cat "${ROOT}${HOST_ID_FILE}" 2>/dev/null)" || [ -z "$host_id" ];
   exit 1
 fi
 target="${PREFIX%/}/${host_id}.json"
-outcome=0
-upload_file "$FILE" "$target" || outcome=$?
+uploaded="$(mktemp "${TMPDIR:-/tmp}/so101-twin-alarm-state.XXXXXX")"
+trap 'rm -f "$uploaded"' EXIT
+while :; do
+  outcome=0
+  upload_file "$FILE" "$target" "$uploaded" || outcome=$?
+  [ "$outcome" = 0 ] || break
+  log "saved ${ALARM_STATE} to ${target}"
+  not_saved 0
+  sleep "${SAVE_EVERY_S:-30}"
+  if cmp -s "$uploaded" "$FILE"; then exit 0; fi
+  log "${ALARM_STATE} changed since; saving it again"
+done
 case "$outcome" in
-  0)
-    log "saved ${ALARM_STATE} to ${target}"
-    not_saved 0
-    ;;
   1)
     log "not saved: ${ALARM_STATE} could not be uploaded to ${target} (the AWS CLI's error is above), so a" \
       "host that replaces this one would start without its acknowledged and latched servo alarms. Check" \

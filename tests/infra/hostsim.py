@@ -314,7 +314,11 @@ grep -vx "$3" "$SIM/groups/$2" >"$SIM/groups/$2.new" || true
 mv "$SIM/groups/$2.new" "$SIM/groups/$2"
 """,
     "chown": r"""exit 0""",
-    "sleep": r"""exit 0""",
+    "sleep": r"""
+# SIM/on-sleep: what happens meanwhile (the agent writing a file again), run once.
+if [ -x "$SIM/on-sleep" ]; then mv "$SIM/on-sleep" "$SIM/on-sleep.ran"; "$SIM/on-sleep.ran"; fi
+exit 0
+""",
     "chpasswd": r"""
 IFS= read -r line
 user="${line%%:*}"; password="${line#*:}"

@@ -659,6 +659,32 @@ def test_a_new_host_starts_with_the_servo_alarms_of_the_host_it_replaces(
     assert (new_root / AGENT_STATE_FILE).read_text() == before
 
 
+def test_the_alarm_state_is_uploaded_at_most_once_a_wait_and_ends_as_the_file_is(
+    installed: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """The agent may rewrite its state file every second while alarms flap across a fleet: after an upload
+    the saver waits, and uploads again only if the file changed meanwhile (a start asked for during its run
+    merges into it, so the wait must look itself)."""
+    root = tmp_path / "root"
+    shutil.copytree(installed[0], root, symlinks=True)
+    state = root / AGENT_STATE_FILE
+    write_alarm_state(state, joint="elbow_flex", wall=time.time())
+    host = HostSim(tmp_path / "host")
+    hook = host.sim / "on-sleep"
+    later = tmp_path / "later.json"
+    write_alarm_state(later, joint="wrist_flex", wall=time.time())
+    hook.write_text(f"#!/usr/bin/env bash\ncp '{later}' '{state}'\n")
+    hook.chmod(0o755)
+    result = host.run(ALARM_SAVER, f"s3://{SAVED_ALARMS}/", ROOT=str(root), SAVE_EVERY_S="30")
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "state.json changed since; saving it again" in result.stdout
+    uploads = [c for c in host.calls() if c.startswith("aws s3 cp")]
+    sleeps = [c for c in host.calls() if c.startswith("sleep")]
+    assert len(uploads) == 2 and sleeps == ["sleep 30", "sleep 30"], host.calls()
+    host_id = (root / "var/lib/so101-twin/host-id").read_text().strip()
+    assert (host.sim / "s3" / SAVED_ALARMS / f"{host_id}.json").read_text() == later.read_text()
+
+
 def test_a_saved_copy_that_cannot_be_read_is_never_overwritten_and_is_restored_later(
     installed: tuple[Path, Path], tmp_path: Path
 ) -> None:
