@@ -5,9 +5,12 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
-from twin.cli.main import EXIT_READER_GONE
+from twin.cli.main import EXIT_READER_GONE, main
+
+REPO = Path(__file__).resolve().parent.parent
 
 
 @pytest.mark.slow
@@ -29,3 +32,30 @@ def test_a_reader_that_has_gone_ends_the_command_quietly() -> None:
         os.close(write_end)
     assert done.returncode == EXIT_READER_GONE == 141
     assert done.stderr == ""
+
+
+@pytest.mark.parametrize(
+    ("args", "says"),
+    [
+        # An output where no directory can be made: the calibration store, the picture of a render.
+        (
+            ["calibration", "push", "arm-002", "{example}", "--store", "/proc/nope"],
+            "No such file or directory",
+        ),
+        # A file where the output directory is wanted.
+        (["demo", "--seconds", "3", "--out", "{file}"], "a file is where a directory is wanted"),
+    ],
+)
+def test_a_path_that_cannot_be_used_is_one_line_naming_it_not_a_traceback(
+    args: list[str], says: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    a_file = tmp_path / "notes.txt"
+    a_file.write_text("mine\n")
+    example = REPO / "robots/so101/calibration/so101_follower_example.json"
+    args = [a.format(example=example, file=a_file) for a in args]
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    (line,) = [x for x in err.splitlines() if "cannot use" in x]
+    assert line.startswith(f"twin {args[0]}: cannot use ") and says in line, err
+    assert a_file.read_text() == "mine\n"  # nothing the user had is touched

@@ -8,6 +8,7 @@ edits this file; imports stay lazy inside each command so `twin decode` does not
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import os
 import pkgutil
@@ -52,6 +53,31 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         Console(args.command).err(message)
         return 1
+    except OSError as exc:
+        # A path the user gave that cannot be used (an output in a missing or read-only directory, a file
+        # where a directory is wanted): a line naming it and what to do, not a traceback. Errors of no
+        # path are not the user's to fix here.
+        if exc.filename is None:
+            raise
+        Console(args.command).err(path_error_message(exc))
+        return 1
+
+
+def path_error_message(exc: OSError) -> str:
+    """What went wrong with the path of `exc`, and the fix."""
+    path = exc.filename if exc.filename2 is None else f"{exc.filename} -> {exc.filename2}"
+    reason = exc.strerror or str(exc)
+    if exc.errno == errno.ENOENT:
+        fix = "check the path: its directory must exist"
+    elif exc.errno in (errno.EEXIST, errno.ENOTDIR, errno.EISDIR):
+        fix = "a file is where a directory is wanted, or the other way round; give another path"
+    elif exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+        fix = "give a path you may write, or change its permissions"
+    elif exc.errno == errno.ENOSPC:
+        fix = "free some space on that disk, or give a path on another"
+    else:
+        fix = "check the path"
+    return f"cannot use {path}: {reason}; {fix}"
 
 
 def _reader_gone() -> int:
