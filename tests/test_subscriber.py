@@ -20,6 +20,7 @@ from typing import Any
 
 import pytest
 from awscrt import mqtt5
+from awscrt.exceptions import AwsCrtError
 from conftest import NO_BROKER, wait_for
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
@@ -34,7 +35,14 @@ from twin.rig.mosquitto import MosquittoBroker
 from twin.service.agent import AgentService
 from twin.service.config import load_config
 from twin.transport import client as client_mod
-from twin.transport.broker import CLIENT_ID_PREFIX_MAX, BrokerConfig, BrokerConfigError, new_client_id
+from twin.transport.broker import (
+    CLIENT_ID_PREFIX_MAX,
+    NO_CREDENTIALS_HINT,
+    BrokerConfig,
+    BrokerConfigError,
+    connect_hint,
+    new_client_id,
+)
 from twin.transport.client import build_mqtt5_client, resolve_iot_endpoint
 from twin.transport.mailbox import InboundQueue
 from twin.transport.subscriber import TelemetrySubscriber
@@ -183,8 +191,28 @@ def test_iot_endpoint_lookup_failure_names_the_fix(monkeypatch: pytest.MonkeyPat
         raise RuntimeError("no credentials")
 
     monkeypatch.setattr(boto3, "client", broken_client)
-    with pytest.raises(BrokerConfigError, match=r"set \[broker\] endpoint"):
+    with pytest.raises(BrokerConfigError, match=r"set \[broker\] endpoint \(twin edge-sim: --endpoint\)"):
         resolve_iot_endpoint(BrokerConfig(url="iot", region="us-east-1"))
+
+
+def test_no_aws_credentials_says_how_to_give_them(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """A laptop without AWS credentials: the endpoint lookup, and every failed connect after it, say where
+    credentials come from, not only that the lookup failed (nothing is sent: boto3 finds none first)."""
+    for name in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_SESSION_TOKEN", "AWS_PROFILE"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("AWS_SHARED_CREDENTIALS_FILE", str(tmp_path / "no-credentials"))
+    monkeypatch.setenv("AWS_CONFIG_FILE", str(tmp_path / "no-config"))
+    monkeypatch.setenv("AWS_EC2_METADATA_DISABLED", "true")
+    with pytest.raises(BrokerConfigError) as caught:
+        resolve_iot_endpoint(BrokerConfig(url="iot", region="us-east-1"))
+    assert str(caught.value).startswith(
+        "could not look up the IoT Core endpoint: No AWS credentials were found"
+    )
+    assert "`aws configure`" in str(caught.value) and "AWS_PROFILE" in str(caught.value)
+    # With an endpoint given, awscrt signs each connect and fails each one with this error.
+    no_credentials = AwsCrtError(code=6153, name="AWS_AUTH_SIGNING_NO_CREDENTIALS", message="no credentials")
+    assert connect_hint(BrokerConfig(url="iot"), no_credentials) == NO_CREDENTIALS_HINT
+    assert connect_hint(BrokerConfig(url="mqtt://127.0.0.1:1883"), no_credentials) == ""
 
 
 # -- against a real broker ---------------------------------------------------------------------------------

@@ -162,11 +162,23 @@ class BrokerConfig:
         return self.url if self.kind != IOT else f"IoT Core ({self.region or 'default region'})"
 
 
+# What to do when no AWS credentials are found for IoT Core (the default chain: the environment, the AWS
+# profile, the instance role).
+NO_CREDENTIALS_HINT = (
+    "No AWS credentials were found: on a laptop run `aws configure` or `aws sso login`, or set AWS_PROFILE "
+    "(or AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY); on the twin host the instance role gives them (is its "
+    "instance profile attached?). For a local broker instead, give --broker mqtt://127.0.0.1:1883"
+)
+
+
 def connect_hint(config: BrokerConfig, error: BaseException | None) -> str:
     """What to check after a failed connect, when awscrt's error (named, not fixed) says what went wrong;
     "" when there is nothing more to say than the error."""
+    name = getattr(error, "name", "")
+    if config.kind == IOT and name.startswith("AWS_AUTH_SIGNING_NO_CREDENTIALS"):
+        return NO_CREDENTIALS_HINT
     # Only a refusal is certain: nothing listens there. IoT Core always listens: its problems are elsewhere.
-    if getattr(error, "name", "") != "AWS_IO_SOCKET_CONNECTION_REFUSED" or config.kind == IOT:
+    if name != "AWS_IO_SOCKET_CONNECTION_REFUSED" or config.kind == IOT:
         return ""
     return (
         f"Is a broker listening on {config.host} port {config.port} (a local one: `mosquitto -p "

@@ -15,7 +15,7 @@ from awscrt import auth, io, mqtt5
 from awsiot import mqtt5_client_builder
 
 from twin.core.aws import region_or_env
-from twin.transport.broker import BrokerConfig, BrokerConfigError
+from twin.transport.broker import NO_CREDENTIALS_HINT, BrokerConfig, BrokerConfigError
 
 
 def resolve_iot_endpoint(config: BrokerConfig) -> str:
@@ -23,15 +23,19 @@ def resolve_iot_endpoint(config: BrokerConfig) -> str:
     if config.endpoint:
         return config.endpoint
     import boto3  # noqa: PLC0415 - slow to import; only the "iot" path needs it
+    from botocore.exceptions import NoCredentialsError  # noqa: PLC0415 - with boto3
 
     try:
         # No region set: AWS_REGION, else boto3's own chain (AWS_DEFAULT_REGION, the profile's config).
         client = boto3.client("iot", region_name=region_or_env(config.region))
         response = client.describe_endpoint(endpointType="iot:Data-ATS")
+    except NoCredentialsError as exc:
+        raise BrokerConfigError(f"could not look up the IoT Core endpoint: {NO_CREDENTIALS_HINT}") from exc
     except Exception as exc:
         raise BrokerConfigError(
-            f"could not look up the IoT Core endpoint ({exc}); set [broker] endpoint to the account's "
-            "xxxx-ats.iot.<region>.amazonaws.com, or give the instance role iot:DescribeEndpoint"
+            f"could not look up the IoT Core endpoint ({exc}); set [broker] endpoint (twin edge-sim: "
+            "--endpoint) to the account's xxxx-ats.iot.<region>.amazonaws.com, or give the instance role "
+            "iot:DescribeEndpoint"
         ) from exc
     return str(response["endpointAddress"])
 
@@ -45,7 +49,8 @@ def _region(config: BrokerConfig) -> str:
     region = boto3.session.Session().region_name
     if not region:
         raise BrokerConfigError(
-            "no AWS region for IoT Core: set [broker] region (or --region), or AWS_REGION / the AWS config"
+            "no AWS region for IoT Core: give --region (in an agent config, [broker] region), or set "
+            "AWS_REGION or a region in the AWS config"
         )
     return str(region)
 
