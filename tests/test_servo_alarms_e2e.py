@@ -133,6 +133,8 @@ def test_each_servo_fault_raises_and_clears_its_alarms(
         assert (joint, kind, "raised") in actions
         assert (joint, kind, "cleared") in actions
     assert any(r.levelno == logging.ERROR and r.severity == "critical" for r in events)  # type: ignore[attr-defined]
+    # The text names the arm too: a plain-text log (twin demo's) shows none of the fields.
+    assert all(r.getMessage().startswith(f"servo alarm {r.action} on arm-001: ") for r in events)  # type: ignore[attr-defined]
 
     # CloudWatch: valid EMF lines, and a critical alarm counted while the faults ran.
     def critical_seen() -> bool:

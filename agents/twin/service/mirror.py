@@ -1891,10 +1891,13 @@ def _log_alarm_event(event: AlarmEvent) -> None:
     level = _ALARM_LOG_LEVEL.get(event.action, logging.INFO)
     if event.action == "raised" and event.severity is Severity.CRITICAL:
         level = logging.ERROR
+    # The arm in the text too: a plain-text log (`twin demo`'s) shows no fields, and a fleet has many
+    # servos of one name.
     log.log(
         level,
-        "servo alarm %s: %s",
+        "servo alarm %s on %s: %s",
         event.action,
+        event.device,
         event.message,
         extra={
             "event": "servo_alarm",

@@ -203,7 +203,7 @@ def _summary(stats: dict[str, Any], out_dir: Path) -> None:
         peak = story["peak_temperature_c"]
         console.out(
             f"  story: {story['device']} {story['joint']} peaked at "
-            f"{'-' if peak is None else f'{peak:.0f} C'}; alarms raised: {raised or 'none'}"
+            f"{'-' if peak is None else f'{peak:.0f} C'}; its alarms raised: {raised or 'none'}"
         )
     if stats["console"].get("skipped"):
         console.out(f"  console pictures skipped: {stats['console']['skipped']}")
