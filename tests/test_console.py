@@ -255,6 +255,14 @@ def test_an_unknown_arms_page_says_what_to_check(console: str, page: Any, browse
     page.goto(console + "/arm/arm-never-heard")
     page.locator("#unknown", has_text="Fleet page").wait_for()
     assert page.locator("h1").inner_text() == "arm-never-heard: not known to this agent"
+    # The notice wraps inside its card: it ran past the card's edge, cut off, in the summary's first column.
+    notice = page.evaluate(
+        "(() => { const p = document.getElementById('unknown').getBoundingClientRect();"
+        " const card = document.getElementById('unknown').parentElement.getBoundingClientRect();"
+        " return [p.right, card.right, document.getElementById('unknown').scrollWidth,"
+        " document.getElementById('unknown').clientWidth]; })()"
+    )
+    assert notice[0] <= notice[1] + 0.5 and notice[2] <= notice[3], notice
     # Its first read is the API's 404 for the id, which the browser logs; nothing else may be there.
     assert all("/api/arm/arm-never-heard" in e for e in browser_errors), browser_errors
     browser_errors.clear()
