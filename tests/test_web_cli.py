@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import re
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -166,6 +167,45 @@ def test_twin_web_refuses_what_is_not_a_recording(tmp_path: Path) -> None:
     )
     assert proc.returncode == 2
     assert "is not a .rrd file" in proc.stderr
+    missing = subprocess.run(
+        [str(TWIN), "web", str(tmp_path / "nosuch.rrd")],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=child_env(),
+    )
+    assert missing.returncode == 2
+    assert f"twin web: {tmp_path / 'nosuch.rrd'} does not exist; give a recording" in missing.stderr
+
+
+def test_twin_web_with_its_stream_port_taken_names_its_own_flag() -> None:
+    """The agent `twin web` runs cannot listen on its stream's port: the error names `twin web` (not `twin
+    run`) and the flag that chooses another port."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        proc = subprocess.run(
+            [
+                str(TWIN),
+                "web",
+                "--broker",
+                "mqtt://127.0.0.1:1",
+                "--grpc-port",
+                str(port),
+                "--http",
+                "127.0.0.1:0",
+            ],
+            check=False,
+            capture_output=True,
+            text=True,
+            timeout=60,
+            env=child_env(),
+        )
+    assert proc.returncode == 1
+    assert f"twin web: cannot start: rerun.grpc_port = {port}: 127.0.0.1:{port} is in use" in proc.stderr
+    assert "twin web --grpc-port 0, picks a free one" in proc.stderr
 
 
 @pytest.mark.slow

@@ -334,7 +334,7 @@ class RerunWorker:
             self.save_path.parent.mkdir(parents=True, exist_ok=True)
             self._file = self._stream(rr.FileSink(str(self.save_path)))
         if settings.serve:
-            grpc_port = bindable_port(settings.grpc_port, "rerun.grpc_port")
+            grpc_port = bindable_port(settings.grpc_port, "rerun.grpc_port", "twin web --grpc-port")
             self._served = self._stream(
                 rr.GrpcServerSink(LOOPBACK, grpc_port, server_memory_limit=settings.memory_limit.strip())
             )
@@ -351,7 +351,7 @@ class RerunWorker:
         self.statics_slice_s = STATICS_SLICE_S
         if settings.serve:
             try:
-                web_port = bindable_port(settings.web_port, "rerun.web_port")
+                web_port = bindable_port(settings.web_port, "rerun.web_port", "twin web --web-port")
                 self._web = start_web_viewer(self.grpc_url or "", web_port)
             except Exception:
                 self._rec.disconnect()
@@ -880,15 +880,17 @@ def _six_per_row(values: np.ndarray, present: np.ndarray | None) -> pa.Array:
     return pa.ListArray.from_arrays(offsets, flat, type=_SCALARS, mask=mask)
 
 
-def bindable_port(port: int, key: str) -> int:
-    """The loopback port to listen on (0 picks a free one); raises RerunSinkError when it is taken."""
+def bindable_port(port: int, key: str, flag: str | None = None) -> int:
+    """The loopback port to listen on (0 picks a free one); raises RerunSinkError when it is taken, naming
+    the config `key` and the command-line `flag` that set it."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
         try:
             probe.bind((LOOPBACK, port))
         except OSError as exc:
+            zero = f"{key} = 0, or {flag} 0," if flag else f"{key} = 0"
             raise RerunSinkError(
                 f"{key} = {port}: {LOOPBACK}:{port} is in use ({exc.strerror}); stop what holds it or choose "
-                f"another port ({key} = 0 picks a free one)"
+                f"another port ({zero} picks a free one)"
             ) from exc
         return int(probe.getsockname()[1])
 

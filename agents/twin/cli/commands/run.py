@@ -159,7 +159,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def configure(args: argparse.Namespace, overrides: dict[str, Any]) -> AgentConfig | int:
-    """Logging on, then the config from --config and `overrides`; an exit code when it is invalid."""
+    """Logging on, then the config from --config and `overrides`; an exit code when it is invalid. The
+    errors printed from here on name the command that was run (`twin web` runs the agent too)."""
+    console.command = getattr(args, "command", None) or console.command
     # Log before the config is known: a config error must still come out as a JSON line.
     level = (args.log_level or "INFO").upper()
     setup_logging(level if level in LOG_LEVELS else "INFO")

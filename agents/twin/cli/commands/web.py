@@ -98,6 +98,11 @@ def serve_file(path: Path, args: argparse.Namespace) -> int:
         viewer_url,
     )
 
+    if not path.exists():
+        console.err(
+            f"{path} does not exist; give a recording (e.g. out/demo/twin.rrd, which `make demo` writes)"
+        )
+        return run_command.EXIT_CONFIG
     if path.suffix != ".rrd" or not path.is_file():
         console.err(f"{path} is not a .rrd file; give a recording (e.g. out/demo/twin.rrd)")
         return run_command.EXIT_CONFIG
