@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -59,3 +60,30 @@ def test_a_path_that_cannot_be_used_is_one_line_naming_it_not_a_traceback(
     (line,) = [x for x in err.splitlines() if "cannot use" in x]
     assert line.startswith(f"twin {args[0]}: cannot use ") and says in line, err
     assert a_file.read_text() == "mine\n"  # nothing the user had is touched
+
+
+def test_a_mistyped_option_is_reported_by_its_command_with_the_nearest_one(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        main(["run", "--brokr", "mqtt://127.0.0.1:1883"])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("usage: twin run ")  # the command's usage, not twin's list of commands
+    assert (
+        "twin run: error: unrecognized arguments: --brokr mqtt://127.0.0.1:1883 (did you mean --broker?)"
+        in err
+    )
+    # A command under a command reports it the same way.
+    with pytest.raises(SystemExit):
+        main(["calibration", "push", "arm-001", "x.json", "--stroe", "out"])
+    assert "twin calibration push: error: unrecognized arguments: --stroe out (did you mean --store?)" in (
+        capsys.readouterr().err
+    )
+
+
+def test_version(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        main(["--version"])
+    assert exit_.value.code == 0
+    assert re.fullmatch(r"twin \d+\.\d+\.\d+\S*\n", capsys.readouterr().out)

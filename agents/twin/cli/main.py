@@ -8,8 +8,10 @@ edits this file; imports stay lazy inside each command so `twin decode` does not
 from __future__ import annotations
 
 import argparse
+import difflib
 import errno
 import importlib
+import importlib.metadata
 import os
 import pkgutil
 import sys
@@ -22,10 +24,35 @@ from twin.cli.output import Console, missing_extra_message
 EXIT_READER_GONE = 141
 
 
+class CommandParser(argparse.ArgumentParser):
+    """Every `twin` parser. An option no command knows (`twin run --brokr URL`) was reported by the top-level
+    parser, with `twin`'s own usage and nothing more; each command now reports it with its usage and the
+    nearest option it has."""
+
+    def parse_known_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> tuple[argparse.Namespace, list[str]]:
+        parsed, extra = super().parse_known_args(args, namespace)
+        if extra:
+            self.error(self._unrecognized(extra))
+        return parsed, extra
+
+    def _unrecognized(self, extra: list[str]) -> str:
+        known = [o for action in self._actions for o in action.option_strings if o.startswith("--")]
+        message = f"unrecognized arguments: {' '.join(extra)}"
+        for arg in extra:
+            if arg.startswith("--"):
+                near = difflib.get_close_matches(arg.split("=", 1)[0], known, n=1)
+                if near:
+                    return f"{message} (did you mean {near[0]}?)"
+        return message
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = CommandParser(
         prog="twin", description="so101-twin: a real-time digital twin of the LeRobot SO-101 arm."
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
         if info.name.startswith("_"):
@@ -61,6 +88,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         Console(args.command).err(path_error_message(exc))
         return 1
+
+
+def _version() -> str:
+    """The installed distribution's version (pyproject.toml)."""
+    try:
+        return importlib.metadata.version("so101-twin")
+    except importlib.metadata.PackageNotFoundError:
+        return "(not installed)"
 
 
 def path_error_message(exc: OSError) -> str:
