@@ -606,6 +606,19 @@ def test_reader_errors_and_times() -> None:
         HistoryReader("/nonexistent/history").scan()
 
 
+@pytest.mark.parametrize("command", ["ls", "plot", "export"])
+def test_a_time_not_understood_is_a_usage_error(
+    command: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Exit 2, as for any bad argument (the module doc's codes); 1 is nothing to show or unreadable storage.
+    from twin.cli.main import main
+
+    device = ["--device", "arm-001"] if command == "plot" else []
+    assert main(["history", command, "--history", str(tmp_path), "--since", "yesterday", *device]) == 2
+    assert f"twin history {command}: time 'yesterday' is not understood" in capsys.readouterr().err
+    assert main(["history", "ls", "--history", str(tmp_path / "none")]) == 1
+
+
 # --- S3 (moto server mode) --------------------------------------------------------------------------------
 
 

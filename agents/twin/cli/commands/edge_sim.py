@@ -63,7 +63,9 @@ def register(subparsers: Any) -> None:
 
 def _add_fleet_arguments(parser: argparse.ArgumentParser) -> None:
     """What is simulated: payload format, which arms, how fast, for how long."""
-    parser.add_argument("--variant", choices=("ticks", "degrees"), default="ticks", help="payload format")
+    parser.add_argument(
+        "--variant", choices=("ticks", "degrees"), default="ticks", help="payload format (default ticks)"
+    )
     who = parser.add_mutually_exclusive_group()
     who.add_argument("--devices", type=int, metavar="N", help="simulate arm-001..arm-00N (default 1)")
     who.add_argument(
@@ -73,7 +75,9 @@ def _add_fleet_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="ID",
         help="device id: 1..64 letters, digits, '-' or '_' (repeatable)",
     )
-    parser.add_argument("--rate", type=_positive, default=10.0, metavar="HZ", help="messages/s per device")
+    parser.add_argument(
+        "--rate", type=_positive, default=10.0, metavar="HZ", help="messages/s per device (default 10)"
+    )
     parser.add_argument("--seconds", type=_positive, metavar="S", help="run time (default: until stopped)")
 
 
