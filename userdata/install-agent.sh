@@ -255,14 +255,16 @@ local_placeholder() {
 
 # restore_local_config: 0 the saved copy is in place, 1 none is saved, 2 it could not be read (logged).
 # Listed first: S3 answers a GET of a missing key with 403, not 404, to a role that may not list the bucket,
-# and the listing's count tells "none saved" from "not readable" either way.
+# and the listing's count tells "none saved" from "not readable" either way. One page of it (--no-paginate,
+# up to 1,000 keys): the AWS CLI's docs allow --query with --output text on a paginated response only on
+# what it lists (Contents, CommonPrefixes), which KeyCount is not.
 restore_local_config() {
   local bucket="${LOCAL_BACKUP#s3://}" key count tmp region=()
   key="${bucket#*/}"
   bucket="${bucket%%/*}"
   [ -z "$AWS_REGION" ] || region=(--region "$AWS_REGION")
-  if ! count="$(aws s3api list-objects-v2 "${AWS_LIMITS[@]}" "${region[@]}" --bucket "$bucket" \
-    --prefix "$key" --query KeyCount --output text 2>&1)"; then
+  if ! count="$(aws s3api list-objects-v2 "${AWS_LIMITS[@]}" "${region[@]}" --no-paginate \
+    --bucket "$bucket" --prefix "$key" --query KeyCount --output text 2>&1)"; then
     log "could not look for the saved ${LOCAL_CONFIG} at ${LOCAL_BACKUP}: ${count}"
     return 2
   fi
@@ -305,8 +307,9 @@ adopt_alarm_state() {
   bucket="${bucket%%/*}"
   own="${prefix}$(cat "${ROOT}${HOST_ID_FILE}").json"
   [ -z "$AWS_REGION" ] || region=(--region "$AWS_REGION")
-  if ! listing="$(aws s3api list-objects-v2 "${AWS_LIMITS[@]}" "${region[@]}" --bucket "$bucket" \
-    --prefix "$prefix" --query 'Contents[].[LastModified,Key]' --output text 2>&1)"; then
+  # One page, as above: one key per host, far fewer than its 1,000.
+  if ! listing="$(aws s3api list-objects-v2 "${AWS_LIMITS[@]}" "${region[@]}" --no-paginate \
+    --bucket "$bucket" --prefix "$prefix" --query 'Contents[].[LastModified,Key]' --output text 2>&1)"; then
     log "could not look for the servo alarm state saved at ${ALARM_BACKUP}: ${listing}"
     return 2
   fi

@@ -362,12 +362,19 @@ case "$1 $2" in
     # --bucket B --prefix P --output text and --query KeyCount: how many objects' keys start with P; or
     # --query 'Contents[].[LastModified,Key]': one "<ISO time in UTC>TAB<key>" line per object (a file's
     # mtime stands for LastModified), "None" for none, as the AWS CLI prints them.
-    bucket=""; prefix=""; query=""
+    # The CLI's docs: with --output text, a paginated listing's --query may only take what it lists
+    # (Contents, CommonPrefixes), so a query of KeyCount needs --no-paginate (one page, as S3 sent it).
+    bucket=""; prefix=""; query=""; paginate=1
     while [ $# -gt 0 ]; do
       case "$1" in
         --bucket) bucket="$2"; shift ;; --prefix) prefix="$2"; shift ;; --query) query="$2"; shift ;;
+        --no-paginate) paginate=0 ;;
       esac; shift
     done
+    if [ "$query" = KeyCount ] && [ "$paginate" = 1 ]; then
+      echo "aws stand-in: --query KeyCount --output text on a paginated listing; give --no-paginate" >&2
+      exit 2
+    fi
     if [ -e "$SIM/fail/s3" ]; then
       echo "An error occurred (AccessDenied) when calling the ListObjectsV2 operation: Access Denied" >&2
       exit 254
