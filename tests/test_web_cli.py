@@ -154,27 +154,20 @@ def test_twin_web_serves_a_recording(tmp_path: Path) -> None:
             proc.kill()
 
 
+def twin_web(*args: str) -> subprocess.CompletedProcess[str]:
+    """`twin web ARGS` run to its end (each case here ends at once), its output kept."""
+    return subprocess.run(
+        [str(TWIN), "web", *args], check=False, capture_output=True, text=True, timeout=60, env=child_env()
+    )
+
+
 def test_twin_web_refuses_what_is_not_a_recording(tmp_path: Path) -> None:
     other = tmp_path / "fleet.json"
     other.write_text("{}")
-    proc = subprocess.run(
-        [str(TWIN), "web", str(other)],
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=60,
-        env=child_env(),
-    )
+    proc = twin_web(str(other))
     assert proc.returncode == 2
     assert "is not a .rrd file" in proc.stderr
-    missing = subprocess.run(
-        [str(TWIN), "web", str(tmp_path / "nosuch.rrd")],
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=60,
-        env=child_env(),
-    )
+    missing = twin_web(str(tmp_path / "nosuch.rrd"))
     assert missing.returncode == 2
     assert f"twin web: {tmp_path / 'nosuch.rrd'} does not exist; give a recording" in missing.stderr
 
@@ -186,23 +179,7 @@ def test_twin_web_with_its_stream_port_taken_names_its_own_flag() -> None:
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         port = taken.getsockname()[1]
-        proc = subprocess.run(
-            [
-                str(TWIN),
-                "web",
-                "--broker",
-                "mqtt://127.0.0.1:1",
-                "--grpc-port",
-                str(port),
-                "--http",
-                "127.0.0.1:0",
-            ],
-            check=False,
-            capture_output=True,
-            text=True,
-            timeout=60,
-            env=child_env(),
-        )
+        proc = twin_web("--broker", "mqtt://127.0.0.1:1", "--grpc-port", str(port), "--http", "127.0.0.1:0")
     assert proc.returncode == 1
     assert f"twin web: cannot start: rerun.grpc_port = {port}: 127.0.0.1:{port} is in use" in proc.stderr
     assert "twin web --grpc-port 0, picks a free one" in proc.stderr

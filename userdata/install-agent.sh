@@ -417,59 +417,40 @@ UMask=0027
 WantedBy=multi-user.target
 UNIT
 
-# --- a copy of the servo alarm state in the stack's bucket, whenever the agent writes it ----------------
-# The agent writes its state file atomically (a rename), which a path unit sees as a change of the path.
+# --- copies in the stack's bucket of what lives only on this disk, whenever it changes ------------------
+# saver_units NAME SCRIPT TARGET WATCHED WHAT: a oneshot service that runs the host's own copy of SCRIPT
+# TARGET, as root, which alone may read all of /etc and the agent's state here, and a path unit that starts
+# it whenever WATCHED changes: an editor's save, the agent's atomic write (a rename), or a restore above.
+saver_units() {
+  local name="$1" script="$2" target="$3" watched="$4" what="$5"
+  write_file "/etc/systemd/system/${name}.service" 0644 <<UNIT
+[Unit]
+Description=so101-twin: save ${what} (${watched}) to the stack's bucket
+Wants=network-online.target
+After=network-online.target
+
+[Service]
+Type=oneshot
+ExecStart=/bin/bash /opt/so101-twin/userdata/${script} ${target}
+Environment=AWS_REGION=${AWS_REGION} AGENT_NAME=${AGENT_NAME}
+SyslogIdentifier=${name}
+UNIT
+  write_file "/etc/systemd/system/${name}.path" 0644 <<UNIT
+[Unit]
+Description=so101-twin: keep a copy of ${what} (${watched}) when it changes
+
+[Path]
+PathChanged=${watched}
+
+[Install]
+WantedBy=multi-user.target
+UNIT
+}
 if [ -n "$ALARM_BACKUP" ]; then
-  write_file "/etc/systemd/system/${ALARM_SAVER}.service" 0644 <<UNIT
-[Unit]
-Description=so101-twin: save the agent's servo alarm state (${ALARM_STATE}) to the stack's bucket
-Wants=network-online.target
-After=network-online.target
-
-[Service]
-Type=oneshot
-ExecStart=/bin/bash /opt/so101-twin/userdata/save-alarm-state.sh ${ALARM_BACKUP}
-Environment=AWS_REGION=${AWS_REGION} AGENT_NAME=${AGENT_NAME}
-SyslogIdentifier=${ALARM_SAVER}
-UNIT
-  write_file "/etc/systemd/system/${ALARM_SAVER}.path" 0644 <<UNIT
-[Unit]
-Description=so101-twin: keep a copy of the agent's servo alarm state (${ALARM_STATE}) when it changes
-
-[Path]
-PathChanged=${ALARM_STATE}
-
-[Install]
-WantedBy=multi-user.target
-UNIT
+  saver_units "$ALARM_SAVER" save-alarm-state.sh "$ALARM_BACKUP" "$ALARM_STATE" "the agent's servo alarm state"
 fi
-
-# --- a copy of the operator's file in the stack's bucket, whenever it changes -----------------------
-# A path unit starts the saver when the file is written (an editor's save, or a restore above); the saver
-# runs the host's own copy of save-local-config.sh, as root, which alone may read all of /etc here.
 if [ -n "$LOCAL_BACKUP" ]; then
-  write_file "/etc/systemd/system/${LOCAL_SAVER}.service" 0644 <<UNIT
-[Unit]
-Description=so101-twin: save the operator's agent settings (${LOCAL_CONFIG}) to the stack's bucket
-Wants=network-online.target
-After=network-online.target
-
-[Service]
-Type=oneshot
-ExecStart=/bin/bash /opt/so101-twin/userdata/save-local-config.sh ${LOCAL_BACKUP}
-Environment=AWS_REGION=${AWS_REGION} AGENT_NAME=${AGENT_NAME}
-SyslogIdentifier=${LOCAL_SAVER}
-UNIT
-  write_file "/etc/systemd/system/${LOCAL_SAVER}.path" 0644 <<UNIT
-[Unit]
-Description=so101-twin: keep a copy of the operator's agent settings (${LOCAL_CONFIG}) when they change
-
-[Path]
-PathChanged=${LOCAL_CONFIG}
-
-[Install]
-WantedBy=multi-user.target
-UNIT
+  saver_units "$LOCAL_SAVER" save-local-config.sh "$LOCAL_BACKUP" "$LOCAL_CONFIG" "the operator's agent settings"
 fi
 
 # --- the viewer in the DCV console session --------------------------------------------------------

@@ -111,6 +111,12 @@ HOST_ID_FILE=/var/lib/so101-twin/host-id
 # shellcheck disable=SC2034 # used by the scripts that source this file
 AWS_LIMITS=(--cli-connect-timeout 10 --cli-read-timeout 60)
 
+# saved_metric NAME 0|1: a saver's outcome as its metric, written with the agent's venv; a metric line that
+# cannot be written is logged and changes nothing the saver did.
+saved_metric() {
+  emit_host_metrics "${VENV:-/opt/so101-twin/venv}" "$1=$2" || log "could not write the $1 metric line"
+}
+
 # upload_file FILE S3_URI [KEEP]: a copy of FILE taken first is uploaded, and FILE is compared with it
 # afterwards: systemd does not start a path unit's service again for a change made while it runs (the start
 # merges into the running job), so a change during the upload is caught here and uploaded in turn (up to 5

@@ -26,10 +26,7 @@ LOG_TAG=save-alarm-state
 PREFIX="${1:?usage: save-alarm-state.sh s3://<bucket>/host/alarm-state/}"
 FILE="${ROOT}${ALARM_STATE}"
 
-not_saved() {
-  emit_host_metrics "${VENV:-/opt/so101-twin/venv}" AlarmStateNotSaved="$1" ||
-    log "could not write the AlarmStateNotSaved metric line"
-}
+not_saved() { saved_metric AlarmStateNotSaved "$1"; }
 
 if [ ! -f "$FILE" ]; then
   log "nothing to save: ${ALARM_STATE} does not exist (the agent writes it at its first check)"

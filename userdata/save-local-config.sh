@@ -22,12 +22,7 @@ LOG_TAG=save-local-config
 TARGET="${1:?usage: save-local-config.sh s3://<bucket>/host/agent.local.toml}"
 FILE="${ROOT}${LOCAL_CONFIG}"
 
-# not_saved 0|1: the run's outcome as the LocalConfigNotSaved metric; a metric that cannot be written is
-# logged, and does not change what the run did.
-not_saved() {
-  emit_host_metrics "${VENV:-/opt/so101-twin/venv}" LocalConfigNotSaved="$1" ||
-    log "could not write the LocalConfigNotSaved metric line"
-}
+not_saved() { saved_metric LocalConfigNotSaved "$1"; }
 
 if [ ! -f "$FILE" ]; then
   log "nothing to save: ${LOCAL_CONFIG} does not exist"
