@@ -14,8 +14,8 @@
 # every second while alarms flap across a fleet, and each upload starts the AWS CLI (a fraction of a second
 # of CPU): after an upload the saver waits SAVE_EVERY_S and uploads again only if the file changed meanwhile,
 # so it uploads at most once in that time and still ends with the file as it is (a start asked for while it
-# runs merges into this run). Exits 0 when saved or there is nothing to save, 1 when it could not be saved. Each run ends with the metric AlarmStateNotSaved (1 or 0),
-# which the stack's alarm of that name watches.
+# runs merges into this run). Exits 0 when saved or there is nothing to save, 1 when it could not be saved.
+# Each run ends with the metric AlarmStateNotSaved (1 or 0), which the stack's alarm of that name watches.
 set -Eeuo pipefail
 
 HERE="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
