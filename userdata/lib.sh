@@ -29,7 +29,8 @@ from twin.output.emf import AGENT_DIMENSION, Metric, emf_document
 
 agent, pairs = sys.argv[1], [arg.split("=", 1) for arg in sys.argv[2:]]
 metrics = [Metric(name, float(count), "Count") for name, count in pairs]
-print(json.dumps(emf_document(metrics, {AGENT_DIMENSION: agent}, int(time.time() * 1000)), separators=(",", ":")))
+document = emf_document(metrics, {AGENT_DIMENSION: agent}, int(time.time() * 1000))
+print(json.dumps(document, separators=(",", ":")))
 PY
 }
 
