@@ -249,21 +249,22 @@ def records_of(document: dict[str, Any], now_mono: float, now_wall: float) -> li
     return out
 
 
-def adopt(text: str) -> str:
-    """Another host's state file as this host's first one: the same alarms, without `stopped` (that run was
-    not this host's, and it may still be running while its replacement boots, so it ended neither cleanly
-    nor not). StateFileError when the text is not a valid state file: a bad copy is not put in place."""
+def adopt(text: str) -> tuple[str, int]:
+    """Another host's state file as this host's first one, and how many alarms it keeps: the same alarms,
+    without `stopped` (that run was not this host's, and it may still be running while its replacement
+    boots, so it ended neither cleanly nor not). StateFileError when the text is not a valid state file: a
+    bad copy is not put in place."""
     document = _document_of(text)
-    records_of(document, time.monotonic(), time.time())
+    records = records_of(document, time.monotonic(), time.time())
     document.pop("stopped", None)
-    return json.dumps(document, indent=1, sort_keys=True) + "\n"
+    return json.dumps(document, indent=1, sort_keys=True) + "\n", len(records)
 
 
 def adopt_file(source: str, target: str) -> int:
     """`adopt` from file to file (install-agent.sh runs it), written atomically; the number of alarms."""
-    adopted = adopt(Path(source).read_text(encoding="utf-8"))
+    adopted, alarms = adopt(Path(source).read_text(encoding="utf-8"))
     write_atomically(Path(target), adopted)
-    return len(json.loads(adopted)["alarms"])
+    return alarms
 
 
 def write_atomically(path: Path, text: str) -> None:
