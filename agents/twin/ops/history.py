@@ -52,6 +52,11 @@ class HistoryReadError(ValueError):
     """History cannot be read as asked; the message says what to change."""
 
 
+class TimeFormatError(HistoryReadError):
+    """A time given on the command line is none of the forms `parse_time` takes: a bad argument (exit 2),
+    where other read errors mean nothing to show or storage unreadable (exit 1)."""
+
+
 def parse_time(text: str, *, now: dt.datetime | None = None) -> dt.datetime:
     """A point in time from the command line: ISO 8601 (no zone = UTC), epoch seconds, `now`, or `-2h` /
     `90m` (that long before now)."""
@@ -72,7 +77,7 @@ def parse_time(text: str, *, now: dt.datetime | None = None) -> dt.datetime:
     try:
         parsed = dt.datetime.fromisoformat(value.replace("Z", "+00:00"))
     except ValueError:
-        raise HistoryReadError(
+        raise TimeFormatError(
             f"time {text!r} is not understood; use ISO 8601 (2026-11-21T14:00:00Z, no zone means UTC), "
             "epoch seconds, or a span before now such as -2h, 30m, 1d"
         ) from None

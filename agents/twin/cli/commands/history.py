@@ -77,19 +77,11 @@ def register(subparsers: Any) -> None:
     ex.set_defaults(func=run_export)
 
 
-class UsageError(ValueError):
-    """An argument the command cannot take (exit 2, as argparse's own refusals)."""
-
-
 def window(args: argparse.Namespace) -> tuple[Any, Any]:
-    """--since and --until as times; UsageError naming the one not understood."""
-    from twin.ops.history import HistoryReadError, parse_time
+    from twin.ops.history import parse_time
 
-    try:
-        since = parse_time(args.since) if getattr(args, "since", None) else None
-        until = parse_time(args.until) if getattr(args, "until", None) else None
-    except HistoryReadError as exc:
-        raise UsageError(str(exc)) from None
+    since = parse_time(args.since) if getattr(args, "since", None) else None
+    until = parse_time(args.until) if getattr(args, "until", None) else None
     return since, until
 
 
@@ -98,8 +90,10 @@ def _console(command: str) -> Console:
 
 
 def _fail(command: str, exc: Exception) -> int:
+    from twin.ops.history import TimeFormatError
+
     _console(command).err(str(exc))
-    return EXIT_USAGE if isinstance(exc, UsageError) else EXIT_EMPTY
+    return EXIT_USAGE if isinstance(exc, TimeFormatError) else EXIT_EMPTY
 
 
 def run_ls(args: argparse.Namespace) -> int:
@@ -111,7 +105,7 @@ def run_ls(args: argparse.Namespace) -> int:
         reader = HistoryReader(args.history)
         devices = reader.summary(device=args.device, since=since, until=until, gap_s=args.gap)
         rejected = reader.rejected_counts()
-    except (HistoryReadError, UsageError) as exc:
+    except HistoryReadError as exc:
         return _fail("ls", exc)
     if args.json:
         out = {"uri": args.history, "devices": [d.as_dict() for d in devices], "rejected": rejected}
@@ -144,7 +138,7 @@ def run_plot(args: argparse.Namespace) -> int:
     try:
         since, until = window(args)
         result = plot(HistoryReader(args.history), args.device, args.out, since=since, until=until)
-    except (HistoryReadError, UsageError) as exc:
+    except HistoryReadError as exc:
         return _fail("plot", exc)
     _console("plot").out(
         f"wrote {result['path']}: {result['rows']} messages of {args.device}, "
@@ -168,7 +162,7 @@ def run_export(args: argparse.Namespace) -> int:
             until=until,
             decoded=not args.raw_only,
         )
-    except (HistoryReadError, UsageError) as exc:
+    except HistoryReadError as exc:
         return _fail("export", exc)
     _console("export").out(f"wrote {out}: {rows} rows ({args.format})")
     return 0 if rows else EXIT_EMPTY
