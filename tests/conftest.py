@@ -269,10 +269,10 @@ def metric(samples: dict[tuple[str, tuple[tuple[str, str], ...]], float], name: 
     return samples[key]
 
 
-def unbrokered_agent(tmp_path: Path, workers: int = 2) -> AgentService:
+def unbrokered_agent(tmp_path: Path, workers: int = 2, **overrides: Any) -> AgentService:
     """A started AgentService fed only through `feed` (its broker, NO_BROKER, never answers), ticks telemetry,
-    its alarms kept in tmp_path/state.json, `workers` worker processes (1: the mirror in-process). The
-    caller stops it."""
+    its alarms kept in tmp_path/state.json, `workers` worker processes (1: the mirror in-process). `overrides`
+    are config keys ({"twin.events_file": ...}). The caller stops it."""
     config = load_config(
         None,
         {
@@ -280,6 +280,7 @@ def unbrokered_agent(tmp_path: Path, workers: int = 2) -> AgentService:
             "http.listen": "127.0.0.1:0",
             "telemetry.units": "ticks",
             "twin.state_file": str(tmp_path / "state.json"),
+            **overrides,
         },
     )
     agent = AgentService(config, workers=workers)

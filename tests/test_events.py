@@ -10,6 +10,7 @@ import logging
 import os
 import pickle
 import random
+import re
 import signal
 import threading
 from multiprocessing import Pipe
@@ -461,3 +462,11 @@ def test_a_worker_started_again_just_before_the_stop_has_its_last_events_listed(
     finally:
         agent.stop()
     assert arrived() == [*mine[:6], last]
+
+
+def test_the_events_page_offers_every_kind_in_its_filter() -> None:
+    # The page's kind filter is written out in its script: a kind added to EventKind must be added there too,
+    # or its events can be found only under "any kind".
+    script = (Path(events.__file__).parent / "console_ui" / "events.js").read_text()
+    (listed,) = re.findall(r'\.\.\.\[([^\]]*)\]\.map\(\(k\) => el\("option"', script)
+    assert sorted(json.loads(f"[{listed}]")) == sorted(k.value for k in EventKind)

@@ -360,13 +360,22 @@ def _answering(url: str) -> bool:
 def test_a_killed_agent_leaves_no_process_and_its_next_start_says_it_did_not_stop(
     rig: LocalRig, publisher: Publisher, tmp_path: Path
 ) -> None:
-    state_file = tmp_path / "state.json"
-    config = f'[twin]\nstate_file = "{state_file}"\nworkers = 2\n[telemetry]\nunits = "ticks"\n'
+    state_file, events_file = tmp_path / "state.json", tmp_path / "events.jsonl"
+    config = (
+        f'[twin]\nstate_file = "{state_file}"\nevents_file = "{events_file}"\nworkers = 2\n'
+        '[telemetry]\nunits = "ticks"\n'
+    )
     alarm = f"arm-002/{HOT[0]}/{HOT[1]}"
 
     def kept() -> dict[str, str]:
         document = json.loads(state_file.read_text()) if state_file.exists() else {"alarms": []}
         return {a["alarm_id"]: a["state"] for a in document["alarms"]}
+
+    def journaled() -> dict[str, int]:
+        """The alarm's events in the journal, by action: their ids."""
+        lines = events_file.read_text().splitlines() if events_file.exists() else []
+        events = [json.loads(t) for t in lines if t.endswith("}")]
+        return {e["data"]["action"]: e["id"] for e in events if e["data"].get("alarm_id") == alarm}
 
     hot = HotWrist(publisher, "arm-002")
     try:
@@ -374,6 +383,7 @@ def test_a_killed_agent_leaves_no_process_and_its_next_start_says_it_did_not_sto
             wait_for(lambda: _answering(url), 60, "the agent", interval=0.2)
             acknowledge_once_active(url, alarm, 30)
             wait_for(lambda: kept().get(alarm) == "ACKNOWLEDGED", 30, "the acknowledgement in the state file")
+            wait_for(lambda: "acknowledged" in journaled(), 30, "the acknowledgement in the event journal")
             family = psutil.Process(proc.pid).children(recursive=True)
             assert len(family) >= 3  # its fork server and two workers at least
             proc.kill()
@@ -393,6 +403,18 @@ def test_a_killed_agent_leaves_no_process_and_its_next_start_says_it_did_not_sto
             lines = [json.loads(t) for t in log_path.read_text().splitlines() if t.startswith("{")]
             warned = [ln for ln in lines if ln["level"] == "WARNING" and "did not stop" in ln["msg"]]
             assert [ln["previous_pid"] for ln in warned] == [proc.pid], lines
+            # The Events page too: the killed run's alarm events, with their ids, then this run's start,
+            # which says the run before did not stop.
+            status, _, body = http_get(f"{url}/api/events?limit=1000")
+            assert status == 200, body
+            listed = json.loads(body)["events"]
+            ids = {e["data"]["action"]: e["id"] for e in listed if e["data"].get("alarm_id") == alarm}
+            assert {k: ids.get(k) for k in ("raised", "acknowledged")} == {
+                k: journaled()[k] for k in ("raised", "acknowledged")
+            }, listed
+            started = [e for e in listed if e["kind"] == "agent" and e["data"]["action"] == "started"]
+            assert [e["level"] for e in started] == ["info", "warning"], started
+            assert "did not stop" in started[1]["message"]
     finally:
         hot.stop()
     assert json.loads(state_file.read_text())["stopped"] is True  # SIGTERM: the stop's own write

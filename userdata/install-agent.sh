@@ -198,6 +198,8 @@ record_dir = "${RECORD_DIR}"
 workers = 0
 # Acknowledged and latched servo alarms survive a restart or a reboot here (its StateDirectory=).
 state_file = "${ALARM_STATE}"
+# The Events page over a restart (two files of at most 8 MiB each).
+events_file = "${EVENTS_FILE}"
 # How long a stop may take (history's last commit); the unit's TimeoutStopSec= is longer.
 shutdown_budget_s = ${SHUTDOWN_BUDGET_S}
 

@@ -107,6 +107,10 @@ LOCAL_CONFIG_PLACEHOLDER="# so101-twin: placeholder, the saved settings could no
 ALARM_STATE=/var/lib/so101-twin-agent/state.json
 # shellcheck disable=SC2034
 HOST_ID_FILE=/var/lib/so101-twin/host-id
+# The agent's events, read back at its next start (its [twin] events_file: twin.service.event_journal); kept
+# on this disk only: a new disk's Events page begins with its first start.
+# shellcheck disable=SC2034
+EVENTS_FILE=/var/lib/so101-twin-agent/events.jsonl
 
 # The AWS CLI's own time limits (it retries by itself), so no call hangs a boot.
 # shellcheck disable=SC2034 # used by the scripts that source this file

@@ -301,13 +301,15 @@ def test_the_agent_runs_as_its_own_user_in_a_sandbox(installed: tuple[Path, Path
     # A configuration error (`twin run` exits EXIT_CONFIG) is not restarted every 5 s forever.
     assert directives["RestartPreventExitStatus"] == [str(EXIT_CONFIG)]
     # systemd waits longer than the agent's own shutdown budget (its workers flush history within it), and
-    # the file that keeps acknowledged and latched alarms lies in the one directory it may write.
+    # the files that keep acknowledged and latched alarms and the events lie in the one directory it may
+    # write.
     from twin.service.config import load_config
 
     config = load_config(root / "etc/so101-twin/agent.toml")
     (timeout,) = directives["TimeoutStopSec"]
     assert int(timeout) >= config.twin.shutdown_budget_s + 15
     assert Path(config.twin.state_file).parent == Path("/var/lib/so101-twin-agent")
+    assert Path(config.twin.events_file).parent == Path("/var/lib/so101-twin-agent")
     # No device restriction: EGL needs /dev/nvidia* (ProtectClock= or PrivateDevices= would hide them).
     assert not {"PrivateDevices", "ProtectClock", "DeviceAllow"} & set(directives)
 

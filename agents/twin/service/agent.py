@@ -59,6 +59,7 @@ from twin.service.console import (
     device_rows,
     rerun_viewer_url,
 )
+from twin.service.event_journal import EventJournal
 from twin.service.events import Event, EventKind, EventLevel, EventQuery, EventStore, FleetWatch
 from twin.service.persist import StateFile
 from twin.service.shards import (
@@ -206,6 +207,8 @@ class AgentService:
         self._events_lock = threading.Lock()  # a supervisor round and the stop's last collection
         self._workers_seen: dict[int, tuple[bool, int]] = {}
         self._state_file = StateFile(config.twin.state_file) if config.twin.state_file else None
+        # The events over a restart (service.event_journal): read back and subscribed at start().
+        self._journal = EventJournal(config.twin.events_file) if config.twin.events_file else None
         # Set to make the supervisor take checkpoints now (an acknowledgement must reach the state file).
         self._wake = threading.Event()
         # Held while the supervisor takes, confirms and saves checkpoints, and while a forget does: a
@@ -283,6 +286,8 @@ class AgentService:
             return
         self._started_mono = self._clock()
         self._started_wall = self._wall_clock()
+        # First, so this run's events follow the ones read back and its own start.
+        self._emit_started(self._restore_events())
         self._http = self._launch_mirrors()
         self._running = True
         self._supervisor = threading.Thread(target=self._supervise, name="twin-supervisor", daemon=True)
@@ -381,6 +386,7 @@ class AgentService:
         if self._history is not None:
             self._history.stop(timeout=FAILED_START_STOP_S)
         unwritten, killed = self._unwritten()
+        self._close_events("the agent stopped: its start failed", unwritten, killed)
         self._report_stop(FAILED_START_STOP_S, unwritten, killed)
 
     def stop(self, timeout: float | None = None) -> None:
@@ -431,6 +437,7 @@ class AgentService:
         if self._http is not None:
             self._http.stop()
         self._running = False
+        self._close_events("the agent stopped", unwritten, killed)
         self._report_stop(budget, unwritten, killed)
 
     def _stop_shards(self, deadline: float) -> None:
@@ -520,6 +527,8 @@ class AgentService:
             if self._history is not None:
                 self._history.supervise()
             self._collect_events()
+            if self._journal is not None:
+                self._journal.flush()
             now = time.monotonic()
             if urgent or now >= next_checkpoint:
                 next_checkpoint = now + CHECKPOINT_EVERY_S
@@ -1081,6 +1090,51 @@ class AgentService:
                 f"worker {shard.index} running again (restart {info.restarts})",
                 data={"worker": shard.index, "pid": info.pid, "restarts": info.restarts},
             )
+
+    # ------------------------------------------------------------------------------- the agent's own events
+
+    def _restore_events(self) -> bool | None:
+        """The journal's events back in the store (before any of this run's), then every new one to the
+        journal. Returns whether the run before stopped (it wrote `agent stopped` last); None when there
+        is no journal, or nothing in it."""
+        journal = self._journal
+        if journal is None:
+            return None
+        restored = journal.load(self._events.capacity)
+        self._events.restore(restored)
+        self._events.subscribe(journal.add)
+        if not restored:
+            return None
+        last = restored[-1]
+        return last.kind == EventKind.AGENT and last.data.get("action") == "stopped"
+
+    def _emit_started(self, previous_stopped: bool | None) -> None:
+        data = {"action": "started", "pid": os.getpid()}
+        if previous_stopped is False:
+            self._events.emit(
+                EventKind.AGENT,
+                EventLevel.WARNING,
+                "the agent started; its run before did not stop (killed, crashed or its host went down): "
+                "that run's events of its last moments and its counters are not here",
+                data={**data, "previous": "did not stop"},
+            )
+        else:
+            self._events.emit(EventKind.AGENT, EventLevel.INFO, "the agent started", data=data)
+
+    def _close_events(self, message: str, unwritten: Counter[str], killed: list[int]) -> None:
+        """The stop's own event, last, then the journal written out: the next start reads it as the sign
+        that this run stopped."""
+        lost = ", ".join(f"{n} {what}" for what, n in sorted(unwritten.items()))
+        if killed:
+            lost = ", ".join(filter(None, (lost, f"worker(s) {killed} killed at the budget")))
+        self._events.emit(
+            EventKind.AGENT,
+            EventLevel.ERROR if lost else EventLevel.INFO,
+            f"{message}; not written: {lost}" if lost else message,
+            data={"action": "stopped", "pid": os.getpid(), "not_written": lost},
+        )
+        if self._journal is not None:
+            self._journal.close()
 
     # ------------------------------------------------------------------------------------------ alerts
 

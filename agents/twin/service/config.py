@@ -105,6 +105,9 @@ class TwinSection:
     # Where the agent keeps the servo alarms a restart must not forget (ACTIVE, ACKNOWLEDGED, LATCHED;
     # service.persist): a file under the service's state directory on the host; "" = not kept.
     state_file: str = ""
+    # Where the agent's events are appended, to be read back at its next start (service.event_journal): the
+    # Events page and the sessions' alarm counts over a restart; "" = kept in memory only.
+    events_file: str = ""
     # How long `stop` may take in all: the workers handle what is queued and flush their sinks (history's
     # last commit) within it, and are killed after it. systemd's TimeoutStopSec must be longer.
     shutdown_budget_s: float = 60.0
@@ -480,11 +483,12 @@ def _validate_twin(tw: TwinSection) -> None:
             f"twin.record_budget_mb = {tw.record_budget_mb:g} is below record_max_mb = {tw.record_max_mb:g}: "
             "the budget must hold at least the session being recorded; raise it or lower record_max_mb"
         )
-    if tw.state_file and Path(tw.state_file).is_dir():
-        raise ConfigError(
-            f"twin.state_file = {tw.state_file!r} is a directory; give a file in it, e.g. "
-            f"{str(Path(tw.state_file) / 'state.json')!r}"
-        )
+    for key, example in (("state_file", "state.json"), ("events_file", "events.jsonl")):
+        path = getattr(tw, key)
+        if path and Path(path).is_dir():
+            raise ConfigError(
+                f"twin.{key} = {path!r} is a directory; give a file in it, e.g. {str(Path(path) / example)!r}"
+            )
     if not 10.0 <= tw.shutdown_budget_s <= 600.0:
         raise ConfigError(
             f"twin.shutdown_budget_s = {tw.shutdown_budget_s:g} is outside 10..600 seconds; the workers need "

@@ -167,6 +167,12 @@ KEY_DOCS: dict[str, str] = {
         "(`\"out/state.json\"`). The twin host's config names a file in the service's state "
         "directory (`/var/lib/so101-twin-agent/state.json`)."
     ),
+    "twin.events_file": (
+        "Where the agent appends its events (the console's Events page), to read them back at its next "
+        "start: without it a restart begins the page anew and each session's count of alarms raised at "
+        "0. Two files at most, each up to 8 MiB (`<name>.1` holds the older). Empty = memory only. The "
+        "twin host's config names `/var/lib/so101-twin-agent/events.jsonl`."
+    ),
     "twin.shutdown_budget_s": (
         "How long a stop may take in all: the workers handle what is queued and flush their sinks "
         "(history's last commit) within it, what could not be written is logged, and a worker still "

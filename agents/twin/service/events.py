@@ -28,10 +28,12 @@ import itertools
 import logging
 import threading
 import time
+from bisect import bisect_right
 from collections import deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from enum import IntEnum, StrEnum
+from operator import attrgetter
 from typing import Protocol
 
 import msgspec
@@ -95,6 +97,7 @@ class EventKind(StrEnum):
     # a device's twin was rebuilt (its edge clock jumped back), its rate is far too high, or it was forgotten
     TWIN = "twin"
     CALIBRATION = "calibration"  # an arm's calibration was picked up, refused or removed
+    AGENT = "agent"  # the agent started (saying whether the run before it stopped) or stopped
 
 
 class Event(msgspec.Struct, frozen=True, gc=False):
@@ -230,16 +233,35 @@ class EventStore:
                 callback(event)
         return numbered
 
+    def restore(self, events: Sequence[Event]) -> int:
+        """Put the events a run before this one numbered (service.event_journal) into this store, which
+        has numbered none yet, with their ids; its own are numbered on from the highest, so a page that saw
+        an id before the restart asks for what came after it. No subscriber hears of them: their alerts
+        went out then. Returns how many were kept (the newest, within `capacity`)."""
+        ordered = sorted((e for e in events if e.id > 0), key=attrgetter("id"))[-self.capacity :]
+        with self._lock:
+            if self._last_id:
+                raise ValueError("events are restored into a store before it numbers any of its own")
+            self._events.extend(ordered)
+            if ordered:
+                self._last_id = ordered[-1].id
+                self._ids = itertools.count(self._last_id + 1)
+            return len(ordered)
+
     def after(self, after_id: int, limit: int | None = None) -> list[Event]:
         """Events newer than `after_id`, oldest first (at most the first `limit` of them)."""
         with self._lock:
             if after_id >= self._last_id:
                 return []
-            # Ids are consecutive within the buffer, so the start is found by arithmetic, not a scan.
-            first = self._events[0].id if self._events else self._last_id + 1
+            buffered = self._events
+            # Ids are consecutive within one run's events, so the start is found by arithmetic; events
+            # restored from a run before (`restore`) may leave a gap, and then a binary search finds it.
+            first = buffered[0].id if buffered else self._last_id + 1
             start = max(0, after_id + 1 - first)
-            end = len(self._events) if limit is None else min(len(self._events), start + limit)
-            return list(itertools.islice(self._events, start, end))
+            if start >= len(buffered) or buffered[start].id != max(after_id + 1, first):
+                start = bisect_right(buffered, after_id, key=attrgetter("id"))
+            end = len(buffered) if limit is None else min(len(buffered), start + limit)
+            return list(itertools.islice(buffered, start, end))
 
     def query(self, query: EventQuery) -> list[Event]:
         with self._lock:

@@ -10,7 +10,7 @@
   const level = el("select", { "aria-label": "level" }, el("option", { value: "", text: "any level" }),
     el("option", { value: "warning", text: "warning and worse" }), el("option", { value: "error", text: "errors" }));
   const kind = el("select", { "aria-label": "kind" }, el("option", { value: "", text: "any kind" }),
-    ...["status", "alarm", "rejected", "broker", "worker", "twin"].map((k) => el("option", { value: k, text: k })));
+    ...["status", "alarm", "rejected", "broker", "worker", "twin", "calibration", "agent"].map((k) => el("option", { value: k, text: k })));
   const text = el("input", { type: "search", placeholder: "text", "aria-label": "text" });
   const since = el("input", { type: "datetime-local", "aria-label": "from", step: "1" });
   const until = el("input", { type: "datetime-local", "aria-label": "until", step: "1" });

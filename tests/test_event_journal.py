@@ -1,0 +1,184 @@
+"""The events over a restart (twin.service.event_journal): written as the store numbers them, read back with
+their ids, bounded on disk and in memory, a cut-short line skipped, a failed write counted and told; and
+the agent that reads them back says whether the run before it stopped."""
+
+from __future__ import annotations
+
+import logging
+import random
+from pathlib import Path
+
+import pytest
+from conftest import unbrokered_agent, wait_for
+from twin.edge.payload import encode, make_payload
+from twin.service import event_journal
+from twin.service.event_journal import EventJournal
+from twin.service.events import Event, EventKind, EventLevel, EventQuery, EventStore
+
+
+class Clock:
+    def __init__(self, t: float = 1000.0) -> None:
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def journaled_store(path: Path, **kwargs: int) -> tuple[EventStore, EventJournal]:
+    store, journal = EventStore(wall_clock=Clock()), EventJournal(path, **kwargs)
+    store.subscribe(journal.add)
+    return store, journal
+
+
+def emit(store: EventStore, n: int, device: str = "arm-001") -> list[Event]:
+    return [
+        store.emit(EventKind.STATUS, EventLevel.WARNING, f"{device} went STALE ({k})", device=device)
+        for k in range(n)
+    ]
+
+
+def test_events_come_back_as_they_were_numbered_and_the_next_are_numbered_on(tmp_path: Path) -> None:
+    path = tmp_path / "state" / "events.jsonl"  # its directory is made on the first write
+    store, journal = journaled_store(path)
+    made = emit(store, 5)
+    assert journal.pending == 5 and not path.exists()  # nothing written until a flush
+    assert journal.flush() and journal.written == 5
+    journal.close()
+
+    again = EventStore(wall_clock=Clock())
+    heard: list[Event] = []
+    again.subscribe(heard.append)
+    assert again.restore(EventJournal(path).load()) == 5
+    assert again.query(EventQuery()) == made  # every field, the ids too
+    assert heard == []  # no alert again for what was told before the restart
+    assert again.emit(EventKind.AGENT, EventLevel.INFO, "the agent started").id == 6
+    with pytest.raises(ValueError, match="before it numbers any"):
+        again.restore(made)
+
+
+def test_a_reader_after_the_gap_between_two_runs_gets_exactly_what_followed(tmp_path: Path) -> None:
+    # A run whose last events were not written (killed between two flushes) leaves a gap in the ids: the
+    # next run numbers on from the last it read, and `after` must find the start across the gap.
+    store = EventStore(wall_clock=Clock())
+    kept = [e for e in emit(store, 10) if e.id not in (8, 9)]
+    again = EventStore(wall_clock=Clock())
+    again.restore(kept)
+    new = emit(again, 3)
+    assert [e.id for e in new] == [11, 12, 13]
+    for after in range(0, 14):
+        expected = [e.id for e in (*kept, *new) if e.id > after]
+        assert [e.id for e in again.after(after)] == expected, after
+        assert [e.id for e in again.after(after, limit=2)] == expected[:2], after
+
+
+def test_the_files_stay_within_twice_their_size_and_keep_the_newest(tmp_path: Path) -> None:
+    path = tmp_path / "events.jsonl"
+    store, journal = journaled_store(path, max_bytes=4_000)
+    for _ in range(40):
+        emit(store, 7)
+        journal.flush()
+    journal.close()
+    files = {p.name for p in tmp_path.iterdir()}
+    # Two at most (the last flush may just have renamed the current one away).
+    assert "events.jsonl.1" in files and files <= {"events.jsonl", "events.jsonl.1"}, files
+    # Each file is renamed away within one flush of passing the size (a flush here is about 700 bytes).
+    assert all(p.stat().st_size < 4_000 + 1_000 for p in tmp_path.iterdir())
+    newest = EventJournal(path).load(limit=20)
+    assert [e.id for e in newest] == list(range(261, 281))
+    assert len(EventJournal(path).load(limit=10_000)) < 280  # the oldest went with the renames
+
+
+def test_a_line_cut_short_by_a_kill_is_skipped_and_told(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path = tmp_path / "events.jsonl"
+    store, journal = journaled_store(path)
+    made = emit(store, 3)
+    journal.close()
+    with path.open("ab") as f:
+        f.write(b'{"kind":"status","level":"warn')  # the kill came in the middle of a write
+    reader = EventJournal(path)
+    with caplog.at_level(logging.WARNING, logger="twin.service.event_journal"):
+        assert reader.load() == made
+    assert reader.unreadable == 1
+    assert "1 line(s) that are not events" in caplog.text
+    # The next run appends after the cut line: its own events are read back whole.
+    store2, journal2 = journaled_store(path)
+    store2.restore(made)
+    emit(store2, 2)
+    journal2.close()
+    assert [e.id for e in EventJournal(path).load()] == [1, 2, 3, 4, 5]
+
+
+def test_a_failed_write_is_counted_told_with_its_fix_and_tried_again(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path = tmp_path / "events.jsonl"
+    path.mkdir()  # what opening it for appending fails on, as a full or read-only disk would
+    clock = Clock()
+    store, journal = EventStore(wall_clock=clock), EventJournal(path, clock=clock)
+    store.subscribe(journal.add)
+    with caplog.at_level(logging.ERROR, logger="twin.service.event_journal"):
+        emit(store, 2)
+        assert not journal.flush()
+        emit(store, 1)
+        assert not journal.flush()  # within WARN_EVERY_S: counted, not told again
+    assert journal.not_written == 3
+    told = [r.getMessage() for r in caplog.records]
+    assert len(told) == 1, told
+    assert "2 event(s) could not be written" in told[0] and "Make room on its disk" in told[0]
+    assert len(store) == 3  # still shown until the agent stops
+    path.rmdir()
+    emit(store, 1)
+    assert journal.flush()
+    journal.close()
+    assert [e.id for e in EventJournal(path).load()] == [4]
+
+
+def test_what_waits_for_a_flush_is_bounded(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(event_journal, "MAX_PENDING", 10)
+    store, journal = journaled_store(tmp_path / "events.jsonl")
+    emit(store, 15)
+    assert journal.pending == 10 and journal.not_written == 5
+    journal.close()
+    assert [e.id for e in EventJournal(tmp_path / "events.jsonl").load()] == list(range(6, 16))
+
+
+def _agent_events(agent: object) -> list[Event]:
+    return agent.events(EventQuery(limit=10_000))  # type: ignore[attr-defined]
+
+
+@pytest.mark.slow
+def test_the_agent_reads_its_events_back_and_says_how_its_run_before_ended(tmp_path: Path) -> None:
+    events_file = tmp_path / "events.jsonl"
+    devices = ["arm-001", "arm-002", "arm-003"]
+    agent = unbrokered_agent(tmp_path, 1, **{"twin.events_file": str(events_file)})
+    try:
+        rng = random.Random(6)
+        for device in devices:
+            agent.feed(f"dt/lerobot/{device}/telemetry", encode(make_payload(device, 0.0, "ticks", rng)))
+        arrived = EventQuery(kinds=frozenset({EventKind.STATUS.value}), text="first message")
+        wait_for(lambda: len(agent.events(arrived)) == 3, 30, "the arrivals collected")
+    finally:
+        agent.stop()
+    first_run = _agent_events(agent)
+    assert first_run[0].message == "the agent started" and first_run[-1].message == "the agent stopped"
+    assert first_run[-1].data["action"] == "stopped"
+
+    # Stopped cleanly: the next start has the same events, with their ids, and says nothing is missing.
+    agent = unbrokered_agent(tmp_path, 1, **{"twin.events_file": str(events_file)})
+    agent.stop()
+    second_run = _agent_events(agent)
+    assert second_run[: len(first_run)] == first_run
+    started = second_run[len(first_run)]
+    assert (started.id, started.level, started.message) == (first_run[-1].id + 1, "info", "the agent started")
+
+    # A run that did not reach its stop (killed) wrote no `agent stopped`: the next start warns.
+    lines = events_file.read_bytes().splitlines(keepends=True)
+    events_file.write_bytes(b"".join(lines[:-1]))
+    agent = unbrokered_agent(tmp_path, 1, **{"twin.events_file": str(events_file)})
+    agent.stop()
+    third_run = _agent_events(agent)
+    warned = third_run[len(second_run) - 1]
+    assert warned.kind == "agent" and warned.level == "warning", warned
+    assert "did not stop" in warned.message and warned.data["previous"] == "did not stop"
