@@ -5,6 +5,7 @@ here: moto stands in for SNS (and for an SQS queue subscribed to the topic, whic
 from __future__ import annotations
 
 import json
+import logging
 import time
 from typing import Any
 
@@ -16,6 +17,7 @@ from twin.output.alerts import MAX_FLUSH_S, SUBJECT_MAX, Alert, AlertPublisher
 from twin.robot import so101
 from twin.service.agent import AgentService
 from twin.service.config import ConfigError, load_config
+from twin.service.shards import UNMIRRORED
 
 ACK = "Open the console and press Acknowledge."
 
@@ -203,7 +205,7 @@ def hot_arm_settings(**overrides: Any) -> dict[str, Any]:
     }
 
 
-def agent_with_topic(arn: str, **overrides: Any) -> AgentService:
+def agent_with_topic(arn: str, workers: int | None = None, **overrides: Any) -> AgentService:
     settings = hot_arm_settings(
         **{
             "alerts.topic_arn": arn,
@@ -213,7 +215,7 @@ def agent_with_topic(arn: str, **overrides: Any) -> AgentService:
             **overrides,
         }
     )
-    return AgentService(load_config(None, settings))
+    return AgentService(load_config(None, settings), workers=workers)
 
 
 def test_an_alarm_transition_reaches_sns_as_one_message_naming_arm_and_servo(topic: Any) -> None:
@@ -259,3 +261,35 @@ def test_warnings_go_too_when_asked(topic: Any) -> None:
     assert notification["Subject"].endswith("(+1 more)")
     said = notification["Message"]
     assert "WARNING raised: arm arm-003, elbow_flex servo (motor id 3), over_temperature" in said
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("workers", [1, 2], ids=["in-process", "two-worker-processes"])
+def test_a_start_that_fails_after_a_message_arrived_sends_its_alert_or_counts_it(
+    topic: Any, workers: int, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The subscription runs while the mirrors start, so a message can be queued when a later step of the
+    start fails. In process, the mirror handles its queue as it stops: the alarm it raises goes to SNS
+    although the publisher never started. A worker process is never handed its queue: the message is
+    counted in the stop's line, not dropped unsaid."""
+    arn, received = topic
+    agent = agent_with_topic(arn, workers)
+
+    def queue_one_then_fail(self: AgentService) -> None:
+        self.feed("dt/lerobot/arm-003/telemetry", hot("arm-003", int(time.time() * 1000), 68))
+        raise OSError("the state file's disk went away")
+
+    monkeypatch.setattr(AgentService, "_restore_state_file", queue_one_then_fail)
+    failing = pytest.raises(OSError, match="went away")
+    with caplog.at_level(logging.INFO, logger="twin.service.agent"), failing:
+        agent.start()
+    agent.stop()  # nothing left to do: the failed start stopped what it launched
+    unmirrored = sum(r.unwritten.get(UNMIRRORED, 0) for r in agent.stop_reports.values() if r is not None)
+    stopped = [r.getMessage() for r in caplog.records if r.getMessage().startswith("agent stopped")]
+    if workers == 1:
+        (notification,) = wait_for(received, 60, "the alarm at the topic's queue", interval=0.2)
+        assert notification["Subject"].endswith("arm-003 elbow_flex over_temperature_critical raised")
+        assert unmirrored == 0 and stopped == ["agent stopped"], stopped
+    else:
+        assert unmirrored == 1 and received() == []
+        assert stopped == [f"agent stopped; not everything was written: 1 {UNMIRRORED}"], stopped

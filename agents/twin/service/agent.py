@@ -379,6 +379,10 @@ class AgentService:
             self._history.stopping()
         self._stop_shards(time.monotonic() + FAILED_START_STOP_S)
         self._collect_last_events()
+        if self._alerts is not None:
+            # Never started (start() starts it once the mirrors run), but its stop flushes once: an alarm
+            # the mirrors raised on what they handled (an in-process mirror drains its queue) is sent.
+            self._alerts.stop(ALERTS_STOP_MIN_S)
         if opened:
             # Messages reached the mirrors, which had the state file's alarms: what they hold now is kept.
             # Before that the file is left as it is: nothing has changed what it holds.

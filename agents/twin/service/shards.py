@@ -104,6 +104,8 @@ MAX_QUEUED_BYTES_PER_WORKER = 32 * 2**20
 # The agent keeps each message it handed a worker until the worker's checkpoint counts it, at most this many
 # (a few seconds of a large fleet): a worker that dies is sent them again once it runs again.
 MAX_UNCONFIRMED = 50_000
+# A stop report's count of the messages queued for a worker that a failed start never handed to it.
+UNMIRRORED = "messages_not_mirrored"
 # How often the agent takes each worker's checkpoint (its supervisor thread; service.agent).
 CHECKPOINT_EVERY_S = 1.0
 # One pipe write carries at most this many messages: a backlog goes over in pieces the worker can start on.
@@ -1105,11 +1107,14 @@ class WorkerShard:
         for conn in (self.data, self.control):
             if conn is not None:
                 conn.close()
-        if report is None and self._sender is None:
+        if self._sender is None:
             # Never opened: the agent's start failed first. Never launched, or it could not start (no
             # Farewell then), or it was killed just now: either way it was never handed a message, so it held
-            # nothing to lose (None would be reported as a worker killed with what it held).
-            return StopReport()
+            # nothing to lose (None would be reported as a worker killed with what it held). What the queue
+            # held for it since the subscription is lost with the failed start: counted, not dropped unsaid.
+            report = report or StopReport()
+            if left := len(self.queue):
+                report = dataclasses.replace(report, unwritten={**report.unwritten, UNMIRRORED: left})
         return report
 
     def _farewell(self, deadline: float) -> StopReport | None:
