@@ -124,6 +124,9 @@ def test_a_failed_write_is_counted_told_with_its_fix_and_tried_again(
         emit(store, 1)
         assert not journal.flush()  # within WARN_EVERY_S: counted, not told again
     assert journal.not_written == 3
+    stats = journal.stats()  # an output's figures in /state: SinkDrops counts them
+    assert (stats.name, stats.dropped, stats.errors) == ("events_journal", 3, 2)
+    assert "IsADirectoryError" in stats.last_error
     told = [r.getMessage() for r in caplog.records]
     assert len(told) == 1, told
     assert "2 event(s) could not be written" in told[0] and "Make room on its disk" in told[0]
@@ -159,6 +162,10 @@ def test_the_agent_reads_its_events_back_and_says_how_its_run_before_ended(tmp_p
             agent.feed(f"dt/lerobot/{device}/telemetry", encode(make_payload(device, 0.0, "ticks", rng)))
         arrived = EventQuery(kinds=frozenset({EventKind.STATUS.value}), text="first message")
         wait_for(lambda: len(agent.events(arrived)) == 3, 30, "the arrivals collected")
+        # Written as the supervisor collects them; its figures are an output's in /state.
+        wait_for(lambda: events_file.exists() and events_file.read_text().count("\n") >= 4, 30, "a flush")
+        (journal,) = [s for s in agent.state().agent.sinks if s.name == "events_journal"]
+        assert journal.dropped == 0 and journal.delivered >= 4
     finally:
         agent.stop()
     first_run = _agent_events(agent)

@@ -771,6 +771,9 @@ class AgentService:
                 state = dataclasses.replace(
                     state, agent=dataclasses.replace(state.agent, history=self._history_state(self._history))
                 )
+            if self._journal is not None:
+                sinks = (*state.agent.sinks, self._journal.stats())
+                state = dataclasses.replace(state, agent=dataclasses.replace(state.agent, sinks=sinks))
             self._cached = (time.monotonic(), state)
             return state
 

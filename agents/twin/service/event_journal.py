@@ -18,7 +18,8 @@ same before and after.
   counted (`unreadable`, one warning); the next write starts on a line of its own. A write that fails (disk
   full, permissions) is logged with what to do and its events counted (`not_written`); they stay in the
   store, and the next flush tries again with the events made since. What waits for a flush is bounded
-  (`MAX_PENDING`; the oldest go, counted), so a disk that stays broken cannot grow the agent's memory.
+  (`MAX_PENDING`; the oldest go, counted), so a disk that stays broken cannot grow the agent's memory. The
+  counts are an output's in /state (`agent.sinks`, `events_journal`), so they reach CloudWatch's SinkDrops.
 """
 
 from __future__ import annotations
@@ -34,11 +35,15 @@ from typing import BinaryIO
 
 import msgspec
 
+from twin.output.sinks import SinkStats
 from twin.service.events import DEFAULT_CAPACITY, Event
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MAX_BYTES", "MAX_PENDING", "EventJournal"]
+__all__ = ["MAX_BYTES", "MAX_PENDING", "SINK_NAME", "EventJournal"]
+
+# Its name among the outputs of /state's `agent.sinks` and /metrics' `sink` label.
+SINK_NAME = "events_journal"
 
 # Each of the two files is renamed away once past this: at about 300 bytes an event, each holds more than a
 # store's DEFAULT_CAPACITY, so reading the two back always finds the newest `capacity`.
@@ -72,6 +77,8 @@ class EventJournal:
         self._file: BinaryIO | None = None
         self._warned_at: float | None = None
         self.written = 0
+        self.write_failures = 0
+        self.last_error = ""
         self.not_written = 0  # failed writes, and events pushed out of the waiting queue by newer ones
         self.unreadable = 0  # lines of the files read back that were not events
 
@@ -139,6 +146,8 @@ class EventJournal:
                 self._write(batch)
             except OSError as exc:
                 self.not_written += len(batch)
+                self.write_failures += 1
+                self.last_error = f"{type(exc).__name__}: {exc}"
                 self._close_file()
                 self._warn(exc, len(batch))
                 return False
@@ -154,6 +163,18 @@ class EventJournal:
     @property
     def pending(self) -> int:
         return len(self._pending)
+
+    def stats(self) -> SinkStats:
+        """The journal as an output in /state's `agent.sinks`: what it could not write reaches the SinkDrops
+        metric and its alarm like any output's drops."""
+        return SinkStats(
+            name=SINK_NAME,
+            delivered=self.written,
+            dropped=self.not_written,
+            errors=self.write_failures,
+            pending=self.pending,
+            last_error=self.last_error,
+        )
 
     def _write(self, batch: Sequence[Event]) -> None:
         f = self._file
