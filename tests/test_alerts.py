@@ -205,7 +205,7 @@ def hot_arm_settings(**overrides: Any) -> dict[str, Any]:
     }
 
 
-def agent_with_topic(arn: str, workers: int | None = None, **overrides: Any) -> AgentService:
+def agent_with_topic(arn: str, workers: int = 1, **overrides: Any) -> AgentService:
     settings = hot_arm_settings(
         **{
             "alerts.topic_arn": arn,
