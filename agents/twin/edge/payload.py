@@ -125,7 +125,8 @@ def make_payload(
     `timestamp_ms` defaults to the wall clock now; `load_sign` sets bit 10 on about half the raw loads
     (variant ticks) or makes them negative (variant degrees, where newer LeRobot decodes the sign);
     `servo_faults` rewrite the readings of their joints while they last, and `model_loads` replaces the
-    mock's random loads with the load each servo reports holding the pose (twin.edge.servo_faults).
+    mock's random loads and currents with the load each servo reports holding the pose and the current it
+    draws (twin.edge.servo_faults).
     `physical` replaces all the mock's random readings with what servos following the motion report
     (twin.edge.servo_physics); it keeps the arm's temperatures, so call it in time order.
     """
@@ -278,8 +279,14 @@ def _apply_servo_faults(
         if load is not None:
             # The LeRobot variant carries the sign as a sign (newer LeRobot decodes bit 10).
             fields["load"] = load_register(load) if ticks_variant else round(load * 10.0, 1)
-        if o is not None and o.current_a is not None:
-            raw_current = current_register(o.current_a)
+        current = o.current_a if o is not None else None
+        if current is None and loads is not None and model_loads is not None:
+            # The current holding the pose draws, not the mock's random 0.52-1.95 A: those cross the
+            # gripper's 1.3 A over-current line within minutes and never clear, so every simulated arm
+            # would show a critical alarm nobody asked for.
+            current = model_loads.current_a(loads[name])
+        if current is not None:
+            raw_current = current_register(current)
             fields["current"] = raw_current if ticks_variant else float(raw_current)
 
 

@@ -117,7 +117,8 @@ def overrides_at(faults: tuple[ServoFault, ...], t: float) -> dict[str, JointOve
 
 
 class ModelLoads:
-    """The load (percent of stall torque, signed like the model's torque) each servo reports holding a pose.
+    """The load (percent of stall torque, signed like the model's torque) each servo reports holding a pose,
+    and the current that load draws.
 
     Uses the same bundled model, tick conversion and inverse dynamics as the agent, so a simulated arm with
     no fault agrees with the agent's model check. Loads MuJoCo; one per simulator thread.
@@ -133,6 +134,10 @@ class ModelLoads:
         self.supply_v = supply_v
         self._angles = TickAngles()
         self._twin = DeviceTwin(RobotModel.load(), "edge-sim")
+
+    def current_a(self, load_percent: float) -> float:
+        """The current a servo draws at `load_percent` (the servo's own conversion, at this supply)."""
+        return self._servo.current_a(load_percent, self.supply_v)
 
     def percent(self, ticks: list[int]) -> dict[str, float]:
         angles = self._angles.decode(ticks)

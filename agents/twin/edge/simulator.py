@@ -265,6 +265,14 @@ class EdgeSimulator:
         """Connect, publish on an absolute schedule, flush, disconnect; returns the counts."""
         stop_event = stop_event or threading.Event()
         config = self.config
+        if config.servos == "mock" and not config.model_loads:
+            # Said once, up front: a new user who sees a critical alarm on every arm takes it for a bug.
+            log.info(
+                "servos: the edge's mock mode, as a real edge in mock mode publishes: random velocity, load, "
+                "temperature and current. Its currents (up to 1.95 A) raise each arm's critical gripper "
+                "over_current alarm (1.3 A) within minutes, and it stays ACTIVE; --servos physical or "
+                "--model-loads publish what servos holding the motion report"
+            )
         connections = [
             _Connection(config.broker, self.report, self._lock) for _ in range(self._connections_needed())
         ]
