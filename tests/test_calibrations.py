@@ -145,6 +145,29 @@ def test_the_watcher_picks_up_changes_refuses_bad_files_and_keeps_what_it_had(tm
     assert [(c.device, c.action) for c in books[-1].changes] == [("arm-002", "removed")]
 
 
+def test_a_missing_directory_is_told_once_and_a_refusal_at_start_says_what_the_arm_uses(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # A mistyped [telemetry] calibrations looked like an empty store: every arm decoded with the config's
+    # calibration and nothing said why.
+    store = DirectoryStore(tmp_path / "calibrations")
+    watcher = CalibrationWatcher(store)
+    with caplog.at_level("INFO", logger="twin.service.calibrations"):
+        watcher.poll()
+        watcher.poll()
+        told = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+        assert len(told) == 1 and f"{tmp_path / 'calibrations'} does not exist" in told[0], told
+        assert f"--store {tmp_path / 'calibrations'}`" in told[0]
+        # The first file pushed makes the directory; a bad one, with no calibration in force before it,
+        # leaves the arm on the config's (not "the one it had").
+        store.write("arm-001", b"{not json")
+        watcher.poll()
+    said = [r.getMessage() for r in caplog.records]
+    assert f"calibrations: {tmp_path / 'calibrations'} exists now; its files are read" in said, said
+    (refused,) = [m for m in said if m.startswith("calibration of arm-001 refused")]
+    assert "it decodes with the config's" in refused, refused
+
+
 def test_an_unreadable_store_keeps_the_book_and_says_why(tmp_path: Path) -> None:
     store = DirectoryStore(tmp_path / "cal")
     store.write("arm-001", EXAMPLE.read_bytes())

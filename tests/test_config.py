@@ -221,6 +221,10 @@ def test_flags_override_file(tmp_path: Path) -> None:
         ("[rerun]\nweb_port = 70000\n", ["rerun.web_port", "0..65535"]),
         ("[rerun]\nserve = true\ngrpc_port = 9000\nweb_port = 9000\n", ["rerun.grpc_port", "different"]),
         ("[rerun]\nsave_to = 1\n", ["rerun.save_to", "save"]),
+        # A key given in another section's place: where it belongs.
+        ('[telemetry]\nstate_file = "s.json"\n', ["telemetry.state_file", "a key of [twin]"]),
+        # A directory where one file for every arm goes: the key for each arm's own.
+        ('[telemetry]\ncalibration = "/tmp"\n', ["is a directory", "telemetry.calibrations = '/tmp'"]),
     ],
 )
 def test_bad_values_name_key_value_and_fix(tmp_path: Path, toml: str, must_mention: list[str]) -> None:
@@ -320,3 +324,15 @@ def test_a_fixed_ros2_topic_for_several_devices_is_refused() -> None:
     load_config(None, {**overrides, "ros2.enabled": False})
     load_config(None, {**overrides, "telemetry.devices": "arm-001"})
     load_config(None, {**overrides, "ros2.topic": "/twin/{arm}/joint_states"})
+
+
+@pytest.mark.parametrize(("key", "example"), [("state_file", "state.json"), ("events_file", "events.jsonl")])
+def test_a_state_file_under_a_file_is_refused_with_a_path_that_works(
+    tmp_path: Path, key: str, example: str
+) -> None:
+    (tmp_path / "agent.toml").write_text("")
+    with pytest.raises(ConfigError) as info:
+        load_config(None, {f"twin.{key}": str(tmp_path / "agent.toml" / "sub" / example)})
+    said = str(info.value)
+    assert f"{str(tmp_path / 'agent.toml')!r} is a file, not a directory" in said, said
+    assert f"e.g. {str(tmp_path / example)!r}" in said, said

@@ -178,7 +178,8 @@ def test_the_agent_reads_its_events_back_and_says_how_its_run_before_ended(tmp_p
     second_run = _agent_events(agent)
     assert second_run[: len(first_run)] == first_run
     started = second_run[len(first_run)]
-    assert (started.id, started.level, started.message) == (first_run[-1].id + 1, "info", "the agent started")
+    assert (started.id, started.level, started.data["previous"]) == (first_run[-1].id + 1, "info", "stopped")
+    assert started.message == "the agent started; its run before stopped, every event it made is here"
 
     # A run that did not reach its stop (killed) wrote no `agent stopped`: the next start warns.
     lines = events_file.read_bytes().splitlines(keepends=True)

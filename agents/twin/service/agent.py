@@ -1125,7 +1125,14 @@ class AgentService:
                 "that run's events of its last moments and its counters are not here",
                 data={**data, "previous": "did not stop"},
             )
-        else:
+        elif previous_stopped:
+            self._events.emit(
+                EventKind.AGENT,
+                EventLevel.INFO,
+                "the agent started; its run before stopped, every event it made is here",
+                data={**data, "previous": "stopped"},
+            )
+        else:  # no journal, or nothing in it: nothing is known of a run before
             self._events.emit(EventKind.AGENT, EventLevel.INFO, "the agent started", data=data)
 
     def _close_events(self, message: str, unwritten: Counter[str], killed: list[int]) -> None:

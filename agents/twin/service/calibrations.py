@@ -21,6 +21,7 @@ or injected by tests).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import shlex
@@ -113,6 +114,8 @@ class StoreScan:
     # Names ending in `.json` (or KEPT_SUFFIX) that name no device id: `arm 9.json`, `ARM-001.JSON`. No arm
     # reads them, so a person who copied a file in by hand is told rather than left to wonder.
     ignored: tuple[str, ...]
+    # A directory store whose directory does not exist (yet, or a mistyped path): it holds nothing.
+    missing: bool = False
 
 
 def scan_of(names: Iterable[tuple[str, str]]) -> StoreScan:
@@ -171,7 +174,7 @@ class DirectoryStore:
         try:
             entries = list(os.scandir(self.path))
         except FileNotFoundError:
-            return scan_of(())
+            return dataclasses.replace(scan_of(()), missing=True)
         except OSError as exc:
             raise CalibrationStoreError(f"cannot list {self.path}: {exc}") from exc
         files = []
@@ -480,6 +483,7 @@ class CalibrationWatcher:
         self.last_error = ""
         # The ignored names already warned about: once each, not every poll.
         self._ignored: set[str] = set()
+        self._missing = False  # the store's directory was missing at the last poll (warned about once)
 
     @property
     def book(self) -> CalibrationBook:
@@ -496,6 +500,7 @@ class CalibrationWatcher:
             log.warning("calibrations not refreshed: %s", exc, extra={"event": "calibration_store"})
             return False
         self.last_error = ""
+        self._warn_missing(found.missing)
         self._warn_ignored(found.ignored)
         listing = found.calibrations
         entries = dict(self._book.entries)
@@ -517,8 +522,10 @@ class CalibrationWatcher:
                 problems[device] = str(exc)
                 changes.append(CalibrationChange(device, "refused", str(exc)))
                 log.warning(
-                    "calibration of %s refused, it keeps the one it had: %s",
+                    "calibration of %s refused, %s: %s",
                     device,
+                    # At a start the arm had none from the store: it keeps nothing.
+                    "it keeps the one it had" if device in entries else "it decodes with the config's",
                     exc,
                     extra={"event": "calibration_refused", "device": device},
                 )
@@ -537,6 +544,22 @@ class CalibrationWatcher:
         self._book = CalibrationBook(entries, problems, tuple(changes))
         self._on_change(self._book)
         return True
+
+    def _warn_missing(self, missing: bool) -> None:
+        # A mistyped path and a directory no push has made yet look alike: both hold nothing, and every arm
+        # decodes with the config's calibration without a word, so the person is told, once.
+        if missing and not self._missing:
+            log.warning(
+                "calibrations: %s does not exist, so no arm has its own calibration: each decodes with the "
+                "config's. Check [telemetry] calibrations (a relative path is from the directory the agent "
+                "started in), or push a file there, which makes it (`%s`)",
+                self.store.uri,
+                push_hint("ARM", self.store.uri).command,
+                extra={"event": "calibration_store_missing", "store": self.store.uri},
+            )
+        elif self._missing and not missing:
+            log.info("calibrations: %s exists now; its files are read", self.store.uri)
+        self._missing = missing
 
     def _warn_ignored(self, ignored: Sequence[str]) -> None:
         # The command that reaches this store (`--store DIR` for a directory): plain push is the stack's.

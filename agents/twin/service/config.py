@@ -263,6 +263,20 @@ def _suggest(name: str, choices: list[str]) -> str:
     return f"did you mean '{close[0]}'? " if close else ""
 
 
+def _file_in_the_way(path: Path) -> Path | None:
+    """The nearest existing ancestor of `path` when it is not a directory (the file cannot be made there)."""
+    for parent in path.absolute().parents:
+        if parent.exists():
+            return None if parent.is_dir() else parent
+    return None
+
+
+def _elsewhere(key: str) -> str:
+    """Where a key given in the wrong section belongs ("" when no section has it)."""
+    homes = [name for name, cls in _SECTIONS.items() if key in {f.name for f in dataclasses.fields(cls)}]
+    return f"'{key}' is a key of [{'], ['.join(homes)}]; " if homes else ""
+
+
 def _split_listen(listen: str) -> tuple[str, int]:
     host, sep, port_text = listen.rpartition(":")
     if not sep or not host or not port_text.isdigit():
@@ -335,7 +349,7 @@ def _build_section(name: str, cls: type, values: Mapping[str, Any]) -> Any:
     for key, value in values.items():
         if key not in fields:
             raise ConfigError(
-                f"unknown key '{name}.{key}'; {_suggest(key, list(fields))}"
+                f"unknown key '{name}.{key}'; {_suggest(key, list(fields)) or _elsewhere(key)}"
                 f"the [{name}] keys are: {', '.join(fields)}"
             )
         default = cls()
@@ -420,6 +434,12 @@ def _validate_telemetry(t: TelemetrySection) -> None:
         raise ConfigError(
             f'telemetry.devices = {list(t.devices)!r}: {exc}; list device ids, or ["*"] alone for the fleet'
         ) from None
+    if t.calibration and Path(t.calibration).is_dir():
+        raise ConfigError(
+            f"telemetry.calibration = {t.calibration!r} is a directory; it names one LeRobot calibration "
+            "JSON for every arm. For each arm's own file (<device>.json in a directory), set "
+            f"telemetry.calibrations = {t.calibration!r} instead"
+        )
     if t.calibration and not Path(t.calibration).is_file():
         raise ConfigError(
             f"telemetry.calibration = {t.calibration!r} does not exist; give the LeRobot calibration JSON "
@@ -488,6 +508,12 @@ def _validate_twin(tw: TwinSection) -> None:
         if path and Path(path).is_dir():
             raise ConfigError(
                 f"twin.{key} = {path!r} is a directory; give a file in it, e.g. {str(Path(path) / example)!r}"
+            )
+        blocked = _file_in_the_way(Path(path)) if path else None
+        if blocked is not None:
+            raise ConfigError(
+                f"twin.{key} = {path!r} cannot be made: {str(blocked)!r} is a file, not a directory; give a "
+                f"path in a directory, e.g. {str(blocked.parent / example)!r}"
             )
     if not 10.0 <= tw.shutdown_budget_s <= 600.0:
         raise ConfigError(

@@ -87,6 +87,14 @@ class EventJournal:
     def load(self, limit: int = DEFAULT_CAPACITY) -> list[Event]:
         """The newest `limit` events the files hold, oldest first, as they were numbered; [] for none. A file
         that cannot be read is reported and left as it is (the next write appends to it)."""
+        if not self.path.exists() and not self.previous.exists():
+            # Absolute: a relative path started from another directory is a new, empty journal there.
+            log.info(
+                "event journal %s does not exist yet: the Events page starts empty",
+                self.path.absolute(),
+                extra={"path": str(self.path.absolute())},
+            )
+            return []
         events, bad = self._read(self.path)
         if len(events) < limit:
             # The older file only when the current one holds too few: it is most of a start's reading.

@@ -77,6 +77,12 @@ class StateFile:
         try:
             text = self.path.read_text(encoding="utf-8")
         except FileNotFoundError:
+            # Absolute: a relative path started from another directory is a new, empty file there.
+            log.info(
+                "state file %s does not exist yet: no alarms are brought back; the first check writes it",
+                self.path.absolute(),
+                extra={"path": str(self.path.absolute())},
+            )
             return []
         except OSError as exc:
             log.error("state file %s cannot be read (%s); starting without it", self.path, exc)
