@@ -269,6 +269,10 @@ def test_push_refuses_what_is_not_a_calibration(tmp_path: Path, capsys: pytest.C
     assert "not a device id" in capsys.readouterr().err
     assert main(["calibration", "push", "arm-001", str(tmp_path / "none.json"), "--store", store]) == 2
     assert "cannot read" in capsys.readouterr().err
+    # The file first and the arm second: said so, with the command the right way round.
+    assert main(["calibration", "push", str(EXAMPLE), "arm-001", "--store", store]) == cmd.EXIT_USAGE
+    swapped = capsys.readouterr().err
+    assert "the arm comes first" in swapped and f"push arm-001 {EXAMPLE}`" in swapped, swapped
     assert not (tmp_path / "cal").exists()
 
 

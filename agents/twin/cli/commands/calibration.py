@@ -137,12 +137,22 @@ def _store_flags(args: argparse.Namespace) -> str:
 
 def _arm_is_a_device_id(args: argparse.Namespace) -> bool:
     """False, having said why and what to do, when ARM breaks the device id rule a store keeps."""
+    from twin.core.topics import policy_device_id_problem
     from twin.service.calibrations import check_device
 
     try:
         check_device(args.arm)
     except ValueError as exc:
         done = {"push": "stored", "rm": "removed"}.get(args.action, "changed")
+        file = str(getattr(args, "file", ""))
+        if args.arm.endswith(".json") and file and policy_device_id_problem(file) is None:
+            # The two arguments the other way round: the file first, then the arm.
+            swapped = f"twin calibration push {shlex.quote(file)} {shlex.quote(args.arm)}"
+            console.err(
+                f"ARM {args.arm!r} is a file and FILE {file!r} a device id: the arm comes first "
+                f"(`{swapped}`). Nothing was {done}"
+            )
+            return False
         console.err(
             f"ARM {exc}; use the device id the arm's edge publishes as, and give an edge whose id breaks "
             f"this rule a new one (its deviceId: docs/getting-started.md, part 3). Nothing was {done}"
