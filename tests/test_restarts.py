@@ -414,7 +414,7 @@ def test_a_killed_agent_leaves_no_process_and_its_next_start_says_it_did_not_sto
             }, listed
             started = [e for e in listed if e["kind"] == "agent" and e["data"]["action"] == "started"]
             assert [e["level"] for e in started] == ["info", "warning"], started
-            assert "did not stop" in started[1]["message"]
+            assert "did not record a stop" in started[1]["message"]
     finally:
         hot.stop()
     assert json.loads(state_file.read_text())["stopped"] is True  # SIGTERM: the stop's own write

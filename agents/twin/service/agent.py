@@ -1121,15 +1121,15 @@ class AgentService:
             self._events.emit(
                 EventKind.AGENT,
                 EventLevel.WARNING,
-                "the agent started; its run before did not stop (killed, crashed or its host went down): "
-                "that run's events of its last moments and its counters are not here",
+                "the agent started; its run before did not record a stop (killed, crashed, its host went "
+                "down, or the journal could not be written): that run's last events and counters are missing",
                 data={**data, "previous": "did not stop"},
             )
         elif previous_stopped:
             self._events.emit(
                 EventKind.AGENT,
                 EventLevel.INFO,
-                "the agent started; its run before stopped, every event it made is here",
+                "the agent started; its run before stopped",
                 data={**data, "previous": "stopped"},
             )
         else:  # no journal, or nothing in it: nothing is known of a run before
