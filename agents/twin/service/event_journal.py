@@ -87,7 +87,11 @@ class EventJournal:
     def load(self, limit: int = DEFAULT_CAPACITY) -> list[Event]:
         """The newest `limit` events the files hold, oldest first, as they were numbered; [] for none. A file
         that cannot be read is reported and left as it is (the next write appends to it)."""
-        if not self.path.exists() and not self.previous.exists():
+        try:
+            fresh = not self.path.exists() and not self.previous.exists()
+        except OSError:
+            fresh = False  # its directory cannot be searched: reading says why
+        if fresh:
             # Absolute: a relative path started from another directory is a new, empty journal there.
             log.info(
                 "event journal %s does not exist yet: the Events page starts empty",
