@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import html
 import math
+from collections import Counter
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from string import Template
@@ -72,7 +73,10 @@ FLEET_COLUMNS = (
     "rejected",  # messages rejected so far
     "uncalibrated",  # true: no LeRobot calibration while its units need one (docs/agent.md, "Calibration")
     "mirror",  # running | restarting: its worker process is started again, the row is its last checkpoint
+    "unacknowledged",  # how many of its alarms wait for a person: ACTIVE, or LATCHED (cleared, unseen)
 )
+# The alarm states an acknowledgement is for (the Fleet page's "unacknowledged" filter).
+WAITING_STATES = frozenset({"ACTIVE", "LATCHED"})
 # What a session offers to download, with the media type of each.
 SESSION_FILE_KINDS: dict[str, tuple[str, str]] = {
     "csv": ("text/csv", "csv"),
@@ -153,6 +157,7 @@ class FleetRow(NamedTuple):
     rejected: int
     uncalibrated: bool = False
     mirror: str = "running"
+    unacknowledged: int = 0
 
 
 @runtime_checkable
@@ -257,8 +262,10 @@ def fleet_row(
     alarm: tuple[str, str, str, str] | None,
     uncalibrated: bool = False,
     mirror: str = "running",
+    unacknowledged: int = 0,
 ) -> FleetRow:
-    """A row from its parts; `alarm` is the worst one that is not NORMAL: (severity, state, kind, joint)."""
+    """A row from its parts; `alarm` is the worst one that is not NORMAL: (severity, state, kind, joint);
+    `unacknowledged` how many of its alarms are in WAITING_STATES."""
     hot_joint, hot_c = None, None
     for joint, temp in temperatures.items():
         if temp is not None and (hot_c is None or temp > hot_c):
@@ -279,6 +286,7 @@ def fleet_row(
         rejected,
         uncalibrated,
         mirror,
+        unacknowledged,
     )
 
 
@@ -292,6 +300,7 @@ def device_rows(
 ) -> list[FleetRow]:
     """One row per device state, in the order given; `alarms` worst first, `now` the wall time."""
     worst = _worst_alarms(alarms)
+    waiting = Counter(a.device for a in alarms if a.state in WAITING_STATES)
     rows: list[FleetRow] = []
     for device_id, d in devices.items():
         a = worst.get(device_id)
@@ -307,6 +316,7 @@ def device_rows(
                 alarm=(a.severity, a.state, a.kind, a.joint) if a else None,
                 uncalibrated=d.uncalibrated,
                 mirror=str(d.mirror),
+                unacknowledged=waiting[device_id],
             )
         )
     return rows

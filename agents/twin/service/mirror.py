@@ -102,7 +102,7 @@ from twin.service.admission import TOO_MANY_DEVICES, DeviceBudget
 from twin.service.capture import CHUNK as CAPTURE_CHUNK
 from twin.service.capture import Capture
 from twin.service.config import AgentConfig, ConfigError
-from twin.service.console import FleetRow, fleet_row
+from twin.service.console import WAITING_STATES, FleetRow, fleet_row
 from twin.service.events import Event, EventQuery, EventStore, FleetWatch, RejectionThrottle
 from twin.service.logs import RateLimitedLog, name_native_thread
 from twin.service.shards import (
@@ -1440,8 +1440,12 @@ class Mirror:
         moment; an arm forgotten meanwhile has none)."""
         with self._lock:
             worst: dict[str, tuple[str, str, str, str]] = {}
+            waiting: Counter[str] = Counter()
             for v in self._alarms.views():  # worst first
-                worst.setdefault(v.device, (str(v.severity), str(v.state), str(v.kind), v.joint))
+                state = str(v.state)
+                worst.setdefault(v.device, (str(v.severity), state, str(v.kind), v.joint))
+                if state in WAITING_STATES:
+                    waiting[v.device] += 1
             devices = self._fleet.listed()
         rows = []
         for start in range(0, len(devices), FLEET_ROWS_CHUNK):
@@ -1450,13 +1454,20 @@ class Mirror:
                 for device in devices[start : start + FLEET_ROWS_CHUNK]:
                     health = self._fleet.devices.get(device)
                     if health is not None:
-                        rows.append(self._fleet_row(device, health, now, wall, worst.get(device)))
+                        alarm = worst.get(device)
+                        rows.append(self._fleet_row(device, health, (now, wall), alarm, waiting[device]))
         return sorted(rows, key=lambda row: row.device)
 
     def _fleet_row(
-        self, device: str, h: DeviceHealth, now: float, wall: float, alarm: tuple[str, str, str, str] | None
+        self,
+        device: str,
+        h: DeviceHealth,
+        clocks: tuple[float, float],
+        alarm: tuple[str, str, str, str] | None,
+        unacknowledged: int,
     ) -> FleetRow:
-        """`fleet_rows`' row of one arm (the lock held)."""
+        """`fleet_rows`' row of one arm (the lock held), at `clocks` (monotonic, wall)."""
+        now, wall = clocks
         loss = self._loss.get(device)
         received, lost = loss.recent(now) if loss is not None else (0, 0)
         record = self._devices.get(device)
@@ -1477,6 +1488,7 @@ class Mirror:
                 if record is not None and record.units is not None
                 else self.config.telemetry.units,
             ),
+            unacknowledged=unacknowledged,
         )
 
     def report(self) -> MirrorReport:

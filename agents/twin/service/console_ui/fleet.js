@@ -18,7 +18,7 @@
   const alarm = el("select", { "aria-label": "alarm" },
     el("option", { value: "", text: "any alarm state" }), el("option", { value: "any", text: "with an alarm" }),
     el("option", { value: "critical", text: "critical" }), el("option", { value: "warning", text: "warning" }),
-    el("option", { value: "ACTIVE", text: "unacknowledged" }), el("option", { value: "none", text: "no alarm" }));
+    el("option", { value: "waiting", text: "unacknowledged" }), el("option", { value: "none", text: "no alarm" }));
   const sort = el("select", { "aria-label": "sort" },
     el("option", { value: "id", text: "sort: id" }), el("option", { value: "alarm", text: "sort: worst alarm" }),
     el("option", { value: "hot", text: "sort: hottest servo" }), el("option", { value: "loss", text: "sort: loss" }));
@@ -56,7 +56,8 @@
       if (al === "any" && !sev) return false;
       if (al === "none" && sev) return false;
       if ((al === "critical" || al === "warning") && sev !== al) return false;
-      if (al === "ACTIVE" && r[c.alarm_state] !== "ACTIVE") return false;
+      // Any alarm of the arm waiting for a person (ACTIVE, or LATCHED: cleared, not yet seen), not only its worst.
+      if (al === "waiting" && !(r[c.unacknowledged] > 0)) return false;
       return true;
     });
     const key = sort.value;
