@@ -322,8 +322,9 @@ def test_a_refused_acknowledge_says_why_and_what_to_do(
     console: str, page: Any, browser_errors: list[str]
 ) -> None:
     """The page an operator left open while the agent restarted carries a CSRF token the new agent does not
-    know (each start makes one): the refusal must say so on the page, in the agent's words (reload), and stay
-    there while the live stream redraws the alarms; and a POST that gets no answer must say that."""
+    know (each start makes one). The page renews it from its own document and acknowledges; only when it
+    cannot must the refusal say so on the page, in the agent's words (reload), and stay there while the
+    live stream redraws the alarms; and a POST that gets no answer must say that."""
     alarm = wait_for(
         lambda: active_heat_alarm(console, "arm-003", raised_within_s=FRESH_ALARM_S),
         TIMEOUT_S,
@@ -331,22 +332,33 @@ def test_a_refused_acknowledge_says_why_and_what_to_do(
     )
     errors_before = len(browser_errors)
     page.goto(console + "/arm/arm-003")
-    # What a page loaded before the agent's restart holds: a token this agent never issued.
-    page.evaluate("document.querySelector('meta[name=csrf-token]').content = 'from-the-agent-before'")
+    token = page.evaluate("document.querySelector('meta[name=csrf-token]').content")
+    stale = "document.querySelector('meta[name=csrf-token]').content = 'from-the-agent-before'"
+    # What a page loaded before the agent's restart holds: a token this agent never issued; and the page
+    # cannot be read again either (the agent went away once more), so the refusal stands.
+    page.evaluate(stale)
+    page.route("**/arm/arm-003", lambda route: route.abort())
     button = page.locator(f'#alarms tr[data-alarm="{alarm["alarm_id"]}"]').get_by_role("button")
     button.click()
     result = page.locator("#ack-result")
     result.filter(has_text="reload the console page").wait_for(timeout=15_000)
     assert alarm["alarm_id"] in result.inner_text() and "csrf_token_invalid" in result.inner_text()
     assert {a["alarm_id"]: a["state"] for a in alarms(console, "arm-003")}[alarm["alarm_id"]] == "ACTIVE"
+    page.unroute("**/arm/arm-003")
 
     page.route("**/ack", lambda route: route.abort())  # the agent gone: no answer at all
     button.click()
     result.filter(has_text="the agent did not answer").wait_for(timeout=15_000)
     page.unroute("**/ack")
-    # The browser logs each failed POST; they are this test's doing, and only they may be there.
+
+    # The agent answers again: the stale token is renewed from the page and the acknowledgement goes through.
+    button.click()
+    page.wait_for_selector("#ack-result.ack-ok", timeout=15_000)
+    assert page.evaluate("document.querySelector('meta[name=csrf-token]').content") == token
+    assert {a["alarm_id"]: a["state"] for a in alarms(console, "arm-003")}.get(alarm["alarm_id"]) != "ACTIVE"
+    # The browser logs each failed request; they are this test's doing, and only they may be there.
     ours = browser_errors[errors_before:]
-    assert len(ours) == 2 and all("Failed to load resource" in e for e in ours), ours
+    assert ours and all("Failed to load resource" in e for e in ours), ours
     del browser_errors[errors_before:]
     assert browser_errors == []
 

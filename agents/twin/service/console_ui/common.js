@@ -68,7 +68,19 @@ const Twin = (() => {
   }
 
   // A request that changes state: the server wants the page's CSRF token (the Origin is the browser's).
+  // Each agent start makes a new token, so a page left open over a restart carries one the agent refuses:
+  // the page reads the new one from its own document, fetched again (same origin only), and sends once more.
+  // Only when that fails too does the operator see the refusal and its "reload".
   async function post(url) {
+    let result = await send(url);
+    if (result.status === 403 && result.payload && result.payload.error === "csrf_token_invalid" &&
+        await renewToken()) {
+      result = await send(url);
+    }
+    return result;
+  }
+
+  async function send(url) {
     const token = document.querySelector('meta[name="csrf-token"]').content;
     const response = await fetch(url, { method: "POST", headers: { "X-CSRF-Token": token } });
     let payload = null;
@@ -76,8 +88,22 @@ const Twin = (() => {
     return { ok: response.ok, status: response.status, payload };
   }
 
-  // Why a request was not done, in the agent's words: a refusal's detail says what to do (a stale CSRF token
-  // after an agent restart: reload), which a bare status does not. `result` is post's, or status 0 when no
+  async function renewToken() {
+    try {
+      const response = await fetch(location.href, { headers: { Accept: "text/html" } });
+      if (!response.ok) return false;
+      const fresh = new DOMParser().parseFromString(await response.text(), "text/html")
+        .querySelector('meta[name="csrf-token"]');
+      if (!fresh || !fresh.content) return false;
+      document.querySelector('meta[name="csrf-token"]').content = fresh.content;
+      return true;
+    } catch (_) {
+      return false;
+    }
+  }
+
+  // Why a request was not done, in the agent's words: a refusal's detail says what to do (a CSRF token that
+  // could not be renewed: reload), which a bare status does not. `result` is post's, or status 0 when no
   // answer came at all.
   function refusal(result) {
     if (!result.status) return "the agent did not answer (it may be restarting); try again once the header says live";
