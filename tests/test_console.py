@@ -235,6 +235,24 @@ def test_an_arm_page_breaks_its_lines_where_the_arm_was_silent(
     assert browser_errors == []
 
 
+def test_an_arm_page_breaks_its_lines_where_it_lost_the_agent(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """A page left open while the agent restarted: no reading came meanwhile, and the charts show that as a
+    break, not a straight line from the last reading before to the first after. The lost link is what the
+    page's stream reports (Twin.setLink(false), called here as its error handler calls it)."""
+    page.goto(console + "/arm/arm-001")
+    gaps = "() => Number(document.querySelector('canvas[data-chart=angle]').dataset.gaps)"
+    page.wait_for_function(
+        "() => Number(document.querySelector('canvas[data-chart=angle]').dataset.points) > 2"
+    )
+    before = page.evaluate(gaps)
+    page.evaluate("Twin.setLink(false, 'reconnecting…')")
+    page.wait_for_function(f"() => ({gaps})() > {before}", timeout=TIMEOUT_S * 1000)
+    assert page.locator("#link-banner").is_hidden()  # the next update said live again
+    assert browser_errors == []
+
+
 def test_a_long_device_id_wraps_on_its_page(
     console: str, rig: LocalRig, page: Any, browser_errors: list[str]
 ) -> None:

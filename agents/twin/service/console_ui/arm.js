@@ -24,6 +24,7 @@
   // The arm was STALE or OFFLINE at some tick since the last sample: the next sample starts a new line, so
   // the charts do not draw a straight line across a silence as if readings had come.
   let silent = false;
+  let breaks = Twin.breaks();  // the page's breaks with the agent (a restart) start a new line too
 
   const title = el("h1", { text: device });
   const summary = el("div", { class: "kv" });
@@ -82,7 +83,9 @@
     if (!joints.length) joints = Object.keys(d.joints_rad);
     const values = {};
     for (const c of CHARTS) values[c.key] = joints.map((j) => c.pick(d, j));
-    samples.push([now, values, silent && samples.length > 0]);
+    const broke = Twin.breaks() !== breaks;
+    breaks = Twin.breaks();
+    samples.push([now, values, (silent || broke) && samples.length > 0]);
     silent = false;
     while (samples.length && samples[0][0] < now - WINDOW_S) samples.shift();
   }

@@ -28,6 +28,9 @@ const Twin = (() => {
   const banner = el("p", { id: "link-banner", role: "alert", hidden: true });
   document.getElementById("main").before(banner);
   let downSince = null;
+  // How many times the page lost the agent: a chart that drew on across a break would join the last reading
+  // before it to the first after it, as if readings had come meanwhile.
+  let breaks = 0;
 
   function setLink(live, text) {
     if (linkState) {
@@ -40,7 +43,7 @@ const Twin = (() => {
       body.classList.remove("link-down");
       return;
     }
-    if (downSince === null) downSince = Date.now() / 1000;
+    if (downSince === null) { downSince = Date.now() / 1000; breaks += 1; }
     banner.textContent = `Out of touch with the agent since ${time(downSince)}: what this page shows is from ` +
       "then, not live. The agent may be restarting or stopped; the page reconnects by itself.";
     banner.hidden = false;
@@ -146,6 +149,7 @@ const Twin = (() => {
     if (a.dataset.nav === page || (page === "arm" && a.dataset.nav === "fleet")) a.classList.add("active");
   }
 
-  return { el, stream, getJSON, post, refusal, ago, time, duration, num, setLink, main: document.getElementById("main"),
+  return { el, stream, getJSON, post, refusal, ago, time, duration, num, setLink, breaks: () => breaks,
+    main: document.getElementById("main"),
     device: body.dataset.device, rerun: body.dataset.rerun };
 })();
