@@ -253,6 +253,22 @@ def test_an_arm_page_breaks_its_lines_where_it_lost_the_agent(
     assert browser_errors == []
 
 
+def test_an_alarms_acknowledge_button_fits_a_1024_px_window(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """At 1024 px the alarms table ran 50 px past the window, the Acknowledge button cut in half and the
+    page scrolling sideways."""
+    page.set_viewport_size({"width": 1024, "height": 768})
+    page.goto(console + "/arm/arm-003")
+    # Any alarm of the heating elbow: ACTIVE, ACKNOWLEDGED by another test, or LATCHED after a cycle.
+    button = page.locator("#alarms tr[data-alarm] button").first
+    button.wait_for(timeout=TIMEOUT_S * 1000)
+    box = button.bounding_box()
+    assert box is not None and box["x"] + box["width"] <= 1024, box
+    assert page.evaluate("document.scrollingElement.scrollWidth <= document.scrollingElement.clientWidth")
+    assert browser_errors == []
+
+
 def test_a_long_device_id_wraps_on_its_page(
     console: str, rig: LocalRig, page: Any, browser_errors: list[str]
 ) -> None:

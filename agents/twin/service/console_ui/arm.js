@@ -228,8 +228,8 @@
 
   function alarmRow(a) {
     const button = el("button", { type: "button", class: "primary", "data-alarm": a.alarm_id, text: "Acknowledge" });
-    const cells = { name: el("td"), severity: el("td"), state: el("td", { class: "alarm-state" }), value: el("td"),
-      since: el("td"), message: el("td", { class: "msg" }) };
+    const cells = { name: el("td", { class: "wrap" }), severity: el("td"), state: el("td", { class: "alarm-state" }),
+      value: el("td", { class: "wrap" }), since: el("td", { class: "wrap" }), message: el("td", { class: "msg" }) };
     const row = { tr: el("tr", { "data-alarm": a.alarm_id }, ...Object.values(cells), el("td", {}, button)),
       cells, button, alarm: a };
     button.addEventListener("click", () => acknowledge(row.alarm, button));
