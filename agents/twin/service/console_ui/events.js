@@ -58,8 +58,12 @@
       el("td", { class: "msg", text: e.message }));
   }
 
-  function render() {
-    body.replaceChildren(...events.map(row));
+  // A loaded selection with no event says so in the table, and what the device box wants (an exact id).
+  const none = el("tr", { id: "events-none" }, el("td", { colspan: 5, class: "empty",
+    text: "no event matches these filters (the device box takes an arm's whole id, e.g. arm-001; the text box finds part of one)" }));
+
+  function render(loaded = true) {
+    body.replaceChildren(...(events.length || !loaded ? events.map(row) : [none]));
     count.textContent = `${events.length} events`;
     if (follow.checked) box.scrollTop = box.scrollHeight;
   }
@@ -68,6 +72,7 @@
     const add = fresh.filter((e) => e.id > lastId && matches(e));
     for (const e of fresh) lastId = Math.max(lastId, e.id);
     if (!add.length) return;
+    none.remove();
     events.push(...add);
     const rows = add.map(row);
     body.append(...rows);
@@ -98,7 +103,7 @@
       const wait = Math.min(RETRY_MAX_S, 2 ** failures);
       failures += 1;
       events = [];
-      render();
+      render(false);
       count.textContent = `could not load the events; trying again in ${wait} s`;
       Twin.setLink(false, "agent unreachable");
       retry = setTimeout(load, wait * 1000);
@@ -120,7 +125,7 @@
     if (!opened) { opened = true; return; }  // the first connection: load() has just read the selection
     lastId = 0;
     events = [];
-    render();
+    render(false);
     count.textContent = "the agent is back: loading its events…";
     load();
   }
