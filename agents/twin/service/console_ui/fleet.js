@@ -189,8 +189,10 @@
       el("span", { class: "status ONLINE", text: `${s.ONLINE} online` }), " · ",
       el("span", { class: "status STALE", text: `${s.STALE} stale` }), " · ",
       el("span", { class: "status OFFLINE", text: `${s.OFFLINE} offline` }), " · ",
-      el("span", { class: "sev-critical", text: `${a.critical} critical` }), " · ",
-      el("span", { class: "sev-warning", text: `${a.warning} warning` }));
+      // Arms, by their worst alarm (an arm with two alarms counts once), so the header's numbers add up.
+      "arms whose worst alarm is ",
+      el("span", { class: "sev-critical", text: `critical: ${a.critical}` }), " · ",
+      el("span", { class: "sev-warning", text: `warning: ${a.warning}` }));
     notices.replaceChildren(...(doc.notices || []).map((text) => el("p", { text })));
     notices.hidden = !notices.childElementCount;
     filter();
