@@ -55,8 +55,11 @@
         el("span", { class: "muted", text: ` (this arm is arms/${device})` })), forgetButton, forgetResult),
       el("div", { class: "panel" }, el("h2", { text: "loss" }), lossBox, el("h2", { text: "rejected messages by reason" }),
         el("table", {}, el("thead", {}, el("tr", {}, el("th", { text: "reason" }), el("th", { text: "messages" }))), rejectsBody))),
-    el("h2", { text: "alarms" }), ackResult,
+    // What an acknowledgement was answered comes under the table: above it, its first appearance pushed every
+    // row down, and the next button with it, from under the pointer.
+    el("h2", { text: "alarms" }),
     el("table", { id: "alarms" }, el("thead", {}, el("tr", {}, ...["alarm", "severity", "state", "value", "since", "message", ""].map((t) => el("th", { text: t })))), alarmsBody),
+    ackResult,
     el("h2", { text: "live, last 5 minutes" }),
     el("div", { class: "grid2" }, ...charts.map((c) => c.panel)));
 
