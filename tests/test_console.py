@@ -17,9 +17,11 @@ import time
 import urllib.error
 import urllib.request
 from collections.abc import Iterator
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 from urllib.parse import quote
+from zoneinfo import ZoneInfo
 
 import pytest
 from conftest import CHROMIUM, CHROMIUM_FLAGS, http_get, read_rrd, wait_for
@@ -258,15 +260,40 @@ def test_an_alarms_acknowledge_button_fits_a_1024_px_window(
 ) -> None:
     """At 1024 px the alarms table ran 50 px past the window, the Acknowledge button cut in half and the
     page scrolling sideways."""
+    size = page.viewport_size
     page.set_viewport_size({"width": 1024, "height": 768})
-    page.goto(console + "/arm/arm-003")
-    # Any alarm of the heating elbow: ACTIVE, ACKNOWLEDGED by another test, or LATCHED after a cycle.
-    button = page.locator("#alarms tr[data-alarm] button").first
-    button.wait_for(timeout=TIMEOUT_S * 1000)
-    box = button.bounding_box()
-    assert box is not None and box["x"] + box["width"] <= 1024, box
-    assert page.evaluate("document.scrollingElement.scrollWidth <= document.scrollingElement.clientWidth")
+    try:
+        page.goto(console + "/arm/arm-003")
+        # Any alarm of the heating elbow: ACTIVE, ACKNOWLEDGED by another test, or LATCHED after a cycle.
+        button = page.locator("#alarms tr[data-alarm] button").first
+        button.wait_for(timeout=TIMEOUT_S * 1000)
+        box = button.bounding_box()
+        assert box is not None and box["x"] + box["width"] <= 1024, box
+        assert page.evaluate("document.scrollingElement.scrollWidth <= document.scrollingElement.clientWidth")
+    finally:
+        page.set_viewport_size(size)  # the module's page: the next test expects its own size
     assert browser_errors == []
+
+
+def test_each_table_says_the_zone_its_times_are_in(console: str, page: Any) -> None:
+    """The pages show the browser's local time, the exports and plots UTC: a time read off the page in Berlin
+    was an hour off the export's, with nothing saying so."""
+    context = page.context.browser.new_context(timezone_id="Europe/Berlin")
+    try:
+        context.route("**/*", loopback_only)
+        berlin = context.new_page()
+        offset = datetime.now(ZoneInfo("Europe/Berlin")).utcoffset()
+        assert offset is not None
+        zone = f"UTC+{int(offset.total_seconds()) // 3600:02d}:00"  # +01:00 in winter, +02:00 in summer
+        for path, table, header in (
+            ("/events", "#events", "time"),
+            ("/arm/arm-001", "#alarms", "since"),
+            ("/sessions", "#sessions", "start"),
+        ):
+            berlin.goto(console + path)
+            berlin.locator(f"{table} th", has_text=f"{header} ({zone})").wait_for(timeout=TIMEOUT_S * 1000)
+    finally:
+        context.close()
 
 
 def test_a_long_device_id_wraps_on_its_page(

@@ -133,6 +133,14 @@ const Twin = (() => {
       `${pad(d.getHours())}:${pad(d.getMinutes())}:${pad(d.getSeconds())}`;
   }
 
+  // The pages show times in the browser's zone, the exports and plots in UTC: each table says which zone
+  // its times are in, so a time read off the page matches the export's after the offset.
+  function zone() {
+    const minutes = -new Date().getTimezoneOffset(), abs = Math.abs(minutes);
+    const hm = `${String(Math.floor(abs / 60)).padStart(2, "0")}:${String(abs % 60).padStart(2, "0")}`;
+    return minutes === 0 ? "UTC" : `UTC${minutes < 0 ? "-" : "+"}${hm}`;
+  }
+
   function duration(seconds) {
     const s = Math.round(seconds);
     if (s < 120) return `${s} s`;
@@ -149,7 +157,7 @@ const Twin = (() => {
     if (a.dataset.nav === page || (page === "arm" && a.dataset.nav === "fleet")) a.classList.add("active");
   }
 
-  return { el, stream, getJSON, post, refusal, ago, time, duration, num, setLink, breaks: () => breaks,
+  return { el, stream, getJSON, post, refusal, ago, time, zone, duration, num, setLink, breaks: () => breaks,
     main: document.getElementById("main"),
     device: body.dataset.device, rerun: body.dataset.rerun };
 })();

@@ -20,7 +20,7 @@
   const count = el("span", { class: "counts" });
   const body = el("tbody");
   const box = el("div", { class: "events panel" },
-    el("table", { id: "events" }, el("thead", {}, el("tr", {}, ...["time", "level", "kind", "device", "event"].map((t) => el("th", { text: t })))), body));
+    el("table", { id: "events" }, el("thead", {}, el("tr", {}, ...[`time (${Twin.zone()})`, "level", "kind", "device", "event"].map((t) => el("th", { text: t })))), body));
   main.append(el("h1", { text: "Events" }),
     el("div", { class: "toolbar" }, device, level, kind, text, "from", since, "until", until,
       el("label", {}, follow, " auto-scroll"), "export:", csv, json, count), box);

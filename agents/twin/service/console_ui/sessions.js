@@ -14,7 +14,7 @@
   main.append(el("h1", { text: "Sessions" }),
     el("div", { class: "toolbar" }, device, state, el("button", { type: "button", text: "Refresh", onclick: load }), note),
     fileResult,
-    el("table", { id: "sessions" }, el("thead", {}, el("tr", {}, ...["device", "start", "duration", "messages", "alarms raised", "status", "files"].map((t) => el("th", { text: t })))), body));
+    el("table", { id: "sessions" }, el("thead", {}, el("tr", {}, ...["device", `start (${Twin.zone()})`, "duration", "messages", "alarms raised", "status", "files"].map((t) => el("th", { text: t })))), body));
   let doc = null;
 
   function render() {
