@@ -173,11 +173,11 @@
     const byState = {};
     for (const a of shownAlarms) byState[a.state] = (byState[a.state] || 0) + 1;
     const alarmsText = Object.keys(byState).length
-      ? Object.entries(byState).map(([state, n]) => `${n} ${state}`).join(", ") + " alarm(s)"
-      : "no alarm";
-    return `Forget ${device}? The agent removes its twin, its health and message counters, its loss ` +
-      `estimate and ${alarmsText} (also from the state file); it leaves the Fleet page. If it publishes ` +
-      "again it comes back as a new arm.";
+      ? ` and ${Object.entries(byState).map(([state, n]) => `${n} ${state}`).join(", ")} alarm(s) (also from ` +
+        "the state file)"
+      : " (it has no alarm)";
+    return `Forget ${device}? The agent removes its twin, its health and message counters and its loss ` +
+      `estimate${alarmsText}; it leaves the Fleet page. If it publishes again it comes back as a new arm.`;
   }
 
   function forgetOutcome(result) {
