@@ -25,7 +25,7 @@
     }
     const q = device.value.trim().toLowerCase(), st = state.value;
     const rows = doc.sessions.filter((s) => (!q || s.device.toLowerCase().includes(q)) && (!st || s.status === st));
-    note.textContent = `${rows.length} of ${doc.sessions.length} sessions · a gap of ${doc.gap_s} s ends one`;
+    note.textContent = `${rows.length} of ${doc.sessions.length} sessions, newest first · a gap of ${doc.gap_s} s ends one`;
     if (!rows.length) { body.replaceChildren(el("tr", {}, el("td", { colspan: 7, class: "empty", text: "no session yet" }))); return; }
     body.replaceChildren(...rows.map((s) => {
       const base = `/api/sessions/${encodeURIComponent(s.device)}/${s.key}/`;
