@@ -48,6 +48,12 @@ def test_an_arm_whose_worst_alarm_is_acknowledged_still_shows_as_waiting(chromiu
         page = chromium_page
         page.goto(url + "/")
         page.wait_for_selector('#fleet-view [data-device="arm-004"]', timeout=30_000)
+        # A critical alarm outlines its arm's card; a warning does not.
+        outline = (
+            "(d) => getComputedStyle(document.querySelector(`#fleet-view [data-device='${d}']`)).boxShadow"
+        )
+        assert page.evaluate(outline, "arm-003") != "none"
+        assert page.evaluate(outline, "arm-004") == "none"
         page.select_option('select[aria-label="alarm"]', label="unacknowledged")
         page.wait_for_selector('#fleet-view [data-device="arm-004"]', state="detached", timeout=30_000)
         assert page.query_selector('#fleet-view [data-device="arm-003"]') is not None

@@ -80,12 +80,19 @@
       el("div", { class: "line", text: r[c.alarm_kind] })];
   }
 
+  // On a card the temperature comes before the servo's name, and a silent arm's "last heard" before both:
+  // a narrow card cuts the end of the line, and an old reading must not read as now.
+  function cardHot(r) {
+    const c = columns;
+    if (r[c.hot_c] === null) return "hottest: –";
+    const when = r[c.status] === "ONLINE" ? "hottest: " : "hottest, last heard: ";
+    return `${when}${Twin.num(r[c.hot_c], 0)} °C (${r[c.hot_joint]})`;
+  }
+
   function hotText(r) {
     const c = columns;
     if (r[c.hot_c] === null) return "–";
-    // A silent arm's reading is its last one: said so, so an old temperature does not read as now.
-    const when = r[c.status] === "ONLINE" ? "" : " when last heard";
-    return `${r[c.hot_joint]} ${Twin.num(r[c.hot_c], 0)} °C${when}`;
+    return `${r[c.hot_joint]} ${Twin.num(r[c.hot_c], 0)} °C`;
   }
 
   // Its worker process is being started again: the row is the worker's last checkpoint.
@@ -97,7 +104,8 @@
 
   function card(r, x, y) {
     const c = columns, id = r[c.device];
-    const node = el("a", { class: "card " + r[c.status], href: "/arm/" + encodeURIComponent(id), role: "listitem",
+    const critical = r[c.alarm_severity] === "critical" ? " critical" : "";
+    const node = el("a", { class: "card " + r[c.status] + critical, href: "/arm/" + encodeURIComponent(id), role: "listitem",
       "data-device": id },
       el("div", { class: "id" }, id, ...(r[c.uncalibrated]
         ? [" ", el("span", { class: "uncalibrated", title: "no LeRobot calibration: its page says how to push one", text: "uncalibrated" })] : []),
@@ -105,7 +113,7 @@
       el("div", { class: "line" }, el("span", { class: "status " + r[c.status], text: r[c.status] }),
         " · " + Twin.ago(r[c.last_seen], now)),
       el("div", { class: "line", text: `${Twin.num(r[c.rate_hz], 1)} Hz · loss ${Twin.num(r[c.loss_pct], 1)} %` }),
-      el("div", { class: "line", text: "hottest: " + hotText(r) }),
+      el("div", { class: "line", text: cardHot(r) }),
       ...cardAlarm(r));
     node.style.transform = `translate(${x}px, ${y}px)`;
     node.style.width = CARD_W + "px";
@@ -122,7 +130,8 @@
       el("span", { class: "wide", text: Twin.ago(r[c.last_seen], now) }),
       el("span", { text: Twin.num(r[c.rate_hz], 1) + " Hz" }),
       el("span", { class: "wide", text: Twin.num(r[c.loss_pct], 1) + " %" }),
-      el("span", {}, alarmText(r)), el("span", { text: hotText(r) }));
+      el("span", {}, alarmText(r)),
+      el("span", { text: hotText(r) + (r[c.status] === "ONLINE" || r[c.hot_c] === null ? "" : " when last heard") }));
     node.style.top = y + "px";
     node.style.height = ROW_H + "px";
     return node;
