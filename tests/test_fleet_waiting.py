@@ -14,6 +14,7 @@ from conftest import wait_for
 from test_alerts import hot, hot_arm_settings
 from twin.service.agent import AgentService
 from twin.service.config import load_config
+from twin.service.events import EventQuery
 
 pytestmark = pytest.mark.slow
 
@@ -57,5 +58,29 @@ def test_an_arm_whose_worst_alarm_is_acknowledged_still_shows_as_waiting(chromiu
         page.select_option('select[aria-label="alarm"]', label="unacknowledged")
         page.wait_for_selector('#fleet-view [data-device="arm-004"]', state="detached", timeout=30_000)
         assert page.query_selector('#fleet-view [data-device="arm-003"]') is not None
+    finally:
+        agent.stop()
+
+
+def test_acknowledging_a_latched_alarm_says_reset_as_the_events_do(chromium_page: Any) -> None:
+    """A LATCHED alarm acknowledged goes to NORMAL, and the Events page records a "reset": the Arm page said
+    "acknowledged", so a search on the Events page for what the page said found nothing."""
+    settings = hot_arm_settings(**{"alarms.temperature_clear_after_s": 0.0, "http.listen": "127.0.0.1:0"})
+    agent = AgentService(load_config(None, settings))
+    agent.start()
+    try:
+        now_ms = int(time.time() * 1000)
+        agent.feed("dt/lerobot/arm-003/telemetry", hot("arm-003", now_ms, 62))  # the warning only
+        agent.feed("dt/lerobot/arm-003/telemetry", hot("arm-003", now_ms + 100, 35))  # cleared: LATCHED
+        wait_for(lambda: [a.state for a in agent.alarms()] == ["LATCHED"], 30, "the warning LATCHED")
+        (alarm,) = agent.alarms()
+        page = chromium_page
+        page.goto(agent.http_url + "/arm/arm-003")
+        page.locator(f'#alarms tr[data-alarm="{alarm.alarm_id}"] button').click()
+        said = page.wait_for_selector("#ack-result.ack-ok", timeout=30_000).inner_text()
+        assert said == f"{alarm.alarm_id} reset (acknowledged after it cleared): now NORMAL", said
+        # The events are collected every half second: the reset is among them soon after.
+        reset = EventQuery(text="reset", kinds=frozenset({"alarm"}))
+        wait_for(lambda: agent.events(reset), 30, "the reset among the events")
     finally:
         agent.stop()

@@ -143,7 +143,10 @@
   function ackOutcome(alarm, result) {
     if (result.ok) {
       const now = result.payload && result.payload.alarms && result.payload.alarms[0];
-      return `${alarm.alarm_id} acknowledged${now ? `: now ${now.state}` : ""}`;
+      // A LATCHED alarm acknowledged is reset to NORMAL: the Events page records it as "reset", so the
+      // page says the same word a search there finds.
+      const done = now && now.state === "NORMAL" ? "reset (acknowledged after it cleared)" : "acknowledged";
+      return `${alarm.alarm_id} ${done}${now ? `: now ${now.state}` : ""}`;
     }
     return `${alarm.alarm_id} was not acknowledged: ${Twin.refusal(result)}`;
   }
