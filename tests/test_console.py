@@ -574,6 +574,35 @@ def test_a_page_says_its_figures_are_not_live_while_the_agent_is_away(
     browser_errors.clear()
 
 
+def test_the_sessions_page_says_at_once_that_the_agent_went_away_and_reads_again_when_back(
+    console: str, rig: LocalRig, page: Any, browser_errors: list[str]
+) -> None:
+    """The Sessions page reads its list every 10 s; it learnt of a stopped agent only at its next read. Its
+    reads are held here, so only the page's link to the agent can tell it: the banner must come and go with
+    the agent, and the agent's return must make the page read the list again."""
+    port = free_port()
+    first = agent_on(rig, port, "arm-001")
+    page.goto(f"http://127.0.0.1:{port}/sessions")
+    page.wait_for_selector("body[data-ready]")
+    asked: list[str] = []
+    page.route("**/api/sessions", lambda route: asked.append(route.request.url))  # held, never answered
+    banner = page.locator("#link-banner")
+    first.stop()
+    banner.filter(has_text="not live").wait_for()
+    before = len(asked)
+    second = agent_on(rig, port, "arm-001")
+    try:
+        banner.wait_for(state="hidden")
+        wait_for(lambda: len(asked) > before, TIMEOUT_S, "the list read again once the agent was back")
+    finally:
+        page.unroute("**/api/sessions")
+        leave(page)
+        second.stop()
+    # The stream's reconnection attempts while no agent listened are the browser's to log, and only those.
+    assert all("ERR_CONNECTION_REFUSED" in e or "/api/stream/" in e for e in browser_errors), browser_errors
+    browser_errors.clear()
+
+
 def test_the_events_page_follows_an_agent_that_restarted(
     console: str, rig: LocalRig, page: Any, browser_errors: list[str]
 ) -> None:

@@ -89,4 +89,10 @@
   state.addEventListener("input", render);
   load();
   setInterval(load, 10000);
+  // The list is read every 10 s (it comes from history), so the page learnt of an agent gone or back up to
+  // 10 s late. A light stream, the events' (only new events, none at first), tells it within a second, and
+  // a return reads the list again.
+  let opened = false;
+  const link = Twin.stream("/api/stream/events?after=" + Number.MAX_SAFE_INTEGER, { events: () => {} });
+  link.addEventListener("open", () => { if (opened) load(); opened = true; });
 })();
