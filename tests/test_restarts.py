@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -372,9 +373,13 @@ def test_a_killed_agent_leaves_no_process_and_its_next_start_says_it_did_not_sto
         return {a["alarm_id"]: a["state"] for a in document["alarms"]}
 
     def journaled() -> dict[str, int]:
-        """The alarm's events in the journal, by action: their ids."""
+        """The alarm's events in the journal, by action: their ids. Read while the agent appends to it, so a
+        last line still being written is left out."""
         lines = events_file.read_text().splitlines() if events_file.exists() else []
-        events = [json.loads(t) for t in lines if t.endswith("}")]
+        events = []
+        for text in lines:
+            with contextlib.suppress(json.JSONDecodeError):
+                events.append(json.loads(text))
         return {e["data"]["action"]: e["id"] for e in events if e["data"].get("alarm_id") == alarm}
 
     hot = HotWrist(publisher, "arm-002")
