@@ -390,8 +390,7 @@ class AgentService:
         if self._history is not None:
             self._history.stop(timeout=FAILED_START_STOP_S)
         unwritten, killed = self._unwritten()
-        self._close_events("the agent stopped: its start failed", unwritten, killed)
-        self._report_stop(FAILED_START_STOP_S, unwritten, killed)
+        self._report_stop(FAILED_START_STOP_S, unwritten, killed, "the agent stopped: its start failed")
 
     def stop(self, timeout: float | None = None) -> None:
         """Unsubscribe, let every mirror handle what is queued for it, flush its sinks and end, stop the
@@ -441,8 +440,7 @@ class AgentService:
         if self._http is not None:
             self._http.stop()
         self._running = False
-        self._close_events("the agent stopped", unwritten, killed)
-        self._report_stop(budget, unwritten, killed)
+        self._report_stop(budget, unwritten, killed, "the agent stopped")
 
     def _stop_shards(self, deadline: float) -> None:
         # Closed together, so the workers hand over and flush in parallel, then waited for one by one.
@@ -501,13 +499,15 @@ class AgentService:
             self._emf.errors += 1
             log.exception("the last CloudWatch metrics could not be written")
 
-    def _report_stop(self, budget: float, unwritten: Counter[str], killed: list[int]) -> None:
-        """One line: the agent stopped, and what it could not write (ERROR when anything)."""
+    def _report_stop(self, budget: float, unwritten: Counter[str], killed: list[int], message: str) -> None:
+        """The stop's own event (`message`), then the journal written out, then one log line: the agent
+        stopped, and what it could not write (ERROR when anything)."""
+        self._close_events(message, unwritten, killed)
         fields = {"unwritten": dict(unwritten), "workers_killed": killed, "shutdown_budget_s": budget}
         if unwritten or killed:
             log.error(
                 "agent stopped; not everything was written: %s%s",
-                ", ".join(f"{n} {what}" for what, n in sorted(unwritten.items())) or "nothing counted",
+                _unwritten_text(unwritten) or "nothing counted",
                 f"; worker(s) {killed} killed at the {budget:g} s budget, what they held is lost"
                 if killed
                 else "",
@@ -1138,7 +1138,7 @@ class AgentService:
     def _close_events(self, message: str, unwritten: Counter[str], killed: list[int]) -> None:
         """The stop's own event, last, then the journal written out: the next start reads it as the sign
         that this run stopped."""
-        lost = ", ".join(f"{n} {what}" for what, n in sorted(unwritten.items()))
+        lost = _unwritten_text(unwritten)
         if killed:
             lost = ", ".join(filter(None, (lost, f"worker(s) {killed} killed at the budget")))
         self._events.emit(
@@ -1201,6 +1201,11 @@ class AgentService:
             applied_of(shard.request(request)())
         except WorkerError as exc:
             log.warning("calibrations not handed to shard %d: %s", shard.index, exc)
+
+
+def _unwritten_text(unwritten: Counter[str]) -> str:
+    """What a stop could not write, as its log line and its event both say it: "12 history_rows, ..."."""
+    return ", ".join(f"{n} {what}" for what, n in sorted(unwritten.items()))
 
 
 def alert_publisher(config: AgentConfig) -> AlertPublisher:
