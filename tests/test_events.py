@@ -163,13 +163,19 @@ def test_status_watch_reports_transitions_only() -> None:
     # arm-002 was never told of: the first sweep that meets it is its baseline, no event; then its changes.
     watch.sweep({"arm-001": "OFFLINE", "arm-002": "ONLINE"})
     watch.sweep({"arm-001": "OFFLINE", "arm-002": "STALE"})
+    # An OFFLINE arm heard once, then met by the sweep past its stale line: a return, told as such.
+    watch.sweep({"arm-001": "STALE", "arm-002": "STALE"})
     got = [(e.device, e.level, e.data["status"], e.data["previous"]) for e in s.query(EventQuery())]
     assert got == [
         ("arm-001", "info", "ONLINE", ""),
         ("arm-001", "warning", "STALE", "ONLINE"),
         ("arm-001", "warning", "OFFLINE", "STALE"),
         ("arm-002", "warning", "STALE", "ONLINE"),
+        ("arm-001", "info", "STALE", "OFFLINE"),
     ]
+    assert s.query(EventQuery())[-1].message == (
+        "arm-001 went STALE (was OFFLINE): heard again, not yet at its rate"
+    )
 
 
 def test_an_arrival_is_told_by_its_message_and_a_late_sweep_only_adds_a_transition() -> None:

@@ -331,14 +331,18 @@ class StatusWatch:
                 continue
             if before == _RESTORED:
                 message, before = f"{device} is {now} (restored)", None
+            elif before == "OFFLINE" and now == "STALE":
+                # Heard again, but the sweep met it past its stale line: a return, not a worsening.
+                message = f"{device} went STALE (was OFFLINE): heard again, not yet at its rate"
             else:
                 message = f"{device} went {now} (was {before})"
             self._emit(device, now, before or "", message)
 
     def _emit(self, device: str, now: str, before: str, message: str) -> None:
+        returned = before == "OFFLINE" and now == "STALE"
         self._store.emit(
             EventKind.STATUS,
-            _STATUS_LEVEL.get(now, EventLevel.INFO),
+            EventLevel.INFO if returned else _STATUS_LEVEL.get(now, EventLevel.INFO),
             message,
             device=device,
             data={"status": now, "previous": before},
