@@ -217,6 +217,8 @@ def test_an_arm_page_draws_its_charts(console: str, page: Any, browser_errors: l
     page.goto(console + "/arm/arm-003")
     wait_for_charts(page, TIMEOUT_S)
     assert page.locator("canvas[data-chart]").count() == 4
+    # After a restart the counters start at 0: the page says they count from the agent's start.
+    assert "applied since the agent started (" in page.locator("#summary").inner_text()
     assert browser_errors == []
 
 

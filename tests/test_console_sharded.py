@@ -89,6 +89,8 @@ def test_an_arm_page_is_read_from_its_own_worker_without_the_fleet_state(rig: Lo
     url = agent.http_url
     edge = rig.start_edge(DEVICES, rate_hz=10.0, seconds=None)
     wait_for(lambda: all(r[1] == "ONLINE" for r in get_json(url + "/api/fleet")["rows"]), 60, "arms ONLINE")
+    started_at = get_json(url + "/state")["agent"]["started_at"]
+    assert started_at
     whole_reads: list[int] = []
     whole = agent.state
 
@@ -101,6 +103,8 @@ def test_an_arm_page_is_read_from_its_own_worker_without_the_fleet_state(rig: Lo
         doc = get_json(f"{url}/api/arm/{device}")
         assert doc["device"]["device_id"] == device and doc["device"]["health"]["status"] == "ONLINE"
         assert doc["calibration_push"]["command"]
+        # The arm's counters begin at the agent's start, which the page says.
+        assert doc["agent_started_at"] == started_at
     with urllib.request.urlopen(f"{url}/api/stream/arm/{DEVICES[1]}", timeout=30) as stream:
         frame = next(json.loads(line[len(b"data: ") :]) for line in stream if line.startswith(b"data: "))
     assert frame["device"]["device_id"] == DEVICES[1]

@@ -169,12 +169,14 @@ class FleetRowSource(Protocol):
 
 class ArmView(NamedTuple):
     """What an arm page shows of one arm: its state (None: no mirror tracks it), its alarms that are not
-    NORMAL, worst first, the agent's wall time and its calibration store."""
+    NORMAL, worst first, the agent's wall time, its calibration store and when it started (its counters
+    count from then)."""
 
     time: float
     state: DeviceState | None
     alarms: Sequence[AlarmInfo]
     calibration_store: str
+    started_at: float | None = None
 
 
 @runtime_checkable
@@ -367,13 +369,20 @@ def arm_view_of(
     if alarms is None:
         alarms = source.alarms() if isinstance(source, AlarmLister) else ()
     mine = [a for a in alarms if a.device == device]
-    return ArmView(state.agent.time, state.devices.get(device), mine, state.agent.calibration_store)
+    return ArmView(
+        state.agent.time,
+        state.devices.get(device),
+        mine,
+        state.agent.calibration_store,
+        state.agent.started_at,
+    )
 
 
 def arm_document(device: str, view: ArmView) -> bytes:
     """An arm page's document: {"time", "device": DeviceState or null, "alarms": [...], "calibration_push":
-    {"store", "command", "text"}}; its alarms are every one that is not NORMAL, worst first, and
-    "calibration_push" says how to give the arm a calibration this agent reads (calibrations.push_hint)."""
+    {"store", "command", "text"}, "agent_started_at"}; its alarms are every one that is not NORMAL, worst
+    first, "calibration_push" says how to give the arm a calibration this agent reads
+    (calibrations.push_hint), and "agent_started_at" (epoch seconds) is where the arm's counters begin."""
     # Made here, not in the page: only the agent knows its store, and a command for another store (the
     # stack's, from a laptop's agent) would push a file this agent never reads.
     hint = push_hint(device, view.calibration_store)
@@ -383,6 +392,7 @@ def arm_document(device: str, view: ArmView) -> bytes:
             "device": view.state,
             "alarms": view.alarms,
             "calibration_push": {"store": hint.store, "command": hint.command, "text": hint.text},
+            "agent_started_at": view.started_at,
         }
     )
 

@@ -27,7 +27,7 @@
   let breaks = Twin.breaks();  // the page's breaks with the agent (a restart) start a new line too
 
   const title = el("h1", { text: device });
-  const summary = el("div", { class: "kv" });
+  const summary = el("div", { class: "kv", id: "summary" });
   const rerun = Twin.rerun
     ? el("a", { href: Twin.rerun, target: "_blank", rel: "noopener", id: "rerun-link", text: "open the fleet in the Rerun viewer" },)
     : el("span", { class: "muted", text: "Rerun view: off (twin run --rerun-serve, docs/web.md)" });
@@ -296,7 +296,9 @@
       ["rate", `${Twin.num(h.rate_hz, 1)} Hz`],
       ["units", d.units], ["mode", d.mode],
       ["calibration", calibration(d, doc.calibration_push)],
-      ["messages", `${h.counters.received} received, ${h.counters.applied} applied`],
+      // The counters begin at the agent's start: said, so a restart's zeros do not read as a silent arm.
+      ["messages", `${h.counters.received} received, ${h.counters.applied} applied` +
+        (doc.agent_started_at ? ` since the agent started (${Twin.time(doc.agent_started_at)})` : "")],
     ]);
     kv(lossBox, [
       ["lost (estimated)", `${d.loss.lost} of ${d.loss.received + d.loss.lost} (${Twin.num(d.loss.loss_ratio * 100, 2)} %)`],
