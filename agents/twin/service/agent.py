@@ -994,9 +994,7 @@ class AgentService:
         dropped = shard.dropped().get(device, 0) if state is not None else 0
         if state is not None and dropped:
             state = with_dropped(state, dropped)
-        return ArmView(
-            self._wall_clock(), state, alarms, self._calibration_store, self._started_wall
-        )
+        return ArmView(self._wall_clock(), state, alarms, self._calibration_store, self._started_wall)
 
     def events(self, query: EventQuery) -> list[Event]:
         """The twin's events that match `query` (docs/console.md): the agent's own and every mirror's,
