@@ -526,9 +526,16 @@ def test_the_events_page_tails_the_twins_events(console: str, page: Any, browser
             && rows.every(r => r.children[3].textContent === 'arm-001');
         }"""
     )
-    status, ctype, body = http_get(console + "/api/events.csv?device=arm-001")
-    assert status == 200 and ctype.startswith("text/csv")
+    with urllib.request.urlopen(console + "/api/events.csv?device=arm-001", timeout=30) as answer:
+        ctype, disposition, body = (
+            answer.headers["content-type"],
+            answer.headers["content-disposition"],
+            answer.read(),
+        )
+    assert ctype.startswith("text/csv")
     assert any(r["kind"] == "alarm" for r in csv.DictReader(io.StringIO(body.decode())))
+    # Each export its own file, named by when it was taken (UTC).
+    assert re.fullmatch(r'attachment; filename="twin-events-\d{8}T\d{6}Z\.csv"', disposition), disposition
     # Part of an id in the device box matches nothing: the table says so, and what the box wants.
     page.get_by_label("device").fill("arm-00")
     none = page.wait_for_selector("#events-none").inner_text()

@@ -38,6 +38,7 @@ from twin.service.events import (
     StatusWatch,
     events_csv,
     events_json,
+    export_name,
     neutralise_cell,
 )
 from twin.service.mirror import Mirror, PipeInbox
@@ -275,6 +276,10 @@ def test_a_rejection_flood_makes_one_event_per_interval_with_its_count() -> None
 )
 def test_formula_cells_are_neutralised(cell: str, expected: str) -> None:
     assert neutralise_cell(cell) == expected
+
+
+def test_an_exports_file_is_named_by_its_utc_time() -> None:
+    assert export_name("csv", 1_796_422_500.9) == "twin-events-20261204T221500Z.csv"
 
 
 def test_exports_neutralise_text_and_keep_numbers() -> None:

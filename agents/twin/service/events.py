@@ -699,6 +699,12 @@ def neutralise_cell(text: str) -> str:
     return text
 
 
+def export_name(extension: str, epoch_s: float) -> str:
+    """An export's file name, with its UTC time to the second: a second export of the day is a file of its
+    own, not `(1)` beside the first, and the name says when the selection was taken."""
+    return time.strftime(f"twin-events-%Y%m%dT%H%M%SZ.{extension}", time.gmtime(epoch_s))
+
+
 def _iso(epoch_s: float) -> str:
     return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(epoch_s)) + f".{int(epoch_s % 1 * 1000):03d}Z"
 

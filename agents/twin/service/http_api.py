@@ -68,7 +68,15 @@ from twin.service.console import (
     not_found_page,
     render_page,
 )
-from twin.service.events import Event, EventKind, EventLevel, EventQuery, events_csv, events_json
+from twin.service.events import (
+    Event,
+    EventKind,
+    EventLevel,
+    EventQuery,
+    events_csv,
+    events_json,
+    export_name,
+)
 from twin.service.http_guard import (
     BodyTooLarge,
     GuardSettings,
@@ -224,6 +232,10 @@ def _protocol_class(stall_timeout_s: float) -> type[_GuardedH11]:
 
 def _json(status: int, body: bytes) -> Response:
     return Response(body, status_code=status, media_type=JSON_CONTENT_TYPE, headers=SECURITY_HEADERS)
+
+
+def _attachment(extension: str) -> str:
+    return f'attachment; filename="{export_name(extension, time.time())}"'
 
 
 def _error(status: int, error: str, **fields: object) -> Response:
@@ -679,7 +691,7 @@ class AgentHttpServer:
         return Response(
             events_csv(events).encode("utf-8"),
             media_type="text/csv; charset=utf-8",
-            headers={**SECURITY_HEADERS, "content-disposition": 'attachment; filename="twin-events.csv"'},
+            headers={**SECURITY_HEADERS, "content-disposition": _attachment("csv")},
         )
 
     async def _export_events_json(self, request: Request) -> Response:
@@ -689,7 +701,7 @@ class AgentHttpServer:
         return Response(
             events_json(events),
             media_type=JSON_CONTENT_TYPE,
-            headers={**SECURITY_HEADERS, "content-disposition": 'attachment; filename="twin-events.json"'},
+            headers={**SECURITY_HEADERS, "content-disposition": _attachment("json")},
         )
 
     # -------------------------------------------------------------------------------------------- sessions
