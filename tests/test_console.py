@@ -463,6 +463,23 @@ def test_the_sessions_page_lists_a_session_and_its_csv_parses(
     assert browser_errors == []
 
 
+def test_the_sessions_page_fits_a_768_px_window(console: str, page: Any, browser_errors: list[str]) -> None:
+    """At 768 px the files column ran past the window and its last links could not be reached."""
+    wait_for_a_session(console, "arm-003")
+    size = page.viewport_size
+    page.set_viewport_size({"width": 768, "height": 1024})
+    try:
+        page.goto(console + "/sessions")
+        last = page.locator('#sessions tr[data-device="arm-003"] a[data-kind]').last
+        last.wait_for()
+        box = last.bounding_box()
+        assert box is not None and box["x"] + box["width"] <= 768, box
+        assert page.evaluate("document.scrollingElement.scrollWidth <= document.scrollingElement.clientWidth")
+    finally:
+        page.set_viewport_size(size)
+    assert browser_errors == []
+
+
 def test_a_session_file_that_cannot_be_made_says_why_on_the_page(
     console: str, page: Any, browser_errors: list[str]
 ) -> None:

@@ -31,7 +31,8 @@
       const base = `/api/sessions/${encodeURIComponent(s.device)}/${s.key}/`;
       const files = doc.kinds.map((k) => el("a", { href: base + k, download: "", "data-kind": k, text: LABELS[k] || k,
         onclick: (event) => download(event, s, LABELS[k] || k) }));
-      const cell = el("td", {});
+      // Wraps: seven links on one line ran past a 768 px window.
+      const cell = el("td", { class: "wrap files" });
       files.forEach((a, i) => { if (i) cell.append(" · "); cell.append(a); });
       return el("tr", { "data-device": s.device, "data-key": s.key },
         el("td", {}, el("a", { href: "/arm/" + encodeURIComponent(s.device), text: s.device })),
