@@ -548,6 +548,40 @@ def test_each_arm_decodes_with_its_own_and_a_new_one_needs_no_restart(tmp_path: 
         feed_until(agent, "arm-002", pan_angle(shifted(100)), ts)
         kinds = {(e.device, e.data.get("action")) for e in agent.events(_calibration_events())}
         assert {("arm-001", "picked up"), ("arm-002", "picked up"), ("arm-002", "refused")} <= kinds
+        # Pushed under an id this agent does not mirror (a typo): picked up, but said to be of no use.
+        store.write("arm-0O2", shifted(100))
+        typo = wait_for(lambda: _picked_up(agent, "arm-0O2"), 30, "arm-0O2's calibration event")
+        assert typo.level == "warning" and "not in this agent's telemetry.devices" in typo.message, typo
+        assert "never used" in typo.message
+        # The arms it mirrors and has heard picked theirs up with no such word.
+        assert all(e.level == "info" for e in _picked_up_all(agent) if e.device != "arm-0O2")
+    finally:
+        agent.stop()
+
+
+def _picked_up_all(agent: AgentService) -> list[Any]:
+    return [e for e in agent.events(_calibration_events()) if e.data.get("action") == "picked up"]
+
+
+def _picked_up(agent: AgentService, device: str) -> Any:
+    return next((e for e in _picked_up_all(agent) if e.device == device), None)
+
+
+def test_a_calibration_for_an_arm_not_heard_yet_says_so(tmp_path: Path) -> None:
+    """With the whole fleet subscribed, a push under an id no message came from may be a new arm or a typo:
+    the event says which ids the Fleet page knows; an arm heard before gets no such word."""
+    store = DirectoryStore(tmp_path / "cal")
+    agent = agent_with_store(tmp_path / "cal", **{"telemetry.devices": ["*"]})
+    agent.start()
+    try:
+        ts = [int(time.time() * 1000)]
+        feed_until(agent, "arm-001", pan_angle(None), ts)
+        store.write("arm-001", shifted(100))
+        store.write("arm-0O1", shifted(100))
+        heard = wait_for(lambda: _picked_up(agent, "arm-001"), 30, "arm-001's calibration event")
+        unheard = wait_for(lambda: _picked_up(agent, "arm-0O1"), 30, "arm-0O1's calibration event")
+        assert heard.level == "info" and "no message" not in heard.message, heard
+        assert unheard.level == "warning" and "no message from arm-0O1 yet" in unheard.message, unheard
     finally:
         agent.stop()
 

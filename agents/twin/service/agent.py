@@ -1177,6 +1177,8 @@ class AgentService:
             shard.keep_calibrations(request)
             self._hand_calibrations_to(shard, request)
         self._cached = None
+        # The start's poll comes before the agent runs, and before any arm can have been heard.
+        first = not self._running
         for change in book.changes:
             if change.action == "refused":
                 level, message = (
@@ -1186,13 +1188,37 @@ class AgentService:
             elif change.action == "removed":
                 level, message = EventLevel.INFO, f"calibration of {change.device} removed from the store"
             else:
+                hint = "" if first else self._unheard_hint(change.device)
                 level, message = (
-                    EventLevel.INFO,
-                    f"calibration of {change.device} picked up from {change.detail}",
+                    EventLevel.WARNING if hint else EventLevel.INFO,
+                    f"calibration of {change.device} picked up from {change.detail}{hint and '; ' + hint}",
                 )
             self._events.emit(
                 EventKind.CALIBRATION, level, message, device=change.device, data={"action": change.action}
             )
+
+    def _unheard_hint(self, device: str) -> str:
+        """For a calibration pushed while the agent runs, under an id the agent does not mirror or has not
+        heard: nothing else tells a mistyped id from a new arm. Logged too, where the one who pushed looks."""
+        t = self.config.telemetry
+        if not t.all_devices and device not in t.devices:
+            hint = (
+                f"{device} is not in this agent's telemetry.devices ({', '.join(t.devices)}), so this "
+                "calibration is never used: check the id, or add the arm to telemetry.devices"
+            )
+        else:
+            try:
+                heard = any(row.device == device for row in self.fleet_rows())
+            except WorkerError:
+                return ""
+            if heard:
+                return ""
+            hint = (
+                f"no message from {device} yet: if this arm is already sending, check the id against the "
+                "Fleet page"
+            )
+        log.warning("calibration of %s: %s", device, hint, extra={"event": "calibration", "device": device})
+        return hint
 
     def _hand_calibrations_to(self, shard: Shard, request: CalibrationsRequest) -> None:
         if not shard.answering:
