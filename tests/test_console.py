@@ -293,7 +293,7 @@ def test_each_table_says_the_zone_its_times_are_in(console: str, page: Any) -> N
         zone = f"UTC+{int(offset.total_seconds()) // 3600:02d}:00"  # +01:00 in winter, +02:00 in summer
         for path, table, header in (
             ("/events", "#events", "time"),
-            ("/arm/arm-001", "#alarms", "since"),
+            ("/arm/arm-001", "#alarms", "in this state since"),
             ("/sessions", "#sessions", "start"),
         ):
             berlin.goto(console + path)

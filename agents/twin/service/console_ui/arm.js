@@ -58,7 +58,7 @@
     // What an acknowledgement was answered comes under the table: above it, its first appearance pushed every
     // row down, and the next button with it, from under the pointer.
     el("h2", { text: "alarms" }),
-    el("table", { id: "alarms" }, el("thead", {}, el("tr", {}, ...["alarm", "severity", "state", "value", `since (${Twin.zone()})`, "message", ""].map((t) => el("th", { text: t })))), alarmsBody),
+    el("table", { id: "alarms" }, el("thead", {}, el("tr", {}, ...["alarm", "severity", "state", "value", `in this state since (${Twin.zone()})`, "message", ""].map((t) => el("th", { text: t })))), alarmsBody),
     ackResult,
     el("h2", { text: "live, last 5 minutes" }),
     el("div", { class: "grid2" }, ...charts.map((c) => c.panel)));
