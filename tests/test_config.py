@@ -7,6 +7,7 @@ import re
 from pathlib import Path
 
 import pytest
+from twin.core.alarms import AlarmKind, AlarmThresholds
 from twin.core.modes import TwinMode
 from twin.core.units import Units
 from twin.service.config import (
@@ -286,6 +287,43 @@ def test_alarms_and_cloudwatch_sections() -> None:
             load_config(None, overrides)
         for word in words:
             assert word in str(info.value), (overrides, str(info.value))
+
+
+_RULE_KEYS = {
+    ("over_temperature", False): ("temperature_warning_c", "temperature_warning_clear_c"),
+    ("over_temperature_critical", False): ("temperature_critical_c", "temperature_critical_clear_c"),
+    ("over_current", False): ("current_a", "current_clear_a"),
+    ("over_current", True): ("gripper_current_a", "gripper_current_clear_a"),
+    ("overload", False): ("overload_percent", "overload_clear_percent"),
+    ("overload", True): ("gripper_overload_percent", "gripper_overload_clear_percent"),
+    ("model_mismatch", False): ("mismatch_percent", "mismatch_clear_percent"),
+}
+
+
+@pytest.mark.parametrize("kind", list(AlarmKind))
+@pytest.mark.parametrize("joint", ["shoulder_pan", "gripper"])
+def test_a_rule_without_hysteresis_names_the_two_keys_to_change(kind: AlarmKind, joint: str) -> None:
+    """A raise value moved to its clear value (docs once gave `temperature_warning_c = 55.0` alone, the
+    default clear value) stopped the host's agent with the rule's kind but not the key to change."""
+    from twin.service.config import ConfigError, load_config
+
+    defaults = AlarmThresholds()
+    rule = defaults.rule(kind, joint)
+    raised, cleared = _RULE_KEYS.get((str(kind), joint == "gripper"), _RULE_KEYS[str(kind), False])
+    assert (getattr(defaults, raised), getattr(defaults, cleared)) == (rule.raise_at, rule.clear_at)
+    with pytest.raises(ConfigError) as info:
+        load_config(None, {f"alarms.{raised}": rule.clear_at})
+    text = str(info.value)
+    assert f"({cleared})" in text and f"{rule.clear_at:g}, {raised})" in text, text
+    assert f"set {cleared} below {raised}" in text, text
+
+
+def test_a_warning_above_the_critical_temperature_is_refused() -> None:
+    from twin.service.config import ConfigError, load_config
+
+    with pytest.raises(ConfigError) as info:
+        load_config(None, {"alarms.temperature_warning_c": 500.0, "alarms.temperature_warning_clear_c": 55.0})
+    assert "temperature_warning_c (500) is not below temperature_critical_c (65)" in str(info.value)
 
 
 def test_ros2_section_is_the_bridge_settings_and_names_its_keys(tmp_path: Path) -> None:

@@ -181,12 +181,20 @@ class AlarmThresholds:
                 if not all(math.isfinite(v) for v in dataclasses.astuple(rule)):
                     raise ValueError(f"alarms: the {kind} thresholds must be finite numbers, got {rule}")
                 if rule.clear_at >= rule.raise_at:
+                    raised, cleared = _rule_keys(kind, joint)
                     raise ValueError(
-                        f"alarms: {kind} clears at {rule.clear_at:g}, which is not below where it is raised "
-                        f"({rule.raise_at:g}); the clear value must be lower so the alarm has hysteresis"
+                        f"alarms: {kind} clears at {rule.clear_at:g} ({cleared}), which is not below where "
+                        f"it is raised ({rule.raise_at:g}, {raised}); set {cleared} below {raised} too, so "
+                        "the alarm has hysteresis"
                     )
                 if rule.raise_after_s < 0 or rule.clear_after_s < 0:
                     raise ValueError(f"alarms: {kind} durations must be >= 0 seconds, got {rule}")
+        if self.temperature_warning_c >= self.temperature_critical_c:
+            raise ValueError(
+                f"alarms: temperature_warning_c ({self.temperature_warning_c:g}) is not below "
+                f"temperature_critical_c ({self.temperature_critical_c:g}); the warning must come first, so "
+                "set it lower (or the critical level higher, below the servo's own 70 C cut-out)"
+            )
         if not self.still_velocity_rad_s >= 0:
             raise ValueError(f"alarms.still_velocity_rad_s must be >= 0, got {self.still_velocity_rad_s}")
         unknown = [j for j in self.mismatch_joints if j not in so101.JOINT_NAMES]
@@ -1487,6 +1495,27 @@ def worst_first(severity: Severity | str, state: AlarmState | str, alarm_id: str
 
 def _worse(a: tuple[Severity, AlarmState], b: tuple[Severity, AlarmState]) -> bool:
     return (a[0].rank, -_STATE_ORDER[a[1]]) > (b[0].rank, -_STATE_ORDER[b[1]])
+
+
+def _rule_keys(kind: AlarmKind, joint: str) -> tuple[str, str]:
+    """The `[alarms]` keys of a rule's raise and clear values, as AlarmThresholds.rule reads them: an error
+    about a rule names what to change."""
+    prefix = (
+        "gripper_" if joint == so101.GRIPPER and kind in (AlarmKind.OVER_CURRENT, AlarmKind.OVERLOAD) else ""
+    )
+    raised = {
+        AlarmKind.OVER_TEMPERATURE: "temperature_warning_c",
+        AlarmKind.OVER_TEMPERATURE_CRITICAL: "temperature_critical_c",
+        AlarmKind.OVER_CURRENT: f"{prefix}current_a",
+        AlarmKind.OVERLOAD: f"{prefix}overload_percent",
+    }.get(kind, "mismatch_percent")
+    cleared = {
+        AlarmKind.OVER_TEMPERATURE: "temperature_warning_clear_c",
+        AlarmKind.OVER_TEMPERATURE_CRITICAL: "temperature_critical_clear_c",
+        AlarmKind.OVER_CURRENT: f"{prefix}current_clear_a",
+        AlarmKind.OVERLOAD: f"{prefix}overload_clear_percent",
+    }.get(kind, "mismatch_clear_percent")
+    return raised, cleared
 
 
 def _describe(joint: str, kind: AlarmKind, value: float, rule: Hysteresis, model: float | None) -> str:
