@@ -207,15 +207,25 @@ def test_stack_name_from_flag_and_environment(stack, capsys, monkeypatch):
 # --- errors users can fix ----------------------------------------------------------------------------------
 
 
-def test_missing_stack_is_a_clear_message(aws_env, capsys):
+def test_missing_stack_is_a_clear_message(aws_env, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
     with mock_aws():
+        assert main(["instance", "start", "--stack", "GoneTwin"]) == cmd.EXIT_NO_STACK
+        captured = capsys.readouterr()
+        assert captured.err.strip() == (
+            "twin instance start: stack GoneTwin not found in us-east-1: deploy it with "
+            "`cdk deploy` (docs/deploy.md) or pass --stack"
+        )
+        assert "Traceback" not in captured.err and captured.out == ""
+        # The default name, with no settings file here or above: said, since the deployed stack may be named
+        # in a settings file this command did not see (run from another directory).
         assert main(["instance", "start"]) == cmd.EXIT_NO_STACK
-    captured = capsys.readouterr()
-    assert captured.err.strip() == (
-        "twin instance start: stack So101TwinStack not found in us-east-1: deploy it with "
-        "`cdk deploy` (docs/deploy.md) or pass --stack"
-    )
-    assert "Traceback" not in captured.err and captured.out == ""
+        assert captured.err.strip() != (err := capsys.readouterr().err.strip())
+        assert err == (
+            "twin instance start: stack So101TwinStack not found in us-east-1 (the default name: no "
+            f"twin.settings.toml in {tmp_path.resolve()} or above it; run from the checkout you deployed "
+            "from): deploy it with `cdk deploy` (docs/deploy.md) or pass --stack"
+        )
 
 
 def test_the_stack_name_comes_from_the_settings_file_where_there_is_one(aws_env, tmp_path, monkeypatch):
@@ -226,6 +236,15 @@ def test_the_stack_name_comes_from_the_settings_file_where_there_is_one(aws_env,
     monkeypatch.setenv(lib.STACK_ENV_VAR, "Other")
     assert lib.default_stack_name() == "Other"
     monkeypatch.delenv(lib.STACK_ENV_VAR)
+    # From a folder of the checkout (docs/), the checkout's file: the stack `cdk deploy` made there.
+    (tmp_path / "cdk.json").write_text("{}")
+    (tmp_path / "docs").mkdir()
+    monkeypatch.chdir(tmp_path / "docs")
+    assert lib.default_stack_name() == "FiveArms"
+    # Not past the checkout's root: a file above it belongs to no deployment of this checkout.
+    (tmp_path / "docs" / "cdk.json").write_text("{}")
+    assert lib.default_stack_name() == "So101TwinStack"
+    monkeypatch.chdir(tmp_path)
     (tmp_path / "twin.settings.toml").write_text("not toml [")
     assert lib.default_stack_name() == "So101TwinStack"  # `cdk deploy` says what is wrong with the file
 

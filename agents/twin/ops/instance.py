@@ -34,6 +34,7 @@ import tomllib
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 from twin.core.aws import region_or_env
@@ -99,15 +100,28 @@ G6E_OFFERINGS_COMMAND = (
 )
 
 
+def settings_file(start: Path | None = None) -> Path | None:
+    """The deployment's settings file: twin.settings.toml in `start` (the current directory) or the nearest
+    directory above it, up to the checkout's root (the directory with cdk.json, where `cdk deploy` runs). A
+    command run from docs/ acts on the stack `cdk deploy` made, not on one of the default name."""
+    here = (start or Path.cwd()).resolve()
+    for directory in (here, *here.parents):
+        if (directory / SETTINGS_FILE).is_file():
+            return directory / SETTINGS_FILE
+        if (directory / "cdk.json").is_file():
+            return None
+    return None
+
+
 def default_stack_name() -> str:
     """The stack to act on when none is given: $SO101_TWIN_STACK, else the `stackName` of the deployment's
-    settings file (twin.settings.toml in the current directory, the repository root where `cdk deploy` runs),
-    else `So101TwinStack`."""
+    settings file (settings_file), else `So101TwinStack`."""
     named = os.environ.get(STACK_ENV_VAR)
     if named:
         return named
+    path = settings_file()
     try:
-        with open(SETTINGS_FILE, "rb") as fh:
+        with open(path or SETTINGS_FILE, "rb") as fh:
             value = tomllib.load(fh).get("stackName")
     except (OSError, tomllib.TOMLDecodeError):
         value = None
@@ -446,8 +460,15 @@ class TwinInstance:
         return events
 
     def _stack_missing_message(self) -> str:
+        where = ""
+        if self.stack_name == DEFAULT_STACK_NAME and settings_file() is None:
+            # The name no file gave: a settings file elsewhere may name the stack that was deployed.
+            where = (
+                f" (the default name: no {SETTINGS_FILE} in {Path.cwd()} or above it; run from the checkout "
+                "you deployed from)"
+            )
         return (
-            f"stack {self.stack_name} not found in {self.region}: deploy it with "
+            f"stack {self.stack_name} not found in {self.region}{where}: deploy it with "
             "`cdk deploy` (docs/deploy.md) or pass --stack"
         )
 

@@ -50,7 +50,7 @@ exit codes: 0 done; 1 store error (or rm, restore: nothing there); 2 bad file or
   1..64 letters, digits, '-' or '_'; 3 no AWS credentials or region; 4 stack not found; 5 the stack has
   no CalibrationUri output
 store: --store, else the CalibrationUri output of --stack (default $SO101_TWIN_STACK, else stackName in
-./twin.settings.toml, else So101TwinStack)
+the checkout's twin.settings.toml, else So101TwinStack)
 kept: a push over an arm's calibration, and rm, keep the one they replace (<ARM>.json.previous; ls shows
   it); `twin calibration restore ARM` puts it back, and again swaps back"""
 

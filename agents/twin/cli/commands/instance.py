@@ -1,8 +1,9 @@
 """`twin instance start|stop|status|url|check|console|settings`: run and check the cloud twin host deployed by
 the CDK stack, open its operator console here, and print the settings it runs with.
 
-The stack defaults to $SO101_TWIN_STACK, else the stackName of ./twin.settings.toml, else So101TwinStack; the
-region to --region, else AWS_REGION, else the AWS config.
+The stack defaults to $SO101_TWIN_STACK, else the stackName of the checkout's twin.settings.toml (in the
+current directory or above it), else So101TwinStack; the region to --region, else AWS_REGION, else the AWS
+config.
 
 Exit codes:
   0  done
@@ -54,7 +55,8 @@ EPILOG = """exit codes:
   4 stack not found; 5 stack outputs missing; 6 InsufficientInstanceCapacity on start;
   7 instance did not reach the state (or start: no verdict of its checks) within --timeout;
   8 a check failed (check, or start: the host's checks after the start)
-stack: --stack, else $SO101_TWIN_STACK, else stackName in ./twin.settings.toml, else So101TwinStack"""
+stack: --stack, else $SO101_TWIN_STACK, else stackName in the checkout's twin.settings.toml (here or
+  above), else So101TwinStack"""
 
 DEFAULT_TIMEOUT_S = 900.0
 HEALTH_TIMEOUT_S = 60.0
@@ -129,8 +131,8 @@ def _common_arguments() -> argparse.ArgumentParser:
     common.add_argument(
         "--stack",
         default=None,
-        help="CloudFormation stack name (default: $SO101_TWIN_STACK, else stackName in ./twin.settings.toml, "
-        "else So101TwinStack)",
+        help="CloudFormation stack name (default: $SO101_TWIN_STACK, else stackName in the checkout's "
+        "twin.settings.toml, here or above, else So101TwinStack)",
     )
     common.add_argument(
         "--region", default=None, help="AWS region (default: AWS_REGION, else the AWS config)"
