@@ -302,12 +302,19 @@ def test_each_table_says_the_zone_its_times_are_in(console: str, page: Any) -> N
         context.close()
 
 
-def test_a_long_device_id_wraps_on_its_page(
-    console: str, rig: LocalRig, page: Any, browser_errors: list[str]
-) -> None:
-    """A device id may be 128 characters without a space: its page wraps it instead of growing sideways."""
+@pytest.fixture(scope="module")
+def long_id(rig: LocalRig) -> str:
+    """An arm whose id is as long as IoT allows (128 characters, no space to break at), publishing."""
     device = "x" * 128
     rig.start_edge([device], variant="ticks", rate_hz=10.0, seed=9)
+    return device
+
+
+def test_a_long_device_id_wraps_on_its_page(
+    long_id: str, console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """A device id may be 128 characters without a space: its page wraps it instead of growing sideways."""
+    device = long_id
     page.goto(console + "/arm/" + device)
     page.locator(".status.ONLINE").wait_for()
     page.wait_for_function("() => Number(document.querySelector('canvas[data-chart=angle]').dataset.points)")
@@ -463,18 +470,31 @@ def test_the_sessions_page_lists_a_session_and_its_csv_parses(
     assert browser_errors == []
 
 
-def test_the_sessions_page_fits_a_768_px_window(console: str, page: Any, browser_errors: list[str]) -> None:
-    """At 768 px the files column ran past the window and its last links could not be reached."""
+def test_the_tables_fit_a_768_px_window_with_a_long_id(
+    long_id: str, console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """At 768 px the Sessions page's files column ran past the window, and a 128-character id (no space to
+    break at) widened the Sessions and Events tables to 1,700 px."""
     wait_for_a_session(console, "arm-003")
+    wait_for_a_session(console, long_id)
     size = page.viewport_size
     page.set_viewport_size({"width": 768, "height": 1024})
     try:
-        page.goto(console + "/sessions")
-        last = page.locator('#sessions tr[data-device="arm-003"] a[data-kind]').last
-        last.wait_for()
-        box = last.bounding_box()
-        assert box is not None and box["x"] + box["width"] <= 768, box
-        assert page.evaluate("document.scrollingElement.scrollWidth <= document.scrollingElement.clientWidth")
+        for path, row in (
+            ("/sessions", "#sessions tr[data-device]"),
+            ("/events", "#events tbody tr a"),
+            ("/", "a.card"),
+        ):
+            page.goto(console + path)
+            page.locator(row).first.wait_for()
+            page.wait_for_function(f"() => document.body.textContent.includes({long_id!r})")
+            for link in page.locator('#sessions tr[data-device="arm-003"] a[data-kind]').all():
+                box = link.bounding_box()
+                assert box is not None and box["x"] + box["width"] <= 768, (path, box)
+            wide = page.evaluate(
+                "[document.scrollingElement.scrollWidth, document.scrollingElement.clientWidth]"
+            )
+            assert wide[0] <= wide[1], f"{path} is {wide[0]} px wide in a {wide[1]} px window"
     finally:
         page.set_viewport_size(size)
     assert browser_errors == []

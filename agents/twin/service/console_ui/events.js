@@ -54,7 +54,7 @@
   function row(e) {
     return el("tr", { "data-id": e.id, class: "level-" + e.level },
       el("td", { text: Twin.time(e.time) }), el("td", { text: e.level }), el("td", { text: e.kind }),
-      el("td", {}, e.device ? el("a", { href: "/arm/" + encodeURIComponent(e.device), text: e.device }) : ""),
+      el("td", { class: "id" }, e.device ? el("a", { href: "/arm/" + encodeURIComponent(e.device), text: e.device }) : ""),
       el("td", { class: "msg", text: e.message }));
   }
 

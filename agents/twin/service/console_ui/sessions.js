@@ -35,7 +35,7 @@
       const cell = el("td", { class: "wrap files" });
       files.forEach((a, i) => { if (i) cell.append(" · "); cell.append(a); });
       return el("tr", { "data-device": s.device, "data-key": s.key },
-        el("td", {}, el("a", { href: "/arm/" + encodeURIComponent(s.device), text: s.device })),
+        el("td", { class: "id" }, el("a", { href: "/arm/" + encodeURIComponent(s.device), text: s.device })),
         el("td", { text: Twin.time(s.start) }), el("td", { text: Twin.duration(s.duration_s) }),
         el("td", { text: String(s.messages) }), el("td", { text: String(s.alarms_raised) }),
         el("td", { class: "session-status", text: s.status }), cell);
