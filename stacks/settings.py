@@ -44,6 +44,10 @@ _AZ_ID_RE = re.compile(r"^[a-z]{3,4}\d+-az\d+$")
 _INSTANCE_TYPE_RE = re.compile(
     r"^[a-z][a-z0-9-]*\d[a-z0-9-]*\.(nano|micro|small|medium|large|metal|\d*xlarge)$"
 )
+# EC2 families with NVIDIA GPUs on x86_64 that the DLAMI's OSS NVIDIA driver serves (its release notes list
+# the supported instances): the boot's `gpu` step fails on any other type, more than ten minutes into a deploy
+# (after the packages), and rolls it back. Checked at synth, so that mistake costs nothing.
+NVIDIA_FAMILIES = ("g4dn", "g5", "g6", "g6e", "g7e", "gr6", "p4d", "p4de", "p5", "p5e", "p5en", "p6-b200")
 _AMI_ID_RE = re.compile(r"^ami-[0-9a-f]{8}([0-9a-f]{9})?$")
 # Deliberately loose (SNS validates for real): one @, no spaces, a dot in the domain.
 _EMAIL_RE = re.compile(r"^[^@\s]+@[^@\s]+\.[^@\s]+$")
@@ -406,6 +410,13 @@ def _instance_type(value: str) -> str:
     if not _INSTANCE_TYPE_RE.match(value):
         raise SettingsError(
             f"instanceType={value} is not an EC2 instance type; pass e.g. -c instanceType=g6e.2xlarge"
+        )
+    family = value.split(".", 1)[0]
+    if family not in NVIDIA_FAMILIES:
+        raise SettingsError(
+            f"instanceType={value} has no NVIDIA GPU the host's image drives ({family} is not one of "
+            f"{', '.join(NVIDIA_FAMILIES)}): the twin's desktop renders on it and the first boot checks for "
+            "it, so the deploy would fail and roll back; pass e.g. -c instanceType=g6e.2xlarge"
         )
     return value
 

@@ -160,9 +160,17 @@ def test_bad_instance_type_is_refused(value: str) -> None:
     assert "-c instanceType=g6e.2xlarge" in refused(instanceType=value)
 
 
-@pytest.mark.parametrize("value", ["g6e.xlarge", "g6e.4xlarge", "g5.xlarge", "t3.large", "p5.48xlarge"])
+@pytest.mark.parametrize("value", ["g6e.xlarge", "g6e.4xlarge", "g5.xlarge", "g4dn.xlarge", "p5.48xlarge"])
 def test_instance_types_are_accepted(value: str) -> None:
     assert settings(instanceType=value).instance_type == value
+
+
+@pytest.mark.parametrize("value", ["m5.large", "t3.large", "g4ad.xlarge", "g5g.xlarge", "c7i.2xlarge"])
+def test_an_instance_type_without_an_nvidia_gpu_is_refused_at_synth(value: str) -> None:
+    """A deploy walk synthesised m5.large cleanly; its first boot would fail at the GPU check, ten minutes in.
+    AMD (g4ad) and Arm (g5g) GPU types are no better: the image is the x86_64 NVIDIA one."""
+    message = refused(instanceType=value)
+    assert f"instanceType={value} has no NVIDIA GPU" in message and "-c instanceType=g6e.2xlarge" in message
 
 
 @pytest.mark.parametrize("value", ["10", "16385", "big", "1.5"])
