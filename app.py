@@ -30,6 +30,7 @@ from stacks.settings import (
     ResolvedSettings,
     SettingsError,
     TwinSettings,
+    check_context_keys,
     read_settings_file,
     resolve,
     settings_file_path,
@@ -98,6 +99,7 @@ def build_app(
 
 def _resolve_settings(app: cdk.App, settings_file: Path | None) -> ResolvedSettings:
     """The settings file (the project's unless a test names one) merged with context, validated."""
+    check_context_keys(app.node.get_all_context())
     values = {}
     path = None
     if settings_file == _PROJECT_FILE:

@@ -19,7 +19,7 @@ import difflib
 import ipaddress
 import re
 import tomllib
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from enum import StrEnum
 from pathlib import Path
@@ -285,6 +285,24 @@ def read_settings_file(path: Path, *, required: bool = False) -> dict[str, Any]:
         if isinstance(value, dict):
             raise SettingsError(f"{path}: {key} must be a value, not a table")
     return data
+
+
+# A context key that looks like one of ours: CDK's own keys hold ':', '-', '/' or start with '@'.
+_OUR_SHAPE = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
+
+
+def check_context_keys(keys: Iterable[str]) -> None:
+    """SettingsError for a `-c` key shaped like a setting that is none (`-c device=arm-1`): CDK keeps any key
+    it is given, so the deploy would run without it and nothing would say so."""
+    known = {*SETTING_FIELDS, SETTINGS_FILE_KEY, *ONE_RUN_KEYS}
+    for key in sorted(keys):
+        if _OUR_SHAPE.match(key) and key not in known:
+            close = difflib.get_close_matches(key, list(SETTING_FIELDS), n=1)
+            hint = f"did you mean '{close[0]}'? " if close else ""
+            raise SettingsError(
+                f"-c {key}: unknown setting; {hint}the settings are: {', '.join(KEPT_KEYS)}, and "
+                f"{', '.join(sorted(ONE_RUN_KEYS))} for one deploy (docs/deploy.md, Settings)"
+            )
 
 
 def resolve(

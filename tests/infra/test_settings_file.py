@@ -17,6 +17,7 @@ from stacks.settings import (
     KEPT_KEYS,
     SettingsError,
     Source,
+    check_context_keys,
     default_values,
     read_settings_file,
     resolve,
@@ -64,6 +65,28 @@ def test_an_unknown_key_is_refused_with_the_closest_name(tmp_path: Path) -> None
     path = write(tmp_path / "s.toml", 'clientCidr = "203.0.113.7/32"\ndevice = ["arm-001"]\n')
     with pytest.raises(SettingsError, match=r"unknown setting 'device'; did you mean 'devices'\?"):
         read_settings_file(path)
+
+
+@pytest.mark.parametrize(("key", "hint"), [("device", "did you mean 'devices'? "), ("gpuType", "")])
+def test_an_unknown_context_key_is_refused_with_the_closest_name(tmp_path: Path, key: str, hint: str) -> None:
+    """A deploy walk ran `cdk synth -c device=arm-1`: CDK keeps any key, so the synth passed without it."""
+    with pytest.raises(SettingsError) as info:
+        app_stack(tmp_path, reader=lambda _stack, _region: None, clientCidr=CLIENT_CIDR, **{key: "x"})
+    assert str(info.value).startswith(f"-c {key}: unknown setting; {hint}the settings are: clientCidr")
+
+
+def test_cdks_own_context_keys_are_not_settings() -> None:
+    check_context_keys(
+        [
+            "@aws-cdk/core:newStyleStackSynthesis",
+            "aws:cdk:enable-path-metadata",
+            "acknowledged-issue-numbers",
+            "availability-zones:account=111111111111:region=us-east-1",
+            "clientCidr",
+            "replaceInstance",
+            "settingsFile",
+        ]
+    )
 
 
 def test_a_one_run_confirmation_is_never_kept(tmp_path: Path) -> None:
