@@ -490,7 +490,8 @@ def _devices(value: object) -> tuple[str, ...]:
         problem = policy_device_id_problem(device)
         if problem is not None:
             raise SettingsError(
-                f"device id {device!r} is not usable: {problem}; pass e.g. -c devices=arm-001,arm-002"
+                f"devices: device id {device!r} is not usable: {problem}; pass e.g. "
+                "-c devices=arm-001,arm-002"
             )
     if len(set(devices)) != len(devices):
         raise SettingsError(f"devices={','.join(devices)} lists a device twice; list each once")

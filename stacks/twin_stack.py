@@ -228,7 +228,9 @@ class TwinStack(Stack):
             self,
             "HostLogGroup",
             value=self.identity.agent_log_group.log_group_name,
-            description="Host log group: streams <instance-id>/bootstrap, /agent, /dcv, /emf",
+            description=(
+                "Host log group: streams <instance-id>/bootstrap, /agent, /dcv, /emf, /start, /host-emf"
+            ),
         )
         CfnOutput(
             self,

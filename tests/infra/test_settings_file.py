@@ -107,6 +107,10 @@ def test_a_bad_value_in_the_file_names_the_file(tmp_path: Path) -> None:
         SettingsError, match=r"volumeGb=10 is outside .* \(it is set in .*twin.settings.toml\)"
     ):
         resolve({}.get, read_settings_file(path), path)
+    # A bad device id too (a walk found its message did not start with the key, so the file went unnamed).
+    path = file_with(tmp_path, {"clientCidr": CLIENT_CIDR, "devices": ["arm/left"]})
+    with pytest.raises(SettingsError, match=r"^devices: device id 'arm/left' .* \(it is set in .*\.toml\)$"):
+        resolve({}.get, read_settings_file(path), path)
 
 
 # --- precedence ------------------------------------------------------------------------------------------
