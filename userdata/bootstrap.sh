@@ -247,6 +247,9 @@ step_packages() {
 # from /etc/firefox/policies) skip the first-run page and the default-browser question.
 install_browser() {
   if ! snap list firefox >/dev/null 2>&1; then
+    # On a fresh instance snapd may still be seeding, and an install then fails "too early for operation".
+    timeout 900 snap wait system seed.loaded ||
+      die "snapd did not finish seeding within 15 min (snap changes says what it waits on): no browser"
     log "snap install firefox (the desktop's browser, for the operator console)"
     retry snap install firefox || die "snap install firefox failed: the console launcher needs a browser"
   fi

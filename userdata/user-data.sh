@@ -57,7 +57,11 @@ exec 9>"$ROOT/var/lib/so101-twin/run.lock"
 flock 9
 
 # The AWS CLI ships with the DLAMI; other Ubuntu AMIs get it from the snap store.
-command -v aws >/dev/null 2>&1 || timeout 600 snap install aws-cli --classic
+# A fresh instance's snapd may still be seeding: an install before it is done fails "too early for operation".
+if ! command -v aws >/dev/null 2>&1; then
+  timeout 600 snap wait system seed.loaded
+  timeout 600 snap install aws-cli --classic
+fi
 
 # The deployment parameter: asset locations, settings and their version. An update must see the version
 # the association was created for; Parameter Store is read-after-write consistent only eventually.

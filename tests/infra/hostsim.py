@@ -290,12 +290,21 @@ esac
 """,
     "glib-compile-schemas": r"""exit 0""",
     "snap": r"""
-# snap list NAME | snap install NAME: an installed snap puts its command in /snap/bin.
+# snap list NAME | snap install NAME | snap wait system seed.loaded: an installed snap puts its command in
+# /snap/bin. A fresh instance's snapd is still seeding: as snapd does, an install before the seeding is done
+# fails with "too early for operation", and `snap wait system seed.loaded` returns once it is done.
 case "${1:-}" in
   list)
     has snaps "$2" && { echo "Name  Version  Rev"; echo "$2  1.0  1"; exit 0; }
     echo "error: no matching snaps installed" >&2; exit 1 ;;
+  wait)
+    [ "$*" = "wait system seed.loaded" ] || { echo "snap stand-in: unsupported $*" >&2; exit 1; }
+    mark snapd seeded ;;
   install)
+    has snapd seeded || {
+      echo "error: too early for operation, device not yet seeded or device model not acknowledged" >&2
+      exit 1
+    }
     mark snaps "$2"; mkdir -p "$ROOT/snap/bin"
     printf '#!/bin/sh\nexit 0\n' >"$ROOT/snap/bin/$2"; chmod 755 "$ROOT/snap/bin/$2" ;;
   *) echo "snap stand-in: unsupported $*" >&2; exit 1 ;;
