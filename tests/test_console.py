@@ -378,6 +378,33 @@ def test_acknowledge_moves_the_alarm_to_acknowledged(
     assert browser_errors == []
 
 
+def test_an_acknowledgement_the_agent_could_not_keep_is_told_as_made_but_not_kept(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """The agent answers 503 not_saved when its state file cannot be written (a full disk): the alarm is
+    acknowledged, but a restart would undo it. "was not acknowledged" would be wrong; the page says both.
+    The answer is the agent's (tests/test_restarts.py makes it); here the page's reading of it."""
+    detail = "the acknowledgement is made, but the state file /x/state.json could not be written (...)"
+
+    def not_saved(route: Any) -> None:
+        route.fulfill(status=503, json={"error": "not_saved", "detail": detail})
+
+    page.goto(console + "/arm/arm-003")
+    button = page.locator("#alarms tr[data-alarm] button").first
+    button.wait_for(timeout=TIMEOUT_S * 1000)
+    page.route("**/alarms/**/ack", not_saved)
+    try:
+        button.click()
+        answer = page.wait_for_selector("#ack-result:not([hidden])").inner_text()
+    finally:
+        page.unroute("**/alarms/**/ack", not_saved)
+    assert "acknowledged, but not kept: " + detail in answer and "(503 not_saved)" in answer, answer
+    assert "was not acknowledged" not in answer
+    # The browser logs the 503 this test made; nothing else.
+    browser_errors[:] = [e for e in browser_errors if not ("status of 503" in e and "/ack)" in e)]
+    assert browser_errors == []
+
+
 def test_an_alarms_row_and_its_button_stay_put_while_its_value_changes(
     console: str, page: Any, browser_errors: list[str]
 ) -> None:

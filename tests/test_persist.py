@@ -89,6 +89,35 @@ def test_a_failed_write_leaves_the_previous_file_whole(tmp_path: Path) -> None:
     assert path.read_text() == "old\n" and [p.name for p in tmp_path.iterdir()] == ["state.json"]
 
 
+def test_failed_writes_are_counted_told_once_a_minute_and_the_recovery_is_told(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A full disk failed the write at every check, a second apart, with an error line each time (52 in
+    70 s in a walk) and no count anywhere. Now one line a minute, each saying how many it stands for, a
+    count in the file's output figures (SinkDrops), and a line when it is written again."""
+    from twin.service import persist
+
+    state = StateFile(tmp_path / "state.json")
+    monkeypatch.setattr(persist, "write_atomically", _disk_full)
+    caplog.set_level(logging.WARNING, logger="twin.service.persist")
+    for second in range(130):
+        assert not state.save([_record(AlarmState.ACTIVE, since=float(second))], float(second), 1e9 + second)
+    errors = [r.getMessage() for r in caplog.records if r.levelno == logging.ERROR]
+    assert len(errors) == 3, errors  # at 0, 60 and 120 s
+    assert "(60 failed writes since the last line)" in errors[1] and "free space in" in errors[0]
+    stats = state.stats()
+    assert (stats.name, stats.dropped, stats.pending) == ("state_file", 130, 1)
+    assert stats.last_error == "OSError: [Errno 28] No space left on device"
+    monkeypatch.setattr(persist, "write_atomically", write_atomically)
+    assert state.save([_record(AlarmState.ACKNOWLEDGED)], 131.0, 1e9 + 131)
+    assert "written again, after 130 failed writes" in caplog.records[-1].getMessage()
+    assert (state.stats().pending, state.stats().delivered) == (0, 1)
+
+
+def _disk_full(path: Path, text: str) -> None:
+    raise OSError(28, "No space left on device")
+
+
 def _warnings_of_an_unclean_stop(caplog: pytest.LogCaptureFixture) -> list[logging.LogRecord]:
     return [r for r in caplog.records if r.levelno == logging.WARNING and "did not stop" in r.getMessage()]
 

@@ -21,6 +21,7 @@ import subprocess
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import psutil
 import pytest
@@ -451,5 +452,61 @@ def test_an_acknowledgement_is_in_the_state_file_when_it_is_answered(
         agent.acknowledge_alarm(alarm_id)
         kept = {a["alarm_id"]: a["state"] for a in json.loads(state_file.read_text())["alarms"]}
         assert kept[alarm_id] == "ACKNOWLEDGED", kept
+    finally:
+        agent.stop()
+
+
+@pytest.mark.parametrize("workers", [1, 2], ids=["in-process", "two-worker-processes"])
+def test_an_acknowledgement_the_state_file_cannot_keep_is_answered_as_not_saved(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, workers: int
+) -> None:
+    """A walk filled the state file's disk, acknowledged (answered 200 ACKNOWLEDGED), killed the agent and
+    found the alarm ACTIVE again. The answer now says the acknowledgement is not kept (503 not_saved, with the
+    fix); it holds in memory, the failed writes are a dropped output's, and the next write keeps it."""
+    from test_alerts import hot, hot_arm_settings
+    from twin.service import persist
+    from twin.service.config import load_config
+
+    state_file = tmp_path / "state.json"
+    config = load_config(
+        None, hot_arm_settings(**{"twin.state_file": str(state_file), "http.listen": "127.0.0.1:0"})
+    )
+    agent = AgentService(config, workers=workers)
+    agent.start()
+    try:
+        alarm_id = "arm-003/elbow_flex/over_temperature_critical"
+
+        def active() -> bool:
+            agent.feed("dt/lerobot/arm-003/telemetry", hot("arm-003", int(time.time() * 1000), 68))
+            return any(a.alarm_id == alarm_id and a.state == "ACTIVE" for a in agent.alarms())
+
+        wait_for(active, 60, "the critical heat alarm ACTIVE", interval=0.2)
+        real = persist.write_atomically
+
+        def disk_full(path: Path, text: str) -> None:
+            raise OSError(28, "No space left on device")
+
+        monkeypatch.setattr(persist, "write_atomically", disk_full)
+        status, body = post(f"{agent.http_url}/alarms/{alarm_id}/ack")
+        assert status == 503 and body["error"] == "not_saved", body
+        assert "could not be written (OSError: [Errno 28] No space left on device)" in body["detail"]
+        assert "a restart before it can be would undo it" in body["detail"]
+        assert {a.alarm_id: a.state for a in agent.alarms()}[alarm_id] == "ACKNOWLEDGED"
+
+        def sink() -> Any:
+            agent._cached = None
+            return next(s for s in agent.state().agent.sinks if s.name == "state_file")
+
+        assert sink().dropped >= 1 and sink().pending == 1
+        monkeypatch.setattr(persist, "write_atomically", real)
+
+        def kept() -> bool:
+            if not state_file.exists():  # the full disk may have come before the run's first write
+                return False
+            alarms = json.loads(state_file.read_text())["alarms"]
+            return {a["alarm_id"]: a["state"] for a in alarms}.get(alarm_id) == "ACKNOWLEDGED"
+
+        wait_for(kept, 30, "the supervisor's next write to keep the acknowledgement", interval=0.2)
+        assert wait_for(lambda: sink().pending == 0, 30, "the state file no longer behind")
     finally:
         agent.stop()

@@ -61,7 +61,7 @@ from twin.service.console import (
 )
 from twin.service.event_journal import EventJournal
 from twin.service.events import Event, EventKind, EventLevel, EventQuery, EventStore, FleetWatch
-from twin.service.persist import StateFile
+from twin.service.persist import NotSavedError, StateFile
 from twin.service.shards import (
     CHECKPOINT_EVERY_S,
     AckRequest,
@@ -771,8 +771,9 @@ class AgentService:
                 state = dataclasses.replace(
                     state, agent=dataclasses.replace(state.agent, history=self._history_state(self._history))
                 )
-            if self._journal is not None:
-                sinks = (*state.agent.sinks, self._journal.stats())
+            own = [kept.stats() for kept in (self._journal, self._state_file) if kept is not None]
+            if own:
+                sinks = (*state.agent.sinks, *own)
                 state = dataclasses.replace(state, agent=dataclasses.replace(state.agent, sinks=sinks))
             self._cached = (time.monotonic(), state)
             return state
@@ -938,17 +939,26 @@ class AgentService:
                 raise WorkerError(_DIED_AFTER.format(index=shard.index, act=act))
             kept()
             self._cached = None
-            self._save_alarms_now()  # the state file has it before the answer
+            saved = self._save_alarms_now()  # the state file has it before the answer
         self._wake.set()
+        if not saved and self._state_file is not None:
+            # Made, and kept in memory; a restart before the next write that succeeds would undo it.
+            raise NotSavedError(
+                f"the {act} is made, but the state file {self._state_file.path} could not be written "
+                f"({self._state_file.last_error}): a restart before it can be would undo it. Free space in "
+                "(or fix the permissions of) its directory; the agent writes it again every second",
+                result,
+            )
         return result
 
-    def _save_alarms_now(self) -> None:
+    def _save_alarms_now(self) -> bool:
         """Every mirror's alarms into the state file before an acknowledgement or a forget is answered: a
         person's act must survive a kill that comes before the supervisor's next check (which, with workers,
         takes a whole checkpoint: up to a second or two at a large fleet). Alarms only, so quick, and not
-        confirmed: an alarms-only checkpoint is no restart's starting point for the messages it would drop."""
+        confirmed: an alarms-only checkpoint is no restart's starting point for the messages it would drop.
+        False when the file could not be written."""
         if self._state_file is None or self._stopping.is_set():
-            return  # a stop makes its own last write, which says the run stopped
+            return True  # a stop makes its own last write, which says the run stopped
 
         def alarms_of(shard: Shard) -> tuple[AlarmRecord, ...] | None:
             checkpoint = self._checkpoint(shard, alarms_only=True, confirm=False)
@@ -956,6 +966,7 @@ class AgentService:
 
         records = self._alarm_records(alarms_of)
         self._state_file.save(records, time.monotonic(), time.time())
+        return not self._state_file.failing
 
     def _fleet_totals(self) -> FleetTotals:
         """Running totals and gauges for the CloudWatch metrics (EmfPublisher thread)."""

@@ -86,6 +86,7 @@ from twin.service.http_guard import (
 )
 from twin.service.metrics import CONTENT_TYPE as PROMETHEUS_CONTENT_TYPE
 from twin.service.metrics import render_metrics
+from twin.service.persist import NotSavedError
 from twin.service.session_files import SessionFiles
 from twin.service.shards import ArmForgotten, ArmNotForgettableError, ArmNotFoundError, WorkerError
 from twin.service.state import AgentState, AlarmInfo, AlarmList, HealthReport
@@ -575,6 +576,9 @@ class AgentHttpServer:
             return _error(409, exc.code, device=device, detail=str(exc))
         except WorkerError as exc:
             return _error(503, "worker_unavailable", device=device, detail=f"{exc}; try again once it runs")
+        except NotSavedError as exc:
+            # Forgotten in memory, but not kept: said as a failure, so nobody takes it for a lasting one.
+            return _error(503, "not_saved", device=device, detail=str(exc))
         body = {
             "device": forgotten.device,
             "status": forgotten.status,
@@ -606,6 +610,9 @@ class AgentHttpServer:
                 alarm_id=alarm_id,
                 detail=f"{exc}; acknowledge again once it runs (GET /state, agent.workers)",
             )
+        except NotSavedError as exc:
+            # Acknowledged in memory, but not kept: said as a failure, so nobody takes it for a lasting one.
+            return _error(503, "not_saved", alarm_id=alarm_id, detail=str(exc))
         return _json(200, AlarmList(alarms=(info,)).to_json())
 
     # ------------------------------------------------------------------------------------------ the console

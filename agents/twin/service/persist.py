@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from twin.core.alarms import AlarmKind, AlarmRecord, AlarmState
+from twin.output.sinks import SinkStats
 
 log = logging.getLogger(__name__)
 
@@ -49,8 +50,23 @@ VERSION = 1
 KEPT_STATES = frozenset({AlarmState.ACTIVE, AlarmState.ACKNOWLEDGED, AlarmState.LATCHED})
 
 
+# The state file as an output in /state's `agent.sinks`: its failed writes reach SinkDrops and its alarm.
+SINK_NAME = "state_file"
+# A write that fails fails again at the next check, a second later: one log line per this many seconds.
+ERROR_LOG_INTERVAL_S = 60.0
+
+
 class StateFileError(ValueError):
     """The state file exists but is not one this agent wrote; the message says what is wrong."""
+
+
+class NotSavedError(Exception):
+    """A person's act (an acknowledgement, a forget) was made, but the state file could not be written
+    before the answer: a restart before the next write that succeeds would undo it. `result` is the act's."""
+
+    def __init__(self, message: str, result: object) -> None:
+        super().__init__(message)
+        self.result = result
 
 
 class StateFile:
@@ -60,6 +76,11 @@ class StateFile:
         self.path = Path(path)
         self.writes = 0
         self.write_errors = 0
+        self.last_error = ""
+        # The last write failed (and the file on disk is older than what the agent holds).
+        self.failing = False
+        self._errors_logged_at: float | None = None
+        self._errors_unlogged = 0
         # What the last write held, by what identifies a change (not the wall time, which a clock slewed
         # by NTP would move a little at every check), and whether it said the run had stopped.
         self._last: tuple[list[tuple[str, str, int, float]], bool] | None = None
@@ -149,17 +170,52 @@ class StateFile:
         try:
             write_atomically(self.path, json.dumps(document, indent=1, sort_keys=True) + "\n")
         except OSError as exc:
-            self.write_errors += 1
-            log.error(
-                "state file %s could not be written (%s): acknowledgements and latched alarms since the last "
-                "write would not survive a restart; check the state directory",
-                self.path,
-                exc,
-            )
+            self._failed(exc, now_mono)
             return False
+        if self.failing:
+            log.warning(
+                "state file %s written again, after %d failed writes: the alarms it keeps are current",
+                self.path,
+                self.write_errors,
+            )
+        self.failing, self._errors_logged_at = False, None
         self._last = identity
         self.writes += 1
         return True
+
+    def _failed(self, exc: OSError, now_mono: float) -> None:
+        """Count a failed write; log it at once, then at most once a minute (the next check tries again)."""
+        self.write_errors += 1
+        self.last_error = f"{exc.__class__.__name__}: {exc}"
+        self.failing = True
+        self._errors_unlogged += 1
+        logged = self._errors_logged_at
+        if logged is not None and now_mono - logged < ERROR_LOG_INTERVAL_S:
+            return
+        self._errors_logged_at = now_mono
+        again = f" ({self._errors_unlogged} failed writes since the last line)" if logged is not None else ""
+        self._errors_unlogged = 0
+        log.error(
+            "state file %s could not be written (%s)%s: acknowledgements and latched alarms since the last "
+            "write would not survive a restart; free space in (or fix the permissions of) %s, and the next "
+            "check, a second later, writes it",
+            self.path,
+            exc,
+            again,
+            self.path.parent.absolute(),
+        )
+
+    def stats(self) -> SinkStats:
+        """The file as an output in /state's `agent.sinks`: each failed write is a dropped save, so it reaches
+        the SinkDrops metric and its alarm; `pending` is 1 while the file on disk is behind."""
+        return SinkStats(
+            name=SINK_NAME,
+            delivered=self.writes,
+            dropped=self.write_errors,
+            errors=self.write_errors,
+            pending=int(self.failing),
+            last_error=self.last_error,
+        )
 
 
 def _report_unclean_stop(path: Path, document: dict[str, Any]) -> None:

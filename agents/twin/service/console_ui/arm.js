@@ -139,6 +139,8 @@
     }
   }
 
+  function notSaved(result) { return result.status === 503 && (result.payload || {}).error === "not_saved"; }
+
   // What the agent answered, in its own words (Twin.refusal).
   function ackOutcome(alarm, result) {
     if (result.ok) {
@@ -148,6 +150,8 @@
       const done = now && now.state === "NORMAL" ? "reset (acknowledged after it cleared)" : "acknowledged";
       return `${alarm.alarm_id} ${done}${now ? `: now ${now.state}` : ""}`;
     }
+    // Made, but the state file could not keep it: "not acknowledged" would be wrong, "acknowledged" too little.
+    if (notSaved(result)) return `${alarm.alarm_id} acknowledged, but not kept: ${Twin.refusal(result)}`;
     return `${alarm.alarm_id} was not acknowledged: ${Twin.refusal(result)}`;
   }
 
@@ -189,6 +193,7 @@
       const alarmsText = removed.length ? removed.map(([state, n]) => `${n} ${state}`).join(", ") : "none";
       return `${device} is forgotten: its twin, health and counters are removed; alarms removed: ${alarmsText}. `;
     }
+    if (notSaved(result)) return `${device} is forgotten, but not kept: ${Twin.refusal(result)}`;
     return `${device} was not forgotten: ${Twin.refusal(result)}`;
   }
 
