@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import logging
 import math
+import subprocess
 from pathlib import Path
 
 import mujoco
@@ -155,6 +157,62 @@ def test_flush_writes_samples_before_close(tmp_path: Path, mj) -> None:
         rec.close()
     rec.close()  # idempotent
     assert rec.closed
+
+
+def test_a_save_the_disk_has_no_room_for_is_not_made_so_the_file_stays_whole(
+    tmp_path: Path, mj, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """usd-core saves a usdc session in place: a save cut short by a full disk tore a walk's whole 6 MB file.
+    With too little room the save is not made: the session is set aside, its file as its last save left it."""
+    from twin.output import recorder
+
+    model, data = mj
+    session = tmp_path / "live.usdc"
+    now = [100.0]
+    rec = SessionRecorder(session, flush_interval_s=0.2, clock=lambda: now[0])
+    real = recorder.os.statvfs
+    try:
+        rec.record("arm", 0.0, _fk_poses(model, data, ANGLE_SETS[1]))
+        rec.flush()
+        assert rec.flushes == 1 and not rec.broken
+        full = real(tmp_path)
+
+        class Full:
+            f_frsize, f_bavail = full.f_frsize, (recorder.MIN_FREE_FOR_SAVE_BYTES // full.f_frsize) - 1
+
+        monkeypatch.setattr(recorder.os, "statvfs", lambda _path: Full)
+        rec.record("arm", 1.0, _fk_poses(model, data, ANGLE_SETS[2]))
+        now[0] += 1.0
+        rec.flush()
+        assert rec.broken and rec.flush_errors == 1 and rec.flushes == 1
+        assert "not saved: " in caplog.text and "Its file holds what it had at its last save" in caplog.text
+        assert not rec.record("arm", 2.0, _fk_poses(model, data, ANGLE_SETS[3]))  # dropped, counted
+        assert rec.samples_dropped == 1
+    finally:
+        monkeypatch.setattr(recorder.os, "statvfs", real)
+        rec.close()
+    on_disk = Sdf.Layer.OpenAsAnonymous(str(session))  # the file, not the recorder's layer in memory
+    attr = on_disk.GetAttributeAtPath(f"/World/arm/{BODY_REL['wrist']}.xformOp:orient:twin")
+    assert sorted(on_disk.ListTimeSamplesForPath(attr.path)) == [0.0]  # the last save's, whole
+
+
+def test_a_session_that_cannot_be_saved_at_its_start_leaves_no_empty_file(tmp_path: Path) -> None:
+    """On a full disk each attempt to begin a session left a 0-byte file behind (24 a minute in a walk).
+    A real full filesystem: a 1 MiB tmpfs, filled (the tests run as root, as `make setup` does)."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(disk)], check=True)
+    try:
+        with contextlib.suppress(OSError), (disk / "filler").open("wb") as fh:
+            while True:
+                fh.write(b"\0" * 4096)
+                fh.flush()
+        for n in range(3):
+            with pytest.raises(OSError, match="could not be saved; check disk space"):
+                SessionRecorder(disk / f"session-{n}.usdc")
+        assert sorted(p.name for p in disk.iterdir()) == ["filler"]
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], check=False)
 
 
 def test_at_most_time_codes_per_second_per_device(tmp_path: Path, mj) -> None:

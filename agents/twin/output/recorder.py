@@ -44,6 +44,11 @@ log = logging.getLogger(__name__)
 
 # A sample that lands a hair under one time code after the previous one (float rounding of t * fps) is kept.
 _DROP_TOLERANCE = 1e-6
+# usd-core saves a usdc layer that is already on disk in place, appending what is new: a save the disk cannot
+# take tears the whole file, not just what it would add (a walk's 6 MB session became unreadable). So a save
+# is made only with room for several times what the last one added, and at least this much.
+MIN_FREE_FOR_SAVE_BYTES = 1 << 20
+SAVE_ROOM_FACTOR = 4
 _OP_SUFFIX = "twin"
 _TIME_CODE_DIGITS = 6
 _PRIM_NAME_BAD = re.compile(r"[^A-Za-z0-9_]")
@@ -140,7 +145,13 @@ class SessionRecorder:
         # Poses arrive in metres; the asset's unit decides what a translate value means.
         self._units_per_metre = 1.0 / meters_per_unit
 
-        self._stage = self._create_stage(asset, meters_per_unit)
+        try:
+            self._stage = self._create_stage(asset, meters_per_unit)
+        except Tf.ErrorException as exc:  # CreateNew writes the file at once: a full disk fails here
+            self.path.unlink(missing_ok=True)  # not left behind empty or torn (see _first_save)
+            raise OSError(
+                f"session {self.path} could not be saved; check disk space and permissions"
+            ) from exc
         self._layer: Sdf.Layer = self._stage.GetRootLayer()
         self._asset_ref = _relative_asset_path(self.asset_path, self.path.parent)
 
@@ -160,11 +171,48 @@ class SessionRecorder:
         self.samples_rejected = 0
         self.flushes = 0
         self.flush_errors = 0
-        self._layer.Save()
+        # What the last save added to the file: the next one needs room for a few times as much.
+        self._last_growth = 0
+        self._first_save()
         # Wall-time flushes are measured on this clock (injectable, so tests need not sleep).
         self._clock = clock
         self._last_flush = clock()
         log.info("recording session to %s (asset %s)", self.path, self._asset_ref)
+
+    def _first_save(self) -> None:
+        """The new session's first save; a file that cannot be saved (a full disk) is removed, not left
+        behind empty (a walk found one such 0-byte file per attempt, 24 a minute, while the disk was full)."""
+        try:
+            saved = self._layer.Save()
+        except Tf.ErrorException:
+            saved = False
+        if not saved:
+            self.path.unlink(missing_ok=True)
+            raise OSError(f"session {self.path} could not be saved; check disk space and permissions")
+
+    def _room_to_save(self) -> bool:
+        """Whether the disk has room for the next save (MIN_FREE_FOR_SAVE_BYTES); if not, said, and the
+        session set aside."""
+        try:
+            st = os.statvfs(self.path.parent)
+        except OSError:
+            return True  # not knowable: the save itself will tell
+        free = st.f_bavail * st.f_frsize
+        needed = max(MIN_FREE_FOR_SAVE_BYTES, SAVE_ROOM_FACTOR * self._last_growth)
+        if free >= needed:
+            return True
+        self.flush_errors += 1
+        self.broken = True
+        log.error(
+            "session %s not saved: %d bytes free on its disk, %d needed (a save cut short would tear the "
+            "whole file). Its file holds what it had at its last save; the samples since are dropped, and "
+            "the recording goes on in a new session once the disk has room. Free space in %s",
+            self.path,
+            free,
+            needed,
+            self.path.parent,
+        )
+        return False
 
     def _create_stage(self, asset: Usd.Stage, meters_per_unit: float) -> Usd.Stage:
         """The session stage: the asset's up axis and units, a /World default prim, time codes per second."""
@@ -310,6 +358,9 @@ class SessionRecorder:
             self._stage.SetStartTimeCode(min(0.0, self._min_time_code))
             self._stage.SetEndTimeCode(self._max_time_code)
         self._last_flush = self._clock()
+        if not self._room_to_save():
+            return
+        before = _size(self.path)
         try:
             saved = self._layer.Save()
         except Exception:  # pxr raises Tf.ErrorException; a full disk must not stop the twin
@@ -317,13 +368,14 @@ class SessionRecorder:
             saved = False
         if saved:
             self.flushes += 1
+            self._last_growth = max(0, _size(self.path) - before)
         else:
             self.flush_errors += 1
             self.broken = True
             log.error(
                 "session %s could not be saved; check disk space and permissions. Nothing more is written to "
-                "it (what it held since its last save is lost); the recording goes on in a new session once "
-                "one can be saved",
+                "it, and its file may be unreadable (a save cut short tears a usdc file); the recording goes "
+                "on in a new session once one can be saved",
                 self.path,
             )
 
@@ -400,6 +452,13 @@ class SessionRecorder:
         # logged 200 lines a rotation at INFO).
         log.debug("session %s: device %r recorded at %s", self.path.name, device_id, track.prim_path)
         return track
+
+
+def _size(path: Path) -> int:
+    try:
+        return path.stat().st_size
+    except OSError:
+        return 0
 
 
 def _validate_poses(body_poses: BodyPoses) -> dict[str, _Pose]:

@@ -122,7 +122,7 @@ class _RecorderWorker:
             now = self._clock()
             if now >= self._retry_at:
                 self._retry_at = now + BROKEN_RETRY_S
-                self._rotate(recorder, size=0, force=True)
+                self._rotate(recorder, size=_file_size(recorder.path), force=True)
             return
         saved = recorder.flushes != self._checked_flushes
         old = self._clock() - self._opened >= self._limits.max_age_s
@@ -258,3 +258,11 @@ class RecordingSink(QueuedSink):
         with self._rate_lock:
             skipped = self._skipped
         return replace(super().stats(), skipped=skipped)
+
+
+def _file_size(path: Path) -> int:
+    """A set-aside session's size for the rotation's log line (it was logged as 0 whatever it held)."""
+    try:
+        return path.stat().st_size
+    except OSError:
+        return 0

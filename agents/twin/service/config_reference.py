@@ -145,7 +145,8 @@ KEY_DOCS: dict[str, str] = {
         "while `[rerun]` is on; `1`: one process. At most 64. Flag `--workers`."
     ),
     "twin.record_max_mb": (
-        "The USD recording rotates to a new session file once its file reaches this size (a stage "
+        "The USD recording rotates to a new session file at the first save that takes its file to this "
+        "size or past it, so a file ends a save's worth above it (a stage "
         'also lives in memory while it records: rotation bounds that too). docs/agent.md, "Bounds and '
         'restarts".'
     ),
