@@ -1466,8 +1466,92 @@ def test_history_commands_list_plot_and_export(tmp_path: Path, capsys: pytest.Ca
         frame = pl.read_csv(out) if fmt == "csv" else pl.read_parquet(out)
         assert frame.height == 300 and "elbow_flex_current_a" in frame.columns
 
-    assert main(["history", "plot", "--history", uri, "--device", "arm-404", "--out", str(png)]) == 1
+    assert (
+        main(["history", "plot", "--history", uri, "--device", "arm-404", "--out", str(tmp_path / "4.png")])
+        == 1
+    )
     assert "arm-001, arm-002" in capsys.readouterr().err
+
+
+def _history_with_a_rejection(tmp_path: Path) -> str:
+    """600 messages of arm-001, 300 of arm-002 from T0 + 30 s, one rejected message of each at T0 + 5 s."""
+    uri = str(tmp_path / "history")
+    sink = HistorySink(HistorySettings(uri=uri))
+    for sample in samples(600) + samples(300, device="arm-002", start_s=T0 + 30):
+        sink.applied(sample)
+    for device in ("arm-001", "arm-002"):
+        topic = f"dt/lerobot/{device}/telemetry"
+        sink.rejected(RejectedSample(device, topic, T0 + 5, "not_json", "bad", b"{x"))
+    sink.close()
+    return uri
+
+
+@pytest.mark.slow
+def test_history_commands_keep_what_a_person_had_and_refuse_a_selection_of_nothing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A walk's findings: an export replaced an existing file silently, even with no row (and said "wrote"
+    while exiting 1); an interrupted one left a cut file that looked whole; `--out` a directory was a
+    traceback, and plot's `--out x` wrote x.png; an end before its start, and a mistyped device, read as an
+    empty hour; and `ls --device` counted the whole table's rejections."""
+    from twin.cli import main
+
+    uri = _history_with_a_rejection(tmp_path)
+    kept = tmp_path / "k.csv"
+    kept.write_text("precious\n")
+
+    def run(*args: str) -> tuple[int, str]:
+        code = main(["history", *args[:1], "--history", uri, *args[1:]])
+        return code, capsys.readouterr().err
+
+    code, err = run("export", "--format", "csv", "--out", str(kept))
+    assert code == 2 and "exists; pass --force" in err and kept.read_text() == "precious\n"
+    code, err = run("export", "--format", "csv", "--device", "nobody", "--out", str(kept), "--force")
+    assert code == 1 and "nothing was written" in err and kept.read_text() == "precious\n"
+    assert "devices with history are arm-001, arm-002" in err
+    assert run("export", "--format", "csv", "--device", "arm-002", "--out", str(kept), "--force")[0] == 0
+    assert pl.read_csv(kept).height == 300
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []  # no partial file left
+    code, err = run("export", "--out", str(tmp_path))
+    assert code == 2 and "is a directory" in err
+    code, err = run("ls", "--since", str(T0 + 60), "--until", str(T0))
+    assert code == 2 and "--until (" in err and "must be after --since" in err
+    code, err = run("ls", "--device", "arm-0O1")
+    assert code == 1 and "devices with history are arm-001, arm-002" in err
+    assert run("ls", "--gap", "0")[0] == 2
+    plot = tmp_path / "x"
+    assert run("plot", "--device", "arm-001", "--out", str(plot))[0] == 0
+    assert plot.is_file() and not (tmp_path / "x.png").exists()
+    assert run("plot", "--device", "arm-001", "--out", str(plot))[0] == 2  # exists: not replaced
+    # The rejections of the selection only: arm-002's one, not the table's two.
+    assert main(["history", "ls", "--history", uri, "--device", "arm-002", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["rejected"] == {"not_json": 1}
+    assert main(["history", "ls", "--history", uri, "--json", "--since", str(T0 + 10)]) == 0
+    assert json.loads(capsys.readouterr().out)["rejected"] == {}
+
+
+def test_an_interrupted_export_leaves_the_file_as_it_was(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ctrl-C half way left a file with half the rows and no word; now nothing is written and it says so."""
+    import polars
+    from twin.cli import main
+
+    uri = _history_with(tmp_path, samples(50))
+    out = tmp_path / "e.csv"
+    out.write_text("before\n")
+
+    def interrupted(self: Any, path: Path, **_: Any) -> None:
+        Path(path).write_text("half a file\n")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(polars.LazyFrame, "sink_csv", interrupted)
+    code = main(["history", "export", "--history", uri, "--format", "csv", "--out", str(out), "--force"])
+    assert code == 130 and "interrupted: nothing written" in capsys.readouterr().err
+    assert out.read_text() == "before\n" and sorted(p.name for p in tmp_path.iterdir()) == [
+        "e.csv",
+        "history",
+    ]
 
 
 @pytest.mark.slow

@@ -12,6 +12,7 @@ from __future__ import annotations
 import datetime as dt
 import logging
 import math
+import os
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -52,9 +53,13 @@ class HistoryReadError(ValueError):
     """History cannot be read as asked; the message says what to change."""
 
 
-class TimeFormatError(HistoryReadError):
-    """A time given on the command line is none of the forms `parse_time` takes: a bad argument (exit 2),
+class HistoryArgumentError(HistoryReadError):
+    """An argument that cannot select anything (an end before its start, a gap of 0): a bad argument (exit 2),
     where other read errors mean nothing to show or storage unreadable (exit 1)."""
+
+
+class TimeFormatError(HistoryArgumentError):
+    """A time given on the command line is none of the forms `parse_time` takes."""
 
 
 def parse_time(text: str, *, now: dt.datetime | None = None) -> dt.datetime:
@@ -206,21 +211,14 @@ class HistoryReader:
     ) -> pl.LazyFrame:
         """One device's (or every device's) rows in [since, until), oldest first. The date filter lets
         delta-rs skip whole partitions; the device and time filters reach the Parquet statistics."""
-        frame = self.scan()
-        if device is not None:
-            frame = frame.filter(pl.col("device_id") == device)
-        if since is not None:
-            frame = frame.filter(
-                (pl.col(PARTITION_COLUMN) >= since.astimezone(dt.UTC).date())
-                & (pl.col("received_at") >= since)
-            )
-        if until is not None:
-            frame = frame.filter(
-                (pl.col(PARTITION_COLUMN) <= until.astimezone(dt.UTC).date())
-                & (pl.col("received_at") < until)
-            )
+        frame = _selected(self.scan(), device, since, until)
         frame = frame.sort(["device_id", "received_at"] if device is None else ["received_at"])
         return with_decoded(frame) if decoded else frame
+
+    def known_devices(self) -> list[str]:
+        """Every device the telemetry table holds rows of (to name them when a device has none)."""
+        frame = self.scan().select(pl.col("device_id").unique().sort()).collect()
+        return [str(d) for d in frame["device_id"]]
 
     def summary(
         self,
@@ -232,7 +230,7 @@ class HistoryReader:
     ) -> list[DeviceSummary]:
         """Devices with their time ranges and sessions (runs without a gap longer than `gap_s`)."""
         if not gap_s > 0:
-            raise HistoryReadError(f"--gap {gap_s} must be greater than 0 seconds")
+            raise HistoryArgumentError(f"--gap {gap_s:g} must be greater than 0 seconds")
         frame = self.window(device, since, until, decoded=False).select(["device_id", "received_at", "units"])
         gap = dt.timedelta(seconds=gap_s)
         runs = (
@@ -264,13 +262,44 @@ class HistoryReader:
             summary.sessions.append(Session(row["start"], row["end"], row["rows"]))
         return list(out.values())
 
-    def rejected_counts(self) -> dict[str, int]:
+    def rejected_counts(
+        self,
+        *,
+        device: str | None = None,
+        since: dt.datetime | None = None,
+        until: dt.datetime | None = None,
+    ) -> dict[str, int]:
+        """Rejected messages by reason, of the same selection as `summary` (a walk found the whole table's
+        counts under a one-device, one-hour listing)."""
         try:
             frame = self.scan_rejected()
         except HistoryReadError:
             return {}
+        frame = _selected(frame, device, since, until)
         counts = frame.group_by("reason").agg(pl.len().alias("n")).collect()
         return {r["reason"]: r["n"] for r in counts.iter_rows(named=True)}
+
+
+def _selected(
+    frame: pl.LazyFrame, device: str | None, since: dt.datetime | None, until: dt.datetime | None
+) -> pl.LazyFrame:
+    """`frame`'s rows of `device` (None: all) received in [since, until); an end not after its start selects
+    nothing by mistake, so it is refused (as `twin replay` refuses it)."""
+    if since is not None and until is not None and until <= since:
+        raise HistoryArgumentError(
+            f"--until ({_iso(until)}) must be after --since ({_iso(since)}); nothing lies between them"
+        )
+    if device is not None:
+        frame = frame.filter(pl.col("device_id") == device)
+    if since is not None:
+        frame = frame.filter(
+            (pl.col(PARTITION_COLUMN) >= since.astimezone(dt.UTC).date()) & (pl.col("received_at") >= since)
+        )
+    if until is not None:
+        frame = frame.filter(
+            (pl.col(PARTITION_COLUMN) <= until.astimezone(dt.UTC).date()) & (pl.col("received_at") < until)
+        )
+    return frame
 
 
 # --- export ------------------------------------------------------------------------------------------------
@@ -286,19 +315,44 @@ def export(
     until: dt.datetime | None = None,
     decoded: bool = True,
 ) -> int:
-    """Write the selected rows to one Parquet or CSV file (streamed); returns the row count."""
+    """Write the selected rows to one Parquet or CSV file (streamed); returns the row count. Written beside
+    `out` and renamed over it once whole: an interrupted or failed export leaves `out` as it was, never a
+    file that looks complete and is not. No row: nothing written (HistoryReadError)."""
     if fmt not in EXPORT_FORMATS:
-        raise HistoryReadError(f"--format {fmt!r} is not one of {', '.join(EXPORT_FORMATS)}")
-    out.parent.mkdir(parents=True, exist_ok=True)
+        raise HistoryArgumentError(f"--format {fmt!r} is not one of {', '.join(EXPORT_FORMATS)}")
+    if out.is_dir():
+        raise HistoryArgumentError(
+            f"--out {out} is a directory; give a file name, e.g. {out / f'history.{fmt}'}"
+        )
     frame = reader.window(device, since, until, decoded=decoded)
-    if fmt == "parquet":
-        frame.sink_parquet(out, compression="zstd")
-    else:
-        frame.sink_csv(out)
-    rows = pl.scan_parquet(out).select(pl.len()).collect().item() if fmt == "parquet" else None
-    if rows is None:
-        rows = pl.scan_csv(out).select(pl.len()).collect().item()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    partial = out.with_name(f".{out.name}.partial-{os.getpid()}")
+    try:
+        if fmt == "parquet":
+            frame.sink_parquet(partial, compression="zstd")
+            rows = pl.scan_parquet(partial).select(pl.len()).collect().item()
+        else:
+            frame.sink_csv(partial)
+            rows = pl.scan_csv(partial).select(pl.len()).collect().item()
+        if not rows:
+            hint = _devices_hint(reader, device)
+            raise HistoryReadError(
+                f"no rows in this selection, so nothing was written (see `twin history ls`{hint})"
+            )
+        os.replace(partial, out)
+    finally:
+        partial.unlink(missing_ok=True)
     return int(rows)
+
+
+def _devices_hint(reader: HistoryReader, device: str | None) -> str:
+    """For a device with no row at all: the devices there are (a mistyped id reads like an empty hour)."""
+    if device is None:
+        return ""
+    known = reader.known_devices()
+    if device in known:
+        return ""
+    return f"; no row of {device!r} at all: devices with history are {', '.join(known) or 'none'}"
 
 
 # --- plot --------------------------------------------------------------------------------------------------
@@ -403,6 +457,6 @@ def plot(
     fig.suptitle(f"{device}: {rows} messages, {_iso(first)} .. {_iso(last)}{note}", y=0.99, fontsize=11)
     fig.tight_layout(rect=(0, 0, 1, 0.93))
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out)
+    fig.savefig(out, format="png")  # the very path given: without it, `--out x` wrote x.png
     plt.close(fig)
     return {"device_id": device, "rows": rows, "first": _iso(first), "last": _iso(last), "path": str(out)}

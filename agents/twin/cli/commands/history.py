@@ -2,8 +2,10 @@
 
 Every subcommand takes `--history URI` (a directory or s3://bucket/prefix; default out/history, the demo's
 and a laptop agent's location). Times are ISO 8601 (no zone = UTC), epoch seconds, or a span before now
-(`-2h`, `30m`, `1d`). Exit codes: 0 done, 1 nothing to show or storage unreadable (the reason on stderr),
-2 bad arguments.
+(`-2h`, `30m`, `1d`). `plot` and `export` never replace a file that exists unless given `--force`, and
+write theirs whole or not at all. Exit codes: 0 done, 1 nothing to show or storage unreadable (the reason on
+stderr), 2 bad arguments (an end before its start, an `--out` that exists), 130 interrupted (nothing
+written).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ DEFAULT_URI = "out/history"
 SESSION_GAP_S = 30.0
 EXIT_EMPTY = 1
 EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
 
 
 def add_window_arguments(parser: argparse.ArgumentParser) -> None:
@@ -62,7 +65,10 @@ def register(subparsers: Any) -> None:
     add_uri_argument(pl_)
     add_window_arguments(pl_)
     pl_.add_argument("--device", metavar="D", required=True)
-    pl_.add_argument("--out", metavar="PNG", type=Path, default=Path("history.png"))
+    pl_.add_argument(
+        "--out", metavar="PNG", type=Path, default=Path("history.png"), help="default history.png"
+    )
+    pl_.add_argument("--force", action="store_true", help="replace --out if it exists")
     pl_.set_defaults(func=run_plot)
 
     ex = sub.add_parser("export", help="the selected rows as one Parquet or CSV file")
@@ -74,6 +80,7 @@ def register(subparsers: Any) -> None:
     ex.add_argument(
         "--raw-only", action="store_true", help="stored columns only, without the decoded diagnostics"
     )
+    ex.add_argument("--force", action="store_true", help="replace --out if it exists")
     ex.set_defaults(func=run_export)
 
 
@@ -90,10 +97,18 @@ def _console(command: str) -> Console:
 
 
 def _fail(command: str, exc: Exception) -> int:
-    from twin.ops.history import TimeFormatError
+    from twin.ops.history import HistoryArgumentError
 
     _console(command).err(str(exc))
-    return EXIT_USAGE if isinstance(exc, TimeFormatError) else EXIT_EMPTY
+    return EXIT_USAGE if isinstance(exc, HistoryArgumentError) else EXIT_EMPTY
+
+
+def _taken(command: str, out: Path, force: bool) -> int | None:
+    """EXIT_USAGE, said, when `out` exists and `--force` was not given: what a person had is not replaced."""
+    if force or not out.exists() or out.is_dir():
+        return None
+    _console(command).err(f"{out} exists; pass --force to replace it, or another --out")
+    return EXIT_USAGE
 
 
 def run_ls(args: argparse.Namespace) -> int:
@@ -104,7 +119,8 @@ def run_ls(args: argparse.Namespace) -> int:
         since, until = window(args)
         reader = HistoryReader(args.history)
         devices = reader.summary(device=args.device, since=since, until=until, gap_s=args.gap)
-        rejected = reader.rejected_counts()
+        rejected = reader.rejected_counts(device=args.device, since=since, until=until)
+        known = reader.known_devices() if args.device and not devices else []
     except HistoryReadError as exc:
         return _fail("ls", exc)
     if args.json:
@@ -112,7 +128,13 @@ def run_ls(args: argparse.Namespace) -> int:
         console.out(json.dumps(out, indent=2))
         return 0 if devices else EXIT_EMPTY
     if not devices:
-        console.err(f"no rows in {args.history} for this selection")
+        said = f"no rows in {args.history} for this selection"
+        if args.device and args.device not in known:
+            # A mistyped id reads like an empty hour: name the devices there are.
+            said += (
+                f"; no row of {args.device!r} at all: devices with history are {', '.join(known) or 'none'}"
+            )
+        console.err(said)
         return EXIT_EMPTY
     rows = sum(d.rows for d in devices)
     total_rejected = sum(rejected.values())
@@ -135,6 +157,14 @@ def run_ls(args: argparse.Namespace) -> int:
 def run_plot(args: argparse.Namespace) -> int:
     from twin.ops.history import HistoryReader, HistoryReadError, plot
 
+    taken = _taken("plot", args.out, args.force)
+    if taken is not None:
+        return taken
+    if args.out.is_dir():
+        _console("plot").err(
+            f"--out {args.out} is a directory; give a file name, e.g. {args.out / 'history.png'}"
+        )
+        return EXIT_USAGE
     try:
         since, until = window(args)
         result = plot(HistoryReader(args.history), args.device, args.out, since=since, until=until)
@@ -151,6 +181,9 @@ def run_export(args: argparse.Namespace) -> int:
     from twin.ops.history import HistoryReader, HistoryReadError, export
 
     out = args.out or Path(f"history.{args.format}")
+    taken = _taken("export", out, args.force)
+    if taken is not None:
+        return taken
     try:
         since, until = window(args)
         rows = export(
@@ -164,5 +197,9 @@ def run_export(args: argparse.Namespace) -> int:
         )
     except HistoryReadError as exc:
         return _fail("export", exc)
+    except KeyboardInterrupt:
+        # The export writes beside `out` and renames once whole: stopped, it leaves `out` as it was.
+        _console("export").err(f"interrupted: nothing written ({out} is as it was)")
+        return EXIT_INTERRUPTED
     _console("export").out(f"wrote {out}: {rows} rows ({args.format})")
-    return 0 if rows else EXIT_EMPTY
+    return 0
