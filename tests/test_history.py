@@ -1743,3 +1743,39 @@ def test_every_worker_has_a_slot_for_its_feeds_delivered_count(tmp_path: Path) -
     )
     with pytest.raises(ValueError, match=r"slot is 0\.\.1, not 2"):
         HistoryFeed(link, max_pending=10, payload_max_bytes=8, slot=2)
+
+
+def test_the_writer_process_logs_as_the_agent_does(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    """Two walks found the writer's lines plain text and its INFO lines (a maintenance run's length) missing:
+    a spawned process starts with no logging. It now sets up the agent's JSON lines at the agent's level."""
+    import multiprocessing
+
+    from twin.service.logs import setup_logging
+
+    history = HistoryProcess(
+        {
+            "uri": str(tmp_path / "history"),
+            "commit_every_s": 3600.0,
+            "commit_every_rows": 1,
+            "maintain_every_s": 0.5,
+        },
+        multiprocessing.get_context("spawn"),
+        log=(setup_logging, "INFO"),
+    )
+    history.launch()
+    feed = HistoryFeed(history.link, max_pending=1000, payload_max_bytes=64)
+    out: list[str] = []
+
+    def maintained() -> bool:
+        out.append(capfd.readouterr().out)
+        return "history: maintenance took" in "".join(out)
+
+    try:
+        feed.telemetry(("arm-001", time.time(), 1_700_000_000_000, "ticks", (0.0,) * 6, b"{}"))
+        wait_for(maintained, 60, "the writer's line of a maintenance run", interval=0.2)
+    finally:
+        feed.close()
+        history.stop()
+    line = next(line for line in "".join(out).splitlines() if "history: maintenance took" in line)
+    record = json.loads(line)  # one of the agent's JSON lines, not plain text
+    assert (record["level"], record["logger"]) == ("INFO", "twin.output.history"), record

@@ -506,6 +506,9 @@ class _Launch:
 
     writer_id: str
     in_doubt: _InDoubt | None = None
+    # The agent's logging, as (its setup function, level): a spawned process starts with none, so its INFO
+    # lines (maintenance) were lost and its warnings came as plain text, not the agent's JSON lines.
+    log: tuple[Callable[[str], None], str] | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -545,6 +548,9 @@ def writer_main(
     # process group must not cut its last commit short.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    if launch is not None and launch.log is not None:
+        setup, level = launch.log
+        setup(level)
     # Before deltalake loads (it reads them once): its allocator's settings for a process that commits every
     # few seconds for weeks (twin.core.heap says why); the maintenance process inherits them.
     heap.tune_deltalake_allocator()
@@ -811,9 +817,16 @@ class HistoryProcess:
     """The agent's handle on the history writer process: starts it (and its socket), answers for it in
     /state, starts it again when it died (counting the rows it held), stops it last."""
 
-    def __init__(self, settings: dict[str, Any], context: SpawnContext) -> None:
+    def __init__(
+        self,
+        settings: dict[str, Any],
+        context: SpawnContext,
+        log: tuple[Callable[[str], None], str] | None = None,
+    ) -> None:
         self.settings = settings
         self._ctx = context
+        # The agent's logging for the writer process (_Launch.log): a module-level function, so it pickles.
+        self._log = log
         # What the writer process runs (tests swap in one that dies at a chosen point).
         self.target: Callable[..., None] = writer_main
         # Named for this process, so an agent started after a kill of this one removes it (output.scratch).
@@ -851,7 +864,13 @@ class HistoryProcess:
         control, child = self._ctx.Pipe()
         process = self._ctx.Process(
             target=self.target,
-            args=(self.settings, self.link, child, self._counters, _Launch(self.writer_id, self._in_doubt)),
+            args=(
+                self.settings,
+                self.link,
+                child,
+                self._counters,
+                _Launch(self.writer_id, self._in_doubt, self._log),
+            ),
             name="twin-history-writer",
         )
         process.start()

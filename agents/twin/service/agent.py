@@ -61,6 +61,7 @@ from twin.service.console import (
 )
 from twin.service.event_journal import EventJournal
 from twin.service.events import Event, EventKind, EventLevel, EventQuery, EventStore, FleetWatch
+from twin.service.logs import setup_logging
 from twin.service.persist import NotSavedError, StateFile
 from twin.service.shards import (
     CHECKPOINT_EVERY_S,
@@ -190,7 +191,11 @@ class AgentService:
         # Telemetry history is written by a process of its own, fed by every mirror (output.history_feed).
         self._context = multiprocessing.get_context("spawn")
         settings = history_settings(config)
-        self._history = HistoryProcess(settings, self._context) if settings is not None else None
+        self._history = (
+            HistoryProcess(settings, self._context, log=(setup_logging, config.log.level))
+            if settings is not None
+            else None
+        )
         self._shards = self._build_shards(config, sinks)
         self._pool_settings = pool_settings(config)
         self._pool = ConnectionPool(config.broker, self._pool_settings, self.feed, clock=clock)
