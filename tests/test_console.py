@@ -781,6 +781,10 @@ def test_a_sessions_other_files_are_made_from_history(console: str, tmp_path: Pa
     assert "/arms/arm-003/joints/angle_deg:Scalars:scalars" in temporal.column_names
     stage = Usd.Stage.Open(str(files["usd"]))
     assert stage.GetEndTimeCode() > stage.GetStartTimeCode()
+    # Self-contained (a walk's copy, opened away from the agent's checkout, had no arm): it composes with no
+    # file beside it, and holds the arm's meshes itself.
+    assert [r for r in stage.GetRootLayer().GetExternalReferences() if r] == []
+    assert any(p.GetTypeName() == "Mesh" for p in stage.Traverse()), "no arm geometry in the session's USD"
     assert http_get(base + "exe")[0] == 404
 
 

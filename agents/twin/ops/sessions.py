@@ -144,11 +144,15 @@ class HistorySessions:
     def _rebuild_usd(
         self, reader: HistoryReader, session: SessionInfo, out: Path, since: dt.datetime, until: dt.datetime
     ) -> None:
-        from twin.output.recorder import SessionRecorder  # noqa: PLC0415 - usd-core loads here
+        from pxr import Usd  # noqa: PLC0415 - usd-core loads here
+
+        from twin.output.recorder import SessionRecorder  # noqa: PLC0415
 
         out.unlink(missing_ok=True)  # a recorder never overwrites; an active session's file is made anew
+        recorded = out.with_name(f".{out.name}.recorded{out.suffix}")
+        recorded.unlink(missing_ok=True)
         robot = self._robot()
-        recorder = SessionRecorder(out, flush_interval_s=3600.0)
+        recorder = SessionRecorder(recorded, flush_interval_s=3600.0)
         try:
             for sample in self._samples(reader, session, since, until):
                 recorder.record(
@@ -159,6 +163,13 @@ class HistorySessions:
                 )
         finally:
             recorder.close()
+        # A download goes to another machine: the recorder references the robot's asset by a path relative to
+        # its file, which resolves only beside this checkout (a walk's copy opened with no arm). Flattened,
+        # the file holds the arm itself, about 1 MB more.
+        try:
+            Usd.Stage.Open(str(recorded)).Flatten().Export(str(out))
+        finally:
+            recorded.unlink(missing_ok=True)
 
 
 def _window(session: SessionInfo) -> tuple[dt.datetime, dt.datetime]:
