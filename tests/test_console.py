@@ -678,6 +678,20 @@ def test_the_sessions_page_says_at_once_that_the_agent_went_away_and_reads_again
     browser_errors.clear()
 
 
+def test_the_events_page_says_a_swapped_time_range_selects_nothing(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """The agent refuses an until before since (400); the page says what is wrong with the range, not that
+    the agent could not be reached."""
+    page.goto(console + "/events")
+    page.wait_for_selector("body[data-ready='1']")
+    page.get_by_label("from").fill("2026-12-04T22:40:00")
+    page.get_by_label("until").fill("2026-12-04T22:30:00")
+    page.wait_for_function("() => document.querySelector('.counts').textContent.includes('not after')")
+    assert "could not load" not in page.locator(".counts").inner_text()
+    assert browser_errors == []
+
+
 def test_the_events_page_follows_an_agent_that_restarted(
     console: str, rig: LocalRig, page: Any, browser_errors: list[str]
 ) -> None:

@@ -278,6 +278,17 @@ def test_formula_cells_are_neutralised(cell: str, expected: str) -> None:
     assert neutralise_cell(cell) == expected
 
 
+def test_an_exports_two_time_columns_agree_to_the_millisecond() -> None:
+    """A walk found `time` 1796423526.955 beside `iso_time` ...:06.954Z: one rounded, the other truncated."""
+    s, _ = store()
+    s.emit(EventKind.TWIN, EventLevel.INFO, "x")
+    event = s.query(EventQuery())[0]
+    for epoch in (1_796_423_526.9549, 1_796_423_526.9995, 1_796_423_526.0004):
+        row = next(csv.DictReader(io.StringIO(events_csv([msgspec.structs.replace(event, time=epoch)]))))
+        seconds, ms = row["time"].split(".")
+        assert row["iso_time"].endswith(f"{int(seconds) % 60:02d}.{ms}Z"), row
+
+
 def test_an_exports_file_is_named_by_its_utc_time() -> None:
     assert export_name("csv", 1_796_422_500.9) == "twin-events-20261204T221500Z.csv"
 
@@ -292,6 +303,22 @@ def test_exports_neutralise_text_and_keep_numbers() -> None:
     doc = json.loads(events_json(s.query(EventQuery())))
     assert doc["events"][0]["message"].startswith("'=") and doc["events"][0]["data"] == {"reason": "'-x"}
     assert doc["events"][0]["time"] == 1000.0
+
+
+def test_a_time_range_whose_end_is_not_after_its_start_is_a_bad_query(tmp_path: Path) -> None:
+    """A walk swapped since and until and got an empty list, as if nothing had happened then."""
+    from conftest import http_get
+
+    agent = unbrokered_agent(tmp_path, 1)
+    try:
+        for path in ("/api/events", "/api/events.csv"):
+            status, _, body = http_get(f"{agent.http_url}{path}?since=1796423900&until=1796423500")
+            doc = json.loads(body)
+            assert status == 400 and doc["error"] == "bad_query", doc
+            assert "until (1796423500.0) must be after since (1796423900.0)" in doc["detail"]
+        assert http_get(f"{agent.http_url}/api/events?since=1796423500&until=1796423900")[0] == 200
+    finally:
+        agent.stop()
 
 
 @pytest.mark.slow

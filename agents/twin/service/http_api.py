@@ -863,13 +863,17 @@ def event_query(request: Request, limit: int) -> EventQuery:
     params = request.query_params
     level = params.get("level", "").strip()
     kinds = frozenset(k.strip() for k in params.get("kind", "").split(",") if k.strip())
+    since, until = _float_param(request, "since"), _float_param(request, "until")
+    if since is not None and until is not None and until <= since:
+        # Selects nothing by mistake (the range's ends swapped): said, not an empty list.
+        raise ValueError(f"until ({until}) must be after since ({since})")
     return EventQuery(
         device=params.get("device", "").strip(),
         min_level=EventLevel.parse(level) if level else EventLevel.INFO,
         kinds=kinds,
         text=params.get("q", "").strip(),
-        since=_float_param(request, "since"),
-        until=_float_param(request, "until"),
+        since=since,
+        until=until,
         after_id=_int_param(request, "after", 0),
         limit=min(limit, max(1, _int_param(request, "limit", limit))),
     )

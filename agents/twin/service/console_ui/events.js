@@ -90,6 +90,13 @@
     clearTimeout(retry);
     csv.href = "/api/events.csv?" + params();
     json.href = "/api/events.json?" + params();
+    // Ends swapped: the agent refuses the range (400); said here, not as an agent out of reach.
+    if (since.value && until.value && new Date(until.value) <= new Date(since.value)) {
+      events = [];
+      render(false);
+      count.textContent = "the until time is not after the from time: nothing lies between them";
+      return;
+    }
     try {
       const doc = await Twin.getJSON("/api/events?" + params({ limit: "2000" }));
       if (mine !== loads) return;
