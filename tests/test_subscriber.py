@@ -490,6 +490,38 @@ def test_survives_broker_restarts(
     assert any(t > back for t in arrivals)
 
 
+def test_a_long_outage_is_told_a_few_times_then_once_a_minute(caplog: pytest.LogCaptureFixture) -> None:
+    """A walk's 30 s broker outage made 15 lines; a day's would make tens of thousands. The first three
+    failures are each told, then one line a minute with the running count; a connection starts it over."""
+    from types import SimpleNamespace
+
+    from twin.transport import subscriber as module
+
+    now = [0.0]
+    sub = TelemetrySubscriber(
+        BrokerConfig(url=NO_BROKER), ["t/+/telemetry"], lambda *_: None, clock=lambda: now[0]
+    )
+    refused = SimpleNamespace(
+        exception=AwsCrtError(code=1047, name="AWS_IO_SOCKET_CONNECTION_REFUSED", message="refused")
+    )
+    caplog.set_level("WARNING", logger="twin.transport")
+
+    def told() -> list[str]:
+        return [r.getMessage() for r in caplog.records if " could not connect to " in r.getMessage()]
+
+    for _ in range(60):  # two minutes of failures, one every 2 s
+        sub._on_connection_failure(refused)  # awscrt's callback, driven by the test's clock
+        now[0] += 2.0
+    lines = told()
+    assert [int(re.search(r"failure #(\d+)", line)[1]) for line in lines] == [1, 2, 3, 33], lines
+    assert "told once a minute from now on" in lines[2]
+    assert sub.stats.connection_failures == 60
+    assert module.FAILURES_TOLD_EACH == 3
+    sub._on_connection_success(SimpleNamespace())
+    sub._on_connection_failure(refused)  # a new outage: told at once again
+    assert len(told()) == 5
+
+
 def test_a_refused_connection_says_what_to_check(caplog: pytest.LogCaptureFixture) -> None:
     # A real agent pointed at a closed loopback port: awscrt's own words name the error, not the fix.
     caplog.set_level("WARNING", logger="twin.transport")

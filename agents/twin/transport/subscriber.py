@@ -11,6 +11,7 @@ import ctypes
 import dataclasses
 import functools
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -32,6 +33,9 @@ _FILTERS_PER_SUBSCRIBE = 8
 # A filter the broker refused (a SUBACK failure code: on IoT Core, a policy without iot:Subscribe on it) is
 # asked for again this often while the connection lasts, so a corrected policy takes effect without a restart.
 RESUBSCRIBE_S = 30.0
+# A broker out of reach: each of the first this many failed connects is logged, then one line a minute.
+FAILURES_TOLD_EACH = 3
+FAILURE_LOG_INTERVAL_S = 60.0
 Clock = Callable[[], float]
 
 
@@ -112,6 +116,9 @@ class TelemetrySubscriber:
         self._clock = clock
         self._stats = SubscriberStats()
         self._stats_lock = threading.Lock()
+        # Connection failures since the last success, and when one was last logged (_on_connection_failure).
+        self._failure_streak = 0
+        self._failure_told_at = -math.inf
         self._client: mqtt5.Client | None = None
         self._connected = threading.Event()
         self._subscribed = threading.Event()
@@ -237,6 +244,7 @@ class TelemetrySubscriber:
         with self._stats_lock:
             self._stats.connection_successes += 1
             self._stats.last_connected_monotonic = self._clock()
+            self._failure_streak = 0
         self._connected.set()
         self._subscribed.clear()
         log.info(
@@ -342,14 +350,21 @@ class TelemetrySubscriber:
             self._stats.connection_failures += 1
             self._stats.last_error = f"connect: {data.exception}"
             failures = self._stats.connection_failures
-        # Backoff retries run until stop(); one line per attempt is fine at <= 4 attempts/s, and the count
-        # says how long an outage has lasted. The hint rides on each line: the first may have scrolled away.
+            # Backoff retries run until stop(), every few seconds: an outage of a day would be tens of
+            # thousands of lines. The first few are each told, then one a minute, with the count.
+            now = self._clock()
+            streak = self._failure_streak = self._failure_streak + 1
+            if streak > FAILURES_TOLD_EACH and now - self._failure_told_at < FAILURE_LOG_INTERVAL_S:
+                return
+            self._failure_told_at = now
+        # The hint rides on each line: the first may have scrolled away.
         hint = connect_hint(self.config, data.exception)
         log.warning(
-            "subscriber %s could not connect to %s (failure #%d): %s; retrying with backoff%s",
+            "subscriber %s could not connect to %s (failure #%d%s): %s; retrying with backoff%s",
             self.client_id,
             self._where(),
             failures,
+            "; told once a minute from now on" if streak == FAILURES_TOLD_EACH else "",
             data.exception,
             f". {hint}" if hint else "",
         )
