@@ -210,6 +210,7 @@ class Conn:
             last_error,
         )
         self.refused = refused
+        self.connected_at: float | None = None
 
 
 def test_broker_watch_reports_connects_losses_and_reconnects() -> None:
@@ -224,6 +225,17 @@ def test_broker_watch_reports_connects_losses_and_reconnects() -> None:
         "broker connection 0 lost: AWS_ERROR_MQTT_UNEXPECTED_HANGUP",
         "broker connection 0 reconnected",
     ]
+
+
+def test_a_connect_event_carries_the_connects_own_time() -> None:
+    """A walk's Events page had the broker's connect after the arms it let in: the watch read it up to a
+    sweep later and stamped it then. The event now has the connection's own time."""
+    s, _ = store()
+    watch = BrokerWatch(s)
+    connected = Conn(1, 0)
+    connected.connected_at = 1_796_423_809.95
+    watch.sweep([connected])
+    assert [e.time for e in s.query(EventQuery())] == [1_796_423_809.95]
 
 
 def test_broker_watch_reports_a_refused_subscription_once_and_its_grant() -> None:
@@ -419,6 +431,20 @@ def test_an_arm_arrives_in_the_events_with_its_first_message_not_before(rig: Loc
     events = [(e.device, e.message) for e in agent.events(status)]
     assert [d for d, _ in events] == ["arm-002"] * len(events), events
     assert events[0][1] == "arm-002 is ONLINE (first message)", events
+
+
+def test_the_broker_connect_comes_before_the_arrivals_it_let_in(rig: LocalRig) -> None:
+    """An edge already publishing when the agent starts: its arm arrives within milliseconds of the connect.
+    The connect was stamped when a sweep read it, up to half a second later, so the Events page put it after
+    the arrivals (a walk's incident timeline). It carries the connect's own time now."""
+    rig.start_edge(["arm-005"], variant="ticks", rate_hz=10.0)
+    agent = rig.start_agent({"telemetry.devices": ["arm-005"], "telemetry.units": "ticks"})
+    broker = EventQuery(kinds=frozenset({EventKind.BROKER.value}))
+    status = EventQuery(kinds=frozenset({EventKind.STATUS.value}), device="arm-005")
+    arrival = wait_for(lambda: agent.events(status), 30, "arm-005's arrival")[0]
+    connect = wait_for(lambda: agent.events(broker), 30, "the broker connect event")[0]
+    assert connect.message == "broker connection 0 connected"
+    assert connect.time <= arrival.time, (connect, arrival)
 
 
 @pytest.mark.slow

@@ -364,6 +364,8 @@ class ConnectionCounters(Protocol):
     def last_error(self) -> str: ...
     @property
     def refused(self) -> tuple[str, ...]: ...
+    @property
+    def connected_at(self) -> float | None: ...
 
 
 class BrokerWatch:
@@ -394,11 +396,13 @@ class BrokerWatch:
                 )
             if successes > before[0]:
                 again = successes > 1
+                # At the connect's own time: read up to a sweep later, it came after the arms it let in.
                 self._store.emit(
                     EventKind.BROKER,
                     EventLevel.INFO,
                     f"broker connection {index} {'reconnected' if again else 'connected'}",
                     data={"connection": index, "client_id": client_id, "connects": successes},
+                    at=c.connected_at,
                 )
             self._sweep_refused(index, client_id, frozenset(c.refused), last_error)
 

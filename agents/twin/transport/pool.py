@@ -71,6 +71,8 @@ class ConnectionInfo:
     disconnections: int
     last_error: str
     refused: tuple[str, ...] = ()
+    # Wall time of its latest connect (None: never connected).
+    connected_at: float | None = None
 
 
 class _Connection:
@@ -226,6 +228,7 @@ class ConnectionPool:
                     disconnections=stats.disconnects,
                     last_error=stats.last_error,
                     refused=refused,
+                    connected_at=stats.last_connected_at,
                 )
             )
         return out

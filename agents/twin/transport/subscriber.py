@@ -54,6 +54,8 @@ class SubscriberStats:
     messages_received: int = 0
     callback_errors: int = 0
     last_connected_monotonic: float | None = None
+    # Wall time of that connection: the agent's event of it carries it, not the later moment it read it.
+    last_connected_at: float | None = None
     last_message_monotonic: float | None = None
     last_error: str = ""
     per_filter_granted: dict[str, int] = field(default_factory=dict)
@@ -244,6 +246,7 @@ class TelemetrySubscriber:
         with self._stats_lock:
             self._stats.connection_successes += 1
             self._stats.last_connected_monotonic = self._clock()
+            self._stats.last_connected_at = time.time()
             self._failure_streak = 0
         self._connected.set()
         self._subscribed.clear()
