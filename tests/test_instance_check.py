@@ -14,6 +14,7 @@ certificate, like DCV's; a closed port stands for a blocked one.
 from __future__ import annotations
 
 import datetime
+import hashlib
 import json
 import re
 import socket
@@ -304,6 +305,10 @@ def test_a_working_twin_passes_every_check(aws_env, dcv_port, tmp_path, monkeypa
     ]
     assert {name: status for name, (status, _) in rows.items()} == dict.fromkeys(rows, "OK")
     assert rows["dcv port"][1].startswith(f"127.0.0.1:{dcv_port} completes a TLS handshake from here (TLSv1.")
+    # Its certificate's fingerprint, to compare with the host's: a proxy completes a handshake too.
+    der = ssl.PEM_cert_to_DER_cert((tmp_path / "cert.pem").read_text())
+    fingerprint = ":".join(f"{b:02X}" for b in hashlib.sha256(der).digest())
+    assert f"its certificate's SHA-256 is {fingerprint}: the same as `sudo dcv list-endpoints -j`" in out
     assert "arm-001 ONLINE 10.0 Hz, last message 0.0 s ago" in rows["telemetry"][1]
     assert f"host runs {VERSION}, the stack's current deployment" in rows["version"][1]
     assert out.rstrip().endswith("verdict: the twin works (12 checks OK)")

@@ -194,6 +194,7 @@ def check_dcv_port(dcv_url: str, timeout_s: float = DCV_CONNECT_TIMEOUT_S) -> Ch
             context.wrap_socket(raw, server_hostname=host) as tls,
         ):
             version = tls.version()
+            der = tls.getpeercert(binary_form=True) or b""
     except (TimeoutError, ConnectionRefusedError, OSError) as exc:
         return CheckLine(
             "dcv port",
@@ -203,7 +204,16 @@ def check_dcv_port(dcv_url: str, timeout_s: float = DCV_CONNECT_TIMEOUT_S) -> Ch
             'https://checkip.amazonaws.com), write clientCidr = "<it>/32" into twin.settings.toml and cdk '
             "deploy; otherwise dcvserver is down (check dcv-session below)",
         )
-    return CheckLine("dcv port", OK, f"{host}:{port} completes a TLS handshake from here ({version})")
+    # Anything that speaks TLS completes the handshake, a proxy between here and the host too (a walk's did):
+    # the certificate's fingerprint, for the comparison AWS documents (`dcv list-endpoints -j` on the host).
+    fingerprint = ":".join(f"{b:02X}" for b in hashlib.sha256(der).digest())
+    return CheckLine(
+        "dcv port",
+        OK,
+        f"{host}:{port} completes a TLS handshake from here ({version}); its certificate's SHA-256 is "
+        f"{fingerprint}: the same as `sudo dcv list-endpoints -j` shows on the host, unless a proxy between "
+        "answered",
+    )
 
 
 def parse_host_check(
