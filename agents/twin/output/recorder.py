@@ -145,13 +145,7 @@ class SessionRecorder:
         # Poses arrive in metres; the asset's unit decides what a translate value means.
         self._units_per_metre = 1.0 / meters_per_unit
 
-        try:
-            self._stage = self._create_stage(asset, meters_per_unit)
-        except Tf.ErrorException as exc:  # CreateNew writes the file at once: a full disk fails here
-            self.path.unlink(missing_ok=True)  # not left behind empty or torn (see _first_save)
-            raise OSError(
-                f"session {self.path} could not be saved; check disk space and permissions"
-            ) from exc
+        self._stage = self._create_stage(asset, meters_per_unit)
         self._layer: Sdf.Layer = self._stage.GetRootLayer()
         self._asset_ref = _relative_asset_path(self.asset_path, self.path.parent)
 
@@ -165,8 +159,7 @@ class SessionRecorder:
         # disk) is written to again, so nothing more is written to this session (RecordingSink starts a new
         # one once it can).
         self.broken = False
-        # Counters for the agent's metrics.
-        self.samples_written = 0
+        self.samples_written = 0  # these five: the agent's metrics
         self.samples_dropped = 0
         self.samples_rejected = 0
         self.flushes = 0
@@ -217,7 +210,13 @@ class SessionRecorder:
     def _create_stage(self, asset: Usd.Stage, meters_per_unit: float) -> Usd.Stage:
         """The session stage: the asset's up axis and units, a /World default prim, time codes per second."""
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        stage = Usd.Stage.CreateNew(str(self.path))
+        try:
+            stage = Usd.Stage.CreateNew(str(self.path))
+        except Tf.ErrorException as exc:  # CreateNew writes the file at once: a full disk fails here
+            self.path.unlink(missing_ok=True)  # not left behind empty or torn (see _first_save)
+            raise OSError(
+                f"session {self.path} could not be saved; check disk space and permissions"
+            ) from exc
         if stage is None:
             raise OSError(f"cannot create USD stage {self.path}; check the folder is writable")
         UsdGeom.SetStageUpAxis(stage, UsdGeom.GetStageUpAxis(asset))

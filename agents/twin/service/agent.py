@@ -190,12 +190,7 @@ class AgentService:
         self._mirror: Mirror | None = None
         # Telemetry history is written by a process of its own, fed by every mirror (output.history_feed).
         self._context = multiprocessing.get_context("spawn")
-        settings = history_settings(config)
-        self._history = (
-            HistoryProcess(settings, self._context, log=(setup_logging, config.log.level))
-            if settings is not None
-            else None
-        )
+        self._history = self._history_process(config)
         self._shards = self._build_shards(config, sinks)
         self._pool_settings = pool_settings(config)
         self._pool = ConnectionPool(config.broker, self._pool_settings, self.feed, clock=clock)
@@ -231,6 +226,13 @@ class AgentService:
         self._calibrations = self._calibration_watcher(config)
         self._calibration_store = store_location(self._calibrations.store if self._calibrations else None)
         self._routes: dict[str, tuple[Shard, str]] = {}
+
+    def _history_process(self, config: AgentConfig) -> HistoryProcess | None:
+        """The history writer process's handle, with the agent's logging for it; None with history off."""
+        settings = history_settings(config)
+        if settings is None:
+            return None
+        return HistoryProcess(settings, self._context, log=(setup_logging, config.log.level))
 
     def _init_run_state(self) -> None:
         """What start() and stop() set: the HTTP server, the metrics publisher, the supervisor, whether and
