@@ -851,13 +851,23 @@ def test_an_offline_arm_is_forgotten_from_its_page(
         assert "was not forgotten" in result.inner_text() and "csrf_token_invalid" in result.inner_text()
         assert "arm-retired" in agent.state().devices
         page.unroute("**/arm/arm-retired")
+        # Made, but the agent's state file could not keep it (a full disk): said as such, not as a refusal.
+        detail = "the forget is made, but the state file /x/state.json could not be written (...)"
+
+        def not_saved(route: Any) -> None:
+            route.fulfill(status=503, json={"error": "not_saved", "detail": detail})
+
+        page.route("**/api/arm/arm-retired/forget", not_saved)
+        button.click()
+        result.filter(has_text="is forgotten, but not kept: " + detail).wait_for(timeout=15_000)
+        page.unroute("**/api/arm/arm-retired/forget", not_saved)
         # It can now: the token is renewed from the page and the forget goes through.
         button.click()
-        result.filter(has_text="arm-retired is forgotten").wait_for(timeout=15_000)
+        result.filter(has_text="arm-retired is forgotten: its twin").wait_for(timeout=15_000)
         assert page.evaluate("document.querySelector('meta[name=csrf-token]').content") == token
     finally:
         page.remove_listener("dialog", confirm)
-    assert len(asked) == 2 and "Forget arm-retired?" in asked[0], asked
+    assert len(asked) == 3 and "Forget arm-retired?" in asked[0], asked
     assert "twin" in asked[0] and "no alarm" in asked[0] and "new arm" in asked[0], asked
     assert page.locator("#forget-result a#forget-fleet").get_attribute("href") == "/"
     page.locator("h1", has_text="arm-retired: forgotten").wait_for()
