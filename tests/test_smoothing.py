@@ -164,6 +164,19 @@ def test_edge_clock_jump_restarts_the_timeline_but_a_straggler_does_not():
     assert mean(errors) < 0.004
 
 
+def test_a_silent_arms_newest_sample_seen_again_is_no_clock_jump():
+    """A viewer polls the agent: a silent arm's state repeats its last sample, later and later. The jump check
+    took its growing age for the edge clock going back, and restarted the timeline once a second (a walk)."""
+    est = PlayoutPredictor()
+    stream = samples(5.0, 0.0)
+    for received, stamp, angles in stream:
+        est.add(stamp, angles, received)
+    last_received, last_stamp, last_angles = stream[-1]
+    for k in range(1, 40):  # the same sample, polled every second for 39 s of silence
+        assert not est.add(last_stamp, last_angles, last_received + k)
+    assert est.clock_resets == 0
+
+
 def test_slow_edge_clock_drift_is_followed():
     # 500 ppm (far worse than an unsynchronised crystal); the windowed offset keeps up.
     stream = samples(30.0, 0.05, edge_ms=lambda t: EPOCH_MS + round(t * 1000 * 1.0005))

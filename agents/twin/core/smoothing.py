@@ -165,6 +165,11 @@ class PlayoutPredictor:
             self.rejected += 1
             return False
         edge_s = timestamp_ms / 1000.0
+        if self._times and edge_s == self._times[-1]:
+            # The newest sample again (a viewer that polls a silent arm's state): ignored before the jump
+            # check, which took its growing age for an edge clock jumping back, once a second.
+            self.duplicates += 1
+            return False
         sample_offset = received_s - edge_s
         if self._offset is not None and abs(sample_offset - self._offset) > self.config.jump_threshold_s:
             return self._hold_back(edge_s, received_s, values, self._offset)
