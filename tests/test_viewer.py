@@ -247,6 +247,48 @@ def test_overlay_shows_figures_and_unreachable_agent():
     assert table["Device"] == "waiting for devices"
 
 
+def test_while_the_agent_is_out_of_reach_the_arms_status_is_not_shown_as_live() -> None:
+    """A walk stopped the agent: the overlay kept 'Status ONLINE', 'Rate 10.2 Hz' for 22 s of silence."""
+    config, fleet = ViewerConfig(), FleetView()
+    fleet.update(state_of(arm_001=device_state(1000, 0.0)), 10.0)
+    fleet.set_link(LINK_UNREACHABLE, "connection refused", now=10.0)
+    labels, values = overlay_lines(config, fleet, device="arm-001", devices=fleet.devices(), now=32.0, fps=60)
+    table = dict(zip(labels.split("\n"), values.split("\n"), strict=True))
+    assert table["Status"] == "unknown while the agent is out of reach (it said ONLINE)"
+    assert "Rate" not in table and "Age" not in table
+
+
+def test_an_arm_the_agent_forgot_leaves_the_view_and_paging_starts_from_the_ends() -> None:
+    """A walk forgot the arm on screen: it stayed, OFFLINE, six minutes; Page Down skipped the first arm."""
+    config, fleet, picker = ViewerConfig(), FleetView(), DevicePicker("arm-999")
+    fleet.update(state_of(arm_001=device_state(1000, 0.0), arm_999=device_state(1000, 0.0)), 10.0)
+    fleet.update(state_of(arm_001=device_state(1100, 0.0)), 11.0)  # arm-999 forgotten
+    assert fleet.info("arm-999") is None and fleet.pose("arm-999", 11.0) is None
+    labels, values = overlay_lines(config, fleet, device="arm-999", devices=fleet.devices(), now=11.0, fps=60)
+    table = dict(zip(labels.split("\n"), values.split("\n"), strict=True))
+    assert table["Status"] == "not listed by the agent: not heard from yet, or forgotten"
+    devices = ["arm-001", "arm-002", "arm-003"]
+    picker.on_key(KEY_PAGE_DOWN)
+    assert picker.current(devices) == "arm-001"
+    gone = DevicePicker("arm-999")
+    gone.on_key(KEY_PAGE_UP)
+    assert gone.current(devices) == "arm-003"
+
+
+def test_another_service_on_the_agents_port_is_told_once_a_minute_and_on_screen(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """An HTTP server that is not the agent got 160 warning lines in 14 s, and the overlay said 'polling'."""
+    config, fleet = ViewerConfig(), FleetView()
+    caplog.set_level("WARNING", logger="twin.viewer")
+    for _ in range(160):
+        fleet.update_json(b'{"hello": 1}', 1.0)
+    assert len([r for r in caplog.records if "not understood" in r.getMessage()]) == 1
+    labels, values = overlay_lines(config, fleet, device=None, devices=[], now=2.0, fps=60)
+    table = dict(zip(labels.split("\n"), values.split("\n"), strict=True))
+    assert table["Agent"].endswith(": 160 answers that are not a twin agent's state"), table
+
+
 def test_servo_overlay_lists_each_servo_with_its_worst_alarm():
     hot = ServoState(
         temperature_c=66.0,

@@ -30,6 +30,8 @@ LINK_CONNECTING = "connecting"
 LINK_STREAM = "stream"
 LINK_POLLING = "polling"
 LINK_UNREACHABLE = "unreachable"
+# A document not understood (another service on the port) is logged at most once per this many seconds.
+BAD_LOG_INTERVAL_S = 60.0
 
 
 @dataclass
@@ -67,6 +69,9 @@ class FleetView:
         self.link_since: float = time.monotonic()
         self.snapshots = 0
         self.bad_snapshots = 0
+        # When a document not understood was last logged, and how many came since (_parsed).
+        self._bad_logged_at: float | None = None
+        self._bad_unlogged = 0
         # The agent's device ids as it last listed them (None until it has: then the devices seen so far).
         self._listed: list[str] | None = None
 
@@ -91,7 +96,7 @@ class FleetView:
         """Take one agent state; returns the number of devices in it."""
         with self._lock:
             self.snapshots += 1
-            self._listed = sorted(state.devices)
+            self._list(sorted(state.devices))
             for device_id, d in state.devices.items():
                 self._take(device_id, d, received_s)
             return len(state.devices)
@@ -107,20 +112,40 @@ class FleetView:
         try:
             return parse(document)
         except ValueError as exc:
+            now = time.monotonic()
             with self._lock:
                 self.bad_snapshots += 1
-            log.warning("agent %s not understood (%s); is --agent pointing at a twin agent?", what, exc)
+                self._bad_unlogged += 1
+                # Another service on the port answers every poll: one line a minute, not eleven a second.
+                if self._bad_logged_at is not None and now - self._bad_logged_at < BAD_LOG_INTERVAL_S:
+                    return None
+                self._bad_logged_at, count, self._bad_unlogged = now, self._bad_unlogged, 0
+            log.warning(
+                "agent %s not understood (%s; %d such document(s) since the last line); is --agent pointing "
+                "at a twin agent?",
+                what,
+                exc,
+                count,
+            )
             return None
 
     def update_view(self, view: DeviceView, received_s: float) -> int:
         """Take one arm's view: the arm's figures and pose, and the agent's device ids."""
         with self._lock:
             self.snapshots += 1
-            self._listed = list(view.devices)
+            self._list(list(view.devices))
             if view.device is None:
                 return 0
             self._take(view.device.device_id, view.device, received_s)
             return 1
+
+    def _list(self, listed: list[str]) -> None:
+        """The agent's device ids now (under the lock): an arm it no longer lists (forgotten) is dropped,
+        figures and pose, rather than shown as it was last."""
+        self._listed = listed
+        for gone in set(self._info).difference(listed):
+            del self._info[gone]
+            self._estimators.pop(gone, None)
 
     def _take(self, device_id: str, d: DeviceState, received_s: float) -> None:
         # (Under the lock.)
@@ -186,10 +211,15 @@ class DevicePicker:
 
     def current(self, devices: list[str]) -> str | None:
         with self._lock:
-            if devices and (self._selected is None or (self._step and self._selected not in devices)):
+            if devices and self._selected is None:
                 self._selected = devices[0]
             if self._step and devices:
-                i = devices.index(self._selected) if self._selected in devices else 0
+                # From an arm the agent no longer lists: Page Down shows the first, Page Up the last.
+                i = (
+                    devices.index(self._selected)
+                    if self._selected in devices
+                    else (-1 if self._step > 0 else 0)
+                )
                 self._selected = devices[(i + self._step) % len(devices)]
             self._step = 0
             return self._selected

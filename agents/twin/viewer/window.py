@@ -56,6 +56,11 @@ def overlay_lines(
     if fleet.link == LINK_UNREACHABLE:
         down_for = now - fleet.link_since
         rows.append(("Agent", f"agent unreachable ({fleet.link_error}); retrying [{down_for:.0f} s]"))
+    elif fleet.bad_snapshots and not fleet.snapshots:
+        # Answers, but not an agent's state (another service on that port): said where the eye is.
+        rows.append(
+            ("Agent", f"{config.agent_url}: {fleet.bad_snapshots} answers that are not a twin agent's state")
+        )
     elif fleet.link == LINK_CONNECTING:
         rows.append(("Agent", f"connecting to {config.agent_url}"))
     else:
@@ -67,7 +72,10 @@ def overlay_lines(
         rows.append(("Device", f"{device}{position}"))
         info = fleet.info(device)
         if info is None:
-            rows.append(("Status", "not reported by the agent yet"))
+            rows.append(("Status", "not listed by the agent: not heard from yet, or forgotten"))
+        elif fleet.link == LINK_UNREACHABLE:
+            # The agent's last word is not the arm's state now: shown as what it is, not as live figures.
+            rows.append(("Status", f"unknown while the agent is out of reach (it said {info.status})"))
         else:
             age = None if info.age_s is None else info.age_s + max(0.0, now - info.received_s)
             # A device losing data is marked on the status line itself, where the eye already is.
