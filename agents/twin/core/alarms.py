@@ -1497,24 +1497,22 @@ def _worse(a: tuple[Severity, AlarmState], b: tuple[Severity, AlarmState]) -> bo
     return (a[0].rank, -_STATE_ORDER[a[1]]) > (b[0].rank, -_STATE_ORDER[b[1]])
 
 
+# Each kind's `[alarms]` keys of its raise and clear values (the gripper's current and overload have their
+# own, with a `gripper_` prefix), as AlarmThresholds.rule reads them.
+_RULE_KEYS: dict[AlarmKind, tuple[str, str]] = {
+    AlarmKind.OVER_TEMPERATURE: ("temperature_warning_c", "temperature_warning_clear_c"),
+    AlarmKind.OVER_TEMPERATURE_CRITICAL: ("temperature_critical_c", "temperature_critical_clear_c"),
+    AlarmKind.OVER_CURRENT: ("current_a", "current_clear_a"),
+    AlarmKind.OVERLOAD: ("overload_percent", "overload_clear_percent"),
+    AlarmKind.MODEL_MISMATCH: ("mismatch_percent", "mismatch_clear_percent"),
+}
+
+
 def _rule_keys(kind: AlarmKind, joint: str) -> tuple[str, str]:
-    """The `[alarms]` keys of a rule's raise and clear values, as AlarmThresholds.rule reads them: an error
-    about a rule names what to change."""
-    prefix = (
-        "gripper_" if joint == so101.GRIPPER and kind in (AlarmKind.OVER_CURRENT, AlarmKind.OVERLOAD) else ""
-    )
-    raised = {
-        AlarmKind.OVER_TEMPERATURE: "temperature_warning_c",
-        AlarmKind.OVER_TEMPERATURE_CRITICAL: "temperature_critical_c",
-        AlarmKind.OVER_CURRENT: f"{prefix}current_a",
-        AlarmKind.OVERLOAD: f"{prefix}overload_percent",
-    }.get(kind, "mismatch_percent")
-    cleared = {
-        AlarmKind.OVER_TEMPERATURE: "temperature_warning_clear_c",
-        AlarmKind.OVER_TEMPERATURE_CRITICAL: "temperature_critical_clear_c",
-        AlarmKind.OVER_CURRENT: f"{prefix}current_clear_a",
-        AlarmKind.OVERLOAD: f"{prefix}overload_clear_percent",
-    }.get(kind, "mismatch_clear_percent")
+    """The keys of one joint's rule, so an error about it names what to change."""
+    raised, cleared = _RULE_KEYS[kind]
+    if joint == so101.GRIPPER and kind in (AlarmKind.OVER_CURRENT, AlarmKind.OVERLOAD):
+        return f"gripper_{raised}", f"gripper_{cleared}"
     return raised, cleared
 
 
