@@ -576,6 +576,15 @@ step_display() {
   # Every later start: a oneshot after the display manager, DCV and the agent puts the console session on
   # X again if DCV came up first, re-runs the host checks and reports them (host-check.sh --on-start).
   CHANGED=0
+  # It waits for network-online.target, which Ubuntu 24.04's systemd-networkd-wait-online holds for up to
+  # 2 min when an interface never comes online; AWS's DLAMI sample cuts that wait (to 3 s). 30 s here: the
+  # instance's one ENI is up in a few seconds, and the checks after it retry on their own.
+  write_file /etc/systemd/system/systemd-networkd-wait-online.service.d/so101-twin.conf 0644 <<'WAIT'
+# Managed by so101-twin bootstrap.sh.
+[Service]
+ExecStart=
+ExecStart=/usr/lib/systemd/systemd-networkd-wait-online --timeout=30
+WAIT
   write_file "$START_UNIT" 0644 <<UNIT
 # Managed by so101-twin bootstrap.sh.
 [Unit]

@@ -386,6 +386,13 @@ def test_dcv_config_password_at_awscurrent_and_start_ordering(booted) -> None:
         in unit
     )
     assert "systemctl enable so101-twin-start.service" in host.calls()
+    # The start waits for network-online.target; Ubuntu 24.04 can hold that 2 min, which AWS's DLAMI sample
+    # cuts (cfn/DLAMI-Ubuntu-NICE-DCV.yaml, a systemd-networkd-wait-online drop-in with a --timeout).
+    wait = host.file("/etc/systemd/system/systemd-networkd-wait-online.service.d/so101-twin.conf")
+    assert wait.splitlines()[-2:] == [
+        "ExecStart=",
+        "ExecStart=/usr/lib/systemd/systemd-networkd-wait-online --timeout=30",
+    ]
 
 
 def test_agent_config_and_its_own_user(booted, deployed: Deployed) -> None:
