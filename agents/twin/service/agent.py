@@ -1225,11 +1225,8 @@ class AgentService:
                 "calibration is never used: check the id, or add the arm to telemetry.devices"
             )
         else:
-            try:
-                heard = any(row.device == device for row in self.fleet_rows())
-            except WorkerError:
-                return ""
-            if heard:
+            # Asked of the arm's own mirror (or its checkpoint), not every worker's rows of the whole fleet.
+            if self.arm_view(device).state is not None:
                 return ""
             hint = (
                 f"no message from {device} yet: if this arm is already sending, check the id against the "

@@ -329,20 +329,23 @@ class StatusWatch:
                 # Never told of (`arrived` or `restored`): the mirror sweeps the arms heard from only, and
                 # tells each arrival first, so this is a baseline, not an event; its changes are reported.
                 continue
+            level = _STATUS_LEVEL.get(now, EventLevel.INFO)
             if before == _RESTORED:
                 message, before = f"{device} is {now} (restored)", None
             elif before == "OFFLINE" and now == "STALE":
                 # Heard again, but the sweep met it past its stale line: a return, not a worsening.
                 message = f"{device} went STALE (was OFFLINE): heard again, not yet at its rate"
+                level = EventLevel.INFO
             else:
                 message = f"{device} went {now} (was {before})"
-            self._emit(device, now, before or "", message)
+            self._emit(device, now, before or "", message, level)
 
-    def _emit(self, device: str, now: str, before: str, message: str) -> None:
-        returned = before == "OFFLINE" and now == "STALE"
+    def _emit(
+        self, device: str, now: str, before: str, message: str, level: EventLevel = EventLevel.INFO
+    ) -> None:
         self._store.emit(
             EventKind.STATUS,
-            EventLevel.INFO if returned else _STATUS_LEVEL.get(now, EventLevel.INFO),
+            level,
             message,
             device=device,
             data={"status": now, "previous": before},
