@@ -180,8 +180,13 @@ class SessionRecorder:
         except Tf.ErrorException:
             saved = False
         if not saved:
-            self.path.unlink(missing_ok=True)
-            raise OSError(f"session {self.path} could not be saved; check disk space and permissions")
+            raise self._not_begun()
+
+    def _not_begun(self) -> OSError:
+        """A session whose file could not be written at its start: the file is removed, not left behind empty
+        or torn, and the error says what to check."""
+        self.path.unlink(missing_ok=True)
+        return OSError(f"session {self.path} could not be saved; check disk space and permissions")
 
     def _room_to_save(self) -> bool:
         """Whether the disk has room for the next save (MIN_FREE_FOR_SAVE_BYTES); if not, said, and the
@@ -213,10 +218,7 @@ class SessionRecorder:
         try:
             stage = Usd.Stage.CreateNew(str(self.path))
         except Tf.ErrorException as exc:  # CreateNew writes the file at once: a full disk fails here
-            self.path.unlink(missing_ok=True)  # not left behind empty or torn (see _first_save)
-            raise OSError(
-                f"session {self.path} could not be saved; check disk space and permissions"
-            ) from exc
+            raise self._not_begun() from exc
         if stage is None:
             raise OSError(f"cannot create USD stage {self.path}; check the folder is writable")
         UsdGeom.SetStageUpAxis(stage, UsdGeom.GetStageUpAxis(asset))
@@ -359,7 +361,7 @@ class SessionRecorder:
         self._last_flush = self._clock()
         if not self._room_to_save():
             return
-        before = _size(self.path)
+        before = file_size(self.path)
         try:
             saved = self._layer.Save()
         except Exception:  # pxr raises Tf.ErrorException; a full disk must not stop the twin
@@ -367,7 +369,7 @@ class SessionRecorder:
             saved = False
         if saved:
             self.flushes += 1
-            self._last_growth = max(0, _size(self.path) - before)
+            self._last_growth = max(0, file_size(self.path) - before)
         else:
             self.flush_errors += 1
             self.broken = True
@@ -453,7 +455,8 @@ class SessionRecorder:
         return track
 
 
-def _size(path: Path) -> int:
+def file_size(path: Path) -> int:
+    """A session file's size in bytes; 0 when it cannot be read (gone, or its disk unreadable)."""
     try:
         return path.stat().st_size
     except OSError:

@@ -25,7 +25,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from twin.core import heap
-from twin.output.recorder import SessionRecorder
+from twin.output.recorder import SessionRecorder, file_size
 from twin.output.sinks import AppliedSample, DeviceRateCap, QueuedSink, RejectedSample, SinkStats
 from twin.robot.model import RobotModel
 
@@ -122,17 +122,14 @@ class _RecorderWorker:
             now = self._clock()
             if now >= self._retry_at:
                 self._retry_at = now + BROKEN_RETRY_S
-                self._rotate(recorder, size=_file_size(recorder.path), force=True)
+                self._rotate(recorder, size=file_size(recorder.path), force=True)
             return
         saved = recorder.flushes != self._checked_flushes
         old = self._clock() - self._opened >= self._limits.max_age_s
         if not saved and not old:
             return
         self._checked_flushes = recorder.flushes
-        try:
-            size = recorder.path.stat().st_size
-        except OSError:
-            size = 0
+        size = file_size(recorder.path)
         if size < self._limits.max_bytes and not old:
             return
         self._rotate(recorder, size=size)
@@ -258,11 +255,3 @@ class RecordingSink(QueuedSink):
         with self._rate_lock:
             skipped = self._skipped
         return replace(super().stats(), skipped=skipped)
-
-
-def _file_size(path: Path) -> int:
-    """A set-aside session's size for the rotation's log line (it was logged as 0 whatever it held)."""
-    try:
-        return path.stat().st_size
-    except OSError:
-        return 0
