@@ -335,7 +335,7 @@ def export(
             frame.sink_csv(partial)
             rows = pl.scan_csv(partial).select(pl.len()).collect().item()
         if not rows:
-            hint = _devices_hint(reader, device)
+            hint = devices_hint(reader, device)
             raise HistoryReadError(
                 f"no rows in this selection, so nothing was written (see `twin history ls`{hint})"
             )
@@ -345,7 +345,7 @@ def export(
     return int(rows)
 
 
-def _devices_hint(reader: HistoryReader, device: str | None) -> str:
+def devices_hint(reader: HistoryReader, device: str | None) -> str:
     """For a device with no row at all: the devices there are (a mistyped id reads like an empty hour)."""
     if device is None:
         return ""
@@ -429,7 +429,7 @@ def plot(
     frame = reader.window(device, since, until).collect()
     if frame.height == 0:
         window = f" between {_iso(since) if since else 'the start'} and {_iso(until) if until else 'now'}"
-        known = [s.device_id for s in reader.summary()]
+        known = reader.known_devices()  # not summary(): its sessions of the whole table are not wanted here
         raise HistoryReadError(
             f"no history rows for device {device!r}{window}; devices with history: "
             f"{', '.join(known) if known else 'none'} (see `twin history ls`)"

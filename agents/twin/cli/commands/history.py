@@ -112,7 +112,7 @@ def _taken(command: str, out: Path, force: bool) -> int | None:
 
 
 def run_ls(args: argparse.Namespace) -> int:
-    from twin.ops.history import HistoryReader, HistoryReadError
+    from twin.ops.history import HistoryReader, HistoryReadError, devices_hint
 
     console = _console("ls")
     try:
@@ -120,7 +120,7 @@ def run_ls(args: argparse.Namespace) -> int:
         reader = HistoryReader(args.history)
         devices = reader.summary(device=args.device, since=since, until=until, gap_s=args.gap)
         rejected = reader.rejected_counts(device=args.device, since=since, until=until)
-        known = reader.known_devices() if args.device and not devices else []
+        hint = devices_hint(reader, args.device) if not devices else ""
     except HistoryReadError as exc:
         return _fail("ls", exc)
     if args.json:
@@ -128,13 +128,7 @@ def run_ls(args: argparse.Namespace) -> int:
         console.out(json.dumps(out, indent=2))
         return 0 if devices else EXIT_EMPTY
     if not devices:
-        said = f"no rows in {args.history} for this selection"
-        if args.device and args.device not in known:
-            # A mistyped id reads like an empty hour: name the devices there are.
-            said += (
-                f"; no row of {args.device!r} at all: devices with history are {', '.join(known) or 'none'}"
-            )
-        console.err(said)
+        console.err(f"no rows in {args.history} for this selection{hint}")
         return EXIT_EMPTY
     rows = sum(d.rows for d in devices)
     total_rejected = sum(rejected.values())
