@@ -276,15 +276,19 @@ def read_settings_file(path: Path, *, required: bool = False) -> dict[str, Any]:
                 f"-c {key}=true with the deploy it confirms"
             )
         if key not in SETTING_FIELDS:
-            close = difflib.get_close_matches(key, list(SETTING_FIELDS), n=1)
-            hint = f"did you mean '{close[0]}'? " if close else ""
             raise SettingsError(
-                f"{path}: unknown setting '{key}'; {hint}the settings are: {', '.join(KEPT_KEYS)} "
+                f"{path}: unknown setting '{key}'; {_closest(key)}the settings are: {', '.join(KEPT_KEYS)} "
                 "(docs/deploy.md, Settings)"
             )
         if isinstance(value, dict):
             raise SettingsError(f"{path}: {key} must be a value, not a table")
     return data
+
+
+def _closest(key: str) -> str:
+    """ "did you mean 'devices'? " for an unknown key close to a setting's name (a file's or a -c one)."""
+    close = difflib.get_close_matches(key, list(SETTING_FIELDS), n=1)
+    return f"did you mean '{close[0]}'? " if close else ""
 
 
 # A context key that looks like one of ours: CDK's own keys hold ':', '-', '/' or start with '@'.
@@ -297,10 +301,8 @@ def check_context_keys(keys: Iterable[str]) -> None:
     known = {*SETTING_FIELDS, SETTINGS_FILE_KEY, *ONE_RUN_KEYS}
     for key in sorted(keys):
         if _OUR_SHAPE.match(key) and key not in known:
-            close = difflib.get_close_matches(key, list(SETTING_FIELDS), n=1)
-            hint = f"did you mean '{close[0]}'? " if close else ""
             raise SettingsError(
-                f"-c {key}: unknown setting; {hint}the settings are: {', '.join(KEPT_KEYS)}, and "
+                f"-c {key}: unknown setting; {_closest(key)}the settings are: {', '.join(KEPT_KEYS)}, and "
                 f"{', '.join(sorted(ONE_RUN_KEYS))} for one deploy (docs/deploy.md, Settings)"
             )
 
