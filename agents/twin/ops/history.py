@@ -320,10 +320,7 @@ def export(
     file that looks complete and is not. No row: nothing written (HistoryReadError)."""
     if fmt not in EXPORT_FORMATS:
         raise HistoryArgumentError(f"--format {fmt!r} is not one of {', '.join(EXPORT_FORMATS)}")
-    if out.is_dir():
-        raise HistoryArgumentError(
-            f"--out {out} is a directory; give a file name, e.g. {out / f'history.{fmt}'}"
-        )
+    _not_a_directory(out, fmt)
     frame = reader.window(device, since, until, decoded=decoded)
     out.parent.mkdir(parents=True, exist_ok=True)
     partial = out.with_name(f".{out.name}.partial-{os.getpid()}")
@@ -343,6 +340,14 @@ def export(
     finally:
         partial.unlink(missing_ok=True)
     return int(rows)
+
+
+def _not_a_directory(out: Path, extension: str) -> None:
+    """`--out` names a file to write (plot's and export's), not a folder to write into."""
+    if out.is_dir():
+        raise HistoryArgumentError(
+            f"--out {out} is a directory; give a file name, e.g. {out / f'history.{extension}'}"
+        )
 
 
 def devices_hint(reader: HistoryReader, device: str | None) -> str:
@@ -426,6 +431,7 @@ def plot(
     import matplotlib.dates as mdates  # noqa: PLC0415
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
+    _not_a_directory(out, "png")
     frame = reader.window(device, since, until).collect()
     if frame.height == 0:
         window = f" between {_iso(since) if since else 'the start'} and {_iso(until) if until else 'now'}"

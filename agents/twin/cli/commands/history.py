@@ -154,11 +154,6 @@ def run_plot(args: argparse.Namespace) -> int:
     taken = _taken("plot", args.out, args.force)
     if taken is not None:
         return taken
-    if args.out.is_dir():
-        _console("plot").err(
-            f"--out {args.out} is a directory; give a file name, e.g. {args.out / 'history.png'}"
-        )
-        return EXIT_USAGE
     try:
         since, until = window(args)
         result = plot(HistoryReader(args.history), args.device, args.out, since=since, until=until)
