@@ -134,9 +134,18 @@ def test_a_failed_write_is_counted_told_with_its_fix_and_tried_again(
     assert len(store) == 3  # still shown until the agent stops
     path.rmdir()
     emit(store, 1)
-    assert journal.flush()
+    with caplog.at_level(logging.WARNING, logger="twin.service.event_journal"):
+        assert journal.flush()
+    assert "written again, after 2 failed write(s); 3 event(s)" in caplog.records[-1].getMessage()
     journal.close()
     assert [e.id for e in EventJournal(path).load()] == [4]
+    # Over: a failure after the recovery is told at once, within the minute of the last line.
+    path.unlink()
+    path.mkdir()
+    emit(store, 1)
+    with caplog.at_level(logging.ERROR, logger="twin.service.event_journal"):
+        assert not journal.flush()
+    assert "1 event(s) could not be written" in caplog.records[-1].getMessage()
 
 
 def test_what_waits_for_a_flush_is_bounded(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -51,6 +51,7 @@ import pyarrow.json as pa_json
 
 from twin.core import heap
 from twin.core.aws import region_or_env
+from twin.core.throttle import Throttle
 from twin.output.history_feed import REJECTED_PAYLOAD_MAX_BYTES, REJECTED_TABLE, TELEMETRY_TABLE
 from twin.output.history_maintain import run_child
 from twin.output.sinks import AppliedSample, QueuedSink, RejectedSample
@@ -511,7 +512,8 @@ class HistoryWriter:
         # Set by a finished maintenance run; the committer reopens its tables before its next append.
         self._tables_stale = False
         self._maintenance_thread: threading.Thread | None = None
-        self._error_logged_at = -1e9
+        # One line per backoff step at most once every 10 s: an outage must be visible, not a flood.
+        self._error_lines = Throttle(10.0, clock=clock)
         # Called on the committer thread after each commit is counted, outside the writer's lock: the history
         # writer process writes its shared counters there, so a crash right after a commit finds it counted.
         self.on_commit: Callable[[], object] | None = None
@@ -747,6 +749,7 @@ class HistoryWriter:
                 log.warning("history: writing to %s works again", self.settings.uri)
             self._stats.storage_ok = True
             self._backoff = self.settings.retry_min_s
+            self._error_lines.clear()
         hook = self.on_commit
         if hook is not None:
             try:
@@ -867,9 +870,8 @@ class HistoryWriter:
             self._backoff = min(self._backoff * 2.0, self.settings.retry_max_s)
             buffered = stats.rows_buffered
             failures = stats.commit_failures
-        # One line per backoff step at most once every 10 s: an outage must be visible, not a flood.
-        if now - self._error_logged_at >= 10.0 or dropped:
-            self._error_logged_at = now
+        # A drop is a loss, told whatever the interval.
+        if self._error_lines.due(force=bool(dropped), now=now) is not None:
             log.error(
                 "history: %s; %d %s rows kept in memory (bound %d), retrying in %.0f s",
                 message,

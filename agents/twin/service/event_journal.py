@@ -35,6 +35,7 @@ from typing import BinaryIO
 
 import msgspec
 
+from twin.core.throttle import Throttle
 from twin.output.sinks import SinkStats
 from twin.service.events import DEFAULT_CAPACITY, Event
 
@@ -69,13 +70,12 @@ class EventJournal:
         self.path = Path(path)
         self.previous = self.path.with_name(self.path.name + ".1")
         self.max_bytes = max_bytes
-        self._clock = clock
         self._pending: deque[Event] = deque()
         self._lock = threading.Lock()  # the queue
         # One flush at a time: a supervisor round still flushing as the stop closes must not interleave.
         self._write_lock = threading.RLock()
         self._file: BinaryIO | None = None
-        self._warned_at: float | None = None
+        self._error_lines = Throttle(WARN_EVERY_S, clock=clock)
         self.written = 0
         self.write_failures = 0
         self.last_error = ""
@@ -164,6 +164,15 @@ class EventJournal:
                 self._warn(exc, len(batch))
                 return False
             self.written += len(batch)
+            if self._error_lines.streak:
+                log.warning(
+                    "the event journal %s is written again, after %d failed write(s); %d event(s) in all "
+                    "were not written",
+                    self.path,
+                    self._error_lines.streak,
+                    self.not_written,
+                )
+                self._error_lines.clear()
             return True
 
     def close(self) -> None:
@@ -213,10 +222,8 @@ class EventJournal:
                 log.warning("the event journal %s could not be closed: %s", self.path, exc)
 
     def _warn(self, exc: OSError, count: int) -> None:
-        now = self._clock()
-        if self._warned_at is not None and now - self._warned_at < WARN_EVERY_S:
+        if self._error_lines.due() is None:
             return
-        self._warned_at = now
         log.error(
             "%d event(s) could not be written to the event journal %s (%s): they are shown until the agent "
             "stops, and missing from the Events page after its next start. Make room on its disk, or let "

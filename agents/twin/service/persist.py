@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from twin.core.alarms import AlarmKind, AlarmRecord, AlarmState
+from twin.core.throttle import Throttle
 from twin.output.sinks import SinkStats
 
 log = logging.getLogger(__name__)
@@ -79,8 +80,7 @@ class StateFile:
         self.last_error = ""
         # The last write failed (and the file on disk is older than what the agent holds).
         self.failing = False
-        self._errors_logged_at: float | None = None
-        self._errors_unlogged = 0
+        self._error_lines = Throttle(ERROR_LOG_INTERVAL_S)
         # What the last write held, by what identifies a change (not the wall time, which a clock slewed
         # by NTP would move a little at every check), and whether it said the run had stopped.
         self._last: tuple[list[tuple[str, str, int, float]], bool] | None = None
@@ -178,7 +178,8 @@ class StateFile:
                 self.path,
                 self.write_errors,
             )
-        self.failing, self._errors_logged_at = False, None
+        self.failing = False
+        self._error_lines.clear()
         self._last = identity
         self.writes += 1
         return True
@@ -188,13 +189,10 @@ class StateFile:
         self.write_errors += 1
         self.last_error = f"{exc.__class__.__name__}: {exc}"
         self.failing = True
-        self._errors_unlogged += 1
-        logged = self._errors_logged_at
-        if logged is not None and now_mono - logged < ERROR_LOG_INTERVAL_S:
+        since = self._error_lines.due(now=now_mono)
+        if since is None:
             return
-        self._errors_logged_at = now_mono
-        again = f" ({self._errors_unlogged} failed writes since the last line)" if logged is not None else ""
-        self._errors_unlogged = 0
+        again = f" ({since} failed writes since the last line)" if self._error_lines.told > 1 else ""
         log.error(
             "state file %s could not be written (%s)%s: acknowledgements and latched alarms since the last "
             "write would not survive a restart; free space in (or fix the permissions of) %s, and the next "

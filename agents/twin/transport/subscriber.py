@@ -11,7 +11,6 @@ import ctypes
 import dataclasses
 import functools
 import logging
-import math
 import threading
 import time
 from collections.abc import Callable
@@ -20,6 +19,7 @@ from typing import TYPE_CHECKING, TypedDict
 
 from awscrt import mqtt5
 
+from twin.core.throttle import Throttle
 from twin.transport.broker import BrokerConfig, connect_hint, new_client_id
 from twin.transport.client import build_mqtt5_client
 
@@ -118,9 +118,8 @@ class TelemetrySubscriber:
         self._clock = clock
         self._stats = SubscriberStats()
         self._stats_lock = threading.Lock()
-        # Connection failures since the last success, and when one was last logged (_on_connection_failure).
-        self._failure_streak = 0
-        self._failure_told_at = -math.inf
+        # Connection failures since the last success, and which of them are logged (_on_connection_failure).
+        self._failure_lines = Throttle(FAILURE_LOG_INTERVAL_S, first=FAILURES_TOLD_EACH, clock=clock)
         self._client: mqtt5.Client | None = None
         self._connected = threading.Event()
         self._subscribed = threading.Event()
@@ -247,7 +246,7 @@ class TelemetrySubscriber:
             self._stats.connection_successes += 1
             self._stats.last_connected_monotonic = self._clock()
             self._stats.last_connected_at = time.time()
-            self._failure_streak = 0
+            self._failure_lines.clear()
         self._connected.set()
         self._subscribed.clear()
         log.info(
@@ -355,11 +354,9 @@ class TelemetrySubscriber:
             failures = self._stats.connection_failures
             # Backoff retries run until stop(), every few seconds: an outage of a day would be tens of
             # thousands of lines. The first few are each told, then one a minute, with the count.
-            now = self._clock()
-            streak = self._failure_streak = self._failure_streak + 1
-            if streak > FAILURES_TOLD_EACH and now - self._failure_told_at < FAILURE_LOG_INTERVAL_S:
+            if self._failure_lines.due() is None:
                 return
-            self._failure_told_at = now
+            streak = self._failure_lines.streak
         # The hint rides on each line: the first may have scrolled away.
         hint = connect_hint(self.config, data.exception)
         log.warning(

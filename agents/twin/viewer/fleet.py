@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import TypeVar
 
 from twin.core.smoothing import PoseEstimator, make_estimator
+from twin.core.throttle import Throttle
 from twin.service.state import AgentState, DeviceState, DeviceView, ServoState
 
 log = logging.getLogger(__name__)
@@ -70,8 +71,7 @@ class FleetView:
         self.snapshots = 0
         self.bad_snapshots = 0
         # When a document not understood was last logged, and how many came since (_parsed).
-        self._bad_logged_at: float | None = None
-        self._bad_unlogged = 0
+        self._bad_lines = Throttle(BAD_LOG_INTERVAL_S)
         # The agent's device ids as it last listed them (None until it has: then the devices seen so far).
         self._listed: list[str] | None = None
 
@@ -112,14 +112,12 @@ class FleetView:
         try:
             return parse(document)
         except ValueError as exc:
-            now = time.monotonic()
             with self._lock:
                 self.bad_snapshots += 1
-                self._bad_unlogged += 1
                 # Another service on the port answers every poll: one line a minute, not eleven a second.
-                if self._bad_logged_at is not None and now - self._bad_logged_at < BAD_LOG_INTERVAL_S:
-                    return None
-                self._bad_logged_at, count, self._bad_unlogged = now, self._bad_unlogged, 0
+                count = self._bad_lines.due()
+            if count is None:
+                return None
             log.warning(
                 "agent %s not understood (%s; %d such document(s) since the last line); is --agent pointing "
                 "at a twin agent?",
