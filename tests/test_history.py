@@ -13,6 +13,7 @@ import json
 import logging
 import os
 import random
+import re
 import subprocess
 import sys
 import threading
@@ -1604,6 +1605,9 @@ def test_replay_publishes_what_was_recorded_and_the_agent_mirrors_it(
         agent.stop()
         sub.stop()
     assert report.published == 40 and report.publish_failures == 0
+    # Its times as the history commands print them: UTC, milliseconds, Z.
+    assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z", report.first_recorded or "")
+    assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z", report.last_recorded or "")
     # 3.9 s recorded, at 4x: never early (the schedule), and well under the recording's own pace however
     # busy the machine is (the stamps below pin the 4x exactly).
     assert 3.9 / 4 * 0.9 < report.elapsed_s < 3.9

@@ -126,8 +126,8 @@ class Session:
 
     def as_dict(self) -> dict[str, Any]:
         return {
-            "start": _iso(self.start),
-            "end": _iso(self.end),
+            "start": iso_utc(self.start),
+            "end": iso_utc(self.end),
             "seconds": round(self.seconds, 3),
             "rows": self.rows,
             "rate_hz": round(self.rows / self.seconds, 2) if self.seconds > 0 else None,
@@ -147,8 +147,8 @@ class DeviceSummary:
         return {
             "device_id": self.device_id,
             "rows": self.rows,
-            "first": _iso(self.first),
-            "last": _iso(self.last),
+            "first": iso_utc(self.first),
+            "last": iso_utc(self.last),
             "units": self.units,
             "sessions": [s.as_dict() for s in self.sessions],
         }
@@ -162,7 +162,8 @@ def _time_span(times: pl.Series) -> tuple[dt.datetime, dt.datetime]:
     return first, last
 
 
-def _iso(value: dt.datetime) -> str:
+def iso_utc(value: dt.datetime) -> str:
+    """A time as the history and replay commands print it: UTC, milliseconds, `Z`."""
     return value.astimezone(dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
@@ -287,7 +288,7 @@ def _selected(
     nothing by mistake, so it is refused (as `twin replay` refuses it)."""
     if since is not None and until is not None and until <= since:
         raise HistoryArgumentError(
-            f"--until ({_iso(until)}) must be after --since ({_iso(since)}); nothing lies between them"
+            f"--until ({iso_utc(until)}) must be after --since ({iso_utc(since)}); nothing lies between them"
         )
     if device is not None:
         frame = frame.filter(pl.col("device_id") == device)
@@ -434,7 +435,9 @@ def plot(
     _not_a_directory(out, "png")
     frame = reader.window(device, since, until).collect()
     if frame.height == 0:
-        window = f" between {_iso(since) if since else 'the start'} and {_iso(until) if until else 'now'}"
+        window = (
+            f" between {iso_utc(since) if since else 'the start'} and {iso_utc(until) if until else 'now'}"
+        )
         known = reader.known_devices()  # not summary(): its sessions of the whole table are not wanted here
         raise HistoryReadError(
             f"no history rows for device {device!r}{window}; devices with history: "
@@ -460,9 +463,15 @@ def plot(
     axes[-1].xaxis.set_major_locator(locator)
     axes[-1].xaxis.set_major_formatter(mdates.ConciseDateFormatter(locator))
     axes[-1].set_xlabel("received at (UTC)")
-    fig.suptitle(f"{device}: {rows} messages, {_iso(first)} .. {_iso(last)}{note}", y=0.99, fontsize=11)
+    fig.suptitle(f"{device}: {rows} messages, {iso_utc(first)} .. {iso_utc(last)}{note}", y=0.99, fontsize=11)
     fig.tight_layout(rect=(0, 0, 1, 0.93))
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, format="png")  # the very path given: without it, `--out x` wrote x.png
     plt.close(fig)
-    return {"device_id": device, "rows": rows, "first": _iso(first), "last": _iso(last), "path": str(out)}
+    return {
+        "device_id": device,
+        "rows": rows,
+        "first": iso_utc(first),
+        "last": iso_utc(last),
+        "path": str(out),
+    }

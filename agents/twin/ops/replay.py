@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from twin.core.topics import telemetry_topic
-from twin.ops.history import HistoryReader, HistoryReadError
+from twin.ops.history import HistoryReader, HistoryReadError, iso_utc
 from twin.output.history import JOINTS, RAW_FIELDS, raw_column
 from twin.transport.broker import BrokerConfig, new_client_id
 from twin.transport.client import build_mqtt5_client
@@ -67,7 +67,7 @@ class ReplayConfig:
         if not 0 < self.speed <= 1000:
             raise ValueError(f"--speed {self.speed} must be in (0, 1000]")
         if self.end <= self.start:
-            raise ValueError(f"--to ({self.end.isoformat()}) must be after --from ({self.start.isoformat()})")
+            raise ValueError(f"--to ({iso_utc(self.end)}) must be after --from ({iso_utc(self.start)})")
         telemetry_topic(self.topic_prefix, self.target_device)  # refuses ids that are not one topic level
 
     @property
@@ -136,8 +136,8 @@ def replay(
     if first is None:
         known = [s.device_id for s in reader.summary()]
         raise HistoryReadError(
-            f"no history rows for device {config.device!r} between {config.start.isoformat()} and "
-            f"{config.end.isoformat()}; devices with history: {', '.join(known) if known else 'none'} "
+            f"no history rows for device {config.device!r} between {iso_utc(config.start)} and "
+            f"{iso_utc(config.end)}; devices with history: {', '.join(known) if known else 'none'} "
             "(see `twin history ls`)"
         )
     if config.broker.kind == "iot" and 10.0 * config.speed > IOT_PUBLISHES_PER_S:
@@ -301,7 +301,7 @@ def _publish_rows(
         if first_received is None:
             first_received = row["received_at"]
             first_edge_ms = row["edge_time"].timestamp() * 1000.0
-            report.first_recorded = first_received.isoformat()
+            report.first_recorded = iso_utc(first_received)
         if stop.is_set():
             report.stopped = True
             break
@@ -326,7 +326,7 @@ def _publish_rows(
         )
         future.add_done_callback(on_done)
         report.published += 1
-        report.last_recorded = row["received_at"].isoformat()
+        report.last_recorded = iso_utc(row["received_at"])
         if on_progress is not None and report.published % 100 == 0:
             on_progress(report)
     report.elapsed_s = time.monotonic() - started
