@@ -354,6 +354,25 @@ def test_an_arm_page_says_how_to_push_to_this_agents_calibration_store(
     assert browser_errors == []
 
 
+def test_an_arms_view_marks_the_other_arms_with_an_alarm(console: str) -> None:
+    """`twin view` shows one arm at a time: its stream says which others want a look, and why."""
+
+    def marks() -> dict[str, str]:
+        with urllib.request.urlopen(f"{console}/stream?device=arm-001", timeout=30) as stream:
+            frame = next(json.loads(line[len(b"data: ") :]) for line in stream if line.startswith(b"data: "))
+        return frame["attention"]
+
+    # Every arm runs the heat fault: a warning, acknowledged or not by the tests around this one.
+    seen: list[dict[str, str]] = []
+
+    def warned() -> bool:
+        seen.append(marks())
+        return any("warning" in mark.lower() for mark in seen[-1].values())
+
+    wait_for(warned, TIMEOUT_S, "an arm marked with its warning")
+    assert set(seen[-1]) <= set(DEVICES), seen[-1]
+
+
 def test_acknowledge_moves_the_alarm_to_acknowledged(
     console: str, page: Any, browser_errors: list[str]
 ) -> None:

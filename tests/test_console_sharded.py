@@ -134,6 +134,15 @@ def test_an_arm_page_is_read_from_its_own_worker_without_the_fleet_state(rig: Lo
         )
         assert [a.alarm_id for a in view.alarms] == [a.alarm_id for a in alarms if a.device == device]
 
+    # Quiet arms are STALE, and an arm's view (what `twin view` follows) marks them all, from the workers'
+    # fleet rows.
+    def view_attention() -> dict[str, str]:
+        with urllib.request.urlopen(f"{url}/stream?device={DEVICES[0]}", timeout=30) as stream:
+            frame = next(json.loads(line[len(b"data: ") :]) for line in stream if line.startswith(b"data: "))
+        return frame["attention"]
+
+    wait_for(lambda: view_attention() == dict.fromkeys(DEVICES, "STALE"), 60, "every quiet arm marked STALE")
+
 
 def test_an_arm_whose_worker_does_not_answer_is_shown_from_its_checkpoint(tmp_path: Path) -> None:
     # One ask per arm and tick, not two: a worker that does not answer is not asked again for the whole state.

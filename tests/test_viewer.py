@@ -30,7 +30,16 @@ from twin.edge.payload import encode, make_payload
 from twin.rig.local import LocalRig
 from twin.rig.mosquitto import free_port
 from twin.robot import so101
-from twin.service.state import AgentInfo, AgentState, DeviceState, DeviceView, LossSnapshot, ServoState
+from twin.service.state import (
+    AgentInfo,
+    AgentState,
+    DeviceState,
+    DeviceView,
+    LossSnapshot,
+    ServoState,
+    attention_mark,
+    device_attention,
+)
 from twin.viewer.config import ViewerConfig
 from twin.viewer.feed import AgentFeed, describe_error, iter_sse_data, iter_sse_events
 from twin.viewer.fleet import (
@@ -47,6 +56,7 @@ from twin.viewer.window import (
     ViewerError,
     check_display,
     device_window,
+    others_line,
     overlay_lines,
     servo_rows,
 )
@@ -222,6 +232,73 @@ def test_the_devices_line_shows_the_arms_around_the_shown_one_at_fleet_scale():
     assert device_window(["arm-001", "arm-002", "arm-003"], "arm-002") == "arm-001  [arm-002]  arm-003"
     # An arm the agent no longer lists: the start of the list, none in brackets.
     assert device_window(fleet, "arm-9999").endswith("(993 after)")
+
+
+def attention_state(status: DeviceStatus, *alarms: tuple[str, str]) -> DeviceState:
+    """An arm with `status` and servo alarms given as (severity, state), one joint each."""
+    servos = {
+        joint: ServoState(temperature_c=40.0, alarm_severity=severity, alarm_state=state)
+        for joint, (severity, state) in zip(so101.JOINT_NAMES, alarms, strict=False)
+    }
+    health = HealthSnapshot(status=status, age_s=0.05, rate_hz=10.0)
+    return DeviceState(health=health, servos=servos or None)
+
+
+def test_the_arms_that_want_a_look_are_marked_worst_alarm_first() -> None:
+    """The desktop shows one arm: another's alarm or silence was nowhere on it until someone paged there."""
+    assert attention_mark("ONLINE", None, None) is None
+    assert attention_mark("OFFLINE", None, None) == "OFFLINE"
+    assert attention_mark("ONLINE", "critical", "LATCHED") == "CRITICAL"
+    assert attention_mark("STALE", "warning", "ACKNOWLEDGED") == "STALE, warning ack"
+    online = DeviceStatus.ONLINE
+    assert device_attention(attention_state(online)) is None
+    # The worse severity wins; of one severity, the alarm no one has acknowledged.
+    both = attention_state(online, ("warning", "ACTIVE"), ("critical", "ACKNOWLEDGED"))
+    assert device_attention(both) == "critical ack"
+    same = attention_state(online, ("critical", "ACKNOWLEDGED"), ("critical", "ACTIVE"))
+    assert device_attention(same) == "CRITICAL"
+    fleet = FleetView()
+    state = state_of(
+        arm_001=attention_state(online),
+        arm_002=attention_state(DeviceStatus.OFFLINE),
+        arm_003=attention_state(online, ("critical", "ACTIVE")),
+        arm_004=attention_state(online, ("warning", "ACKNOWLEDGED")),
+    )
+    fleet.update(state, 10.0)
+    marks = {"arm-002": "OFFLINE", "arm-003": "CRITICAL", "arm-004": "warning ack"}
+    assert fleet.attention() == marks
+    # The same marks come in an arm's view (what `twin view` follows), as the agent sends them.
+    view = DeviceView(0.0, None, ["arm-001", "arm-002"], {"arm-002": "OFFLINE"})
+    assert fleet.update_view_json(view.to_json(), 11.0) == 0
+    assert fleet.attention() == {"arm-002": "OFFLINE"}
+    # An older agent's view has no marks: none shown, rather than the last ones kept.
+    older = b'{"time": 0.0, "device": null, "devices": ["arm-001"]}'
+    assert fleet.update_view_json(older, 12.0) == 0 and fleet.attention() == {}
+
+
+def test_the_overlay_names_the_other_arms_that_want_a_look() -> None:
+    devices = [f"arm-{i:03d}" for i in range(1, 13)]
+    marks = {"arm-002": "warning ack", "arm-004": "OFFLINE", "arm-009": "CRITICAL", "arm-011": "STALE"}
+    assert device_window(devices[:5], "arm-003", attention=marks) == (
+        "arm-001  arm-002 (warning ack)  [arm-003]  arm-004 (OFFLINE)  arm-005"
+    )
+    assert others_line(devices, "arm-003", marks) == (
+        "4 of 11 want a look: arm-009 CRITICAL, arm-004 OFFLINE, arm-011 STALE (+1 more)"
+    )
+    # The shown arm is not an "other"; an id the agent no longer lists is not counted.
+    assert others_line(devices, "arm-009", {"arm-009": "CRITICAL", "arm-099": "OFFLINE"}) == (
+        "all 11 other(s) ONLINE, no alarm"
+    )
+    config, fleet = ViewerConfig(), FleetView()
+    fleet.update_view(DeviceView(0.0, device_state(1000, 0.0), devices, marks), 10.0)
+    labels, values = overlay_lines(config, fleet, device="arm-001", devices=fleet.devices(), now=10.5, fps=60)
+    table = dict(zip(labels.split("\n"), values.split("\n"), strict=True))
+    assert table["Others"].startswith("4 of 11 want a look: arm-009 CRITICAL")
+    assert "arm-004 (OFFLINE)" in table["Devices"]
+    fleet.set_link(LINK_UNREACHABLE, "connection refused", now=11.0)
+    labels, values = overlay_lines(config, fleet, device="arm-001", devices=fleet.devices(), now=12.0, fps=60)
+    table = dict(zip(labels.split("\n"), values.split("\n"), strict=True))
+    assert table["Others"] == "unknown while the agent is out of reach"
 
 
 def test_overlay_shows_figures_and_unreachable_agent():

@@ -361,6 +361,9 @@ class DeviceView:
     time: float
     device: DeviceState | None
     devices: list[str]
+    # The arms among `devices` that want a look, with why (attention_mark): the desktop shows one arm at a
+    # time, and a critical alarm on another must not wait for someone to page to it. Read with `devices`.
+    attention: dict[str, str] = field(default_factory=dict)
 
     def to_json(self) -> bytes:
         """The JSON document (UTF-8); NaN and infinities become null."""
@@ -389,3 +392,33 @@ class HealthReport:
 
     def to_json(self) -> bytes:
         return _ENCODER.encode(self)
+
+
+_SEVERITY_RANK = {"critical": 2, "warning": 1}
+
+
+def attention_mark(status: str, alarm_severity: str | None, alarm_state: str | None) -> str | None:
+    """Why an arm wants a look, in a few words, or None: its status when not ONLINE, and its worst alarm's
+    severity, upper case while no one has acknowledged it (`OFFLINE`, `CRITICAL`, `STALE, warning ack`)."""
+    parts = [] if status == DeviceStatus.ONLINE else [str(status)]
+    if alarm_severity:
+        acknowledged = alarm_state == "ACKNOWLEDGED"
+        parts.append(f"{alarm_severity} ack" if acknowledged else alarm_severity.upper())
+    return ", ".join(parts) or None
+
+
+def device_attention(device: DeviceState) -> str | None:
+    """`attention_mark` of one arm of a state: its worst servo alarm, an unacknowledged one before an
+    acknowledged one of the same severity (the Fleet page's order)."""
+    worst: tuple[int, int, str, str | None] | None = None
+    for servo in (device.servos or {}).values():
+        if servo.alarm_severity:
+            key = (
+                _SEVERITY_RANK.get(servo.alarm_severity, 0),
+                int(servo.alarm_state != "ACKNOWLEDGED"),
+                servo.alarm_severity,
+                servo.alarm_state,
+            )
+            worst = key if worst is None or key[:2] > worst[:2] else worst
+    severity, state = (worst[2], worst[3]) if worst else (None, None)
+    return attention_mark(str(device.health.status), severity, state)

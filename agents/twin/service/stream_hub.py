@@ -41,7 +41,7 @@ from twin.service.console import (
     fleet_summary,
 )
 from twin.service.events import Event, EventQuery
-from twin.service.state import AgentState, AlarmInfo, DeviceView
+from twin.service.state import AgentState, AlarmInfo, DeviceView, attention_mark, device_attention
 
 log = logging.getLogger(__name__)
 
@@ -111,7 +111,8 @@ class StreamHub:
         self._changed = asyncio.Event()
         self._closed = False
         self._event_cursor: int | None = None
-        self._device_ids: tuple[float, list[str]] | None = None  # (when read, on the loop's clock; the ids)
+        # (When read, on the loop's clock; the ids; their attention marks.)
+        self._device_ids: tuple[float, list[str], dict[str, str]] | None = None
         self.ticks = 0
 
     @property
@@ -213,34 +214,38 @@ class StreamHub:
             await self._tick_events(source)
 
     async def _tick_views(self, views: list[str], state: AgentState | None) -> None:
-        """Each watched arm's view frame (module doc): the arm, and the device ids as last read."""
-        ids = await self._ids(state)
+        """Each watched arm's view frame (module doc): the arm, and the device ids and marks as last read."""
+        ids, attention = await self._ids(state)
         for topic in views:
             device = topic[len(VIEW_PREFIX) :]
             if state is not None:
-                view = DeviceView(state.agent.time, state.devices.get(device), ids)
+                view = DeviceView(state.agent.time, state.devices.get(device), ids, attention)
             else:
                 arm = await asyncio.to_thread(arm_view_of, self._source, device, None, ())
-                view = DeviceView(arm.time, arm.state, ids)
+                view = DeviceView(arm.time, arm.state, ids, attention)
             self._publish(topic, sse_frame("device", view.to_json()))
 
-    async def _ids(self, state: AgentState | None) -> list[str]:
-        """The fleet's device ids, sorted: from `state` when there is one, else the source's fleet rows (or
-        its state), read again when older than DEVICE_IDS_EVERY_S."""
+    async def _ids(self, state: AgentState | None) -> tuple[list[str], dict[str, str]]:
+        """The fleet's device ids, sorted, and the arms that want a look (DeviceView.attention): from `state`
+        when there is one, else the source's fleet rows (or its state), read again when older than
+        DEVICE_IDS_EVERY_S."""
         if state is not None:
-            return sorted(state.devices)
+            return sorted(state.devices), _attention_of(state)
         now = asyncio.get_running_loop().time()
         cached = self._device_ids
         if cached is not None and now - cached[0] < DEVICE_IDS_EVERY_S:
-            return cached[1]
+            return cached[1], cached[2]
         source = self._source
         if isinstance(source, FleetRowSource):
             rows = await asyncio.to_thread(source.fleet_rows)
             ids = sorted(row.device for row in rows)
+            marks = ((r.device, attention_mark(r.status, r.alarm_severity, r.alarm_state)) for r in rows)
+            attention = {device: mark for device, mark in marks if mark}
         else:
-            ids = sorted((await asyncio.to_thread(source.state)).devices)
-        self._device_ids = (now, ids)
-        return ids
+            whole = await asyncio.to_thread(source.state)
+            ids, attention = sorted(whole.devices), _attention_of(whole)
+        self._device_ids = (now, ids, attention)
+        return ids, attention
 
     async def subscribe_events(self, after_id: int) -> Subscription:
         """A subscription to the events topic whose first frame holds the events after `after_id` (those a
@@ -279,3 +284,8 @@ class StreamHub:
 
 def encode_events(events: Sequence[Event]) -> bytes:
     return msgspec.json.encode(list(events))
+
+
+def _attention_of(state: AgentState) -> dict[str, str]:
+    marks = ((device, device_attention(d)) for device, d in state.devices.items())
+    return {device: mark for device, mark in marks if mark}

@@ -15,7 +15,7 @@ from typing import TypeVar
 
 from twin.core.smoothing import PoseEstimator, make_estimator
 from twin.core.throttle import Throttle
-from twin.service.state import AgentState, DeviceState, DeviceView, ServoState
+from twin.service.state import AgentState, DeviceState, DeviceView, ServoState, device_attention
 
 log = logging.getLogger(__name__)
 
@@ -74,6 +74,8 @@ class FleetView:
         self._bad_lines = Throttle(BAD_LOG_INTERVAL_S)
         # The agent's device ids as it last listed them (None until it has: then the devices seen so far).
         self._listed: list[str] | None = None
+        # The arms that want a look, with why (DeviceView.attention), as the agent last said.
+        self._attention: dict[str, str] = {}
 
     def set_link(self, link: str, error: str | None = None, now: float | None = None) -> None:
         with self._lock:
@@ -97,6 +99,8 @@ class FleetView:
         with self._lock:
             self.snapshots += 1
             self._list(sorted(state.devices))
+            marks = ((device_id, device_attention(d)) for device_id, d in state.devices.items())
+            self._attention = {device_id: mark for device_id, mark in marks if mark}
             for device_id, d in state.devices.items():
                 self._take(device_id, d, received_s)
             return len(state.devices)
@@ -132,6 +136,7 @@ class FleetView:
         with self._lock:
             self.snapshots += 1
             self._list(list(view.devices))
+            self._attention = dict(view.attention)
             if view.device is None:
                 return 0
             self._take(view.device.device_id, view.device, received_s)
@@ -173,6 +178,11 @@ class FleetView:
         """The agent's device ids as it last listed them (an arm it forgot drops out), sorted."""
         with self._lock:
             return sorted(self._info) if self._listed is None else list(self._listed)
+
+    def attention(self) -> dict[str, str]:
+        """The arms that want a look and why (`OFFLINE`, `CRITICAL`, `warning ack`), as last listed."""
+        with self._lock:
+            return dict(self._attention)
 
     def info(self, device_id: str) -> DeviceInfo | None:
         with self._lock:

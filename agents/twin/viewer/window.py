@@ -36,6 +36,8 @@ Clock = Callable[[], float]
 # Ids on the overlay's Devices line: the shown arm and its neighbours. The whole list ran off the screen at
 # fleet scale (the Device line says where the shown arm is in it).
 DEVICES_SHOWN = 7
+# Arms named on the Others line; the rest are counted.
+OTHERS_NAMED = 3
 
 
 def _fmt(value: float | None, unit: str, scale: float = 1.0, digits: int = 1) -> str:
@@ -92,25 +94,57 @@ def overlay_lines(
                 )
             )
     if len(devices) > 1:
-        rows.append(("Devices", device_window(devices, device)))
+        attention = fleet.attention()
+        rows.append(("Devices", device_window(devices, device, attention=attention)))
+        others = "unknown while the agent is out of reach" if fleet.link == LINK_UNREACHABLE else None
+        rows.append(("Others", others or others_line(devices, device, attention)))
         rows.append(("Keys", "Page Up / Page Down: previous / next device"))
     rows.append(("View", f"{fps:.0f} fps, smoothing {config.smoothing}"))
     return "\n".join(r[0] for r in rows), "\n".join(r[1] for r in rows)
 
 
-def device_window(devices: list[str], device: str | None, width: int = DEVICES_SHOWN) -> str:
-    """The Devices line: up to `width` ids around the shown one (in brackets), and how many are left out on
-    each side."""
+def device_window(
+    devices: list[str],
+    device: str | None,
+    width: int = DEVICES_SHOWN,
+    *,
+    attention: Mapping[str, str] | None = None,
+) -> str:
+    """The Devices line: up to `width` ids around the shown one (in brackets), each with why it wants a
+    look (`arm-004 (CRITICAL)`), and how many are left out on each side."""
+    marks = attention or {}
     i = devices.index(device) if device in devices else 0
     start = max(0, min(i - width // 2, len(devices) - width))
     shown = devices[start : start + width]
-    parts = [f"[{d}]" if d == device else d for d in shown]
+    parts = [(f"[{d}]" if d == device else d) + (f" ({marks[d]})" if d in marks else "") for d in shown]
     after = len(devices) - start - len(shown)
     if start:
         parts.insert(0, f"({start} before)")
     if after:
         parts.append(f"({after} after)")
     return "  ".join(parts)
+
+
+def others_line(
+    devices: list[str], device: str | None, attention: Mapping[str, str], named: int = OTHERS_NAMED
+) -> str:
+    """The Others line: the arms other than the shown one that want a look, worst first, up to `named` by
+    name; the rest counted. An alarm on an arm out of view must not wait for someone to page to it."""
+    listed = set(devices)
+    others = sorted(
+        ((d, mark) for d, mark in attention.items() if d != device and d in listed),
+        key=lambda item: (-_urgency(item[1]), item[0]),
+    )
+    if not others:
+        return f"all {len(devices) - 1} other(s) ONLINE, no alarm"
+    names = ", ".join(f"{d} {mark}" for d, mark in others[:named])
+    more = f" (+{len(others) - named} more)" if len(others) > named else ""
+    return f"{len(others)} of {len(devices) - 1} want a look: {names}{more}"
+
+
+def _urgency(mark: str) -> int:
+    """Orders the Others line: an unacknowledged critical alarm first, an arm out of touch next."""
+    return 3 if "CRITICAL" in mark else 2 if "OFFLINE" in mark else 1 if mark.isupper() else 0
 
 
 def servo_rows(servos: Mapping[str, ServoState] | None) -> list[tuple[str, str]]:
