@@ -287,8 +287,12 @@ def test_the_overlay_names_the_other_arms_that_want_a_look() -> None:
     )
     # The shown arm is not an "other"; an id the agent no longer lists is not counted.
     assert others_line(devices, "arm-009", {"arm-009": "CRITICAL", "arm-099": "OFFLINE"}) == (
-        "all 11 other(s) ONLINE, no alarm"
+        "all 11 others: ONLINE, no alarm"
     )
+    assert others_line(devices[:2], "arm-001", {}) == "the other arm: ONLINE, no alarm"
+    assert others_line(devices[:3], "arm-001", {"arm-003": "STALE"}) == "1 of 2 wants a look: arm-003 STALE"
+    # Shown an arm the agent does not list: every listed arm is an other.
+    assert others_line(devices[:2], "arm-099", {}) == "all 2 others: ONLINE, no alarm"
     config, fleet = ViewerConfig(), FleetView()
     fleet.update_view(DeviceView(0.0, device_state(1000, 0.0), devices, marks), 10.0)
     labels, values = overlay_lines(config, fleet, device="arm-001", devices=fleet.devices(), now=10.5, fps=60)

@@ -135,11 +135,13 @@ def others_line(
         ((d, mark) for d, mark in attention.items() if d != device and d in listed),
         key=lambda item: (-_urgency(item[1]), item[0]),
     )
+    count = len(devices) - (device in listed)
     if not others:
-        return f"all {len(devices) - 1} other(s) ONLINE, no alarm"
+        return "the other arm: ONLINE, no alarm" if count == 1 else f"all {count} others: ONLINE, no alarm"
     names = ", ".join(f"{d} {mark}" for d, mark in others[:named])
     more = f" (+{len(others) - named} more)" if len(others) > named else ""
-    return f"{len(others)} of {len(devices) - 1} want a look: {names}{more}"
+    verb = "wants" if len(others) == 1 else "want"
+    return f"{len(others)} of {count} {verb} a look: {names}{more}"
 
 
 def _urgency(mark: str) -> int:
