@@ -159,13 +159,13 @@ def test_a_missing_directory_is_told_once_and_a_refusal_at_start_says_what_the_a
         assert len(told) == 1 and f"{tmp_path / 'calibrations'} does not exist" in told[0], told
         assert f"--store {tmp_path / 'calibrations'}`" in told[0]
         # The first file pushed makes the directory; a bad one, with no calibration in force before it,
-        # leaves the arm on the config's (not "the one it had").
+        # holds the arm (not "the one it had", nor the config's: another arm's).
         store.write("arm-001", b"{not json")
         watcher.poll()
     said = [r.getMessage() for r in caplog.records]
     assert f"calibrations: {tmp_path / 'calibrations'} exists now; its files are read" in said, said
     (refused,) = [m for m in said if m.startswith("calibration of arm-001 refused")]
-    assert "it decodes with the config's" in refused, refused
+    assert "its twin holds still until a good file is pushed" in refused, refused
 
 
 def test_an_unreadable_store_keeps_the_book_and_says_why(tmp_path: Path) -> None:
@@ -555,6 +555,38 @@ def test_each_arm_decodes_with_its_own_and_a_new_one_needs_no_restart(tmp_path: 
         assert "never used" in typo.message
         # The arms it mirrors and has heard picked theirs up with no such word.
         assert all(e.level == "info" for e in _picked_up_all(agent) if e.device != "arm-0O2")
+    finally:
+        agent.stop()
+
+
+@pytest.mark.parametrize("workers", [1, 2], ids=["in-process", "two-worker-processes"])
+def test_an_arm_whose_file_is_bad_at_the_start_is_held_until_a_good_one_comes(
+    tmp_path: Path, workers: int
+) -> None:
+    """A walk: a bad file copied over an arm's good one was refused while the agent ran, but after a restart
+    the arm decoded with the config's calibration, another arm's: 22 degrees off, shown as live."""
+    store = DirectoryStore(tmp_path / "cal")
+    store.write("arm-001", EXAMPLE.read_bytes())
+    (tmp_path / "cal" / "arm-002.json").write_text('{"shoulder_pan": {}}')
+    agent = agent_with_store(tmp_path / "cal", **{"twin.workers": workers})
+    agent.start()
+    try:
+        ts = [int(time.time() * 1000)]
+        feed_until(agent, "arm-001", pan_angle(EXAMPLE.read_bytes()), ts)
+
+        def held() -> bool:
+            ts[0] += 100
+            agent.feed("dt/lerobot/arm-002/telemetry", ticks_message("arm-002", ts[0]))
+            arm = agent.state().devices.get("arm-002")
+            return arm is not None and arm.health.counters.rejected.get("calibration_refused", 0) >= 3
+
+        wait_for(held, 60, "arm-002's messages refused as calibration_refused", interval=0.1)
+        arm = agent.state().devices["arm-002"]
+        assert arm.joints_rad is None, arm.joints_rad  # never moved, to no pose at all
+        assert arm.uncalibrated and "shoulder_pan" in arm.calibration_problem, arm.calibration_problem
+        # A good file, and the arm is mirrored with it, no restart.
+        store.write("arm-002", shifted(100))
+        feed_until(agent, "arm-002", pan_angle(shifted(100)), ts)
     finally:
         agent.stop()
 

@@ -770,8 +770,25 @@ def test_device_mismatch() -> None:
     assert "'arm-001'" in str(info.value) and "'arm-002'" in str(info.value)
 
 
+def test_an_arm_whose_own_calibration_was_refused_is_held_not_decoded_with_another() -> None:
+    dec = decoder(Units.TICKS, calibration=load_calibration(EXAMPLE_CALIBRATION))
+    dec.set_calibrations({}, held={"arm-001": "entry 'wrist_roll' is missing"})
+    with pytest.raises(TelemetryRejected) as info:
+        dec.decode(payload(TICKS_EXAMPLE))
+    assert info.value.reason is RejectReason.CALIBRATION_REFUSED
+    text = str(info.value)
+    assert "arm-001" in text and "wrist_roll" in text and "twin calibration restore arm-001" in text
+    assert dec.decode(payload(TICKS_EXAMPLE, device="arm-002")).device_id == "arm-002"  # others decode
+    # A good file of its own, and the arm is held no longer (a held arm with one is not held at all).
+    own = load_calibration(EXAMPLE_CALIBRATION)
+    dec.set_calibrations({"arm-001": own}, held={"arm-001": "an older problem"})
+    assert dec.decode(payload(TICKS_EXAMPLE)).device_id == "arm-001"
+    dec.set_calibrations({})
+    assert dec.decode(payload(TICKS_EXAMPLE)).device_id == "arm-001"
+
+
 def test_every_reason_is_exercised() -> None:
-    exercised = {r[3] for r in REJECTS} | {RejectReason.DEVICE_MISMATCH}
+    exercised = {r[3] for r in REJECTS} | {RejectReason.DEVICE_MISMATCH, RejectReason.CALIBRATION_REFUSED}
     assert exercised == set(RejectReason)
 
 

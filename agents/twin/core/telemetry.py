@@ -85,6 +85,7 @@ class RejectReason(StrEnum):
     NOT_FINITE = "not_finite"
     OUT_OF_RANGE = "out_of_range"
     UNITS_UNDECIDED = "units_undecided"
+    CALIBRATION_REFUSED = "calibration_refused"
 
 
 class TelemetryRejected(ValueError):  # noqa: N818 - a public name: callers catch it, docs/telemetry.md names it
@@ -93,6 +94,15 @@ class TelemetryRejected(ValueError):  # noqa: N818 - a public name: callers catc
     def __init__(self, reason: RejectReason, message: str) -> None:
         super().__init__(message)
         self.reason = reason
+
+
+def _held(device_id: str, why: str) -> TelemetryRejected:
+    return TelemetryRejected(
+        RejectReason.CALIBRATION_REFUSED,
+        f"the calibration of {device_id} in the store was refused ({why}); the twin holds still rather than "
+        f"decode with the config's, another arm's: push a good file (`twin calibration push {device_id} "
+        f"FILE`), put the one it replaced back (`twin calibration restore {device_id}`), or remove it",
+    )
 
 
 class JointDiagnostics(msgspec.Struct, frozen=True, gc=False):
@@ -543,6 +553,8 @@ class TelemetryDecoder:
         self._default = _PositionMap.of(cfg.calibration, self._jaw_span)
         self._per_device: dict[str, _PositionMap] = {}
         self._calibrations: dict[str, Calibration] = {}
+        # Arms whose own calibration was refused, with no good one to keep: why, by device (set_calibrations).
+        self._held: dict[str, str] = {}
         # The default map's angle of every whole tick (_tick_tables), made on the first message in ticks. Only
         # the default's: an arm with its own calibration converts by arithmetic, since a table per arm would
         # cost about 1.1 MB each (2,000 calibrated arms: 2.2 GB).
@@ -554,10 +566,17 @@ class TelemetryDecoder:
 
     # --- public -------------------------------------------------------------------------------------------
 
-    def set_calibrations(self, calibrations: Mapping[str, Calibration]) -> None:
+    def set_calibrations(
+        self, calibrations: Mapping[str, Calibration], held: Mapping[str, str] | None = None
+    ) -> None:
         """Each arm's own LeRobot calibration (device id -> file), replacing the previous set; an arm not in
         it decodes with the config's calibration. Safe to call from another thread than the decoding one: the
-        table is built aside and swapped in whole, so a message decodes with the old set or the new one."""
+        table is built aside and swapped in whole, so a message decodes with the old set or the new one.
+
+        `held`: arms whose own calibration exists but was refused (device -> why), with none to keep. Their
+        messages are refused as `calibration_refused`: the config's calibration is another arm's, and decoding
+        with it would move the twin to a wrong pose."""
+        self._held = {d: why for d, why in (held or {}).items() if d not in calibrations}
         kept = {d: m for d, m in self._per_device.items() if self._calibrations.get(d) == calibrations.get(d)}
         fresh = {
             device: kept.get(device) or _PositionMap.of(cal, self._jaw_span)
@@ -621,6 +640,8 @@ class TelemetryDecoder:
             raise _mismatch(device_id, topic_device)
         readings: tuple[JointReading, ...] = _readings_of(msg.joints)
         positions = [r.position for r in readings]
+        if self._held and device_id in self._held:
+            raise _held(device_id, self._held[device_id])
         undecided = False
         if units is Units.AUTO:
             units, angles, percent, undecided = self._units_and_angles(device_id, positions)

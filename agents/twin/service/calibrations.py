@@ -13,6 +13,8 @@ redeploy or a restart:
   config's calibration.
 - A file that is not a valid SO-101 calibration is refused with the reason (logged, and kept in
   `CalibrationBook.problems`); the arm keeps the calibration it had, so a bad upload never moves its twin.
+  An arm with none to keep (the agent started with the bad file there) is held: its messages are refused as
+  `calibration_refused` rather than decoded with the config's calibration, another arm's.
 - The agent hands each new book to its mirrors (AgentService), whose decoders swap the arm's table in whole.
 
 Listing and reading go through `CalibrationStore`, one for a directory and one for S3 (boto3, built lazily,
@@ -524,8 +526,11 @@ class CalibrationWatcher:
                 log.warning(
                     "calibration of %s refused, %s: %s",
                     device,
-                    # At a start the arm had none from the store: it keeps nothing.
-                    "it keeps the one it had" if device in entries else "it decodes with the config's",
+                    # At a start the arm had none from the store: the config's is another arm's, so its
+                    # twin holds still (its messages refused as calibration_refused) until a good one comes.
+                    "it keeps the one it had"
+                    if device in entries
+                    else "its twin holds still until a good file is pushed, restored or the file removed",
                     exc,
                     extra={"event": "calibration_refused", "device": device},
                 )
