@@ -323,6 +323,43 @@ def test_forgetting_an_arm_over_http_on_a_sharded_agent(rig: LocalRig, tmp_path:
         others.stop()
 
 
+@pytest.mark.parametrize("workers", [1, 2], ids=["in-process", "two-worker-processes"])
+def test_an_arm_with_alarms_kept_over_a_restart_is_listed_before_it_is_heard_again(
+    tmp_path: Path, workers: int
+) -> None:
+    """A walk: after a restart an arm's kept alarms were in /alarms and /metrics, but not on the Fleet page,
+    its Arm page said "not known to this agent" and Forget answered 404, until the arm published again."""
+    state_file, device = tmp_path / "state.json", "race-1"
+    first = _hot_arm_agent(state_file, workers=1)
+    first.start()
+    try:
+        _heat_until_alarmed(first, device)
+        wait_for(lambda: _saved_alarms(state_file), 30, "the alarm in the state file")
+    finally:
+        first.stop()
+    again = _hot_arm_agent(state_file, workers=workers)
+    again.start()
+    try:
+        kept = {a.alarm_id for a in again.alarms() if a.device == device}
+        assert kept, again.alarms()
+        (row,) = [r for r in again.fleet_rows() if r.device == device]
+        assert row.alarm_severity and row.last_seen is None, row
+        view = again.arm_view(device)
+        assert view.state is not None and {a.alarm_id for a in view.alarms} == kept
+        assert device in again.state().devices
+        # Silent since the start: OFFLINE once past offline_after_s, and then it can be forgotten.
+        wait_for(lambda: _row_status(again, device) == "OFFLINE", 30, f"{device} OFFLINE")
+        forgotten = again.forget_arm(device)
+        assert sum(forgotten.alarms_removed.values()) == len(kept)
+        assert _gone(again, device)
+    finally:
+        again.stop()
+
+
+def _row_status(agent: AgentService, device: str) -> str | None:
+    return next((r.status for r in agent.fleet_rows() if r.device == device), None)
+
+
 def _saved_alarms(state_file: Path) -> list[dict[str, Any]]:
     if not state_file.exists():
         return []

@@ -473,6 +473,8 @@ class FleetHealth:
         for device in self.configured:
             self.device(device)
         self.untracked_rejected: Counter[str] = Counter()
+        # Not configured, not heard since the start, but with alarms kept over a restart (`keep`).
+        self._kept: set[str] = set()
 
     def device(self, device_id: str) -> DeviceHealth:
         health = self.devices.get(device_id)
@@ -484,11 +486,19 @@ class FleetHealth:
     def get(self, device_id: str) -> DeviceHealth | None:
         return self.devices.get(device_id)
 
+    def keep(self, device_id: str) -> DeviceHealth:
+        """List a device whose alarms were kept over a restart, though it is neither configured nor heard
+        since: silent since the start, like a configured one, so a person can see its alarms, acknowledge
+        them or forget the arm, rather than find them only in /alarms until the arm publishes again."""
+        self._kept.add(device_id)
+        return self.device(device_id)
+
     def forget(self, device_id: str) -> DeviceHealth | None:
         """Stop tracking a device that is not configured (an operator retired it); its health record, or None
         for a device not tracked. A configured device stays: the config says it is expected."""
         if device_id in self.configured:
             raise ValueError(f"{device_id} is configured (telemetry.devices): it cannot be forgotten")
+        self._kept.discard(device_id)
         return self.devices.pop(device_id, None)
 
     def shown(self, device_id: str, health: DeviceHealth) -> bool:
@@ -501,6 +511,7 @@ class FleetHealth:
             or health.errors
             or health.overwritten
             or device_id in self._configured
+            or device_id in self._kept
         )
 
     def listed(self) -> list[str]:

@@ -862,6 +862,9 @@ class Mirror:
             else:
                 restored = 0
             restored += self._alarms.restore(alarms)
+            # An arm with alarms kept by the state file is listed before it is heard again (FleetHealth.keep).
+            for device in sorted({r.device for r in alarms}):
+                self._fleet.keep(device)
         if checkpoint is not None:
             self._decoder.restore_units(
                 {device: saved.units for device, saved in checkpoint.devices.items() if saved.units}
