@@ -24,7 +24,7 @@ from urllib.parse import quote
 from zoneinfo import ZoneInfo
 
 import pytest
-from conftest import CHROMIUM, CHROMIUM_FLAGS, http_get, read_rrd, wait_for
+from conftest import CHROMIUM, CHROMIUM_FLAGS, http_get, read_rrd, unbrokered_agent, wait_for
 from twin.edge.servo_faults import ServoFault
 from twin.rig.console_shots import loopback_only, wait_for_charts
 from twin.rig.local import LocalRig
@@ -666,6 +666,23 @@ def test_a_page_says_its_figures_are_not_live_while_the_agent_is_away(
     # The stream's reconnection attempts while no agent listened are the browser's to log, and only those.
     assert all("ERR_CONNECTION_REFUSED" in e or "/api/stream/" in e for e in browser_errors), browser_errors
     browser_errors.clear()
+
+
+def test_the_fleet_page_says_the_broker_is_out_of_reach_above_the_arms_it_lists(
+    tmp_path: Path, page: Any, browser_errors: list[str]
+) -> None:
+    """A walk stopped the broker: every card went OFFLINE and nothing on the page said why."""
+    agent = unbrokered_agent(tmp_path, workers=1, **{"telemetry.devices": ["arm-001", "arm-002"]})
+    try:
+        page.goto(agent.http_url + "/")
+        page.wait_for_selector('#fleet-view [data-device="arm-002"]')
+        notice = page.locator("#fleet-notices", has_text="not connected to its broker")
+        notice.wait_for()
+        assert "every arm goes STALE, then OFFLINE" in notice.inner_text()
+    finally:
+        leave(page)
+        agent.stop()
+    assert not browser_errors, browser_errors
 
 
 def test_the_sessions_page_says_at_once_that_the_agent_went_away_and_reads_again_when_back(

@@ -202,7 +202,13 @@
       "arms whose worst alarm is ",
       el("span", { class: "sev-critical", text: `critical: ${a.critical}` }), " · ",
       el("span", { class: "sev-warning", text: `warning: ${a.warning}` }));
-    notices.replaceChildren(...(doc.notices || []).map((text) => el("p", { text })));
+    const said = [...(doc.notices || [])];
+    // With arms listed, a broker outage otherwise reads as every arm going OFFLINE at once.
+    if (listening && !listening.connected && rows.length) {
+      said.unshift("The agent is not connected to its broker: no arm's messages reach it, so every arm " +
+        "goes STALE, then OFFLINE, whatever it does. GET /healthz says why; the Events page says when.");
+    }
+    notices.replaceChildren(...said.map((text) => el("p", { text })));
     notices.hidden = !notices.childElementCount;
     filter();
     render();
