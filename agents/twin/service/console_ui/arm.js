@@ -239,8 +239,12 @@
 
   function alarmRow(a) {
     const button = el("button", { type: "button", class: "primary", "data-alarm": a.alarm_id, text: "Acknowledge" });
-    const cells = { name: el("td", { class: "wrap" }), severity: el("td"), state: el("td", { class: "alarm-state" }),
-      value: el("td", { class: "wrap" }), since: el("td", { class: "wrap" }), message: el("td", { class: "msg" }) };
+    // The labels head each cell where the table stacks (console.css): its header row is hidden there.
+    const cells = { name: el("td", { class: "wrap" }), severity: el("td", { "data-label": "severity" }),
+      state: el("td", { class: "alarm-state", "data-label": "state" }),
+      value: el("td", { class: "wrap", "data-label": "value" }),
+      since: el("td", { class: "wrap", "data-label": `in this state since (${Twin.zone()})` }),
+      message: el("td", { class: "msg" }) };
     const row = { tr: el("tr", { "data-alarm": a.alarm_id }, ...Object.values(cells), el("td", {}, button)),
       cells, button, alarm: a };
     button.addEventListener("click", () => acknowledge(row.alarm, button));

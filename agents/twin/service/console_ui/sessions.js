@@ -36,9 +36,12 @@
       files.forEach((a, i) => { if (i) cell.append(" · "); cell.append(a); });
       return el("tr", { "data-device": s.device, "data-key": s.key },
         el("td", { class: "id" }, el("a", { href: "/arm/" + encodeURIComponent(s.device), text: s.device })),
-        el("td", { text: Twin.time(s.start) }), el("td", { text: Twin.duration(s.duration_s) }),
-        el("td", { text: String(s.messages) }), el("td", { text: String(s.alarms_raised) }),
-        el("td", { class: "session-status", text: s.status }), cell);
+        // The labels head each cell where the table stacks on a phone (console.css).
+        el("td", { text: Twin.time(s.start), "data-label": `start (${Twin.zone()})` }),
+        el("td", { text: Twin.duration(s.duration_s), "data-label": "duration" }),
+        el("td", { text: String(s.messages), "data-label": "messages" }),
+        el("td", { text: String(s.alarms_raised), "data-label": "alarms raised" }),
+        el("td", { class: "session-status", text: s.status, "data-label": "status" }), cell);
     }));
   }
 
