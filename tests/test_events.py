@@ -329,6 +329,17 @@ def test_a_time_range_whose_end_is_not_after_its_start_is_a_bad_query(tmp_path: 
             assert status == 400 and doc["error"] == "bad_query", doc
             assert "until (1796423500.0) must be after since (1796423900.0)" in doc["detail"]
         assert http_get(f"{agent.http_url}/api/events?since=1796423500&until=1796423900")[0] == 200
+        # A walk: `after=xyz`, `limit=-1` and `limit=abc` were ignored (all events again); `limit=0` gave one.
+        for query in ("after=xyz", "after=-3", "limit=-1", "limit=abc", "limit=0"):
+            for path in ("/api/events", "/api/events.csv", "/api/stream/events"):
+                if path.endswith("stream/events") and not query.startswith("after"):
+                    continue
+                status, _, body = http_get(f"{agent.http_url}{path}?{query}")
+                doc = json.loads(body)
+                assert status == 400 and doc["error"] == "bad_query", (path, query, doc)
+                name, _, value = query.partition("=")
+                assert f"{name} = {value!r} is not a whole number" in doc["detail"], doc
+        assert http_get(f"{agent.http_url}/api/events?after=0&limit=1")[0] == 200
     finally:
         agent.stop()
 

@@ -670,7 +670,10 @@ class AgentHttpServer:
         hub = self._hub
         if hub is None:
             return _error(503, "starting", detail="the server is starting; try again")
-        after = _int_param(request, "after", 0)
+        try:
+            after = _int_param(request, "after", 0)
+        except ValueError as exc:
+            return _error(400, "bad_query", detail=str(exc))
         return _EventStream(await hub.subscribe_events(after), hub.unsubscribe)
 
     async def _query_events(self, request: Request, limit: int) -> Sequence[Event] | Response:
@@ -842,9 +845,15 @@ def alarm_id_of(scope: Scope) -> str:
     return "/".join(unquote(part) for part in inner.split("/"))
 
 
-def _int_param(request: Request, name: str, default: int) -> int:
-    text = request.query_params.get(name, "")
-    return int(text) if text.isdigit() else default
+def _int_param(request: Request, name: str, default: int, *, least: int = 0) -> int:
+    """A whole-number parameter, `default` when absent; ValueError (a 400 `bad_query`) for one that is not a
+    whole number of at least `least`: ignored, `after=xyz` read every event again, and `limit=-1` all."""
+    text = request.query_params.get(name, "").strip()
+    if not text:
+        return default
+    if not text.isdigit() or int(text) < least:
+        raise ValueError(f"{name} = {text!r} is not a whole number of at least {least}")
+    return int(text)
 
 
 def _float_param(request: Request, name: str) -> float | None:
@@ -875,5 +884,5 @@ def event_query(request: Request, limit: int) -> EventQuery:
         since=since,
         until=until,
         after_id=_int_param(request, "after", 0),
-        limit=min(limit, max(1, _int_param(request, "limit", limit))),
+        limit=min(limit, _int_param(request, "limit", limit, least=1)),
     )
