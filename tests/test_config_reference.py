@@ -67,3 +67,32 @@ def test_twin_config_prints_both_and_checks_files(tmp_path: Path, capsys) -> Non
     bad.write_text("[history]\ntarget_file_mb = 128\n")
     assert main(["config", "check", str(bad)]) == 2
     assert "unknown key 'history.target_file_mb'" in capsys.readouterr().err
+
+
+def test_config_check_notes_one_arms_calibration_for_several_and_a_key_a_later_file_overrules(
+    tmp_path: Path, capsys
+) -> None:
+    """A walk: the single-file `calibration` was used for both of an owner's arms, one of them then 22 degrees
+    off while shown as calibrated, and nothing said so; a later file overruled a key without a word."""
+    example = REPO / "robots" / "so101" / "calibration" / "so101_follower_example.json"
+    first, second = tmp_path / "agent.toml", tmp_path / "agent.local.toml"
+    first.write_text(f'[telemetry]\ndevices = ["alpha-01", "bravo-02"]\ncalibration = "{example}"\n')
+    second.write_text('[telemetry]\ndevices = ["alpha-01", "bravo-02"]\nunits = "ticks"\n')
+    assert main(["config", "check", str(first), str(second)]) == 0  # valid: the notes do not stop it
+    out = capsys.readouterr().out
+    (note,) = [line for line in out.splitlines() if line.startswith("note: ")]
+    assert "one arm's LeRobot file, used here for all 2 listed arms" in note, out
+    assert "twin calibration push ARM FILE --store DIR" in note
+    # A later file setting a key to the same value is no note; to another value it is, with both files named.
+    second.write_text('[telemetry]\ndevices = ["alpha-01"]\n')
+    assert main(["config", "check", str(first), str(second)]) == 0
+    notes = [line for line in capsys.readouterr().out.splitlines() if line.startswith("note: ")]
+    assert len(notes) == 1, notes  # one arm now: its own file is fine
+    assert (
+        f"{second} sets [telemetry] devices = ['alpha-01'] over {first}'s ['alpha-01', 'bravo-02']"
+        in notes[0]
+    )
+    # A store beside it: the file is the fallback of arms without their own, a choice, not a slip.
+    first.write_text(f'[telemetry]\ncalibration = "{example}"\ncalibrations = "{tmp_path}"\n')
+    assert main(["config", "check", str(first)]) == 0
+    assert "note:" not in capsys.readouterr().out

@@ -246,7 +246,7 @@ local_default() {
 # Apply a change with: sudo systemctl restart so101-twin-agent
 #
 # [alarms]
-# temperature_warning_c = 55.0
+# temperature_warning_c = 58.0
 TOML
 }
 local_placeholder() {

@@ -425,12 +425,23 @@ def test_the_operators_own_file_survives_every_deploy(installed: tuple[Path, Pat
     shutil.copytree(installed[0], root, symlinks=True)
     local = root / "etc/so101-twin/agent.local.toml"
     assert tomllib.loads(local.read_text()) == {}  # comments only, to start with
+    from twin.service.config import config_notes, load_config
+
+    # Its example, uncommented, is one the agent starts with (55.0 was refused: it is the clear level).
+    example = re.sub(r"(?m)^# (\[\w+\]|\w+ = .*)$", r"\1", local.read_text())
+    assert tomllib.loads(example)["alarms"], example
+    local.write_text(example)
+    load_config([root / "etc/so101-twin/agent.toml", local])
+    # A stack setting overruled here is said, with the fix (a walk: a third arm added to the stack's
+    # settings was never mirrored, the local file's devices winning without a word).
+    local.write_text('[telemetry]\ndevices = ["arm-001"]\n')
+    configs = [root / "etc/so101-twin/agent.toml", local]
+    (note,) = config_notes(configs, load_config(configs))
+    assert f"{local} sets [telemetry] devices = ['arm-001'] over" in note and "twin.settings.toml" in note
     local.write_text("[alarms]\ntemperature_warning_c = 52.0\ntemperature_warning_clear_c = 48.0\n")
     result = run_installer(root, installed[1], DEVICES="arm-001,arm-002,arm-003")
     assert result.returncode == 0, result.stderr
     assert "temperature_warning_c = 52.0" in local.read_text()
-    from twin.service.config import load_config
-
     loaded = load_config([root / "etc/so101-twin/agent.toml", local])
     assert loaded.alarms.temperature_warning_c == 52.0
     assert list(loaded.telemetry.devices) == ["arm-001", "arm-002", "arm-003"]

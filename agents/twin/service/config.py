@@ -667,3 +667,47 @@ def load_config(
     except ConfigError as exc:
         where = f" (in {', '.join(str(p) for p in paths)})" if paths else ""
         raise ConfigError(f"{exc}{where}") from exc
+
+
+def config_notes(path: str | Path | Sequence[str | Path] | None, config: AgentConfig) -> list[str]:
+    """What a valid config holds that a person likely did not mean, one sentence each with the fix: a key a
+    later file sets over an earlier file's different value (the host runs its generated config, then the
+    operator's `agent.local.toml`: a stack setting changed there is silently overruled), and one arm's
+    calibration file used for several arms. `twin run` logs each as a warning; `twin config check` prints
+    them."""
+    paths: list[str | Path] = [] if path is None else [path] if isinstance(path, str | Path) else list(path)
+    notes: list[str] = []
+    set_by: dict[tuple[str, str], tuple[str, Any]] = {}
+    for one in paths:
+        for section, values in read_toml(one).items():
+            if not isinstance(values, Mapping):
+                continue
+            for key, value in values.items():
+                earlier = set_by.get((section, key))
+                if earlier is not None and earlier[1] != value:
+                    notes.append(
+                        f"{one} sets [{section}] {key} = {_shown(value)} over {earlier[0]}'s "
+                        f"{_shown(earlier[1])}: the later file wins; if the earlier one is the stack's, "
+                        "change the setting there (twin.settings.toml), or take the key out of the later file"
+                    )
+                set_by[(section, key)] = (str(one), value)
+    telemetry = config.telemetry
+    several = telemetry.devices == (ALL_DEVICES,) or len(telemetry.devices) > 1
+    if telemetry.calibration and several and not telemetry.calibrations:
+        arms = (
+            "every arm of the fleet"
+            if telemetry.devices == (ALL_DEVICES,)
+            else (f"all {len(telemetry.devices)} listed arms")
+        )
+        notes.append(
+            f"[telemetry] calibration = {telemetry.calibration!r} is one arm's LeRobot file, used here for "
+            f"{arms}: each arm has its own, and another arm's puts its twin in a wrong pose. Keep each arm's "
+            'in a store ([telemetry] calibrations = "DIR", then `twin calibration push ARM FILE --store '
+            'DIR`; docs/agent.md, "Calibration")'
+        )
+    return notes
+
+
+def _shown(value: Any) -> str:
+    text = repr(value) if not isinstance(value, list) else "[" + ", ".join(map(repr, value)) + "]"
+    return text if len(text) <= 80 else text[:77] + "..."

@@ -44,7 +44,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from twin.service.config import ConfigError, load_config
+    from twin.service.config import ConfigError, config_notes, load_config
     from twin.service.config_reference import render_example, render_reference
 
     if args.action == "example":
@@ -53,9 +53,12 @@ def run(args: argparse.Namespace) -> int:
         console.out(render_reference().rstrip("\n"))
     else:
         try:
-            load_config(args.files)
+            config = load_config(args.files)
         except ConfigError as exc:
             console.err(str(exc))
             return 2
         console.out(f"{', '.join(str(f) for f in args.files)}: a valid agent config")
+        # Valid, so still exit 0: what the agent would start with, and what it would warn of.
+        for note in config_notes(args.files, config):
+            console.out(f"note: {note}")
     return 0

@@ -21,6 +21,7 @@ from twin.service.config import (
     LOG_LEVELS,
     AgentConfig,
     ConfigError,
+    config_notes,
     load_config,
 )
 from twin.service.logs import setup_logging
@@ -171,6 +172,8 @@ def configure(args: argparse.Namespace, overrides: dict[str, Any]) -> AgentConfi
         return _config_error(str(exc))
     setup_logging(config.log.level)
     log.info("configuration", extra={"config": config.to_dict(), "config_file": args.config})
+    for note in config_notes(args.config, config):
+        log.warning("configuration: %s", note, extra={"event": "config_note"})
     return config
 
 
