@@ -138,6 +138,8 @@ def test_over_temperature_raised_acknowledged_cleared() -> None:
         AlarmState.ACKNOWLEDGED,
         "acknowledged",
     )
+    # Every message of the alarm names the servo as its raise did (a walk: "cleared" had no motor id).
+    assert ack.message.startswith("elbow_flex servo (motor id 3) over_temperature acknowledged"), ack.message
     with pytest.raises(NothingToAcknowledge, match="ACKNOWLEDGED"):
         alarms.acknowledge(view.alarm_id, 4.5)
 
@@ -152,6 +154,20 @@ def test_over_temperature_raised_acknowledged_cleared() -> None:
         ],
     )
     assert events == [(41.0, "cleared", AlarmKind.OVER_TEMPERATURE, AlarmState.NORMAL)]
+
+
+def test_every_message_of_an_alarm_names_its_servo_as_the_raise_did() -> None:
+    """A walk: the raise said "elbow_flex servo (motor id 3)", the clear only "elbow_flex"."""
+    alarms = ServoAlarms()
+    run(alarms, [(0.0, {"temperature_c": 62.0}), (2.0, {"temperature_c": 62.0})])
+    events = [e for now in (3.0, 13.0) for e in alarms.evaluate(DEV, readings(temperature_c=50.0), {}, now)]
+    (cleared,) = [e for e in events if e.action == "cleared"]
+    assert cleared.message.startswith(
+        "elbow_flex servo (motor id 3) over_temperature cleared: at or below 55 C"
+    )
+    assert cleared.message.endswith("(latched until acknowledged)"), cleared.message
+    reset = alarms.acknowledge(cleared.alarm_id, 14.0)
+    assert reset.message == "elbow_flex servo (motor id 3) over_temperature reset by a person", reset.message
 
 
 def test_unacknowledged_alarm_latches_until_acknowledged() -> None:

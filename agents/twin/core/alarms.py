@@ -1108,12 +1108,13 @@ class ServoAlarms:
             message = self._messages.get(at, "")
         elif action == "cleared":
             latched = " (latched until acknowledged)" if new is AlarmState.LATCHED else ""
+            # The servo as its raise named it: the person who went to the arm finds the same motor id.
             message = (
-                f"{joint} {kind} cleared: at or below {rule.clear_at:g} {UNITS[kind]} for "
+                f"{so101.servo_name(joint)} {kind} cleared: at or below {rule.clear_at:g} {UNITS[kind]} for "
                 f"{rule.clear_after_s:g} s{latched}"
             )
         else:
-            message = f"{joint} {kind} {action} by a person"
+            message = f"{so101.servo_name(joint)} {kind} {action} by a person"
         device = self._devices[slot]
         return AlarmEvent(
             alarm_id=device + _ID_SUFFIX[joint, kind],
