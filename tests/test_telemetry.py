@@ -862,6 +862,29 @@ def _example_with(joint: str, key: str, value: Any) -> dict:
         (_example_with("elbow_flex", "drive_mode", 2), "drive_mode must be 0 or 1"),
         (_example_with("elbow_flex", "homing_offset", 3000), "homing_offset"),
         ({**json.loads(EXAMPLE_CALIBRATION.read_text()), "elbow_roll": 5}, "must be an object"),
+        # A walk: these two were taken, or refused without saying why.
+        (
+            _example_with("wrist_flex", "id", 17),
+            "has id 17, where an SO-101 follower's wrist_flex is motor 4",
+        ),
+        (
+            {
+                "homing_offset": [0] * 6,
+                "drive_mode": [0] * 6,
+                "start_pos": [0] * 6,
+                "end_pos": [4095] * 6,
+                "calib_mode": ["DEGREE"] * 6,
+                "motor_names": [
+                    "shoulder_pan",
+                    "shoulder_lift",
+                    "elbow_flex",
+                    "wrist_flex",
+                    "wrist_roll",
+                    "gripper",
+                ],
+            },
+            "LeRobot's old calibration layout",
+        ),
     ],
 )
 def test_bad_calibration_files(tmp_path: Path, data: Any, needle: str) -> None:

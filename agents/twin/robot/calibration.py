@@ -76,6 +76,13 @@ class Calibration(Mapping[str, MotorCalibration]):
                 f"{source}: a LeRobot calibration file is a JSON object keyed by motor name, "
                 f"got {type(data).__name__}"
             )
+        if _OLD_LAYOUT.intersection(data) and not isinstance(next(iter(data.values()), None), dict):
+            keys = ", ".join(sorted(_OLD_LAYOUT))
+            raise ValueError(
+                f"{source} is in LeRobot's old calibration layout (lists under {keys}), from before LeRobot "
+                "keyed its files by motor name: calibrate the arm again with a current LeRobot "
+                "(lerobot-calibrate), which writes robots/so_follower/<id>.json"
+            )
         motors: dict[str, MotorCalibration] = {}
         for name, entry in data.items():
             if not isinstance(entry, dict):
@@ -105,6 +112,10 @@ class Calibration(Mapping[str, MotorCalibration]):
         return {name: {f: getattr(m, f) for f in _FIELDS} for name, m in self.motors.items()}
 
 
+# The keys of LeRobot's calibration files before they were keyed by motor name: one list per field.
+_OLD_LAYOUT = frozenset({"homing_offset", "drive_mode", "start_pos", "end_pos", "calib_mode", "motor_names"})
+
+
 def _validate_motors(motors: Mapping[str, MotorCalibration], source: str) -> dict[str, MotorCalibration]:
     names = set(motors)
     missing = [n for n in so101.JOINT_NAMES if n not in names]
@@ -124,6 +135,13 @@ def _validate_motors(motors: Mapping[str, MotorCalibration], source: str) -> dic
         m = motors[name]
         if not isinstance(m, MotorCalibration):
             raise ValueError(f"{source}: motor {name!r} must be a MotorCalibration, got {type(m).__name__}")
+        if m.id != so101.MOTOR_IDS[name]:
+            # LeRobot's SO-101 follower sets its motors to these ids; the alarms name a servo by it.
+            raise ValueError(
+                f"{source}: motor {name!r} has id {m.id}, where an SO-101 follower's {name} is motor "
+                f"{so101.MOTOR_IDS[name]} (LeRobot's so101_follower, set by lerobot-setup-motors); is it "
+                "this arm's file, and unedited?"
+            )
         if m.drive_mode not in (0, 1):
             raise ValueError(f"{source}: motor {name!r} drive_mode must be 0 or 1, got {m.drive_mode}")
         if not 0 <= m.range_min < m.range_max <= so101.TICK_MAX:
