@@ -286,7 +286,14 @@ def read_settings_file(path: Path, *, required: bool = False) -> dict[str, Any]:
 
 
 def _closest(key: str) -> str:
-    """ "did you mean 'devices'? " for an unknown key close to a setting's name (a file's or a -c one)."""
+    """ "did you mean 'devices'? " for an unknown key close to a setting's name (a file's or a -c one); for a
+    calibration key, where the arms' calibrations go instead."""
+    if "calibration" in key.lower():
+        # Each arm's is a file of its own, pushed to the stack's bucket; no deploy carries them.
+        return (
+            "the arms' calibrations are not a stack setting: push each arm's file with `twin calibration "
+            "push ARM FILE` (docs/deploy.md, the CalibrationUri output); "
+        )
     close = difflib.get_close_matches(key, list(SETTING_FIELDS), n=1)
     return f"did you mean '{close[0]}'? " if close else ""
 

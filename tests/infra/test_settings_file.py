@@ -65,6 +65,10 @@ def test_an_unknown_key_is_refused_with_the_closest_name(tmp_path: Path) -> None
     path = write(tmp_path / "s.toml", 'clientCidr = "203.0.113.7/32"\ndevice = ["arm-001"]\n')
     with pytest.raises(SettingsError, match=r"unknown setting 'device'; did you mean 'devices'\?"):
         read_settings_file(path)
+    # A walk put its arms' calibrations here: they are pushed, not deployed, and the error says so.
+    path = write(tmp_path / "s.toml", 'clientCidr = "203.0.113.7/32"\ncalibrations = "cal/"\n')
+    with pytest.raises(SettingsError, match=r"not a stack setting: push each arm's file with `twin"):
+        read_settings_file(path)
 
 
 @pytest.mark.parametrize(("key", "hint"), [("device", "did you mean 'devices'? "), ("gpuType", "")])
