@@ -106,6 +106,8 @@ def test_the_watcher_warns_once_of_a_file_no_arm_reads(
         assert len(warnings()) == 1 and "arm 9.json" in warnings()[0], warnings()
         # A plain push would reach the stack's store, not this directory.
         assert f"twin calibration push ARM FILE --store {tmp_path / 'cal'}`" in warnings()[0], warnings()
+        # A walk: the hint named a push that refuses the id; an arm with such an id has no fix but a new id.
+        assert "rename the arm on the edge" in warnings()[0], warnings()
         watcher.poll()
         assert len(warnings()) == 1  # once, not every poll
     assert main(["calibration", "ls", "--store", str(tmp_path / "cal")]) == cmd.EXIT_OK
@@ -553,8 +555,11 @@ def test_each_arm_decodes_with_its_own_and_a_new_one_needs_no_restart(tmp_path: 
         typo = wait_for(lambda: _picked_up(agent, "arm-0O2"), 30, "arm-0O2's calibration event")
         assert typo.level == "warning" and "not in this agent's telemetry.devices" in typo.message, typo
         assert "never used" in typo.message
+        store.write("Arm-002", shifted(100))
+        case = wait_for(lambda: _picked_up(agent, "Arm-002"), 30, "Arm-002's calibration event")
+        assert "did you mean arm-002?" in case.message, case
         # The arms it mirrors and has heard picked theirs up with no such word.
-        assert all(e.level == "info" for e in _picked_up_all(agent) if e.device != "arm-0O2")
+        assert all(e.level == "info" for e in _picked_up_all(agent) if e.device not in ("arm-0O2", "Arm-002"))
     finally:
         agent.stop()
 
@@ -610,10 +615,14 @@ def test_a_calibration_for_an_arm_not_heard_yet_says_so(tmp_path: Path) -> None:
         feed_until(agent, "arm-001", pan_angle(None), ts)
         store.write("arm-001", shifted(100))
         store.write("arm-0O1", shifted(100))
+        store.write("ARM-001", shifted(100))  # a walk: the arm publishes as arm-001, and nothing said so
         heard = wait_for(lambda: _picked_up(agent, "arm-001"), 30, "arm-001's calibration event")
         unheard = wait_for(lambda: _picked_up(agent, "arm-0O1"), 30, "arm-0O1's calibration event")
+        upper = wait_for(lambda: _picked_up(agent, "ARM-001"), 30, "ARM-001's calibration event")
         assert heard.level == "info" and "no message" not in heard.message, heard
         assert unheard.level == "warning" and "no message from arm-0O1 yet" in unheard.message, unheard
+        assert "case-sensitive" not in unheard.message, unheard
+        assert "ids are case-sensitive: did you mean arm-001?" in upper.message, upper
     finally:
         agent.stop()
 

@@ -36,7 +36,7 @@ import threading
 import time
 from bisect import bisect_right
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from operator import attrgetter
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Generic, TypeVar
@@ -1222,15 +1222,18 @@ class AgentService:
         if not t.all_devices and device not in t.devices:
             hint = (
                 f"{device} is not in this agent's telemetry.devices ({', '.join(t.devices)}), so this "
-                "calibration is never used: check the id, or add the arm to telemetry.devices"
+                f"calibration is never used: check the id{_case_hint(device, t.devices)}, or add the arm to "
+                "telemetry.devices"
             )
         else:
             # Asked of the arm's own mirror (or its checkpoint), not every worker's rows of the whole fleet.
             if self.arm_view(device).state is not None:
                 return ""
+            # A miss only: then the fleet's ids, for one that differs by case alone (ARM-03 for arm-03).
+            heard = [row.device for row in self.fleet_rows()]
             hint = (
                 f"no message from {device} yet: if this arm is already sending, check the id against the "
-                "Fleet page"
+                f"Fleet page{_case_hint(device, heard)}"
             )
         log.warning("calibration of %s: %s", device, hint, extra={"event": "calibration", "device": device})
         return hint
@@ -1242,6 +1245,12 @@ class AgentService:
             applied_of(shard.request(request)())
         except WorkerError as exc:
             log.warning("calibrations not handed to shard %d: %s", shard.index, exc)
+
+
+def _case_hint(device: str, ids: Iterable[str]) -> str:
+    """ " (ids are case-sensitive: did you mean arm-03?)" when `ids` has one that differs by case alone."""
+    same = sorted(i for i in ids if i != device and i.casefold() == device.casefold())
+    return f" (ids are case-sensitive: did you mean {same[0]}?)" if same else ""
 
 
 def _unwritten_text(unwritten: Counter[str]) -> str:

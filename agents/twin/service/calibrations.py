@@ -572,7 +572,9 @@ class CalibrationWatcher:
         for name in sorted(set(ignored) - self._ignored):
             log.warning(
                 "%s in %s is ignored: no arm reads it, because a calibration is named <device id>.json and a "
-                "device id is %s; push it as the arm's (`%s`)",
+                "device id here is %s. If it is the file of an arm whose id is such, push it under that id "
+                "(`%s`); an arm whose id is not cannot have a calibration of its own: rename the arm on the "
+                "edge",
                 name,
                 self.store.uri,
                 POLICY_DEVICE_ID_RULE,
