@@ -13,6 +13,7 @@ import random
 import re
 import signal
 import threading
+import time
 from multiprocessing import Pipe
 from pathlib import Path
 from typing import Any
@@ -28,6 +29,7 @@ from twin.service.admission import DeviceBudget
 from twin.service.config import load_config
 from twin.service.events import (
     BrokerWatch,
+    ClockWatch,
     Event,
     EventKind,
     EventLevel,
@@ -340,6 +342,53 @@ def test_a_time_range_whose_end_is_not_after_its_start_is_a_bad_query(tmp_path: 
                 name, _, value = query.partition("=")
                 assert f"{name} = {value!r} is not a whole number" in doc["detail"], doc
         assert http_get(f"{agent.http_url}/api/events?after=0&limit=1")[0] == 200
+    finally:
+        agent.stop()
+
+
+def test_clock_watch_reports_an_edge_clock_far_off_twice_in_a_row_once_and_its_return() -> None:
+    """A walk set an arm's clock 300 s ahead: accepted, and shown only as edge_clock_offset_s = -300."""
+    s, _ = store()
+    watch = ClockWatch(s)
+
+    def sweep(**offsets: float) -> list[tuple[str, str, str]]:
+        watch.sweep({d.replace("_", "-"): o for d, o in offsets.items()})
+        return [(e.device, e.level, e.message) for e in s.query(EventQuery())]
+
+    # One sweep off is no report (a burst of transit); back under the line forgets it.
+    assert sweep(arm_001=-300.0, arm_002=0.05) == []
+    assert sweep(arm_001=0.1, arm_002=0.05) == []
+    assert sweep(arm_001=-300.0, arm_002=3.5) == []
+    (ahead, behind) = sweep(arm_001=-300.2, arm_002=3.4)
+    assert ahead[:2] == ("arm-001", "warning") and "about 300 s ahead of the agent's" in ahead[2]
+    assert "NTP" in ahead[2] and "timedatectl" in ahead[2]
+    assert behind[:2] == ("arm-002", "warning") and "about 3 s behind the agent's" in behind[2]
+    assert len(sweep(arm_001=-299.0, arm_002=3.0)) == 2  # once, however long it lasts
+    assert len(sweep(arm_001=-1.5, arm_002=3.0)) == 2  # not yet within the back line
+    (*_, back) = sweep(arm_001=0.2, arm_002=3.0)
+    assert back[:2] == ("arm-001", "info") and "agrees with the agent's again" in back[2]
+    # A forgotten arm, or one with no sample in its window, leaves nothing behind.
+    watch.forget("arm-002")
+    assert len(sweep(arm_001=0.2)) == 3
+
+
+def test_an_agent_tells_of_an_arm_whose_clock_is_minutes_ahead(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(events, "CLOCK_INTERVAL_S", 0.2)
+    agent = unbrokered_agent(tmp_path, 1, **{"telemetry.devices": ["arm-001"]})
+    try:
+        rng = random.Random(5)
+
+        def told() -> Any:
+            ahead_ms = int(time.time() * 1000) + 300_000
+            payload = encode(make_payload("arm-001", 0.0, "ticks", rng, timestamp_ms=ahead_ms))
+            agent.feed("dt/lerobot/arm-001/telemetry", payload)
+            found = agent.events(EventQuery(kinds=frozenset({"twin"}), device="arm-001"))
+            return next((e for e in found if "clock of arm-001" in e.message), None)
+
+        event = wait_for(told, 60, "the event of arm-001's clock", interval=0.05)
+        assert event.level == "warning" and "300 s ahead" in event.message, event
     finally:
         agent.stop()
 

@@ -194,6 +194,11 @@ class SampleWindow:
             self._samples.popleft()
         return tuple(self._samples)
 
+    def minimum(self, now: float) -> float | None:
+        """The window's smallest value (None when empty)."""
+        values = self.values(now)
+        return min(values) if values else None
+
     def summary(self, now: float) -> tuple[WindowLatency, float | None]:
         """Percentiles over the window, and its minimum (None when empty)."""
         return window_summary(self.values(now))
@@ -305,6 +310,11 @@ class DeviceHealth:
         self._rate = RateMeter(thresholds.window_s)
         self._edge_latency = SampleWindow(thresholds.window_s)
         self._internal_latency = SampleWindow(thresholds.window_s)
+
+    def clock_offset(self, now: float) -> float | None:
+        """Receive wall time minus the edge's timestamp, the window's least (HealthSnapshot's
+        edge_clock_offset_s): transit plus the edge clock's offset, so mostly the offset when it is large."""
+        return self._edge_latency.minimum(now)
 
     def record_received(self) -> None:
         """A message for this device left the mailbox (before decoding)."""
@@ -544,6 +554,12 @@ class FleetHealth:
             for device, health in self.devices.items()
             if health.last_message_mono is not None
         }
+
+    def clock_offsets(self, now: float | None = None) -> dict[str, float]:
+        """Each device's `clock_offset`, of those with one in the window (for service.events.ClockWatch)."""
+        now = self._clock() if now is None else now
+        offsets = ((device, health.clock_offset(now)) for device, health in self.devices.items())
+        return {device: offset for device, offset in offsets if offset is not None}
 
     def offline_configured(self, now: float | None = None) -> list[str]:
         now = self._clock() if now is None else now

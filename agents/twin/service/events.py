@@ -535,6 +535,69 @@ class RateWatch:
         self._store.emit(EventKind.TWIN, level, message, device=device, data=data)
 
 
+# An edge clock this far from the agent's (the window's least receive-minus-timestamp; transit alone is well
+# under it) in two sweeps CLOCK_INTERVAL_S apart is reported; once within CLOCK_BACK_S, that it is back.
+CLOCK_SKEW_S = 2.0
+CLOCK_BACK_S = 1.0
+CLOCK_INTERVAL_S = 30.0
+
+
+class ClockWatch:
+    """Edge clocks far from the agent's: a Raspberry Pi without a battery clock boots with the wrong time,
+    and the twin then shows it only as a number (edge_clock_offset_s). Holds the devices seen off once and
+    those reported, bounded by the fleet."""
+
+    def __init__(self, store: EventStore) -> None:
+        self._store = store
+        self._off_once: set[str] = set()
+        self._reported: set[str] = set()
+
+    def forget(self, device: str) -> None:
+        self._off_once.discard(device)
+        self._reported.discard(device)
+
+    def sweep(self, offsets: Mapping[str, float]) -> None:
+        """`offsets`: each device with samples in its window -> receive wall time minus edge timestamp."""
+        self._off_once.intersection_update(offsets)
+        self._reported.intersection_update(offsets)
+        for device, offset in offsets.items():
+            if device in self._reported:
+                if abs(offset) <= CLOCK_BACK_S:
+                    self._reported.discard(device)
+                    self._say(
+                        device,
+                        offset,
+                        EventLevel.INFO,
+                        f"the clock of {device} agrees with the agent's again (within {abs(offset):.1f} s)",
+                    )
+            elif abs(offset) < CLOCK_SKEW_S:
+                self._off_once.discard(device)
+            elif device not in self._off_once:
+                # Once may be a burst of transit; twice, CLOCK_INTERVAL_S apart, is the clock.
+                self._off_once.add(device)
+            else:
+                self._off_once.discard(device)
+                self._reported.add(device)
+                self._say(device, offset, EventLevel.WARNING, _skew_message(device, offset))
+
+    def _say(self, device: str, offset: float, level: EventLevel, message: str) -> None:
+        log_level = logging.WARNING if level is EventLevel.WARNING else logging.INFO
+        log.log(log_level, "%s", message, extra={"event": "edge_clock", "device": device, "offset_s": offset})
+        self._store.emit(
+            EventKind.TWIN, level, message, device=device, data={"clock_offset_s": f"{offset:.3f}"}
+        )
+
+
+def _skew_message(device: str, offset: float) -> str:
+    # offset = receive time - edge timestamp: an edge clock ahead makes it negative.
+    way = "ahead of" if offset < 0 else "behind"
+    return (
+        f"the clock of {device} is about {abs(offset):.0f} s {way} the agent's: its messages carry that "
+        "time, so its latency figures, its history's edge times and a replay of it are off by as much; set "
+        "the edge's time from NTP (chrony or systemd-timesyncd; `timedatectl` says if it is synchronised)"
+    )
+
+
 _ALARM_LEVEL = {"raised": EventLevel.WARNING, "cleared": EventLevel.INFO}
 # How often FleetWatch reads the fleet's statuses and the broker's counters.
 WATCH_INTERVAL_S = 0.5
@@ -553,8 +616,10 @@ class FleetWatch:
         self._statuses = StatusWatch(store)
         self._broker = BrokerWatch(store)
         self._rates = RateWatch(store, expected_rate_hz)
+        self._clocks = ClockWatch(store)
         self._next = 0.0
         self._next_rates = 0.0
+        self._next_clocks = 0.0
 
     def due(self, now: float) -> bool:
         if now < self._next:
@@ -570,6 +635,15 @@ class FleetWatch:
 
     def rates(self, rates: Mapping[str, float], now: float) -> None:
         self._rates.sweep(rates, now)
+
+    def clocks_due(self, now: float) -> bool:
+        if now < self._next_clocks:
+            return False
+        self._next_clocks = now + CLOCK_INTERVAL_S
+        return True
+
+    def clocks(self, offsets: Mapping[str, float]) -> None:
+        self._clocks.sweep(offsets)
 
     @property
     def crowded(self) -> tuple[str, ...]:
@@ -597,6 +671,7 @@ class FleetWatch:
         removed with it."""
         self._statuses.forget(device)
         self._rates.forget(device)
+        self._clocks.forget(device)
         alarms = ", ".join(f"{n} {state}" for state, n in sorted(alarms_removed.items())) or "none"
         self.store.emit(
             EventKind.TWIN,

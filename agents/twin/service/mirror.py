@@ -1430,6 +1430,11 @@ class Mirror:
             with self._lock:
                 rates = self._fleet.rates(now)
             self._watch.rates(rates, now)
+        if self._watch.clocks_due(now):
+            # An edge clock far off (events.ClockWatch): a minimum over each arm's window, so not every sweep.
+            with self._lock:
+                offsets = self._fleet.clock_offsets(now)
+            self._watch.clocks(offsets)
 
     def statuses(self) -> dict[str, DeviceStatus]:
         """Each device's status now (those configured too, heard from or not), without the report."""
