@@ -217,8 +217,15 @@ def test_an_arm_page_draws_its_charts(console: str, page: Any, browser_errors: l
     page.goto(console + "/arm/arm-003")
     wait_for_charts(page, TIMEOUT_S)
     assert page.locator("canvas[data-chart]").count() == 4
-    # After a restart the counters start at 0: the page says they count from the agent's start.
-    assert "applied since the agent started (" in page.locator("#summary").inner_text()
+    # After a restart the counters start at 0: the page says they count from the agent's start, in which
+    # zone, and why what was received was not all applied.
+    summary = page.locator("#summary").inner_text()
+    started = r"applied( \(not applied: [^)]*\))? since the agent started \([^)]*, UTC"
+    assert re.search(started, summary), summary
+    doc = json.loads(http_get(console + "/api/arm/arm-003")[2])
+    counters = doc["device"]["health"]["counters"]
+    if counters["rejected_total"]:
+        assert "rejected" in summary.split("not applied:")[1], summary
     assert browser_errors == []
 
 

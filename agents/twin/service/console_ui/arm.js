@@ -227,6 +227,15 @@
     renderAlarms([]);
   }
 
+  // Why received and applied differ (a walk read "4007 received, 3990 applied" with no reason): the counters
+  // /state gives, each named only when it is not zero.
+  function notApplied(c) {
+    const parts = [[c.coalesced, "coalesced (a newer one was waiting)"], [c.ignored_stale, "older than the last"],
+      [c.rejected_total, "rejected"], [c.overwritten, "dropped behind"], [c.errors, "errors"]]
+      .filter(([n]) => n).map(([n, what]) => `${n} ${what}`);
+    return parts.length ? ` (not applied: ${parts.join(", ")})` : "";
+  }
+
   // One row per alarm, kept across updates and changed in place. A reading changes an alarm's value at each
   // tick while the servo heats or cools; a row rebuilt then replaced the button under the operator's
   // pointer, and a click pressed on the old button and released on the new one was lost without a word.
@@ -306,8 +315,8 @@
       ["units", d.units], ["mode", d.mode],
       ["calibration", calibration(d, doc.calibration_push)],
       // The counters begin at the agent's start: said, so a restart's zeros do not read as a silent arm.
-      ["messages", `${h.counters.received} received, ${h.counters.applied} applied` +
-        (doc.agent_started_at ? ` since the agent started (${Twin.time(doc.agent_started_at)})` : "")],
+      ["messages", `${h.counters.received} received, ${h.counters.applied} applied` + notApplied(h.counters) +
+        (doc.agent_started_at ? ` since the agent started (${Twin.time(doc.agent_started_at)}, ${Twin.zone()})` : "")],
     ]);
     kv(lossBox, [
       ["lost (estimated)", `${d.loss.lost} of ${d.loss.received + d.loss.lost} (${Twin.num(d.loss.loss_ratio * 100, 2)} %)`],

@@ -64,7 +64,7 @@
 
   function render(loaded = true) {
     body.replaceChildren(...(events.length || !loaded ? events.map(row) : [none]));
-    count.textContent = `${events.length} events`;
+    count.textContent = `${events.length} event${events.length === 1 ? "" : "s"}`;
     if (follow.checked) box.scrollTop = box.scrollHeight;
   }
 
@@ -77,7 +77,7 @@
     const rows = add.map(row);
     body.append(...rows);
     while (events.length > MAX_ROWS) { events.shift(); body.firstChild.remove(); }
-    count.textContent = `${events.length} events`;
+    count.textContent = `${events.length} event${events.length === 1 ? "" : "s"}`;
     if (follow.checked) box.scrollTop = box.scrollHeight;
   }
 
