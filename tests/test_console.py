@@ -24,7 +24,7 @@ from urllib.parse import quote
 from zoneinfo import ZoneInfo
 
 import pytest
-from conftest import CHROMIUM, CHROMIUM_FLAGS, http_get, read_rrd, unbrokered_agent, wait_for
+from conftest import CHROMIUM, CHROMIUM_FLAGS, fed_agent, http_get, read_rrd, unbrokered_agent, wait_for
 from twin.edge.servo_faults import ServoFault
 from twin.rig.console_shots import loopback_only, wait_for_charts
 from twin.rig.local import LocalRig
@@ -226,6 +226,21 @@ def test_an_arm_page_draws_its_charts(console: str, page: Any, browser_errors: l
     counters = doc["device"]["health"]["counters"]
     if counters["rejected_total"]:
         assert "rejected" in summary.split("not applied:")[1], summary
+    assert browser_errors == []
+
+
+def test_an_arm_page_says_why_what_was_received_was_not_all_applied(
+    page: Any, browser_errors: list[str]
+) -> None:
+    with fed_agent(12) as agent:  # arm-001: 12 messages applied, and one that is not JSON
+        page.goto(agent.http_url + "/arm/arm-001")
+        summary = page.locator("#summary")
+        summary.filter(has_text="received").wait_for()
+        assert (
+            "13 received, 12 applied (not applied: 1 rejected) since the agent started"
+            in summary.inner_text()
+        )
+        leave(page)
     assert browser_errors == []
 
 
