@@ -510,3 +510,23 @@ def test_an_acknowledgement_the_state_file_cannot_keep_is_answered_as_not_saved(
         assert wait_for(lambda: sink().pending == 0, 30, "the state file no longer behind")
     finally:
         agent.stop()
+
+
+def test_arms_read_from_checkpoints_once_the_agent_stops_say_stopping_not_restarting(tmp_path: Path) -> None:
+    """A walk kept the Fleet page open through a stop: every card said "restarting", and nothing was."""
+    from conftest import unbrokered_agent
+
+    agent = unbrokered_agent(tmp_path, 2, **{"telemetry.devices": ["arm-001", "arm-002"]})
+    try:
+        rng = random.Random(1)
+        for i in range(5):
+            for device in ("arm-001", "arm-002"):
+                payload = encode(make_payload(device, 0.1 * i, "ticks", rng))
+                agent.feed(f"dt/lerobot/{device}/telemetry", payload)
+        wait_for(lambda: all(r.status == "ONLINE" for r in agent.fleet_rows()), 30, "both arms ONLINE")
+        # Each worker's checkpoint holds both arms' figures once it has them (taken every second).
+        wait_for(lambda: len(agent._checkpoint_devices(agent._shards)) == 2, 30, "the arms in checkpoints")
+    finally:
+        agent.stop()
+    rows = agent.fleet_rows()
+    assert {(r.device, r.mirror) for r in rows} == {("arm-001", "stopping"), ("arm-002", "stopping")}, rows

@@ -110,6 +110,7 @@ from twin.service.state import (
     DeviceState,
     HealthReport,
     HistoryState,
+    MirrorStatus,
     WorkerInfo,
 )
 from twin.service.workerstart import start_fork_server, worker_context
@@ -740,6 +741,9 @@ class AgentService:
         devices: dict[str, DeviceState] = {}
         for shard in silent:
             devices.update(shard.restarting_devices(self.config.health, now))
+        if self._stopping.is_set():
+            # A page open through a stop read "restarting" on every card, and nothing restarts.
+            return {d: dataclasses.replace(s, mirror=MirrorStatus.STOPPING) for d, s in devices.items()}
         return devices
 
     def _checkpoint_alarms(self, silent: Sequence[Shard], *, include_normal: bool) -> list[AlarmInfo]:

@@ -56,11 +56,13 @@ _ENCODER = msgspec.json.Encoder()
 
 
 class MirrorStatus(StrEnum):
-    """Whether a device's mirror runs: `restarting` while its worker process is being started again (the
-    device's figures are then its worker's last checkpoint, service.shards)."""
+    """Whether a device's mirror runs: `restarting` while its worker process is being started again, and
+    `stopping` once the agent's stop has ended it (the device's figures are then its worker's last checkpoint,
+    service.shards)."""
 
     RUNNING = "running"
     RESTARTING = "restarting"
+    STOPPING = "stopping"
 
 
 @dataclass(frozen=True, slots=True)

@@ -95,11 +95,15 @@
     return `${r[c.hot_joint]} ${Twin.num(r[c.hot_c], 0)} °C`;
   }
 
-  // Its worker process is being started again: the row is the worker's last checkpoint.
+  // Its worker process is being started again, or the agent is stopping: the row is the worker's last
+  // checkpoint.
+  const MIRROR_NOTES = {
+    restarting: "its worker is being started again: figures from its last checkpoint",
+    stopping: "the agent is stopping: figures from its worker's last checkpoint",
+  };
   function restarting(r) {
-    return r[columns.mirror] === "restarting"
-      ? [" ", el("span", { class: "restarting", title: "its worker is being started again: figures from its last checkpoint", text: "restarting" })]
-      : [];
+    const mirror = r[columns.mirror], title = MIRROR_NOTES[mirror];
+    return title ? [" ", el("span", { class: "restarting", title, text: mirror })] : [];
   }
 
   function card(r, x, y) {
