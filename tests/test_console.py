@@ -220,12 +220,8 @@ def test_an_arm_page_draws_its_charts(console: str, page: Any, browser_errors: l
     # After a restart the counters start at 0: the page says they count from the agent's start, in which
     # zone, and why what was received was not all applied.
     summary = page.locator("#summary").inner_text()
-    started = r"applied( \(not applied: [^)]*\))? since the agent started \([^)]*, UTC"
-    assert re.search(started, summary), summary
-    doc = json.loads(http_get(console + "/api/arm/arm-003")[2])
-    counters = doc["device"]["health"]["counters"]
-    if counters["rejected_total"]:
-        assert "rejected" in summary.split("not applied:")[1], summary
+    assert re.search(r"applied since the agent started \([^)]*, UTC", summary), summary
+    assert re.search(r"not applied\s+\S", summary), summary
     assert browser_errors == []
 
 
@@ -236,10 +232,9 @@ def test_an_arm_page_says_why_what_was_received_was_not_all_applied(
         page.goto(agent.http_url + "/arm/arm-001")
         summary = page.locator("#summary")
         summary.filter(has_text="received").wait_for()
-        assert (
-            "13 received, 12 applied (not applied: 1 rejected) since the agent started"
-            in summary.inner_text()
-        )
+        text = summary.inner_text()
+        assert "13 received, 12 applied since the agent started" in text, text
+        assert re.search(r"not applied\s+1 rejected$", text, re.MULTILINE), text
         leave(page)
     assert browser_errors == []
 
@@ -411,6 +406,10 @@ def test_acknowledge_moves_the_alarm_to_acknowledged(
     )
     page.goto(console + "/arm/arm-001")
     row = page.locator(f'#alarms tr[data-alarm="{alarm["alarm_id"]}"]')
+    # Measured once the page has drawn the arm: measured before, under load, the table was the header
+    # alone, 139 px above where the arm's figures then put it (a flaky run).
+    page.wait_for_selector("body[data-ready]")
+    row.wait_for()
     # The table's top, not a row's: the heat's critical alarm may be raised meanwhile, a row above this one.
     table = page.locator("#alarms")
     before = table.bounding_box()

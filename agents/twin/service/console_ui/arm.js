@@ -233,7 +233,7 @@
     const parts = [[c.coalesced, "coalesced (a newer one was waiting)"], [c.ignored_stale, "older than the last"],
       [c.rejected_total, "rejected"], [c.overwritten, "dropped behind"], [c.errors, "errors"]]
       .filter(([n]) => n).map(([n, what]) => `${n} ${what}`);
-    return parts.length ? ` (not applied: ${parts.join(", ")})` : "";
+    return parts.length ? parts.join(", ") : "none";
   }
 
   // One row per alarm, kept across updates and changed in place. A reading changes an alarm's value at each
@@ -315,8 +315,10 @@
       ["units", d.units], ["mode", d.mode],
       ["calibration", calibration(d, doc.calibration_push)],
       // The counters begin at the agent's start: said, so a restart's zeros do not read as a silent arm.
-      ["messages", `${h.counters.received} received, ${h.counters.applied} applied` + notApplied(h.counters) +
+      ["messages", `${h.counters.received} received, ${h.counters.applied} applied` +
         (doc.agent_started_at ? ` since the agent started (${Twin.time(doc.agent_started_at)}, ${Twin.zone()})` : "")],
+      // A row of its own, always there: a reason appearing mid-view must not move the alarms under the pointer.
+      ["not applied", notApplied(h.counters)],
     ]);
     kv(lossBox, [
       ["lost (estimated)", `${d.loss.lost} of ${d.loss.received + d.loss.lost} (${Twin.num(d.loss.loss_ratio * 100, 2)} %)`],
