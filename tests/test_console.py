@@ -385,14 +385,15 @@ def test_an_arms_view_marks_the_other_arms_with_an_alarm(console: str) -> None:
             frame = next(json.loads(line[len(b"data: ") :]) for line in stream if line.startswith(b"data: "))
         return frame["attention"]
 
-    # Every arm runs the heat fault: a warning, acknowledged or not by the tests around this one.
+    # Every arm runs the heat fault: a warning, then a critical alarm at 65 C (the worse one marks the arm),
+    # acknowledged or not by the tests around this one.
     seen: list[dict[str, str]] = []
 
-    def warned() -> bool:
+    def alarmed() -> bool:
         seen.append(marks())
-        return any("warning" in mark.lower() for mark in seen[-1].values())
+        return any(re.search(r"warning|critical", mark, re.IGNORECASE) for mark in seen[-1].values())
 
-    wait_for(warned, TIMEOUT_S, "an arm marked with its warning")
+    wait_for(alarmed, TIMEOUT_S, "an arm marked with its alarm")
     assert set(seen[-1]) <= set(DEVICES), seen[-1]
 
 
