@@ -11,6 +11,7 @@ import csv
 import io
 import json
 import math
+import random
 import re
 import shlex
 import time
@@ -25,6 +26,7 @@ from zoneinfo import ZoneInfo
 
 import pytest
 from conftest import CHROMIUM, CHROMIUM_FLAGS, fed_agent, http_get, read_rrd, unbrokered_agent, wait_for
+from twin.edge.payload import encode, make_payload
 from twin.edge.servo_faults import ServoFault
 from twin.rig.console_shots import loopback_only, wait_for_charts
 from twin.rig.local import LocalRig
@@ -236,6 +238,41 @@ def test_an_arm_page_says_why_what_was_received_was_not_all_applied(
         assert "13 received, 12 applied since the agent started" in text, text
         assert re.search(r"not applied\s+1 rejected$", text, re.MULTILINE), text
         leave(page)
+    assert browser_errors == []
+
+
+def test_an_arm_page_names_the_servo_that_reports_an_error_itself(
+    tmp_path: Path, page: Any, browser_errors: list[str]
+) -> None:
+    """A walk sent the overload bit on wrist_flex and the voltage bit on the gripper: nothing showed them."""
+    agent = unbrokered_agent(tmp_path, workers=1, **{"telemetry.devices": ["arm-001"]})
+    try:
+        message = make_payload("arm-001", 0.0, "ticks", random.Random(3))
+        agent.feed("dt/lerobot/arm-001/telemetry", encode(message))
+        servos = wait_for(lambda: agent.state().devices["arm-001"].servos, 30, "arm-001's servos")
+        assert {s.errors for s in servos.values()} == {None}  # the edge sent no status
+        for joint in message["joints"].values():
+            joint["status"] = 0
+        message["joints"]["wrist_flex"]["status"] = 32
+        message["joints"]["gripper"]["status"] = 1 | 8
+        message["timestamp"] += 100
+        agent.feed("dt/lerobot/arm-001/telemetry", encode(message))
+        wait_for(
+            lambda: (agent.state().devices["arm-001"].servos or {})["wrist_flex"].errors == ("overload",),
+            30,
+            "wrist_flex's overload bit in /state",
+        )
+        doc = json.loads(http_get(agent.http_url + "/state")[2])
+        errors = {j: s["errors"] for j, s in doc["devices"]["arm-001"]["servos"].items()}
+        assert errors["gripper"] == ["voltage", "current"] and errors["shoulder_pan"] == [], errors
+        page.goto(agent.http_url + "/arm/arm-001")
+        row = page.locator("#summary", has_text="servo errors")
+        row.wait_for()
+        text = row.inner_text()
+        assert "wrist_flex servo (motor id 4): overload; gripper servo (motor id 6): voltage, current" in text
+        leave(page)
+    finally:
+        agent.stop()
     assert browser_errors == []
 
 

@@ -973,3 +973,14 @@ def test_diagnostic_columns_hold_what_joint_diagnostics_hold() -> None:
             diag = message.diagnostics[name]
             for field, column in fields.items():
                 assert float(column[k, j]) == getattr(diag, field), (k, name, field)
+
+
+def test_a_servos_status_bits_are_named() -> None:
+    from twin.robot.sts3215 import STATUS_BITS, status_names
+
+    assert STATUS_BITS == ("voltage", "sensor", "temperature", "current", "angle", "overload")
+    assert status_names(0) == ()
+    assert status_names(32) == ("overload",)
+    assert status_names(1 | 8) == ("voltage", "current")
+    assert status_names(0b111111) == STATUS_BITS
+    assert status_names(64 | 2) == ("sensor",)  # bits above the sixth name nothing

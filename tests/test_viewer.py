@@ -378,9 +378,11 @@ def test_servo_overlay_lists_each_servo_with_its_worst_alarm():
         current_a=0.65,
         alarm_severity="critical",
         alarm_state="ACTIVE",
+        errors=("temperature", "overload"),
     )
     d = DeviceState(
-        health=HealthSnapshot(status=DeviceStatus.ONLINE), servos={"elbow_flex": hot, "gripper": ServoState()}
+        health=HealthSnapshot(status=DeviceStatus.ONLINE),
+        servos={"elbow_flex": hot, "gripper": ServoState(errors=())},
     )
     fleet = FleetView()
     fleet.update(state_of(arm_001=d), 1.0)
@@ -388,7 +390,9 @@ def test_servo_overlay_lists_each_servo_with_its_worst_alarm():
     assert info is not None
     table = dict(servo_rows(info.servos))
     assert servo_rows(None) == []
-    assert table["elbow_flex"] == "66 C  load -31 % (model 31 %)  0.65 A  [critical ACTIVE]"
+    assert table["elbow_flex"] == (
+        "66 C  load -31 % (model 31 %)  0.65 A  [critical ACTIVE]  servo error: temperature, overload"
+    )
     assert table["gripper"] == "-  load -  -"
 
 

@@ -43,6 +43,14 @@ LOAD_UNITS_PER_PERCENT = 10
 CURRENT_MA_PER_UNIT = 6.5
 # Present_Voltage (address 62): 0.1 V per unit.
 VOLTAGE_UNITS_PER_VOLT = 10
+# Status (address 65): the servo's error bits, lowest first; what the servo itself says is wrong.
+STATUS_BITS = ("voltage", "sensor", "temperature", "current", "angle", "overload")
+
+
+def status_names(status: int) -> tuple[str, ...]:
+    """The names of the error bits set in a status value (bits above the sixth are ignored)."""
+    return tuple(name for bit, name in enumerate(STATUS_BITS) if status >> bit & 1)
+
 
 # --- factory protection settings (FT-TBL, EEPROM defaults) -------------------------------------------------
 

@@ -26,6 +26,7 @@ from typing import NamedTuple, Protocol, runtime_checkable
 
 import msgspec
 
+from twin.robot import so101
 from twin.service.calibrations import push_hint
 from twin.service.events import Event, EventQuery
 from twin.service.state import AgentState, AlarmInfo, DeviceState
@@ -380,9 +381,10 @@ def arm_view_of(
 
 def arm_document(device: str, view: ArmView) -> bytes:
     """An arm page's document: {"time", "device": DeviceState or null, "alarms": [...], "calibration_push":
-    {"store", "command", "text"}, "agent_started_at"}; its alarms are every one that is not NORMAL, worst
-    first, "calibration_push" says how to give the arm a calibration this agent reads
-    (calibrations.push_hint), and "agent_started_at" (epoch seconds) is where the arm's counters begin."""
+    {"store", "command", "text"}, "agent_started_at", "motor_ids"}; its alarms are every one that is not
+    NORMAL, worst first, "calibration_push" says how to give the arm a calibration this agent reads
+    (calibrations.push_hint), "agent_started_at" (epoch seconds) is where the arm's counters begin, and
+    "motor_ids" each joint's servo id, by which the page names a servo as the alarms do."""
     # Made here, not in the page: only the agent knows its store, and a command for another store (the
     # stack's, from a laptop's agent) would push a file this agent never reads.
     hint = push_hint(device, view.calibration_store)
@@ -393,6 +395,7 @@ def arm_document(device: str, view: ArmView) -> bytes:
             "alarms": view.alarms,
             "calibration_push": {"store": hint.store, "command": hint.command, "text": hint.text},
             "agent_started_at": view.started_at,
+            "motor_ids": so101.MOTOR_IDS,
         }
     )
 

@@ -95,7 +95,7 @@ from twin.output.sinks import AppliedSample, RejectedSample, TwinSink, rejected_
 
 # This module is the heavy end of the agent (MuJoCo, USD): the agent imports it only for an in-process
 # mirror, and worker processes import it; the agent with worker processes never does.
-from twin.robot import so101
+from twin.robot import so101, sts3215
 from twin.robot.calibration import Calibration, load_calibration
 from twin.robot.model import ModelError, RobotModel
 from twin.service.admission import TOO_MANY_DEVICES, DeviceBudget
@@ -1610,6 +1610,7 @@ class Mirror:
                 still=h.still if h else None,
                 alarm_severity=str(severity) if severity else None,
                 alarm_state=str(state) if state else None,
+                errors=None if diag.status is None else sts3215.status_names(diag.status),
             )
         return out
 

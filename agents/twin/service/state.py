@@ -82,6 +82,9 @@ class ServoState:
     still: bool | None = None
     alarm_severity: str | None = None  # warning | critical
     alarm_state: str | None = None  # ACTIVE | ACKNOWLEDGED | LATCHED
+    # The error bits the servo itself sets in its status register, by name (robot.sts3215.STATUS_BITS);
+    # None when the edge sends no status.
+    errors: tuple[str, ...] | None = None
 
 
 @dataclass(frozen=True, slots=True)

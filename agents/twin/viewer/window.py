@@ -157,11 +157,13 @@ def servo_rows(servos: Mapping[str, ServoState] | None) -> list[tuple[str, str]]
     for joint, s in servos.items():
         model = "" if s.model_load_percent is None else f" (model {s.model_load_percent:.0f} %)"
         alarm = f"  [{s.alarm_severity} {s.alarm_state}]" if s.alarm_severity else ""
+        # What the servo itself reports wrong (its status register), beside what the twin judged.
+        errors = f"  servo error: {', '.join(s.errors)}" if s.errors else ""
         rows.append(
             (
                 joint,
                 f"{_fmt(s.temperature_c, 'C', digits=0)}  load {_fmt(s.load_percent, '%', digits=0)}{model}  "
-                f"{_fmt(s.current_a, 'A', digits=2)}{alarm}",
+                f"{_fmt(s.current_a, 'A', digits=2)}{alarm}{errors}",
             )
         )
     return rows

@@ -227,6 +227,13 @@
     renderAlarms([]);
   }
 
+  function servoErrors(servos, motorIds) {
+    const said = Object.entries(servos || {}).filter(([, s]) => s.errors && s.errors.length)
+      .map(([joint, s]) => `${joint} servo (motor id ${motorIds[joint] ?? "?"}): ${s.errors.join(", ")}`);
+    if (said.length) return said.join("; ");
+    return Object.values(servos || {}).some((s) => s.errors) ? "none" : "not sent by the edge";
+  }
+
   // Why received and applied differ (a walk read "4007 received, 3990 applied" with no reason): the counters
   // /state gives, each named only when it is not zero.
   function notApplied(c) {
@@ -319,6 +326,8 @@
         (doc.agent_started_at ? ` since the agent started (${Twin.time(doc.agent_started_at)}, ${Twin.zone()})` : "")],
       // A row of its own, always there: a reason appearing mid-view must not move the alarms under the pointer.
       ["not applied", notApplied(h.counters)],
+      // What the servos themselves report wrong (their status registers), by servo; always there, as above.
+      ["servo errors", servoErrors(d.servos, doc.motor_ids || {})],
     ]);
     kv(lossBox, [
       ["lost (estimated)", `${d.loss.lost} of ${d.loss.received + d.loss.lost} (${Twin.num(d.loss.loss_ratio * 100, 2)} %)`],
