@@ -709,5 +709,6 @@ def config_notes(path: str | Path | Sequence[str | Path] | None, config: AgentCo
 
 
 def _shown(value: Any) -> str:
-    text = repr(value) if not isinstance(value, list) else "[" + ", ".join(map(repr, value)) + "]"
+    """A TOML value in a note, cut short when long (a devices list of a large fleet)."""
+    text = repr(value)
     return text if len(text) <= 80 else text[:77] + "..."
