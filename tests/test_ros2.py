@@ -316,3 +316,21 @@ def test_twin_run_ros2_without_the_extra_exits_2_and_says_how_to_install(tmp_pat
     proc = run_twin(["run", "--ros2", "--broker", "mqtt://127.0.0.1:1"], env, timeout=60)
     assert proc.returncode == 2, proc.stderr
     assert "pip install 'so101-twin[ros2]'" in proc.stderr
+    # The venv of a checkout has no pip: the hint names what works there (a walk found pip's failing).
+    assert "in this checkout `make setup`" in proc.stderr
+
+
+@pytest.mark.slow
+def test_an_agent_with_worker_processes_refuses_a_missing_ros2_extra_before_it_connects(tmp_path) -> None:
+    """A walk: with worker processes the agent connected and subscribed, then stopped with "2
+    messages_not_mirrored", as if data had been lost, when a worker could not open the bridge."""
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text("import sys\nsys.modules['cyclonedds'] = None\n")
+    env = {**os.environ, "PYTHONPATH": str(site)}
+    args = ["run", "--ros2", "--workers", "2", "--broker", "mqtt://127.0.0.1:1", "--http", "127.0.0.1:0"]
+    proc = run_twin(args, env, timeout=60)
+    assert proc.returncode == 2, proc.stderr
+    assert "the ROS 2 bridge needs cyclonedds (not installed)" in proc.stderr, proc.stderr
+    out = proc.stdout + proc.stderr
+    assert "could not connect" not in out and "messages_not_mirrored" not in out, out

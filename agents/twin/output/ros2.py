@@ -28,6 +28,7 @@ Cyclone configuration. docs/ros2.md is the user's guide.
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import json
 import logging
 import math
@@ -56,7 +57,12 @@ MAX_BLOCKING_S = 0.05
 # ROS_DOMAIN_ID range usable on Linux: Cyclone computes ports as 7400 + 250 * domain, which must stay < 65536.
 DOMAIN_ID_MAX = 232
 EPROSIMA_VENDOR_ID = "1.15"
-INSTALL_HINT = "install the ros2 extra: pip install 'so101-twin[ros2]'"
+# `pip` is not in the venv `make setup` and `make demo` build (uv fills it): in a checkout the command is
+# `make setup`, which installs every extra.
+INSTALL_HINT = (
+    "install the ros2 extra: in this checkout `make setup` (every extra, into .venv); in an environment of "
+    "your own, pip install 'so101-twin[ros2]'"
+)
 
 # Joint names as the ROS side knows them, in the edge's joint order (so101.JOINT_NAMES). "so101" keeps the
 # telemetry names, which are also the joint names of the SO-101 URDF and of our MJCF (RViz with
@@ -491,6 +497,17 @@ class BridgeCounters:
     published: int = 0
     refused: int = 0
     refused_devices: set[str] = field(default_factory=set)
+
+
+def check_available() -> None:
+    """Ros2Error with the install hint when cyclonedds is not installed, without loading it: an agent whose
+    mirrors are worker processes checks here before it connects, not when a worker opens the bridge."""
+    try:
+        found = importlib.util.find_spec("cyclonedds") is not None
+    except (ImportError, ValueError):  # ValueError: blocked in sys.modules (None there)
+        found = False
+    if not found:
+        raise Ros2Error(f"the ROS 2 bridge needs cyclonedds (not installed); {INSTALL_HINT}")
 
 
 def _load_cyclonedds() -> Any:

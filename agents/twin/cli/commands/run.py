@@ -211,6 +211,15 @@ def _build_service(config: AgentConfig) -> AgentService | int:
     from twin.service.workerstart import start_fork_server, worker_count
 
     workers = worker_count(config)
+    if workers > 1 and config.ros2.enabled:
+        # The workers open the bridge after the agent has connected: a missing extra is told before, as for
+        # an in-process mirror, not as messages that were never mirrored.
+        from twin.output.ros2 import Ros2Error, check_available
+
+        try:
+            check_available()
+        except Ros2Error as exc:
+            return _config_error(str(exc))
     if workers > 1:
         # First: the workers' fork server imports the mirror on another core while this process goes on.
         start_fork_server(config.twin.model)
