@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -407,3 +408,23 @@ def test_demo_rejects_bad_arguments():
     )
     assert proc.returncode == 2
     assert "--seconds 0" in proc.stderr
+
+
+def test_a_served_demo_takes_any_free_port_when_rerun_s_own_is_taken(tmp_path):
+    """A walk ran `twin demo --rerun-serve` with a viewer already on 9876: the demo stopped, naming a config
+    key and a flag it does not have, and left a cut twin.rrd."""
+    import socket
+
+    from twin.output.rerun_settings import DEFAULT_GRPC_PORT
+    from twin.rig.demo import DemoConfig, _agent_overrides
+
+    held = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    try:
+        with contextlib.suppress(OSError):  # already taken by something else: as good for this test
+            held.bind(("127.0.0.1", DEFAULT_GRPC_PORT))
+            held.listen()
+        overrides = _agent_overrides(DemoConfig(rerun_serve=True), ["arm-001"], tmp_path)
+        assert overrides["rerun.serve"] is True and overrides["rerun.grpc_port"] == 0, overrides
+        assert "rerun.grpc_port" not in _agent_overrides(DemoConfig(), ["arm-001"], tmp_path)
+    finally:
+        held.close()

@@ -32,6 +32,7 @@ from __future__ import annotations
 import json
 import logging
 import shutil
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -42,6 +43,7 @@ from typing import Any, TypeVar
 from twin.core.health import DeviceStatus
 from twin.edge.payload import device_ids
 from twin.edge.servo_physics import SERVO_MODES, PhysicalServoConfig
+from twin.output.rerun_settings import DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from twin.rig.console_shots import CHROMIUM, ConsoleShotError, console_screenshots, missing_for_shots
 from twin.service.state import AgentState, DeviceState
 
@@ -429,7 +431,27 @@ def _agent_overrides(config: DemoConfig, devices: list[str], out_dir: Path) -> d
         "history.commit_every_s": 2.0,
         "rerun.save": str(out_dir / RRD_NAME) if config.rerun else "",
         "rerun.serve": config.rerun_serve,
+        # Rerun's own ports when they are free, else any: a demo has no flag to choose them, and one that
+        # stopped on a viewer already open left a cut twin.rrd (a walk). The URL printed is the one it serves.
+        **(
+            {
+                "rerun.grpc_port": _free_or_any(DEFAULT_GRPC_PORT),
+                "rerun.web_port": _free_or_any(DEFAULT_WEB_PORT),
+            }
+            if config.rerun_serve
+            else {}
+        ),
     }
+
+
+def _free_or_any(port: int) -> int:
+    """`port` when nothing listens on it on the loopback, else 0 (the sink then takes any free one)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        try:
+            probe.bind(("127.0.0.1", port))
+        except OSError:
+            return 0
+    return port
 
 
 def _start_agent(
