@@ -7,6 +7,7 @@ applied message.
 
 from __future__ import annotations
 
+import os
 import re
 import signal
 import socket
@@ -116,6 +117,9 @@ def test_twin_web_runs_the_agent_with_the_viewer_on_loopback_only(rig) -> None:
     try:
         url, printed = read_until_url(proc, 90)
         assert "AWS-StartPortForwardingSession" in printed
+        # The native viewer's command names the rerun of this venv: a walk found `rerun` not on PATH.
+        rerun = os.path.relpath(Path(sys.executable).with_name("rerun"), Path.cwd())
+        assert f"native viewer: {rerun} --connect rerun+http://127.0.0.1:" in printed, printed
         ports = check_page(url)
         sockets = listening(proc)
         assert {port for _, port in sockets} >= set(ports)

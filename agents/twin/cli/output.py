@@ -9,11 +9,15 @@ complained.
 from __future__ import annotations
 
 import importlib
+import os
+import shlex
+import shutil
 import signal
 import sys
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from types import ModuleType
 
 
@@ -98,3 +102,25 @@ def stop_on_signals(on_signal: Callable[[int], None] | None = None) -> Iterator[
     finally:
         for sig, old in previous.items():
             signal.signal(sig, old)
+
+
+def program(name: str) -> str | None:
+    """The executable `name` this environment installed (beside its interpreter, else on PATH), as a
+    path that runs as printed from the current directory; None when there is none.
+
+    Console scripts land in the venv's bin/, which is not on PATH unless the venv is activated, and `make
+    demo` does not activate it: a bare `twin` or `rerun` in what a command prints would not be found."""
+    beside = Path(sys.executable).with_name(name)
+    found = str(beside) if beside.is_file() and os.access(beside, os.X_OK) else shutil.which(name)
+    return None if found is None else runnable(Path(found))
+
+
+def runnable(path: Path) -> str:
+    """`path` relative to the current directory when it is under it, else absolute, quoted for a shell."""
+    absolute = Path(os.path.abspath(path))  # not resolved: the venv's python is a link out of the venv
+    try:
+        shown = str(absolute.relative_to(Path.cwd()))
+    except ValueError:
+        return shlex.quote(str(absolute))
+    # A name without a directory would be looked up on PATH instead of here.
+    return shlex.quote(shown if os.sep in shown else f".{os.sep}{shown}")

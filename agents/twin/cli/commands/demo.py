@@ -6,14 +6,13 @@ import argparse
 import logging
 import os
 import shlex
-import shutil
 import sys
 import time
 from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from twin.cli.output import Console, DevToolMissing, import_dev_tool, stop_on_signals
+from twin.cli.output import Console, DevToolMissing, import_dev_tool, program, runnable, stop_on_signals
 
 console = Console("demo")
 
@@ -209,35 +208,13 @@ def _summary(stats: dict[str, Any], out_dir: Path) -> None:
         console.out(f"  console pictures skipped: {stats['console']['skipped']}")
     if "rrd" in stats["files"]:
         rrd = shlex.quote(str(out_dir / stats["files"]["rrd"]))
-        viewer = _program("rerun") or f"{_twin_program()} web"  # twin web serves a recording as well
+        viewer = program("rerun") or f"{_twin_program()} web"  # twin web serves a recording as well
         console.out(f"  open the Rerun recording: `{viewer} {rrd}`  (docs/web.md)")
 
 
 def _twin_program() -> str:
     """How to run `twin` as printed: this environment's console script, or its interpreter with -m."""
-    return _program("twin") or f"{_runnable(Path(sys.executable))} -m twin.cli"
-
-
-def _program(name: str) -> str | None:
-    """The executable `name` this demo's environment installed (beside its interpreter, else on PATH), as a
-    path that runs as printed from the current directory; None when there is none.
-
-    Console scripts land in the venv's bin/, which is not on PATH unless the venv is activated, and `make
-    demo` does not activate it: a bare `twin` or `rerun` in what the demo prints would not be found."""
-    beside = Path(sys.executable).with_name(name)
-    found = str(beside) if beside.is_file() and os.access(beside, os.X_OK) else shutil.which(name)
-    return None if found is None else _runnable(Path(found))
-
-
-def _runnable(path: Path) -> str:
-    """`path` relative to the current directory when it is under it, else absolute, quoted for a shell."""
-    absolute = Path(os.path.abspath(path))  # not resolved: the venv's python is a link out of the venv
-    try:
-        shown = str(absolute.relative_to(Path.cwd()))
-    except ValueError:
-        return shlex.quote(str(absolute))
-    # A name without a directory would be looked up on PATH instead of here.
-    return shlex.quote(shown if os.sep in shown else f".{os.sep}{shown}")
+    return program("twin") or f"{runnable(Path(sys.executable))} -m twin.cli"
 
 
 def _ms(value: float | None) -> str:

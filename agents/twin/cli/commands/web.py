@@ -16,7 +16,7 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from twin.cli.commands import run as run_command
-from twin.cli.output import Console, stop_on_signals
+from twin.cli.output import Console, program, stop_on_signals
 from twin.output.rerun_settings import DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 
 console = Console("web")
@@ -78,7 +78,8 @@ def _announce(service: Any) -> None:
         console.err("the Rerun sink is not serving; see the log above")
         return
     console.out(f"open {sink.viewer_url}")
-    console.out(f"  native viewer: rerun --connect {sink.grpc_url}")
+    # The rerun beside this interpreter: the venv's bin/ is not on PATH unless it is activated.
+    console.out(f"  native viewer: {program('rerun') or 'rerun'} --connect {sink.grpc_url}")
     console.out("  " + _ssm_hint(sink.viewer_url, sink.grpc_url))
     console.out("  stop with Ctrl-C")
 
