@@ -32,7 +32,6 @@ from __future__ import annotations
 import json
 import logging
 import shutil
-import socket
 import threading
 import time
 from collections.abc import Callable
@@ -446,12 +445,12 @@ def _agent_overrides(config: DemoConfig, devices: list[str], out_dir: Path) -> d
 
 def _free_or_any(port: int) -> int:
     """`port` when nothing listens on it on the loopback, else 0 (the sink then takes any free one)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
-        try:
-            probe.bind(("127.0.0.1", port))
-        except OSError:
-            return 0
-    return port
+    from twin.output.rerun_sink import RerunSinkError, bindable_port  # noqa: PLC0415 - rerun loads here
+
+    try:
+        return bindable_port(port, "rerun.grpc_port")
+    except RerunSinkError:
+        return 0
 
 
 def _start_agent(

@@ -738,12 +738,11 @@ class AgentService:
         """The arms of shards that gave no answer, as their latest checkpoints left them (`_ask_fleet`)."""
         # Worker processes share the host's monotonic clock, which their checkpoints are on.
         now = time.monotonic()
+        # A page open through a stop read "restarting" on every card, and nothing restarts.
+        mirror = MirrorStatus.STOPPING if self._stopping.is_set() else MirrorStatus.RESTARTING
         devices: dict[str, DeviceState] = {}
         for shard in silent:
-            devices.update(shard.restarting_devices(self.config.health, now))
-        if self._stopping.is_set():
-            # A page open through a stop read "restarting" on every card, and nothing restarts.
-            return {d: dataclasses.replace(s, mirror=MirrorStatus.STOPPING) for d, s in devices.items()}
+            devices.update(shard.restarting_devices(self.config.health, now, mirror))
         return devices
 
     def _checkpoint_alarms(self, silent: Sequence[Shard], *, include_normal: bool) -> list[AlarmInfo]:

@@ -142,6 +142,7 @@ from twin.service.state import (
     AlarmsSummary,
     DeviceState,
     MailboxState,
+    MirrorStatus,
     RecordingState,
     ServoState,
     WorkerInfo,
@@ -1825,7 +1826,9 @@ class LocalShard:
         self.checkpoint = checkpoint  # never restarts
         return True
 
-    def restarting_devices(self, thresholds: HealthThresholds, now: float) -> dict[str, DeviceState]:
+    def restarting_devices(
+        self, thresholds: HealthThresholds, now: float, mirror: MirrorStatus = MirrorStatus.RESTARTING
+    ) -> dict[str, DeviceState]:
         return {}  # never restarts: a dead worker thread is `failed`
 
     def restarting_alarms(self, now: float, wall: float, *, include_normal: bool) -> list[AlarmInfo]:

@@ -738,8 +738,11 @@ class Shard(Protocol):
         was asked for), only if no restart began since (False then: it is the dead process's)."""
         ...
 
-    def restarting_devices(self, thresholds: HealthThresholds, now: float) -> dict[str, DeviceState]:
-        """While restarting: the mirror's devices as its latest checkpoint left them."""
+    def restarting_devices(
+        self, thresholds: HealthThresholds, now: float, mirror: MirrorStatus = MirrorStatus.RESTARTING
+    ) -> dict[str, DeviceState]:
+        """While restarting (or once the agent's stop has ended the mirror: `mirror`): the mirror's devices as
+        its latest checkpoint left them."""
         ...
 
     def restarting_alarms(self, now: float, wall: float, *, include_normal: bool) -> list[AlarmInfo]:
@@ -1240,8 +1243,10 @@ class WorkerShard:
             if isinstance(message, Refused) and message.call_id == call_id:
                 _raise_refusal(message, self.index)
 
-    def restarting_devices(self, thresholds: HealthThresholds, now: float) -> dict[str, DeviceState]:
-        """This worker's arms as its latest checkpoint left them, marked restarting (empty without one)."""
+    def restarting_devices(
+        self, thresholds: HealthThresholds, now: float, mirror: MirrorStatus = MirrorStatus.RESTARTING
+    ) -> dict[str, DeviceState]:
+        """This worker's arms as its latest checkpoint left them, marked `mirror` (empty without one)."""
         checkpoint = self.checkpoint
         if checkpoint is None:
             return {}
@@ -1250,7 +1255,8 @@ class WorkerShard:
         problems = dict(calibrations.problems)
         devices = {}
         for device, saved in checkpoint.devices.items():
-            state = checkpoint_device(device, saved, thresholds, now, checkpoint.tracking_since)
+            since = checkpoint.tracking_since
+            state = checkpoint_device(device, saved, thresholds, now, since, mirror=mirror)
             source = sources.get(device) or self._config.telemetry.calibration
             devices[device] = dataclasses.replace(
                 state,
@@ -1341,9 +1347,15 @@ def alarm_info(view: AlarmView, now_mono: float, now_wall: float) -> AlarmInfo:
 
 
 def checkpoint_device(
-    device: str, saved: DeviceCheckpoint, thresholds: HealthThresholds, now: float, since: float
+    device: str,
+    saved: DeviceCheckpoint,
+    thresholds: HealthThresholds,
+    now: float,
+    since: float,
+    *,
+    mirror: MirrorStatus = MirrorStatus.RESTARTING,
 ) -> DeviceState:
-    """A device's state as a checkpoint knows it (its mirror is being started again)."""
+    """A device's state as a checkpoint knows it (its mirror is being started again, or has stopped)."""
     loss = DeviceLoss.from_state(saved.loss).snapshot(now) if saved.loss is not None else LossSnapshot()
     return DeviceState(
         device_id=device,
@@ -1354,7 +1366,7 @@ def checkpoint_device(
         targets_rad=saved.targets_rad,
         gripper_percent=saved.gripper_percent,
         loss=loss,
-        mirror=MirrorStatus.RESTARTING,
+        mirror=mirror,
     )
 
 
