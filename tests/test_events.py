@@ -346,6 +346,32 @@ def test_a_time_range_whose_end_is_not_after_its_start_is_a_bad_query(tmp_path: 
         agent.stop()
 
 
+def test_a_filter_that_matches_nothing_answers_the_newest_id(tmp_path: Path) -> None:
+    """The Events page starts its stream at `last_id`: a device filter with no match answered the `after` it
+    was given, so the page's stream began again at every other arm's first event."""
+    from conftest import http_get
+
+    agent = unbrokered_agent(tmp_path, 1, **{"telemetry.devices": ["arm-001"]})
+    try:
+        rng = random.Random(5)
+        agent.feed("dt/lerobot/arm-001/telemetry", encode(make_payload("arm-001", 0.0, "ticks", rng)))
+        wait_for(lambda: agent.events(EventQuery(device="arm-001")), 30, "arm-001's arrival event")
+        url = f"{agent.http_url}/api/events"
+        everything = json.loads(http_get(url)[2])
+        newest = everything["events"][-1]["id"]
+        assert everything["last_id"] == newest > 0, everything
+        for query in ("device=arm-999", "device=arm-999&after=0", "kind=broker&level=error"):
+            doc = json.loads(http_get(f"{url}?{query}")[2])
+            assert doc["events"] == [] and doc["last_id"] >= newest, (query, doc)
+        # A filter with matches still ends at its last match or later, never before it.
+        doc = json.loads(http_get(f"{url}?device=arm-001")[2])
+        assert doc["events"] and doc["last_id"] >= doc["events"][-1]["id"], doc
+        # An id from beyond this store (a page from a run before) is kept, as before.
+        assert json.loads(http_get(f"{url}?after={newest + 500}")[2])["last_id"] == newest + 500
+    finally:
+        agent.stop()
+
+
 def test_clock_watch_reports_an_edge_clock_far_off_twice_in_a_row_once_and_its_return() -> None:
     """A walk set an arm's clock 300 s ahead: accepted, and shown only as edge_clock_offset_s = -300."""
     s, _ = store()

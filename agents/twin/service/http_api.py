@@ -98,6 +98,7 @@ from twin.service.stream_hub import (
     StreamHub,
     Subscription,
     encode_events,
+    newest_event_id,
 )
 
 log = logging.getLogger(__name__)
@@ -687,10 +688,15 @@ class AgentHttpServer:
         return await self._call(lambda: source.events(query))
 
     async def _api_events(self, request: Request) -> Response:
+        # `last_id` is where a page's stream picks up. The newest id read before the query, so an event
+        # stored between the two reads is in the answer or after the cursor; with it, a filter that matches
+        # nothing does not send the page back to the start of every other arm's events.
+        source = self._source
+        newest = await self._call(lambda: newest_event_id(source)) if isinstance(source, EventSource) else 0
         events = await self._query_events(request, limit=1000)
         if isinstance(events, Response):
             return events
-        last = events[-1].id if events else _int_param(request, "after", 0)
+        last = max(newest, events[-1].id if events else _int_param(request, "after", 0))
         body = b'{"last_id":' + str(last).encode() + b',"events":' + encode_events(events) + b"}"
         return _json(200, body)
 

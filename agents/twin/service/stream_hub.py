@@ -257,7 +257,7 @@ class StreamHub:
         # The newest id before the backlog: an event stored between the two reads is then in the backlog, or
         # after the cursor, and so in the next tick. Read after it (as it was), such an event was in neither,
         # and a page that had loaded none missed it for good (a flaky test found it under load).
-        newest = None if self._event_cursor is not None else await asyncio.to_thread(_newest_id, source)
+        newest = None if self._event_cursor is not None else await asyncio.to_thread(newest_event_id, source)
         backlog = await asyncio.to_thread(source.events, EventQuery(after_id=after_id, limit=EVENTS_PER_TICK))
         if self._event_cursor is None:
             # Nothing after `after_id`: the tail starts from the newest (a page from before a restart may
@@ -281,7 +281,8 @@ class StreamHub:
             sub.push(frame)
 
 
-def _newest_id(source: EventSource) -> int:
+def newest_event_id(source: EventSource) -> int:
+    """The id of the newest event `source` holds (0 for none)."""
     newest = source.events(EventQuery(limit=1))
     return newest[-1].id if newest else 0
 
