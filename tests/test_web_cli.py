@@ -186,7 +186,26 @@ def test_twin_web_with_its_stream_port_taken_names_its_own_flag() -> None:
         proc = twin_web("--broker", "mqtt://127.0.0.1:1", "--grpc-port", str(port), "--http", "127.0.0.1:0")
     assert proc.returncode == 1
     assert f"twin web: cannot start: rerun.grpc_port = {port}: 127.0.0.1:{port} is in use" in proc.stderr
-    assert "twin web --grpc-port 0, picks a free one" in proc.stderr
+    assert "or --grpc-port 0, picks a free one" in proc.stderr
+
+
+def test_twin_run_serves_rerun_on_the_ports_its_flags_name() -> None:
+    """A walk: `twin run --rerun-serve` had no port flags, and its error named `twin web`'s."""
+    cases = (("--grpc-port", "grpc_port", "--web-port"), ("--web-port", "web_port", "--grpc-port"))
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        for flag, key, other in cases:
+            # The other port any free one: Rerun's defaults may be taken by a test running beside this one.
+            serve = ["--rerun-serve", flag, str(port), other, "0"]
+            args = [str(TWIN), "run", "--broker", "mqtt://127.0.0.1:1", "--http", "127.0.0.1:0", *serve]
+            proc = subprocess.run(
+                args, check=False, capture_output=True, text=True, timeout=60, env=child_env()
+            )
+            assert proc.returncode == 1, proc.stderr
+            assert f"twin run: cannot start: rerun.{key} = {port}: 127.0.0.1:{port} is in use" in proc.stderr
+            assert f"or {flag} 0, picks a free one" in proc.stderr
 
 
 @pytest.mark.slow

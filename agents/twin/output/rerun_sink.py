@@ -334,7 +334,7 @@ class RerunWorker:
             self.save_path.parent.mkdir(parents=True, exist_ok=True)
             self._file = self._stream(rr.FileSink(str(self.save_path)))
         if settings.serve:
-            grpc_port = bindable_port(settings.grpc_port, "rerun.grpc_port", "twin web --grpc-port")
+            grpc_port = bindable_port(settings.grpc_port, "rerun.grpc_port", "--grpc-port")
             self._served = self._stream(
                 rr.GrpcServerSink(LOOPBACK, grpc_port, server_memory_limit=settings.memory_limit.strip())
             )
@@ -351,7 +351,7 @@ class RerunWorker:
         self.statics_slice_s = STATICS_SLICE_S
         if settings.serve:
             try:
-                web_port = bindable_port(settings.web_port, "rerun.web_port", "twin web --web-port")
+                web_port = bindable_port(settings.web_port, "rerun.web_port", "--web-port")
                 self._web = start_web_viewer(self.grpc_url or "", web_port)
             except Exception:
                 self._rec.disconnect()

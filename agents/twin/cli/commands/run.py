@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from twin.cli.output import Console, stop_on_signals
 from twin.core.topics import DEFAULT_TOPIC_PREFIX
+from twin.output.rerun_settings import DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from twin.service.config import (
     DEFAULT_HTTP_HOST,
     DEFAULT_HTTP_PORT,
@@ -54,7 +55,24 @@ def register(subparsers: Any) -> None:
         default=None,
         help="stream the fleet to Rerun's web viewer on 127.0.0.1 ([rerun] serve; docs/web.md)",
     )
+    add_rerun_port_arguments(parser)
     parser.set_defaults(func=run)
+
+
+def add_rerun_port_arguments(parser: argparse.ArgumentParser) -> None:
+    """The loopback ports of Rerun's stream and web viewer (`twin run --rerun-serve`, `twin web`)."""
+    parser.add_argument(
+        "--grpc-port",
+        type=int,
+        metavar="PORT",
+        help=f"the stream's loopback port ([rerun] grpc_port, default {DEFAULT_GRPC_PORT}; 0 = any free)",
+    )
+    parser.add_argument(
+        "--web-port",
+        type=int,
+        metavar="PORT",
+        help=f"the web viewer's loopback port ([rerun] web_port, default {DEFAULT_WEB_PORT}; 0 = any free)",
+    )
 
 
 def add_agent_arguments(parser: argparse.ArgumentParser) -> None:
@@ -141,6 +159,8 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         "history.uri": args.history,
         "rerun.save": args.rerun_save,
         "rerun.serve": getattr(args, "rerun_serve", None),
+        "rerun.grpc_port": getattr(args, "grpc_port", None),
+        "rerun.web_port": getattr(args, "web_port", None),
         "log.level": args.log_level,
         "ros2.enabled": args.ros2,
     }

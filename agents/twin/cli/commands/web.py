@@ -44,18 +44,7 @@ def register(subparsers: Any) -> None:
         "rrd", nargs="?", metavar="FILE.rrd", help="serve this recording instead of the agent"
     )
     run_command.add_agent_arguments(parser)
-    parser.add_argument(
-        "--grpc-port",
-        type=int,
-        metavar="PORT",
-        help=f"the stream's loopback port ([rerun] grpc_port, default {DEFAULT_GRPC_PORT}; 0 = any free)",
-    )
-    parser.add_argument(
-        "--web-port",
-        type=int,
-        metavar="PORT",
-        help=f"the web viewer's loopback port ([rerun] web_port, default {DEFAULT_WEB_PORT}; 0 = any free)",
-    )
+    run_command.add_rerun_port_arguments(parser)
     parser.set_defaults(func=web)
 
 
@@ -63,9 +52,7 @@ def web(args: argparse.Namespace) -> int:
     if args.rrd:
         return serve_file(Path(args.rrd), args)
     overrides = run_command.overrides_from_args(args)
-    overrides.update(
-        {"rerun.serve": True, "rerun.grpc_port": args.grpc_port, "rerun.web_port": args.web_port}
-    )
+    overrides["rerun.serve"] = True
     config = run_command.configure(args, overrides)
     if isinstance(config, int):
         return config
