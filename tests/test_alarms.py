@@ -97,6 +97,7 @@ def test_default_thresholds_come_from_the_servo_settings() -> None:
         ({"mismatch_percent": float("nan")}, "finite"),
         ({"servo_version": "24v"}, r"not one of 7\.4v, 12v"),
         ({"mismatch_joints": ("elbow",)}, "unknown joints"),
+        ({"servo_error_bits": ("overheat",)}, r"unknown status bits \['overheat'\]; choose from \['voltage'"),
     ],
 )
 def test_bad_thresholds_are_refused_with_the_fix(changes: dict[str, Any], match: str) -> None:
@@ -281,6 +282,40 @@ def test_sustained_overload_in_either_direction() -> None:
     # A short peak is no sustained overload.
     alarms = ServoAlarms()
     assert run(alarms, [(0.0, {"load_percent": 95.0}), (0.9, {"load_percent": 95.0}), (1.0, {})]) == []
+
+
+# --- the servo's own errors ---------------------------------------------------------------------------------
+
+
+def test_a_servo_error_bit_raises_at_once_and_names_the_servo_and_the_bit() -> None:
+    """A walk: the servo's status bits (its own protection acting) were shown and raised nothing."""
+    alarms = ServoAlarms()
+    # 32 = bit 5, overload; 34 also the sensor bit; 0 = no error, held 2 s to clear.
+    steps = [(0.0, 0), (1.0, 32), (1.1, 34), (2.0, 0), (3.9, 0), (4.0, 0)]
+    events = run(alarms, [(t, {"status": v}) for t, v in steps], joint="wrist_flex")
+    assert events == [
+        (1.0, "raised", AlarmKind.SERVO_ERROR, AlarmState.ACTIVE),
+        (4.0, "cleared", AlarmKind.SERVO_ERROR, AlarmState.LATCHED),
+    ]
+    view = alarms.views()[0]
+    assert (view.severity, view.unit) == (Severity.CRITICAL, "status")
+    assert view.message == (
+        "wrist_flex servo (motor id 4) reports an error of its own: overload (status bits 32); its "
+        "protection acted and may have cut or limited its torque"
+    )
+
+
+def test_servo_error_bits_chooses_the_bits_and_no_status_holds_the_state() -> None:
+    alarms = ServoAlarms(AlarmThresholds(servo_error_bits=("voltage", "temperature")))
+    assert alarms.thresholds.status_mask == 0b101
+    # The overload bit and bits above the sixth are not errors here; a negative status is no register.
+    assert run(alarms, [(0.0, {"status": 32}), (0.1, {"status": 128}), (0.2, {"status": -1})]) == []
+    assert run(alarms, [(1.0, {"status": 4})]) == [(1.0, "raised", AlarmKind.SERVO_ERROR, AlarmState.ACTIVE)]
+    # An edge that sends no status: nothing known, so the alarm holds, and clears only on a 0 held 2 s.
+    assert run(alarms, [(2.0, {}), (5.0, {}), (6.0, {"status": 0})]) == []
+    assert run(alarms, [(8.0, {"status": 0})]) == [
+        (8.0, "cleared", AlarmKind.SERVO_ERROR, AlarmState.LATCHED)
+    ]
 
 
 # --- model mismatch -----------------------------------------------------------------------------------------
@@ -488,7 +523,13 @@ def _round_payload(device: str, step: int, rng: Any) -> dict[str, Any]:
     payload = make_payload(device, 0.0 if held else step * 0.1, "ticks", rng, timestamp_ms=TS0 + 100 * step)
     # The voltages from a generator of their own, so the other readings are those this stream always had.
     supply = random.Random(f"{device}/{step}")
+    # The status register too (overload's bit in the hot, overloaded spell), now and then left out, a bit the
+    # alarm ignores (128), a negative value or the voltage bit.
+    flags = random.Random(f"status/{device}/{step}")
     for joint in payload["joints"].values():
+        status = flags.choice([32 if spell == 2 else 0] * 30 + [None, 128, -1, 1])
+        if status is not None:
+            joint["status"] = status
         joint["temp"] = (35, 61, 67, 54)[spell] + rng.choice([0, 0, 0, -3])
         joint["current"] = (100, 210, 420, 160)[spell] + rng.choice([0, 0, 40, -40])
         joint["load"] = (10, 850, 1024 + 900, 620)[spell] + rng.choice([0, 0, 0, 30])

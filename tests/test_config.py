@@ -300,7 +300,8 @@ _RULE_KEYS = {
 }
 
 
-@pytest.mark.parametrize("kind", list(AlarmKind))
+# The servo error's levels are fixed (any error bit raises, none clears): no keys of its own to get wrong.
+@pytest.mark.parametrize("kind", [k for k in AlarmKind if k is not AlarmKind.SERVO_ERROR])
 @pytest.mark.parametrize("joint", ["shoulder_pan", "gripper"])
 def test_a_rule_without_hysteresis_names_the_two_keys_to_change(kind: AlarmKind, joint: str) -> None:
     """A raise value moved to its clear value (docs once gave `temperature_warning_c = 55.0` alone, the

@@ -372,6 +372,36 @@ def test_a_filter_that_matches_nothing_answers_the_newest_id(tmp_path: Path) -> 
         agent.stop()
 
 
+def test_a_servo_error_bit_is_an_alarm_and_an_event_naming_the_servo(tmp_path: Path) -> None:
+    """A walk: the servo's status bits (the overload bit on wrist_flex) were shown and raised nothing."""
+    from conftest import http_get
+
+    agent = unbrokered_agent(tmp_path, 2, **{"telemetry.devices": ["arm-001"]})
+    try:
+        rng = random.Random(5)
+        t0 = int(time.time() * 1000)
+        for i in range(3):
+            payload = make_payload("arm-001", 0.1 * i, "ticks", rng, timestamp_ms=t0 + 100 * i)
+            payload["joints"]["wrist_flex"]["status"] = 32 if i else 0
+            agent.feed("dt/lerobot/arm-001/telemetry", encode(payload))
+
+        def raised() -> Any:
+            doc = json.loads(http_get(f"{agent.http_url}/alarms")[2])
+            return next((a for a in doc["alarms"] if a["kind"] == "servo_error"), None)
+
+        alarm = wait_for(raised, 60, "the servo_error alarm of arm-001")
+        assert (alarm["joint"], alarm["severity"], alarm["state"]) == ("wrist_flex", "critical", "ACTIVE"), (
+            alarm
+        )
+        assert "wrist_flex servo (motor id 4) reports an error of its own: overload" in alarm["message"]
+        found = wait_for(
+            lambda: agent.events(EventQuery(kinds=frozenset({"alarm"}), device="arm-001")), 30, "its event"
+        )
+        assert "wrist_flex servo (motor id 4)" in found[-1].message, found
+    finally:
+        agent.stop()
+
+
 def test_clock_watch_reports_an_edge_clock_far_off_twice_in_a_row_once_and_its_return() -> None:
     """A walk set an arm's clock 300 s ahead: accepted, and shown only as edge_clock_offset_s = -300."""
     s, _ = store()

@@ -72,6 +72,7 @@ class AlarmKind(StrEnum):
     OVER_CURRENT = "over_current"
     OVERLOAD = "overload"
     MODEL_MISMATCH = "model_mismatch"
+    SERVO_ERROR = "servo_error"
 
 
 SEVERITY: dict[AlarmKind, Severity] = {
@@ -80,6 +81,8 @@ SEVERITY: dict[AlarmKind, Severity] = {
     AlarmKind.OVER_CURRENT: Severity.CRITICAL,
     AlarmKind.OVERLOAD: Severity.WARNING,
     AlarmKind.MODEL_MISMATCH: Severity.WARNING,
+    # The servo's own protection acted (it cuts or limits its torque): the arm may no longer hold its pose.
+    AlarmKind.SERVO_ERROR: Severity.CRITICAL,
 }
 UNITS: dict[AlarmKind, str] = {
     AlarmKind.OVER_TEMPERATURE: "C",
@@ -87,14 +90,16 @@ UNITS: dict[AlarmKind, str] = {
     AlarmKind.OVER_CURRENT: "A",
     AlarmKind.OVERLOAD: "%",
     AlarmKind.MODEL_MISMATCH: "% points",
+    AlarmKind.SERVO_ERROR: "status",
 }
-# The order evaluate() feeds values in: temperature (twice), current, |load|, model mismatch.
+# The order evaluate() feeds values in: temperature (twice), current, |load|, model mismatch, status bits.
 _KINDS: tuple[AlarmKind, ...] = (
     AlarmKind.OVER_TEMPERATURE,
     AlarmKind.OVER_TEMPERATURE_CRITICAL,
     AlarmKind.OVER_CURRENT,
     AlarmKind.OVERLOAD,
     AlarmKind.MODEL_MISMATCH,
+    AlarmKind.SERVO_ERROR,
 )
 _JOINT_SET = frozenset(so101.JOINT_NAMES)
 _JOINT_INDEX = {joint: i for i, joint in enumerate(so101.JOINT_NAMES)}
@@ -173,6 +178,13 @@ class AlarmThresholds:
     # The jaw holds no weight worth modelling and grasps by design: it is not checked against the model.
     mismatch_joints: tuple[str, ...] = so101.ARM_JOINTS
 
+    # Servo error: an error bit of the servo's status register (edges that send `status`) among these. The
+    # servo sets one only once its own protection acted (after its protection time, e.g. 2 s of overload),
+    # so the first reading raises; a clear waits a little, as a bit may blink while the servo recovers.
+    servo_error_bits: tuple[str, ...] = sts3215.STATUS_BITS
+    servo_error_raise_after_s: float = 0.0
+    servo_error_clear_after_s: float = 2.0
+
     def __post_init__(self) -> None:
         sts3215.servo_version(self.servo_version)  # raises with the choices
         for kind in AlarmKind:
@@ -203,6 +215,17 @@ class AlarmThresholds:
                 f"alarms.mismatch_joints names unknown joints {unknown}; "
                 f"choose from {list(so101.JOINT_NAMES)}"
             )
+        unknown = [b for b in self.servo_error_bits if b not in sts3215.STATUS_BITS]
+        if unknown:
+            raise ValueError(
+                f"alarms.servo_error_bits names unknown status bits {unknown}; "
+                f"choose from {list(sts3215.STATUS_BITS)}"
+            )
+
+    @property
+    def status_mask(self) -> int:
+        """The status register's bits that raise a servo error (servo_error_bits)."""
+        return sum(1 << sts3215.STATUS_BITS.index(name) for name in set(self.servo_error_bits))
 
     @property
     def servo(self) -> sts3215.ServoVersion:
@@ -239,6 +262,10 @@ class AlarmThresholds:
                 self.overload_raise_after_s,
                 self.overload_clear_after_s,
             )
+        if kind is AlarmKind.SERVO_ERROR:
+            # The value is the status's error bits as a number: any set one raises, none clears. Fixed
+            # levels, so no key of theirs can undo the hysteresis (_RULE_KEYS has none).
+            return Hysteresis(1.0, 0.0, self.servo_error_raise_after_s, self.servo_error_clear_after_s)
         return Hysteresis(
             self.mismatch_percent,
             self.mismatch_clear_percent,
@@ -411,15 +438,15 @@ def _still(diag: JointDiagnostics, pose_speed: float | None, limit: float) -> bo
     return True
 
 
-# One joint's readings for the rules: temperature, current, load, velocity, moving (NaN: not given).
-_Reading = tuple[float, float, float, float, float]
+# One joint's readings for the rules: temperature, current, load, velocity, moving, status (NaN: not given).
+_Reading = tuple[float, float, float, float, float, float]
 
 
 def _row_readings(diagnostics: Mapping[str, JointDiagnostics]) -> tuple[list[bool], list[_Reading]]:
     """`_fill` for one row, as lists: which joints were given, and their readings."""
     nan = math.nan
     given = [False] * _JOINTS
-    readings: list[_Reading] = [(nan, nan, nan, nan, nan)] * _JOINTS
+    readings: list[_Reading] = [(nan, nan, nan, nan, nan, nan)] * _JOINTS
     for joint, diag in diagnostics.items():
         j = _JOINT_INDEX.get(joint)
         if j is not None:
@@ -430,6 +457,7 @@ def _row_readings(diagnostics: Mapping[str, JointDiagnostics]) -> tuple[list[boo
                 _float(diag.load_percent),
                 _float(diag.velocity_rad_s),
                 nan if diag.moving is None else float(bool(diag.moving)),
+                _float(diag.status),
             )
     return given, readings
 
@@ -528,6 +556,7 @@ class _Rows:
     velocity: Any
     voltages: Callable[[list[int]], Any]  # rows -> (len(rows), 6) supply volts, NaN where not sent
     moving: Any  # 1.0 True, 0.0 False, NaN None
+    status: Any  # the status register, NaN where not sent
     angles: Any  # (K, 6), NaN where not given
     posed: Any  # (K,) bool: the evaluation came with a pose and its edge time
     stamps: Any  # (K,) int64
@@ -548,6 +577,12 @@ _EVERY_JOINT = itemgetter(*so101.JOINT_NAMES)
 
 def _float(value: float | None) -> float:
     return math.nan if value is None else float(value)
+
+
+def _error_bits(status: float, mask: int) -> float:
+    """The servo error alarm's value: the status register's bits within `mask` (NaN: no status, or a
+    negative one, which no register holds)."""
+    return float(int(status) & mask) if status >= 0.0 else math.nan
 
 
 def _optional(value: float) -> float | None:
@@ -593,6 +628,7 @@ class ServoAlarms:
             for name in ("raise_at", "clear_at", "raise_after_s", "clear_after_s")
         )
         self._check_joints = [joint in self._mismatch_joints for joint in so101.JOINT_NAMES]
+        self._status_mask = self.thresholds.status_mask
 
     # -- rows -----------------------------------------------------------------------------------------------
 
@@ -743,6 +779,7 @@ class ServoAlarms:
             velocity=columns.velocity_rad_s,
             voltages=columns.voltage_v,
             moving=nan,
+            status=columns.status,
             angles=_matrix(angles, count),
             posed=np.ones(count, dtype=bool),
             stamps=np.asarray(timestamps_ms, dtype=np.int64),
@@ -768,6 +805,7 @@ class ServoAlarms:
             rows.load[k, j] = _float(diag.load_percent)
             rows.velocity[k, j] = _float(diag.velocity_rad_s)
             rows.moving[k, j] = math.nan if diag.moving is None else float(bool(diag.moving))
+            rows.status[k, j] = _float(diag.status)
 
     def _evaluate(self, rows: _Rows) -> list[list[AlarmEvent]]:
         """The rules for every row at once (module doc; each row a device of its own), in the steps
@@ -775,9 +813,13 @@ class ServoAlarms:
         np = _np()
         speeds = self._speeds(rows)
         checked, model, mismatch = self._model_check(rows, speeds)
-        # The values of each kind, in _KINDS order: temperature twice, current, |load|, model mismatch.
+        # The values of each kind, in _KINDS order: temperature twice, current, |load|, model mismatch, the
+        # status's error bits (as _error_bits: NaN where not sent or negative).
+        status = rows.status
+        sent = status >= 0.0
+        errors = np.where(sent, np.where(sent, status, 0.0).astype(np.int64) & self._status_mask, np.nan)
         values = np.stack(
-            (rows.temperature, rows.temperature, rows.current, np.abs(rows.load), mismatch), axis=2
+            (rows.temperature, rows.temperature, rows.current, np.abs(rows.load), mismatch, errors), axis=2
         )
         raising, clearing = self._timers(rows, values)
         out: list[list[AlarmEvent]] = [[] for _ in range(len(rows.slots))]
@@ -1018,7 +1060,7 @@ class ServoAlarms:
         for j in range(_JOINTS):
             if not (given[j] and check_joints[j]):
                 continue
-            _, _, load, velocity, moving = readings[j]
+            _, _, load, velocity, moving, _ = readings[j]
             speed = speeds[j]
             if (
                 moving == 1.0
@@ -1061,9 +1103,17 @@ class ServoAlarms:
         for j in range(_JOINTS):
             if not given[j]:
                 continue
-            temperature, current, load, _, _ = readings[j]
+            temperature, current, load, _, _, status = readings[j]
             first = j * _N_KINDS
-            values_of[first : first + _N_KINDS] = (temperature, temperature, current, abs(load), mismatch[j])
+            errors = _error_bits(status, self._status_mask)
+            values_of[first : first + _N_KINDS] = (
+                temperature,
+                temperature,
+                current,
+                abs(load),
+                mismatch[j],
+                errors,
+            )
             for n in range(_N_KINDS):
                 c = first + n
                 value = values_of[c]
@@ -1529,6 +1579,12 @@ def _describe(joint: str, kind: AlarmKind, value: float, rule: Hysteresis, model
         return (
             f"{servo} load {value:.1f} % of stall torque held over {rule.raise_after_s:g} s "
             f"(alarm at {rule.raise_at:g} %)"
+        )
+    if kind is AlarmKind.SERVO_ERROR:
+        bits = int(value)
+        return (
+            f"{servo} reports an error of its own: {', '.join(sts3215.status_names(bits))} (status bits "
+            f"{bits}); its protection acted and may have cut or limited its torque"
         )
     return (
         f"{servo} load differs from the model's holding load ({model or 0.0:.1f} %) by {value:.1f} points "

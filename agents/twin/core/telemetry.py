@@ -1174,6 +1174,8 @@ class DiagnosticColumns:
     current_a: np.ndarray
     load_percent: np.ndarray
     velocity_rad_s: np.ndarray
+    # The status register as sent (NaN where a joint sent none), `known` or not: the servo error alarm's.
+    status: np.ndarray
     messages: Sequence[Telemetry]
 
     def voltage_v(self, rows: Sequence[int]) -> np.ndarray:
@@ -1199,8 +1201,19 @@ def diagnostic_columns(messages: Sequence[Telemetry]) -> DiagnosticColumns:
     raw = array("d")
     known = np.ones(count, dtype=bool)
     nothing = [math.nan] * (4 * len(_JOINTS))
+    with_status: list[int] = []
     for k, message in enumerate(messages):
         r0, r1, r2, r3, r4, r5 = message.readings
+        # Few edges send `status`: its column is filled for the messages that do, NaN for the rest.
+        if not (
+            r0.status is UNSET
+            and r1.status is UNSET
+            and r2.status is UNSET
+            and r3.status is UNSET
+            and r4.status is UNSET
+            and r5.status is UNSET
+        ):
+            with_status.append(k)
         # One list display and one call: this runs for every applied message of the fleet.
         row: list[Any] = [
             *(r0.temp, r0.current, r0.load, r0.velocity),
@@ -1232,11 +1245,15 @@ def diagnostic_columns(messages: Sequence[Telemetry]) -> DiagnosticColumns:
     load = np.where((load >= 1024) & (load <= 2047), -(load - 1024), load) / LOAD_UNITS_PER_PERCENT
     signed = np.where((velocity >= 32768) & (velocity <= 65535), -(velocity - 32768), velocity)
     steps = np.where(float_variant[:, None], velocity, signed)
+    status = np.full((count, len(_JOINTS)), math.nan)
+    for k in with_status:
+        status[k] = [math.nan if r.status is UNSET else r.status for r in messages[k].readings]
     return DiagnosticColumns(
         known=known,
         temperature_c=values[..., 0].copy(),
         current_a=values[..., 1] * CURRENT_MA_PER_UNIT / 1000.0,
         load_percent=load,
         velocity_rad_s=steps * RAD_PER_STEP_S,
+        status=status,
         messages=messages,
     )

@@ -304,6 +304,17 @@ KEY_DOCS: dict[str, str] = {
     "alarms.mismatch_joints": (
         "The joints checked against the model (the jaw grasps by design, so it is left out)."
     ),
+    "alarms.servo_error_bits": (
+        "The servo's own error bits (its status register, from edges that send `status`) that raise "
+        "`servo_error`: any of voltage, sensor, temperature, current, angle and overload."
+    ),
+    "alarms.servo_error_raise_after_s": (
+        "How long an error bit must be set before `servo_error` is raised (0: the first reading; the servo "
+        "sets the bit only once its own protection acted)."
+    ),
+    "alarms.servo_error_clear_after_s": (
+        "How long the status must show none of those bits before `servo_error` clears."
+    ),
     "cloudwatch.emf_file": (
         "Where to append CloudWatch Embedded Metric Format lines (the instance: "
         "`/var/log/so101-twin/emf.log`, which the CloudWatch agent ships). Empty: no CloudWatch "
