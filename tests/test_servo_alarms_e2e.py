@@ -35,6 +35,7 @@ EXPECTED = {
     ("shoulder_lift", "overload"),
     ("shoulder_lift", "over_current"),
     ("shoulder_lift", "model_mismatch"),
+    ("shoulder_lift", "servo_error"),  # the overload bit, once the servo's own 2 s protection time passed
     ("elbow_flex", "model_mismatch"),
 }
 

@@ -25,6 +25,7 @@ from twin.edge.servo_faults import (
     overrides_at,
     parse_fault,
 )
+from twin.robot import so101
 from twin.robot.model import RobotModel
 
 TS0 = 1_764_000_000_000
@@ -175,11 +176,33 @@ def test_heat_raises_and_clears_both_temperature_alarms(robot: RobotModel, varia
 
 
 @pytest.mark.parametrize("variant", ["ticks", "degrees"])
-def test_overload_raises_overload_current_and_mismatch(robot: RobotModel, variant: str) -> None:
+def test_overload_raises_overload_current_mismatch_and_the_servo_error(
+    robot: RobotModel, variant: str
+) -> None:
     alarms = timeline(robot, variant, ServoFault("overload", "shoulder_lift", 1.0, 8.0), 12.0)
     raised = {k for k, s in alarms.seen if s is AlarmState.ACTIVE}  # type: ignore[attr-defined]
     cleared = {k for k, s in alarms.seen if s is AlarmState.LATCHED}  # type: ignore[attr-defined]
-    assert raised == cleared == {AlarmKind.OVERLOAD, AlarmKind.OVER_CURRENT, AlarmKind.MODEL_MISMATCH}
+    assert (
+        raised
+        == cleared
+        == {AlarmKind.OVERLOAD, AlarmKind.OVER_CURRENT, AlarmKind.MODEL_MISMATCH, AlarmKind.SERVO_ERROR}
+    )
+
+
+def test_an_overloaded_servo_reports_its_overload_bit_after_its_protection_time() -> None:
+    """The overload fault's status: 0 until the servo's 2 s protection time has passed, the overload bit until
+    the release, 0 after; on every joint of the arm, and on no arm without an overload fault."""
+    fault = ServoFault("overload", "shoulder_lift", 1.0, 8.0)  # released at 1 + 0.6 x 8 = 5.8 s
+
+    def statuses(t: float, faults: tuple[ServoFault, ...] = (fault,)) -> dict[str, Any]:
+        joints = make_payload("arm-001", t, "ticks", random.Random(3), servo_faults=faults)["joints"]
+        return {name: fields.get("status") for name, fields in joints.items()}
+
+    assert statuses(2.9) == dict.fromkeys(so101.JOINT_NAMES, 0)
+    assert statuses(3.0) == {**dict.fromkeys(so101.JOINT_NAMES, 0), "shoulder_lift": 32}
+    assert statuses(5.7)["shoulder_lift"] == 32 and statuses(5.8)["shoulder_lift"] == 0
+    heat = ServoFault("heat", "elbow_flex", 1.0, 8.0)
+    assert statuses(3.0, (heat,)) == dict.fromkeys(so101.JOINT_NAMES)
 
 
 @pytest.mark.parametrize("variant", ["ticks", "degrees"])

@@ -253,6 +253,8 @@ def _apply_servo_faults(
         if o is not None and o.hold_at_s is not None:
             positions[i] = mock_ticks(o.hold_at_s)[i]
     loads = None
+    # An edge that forwards the status register sends it on every joint: so does an arm whose faults trip one.
+    with_status = any(fault.kind == "overload" for fault in faults)
     if model_loads is not None:
         loads = model_loads.percent(positions)
         volts = model_loads.supply_v * VOLTAGE_UNITS_PER_VOLT
@@ -269,6 +271,8 @@ def _apply_servo_faults(
             else:
                 fields["position"] = round(ticks_to_degrees(positions[i]), 4)
             fields["velocity"] = 0 if ticks_variant else 0.0
+        if with_status:
+            fields["status"] = (o.status or 0) if o is not None else 0
         if o is not None and o.temperature_c is not None:
             fields["temp"] = round(o.temperature_c) if ticks_variant else round(o.temperature_c, 1)
         if o is not None and o.load_percent is not None:

@@ -9,6 +9,9 @@ simulator then encodes like the real registers (sign bits, 0.1 % and 6.5 mA unit
   below the servo's 70 C cut-out), holds for half, and ramps back down over the last quarter;
 - overload: the joint stalls where it is (position held, velocity 0) with OVERLOAD_LOAD_PERCENT load and
   OVERLOAD_CURRENT_A current, past the servo's 80 % overload line and 90 % of its 3.25 A protection current;
+  once that has lasted the servo's overload protection time (2 s) its status reports the overload bit, as an
+  edge that forwards the status register sends it (an arm with an overload fault sends `status` on every
+  joint, 0 where no bit is set);
 - contact: the joint stops where it is and its load rises by CONTACT_JUMP_PERCENT, staying under the overload
   line: only the model check can tell it from holding still.
 
@@ -37,6 +40,7 @@ OVERLOAD_LOAD_PERCENT = 90.0
 OVERLOAD_CURRENT_A = 0.9 * sts3215.PROTECTION_CURRENT_A
 CONTACT_JUMP_PERCENT = 45.0
 RELEASE_AT = 0.6
+OVERLOAD_STATUS = 1 << sts3215.STATUS_BITS.index("overload")
 
 
 @dataclass(frozen=True, slots=True)
@@ -93,6 +97,7 @@ class JointOverride:
     load_percent: float | None = None  # replaces the load
     load_add_percent: float | None = None  # adds to the load, away from zero
     current_a: float | None = None
+    status: int | None = None  # the status register's error bits
 
 
 def overrides_at(faults: tuple[ServoFault, ...], t: float) -> dict[str, JointOverride]:
@@ -111,6 +116,8 @@ def overrides_at(faults: tuple[ServoFault, ...], t: float) -> dict[str, JointOve
         if fault.kind == "overload":
             o.load_percent = OVERLOAD_LOAD_PERCENT
             o.current_a = OVERLOAD_CURRENT_A
+            if t >= fault.start_s + sts3215.OVERLOAD_PROTECTION_TIME_S:
+                o.status = OVERLOAD_STATUS  # the servo's own protection has tripped
         else:
             o.load_add_percent = CONTACT_JUMP_PERCENT
     return out
