@@ -140,8 +140,9 @@ def _add_servo_faults(faults: Any) -> None:
         metavar="KIND:JOINT[:START_S[:DURATION_S]]",
         help=(
             "servo fault on one joint, repeatable: heat (temperature ramps to 68 C and back), overload "
-            "(stall at 90 %% load, 2.9 A; after 2 s the servo's overload status bit), contact (pose holds, load jumps by 45 points); start and duration "
-            "in seconds since the run began (default 5 and 20), e.g. heat:elbow_flex:5:30"
+            "(stall at 90 %% load, 2.9 A; after 2 s the servo's overload status bit), contact (pose "
+            "holds, load jumps by 45 points); start and duration in seconds since the run began (default 5 "
+            "and 20), e.g. heat:elbow_flex:5:30"
         ),
     )
     faults.add_argument(
