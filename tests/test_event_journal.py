@@ -4,8 +4,10 @@ the agent that reads them back says whether the run before it stopped."""
 
 from __future__ import annotations
 
+import json
 import logging
 import random
+import time
 from pathlib import Path
 
 import pytest
@@ -195,12 +197,41 @@ def test_the_agent_reads_its_events_back_and_says_how_its_run_before_ended(tmp_p
     assert (started.id, started.level, started.data["previous"]) == (first_run[-1].id + 1, "info", "stopped")
     assert started.message == "the agent started; its run before stopped"
 
-    # A run that did not reach its stop (killed) wrote no `agent stopped`: the next start warns.
+    # A run that did not reach its stop (killed) wrote no `agent stopped`, and its state file says it had
+    # not stopped: the next start warns.
     lines = events_file.read_bytes().splitlines(keepends=True)
     events_file.write_bytes(b"".join(lines[:-1]))
+    state_says(tmp_path / "state.json", stopped=False)
     agent = unbrokered_agent(tmp_path, 1, **{"twin.events_file": str(events_file)})
     agent.stop()
     third_run = _agent_events(agent)
     warned = third_run[len(second_run) - 1]
     assert warned.kind == "agent" and warned.level == "warning", warned
     assert "did not record a stop" in warned.message and warned.data["previous"] == "did not stop"
+
+    # A walk: a run without an events file was killed after one with it stopped. The journal's last event is
+    # the older run's stop; the state file, which every run writes, says the last one did not stop.
+    state_says(tmp_path / "state.json", stopped=False)
+    agent = unbrokered_agent(tmp_path, 1, **{"twin.events_file": str(events_file)})
+    agent.stop()
+    fourth_run = _agent_events(agent)
+    assert fourth_run[len(third_run)].data["previous"] == "did not stop", fourth_run[len(third_run)]
+
+    # An older agent's state file says nothing of its stop: written after the journal's last event, a run
+    # that kept no journal came between, and the start claims nothing about how it ended.
+    state_says(tmp_path / "state.json", stopped=None)
+    agent = unbrokered_agent(tmp_path, 1, **{"twin.events_file": str(events_file)})
+    agent.stop()
+    fifth_run = _agent_events(agent)
+    assert fifth_run[len(fourth_run)].message == "the agent started", fifth_run[len(fourth_run)]
+
+
+def state_says(path: Path, *, stopped: bool | None) -> None:
+    """Rewrite the state file as a run that ended so would have left it (None: an older agent's, without
+    `stopped`), written a minute after now."""
+    document = json.loads(path.read_text())
+    document.pop("stopped")
+    if stopped is not None:
+        document["stopped"] = stopped
+    document["written_at"] = time.time() + 60.0
+    path.write_text(json.dumps(document))

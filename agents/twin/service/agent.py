@@ -62,7 +62,7 @@ from twin.service.console import (
 from twin.service.event_journal import EventJournal
 from twin.service.events import Event, EventKind, EventLevel, EventQuery, EventStore, FleetWatch
 from twin.service.logs import setup_logging
-from twin.service.persist import NotSavedError, StateFile
+from twin.service.persist import NotSavedError, PreviousRun, StateFile
 from twin.service.shards import (
     CHECKPOINT_EVERY_S,
     AckRequest,
@@ -295,7 +295,8 @@ class AgentService:
         self._started_mono = self._clock()
         self._started_wall = self._wall_clock()
         # First, so this run's events follow the ones read back and its own start.
-        self._emit_started(self._restore_events())
+        previous = self._state_file.previous_run() if self._state_file is not None else None
+        self._emit_started(_previous_stopped(self._restore_events(), previous))
         self._http = self._launch_mirrors()
         self._running = True
         self._supervisor = threading.Thread(target=self._supervise, name="twin-supervisor", daemon=True)
@@ -1121,20 +1122,16 @@ class AgentService:
 
     # ------------------------------------------------------------------------------- the agent's own events
 
-    def _restore_events(self) -> bool | None:
+    def _restore_events(self) -> Event | None:
         """The journal's events back in the store (before any of this run's), then every new one to the
-        journal. Returns whether the run before stopped (it wrote `agent stopped` last); None when there
-        is no journal, or nothing in it."""
+        journal. Returns the journal's last event; None when there is no journal, or nothing in it."""
         journal = self._journal
         if journal is None:
             return None
         restored = journal.load(self._events.capacity)
         self._events.restore(restored)
         self._events.subscribe(journal.add)
-        if not restored:
-            return None
-        last = restored[-1]
-        return last.kind == EventKind.AGENT and last.data.get("action") == "stopped"
+        return restored[-1] if restored else None
 
     def _emit_started(self, previous_stopped: bool | None) -> None:
         data = {"action": "started", "pid": os.getpid()}
@@ -1254,6 +1251,25 @@ def _case_hint(device: str, ids: Iterable[str]) -> str:
     """ " (ids are case-sensitive: did you mean arm-03?)" when `ids` has one that differs by case alone."""
     same = sorted(i for i in ids if i != device and i.casefold() == device.casefold())
     return f" (ids are case-sensitive: did you mean {same[0]}?)" if same else ""
+
+
+def _previous_stopped(journal_last: Event | None, previous: PreviousRun | None) -> bool | None:
+    """Whether the run before this one stopped, for this start's event; None when nothing tells. The state
+    file says so when it has `stopped`: every run with one writes it, and the journal only runs with an
+    events file, so the journal's last `stopped` may be a run older than the last (a walk saw "its run
+    before stopped" under a log line saying that run was killed). Without it, the journal's last event,
+    unless the state file was written after it: a run that kept no journal came between."""
+    if previous is not None and previous.stopped is not None:
+        return previous.stopped
+    if journal_last is None:
+        return None
+    if (
+        previous is not None
+        and previous.written_at is not None
+        and previous.written_at > journal_last.time + 1.0
+    ):
+        return None
+    return journal_last.kind == EventKind.AGENT and journal_last.data.get("action") == "stopped"
 
 
 def _unwritten_text(unwritten: Counter[str]) -> str:

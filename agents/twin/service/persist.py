@@ -37,6 +37,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -70,6 +71,16 @@ class NotSavedError(Exception):
         self.result = result
 
 
+@dataclass(frozen=True, slots=True)
+class PreviousRun:
+    """What the state file says of the run that wrote it: its pid, whether it made its stop's write (None:
+    the file does not say, an older agent's) and when it last wrote (epoch s; None if not a number)."""
+
+    pid: object
+    stopped: bool | None
+    written_at: float | None
+
+
 class StateFile:
     """Reads and writes the state file at `path` (see the module doc)."""
 
@@ -87,6 +98,25 @@ class StateFile:
         # The agent's supervisor and an acknowledgement's own write (AgentService) may both save: one at a
         # time, so `_last` always describes the file on disk.
         self._write_lock = threading.Lock()
+        # The document `previous_run` read, kept for `load`: a large fleet's file is parsed once.
+        self._document: dict[str, Any] | None = None
+
+    def previous_run(self) -> PreviousRun | None:
+        """How the run that wrote the file ended, read as the agent starts (before `load`); None without a
+        file that parses (`load` then says what is wrong with it)."""
+        try:
+            document = _document_of(self.path.read_text(encoding="utf-8"))
+        except (OSError, StateFileError):
+            return None
+        self._document = document
+        stopped, written = document.get("stopped"), document.get("written_at")
+        return PreviousRun(
+            pid=document.get("pid"),
+            stopped=stopped if isinstance(stopped, bool) else None,
+            written_at=float(written)
+            if isinstance(written, int | float) and not isinstance(written, bool)
+            else None,
+        )
 
     # -- reading -------------------------------------------------------------------------------------------
 
@@ -95,8 +125,9 @@ class StateFile:
         no file. A file that cannot be parsed is renamed `<name>.bad` and reported; [] then too. Temporary
         files that writes cut short by a kill left beside it are removed first."""
         self._remove_leftovers()
+        document, self._document = self._document, None
         try:
-            text = self.path.read_text(encoding="utf-8")
+            text = "" if document is not None else self.path.read_text(encoding="utf-8")
         except FileNotFoundError:
             # Absolute: a relative path started from another directory is a new, empty file there.
             log.info(
@@ -109,7 +140,8 @@ class StateFile:
             log.error("state file %s cannot be read (%s); starting without it", self.path, exc)
             return []
         try:
-            document = _document_of(text)
+            if document is None:
+                document = _document_of(text)
             records = records_of(document, now_mono, now_wall)
         except StateFileError as exc:
             bad = self.path.with_name(self.path.name + ".bad")
