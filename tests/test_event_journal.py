@@ -226,6 +226,26 @@ def test_the_agent_reads_its_events_back_and_says_how_its_run_before_ended(tmp_p
     assert fifth_run[len(fourth_run)].message == "the agent started", fifth_run[len(fourth_run)]
 
 
+def test_a_start_after_runs_that_kept_no_events_says_their_events_are_not_here(tmp_path: Path) -> None:
+    """An upgrade walk: the runs before kept no events file, and the Events page began with "the agent
+    started" as if nothing had happened before."""
+    for _ in range(2):
+        agent = unbrokered_agent(tmp_path, 1)  # its state file, no events file
+        agent.stop()
+    (started, _) = _agent_events(agent)
+    assert started.data["previous"] == "stopped" and "were not kept ([twin] events_file" in started.message
+    agent = unbrokered_agent(tmp_path, 1, **{"twin.events_file": str(tmp_path / "events.jsonl")})
+    agent.stop()
+    (started, _) = _agent_events(agent)
+    assert started.message == (
+        "the agent started; its run before stopped; the events of the runs before it were not kept "
+        "([twin] events_file keeps them over a restart)"
+    )
+    agent = unbrokered_agent(tmp_path, 1, **{"twin.events_file": str(tmp_path / "events.jsonl")})
+    agent.stop()
+    assert _agent_events(agent)[2].message == "the agent started; its run before stopped"
+
+
 def state_says(path: Path, *, stopped: bool | None) -> None:
     """Rewrite the state file as a run that ended so would have left it (None: an older agent's, without
     `stopped`), written a minute after now."""

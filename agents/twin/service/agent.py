@@ -296,7 +296,9 @@ class AgentService:
         self._started_wall = self._wall_clock()
         # First, so this run's events follow the ones read back and its own start.
         previous = self._state_file.previous_run() if self._state_file is not None else None
-        self._emit_started(_previous_stopped(self._restore_events(), previous))
+        last = self._restore_events()
+        # A run before left its state file but no events (an upgrade walk: nothing said they were gone).
+        self._emit_started(_previous_stopped(last, previous), unkept=last is None and previous is not None)
         self._http = self._launch_mirrors()
         self._running = True
         self._supervisor = threading.Thread(target=self._supervise, name="twin-supervisor", daemon=True)
@@ -1133,25 +1135,31 @@ class AgentService:
         self._events.subscribe(journal.add)
         return restored[-1] if restored else None
 
-    def _emit_started(self, previous_stopped: bool | None) -> None:
+    def _emit_started(self, previous_stopped: bool | None, *, unkept: bool) -> None:
         data = {"action": "started", "pid": os.getpid()}
+        unkept_text = (
+            "; the events of the runs before it were not kept ([twin] events_file keeps them over a restart)"
+            if unkept
+            else ""
+        )
         if previous_stopped is False:
             self._events.emit(
                 EventKind.AGENT,
                 EventLevel.WARNING,
                 "the agent started; its run before did not record a stop (killed, crashed, its host went "
-                "down, or the journal could not be written): that run's last events and counters are missing",
+                "down, or the journal could not be written): that run's last events and counters are missing"
+                + unkept_text,
                 data={**data, "previous": "did not stop"},
             )
         elif previous_stopped:
             self._events.emit(
                 EventKind.AGENT,
                 EventLevel.INFO,
-                "the agent started; its run before stopped",
+                "the agent started; its run before stopped" + unkept_text,
                 data={**data, "previous": "stopped"},
             )
-        else:  # no journal, or nothing in it: nothing is known of a run before
-            self._events.emit(EventKind.AGENT, EventLevel.INFO, "the agent started", data=data)
+        else:  # no journal, or nothing in it: nothing is known of how a run before ended
+            self._events.emit(EventKind.AGENT, EventLevel.INFO, "the agent started" + unkept_text, data=data)
 
     def _close_events(self, message: str, unwritten: Counter[str], killed: list[int]) -> None:
         """The stop's own event, last, then the journal written out: the next start reads it as the sign
