@@ -93,7 +93,14 @@ def test_default_thresholds_come_from_the_servo_settings() -> None:
     [
         ({"temperature_warning_clear_c": 60.0}, "over_temperature clears at 60"),
         ({"gripper_overload_clear_percent": 30.0}, "overload clears at 30"),
-        ({"current_raise_after_s": -1.0}, "durations must be >= 0"),
+        (
+            {"current_raise_after_s": -1.0},
+            r"current_raise_after_s \(-1\) and current_clear_after_s \(2\) are",
+        ),
+        (
+            {"servo_error_clear_after_s": -1.0},
+            r"servo_error_clear_after_s \(-1\) are seconds a value must be held",
+        ),
         ({"mismatch_percent": float("nan")}, "finite"),
         ({"servo_version": "24v"}, r"not one of 7\.4v, 12v"),
         ({"mismatch_joints": ("elbow",)}, "unknown joints"),
@@ -291,18 +298,29 @@ def test_a_servo_error_bit_raises_at_once_and_names_the_servo_and_the_bit() -> N
     """A walk: the servo's status bits (its own protection acting) were shown and raised nothing."""
     alarms = ServoAlarms()
     # 32 = bit 5, overload; 34 also the sensor bit; 0 = no error, held 2 s to clear.
-    steps = [(0.0, 0), (1.0, 32), (1.1, 34), (2.0, 0), (3.9, 0), (4.0, 0)]
+    steps = [(0.0, 0), (1.0, 32), (1.1, 34)]
     events = run(alarms, [(t, {"status": v}) for t, v in steps], joint="wrist_flex")
-    assert events == [
-        (1.0, "raised", AlarmKind.SERVO_ERROR, AlarmState.ACTIVE),
-        (4.0, "cleared", AlarmKind.SERVO_ERROR, AlarmState.LATCHED),
-    ]
+    assert events == [(1.0, "raised", AlarmKind.SERVO_ERROR, AlarmState.ACTIVE)]
+    # Its value is the last message's error bits (a walk saw the model mismatch's figure there).
+    assert alarms.views()[0].value == 34.0
+    assert run(alarms, [(2.0, {"status": 0}), (3.9, {"status": 0})], joint="wrist_flex") == []
+    (cleared,) = alarms.evaluate(DEV, readings("wrist_flex", status=0), {}, 4.0)
+    assert (cleared.action, cleared.state) == ("cleared", AlarmState.LATCHED)
+    assert cleared.message == (
+        "wrist_flex servo (motor id 4) servo_error cleared: no error bit set for 2 s "
+        "(latched until acknowledged)"
+    )
     view = alarms.views()[0]
     assert (view.severity, view.unit) == (Severity.CRITICAL, "status")
     assert view.message == (
         "wrist_flex servo (motor id 4) reports an error of its own: overload (status bits 32); its "
         "protection acted and may have cut or limited its torque"
     )
+
+
+def test_a_negative_status_names_no_error_bit() -> None:
+    """A walk sent status -1: /state and the Arm page listed all six bits (Python's -1 has every bit)."""
+    assert sts3215.status_names(-1) == () and sts3215.status_names(33) == ("voltage", "overload")
 
 
 def test_servo_error_bits_chooses_the_bits_and_no_status_holds_the_state() -> None:

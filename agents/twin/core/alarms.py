@@ -200,7 +200,11 @@ class AlarmThresholds:
                         "the alarm has hysteresis"
                     )
                 if rule.raise_after_s < 0 or rule.clear_after_s < 0:
-                    raise ValueError(f"alarms: {kind} durations must be >= 0 seconds, got {rule}")
+                    name = _DURATION_KEYS[kind]
+                    raise ValueError(
+                        f"alarms: {name}_raise_after_s ({rule.raise_after_s:g}) and {name}_clear_after_s "
+                        f"({rule.clear_after_s:g}) are seconds a value must be held: set each to 0 or more"
+                    )
         if self.temperature_warning_c >= self.temperature_critical_c:
             raise ValueError(
                 f"alarms: temperature_warning_c ({self.temperature_warning_c:g}) is not below "
@@ -1158,10 +1162,14 @@ class ServoAlarms:
             message = self._messages.get(at, "")
         elif action == "cleared":
             latched = " (latched until acknowledged)" if new is AlarmState.LATCHED else ""
+            back = (
+                "no error bit set"
+                if kind is AlarmKind.SERVO_ERROR
+                else f"at or below {rule.clear_at:g} {UNITS[kind]}"
+            )
             # The servo as its raise named it: the person who went to the arm finds the same motor id.
             message = (
-                f"{so101.servo_name(joint)} {kind} cleared: at or below {rule.clear_at:g} {UNITS[kind]} for "
-                f"{rule.clear_after_s:g} s{latched}"
+                f"{so101.servo_name(joint)} {kind} cleared: {back} for {rule.clear_after_s:g} s{latched}"
             )
         else:
             message = f"{so101.servo_name(joint)} {kind} {action} by a person"
@@ -1406,6 +1414,8 @@ class ServoAlarms:
             return diag.current_a
         if kind is AlarmKind.OVERLOAD:
             return None if diag.load_percent is None else abs(diag.load_percent)
+        if kind is AlarmKind.SERVO_ERROR:
+            return _optional(_error_bits(_float(diag.status), self._status_mask))
         return _optional(float(fleet.mismatch[slot, j])) if fleet.checked[slot, j] else None
 
     def joint_health(self, device: str) -> dict[str, JointHealth]:
@@ -1556,6 +1566,17 @@ _RULE_KEYS: dict[AlarmKind, tuple[str, str]] = {
     AlarmKind.OVER_CURRENT: ("current_a", "current_clear_a"),
     AlarmKind.OVERLOAD: ("overload_percent", "overload_clear_percent"),
     AlarmKind.MODEL_MISMATCH: ("mismatch_percent", "mismatch_clear_percent"),
+}
+
+
+# The prefix of each kind's `*_raise_after_s` and `*_clear_after_s` keys.
+_DURATION_KEYS: dict[AlarmKind, str] = {
+    AlarmKind.OVER_TEMPERATURE: "temperature",
+    AlarmKind.OVER_TEMPERATURE_CRITICAL: "temperature",
+    AlarmKind.OVER_CURRENT: "current",
+    AlarmKind.OVERLOAD: "overload",
+    AlarmKind.MODEL_MISMATCH: "mismatch",
+    AlarmKind.SERVO_ERROR: "servo_error",
 }
 
 

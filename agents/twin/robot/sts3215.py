@@ -48,7 +48,10 @@ STATUS_BITS = ("voltage", "sensor", "temperature", "current", "angle", "overload
 
 
 def status_names(status: int) -> tuple[str, ...]:
-    """The names of the error bits set in a status value (bits above the sixth are ignored)."""
+    """The names of the error bits set in a status value (bits above the sixth are ignored; a negative value
+    is no register's and names none: Python's -1 has every bit set)."""
+    if status < 0:
+        return ()
     return tuple(name for bit, name in enumerate(STATUS_BITS) if status >> bit & 1)
 
 
