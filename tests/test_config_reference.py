@@ -96,3 +96,15 @@ def test_config_check_notes_one_arms_calibration_for_several_and_a_key_a_later_f
     first.write_text(f'[telemetry]\ncalibration = "{example}"\ncalibrations = "{tmp_path}"\n')
     assert main(["config", "check", str(first)]) == 0
     assert "note:" not in capsys.readouterr().out
+
+
+def test_config_check_notes_a_servo_error_alarm_that_watches_no_bit(tmp_path: Path, capsys) -> None:
+    """A walk set `servo_error_bits = []`: "a valid agent config", and the alarm was off without a word."""
+    config = tmp_path / "agent.toml"
+    config.write_text("[alarms]\nservo_error_bits = []\n")
+    assert main(["config", "check", str(config)]) == 0
+    (note,) = [line for line in capsys.readouterr().out.splitlines() if line.startswith("note: ")]
+    assert "servo_error_bits is empty: no servo error is ever raised" in note
+    config.write_text('[alarms]\nservo_error_bits = ["voltage"]\n')
+    assert main(["config", "check", str(config)]) == 0
+    assert "note:" not in capsys.readouterr().out

@@ -672,9 +672,9 @@ def load_config(
 def config_notes(path: str | Path | Sequence[str | Path] | None, config: AgentConfig) -> list[str]:
     """What a valid config holds that a person likely did not mean, one sentence each with the fix: a key a
     later file sets over an earlier file's different value (the host runs its generated config, then the
-    operator's `agent.local.toml`: a stack setting changed there is silently overruled), and one arm's
-    calibration file used for several arms. `twin run` logs each as a warning; `twin config check` prints
-    them."""
+    operator's `agent.local.toml`: a stack setting changed there is silently overruled), one arm's
+    calibration file used for several arms, and a servo error alarm that watches no bit. `twin run` logs each
+    as a warning; `twin config check` prints them."""
     paths: list[str | Path] = [] if path is None else [path] if isinstance(path, str | Path) else list(path)
     notes: list[str] = []
     set_by: dict[tuple[str, str], tuple[str, Any]] = {}
@@ -704,6 +704,11 @@ def config_notes(path: str | Path | Sequence[str | Path] | None, config: AgentCo
             f"{arms}: each arm has its own, and another arm's puts its twin in a wrong pose. Keep each arm's "
             'in a store ([telemetry] calibrations = "DIR", then `twin calibration push ARM FILE --store '
             'DIR`; docs/agent.md, "Calibration")'
+        )
+    if config.alarms.enabled and not config.alarms.servo_error_bits:
+        notes.append(
+            "[alarms] servo_error_bits is empty: no servo error is ever raised, whatever the servos report; "
+            "list the bits to watch, or take the key out for all six"
         )
     return notes
 
