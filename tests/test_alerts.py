@@ -76,6 +76,17 @@ def test_one_transition_is_one_message_that_says_what() -> None:
     assert p.counters().pending == 0 and p.flush() is False
 
 
+def test_a_servo_error_says_its_bits_and_no_threshold() -> None:
+    """A walk: the e-mail said "value 32 status, threshold 1 status" (and "threshold 0" when acknowledged)."""
+    sent: list[tuple[str, str]] = []
+    p = publisher(sent, Clock())
+    for action, threshold in (("raised", 1.0), ("acknowledged", 0.0)):
+        p.offer(alert(action, kind="servo_error", value=33.0, threshold=threshold, unit="status"))
+        assert p.flush() is True
+        assert "; value status bits 33 (voltage, overload)\n" in sent[-1][1], sent[-1][1]
+        assert "threshold" not in sent[-1][1]
+
+
 def test_a_flapping_servo_makes_one_message_per_flush_not_one_per_change() -> None:
     sent: list[tuple[str, str]] = []
     p = publisher(sent, Clock())

@@ -270,6 +270,10 @@ def test_an_arm_page_names_the_servo_that_reports_an_error_itself(
         row.wait_for()
         text = row.inner_text()
         assert "wrist_flex servo (motor id 4): overload; gripper servo (motor id 6): voltage, current" in text
+        # The bits raise servo_error; its value cell names the bits, with no limit (any set bit raises).
+        alarm = page.locator("#alarms tr", has_text="wrist_flex servo_error")
+        alarm.wait_for()
+        assert "\tstatus bits 32\t" in alarm.inner_text() and "(limit" not in alarm.inner_text()
         leave(page)
     finally:
         agent.stop()

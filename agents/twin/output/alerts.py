@@ -28,7 +28,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 from twin.core.aws import region_or_env
-from twin.robot import so101
+from twin.robot import so101, sts3215
 
 log = logging.getLogger(__name__)
 
@@ -195,6 +195,11 @@ class AlertPublisher:
             a = entry.latest
             value = "no value" if a.value is None else f"{a.value:.3g} {a.unit}".strip()
             threshold = "" if a.threshold is None else f", threshold {a.threshold:.3g} {a.unit}".rstrip()
+            if a.kind == "servo_error" and a.value is not None:
+                # Its value is the status's error bits: named, and no threshold (any set bit raises).
+                bits = int(a.value)
+                names = ", ".join(sts3215.status_names(bits)) or "none"
+                value, threshold = f"status bits {bits} ({names})", ""
             history = (
                 f" ({entry.changes} changes since the last message: {', '.join(entry.actions)})"
                 if entry.changes > 1

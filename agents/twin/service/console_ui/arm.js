@@ -275,7 +275,10 @@
     setText(c.severity, a.severity);
     c.severity.className = "sev-" + a.severity;
     setText(c.state, a.state);
-    setText(c.value, `${Twin.num(a.value, 1)} ${a.unit} (limit ${a.threshold})`);
+    // A servo error's value is the status's error bits, named in its message: a limit says nothing there.
+    setText(c.value, a.kind === "servo_error"
+      ? (a.value == null ? "–" : `status bits ${a.value}`)
+      : `${Twin.num(a.value, 1)} ${a.unit} (limit ${a.threshold})`);
     setText(c.since, Twin.time(a.changed_at));
     setText(c.message, a.message);
     row.button.hidden = !(a.state === "ACTIVE" || a.state === "LATCHED");
