@@ -307,7 +307,8 @@ def test_status_and_rejections_are_events(tables) -> None:
 
 def test_servo_alarms_raised_and_cleared_are_events(robot: RobotModel, tmp_path: Path) -> None:
     # The real alarm engine sees elbow_flex run hot, then cool; the events it returns ride on the samples.
-    alarms = ServoAlarms(AlarmThresholds(latch=False))
+    # (Its status bits, which these payloads also send, are left out: the temperature's two changes are all.)
+    alarms = ServoAlarms(AlarmThresholds(latch=False, servo_error_bits=()))
     decoder = TelemetryDecoder(DecoderConfig(units=Units.DEGREES))
     path = tmp_path / "alarms.rrd"
     sink = RerunSink(robot, RerunSettings(save=str(path), flush_s=0.05))

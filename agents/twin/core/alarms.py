@@ -442,12 +442,16 @@ def _still(diag: JointDiagnostics, pose_speed: float | None, limit: float) -> bo
     return True
 
 
-# One joint's readings for the rules: temperature, current, load, velocity, moving, status (NaN: not given).
+# One joint's readings for the rules: temperature, current, load, velocity, moving, the status's error bits
+# (NaN: not given).
 _Reading = tuple[float, float, float, float, float, float]
 
 
-def _row_readings(diagnostics: Mapping[str, JointDiagnostics]) -> tuple[list[bool], list[_Reading]]:
-    """`_fill` for one row, as lists: which joints were given, and their readings."""
+def _row_readings(
+    diagnostics: Mapping[str, JointDiagnostics], status_mask: int
+) -> tuple[list[bool], list[_Reading]]:
+    """`_fill` for one row, as lists: which joints were given, and their readings (the status as the servo
+    error's value, `_error_bits`)."""
     nan = math.nan
     given = [False] * _JOINTS
     readings: list[_Reading] = [(nan, nan, nan, nan, nan, nan)] * _JOINTS
@@ -461,7 +465,7 @@ def _row_readings(diagnostics: Mapping[str, JointDiagnostics]) -> tuple[list[boo
                 _float(diag.load_percent),
                 _float(diag.velocity_rad_s),
                 nan if diag.moving is None else float(bool(diag.moving)),
-                _float(diag.status),
+                _error_bits(_float(diag.status), status_mask),
             )
     return given, readings
 
@@ -1011,7 +1015,7 @@ class ServoAlarms:
         without a pose. Its steps are `_evaluate`'s, in the same order; a call per step, never per cell."""
         now = float(now)  # as the array path's float64: an event's time is a float whatever was passed
         speeds = self._row_speeds(slot, angles, timestamp_ms)
-        given, readings = _row_readings(diagnostics)
+        given, readings = _row_readings(diagnostics, self._status_mask)
         checked, model, mismatch, torques = self._row_model_check(
             diagnostics, given, readings, speeds, holding_torques_nm
         )
@@ -1107,17 +1111,10 @@ class ServoAlarms:
         for j in range(_JOINTS):
             if not given[j]:
                 continue
-            temperature, current, load, _, _, status = readings[j]
+            temperature, current, load, _, _, errors = readings[j]
             first = j * _N_KINDS
-            errors = _error_bits(status, self._status_mask)
-            values_of[first : first + _N_KINDS] = (
-                temperature,
-                temperature,
-                current,
-                abs(load),
-                mismatch[j],
-                errors,
-            )
+            cell_values = (temperature, temperature, current, abs(load), mismatch[j], errors)
+            values_of[first : first + _N_KINDS] = cell_values
             for n in range(_N_KINDS):
                 c = first + n
                 value = values_of[c]

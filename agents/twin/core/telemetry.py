@@ -1201,19 +1201,8 @@ def diagnostic_columns(messages: Sequence[Telemetry]) -> DiagnosticColumns:
     raw = array("d")
     known = np.ones(count, dtype=bool)
     nothing = [math.nan] * (4 * len(_JOINTS))
-    with_status: list[int] = []
     for k, message in enumerate(messages):
         r0, r1, r2, r3, r4, r5 = message.readings
-        # Few edges send `status`: its column is filled for the messages that do, NaN for the rest.
-        if not (
-            r0.status is UNSET
-            and r1.status is UNSET
-            and r2.status is UNSET
-            and r3.status is UNSET
-            and r4.status is UNSET
-            and r5.status is UNSET
-        ):
-            with_status.append(k)
         # One list display and one call: this runs for every applied message of the fleet.
         row: list[Any] = [
             *(r0.temp, r0.current, r0.load, r0.velocity),
@@ -1245,15 +1234,33 @@ def diagnostic_columns(messages: Sequence[Telemetry]) -> DiagnosticColumns:
     load = np.where((load >= 1024) & (load <= 2047), -(load - 1024), load) / LOAD_UNITS_PER_PERCENT
     signed = np.where((velocity >= 32768) & (velocity <= 65535), -(velocity - 32768), velocity)
     steps = np.where(float_variant[:, None], velocity, signed)
-    status = np.full((count, len(_JOINTS)), math.nan)
-    for k in with_status:
-        status[k] = [math.nan if r.status is UNSET else r.status for r in messages[k].readings]
     return DiagnosticColumns(
         known=known,
         temperature_c=values[..., 0].copy(),
         current_a=values[..., 1] * CURRENT_MA_PER_UNIT / 1000.0,
         load_percent=load,
         velocity_rad_s=steps * RAD_PER_STEP_S,
-        status=status,
+        status=_status_column(messages),
         messages=messages,
     )
+
+
+def _status_column(messages: Sequence[Telemetry]) -> np.ndarray:
+    """(K, 6) the status registers as sent, NaN where a joint sent none: few edges send `status`, so a row
+    is filled only for a message that has one."""
+    import numpy as np  # noqa: PLC0415 - as diagnostic_columns
+
+    status = np.full((len(messages), len(_JOINTS)), math.nan)
+    for k, message in enumerate(messages):
+        r0, r1, r2, r3, r4, r5 = message.readings
+        if (
+            r0.status is UNSET
+            and r1.status is UNSET
+            and r2.status is UNSET
+            and r3.status is UNSET
+            and r4.status is UNSET
+            and r5.status is UNSET
+        ):
+            continue
+        status[k] = [math.nan if r.status is UNSET else r.status for r in message.readings]
+    return status
