@@ -223,17 +223,23 @@ def test_rate_is_kept_without_drift(mosquitto: MosquittoBroker) -> None:
         received.wait_for(report.published)
     finally:
         sub.stop(30)
-    assert report.ticks == report.published == len(received.items) == 50
-    assert report.skipped_ticks == 0
-    # The schedule is absolute: the 50th tick is due 0.98 s after the start and never sent early; and a
-    # simulator more than 1 s behind skips ticks (none were), so it ended less than 1 s after it was due.
-    # How much less is this machine's load, not the simulator's: speed belongs to `twin bench`.
-    assert 0.98 <= report.elapsed_s < 0.98 + 1.0 + 0.1
-    # Timestamps follow the absolute schedule exactly: 20 ms apart, no accumulated drift.
+    # Every tick of the 50 is published or, if the machine stalled the loop over a second, skipped (a
+    # loaded machine does that; the checks below hold either way).
+    assert report.ticks == report.published == len(received.items)
+    assert report.ticks + report.skipped_ticks == 50
+    # The schedule is absolute: the 50th tick is due 0.98 s after the start and never sent early (a
+    # skipped one ends the run later still). How late it ended is this machine's load, not the simulator's:
+    # speed belongs to `twin bench`.
+    assert report.elapsed_s >= 0.98
+    # Timestamps follow the absolute schedule exactly: each on the 20 ms grid (1 ms for rounding), no
+    # accumulated drift; a gap in the grid is only ever ticks the report counts as skipped.
     stamps = [json.loads(p)["timestamp"] for _, p, _ in received.items]
-    steps = [b - a for a, b in itertools.pairwise(stamps)]
-    assert all(19 <= s <= 21 for s in steps), steps
-    assert stamps[-1] - stamps[0] in (979, 980, 981)
+    grid = [round((s - stamps[0]) / 20) for s in stamps]
+    assert all(abs(s - stamps[0] - 20 * n) <= 1 for s, n in zip(stamps, grid, strict=True)), stamps
+    assert all(b > a for a, b in itertools.pairwise(grid)), grid
+    assert not grid or grid[-1] + 1 - len(grid) <= report.skipped_ticks, grid
+    if report.skipped_ticks == 0:
+        assert grid == list(range(50)), grid
 
 
 @pytest.mark.slow

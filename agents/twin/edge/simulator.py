@@ -311,8 +311,11 @@ class EdgeSimulator:
                 if stop_event.wait(delay):
                     break
             elif delay < -1.0:
-                # More than a second behind (suspended, overloaded): skip ahead rather than burst.
+                # More than a second behind (suspended, overloaded): skip ahead rather than burst. Never
+                # past the run's end, so published and skipped ticks add up to the run's ticks.
                 behind = int(-delay / period)
+                if total_ticks is not None:
+                    behind = min(behind, total_ticks - k)
                 self._skip(k, behind, period)
                 k += behind
                 continue
