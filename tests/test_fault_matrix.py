@@ -45,6 +45,10 @@ from twin.transport.broker import new_client_id
 pytestmark = pytest.mark.slow
 
 PREFIX = "dt/lerobot"
+# How long a wait for the agent's progress may take. Each needs a second or two of the fleet's messages; a
+# loaded machine stretches that by how long it keeps the agent or the fleet off the CPU, so the bound is a
+# hang's, not a speed's (a wait returns as soon as its condition holds).
+PROGRESS_S = 60.0
 
 
 @pytest.fixture(scope="module")
@@ -114,9 +118,11 @@ class Fleet:
 
     def stop(self) -> None:
         self._stop.set()
-        self._thread.join(10)
+        # Joined before anyone reads `generated` or publishes the tail: a round still running would race them.
+        self._thread.join(PROGRESS_S)
+        assert not self._thread.is_alive(), "the fleet's thread did not stop"
 
-    def close_tail(self, agent: AgentService, timeout: float = 30.0) -> None:
+    def close_tail(self, agent: AgentService, timeout: float = PROGRESS_S) -> None:
         """After `stop`: one last sample of every arm, waited for at the agent. One connection keeps its
         messages in order, so once each arm's last sample is there, everything before it that was going to
         arrive has, and a sample lost at the end shows as a hole before the last one (a loss estimate cannot
@@ -130,7 +136,7 @@ class Fleet:
         wait_for(arrived, timeout, "each arm's last sample at the agent", interval=0.1)
 
 
-def settled(agent: AgentService, timeout: float = 30.0, *, expect: int = 0) -> AgentState:
+def settled(agent: AgentService, timeout: float = PROGRESS_S, *, expect: int = 0) -> AgentState:
     """The state once every message the agent accepted is counted or dropped and nothing is pending (and,
     with `expect`, it accepted at least that many: the last ones may still be on their way)."""
 
@@ -179,13 +185,15 @@ def test_broker_killed_and_restarted(matrix_rig: LocalRig, matrix_publisher: Pub
     try:
         wait_for(
             lambda: all(d.health.counters.applied > 10 for d in agent.state().devices.values()),
-            15,
+            PROGRESS_S,
             "mirroring",
         )
         subscribes = agent.state().agent.broker.subscribes
         matrix_rig.broker.restart(hard=True)  # SIGKILL: no clean close
         wait_for(
-            lambda: agent.state().agent.broker.subscribes > subscribes, 15, "the agent to subscribe again"
+            lambda: agent.state().agent.broker.subscribes > subscribes,
+            PROGRESS_S,
+            "the agent to subscribe again",
         )
         after = agent.state()
         wait_for(
@@ -194,7 +202,7 @@ def test_broker_killed_and_restarted(matrix_rig: LocalRig, matrix_publisher: Pub
                 > after.devices[d].health.counters.applied + 10
                 for d in devices
             ),
-            15,
+            PROGRESS_S,
             "mirroring again",
         )
     finally:
@@ -218,8 +226,8 @@ def test_a_worker_sigkilled(matrix_rig: LocalRig, matrix_publisher: Publisher) -
     agent = matrix_rig.start_agent({"telemetry.devices": devices, "telemetry.units": "ticks"}, workers=2)
     fleet = Fleet(matrix_publisher, devices)
     try:
-        wait_for(lambda: len(agent.state().devices) == 4, 20, "all arms mirrored")
-        wait_for(lambda: agent._shards[1].checkpoint is not None, 10, "worker 1's checkpoint")
+        wait_for(lambda: len(agent.state().devices) == 4, PROGRESS_S, "all arms mirrored")
+        wait_for(lambda: agent._shards[1].checkpoint is not None, PROGRESS_S, "worker 1's checkpoint")
         victim = agent.state().agent.workers[1]
         os.kill(victim.pid, signal.SIGKILL)
         wait_for(
@@ -235,7 +243,7 @@ def test_a_worker_sigkilled(matrix_rig: LocalRig, matrix_publisher: Publisher) -
                 > before.devices[d].health.counters.applied + 5
                 for d in plan.devices_of(1)
             ),
-            15,
+            PROGRESS_S,
             "its arms mirrored again",
         )
     finally:
@@ -286,7 +294,9 @@ def test_s3_stopped_longer_than_the_history_buffer(
         )
         fleet = Fleet(matrix_publisher, devices)
         try:
-            wait_for(lambda: (agent.state().agent.history.commits or 0) >= 2, 30, "history committing")
+            wait_for(
+                lambda: (agent.state().agent.history.commits or 0) >= 2, PROGRESS_S, "history committing"
+            )
             s3.stop()
             wait_for(
                 lambda: agent.state().agent.history.rows_dropped > 0,
@@ -296,16 +306,20 @@ def test_s3_stopped_longer_than_the_history_buffer(
             )
             # The EMF lines CloudWatch gets carry the drops, and the lag growing while the outage lasts.
             wait_for(
-                lambda: any(d.get("HistoryRowsDropped", 0) > 0 for d in _emf(emf)), 10, "the drops in EMF"
+                lambda: any(d.get("HistoryRowsDropped", 0) > 0 for d in _emf(emf)),
+                PROGRESS_S,
+                "the drops in EMF",
             )
             wait_for(
-                lambda: any(d.get("HistoryLagSeconds", 0.0) > 2.0 for d in _emf(emf)), 30, "the lag in EMF"
+                lambda: any(d.get("HistoryLagSeconds", 0.0) > 2.0 for d in _emf(emf)),
+                PROGRESS_S,
+                "the lag in EMF",
             )
             # ... and /metrics on the host (a commit in flight when S3 stopped may still have landed, which
             # starts the lag again from the rows after it: it grows from there while the outage lasts).
             wait_for(
                 lambda: metric(get_metrics(agent.http_url), "twin_history_lag_seconds") > 2.0,
-                30,
+                PROGRESS_S,
                 "the lag in /metrics",
                 interval=0.2,
             )
@@ -370,7 +384,7 @@ def test_a_full_disk_under_history_and_the_recording(
     fleet = Fleet(matrix_publisher, devices)
     filler = small_disk / "filler"
     try:
-        wait_for(lambda: (agent.state().agent.history.commits or 0) >= 1, 30, "history committing")
+        wait_for(lambda: (agent.state().agent.history.commits or 0) >= 1, PROGRESS_S, "history committing")
         # Fill what is left, so the next commits and saves meet ENOSPC.
         try:
             with filler.open("wb") as fh:
@@ -398,14 +412,17 @@ def test_a_full_disk_under_history_and_the_recording(
         # The twin goes on mirroring whatever the disk does.
         wait_for(
             lambda: sum(d.health.counters.applied for d in agent.state().devices.values()) > applied + 40,
-            15,
+            PROGRESS_S,
             "the twin to keep mirroring",
         )
         filler.unlink()  # space again: writing resumes, and the recording goes on in a new session
         rotations = agent.state().agent.recording.rotations
         wait_for(lambda: agent.state().agent.history.storage_ok, 60, "history writing again", interval=0.2)
         wait_for(
-            lambda: agent.state().agent.recording.rotations > rotations, 30, "a new session", interval=0.2
+            lambda: agent.state().agent.recording.rotations > rotations,
+            PROGRESS_S,
+            "a new session",
+            interval=0.2,
         )
     finally:
         fleet.stop()
@@ -430,7 +447,7 @@ def test_edge_clocks_an_hour_off_either_way(matrix_rig: LocalRig, matrix_publish
     try:
         wait_for(
             lambda: all(d.health.counters.applied > 30 for d in agent.state().devices.values()),
-            20,
+            PROGRESS_S,
             "mirroring",
         )
     finally:
@@ -477,7 +494,7 @@ def test_a_flood_of_junk_topics(matrix_rig: LocalRig, matrix_publisher: Publishe
     junk.connect()
     flooded = 0
     try:
-        wait_for(lambda: all(d in agent.state().devices for d in good), 15, "the good arms mirrored")
+        wait_for(lambda: all(d in agent.state().devices for d in good), PROGRESS_S, "the good arms mirrored")
         rng = random.Random(9)
         for batch in range(20):
             packets = []
