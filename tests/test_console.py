@@ -123,8 +123,9 @@ def active_heat_alarm(url: str, device: str, *, raised_within_s: float = math.in
     )
 
 
-# The browser needs its page loaded before it clicks: an alarm raised this recently stays ACTIVE for 20 s
-# more at least (HEAT), so it cannot clear under the click (a 409, which the browser logs as an error).
+# An alarm raised this recently stays ACTIVE for 20 s more at least (HEAT), so it rarely clears under a
+# test's click. Rarely, not never: a machine that holds the test or the browser off the CPU for longer lets
+# it clear (then LATCHED, and a click resets it). The tests that need it ACTIVE check that it was.
 FRESH_ALARM_S = 25.0
 
 
@@ -439,31 +440,62 @@ def test_an_arms_view_marks_the_other_arms_with_an_alarm(console: str) -> None:
     assert {d for d, mark in seen[-1].items() if "OFFLINE" not in mark} & set(DEVICES), seen[-1]
 
 
-def test_acknowledge_moves_the_alarm_to_acknowledged(
-    console: str, page: Any, browser_errors: list[str]
-) -> None:
+def alarm_state(url: str, device: str, alarm_id: str) -> str | None:
+    """The alarm's state at the agent; None once NORMAL (the list leaves those out)."""
+    return {a["alarm_id"]: a["state"] for a in alarms(url, device)}.get(alarm_id)
+
+
+def acknowledged_on_the_page(console: str, page: Any) -> bool:
+    """Acknowledge arm-001's fresh heat alarm on its open page and check the page shows it ACKNOWLEDGED;
+    False when the alarm cleared first, so that the click or the page could not show that."""
     alarm = wait_for(
         lambda: active_heat_alarm(console, "arm-001", raised_within_s=FRESH_ALARM_S),
         TIMEOUT_S,
         f"arm-001's heat alarm, raised within {FRESH_ALARM_S:.0f} s",
     )
-    page.goto(console + "/arm/arm-001")
-    row = page.locator(f'#alarms tr[data-alarm="{alarm["alarm_id"]}"]')
-    # Measured once the page has drawn the arm: measured before, under load, the table was the header
-    # alone, 139 px above where the arm's figures then put it (a flaky run).
-    page.wait_for_selector("body[data-ready]")
+    alarm_id = alarm["alarm_id"]
+    row = page.locator(f'#alarms tr[data-alarm="{alarm_id}"]')
     row.wait_for()
+    # This click's answer only: a try before showed one for the same alarm id.
+    page.evaluate(
+        "() => { const r = document.querySelector('#ack-result'); r.hidden = true; r.textContent = ''; }"
+    )
     # The table's top, not a row's: the heat's critical alarm may be raised meanwhile, a row above this one.
     table = page.locator("#alarms")
     before = table.bounding_box()
     row.get_by_role("button", name="Acknowledge").click()
-    page.wait_for_selector(f'#alarms tr[data-alarm="{alarm["alarm_id"]}"][data-state="ACKNOWLEDGED"]')
-    page.wait_for_selector("#ack-result.ack-ok")
-    after = {a["alarm_id"]: a["state"] for a in alarms(console, "arm-001")}
-    assert after[alarm["alarm_id"]] == "ACKNOWLEDGED"
+    result = page.locator("#ack-result.ack-ok")
+    result.wait_for()
+    answer = result.inner_text()
+    if "after it cleared" in answer:
+        return False  # LATCHED by the click: it cleared while this machine was slow
+    assert f"{alarm_id} acknowledged: now ACKNOWLEDGED" in answer, answer
+    acknowledged = page.locator(f'#alarms tr[data-alarm="{alarm_id}"][data-state="ACKNOWLEDGED"]')
+    wait_for(
+        lambda: acknowledged.count() or alarm_state(console, "arm-001", alarm_id) != "ACKNOWLEDGED",
+        TIMEOUT_S,
+        f"{alarm_id} shown ACKNOWLEDGED (or cleared at the agent)",
+    )
+    if not acknowledged.count():
+        return False  # cleared before the page drew it
     # The answer shown did not push the table down: the next button is still under the pointer.
     moved = table.bounding_box()
     assert before is not None and moved is not None and abs(moved["y"] - before["y"]) < 1, (before, moved)
+    return True
+
+
+def test_acknowledge_moves_the_alarm_to_acknowledged(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    # Loaded before an alarm is picked: on a loaded machine, loading the page took most of the alarm's life.
+    page.goto(console + "/arm/arm-001")
+    # Measured once the page has drawn the arm: measured before, under load, the table was the header
+    # alone, 139 px above where the arm's figures then put it (a flaky run).
+    page.wait_for_selector("body[data-ready]")
+    # An alarm that cleared under the test says nothing either way: the heat's next one is tried. An
+    # acknowledgement that does not make ACKNOWLEDGED, or a page that does not show it, fails every try.
+    tries = 3
+    assert any(acknowledged_on_the_page(console, page) for _ in range(tries)), f"cleared {tries} times"
     assert browser_errors == []
 
 
@@ -540,7 +572,8 @@ def test_a_refused_acknowledge_says_why_and_what_to_do(
     result = page.locator("#ack-result")
     result.filter(has_text="reload the console page").wait_for(timeout=15_000)
     assert alarm["alarm_id"] in result.inner_text() and "csrf_token_invalid" in result.inner_text()
-    assert {a["alarm_id"]: a["state"] for a in alarms(console, "arm-003")}[alarm["alarm_id"]] == "ACTIVE"
+    # Not acknowledged: still ACTIVE, or LATCHED if it cleared meanwhile (a slow machine).
+    assert alarm_state(console, "arm-003", alarm["alarm_id"]) in ("ACTIVE", "LATCHED")
     page.unroute("**/arm/arm-003")
 
     page.route("**/ack", lambda route: route.abort())  # the agent gone: no answer at all
