@@ -7,7 +7,6 @@ across `stop()` / `start()`, so a test can take the endpoint away (an outage) an
 
 from __future__ import annotations
 
-import socket
 import subprocess
 import sys
 import textwrap
@@ -16,58 +15,80 @@ import boto3
 
 _SERVER = textwrap.dedent(
     """
-    import logging, sys
-    from moto.server import ThreadedMotoServer
+    import errno, logging, socket, sys, threading, time
+    from moto.moto_server import werkzeug_app as moto
+    from werkzeug.serving import make_server
     logging.getLogger("werkzeug").setLevel(logging.ERROR)
-    port = int(sys.argv[1])
-    server = ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
-    server.start()
-    print("started", flush=True)
+    app = moto.DomainDispatcherApplication(moto.create_backend_app)  # its S3 outlives each server below
+
+    def serve(port):
+        # Port 0 the first time, read back: a port picked free then bound could be taken between. Again on
+        # that port after a stop: freed by this server, it may be another process's for a while (a client
+        # connection of another xdist worker's test), so it is tried until free (werkzeug exits on a taken
+        # one, hence the socket made here).
+        deadline = time.monotonic() + 60
+        while True:
+            sock = socket.socket()
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                sock.bind(("127.0.0.1", port))
+                break
+            except OSError as exc:
+                sock.close()
+                if exc.errno != errno.EADDRINUSE or time.monotonic() > deadline:
+                    raise
+                time.sleep(0.2)
+        sock.listen(128)
+        handler = moto.MotoRequestHandler
+        server = make_server("127.0.0.1", 0, app, True, request_handler=handler, fd=sock.fileno())
+        threading.Thread(target=server.serve_forever, daemon=True).start()
+        return server, sock
+
+    server, sock = serve(0)
+    port = sock.getsockname()[1]
+    print("started", port, flush=True)
     for line in sys.stdin:
         command = line.strip()
         if command == "stop":
-            server.stop()
+            server.shutdown()
+            server.server_close()
+            sock.close()
             print("stopped", flush=True)
         elif command == "start":
-            server = ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
-            server.start()
-            print("started", flush=True)
+            server, sock = serve(port)
+            print("started", port, flush=True)
         elif command == "quit":
             break
-    server.stop()
+    server.shutdown()
     """
 )
 
 REGION = "us-east-1"
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 class MotoS3:
     """A moto S3 endpoint on 127.0.0.1:<free port> with `bucket` created."""
 
     def __init__(self, bucket: str = "so101-history") -> None:
-        self.port = _free_port()
-        self.endpoint = f"http://127.0.0.1:{self.port}"
         self.bucket = bucket
         self._proc = subprocess.Popen(
-            [sys.executable, "-c", _SERVER, str(self.port)],
+            [sys.executable, "-c", _SERVER],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             text=True,
         )
-        self._expect("started")
+        self.port = int(self._expect("started"))  # the port the server picked
+        self.endpoint = f"http://127.0.0.1:{self.port}"
         self.client().create_bucket(Bucket=bucket)
 
-    def _expect(self, word: str) -> None:
+    def _expect(self, word: str) -> str:
+        """The rest of the server's next line, which must start with `word`."""
         assert self._proc.stdout is not None
         line = self._proc.stdout.readline().strip()
-        if line != word:
+        said, _, rest = line.partition(" ")
+        if said != word:
             raise RuntimeError(f"moto server said {line!r}, expected {word!r} (exit {self._proc.poll()})")
+        return rest
 
     def _send(self, command: str) -> None:
         assert self._proc.stdin is not None

@@ -8,6 +8,7 @@ events), and no page may log an error."""
 from __future__ import annotations
 
 import csv
+import errno
 import io
 import json
 import math
@@ -21,7 +22,7 @@ from collections.abc import Iterator
 from datetime import datetime
 from pathlib import Path
 from typing import Any
-from urllib.parse import quote
+from urllib.parse import quote, urlsplit
 from zoneinfo import ZoneInfo
 
 import pytest
@@ -30,7 +31,6 @@ from twin.edge.payload import encode, make_payload
 from twin.edge.servo_faults import ServoFault
 from twin.rig.console_shots import loopback_only, wait_for_charts
 from twin.rig.local import LocalRig
-from twin.rig.mosquitto import free_port
 
 pytestmark = pytest.mark.slow
 
@@ -731,16 +731,27 @@ def test_the_events_page_tails_the_twins_events(console: str, page: Any, browser
     assert browser_errors == []
 
 
-def agent_on(rig: LocalRig, port: int, device: str) -> Any:
-    """An agent of its own on `port`, listening to one arm only (the module's agent keeps the rest): stopped
-    and started again on the same port, it is what a page left open sees of an agent that restarts."""
-    return rig.start_agent(
-        {
-            "http.listen": f"127.0.0.1:{port}",
-            "broker.client_id_prefix": "restart-",
-            "telemetry.devices": [device],
-        }
-    )
+def agent_on(rig: LocalRig, device: str, url: str | None = None) -> Any:
+    """An agent of its own listening to one arm only (the module's agent keeps the rest), on a port it picks
+    itself, or with `url` on that one: stopped and started again there, it is what a page left open sees of
+    an agent that restarts."""
+    overrides = {"broker.client_id_prefix": "restart-", "telemetry.devices": [device]}
+    if url is None:
+        # Port 0, read back from the agent: a port picked free, closed, then bound could be taken between.
+        return rig.start_agent({**overrides, "http.listen": "127.0.0.1:0"})
+    port = urlsplit(url).port
+
+    def started() -> Any:
+        try:
+            return rig.start_agent({**overrides, "http.listen": f"127.0.0.1:{port}"})
+        except OSError as exc:
+            # Freed by the agent before, the port may be another process's for a while (a connection from a
+            # test on another xdist worker, say): try again until it is free.
+            if exc.errno != errno.EADDRINUSE:
+                raise
+            return None
+
+    return wait_for(started, TIMEOUT_S, f"{url} free for the agent again", interval=0.5)
 
 
 def leave(page: Any) -> None:
@@ -754,15 +765,14 @@ def test_a_page_says_its_figures_are_not_live_while_the_agent_is_away(
 ) -> None:
     """The agent stopped under an open Fleet page: the cards keep the last figures (ONLINE, seen "now"), so
     the page must say they are not live, and stop saying so once the agent answers again."""
-    port = free_port()
-    first = agent_on(rig, port, "arm-001")
-    page.goto(f"http://127.0.0.1:{port}/")
+    first = agent_on(rig, "arm-001")
+    page.goto(first.http_url + "/")
     page.locator('#fleet-view [data-device="arm-001"]', has_text="ONLINE").wait_for()
     banner = page.locator("#link-banner")
     assert banner.is_hidden()
     first.stop()
     banner.filter(has_text="not live").wait_for()
-    second = agent_on(rig, port, "arm-001")
+    second = agent_on(rig, "arm-001", first.http_url)
     try:
         banner.wait_for(state="hidden")
     finally:
@@ -796,9 +806,8 @@ def test_the_sessions_page_says_at_once_that_the_agent_went_away_and_reads_again
     """The Sessions page reads its list every 10 s; it learnt of a stopped agent only at its next read. Its
     reads are held here, so only the page's link to the agent can tell it: the banner must come and go with
     the agent, and the agent's return must make the page read the list again."""
-    port = free_port()
-    first = agent_on(rig, port, "arm-001")
-    page.goto(f"http://127.0.0.1:{port}/sessions")
+    first = agent_on(rig, "arm-001")
+    page.goto(first.http_url + "/sessions")
     page.wait_for_selector("body[data-ready]")
     asked: list[str] = []
     page.route("**/api/sessions", lambda route: asked.append(route.request.url))  # held, never answered
@@ -806,7 +815,7 @@ def test_the_sessions_page_says_at_once_that_the_agent_went_away_and_reads_again
     first.stop()
     banner.filter(has_text="not live").wait_for()
     before = len(asked)
-    second = agent_on(rig, port, "arm-001")
+    second = agent_on(rig, "arm-001", first.http_url)
     try:
         banner.wait_for(state="hidden")
         wait_for(lambda: len(asked) > before, TIMEOUT_S, "the list read again once the agent was back")
@@ -840,15 +849,14 @@ def test_the_events_page_follows_an_agent_that_restarted(
     and the page must show them, not keep the old agent's list while its header says live. Two agents in
     turn on one port, each listening to one arm the module's edge publishes, so each has an event only it
     can make."""
-    port = free_port()
-    url = f"http://127.0.0.1:{port}"
-    first = agent_on(rig, port, "arm-001")
+    first = agent_on(rig, "arm-001")
+    url = first.http_url
     page.goto(url + "/events")
     page.locator("#events tr", has_text="arm-001 is ONLINE").wait_for()
     page.locator("#link-state", has_text="live").wait_for()
     first.stop()
     page.locator("#link-state", has_text="reconnecting").wait_for()
-    second = agent_on(rig, port, "arm-002")
+    second = agent_on(rig, "arm-002", url)
     try:
         page.locator("#events tr", has_text="arm-002 is ONLINE").wait_for()
         # The list is the new agent's own: the old agent's arrival is gone with it.
@@ -949,16 +957,15 @@ def test_an_offline_arm_is_forgotten_from_its_page(
     """An arm that went OFFLINE shows "Forget this arm"; the confirmation says what goes, a refusal shows in
     the agent's words, and once forgotten the page says so and links to the Fleet page. An agent of its own,
     quick to call an arm OFFLINE, so the module's arms stay as they are."""
-    port = free_port()
     agent = rig.start_agent(
         {
-            "http.listen": f"127.0.0.1:{port}",
+            "http.listen": "127.0.0.1:0",  # read back below: a port picked free then bound could be taken
             "broker.client_id_prefix": "forget-",
             "telemetry.units": "ticks",
             "health.offline_after_s": 1.5,
         }
     )
-    url = f"http://127.0.0.1:{port}"
+    url = agent.http_url
     edge = rig.start_edge(["arm-retired"], variant="ticks", rate_hz=10.0, seconds=2.0, seed=11)
     # Its edge done first: one held back 1.5 s by a loaded machine would make the arm OFFLINE, then ONLINE.
     edge.join(TIMEOUT_S)

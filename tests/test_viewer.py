@@ -14,6 +14,7 @@ import os
 import random
 import shutil
 import signal
+import socket
 import struct
 import subprocess
 import sys
@@ -28,7 +29,6 @@ from conftest import http_get, unbrokered_agent, wait_for
 from twin.core.health import DeviceStatus, HealthSnapshot, WindowLatency
 from twin.edge.payload import encode, make_payload
 from twin.rig.local import LocalRig
-from twin.rig.mosquitto import free_port
 from twin.robot import so101
 from twin.service.state import (
     AgentInfo,
@@ -575,7 +575,11 @@ def test_view_draws_the_live_arm_under_xvfb(xvfb, live_agent, tmp_path):
 def test_view_survives_an_unreachable_agent(xvfb, tmp_path):
     display, fb = xvfb
     log_path = tmp_path / "view.log"
-    port = free_port()  # nothing listens there
+    # Bound but not listening, and held for the test: connections are refused, and no other process (an
+    # xdist worker's server) can take the port meanwhile, as it could a port picked free and closed.
+    closed = socket.socket()
+    closed.bind(("127.0.0.1", 0))
+    port = closed.getsockname()[1]
     proc = start_view(display, "--agent", f"http://127.0.0.1:{port}", log_path=log_path)
     try:
         # The model is drawn in its initial pose while the feed keeps retrying.
@@ -588,6 +592,7 @@ def test_view_survives_an_unreachable_agent(xvfb, tmp_path):
         assert proc.poll() is None, f"twin view exited {proc.returncode}:\n{log_path.read_text()}"
     finally:
         stop_view(proc, log_path)
+        closed.close()
     text = log_path.read_text()
     assert "agent link: unreachable (connection refused)" in text
     assert "Traceback" not in text

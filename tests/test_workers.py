@@ -34,7 +34,6 @@ from twin.core.topics import DEFAULT_TOPIC_PREFIX
 from twin.edge.payload import encode, make_payload
 from twin.edge.servo_faults import ServoFault
 from twin.rig.local import LocalRig, child_env
-from twin.rig.mosquitto import free_port
 from twin.rig.quota_proxy import QuotaProxy
 from twin.service.admission import DeviceBudget
 from twin.service.config import ConfigError, load_config
@@ -630,11 +629,14 @@ def test_a_start_that_fails_reports_only_the_stop_it_made(tmp_path: Path, failur
     config = tmp_path / "agent.toml"
     config.write_text(f'[twin]\nstate_file = "{state_file}"\n')
     env = child_env()
-    with socket.socket() as taken:
+    # A broker port bound but not listening, held for the test: refused, and no other process can take it.
+    with socket.socket() as taken, socket.socket() as no_broker:
         taken.bind(("127.0.0.1", 0))
         taken.listen()
+        no_broker.bind(("127.0.0.1", 0))
         if failure == "http_address_taken":
-            broker, http = f"mqtt://127.0.0.1:{free_port()}", f"127.0.0.1:{taken.getsockname()[1]}"
+            broker = f"mqtt://127.0.0.1:{no_broker.getsockname()[1]}"
+            http = f"127.0.0.1:{taken.getsockname()[1]}"
         else:
             broker, http = "iot", "127.0.0.1:0"
             empty = tmp_path / "aws-config"
