@@ -220,11 +220,11 @@ def wait_handled(read_state: Callable[[], AgentState], count: int, timeout: floa
     return wait_for(handled, timeout, f"the agent to handle {count} messages")
 
 
-def http_get(url: str) -> tuple[int, str, bytes]:
+def http_get(url: str, timeout: float = 30.0) -> tuple[int, str, bytes]:
     """(status, content type, body) of a GET, 4xx/5xx included. The timeout is for a wedged server, not a
     slow one: an agent answers in milliseconds, but this machine may be busy with other test runs."""
     try:
-        with urllib.request.urlopen(url, timeout=30) as resp:
+        with urllib.request.urlopen(url, timeout=timeout) as resp:
             return resp.status, resp.headers.get("Content-Type", ""), resp.read()
     except urllib.error.HTTPError as err:
         return err.code, err.headers.get("Content-Type", ""), err.read()

@@ -928,7 +928,9 @@ def test_a_sessions_other_files_are_made_from_history(console: str, tmp_path: Pa
     base = f"{console}/api/sessions/arm-003/{session['key']}/"
     files = {}
     for kind in ("parquet", "png", "rrd", "usd"):
-        status, _, data = http_get(base + kind)
+        # Made when asked, from a session that grows all through this module (its arms publish the whole
+        # time): 1.4 s for the .rrd of 20 s, so a minute or more late in a shuffled run on a loaded machine.
+        status, _, data = http_get(base + kind, timeout=300.0)
         assert status == 200, (kind, data[:200])
         files[kind] = tmp_path / f"session.{kind}"
         files[kind].write_bytes(data)
