@@ -122,6 +122,36 @@ def test_a_wildcard_fleet_grows_its_shared_subscription(rig: LocalRig, proxy: Qu
     assert sum(d.health.counters.received for d in state.devices.values()) == forwarded
 
 
+def test_a_shared_fleet_held_at_its_connections_budget_is_told_on_the_fleet_page_and_healthz(
+    rig: LocalRig, proxy: QuotaProxy, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A walk: past max_connections the quota discarded a third of the fleet's messages, counted only as each
+    arm's loss, while /healthz answered 200 and the Fleet page said nothing (the log, every second)."""
+    import json
+
+    from conftest import http_get
+    from twin.transport import pool
+
+    monkeypatch.setattr(pool, "QUOTA_HELD_S", 2.0)
+    monkeypatch.setattr(pool, "QUOTA_CALM_S", 2.0)
+    agent = start_agent(rig, proxy, ["*"], **{"broker.max_connections": 2})  # 30 arms need 4
+    edge = rig.start_edge(FLEET, rate_hz=10.0)  # publishes until stopped
+
+    def told() -> dict[str, object] | None:
+        status, _, body = http_get(agent.http_url + "/healthz")
+        return json.loads(body) if status == 503 and "quota" in body.decode() else None
+
+    health = wait_for(told, 60, "the quota's notice in /healthz")
+    (reason,) = [r for r in health["reasons"] if "quota" in r]  # type: ignore[attr-defined]
+    assert "all 2 connections (broker.max_connections) receive at their budget of 100 msg/s" in reason
+    assert "List the fleet's devices" in reason
+    fleet = json.loads(http_get(agent.http_url + "/api/fleet")[2])
+    assert any("per-connection quota" in n for n in fleet["notices"]), fleet["notices"]
+    edge.stop()
+    edge.join(30)
+    wait_for(lambda: not agent.notices(), 60, "the notice gone once under the budget")
+
+
 def test_loss_estimates_on_a_stream_with_known_drops(rig: LocalRig) -> None:
     devices = FLEET[:5]
     agent = rig.start_agent({"telemetry.devices": devices, "telemetry.units": "ticks"})

@@ -60,3 +60,64 @@ def test_shared_filter_and_client_ids() -> None:
 def test_bad_pool_settings(kwargs: dict[str, float], needle: str) -> None:
     with pytest.raises(ValueError, match=needle):
         PoolSettings("dt/lerobot", ("*",), **kwargs)
+
+
+class _Counted:
+    """A connection as the pool rates it: a message count, no subscriber (rescale reads nothing else)."""
+
+    def __init__(self, index: int) -> None:
+        from twin.transport.pool import _Connection
+
+        self.connection = _Connection(index, subscriber=None)  # type: ignore[arg-type]
+
+
+def _pool_at(settings: PoolSettings, connections: int) -> tuple[object, list[object]]:
+    from twin.transport.pool import ConnectionPool
+
+    pool = ConnectionPool(BrokerConfig(url="mqtt://127.0.0.1:1"), settings, lambda *_: None)
+    held = [_Counted(i).connection for i in range(connections)]
+    pool._connections = held  # type: ignore[attr-defined]
+    return pool, held
+
+
+@pytest.mark.parametrize("shared", [True, False])
+def test_a_pool_held_at_its_budget_says_so_once_and_when_it_is_under_again(
+    shared: bool, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A walk: a shared pool at max_connections warned every second (55 in a minute), a listed one at its
+    budget said nothing, and /healthz and the Fleet page said nothing either way."""
+    devices = ("*",) if shared else tuple(ARMS[:16])
+    settings = PoolSettings("dt/lerobot", devices, limit=100.0, max_connections=2)
+    pool, held = _pool_at(settings, 2)
+    caplog.set_level("INFO", logger="twin.transport.pool")
+
+    def run(seconds: int, start: int, per_second: int) -> None:
+        for t in range(start, start + seconds):
+            for c in held:
+                c.messages += per_second  # type: ignore[attr-defined]
+            pool.rescale(float(t))  # type: ignore[attr-defined]
+
+    run(8, 0, 100)  # at the budget, not yet for QUOTA_HELD_S
+    assert pool.quota_notice == ""  # type: ignore[attr-defined]
+    run(20, 8, 100)
+    notice = pool.quota_notice  # type: ignore[attr-defined]
+    assert notice.startswith("the broker's per-connection quota discards messages:"), notice
+    expected = "List the fleet's devices" if shared else "Set expected_rate_hz to their rate"
+    assert expected in notice
+    assert [r.levelname for r in caplog.records].count("WARNING") == 1  # once, not every second
+    run(20, 28, 50)  # under it, not yet for QUOTA_CALM_S
+    assert pool.quota_notice == notice  # type: ignore[attr-defined]
+    run(20, 48, 50)
+    assert pool.quota_notice == ""  # type: ignore[attr-defined]
+    assert "every connection is under its budget again" in caplog.text
+
+
+def test_a_shared_pool_that_can_still_grow_gives_no_notice() -> None:
+    settings = PoolSettings("dt/lerobot", ("*",), limit=100.0, max_connections=8)
+    pool, held = _pool_at(settings, 2)
+    pool._add_connection = lambda filters: held.append(_Counted(len(held)).connection)  # type: ignore[attr-defined]
+    for t in range(30):
+        for c in held:  # the fleet's 200 msg/s, shared by however many connections there are
+            c.messages += 200 // len(held)  # type: ignore[attr-defined]
+        pool.rescale(float(t))  # type: ignore[attr-defined]
+    assert len(held) > 2 and pool.quota_notice == ""  # type: ignore[attr-defined]

@@ -844,14 +844,18 @@ class AgentService:
 
     def notices(self) -> list[str]:
         """What the console's fleet page shows above the arms, and /healthz among its reasons: each topic
-        filter the broker refuses (the arms it covers are never heard, so no card can say it)."""
+        filter the broker refuses (the arms it covers are never heard, so no card can say it), and the
+        broker's quota discarding messages the connection pool cannot take on."""
         if not self._started_pool:
             return []
-        return [
+        refused = [
             f"the broker refused the subscription to {f} ({reason}): no telemetry of it arrives; the agent's "
             "IAM identity must allow iot:Subscribe on it (docs/agent.md, IAM permissions)"
             for f, reason in sorted(self._pool.refused().items())
         ]
+        # The quota's losses are counted per arm, but no card says why every arm loses (a walk's /healthz
+        # was 200 while the broker discarded a third of the fleet's messages).
+        return [*refused, self._pool.quota_notice] if self._pool.quota_notice else refused
 
     def listening(self) -> Listening:
         """The topic filters the agent subscribes to, and whether every connection of its pool is up (the

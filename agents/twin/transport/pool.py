@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 from twin.transport.broker import IOT, BrokerConfig
 from twin.transport.plan import (
+    DEFAULT_MAX_CONNECTIONS,
     GROW_AT,
     GROW_TARGET,
     RATE_WINDOW_S,
@@ -53,6 +54,11 @@ __all__ = ["ConnectionInfo", "ConnectionPool", "PoolSettings"]
 log = logging.getLogger(__name__)
 
 Clock = Callable[[], float]
+
+# The quota notice comes once connections have been at their budget this long (not one busy second) and
+# goes once they have been under it this long (not one quiet second).
+QUOTA_HELD_S = 10.0
+QUOTA_CALM_S = 30.0
 
 
 @dataclass(frozen=True)
@@ -122,6 +128,11 @@ class ConnectionPool:
         self._removed_messages = 0
         self.grown = 0
         self.shrunk = 0
+        # What the agent shows (console, /healthz) while the broker's quota discards messages the pool cannot
+        # take on: "" otherwise (`_watch_quota`).
+        self.quota_notice = ""
+        self._full_since: float | None = None
+        self._calm_since: float | None = None
         if settings.shared:
             self._plan: list[list[str]] = []
             self._shared = shared_filter(settings.prefix, config.client_id_prefix)
@@ -272,6 +283,8 @@ class ConnectionPool:
         total = sum(c.sample(now) for c in connections)
         self.rate_hz = total
         limit = self.settings.limit
+        if limit is not None:
+            self._watch_quota(now, connections, limit)
         if not self.settings.shared or limit is None:
             return len(connections)
         k = len(connections)
@@ -296,13 +309,6 @@ class ConnectionPool:
                 self._add_connection([self._shared])
             self.grown += 1
             return target
-        if saturated and k >= self.settings.max_connections:
-            log.warning(
-                "connection pool: all %d connections (max_connections) receive at their budget of %g msg/s: "
-                "the broker discards the excess; raise broker.max_connections",
-                k,
-                limit,
-            )
         if k > 1 and total < SHRINK_BELOW * (k - 1) * capacity:
             if self._quiet_since is None:
                 self._quiet_since = now
@@ -314,6 +320,50 @@ class ConnectionPool:
         else:
             self._quiet_since = None
         return k
+
+    def _watch_quota(self, now: float, connections: list[_Connection], limit: float) -> None:
+        """Set `quota_notice` once connections have received at their budget for QUOTA_HELD_S while the pool
+        cannot take the load on (a shared pool at max_connections, or a listed plan, which does not grow),
+        and clear it after QUOTA_CALM_S without; each change is logged once. It was a warning every second
+        (a walk counted 55 in a minute), and a listed plan at its budget said nothing at all."""
+        full = [c for c in connections if c.rate_hz >= SATURATED_AT * limit]
+        stuck = bool(full) and (not self.settings.shared or len(connections) >= self.settings.max_connections)
+        if stuck:
+            self._calm_since = None
+            if self._full_since is None:
+                self._full_since = now
+            if not self.quota_notice and now - self._full_since >= QUOTA_HELD_S:
+                self.quota_notice = self._quota_text(len(full), len(connections), limit)
+                log.warning("connection pool: %s", self.quota_notice)
+            return
+        self._full_since = None
+        if self.quota_notice:
+            if self._calm_since is None:
+                self._calm_since = now
+            elif now - self._calm_since >= QUOTA_CALM_S:
+                self.quota_notice = ""
+                self._calm_since = None
+                log.info("connection pool: every connection is under its budget again")
+
+    def _quota_text(self, full: int, k: int, limit: float) -> str:
+        settings = self.settings
+        if settings.shared:
+            arms = k * limit * SAFETY_MARGIN / settings.rate_hz
+            return (
+                f"the broker's per-connection quota discards messages: all {k} connections "
+                f"(broker.max_connections) receive at their budget of {limit:g} msg/s, about {arms:.0f} arms "
+                f"at {settings.rate_hz:g} Hz, so arms are mirrored below their rate and the rest counted as "
+                "lost. List the fleet's devices ([telemetry] devices; on the stack, devices in "
+                "twin.settings.toml): the plan then takes the connections they need and the stack allows "
+                "them. A larger broker.max_connections needs a broker policy that allows that many client "
+                f"ids (the stack's allows {DEFAULT_MAX_CONNECTIONS})"
+            )
+        return (
+            f"the broker's per-connection quota discards messages: {full} of {k} connections receive at "
+            f"their budget of {limit:g} msg/s, planned for arms at {settings.rate_hz:g} Hz ([telemetry] "
+            "expected_rate_hz): the arms publish faster, or more of them share a connection than its budget "
+            "carries. Set expected_rate_hz to their rate, so the plan spreads them over more connections"
+        )
 
     def _remove_last(self) -> None:
         with self._lock:
