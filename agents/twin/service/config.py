@@ -28,7 +28,8 @@ from twin.core.units import MAX_PAYLOAD_BYTES, Units
 from twin.output.rerun_settings import RerunSettings, RerunSettingsError
 from twin.output.ros2 import Ros2Error, Ros2Settings
 from twin.robot.calibration import leader_problem
-from twin.transport.broker import BrokerConfig, BrokerConfigError
+from twin.transport.broker import IOT, BrokerConfig, BrokerConfigError
+from twin.transport.plan import IOT_PUBLISHES_PER_CONNECTION, SAFETY_MARGIN
 
 RECORD_FORMAT_CHOICES: tuple[str, ...] = ("usdc", "usda")
 LOG_LEVELS: tuple[str, ...] = ("DEBUG", "INFO", "WARNING", "ERROR")
@@ -705,10 +706,31 @@ def config_notes(path: str | Path | Sequence[str | Path] | None, config: AgentCo
             'in a store ([telemetry] calibrations = "DIR", then `twin calibration push ARM FILE --store '
             'DIR`; docs/agent.md, "Calibration")'
         )
+    notes += _pool_notes(config)
     if config.alarms.enabled and not config.alarms.servo_error_bits:
         notes.append(
             "[alarms] servo_error_bits is empty: no servo error is ever raised, whatever the servos report; "
             "list the bits to watch, or take the key out for all six"
+        )
+    return notes
+
+
+def _pool_notes(config: AgentConfig) -> list[str]:
+    """A per-connection limit the broker will not honour, or too small for one arm (a walk behind the quota
+    proxy: both planned silently, and the broker discarded the excess)."""
+    limit, rate = config.broker.per_connection_limit, config.health.expected_rate_hz
+    notes = []
+    if config.broker.url == IOT and limit > IOT_PUBLISHES_PER_CONNECTION:
+        notes.append(
+            f"[broker] per_connection_limit = {limit} is above IoT Core's {IOT_PUBLISHES_PER_CONNECTION} "
+            "publishes a second per connection, which cannot be raised: the pool would plan too few "
+            "connections and the broker discard the excess; leave it 0 (the broker's own)"
+        )
+    if 0 < limit * SAFETY_MARGIN < rate:
+        notes.append(
+            f"[broker] per_connection_limit = {limit} carries less than one arm at {rate:g} Hz ([health] "
+            f"expected_rate_hz) with the pool's {SAFETY_MARGIN:.0%} margin: each connection takes one arm "
+            "and the broker discards the rest of its messages; raise the limit to what the broker allows"
         )
     return notes
 
