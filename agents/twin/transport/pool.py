@@ -362,7 +362,9 @@ class ConnectionPool:
             f"the broker's per-connection quota discards messages: {full} of {k} connections receive at "
             f"their budget of {limit:g} msg/s, planned for arms at {settings.rate_hz:g} Hz ([health] "
             "expected_rate_hz): the arms publish faster, or more of them share a connection than its budget "
-            "carries. Set expected_rate_hz to their rate, so the plan spreads them over more connections"
+            "carries. Set expected_rate_hz to their rate, so the plan spreads them over more connections (on "
+            "the stack, whose IAM policy allows the connections of arms at 10 Hz, publish at 10 Hz or fewer "
+            "arms per host)"
         )
 
     def _remove_last(self) -> None:
