@@ -225,6 +225,9 @@ def test_an_arm_page_draws_its_charts(console: str, page: Any, browser_errors: l
     summary = page.locator("#summary").inner_text()
     assert re.search(r"applied since the agent started \([^)]*, UTC", summary), summary
     assert re.search(r"not applied\s+\S", summary), summary
+    # This agent serves no Rerun view; it may save one, so the page does not call the view off.
+    rerun = page.get_by_text("Rerun view: not served by this agent").inner_text()
+    assert "a saved .rrd opens with twin web FILE" in rerun, rerun
     assert browser_errors == []
 
 

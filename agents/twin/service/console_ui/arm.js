@@ -30,7 +30,8 @@
   const summary = el("div", { class: "kv", id: "summary" });
   const rerun = Twin.rerun
     ? el("a", { href: Twin.rerun, target: "_blank", rel: "noopener", id: "rerun-link", text: "open the fleet in the Rerun viewer" },)
-    : el("span", { class: "muted", text: "Rerun view: off (twin run --rerun-serve, docs/web.md)" });
+    // Not served is not "off": the agent may still save a .rrd (the demo's twin.rrd), which `twin web` serves.
+    : el("span", { class: "muted", text: "Rerun view: not served by this agent (twin run --rerun-serve; a saved .rrd opens with twin web FILE; docs/web.md)" });
   const charts = CHARTS.map((c) => {
     const canvas = el("canvas", { class: "chart", "data-chart": c.key, "data-points": "0" });
     const legend = el("div", { class: "legend" });
