@@ -375,3 +375,14 @@ def test_a_state_file_under_a_file_is_refused_with_a_path_that_works(
     said = str(info.value)
     assert f"{str(tmp_path / 'agent.toml')!r} is a file, not a directory" in said, said
     assert f"e.g. {str(tmp_path / example)!r}" in said, said
+
+
+def test_a_list_of_more_arms_than_max_devices_is_refused() -> None:
+    """A walk listed 10,001 ids: accepted (max_devices bounded only the whole fleet), 1,251 connections."""
+    from twin.service.config import ConfigError, load_config
+
+    arms = [f"arm-{i:05d}" for i in range(11)]
+    with pytest.raises(ConfigError) as info:
+        load_config(None, {"telemetry.devices": arms, "telemetry.max_devices": 10})
+    assert "telemetry.devices lists 11 arms, more than telemetry.max_devices = 10" in str(info.value)
+    assert load_config(None, {"telemetry.devices": arms[:10], "telemetry.max_devices": 10})

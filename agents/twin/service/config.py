@@ -479,6 +479,15 @@ def _validate_telemetry(t: TelemetrySection) -> None:
             f"telemetry.max_devices = {t.max_devices} is outside 1..10000; it bounds how many twins a fleet "
             'subscription (devices = ["*"]) may create'
         )
+    listed = 0 if t.devices == (ALL_DEVICES,) else len(t.devices)
+    if listed > t.max_devices:
+        # The fleet's bound holds for a list too: a walk listed 10,001 ids and the pool planned 1,251
+        # connections for them without a word.
+        raise ConfigError(
+            f"telemetry.devices lists {listed} arms, more than telemetry.max_devices = {t.max_devices}, the "
+            "twins one agent takes on; raise max_devices (at most 10000) if one host is really to mirror "
+            "them all, or split them over hosts (docs/scale-out.md)"
+        )
 
 
 def _validate_twin(tw: TwinSection) -> None:

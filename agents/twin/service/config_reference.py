@@ -122,7 +122,7 @@ KEY_DOCS: dict[str, str] = {
         "no place. Valid messages from further devices are counted as `too_many_devices` (untracked) "
         "and logged at most every 10 s. The default is a whole fleet for one host: 2,000 arms at 10 "
         "Hz are 20,000 publishes a second, the account's default IoT Core inbound quota. At most "
-        "10000."
+        "10000. A `devices` list longer than this is refused."
     ),
     "twin.mode": (
         "`kinematic`: the twin shows exactly the measured pose. `physics`: the measured pose is the "
