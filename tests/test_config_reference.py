@@ -98,30 +98,28 @@ def test_config_check_notes_one_arms_calibration_for_several_and_a_key_a_later_f
     assert "note:" not in capsys.readouterr().out
 
 
+def check_notes(tmp_path: Path, capsys, text: str) -> list[str]:
+    """The notes `twin config check` prints for a config file holding `text` (which it takes: exit 0)."""
+    config = tmp_path / "agent.toml"
+    config.write_text(text)
+    assert main(["config", "check", str(config)]) == 0
+    return [line for line in capsys.readouterr().out.splitlines() if line.startswith("note: ")]
+
+
 def test_config_check_notes_a_servo_error_alarm_that_watches_no_bit(tmp_path: Path, capsys) -> None:
     """A walk set `servo_error_bits = []`: "a valid agent config", and the alarm was off without a word."""
-    config = tmp_path / "agent.toml"
-    config.write_text("[alarms]\nservo_error_bits = []\n")
-    assert main(["config", "check", str(config)]) == 0
-    (note,) = [line for line in capsys.readouterr().out.splitlines() if line.startswith("note: ")]
+    (note,) = check_notes(tmp_path, capsys, "[alarms]\nservo_error_bits = []\n")
     assert "servo_error_bits is empty: no servo error is ever raised" in note
-    config.write_text('[alarms]\nservo_error_bits = ["voltage"]\n')
-    assert main(["config", "check", str(config)]) == 0
-    assert "note:" not in capsys.readouterr().out
+    assert check_notes(tmp_path, capsys, '[alarms]\nservo_error_bits = ["voltage"]\n') == []
 
 
 def test_config_check_notes_a_per_connection_limit_the_broker_will_not_honour(tmp_path: Path, capsys) -> None:
     """A walk behind the quota proxy: a limit above IoT Core's 100/s, and one below an arm's rate, were both
     planned without a word, and the broker discarded the excess."""
-    config = tmp_path / "agent.toml"
-    config.write_text('[broker]\nurl = "iot"\nregion = "eu-west-1"\nper_connection_limit = 1000\n')
-    assert main(["config", "check", str(config)]) == 0
-    (note,) = [line for line in capsys.readouterr().out.splitlines() if line.startswith("note: ")]
+    iot = '[broker]\nurl = "iot"\nregion = "eu-west-1"\n'
+    (note,) = check_notes(tmp_path, capsys, iot + "per_connection_limit = 1000\n")
     assert "per_connection_limit = 1000 is above IoT Core's 100 publishes a second" in note
-    config.write_text('[broker]\nurl = "mqtt://127.0.0.1:1883"\nper_connection_limit = 5\n')
-    assert main(["config", "check", str(config)]) == 0
-    (note,) = [line for line in capsys.readouterr().out.splitlines() if line.startswith("note: ")]
+    local = '[broker]\nurl = "mqtt://127.0.0.1:1883"\nper_connection_limit = 5\n'
+    (note,) = check_notes(tmp_path, capsys, local)
     assert "per_connection_limit = 5 carries less than one arm at 10 Hz" in note
-    config.write_text('[broker]\nurl = "iot"\nregion = "eu-west-1"\nper_connection_limit = 100\n')
-    assert main(["config", "check", str(config)]) == 0
-    assert "note:" not in capsys.readouterr().out
+    assert check_notes(tmp_path, capsys, iot + "per_connection_limit = 100\n") == []
