@@ -474,6 +474,10 @@ def _validate_telemetry(t: TelemetrySection) -> None:
             f"(IoT Core caps a message at {MAX_PAYLOAD_BYTES})"
         )
 
+    _validate_admission(t)
+
+
+def _validate_admission(t: TelemetrySection) -> None:
     if not 1 <= t.max_devices <= 10000:
         raise ConfigError(
             f"telemetry.max_devices = {t.max_devices} is outside 1..10000; it bounds how many twins a fleet "
