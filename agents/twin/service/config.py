@@ -483,7 +483,7 @@ def _validate_admission(t: TelemetrySection) -> None:
             f"telemetry.max_devices = {t.max_devices} is outside 1..10000; it bounds how many twins a fleet "
             'subscription (devices = ["*"]) may create'
         )
-    listed = 0 if t.devices == (ALL_DEVICES,) else len(t.devices)
+    listed = 0 if t.all_devices else len(t.devices)
     if listed > t.max_devices:
         # The fleet's bound holds for a list too: a walk listed 10,001 ids and the pool planned 1,251
         # connections for them without a word.
