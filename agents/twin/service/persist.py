@@ -73,10 +73,9 @@ class NotSavedError(Exception):
 
 @dataclass(frozen=True, slots=True)
 class PreviousRun:
-    """What the state file says of the run that wrote it: its pid, whether it made its stop's write (None:
-    the file does not say, an older agent's) and when it last wrote (epoch s; None if not a number)."""
+    """What the state file says of the run that wrote it: whether it made its stop's write (None: the file
+    does not say, an older agent's) and when it last wrote (epoch s; None if not a number)."""
 
-    pid: object
     stopped: bool | None
     written_at: float | None
 
@@ -111,7 +110,6 @@ class StateFile:
         self._document = document
         stopped, written = document.get("stopped"), document.get("written_at")
         return PreviousRun(
-            pid=document.get("pid"),
             stopped=stopped if isinstance(stopped, bool) else None,
             written_at=float(written)
             if isinstance(written, int | float) and not isinstance(written, bool)
