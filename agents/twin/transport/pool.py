@@ -283,13 +283,16 @@ class ConnectionPool:
         total = sum(c.sample(now) for c in connections)
         self.rate_hz = total
         limit = self.settings.limit
-        if limit is not None:
-            self._watch_quota(now, connections, limit)
-        if not self.settings.shared or limit is None:
+        if limit is None:
+            return len(connections)
+        # The connections at their raw budget: the broker is discarding, and the real demand cannot be seen.
+        full = sum(c.rate_hz >= SATURATED_AT * limit for c in connections)
+        self._watch_quota(now, full, len(connections), limit)
+        if not self.settings.shared:
             return len(connections)
         k = len(connections)
         capacity = limit * SAFETY_MARGIN
-        saturated = any(c.rate_hz >= SATURATED_AT * limit for c in connections)
+        saturated = full > 0
         target = k
         if saturated:
             target = 2 * k
@@ -321,19 +324,19 @@ class ConnectionPool:
             self._quiet_since = None
         return k
 
-    def _watch_quota(self, now: float, connections: list[_Connection], limit: float) -> None:
+    def _watch_quota(self, now: float, full: int, k: int, limit: float) -> None:
         """Set `quota_notice` once connections have received at their budget for QUOTA_HELD_S while the pool
         cannot take the load on (a shared pool at max_connections, or a listed plan, which does not grow),
         and clear it after QUOTA_CALM_S without; each change is logged once. It was a warning every second
-        (a walk counted 55 in a minute), and a listed plan at its budget said nothing at all."""
-        full = [c for c in connections if c.rate_hz >= SATURATED_AT * limit]
-        stuck = bool(full) and (not self.settings.shared or len(connections) >= self.settings.max_connections)
+        (a walk counted 55 in a minute), and a listed plan at its budget said nothing at all. `full` of the
+        `k` connections receive at their budget."""
+        stuck = full > 0 and (not self.settings.shared or k >= self.settings.max_connections)
         if stuck:
             self._calm_since = None
             if self._full_since is None:
                 self._full_since = now
             if not self.quota_notice and now - self._full_since >= QUOTA_HELD_S:
-                self.quota_notice = self._quota_text(len(full), len(connections), limit)
+                self.quota_notice = self._quota_text(full, k, limit)
                 log.warning("connection pool: %s", self.quota_notice)
             return
         self._full_since = None
