@@ -1141,29 +1141,24 @@ class AgentService:
 
     def _emit_started(self, previous_stopped: bool | None, *, unkept: bool) -> None:
         data = {"action": "started", "pid": os.getpid()}
-        unkept_text = (
-            "; the events of the runs before it were not kept ([twin] events_file keeps them over a restart)"
-            if unkept
-            else ""
-        )
+        level, message = EventLevel.INFO, "the agent started"
         if previous_stopped is False:
-            self._events.emit(
-                EventKind.AGENT,
-                EventLevel.WARNING,
-                "the agent started; its run before did not record a stop (killed, crashed, its host went "
-                "down, or the journal could not be written): that run's last events and counters are missing"
-                + unkept_text,
-                data={**data, "previous": "did not stop"},
+            level = EventLevel.WARNING
+            message += (
+                "; its run before did not record a stop (killed, crashed, its host went down, or the journal "
+                "could not be written): that run's last events and counters are missing"
             )
+            data["previous"] = "did not stop"
         elif previous_stopped:
-            self._events.emit(
-                EventKind.AGENT,
-                EventLevel.INFO,
-                "the agent started; its run before stopped" + unkept_text,
-                data={**data, "previous": "stopped"},
+            message += "; its run before stopped"
+            data["previous"] = "stopped"
+        # else no journal, or nothing in it: nothing is known of how a run before ended
+        if unkept:
+            message += (
+                "; the events of the runs before it were not kept ([twin] events_file keeps them over a "
+                "restart)"
             )
-        else:  # no journal, or nothing in it: nothing is known of how a run before ended
-            self._events.emit(EventKind.AGENT, EventLevel.INFO, "the agent started" + unkept_text, data=data)
+        self._events.emit(EventKind.AGENT, level, message, data=data)
 
     def _close_events(self, message: str, unwritten: Counter[str], killed: list[int]) -> None:
         """The stop's own event, last, then the journal written out: the next start reads it as the sign
