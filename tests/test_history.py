@@ -1749,6 +1749,43 @@ def test_every_worker_has_a_slot_for_its_feeds_delivered_count(tmp_path: Path) -
         HistoryFeed(link, max_pending=10, payload_max_bytes=8, slot=2)
 
 
+def test_a_feeds_rows_are_counted_while_its_thread_builds_their_batch(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A stress run: a report taken while the feed's thread built a batch (rows off the queue, not yet in
+    hand) saw those rows nowhere: waiting + delivered fell below the rows handed in. Read at that moment now,
+    every row is counted once."""
+    import multiprocessing
+
+    from twin.output import history_feed
+    from twin.output.history_feed import HistoryLink
+
+    seen: list[tuple[int, int]] = []  # (waiting + delivered, handed) as the batch is built
+    build = history_feed._batch_of
+    feed: HistoryFeed | None = None
+
+    def counting_batch_of(telemetry: Any, rejected: Any) -> Any:
+        assert feed is not None
+        handed, stats = feed.handed, feed.stats()  # rows are handed in on this test's thread only
+        seen.append((stats.pending + stats.delivered, handed))
+        return build(telemetry, rejected)
+
+    monkeypatch.setattr(history_feed, "_batch_of", counting_batch_of)
+    link = HistoryLink(  # no writer listens: the batch stays in hand
+        str(tmp_path / "nobody.sock"), b"key", multiprocessing.get_context("spawn").Array("q", 1, lock=False)
+    )
+    feed = HistoryFeed(link, max_pending=1000, payload_max_bytes=64)
+    try:
+        with feed._drop_lock:  # all five queued before the feed's thread takes any
+            for i in range(5):
+                feed.telemetry(("arm-001", time.time(), 1_700_000_000_000 + i, "ticks", (0.0,) * 6, b"{}"))
+        wait_for(lambda: seen, 30, "the feed's thread to build a batch")
+        assert seen[0] == (5, 5), seen
+        assert feed.stats().pending == 5
+    finally:
+        feed.close(timeout=0.1)
+
+
 def test_the_writer_process_logs_as_the_agent_does(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     """Two walks found the writer's lines plain text and its INFO lines (a maintenance run's length) missing:
     a spawned process starts with no logging. It now sets up the agent's JSON lines at the agent's level."""

@@ -365,13 +365,16 @@ class HistoryFeed:
 
     def stats(self) -> SinkStats:
         """As a sink's: rows delivered to the writer process, dropped, waiting (`skipped`: none; `pending`
-        includes the batch the feed's thread holds)."""
+        includes the batch the feed's thread holds). Read under the lock the feed's thread moves rows with,
+        so a row is counted once: waiting, in hand or delivered."""
+        with self._drop_lock:
+            delivered, pending = self._delivered, len(self._telemetry) + len(self._rejected) + self._in_hand
         return SinkStats(
             name=self.name,
-            delivered=self._delivered,
+            delivered=delivered,
             dropped=self._dropped,
             errors=self._errors,
-            pending=len(self._telemetry) + len(self._rejected) + self._in_hand,
+            pending=pending,
             last_error=self._last_error,
         )
 
@@ -400,7 +403,6 @@ class HistoryFeed:
             closing = self._closing.wait(HAND_OFF_S)
             if batch is None:
                 batch, reached = self._take(everything=closing)
-                self._in_hand = batch.rows if batch is not None else 0
             if batch is not None and self._send(batch):
                 if reached is not None:
                     self._link.record_reached(self._slot, *reached)
@@ -431,6 +433,9 @@ class HistoryFeed:
             rejected = _popped(self._rejected, rejected_count)
             self._telemetry_out += len(telemetry)
             self._rejected_out += len(rejected)
+            # In hand as they leave the queues, under the lock `stats` reads them with: set after the batch
+            # was built, a report in between saw the rows nowhere (a stress run's test caught it).
+            self._in_hand = len(telemetry) + len(rejected)
         if not telemetry and not rejected:
             return None, None
         reached = None
@@ -461,12 +466,13 @@ class HistoryFeed:
             self._errors += 1
             self._last_error = f"history writer out of reach: {exc}"
             return False
-        self._delivered += batch.rows
+        with self._drop_lock:  # delivered and no longer in hand at once, for `stats`
+            self._delivered += batch.rows
+            self._in_hand = 0
         shared = self._link.delivered
         if shared is not None:
             # This feed's thread is the slot's only writer while its process lives.
             shared[self._slot] += batch.rows
-        self._in_hand = 0
         return True
 
 
