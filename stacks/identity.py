@@ -15,7 +15,6 @@ from aws_cdk import aws_logs as logs
 from constructs import Construct
 from twin.core.topics import TELEMETRY_SUFFIX
 from twin.transport.plan import (
-    DEFAULT_MAX_CONNECTIONS,
     IOT_PUBLISHES_PER_CONNECTION,
     listed_connections,
     pool_client_ids,
@@ -24,8 +23,9 @@ from twin.transport.plan import (
 
 from stacks.skips import LOG_GROUP_KMS, nag_arn, skip_checkov
 
-# The edge's default publish rate (telemetry contract); the agent plans its listed connections with it.
-EDGE_RATE_HZ = 10.0
+# Listed devices per IoT statement: IAM keeps a statement whole, and CDK moves whole statements into the
+# role's overflow policies (each at most 6,144 characters), so a long list is granted in short statements.
+DEVICES_PER_STATEMENT = 16
 
 
 class TwinIdentity(Construct):
@@ -44,6 +44,8 @@ class TwinIdentity(Construct):
         devices: tuple[str, ...],
         client_id_prefix: str,
         stack_name: str,
+        arm_rate_hz: float,
+        max_connections: int,
     ) -> None:
         super().__init__(scope, id_)
         stack = Stack.of(self)
@@ -56,7 +58,12 @@ class TwinIdentity(Construct):
         self._grant_ssm_agent(stack)
 
         fleet = devices == ("*",)
-        client_ids, filters, topics = _telemetry_resources(fleet, topic_prefix, devices, client_id_prefix)
+        connections = max_connections
+        if not fleet:
+            limit = IOT_PUBLISHES_PER_CONNECTION
+            connections = listed_connections(devices, rate_hz=arm_rate_hz, limit=limit, iot=True)
+        client_ids = pool_client_ids(client_id_prefix, connections)
+        filters, topics = _telemetry_topics(fleet, topic_prefix, devices, client_id_prefix)
         self._grant_iot_telemetry(stack, client_ids, filters, topics)
         dcv_license = f"arn:{stack.partition}:s3:::dcv-license.{stack.region}/*"
         self.role.add_to_policy(
@@ -81,20 +88,22 @@ class TwinIdentity(Construct):
                 resources=[iot_arn(f"client/{c}") for c in client_ids],
             )
         )
-        self.role.add_to_policy(
-            iam.PolicyStatement(
-                sid="IotSubscribeTelemetry",
-                actions=["iot:Subscribe"],
-                resources=[iot_arn(f"topicfilter/{f}") for f in filters],
+        for n in range(0, len(filters), DEVICES_PER_STATEMENT):
+            part = "" if n == 0 else str(n // DEVICES_PER_STATEMENT + 1)
+            self.role.add_to_policy(
+                iam.PolicyStatement(
+                    sid=f"IotSubscribeTelemetry{part}",
+                    actions=["iot:Subscribe"],
+                    resources=[iot_arn(f"topicfilter/{f}") for f in filters[n : n + DEVICES_PER_STATEMENT]],
+                )
             )
-        )
-        self.role.add_to_policy(
-            iam.PolicyStatement(
-                sid="IotReceiveTelemetry",
-                actions=["iot:Receive"],
-                resources=[iot_arn(f"topic/{t}") for t in topics],
+            self.role.add_to_policy(
+                iam.PolicyStatement(
+                    sid=f"IotReceiveTelemetry{part}",
+                    actions=["iot:Receive"],
+                    resources=[iot_arn(f"topic/{t}") for t in topics[n : n + DEVICES_PER_STATEMENT]],
+                )
             )
-        )
         self.role.add_to_policy(
             iam.PolicyStatement(sid="IotFindEndpoint", actions=["iot:DescribeEndpoint"], resources=["*"])
         )
@@ -126,7 +135,8 @@ class TwinIdentity(Construct):
         client_reason = (
             "Each agent process connects with unique client ids (fixed prefix, a random part so two agents "
             "never kick each other off, then the connection's index in its pool); the wildcard covers the "
-            "random part only, one resource per pool connection, in this account and region."
+            "random part only; the index patterns ('?' one digit) match exactly the pool's connection "
+            "indexes, in this account and region."
         )
         reasons = {
             **{
@@ -220,24 +230,21 @@ class TwinIdentity(Construct):
         )
 
 
-def _telemetry_resources(
+def _telemetry_topics(
     fleet: bool, topic_prefix: str, devices: tuple[str, ...], client_id_prefix: str
-) -> tuple[list[str], list[str], list[str]]:
-    """The agent's pool client ids, the topic filters it subscribes and the topics it receives."""
+) -> tuple[list[str], list[str]]:
+    """The topic filters the agent subscribes and the topics it receives."""
     # IoT Core delivers at most 100 publishes/s per connection, so the agent receives over a pool of
     # connections (twin.transport.pool) with client ids `<prefix><random>-<index>`: the policy allows
-    # exactly those indexes. Listed devices are subscribed one filter each; the whole fleet through the
-    # shared subscription `$share/<group>/<prefix>/+/telemetry` (MQTT '+' is literal in a policy
-    # resource, so the filter is granted exactly; Receive matches the shared topic form per device).
+    # exactly those indexes (as many as the listed devices need, or maxConnections for the fleet). Listed
+    # devices are subscribed one filter each; the whole fleet through the shared subscription
+    # `$share/<group>/<prefix>/+/telemetry` (MQTT '+' is literal in a policy resource, so the filter is
+    # granted exactly; Receive matches the shared topic form per device).
     if fleet:
-        connections = DEFAULT_MAX_CONNECTIONS
         group = shared_group(client_id_prefix)
-        filters = [f"$share/{group}/{topic_prefix}/+/{TELEMETRY_SUFFIX}"]
-        topics = [f"$share/{group}/{topic_prefix}/*/{TELEMETRY_SUFFIX}"]
-    else:
-        connections = listed_connections(
-            devices, rate_hz=EDGE_RATE_HZ, limit=IOT_PUBLISHES_PER_CONNECTION, iot=True
+        return (
+            [f"$share/{group}/{topic_prefix}/+/{TELEMETRY_SUFFIX}"],
+            [f"$share/{group}/{topic_prefix}/*/{TELEMETRY_SUFFIX}"],
         )
-        filters = [f"{topic_prefix}/{d}/{TELEMETRY_SUFFIX}" for d in devices]
-        topics = filters
-    return pool_client_ids(client_id_prefix, connections), filters, topics
+    filters = [f"{topic_prefix}/{d}/{TELEMETRY_SUFFIX}" for d in devices]
+    return filters, filters

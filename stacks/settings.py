@@ -31,7 +31,8 @@ from twin.core.topics import ALL_DEVICES, policy_device_id_problem, topic_prefix
 # deploys accepts: device ids and the topic prefix (twin.core.topics), units, and the client id prefix the
 # IAM policy scopes iot:Connect to.
 from twin.core.units import UNITS_CHOICES
-from twin.transport.broker import agent_client_id_prefix
+from twin.transport.broker import MAX_CONNECTIONS_LIMIT, agent_client_id_prefix
+from twin.transport.plan import DEFAULT_MAX_CONNECTIONS, IOT_PUBLISHES_PER_CONNECTION, SAFETY_MARGIN
 
 UNITS = UNITS_CHOICES
 DEFAULT_AMI_SSM_PARAMETER = (
@@ -57,6 +58,12 @@ _TIMEZONE_RE = re.compile(r"^(UTC|[A-Za-z]+(/[A-Za-z0-9_+-]+)+)$")
 _CRON_FIELD_RE = re.compile(r"^[0-9A-Za-z*?,/#L W-]+$")
 VOLUME_GB_MIN = 50
 VOLUME_GB_MAX = 16384
+# One arm must fit one connection's planned budget.
+ARM_RATE_HZ_MAX = IOT_PUBLISHES_PER_CONNECTION * SAFETY_MARGIN
+# The host role allows each listed device's topic filter and topic by name, and IAM bounds a role's policies
+# (10,240 characters inline, ten managed policies of 6,144): 150 listed devices of any id length fit with room
+# to spare (tests/infra/test_stack.py checks the synthesized role at this bound against those quotas).
+MAX_LISTED_DEVICES = 150
 
 
 class SettingsError(ValueError):
@@ -90,6 +97,10 @@ class TwinSettings:
     instance_type: str = "g6e.2xlarge"
     volume_gb: int = 100
     devices: tuple[str, ...] = ("arm-001",)
+    # The arms' publish rate, and the whole fleet's connection bound: what the IAM policy's client ids and
+    # the agent's connection pool are sized for (docs/scaling.md).
+    arm_rate_hz: float = 10.0
+    max_connections: int = DEFAULT_MAX_CONNECTIONS
     topic_prefix: str = "dt/lerobot"
     units: str = "auto"
     # Publish the arms as ROS 2 JointState on the host (docs/ros2.md): installs the agent's ros2 extra.
@@ -174,6 +185,8 @@ class TwinSettings:
             instance_type=_instance_type(_str(get, "instanceType") or cls.instance_type),
             volume_gb=_volume_gb(get("volumeGb")),
             devices=_devices(get("devices")),
+            arm_rate_hz=_arm_rate_hz(get("armRateHz")),
+            max_connections=_max_connections(get("maxConnections")),
             topic_prefix=_topic_prefix(_str(get, "topicPrefix") or cls.topic_prefix),
             units=_units(_str(get, "units") or cls.units),
             ros2=_bool(get, "ros2", False),
@@ -207,6 +220,8 @@ SETTING_FIELDS: dict[str, str] = {
     "allowAnyClient": "allow_any_client",
     "stackName": "stack_name",
     "devices": "devices",
+    "armRateHz": "arm_rate_hz",
+    "maxConnections": "max_connections",
     "topicPrefix": "topic_prefix",
     "units": "units",
     "alarmEmail": "alarm_email",
@@ -504,7 +519,47 @@ def _devices(value: object) -> tuple[str, ...]:
             )
     if len(set(devices)) != len(devices):
         raise SettingsError(f"devices={','.join(devices)} lists a device twice; list each once")
+    if len(devices) > MAX_LISTED_DEVICES:
+        raise SettingsError(
+            f"devices lists {len(devices)} arms; the host's IAM role can name at most {MAX_LISTED_DEVICES} "
+            "(IAM's size quotas on a role's policies). Mirror more with devices='*' and enough connections "
+            "for them, e.g. -c maxConnections=32 for 256 arms at 10 Hz (docs/scaling.md)"
+        )
     return devices
+
+
+def _arm_rate_hz(value: object) -> float:
+    if value is None or value == "":
+        return TwinSettings.arm_rate_hz
+    try:
+        rate = float(str(value).strip())
+    except ValueError:
+        raise SettingsError(f"armRateHz={value!r} is not a number; pass e.g. -c armRateHz=10") from None
+    if not 0 < rate <= ARM_RATE_HZ_MAX:
+        raise SettingsError(
+            f"armRateHz={value} is outside (0, {ARM_RATE_HZ_MAX:g}]: one arm must fit in one IoT Core "
+            f"connection's planned {ARM_RATE_HZ_MAX:g} messages a second; pass the rate the edge publishes "
+            "at, e.g. -c armRateHz=10"
+        )
+    return rate
+
+
+def _max_connections(value: object) -> int:
+    if value is None or value == "":
+        return TwinSettings.max_connections
+    try:
+        count = int(str(value).strip())
+    except ValueError:
+        raise SettingsError(
+            f"maxConnections={value!r} is not a whole number; pass e.g. -c maxConnections=8"
+        ) from None
+    if not 1 <= count <= MAX_CONNECTIONS_LIMIT:
+        raise SettingsError(
+            f"maxConnections={count} is outside 1..{MAX_CONNECTIONS_LIMIT}, the agent's bound (past it a "
+            "fleet wants an IoT rule into Kinesis, docs/scale-out.md); pass e.g. -c maxConnections=8, or "
+            "list the devices"
+        )
+    return count
 
 
 def _topic_prefix(value: str) -> str:

@@ -64,6 +64,8 @@ class TwinStack(Stack):
             devices=settings.devices,
             client_id_prefix=settings.client_id_prefix,
             stack_name=settings.stack_name,
+            arm_rate_hz=settings.arm_rate_hz,
+            max_connections=settings.max_connections,
         )
         self.history = HistoryBucket(
             self,
@@ -101,6 +103,9 @@ class TwinStack(Stack):
             agent_settings={
                 "TOPIC_PREFIX": settings.topic_prefix,
                 "DEVICES": ",".join(settings.devices),
+                # The agent plans its connections with these, and the role allows exactly that many.
+                "ARM_RATE_HZ": str(settings.arm_rate_hz),
+                "MAX_CONNECTIONS": str(settings.max_connections),
                 "UNITS": settings.units,
                 "ROS2": "true" if settings.ros2 else "false",
                 "CLIENT_ID_PREFIX": settings.client_id_prefix,

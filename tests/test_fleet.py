@@ -144,7 +144,7 @@ def test_a_shared_fleet_held_at_its_connections_budget_is_told_on_the_fleet_page
     health = wait_for(told, 60, "the quota's notice in /healthz")
     (reason,) = [r for r in health["reasons"] if "quota" in r]  # type: ignore[attr-defined]
     assert "all 2 connections (broker.max_connections) receive at their budget of 100 msg/s" in reason
-    assert "List the fleet's devices" in reason
+    assert "Raise broker.max_connections (up to 64)" in reason and "list the fleet's devices" in reason
     fleet = json.loads(http_get(agent.http_url + "/api/fleet")[2])
     assert any("per-connection quota" in n for n in fleet["notices"]), fleet["notices"]
     edge.stop()

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 from twin.transport.broker import BrokerConfig
 from twin.transport.plan import (
     PoolSettings,
     default_limit,
     devices_per_connection,
+    index_patterns,
     listed_connections,
     plan_listed,
     pool_client_ids,
@@ -102,7 +105,9 @@ def test_a_pool_held_at_its_budget_says_so_once_and_when_it_is_under_again(
     run(20, 8, 100)
     notice = pool.quota_notice  # type: ignore[attr-defined]
     assert notice.startswith("the broker's per-connection quota discards messages:"), notice
-    expected = "List the fleet's devices" if shared else "Set expected_rate_hz to their rate"
+    expected = (
+        "maxConnections in twin.settings.toml sets both" if shared else "Set expected_rate_hz to their rate"
+    )
     assert expected in notice
     assert [r.levelname for r in caplog.records].count("WARNING") == 1  # once, not every second
     run(20, 28, 50)  # under it, not yet for QUOTA_CALM_S
@@ -121,3 +126,15 @@ def test_a_shared_pool_that_can_still_grow_gives_no_notice() -> None:
             c.messages += 200 // len(held)  # type: ignore[attr-defined]
         pool.rescale(float(t))  # type: ignore[attr-defined]
     assert len(held) > 2 and pool.quota_notice == ""  # type: ignore[attr-defined]
+
+
+@pytest.mark.parametrize("count", [1, 8, 10, 19, 64, 100, 250, 1234])
+def test_index_patterns_match_exactly_the_pools_indexes(count: int) -> None:
+    """IAM's '?' stands for one character: the patterns let connect every index below count and nothing else,
+    not even the same numbers written with a leading zero."""
+    patterns = index_patterns(count)
+    rules = [re.compile(p.replace("?", "[0-9]") + "$") for p in patterns]
+    candidates = [str(i) for i in range(20_000)] + [f"0{i}" for i in range(2_000)]
+    assert [c for c in candidates if any(r.match(c) for r in rules)] == [str(i) for i in range(count)]
+    # Compact: a handful a digit, not one an index.
+    assert len(patterns) <= 10 * len(str(count))

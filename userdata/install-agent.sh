@@ -18,6 +18,8 @@
 #   PYTHON      interpreter for the venv (default python3.12; mujoco 4 and usd-core 26 need >= 3.11)
 #   VENV_ARGS   extra `python -m venv` arguments; PIP_ARGS extra `pip install` arguments
 #   AWS_REGION, TOPIC_PREFIX, DEVICES (comma list or *), UNITS, CLIENT_ID_PREFIX, DESKTOP_USER,
+#   ARM_RATE_HZ  the arms' publish rate the agent plans its connections for (default 10.0)
+#   MAX_CONNECTIONS  the whole fleet's connection bound, as many client ids as the role allows (default 8)
 #   RECORD_SESSIONS (true: keep USD recordings in /var/lib/so101-twin-agent/sessions; default false): the settings
 #   AGENT_NAME  the CloudWatch metrics' Agent dimension (the stack name; the stack's alarms watch it)
 #   HISTORY_URI  where the agent keeps telemetry history (s3://<bucket>/history); empty = no history
@@ -45,6 +47,8 @@ AWS_REGION="${AWS_REGION:-}"
 TOPIC_PREFIX="${TOPIC_PREFIX:-dt/lerobot}"
 DEVICES="${DEVICES:-arm-001}"
 UNITS="${UNITS:-auto}"
+ARM_RATE_HZ="${ARM_RATE_HZ:-10.0}"
+MAX_CONNECTIONS="${MAX_CONNECTIONS:-8}"
 ROS2="${ROS2:-false}"
 CLIENT_ID_PREFIX="${CLIENT_ID_PREFIX:-so101-twin-}"
 DESKTOP_USER="${DESKTOP_USER:-ubuntu}"
@@ -113,6 +117,15 @@ case "$UNITS" in ticks | degrees | range100 | auto) ;; *)
   exit 2
   ;;
 esac
+# Both reach the TOML below as numbers (the stack validated them; a number that is not one breaks the file).
+[[ $ARM_RATE_HZ =~ ^[0-9]+(\.[0-9]+)?([eE][-+]?[0-9]+)?$ ]] || {
+  echo "install-agent: ARM_RATE_HZ=$ARM_RATE_HZ is not a number" >&2
+  exit 2
+}
+[[ $MAX_CONNECTIONS =~ ^[1-9][0-9]*$ ]] || {
+  echo "install-agent: MAX_CONNECTIONS=$MAX_CONNECTIONS is not a whole number above 0" >&2
+  exit 2
+}
 case "$ROS2" in true | false) ;; *)
   echo "install-agent: ROS2=$ROS2 is not true or false" >&2
   exit 2
@@ -178,6 +191,9 @@ region = "${AWS_REGION}"
 endpoint = ""
 client_id_prefix = "${CLIENT_ID_PREFIX}"
 ca_file = ""
+# The stack's maxConnections: the whole fleet's pool grows to this many connections, and the host's role
+# allows exactly this many client ids (more, set in the local file, are refused by IoT Core).
+max_connections = ${MAX_CONNECTIONS}
 
 [telemetry]
 topic_prefix = "${TOPIC_PREFIX}"
@@ -204,7 +220,8 @@ events_file = "${EVENTS_FILE}"
 shutdown_budget_s = ${SHUTDOWN_BUDGET_S}
 
 [health]
-expected_rate_hz = 10.0
+# The stack's armRateHz: listed arms are planned on connections for this rate, as the role's client ids are.
+expected_rate_hz = ${ARM_RATE_HZ}
 stale_periods = 3
 offline_after_s = 10.0
 

@@ -7,7 +7,13 @@ from typing import Any
 
 import pytest
 
-from stacks.settings import DEFAULT_AMI_SSM_PARAMETER, SETTING_FIELDS, SettingsError, TwinSettings
+from stacks.settings import (
+    DEFAULT_AMI_SSM_PARAMETER,
+    MAX_LISTED_DEVICES,
+    SETTING_FIELDS,
+    SettingsError,
+    TwinSettings,
+)
 
 from .synth import cdk_json_context
 
@@ -176,6 +182,38 @@ def test_an_instance_type_without_an_nvidia_gpu_is_refused_at_synth(value: str) 
 @pytest.mark.parametrize("value", ["10", "16385", "big", "1.5"])
 def test_bad_volume_is_refused(value: str) -> None:
     assert "-c volumeGb=100" in refused(volumeGb=value)
+
+
+def test_arm_rate_and_max_connections_default_and_parse() -> None:
+    assert (settings().arm_rate_hz, settings().max_connections) == (10.0, 8)
+    # A settings file's TOML numbers or -c strings.
+    assert (
+        settings(armRateHz=2.5, maxConnections=32).arm_rate_hz,
+        settings(maxConnections="32").max_connections,
+    ) == (
+        2.5,
+        32,
+    )
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "81", "nan", "inf", "fast"])
+def test_a_bad_arm_rate_is_refused(value: str) -> None:
+    message = refused(armRateHz=value)
+    assert f"armRateHz={value}" in message or f"armRateHz='{value}'" in message
+    assert "-c armRateHz=10" in message
+
+
+@pytest.mark.parametrize("value", ["0", "65", "8.5", "many"])
+def test_a_bad_max_connections_is_refused(value: str) -> None:
+    message = refused(maxConnections=value)
+    assert "maxConnections=" in message and "-c maxConnections=8" in message
+
+
+def test_a_listed_fleet_longer_than_the_role_can_name_is_refused_with_the_fleet_as_the_fix() -> None:
+    assert len(settings(devices=",".join(f"arm-{i}" for i in range(MAX_LISTED_DEVICES))).devices) == 150
+    message = refused(devices=",".join(f"arm-{i}" for i in range(MAX_LISTED_DEVICES + 1)))
+    assert "devices lists 151 arms; the host's IAM role can name at most 150" in message
+    assert "devices='*'" in message and "-c maxConnections=32 for 256 arms at 10 Hz" in message
 
 
 def test_devices_parse_lists_and_fleet() -> None:

@@ -16,10 +16,11 @@ import pytest
 from aws_cdk.assertions import Match
 from syrupy.extensions.json import JSONSnapshotExtension
 
-from stacks.settings import DEFAULT_AMI_SSM_PARAMETER
+from stacks.settings import DEFAULT_AMI_SSM_PARAMETER, MAX_LISTED_DEVICES
 from stacks.twin_host import BOOT_TIMEOUT_MINUTES
 from stacks.twin_stack import OUTPUT_KEYS as STACK_OUTPUT_KEYS
 
+from .iam_limits import RoleSize, role_size
 from .synth import CLIENT_CIDR, Synth, normalise
 
 OUTPUT_KEYS = set(STACK_OUTPUT_KEYS)
@@ -270,6 +271,72 @@ def test_fleet_subscribes_exactly_the_shared_filter_from_the_pool_client_ids(
     # Partition-aware: every IoT ARN is built from the stack's partition, never a literal "aws".
     for arn in (*connect["Resource"], *subscribe_arns, receive["Resource"]):
         assert "AWS::Partition" in flatten(arn)
+
+
+def role_statements(synth: Synth, role_logical_prefix: str) -> list[dict[str, Any]]:
+    """The role's statements in its inline policy and in the managed ones CDK moves the overflow into."""
+    statements = []
+    for kind in ("AWS::IAM::Policy", "AWS::IAM::ManagedPolicy"):
+        for policy in synth.resources(kind).values():
+            if role_logical_prefix in flatten(policy["Properties"].get("Roles", [])):
+                statements += policy["Properties"]["PolicyDocument"]["Statement"]
+    return statements
+
+
+def host_role_size(synth: Synth) -> RoleSize:
+    (role,) = [k for k in synth.resources("AWS::IAM::Role") if k.startswith("IdentityHostRole")]
+    return role_size(synth.json, role)
+
+
+def granted(statements: list[dict[str, Any]], action: str, kind: str) -> list[str]:
+    """The `kind` resources (client, topicfilter, topic) granted for `action`, after the ARN's kind."""
+    found = []
+    for s in statements:
+        if s["Action"] == action:
+            resources = s["Resource"] if isinstance(s["Resource"], list) else [s["Resource"]]
+            found += [flatten(r).rsplit(f":{kind}/", 1)[1].split('"', 1)[0] for r in resources]
+    return found
+
+
+@pytest.mark.parametrize("id_chars", [1, 64], ids=["shortest-ids", "longest-ids"])
+def test_a_listed_fleet_at_its_bound_fits_iams_quotas_naming_each_device(
+    synth_factory, id_chars: int
+) -> None:
+    """IAM refuses a role's policies over its size quotas only at deploy time; the settings bound the list
+    so that it never happens, with ids of any allowed length (the shortest pack into the most statements,
+    the longest make the longest ARNs)."""
+    # "0".."149" (one to three characters), or 64 characters each.
+    devices = [str(i).ljust(id_chars, "x") for i in range(MAX_LISTED_DEVICES)]
+    synth = synth_factory(devices=",".join(devices))
+    assert host_role_size(synth).problems() == []
+    statements = role_statements(synth, "IdentityHostRole")
+    topics = [f"dt/lerobot/{d}/telemetry" for d in devices]
+    # CDK packs whole statements into the policies in its own order.
+    assert sorted(granted(statements, "iot:Subscribe", "topicfilter")) == sorted(topics)
+    assert sorted(granted(statements, "iot:Receive", "topic")) == sorted(topics)
+    # 150 arms at 10 Hz, 8 on a connection: 19 connections, and exactly their client ids.
+    patterns = granted(statements, "iot:Connect", "client")
+    assert matched_indexes(patterns, "so101-twin-So101TwinStack-*-") == [str(i) for i in range(19)]
+
+
+def matched_indexes(patterns: list[str], prefix: str) -> list[str]:
+    """The indexes 0..9999 (and any with a leading zero) that IAM's '?' in the patterns would let connect."""
+    assert all(p.startswith(prefix) for p in patterns), patterns
+    rules = [re.compile(re.escape(p[len(prefix) :]).replace(r"\?", "[0-9]") + "$") for p in patterns]
+    candidates = [str(i) for i in range(10_000)] + [f"0{i}" for i in range(1_000)]
+    return [c for c in candidates if any(r.match(c) for r in rules)]
+
+
+def test_the_fleets_client_ids_follow_max_connections(synth_factory) -> None:
+    synth = synth_factory(devices="*", maxConnections="64", armRateHz="20")
+    statements = role_statements(synth, "IdentityHostRole")
+    patterns = granted(statements, "iot:Connect", "client")
+    # Exactly the pool's 64 indexes, in a few patterns rather than one ARN each.
+    assert matched_indexes(patterns, "so101-twin-So101TwinStack-*-") == [str(i) for i in range(64)]
+    assert len(patterns) < 20
+    assert host_role_size(synth).problems() == []
+    parameter = flatten(synth.resources("AWS::SSM::Parameter"))
+    assert "MAX_CONNECTIONS=64" in parameter and "ARM_RATE_HZ=20.0" in parameter
 
 
 def test_dcv_license_logs_assets_and_secret_are_granted_narrowly(synth_default: Synth) -> None:

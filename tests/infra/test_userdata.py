@@ -207,6 +207,8 @@ def test_installer_writes_the_agent_config_from_the_settings(installed: tuple[Pa
     loaded = load_config(path)
     assert list(loaded.telemetry.devices) == ["arm-001", "arm-002"]
     assert loaded.broker.url == "iot"
+    # Without the stack's armRateHz and maxConnections (an older deployment parameter), the defaults.
+    assert (loaded.broker.max_connections, loaded.health.expected_rate_hz) == (8, 10.0)
     # CloudWatch metrics go to the file the CloudWatch agent follows, named for the stack's alarms.
     from twin.output.emf import DEFAULT_EMF_FILE
 
@@ -407,13 +409,26 @@ def test_changed_settings_rewrite_only_the_config(installed: tuple[Path, Path], 
     root = tmp_path / "root"
     shutil.copytree(installed[0], root, symlinks=True)
     before = host_state(root)
-    result = run_installer(root, installed[1], DEVICES="*", UNITS="auto", RECORD_SESSIONS="true")
+    result = run_installer(
+        root,
+        installed[1],
+        DEVICES="*",
+        UNITS="auto",
+        RECORD_SESSIONS="true",
+        ARM_RATE_HZ="2.5",
+        MAX_CONNECTIONS="24",
+    )
     assert result.returncode == 0, result.stderr
     after = host_state(root)
     changed = sorted(k for k in after if before.get(k) != after[k])
     assert changed == ["etc/so101-twin/agent.toml"]
     config = tomllib.loads((root / "etc/so101-twin/agent.toml").read_text())
     assert config["telemetry"]["devices"] == ["*"]
+    # The stack's armRateHz and maxConnections: the pool is planned as the role's client ids are.
+    from twin.service.config import load_config
+
+    loaded = load_config(root / "etc/so101-twin/agent.toml")
+    assert (loaded.broker.max_connections, loaded.health.expected_rate_hz) == (24, 2.5)
     assert config["twin"]["record_dir"] == "/var/lib/so101-twin-agent/sessions"
     assert (root / "var/lib/so101-twin-agent/sessions").is_dir()
 
@@ -894,6 +909,8 @@ def test_ros2_enables_the_bridge_from_the_lock_it_already_has(
         ({"ROS2": "yes"}, "ROS2=yes is not true or false"),
         ({"AGENT_SRC": "/nonexistent"}, "no pyproject.toml"),
         ({"RECORD_SESSIONS": "yes"}, "RECORD_SESSIONS=yes is not true or false"),
+        ({"ARM_RATE_HZ": "10 Hz"}, "ARM_RATE_HZ=10 Hz is not a number"),
+        ({"MAX_CONNECTIONS": "08"}, "MAX_CONNECTIONS=08 is not a whole number above 0"),
     ],
 )
 def test_installer_refuses_bad_input(tmp_path: Path, env: dict[str, str], message: str) -> None:

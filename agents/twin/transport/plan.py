@@ -74,8 +74,25 @@ def listed_connections(devices: Sequence[str], *, rate_hz: float, limit: float |
 
 
 def pool_client_ids(client_id_prefix: str, connections: int) -> list[str]:
-    """IAM resource patterns for the pool's client ids: `<prefix>*-<index>`, one per connection index."""
-    return [f"{client_id_prefix}*-{i}" for i in range(connections)]
+    """IAM resource patterns for the pool's client ids `<prefix>*-<index>` that match exactly the indexes
+    0..connections-1 (index_patterns), so a policy for 250 connections stays short."""
+    return [f"{client_id_prefix}*-{p}" for p in index_patterns(connections)]
+
+
+def index_patterns(count: int) -> list[str]:
+    """IAM patterns ('?' is one character) matching exactly the decimal strings of 0..count-1: 250 gives
+    "?", "1?".."9?", "1??", "20?".."24?". A block of 10**j numbers becomes one pattern only where its leading
+    digits are fixed, so no pattern matches a number with a leading zero, which the pool never uses."""
+    patterns, n = [], 0
+    while n < count:
+        digits, j = str(n), 0
+        # Widen the block while it starts on its boundary, fits below count and keeps a fixed leading digit
+        # (the single digits 0-9 are the exception: "?" is exactly them).
+        while n % 10 ** (j + 1) == 0 and n + 10 ** (j + 1) <= count and (len(digits) > j + 1 or n == 0 == j):
+            j += 1
+        patterns.append(digits[: len(digits) - j] + "?" * j if j else digits)
+        n += 10**j
+    return patterns
 
 
 @dataclass(frozen=True)

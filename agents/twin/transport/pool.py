@@ -34,7 +34,6 @@ from dataclasses import dataclass
 
 from twin.transport.broker import IOT, BrokerConfig
 from twin.transport.plan import (
-    DEFAULT_MAX_CONNECTIONS,
     GROW_AT,
     GROW_TARGET,
     RATE_WINDOW_S,
@@ -356,18 +355,17 @@ class ConnectionPool:
                 f"the broker's per-connection quota discards messages: all {k} connections "
                 f"(broker.max_connections) receive at their budget of {limit:g} msg/s, about {arms:.0f} arms "
                 f"at {settings.rate_hz:g} Hz, so arms are mirrored below their rate and the rest counted as "
-                "lost. List the fleet's devices ([telemetry] devices; on the stack, devices in "
-                "twin.settings.toml): the plan then takes the connections they need and the stack allows "
-                "them. A larger broker.max_connections needs a broker policy that allows that many client "
-                f"ids (the stack's allows {DEFAULT_MAX_CONNECTIONS})"
+                "lost. Raise broker.max_connections (up to 64), which needs a broker policy that allows that "
+                "many client ids: on the stack, maxConnections in twin.settings.toml sets both. Or list the "
+                "fleet's devices ([telemetry] devices; on the stack, devices, at most 150): the plan then "
+                "takes the connections they need and the stack allows them"
             )
         return (
             f"the broker's per-connection quota discards messages: {full} of {k} connections receive at "
             f"their budget of {limit:g} msg/s, planned for arms at {settings.rate_hz:g} Hz ([health] "
             "expected_rate_hz): the arms publish faster, or more of them share a connection than its budget "
             "carries. Set expected_rate_hz to their rate, so the plan spreads them over more connections (on "
-            "the stack, whose IAM policy allows the connections of arms at 10 Hz, publish at 10 Hz or fewer "
-            "arms per host)"
+            "the stack, armRateHz in twin.settings.toml sets it and the client ids its IAM policy allows)"
         )
 
     def _remove_last(self) -> None:
