@@ -103,6 +103,17 @@ def test_each_servo_fault_raises_and_clears_its_alarms(
     assert abs(metric(metrics, "twin_servo_load_percent", device="arm-001", joint="shoulder_lift")) <= 100.0
     assert metric(metrics, "twin_servo_alarms_raised_total", kind="overload") == 1.0
     assert metric(metrics, "twin_servo_alarms_present", severity="critical") >= 1.0
+    # Each alarm by its servo: one series each (ACTIVE, or LATCHED if it cleared meanwhile; none is
+    # acknowledged yet), so an alerting rule on /metrics can say which servo.
+    series = {
+        (labels["joint"], labels["kind"]): (labels["state"], value)
+        for (name, pairs), value in metrics.items()
+        if name == "twin_servo_alarm"
+        for labels in [dict(pairs)]
+        if labels["device"] == "arm-001"
+    }
+    assert set(series) == EXPECTED, series
+    assert all(state in ("ACTIVE", "LATCHED") and value == 1.0 for state, value in series.values()), series
 
     # Acknowledge the over-current while it lasts: ACKNOWLEDGED; again: 409; an unknown id: 404.
     ack_url = f"{url}/alarms/arm-001/shoulder_lift/over_current/ack"

@@ -515,7 +515,8 @@ class AgentHttpServer:
 
     async def _metrics(self, request: Request) -> Response:
         state = await self._call(self._source.state)
-        body = render_metrics(state).encode()
+        alarms = await self._call(self._source.alarms)
+        body = render_metrics(state, alarms).encode()
         return Response(
             body, media_type=None, headers={**SECURITY_HEADERS, "content-type": PROMETHEUS_CONTENT_TYPE}
         )

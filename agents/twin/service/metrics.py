@@ -11,14 +11,14 @@ Metric names are documented in docs/http-api.md; every counter family ends in `_
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 
 from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.exposition import CONTENT_TYPE_PLAIN_0_0_4
 
 from twin.core.health import DeviceStatus
-from twin.service.state import AgentInfo, AgentState, DeviceState, HistoryState, ServoState
+from twin.service.state import AgentInfo, AgentState, AlarmInfo, DeviceState, HistoryState, ServoState
 
 # Every metric name is valid in the classic format, so the widely parsed 0.0.4 text format is served.
 CONTENT_TYPE = CONTENT_TYPE_PLAIN_0_0_4
@@ -407,12 +407,14 @@ def _maybe(family: GaugeMetricFamily, labels: list[str], value: float | None) ->
 class _StateCollector:
     """A prometheus_client collector over one state snapshot."""
 
-    def __init__(self, state: AgentState) -> None:
+    def __init__(self, state: AgentState, alarms: Sequence[AlarmInfo]) -> None:
         self._state = state
+        self._alarms = alarms
 
     def collect(self) -> Iterator[Metric]:
         state = self._state
         yield from _agent_families(state.agent)
+        yield _alarm_series(self._alarms)
         devices = _DeviceFamilies()
         for device, d in sorted(state.devices.items()):
             devices.add(device, d)
@@ -421,8 +423,23 @@ class _StateCollector:
         yield from devices.all()
 
 
-def render_metrics(state: AgentState) -> str:
-    """The state as Prometheus text exposition format (every family with HELP and TYPE)."""
+def _alarm_series(alarms: Sequence[AlarmInfo]) -> GaugeMetricFamily:
+    """One series per servo alarm that is not NORMAL, naming its arm, servo, kind and state: an alerting rule
+    can then say which servo, where the counts above say only how many. Bounded by the alarms present."""
+    family = GaugeMetricFamily(
+        "twin_servo_alarm",
+        "1 for each servo alarm that is not NORMAL, by device, joint, kind, severity and state.",
+        labels=["device", "joint", "kind", "severity", "state"],
+    )
+    for a in alarms:
+        if a.state != "NORMAL":
+            family.add_metric([a.device, a.joint, a.kind, a.severity, a.state], 1)
+    return family
+
+
+def render_metrics(state: AgentState, alarms: Sequence[AlarmInfo] = ()) -> str:
+    """The state, and the servo alarms that are not NORMAL (GET /alarms), as Prometheus text exposition
+    format (every family with HELP and TYPE)."""
     registry = CollectorRegistry(auto_describe=False)
-    registry.register(_StateCollector(state))
+    registry.register(_StateCollector(state, alarms))
     return generate_latest(registry).decode()
