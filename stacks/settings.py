@@ -463,14 +463,25 @@ def _instance_type(value: str) -> str:
     return value
 
 
-def _volume_gb(value: object) -> int:
+def _whole(
+    key: str, value: object, default: int, *, example: int, bounds: tuple[int, int]
+) -> tuple[int, bool]:
+    """`value` as a whole number (`default` when not given) and whether it lies in `bounds` (inclusive);
+    SettingsError, naming `key` and an example, when it is not a whole number."""
     if value is None or value == "":
-        return TwinSettings.volume_gb
+        return default, True
     try:
-        size = int(str(value).strip())
+        number = int(str(value).strip())
     except ValueError:
-        raise SettingsError(f"volumeGb={value!r} is not a whole number; pass e.g. -c volumeGb=100") from None
-    if not VOLUME_GB_MIN <= size <= VOLUME_GB_MAX:
+        raise SettingsError(f"{key}={value!r} is not a whole number; pass e.g. -c {key}={example}") from None
+    return number, bounds[0] <= number <= bounds[1]
+
+
+def _volume_gb(value: object) -> int:
+    size, inside = _whole(
+        "volumeGb", value, TwinSettings.volume_gb, example=100, bounds=(VOLUME_GB_MIN, VOLUME_GB_MAX)
+    )
+    if not inside:
         raise SettingsError(
             f"volumeGb={size} is outside {VOLUME_GB_MIN}..{VOLUME_GB_MAX} (the GPU AMI alone needs tens "
             "of GB; gp3 tops out at 16 TiB); pass e.g. -c volumeGb=100"
@@ -479,16 +490,11 @@ def _volume_gb(value: object) -> int:
 
 
 def _history_ia_after_days(value: object) -> int:
-    if value is None or value == "":
-        return TwinSettings.history_ia_after_days
-    try:
-        days = int(str(value))
-    except ValueError:
-        raise SettingsError(
-            f"historyIaAfterDays={value!r} is not a whole number; pass e.g. -c historyIaAfterDays=30"
-        ) from None
     # S3 moves objects to Standard-IA no earlier than 30 days after they were written.
-    if not 30 <= days <= 3650:
+    days, inside = _whole(
+        "historyIaAfterDays", value, TwinSettings.history_ia_after_days, example=30, bounds=(30, 3650)
+    )
+    if not inside:
         raise SettingsError(
             f"historyIaAfterDays={days} is outside 30..3650 (S3 refuses a Standard-IA transition before 30 "
             "days); pass e.g. -c historyIaAfterDays=30"
@@ -545,15 +551,10 @@ def _arm_rate_hz(value: object) -> float:
 
 
 def _max_connections(value: object) -> int:
-    if value is None or value == "":
-        return TwinSettings.max_connections
-    try:
-        count = int(str(value).strip())
-    except ValueError:
-        raise SettingsError(
-            f"maxConnections={value!r} is not a whole number; pass e.g. -c maxConnections=8"
-        ) from None
-    if not 1 <= count <= MAX_CONNECTIONS_LIMIT:
+    count, inside = _whole(
+        "maxConnections", value, TwinSettings.max_connections, example=8, bounds=(1, MAX_CONNECTIONS_LIMIT)
+    )
+    if not inside:
         raise SettingsError(
             f"maxConnections={count} is outside 1..{MAX_CONNECTIONS_LIMIT}, the agent's bound (past it a "
             "fleet wants an IoT rule into Kinesis, docs/scale-out.md); pass e.g. -c maxConnections=8, or "
