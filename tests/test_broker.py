@@ -61,6 +61,35 @@ def test_busy_port_is_reported_with_log(mosquitto: MosquittoBroker, tmp_path: Pa
     assert not clash.running
 
 
+def test_a_server_taking_the_port_after_the_check_is_not_mistaken_for_mosquitto(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    # The race the start guards against: the port passes the "bindable" check, then another process binds
+    # and listens on it before mosquitto does. That server accepts connections, so "accepts" alone called
+    # the start a success while mosquitto had exited on "Address already in use".
+    monkeypatch.setattr(broker_mod, "_port_bindable", lambda _host, _port: True)
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        named = MosquittoBroker(port, workdir=tmp_path / "named", start_timeout=30.0)
+        with pytest.raises(BrokerError, match=f"exited with code .* on port {port}"):
+            named.start()
+        assert not named.running
+        # An auto-picked port handed out the taken one first: the start picks another and runs there.
+        picks = iter([port])
+        monkeypatch.setattr(broker_mod, "free_port", lambda host: next(picks, 0) or _free(host))
+        with MosquittoBroker(workdir=tmp_path / "picked", start_timeout=30.0) as picked:
+            assert picked.running and picked.port != port
+            assert "running" in picked.log_path.read_text()
+
+
+def _free(host: str) -> int:
+    with socket.socket() as sock:
+        sock.bind((host, 0))
+        return int(sock.getsockname()[1])
+
+
 def test_missing_binary_names_the_fix(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(broker_mod.shutil, "which", lambda _name: None)
     monkeypatch.setattr(broker_mod, "_SEARCH_DIRS", ("/nonexistent-dir",))

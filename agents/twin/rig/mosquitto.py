@@ -10,6 +10,7 @@ import contextlib
 import logging
 import os
 import pwd
+import re
 import shutil
 import signal
 import socket
@@ -175,6 +176,8 @@ class MosquittoBroker:
             )
         self._write_config()
         self._log_file = open(self.log_path, "ab")  # noqa: SIM115 - lives as long as the process
+        # The log is appended to across restarts: only what this launch writes after here counts.
+        log_start = self._log_file.tell()
         self._proc = subprocess.Popen(
             [self._binary, "-c", str(self.config_path)],
             stdout=self._log_file,
@@ -189,7 +192,10 @@ class MosquittoBroker:
                     f"mosquitto exited with code {self._proc.returncode} on port {self.port}; "
                     f"log {self.log_path}:\n{self._log_tail()}"
                 )
-            if _port_accepts(self.host, self.port):
+            # "running" in our own log proves the listener is this process's: another server that took the
+            # port after the check above also accepts connections, while mosquitto exits on "Address already
+            # in use" a moment later.
+            if self._says_running(log_start) and _port_accepts(self.host, self.port):
                 log.info("mosquitto listening on %s (pid %d)", self.url, self._proc.pid)
                 return
             time.sleep(0.02)
@@ -198,6 +204,14 @@ class MosquittoBroker:
             f"mosquitto did not accept connections on {self.url} within {self.start_timeout:.1f} s; "
             f"log {self.log_path}:\n{self._log_tail()}"
         )
+
+    def _says_running(self, log_start: int) -> bool:
+        try:
+            with open(self.log_path, "rb") as log_file:
+                log_file.seek(log_start)
+                return re.search(rb"mosquitto version \S+ running", log_file.read()) is not None
+        except OSError:
+            return False
 
     def _log_tail(self, lines: int = 20) -> str:
         try:
