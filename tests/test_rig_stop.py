@@ -4,6 +4,7 @@ margin have passed, as systemd does on the host (so a stop that needs its budget
 from __future__ import annotations
 
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -78,3 +79,25 @@ def test_the_agent_is_given_its_budget_and_the_margin(
     assert timeouts == [budget + STOP_MARGIN_S]
     # The agent ended on SIGTERM (or refused its config) by itself, not by the rig's SIGKILL.
     assert proc.returncode is not None and proc.returncode != -signal.SIGKILL
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_an_agent_whose_picked_port_was_taken_starts_again_on_another(
+    rig: LocalRig, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The port is picked free and bound later by the agent, so another process can take it between: here it
+    # listens there first. The agent exits on it; the rig must not hand out that port, where another server
+    # (not the agent) may answer, but the one an agent started again serves.
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        picks = iter([port])
+        free_port = local.free_port
+        monkeypatch.setattr(local, "free_port", lambda: next(picks, 0) or free_port())
+        with rig.agent_process() as (proc, base):
+            assert proc.poll() is None, rig.agent_log(port).read_text()
+            assert base != f"http://127.0.0.1:{port}"
+            assert local._serving_pid(int(base.rsplit(":", 1)[1])) == proc.pid
+        assert f"cannot listen on 127.0.0.1:{port}" in rig.agent_log(port).read_text()

@@ -15,6 +15,7 @@ starts is stopped in `close()`, in reverse order, also when the body raises.
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import shutil
@@ -23,6 +24,7 @@ import sys
 import tempfile
 import threading
 import time
+import urllib.request
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -43,6 +45,10 @@ SUBSCRIBE_TIMEOUT_S = 15.0
 # An agent the rig started is killed this long after its shutdown budget (the host's unit gives systemd's
 # stop timeout the same margin: userdata/install-agent.sh).
 STOP_MARGIN_S = 30.0
+# Starts of `agent_process` on a new port when another process took the one picked; and how long one start
+# may take before the agent serves HTTP (a cold start on a loaded 2-core machine takes tens of seconds).
+AGENT_PORT_ATTEMPTS = 3
+AGENT_START_TIMEOUT_S = 240.0
 
 
 class RigError(RuntimeError):
@@ -180,43 +186,82 @@ class LocalRig:
         extra_args: Sequence[str] = (),
         log_name: str = "agent",
     ) -> Iterator[tuple[subprocess.Popen[bytes], str]]:
-        """`twin run` as a child process on this rig's broker; yields (process, HTTP base URL).
+        """`twin run` as a child process on this rig's broker; yields (process, HTTP base URL) once the agent
+        serves that URL itself (or has exited by itself: a config it refuses).
 
         `config_text` is written as its TOML config (None: no --config, the defaults and the flags only);
         stdout and stderr go to `<workdir>/<log_name>-<port>.log`. Stopped with SIGTERM on exit, and killed
         only once its `[twin] shutdown_budget_s` and STOP_MARGIN_S have passed, as systemd does on the host:
         a stop that needs its budget (history's last commit, say) ends as it would in the field.
         """
-        port = free_port()
-        config_args: list[str] = []
         budget = AgentConfig().twin.shutdown_budget_s
+        config_args: list[str] = []
         if config_text is not None:
-            config = self.workdir / f"{log_name}-{port}.toml"
-            config.write_text(config_text)
+            config = self._agent_config_file(config_text, log_name)
             config_args = ["--config", str(config)]
             with contextlib.suppress(ConfigError):  # the agent itself says what is wrong, and exits
                 budget = load_config(config).twin.shutdown_budget_s
-        log_path = self.agent_log(port, log_name)
+        # The port is picked free, then bound by the agent: another process can take it between. Then the
+        # agent exits saying so and runs again on another port (the log's name carries the port, and the
+        # agent reports a port 0 bound only in a log line `--log-level WARNING` hides).
+        for attempt in range(AGENT_PORT_ATTEMPTS):
+            port = free_port()
+            proc = self._spawn_agent(port, devices, [*config_args, *extra_args], log_name)
+            try:
+                taken = not self._await_own_http(proc, port, log_name)
+            except BaseException:
+                _terminate(proc, budget + STOP_MARGIN_S)
+                raise
+            if not taken or attempt == AGENT_PORT_ATTEMPTS - 1:
+                break
+            log.warning("the agent's HTTP port %d was taken by another process; starting it again", port)
+        try:
+            yield proc, f"http://127.0.0.1:{port}"
+        finally:
+            _terminate(proc, budget + STOP_MARGIN_S)
+
+    def _agent_config_file(self, config_text: str, log_name: str) -> Path:
+        # One file per agent_process: two running at once under one log name keep their own configs.
+        fd, name = tempfile.mkstemp(prefix=f"{log_name}-", suffix=".toml", dir=self.workdir)
+        os.close(fd)
+        config = Path(name)
+        config.write_text(config_text)
+        return config
+
+    def _spawn_agent(
+        self, port: int, devices: str, args: Sequence[str], log_name: str
+    ) -> subprocess.Popen[bytes]:
         cmd = [
             sys.executable,
             "-m",
             "twin.cli",
             "run",
-            *config_args,
             "--broker",
             self.broker.url,
             "--devices",
             devices,
             "--http",
             f"127.0.0.1:{port}",
-            *extra_args,
+            *args,
         ]
-        with log_path.open("wb") as log_file:
-            proc = subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT, env=child_env())
-            try:
-                yield proc, f"http://127.0.0.1:{port}"
-            finally:
-                _terminate(proc, budget + STOP_MARGIN_S)
+        with self.agent_log(port, log_name).open("wb") as log_file:
+            return subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT, env=child_env())
+
+    def _await_own_http(self, proc: subprocess.Popen[bytes], port: int, log_name: str) -> bool:
+        """Whether the agent `proc` serves `port` itself or exited for a reason of its own; False when it
+        exited because the port was taken. A server that answers there with another pid is not it."""
+        deadline = time.monotonic() + AGENT_START_TIMEOUT_S
+        while time.monotonic() < deadline:
+            if proc.poll() is not None:
+                said = self.agent_log(port, log_name).read_text(errors="replace")
+                return f"cannot listen on 127.0.0.1:{port}" not in said
+            if _serving_pid(port) == proc.pid:
+                return True
+            time.sleep(0.1)
+        raise RigError(
+            f"the agent (pid {proc.pid}) did not serve http://127.0.0.1:{port} within "
+            f"{AGENT_START_TIMEOUT_S:.0f} s; its log: {self.agent_log(port, log_name)}"
+        )
 
     def agent_log(self, port: int | str, log_name: str = "agent") -> Path:
         """Where `agent_process` writes the output of the agent serving HTTP on `port` (kept until the rig
@@ -268,6 +313,16 @@ def child_env() -> dict[str, str]:
     env.setdefault("MUJOCO_GL", "egl")
     env["PYTHONUNBUFFERED"] = "1"
     return env
+
+
+def _serving_pid(port: int) -> int | None:
+    """The pid the agent answering GET /state on `port` reports; None when nothing (or not an agent)
+    answers yet."""
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/state", timeout=5.0) as response:
+            return int(json.loads(response.read())["agent"]["pid"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
 
 
 def _terminate(proc: subprocess.Popen[bytes], timeout: float) -> None:
