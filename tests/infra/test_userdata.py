@@ -779,7 +779,7 @@ def test_two_arms_decode_each_with_its_own_calibration_on_the_installed_host(
 
     from conftest import Publisher, get_state, wait_for
     from moto_s3 import MotoS3
-    from twin.rig.mosquitto import MosquittoBroker, free_port
+    from twin.rig.mosquitto import MosquittoBroker
 
     root = tmp_path / "root"
     shutil.copytree(installed[0], root, symlinks=True)
@@ -825,15 +825,7 @@ def test_two_arms_decode_each_with_its_own_calibration_on_the_installed_host(
             twin if a.endswith("/bin/twin") else f"{root}{a}" if a.startswith("/etc/") else a
             for a in exec_start.split()
         ]
-        port = free_port()
-        agent = subprocess.Popen(
-            [*argv, "--broker", broker.url, "--http", f"127.0.0.1:{port}"],
-            env={**aws, "MUJOCO_GL": "egl"},
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        base = f"http://127.0.0.1:{port}"
+        agent, base = _start_own_agent([*argv, "--broker", broker.url], {**aws, "MUJOCO_GL": "egl"})
         publisher = Publisher(broker.url)
 
         def both_shown() -> bool:
@@ -881,6 +873,33 @@ def test_two_arms_decode_each_with_its_own_calibration_on_the_installed_host(
             assert agent.returncode == 0, err[-3000:]
         broker.stop()
         s3.close()
+
+
+def _start_own_agent(argv: list[str], env: dict[str, str]) -> tuple[subprocess.Popen[str], str]:
+    """`argv` with `--http` on a port picked free; started again on another port when another process took
+    that one before the agent bound it (the agent exits saying so), so the test never polls a server that is
+    not its agent. Returns the agent serving its URL, or one that exited for a reason of its own."""
+    from twin.rig.local import _serving_pid
+    from twin.rig.mosquitto import free_port
+
+    for _ in range(3):
+        port = free_port()
+        agent = subprocess.Popen(
+            [*argv, "--http", f"127.0.0.1:{port}"],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        deadline = time.monotonic() + 240
+        while agent.poll() is None and _serving_pid(port) != agent.pid and time.monotonic() < deadline:
+            time.sleep(0.1)
+        if agent.poll() is None or agent.stderr is None:
+            return agent, f"http://127.0.0.1:{port}"
+        err = agent.stderr.read()
+        if f"cannot listen on 127.0.0.1:{port}" not in err:
+            raise AssertionError(f"the agent exited with {agent.returncode}: {err[-3000:]}")
+    raise AssertionError(f"three ports picked free were taken before the agent bound them: {err[-3000:]}")
 
 
 def test_ros2_enables_the_bridge_from_the_lock_it_already_has(
