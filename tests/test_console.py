@@ -253,7 +253,7 @@ def test_an_arm_page_names_the_servo_that_reports_an_error_itself(
     try:
         message = make_payload("arm-001", 0.0, "ticks", random.Random(3))
         agent.feed("dt/lerobot/arm-001/telemetry", encode(message))
-        servos = wait_for(lambda: agent.state().devices["arm-001"].servos, 30, "arm-001's servos")
+        servos = wait_for(lambda: agent.state().devices["arm-001"].servos, TIMEOUT_S, "arm-001's servos")
         assert {s.errors for s in servos.values()} == {None}  # the edge sent no status
         for joint in message["joints"].values():
             joint["status"] = 0
@@ -573,7 +573,7 @@ def test_a_refused_acknowledge_says_why_and_what_to_do(
     button = page.locator(f'#alarms tr[data-alarm="{alarm["alarm_id"]}"]').get_by_role("button")
     button.click()
     result = page.locator("#ack-result")
-    result.filter(has_text="reload the console page").wait_for(timeout=15_000)
+    result.filter(has_text="reload the console page").wait_for(timeout=TIMEOUT_S * 1000)
     assert alarm["alarm_id"] in result.inner_text() and "csrf_token_invalid" in result.inner_text()
     # Not acknowledged: still ACTIVE, or LATCHED if it cleared meanwhile (a slow machine).
     assert alarm_state(console, "arm-003", alarm["alarm_id"]) in ("ACTIVE", "LATCHED")
@@ -581,12 +581,12 @@ def test_a_refused_acknowledge_says_why_and_what_to_do(
 
     page.route("**/ack", lambda route: route.abort())  # the agent gone: no answer at all
     button.click()
-    result.filter(has_text="the agent did not answer").wait_for(timeout=15_000)
+    result.filter(has_text="the agent did not answer").wait_for(timeout=TIMEOUT_S * 1000)
     page.unroute("**/ack")
 
     # The agent answers again: the stale token is renewed from the page and the acknowledgement goes through.
     button.click()
-    page.wait_for_selector("#ack-result.ack-ok", timeout=15_000)
+    page.wait_for_selector("#ack-result.ack-ok", timeout=TIMEOUT_S * 1000)
     assert page.evaluate("document.querySelector('meta[name=csrf-token]').content") == token
     assert {a["alarm_id"]: a["state"] for a in alarms(console, "arm-003")}.get(alarm["alarm_id"]) != "ACTIVE"
     # The browser logs each failed request; they are this test's doing, and only they may be there.
@@ -1000,7 +1000,7 @@ def test_an_offline_arm_is_forgotten_from_its_page(
         page.route("**/arm/arm-retired", lambda route: route.abort())
         button.click()
         result = page.locator("#forget-result")
-        result.filter(has_text="reload the console page").wait_for(timeout=15_000)
+        result.filter(has_text="reload the console page").wait_for(timeout=TIMEOUT_S * 1000)
         assert "was not forgotten" in result.inner_text() and "csrf_token_invalid" in result.inner_text()
         assert "arm-retired" in agent.state().devices
         page.unroute("**/arm/arm-retired")
@@ -1012,11 +1012,11 @@ def test_an_offline_arm_is_forgotten_from_its_page(
 
         page.route("**/api/arm/arm-retired/forget", not_saved)
         button.click()
-        result.filter(has_text="is forgotten, but not kept: " + detail).wait_for(timeout=15_000)
+        result.filter(has_text="is forgotten, but not kept: " + detail).wait_for(timeout=TIMEOUT_S * 1000)
         page.unroute("**/api/arm/arm-retired/forget", not_saved)
         # It can now: the token is renewed from the page and the forget goes through.
         button.click()
-        result.filter(has_text="arm-retired is forgotten: its twin").wait_for(timeout=15_000)
+        result.filter(has_text="arm-retired is forgotten: its twin").wait_for(timeout=TIMEOUT_S * 1000)
         assert page.evaluate("document.querySelector('meta[name=csrf-token]').content") == token
     finally:
         page.remove_listener("dialog", confirm)

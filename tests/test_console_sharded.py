@@ -61,7 +61,7 @@ def test_a_sharded_agent_serves_the_fleet_rows_and_every_workers_events(rig: Loc
             for row in rows
         )
 
-    wait_for(rows_agree_with_state, 30, "the fleet rows agree with the merged state")
+    wait_for(rows_agree_with_state, 60, "the fleet rows agree with the merged state")
 
     # Each worker's events reach the front within a supervisor round or two.
     wait_for(
@@ -119,7 +119,7 @@ def test_an_arm_page_is_read_from_its_own_worker_without_the_fleet_state(rig: Lo
     def every_message_handled() -> bool:
         return sum(d.health.counters.received for d in whole().devices.values()) == published
 
-    wait_for(every_message_handled, 30, "every message published handled")
+    wait_for(every_message_handled, 60, "every message published handled")
     state, alarms = whole(), agent.alarms()
     for device in DEVICES:
         view = agent.arm_view(device)
@@ -152,7 +152,7 @@ def test_an_arm_whose_worker_does_not_answer_is_shown_from_its_checkpoint(tmp_pa
         payload = encode(make_payload(device, 0.0, "ticks", random.Random(2)))
         agent.feed(f"dt/lerobot/{device}/telemetry", payload)
         shard = agent._shards[1]
-        wait_for(lambda: (c := shard.checkpoint) is not None and c.taken >= 1, 30, "a checkpoint of the arm")
+        wait_for(lambda: (c := shard.checkpoint) is not None and c.taken >= 1, 60, "a checkpoint of the arm")
         asked: list[object] = []
 
         def silent(request: object) -> Any:

@@ -21,7 +21,7 @@ pytestmark = pytest.mark.slow
 
 
 def fleet_document(url: str) -> dict[str, Any]:
-    with urllib.request.urlopen(url + "/api/fleet", timeout=10) as response:
+    with urllib.request.urlopen(url + "/api/fleet", timeout=60) as response:
         document: dict[str, Any] = json.load(response)
     return document
 
@@ -29,7 +29,7 @@ def fleet_document(url: str) -> dict[str, Any]:
 def empty_text(page: Any) -> str:
     """The empty fleet page's text once the agent's first document has arrived (before it, the page says it
     is loading: a slow first answer must not be read as the agent's word)."""
-    text: str = page.wait_for_selector('#fleet-empty[data-loaded="true"]', timeout=30_000).inner_text()
+    text: str = page.wait_for_selector('#fleet-empty[data-loaded="true"]', timeout=60_000).inner_text()
     return text
 
 
@@ -61,7 +61,7 @@ def test_an_empty_fleet_page_names_the_filter_and_what_to_check_until_an_arm_is_
 
     page.route(fleet_url, hold)
     page.goto(agent.http_url + "/")
-    loading = page.wait_for_selector('#fleet-empty[data-loaded="false"]', timeout=30_000)
+    loading = page.wait_for_selector('#fleet-empty[data-loaded="false"]', timeout=60_000)
     assert loading.inner_text() == "loading the fleet…"
     assert held  # the page asked, and waits
     page.unroute(fleet_url)  # lets the held requests go on
@@ -70,8 +70,8 @@ def test_an_empty_fleet_page_names_the_filter_and_what_to_check_until_an_arm_is_
     assert "iot:Receive" in text and "docs/agent.md" in text
 
     rig.start_edge(["arm-001"], seconds=None, rate_hz=10.0)
-    page.wait_for_selector("text=arm-001", timeout=30_000)
-    wait_for(lambda: page.query_selector("#fleet-empty") is None, 30, "the empty-page text gone")
+    page.wait_for_selector("text=arm-001", timeout=60_000)
+    wait_for(lambda: page.query_selector("#fleet-empty") is None, 60, "the empty-page text gone")
 
 
 def test_an_empty_fleet_page_says_when_the_agent_is_not_connected(rig: LocalRig, chromium_page: Any) -> None:
