@@ -1,4 +1,4 @@
-"""The alarm topic and what notifies it: the host's servo alarms directly, and twelve CloudWatch alarms.
+"""The alarm topic and what notifies it: the host's servo alarms directly, and thirteen CloudWatch alarms.
 
 One SNS topic (encrypted, TLS only; an e-mail address subscribed when the settings give one):
 
@@ -22,6 +22,10 @@ One SNS topic (encrypted, TLS only; an e-mail address subscribed when the settin
   than it holds); history commits failing for 5 minutes; history's oldest unwritten row over a minute old, 2
   minutes running (storage slow or unreachable; rows are dropped once the buffer is full).
 - **a refused subscription** (CloudWatch): IoT Core refuses the agent a topic filter for 2 minutes.
+- **messages lost on the way** (CloudWatch): the arms that are not OFFLINE deliver at least 10 % less than
+  their expected rate, 5 minutes running. IoT Core discards what a connection receives over its quota without
+  an error, so this is how such a loss reaches a person (as a weak edge network, or armRateHz set above the
+  edges' rate, does); the console's Fleet page and /healthz name the quota's case and its fix.
 - **the host's own scripts** (CloudWatch, three alarms): the checks after a start failed (host-check.sh);
   the bucket does not hold the operator's agent.local.toml as it is (save-local-config.sh), or the servo
   alarm state as the agent last wrote it (save-alarm-state.sh). Each holds its state until the script's next
@@ -63,6 +67,11 @@ HISTORY_COMMIT_FAILURES = "HistoryCommitFailures"
 HISTORY_LAG = "HistoryLagSeconds"
 # Topic filters the broker refuses the agent (agents/twin/output/emf.py, SUBSCRIPTIONS_REFUSED).
 SUBSCRIPTIONS_REFUSED = "SubscriptionsRefused"
+# The share of the arms' expected messages that did not arrive (emf.LOSS_PERCENT), and what pages: a tenth,
+# five minutes running (an arm starting up, or a minute of a weak network, passes).
+LOSS_PERCENT = "LossPercent"
+LOSS_ALARM_PERCENT = 10
+LOSS_ALARM_MINUTES = 5
 # The host scripts' own metrics (userdata/lib.sh, emit_host_metrics): the verdict of the checks after each
 # start (host-check.sh), and whether the bucket holds the operator's agent.local.toml (save-local-config.sh)
 # and the agent's servo alarm state (save-alarm-state.sh).
@@ -173,6 +182,7 @@ class TwinMonitoring(Construct):
         self._alarms_for_loss()
         self._alarms_for_history()
         self.alarms["SubscriptionsRefused"] = self._subscriptions_refused_alarm()
+        self.alarms["MessagesLost"] = self._messages_lost_alarm()
         self._alarms_for_host_scripts()
         action = cw_actions.SnsAction(self.topic)
         for alarm in self.alarms.values():
@@ -332,6 +342,23 @@ class TwinMonitoring(Construct):
             minutes=2,
         )
 
+    def _messages_lost_alarm(self) -> cw.Alarm:
+        """MessagesLost: the arms deliver a tenth less than expected for 5 minutes. Nothing in the agent drops
+        these (the loss alarms above say when it does): they never arrived, and IoT Core's per-connection
+        quota discards without an error, so without this a fleet past its connections is mirrored at a
+        fraction of its rate while every other alarm stays quiet."""
+        return self._sustained_alarm(
+            "MessagesLost",
+            f"The arms of {self.agent_name} deliver at least {LOSS_ALARM_PERCENT} % fewer messages than "
+            "expected (LossPercent), 5 minutes running: IoT Core's per-connection quota discarding them (the "
+            "console's Fleet page and /healthz then say so, naming the fix: maxConnections, or the devices "
+            "listed), an edge's weak network, or armRateHz above the rate the edges publish at. "
+            "docs/servo-health.md",
+            self._metric(LOSS_PERCENT, "Maximum"),
+            threshold=LOSS_ALARM_PERCENT,
+            minutes=LOSS_ALARM_MINUTES,
+        )
+
     def _outcome_alarm(self, id_: str, name: str, description: str) -> cw.Alarm:
         """Alarm on the last outcome a host script wrote to `name` (1: failed, 0: fine). The scripts write
         only when they run (a start, a save), so a minute without data keeps the alarm as it is (IGNORE): a
@@ -423,7 +450,7 @@ def _fleet_graphs(labelled: Callable[..., cw.Metric]) -> list[cw.GraphWidget]:
         ),
         _graph(
             "Loss: share of expected messages that never arrived (%)",
-            [labelled("LossPercent", "Maximum", "loss %")],
+            [labelled(LOSS_PERCENT, "Maximum", "loss %")],
             left_y_axis=cw.YAxisProps(min=0),
         ),
         _graph(

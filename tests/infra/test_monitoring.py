@@ -47,6 +47,7 @@ def test_names_agree_with_the_agents_emf() -> None:
     )
     assert stack_side == emf.LOSS_METRICS
     assert monitoring.SUBSCRIPTIONS_REFUSED == emf.SUBSCRIPTIONS_REFUSED
+    assert monitoring.LOSS_PERCENT == emf.LOSS_PERCENT
 
 
 def test_topic_is_encrypted_tls_only_and_cloudwatch_may_publish(synth_default: Synth) -> None:
@@ -86,7 +87,7 @@ def test_every_alarm_notifies_the_topic_on_alarm_and_ok(synth_default: Synth) ->
     # Servo alarms reach the topic from the host directly (test_host_publishes_servo_alarms_to_the_topic_
     # only), not through a CloudWatch alarm on a once-a-minute metric: agent silent, arms stale, the six
     # loss alarms, a refused subscription and the host scripts' three.
-    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 12)
+    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 13)
     ref = topic_ref(synth_default)
     for props in synth_default.resources("AWS::CloudWatch::Alarm").values():
         assert props["Properties"]["AlarmActions"] == [ref]
@@ -132,7 +133,7 @@ def test_agent_silent_is_armed_by_the_host_once_it_is_up(synth_default: Synth) -
         for p in synth_default.resources("AWS::CloudWatch::Alarm").values()
         if p["Properties"].get("AlarmName") != "So101TwinStack-AgentSilent"
     ]
-    assert len(others) == 11 and all(p.get("ActionsEnabled", True) for p in others)
+    assert len(others) == 12 and all(p.get("ActionsEnabled", True) for p in others)
     arm = statement(policy_statements(synth_default, "IdentityHostRole"), "AgentSilentArm")
     assert arm["Action"] == "cloudwatch:EnableAlarmActions"
     resource = json.dumps(arm["Resource"])
@@ -266,7 +267,7 @@ def test_the_dashboard_shows_every_alarm_and_is_an_output(synth_default: Synth) 
     body = dashboard_body(synth_default)
     status = [w for w in body["widgets"] if w["type"] == "alarm"]
     alarms = synth_default.resources("AWS::CloudWatch::Alarm")
-    assert len(status) == 1 and len(status[0]["properties"]["alarms"]) == len(alarms) == 12
+    assert len(status) == 1 and len(status[0]["properties"]["alarms"]) == len(alarms) == 13
     # One point a minute, the agent's EMF interval, each with the statistic its figure needs.
     for widget in body["widgets"]:
         for row in widget["properties"].get("metrics", []):
@@ -338,6 +339,21 @@ def test_a_refused_subscription_alarms_after_two_minutes_of_it(synth_default: Sy
     assert (props["EvaluationPeriods"], props["DatapointsToAlarm"]) == (2, 2)
     assert props["TreatMissingData"] == "notBreaching"
     assert "iot:Subscribe" in props["AlarmDescription"]
+
+
+def test_messages_that_never_arrive_page_after_five_minutes_of_a_tenth_lost(synth_default: Synth) -> None:
+    """IoT Core discards what a connection receives over its quota without an error, and nothing in the
+    agent drops those messages, so none of the loss alarms above would say it: the arms' loss does."""
+    props = _alarm_on(synth_default, emf.LOSS_PERCENT)
+    assert props["Namespace"] == emf.NAMESPACE
+    assert props["Dimensions"] == [{"Name": "Agent", "Value": "So101TwinStack"}]
+    assert (props["Statistic"], props["Period"]) == ("Maximum", 60)
+    assert (props["ComparisonOperator"], props["Threshold"]) == ("GreaterThanOrEqualToThreshold", 10)
+    assert (props["EvaluationPeriods"], props["DatapointsToAlarm"]) == (5, 5)
+    # No data (no agent, or no arm that is not OFFLINE: the agent then writes 0) is no loss.
+    assert props["TreatMissingData"] == "notBreaching"
+    description = props["AlarmDescription"]
+    assert "per-connection quota" in description and "maxConnections" in description
 
 
 @pytest.mark.parametrize(

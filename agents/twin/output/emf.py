@@ -48,6 +48,7 @@ HISTORY_ROWS_DROPPED = "HistoryRowsDropped"  # history rows dropped: the write b
 HISTORY_COMMIT_FAILURES = "HistoryCommitFailures"  # history commits that failed (retried)
 HISTORY_LAG = "HistoryLagSeconds"  # how long the oldest unwritten history row has waited
 SUBSCRIPTIONS_REFUSED = "SubscriptionsRefused"  # topic filters the broker refuses now (an IAM policy)
+LOSS_PERCENT = "LossPercent"  # the share of the arms' expected messages that did not arrive (a stack alarm)
 LOSS_METRICS: tuple[str, ...] = (
     MESSAGES_DROPPED,
     SINK_DROPS,
@@ -135,7 +136,7 @@ def fleet_documents(
         Metric("AgentUp", 1, "Count"),
         Metric("MessagesPerSecond", fleet.messages_per_s, "Count/Second"),
         Metric("Rejects", fleet.rejects, "Count"),
-        Metric("LossPercent", fleet.loss_percent, "Percent"),
+        Metric(LOSS_PERCENT, fleet.loss_percent, "Percent"),
         Metric("DevicesOnline", fleet.devices_online, "Count"),
         Metric("DevicesStale", fleet.devices_stale, "Count"),
         Metric("DevicesOffline", fleet.devices_offline, "Count"),
