@@ -514,8 +514,10 @@ class AgentHttpServer:
         return _json(200, state.to_json())
 
     async def _metrics(self, request: Request) -> Response:
-        state = await self._call(self._source.state)
-        alarms = await self._call(self._source.alarms)
+        source = self._source
+        state = await self._call(source.state)
+        # Each alarm by its servo, from a source that has them (the agent service does).
+        alarms = await self._call(source.alarms) if isinstance(source, AlarmSource) else ()
         body = render_metrics(state, alarms).encode()
         return Response(
             body, media_type=None, headers={**SECURITY_HEADERS, "content-type": PROMETHEUS_CONTENT_TYPE}
