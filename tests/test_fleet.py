@@ -12,6 +12,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import pytest
 from conftest import get_state, wait_for, wait_handled
@@ -123,18 +124,23 @@ def test_a_wildcard_fleet_grows_its_shared_subscription(rig: LocalRig, proxy: Qu
 
 
 def test_a_shared_fleet_held_at_its_connections_budget_is_told_on_the_fleet_page_and_healthz(
-    rig: LocalRig, proxy: QuotaProxy, monkeypatch: pytest.MonkeyPatch
+    rig: LocalRig, proxy: QuotaProxy, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
     """A walk: past max_connections the quota discarded a third of the fleet's messages, counted only as each
-    arm's loss, while /healthz answered 200 and the Fleet page said nothing (the log, every second)."""
+    arm's loss, while /healthz answered 200 and the Fleet page said nothing (the log, every second). Told
+    there now, and in CloudWatch: the LossPercent the stack's MessagesLost alarm pages on."""
     import json
 
     from conftest import http_get
     from twin.transport import pool
 
+    from stacks.monitoring import LOSS_ALARM_PERCENT
+
     monkeypatch.setattr(pool, "QUOTA_HELD_S", 2.0)
     monkeypatch.setattr(pool, "QUOTA_CALM_S", 2.0)
-    agent = start_agent(rig, proxy, ["*"], **{"broker.max_connections": 2})  # 30 arms need 4
+    emf_file = tmp_path / "emf.log"
+    overrides = {"cloudwatch.emf_file": str(emf_file), "cloudwatch.interval_s": 0.5}
+    agent = start_agent(rig, proxy, ["*"], **{"broker.max_connections": 2, **overrides})  # 30 arms need 4
     edge = rig.start_edge(FLEET, rate_hz=10.0)  # publishes until stopped
 
     def told() -> dict[str, object] | None:
@@ -147,6 +153,24 @@ def test_a_shared_fleet_held_at_its_connections_budget_is_told_on_the_fleet_page
     assert "Raise broker.max_connections (up to 64)" in reason and "list the fleet's devices" in reason
     fleet = json.loads(http_get(agent.http_url + "/api/fleet")[2])
     assert any("per-connection quota" in n for n in fleet["notices"]), fleet["notices"]
+
+    # Only what was written once the notice was up: an arm's first seconds read as loss too (its rate's
+    # window still filling), which the alarm's five minutes pass over.
+    told_at = emf_file.stat().st_size if emf_file.exists() else 0
+
+    def losses() -> list[float] | None:
+        with emf_file.open("rb") as fh:
+            fh.seek(told_at)
+            text = fh.read().decode()
+        # Whole lines only: the writer may be halfway through the last one.
+        lines = text.splitlines()[: text.count("\n")]
+        found = [json.loads(line)["LossPercent"] for line in lines if '"LossPercent"' in line]
+        return found if len(found) >= 3 else None
+
+    # 300 messages a second through 200: about a third lost (32-36 % here), over the alarm's threshold in
+    # every interval, and never all of it.
+    seen = wait_for(losses, 60, "three EMF intervals after the notice")
+    assert all(LOSS_ALARM_PERCENT <= loss < 90 for loss in seen), seen
     edge.stop()
     edge.join(30)
     wait_for(lambda: not agent.notices(), 60, "the notice gone once under the budget")
