@@ -40,6 +40,7 @@ from twin.transport.broker import (
     NO_CREDENTIALS_HINT,
     BrokerConfig,
     BrokerConfigError,
+    connack_hint,
     connect_hint,
     new_client_id,
 )
@@ -539,3 +540,32 @@ def test_a_refused_connection_says_what_to_check(caplog: pytest.LogCaptureFixtur
     for line in lines:  # the hint rides on each failure's line, once
         assert line.count("Is a broker listening on 127.0.0.1 port 1") == 1, line
         assert "`mosquitto -p 1`" in line and "--broker or [broker] url" in line, line
+
+
+@pytest.mark.slow
+def test_a_broker_that_refuses_the_client_is_named_with_its_reason(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """awscrt's error says only that the CONNACK was unsuccessful; its reason code says why, and on IoT Core a
+    refused connect is the role not allowing the client id: a local file planning more connections than the
+    stack's settings (a walk found the log naming neither)."""
+    caplog.set_level("WARNING", logger="twin.transport")
+    # mosquitto answers an anonymous client it does not admit with CONNACK 135, Not authorized.
+    with MosquittoBroker(workdir=tmp_path / "closed", extra_config="allow_anonymous false") as broker:
+        sub = TelemetrySubscriber(BrokerConfig(url=broker.url), topic_filters(PREFIX, ["*"]), Collector())
+        sub.start()
+        try:
+            wait_for(lambda: sub.stats.connection_failures >= 1, 60, "a refused connect")
+        finally:
+            sub.stop(30)
+    assert not sub.connected
+    assert sub.stats.last_error.endswith("(CONNACK reason 135: not authorized)"), sub.stats.last_error
+    lines = [r.getMessage() for r in caplog.records if "could not connect" in r.getMessage()]
+    assert lines and all(
+        "the broker refused the connection (not authorized, CONNACK reason 135)" in x for x in lines
+    )
+    # On IoT Core the same refusal names what plans the connections the role allows.
+    iot = connack_hint(BrokerConfig(url="iot"), 135)
+    assert "role does not allow this client id" in iot and "maxConnections" in iot
+    assert "agent.local.toml" in iot
+    assert connack_hint(BrokerConfig(url="iot"), 136) == ""  # server unavailable: not the client's fault

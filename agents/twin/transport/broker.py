@@ -186,6 +186,38 @@ def connect_hint(config: BrokerConfig, error: BaseException | None) -> str:
     )
 
 
+# CONNACK reason codes that refuse who the client is (MQTT 5, section 3.2.2.2): its client id, its
+# credentials, or what it is allowed.
+CONNACK_REFUSALS = {
+    133: "client identifier not valid",
+    134: "bad user name or password",
+    135: "not authorized",
+    138: "banned",
+}
+
+
+def connack_hint(config: BrokerConfig, reason: int | None) -> str:
+    """The refusal a CONNACK's reason code names, and what to check; "" for any other reason (or none)."""
+    said = CONNACK_REFUSALS.get(reason) if reason is not None else None
+    if said is None:
+        return ""
+    if config.kind == IOT:
+        # IoT Core authorises a SigV4 connect by the role's iot:Connect on client/<client id>; the stack
+        # allows exactly the pool indexes its settings plan (docs/scaling.md, "The stack's limits").
+        return (
+            f"IoT Core refused the connection ({said}, CONNACK reason {reason}): the role does not allow "
+            "this client id. On the twin host the role allows the connections the stack's settings plan "
+            "(maxConnections for the whole fleet; the listed arms at armRateHz): a [broker] "
+            "max_connections, per_connection_limit or [health] expected_rate_hz in agent.local.toml that "
+            "plans more is refused so. Take those keys out, or change the settings in twin.settings.toml "
+            "and deploy"
+        )
+    return (
+        f"the broker refused the connection ({said}, CONNACK reason {reason}): its authentication or access "
+        "rules do not admit this client (mosquitto: allow_anonymous, password_file, acl_file)"
+    )
+
+
 def agent_client_id_prefix(name: str) -> str:
     """`so101-twin-<name>-`, the client id prefix (and shared-subscription group) of the agent `name` stands
     for: a stack's name, a host name. Characters a client id may not hold become '-'; long names are cut so

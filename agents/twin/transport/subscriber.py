@@ -20,7 +20,13 @@ from typing import TYPE_CHECKING, TypedDict
 from awscrt import mqtt5
 
 from twin.core.throttle import Throttle
-from twin.transport.broker import BrokerConfig, connect_hint, new_client_id
+from twin.transport.broker import (
+    CONNACK_REFUSALS,
+    BrokerConfig,
+    connack_hint,
+    connect_hint,
+    new_client_id,
+)
 from twin.transport.client import build_mqtt5_client
 
 if TYPE_CHECKING:
@@ -348,9 +354,15 @@ class TelemetrySubscriber:
         )
 
     def _on_connection_failure(self, data: mqtt5.LifecycleConnectFailureData) -> None:
+        # A CONNACK's reason says more than awscrt's error, which says only that the CONNACK was not a
+        # success.
+        reason = getattr(getattr(data, "connack_packet", None), "reason_code", None)
+        code = None if reason is None else int(reason)
+        refused = CONNACK_REFUSALS.get(code, "") if code is not None else ""
         with self._stats_lock:
             self._stats.connection_failures += 1
-            self._stats.last_error = f"connect: {data.exception}"
+            said = f" (CONNACK reason {code}: {refused})" if refused else ""
+            self._stats.last_error = f"connect: {data.exception}{said}"
             failures = self._stats.connection_failures
             # Backoff retries run until stop(), every few seconds: an outage of a day would be tens of
             # thousands of lines. The first few are each told, then one a minute, with the count.
@@ -358,7 +370,7 @@ class TelemetrySubscriber:
                 return
             streak = self._failure_lines.streak
         # The hint rides on each line: the first may have scrolled away.
-        hint = connect_hint(self.config, data.exception)
+        hint = connack_hint(self.config, code) or connect_hint(self.config, data.exception)
         log.warning(
             "subscriber %s could not connect to %s (failure #%d%s): %s; retrying with backoff%s",
             self.client_id,
