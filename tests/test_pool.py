@@ -68,10 +68,13 @@ def test_bad_pool_settings(kwargs: dict[str, float], needle: str) -> None:
 class _Counted:
     """A connection as the pool rates it: a message count, no subscriber (rescale reads nothing else)."""
 
-    def __init__(self, index: int) -> None:
+    def __init__(self, index: int, *, connected: bool = True) -> None:
+        from types import SimpleNamespace
+
         from twin.transport.pool import _Connection
 
-        self.connection = _Connection(index, subscriber=None)  # type: ignore[arg-type]
+        subscriber = SimpleNamespace(connected=connected)
+        self.connection = _Connection(index, subscriber=subscriber)  # type: ignore[arg-type]
 
 
 def _pool_at(settings: PoolSettings, connections: int) -> tuple[object, list[object]]:
@@ -115,6 +118,24 @@ def test_a_pool_held_at_its_budget_says_so_once_and_when_it_is_under_again(
     run(20, 48, 50)
     assert pool.quota_notice == ""  # type: ignore[attr-defined]
     assert "every connection is under its budget again" in caplog.text
+
+
+def test_a_shared_pool_whose_extra_connections_are_refused_says_raising_them_is_the_cause() -> None:
+    """A walk raised max_connections in agent.local.toml above what the stack's role allows: the broker
+    refused the extra client ids, the rest ran at their budget, and the notice said to raise
+    max_connections."""
+    settings = PoolSettings("dt/lerobot", ("*",), limit=100.0, max_connections=4)
+    pool, held = _pool_at(settings, 2)
+    refused = [_Counted(i, connected=False).connection for i in (2, 3)]
+    pool._connections = held + refused  # type: ignore[attr-defined]
+    for t in range(20):
+        for c in held:
+            c.messages += 100  # type: ignore[attr-defined]
+        pool.rescale(float(t))  # type: ignore[attr-defined]
+    notice = pool.quota_notice  # type: ignore[attr-defined]
+    assert "2 of 4 connections (broker.max_connections) receive at their budget" in notice, notice
+    assert "2 of them could not connect" in notice and "Take it out of that file" in notice
+    assert "Raise broker.max_connections" not in notice
 
 
 def test_a_shared_pool_that_can_still_grow_gives_no_notice() -> None:

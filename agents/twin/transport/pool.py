@@ -90,6 +90,10 @@ class _Connection:
         self.rate_hz = 0.0
         self._samples: list[tuple[float, int]] = []
 
+    @property
+    def connected(self) -> bool:
+        return self.subscriber.connected
+
     def sample(self, now: float) -> float:
         samples = self._samples
         samples.append((now, self.messages))
@@ -286,7 +290,9 @@ class ConnectionPool:
             return len(connections)
         # The connections at their raw budget: the broker is discarding, and the real demand cannot be seen.
         full = sum(c.rate_hz >= SATURATED_AT * limit for c in connections)
-        self._watch_quota(now, full, len(connections), limit)
+        # Those that never connected (a broker refusing their client ids) carry none of it.
+        unconnected = sum(not c.connected for c in connections)
+        self._watch_quota(now, full, (len(connections), unconnected), limit)
         if not self.settings.shared:
             return len(connections)
         k = len(connections)
@@ -323,19 +329,20 @@ class ConnectionPool:
             self._quiet_since = None
         return k
 
-    def _watch_quota(self, now: float, full: int, k: int, limit: float) -> None:
+    def _watch_quota(self, now: float, full: int, pool: tuple[int, int], limit: float) -> None:
         """Set `quota_notice` once connections have received at their budget for QUOTA_HELD_S while the pool
         cannot take the load on (a shared pool at max_connections, or a listed plan, which does not grow),
         and clear it after QUOTA_CALM_S without; each change is logged once. It was a warning every second
         (a walk counted 55 in a minute), and a listed plan at its budget said nothing at all. `full` of the
-        `k` connections receive at their budget."""
+        pool's k connections receive at their budget; `pool` is (k, how many of them are not connected)."""
+        k = pool[0]
         stuck = full > 0 and (not self.settings.shared or k >= self.settings.max_connections)
         if stuck:
             self._calm_since = None
             if self._full_since is None:
                 self._full_since = now
             if not self.quota_notice and now - self._full_since >= QUOTA_HELD_S:
-                self.quota_notice = self._quota_text(full, k, limit)
+                self.quota_notice = self._quota_text(full, pool, limit)
                 log.warning("connection pool: %s", self.quota_notice)
             return
         self._full_since = None
@@ -347,8 +354,20 @@ class ConnectionPool:
                 self._calm_since = None
                 log.info("connection pool: every connection is under its budget again")
 
-    def _quota_text(self, full: int, k: int, limit: float) -> str:
+    def _quota_text(self, full: int, pool: tuple[int, int], limit: float) -> str:
         settings = self.settings
+        k, unconnected = pool
+        if settings.shared and unconnected:
+            # More connections than the broker admits: raising max_connections is what got here (a walk
+            # raised it in agent.local.toml above what the stack's role allows, and was told to raise it).
+            return (
+                f"the broker's per-connection quota discards messages: {full} of {k} connections "
+                f"(broker.max_connections) receive at their budget of {limit:g} msg/s, and {unconnected} of "
+                "them could not connect (/state: each connection's last_error). On IoT Core that is a client "
+                "id the role does not allow: the stack's role allows maxConnections of them, so a larger "
+                "broker.max_connections in agent.local.toml adds only refused connections. Take it out of "
+                "that file and raise maxConnections in twin.settings.toml, or list the fleet's devices"
+            )
         if settings.shared:
             arms = k * limit * SAFETY_MARGIN / settings.rate_hz
             return (
