@@ -349,11 +349,11 @@ class TwinMonitoring(Construct):
         fraction of its rate while every other alarm stays quiet."""
         return self._sustained_alarm(
             "MessagesLost",
-            f"The arms of {self.agent_name} deliver at least {LOSS_ALARM_PERCENT} % fewer messages than "
-            "expected (LossPercent), 5 minutes running: IoT Core's per-connection quota discarding them (the "
-            "console's Fleet page and /healthz then say so, naming the fix: maxConnections, or the devices "
-            "listed), an edge's weak network, or armRateHz above the rate the edges publish at. "
-            "docs/servo-health.md",
+            f"The arms of {self.agent_name} deliver on average at least {LOSS_ALARM_PERCENT} % fewer "
+            "messages than expected (LossPercent), 5 minutes running: IoT Core's per-connection quota "
+            "discarding them (the console's Fleet page and /healthz then say so, naming the fix: "
+            "maxConnections, or the devices listed), an edge's weak network, or armRateHz above the rate the "
+            "edges publish at. docs/servo-health.md",
             self._metric(LOSS_PERCENT, "Maximum"),
             threshold=LOSS_ALARM_PERCENT,
             minutes=LOSS_ALARM_MINUTES,

@@ -528,10 +528,26 @@ def _devices(value: object) -> tuple[str, ...]:
     if len(devices) > MAX_LISTED_DEVICES:
         raise SettingsError(
             f"devices lists {len(devices)} arms; the host's IAM role can name at most {MAX_LISTED_DEVICES} "
-            "(IAM's size quotas on a role's policies). Mirror more with devices='*' and enough connections "
-            "for them, e.g. -c maxConnections=32 for 256 arms at 10 Hz (docs/scaling.md)"
+            f"(IAM's size quotas on a role's policies). {_fleet_instead(len(devices))} (docs/scaling.md)"
         )
     return devices
+
+
+def _fleet_instead(arms: int) -> str:
+    """What carries `arms` instead of a list: the whole fleet over enough connections (at the edge's default
+    10 Hz, 8 arms a connection), or past the agent's bound, more than one host."""
+    per_connection = int(IOT_PUBLISHES_PER_CONNECTION * SAFETY_MARGIN / TwinSettings.arm_rate_hz)
+    needed = -(-arms // per_connection)
+    if needed > MAX_CONNECTIONS_LIMIT:
+        return (
+            f"{arms} arms at 10 Hz need {needed} connections, more than one host's {MAX_CONNECTIONS_LIMIT}: "
+            "mirror them from several stacks (each its devices, or its topicPrefix), docs/scale-out.md"
+        )
+    return (
+        f'Mirror them as the whole fleet instead, with enough connections: devices = ["*"] and '
+        f"maxConnections = {needed} in the settings file ({per_connection} arms at 10 Hz a connection; "
+        "-c devices='*' -c maxConnections=... for one deploy)"
+    )
 
 
 def _arm_rate_hz(value: object) -> float:
@@ -554,11 +570,14 @@ def _max_connections(value: object) -> int:
     count, inside = _whole(
         "maxConnections", value, TwinSettings.max_connections, example=8, bounds=(1, MAX_CONNECTIONS_LIMIT)
     )
+    if count < 1:
+        raise SettingsError(f"maxConnections={count} is below 1; pass e.g. -c maxConnections=8")
     if not inside:
         raise SettingsError(
-            f"maxConnections={count} is outside 1..{MAX_CONNECTIONS_LIMIT}, the agent's bound (past it a "
-            "fleet wants an IoT rule into Kinesis, docs/scale-out.md); pass e.g. -c maxConnections=8, or "
-            "list the devices"
+            f"maxConnections={count} is above {MAX_CONNECTIONS_LIMIT}, the agent's bound for the whole "
+            f"fleet (about {MAX_CONNECTIONS_LIMIT * 8} arms at 10 Hz; past it a fleet wants an IoT rule into "
+            "Kinesis, docs/scale-out.md); pass e.g. -c maxConnections=8, or list the devices (at most "
+            f"{MAX_LISTED_DEVICES})"
         )
     return count
 

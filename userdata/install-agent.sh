@@ -191,8 +191,9 @@ region = "${AWS_REGION}"
 endpoint = ""
 client_id_prefix = "${CLIENT_ID_PREFIX}"
 ca_file = ""
-# The stack's maxConnections: the whole fleet's pool grows to this many connections, and the host's role
-# allows exactly this many client ids (more, set in the local file, are refused by IoT Core).
+# The stack's maxConnections: with devices = ["*"] the pool grows to this many connections and the host's
+# role allows exactly this many client ids (more, set in the local file, are refused by IoT Core). A device
+# list is planned by expected_rate_hz below instead, and the role allows what that plan takes.
 max_connections = ${MAX_CONNECTIONS}
 
 [telemetry]

@@ -203,17 +203,34 @@ def test_a_bad_arm_rate_is_refused(value: str) -> None:
     assert "-c armRateHz=10" in message
 
 
-@pytest.mark.parametrize("value", ["0", "65", "8.5", "many"])
-def test_a_bad_max_connections_is_refused(value: str) -> None:
+@pytest.mark.parametrize(
+    ("value", "said"),
+    [
+        ("0", "maxConnections=0 is below 1"),
+        ("-3", "maxConnections=-3 is below 1"),
+        ("65", "maxConnections=65 is above 64, the agent's bound for the whole fleet (about 512 arms"),
+        ("8.5", "is not a whole number"),
+        ("many", "is not a whole number"),
+    ],
+)
+def test_a_bad_max_connections_is_refused(value: str, said: str) -> None:
     message = refused(maxConnections=value)
-    assert "maxConnections=" in message and "-c maxConnections=8" in message
+    assert said in message and "-c maxConnections=8" in message
+    # Kinesis is the way past the bound, not an answer to a count below one.
+    assert ("Kinesis" in message) == (value == "65")
 
 
 def test_a_listed_fleet_longer_than_the_role_can_name_is_refused_with_the_fleet_as_the_fix() -> None:
     assert len(settings(devices=",".join(f"arm-{i}" for i in range(MAX_LISTED_DEVICES))).devices) == 150
     message = refused(devices=",".join(f"arm-{i}" for i in range(MAX_LISTED_DEVICES + 1)))
     assert "devices lists 151 arms; the host's IAM role can name at most 150" in message
-    assert "devices='*'" in message and "-c maxConnections=32 for 256 arms at 10 Hz" in message
+    # The fix worked out for the arms given: 151 at 8 a connection.
+    assert 'devices = ["*"] and maxConnections = 19 in the settings file' in message
+    assert "-c devices='*'" in message
+    # Past one host's connections, several stacks.
+    message = refused(devices=",".join(f"arm-{i}" for i in range(600)))
+    assert "600 arms at 10 Hz need 75 connections, more than one host's 64" in message
+    assert "several stacks" in message and "docs/scale-out.md" in message
 
 
 def test_devices_parse_lists_and_fleet() -> None:

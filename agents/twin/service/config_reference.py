@@ -78,8 +78,9 @@ KEY_DOCS: dict[str, str] = {
         'per-connection quota"). Flag `--per-connection-limit`.'
     ),
     "broker.max_connections": (
-        "The most connections a whole-fleet subscription grows to (1..64). On the twin host the stack's "
-        "maxConnections sets it, and its IAM policy allows that many pool client ids."
+        "The most connections a whole-fleet subscription grows to (1..64); listed devices are planned "
+        "without it. On the twin host the stack's maxConnections sets it, and for the whole fleet its IAM "
+        "policy allows that many pool client ids."
     ),
     "telemetry.topic_prefix": (
         "Topics are `{topic_prefix}/{device_id}/telemetry`. Plain topic levels (letters, digits, `.`,"
