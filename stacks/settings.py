@@ -471,7 +471,8 @@ def _whole(
     if value is None or value == "":
         return default, True
     try:
-        number = int(str(value).strip())
+        # A settings file's 16.0 is the whole number its "16" and -c's 16 are.
+        number = int(value) if isinstance(value, float) and value.is_integer() else int(str(value).strip())
     except ValueError:
         raise SettingsError(f"{key}={value!r} is not a whole number; pass e.g. -c {key}={example}") from None
     return number, bounds[0] <= number <= bounds[1]

@@ -187,13 +187,10 @@ def test_bad_volume_is_refused(value: str) -> None:
 def test_arm_rate_and_max_connections_default_and_parse() -> None:
     assert (settings().arm_rate_hz, settings().max_connections) == (10.0, 8)
     # A settings file's TOML numbers or -c strings.
-    assert (
-        settings(armRateHz=2.5, maxConnections=32).arm_rate_hz,
-        settings(maxConnections="32").max_connections,
-    ) == (
-        2.5,
-        32,
-    )
+    assert settings(armRateHz=2.5).arm_rate_hz == 2.5
+    # TOML's 32 and 32.0, and -c's "32", are one whole number; 32.5 is none.
+    assert {settings(maxConnections=v).max_connections for v in (32, 32.0, "32")} == {32}
+    assert "maxConnections=32.5 is not a whole number" in refused(maxConnections=32.5)
 
 
 @pytest.mark.parametrize("value", ["0", "-1", "81", "nan", "inf", "fast"])
