@@ -123,3 +123,28 @@ def test_config_check_notes_a_per_connection_limit_the_broker_will_not_honour(tm
     (note,) = check_notes(tmp_path, capsys, local)
     assert "per_connection_limit = 5 carries less than one arm at 10 Hz" in note
     assert check_notes(tmp_path, capsys, iot + "per_connection_limit = 100\n") == []
+
+
+def test_config_check_shows_the_connections_a_broker_policy_must_allow(tmp_path: Path, capsys) -> None:
+    """A walk compared the agent's plan with the stack's role through the Python API: `twin config check`
+    showed nothing of it. It shows the connections and the client id indexes they take."""
+
+    def plan(text: str) -> str:
+        config = tmp_path / "agent.toml"
+        config.write_text(text)
+        assert main(["config", "check", str(config)]) == 0
+        (line,) = [x for x in capsys.readouterr().out.splitlines() if x.startswith("connections: ")]
+        return line
+
+    iot = '[broker]\nurl = "iot"\nregion = "eu-west-1"\n'
+    arms = ", ".join(f'"arm-{i:03d}"' for i in range(120))
+    listed = plan(iot + f"[telemetry]\ndevices = [{arms}]\n[health]\nexpected_rate_hz = 5.0\n")
+    assert listed == (
+        "connections: 8 for 120 listed arm(s) at 5 Hz (16 a connection, 80 of its 100 msg/s planned); "
+        "client id indexes 0 to 7"
+    )
+    fleet = plan(iot + 'max_connections = 50\n[telemetry]\ndevices = ["*"]\n')
+    assert fleet.startswith("connections: 1 to 50 for the whole fleet (broker.max_connections)")
+    assert fleet.endswith("about 8 arms at 10 Hz; client id indexes 0 to 49")
+    local = plan('[broker]\nurl = "mqtt://127.0.0.1:1883"\n')
+    assert local == "connections: 1 (the broker has no per-connection limit); client id index 0"

@@ -50,7 +50,7 @@ from twin.output.history_feed import HistoryProcess, HistoryStartError, WriterFi
 from twin.output.sinks import TwinSink
 from twin.service.admission import DeviceBudget
 from twin.service.calibrations import CalibrationBook, CalibrationWatcher, open_store, store_location
-from twin.service.config import AgentConfig, ConfigError
+from twin.service.config import AgentConfig, ConfigError, pool_settings
 from twin.service.console import (
     ArmView,
     FleetRow,
@@ -115,7 +115,7 @@ from twin.service.state import (
 )
 from twin.service.workerstart import start_fork_server, worker_context
 from twin.transport.mailbox import UNTRACKED_KEY
-from twin.transport.plan import PoolSettings, default_limit
+from twin.transport.plan import PoolSettings
 from twin.transport.pool import ConnectionPool
 
 if TYPE_CHECKING:
@@ -1451,15 +1451,3 @@ def history_settings(config: AgentConfig) -> dict[str, Any] | None:
         "storage_options": {"AWS_REGION": h.region} if h.region else {},
         "writer_nice": h.writer_nice,  # the writer process's own, not HistorySettings'
     }
-
-
-def pool_settings(config: AgentConfig) -> PoolSettings:
-    """The connection pool's settings from the agent's config (the broker's budget, the fleet to plan for)."""
-    t = config.telemetry
-    return PoolSettings(
-        prefix=t.topic_prefix,
-        devices=tuple(t.devices),
-        rate_hz=config.health.expected_rate_hz,
-        limit=default_limit(config.broker),
-        max_connections=config.broker.max_connections,
-    )

@@ -29,7 +29,14 @@ from twin.output.rerun_settings import RerunSettings, RerunSettingsError
 from twin.output.ros2 import Ros2Error, Ros2Settings
 from twin.robot.calibration import leader_problem
 from twin.transport.broker import IOT, BrokerConfig, BrokerConfigError
-from twin.transport.plan import IOT_PUBLISHES_PER_CONNECTION, SAFETY_MARGIN
+from twin.transport.plan import (
+    IOT_PUBLISHES_PER_CONNECTION,
+    SAFETY_MARGIN,
+    PoolSettings,
+    default_limit,
+    devices_per_connection,
+    listed_connections,
+)
 
 RECORD_FORMAT_CHOICES: tuple[str, ...] = ("usdc", "usda")
 LOG_LEVELS: tuple[str, ...] = ("DEBUG", "INFO", "WARNING", "ERROR")
@@ -681,6 +688,42 @@ def load_config(
     except ConfigError as exc:
         where = f" (in {', '.join(str(p) for p in paths)})" if paths else ""
         raise ConfigError(f"{exc}{where}") from exc
+
+
+def pool_settings(config: AgentConfig) -> PoolSettings:
+    """The connection pool's settings from the agent's config (the broker's budget, the fleet to plan for)."""
+    t = config.telemetry
+    return PoolSettings(
+        prefix=t.topic_prefix,
+        devices=tuple(t.devices),
+        rate_hz=config.health.expected_rate_hz,
+        limit=default_limit(config.broker),
+        max_connections=config.broker.max_connections,
+    )
+
+
+def connection_plan(config: AgentConfig) -> str:
+    """The connections the agent would open, and the client id indexes they take: what a broker policy
+    (the stack's IAM role) must allow, for `twin config check` to show beside it."""
+    settings = pool_settings(config)
+    rate, limit = settings.rate_hz, settings.limit
+    if limit is None:
+        return "connections: 1 (the broker has no per-connection limit); client id index 0"
+    iot = config.broker.url == IOT
+    if settings.shared:
+        k = settings.max_connections
+        arms = limit * SAFETY_MARGIN / rate
+        return (
+            f"connections: 1 to {k} for the whole fleet (broker.max_connections), each planned for "
+            f"{limit * SAFETY_MARGIN:g} msg/s, about {arms:.0f} arms at {rate:g} Hz; client id indexes 0 to "
+            f"{k - 1}"
+        )
+    k = listed_connections(settings.devices, rate_hz=rate, limit=limit, iot=iot)
+    per = devices_per_connection(rate, limit, iot=iot)
+    return (
+        f"connections: {k} for {len(settings.devices)} listed arm(s) at {rate:g} Hz ({per} a connection, "
+        f"{limit * SAFETY_MARGIN:g} of its {limit:g} msg/s planned); client id indexes 0 to {k - 1}"
+    )
 
 
 def config_notes(path: str | Path | Sequence[str | Path] | None, config: AgentConfig) -> list[str]:

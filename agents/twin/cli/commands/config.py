@@ -44,7 +44,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from twin.service.config import ConfigError, config_notes, load_config
+    from twin.service.config import ConfigError, config_notes, connection_plan, load_config
     from twin.service.config_reference import render_example, render_reference
 
     if args.action == "example":
@@ -58,6 +58,8 @@ def run(args: argparse.Namespace) -> int:
             console.err(str(exc))
             return 2
         console.out(f"{', '.join(str(f) for f in args.files)}: a valid agent config")
+        # What a broker policy must allow (on the twin host, the stack's role; docs/scaling.md).
+        console.out(connection_plan(config))
         # Valid, so still exit 0: what the agent would start with, and what it would warn of.
         for note in config_notes(args.files, config):
             console.out(f"note: {note}")
