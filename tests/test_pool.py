@@ -73,7 +73,8 @@ class _Counted:
 
         from twin.transport.pool import _Connection
 
-        subscriber = SimpleNamespace(connected=connected)
+        stats = SimpleNamespace(connection_successes=1 if connected else 0)
+        subscriber = SimpleNamespace(connected=connected, stats=stats)
         self.connection = _Connection(index, subscriber=subscriber)  # type: ignore[arg-type]
 
 
@@ -127,13 +128,16 @@ def test_a_shared_pool_whose_extra_connections_are_refused_says_raising_them_is_
     settings = PoolSettings("dt/lerobot", ("*",), limit=100.0, max_connections=4)
     pool, held = _pool_at(settings, 2)
     refused = [_Counted(i, connected=False).connection for i in (2, 3)]
-    pool._connections = held + refused  # type: ignore[attr-defined]
+    # One connected before and is reconnecting now (IoT Core ends a connection after 24 h): not refused.
+    reconnecting = _Counted(4).connection
+    reconnecting.subscriber.connected = False
+    pool._connections = held + refused + [reconnecting]  # type: ignore[attr-defined]
     for t in range(20):
         for c in held:
             c.messages += 100  # type: ignore[attr-defined]
         pool.rescale(float(t))  # type: ignore[attr-defined]
     notice = pool.quota_notice  # type: ignore[attr-defined]
-    assert "2 of 4 connections (broker.max_connections) receive at their budget" in notice, notice
+    assert "2 of 5 connections (broker.max_connections) receive at their budget" in notice, notice
     assert "2 of them could not connect" in notice and "Take it out of that file" in notice
     assert "Raise broker.max_connections" not in notice
 

@@ -91,8 +91,11 @@ class _Connection:
         self._samples: list[tuple[float, int]] = []
 
     @property
-    def connected(self) -> bool:
-        return self.subscriber.connected
+    def never_connected(self) -> bool:
+        """Not connected, and never was since it started: a broker refusing its client id, not a reconnect
+        (IoT Core closes a WebSocket connection after 24 h)."""
+        subscriber = self.subscriber
+        return not subscriber.connected and subscriber.stats.connection_successes == 0
 
     def sample(self, now: float) -> float:
         samples = self._samples
@@ -291,7 +294,7 @@ class ConnectionPool:
         # The connections at their raw budget: the broker is discarding, and the real demand cannot be seen.
         full = sum(c.rate_hz >= SATURATED_AT * limit for c in connections)
         # Those that never connected (a broker refusing their client ids) carry none of it.
-        unconnected = sum(not c.connected for c in connections)
+        unconnected = sum(c.never_connected for c in connections)
         self._watch_quota(now, full, (len(connections), unconnected), limit)
         if not self.settings.shared:
             return len(connections)
