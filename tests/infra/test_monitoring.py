@@ -328,16 +328,22 @@ def test_history_lag_alarms_over_a_minute_for_two(synth_default: Synth) -> None:
     assert props["TreatMissingData"] == "notBreaching"
 
 
+def assert_sustained_maximum(props: dict[str, Any], *, threshold: float, minutes: int) -> None:
+    """An alarm on the agent's metric's per-minute maximum at or over `threshold` in each of `minutes`
+    minutes, missing data not breaching."""
+    assert props["Namespace"] == emf.NAMESPACE
+    assert props["Dimensions"] == [{"Name": "Agent", "Value": "So101TwinStack"}]
+    assert (props["Statistic"], props["Period"]) == ("Maximum", 60)
+    assert (props["ComparisonOperator"], props["Threshold"]) == ("GreaterThanOrEqualToThreshold", threshold)
+    assert (props["EvaluationPeriods"], props["DatapointsToAlarm"]) == (minutes, minutes)
+    assert props["TreatMissingData"] == "notBreaching"
+
+
 def test_a_refused_subscription_alarms_after_two_minutes_of_it(synth_default: Synth) -> None:
     """The agent runs and stays connected while IoT Core refuses it a filter, so AgentSilent and ArmsStale
     stay quiet: this alarm is what pages."""
     props = _alarm_on(synth_default, emf.SUBSCRIPTIONS_REFUSED)
-    assert props["Namespace"] == emf.NAMESPACE
-    assert props["Dimensions"] == [{"Name": "Agent", "Value": "So101TwinStack"}]
-    assert (props["Statistic"], props["Period"]) == ("Maximum", 60)
-    assert (props["ComparisonOperator"], props["Threshold"]) == ("GreaterThanOrEqualToThreshold", 1)
-    assert (props["EvaluationPeriods"], props["DatapointsToAlarm"]) == (2, 2)
-    assert props["TreatMissingData"] == "notBreaching"
+    assert_sustained_maximum(props, threshold=1, minutes=2)
     assert "iot:Subscribe" in props["AlarmDescription"]
 
 
@@ -345,13 +351,8 @@ def test_messages_that_never_arrive_page_after_five_minutes_of_a_tenth_lost(synt
     """IoT Core discards what a connection receives over its quota without an error, and nothing in the
     agent drops those messages, so none of the loss alarms above would say it: the arms' loss does."""
     props = _alarm_on(synth_default, emf.LOSS_PERCENT)
-    assert props["Namespace"] == emf.NAMESPACE
-    assert props["Dimensions"] == [{"Name": "Agent", "Value": "So101TwinStack"}]
-    assert (props["Statistic"], props["Period"]) == ("Maximum", 60)
-    assert (props["ComparisonOperator"], props["Threshold"]) == ("GreaterThanOrEqualToThreshold", 10)
-    assert (props["EvaluationPeriods"], props["DatapointsToAlarm"]) == (5, 5)
     # No data (no agent, or no arm that is not OFFLINE: the agent then writes 0) is no loss.
-    assert props["TreatMissingData"] == "notBreaching"
+    assert_sustained_maximum(props, threshold=10, minutes=5)
     description = props["AlarmDescription"]
     assert "per-connection quota" in description and "maxConnections" in description
 
