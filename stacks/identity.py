@@ -16,7 +16,7 @@ from constructs import Construct
 from twin.core.topics import TELEMETRY_SUFFIX
 from twin.transport.plan import (
     IOT_PUBLISHES_PER_CONNECTION,
-    listed_connections,
+    PoolSettings,
     pool_client_ids,
     shared_group,
 )
@@ -57,13 +57,16 @@ class TwinIdentity(Construct):
         )
         self._grant_ssm_agent(stack)
 
-        fleet = devices == ("*",)
-        connections = max_connections
-        if not fleet:
-            limit = IOT_PUBLISHES_PER_CONNECTION
-            connections = listed_connections(devices, rate_hz=arm_rate_hz, limit=limit, iot=True)
-        client_ids = pool_client_ids(client_id_prefix, connections)
-        filters, topics = _telemetry_topics(fleet, topic_prefix, devices, client_id_prefix)
+        # The agent's own plan on IoT Core (twin.transport.plan), so the role allows exactly its client ids.
+        plan = PoolSettings(
+            topic_prefix,
+            devices,
+            rate_hz=arm_rate_hz,
+            limit=IOT_PUBLISHES_PER_CONNECTION,
+            max_connections=max_connections,
+        )
+        client_ids = pool_client_ids(client_id_prefix, plan.most_connections(iot=True))
+        filters, topics = _telemetry_topics(plan.fleet, topic_prefix, devices, client_id_prefix)
         self._grant_iot_telemetry(stack, client_ids, filters, topics)
         dcv_license = f"arn:{stack.partition}:s3:::dcv-license.{stack.region}/*"
         self.role.add_to_policy(
@@ -71,7 +74,7 @@ class TwinIdentity(Construct):
         )
 
         self.agent_log_group = self._agent_log_group(stack_name)
-        self._acknowledge_wildcards(stack, client_ids, topics, fleet)
+        self._acknowledge_wildcards(stack, client_ids, topics, plan.fleet)
 
     def _grant_iot_telemetry(
         self, stack: Stack, client_ids: list[str], filters: list[str], topics: list[str]
@@ -135,8 +138,8 @@ class TwinIdentity(Construct):
         client_reason = (
             "Each agent process connects with unique client ids (fixed prefix, a random part so two agents "
             "never kick each other off, then the connection's index in its pool); the wildcard covers the "
-            "random part only; the index patterns ('?' one digit) match exactly the pool's connection "
-            "indexes, in this account and region."
+            "random part only; the index patterns ('?' one character, where the pool writes a digit) "
+            "match exactly the pool's connection indexes, in this account and region."
         )
         reasons = {
             **{

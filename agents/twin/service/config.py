@@ -35,7 +35,6 @@ from twin.transport.plan import (
     PoolSettings,
     default_limit,
     devices_per_connection,
-    listed_connections,
 )
 
 RECORD_FORMAT_CHOICES: tuple[str, ...] = ("usdc", "usda")
@@ -711,14 +710,14 @@ def connection_plan(config: AgentConfig) -> str:
         return "connections: 1 (the broker has no per-connection limit); client id index 0"
     iot = config.broker.url == IOT
     if settings.shared:
-        k = settings.max_connections
+        k = settings.most_connections(iot=iot)
         arms = limit * SAFETY_MARGIN / rate
         return (
             f"connections: 1 to {k} for the whole fleet (broker.max_connections), each planned for "
             f"{limit * SAFETY_MARGIN:g} msg/s, about {arms:.0f} arms at {rate:g} Hz; client id indexes 0 to "
             f"{k - 1}"
         )
-    k = listed_connections(settings.devices, rate_hz=rate, limit=limit, iot=iot)
+    k = settings.most_connections(iot=iot)
     per = devices_per_connection(rate, limit, iot=iot)
     return (
         f"connections: {k} for {len(settings.devices)} listed arm(s) at {rate:g} Hz ({per} a connection, "

@@ -122,3 +122,12 @@ class PoolSettings:
     def shared(self) -> bool:
         """The whole fleet under a budget: a shared subscription over K connections."""
         return self.fleet and self.limit is not None
+
+    def most_connections(self, *, iot: bool) -> int:
+        """The most connections the pool opens, so the client id indexes 0..n-1 a broker policy must allow:
+        the shared pool's bound, the listed plan's connections, or one without a budget."""
+        if self.limit is None:
+            return 1
+        if self.shared:
+            return self.max_connections
+        return listed_connections(self.devices, rate_hz=self.rate_hz, limit=self.limit, iot=iot)
