@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import difflib
 import ipaddress
+import math
 import re
 import tomllib
 from collections.abc import Callable, Iterable, Mapping
@@ -32,7 +33,12 @@ from twin.core.topics import ALL_DEVICES, policy_device_id_problem, topic_prefix
 # IAM policy scopes iot:Connect to.
 from twin.core.units import UNITS_CHOICES
 from twin.transport.broker import MAX_CONNECTIONS_LIMIT, agent_client_id_prefix
-from twin.transport.plan import DEFAULT_MAX_CONNECTIONS, IOT_PUBLISHES_PER_CONNECTION, SAFETY_MARGIN
+from twin.transport.plan import (
+    DEFAULT_MAX_CONNECTIONS,
+    IOT_PUBLISHES_PER_CONNECTION,
+    SAFETY_MARGIN,
+    devices_per_connection,
+)
 
 UNITS = UNITS_CHOICES
 DEFAULT_AMI_SSM_PARAMETER = (
@@ -64,6 +70,12 @@ ARM_RATE_HZ_MAX = IOT_PUBLISHES_PER_CONNECTION * SAFETY_MARGIN
 # (10,240 characters inline, ten managed policies of 6,144): 150 listed devices of any id length fit with room
 # to spare (tests/infra/test_stack.py checks the synthesized role at this bound against those quotas).
 MAX_LISTED_DEVICES = 150
+# The edge's default publish rate (telemetry contract), and the arms at it one IoT Core connection carries
+# as the agent plans it (8): the figure the refusals below work their fixes out with.
+DEFAULT_ARM_RATE_HZ = 10.0
+_ARMS_PER_CONNECTION = (
+    devices_per_connection(DEFAULT_ARM_RATE_HZ, IOT_PUBLISHES_PER_CONNECTION, iot=True) or 1
+)
 
 
 class SettingsError(ValueError):
@@ -99,7 +111,7 @@ class TwinSettings:
     devices: tuple[str, ...] = ("arm-001",)
     # The arms' publish rate, and the whole fleet's connection bound: what the IAM policy's client ids and
     # the agent's connection pool are sized for (docs/scaling.md).
-    arm_rate_hz: float = 10.0
+    arm_rate_hz: float = DEFAULT_ARM_RATE_HZ
     max_connections: int = DEFAULT_MAX_CONNECTIONS
     topic_prefix: str = "dt/lerobot"
     units: str = "auto"
@@ -537,8 +549,8 @@ def _devices(value: object) -> tuple[str, ...]:
 def _fleet_instead(arms: int) -> str:
     """What carries `arms` instead of a list: the whole fleet over enough connections (at the edge's default
     10 Hz, 8 arms a connection), or past the agent's bound, more than one host."""
-    per_connection = int(IOT_PUBLISHES_PER_CONNECTION * SAFETY_MARGIN / TwinSettings.arm_rate_hz)
-    needed = -(-arms // per_connection)
+    per_connection = _ARMS_PER_CONNECTION
+    needed = math.ceil(arms / per_connection)
     if needed > MAX_CONNECTIONS_LIMIT:
         return (
             f"{arms} arms at 10 Hz need {needed} connections, more than one host's {MAX_CONNECTIONS_LIMIT}: "
@@ -576,8 +588,9 @@ def _max_connections(value: object) -> int:
     if not inside:
         raise SettingsError(
             f"maxConnections={count} is above {MAX_CONNECTIONS_LIMIT}, the agent's bound for the whole "
-            f"fleet (about {MAX_CONNECTIONS_LIMIT * 8} arms at 10 Hz; past it a fleet wants an IoT rule into "
-            "Kinesis, docs/scale-out.md); pass e.g. -c maxConnections=8, or list the devices (at most "
+            f"fleet (about {MAX_CONNECTIONS_LIMIT * _ARMS_PER_CONNECTION} arms at 10 Hz; past it a fleet "
+            "wants an IoT rule into Kinesis, docs/scale-out.md); pass e.g. -c maxConnections=8, or list the "
+            "devices (at most "
             f"{MAX_LISTED_DEVICES})"
         )
     return count
