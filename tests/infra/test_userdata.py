@@ -8,6 +8,7 @@ dependency lock is swapped for one that pins a small local wheel (tests/infra/ho
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import re
@@ -878,10 +879,11 @@ def test_two_arms_decode_each_with_its_own_calibration_on_the_installed_host(
 def _start_own_agent(argv: list[str], env: dict[str, str]) -> tuple[subprocess.Popen[str], str]:
     """`argv` with `--http` on a port picked free; started again on another port when another process took
     that one before the agent bound it (the agent exits saying so), so the test never polls a server that is
-    not its agent. Returns the agent serving its URL, or one that exited for a reason of its own."""
-    from twin.rig.local import _serving_pid
+    not its agent (twin.rig.local.await_own_http, as the rig's agents are started)."""
+    from twin.rig.local import await_own_http, port_taken
     from twin.rig.mosquitto import free_port
 
+    said = ""
     for _ in range(3):
         port = free_port()
         agent = subprocess.Popen(
@@ -891,15 +893,16 @@ def _start_own_agent(argv: list[str], env: dict[str, str]) -> tuple[subprocess.P
             stderr=subprocess.PIPE,
             text=True,
         )
-        deadline = time.monotonic() + 240
-        while agent.poll() is None and _serving_pid(port) != agent.pid and time.monotonic() < deadline:
-            time.sleep(0.1)
-        if agent.poll() is None or agent.stderr is None:
+        said = await_own_http(agent, port, functools.partial(_stderr_of, agent), where="its stderr") or ""
+        if agent.poll() is None:
             return agent, f"http://127.0.0.1:{port}"
-        err = agent.stderr.read()
-        if f"cannot listen on 127.0.0.1:{port}" not in err:
-            raise AssertionError(f"the agent exited with {agent.returncode}: {err[-3000:]}")
-    raise AssertionError(f"three ports picked free were taken before the agent bound them: {err[-3000:]}")
+        if not port_taken(said, port):
+            raise AssertionError(f"the agent exited with {agent.returncode}: {said[-3000:]}")
+    raise AssertionError(f"three ports picked free were taken before the agent bound them: {said[-3000:]}")
+
+
+def _stderr_of(process: subprocess.Popen[str]) -> str:
+    return process.stderr.read() if process.stderr is not None else ""
 
 
 def test_ros2_enables_the_bridge_from_the_lock_it_already_has(

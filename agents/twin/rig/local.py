@@ -15,6 +15,7 @@ starts is stopped in `close()`, in reverse order, also when the body raises.
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import logging
 import os
@@ -25,7 +26,7 @@ import tempfile
 import threading
 import time
 import urllib.request
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -249,19 +250,12 @@ class LocalRig:
 
     def _await_own_http(self, proc: subprocess.Popen[bytes], port: int, log_name: str) -> bool:
         """Whether the agent `proc` serves `port` itself or exited for a reason of its own; False when it
-        exited because the port was taken. A server that answers there with another pid is not it."""
-        deadline = time.monotonic() + AGENT_START_TIMEOUT_S
-        while time.monotonic() < deadline:
-            if proc.poll() is not None:
-                said = self.agent_log(port, log_name).read_text(errors="replace")
-                return f"cannot listen on 127.0.0.1:{port}" not in said
-            if _serving_pid(port) == proc.pid:
-                return True
-            time.sleep(0.1)
-        raise RigError(
-            f"the agent (pid {proc.pid}) did not serve http://127.0.0.1:{port} within "
-            f"{AGENT_START_TIMEOUT_S:.0f} s; its log: {self.agent_log(port, log_name)}"
+        exited because the port was taken."""
+        log_path = self.agent_log(port, log_name)
+        said = await_own_http(
+            proc, port, functools.partial(log_path.read_text, errors="replace"), where=f"its log: {log_path}"
         )
+        return said is None or not port_taken(said, port)
 
     def agent_log(self, port: int | str, log_name: str = "agent") -> Path:
         """Where `agent_process` writes the output of the agent serving HTTP on `port` (kept until the rig
@@ -313,6 +307,30 @@ def child_env() -> dict[str, str]:
     env.setdefault("MUJOCO_GL", "egl")
     env["PYTHONUNBUFFERED"] = "1"
     return env
+
+
+def await_own_http(
+    proc: subprocess.Popen[Any], port: int, output: Callable[[], str], *, where: str
+) -> str | None:
+    """None once the agent `proc` serves GET /state on `port` itself (a server answering there with another
+    pid is not it); what it printed (`output()`) once it exited instead. RigError, naming `where` its output
+    is, when it does neither within AGENT_START_TIMEOUT_S."""
+    deadline = time.monotonic() + AGENT_START_TIMEOUT_S
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            return output()
+        if _serving_pid(port) == proc.pid:
+            return None
+        time.sleep(0.1)
+    raise RigError(
+        f"the agent (pid {proc.pid}) did not serve http://127.0.0.1:{port} within "
+        f"{AGENT_START_TIMEOUT_S:.0f} s; {where}"
+    )
+
+
+def port_taken(said: str, port: int) -> bool:
+    """Whether an agent's output says it exited because another process had taken its HTTP port."""
+    return f"cannot listen on 127.0.0.1:{port}" in said
 
 
 def _serving_pid(port: int) -> int | None:
