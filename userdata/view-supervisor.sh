@@ -20,7 +20,9 @@ stamp() { cat "$STAMP" 2>/dev/null || echo none; }
 starts=0
 backoff=1
 child=""
-trap '[ -z "$child" ] || kill "$child" 2>/dev/null || true; exit 0' TERM INT HUP
+# Every background job, not only "$child": a TERM that lands between the viewer's fork and `child=$!` finds
+# child empty, and the viewer would outlive its supervisor (a stress run's test saw its stderr held open).
+trap 'kill $(jobs -p) 2>/dev/null || true; exit 0' TERM INT HUP
 while :; do
   started_with="$(stamp)"
   "$VENV/bin/twin" view &
