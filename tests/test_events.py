@@ -20,7 +20,7 @@ from typing import Any
 
 import msgspec
 import pytest
-from conftest import unbrokered_agent, wait_for
+from conftest import NO_BROKER, unbrokered_agent, wait_for
 from twin.core.health import DeviceStatus
 from twin.edge.payload import encode, make_payload
 from twin.rig.local import LocalRig
@@ -43,8 +43,9 @@ from twin.service.events import (
     export_name,
     neutralise_cell,
 )
-from twin.service.mirror import Mirror, PipeInbox
+from twin.service.mirror import Mirror, PipeInbox, QueuedMessage, QueueInbox
 from twin.service.shards import EVENTS_PER_ASK, EventsRequest, WorkerPlan, events_of
+from twin.transport.mailbox import InboundQueue
 
 
 class Clock:
@@ -199,6 +200,65 @@ def test_an_arrival_is_told_by_its_message_and_a_late_sweep_only_adds_a_transiti
         ("arm-001", "arm-001 went STALE (was ONLINE)", "STALE", "ONLINE"),
         ("arm-002", "arm-002 is ONLINE (restored)", "ONLINE", ""),
     ]
+
+
+class _StarvedClock:
+    """The mirror's monotonic clock as a function of what its worker has handled, so the test needs no
+    timing: `at` (processed count, time) steps, the last one reached wins; `now` overrides them all."""
+
+    def __init__(self, steps: list[tuple[int, float]]) -> None:
+        self._steps = steps
+        self.mirror: Mirror | None = None  # none yet while the mirror is made: nothing handled
+        self.now: float | None = None
+
+    def __call__(self) -> float:
+        if self.now is not None:
+            return self.now
+        processed = self.mirror.processed if self.mirror is not None else 0
+        return max(t for at, t in self._steps if processed >= at)
+
+
+def test_a_worker_behind_its_input_reports_no_arm_stale_and_a_silent_fleet_still_goes_stale() -> None:
+    """A worker starved of CPU for 0.5 s takes its backlog in pieces (a pipe holds so much). The status
+    sweep after the first piece used to read every other arm's silence on the wall clock: all of them went
+    STALE, then ONLINE again, two events an arm for a hiccup of the host. Silence is now read on the time of
+    the newest message handled, so only a fleet that is silent in the stream itself goes STALE."""
+    arms = [f"arm-{n:03d}" for n in range(20)]
+    # Round one is handled at 1000.0; the piece (two arms) at 1000.5, the worker having slept 0.5 s.
+    clock = _StarvedClock([(0, 1000.0), (len(arms) + 2, 1000.5)])
+    config = load_config(
+        None, {"broker.url": NO_BROKER, "telemetry.devices": ["*"], "telemetry.units": "ticks"}
+    )
+    queue: InboundQueue[QueuedMessage] = InboundQueue()
+    mirror = Mirror(config, inbox=QueueInbox(queue), budget=DeviceBudget(100), clock=clock)
+    clock.mirror = mirror
+    rng, sent = random.Random(11), 0
+
+    def put(devices: list[str], recv: float, edge_t: float) -> None:
+        nonlocal sent
+        for d in devices:
+            stamp = round((1.7e9 + recv) * 1000)
+            payload = encode(make_payload(d, edge_t, "ticks", rng, timestamp_ms=stamp))
+            queue.put(d, (f"dt/lerobot/{d}/telemetry", payload, recv, 1.7e9 + recv))
+        sent += len(devices)
+        wait_for(lambda: mirror.processed >= sent, 60, f"{sent} messages handled")
+
+    def status_events() -> list[tuple[str, str]]:
+        found = mirror.events(EventQuery(kinds=frozenset({EventKind.STATUS.value})))
+        return [(e.device, e.data["status"]) for e in found]
+
+    mirror.start()
+    try:
+        put(arms, 999.9, 0.0)
+        put(arms[:2], 1000.0, 0.1)  # the oldest of the backlog: received just after round one
+        for k in range(5):
+            put(arms, 1000.0 + 0.1 * k, 0.2 + 0.1 * k)
+        assert status_events() == [(d, "ONLINE") for d in arms]
+        clock.now = 1001.5  # then nothing: the inbox is empty, the silence real
+        wait_for(lambda: len(status_events()) == 2 * len(arms), 60, "every arm STALE")
+        assert sorted(status_events()[len(arms) :]) == [(d, "STALE") for d in arms]
+    finally:
+        mirror.stop()
 
 
 class Conn:
