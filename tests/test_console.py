@@ -612,6 +612,8 @@ def test_the_sessions_page_lists_a_session_and_its_csv_parses(
     row = page.locator('#sessions tr[data-device="arm-003"]').first
     row.wait_for()
     assert row.locator(".session-status").inner_text() == "active"
+    # A session of this run began after the agent's first event: its alarms are counted.
+    assert row.locator('td[data-label="alarms raised"]').inner_text().isdigit()
     with page.expect_download() as download:
         row.locator('a[data-kind="csv"]').click()
     path = tmp_path / "session.csv"
@@ -619,6 +621,31 @@ def test_the_sessions_page_lists_a_session_and_its_csv_parses(
     rows = list(csv.DictReader(io.StringIO(path.read_text())))
     assert rows and {r["device_id"] for r in rows} == {"arm-003"}
     assert "shoulder_pan_temperature_c" in rows[0]
+    assert browser_errors == []
+
+
+def test_a_session_from_before_the_agents_events_shows_its_alarms_as_not_known(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """The agent answers null for a session that began before the oldest event it holds; the page showed
+    the 0 it used to answer. The answer is the agent's own with one such session added."""
+    wait_for_a_session(console, "arm-003")
+    body = json.loads(http_get(console + "/api/sessions")[2])
+    since = body["alarms_known_since"]
+    assert since is not None
+    old = {**body["sessions"][0], "device": "arm-old", "start": since - 600, "alarms_raised": None}
+    old.update(key=str(round(old["start"] * 1000)), end=since - 60, duration_s=540.0, messages=5400)
+    old["status"] = "completed"
+    body["sessions"] = [*body["sessions"], old]
+    page.route("**/api/sessions", lambda route: route.fulfill(json=body))
+    try:
+        page.goto(console + "/sessions")
+        cell = page.locator('#sessions tr[data-device="arm-old"] td[data-label="alarms raised"]')
+        cell.wait_for()
+        assert cell.inner_text() == "not known"
+        assert "the agent's events begin at" in (cell.get_attribute("title") or "")
+    finally:
+        page.unroute("**/api/sessions")
     assert browser_errors == []
 
 

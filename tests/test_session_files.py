@@ -6,6 +6,7 @@ tested in tests/test_console.py; here only the size matters)."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -22,6 +23,7 @@ from twin.output import scratch
 from twin.service import session_files
 from twin.service.config import ConfigError, HttpSection, load_config
 from twin.service.console import SessionInfo
+from twin.service.events import Event, EventKind, EventLevel, EventQuery, EventStore
 from twin.service.http_api import AgentHttpServer
 from twin.service.session_files import KEEP_S, PREFIX, SessionFiles
 
@@ -174,3 +176,54 @@ def test_a_killed_agents_session_files_go_when_the_next_server_starts(
     finally:
         server.stop()
         own.close()
+
+
+class EventfulSource(StubSource):
+    """A source with the events `store` holds (the agent's EventSource)."""
+
+    def __init__(self, store: EventStore) -> None:
+        super().__init__()
+        self.store = store
+
+    def events(self, query: EventQuery) -> list[Event]:
+        return self.store.query(query)
+
+
+def test_a_sessions_alarm_count_is_unknown_before_the_oldest_event_kept() -> None:
+    """Its alarms are counted from the events the agent holds: a session that began before the oldest of
+    them (an agent started since, with no events file, or events pushed out of the store) used to read 0
+    alarms raised whatever it had. It reads null now, and the answer says from when the counts hold."""
+    store = EventStore(10)
+    store.emit(EventKind.AGENT, EventLevel.INFO, "the agent started", at=2_000.0)
+    for at in (2_050.0, 2_055.0, 3_020.0):
+        raised = {"action": "raised", "alarm_id": "arm-002/wrist_roll/over_temperature"}
+        store.emit(EventKind.ALARM, EventLevel.WARNING, "hot", device="arm-002", data=raised, at=at)
+    store.emit(EventKind.ALARM, EventLevel.INFO, "cleared", device="arm-002", data={"action": "cleared"})
+    sessions = [
+        SessionInfo("arm-001", start=1_900.0, end=2_100.0, messages=2_000),  # began before the events
+        SessionInfo("arm-002", start=2_010.0, end=2_200.0, messages=1_900),  # two raised in it
+        SessionInfo("arm-003", start=2_001.0, end=2_300.0, messages=2_990),  # none
+    ]
+    server = AgentHttpServer(EventfulSource(store), "127.0.0.1", 0, sessions=SizedCatalog(sessions, 1))
+    server.start()
+    try:
+        status, _, body = http_get(f"http://127.0.0.1:{server.port}/api/sessions")
+    finally:
+        server.stop()
+    assert status == 200
+    answer = json.loads(body)
+    counts = {s["device"]: s["alarms_raised"] for s in answer["sessions"]}
+    assert counts == {"arm-001": None, "arm-002": 2, "arm-003": 0}
+    assert answer["alarms_known_since"] == 2_000.0
+
+
+def test_without_events_no_sessions_alarm_count_is_known() -> None:
+    sessions = [SessionInfo("arm-001", start=1_900.0, end=2_100.0, messages=2_000)]
+    server = AgentHttpServer(StubSource(), "127.0.0.1", 0, sessions=SizedCatalog(sessions, 1))
+    server.start()
+    try:
+        answer = json.loads(http_get(f"http://127.0.0.1:{server.port}/api/sessions")[2])
+    finally:
+        server.stop()
+    assert [s["alarms_raised"] for s in answer["sessions"]] == [None]
+    assert answer["alarms_known_since"] is None

@@ -171,8 +171,9 @@ KEY_DOCS: dict[str, str] = {
     ),
     "twin.events_file": (
         "Where the agent appends its events (the console's Events page), to read them back at its next "
-        "start: without it a restart begins the page anew and each session's count of alarms raised at "
-        "0. Two files at most, each up to 8 MiB (`<name>.1` holds the older). Empty = memory only. The "
+        "start: without it a restart begins the page anew, and the Sessions page no longer knows the "
+        "alarms raised in a session from before it. Two files at most, each up to 8 MiB (`<name>.1` "
+        "holds the older). Empty = memory only. The "
         "twin host's config names `/var/lib/so101-twin-agent/events.jsonl`."
     ),
     "twin.shutdown_budget_s": (

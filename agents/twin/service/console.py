@@ -104,7 +104,8 @@ class SessionInfo(msgspec.Struct, frozen=True):
     end: float
     messages: int
     status: str = "completed"  # active | completed
-    alarms_raised: int = 0
+    # None: not known, the session began before the oldest event the agent holds (docs/console.md).
+    alarms_raised: int | None = 0
 
     @property
     def key(self) -> str:

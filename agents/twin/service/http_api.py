@@ -117,6 +117,8 @@ CONSOLE_PAGES = ("/", "/arm/<device>", "/sessions", "/events")
 JSON_CONTENT_TYPE = "application/json"
 # How long a list of sessions is reused: reading them scans the history table.
 SESSIONS_REUSE_S = 5.0
+# Events read to count the sessions' alarms: more than the event store's default capacity holds.
+EVENTS_READ_FOR_SESSIONS = 100_000
 # Answers every page and API response carries: nothing is cached, nothing may frame the console, scripts and
 # styles come from this server only (the console ships its own; no inline script, no CDN).
 SECURITY_HEADERS = {
@@ -346,7 +348,7 @@ class AgentHttpServer:
         self._started = threading.Event()
         self._session_files = SessionFiles(self.settings.session_files_mb * 2**20)
         self._file_locks: dict[str, asyncio.Lock] = {}
-        self._sessions_cache: tuple[float, list[SessionInfo]] | None = None
+        self._sessions_cache: tuple[float, list[SessionInfo], float | None] | None = None
 
     # --------------------------------------------------------------------------------------------- lifecycle
 
@@ -726,17 +728,28 @@ class AgentHttpServer:
     # -------------------------------------------------------------------------------------------- sessions
 
     async def _session_list(self) -> list[SessionInfo]:
+        return (await self._sessions_counted())[0]
+
+    async def _sessions_counted(self) -> tuple[list[SessionInfo], float | None]:
+        """The sessions with their alarm counts, and the time from which those counts are known."""
         catalog = self._sessions
         if catalog is None:
-            return []
+            return [], None
         now = time.monotonic()
         cached = self._sessions_cache
         if cached is not None and now - cached[0] < SESSIONS_REUSE_S:
-            return cached[1]
+            return cached[1], cached[2]
         gap = self.settings.session_gap_s
         listed = await self._call(lambda: catalog.sessions(gap))
-        raised = await self._alarm_raises()
+        raised, since = await self._alarm_raises()
         wall = time.time()
+
+        def count(s: SessionInfo) -> int | None:
+            # Began before the oldest event held: its raises may be gone with the events before it.
+            if since is None or s.start < since:
+                return None
+            return sum(1 for device, t in raised if device == s.device and s.start <= t <= s.end + gap)
+
         out = [
             SessionInfo(
                 device=s.device,
@@ -744,30 +757,33 @@ class AgentHttpServer:
                 end=s.end,
                 messages=s.messages,
                 status="active" if wall - s.end <= gap else "completed",
-                alarms_raised=sum(
-                    1 for device, t in raised if device == s.device and s.start <= t <= s.end + gap
-                ),
+                alarms_raised=count(s),
             )
             for s in listed
         ]
-        self._sessions_cache = (now, out)
-        return out
+        self._sessions_cache = (now, out, since)
+        return out, since
 
-    async def _alarm_raises(self) -> list[tuple[str, float]]:
+    async def _alarm_raises(self) -> tuple[list[tuple[str, float]], float | None]:
+        """Each alarm raise the agent's events hold (device, time), and the time of the oldest event they
+        hold: the counts hold from then on (None: the source keeps no events, so no count is known)."""
         source = self._source
         if not isinstance(source, EventSource):
-            return []
-        query = EventQuery(
-            kinds=frozenset({EventKind.ALARM.value}), min_level=EventLevel.WARNING, limit=100_000
-        )
-        events = await self._call(lambda: source.events(query))
-        return [(e.device, e.time) for e in events if e.data.get("action") == "raised"]
+            return [], None
+        events = await self._call(lambda: source.events(EventQuery(limit=EVENTS_READ_FOR_SESSIONS)))
+        raises = [
+            (e.device, e.time)
+            for e in events
+            if e.kind == EventKind.ALARM.value and e.data.get("action") == "raised"
+        ]
+        return raises, (min(e.time for e in events) if events else None)
 
     async def _api_sessions(self, request: Request) -> Response:
-        sessions = await self._session_list()
+        sessions, since = await self._sessions_counted()
         body = {
             "history": self._sessions is not None,
             "gap_s": self.settings.session_gap_s,
+            "alarms_known_since": since,
             "kinds": list(SESSION_FILE_KINDS),
             "sessions": [
                 {

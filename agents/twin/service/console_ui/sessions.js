@@ -40,9 +40,18 @@
         el("td", { text: Twin.time(s.start), "data-label": `start (${Twin.zone()})` }),
         el("td", { text: Twin.duration(s.duration_s), "data-label": "duration" }),
         el("td", { text: String(s.messages), "data-label": "messages" }),
-        el("td", { text: String(s.alarms_raised), "data-label": "alarms raised" }),
+        alarmsCell(s),
         el("td", { class: "session-status", text: s.status, "data-label": "status" }), cell);
     }));
+  }
+
+  // null: the session began before the oldest event the agent holds, so its raises may be gone with them.
+  function alarmsCell(s) {
+    if (s.alarms_raised !== null) return el("td", { text: String(s.alarms_raised), "data-label": "alarms raised" });
+    const since = doc.alarms_known_since === null ? "the agent keeps no events"
+      : `the agent's events begin at ${Twin.time(doc.alarms_known_since)}`;
+    return el("td", { class: "unknown", text: "not known", title: `${since}; this session began before (docs/console.md, "Sessions")`,
+      "data-label": "alarms raised" });
   }
 
   // A file is made on demand and can fail (history unreadable, a session that changed since the list was
