@@ -72,6 +72,11 @@ SUBSCRIPTIONS_REFUSED = "SubscriptionsRefused"
 LOSS_PERCENT = "LossPercent"
 LOSS_ALARM_PERCENT = 10
 LOSS_ALARM_MINUTES = 5
+# The arm losing most of its messages (emf.WORST_ARM_LOSS_PERCENT), and what pages: a fifth, ten minutes
+# running. Higher and longer than the fleet's line: one arm's Wi-Fi is a smaller matter than the fleet's.
+WORST_ARM_LOSS_PERCENT = "WorstArmLossPercent"
+ARM_LOSS_ALARM_PERCENT = 20
+ARM_LOSS_ALARM_MINUTES = 10
 # The host scripts' own metrics (userdata/lib.sh, emit_host_metrics): the verdict of the checks after each
 # start (host-check.sh), and whether the bucket holds the operator's agent.local.toml (save-local-config.sh)
 # and the agent's servo alarm state (save-alarm-state.sh).
@@ -183,6 +188,7 @@ class TwinMonitoring(Construct):
         self._alarms_for_history()
         self.alarms["SubscriptionsRefused"] = self._subscriptions_refused_alarm()
         self.alarms["MessagesLost"] = self._messages_lost_alarm()
+        self.alarms["ArmLosingMessages"] = self._arm_losing_alarm()
         self._alarms_for_host_scripts()
         action = cw_actions.SnsAction(self.topic)
         for alarm in self.alarms.values():
@@ -359,6 +365,20 @@ class TwinMonitoring(Construct):
             minutes=LOSS_ALARM_MINUTES,
         )
 
+    def _arm_losing_alarm(self) -> cw.Alarm:
+        """ArmLosingMessages: one arm loses a fifth of its messages for 10 minutes. MessagesLost averages
+        the arms, so at 100 arms one arm losing half its messages moves it by half a per cent."""
+        return self._sustained_alarm(
+            "ArmLosingMessages",
+            f"An arm of {self.agent_name} loses at least {ARM_LOSS_ALARM_PERCENT} % of its messages "
+            f"(WorstArmLossPercent), {ARM_LOSS_ALARM_MINUTES} minutes running. The console's Events page "
+            "names it ('is losing ... of its messages'): its edge's network (Wi-Fi), or its broker "
+            "connection over IoT Core's 100 publishes/s. docs/servo-health.md",
+            self._metric(WORST_ARM_LOSS_PERCENT, "Maximum"),
+            threshold=ARM_LOSS_ALARM_PERCENT,
+            minutes=ARM_LOSS_ALARM_MINUTES,
+        )
+
     def _outcome_alarm(self, id_: str, name: str, description: str) -> cw.Alarm:
         """Alarm on the last outcome a host script wrote to `name` (1: failed, 0: fine). The scripts write
         only when they run (a start, a save), so a minute without data keeps the alarm as it is (IGNORE): a
@@ -450,7 +470,10 @@ def _fleet_graphs(labelled: Callable[..., cw.Metric]) -> list[cw.GraphWidget]:
         ),
         _graph(
             "Loss: share of expected messages that never arrived (%)",
-            [labelled(LOSS_PERCENT, "Maximum", "loss %")],
+            [
+                labelled(LOSS_PERCENT, "Maximum", "loss % (fleet)"),
+                labelled(WORST_ARM_LOSS_PERCENT, "Maximum", "loss % (the arm losing most)"),
+            ],
             left_y_axis=cw.YAxisProps(min=0),
         ),
         _graph(

@@ -22,7 +22,14 @@ from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
 from twin.edge.payload import encode, make_payload
 from twin.service.admission import DeviceBudget
 from twin.service.config import load_config
-from twin.service.events import CROWDED_HOLD_S, RATE_INTERVAL_S, RESTORED_SETTLE_S, EventKind, EventQuery
+from twin.service.events import (
+    CROWDED_HOLD_S,
+    LOSING_HOLD_S,
+    RATE_INTERVAL_S,
+    RESTORED_SETTLE_S,
+    EventKind,
+    EventQuery,
+)
 from twin.service.mirror import Mirror, PipeInbox
 from twin.service.shards import MirrorCheckpoint, MirrorReport, PackedDevices
 from twin.transport.pipe import Batch, send_end
@@ -218,3 +225,50 @@ def test_a_mirror_started_again_does_not_report_a_crowded_arm_twice() -> None:
     assert _rate_events(again) == []
     _crowded_rounds(again, clock, rng, RESTORED_SETTLE_S + 2 * RATE_INTERVAL_S + 2, hz=10)
     assert _rate_events(again) == [("info", "expected")]
+
+
+# --- the loss watch's reports -------------------------------------------------------------------------------
+
+
+def _lossy_rounds(mirror: Mirror, clock: _Clock, rng: random.Random, seconds: float, *, drop: float) -> None:
+    """arm-001 and arm-002 at 10 Hz, a batch every 0.1 s; `drop` of arm-002's samples never arrive (its edge
+    stamps them all: the gaps are what the loss estimate reads)."""
+    devices = ("arm-001", "arm-002")
+    for _ in range(round(seconds * 10)):
+        clock.now += 0.1
+        stamp = round((1.7e9 + clock.now) * 1000)
+        sent = [d for d in devices if d == "arm-001" or rng.random() >= drop]
+        payloads = tuple(
+            encode(make_payload(d, stamp / 1000, "ticks", rng, timestamp_ms=stamp)) for d in sent
+        )
+        n = len(sent)
+        topics = tuple(telemetry_topic(DEFAULT_TOPIC_PREFIX, d) for d in sent)
+        mirror._handle(Batch(tuple(sent), topics, payloads, (clock.now,) * n, (1.7e9 + clock.now,) * n), 0)
+        mirror._watch_statuses()
+
+
+def _loss_events(mirror: Mirror) -> list[tuple[str, str, str]]:
+    found = mirror.events(EventQuery(kinds=frozenset({EventKind.TWIN.value})))
+    return [(e.device, e.level, e.data["loss"]) for e in found if "loss" in e.data]
+
+
+def test_an_arm_losing_messages_is_named_once_and_a_mirror_started_again_does_not_name_it_twice() -> None:
+    """The fleet's LossPercent averages the arms, so one arm losing a third of its messages moved it by a
+    few per cent and nothing named the arm. The loss watch names it once it has lost a tenth or more for
+    LOSING_HOLD_S, and once it is back; the checkpoint carries the report over a worker's restart."""
+    clock, rng = _Clock(), random.Random(8)
+    first = _still_mirror(clock)
+    _lossy_rounds(first, clock, rng, 20.0, drop=0.0)  # the period settles on a whole stream
+    _lossy_rounds(first, clock, rng, LOSING_HOLD_S + 3 * RATE_INTERVAL_S, drop=0.3)
+    assert _loss_events(first) == [("arm-002", "warning", "losing")]
+    message = first.events(EventQuery(kinds=frozenset({EventKind.TWIN.value})))[-1].message
+    assert message.startswith("arm-002 is losing ") and "of its messages" in message
+    checkpoint = pickle.loads(pickle.dumps(first.checkpoint(), protocol=pickle.HIGHEST_PROTOCOL))
+    assert checkpoint.losing == ("arm-002",)
+
+    again = _still_mirror(clock)
+    again.restore(checkpoint)
+    _lossy_rounds(again, clock, rng, LOSING_HOLD_S + 2 * RATE_INTERVAL_S, drop=0.3)
+    assert _loss_events(again) == []
+    _lossy_rounds(again, clock, rng, 15.0 + 2 * RATE_INTERVAL_S, drop=0.0)
+    assert _loss_events(again) == [("arm-002", "info", "whole")]

@@ -19,6 +19,8 @@ from typing import Any
 import jsonschema
 import pytest
 from conftest import wait_for
+from twin.core.health import DeviceStatus, HealthSnapshot
+from twin.core.loss import LossSnapshot
 from twin.output.emf import (
     AGENT_DIMENSION,
     LOSS_METRICS,
@@ -31,6 +33,8 @@ from twin.output.emf import (
     emf_document,
     fleet_documents,
 )
+from twin.service.agent import fleet_totals
+from twin.service.state import AgentInfo, AgentState, DeviceState
 
 CLOUDWATCH_UNITS = (
     "Seconds|Microseconds|Milliseconds|Bytes|Kilobytes|Megabytes|Gigabytes|Terabytes|Bits|Kilobits|Megabits|"
@@ -118,6 +122,7 @@ FLEET = FleetMetrics(
     messages_per_s=29.8,
     rejects=3,
     loss_percent=0.7,
+    worst_arm_loss_percent=33.0,
     devices_online=3,
     devices_stale=1,
     devices_offline=0,
@@ -141,6 +146,7 @@ def test_fleet_lines_written_to_the_file_are_valid_emf(tmp_path: Path) -> None:
         "MessagesPerSecond": "Count/Second",
         "Rejects": "Count",
         "LossPercent": "Percent",
+        "WorstArmLossPercent": "Percent",
         "DevicesOnline": "Count",
         "DevicesStale": "Count",
         "DevicesOffline": "Count",
@@ -151,9 +157,27 @@ def test_fleet_lines_written_to_the_file_are_valid_emf(tmp_path: Path) -> None:
         "SubscriptionsRefused": "Count",
     }
     assert (fleet["MessagesPerSecond"], fleet["DevicesStale"], fleet["InternalLatencyP99"]) == (29.8, 1, 1.9)
+    assert (fleet["LossPercent"], fleet["WorstArmLossPercent"]) == (0.7, 33.0)
     assert (critical["Severity"], critical["ActiveAlarms"]) == ("critical", 1)
     assert (warning["Severity"], warning["ActiveAlarms"]) == ("warning", 2)
     assert critical["_aws"]["CloudWatchMetrics"][0]["Dimensions"] == [["Agent", "Severity"]]
+
+
+def test_the_arm_losing_most_is_its_own_figure_and_an_offline_arm_is_not_it() -> None:
+    """LossPercent averages the arms' shortfall, so one arm losing 40 % of its messages among ten reads 4;
+    WorstArmLossPercent reads its 40 (an OFFLINE arm's old window is not counted: AgentSilent and ArmsStale
+    speak for it)."""
+
+    def arm(name: str, recent: float, status: DeviceStatus = DeviceStatus.ONLINE) -> DeviceState:
+        health = HealthSnapshot(status=status, rate_hz=10.0 * (1.0 - recent))
+        return DeviceState(device_id=name, health=health, loss=LossSnapshot(recent_loss_ratio=recent))
+
+    arms = [arm(f"arm-{i}", 0.0) for i in range(9)]
+    arms += [arm("weak", 0.4), arm("gone", 1.0, DeviceStatus.OFFLINE)]
+    state = AgentState(agent=AgentInfo(running=True), devices={d.device_id: d for d in arms})
+    totals = fleet_totals(state, 10.0)
+    assert round(totals.loss_percent, 6) == 4.0
+    assert round(totals.worst_arm_loss_percent, 6) == 40.0
 
 
 def test_no_latency_figure_when_nothing_was_applied() -> None:

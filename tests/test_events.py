@@ -28,6 +28,7 @@ from twin.service import events
 from twin.service.admission import DeviceBudget
 from twin.service.config import load_config
 from twin.service.events import (
+    LOSING_HOLD_S,
     BrokerWatch,
     ClockWatch,
     Event,
@@ -35,6 +36,7 @@ from twin.service.events import (
     EventLevel,
     EventQuery,
     EventStore,
+    LossWatch,
     RateWatch,
     RejectionThrottle,
     StatusWatch,
@@ -745,3 +747,23 @@ def test_an_event_stored_between_the_hubs_reads_reaches_the_first_page(arrives_a
         return [e["message"] for line in lines for e in json.loads(line)]
 
     assert asyncio.run(sent()) == ["arm-001 is ONLINE"]
+
+
+def test_the_loss_watch_waits_out_a_burst_and_a_few_lost_samples_and_forgets_an_arm() -> None:
+    s, _ = store()
+    watch = LossWatch(s)
+    # A reconnect's burst: a third lost for less than the hold, then whole. A slow arm: 40 % but 4 samples.
+    watch.sweep({"burst": (60, 30), "slow": (6, 4)}, 0.0)
+    watch.sweep({"burst": (95, 0), "slow": (6, 4)}, LOSING_HOLD_S / 2)
+    watch.sweep({"burst": (60, 30), "slow": (6, 4)}, LOSING_HOLD_S - 1)
+    watch.sweep({"burst": (60, 30), "slow": (6, 4)}, 2 * LOSING_HOLD_S - 2)
+    assert s.query(EventQuery()) == []
+    watch.sweep({"burst": (60, 30)}, 2 * LOSING_HOLD_S)
+    assert [(e.device, e.data["loss"], e.data["loss_ratio"]) for e in s.query(EventQuery())] == [
+        ("burst", "losing", "0.333")
+    ]
+    # Near the line (5 %) it stays reported; forgotten, it is judged anew.
+    watch.sweep({"burst": (95, 5)}, 2 * LOSING_HOLD_S + 5)
+    assert watch.reported == ("burst",)
+    watch.forget("burst")
+    assert watch.reported == () and len(s.query(EventQuery())) == 1

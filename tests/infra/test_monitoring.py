@@ -48,6 +48,7 @@ def test_names_agree_with_the_agents_emf() -> None:
     assert stack_side == emf.LOSS_METRICS
     assert monitoring.SUBSCRIPTIONS_REFUSED == emf.SUBSCRIPTIONS_REFUSED
     assert monitoring.LOSS_PERCENT == emf.LOSS_PERCENT
+    assert monitoring.WORST_ARM_LOSS_PERCENT == emf.WORST_ARM_LOSS_PERCENT
 
 
 def test_topic_is_encrypted_tls_only_and_cloudwatch_may_publish(synth_default: Synth) -> None:
@@ -86,8 +87,8 @@ def test_alarm_email_subscribes_to_the_topic(synth_factory: Any) -> None:
 def test_every_alarm_notifies_the_topic_on_alarm_and_ok(synth_default: Synth) -> None:
     # Servo alarms reach the topic from the host directly (test_host_publishes_servo_alarms_to_the_topic_
     # only), not through a CloudWatch alarm on a once-a-minute metric: agent silent, arms stale, the six
-    # loss alarms, a refused subscription and the host scripts' three.
-    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 13)
+    # loss alarms, a refused subscription, the fleet's and one arm's messages lost, the host scripts' three.
+    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 14)
     ref = topic_ref(synth_default)
     for props in synth_default.resources("AWS::CloudWatch::Alarm").values():
         assert props["Properties"]["AlarmActions"] == [ref]
@@ -133,7 +134,7 @@ def test_agent_silent_is_armed_by_the_host_once_it_is_up(synth_default: Synth) -
         for p in synth_default.resources("AWS::CloudWatch::Alarm").values()
         if p["Properties"].get("AlarmName") != "So101TwinStack-AgentSilent"
     ]
-    assert len(others) == 12 and all(p.get("ActionsEnabled", True) for p in others)
+    assert len(others) == 13 and all(p.get("ActionsEnabled", True) for p in others)
     arm = statement(policy_statements(synth_default, "IdentityHostRole"), "AgentSilentArm")
     assert arm["Action"] == "cloudwatch:EnableAlarmActions"
     resource = json.dumps(arm["Resource"])
@@ -267,7 +268,7 @@ def test_the_dashboard_shows_every_alarm_and_is_an_output(synth_default: Synth) 
     body = dashboard_body(synth_default)
     status = [w for w in body["widgets"] if w["type"] == "alarm"]
     alarms = synth_default.resources("AWS::CloudWatch::Alarm")
-    assert len(status) == 1 and len(status[0]["properties"]["alarms"]) == len(alarms) == 13
+    assert len(status) == 1 and len(status[0]["properties"]["alarms"]) == len(alarms) == 14
     # One point a minute, the agent's EMF interval, each with the statistic its figure needs.
     for widget in body["widgets"]:
         for row in widget["properties"].get("metrics", []):
@@ -355,6 +356,14 @@ def test_messages_that_never_arrive_page_after_five_minutes_of_a_tenth_lost(synt
     assert_sustained_maximum(props, threshold=10, minutes=5)
     description = props["AlarmDescription"]
     assert "per-connection quota" in description and "maxConnections" in description
+
+
+def test_one_arm_losing_a_fifth_of_its_messages_pages_after_ten_minutes(synth_default: Synth) -> None:
+    """LossPercent averages the arms: at 100 arms, one losing half its messages moves it by half a per
+    cent, so MessagesLost never pages for it. The arm losing most does, and the Events page names it."""
+    props = _alarm_on(synth_default, emf.WORST_ARM_LOSS_PERCENT)
+    assert_sustained_maximum(props, threshold=20, minutes=10)
+    assert "Events page names" in props["AlarmDescription"]
 
 
 @pytest.mark.parametrize(

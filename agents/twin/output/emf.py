@@ -49,6 +49,9 @@ HISTORY_COMMIT_FAILURES = "HistoryCommitFailures"  # history commits that failed
 HISTORY_LAG = "HistoryLagSeconds"  # how long the oldest unwritten history row has waited
 SUBSCRIPTIONS_REFUSED = "SubscriptionsRefused"  # topic filters the broker refuses now (an IAM policy)
 LOSS_PERCENT = "LossPercent"  # the share of the arms' expected messages that did not arrive (a stack alarm)
+# The share of its messages the arm losing most lost over its recent window (a stack alarm): LossPercent
+# averages the arms, so one arm's loss shows there as a fraction of it.
+WORST_ARM_LOSS_PERCENT = "WorstArmLossPercent"
 LOSS_METRICS: tuple[str, ...] = (
     MESSAGES_DROPPED,
     SINK_DROPS,
@@ -125,6 +128,7 @@ class FleetMetrics:
     history_rows_dropped: int | None = None
     history_commit_failures: int | None = None
     history_lag_s: float | None = None
+    worst_arm_loss_percent: float = 0.0  # WORST_ARM_LOSS_PERCENT
 
 
 def fleet_documents(
@@ -137,6 +141,7 @@ def fleet_documents(
         Metric("MessagesPerSecond", fleet.messages_per_s, "Count/Second"),
         Metric("Rejects", fleet.rejects, "Count"),
         Metric(LOSS_PERCENT, fleet.loss_percent, "Percent"),
+        Metric(WORST_ARM_LOSS_PERCENT, fleet.worst_arm_loss_percent, "Percent"),
         Metric("DevicesOnline", fleet.devices_online, "Count"),
         Metric("DevicesStale", fleet.devices_stale, "Count"),
         Metric("DevicesOffline", fleet.devices_offline, "Count"),
@@ -240,6 +245,7 @@ class FleetTotals:
     history_rows_dropped: int | None = None
     history_commit_failures: int | None = None
     history_lag_s: float | None = None
+    worst_arm_loss_percent: float = 0.0  # a gauge: WORST_ARM_LOSS_PERCENT
 
 
 def increase(now: int | None, before: int | None) -> int:
@@ -304,6 +310,7 @@ class EmfPublisher:
             messages_per_s=max(0, decoded) / span,
             rejects=max(0, rejected),
             loss_percent=totals.loss_percent,
+            worst_arm_loss_percent=totals.worst_arm_loss_percent,
             devices_online=totals.devices_online,
             devices_stale=totals.devices_stale,
             devices_offline=totals.devices_offline,

@@ -1372,6 +1372,8 @@ def fleet_totals(state: AgentState, expected_rate_hz: float) -> FleetTotals:
     p99s = [
         d.health.internal_latency_s.p99 for d in state.devices.values() if d.health.internal_latency_s.p99
     ]
+    # Over each arm's recent window (core.loss): one arm's loss, which the average above dilutes.
+    worst = max((d.loss.recent_loss_ratio for d in live), default=0.0)
     history = state.agent.history
     return FleetTotals(
         decoded=sum(d.health.counters.decoded for d in state.devices.values()),
@@ -1381,6 +1383,7 @@ def fleet_totals(state: AgentState, expected_rate_hz: float) -> FleetTotals:
         devices_stale=statuses.count(DeviceStatus.STALE),
         devices_offline=statuses.count(DeviceStatus.OFFLINE),
         loss_percent=loss,
+        worst_arm_loss_percent=100.0 * worst,
         internal_latency_p99_ms=max(p99s) * 1000.0 if p99s else None,
         active_alarms=state.agent.alarms.present,
         messages_dropped=state.agent.mailbox.overwritten_total,

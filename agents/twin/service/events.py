@@ -535,6 +535,78 @@ class RateWatch:
         self._store.emit(EventKind.TWIN, level, message, device=device, data=data)
 
 
+# An arm that loses this share of its messages (core.loss's estimate over its recent window, at least
+# LOSING_REPORT_MIN_LOST of them) in every sweep for LOSING_HOLD_S is reported; below LOSING_CLEAR_RATIO, that
+# it is back. The fleet's LossPercent averages the arms, so one arm's loss shows there only as a fraction; the
+# hold lets a reconnect's burst of loss pass, and the gap between the ratios keeps an arm near the line from
+# reporting at every sweep.
+LOSING_REPORT_RATIO = 0.10
+LOSING_CLEAR_RATIO = 0.03
+LOSING_REPORT_MIN_LOST = 5
+LOSING_HOLD_S = 30.0
+
+
+class LossWatch:
+    """Arms losing a tenth of their messages or more, from successive readings of their recent loss
+    (`sweep`): one warning an episode naming the arm, and one info when it is back. Holds only the arms
+    over the line now or reported and not yet back: bounded by the fleet."""
+
+    def __init__(self, store: EventStore) -> None:
+        self._store = store
+        self._over_since: dict[str, float] = {}
+        self._reported: set[str] = set()
+
+    @property
+    def reported(self) -> tuple[str, ...]:
+        return tuple(sorted(self._reported))
+
+    def restore(self, devices: Iterable[str]) -> None:
+        """Arms a checkpoint says were reported: not reported again while they keep losing (their loss
+        estimates come back with the checkpoint, their recent windows too)."""
+        self._reported.update(devices)
+
+    def forget(self, device: str) -> None:
+        self._over_since.pop(device, None)
+        self._reported.discard(device)
+
+    def sweep(self, recent: Mapping[str, tuple[int, int]], now: float) -> None:
+        """`recent`: each arm heard from -> (received, lost) over its recent window; `now` monotonic."""
+        for device in [d for d in self._over_since if d not in recent]:
+            del self._over_since[device]
+        self._reported.intersection_update(recent)  # evicted or restarted elsewhere: nothing to clear
+        for device, (received, lost) in recent.items():
+            ratio = lost / (received + lost) if received + lost else 0.0
+            if device in self._reported:
+                if ratio < LOSING_CLEAR_RATIO:
+                    self._reported.discard(device)
+                    self._say(device, ratio, lost, losing=False)
+                continue
+            if ratio < LOSING_REPORT_RATIO or lost < LOSING_REPORT_MIN_LOST:
+                self._over_since.pop(device, None)
+                continue
+            since = self._over_since.setdefault(device, now)
+            if now - since >= LOSING_HOLD_S:
+                del self._over_since[device]
+                self._reported.add(device)
+                self._say(device, ratio, lost, losing=True)
+
+    def _say(self, device: str, ratio: float, lost: int, *, losing: bool) -> None:
+        if losing:
+            level, log_level = EventLevel.WARNING, logging.WARNING
+            message = (
+                f"{device} is losing {ratio:.0%} of its messages ({lost} in its last seconds), for "
+                f"{LOSING_HOLD_S:.0f} s: its edge's network, or its broker connection over IoT Core's 100 "
+                'publishes/s (docs/agent.md, "Loss")'
+            )
+        else:
+            level, log_level = EventLevel.INFO, logging.INFO
+            message = f"{device} no longer loses messages ({ratio:.0%} now)"
+        state = "losing" if losing else "whole"
+        log.log(log_level, "%s", message, extra={"event": "device_loss", "device": device, "loss": state})
+        data = {"loss_ratio": f"{ratio:.3f}", "recent_lost": lost, "loss": state}
+        self._store.emit(EventKind.TWIN, level, message, device=device, data=data)
+
+
 # An edge clock this far from the agent's (the window's least receive-minus-timestamp; transit alone is well
 # under it) in two sweeps CLOCK_INTERVAL_S apart is reported; once within CLOCK_BACK_S, that it is back.
 CLOCK_SKEW_S = 2.0
@@ -616,6 +688,7 @@ class FleetWatch:
         self._statuses = StatusWatch(store)
         self._broker = BrokerWatch(store)
         self._rates = RateWatch(store, expected_rate_hz)
+        self._losses = LossWatch(store)
         self._clocks = ClockWatch(store)
         self._next = 0.0
         self._next_rates = 0.0
@@ -635,6 +708,18 @@ class FleetWatch:
 
     def rates(self, rates: Mapping[str, float], now: float) -> None:
         self._rates.sweep(rates, now)
+
+    def losses(self, recent: Mapping[str, tuple[int, int]], now: float) -> None:
+        """Read with the rates (`rates_due`): each arm's (received, lost) over its recent window."""
+        self._losses.sweep(recent, now)
+
+    @property
+    def losing(self) -> tuple[str, ...]:
+        """The arms reported losing messages and not yet back (LossWatch)."""
+        return self._losses.reported
+
+    def losing_restored(self, devices: Iterable[str]) -> None:
+        self._losses.restore(devices)
 
     def clocks_due(self, now: float) -> bool:
         if now < self._next_clocks:
@@ -671,6 +756,7 @@ class FleetWatch:
         removed with it."""
         self._statuses.forget(device)
         self._rates.forget(device)
+        self._losses.forget(device)
         self._clocks.forget(device)
         alarms = ", ".join(f"{n} {state}" for state, n in sorted(alarms_removed.items())) or "none"
         self.store.emit(

@@ -784,6 +784,7 @@ class Mirror:
                 tracking_since=self._fleet.started,
                 alarms_summary=self._alarms_summary(),
                 crowded=self._watch.crowded,
+                losing=self._watch.losing,
                 history_rows=self._history.handed_in_all if self._history is not None else 0,
             )
             capture = Capture(
@@ -861,6 +862,7 @@ class Mirror:
                     devices += 1
                 restored = self._alarms.restore(checkpoint.alarms)
                 self._watch.crowded_restored(checkpoint.crowded, self._clock())
+                self._watch.losing_restored(checkpoint.losing)
             else:
                 restored = 0
             restored += self._alarms.restore(alarms)
@@ -1437,7 +1439,10 @@ class Mirror:
         if self._watch.rates_due(now):
             with self._lock:
                 rates = self._fleet.rates(now)
+                # Of the arms heard from, as the rates: an arm's loss estimate is made with its record.
+                recent = {device: loss.recent(now) for device, loss in self._loss.items() if device in rates}
             self._watch.rates(rates, now)
+            self._watch.losses(recent, now)
         if self._watch.clocks_due(now):
             # An edge clock far off (events.ClockWatch): a minimum over each arm's window, so not every sweep.
             with self._lock:
