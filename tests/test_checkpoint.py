@@ -23,6 +23,7 @@ from twin.edge.payload import encode, make_payload
 from twin.service.admission import DeviceBudget
 from twin.service.config import load_config
 from twin.service.events import (
+    CLOCK_INTERVAL_S,
     CROWDED_HOLD_S,
     LOSING_HOLD_S,
     RATE_INTERVAL_S,
@@ -230,16 +231,20 @@ def test_a_mirror_started_again_does_not_report_a_crowded_arm_twice() -> None:
 # --- the loss watch's reports -------------------------------------------------------------------------------
 
 
-def _lossy_rounds(mirror: Mirror, clock: _Clock, rng: random.Random, seconds: float, *, drop: float) -> None:
+def _lossy_rounds(
+    mirror: Mirror, clock: _Clock, rng: random.Random, seconds: float, *, drop: float, skew_s: float = 0.0
+) -> None:
     """arm-001 and arm-002 at 10 Hz, a batch every 0.1 s; `drop` of arm-002's samples never arrive (its edge
-    stamps them all: the gaps are what the loss estimate reads)."""
+    stamps them all: the gaps are what the loss estimate reads), and its clock is `skew_s` behind."""
     devices = ("arm-001", "arm-002")
     for _ in range(round(seconds * 10)):
         clock.now += 0.1
         stamp = round((1.7e9 + clock.now) * 1000)
         sent = [d for d in devices if d == "arm-001" or rng.random() >= drop]
+        stamps = [stamp if d == "arm-001" else stamp - round(skew_s * 1000) for d in sent]
         payloads = tuple(
-            encode(make_payload(d, stamp / 1000, "ticks", rng, timestamp_ms=stamp)) for d in sent
+            encode(make_payload(d, t / 1000, "ticks", rng, timestamp_ms=t))
+            for d, t in zip(sent, stamps, strict=True)
         )
         n = len(sent)
         topics = tuple(telemetry_topic(DEFAULT_TOPIC_PREFIX, d) for d in sent)
@@ -272,3 +277,26 @@ def test_an_arm_losing_messages_is_named_once_and_a_mirror_started_again_does_no
     assert _loss_events(again) == []
     _lossy_rounds(again, clock, rng, 15.0 + 2 * RATE_INTERVAL_S, drop=0.0)
     assert _loss_events(again) == [("arm-002", "info", "whole")]
+
+
+def _clock_events(mirror: Mirror) -> list[tuple[str, str]]:
+    found = mirror.events(EventQuery(kinds=frozenset({EventKind.TWIN.value})))
+    return [(e.device, e.level) for e in found if "clock_offset_s" in e.data]
+
+
+def test_a_mirror_started_again_does_not_report_an_edge_clock_off_twice() -> None:
+    """A worker started again read an arm's clock afresh and reported it off a second time; the checkpoint
+    carries the arms reported, so it says nothing until the clock agrees again, and then says that."""
+    clock, rng = _Clock(), random.Random(9)
+    first = _still_mirror(clock)
+    _lossy_rounds(first, clock, rng, 3 * CLOCK_INTERVAL_S, drop=0.0, skew_s=5.0)
+    assert _clock_events(first) == [("arm-002", "warning")]
+    checkpoint = pickle.loads(pickle.dumps(first.checkpoint(), protocol=pickle.HIGHEST_PROTOCOL))
+    assert checkpoint.clocks_off == ("arm-002",)
+
+    again = _still_mirror(clock)
+    again.restore(checkpoint)
+    _lossy_rounds(again, clock, rng, 3 * CLOCK_INTERVAL_S, drop=0.0, skew_s=5.0)
+    assert _clock_events(again) == []
+    _lossy_rounds(again, clock, rng, 2 * CLOCK_INTERVAL_S, drop=0.0)
+    assert _clock_events(again) == [("arm-002", "info")]

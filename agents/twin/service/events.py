@@ -624,6 +624,14 @@ class ClockWatch:
         self._off_once: set[str] = set()
         self._reported: set[str] = set()
 
+    @property
+    def reported(self) -> tuple[str, ...]:
+        return tuple(sorted(self._reported))
+
+    def restore(self, devices: Iterable[str]) -> None:
+        """Arms a checkpoint says were reported: not reported again while their clocks stay off."""
+        self._reported.update(devices)
+
     def forget(self, device: str) -> None:
         self._off_once.discard(device)
         self._reported.discard(device)
@@ -729,6 +737,14 @@ class FleetWatch:
 
     def clocks(self, offsets: Mapping[str, float]) -> None:
         self._clocks.sweep(offsets)
+
+    @property
+    def clocks_off(self) -> tuple[str, ...]:
+        """The arms whose edge clocks were reported off and not yet back (ClockWatch)."""
+        return self._clocks.reported
+
+    def clocks_restored(self, devices: Iterable[str]) -> None:
+        self._clocks.restore(devices)
 
     @property
     def crowded(self) -> tuple[str, ...]:

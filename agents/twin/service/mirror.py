@@ -785,6 +785,7 @@ class Mirror:
                 alarms_summary=self._alarms_summary(),
                 crowded=self._watch.crowded,
                 losing=self._watch.losing,
+                clocks_off=self._watch.clocks_off,
                 history_rows=self._history.handed_in_all if self._history is not None else 0,
             )
             capture = Capture(
@@ -863,6 +864,7 @@ class Mirror:
                 restored = self._alarms.restore(checkpoint.alarms)
                 self._watch.crowded_restored(checkpoint.crowded, self._clock())
                 self._watch.losing_restored(checkpoint.losing)
+                self._watch.clocks_restored(checkpoint.clocks_off)
             else:
                 restored = 0
             restored += self._alarms.restore(alarms)

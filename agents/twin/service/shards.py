@@ -418,8 +418,10 @@ class MirrorCheckpoint:
     # The devices the rate watch has reported publishing far above the expected rate (events.RateWatch), so a
     # restarted worker does not report them again.
     crowded: tuple[str, ...] = ()
-    # The arms the loss watch has reported losing messages (events.LossWatch), for the same reason.
+    # The arms the loss watch has reported losing messages (events.LossWatch), and those whose edge clocks
+    # were reported off (events.ClockWatch), for the same reason.
     losing: tuple[str, ...] = ()
+    clocks_off: tuple[str, ...] = ()
     # The rows handed to history for the messages `taken` counts, over every process of the worker (its
     # restart counts those its dead feed held and nothing sends again: history_feed.resume_point).
     history_rows: int = 0
