@@ -1060,3 +1060,46 @@ def test_an_offline_arm_is_forgotten_from_its_page(
     # Off the page before its agent stops: its stream's retries would be logged as the next test's errors.
     page.goto("about:blank")
     agent.stop()
+
+
+def test_an_arm_forgotten_elsewhere_leaves_nothing_to_act_on_its_open_page(
+    rig: LocalRig, page: Any, browser_errors: list[str]
+) -> None:
+    """An arm's page left open while a script (or another page) forgets the arm: the page said "not known to
+    this agent" but kept the arm's alarms with their Acknowledge buttons (the agent answers 404 for them now),
+    "Forget this arm" and its loss figures. Nothing of the arm may stay there to act on or to read."""
+    agent = rig.start_agent(
+        {
+            "http.listen": "127.0.0.1:0",  # read back below: a port picked free then bound could be taken
+            "broker.client_id_prefix": "forget-elsewhere-",
+            "telemetry.units": "ticks",
+            "health.offline_after_s": 1.5,
+        }
+    )
+    url = agent.http_url
+    # A stall from 0.5 s on: its over-current alarm is raised about a second later, and still ACTIVE when the
+    # edge stops at 3 s (a silent servo holds its alarm).
+    stall = (ServoFault("overload", "wrist_flex", 0.5, 5.0),)
+    edge = rig.start_edge(["arm-elsewhere"], variant="ticks", rate_hz=10.0, seconds=3.0, servo_faults=stall)
+    edge.join(TIMEOUT_S)
+
+    def offline_with_an_alarm() -> bool:
+        arm = agent.state().devices.get("arm-elsewhere")
+        return arm is not None and arm.health.status == "OFFLINE" and bool(alarms(url, "arm-elsewhere"))
+
+    wait_for(offline_with_an_alarm, TIMEOUT_S, "arm-elsewhere raised an alarm, then went OFFLINE")
+    page.goto(url + "/arm/arm-elsewhere")
+    errors_before = len(browser_errors)
+    page.locator("#alarms button[data-alarm]").first.wait_for()
+    page.locator("#forget").wait_for()
+    request = urllib.request.Request(f"{url}/api/arm/arm-elsewhere/forget", data=b"", method="POST")
+    with urllib.request.urlopen(request, timeout=30.0) as response:
+        assert response.status == 200
+    page.locator("#unknown").wait_for()
+    page.locator("#alarms", has_text="no alarm").wait_for()
+    assert page.locator("#alarms button[data-alarm]").count() == 0
+    assert page.locator("#forget").is_hidden()
+    assert "lost (estimated)" not in page.locator("main").inner_text()
+    assert browser_errors[errors_before:] == []
+    page.goto("about:blank")
+    agent.stop()

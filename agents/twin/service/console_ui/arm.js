@@ -222,10 +222,20 @@
   // After a forget the agent no longer knows the arm: the page says so instead of "not known".
   function showForgotten() {
     title.textContent = `${device}: forgotten`;
-    forgetButton.hidden = true;
     summary.replaceChildren(el("p", { id: "forgotten", text: "This arm was forgotten by this agent. If it " +
       "publishes again it comes back as a new arm, and this page fills in by itself." }));
+    clearArm();
+  }
+
+  // An arm the agent no longer knows (forgotten here, or by another page or a script while this one was
+  // open) has nothing left to act on or to read: a walk found its alarms still offered to Acknowledge (the
+  // agent answers 404), "Forget this arm" still shown, and its loss figures as if live.
+  function clearArm() {
+    forgetButton.hidden = true;
+    shownAlarms = [];
     renderAlarms([]);
+    lossBox.replaceChildren();
+    rejectsBody.replaceChildren();
   }
 
   function servoErrors(servos, motorIds) {
@@ -310,6 +320,7 @@
     summary.replaceChildren(el("p", { id: "unknown", text: "This agent has had no valid message from an arm " +
       "with this id since it started. Check the id against the Fleet page, which lists every arm it has " +
       "heard; this page fills in by itself once the arm is heard." }));
+    clearArm();
   }
 
   function update(doc) {
