@@ -649,6 +649,18 @@ def test_a_session_from_before_the_agents_events_shows_its_alarms_as_not_known(
     assert browser_errors == []
 
 
+def test_the_sessions_page_says_its_filters_hide_every_session(console: str, page: Any) -> None:
+    """A device box that matches no session, while history holds some, is the filters' doing: the table says
+    so, not "no session yet", which reads as a history with nothing in it."""
+    wait_for_a_session(console, "arm-003")
+    page.goto(console + "/sessions")
+    page.locator('#sessions tr[data-device="arm-003"]').first.wait_for()
+    page.get_by_label("device").fill("no-such-arm")
+    empty = page.locator("#sessions td.empty")
+    empty.wait_for()
+    assert "no session matches these filters" in empty.inner_text(), empty.inner_text()
+
+
 @pytest.mark.parametrize("width", [768, 390])
 def test_the_tables_fit_the_window_with_a_long_id(
     long_id: str, console: str, page: Any, browser_errors: list[str], width: int

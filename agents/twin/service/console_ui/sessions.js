@@ -26,7 +26,14 @@
     const q = device.value.trim().toLowerCase(), st = state.value;
     const rows = doc.sessions.filter((s) => (!q || s.device.toLowerCase().includes(q)) && (!st || s.status === st));
     note.textContent = `${rows.length} of ${doc.sessions.length} sessions, newest first · a gap of ${doc.gap_s} s ends one`;
-    if (!rows.length) { body.replaceChildren(el("tr", {}, el("td", { colspan: 7, class: "empty", text: "no session yet" }))); return; }
+    // "no session yet" under a device box that matched nothing read as an empty history (a walk typed an id
+    // that no session has while history held several): the filters are named when they hide every session.
+    const empty = doc.sessions.length
+      ? "no session matches these filters (the device box finds part of an id)" : "no session yet";
+    if (!rows.length) {
+      body.replaceChildren(el("tr", {}, el("td", { colspan: 7, class: "empty", text: empty })));
+      return;
+    }
     body.replaceChildren(...rows.map((s) => {
       const base = `/api/sessions/${encodeURIComponent(s.device)}/${s.key}/`;
       const files = doc.kinds.map((k) => el("a", { href: base + k, download: "", "data-kind": k, text: LABELS[k] || k,
