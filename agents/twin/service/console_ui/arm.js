@@ -317,15 +317,24 @@
   // to check instead of empty panels under a bare "not known", and fills in by itself once the arm is heard.
   function unknown() {
     title.textContent = `${device}: not known to this agent`;
-    summary.replaceChildren(el("p", { id: "unknown", text: "This agent has had no valid message from an arm " +
-      "with this id since it started. Check the id against the Fleet page, which lists every arm it has " +
-      "heard; this page fills in by itself once the arm is heard." }));
+    // An arm this page has shown and the agent dropped was not "never heard": it was forgotten elsewhere, or
+    // the agent started again and has not heard it yet; the sentence says so rather than blame the id.
+    const text = shown
+      ? "This agent no longer knows this arm: it was forgotten (the Events page has a twin event for it), " +
+        "or the agent started again and has not heard the arm since. This page fills in by itself once it " +
+        "is heard."
+      : "This agent has had no valid message from an arm with this id since it started. Check the id " +
+        "against the Fleet page, which lists every arm it has heard; this page fills in by itself once the " +
+        "arm is heard.";
+    summary.replaceChildren(el("p", { id: "unknown", text }));
     clearArm();
   }
 
+  let shown = false;  // this page has shown the arm's state at least once
   function update(doc) {
     const d = doc.device;
     if (!d) { if (forgotten) showForgotten(); else unknown(); return; }
+    shown = true;
     title.textContent = device;
     shownAlarms = doc.alarms;
     forgetButton.hidden = d.health.status !== "OFFLINE";
