@@ -796,6 +796,40 @@ def agent_on(rig: LocalRig, device: str, url: str | None = None) -> Any:
     return wait_for(started, TIMEOUT_S, f"{url} free for the agent again", interval=0.5)
 
 
+_VISIBILITY = """(hidden) => {
+  Object.defineProperty(document, "hidden", { configurable: true, get: () => hidden });
+  const state = hidden ? "hidden" : "visible";
+  Object.defineProperty(document, "visibilityState", { configurable: true, get: () => state });
+  document.dispatchEvent(new Event("visibilitychange"));
+}"""
+
+
+def test_a_seventh_tab_loads_while_the_others_are_hidden(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """Each page holds a stream, and a browser opens at most six HTTP/1.1 connections to one host: a walk's
+    seventh tab stayed blank. A hidden tab lets go of its stream, and takes it up again when shown. (A
+    headless page is never hidden by itself: the tab switch is told to each page as the browser tells it.)"""
+    paths = ["/", "/events", "/sessions", "/arm/arm-001", "/arm/arm-002", "/"]
+    tabs = [page.context.new_page() for _ in paths]
+    last = page.context.new_page()
+    try:
+        for tab, path in zip(tabs, paths, strict=True):
+            tab.goto(console + path)
+            tab.wait_for_selector("body[data-ready]", timeout=TIMEOUT_S * 1000)
+            tab.evaluate(_VISIBILITY, True)
+        last.goto(console + "/arm/arm-003", timeout=TIMEOUT_S * 1000)
+        last.wait_for_selector("body[data-ready]", timeout=TIMEOUT_S * 1000)
+        last.evaluate(_VISIBILITY, True)
+        with tabs[0].expect_request("**/api/stream/fleet", timeout=TIMEOUT_S * 1000):
+            tabs[0].evaluate(_VISIBILITY, False)
+        tabs[0].locator("#link-state", has_text="live").wait_for(timeout=TIMEOUT_S * 1000)
+    finally:
+        for tab in [*tabs, last]:
+            tab.close()
+    assert browser_errors == []
+
+
 def leave(page: Any) -> None:
     """Off a page whose agent is about to stop: left on it, it would go on trying to reconnect, and the
     browser would log each refused attempt into whichever test runs next."""

@@ -51,17 +51,38 @@ const Twin = (() => {
   }
 
   // An EventSource that shows its state in the header; the browser reconnects by itself (retry: 1000).
+  // A browser holds at most six HTTP/1.1 connections to one host, and each open stream keeps one: a seventh
+  // tab of the console never loaded. So a hidden tab lets go of its stream and opens it again when shown
+  // (its first frame is the whole picture; the Events and Sessions pages read theirs again on "open"). A tab
+  // opened in the background connects once it is looked at. What it returns takes addEventListener, kept
+  // over every new connection.
   function stream(url, handlers) {
-    const source = new EventSource(url);
-    source.onopen = () => setLink(true, "live");
-    source.onerror = () => setLink(false, "reconnecting…");
-    for (const [event, handler] of Object.entries(handlers)) {
-      source.addEventListener(event, (message) => {
-        setLink(true, "live");
-        handler(JSON.parse(message.data));
-      });
+    const listeners = [];
+    let source = null;
+    function connect() {
+      source = new EventSource(url);
+      source.onopen = () => setLink(true, "live");
+      source.onerror = () => setLink(false, "reconnecting…");
+      for (const [event, handler] of Object.entries(handlers)) {
+        source.addEventListener(event, (message) => {
+          setLink(true, "live");
+          handler(JSON.parse(message.data));
+        });
+      }
+      for (const [event, listener] of listeners) source.addEventListener(event, listener);
     }
-    return source;
+    document.addEventListener("visibilitychange", () => {
+      if (document.hidden && source) { source.close(); source = null; }
+      else if (!document.hidden && !source) connect();
+    });
+    if (!document.hidden) connect();
+    return {
+      addEventListener(event, listener) {
+        listeners.push([event, listener]);
+        if (source) source.addEventListener(event, listener);
+      },
+      get connected() { return source !== null; },
+    };
   }
 
   async function getJSON(url) {
