@@ -150,6 +150,26 @@ def test_a_failed_write_is_counted_told_with_its_fix_and_tried_again(
     assert "1 event(s) could not be written" in caplog.records[-1].getMessage()
 
 
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full, a file every write fills")
+def test_a_full_disk_is_told_once_a_minute_not_once_per_flush(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # A full disk opens the file and then fails the write, leaving the events in the file's buffer; closing
+    # it fails on them again. The directory case above fails at the open, so it never reaches that close.
+    path = tmp_path / "events.jsonl"
+    path.symlink_to("/dev/full")
+    clock = Clock()
+    store, journal = EventStore(wall_clock=clock), EventJournal(path, clock=clock)
+    store.subscribe(journal.add)
+    with caplog.at_level(logging.WARNING, logger="twin.service.event_journal"):
+        for _ in range(5):
+            emit(store, 1)
+            assert not journal.flush()
+    assert journal.not_written == 5
+    told = [r.getMessage() for r in caplog.records]
+    assert len(told) == 1 and "No space left on device" in told[0], told
+
+
 def test_what_waits_for_a_flush_is_bounded(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(event_journal, "MAX_PENDING", 10)
     store, journal = journaled_store(tmp_path / "events.jsonl")

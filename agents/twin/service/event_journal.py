@@ -160,7 +160,9 @@ class EventJournal:
                 self.not_written += len(batch)
                 self.write_failures += 1
                 self.last_error = f"{type(exc).__name__}: {exc}"
-                self._close_file()
+                # Closing flushes what the failed write left in the file's buffer, which fails the same way:
+                # that is this failure again, told (once a minute) by _warn, not a line per flush.
+                self._close_file(after_failure=True)
                 self._warn(exc, len(batch))
                 return False
             self.written += len(batch)
@@ -213,13 +215,14 @@ class EventJournal:
             self._close_file()
             os.replace(self.path, self.previous)
 
-    def _close_file(self) -> None:
+    def _close_file(self, *, after_failure: bool = False) -> None:
         f, self._file = self._file, None
         if f is not None:
             try:
-                f.close()
+                f.close()  # the descriptor is released even when the flush inside it fails
             except OSError as exc:
-                log.warning("the event journal %s could not be closed: %s", self.path, exc)
+                if not after_failure:
+                    log.warning("the event journal %s could not be closed: %s", self.path, exc)
 
     def _warn(self, exc: OSError, count: int) -> None:
         if self._error_lines.due() is None:
