@@ -114,6 +114,30 @@ def test_failed_writes_are_counted_told_once_a_minute_and_the_recovery_is_told(
     assert (state.stats().pending, state.stats().delivered) == (0, 1)
 
 
+def test_a_stop_the_file_cannot_record_is_told_at_the_stop_and_named_at_the_next_start(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A SIGTERM on a full disk: the stop's write failed within the minute of the last error line, so
+    nothing said so, and the next start told the operator the run was killed or crashed and to look in the
+    kernel's OOM log. The stop's failed write is told at once, and the next start names that cause too."""
+    from twin.service import persist
+
+    path = tmp_path / "state.json"
+    run = StateFile(path)
+    assert run.save([_record(AlarmState.LATCHED)], 10.0, 1e9 + 10)  # the run's first check
+    monkeypatch.setattr(persist, "write_atomically", _disk_full)
+    caplog.set_level(logging.WARNING, logger="twin.service.persist")
+    assert not run.save([_record(AlarmState.ACTIVE)], 11.0, 1e9 + 11)  # told: the minute's line
+    assert not run.save([_record(AlarmState.ACTIVE)], 12.0, 1e9 + 12, stopped=True)
+    errors = [r.getMessage() for r in caplog.records if r.levelno == logging.ERROR]
+    assert len(errors) == 2 and "could not record this stop" in errors[1], errors
+    monkeypatch.setattr(persist, "write_atomically", write_atomically)
+    caplog.clear()
+    StateFile(path).load(5.0, 1e9 + 60)
+    (warning,) = _warnings_of_an_unclean_stop(caplog)
+    assert "its stop could not be written here" in warning.getMessage()
+
+
 def _disk_full(path: Path, text: str) -> None:
     raise OSError(28, "No space left on device")
 

@@ -200,7 +200,7 @@ class StateFile:
         try:
             write_atomically(self.path, json.dumps(document, indent=1, sort_keys=True) + "\n")
         except OSError as exc:
-            self._failed(exc, now_mono)
+            self._failed(exc, now_mono, stopped=stopped)
             return False
         if self.failing:
             log.warning(
@@ -214,11 +214,24 @@ class StateFile:
         self.writes += 1
         return True
 
-    def _failed(self, exc: OSError, now_mono: float) -> None:
-        """Count a failed write; log it at once, then at most once a minute (the next check tries again)."""
+    def _failed(self, exc: OSError, now_mono: float, *, stopped: bool = False) -> None:
+        """Count a failed write; log it at once, then at most once a minute (the next check tries again).
+        The stop's own write is told whatever the minute: no check follows it, and without it the next start
+        reads the file as left by a run that was killed."""
         self.write_errors += 1
         self.last_error = f"{exc.__class__.__name__}: {exc}"
         self.failing = True
+        if stopped:
+            log.error(
+                "state file %s could not record this stop (%s): the next start will say this run did not "
+                "stop, and bring back its alarms as of the file's last write; free space in (or fix the "
+                "permissions of) %s before starting the agent again",
+                self.path,
+                exc,
+                self.path.parent.absolute(),
+                extra={"path": str(self.path)},
+            )
+            return
         since = self._error_lines.due(now=now_mono)
         if since is None:
             return
@@ -252,7 +265,8 @@ def _report_unclean_stop(path: Path, document: dict[str, Any]) -> None:
         pid = document.get("pid")
         written_at = document.get("written_at")
         log.warning(
-            "the agent's previous run (pid %s) did not stop: killed, crashed or its host went down. Its "
+            "the agent's previous run (pid %s) did not stop: killed, crashed or its host went down (or its "
+            "stop could not be written here, a full or read-only disk, which its log's last lines say). Its "
             "alarms are back as of its last check (it checked every second; this file last changed at %s); "
             "its counters start again, and the messages it still held, or that arrived while no agent ran, "
             "are lost without a count. Its workers' `worker stopped` lines say what they could not write, "
