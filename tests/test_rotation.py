@@ -5,6 +5,7 @@ Small limits so a few seconds of a real recorder and a real Rerun stream reach t
 from __future__ import annotations
 
 import json
+import logging
 import math
 import time
 from pathlib import Path
@@ -243,3 +244,32 @@ def test_a_rotation_says_each_raised_limit_once_not_each_few_bytes_of_static_par
     warnings = [r.getMessage() for r in caplog.records]
     assert len(warnings) == 2, warnings
     assert "at least 1 " in warnings[0] and "at least 2 " in warnings[1]
+
+
+def test_a_recording_the_disk_stopped_counts_its_lost_samples_as_the_outputs_drops(
+    robot: RobotModel, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """On a full disk the session was set aside and its samples were counted only in `agent.recording`:
+    the usd output showed 0 dropped in /state's `agent.sinks` and /metrics, so the SinkDrops alarm never saw
+    it (1,282 lost in 40 s of a walk), and each retry, every 5 s, logged an ERROR line."""
+    now = [0.0]
+
+    def open_next(n: int) -> SessionRecorder:
+        raise OSError(28, "No space left on device")
+
+    recorder = SessionRecorder(tmp_path / "session.usdc", flush_interval_s=60.0, clock=lambda: now[0])
+    sink = RecordingSink(
+        recorder, robot, limits=RecordingLimits(rate_hz=100.0), open_next=open_next, clock=lambda: now[0]
+    )
+    recorder.broken = True  # as a save the disk had no room for leaves it
+    samples = _samples(30, devices=("arm-001",))
+    with caplog.at_level(logging.ERROR, logger="twin.output.recording"):
+        for sample in samples:
+            now[0] += 1.0  # 30 s: a retry every 5 s, all within a minute of the first line
+            sink.applied(sample)
+            wait_for(lambda: sink.stats().pending == 0, 30, "the recorder to take the sample")
+    stats = sink.stats()
+    sink.close()
+    assert stats.dropped == len(samples) and "could not be opened" in stats.last_error
+    told = [r.getMessage() for r in caplog.records if r.name == "twin.output.recording"]
+    assert len(told) == 1 and "No space left on device" in told[0], told

@@ -25,6 +25,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from twin.core import heap
+from twin.core.throttle import Throttle
 from twin.output.recorder import SessionRecorder, file_size
 from twin.output.sinks import AppliedSample, DeviceRateCap, QueuedSink, RejectedSample, SinkStats
 from twin.robot.model import RobotModel
@@ -39,6 +40,8 @@ MAX_PENDING_SAMPLES = 20_000
 SESSION_GLOB = "session-*.usd[ac]"
 # After a failed save or open (a full disk), a new session is tried this often.
 BROKEN_RETRY_S = 5.0
+# A new session that keeps failing to open is told at once, then at most this often (with the count).
+OPEN_ERROR_EVERY_S = 60.0
 
 
 @dataclass(frozen=True)
@@ -98,8 +101,20 @@ class _RecorderWorker:
         self._done = RecordingTotals(path="")
         self.rotations = 0
         self.files_deleted = 0
+        # Samples that came while no session could take them (a failed save, a full disk): the output's
+        # drops, so /metrics and the SinkDrops alarm see a recording the disk stopped. Sink thread only.
+        self.unwritten = 0
+        self.last_error = ""
+        self._open_errors = Throttle(OPEN_ERROR_EVERY_S, clock=clock)
 
     def handle_applied(self, sample: AppliedSample) -> None:
+        if self.recorder.broken:
+            self.unwritten += 1
+            if not self.last_error:
+                self.last_error = f"session {self.recorder.path} set aside after a failed save (disk full?)"
+            self.recorder.samples_dropped += 1
+            self._rotate_if_due()
+            return
         poses = self._robot.body_poses(sample.joint_angles)
         self.recorder.record(sample.device_id, sample.received_mono_s, poses, sample.telemetry.diagnostics)
         self._rotate_if_due()
@@ -143,10 +158,27 @@ class _RecorderWorker:
         try:
             successor = self._open_next(self._attempts)
         except Exception as exc:  # a full disk (pxr raises Tf.ErrorException): try again later
-            log.error("recording: the next session file could not be opened (%s); trying again later", exc)
             recorder.broken = True  # closed, with no successor: the retry path takes it from here
             self._retry_at = self._clock() + BROKEN_RETRY_S
+            self.last_error = f"the next session file could not be opened: {exc}"
+            since = self._open_errors.due()
+            if since is not None:
+                log.error(
+                    "recording: the next session file could not be opened (%s); trying again every %.0f s, "
+                    "its samples dropped and counted meanwhile (%d failed attempt(s) since the last line)",
+                    exc,
+                    BROKEN_RETRY_S,
+                    since,
+                )
             return
+        if self._open_errors.streak:
+            log.warning(
+                "recording: a session file is open again, after %d failed attempt(s); %d sample(s) in all "
+                "were not recorded",
+                self._open_errors.streak,
+                self.unwritten,
+            )
+            self._open_errors.clear()
         with self._lock:
             self._done = _add(self._done, recorder)
             self.recorder = successor
@@ -254,4 +286,10 @@ class RecordingSink(QueuedSink):
     def stats(self) -> SinkStats:
         with self._rate_lock:
             skipped = self._skipped
-        return replace(super().stats(), skipped=skipped)
+        base, worker = super().stats(), self._worker_half
+        return replace(
+            base,
+            skipped=skipped,
+            dropped=base.dropped + worker.unwritten,
+            last_error=worker.last_error or base.last_error,
+        )
