@@ -3,6 +3,8 @@ survives a failing worker, and delivers everything queued on close; RobotModel.b
 
 from __future__ import annotations
 
+import contextlib
+import subprocess
 import threading
 import time
 from pathlib import Path
@@ -232,6 +234,28 @@ class _Sink:
 
     def close(self, timeout: float = 5.0) -> None:
         self.closed = True
+
+
+@pytest.mark.slow
+def test_an_agent_recording_onto_a_full_disk_still_starts_and_mirrors(tmp_path: Path) -> None:
+    """A worker's first session on a full disk raised, so `twin run` exited 1 and a worker that died could
+    not be started again (a walk's arms stayed OFFLINE, `worker 1 is not running`, until the disk had room):
+    a recording stopped the mirroring. The recording starts set aside instead, its samples counted as the
+    output's drops. A real full filesystem: a 1 MiB tmpfs, filled (the tests run as root)."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(disk)], check=True)
+    try:
+        with contextlib.suppress(OSError), (disk / "filler").open("wb") as fh:
+            while True:
+                fh.write(b"\0" * 4096)
+                fh.flush()
+        with fed_agent(12, **{"twin.record_dir": str(disk / "usd")}) as service:
+            assert service.state().devices["arm-001"].health.counters.applied == 12
+            usd = next(s for s in service.state().agent.sinks if s.name == "usd")
+            assert usd.dropped == 12 and usd.delivered == 12
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], check=False)
 
 
 def test_the_agent_hands_every_sample_to_every_sink_and_reports_them(tmp_path: Path) -> None:

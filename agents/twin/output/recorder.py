@@ -172,6 +172,21 @@ class SessionRecorder:
         self._last_flush = clock()
         log.info("recording session to %s (asset %s)", self.path, self._asset_ref)
 
+    @classmethod
+    def not_begun(cls, path: str | Path) -> SessionRecorder:
+        """A session whose file could not be begun (a full disk as a worker starts), set aside from the
+        start: every sample is dropped and counted, and RecordingSink opens a real session once the disk
+        has room, as after a failed save. Without it a worker could not start, nor start again after a
+        crash, while the disk was full, and its arms stopped being mirrored for a recording."""
+        self = cls.__new__(cls)
+        self.path = Path(path).resolve()
+        self._devices = {}
+        self._closed = True  # nothing to save or close: record() drops, close() does nothing
+        self.broken = True
+        self.samples_written = self.samples_dropped = self.samples_rejected = 0
+        self.flushes = self.flush_errors = 0
+        return self
+
     def _first_save(self) -> None:
         """The new session's first save; a file that cannot be saved (a full disk) is removed, not left
         behind empty (a walk found one such 0-byte file per attempt, 24 a minute, while the disk was full)."""

@@ -561,7 +561,7 @@ class Mirror:
             tw = self.config.twin
             directory = Path(tw.record_dir)
             self._recording = RecordingSink(
-                self._open_recorder(directory),
+                self._first_recorder(directory),
                 self.robot,
                 limits=RecordingLimits(
                     max_bytes=int(tw.record_max_mb * 2**20),
@@ -585,13 +585,38 @@ class Mirror:
             self._history.mark(self.processed)
         self._sinks = (*((self._recording,) if self._recording else ()), *self._extra_sinks)
 
+    def _first_recorder(self, directory: Path) -> SessionRecorder:
+        """The first session; on a disk with no room for it, one set aside that the sink replaces once
+        there is room (the recording must not keep the worker, and its arms, from starting)."""
+        from twin.output.recorder import MIN_FREE_FOR_SAVE_BYTES, SessionRecorder  # noqa: PLC0415
+
+        try:
+            return self._open_recorder(directory)
+        except OSError as exc:
+            try:
+                st = os.statvfs(directory)
+            except OSError:
+                raise exc from None
+            if st.f_bavail * st.f_frsize >= MIN_FREE_FOR_SAVE_BYTES:
+                raise  # not a full disk: a setting to fix, said at the start
+            log.error(
+                "recording: no session could be begun (%s); mirroring goes on, its samples are dropped and "
+                "counted, and the recording begins once %s has room",
+                exc,
+                directory.absolute(),
+            )
+            return SessionRecorder.not_begun(self._session_path(directory))
+
+    def _session_path(self, directory: Path, rotation: int = 0) -> Path:
+        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(self._wall_clock()))
+        suffix = f"-{rotation}" if rotation else ""
+        return directory / f"session-{stamp}-{os.getpid()}{suffix}.{self.config.twin.record_format}"
+
     def _open_recorder(self, directory: Path, rotation: int = 0) -> SessionRecorder:
         """A new session file: session-<UTC time>-<pid>.<format>, and -<n> after it for the n-th rotation."""
         from twin.output.recorder import SessionRecorder  # noqa: PLC0415 - usd-core only when recording
 
-        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(self._wall_clock()))
-        suffix = f"-{rotation}" if rotation else ""
-        path = directory / f"session-{stamp}-{os.getpid()}{suffix}.{self.config.twin.record_format}"
+        path = self._session_path(directory, rotation)
         return SessionRecorder(path, flush_interval_s=self.config.twin.record_flush_s)
 
     def join(self, timeout: float | None = None) -> None:
