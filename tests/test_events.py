@@ -29,6 +29,7 @@ from twin.service.admission import DeviceBudget
 from twin.service.config import load_config
 from twin.service.events import (
     LOSING_HOLD_S,
+    MAX_REJECTED_EVENTS_PER_INTERVAL,
     BrokerWatch,
     ClockWatch,
     Event,
@@ -335,6 +336,25 @@ def test_a_rejection_flood_makes_one_event_per_interval_with_its_count() -> None
     got = [(e.device, e.data["count"]) for e in s.query(EventQuery())]
     assert got == [("arm-001", "1"), ("arm-002", "1"), ("arm-001", "100")]
     assert "(100 since the last report)" in s.query(EventQuery())[-1].message
+
+
+def test_a_flood_of_invented_device_ids_cannot_push_the_alarms_out_of_the_events() -> None:
+    """Each invented device id is a key of its own: a walk's flood of garbage under random ids made 7,714
+    rejected events in two minutes, on the way to pushing every alarm out of the newest 20,000."""
+    s, _ = store(capacity=1000)
+    clock = Clock(0.0)
+    throttle = RejectionThrottle(s, interval_s=10.0, clock=clock)
+    s.emit(EventKind.ALARM, EventLevel.ERROR, "arm-001/shoulder_lift/over_temperature_critical raised")
+    for i in range(30_000):
+        clock.t = i * 0.001  # 30 s of 1,000 a second
+        throttle.rejected(f"junk-{i}", "not_json", "payload is not JSON")
+    events = s.query(EventQuery(limit=100_000))
+    cap = MAX_REJECTED_EVENTS_PER_INTERVAL
+    assert events[0].kind == EventKind.ALARM and len(events) == 1 + 3 * cap  # three intervals' worth
+    # The first event of each interval after the first says how many the one before held back.
+    held = [int(e.data.get("held_back", 0)) for e in events[1:]]
+    assert held[cap] == held[2 * cap] == 10_000 - cap and sum(held) == 2 * (10_000 - cap)
+    assert f"({10_000 - cap} more rejected messages held back" in events[1 + cap].message
 
 
 @pytest.mark.parametrize(

@@ -26,6 +26,7 @@ import csv
 import io
 import itertools
 import logging
+import math
 import threading
 import time
 from bisect import bisect_right
@@ -824,11 +825,15 @@ class FleetWatch:
 
 # The throttle remembers at most this many (device, reason) keys.
 MAX_THROTTLE_KEYS = 4096
+# Rejected events in all per interval. Each invented device id is a key of its own, so without this a flood
+# of them made an event per message and pushed every alarm out of the store (the newest 20,000) in minutes.
+MAX_REJECTED_EVENTS_PER_INTERVAL = 50
 
 
 class RejectionThrottle:
     """At most one "rejected" event per (device, reason) per `interval_s`; the next one carries how many
-    rejections it stands for."""
+    rejections it stands for. And at most MAX_REJECTED_EVENTS_PER_INTERVAL in all per interval: the next
+    event after those says how many it held back (`held_back`)."""
 
     def __init__(
         self,
@@ -842,6 +847,9 @@ class RejectionThrottle:
         self._clock = clock
         self._next: dict[tuple[str, str], float] = {}
         self._pending: dict[tuple[str, str], int] = {}
+        self._window_end = -math.inf
+        self._in_window = 0
+        self._held_back = 0  # rejections the fleet-wide cap kept from the events since its last event
 
     def rejected(self, device: str | None, reason: str, detail: str) -> None:
         key = (device or "", reason)
@@ -850,6 +858,12 @@ class RejectionThrottle:
         if now < self._next.get(key, 0.0):
             self._pending[key] = count
             return
+        if now >= self._window_end:
+            self._window_end, self._in_window = now + self._interval_s, 0
+        if self._in_window >= MAX_REJECTED_EVENTS_PER_INTERVAL:
+            self._held_back += 1  # not per key: the keys of a flood of invented ids would be the table
+            return
+        self._in_window += 1
         self._pending.pop(key, None)
         self._next[key] = now + self._interval_s
         if len(self._next) > MAX_THROTTLE_KEYS:
@@ -859,12 +873,14 @@ class RejectionThrottle:
             self._pending.pop(oldest, None)
         where = device or "a message with no usable device"
         times = f" ({count} since the last report)" if count > 1 else ""
+        held, self._held_back = self._held_back, 0
+        others = f" ({held} more rejected messages held back: too many at once)" if held else ""
         self._store.emit(
             EventKind.REJECTED,
             EventLevel.WARNING,
-            f"telemetry from {where} rejected: {reason}{times}: {detail}",
+            f"telemetry from {where} rejected: {reason}{times}: {detail}{others}",
             device=device or "",
-            data={"reason": reason, "count": count},
+            data={"reason": reason, "count": count, **({"held_back": held} if held else {})},
         )
 
 
