@@ -832,8 +832,8 @@ MAX_REJECTED_EVENTS_PER_INTERVAL = 50
 
 class RejectionThrottle:
     """At most one "rejected" event per (device, reason) per `interval_s`; the next one carries how many
-    rejections it stands for. And at most MAX_REJECTED_EVENTS_PER_INTERVAL in all per interval: the next
-    event after those says how many it held back (`held_back`)."""
+    rejections it stands for. And at most MAX_REJECTED_EVENTS_PER_INTERVAL in all per interval (one
+    throttle per mirror): the next event after those says how many it held back (`held_back`)."""
 
     def __init__(
         self,
