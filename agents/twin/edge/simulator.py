@@ -34,7 +34,7 @@ from twin.edge.servo_faults import ModelLoads, ServoFault
 from twin.edge.servo_physics import SERVO_MODES, PhysicalServoConfig
 
 __all__ = ["EdgeSimConfig", "EdgeSimReport", "EdgeSimulator", "FaultConfig", "device_ids"]
-from twin.transport.broker import BrokerConfig, connect_hint, new_client_id
+from twin.transport.broker import BrokerConfig, connect_hint, crt_error_text, new_client_id
 from twin.transport.client import build_mqtt5_client
 
 log = logging.getLogger(__name__)
@@ -192,7 +192,7 @@ class _Connection:
 
     def _on_failure(self, data: Any) -> None:
         hint = connect_hint(self._config, data.exception)
-        self.failure = f"{data.exception}{f'. {hint}' if hint else ''}"
+        self.failure = f"{crt_error_text(data.exception)}{f'. {hint}' if hint else ''}"
         log.warning(
             "edge-sim %s could not connect to %s: %s; retrying",
             self.client_id,

@@ -171,6 +171,12 @@ NO_CREDENTIALS_HINT = (
 )
 
 
+def crt_error_text(error: BaseException | None) -> str:
+    """awscrt's error as text to go inside a sentence: its message ends with a full stop, which put
+    "refused.; retrying" and "refused.. Is a broker ..." in the lines around it."""
+    return str(error).rstrip(" .")
+
+
 def connect_hint(config: BrokerConfig, error: BaseException | None) -> str:
     """What to check after a failed connect, when awscrt's error (named, not fixed) says what went wrong;
     "" when there is nothing more to say than the error."""

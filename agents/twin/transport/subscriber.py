@@ -25,6 +25,7 @@ from twin.transport.broker import (
     BrokerConfig,
     connack_hint,
     connect_hint,
+    crt_error_text,
     new_client_id,
 )
 from twin.transport.client import build_mqtt5_client
@@ -362,7 +363,7 @@ class TelemetrySubscriber:
         with self._stats_lock:
             self._stats.connection_failures += 1
             said = f" (CONNACK reason {code}: {refused})" if refused else ""
-            self._stats.last_error = f"connect: {data.exception}{said}"
+            self._stats.last_error = f"connect: {crt_error_text(data.exception)}{said}"
             failures = self._stats.connection_failures
             # Backoff retries run until stop(), every few seconds: an outage of a day would be tens of
             # thousands of lines. The first few are each told, then one a minute, with the count.
@@ -377,7 +378,7 @@ class TelemetrySubscriber:
             self._where(),
             failures,
             "; told once a minute from now on" if streak == FAILURES_TOLD_EACH else "",
-            data.exception,
+            crt_error_text(data.exception),
             f". {hint}" if hint else "",
         )
 
@@ -389,7 +390,7 @@ class TelemetrySubscriber:
             return
         with self._stats_lock:
             self._stats.disconnects += 1
-            self._stats.last_error = f"disconnect: {data.exception}"
+            self._stats.last_error = f"disconnect: {crt_error_text(data.exception)}"
         reason = ""
         if data.disconnect_packet is not None:
             reason = f" (server reason {data.disconnect_packet.reason_code!r})"
@@ -397,7 +398,7 @@ class TelemetrySubscriber:
             "subscriber %s disconnected from %s: %s%s; reconnecting",
             self.client_id,
             self._where(),
-            data.exception,
+            crt_error_text(data.exception),
             reason,
         )
 
