@@ -189,6 +189,36 @@ def test_the_fleet_page_lists_the_arms(console: str, page: Any, browser_errors: 
     assert browser_errors == []
 
 
+def test_a_card_says_alarms_wait_behind_an_acknowledged_worse_one(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """A walk acknowledged an arm's critical alarm while its warning stayed ACTIVE: the card showed only
+    "critical · ACKNOWLEDGED", and the arm read as dealt with. The fleet document is the agent's own, one
+    row made so (its stream served by the test, as the agent would send it)."""
+    doc = json.loads(http_get(console + "/api/fleet")[2])
+    col = {name: i for i, name in enumerate(doc["columns"])}
+    row = next(r for r in doc["rows"] if r[col["device"]] == "arm-001")
+    row[col["alarm_severity"]], row[col["alarm_state"]] = "critical", "ACKNOWLEDGED"
+    row[col["alarm_kind"]], row[col["alarm_joint"]] = "over_temperature_critical", "wrist_flex"
+    row[col["unacknowledged"]] = 1
+    frame = "event: fleet\ndata: " + json.dumps(doc) + "\n\n"
+    page.route(
+        "**/api/stream/fleet",
+        lambda route: route.fulfill(status=200, headers={"Content-Type": "text/event-stream"}, body=frame),
+    )
+    try:
+        page.goto(console + "/")
+        card = page.locator('#fleet-view [data-device="arm-001"]', has_text="+1 unacknowledged")
+        card.wait_for()
+        page.get_by_role("button", name="List").click()
+        page.locator('#fleet-view [data-device="arm-001"]', has_text="+1 unacknowledged").wait_for()
+        page.get_by_role("button", name="Grid").click()
+    finally:
+        page.unroute("**/api/stream/fleet")
+        leave(page)
+    assert browser_errors == []
+
+
 def silent_devices(fleet: dict[str, Any]) -> set[str]:
     """The arms /api/fleet shows as not ONLINE (its rows are lists in its `columns` order)."""
     device, status = fleet["columns"].index("device"), fleet["columns"].index("status")

@@ -66,10 +66,20 @@
     else if (key === "loss") shown.sort((a, b) => (b[c.loss_pct] ?? 0) - (a[c.loss_pct] ?? 0));
   }
 
+  // The worst alarm is the one shown; others may wait for someone while it does not (a critical one
+  // acknowledged, a warning still ACTIVE), and the arm would read as dealt with.
+  const WAITING = new Set(["ACTIVE", "LATCHED"]);
+  function othersWaiting(r) {
+    const c = columns, others = (r[c.unacknowledged] || 0) - (WAITING.has(r[c.alarm_state]) ? 1 : 0);
+    return others > 0 ? [" · ", el("span", { class: "waiting", title: "alarms not acknowledged besides the one shown: the arm's page lists them",
+      text: `+${others} unacknowledged` })] : [];
+  }
+
   function alarmText(r) {
     const c = columns, sev = r[c.alarm_severity];
     if (!sev) return el("span", { class: "muted", text: "no alarm" });
-    return el("span", { class: "sev-" + sev, text: `${sev} ${r[c.alarm_kind]} (${r[c.alarm_joint]}) ${r[c.alarm_state]}` });
+    return el("span", {}, el("span", { class: "sev-" + sev, text: `${sev} ${r[c.alarm_kind]} (${r[c.alarm_joint]}) ${r[c.alarm_state]}` }),
+      ...othersWaiting(r));
   }
 
   // A card has room for the alarm's severity, joint and state on one line and its kind on the next.
@@ -77,7 +87,7 @@
     const c = columns, sev = r[c.alarm_severity];
     if (!sev) return [el("div", { class: "line muted", text: "no alarm" })];
     return [el("div", { class: "line" }, el("span", { class: "sev-" + sev, text: sev }), ` · ${r[c.alarm_joint]} · ${r[c.alarm_state]}`),
-      el("div", { class: "line", text: r[c.alarm_kind] })];
+      el("div", { class: "line" }, r[c.alarm_kind], ...othersWaiting(r))];
   }
 
   // On a card the temperature comes before the servo's name, and a silent arm's "last heard" before both:
