@@ -89,3 +89,24 @@ def test_twin_run_takes_the_region_its_error_names() -> None:
     args = build_parser().parse_args(["run", "--broker", "iot", "--region", "eu-north-1"])
     assert overrides_from_args(args)["broker.region"] == "eu-north-1"
     assert overrides_from_args(build_parser().parse_args(["run"]))["broker.region"] is None
+
+
+def test_an_aws_profile_that_does_not_exist_is_named_with_its_fix(
+    aws_env: None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`AWS_PROFILE=my-profile`, as the docs write it, with no such profile: botocore raises ProfileNotFound
+    wherever a session is made, which `twin instance`, `twin calibration`, `twin edge-sim --broker iot`,
+    `twin replay --broker iot` and `twin run --broker iot` let out as a traceback. Each says it, with the
+    fix."""
+    from twin.ops.instance import AwsSetupError, TwinInstance
+    from twin.transport.broker import BrokerConfigError
+
+    monkeypatch.setenv("AWS_PROFILE", "no-such-profile")
+    monkeypatch.delenv("AWS_DEFAULT_REGION")
+    said = r"\(no-such-profile\).*AWS_PROFILE.*aws configure list-profiles"
+    with pytest.raises(BrokerConfigError, match=said):
+        client._region(BrokerConfig(url="iot"))
+    with pytest.raises(BrokerConfigError, match="could not look up the IoT Core endpoint: .*" + said):
+        client.resolve_iot_endpoint(BrokerConfig(url="iot", region="eu-west-1"))
+    with pytest.raises(AwsSetupError, match=said):
+        TwinInstance(stack_name="So101TwinStack").stack_description()

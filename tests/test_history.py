@@ -1397,6 +1397,21 @@ def _replay_config(uri: str, broker_url: str, *, speed: float = 8.0, **extra: An
     )
 
 
+def test_a_replay_to_iot_core_without_a_region_names_the_fix(
+    tmp_path: Path, aws_env: None, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """What only building the IoT Core client finds out (here: no region anywhere) is said with its fix and
+    exit 1, as `twin edge-sim` says it, not as a traceback."""
+    from twin.cli import main
+
+    monkeypatch.delenv("AWS_DEFAULT_REGION")
+    uri = _history_with(tmp_path, samples(20))
+    window = ["--from", str(T0 - 1), "--to", str(T0 + 60)]
+    code = main(["replay", "--history", uri, "--device", "arm-001", *window, "--broker", "iot"])
+    assert code == 1
+    assert "no AWS region for IoT Core: give --region" in capsys.readouterr().err
+
+
 def test_history_ls_splits_sessions_as_the_console_does(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -18,3 +18,15 @@ def region_or_env(region: str | None = None) -> str | None:
     if region:
         return region
     return os.environ.get("AWS_REGION", "").strip() or None
+
+
+def missing_profile_hint(exc: BaseException) -> str:
+    """What to do about botocore's ProfileNotFound, whose own text names neither AWS_PROFILE nor a fix.
+
+    The twin never passes a profile name to boto3, so the missing profile is always AWS_PROFILE's (a typo, or
+    the docs' `my-profile` typed as it stands); without this, every AWS command stopped with a traceback."""
+    return (
+        f"{exc}: AWS_PROFILE names a profile that is not in the AWS config; set it to one that "
+        "`aws configure list-profiles` lists, create it (`aws configure --profile NAME` or "
+        "`aws configure sso`), or unset AWS_PROFILE"
+    )

@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from twin.core.aws import region_or_env
+from twin.core.aws import missing_profile_hint, region_or_env
 from twin.service.config import DEFAULT_AGENT_URL
 
 if TYPE_CHECKING:
@@ -359,10 +359,13 @@ class TwinInstance:
             NoCredentialsError,
             NoRegionError,
             PartialCredentialsError,
+            ProfileNotFound,
         )
 
         try:
             yield
+        except ProfileNotFound as exc:
+            raise AwsSetupError(missing_profile_hint(exc)) from exc
         except NoRegionError as exc:
             raise AwsSetupError(
                 "no AWS region configured: pass --region (e.g. --region us-east-1), set AWS_REGION, "

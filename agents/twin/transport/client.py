@@ -14,7 +14,7 @@ from typing import TypedDict
 from awscrt import auth, io, mqtt5
 from awsiot import mqtt5_client_builder
 
-from twin.core.aws import region_or_env
+from twin.core.aws import missing_profile_hint, region_or_env
 from twin.transport.broker import NO_CREDENTIALS_HINT, BrokerConfig, BrokerConfigError
 
 
@@ -23,7 +23,7 @@ def resolve_iot_endpoint(config: BrokerConfig) -> str:
     if config.endpoint:
         return config.endpoint
     import boto3  # noqa: PLC0415 - slow to import; only the "iot" path needs it
-    from botocore.exceptions import NoCredentialsError  # noqa: PLC0415 - with boto3
+    from botocore.exceptions import NoCredentialsError, ProfileNotFound  # noqa: PLC0415 - with boto3
 
     try:
         # No region set: AWS_REGION, else boto3's own chain (AWS_DEFAULT_REGION, the profile's config).
@@ -31,6 +31,10 @@ def resolve_iot_endpoint(config: BrokerConfig) -> str:
         response = client.describe_endpoint(endpointType="iot:Data-ATS")
     except NoCredentialsError as exc:
         raise BrokerConfigError(f"could not look up the IoT Core endpoint: {NO_CREDENTIALS_HINT}") from exc
+    except ProfileNotFound as exc:
+        # Not the endpoint fix below: no endpoint helps while the profile itself is missing.
+        hint = missing_profile_hint(exc)
+        raise BrokerConfigError(f"could not look up the IoT Core endpoint: {hint}") from exc
     except Exception as exc:
         raise BrokerConfigError(
             f"could not look up the IoT Core endpoint ({exc}); set [broker] endpoint (twin edge-sim: "
@@ -45,8 +49,12 @@ def _region(config: BrokerConfig) -> str:
     if region:
         return region
     import boto3  # noqa: PLC0415 - see resolve_iot_endpoint
+    from botocore.exceptions import ProfileNotFound  # noqa: PLC0415 - with boto3
 
-    region = boto3.session.Session().region_name
+    try:
+        region = boto3.session.Session().region_name
+    except ProfileNotFound as exc:
+        raise BrokerConfigError(missing_profile_hint(exc)) from exc
     if not region:
         raise BrokerConfigError(
             "no AWS region for IoT Core: give --region (in an agent config, [broker] region), or set "

@@ -85,7 +85,9 @@ def run(args: argparse.Namespace) -> int:
     with stop_on_signals() as stop:
         try:
             report = replay(config, stop=stop)
-        except (HistoryReadError, ReplayRefusedError) as exc:
+        # BrokerConfigError here: what only building the client finds out (no region, no such AWS profile),
+        # said as the fix it names, as `twin edge-sim` says it, rather than as a traceback.
+        except (HistoryReadError, ReplayRefusedError, BrokerConfigError) as exc:
             console.err(str(exc))
             return EXIT_FAILED
     if args.json:
