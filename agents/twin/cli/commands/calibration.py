@@ -52,7 +52,8 @@ exit codes: 0 done; 1 store error (or rm, restore: nothing there); 2 bad file or
 store: --store, else the CalibrationUri output of --stack (default $SO101_TWIN_STACK, else stackName in
 the checkout's twin.settings.toml, else So101TwinStack)
 kept: a push over an arm's calibration, and rm, keep the one they replace (<ARM>.json.previous; ls shows
-  it); `twin calibration restore ARM` puts it back, and again swaps back"""
+  it); `twin calibration restore ARM` puts it back, and again swaps back (a restore of what rm removed
+  keeps nothing to swap back: rm again undoes it)"""
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
