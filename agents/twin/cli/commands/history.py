@@ -75,7 +75,7 @@ def register(subparsers: Any) -> None:
     add_uri_argument(ex)
     add_window_arguments(ex)
     ex.add_argument("--device", metavar="D", help="only this device (default: all)")
-    ex.add_argument("--format", choices=["parquet", "csv"], default="parquet")
+    ex.add_argument("--format", choices=["parquet", "csv"], default="parquet", help="default parquet")
     ex.add_argument("--out", metavar="FILE", type=Path, help="default history.parquet / history.csv")
     ex.add_argument(
         "--raw-only", action="store_true", help="stored columns only, without the decoded diagnostics"
