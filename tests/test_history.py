@@ -1397,6 +1397,20 @@ def _replay_config(uri: str, broker_url: str, *, speed: float = 8.0, **extra: An
     )
 
 
+def test_history_on_s3_without_aws_credentials_names_the_fix(
+    aws_env: None, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """deltalake's error for a machine with no AWS credentials is the chain of every provider it tried, with
+    no way to give it some; `twin history` adds the ways, as the other AWS commands give them."""
+    from twin.cli import main
+
+    for name in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY"):
+        monkeypatch.delenv(name)
+    assert main(["history", "ls", "--history", "s3://so101-no-such-bucket/history"]) == 1
+    said = capsys.readouterr().err
+    assert "no AWS credentials found: run `aws configure`" in said, said
+
+
 def test_a_replay_to_iot_core_without_a_region_names_the_fix(
     tmp_path: Path, aws_env: None, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:

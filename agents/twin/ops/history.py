@@ -167,6 +167,19 @@ def iso_utc(value: dt.datetime) -> str:
     return value.astimezone(dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
+def _unreadable(location: str, exc: Exception) -> str:
+    """Why a table could not be opened; for missing AWS credentials, also how to give this machine some."""
+    text = str(exc)
+    if "no credentials found" in text.lower():
+        # deltalake's own text is the chain of every provider it tried, twenty lines that name no fix.
+        return (
+            f"cannot read history at {location}: no AWS credentials found: run `aws configure` or "
+            "`aws sso login`, set AWS_PROFILE, or export AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY "
+            f"(deltalake: {text})"
+        )
+    return f"cannot read history at {location}: {text}"
+
+
 class HistoryReader:
     """Reads the history tables under one base URI (a directory or s3://bucket/prefix)."""
 
@@ -188,7 +201,7 @@ class HistoryReader:
                 "[history] uri, and that the agent ran with history on)"
             ) from exc
         except Exception as exc:
-            raise HistoryReadError(f"cannot read history at {location}: {exc}") from exc
+            raise HistoryReadError(_unreadable(location, exc)) from exc
         del dtable
         return pl.scan_delta(location, storage_options=self._polars_options() or None)
 
