@@ -23,7 +23,8 @@ from twin.service.config import ConfigError, load_config
 from stacks.settings import SettingsError, TwinSettings
 
 # (device id, the agent accepts it, a deployment may list it). Hand-written from the rules: a topic level of
-# 1..128 printable characters without '/', '+', '#' or surrounding spaces; deployable ids are also IAM-safe.
+# 1..128 printable characters without '/', '+', '#' or surrounding spaces, not '.' or '..'; deployable ids are
+# also IAM-safe.
 DEVICE_IDS = [
     ("arm-001", True, True),
     ("ARM_7", True, True),
@@ -44,6 +45,10 @@ DEVICE_IDS = [
     ("arm-001 ", False, False),
     ("arm\x00", False, False),
     ("arm\n1", False, False),
+    # A path step to a browser: the arm's console page (/arm/..) could never be opened.
+    (".", False, False),
+    ("..", False, False),
+    ("...", True, False),
 ]
 
 # (prefix, usable): plain levels of letters, digits, '.', '_', '-' joined by '/'.

@@ -35,7 +35,7 @@ _PREFIX_LEVEL_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
 
 DEVICE_ID_RULE = (
     f"1..{DEVICE_ID_MAX_CHARS} printable characters without '/', '+', '#' (MQTT topic separators and "
-    "wildcards) or surrounding spaces, e.g. 'arm-001'"
+    "wildcards) or surrounding spaces, and not '.' or '..', e.g. 'arm-001'"
 )
 POLICY_DEVICE_ID_RULE = (
     f"1..{POLICY_DEVICE_ID_MAX_CHARS} letters, digits, '-' or '_' (it is a topic level and part of an IAM "
@@ -66,6 +66,9 @@ def device_id_problem(device_id: object) -> str | None:
         return "it holds unprintable characters"
     if device_id[0].isspace() or device_id[-1].isspace():
         return "it starts or ends with a space"
+    if device_id in {".", ".."}:
+        # A browser reads it as a path step: the arm's console page, /arm/.., would be the Fleet page.
+        return "'.' and '..' are path steps to a browser (its console page could not be opened)"
     return None
 
 

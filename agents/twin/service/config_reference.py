@@ -91,7 +91,8 @@ KEY_DOCS: dict[str, str] = {
         'The devices to mirror: only their topics are subscribed. `["*"]` (the default) = every '
         "device under the prefix (`dt/lerobot/+/telemetry`, or the shared subscription under a "
         "budget), one twin each. A device id is 1 to 128 printable characters without `/`, `+`, `#` "
-        "or surrounding spaces, each listed once. Flag `--devices`."
+        "or surrounding spaces, not `.` or `..` (a browser's path steps), each listed once. Flag "
+        "`--devices`."
     ),
     "telemetry.units": (
         "What `position` means: `ticks` (raw servo), `degrees` or `range100` (LeRobot-normalised), or"
