@@ -155,6 +155,25 @@ def publisher(rig: LocalRig) -> Iterator[Publisher]:
     pub.close()
 
 
+@contextmanager
+def full_disk(directory: Path) -> Iterator[Path]:
+    """A real full filesystem at `directory`: a 1 MiB tmpfs mounted there and filled (the tests run as root,
+    as `make setup` does); unmounted afterwards whatever happens."""
+    directory.mkdir()
+    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(directory)], check=True)
+    try:
+        try:
+            with (directory / "filler").open("wb") as fh:
+                while True:
+                    fh.write(b"\0" * 4096)
+                    fh.flush()
+        except OSError:
+            pass  # full
+        yield directory
+    finally:
+        subprocess.run(["umount", "-l", str(directory)], check=False)
+
+
 def wait_for(predicate: Callable[[], Any], timeout: float, what: str, interval: float = 0.02) -> Any:
     """Poll until `predicate()` is truthy and return that value; AssertionError naming `what` on timeout
     (the rig's own wait, failing the test rather than the rig)."""

@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-import contextlib
 import itertools
 import logging
 import math
-import subprocess
 from pathlib import Path
 
 import mujoco
 import numpy as np
 import pytest
+from conftest import full_disk
 from pxr import Gf, Sdf, Usd, UsdGeom
 from twin.core.twin import DeviceTwin
 from twin.output.recorder import SessionRecorder, default_asset_path, sanitise_prim_name
@@ -199,20 +198,11 @@ def test_a_save_the_disk_has_no_room_for_is_not_made_so_the_file_stays_whole(
 def test_a_session_that_cannot_be_saved_at_its_start_leaves_no_empty_file(tmp_path: Path) -> None:
     """On a full disk each attempt to begin a session left a 0-byte file behind (24 a minute in a walk).
     A real full filesystem: a 1 MiB tmpfs, filled (the tests run as root, as `make setup` does)."""
-    disk = tmp_path / "disk"
-    disk.mkdir()
-    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(disk)], check=True)
-    try:
-        with contextlib.suppress(OSError), (disk / "filler").open("wb") as fh:
-            while True:
-                fh.write(b"\0" * 4096)
-                fh.flush()
+    with full_disk(tmp_path / "disk") as disk:
         for n in range(3):
             with pytest.raises(OSError, match="could not be saved; check disk space"):
                 SessionRecorder(disk / f"session-{n}.usdc")
         assert sorted(p.name for p in disk.iterdir()) == ["filler"]
-    finally:
-        subprocess.run(["umount", "-l", str(disk)], check=False)
 
 
 def test_at_most_time_codes_per_second_per_device(tmp_path: Path, mj) -> None:

@@ -3,15 +3,13 @@ survives a failing worker, and delivers everything queued on close; RobotModel.b
 
 from __future__ import annotations
 
-import contextlib
-import subprocess
 import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import fed_agent, metric, parse_metrics, wait_for
+from conftest import fed_agent, full_disk, metric, parse_metrics, wait_for
 from twin.core import heap
 from twin.core.telemetry import Telemetry, Units
 from twin.core.twin import DeviceTwin
@@ -242,20 +240,13 @@ def test_an_agent_recording_onto_a_full_disk_still_starts_and_mirrors(tmp_path: 
     not be started again (a walk's arms stayed OFFLINE, `worker 1 is not running`, until the disk had room):
     a recording stopped the mirroring. The recording starts set aside instead, its samples counted as the
     output's drops. A real full filesystem: a 1 MiB tmpfs, filled (the tests run as root)."""
-    disk = tmp_path / "disk"
-    disk.mkdir()
-    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(disk)], check=True)
-    try:
-        with contextlib.suppress(OSError), (disk / "filler").open("wb") as fh:
-            while True:
-                fh.write(b"\0" * 4096)
-                fh.flush()
-        with fed_agent(12, **{"twin.record_dir": str(disk / "usd")}) as service:
-            assert service.state().devices["arm-001"].health.counters.applied == 12
-            usd = next(s for s in service.state().agent.sinks if s.name == "usd")
-            assert usd.dropped == 12 and usd.delivered == 12
-    finally:
-        subprocess.run(["umount", "-l", str(disk)], check=False)
+    with (
+        full_disk(tmp_path / "disk") as disk,
+        fed_agent(12, **{"twin.record_dir": str(disk / "usd")}) as service,
+    ):
+        assert service.state().devices["arm-001"].health.counters.applied == 12
+        usd = next(s for s in service.state().agent.sinks if s.name == "usd")
+        assert usd.dropped == 12 and usd.delivered == 12
 
 
 def test_the_agent_hands_every_sample_to_every_sink_and_reports_them(tmp_path: Path) -> None:
