@@ -1059,20 +1059,25 @@ def test_a_sessions_other_files_are_made_from_history(console: str, tmp_path: Pa
     assert http_get(base + "exe")[0] == 404
 
 
+def quick_offline_agent(rig: LocalRig, client_id_prefix: str) -> Any:
+    """An agent of its own, quick to call an arm OFFLINE (1.5 s), so the module's arms stay as they are."""
+    return rig.start_agent(
+        {
+            "http.listen": "127.0.0.1:0",  # read back: a port picked free, then bound, could be taken
+            "broker.client_id_prefix": client_id_prefix,
+            "telemetry.units": "ticks",
+            "health.offline_after_s": 1.5,
+        }
+    )
+
+
 def test_an_offline_arm_is_forgotten_from_its_page(
     rig: LocalRig, page: Any, browser_errors: list[str]
 ) -> None:
     """An arm that went OFFLINE shows "Forget this arm"; the confirmation says what goes, a refusal shows in
     the agent's words, and once forgotten the page says so and links to the Fleet page. An agent of its own,
     quick to call an arm OFFLINE, so the module's arms stay as they are."""
-    agent = rig.start_agent(
-        {
-            "http.listen": "127.0.0.1:0",  # read back below: a port picked free then bound could be taken
-            "broker.client_id_prefix": "forget-",
-            "telemetry.units": "ticks",
-            "health.offline_after_s": 1.5,
-        }
-    )
+    agent = quick_offline_agent(rig, "forget-")
     url = agent.http_url
     edge = rig.start_edge(["arm-retired"], variant="ticks", rate_hz=10.0, seconds=2.0, seed=11)
     # Its edge done first: one held back 1.5 s by a loaded machine would make the arm OFFLINE, then ONLINE.
@@ -1144,14 +1149,7 @@ def test_an_arm_forgotten_elsewhere_leaves_nothing_to_act_on_its_open_page(
     """An arm's page left open while a script (or another page) forgets the arm: the page said "not known to
     this agent" but kept the arm's alarms with their Acknowledge buttons (the agent answers 404 for them now),
     "Forget this arm" and its loss figures. Nothing of the arm may stay there to act on or to read."""
-    agent = rig.start_agent(
-        {
-            "http.listen": "127.0.0.1:0",  # read back below: a port picked free then bound could be taken
-            "broker.client_id_prefix": "forget-elsewhere-",
-            "telemetry.units": "ticks",
-            "health.offline_after_s": 1.5,
-        }
-    )
+    agent = quick_offline_agent(rig, "forget-elsewhere-")
     url = agent.http_url
     # A stall from 0.5 s on: its over-current alarm is raised about a second later, and still ACTIVE when the
     # edge stops at 3 s (a silent servo holds its alarm).
