@@ -107,8 +107,8 @@ class EventJournal:
         if bad:
             self.unreadable += bad
             log.warning(
-                "the event journal %s has %d line(s) that are not events (a write cut short by a kill, or "
-                "the file edited by hand); they are skipped, the rest is read",
+                "the event journal %s has %d line(s) that are not events (a write cut short by a kill or a "
+                "full disk, or the file edited by hand); they are skipped, the rest is read",
                 self.path,
                 bad,
                 extra={"path": str(self.path), "unreadable": bad},
