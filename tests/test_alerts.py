@@ -13,7 +13,8 @@ import boto3
 import pytest
 from conftest import AWS_TEST_REGION, NO_BROKER, wait_for
 from moto import mock_aws
-from twin.output.alerts import MAX_FLUSH_S, SUBJECT_MAX, Alert, AlertPublisher
+from twin.core.alarms import AlarmKind
+from twin.output.alerts import MAX_FLUSH_S, SUBJECT_MAX, WHAT_TO_DO, Alert, AlertPublisher
 from twin.robot import so101
 from twin.service.agent import AgentService
 from twin.service.config import ConfigError, load_config
@@ -85,6 +86,28 @@ def test_a_servo_error_says_its_bits_and_no_threshold() -> None:
         assert p.flush() is True
         assert "; value status bits 33 (voltage, overload)\n" in sent[-1][1], sent[-1][1]
         assert "threshold" not in sent[-1][1]
+
+
+def test_a_raised_alarm_says_what_to_do_at_the_arm_and_a_cleared_one_does_not() -> None:
+    """A walk: the e-mail named the arm and the servo, and how to acknowledge, but not what to do about an
+    over-current at 3 a.m.; that was only in docs/servo-health.md."""
+    assert set(WHAT_TO_DO) == set(AlarmKind)
+    sent: list[tuple[str, str]] = []
+    p = publisher(sent, Clock())
+    p.offer(alert(kind="over_current", joint="gripper", value=2.9, threshold=1.3, unit="A"))
+    assert p.flush() is True
+    body = sent[-1][1]
+    assert "arm arm-003, gripper servo (motor id 6), over_current" in body
+    assert "\n  What to do: stop the motion; check for a collision or a trapped cable." in body, body
+    for action in ("cleared", "acknowledged"):
+        p.offer(alert(action, kind="over_current", joint="gripper", value=1.0, threshold=1.06, unit="A"))
+        assert p.flush() is True
+        assert "What to do" not in sent[-1][1], sent[-1][1]
+    # Raised and cleared between two messages: LATCHED, but the servo went through it.
+    p.offer(alert("raised"))
+    p.offer(alert("cleared"))
+    assert p.flush() is True
+    assert "now LATCHED" in sent[-1][1] and "What to do: stop the task now" in sent[-1][1], sent[-1][1]
 
 
 def test_a_flapping_servo_makes_one_message_per_flush_not_one_per_change() -> None:
