@@ -184,6 +184,24 @@ def test_subjects_keep_to_snss_rules() -> None:
     assert len(subject) <= SUBJECT_MAX and subject.isascii() and "\n" not in subject
 
 
+def test_a_long_device_id_is_shortened_so_the_subject_still_names_the_servo() -> None:
+    """A walk: a valid 64-character device id (and a 24-character one with a second alarm) cut the subject
+    at 100 characters before the servo ("... aaaa elbow_...") or the count of other alarms."""
+    for device, more in (("lab2-" + "x" * 51 + "-left-07", 0), ("so101-follower-lab2-left", 1)):
+        sent: list[tuple[str, str]] = []
+        p = publisher(sent, Clock())
+        p.offer(alert(device=device))
+        if more:
+            p.offer(alert(device=device, joint="gripper"))
+        p.flush()
+        subject = sent[0][0]
+        assert len(subject) <= SUBJECT_MAX, subject
+        tail = " elbow_flex over_temperature_critical raised" + (" (+1 more)" if more else "")
+        assert subject.endswith(tail), subject
+        assert subject.startswith("[LabTwin] CRITICAL " + device[:5]), subject
+        assert "-left" in subject, subject  # the id's end, where a fleet's ids differ
+
+
 def test_a_transition_goes_out_on_the_next_flush_which_comes_within_10_s() -> None:
     """The 10 s is a design property: the agent collects events every 0.5 s and the publisher flushes every
     flush_s, which may not exceed 9.5 s; the config refuses more."""

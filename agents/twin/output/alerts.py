@@ -255,9 +255,10 @@ class AlertPublisher:
         first = entries[0].latest if entries else None
         if first is not None:
             more = len(entries) - 1 + overflow
-            subject = (
-                f"[{self.agent_name}] {first.severity.upper()} {first.device} {first.joint} {first.kind} "
-                f"{first.action}" + (f" (+{more} more)" if more else "")
+            subject = _fit_device(
+                f"[{self.agent_name}] {first.severity.upper()} ",
+                first.device,
+                f" {first.joint} {first.kind} {first.action}" + (f" (+{more} more)" if more else ""),
             )
         else:
             subject = f"[{self.agent_name}] {overflow} servo alarm(s) changed"
@@ -300,6 +301,21 @@ class AlertPublisher:
             self.flush()
         except Exception:
             log.exception("alarm notification flush failed")
+
+
+# The fewest characters of a device id a shortened subject keeps: its first and last few, where ids of one
+# fleet differ (arm-001, arm-002).
+_DEVICE_MIN = 12
+
+
+def _fit_device(head: str, device: str, tail: str) -> str:
+    """head + device + tail, the device id shortened in its middle when the whole would pass SNS's 100
+    characters: cut at the end, a long (valid, up to 64 characters) id pushed the servo out of the subject."""
+    room = SUBJECT_MAX - len(head) - len(tail)
+    if len(device) <= room or room < _DEVICE_MIN:
+        return head + device + tail  # fits, or too little room to help: `_subject` cuts the end
+    keep = room - 3
+    return head + device[: keep - keep // 2] + "..." + device[len(device) - keep // 2 :] + tail
 
 
 def _subject(text: str) -> str:
