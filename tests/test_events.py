@@ -769,6 +769,22 @@ def test_an_event_stored_between_the_hubs_reads_reaches_the_first_page(arrives_a
     assert asyncio.run(sent()) == ["arm-001 is ONLINE"]
 
 
+def test_an_arm_whose_id_two_edges_share_is_not_sent_to_look_at_its_network() -> None:
+    """A walk: two edge simulators as arm-003 (none lost) made "arm-003 is losing 75 % of its messages ...:
+    its edge's network, or its broker connection" beside the two-edges warning; the loss estimate reads the
+    two interleaved timestamp grids as one finer one with holes. The loss warning now names the shared id."""
+    s, _ = store()
+    watch = events.FleetWatch(s, expected_rate_hz=10.0)
+    for at in (0.0, max(events.CROWDED_HOLD_S, LOSING_HOLD_S)):  # as the mirror: rates, then losses
+        watch.rates({"arm-003": 20.0, "arm-004": 10.0}, at)
+        watch.losses({"arm-003": (100, 300), "arm-004": (60, 30)}, at)
+    found = {(e.device, e.data.get("rate") or e.data.get("loss")): e.message for e in s.query(EventQuery())}
+    assert set(found) == {("arm-003", "crowded"), ("arm-003", "losing"), ("arm-004", "losing")}, found
+    assert "give each arm its own deviceId" in found["arm-003", "losing"], found
+    assert "its edge's network" not in found["arm-003", "losing"]
+    assert "its edge's network" in found["arm-004", "losing"]
+
+
 def test_the_loss_watch_waits_out_a_burst_and_a_few_lost_samples_and_forgets_an_arm() -> None:
     s, _ = store()
     watch = LossWatch(s)

@@ -31,7 +31,7 @@ import threading
 import time
 from bisect import bisect_right
 from collections import deque
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from enum import IntEnum, StrEnum
 from operator import attrgetter
@@ -570,8 +570,9 @@ class LossWatch:
         self._over_since.pop(device, None)
         self._reported.discard(device)
 
-    def sweep(self, recent: Mapping[str, tuple[int, int]], now: float) -> None:
-        """`recent`: each arm heard from -> (received, lost) over its recent window; `now` monotonic."""
+    def sweep(self, recent: Mapping[str, tuple[int, int]], now: float, crowded: Collection[str] = ()) -> None:
+        """`recent`: each arm heard from -> (received, lost) over its recent window; `now` monotonic;
+        `crowded`: the devices RateWatch reports far above their rate (their "loss" is named for that)."""
         for device in [d for d in self._over_since if d not in recent]:
             del self._over_since[device]
         self._reported.intersection_update(recent)  # evicted or restarted elsewhere: nothing to clear
@@ -589,10 +590,20 @@ class LossWatch:
             if now - since >= LOSING_HOLD_S:
                 del self._over_since[device]
                 self._reported.add(device)
-                self._say(device, ratio, lost, losing=True)
+                self._say(device, ratio, lost, losing=True, crowded=device in crowded)
 
-    def _say(self, device: str, ratio: float, lost: int, *, losing: bool) -> None:
-        if losing:
+    def _say(self, device: str, ratio: float, lost: int, *, losing: bool, crowded: bool = False) -> None:
+        if losing and crowded:
+            # Two edges under one id interleave two timestamp grids: the loss estimate reads the finer
+            # step between them as the period and counts its empty slots as lost, though nothing was.
+            level, log_level = EventLevel.WARNING, logging.WARNING
+            message = (
+                f"{device} seems to lose {ratio:.0%} of its messages ({lost} in its last seconds), for "
+                f"{LOSING_HOLD_S:.0f} s, while it sends far more than its expected rate: two edges "
+                "publishing under its device id look like this, each with its own timestamps; give each arm "
+                "its own deviceId (docs/getting-started.md, part 3) before looking at the network"
+            )
+        elif losing:
             level, log_level = EventLevel.WARNING, logging.WARNING
             message = (
                 f"{device} is losing {ratio:.0%} of its messages ({lost} in its last seconds), for "
@@ -720,7 +731,7 @@ class FleetWatch:
 
     def losses(self, recent: Mapping[str, tuple[int, int]], now: float) -> None:
         """Read with the rates (`rates_due`): each arm's (received, lost) over its recent window."""
-        self._losses.sweep(recent, now)
+        self._losses.sweep(recent, now, self._rates.reported)
 
     @property
     def losing(self) -> tuple[str, ...]:
