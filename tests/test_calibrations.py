@@ -482,6 +482,25 @@ def test_a_file_named_for_another_arm_is_stored_with_a_warning(
     assert "nothing written" in out and "warning" not in err, err
 
 
+def test_the_calibration_another_arm_has_is_stored_with_a_warning(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A walk: arm-001's file pushed as arm-002 too (a copy, under a name of no arm) was stored without a
+    word, and arm-002's twin then took arm-001's angles."""
+    store = ["--store", str(tmp_path / "cal")]
+    first, other = tmp_path / "follower.json", tmp_path / "other.json"
+    first.write_bytes(EXAMPLE.read_bytes())
+    other.write_bytes(shifted(40))
+    assert main(["calibration", "push", "arm-001", str(first), *store]) == cmd.EXIT_OK
+    assert main(["calibration", "push", "arm-003", str(other), *store]) == cmd.EXIT_OK
+    assert "warning" not in capsys.readouterr().err
+    assert main(["calibration", "push", "arm-002", str(first), *store]) == cmd.EXIT_OK
+    err = capsys.readouterr().err
+    assert "follower.json is the calibration arm-001 already has in" in err, err
+    assert "push arm-002's own file" in err and "`twin calibration rm arm-002 --store" in err, err
+    assert DirectoryStore(tmp_path / "cal").read("arm-002") == EXAMPLE.read_bytes()  # stored, as asked
+
+
 def test_without_aws_push_names_the_store_of_an_agent_on_this_machine(
     aws_env: None, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:

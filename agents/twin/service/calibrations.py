@@ -69,7 +69,8 @@ class CalibrationStore(Protocol):
     def uri(self) -> str: ...
 
     def listing(self) -> dict[str, str]:
-        """Device id -> a version that changes whenever its file does (ETag, or mtime and size)."""
+        """Device id -> a version that changes whenever its file does (ETag, or mtime), ending in
+        `:<size in bytes>` (`twin calibration push` reads only same-sized files when it looks for copies)."""
         ...
 
     def read(self, device: str) -> bytes: ...

@@ -10,7 +10,8 @@ names: s3://bucket/prefix, or a directory for an agent on this machine ([telemet
 
 A push over another calibration, and `rm`, keep the one they replace beside it (`<ARM>.json.previous`, one
 per arm; the stack's bucket keeps no versions), and `restore ARM` swaps it back in. A file named for another
-arm that has a calibration of its own in the store is stored as asked, with a warning.
+arm that has a calibration of its own in the store, or the very calibration another arm has there, is stored
+as asked, with a warning.
 
 Exit codes:
   0  done
@@ -261,6 +262,15 @@ def _push(store: CalibrationStore, arm: str, file: Path, data: bytes, again: str
             f"warning: {file.name} is named for {named_for}, which has a calibration of its own in "
             f"{store.uri}; it is stored as {arm}'s, as asked ({_undo(store, arm, current, again)})"
         )
+    same = _same_calibration(store, arm, data, listing)
+    if same:
+        # No two arms share a calibration (LeRobot measures each arm's ranges by hand): a copy is a slip.
+        console.err(
+            f"warning: {file.name} is the calibration {', '.join(same)} already has in {store.uri}; each "
+            f"arm has its own, and another arm's puts its twin in a wrong pose. It is stored as {arm}'s, as "
+            f"asked; push {arm}'s own file (lerobot-calibrate on its computer) "
+            f"({_undo(store, arm, current, again)})"
+        )
     # The one it replaces is kept first: if that fails, nothing has changed.
     kept = None if current is None else store.write_kept(arm, current)
     where = store.write(arm, data)
@@ -268,6 +278,13 @@ def _push(store: CalibrationStore, arm: str, file: Path, data: bytes, again: str
     if kept is not None:
         console.out(f"{arm}: the one it replaced is kept at {kept} (`twin calibration restore {arm}{again}`)")
     return EXIT_OK
+
+
+def _same_calibration(store: CalibrationStore, arm: str, data: bytes, listing: dict[str, str]) -> list[str]:
+    """The other arms whose calibration in the store is `data`, byte for byte. Only files of its size are
+    read (every store's version ends in `:<size>`), so a push over a fleet's store reads few."""
+    size = f":{len(data)}"
+    return sorted(d for d, v in listing.items() if d != arm and v.endswith(size) and store.read(d) == data)
 
 
 def _undo(store: CalibrationStore, arm: str, current: bytes | None, again: str) -> str:
