@@ -608,9 +608,14 @@ def test_an_arm_whose_file_is_bad_at_the_start_is_held_until_a_good_one_comes(
         arm = agent.state().devices["arm-002"]
         assert arm.joints_rad is None, arm.joints_rad  # never moved, to no pose at all
         assert arm.uncalibrated and "shoulder_pan" in arm.calibration_problem, arm.calibration_problem
+        # The Fleet page names it (no card would, with the whole fleet subscribed); /healthz does not.
+        (held_notice,) = [n for n in agent.notices() if n.startswith("arm-002's calibration")]
+        assert "twin calibration push arm-002 FILE" in held_notice, held_notice
+        assert not [r for r in agent.healthz().reasons if "calibration" in r]
         # A good file, and the arm is mirrored with it, no restart.
         store.write("arm-002", shifted(100))
         feed_until(agent, "arm-002", pan_angle(shifted(100)), ts)
+        assert not [n for n in agent.notices() if "calibration" in n]
     finally:
         agent.stop()
 

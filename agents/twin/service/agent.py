@@ -143,6 +143,8 @@ FAILED_START_STOP_S = 10.0
 # feed() remembers where each topic goes (its shard and mailbox key) for this many topics at most; beyond
 # that (junk on invented topics) it starts over, so memory stays bounded.
 MAX_ROUTES = 16_384
+# The arms held by a refused calibration the Fleet page names one by one; the rest as a count.
+MAX_HELD_NOTICES = 5
 
 
 def _check_workers(config: AgentConfig, workers: int, sinks: Sequence[TwinSink]) -> None:
@@ -843,9 +845,30 @@ class AgentService:
         return total
 
     def notices(self) -> list[str]:
-        """What the console's fleet page shows above the arms, and /healthz among its reasons: each topic
-        filter the broker refuses (the arms it covers are never heard, so no card can say it), and the
-        broker's quota discarding messages the connection pool cannot take on."""
+        """What the console's fleet page shows above the arms: the broker's (`broker_notices`), then each arm
+        held by a refused calibration file, whose messages are all refused, so that no card shows it."""
+        return [*self.broker_notices(), *self._held_notices()]
+
+    def _held_notices(self) -> list[str]:
+        # An arm with no calibration to keep (its file was bad at the start) is held: with the whole fleet
+        # subscribed it is never admitted, so only the log and the Events page named it.
+        problems = self._calibration_request.problems
+        kept = {device for device, _, _ in self._calibration_request.files}
+        held = [(device, problem) for device, problem in problems if device not in kept]
+        lines = [
+            f"{device}'s calibration in the store is refused ({problem}), so its messages are refused and "
+            f"its twin does not move: push a valid one (twin calibration push {device} FILE)"
+            for device, problem in held[:MAX_HELD_NOTICES]
+        ]
+        if len(held) > MAX_HELD_NOTICES:
+            more = len(held) - MAX_HELD_NOTICES
+            lines.append(f"and {more} more arm(s) held the same way (the Events page names them)")
+        return lines
+
+    def broker_notices(self) -> list[str]:
+        """/healthz's reasons from the broker: each topic filter it refuses (the arms it covers are never
+        heard, so no card can say it), and its quota discarding messages the connection pool cannot take
+        on. An arm held by its calibration is not among them: arms come and go without /healthz."""
         if not self._started_pool:
             return []
         refused = [
@@ -883,7 +906,7 @@ class AgentService:
         if not connected:
             reasons.append("broker connection down")
         else:
-            reasons.extend(self.notices())
+            reasons.extend(self.broker_notices())
         # A worker process that did not answer is not running (dead, or being started again), as in /state.
         reasons.extend(
             f"worker {shard.index} is not running"
