@@ -25,7 +25,7 @@ from typing import Any
 
 import psutil
 import pytest
-from conftest import Publisher, get_state, http_get, wait_for
+from conftest import Publisher, fill, get_state, http_get, wait_for
 from test_servo_alarms_e2e import alarms, by_key, post
 from twin.edge.payload import encode, make_payload
 from twin.edge.servo_faults import ServoFault
@@ -296,13 +296,7 @@ def test_stop_keeps_its_budget_and_reports_what_it_could_not_write(
         )
         rig.start_edge(FLEET, variant="ticks", rate_hz=10.0, seed=3)
         wait_for(lambda: (agent.state().agent.history.commits or 0) >= 2, 30, "history committing")
-        try:
-            with (disk / "filler").open("wb") as fh:
-                while True:
-                    fh.write(b"\0" * 65536)
-                    fh.flush()
-        except OSError:
-            pass  # full
+        fill(disk)
         wait_for(
             lambda: (
                 agent.state().agent.history.commit_failures > 0 and agent.state().agent.history.rows_buffered
