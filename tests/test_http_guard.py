@@ -242,6 +242,12 @@ def test_one_connection_too_many_gets_503(agent: AgentService) -> None:
         ("localhost.evil.example", "localhost.evil.example", False),
         ("10.0.0.5:8080", "10.0.0.5", False),
         ("example.com", "example.com", False),
+        # A walk: what follows the colon was dropped whatever it was, so these read as 127.0.0.1. Only a port
+        # is a port; anything else is part of the name, which no rule allows.
+        ("127.0.0.1:8080@evil.example", "127.0.0.1:8080@evil.example", False),
+        ("127.0.0.1:8080,evil.example", "127.0.0.1:8080,evil.example", False),
+        ("[::1]:8080@evil.example", "[::1]:8080@evil.example", False),
+        ("127.0.0.1:", "127.0.0.1:", False),
     ],
 )
 def test_host_names(header: str, name: str, allowed: bool) -> None:

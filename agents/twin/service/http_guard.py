@@ -49,12 +49,18 @@ def is_loopback_client(address: str) -> bool:
 
 
 def host_name(host_header: str) -> str:
-    """The name part of a Host header value (`[::1]:8080` -> `::1`, `Example.com.:80` -> `example.com`)."""
+    """The name part of a Host header value (`[::1]:8080` -> `::1`, `Example.com.:80` -> `example.com`). A
+    port must be digits: otherwise (`127.0.0.1:80@evil.example`) the whole value is the name, which no rule
+    allows, rather than the part before the colon."""
     value = host_header.strip().lower()
     if value.startswith("["):
-        return value[1:].split("]", 1)[0]
+        address, _, port = value[1:].partition("]")
+        return address if port == "" or (port[:1] == ":" and port[1:].isdigit()) else value
     if value.count(":") == 1:
-        value = value.split(":", 1)[0]
+        name, _, port = value.partition(":")
+        if not port.isdigit():
+            return value
+        value = name
     return value.rstrip(".")
 
 
