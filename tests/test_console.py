@@ -569,6 +569,10 @@ def test_an_alarms_row_and_its_button_stay_put_while_its_value_changes(
     page.goto(console + "/arm/arm-003")
     row = f'#alarms tr[data-alarm="{alarm["alarm_id"]}"]'
     page.locator(row + " button").wait_for()
+    # What to do at the arm, under the message: the page may be all the operator has open.
+    advice = page.locator(row + " td.msg .advice").inner_text()
+    assert advice.startswith("What to do: "), advice
+    assert alarm["advice"] and alarm["advice"] in advice
     before = page.locator(row + " td").nth(3).inner_text()
     page.evaluate(f"document.querySelector('{row} button').dataset.kept = 'yes'")
     page.wait_for_function(

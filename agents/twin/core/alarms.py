@@ -84,6 +84,36 @@ SEVERITY: dict[AlarmKind, Severity] = {
     # The servo's own protection acted (it cuts or limits its torque): the arm may no longer hold its pose.
     AlarmKind.SERVO_ERROR: Severity.CRITICAL,
 }
+
+# What a person does at the arm about each kind: docs/servo-health.md's "What to do" table, shortened. An
+# alarm's e-mail (output.alerts) and its row on the console's Arm page carry it: either may be all they see
+# (a phone at night), so neither may send them to a page before they can act.
+WHAT_TO_DO: dict[str, str] = {
+    AlarmKind.OVER_TEMPERATURE: (
+        "lower the arm to a rest pose or let it rest; check the joint moves freely. A servo much hotter than "
+        "its neighbours on similar work is wearing."
+    ),
+    AlarmKind.OVER_TEMPERATURE_CRITICAL: (
+        "stop the task now and park the arm supported: at 70 C the servo cuts its torque and the arm drops. "
+        "Let it cool below 55 C before resuming."
+    ),
+    AlarmKind.OVER_CURRENT: (
+        "stop the motion; check for a collision or a trapped cable. If it recurs in free motion, replace "
+        "the servo."
+    ),
+    AlarmKind.OVERLOAD: (
+        "reduce the payload or bring it closer to the base (after 2 s at this load the servo drops to 20 % "
+        "torque). On the gripper: the jaw squeezes something hard; open it."
+    ),
+    AlarmKind.MODEL_MISMATCH: (
+        "look at the arm: clear anything touching it; a payload it carries is expected (acknowledge). "
+        "Otherwise compare with the joint's history (wear) and check [alarms] servo_version."
+    ),
+    AlarmKind.SERVO_ERROR: (
+        "the arm may not hold its pose: stop the motion and support it, then let the servo rest. Voltage: "
+        "check the supply and its cable; angle: calibrate again; sensor: power-cycle, replace if it recurs."
+    ),
+}
 UNITS: dict[AlarmKind, str] = {
     AlarmKind.OVER_TEMPERATURE: "C",
     AlarmKind.OVER_TEMPERATURE_CRITICAL: "C",

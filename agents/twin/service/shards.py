@@ -54,6 +54,7 @@ from multiprocessing.context import ForkServerContext, ForkServerProcess
 from typing import TYPE_CHECKING, Protocol
 
 from twin.core.alarms import (
+    WHAT_TO_DO,
     AlarmCounters,
     AlarmNotFound,
     AlarmRecord,
@@ -1347,6 +1348,7 @@ def alarm_info(view: AlarmView, now_mono: float, now_wall: float) -> AlarmInfo:
         changed_at=now_wall - (now_mono - view.since),
         raised=view.raised,
         message=view.message,
+        advice=WHAT_TO_DO.get(str(view.kind), ""),
     )
 
 

@@ -103,6 +103,7 @@ class AlarmInfo:
     changed_at: float = 0.0
     raised: int = 0
     message: str = ""
+    advice: str = ""  # what to do at the arm (core.alarms.WHAT_TO_DO)
 
 
 @dataclass(frozen=True)

@@ -272,8 +272,11 @@
       value: el("td", { class: "wrap", "data-label": "value" }),
       since: el("td", { class: "wrap", "data-label": `in this state since (${Twin.zone()})` }),
       message: el("td", { class: "msg" }) };
+    // What to do at the arm, under the message: the page may be all the operator has open.
+    const text = el("span"), advice = el("div", { class: "advice" });
+    cells.message.append(text, advice);
     const row = { tr: el("tr", { "data-alarm": a.alarm_id }, ...Object.values(cells), el("td", {}, button)),
-      cells, button, alarm: a };
+      cells, button, alarm: a, text, advice };
     button.addEventListener("click", () => acknowledge(row.alarm, button));
     return row;
   }
@@ -291,7 +294,8 @@
       ? (a.value == null ? "–" : `status bits ${a.value}`)
       : `${Twin.num(a.value, 1)} ${a.unit} (limit ${a.threshold})`);
     setText(c.since, Twin.time(a.changed_at));
-    setText(c.message, a.message);
+    setText(row.text, a.message);
+    setText(row.advice, a.advice ? `What to do: ${a.advice}` : "");
     row.button.hidden = !(a.state === "ACTIVE" || a.state === "LATCHED");
   }
 
