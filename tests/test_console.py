@@ -195,9 +195,16 @@ def test_a_card_says_alarms_wait_behind_an_acknowledged_worse_one(
     """A walk acknowledged an arm's critical alarm while its warning stayed ACTIVE: the card showed only
     "critical · ACKNOWLEDGED", and the arm read as dealt with. The fleet document is the agent's own, one
     row made so (its stream served by the test, as the agent would send it)."""
-    doc = json.loads(http_get(console + "/api/fleet")[2])
+
+    # The console fixture starts the edge without waiting for it: run before any test that waits on the
+    # arms (a random order, after a test of the rig alone), this test would read a fleet without arm-001.
+    def fleet_with_arm_001() -> tuple[dict[str, Any], list[Any]] | None:
+        doc = json.loads(http_get(console + "/api/fleet")[2])
+        device = doc["columns"].index("device")
+        return next(((doc, r) for r in doc["rows"] if r[device] == "arm-001"), None)
+
+    doc, row = wait_for(fleet_with_arm_001, TIMEOUT_S, "arm-001 listed in /api/fleet")
     col = {name: i for i, name in enumerate(doc["columns"])}
-    row = next(r for r in doc["rows"] if r[col["device"]] == "arm-001")
     row[col["alarm_severity"]], row[col["alarm_state"]] = "critical", "ACKNOWLEDGED"
     row[col["alarm_kind"]], row[col["alarm_joint"]] = "over_temperature_critical", "wrist_flex"
     row[col["unacknowledged"]] = 1
