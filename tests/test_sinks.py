@@ -245,8 +245,15 @@ def test_an_agent_recording_onto_a_full_disk_still_starts_and_mirrors(tmp_path: 
         fed_agent(12, **{"twin.record_dir": str(disk / "usd")}) as service,
     ):
         assert service.state().devices["arm-001"].health.counters.applied == 12
-        usd = next(s for s in service.state().agent.sinks if s.name == "usd")
-        assert usd.dropped == 12 and usd.delivered == 12
+
+        # The sink takes the samples on a thread of its own, after the worker has handled them: its
+        # counts are waited for, as the test below does, not read once.
+        def usd_took_all() -> SinkStats | None:
+            usd = next(s for s in service.state().agent.sinks if s.name == "usd")
+            return usd if usd.delivered == 12 else None
+
+        usd = wait_for(usd_took_all, 30, "the recording sink to take every applied sample")
+        assert usd.dropped == 12
 
 
 def test_the_agent_hands_every_sample_to_every_sink_and_reports_them(tmp_path: Path) -> None:
