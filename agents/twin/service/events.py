@@ -495,12 +495,7 @@ class RateWatch:
                     self._reported.discard(device)
                     self._back(device, rate)
                 continue
-            if rate < CROWDED_RATIO * expected:
-                self._over_since.pop(device, None)
-                continue
-            since = self._over_since.setdefault(device, now)
-            if now - since >= CROWDED_HOLD_S:
-                del self._over_since[device]
+            if _held(self._over_since, device, rate >= CROWDED_RATIO * expected, now, CROWDED_HOLD_S):
                 self._reported.add(device)
                 self._crowded(device, rate)
 
@@ -523,17 +518,10 @@ class RateWatch:
 
     def _say(self, device: str, rate: float, state: str, message: str) -> None:
         """One log line and one event: a warning when `state` is "crowded", info when back to "expected"."""
-        level, log_level = (
-            (EventLevel.WARNING, logging.WARNING) if state == "crowded" else (EventLevel.INFO, logging.INFO)
-        )
-        log.log(
-            log_level,
-            "%s",
-            message,
-            extra={"event": "device_rate", "device": device, "rate_hz": rate, "rate": state},
-        )
+        level = EventLevel.WARNING if state == "crowded" else EventLevel.INFO
         data = {"rate_hz": f"{rate:.2f}", "expected_rate_hz": f"{self._expected:g}", "rate": state}
-        self._store.emit(EventKind.TWIN, level, message, device=device, data=data)
+        extra = {"event": "device_rate", "rate_hz": rate}
+        _tell(self._store, device, level, message, data=data, log_extra=extra)
 
 
 # An arm that loses this share of its messages (core.loss's estimate over its recent window, at least
@@ -583,12 +571,8 @@ class LossWatch:
                     self._reported.discard(device)
                     self._say(device, ratio, lost, losing=False)
                 continue
-            if ratio < LOSING_REPORT_RATIO or lost < LOSING_REPORT_MIN_LOST:
-                self._over_since.pop(device, None)
-                continue
-            since = self._over_since.setdefault(device, now)
-            if now - since >= LOSING_HOLD_S:
-                del self._over_since[device]
+            over = ratio >= LOSING_REPORT_RATIO and lost >= LOSING_REPORT_MIN_LOST
+            if _held(self._over_since, device, over, now, LOSING_HOLD_S):
                 self._reported.add(device)
                 self._say(device, ratio, lost, losing=True, crowded=device in crowded)
 
@@ -596,7 +580,7 @@ class LossWatch:
         if losing and crowded:
             # Two edges under one id interleave two timestamp grids: the loss estimate reads the finer
             # step between them as the period and counts its empty slots as lost, though nothing was.
-            level, log_level = EventLevel.WARNING, logging.WARNING
+            level = EventLevel.WARNING
             message = (
                 f"{device} seems to lose {ratio:.0%} of its messages ({lost} in its last seconds), for "
                 f"{LOSING_HOLD_S:.0f} s, while it sends far more than its expected rate: two edges "
@@ -604,19 +588,17 @@ class LossWatch:
                 "its own deviceId (docs/getting-started.md, part 3) before looking at the network"
             )
         elif losing:
-            level, log_level = EventLevel.WARNING, logging.WARNING
+            level = EventLevel.WARNING
             message = (
                 f"{device} is losing {ratio:.0%} of its messages ({lost} in its last seconds), for "
                 f"{LOSING_HOLD_S:.0f} s: its edge's network, or its broker connection over IoT Core's 100 "
                 'publishes/s (docs/agent.md, "Loss")'
             )
         else:
-            level, log_level = EventLevel.INFO, logging.INFO
+            level = EventLevel.INFO
             message = f"{device} no longer loses messages ({ratio:.0%} now)"
-        state = "losing" if losing else "whole"
-        log.log(log_level, "%s", message, extra={"event": "device_loss", "device": device, "loss": state})
-        data = {"loss_ratio": f"{ratio:.3f}", "recent_lost": lost, "loss": state}
-        self._store.emit(EventKind.TWIN, level, message, device=device, data=data)
+        data = {"loss_ratio": f"{ratio:.3f}", "recent_lost": lost, "loss": "losing" if losing else "whole"}
+        _tell(self._store, device, level, message, data=data, log_extra={"event": "device_loss"})
 
 
 # An edge clock this far from the agent's (the window's least receive-minus-timestamp; transit alone is well
@@ -673,11 +655,37 @@ class ClockWatch:
                 self._say(device, offset, EventLevel.WARNING, _skew_message(device, offset))
 
     def _say(self, device: str, offset: float, level: EventLevel, message: str) -> None:
-        log_level = logging.WARNING if level is EventLevel.WARNING else logging.INFO
-        log.log(log_level, "%s", message, extra={"event": "edge_clock", "device": device, "offset_s": offset})
-        self._store.emit(
-            EventKind.TWIN, level, message, device=device, data={"clock_offset_s": f"{offset:.3f}"}
-        )
+        data = {"clock_offset_s": f"{offset:.3f}"}
+        extra = {"event": "edge_clock", "offset_s": offset}
+        _tell(self._store, device, level, message, data=data, log_extra=extra)
+
+
+def _held(over_since: dict[str, float], device: str, over: bool, now: float, hold_s: float) -> bool:
+    """Whether `device` has been `over` its line in every reading for `hold_s` (then its time starts again):
+    the hold the rate and loss watches put before a report. `over_since` keeps when each began."""
+    if not over:
+        over_since.pop(device, None)
+        return False
+    if now - over_since.setdefault(device, now) < hold_s:
+        return False
+    del over_since[device]
+    return True
+
+
+def _tell(
+    store: EventStore,
+    device: str,
+    level: EventLevel,
+    message: str,
+    *,
+    data: Mapping[str, object],
+    log_extra: Mapping[str, object],
+) -> None:
+    """One log line (a warning or info, as the event) and one `twin` event about `device`: what the rate,
+    loss and clock watches say. The log line's extra has the device, `log_extra` and the event's `data`."""
+    log_level = logging.WARNING if level is EventLevel.WARNING else logging.INFO
+    log.log(log_level, "%s", message, extra={**data, **log_extra, "device": device})
+    store.emit(EventKind.TWIN, level, message, device=device, data=data)
 
 
 def _skew_message(device: str, offset: float) -> str:
