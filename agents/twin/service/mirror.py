@@ -725,8 +725,8 @@ class Mirror:
                 self._step_physics(min(now - last_step, MAX_PHYSICS_STEP_S))
                 last_step = now
             self._publish(count)
-            # A batch's newest receive time is where the worker stands in its input (_watch_statuses).
-            self._watch_statuses(max(batch.recv_mono) if count else None)
+            # Where the worker stands in its input: its newest receive time (_watch_statuses).
+            self._watch_statuses(batch.recv_mono)
             if self._jobs:
                 self._run_jobs()
             if self._capture is not None:
@@ -1446,19 +1446,20 @@ class Mirror:
         """This mirror's events that match `query` (the agent collects them: AgentService.events)."""
         return self._events.query(query)
 
-    def _watch_statuses(self, input_mono: float | None = None) -> None:
+    def _watch_statuses(self, received: Sequence[float] = ()) -> None:
         """On the worker thread: status transitions become events, read at most every FleetWatch.interval_s
         (statuses change by the passing of time, not by a message, so they are read, not told); so does a
         device publishing well above the expected rate (events.RateWatch), read every RATE_INTERVAL_S.
 
-        `input_mono` is the newest receive time of the batch just handled (None after an empty turn). A
-        worker behind its input (starved of CPU, it takes its backlog in pieces) reads the arms' silence at
-        that time, not on the wall clock: the messages of the arms not in this piece are waiting behind it,
-        so none of them is silent. An empty turn means nothing waits, and silence is read on the clock."""
+        `received` are the receive times of the batch just handled (none after an empty turn); the newest,
+        read only when a sweep is due, is where the worker stands in its input. A worker behind its input
+        (starved of CPU, it takes its backlog in pieces) reads the arms' silence at that time, not on the
+        wall clock: the messages of the arms not in this piece are waiting behind it, so none of them is
+        silent. An empty turn means nothing waits, and silence is read on the clock."""
         now = self._clock()
         if not self._watch.due(now):
             return
-        at = now if input_mono is None else min(now, input_mono)
+        at = min(now, max(received)) if received else now
         with self._lock:
             # Of the arms heard from only: their arrivals were told by `_admit`.
             statuses = self._fleet.statuses(at, heard_only=True)
