@@ -77,6 +77,12 @@ LOSS_ALARM_MINUTES = 5
 WORST_ARM_LOSS_PERCENT = "WorstArmLossPercent"
 ARM_LOSS_ALARM_PERCENT = 20
 ARM_LOSS_ALARM_MINUTES = 10
+# The highest internal latency p99 of the arms (emf.INTERNAL_LATENCY_P99), and what pages: a second, five
+# minutes running. The agent reads the arms' statuses where it stands in its input, so a host short of CPU
+# turns no arm STALE: this is the alarm that says the twin runs behind.
+INTERNAL_LATENCY_P99 = "InternalLatencyP99"
+BEHIND_ALARM_MS = 1000
+BEHIND_ALARM_MINUTES = 5
 # The host scripts' own metrics (userdata/lib.sh, emit_host_metrics): the verdict of the checks after each
 # start (host-check.sh), and whether the bucket holds the operator's agent.local.toml (save-local-config.sh)
 # and the agent's servo alarm state (save-alarm-state.sh).
@@ -183,6 +189,7 @@ class TwinMonitoring(Construct):
         self.alarms = {
             "AgentSilent": self._agent_silent_alarm(instance_id),
             "ArmsStale": self._arms_stale_alarm(),
+            "AgentBehind": self._agent_behind_alarm(),
         }
         self._alarms_for_loss()
         self._alarms_for_history()
@@ -252,6 +259,19 @@ class TwinMonitoring(Construct):
             self._metric("DevicesStale", "Maximum"),
             threshold=1,
             minutes=3,
+        )
+
+    def _agent_behind_alarm(self) -> cw.Alarm:
+        """AgentBehind: the twin a second or more behind its arms' messages for 5 minutes."""
+        return self._sustained_alarm(
+            "AgentBehind",
+            f"The agent of {self.agent_name} is at least {BEHIND_ALARM_MS / 1000:g} s behind its arms' "
+            f"messages (InternalLatencyP99), {BEHIND_ALARM_MINUTES} minutes running: its host is short of "
+            "CPU, so every pose is that old (the arms' status is read where the agent stands, so the arms "
+            "stale alarm stays quiet). Give the host fewer arms or more cores. docs/scaling.md",
+            self._metric(INTERNAL_LATENCY_P99, "Maximum"),
+            threshold=BEHIND_ALARM_MS,
+            minutes=BEHIND_ALARM_MINUTES,
         )
 
     def _sustained_alarm(

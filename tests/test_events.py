@@ -24,7 +24,7 @@ from conftest import NO_BROKER, unbrokered_agent, wait_for
 from twin.core.health import DeviceStatus
 from twin.edge.payload import encode, make_payload
 from twin.rig.local import LocalRig
-from twin.service import events
+from twin.service import console, events
 from twin.service.admission import DeviceBudget
 from twin.service.config import load_config
 from twin.service.events import (
@@ -260,6 +260,52 @@ def test_a_worker_behind_its_input_reports_no_arm_stale_and_a_silent_fleet_still
         clock.now = 1001.5  # then nothing: the inbox is empty, the silence real
         wait_for(lambda: len(status_events()) == 2 * len(arms), 60, "every arm STALE")
         assert sorted(status_events()[len(arms) :]) == [(d, "STALE") for d in arms]
+    finally:
+        mirror.stop()
+
+
+def test_a_worker_behind_its_input_shows_its_arms_online_and_says_how_far_behind() -> None:
+    """What a person reads (/state, the Fleet page, /healthz's statuses, the DevicesStale metric) is read
+    where the worker stands in its input too, as the status events are: a worker 2 s behind used to show
+    every arm STALE, and three minutes of that paged ArmsStale with advice about the arms. The lag itself
+    is shown instead (`behind_s`, a Fleet page notice, the AgentBehind alarm on the internal latency)."""
+    arms = [f"arm-{n:03d}" for n in range(5)]
+    # The first round is handled at 1000.0; the second, received at 1000.0, only at 1002.0.
+    clock = _StarvedClock([(0, 1000.0), (2 * len(arms), 1002.0)])
+    config = load_config(
+        None, {"broker.url": NO_BROKER, "telemetry.devices": ["*"], "telemetry.units": "ticks"}
+    )
+    queue: InboundQueue[QueuedMessage] = InboundQueue()
+    mirror = Mirror(config, inbox=QueueInbox(queue), budget=DeviceBudget(100), clock=clock)
+    clock.mirror = mirror
+    rng, sent = random.Random(5), 0
+
+    def put(recv: float, edge_t: float) -> None:
+        nonlocal sent
+        for d in arms:
+            payload = encode(make_payload(d, edge_t, "ticks", rng, timestamp_ms=round((1.7e9 + recv) * 1000)))
+            queue.put(d, (f"dt/lerobot/{d}/telemetry", payload, recv, 1.7e9 + recv))
+        sent += len(arms)
+        wait_for(lambda: mirror.processed >= sent, 60, f"{sent} messages handled")
+
+    mirror.start()
+    try:
+        put(999.9, 0.0)
+        put(1000.0, 0.1)
+        wait_for(lambda: mirror.behind_s == pytest.approx(2.0), 60, "the worker 2 s behind")
+        assert set(mirror.statuses().values()) == {DeviceStatus.ONLINE}
+        rows = mirror.fleet_rows()
+        assert {(r.status, r.behind_s) for r in rows} == {("ONLINE", 2.0)}
+        report = mirror.report()
+        assert {d.health.status for d in report.devices.values()} == {DeviceStatus.ONLINE}
+        assert report.worker.behind_s == pytest.approx(2.0)
+        _, (notice,), _ = console.fleet_parts(mirror)  # the Fleet page's parts
+        assert notice.startswith("the agent is 2.0 s behind the arms' messages")
+        assert "docs/scaling.md" in notice
+        clock.now = 1003.0  # nothing more comes: an empty turn, and the silence is real
+        wait_for(lambda: mirror.behind_s == 0.0, 60, "the worker caught up")
+        assert set(mirror.statuses().values()) == {DeviceStatus.STALE}
+        assert console.fleet_parts(mirror)[1] == []
     finally:
         mirror.stop()
 

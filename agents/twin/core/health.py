@@ -455,14 +455,17 @@ class DeviceHealth:
         """This device's health now (an immutable copy, safe to hand to other threads)."""
         return self.reading(now).snapshot()
 
-    def reading(self, now: float | None = None) -> HealthReading:
+    def reading(self, now: float | None = None, behind_s: float = 0.0) -> HealthReading:
         """What `snapshot` needs, copied (the windows trimmed to `now` first): a reader holding the worker's
-        lock takes this and builds the snapshot after letting go."""
+        lock takes this and builds the snapshot after letting go. The status and rate are read `behind_s`
+        before `now`, where the worker stands in its input (service.mirror, "behind"): the messages after it
+        are waiting, not missing. The age stays on the clock: it is how old the twin's pose is."""
         now = self._clock() if now is None else now
+        at = now - behind_s
         return HealthReading(
-            status=self.status(now),
+            status=self.status(at),
             age_s=None if self.last_message_mono is None else max(0.0, now - self.last_message_mono),
-            rate_hz=self._rate.rate(now),
+            rate_hz=self._rate.rate(at),
             last_timestamp_ms=self.last_timestamp_ms,
             counters=self._counters(),
             edge_latencies=self._edge_latency.samples(now),
@@ -581,11 +584,11 @@ class FleetHealth:
             if self.shown(device, health)
         }
 
-    def readings(self, now: float | None = None) -> dict[str, HealthReading]:
-        """`snapshot` as readings, for a reader that holds the worker's lock (`HealthReading`)."""
+    def readings(self, now: float | None = None, behind_s: float = 0.0) -> dict[str, HealthReading]:
+        """`snapshot` as readings, for a reader that holds the worker's lock (`HealthReading`, `behind_s`)."""
         now = self._clock() if now is None else now
         return {
-            device: health.reading(now)
+            device: health.reading(now, behind_s)
             for device, health in sorted(self.devices.items())
             if self.shown(device, health)
         }

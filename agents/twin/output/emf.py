@@ -52,6 +52,9 @@ LOSS_PERCENT = "LossPercent"  # the share of the arms' expected messages that di
 # The share of its messages the arm losing most lost over its recent window (a stack alarm): LossPercent
 # averages the arms, so one arm's loss shows there as a fraction of it.
 WORST_ARM_LOSS_PERCENT = "WorstArmLossPercent"
+# The highest internal latency p99 of the arms (receive to twin updated, over each arm's health window): how
+# far behind its messages the agent is, which a stack alarm watches (arms' statuses are read where it stands).
+INTERNAL_LATENCY_P99 = "InternalLatencyP99"
 LOSS_METRICS: tuple[str, ...] = (
     MESSAGES_DROPPED,
     SINK_DROPS,
@@ -147,7 +150,7 @@ def fleet_documents(
         Metric("DevicesOffline", fleet.devices_offline, "Count"),
     ]
     if fleet.internal_latency_p99_ms is not None:
-        metrics.append(Metric("InternalLatencyP99", fleet.internal_latency_p99_ms, "Milliseconds"))
+        metrics.append(Metric(INTERNAL_LATENCY_P99, fleet.internal_latency_p99_ms, "Milliseconds"))
     metrics += [
         Metric(MESSAGES_DROPPED, fleet.messages_dropped, "Count"),
         Metric(SINK_DROPS, fleet.sink_drops, "Count"),

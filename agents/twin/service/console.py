@@ -75,7 +75,11 @@ FLEET_COLUMNS = (
     "uncalibrated",  # true: no LeRobot calibration while its units need one (docs/agent.md, "Calibration")
     "mirror",  # running | restarting: its worker process is started again, the row is its last checkpoint
     "unacknowledged",  # how many of its alarms wait for a person: ACTIVE, or LATCHED (cleared, unseen)
+    "behind_s",  # how far its worker is behind its messages: its status and rate are read there
 )
+# From how far behind its messages a worker makes the Fleet page say so (`behind_notice`): a second is ten
+# messages of every arm waiting, and each pose on the page that old.
+BEHIND_NOTICE_S = 1.0
 # The alarm states an acknowledgement is for (the Fleet page's "unacknowledged" filter).
 WAITING_STATES = frozenset({"ACTIVE", "LATCHED"})
 # What a session offers to download, with the media type of each.
@@ -160,6 +164,7 @@ class FleetRow(NamedTuple):
     uncalibrated: bool = False
     mirror: str = "running"
     unacknowledged: int = 0
+    behind_s: float = 0.0
 
 
 @runtime_checkable
@@ -243,7 +248,22 @@ def fleet_parts(
         if alarms is None:
             alarms = source.alarms() if isinstance(source, AlarmLister) else ()
         rows = fleet_rows(state, alarms)
-    return rows, *fleet_notes(source)
+    notices, listening = fleet_notes(source)
+    return rows, [*behind_notice(rows), *notices], listening
+
+
+def behind_notice(rows: Sequence[FleetRow]) -> list[str]:
+    """What the Fleet page says of workers behind their messages by BEHIND_NOTICE_S or more: no card can,
+    since each arm's status is read where its worker stands (so the page does not turn STALE for a host
+    short of CPU), and every pose is older than its arm's status suggests."""
+    behind = max((row.behind_s for row in rows), default=0.0)
+    if behind < BEHIND_NOTICE_S:
+        return []
+    return [
+        f"the agent is {behind:.1f} s behind the arms' messages: its host is short of CPU, so every pose "
+        "shown is about that old (the arms' status is read where the agent stands). Give the host fewer "
+        "arms or more cores (docs/scaling.md)"
+    ]
 
 
 def fleet_notes(source: object) -> tuple[list[str], Listening | None]:
@@ -267,9 +287,11 @@ def fleet_row(
     uncalibrated: bool = False,
     mirror: str = "running",
     unacknowledged: int = 0,
+    behind_s: float = 0.0,
 ) -> FleetRow:
     """A row from its parts; `alarm` is the worst one that is not NORMAL: (severity, state, kind, joint);
-    `unacknowledged` how many of its alarms are in WAITING_STATES."""
+    `unacknowledged` how many of its alarms are in WAITING_STATES; `behind_s` how far its worker stands
+    behind its input (service.mirror)."""
     hot_joint, hot_c = None, None
     for joint, temp in temperatures.items():
         if temp is not None and (hot_c is None or temp > hot_c):
@@ -291,6 +313,7 @@ def fleet_row(
         uncalibrated,
         mirror,
         unacknowledged,
+        round(behind_s, 2),
     )
 
 

@@ -506,6 +506,10 @@ class Mirror:
         self.processed = 0
         self.alarm_rows = 0
         self.errors = 0
+        # How far behind its input the worker stood at its last status sweep (_watch_statuses): the readers
+        # read the arms' statuses and rates there too, so a host short of CPU shows no arm STALE whose
+        # messages are only waiting. Written by the worker thread alone (one float: no lock needed).
+        self.behind_s = 0.0
 
     @staticmethod
     def _load_robot(config: AgentConfig, mode: TwinMode) -> RobotModel:
@@ -1460,13 +1464,14 @@ class Mirror:
         if not self._watch.due(now):
             return
         at = min(now, max(received)) if received else now
+        self.behind_s = now - at
         with self._lock:
             # Of the arms heard from only: their arrivals were told by `_admit`.
             statuses = self._fleet.statuses(at, heard_only=True)
         self._watch.statuses(statuses)
         if self._watch.rates_due(now):
             with self._lock:
-                rates = self._fleet.rates(now)
+                rates = self._fleet.rates(at)
                 # Of the arms heard from, as the rates: an arm's loss estimate is made with its record.
                 recent = {device: loss.recent(now) for device, loss in self._loss.items() if device in rates}
             self._watch.rates(rates, now)
@@ -1478,9 +1483,10 @@ class Mirror:
             self._watch.clocks(offsets)
 
     def statuses(self) -> dict[str, DeviceStatus]:
-        """Each device's status now (those configured too, heard from or not), without the report."""
+        """Each device's status now (those configured too, heard from or not), without the report; read where
+        the worker stands in its input (`behind_s`)."""
         with self._lock:
-            return self._fleet.statuses()
+            return self._fleet.statuses(self._clock() - self.behind_s)
 
     def fleet_rows(self) -> list[FleetRow]:
         """One row per arm for the console's Fleet page, read without building the report (no device
@@ -1523,11 +1529,12 @@ class Mirror:
         record = self._devices.get(device)
         diagnostics = record.diagnostics if record is not None and record.diagnostics else {}
         last = h.last_message_mono
+        behind = self.behind_s
         return fleet_row(
             device,
-            status=str(h.status(now)),
+            status=str(h.status(now - behind)),
             last_seen=wall - (now - last) if last is not None else None,
-            rate_hz=h.rate_hz(now),
+            rate_hz=h.rate_hz(now - behind),
             loss_ratio=lost / (received + lost) if received + lost else 0.0,
             temperatures={j: d.temperature_c for j, d in diagnostics.items()},
             rejected=h.rejected_total,
@@ -1539,6 +1546,7 @@ class Mirror:
                 else self.config.telemetry.units,
             ),
             unacknowledged=unacknowledged,
+            behind_s=behind,
         )
 
     def report(self) -> MirrorReport:
@@ -1563,6 +1571,7 @@ class Mirror:
                 stage_cpu_s=readout.stage_cpu_s,
                 stage_timed_batches=readout.stage_timed_batches,
                 alarm_rows=readout.alarm_rows,
+                behind_s=round(self.behind_s, 3),
             ),
             recording=self._recording_state(),
             # The agent has the history's own figures (its writer process); the feed's are a sink's.
@@ -1585,7 +1594,7 @@ class Mirror:
             now = self._clock()
             if only is None:
                 devices: Iterable[_Device] = self._devices.values()
-                health = self._fleet.readings(now)
+                health = self._fleet.readings(now, self.behind_s)
                 worst = alarms.worst_by_device()
                 losses: Iterable[tuple[str, DeviceLoss]] = self._loss.items()
             else:
@@ -1594,7 +1603,7 @@ class Mirror:
                     known = None  # admitted, its first message not yet counted (FleetHealth.shown)
                 loss = self._loss.get(only)
                 devices = [record] if record is not None else []
-                health = {only: known.reading(now)} if known is not None else {}
+                health = {only: known.reading(now, self.behind_s)} if known is not None else {}
                 worst = {only: alarms.worst_by_joint(only)}
                 losses = [(only, loss)] if loss is not None else []
             return _Readout(
@@ -1737,7 +1746,8 @@ class Mirror:
             health = self._fleet.get(device)
             if health is None:
                 raise ArmNotFoundError(device)
-            status = health.status(self._clock())
+            # Where the worker stands: an arm whose messages wait behind it is not silent.
+            status = health.status(self._clock() - self.behind_s)
             if device in self._fleet.configured:
                 raise ArmNotForgettableError(
                     ARM_CONFIGURED,

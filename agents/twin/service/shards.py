@@ -1581,6 +1581,7 @@ def _merge_worker(reports: Sequence[MirrorReport], *, workers_alive: bool) -> Wo
         stage_cpu_s=_merge_seconds([r.worker.stage_cpu_s for r in reports]),
         stage_timed_batches=sum(r.worker.stage_timed_batches for r in reports),
         alarm_rows=sum(r.worker.alarm_rows for r in reports),
+        behind_s=max((r.worker.behind_s for r in reports), default=0.0),
     )
 
 

@@ -235,6 +235,10 @@ class WorkerState:
     # Messages the servo alarm engine evaluated, summed over the workers since each started: 0 with
     # [alarms] enabled = false (`twin bench cost --no-alarms` shows it was).
     alarm_rows: int = 0
+    # How far behind its messages a worker stood at its last status sweep (the newest receive time of the
+    # batch it handled then, to the clock; 0 once it found nothing waiting), the most of any worker: the arms'
+    # statuses and rates are read there (docs/agent.md, "Health").
+    behind_s: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)
