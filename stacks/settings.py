@@ -364,9 +364,18 @@ def resolve(
         # The messages start with the key; say when the bad value is the file's, so the fix goes there.
         match = re.match(r"[a-zA-Z0-9]+", str(exc))
         if match and sources.get(match.group(0)) is Source.FILE and settings_file is not None:
-            raise SettingsError(f"{exc} (it is set in {settings_file})") from None
+            raise SettingsError(_in_file(str(exc), match.group(0), settings_file)) from None
         raise
     return ResolvedSettings(settings, sources, settings_file if file_values else None)
+
+
+def _in_file(message: str, key: str, settings_file: Path) -> str:
+    """A bad value's message when the value is the settings file's: the fix goes in the file (a walk was told
+    to "pass -c devices=..." for a list it had written in the file, which stays wrong for the next deploy)."""
+    problem, sep, flag = message.partition("; pass ")
+    if not sep:
+        return f"{message} (it is set in {settings_file})"
+    return f"{problem}: correct {key} in {settings_file} (or, for one deploy only, pass {flag})"
 
 
 def default_values() -> dict[str, Any]:

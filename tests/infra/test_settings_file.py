@@ -107,13 +107,18 @@ def test_a_broken_file_says_what_is_wrong(tmp_path: Path, text: str, problem: st
 
 def test_a_bad_value_in_the_file_names_the_file(tmp_path: Path) -> None:
     path = file_with(tmp_path, {"clientCidr": CLIENT_CIDR, "volumeGb": 10})
-    with pytest.raises(
-        SettingsError, match=r"volumeGb=10 is outside .* \(it is set in .*twin.settings.toml\)"
-    ):
+    # The fix goes in the file: -c would fix one deploy and leave the file wrong for the next.
+    with pytest.raises(SettingsError) as caught:
         resolve({}.get, read_settings_file(path), path)
+    assert re.fullmatch(
+        r"volumeGb=10 is outside 50\.\.16384 \(.*\): correct volumeGb in \S*twin\.settings\.toml "
+        r"\(or, for one deploy only, pass e\.g\. -c volumeGb=100\)",
+        str(caught.value),
+    ), caught.value
     # A bad device id too (a walk found its message did not start with the key, so the file went unnamed).
     path = file_with(tmp_path, {"clientCidr": CLIENT_CIDR, "devices": ["arm/left"]})
-    with pytest.raises(SettingsError, match=r"^devices: device id 'arm/left' .* \(it is set in .*\.toml\)$"):
+    message = r"^devices: device id 'arm/left' .*: correct devices in .*\.toml \(or, for one"
+    with pytest.raises(SettingsError, match=message):
         resolve({}.get, read_settings_file(path), path)
 
 
