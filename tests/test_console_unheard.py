@@ -14,6 +14,7 @@ from typing import Any
 
 import pytest
 from conftest import wait_for
+from twin.edge.simulator import FaultConfig
 from twin.rig.local import LocalRig
 from twin.service.console import Listening, fleet_summary
 
@@ -72,6 +73,42 @@ def test_an_empty_fleet_page_names_the_filter_and_what_to_check_until_an_arm_is_
     rig.start_edge(["arm-001"], seconds=None, rate_hz=10.0)
     page.wait_for_selector("text=arm-001", timeout=60_000)
     wait_for(lambda: page.query_selector("#fleet-empty") is None, 60, "the empty-page text gone")
+
+
+def test_an_arm_whose_every_message_is_refused_is_named_above_the_empty_page(
+    rig: LocalRig, chromium_page: Any
+) -> None:
+    """A walk's arm whose edge sent what the agent refuses had no card, and the empty page pointed at the
+    topic and IAM: the reasons were only on the Events page. Now a notice names the arm and says where."""
+    agent = rig.start_agent({"telemetry.devices": ["*"], "telemetry.units": "ticks"})
+    rig.start_edge(["arm-009"], seconds=None, rate_hz=10.0, faults=FaultConfig(malformed=1.0))
+
+    def named() -> list[str]:
+        return [n for n in fleet_document(agent.http_url)["notices"] if n.startswith("arm-009 publishes")]
+
+    wait_for(named, 60, "a notice naming arm-009")
+    (notice,) = named()
+    assert "refused all" in notice and "no card" in notice and "Events page" in notice, notice
+    page = chromium_page
+    page.goto(agent.http_url + "/")
+    page.wait_for_selector("#fleet-notices >> text=arm-009 publishes, but the agent refused", timeout=60_000)
+    assert "nor a notice above naming it" in empty_text(page)
+
+
+def test_an_arm_kept_out_by_max_devices_is_named(rig: LocalRig) -> None:
+    agent = rig.start_agent(
+        {"telemetry.devices": ["*"], "telemetry.units": "ticks", "telemetry.max_devices": 1}
+    )
+    rig.start_edge(["arm-001"], seconds=None, rate_hz=10.0)
+    wait_for(lambda: fleet_document(agent.http_url)["rows"], 60, "arm-001's card")
+    rig.start_edge(["arm-002"], seconds=None, rate_hz=10.0, seed=7)
+
+    def named() -> list[str]:
+        return [n for n in fleet_document(agent.http_url)["notices"] if n.startswith("arm-002 publishes")]
+
+    wait_for(named, 60, "a notice naming arm-002")
+    assert "(the last: too_many_devices)" in named()[0]
+    assert [row[0] for row in fleet_document(agent.http_url)["rows"]] == ["arm-001"]
 
 
 def test_an_empty_fleet_page_says_when_the_agent_is_not_connected(rig: LocalRig, chromium_page: Any) -> None:

@@ -6,6 +6,7 @@ import random
 
 import pytest
 from twin.core.health import (
+    MAX_UNHEARD,
     DeviceStatus,
     FleetHealth,
     HealthThresholds,
@@ -40,6 +41,29 @@ def feed(fleet: FleetHealth, clock: FakeClock, device: str, n: int, *, dt: float
         health.record_received()
         health.record_decoded(clock.t, wall, ts_ms)
         health.record_applied(clock.t, clock.t + 0.0005, ts_ms)
+
+
+def test_untracked_refused_devices_are_kept_bounded_newest_last_and_leave_once_heard() -> None:
+    # The Fleet page names an arm whose every message is refused (no card shows it); garbage under invented
+    # ids must not grow what it keeps.
+    clock = FakeClock()
+    fleet = FleetHealth(TH, ["arm-listed"], clock=clock)
+    for n in range(MAX_UNHEARD + 6):
+        clock.advance(0.1)
+        fleet.record_rejected(f"junk-{n:03d}", "not_json")
+    assert (
+        len(fleet.unheard) == MAX_UNHEARD and "junk-005" not in fleet.unheard and "junk-006" in fleet.unheard
+    )
+    clock.advance(1.0)
+    fleet.record_rejected("junk-006", "bad_timestamp")
+    assert list(fleet.unheard)[-1] == "junk-006"
+    seen = fleet.unheard["junk-006"]
+    assert (seen.rejected, seen.reason, seen.last_mono) == (2, "bad_timestamp", clock.t)
+    fleet.record_rejected("arm-listed", "not_json")  # listed: counted on its own card
+    fleet.record_rejected(None, "not_json")  # no device in the topic
+    assert "arm-listed" not in fleet.unheard and len(fleet.unheard) == MAX_UNHEARD
+    fleet.device("junk-006")  # its first valid message: tracked, with a card
+    assert "junk-006" not in fleet.unheard
 
 
 def test_statuses_heard_only_leave_out_devices_not_heard_from() -> None:

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections import Counter, deque
+from collections import Counter, OrderedDict, deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -473,6 +473,22 @@ class DeviceHealth:
         )
 
 
+# How many ids of devices not tracked, all of whose messages were refused so far, FleetHealth keeps for the
+# console (the most recent): garbage under invented ids must not grow it.
+MAX_UNHEARD = 64
+
+
+@dataclass(slots=True)
+class Unheard:
+    """A device not tracked (no valid message yet) whose messages were refused: how many, the last reason,
+    and when the first and the last of them came (the fleet's monotonic clock)."""
+
+    rejected: int
+    reason: str
+    first_mono: float
+    last_mono: float
+
+
 class FleetHealth:
     """Health of every device: those configured (tracked from start-up, so a silent one goes OFFLINE) and
     those discovered on a fleet subscription. Rejections for a device that never sent a valid message and is
@@ -491,15 +507,19 @@ class FleetHealth:
         self.configured: tuple[str, ...] = tuple(configured)
         self._configured = frozenset(self.configured)
         self.devices: dict[str, DeviceHealth] = {}
+        self.untracked_rejected: Counter[str] = Counter()
+        # The devices behind those untracked rejections, most recent last (MAX_UNHEARD of them): an arm whose
+        # every message is refused has no card, and the Fleet page otherwise said no arm was heard at all.
+        self.unheard: OrderedDict[str, Unheard] = OrderedDict()
         for device in self.configured:
             self.device(device)
-        self.untracked_rejected: Counter[str] = Counter()
         # Not configured, not heard since the start, but with alarms kept over a restart (`keep`).
         self._kept: set[str] = set()
 
     def device(self, device_id: str) -> DeviceHealth:
         health = self.devices.get(device_id)
         if health is None:
+            self.unheard.pop(device_id, None)
             health = DeviceHealth(device_id, self.thresholds, self._clock, since=self._started)
             self.devices[device_id] = health
         return health
@@ -543,8 +563,21 @@ class FleetHealth:
         health = self.devices.get(device_id) if device_id is not None else None
         if health is None:
             self.untracked_rejected[str(reason)] += 1
+            if device_id is not None:
+                self._unheard(device_id, str(reason))
         else:
             health.record_rejected(reason)
+
+    def _unheard(self, device_id: str, reason: str) -> None:
+        now = self._clock()
+        seen = self.unheard.get(device_id)
+        if seen is None:
+            self.unheard[device_id] = Unheard(1, reason, now, now)
+            if len(self.unheard) > MAX_UNHEARD:
+                self.unheard.popitem(last=False)
+            return
+        seen.rejected, seen.reason, seen.last_mono = seen.rejected + 1, reason, now
+        self.unheard.move_to_end(device_id)
 
     def statuses(self, now: float | None = None, *, heard_only: bool = False) -> dict[str, DeviceStatus]:
         """The status of each device. `heard_only` keeps the devices heard from (a decoded message), for the

@@ -83,6 +83,7 @@ from twin.service.shards import (
     Shard,
     StatusesRequest,
     StopReport,
+    UnheardRequest,
     WorkerError,
     WorkerPlan,
     WorkerShard,
@@ -98,6 +99,7 @@ from twin.service.shards import (
     report_of,
     restored_of,
     statuses_of,
+    unheard_of,
     with_dropped,
     worker_config,
 )
@@ -145,6 +147,12 @@ FAILED_START_STOP_S = 10.0
 MAX_ROUTES = 16_384
 # The arms held by a refused calibration the Fleet page names one by one; the rest as a count.
 MAX_HELD_NOTICES = 5
+# An arm not tracked whose messages are all refused is named on the Fleet page (`_unheard_notices`) once this
+# many were, the last no longer ago than UNHEARD_RECENT_S: a new arm's first messages, refused while units =
+# auto decides, do not count, nor does one message of garbage under an invented id; an edge mended or switched
+# off leaves the page after a minute.
+UNHEARD_MIN_REJECTED = 10
+UNHEARD_RECENT_S = 60.0
 
 
 def _check_workers(config: AgentConfig, workers: int, sinks: Sequence[TwinSink]) -> None:
@@ -846,8 +854,37 @@ class AgentService:
 
     def notices(self) -> list[str]:
         """What the console's fleet page shows above the arms: the broker's (`broker_notices`), then each arm
-        held by a refused calibration file, whose messages are all refused, so that no card shows it."""
-        return [*self.broker_notices(), *self._held_notices()]
+        held by a refused calibration file, and each other arm whose messages are all refused: no card
+        shows them."""
+        return [*self.broker_notices(), *self._held_notices(), *self._unheard_notices()]
+
+    def _unheard_notices(self) -> list[str]:
+        # A walk's arm whose edge sent what the agent refuses had no card, and the empty Fleet page said no
+        # arm was heard and pointed at the topic and IAM: the reasons were only on the Events page.
+        held = {device for device, _ in self._calibration_request.problems}
+        # By id, so that the lines keep their places from one tick of the page to the next.
+        arms = sorted(
+            (
+                arm
+                for _, part in self._ask_all(UnheardRequest(), unheard_of)
+                for arm in part
+                if arm.device not in held
+                and arm.rejected >= UNHEARD_MIN_REJECTED
+                and arm.last_s <= UNHEARD_RECENT_S
+            ),
+            key=attrgetter("device"),
+        )
+        lines = [
+            f"{a.device} publishes, but the agent refused all {a.rejected} of its messages (the last: "
+            f"{a.reason}), so it has no card: the Events page says why"
+            for a in arms[:MAX_HELD_NOTICES]
+        ]
+        if len(arms) > MAX_HELD_NOTICES:
+            lines.append(
+                f"and {len(arms) - MAX_HELD_NOTICES} more arm(s) whose messages are all refused (the Events "
+                "page names them)"
+            )
+        return lines
 
     def _held_notices(self) -> list[str]:
         # An arm with no calibration to keep (its file was bad at the start) is held: with the whole fleet

@@ -133,6 +133,8 @@ from twin.service.shards import (
     RestoreRequest,
     StatusesRequest,
     StopReport,
+    UnheardArm,
+    UnheardRequest,
     alarm_info,
     uncalibrated,
 )
@@ -1324,7 +1326,8 @@ class Mirror:
         (telemetry.max_devices, shared by every mirror) has a place."""
         if not self._budget.take(self._slot):
             with self._lock:
-                self._fleet.record_rejected(None, TOO_MANY_DEVICES)
+                # Under its id (counted as untracked all the same): the Fleet page names an arm kept out.
+                self._fleet.record_rejected(device, TOO_MANY_DEVICES)
             self._rejections.rejected(device, TOO_MANY_DEVICES, "telemetry.max_devices reached")
             # units=auto may have decided this device's units already: an invented id must leave nothing.
             self._decoder.forget(device)
@@ -1427,6 +1430,8 @@ class Mirror:
             return self.arm(request.device)
         if isinstance(request, StatusesRequest):
             return tuple((device, str(status)) for device, status in self.statuses().items())
+        if isinstance(request, UnheardRequest):
+            return self.unheard()
         if isinstance(request, CheckpointRequest):
             return self.checkpoint(alarms_only=request.alarms_only)
         if isinstance(request, RestoreRequest):
@@ -1487,6 +1492,16 @@ class Mirror:
         the worker stands in its input (`behind_s`)."""
         with self._lock:
             return self._fleet.statuses(self._clock() - self.behind_s)
+
+    def unheard(self) -> tuple[UnheardArm, ...]:
+        """The devices not tracked whose every message was refused so far, the most recent first
+        (core.health.FleetHealth.unheard)."""
+        with self._lock:
+            now = self._clock()
+            return tuple(
+                UnheardArm(device, u.rejected, u.reason, now - u.last_mono)
+                for device, u in reversed(self._fleet.unheard.items())
+            )
 
     def fleet_rows(self) -> list[FleetRow]:
         """One row per arm for the console's Fleet page, read without building the report (no device

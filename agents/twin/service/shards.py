@@ -301,6 +301,23 @@ class StatusesRequest:
 
 
 @dataclass(frozen=True, slots=True)
+class UnheardRequest:
+    """The devices the mirror does not track whose every message was refused so far (UnheardArm, the most
+    recent first): an arm whose edge sends what the agent refuses has no card, so the Fleet page names it."""
+
+
+@dataclass(frozen=True, slots=True)
+class UnheardArm:
+    """One device of an UnheardRequest's answer: its refused messages, the last one's reason, and how long
+    ago the last one came."""
+
+    device: str
+    rejected: int
+    reason: str
+    last_s: float
+
+
+@dataclass(frozen=True, slots=True)
 class CalibrationsRequest:
     """Each arm's own calibration from now on (service.calibrations), replacing the previous set: per device
     its source and its LeRobot file as parsed JSON (a Calibration holds a mapping proxy, which does not
@@ -472,6 +489,7 @@ Request = (
     | FleetRowsRequest
     | ArmRequest
     | StatusesRequest
+    | UnheardRequest
     | CalibrationsRequest
     | CheckpointRequest
     | RestoreRequest
@@ -484,6 +502,7 @@ Reply = (
     | ArmForgotten
     | tuple[Event, ...]
     | tuple[FleetRow, ...]
+    | tuple[UnheardArm, ...]
     | ArmReply
     | tuple[tuple[str, str], ...]
     | int
@@ -532,6 +551,13 @@ def with_dropped(device: DeviceState, dropped: int) -> DeviceState:
     counters = device.health.counters
     counters = dataclasses.replace(counters, overwritten=counters.overwritten + dropped)
     return dataclasses.replace(device, health=dataclasses.replace(device.health, counters=counters))
+
+
+def unheard_of(reply: Reply) -> tuple[UnheardArm, ...]:
+    """The answer to an UnheardRequest; WorkerError for anything else."""
+    if not isinstance(reply, tuple) or not all(isinstance(a, UnheardArm) for a in reply):
+        raise WorkerError(f"unheard arms were asked for, the answer was {type(reply).__name__}")
+    return tuple(a for a in reply if isinstance(a, UnheardArm))
 
 
 def statuses_of(reply: Reply) -> tuple[tuple[str, str], ...]:
@@ -1694,6 +1720,8 @@ __all__ = [
     "Shard",
     "StatusesRequest",
     "StopReport",
+    "UnheardArm",
+    "UnheardRequest",
     "WorkerError",
     "WorkerPlan",
     "WorkerShard",
@@ -1708,5 +1736,6 @@ __all__ = [
     "restored_of",
     "statuses_of",
     "uncalibrated",
+    "unheard_of",
     "worker_config",
 ]

@@ -195,7 +195,8 @@
     if (!listening) return said;
     if (!listening.connected) return `${said}: the agent is not connected to its broker (GET /healthz says why)`;
     return `${said}. The agent listens on ${listening.filters.join(", ")}. If your arms publish and none ` +
-      "appears, check that they publish on that topic, and that the agent's identity may receive it: " +
+      "appears (nor a notice above naming it), check that they publish on that topic, and that the " +
+      "agent's identity may receive it: " +
       "IoT Core drops, without a word, what an identity may not iot:Receive (docs/agent.md, IAM permissions).";
   }
 
