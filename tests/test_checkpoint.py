@@ -18,6 +18,7 @@ from multiprocessing.connection import Connection
 import pytest
 import twin.core.loss as loss_module
 from twin.bench.worker import _feed, _fleet
+from twin.core.alarms import AlarmKind, AlarmRecord, AlarmState
 from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
 from twin.edge.payload import encode, make_payload
 from twin.service.admission import DeviceBudget
@@ -300,3 +301,32 @@ def test_a_mirror_started_again_does_not_report_an_edge_clock_off_twice() -> Non
     assert _clock_events(again) == []
     _lossy_rounds(again, clock, rng, 2 * CLOCK_INTERVAL_S, drop=0.0)
     assert _clock_events(again) == [("arm-002", "info")]
+
+
+# --- arms the state file kept -------------------------------------------------------------------------------
+
+
+def test_an_arm_listed_for_its_kept_alarms_is_listed_again_by_a_mirror_restored_from_its_checkpoint() -> None:
+    # After an agent restart, an arm whose alarms the state file kept is listed though it is not heard
+    # (FleetHealth.keep), so a person can acknowledge them or forget the arm. A worker that died next came
+    # back without those arms: the checkpoint carried their alarms but not that they were listed, so they
+    # left /state and the Fleet page while their alarms stayed in /alarms.
+    kept = AlarmRecord(
+        device="gone-1",
+        joint="gripper",
+        kind=AlarmKind.OVER_CURRENT,
+        state=AlarmState.LATCHED,
+        since=1.0,
+        present=False,
+        raised=1,
+        message="gripper servo draws 1.9 A",
+    )
+    first = _mirror(Pipe(duplex=False)[0])  # never started: it restores on the calling thread
+    first.restore(None, (kept,))
+    assert list(first.report().devices) == ["gone-1"]
+    checkpoint = pickle.loads(pickle.dumps(first.checkpoint(), protocol=pickle.HIGHEST_PROTOCOL))
+    again = _mirror(Pipe(duplex=False)[0])
+    again.restore(checkpoint)
+    assert list(again.report().devices) == ["gone-1"]
+    alarms = [(a.alarm_id, str(a.state)) for a in again.alarms()]
+    assert alarms == [("gone-1/gripper/over_current", "LATCHED")]

@@ -534,6 +534,11 @@ class FleetHealth:
         self._kept.add(device_id)
         return self.device(device_id)
 
+    @property
+    def kept(self) -> tuple[str, ...]:
+        """The devices listed for their kept alarms (`keep`), so a mirror started again lists them too."""
+        return tuple(sorted(self._kept))
+
     def forget(self, device_id: str) -> DeviceHealth | None:
         """Stop tracking a device that is not configured (an operator retired it); its health record, or None
         for a device not tracked. A configured device stays: the config says it is expected."""

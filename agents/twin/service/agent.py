@@ -631,7 +631,8 @@ class AgentService:
                 continue
             restored = restored_of(shard.request(RestoreRequest(alarms=mine))())
             # Also what the worker starts from if it dies before its first checkpoint.
-            shard.confirm(MirrorCheckpoint(alarms=mine, at=time.monotonic()))
+            kept = tuple(sorted({record.device for record in mine}))
+            shard.confirm(MirrorCheckpoint(alarms=mine, at=time.monotonic(), kept=kept))
             log.info(
                 "alarms restored from the state file",
                 extra={"shard": shard.index, "alarms": restored.alarms, "path": str(self._state_file.path)},

@@ -817,6 +817,7 @@ class Mirror:
                 crowded=self._watch.crowded,
                 losing=self._watch.losing,
                 clocks_off=self._watch.clocks_off,
+                kept=self._fleet.kept,
                 history_rows=self._history.handed_in_all if self._history is not None else 0,
             )
             capture = Capture(
@@ -899,8 +900,10 @@ class Mirror:
             else:
                 restored = 0
             restored += self._alarms.restore(alarms)
-            # An arm with alarms kept by the state file is listed before it is heard again (FleetHealth.keep).
-            for device in sorted({r.device for r in alarms}):
+            # An arm with alarms kept by the state file is listed before it is heard again (FleetHealth.keep),
+            # also by a worker started again after it died (its checkpoint names them).
+            kept = checkpoint.kept if checkpoint is not None else ()
+            for device in sorted({r.device for r in alarms}.union(kept)):
                 self._fleet.keep(device)
         if checkpoint is not None:
             self._decoder.restore_units(

@@ -440,6 +440,9 @@ class MirrorCheckpoint:
     # were reported off (events.ClockWatch), for the same reason.
     losing: tuple[str, ...] = ()
     clocks_off: tuple[str, ...] = ()
+    # The arms listed for the alarms the state file kept though not heard since (FleetHealth.keep): without
+    # them a restarted worker would drop those arms from /state and the Fleet page, their alarms still shown.
+    kept: tuple[str, ...] = ()
     # The rows handed to history for the messages `taken` counts, over every process of the worker (its
     # restart counts those its dead feed held and nothing sends again: history_feed.resume_point).
     history_rows: int = 0
