@@ -306,13 +306,10 @@ def test_a_mirror_started_again_does_not_report_an_edge_clock_off_twice() -> Non
 # --- arms the state file kept -------------------------------------------------------------------------------
 
 
-def test_an_arm_listed_for_its_kept_alarms_is_listed_again_by_a_mirror_restored_from_its_checkpoint() -> None:
-    # After an agent restart, an arm whose alarms the state file kept is listed though it is not heard
-    # (FleetHealth.keep), so a person can acknowledge them or forget the arm. A worker that died next came
-    # back without those arms: the checkpoint carried their alarms but not that they were listed, so they
-    # left /state and the Fleet page while their alarms stayed in /alarms.
-    kept = AlarmRecord(
-        device="gone-1",
+def _kept(device: str) -> AlarmRecord:
+    """A LATCHED alarm of `device` as the agent's state file hands it back after a restart."""
+    return AlarmRecord(
+        device=device,
         joint="gripper",
         kind=AlarmKind.OVER_CURRENT,
         state=AlarmState.LATCHED,
@@ -321,8 +318,15 @@ def test_an_arm_listed_for_its_kept_alarms_is_listed_again_by_a_mirror_restored_
         raised=1,
         message="gripper servo draws 1.9 A",
     )
+
+
+def test_an_arm_listed_for_its_kept_alarms_is_listed_again_by_a_mirror_restored_from_its_checkpoint() -> None:
+    # After an agent restart, an arm whose alarms the state file kept is listed though it is not heard
+    # (FleetHealth.keep), so a person can acknowledge them or forget the arm. A worker that died next came
+    # back without those arms: the checkpoint carried their alarms but not that they were listed, so they
+    # left /state and the Fleet page while their alarms stayed in /alarms.
     first = _mirror(Pipe(duplex=False)[0])  # never started: it restores on the calling thread
-    first.restore(None, (kept,))
+    first.restore(None, (_kept("gone-1"),))
     assert list(first.report().devices) == ["gone-1"]
     checkpoint = pickle.loads(pickle.dumps(first.checkpoint(), protocol=pickle.HIGHEST_PROTOCOL))
     again = _mirror(Pipe(duplex=False)[0])
@@ -330,3 +334,41 @@ def test_an_arm_listed_for_its_kept_alarms_is_listed_again_by_a_mirror_restored_
     assert list(again.report().devices) == ["gone-1"]
     alarms = [(a.alarm_id, str(a.state)) for a in again.alarms()]
     assert alarms == [("gone-1/gripper/over_current", "LATCHED")]
+
+
+def test_arms_listed_for_their_kept_alarms_hold_places_in_the_device_budget() -> None:
+    # Every table keyed by device ids is bounded by telemetry.max_devices (docs/agent.md). The arms the
+    # state file kept took no place, so each restart under a churning fleet let max_devices new arms in
+    # beside them, and the next state file kept their alarms too: a run with max_devices = 1200 held 1498
+    # arms after one restart and 2245 after two.
+    config = load_config(
+        None, {"telemetry.devices": ["*"], "telemetry.units": "auto", "telemetry.max_devices": 2}
+    )
+    budget = DeviceBudget(2)
+    reader, writer = Pipe(duplex=False)
+    mirror = Mirror(config, inbox=PipeInbox(reader), budget=budget)
+    mirror.restore(None, (_kept("arm-0001"), _kept("gone-2")))
+    assert budget.taken == 2
+    mirror.start()
+    try:
+        _feed(mirror, writer, _fleet(3, 90))  # arm-0001, kept, and two arms new to this run
+        report = mirror.report()
+        checkpoint = mirror.checkpoint()
+    finally:
+        send_end(writer)
+        mirror.stop(timeout=30.0)
+    assert sorted(report.devices) == ["arm-0001", "gone-2"]
+    assert report.devices["arm-0001"].health.counters.applied > 0  # heard again: no second place
+    assert report.untracked_rejected["too_many_devices"] > 0
+    assert budget.taken == 2
+    # A worker started again gives its places back, and its kept arm takes one again.
+    budget.release(0)
+    clock = _Clock()
+    again = Mirror(config, inbox=PipeInbox(Pipe(duplex=False)[0]), budget=budget, clock=clock)
+    again.restore(checkpoint)
+    assert sorted(again.report().devices) == ["arm-0001", "gone-2"]
+    assert budget.taken == 2
+    # Forgetting the silent kept arm gives its place back.
+    clock.now += config.health.offline_after_s + 1.0
+    again.forget_arm("gone-2")
+    assert budget.taken == 1

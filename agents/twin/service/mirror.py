@@ -484,6 +484,9 @@ class Mirror:
         t = config.telemetry
         self._fleet = FleetHealth(config.health, () if t.all_devices else t.devices, clock=clock)
         self._devices: dict[str, _Device] = {}
+        # The arms listed for their kept alarms that hold a place in the device budget though not heard since
+        # (`_hold_place`): a first message of one takes no second place, forgetting it gives that one back.
+        self._kept_places: set[str] = set()
         # Servo alarms: evaluated by the worker, read (and acknowledged) by the agent's threads, all under the
         # lock.
         self._alarms = ServoAlarms(config.alarms)
@@ -905,6 +908,7 @@ class Mirror:
             kept = checkpoint.kept if checkpoint is not None else ()
             for device in sorted({r.device for r in alarms}.union(kept)):
                 self._fleet.keep(device)
+                self._hold_place(device)
         if checkpoint is not None:
             self._decoder.restore_units(
                 {device: saved.units for device, saved in checkpoint.devices.items() if saved.units}
@@ -912,6 +916,17 @@ class Mirror:
         if devices or restored:
             log.info("mirror state restored", extra={"devices": devices, "alarms": restored})
         return Restored(devices=devices, alarms=restored)
+
+    def _hold_place(self, device: str) -> None:
+        """Under the lock: a place in the device budget for an arm listed for its kept alarms, as an arm heard
+        holds one. Without it every restart under a churning fleet let up to `telemetry.max_devices` new
+        arms in beside the ones the state file kept, whose alarms the next state file kept again: the
+        tables and the file grew with every id ever seen. With no place left it is listed all the same (its
+        alarms are for a person to see), and takes a place when it is heard, as a new arm does."""
+        if device in self._devices or device in self._kept_places:
+            return
+        if self._budget.take(self._slot):
+            self._kept_places.add(device)
 
     def _restore_device(self, device: str, saved: DeviceCheckpoint) -> None:
         """Under the lock: one device's counters, loss estimate and twin (from its last applied pose)."""
@@ -1326,8 +1341,10 @@ class Mirror:
 
     def _admit(self, device: str) -> _Device | None:
         """A new device's record, created on its first valid message while the fleet's device budget
-        (telemetry.max_devices, shared by every mirror) has a place."""
-        if not self._budget.take(self._slot):
+        (telemetry.max_devices, shared by every mirror) has a place, or already holds one (`_hold_place`)."""
+        held = device in self._kept_places
+        self._kept_places.discard(device)
+        if not held and not self._budget.take(self._slot):
             with self._lock:
                 # Under its id (counted as untracked all the same): the Fleet page names an arm kept out.
                 self._fleet.record_rejected(device, TOO_MANY_DEVICES)
@@ -1784,7 +1801,8 @@ class Mirror:
         self._decoder.forget(device)
         # The queue's drop count of it too: copied into the health of whatever arm of that name comes next.
         self._mailbox.forget(device)
-        if record is not None:
+        if record is not None or device in self._kept_places:
+            self._kept_places.discard(device)
             self._budget.give_back(self._slot)
         self._watch.forgotten(device, str(status), removed)
         log.info("device forgotten", extra={"device": device, "alarms_removed": removed})
