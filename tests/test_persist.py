@@ -222,3 +222,46 @@ def test_another_hosts_file_is_adopted_with_its_alarms_and_no_word_on_how_its_ru
     with pytest.raises(StateFileError):
         adopt_file(str(theirs), str(elsewhere))
     assert not elsewhere.exists()
+
+
+def test_alarms_of_a_kind_only_a_newer_agent_knows_are_kept_aside_not_the_whole_file(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # A rollback: the file of an agent that knows a kind this one does not. Refusing the whole file would
+    # drop the acknowledgements and latched alarms of the kinds this agent knows as well.
+    path = tmp_path / "state.json"
+    store = StateFile(path)
+    assert store.save(
+        [_record(AlarmState.ACKNOWLEDGED), _record(AlarmState.LATCHED, joint="wrist_flex")], 110.0, 1e6
+    )
+    document = json.loads(path.read_text())
+    newer = [
+        {
+            **document["alarms"][0],
+            "alarm_id": f"{device}/gripper/a_future_kind",
+            "device": device,
+            "joint": "gripper",
+            "kind": "a_future_kind",
+            "state": "ACTIVE",
+        }
+        for device in ("arm-001", "arm-002")
+    ]
+    path.write_text(json.dumps({**document, "alarms": document["alarms"] + newer}))
+
+    later = StateFile(path)
+    with caplog.at_level(logging.WARNING, logger="twin.service.persist"):
+        back = later.load(5.0, 1e6 + 60)
+    assert sorted((r.joint, r.state) for r in back) == [
+        ("elbow_flex", AlarmState.ACKNOWLEDGED),
+        ("wrist_flex", AlarmState.LATCHED),
+    ]
+    assert not path.with_name("state.json.bad").exists()
+    assert "arm-001/gripper/a_future_kind" in caplog.text and "newer version" in caplog.text
+
+    # Written back as they were, so rolling forward again finds them; a forgotten arm's go with it.
+    assert later.save(back, 6.0, 1e6 + 61)
+    assert [a for a in json.loads(path.read_text())["alarms"] if a["kind"] == "a_future_kind"] == newer
+    later.forget("arm-001")
+    assert later.save(back, 7.0, 1e6 + 62)
+    kinds = [(a["device"], a["kind"]) for a in json.loads(path.read_text())["alarms"]]
+    assert ("arm-002", "a_future_kind") in kinds and ("arm-001", "a_future_kind") not in kinds

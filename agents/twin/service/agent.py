@@ -996,7 +996,12 @@ class AgentService:
             return dataclasses.replace(forgotten, checkpoint=None), forgotten.checkpoint
 
         # Once kept: the agent's own counts of it (its queue's drops) go, as the mirror's went.
-        return self._keep_act(shard, "forget", forget, kept=lambda: shard.forget(device))
+        def kept() -> None:
+            shard.forget(device)
+            if self._state_file is not None:  # and the alarms of kinds only a newer agent knows
+                self._state_file.forget(device)
+
+        return self._keep_act(shard, "forget", forget, kept=kept)
 
     def _keep_act(
         self,

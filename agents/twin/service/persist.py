@@ -10,7 +10,8 @@ Written atomically (a temporary file in the same directory, flushed to disk, ren
 directory flushed), so a crash or a power cut mid-write leaves the previous file or the new one, never half of
 one. Written when the kept alarms change (the agent checks every second), at the first check after it starts,
 and when it stops. A file that cannot be read is reported and set aside; the agent starts without it rather
-than not at all.
+than not at all. Alarms of a kind this agent does not know (a newer agent's file, then a rollback) are not a
+reason to set it aside: they are told, carried and written back as they were.
 
 It also says whether the run that wrote it stopped: `stopped` is false from that first write until the stop's.
 A file that still says false when an agent starts was left by a run that was killed, crashed or lost its host,
@@ -93,12 +94,15 @@ class StateFile:
         self._error_lines = Throttle(ERROR_LOG_INTERVAL_S)
         # What the last write held, by what identifies a change (not the wall time, which a clock slewed
         # by NTP would move a little at every check), and whether it said the run had stopped.
-        self._last: tuple[list[tuple[str, str, int, float]], bool] | None = None
+        self._last: tuple[list[tuple[str, str, int, float]], int, bool] | None = None
         # The agent's supervisor and an acknowledgement's own write (AgentService) may both save: one at a
         # time, so `_last` always describes the file on disk.
         self._write_lock = threading.Lock()
         # The document `previous_run` read, kept for `load`: a large fleet's file is parsed once.
         self._document: dict[str, Any] | None = None
+        # Alarms of kinds this agent does not know, as read (a newer agent's file, then a rollback): written
+        # back with every write, so rolling forward again finds them as they were.
+        self._carried: list[dict[str, Any]] = []
 
     def previous_run(self) -> PreviousRun | None:
         """How the run that wrote the file ended, read as the agent starts (before `load`); None without a
@@ -140,6 +144,7 @@ class StateFile:
         try:
             if document is None:
                 document = _document_of(text)
+            document, carried = _split_unknown_kinds(document)
             records = records_of(document, now_mono, now_wall)
         except StateFileError as exc:
             bad = self.path.with_name(self.path.name + ".bad")
@@ -153,8 +158,25 @@ class StateFile:
             )
             return []
         log.info("state file read", extra={"path": str(self.path), "alarms": len(records)})
+        with self._write_lock:
+            self._carried = carried
+        if carried:
+            log.warning(
+                "state file %s keeps %d alarm(s) of a kind this agent does not know (%s), written by a newer "
+                "version of it: they are not shown or raised here, and are kept in the file for that version",
+                self.path,
+                len(carried),
+                ", ".join(sorted({str(item.get("alarm_id", item["kind"])) for item in carried})),
+                extra={"path": str(self.path), "unknown_alarms": len(carried)},
+            )
         _report_unclean_stop(self.path, document)
         return records
+
+    def forget(self, device: str) -> None:
+        """Drop the alarms of unknown kinds carried for `device` (an arm an operator forgot): the next write
+        leaves them out, as it does the arm's own."""
+        with self._write_lock:
+            self._carried = [item for item in self._carried if item.get("device") != device]
 
     def _remove_leftovers(self) -> None:
         """A write killed between its temporary file's creation and the rename leaves that file (each as
@@ -186,10 +208,14 @@ class StateFile:
 
     def _save(self, records: Sequence[AlarmRecord], now_mono: float, now_wall: float, stopped: bool) -> bool:
         kept = sorted((r for r in records if r.state in KEPT_STATES), key=lambda r: r.alarm_id)
-        identity = ([(r.alarm_id, str(r.state), r.raised, round(r.since, 3)) for r in kept], stopped)
+        identity = (
+            [(r.alarm_id, str(r.state), r.raised, round(r.since, 3)) for r in kept],
+            len(self._carried),
+            stopped,
+        )
         if identity == self._last:
             return False
-        entries = [entry(r, now_mono, now_wall) for r in kept]
+        entries = [entry(r, now_mono, now_wall) for r in kept] + self._carried
         document = {
             "version": VERSION,
             "written_at": now_wall,
@@ -316,6 +342,22 @@ def _document_of(text: str) -> dict[str, Any]:
     if not isinstance(document, dict) or document.get("version") != VERSION:
         raise StateFileError(f"not a version-{VERSION} state file")
     return document
+
+
+def _split_unknown_kinds(document: dict[str, Any]) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """The document without its alarms of kinds this agent does not know, and those alarms. An agent rolled
+    back to a version without a kind would otherwise refuse the whole file, and with it every acknowledgement
+    and latched alarm of the kinds it does know."""
+    alarms = document.get("alarms")
+    if not isinstance(alarms, list):
+        return document, []  # records_of says what is wrong
+    known_kinds = {kind.value for kind in AlarmKind}
+    known: list[Any] = []
+    unknown: list[dict[str, Any]] = []
+    for item in alarms:
+        kind = item.get("kind") if isinstance(item, dict) else None
+        (unknown if isinstance(kind, str) and kind not in known_kinds else known).append(item)
+    return {**document, "alarms": known}, unknown
 
 
 def records_of(document: dict[str, Any], now_mono: float, now_wall: float) -> list[AlarmRecord]:
