@@ -349,11 +349,14 @@ def test_console_reports_time_to_interactive_and_the_cpu_of_two_consoles() -> No
 
 
 def test_cost_reports_cpu_per_message_in_json_loads_and_by_stage() -> None:
-    out = bench("cost", "--arms", "20", "--seconds", "2", timeout=180)
+    # Two workers asked for: by default the agent starts one per usable core, and on a host (or a CI
+    # container, or taskset) with one core the mirror runs in the receiving process, whose workers' CPU is 0.
+    out = bench("cost", "--arms", "20", "--seconds", "2", "--workers", "2", timeout=180)
     assert out["scenario"] == "cost"
     (size,) = out["sizes"]
     assert size["arms"] == 20 and size["summary"]["runs"] == 1
     (run,) = size["runs"]
+    assert run["workers"] == 2
     # The run carried traffic, the probe measured the yardstick through it, and the CPU was split.
     assert run["received"] > 0 and run["mirrored"] > 0
     assert run["json_loads_us"]["samples"] > 0 and run["json_loads_us"]["median"] > 0
