@@ -83,6 +83,10 @@ ARM_LOSS_ALARM_MINUTES = 10
 INTERNAL_LATENCY_P99 = "InternalLatencyP99"
 BEHIND_ALARM_MS = 1000
 BEHIND_ALARM_MINUTES = 5
+# Messages refused because the agent already tracks telemetry.max_devices arms (emf.DEVICE_LIMIT_REFUSALS),
+# and what pages: any, five minutes running (arms that publish and are kept out; one stray id passes).
+DEVICE_LIMIT_REFUSALS = "DeviceLimitRefusals"
+DEVICE_LIMIT_MINUTES = 5
 # The host scripts' own metrics (userdata/lib.sh, emit_host_metrics): the verdict of the checks after each
 # start (host-check.sh), and whether the bucket holds the operator's agent.local.toml (save-local-config.sh)
 # and the agent's servo alarm state (save-alarm-state.sh).
@@ -196,6 +200,7 @@ class TwinMonitoring(Construct):
         self.alarms["SubscriptionsRefused"] = self._subscriptions_refused_alarm()
         self.alarms["MessagesLost"] = self._messages_lost_alarm()
         self.alarms["ArmLosingMessages"] = self._arm_losing_alarm()
+        self.alarms["DeviceLimitReached"] = self._device_limit_alarm()
         self._alarms_for_host_scripts()
         action = cw_actions.SnsAction(self.topic)
         for alarm in self.alarms.values():
@@ -397,6 +402,19 @@ class TwinMonitoring(Construct):
             self._metric(WORST_ARM_LOSS_PERCENT, "Maximum"),
             threshold=ARM_LOSS_ALARM_PERCENT,
             minutes=ARM_LOSS_ALARM_MINUTES,
+        )
+
+    def _device_limit_alarm(self) -> cw.Alarm:
+        """DeviceLimitReached: arms publish and are kept out by telemetry.max_devices, 5 minutes running."""
+        return self._sustained_alarm(
+            "DeviceLimitReached",
+            f"Arms of {self.agent_name} publish, but the agent already tracks telemetry.max_devices arms, so "
+            f"their messages are refused ({DEVICE_LIMIT_REFUSALS}), {DEVICE_LIMIT_MINUTES} minutes running. "
+            "The console's Fleet page names them: forget the OFFLINE arms retired for good (their places go "
+            "to new ones), or raise max_devices in agent.local.toml. docs/scaling.md",
+            self._metric(DEVICE_LIMIT_REFUSALS, "Sum"),
+            threshold=1,
+            minutes=DEVICE_LIMIT_MINUTES,
         )
 
     def _outcome_alarm(self, id_: str, name: str, description: str) -> cw.Alarm:

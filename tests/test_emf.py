@@ -155,6 +155,7 @@ def test_fleet_lines_written_to_the_file_are_valid_emf(tmp_path: Path) -> None:
         "SinkDrops": "Count",
         "WorkerRestarts": "Count",
         "SubscriptionsRefused": "Count",
+        "DeviceLimitRefusals": "Count",
     }
     assert (fleet["MessagesPerSecond"], fleet["DevicesStale"], fleet["InternalLatencyP99"]) == (29.8, 1, 1.9)
     assert (fleet["LossPercent"], fleet["WorstArmLossPercent"]) == (0.7, 33.0)
@@ -400,3 +401,23 @@ def test_refused_subscriptions_are_reported_as_they_are_not_as_an_increase(tmp_p
         clock[0] += 60.0
     docs = [validate_emf_line(line) for line in writer.path.read_text().splitlines()]
     assert [d["SubscriptionsRefused"] for d in docs] == [2, 2, 2]
+
+
+def test_arms_kept_out_by_the_device_limit_are_counted_per_interval(tmp_path: Path) -> None:
+    """The messages refused for telemetry.max_devices (untracked, so no arm's counter holds them): the
+    stack pages on them, and garbage on invented topics does not count."""
+    rejected = {"too_many_devices": 40, "not_json": 9}
+    state = AgentState(agent=AgentInfo(running=True), devices={}, untracked_rejected=rejected)
+    clock = [0.0]
+    totals = [fleet_totals(state, 10.0)]
+    assert totals[0].device_limit_refusals == 40
+    writer = EmfFileWriter(tmp_path / "emf.log")
+    publisher = EmfPublisher(writer, "a", lambda: totals[-1], clock=lambda: clock[0], wall=lambda: 1.0)
+    publisher.publish_once()
+    clock[0] = 60.0
+    totals.append(dataclasses.replace(totals[-1], device_limit_refusals=100))
+    publisher.publish_once()
+    clock[0] = 120.0
+    publisher.publish_once()
+    docs = [validate_emf_line(line) for line in writer.path.read_text().splitlines()]
+    assert [d["DeviceLimitRefusals"] for d in docs] == [40, 60, 0]

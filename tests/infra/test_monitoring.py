@@ -50,6 +50,7 @@ def test_names_agree_with_the_agents_emf() -> None:
     assert monitoring.LOSS_PERCENT == emf.LOSS_PERCENT
     assert monitoring.WORST_ARM_LOSS_PERCENT == emf.WORST_ARM_LOSS_PERCENT
     assert monitoring.INTERNAL_LATENCY_P99 == emf.INTERNAL_LATENCY_P99
+    assert monitoring.DEVICE_LIMIT_REFUSALS == emf.DEVICE_LIMIT_REFUSALS
 
 
 def test_topic_is_encrypted_tls_only_and_cloudwatch_may_publish(synth_default: Synth) -> None:
@@ -89,7 +90,7 @@ def test_every_alarm_notifies_the_topic_on_alarm_and_ok(synth_default: Synth) ->
     # Servo alarms reach the topic from the host directly (test_host_publishes_servo_alarms_to_the_topic_
     # only), not through a CloudWatch alarm on a once-a-minute metric: agent silent, arms stale, the six
     # loss alarms, a refused subscription, the fleet's and one arm's messages lost, the host scripts' three.
-    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 15)
+    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 16)
     ref = topic_ref(synth_default)
     for props in synth_default.resources("AWS::CloudWatch::Alarm").values():
         assert props["Properties"]["AlarmActions"] == [ref]
@@ -135,7 +136,7 @@ def test_agent_silent_is_armed_by_the_host_once_it_is_up(synth_default: Synth) -
         for p in synth_default.resources("AWS::CloudWatch::Alarm").values()
         if p["Properties"].get("AlarmName") != "So101TwinStack-AgentSilent"
     ]
-    assert len(others) == 14 and all(p.get("ActionsEnabled", True) for p in others)
+    assert len(others) == 15 and all(p.get("ActionsEnabled", True) for p in others)
     arm = statement(policy_statements(synth_default, "IdentityHostRole"), "AgentSilentArm")
     assert arm["Action"] == "cloudwatch:EnableAlarmActions"
     resource = json.dumps(arm["Resource"])
@@ -165,6 +166,15 @@ def test_a_host_behind_its_messages_pages_with_its_own_alarm(synth_default: Synt
     assert (props["Threshold"], props["EvaluationPeriods"], props["DatapointsToAlarm"]) == (1000, 5, 5)
     assert props["TreatMissingData"] == "notBreaching"
     assert "docs/scaling.md" in props["AlarmDescription"]
+
+
+def test_arms_kept_out_by_the_device_limit_page(synth_default: Synth) -> None:
+    props = alarm(synth_default, "Arms of So101TwinStack publish, but the agent already tracks")
+    assert (props["MetricName"], props["Statistic"], props["Period"]) == ("DeviceLimitRefusals", "Sum", 60)
+    assert props["ComparisonOperator"] == "GreaterThanOrEqualToThreshold"
+    assert (props["Threshold"], props["EvaluationPeriods"], props["DatapointsToAlarm"]) == (1, 5, 5)
+    assert props["TreatMissingData"] == "notBreaching"
+    assert "max_devices" in props["AlarmDescription"] and "Fleet page" in props["AlarmDescription"]
 
 
 def test_host_publishes_servo_alarms_to_the_topic_only(synth_default: Synth) -> None:
@@ -281,7 +291,7 @@ def test_the_dashboard_shows_every_alarm_and_is_an_output(synth_default: Synth) 
     body = dashboard_body(synth_default)
     status = [w for w in body["widgets"] if w["type"] == "alarm"]
     alarms = synth_default.resources("AWS::CloudWatch::Alarm")
-    assert len(status) == 1 and len(status[0]["properties"]["alarms"]) == len(alarms) == 15
+    assert len(status) == 1 and len(status[0]["properties"]["alarms"]) == len(alarms) == 16
     # One point a minute, the agent's EMF interval, each with the statistic its figure needs.
     for widget in body["widgets"]:
         for row in widget["properties"].get("metrics", []):

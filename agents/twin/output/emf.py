@@ -55,6 +55,9 @@ WORST_ARM_LOSS_PERCENT = "WorstArmLossPercent"
 # The highest internal latency p99 of the arms (receive to twin updated, over each arm's health window): how
 # far behind its messages the agent is, which a stack alarm watches (arms' statuses are read where it stands).
 INTERNAL_LATENCY_P99 = "InternalLatencyP99"
+# Messages refused because the agent already tracked telemetry.max_devices arms (a stack alarm): arms that
+# publish and are kept out, which no other figure tells from garbage.
+DEVICE_LIMIT_REFUSALS = "DeviceLimitRefusals"
 LOSS_METRICS: tuple[str, ...] = (
     MESSAGES_DROPPED,
     SINK_DROPS,
@@ -132,6 +135,7 @@ class FleetMetrics:
     history_commit_failures: int | None = None
     history_lag_s: float | None = None
     worst_arm_loss_percent: float = 0.0  # WORST_ARM_LOSS_PERCENT
+    device_limit_refusals: int = 0  # DEVICE_LIMIT_REFUSALS during the interval
 
 
 def fleet_documents(
@@ -156,6 +160,7 @@ def fleet_documents(
         Metric(SINK_DROPS, fleet.sink_drops, "Count"),
         Metric(WORKER_RESTARTS, fleet.worker_restarts, "Count"),
         Metric(SUBSCRIPTIONS_REFUSED, fleet.subscriptions_refused, "Count"),
+        Metric(DEVICE_LIMIT_REFUSALS, fleet.device_limit_refusals, "Count"),
     ]
     if fleet.history_lag_s is not None:
         metrics += [
@@ -249,6 +254,7 @@ class FleetTotals:
     history_commit_failures: int | None = None
     history_lag_s: float | None = None
     worst_arm_loss_percent: float = 0.0  # a gauge: WORST_ARM_LOSS_PERCENT
+    device_limit_refusals: int = 0  # a running total: DEVICE_LIMIT_REFUSALS
 
 
 def increase(now: int | None, before: int | None) -> int:
@@ -323,6 +329,9 @@ class EmfPublisher:
             sink_drops=increase(totals.sink_drops, before.sink_drops if before else None),
             worker_restarts=increase(totals.worker_restarts, before.worker_restarts if before else None),
             subscriptions_refused=totals.subscriptions_refused,
+            device_limit_refusals=increase(
+                totals.device_limit_refusals, before.device_limit_refusals if before else None
+            ),
             history_rows_dropped=increase(
                 totals.history_rows_dropped, before.history_rows_dropped if before else None
             )

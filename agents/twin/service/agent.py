@@ -48,7 +48,7 @@ from twin.output.alerts import Alert, AlertPublisher, sns_publisher
 from twin.output.emf import EmfFileWriter, EmfPublisher, FleetTotals
 from twin.output.history_feed import HistoryProcess, HistoryStartError, WriterFigures
 from twin.output.sinks import TwinSink
-from twin.service.admission import DeviceBudget
+from twin.service.admission import TOO_MANY_DEVICES, DeviceBudget
 from twin.service.calibrations import CalibrationBook, CalibrationWatcher, open_store, store_location
 from twin.service.config import AgentConfig, ConfigError, pool_settings
 from twin.service.console import (
@@ -1458,6 +1458,7 @@ def fleet_totals(state: AgentState, expected_rate_hz: float) -> FleetTotals:
         worker_restarts=sum(w.restarts for w in state.agent.workers)
         + (history.writer_restarts if history is not None else 0),
         subscriptions_refused=state.agent.broker.subscriptions_refused,
+        device_limit_refusals=state.untracked_rejected.get(TOO_MANY_DEVICES, 0),
         history_rows_dropped=history.rows_not_written if history is not None else None,
         history_commit_failures=history.commit_failures if history is not None else None,
         history_lag_s=history.lag_s if history is not None else None,
