@@ -30,8 +30,9 @@ from twin.edge.servo_faults import ServoFault
 from twin.rig.local import LocalRig
 from twin.service import mirror as mirror_module
 from twin.service.admission import DeviceBudget
-from twin.service.agent import AgentService
-from twin.service.config import load_config
+from twin.service.agent import AgentService, long_offline
+from twin.service.config import ConfigError, load_config
+from twin.service.console import FleetRow
 from twin.service.events import EventKind, EventQuery
 from twin.service.mirror import Mirror, PipeInbox
 from twin.service.shards import ArmNotForgettableError, ArmNotFoundError, WorkerPlan, WorkerShard
@@ -537,3 +538,67 @@ def test_a_forgotten_arm_that_publishes_again_has_no_drops_of_before(tmp_path: P
         assert agent.state().agent.mailbox.overwritten_total >= total
     finally:
         agent.stop()
+
+
+def _row(device: str, status: str = "OFFLINE", last_seen: float | None = 0.0, **kw: Any) -> FleetRow:
+    return FleetRow(device, status, last_seen, None, None, None, None, None, None, None, None, 0, **kw)
+
+
+def test_the_agent_forgets_only_arms_offline_that_long_with_nothing_waiting_for_a_person() -> None:
+    rows = [
+        _row("gone", last_seen=1000.0),
+        _row("recent", last_seen=9000.0),  # OFFLINE, not yet that long
+        _row("alarmed", last_seen=1000.0, unacknowledged=1),  # an alarm ACTIVE or LATCHED
+        _row("listed", last_seen=1000.0),  # in telemetry.devices
+        _row("restarting", last_seen=1000.0, mirror="restarting"),  # rows of a checkpoint
+        _row("stale", "STALE", last_seen=1000.0),
+        _row("kept", last_seen=None),  # listed for its kept alarms, not heard since the start (at 500)
+    ]
+    forgotten = long_offline(rows, 10_000.0, 7200.0, 500.0, frozenset({"listed"}))
+    assert forgotten == [("gone", 9000.0), ("kept", 9500.0)]
+    assert long_offline(rows, 10_000.0, 9600.0, 500.0, frozenset()) == []
+
+
+@pytest.mark.parametrize("after", [0.5, -1.0, float("nan")])
+def test_forget_offline_after_must_be_longer_than_offline(after: float) -> None:
+    with pytest.raises(ConfigError, match="forget_offline_after_s"):
+        load_config(None, {"health.offline_after_s": 1.0, "telemetry.forget_offline_after_s": after})
+
+
+def test_an_arm_offline_longer_than_forget_offline_after_s_is_forgotten_by_the_agent(
+    rig: LocalRig, tmp_path: Path
+) -> None:
+    """A churning fleet filled every max_devices place with arms retired long ago, and new ones were refused
+    until a person forgot them one by one: with the setting, the agent forgets them itself, as a person's
+    forget does (the state file too), and says so."""
+    state_file = tmp_path / "state.json"
+    agent = rig.start_agent(
+        {
+            "telemetry.units": "ticks",
+            "health.offline_after_s": 1.0,
+            "telemetry.forget_offline_after_s": 2.0,
+            "twin.state_file": str(state_file),
+        },
+        workers=2,
+    )
+    url = agent.http_url
+    retired = rig.start_edge(["arm-002"], rate_hz=10.0, seconds=None)
+    stays = rig.start_edge(["arm-001"], rate_hz=10.0, seed=3)
+    try:
+        wait_for(lambda: {"arm-001", "arm-002"} <= set(agent.state().devices), 60, "both arms")
+        retired.stop()
+        wait_for(lambda: "arm-002" not in agent.state().devices, 60, "arm-002 forgotten")
+
+        def told() -> list[dict[str, Any]]:
+            found = _get(f"{url}/api/events?device=arm-002&kind=twin")["events"]
+            return [e for e in found if e["data"].get("action") == "forgotten"]
+
+        wait_for(told, 30, "the event of it")
+        (event,) = told()
+        assert event["data"]["by"] == "agent", event
+        assert event["message"].startswith("arm-002 forgotten by the agent: OFFLINE for "), event
+        assert "telemetry.forget_offline_after_s" in event["message"]
+        assert agent.state().devices["arm-001"].health.status == "ONLINE"  # the arm that publishes stays
+    finally:
+        retired.stop()
+        stays.stop()

@@ -68,6 +68,8 @@ from twin.service.shards import (
     AckRequest,
     AlarmsRequest,
     ArmForgotten,
+    ArmNotForgettableError,
+    ArmNotFoundError,
     ArmRequest,
     CalibrationsRequest,
     CheckpointRequest,
@@ -153,6 +155,38 @@ MAX_HELD_NOTICES = 5
 # off leaves the page after a minute.
 UNHEARD_MIN_REJECTED = 10
 UNHEARD_RECENT_S = 60.0
+# How often the agent looks for arms OFFLINE longer than telemetry.forget_offline_after_s.
+FORGET_SWEEP_S = 5.0
+
+
+def long_offline(
+    rows: Sequence[FleetRow], wall: float, after_s: float, started_wall: float, configured: frozenset[str]
+) -> list[tuple[str, float]]:
+    """The arms `_forget_long_offline` forgets, with how long each has been silent: OFFLINE for `after_s` or
+    more (one not heard in this run, kept for its alarms: since the agent's start), not listed in the
+    config, with no alarm ACTIVE or LATCHED (what a person has not seen is not taken from them), and its
+    worker running (a restarting one's rows are its checkpoint's)."""
+    out = []
+    for row in rows:
+        if (
+            row.status != "OFFLINE"
+            or row.unacknowledged
+            or row.device in configured
+            or row.mirror != "running"
+        ):
+            continue
+        silent = wall - (row.last_seen if row.last_seen is not None else started_wall)
+        if silent >= after_s:
+            out.append((row.device, silent))
+    return out
+
+
+def _spoken(seconds: float) -> str:
+    """A span as a person reads it: 45 s, 12 min, 5 h, 8 days."""
+    for unit, size in (("days", 86400.0), ("h", 3600.0), ("min", 60.0)):
+        if seconds >= 2 * size:
+            return f"{seconds / size:.0f} {unit}"
+    return f"{seconds:.0f} s"
 
 
 def _check_workers(config: AgentConfig, workers: int, sinks: Sequence[TwinSink]) -> None:
@@ -539,6 +573,7 @@ class AgentService:
 
     def _supervise(self) -> None:
         next_checkpoint = time.monotonic() + CHECKPOINT_EVERY_S
+        next_forget = time.monotonic() + FORGET_SWEEP_S
         while not self._stopping.is_set():
             self._wake.wait(SUPERVISE_EVERY_S)
             if self._stopping.is_set():
@@ -558,6 +593,26 @@ class AgentService:
             if urgent or now >= next_checkpoint:
                 next_checkpoint = now + CHECKPOINT_EVERY_S
                 self._keep_state()
+            if self.config.telemetry.forget_offline_after_s and now >= next_forget:
+                next_forget = now + FORGET_SWEEP_S
+                self._forget_long_offline()
+
+    def _forget_long_offline(self) -> None:
+        """Forget each arm OFFLINE for telemetry.forget_offline_after_s with no alarm waiting for a person, as
+        an operator's forget does (kept at once, one event): a fleet whose ids come and go otherwise filled
+        every max_devices place with arms retired long ago, refusing new ones until a person forgot them."""
+        after = self.config.telemetry.forget_offline_after_s
+        started = self._started_wall if self._started_wall is not None else self._wall_clock()
+        configured = frozenset(() if self.config.telemetry.all_devices else self.config.telemetry.devices)
+        for device, silent in long_offline(self.fleet_rows(), self._wall_clock(), after, started, configured):
+            if self._stopping.is_set():
+                return
+            reason = f"by the agent: OFFLINE for {_spoken(silent)} (telemetry.forget_offline_after_s)"
+            try:
+                self.forget_arm(device, reason=reason)
+            except (ArmNotFoundError, ArmNotForgettableError, WorkerError) as exc:
+                # Heard again, forgotten by a person meanwhile, or its worker restarting: the next sweep.
+                log.debug("arm %s not forgotten: %s", device, exc)
 
     # ------------------------------------------------------------------------------------------ state kept
 
@@ -983,7 +1038,7 @@ class AgentService:
             lambda checkpoint: acknowledged_of(shard.request(AckRequest(alarm_id, checkpoint=checkpoint))()),
         )
 
-    def forget_arm(self, device: str) -> ArmForgotten:
+    def forget_arm(self, device: str, *, reason: str = "") -> ArmForgotten:
         """Remove an OFFLINE arm from the fleet, by the mirror of its device (Mirror.forget_arm). Raises
         ArmNotFoundError, ArmNotForgettableError (not OFFLINE, or configured), or WorkerError when that
         device's worker is being started again."""
@@ -992,7 +1047,8 @@ class AgentService:
             raise WorkerError(f"worker {shard.index} is being started again")
 
         def forget(checkpoint: bool) -> tuple[ArmForgotten, MirrorCheckpoint | None]:
-            forgotten = forgotten_of(shard.request(ForgetRequest(device, checkpoint=checkpoint))())
+            request = ForgetRequest(device, checkpoint=checkpoint, reason=reason)
+            forgotten = forgotten_of(shard.request(request)())
             return dataclasses.replace(forgotten, checkpoint=None), forgotten.checkpoint
 
         # Once kept: the agent's own counts of it (its queue's drops) go, as the mirror's went.

@@ -80,6 +80,9 @@ class TelemetrySection:
     # One host mirrors about this many arms, and the account's default IoT Core publish quota carries as many
     # at 10 Hz; a device counts once it has sent valid telemetry (service.admission).
     max_devices: int = 2000
+    # An arm OFFLINE this long, with no alarm waiting for a person, is forgotten as an operator would forget
+    # it (its place in max_devices goes to a new arm); 0: never (twin.service.agent, "forget_long_offline").
+    forget_offline_after_s: float = 0.0
 
     @property
     def all_devices(self) -> bool:
@@ -382,6 +385,7 @@ def validate(config: AgentConfig) -> AgentConfig:
     _validate_telemetry(config.telemetry)
     _validate_twin(config.twin)
     _validate_health(config.health)
+    _validate_forget(config.telemetry, config.health)
     _validate_http(config.http)
     _positive("cloudwatch.interval_s", config.cloudwatch.interval_s)
     if config.cloudwatch.emf_file and not config.cloudwatch.agent_name:
@@ -565,6 +569,16 @@ def _validate_health(h: HealthThresholds) -> None:
         raise ConfigError(
             f"health.offline_after_s = {h.offline_after_s} must be longer than the stale time "
             f"(stale_periods / expected_rate_hz = {h.stale_after_s:g} s); raise offline_after_s"
+        )
+
+
+def _validate_forget(t: TelemetrySection, h: HealthThresholds) -> None:
+    after = t.forget_offline_after_s
+    if after != 0 and not (math.isfinite(after) and after > h.offline_after_s):
+        raise ConfigError(
+            f"telemetry.forget_offline_after_s = {after} must be 0 (never) or longer than "
+            f"health.offline_after_s = {h.offline_after_s:g} (an arm is forgotten once OFFLINE that long); "
+            "e.g. 604800 for a week"
         )
 
 

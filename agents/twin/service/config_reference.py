@@ -126,6 +126,13 @@ KEY_DOCS: dict[str, str] = {
         "Hz are 20,000 publishes a second, the account's default IoT Core inbound quota. At most "
         "10000. A `devices` list longer than this is refused."
     ),
+    "telemetry.forget_offline_after_s": (
+        'Forget an arm OFFLINE this long (seconds) as an operator would (docs/console.md, "Forget an '
+        'arm"), unless an alarm of it waits for a person (ACTIVE or LATCHED) or it is listed in `devices`: '
+        "for a fleet whose ids come and go, so retired arms give their `max_devices` places to new ones. "
+        "One event says so. 0, the default, never; else longer than `health.offline_after_s`, e.g. 604800 "
+        "for a week."
+    ),
     "twin.mode": (
         "`kinematic`: the twin shows exactly the measured pose. `physics`: the measured pose is the "
         "target of the simulated servos, and the worker steps the simulation. Flag `--mode`."

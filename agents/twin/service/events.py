@@ -787,9 +787,11 @@ class FleetWatch:
     def broker(self, connections: Iterable[ConnectionCounters]) -> None:
         self._broker.sweep(connections)
 
-    def forgotten(self, device: str, status: str, alarms_removed: Mapping[str, int]) -> None:
-        """An operator forgot `device` (it was `status`): its memory here goes, and one event says what was
-        removed with it."""
+    def forgotten(
+        self, device: str, status: str, alarms_removed: Mapping[str, int], reason: str = ""
+    ) -> None:
+        """An operator forgot `device` (it was `status`), or the agent did for `reason`: its memory here goes,
+        and one event says what was removed with it."""
         self._statuses.forget(device)
         self._rates.forget(device)
         self._losses.forget(device)
@@ -798,12 +800,13 @@ class FleetWatch:
         self.store.emit(
             EventKind.TWIN,
             EventLevel.INFO,
-            f"{device} forgotten by an operator (it was {status}): its twin, health and counters removed; "
-            f"alarms removed: {alarms}",
+            f"{device} forgotten {reason or 'by an operator'} (it was {status}): its twin, health and "
+            f"counters removed; alarms removed: {alarms}",
             device=device,
             data={
                 "action": "forgotten",
                 "status": status,
+                "by": "agent" if reason else "operator",
                 **{f"alarms_{state}": n for state, n in sorted(alarms_removed.items())},
             },
         )

@@ -1440,7 +1440,7 @@ class Mirror:
                 return self.acknowledge_checkpointed(request.alarm_id)
             return self.acknowledge_alarm(request.alarm_id)
         if isinstance(request, ForgetRequest):
-            return self.forget_arm(request.device, checkpoint=request.checkpoint)
+            return self.forget_arm(request.device, checkpoint=request.checkpoint, reason=request.reason)
         if isinstance(request, EventsRequest):
             # The oldest first: a burst over EVENTS_PER_ASK comes over the rounds that follow, none skipped.
             return tuple(self._events.after(request.after_id, EVENTS_PER_ASK))
@@ -1761,19 +1761,22 @@ class Mirror:
             )
             return None
 
-    def forget_arm(self, device: str, *, checkpoint: bool = False) -> ArmForgotten:
+    def forget_arm(self, device: str, *, checkpoint: bool = False, reason: str = "") -> ArmForgotten:
         """Remove an OFFLINE arm an operator retired (docs/console.md, "Forget an arm"): its twin, health and
         counters, loss estimator, units decision and every alarm, and give its place in the device budget
         back. Between two batches on the worker thread (the decoder is the worker's alone). Raises
         ArmNotFoundError (not tracked here) or ArmNotForgettableError (not OFFLINE, or configured). With
         `checkpoint`, the mirror's checkpoint begun between the same two batches comes with the answer: a
-        worker's restart point without the arm, with no message in between that could still hold it."""
+        worker's restart point without the arm, with no message in between that could still hold it. `reason`:
+        why the agent forgot it itself (its event says so), empty for an operator."""
         if not checkpoint:
-            return self._between_batches(lambda: self._forget_arm(device))
-        forgotten, capture = self._between_batches(lambda: (self._forget_arm(device), self._begin_capture()))
+            return self._between_batches(lambda: self._forget_arm(device, reason))
+        forgotten, capture = self._between_batches(
+            lambda: (self._forget_arm(device, reason), self._begin_capture())
+        )
         return dataclasses.replace(forgotten, checkpoint=self._act_checkpoint(capture))
 
-    def _forget_arm(self, device: str) -> ArmForgotten:
+    def _forget_arm(self, device: str, reason: str = "") -> ArmForgotten:
         # A checkpoint being taken would carry the arm's row and alarms: finish it first, so the one the agent
         # takes next (it is woken for it) no longer holds them.
         self._finish_capture()
@@ -1804,7 +1807,7 @@ class Mirror:
         if record is not None or device in self._kept_places:
             self._kept_places.discard(device)
             self._budget.give_back(self._slot)
-        self._watch.forgotten(device, str(status), removed)
+        self._watch.forgotten(device, str(status), removed, reason)
         log.info("device forgotten", extra={"device": device, "alarms_removed": removed})
         return ArmForgotten(device=device, status=str(status), alarms_removed=removed)
 

@@ -232,10 +232,12 @@ class ForgetRequest:
     """Forget one OFFLINE arm of the mirror's devices (its twin, health, alarms, budget place); answered
     with ArmForgotten, refused as ArmNotFoundError or ArmNotForgettableError. With `checkpoint`, the answer
     carries the mirror's checkpoint begun right after the forget, between the same two batches: a worker's
-    restart point that no longer holds the arm (service.agent keeps it at once)."""
+    restart point that no longer holds the arm (service.agent keeps it at once). `reason`: why the agent
+    forgot it itself (telemetry.forget_offline_after_s); empty for an operator's forget."""
 
     device: str
     checkpoint: bool = False
+    reason: str = ""
 
 
 @dataclass(frozen=True, slots=True)
