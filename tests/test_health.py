@@ -66,6 +66,27 @@ def test_untracked_refused_devices_are_kept_bounded_newest_last_and_leave_once_h
     assert "junk-006" not in fleet.unheard
 
 
+def test_a_reading_behind_its_input_keeps_the_latency_windows_of_the_messages_handled() -> None:
+    # The latency windows go by receive time. Read on the clock, a worker a window (5 s) or more behind had
+    # no sample left: InternalLatencyP99 went unwritten (AgentBehind, its alarm, treats that as fine) while
+    # ArmsStale stays quiet by design, so a host 6 s behind paged nothing.
+    clock = FakeClock()
+    fleet = FleetHealth(TH, [], clock=clock)
+    health = fleet.device("arm-001")
+    for _ in range(10):
+        clock.advance(0.1)
+        wall = 1.7e9 + clock.t
+        health.record_received()
+        health.record_decoded(clock.t, wall, round((wall - 0.020) * 1000))
+        health.record_applied(clock.t, clock.t + 6.0, round((wall - 0.020) * 1000))  # handled 6 s late
+    clock.advance(6.0)  # the worker stands at the last message handled, 6 s ago
+    reading = fleet.readings(clock.t, behind_s=6.0)["arm-001"].snapshot()
+    assert reading.status is DeviceStatus.ONLINE
+    assert reading.internal_latency_s.p99 == pytest.approx(6.0)
+    assert reading.edge_clock_latency_s.samples == 10
+    assert fleet.readings(clock.t + 6.0, behind_s=0.0)["arm-001"].snapshot().internal_latency_s.p99 is None
+
+
 def test_statuses_heard_only_leave_out_devices_not_heard_from() -> None:
     # The status events read these: a configured arm not heard from, or one whose messages were all turned
     # away, is silent since start-up (STALE after 0.3 s) but has not arrived. The health check reads them all.

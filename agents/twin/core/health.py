@@ -459,7 +459,9 @@ class DeviceHealth:
         """What `snapshot` needs, copied (the windows trimmed to `now` first): a reader holding the worker's
         lock takes this and builds the snapshot after letting go. The status and rate are read `behind_s`
         before `now`, where the worker stands in its input (service.mirror, "behind"): the messages after it
-        are waiting, not missing. The age stays on the clock: it is how old the twin's pose is."""
+        are waiting, not missing. So are the latency windows, whose samples go by receive time: read on the
+        clock, a worker a window (5 s) behind had none, and InternalLatencyP99, which AgentBehind pages on,
+        went missing as the lag grew. The age stays on the clock: it is how old the twin's pose is."""
         now = self._clock() if now is None else now
         at = now - behind_s
         return HealthReading(
@@ -468,8 +470,8 @@ class DeviceHealth:
             rate_hz=self._rate.rate(at),
             last_timestamp_ms=self.last_timestamp_ms,
             counters=self._counters(),
-            edge_latencies=self._edge_latency.samples(now),
-            internal_latencies=self._internal_latency.samples(now),
+            edge_latencies=self._edge_latency.samples(at),
+            internal_latencies=self._internal_latency.samples(at),
         )
 
 

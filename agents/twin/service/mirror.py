@@ -1503,8 +1503,10 @@ class Mirror:
             self._watch.losses(recent, now)
         if self._watch.clocks_due(now):
             # An edge clock far off (events.ClockWatch): a minimum over each arm's window, so not every sweep.
+            # The window goes by receive time: read where the worker stands, or a worker a window behind has
+            # no offsets, and the arms reported off are dropped without a word (and reported again later).
             with self._lock:
-                offsets = self._fleet.clock_offsets(now)
+                offsets = self._fleet.clock_offsets(at)
             self._watch.clocks(offsets)
 
     def statuses(self) -> dict[str, DeviceStatus]:
