@@ -115,6 +115,33 @@ def test_a_browser_post_from_another_origin_is_refused(agent: AgentService) -> N
     assert status == 403 and body["error"] == "cross_site"
 
 
+def test_a_page_of_another_site_may_link_to_the_console_but_not_fetch_from_it(agent: AgentService) -> None:
+    host, port = address(agent)
+
+    def get_as(path: str, fetch: dict[str, str]) -> tuple[int, bytes]:
+        lines = [f"GET {path} HTTP/1.1", f"Host: {host}:{port}", "Connection: close"]
+        lines += [f"Sec-Fetch-{k}: {v}" for k, v in fetch.items()]
+        status, _, body = request(agent, ("\r\n".join(lines) + "\r\n\r\n").encode())
+        return status, body
+
+    for fetch in (
+        {"Site": "cross-site", "Mode": "cors", "Dest": "empty"},  # fetch() of the API
+        {"Site": "cross-site", "Mode": "no-cors", "Dest": "image"},  # <img src=...>
+        {"Site": "cross-site", "Mode": "navigate", "Dest": "iframe"},
+    ):
+        status, body = get_as("/api/fleet", fetch)
+        assert status == 403 and json.loads(body)["error"] == "cross_site", (fetch, body)
+    # A link followed from elsewhere, the console's own requests, the Rerun viewer's port, and curl: served.
+    for fetch in (
+        {"Site": "cross-site", "Mode": "navigate", "Dest": "document"},
+        {"Site": "same-origin", "Mode": "cors", "Dest": "empty"},
+        {"Site": "same-site", "Mode": "cors", "Dest": "empty"},
+        {"Site": "none", "Mode": "navigate", "Dest": "document"},
+        {},
+    ):
+        assert get_as("/api/fleet", fetch)[0] == 200, fetch
+
+
 def test_a_browser_post_needs_the_csrf_token(agent: AgentService) -> None:
     host, port = address(agent)
     origin = f"http://{host}:{port}"

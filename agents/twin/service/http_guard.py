@@ -130,7 +130,7 @@ class RequestGuard:
                 "in its config); a page that reached it under another name is refused",
             )
         if scope["method"] in SAFE_METHODS:
-            return None
+            return _isolated(headers)
         length = headers.get("content-length")
         if length is not None and (not length.isdigit() or int(length) > self.settings.max_body_bytes):
             return (
@@ -176,6 +176,24 @@ class RequestGuard:
         if not hmac.compare_digest(token.encode(), self.csrf_token.encode()):
             return (403, "csrf_token_invalid", "the CSRF token does not match; reload the console page")
         return None
+
+
+def _isolated(headers: dict[str, str]) -> tuple[int, str, str] | None:
+    """A page of another site may link to the console (a navigation), not fetch from it: a walk's page
+    elsewhere could have a browser on the host pull session files, exports and streams from 127.0.0.1
+    (unread, but each costs the agent its work, and a stream one of the browser's six connections). Only a
+    browser says where a request comes from; curl and `twin` send no `Sec-Fetch-Site` and pass."""
+    if headers.get("sec-fetch-site", "").lower() != "cross-site":
+        return None
+    mode, dest = headers.get("sec-fetch-mode", "").lower(), headers.get("sec-fetch-dest", "").lower()
+    if mode == "navigate" and dest in ("document", ""):
+        return None  # a link followed, from an alarm e-mail in a webmail or another site's page
+    return (
+        403,
+        "cross_site",
+        f"a page of another site may not fetch from this agent ({mode or 'no mode'} request for "
+        f"{dest or 'no destination'}); open the console itself",
+    )
 
 
 def _same_origin(origin: str, host: str | None) -> bool:
