@@ -221,6 +221,30 @@ class _StarvedClock:
         return max(t for at, t in self._steps if processed >= at)
 
 
+class _StarvedMirror:
+    """A mirror on a _StarvedClock with a queue to feed: `put` hands it one message of each device received
+    at `recv` and waits until the worker has handled them."""
+
+    def __init__(self, steps: list[tuple[int, float]], seed: int) -> None:
+        self.clock = _StarvedClock(steps)
+        config = load_config(
+            None, {"broker.url": NO_BROKER, "telemetry.devices": ["*"], "telemetry.units": "ticks"}
+        )
+        self.queue: InboundQueue[QueuedMessage] = InboundQueue()
+        self.mirror = Mirror(config, inbox=QueueInbox(self.queue), budget=DeviceBudget(100), clock=self.clock)
+        self.clock.mirror = self.mirror
+        self.rng, self.sent = random.Random(seed), 0
+
+    def put(self, devices: list[str], recv: float, edge_t: float) -> None:
+        for d in devices:
+            stamp = round((1.7e9 + recv) * 1000)
+            payload = encode(make_payload(d, edge_t, "ticks", self.rng, timestamp_ms=stamp))
+            self.queue.put(d, (f"dt/lerobot/{d}/telemetry", payload, recv, 1.7e9 + recv))
+        self.sent += len(devices)
+        sent = self.sent
+        wait_for(lambda: self.mirror.processed >= sent, 60, f"{sent} messages handled")
+
+
 def test_a_worker_behind_its_input_reports_no_arm_stale_and_a_silent_fleet_still_goes_stale() -> None:
     """A worker starved of CPU for 0.5 s takes its backlog in pieces (a pipe holds so much). The status
     sweep after the first piece used to read every other arm's silence on the wall clock: all of them went
@@ -228,23 +252,8 @@ def test_a_worker_behind_its_input_reports_no_arm_stale_and_a_silent_fleet_still
     the newest message handled, so only a fleet that is silent in the stream itself goes STALE."""
     arms = [f"arm-{n:03d}" for n in range(20)]
     # Round one is handled at 1000.0; the piece (two arms) at 1000.5, the worker having slept 0.5 s.
-    clock = _StarvedClock([(0, 1000.0), (len(arms) + 2, 1000.5)])
-    config = load_config(
-        None, {"broker.url": NO_BROKER, "telemetry.devices": ["*"], "telemetry.units": "ticks"}
-    )
-    queue: InboundQueue[QueuedMessage] = InboundQueue()
-    mirror = Mirror(config, inbox=QueueInbox(queue), budget=DeviceBudget(100), clock=clock)
-    clock.mirror = mirror
-    rng, sent = random.Random(11), 0
-
-    def put(devices: list[str], recv: float, edge_t: float) -> None:
-        nonlocal sent
-        for d in devices:
-            stamp = round((1.7e9 + recv) * 1000)
-            payload = encode(make_payload(d, edge_t, "ticks", rng, timestamp_ms=stamp))
-            queue.put(d, (f"dt/lerobot/{d}/telemetry", payload, recv, 1.7e9 + recv))
-        sent += len(devices)
-        wait_for(lambda: mirror.processed >= sent, 60, f"{sent} messages handled")
+    starved = _StarvedMirror([(0, 1000.0), (len(arms) + 2, 1000.5)], seed=11)
+    mirror, clock, put = starved.mirror, starved.clock, starved.put
 
     def status_events() -> list[tuple[str, str]]:
         found = mirror.events(EventQuery(kinds=frozenset({EventKind.STATUS.value})))
@@ -271,27 +280,13 @@ def test_a_worker_behind_its_input_shows_its_arms_online_and_says_how_far_behind
     is shown instead (`behind_s`, a Fleet page notice, the AgentBehind alarm on the internal latency)."""
     arms = [f"arm-{n:03d}" for n in range(5)]
     # The first round is handled at 1000.0; the second, received at 1000.0, only at 1002.0.
-    clock = _StarvedClock([(0, 1000.0), (2 * len(arms), 1002.0)])
-    config = load_config(
-        None, {"broker.url": NO_BROKER, "telemetry.devices": ["*"], "telemetry.units": "ticks"}
-    )
-    queue: InboundQueue[QueuedMessage] = InboundQueue()
-    mirror = Mirror(config, inbox=QueueInbox(queue), budget=DeviceBudget(100), clock=clock)
-    clock.mirror = mirror
-    rng, sent = random.Random(5), 0
-
-    def put(recv: float, edge_t: float) -> None:
-        nonlocal sent
-        for d in arms:
-            payload = encode(make_payload(d, edge_t, "ticks", rng, timestamp_ms=round((1.7e9 + recv) * 1000)))
-            queue.put(d, (f"dt/lerobot/{d}/telemetry", payload, recv, 1.7e9 + recv))
-        sent += len(arms)
-        wait_for(lambda: mirror.processed >= sent, 60, f"{sent} messages handled")
+    starved = _StarvedMirror([(0, 1000.0), (2 * len(arms), 1002.0)], seed=5)
+    mirror, clock = starved.mirror, starved.clock
 
     mirror.start()
     try:
-        put(999.9, 0.0)
-        put(1000.0, 0.1)
+        starved.put(arms, 999.9, 0.0)
+        starved.put(arms, 1000.0, 0.1)
         wait_for(lambda: mirror.behind_s == pytest.approx(2.0), 60, "the worker 2 s behind")
         assert set(mirror.statuses().values()) == {DeviceStatus.ONLINE}
         rows = mirror.fleet_rows()
