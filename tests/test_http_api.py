@@ -266,6 +266,7 @@ def test_metrics_of_a_real_state_agree_with_it() -> None:
     assert arm.joints_rad is not None and arm.torques_nm is not None
     assert metric(samples, "twin_up") == 1
     assert metric(samples, "twin_broker_connected") == 0
+    assert metric(samples, "twin_worker_behind_seconds") == state.agent.worker.behind_s
     assert metric(samples, "twin_messages_applied_total", device="arm-001") == arm.health.counters.applied
     assert metric(samples, "twin_messages_received_total", device="arm-001") == arm.health.counters.received
     assert metric(samples, "twin_messages_rejected_total", device="arm-001", reason="not_json") == 1

@@ -89,6 +89,12 @@ def _agent_families(agent: AgentInfo) -> Iterator[Metric]:
     yield _counter(
         "twin_worker_batches_total", "Batches the twin worker took from the mailbox.", agent.worker.batches
     )
+    yield _gauge(
+        "twin_worker_behind_seconds",
+        "How far behind its messages a worker stood at its last sweep, the most of any worker (its arms' "
+        "statuses are read there).",
+        agent.worker.behind_s,
+    )
     yield from _sink_families(agent)
     if agent.history is not None:
         yield from _history_families(agent.history)
