@@ -7,6 +7,7 @@ edge simulator publishing.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -35,6 +36,7 @@ from twin.edge.payload import encode, make_payload
 from twin.edge.servo_faults import ServoFault
 from twin.rig.local import LocalRig, child_env
 from twin.rig.quota_proxy import QuotaProxy
+from twin.service import shards
 from twin.service.admission import DeviceBudget
 from twin.service.config import ConfigError, load_config
 from twin.service.persist import StateFile
@@ -283,7 +285,6 @@ class _SilentWorker:
 def test_asking_every_worker_waits_out_one_timeout_for_all_not_one_each(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    from twin.service import shards
 
     now = [1000.0]
     monkeypatch.setattr(shards.time, "monotonic", lambda: now[0])
@@ -305,6 +306,64 @@ def test_asking_every_worker_waits_out_one_timeout_for_all_not_one_each(
     assert silent[1][1].polled == []  # no second timeout: the ask's own deadline had passed with the first
 
 
+class _StuckMirrorWorker(_SilentWorker):
+    """A worker process whose control thread answers each call at once, as its mirror thread would have it
+    (`replies` by kind: "stuck" refuses it as the thread not getting to it, "answer" answers)."""
+
+    def __init__(self, replies: list[str]) -> None:
+        super().__init__()
+        self.replies, self.calls, self.killed = replies, [], False
+        self.pending: list[Any] = []
+
+    def send(self, message: Any) -> None:
+        kind = self.replies.pop(0)
+        if kind == "stuck":
+            text = "the mirror's worker did not take its checkpoint within 10 s"
+            self.pending.append(shards.Refused(message.call_id, shards.Refusal.STUCK, text))
+        else:
+            self.pending.append(shards.Answer(message.call_id, 0))
+
+    def poll(self, timeout: float) -> bool:
+        return bool(self.pending)
+
+    def recv(self) -> Any:
+        return self.pending.pop(0)
+
+    def kill(self) -> None:
+        self.killed = True
+
+    def join(self, timeout: float) -> None:
+        pass
+
+
+def test_a_mirror_thread_that_never_gets_to_a_request_counts_as_hung() -> None:
+    """The process answers, but only to say its mirror thread did not get to the request: a mirror thread
+    stuck for good looks so, and is killed like a process that answers nothing. An answer in between
+    starts the count again."""
+    assert shards.HUNG_AFTER_ASKS == 3
+    config = load_config(None, {"telemetry.devices": ["*"]})
+    shard = shards.WorkerShard(0, config, DeviceBudget(10), context=None)  # type: ignore[arg-type]
+    replies = ["stuck", "stuck", "answer", "stuck", "stuck", "stuck"]
+    worker = _StuckMirrorWorker(list(replies))
+    shard.process, shard.control, shard.ready = worker, worker, True  # type: ignore[assignment]
+
+    def ask(kind: str) -> None:
+        if kind == "answer":
+            assert shard.request(shards.StatusesRequest())() == 0
+            return
+        with pytest.raises(shards.WorkerError, match="did not take its checkpoint"):
+            shard.request(shards.StatusesRequest())()
+
+    for kind in replies[:4]:
+        ask(kind)
+    shard.supervise()
+    assert not worker.killed  # two stuck, an answer, one stuck: busy, not hung
+    for kind in replies[4:]:
+        ask(kind)
+    shard.supervise()
+    assert worker.killed
+
+
 def _messages(first: int, count: int) -> list[tuple[str, tuple[str, bytes, float, float]]]:
     return [
         (f"arm-{i % 3}", (f"dt/lerobot/arm-{i % 3}/telemetry", b'{"n": %d}' % i, 10.0 + i, 1.7e9 + i))
@@ -319,7 +378,6 @@ def test_a_restarted_worker_is_sent_again_exactly_what_its_checkpoint_did_not_co
     pipe messages, and the new worker gets the rest of it, then the later ones, then what was held."""
     import multiprocessing
 
-    from twin.service import shards
     from twin.transport.pipe import messages_of
 
     monkeypatch.setattr(shards, "MAX_UNCONFIRMED", 250)
@@ -512,6 +570,45 @@ def test_a_killed_fork_server_is_named_and_its_workers_run_again(rig: LocalRig) 
     named = [ln for ln in errors if "the fork server that started it is gone" in ln["msg"]]
     assert sorted(ln["worker"] for ln in named) == [0, 1], errors
     assert not [ln for ln in errors if "exited (code 255)" in ln["msg"]], errors
+
+
+@pytest.mark.slow
+def test_a_worker_that_runs_but_answers_nothing_is_killed_and_started_again(
+    rig: LocalRig, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A worker process stuck for good (here stopped with SIGSTOP: a native call holding the GIL looks the
+    same from outside) kept its arms' messages queued, with nothing to say so until the queue overflowed.
+    After HUNG_AFTER_ASKS unanswered asks it is killed and started again from its checkpoint, as after a
+    crash. The asks' timeout is cut to a second here; the agent's is ten."""
+    monkeypatch.setattr(shards, "ASK_TIMEOUT_S", 1.0)
+    agent = rig.start_agent({"telemetry.units": "ticks"}, workers=2)
+    fleet = ["arm-001", "arm-002", "arm-003", "arm-004"]
+    edge = rig.start_edge(fleet, rate_hz=10.0)
+    try:
+        shard = agent._shards[agent.plan.worker_of("arm-001")]
+        assert isinstance(shard, shards.WorkerShard)
+        wait_for(lambda: set(fleet) <= set(agent.state().devices), 60, "every arm")
+        victim = shard.pid
+        os.kill(victim, signal.SIGSTOP)
+        wait_for(
+            lambda: shard.restarts == 1 and shard.answering and shard.pid != victim,
+            120,
+            "the hung worker killed and running again",
+            interval=0.2,
+        )
+        before = agent.state().devices["arm-001"].health.counters.received
+        wait_for(
+            lambda: agent.state().devices["arm-001"].health.counters.received > before,
+            60,
+            "arm-001 counted again",
+        )
+        assert not psutil.pid_exists(victim) or psutil.Process(victim).status() == psutil.STATUS_ZOMBIE
+        hung = [r for r in caplog.records if "it is hung" in r.getMessage()]
+        assert hung and f"worker {shard.index} (pid {victim})" in hung[0].getMessage()
+    finally:
+        edge.stop()
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(victim, signal.SIGCONT)
 
 
 # Junk that must take no place in the device budget: garbage on invented devices' topics (on both workers),

@@ -125,6 +125,9 @@ MAX_SEND_PAUSE_S = 0.008
 WORKER_BUDGET_MARGIN_S = 8.0
 # How long a worker may take to answer one request (a state of thousands of arms takes tens of ms).
 ASK_TIMEOUT_S = 10.0
+# A running worker that lets this many asks in a row go unanswered (ASK_TIMEOUT_S each: half a minute and
+# more) is hung, not busy: it is killed, and started again from its checkpoint as one that died.
+HUNG_AFTER_ASKS = 3
 # A worker must be up within this (Python, MuJoCo and the sinks it opens, e.g. a Delta table on S3).
 START_TIMEOUT_S = 120.0
 # A worker that dies within this long of starting is restarted after a growing pause (1, 2, 4 ... s, at most
@@ -644,6 +647,9 @@ class Refusal(StrEnum):
     ARM_NOT_OFFLINE = ARM_NOT_OFFLINE
     ARM_CONFIGURED = ARM_CONFIGURED
     ERROR = "error"
+    # The process answers, but its mirror thread did not get to the request in time: counted as unanswered
+    # (WorkerShard._kill_if_hung), since a mirror thread stuck for good answers nothing else either.
+    STUCK = "stuck"
 
 
 @dataclass(frozen=True, slots=True)
@@ -852,6 +858,8 @@ class WorkerShard:
         self._lost: BoundedCounter[str] = BoundedCounter(MAX_OVERFLOW_KEYS)
         self._calibrations: CalibrationsRequest | None = None
         self._closed = False
+        # Asks in a row this process let time out (HUNG_AFTER_ASKS), read and reset under the control lock.
+        self._unanswered = 0
 
     @property
     def alive(self) -> bool:
@@ -946,7 +954,10 @@ class WorkerShard:
     def supervise(self) -> None:
         """Start the worker again if it died (class doc): its checkpoint, then the messages since."""
         process = self.process
-        if process is None or process.is_alive() or self._closed:
+        if process is None or self._closed:
+            return
+        if process.is_alive():
+            self._kill_if_hung(process)
             return
         now = time.monotonic()
         if self._restart_at is None:
@@ -1000,6 +1011,27 @@ class WorkerShard:
                 "messages_sent_again": replayed,
             },
         )
+
+    def _kill_if_hung(self, process: ForkServerProcess) -> None:
+        """A worker process that runs but answers nothing (stopped, or stuck in a native call with the GIL
+        held) kept its arms' messages queued with nothing to say so until its queue overflowed: after
+        HUNG_AFTER_ASKS unanswered asks it is killed, and the next supervise starts it again from its
+        checkpoint with the messages since, as after a crash (WorkerRestarts pages)."""
+        if self._unanswered < HUNG_AFTER_ASKS:
+            return
+        with self._control_lock:
+            unanswered, self._unanswered = self._unanswered, 0
+        log.error(
+            "worker %d (pid %d) runs but answered none of the last %d requests (%.0f s each): it is hung; "
+            "killing it to start it again from its checkpoint",
+            self.index,
+            self.pid,
+            unanswered,
+            ASK_TIMEOUT_S,
+            extra={"worker": self.index, "pid": self.pid},
+        )
+        process.kill()
+        process.join(ASK_TIMEOUT_S)
 
     def _restore(self, checkpoint: MirrorCheckpoint | None) -> Restored:
         """Hand the new process `checkpoint`, the latest when the restart began (control lock held)."""
@@ -1270,10 +1302,17 @@ class WorkerShard:
             remaining = deadline - time.monotonic()
             try:
                 if remaining <= 0 or not conn.poll(remaining):
+                    self._unanswered += 1
                     raise WorkerError(f"worker {self.index} did not answer within {ASK_TIMEOUT_S:.0f} s")
                 message = conn.recv()
             except (EOFError, OSError) as exc:
                 raise WorkerError(f"worker {self.index} went away: {exc}") from exc
+            if isinstance(message, Refused) and message.refusal is Refusal.STUCK:
+                if message.call_id == call_id:
+                    self._unanswered += 1
+                    raise WorkerError(f"worker {self.index}: {message.message}")
+                continue
+            self._unanswered = 0  # it answers, if late
             if isinstance(message, Answer) and message.call_id == call_id:
                 return message.reply
             if isinstance(message, Refused) and message.call_id == call_id:
@@ -1504,6 +1543,8 @@ def _serve_control(mirror: Mirror, control: Connection) -> None:
             reply = Refused(call.call_id, Refusal.ARM_NOT_FOUND, str(exc.args[0]) if exc.args else "")
         except ArmNotForgettableError as exc:
             reply = Refused(call.call_id, Refusal(exc.code), str(exc))
+        except TimeoutError as exc:  # the mirror's worker thread did not get to it (Mirror._between_batches)
+            reply = Refused(call.call_id, Refusal.STUCK, str(exc))
         except Exception as exc:
             log.exception("worker request %s failed", type(call.request).__name__)
             reply = Refused(call.call_id, Refusal.ERROR, f"{type(exc).__name__}: {exc}")
