@@ -596,7 +596,7 @@ def test_an_arm_offline_longer_than_forget_offline_after_s_is_forgotten_by_the_a
         wait_for(told, 30, "the event of it")
         (event,) = told()
         assert event["data"]["by"] == "agent", event
-        assert event["message"].startswith("arm-002 forgotten by the agent: OFFLINE for "), event
+        assert event["message"].startswith("arm-002 forgotten by the agent: silent for "), event
         assert "telemetry.forget_offline_after_s" in event["message"]
         assert agent.state().devices["arm-001"].health.status == "ONLINE"  # the arm that publishes stays
     finally:

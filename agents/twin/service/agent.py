@@ -162,10 +162,10 @@ FORGET_SWEEP_S = 5.0
 def long_offline(
     rows: Sequence[FleetRow], wall: float, after_s: float, started_wall: float, configured: frozenset[str]
 ) -> list[tuple[str, float]]:
-    """The arms `_forget_long_offline` forgets, with how long each has been silent: OFFLINE for `after_s` or
-    more (one not heard in this run, kept for its alarms: since the agent's start), not listed in the
-    config, with no alarm ACTIVE or LATCHED (what a person has not seen is not taken from them), and its
-    worker running (a restarting one's rows are its checkpoint's)."""
+    """The arms `_forget_long_offline` forgets, with how long each has been silent: OFFLINE and silent
+    `after_s` or more (one not heard in this run, kept for its alarms: since the agent's start), not listed
+    in the config, with no alarm ACTIVE or LATCHED (what a person has not seen is not taken from them), and
+    its worker running (a restarting one's rows are its checkpoint's)."""
     out = []
     for row in rows:
         if (
@@ -598,7 +598,7 @@ class AgentService:
                 self._forget_long_offline()
 
     def _forget_long_offline(self) -> None:
-        """Forget each arm OFFLINE for telemetry.forget_offline_after_s with no alarm waiting for a person, as
+        """Forget each arm silent for telemetry.forget_offline_after_s with no alarm waiting for a person, as
         an operator's forget does (kept at once, one event): a fleet whose ids come and go otherwise filled
         every max_devices place with arms retired long ago, refusing new ones until a person forgot them."""
         after = self.config.telemetry.forget_offline_after_s
@@ -607,7 +607,7 @@ class AgentService:
         for device, silent in long_offline(self.fleet_rows(), self._wall_clock(), after, started, configured):
             if self._stopping.is_set():
                 return
-            reason = f"by the agent: OFFLINE for {_spoken(silent)} (telemetry.forget_offline_after_s)"
+            reason = f"by the agent: silent for {_spoken(silent)} (telemetry.forget_offline_after_s)"
             try:
                 self.forget_arm(device, reason=reason)
             except (ArmNotFoundError, ArmNotForgettableError, WorkerError) as exc:

@@ -80,8 +80,8 @@ class TelemetrySection:
     # One host mirrors about this many arms, and the account's default IoT Core publish quota carries as many
     # at 10 Hz; a device counts once it has sent valid telemetry (service.admission).
     max_devices: int = 2000
-    # An arm OFFLINE this long, with no alarm waiting for a person, is forgotten as an operator would forget
-    # it (its place in max_devices goes to a new arm); 0: never (twin.service.agent, "forget_long_offline").
+    # An arm silent this long (OFFLINE), with no alarm waiting for a person, is forgotten as an operator would
+    # forget it (its place in max_devices goes to a new arm); 0: never (twin.service.agent, long_offline).
     forget_offline_after_s: float = 0.0
 
     @property
@@ -577,7 +577,7 @@ def _validate_forget(t: TelemetrySection, h: HealthThresholds) -> None:
     if after != 0 and not (math.isfinite(after) and after > h.offline_after_s):
         raise ConfigError(
             f"telemetry.forget_offline_after_s = {after} must be 0 (never) or longer than "
-            f"health.offline_after_s = {h.offline_after_s:g} (an arm is forgotten once OFFLINE that long); "
+            f"health.offline_after_s = {h.offline_after_s:g} (an arm is forgotten once silent that long); "
             "e.g. 604800 for a week"
         )
 

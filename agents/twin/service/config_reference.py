@@ -127,8 +127,9 @@ KEY_DOCS: dict[str, str] = {
         "10000. A `devices` list longer than this is refused."
     ),
     "telemetry.forget_offline_after_s": (
-        'Forget an arm OFFLINE this long (seconds) as an operator would (docs/console.md, "Forget an '
-        'arm"), unless an alarm of it waits for a person (ACTIVE or LATCHED) or it is listed in `devices`: '
+        "Forget an arm silent this long (seconds; OFFLINE from `health.offline_after_s` of silence on) as "
+        'an operator would (docs/console.md, "Forget an arm"), unless an alarm of it waits for a person '
+        "(ACTIVE or LATCHED) or it is listed in `devices`: "
         "for a fleet whose ids come and go, so retired arms give their `max_devices` places to new ones. "
         "One event says so. 0, the default, never; else longer than `health.offline_after_s`, e.g. 604800 "
         "for a week."
