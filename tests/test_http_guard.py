@@ -128,14 +128,16 @@ def test_a_page_of_another_site_may_link_to_the_console_but_not_fetch_from_it(ag
         {"Site": "cross-site", "Mode": "cors", "Dest": "empty"},  # fetch() of the API
         {"Site": "cross-site", "Mode": "no-cors", "Dest": "image"},  # <img src=...>
         {"Site": "cross-site", "Mode": "navigate", "Dest": "iframe"},
+        {"Site": "same-site", "Mode": "cors", "Dest": "empty"},  # a page on another port of the host
+        {"Site": "same-site", "Mode": "no-cors", "Dest": "image"},
     ):
         status, body = get_as("/api/fleet", fetch)
         assert status == 403 and json.loads(body)["error"] == "cross_site", (fetch, body)
-    # A link followed from elsewhere, the console's own requests, the Rerun viewer's port, and curl: served.
+    # A link followed from elsewhere (the Rerun viewer's port too), the console's own requests, and curl.
     for fetch in (
         {"Site": "cross-site", "Mode": "navigate", "Dest": "document"},
+        {"Site": "same-site", "Mode": "navigate", "Dest": "document"},
         {"Site": "same-origin", "Mode": "cors", "Dest": "empty"},
-        {"Site": "same-site", "Mode": "cors", "Dest": "empty"},
         {"Site": "none", "Mode": "navigate", "Dest": "document"},
         {},
     ):

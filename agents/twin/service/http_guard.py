@@ -179,11 +179,13 @@ class RequestGuard:
 
 
 def _isolated(headers: dict[str, str]) -> tuple[int, str, str] | None:
-    """A page of another site may link to the console (a navigation), not fetch from it: a walk's page
+    """A page of another origin may link to the console (a navigation), not fetch from it: a walk's page
     elsewhere could have a browser on the host pull session files, exports and streams from 127.0.0.1
-    (unread, but each costs the agent its work, and a stream one of the browser's six connections). Only a
-    browser says where a request comes from; curl and `twin` send no `Sec-Fetch-Site` and pass."""
-    if headers.get("sec-fetch-site", "").lower() != "cross-site":
+    (unread, but each costs the agent its work, and a stream one of the browser's six connections). That
+    includes another port of the same host (`same-site` to a browser): nothing of ours fetches across
+    ports, and a walk's page served there had the agent build session plots for it. Only a browser says
+    where a request comes from; curl and `twin` send no `Sec-Fetch-Site` and pass."""
+    if headers.get("sec-fetch-site", "").lower() not in ("cross-site", "same-site"):
         return None
     mode, dest = headers.get("sec-fetch-mode", "").lower(), headers.get("sec-fetch-dest", "").lower()
     if mode == "navigate" and dest in ("document", ""):
@@ -191,7 +193,7 @@ def _isolated(headers: dict[str, str]) -> tuple[int, str, str] | None:
     return (
         403,
         "cross_site",
-        f"a page of another site may not fetch from this agent ({mode or 'no mode'} request for "
+        f"a page of another origin may not fetch from this agent ({mode or 'no mode'} request for "
         f"{dest or 'no destination'}); open the console itself",
     )
 
