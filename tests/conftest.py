@@ -15,6 +15,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 import json
 import random
 import shutil
+import signal
 import subprocess
 import sys
 import threading
@@ -410,3 +411,17 @@ def read_rrd(path: Path) -> tuple[Any, Any]:
         temporal = dataset.reader(index="edge_time").to_arrow_table()
         static = dataset.reader(index=None).to_arrow_table()
     return temporal, static
+
+
+def signal_and_await_restart(shard: Any, signum: int = signal.SIGKILL, timeout: float = 60.0) -> int:
+    """Send `signum` to a WorkerShard's worker process and wait until the one started again runs (its first
+    restart); the pid signalled."""
+    victim = int(shard.pid)
+    os.kill(victim, signum)
+    wait_for(
+        lambda: shard.restarts == 1 and shard.answering and shard.pid != victim,
+        timeout,
+        "the worker to run again",
+        interval=0.1,
+    )
+    return victim

@@ -8,9 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import json
-import os
 import random
-import signal
 import time
 import urllib.error
 import urllib.request
@@ -20,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import wait_for
+from conftest import signal_and_await_restart, wait_for
 from test_alerts import hot, hot_arm_settings
 from test_servo_alarms_e2e import alarms, post
 from twin.core.alarms import AlarmKind, AlarmRecord, AlarmState, ServoAlarms
@@ -416,19 +414,6 @@ def _two_workers_alarmed(state_file: Path, device: str) -> Iterator[tuple[AgentS
         agent.stop()
 
 
-def _kill_and_await_restart(shard: WorkerShard) -> None:
-    """SIGKILL the shard's worker process and wait until the one started again runs."""
-    victim = shard.pid
-    assert victim is not None
-    os.kill(victim, signal.SIGKILL)
-    wait_for(
-        lambda: shard.restarts == 1 and shard.answering and shard.pid != victim,
-        60,
-        "the worker to run again",
-        interval=0.1,
-    )
-
-
 @pytest.mark.slow
 def test_a_forgotten_arm_stays_forgotten_when_its_worker_dies_before_the_next_checkpoint(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
@@ -452,7 +437,7 @@ def test_a_forgotten_arm_stays_forgotten_when_its_worker_dies_before_the_next_ch
         monkeypatch.setattr(agent, "_keep_state", lambda **_: None)
         wait_for(lambda: agent.state().devices[retired].health.status == "OFFLINE", 30, f"{retired} OFFLINE")
         agent.forget_arm(retired)
-        _kill_and_await_restart(shard)
+        signal_and_await_restart(shard)
         assert _gone(agent, retired)
         # The supervisor's checkpoints again (one taken here, as its next round takes it): what the restarted
         # worker holds reaches the state file.
@@ -489,7 +474,7 @@ def test_an_acknowledgement_survives_a_worker_that_dies_before_the_next_checkpoi
         )
         monkeypatch.setattr(agent, "_keep_state", lambda **_: None)
         assert agent.acknowledge_alarm(alarm.alarm_id).state == "ACKNOWLEDGED"
-        _kill_and_await_restart(shard)
+        signal_and_await_restart(shard)
         states = {a.alarm_id: a.state for a in agent.alarms(include_normal=True)}
         assert states.get(alarm.alarm_id) == "ACKNOWLEDGED", states
         saved = {a["alarm_id"]: a["state"] for a in _saved_alarms(state_file)}
