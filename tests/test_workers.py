@@ -601,12 +601,14 @@ def test_a_worker_that_runs_but_answers_nothing_is_killed_and_started_again(
         wait_for(lambda: set(fleet) <= set(agent.state().devices), 60, "every arm")
         # Stopped, not killed: the agent must find it hung, kill it and start it again.
         signal_and_await_restart(shard, signal.SIGSTOP, timeout=120)
-        before = agent.state().devices["arm-001"].health.counters.received
-        wait_for(
-            lambda: agent.state().devices["arm-001"].health.counters.received > before,
-            60,
-            "arm-001 counted again",
-        )
+
+        def received() -> int:
+            # The new worker lists the arm once it has taken its checkpoint and the messages since back.
+            arm = agent.state().devices.get("arm-001")
+            return arm.health.counters.received if arm is not None else 0
+
+        before = wait_for(received, 60, "arm-001 back")
+        wait_for(lambda: received() > before, 60, "arm-001 counted again")
         assert not psutil.pid_exists(victim) or psutil.Process(victim).status() == psutil.STATUS_ZOMBIE
         hung = [r for r in caplog.records if "it is hung" in r.getMessage()]
         assert hung and f"worker {shard.index} (pid {victim})" in hung[0].getMessage()
