@@ -26,6 +26,7 @@ from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
 from twin.edge.payload import encode, make_payload
 from twin.edge.servo_faults import ServoFault
 from twin.rig.local import LocalRig
+from twin.service import agent as agent_module
 from twin.service import mirror as mirror_module
 from twin.service.admission import DeviceBudget
 from twin.service.agent import AgentService, long_offline
@@ -587,3 +588,21 @@ def test_an_arm_offline_longer_than_forget_offline_after_s_is_forgotten_by_the_a
     finally:
         retired.stop()
         stays.stop()
+
+
+def test_a_fault_in_the_forget_sweep_does_not_end_the_supervisor(
+    rig: LocalRig, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The supervisor thread also restarts workers and keeps the state file: the sweep it runs for
+    telemetry.forget_offline_after_s is guarded, so a fault in it is logged and the next sweep comes."""
+    monkeypatch.setattr(agent_module, "FORGET_SWEEP_S", 0.1)
+    calls: list[int] = []
+
+    def sweep(self: AgentService) -> None:
+        calls.append(1)
+        if len(calls) == 1:
+            raise RuntimeError("a sweep's fault")
+
+    monkeypatch.setattr(AgentService, "_forget_long_offline", sweep)
+    rig.start_agent({"health.offline_after_s": 1.0, "telemetry.forget_offline_after_s": 2.0})
+    wait_for(lambda: len(calls) >= 3, 60, "the sweeps after the fault")

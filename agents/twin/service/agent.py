@@ -595,7 +595,11 @@ class AgentService:
                 self._keep_state()
             if self.config.telemetry.forget_offline_after_s and now >= next_forget:
                 next_forget = now + FORGET_SWEEP_S
-                self._forget_long_offline()
+                try:
+                    self._forget_long_offline()
+                except Exception:
+                    # The supervisor restarts workers and keeps state: a sweep's fault must not end it.
+                    log.exception("looking for arms silent past telemetry.forget_offline_after_s failed")
 
     def _forget_long_offline(self) -> None:
         """Forget each arm silent for telemetry.forget_offline_after_s with no alarm waiting for a person, as
