@@ -181,6 +181,15 @@ def long_offline(
     return out
 
 
+def _named_then_counted(lines: list[str], what: str) -> list[str]:
+    """A Fleet page notice per arm for the first MAX_HELD_NOTICES arms, then one line counting the rest
+    (`what` they are), whom the Events page names: a fleet of them must not bury the page."""
+    if len(lines) <= MAX_HELD_NOTICES:
+        return lines
+    more = len(lines) - MAX_HELD_NOTICES
+    return [*lines[:MAX_HELD_NOTICES], f"and {more} more arm(s) {what} (the Events page names them)"]
+
+
 def _spoken(seconds: float) -> str:
     """A span as a person reads it: 45 s, 12 min, 5 h, 8 days."""
     for unit, size in (("days", 86400.0), ("h", 3600.0), ("min", 60.0)):
@@ -937,14 +946,9 @@ class AgentService:
         lines = [
             f"{a.device} publishes, but the agent refused all {a.rejected} of its messages (the last: "
             f"{a.reason}), so it has no card: the Events page says why"
-            for a in arms[:MAX_HELD_NOTICES]
+            for a in arms
         ]
-        if len(arms) > MAX_HELD_NOTICES:
-            lines.append(
-                f"and {len(arms) - MAX_HELD_NOTICES} more arm(s) whose messages are all refused (the Events "
-                "page names them)"
-            )
-        return lines
+        return _named_then_counted(lines, "whose messages are all refused")
 
     def _held_notices(self) -> list[str]:
         # An arm with no calibration to keep (its file was bad at the start) is held: with the whole fleet
@@ -955,12 +959,9 @@ class AgentService:
         lines = [
             f"{device}'s calibration in the store is refused ({problem}), so its messages are refused and "
             f"its twin does not move: push a valid one (twin calibration push {device} FILE)"
-            for device, problem in held[:MAX_HELD_NOTICES]
+            for device, problem in held
         ]
-        if len(held) > MAX_HELD_NOTICES:
-            more = len(held) - MAX_HELD_NOTICES
-            lines.append(f"and {more} more arm(s) held the same way (the Events page names them)")
-        return lines
+        return _named_then_counted(lines, "held the same way")
 
     def broker_notices(self) -> list[str]:
         """/healthz's reasons from the broker: each topic filter it refuses (the arms it covers are never
