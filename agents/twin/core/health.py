@@ -483,11 +483,10 @@ MAX_UNHEARD = 64
 @dataclass(slots=True)
 class Unheard:
     """A device not tracked (no valid message yet) whose messages were refused: how many, the last reason,
-    and when the first and the last of them came (the fleet's monotonic clock)."""
+    and when the last of them came (the fleet's monotonic clock)."""
 
     rejected: int
     reason: str
-    first_mono: float
     last_mono: float
 
 
@@ -579,7 +578,7 @@ class FleetHealth:
         now = self._clock()
         seen = self.unheard.get(device_id)
         if seen is None:
-            self.unheard[device_id] = Unheard(1, reason, now, now)
+            self.unheard[device_id] = Unheard(1, reason, now)
             if len(self.unheard) > MAX_UNHEARD:
                 self.unheard.popitem(last=False)
             return
