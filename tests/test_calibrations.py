@@ -4,6 +4,7 @@ decoding each arm with its own, flagging the arms that have none."""
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import shlex
@@ -21,6 +22,7 @@ from twin.cli.commands import calibration as cmd
 from twin.edge.payload import encode
 from twin.robot import so101
 from twin.robot.calibration import load_calibration
+from twin.service import calibrations
 from twin.service.agent import AgentService
 from twin.service.calibrations import (
     STACK_PREFIX,
@@ -443,6 +445,51 @@ def test_a_restore_that_fails_halfway_saves_the_kept_calibration_here(
     assert f"saved in {saved}" in err and "disk full" in err, err
     assert saved.read_bytes() == EXAMPLE.read_bytes()
     assert DirectoryStore(tmp_path / "cal").read("arm-001") == shifted(100)
+
+
+def test_a_directory_restore_the_disk_refuses_halfway_saves_the_kept_calibration_here(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """As above with the error a directory store really meets (the disk filled between the two writes): an
+    OSError from the disk is the store's error, so the kept calibration is saved rather than lost."""
+    newer = tmp_path / "newer.json"
+    newer.write_bytes(shifted(100))
+    store = ["--store", str(tmp_path / "cal")]
+    for file in (EXAMPLE, newer):
+        assert main(["calibration", "push", "arm-001", str(file), *store]) == cmd.EXIT_OK
+    capsys.readouterr()
+    real = calibrations.write_atomically
+
+    def disk_fills(path: Path, data: bytes) -> None:
+        if path.name == "arm-001.json":
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real(path, data)
+
+    monkeypatch.setattr(calibrations, "write_atomically", disk_fills)
+    monkeypatch.chdir(tmp_path)
+    assert main(["calibration", "restore", "arm-001", *store]) == cmd.EXIT_STORE
+    err = capsys.readouterr().err
+    assert "No space left on device" in err and "Traceback" not in err, err
+    assert (tmp_path / "arm-001.json.previous").read_bytes() == EXAMPLE.read_bytes()
+    assert DirectoryStore(tmp_path / "cal").read("arm-001") == shifted(100)
+
+
+def test_a_directory_store_syncs_before_the_rename_and_a_failed_write_leaves_the_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A write reaches the disk before it replaces the arm's file (a power cut must not leave it empty), and
+    a write the disk refuses is the store's error, leaving the old file and no temporary one."""
+    store = DirectoryStore(tmp_path)
+    store.write("arm-001", EXAMPLE.read_bytes())
+
+    def full(fd: int) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", full)
+    with pytest.raises(CalibrationStoreError, match="No space left on device"):
+        store.write("arm-001", shifted(100))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["arm-001.json"]
+    assert store.read("arm-001") == EXAMPLE.read_bytes()
 
 
 def test_a_file_named_for_another_arm_is_stored_with_a_warning(

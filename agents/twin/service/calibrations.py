@@ -36,6 +36,7 @@ from typing import Any, Protocol
 from twin.core.aws import region_or_env
 from twin.core.topics import POLICY_DEVICE_ID_RULE, policy_device_id_problem
 from twin.robot.calibration import MAX_FILE_BYTES, Calibration, parse_calibration
+from twin.service.persist import write_atomically
 
 log = logging.getLogger(__name__)
 
@@ -201,6 +202,8 @@ class DirectoryStore:
             (self.path / f"{device}{SUFFIX}").unlink()
         except FileNotFoundError:
             return False
+        except OSError as exc:
+            raise CalibrationStoreError(f"cannot delete {self.path / f'{device}{SUFFIX}'}: {exc}") from exc
         return True
 
     def uri_of(self, device: str) -> str:
@@ -214,7 +217,11 @@ class DirectoryStore:
         return self._put(f"{device}{KEPT_SUFFIX}", data)
 
     def delete_kept(self, device: str) -> None:
-        (self.path / f"{device}{KEPT_SUFFIX}").unlink(missing_ok=True)
+        path = self.path / f"{device}{KEPT_SUFFIX}"
+        try:
+            path.unlink(missing_ok=True)
+        except OSError as exc:
+            raise CalibrationStoreError(f"cannot delete {path}: {exc}") from exc
 
     def _get(self, name: str, *, missing_ok: bool) -> bytes | None:
         path = self.path / name
@@ -227,12 +234,14 @@ class DirectoryStore:
             raise CalibrationStoreError(f"cannot read {path}: {exc}") from exc
 
     def _put(self, name: str, data: bytes) -> str:
-        self.path.mkdir(parents=True, exist_ok=True)
         path = self.path / name
-        tmp = path.with_name(f".{name}.tmp")
-        tmp.write_bytes(data)
-        # A rename, so the watcher never reads half a file.
-        tmp.replace(path)
+        try:
+            # A rename, so the watcher never reads half a file, after an fsync, so a power cut cannot leave
+            # an arm's calibration empty; a temporary file of its own, so two pushes cannot mix.
+            write_atomically(path, data)
+        except OSError as exc:
+            # A store's error, as S3's are: `restore` then saves the calibration only it still holds.
+            raise CalibrationStoreError(f"cannot write to {path}: {exc}") from exc
         return str(path)
 
 

@@ -413,13 +413,15 @@ def adopt_file(source: str, target: str) -> int:
     return alarms
 
 
-def write_atomically(path: Path, text: str) -> None:
-    """Replace `path` with `text` so that a crash at any point leaves the old file or the new one."""
+def write_atomically(path: Path, text: str | bytes) -> None:
+    """Replace `path` with `text` (str as UTF-8) so that a crash at any point leaves the old file or the new
+    one; a write that fails leaves no temporary file behind."""
+    data = text.encode() if isinstance(text, str) else text
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)
