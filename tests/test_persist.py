@@ -81,6 +81,31 @@ def test_no_file_is_no_alarms_and_a_broken_one_is_set_aside(tmp_path: Path) -> N
         )
 
 
+def test_a_file_that_cannot_be_read_is_set_aside_not_replaced_by_the_first_write(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A file the agent may not read (another user's, an I/O error) is as unusable as a broken one, and the
+    first check's write would replace it, acknowledgements and all: it is set aside as a broken one is."""
+    path = tmp_path / "state.json"
+    StateFile(path).save([_record(AlarmState.ACKNOWLEDGED)], 200.0, 1000.0)
+    kept = path.read_bytes()
+    real = Path.read_text
+
+    def refused(self: Path, *args: object, **kwargs: object) -> str:
+        if self == path:
+            raise PermissionError(13, "Permission denied", str(self))
+        return real(self, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(Path, "read_text", refused)
+    state = StateFile(path)
+    assert state.previous_run() is None
+    with caplog.at_level(logging.ERROR, logger="twin.service.persist"):
+        assert state.load(0.0, 0.0) == []
+    assert "Permission denied" in caplog.text and "state.json.bad" in caplog.text, caplog.text
+    assert state.save([], 0.0, 0.0)
+    assert (tmp_path / "state.json.bad").read_bytes() == kept
+
+
 def test_a_failed_write_leaves_the_previous_file_whole(tmp_path: Path) -> None:
     path = tmp_path / "state.json"
     write_atomically(path, "old\n")

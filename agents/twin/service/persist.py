@@ -139,7 +139,9 @@ class StateFile:
             )
             return []
         except OSError as exc:
-            log.error("state file %s cannot be read (%s); starting without it", self.path, exc)
+            # Set aside as an invalid one is: left in place, the first check's write would replace it (a
+            # rename needs only the directory's permission) and its acknowledgements with it.
+            self._set_aside(f"cannot be read: {exc}")
             return []
         try:
             if document is None:
@@ -147,15 +149,7 @@ class StateFile:
             document, carried = _split_unknown_kinds(document)
             records = records_of(document, now_mono, now_wall)
         except StateFileError as exc:
-            bad = self.path.with_name(self.path.name + ".bad")
-            with contextlib.suppress(OSError):
-                os.replace(self.path, bad)
-            log.error(
-                "state file %s is not valid (%s); moved to %s, starting without the alarms it kept",
-                self.path,
-                exc,
-                bad.name,
-            )
+            self._set_aside(f"is not valid: {exc}")
             return []
         log.info("state file read", extra={"path": str(self.path), "alarms": len(records)})
         with self._write_lock:
@@ -171,6 +165,27 @@ class StateFile:
             )
         _report_unclean_stop(self.path, document)
         return records
+
+    def _set_aside(self, problem: str) -> None:
+        """Rename the file that `load` could not use to `<name>.bad`, so no write replaces it, and say so."""
+        bad = self.path.with_name(self.path.name + ".bad")
+        try:
+            os.replace(self.path, bad)
+        except OSError as exc:
+            log.error(
+                "state file %s %s; starting without the alarms it kept. It could not be moved aside (%s): "
+                "the first write replaces it, so copy it elsewhere now if it matters",
+                self.path,
+                problem,
+                exc,
+            )
+            return
+        log.error(
+            "state file %s %s; moved to %s, starting without the alarms it kept",
+            self.path,
+            problem,
+            bad.name,
+        )
 
     def forget(self, device: str) -> None:
         """Drop the alarms of unknown kinds carried for `device` (an arm an operator forgot): the next write
