@@ -106,6 +106,22 @@ def test_a_file_that_cannot_be_read_is_set_aside_not_replaced_by_the_first_write
     assert (tmp_path / "state.json.bad").read_bytes() == kept
 
 
+def test_a_file_set_aside_before_is_not_replaced_by_the_next(tmp_path: Path) -> None:
+    """The first `.bad` may hold every acknowledgement (a rollback's, docs/deploy.md): a file found broken at
+    a later start (cut to nothing by a power cut) is set aside beside it, not over it."""
+    path = tmp_path / "state.json"
+    path.write_text('{"version": 1, "alarms": [{"device": "arm-001"}]}')
+    first = path.read_bytes()
+    assert StateFile(path).load(0.0, 0.0) == []
+    path.write_bytes(b"")
+    assert StateFile(path).load(0.0, 0.0) == []
+    path.write_bytes(b"\x00garbage")
+    assert StateFile(path).load(0.0, 0.0) == []
+    assert (tmp_path / "state.json.bad").read_bytes() == first
+    assert (tmp_path / "state.json.bad.1").read_bytes() == b""
+    assert (tmp_path / "state.json.bad.2").read_bytes() == b"\x00garbage"
+
+
 def test_a_failed_write_leaves_the_previous_file_whole(tmp_path: Path) -> None:
     path = tmp_path / "state.json"
     write_atomically(path, "old\n")

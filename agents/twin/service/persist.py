@@ -167,8 +167,14 @@ class StateFile:
         return records
 
     def _set_aside(self, problem: str) -> None:
-        """Rename the file that `load` could not use to `<name>.bad`, so no write replaces it, and say so."""
+        """Rename the file that `load` could not use to `<name>.bad`, so no write replaces it, and say so. One
+        set aside before is not replaced: it may be the one that holds the acknowledgements (docs/deploy.md
+        tells a person to move it back), and this one `<name>.bad.<n>` then."""
         bad = self.path.with_name(self.path.name + ".bad")
+        n = 0
+        while bad.exists() or bad.is_symlink():
+            n += 1
+            bad = self.path.with_name(f"{self.path.name}.bad.{n}")
         try:
             os.replace(self.path, bad)
         except OSError as exc:
