@@ -498,3 +498,38 @@ def test_orient_samples_stay_in_one_hemisphere_when_the_pose_quaternion_flips_si
     for t, angle in zip(times, angles, strict=True):
         expected = np.array([math.cos(angle / 2), 0.0, 0.0, math.sin(angle / 2)])
         _assert_world_pose(base, t, np.zeros(3), expected, f"base @ {t}")
+
+
+def test_a_session_usd_the_disk_cuts_short_is_not_left_where_the_console_serves_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The console serves a completed session's file from disk once it exists: an export the disk cut short
+    (usd-core leaves its part of a file and raises) must not be left at that name, and is refused with why."""
+    from pxr import Tf
+    from twin.ops.sessions import HistorySessions
+    from twin.service.console import SessionInfo
+
+    class TornExport:
+        def Flatten(self) -> TornExport:  # noqa: N802 - USD's name
+            return self
+
+        def Export(self, path: str) -> bool:  # noqa: N802 - USD's name
+            Path(path).write_bytes(b"PXR-USDC" + bytes(4096))  # what a full disk leaves
+            Tf.RaiseRuntimeError("Error occurred writing file: No space left on device")
+            return True
+
+    catalog = HistorySessions("unused")
+    monkeypatch.setattr(catalog, "_reader", lambda: None)
+    monkeypatch.setattr(catalog, "_robot", lambda: None)
+    monkeypatch.setattr(catalog, "_samples", lambda *args: iter(()))
+    real_open = Usd.Stage.Open
+
+    def open_stage(path: str, *args: object) -> object:
+        # The rebuilt session's stage only; the recorder opens the robot's asset as ever.
+        return TornExport() if ".recorded." in str(path) else real_open(path, *args)
+
+    monkeypatch.setattr(Usd.Stage, "Open", staticmethod(open_stage))
+    session = SessionInfo("arm-001", start=1_000.0, end=1_010.0, messages=100)
+    with pytest.raises(ValueError, match="No space left on device"):
+        catalog.session_file(session, "usd", tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == []

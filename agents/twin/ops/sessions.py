@@ -144,7 +144,7 @@ class HistorySessions:
     def _rebuild_usd(
         self, reader: HistoryReader, session: SessionInfo, out: Path, since: dt.datetime, until: dt.datetime
     ) -> None:
-        from pxr import Usd  # noqa: PLC0415 - usd-core loads here
+        from pxr import Tf, Usd  # noqa: PLC0415 - usd-core loads here
 
         from twin.output.recorder import SessionRecorder  # noqa: PLC0415
 
@@ -165,11 +165,22 @@ class HistorySessions:
             recorder.close()
         # A download goes to another machine: the recorder references the robot's asset by a path relative to
         # its file, which resolves only beside this checkout (a walk's copy opened with no arm). Flattened,
-        # the file holds the arm itself, about 1 MB more.
+        # the file holds the arm itself, about 1 MB more. Exported beside it and renamed: an export the disk
+        # cuts short leaves its part of a file, which at `out` the console would serve as the session's.
+        flat = out.with_name(f".{out.name}.flat{out.suffix}")
+        problem = f"the session's USD file could not be written in {out.parent}; free space there"
         try:
-            Usd.Stage.Open(str(recorded)).Flatten().Export(str(out))
+            try:
+                written = Usd.Stage.Open(str(recorded)).Flatten().Export(str(flat))
+            except Tf.ErrorException as exc:
+                # USD's message is a few lines of its own source locations; the OS error is in them.
+                raise ValueError(f"{problem} ({' '.join(str(exc).split())[:400]})") from exc
+            if not written:
+                raise ValueError(problem)
+            flat.replace(out)
         finally:
             recorded.unlink(missing_ok=True)
+            flat.unlink(missing_ok=True)
 
 
 def _window(session: SessionInfo) -> tuple[dt.datetime, dt.datetime]:
