@@ -89,14 +89,14 @@ def test_a_file_that_cannot_be_read_is_set_aside_not_replaced_by_the_first_write
     path = tmp_path / "state.json"
     StateFile(path).save([_record(AlarmState.ACKNOWLEDGED)], 200.0, 1000.0)
     kept = path.read_bytes()
-    real = Path.read_text
+    real = Path.read_bytes
 
-    def refused(self: Path, *args: object, **kwargs: object) -> str:
+    def refused(self: Path) -> bytes:
         if self == path:
             raise PermissionError(13, "Permission denied", str(self))
-        return real(self, *args, **kwargs)  # type: ignore[arg-type]
+        return real(self)
 
-    monkeypatch.setattr(Path, "read_text", refused)
+    monkeypatch.setattr(Path, "read_bytes", refused)
     state = StateFile(path)
     assert state.previous_run() is None
     with caplog.at_level(logging.ERROR, logger="twin.service.persist"):
@@ -120,6 +120,21 @@ def test_a_file_set_aside_before_is_not_replaced_by_the_next(tmp_path: Path) -> 
     assert (tmp_path / "state.json.bad").read_bytes() == first
     assert (tmp_path / "state.json.bad.1").read_bytes() == b""
     assert (tmp_path / "state.json.bad.2").read_bytes() == b"\x00garbage"
+
+
+def test_a_file_of_bytes_that_are_not_text_is_set_aside_and_not_adopted(tmp_path: Path) -> None:
+    """A failing disk leaves bytes that are not UTF-8: reading them as text raised past the start's checks
+    and the agent did not start; they are a broken file like any other, and no host adopts them."""
+    path = tmp_path / "state.json"
+    path.write_bytes(b"\xff\xfe\x00garbage")
+    state = StateFile(path)
+    assert state.previous_run() is None
+    assert state.load(0.0, 0.0) == []
+    assert (tmp_path / "state.json.bad").read_bytes() == b"\xff\xfe\x00garbage"
+    (tmp_path / "other.json").write_bytes(b"\xff\xfe\x00garbage")
+    with pytest.raises(StateFileError, match="not JSON"):
+        adopt_file(str(tmp_path / "other.json"), str(tmp_path / "adopted.json"))
+    assert not (tmp_path / "adopted.json").exists()
 
 
 def test_a_failed_write_leaves_the_previous_file_whole(tmp_path: Path) -> None:

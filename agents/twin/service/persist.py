@@ -108,7 +108,7 @@ class StateFile:
         """How the run that wrote the file ended, read as the agent starts (before `load`); None without a
         file that parses (`load` then says what is wrong with it)."""
         try:
-            document = _document_of(self.path.read_text(encoding="utf-8"))
+            document = _document_of(self.path.read_bytes())
         except (OSError, StateFileError):
             return None
         self._document = document
@@ -129,7 +129,7 @@ class StateFile:
         self._remove_leftovers()
         document, self._document = self._document, None
         try:
-            text = "" if document is not None else self.path.read_text(encoding="utf-8")
+            text = b"" if document is not None else self.path.read_bytes()
         except FileNotFoundError:
             # Absolute: a relative path started from another directory is a new, empty file there.
             log.info(
@@ -353,10 +353,12 @@ def parse(text: str, now_mono: float, now_wall: float) -> list[AlarmRecord]:
     return records_of(_document_of(text), now_mono, now_wall)
 
 
-def _document_of(text: str) -> dict[str, Any]:
+def _document_of(text: str | bytes) -> dict[str, Any]:
     """A state file's text as its document, read once (a 600-arm fleet's file is megabytes); StateFileError
     when it is not JSON or not this version's."""
     try:
+        # Bytes as read: a file a failing disk left as garbage is then not JSON (UnicodeDecodeError is a
+        # ValueError), where decoding it first raised past the callers and stopped the agent's start.
         document = json.loads(text)
     except ValueError as exc:
         raise StateFileError(f"not JSON: {exc}") from None
@@ -416,7 +418,7 @@ def records_of(document: dict[str, Any], now_mono: float, now_wall: float) -> li
     return out
 
 
-def adopt(text: str) -> tuple[str, int]:
+def adopt(text: str | bytes) -> tuple[str, int]:
     """Another host's state file as this host's first one, and how many alarms it keeps: the same alarms,
     without `stopped` (that run was not this host's, and it may still be running while its replacement
     boots, so it ended neither cleanly nor not). StateFileError when the text is not a valid state file: a
@@ -429,7 +431,7 @@ def adopt(text: str) -> tuple[str, int]:
 
 def adopt_file(source: str, target: str) -> int:
     """`adopt` from file to file (install-agent.sh runs it), written atomically; the number of alarms."""
-    adopted, alarms = adopt(Path(source).read_text(encoding="utf-8"))
+    adopted, alarms = adopt(Path(source).read_bytes())
     write_atomically(Path(target), adopted)
     return alarms
 
