@@ -102,6 +102,7 @@ def test_a_file_that_cannot_be_read_is_set_aside_not_replaced_by_the_first_write
     with caplog.at_level(logging.ERROR, logger="twin.service.persist"):
         assert state.load(0.0, 0.0) == []
     assert "Permission denied" in caplog.text and "state.json.bad" in caplog.text, caplog.text
+    assert state.stats().dropped == 1
     assert state.save([], 0.0, 0.0)
     assert (tmp_path / "state.json.bad").read_bytes() == kept
 
@@ -129,8 +130,12 @@ def test_a_file_of_bytes_that_are_not_text_is_set_aside_and_not_adopted(tmp_path
     path.write_bytes(b"\xff\xfe\x00garbage")
     state = StateFile(path)
     assert state.previous_run() is None
+    assert state.stats().dropped == 0
     assert state.load(0.0, 0.0) == []
     assert (tmp_path / "state.json.bad").read_bytes() == b"\xff\xfe\x00garbage"
+    # Its alarms are lost to this run: counted where SinkDrops reads, with the way to bring them back.
+    assert state.stats().dropped == state.stats().errors == 1
+    assert "move it back to state.json" in state.stats().last_error, state.stats().last_error
     (tmp_path / "other.json").write_bytes(b"\xff\xfe\x00garbage")
     with pytest.raises(StateFileError, match="not JSON"):
         adopt_file(str(tmp_path / "other.json"), str(tmp_path / "adopted.json"))

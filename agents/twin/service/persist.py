@@ -88,6 +88,8 @@ class StateFile:
         self.path = Path(path)
         self.writes = 0
         self.write_errors = 0
+        # Files `load` found unusable and set aside (their alarms were not restored).
+        self.unusable = 0
         self.last_error = ""
         # The last write failed (and the file on disk is older than what the agent holds).
         self.failing = False
@@ -178,20 +180,17 @@ class StateFile:
         try:
             os.replace(self.path, bad)
         except OSError as exc:
-            log.error(
-                "state file %s %s; starting without the alarms it kept. It could not be moved aside (%s): "
-                "the first write replaces it, so copy it elsewhere now if it matters",
-                self.path,
-                problem,
-                exc,
+            fix = f"it could not be moved aside ({exc}) and the first write replaces it: copy it away now"
+        else:
+            fix = (
+                f"moved to {bad.name}; to bring its alarms back, stop the agent, correct that file (or copy "
+                f"the host's saved one) and move it back to {self.path.name}"
             )
-            return
-        log.error(
-            "state file %s %s; moved to %s, starting without the alarms it kept",
-            self.path,
-            problem,
-            bad.name,
-        )
+        # Its alarms, acknowledgements included, are not restored: a loss, counted as a dropped save so it
+        # reaches /state's `agent.sinks`, SinkDrops and its alarm, not only this log line.
+        self.unusable += 1
+        self.last_error = f"state file {self.path} {problem}; started without the alarms it kept; {fix}"
+        log.error("%s", self.last_error)
 
     def forget(self, device: str) -> None:
         """Drop the alarms of unknown kinds carried for `device` (an arm an operator forgot): the next write
@@ -295,12 +294,13 @@ class StateFile:
 
     def stats(self) -> SinkStats:
         """The file as an output in /state's `agent.sinks`: each failed write is a dropped save, so it reaches
-        the SinkDrops metric and its alarm; `pending` is 1 while the file on disk is behind."""
+        the SinkDrops metric and its alarm, as does a file found unusable at the start (its alarms are lost to
+        this run); `pending` is 1 while the file on disk is behind."""
         return SinkStats(
             name=SINK_NAME,
             delivered=self.writes,
-            dropped=self.write_errors,
-            errors=self.write_errors,
+            dropped=self.write_errors + self.unusable,
+            errors=self.write_errors + self.unusable,
             pending=int(self.failing),
             last_error=self.last_error,
         )
