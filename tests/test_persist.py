@@ -142,6 +142,22 @@ def test_a_file_of_bytes_that_are_not_text_is_set_aside_and_not_adopted(tmp_path
     assert not (tmp_path / "adopted.json").exists()
 
 
+def test_a_file_written_whole_keeps_its_mode_and_a_new_one_gets_the_umasks(tmp_path: Path) -> None:
+    """The temporary file is 0600: renamed as it was, a calibration root pushed into a directory store was
+    one the agent's own user could no longer read (its next read: Permission denied)."""
+    old = os.umask(0o022)
+    try:
+        write_atomically(tmp_path / "new.json", "{}")
+    finally:
+        os.umask(old)
+    assert (tmp_path / "new.json").stat().st_mode & 0o777 == 0o644
+    kept = tmp_path / "kept.json"
+    kept.write_text("{}")
+    kept.chmod(0o640)
+    write_atomically(kept, b"[]")
+    assert kept.stat().st_mode & 0o777 == 0o640 and kept.read_bytes() == b"[]"
+
+
 def test_a_failed_write_leaves_the_previous_file_whole(tmp_path: Path) -> None:
     path = tmp_path / "state.json"
     write_atomically(path, "old\n")
