@@ -448,8 +448,9 @@ class TwinMonitoring(Construct):
             "LocalConfigNotSaved",
             LOCAL_CONFIG_NOT_SAVED,
             f"The stack's bucket does not hold {agent_name}'s /etc/so101-twin/agent.local.toml as it is: "
-            "its upload failed, or the host runs a placeholder because the saved copy could not be read. "
-            "A host that replaces this one would start without those settings. The host's agent log names "
+            "its upload failed, the file is not a config the agent can start with (not saved over the last "
+            "good copy), or the host runs a placeholder because the saved copy could not be read. A host "
+            "that replaces this one would start without those settings. The host's agent log names "
             "the cause; the next save that succeeds clears this. docs/deploy.md",
         )
         self.alarms["AlarmStateNotSaved"] = self._outcome_alarm(

@@ -61,9 +61,6 @@ ALERT_TOPIC_ARN="${ALERT_TOPIC_ARN:-}"
 ALERT_WARNINGS="${ALERT_WARNINGS:-false}"
 
 VENV=/opt/so101-twin/venv
-# Generated from the stack's settings on every run; the operator's own changes go in LOCAL_CONFIG (lib.sh),
-# which the agent reads after it (key by key) and this script creates once and never writes again.
-CONFIG=/etc/so101-twin/agent.toml
 # LOCAL_CONFIG's copy in the stack's bucket (save-local-config.sh), put back by a new host's first boot.
 LOCAL_BACKUP="${HOST_STATE_URI:+${HOST_STATE_URI%/}/agent.local.toml}"
 LOCAL_SAVER=so101-twin-local-config

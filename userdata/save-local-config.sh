@@ -7,11 +7,12 @@
 #   save-local-config.sh S3_URI   where to keep the file (s3://<bucket>/host/agent.local.toml)
 #   ROOT   prefix for the file (tests); AWS_REGION the bucket's region; AGENT_NAME the metrics' Agent
 # A file that is still the placeholder install-agent.sh writes when the saved copy could not be read is not
-# saved: it would replace the settings it stands in for. Exits 0 when saved or there is nothing to save, 1
-# when it could not be saved (lib.sh, upload_file; the unit's journal has the AWS CLI's error). Each run ends
-# with the metric LocalConfigNotSaved (lib.sh, emit_host_metrics): 1 while the bucket does not hold this
-# host's settings as they are (the upload failed, or the file is that placeholder), else 0; the stack's alarm
-# of that name pages on 1 and clears on the next 0.
+# saved: it would replace the settings it stands in for; nor is one the agent could not start with (checked
+# by the installed `twin config check` on top of the generated config). Exits 0 when saved or there is
+# nothing to save, 1 when it could not be saved (lib.sh, upload_file; the unit's journal has the AWS CLI's
+# error) or is not valid. Each run ends with the metric LocalConfigNotSaved (lib.sh, emit_host_metrics): 1
+# while the bucket does not hold this host's settings as they are (the upload failed, the file is that
+# placeholder or not valid), else 0; the stack's alarm of that name pages on 1 and clears on the next 0.
 set -Eeuo pipefail
 
 HERE="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
@@ -35,6 +36,16 @@ if grep -qxF "$LOCAL_CONFIG_PLACEHOLDER" "$FILE"; then
     "to keep this file as it is)"
   not_saved 1
   exit 0
+fi
+# A file the agent cannot start with (a typo in an edit) would replace the last good copy in a bucket that
+# keeps no versions: a host that replaced this one would start with no agent. Checked as the agent reads it.
+twin="${ROOT}${VENV:-/opt/so101-twin/venv}/bin/twin"
+if ! problem="$("$twin" config check "${ROOT}${CONFIG}" "$FILE" 2>&1)"; then
+  log "not saved: ${LOCAL_CONFIG} is not a config the agent can start with: ${problem}." \
+    "The copy at ${TARGET} keeps the settings saved last. Correct the file ('twin config check" \
+    "${CONFIG} ${LOCAL_CONFIG}' says what is wrong); its next change saves it"
+  not_saved 1
+  exit 1
 fi
 outcome=0
 upload_file "$FILE" "$TARGET" || outcome=$?

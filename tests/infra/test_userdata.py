@@ -556,9 +556,9 @@ def test_a_change_made_while_the_file_is_saved_is_saved_too(
     root = tmp_path / "root"
     shutil.copytree(installed[0], root, symlinks=True)
     local = root / "etc/so101-twin/agent.local.toml"
-    local.write_text("[alarms]\ntemperature_warning_c = 52.0\n")
+    local.write_text("[alarms]\ntemperature_warning_c = 52.0\ntemperature_warning_clear_c = 48.0\n")
     host = HostSim(tmp_path / "host")
-    second = "[alarms]\ntemperature_warning_c = 51.0\n"
+    second = "[alarms]\ntemperature_warning_c = 51.0\ntemperature_warning_clear_c = 48.0\n"
     hook = host.sim / "on-upload"
     hook.write_text(f"#!/usr/bin/env bash\nprintf '%s' '{second}' > '{local}'\n")
     hook.chmod(0o755)
@@ -578,7 +578,7 @@ def test_an_upload_that_fails_says_what_to_check_and_pages_until_a_save_succeeds
     root = tmp_path / "root"
     shutil.copytree(installed[0], root, symlinks=True)
     local = root / "etc/so101-twin/agent.local.toml"
-    local.write_text("[alarms]\ntemperature_warning_c = 52.0\n")
+    local.write_text("[alarms]\ntemperature_warning_c = 52.0\ntemperature_warning_clear_c = 48.0\n")
     host = HostSim(tmp_path / "host")
     host.fail("s3")  # the bucket refuses this role (tests/infra/hostsim.py, the aws stand-in)
     result = host.run(SAVER, f"s3://{SAVED_LOCAL}", ROOT=str(root), AGENT_NAME="Lab")
@@ -593,6 +593,35 @@ def test_an_upload_that_fails_says_what_to_check_and_pages_until_a_save_succeeds
     (host.sim / "fail" / "s3").unlink()
     result = host.run(SAVER, f"s3://{SAVED_LOCAL}", ROOT=str(root), AGENT_NAME="Lab")
     assert result.returncode == 0, result.stdout + result.stderr
+    assert (host.sim / "s3" / SAVED_LOCAL).read_text() == local.read_text()
+    assert not_saved_metric(root) == (0, "Lab")
+
+
+def test_a_file_the_agent_cannot_start_with_is_not_saved_over_the_last_good_copy(
+    installed: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """An edit with a typo is saved by the path unit at once; the bucket keeps no versions, so the operator's
+    last good settings were gone, and a host that replaced this one started with no agent. Such a file is
+    checked as the agent reads it, left unsaved with the problem and the fix, and pages until corrected."""
+    root = tmp_path / "root"
+    shutil.copytree(installed[0], root, symlinks=True)
+    local = root / "etc/so101-twin/agent.local.toml"
+    good = "[alarms]\ntemperature_warning_c = 52.0\ntemperature_warning_clear_c = 48.0\n"
+    host = HostSim(tmp_path / "host")
+    local.write_text(good)
+    assert host.run(SAVER, f"s3://{SAVED_LOCAL}", ROOT=str(root)).returncode == 0
+    for typo in ("[alarms\ntemperature_warning_c = 52.0\n", "[alarms]\ntemperature_warning = 52.0\n"):
+        local.write_text(typo)
+        result = host.run(SAVER, f"s3://{SAVED_LOCAL}", ROOT=str(root), AGENT_NAME="Lab")
+        out = result.stdout + result.stderr
+        assert result.returncode == 1, out
+        assert "not saved: /etc/so101-twin/agent.local.toml is not a config the agent can start with" in out
+        assert "twin config check /etc/so101-twin/agent.toml /etc/so101-twin/agent.local.toml" in out, out
+        assert (host.sim / "s3" / SAVED_LOCAL).read_text() == good
+        assert not_saved_metric(root) == (1, "Lab")
+    assert "temperature_warning" in out, out  # the agent's own words on what is wrong
+    local.write_text(good.replace("52.0", "51.0"))
+    assert host.run(SAVER, f"s3://{SAVED_LOCAL}", ROOT=str(root), AGENT_NAME="Lab").returncode == 0
     assert (host.sim / "s3" / SAVED_LOCAL).read_text() == local.read_text()
     assert not_saved_metric(root) == (0, "Lab")
 
