@@ -226,6 +226,51 @@ def test_a_card_says_alarms_wait_behind_an_acknowledged_worse_one(
     assert browser_errors == []
 
 
+# Whether an element's text is cut by the card line it sits in (a line hides its overflow behind an ellipsis).
+CLIPPED_JS = "e => e.getBoundingClientRect().right > e.closest('div').getBoundingClientRect().right + 0.5"
+
+
+def test_a_cards_waiting_alarms_and_restart_mark_are_not_cut(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """A walk at 300 arms in a 1400 px window read "over_temperature_critical · +5 u..." on every card of an
+    arm with alarms waiting, and "arm-001 uncalibrated st..." while the agent stopped: the card cut the words
+    docs/console.md promises. The fleet document is the agent's own, two rows made so (served by the test)."""
+
+    def fleet_with_two_arms() -> dict[str, Any] | None:
+        doc: dict[str, Any] = json.loads(http_get(console + "/api/fleet")[2])
+        device = doc["columns"].index("device")
+        return doc if {"arm-001", "arm-002"} <= {r[device] for r in doc["rows"]} else None
+
+    doc = wait_for(fleet_with_two_arms, TIMEOUT_S, "arm-001 and arm-002 listed in /api/fleet")
+    col = {name: i for i, name in enumerate(doc["columns"])}
+    for row in doc["rows"]:
+        if row[col["device"]] == "arm-001":
+            row[col["alarm_severity"]], row[col["alarm_state"]] = "critical", "ACTIVE"
+            row[col["alarm_kind"]], row[col["alarm_joint"]] = "over_temperature_critical", "wrist_flex"
+            row[col["unacknowledged"]] = 6
+        if row[col["device"]] == "arm-002":
+            row[col["uncalibrated"]], row[col["mirror"]] = True, "restarting"
+    frame = "event: fleet\ndata: " + json.dumps(doc) + "\n\n"
+    page.route(
+        "**/api/stream/fleet",
+        lambda route: route.fulfill(status=200, headers={"Content-Type": "text/event-stream"}, body=frame),
+    )
+    try:
+        page.goto(console + "/")
+        waiting = page.locator('#fleet-view [data-device="arm-001"] .waiting', has_text="+5 unacknowledged")
+        mark = page.locator('#fleet-view [data-device="arm-002"] .restarting', has_text="restarting")
+        for part in (waiting, mark):
+            part.wait_for()
+            assert not part.evaluate(CLIPPED_JS), part.evaluate("e => e.closest('div').innerText")
+        cards = page.locator("#fleet-view .card")
+        assert cards.evaluate_all("cs => cs.filter(c => c.scrollHeight > c.clientHeight).length") == 0
+    finally:
+        page.unroute("**/api/stream/fleet")
+        leave(page)
+    assert browser_errors == []
+
+
 def silent_devices(fleet: dict[str, Any]) -> set[str]:
     """The arms /api/fleet shows as not ONLINE (its rows are lists in its `columns` order)."""
     device, status = fleet["columns"].index("device"), fleet["columns"].index("status")

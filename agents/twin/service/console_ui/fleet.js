@@ -82,12 +82,15 @@
       ...othersWaiting(r));
   }
 
-  // A card has room for the alarm's severity, joint and state on one line and its kind on the next.
+  // A card has room for the alarm's severity, joint and state on one line and its kind on the next; the
+  // alarms waiting behind it get a line of their own: after a kind such as over_temperature_critical a card
+  // cut "+5 unacknowledged" to "+5 u…".
   function cardAlarm(r) {
     const c = columns, sev = r[c.alarm_severity];
     if (!sev) return [el("div", { class: "line muted", text: "no alarm" })];
+    const waiting = othersWaiting(r).slice(1);
     return [el("div", { class: "line" }, el("span", { class: "sev-" + sev, text: sev }), ` · ${r[c.alarm_joint]} · ${r[c.alarm_state]}`),
-      el("div", { class: "line" }, r[c.alarm_kind], ...othersWaiting(r))];
+      el("div", { class: "line", text: r[c.alarm_kind] }), ...(waiting.length ? [el("div", { class: "line" }, ...waiting)] : [])];
   }
 
   // On a card the temperature comes before the servo's name, and a silent arm's "last heard" before both:
@@ -122,10 +125,10 @@
     const node = el("a", { class: "card " + r[c.status] + critical, href: "/arm/" + encodeURIComponent(id), role: "listitem",
       "data-device": id },
       el("div", { class: "id" }, id, ...(r[c.uncalibrated]
-        ? [" ", el("span", { class: "uncalibrated", title: "no LeRobot calibration: its page says how to push one", text: "uncalibrated" })] : []),
-        ...restarting(r)),
+        ? [" ", el("span", { class: "uncalibrated", title: "no LeRobot calibration: its page says how to push one", text: "uncalibrated" })] : [])),
+      // "restarting" or "stopping" beside the status it qualifies: after the id and "uncalibrated" a card cut it.
       el("div", { class: "line" }, el("span", { class: "status " + r[c.status], text: r[c.status] }),
-        " · " + Twin.ago(r[c.last_seen], now)),
+        " · " + Twin.ago(r[c.last_seen], now), ...restarting(r).map((n) => (n === " " ? " · " : n))),
       el("div", { class: "line", text: `${Twin.num(r[c.rate_hz], 1)} Hz · loss ${Twin.num(r[c.loss_pct], 1)} %` }),
       el("div", { class: "line", text: cardHot(r) }),
       ...cardAlarm(r));
