@@ -1032,6 +1032,48 @@ def test_the_events_page_follows_an_agent_that_restarted(
     browser_errors.clear()
 
 
+def test_the_events_page_says_a_full_load_is_the_newest_of_more(console: str, page: Any) -> None:
+    """/api/events answers at most 1,000 events: a walk at 300 arms read "1000 events" on the page while
+    the selection, as its export showed, held 11,000. A load that fills the cap (served by the test, in the
+    agent's own shape) says it is the selection's newest, and where the rest is; a smaller one does not."""
+    now = time.time()
+    full = {
+        "last_id": 1000,
+        "events": [
+            {
+                "id": i,
+                "time": now - 1000 + i,
+                "level": "info",
+                "kind": "status",
+                "device": "arm-001",
+                "message": f"arm-001 went ONLINE (was STALE) #{i}",
+                "data": {},
+            }
+            for i in range(1, 1001)
+        ],
+    }
+    page.route(
+        re.compile(r"/api/events\?"),
+        lambda route: route.fulfill(status=200, content_type="application/json", body=json.dumps(full)),
+    )
+    try:
+        page.goto(console + "/events")
+        counts = page.locator(".counts", has_text="newest 1000")
+        counts.wait_for()
+        assert "export it for all" in counts.inner_text()
+    finally:
+        page.unroute(re.compile(r"/api/events\?"))
+    page.get_by_label("device").fill("arm-001")
+    page.get_by_label("device").press("Enter")
+    page.locator("#events tbody tr").first.wait_for()
+    wait_for(
+        lambda: "event" in (t := page.locator(".counts").inner_text()) and "newest" not in t,
+        TIMEOUT_S,
+        "a selection under the cap counted without the note",
+    )
+    leave(page)
+
+
 def test_the_events_page_loads_again_after_a_failed_load(console: str, page: Any) -> None:
     """The agent answers /api/events with 503 for a while (busy, or restarting): the page tries again until
     it loads; a selection whose load fails shows none of the rows chosen by the filters before."""

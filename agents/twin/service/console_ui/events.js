@@ -5,6 +5,9 @@
 (() => {
   const { el, main } = Twin;
   const MAX_ROWS = 5000;
+  // The most events /api/events answers at once (the agent's own cap, whatever `limit` asks): a load that
+  // fills it is the selection's newest, not all of it. A walk read "1000 events" of a selection of 11,000.
+  const LOAD_MAX = 1000;
   const RETRY_MAX_S = 30;
   const device = el("input", { type: "search", placeholder: "device", "aria-label": "device" });
   const level = el("select", { "aria-label": "level" }, el("option", { value: "", text: "any level" }),
@@ -25,7 +28,12 @@
     el("div", { class: "toolbar" }, device, level, kind, text, "from", since, "until", until,
       el("label", {}, follow, " auto-scroll"), "export:", csv, json, count), box);
 
-  let events = [], lastId = 0;
+  let events = [], lastId = 0, loadedAll = true;
+
+  function showCount() {
+    count.textContent = `${events.length} event${events.length === 1 ? "" : "s"}` + (loadedAll ? ""
+      : ` (the selection's newest ${LOAD_MAX} when loaded, and those since: narrow it, or export it for all)`);
+  }
 
   function params(extra) {
     const p = new URLSearchParams();
@@ -64,7 +72,7 @@
 
   function render(loaded = true) {
     body.replaceChildren(...(events.length || !loaded ? events.map(row) : [none]));
-    count.textContent = `${events.length} event${events.length === 1 ? "" : "s"}`;
+    showCount();
     if (follow.checked) box.scrollTop = box.scrollHeight;
   }
 
@@ -77,7 +85,7 @@
     const rows = add.map(row);
     body.append(...rows);
     while (events.length > MAX_ROWS) { events.shift(); body.firstChild.remove(); }
-    count.textContent = `${events.length} event${events.length === 1 ? "" : "s"}`;
+    showCount();
     if (follow.checked) box.scrollTop = box.scrollHeight;
   }
 
@@ -93,15 +101,17 @@
     // Ends swapped: the agent refuses the range (400); said here, not as an agent out of reach.
     if (since.value && until.value && new Date(until.value) <= new Date(since.value)) {
       events = [];
+      loadedAll = true;
       render(false);
       count.textContent = "the until time is not after the from time: nothing lies between them";
       return;
     }
     try {
-      const doc = await Twin.getJSON("/api/events?" + params({ limit: "2000" }));
+      const doc = await Twin.getJSON("/api/events?" + params({ limit: String(LOAD_MAX) }));
       if (mine !== loads) return;
       failures = 0;
       events = doc.events;
+      loadedAll = events.length < LOAD_MAX;
       lastId = Math.max(lastId, doc.last_id);
       render();
       if (!document.body.dataset.ready) { document.body.dataset.ready = "1"; window.twinReadyAt = performance.now(); }
@@ -110,6 +120,7 @@
       const wait = Math.min(RETRY_MAX_S, 2 ** failures);
       failures += 1;
       events = [];
+      loadedAll = true;
       render(false);
       count.textContent = `could not load the events; trying again in ${wait} s`;
       Twin.setLink(false, "agent unreachable");
@@ -132,6 +143,7 @@
     if (!opened) { opened = true; return; }  // the first connection: load() has just read the selection
     lastId = 0;
     events = [];
+    loadedAll = true;
     render(false);
     count.textContent = "the agent is back: loading its events…";
     load();
