@@ -366,6 +366,34 @@ def test_an_arm_page_names_the_servo_that_reports_an_error_itself(
     assert browser_errors == []
 
 
+def test_an_arm_read_from_a_checkpoint_does_not_say_the_edge_sent_no_servo_errors(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """While the agent stops (or the arm's worker restarts) the arm is read from the worker's last checkpoint,
+    which keeps no servo readings: a walk's arm page said "servo errors: not sent by the edge" then, of an
+    edge that sends them. The document is the agent's own, made so (served by the test)."""
+
+    def arm_doc() -> dict[str, Any] | None:
+        status, _, body = http_get(console + "/api/arm/arm-001")
+        return json.loads(body) if status == 200 else None
+
+    doc = wait_for(arm_doc, TIMEOUT_S, "arm-001's page document")
+    doc["device"]["servos"], doc["device"]["mirror"] = None, "stopping"
+    frame = "event: arm\ndata: " + json.dumps(doc) + "\n\n"
+    page.route(
+        "**/api/stream/arm/arm-001",
+        lambda route: route.fulfill(status=200, headers={"Content-Type": "text/event-stream"}, body=frame),
+    )
+    try:
+        page.goto(console + "/arm/arm-001")
+        page.locator("#summary", has_text="not known while its worker is stopping").wait_for()
+        assert "not sent by the edge" not in page.locator("#summary").inner_text()
+    finally:
+        page.unroute("**/api/stream/arm/arm-001")
+        leave(page)
+    assert browser_errors == []
+
+
 def test_an_arm_page_breaks_its_lines_where_the_arm_was_silent(
     console: str, rig: LocalRig, page: Any, browser_errors: list[str]
 ) -> None:

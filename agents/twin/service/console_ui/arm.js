@@ -238,11 +238,15 @@
     rejectsBody.replaceChildren();
   }
 
-  function servoErrors(servos, motorIds) {
+  function servoErrors(d, motorIds) {
+    const servos = d.servos;
+    // No readings: an arm read from its worker's last checkpoint (the agent stopping, the worker restarting)
+    // has none kept, and "not sent by the edge" was wrong of an edge that sends them.
+    if (!servos) return d.mirror && d.mirror !== "running" ? `not known while its worker is ${d.mirror}` : "none received yet";
     const said = Object.entries(servos || {}).filter(([, s]) => s.errors && s.errors.length)
       .map(([joint, s]) => `${joint} servo (motor id ${motorIds[joint] ?? "?"}): ${s.errors.join(", ")}`);
     if (said.length) return said.join("; ");
-    return Object.values(servos || {}).some((s) => s.errors) ? "none" : "not sent by the edge";
+    return Object.values(servos).some((s) => s.errors) ? "none" : "not sent by the edge";
   }
 
   // Why received and applied differ (a walk read "4007 received, 3990 applied" with no reason): the counters
@@ -355,7 +359,7 @@
       // A row of its own, always there: a reason appearing mid-view must not move the alarms under the pointer.
       ["not applied", notApplied(h.counters)],
       // What the servos themselves report wrong (their status registers), by servo; always there, as above.
-      ["servo errors", servoErrors(d.servos, doc.motor_ids || {})],
+      ["servo errors", servoErrors(d, doc.motor_ids || {})],
     ]);
     kv(lossBox, [
       ["lost (estimated)", `${d.loss.lost} of ${d.loss.received + d.loss.lost} (${Twin.num(d.loss.loss_ratio * 100, 2)} %)`],
