@@ -107,6 +107,40 @@ def test_a_file_that_cannot_be_read_is_set_aside_not_replaced_by_the_first_write
     assert (tmp_path / "state.json.bad").read_bytes() == kept
 
 
+def test_a_file_in_a_directory_the_agent_cannot_search_is_reported_and_the_agent_starts(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A state directory the agent may not search (its mode or owner changed by hand): the file cannot be
+    read, and looking for a free `.bad` name raises the same PermissionError (Path.exists raises it). The
+    agent starts without the file, reported and counted, rather than not at all."""
+    path = tmp_path / "state.json"
+    path.write_text("{}")
+    real_read, real_stat = Path.read_bytes, os.stat
+
+    def refused(name: str) -> PermissionError:
+        return PermissionError(13, "Permission denied", name)
+
+    def read_bytes(self: Path) -> bytes:
+        if self == path:
+            raise refused(str(self))
+        return real_read(self)
+
+    def stat(name: os.PathLike[str] | str, *args: object, **kwargs: object) -> os.stat_result:
+        if os.fspath(name).startswith(str(path)):
+            raise refused(os.fspath(name))
+        return real_stat(name, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(Path, "read_bytes", read_bytes)
+    monkeypatch.setattr(os, "stat", stat)
+    state = StateFile(path)
+    with caplog.at_level(logging.ERROR, logger="twin.service.persist"):
+        assert state.load(0.0, 0.0) == []
+    assert "could not be moved aside" in caplog.text, caplog.text
+    assert state.stats().dropped == 1
+    monkeypatch.undo()
+    assert path.read_text() == "{}"
+
+
 def test_a_file_set_aside_before_is_not_replaced_by_the_next(tmp_path: Path) -> None:
     """The first `.bad` may hold every acknowledgement (a rollback's, docs/deploy.md): a file found broken at
     a later start (cut to nothing by a power cut) is set aside beside it, not over it."""

@@ -172,12 +172,8 @@ class StateFile:
         """Rename the file that `load` could not use to `<name>.bad`, so no write replaces it, and say so. One
         set aside before is not replaced: it may be the one that holds the acknowledgements (docs/deploy.md
         tells a person to move it back), and this one `<name>.bad.<n>` then."""
-        bad = self.path.with_name(self.path.name + ".bad")
-        n = 0
-        while bad.exists() or bad.is_symlink():
-            n += 1
-            bad = self.path.with_name(f"{self.path.name}.bad.{n}")
         try:
+            bad = self._unused_bad_name()
             os.replace(self.path, bad)
         except OSError as exc:
             fix = f"it could not be moved aside ({exc}) and the first write replaces it: copy it away now"
@@ -191,6 +187,17 @@ class StateFile:
         self.unusable += 1
         self.last_error = f"state file {self.path} {problem}; started without the alarms it kept; {fix}"
         log.error("%s", self.last_error)
+
+    def _unused_bad_name(self) -> Path:
+        """`<name>.bad`, or the first `<name>.bad.<n>` not taken. OSError when the directory cannot be looked
+        in (its search permission refused: `exists` raises that): the file then cannot be moved aside either,
+        and `load` must still start the agent without it."""
+        bad = self.path.with_name(self.path.name + ".bad")
+        n = 0
+        while bad.exists() or bad.is_symlink():
+            n += 1
+            bad = self.path.with_name(f"{self.path.name}.bad.{n}")
+        return bad
 
     def forget(self, device: str) -> None:
         """Drop the alarms of unknown kinds carried for `device` (an arm an operator forgot): the next write
