@@ -450,10 +450,12 @@ def write_atomically(path: Path, text: str | bytes) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
-        # mkstemp's file is 0600: renamed as it is, a calibration pushed by root would be one the agent's own
-        # user can no longer read. The file keeps the mode it had, and a new one gets the umask's.
-        os.fchmod(fd, _mode_for(path))
         with os.fdopen(fd, "wb") as fh:
+            # mkstemp's file is 0600: renamed as it is, a calibration pushed by root would be one the agent's
+            # own user can no longer read. The file keeps the mode it had, and a new one gets the umask's.
+            # Inside the `with`, so a refused chmod closes the descriptor too: the state file is tried again
+            # every second, and each try would leak one.
+            os.fchmod(fh.fileno(), _mode_for(path))
             fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
