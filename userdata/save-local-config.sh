@@ -38,17 +38,30 @@ if grep -qxF "$LOCAL_CONFIG_PLACEHOLDER" "$FILE"; then
   exit 0
 fi
 # A file the agent cannot start with (a typo in an edit) would replace the last good copy in a bucket that
-# keeps no versions: a host that replaced this one would start with no agent. Checked as the agent reads it.
+# keeps no versions: a host that replaced this one would start with no agent. Checked as the agent reads it,
+# on a copy that is then uploaded as checked: a change made meanwhile (the path unit does not start this
+# again for it) is checked in a round of its own, not uploaded unchecked.
 twin="${ROOT}${VENV:-/opt/so101-twin/venv}/bin/twin"
-if ! problem="$("$twin" config check "${ROOT}${CONFIG}" "$FILE" 2>&1)"; then
-  log "not saved: ${LOCAL_CONFIG} is not a config the agent can start with: ${problem}." \
-    "The copy at ${TARGET} keeps the settings saved last. Correct the file ('twin config check" \
-    "${CONFIG} ${LOCAL_CONFIG}' says what is wrong); its next change saves it"
-  not_saved 1
-  exit 1
-fi
-outcome=0
-upload_file "$FILE" "$TARGET" || outcome=$?
+copy="$(mktemp "${TMPDIR:-/tmp}/so101-twin-local-config.XXXXXX")"
+trap 'rm -f "$copy"' EXIT
+for round in 1 2 3 4 5; do
+  outcome=1
+  cp "$FILE" "$copy" || break
+  if ! problem="$("$twin" config check "${ROOT}${CONFIG}" "$copy" 2>&1)"; then
+    problem="${problem//"$copy"/"$LOCAL_CONFIG"}"  # the agent names the file it read: the operator's
+    log "not saved: ${LOCAL_CONFIG} is not a config the agent can start with: ${problem}." \
+      "The copy at ${TARGET} keeps the settings saved last. Correct the file ('twin config check" \
+      "${CONFIG} ${LOCAL_CONFIG}' says what is wrong); its next change saves it"
+    not_saved 1
+    exit 1
+  fi
+  outcome=0
+  upload_file "$copy" "$TARGET" || outcome=$?
+  [ "$outcome" = 0 ] || break
+  cmp -s "$copy" "$FILE" && break
+  outcome=2
+  [ "$round" = 5 ] || log "${LOCAL_CONFIG} changed while it was saved; saving it again"
+done
 case "$outcome" in
   0)
     log "saved ${LOCAL_CONFIG} to ${TARGET}"

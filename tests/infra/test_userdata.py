@@ -626,6 +626,34 @@ def test_a_file_the_agent_cannot_start_with_is_not_saved_over_the_last_good_copy
     assert not_saved_metric(root) == (0, "Lab")
 
 
+def test_a_file_made_invalid_while_it_is_saved_is_not_saved(
+    installed: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """The saver uploads again a change made during its upload (the path unit does not start it again): the
+    file checked must be the file uploaded, so a typo saved meanwhile is checked in turn and refused, not
+    uploaded over the good copy unchecked with the metric at 0."""
+    root = tmp_path / "root"
+    shutil.copytree(installed[0], root, symlinks=True)
+    local = root / "etc/so101-twin/agent.local.toml"
+    good = "[alarms]\ntemperature_warning_c = 52.0\ntemperature_warning_clear_c = 48.0\n"
+    local.write_text(good)
+    host = HostSim(tmp_path / "host")
+    assert host.run(SAVER, f"s3://{SAVED_LOCAL}", ROOT=str(root)).returncode == 0
+    typo = "[alarms]\ntemperature_warning = 51.0\n"
+    hook = host.sim / "on-upload"
+    hook.write_text(f"#!/usr/bin/env bash\nprintf '%s' '{typo}' > '{local}'\n")
+    hook.chmod(0o755)
+    local.write_text(good.replace("52.0", "53.0"))
+    result = host.run(SAVER, f"s3://{SAVED_LOCAL}", ROOT=str(root), AGENT_NAME="Lab")
+    out = result.stdout + result.stderr
+    assert result.returncode == 1, out
+    assert "not saved: /etc/so101-twin/agent.local.toml is not a config the agent can start with" in out
+    # The agent's words name the operator's file, not the copy checked.
+    assert "/etc/so101-twin/agent.local.toml)" in out and "so101-twin-local-config." not in out, out
+    assert (host.sim / "s3" / SAVED_LOCAL).read_text() == good.replace("52.0", "53.0")
+    assert not_saved_metric(root) == (1, "Lab")
+
+
 SAVED_ALARMS = "twin-history-bucket/host/alarm-state"
 ALARM_SAVER = USERDATA / "save-alarm-state.sh"
 AGENT_STATE_FILE = "var/lib/so101-twin-agent/state.json"
