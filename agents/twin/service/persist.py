@@ -453,9 +453,10 @@ def write_atomically(path: Path, text: str | bytes) -> None:
         with os.fdopen(fd, "wb") as fh:
             # mkstemp's file is 0600: renamed as it is, a calibration pushed by root would be one the agent's
             # own user can no longer read. The file keeps the mode it had, and a new one gets the umask's.
-            # Inside the `with`, so a refused chmod closes the descriptor too: the state file is tried again
-            # every second, and each try would leak one.
-            os.fchmod(fh.fileno(), _mode_for(path))
+            # A filesystem that refuses modes (vfat, some network shares) still takes the write: the mode
+            # is a courtesy to other readers, the content is what must not be lost.
+            with contextlib.suppress(OSError):
+                os.fchmod(fh.fileno(), _mode_for(path))
             fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
