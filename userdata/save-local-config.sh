@@ -47,11 +47,21 @@ trap 'rm -f "$copy"' EXIT
 for round in 1 2 3 4 5; do
   outcome=1
   cp "$FILE" "$copy" || break
-  if ! problem="$("$twin" config check "${ROOT}${CONFIG}" "$copy" 2>&1)"; then
-    problem="${problem//"$copy"/"$LOCAL_CONFIG"}"  # the agent names the file it read: the operator's
+  checked=0
+  problem="$("$twin" config check "${ROOT}${CONFIG}" "$copy" 2>&1)" || checked=$?
+  problem="${problem//"$copy"/"$LOCAL_CONFIG"}"  # the agent names the file it read: the operator's
+  if [ "$checked" = 2 ]; then  # twin config check's answer for a config the agent refuses
     log "not saved: ${LOCAL_CONFIG} is not a config the agent can start with: ${problem}." \
       "The copy at ${TARGET} keeps the settings saved last. Correct the file ('twin config check" \
       "${CONFIG} ${LOCAL_CONFIG}' says what is wrong); its next change saves it"
+    not_saved 1
+    exit 1
+  elif [ "$checked" != 0 ]; then
+    # The agent's own venv did not run (a deploy replacing it, a broken install): nothing is known of the
+    # file, and that is not the operator's typo.
+    log "not saved: ${LOCAL_CONFIG} could not be checked, ${twin#"${ROOT}"} failed (exit ${checked}):" \
+      "${problem}. The copy at ${TARGET} keeps the settings saved last; once the agent's venv works" \
+      "(sudo systemctl status so101-twin-agent), 'systemctl start so101-twin-local-config' saves it"
     not_saved 1
     exit 1
   fi

@@ -620,6 +620,18 @@ def test_a_file_the_agent_cannot_start_with_is_not_saved_over_the_last_good_copy
         assert (host.sim / "s3" / SAVED_LOCAL).read_text() == good
         assert not_saved_metric(root) == (1, "Lab")
     assert "temperature_warning" in out, out  # the agent's own words on what is wrong
+    # The agent's venv broken (a deploy replacing it): not said to be the operator's typo, and not saved.
+    twin = root / "opt/so101-twin/venv/bin/twin"
+    twin.unlink()
+    twin.write_text("#!/bin/sh\necho 'ModuleNotFoundError: No module named twin' >&2\nexit 1\n")
+    twin.chmod(0o755)
+    local.write_text(good.replace("52.0", "53.0"))
+    result = host.run(SAVER, f"s3://{SAVED_LOCAL}", ROOT=str(root), AGENT_NAME="Lab")
+    out = result.stdout + result.stderr
+    assert result.returncode == 1 and "could not be checked" in out and "No module named twin" in out, out
+    assert "not a config the agent can start with" not in out, out
+    assert (host.sim / "s3" / SAVED_LOCAL).read_text() == good and not_saved_metric(root) == (1, "Lab")
+    shutil.copy2(installed[0] / "opt/so101-twin/venv/bin/twin", twin)
     local.write_text(good.replace("52.0", "51.0"))
     assert host.run(SAVER, f"s3://{SAVED_LOCAL}", ROOT=str(root), AGENT_NAME="Lab").returncode == 0
     assert (host.sim / "s3" / SAVED_LOCAL).read_text() == local.read_text()
