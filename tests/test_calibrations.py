@@ -422,17 +422,24 @@ def test_the_stacks_store_keeps_what_push_and_rm_replace(
     assert keys == ["calibration/arm-001.json"]
 
 
-def test_a_restore_that_fails_halfway_saves_the_kept_calibration_here(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """restore keeps the current calibration in the kept one's place first; when writing the kept one back
-    then fails, it exists only in the command's memory, so it is saved in the working directory."""
+def _pushed_twice(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> list[str]:
+    """A directory store under `tmp_path` whose arm-001 was pushed EXAMPLE, then a shifted one (so the first
+    is kept for a restore); its `--store` arguments."""
     newer = tmp_path / "newer.json"
     newer.write_bytes(shifted(100))
     store = ["--store", str(tmp_path / "cal")]
     for file in (EXAMPLE, newer):
         assert main(["calibration", "push", "arm-001", str(file), *store]) == cmd.EXIT_OK
     capsys.readouterr()
+    return store
+
+
+def test_a_restore_that_fails_halfway_saves_the_kept_calibration_here(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """restore keeps the current calibration in the kept one's place first; when writing the kept one back
+    then fails, it exists only in the command's memory, so it is saved in the working directory."""
+    store = _pushed_twice(tmp_path, capsys)
 
     def refused(self: DirectoryStore, device: str, data: bytes) -> str:
         raise CalibrationStoreError(f"cannot write to {self.uri}: disk full")
@@ -452,12 +459,7 @@ def test_a_directory_restore_the_disk_refuses_halfway_saves_the_kept_calibration
 ) -> None:
     """As above with the error a directory store really meets (the disk filled between the two writes): an
     OSError from the disk is the store's error, so the kept calibration is saved rather than lost."""
-    newer = tmp_path / "newer.json"
-    newer.write_bytes(shifted(100))
-    store = ["--store", str(tmp_path / "cal")]
-    for file in (EXAMPLE, newer):
-        assert main(["calibration", "push", "arm-001", str(file), *store]) == cmd.EXIT_OK
-    capsys.readouterr()
+    store = _pushed_twice(tmp_path, capsys)
     real = calibrations.write_atomically
 
     def disk_fills(path: Path, data: bytes) -> None:

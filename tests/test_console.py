@@ -189,6 +189,16 @@ def test_the_fleet_page_lists_the_arms(console: str, page: Any, browser_errors: 
     assert browser_errors == []
 
 
+def serve_stream(page: Any, pattern: str, event: str, doc: dict[str, Any]) -> None:
+    """The page's stream at `pattern` answers one `event` frame of `doc` (the agent's own document, made so
+    by the test) until `page.unroute(pattern)`."""
+    frame = f"event: {event}\ndata: " + json.dumps(doc) + "\n\n"
+    page.route(
+        pattern,
+        lambda route: route.fulfill(status=200, headers={"Content-Type": "text/event-stream"}, body=frame),
+    )
+
+
 def test_a_card_says_alarms_wait_behind_an_acknowledged_worse_one(
     console: str, page: Any, browser_errors: list[str]
 ) -> None:
@@ -208,11 +218,7 @@ def test_a_card_says_alarms_wait_behind_an_acknowledged_worse_one(
     row[col["alarm_severity"]], row[col["alarm_state"]] = "critical", "ACKNOWLEDGED"
     row[col["alarm_kind"]], row[col["alarm_joint"]] = "over_temperature_critical", "wrist_flex"
     row[col["unacknowledged"]] = 1
-    frame = "event: fleet\ndata: " + json.dumps(doc) + "\n\n"
-    page.route(
-        "**/api/stream/fleet",
-        lambda route: route.fulfill(status=200, headers={"Content-Type": "text/event-stream"}, body=frame),
-    )
+    serve_stream(page, "**/api/stream/fleet", "fleet", doc)
     try:
         page.goto(console + "/")
         card = page.locator('#fleet-view [data-device="arm-001"]', has_text="+1 unacknowledged")
@@ -251,11 +257,7 @@ def test_a_cards_waiting_alarms_and_restart_mark_are_not_cut(
             row[col["unacknowledged"]] = 6
         if row[col["device"]] == "arm-002":
             row[col["uncalibrated"]], row[col["mirror"]] = True, "restarting"
-    frame = "event: fleet\ndata: " + json.dumps(doc) + "\n\n"
-    page.route(
-        "**/api/stream/fleet",
-        lambda route: route.fulfill(status=200, headers={"Content-Type": "text/event-stream"}, body=frame),
-    )
+    serve_stream(page, "**/api/stream/fleet", "fleet", doc)
     try:
         page.goto(console + "/")
         waiting = page.locator('#fleet-view [data-device="arm-001"] .waiting', has_text="+5 unacknowledged")
@@ -379,11 +381,7 @@ def test_an_arm_read_from_a_checkpoint_does_not_say_the_edge_sent_no_servo_error
 
     doc = wait_for(arm_doc, TIMEOUT_S, "arm-001's page document")
     doc["device"]["servos"], doc["device"]["mirror"] = None, "stopping"
-    frame = "event: arm\ndata: " + json.dumps(doc) + "\n\n"
-    page.route(
-        "**/api/stream/arm/arm-001",
-        lambda route: route.fulfill(status=200, headers={"Content-Type": "text/event-stream"}, body=frame),
-    )
+    serve_stream(page, "**/api/stream/arm/arm-001", "arm", doc)
     try:
         page.goto(console + "/arm/arm-001")
         page.locator("#summary", has_text="not known while its worker is stopping").wait_for()
