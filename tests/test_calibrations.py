@@ -454,6 +454,27 @@ def test_a_restore_that_fails_halfway_saves_the_kept_calibration_here(
     assert DirectoryStore(tmp_path / "cal").read("arm-001") == shifted(100)
 
 
+def test_a_restores_rescue_copy_does_not_replace_one_made_before(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The copy a failed restore saves is the kept calibration's only one; so is one an earlier failed restore
+    saved in the same directory, which the next one wrote over."""
+    store = _pushed_twice(tmp_path, capsys)
+    earlier = tmp_path / "arm-001.json.previous"
+    earlier.write_bytes(b"an earlier rescue's only copy")
+
+    def refused(self: DirectoryStore, device: str, data: bytes) -> str:
+        raise CalibrationStoreError(f"cannot write to {self.uri}: disk full")
+
+    monkeypatch.setattr(DirectoryStore, "write", refused)
+    monkeypatch.chdir(tmp_path)
+    assert main(["calibration", "restore", "arm-001", *store]) == cmd.EXIT_STORE
+    saved = tmp_path / "arm-001.json.previous.1"
+    assert f"saved in {saved}" in capsys.readouterr().err
+    assert saved.read_bytes() == EXAMPLE.read_bytes()
+    assert earlier.read_bytes() == b"an earlier rescue's only copy"
+
+
 def test_a_directory_restore_the_disk_refuses_halfway_saves_the_kept_calibration_here(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import shlex
+import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -347,8 +348,7 @@ def _restore(store: CalibrationStore, arm: str, again: str) -> int:
     except CalibrationStoreError:
         # The kept one's place now holds the current one: the kept one is only here. Saved where its
         # owner can push it again rather than lost.
-        saved = Path(f"{arm}{KEPT_SUFFIX}").absolute()
-        saved.write_bytes(kept)
+        saved = _rescue(f"{arm}{KEPT_SUFFIX}", kept)
         console.err(
             f"{arm}'s kept calibration is saved in {saved}: `twin calibration push {arm} {saved}{again}`"
         )
@@ -358,3 +358,29 @@ def _restore(store: CalibrationStore, arm: str, again: str) -> int:
         "(restore again to swap back)"
     )
     return EXIT_OK
+
+
+def _rescue(name: str, data: bytes) -> Path:
+    """`data` written to a new file named `name` (`name.1`, `name.2` ... when a different one is there: an
+    earlier rescue's copy is somebody's only one too) in the working directory, or in the temporary
+    directory when that one cannot be written; its path."""
+    for directory in (Path.cwd(), Path(tempfile.gettempdir())):
+        for n in range(100):
+            path = directory / (name if n == 0 else f"{name}.{n}")
+            try:
+                with path.open("xb") as fh:
+                    fh.write(data)
+                return path.absolute()
+            except FileExistsError:
+                if _holds(path, data):
+                    return path.absolute()
+            except OSError:
+                break
+    raise OSError(f"the kept calibration could not be written anywhere (tried {Path.cwd()} and the temp dir)")
+
+
+def _holds(path: Path, data: bytes) -> bool:
+    try:
+        return path.read_bytes() == data
+    except OSError:
+        return False
