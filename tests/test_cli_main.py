@@ -36,19 +36,25 @@ def test_a_reader_that_has_gone_ends_the_command_quietly() -> None:
 
 
 @pytest.mark.parametrize(
-    ("args", "says"),
+    ("args", "prefix", "says"),
     [
-        # An output where no directory can be made: the calibration store, the picture of a render.
+        # An output where no directory can be made: the calibration store (its own error, which also makes
+        # a failed restore save the kept calibration), the picture of a render.
         (
             ["calibration", "push", "arm-002", "{example}", "--store", "/proc/nope"],
+            "cannot write to /proc/nope/arm-002.json: ",
             "No such file or directory",
         ),
         # A file where the output directory is wanted.
-        (["demo", "--seconds", "3", "--out", "{file}"], "a file is where a directory is wanted"),
+        (
+            ["demo", "--seconds", "3", "--out", "{file}"],
+            "cannot use ",
+            "a file is where a directory is wanted",
+        ),
     ],
 )
 def test_a_path_that_cannot_be_used_is_one_line_naming_it_not_a_traceback(
-    args: list[str], says: str, tmp_path: Path
+    args: list[str], prefix: str, says: str, tmp_path: Path
 ) -> None:
     a_file = tmp_path / "notes.txt"
     a_file.write_text("mine\n")
@@ -61,8 +67,8 @@ def test_a_path_that_cannot_be_used_is_one_line_naming_it_not_a_traceback(
     assert done.returncode == 1, done.stdout + done.stderr
     err = done.stderr
     assert "Traceback" not in err
-    (line,) = [x for x in err.splitlines() if "cannot use" in x]
-    assert line.startswith(f"twin {args[0]}: cannot use ") and says in line, err
+    (line,) = [x for x in err.splitlines() if prefix in x]
+    assert line.startswith(f"twin {args[0]}: {prefix}") and says in line, err
     assert a_file.read_text() == "mine\n"  # nothing the user had is touched
 
 
@@ -91,3 +97,27 @@ def test_version(capsys: pytest.CaptureFixture[str]) -> None:
         main(["--version"])
     assert exit_.value.code == 0
     assert re.fullmatch(r"twin \d+\.\d+\.\d+\S*\n", capsys.readouterr().out)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_a_record_dir_the_agent_cannot_make_says_what_to_do(workers: str, tmp_path: Path) -> None:
+    """A walk's `--record-dir` on a read-only disk ended in "cannot start: [Errno 30] Read-only file system"
+    and no way out; the path the agent cannot write is named with the fix, from its own process or from a
+    worker's. (A directory under a file fails as a read-only disk does, also as root, as the tests run.)"""
+    a_file = tmp_path / "notes.txt"
+    a_file.write_text("mine\n")
+    sessions = f"{a_file}/sessions"
+    args = ["run", "--workers", workers, "--record-dir", sessions, "--broker", "mqtt://127.0.0.1:9"]
+    done = subprocess.run(
+        [sys.executable, "-m", "twin.cli", *args, "--http", "127.0.0.1:0"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+        cwd=tmp_path,
+    )
+    assert done.returncode == 1, done.stdout + done.stderr
+    (line,) = [x for x in done.stderr.splitlines() if "cannot start:" in x]
+    assert f"the agent must be able to write {sessions}: make that place writable" in line, line
+    assert "Traceback" not in line and a_file.read_text() == "mine\n"

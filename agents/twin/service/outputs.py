@@ -16,6 +16,17 @@ from twin.service.config import AgentConfig, ConfigError
 log = logging.getLogger(__name__)
 
 
+def unwritable_fix(exc: BaseException) -> str:
+    """What to do about `exc` when it is a path the agent cannot make or write (`--record-dir` on a read-only
+    disk, a state file under a file): the OS's words alone name no way out. "" for any other error."""
+    if not isinstance(exc, OSError) or not exc.filename:
+        return ""
+    return (
+        f"; the agent must be able to write {exc.filename}: make that place writable by the user it runs as "
+        "(with free space), or point the option or setting that names it elsewhere"
+    )
+
+
 def configured_sinks(config: AgentConfig, robot: RobotModel | None = None) -> list[TwinSink]:
     """The extra sinks `config` asks for, started (a served Rerun stream listens once this returns).
 

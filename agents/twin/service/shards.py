@@ -1482,7 +1482,7 @@ def worker_main(
     from twin.output.sinks import TwinSink  # noqa: PLC0415
     from twin.service.logs import setup_logging  # noqa: PLC0415
     from twin.service.mirror import Mirror, PipeInbox  # noqa: PLC0415 - MuJoCo loads in the worker only
-    from twin.service.outputs import close_sinks, configured_sinks  # noqa: PLC0415
+    from twin.service.outputs import close_sinks, configured_sinks, unwritable_fix  # noqa: PLC0415
 
     setup_logging(config.log.level)
     for handler in logging.getLogger().handlers:
@@ -1503,7 +1503,7 @@ def worker_main(
     except Exception as exc:
         close_sinks(sinks)
         log.exception("worker %d could not start", index)
-        control.send(StartFailed(f"{type(exc).__name__}: {exc}", config_error=False))
+        control.send(StartFailed(f"{type(exc).__name__}: {exc}{unwritable_fix(exc)}", config_error=False))
         return
     control.send(Ready(os.getpid()))
     threading.Thread(target=_serve_control, args=(mirror, control), name="twin-control", daemon=True).start()

@@ -271,6 +271,8 @@ def _build_service(config: AgentConfig) -> AgentService | int:
 
 
 def _cannot_start(exc: BaseException) -> int:
-    console.err(f"cannot start: {exc}")
+    from twin.service.outputs import unwritable_fix
+
+    console.err(f"cannot start: {exc}{unwritable_fix(exc)}")
     log.error("cannot start", extra={"error": str(exc), "exit_code": EXIT_FAILURE})
     return EXIT_FAILURE
