@@ -610,8 +610,10 @@ def test_a_worker_that_runs_but_answers_nothing_is_killed_and_started_again(
         before = wait_for(received, 60, "arm-001 back")
         wait_for(lambda: received() > before, 60, "arm-001 counted again")
         assert not psutil.pid_exists(victim) or psutil.Process(victim).status() == psutil.STATUS_ZOMBIE
-        hung = [r for r in caplog.records if "it is hung" in r.getMessage()]
-        assert hung and f"worker {shard.index} (pid {victim})" in hung[0].getMessage()
+        # Any of the lines: on a machine busy enough that the other worker also answered three asks late (a
+        # one-second timeout here), it may have been restarted first, and that is not what this checks.
+        hung = [r.getMessage() for r in caplog.records if "it is hung" in r.getMessage()]
+        assert any(f"worker {shard.index} (pid {victim})" in line for line in hung), hung
     finally:
         edge.stop()
         with contextlib.suppress(ProcessLookupError):
