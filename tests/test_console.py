@@ -189,14 +189,29 @@ def test_the_fleet_page_lists_the_arms(console: str, page: Any, browser_errors: 
     assert browser_errors == []
 
 
-def serve_stream(page: Any, pattern: str, event: str, doc: dict[str, Any]) -> None:
-    """The page's stream at `pattern` answers one `event` frame of `doc` (the agent's own document, made so
-    by the test) until `page.unroute(pattern)`."""
-    frame = f"event: {event}\ndata: " + json.dumps(doc) + "\n\n"
+def serve_document(page: Any, path: str, event: str, doc: dict[str, Any]) -> None:
+    """Both ways a page reads the document at `path` (its first GET, and its stream at /api/stream plus the
+    rest of the path) answer `doc`, the agent's own made so by the test, until `unserve`. The stream alone
+    lost a race: the agent's own first answer came after the made frame and undid it (a stress run)."""
+    body = json.dumps(doc)
+    frame = f"event: {event}\ndata: {body}\n\n"
     page.route(
-        pattern,
+        "**" + path,
+        lambda route: route.fulfill(status=200, headers={"Content-Type": "application/json"}, body=body),
+    )
+    page.route(
+        _stream_of(path),
         lambda route: route.fulfill(status=200, headers={"Content-Type": "text/event-stream"}, body=frame),
     )
+
+
+def unserve(page: Any, path: str) -> None:
+    page.unroute(_stream_of(path))
+    page.unroute("**" + path)
+
+
+def _stream_of(path: str) -> str:
+    return "**/api/stream" + path.removeprefix("/api")
 
 
 def test_a_card_says_alarms_wait_behind_an_acknowledged_worse_one(
@@ -218,7 +233,7 @@ def test_a_card_says_alarms_wait_behind_an_acknowledged_worse_one(
     row[col["alarm_severity"]], row[col["alarm_state"]] = "critical", "ACKNOWLEDGED"
     row[col["alarm_kind"]], row[col["alarm_joint"]] = "over_temperature_critical", "wrist_flex"
     row[col["unacknowledged"]] = 1
-    serve_stream(page, "**/api/stream/fleet", "fleet", doc)
+    serve_document(page, "/api/fleet", "fleet", doc)
     try:
         page.goto(console + "/")
         card = page.locator('#fleet-view [data-device="arm-001"]', has_text="+1 unacknowledged")
@@ -227,7 +242,7 @@ def test_a_card_says_alarms_wait_behind_an_acknowledged_worse_one(
         page.locator('#fleet-view [data-device="arm-001"]', has_text="+1 unacknowledged").wait_for()
         page.get_by_role("button", name="Grid").click()
     finally:
-        page.unroute("**/api/stream/fleet")
+        unserve(page, "/api/fleet")
         leave(page)
     assert browser_errors == []
 
@@ -257,7 +272,7 @@ def test_a_cards_waiting_alarms_and_restart_mark_are_not_cut(
             row[col["unacknowledged"]] = 6
         if row[col["device"]] == "arm-002":
             row[col["uncalibrated"]], row[col["mirror"]] = True, "restarting"
-    serve_stream(page, "**/api/stream/fleet", "fleet", doc)
+    serve_document(page, "/api/fleet", "fleet", doc)
     try:
         page.goto(console + "/")
         waiting = page.locator('#fleet-view [data-device="arm-001"] .waiting', has_text="+5 unacknowledged")
@@ -268,7 +283,7 @@ def test_a_cards_waiting_alarms_and_restart_mark_are_not_cut(
         cards = page.locator("#fleet-view .card")
         assert cards.evaluate_all("cs => cs.filter(c => c.scrollHeight > c.clientHeight).length") == 0
     finally:
-        page.unroute("**/api/stream/fleet")
+        unserve(page, "/api/fleet")
         leave(page)
     assert browser_errors == []
 
@@ -381,13 +396,13 @@ def test_an_arm_read_from_a_checkpoint_does_not_say_the_edge_sent_no_servo_error
 
     doc = wait_for(arm_doc, TIMEOUT_S, "arm-001's page document")
     doc["device"]["servos"], doc["device"]["mirror"] = None, "stopping"
-    serve_stream(page, "**/api/stream/arm/arm-001", "arm", doc)
+    serve_document(page, "/api/arm/arm-001", "arm", doc)
     try:
         page.goto(console + "/arm/arm-001")
         page.locator("#summary", has_text="not known while its worker is stopping").wait_for()
         assert "not sent by the edge" not in page.locator("#summary").inner_text()
     finally:
-        page.unroute("**/api/stream/arm/arm-001")
+        unserve(page, "/api/arm/arm-001")
         leave(page)
     assert browser_errors == []
 
