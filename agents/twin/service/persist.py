@@ -37,7 +37,7 @@ import os
 import tempfile
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -192,12 +192,8 @@ class StateFile:
         """`<name>.bad`, or the first `<name>.bad.<n>` not taken. OSError when the directory cannot be looked
         in (its search permission refused: `exists` raises that): the file then cannot be moved aside either,
         and `load` must still start the agent without it."""
-        bad = self.path.with_name(self.path.name + ".bad")
-        n = 0
-        while bad.exists() or bad.is_symlink():
-            n += 1
-            bad = self.path.with_name(f"{self.path.name}.bad.{n}")
-        return bad
+        names = numbered(self.path.with_name(self.path.name + ".bad"))
+        return next(bad for bad in names if not (bad.exists() or bad.is_symlink()))
 
     def forget(self, device: str) -> None:
         """Drop the alarms of unknown kinds carried for `device` (an arm an operator forgot): the next write
@@ -441,6 +437,15 @@ def adopt_file(source: str, target: str) -> int:
     adopted, alarms = adopt(Path(source).read_bytes())
     write_atomically(Path(target), adopted)
     return alarms
+
+
+def numbered(path: Path, count: int | None = None) -> Iterator[Path]:
+    """`path`, then `<path>.1`, `<path>.2` ... (`count` names in all, or without end): the names tried for a
+    copy that must not replace one already there (a state file set aside, a calibration rescued)."""
+    n = 0
+    while count is None or n < count:
+        yield path if n == 0 else path.with_name(f"{path.name}.{n}")
+        n += 1
 
 
 def write_atomically(path: Path, text: str | bytes) -> None:

@@ -364,9 +364,10 @@ def _rescue(name: str, data: bytes) -> Path:
     """`data` written to a new file named `name` (`name.1`, `name.2` ... when a different one is there: an
     earlier rescue's copy is somebody's only one too) in the working directory, or in the temporary
     directory when that one cannot be written; its path."""
+    from twin.service.persist import numbered
+
     for directory in (Path.cwd(), Path(tempfile.gettempdir())):
-        for n in range(100):
-            path = directory / (name if n == 0 else f"{name}.{n}")
+        for path in numbered(directory / name, 100):
             try:
                 with path.open("xb") as fh:
                     fh.write(data)
