@@ -3,6 +3,7 @@ read back on another process's clock, and a broken file set aside instead of sto
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
@@ -111,7 +112,7 @@ def test_a_file_in_a_directory_the_agent_cannot_search_is_reported_and_the_agent
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
     """A state directory the agent may not search (its mode or owner changed by hand): the file cannot be
-    read, and looking for a free `.bad` name raises the same PermissionError (Path.exists raises it). The
+    read, and moving it to a `.bad` name raises the same PermissionError (a link or a look there). The
     agent starts without the file, reported and counted, rather than not at all."""
     path = tmp_path / "state.json"
     path.write_text("{}")
@@ -130,8 +131,12 @@ def test_a_file_in_a_directory_the_agent_cannot_search_is_reported_and_the_agent
             raise refused(os.fspath(name))
         return real_stat(name, *args, **kwargs)  # type: ignore[arg-type]
 
+    def link(src: object, dst: os.PathLike[str] | str, *args: object, **kwargs: object) -> None:
+        raise refused(os.fspath(dst))
+
     monkeypatch.setattr(Path, "read_bytes", read_bytes)
     monkeypatch.setattr(os, "stat", stat)
+    monkeypatch.setattr(os, "link", link)
     state = StateFile(path)
     with caplog.at_level(logging.ERROR, logger="twin.service.persist"):
         assert state.load(0.0, 0.0) == []
@@ -394,3 +399,50 @@ def test_alarms_of_a_kind_only_a_newer_agent_knows_are_kept_aside_not_the_whole_
     assert later.save(back, 7.0, 1e6 + 62)
     kinds = [(a["device"], a["kind"]) for a in json.loads(path.read_text())["alarms"]]
     assert ("arm-002", "a_future_kind") in kinds and ("arm-001", "a_future_kind") not in kinds
+
+
+def test_a_name_taken_while_a_file_is_set_aside_is_not_replaced(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Another process (a second agent started by mistake, a person's copy) may make `state.json.bad` between
+    the look for a free name and the move: its file must survive, and the broken one go to the next name."""
+    path = tmp_path / "state.json"
+    path.write_bytes(b"broken")
+    competitor = tmp_path / "state.json.bad"
+    real_link, real_replace = os.link, os.replace
+
+    def first_make_competitor(real):  # type: ignore[no-untyped-def]
+        def call(src, dst, *args, **kwargs):  # type: ignore[no-untyped-def]
+            if not competitor.exists():
+                competitor.write_bytes(b"the other one")
+            return real(src, dst, *args, **kwargs)
+
+        return call
+
+    monkeypatch.setattr(os, "link", first_make_competitor(real_link))
+    monkeypatch.setattr(os, "replace", first_make_competitor(real_replace))
+    assert StateFile(path).load(0.0, 0.0) == []
+    monkeypatch.undo()
+    assert competitor.read_bytes() == b"the other one"
+    assert (tmp_path / "state.json.bad.1").read_bytes() == b"broken"
+    assert not path.exists()
+
+
+def test_a_filesystem_without_hard_links_still_sets_a_file_aside(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """vfat and some network shares refuse a hard link (EPERM): the file is still moved, beside the first."""
+    path = tmp_path / "state.json"
+    (tmp_path / "state.json.bad").write_bytes(b"first")
+    path.write_bytes(b"broken")
+
+    def refuse(src: object, dst: object, *args: object, **kwargs: object) -> None:
+        raise PermissionError(errno.EPERM, "Operation not permitted")
+
+    monkeypatch.setattr(os, "link", refuse)
+    state = StateFile(path)
+    assert state.load(0.0, 0.0) == []
+    monkeypatch.undo()
+    assert (tmp_path / "state.json.bad").read_bytes() == b"first"
+    assert (tmp_path / "state.json.bad.1").read_bytes() == b"broken"
+    assert "moved to state.json.bad.1" in state.stats().last_error

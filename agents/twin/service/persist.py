@@ -29,6 +29,7 @@ over, and since the run that wrote it was another host's, the copy says nothing 
 from __future__ import annotations
 
 import contextlib
+import errno
 import glob
 import json
 import logging
@@ -37,7 +38,7 @@ import os
 import tempfile
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -173,8 +174,7 @@ class StateFile:
         set aside before is not replaced: it may be the one that holds the acknowledgements (docs/deploy.md
         tells a person to move it back), and this one `<name>.bad.<n>` then."""
         try:
-            bad = self._unused_bad_name()
-            os.replace(self.path, bad)
+            bad = move_to_free_name(self.path, numbered(self.path.with_name(self.path.name + ".bad")))
         except OSError as exc:
             fix = f"it could not be moved aside ({exc}) and the first write replaces it: copy it away now"
         else:
@@ -187,13 +187,6 @@ class StateFile:
         self.unusable += 1
         self.last_error = f"state file {self.path} {problem}; started without the alarms it kept; {fix}"
         log.error("%s", self.last_error)
-
-    def _unused_bad_name(self) -> Path:
-        """`<name>.bad`, or the first `<name>.bad.<n>` not taken. OSError when the directory cannot be looked
-        in (its search permission refused: `exists` raises that): the file then cannot be moved aside either,
-        and `load` must still start the agent without it."""
-        names = numbered(self.path.with_name(self.path.name + ".bad"))
-        return next(bad for bad in names if not (bad.exists() or bad.is_symlink()))
 
     def forget(self, device: str) -> None:
         """Drop the alarms of unknown kinds carried for `device` (an arm an operator forgot): the next write
@@ -448,12 +441,47 @@ def numbered(path: Path, count: int | None = None) -> Iterator[Path]:
         n += 1
 
 
+def move_to_free_name(path: Path, names: Iterable[Path]) -> Path:
+    """Rename `path` to the first of `names` that no file holds, and return it. A hard link is made first,
+    which fails when the name is taken, then `path` is removed: a test for a free name and a rename after it
+    would let another process's file, made between the two, be replaced. A filesystem without hard links
+    takes the test and the rename. OSError when the directory cannot be looked in or written."""
+    for name in names:
+        try:
+            os.link(path, name)
+        except FileExistsError:
+            continue
+        except OSError as exc:
+            if exc.errno not in _NO_HARD_LINKS:
+                raise
+            if name.exists() or name.is_symlink():
+                continue
+            os.replace(path, name)
+            return name
+        os.unlink(path)
+        return name
+    raise FileExistsError(f"every name for {path} is taken")
+
+
+# What a filesystem without hard links (vfat, some network shares) answers a link with.
+_NO_HARD_LINKS = frozenset({errno.EPERM, errno.EOPNOTSUPP, errno.ENOTSUP, errno.EMLINK, errno.ENOSYS})
+
+
+# write_atomically's temporary files are `.<name>.<random>.tmp`, beside the file they become.
+TEMPORARY_SUFFIX = ".tmp"
+
+
+def is_temporary(name: str) -> bool:
+    """Whether a file name is one of write_atomically's temporary files."""
+    return name.startswith(".") and name.endswith(TEMPORARY_SUFFIX)
+
+
 def write_atomically(path: Path, text: str | bytes) -> None:
     """Replace `path` with `text` (str as UTF-8) so that a crash at any point leaves the old file or the new
     one; a write that fails leaves no temporary file behind."""
     data = text.encode() if isinstance(text, str) else text
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=TEMPORARY_SUFFIX, dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as fh:
             # mkstemp's file is 0600: renamed as it is, a calibration pushed by root would be one the agent's
