@@ -187,6 +187,45 @@ def test_an_unreadable_store_keeps_the_book_and_says_why(tmp_path: Path) -> None
     assert set(watcher.book.entries) == {"arm-001"}
 
 
+def test_a_file_gone_between_the_listing_and_its_size_is_passed_over(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A push renames its temporary file into place while a poll lists the directory: the poll saw the
+    temporary file and its size then raised FileNotFoundError, and the whole round was skipped."""
+    store = DirectoryStore(tmp_path / "cal")
+    store.write("arm-001", EXAMPLE.read_bytes())
+    pushing = tmp_path / "cal" / ".arm-002.json.k3j5x9q1.tmp"
+    pushing.write_bytes(EXAMPLE.read_bytes())
+    real_scandir = os.scandir
+
+    def listed_then_renamed(path: Any) -> Any:
+        entries = list(real_scandir(path))
+        pushing.rename(tmp_path / "cal" / "arm-002.json")
+        return iter(entries)
+
+    monkeypatch.setattr(calibrations.os, "scandir", listed_then_renamed)
+    watcher = CalibrationWatcher(store)
+    assert watcher.poll() and watcher.failures == 0
+    monkeypatch.undo()
+    assert set(watcher.book.entries) == {"arm-001"}
+    assert watcher.poll() and set(watcher.book.entries) == {"arm-001", "arm-002"}
+
+
+def test_a_temporary_file_a_killed_push_left_is_removed_once_old(tmp_path: Path) -> None:
+    """Nothing else removes the temporary file of a push killed before its rename: crash after crash they
+    would fill the store. A young one may be a push under way, and is left alone."""
+    store = DirectoryStore(tmp_path / "cal")
+    store.write("arm-001", EXAMPLE.read_bytes())
+    old, young = (tmp_path / "cal" / f".arm-001.json.{tag}.tmp" for tag in ("aaaaaaaa", "bbbbbbbb"))
+    old.write_bytes(b"{")
+    young.write_bytes(b"{")
+    hour_ago = time.time() - 3600
+    os.utime(old, (hour_ago, hour_ago))
+    assert store.listing().keys() == {"arm-001"}
+    assert not old.exists() and young.exists()
+    assert (tmp_path / "cal" / "arm-001.json").read_bytes() == EXAMPLE.read_bytes()
+
+
 @pytest.fixture
 def s3(aws_env: None):
     with mock_aws():

@@ -28,6 +28,7 @@ import logging
 import os
 import shlex
 import threading
+import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,7 +37,7 @@ from typing import Any, Protocol
 from twin.core.aws import region_or_env
 from twin.core.topics import POLICY_DEVICE_ID_RULE, policy_device_id_problem
 from twin.robot.calibration import MAX_FILE_BYTES, Calibration, parse_calibration
-from twin.service.persist import write_atomically
+from twin.service.persist import is_temporary, write_atomically
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +47,8 @@ SUFFIX = ".json"
 # hour with the arm. Not `.json`, so no listing takes it for an arm's.
 KEPT_SUFFIX = ".json.previous"
 DEFAULT_POLL_S = 30.0
+# A directory store's temporary file older than this is a cut-short write's (a push takes milliseconds).
+LEFTOVER_AGE_S = 600.0
 # The agent setting that names the store, as the console names it.
 SETTING = "[telemetry] calibrations"
 # The prefix the stack keeps the calibrations under in its bucket (stacks/history_bucket.py): an agent that
@@ -182,11 +185,34 @@ class DirectoryStore:
         except OSError as exc:
             raise CalibrationStoreError(f"cannot list {self.path}: {exc}") from exc
         files = []
+        now = time.time()
         for entry in entries:
-            if entry.is_file():
+            try:
+                if not entry.is_file():
+                    continue
                 st = entry.stat()
-                files.append((entry.name, f"{st.st_mtime_ns}:{st.st_size}"))
+            except FileNotFoundError:
+                # Gone since the listing: a push's temporary file renamed into place (the next poll reads
+                # the arm's file), or an rm. It raised past the poll, which then skipped the whole fleet.
+                continue
+            except OSError as exc:
+                raise CalibrationStoreError(f"cannot read {entry.path}'s size: {exc}") from exc
+            if is_temporary(entry.name):
+                if now - st.st_mtime > LEFTOVER_AGE_S:
+                    self._remove_leftover(entry.path)
+                continue
+            files.append((entry.name, f"{st.st_mtime_ns}:{st.st_size}"))
         return scan_of(files)
+
+    def _remove_leftover(self, path: str) -> None:
+        """A push killed between its temporary file and the rename leaves that file, as large as a
+        calibration, and nothing else would ever remove it."""
+        try:
+            os.unlink(path)
+        except OSError as exc:
+            log.debug("leftover %s not removed: %s", path, exc)
+            return
+        log.info("removed %s, left by a calibration write that was cut short", path, extra={"path": path})
 
     def read(self, device: str) -> bytes:
         found = self._get(f"{device}{SUFFIX}", missing_ok=False)
