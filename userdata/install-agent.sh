@@ -293,7 +293,7 @@ restore_local_config() {
     return 2
   fi
   chmod 0644 "$tmp"
-  mv -f "$tmp" "${ROOT}${LOCAL_CONFIG}"
+  durable_mv "$tmp" "${ROOT}${LOCAL_CONFIG}"
   CHANGED=1
 }
 

@@ -79,9 +79,19 @@ write_file() {
     return 0
   fi
   chmod "$mode" "$tmp"
-  mv -f "$tmp" "$path"
+  durable_mv "$tmp" "$path"
   log "wrote $1"
   CHANGED=1
+}
+
+# durable_mv TMP PATH: TMP renamed over PATH once its content is on disk, then the rename made durable. On
+# ext4 a power cut after a rename whose data was not yet written can leave PATH empty: an empty unit stops
+# the boot, and an empty agent.local.toml would be taken for the operator's settings at the next deploy
+# and saved over their only copy.
+durable_mv() {
+  sync "$1"
+  mv -f "$1" "$2"
+  sync "$(dirname "$2")"
 }
 
 # installed PKG: dpkg says the package is installed. Output is captured whole, never piped into a reader

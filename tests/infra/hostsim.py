@@ -3,17 +3,17 @@ the system tools, first on PATH.
 
 What is real: bash, the scripts themselves (the very text the stack renders into UserData and the State
 Manager association), tar on a DCV tarball of realistic size and layout, python3 (venv, pip, zipfile, JSON,
-the fcntl lock probe), gpg and ar (every signature check runs for real, against test keys), coreutils,
-timeout, flock, Pillow on the console capture. What stands in, and why: the tools that would change this
-machine or need AWS, a GPU, a display or a package mirror (apt-get, apt-cache, dpkg-query, dpkg, systemctl,
-journalctl, nvidia-smi, nvidia-xconfig, dcv, chpasswd, chown, usermod, useradd, gpasswd, id, ps, pgrep,
-glib-compile-schemas, snap, aws, curl, sleep). Each stand-in logs its arguments to `calls.log` and keeps the
-host's state in SIM (installed packages and snaps, active and masked units, whether X runs on the GPU, the DCV
-sessions, the viewer), and encodes the dependencies that matter for the order of the boot: X starts on the GPU
-only with the NVIDIA Xorg module, Xorg.wrap and an xorg.conf for the nvidia driver; dcvserver creates the
-automatic console session only if X runs when it starts; the viewer runs once X runs and the autostart entry
-and its supervisor exist; a masked unit does not start; the agent answers /healthz only while its service is
-active. A file SIM/fail/<tool> makes that stand-in fail (to test a failing step).
+the fcntl lock probe), gpg and ar (every signature check runs for real, against test keys), coreutils (sync
+logged on its way), timeout, flock, Pillow on the console capture. What stands in, and why: the tools that
+would change this machine or need AWS, a GPU, a display or a package mirror (apt-get, apt-cache, dpkg-query,
+dpkg, systemctl, journalctl, nvidia-smi, nvidia-xconfig, dcv, chpasswd, chown, usermod, useradd, gpasswd, id,
+ps, pgrep, glib-compile-schemas, snap, aws, curl, sleep). Each stand-in logs its arguments to `calls.log` and
+keeps the host's state in SIM (installed packages and snaps, active and masked units, whether X runs on the
+GPU, the DCV sessions, the viewer), and encodes the dependencies that matter for the order of the boot: X
+starts on the GPU only with the NVIDIA Xorg module, Xorg.wrap and an xorg.conf for the nvidia driver;
+dcvserver creates the automatic console session only if X runs when it starts; the viewer runs once X runs and
+the autostart entry and its supervisor exist; a masked unit does not start; the agent answers /healthz only
+while its service is active. A file SIM/fail/<tool> makes that stand-in fail (to test a failing step).
 
 The CDN stand-in (curl) serves files from SIM/cdn: a DCV release whose packages carry dpkg-sig builder
 signatures and a CloudWatch agent package with a detached signature, both made here with throw-away keys
@@ -323,6 +323,9 @@ grep -vx "$3" "$SIM/groups/$2" >"$SIM/groups/$2.new" || true
 mv "$SIM/groups/$2.new" "$SIM/groups/$2"
 """,
     "chown": r"""exit 0""",
+    # Logged, so a test sees what was flushed, then run for real.
+    "sync": r"""exec /usr/bin/sync "$@"
+""",
     "sleep": r"""
 # SIM/on-sleep: what happens meanwhile (the agent writing a file again), run once.
 if [ -x "$SIM/on-sleep" ]; then mv "$SIM/on-sleep" "$SIM/on-sleep.ran"; "$SIM/on-sleep.ran"; fi

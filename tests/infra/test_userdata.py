@@ -541,6 +541,12 @@ def test_the_operators_file_is_saved_whenever_it_changes_and_a_new_host_starts_w
     )
     restored = new_root / "etc/so101-twin/agent.local.toml"
     assert restored.read_text() == kept
+    # On disk before its rename, and the rename too: an empty file after a power cut would be saved over
+    # the bucket's copy, the operator's only one.
+    synced = [c for c in HostSim(new_root.parent / f"{new_root.name}-sim").calls() if c.startswith("sync ")]
+    config_dir = restored.parent
+    assert any(c.startswith(f"sync {config_dir}/.so101-twin.") for c in synced), synced
+    assert f"sync {config_dir}" in synced, synced
     assert oct(restored.stat().st_mode & 0o777) == "0o644"
     from twin.service.config import load_config
 
