@@ -255,8 +255,9 @@ def test_a_cards_waiting_alarms_and_restart_mark_are_not_cut(
     console: str, page: Any, browser_errors: list[str]
 ) -> None:
     """A walk at 300 arms in a 1400 px window read "over_temperature_critical · +5 u..." on every card of an
-    arm with alarms waiting, and "arm-001 uncalibrated st..." while the agent stopped: the card cut the words
-    docs/console.md promises. The fleet document is the agent's own, two rows made so (served by the test)."""
+    arm with alarms waiting, "arm-001 uncalibrated st..." while the agent stopped, and "critical ·
+    shoulder_lift · ACKNOWL..." for an acknowledged alarm: the card cut the words docs/console.md promises.
+    The fleet document is the agent's own, two rows made so (served by the test)."""
 
     def fleet_with_two_arms() -> dict[str, Any] | None:
         doc: dict[str, Any] = json.loads(http_get(console + "/api/fleet")[2])
@@ -267,9 +268,9 @@ def test_a_cards_waiting_alarms_and_restart_mark_are_not_cut(
     col = {name: i for i, name in enumerate(doc["columns"])}
     for row in doc["rows"]:
         if row[col["device"]] == "arm-001":
-            row[col["alarm_severity"]], row[col["alarm_state"]] = "critical", "ACTIVE"
-            row[col["alarm_kind"]], row[col["alarm_joint"]] = "over_temperature_critical", "wrist_flex"
-            row[col["unacknowledged"]] = 6
+            row[col["alarm_severity"]], row[col["alarm_state"]] = "critical", "ACKNOWLEDGED"
+            row[col["alarm_kind"]], row[col["alarm_joint"]] = "over_temperature_critical", "shoulder_lift"
+            row[col["unacknowledged"]] = 5
         if row[col["device"]] == "arm-002":
             row[col["uncalibrated"]], row[col["mirror"]] = True, "restarting"
     serve_document(page, "/api/fleet", "fleet", doc)
@@ -282,7 +283,42 @@ def test_a_cards_waiting_alarms_and_restart_mark_are_not_cut(
             assert not part.evaluate(CLIPPED_JS), part.evaluate("e => e.closest('div').innerText")
         cards = page.locator("#fleet-view .card")
         assert cards.evaluate_all("cs => cs.filter(c => c.scrollHeight > c.clientHeight).length") == 0
+        # No line of any card is cut (the id may be: its title holds it whole).
+        lines = page.locator("#fleet-view .card .line")
+        assert any("ACKNOWLEDGED" in t for t in lines.all_inner_texts()), lines.all_inner_texts()
+        cut = lines.evaluate_all("ls => ls.filter(l => l.scrollWidth > l.clientWidth).map(l => l.innerText)")
+        assert cut == [], cut
+        # A row, in the walk's 1400 px window: the state and the alarms waiting were cut off behind the kind.
+        page.set_viewport_size({"width": 1400, "height": 800})
+        page.get_by_role("button", name="List").click()
+        row = page.locator('#fleet-view .row[data-device="arm-001"]')
+        row.get_by_text("ACKNOWLEDGED · +5 unacknowledged").wait_for()
+        cut = row.locator("span:not(.arm-id)").evaluate_all(
+            "ss => ss.filter(s => s.scrollWidth > s.clientWidth).map(s => s.innerText)"
+        )
+        assert cut == [], cut
+        # Its figures keep the text's colour: a row of link-blue numbers read as a page of links.
+        assert row.locator("span.wide").first.evaluate("s => getComputedStyle(s).color") == "rgb(29, 35, 48)"
+        # A phone: the columns it keeps share one line (the hottest servo wrapped under the arm, over the
+        # next row).
+        from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
+        page.set_viewport_size({"width": 600, "height": 800})
+        # Read in the page as one step: a resize draws the rows again, and a row read across steps may be
+        # one already taken out (none of its cells then shown).
+        tops_js = (
+            "() => [...(document.querySelector('#fleet-view .row[data-device=\"arm-001\"]')?.children ?? [])]"
+            ".filter(c => c.offsetParent).map(c => c.getBoundingClientRect().top)"
+        )
+        spread = "t => t.length > 2 && Math.max(...t) < Math.min(...t) + 8"
+        one_line = f"() => ({spread})(({tops_js})())"
+        try:
+            page.wait_for_function(one_line, timeout=TIMEOUT_S * 1000)
+        except PlaywrightTimeout:
+            pytest.fail(f"a phone's row takes more than one line: its cells' tops {page.evaluate(tops_js)}")
     finally:
+        page.get_by_role("button", name="Grid").click()
+        page.set_viewport_size({"width": 1280, "height": 800})  # the module's page: the next test expects it
         unserve(page, "/api/fleet")
         leave(page)
     assert browser_errors == []

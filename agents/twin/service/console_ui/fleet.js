@@ -4,7 +4,8 @@
 
 (() => {
   const { el, main } = Twin;
-  const CARD_W = 230, CARD_H = 124, GAP = 8, ROW_H = 30;
+  // CARD_W is a card's least width: a row's cards share out what is left, so no band of the window stays empty.
+  const CARD_W = 230, CARD_H = 138, GAP = 8, ROW_H = 30;
   let columns = {}, rows = [], shown = [], now = Date.now() / 1000, listening = null;
   // Until the agent's first document arrives the page knows nothing of the fleet: it must not say that no
   // arm has been heard from (a slow first answer showed that bare line to a new user).
@@ -75,22 +76,33 @@
       text: `+${others} unacknowledged` })] : [];
   }
 
-  function alarmText(r) {
+  // A row gives the worst alarm one column and its state, with the alarms waiting behind it, the next: in one
+  // column at 1280 px the state and "+2 unacknowledged" were cut off behind the kind. Each cell's title holds
+  // its whole text for a narrower window.
+  function alarmCell(r) {
     const c = columns, sev = r[c.alarm_severity];
     if (!sev) return el("span", { class: "muted", text: "no alarm" });
-    return el("span", {}, el("span", { class: "sev-" + sev, text: `${sev} ${r[c.alarm_kind]} (${r[c.alarm_joint]}) ${r[c.alarm_state]}` }),
-      ...othersWaiting(r));
+    const text = `${sev} ${r[c.alarm_kind]} (${r[c.alarm_joint]})`;
+    return el("span", { class: "sev-" + sev, title: text, text });
   }
 
-  // A card has room for the alarm's severity, joint and state on one line and its kind on the next; the
-  // alarms waiting behind it get a line of their own: after a kind such as over_temperature_critical a card
-  // cut "+5 unacknowledged" to "+5 u…".
+  function stateCell(r) {
+    const c = columns, state = r[c.alarm_severity] ? r[c.alarm_state] : "";
+    const waiting = othersWaiting(r), node = el("span", {}, state, ...(state ? waiting : waiting.slice(1)));
+    node.title = node.textContent;
+    return node;
+  }
+
+  // A card gives the alarm's severity and joint one line, its kind the next, its state the next and the
+  // alarms waiting behind it one more: after a kind such as over_temperature_critical a card cut "+5
+  // unacknowledged" to "+5 u…", and "critical · shoulder_lift · ACKNOWLEDGED" to "… · ACKNOWL…".
   function cardAlarm(r) {
     const c = columns, sev = r[c.alarm_severity];
     if (!sev) return [el("div", { class: "line muted", text: "no alarm" })];
     const waiting = othersWaiting(r).slice(1);
-    return [el("div", { class: "line" }, el("span", { class: "sev-" + sev, text: sev }), ` · ${r[c.alarm_joint]} · ${r[c.alarm_state]}`),
-      el("div", { class: "line", text: r[c.alarm_kind] }), ...(waiting.length ? [el("div", { class: "line" }, ...waiting)] : [])];
+    return [el("div", { class: "line" }, el("span", { class: "sev-" + sev, text: sev }), ` · ${r[c.alarm_joint]}`),
+      el("div", { class: "line", text: r[c.alarm_kind] }), el("div", { class: "line alarm-state", text: r[c.alarm_state] }),
+      ...(waiting.length ? [el("div", { class: "line" }, ...waiting)] : [])];
   }
 
   // On a card the temperature comes before the servo's name, and a silent arm's "last heard" before both:
@@ -119,12 +131,13 @@
     return title ? [" ", el("span", { class: "restarting", title, text: mirror })] : [];
   }
 
-  function card(r, x, y) {
+  function card(r, x, y, w) {
     const c = columns, id = r[c.device];
     const critical = r[c.alarm_severity] === "critical" ? " critical" : "";
     const node = el("a", { class: "card " + r[c.status] + critical, href: "/arm/" + encodeURIComponent(id), role: "listitem",
       "data-device": id },
-      el("div", { class: "id" }, id, ...(r[c.uncalibrated]
+      // Its title: an id longer than the card is cut, and read whole on hover.
+      el("div", { class: "id", title: id }, id, ...(r[c.uncalibrated]
         ? [" ", el("span", { class: "uncalibrated", title: "no LeRobot calibration: its page says how to push one", text: "uncalibrated" })] : [])),
       // "restarting" or "stopping" beside the status it qualifies: after the id and "uncalibrated" a card cut it.
       el("div", { class: "line" }, el("span", { class: "status " + r[c.status], text: r[c.status] }),
@@ -133,22 +146,22 @@
       el("div", { class: "line", text: cardHot(r) }),
       ...cardAlarm(r));
     node.style.transform = `translate(${x}px, ${y}px)`;
-    node.style.width = CARD_W + "px";
+    node.style.width = w + "px";
     node.style.height = CARD_H + "px";
     return node;
   }
 
   function listRow(r, y) {
     const c = columns, id = r[c.device];
+    const name = id + (r[c.uncalibrated] ? " (uncalibrated)" : "");
     const node = el("a", { class: "row", href: "/arm/" + encodeURIComponent(id), role: "listitem", "data-device": id },
-      el("span", { text: id + (r[c.uncalibrated] ? " (uncalibrated)" : ""), class: r[c.uncalibrated] ? "uncalibrated" : "" },
-        ...restarting(r)),
+      el("span", { text: name, title: name, class: "arm-id" + (r[c.uncalibrated] ? " uncalibrated" : "") }, ...restarting(r)),
       el("span", { class: "status " + r[c.status], text: r[c.status] }),
       el("span", { class: "wide", text: Twin.ago(r[c.last_seen], now) }),
-      el("span", { text: Twin.num(r[c.rate_hz], 1) + " Hz" }),
+      el("span", { class: "wide", text: Twin.num(r[c.rate_hz], 1) + " Hz" }),
       el("span", { class: "wide", text: Twin.num(r[c.loss_pct], 1) + " %" }),
-      el("span", {}, alarmText(r)),
-      el("span", { text: hotText(r) + (r[c.status] === "ONLINE" || r[c.hot_c] === null ? "" : " when last heard") }));
+      alarmCell(r), stateCell(r),
+      el("span", { class: "wide", text: hotText(r) + (r[c.status] === "ONLINE" || r[c.hot_c] === null ? "" : " when last heard") }));
     node.style.top = y + "px";
     node.style.height = ROW_H + "px";
     return node;
@@ -156,9 +169,9 @@
 
   function header() {
     const node = el("div", { class: "row head" }, el("span", { text: "arm" }), el("span", { text: "status" }),
-      el("span", { class: "wide", text: "last seen" }), el("span", { text: "rate" }),
-      el("span", { class: "wide", text: "loss" }), el("span", { text: "worst alarm" }),
-      el("span", { text: "hottest servo" }));
+      el("span", { class: "wide", text: "last seen" }), el("span", { class: "wide", text: "rate" }),
+      el("span", { class: "wide", text: "loss" }), el("span", { text: "worst alarm" }), el("span", { text: "its state" }),
+      el("span", { class: "wide", text: "hottest servo" }));
     node.style.height = ROW_H + "px";
     return node;
   }
@@ -168,6 +181,7 @@
     const nodes = [];
     if (mode === "grid") {
       const perRow = Math.max(1, Math.floor((width + GAP) / (CARD_W + GAP)));
+      const cardW = Math.max(CARD_W, Math.floor((width + GAP) / perRow) - GAP);
       const lines = Math.ceil(shown.length / perRow);
       spacer.style.height = lines * (CARD_H + GAP) + GAP + "px";
       const first = Math.max(0, Math.floor(top / (CARD_H + GAP)) - 1);
@@ -175,7 +189,7 @@
       for (let line = first; line < last; line++) {
         for (let k = 0; k < perRow; k++) {
           const r = shown[line * perRow + k];
-          if (r) nodes.push(card(r, GAP + k * (CARD_W + GAP), GAP + line * (CARD_H + GAP)));
+          if (r) nodes.push(card(r, GAP + k * (cardW + GAP), GAP + line * (CARD_H + GAP), cardW));
         }
       }
     } else {
