@@ -376,6 +376,27 @@ def test_decode_and_the_config_refuse_a_leader_arms_calibration_as_push_does(
     assert "robots/so_follower/<id>.json; give that one" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(
+    ("text", "reason"),
+    [
+        ('{"shoulder_pan": {"id": 1,', "is not valid JSON"),
+        ('{"shoulder_pan": {}}', "to write a complete file"),
+    ],
+)
+def test_config_check_refuses_a_calibration_file_the_agent_would_refuse(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], text: str, reason: str
+) -> None:
+    # `twin config check` called it valid and `twin run` then stopped with exit 2 after it had subscribed.
+    bad = tmp_path / "arm-001.json"
+    bad.write_text(text)
+    config = tmp_path / "agent.toml"
+    config.write_text(f"[telemetry]\ncalibration = {json.dumps(str(bad))}\n")
+    with pytest.raises(ConfigError, match=r"telemetry\.calibration = .*: calibration file "):
+        load_config(config)
+    assert main(["config", "check", str(config)]) == 2
+    assert reason in capsys.readouterr().err
+
+
 def test_push_goes_to_the_stacks_calibration_uri(s3: Any, capsys: pytest.CaptureFixture[str]) -> None:
     template = {
         "Resources": {"Topic": {"Type": "AWS::SNS::Topic"}},

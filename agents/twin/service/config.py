@@ -27,7 +27,7 @@ from twin.core.topics import ALL_DEVICES, DEFAULT_TOPIC_PREFIX, TopicError, chec
 from twin.core.units import MAX_PAYLOAD_BYTES, Units
 from twin.output.rerun_settings import RerunSettings, RerunSettingsError
 from twin.output.ros2 import Ros2Error, Ros2Settings
-from twin.robot.calibration import leader_problem
+from twin.robot.calibration import leader_problem, load_calibration
 from twin.transport.broker import IOT, BrokerConfig, BrokerConfigError
 from twin.transport.plan import (
     IOT_PUBLISHES_PER_CONNECTION,
@@ -459,6 +459,13 @@ def _validate_telemetry(t: TelemetrySection) -> None:
     problem = leader_problem(t.calibration) if t.calibration else None
     if problem:
         raise ConfigError(f"telemetry.calibration = {t.calibration!r} {problem}; give that one")
+    if t.calibration:
+        # Read here, not only when the mirror starts: `twin config check` (and the host's saver, which runs
+        # it) would call a file the agent then refuses valid, and the agent would stop after subscribing.
+        try:
+            load_calibration(t.calibration)
+        except ValueError as exc:
+            raise ConfigError(f"telemetry.calibration = {t.calibration!r}: {exc}") from None
     store = t.calibrations.strip()
     if "://" in store and not store.startswith(("s3://", "file://")):
         raise ConfigError(
