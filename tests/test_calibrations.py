@@ -36,6 +36,7 @@ from twin.service.calibrations import (
     scan_of,
 )
 from twin.service.config import ConfigError, load_config
+from twin.service.events import EventQuery
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "robots" / "so101" / "calibration" / "so101_follower_example.json"
@@ -739,8 +740,13 @@ def test_an_arm_whose_file_is_bad_at_the_start_is_held_until_a_good_one_comes(
         assert arm.joints_rad is None, arm.joints_rad  # never moved, to no pose at all
         assert arm.uncalibrated and "shoulder_pan" in arm.calibration_problem, arm.calibration_problem
         # The Fleet page names it (no card would, with the whole fleet subscribed); /healthz does not.
+        # Each command it names reaches this agent's store: without --store, push writes to the stack's.
+        option = f"--store {tmp_path / 'cal'}"
         (held_notice,) = [n for n in agent.notices() if n.startswith("arm-002's calibration")]
-        assert "twin calibration push arm-002 FILE" in held_notice, held_notice
+        assert f"twin calibration push arm-002 FILE {option}" in held_notice, held_notice
+        rejected = EventQuery(kinds=frozenset({"rejected"}), device="arm-002")
+        refused = wait_for(lambda: agent.events(rejected), 30, "arm-002's rejected event")
+        assert f"twin calibration restore arm-002 {option}`" in refused[-1].message, refused
         assert not [r for r in agent.healthz().reasons if "calibration" in r]
         # A good file, and the arm is mirrored with it, no restart.
         store.write("arm-002", shifted(100))

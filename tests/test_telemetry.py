@@ -779,6 +779,11 @@ def test_an_arm_whose_own_calibration_was_refused_is_held_not_decoded_with_anoth
     text = str(info.value)
     assert "arm-001" in text and "wrist_roll" in text and "twin calibration restore arm-001" in text
     assert dec.decode(payload(TICKS_EXAMPLE, device="arm-002")).device_id == "arm-002"  # others decode
+    # The agent's own store goes into each command, so they reach the store it reads.
+    dec.set_calibrations({}, held={"arm-001": "a problem"}, store_option=" --store /srv/cal")
+    commands = r"push arm-001 FILE --store /srv/cal`.*restore arm-001 --store /srv/cal`"
+    with pytest.raises(TelemetryRejected, match=commands):
+        dec.decode(payload(TICKS_EXAMPLE))
     # A good file of its own, and the arm is held no longer (a held arm with one is not held at all).
     own = load_calibration(EXAMPLE_CALIBRATION)
     dec.set_calibrations({"arm-001": own}, held={"arm-001": "an older problem"})

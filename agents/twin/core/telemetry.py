@@ -96,12 +96,13 @@ class TelemetryRejected(ValueError):  # noqa: N818 - a public name: callers catc
         self.reason = reason
 
 
-def _held(device_id: str, why: str) -> TelemetryRejected:
+def _held(device_id: str, why: str, store_option: str) -> TelemetryRejected:
     return TelemetryRejected(
         RejectReason.CALIBRATION_REFUSED,
         f"the calibration of {device_id} in the store was refused ({why}); the twin holds still rather than "
         f"decode with the config's, another arm's: push a good file (`twin calibration push {device_id} "
-        f"FILE`), put the one it replaced back (`twin calibration restore {device_id}`), or remove it",
+        f"FILE{store_option}`), put the one it replaced back (`twin calibration restore {device_id}"
+        f"{store_option}`), or remove it",
     )
 
 
@@ -555,6 +556,7 @@ class TelemetryDecoder:
         self._calibrations: dict[str, Calibration] = {}
         # Arms whose own calibration was refused, with no good one to keep: why, by device (set_calibrations).
         self._held: dict[str, str] = {}
+        self._store_option = ""
         # The default map's angle of every whole tick (_tick_tables), made on the first message in ticks. Only
         # the default's: an arm with its own calibration converts by arithmetic, since a table per arm would
         # cost about 1.1 MB each (2,000 calibrated arms: 2.2 GB).
@@ -567,7 +569,10 @@ class TelemetryDecoder:
     # --- public -------------------------------------------------------------------------------------------
 
     def set_calibrations(
-        self, calibrations: Mapping[str, Calibration], held: Mapping[str, str] | None = None
+        self,
+        calibrations: Mapping[str, Calibration],
+        held: Mapping[str, str] | None = None,
+        store_option: str = "",
     ) -> None:
         """Each arm's own LeRobot calibration (device id -> file), replacing the previous set; an arm not in
         it decodes with the config's calibration. Safe to call from another thread than the decoding one: the
@@ -575,7 +580,9 @@ class TelemetryDecoder:
 
         `held`: arms whose own calibration exists but was refused (device -> why), with none to keep. Their
         messages are refused as `calibration_refused`: the config's calibration is another arm's, and decoding
-        with it would move the twin to a wrong pose."""
+        with it would move the twin to a wrong pose. `store_option` (e.g. ` --store DIR`) goes into the
+        commands their refusal names, so they reach the store this agent reads."""
+        self._store_option = store_option
         self._held = {d: why for d, why in (held or {}).items() if d not in calibrations}
         kept = {d: m for d, m in self._per_device.items() if self._calibrations.get(d) == calibrations.get(d)}
         fresh = {
@@ -641,7 +648,7 @@ class TelemetryDecoder:
         readings: tuple[JointReading, ...] = _readings_of(msg.joints)
         positions = [r.position for r in readings]
         if self._held and device_id in self._held:
-            raise _held(device_id, self._held[device_id])
+            raise _held(device_id, self._held[device_id], self._store_option)
         undecided = False
         if units is Units.AUTO:
             units, angles, percent, undecided = self._units_and_angles(device_id, positions)

@@ -49,7 +49,14 @@ from twin.output.emf import EmfFileWriter, EmfPublisher, FleetTotals
 from twin.output.history_feed import HistoryProcess, HistoryStartError, WriterFigures
 from twin.output.sinks import TwinSink
 from twin.service.admission import TOO_MANY_DEVICES, DeviceBudget
-from twin.service.calibrations import CalibrationBook, CalibrationWatcher, open_store, store_location
+from twin.service.calibrations import (
+    CalibrationBook,
+    CalibrationWatcher,
+    open_store,
+    push_hint,
+    store_location,
+    store_option,
+)
 from twin.service.config import AgentConfig, ConfigError, pool_settings
 from twin.service.console import (
     ArmView,
@@ -958,7 +965,7 @@ class AgentService:
         held = [(device, problem) for device, problem in problems if device not in kept]
         lines = [
             f"{device}'s calibration in the store is refused ({problem}), so its messages are refused and "
-            f"its twin does not move: push a valid one (twin calibration push {device} FILE)"
+            f"its twin does not move: push a valid one ({push_hint(device, self._calibration_store).command})"
             for device, problem in held
         ]
         return _named_then_counted(lines, "held the same way")
@@ -1323,6 +1330,7 @@ class AgentService:
                 (device, entry.source, entry.calibration.to_dict()) for device, entry in book.entries.items()
             ),
             problems=tuple(book.problems.items()),
+            store_option=store_option(self._calibration_store),
         )
         self._calibration_request = request
         for shard in self._shards:

@@ -428,6 +428,15 @@ class PushHint:
     text: str  # the sentence the page shows, the command in it
 
 
+def store_option(store: str) -> str:
+    """The option `twin calibration` needs to reach `store` (store_location), with its leading space: none
+    for the deployed stack's bucket (the command's default), `--store` for any other."""
+    stacks = store.startswith("s3://") and store.removeprefix("s3://").partition("/")[2] == STACK_PREFIX
+    if not store or stacks:
+        return ""
+    return f" --store {shlex.quote(store)}"
+
+
 def push_hint(device: str, store: str) -> PushHint:
     """What to run so the agent whose store is `store` (store_location) picks up `device`'s calibration:
     `--store` for a directory, nothing more for the stack's bucket (the command's default), and for no store
@@ -453,7 +462,7 @@ def push_hint(device: str, store: str) -> PushHint:
             f"push one: {push} (it writes to the deployed stack's CalibrationUri, {store}, which this agent "
             "reads)",
         )
-    command = f"{push} --store {shlex.quote(store)}"
+    command = f"{push}{store_option(store)}"
     return PushHint(store, command, f"push one: {command} (this agent reads {store})")
 
 

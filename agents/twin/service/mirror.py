@@ -1465,7 +1465,9 @@ class Mirror:
         returns how many arms have one. The files were validated by the agent that read them."""
         calibrations = {device: Calibration.from_dict(data, source) for device, source, data in request.files}
         # An arm whose file was refused, with no good one from this run to keep, is held (the decoder's doc).
-        self._decoder.set_calibrations(calibrations, held=dict(request.problems))
+        self._decoder.set_calibrations(
+            calibrations, held=dict(request.problems), store_option=request.store_option
+        )
         with self._lock:
             self._calibration_sources = {device: source for device, source, _ in request.files}
             self._calibration_problems = dict(request.problems)

@@ -330,6 +330,9 @@ class CalibrationsRequest:
 
     files: tuple[tuple[str, str, dict[str, dict[str, int]]], ...] = ()
     problems: tuple[tuple[str, str], ...] = ()
+    # What `twin calibration` needs to reach the agent's store (calibrations.store_option), so a held arm's
+    # refusal names commands that work for this agent, not the stack's store.
+    store_option: str = ""
 
 
 # Events a mirror hands over per request (the agent asks every supervisor round).
