@@ -700,6 +700,10 @@ def test_each_arm_decodes_with_its_own_and_a_new_one_needs_no_restart(tmp_path: 
         feed_until(agent, "arm-002", pan_angle(shifted(100)), ts)
         kinds = {(e.device, e.data.get("action")) for e in agent.events(_calibration_events())}
         assert {("arm-001", "picked up"), ("arm-002", "picked up"), ("arm-002", "refused")} <= kinds
+        (refused,) = [e for e in agent.events(_calibration_events()) if e.data.get("action") == "refused"]
+        push = f"twin calibration push arm-002 FILE --store {tmp_path / 'cal'}"
+        assert refused.message.endswith(f"; push a good file: {push}"), refused.message
+        assert "it keeps the one it had" in refused.message, refused.message
         # Pushed under an id this agent does not mirror (a typo): picked up, but said to be of no use.
         store.write("arm-0O2", shifted(100))
         typo = wait_for(lambda: _picked_up(agent, "arm-0O2"), 30, "arm-0O2's calibration event")

@@ -1341,10 +1341,11 @@ class AgentService:
         first = not self._running
         for change in book.changes:
             if change.action == "refused":
-                level, message = (
-                    EventLevel.WARNING,
-                    f"calibration of {change.device} refused: {change.detail}",
-                )
+                # The page is where an operator reads it: what the arm does now, and what puts it right.
+                now = "it keeps the one it had" if change.device in book.entries else "its twin holds still"
+                push = push_hint(change.device, self._calibration_store).command
+                why = f"{change.detail}; push a good file: {push}"
+                level, message = EventLevel.WARNING, f"calibration of {change.device} refused, {now}: {why}"
             elif change.action == "removed":
                 level, message = EventLevel.INFO, f"calibration of {change.device} removed from the store"
             else:
