@@ -57,6 +57,14 @@ def test_the_reference_names_every_key_with_its_default() -> None:
         assert f"| `{key.name}` | {key.type} |" in text
 
 
+def test_each_keys_type_is_the_type_of_its_value_in_toml() -> None:
+    # The list keys (telemetry.devices, http.allowed_hosts, ...) were typed "string" in the reference.
+    names = {bool: "boolean", int: "integer", float: "number", str: "string", list: "list of strings"}
+    example = tomllib.loads(render_example())
+    for key in keys():
+        assert key.type == names[type(example[key.section][key.name])], key.dotted
+
+
 def test_twin_config_prints_both_and_checks_files(tmp_path: Path, capsys) -> None:
     assert main(["config", "example"]) == 0
     assert capsys.readouterr().out == render_example()

@@ -445,10 +445,9 @@ def keys() -> Iterator[Key]:
     """Every key of every section, in the loader's order; KeyError for a key with no meaning in KEY_DOCS."""
     for section, cls in _SECTIONS.items():
         for f in dataclasses.fields(cls):
-            default = _field_default(f)
-            yield Key(
-                section, f.name, _toml_default(default), _type_of(default), KEY_DOCS[f"{section}.{f.name}"]
-            )
+            # Typed as TOML holds it: a tuple default is a list there, not the "string" the reference said.
+            default = _toml_default(_field_default(f))
+            yield Key(section, f.name, default, _type_of(default), KEY_DOCS[f"{section}.{f.name}"])
 
 
 def _field_default(f: dataclasses.Field[Any]) -> Any:
