@@ -184,7 +184,7 @@ def test_an_unreadable_store_keeps_the_book_and_says_why(tmp_path: Path) -> None
     (tmp_path / "cal").rmdir()
     (tmp_path / "cal").write_text("")
     assert watcher.poll() is False
-    assert "cannot list" in watcher.last_error and watcher.failures == 1
+    assert "is a file, not a store" in watcher.last_error and watcher.failures == 1
     assert set(watcher.book.entries) == {"arm-001"}
 
 
@@ -339,6 +339,19 @@ def test_push_and_rm_refuse_an_id_the_stack_would_not_mirror(
     assert main(["calibration", "push", "a" * 64, str(EXAMPLE), "--store", store]) == cmd.EXIT_OK
     (tmp_path / "cal" / f"{device}.json").write_bytes(EXAMPLE.read_bytes())
     assert set(DirectoryStore(tmp_path / "cal").listing()) == {"a" * 64}
+
+
+def test_a_store_given_as_a_file_says_to_give_the_directory(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # `--store` given the agent's config (or a calibration) said only "[Errno 20] Not a directory".
+    config = tmp_path / "agent.toml"
+    config.write_text('[telemetry]\ncalibrations = "cal"\n')
+    for action in (["push", "arm-001", str(EXAMPLE)], ["ls"]):
+        assert main(["calibration", *action, "--store", str(config)]) == cmd.EXIT_STORE
+        err = capsys.readouterr().err
+        assert f"{config} is a file, not a store: give the directory of the agent's" in err, err
+    assert config.read_text() == '[telemetry]\ncalibrations = "cal"\n'
 
 
 def test_push_refuses_a_leader_arms_calibration(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

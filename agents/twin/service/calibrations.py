@@ -182,6 +182,12 @@ class DirectoryStore:
             entries = list(os.scandir(self.path))
         except FileNotFoundError:
             return dataclasses.replace(scan_of(()), missing=True)
+        except NotADirectoryError:
+            # `--store` given a calibration file (or the agent's config) for the directory it belongs in.
+            raise CalibrationStoreError(
+                f"{self.path} is a file, not a store: give the directory of the agent's [telemetry] "
+                "calibrations, which holds one <device>.json per arm"
+            ) from None
         except OSError as exc:
             raise CalibrationStoreError(f"cannot list {self.path}: {exc}") from exc
         files = []
