@@ -13,8 +13,8 @@ import boto3
 import pytest
 from conftest import AWS_TEST_REGION, NO_BROKER, wait_for
 from moto import mock_aws
-from twin.core.alarms import AlarmKind
-from twin.output.alerts import MAX_FLUSH_S, SUBJECT_MAX, WHAT_TO_DO, Alert, AlertPublisher
+from twin.core.alarms import WHAT_TO_DO, AlarmKind
+from twin.output.alerts import MAX_FLUSH_S, SUBJECT_MAX, Alert, AlertPublisher
 from twin.robot import so101
 from twin.service.agent import AgentService
 from twin.service.config import ConfigError, load_config
@@ -103,6 +103,13 @@ def test_a_raised_alarm_says_what_to_do_at_the_arm_and_a_cleared_one_does_not() 
         p.offer(alert(action, kind="over_current", joint="gripper", value=1.0, threshold=1.06, unit="A"))
         assert p.flush() is True
         assert "What to do" not in sent[-1][1], sent[-1][1]
+    # The advice is the servo's: an elbow's overload is not the gripper's jaw, nor the other way round.
+    p.offer(alert(kind="overload", joint="elbow_flex", value=96.0, threshold=90.0, unit="%"))
+    assert p.flush() is True
+    assert "What to do: reduce the payload" in sent[-1][1] and "jaw" not in sent[-1][1], sent[-1][1]
+    p.offer(alert(kind="overload", joint="gripper", value=30.0, threshold=25.0, unit="%"))
+    assert p.flush() is True
+    assert "What to do: the jaw is squeezing" in sent[-1][1] and "payload" not in sent[-1][1], sent[-1][1]
     # Raised and cleared between two messages: LATCHED, but the servo went through it.
     p.offer(alert("raised"))
     p.offer(alert("cleared"))

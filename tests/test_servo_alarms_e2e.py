@@ -18,7 +18,7 @@ from typing import Any
 import pytest
 from conftest import get_metrics, metric, wait_for
 from test_emf import validate_emf_line
-from twin.core.alarms import WHAT_TO_DO
+from twin.core.alarms import what_to_do
 from twin.edge.servo_faults import ServoFault
 from twin.rig.local import LocalRig
 from twin.service.state import AgentState, AlarmList
@@ -92,7 +92,7 @@ def test_each_servo_fault_raises_and_clears_its_alarms(
     raised = wait_for(all_raised, 60, "every fault's alarms to be raised", interval=0.1)
     assert set(raised) == EXPECTED, raised
     # Each says what to do at the arm about its kind, as its e-mail and the Arm page do.
-    assert all(a.advice == WHAT_TO_DO[a.kind] for a in alarms(url).alarms), alarms(url)
+    assert all(a.advice == what_to_do(a.kind, a.joint) != "" for a in alarms(url).alarms), alarms(url)
 
     # The readings are in /state and /metrics while the faults run: read first, as the faults end about 7 s
     # into the run.

@@ -103,7 +103,7 @@ WHAT_TO_DO: dict[str, str] = {
     ),
     AlarmKind.OVERLOAD: (
         "reduce the payload or bring it closer to the base (after 2 s at this load the servo drops to 20 % "
-        "torque). On the gripper: the jaw squeezes something hard; open it."
+        "torque)."
     ),
     AlarmKind.MODEL_MISMATCH: (
         "look at the arm: clear anything touching it; a payload it carries is expected (acknowledge). "
@@ -114,6 +114,22 @@ WHAT_TO_DO: dict[str, str] = {
         "check the supply and its cable; angle: calibrate again; sensor: power-cycle, replace if it recurs."
     ),
 }
+# Where a joint's own servo calls for other advice than the kind's: an alarm names one servo, and the person
+# at the arm reads only its advice (the gripper's jaw on an elbow's overload sent them to the wrong joint).
+WHAT_TO_DO_AT: dict[tuple[str, str], str] = {
+    ("gripper", AlarmKind.OVERLOAD): (
+        "the jaw is squeezing something hard: open it, and grip with less force (after 2 s at this load the "
+        "servo drops to 20 % torque)."
+    ),
+}
+
+
+def what_to_do(kind: str, joint: str) -> str:
+    """What a person does at the arm about an alarm of `kind` on `joint`'s servo; "" for a kind this agent
+    has no advice for."""
+    return WHAT_TO_DO_AT.get((joint, kind)) or WHAT_TO_DO.get(kind, "")
+
+
 UNITS: dict[AlarmKind, str] = {
     AlarmKind.OVER_TEMPERATURE: "C",
     AlarmKind.OVER_TEMPERATURE_CRITICAL: "C",

@@ -27,7 +27,7 @@ from collections import OrderedDict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
-from twin.core.alarms import WHAT_TO_DO
+from twin.core.alarms import what_to_do
 from twin.core.aws import region_or_env
 from twin.robot import so101, sts3215
 
@@ -214,8 +214,9 @@ class AlertPublisher:
             ]
             # While the alarm is up, or it rose since the last message (and maybe cleared already: the servo
             # still went through it); an acknowledged one needs nothing more done at the arm.
-            if (a.state == "ACTIVE" or "raised" in entry.actions) and a.kind in WHAT_TO_DO:
-                lines.append(f"  What to do: {WHAT_TO_DO[a.kind]}")
+            advice = what_to_do(a.kind, a.joint)
+            if (a.state == "ACTIVE" or "raised" in entry.actions) and advice:
+                lines.append(f"  What to do: {advice}")
             lines += [
                 f"  alarm id {a.alarm_id}, at {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime(a.at))}",
                 "",

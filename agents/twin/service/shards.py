@@ -54,7 +54,6 @@ from multiprocessing.context import ForkServerContext, ForkServerProcess
 from typing import TYPE_CHECKING, Protocol
 
 from twin.core.alarms import (
-    WHAT_TO_DO,
     AlarmCounters,
     AlarmNotFound,
     AlarmRecord,
@@ -62,6 +61,7 @@ from twin.core.alarms import (
     AlarmView,
     NothingToAcknowledge,
     record_view,
+    what_to_do,
 )
 from twin.core.bounded import BoundedCounter, merged_counts
 from twin.core.health import HealthCheckpoint, HealthRow, HealthThresholds
@@ -1421,7 +1421,7 @@ def alarm_info(view: AlarmView, now_mono: float, now_wall: float) -> AlarmInfo:
         changed_at=now_wall - (now_mono - view.since),
         raised=view.raised,
         message=view.message,
-        advice=WHAT_TO_DO.get(str(view.kind), ""),
+        advice=what_to_do(str(view.kind), view.joint),
     )
 
 
