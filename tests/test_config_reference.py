@@ -156,3 +156,10 @@ def test_config_check_shows_the_connections_a_broker_policy_must_allow(tmp_path:
     assert fleet.endswith("about 8 arms at 10 Hz; client id indexes 0 to 49")
     local = plan('[broker]\nurl = "mqtt://127.0.0.1:1883"\n')
     assert local == "connections: 1 (the broker has no per-connection limit); client id index 0"
+
+
+def test_no_default_prints_a_float_tail() -> None:
+    """A default computed as a share of a servo figure printed as 2.1125000000000003 in the reference and in
+    `twin config`: a person copying it reads a number nobody chose."""
+    tails = [k.dotted for k in keys() if isinstance(k.default, float) and len(repr(k.default)) > 12]
+    assert tails == [], tails

@@ -193,11 +193,13 @@ class AlarmThresholds:
 
     # Current: the servo trips at 3.25 A (factory Protection current) held 2 s; raise at 80 % of that for
     # half the trip time, so the alarm comes before the servo cuts out.
-    current_a: float = 0.8 * sts3215.PROTECTION_CURRENT_A
-    current_clear_a: float = 0.65 * sts3215.PROTECTION_CURRENT_A
+    # Rounded (to the microampere): a share's float tail (2.1125000000000003) is what `twin config` and the
+    # config reference would print as the default.
+    current_a: float = round(0.8 * sts3215.PROTECTION_CURRENT_A, 6)
+    current_clear_a: float = round(0.65 * sts3215.PROTECTION_CURRENT_A, 6)
     # LeRobot limits the gripper to 1.625 A; same 80 % / 65 % shares.
-    gripper_current_a: float = 0.8 * sts3215.GRIPPER_PROTECTION_CURRENT_A
-    gripper_current_clear_a: float = 0.65 * sts3215.GRIPPER_PROTECTION_CURRENT_A
+    gripper_current_a: float = round(0.8 * sts3215.GRIPPER_PROTECTION_CURRENT_A, 6)
+    gripper_current_clear_a: float = round(0.65 * sts3215.GRIPPER_PROTECTION_CURRENT_A, 6)
     current_raise_after_s: float = sts3215.OVERCURRENT_PROTECTION_TIME_S / 2.0
     current_clear_after_s: float = 2.0
 
