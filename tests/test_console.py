@@ -702,6 +702,10 @@ def test_an_alarms_row_and_its_button_stay_put_while_its_value_changes(
     advice = page.locator(row + " td.msg .advice").inner_text()
     assert advice.startswith("What to do: "), advice
     assert alarm["advice"] and alarm["advice"] in advice
+    # The message keeps the reading it was raised with, and says so; the value column is the reading now.
+    message = page.locator(row + " td.msg > span").inner_text()
+    assert message == f"When raised: {alarm['message']}", message
+    assert page.locator("#alarms thead th").nth(3).inner_text() == "value now"
     before = page.locator(row + " td").nth(3).inner_text()
     page.evaluate(f"document.querySelector('{row} button').dataset.kept = 'yes'")
     page.wait_for_function(

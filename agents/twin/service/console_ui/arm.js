@@ -59,7 +59,7 @@
     // What an acknowledgement was answered comes under the table: above it, its first appearance pushed every
     // row down, and the next button with it, from under the pointer.
     el("h2", { text: "alarms" }),
-    el("table", { id: "alarms" }, el("thead", {}, el("tr", {}, ...["alarm", "severity", "state", "value", `in this state since (${Twin.zone()})`, "message", ""].map((t) => el("th", { text: t })))), alarmsBody),
+    el("table", { id: "alarms" }, el("thead", {}, el("tr", {}, ...["alarm", "severity", "state", "value now", `in this state since (${Twin.zone()})`, "message", ""].map((t) => el("th", { text: t })))), alarmsBody),
     ackResult,
     el("h2", { text: "live, last 5 minutes" }),
     el("div", { class: "grid2" }, ...charts.map((c) => c.panel)));
@@ -273,7 +273,7 @@
     // The labels head each cell where the table stacks (console.css): its header row is hidden there.
     const cells = { name: el("td", { class: "wrap" }), severity: el("td", { "data-label": "severity" }),
       state: el("td", { class: "alarm-state", "data-label": "state" }),
-      value: el("td", { class: "wrap", "data-label": "value" }),
+      value: el("td", { class: "wrap", "data-label": "value now" }),
       since: el("td", { class: "wrap", "data-label": `in this state since (${Twin.zone()})` }),
       message: el("td", { class: "msg" }) };
     // What to do at the arm, under the message: the page may be all the operator has open.
@@ -298,7 +298,9 @@
       ? (a.value == null ? "–" : `status bits ${a.value}`)
       : `${Twin.num(a.value, 1)} ${a.unit} (limit ${a.threshold})`);
     setText(c.since, Twin.time(a.changed_at));
-    setText(row.text, a.message);
+    // The message was written as the alarm rose and keeps that reading; the value beside it is today's (a
+    // walk read "80.0 C" next to "at 75 C" and took one for wrong).
+    setText(row.text, a.message ? `When raised: ${a.message}` : "");
     setText(row.advice, a.advice ? `What to do: ${a.advice}` : "");
     row.button.hidden = !(a.state === "ACTIVE" || a.state === "LATCHED");
   }
