@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import socket
 import urllib.request
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -92,7 +93,34 @@ def test_an_arm_whose_every_message_is_refused_is_named_above_the_empty_page(
     page = chromium_page
     page.goto(agent.http_url + "/")
     page.wait_for_selector("#fleet-notices >> text=arm-009 publishes, but the agent refused", timeout=60_000)
-    assert "nor a notice above naming it" in empty_text(page)
+    # Not "no arm has been heard from yet" under a notice that names one heard.
+    assert empty_text(page) == "no arm has a twin yet: the notices above say why"
+
+
+def test_an_arm_held_by_its_refused_calibration_has_a_page_that_says_so(
+    rig: LocalRig, chromium_page: Any, tmp_path: Path
+) -> None:
+    """A walk's arm whose file in the store was bad at the agent's start: with the whole fleet subscribed it
+    is never admitted, and its page said "not known to this agent ... check the id", though the id was
+    right and the fix is a push."""
+    store = tmp_path / "cal"
+    store.mkdir()
+    (store / "arm-007.json").write_text('{"shoulder_pan": {}}')
+    agent = rig.start_agent(
+        {"telemetry.devices": ["*"], "telemetry.units": "ticks", "telemetry.calibrations": str(store)}
+    )
+    rig.start_edge(["arm-007"], seconds=None, rate_hz=10.0)
+
+    def named() -> list[str]:
+        return [n for n in fleet_document(agent.http_url)["notices"] if n.startswith("arm-007's calibration")]
+
+    wait_for(named, 60, "the Fleet page's notice naming arm-007")
+    page = chromium_page
+    page.goto(agent.http_url + "/arm/arm-007")
+    said = page.wait_for_selector("#unknown", timeout=60_000).inner_text()
+    assert said.startswith("This agent holds this arm: its calibration in the store is refused ("), said
+    assert f"twin calibration push arm-007 FILE --store {store}" in said, said
+    assert "held" in page.locator("h1").inner_text()
 
 
 def test_an_arm_kept_out_by_max_devices_is_named(rig: LocalRig) -> None:

@@ -957,16 +957,19 @@ class AgentService:
         ]
         return _named_then_counted(lines, "whose messages are all refused")
 
+    def _held_problems(self) -> dict[str, str]:
+        """The arms with no calibration to keep (their file was bad at the start), held, by device: why."""
+        kept = {device for device, _, _ in self._calibration_request.files}
+        problems = self._calibration_request.problems
+        return {device: problem for device, problem in problems if device not in kept}
+
     def _held_notices(self) -> list[str]:
         # An arm with no calibration to keep (its file was bad at the start) is held: with the whole fleet
         # subscribed it is never admitted, so only the log and the Events page named it.
-        problems = self._calibration_request.problems
-        kept = {device for device, _, _ in self._calibration_request.files}
-        held = [(device, problem) for device, problem in problems if device not in kept]
         lines = [
             f"{device}'s calibration in the store is refused ({problem}), so its messages are refused and "
             f"its twin does not move: push a valid one ({push_hint(device, self._calibration_store).command})"
-            for device, problem in held
+            for device, problem in self._held_problems().items()
         ]
         return _named_then_counted(lines, "held the same way")
 
@@ -1156,7 +1159,15 @@ class AgentService:
         dropped = shard.dropped().get(device, 0) if state is not None else 0
         if state is not None and dropped:
             state = with_dropped(state, dropped)
-        return ArmView(self._wall_clock(), state, alarms, self._calibration_store, self._started_wall)
+        refused = "" if state is not None else self._held_problems().get(device, "")
+        return ArmView(
+            self._wall_clock(),
+            state,
+            alarms,
+            self._calibration_store,
+            self._started_wall,
+            calibration_refused=refused,
+        )
 
     def events(self, query: EventQuery) -> list[Event]:
         """The twin's events that match `query` (docs/console.md): the agent's own and every mirror's,

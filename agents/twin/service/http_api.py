@@ -656,7 +656,8 @@ class AgentHttpServer:
     async def _api_arm(self, request: Request) -> Response:
         device = request.path_params["device"]
         view = await self._call(lambda: arm_view_of(self._source, device))
-        if view.state is None:
+        # An arm held by its refused calibration has no state but is known: its document says why it is held.
+        if view.state is None and not view.calibration_refused:
             return _error(404, "device_not_found", device=device, detail="GET /api/fleet lists every device")
         return _json(200, arm_document(device, view))
 

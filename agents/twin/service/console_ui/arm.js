@@ -325,7 +325,17 @@
 
   // An id this agent has had no valid message from (mistyped, or an arm not heard yet): the page says what
   // to check instead of empty panels under a bare "not known", and fills in by itself once the arm is heard.
-  function unknown() {
+  function unknown(doc) {
+    // Held by its calibration (refused at the start): its messages come and are refused, so "no valid
+    // message" is true, but the id is right and the fix is a push, not a check of the id.
+    if (doc && doc.calibration_refused) {
+      title.textContent = `${device}: held, its calibration is refused`;
+      summary.replaceChildren(el("p", { id: "unknown", text: `This agent holds this arm: its calibration in the ` +
+        `store is refused (${doc.calibration_refused}), so its messages are refused and its twin does not ` +
+        `move. Push a valid one: ${doc.calibration_push.command}. This page fills in by itself once it is read.` }));
+      clearArm();
+      return;
+    }
     title.textContent = `${device}: not known to this agent`;
     // An arm this page has shown and the agent dropped was not "never heard": it was forgotten elsewhere, or
     // the agent started again and has not heard it yet; the sentence says so rather than blame the id.
@@ -343,7 +353,7 @@
   let shown = false;  // this page has shown the arm's state at least once
   function update(doc) {
     const d = doc.device;
-    if (!d) { if (forgotten) showForgotten(); else unknown(); return; }
+    if (!d) { if (forgotten) showForgotten(); else unknown(doc); return; }
     shown = true;
     title.textContent = device;
     shownAlarms = doc.alarms;

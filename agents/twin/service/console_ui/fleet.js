@@ -208,6 +208,8 @@
 
   // The page a new user first sees is often empty: say what the agent listens on and what to check.
   function unheard() {
+    // A notice may name arms whose messages come and are refused: "none heard" would contradict it.
+    if (!notices.hidden) return "no arm has a twin yet: the notices above say why";
     const said = "no arm has been heard from yet";
     if (!listening) return said;
     if (!listening.connected) return `${said}: the agent is not connected to its broker (GET /healthz says why)`;
