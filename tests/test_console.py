@@ -1122,6 +1122,7 @@ def test_the_events_page_says_a_full_load_is_the_newest_of_more(console: str, pa
     now = time.time()
     full = {
         "last_id": 1000,
+        "more": True,
         "events": [
             {
                 "id": i,
@@ -1144,6 +1145,15 @@ def test_the_events_page_says_a_full_load_is_the_newest_of_more(console: str, pa
         counts = page.locator(".counts", has_text="newest 1000")
         counts.wait_for()
         assert "export it for all" in counts.inner_text()
+        # Exactly 1,000 in the selection: all of it, said without the note.
+        full["more"] = False
+        page.get_by_label("device").fill("arm-0")
+        page.get_by_label("device").press("Enter")
+        wait_for(
+            lambda: re.fullmatch(r"1000 events", page.locator(".counts").inner_text()),
+            TIMEOUT_S,
+            "a selection of exactly 1000 counted without the note",
+        )
     finally:
         page.unroute(re.compile(r"/api/events\?"))
     page.get_by_label("device").fill("arm-001")
@@ -1155,6 +1165,25 @@ def test_the_events_page_says_a_full_load_is_the_newest_of_more(console: str, pa
         "a selection under the cap counted without the note",
     )
     leave(page)
+
+
+def test_an_events_answer_says_whether_the_selection_holds_more(console: str) -> None:
+    """A selection of exactly the answer's size is all of it; one event more and the answer says so, with
+    the newest. A past `until` keeps the selection fixed while the agent goes on making events."""
+
+    def events(query: str = "") -> dict[str, Any]:
+        document: dict[str, Any] = json.loads(http_get(console + "/api/events" + query)[2])
+        return document
+
+    wait_for(lambda: len(events()["events"]) >= 3, TIMEOUT_S, "three events")
+    until = time.time() - 0.001
+    whole = events(f"?until={until}")
+    count, ids = len(whole["events"]), [e["id"] for e in whole["events"]]
+    assert whole["more"] is False and count >= 3
+    exact = events(f"?until={until}&limit={count}")
+    assert exact["more"] is False and [e["id"] for e in exact["events"]] == ids
+    cut = events(f"?until={until}&limit={count - 1}")
+    assert cut["more"] is True and [e["id"] for e in cut["events"]] == ids[1:]
 
 
 def test_the_events_page_loads_again_after_a_failed_load(console: str, page: Any) -> None:

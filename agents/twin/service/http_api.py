@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import functools
 import logging
 import re
@@ -119,6 +120,8 @@ JSON_CONTENT_TYPE = "application/json"
 SESSIONS_REUSE_S = 5.0
 # Events read to count the sessions' alarms: more than the event store's default capacity holds.
 EVENTS_READ_FOR_SESSIONS = 100_000
+# The most events one GET /api/events answers (the exports take up to 100,000).
+EVENTS_ANSWERED = 1000
 # Answers every page and API response carries: nothing is cached, nothing may frame the console, scripts and
 # styles come from this server only (the console ships its own; no inline script, no CDN).
 SECURITY_HEADERS = {
@@ -683,7 +686,12 @@ class AgentHttpServer:
             return _error(400, "bad_query", detail=str(exc))
         return _EventStream(await hub.subscribe_events(after), hub.unsubscribe)
 
-    async def _query_events(self, request: Request, limit: int) -> Sequence[Event] | Response:
+    async def _query_events(
+        self, request: Request, limit: int, *, one_more: bool = False
+    ) -> Sequence[Event] | Response:
+        """The events the request selects, at most `limit` (the newest), or the error to answer; with
+        `one_more`, one beyond the request's own limit when the selection holds more (so an answer can say
+        whether it is all of it)."""
         source = self._source
         if not isinstance(source, EventSource):
             return _error(404, "not_found", detail="this source keeps no events")
@@ -691,6 +699,8 @@ class AgentHttpServer:
             query = event_query(request, limit)
         except ValueError as exc:
             return _error(400, "bad_query", detail=str(exc))
+        if one_more:
+            query = dataclasses.replace(query, limit=query.limit + 1)
         return await self._call(lambda: source.events(query))
 
     async def _api_events(self, request: Request) -> Response:
@@ -699,12 +709,18 @@ class AgentHttpServer:
         # nothing does not send the page back to the start of every other arm's events.
         source = self._source
         newest = await self._call(lambda: newest_event_id(source)) if isinstance(source, EventSource) else 0
-        events = await self._query_events(request, limit=1000)
+        events = await self._query_events(request, limit=EVENTS_ANSWERED, one_more=True)
         if isinstance(events, Response):
             return events
+        # `more`: the selection holds more than the answer (its newest are answered). Told, because a
+        # selection of exactly the limit looks like a cut one otherwise (the Events page said "the newest
+        # 1000" of a selection of 1,000).
+        more = len(events) > min(EVENTS_ANSWERED, _int_param(request, "limit", EVENTS_ANSWERED, least=1))
+        if more:
+            events = events[1:]
         last = max(newest, events[-1].id if events else _int_param(request, "after", 0))
-        body = b'{"last_id":' + str(last).encode() + b',"events":' + encode_events(events) + b"}"
-        return _json(200, body)
+        head = b'{"last_id":' + str(last).encode() + b',"more":' + (b"true" if more else b"false")
+        return _json(200, head + b',"events":' + encode_events(events) + b"}")
 
     async def _export_events_csv(self, request: Request) -> Response:
         events = await self._query_events(request, limit=100_000)

@@ -111,7 +111,9 @@
       if (mine !== loads) return;
       failures = 0;
       events = doc.events;
-      loadedAll = events.length < LOAD_MAX;
+      // The agent says whether the selection holds more than it answered: a selection of exactly LOAD_MAX
+      // is all of it.
+      loadedAll = !doc.more;
       lastId = Math.max(lastId, doc.last_id);
       render();
       if (!document.body.dataset.ready) { document.body.dataset.ready = "1"; window.twinReadyAt = performance.now(); }
