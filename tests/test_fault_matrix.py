@@ -329,7 +329,12 @@ def test_s3_stopped_longer_than_the_history_buffer(
         # Waited for until every sample the fleet published is counted: one still on its way when the count
         # was read would become a table row the count does not have.
         state = settled(agent, expect=sum(fleet.generated.values()) - fleet.failed)
-        agent.stop()  # the last commit, with S3 back
+        decoded = sum(d.health.counters.decoded for d in state.devices.values())
+        # Waited for until the writer has committed or dropped every row with S3 back, not left to the stop:
+        # a writer starved by a busy machine is killed at the stop's budget, and the rows it held reach
+        # HistoryRowsDropped (the last EMF line) but not the writer's own rows_dropped compared with it below.
+        wait_for(lambda: _caught_up(agent, decoded), PROGRESS_S, "the writer to catch up with S3 back")
+        agent.stop()
         check_accounts(state)
         report = agent.stop_reports[0]
         assert report is not None and "history_rows" not in report.unwritten
@@ -341,10 +346,17 @@ def test_s3_stopped_longer_than_the_history_buffer(
         assert 0 < sum(d.get("HistoryRowsDropped", 0) for d in lines) <= history.rows_dropped
         assert sum(d.get("HistoryCommitFailures", 0) for d in lines) > 0
         # Every decoded message is a row in the table, or one counted as dropped.
-        decoded = sum(d.health.counters.decoded for d in state.devices.values())
         assert _table_rows(uri, options) + history.rows_dropped == decoded
     finally:
         s3.close()
+
+
+def _caught_up(agent: AgentService, decoded: int) -> bool:
+    """The writer has read every decoded row and committed or dropped each one, with its storage back."""
+    history = agent.state().agent.history
+    assert history is not None
+    done = history.rows_committed + history.rows_dropped + history.rows_lost
+    return history.storage_ok and history.rows_buffered == 0 and history.rows_received >= decoded == done
 
 
 def _emf(path: Path) -> list[dict[str, Any]]:
