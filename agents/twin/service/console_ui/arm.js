@@ -289,7 +289,13 @@
     const c = row.cells;
     row.alarm = a;
     row.tr.dataset.state = a.state;
-    setText(c.name, `${a.joint} ${a.kind}`);
+    // A break allowed after each "_": a narrow column broke "over_temperature_critical" as "over_temperatu /
+    // re_critical". Built once per row: its name does not change.
+    const name = `${a.joint} ${a.kind}`;
+    if (c.name.dataset.name !== name) {
+      c.name.dataset.name = name;
+      c.name.replaceChildren(...name.split("_").flatMap((part, i) => (i ? [el("wbr"), "_" + part] : [part])));
+    }
     setText(c.severity, a.severity);
     c.severity.className = "sev-" + a.severity;
     setText(c.state, a.state);
