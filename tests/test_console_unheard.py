@@ -151,3 +151,34 @@ def test_an_empty_fleet_page_says_when_the_agent_is_not_connected(rig: LocalRig,
     page.goto(agent.http_url + "/")
     text = empty_text(page)
     assert "the agent is not connected to its broker" in text and "/healthz" in text, text
+
+
+def test_an_empty_fleet_page_says_the_agent_is_not_connected_under_a_held_arms_notice(
+    rig: LocalRig, chromium_page: Any, tmp_path: Path
+) -> None:
+    """A notice naming a held arm (its calibration refused at the start) is no reason that no arm is heard
+    while the broker is down: the empty page said "the notices above say why", and no notice said that."""
+    store = tmp_path / "cal"
+    store.mkdir()
+    (store / "arm-007.json").write_text('{"shoulder_pan": {}}')
+    with socket.socket() as closed:  # a loopback port nothing listens on: every connect is refused
+        closed.bind(("127.0.0.1", 0))
+        port = closed.getsockname()[1]
+    agent = rig.start_agent(
+        {
+            "broker.url": f"mqtt://127.0.0.1:{port}",
+            "telemetry.devices": ["*"],
+            "telemetry.calibrations": str(store),
+        },
+        wait_subscribed=False,
+    )
+
+    def named() -> list[str]:
+        return [n for n in fleet_document(agent.http_url)["notices"] if n.startswith("arm-007's calibration")]
+
+    wait_for(named, 60, "the Fleet page's notice naming arm-007")
+    page = chromium_page
+    page.goto(agent.http_url + "/")
+    page.wait_for_selector("#fleet-notices >> text=arm-007's calibration", timeout=60_000)
+    text = empty_text(page)
+    assert "the agent is not connected to its broker" in text and "/healthz" in text, text

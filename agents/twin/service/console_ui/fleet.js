@@ -208,11 +208,16 @@
 
   // The page a new user first sees is often empty: say what the agent listens on and what to check.
   function unheard() {
-    // A notice may name arms whose messages come and are refused: "none heard" would contradict it.
-    if (!notices.hidden) return "no arm has a twin yet: the notices above say why";
+    // A notice may name arms whose messages come and are refused: "none heard" would contradict it. But no
+    // notice says the broker is down (an arm held by its calibration is named without one): that comes first.
+    const down = "the agent is not connected to its broker (GET /healthz says why)";
+    if (!notices.hidden) {
+      if (listening && !listening.connected) return `no arm has a twin yet: ${down}; the notices above say more`;
+      return "no arm has a twin yet: the notices above say why";
+    }
     const said = "no arm has been heard from yet";
     if (!listening) return said;
-    if (!listening.connected) return `${said}: the agent is not connected to its broker (GET /healthz says why)`;
+    if (!listening.connected) return `${said}: ${down}`;
     return `${said}. The agent listens on ${listening.filters.join(", ")}. If your arms publish and none ` +
       "appears (nor a notice above naming it), check that they publish on that topic, and that the " +
       "agent's identity may receive it: " +
