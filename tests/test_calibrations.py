@@ -188,6 +188,16 @@ def test_an_unreadable_store_keeps_the_book_and_says_why(tmp_path: Path) -> None
     assert set(watcher.book.entries) == {"arm-001"}
 
 
+def test_a_store_under_a_file_is_not_called_a_file(tmp_path: Path) -> None:
+    # `--store agent.toml/cal`: the listing's "Not a directory" is about agent.toml, and the store's own path
+    # names nothing; calling it "a file" sends a person to look for one that is not there.
+    (tmp_path / "agent.toml").write_text("")
+    store = DirectoryStore(tmp_path / "agent.toml" / "cal")
+    with pytest.raises(CalibrationStoreError) as raised:
+        store.scan()
+    assert "is a file" not in str(raised.value) and "Not a directory" in str(raised.value), raised.value
+
+
 def test_a_file_gone_between_the_listing_and_its_size_is_passed_over(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -182,7 +182,10 @@ class DirectoryStore:
             entries = list(os.scandir(self.path))
         except FileNotFoundError:
             return dataclasses.replace(scan_of(()), missing=True)
-        except NotADirectoryError:
+        except NotADirectoryError as exc:
+            if not self.path.is_file():
+                # A name above it is the file (`--store agent.toml/cal`): this path is none, nor a directory.
+                raise CalibrationStoreError(f"cannot list {self.path}: {exc}") from exc
             # `--store` given a calibration file (or the agent's config) for the directory it belongs in.
             raise CalibrationStoreError(
                 f"{self.path} is a file, not a store: give the directory of the agent's [telemetry] "
