@@ -446,3 +446,25 @@ def test_a_filesystem_without_hard_links_still_sets_a_file_aside(
     assert (tmp_path / "state.json.bad").read_bytes() == b"first"
     assert (tmp_path / "state.json.bad.1").read_bytes() == b"broken"
     assert "moved to state.json.bad.1" in state.stats().last_error
+
+
+def test_a_file_linked_but_not_removable_is_not_left_with_two_names(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A sticky directory may let the link be made and refuse the removal: the new name goes again, so no
+    start leaves one more `.bad` beside a file still in place, and the agent starts, having said so."""
+    path = tmp_path / "state.json"
+    path.write_bytes(b"broken")
+    real_unlink = os.unlink
+
+    def refuse_the_original(name: object, *args: object, **kwargs: object) -> None:
+        if os.fspath(name) == str(path):  # type: ignore[arg-type]
+            raise PermissionError(errno.EPERM, "Operation not permitted", str(name))
+        real_unlink(name, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(os, "unlink", refuse_the_original)
+    state = StateFile(path)
+    assert state.load(0.0, 0.0) == []
+    monkeypatch.undo()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["state.json"]
+    assert "could not be moved aside" in state.stats().last_error, state.stats().last_error

@@ -959,9 +959,9 @@ class AgentService:
 
     def _held_problems(self) -> dict[str, str]:
         """The arms with no calibration to keep (their file was bad at the start), held, by device: why."""
-        kept = {device for device, _, _ in self._calibration_request.files}
-        problems = self._calibration_request.problems
-        return {device: problem for device, problem in problems if device not in kept}
+        request = self._calibration_request  # read once: a new book may replace it meanwhile
+        kept = {device for device, _, _ in request.files}
+        return {device: problem for device, problem in request.problems if device not in kept}
 
     def _held_notices(self) -> list[str]:
         # An arm with no calibration to keep (its file was bad at the start) is held: with the whole fleet

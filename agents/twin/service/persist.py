@@ -448,7 +448,8 @@ def move_to_free_name(path: Path, names: Iterable[Path]) -> Path:
     takes the test and the rename. OSError when the directory cannot be looked in or written."""
     for name in names:
         try:
-            os.link(path, name)
+            # The link itself when `path` is one, as a rename moves it (Python 3.14 follows it by default).
+            os.link(path, name, follow_symlinks=False)
         except FileExistsError:
             continue
         except OSError as exc:
@@ -458,7 +459,14 @@ def move_to_free_name(path: Path, names: Iterable[Path]) -> Path:
                 continue
             os.replace(path, name)
             return name
-        os.unlink(path)
+        try:
+            os.unlink(path)
+        except OSError:
+            # Left with two names (a sticky directory lets a link be made but not the file removed): the
+            # new one goes, or each start would add one.
+            with contextlib.suppress(OSError):
+                os.unlink(name)
+            raise
         return name
     raise FileExistsError(f"every name for {path} is taken")
 
