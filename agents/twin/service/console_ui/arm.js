@@ -294,7 +294,8 @@
     const name = `${a.joint} ${a.kind}`;
     if (c.name.dataset.name !== name) {
       c.name.dataset.name = name;
-      c.name.replaceChildren(...name.split("_").flatMap((part, i) => (i ? [el("wbr"), "_" + part] : [part])));
+      const parts = name.split("_");
+      c.name.replaceChildren(...parts.flatMap((part, i) => (i < parts.length - 1 ? [part + "_", el("wbr")] : [part])));
     }
     setText(c.severity, a.severity);
     c.severity.className = "sev-" + a.severity;
