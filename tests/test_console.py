@@ -353,6 +353,30 @@ def test_a_silent_arms_card_says_its_hottest_reading_is_its_last(
     assert browser_errors == []
 
 
+def test_an_arm_page_says_a_refused_file_is_not_the_calibration_in_force(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """A walk's arm whose file in the store was broken by hand while the agent ran: its page named that file
+    as its calibration, "(newest file refused: ...)" after it, and no fix. The twin keeps what it read from
+    the path before; the page says so, and the push. The arm document is the agent's own, made so."""
+    doc: dict[str, Any] = json.loads(http_get(console + "/api/arm/arm-003")[2])
+    device = doc["device"]
+    device["uncalibrated"], device["calibration"] = False, "/srv/calibration/arm-003.json"
+    device["calibration_problem"] = "/srv/calibration/arm-003.json is not valid JSON: line 1 column 2"
+    serve_document(page, "/api/arm/arm-003", "arm", doc)
+    try:
+        page.goto(console + "/arm/arm-003")
+        said = page.locator("#calibration-refused").inner_text()
+        assert said.startswith(
+            "/srv/calibration/arm-003.json, as read before: the file there now is refused"
+        ), said
+        assert "is not valid JSON" in said and doc["calibration_push"]["command"] in said, said
+    finally:
+        unserve(page, "/api/arm/arm-003")
+        leave(page)
+    assert browser_errors == []
+
+
 def test_an_arm_page_draws_its_charts(console: str, page: Any, browser_errors: list[str]) -> None:
     page.goto(console + "/arm/arm-003")
     wait_for_charts(page, TIMEOUT_S)

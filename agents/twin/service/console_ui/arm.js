@@ -72,7 +72,14 @@
       return el("span", { class: "uncalibrated", id: "uncalibrated", "data-command": push.command,
         text: `none: the nominal SO-101's zero and range, not this arm's; ${push.text}${problem}` });
     }
-    return el("span", { text: (d.calibration || "not needed for these units") + problem });
+    // A file refused while the agent ran: the twin keeps the calibration it read from that path before, and
+    // the path alone read as if the broken file were in force. Said so, with the push that ends it.
+    if (d.calibration_problem) {
+      return el("span", { class: "uncalibrated", id: "calibration-refused", "data-command": push.command,
+        text: `${d.calibration || "the one it had"}, as read before: the file there now is refused ` +
+          `(${d.calibration_problem}), so the twin keeps that one; push a valid one: ${push.command}` });
+    }
+    return el("span", { text: d.calibration || "not needed for these units" });
   }
 
   function kv(box, pairs) {
