@@ -865,7 +865,10 @@ def _example_with(joint: str, key: str, value: Any) -> dict:
         (_example_with("gripper", "range_min", 3500), "range_min < range_max"),
         (_example_with("elbow_flex", "range_max", 4096), "range_min < range_max"),
         (_example_with("elbow_flex", "drive_mode", 2), "drive_mode must be 0 or 1"),
-        (_example_with("elbow_flex", "homing_offset", 3000), "homing_offset"),
+        (
+            _example_with("elbow_flex", "homing_offset", 3000),
+            r"homing_offset 3000 is outside the servo's \+-2047 .*; re-run the calibration",
+        ),
         ({**json.loads(EXAMPLE_CALIBRATION.read_text()), "elbow_roll": 5}, "must be an object"),
         # A walk: these two were taken, or refused without saying why.
         (

@@ -153,7 +153,9 @@ def _validate_motors(motors: Mapping[str, MotorCalibration], source: str) -> dic
         if abs(m.homing_offset) > _HOMING_LIMIT:
             raise ValueError(
                 f"{source}: motor {name!r} homing_offset {m.homing_offset} is outside the servo's "
-                f"+-{_HOMING_LIMIT}"
+                f"+-{_HOMING_LIMIT} (LeRobot writes it to the servo, which holds no more); re-run the "
+                "calibration with the joint at the middle of its range when asked, or restore the file "
+                "LeRobot wrote if this one was edited"
             )
         ordered[name] = m
     return ordered
