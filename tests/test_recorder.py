@@ -533,3 +533,27 @@ def test_a_session_usd_the_disk_cuts_short_is_not_left_where_the_console_serves_
     with pytest.raises(ValueError, match="No space left on device"):
         catalog.session_file(session, "usd", tmp_path)
     assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("kind", ["csv", "png"])
+def test_a_session_file_whose_export_fails_leaves_no_part_behind(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, kind: str
+) -> None:
+    """An export that fails half way (a full disk) left its `.part` file in the session-files directory
+    until the agent stopped; the bound on that directory does not count such files."""
+    from twin.ops import history
+    from twin.ops.sessions import HistorySessions
+    from twin.service.console import SessionInfo
+
+    def torn(reader: object, path: Path, *args: object, **kwargs: object) -> None:
+        Path(path).write_bytes(b"device,time\n" * 1000)
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(history, "export", torn)
+    monkeypatch.setattr(history, "plot", lambda reader, device, path, **kw: torn(reader, path))
+    catalog = HistorySessions("unused")
+    monkeypatch.setattr(catalog, "_reader", lambda: None)
+    session = SessionInfo("arm-001", start=1_000.0, end=1_010.0, messages=100)
+    with pytest.raises(OSError, match="No space left on device"):
+        catalog.session_file(session, kind, tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == []

@@ -16,6 +16,7 @@ service layer cannot import this (the history reader sits in the tools, above it
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import logging
 from collections.abc import Iterator
@@ -86,9 +87,16 @@ class HistorySessions:
             else:
                 self._rebuild_usd(reader, session, path, since, until)
                 return path
-        except HistoryReadError as exc:
-            raise ValueError(str(exc)) from exc
-        tmp.replace(path)
+            tmp.replace(path)
+        except BaseException as exc:
+            # What a failed export wrote goes with it (the session-files bound does not count `.part`
+            # files, and they stayed until the agent stopped).
+            for part in (tmp, tmp.with_suffix(".png")):
+                with contextlib.suppress(OSError):
+                    part.unlink(missing_ok=True)
+            if isinstance(exc, HistoryReadError):
+                raise ValueError(str(exc)) from exc
+            raise
         return path
 
     # ----------------------------------------------------------------------------------------- rebuilding
