@@ -727,6 +727,9 @@ def test_each_arm_decodes_with_its_own_and_a_new_one_needs_no_restart(tmp_path: 
         push = f"twin calibration push arm-002 FILE --store {tmp_path / 'cal'}"
         assert refused.message.endswith(f"; push a good file: {push}"), refused.message
         assert "it keeps the one it had" in refused.message, refused.message
+        # Its Fleet row says so (the row is its mirror's own, not cut from the whole state).
+        rows = {row.device: row for row in agent.fleet_rows()}
+        assert rows["arm-002"].calibration_refused and not rows["arm-001"].calibration_refused
         # Pushed under an id this agent does not mirror (a typo): picked up, but said to be of no use.
         store.write("arm-0O2", shifted(100))
         typo = wait_for(lambda: _picked_up(agent, "arm-0O2"), 30, "arm-0O2's calibration event")

@@ -273,6 +273,8 @@ def test_a_cards_waiting_alarms_and_restart_mark_are_not_cut(
             row[col["unacknowledged"]] = 5
             # ONLINE, as served: a silent arm's hottest line ends with its servo's name, which a card may cut.
             row[col["status"]], row[col["hot_c"]], row[col["hot_joint"]] = "ONLINE", 45.0, "shoulder_lift"
+            # Its newest calibration file refused while it keeps the one it had: the card said nothing.
+            row[col["uncalibrated"]], row[col["calibration_refused"]] = False, True
         if row[col["device"]] == "arm-002":
             row[col["uncalibrated"]], row[col["mirror"]] = True, "restarting"
     serve_document(page, "/api/fleet", "fleet", doc)
@@ -280,7 +282,8 @@ def test_a_cards_waiting_alarms_and_restart_mark_are_not_cut(
         page.goto(console + "/")
         waiting = page.locator('#fleet-view [data-device="arm-001"] .waiting', has_text="+5 unacknowledged")
         mark = page.locator('#fleet-view [data-device="arm-002"] .restarting', has_text="restarting")
-        for part in (waiting, mark):
+        refused = page.locator('#fleet-view [data-device="arm-001"] .uncalibrated', has_text="file refused")
+        for part in (waiting, mark, refused):
             part.wait_for()
             assert not part.evaluate(CLIPPED_JS), part.evaluate("e => e.closest('div').innerText")
         cards = page.locator("#fleet-view .card")
@@ -295,6 +298,7 @@ def test_a_cards_waiting_alarms_and_restart_mark_are_not_cut(
         page.get_by_role("button", name="List").click()
         row = page.locator('#fleet-view .row[data-device="arm-001"]')
         row.get_by_text("ACKNOWLEDGED · +5 unacknowledged").wait_for()
+        assert row.locator(".arm-id").inner_text() == "arm-001 (file refused)"
         cut = row.locator("span:not(.arm-id)").evaluate_all(
             "ss => ss.filter(s => s.scrollWidth > s.clientWidth).map(s => s.innerText)"
         )

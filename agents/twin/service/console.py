@@ -76,6 +76,8 @@ FLEET_COLUMNS = (
     "mirror",  # running | restarting: its worker process is started again, the row is its last checkpoint
     "unacknowledged",  # how many of its alarms wait for a person: ACTIVE, or LATCHED (cleared, unseen)
     "behind_s",  # how far its worker is behind its messages: its status and rate are read there
+    # true: its newest calibration file in the store was refused, and it keeps the one it read before
+    "calibration_refused",
 )
 # From how far behind its messages a worker makes the Fleet page say so (`behind_notice`): a second is ten
 # messages of every arm waiting, and each pose on the page that old.
@@ -165,6 +167,7 @@ class FleetRow(NamedTuple):
     mirror: str = "running"
     unacknowledged: int = 0
     behind_s: float = 0.0
+    calibration_refused: bool = False
 
 
 @runtime_checkable
@@ -291,6 +294,7 @@ def fleet_row(
     mirror: str = "running",
     unacknowledged: int = 0,
     behind_s: float = 0.0,
+    calibration_refused: bool = False,
 ) -> FleetRow:
     """A row from its parts; `alarm` is the worst one that is not NORMAL: (severity, state, kind, joint);
     `unacknowledged` how many of its alarms are in WAITING_STATES; `behind_s` how far its worker stands
@@ -317,6 +321,7 @@ def fleet_row(
         mirror,
         unacknowledged,
         round(behind_s, 2),
+        calibration_refused,
     )
 
 
@@ -347,6 +352,7 @@ def device_rows(
                 uncalibrated=d.uncalibrated,
                 mirror=str(d.mirror),
                 unacknowledged=waiting[device_id],
+                calibration_refused=bool(d.calibration_problem),
             )
         )
     return rows

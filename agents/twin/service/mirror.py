@@ -1586,6 +1586,7 @@ class Mirror:
             ),
             unacknowledged=unacknowledged,
             behind_s=behind,
+            calibration_refused=device in self._calibration_problems,
         )
 
     def report(self) -> MirrorReport:

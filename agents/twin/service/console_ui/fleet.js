@@ -131,14 +131,22 @@
     return title ? [" ", el("span", { class: "restarting", title, text: mirror })] : [];
   }
 
+  // An arm with no calibration of its own, or whose newest file in the store was refused (it keeps the one
+  // it had): the card said nothing of the second, and the file someone just pushed was not in force.
+  function calibrationMark(r) {
+    const c = columns;
+    if (r[c.uncalibrated]) return [" ", el("span", { class: "uncalibrated", title: "no LeRobot calibration: its page says how to push one", text: "uncalibrated" })];
+    if (r[c.calibration_refused]) return [" ", el("span", { class: "uncalibrated", title: "its newest calibration file is refused; it keeps the one it had: its page says why", text: "file refused" })];
+    return [];
+  }
+
   function card(r, x, y, w) {
     const c = columns, id = r[c.device];
     const critical = r[c.alarm_severity] === "critical" ? " critical" : "";
     const node = el("a", { class: "card " + r[c.status] + critical, href: "/arm/" + encodeURIComponent(id), role: "listitem",
       "data-device": id },
       // Its title: an id longer than the card is cut, and read whole on hover.
-      el("div", { class: "id", title: id }, id, ...(r[c.uncalibrated]
-        ? [" ", el("span", { class: "uncalibrated", title: "no LeRobot calibration: its page says how to push one", text: "uncalibrated" })] : [])),
+      el("div", { class: "id", title: id }, id, ...calibrationMark(r)),
       // "restarting" or "stopping" beside the status it qualifies: after the id and "uncalibrated" a card cut it.
       el("div", { class: "line" }, el("span", { class: "status " + r[c.status], text: r[c.status] }),
         " · " + Twin.ago(r[c.last_seen], now), ...restarting(r).map((n) => (n === " " ? " · " : n))),
@@ -153,9 +161,9 @@
 
   function listRow(r, y) {
     const c = columns, id = r[c.device];
-    const name = id + (r[c.uncalibrated] ? " (uncalibrated)" : "");
+    const name = id + (r[c.uncalibrated] ? " (uncalibrated)" : r[c.calibration_refused] ? " (file refused)" : "");
     const node = el("a", { class: "row", href: "/arm/" + encodeURIComponent(id), role: "listitem", "data-device": id },
-      el("span", { text: name, title: name, class: "arm-id" + (r[c.uncalibrated] ? " uncalibrated" : "") }, ...restarting(r)),
+      el("span", { text: name, title: name, class: "arm-id" + (r[c.uncalibrated] || r[c.calibration_refused] ? " uncalibrated" : "") }, ...restarting(r)),
       el("span", { class: "status " + r[c.status], text: r[c.status] }),
       el("span", { class: "wide", text: Twin.ago(r[c.last_seen], now) }),
       el("span", { class: "wide", text: Twin.num(r[c.rate_hz], 1) + " Hz" }),
