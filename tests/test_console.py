@@ -189,6 +189,31 @@ def test_the_fleet_page_lists_the_arms(console: str, page: Any, browser_errors: 
     assert browser_errors == []
 
 
+@pytest.mark.parametrize("width", [768, 390])
+def test_the_fleet_list_fits_a_tablet_and_a_phone(
+    console: str, page: Any, browser_errors: list[str], width: int
+) -> None:
+    """A walk at 300 arms: at 768 px the list's eight columns came to 848 px, the hottest servo off its
+    right edge and read only by scrolling the list sideways; at 390 px a phone's four ran 20 px past it,
+    the alarm's state cut with no ellipsis."""
+    page.set_viewport_size({"width": width, "height": 800})
+    try:
+        page.goto(console + "/")
+        page.get_by_role("button", name="List").click()
+        page.wait_for_selector('#fleet-view .row[data-device="arm-001"]')
+        sizes = page.evaluate(
+            "() => { const v = document.getElementById('fleet-view');"
+            " const wide = [...v.querySelectorAll('.row')].filter(r => r.scrollWidth > r.clientWidth);"
+            " return [v.scrollWidth, v.clientWidth, wide.length]; }"
+        )
+        assert sizes[0] <= sizes[1] and sizes[2] == 0, sizes
+    finally:
+        page.get_by_role("button", name="Grid").click()
+        page.set_viewport_size({"width": 1280, "height": 800})  # the module's page: the next test expects it
+        leave(page)
+    assert browser_errors == []
+
+
 def serve_document(page: Any, path: str, event: str, doc: dict[str, Any]) -> None:
     """Both ways a page reads the document at `path` (its first GET, and its stream at /api/stream plus the
     rest of the path) answer `doc`, the agent's own made so by the test, until `unserve`. The stream alone

@@ -166,8 +166,8 @@
       el("span", { text: name, title: name, class: "arm-id" + (r[c.uncalibrated] || r[c.calibration_refused] ? " uncalibrated" : "") }, ...restarting(r)),
       el("span", { class: "status " + r[c.status], text: r[c.status] }),
       el("span", { class: "wide", text: Twin.ago(r[c.last_seen], now) }),
-      el("span", { class: "wide", text: Twin.num(r[c.rate_hz], 1) + " Hz" }),
-      el("span", { class: "wide", text: Twin.num(r[c.loss_pct], 1) + " %" }),
+      el("span", { class: "wide minor", text: Twin.num(r[c.rate_hz], 1) + " Hz" }),
+      el("span", { class: "wide minor", text: Twin.num(r[c.loss_pct], 1) + " %" }),
       alarmCell(r), stateCell(r),
       el("span", { class: "wide", text: hotText(r) + (r[c.status] === "ONLINE" || r[c.hot_c] === null ? "" : " when last heard") }));
     node.style.top = y + "px";
@@ -177,8 +177,8 @@
 
   function header() {
     const node = el("div", { class: "row head" }, el("span", { text: "arm" }), el("span", { text: "status" }),
-      el("span", { class: "wide", text: "last seen" }), el("span", { class: "wide", text: "rate" }),
-      el("span", { class: "wide", text: "loss" }), el("span", { text: "worst alarm" }), el("span", { text: "its state" }),
+      el("span", { class: "wide", text: "last seen" }), el("span", { class: "wide minor", text: "rate" }),
+      el("span", { class: "wide minor", text: "loss" }), el("span", { text: "worst alarm" }), el("span", { text: "its state" }),
       el("span", { class: "wide", text: "hottest servo" }));
     node.style.height = ROW_H + "px";
     return node;
