@@ -207,6 +207,11 @@ def test_the_fleet_list_fits_a_tablet_and_a_phone(
             " return [v.scrollWidth, v.clientWidth, wide.length]; }"
         )
         assert sizes[0] <= sizes[1] and sizes[2] == 0, sizes
+        # A tablet's hottest servo, its last column, is whole ("shoulder_lift 39 ..." was cut), its title too.
+        if width == 768:
+            hot = page.locator('#fleet-view .row[data-device="arm-001"] > span:last-child')
+            whole = "s => s.scrollWidth <= s.clientWidth && s.title === s.textContent"
+            assert hot.evaluate(whole), hot.inner_text()
     finally:
         page.get_by_role("button", name="Grid").click()
         page.set_viewport_size({"width": 1280, "height": 800})  # the module's page: the next test expects it

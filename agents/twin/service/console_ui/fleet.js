@@ -120,6 +120,13 @@
     return `${r[c.hot_joint]} ${Twin.num(r[c.hot_c], 0)} °C`;
   }
 
+  // Its title holds its whole text, as the alarm's does: a tablet's column may cut a long servo name.
+  function hotCell(r) {
+    const c = columns;
+    const text = hotText(r) + (r[c.status] === "ONLINE" || r[c.hot_c] === null ? "" : " when last heard");
+    return el("span", { class: "wide", title: text, text });
+  }
+
   // Its worker process is being started again, or the agent is stopping: the row is the worker's last
   // checkpoint.
   const MIRROR_NOTES = {
@@ -169,7 +176,7 @@
       el("span", { class: "wide minor", text: Twin.num(r[c.rate_hz], 1) + " Hz" }),
       el("span", { class: "wide minor", text: Twin.num(r[c.loss_pct], 1) + " %" }),
       alarmCell(r), stateCell(r),
-      el("span", { class: "wide", text: hotText(r) + (r[c.status] === "ONLINE" || r[c.hot_c] === null ? "" : " when last heard") }));
+      hotCell(r));
     node.style.top = y + "px";
     node.style.height = ROW_H + "px";
     return node;
