@@ -437,11 +437,15 @@ class PushHint:
     text: str  # the sentence the page shows, the command in it
 
 
+def is_stack_store(store: str) -> bool:
+    """Whether `store` (store_location) is the deployed stack's bucket, plain `twin calibration`'s default."""
+    return store.startswith("s3://") and store.removeprefix("s3://").partition("/")[2] == STACK_PREFIX
+
+
 def store_option(store: str) -> str:
     """The option `twin calibration` needs to reach `store` (store_location), with its leading space: none
     for the deployed stack's bucket (the command's default), `--store` for any other."""
-    stacks = store.startswith("s3://") and store.removeprefix("s3://").partition("/")[2] == STACK_PREFIX
-    if not store or stacks:
+    if not store or is_stack_store(store):
         return ""
     return f" --store {shlex.quote(store)}"
 
@@ -464,7 +468,7 @@ def push_hint(device: str, store: str) -> PushHint:
             f'this agent reads no per-arm calibrations: set {SETTING} = "DIR" in its config, restart it, '
             f"then run {command}",
         )
-    if store.startswith("s3://") and store.removeprefix("s3://").partition("/")[2] == STACK_PREFIX:
+    if is_stack_store(store):
         return PushHint(
             store,
             push,
