@@ -686,12 +686,9 @@ class AgentHttpServer:
             return _error(400, "bad_query", detail=str(exc))
         return _EventStream(await hub.subscribe_events(after), hub.unsubscribe)
 
-    async def _query_events(
-        self, request: Request, limit: int, *, one_more: bool = False
-    ) -> Sequence[Event] | Response:
-        """The events the request selects, at most `limit` (the newest), or the error to answer; with
-        `one_more`, one beyond the request's own limit when the selection holds more (so an answer can say
-        whether it is all of it)."""
+    async def _query_events(self, request: Request, limit: int) -> tuple[Sequence[Event], bool] | Response:
+        """The events the request selects, at most `limit` or its own `limit` (the newest), and whether the
+        selection holds more (one more is read to know); or the error to answer."""
         source = self._source
         if not isinstance(source, EventSource):
             return _error(404, "not_found", detail="this source keeps no events")
@@ -699,9 +696,9 @@ class AgentHttpServer:
             query = event_query(request, limit)
         except ValueError as exc:
             return _error(400, "bad_query", detail=str(exc))
-        if one_more:
-            query = dataclasses.replace(query, limit=query.limit + 1)
-        return await self._call(lambda: source.events(query))
+        found = await self._call(lambda: source.events(dataclasses.replace(query, limit=query.limit + 1)))
+        more = len(found) > query.limit
+        return (found[1:] if more else found), more
 
     async def _api_events(self, request: Request) -> Response:
         # `last_id` is where a page's stream picks up. The newest id read before the query, so an event
@@ -709,23 +706,22 @@ class AgentHttpServer:
         # nothing does not send the page back to the start of every other arm's events.
         source = self._source
         newest = await self._call(lambda: newest_event_id(source)) if isinstance(source, EventSource) else 0
-        events = await self._query_events(request, limit=EVENTS_ANSWERED, one_more=True)
-        if isinstance(events, Response):
-            return events
+        answer = await self._query_events(request, limit=EVENTS_ANSWERED)
+        if isinstance(answer, Response):
+            return answer
         # `more`: the selection holds more than the answer (its newest are answered). Told, because a
         # selection of exactly the limit looks like a cut one otherwise (the Events page said "the newest
         # 1000" of a selection of 1,000).
-        more = len(events) > min(EVENTS_ANSWERED, _int_param(request, "limit", EVENTS_ANSWERED, least=1))
-        if more:
-            events = events[1:]
+        events, more = answer
         last = max(newest, events[-1].id if events else _int_param(request, "after", 0))
         head = b'{"last_id":' + str(last).encode() + b',"more":' + (b"true" if more else b"false")
         return _json(200, head + b',"events":' + encode_events(events) + b"}")
 
     async def _export_events_csv(self, request: Request) -> Response:
-        events = await self._query_events(request, limit=100_000)
-        if isinstance(events, Response):
-            return events
+        answer = await self._query_events(request, limit=100_000)
+        if isinstance(answer, Response):
+            return answer
+        events, _ = answer
         return Response(
             events_csv(events).encode("utf-8"),
             media_type="text/csv; charset=utf-8",
@@ -733,9 +729,10 @@ class AgentHttpServer:
         )
 
     async def _export_events_json(self, request: Request) -> Response:
-        events = await self._query_events(request, limit=100_000)
-        if isinstance(events, Response):
-            return events
+        answer = await self._query_events(request, limit=100_000)
+        if isinstance(answer, Response):
+            return answer
+        events, _ = answer
         return Response(
             events_json(events),
             media_type=JSON_CONTENT_TYPE,
