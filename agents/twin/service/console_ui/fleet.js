@@ -140,11 +140,16 @@
 
   // An arm with no calibration of its own, or whose newest file in the store was refused (it keeps the one
   // it had): the card said nothing of the second, and the file someone just pushed was not in force.
+  const CALIBRATION_MARKS = {
+    uncalibrated: "no LeRobot calibration: its page says how to push one",
+    "file refused": "its newest calibration file is refused; it keeps the one it had: its page says why",
+  };
+  function calibrationWord(r) {
+    return r[columns.uncalibrated] ? "uncalibrated" : r[columns.calibration_refused] ? "file refused" : "";
+  }
   function calibrationMark(r) {
-    const c = columns;
-    if (r[c.uncalibrated]) return [" ", el("span", { class: "uncalibrated", title: "no LeRobot calibration: its page says how to push one", text: "uncalibrated" })];
-    if (r[c.calibration_refused]) return [" ", el("span", { class: "uncalibrated", title: "its newest calibration file is refused; it keeps the one it had: its page says why", text: "file refused" })];
-    return [];
+    const word = calibrationWord(r);
+    return word ? [" ", el("span", { class: "uncalibrated", title: CALIBRATION_MARKS[word], text: word })] : [];
   }
 
   function card(r, x, y, w) {
@@ -168,9 +173,9 @@
 
   function listRow(r, y) {
     const c = columns, id = r[c.device];
-    const name = id + (r[c.uncalibrated] ? " (uncalibrated)" : r[c.calibration_refused] ? " (file refused)" : "");
+    const word = calibrationWord(r), name = id + (word ? ` (${word})` : "");
     const node = el("a", { class: "row", href: "/arm/" + encodeURIComponent(id), role: "listitem", "data-device": id },
-      el("span", { text: name, title: name, class: "arm-id" + (r[c.uncalibrated] || r[c.calibration_refused] ? " uncalibrated" : "") }, ...restarting(r)),
+      el("span", { text: name, title: name, class: "arm-id" + (word ? " uncalibrated" : "") }, ...restarting(r)),
       el("span", { class: "status " + r[c.status], text: r[c.status] }),
       el("span", { class: "wide", text: Twin.ago(r[c.last_seen], now) }),
       el("span", { class: "wide minor", text: Twin.num(r[c.rate_hz], 1) + " Hz" }),
