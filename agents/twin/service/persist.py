@@ -199,7 +199,7 @@ class StateFile:
         large as the state file), and nothing else ever removes it: crash after crash they would pile up.
         Called as the agent starts, before this process writes any."""
         removed = 0
-        for leftover in self.path.parent.glob(f".{glob.escape(self.path.name)}.*.tmp"):
+        for leftover in self.path.parent.glob(f".{glob.escape(self.path.name)}.*{TEMPORARY_SUFFIX}"):
             with contextlib.suppress(OSError):
                 leftover.unlink()
                 removed += 1
