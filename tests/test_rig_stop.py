@@ -3,13 +3,19 @@ margin have passed, as systemd does on the host (so a stop that needs its budget
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
+from pathlib import Path
 
+import psutil
 import pytest
+from conftest import wait_for
+from twin.core.lifetime import die_with_parent
 from twin.rig import local
 from twin.rig.local import STOP_MARGIN_S, LocalRig
 from twin.service.config import AgentConfig
@@ -101,3 +107,56 @@ def test_an_agent_whose_picked_port_was_taken_starts_again_on_another(
             assert base != f"http://127.0.0.1:{port}"
             assert local._serving_pid(int(base.rsplit(":", 1)[1])) == proc.pid
         assert f"cannot listen on 127.0.0.1:{port}" in rig.agent_log(port).read_text()
+
+
+# A rig in a process of its own: its broker and an agent started, their pids printed, then it waits to be
+# killed (as a test run's timeout or `kill -9` ends it, with no chance to stop its children).
+RIG_PARENT = (
+    "import sys, time\n"
+    "from pathlib import Path\n"
+    "from twin.rig.local import LocalRig\n"
+    "rig = LocalRig(workdir=Path(sys.argv[1]))\n"
+    "rig.__enter__()\n"
+    "with rig.agent_process() as (proc, base):\n"
+    "    print(rig.broker.pid, proc.pid, flush=True)\n"
+    "    time.sleep(600)\n"
+)
+
+
+@pytest.mark.slow
+def test_a_rig_killed_outright_leaves_no_broker_or_agent_behind(tmp_path: Path) -> None:
+    parent = subprocess.Popen(
+        [sys.executable, "-c", RIG_PARENT, str(tmp_path / "rig")],
+        stdout=subprocess.PIPE,
+        env=local.child_env(),
+    )
+    children: list[psutil.Process] = []
+    try:
+        assert parent.stdout is not None
+        line = parent.stdout.readline().decode()
+        assert line, f"the rig process exited with {parent.wait()} before its agent served"
+        children = [psutil.Process(int(pid)) for pid in line.split()]
+        parent.kill()
+        parent.wait()
+
+        def gone() -> bool:
+            return all(not c.is_running() or c.status() == psutil.STATUS_ZOMBIE for c in children)
+
+        # They were the killed rig's; the kernel ends them with it (die_with_parent), or they would keep the
+        # broker's port and an agent on a core until someone found them.
+        wait_for(gone, 60, "the broker and the agent of a killed rig to end")
+    finally:
+        for child in children:
+            with contextlib.suppress(psutil.Error):
+                child.kill()
+
+
+def test_only_the_main_thread_ties_a_child_to_the_process() -> None:
+    # The kernel's signal follows the thread that forked: a child started from a thread that then returns
+    # would be stopped with that thread.
+    assert callable(die_with_parent())
+    off_main: list[object] = []
+    thread = threading.Thread(target=lambda: off_main.append(die_with_parent()))
+    thread.start()
+    thread.join()
+    assert off_main == [None]

@@ -19,6 +19,7 @@ from typing import Any
 
 import psutil
 
+from twin.core.lifetime import die_with_parent
 from twin.core.topics import DEFAULT_TOPIC_PREFIX
 from twin.rig.local import LocalRig, child_env
 from twin.service.state import AgentState
@@ -229,6 +230,8 @@ def load_process(*args: str) -> subprocess.Popen[str]:
         stderr=subprocess.PIPE,
         text=True,
         env=child_env(),
+        # A benchmark killed outright must not leave publishers loading the machine the next one measures.
+        preexec_fn=die_with_parent(),  # noqa: PLW1509 - only prctl
     )
 
 

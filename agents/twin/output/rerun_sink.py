@@ -21,13 +21,11 @@ mirror never waits on any of it.
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import functools
 import logging
 import math
 import operator
 import os
-import signal
 import socket
 import subprocess
 import threading
@@ -47,6 +45,7 @@ import rerun_bindings
 from rerun.chunk import Chunk
 
 from twin.core import heap
+from twin.core.lifetime import die_with_parent
 from twin.core.telemetry import JointDiagnostics
 from twin.output.rerun_settings import RerunSettings
 from twin.output.sinks import AppliedSample, DeviceRateCap, QueuedSink, RejectedSample, SinkStats
@@ -910,14 +909,6 @@ def viewer_url(web_port: int, grpc_url: str) -> str:
     return f"http://{LOOPBACK}:{web_port}/?url={quote(grpc_url, safe='')}"
 
 
-def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
-    # PR_SET_PDEATHSIG: if the agent is killed outright, the kernel stops the web viewer too, so no orphan
-    # holds the port. (The signal follows the thread that started the child: the sink starts it in the
-    # thread that builds the sink, which is the agent's main thread.)
-    with contextlib.suppress(Exception):
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)
-
-
 def start_web_viewer(source: str, web_port: int, *, grpc_port: int | None = None) -> subprocess.Popen[bytes]:
     """Rerun's web viewer (HTML + Wasm) on 127.0.0.1:`web_port`, for `source`: a stream URL, or a .rrd
     file that the process then also serves as a stream on 127.0.0.1:`grpc_port`.
@@ -933,7 +924,9 @@ def start_web_viewer(source: str, web_port: int, *, grpc_port: int | None = None
         stdin=subprocess.DEVNULL,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
-        preexec_fn=_die_with_parent,  # noqa: PLW1509 - only prctl, async-signal-safe enough
+        # If the agent is killed outright the viewer goes too, so no orphan holds the port (the sink is
+        # built on the agent's main thread).
+        preexec_fn=die_with_parent(),  # noqa: PLW1509 - only prctl, async-signal-safe enough
     )
     deadline = time.monotonic() + WEB_VIEWER_START_S
     while time.monotonic() < deadline:

@@ -30,6 +30,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from twin.core.lifetime import die_with_parent
 from twin.core.topics import DEFAULT_TOPIC_PREFIX
 from twin.rig.mosquitto import MosquittoBroker, MosquittoNotFound, free_port
 from twin.service.config import AgentConfig, ConfigError, load_config
@@ -246,7 +247,14 @@ class LocalRig:
             *args,
         ]
         with self.agent_log(port, log_name).open("wb") as log_file:
-            return subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT, env=child_env())
+            return subprocess.Popen(
+                cmd,
+                stdout=log_file,
+                stderr=subprocess.STDOUT,
+                env=child_env(),
+                # A rig killed outright must not leave an agent serving its port and using a core.
+                preexec_fn=die_with_parent(),  # noqa: PLW1509 - only prctl
+            )
 
     def _await_own_http(self, proc: subprocess.Popen[bytes], port: int, log_name: str) -> bool:
         """Whether the agent `proc` serves `port` itself or exited for a reason of its own; False when it

@@ -21,6 +21,8 @@ from pathlib import Path
 from types import TracebackType
 from typing import BinaryIO
 
+from twin.core.lifetime import die_with_parent
+
 log = logging.getLogger(__name__)
 
 _SEARCH_DIRS = ("/usr/sbin", "/usr/local/sbin", "/opt/homebrew/sbin")
@@ -183,6 +185,8 @@ class MosquittoBroker:
             stdout=self._log_file,
             stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL,
+            # A rig killed outright (a test run's timeout, kill -9) must not leave a broker on its port.
+            preexec_fn=die_with_parent(),  # noqa: PLW1509 - only prctl
         )
         deadline = time.monotonic() + self.start_timeout
         while time.monotonic() < deadline:
