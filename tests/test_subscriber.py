@@ -21,7 +21,7 @@ from typing import Any
 import pytest
 from awscrt import mqtt5
 from awscrt.exceptions import AwsCrtError
-from conftest import NO_BROKER, wait_for
+from conftest import NO_BROKER, get_state, wait_for
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
@@ -571,3 +571,31 @@ def test_a_broker_that_refuses_the_client_is_named_with_its_reason(
     assert "role does not allow this client id" in iot and "maxConnections" in iot
     assert "agent.local.toml" in iot
     assert connack_hint(BrokerConfig(url="iot"), 136) == ""  # server unavailable: not the client's fault
+
+
+@pytest.mark.slow
+def test_the_broker_error_after_a_reconnect_says_when_it_was(mosquitto: MosquittoBroker) -> None:
+    """/state kept a lost connection's error after the connection came back, with nothing to tell it from a
+    current one: a walk read "disconnect: socket is closed" beside `connected: true` as a problem now. The
+    error is kept (the "connection lost" event reads it after a quick reconnect) and says when it was."""
+    agent = AgentService(
+        load_config(None, {"broker.url": mosquitto.url, "http.listen": "127.0.0.1:0", "twin.workers": 1})
+    )
+    agent.start()
+    try:
+        wait_for(lambda: get_state(agent.http_url).agent.broker.connected, 60, "the agent connected")
+        first = get_state(agent.http_url).agent.broker
+        assert first.last_error == "" and first.last_error_at is None
+        mosquitto.kill()
+        wait_for(lambda: not get_state(agent.http_url).agent.broker.connected, 60, "the connection lost")
+        mosquitto.restart()
+        wait_for(lambda: get_state(agent.http_url).agent.broker.connected, 60, "the agent reconnected")
+        broker = get_state(agent.http_url).agent.broker
+    finally:
+        agent.stop()
+    assert broker.connection_successes == 2
+    assert broker.last_error.startswith("disconnect: "), broker
+    (connection,) = broker.connections
+    assert broker.last_error_at is not None and connection.connected_at is not None, broker
+    # The error came before the reconnect: past, as its time says.
+    assert connection.last_error_at == broker.last_error_at <= connection.connected_at, broker

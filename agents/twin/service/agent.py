@@ -1553,6 +1553,7 @@ def broker_state(url: str, settings: PoolSettings, pool: ConnectionPool, started
         return BrokerState(url=url, per_connection_limit=limit)
     infos = pool.connections()
     stats = [c.stats for c in pool.subscribers()]
+    latest = max((st for st in stats if st.last_error), key=lambda st: st.last_error_at or 0.0, default=None)
     return BrokerState(
         url=url,
         client_id=infos[0].client_id if infos else None,
@@ -1562,7 +1563,8 @@ def broker_state(url: str, settings: PoolSettings, pool: ConnectionPool, started
         disconnections=sum(st.disconnects for st in stats),
         subscribes=sum(st.subscribes_acked for st in stats),
         messages=pool.messages,
-        last_error=next((st.last_error for st in stats if st.last_error), ""),
+        last_error=latest.last_error if latest is not None else "",
+        last_error_at=latest.last_error_at if latest is not None else None,
         per_connection_limit=limit,
         rate_hz=pool.rate_hz,
         subscriptions_refused=sum(len(c.refused) for c in infos),
@@ -1577,6 +1579,8 @@ def broker_state(url: str, settings: PoolSettings, pool: ConnectionPool, started
                 connection_successes=c.connection_successes,
                 disconnections=c.disconnections,
                 last_error=c.last_error,
+                last_error_at=c.last_error_at,
+                connected_at=c.connected_at,
                 refused=c.refused,
             )
             for c in infos

@@ -143,7 +143,11 @@ class ConnectionState:
     messages: int = 0
     connection_successes: int = 0
     disconnections: int = 0
+    # The latest error, kept after the connection recovered, and its wall time (None: none yet): one older
+    # than `connected_at`, its latest connect, is past.
     last_error: str = ""
+    last_error_at: float | None = None
+    connected_at: float | None = None
     # Topic filters the broker refused on this connection (state "refused"): their telemetry does not arrive.
     refused: tuple[str, ...] = ()
 
@@ -193,7 +197,10 @@ class BrokerState:
     disconnections: int = 0
     subscribes: int = 0
     messages: int = 0
+    # The latest error of any connection, kept after it recovered, and its wall time (None: none yet);
+    # `connected` says whether the broker is reached now.
     last_error: str = ""
+    last_error_at: float | None = None
     # Publishes per second one connection may carry (None: unlimited), and the pool's measured total rate.
     per_connection_limit: float | None = None
     rate_hz: float = 0.0

@@ -78,6 +78,8 @@ class ConnectionInfo:
     refused: tuple[str, ...] = ()
     # Wall time of its latest connect (None: never connected).
     connected_at: float | None = None
+    # Wall time of `last_error` (None: none yet).
+    last_error_at: float | None = None
 
 
 class _Connection:
@@ -246,6 +248,7 @@ class ConnectionPool:
                     last_error=stats.last_error,
                     refused=refused,
                     connected_at=stats.last_connected_at,
+                    last_error_at=stats.last_error_at,
                 )
             )
         return out

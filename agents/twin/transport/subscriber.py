@@ -64,7 +64,10 @@ class SubscriberStats:
     # Wall time of that connection: the agent's event of it carries it, not the later moment it read it.
     last_connected_at: float | None = None
     last_message_monotonic: float | None = None
+    # The latest error, kept after the connection recovered (the "connection lost" event reads it after a
+    # quick reconnect), and its wall time: an error older than the latest connect is past, not current.
     last_error: str = ""
+    last_error_at: float | None = None
     per_filter_granted: dict[str, int] = field(default_factory=dict)
 
 
@@ -243,6 +246,11 @@ class TelemetrySubscriber:
                     "on_message failed for %s (%d so far)", packet.topic, self._stats.callback_errors
                 )
 
+    def _error(self, text: str) -> None:
+        """Under the stats lock: the latest error, and when it happened."""
+        self._stats.last_error = text
+        self._stats.last_error_at = time.time()
+
     def _on_attempting_connect(self, _data: mqtt5.LifecycleAttemptingConnectData) -> None:
         with self._stats_lock:
             self._stats.connection_attempts += 1
@@ -323,7 +331,7 @@ class TelemetrySubscriber:
         reason = getattr(code, "name", None) or str(code)
         with self._stats_lock:
             self._stats.subscribe_failures += 1
-            self._stats.last_error = f"subscribe {topic_filter}: refused by the broker ({reason})"
+            self._error(f"subscribe {topic_filter}: refused by the broker ({reason})")
             first = topic_filter not in self._refused
             self._refused[topic_filter] = reason
             self._refused_at = self._clock()
@@ -344,7 +352,7 @@ class TelemetrySubscriber:
     def _subscribe_failed(self, filters: list[str], exc: BaseException) -> None:
         with self._stats_lock:
             self._stats.subscribe_failures += 1
-            self._stats.last_error = f"subscribe {filters}: {exc}"
+            self._error(f"subscribe {filters}: {exc}")
         # No SUBACK (a refusal has one: _refuse): usually a disconnect raced it, and the next connection
         # subscribes again.
         log.warning(
@@ -363,7 +371,7 @@ class TelemetrySubscriber:
         with self._stats_lock:
             self._stats.connection_failures += 1
             said = f" (CONNACK reason {code}: {refused})" if refused else ""
-            self._stats.last_error = f"connect: {crt_error_text(data.exception)}{said}"
+            self._error(f"connect: {crt_error_text(data.exception)}{said}")
             failures = self._stats.connection_failures
             # Backoff retries run until stop(), every few seconds: an outage of a day would be tens of
             # thousands of lines. The first few are each told, then one a minute, with the count.
@@ -390,7 +398,7 @@ class TelemetrySubscriber:
             return
         with self._stats_lock:
             self._stats.disconnects += 1
-            self._stats.last_error = f"disconnect: {crt_error_text(data.exception)}"
+            self._error(f"disconnect: {crt_error_text(data.exception)}")
         reason = ""
         if data.disconnect_packet is not None:
             reason = f" (server reason {data.disconnect_packet.reason_code!r})"
