@@ -615,3 +615,99 @@ def test_a_fault_in_the_forget_sweep_does_not_end_the_supervisor(
     monkeypatch.setattr(AgentService, "_forget_long_offline", sweep)
     rig.start_agent({"health.offline_after_s": 1.0, "telemetry.forget_offline_after_s": 2.0})
     wait_for(lambda: len(calls) >= 3, 60, "the sweeps after the fault")
+
+
+def test_an_arm_with_alarms_no_one_saw_is_forgotten_only_after_forget_unseen_after_s() -> None:
+    rows = [
+        _row("gone", last_seen=1000.0),
+        _row("alarmed", last_seen=1000.0, unacknowledged=2),
+        _row("alarmed-recent", last_seen=5000.0, unacknowledged=1),
+        _row("alarmed-listed", last_seen=1000.0, unacknowledged=1),
+    ]
+    listed = frozenset({"alarmed-listed"})
+    assert long_offline(rows, 10_000.0, 2000.0, 500.0, listed) == [("gone", 9000.0)]  # 0: never
+    forgotten = long_offline(rows, 10_000.0, 2000.0, 500.0, listed, unseen_after_s=8000.0)
+    assert forgotten == [("gone", 9000.0), ("alarmed", 9000.0)]
+
+
+@pytest.mark.parametrize("unseen", [1.0, float("inf")])
+def test_forget_unseen_after_must_be_at_least_forget_offline_after(unseen: float) -> None:
+    with pytest.raises(ConfigError, match="forget_unseen_after_s"):
+        load_config(
+            None,
+            {
+                "health.offline_after_s": 1.0,
+                "telemetry.forget_offline_after_s": 2.0,
+                "telemetry.forget_unseen_after_s": unseen,
+            },
+        )
+    with pytest.raises(ConfigError, match="forget_unseen_after_s"):
+        load_config(None, {"telemetry.forget_unseen_after_s": 3600.0})  # forget_offline_after_s unset
+
+
+def _kept(state_file: Path) -> list[dict[str, Any]]:
+    """The alarm records the agent's state file keeps ([] before its first write)."""
+    return json.loads(state_file.read_text())["alarms"] if state_file.exists() else []
+
+
+@pytest.mark.slow
+def test_a_churning_fleet_whose_arms_leave_with_alarms_up_stays_bounded_and_keeps_admitting(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Arms that left with an alarm ACTIVE were kept for good: after max_devices of them every new arm was
+    refused (too_many_devices), however many came. With telemetry.forget_unseen_after_s the agent drops them
+    once silent that long, each with a WARNING event naming the alarms no one saw; the fleet, its alarms and
+    the state file stay within max_devices arms, and every new generation of arms is mirrored."""
+    monkeypatch.setattr(agent_module, "FORGET_SWEEP_S", 0.1)
+    limit, generations = 4, 5
+    state_file = tmp_path / "state.json"
+    settings = hot_arm_settings(
+        **{
+            "telemetry.devices": ["*"],
+            "telemetry.max_devices": limit,
+            "health.offline_after_s": 1.0,
+            "telemetry.forget_offline_after_s": 1.5,
+            "telemetry.forget_unseen_after_s": 2.0,
+            "twin.state_file": str(state_file),
+        }
+    )
+    agent = AgentService(load_config(None, settings), workers=1)
+    agent.start()
+    kept_sizes = []
+    try:
+        for generation in range(generations):
+            arms = [f"churn-{generation}-{i}" for i in range(limit)]
+            for arm in arms:
+                agent.feed(telemetry_topic(DEFAULT_TOPIC_PREFIX, arm), hot(arm, int(time.time() * 1000), 80))
+            wait_for(
+                lambda arms=arms: (
+                    agent.state().agent.alarms.present.get("critical", 0) >= len(arms)
+                    and set(arms) <= set(agent.state().devices)
+                ),
+                60,
+                f"generation {generation} admitted, its alarms ACTIVE",
+            )
+            assert len(agent.state().devices) <= limit
+            kept = wait_for(
+                lambda arms=arms: {r["device"] for r in _kept(state_file)} == set(arms) and _kept(state_file),
+                30,
+                f"generation {generation}'s alarms in the state file, and no others",
+            )
+            kept_sizes.append(len(kept))
+            wait_for(lambda arms=arms: not set(arms) & set(agent.state().devices), 60, "generation forgotten")
+        state = agent.state()
+
+        def dropped() -> list[Any]:
+            found = agent.events(EventQuery(kinds=frozenset({EventKind.TWIN.value}), limit=1000))
+            return [e for e in found if e.data.get("action") == "forgotten"]
+
+        told = wait_for(lambda: len(dropped()) == limit * generations and dropped(), 30, "every arm's event")
+    finally:
+        agent.stop()
+    assert state.untracked_rejected.get("too_many_devices", 0) == 0, state.untracked_rejected
+    assert max(kept_sizes) == min(kept_sizes) > 0, kept_sizes  # one generation's alarms, never more
+    assert not _kept(state_file)
+    for event in told:
+        assert event.level == "warning" and event.data["by"] == "agent", event
+        assert f"dropped unseen: {event.device}/elbow_flex/" in event.message, event.message
+        assert "forget_unseen_after_s" in event.message, event.message

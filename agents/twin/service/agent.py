@@ -41,7 +41,7 @@ from operator import attrgetter
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Generic, TypeVar
 
-from twin.core.alarms import AlarmRecord, worst_first
+from twin.core.alarms import AlarmRecord, AlarmState, worst_first
 from twin.core.health import DeviceStatus
 from twin.core.topics import device_from_topic
 from twin.output.alerts import Alert, AlertPublisher, sns_publisher
@@ -167,23 +167,26 @@ FORGET_SWEEP_S = 5.0
 
 
 def long_offline(
-    rows: Sequence[FleetRow], wall: float, after_s: float, started_wall: float, configured: frozenset[str]
+    rows: Sequence[FleetRow],
+    wall: float,
+    after_s: float,
+    started_wall: float,
+    configured: frozenset[str],
+    *,
+    unseen_after_s: float = 0.0,
 ) -> list[tuple[str, float]]:
     """The arms `_forget_long_offline` forgets, with how long each has been silent: OFFLINE and silent
     `after_s` or more (one not heard in this run, kept for its alarms: since the agent's start), not listed
-    in the config, with no alarm ACTIVE or LATCHED (what a person has not seen is not taken from them), and
-    its worker running (a restarting one's rows are its checkpoint's)."""
+    in the config, and its worker running (a restarting one's rows are its checkpoint's). One with an alarm
+    ACTIVE or LATCHED (not seen by a person yet) only once silent `unseen_after_s` (0: never), so a fleet
+    whose arms leave with an alarm up does not fill every max_devices place with them for good."""
     out = []
     for row in rows:
-        if (
-            row.status != "OFFLINE"
-            or row.unacknowledged
-            or row.device in configured
-            or row.mirror != "running"
-        ):
+        if row.status != "OFFLINE" or row.device in configured or row.mirror != "running":
             continue
+        horizon = unseen_after_s if row.unacknowledged else after_s
         silent = wall - (row.last_seen if row.last_seen is not None else started_wall)
-        if silent >= after_s:
+        if horizon and silent >= horizon:
             out.append((row.device, silent))
     return out
 
@@ -620,19 +623,47 @@ class AgentService:
     def _forget_long_offline(self) -> None:
         """Forget each arm silent for telemetry.forget_offline_after_s with no alarm waiting for a person, as
         an operator's forget does (kept at once, one event): a fleet whose ids come and go otherwise filled
-        every max_devices place with arms retired long ago, refusing new ones until a person forgot them."""
-        after = self.config.telemetry.forget_offline_after_s
+        every max_devices place with arms retired long ago, refusing new ones until a person forgot them. One
+        with alarms no person has seen only after telemetry.forget_unseen_after_s, its event naming them."""
+        telemetry = self.config.telemetry
         started = self._started_wall if self._started_wall is not None else self._wall_clock()
-        configured = frozenset(() if self.config.telemetry.all_devices else self.config.telemetry.devices)
-        for device, silent in long_offline(self.fleet_rows(), self._wall_clock(), after, started, configured):
+        configured = frozenset(() if telemetry.all_devices else telemetry.devices)
+        rows = self.fleet_rows()
+        unseen = {row.device for row in rows if row.unacknowledged}
+        gone = long_offline(
+            rows,
+            self._wall_clock(),
+            telemetry.forget_offline_after_s,
+            started,
+            configured,
+            unseen_after_s=telemetry.forget_unseen_after_s,
+        )
+        waiting = self._unseen_alarms(unseen.intersection(device for device, _ in gone))
+        for device, silent in gone:
             if self._stopping.is_set():
                 return
             reason = f"by the agent: silent for {_spoken(silent)} (telemetry.forget_offline_after_s)"
+            if device in unseen:
+                named = "; ".join(waiting.get(device, ())) or "not listed"
+                reason = (
+                    f"by the agent: silent for {_spoken(silent)} with alarms no person has seen "
+                    f"(telemetry.forget_unseen_after_s), dropped unseen: {named}"
+                )
             try:
                 self.forget_arm(device, reason=reason)
             except (ArmNotFoundError, ArmNotForgettableError, WorkerError) as exc:
                 # Heard again, forgotten by a person meanwhile, or its worker restarting: the next sweep.
                 log.debug("arm %s not forgotten: %s", device, exc)
+
+    def _unseen_alarms(self, devices: set[str]) -> dict[str, list[str]]:
+        """The alarms of `devices` no person has seen (ACTIVE, LATCHED), as the forget's event names them."""
+        if not devices:
+            return {}
+        named: dict[str, list[str]] = {}
+        for alarm in self.alarms():
+            if alarm.device in devices and alarm.state in (AlarmState.ACTIVE, AlarmState.LATCHED):
+                named.setdefault(alarm.device, []).append(f"{alarm.alarm_id} {alarm.state}: {alarm.message}")
+        return named
 
     # ------------------------------------------------------------------------------------------ state kept
 

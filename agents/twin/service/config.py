@@ -83,6 +83,9 @@ class TelemetrySection:
     # An arm silent this long (OFFLINE), with no alarm waiting for a person, is forgotten as an operator would
     # forget it (its place in max_devices goes to a new arm); 0: never (twin.service.agent, long_offline).
     forget_offline_after_s: float = 0.0
+    # An arm silent this long is forgotten even with alarms no person has seen, each named in a WARNING
+    # event: else a fleet whose arms leave with an alarm up fills max_devices for good; 0: never.
+    forget_unseen_after_s: float = 0.0
 
     @property
     def all_devices(self) -> bool:
@@ -586,6 +589,13 @@ def _validate_forget(t: TelemetrySection, h: HealthThresholds) -> None:
             f"telemetry.forget_offline_after_s = {after} must be 0 (never) or longer than "
             f"health.offline_after_s = {h.offline_after_s:g} (an arm is forgotten once silent that long); "
             "e.g. 604800 for a week"
+        )
+    unseen = t.forget_unseen_after_s
+    if unseen != 0 and not (math.isfinite(unseen) and after != 0 and unseen >= after):
+        raise ConfigError(
+            f"telemetry.forget_unseen_after_s = {unseen} must be 0 (never) or at least "
+            f"telemetry.forget_offline_after_s = {after:g}, itself set (not 0): an arm with alarms no "
+            "person has seen is kept longer than one without; e.g. 2592000 for 30 days"
         )
 
 

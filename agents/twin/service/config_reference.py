@@ -134,6 +134,13 @@ KEY_DOCS: dict[str, str] = {
         "One event says so. 0, the default, never; else longer than `health.offline_after_s`, e.g. 604800 "
         "for a week."
     ),
+    "telemetry.forget_unseen_after_s": (
+        "Forget an arm silent this long (seconds) even when an alarm of it waits for a person (ACTIVE or "
+        "LATCHED), which `forget_offline_after_s` keeps: a WARNING event names each such alarm. Without it a "
+        "fleet whose arms leave with an alarm up fills every `max_devices` place with them, and new arms are "
+        "refused until a person acknowledges or forgets them. 0, the default, never; else at least "
+        "`forget_offline_after_s`, which must be set, e.g. 2592000 for 30 days."
+    ),
     "twin.mode": (
         "`kinematic`: the twin shows exactly the measured pose. `physics`: the measured pose is the "
         "target of the simulated servos, and the worker steps the simulation. Flag `--mode`."

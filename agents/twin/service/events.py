@@ -797,9 +797,11 @@ class FleetWatch:
         self._losses.forget(device)
         self._clocks.forget(device)
         alarms = ", ".join(f"{n} {state}" for state, n in sorted(alarms_removed.items())) or "none"
+        # The agent dropping alarms no person has seen (telemetry.forget_unseen_after_s) is a loss to look at.
+        unseen = reason and any(alarms_removed.get(state) for state in ("ACTIVE", "LATCHED"))
         self.store.emit(
             EventKind.TWIN,
-            EventLevel.INFO,
+            EventLevel.WARNING if unseen else EventLevel.INFO,
             f"{device} forgotten {reason or 'by an operator'} (it was {status}): its twin, health and "
             f"counters removed; alarms removed: {alarms}",
             device=device,
