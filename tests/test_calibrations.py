@@ -326,7 +326,8 @@ def test_push_refuses_what_is_not_a_calibration(tmp_path: Path, capsys: pytest.C
     # The file first and the arm second: said so, with the command the right way round.
     assert main(["calibration", "push", str(EXAMPLE), "arm-001", "--store", store]) == cmd.EXIT_USAGE
     swapped = capsys.readouterr().err
-    assert "the arm comes first" in swapped and f"push arm-001 {EXAMPLE}`" in swapped, swapped
+    # ... the store flags kept: without them the command would go to the deployed stack's store.
+    assert "the arm comes first" in swapped and f"push arm-001 {EXAMPLE} --store {store}`" in swapped, swapped
     assert not (tmp_path / "cal").exists()
 
 

@@ -150,7 +150,8 @@ def _arm_is_a_device_id(args: argparse.Namespace) -> bool:
         file = str(getattr(args, "file", ""))
         if args.arm.endswith(".json") and file and policy_device_id_problem(file) is None:
             # The two arguments the other way round: the file first, then the arm.
-            swapped = f"twin calibration push {shlex.quote(file)} {shlex.quote(args.arm)}"
+            # With the flags that chose the store: without them the command reaches the stack's store.
+            swapped = f"twin calibration push {shlex.quote(file)} {shlex.quote(args.arm)}{_store_flags(args)}"
             console.err(
                 f"ARM {args.arm!r} is a file and FILE {file!r} a device id: the arm comes first "
                 f"(`{swapped}`). Nothing was {done}"
