@@ -328,6 +328,18 @@ def test_every_twin_command_in_the_guide_is_one_twin_accepts() -> None:
     assert not refused, f"twin refuses these commands of docs/getting-started.md: {refused}"
 
 
+def test_the_guides_commands_write_their_files_under_out() -> None:
+    """A new user types these in the checkout: `twin render --out arm.png` left an untracked file at its root,
+    which `git status` then shows. `out/` is ignored by git and is where `make demo` writes."""
+    written = []
+    for page in (ROOT / "README.md", ROOT / "docs" / "getting-started.md"):
+        for command in guide_commands(page.read_text(encoding="utf-8")):
+            written += [(page.name, out) for out in re.findall(r"--out\s+(\S+)", command)]
+    assert len(written) >= 3, written
+    stray = [(page, out) for page, out in written if not out.startswith("out/")]
+    assert not stray, f"these commands write into the checkout, outside out/: {stray}"
+
+
 # An agent config example: a ```toml block with a [section], or inline `[section] key = value`. The stack's
 # settings (twin.settings.toml) have no sections.
 TOML_BLOCK = re.compile(r"^( *)```toml\n(.*?)^\1```", re.S | re.M)
