@@ -185,6 +185,11 @@ def test_demo_tells_the_story_leaves_valid_files_and_stops_its_broker(tmp_path):
     assert warning["alarm_id"] == f"arm-001/{STORY_JOINT}/over_temperature"
     assert warning["severity"] == "warning" and warning["state"] == "ACTIVE"
     assert 0 < warning["raised_after_s"] < stats["duration_s"]
+    # The payload's overload warning (it comes and goes from the first seconds) is the story's too, and the
+    # closing line names every alarm the story's servo raised.
+    assert set(raised) <= {"overload", "over_temperature", "over_temperature_critical"}, story
+    assert raised["overload"]["raised_after_s"] < warning["raised_after_s"], story
+    assert "its alarms raised: overload after" in proc.stdout, proc.stdout
     assert 60.0 <= story["peak_temperature_c"] < 70.0
     assert f"alarm arm-001/{STORY_JOINT}/over_temperature ACTIVE" in proc.stdout
     # Where to open the console while it runs (the agent takes a free port).

@@ -6,12 +6,13 @@ decoder, MuJoCo twin, alarms, health, HTTP and console, USD recording) run in th
 The caller gets a status snapshot about four times a second and a note for each step of the story.
 
 The story: the first arm lifts a payload too heavy for it (STORY_PAYLOAD_KG at the gripper tip) through the
-mock motion, so its shoulder_lift servo works near and past its overload line and heats, its thermal model
-run STORY_SPEEDUP times faster than the clock so that what takes a real servo minutes happens in the run:
-the agent raises the over-temperature warning (60 C) after about 15 s and the critical alarm (65 C) after
-about 25 s. The other arms carry nothing and stay cool. When the first of the two is raised, the console's
-Fleet page and the hot arm's page are photographed in headless Chromium (twin.rig.console_shots); without
-Chromium or Playwright the demo says so and goes on without the two pictures.
+mock motion, so its shoulder_lift servo works near and past its overload line (the agent's overload warning
+comes and goes from the first seconds) and heats, its thermal model run STORY_SPEEDUP times faster than the
+clock so that what takes a real servo minutes happens in the run: the agent raises the over-temperature
+warning (60 C) after about 15 s and the critical alarm (65 C) after about 25 s. The other arms carry nothing
+and stay cool. When the first of the two heat alarms is raised, the console's Fleet page and the hot arm's
+page are photographed in headless Chromium (twin.rig.console_shots); without Chromium or Playwright the demo
+says so and goes on without the two pictures.
 
 Afterwards the output directory holds:
   twin.png    the twin's pose: written as soon as the first arm is mirrored, then again with its final pose,
@@ -80,7 +81,10 @@ AFTER_STOP_GRACE_S = 5.0
 STORY_JOINT = "shoulder_lift"
 STORY_PAYLOAD_KG = 0.22
 STORY_SPEEDUP = 80.0
-STORY_ALARMS = ("over_temperature", "over_temperature_critical")
+# The story's alarms, each recorded the first time it is up: the overload warning the payload raises from the
+# first seconds (it comes and goes), then the two of the heat. The console pictures wait for the heat's.
+STORY_ALARMS = ("overload", "over_temperature", "over_temperature_critical")
+HEAT_ALARMS = frozenset({"over_temperature", "over_temperature_critical"})
 # How long the run may go on past its seconds for the console pictures to finish.
 PICTURES_GRACE_S = 90.0
 
@@ -199,8 +203,9 @@ class _Story:
     peak_temperature_c: float | None = None
 
     @property
-    def raised(self) -> bool:
-        return bool(self.alarms)
+    def heated(self) -> bool:
+        """Whether an alarm of the servo's heat is up: the moment for the console pictures."""
+        return any(a["kind"] in HEAT_ALARMS for a in self.alarms)
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -517,7 +522,7 @@ def _watch(
             _follow_story(run.story, service, state, now - run.started, note)
         # The pictures when the hot servo's alarm is up; a run without the story, or too short for it, at its
         # end.
-        story_told = run.story is not None and run.story.raised
+        story_told = run.story is not None and run.story.heated
         if pictures is not None and not pictures.started and (story_told or now >= end):
             note(f"taking the console pictures of {devices[0]} (headless Chromium)")
             pictures.start()
@@ -573,7 +578,7 @@ def _statuses_after_stop(service: Any) -> dict[str, str]:
 def _follow_story(
     story: _Story, service: Any, state: AgentState, elapsed_s: float, note: Callable[[str], None]
 ) -> None:
-    """Record the hot servo's temperature, and each of its over-temperature alarms the first time it is up."""
+    """Record the hot servo's temperature, and each of its STORY_ALARMS the first time it is up."""
     device = state.devices.get(story.device)
     servo = None if device is None or device.servos is None else device.servos.get(story.joint)
     if servo is not None and servo.temperature_c is not None:
