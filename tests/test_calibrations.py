@@ -490,11 +490,36 @@ def kept_cycle(store_arg: list[str], store: Any, capsys: pytest.CaptureFixture[s
     assert store.read("arm-001") == shifted(100)
 
 
+def kept_removed(store_arg: list[str], store: Any, capsys: pytest.CaptureFixture[str]) -> None:
+    """After kept_cycle (arm-001 has a calibration, nothing kept): rm --kept takes away only the kept one, so
+    an arm removed by mistake long ago no longer stays in `ls` for good."""
+    again = " " + shlex.join(store_arg)
+    rm_kept = ["calibration", "rm", "--kept", "arm-001", *store_arg]
+    assert main(rm_kept) == cmd.EXIT_STORE
+    assert "arm-001 has no kept calibration" in capsys.readouterr().err
+    assert main(["calibration", "push", "arm-001", str(EXAMPLE), *store_arg]) == cmd.EXIT_OK
+    assert main(["calibration", "ls", *store_arg]) == cmd.EXIT_OK
+    assert f"`twin calibration rm --kept ARM{again}` removes it" in capsys.readouterr().err
+    assert main(rm_kept) == cmd.EXIT_OK
+    out = capsys.readouterr().out
+    assert f"removed {store.uri_of('arm-001')}.previous; its own calibration stays" in out, out
+    assert store.read("arm-001") == EXAMPLE.read_bytes() and store.read_kept("arm-001") is None
+    # An arm removed, then its kept one: gone from the listing.
+    assert main(["calibration", "rm", "arm-001", *store_arg]) == cmd.EXIT_OK
+    assert main(rm_kept) == cmd.EXIT_OK
+    assert "it has no calibration in the store now" in capsys.readouterr().out
+    assert store.scan().kept == set() and store.listing() == {}
+    assert main(["calibration", "ls", *store_arg]) == cmd.EXIT_OK
+    assert capsys.readouterr().out == f"no calibration in {store.uri}\n"
+
+
 def test_a_directory_store_keeps_what_push_and_rm_replace(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     kept_cycle(["--store", str(tmp_path / "cal")], DirectoryStore(tmp_path / "cal"), capsys, tmp_path)
     assert sorted(p.name for p in (tmp_path / "cal").iterdir()) == ["arm-001.json"]
+    kept_removed(["--store", str(tmp_path / "cal")], DirectoryStore(tmp_path / "cal"), capsys)
+    assert list((tmp_path / "cal").iterdir()) == []
 
 
 def test_the_stacks_store_keeps_what_push_and_rm_replace(
@@ -505,6 +530,8 @@ def test_the_stacks_store_keeps_what_push_and_rm_replace(
     kept_cycle(["--store", "s3://twin-bucket/calibration"], store, capsys, tmp_path)
     keys = [o["Key"] for o in s3.list_objects_v2(Bucket="twin-bucket")["Contents"]]
     assert keys == ["calibration/arm-001.json"]
+    kept_removed(["--store", "s3://twin-bucket/calibration"], store, capsys)
+    assert "Contents" not in s3.list_objects_v2(Bucket="twin-bucket")
 
 
 def _pushed_twice(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> list[str]:

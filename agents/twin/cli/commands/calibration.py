@@ -55,7 +55,8 @@ store: --store, else the CalibrationUri output of --stack (default $SO101_TWIN_S
 the checkout's twin.settings.toml, else So101TwinStack)
 kept: a push over an arm's calibration, and rm, keep the one they replace (<ARM>.json.previous; ls shows
   it); `twin calibration restore ARM` puts it back, and again swaps back (a restore of what rm removed
-  keeps nothing to swap back: rm again undoes it)"""
+  keeps nothing to swap back: rm again undoes it); `twin calibration rm --kept ARM` removes only the kept
+  one, once it is no longer wanted"""
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -91,6 +92,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "rm", parents=[common], help="remove ARM's calibration (the arm decodes with the config's again)"
     )
     rm.add_argument("arm", metavar="ARM")
+    rm.add_argument(
+        "--kept",
+        action="store_true",
+        help="remove only the calibration kept for restore (<ARM>.json.previous), not ARM's own",
+    )
     restore = actions.add_parser(
         "restore",
         parents=[common],
@@ -184,7 +190,7 @@ def run(args: argparse.Namespace) -> int:
         if args.action == "push":
             return _push(store, args.arm, args.file, data, again)
         if args.action == "rm":
-            return _rm(store, args.arm, again)
+            return _rm_kept(store, args.arm, again) if args.kept else _rm(store, args.arm, again)
         if args.action == "restore":
             return _restore(store, args.arm, again)
         return _ls(store, again)
@@ -213,7 +219,8 @@ def _ls(store: CalibrationStore, again: str) -> int:
         console.out(line)
     if kept:
         console.err(
-            f"kept: what a push or rm replaced; `twin calibration restore ARM{again}` swaps it back in"
+            f"kept: what a push or rm replaced; `twin calibration restore ARM{again}` swaps it back in, "
+            f"`twin calibration rm --kept ARM{again}` removes it"
         )
     for name in found.ignored:
         console.err(
@@ -313,6 +320,22 @@ def _rm(store: CalibrationStore, arm: str, again: str) -> int:
         f"{arm}: removed from {store.uri}; it decodes with the config's calibration again (kept at {kept}: "
         f"`twin calibration restore {arm}{again}`)"
     )
+    return EXIT_OK
+
+
+def _rm_kept(store: CalibrationStore, arm: str, again: str) -> int:
+    """Remove the calibration kept for ARM's restore: what push and rm keep is otherwise never taken away,
+    and `ls` lists a removed arm's for good."""
+    from twin.service.calibrations import KEPT_SUFFIX, SUFFIX
+
+    if store.read_kept(arm) is None:
+        console.err(f"{arm} has no kept calibration in {store.uri} (`twin calibration ls{again}` lists them)")
+        return EXIT_STORE
+    store.delete_kept(arm)
+    where = f"{store.uri_of(arm).removesuffix(SUFFIX)}{KEPT_SUFFIX}"
+    current, _ = _current(store, arm)
+    now = "its own calibration stays" if current is not None else "it has no calibration in the store now"
+    console.out(f"{arm}: removed {where}; {now}, and `restore` has nothing to put back")
     return EXIT_OK
 
 
