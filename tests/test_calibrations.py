@@ -681,6 +681,10 @@ def test_the_calibration_another_arm_has_is_stored_with_a_warning(
     assert "follower.json is the calibration arm-001 already has in" in err, err
     assert "push arm-002's own file" in err and "`twin calibration rm arm-002 --store" in err, err
     assert DirectoryStore(tmp_path / "cal").read("arm-002") == EXAMPLE.read_bytes()  # stored, as asked
+    # Two arms hold it now: the warning names both, as a sentence (it read "arm-001, arm-002 already has").
+    assert main(["calibration", "push", "arm-004", str(first), *store]) == cmd.EXIT_OK
+    err = capsys.readouterr().err
+    assert "follower.json is the calibration arm-001 and arm-002 already have in" in err, err
 
 
 def test_without_aws_push_names_the_store_of_an_agent_on_this_machine(

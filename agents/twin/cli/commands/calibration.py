@@ -275,7 +275,7 @@ def _push(store: CalibrationStore, arm: str, file: Path, data: bytes, again: str
     if same:
         # No two arms share a calibration (LeRobot measures each arm's ranges by hand): a copy is a slip.
         console.err(
-            f"warning: {file.name} is the calibration {', '.join(same)} already has in {store.uri}; each "
+            f"warning: {file.name} is the calibration {_arms_have(same)} in {store.uri}; each "
             f"arm has its own, and another arm's puts its twin in a wrong pose. It is stored as {arm}'s, as "
             f"asked; push {arm}'s own file (lerobot-calibrate on its computer) "
             f"({_undo(store, arm, current, again)})"
@@ -287,6 +287,13 @@ def _push(store: CalibrationStore, arm: str, file: Path, data: bytes, again: str
     if kept is not None:
         console.out(f"{arm}: the one it replaced is kept at {kept} (`twin calibration restore {arm}{again}`)")
     return EXIT_OK
+
+
+def _arms_have(arms: list[str]) -> str:
+    """The words for one or more arms having a thing: "arm-001 already has", "a and b already have"."""
+    if len(arms) == 1:
+        return f"{arms[0]} already has"
+    return f"{', '.join(arms[:-1])} and {arms[-1]} already have"
 
 
 def _same_calibration(store: CalibrationStore, arm: str, data: bytes, listing: dict[str, str]) -> list[str]:
