@@ -687,6 +687,24 @@ def test_the_calibration_another_arm_has_is_stored_with_a_warning(
     assert "follower.json is the calibration arm-001 and arm-002 already have in" in err, err
 
 
+def test_pushing_the_example_calibration_says_it_was_measured_on_no_arm(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A walk: the example that comes with the model, pushed for a real arm, gave no word that it is no
+    arm's (its README says so; the push did not). Laid out anew it is still the example."""
+    store = ["--store", str(tmp_path / "cal")]
+    relaid = tmp_path / "my-arm.json"
+    relaid.write_text(json.dumps(json.loads(EXAMPLE.read_text()), indent=None, sort_keys=True))
+    for file in (EXAMPLE, relaid):
+        assert main(["calibration", "push", "arm-001", str(file), *store]) == cmd.EXIT_OK
+        err = capsys.readouterr().err
+        assert f"note: {file} holds the example calibration that comes with the model" in err, err
+    own = tmp_path / "own.json"
+    own.write_bytes(shifted(40))
+    assert main(["calibration", "push", "arm-001", str(own), *store]) == cmd.EXIT_OK
+    assert "example" not in capsys.readouterr().err
+
+
 def test_without_aws_push_names_the_store_of_an_agent_on_this_machine(
     aws_env: None, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -209,3 +209,22 @@ def parse_calibration(data: bytes | str, source: str) -> Calibration:
     except ValueError as exc:
         raise ValueError(f"{source} is not valid JSON: {exc}") from None
     return Calibration.from_dict(parsed, source)
+
+
+def example_path() -> Path:
+    """The example follower calibration shipped with the model (robots/so101/calibration): plausible values
+    for trying the twin with the edge simulator, measured on no arm."""
+    import twin_robots  # noqa: PLC0415 - only this check needs the asset package
+
+    folder = Path(twin_robots.__file__).resolve().parent / "so101" / "calibration"
+    return folder / "so101_follower_example.json"
+
+
+def is_example(calibration: Calibration) -> bool:
+    """Whether `calibration` holds the example's values (however the file is laid out): a real arm given it
+    would be shown off by the difference between the example's ranges and its own."""
+    try:
+        example = load_calibration(example_path())
+    except (OSError, ValueError):
+        return False
+    return dict(example) == dict(calibration)

@@ -233,7 +233,7 @@ def _ls(store: CalibrationStore, again: str) -> int:
 def _calibration_file(file: Path) -> bytes | int:
     """FILE's bytes once it parsed as a complete follower arm's SO-101 calibration; else an exit code, having
     said why."""
-    from twin.robot.calibration import leader_problem, parse_calibration
+    from twin.robot.calibration import is_example, leader_problem, parse_calibration
 
     problem = leader_problem(file)
     if problem:
@@ -250,6 +250,14 @@ def _calibration_file(file: Path) -> bytes | int:
         return EXIT_USAGE
     # Stored as LeRobot wrote it, once it parsed as a complete SO-101 calibration.
     console.out(f"{file}: an SO-101 calibration of motors {', '.join(calibration)}")
+    if is_example(calibration):
+        # Right for the edge simulator, which the guides pair it with; a real arm's twin would be off.
+        console.err(
+            f"note: {file} holds the example calibration that comes with the model, measured on no arm: "
+            "fine with the edge simulator, but a real arm's twin would be off by the difference between "
+            "its ranges and the example's; for a real arm push its own file (lerobot-calibrate writes "
+            "it: robots/so101/calibration/README.md)"
+        )
     return data
 
 
