@@ -383,7 +383,7 @@ def test_a_silent_arms_card_says_its_hottest_reading_is_its_last(
     card.wait_for()
     # Said before the reading, and the temperature before the servo's name: a narrow card cuts the line's end.
     line = card.locator(".line", has_text="last heard").inner_text()
-    assert re.match(r"hottest, last heard: -?\d+ °C \(\w+\)$", line), line
+    assert re.match(r"hottest, last heard: -?\d+ C \(\w+\)$", line), line
     assert browser_errors == []
 
 
@@ -415,6 +415,10 @@ def test_an_arm_page_draws_its_charts(console: str, page: Any, browser_errors: l
     page.goto(console + "/arm/arm-003")
     wait_for_charts(page, TIMEOUT_S)
     assert page.locator("canvas[data-chart]").count() == 4
+    # A temperature is written "C" wherever the page shows one, as its alarms' values and messages are (the
+    # chart said "°C" above an alarm's "at 64 C").
+    assert page.get_by_role("heading", name="servo temperature (C)", exact=True).count() == 1
+    assert "°C" not in page.locator("main").inner_text()
     # After a restart the counters start at 0: the page says they count from the agent's start, in which
     # zone, and why what was received was not all applied.
     summary = page.locator("#summary").inner_text()

@@ -9,7 +9,7 @@
   const COLORS = ["#2457c5", "#c0262d", "#1a7f37", "#b7791f", "#7b3fb5", "#0f8a8a"];
   const CHARTS = [
     { key: "angle", title: "joint angles (°)", pick: (d, j) => d.joints_rad && d.joints_rad[j] !== undefined ? d.joints_rad[j] * 180 / Math.PI : null },
-    { key: "temperature", title: "servo temperature (°C)", pick: (d, j) => servo(d, j, "temperature_c") },
+    { key: "temperature", title: "servo temperature (C)", pick: (d, j) => servo(d, j, "temperature_c") },
     { key: "load", title: "servo load (% of stall)", pick: (d, j) => servo(d, j, "load_percent") },
     { key: "current", title: "servo current (A)", pick: (d, j) => servo(d, j, "current_a") },
   ];

@@ -111,13 +111,15 @@
     const c = columns;
     if (r[c.hot_c] === null) return "hottest: –";
     const when = r[c.status] === "ONLINE" ? "hottest: " : "hottest, last heard: ";
-    return `${when}${Twin.num(r[c.hot_c], 0)} °C (${r[c.hot_joint]})`;
+    return `${when}${Twin.num(r[c.hot_c], 0)} C (${r[c.hot_joint]})`;
   }
 
+  // "C", as the alarms' values and messages, the e-mails and the docs write it: the page said "45 °C" beside
+  // an alarm's "at 64 C".
   function hotText(r) {
     const c = columns;
     if (r[c.hot_c] === null) return "–";
-    return `${r[c.hot_joint]} ${Twin.num(r[c.hot_c], 0)} °C`;
+    return `${r[c.hot_joint]} ${Twin.num(r[c.hot_c], 0)} C`;
   }
 
   // Its title holds its whole text, as the alarm's does: a tablet's column may cut a long servo name.
