@@ -370,7 +370,8 @@ def test_a_silent_arms_card_says_its_hottest_reading_is_its_last(
     console: str, rig: LocalRig, page: Any, browser_errors: list[str]
 ) -> None:
     """An arm that has gone quiet keeps its last temperature on its card: the card says it is the last one
-    heard, so an old reading does not read as now."""
+    heard, so an old reading does not read as now. A walk read "hottest, last heard: 45 °C (shoulder_l..."
+    on a card of the least width (230 px): the line fits it now, the longest servo name and all."""
     rig.start_edge(["arm-gone"], variant="ticks", rate_hz=10.0, seconds=2.0, seed=5)
 
     def silent() -> bool:
@@ -379,11 +380,35 @@ def test_a_silent_arms_card_says_its_hottest_reading_is_its_last(
 
     wait_for(silent, TIMEOUT_S, "arm-gone heard, then silent")
     page.goto(console + "/")
-    card = page.locator('#fleet-view [data-device="arm-gone"]', has_text="hottest, last heard: ")
+    card = page.locator('#fleet-view [data-device="arm-gone"]', has_text="hottest then: ")
     card.wait_for()
-    # Said before the reading, and the temperature before the servo's name: a narrow card cuts the line's end.
-    line = card.locator(".line", has_text="last heard").inner_text()
-    assert re.match(r"hottest, last heard: -?\d+ C \(\w+\)$", line), line
+    # Said before the reading, and the temperature before the servo's name.
+    line = card.locator(".line", has_text="hottest then").inner_text()
+    assert re.match(r"hottest then: -?\d+ C \(\w+\)$", line), line
+    # Its hottest servo the longest name there is, in a window that gives a card no more than its least width.
+    doc: dict[str, Any] = json.loads(http_get(console + "/api/fleet")[2])
+    col = {name: i for i, name in enumerate(doc["columns"])}
+    for row in doc["rows"]:
+        if row[col["device"]] == "arm-gone":
+            row[col["hot_c"]], row[col["hot_joint"]] = 68.0, "shoulder_lift"
+    serve_document(page, "/api/fleet", "fleet", doc)
+    page.set_viewport_size({"width": 280, "height": 800})
+    try:
+        page.goto(console + "/")
+        hot = page.locator(
+            '#fleet-view [data-device="arm-gone"] .line', has_text="hottest then: 68 C (shoulder_lift)"
+        )
+        hot.wait_for()
+        sizes = hot.evaluate(
+            "l => [l.closest('.card').getBoundingClientRect().width, l.scrollWidth, l.clientWidth]"
+        )
+        assert sizes[0] < 240 and sizes[1] <= sizes[2], (
+            f"card width, line's text width, line's width: {sizes}"
+        )
+    finally:
+        page.set_viewport_size({"width": 1280, "height": 800})  # the module's page: the next test expects it
+        unserve(page, "/api/fleet")
+        leave(page)
     assert browser_errors == []
 
 

@@ -105,12 +105,13 @@
       ...(waiting.length ? [el("div", { class: "line" }, ...waiting)] : [])];
   }
 
-  // On a card the temperature comes before the servo's name, and a silent arm's "last heard" before both:
-  // a narrow card cuts the end of the line, and an old reading must not read as now.
+  // On a card the temperature comes before the servo's name, and a silent arm's "then" (when it was last
+  // heard, on its status line) before both: an old reading must not read as now. "hottest, last heard: 45 C
+  // (shoulder_lift)" was wider than a 230 px card, which cut the servo's name.
   function cardHot(r) {
     const c = columns;
     if (r[c.hot_c] === null) return "hottest: –";
-    const when = r[c.status] === "ONLINE" ? "hottest: " : "hottest, last heard: ";
+    const when = r[c.status] === "ONLINE" ? "hottest: " : "hottest then: ";
     return `${when}${Twin.num(r[c.hot_c], 0)} C (${r[c.hot_joint]})`;
   }
 
