@@ -287,14 +287,14 @@ def test_a_cards_waiting_alarms_and_restart_mark_are_not_cut(
     """A walk at 300 arms in a 1400 px window read "over_temperature_critical · +5 u..." on every card of an
     arm with alarms waiting, "arm-001 uncalibrated st..." while the agent stopped, and "critical ·
     shoulder_lift · ACKNOWL..." for an acknowledged alarm: the card cut the words docs/console.md promises.
-    The fleet document is the agent's own, two rows made so (served by the test)."""
+    The fleet document is the agent's own, three rows made so (served by the test)."""
 
-    def fleet_with_two_arms() -> dict[str, Any] | None:
+    def fleet_with_three_arms() -> dict[str, Any] | None:
         doc: dict[str, Any] = json.loads(http_get(console + "/api/fleet")[2])
         device = doc["columns"].index("device")
-        return doc if {"arm-001", "arm-002"} <= {r[device] for r in doc["rows"]} else None
+        return doc if set(DEVICES) <= {r[device] for r in doc["rows"]} else None
 
-    doc = wait_for(fleet_with_two_arms, TIMEOUT_S, "arm-001 and arm-002 listed in /api/fleet")
+    doc = wait_for(fleet_with_three_arms, TIMEOUT_S, f"{DEVICES} listed in /api/fleet")
     col = {name: i for i, name in enumerate(doc["columns"])}
     for row in doc["rows"]:
         if row[col["device"]] == "arm-001":
@@ -307,6 +307,8 @@ def test_a_cards_waiting_alarms_and_restart_mark_are_not_cut(
             row[col["uncalibrated"]], row[col["calibration_refused"]] = False, True
         if row[col["device"]] == "arm-002":
             row[col["uncalibrated"]], row[col["mirror"]] = True, "restarting"
+        if row[col["device"]] == "arm-003":
+            row[col["uncalibrated"]], row[col["calibration_refused"]] = True, False
     serve_document(page, "/api/fleet", "fleet", doc)
     try:
         page.goto(console + "/")
@@ -323,13 +325,17 @@ def test_a_cards_waiting_alarms_and_restart_mark_are_not_cut(
         assert any("ACKNOWLEDGED" in t for t in lines.all_inner_texts()), lines.all_inner_texts()
         cut = lines.evaluate_all("ls => ls.filter(l => l.scrollWidth > l.clientWidth).map(l => l.innerText)")
         assert cut == [], cut
-        # A row, in the walk's 1400 px window: the state and the alarms waiting were cut off behind the kind.
+        # A row, in the walk's 1400 px window: the state and the alarms waiting were cut off behind the kind,
+        # and the arm's "(uncalibrated)" or "(file refused)" to "(uncal...": its column was the narrowest.
         page.set_viewport_size({"width": 1400, "height": 800})
         page.get_by_role("button", name="List").click()
         row = page.locator('#fleet-view .row[data-device="arm-001"]')
         row.get_by_text("ACKNOWLEDGED · +5 unacknowledged").wait_for()
         assert row.locator(".arm-id").inner_text() == "arm-001 (file refused)"
-        cut = row.locator("span:not(.arm-id)").evaluate_all(
+        other = page.locator('#fleet-view .row[data-device="arm-003"] .arm-id')
+        assert other.inner_text() == "arm-003 (uncalibrated)"
+        assert other.evaluate("s => s.scrollWidth <= s.clientWidth"), other.evaluate("s => s.clientWidth")
+        cut = row.locator("span").evaluate_all(
             "ss => ss.filter(s => s.scrollWidth > s.clientWidth).map(s => s.innerText)"
         )
         assert cut == [], cut
