@@ -195,7 +195,7 @@ def test_the_fleet_list_fits_a_tablet_and_a_phone(
 ) -> None:
     """A walk at 300 arms: at 768 px the list's eight columns came to 848 px, the hottest servo off its
     right edge and read only by scrolling the list sideways; at 390 px a phone's four ran 20 px past it,
-    the alarm's state cut with no ellipsis."""
+    the alarm's state cut with no ellipsis, and the bar above took two lines for its three links."""
     page.set_viewport_size({"width": width, "height": 800})
     try:
         page.goto(console + "/")
@@ -207,6 +207,12 @@ def test_the_fleet_list_fits_a_tablet_and_a_phone(
             " return [v.scrollWidth, v.clientWidth, wide.length]; }"
         )
         assert sizes[0] <= sizes[1] and sizes[2] == 0, sizes
+        # The bar's links share one line ("Events" went under "Fleet" at 390 px), and nothing in it runs off.
+        bar = page.locator("header.bar").evaluate(
+            "b => [[...b.querySelectorAll('nav a')].map(a => a.getBoundingClientRect().top), b.scrollWidth,"
+            " b.clientWidth]"
+        )
+        assert max(bar[0]) - min(bar[0]) < 2 and bar[1] <= bar[2], f"links' tops, bar's widths: {bar}"
         # A tablet's hottest servo, its last column, is whole ("shoulder_lift 39 ..." was cut), its title too.
         if width == 768:
             hot = page.locator('#fleet-view .row[data-device="arm-001"] > span:last-child')
