@@ -7,6 +7,7 @@ events), and no page may log an error."""
 
 from __future__ import annotations
 
+import copy
 import csv
 import errno
 import io
@@ -464,6 +465,52 @@ def test_an_arm_page_draws_its_charts(console: str, page: Any, browser_errors: l
     # This agent serves no Rerun view; it may save one, so the page does not call the view off.
     rerun = page.get_by_text("Rerun view: not served by this agent").inner_text()
     assert "a saved .rrd opens with twin web FILE" in rerun, rerun
+    assert browser_errors == []
+
+
+def test_an_arm_charts_time_axis_says_how_far_back_it_draws(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """A walk's charts said "-2 min" under an axis 92 s long: the label was rounded to whole minutes. The
+    arm document is the agent's own: first as it is, then (on the stream's next connections) 100 s later,
+    then 150 s later."""
+    doc: dict[str, Any] = json.loads(http_get(console + "/api/arm/arm-003")[2])
+    assert doc["device"]["joints_rad"], doc["device"]
+
+    def after(seconds: float) -> dict[str, Any]:
+        made = copy.deepcopy(doc)
+        made["time"] += seconds
+        made["device"]["timestamp_ms"] += int(seconds * 1000)
+        return made
+
+    frames = [doc, after(100.0)]  # what each new connection of the stream is answered: the last, once past it
+    connections = []
+
+    def stream(route: Any) -> None:
+        frame = f"event: arm\ndata: {json.dumps(frames[min(len(connections), len(frames) - 1)])}\n\n"
+        connections.append(route.request.url)
+        route.fulfill(status=200, headers={"Content-Type": "text/event-stream"}, body=frame)
+
+    page.route(
+        "**/api/arm/arm-003",
+        lambda route: route.fulfill(
+            status=200, headers={"Content-Type": "application/json"}, body=json.dumps(doc)
+        ),
+    )
+    page.route(_stream_of("/api/arm/arm-003"), stream)
+    axes_js = "cs => cs.map(c => c.dataset.axis)"
+    try:
+        page.goto(console + "/arm/arm-003")
+        wait_for_charts(page, TIMEOUT_S)  # both readings drawn, 100 s apart
+        axes = page.locator("canvas[data-chart]").evaluate_all(axes_js)
+        assert axes == ["-100 s"] * 4, axes
+        frames.append(after(150.0))
+        wait_for_charts(page, TIMEOUT_S, readings=3)
+        axes = page.locator("canvas[data-chart]").evaluate_all(axes_js)
+        assert axes == ["-2.5 min"] * 4, axes
+    finally:
+        unserve(page, "/api/arm/arm-003")
+        leave(page)
     assert browser_errors == []
 
 

@@ -120,9 +120,12 @@
     const left = 44, right = 8, top = 8, bottom = 18;
     ctx.strokeStyle = "#d9dde5"; ctx.fillStyle = "#667085"; ctx.font = "11px sans-serif";
     ctx.strokeRect(left, top, w - left - right, h - top - bottom);
-    ctx.fillText(span >= 90 ? `-${Math.round(span / 60)} min` : `-${Math.round(span)} s`, left, h - 4);
+    // The axis's left end, as far back as it draws: whole minutes said "-2 min" of a 92 s axis.
+    const axis = span < 120 ? `-${Math.round(span)} s` : `-${Number((span / 60).toFixed(1))} min`;
+    ctx.fillText(axis, left, h - 4);
     ctx.fillText("now", w - right - 22, h - 4);
     canvas.dataset.points = String(points);
+    canvas.dataset.axis = axis;
     canvas.dataset.gaps = String(gaps);
     if (!points) { ctx.fillText("no readings yet", left + 8, top + 16); return; }
     if (hi - lo < 1e-6) { hi += 1; lo -= 1; }
