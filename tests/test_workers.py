@@ -16,9 +16,11 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 import urllib.request
 from collections import Counter
+from multiprocessing import Pipe
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +40,7 @@ from conftest import (
 )
 from test_restarts import running
 from test_servo_alarms_e2e import alarms, post
+from twin.bench.worker import _feed, _fleet
 from twin.core.alarms import AlarmKind, AlarmRecord, AlarmState
 from twin.core.health import DeviceCounters, DeviceStatus, HealthSnapshot
 from twin.core.latency import LatencyHistogram
@@ -49,6 +52,7 @@ from twin.rig.quota_proxy import QuotaProxy
 from twin.service import shards
 from twin.service.admission import DeviceBudget
 from twin.service.config import ConfigError, load_config
+from twin.service.mirror import Mirror, MirrorBusyError, PipeInbox
 from twin.service.persist import StateFile
 from twin.service.shards import MirrorReport, WorkerPlan, merge_reports, worker_config
 from twin.service.state import (
@@ -65,6 +69,7 @@ from twin.service.state import (
     WorkerState,
 )
 from twin.service.workerstart import worker_count
+from twin.transport.pipe import send_end
 
 # --- the plan ---------------------------------------------------------------------------------------------
 
@@ -330,6 +335,11 @@ class _StuckMirrorWorker(_SilentWorker):
         if kind == "stuck":
             text = "the mirror's worker did not take its checkpoint within 10 s"
             self.pending.append(shards.Refused(message.call_id, shards.Refusal.STUCK, text))
+        elif kind == "busy":
+            text = (
+                "the mirror's worker did not take its checkpoint within 10 s; it handled 40 batches meanwhile"
+            )
+            self.pending.append(shards.Refused(message.call_id, shards.Refusal.BUSY, text))
         else:
             self.pending.append(shards.Answer(message.call_id, 0))
 
@@ -372,6 +382,60 @@ def test_a_mirror_thread_that_never_gets_to_a_request_counts_as_hung() -> None:
         ask(kind)
     shard.supervise()
     assert worker.killed
+
+
+def test_a_mirror_thread_that_handles_batches_but_misses_the_timeout_is_busy_not_hung() -> None:
+    """A starved host slows a checkpoint taken over many batches past the ask's timeout while the mirror
+    thread keeps handling messages: counted as hung, three such asks killed a working worker, and its
+    restart's replay added to the load that slowed it. BUSY answers, so the count starts again."""
+    config = load_config(None, {"telemetry.devices": ["*"]})
+    shard = shards.WorkerShard(0, config, DeviceBudget(10), context=None)  # type: ignore[arg-type]
+    replies = ["stuck", "stuck", "busy", "stuck", "stuck", "busy", "busy", "busy", "busy"]
+    worker = _StuckMirrorWorker(list(replies))
+    shard.process, shard.control, shard.ready = worker, worker, True  # type: ignore[assignment]
+    for kind in replies:
+        with pytest.raises(shards.WorkerError, match="did not take its checkpoint"):
+            shard.request(shards.StatusesRequest())()
+        shard.supervise()
+        assert not worker.killed, kind
+
+
+def test_the_worker_answers_busy_when_its_mirror_thread_worked_through_the_wait() -> None:
+    """What the worker's control thread answers when a wait for its mirror thread runs out: BUSY when the
+    thread handled batches meanwhile (mirror.MirrorBusyError), STUCK when it handled none."""
+    reader, writer = Pipe(duplex=False)
+    config = load_config(None, {"telemetry.devices": ["*"], "telemetry.units": "ticks"})
+    mirror = Mirror(config, inbox=PipeInbox(reader), budget=DeviceBudget(64))
+    mirror.start()
+    never = dataclasses.make_dataclass("NeverTaken", [("done", threading.Event)])(threading.Event())
+    try:
+        before = mirror.batches
+        _feed(mirror, writer, _fleet(4, 3))
+        with pytest.raises(MirrorBusyError, match="busy, not stuck"):
+            mirror._captured(never, time.monotonic(), before)  # type: ignore[arg-type]
+        with pytest.raises(TimeoutError) as stuck:
+            mirror._captured(never, time.monotonic(), mirror.batches)  # type: ignore[arg-type]
+        assert not isinstance(stuck.value, MirrorBusyError)
+    finally:
+        send_end(writer)
+        mirror.stop(timeout=30.0)
+    # The control thread maps each to its refusal.
+    errors = [MirrorBusyError("slow"), TimeoutError("stuck")]
+
+    class Refusing:
+        def answer(self, _request: object) -> None:
+            raise errors.pop(0)
+
+    ours, theirs = Pipe()
+    serving = threading.Thread(target=shards._serve_control, args=(Refusing(), theirs), daemon=True)
+    serving.start()
+    answered = []
+    for call_id in (1, 2):
+        ours.send(shards.Call(call_id, shards.StatusesRequest()))
+        answered.append(ours.recv().refusal)
+    ours.close()
+    serving.join(30)
+    assert answered == [shards.Refusal.BUSY, shards.Refusal.STUCK]
 
 
 def _messages(first: int, count: int) -> list[tuple[str, tuple[str, bytes, float, float]]]:

@@ -297,6 +297,25 @@ class _Job:
 
 # How long a checkpoint or a restore may wait for the worker thread to finish its batch.
 JOB_TIMEOUT_S = 10.0
+
+
+class MirrorBusyError(TimeoutError):
+    """A wait for the worker thread timed out while it went on handling batches: slow (a starved host, a
+    checkpoint taken over many batches), not stuck. The agent does not count it towards killing the worker
+    as hung (service.shards, Refusal.BUSY), which would add a restart's replay to the load that slowed it."""
+
+
+def _timed_out(what: str, batches: tuple[int, int], timeout: float = JOB_TIMEOUT_S) -> TimeoutError:
+    """The error of a wait for the worker thread that ran out after `timeout`: MirrorBusyError when it
+    handled batches meanwhile (`batches`: its count when the wait began, and now)."""
+    before, now = batches
+    if now != before:
+        return MirrorBusyError(
+            f"{what} within {timeout:.0f} s; it handled {now - before} batches meanwhile: busy, not stuck"
+        )
+    return TimeoutError(f"{what} within {timeout:.0f} s")
+
+
 # Arms of the console's Fleet page read per hold of the mirror's lock (Mirror.fleet_rows): about 2-6 ms.
 FLEET_ROWS_CHUNK = 100
 # How long an acknowledgement or a forget waits for the checkpoint taken with it: well inside the agent's wait
@@ -760,9 +779,11 @@ class Mirror:
         if worker is None or not worker.is_alive() or threading.current_thread() is worker:
             return fn()
         job = _Job(fn)
+        batches = self.batches
         self._jobs.append(job)
         if not job.done.wait(timeout):
-            raise TimeoutError(f"the mirror's worker did not finish its batch within {timeout:.0f} s")
+            what = "the mirror's worker did not get to the request"
+            raise _timed_out(what, (batches, self.batches), timeout)
         if job.error is not None:
             raise job.error
         return job.result  # type: ignore[return-value]
@@ -776,15 +797,15 @@ class Mirror:
         if alarms_only:
             return self._between_batches(self._alarms_checkpoint)
         deadline = time.monotonic() + JOB_TIMEOUT_S
-        return self._captured(self._between_batches(self._begin_capture), deadline)
+        batches = self.batches
+        return self._captured(self._between_batches(self._begin_capture), deadline, batches)
 
-    @staticmethod
-    def _captured(capture: Capture, deadline: float) -> MirrorCheckpoint:
-        """The checkpoint `capture` takes over the batches that follow, once taken (by `deadline`)."""
+    def _captured(self, capture: Capture, deadline: float, batches: int | None = None) -> MirrorCheckpoint:
+        """The checkpoint `capture` takes over the batches that follow, once taken (by `deadline`; `batches`:
+        the worker's count when the wait began, None for now)."""
+        before = self.batches if batches is None else batches
         if not capture.done.wait(max(0.0, deadline - time.monotonic())):
-            raise TimeoutError(
-                f"the mirror's worker did not take its checkpoint within {JOB_TIMEOUT_S:.0f} s"
-            )
+            raise _timed_out("the mirror's worker did not take its checkpoint", (before, self.batches))
         if capture.error is not None:
             raise capture.error
         assert capture.result is not None  # set with done, unless error is

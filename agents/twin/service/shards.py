@@ -653,6 +653,9 @@ class Refusal(StrEnum):
     # The process answers, but its mirror thread did not get to the request in time: counted as unanswered
     # (WorkerShard._kill_if_hung), since a mirror thread stuck for good answers nothing else either.
     STUCK = "stuck"
+    # As STUCK, but the mirror thread handled batches meanwhile (mirror.MirrorBusyError): slow, not hung. It
+    # answers, so the count starts again: killing it would add a restart's replay to the load that slowed it.
+    BUSY = "busy"
 
 
 @dataclass(frozen=True, slots=True)
@@ -1526,6 +1529,8 @@ def worker_main(
 
 def _serve_control(mirror: Mirror, control: Connection) -> None:
     """Answer the agent's calls, one at a time, in the order they come."""
+    from twin.service.mirror import MirrorBusyError  # noqa: PLC0415 - MuJoCo loads in the worker only
+
     name_native_thread()
     while True:
         try:
@@ -1546,6 +1551,8 @@ def _serve_control(mirror: Mirror, control: Connection) -> None:
             reply = Refused(call.call_id, Refusal.ARM_NOT_FOUND, str(exc.args[0]) if exc.args else "")
         except ArmNotForgettableError as exc:
             reply = Refused(call.call_id, Refusal(exc.code), str(exc))
+        except MirrorBusyError as exc:  # the mirror thread is working, slower than the ask's timeout
+            reply = Refused(call.call_id, Refusal.BUSY, str(exc))
         except TimeoutError as exc:  # the mirror's worker thread did not get to it (Mirror._between_batches)
             reply = Refused(call.call_id, Refusal.STUCK, str(exc))
         except Exception as exc:
