@@ -1195,6 +1195,40 @@ def test_the_fleet_page_says_the_broker_is_out_of_reach_above_the_arms_it_lists(
     assert not browser_errors, browser_errors
 
 
+def test_the_fleet_page_says_the_agent_is_stopping_not_that_its_broker_is_out_of_reach(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """A stop closes the broker connection first, and the history's last commit may take its budget while the
+    page still reads the agent: it said "not connected to its broker ... GET /healthz says why", sending a
+    person looking for an outage. The agent's own document, made as a stopping one's (served by the test)."""
+
+    def fleet_with_arm_001() -> dict[str, Any] | None:
+        doc: dict[str, Any] = json.loads(http_get(console + "/api/fleet")[2])
+        return doc if any(r[doc["columns"].index("device")] == "arm-001" for r in doc["rows"]) else None
+
+    doc = wait_for(fleet_with_arm_001, TIMEOUT_S, "arm-001 listed in /api/fleet")
+    doc["listening"] = {**doc["listening"], "connected": False, "stopping": True}
+    serve_document(page, "/api/fleet", "fleet", doc)
+    try:
+        page.goto(console + "/")
+        notice = page.locator("#fleet-notices", has_text="The agent is stopping")
+        notice.wait_for()
+        assert "not connected to its broker" not in notice.inner_text()
+    finally:
+        unserve(page, "/api/fleet")
+        leave(page)
+    assert browser_errors == []
+
+
+def test_an_agents_listening_says_when_its_stop_has_begun(tmp_path: Path) -> None:
+    agent = unbrokered_agent(tmp_path, workers=1)
+    try:
+        assert agent.listening().stopping is False
+    finally:
+        agent.stop()
+    assert agent.listening().stopping is True
+
+
 def test_the_sessions_page_says_at_once_that_the_agent_went_away_and_reads_again_when_back(
     console: str, rig: LocalRig, page: Any, browser_errors: list[str]
 ) -> None:

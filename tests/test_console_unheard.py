@@ -37,8 +37,10 @@ def empty_text(page: Any) -> str:
 
 def test_the_document_says_what_the_agent_listens_on_or_nothing() -> None:
     said = json.loads(fleet_summary([], 1.0, listening=Listening(("dt/lerobot/+/telemetry",), False)))
-    assert said["listening"] == {"filters": ["dt/lerobot/+/telemetry"], "connected": False}
+    assert said["listening"] == {"filters": ["dt/lerobot/+/telemetry"], "connected": False, "stopping": False}
     assert json.loads(fleet_summary([], 1.0))["listening"] is None  # a source that does not say
+    stopping = Listening(("dt/lerobot/+/telemetry",), False, stopping=True)
+    assert json.loads(fleet_summary([], 1.0, listening=stopping))["listening"]["stopping"] is True
 
 
 def test_an_empty_fleet_page_names_the_filter_and_what_to_check_until_an_arm_is_heard(
@@ -48,7 +50,8 @@ def test_an_empty_fleet_page_names_the_filter_and_what_to_check_until_an_arm_is_
     # A local broker has no per-connection quota, so one connection subscribes the plain fleet filter.
     (topic_filter,) = agent.topic_filters
     assert topic_filter == "dt/lerobot/+/telemetry"
-    assert fleet_document(agent.http_url)["listening"] == {"filters": [topic_filter], "connected": True}
+    listening = {"filters": [topic_filter], "connected": True, "stopping": False}
+    assert fleet_document(agent.http_url)["listening"] == listening
 
     page = chromium_page
     # The agent's first document held back (a loaded host answers late): the page says it is loading, not

@@ -1022,7 +1022,11 @@ class AgentService:
     def listening(self) -> Listening:
         """The topic filters the agent subscribes to, and whether every connection of its pool is up (the
         console's fleet page says so while no arm has been heard from)."""
-        return Listening(tuple(self.topic_filters), self._started_pool and self._pool.connected)
+        return Listening(
+            tuple(self.topic_filters),
+            self._started_pool and self._pool.connected,
+            stopping=self._stopping.is_set(),
+        )
 
     def healthz(self) -> HealthReport:
         """Healthy = the agent runs, the broker connection is up and refuses none of its subscriptions, every

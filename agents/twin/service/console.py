@@ -214,6 +214,9 @@ class Listening(NamedTuple):
 
     filters: tuple[str, ...]
     connected: bool
+    # The agent's stop has begun: its broker connection is closed on purpose, and the page says so rather
+    # than "not connected to its broker", which sends a person looking for an outage.
+    stopping: bool = False
 
 
 @runtime_checkable
@@ -365,7 +368,7 @@ def fleet_summary(
     listening: Listening | None = None,
 ) -> bytes:
     """The fleet page's document: {"time", "columns", "rows", "counts", "notices", "listening"} (module
-    doc); "listening" is {"filters", "connected"}, or null from a source that does not say."""
+    doc); "listening" is {"filters", "connected", "stopping"}, or null from a source that does not say."""
     statuses: dict[str, int] = {"ONLINE": 0, "STALE": 0, "OFFLINE": 0}
     severities: dict[str, int] = {"critical": 0, "warning": 0}
     for row in rows:
@@ -382,7 +385,11 @@ def fleet_summary(
             "listening": (
                 None
                 if listening is None
-                else {"filters": list(listening.filters), "connected": listening.connected}
+                else {
+                    "filters": list(listening.filters),
+                    "connected": listening.connected,
+                    "stopping": listening.stopping,
+                }
             ),
         }
     )

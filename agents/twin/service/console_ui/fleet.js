@@ -233,7 +233,8 @@
   function unheard() {
     // A notice may name arms whose messages come and are refused: "none heard" would contradict it. But no
     // notice says the broker is down (an arm held by its calibration is named without one): that comes first.
-    const down = "the agent is not connected to its broker (GET /healthz says why)";
+    const down = listening && listening.stopping ? "the agent is stopping" :
+      "the agent is not connected to its broker (GET /healthz says why)";
     if (!notices.hidden) {
       if (listening && !listening.connected) return `no arm has a twin yet: ${down}; the notices above say more`;
       return "no arm has a twin yet: the notices above say why";
@@ -265,8 +266,12 @@
       el("span", { class: "sev-critical", text: `critical: ${a.critical}` }), " · ",
       el("span", { class: "sev-warning", text: `warning: ${a.warning}` }));
     const said = [...(doc.notices || [])];
-    // With arms listed, a broker outage otherwise reads as every arm going OFFLINE at once.
-    if (listening && !listening.connected && rows.length) {
+    // A stop closes the broker connection on purpose: said as the stop it is, not as an outage to look for.
+    if (listening && listening.stopping) {
+      said.unshift("The agent is stopping (a restart, an update or a shutdown): it no longer receives the " +
+        "arms' messages, so their figures are their last; the page comes back live with the agent.");
+    } else if (listening && !listening.connected && rows.length) {
+      // With arms listed, a broker outage otherwise reads as every arm going OFFLINE at once.
       said.unshift("The agent is not connected to its broker: no arm's messages reach it, so every arm " +
         "goes STALE, then OFFLINE, whatever it does. GET /healthz says why; the Events page says when.");
     }
