@@ -411,7 +411,9 @@ class TwinMonitoring(Construct):
             f"Arms of {self.agent_name} publish, but the agent already tracks telemetry.max_devices arms, so "
             f"their messages are refused ({DEVICE_LIMIT_REFUSALS}), {DEVICE_LIMIT_MINUTES} minutes running. "
             "The console's Fleet page names them: forget the OFFLINE arms retired for good (their places go "
-            "to new ones), or raise max_devices in agent.local.toml. docs/scaling.md",
+            "to new ones), have the agent forget arms silent for long (telemetry.forget_offline_after_s, and "
+            "forget_unseen_after_s for those with alarms no one saw), or raise max_devices in "
+            "agent.local.toml. docs/scaling.md",
             self._metric(DEVICE_LIMIT_REFUSALS, "Sum"),
             threshold=1,
             minutes=DEVICE_LIMIT_MINUTES,

@@ -175,6 +175,9 @@ def test_arms_kept_out_by_the_device_limit_page(synth_default: Synth) -> None:
     assert (props["Threshold"], props["EvaluationPeriods"], props["DatapointsToAlarm"]) == (1, 5, 5)
     assert props["TreatMissingData"] == "notBreaching"
     assert "max_devices" in props["AlarmDescription"] and "Fleet page" in props["AlarmDescription"]
+    # A fleet whose ids come and go fills its places with silent arms: the settings that let them go.
+    assert "forget_offline_after_s" in props["AlarmDescription"]
+    assert "forget_unseen_after_s" in props["AlarmDescription"]
 
 
 def test_host_publishes_servo_alarms_to_the_topic_only(synth_default: Synth) -> None:
