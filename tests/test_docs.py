@@ -340,6 +340,30 @@ def test_the_guides_commands_write_their_files_under_out() -> None:
     assert not stray, f"these commands write into the checkout, outside out/: {stray}"
 
 
+# A console page a guide names by its title: "the Events page", "its Arm page", "the Fleet and Arm pages".
+CONSOLE_PAGE = re.compile(r"\b([A-Z][a-z]+)(?: and ([A-Z][a-z]+))? pages?\b")
+
+
+def test_every_console_page_the_docs_name_is_one_the_console_has() -> None:
+    """docs/console.md sent a reader to "the Alarms page", which the console has not: alarms are on the Fleet
+    and Arm pages. The pages are the bar's links and an arm's own page."""
+    nav = (ROOT / "agents/twin/service/console_ui/page.html").read_text(encoding="utf-8")
+    pages = {*re.findall(r'data-nav="\w+">(\w+)</a>', nav), "Arm"}
+    assert {"Fleet", "Sessions", "Events"} <= pages, pages
+    # Words that open a sentence about pages in general ("Each page", "The pages").
+    general = {"Each", "Every", "The", "This", "These", "A", "One"}
+    named = {
+        (page.name, title)
+        for page in PAGES
+        for match in CONSOLE_PAGE.finditer(page.read_text(encoding="utf-8"))
+        for title in match.groups()
+        if title and title not in general
+    }
+    assert {title for _, title in named} >= {"Fleet", "Events"}, named
+    unknown = sorted((page, title) for page, title in named if title not in pages)
+    assert not unknown, f"pages naming a console page it has not (it has {sorted(pages)}): {unknown}"
+
+
 # An agent config example: a ```toml block with a [section], or inline `[section] key = value`. The stack's
 # settings (twin.settings.toml) have no sections.
 TOML_BLOCK = re.compile(r"^( *)```toml\n(.*?)^\1```", re.S | re.M)
