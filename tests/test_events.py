@@ -844,3 +844,18 @@ def test_the_loss_watch_waits_out_a_burst_and_a_few_lost_samples_and_forgets_an_
     assert watch.reported == ("burst",)
     watch.forget("burst")
     assert watch.reported == () and len(s.query(EventQuery())) == 1
+
+
+def test_only_the_agent_dropping_alarms_no_one_saw_makes_a_forget_a_warning() -> None:
+    """An operator forgetting an arm with an alarm up chose to (info), as did the agent forgetting one with
+    its alarms seen; the agent dropping an ACTIVE or LATCHED alarm (telemetry.forget_unseen_after_s) is a loss
+    to look at (warning). Only the slow churning-fleet test of test_forget.py saw the level before."""
+    s, _ = store()
+    watch = events.FleetWatch(s, expected_rate_hz=10.0)
+    unseen = "by the agent: silent for 30 days with alarms no person has seen"
+    watch.forgotten("by-hand", "OFFLINE", {"ACTIVE": 1, "LATCHED": 1})
+    watch.forgotten("seen", "OFFLINE", {"ACKNOWLEDGED": 2}, reason="by the agent: silent for 7 days")
+    watch.forgotten("active", "OFFLINE", {"ACTIVE": 1, "ACKNOWLEDGED": 1}, reason=unseen)
+    watch.forgotten("latched", "OFFLINE", {"LATCHED": 1}, reason=unseen)
+    levels = {e.device: e.level for e in s.query(EventQuery())}
+    assert levels == {"by-hand": "info", "seen": "info", "active": "warning", "latched": "warning"}, levels
