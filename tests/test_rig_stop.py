@@ -146,6 +146,11 @@ def test_a_rig_killed_outright_leaves_no_broker_or_agent_behind(tmp_path: Path) 
         # broker's port and an agent on a core until someone found them.
         wait_for(gone, 60, "the broker and the agent of a killed rig to end")
     finally:
+        # A failure before the kill (its output never came, a timeout) must not leave the rig's process
+        # sleeping out its 600 s with a broker and an agent.
+        if parent.poll() is None:
+            parent.kill()
+            parent.wait()
         for child in children:
             with contextlib.suppress(psutil.Error):
                 child.kill()
