@@ -641,8 +641,14 @@ def test_forget_unseen_after_must_be_at_least_forget_offline_after(unseen: float
                 "telemetry.forget_unseen_after_s": unseen,
             },
         )
-    with pytest.raises(ConfigError, match="forget_unseen_after_s"):
+    with pytest.raises(ConfigError, match="forget_unseen_after_s = 3600 must be"):
         load_config(None, {"telemetry.forget_unseen_after_s": 3600.0})  # forget_offline_after_s unset
+    # Equal is allowed: "at least".
+    equal = {"health.offline_after_s": 1.0, "telemetry.forget_offline_after_s": 2.0}
+    assert (
+        load_config(None, {**equal, "telemetry.forget_unseen_after_s": 2.0}).telemetry.forget_unseen_after_s
+        == 2
+    )
 
 
 def _kept(state_file: Path) -> list[dict[str, Any]]:

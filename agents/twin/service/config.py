@@ -593,7 +593,7 @@ def _validate_forget(t: TelemetrySection, h: HealthThresholds) -> None:
     unseen = t.forget_unseen_after_s
     if unseen != 0 and not (math.isfinite(unseen) and after != 0 and unseen >= after):
         raise ConfigError(
-            f"telemetry.forget_unseen_after_s = {unseen} must be 0 (never) or at least "
+            f"telemetry.forget_unseen_after_s = {unseen:g} must be 0 (never) or at least "
             f"telemetry.forget_offline_after_s = {after:g}, itself set (not 0): an arm with alarms no "
             "person has seen is kept longer than one without; e.g. 2592000 for 30 days"
         )
