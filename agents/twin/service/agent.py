@@ -41,7 +41,7 @@ from operator import attrgetter
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Generic, TypeVar
 
-from twin.core.alarms import AlarmRecord, AlarmState, worst_first
+from twin.core.alarms import AlarmRecord, worst_first
 from twin.core.health import DeviceStatus
 from twin.core.topics import device_from_topic
 from twin.output.alerts import Alert, AlertPublisher, sns_publisher
@@ -59,6 +59,7 @@ from twin.service.calibrations import (
 )
 from twin.service.config import AgentConfig, ConfigError, pool_settings
 from twin.service.console import (
+    WAITING_STATES,
     ArmView,
     FleetRow,
     Listening,
@@ -661,7 +662,7 @@ class AgentService:
             return {}
         named: dict[str, list[str]] = {}
         for alarm in self.alarms():
-            if alarm.device in devices and alarm.state in (AlarmState.ACTIVE, AlarmState.LATCHED):
+            if alarm.device in devices and alarm.state in WAITING_STATES:
                 named.setdefault(alarm.device, []).append(f"{alarm.alarm_id} {alarm.state}: {alarm.message}")
         return named
 
