@@ -155,6 +155,9 @@ _ID_SUFFIX = {(joint, kind): f"/{joint}/{kind.value}" for joint in so101.JOINT_N
 MAX_POSE_GAP_S = 1.0
 # States in which the condition is present; LATCHED is remembered, not present.
 CONDITION_PRESENT = frozenset({AlarmState.ACTIVE, AlarmState.ACKNOWLEDGED})
+# States that wait for a person: an acknowledgement is for them (the Fleet page's "unacknowledged"), and
+# the agent forgets an arm holding one only after telemetry.forget_unseen_after_s.
+WAITING_STATES = frozenset({AlarmState.ACTIVE, AlarmState.LATCHED})
 
 
 @dataclass(frozen=True, slots=True)

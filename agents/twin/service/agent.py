@@ -41,7 +41,7 @@ from operator import attrgetter
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Generic, TypeVar
 
-from twin.core.alarms import AlarmRecord, worst_first
+from twin.core.alarms import WAITING_STATES, AlarmRecord, worst_first
 from twin.core.health import DeviceStatus
 from twin.core.topics import device_from_topic
 from twin.output.alerts import Alert, AlertPublisher, sns_publisher
@@ -59,7 +59,6 @@ from twin.service.calibrations import (
 )
 from twin.service.config import AgentConfig, ConfigError, pool_settings
 from twin.service.console import (
-    WAITING_STATES,
     ArmView,
     FleetRow,
     Listening,

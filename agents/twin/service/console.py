@@ -26,6 +26,7 @@ from typing import NamedTuple, Protocol, runtime_checkable
 
 import msgspec
 
+from twin.core.alarms import WAITING_STATES
 from twin.robot import so101
 from twin.service.calibrations import push_hint
 from twin.service.events import Event, EventQuery
@@ -82,8 +83,6 @@ FLEET_COLUMNS = (
 # From how far behind its messages a worker makes the Fleet page say so (`behind_notice`): a second is ten
 # messages of every arm waiting, and each pose on the page that old.
 BEHIND_NOTICE_S = 1.0
-# The alarm states an acknowledgement is for (the Fleet page's "unacknowledged" filter).
-WAITING_STATES = frozenset({"ACTIVE", "LATCHED"})
 # What a session offers to download, with the media type of each.
 SESSION_FILE_KINDS: dict[str, tuple[str, str]] = {
     "csv": ("text/csv", "csv"),

@@ -40,7 +40,7 @@ from typing import Protocol
 import msgspec
 
 from twin.core.alarms import UNITS as ALARM_UNITS
-from twin.core.alarms import AlarmEvent
+from twin.core.alarms import WAITING_STATES, AlarmEvent
 
 log = logging.getLogger(__name__)
 
@@ -798,7 +798,7 @@ class FleetWatch:
         self._clocks.forget(device)
         alarms = ", ".join(f"{n} {state}" for state, n in sorted(alarms_removed.items())) or "none"
         # The agent dropping alarms no person has seen (telemetry.forget_unseen_after_s) is a loss to look at.
-        unseen = reason and any(alarms_removed.get(state) for state in ("ACTIVE", "LATCHED"))
+        unseen = reason and any(alarms_removed.get(state) for state in WAITING_STATES)
         self.store.emit(
             EventKind.TWIN,
             EventLevel.WARNING if unseen else EventLevel.INFO,

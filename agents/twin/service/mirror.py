@@ -61,6 +61,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
 
 from twin.core.alarms import (
+    WAITING_STATES,
     AlarmCounters,
     AlarmEvent,
     AlarmRecord,
@@ -102,7 +103,7 @@ from twin.service.admission import TOO_MANY_DEVICES, DeviceBudget
 from twin.service.capture import CHUNK as CAPTURE_CHUNK
 from twin.service.capture import Capture
 from twin.service.config import AgentConfig, ConfigError
-from twin.service.console import WAITING_STATES, FleetRow, fleet_row
+from twin.service.console import FleetRow, fleet_row
 from twin.service.events import Event, EventQuery, EventStore, FleetWatch, RejectionThrottle
 from twin.service.logs import RateLimitedLog, name_native_thread
 from twin.service.shards import (
