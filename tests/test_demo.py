@@ -433,3 +433,76 @@ def test_a_served_demo_takes_any_free_port_when_rerun_s_own_is_taken(tmp_path):
         assert "rerun.grpc_port" not in _agent_overrides(DemoConfig(), ["arm-001"], tmp_path)
     finally:
         held.close()
+
+
+class _AgentBetweenLooks:
+    """The two things the demo's story asks of the agent: its list of alarms (`alarms`, what is up at the
+    look) and its events (`events`), both from a real alarm engine, the events through the agent's own
+    emitter into a store stamped with a clock the test moves."""
+
+    def __init__(self, latch: bool) -> None:
+        from twin.core.alarms import AlarmThresholds, ServoAlarms
+        from twin.service.events import EventStore, FleetWatch
+
+        self.wall = 1000.0
+        self.engine = ServoAlarms(AlarmThresholds(latch=latch))
+        self.store = EventStore(wall_clock=lambda: self.wall)
+        self._watch = FleetWatch(self.store)
+
+    def load(self, device: str, joint: str, seconds: list[float], percent: float) -> None:
+        """The servo's load reading at each of `seconds` after the wall clock's start, the others idle."""
+        from twin.core.telemetry import JointDiagnostics
+        from twin.robot import so101
+
+        still = {"velocity_rad_s": 0.0, "moving": False}
+        for t in seconds:
+            self.wall = 1000.0 + t
+            readings = {
+                name: JointDiagnostics(load_percent=percent if name == joint else 5.0, **still)
+                for name in so101.JOINT_NAMES
+            }
+            for event in self.engine.evaluate(device, readings, {}, t):
+                self._watch.alarm(event)
+
+    def events(self, query):
+        return self.store.query(query)
+
+    def alarms(self, *, include_normal: bool = False):
+        return tuple(self.engine.views(include_normal=include_normal))
+
+
+@pytest.mark.parametrize("case", ["unlatched", "latched", "acknowledged"])
+def test_an_alarm_raised_and_cleared_between_two_looks_is_in_the_story_as_raised(case):
+    """The demo looked at the agent's list of alarms every quarter second (longer while its first picture
+    rendered) and recorded a story alarm when a look found it: one raised and cleared in between was missed
+    when it did not latch or a person acknowledged it, and one found latched was recorded LATCHED, dated by
+    the look. The raise event tells it as it happened."""
+    from types import SimpleNamespace
+
+    from twin.rig.demo import STORY_JOINT, _follow_story, _Story
+
+    agent = _AgentBetweenLooks(latch=case != "unlatched")
+    story = _Story("arm-001", STORY_JOINT)
+    notes: list[str] = []
+    no_state = SimpleNamespace(devices={})  # the servo's temperature is not what this test is about
+    _follow_story(story, agent, no_state, 1000.0, notes.append)  # the first look: nothing yet
+    assert story.alarms == [] and notes == []
+    # Between the looks: 85 % held for a second raises the overload warning at 1 s, 50 % for 2 s clears it.
+    agent.load("arm-001", STORY_JOINT, [0.0, 0.5, 1.0], 85.0)
+    agent.load("arm-001", STORY_JOINT, [1.5, 3.5], 50.0)
+    overload = f"arm-001/{STORY_JOINT}/overload"
+    if case == "acknowledged":
+        agent.engine.acknowledge(overload, 3.6)  # LATCHED -> NORMAL: a person saw it in the console
+    up = [a.alarm_id for a in agent.alarms()]
+    assert up == ([overload] if case == "latched" else []), up
+    _follow_story(story, agent, no_state, 1000.0, notes.append)  # the second look, at 3.6 s
+    assert [(a["alarm_id"], a["state"], a["raised_after_s"]) for a in story.alarms] == [
+        (overload, "ACTIVE", 1.0)
+    ], story.alarms
+    assert story.alarms[0]["severity"] == "warning" and "load 85.0 %" in story.alarms[0]["message"]
+    assert notes == [f"  1.0s  alarm {overload} ACTIVE (warning): {story.alarms[0]['message']}"], notes
+    # Raised again later: the story keeps the first raise, and a third look reads no event twice.
+    agent.load("arm-001", STORY_JOINT, [10.0, 11.0], 85.0)
+    _follow_story(story, agent, no_state, 1000.0, notes.append)
+    _follow_story(story, agent, no_state, 1000.0, notes.append)
+    assert len(story.alarms) == 1 and len(notes) == 1

@@ -45,6 +45,8 @@ from twin.edge.payload import device_ids
 from twin.edge.servo_physics import SERVO_MODES, PhysicalServoConfig
 from twin.output.rerun_settings import DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 from twin.rig.console_shots import CHROMIUM, ConsoleShotError, console_screenshots, missing_for_shots
+from twin.service.events import DEFAULT_CAPACITY as EVENTS_KEPT
+from twin.service.events import Event, EventKind, EventQuery
 from twin.service.state import AgentState, DeviceState
 
 log = logging.getLogger(__name__)
@@ -81,8 +83,11 @@ AFTER_STOP_GRACE_S = 5.0
 STORY_JOINT = "shoulder_lift"
 STORY_PAYLOAD_KG = 0.22
 STORY_SPEEDUP = 80.0
-# The story's alarms, each recorded the first time it is up: the overload warning the payload raises from the
-# first seconds (it comes and goes), then the two of the heat. The console pictures wait for the heat's.
+# The story's alarms, each recorded the first time the agent raises it: the overload warning the payload
+# raises from the first seconds (it comes and goes), then the two of the heat. The console pictures wait for
+# the heat's. They are read from the agent's events, not its list of alarms: a look at the list every
+# STATUS_INTERVAL_S (longer while the first picture renders) misses an alarm raised and cleared in between
+# when it does not latch or a person acknowledged it, and dates the one it finds latched by the look.
 STORY_ALARMS = ("overload", "over_temperature", "over_temperature_critical")
 HEAT_ALARMS = frozenset({"over_temperature", "over_temperature_critical"})
 # How long the run may go on past its seconds for the console pictures to finish.
@@ -201,6 +206,8 @@ class _Story:
     joint: str
     alarms: list[dict[str, Any]] = field(default_factory=list)
     peak_temperature_c: float | None = None
+    # The id of the last of the agent's events read: the next read asks for those after it.
+    events_read: int = 0
 
     @property
     def heated(self) -> bool:
@@ -275,6 +282,8 @@ class _Run:
     running_statuses: dict[str, str] = field(default_factory=dict)
     after_stop_statuses: dict[str, str] = field(default_factory=dict)
     started: float = 0.0
+    # The start on the wall clock, which the agent's events are stamped with (raised_after_s).
+    started_wall: float = 0.0
     final_state: AgentState | None = None
     report: Any = None
     first_png: Path | None = None
@@ -366,7 +375,7 @@ def _run_on_rig(
             edge = rig.start_edge(
                 devices, variant=config.variant, rate_hz=config.rate_hz, **_edge_options(config, devices)
             )
-            run.started = time.monotonic()
+            run.started, run.started_wall = time.monotonic(), time.time()
             _watch(
                 config=config,
                 service=service,
@@ -383,6 +392,9 @@ def _run_on_rig(
         raise DemoError(str(exc)) from exc
     except (ConnectionError, ValueError) as exc:  # the edge simulator's failure, re-raised by join()
         raise DemoError(f"the edge simulator failed: {exc}") from exc
+    if run.story is not None:
+        # The alarms raised in the run's last half second: the agent's stop collected their events.
+        _story_alarms(run.story, service, run.started_wall, note)
     return broker, service
 
 
@@ -519,7 +531,7 @@ def _watch(
                 run.first_png = _render_twin(service, first.joints_rad, out_dir, f"{devices[0]}  first pose")
                 note(f"picture: {run.first_png}")
         if run.story is not None:
-            _follow_story(run.story, service, state, now - run.started, note)
+            _follow_story(run.story, service, state, run.started_wall, note)
         # The pictures when the hot servo's alarm is up; a run without the story, or too short for it, at its
         # end.
         story_told = run.story is not None and run.story.heated
@@ -576,30 +588,52 @@ def _statuses_after_stop(service: Any) -> dict[str, str]:
 
 
 def _follow_story(
-    story: _Story, service: Any, state: AgentState, elapsed_s: float, note: Callable[[str], None]
+    story: _Story, service: Any, state: AgentState, started_wall: float, note: Callable[[str], None]
 ) -> None:
-    """Record the hot servo's temperature, and each of its STORY_ALARMS the first time it is up."""
+    """Record the hot servo's temperature (as this look at the agent's state finds it), and each of its
+    STORY_ALARMS the first time it was raised (_story_alarms)."""
     device = state.devices.get(story.device)
     servo = None if device is None or device.servos is None else device.servos.get(story.joint)
     if servo is not None and servo.temperature_c is not None:
         story.peak_temperature_c = max(story.peak_temperature_c or servo.temperature_c, servo.temperature_c)
+    _story_alarms(story, service, started_wall, note)
+
+
+def _story_alarms(story: _Story, service: Any, started_wall: float, note: Callable[[str], None]) -> None:
+    """Each of the story's STORY_ALARMS the first time its raise is among the agent's events since the last
+    read, dated by the event (seconds after `started_wall`). The agent collects its mirrors' events every
+    half second and at its stop, and keeps the newest EVENTS_KEPT: a read after each look loses none."""
+    query = EventQuery(
+        device=story.device,
+        kinds=frozenset({EventKind.ALARM.value}),
+        after_id=story.events_read,
+        limit=EVENTS_KEPT,
+    )
+    events: list[Event] = service.events(query)
+    if events:
+        story.events_read = events[-1].id
     seen = {a["kind"] for a in story.alarms}
-    for alarm in service.alarms():
-        if (alarm.device, alarm.joint) != (story.device, story.joint) or alarm.kind not in STORY_ALARMS:
+    for event in events:
+        data = event.data
+        if data.get("action") != "raised" or data.get("joint") != story.joint:
             continue
-        if alarm.kind in seen:
+        kind = data.get("kind", "")
+        if kind not in STORY_ALARMS or kind in seen:
             continue
+        seen.add(kind)
+        after_s = round(event.time - started_wall, 1)
+        alarm_id, state, severity = data["alarm_id"], data["state"], data["severity"]
         story.alarms.append(
             {
-                "alarm_id": alarm.alarm_id,
-                "kind": alarm.kind,
-                "severity": alarm.severity,
-                "state": alarm.state,
-                "raised_after_s": round(elapsed_s, 1),
-                "message": alarm.message,
+                "alarm_id": alarm_id,
+                "kind": kind,
+                "severity": severity,
+                "state": state,
+                "raised_after_s": after_s,
+                "message": data["text"],
             }
         )
-        note(f"{elapsed_s:5.1f}s  alarm {alarm.alarm_id} {alarm.state} ({alarm.severity}): {alarm.message}")
+        note(f"{after_s:5.1f}s  alarm {alarm_id} {state} ({severity}): {data['text']}")
 
 
 def _render_twin(service: Any, joints: dict[str, float], out_dir: Path, text: str) -> Path:
