@@ -1,4 +1,4 @@
-"""A history writer process that dies where a test says (tests/test_history.py).
+"""A history writer process (or a check of its commit) that dies where a test says (tests/test_history.py).
 
 A module of its own, light to import: the spawned writer process unpickles its target by importing the module
 that holds it, and test_history's imports (polars, moto, the test helpers) cost each writer seconds.
@@ -40,3 +40,9 @@ def writer_killed_in_its_first_commit(*args: Any) -> None:
 
         module.HistoryWriter._append = dying_append  # type: ignore[method-assign]
     writer_main(*args)
+
+
+def check_that_dies(*args: Any) -> None:
+    """The agent's check of a commit in doubt at its stop (history_feed.check_main), killed before it
+    answers."""
+    os.kill(os.getpid(), signal.SIGKILL)

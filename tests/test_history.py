@@ -27,7 +27,7 @@ import polars as pl
 import pytest
 from conftest import NO_BROKER, get_metrics, metric, wait_for, wait_handled
 from deltalake import CommitProperties, DeltaTable, Transaction, write_deltalake
-from dying_writer import writer_killed_in_its_first_commit
+from dying_writer import check_that_dies, writer_killed_in_its_first_commit
 from moto_s3 import MotoS3
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
 from twin.edge.payload import encode, make_payload
@@ -1223,15 +1223,27 @@ def test_a_commit_in_doubt_waits_for_a_writer_that_starts(
     assert any("had committed its last 7 rows to telemetry: written, not lost" in m for m in said), said
 
 
-def test_a_commit_in_doubt_when_the_agent_stops_first_is_counted_as_lost(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+@pytest.mark.parametrize(
+    "case",
+    [("after", True, 0), ("before", True, 7), ("after", False, 7)],
+    ids=["landed", "lost", "unchecked"],
+)
+def test_a_commit_in_doubt_when_the_agent_stops_first_is_asked_of_the_table_at_the_stop(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture,
+    case: tuple[str, bool, int],
 ) -> None:
-    """A writer killed in a commit while the agent stops, before another writer could ask the table: the
-    rows of that commit are counted as lost (they may well be in the table; a loss is never left uncounted),
-    and the log says they could not be checked."""
+    """A writer killed in a commit, and the agent stops before another writer could ask the table: the stop
+    asks it (in a process of its own). Before, the rows of that commit were counted as lost even when they
+    were in the table. A check that cannot answer (its process dies here) still counts them as lost: a loss
+    is never left uncounted."""
+    when, checked, lost = case  # where the writer is killed; whether the check answers; the rows lost
     uri = str(tmp_path / "history")
     caplog.set_level(logging.INFO, logger="twin.output.history_feed")
-    history, feed, send = _writer_to_kill_in_a_commit(uri, tmp_path, monkeypatch, "after")
+    history, feed, send = _writer_to_kill_in_a_commit(uri, tmp_path, monkeypatch, when)
+    if not checked:
+        history.check_target = check_that_dies
     try:
         send(7)
         wait_for(lambda: not history.alive, 60, "the writer killed in its first commit")
@@ -1241,10 +1253,62 @@ def test_a_commit_in_doubt_when_the_agent_stops_first_is_counted_as_lost(
     finally:
         feed.close(timeout=1.0)
         history.stop(timeout=30.0)
-    assert history.figures().rows_lost == 7 and history.unwritten_rows() == 0
+    assert history.restarts == 0  # no writer was started again to check it
+    assert history.figures().rows_lost == lost and history.unwritten_rows() == 0
+    assert _table_rows(uri) == (7 if when == "after" else 0)
     said = [r.getMessage() for r in caplog.records]
-    assert any("(7 rows to telemetry) could not be checked: counted as lost" in m for m in said), said
-    assert rows_of(uri).height == 7
+    if not lost:
+        expected = "had committed its last 7 rows to telemetry: written, not lost"
+    else:
+        why = "did not land" if checked else "could not be checked"
+        expected = f"(7 rows to telemetry) {why}: counted as lost"
+    assert any(expected in m for m in said), said
+
+
+def _table_rows(uri: str) -> int:
+    """The rows in the telemetry table at `uri`; 0 when a writer died before it made the table."""
+    if not (Path(uri) / TELEMETRY_TABLE / "_delta_log").exists():
+        return 0
+    return rows_of(uri).height
+
+
+@pytest.mark.parametrize(("when", "landed"), [("after", True), ("before", False)])
+def test_a_writer_killed_in_its_last_commit_at_the_stop_has_the_agent_ask_the_table(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture, when: str, landed: bool
+) -> None:
+    """A writer killed in the stop's last commit (the first it makes here), after Delta accepted the append
+    and before it counted it ("after"), or as the append began ("before"). No writer is started again to ask
+    the table, so the agent asks it: before, the 7 rows of a commit that landed were counted as not written
+    as well (the stop said 7 unwritten with 7 in the table: rows written + rows counted lost = 14 of 7)."""
+    uri = str(tmp_path / "history")
+    caplog.set_level(logging.INFO, logger="twin.output.history_feed")
+    marker = tmp_path / "die"
+    marker.write_text(when)
+    monkeypatch.setenv("TWIN_TEST_DIE_MARKER", str(marker))
+    history, feed, send = _writer_and_feed(
+        uri, commit_every_rows=10_000, target=writer_killed_in_its_first_commit
+    )
+    try:
+        send(7)
+        wait_for(lambda: history.figures().rows_received == 7, 30, "the 7 rows read, none committed")
+        feed.close(timeout=30.0)
+    finally:
+        feed.close(timeout=1.0)
+        history.stop(timeout=30.0)
+    assert not history.alive and history.restarts == 0 and not marker.exists()  # it died in that commit
+    written = _table_rows(uri)
+    assert written == (7 if landed else 0)
+    unwritten = history.unwritten_rows()
+    unread = history.count_unread()
+    after = history.figures()
+    assert after.stats is not None
+    # Each row handed in once: written, or counted as not written.
+    assert (after.stats.rows_committed, unwritten, unread, after.rows_lost) == (written, 7 - written, 0, 0)
+    said = [r.getMessage() for r in caplog.records]
+    if landed:
+        assert any("had committed its last 7 rows to telemetry: written" in m for m in said), said
+    else:
+        assert any("(7 rows to telemetry) did not land: counted as not written" in m for m in said), said
 
 
 def test_at_the_stop_the_writer_reads_each_feed_to_its_end_for_half_the_budget(tmp_path: Path) -> None:

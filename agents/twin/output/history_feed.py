@@ -12,15 +12,15 @@ rows over every HAND_OFF_S; the writer process converts and commits with nothing
 for. A mirror's process no longer loads pyarrow and deltalake either.
 
 Counting. Every row a mirror hands the feed is delivered over the socket, or dropped and counted when the
-feed's queue is full (the writer process has been gone longer than the queue lasts). The writer process
-counts the rows it received, committed and dropped (its write buffer, as before) in shared memory, so when
-it dies (a crash in a native library, say) the agent knows how many rows it held and counts them as lost
-(but for the commit it was in, which may have landed: the next writer asks the table, `_InDoubt`),
-starts it again, and the feeds connect to the new one and carry on; rows a feed wrote to the socket of a
-writer that died before reading them show as the difference between the feeds' delivered rows (counted in
-memory shared with the agent, so a worker started again keeps its count) and the rows the writers
-received. Nothing else is lost: at shutdown every feed delivers what it holds, and the writer commits it
-before it exits.
+feed's queue is full (the writer process has been gone longer than the queue lasts). The writer process counts
+the rows it received, committed and dropped (its write buffer, as before) in shared memory, so when it dies (a
+crash in a native library, say) the agent knows how many rows it held and counts them as lost (but for the
+commit it was in, which may have landed: the next writer asks the table, `_InDoubt`, or, at a stop, a process
+started to ask it, `check_main`), starts it again, and the feeds connect to the new one and carry on; rows a
+feed wrote to the socket of a writer that died before reading them show as the difference between the feeds'
+delivered rows (counted in memory shared with the agent, so a worker started again keeps its count) and the
+rows the writers received. Nothing else is lost: at shutdown every feed delivers what it holds, and the writer
+commits it before it exits.
 
 Once each. A worker that dies is started again and sent every message its last checkpoint does not count
 (service.shards); some of their rows the dead feed had delivered. The mirror marks, after each batch, its
@@ -85,6 +85,10 @@ ASK_TIMEOUT_S = 10.0
 # A writer that dies within this long of starting is started again after a growing pause.
 QUICK_DEATH_S = 30.0
 MAX_RESTART_PAUSE_S = 60.0
+# At a stop, a commit in doubt that no writer is started again to check is asked of the table by a process
+# started for it (`check_main`): it has what is left of the stop's timeout, and at least this long (a spawned
+# Python, deltalake and one read of the table's log took 0.4-0.5 s on a local disk).
+CHECK_MIN_S = 10.0
 # The writer process runs this much nicer than the mirrors (os.nice; its threads, deltalake's included, and
 # its maintenance process inherit it). Its commits are bursts of Parquet encoding every commit_every_s; at the
 # same priority they took the mirrors' cores and showed as their p99. At 5 its scheduler weight is a third of
@@ -596,6 +600,34 @@ def _landed(writer: Any, in_doubt: _InDoubt | None) -> bool | None:
         return None
 
 
+def check_main(
+    settings: dict[str, Any],
+    in_doubt: _InDoubt,
+    control: Connection,
+    log_setup: tuple[Callable[[str], None], str] | None = None,
+) -> None:
+    """The agent's check of a commit in doubt at its stop, in a process of its own (the agent's does not load
+    deltalake): sends `_landed`'s answer for `in_doubt` (None: the table could not be read)."""
+    # Part of the stop: a Ctrl-C or SIGTERM to the process group must not cut it short (the agent kills it
+    # at its timeout).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    if log_setup is not None:
+        setup, level = log_setup
+        setup(level)
+    settings = dict(settings)
+    settings.pop("writer_nice", None)
+    from twin.output.history import HistorySettings, HistoryWriter  # noqa: PLC0415
+
+    try:
+        landed = _landed(HistoryWriter(HistorySettings(**settings)), in_doubt)
+    except Exception:  # a setting the writer could not work with either: it never started to commit
+        log.exception("history: could not check the last writer's last commit")
+        landed = None
+    with contextlib.suppress(OSError, ValueError):
+        control.send(landed)
+
+
 class _Receiver:
     """The writer process's loop: accept feeds, turn their batches into Arrow rows, answer the agent."""
 
@@ -833,8 +865,10 @@ class HistoryProcess:
         self._ctx = context
         # The agent's logging for the writer process (_Launch.log): a module-level function, so it pickles.
         self._log = log
-        # What the writer process runs (tests swap in one that dies at a chosen point).
+        # What the writer process runs (tests swap in one that dies at a chosen point), and what the check of
+        # a commit in doubt at the stop runs.
         self.target: Callable[..., None] = writer_main
+        self.check_target: Callable[..., None] = check_main
         # Named for this process, so an agent started after a kill of this one removes it (output.scratch).
         self._dir = scratch.owned_tempdir("twin-history-")
         self.link = HistoryLink.new(str(self._dir / "writer.sock"), secrets.token_bytes(32), context)
@@ -854,6 +888,9 @@ class HistoryProcess:
         # the next one is to check (counted as neither written nor lost until then).
         self.writer_id = ""
         self._in_doubt: _InDoubt | None = None
+        # The rows of the commit the writer was in when it ended during the stop without answering it, which
+        # the table says landed: among its counters' held rows, but written (`unwritten_rows`).
+        self._written_at_stop = 0
         self._stopped = False
         # From the stop's start: waits for the writer to exit, then tells the feeds none will come (stopping).
         self._watch: threading.Thread | None = None
@@ -948,7 +985,7 @@ class HistoryProcess:
             stats = dataclasses.replace(self._last, lag_s=self._last.lag_s + time.monotonic() - self._last_at)
         before = self._before
         dead = self._restart_at is not None
-        if stats is not None and (self.restarts or dead):
+        if stats is not None and (self.restarts or dead or self._written_at_stop):
             # While a dead writer waits to be started again, its counts are in `before` already: its last
             # answer (`stats`) gives the rest, not these.
             own = WriterFigures() if dead else stats
@@ -1060,7 +1097,7 @@ class HistoryProcess:
             return self._last.rows_buffered
         if self._restart_at is not None:
             return 0  # it died before the stop: what it held is counted in rows_lost already
-        return _held(self._counters)
+        return _held(self._counters) - self._written_at_stop
 
     def stopping(self) -> None:
         """The agent's stop begins, before it closes the mirrors' feeds: no writer is started again from now
@@ -1094,8 +1131,10 @@ class HistoryProcess:
 
     def stop(self, timeout: float = 30.0) -> None:
         """After the mirrors have closed their feeds: the writer commits what it holds (retrying for at most
-        `timeout` seconds), then exits; one that has not answered by then is killed."""
+        `timeout` seconds), then exits; one that has not answered by then is killed. A commit in doubt that no
+        writer will check is asked of the table last (`_settle_at_stop`)."""
         self._stopped = True
+        deadline = time.monotonic() + timeout
         process, conn = self._process, self._control
         if process is not None and conn is not None and process.is_alive():
             with self._lock:
@@ -1116,9 +1155,75 @@ class HistoryProcess:
             self._watch.join(5.0)  # it has seen the exit: NO_WRITER is made before the directory goes
         if conn is not None:
             conn.close()
-        # A dead writer's commit no writer was started to check (the agent stopped first) is counted as lost.
-        self._settle(None)
+        self._settle_at_stop(process, deadline)
         scratch.remove(self._dir)
+
+    def _settle_at_stop(self, process: SpawnProcess | None, deadline: float) -> None:
+        """The commits in doubt no writer is started again to check, asked of the table here: a dead writer's
+        (the agent stopped before the next one started), and the one the writer was in when it ended during
+        the stop without answering (killed in its last commit, say). Counted as written if it landed; as lost
+        (not written, for the last one) if it did not or could not be checked."""
+        own = None
+        if process is not None and not self._stop_answered and self._restart_at is None:
+            own = self._doubt()
+            rows = min(own.rows, _held(self._counters)) if own is not None else 0
+            own = dataclasses.replace(own, rows=rows) if own is not None and rows else None
+        if self._in_doubt is not None:
+            self._settle(self._check(self._in_doubt, deadline))
+        if own is None:
+            return
+        landed = self._check(own, deadline)
+        if landed:
+            index = _TABLES.index(own.table)
+            self._before[_COMMITTED_OF[index]] += own.rows
+            self._before[_COMMITS] += index == 0
+            self._written_at_stop += own.rows
+            log.info(
+                "the history writer that ended in the stop had committed its last %d rows to %s: written",
+                own.rows,
+                own.table,
+                extra={"history_rows_committed_before_death": own.rows},
+            )
+            return
+        log.error(
+            "the last commit of the history writer that ended in the stop (%d rows to %s) %s: counted as not "
+            "written",
+            own.rows,
+            own.table,
+            "did not land" if landed is False else "could not be checked",
+        )
+
+    def _check(self, doubt: _InDoubt, deadline: float) -> bool | None:
+        """Whether the commit in doubt landed, asked of a process started for it (`check_target`), which has
+        until `deadline` and at least CHECK_MIN_S; None when it could not say."""
+        timeout = max(CHECK_MIN_S, deadline - time.monotonic())
+        control, child = self._ctx.Pipe()
+        process = self._ctx.Process(
+            target=self.check_target, args=(self.settings, doubt, child, self._log), name="twin-history-check"
+        )
+        try:
+            process.start()
+        except Exception:
+            log.exception("history: the check of the last writer's last commit could not be started")
+            control.close()
+            child.close()
+            return None
+        child.close()
+        answer = None
+        try:
+            if control.poll(timeout):
+                answer = control.recv()
+            else:
+                log.error("history: the check of the last writer's last commit took over %.0f s", timeout)
+        except (EOFError, OSError):
+            pass  # it died first: nothing said
+        finally:
+            control.close()
+            process.join(1.0)
+            if process.is_alive():
+                process.kill()
+                process.join(5.0)
+        return answer if isinstance(answer, bool) else None
 
 
 __all__ = [
