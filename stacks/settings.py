@@ -26,7 +26,7 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
-from twin.core.topics import ALL_DEVICES, policy_device_id_problem, topic_prefix_problem
+from twin.core.topics import ALL_DEVICES, TopicError, check_devices, topic_prefix_problem
 
 # The agent's own rules (pure modules, no MuJoCo or awscrt), so the stack accepts exactly what the agent it
 # deploys accepts: device ids and the topic prefix (twin.core.topics), units, and the client id prefix the
@@ -538,15 +538,12 @@ def _devices(value: object) -> tuple[str, ...]:
                 "or list the names only"
             )
         return (ALL_DEVICES,)
-    for device in devices:
-        problem = policy_device_id_problem(device)
-        if problem is not None:
-            raise SettingsError(
-                f"devices: device id {device!r} is not usable: {problem}; pass e.g. "
-                "-c devices=arm-001,arm-002"
-            )
-    if len(set(devices)) != len(devices):
-        raise SettingsError(f"devices={','.join(devices)} lists a device twice; list each once")
+    try:
+        # The agent's rule for a listed id (its config applies the same one): each deployable, once, and no
+        # two differing only in case.
+        check_devices(devices)
+    except TopicError as exc:
+        raise SettingsError(f"devices: {exc}; pass e.g. -c devices=arm-001,arm-002") from None
     if len(devices) > MAX_LISTED_DEVICES:
         raise SettingsError(
             f"devices lists {len(devices)} arms; the host's IAM role can name at most {MAX_LISTED_DEVICES} "

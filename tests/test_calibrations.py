@@ -84,12 +84,13 @@ def test_a_scan_sorts_the_arms_the_kept_and_the_files_no_arm_reads() -> None:
             ("arm-002.json.previous", "k2"),
             ("arm 9.json", "x"),  # a space: no device id
             ("ARM-003.JSON", "x"),  # the suffix is lower case
-            ("arm.4.json.previous", "x"),
+            ("arm.4.json.previous", "x"),  # a dot is a device id's: arm.4's kept one
+            (".arm-5.json", "x"),  # a hidden file: no device id starts with '.'
             ("notes.txt", "x"),  # not a calibration at all: not reported
         ]
     )
-    assert found.calibrations == {"arm-001": "v1"} and found.kept == {"arm-001", "arm-002"}
-    assert found.ignored == ("ARM-003.JSON", "arm 9.json", "arm.4.json.previous")
+    assert found.calibrations == {"arm-001": "v1"} and found.kept == {"arm-001", "arm-002", "arm.4"}
+    assert found.ignored == (".arm-5.json", "ARM-003.JSON", "arm 9.json")
 
 
 def test_the_watcher_warns_once_of_a_file_no_arm_reads(
@@ -332,7 +333,9 @@ def test_push_refuses_what_is_not_a_calibration(tmp_path: Path, capsys: pytest.C
 
 
 @pytest.mark.parametrize(
-    "device", ["arm 9", "a" * 65, "ärm", "arm.9"], ids=["space", "65-chars", "non-ascii", "dot"]
+    "device",
+    ["arm 9", "a" * 65, "ärm", ".arm", "arm:9"],
+    ids=["space", "65-chars", "non-ascii", "leading-dot", "colon"],
 )
 def test_push_and_rm_refuse_an_id_the_stack_would_not_mirror(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], device: str
@@ -344,12 +347,45 @@ def test_push_and_rm_refuse_an_id_the_stack_would_not_mirror(
         assert main(["calibration", *argv, "--store", store]) == cmd.EXIT_USAGE
         err = capsys.readouterr().err
         assert f"ARM {device!r} is not a device id" in err, err
-        assert "1..64 letters, digits, '-' or '_'" in err and "deviceId" in err, err
+        assert "1..64 letters, digits, '-', '_' or '.'" in err and "deviceId" in err, err
     assert not (tmp_path / "cal").exists()
     # The longest id the rule allows is stored, and a file the rule refuses names no arm in a store.
     assert main(["calibration", "push", "a" * 64, str(EXAMPLE), "--store", store]) == cmd.EXIT_OK
     (tmp_path / "cal" / f"{device}.json").write_bytes(EXAMPLE.read_bytes())
     assert set(DirectoryStore(tmp_path / "cal").listing()) == {"a" * 64}
+
+
+def test_an_id_with_dots_the_agent_mirrors_can_be_calibrated(
+    tmp_path: Path, s3: Any, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`twin run --devices so101.lab.7` mirrors the arm, so every store keeps its calibration and the
+    console's hint gives the push that does it."""
+    load_config(None, {"telemetry.devices": ["so101.lab.7"]})
+    store = str(tmp_path / "cal")
+    assert main(["calibration", "push", "so101.lab.7", str(EXAMPLE), "--store", store]) == cmd.EXIT_OK
+    assert DirectoryStore(tmp_path / "cal").listing().keys() == {"so101.lab.7"}
+    s3_store = open_store("s3://twin-bucket/calibration", s3_client=s3)
+    s3_store.write("so101.lab.7", EXAMPLE.read_bytes())
+    assert s3_store.listing().keys() == {"so101.lab.7"}
+    for where in (store, s3_store.uri):
+        hint = calibrations.push_hint("so101.lab.7", where)
+        assert hint.command.startswith("twin calibration push so101.lab.7 FILE"), hint
+
+
+@pytest.mark.parametrize("uri", ["directory", "s3://twin-bucket/calibration"])
+def test_push_refuses_an_id_whose_store_holds_one_differing_in_case(
+    tmp_path: Path, s3: Any, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, uri: str
+) -> None:
+    """ARM-001 and arm-001 are two arms to MQTT and S3 but one file to a Mac's directory store, and most
+    often one arm typed two ways: the second push is refused, naming the first, whichever the store."""
+    store = open_store(str(tmp_path / "cal") if uri == "directory" else uri, s3_client=s3)
+    monkeypatch.setattr(cmd, "_store", lambda _args: store)
+    assert main(["calibration", "push", "ARM-001", str(EXAMPLE), "--store", store.uri]) == cmd.EXIT_OK
+    assert main(["calibration", "push", "arm-001", str(EXAMPLE), "--store", store.uri]) == cmd.EXIT_USAGE
+    err = capsys.readouterr().err
+    assert "holds a calibration for ARM-001, which differs from arm-001 only in case" in err, err
+    assert "twin calibration rm ARM-001" in err and "Nothing was stored" in err, err
+    assert store.listing().keys() == {"ARM-001"} and store.read_kept("ARM-001") is None
 
 
 def test_a_store_given_as_a_file_says_to_give_the_directory(

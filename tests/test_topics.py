@@ -1,14 +1,17 @@
 """The topic and device-id rules (twin.core.topics) and everyone who applies them: the agent config, the
-decoder, the subscriber's filters, the edge simulator and the CDK stack's settings agree on one table."""
+decoder, the subscriber's filters, the edge simulator, the CDK stack's settings and the calibration stores
+agree on one table."""
 
 from __future__ import annotations
 
 import random
+from pathlib import Path
 
 import pytest
 from twin.core.telemetry import RejectReason, TelemetryDecoder, TelemetryRejected
 from twin.core.topics import (
     TopicError,
+    case_twin,
     check_devices,
     device_from_topic,
     device_id_problem,
@@ -18,13 +21,15 @@ from twin.core.topics import (
     topic_prefix_problem,
 )
 from twin.edge.payload import encode, make_payload
+from twin.service.calibrations import DirectoryStore
 from twin.service.config import ConfigError, load_config
 
 from stacks.settings import SettingsError, TwinSettings
 
-# (device id, the agent accepts it, a deployment may list it). Hand-written from the rules: a topic level of
-# 1..128 printable characters without '/', '+', '#' or surrounding spaces, not '.' or '..'; deployable ids are
-# also IAM-safe.
+# (device id, the agent mirrors it from an edge, a person may list it). Hand-written from the rules: a topic
+# level of 1..128 printable characters without '/', '+', '#' or surrounding spaces, not '.' or '..'; a listed
+# id (telemetry.devices, the stack's devices, a calibration store's file name) is also 1..64 of letters,
+# digits, '-', '_', '.', not '.' first nor '.json' last.
 DEVICE_IDS = [
     ("arm-001", True, True),
     ("ARM_7", True, True),
@@ -33,7 +38,13 @@ DEVICE_IDS = [
     ("x" * 65, True, False),
     ("x" * 128, True, False),
     ("x" * 129, False, False),
-    ("arm.001", True, False),
+    ("arm.001", True, True),
+    ("so101.lab.7", True, True),
+    ("arm-001.", True, True),
+    (".arm", True, False),  # a hidden file in a directory store
+    ("arm.json", True, False),  # a calibration file's name, typed for the arm's
+    ("ARM.JSON", True, False),
+    ("arm.jsonl", True, True),
     ("arm:001", True, False),  # a valid Greengrass thing name, but not in the stack's IAM-safe set
     ("arm 001", True, False),
     ("bras-été", True, False),
@@ -49,6 +60,7 @@ DEVICE_IDS = [
     (".", False, False),
     ("..", False, False),
     ("...", True, False),
+    ("-", True, True),
 ]
 
 # (prefix, usable): plain levels of letters, digits, '.', '_', '-' joined by '/'.
@@ -84,6 +96,17 @@ def _config_accepts(**overrides: object) -> bool:
     return True
 
 
+def _store_accepts(tmp_path: Path, device_id: str) -> bool:
+    """A directory store takes the id's calibration and its listing names the arm by it (the S3 store checks
+    the same rule: tests/test_calibrations.py)."""
+    store = DirectoryStore(tmp_path / "cal")
+    try:
+        store.write(device_id, b"{}")
+    except ValueError:
+        return False
+    return store.listing() == {device_id: store.listing()[device_id]}
+
+
 def _decoder_accepts(device_id: str) -> bool:
     payload = make_payload("placeholder", 0.0, "ticks", random.Random(0))
     payload["device_id"] = device_id
@@ -95,15 +118,21 @@ def _decoder_accepts(device_id: str) -> bool:
 
 
 @pytest.mark.parametrize(("device_id", "agent", "deployable"), DEVICE_IDS)
-def test_every_part_applies_the_same_device_id_rule(device_id: str, agent: bool, deployable: bool) -> None:
+def test_every_part_applies_the_same_device_id_rule(
+    tmp_path: Path, device_id: str, agent: bool, deployable: bool
+) -> None:
     assert (device_id_problem(device_id) is None) is agent
     assert (policy_device_id_problem(device_id) is None) is deployable
-    assert _config_accepts(**{"telemetry.devices": [device_id]}) is agent
+    # An id the agent is told to mirror is one a store can keep a calibration for: `twin run --devices` and
+    # `twin config check` refuse the others, as the stack does.
+    assert _config_accepts(**{"telemetry.devices": [device_id]}) is deployable
+    assert _store_accepts(tmp_path, device_id) is deployable
     assert _decoder_accepts(device_id) is agent
     if device_id == device_id.strip():  # the stack trims the items of `-c devices=a, b` before the rule
         assert _stack_accepts(devices=[device_id]) is deployable
-    if agent:
+    if deployable:
         assert topic_filters("dt/lerobot", [device_id]) == [f"dt/lerobot/{device_id}/telemetry"]
+    if agent:
         assert device_from_topic(telemetry_topic("dt/lerobot", device_id), "dt/lerobot") == device_id
     else:
         with pytest.raises(TopicError, match="not usable"):
@@ -136,12 +165,31 @@ def test_deployable_ids_are_a_subset_of_what_the_agent_accepts() -> None:
         (["*", "arm-001"], "mixes"),
         (["arm-001", "arm-001"], "twice"),
         (["arm/1"], "not usable"),
+        (["arm 1"], "cannot be listed"),
+        (["ARM-001", "arm-001"], "differ only in case"),
+        (["arm-001", "arm-002", "Arm-002"], "differ only in case"),
     ],
 )
 def test_device_lists(devices: list[str], problem: str) -> None:
     with pytest.raises(TopicError, match=problem):
         check_devices(devices)
     assert not _config_accepts(**{"telemetry.devices": devices})
+    if devices:  # an empty context value means "the default" to the stack
+        assert not _stack_accepts(devices=devices)
+
+
+def test_a_listed_id_the_stores_cannot_keep_says_why_and_what_to_do() -> None:
+    with pytest.raises(TopicError) as raised:
+        check_devices(["arm 9"])
+    message = str(raised.value)
+    assert "cannot be listed" in message and "letters, digits, '-', '_' or '.'" in message, message
+    assert "deviceId" in message and 'devices = ["*"]' in message, message
+
+
+def test_case_twins() -> None:
+    assert case_twin("arm-001", ["ARM-001", "arm-002"]) == "ARM-001"
+    assert case_twin("arm-001", ["arm-001", "arm-002"]) is None
+    assert case_twin("so101.lab.7", []) is None
 
 
 @pytest.mark.parametrize(

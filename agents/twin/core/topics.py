@@ -7,18 +7,27 @@ simulator and the CDK stack's settings (`stacks/settings.py`), so a value one of
 by another. Pure standard library: the stack imports it without MuJoCo or awscrt.
 
 Two device-id rules, one narrower than the other:
-- `device_id_problem`: what the agent accepts from an edge (a usable topic level, 1..128 printable characters
-  without `/`, `+`, `#` or surrounding spaces). An edge's id is not ours to choose, so this is generous.
-- `policy_device_id_problem`: what a deployment may list in `-c devices=...`. Those ids are also written into
-  IAM policy resource ARNs, so the stack takes only letters, digits, `-` and `_` (at most 64). Every id this
-  rule accepts is also accepted by the first (tests/test_topics.py checks both on one table). A calibration
-  store keeps files for these ids only (twin.service.calibrations, `twin calibration push`).
+- `device_id_problem`: what the agent mirrors from an edge (a usable topic level, 1..128 printable characters
+  without `/`, `+`, `#` or surrounding spaces). An edge's id is not ours to choose, so with `devices = ["*"]`
+  the agent mirrors any such id.
+- `policy_device_id_problem`: an id a person lists or types: `telemetry.devices` (`twin run --devices`,
+  `twin config check`), the stack's `-c devices=...` and the calibration stores (`twin calibration push`).
+  It is also a file name and an S3 key (`<store>/<device>.json`) and part of an IAM resource ARN, so it is
+  letters, digits, `-`, `_` and `.` (not first: a hidden file; not ending in `.json`: a file's name typed as
+  an arm's), at most 64. So an id the agent is told to mirror can always be given a calibration of its own;
+  an arm whose edge publishes an id outside it is mirrored only through `["*"]`, without one.
+  Every id this rule accepts is also accepted by the first (tests/test_topics.py checks both on one table).
+
+Device ids are case-sensitive, as MQTT topics, S3 keys and IAM ARNs are: `ARM-001` and `arm-001` are two
+arms. A list that names two ids differing only in case is refused (`case_twin`), as is a push for an id
+whose store already holds such a twin: a directory store on a case-insensitive file system (macOS's and
+Windows's by default) would keep the two arms' calibrations in one file.
 """
 
 from __future__ import annotations
 
 import re
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 
 DEFAULT_TOPIC_PREFIX = "dt/lerobot"
 TELEMETRY_SUFFIX = "telemetry"
@@ -28,7 +37,10 @@ DEVICE_ID_MAX_CHARS = 128
 POLICY_DEVICE_ID_MAX_CHARS = 64
 # MQTT's level separator and its two wildcards: a device id that held one would change what a topic means.
 _TOPIC_SPECIAL = ("/", "+", "#")
-_POLICY_DEVICE_ID_RE = re.compile(r"^[A-Za-z0-9_-]+$")
+# No '.' first: `.arm.json` is a hidden file (and write_atomically's temporary files start with '.').
+_POLICY_DEVICE_ID_RE = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9_.-]*$")
+# The calibration file's own suffix (twin.service.calibrations.SUFFIX): an id ending in it is a file's name.
+_FILE_SUFFIX = ".json"
 # Plain levels only: no wildcards, no '$' (broker-reserved topics such as $aws/ and $share/), nothing that
 # needs quoting in an IAM ARN or a shell.
 _PREFIX_LEVEL_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
@@ -38,8 +50,9 @@ DEVICE_ID_RULE = (
     "wildcards) or surrounding spaces, and not '.' or '..', e.g. 'arm-001'"
 )
 POLICY_DEVICE_ID_RULE = (
-    f"1..{POLICY_DEVICE_ID_MAX_CHARS} letters, digits, '-' or '_' (it is a topic level and part of an IAM "
-    "resource ARN), e.g. 'arm-001'"
+    f"1..{POLICY_DEVICE_ID_MAX_CHARS} letters, digits, '-', '_' or '.', not starting with '.' nor ending in "
+    "'.json' (it names the arm's calibration file and is part of an IAM resource ARN), e.g. 'arm-001' or "
+    "'so101.lab.7'"
 )
 TOPIC_PREFIX_RULE = (
     "plain topic levels (letters, digits, '.', '_', '-') joined by '/', without wildcards or a leading or "
@@ -78,9 +91,22 @@ def policy_device_id_problem(device_id: object) -> str | None:
     if problem is not None:
         return problem
     text = str(device_id)  # device_id_problem accepted it, so it is a string
-    if len(text) > POLICY_DEVICE_ID_MAX_CHARS or not _POLICY_DEVICE_ID_RE.match(text):
-        return f"a deployed device id must be {POLICY_DEVICE_ID_RULE}"
+    if (
+        len(text) > POLICY_DEVICE_ID_MAX_CHARS
+        or not _POLICY_DEVICE_ID_RE.match(text)
+        or text.lower().endswith(_FILE_SUFFIX)
+    ):
+        return f"a listed device id must be {POLICY_DEVICE_ID_RULE}"
     return None
+
+
+def case_twin(device_id: str, others: Iterable[str]) -> str | None:
+    """The first of `others` that differs from `device_id` in case alone (`ARM-001` for `arm-001`), else None.
+
+    Two such ids are two arms to MQTT and S3, but one file to a case-insensitive file system, and one arm
+    to the person who typed them."""
+    folded = device_id.casefold()
+    return next((o for o in others if o != device_id and o.casefold() == folded), None)
 
 
 def check_device_id(device_id: object) -> str:
@@ -122,10 +148,32 @@ def check_devices(devices: Sequence[str]) -> tuple[str, ...]:
             )
         return devices
     for device in devices:
-        check_device_id(device)
+        check_listed_device_id(device)
     if len(set(devices)) != len(devices):
         raise TopicError(f"the device list {list(devices)} names a device twice; list each once")
+    for i, device in enumerate(devices):
+        twin = case_twin(device, devices[:i])
+        if twin is not None:
+            raise TopicError(
+                f"the device list names {twin!r} and {device!r}, which differ only in case: device ids are "
+                "case-sensitive, so they would be two arms, whose calibrations a case-insensitive file "
+                "system keeps in one file; list the id each edge publishes as, once"
+            )
     return devices
+
+
+def check_listed_device_id(device_id: object) -> str:
+    """`device_id` unchanged when a person may list it (policy_device_id_problem), or TopicError naming the
+    value, the rule, and what to do about an arm whose edge publishes such an id."""
+    problem = policy_device_id_problem(device_id)
+    if problem is None:
+        return str(device_id)
+    if device_id_problem(device_id) is not None:
+        raise TopicError(f"device id {device_id!r} is not usable: {problem}; a device id is {DEVICE_ID_RULE}")
+    raise TopicError(
+        f"device id {device_id!r} cannot be listed: {problem}. Give the arm's edge an id that is (its "
+        'deviceId), or mirror it through devices = ["*"], where it cannot have a calibration of its own'
+    )
 
 
 def telemetry_topic(prefix: str, device_id: str) -> str:

@@ -48,9 +48,9 @@ EPILOG = """examples:
   twin calibration push arm-003 ~/.cache/huggingface/lerobot/calibration/robots/so_follower/arm-003.json
   twin calibration ls
   twin calibration push arm-001 robots/so101/calibration/so101_follower_example.json --store out/calibration
-exit codes: 0 done; 1 store error (or rm, restore: nothing there); 2 bad file or command line, or ARM is not
-  1..64 letters, digits, '-' or '_'; 3 no AWS credentials or region; 4 stack not found; 5 the stack has
-  no CalibrationUri output
+exit codes: 0 done; 1 store error (or rm, restore: nothing there); 2 bad file or command line, ARM is not
+  1..64 letters, digits, '-', '_' or '.', or the store holds an id differing from ARM only in case; 3 no AWS
+  credentials or region; 4 stack not found; 5 the stack has no CalibrationUri output
 store: --store, else the CalibrationUri output of --stack (default $SO101_TWIN_STACK, else stackName in
 the checkout's twin.settings.toml, else So101TwinStack)
 kept: a push over an arm's calibration, and rm, keep the one they replace (<ARM>.json.previous; ls shows
@@ -268,7 +268,20 @@ def _current(store: CalibrationStore, arm: str) -> tuple[bytes | None, dict[str,
 
 
 def _push(store: CalibrationStore, arm: str, file: Path, data: bytes, again: str) -> int:
+    from twin.core.topics import case_twin
+
     current, listing = _current(store, arm)
+    twin = case_twin(arm, listing)
+    if twin is not None:
+        # Two arms to MQTT and S3, one file to a case-insensitive file system (a Mac's or Windows's
+        # directory store), and most often one arm typed two ways.
+        console.err(
+            f"{store.uri} holds a calibration for {twin}, which differs from {arm} only in case: device ids "
+            f"are case-sensitive, and a directory on a case-insensitive file system keeps both in one file. "
+            f"Push it as {twin} if that is this arm (the id its edge publishes as), or remove {twin}'s first "
+            f"(`twin calibration rm {twin}{again}`). Nothing was stored"
+        )
+        return EXIT_USAGE
     if current == data:
         console.out(f"{arm}: {store.uri_of(arm)} already holds this calibration; nothing written")
         return EXIT_OK

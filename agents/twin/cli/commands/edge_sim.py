@@ -73,7 +73,7 @@ def _add_fleet_arguments(parser: argparse.ArgumentParser) -> None:
         action="append",
         type=_device_id,
         metavar="ID",
-        help="device id: 1..64 letters, digits, '-' or '_' (repeatable)",
+        help="device id: 1..64 letters, digits, '-', '_' or '.' (repeatable)",
     )
     parser.add_argument(
         "--rate", type=_positive, default=10.0, metavar="HZ", help="messages/s per device (default 10)"
