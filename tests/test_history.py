@@ -1612,6 +1612,8 @@ def test_history_commands_keep_what_a_person_had_and_refuse_a_selection_of_nothi
     assert code == 2 and "--until (" in err and "must be after --since" in err
     code, err = run("ls", "--device", "arm-0O1")
     assert code == 1 and "devices with history are arm-001, arm-002" in err
+    code, err = run("ls", "--device", "ARM-001")
+    assert code == 1 and "case-sensitive, and 'arm-001' has history" in err
     assert run("ls", "--gap", "0")[0] == 2
     plot = tmp_path / "x"
     assert run("plot", "--device", "arm-001", "--out", str(plot))[0] == 0
@@ -1913,3 +1915,26 @@ def test_the_writer_process_logs_as_the_agent_does(tmp_path: Path, capfd: pytest
     line = next(line for line in "".join(out).splitlines() if "history: maintenance took" in line)
     record = json.loads(line)  # one of the agent's JSON lines, not plain text
     assert (record["level"], record["logger"]) == ("INFO", "twin.output.history"), record
+
+
+def test_the_hint_for_a_device_without_history_names_a_large_fleet_in_part() -> None:
+    """A mistyped id at a fleet of 2,000 named every one of them in the error; a case slip names its twin."""
+    from twin.ops.history import HINT_DEVICES, devices_hint
+
+    class Known:
+        def __init__(self, devices: list[str]) -> None:
+            self.devices = devices
+
+        def known_devices(self) -> list[str]:
+            return self.devices
+
+    fleet = Known([f"arm-{i:04d}" for i in range(2000)])
+    hint = devices_hint(fleet, "arm-9999")  # type: ignore[arg-type]
+    named = hint.split("devices with history are ")[1]
+    assert named.endswith(f" and {2000 - HINT_DEVICES} more")
+    assert named.count("arm-") == HINT_DEVICES and "arm-0000, arm-0001" in named
+    assert devices_hint(fleet, "ARM-0007") == (  # type: ignore[arg-type]
+        "; no row of 'ARM-0007' at all: device ids are case-sensitive, and 'arm-0007' has history"
+    )
+    assert devices_hint(fleet, "arm-0007") == ""  # type: ignore[arg-type]
+    assert devices_hint(Known([]), "arm-1").endswith("devices with history are none")  # type: ignore[arg-type]

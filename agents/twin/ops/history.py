@@ -22,6 +22,7 @@ from typing import Any
 import polars as pl
 
 from twin.core import telemetry as tm
+from twin.core.topics import case_twin
 from twin.output.history import (
     JOINTS,
     PARTITION_COLUMN,
@@ -44,6 +45,8 @@ PLOT_GAP_S = 10.0
 # Plots draw at most this many points per line; longer windows are averaged into equal time buckets.
 PLOT_MAX_POINTS = 4000
 EXPORT_FORMATS = ("parquet", "csv")
+# How many devices a hint for a device with no history names (`devices_hint`): a fleet's 2,000 would bury it.
+HINT_DEVICES = 20
 
 _RELATIVE = re.compile(r"^-?(\d+(?:\.\d+)?)\s*(s|m|h|d)$")
 _UNIT_S = {"s": 1.0, "m": 60.0, "h": 3600.0, "d": 86400.0}
@@ -365,13 +368,19 @@ def _not_a_directory(out: Path, extension: str) -> None:
 
 
 def devices_hint(reader: HistoryReader, device: str | None) -> str:
-    """For a device with no row at all: the devices there are (a mistyped id reads like an empty hour)."""
+    """For a device with no row at all: the one whose id differs in case alone, else the devices there are (a
+    mistyped id reads like an empty hour), the first HINT_DEVICES of a large fleet and a count of the rest."""
     if device is None:
         return ""
     known = reader.known_devices()
     if device in known:
         return ""
-    return f"; no row of {device!r} at all: devices with history are {', '.join(known) or 'none'}"
+    twin = case_twin(device, known)
+    if twin is not None:
+        return f"; no row of {device!r} at all: device ids are case-sensitive, and {twin!r} has history"
+    named = ", ".join(known[:HINT_DEVICES]) or "none"
+    more = f" and {len(known) - HINT_DEVICES} more" if len(known) > HINT_DEVICES else ""
+    return f"; no row of {device!r} at all: devices with history are {named}{more}"
 
 
 # --- plot --------------------------------------------------------------------------------------------------
