@@ -219,6 +219,31 @@ def test_the_fleet_list_fits_a_tablet_and_a_phone(
             hot = page.locator('#fleet-view .row[data-device="arm-001"] > span:last-child')
             whole = "s => s.scrollWidth <= s.clientWidth && s.title === s.textContent"
             assert hot.evaluate(whole), hot.inner_text()
+        # A phone's row is two lines: the id is whole on the first ("arm-00…" in every row before), with
+        # "(uncalibrated)" under it.
+        # Read in the page as one step, as the rows are drawn again on every tick. Two lines in a row as tall
+        # as them: a row of one line's height overlapped the next row.
+        if width == 390:
+            from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
+            where_js = (
+                "() => { const s = document.querySelector("
+                "'#fleet-view .row[data-device=\"arm-001\"] > .arm-id');"
+                " if (!s) return null; const r = document.createRange(); r.setStart(s.firstChild, 0);"
+                " r.setEnd(s.firstChild, 'arm-001'.length); const box = s.getBoundingClientRect();"
+                " return [r.getClientRects().length, r.getBoundingClientRect().right <= box.right,"
+                " s.offsetHeight, s.parentElement.clientHeight]; }"
+            )
+            whole = (
+                f"() => {{ const w = ({where_js})();"
+                " return !!w && w[0] === 1 && w[1] && 30 <= w[2] && w[2] <= w[3]; }"
+            )
+            try:
+                page.wait_for_function(whole, timeout=TIMEOUT_S * 1000)
+            except PlaywrightTimeout:
+                pytest.fail(
+                    f"a phone's id cell [lines, inside, height, row height]: {page.evaluate(where_js)}"
+                )
     finally:
         page.get_by_role("button", name="Grid").click()
         page.set_viewport_size({"width": 1280, "height": 800})  # the module's page: the next test expects it
@@ -348,23 +373,31 @@ def test_a_cards_waiting_alarms_and_restart_mark_are_not_cut(
         assert cut == [], cut
         # Its figures keep the text's colour: a row of link-blue numbers read as a page of links.
         assert row.locator("span.wide").first.evaluate("s => getComputedStyle(s).color") == "rgb(29, 35, 48)"
-        # A phone: the columns it keeps share one line (the hottest servo wrapped under the arm, over the
-        # next row).
+        # A phone: the columns it keeps sit side by side inside the row (the hottest servo wrapped under the
+        # arm, over the next row).
         from playwright.sync_api import TimeoutError as PlaywrightTimeout
 
         page.set_viewport_size({"width": 600, "height": 800})
         # Read in the page as one step: a resize draws the rows again, and a row read across steps may be
-        # one already taken out (none of its cells then shown).
-        tops_js = (
-            "() => [...(document.querySelector('#fleet-view .row[data-device=\"arm-001\"]')?.children ?? [])]"
-            ".filter(c => c.offsetParent).map(c => c.getBoundingClientRect().top)"
+        # one already taken out (none of its cells then shown). Each shown cell: its left, and how far its
+        # top and bottom stand inside the row's.
+        cells_js = (
+            "() => { const r = document.querySelector('#fleet-view .row[data-device=\"arm-001\"]');"
+            " if (!r) return []; const row = r.getBoundingClientRect();"
+            " return [...r.children].filter(c => c.offsetParent).map(c => {"
+            " const b = c.getBoundingClientRect();"
+            " return [b.left, b.top - row.top, row.bottom - b.bottom]; }); }"
         )
-        spread = "t => t.length > 2 && Math.max(...t) < Math.min(...t) + 8"
-        one_line = f"() => ({spread})(({tops_js})())"
+        inside = "(c, i, cs) => c[1] >= -1 && c[2] >= -1 && (!i || c[0] > cs[i - 1][0])"
+        side_by_side = f"cs => cs.length > 2 && cs.every({inside})"
+        in_the_row = f"() => ({side_by_side})(({cells_js})())"
         try:
-            page.wait_for_function(one_line, timeout=TIMEOUT_S * 1000)
+            page.wait_for_function(in_the_row, timeout=TIMEOUT_S * 1000)
         except PlaywrightTimeout:
-            pytest.fail(f"a phone's row takes more than one line: its cells' tops {page.evaluate(tops_js)}")
+            cells = page.evaluate(cells_js)
+            pytest.fail(
+                f"a phone's row does not hold its cells side by side: [left, top in, bottom in] {cells}"
+            )
     finally:
         page.get_by_role("button", name="Grid").click()
         page.set_viewport_size({"width": 1280, "height": 800})  # the module's page: the next test expects it

@@ -5,7 +5,11 @@
 (() => {
   const { el, main } = Twin;
   // CARD_W is a card's least width: a row's cards share out what is left, so no band of the window stays empty.
-  const CARD_W = 230, CARD_H = 138, GAP = 8, ROW_H = 30;
+  const CARD_W = 230, CARD_H = 138, GAP = 8, ROW_H = 30, PHONE_ROW_H = 44;
+  // A phone's list rows are two lines tall (console.css's query of the same width), so a cell wraps: in one
+  // line at 390 px every id read "arm-00…" and every alarm "critical over_…".
+  const PHONE = window.matchMedia("(max-width: 700px)");
+  let rowH = ROW_H;
   let columns = {}, rows = [], shown = [], now = Date.now() / 1000, listening = null;
   // Until the agent's first document arrives the page knows nothing of the fleet: it must not say that no
   // arm has been heard from (a slow first answer showed that bare line to a new user).
@@ -82,8 +86,9 @@
   function alarmCell(r) {
     const c = columns, sev = r[c.alarm_severity];
     if (!sev) return el("span", { class: "muted", text: "no alarm" });
-    const text = `${sev} ${r[c.alarm_kind]} (${r[c.alarm_joint]})`;
-    return el("span", { class: "sev-" + sev, title: text, text });
+    const what = `${r[c.alarm_kind]} (${r[c.alarm_joint]})`;
+    // The severity's word goes on a phone (its colour stays, and the counts above name it).
+    return el("span", { class: "sev-" + sev, title: `${sev} ${what}` }, el("span", { class: "sev-word", text: sev + " " }), what);
   }
 
   function stateCell(r) {
@@ -186,7 +191,7 @@
       alarmCell(r), stateCell(r),
       hotCell(r));
     node.style.top = y + "px";
-    node.style.height = ROW_H + "px";
+    node.style.height = rowH + "px";
     return node;
   }
 
@@ -195,7 +200,7 @@
       el("span", { class: "wide", text: "last seen" }), el("span", { class: "wide minor", text: "rate" }),
       el("span", { class: "wide minor", text: "loss" }), el("span", { text: "worst alarm" }), el("span", { text: "its state" }),
       el("span", { class: "wide", text: "hottest servo" }));
-    node.style.height = ROW_H + "px";
+    node.style.height = rowH + "px";
     return node;
   }
 
@@ -216,11 +221,12 @@
         }
       }
     } else {
+      rowH = PHONE.matches ? PHONE_ROW_H : ROW_H;
       nodes.push(header());
-      spacer.style.height = (shown.length + 1) * ROW_H + "px";
-      const first = Math.max(0, Math.floor(top / ROW_H) - 2);
-      const last = Math.min(shown.length, Math.ceil((top + height) / ROW_H) + 2);
-      for (let i = first; i < last; i++) nodes.push(listRow(shown[i], (i + 1) * ROW_H));
+      spacer.style.height = (shown.length + 1) * rowH + "px";
+      const first = Math.max(0, Math.floor(top / rowH) - 2);
+      const last = Math.min(shown.length, Math.ceil((top + height) / rowH) + 2);
+      for (let i = first; i < last; i++) nodes.push(listRow(shown[i], (i + 1) * rowH));
     }
     if (!shown.length) {
       const text = !loaded ? "loading the fleet…" : rows.length ? "no arm matches the filters" : unheard();
