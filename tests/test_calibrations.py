@@ -388,6 +388,28 @@ def test_push_refuses_an_id_whose_store_holds_one_differing_in_case(
     assert store.listing().keys() == {"ARM-001"} and store.read_kept("ARM-001") is None
 
 
+@pytest.mark.parametrize("uri", ["directory", "s3://twin-bucket/calibration"])
+def test_restore_refuses_an_id_whose_store_holds_one_differing_in_case(
+    tmp_path: Path, s3: Any, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, uri: str
+) -> None:
+    """rm ARM-001 keeps its file, a push of arm-001 then finds no twin, and a restore of ARM-001 would put
+    the kept file back beside arm-001's (on a Mac's directory store, over it): refused as the push is."""
+    store = open_store(str(tmp_path / "cal") if uri == "directory" else uri, s3_client=s3)
+    monkeypatch.setattr(cmd, "_store", lambda _args: store)
+    other = tmp_path / "other.json"
+    other.write_bytes(shifted(40))
+    assert main(["calibration", "push", "ARM-001", str(EXAMPLE), "--store", store.uri]) == cmd.EXIT_OK
+    assert main(["calibration", "rm", "ARM-001", "--store", store.uri]) == cmd.EXIT_OK
+    assert main(["calibration", "push", "arm-001", str(other), "--store", store.uri]) == cmd.EXIT_OK
+    capsys.readouterr()
+    assert main(["calibration", "restore", "ARM-001", "--store", store.uri]) == cmd.EXIT_USAGE
+    err = capsys.readouterr().err
+    assert "holds a calibration for arm-001, which differs from ARM-001 only in case" in err, err
+    assert "twin calibration rm arm-001" in err and "Nothing was restored" in err, err
+    assert store.listing().keys() == {"arm-001"} and store.read("arm-001") == other.read_bytes()
+    assert store.read_kept("ARM-001") == EXAMPLE.read_bytes()  # still there to restore once arm-001 goes
+
+
 def test_a_store_given_as_a_file_says_to_give_the_directory(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -19,9 +19,9 @@ Two device-id rules, one narrower than the other:
   Every id this rule accepts is also accepted by the first (tests/test_topics.py checks both on one table).
 
 Device ids are case-sensitive, as MQTT topics, S3 keys and IAM ARNs are: `ARM-001` and `arm-001` are two
-arms. A list that names two ids differing only in case is refused (`case_twin`), as is a push for an id
-whose store already holds such a twin: a directory store on a case-insensitive file system (macOS's and
-Windows's by default) would keep the two arms' calibrations in one file.
+arms. A list that names two ids differing only in case is refused (`case_twin`), as is a push or a restore
+for an id whose store already holds such a twin: a directory store on a case-insensitive file system
+(macOS's and Windows's by default) would keep the two arms' calibrations in one file.
 """
 
 from __future__ import annotations

@@ -267,20 +267,30 @@ def _current(store: CalibrationStore, arm: str) -> tuple[bytes | None, dict[str,
     return (store.read(arm) if arm in listing else None), listing
 
 
-def _push(store: CalibrationStore, arm: str, file: Path, data: bytes, again: str) -> int:
+def _case_twin_refused(
+    store: CalibrationStore, arm: str, listing: dict[str, str], again: str, done: str
+) -> bool:
+    """True, having said why and what to do, when the store holds a calibration for an id that differs from
+    ARM only in case: a write for ARM would be a second arm's file beside it."""
     from twin.core.topics import case_twin
 
-    current, listing = _current(store, arm)
     twin = case_twin(arm, listing)
-    if twin is not None:
-        # Two arms to MQTT and S3, one file to a case-insensitive file system (a Mac's or Windows's
-        # directory store), and most often one arm typed two ways.
-        console.err(
-            f"{store.uri} holds a calibration for {twin}, which differs from {arm} only in case: device ids "
-            f"are case-sensitive, and a directory on a case-insensitive file system keeps both in one file. "
-            f"Push it as {twin} if that is this arm (the id its edge publishes as), or remove {twin}'s first "
-            f"(`twin calibration rm {twin}{again}`). Nothing was stored"
-        )
+    if twin is None:
+        return False
+    # Two arms to MQTT and S3, one file to a case-insensitive file system (a Mac's or Windows's directory
+    # store), and most often one arm typed two ways.
+    console.err(
+        f"{store.uri} holds a calibration for {twin}, which differs from {arm} only in case: device ids "
+        f"are case-sensitive, and a directory on a case-insensitive file system keeps both in one file. "
+        f"Use {twin} if that is this arm (the id its edge publishes as), or remove {twin}'s first "
+        f"(`twin calibration rm {twin}{again}`). Nothing was {done}"
+    )
+    return True
+
+
+def _push(store: CalibrationStore, arm: str, file: Path, data: bytes, again: str) -> int:
+    current, listing = _current(store, arm)
+    if _case_twin_refused(store, arm, listing, again, "stored"):
         return EXIT_USAGE
     if current == data:
         console.out(f"{arm}: {store.uri_of(arm)} already holds this calibration; nothing written")
@@ -388,7 +398,10 @@ def _restore(store: CalibrationStore, arm: str, again: str) -> int:
     except ValueError as exc:
         console.err(f"{exc}; nothing restored")
         return EXIT_STORE
-    current, _ = _current(store, arm)
+    current, listing = _current(store, arm)
+    # rm ARM-001, push arm-001, then restore ARM-001: the kept file has no twin, the one it goes back to has.
+    if _case_twin_refused(store, arm, listing, again, "restored"):
+        return EXIT_USAGE
     if current is None:
         where = store.write(arm, kept)
         store.delete_kept(arm)
