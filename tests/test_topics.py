@@ -5,6 +5,7 @@ agree on one table."""
 from __future__ import annotations
 
 import random
+from collections.abc import Iterable
 from pathlib import Path
 
 import pytest
@@ -184,6 +185,28 @@ def test_a_listed_id_the_stores_cannot_keep_says_why_and_what_to_do() -> None:
     message = str(raised.value)
     assert "cannot be listed" in message and "letters, digits, '-', '_' or '.'" in message, message
     assert "deviceId" in message and 'devices = ["*"]' in message, message
+
+
+def test_a_long_list_compares_each_id_with_its_case_folded_kin_only(monkeypatch: pytest.MonkeyPatch) -> None:
+    """check_devices compared each id with every id before it: 10,000 listed ids (telemetry.max_devices'
+    bound) were 50 million comparisons, seconds of a start at each check. Counted here, not timed."""
+    from twin.core import topics
+
+    compared = 0
+
+    def counting(device_id: str, others: Iterable[str]) -> str | None:
+        nonlocal compared
+        others = list(others)
+        compared += len(others)
+        assert compared <= 10_000, f"{compared} comparisons for 10,000 ids by {device_id}"
+        return case_twin(device_id, others)
+
+    monkeypatch.setattr(topics, "case_twin", counting)
+    devices = [f"arm-{i:05d}" for i in range(10_000)]
+    assert topics.check_devices(devices) == tuple(devices)
+    compared = 0
+    with pytest.raises(TopicError, match="'ARM-00007' and 'arm-00007', which differ only in case"):
+        topics.check_devices(["ARM-00007", *devices])
 
 
 def test_case_twins() -> None:
