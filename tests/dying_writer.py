@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import signal
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -46,3 +47,11 @@ def check_that_dies(*args: Any) -> None:
     """The agent's check of a commit in doubt at its stop (history_feed.check_main), killed before it
     answers."""
     os.kill(os.getpid(), signal.SIGKILL)
+
+
+def check_that_hangs(*args: Any) -> None:
+    """The agent's check of a commit in doubt at its stop, hung (a store that never answers) and deaf to
+    SIGINT and SIGTERM as check_main is: only the agent's kill at the check's timeout ends it."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    threading.Event().wait()

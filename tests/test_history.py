@@ -11,6 +11,7 @@ import datetime as dt
 import itertools
 import json
 import logging
+import multiprocessing
 import os
 import random
 import re
@@ -27,7 +28,7 @@ import polars as pl
 import pytest
 from conftest import NO_BROKER, get_metrics, metric, wait_for, wait_handled
 from deltalake import CommitProperties, DeltaTable, Transaction, write_deltalake
-from dying_writer import check_that_dies, writer_killed_in_its_first_commit
+from dying_writer import check_that_dies, check_that_hangs, writer_killed_in_its_first_commit
 from moto_s3 import MotoS3
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
 from twin.edge.payload import encode, make_payload
@@ -1263,6 +1264,37 @@ def test_a_commit_in_doubt_when_the_agent_stops_first_is_asked_of_the_table_at_t
         why = "did not land" if checked else "could not be checked"
         expected = f"(7 rows to telemetry) {why}: counted as lost"
     assert any(expected in m for m in said), said
+
+
+def test_a_check_of_a_commit_in_doubt_that_hangs_at_the_stop_is_killed_at_its_timeout(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The stop's check of a dead writer's commit (a store that never answers, say) ignores SIGINT and
+    SIGTERM, so nothing but the agent ends it: the agent waits for it until its timeout (the stop's rest,
+    at least CHECK_MIN_S), kills it, and counts the rows as lost."""
+    from twin.output import history_feed
+
+    monkeypatch.setattr(history_feed, "CHECK_MIN_S", 2.0)
+    uri = str(tmp_path / "history")
+    caplog.set_level(logging.INFO, logger="twin.output.history_feed")
+    history, feed, send = _writer_to_kill_in_a_commit(uri, tmp_path, monkeypatch, "after")
+    history.check_target = check_that_hangs
+    try:
+        send(7)
+        wait_for(lambda: not history.alive, 60, "the writer killed in its first commit")
+        history.supervise()
+    finally:
+        feed.close(timeout=1.0)
+        history.stop(timeout=0.5)
+    left = [p for p in multiprocessing.active_children() if p.name == "twin-history-check"]
+    for process in left:  # else the test run would wait for it at its exit
+        process.kill()
+        process.join(5.0)
+    assert not left, left
+    assert history.figures().rows_lost == 7 and history.unwritten_rows() == 0
+    said = [r.getMessage() for r in caplog.records]
+    assert any("the check of the last writer's last commit took over 2 s" in m for m in said), said
+    assert any("(7 rows to telemetry) could not be checked: counted as lost" in m for m in said), said
 
 
 def _table_rows(uri: str) -> int:
