@@ -185,6 +185,8 @@ def test_a_listed_id_the_stores_cannot_keep_says_why_and_what_to_do() -> None:
     message = str(raised.value)
     assert "cannot be listed" in message and "letters, digits, '-', '_' or '.'" in message, message
     assert "deviceId" in message and 'devices = ["*"]' in message, message
+    # A new user reads what to do, not "an id that is (its deviceId)".
+    assert "Give the arm's edge an id that follows this rule (its deviceId) and list that" in message, message
 
 
 def test_a_long_list_compares_each_id_with_its_case_folded_kin_only(monkeypatch: pytest.MonkeyPatch) -> None:

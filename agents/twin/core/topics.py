@@ -174,8 +174,9 @@ def check_listed_device_id(device_id: object) -> str:
     if device_id_problem(device_id) is not None:
         raise TopicError(f"device id {device_id!r} is not usable: {problem}; a device id is {DEVICE_ID_RULE}")
     raise TopicError(
-        f"device id {device_id!r} cannot be listed: {problem}. Give the arm's edge an id that is (its "
-        'deviceId), or mirror it through devices = ["*"], where it cannot have a calibration of its own'
+        f"device id {device_id!r} cannot be listed: {problem}. Give the arm's edge an id that follows this "
+        'rule (its deviceId) and list that, or mirror it through devices = ["*"], where it cannot have a '
+        "calibration of its own"
     )
 
 
