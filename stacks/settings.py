@@ -26,7 +26,7 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
-from twin.core.topics import ALL_DEVICES, TopicError, check_devices, topic_prefix_problem
+from twin.core.topics import ALL_DEVICES, TopicError, check_deployed_devices, topic_prefix_problem
 
 # The agent's own rules (pure modules, no MuJoCo or awscrt), so the stack accepts exactly what the agent it
 # deploys accepts: device ids and the topic prefix (twin.core.topics), units, and the client id prefix the
@@ -539,9 +539,9 @@ def _devices(value: object) -> tuple[str, ...]:
             )
         return (ALL_DEVICES,)
     try:
-        # The agent's rule for a listed id (its config applies the same one): each deployable, once, and no
-        # two differing only in case.
-        check_devices(devices)
+        # Each deployable (a calibration file's name, part of an IAM ARN), once, and no two differing only
+        # in case: a new deployment's list, so refusing costs nothing a host had.
+        check_deployed_devices(devices)
     except TopicError as exc:
         raise SettingsError(f"devices: {exc}; pass e.g. -c devices=arm-001,arm-002") from None
     if len(devices) > MAX_LISTED_DEVICES:

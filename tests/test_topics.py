@@ -13,9 +13,11 @@ from twin.core.telemetry import RejectReason, TelemetryDecoder, TelemetryRejecte
 from twin.core.topics import (
     TopicError,
     case_twin,
+    check_deployed_devices,
     check_devices,
     device_from_topic,
     device_id_problem,
+    listed_device_notes,
     policy_device_id_problem,
     telemetry_topic,
     topic_filters,
@@ -23,7 +25,7 @@ from twin.core.topics import (
 )
 from twin.edge.payload import encode, make_payload
 from twin.service.calibrations import DirectoryStore
-from twin.service.config import ConfigError, load_config
+from twin.service.config import ConfigError, config_notes, load_config
 
 from stacks.settings import SettingsError, TwinSettings
 
@@ -124,16 +126,19 @@ def test_every_part_applies_the_same_device_id_rule(
 ) -> None:
     assert (device_id_problem(device_id) is None) is agent
     assert (policy_device_id_problem(device_id) is None) is deployable
-    # An id the agent is told to mirror is one a store can keep a calibration for: `twin run --devices` and
-    # `twin config check` refuse the others, as the stack does.
-    assert _config_accepts(**{"telemetry.devices": [device_id]}) is deployable
+    # The agent's list takes every id it can mirror (a list that ran before an update must start after it);
+    # one no store can keep a calibration for is a note of the config's, with the fix. The stack refuses it.
+    assert _config_accepts(**{"telemetry.devices": [device_id]}) is agent
+    if agent:
+        notes = listed_device_notes([device_id])
+        assert (notes == []) is deployable, notes
+        assert all("cannot have a calibration of its own" in note for note in notes), notes
     assert _store_accepts(tmp_path, device_id) is deployable
     assert _decoder_accepts(device_id) is agent
     if device_id == device_id.strip():  # the stack trims the items of `-c devices=a, b` before the rule
         assert _stack_accepts(devices=[device_id]) is deployable
-    if deployable:
-        assert topic_filters("dt/lerobot", [device_id]) == [f"dt/lerobot/{device_id}/telemetry"]
     if agent:
+        assert topic_filters("dt/lerobot", [device_id]) == [f"dt/lerobot/{device_id}/telemetry"]
         assert device_from_topic(telemetry_topic("dt/lerobot", device_id), "dt/lerobot") == device_id
     else:
         with pytest.raises(TopicError, match="not usable"):
@@ -166,9 +171,6 @@ def test_deployable_ids_are_a_subset_of_what_the_agent_accepts() -> None:
         (["*", "arm-001"], "mixes"),
         (["arm-001", "arm-001"], "twice"),
         (["arm/1"], "not usable"),
-        (["arm 1"], "cannot be listed"),
-        (["ARM-001", "arm-001"], "differ only in case"),
-        (["arm-001", "arm-002", "Arm-002"], "differ only in case"),
     ],
 )
 def test_device_lists(devices: list[str], problem: str) -> None:
@@ -179,9 +181,32 @@ def test_device_lists(devices: list[str], problem: str) -> None:
         assert not _stack_accepts(devices=devices)
 
 
+@pytest.mark.parametrize(
+    ("devices", "problem", "note"),
+    [
+        (["arm 1"], "cannot be listed", "cannot have a calibration of its own"),
+        (["ARM-001", "arm-001"], "differ only in case", "'ARM-001' and 'arm-001', which differ only in case"),
+        (["arm-001", "arm-002", "Arm-002"], "differ only in case", "'arm-002' and 'Arm-002'"),
+    ],
+)
+def test_device_lists_a_deployment_refuses_and_the_agent_notes(
+    tmp_path: Path, devices: list[str], problem: str, note: str
+) -> None:
+    """Ids the agent took before they were refused here: an upgraded host whose local config names them must
+    start (a refusal exits 2, which systemd does not restart), so the agent says what it means instead."""
+    with pytest.raises(TopicError, match=problem):
+        check_deployed_devices(devices)
+    assert not _stack_accepts(devices=devices)
+    assert check_devices(devices) == tuple(devices)
+    config_file = tmp_path / "agent.toml"
+    config_file.write_text(f"[telemetry]\ndevices = {devices!r}\n".replace("'", '"'))
+    notes = config_notes(config_file, load_config(config_file))
+    assert any(note in n for n in notes), notes
+
+
 def test_a_listed_id_the_stores_cannot_keep_says_why_and_what_to_do() -> None:
     with pytest.raises(TopicError) as raised:
-        check_devices(["arm 9"])
+        check_deployed_devices(["arm 9"])
     message = str(raised.value)
     assert "cannot be listed" in message and "letters, digits, '-', '_' or '.'" in message, message
     assert "deviceId" in message and 'devices = ["*"]' in message, message
@@ -200,15 +225,15 @@ def test_a_long_list_compares_each_id_with_its_case_folded_kin_only(monkeypatch:
         nonlocal compared
         others = list(others)
         compared += len(others)
-        assert compared <= 10_000, f"{compared} comparisons for 10,000 ids by {device_id}"
+        assert compared <= 10_001, f"{compared} comparisons for 10,001 ids or fewer by {device_id}"
         return case_twin(device_id, others)
 
     monkeypatch.setattr(topics, "case_twin", counting)
     devices = [f"arm-{i:05d}" for i in range(10_000)]
-    assert topics.check_devices(devices) == tuple(devices)
+    assert topics.check_deployed_devices(devices) == tuple(devices)
     compared = 0
     with pytest.raises(TopicError, match="'ARM-00007' and 'arm-00007', which differ only in case"):
-        topics.check_devices(["ARM-00007", *devices])
+        topics.check_deployed_devices(["ARM-00007", *devices])
 
 
 def test_case_twins() -> None:

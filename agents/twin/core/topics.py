@@ -10,18 +10,22 @@ Two device-id rules, one narrower than the other:
 - `device_id_problem`: what the agent mirrors from an edge (a usable topic level, 1..128 printable characters
   without `/`, `+`, `#` or surrounding spaces). An edge's id is not ours to choose, so with `devices = ["*"]`
   the agent mirrors any such id.
-- `policy_device_id_problem`: an id a person lists or types: `telemetry.devices` (`twin run --devices`,
-  `twin config check`), the stack's `-c devices=...` and the calibration stores (`twin calibration push`).
-  It is also a file name and an S3 key (`<store>/<device>.json`) and part of an IAM resource ARN, so it is
-  letters, digits, `-`, `_` and `.` (not first: a hidden file; not ending in `.json`: a file's name typed as
-  an arm's), at most 64. So an id the agent is told to mirror can always be given a calibration of its own;
-  an arm whose edge publishes an id outside it is mirrored only through `["*"]`, without one.
+- `policy_device_id_problem`: an id that has a calibration of its own or a place in the host's IAM policy:
+  the calibration stores (`twin calibration push`) and the stack's `-c devices=...`. It is a file name and
+  an S3 key (`<store>/<device>.json`) and part of an IAM resource ARN, so it is letters, digits, `-`, `_` and
+  `.` (not first: a hidden file; not ending in `.json`: a file's name typed as an arm's), at most 64.
   Every id this rule accepts is also accepted by the first (tests/test_topics.py checks both on one table).
 
+The agent's own `telemetry.devices` takes any id of the first rule (`check_devices`): a list that ran before
+must start after an update, whatever ids it names. One outside the second rule is mirrored without a
+calibration of its own, and `listed_device_notes` says so, with the fix, where `twin run` and `twin config
+check` show a config's notes. The stack's list takes the second rule only (`check_deployed_devices`).
+
 Device ids are case-sensitive, as MQTT topics, S3 keys and IAM ARNs are: `ARM-001` and `arm-001` are two
-arms. A list that names two ids differing only in case is refused (`case_twin`), as is a push or a restore
-for an id whose store already holds such a twin: a directory store on a case-insensitive file system
-(macOS's and Windows's by default) would keep the two arms' calibrations in one file.
+arms. The stack refuses a list naming two ids that differ only in case (`case_twin`), the agent's notes name
+them, and a push or a restore is refused for an id whose store already holds such a twin: a directory store
+on a case-insensitive file system (macOS's and Windows's by default) would keep the two arms' calibrations
+in one file.
 """
 
 from __future__ import annotations
@@ -53,6 +57,11 @@ POLICY_DEVICE_ID_RULE = (
     f"1..{POLICY_DEVICE_ID_MAX_CHARS} letters, digits, '-', '_' or '.', not starting with '.' nor ending in "
     "'.json' (it names the arm's calibration file and is part of an IAM resource ARN), e.g. 'arm-001' or "
     "'so101.lab.7'"
+)
+# What to do about an id that cannot have a calibration of its own.
+_RENAME = (
+    "Give the arm's edge an id that follows this rule (its deviceId) and list that, or mirror it through "
+    'devices = ["*"], where it cannot have a calibration of its own either'
 )
 TOPIC_PREFIX_RULE = (
     "plain topic levels (letters, digits, '.', '_', '-') joined by '/', without wildcards or a leading or "
@@ -135,7 +144,8 @@ def check_topic_prefix(prefix: object) -> str:
 
 
 def check_devices(devices: Sequence[str]) -> tuple[str, ...]:
-    """A device list as configured: ids (each once), or ["*"] alone for the whole fleet."""
+    """A device list as the agent takes it: ids it can mirror (`device_id_problem`), each once, or ["*"]
+    alone for the whole fleet. Ids no store can keep a calibration for are `listed_device_notes`'."""
     devices = tuple(devices)
     if not devices:
         raise TopicError(
@@ -148,36 +158,66 @@ def check_devices(devices: Sequence[str]) -> tuple[str, ...]:
             )
         return devices
     for device in devices:
-        check_listed_device_id(device)
+        check_device_id(device)
     if len(set(devices)) != len(devices):
         raise TopicError(f"the device list {list(devices)} names a device twice; list each once")
-    # Each id is compared with the listed ids it folds to only: against every earlier one, 10,000 ids
-    # (telemetry.max_devices) took seconds at each check (the config's, then each pool plan's).
-    folded: dict[str, str] = {}
-    for device in devices:
-        twin = case_twin(device, (folded.setdefault(device.casefold(), device),))
-        if twin is not None:
-            raise TopicError(
-                f"the device list names {twin!r} and {device!r}, which differ only in case: device ids are "
-                "case-sensitive, so they would be two arms, whose calibrations a case-insensitive file "
-                "system keeps in one file; list the id each edge publishes as, once"
-            )
     return devices
 
 
-def check_listed_device_id(device_id: object) -> str:
-    """`device_id` unchanged when a person may list it (policy_device_id_problem), or TopicError naming the
-    value, the rule, and what to do about an arm whose edge publishes such an id."""
-    problem = policy_device_id_problem(device_id)
-    if problem is None:
-        return str(device_id)
-    if device_id_problem(device_id) is not None:
-        raise TopicError(f"device id {device_id!r} is not usable: {problem}; a device id is {DEVICE_ID_RULE}")
-    raise TopicError(
-        f"device id {device_id!r} cannot be listed: {problem}. Give the arm's edge an id that follows this "
-        'rule (its deviceId) and list that, or mirror it through devices = ["*"], where it cannot have a '
-        "calibration of its own"
-    )
+def check_deployed_devices(devices: Sequence[str]) -> tuple[str, ...]:
+    """A device list a deployment may name (the stack's): `check_devices`, each id also one a store and an
+    IAM policy can take, and no two differing only in case; TopicError naming the first that is not."""
+    devices = check_devices(devices)
+    if devices == (ALL_DEVICES,):
+        return devices
+    for device in devices:
+        problem = policy_device_id_problem(device)
+        if problem is not None:
+            raise TopicError(f"device id {device!r} cannot be listed: {problem}. {_RENAME}")
+    twins = case_twins(devices)
+    if twins:
+        first, second = twins[0]
+        raise TopicError(
+            f"the device list names {first!r} and {second!r}, which differ only in case: device ids are "
+            "case-sensitive, so they would be two arms, whose calibrations a case-insensitive file "
+            "system keeps in one file; list the id each edge publishes as, once"
+        )
+    return devices
+
+
+def case_twins(devices: Sequence[str]) -> list[tuple[str, str]]:
+    """Each listed id that differs from an earlier one in case alone, with that one (earlier first)."""
+    # Each id is compared with the listed ids it folds to only: against every earlier one, 10,000 ids
+    # (telemetry.max_devices) took seconds at each check (the config's, then each pool plan's).
+    folded: dict[str, str] = {}
+    found = []
+    for device in devices:
+        twin = case_twin(device, (folded.setdefault(device.casefold(), device),))
+        if twin is not None:
+            found.append((twin, device))
+    return found
+
+
+def listed_device_notes(devices: Sequence[str]) -> list[str]:
+    """What a valid agent device list holds that a person likely did not mean, one sentence each with the
+    fix: ids no calibration store can keep a file for (mirrored uncalibrated), and ids differing only in
+    case. Not refused: a list that ran before an update must still start after it."""
+    if tuple(devices) == (ALL_DEVICES,):
+        return []
+    notes = [
+        f"[telemetry] devices lists {device!r}, which cannot have a calibration of its own ({problem}), "
+        f"so its twin is mirrored uncalibrated. {_RENAME}"
+        for device in devices
+        if (problem := policy_device_id_problem(device)) is not None
+    ]
+    notes += [
+        f"[telemetry] devices lists {first!r} and {second!r}, which differ only in case: two arms to the "
+        "agent (device ids are case-sensitive), but one calibration file in a directory store on a "
+        "case-insensitive file system (macOS's, Windows's); if they are one arm, list the id its edge "
+        "publishes as, once"
+        for first, second in case_twins(devices)
+    ]
+    return notes
 
 
 def telemetry_topic(prefix: str, device_id: str) -> str:

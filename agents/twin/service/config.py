@@ -23,7 +23,14 @@ from typing import Any
 from twin.core.alarms import AlarmThresholds
 from twin.core.health import HealthThresholds
 from twin.core.modes import TwinMode
-from twin.core.topics import ALL_DEVICES, DEFAULT_TOPIC_PREFIX, TopicError, check_devices, check_topic_prefix
+from twin.core.topics import (
+    ALL_DEVICES,
+    DEFAULT_TOPIC_PREFIX,
+    TopicError,
+    check_devices,
+    check_topic_prefix,
+    listed_device_notes,
+)
 from twin.core.units import MAX_PAYLOAD_BYTES, Units
 from twin.output.rerun_settings import RerunSettings, RerunSettingsError
 from twin.output.ros2 import Ros2Error, Ros2Settings
@@ -760,7 +767,8 @@ def config_notes(path: str | Path | Sequence[str | Path] | None, config: AgentCo
     """What a valid config holds that a person likely did not mean, one sentence each with the fix: a key a
     later file sets over an earlier file's different value (the host runs its generated config, then the
     operator's `agent.local.toml`: a stack setting changed there is silently overruled), one arm's
-    calibration file used for several arms, and a servo error alarm that watches no bit. `twin run` logs each
+    calibration file used for several arms, a listed id that cannot have a calibration of its own or
+    differs from another in case alone, and a servo error alarm that watches no bit. `twin run` logs each
     as a warning; `twin config check` prints them."""
     paths: list[str | Path] = [] if path is None else [path] if isinstance(path, str | Path) else list(path)
     notes: list[str] = []
@@ -779,6 +787,7 @@ def config_notes(path: str | Path | Sequence[str | Path] | None, config: AgentCo
                     )
                 set_by[(section, key)] = (str(one), value)
     telemetry = config.telemetry
+    notes += listed_device_notes(telemetry.devices)
     several = telemetry.devices == (ALL_DEVICES,) or len(telemetry.devices) > 1
     if telemetry.calibration and several and not telemetry.calibrations:
         arms = (

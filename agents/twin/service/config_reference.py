@@ -90,12 +90,13 @@ KEY_DOCS: dict[str, str] = {
     "telemetry.devices": (
         'The devices to mirror: only their topics are subscribed. `["*"]` (the default) = every '
         "device under the prefix (`dt/lerobot/+/telemetry`, or the shared subscription under a "
-        "budget), one twin each. A listed id is 1 to 64 letters, digits, `-`, `_` or `.`, not `.` "
-        "first nor `.json` last: the stack's rule and the calibration stores' (`<id>.json`), so every "
-        "listed arm can be calibrated. Each is listed once, and no two differing only in case (ids are "
-        'case-sensitive). `["*"]` also mirrors an edge whose id is outside that rule (1 to 128 '
-        "printable characters without `/`, `+`, `#` or surrounding spaces, not `.` or `..`), with no "
-        "calibration of its own. Flag `--devices`."
+        "budget), one twin each. Each id is listed once; any id an edge may publish as is taken (1 to "
+        "128 printable characters without `/`, `+`, `#` or surrounding spaces, not `.` or `..`), but "
+        "only one of 1 to 64 letters, digits, `-`, `_` or `.`, not `.` first nor `.json` last (the "
+        "stack's rule and the calibration stores', `<id>.json`) can have a calibration of its own: "
+        "`twin run` and `twin config check` note any other, and any two ids differing only in case "
+        "(ids are case-sensitive, but a case-insensitive file system keeps their calibrations in one "
+        "file). Flag `--devices`."
     ),
     "telemetry.units": (
         "What `position` means: `ticks` (raw servo), `degrees` or `range100` (LeRobot-normalised), or"
