@@ -952,15 +952,7 @@ class HistoryProcess:
         if doubt is None:
             return
         if landed:
-            index = _TABLES.index(doubt.table)
-            self._before[_COMMITTED_OF[index]] += doubt.rows
-            self._before[_COMMITS] += index == 0
-            log.info(
-                "the history writer that died had committed its last %d rows to %s: written, not lost",
-                doubt.rows,
-                doubt.table,
-                extra={"history_rows_committed_before_death": doubt.rows},
-            )
+            self._count_landed(doubt, "died", "written, not lost")
             return
         self._rows_lost += doubt.rows
         log.error(
@@ -1174,16 +1166,8 @@ class HistoryProcess:
             return
         landed = self._check(own, deadline)
         if landed:
-            index = _TABLES.index(own.table)
-            self._before[_COMMITTED_OF[index]] += own.rows
-            self._before[_COMMITS] += index == 0
+            self._count_landed(own, "ended in the stop", "written")
             self._written_at_stop += own.rows
-            log.info(
-                "the history writer that ended in the stop had committed its last %d rows to %s: written",
-                own.rows,
-                own.table,
-                extra={"history_rows_committed_before_death": own.rows},
-            )
             return
         log.error(
             "the last commit of the history writer that ended in the stop (%d rows to %s) %s: counted as not "
@@ -1191,6 +1175,21 @@ class HistoryProcess:
             own.rows,
             own.table,
             "did not land" if landed is False else "could not be checked",
+        )
+
+    def _count_landed(self, doubt: _InDoubt, how: str, counted: str) -> None:
+        """A dead writer's commit in doubt that the table says landed: its rows and commit count as written
+        (`how` it ended, and what its rows are `counted` as, for the log)."""
+        index = _TABLES.index(doubt.table)
+        self._before[_COMMITTED_OF[index]] += doubt.rows
+        self._before[_COMMITS] += index == 0
+        log.info(
+            "the history writer that %s had committed its last %d rows to %s: %s",
+            how,
+            doubt.rows,
+            doubt.table,
+            counted,
+            extra={"history_rows_committed_before_death": doubt.rows},
         )
 
     def _check(self, doubt: _InDoubt, deadline: float) -> bool | None:
