@@ -1309,6 +1309,28 @@ def test_the_events_page_says_a_swapped_time_range_selects_nothing(
     assert browser_errors == []
 
 
+def test_the_events_page_fits_a_phone(console: str, page: Any, browser_errors: list[str]) -> None:
+    """A walk at 300 arms on a 390 px phone: the events table was 700 px wide, each event's text beyond the
+    window's edge, read only by scrolling the list sideways row by row."""
+    page.set_viewport_size({"width": 390, "height": 800})
+    try:
+        page.goto(console + "/events")
+        page.wait_for_selector("#events tbody td.msg")
+        sizes = page.evaluate(
+            "() => { const box = document.querySelector('.events');"
+            " const m = document.querySelector('#events td.msg');"
+            " return [box.scrollWidth, box.clientWidth, m.getBoundingClientRect().right, innerWidth]; }"
+        )
+        assert sizes[0] <= sizes[1] and sizes[2] <= sizes[3], f"list's widths, text's edge, window: {sizes}"
+        # Its header still names the zone the times are in.
+        assert page.locator("#events th").first.is_visible()
+        assert page.locator("#events th").first.inner_text().startswith("time (")
+    finally:
+        page.set_viewport_size({"width": 1280, "height": 800})  # the module's page: the next test expects it
+        leave(page)
+    assert browser_errors == []
+
+
 def test_the_events_page_follows_an_agent_that_restarted(
     console: str, rig: LocalRig, page: Any, browser_errors: list[str]
 ) -> None:
