@@ -1309,6 +1309,26 @@ def test_the_events_page_says_a_swapped_time_range_selects_nothing(
     assert browser_errors == []
 
 
+def test_an_arms_page_links_to_its_events(console: str, page: Any, browser_errors: list[str]) -> None:
+    """A walk at 300 arms went from an arm's page to the Events page and typed the arm's id there: the arm
+    page had no link to its events, and the Events page read no selection from its address."""
+    try:
+        page.goto(console + "/arm/arm-002")
+        page.locator("#arm-events").click()
+        page.wait_for_url("**/events?device=arm-002")
+        assert page.get_by_label("device").input_value() == "arm-002"
+        page.wait_for_selector("#events tbody tr[data-id]")
+        shown = page.locator("#events tbody td.id").all_inner_texts()
+        assert shown and set(shown) == {"arm-002"}, shown
+        # The lists take a value they offer, and leave out one they do not.
+        page.goto(console + "/events?device=arm-002&kind=status&level=loud")
+        assert page.get_by_label("kind").input_value() == "status"
+        assert page.get_by_label("level").input_value() == ""
+    finally:
+        leave(page)
+    assert browser_errors == []
+
+
 def test_the_events_page_fits_a_phone(console: str, page: Any, browser_errors: list[str]) -> None:
     """A walk at 300 arms on a 390 px phone: the events table was 700 px wide, each event's text beyond the
     window's edge, read only by scrolling the list sideways row by row."""

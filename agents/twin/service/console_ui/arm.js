@@ -49,7 +49,9 @@
   const lossBox = el("div", { class: "kv" });
   const rejectsBody = el("tbody");
   main.append(
-    el("div", { class: "toolbar" }, el("a", { href: "/", text: "← fleet" })),
+    // Its events are a link away: the Events page's device box filled in (a walk went there and typed the id).
+    el("div", { class: "toolbar" }, el("a", { href: "/", text: "← fleet" }),
+      el("a", { href: "/events?device=" + encodeURIComponent(device), id: "arm-events", text: "its events" })),
     title,
     el("div", { class: "grid2" },
       el("div", { class: "panel" }, summary, el("p", {}, rerun,

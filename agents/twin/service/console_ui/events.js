@@ -155,5 +155,14 @@
     input.addEventListener("input", () => { clearTimeout(timer); timer = setTimeout(load, 250); });
   }
   follow.addEventListener("change", () => { if (follow.checked) box.scrollTop = box.scrollHeight; });
+  // A link may choose the selection (an arm page's "its events": /events?device=arm-001): its device,
+  // level, kind and text, as the API names them. A value the lists do not offer is left out.
+  const asked = new URLSearchParams(location.search);
+  device.value = asked.get("device") || "";
+  text.value = asked.get("q") || "";
+  for (const [select, key] of [[level, "level"], [kind, "kind"]]) {
+    const value = asked.get(key) || "";
+    if ([...select.options].some((o) => o.value === value)) select.value = value;
+  }
   load();
 })();
