@@ -54,7 +54,11 @@ from .hostsim import (
 )
 from .synth import REPO_ROOT, Synth
 
-pytestmark = pytest.mark.slow
+# 600 s, not the suite's 300: pytest-timeout counts a test's fixtures in its budget, and whichever of this
+# module's tests comes first (a random order) pays the session's cdk synth and the host sim's first boot,
+# about 20 s of CPU. A stress run at a load average of 15-21 on two cores stretched that past 300 s once;
+# a hang still ends here.
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 
 USERDATA = REPO_ROOT / "userdata"
 
