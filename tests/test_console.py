@@ -7,6 +7,7 @@ events), and no page may log an error."""
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import csv
 import errno
@@ -250,6 +251,22 @@ def test_the_fleet_list_fits_a_tablet_and_a_phone(
         page.set_viewport_size({"width": 1280, "height": 800})  # the module's page: the next test expects it
         leave(page)
     assert browser_errors == []
+
+
+@contextlib.contextmanager
+def page_read_refused(page: Any, path: str) -> Iterator[None]:
+    """Reads of the page at `path` itself fail (the agent gone), until the block ends, however it ends. Its
+    path only: a glob of it refused the page's /api/arm and its stream too, and a route left on by a failure
+    failed the module's next tests."""
+
+    def the_page(url: str) -> bool:
+        return urllib.parse.urlsplit(url).path == path
+
+    page.route(the_page, lambda route: route.abort())
+    try:
+        yield
+    finally:
+        page.unroute(the_page)
 
 
 def serve_document(page: Any, path: str, event: str, doc: dict[str, Any]) -> None:
@@ -927,20 +944,13 @@ def test_a_refused_acknowledge_says_why_and_what_to_do(
     # What a page loaded before the agent's restart holds: a token this agent never issued; and the page
     # cannot be read again either (the agent went away once more), so the refusal stands.
     page.evaluate(stale)
-
-    def the_page(url: str) -> bool:
-        return urllib.parse.urlsplit(url).path == "/arm/arm-003"
-
-    page.route(the_page, lambda route: route.abort())
-    try:
+    with page_read_refused(page, "/arm/arm-003"):
         button.click()
         result = page.locator("#ack-result")
         result.filter(has_text="reload the console page").wait_for(timeout=TIMEOUT_S * 1000)
         assert alarm["alarm_id"] in result.inner_text() and "csrf_token_invalid" in result.inner_text()
         # Not acknowledged: still ACTIVE, or LATCHED if it cleared meanwhile (a slow machine).
         assert alarm_state(console, "arm-003", alarm["alarm_id"]) in ("ACTIVE", "LATCHED")
-    finally:
-        page.unroute(the_page)
 
     page.route("**/ack", lambda route: route.abort())  # the agent gone: no answer at all
     try:
@@ -1592,20 +1602,12 @@ def test_an_offline_arm_is_forgotten_from_its_page(
         # one either: refused, in the agent's words.
         token = page.evaluate("document.querySelector('meta[name=csrf-token]').content")
         page.evaluate("document.querySelector('meta[name=csrf-token]').content = 'from-the-agent-before'")
-
-        # The page's own address only: a glob of it refused its /api/arm and its stream too.
-        def the_page(url: str) -> bool:
-            return urllib.parse.urlsplit(url).path == "/arm/arm-retired"
-
-        page.route(the_page, lambda route: route.abort())
-        try:
+        with page_read_refused(page, "/arm/arm-retired"):
             button.click()
             result = page.locator("#forget-result")
             result.filter(has_text="reload the console page").wait_for(timeout=TIMEOUT_S * 1000)
             assert "was not forgotten" in result.inner_text() and "csrf_token_invalid" in result.inner_text()
             assert "arm-retired" in agent.state().devices
-        finally:
-            page.unroute(the_page)
         # Made, but the agent's state file could not keep it (a full disk): said as such, not as a refusal.
         detail = "the forget is made, but the state file /x/state.json could not be written (...)"
 
