@@ -329,6 +329,11 @@ def test_push_refuses_what_is_not_a_calibration(tmp_path: Path, capsys: pytest.C
     swapped = capsys.readouterr().err
     # ... the store flags kept: without them the command would go to the deployed stack's store.
     assert "the arm comes first" in swapped and f"push arm-001 {EXAMPLE} --store {store}`" in swapped, swapped
+    # A file named in capitals (as a Windows export may be) is told the same way.
+    upper = tmp_path / "ARM-001.JSON"
+    upper.write_bytes(EXAMPLE.read_bytes())
+    assert main(["calibration", "push", str(upper), "arm-001", "--store", store]) == cmd.EXIT_USAGE
+    assert "the arm comes first" in capsys.readouterr().err
     assert not (tmp_path / "cal").exists()
 
 

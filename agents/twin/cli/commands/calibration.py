@@ -154,7 +154,8 @@ def _arm_is_a_device_id(args: argparse.Namespace) -> bool:
     except ValueError as exc:
         done = {"push": "stored", "rm": "removed"}.get(args.action, "changed")
         file = str(getattr(args, "file", ""))
-        if args.arm.endswith(".json") and file and policy_device_id_problem(file) is None:
+        # `.JSON` too: the rule refuses an id ending in either case, and a Windows file may be named so.
+        if args.arm.lower().endswith(".json") and file and policy_device_id_problem(file) is None:
             # The two arguments the other way round: the file first, then the arm.
             # With the flags that chose the store: without them the command reaches the stack's store.
             swapped = f"twin calibration push {shlex.quote(file)} {shlex.quote(args.arm)}{_store_flags(args)}"
