@@ -446,58 +446,100 @@ class BrokerWatch:
 CROWDED_RATIO = 1.8
 CROWDED_CLEAR_RATIO = 1.3
 CROWDED_HOLD_S = 30.0
+# A device whose valid messages arrive at SLOW_RATIO times [health] expected_rate_hz or less (but some do)
+# for SLOW_HOLD_S is reported too, and again once at SLOW_CLEAR_RATIO times or more: the crowded lines turned
+# the other way (about 1 / 1.8 and 1 / 1.3). Under them an edge at 5 Hz against the default 10 is caught,
+# whose every gap is two nominal periods, so core.loss reads it as half its messages lost; an edge at 6 Hz,
+# whose gaps fit no whole number of periods and read as no loss, is not. Below a third of the rate (the
+# stale_periods default) the arm also goes STALE between its messages. The hold lets the dip of a pause or a
+# reconnect (at most one 5 s rate window) pass, and a fresh rate meter fill.
+SLOW_RATIO = 0.55
+SLOW_CLEAR_RATIO = 0.75
+SLOW_HOLD_S = 30.0
 # A device reported before its worker was started again (the checkpoint carries the reported devices): its
 # rate starts again from nothing in the new process, so it is not said to be back for this long.
 RESTORED_SETTLE_S = 10.0
 
 
 class RateWatch:
-    """Devices publishing well above the expected rate, from successive readings of their rates (`sweep`).
-    Holds only the devices over the line now or reported and not yet back: bounded by the fleet."""
+    """Devices publishing well above the expected rate ("crowded"), and those whose messages arrive well
+    under it ("slow"), from successive readings of their rates (`sweep`). Holds only the devices near a line
+    now or reported and not yet back: bounded by the fleet."""
 
-    def __init__(self, store: EventStore, expected_rate_hz: float) -> None:
+    def __init__(
+        self, store: EventStore, expected_rate_hz: float, *, stale_after_s: float | None = None
+    ) -> None:
         self._store = store
         self._expected = expected_rate_hz
+        # [health] stale_after_s, which the slow warning names (the default's 3 periods when not given)
+        self._stale_after_s = 3.0 / expected_rate_hz if stale_after_s is None else stale_after_s
         self._over_since: dict[str, float] = {}
+        self._under_since: dict[str, float] = {}
         self._reported: set[str] = set()
+        self._slow: set[str] = set()
         self._settling: dict[str, float] = {}  # restored device -> until when it cannot be back
 
     @property
     def reported(self) -> tuple[str, ...]:
         return tuple(sorted(self._reported))
 
-    def restore(self, devices: Iterable[str], now: float) -> None:
-        """Devices a checkpoint says were reported (`reported`, before the mirror's process was started
-        again): not reported a second time while they stay over the line, and not said to be back before
-        RESTORED_SETTLE_S, while their rates fill again."""
+    @property
+    def slow(self) -> tuple[str, ...]:
+        """The devices reported well under the expected rate and not yet back."""
+        return tuple(sorted(self._slow))
+
+    @property
+    def slowing(self) -> frozenset[str]:
+        """The devices reported slow and those under the slow line now, not yet held there long enough."""
+        return frozenset(self._slow.union(self._under_since))
+
+    def restore(self, devices: Iterable[str], now: float, slow: Iterable[str] = ()) -> None:
+        """Devices a checkpoint says were reported crowded (`reported`) or `slow`, before the mirror's process
+        was started again: not reported a second time while they stay past the line, and not said to be back
+        before RESTORED_SETTLE_S, while their rates fill again."""
         for device in devices:
             self._reported.add(device)
+            self._settling[device] = now + RESTORED_SETTLE_S
+        for device in slow:
+            self._slow.add(device)
             self._settling[device] = now + RESTORED_SETTLE_S
 
     def forget(self, device: str) -> None:
         """`device` was forgotten: nothing of it stays (it is judged anew if it publishes again)."""
         self._over_since.pop(device, None)
+        self._under_since.pop(device, None)
         self._reported.discard(device)
+        self._slow.discard(device)
         self._settling.pop(device, None)
 
     def sweep(self, rates: Mapping[str, float], now: float) -> None:
         """`rates`: each device heard from -> its valid messages per second now; `now` a monotonic time."""
-        expected = self._expected
-        for device in [d for d in self._over_since if d not in rates]:
-            del self._over_since[device]
+        for since in (self._over_since, self._under_since):
+            for device in [d for d in since if d not in rates]:
+                del since[device]
         # Evicted or restarted elsewhere: nothing to clear here.
         self._reported.intersection_update(rates)
-        for device in [d for d, until in self._settling.items() if d not in self._reported or now >= until]:
+        self._slow.intersection_update(rates)
+        reported = self._reported | self._slow
+        for device in [d for d, until in self._settling.items() if d not in reported or now >= until]:
             del self._settling[device]
+        expected = self._expected
         for device, rate in rates.items():
             if device in self._reported:
                 if device not in self._settling and rate < CROWDED_CLEAR_RATIO * expected:
                     self._reported.discard(device)
                     self._back(device, rate)
-                continue
-            if _held(self._over_since, device, rate >= CROWDED_RATIO * expected, now, CROWDED_HOLD_S):
+            elif device in self._slow:
+                if device not in self._settling and rate >= SLOW_CLEAR_RATIO * expected:
+                    self._slow.discard(device)
+                    self._back(device, rate, was="under")
+            elif _held(self._over_since, device, rate >= CROWDED_RATIO * expected, now, CROWDED_HOLD_S):
                 self._reported.add(device)
                 self._crowded(device, rate)
+            # Some messages, but few: an arm that stopped reads 0, and its status events tell of it.
+            elif _held(self._under_since, device, 0.0 < rate <= SLOW_RATIO * expected, now, SLOW_HOLD_S):
+                self._slow.add(device)
+                self._slowed(device, rate)
 
     def _crowded(self, device: str, rate: float) -> None:
         message = (
@@ -508,20 +550,38 @@ class RateWatch:
         )
         self._say(device, rate, "crowded", message)
 
-    def _back(self, device: str, rate: float) -> None:
-        # Also what an arm that stops says on its way down: its status events tell that part.
+    def _slowed(self, device: str, rate: float) -> None:
         message = (
-            f"{device} sends {rate:.1f} valid messages/s now, no longer far above the expected "
+            f"{device} sends {rate:.1f} valid messages/s, well under the expected {self._expected:g} Hz, "
+            f"for {SLOW_HOLD_S:.0f} s. Either its edge publishes at {rate:.1f} Hz: then set [health] "
+            f"expected_rate_hz = {_hz(rate)} in your agent config (on the twin host the stack's armRateHz), "
+            f"as until then its loss reads about {max(0.0, 1.0 - rate / self._expected):.0%} and it goes "
+            f"STALE whenever a gap passes {self._stale_after_s:.2g} s. Or most of its messages are lost on "
+            "the way in a fixed pattern: its edge's network, or its broker connection over its quota "
+            '(docs/agent.md, "Loss")'
+        )
+        self._say(device, rate, "slow", message)
+
+    def _back(self, device: str, rate: float, was: str = "above") -> None:
+        # Also what a crowded arm that stops says on its way down: its status events tell that part.
+        message = (
+            f"{device} sends {rate:.1f} valid messages/s now, no longer far {was} the expected "
             f"{self._expected:g} Hz"
         )
         self._say(device, rate, "expected", message)
 
     def _say(self, device: str, rate: float, state: str, message: str) -> None:
-        """One log line and one event: a warning when `state` is "crowded", info when back to "expected"."""
-        level = EventLevel.WARNING if state == "crowded" else EventLevel.INFO
+        """One log line and one event: a warning when `state` is "crowded" or "slow", info when back to
+        "expected"."""
+        level = EventLevel.INFO if state == "expected" else EventLevel.WARNING
         data = {"rate_hz": f"{rate:.2f}", "expected_rate_hz": f"{self._expected:g}", "rate": state}
         extra = {"event": "device_rate", "rate_hz": rate}
         _tell(self._store, device, level, message, data=data, log_extra=extra)
+
+
+def _hz(rate: float) -> str:
+    """A measured rate as a setting would be written: whole hertz, or one decimal under 2 Hz."""
+    return f"{round(rate):d}" if rate >= 2.0 else f"{round(rate, 1):g}"
 
 
 # An arm that loses this share of its messages (core.loss's estimate over its recent window, at least
@@ -558,9 +618,18 @@ class LossWatch:
         self._over_since.pop(device, None)
         self._reported.discard(device)
 
-    def sweep(self, recent: Mapping[str, tuple[int, int]], now: float, crowded: Collection[str] = ()) -> None:
+    def sweep(
+        self,
+        recent: Mapping[str, tuple[int, int]],
+        now: float,
+        crowded: Collection[str] = (),
+        *,
+        slow: Collection[str] = (),
+    ) -> None:
         """`recent`: each arm heard from -> (received, lost) over its recent window; `now` monotonic;
-        `crowded`: the devices RateWatch reports far above their rate (their "loss" is named for that)."""
+        `crowded`: the devices RateWatch reports far above their rate (their "loss" is named for that);
+        `slow`: those it reports, or is about to, well under it. Their loss is not reported here: the rate
+        warning names it as one reading (an edge at 2 Hz against 10 reads as 80 % lost, every arm of it)."""
         for device in [d for d in self._over_since if d not in recent]:
             del self._over_since[device]
         self._reported.intersection_update(recent)  # evicted or restarted elsewhere: nothing to clear
@@ -571,7 +640,7 @@ class LossWatch:
                     self._reported.discard(device)
                     self._say(device, ratio, lost, losing=False)
                 continue
-            over = ratio >= LOSING_REPORT_RATIO and lost >= LOSING_REPORT_MIN_LOST
+            over = ratio >= LOSING_REPORT_RATIO and lost >= LOSING_REPORT_MIN_LOST and device not in slow
             if _held(self._over_since, device, over, now, LOSING_HOLD_S):
                 self._reported.add(device)
                 self._say(device, ratio, lost, losing=True, crowded=device in crowded)
@@ -711,11 +780,13 @@ class FleetWatch:
 
     interval_s = WATCH_INTERVAL_S
 
-    def __init__(self, store: EventStore, *, expected_rate_hz: float = 10.0) -> None:
+    def __init__(
+        self, store: EventStore, *, expected_rate_hz: float = 10.0, stale_after_s: float | None = None
+    ) -> None:
         self.store = store
         self._statuses = StatusWatch(store)
         self._broker = BrokerWatch(store)
-        self._rates = RateWatch(store, expected_rate_hz)
+        self._rates = RateWatch(store, expected_rate_hz, stale_after_s=stale_after_s)
         self._losses = LossWatch(store)
         self._clocks = ClockWatch(store)
         self._next = 0.0
@@ -739,7 +810,7 @@ class FleetWatch:
 
     def losses(self, recent: Mapping[str, tuple[int, int]], now: float) -> None:
         """Read with the rates (`rates_due`): each arm's (received, lost) over its recent window."""
-        self._losses.sweep(recent, now, self._rates.reported)
+        self._losses.sweep(recent, now, self._rates.reported, slow=self._rates.slowing)
 
     @property
     def losing(self) -> tuple[str, ...]:
@@ -771,9 +842,14 @@ class FleetWatch:
         """The devices reported publishing far above the expected rate and not yet back (RateWatch)."""
         return self._rates.reported
 
-    def crowded_restored(self, devices: Iterable[str], now: float) -> None:
-        """Devices a checkpoint carried as `crowded`: RateWatch.restore."""
-        self._rates.restore(devices, now)
+    @property
+    def slow(self) -> tuple[str, ...]:
+        """The devices reported sending well under the expected rate and not yet back (RateWatch)."""
+        return self._rates.slow
+
+    def crowded_restored(self, devices: Iterable[str], now: float, slow: Iterable[str] = ()) -> None:
+        """Devices a checkpoint carried as `crowded` and as `slow`: RateWatch.restore."""
+        self._rates.restore(devices, now, slow)
 
     def statuses(self, statuses: Mapping[str, object]) -> None:
         self._statuses.sweep(statuses)

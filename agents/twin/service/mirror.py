@@ -521,7 +521,11 @@ class Mirror:
         self._error_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
         # The twin's events (the console's Events page): this mirror's, which the agent collects.
         self._events = EventStore(wall_clock=self._wall_clock)
-        self._watch = FleetWatch(self._events, expected_rate_hz=config.health.expected_rate_hz)
+        self._watch = FleetWatch(
+            self._events,
+            expected_rate_hz=config.health.expected_rate_hz,
+            stale_after_s=config.health.stale_after_s,
+        )
         self._rejections = RejectionThrottle(self._events, clock=clock)
         self.batches = 0
         # Fleet-wide distributions since start (every applied message of every device), for `twin bench`
@@ -840,6 +844,7 @@ class Mirror:
                 tracking_since=self._fleet.started,
                 alarms_summary=self._alarms_summary(),
                 crowded=self._watch.crowded,
+                slow=self._watch.slow,
                 losing=self._watch.losing,
                 clocks_off=self._watch.clocks_off,
                 kept=self._fleet.kept,
@@ -919,7 +924,7 @@ class Mirror:
                     self._restore_device(device, saved)
                     devices += 1
                 restored = self._alarms.restore(checkpoint.alarms)
-                self._watch.crowded_restored(checkpoint.crowded, self._clock())
+                self._watch.crowded_restored(checkpoint.crowded, self._clock(), checkpoint.slow)
                 self._watch.losing_restored(checkpoint.losing)
                 self._watch.clocks_restored(checkpoint.clocks_off)
             else:

@@ -444,6 +444,8 @@ class MirrorCheckpoint:
     # The devices the rate watch has reported publishing far above the expected rate (events.RateWatch), so a
     # restarted worker does not report them again.
     crowded: tuple[str, ...] = ()
+    # And those it reported sending well under it (a slow edge, or a fixed pattern of loss).
+    slow: tuple[str, ...] = ()
     # The arms the loss watch has reported losing messages (events.LossWatch), and those whose edge clocks
     # were reported off (events.ClockWatch), for the same reason.
     losing: tuple[str, ...] = ()

@@ -1,0 +1,175 @@
+"""Arms slower than `[health] expected_rate_hz`: the rate watch's slow side (one warning an episode naming the
+arm, its rate, the expected rate and the two readings; one info once back) and the status watch's flapping
+(an arm that goes STALE and back over and over makes one warning and a summary an interval, not two events a
+cycle). All on injected clocks: the watches are fed readings, the mirror batches, both at chosen times."""
+
+from __future__ import annotations
+
+import pickle
+import random
+from multiprocessing import Pipe
+
+from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
+from twin.edge.payload import encode, make_payload
+from twin.service import events
+from twin.service.admission import DeviceBudget
+from twin.service.config import load_config
+from twin.service.events import EventKind, EventQuery, EventStore, FleetWatch, RateWatch
+from twin.service.mirror import Mirror, PipeInbox
+from twin.transport.pipe import Batch
+
+# The edges' clocks: the epoch seconds their timestamps start from (the agent's wall clock agrees with them).
+_EPOCH = 1.7e9
+
+
+class Clock:
+    def __init__(self, t: float = 1000.0) -> None:
+        self.now = t
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def _rate_events(s: EventStore) -> list[tuple[str, str, str, float]]:
+    return [
+        (e.device, e.level, e.data["rate"], float(e.data["rate_hz"]))
+        for e in s.query(EventQuery())
+        if "rate" in e.data
+    ]
+
+
+def test_rate_watch_reports_an_arm_held_well_under_the_rate_once_and_its_return() -> None:
+    s = EventStore(100)
+    watch = RateWatch(s, expected_rate_hz=10.0, stale_after_s=0.3)
+    hold = events.SLOW_HOLD_S
+
+    def sweep(at: float, **rates: float) -> list[tuple[str, str, str, float]]:
+        watch.sweep({d.replace("_", "-"): r for d, r in rates.items()}, at)
+        return _rate_events(s)
+
+    # A dip shorter than the hold (a pause fills a 5 s window again) is no report; nor is an arm that stopped.
+    assert sweep(0.0, arm_001=3.0, arm_002=10.0, arm_003=0.0) == []
+    assert sweep(hold - 1.0, arm_001=3.0, arm_002=10.0, arm_003=0.0) == []
+    assert sweep(hold, arm_001=10.0, arm_002=10.0, arm_003=0.0) == []
+    # A 2 Hz edge held under the line for the hold: once, however long it lasts.
+    assert sweep(hold + 1.0, arm_001=2.0, arm_002=10.0, arm_003=0.0) == []
+    assert sweep(2 * hold + 1.0, arm_001=2.0, arm_002=10.0, arm_003=0.0) == [
+        ("arm-001", "warning", "slow", 2.0)
+    ]
+    assert watch.slow == ("arm-001",) and watch.reported == ()
+    # Over the report line but under the clearing one, or stopped: still reported, no new event.
+    for at, rate in ((3 * hold, 2.1), (3 * hold + 5.0, 6.5), (3 * hold + 10.0, 0.0), (4 * hold, 2.0)):
+        assert len(sweep(at, arm_001=rate, arm_002=10.0, arm_003=0.0)) == 1
+    # Back near the expected rate: one info event.
+    assert sweep(4 * hold + 5.0, arm_001=9.8, arm_002=10.0)[1:] == [("arm-001", "info", "expected", 9.8)]
+    assert watch.slow == ()
+    (warning, back) = s.query(EventQuery())
+    assert warning.kind == "twin" and warning.device == "arm-001"
+    assert "arm-001 sends 2.0 valid messages/s, well under the expected 10 Hz" in warning.message
+    assert "its edge publishes at 2.0 Hz: then set [health] expected_rate_hz = 2 " in warning.message
+    assert "its loss reads about 80%" in warning.message and "a gap passes 0.3 s" in warning.message
+    assert "most of its messages are lost on the way in a fixed pattern" in warning.message
+    assert warning.data == {"rate_hz": "2.00", "expected_rate_hz": "10", "rate": "slow"}
+    assert back.message == "arm-001 sends 9.8 valid messages/s now, no longer far under the expected 10 Hz"
+    # Forgotten, nothing of it stays.
+    sweep(5 * hold, arm_001=2.0)
+    watch.forget("arm-001")
+    sweep(6 * hold, arm_001=2.0)
+    assert len(_rate_events(s)) == 2
+
+
+def test_a_normal_arm_and_one_a_little_slow_are_not_reported() -> None:
+    s = EventStore(100)
+    watch = RateWatch(s, expected_rate_hz=10.0)
+    for k in range(100):  # 500 s of readings
+        watch.sweep({"arm-001": 10.0, "arm-002": 9.2, "arm-003": 6.0}, 5.0 * k)
+    assert _rate_events(s) == [] and watch.slowing == frozenset()
+
+
+def test_rate_watch_takes_back_a_slow_report_and_waits_for_the_rates_to_fill_before_a_return() -> None:
+    s = EventStore(100)
+    watch = RateWatch(s, expected_rate_hz=10.0)
+    watch.restore([], 100.0, slow=["arm-001"])
+    assert watch.slow == ("arm-001",)
+    watch.sweep({"arm-001": 10.0}, 100.0 + events.RESTORED_SETTLE_S / 2)  # a fresh meter reads anything
+    for at in (120.0, 140.0, 160.0):
+        watch.sweep({"arm-001": 2.0}, at)
+    assert _rate_events(s) == []
+    watch.sweep({"arm-001": 10.0}, 165.0)
+    assert _rate_events(s) == [("arm-001", "info", "expected", 10.0)] and watch.slow == ()
+
+
+def test_a_slow_arm_is_not_also_reported_as_losing_but_a_lossy_arm_at_its_rate_is() -> None:
+    """A walk: 300 edges at 2 Hz against 10 each read "loss 80 %" (their gaps are five nominal periods); the
+    slow warning names that reading, so the loss watch does not add a second warning an arm."""
+    s = EventStore(100)
+    watch = FleetWatch(s, expected_rate_hz=10.0)
+    hold = max(events.SLOW_HOLD_S, events.LOSING_HOLD_S)
+    for at in (0.0, hold / 2, hold):  # as the mirror: rates, then losses
+        watch.rates({"arm-001": 2.0, "arm-002": 8.0}, at)
+        watch.losses({"arm-001": (20, 80), "arm-002": (80, 20)}, at)
+    found = sorted((e.device, e.data.get("rate") or e.data.get("loss")) for e in s.query(EventQuery()))
+    assert found == [("arm-001", "slow"), ("arm-002", "losing")]
+
+
+# --- through a mirror --------------------------------------------------------------------------------------
+
+
+def _mirror(clock: Clock) -> Mirror:
+    config = load_config(
+        None, {"telemetry.devices": ["*"], "telemetry.units": "auto", "telemetry.max_devices": 64}
+    )
+    return Mirror(
+        config, inbox=PipeInbox(Pipe(duplex=False)[0]), budget=DeviceBudget(64), clock=clock, wall_clock=clock
+    )
+
+
+def _run(mirror: Mirror, clock: Clock, seconds: float, arms: dict[str, float], rng: random.Random) -> None:
+    """Each arm of `arms` (id -> rate, 0 for silent) publishes at its rate with a few ms of jitter on its
+    arrival; the mirror takes a batch every 0.1 s and sweeps after each, as its worker does."""
+    due = dict.fromkeys(arms, clock.now)
+    for _ in range(round(seconds * 10)):
+        clock.now += 0.1
+        sent: list[tuple[str, float]] = []
+        for device, hz in arms.items():
+            while hz and due[device] <= clock.now:
+                sent.append((device, due[device]))
+                due[device] += 1.0 / hz
+            if not hz:
+                due[device] = clock.now
+        if sent:
+            # Each message arrives a few ms after it was stamped, by the time of the batch that carries it.
+            received = tuple(min(clock.now, t + rng.uniform(0.0, 0.05)) for _, t in sent)
+            payloads = tuple(
+                encode(make_payload(d, _EPOCH + t, "ticks", rng, timestamp_ms=round((_EPOCH + t) * 1000)))
+                for d, t in sent
+            )
+            topics = tuple(telemetry_topic(DEFAULT_TOPIC_PREFIX, d) for d, _ in sent)
+            devices = tuple(d for d, _ in sent)
+            walls = tuple(_EPOCH + r for r in received)
+            mirror._handle(Batch(devices, topics, payloads, received, walls), 0)
+        mirror._watch_statuses()
+
+
+def _twin_events(mirror: Mirror, key: str) -> list[tuple[str, str, str]]:
+    found = mirror.events(EventQuery(kinds=frozenset({EventKind.TWIN.value})))
+    return [(e.device, e.level, e.data[key]) for e in found if key in e.data]
+
+
+def test_a_slow_arm_is_reported_once_through_the_mirror_and_not_twice_by_a_mirror_started_again() -> None:
+    clock, rng = Clock(), random.Random(3)
+    first = _mirror(clock)
+    arms = {"arm-001": 10.0, "arm-002": 2.0}
+    _run(first, clock, events.SLOW_HOLD_S + 3 * events.RATE_INTERVAL_S, arms, rng)
+    assert _twin_events(first, "rate") == [("arm-002", "warning", "slow")]
+    assert _twin_events(first, "loss") == []
+    checkpoint = pickle.loads(pickle.dumps(first.checkpoint(), protocol=pickle.HIGHEST_PROTOCOL))
+    assert checkpoint.slow == ("arm-002",)
+
+    again = _mirror(clock)
+    again.restore(checkpoint)
+    _run(again, clock, events.SLOW_HOLD_S + 3 * events.RATE_INTERVAL_S, arms, rng)
+    assert _twin_events(again, "rate") == [] and _twin_events(again, "loss") == []
+    # The edge set to its rate again: back, once its rate has filled.
+    _run(again, clock, events.RESTORED_SETTLE_S + 3 * events.RATE_INTERVAL_S, {"arm-002": 10.0}, rng)
+    assert _twin_events(again, "rate") == [("arm-002", "info", "expected")]
