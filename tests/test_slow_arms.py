@@ -14,7 +14,7 @@ from twin.edge.payload import encode, make_payload
 from twin.service import events
 from twin.service.admission import DeviceBudget
 from twin.service.config import load_config
-from twin.service.events import EventKind, EventQuery, EventStore, FleetWatch, RateWatch
+from twin.service.events import EventKind, EventQuery, EventStore, FleetWatch, RateWatch, StatusWatch
 from twin.service.mirror import Mirror, PipeInbox
 from twin.transport.pipe import Batch
 
@@ -173,3 +173,107 @@ def test_a_slow_arm_is_reported_once_through_the_mirror_and_not_twice_by_a_mirro
     # The edge set to its rate again: back, once its rate has filled.
     _run(again, clock, events.RESTORED_SETTLE_S + 3 * events.RATE_INTERVAL_S, {"arm-002": 10.0}, rng)
     assert _twin_events(again, "rate") == [("arm-002", "info", "expected")]
+
+
+# --- flapping ----------------------------------------------------------------------------------------------
+
+
+def _status_events(s: EventStore) -> list[tuple[str, str, str, str]]:
+    return [(e.device, e.level, e.data["status"], e.data.get("flapping", "")) for e in s.query(EventQuery())]
+
+
+def test_an_arm_that_goes_stale_and_back_over_and_over_is_told_as_flapping_then_summarised() -> None:
+    s = EventStore(1000)
+    watch = StatusWatch(s)
+    watch.arrived("arm-001")
+    watch.arrived("arm-002")
+    t = 0.0
+    # arm-002 pauses once a minute and a half: each pause is told as ever, however many there are.
+    for k in range(events.FLAP_ROUND_TRIPS + 2):
+        t = 90.0 * k
+        watch.sweep({"arm-001": "ONLINE", "arm-002": "STALE"}, t)
+        watch.sweep({"arm-001": "ONLINE", "arm-002": "ONLINE"}, t + 1.0)
+    assert [e[2] for e in _status_events(s) if e[0] == "arm-002"] == ["ONLINE"] + ["STALE", "ONLINE"] * (
+        events.FLAP_ROUND_TRIPS + 2
+    )
+    assert watch.flapping == ()
+    start = len(s.query(EventQuery()))
+    # arm-001 crosses its stale line at every sweep (half a second) for ten minutes.
+    t += 10.0
+    for k in range(1200):
+        watch.sweep({"arm-001": "STALE" if k % 2 else "ONLINE", "arm-002": "ONLINE"}, t + 0.5 * k)
+    got = _status_events(s)[start:]
+    told = events.FLAP_ROUND_TRIPS - 1  # the round trips told as such before the rule
+    went = [("arm-001", "warning", "STALE", ""), ("arm-001", "info", "ONLINE", "")]
+    assert got[: 2 * told] == went * told
+    assert got[2 * told :] == [
+        ("arm-001", "warning", "STALE", ""),
+        ("arm-001", "warning", "ONLINE", "started"),  # instead of its third return
+        ("arm-001", "warning", "ONLINE", "still"),  # after FLAP_SUMMARY_S: where it stands then
+    ]
+    (started, still) = s.query(EventQuery())[-2:]
+    assert started.message.startswith("arm-001 is flapping between ONLINE and STALE: back ONLINE 3 times")
+    assert started.data["round_trips"] == str(events.FLAP_ROUND_TRIPS) and started.data["previous"] == "STALE"
+    summarised = round(events.FLAP_SUMMARY_S)  # round trips since the warning: one a second
+    assert still.data["round_trips"] == str(summarised) and f": {summarised} round trips" in still.message
+    assert watch.flapping == ("arm-001",)
+    # It settles ONLINE: after FLAP_SETTLE_S, one info event; a later pause is told as ever.
+    t += 600.0
+    for k in range(round(events.FLAP_SETTLE_S) + 2):
+        watch.sweep({"arm-001": "ONLINE", "arm-002": "ONLINE"}, t + k)
+    t += events.FLAP_SETTLE_S + 2
+    watch.sweep({"arm-001": "STALE", "arm-002": "ONLINE"}, t)
+    watch.sweep({"arm-001": "ONLINE", "arm-002": "ONLINE"}, t + 1.0)
+    assert _status_events(s)[-3:] == [
+        ("arm-001", "info", "ONLINE", "settled"),
+        ("arm-001", "warning", "STALE", ""),
+        ("arm-001", "info", "ONLINE", ""),
+    ]
+    assert watch.flapping == ()
+
+
+def test_a_flapping_arm_that_goes_offline_is_told_so_and_its_episode_ends() -> None:
+    s = EventStore(100)
+    watch = StatusWatch(s)
+    watch.arrived("arm-001")
+    for k in range(2 * events.FLAP_ROUND_TRIPS + 5):  # ends STALE
+        watch.sweep({"arm-001": "ONLINE" if k % 2 else "STALE"}, 0.5 * k)
+    assert watch.flapping == ("arm-001",)
+    watch.sweep({"arm-001": "OFFLINE"}, 20.0)
+    assert watch.flapping == () and _status_events(s)[-1] == ("arm-001", "warning", "OFFLINE", "")
+    assert s.query(EventQuery())[-1].message == "arm-001 went OFFLINE (was STALE)"
+
+
+def test_a_fleet_at_2_hz_against_10_makes_one_slow_warning_an_arm_and_few_status_events() -> None:
+    """The walk's fleet in small, over ten simulated minutes through a mirror: arms at 2 Hz against the
+    default 10 each get one slow warning and no loss warning, and a bounded number of status events (their
+    gaps pass the 0.3 s stale line at most sweeps); an arm at 10 Hz gets none of it; one that pauses for a
+    second goes STALE and comes back ONLINE, told as ever."""
+    clock, rng = Clock(), random.Random(11)
+    mirror = _mirror(clock)
+    slow = [f"arm-{i:03d}" for i in range(1, 9)]
+    arms = dict.fromkeys(slow, 2.0) | {"arm-100": 10.0, "arm-101": 10.0}
+    _run(mirror, clock, 120.0, arms, rng)
+    _run(mirror, clock, 1.0, arms | {"arm-101": 0.0}, rng)  # arm-101 pauses for a second
+    _run(mirror, clock, 480.0, arms, rng)
+
+    rates = _twin_events(mirror, "rate")
+    assert sorted(rates) == [(d, "warning", "slow") for d in slow]
+    assert _twin_events(mirror, "loss") == []
+    statuses = mirror.events(EventQuery(kinds=frozenset({EventKind.STATUS.value})))
+    per_arm = {d: [e for e in statuses if e.device == d] for d in arms}
+    # The arrival, the round trips before the flapping rule, its warning, a summary each FLAP_SUMMARY_S.
+    bound = 1 + 2 * events.FLAP_ROUND_TRIPS + 600.0 / events.FLAP_SUMMARY_S
+    assert all(0 < len(per_arm[d]) <= bound for d in slow), {d: len(per_arm[d]) for d in slow}
+    # Flapping, told on the mirror's clock: started, then a summary after FLAP_SUMMARY_S.
+    told = {d: [e.data.get("flapping", "") for e in per_arm[d]] for d in slow}
+    assert all("started" in told[d] and "still" in told[d] for d in slow), told
+    assert [e.data["status"] for e in per_arm["arm-100"]] == ["ONLINE"]
+    assert [(e.data["status"], e.data["previous"]) for e in per_arm["arm-101"]] == [
+        ("ONLINE", ""),
+        ("STALE", "ONLINE"),
+        ("ONLINE", "STALE"),
+    ]
+    # What the Fleet page shows is the arms' status as it is, whatever the events held back.
+    shown = mirror.statuses()
+    assert shown["arm-100"] == "ONLINE" and {str(shown[d]) for d in slow} <= {"ONLINE", "STALE"}

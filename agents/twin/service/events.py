@@ -15,7 +15,8 @@ than the buffer simply gets what is left. `query` filters by device, level, kind
 `subscribe` calls back on every new event (from the emitting thread: the callback must only hand it on).
 
 The emitters that need memory live here too, so the runtime calls each with one line: `StatusWatch` turns the
-fleet's statuses (which change by the passing of time, not by a message) into transitions, `BrokerWatch` the
+fleet's statuses (which change by the passing of time, not by a message) into transitions (an arm that
+flaps between ONLINE and STALE into one warning and a summary an interval), `BrokerWatch` the
 connection pool's counters into disconnects and reconnects, `RejectionThrottle` a flood of rejected messages
 into at most one event per device and reason per interval, with the count it stands for.
 """
@@ -291,15 +292,46 @@ _STATUS_LEVEL = {"ONLINE": EventLevel.INFO, "STALE": EventLevel.WARNING, "OFFLIN
 # What StatusWatch holds for a device taken back from a checkpoint until a sweep reads its status.
 _RESTORED = "restored"
 
+# An arm back ONLINE from STALE for the FLAP_ROUND_TRIPS-th time within FLAP_WINDOW_S is flapping: one warning
+# says so (with the count), and its ONLINE/STALE changes make no event of their own after it, only a summary
+# at most every FLAP_SUMMARY_S (the round trips since the last one, and where it stands), until it has kept
+# one status for FLAP_SETTLE_S (one info event) or goes OFFLINE (told as always). An edge publishing slower
+# than the stale line (stale_periods / expected_rate_hz) crosses it at nearly every sweep: 300 such arms made
+# two events each a second, and pushed everything else out of the store in minutes. Three round trips a
+# minute is not what an arm that pauses now and then does: a pause is one STALE and one ONLINE, as before.
+FLAP_ROUND_TRIPS = 3
+FLAP_WINDOW_S = 60.0
+FLAP_SUMMARY_S = 300.0
+FLAP_SETTLE_S = 60.0
+
+
+@dataclass(slots=True)
+class _Flapping:
+    """A device reported flapping: when it began and its last ONLINE/STALE change (monotonic), the round
+    trips in all and since the last summary, and when the next summary may come."""
+
+    since: float
+    changed: float
+    trips: int
+    pending: int
+    next_summary: float
+
 
 class StatusWatch:
     """Device status transitions from successive readings of the fleet's statuses, and each device's arrival.
     The arrival is told by the device's first valid message (`arrived`), not read by a later sweep: a sweep
-    that comes over the STALE time after that message (a busy host) would say the arm arrived STALE."""
+    that comes over the STALE time after that message (a busy host) would say the arm arrived STALE. A device
+    going STALE and back over and over is told as flapping instead (FLAP_ROUND_TRIPS)."""
 
     def __init__(self, store: EventStore) -> None:
         self._store = store
         self._last: dict[str, str] = {}
+        self._returns: dict[str, deque[float]] = {}  # the times of each device's recent returns to ONLINE
+        self._flapping: dict[str, _Flapping] = {}
+
+    @property
+    def flapping(self) -> tuple[str, ...]:
+        return tuple(sorted(self._flapping))
 
     def arrived(self, device: str) -> None:
         """`device` sent its first valid message since this watch began: it is ONLINE now. Nothing for a
@@ -316,41 +348,119 @@ class StatusWatch:
     def forget(self, device: str) -> None:
         """`device` was forgotten: if it publishes again, it arrives anew."""
         self._last.pop(device, None)
+        self._returns.pop(device, None)
+        self._flapping.pop(device, None)
 
-    def sweep(self, statuses: Mapping[str, object]) -> None:
-        """`statuses`: device -> its status now (a DeviceStatus or its string)."""
+    def sweep(self, statuses: Mapping[str, object], now: float | None = None) -> None:
+        """`statuses`: device -> its status now (a DeviceStatus or its string); `now`: a monotonic time, for
+        the flapping rule (the watch's own clock reading when not given)."""
+        at = time.monotonic() if now is None else now
         last = self._last
         for device, status in statuses.items():
-            now = str(status)
+            current = str(status)
             before = last.get(device)
-            if before == now:
+            if before == current:
                 continue
-            last[device] = now
+            last[device] = current
             if before is None:
                 # Never told of (`arrived` or `restored`): the mirror sweeps the arms heard from only, and
                 # tells each arrival first, so this is a baseline, not an event; its changes are reported.
                 continue
-            level = _STATUS_LEVEL.get(now, EventLevel.INFO)
-            if before == _RESTORED:
-                message, before = f"{device} is {now} (restored)", None
-            elif before == "OFFLINE" and now == "STALE":
-                # Heard again, but the sweep met it past its stale line: a return, not a worsening.
-                message = f"{device} went STALE (was OFFLINE): heard again, not yet at its rate"
-                level = EventLevel.INFO
-            else:
-                message = f"{device} went {now} (was {before})"
-            self._emit(device, now, before or "", message, level)
+            if not self._flapped(device, before, current, at):
+                self._changed(device, before, current)
+        if self._flapping:
+            self._sweep_flapping(statuses, at)
+
+    def _changed(self, device: str, before: str, now: str) -> None:
+        level = _STATUS_LEVEL.get(now, EventLevel.INFO)
+        if before == _RESTORED:
+            message, before = f"{device} is {now} (restored)", ""
+        elif before == "OFFLINE" and now == "STALE":
+            # Heard again, but the sweep met it past its stale line: a return, not a worsening.
+            message = f"{device} went STALE (was OFFLINE): heard again, not yet at its rate"
+            level = EventLevel.INFO
+        else:
+            message = f"{device} went {now} (was {before})"
+        self._emit(device, now, before, message, level)
+
+    def _flapped(self, device: str, before: str, now: str, at: float) -> bool:
+        """Whether the change of `device` from `before` to `now` is told as flapping (or held in it)."""
+        flap = self._flapping.get(device)
+        between = {before, now} == {"ONLINE", "STALE"}
+        if flap is not None:
+            if not between:
+                del self._flapping[device]  # OFFLINE (or restored): told as itself, and the episode ends
+                return False
+            flap.changed = at
+            if now == "ONLINE":
+                flap.trips += 1
+                flap.pending += 1
+            return True
+        if not between or now != "ONLINE":
+            return False
+        returns = self._returns.setdefault(device, deque(maxlen=FLAP_ROUND_TRIPS))
+        returns.append(at)
+        if len(returns) < FLAP_ROUND_TRIPS or at - returns[0] > FLAP_WINDOW_S:
+            return False
+        del self._returns[device]
+        self._flapping[device] = _Flapping(at, at, FLAP_ROUND_TRIPS, 0, at + FLAP_SUMMARY_S)
+        self._emit(
+            device,
+            now,
+            before,
+            f"{device} is flapping between ONLINE and STALE: back ONLINE {FLAP_ROUND_TRIPS} times within "
+            f"{at - returns[0]:.0f} s. Its changes are summarised every {FLAP_SUMMARY_S / 60:.0f} min until "
+            f"it keeps one status for {FLAP_SETTLE_S:.0f} s; the Fleet page shows its status as it is. An "
+            "edge publishing slower than [health] expected_rate_hz (its gaps pass the stale line, "
+            "stale_periods / expected_rate_hz) does this, and so does a link that delivers in bursts",
+            EventLevel.WARNING,
+            flapping="started",
+            trips=FLAP_ROUND_TRIPS,
+        )
+        return True
+
+    def _sweep_flapping(self, statuses: Mapping[str, object], at: float) -> None:
+        """A summary of each flapping device whose interval is up, and the end of those that settled."""
+        for device in list(self._flapping):
+            flap = self._flapping[device]
+            if device not in statuses:  # forgotten, evicted or moved to another worker
+                del self._flapping[device]
+                continue
+            status = str(statuses[device])
+            if at - flap.changed >= FLAP_SETTLE_S:
+                del self._flapping[device]
+                message = (
+                    f"{device} no longer flaps: {status} for {at - flap.changed:.0f} s, after {flap.trips} "
+                    f"round trips to STALE over {(flap.changed - flap.since) / 60:.0f} min"
+                )
+                level = _STATUS_LEVEL.get(status, EventLevel.INFO)
+                self._emit(device, status, "", message, level, flapping="settled", trips=flap.trips)
+            elif at >= flap.next_summary and flap.pending:
+                message = (
+                    f"{device} still flaps between ONLINE and STALE: {flap.pending} round trips in the last "
+                    f"{(at - flap.next_summary + FLAP_SUMMARY_S) / 60:.0f} min ({flap.trips} in all); "
+                    f"{status} now"
+                )
+                self._emit(
+                    device, status, "", message, EventLevel.WARNING, flapping="still", trips=flap.pending
+                )
+                flap.pending, flap.next_summary = 0, at + FLAP_SUMMARY_S
 
     def _emit(
-        self, device: str, now: str, before: str, message: str, level: EventLevel = EventLevel.INFO
+        self,
+        device: str,
+        now: str,
+        before: str,
+        message: str,
+        level: EventLevel = EventLevel.INFO,
+        *,
+        flapping: str = "",
+        trips: int = 0,
     ) -> None:
-        self._store.emit(
-            EventKind.STATUS,
-            level,
-            message,
-            device=device,
-            data={"status": now, "previous": before},
-        )
+        data: dict[str, object] = {"status": now, "previous": before}
+        if flapping:
+            data |= {"flapping": flapping, "round_trips": trips}
+        self._store.emit(EventKind.STATUS, level, message, device=device, data=data)
 
 
 class ConnectionCounters(Protocol):
@@ -851,8 +961,9 @@ class FleetWatch:
         """Devices a checkpoint carried as `crowded` and as `slow`: RateWatch.restore."""
         self._rates.restore(devices, now, slow)
 
-    def statuses(self, statuses: Mapping[str, object]) -> None:
-        self._statuses.sweep(statuses)
+    def statuses(self, statuses: Mapping[str, object], now: float | None = None) -> None:
+        """`now`: a monotonic time (for StatusWatch's flapping rule)."""
+        self._statuses.sweep(statuses, now)
 
     def arrived(self, device: str) -> None:
         self._statuses.arrived(device)

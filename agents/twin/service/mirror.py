@@ -1522,7 +1522,7 @@ class Mirror:
         with self._lock:
             # Of the arms heard from only: their arrivals were told by `_admit`.
             statuses = self._fleet.statuses(at, heard_only=True)
-        self._watch.statuses(statuses)
+        self._watch.statuses(statuses, now)
         if self._watch.rates_due(now):
             with self._lock:
                 rates = self._fleet.rates(at)
