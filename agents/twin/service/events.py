@@ -96,7 +96,8 @@ class EventKind(StrEnum):
     REJECTED = "rejected"  # telemetry the decoder refused, by reason
     BROKER = "broker"  # a broker connection went down or came (back) up
     WORKER = "worker"  # a worker process of a sharded agent exited or runs again
-    # a device's twin was rebuilt (its edge clock jumped back), its rate is far too high, or it was forgotten
+    # a device's twin was rebuilt (its edge clock jumped back), its rate is far from the expected, or it was
+    # forgotten
     TWIN = "twin"
     CALIBRATION = "calibration"  # an arm's calibration was picked up, refused or removed
     AGENT = "agent"  # the agent started (saying whether the run before it stopped) or stopped
