@@ -106,6 +106,15 @@ def test_config_check_notes_one_arms_calibration_for_several_and_a_key_a_later_f
     assert "note:" not in capsys.readouterr().out
 
 
+def test_config_check_says_the_rate_the_arms_are_expected_at(tmp_path: Path, capsys) -> None:
+    """A walk: 300 edges at 2 Hz read 80 % loss and flapped STALE, and nothing said 10 Hz was expected."""
+    config = tmp_path / "agent.toml"
+    config.write_text("[health]\nexpected_rate_hz = 2\n")
+    assert main(["config", "check", str(config)]) == 0
+    (line,) = [line for line in capsys.readouterr().out.splitlines() if line.startswith("health: ")]
+    assert line.startswith("health: each arm expected at 2 Hz ([health] expected_rate_hz), STALE after 1.5 s")
+
+
 def check_notes(tmp_path: Path, capsys, text: str) -> list[str]:
     """The notes `twin config check` prints for a config file holding `text` (which it takes: exit 0)."""
     config = tmp_path / "agent.toml"

@@ -763,6 +763,18 @@ def connection_plan(config: AgentConfig) -> str:
     )
 
 
+def health_plan(config: AgentConfig) -> str:
+    """The rate every arm is expected at and what hangs on it, for `twin config check` to show: a fleet of
+    edges slower than the setting read as losing most of their messages and flapped STALE, and nothing said
+    which rate the agent expected."""
+    h = config.health
+    return (
+        f"health: each arm expected at {h.expected_rate_hz:g} Hz ([health] expected_rate_hz), STALE after "
+        f"{h.stale_after_s:g} s without a valid message, OFFLINE after {h.offline_after_s:g} s; an edge "
+        "publishing slower than that reads as losing messages and goes STALE between them"
+    )
+
+
 def config_notes(path: str | Path | Sequence[str | Path] | None, config: AgentConfig) -> list[str]:
     """What a valid config holds that a person likely did not mean, one sentence each with the fix: a key a
     later file sets over an earlier file's different value (the host runs its generated config, then the

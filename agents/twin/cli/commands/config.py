@@ -44,7 +44,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from twin.service.config import ConfigError, config_notes, connection_plan, load_config
+    from twin.service.config import ConfigError, config_notes, connection_plan, health_plan, load_config
     from twin.service.config_reference import render_example, render_reference
 
     if args.action == "example":
@@ -60,6 +60,7 @@ def run(args: argparse.Namespace) -> int:
         console.out(f"{', '.join(str(f) for f in args.files)}: a valid agent config")
         # What a broker policy must allow (on the twin host, the stack's role; docs/scaling.md).
         console.out(connection_plan(config))
+        console.out(health_plan(config))  # the rate the loss estimate and the stale line take as the edges'
         # Valid, so still exit 0: what the agent would start with, and what it would warn of.
         for note in config_notes(args.files, config):
             console.out(f"note: {note}")
