@@ -14,6 +14,7 @@ import re
 import signal
 import threading
 import time
+from collections.abc import Sequence
 from multiprocessing import Pipe
 from pathlib import Path
 from typing import Any
@@ -76,6 +77,74 @@ def test_events_are_numbered_and_the_oldest_go_first() -> None:
     assert [e.id for e in s.after(0)] == [3, 4, 5]
     assert s.after(5) == [] and s.after(99) == []
     assert [e.id for e in s.after(2, limit=2)] == [3, 4]
+
+
+def raise_alarms(s: EventStore, devices: Sequence[str]) -> list[Event]:
+    raised = [s.emit(EventKind.AGENT, EventLevel.INFO, "the agent started")]
+    for device in devices:
+        data = {"action": "raised", "alarm_id": f"{device}/elbow_flex/over_temperature"}
+        raised.append(s.emit(EventKind.ALARM, EventLevel.WARNING, "hot", device=device, data=data))
+    return raised
+
+
+def flood_statuses(s: EventStore, n: int) -> list[Event]:
+    devices = [f"arm-{i % 300:03d}" for i in range(n)]
+    return [s.emit(EventKind.STATUS, EventLevel.WARNING, f"{d} went STALE", device=d) for d in devices]
+
+
+def test_a_flood_of_status_events_does_not_push_the_alarm_raises_out() -> None:
+    # 300 arms on a loaded host going STALE and ONLINE filled the store and the raises went: the Sessions page
+    # read "alarms raised: not known" on every row and "warning and worse" listed only STALE events.
+    s, _ = store(capacity=100)
+    raised = raise_alarms(s, ["arm-001", "arm-002", "arm-003"])
+    flood = flood_statuses(s, 3 * s.capacity)
+    assert len(s) == s.capacity and s.dropped == len(raised) + len(flood) - s.capacity
+    assert s.query(EventQuery(kinds=frozenset({"alarm", "agent"}))) == raised
+    warnings = s.query(EventQuery(min_level=EventLevel.WARNING))
+    assert warnings[:3] == raised[1:] and warnings[3:] == flood[-(s.capacity - len(raised)) :]
+    everything = s.after(0)
+    assert everything == raised + flood[-(s.capacity - len(raised)) :] == s.query(EventQuery())
+    assert [e.id for e in everything] == sorted({e.id for e in everything})  # in id order, once each
+    assert s.last_id == len(raised) + len(flood)
+
+
+def test_a_reader_that_saw_an_id_gets_exactly_the_kept_events_after_it() -> None:
+    s, _ = store(capacity=50)
+    made = raise_alarms(s, ["arm-001", "arm-002"]) + flood_statuses(s, 60)
+    made += raise_alarms(s, ["arm-003"]) + flood_statuses(s, 90)
+    held = {e.id for e in s.query(EventQuery())}
+    kept = [e for e in made if e.id in held]  # made is in id order
+    assert len(kept) == s.capacity and s.after(0) == kept
+    assert [e.message for e in kept if e.kind != "status"] == [
+        "the agent started",
+        "hot",
+        "hot",
+        "the agent started",
+        "hot",
+    ]
+    for seen in range(s.last_id + 2):
+        expected = [e for e in kept if e.id > seen]
+        assert s.after(seen) == expected, seen
+        assert s.after(seen, limit=7) == expected[:7], seen
+
+
+def test_the_kinds_that_are_not_bulk_have_a_share_a_flood_of_them_takes_no_more_than() -> None:
+    # Either part takes what the other leaves: a flood of alarms pushes out older alarms once past its share.
+    s, _ = store(capacity=10)
+    statuses = flood_statuses(s, 3)
+    alarms = raise_alarms(s, [f"arm-{i:03d}" for i in range(20)])
+    assert s.after(0) == statuses + alarms[-7:]
+    more = flood_statuses(s, 30)
+    assert s.after(0) == alarms[-5:] + more[-5:]  # each part down to its share
+
+
+def test_a_restored_store_keeps_the_alarms_a_flood_came_after() -> None:
+    s, _ = store(capacity=1000)
+    made = raise_alarms(s, ["arm-001"]) + flood_statuses(s, 900)
+    again, _ = store(capacity=100)
+    assert again.restore(made) == 100
+    assert again.after(0) == made[:2] + made[-98:]
+    assert again.emit(EventKind.AGENT, EventLevel.INFO, "the agent started").id == len(made) + 1
 
 
 def test_queries_filter_by_device_level_kind_text_and_time() -> None:

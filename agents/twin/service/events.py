@@ -9,10 +9,14 @@ by device, tail live in a browser and export.
 of a sharded agent hands its events to the receiving process over the control pipe (`EventStore.after`, then
 `EventStore.ingest` there, which numbers them anew), and JSON-encodable as it is for the HTTP API.
 
-`EventStore` is a ring buffer: the newest `capacity` events, each with an id that only grows, so a reader
-that remembers the last id it saw asks for what came after it (`after`), and a reader that fell further behind
-than the buffer simply gets what is left. `query` filters by device, level, kind, text and time range;
-`subscribe` calls back on every new event (from the emitting thread: the callback must only hand it on).
+`EventStore` keeps at most `capacity` events, each with an id that only grows, so a reader that remembers
+the last id it saw asks for what came after it (`after`), and a reader that fell further behind than the store
+simply gets what is left. The kinds that come in floods (`BULK_KINDS`: status transitions, rejections, the
+watches' twin events) and the others (alarms, calibration, agent, worker, broker) each hold a part of it:
+when it is full, the oldest event of a part over its share goes, so a fleet going STALE and ONLINE cannot
+push an alarm raise out (the Sessions page counts the raises it holds). `query` filters by device, level,
+kind, text and time range; `subscribe` calls back on every new event (from the emitting thread: the callback
+must only hand it on).
 
 The emitters that need memory live here too, so the runtime calls each with one line: `StatusWatch` turns the
 fleet's statuses (which change by the passing of time, not by a message) into transitions (an arm that
@@ -31,7 +35,6 @@ import math
 import threading
 import time
 from bisect import bisect_right
-from collections import deque
 from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from enum import IntEnum, StrEnum
@@ -63,6 +66,7 @@ __all__ = [
 
 # How many events a store keeps by default: at a 2,000-arm fleet's start every arm comes ONLINE once, so the
 # buffer must hold a few fleets' worth of transitions and still be small (an event is ~300 bytes).
+# `[twin] events_capacity` sets it for a host.
 DEFAULT_CAPACITY = 20_000
 # A device's rejections of one reason make at most one event per this many seconds (the count in between is
 # carried by the next one): a flooding edge must not push every other event out of the buffer.
@@ -101,6 +105,16 @@ class EventKind(StrEnum):
     TWIN = "twin"
     CALIBRATION = "calibration"  # an arm's calibration was picked up, refused or removed
     AGENT = "agent"  # the agent started (saying whether the run before it stopped) or stopped
+
+
+# The kinds whose number grows with the fleet and its troubles, not with what an operator must act on: every
+# arm's status transitions (a loaded host sweeps 300 arms STALE and ONLINE again and again), rejections (up to
+# MAX_REJECTED_EVENTS_PER_INTERVAL every 10 s, for hours) and the rate, loss and clock watches' and forgets'
+# `twin` events (one per arm each). They share one part of the store; the others (alarm, calibration, agent,
+# worker, broker) the rest, which a flood of these cannot take.
+BULK_KINDS: frozenset[str] = frozenset(
+    {EventKind.STATUS.value, EventKind.REJECTED.value, EventKind.TWIN.value}
+)
 
 
 class Event(msgspec.Struct, frozen=True, gc=False):
@@ -166,34 +180,76 @@ def _level_of(event: Event) -> EventLevel:
 
 
 Subscriber = Callable[[Event], None]
+_ID = attrgetter("id")
+
+
+class _Part:
+    """One part of an `EventStore`: its events in id order, the oldest going first. A list and the index
+    of its oldest, not a deque: `after` bisects it, and a deque's indexing walks its blocks. An event that
+    goes is let go at once; the list's head is cut off once it is the larger half (amortised: pointers).
+    """
+
+    __slots__ = ("_head", "_items")
+
+    def __init__(self) -> None:
+        self._items: list[Event | None] = []
+        self._head = 0
+
+    def __len__(self) -> int:
+        return len(self._items) - self._head
+
+    def append(self, event: Event) -> None:
+        self._items.append(event)
+
+    def drop_oldest(self) -> None:
+        self._items[self._head] = None
+        self._head += 1
+        if self._head * 2 > len(self._items):
+            del self._items[: self._head]
+            self._head = 0
+
+    def after(self, after_id: int, limit: int | None) -> list[Event]:
+        """Its events newer than `after_id`, oldest first: the first `limit` of them."""
+        items = self._items
+        start = bisect_right(items, after_id, lo=self._head, key=_ID)  # none from the head on is None
+        end = len(items) if limit is None else start + limit
+        return items[start:end]  # type: ignore[return-value]
 
 
 class EventStore:
-    """The newest `capacity` events, numbered; thread-safe (module doc)."""
+    """At most `capacity` events, numbered, in two parts (module doc); thread-safe.
+
+    `BULK_KINDS` fill one part, the other kinds the other. The other kinds keep `capacity // 2` for
+    themselves: a full store lets go of the oldest of those only while they hold more than that, else of
+    the oldest bulk one. Either part may take what the other leaves, so a store with no flood keeps the
+    newest `capacity` events as one ring would."""
 
     def __init__(
         self, capacity: int = DEFAULT_CAPACITY, *, wall_clock: Callable[[], float] = time.time
     ) -> None:
         if capacity < 1:
             raise ValueError(f"an event store holds at least one event, got capacity = {capacity}")
-        self._events: deque[Event] = deque(maxlen=capacity)
+        self._capacity = capacity
+        self._kept_share = capacity // 2
+        self._bulk = _Part()
+        self._kept = _Part()
         self._ids = itertools.count(1)
         self._last_id = 0
         self._lock = threading.Lock()
         self._subscribers: list[Subscriber] = []
         self._wall_clock = wall_clock
-        self.dropped = 0  # pushed out of the buffer by newer ones
+        self.dropped = 0  # let go of for newer ones
 
     @property
     def capacity(self) -> int:
-        return self._events.maxlen or 0
+        return self._capacity
 
     @property
     def last_id(self) -> int:
         return self._last_id
 
     def __len__(self) -> int:
-        return len(self._events)
+        return len(self._bulk) + len(self._kept)
 
     def emit(
         self,
@@ -225,10 +281,8 @@ class EventStore:
             return []
         with self._lock:
             numbered = [msgspec.structs.replace(e, id=next(self._ids)) for e in events]
-            overflow = len(self._events) + len(numbered) - self.capacity
-            if overflow > 0:
-                self.dropped += min(overflow, len(self._events) + len(numbered))
-            self._events.extend(numbered)
+            for event in numbered:
+                self._place(event)
             self._last_id = numbered[-1].id
             subscribers = tuple(self._subscribers)
         for callback in subscribers:
@@ -236,39 +290,51 @@ class EventStore:
                 callback(event)
         return numbered
 
+    def _place(self, event: Event) -> None:
+        """Into its part, letting go of the oldest of the part over its share if the store is full (the lock
+        held). The kept part is over its share, or else the bulk part is over the rest: neither is empty."""
+        kept = self._kept
+        (self._bulk if event.kind in BULK_KINDS else kept).append(event)
+        if len(self._bulk) + len(kept) > self._capacity:
+            (kept if len(kept) > self._kept_share else self._bulk).drop_oldest()
+            self.dropped += 1
+
     def restore(self, events: Sequence[Event]) -> int:
         """Put the events a run before this one numbered (service.event_journal) into this store, which
         has numbered none yet, with their ids; its own are numbered on from the highest, so a page that saw
         an id before the restart asks for what came after it. No subscriber hears of them: their alerts
-        went out then. Returns how many were kept (the newest, within `capacity`)."""
-        ordered = sorted((e for e in events if e.id > 0), key=attrgetter("id"))[-self.capacity :]
+        went out then. Returns how many were kept (the newest of each part, within `capacity`)."""
+        ordered = sorted((e for e in events if e.id > 0), key=_ID)
         with self._lock:
             if self._last_id:
                 raise ValueError("events are restored into a store before it numbers any of its own")
-            self._events.extend(ordered)
+            for event in ordered:
+                self._place(event)
+            self.dropped = 0  # those of the run before, not this store's
             if ordered:
                 self._last_id = ordered[-1].id
                 self._ids = itertools.count(self._last_id + 1)
-            return len(ordered)
+            return len(self)
 
     def after(self, after_id: int, limit: int | None = None) -> list[Event]:
         """Events newer than `after_id`, oldest first (at most the first `limit` of them)."""
         with self._lock:
             if after_id >= self._last_id:
                 return []
-            buffered = self._events
-            # Ids are consecutive within one run's events, so the start is found by arithmetic; events
-            # restored from a run before (`restore`) may leave a gap, and then a binary search finds it.
-            first = buffered[0].id if buffered else self._last_id + 1
-            start = max(0, after_id + 1 - first)
-            if start >= len(buffered) or buffered[start].id != max(after_id + 1, first):
-                start = bisect_right(buffered, after_id, key=attrgetter("id"))
-            end = len(buffered) if limit is None else min(len(buffered), start + limit)
-            return list(itertools.islice(buffered, start, end))
+            bulk = self._bulk.after(after_id, limit)
+            kept = self._kept.after(after_id, limit)
+        if not kept or not bulk:
+            return kept or bulk
+        # Two runs in id order: the sort merges them (timsort finds the runs), then the first `limit` stay.
+        return sorted(bulk + kept, key=_ID)[:limit]
 
     def query(self, query: EventQuery) -> list[Event]:
+        wanted = query.kinds
         with self._lock:
-            candidates = list(self._events)
+            # Only the parts that hold a kind asked for: the Sessions page's alarms skip a flood of statuses.
+            bulk = self._bulk.after(0, None) if not wanted or wanted & BULK_KINDS else []
+            kept = self._kept.after(0, None) if not wanted or wanted - BULK_KINDS else []
+        candidates = sorted(bulk + kept, key=_ID) if bulk and kept else bulk or kept
         matched = [e for e in candidates if query.matches(e)]
         return matched[-query.limit :]
 
