@@ -15,6 +15,7 @@ import time
 from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import pytest
 from conftest import http_get
@@ -215,6 +216,57 @@ def test_a_sessions_alarm_count_is_unknown_before_the_oldest_event_kept() -> Non
     counts = {s["device"]: s["alarms_raised"] for s in answer["sessions"]}
     assert counts == {"arm-001": None, "arm-002": 2, "arm-003": 0}
     assert answer["alarms_known_since"] == 2_000.0
+
+
+def sessions_answer(store: EventStore, sessions: list[SessionInfo]) -> dict[str, Any]:
+    server = AgentHttpServer(EventfulSource(store), "127.0.0.1", 0, sessions=SizedCatalog(sessions, 1))
+    server.start()
+    try:
+        status, _, body = http_get(f"http://127.0.0.1:{server.port}/api/sessions")
+    finally:
+        server.stop()
+    assert status == 200
+    answer: dict[str, Any] = json.loads(body)
+    return answer
+
+
+def test_a_flood_of_status_events_leaves_the_sessions_alarm_counts_known() -> None:
+    """300 arms going STALE and ONLINE on a loaded host pushed the raises out of the store, and with them the
+    oldest events: every session read "not known". The raises are kept now, and counted."""
+    store = EventStore(100)
+    store.emit(EventKind.AGENT, EventLevel.INFO, "the agent started", at=2_000.0)
+    for at in (2_050.0, 2_055.0):
+        raised = {"action": "raised", "alarm_id": "arm-002/wrist_roll/over_temperature"}
+        store.emit(EventKind.ALARM, EventLevel.WARNING, "hot", device="arm-002", data=raised, at=at)
+    for i in range(3 * store.capacity):
+        device = f"arm-{i % 300:03d}"
+        store.emit(
+            EventKind.STATUS, EventLevel.WARNING, f"{device} went STALE", device=device, at=2_060.0 + i
+        )
+    assert len(store) == store.capacity
+    sessions = [
+        SessionInfo("arm-002", start=2_010.0, end=2_200.0, messages=1_900),  # two raised in it
+        SessionInfo("arm-003", start=2_001.0, end=2_300.0, messages=2_990),  # none
+    ]
+    answer = sessions_answer(store, sessions)
+    assert {s["device"]: s["alarms_raised"] for s in answer["sessions"]} == {"arm-002": 2, "arm-003": 0}
+    assert answer["alarms_known_since"] == 2_000.0
+
+
+def test_alarm_counts_are_known_from_the_oldest_alarm_kept_not_an_older_status_event() -> None:
+    # The alarms' part of the store let go of its oldest while an older status event stayed: the counts
+    # hold from the oldest alarm kept, not from that status event.
+    store = EventStore(100)
+    store.emit(EventKind.STATUS, EventLevel.INFO, "arm-001 is ONLINE", device="arm-001", at=1_000.0)
+    raised = {"action": "raised", "alarm_id": "arm-002/wrist_roll/over_temperature"}
+    for i in range(store.capacity):
+        store.emit(EventKind.ALARM, EventLevel.WARNING, "hot", device="arm-002", data=raised, at=2_000.0 + i)
+    oldest_alarm = min(e.time for e in store.query(EventQuery(kinds=frozenset({"alarm"}))))
+    assert oldest_alarm > 2_000.0 and store.query(EventQuery(kinds=frozenset({"status"})))
+    sessions = [SessionInfo("arm-002", start=1_500.0, end=2_500.0, messages=1_900)]  # raises went from it
+    answer = sessions_answer(store, sessions)
+    assert [s["alarms_raised"] for s in answer["sessions"]] == [None]
+    assert answer["alarms_known_since"] == oldest_alarm
 
 
 def test_without_events_no_sessions_alarm_count_is_known() -> None:

@@ -70,6 +70,7 @@ from twin.service.console import (
     render_page,
 )
 from twin.service.events import (
+    BULK_KINDS,
     Event,
     EventKind,
     EventLevel,
@@ -779,8 +780,9 @@ class AgentHttpServer:
         return out, since
 
     async def _alarm_raises(self) -> tuple[list[tuple[str, float]], float | None]:
-        """Each alarm raise the agent's events hold (device, time), and the time of the oldest event they
-        hold: the counts hold from then on (None: the source keeps no events, so no count is known)."""
+        """Each alarm raise the agent's events hold (device, time), and the time of the oldest event of
+        their part of the store (of any, when it holds none of it): the counts hold from then on (None: the
+        source keeps no events, so no count is known)."""
         source = self._source
         if not isinstance(source, EventSource):
             return [], None
@@ -790,7 +792,10 @@ class AgentHttpServer:
             for e in events
             if e.kind == EventKind.ALARM.value and e.data.get("action") == "raised"
         ]
-        return raises, (min(e.time for e in events) if events else None)
+        # The raises are all held from the oldest event of their part of the store on (service.events): the
+        # other part, status events and the like, may hold older ones, of which no raise went with them.
+        kept = [e.time for e in events if e.kind not in BULK_KINDS] or [e.time for e in events]
+        return raises, (min(kept) if kept else None)
 
     async def _api_sessions(self, request: Request) -> Response:
         sessions, since = await self._sessions_counted()
