@@ -101,6 +101,18 @@ def test_history_settings_are_checked(tmp_path: Path, toml: str, message: str) -
         load_config(write(tmp_path, toml))
 
 
+@pytest.mark.parametrize("capacity", [0, 99, 100_001, -5])
+def test_the_event_store_capacity_is_checked(tmp_path: Path, capacity: int) -> None:
+    with pytest.raises(ConfigError) as info:
+        load_config(write(tmp_path, f"[twin]\nevents_capacity = {capacity}\n"))
+    assert str(info.value).startswith(f"twin.events_capacity = {capacity} is outside 100..100000; set it")
+
+
+def test_the_event_store_capacity_is_read(tmp_path: Path) -> None:
+    assert AgentConfig().twin.events_capacity == 20_000
+    assert load_config(write(tmp_path, "[twin]\nevents_capacity = 5000\n")).twin.events_capacity == 5000
+
+
 def test_history_flag_turns_it_on(tmp_path: Path) -> None:
     config = load_config(None, {"history.uri": str(tmp_path / "h")})
     assert config.history.enabled and config.history.uri == str(tmp_path / "h")

@@ -211,6 +211,25 @@ def test_a_mirror_hands_a_burst_of_events_over_oldest_first_over_the_rounds() ->
     assert events_of(mirror.answer(EventsRequest(burst))) == ()
 
 
+def test_the_agent_and_each_mirror_keep_as_many_events_as_configured(tmp_path: Path) -> None:
+    # [twin] events_capacity bounds a host's memory: the store a worker process's mirror keeps its events in
+    # until the agent collects them, and the agent's own.
+    overrides = {"telemetry.devices": ["*"], "telemetry.units": "ticks", "twin.events_capacity": 150}
+    mirror = Mirror(
+        load_config(None, overrides), inbox=PipeInbox(Pipe(duplex=False)[0]), budget=DeviceBudget(4)
+    )
+    for n in range(3 * 150):
+        mirror._events.emit(
+            EventKind.STATUS, EventLevel.WARNING, f"arm-{n:03d} is STALE", device=f"arm-{n:03d}"
+        )
+    assert len(events_of(mirror.answer(EventsRequest(0)))) == 150
+    agent = unbrokered_agent(tmp_path, workers=1, **{"twin.events_capacity": 150})
+    try:
+        assert agent._events.capacity == 150
+    finally:
+        agent.stop()
+
+
 def test_subscribers_see_every_new_event_once() -> None:
     s, _ = store()
     seen: list[int] = []

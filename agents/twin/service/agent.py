@@ -264,7 +264,7 @@ class AgentService:
         # The console: sessions from history (the reader lives in ops/; `twin run` hands it in), and the
         # twin's events: the agent's own (broker, workers) and every mirror's, collected by the supervisor.
         self._sessions = sessions
-        self._events = EventStore(wall_clock=wall_clock)
+        self._events = EventStore(config.twin.events_capacity, wall_clock=wall_clock)
         self._watch = FleetWatch(self._events)
         self._events_seen: dict[int, int] = {}
         self._events_held: list[Event] = []  # collected from a mirror, for the next round (_collect_events)
@@ -1532,7 +1532,7 @@ def alarm_order(info: AlarmInfo) -> tuple[int, int, str]:
 
 def _new_events(index: int, events: Sequence[Event], seen: int) -> Sequence[Event]:
     """A mirror's `events` (its numbering, oldest first) after the `seen` one, saying how many between were
-    never collected: its store keeps the newest 20,000, and a stop report the newest EVENTS_PER_ASK."""
+    never collected: its store keeps `[twin] events_capacity`, and a stop report the newest EVENTS_PER_ASK."""
     fresh = [e for e in events if e.id > seen]
     missed = fresh[0].id - seen - 1 if fresh else 0
     if missed > 0:

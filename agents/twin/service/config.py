@@ -35,6 +35,7 @@ from twin.core.units import MAX_PAYLOAD_BYTES, Units
 from twin.output.rerun_settings import RerunSettings, RerunSettingsError
 from twin.output.ros2 import Ros2Error, Ros2Settings
 from twin.robot.calibration import leader_problem, load_calibration
+from twin.service.events import DEFAULT_CAPACITY as DEFAULT_EVENTS_CAPACITY
 from twin.transport.broker import IOT, BrokerConfig, BrokerConfigError
 from twin.transport.plan import (
     IOT_PUBLISHES_PER_CONNECTION,
@@ -53,6 +54,10 @@ DEFAULT_HTTP_PORT = 8080
 DEFAULT_AGENT_URL = f"http://{DEFAULT_HTTP_HOST}:{DEFAULT_HTTP_PORT}"
 # More worker processes than this is a typo, not a fleet (docs/scaling.md, "Workers").
 MAX_WORKERS = 64
+# [twin] events_capacity: below this a store holds too few to page through or to count a session's alarms;
+# above it the Sessions page and the exports (which read at most 100,000 events) would see a part of it.
+MIN_EVENTS_CAPACITY = 100
+MAX_EVENTS_CAPACITY = 100_000
 # The largest payload cap a config may set (the default is IoT Core's 128 KiB).
 MAX_PAYLOAD_LIMIT_BYTES = 1 << 20
 # twin.output.alerts.MAX_FLUSH_S, as a plain number so loading a config imports no output module.
@@ -128,6 +133,10 @@ class TwinSection:
     # Where the agent's events are appended, to be read back at its next start (service.event_journal): the
     # Events page and the sessions' alarm counts over a restart; "" = kept in memory only.
     events_file: str = ""
+    # How many events the agent's store keeps, and each worker's (service.events): about 300 bytes each. The
+    # alarms, calibration, agent, worker and broker events keep half of it from the status, rejected and
+    # twin events' floods.
+    events_capacity: int = DEFAULT_EVENTS_CAPACITY
     # How long `stop` may take in all: the workers handle what is queued and flush their sinks (history's
     # last commit) within it, and are killed after it. systemd's TimeoutStopSec must be longer.
     shutdown_budget_s: float = 60.0
@@ -556,6 +565,12 @@ def _validate_twin(tw: TwinSection) -> None:
                 f"twin.{key} = {path!r} cannot be made: {str(blocked)!r} is a file, not a directory; give a "
                 f"path in a directory, e.g. {str(blocked.parent / example)!r}"
             )
+    if not MIN_EVENTS_CAPACITY <= tw.events_capacity <= MAX_EVENTS_CAPACITY:
+        raise ConfigError(
+            f"twin.events_capacity = {tw.events_capacity} is outside {MIN_EVENTS_CAPACITY}.."
+            f"{MAX_EVENTS_CAPACITY}; set it in that range (the default {DEFAULT_EVENTS_CAPACITY} takes about "
+            "6 MB at 300 bytes an event)"
+        )
     if not 10.0 <= tw.shutdown_budget_s <= 600.0:
         raise ConfigError(
             f"twin.shutdown_budget_s = {tw.shutdown_budget_s:g} is outside 10..600 seconds; the workers need "

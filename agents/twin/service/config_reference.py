@@ -196,6 +196,14 @@ KEY_DOCS: dict[str, str] = {
         "holds the older). Empty = memory only. The "
         "twin host's config names `/var/lib/so101-twin-agent/events.jsonl`."
     ),
+    "twin.events_capacity": (
+        "How many events the agent keeps in memory for the Events page, its exports and the Sessions "
+        "page's alarm counts, and each worker process until the agent collects them; about 300 bytes "
+        "an event. 100..100000. Alarm, calibration, agent, worker and broker events keep half of it for "
+        "themselves: a flood of status, rejected and twin events (a loaded host's arms going STALE and "
+        "ONLINE) takes the rest and the room they leave, never their half. With `events_file` set, a "
+        "restart reads back what the file holds (two files of 8 MiB, about 55,000 events) within it."
+    ),
     "twin.shutdown_budget_s": (
         "How long a stop may take in all: the workers handle what is queued and flush their sinks "
         "(history's last commit) within it, what could not be written is logged, and a worker still "

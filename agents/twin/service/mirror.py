@@ -520,7 +520,7 @@ class Mirror:
         self._reject_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
         self._error_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
         # The twin's events (the console's Events page): this mirror's, which the agent collects.
-        self._events = EventStore(wall_clock=self._wall_clock)
+        self._events = EventStore(config.twin.events_capacity, wall_clock=self._wall_clock)
         self._watch = FleetWatch(
             self._events,
             expected_rate_hz=config.health.expected_rate_hz,
