@@ -275,3 +275,21 @@ def state_says(path: Path, *, stopped: bool | None) -> None:
         document["stopped"] = stopped
     document["written_at"] = time.time() + 60.0
     path.write_text(json.dumps(document))
+
+
+def test_a_restart_keeps_the_alarms_a_flood_of_status_events_came_after(tmp_path: Path) -> None:
+    # The newest `capacity` lines of the journal were statuses only: reading back just those lost the raises
+    # (and the Sessions page's counts) that the store itself had kept through the flood.
+    events_file = tmp_path / "events.jsonl"
+    store, journal = journaled_store(events_file)
+    raised = {"action": "raised", "alarm_id": "arm-001/elbow_flex/over_temperature"}
+    alarm = store.emit(EventKind.ALARM, EventLevel.WARNING, "hot", device="arm-001", data=raised)
+    emit(store, 300)
+    assert journal.flush()
+    journal.close()
+    agent = unbrokered_agent(
+        tmp_path, 1, **{"twin.events_file": str(events_file), "twin.events_capacity": 100}
+    )
+    agent.stop()
+    assert agent.events(EventQuery(kinds=frozenset({"alarm"}))) == [alarm]
+    assert len(_agent_events(agent)) <= 100

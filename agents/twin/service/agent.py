@@ -1314,7 +1314,9 @@ class AgentService:
         journal = self._journal
         if journal is None:
             return None
-        restored = journal.load(self._events.capacity)
+        # All the two files hold (bounded by their size), not the newest `capacity`: after a flood of status
+        # events those would be statuses only, and the store keeps the alarms before it (EventStore.restore).
+        restored = journal.load(None)
         self._events.restore(restored)
         self._events.subscribe(journal.add)
         return restored[-1] if restored else None

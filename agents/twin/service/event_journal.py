@@ -84,9 +84,10 @@ class EventJournal:
 
     # -- reading -------------------------------------------------------------------------------------------
 
-    def load(self, limit: int = DEFAULT_CAPACITY) -> list[Event]:
-        """The newest `limit` events the files hold, oldest first, as they were numbered; [] for none. A file
-        that cannot be read is reported and left as it is (the next write appends to it)."""
+    def load(self, limit: int | None = DEFAULT_CAPACITY) -> list[Event]:
+        """The newest `limit` events the files hold (None: all of them), oldest first, as they were
+        numbered; [] for none. A file that cannot be read is reported and left as it is (the next write
+        appends to it)."""
         try:
             fresh = not self.path.exists() and not self.previous.exists()
         except OSError:
@@ -100,10 +101,11 @@ class EventJournal:
             )
             return []
         events, bad = self._read(self.path)
-        if len(events) < limit:
+        if limit is None or len(events) < limit:
             # The older file only when the current one holds too few: it is most of a start's reading.
             older, bad_older = self._read(self.previous)
-            events, bad = older[max(0, len(older) - (limit - len(events))) :] + events, bad + bad_older
+            wanted = len(older) if limit is None else limit - len(events)
+            events, bad = older[max(0, len(older) - wanted) :] + events, bad + bad_older
         if bad:
             self.unreadable += bad
             log.warning(
@@ -113,7 +115,7 @@ class EventJournal:
                 bad,
                 extra={"path": str(self.path), "unreadable": bad},
             )
-        return events[max(0, len(events) - limit) :]
+        return events if limit is None else events[max(0, len(events) - limit) :]
 
     @staticmethod
     def _read(path: Path) -> tuple[list[Event], int]:
