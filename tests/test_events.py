@@ -947,3 +947,23 @@ def test_only_the_agent_dropping_alarms_no_one_saw_makes_a_forget_a_warning() ->
     watch.forgotten("latched", "OFFLINE", {"LATCHED": 1}, reason=unseen)
     levels = {e.device: e.level for e in s.query(EventQuery())}
     assert levels == {"by-hand": "info", "seen": "info", "active": "warning", "latched": "warning"}, levels
+
+
+def test_events_not_collected_from_a_mirror_are_counted_between_as_well_as_before(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A worker's store lets go of bulk events before alarms, so what the agent collects can have holes
+    between two events, not only before the first: the warning counts every id it never saw."""
+    from twin.service.agent import _new_events
+
+    collected = [Event("alarm", "warning", "raised", 0.0, id=n) for n in (5, 6, 9)]
+    with caplog.at_level(logging.WARNING, logger="twin.service.agent"):
+        fresh = _new_events(2, collected, seen=3)
+    assert [e.id for e in fresh] == [5, 6, 9]
+    # 4 before, 7 and 8 between.
+    assert "3 events of mirror 2 were not collected" in caplog.text, caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="twin.service.agent"):
+        assert [e.id for e in _new_events(0, collected, seen=4)] == [5, 6, 9]
+        assert _new_events(0, collected, seen=9) == []
+    assert "2 events of mirror 0" in caplog.text and caplog.text.count("not collected") == 1, caplog.text

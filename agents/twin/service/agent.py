@@ -1536,7 +1536,9 @@ def _new_events(index: int, events: Sequence[Event], seen: int) -> Sequence[Even
     """A mirror's `events` (its numbering, oldest first) after the `seen` one, saying how many between were
     never collected: its store keeps `[twin] events_capacity`, and a stop report the newest EVENTS_PER_ASK."""
     fresh = [e for e in events if e.id > seen]
-    missed = fresh[0].id - seen - 1 if fresh else 0
+    # Every id up to the newest collected that is not among them: the store lets go of its bulk events
+    # before its alarms (events.BULK_KINDS), so a gap can lie between two collected events, not only before.
+    missed = fresh[-1].id - seen - len(fresh) if fresh else 0
     if missed > 0:
         log.warning("%d events of mirror %d were not collected", missed, index)
     return fresh
