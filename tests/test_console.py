@@ -1674,3 +1674,76 @@ def test_an_arm_forgotten_elsewhere_leaves_nothing_to_act_on_its_open_page(
     assert browser_errors[errors_before:] == []
     page.goto("about:blank")
     agent.stop()
+
+
+def made_fleet(console: str, rows: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """The agent's own fleet document with rows made of `rows` (device: the columns that differ from arm-001's
+    row), to be served by the test."""
+
+    def fleet_with_arm_001() -> tuple[dict[str, Any], list[Any]] | None:
+        doc = json.loads(http_get(console + "/api/fleet")[2])
+        device = doc["columns"].index("device")
+        return next(((doc, r) for r in doc["rows"] if r[device] == "arm-001"), None)
+
+    doc, model = wait_for(fleet_with_arm_001, TIMEOUT_S, "arm-001 listed in /api/fleet")
+    col = {name: i for i, name in enumerate(doc["columns"])}
+    doc["rows"] = []
+    for device, columns in rows.items():
+        row = list(model)
+        for name, value in {"device": device, "status": "ONLINE", **columns}.items():
+            row[col[name]] = value
+        doc["rows"].append(row)
+    return doc
+
+
+def alarmed(severity: str | None, state: str | None, unacknowledged: int) -> dict[str, Any]:
+    kind = {"critical": "over_temperature_critical", "warning": "over_temperature", None: None}[severity]
+    return {
+        "alarm_severity": severity,
+        "alarm_state": state,
+        "alarm_kind": kind,
+        "alarm_joint": "elbow_flex" if severity else None,
+        "unacknowledged": unacknowledged,
+    }
+
+
+def test_sorting_by_worst_alarm_puts_the_unacknowledged_first_within_a_severity(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """A walk at 300 arms sorted by worst alarm and found acknowledged criticals among, and above, the ones
+    nobody had seen: within a severity the arms whose alarm shown waits for a person come first, then those
+    with another alarm waiting behind an acknowledged one, then the rest (by id). Made rows, served."""
+    doc = made_fleet(
+        console,
+        {
+            "arm-a": alarmed("critical", "ACKNOWLEDGED", 0),
+            "arm-b": alarmed("critical", "ACKNOWLEDGED", 1),
+            "arm-c": alarmed("warning", "ACTIVE", 1),
+            "arm-d": alarmed("critical", "LATCHED", 1),
+            "arm-e": alarmed(None, None, 0),
+            "arm-f": alarmed("warning", "ACKNOWLEDGED", 0),
+            "arm-g": alarmed("critical", "ACTIVE", 2),
+        },
+    )
+    expected = ["arm-d", "arm-g", "arm-b", "arm-a", "arm-c", "arm-f", "arm-e"]
+    # The rows' order on the page, read in one step (they are drawn again at every frame), by their tops.
+    order_js = (
+        "() => [...document.querySelectorAll('#fleet-view .row[data-device]')]"
+        ".sort((a, b) => parseFloat(a.style.top) - parseFloat(b.style.top)).map(r => r.dataset.device)"
+    )
+    serve_document(page, "/api/fleet", "fleet", doc)
+    try:
+        page.goto(console + "/")
+        page.get_by_role("button", name="List").click()
+        page.get_by_label("sort").select_option("alarm")
+        from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
+        try:
+            page.wait_for_function(f"e => JSON.stringify(({order_js})()) === JSON.stringify(e)", arg=expected)
+        except PlaywrightTimeout:
+            pytest.fail(f"sorted by worst alarm: {page.evaluate(order_js)}, not {expected}")
+    finally:
+        page.get_by_role("button", name="Grid").click()
+        unserve(page, "/api/fleet")
+        leave(page)
+    assert browser_errors == []

@@ -66,9 +66,18 @@
       return true;
     });
     const key = sort.value;
-    if (key === "alarm") shown.sort((a, b) => (SEVERITY[b[c.alarm_severity]] || 0) - (SEVERITY[a[c.alarm_severity]] || 0));
+    if (key === "alarm") shown.sort((a, b) => alarmRank(b) - alarmRank(a));
     else if (key === "hot") shown.sort((a, b) => (b[c.hot_c] ?? -1e9) - (a[c.hot_c] ?? -1e9));
     else if (key === "loss") shown.sort((a, b) => (b[c.loss_pct] ?? 0) - (a[c.loss_pct] ?? 0));
+  }
+
+  // Worst first: by severity, and within one the arms whose alarm shown waits for a person (ACTIVE, LATCHED)
+  // before those whose alarm shown is acknowledged, then those with another alarm waiting behind it. By
+  // severity alone, a walk's acknowledged criticals sat among (and above) the ones nobody had seen.
+  function alarmRank(r) {
+    const c = columns;
+    return 4 * (SEVERITY[r[c.alarm_severity]] || 0) + (r[c.alarm_severity] && WAITING.has(r[c.alarm_state]) ? 2 : 0) +
+      (r[c.unacknowledged] > 0 ? 1 : 0);
   }
 
   // The worst alarm is the one shown; others may wait for someone while it does not (a critical one
