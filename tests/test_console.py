@@ -1676,6 +1676,147 @@ def test_an_arm_forgotten_elsewhere_leaves_nothing_to_act_on_its_open_page(
     agent.stop()
 
 
+def made_alarm(device: str, joint: str, kind: str, state: str) -> dict[str, Any]:
+    """An alarm as /api/arm and /alarms give it, made by a test."""
+    return {
+        "alarm_id": f"{device}/{joint}/{kind}",
+        "device": device,
+        "joint": joint,
+        "kind": kind,
+        "severity": "warning",
+        "state": state,
+        "value": 61.0,
+        "unit": "C",
+        "threshold": 60.0,
+        "changed_at": time.time(),
+        "message": f"{joint} at 61 C",
+        "advice": "let it cool",
+    }
+
+
+@contextlib.contextmanager
+def dialogs_accepted(page: Any) -> Iterator[list[str]]:
+    """Every confirmation the page asks is accepted, its text kept, until the block ends."""
+    asked: list[str] = []
+
+    def accept(dialog: Any) -> None:
+        asked.append(dialog.message)
+        dialog.accept()
+
+    page.on("dialog", accept)
+    try:
+        yield asked
+    finally:
+        page.remove_listener("dialog", accept)
+
+
+def test_an_arms_page_acknowledges_all_its_waiting_alarms_at_once(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """A walk at 300 arms: acknowledging was one alarm at a time, twenty clicks for ten hot arms. The arm's
+    page acknowledges every alarm of the arm waiting for a person (ACTIVE, LATCHED) after a confirmation that
+    says how many, each by its own POST with the page's token, and counts what the agent answered. The arm's
+    document is the agent's own, its alarms made (served by the test), and so are the answers to their POSTs."""
+    doc = json.loads(wait_for(lambda: http_get(console + "/api/arm/arm-001")[2], TIMEOUT_S, "arm-001"))
+    made = [
+        made_alarm("arm-001", "gripper", "made_one", "ACTIVE"),
+        made_alarm("arm-001", "gripper", "made_two", "LATCHED"),
+        made_alarm("arm-001", "gripper", "made_three", "ACTIVE"),
+        made_alarm("arm-001", "gripper", "made_seen", "ACKNOWLEDGED"),
+    ]
+    doc["alarms"] = made
+    paths = {f"/alarms/{a['alarm_id']}/ack": a for a in made}
+    sent: list[tuple[str, str]] = []
+
+    def answer(route: Any) -> None:
+        request = route.request
+        alarm = paths[urllib.parse.urlsplit(request.url).path]
+        sent.append((alarm["alarm_id"], request.headers.get("x-csrf-token", "")))
+        if alarm["kind"] == "made_three":  # cleared by someone else meanwhile
+            detail = f"alarm {alarm['alarm_id']} is NORMAL: only ACTIVE or LATCHED alarms can be acknowledged"
+            route.fulfill(status=409, json={"error": "nothing_to_acknowledge", "detail": detail})
+            return
+        state = "NORMAL" if alarm["state"] == "LATCHED" else "ACKNOWLEDGED"
+        route.fulfill(status=200, json={"alarms": [{**alarm, "state": state}]})
+
+    def ours(url: str) -> bool:
+        return urllib.parse.urlsplit(url).path in paths
+
+    errors_before = len(browser_errors)
+    serve_document(page, "/api/arm/arm-001", "arm", doc)
+    page.route(ours, answer)
+    try:
+        with dialogs_accepted(page) as asked:
+            page.goto(console + "/arm/arm-001")
+            button = page.locator("#ack-all:not([disabled])", has_text="Acknowledge all (3)")
+            button.wait_for()
+            token = page.evaluate("document.querySelector('meta[name=csrf-token]').content")
+            button.click()
+            result = page.locator("#ack-result.ack-ok")
+            result.wait_for()
+            told = result.inner_text()
+    finally:
+        page.unroute(ours, answer)
+        unserve(page, "/api/arm/arm-001")
+    assert len(asked) == 1 and asked[0].startswith("Acknowledge 3 alarms of arm-001?"), asked
+    # Only the alarms confirmed, each once, each with the page's token; never the acknowledged one.
+    assert sorted(sent) == sorted((a["alarm_id"], token) for a in made[:3]), sent
+    assert told == "arm-001: 1 acknowledged, 1 reset (it had cleared), 1 already cleared", told
+    # The browser logs the 409 this test made; nothing else.
+    mine = browser_errors[errors_before:]
+    assert all("status of 409" in e for e in mine), mine
+    del browser_errors[errors_before:]
+    leave(page)
+    assert browser_errors == []
+
+
+def test_acknowledging_all_of_an_arm_is_refused_as_one_acknowledgement_is(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """The bulk acknowledgement is the single one's POST, guarded the same: a page whose CSRF token the agent
+    refuses (and that cannot read a new one) is told so in the agent's words, and sends no more; with its
+    token, the agent acknowledges the arm's real alarm and records it as an event."""
+    alarm = wait_for(
+        lambda: active_heat_alarm(console, "arm-002", raised_within_s=FRESH_ALARM_S),
+        TIMEOUT_S,
+        f"arm-002's heat alarm, raised within {FRESH_ALARM_S:.0f} s",
+    )
+    errors_before = len(browser_errors)
+    page.goto(console + "/arm/arm-002")
+    button = page.locator("#ack-all:not([disabled])")
+    button.wait_for()
+    page.evaluate("document.querySelector('meta[name=csrf-token]').content = 'from-the-agent-before'")
+    with dialogs_accepted(page) as asked, page_read_refused(page, "/arm/arm-002"):
+        button.click()
+        result = page.locator("#ack-result.ack-refused", has_text="reload the console page")
+        result.wait_for()
+        told = result.inner_text()
+    assert asked and asked[0].startswith("Acknowledge "), asked
+    assert "1 refused: " in told and "(403 csrf_token_invalid)" in told, told
+    assert re.search(r"\d+ not sent", told) or "Acknowledge 1 alarm of" in asked[0], (told, asked)
+    assert alarm_state(console, "arm-002", alarm["alarm_id"]) in ("ACTIVE", "LATCHED")
+    # The page reads its token again and acknowledges; the agent records each alarm as it does one click's.
+    clicked = time.time() - 1.0
+    with dialogs_accepted(page):
+        button.click()
+        page.locator("#ack-result.ack-ok", has_text="arm-002: ").wait_for()
+    assert alarm_state(console, "arm-002", alarm["alarm_id"]) not in ("ACTIVE", "LATCHED")
+
+    def recorded() -> bool:
+        _, _, body = http_get(f"{console}/api/events?device=arm-002&kind=alarm")
+        found = json.loads(body)["events"]
+        said = (f"{alarm['kind']} acknowledged by a person", f"{alarm['kind']} reset by a person")
+        return any(e["time"] >= clicked and any(s in e["message"] for s in said) for e in found)
+
+    wait_for(recorded, TIMEOUT_S, f"an event for {alarm['alarm_id']}")
+    mine = browser_errors[errors_before:]
+    assert mine and all("Failed to load resource" in e for e in mine), mine
+    del browser_errors[errors_before:]
+    leave(page)
+    assert browser_errors == []
+
+
+
 def made_fleet(console: str, rows: dict[str, dict[str, Any]]) -> dict[str, Any]:
     """The agent's own fleet document with rows made of `rows` (device: the columns that differ from arm-001's
     row), to be served by the test."""

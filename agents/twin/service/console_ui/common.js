@@ -136,6 +136,49 @@ const Twin = (() => {
     return `${why} (${result.status}${p.error ? ` ${p.error}` : ""})`;
   }
 
+  // Several alarms acknowledged at once (an arm's, or the Fleet page's shown): one POST /alarms/<id>/ack
+  // each, so each is guarded, answered and recorded (its own event) exactly as a single click's. Only the
+  // ids the operator confirmed are sent: one raised meanwhile waits for its own look. A refusal of the page
+  // itself (403: a token that could not be renewed; no answer at all) ends the run, the rest counted unsent.
+  async function acknowledgeMany(alarms, progress) {
+    const tally = { acknowledged: 0, reset: 0, ACKNOWLEDGED: 0, NORMAL: 0, gone: 0, notKept: 0, refused: 0,
+      unsent: 0, why: "" };
+    for (const [i, alarm] of alarms.entries()) {
+      if (progress) progress(i, alarms.length);
+      let result;
+      try {
+        result = await post(`/alarms/${alarm.alarm_id.split("/").map(encodeURIComponent).join("/")}/ack`);
+      } catch (_) {
+        result = { ok: false, status: 0, payload: null };
+      }
+      const p = result.payload || {};
+      if (result.ok) {
+        const now = p.alarms && p.alarms[0];
+        tally[now && now.state === "NORMAL" ? "reset" : "acknowledged"] += 1;
+        continue;
+      }
+      const already = result.status === 409 && /is (ACKNOWLEDGED|NORMAL):/.exec(p.detail || "");
+      if (already) { tally[already[1]] += 1; continue; }
+      if (result.status === 404) { tally.gone += 1; continue; }
+      if (!tally.why) tally.why = refusal(result);
+      if (result.status === 503 && p.error === "not_saved") { tally.notKept += 1; continue; }
+      tally.refused += 1;
+      if (!result.status || result.status === 403) { tally.unsent = alarms.length - i - 1; break; }
+    }
+    return tally;
+  }
+
+  // "7 acknowledged, 1 already cleared": each outcome counted, the first refusal in the agent's words.
+  function tallyText(t) {
+    const parts = [[t.acknowledged, "acknowledged"], [t.reset, "reset (it had cleared)"],
+      [t.ACKNOWLEDGED, "already acknowledged"], [t.NORMAL, "already cleared"],
+      [t.gone, "gone (its arm forgotten)"], [t.notKept, "acknowledged but not kept"],
+      [t.refused, "refused"], [t.unsent, "not sent"]].filter(([n]) => n).map(([n, what]) => `${n} ${what}`);
+    return (parts.length ? parts.join(", ") : "nothing to acknowledge") + (t.why ? `: ${t.why}` : "");
+  }
+
+  function tallyOk(t) { return !t.refused && !t.notKept; }
+
   function ago(epoch, now) {
     if (epoch === null || epoch === undefined) return "never";
     const s = Math.max(0, now - epoch);
@@ -178,7 +221,7 @@ const Twin = (() => {
     if (a.dataset.nav === page || (page === "arm" && a.dataset.nav === "fleet")) a.classList.add("active");
   }
 
-  return { el, stream, getJSON, post, refusal, ago, time, zone, duration, num, setLink, breaks: () => breaks,
+  return { el, stream, getJSON, post, refusal, acknowledgeMany, tallyText, tallyOk, ago, time, zone, duration, num, setLink, breaks: () => breaks,
     main: document.getElementById("main"),
     device: body.dataset.device, rerun: body.dataset.rerun };
 })();
