@@ -1888,3 +1888,61 @@ def test_sorting_by_worst_alarm_puts_the_unacknowledged_first_within_a_severity(
         unserve(page, "/api/fleet")
         leave(page)
     assert browser_errors == []
+
+
+def test_the_fleet_page_acknowledges_the_alarms_of_the_arms_shown(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """"Acknowledge shown" acknowledges the alarms waiting on the arms the filters show, and no other arm's,
+    after a confirmation that says how many of how many arms; each by its own POST with the page's token.
+    Made rows, alarms and answers, served by the test."""
+    doc = made_fleet(
+        console,
+        {
+            "arm-x": alarmed("critical", "ACTIVE", 2),
+            "arm-y": alarmed("warning", "ACTIVE", 1),
+            "arm-z": alarmed("critical", "ACKNOWLEDGED", 0),
+        },
+    )
+    made = [
+        made_alarm("arm-x", "elbow_flex", "over_temperature_critical", "ACTIVE"),
+        made_alarm("arm-x", "wrist_flex", "over_temperature", "LATCHED"),
+        made_alarm("arm-y", "elbow_flex", "over_temperature", "ACTIVE"),
+        made_alarm("arm-z", "elbow_flex", "over_temperature_critical", "ACKNOWLEDGED"),
+    ]
+    paths = {f"/alarms/{a['alarm_id']}/ack": a for a in made}
+    sent: list[tuple[str, str]] = []
+
+    def answer(route: Any) -> None:
+        path = urllib.parse.urlsplit(route.request.url).path
+        if path == "/alarms":
+            route.fulfill(status=200, json={"alarms": made})
+            return
+        alarm = paths[path]
+        sent.append((alarm["alarm_id"], route.request.headers.get("x-csrf-token", "")))
+        state = "NORMAL" if alarm["state"] == "LATCHED" else "ACKNOWLEDGED"
+        route.fulfill(status=200, json={"alarms": [{**alarm, "state": state}]})
+
+    def ours(url: str) -> bool:
+        path = urllib.parse.urlsplit(url).path
+        return path in paths or path == "/alarms"
+
+    serve_document(page, "/api/fleet", "fleet", doc)
+    page.route(ours, answer)
+    try:
+        with dialogs_accepted(page) as asked:
+            page.goto(console + "/")
+            page.get_by_label("alarm").select_option("critical")
+            button = page.locator("#ack-shown:not([disabled])", has_text="Acknowledge shown (2)")
+            button.wait_for()
+            token = page.evaluate("document.querySelector('meta[name=csrf-token]').content")
+            button.click()
+            told = page.locator("#fleet-ack-result.ack-ok").inner_text()
+    finally:
+        page.unroute(ours, answer)
+        unserve(page, "/api/fleet")
+    assert len(asked) == 1 and asked[0].startswith("Acknowledge 2 alarms of the 1 arm shown"), asked
+    assert sorted(sent) == sorted((a["alarm_id"], token) for a in made[:2]), sent
+    assert told == "1 arm: 1 acknowledged, 1 reset (it had cleared)", told
+    leave(page)
+    assert browser_errors == []

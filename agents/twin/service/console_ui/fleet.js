@@ -30,6 +30,11 @@
   const gridButton = el("button", { type: "button", text: "Grid", onclick: () => setMode("grid") });
   const listButton = el("button", { type: "button", text: "List", onclick: () => setMode("list") });
   const counts = el("span", { class: "counts" });
+  // Every alarm waiting for a person on the arms the filters show (all of them, not only those scrolled to):
+  // ten hot arms took twenty clicks one by one. Its answer goes under the toolbar (Twin.acknowledgeMany).
+  const ackShown = el("button", { type: "button", id: "ack-shown", disabled: true, text: "Acknowledge shown (0)" });
+  const ackResult = el("p", { id: "fleet-ack-result", role: "status", hidden: true });
+  let ackBusy = false;
   // What no card can show: a subscription the broker refuses, whose arms are never heard.
   const notices = el("div", { class: "notices", id: "fleet-notices", role: "alert" });
   notices.hidden = true;
@@ -39,7 +44,8 @@
   main.append(
     notices,
     el("div", { class: "toolbar" }, search, status, alarm, sort,
-      el("span", { class: "toggle" }, gridButton, listButton), counts),
+      el("span", { class: "toggle" }, gridButton, listButton), ackShown, counts),
+    ackResult,
     viewport);
 
   function setMode(next) {
@@ -213,7 +219,44 @@
     return node;
   }
 
+  function showAckShown() {
+    const n = shown.reduce((sum, r) => sum + (r[columns.unacknowledged] || 0), 0);
+    const text = `Acknowledge shown (${n})`;
+    if (ackShown.textContent !== text) ackShown.textContent = text;
+    ackShown.disabled = ackBusy || n === 0;
+  }
+
+  // The ids are read from /alarms once the operator asks, for the arms shown then; the confirmation says how
+  // many of how many arms, and only those are sent.
+  async function acknowledgeShown() {
+    const devices = new Set(shown.filter((r) => r[columns.unacknowledged] > 0).map((r) => r[columns.device]));
+    let alarms;
+    try {
+      alarms = (await Twin.getJSON("/alarms")).alarms.filter((a) => devices.has(a.device) && WAITING.has(a.state));
+    } catch (_) {
+      ackResult.hidden = false;
+      ackResult.className = "ack-refused";
+      ackResult.textContent = "the alarms could not be read: the agent did not answer (it may be restarting)";
+      return;
+    }
+    const arms = new Set(alarms.map((a) => a.device)).size;
+    if (!alarms.length) { ackResult.hidden = false; ackResult.className = "ack-ok"; ackResult.textContent = "nothing to acknowledge"; return; }
+    if (!window.confirm(`Acknowledge ${alarms.length} alarm${alarms.length === 1 ? "" : "s"} of the ${arms} ` +
+      `arm${arms === 1 ? "" : "s"} shown (ACTIVE or LATCHED)? Each is acknowledged as from its arm's page.`)) return;
+    ackBusy = true;
+    showAckShown();
+    ackResult.hidden = false;
+    ackResult.className = "";
+    const tally = await Twin.acknowledgeMany(alarms, (i, n) => { ackResult.textContent = `acknowledging ${i + 1} of ${n}…`; });
+    ackBusy = false;
+    showAckShown();
+    ackResult.className = Twin.tallyOk(tally) ? "ack-ok" : "ack-refused";
+    ackResult.textContent = `${arms} arm${arms === 1 ? "" : "s"}: ${Twin.tallyText(tally)}`;
+  }
+  ackShown.addEventListener("click", acknowledgeShown);
+
   function render() {
+    showAckShown();
     const width = viewport.clientWidth - 2 * GAP, top = viewport.scrollTop, height = viewport.clientHeight;
     const nodes = [];
     if (mode === "grid") {
