@@ -1946,3 +1946,51 @@ def test_the_fleet_page_acknowledges_the_alarms_of_the_arms_shown(
     assert told == "1 arm: 1 acknowledged, 1 reset (it had cleared)", told
     leave(page)
     assert browser_errors == []
+
+
+@pytest.mark.parametrize("width", [390, 360])
+def test_a_phones_fleet_list_says_a_long_alarm_kind_whole(
+    console: str, page: Any, browser_errors: list[str], width: int
+) -> None:
+    """A walk at 300 arms on a phone read "over_tempe / rature_cri…": the list's two-line alarm cell broke
+    the kind inside its words and cut it. A phone says the kind short, no word of it broken and nothing cut
+    in the row's two lines (fleet.js's PHONE_ROW_H); its title keeps the whole name. Made rows, served."""
+    doc = made_fleet(
+        console,
+        {"arm-001": {**alarmed("critical", "ACTIVE", 1), "alarm_joint": "shoulder_lift"}},
+    )
+    # Read in one step (rows are drawn again at every frame): the cell's text shown, how many lines each of
+    # its words takes, whether the cell holds all its text, its title, its height and the row's.
+    where_js = (
+        "() => { const s = document.querySelector('#fleet-view .row[data-device=arm-001] > .sev-critical');"
+        " if (!s) return null; const n = s.lastChild, words = [];"
+        " for (const m of n.textContent.matchAll(/\\S+/g)) { const r = document.createRange();"
+        " r.setStart(n, m.index); r.setEnd(n, m.index + m[0].length);"
+        " words.push([m[0], new Set([...r.getClientRects()].map(x => Math.round(x.top))).size]); }"
+        " return [n.textContent, words, s.scrollHeight <= s.clientHeight + 1, s.title, s.offsetHeight,"
+        " s.parentElement.clientHeight]; }"
+    )
+    whole = (
+        f"() => {{ const w = ({where_js})(); return !!w && w[1].length > 1 && w[1].every(x => x[1] === 1)"
+        " && w[2] && w[4] <= w[5]; }"
+    )
+    page.set_viewport_size({"width": width, "height": 800})
+    serve_document(page, "/api/fleet", "fleet", doc)
+    try:
+        page.goto(console + "/")
+        page.get_by_role("button", name="List").click()
+        from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
+        try:
+            page.wait_for_function(whole, timeout=TIMEOUT_S * 1000)
+        except PlaywrightTimeout:
+            pytest.fail(f"a phone's alarm cell [text, [word, lines], whole, title, height, row]: {page.evaluate(where_js)}")
+        cell = page.evaluate(where_js)
+        assert cell[0] == "overheating shoulder lift", cell
+        assert cell[3] == "critical over_temperature_critical (shoulder_lift)", cell
+    finally:
+        page.get_by_role("button", name="Grid").click()
+        page.set_viewport_size({"width": 1280, "height": 800})
+        unserve(page, "/api/fleet")
+        leave(page)
+    assert browser_errors == []

@@ -102,9 +102,17 @@
     const c = columns, sev = r[c.alarm_severity];
     if (!sev) return el("span", { class: "muted", text: "no alarm" });
     const what = `${r[c.alarm_kind]} (${r[c.alarm_joint]})`;
-    // The severity's word goes on a phone (its colour stays, and the counts above name it).
-    return el("span", { class: "sev-" + sev, title: `${sev} ${what}` }, el("span", { class: "sev-word", text: sev + " " }), what);
+    // The severity's word goes on a phone (its colour stays, and the counts above name it), and the kind is
+    // said short ("overheating shoulder lift"): its two lines of about 100 px cut "over_temperature_critical (shoulder_lift)" to "over_tempe
+    // / rature_cri…", and broken only after its "_" it took four. The title keeps the whole name.
+    const shown = PHONE.matches ? `${PHONE_KINDS[r[c.alarm_kind]] || spaced(r[c.alarm_kind])} ${spaced(r[c.alarm_joint])}` : what;
+    return el("span", { class: "sev-" + sev, title: `${sev} ${what}` }, el("span", { class: "sev-word", text: sev + " " }), shown);
   }
+
+  // A phone's words for an alarm's kind: its severity (warning, critical) is the cell's colour there.
+  const PHONE_KINDS = { over_temperature: "overheating", over_temperature_critical: "overheating",
+    over_current: "over current", servo_error: "servo error" };
+  function spaced(name) { return String(name).replaceAll("_", " "); }
 
   function stateCell(r) {
     const c = columns, state = r[c.alarm_severity] ? r[c.alarm_state] : "";
