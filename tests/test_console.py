@@ -1716,7 +1716,7 @@ def test_an_arms_page_acknowledges_all_its_waiting_alarms_at_once(
     """A walk at 300 arms: acknowledging was one alarm at a time, twenty clicks for ten hot arms. The arm's
     page acknowledges every alarm of the arm waiting for a person (ACTIVE, LATCHED) after a confirmation that
     says how many, each by its own POST with the page's token, and counts what the agent answered. The arm's
-    document is the agent's own, its alarms made (served by the test), and so are the answers to their POSTs."""
+    document is the agent's own, its alarms made (served by the test), and so are the answers to its POSTs."""
     doc = json.loads(wait_for(lambda: http_get(console + "/api/arm/arm-001")[2], TIMEOUT_S, "arm-001"))
     made = [
         made_alarm("arm-001", "gripper", "made_one", "ACTIVE"),
@@ -1816,7 +1816,6 @@ def test_acknowledging_all_of_an_arm_is_refused_as_one_acknowledgement_is(
     assert browser_errors == []
 
 
-
 def made_fleet(console: str, rows: dict[str, dict[str, Any]]) -> dict[str, Any]:
     """The agent's own fleet document with rows made of `rows` (device: the columns that differ from arm-001's
     row), to be served by the test."""
@@ -1893,7 +1892,7 @@ def test_sorting_by_worst_alarm_puts_the_unacknowledged_first_within_a_severity(
 def test_the_fleet_page_acknowledges_the_alarms_of_the_arms_shown(
     console: str, page: Any, browser_errors: list[str]
 ) -> None:
-    """"Acknowledge shown" acknowledges the alarms waiting on the arms the filters show, and no other arm's,
+    """ "Acknowledge shown" acknowledges the alarms waiting on the arms the filters show, and no other arm's,
     after a confirmation that says how many of how many arms; each by its own POST with the page's token.
     Made rows, alarms and answers, served by the test."""
     doc = made_fleet(
@@ -1984,7 +1983,8 @@ def test_a_phones_fleet_list_says_a_long_alarm_kind_whole(
         try:
             page.wait_for_function(whole, timeout=TIMEOUT_S * 1000)
         except PlaywrightTimeout:
-            pytest.fail(f"a phone's alarm cell [text, [word, lines], whole, title, height, row]: {page.evaluate(where_js)}")
+            cell = page.evaluate(where_js)
+            pytest.fail(f"a phone's alarm cell [text, [word, lines], whole, title, height, row]: {cell}")
         cell = page.evaluate(where_js)
         assert cell[0] == "overheating shoulder lift", cell
         assert cell[3] == "critical over_temperature_critical (shoulder_lift)", cell
