@@ -1146,8 +1146,22 @@ def test_the_events_page_tails_the_twins_events(console: str, page: Any, browser
     assert any(r["kind"] == "alarm" for r in csv.DictReader(io.StringIO(body.decode())))
     # Each export its own file, named by when it was taken (UTC).
     assert re.fullmatch(r'attachment; filename="twin-events-\d{8}T\d{6}Z\.csv"', disposition), disposition
-    # Part of an id in the device box matches nothing: the table says so, and what the box wants.
-    page.get_by_label("device").fill("arm-00")
+    # Part of an id, in any case, finds that arm's events, as the Fleet and Sessions boxes do ...
+    page.get_by_label("device").fill("RM-003")
+    page.wait_for_function(
+        """() => {
+          const rows = [...document.querySelectorAll('#events tbody tr[data-id]')];
+          return rows.some(r => r.textContent.includes('arm-003 is ONLINE (first message)'))
+            && rows.every(r => r.children[3].textContent === 'arm-003');
+        }"""
+    )
+    # ... and its exports take the same selection.
+    with urllib.request.urlopen(console + "/api/events.json?device_part=RM-003", timeout=30) as answer:
+        exported = json.loads(answer.read())
+    exported = exported["events"]
+    assert exported and {e["device"] for e in exported} == {"arm-003"}, exported[:3]
+    # With whole id ticked, part of an id matches nothing: the table says so, and what the box wants.
+    page.get_by_label("whole id").check()
     none = page.wait_for_selector("#events-none").inner_text()
     assert "no event matches these filters" in none and "whole id" in none, none
     assert browser_errors == []
@@ -1340,6 +1354,7 @@ def test_an_arms_page_links_to_its_events(console: str, page: Any, browser_error
         page.locator("#arm-events").click()
         page.wait_for_url("**/events?device=arm-002")
         assert page.get_by_label("device").input_value() == "arm-002"
+        assert page.get_by_label("whole id").is_checked()  # arm-002's alone, not arm-0020's
         page.wait_for_selector("#events tbody tr[data-id]")
         shown = page.locator("#events tbody td.id").all_inner_texts()
         assert shown and set(shown) == {"arm-002"}, shown

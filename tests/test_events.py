@@ -967,3 +967,16 @@ def test_events_not_collected_from_a_mirror_are_counted_between_as_well_as_befor
         assert [e.id for e in _new_events(0, collected, seen=4)] == [5, 6, 9]
         assert _new_events(0, collected, seen=9) == []
     assert "2 events of mirror 0" in caplog.text and caplog.text.count("not collected") == 1, caplog.text
+
+
+def test_a_query_finds_part_of_an_id_in_any_case_or_one_whole_id() -> None:
+    """The Events page's box finds part of an id as the Fleet and Sessions boxes do; an arm page's link asks
+    for its whole id, where arm-1 must not bring arm-10's."""
+    store = EventStore()
+    for device in ("arm-1", "arm-10", "Lab-ARM-7", ""):
+        store.emit(EventKind.STATUS, EventLevel.INFO, f"{device} is ONLINE", device=device)
+    assert [e.device for e in store.query(EventQuery(device_part="arm-1"))] == ["arm-1", "arm-10"]
+    assert [e.device for e in store.query(EventQuery(device_part="lab-arm"))] == ["Lab-ARM-7"]
+    assert [e.device for e in store.query(EventQuery(device="arm-1"))] == ["arm-1"]
+    assert store.query(EventQuery(device="arm-1", device_part="10")) == []
+    assert len(store.query(EventQuery())) == 4

@@ -137,6 +137,9 @@ class EventQuery:
     (the newest ones when more match). Times are epoch seconds, `since` inclusive, `until` exclusive."""
 
     device: str = ""
+    # Part of an id, in any case (the console's device box, as the Fleet and Sessions pages match): `device`
+    # is one arm's whole id (its page's link to its events, where arm-1 must not bring arm-10's).
+    device_part: str = ""
     min_level: EventLevel = EventLevel.INFO
     kinds: frozenset[str] = frozenset()
     text: str = ""
@@ -158,6 +161,8 @@ class EventQuery:
         if event.id <= self.after_id:
             return False
         if self.device and event.device != self.device:
+            return False
+        if self.device_part and self.device_part.casefold() not in event.device.casefold():
             return False
         if self.kinds and event.kind not in self.kinds:
             return False

@@ -911,8 +911,8 @@ def _float_param(request: Request, name: str) -> float | None:
 
 
 def event_query(request: Request, limit: int) -> EventQuery:
-    """An EventQuery from the query string: device, level (minimum), kind (comma-separated), q (text), since,
-    until (epoch seconds), after (an event id), limit."""
+    """An EventQuery from the query string: device (a whole id), device_part (part of one), level (minimum),
+    kind (comma-separated), q (text), since, until (epoch seconds), after (an event id), limit."""
     params = request.query_params
     level = params.get("level", "").strip()
     kinds = frozenset(k.strip() for k in params.get("kind", "").split(",") if k.strip())
@@ -922,6 +922,7 @@ def event_query(request: Request, limit: int) -> EventQuery:
         raise ValueError(f"until ({until}) must be after since ({since})")
     return EventQuery(
         device=params.get("device", "").strip(),
+        device_part=params.get("device_part", "").strip(),
         min_level=EventLevel.parse(level) if level else EventLevel.INFO,
         kinds=kinds,
         text=params.get("q", "").strip(),

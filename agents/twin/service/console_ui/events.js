@@ -10,6 +10,9 @@
   const LOAD_MAX = 1000;
   const RETRY_MAX_S = 30;
   const device = el("input", { type: "search", placeholder: "device", "aria-label": "device" });
+  // The box finds part of an id, as on the Fleet and Sessions pages; ticked, one arm's whole id (an arm
+  // page's link to its events ticks it: arm-1's must not bring arm-10's).
+  const whole = el("input", { type: "checkbox", id: "device-whole", "aria-label": "whole id" });
   const level = el("select", { "aria-label": "level" }, el("option", { value: "", text: "any level" }),
     el("option", { value: "warning", text: "warning and worse" }), el("option", { value: "error", text: "errors" }));
   const kind = el("select", { "aria-label": "kind" }, el("option", { value: "", text: "any kind" }),
@@ -25,7 +28,7 @@
   const box = el("div", { class: "events panel" },
     el("table", { id: "events" }, el("thead", {}, el("tr", {}, ...[`time (${Twin.zone()})`, "level", "kind", "device", "event"].map((t) => el("th", { text: t })))), body));
   main.append(el("h1", { text: "Events" }),
-    el("div", { class: "toolbar" }, device, level, kind, text, "from", since, "until", until,
+    el("div", { class: "toolbar" }, device, el("label", {}, whole, " whole id"), level, kind, text, "from", since, "until", until,
       el("label", {}, follow, " auto-scroll"), "export:", csv, json, count), box);
 
   let events = [], lastId = 0, loadedAll = true;
@@ -37,7 +40,7 @@
 
   function params(extra) {
     const p = new URLSearchParams();
-    if (device.value.trim()) p.set("device", device.value.trim());
+    if (device.value.trim()) p.set(whole.checked ? "device" : "device_part", device.value.trim());
     if (level.value) p.set("level", level.value);
     if (kind.value) p.set("kind", kind.value);
     if (text.value.trim()) p.set("q", text.value.trim());
@@ -50,7 +53,7 @@
   const LEVELS = { info: 20, warning: 30, error: 40 };
   function matches(e) {
     const q = text.value.trim().toLowerCase(), d = device.value.trim();
-    if (d && e.device !== d) return false;
+    if (d && (whole.checked ? e.device !== d : !e.device.toLowerCase().includes(d.toLowerCase()))) return false;
     if (level.value && (LEVELS[e.level] || 20) < LEVELS[level.value]) return false;
     if (kind.value && e.kind !== kind.value) return false;
     if (q && !e.message.toLowerCase().includes(q) && !e.device.toLowerCase().includes(q)) return false;
@@ -68,7 +71,7 @@
 
   // A loaded selection with no event says so in the table, and what the device box wants (an exact id).
   const none = el("tr", { id: "events-none" }, el("td", { colspan: 5, class: "empty",
-    text: "no event matches these filters (the device box takes an arm's whole id, e.g. arm-001; the text box finds part of one)" }));
+    text: "no event matches these filters (the device box finds part of an arm's id, or with whole id ticked one arm's whole id, e.g. arm-001)" }));
 
   function render(loaded = true) {
     body.replaceChildren(...(events.length || !loaded ? events.map(row) : [none]));
@@ -151,14 +154,15 @@
     load();
   }
   let timer = null;
-  for (const input of [device, level, kind, text, since, until]) {
+  for (const input of [device, whole, level, kind, text, since, until]) {
     input.addEventListener("input", () => { clearTimeout(timer); timer = setTimeout(load, 250); });
   }
   follow.addEventListener("change", () => { if (follow.checked) box.scrollTop = box.scrollHeight; });
   // A link may choose the selection (an arm page's "its events": /events?device=arm-001): its device,
   // level, kind and text, as the API names them. A value the lists do not offer is left out.
   const asked = new URLSearchParams(location.search);
-  device.value = asked.get("device") || "";
+  device.value = asked.get("device") || asked.get("device_part") || "";
+  whole.checked = asked.has("device");
   text.value = asked.get("q") || "";
   for (const [select, key] of [[level, "level"], [kind, "kind"]]) {
     const value = asked.get(key) || "";
