@@ -112,6 +112,17 @@ def alarms(url: str, device: str) -> list[dict[str, Any]]:
     return json.loads(body)["alarms"]
 
 
+def fresh_heat_alarm(console: str, device: str) -> dict[str, Any]:
+    """`device`'s heat alarm, ACTIVE and raised within FRESH_ALARM_S, once there is one: an older one may
+    clear under the test's click."""
+    alarm: dict[str, Any] = wait_for(
+        lambda: active_heat_alarm(console, device, raised_within_s=FRESH_ALARM_S),
+        TIMEOUT_S,
+        f"{device}'s heat alarm, raised within {FRESH_ALARM_S:.0f} s",
+    )
+    return alarm
+
+
 def active_heat_alarm(url: str, device: str, *, raised_within_s: float = math.inf) -> dict[str, Any] | None:
     """`device`'s heat alarm while it is ACTIVE, and only if it became so within `raised_within_s`."""
     return next(
@@ -809,11 +820,7 @@ def alarm_state(url: str, device: str, alarm_id: str) -> str | None:
 def acknowledged_on_the_page(console: str, page: Any) -> bool:
     """Acknowledge arm-001's fresh heat alarm on its open page and check the page shows it ACKNOWLEDGED;
     False when the alarm cleared first, so that the click or the page could not show that."""
-    alarm = wait_for(
-        lambda: active_heat_alarm(console, "arm-001", raised_within_s=FRESH_ALARM_S),
-        TIMEOUT_S,
-        f"arm-001's heat alarm, raised within {FRESH_ALARM_S:.0f} s",
-    )
+    alarm = fresh_heat_alarm(console, "arm-001")
     alarm_id = alarm["alarm_id"]
     row = page.locator(f'#alarms tr[data-alarm="{alarm_id}"]')
     row.wait_for()
@@ -927,11 +934,7 @@ def test_a_refused_acknowledge_says_why_and_what_to_do(
     know (each start makes one). The page renews it from its own document and acknowledges; only when it
     cannot must the refusal say so on the page, in the agent's words (reload), and stay there while the
     live stream redraws the alarms; and a POST that gets no answer must say that."""
-    alarm = wait_for(
-        lambda: active_heat_alarm(console, "arm-003", raised_within_s=FRESH_ALARM_S),
-        TIMEOUT_S,
-        f"arm-003's heat alarm, raised within {FRESH_ALARM_S:.0f} s",
-    )
+    alarm = fresh_heat_alarm(console, "arm-003")
     errors_before = len(browser_errors)
     page.goto(console + "/arm/arm-003")
     token = page.evaluate("document.querySelector('meta[name=csrf-token]').content")
@@ -1128,14 +1131,7 @@ def test_the_events_page_tails_the_twins_events(console: str, page: Any, browser
     page.get_by_label("device").fill("arm-003")
     page.wait_for_selector('#events tr:has-text("arm-003 is ONLINE (first message)")')
     # The acknowledgement is an event too, and the device filter keeps only arm-001's.
-    page.get_by_label("device").fill("arm-001")
-    page.wait_for_function(
-        """() => {
-          const rows = [...document.querySelectorAll('#events tbody tr')];
-          return rows.some(r => r.textContent.includes('acknowledged'))
-            && rows.every(r => r.children[3].textContent === 'arm-001');
-        }"""
-    )
+    events_only_of(page, "arm-001", typed="arm-001", showing="acknowledged")
     with urllib.request.urlopen(console + "/api/events.csv?device=arm-001", timeout=30) as answer:
         ctype, disposition, body = (
             answer.headers["content-type"],
@@ -1147,14 +1143,7 @@ def test_the_events_page_tails_the_twins_events(console: str, page: Any, browser
     # Each export its own file, named by when it was taken (UTC).
     assert re.fullmatch(r'attachment; filename="twin-events-\d{8}T\d{6}Z\.csv"', disposition), disposition
     # Part of an id, in any case, finds that arm's events, as the Fleet and Sessions boxes do ...
-    page.get_by_label("device").fill("RM-003")
-    page.wait_for_function(
-        """() => {
-          const rows = [...document.querySelectorAll('#events tbody tr[data-id]')];
-          return rows.some(r => r.textContent.includes('arm-003 is ONLINE (first message)'))
-            && rows.every(r => r.children[3].textContent === 'arm-003');
-        }"""
-    )
+    events_only_of(page, "arm-003", typed="RM-003", showing="arm-003 is ONLINE (first message)")
     # ... and its exports take the same selection.
     with urllib.request.urlopen(console + "/api/events.json?device_part=RM-003", timeout=30) as answer:
         exported = json.loads(answer.read())
@@ -1165,6 +1154,20 @@ def test_the_events_page_tails_the_twins_events(console: str, page: Any, browser
     none = page.wait_for_selector("#events-none").inner_text()
     assert "no event matches these filters" in none and "whole id" in none, none
     assert browser_errors == []
+
+
+def events_only_of(page: Any, device: str, *, typed: str, showing: str) -> None:
+    """`typed` into the Events page's device box: wait until its rows include one `showing` and every row is
+    `device`'s (read in one step: rows are added while the page follows the events)."""
+    page.get_by_label("device").fill(typed)
+    page.wait_for_function(
+        """([device, showing]) => {
+          const rows = [...document.querySelectorAll('#events tbody tr[data-id]')];
+          return rows.some(r => r.textContent.includes(showing))
+            && rows.every(r => r.children[3].textContent === device);
+        }""",
+        arg=[device, showing],
+    )
 
 
 def agent_on(rig: LocalRig, device: str, url: str | None = None) -> Any:
@@ -1605,14 +1608,7 @@ def test_an_offline_arm_is_forgotten_from_its_page(
     errors_before = len(browser_errors)
     page.locator(".status.OFFLINE").wait_for()
     button = page.get_by_role("button", name="Forget this arm")
-    asked: list[str] = []
-
-    def confirm(dialog: Any) -> None:
-        asked.append(dialog.message)
-        dialog.accept()
-
-    page.on("dialog", confirm)
-    try:
+    with dialogs_accepted(page) as asked:
         # A page whose token the agent does not know (it restarted since), and which cannot read the new
         # one either: refused, in the agent's words.
         token = page.evaluate("document.querySelector('meta[name=csrf-token]').content")
@@ -1637,8 +1633,6 @@ def test_an_offline_arm_is_forgotten_from_its_page(
         button.click()
         result.filter(has_text="arm-retired is forgotten: its twin").wait_for(timeout=TIMEOUT_S * 1000)
         assert page.evaluate("document.querySelector('meta[name=csrf-token]').content") == token
-    finally:
-        page.remove_listener("dialog", confirm)
     assert len(asked) == 3 and "Forget arm-retired?" in asked[0], asked
     assert "twin" in asked[0] and "no alarm" in asked[0] and "new arm" in asked[0], asked
     assert page.locator("#forget-result a#forget-fleet").get_attribute("href") == "/"
@@ -1791,11 +1785,7 @@ def test_acknowledging_all_of_an_arm_is_refused_as_one_acknowledgement_is(
     """The bulk acknowledgement is the single one's POST, guarded the same: a page whose CSRF token the agent
     refuses (and that cannot read a new one) is told so in the agent's words, and sends no more; with its
     token, the agent acknowledges the arm's real alarm and records it as an event."""
-    alarm = wait_for(
-        lambda: active_heat_alarm(console, "arm-002", raised_within_s=FRESH_ALARM_S),
-        TIMEOUT_S,
-        f"arm-002's heat alarm, raised within {FRESH_ALARM_S:.0f} s",
-    )
+    alarm = fresh_heat_alarm(console, "arm-002")
     errors_before = len(browser_errors)
     page.goto(console + "/arm/arm-002")
     button = page.locator("#ack-all:not([disabled])")

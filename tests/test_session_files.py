@@ -205,14 +205,7 @@ def test_a_sessions_alarm_count_is_unknown_before_the_oldest_event_kept() -> Non
         SessionInfo("arm-002", start=2_010.0, end=2_200.0, messages=1_900),  # two raised in it
         SessionInfo("arm-003", start=2_001.0, end=2_300.0, messages=2_990),  # none
     ]
-    server = AgentHttpServer(EventfulSource(store), "127.0.0.1", 0, sessions=SizedCatalog(sessions, 1))
-    server.start()
-    try:
-        status, _, body = http_get(f"http://127.0.0.1:{server.port}/api/sessions")
-    finally:
-        server.stop()
-    assert status == 200
-    answer = json.loads(body)
+    answer = sessions_answer(store, sessions)
     counts = {s["device"]: s["alarms_raised"] for s in answer["sessions"]}
     assert counts == {"arm-001": None, "arm-002": 2, "arm-003": 0}
     assert answer["alarms_known_since"] == 2_000.0
