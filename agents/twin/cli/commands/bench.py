@@ -116,7 +116,7 @@ def _part_scenarios(sub: Any) -> list[argparse.ArgumentParser]:
 
 
 def _long_scenarios(sub: Any) -> list[argparse.ArgumentParser]:
-    """The scenarios with several options: the console, the cost per message, the soak, and all of them."""
+    """The scenarios with several options: the console, the cost per message, the soaks, and all of them."""
     cs = sub.add_parser(
         "console", help="the operator console: fleet page interactive at 2,000 arms, CPU of two consoles"
     )
@@ -150,10 +150,27 @@ def _long_scenarios(sub: Any) -> list[argparse.ArgumentParser]:
     so.add_argument("--rate", type=float, default=10.0, help="messages per second per arm")
     so.add_argument("--out", type=Path, default=Path("out/soak"), help="where soak.json and soak.png go")
 
+    ch = sub.add_parser(
+        "churn", help="a steady fleet plus arms that come and go, forgotten: RSS once the stores are full"
+    )
+    ch.add_argument("--minutes", type=float, default=40.0)
+    ch.add_argument("--steady", type=int, default=200, help="arms publishing the whole run")
+    ch.add_argument("--rate", type=float, default=5.0, help="messages per second per steady arm")
+    ch.add_argument("--churn-per-min", type=int, default=500, help="new device ids a minute")
+    ch.add_argument("--workers", type=int, default=2, help="the agent's --workers")
+    ch.add_argument(
+        "--events-capacity",
+        type=int,
+        default=None,
+        help="the agent's [twin] events_capacity (default: its own)",
+    )
+    ch.add_argument("--sample-s", type=float, default=30.0, help="seconds between samples")
+    ch.add_argument("--out", type=Path, default=Path("out/churn"), help="where churn.json goes")
+
     al = sub.add_parser("all", help="every scenario as published in docs/performance.md, plus the plot")
     al.add_argument("--seconds", type=float, default=20.0, help="throughput run length")
     al.add_argument("--plot", type=Path, default=Path("docs/performance.png"))
-    return [cs, co, so, al]
+    return [cs, co, so, ch, al]
 
 
 def _bench(scenario: str) -> ModuleType:
@@ -193,6 +210,8 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
         )
     if args.scenario == "soak":
         return _bench("soak").run(minutes=args.minutes, arms=args.arms, rate=args.rate, out=args.out)
+    if args.scenario == "churn":
+        return _churn(args)
     if args.scenario == "worker":
         return _bench("worker").run(arms=args.arms, rounds=args.rounds, batches=args.batch)
     if args.scenario == "cost":
@@ -206,6 +225,20 @@ def _figures(args: argparse.Namespace) -> dict[str, Any]:
             alarms=args.alarms,
         )
     return _every_scenario(args)
+
+
+def _churn(args: argparse.Namespace) -> dict[str, Any]:
+    churn = _bench("churn")
+    settings = churn.Churn(
+        minutes=args.minutes,
+        steady=args.steady,
+        rate=args.rate,
+        churn_per_min=args.churn_per_min,
+        workers=args.workers,
+        sample_s=args.sample_s,
+        **({"events_capacity": args.events_capacity} if args.events_capacity is not None else {}),
+    )
+    return churn.run(settings, out=args.out)
 
 
 def _every_scenario(args: argparse.Namespace) -> dict[str, Any]:
