@@ -11,6 +11,7 @@ from typing import Any
 
 import pytest
 from twin.bench import churn
+from twin.cli.main import build_parser
 from twin.service.shards import WorkerPlan
 
 CAPACITY = 5000
@@ -125,3 +126,17 @@ def test_a_short_churn_run_fills_the_stores_and_forgets_arms(tmp_path: Path) -> 
     assert figures["forgotten"] > 0 and summary["churned_ids"] >= 100
     assert figures["metrics_bytes"]["min"] > 0 and figures["devices"]["max"] >= 10
     assert all(p["rss_start_mb"] > 10 for p in figures["processes"].values())
+
+
+def test_twin_bench_churn_passes_its_options_to_the_bench(monkeypatch: pytest.MonkeyPatch) -> None:
+    seen: list[tuple[churn.Churn, Path]] = []
+    monkeypatch.setattr(churn, "run", lambda settings, out: seen.append((settings, out)) or {"ran": True})
+    argv = ["bench", "churn", "--minutes", "25", "--steady", "50", "--events-capacity", "5000", "--out", "x"]
+    args = build_parser().parse_args(argv)
+    assert args.func(args) == 0
+    settings, out = seen[0]
+    assert (settings.minutes, settings.steady, settings.events_capacity, out) == (25.0, 50, 5000, Path("x"))
+    # Left out, the agent's own capacity: the bench's settings default to it.
+    defaults = build_parser().parse_args(["bench", "churn"])
+    assert defaults.func(defaults) == 0
+    assert seen[1][0].events_capacity == churn.DEFAULT_CAPACITY and seen[1][0].workers == 2
