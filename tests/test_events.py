@@ -980,3 +980,20 @@ def test_a_query_finds_part_of_an_id_in_any_case_or_one_whole_id() -> None:
     assert [e.device for e in store.query(EventQuery(device="arm-1"))] == ["arm-1"]
     assert store.query(EventQuery(device="arm-1", device_part="10")) == []
     assert len(store.query(EventQuery())) == 4
+
+
+def test_a_query_after_an_id_gives_every_kept_event_after_it_from_both_parts() -> None:
+    """A page that follows the events asks for those after the last it saw: read from that id on in each of
+    the store's parts (not the whole store, then filtered), they must still be all of them, in id order."""
+    store = EventStore(300)
+    rng = random.Random(7)
+    for n in range(1_000):
+        kind = EventKind.ALARM if rng.random() < 0.3 else EventKind.STATUS
+        store.emit(kind, EventLevel.INFO, f"event {n}", device=f"arm-{n % 9}")
+    kept = store.query(EventQuery(limit=1_000))
+    assert len(kept) == 300
+    for seen in (0, kept[0].id - 1, kept[0].id, kept[150].id, kept[-2].id, kept[-1].id):
+        expected = [e for e in kept if e.id > seen]
+        assert store.query(EventQuery(after_id=seen, limit=1_000)) == expected, seen
+        alarms = [e for e in expected if e.kind == "alarm"]
+        assert store.query(EventQuery(after_id=seen, kinds=frozenset({"alarm"}), limit=1_000)) == alarms

@@ -337,9 +337,11 @@ class EventStore:
     def query(self, query: EventQuery) -> list[Event]:
         wanted = query.kinds
         with self._lock:
-            # Only the parts that hold a kind asked for: the Sessions page's alarms skip a flood of statuses.
-            bulk = self._bulk.after(0, None) if not wanted or wanted & BULK_KINDS else []
-            kept = self._kept.after(0, None) if not wanted or wanted - BULK_KINDS else []
+            # Only the parts that hold a kind asked for (the Sessions page's alarms skip a flood of statuses),
+            # from `after_id` on (a page that follows the events asks for the last few, not the whole store).
+            start = query.after_id
+            bulk = self._bulk.after(start, None) if not wanted or wanted & BULK_KINDS else []
+            kept = self._kept.after(start, None) if not wanted or wanted - BULK_KINDS else []
         candidates = sorted(bulk + kept, key=_ID) if bulk and kept else bulk or kept
         matched = [e for e in candidates if query.matches(e)]
         return matched[-query.limit :]
