@@ -10,6 +10,7 @@ import pytest
 from twin.core.alarms import AlarmKind, AlarmThresholds
 from twin.core.modes import TwinMode
 from twin.core.units import Units
+from twin.service import events
 from twin.service.config import (
     AgentConfig,
     ConfigError,
@@ -109,7 +110,7 @@ def test_the_event_store_capacity_is_checked(tmp_path: Path, capacity: int) -> N
 
 
 def test_the_event_store_capacity_is_read(tmp_path: Path) -> None:
-    assert AgentConfig().twin.events_capacity == 20_000
+    assert AgentConfig().twin.events_capacity == 20_000 == events.DEFAULT_CAPACITY
     assert load_config(write(tmp_path, "[twin]\nevents_capacity = 5000\n")).twin.events_capacity == 5000
 
 

@@ -35,7 +35,6 @@ from twin.core.units import MAX_PAYLOAD_BYTES, Units
 from twin.output.rerun_settings import RerunSettings, RerunSettingsError
 from twin.output.ros2 import Ros2Error, Ros2Settings
 from twin.robot.calibration import leader_problem, load_calibration
-from twin.service.events import DEFAULT_CAPACITY as DEFAULT_EVENTS_CAPACITY
 from twin.transport.broker import IOT, BrokerConfig, BrokerConfigError
 from twin.transport.plan import (
     IOT_PUBLISHES_PER_CONNECTION,
@@ -54,6 +53,10 @@ DEFAULT_HTTP_PORT = 8080
 DEFAULT_AGENT_URL = f"http://{DEFAULT_HTTP_HOST}:{DEFAULT_HTTP_PORT}"
 # More worker processes than this is a typo, not a fleet (docs/scaling.md, "Workers").
 MAX_WORKERS = 64
+# [twin] events_capacity by default: service.events.DEFAULT_CAPACITY (a test holds the two equal). Not
+# imported from there: reading a config imports no third-party package (events needs msgspec), which
+# `twin --help` and the host's config checks rely on (tests/infra install the package with none).
+DEFAULT_EVENTS_CAPACITY = 20_000
 # [twin] events_capacity: below this a store holds too few to page through or to count a session's alarms;
 # above it the Sessions page and the exports (which read at most 100,000 events) would see a part of it.
 MIN_EVENTS_CAPACITY = 100
