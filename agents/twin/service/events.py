@@ -46,6 +46,7 @@ import msgspec
 
 from twin.core.alarms import UNITS as ALARM_UNITS
 from twin.core.alarms import WAITING_STATES, AlarmEvent
+from twin.core.health import HealthThresholds
 
 log = logging.getLogger(__name__)
 
@@ -656,8 +657,10 @@ class RateWatch:
     ) -> None:
         self._store = store
         self._expected = expected_rate_hz
-        # [health] stale_after_s, which the slow warning names (the default's 3 periods when not given)
-        self._stale_after_s = 3.0 / expected_rate_hz if stale_after_s is None else stale_after_s
+        # [health] stale_after_s, which the slow warning names (the default stale_periods' when not given)
+        if stale_after_s is None:
+            stale_after_s = HealthThresholds(expected_rate_hz=expected_rate_hz).stale_after_s
+        self._stale_after_s = stale_after_s
         self._over_since: dict[str, float] = {}
         self._under_since: dict[str, float] = {}
         self._reported: set[str] = set()

@@ -48,7 +48,6 @@
   let shownAlarms = [];
   // Every alarm of the arm waiting for a person, in one go: one by one, ten hot arms took twenty clicks. Always
   // there (disabled with none waiting), beside the table's title: appearing, it would move the rows.
-  const WAITING = new Set(["ACTIVE", "LATCHED"]);
   const ackAllButton = el("button", { type: "button", id: "ack-all", disabled: true, text: "Acknowledge all (0)" });
   let ackAllBusy = false;
   const lossBox = el("div", { class: "kv" });
@@ -193,7 +192,7 @@
     }
   }
 
-  function waitingAlarms() { return shownAlarms.filter((a) => WAITING.has(a.state)); }
+  function waitingAlarms() { return shownAlarms.filter((a) => Twin.WAITING.has(a.state)); }
 
   function showAckAll() {
     const n = waitingAlarms().length;

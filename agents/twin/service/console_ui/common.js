@@ -136,6 +136,9 @@ const Twin = (() => {
     return `${why} (${result.status}${p.error ? ` ${p.error}` : ""})`;
   }
 
+  // The alarm states that wait for a person (twin.core.alarms.WAITING_STATES): what the pages count and send.
+  const WAITING = new Set(["ACTIVE", "LATCHED"]);
+
   // Several alarms acknowledged at once (an arm's, or the Fleet page's shown): one POST /alarms/<id>/ack
   // each, so each is guarded, answered and recorded (its own event) exactly as a single click's. Only the
   // ids the operator confirmed are sent: one raised meanwhile waits for its own look. A refusal of the page
@@ -221,7 +224,7 @@ const Twin = (() => {
     if (a.dataset.nav === page || (page === "arm" && a.dataset.nav === "fleet")) a.classList.add("active");
   }
 
-  return { el, stream, getJSON, post, refusal, acknowledgeMany, tallyText, tallyOk, ago, time, zone, duration, num, setLink, breaks: () => breaks,
+  return { el, stream, getJSON, post, refusal, WAITING, acknowledgeMany, tallyText, tallyOk, ago, time, zone, duration, num, setLink, breaks: () => breaks,
     main: document.getElementById("main"),
     device: body.dataset.device, rerun: body.dataset.rerun };
 })();

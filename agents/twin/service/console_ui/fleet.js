@@ -88,7 +88,7 @@
 
   // The worst alarm is the one shown; others may wait for someone while it does not (a critical one
   // acknowledged, a warning still ACTIVE), and the arm would read as dealt with.
-  const WAITING = new Set(["ACTIVE", "LATCHED"]);
+  const { WAITING } = Twin;
   function othersWaiting(r) {
     const c = columns, others = (r[c.unacknowledged] || 0) - (WAITING.has(r[c.alarm_state]) ? 1 : 0);
     return others > 0 ? [" · ", el("span", { class: "waiting", title: "alarms not acknowledged besides the one shown: the arm's page lists them",
