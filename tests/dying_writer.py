@@ -51,7 +51,8 @@ def check_that_dies(*args: Any) -> None:
 
 def check_that_hangs(*args: Any) -> None:
     """The agent's check of a commit in doubt at its stop, hung (a store that never answers) and deaf to
-    SIGINT and SIGTERM as check_main is: only the agent's kill at the check's timeout ends it."""
+    SIGINT as check_main is (no SIGTERM comes while the agent runs): the agent's kill at its timeout ends
+    it."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     threading.Event().wait()

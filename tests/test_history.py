@@ -7,6 +7,7 @@ what the agent would store.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import itertools
 import json
@@ -15,6 +16,7 @@ import multiprocessing
 import os
 import random
 import re
+import signal
 import subprocess
 import sys
 import threading
@@ -1269,9 +1271,9 @@ def test_a_commit_in_doubt_when_the_agent_stops_first_is_asked_of_the_table_at_t
 def test_a_check_of_a_commit_in_doubt_that_hangs_at_the_stop_is_killed_at_its_timeout(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
-    """The stop's check of a dead writer's commit (a store that never answers, say) ignores SIGINT and
-    SIGTERM, so nothing but the agent ends it: the agent waits for it until its timeout (the stop's rest,
-    at least CHECK_MIN_S), kills it, and counts the rows as lost."""
+    """The stop's check of a dead writer's commit (a store that never answers, say) ignores SIGINT, and no
+    SIGTERM comes while the agent runs: the agent waits for it until its timeout (the stop's rest, at least
+    CHECK_MIN_S), kills it, and counts the rows as lost."""
     from twin.output import history_feed
 
     monkeypatch.setattr(history_feed, "CHECK_MIN_S", 2.0)
@@ -1295,6 +1297,54 @@ def test_a_check_of_a_commit_in_doubt_that_hangs_at_the_stop_is_killed_at_its_ti
     said = [r.getMessage() for r in caplog.records]
     assert any("the check of the last writer's last commit took over 2 s" in m for m in said), said
     assert any("(7 rows to telemetry) could not be checked: counted as lost" in m for m in said), said
+
+
+def test_a_check_of_a_commit_in_doubt_stuck_on_its_store_ends_on_sigterm_and_leaves_the_table(
+    tmp_path: Path,
+) -> None:
+    """A check stuck reading the table (here a file whose open blocks: a store or file system that never
+    answers) ignored SIGTERM too, so an operator's kill, or systemd's stop once the agent that would kill it
+    was gone, left it running for as long as the read hung. It now ends within CHECK_TERM_GRACE_S of a
+    SIGTERM without answering (its rows count as not checked), and the table is as it was."""
+    from twin.output import history_feed
+
+    uri = tmp_path / "history"
+    table = uri / TELEMETRY_TABLE
+    pl.DataFrame({"a": [1, 2, 3]}).write_delta(str(table))
+    log_dir = table / "_delta_log"
+    before = {p.name: p.read_bytes() for p in log_dir.iterdir()}
+    stuck = log_dir / "_last_checkpoint"
+    os.mkfifo(stuck)  # opening it to read blocks until something opens it to write: nothing will
+    ctx = multiprocessing.get_context("spawn")
+    answers, child = ctx.Pipe()
+    doubt = history_feed._InDoubt("a-dead-writer", TELEMETRY_TABLE, 1, 5)
+    check = ctx.Process(target=history_feed.check_main, args=({"uri": str(uri)}, doubt, child))
+    check.start()
+    child.close()
+    try:
+        wait_for(lambda: _opening_a_fifo(check.pid), 60, "the check stuck opening the table's file")
+        os.kill(check.pid, signal.SIGTERM)
+        check.join(history_feed.CHECK_TERM_GRACE_S + 10.0)
+        ended = not check.is_alive()
+    finally:
+        check.kill()
+        check.join(5.0)
+    assert ended, "the stuck check was still running after SIGTERM"
+    assert check.exitcode == 1
+    with pytest.raises(EOFError):  # nothing answered: the agent counts the rows as not checked
+        answers.recv()
+    stuck.unlink()
+    assert {p.name: p.read_bytes() for p in log_dir.iterdir()} == before
+    assert DeltaTable(str(table)).version() == 0 and rows_of(str(uri)).height == 3
+
+
+def _opening_a_fifo(pid: int) -> bool:
+    """Whether a thread of process `pid` waits in the kernel to open a FIFO (for a writer to open it too)."""
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        with contextlib.suppress(OSError):  # a thread that ended meanwhile
+            if (task / "wchan").read_text().strip() == "wait_for_partner":
+                return True
+    return False
 
 
 def _table_rows(uri: str) -> int:

@@ -89,6 +89,11 @@ MAX_RESTART_PAUSE_S = 60.0
 # started for it (`check_main`): it has what is left of the stop's timeout, and at least this long (a spawned
 # Python, deltalake and one read of the table's log took 0.4-0.5 s on a local disk).
 CHECK_MIN_S = 10.0
+# A check told to stop (SIGTERM: an operator's kill, or a stop that reaches a check its agent no longer waits
+# for, the agent having been killed) answers within this long or ends without answering. It only reads the
+# table, so ending it leaves the table as it was; its rows count as not checked. A check stuck on a store that
+# never answers otherwise held on for object_store's timeouts and retries, or for ever on a hung file system.
+CHECK_TERM_GRACE_S = 2.0
 # The writer process runs this much nicer than the mirrors (os.nice; its threads, deltalake's included, and
 # its maintenance process inherit it). Its commits are bursts of Parquet encoding every commit_every_s; at the
 # same priority they took the mirrors' cores and showed as their p99. At 5 its scheduler weight is a third of
@@ -607,25 +612,58 @@ def check_main(
     log_setup: tuple[Callable[[str], None], str] | None = None,
 ) -> None:
     """The agent's check of a commit in doubt at its stop, in a process of its own (the agent's does not load
-    deltalake): sends `_landed`'s answer for `in_doubt` (None: the table could not be read)."""
-    # Part of the stop: a Ctrl-C or SIGTERM to the process group must not cut it short (the agent kills it
-    # at its timeout).
+    deltalake): sends `_landed`'s answer for `in_doubt` (None: the table could not be read). On SIGTERM it
+    ends within CHECK_TERM_GRACE_S, answered or not."""
+    # A Ctrl-C to the process group must not cut it short (the agent kills it at its timeout). SIGTERM ends it
+    # after a grace: the read runs on a thread of its own so that the handler runs even while the read is
+    # stuck in deltalake's native code (Python runs handlers on the main thread only, between bytecodes).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    woken = threading.Event()
+    terminated = threading.Event()
+
+    def on_term(*_: object) -> None:
+        terminated.set()
+        woken.set()
+
+    signal.signal(signal.SIGTERM, on_term)
     if log_setup is not None:
         setup, level = log_setup
         setup(level)
+    answer: list[bool | None] = []
+
+    def read() -> None:
+        try:
+            answer.append(_checked(settings, in_doubt))
+        finally:
+            woken.set()
+
+    reader = threading.Thread(target=read, name="history-check-read", daemon=True)
+    reader.start()
+    woken.wait()
+    if terminated.is_set():
+        reader.join(CHECK_TERM_GRACE_S)
+    if not answer:
+        log.error(
+            "history: the check of the last writer's last commit was stopped (SIGTERM) before the table "
+            "answered; the table is as it was, and its rows count as not checked"
+        )
+        # The reader may be stuck in native code for good: nothing of this process's exit may wait for it.
+        os._exit(1)
+    with contextlib.suppress(OSError, ValueError):
+        control.send(answer[0])
+
+
+def _checked(settings: dict[str, Any], in_doubt: _InDoubt) -> bool | None:
+    """`_landed` of a writer made from `settings` (None: the table could not be read)."""
     settings = dict(settings)
     settings.pop("writer_nice", None)
     from twin.output.history import HistorySettings, HistoryWriter  # noqa: PLC0415
 
     try:
-        landed = _landed(HistoryWriter(HistorySettings(**settings)), in_doubt)
+        return _landed(HistoryWriter(HistorySettings(**settings)), in_doubt)
     except Exception:  # a setting the writer could not work with either: it never started to commit
         log.exception("history: could not check the last writer's last commit")
-        landed = None
-    with contextlib.suppress(OSError, ValueError):
-        control.send(landed)
+        return None
 
 
 class _Receiver:
