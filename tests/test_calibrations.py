@@ -121,6 +121,38 @@ def test_the_watcher_warns_once_of_a_file_no_arm_reads(
     assert f"twin calibration push ARM FILE --store {tmp_path / 'cal'}`" in listed.err, listed.err
 
 
+def test_a_hidden_file_in_the_store_is_never_an_arms_and_its_notice_says_rename_or_remove(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Files an editor, a cut-short copy or a desktop leaves beside the arms' (`.arm-002.json`, macOS's
+    `._arm-001.json`, `.DS_Store`) are no arm's calibration: an id cannot start with '.', so a push refuses
+    one. Before, the notice for them gave the fix for a badly named arm (push under that id, or rename the arm
+    on the edge); it now says it is a hidden file, to be renamed to the arm's <device id>.json or removed."""
+    store = DirectoryStore(tmp_path / "cal")
+    store.write("arm-001", EXAMPLE.read_bytes())
+    for name in (".arm-002.json", "._arm-001.json", ".DS_Store"):
+        (tmp_path / "cal" / name).write_bytes(EXAMPLE.read_bytes())
+    watcher = CalibrationWatcher(store)
+    with caplog.at_level("WARNING", logger="twin.service.calibrations"):
+        assert watcher.poll() is True
+    assert set(watcher.book.entries) == {"arm-001"} and not watcher.book.problems
+    said = {getattr(r, "file", ""): r.getMessage() for r in caplog.records}
+    assert set(said) == {".arm-002.json", "._arm-001.json"}, said  # .DS_Store names no calibration
+    for name, message in said.items():
+        assert f"{name} in {tmp_path / 'cal'} is ignored" in message, message
+        assert "starts with '.', so it is a hidden file" in message and "else remove it" in message, message
+        assert "rename the arm on the edge" not in message, message
+    assert "rename it to <device id>.json (arm-002.json here)" in said[".arm-002.json"]
+    assert "here)" not in said["._arm-001.json"]  # macOS's metadata of arm-001.json, not a calibration
+    with pytest.raises(ValueError, match="not a device id"):
+        store.write(".arm-002", EXAMPLE.read_bytes())
+    assert main(["calibration", "ls", "--store", str(tmp_path / "cal")]) == cmd.EXIT_OK
+    listed = capsys.readouterr()
+    assert listed.out == f"arm-001\t{tmp_path / 'cal' / 'arm-001.json'}\n"
+    assert "ignored: .arm-002.json (no arm reads it: its name starts with '.'" in listed.err, listed.err
+    assert "DS_Store" not in listed.err, listed.err
+
+
 def test_the_watcher_picks_up_changes_refuses_bad_files_and_keeps_what_it_had(tmp_path: Path) -> None:
     store = DirectoryStore(tmp_path / "calibration")
     books: list[CalibrationBook] = []

@@ -152,6 +152,27 @@ def device_of(name: str, suffix: str = SUFFIX) -> str | None:
     return device if policy_device_id_problem(device) is None else None
 
 
+def ignored_fix(name: str, push: str) -> str:
+    """Why no arm reads `name` (a file in the store that StoreScan.ignored lists) and what to do about it;
+    `push` is the push command that reaches this store."""
+    if name.startswith("."):
+        # A hidden file: an editor's backup or swap, a copy cut short, a desktop's metadata (`._arm-1.json`).
+        # Taking it for an arm's could move that arm's twin with an old or half-written file.
+        plain = name.lstrip(".")
+        # Not for macOS's `._<name>` files: they hold the named file's metadata, never a calibration.
+        to = f" ({plain} here)" if device_of(plain) is not None and not name.startswith("._") else ""
+        return (
+            "its name starts with '.', so it is a hidden file (an editor's, a cut-short copy's), never an "
+            f"arm's calibration: if it is one, rename it to <device id>.json{to} or push it (`{push}`); "
+            "else remove it"
+        )
+    return (
+        f"a calibration is named <device id>.json and a device id here is {POLICY_DEVICE_ID_RULE}. If it is "
+        f"the file of an arm whose id is such, push it under that id (`{push}`); an arm whose id is not "
+        "cannot have a calibration of its own: rename the arm on the edge"
+    )
+
+
 def check_device(device: str) -> None:
     """ValueError naming the rule when `device` cannot be an arm's file name in a store."""
     if policy_device_id_problem(device) is not None:
@@ -629,14 +650,10 @@ class CalibrationWatcher:
         push = push_hint("ARM", self.store.uri).command
         for name in sorted(set(ignored) - self._ignored):
             log.warning(
-                "%s in %s is ignored: no arm reads it, because a calibration is named <device id>.json and a "
-                "device id here is %s. If it is the file of an arm whose id is such, push it under that id "
-                "(`%s`); an arm whose id is not cannot have a calibration of its own: rename the arm on the "
-                "edge",
+                "%s in %s is ignored: no arm reads it: %s",
                 name,
                 self.store.uri,
-                POLICY_DEVICE_ID_RULE,
-                push,
+                ignored_fix(name, push),
                 extra={"event": "calibration_ignored", "file": name},
             )
         self._ignored = set(ignored)

@@ -205,8 +205,7 @@ def _ls(store: CalibrationStore, again: str) -> int:
     """A line per arm: its calibration's place, and the kept one's when there is one (an arm whose own was
     removed shows `(removed)`), so what `restore` would bring back is seen before it is needed. Files no arm
     reads (named for no device id) are named on stderr."""
-    from twin.core.topics import POLICY_DEVICE_ID_RULE
-    from twin.service.calibrations import KEPT_SUFFIX, SUFFIX
+    from twin.service.calibrations import KEPT_SUFFIX, SUFFIX, ignored_fix
 
     found = store.scan()
     listing, kept = found.calibrations, found.kept
@@ -223,11 +222,9 @@ def _ls(store: CalibrationStore, again: str) -> int:
             f"kept: what a push or rm replaced; `twin calibration restore ARM{again}` swaps it back in, "
             f"`twin calibration rm --kept ARM{again}` removes it"
         )
+    push = f"twin calibration push ARM FILE{again}"
     for name in found.ignored:
-        console.err(
-            f"ignored: {name} (no arm reads it: a device id is {POLICY_DEVICE_ID_RULE}; "
-            f"push it as the arm's with `twin calibration push ARM FILE{again}`)"
-        )
+        console.err(f"ignored: {name} (no arm reads it: {ignored_fix(name, push)})")
     return EXIT_OK
 
 
