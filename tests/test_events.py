@@ -130,12 +130,67 @@ def test_a_reader_that_saw_an_id_gets_exactly_the_kept_events_after_it() -> None
 
 def test_the_kinds_that_are_not_bulk_have_a_share_a_flood_of_them_takes_no_more_than() -> None:
     # Either part takes what the other leaves: a flood of alarms pushes out older alarms once past its share.
+    # The agent's start (alarms[0]) stays: the lifecycle kinds' reserve, which the alarms cannot take.
     s, _ = store(capacity=10)
     statuses = flood_statuses(s, 3)
     alarms = raise_alarms(s, [f"arm-{i:03d}" for i in range(20)])
-    assert s.after(0) == statuses + alarms[-7:]
+    assert s.after(0) == statuses + alarms[:1] + alarms[-6:]
     more = flood_statuses(s, 30)
-    assert s.after(0) == alarms[-5:] + more[-5:]  # each part down to its share
+    assert s.after(0) == alarms[:1] + alarms[-4:] + more[-5:]  # each part down to its share
+
+
+def lifecycle_events(s: EventStore) -> list[Event]:
+    return [
+        s.emit(EventKind.AGENT, EventLevel.INFO, "the agent started"),
+        s.emit(EventKind.BROKER, EventLevel.WARNING, "broker connection lost"),
+        s.emit(EventKind.WORKER, EventLevel.ERROR, "worker 1 exited (code -9)", data={"worker": 1}),
+        s.emit(EventKind.CALIBRATION, EventLevel.INFO, "arm-001 calibration picked up", device="arm-001"),
+        s.emit(EventKind.WORKER, EventLevel.INFO, "worker 1 running again", data={"worker": 1}),
+    ]
+
+
+def test_a_flood_of_alarms_does_not_push_the_agent_worker_and_broker_events_out() -> None:
+    # An alarm storm (every arm of a hot cell raising and clearing) took the whole non-bulk share and pushed
+    # out the agent's start, the worker that died and the broker loss that explain it.
+    s, _ = store(capacity=100)
+    lifecycle = lifecycle_events(s)
+    storm = [
+        s.emit(
+            EventKind.ALARM, EventLevel.WARNING, "hot", device=f"arm-{i % 40:03d}", data={"action": "raised"}
+        )
+        for i in range(3 * s.capacity)
+    ]
+    assert len(s) == s.capacity and s.last_id == len(lifecycle) + len(storm)
+    held = storm[-(s.capacity - len(lifecycle)) :]
+    everything = lifecycle + held
+    assert s.after(0) == everything == s.query(EventQuery(limit=1_000))
+    assert [e.id for e in everything] == sorted({e.id for e in everything})  # in id order, once each
+    for seen in (0, lifecycle[2].id, lifecycle[-1].id, held[0].id, held[50].id, s.last_id):
+        expected = [e for e in everything if e.id > seen]
+        assert s.after(seen) == expected and s.after(seen, limit=3) == expected[:3], seen
+        assert s.query(EventQuery(after_id=seen, limit=1_000)) == expected, seen
+    kinds = frozenset({"agent", "worker", "broker", "calibration"})
+    assert s.query(EventQuery(kinds=kinds)) == lifecycle
+    assert s.query(EventQuery(kinds=frozenset({"worker"}))) == [lifecycle[2], lifecycle[4]]
+    assert s.query(EventQuery(kinds=frozenset({"alarm"}), limit=1_000)) == held
+    worse = s.query(EventQuery(min_level=EventLevel.WARNING, limit=1_000))
+    assert worse == lifecycle[1:3] + held
+    assert s.query(EventQuery(min_level=EventLevel.ERROR)) == [lifecycle[2]]
+    assert s.alarms_let_go_until == storm[len(storm) - len(held) - 1].time
+    # Past their reserve, the lifecycle kinds' oldest go as the alarms' do: the reserve is a floor, not more.
+    s, _ = store(capacity=100)
+    many = [s.emit(EventKind.WORKER, EventLevel.INFO, f"worker {i} running") for i in range(20)]
+    storm = [s.emit(EventKind.ALARM, EventLevel.WARNING, "hot") for _ in range(3 * s.capacity)]
+    assert s.query(EventQuery(kinds=frozenset({"worker"}))) == many[-5:]
+
+
+def test_a_restored_store_keeps_the_lifecycle_events_an_alarm_flood_came_after() -> None:
+    s, _ = store(capacity=1000)
+    made = lifecycle_events(s) + [s.emit(EventKind.ALARM, EventLevel.WARNING, "hot") for _ in range(900)]
+    again, _ = store(capacity=100)
+    assert again.restore(made) == 100
+    assert again.after(0) == made[:5] + made[-95:]
+    assert again.emit(EventKind.AGENT, EventLevel.INFO, "the agent started").id == len(made) + 1
 
 
 def test_a_restored_store_keeps_the_alarms_a_flood_came_after() -> None:

@@ -189,6 +189,9 @@ class EventfulSource(StubSource):
     def events(self, query: EventQuery) -> list[Event]:
         return self.store.query(query)
 
+    def alarms_let_go_until(self) -> float | None:
+        return self.store.alarms_let_go_until
+
 
 def test_a_sessions_alarm_count_is_unknown_before_the_oldest_event_kept() -> None:
     """Its alarms are counted from the events the agent holds: a session that began before the oldest of
@@ -260,6 +263,25 @@ def test_alarm_counts_are_known_from_the_oldest_alarm_kept_not_an_older_status_e
     answer = sessions_answer(store, sessions)
     assert [s["alarms_raised"] for s in answer["sessions"]] == [None]
     assert answer["alarms_known_since"] == oldest_alarm
+
+
+def test_alarm_counts_are_not_known_from_an_agent_event_older_than_the_alarms_a_flood_pushed_out() -> None:
+    # The agent's start stays through an alarm flood (the lifecycle kinds' reserve), older than the raises
+    # let go of: the counts hold after the newest raise let go of, not from that start.
+    store = EventStore(100)
+    store.emit(EventKind.AGENT, EventLevel.INFO, "the agent started", at=1_000.0)
+    raised = {"action": "raised", "alarm_id": "arm-002/wrist_roll/over_temperature"}
+    for i in range(3 * store.capacity):
+        store.emit(EventKind.ALARM, EventLevel.WARNING, "hot", device="arm-002", data=raised, at=2_000.0 + i)
+    assert store.query(EventQuery(kinds=frozenset({"agent"})))
+    oldest_alarm = min(e.time for e in store.query(EventQuery(kinds=frozenset({"alarm"}))))
+    sessions = [
+        SessionInfo("arm-002", start=1_500.0, end=2_500.0, messages=1_900),  # raises went from it
+        SessionInfo("arm-003", start=oldest_alarm, end=oldest_alarm + 10, messages=100),  # all held
+    ]
+    answer = sessions_answer(store, sessions)
+    assert [s["alarms_raised"] for s in answer["sessions"]] == [None, 0]
+    assert answer["alarms_known_since"] == oldest_alarm - 1
 
 
 def test_without_events_no_sessions_alarm_count_is_known() -> None:

@@ -1209,6 +1209,10 @@ class AgentService:
         collected every supervisor round, so at most about SUPERVISE_EVERY_S late."""
         return self._events.query(query)
 
+    def alarms_let_go_until(self) -> float | None:
+        """The time of the newest alarm event the agent's store let go of (console.AlarmHorizon)."""
+        return self._events.alarms_let_go_until
+
     def _collect_events(self) -> None:
         """On the supervisor thread: broker reconnects, worker exits and restarts, and each mirror's new
         events, into the agent's store, numbered anew in the order they happened (a merge by time of the

@@ -36,6 +36,7 @@ __all__ = [
     "ASSETS",
     "FLEET_COLUMNS",
     "SESSION_FILE_KINDS",
+    "AlarmHorizon",
     "ArmView",
     "ArmViewSource",
     "EventSource",
@@ -99,6 +100,15 @@ class EventSource(Protocol):
     """The optional part of the service surface behind the Events page."""
 
     def events(self, query: EventQuery) -> Sequence[Event]: ...
+
+
+@runtime_checkable
+class AlarmHorizon(Protocol):
+    """The optional part of an EventSource whose store may let go of alarm events while older events of
+    other kinds stay (service.events: the lifecycle kinds' reserve): the time of the newest alarm event it
+    let go of, None for none. The Sessions page's alarm counts hold only for sessions after it."""
+
+    def alarms_let_go_until(self) -> float | None: ...
 
 
 class SessionInfo(msgspec.Struct, frozen=True):

@@ -12,9 +12,11 @@ of a sharded agent hands its events to the receiving process over the control pi
 `EventStore` keeps at most `capacity` events, each with an id that only grows, so a reader that remembers
 the last id it saw asks for what came after it (`after`), and a reader that fell further behind than the store
 simply gets what is left. The kinds that come in floods (`BULK_KINDS`: status transitions, rejections, the
-watches' twin events) and the others (alarms, calibration, agent, worker, broker) each hold a part of it:
-when it is full, the oldest event of a part over its share goes, so a fleet going STALE and ONLINE cannot
-push an alarm raise out (the Sessions page counts the raises it holds). `query` filters by device, level,
+watches' twin events), the alarms, and the rare lifecycle kinds (`LIFECYCLE_KINDS`: calibration, agent,
+worker, broker) each hold a part of it: when it is full, the oldest event of a part over its share goes, so
+a fleet going STALE and ONLINE cannot push an alarm raise out (the Sessions page counts the raises it holds),
+and a flood of alarms cannot push out the agent's starts and stops, its workers' exits and the broker's
+losses. `query` filters by device, level,
 kind, text and time range; `subscribe` calls back on every new event (from the emitting thread: the callback
 must only hand it on).
 
@@ -51,6 +53,7 @@ from twin.core.health import HealthThresholds
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "LIFECYCLE_KINDS",
     "BrokerWatch",
     "Event",
     "EventKind",
@@ -117,6 +120,15 @@ class EventKind(StrEnum):
 BULK_KINDS: frozenset[str] = frozenset(
     {EventKind.STATUS.value, EventKind.REJECTED.value, EventKind.TWIN.value}
 )
+# Of the others, the kinds that come a few an hour, not with the fleet's troubles: an alarm storm (every arm
+# of a hot cell raising and clearing) must not push out the agent's start, a worker's exit or the broker's
+# loss that explain it. They keep a reserve of their own within the non-bulk share (LIFECYCLE_RESERVE_ONE_IN).
+LIFECYCLE_KINDS: frozenset[str] = frozenset(
+    {EventKind.CALIBRATION.value, EventKind.AGENT.value, EventKind.WORKER.value, EventKind.BROKER.value}
+)
+# The lifecycle kinds' reserve: one event in this many of a store's capacity (1,000 of the default 20,000),
+# at least one, at most the non-bulk share.
+LIFECYCLE_RESERVE_ONE_IN = 20
 
 
 class Event(msgspec.Struct, frozen=True, gc=False):
@@ -215,6 +227,11 @@ class _Part:
             del self._items[: self._head]
             self._head = 0
 
+    @property
+    def oldest(self) -> Event:
+        """Its oldest event (it holds one)."""
+        return self._items[self._head]  # type: ignore[return-value]  # none from the head on is None
+
     def after(self, after_id: int, limit: int | None) -> list[Event]:
         """Its events newer than `after_id`, oldest first: the first `limit` of them."""
         items = self._items
@@ -224,12 +241,15 @@ class _Part:
 
 
 class EventStore:
-    """At most `capacity` events, numbered, in two parts (module doc); thread-safe.
+    """At most `capacity` events, numbered, in three parts (module doc); thread-safe.
 
-    `BULK_KINDS` fill one part, the other kinds the other. The other kinds keep `capacity // 2` for
-    themselves: a full store lets go of the oldest of those only while they hold more than that, else of
-    the oldest bulk one. Either part may take what the other leaves, so a store with no flood keeps the
-    newest `capacity` events as one ring would."""
+    `BULK_KINDS` fill one part, the alarms another, `LIFECYCLE_KINDS` the third. The alarms and the lifecycle
+    kinds together keep `capacity // 2` for themselves: a full store lets go of one of those only while they
+    hold more than that, else of the oldest bulk one. Within that share the lifecycle kinds keep a reserve
+    (`capacity // LIFECYCLE_RESERVE_ONE_IN`): while they hold no more than it, the oldest alarm goes, else
+    the older of the oldest alarm and the oldest lifecycle event. Any part may take what the others leave,
+    so a store with no flood keeps the newest `capacity` events as one ring would, but for the lifecycle
+    events in their reserve."""
 
     def __init__(
         self, capacity: int = DEFAULT_CAPACITY, *, wall_clock: Callable[[], float] = time.time
@@ -238,14 +258,19 @@ class EventStore:
             raise ValueError(f"an event store holds at least one event, got capacity = {capacity}")
         self._capacity = capacity
         self._kept_share = capacity // 2
+        self._lifecycle_share = min(self._kept_share, max(1, capacity // LIFECYCLE_RESERVE_ONE_IN))
         self._bulk = _Part()
-        self._kept = _Part()
+        self._alarms = _Part()
+        self._lifecycle = _Part()
         self._ids = itertools.count(1)
         self._last_id = 0
         self._lock = threading.Lock()
         self._subscribers: list[Subscriber] = []
         self._wall_clock = wall_clock
         self.dropped = 0  # let go of for newer ones
+        # The time of the newest alarm event let go of (None: none was), this run's or a restored one's: the
+        # alarms held are all there are from then on (the Sessions page's counts, alarms_let_go_until).
+        self._alarms_let_go_until: float | None = None
 
     @property
     def capacity(self) -> int:
@@ -255,8 +280,13 @@ class EventStore:
     def last_id(self) -> int:
         return self._last_id
 
+    @property
+    def alarms_let_go_until(self) -> float | None:
+        """The time of the newest alarm event this store let go of; None when it let go of none."""
+        return self._alarms_let_go_until
+
     def __len__(self) -> int:
-        return len(self._bulk) + len(self._kept)
+        return len(self._bulk) + len(self._alarms) + len(self._lifecycle)
 
     def emit(
         self,
@@ -297,14 +327,39 @@ class EventStore:
                 callback(event)
         return numbered
 
+    def _part_of(self, kind: str) -> _Part:
+        if kind in BULK_KINDS:
+            return self._bulk
+        return self._lifecycle if kind in LIFECYCLE_KINDS else self._alarms
+
+    def _parts(self, kinds: Collection[str]) -> tuple[_Part, ...]:
+        """The parts that hold a kind of `kinds` (every part for none)."""
+        if not kinds:
+            return (self._bulk, self._alarms, self._lifecycle)
+        return tuple(dict.fromkeys(self._part_of(kind) for kind in kinds))
+
     def _place(self, event: Event) -> None:
-        """Into its part, letting go of the oldest of the part over its share if the store is full (the lock
-        held). The kept part is over its share, or else the bulk part is over the rest: neither is empty."""
-        kept = self._kept
-        (self._bulk if event.kind in BULK_KINDS else kept).append(event)
-        if len(self._bulk) + len(kept) > self._capacity:
-            (kept if len(kept) > self._kept_share else self._bulk).drop_oldest()
-            self.dropped += 1
+        """Into its part, letting go of the oldest of a part over its share if the store is full (the lock
+        held)."""
+        self._part_of(event.kind).append(event)
+        if len(self) > self._capacity:
+            self._let_go()
+
+    def _let_go(self) -> None:
+        """The oldest event of the part over its share goes (class doc). The alarm and lifecycle parts
+        together over theirs, the lifecycle part within its reserve: the alarm part holds more than the rest
+        of the share, so it is not empty. Else the bulk part is over the rest of the store: not empty."""
+        alarms, lifecycle = self._alarms, self._lifecycle
+        if len(alarms) + len(lifecycle) <= self._kept_share:
+            self._bulk.drop_oldest()
+        elif len(lifecycle) <= self._lifecycle_share or (alarms and alarms.oldest.id < lifecycle.oldest.id):
+            let_go = alarms.oldest
+            alarms.drop_oldest()
+            before = self._alarms_let_go_until
+            self._alarms_let_go_until = let_go.time if before is None else max(before, let_go.time)
+        else:
+            lifecycle.drop_oldest()
+        self.dropped += 1
 
     def restore(self, events: Sequence[Event]) -> int:
         """Put the events a run before this one numbered (service.event_journal) into this store, which
@@ -328,23 +383,16 @@ class EventStore:
         with self._lock:
             if after_id >= self._last_id:
                 return []
-            bulk = self._bulk.after(after_id, limit)
-            kept = self._kept.after(after_id, limit)
-        if not kept or not bulk:
-            return kept or bulk
-        # Two runs in id order: the sort merges them (timsort finds the runs), then the first `limit` stay.
-        return sorted(bulk + kept, key=_ID)[:limit]
+            runs = [run for part in self._parts(()) if (run := part.after(after_id, limit))]
+        return _merged(runs)[:limit]
 
     def query(self, query: EventQuery) -> list[Event]:
-        wanted = query.kinds
         with self._lock:
             # Only the parts that hold a kind asked for (the Sessions page's alarms skip a flood of statuses),
             # from `after_id` on (a page that follows the events asks for the last few, not the whole store).
             start = query.after_id
-            bulk = self._bulk.after(start, None) if not wanted or wanted & BULK_KINDS else []
-            kept = self._kept.after(start, None) if not wanted or wanted - BULK_KINDS else []
-        candidates = sorted(bulk + kept, key=_ID) if bulk and kept else bulk or kept
-        matched = [e for e in candidates if query.matches(e)]
+            runs = [run for part in self._parts(query.kinds) if (run := part.after(start, None))]
+        matched = [e for e in _merged(runs) if query.matches(e)]
         return matched[-query.limit :]
 
     def subscribe(self, callback: Subscriber) -> Callable[[], None]:
@@ -358,6 +406,13 @@ class EventStore:
                     self._subscribers.remove(callback)
 
         return unsubscribe
+
+
+def _merged(runs: list[list[Event]]) -> list[Event]:
+    """Runs each in id order as one list in id order: the sort merges them (timsort finds the runs)."""
+    if len(runs) <= 1:
+        return runs[0] if runs else []
+    return sorted(itertools.chain.from_iterable(runs), key=_ID)
 
 
 # ------------------------------------------------------------------------------------------------- emitters

@@ -59,6 +59,7 @@ from twin.service.config import DEFAULT_HTTP_HOST, DEFAULT_HTTP_PORT, HttpSectio
 from twin.service.console import (
     ASSETS,
     SESSION_FILE_KINDS,
+    AlarmHorizon,
     EventSource,
     SessionCatalog,
     SessionInfo,
@@ -792,10 +793,15 @@ class AgentHttpServer:
             for e in events
             if e.kind == EventKind.ALARM.value and e.data.get("action") == "raised"
         ]
-        # The raises are all held from the oldest event of their part of the store on (service.events): the
-        # other part, status events and the like, may hold older ones, of which no raise went with them.
+        # The raises are all held from the oldest alarm, calibration, agent, worker or broker event on
+        # (service.events): the bulk part, status events and the like, may hold older ones, of which no raise
+        # went with them. The lifecycle kinds keep a reserve an alarm flood cannot take: their events may be
+        # older than an alarm let go of, so the counts hold only after the newest of those.
         kept = [e.time for e in events if e.kind not in BULK_KINDS] or [e.time for e in events]
-        return raises, (min(kept) if kept else None)
+        if not kept:
+            return raises, None
+        let_go = source.alarms_let_go_until() if isinstance(source, AlarmHorizon) else None
+        return raises, max(min(kept), let_go) if let_go is not None else min(kept)
 
     async def _api_sessions(self, request: Request) -> Response:
         sessions, since = await self._sessions_counted()
