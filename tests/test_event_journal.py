@@ -10,12 +10,13 @@ import random
 import time
 from pathlib import Path
 
+import msgspec
 import pytest
 from conftest import unbrokered_agent, wait_for
 from twin.edge.payload import encode, make_payload
 from twin.output.sinks import SinkStats
 from twin.service import event_journal
-from twin.service.event_journal import EventJournal
+from twin.service.event_journal import EventJournal, bulk_path
 from twin.service.events import Event, EventKind, EventLevel, EventQuery, EventStore
 
 
@@ -33,9 +34,18 @@ def journaled_store(path: Path, **kwargs: int) -> tuple[EventStore, EventJournal
     return store, journal
 
 
-def emit(store: EventStore, n: int, device: str = "arm-001") -> list[Event]:
+def emit(
+    store: EventStore, n: int, device: str = "arm-001", kind: EventKind = EventKind.STATUS
+) -> list[Event]:
     return [
-        store.emit(EventKind.STATUS, EventLevel.WARNING, f"{device} went STALE ({k})", device=device)
+        store.emit(kind, EventLevel.WARNING, f"{device} went STALE ({k})", device=device) for k in range(n)
+    ]
+
+
+def raise_alarms(store: EventStore, n: int) -> list[Event]:
+    data = {"action": "raised", "alarm_id": "arm-001/elbow_flex/over_temperature"}
+    return [
+        store.emit(EventKind.ALARM, EventLevel.WARNING, f"hot ({k})", device="arm-001", data=data)
         for k in range(n)
     ]
 
@@ -82,8 +92,8 @@ def test_the_files_stay_within_twice_their_size_and_keep_the_newest(tmp_path: Pa
         journal.flush()
     journal.close()
     files = {p.name for p in tmp_path.iterdir()}
-    # Two at most (the last flush may just have renamed the current one away).
-    assert "events.jsonl.1" in files and files <= {"events.jsonl", "events.jsonl.1"}, files
+    # Two at most (the last flush may just have renamed the current one away): the status events' pair.
+    assert "events.bulk.jsonl.1" in files and files <= {"events.bulk.jsonl", "events.bulk.jsonl.1"}, files
     # Each file is renamed away within one flush of passing the size (a flush here is about 700 bytes).
     assert all(p.stat().st_size < 4_000 + 1_000 for p in tmp_path.iterdir())
     newest = EventJournal(path).load(limit=20)
@@ -122,9 +132,9 @@ def test_a_failed_write_is_counted_told_with_its_fix_and_tried_again(
     store, journal = EventStore(wall_clock=clock), EventJournal(path, clock=clock)
     store.subscribe(journal.add)
     with caplog.at_level(logging.ERROR, logger="twin.service.event_journal"):
-        emit(store, 2)
+        raise_alarms(store, 2)
         assert not journal.flush()
-        emit(store, 1)
+        raise_alarms(store, 1)
         assert not journal.flush()  # within WARN_EVERY_S: counted, not told again
     assert journal.not_written == 3
     stats = journal.stats()  # an output's figures in /state: SinkDrops counts them
@@ -135,7 +145,7 @@ def test_a_failed_write_is_counted_told_with_its_fix_and_tried_again(
     assert "2 event(s) could not be written" in told[0] and "Make room on its disk" in told[0]
     assert len(store) == 3  # still shown until the agent stops
     path.rmdir()
-    emit(store, 1)
+    raise_alarms(store, 1)
     with caplog.at_level(logging.WARNING, logger="twin.service.event_journal"):
         assert journal.flush()
     assert "written again, after 2 failed write(s); 3 event(s)" in caplog.records[-1].getMessage()
@@ -144,10 +154,12 @@ def test_a_failed_write_is_counted_told_with_its_fix_and_tried_again(
     # Over: a failure after the recovery is told at once, within the minute of the last line.
     path.unlink()
     path.mkdir()
-    emit(store, 1)
+    raise_alarms(store, 1)
+    emit(store, 2)  # the status events' file is written: only the alarm is counted
     with caplog.at_level(logging.ERROR, logger="twin.service.event_journal"):
         assert not journal.flush()
     assert "1 event(s) could not be written" in caplog.records[-1].getMessage()
+    assert (journal.written, journal.not_written) == (3, 4)
 
 
 @pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full, a file every write fills")
@@ -163,7 +175,7 @@ def test_a_full_disk_is_told_once_a_minute_not_once_per_flush(
     store.subscribe(journal.add)
     with caplog.at_level(logging.WARNING, logger="twin.service.event_journal"):
         for _ in range(5):
-            emit(store, 1)
+            raise_alarms(store, 1)
             assert not journal.flush()
     assert journal.not_written == 5
     told = [r.getMessage() for r in caplog.records]
@@ -201,7 +213,8 @@ def test_the_agent_reads_its_events_back_and_says_how_its_run_before_ended(tmp_p
             return stats
 
         wait_for(lambda: journal().delivered >= 4, 30, "the started event and the arrivals written")
-        assert journal().dropped == 0 and events_file.read_text().count("\n") >= 4
+        written = events_file.read_text() + event_journal.bulk_path(events_file).read_text()
+        assert journal().dropped == 0 and written.count("\n") >= 4
     finally:
         agent.stop()
     first_run = _agent_events(agent)
@@ -293,3 +306,54 @@ def test_a_restart_keeps_the_alarms_a_flood_of_status_events_came_after(tmp_path
     agent.stop()
     assert agent.events(EventQuery(kinds=frozenset({"alarm"}))) == [alarm]
     assert len(_agent_events(agent)) <= 100
+
+
+def test_a_flood_of_status_events_past_the_files_size_leaves_the_alarms_before_it_in_them(
+    tmp_path: Path,
+) -> None:
+    # Two files held every kind: a flood bigger than both rotated the alarms before it out of them, and a
+    # restart lost them though the store had kept them through the flood.
+    path = tmp_path / "events.jsonl"
+    store, journal = journaled_store(path, max_bytes=20_000)
+    alarms = raise_alarms(store, 5)
+    for _ in range(40):  # about 150,000 bytes of status events: seven times the two files
+        emit(store, 50)
+        assert journal.flush()
+    later = raise_alarms(store, 2)
+    journal.close()
+    assert all(p.stat().st_size < 20_000 + 10_000 for p in tmp_path.iterdir())  # each within a flush of it
+    assert len(list(tmp_path.iterdir())) <= 4
+    again = EventStore(100, wall_clock=Clock())
+    again.restore(EventJournal(path).load(again.capacity))
+    assert again.query(EventQuery(kinds=frozenset({"alarm"}))) == alarms + later
+    held = again.after(0)
+    assert [e.id for e in held] == sorted({e.id for e in held}) and len(held) == 100  # id order, once each
+    assert held[-1] == later[-1] and held[: len(alarms)] == alarms
+
+
+def test_a_journal_from_before_the_bulk_kinds_had_files_of_their_own_is_read(tmp_path: Path) -> None:
+    # Its one pair holds every kind, in id order; the new events go to two pairs; a start reads all four.
+    path = tmp_path / "events.jsonl"
+    old = EventStore(wall_clock=Clock())
+    made = [*raise_alarms(old, 2), *emit(old, 3), *raise_alarms(old, 1)]
+    encoded = [msgspec.json.encode(e) + b"\n" for e in made]
+    (tmp_path / "events.jsonl.1").write_bytes(b"".join(encoded[:3]))
+    path.write_bytes(b"".join(encoded[3:]))
+    assert EventJournal(path).load() == made
+    store, journal = journaled_store(path)
+    assert store.restore(EventJournal(path).load()) == len(made)
+    new = [*emit(store, 2), *raise_alarms(store, 1)]
+    journal.close()
+    assert bulk_path(path).read_text().count("\n") == 2
+    assert EventJournal(path).load() == made + new
+
+
+def test_a_start_reads_the_newest_of_each_part_however_big_the_files(tmp_path: Path) -> None:
+    path = tmp_path / "events.jsonl"
+    store, journal = journaled_store(path)
+    started = store.emit(EventKind.AGENT, EventLevel.INFO, "the agent started")
+    alarms = raise_alarms(store, 30)
+    statuses = emit(store, 500)
+    journal.close()
+    assert EventJournal(path).load(10) == [started, *alarms[-10:], *statuses[-10:]]
+    assert len(EventJournal(path).load(None)) == 531

@@ -1318,9 +1318,9 @@ class AgentService:
         journal = self._journal
         if journal is None:
             return None
-        # All the two files hold (bounded by their size), not the newest `capacity`: after a flood of status
-        # events those would be statuses only, and the store keeps the alarms before it (EventStore.restore).
-        restored = journal.load(None)
+        # The newest `capacity` of each of the store's parts, not of all: after a flood of status events those
+        # would be statuses only, and the store keeps the alarms before it (EventStore.restore).
+        restored = journal.load(self._events.capacity)
         self._events.restore(restored)
         self._events.subscribe(journal.add)
         return restored[-1] if restored else None

@@ -138,7 +138,7 @@ class TwinSection:
     events_file: str = ""
     # How many events the agent's store keeps, and each worker's (service.events): about 300 bytes each. The
     # alarms, calibration, agent, worker and broker events keep half of it from the status, rejected and
-    # twin events' floods.
+    # twin events' floods, and the last four a twentieth of it from an alarm flood.
     events_capacity: int = DEFAULT_EVENTS_CAPACITY
     # How long `stop` may take in all: the workers handle what is queued and flush their sinks (history's
     # last commit) within it, and are killed after it. systemd's TimeoutStopSec must be longer.

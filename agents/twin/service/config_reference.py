@@ -192,8 +192,10 @@ KEY_DOCS: dict[str, str] = {
     "twin.events_file": (
         "Where the agent appends its events (the console's Events page), to read them back at its next "
         "start: without it a restart begins the page anew, and the Sessions page no longer knows the "
-        "alarms raised in a session from before it. Two files at most, each up to 8 MiB (`<name>.1` "
-        "holds the older). Empty = memory only. The "
+        "alarms raised in a session from before it. The alarm, calibration, agent, worker and broker "
+        "events go to this file, the status, rejected and twin events to `<stem>.bulk<suffix>` beside "
+        "it, so a flood of status events never rotates the alarms out; each file up to 8 MiB, then "
+        "renamed `<name>.1` (the older), so four files and 32 MiB at most. Empty = memory only. The "
         "twin host's config names `/var/lib/so101-twin-agent/events.jsonl`."
     ),
     "twin.events_capacity": (
@@ -201,8 +203,10 @@ KEY_DOCS: dict[str, str] = {
         "page's alarm counts, and each worker process until the agent collects them; about 300 bytes "
         "an event. 100..100000. Alarm, calibration, agent, worker and broker events keep half of it for "
         "themselves: a flood of status, rejected and twin events (a loaded host's arms going STALE and "
-        "ONLINE) takes the rest and the room they leave, never their half. With `events_file` set, a "
-        "restart reads back what the file holds (two files of 8 MiB, about 55,000 events) within it."
+        "ONLINE) takes the rest and the room they leave, never their half. Within that half, "
+        "calibration, agent, worker and broker events keep a twentieth (1,000 of 20,000) that a flood "
+        "of alarms cannot take. With `events_file` set, a restart reads back the newest of each of "
+        "those three parts the files hold, within it."
     ),
     "twin.shutdown_budget_s": (
         "How long a stop may take in all: the workers handle what is queued and flush their sinks "

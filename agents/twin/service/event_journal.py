@@ -4,16 +4,23 @@ The agent's `EventStore` is memory only. Without this, a restart (a deploy, a re
 starting it again) leaves an operator who opens the Events page the next morning a list that begins at the
 restart, and each session's count of the alarms raised in it at 0. With `[twin] events_file` set, every
 event the store numbers is appended to that file as one JSON line, and the next start puts the newest
-`capacity` of them back in its store with their ids, so the page, its exports and the sessions read the
+of them back in its store with their ids, so the page, its exports and the sessions read the
 same before and after.
 
 - **When it is written.** The store calls `add` on whatever thread makes the event, which must only hand it
   on; the agent's supervisor calls `flush` every round (half a second) and the stop calls it last. So a
   process killed outright loses at most its last round of events, and the run after it says so
   (`AgentService` reads the journal's last event: a run that stopped wrote `agent stopped` last).
-- **How big it gets.** The file is renamed `<name>.1` once it passes `max_bytes` (replacing the one before)
-  and a new one begun, so the disk holds at most about twice `max_bytes`. The default holds more than a
-  store keeps (about 300 bytes an event), so the newest `capacity` are always in the two files.
+- **Two pairs of files.** The kinds that come in floods (`events.BULK_KINDS`: status, rejected, twin) go to
+  `<stem>.bulk<suffix>` beside it (`events.bulk.jsonl`), the others (alarm, calibration, agent, worker,
+  broker) to the file named: a flood of status events rotates only its own file, never the alarms before it
+  out. A file from before the split holds both, and is read as it is (each event goes where its kind does).
+- **How big it gets.** Each file is renamed `<name>.1` once it passes `max_bytes` (replacing the one before)
+  and a new one begun, so the disk holds at most about four times `max_bytes` (32 MiB by default). Each
+  pair holds more than a store keeps of its kinds (about 300 bytes an event, 600 an alarm).
+- **How a start reads it.** Line by line, keeping the newest `limit` events of each of the store's parts
+  (bulk, alarm, lifecycle: `events.EventStore`), so a start holds at most three times `limit` events
+  however big the files are, and hands them over in id order.
 - **What goes wrong.** A line cut short by a kill, or one that is not an event, is skipped when read back and
   counted (`unreadable`, one warning); the next write starts on a line of its own. A write that fails (disk
   full, permissions) is logged with what to do and its events counted (`not_written`); they stay in the
@@ -24,12 +31,14 @@ same before and after.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import os
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
+from operator import attrgetter
 from pathlib import Path
 from typing import BinaryIO
 
@@ -37,7 +46,7 @@ import msgspec
 
 from twin.core.throttle import Throttle
 from twin.output.sinks import SinkStats
-from twin.service.events import DEFAULT_CAPACITY, Event
+from twin.service.events import BULK_KINDS, DEFAULT_CAPACITY, LIFECYCLE_KINDS, Event
 
 log = logging.getLogger(__name__)
 
@@ -46,8 +55,8 @@ __all__ = ["MAX_BYTES", "MAX_PENDING", "SINK_NAME", "EventJournal"]
 # Its name among the outputs of /state's `agent.sinks` and /metrics' `sink` label.
 SINK_NAME = "events_journal"
 
-# Each of the two files is renamed away once past this: at about 300 bytes an event, each holds more than a
-# store's DEFAULT_CAPACITY, so reading the two back always finds the newest `capacity`.
+# Each of the four files is renamed away once past this: at about 300 bytes an event (600 an alarm), each
+# pair holds more of its kinds than a store of DEFAULT_CAPACITY keeps.
 MAX_BYTES = 8 * 1024 * 1024
 # Events waiting for a flush: a store's worth. More only while writes fail; then the oldest go, counted.
 MAX_PENDING = DEFAULT_CAPACITY
@@ -56,6 +65,50 @@ WARN_EVERY_S = 60.0
 
 _DECODER = msgspec.json.Decoder(Event)
 _ENCODER = msgspec.json.Encoder()
+_ID = attrgetter("id")
+
+
+def bulk_path(path: Path) -> Path:
+    """Where a journal at `path` keeps the bulk kinds' events: `events.jsonl` -> `events.bulk.jsonl`."""
+    return path.with_name(f"{path.stem}.bulk{path.suffix}")
+
+
+class _Files:
+    """One pair of the journal's files: `path`, appended to, renamed `<name>.1` once past `max_bytes`."""
+
+    def __init__(self, path: Path, max_bytes: int) -> None:
+        self.path = path
+        self.previous = path.with_name(path.name + ".1")
+        self.max_bytes = max_bytes
+        self._file: BinaryIO | None = None
+
+    def exist(self) -> bool:
+        return self.path.exists() or self.previous.exists()
+
+    def write(self, batch: Sequence[Event]) -> None:
+        f = self._file
+        if f is None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            f = self._file = open(self.path, "ab")  # noqa: SIM115 - kept open between flushes
+            if _ends_cut_short(self.path):
+                # A kill cut the last line short: without a line end the first event written now would
+                # join it and be skipped with it when read back.
+                f.write(b"\n")
+        # One write a flush: a kill leaves at most its last line cut short, which `load` skips.
+        f.write(b"".join(_ENCODER.encode(e) + b"\n" for e in batch))
+        f.flush()
+        if f.tell() >= self.max_bytes:
+            self.close()
+            os.replace(self.path, self.previous)
+
+    def close(self, *, after_failure: bool = False) -> None:
+        f, self._file = self._file, None
+        if f is not None:
+            try:
+                f.close()  # the descriptor is released even when the flush inside it fails
+            except OSError as exc:
+                if not after_failure:
+                    log.warning("the event journal %s could not be closed: %s", self.path, exc)
 
 
 class EventJournal:
@@ -68,13 +121,14 @@ class EventJournal:
         if max_bytes < 1:
             raise ValueError(f"an event journal's files hold at least one byte, got max_bytes = {max_bytes}")
         self.path = Path(path)
-        self.previous = self.path.with_name(self.path.name + ".1")
         self.max_bytes = max_bytes
+        self._kept = _Files(self.path, max_bytes)  # alarm, calibration, agent, worker, broker
+        self._bulk = _Files(bulk_path(self.path), max_bytes)  # status, rejected, twin
+        self.previous = self._kept.previous
         self._pending: deque[Event] = deque()
         self._lock = threading.Lock()  # the queue
         # One flush at a time: a supervisor round still flushing as the stop closes must not interleave.
         self._write_lock = threading.RLock()
-        self._file: BinaryIO | None = None
         self._error_lines = Throttle(WARN_EVERY_S, clock=clock)
         self.written = 0
         self.write_failures = 0
@@ -85,11 +139,11 @@ class EventJournal:
     # -- reading -------------------------------------------------------------------------------------------
 
     def load(self, limit: int | None = DEFAULT_CAPACITY) -> list[Event]:
-        """The newest `limit` events the files hold (None: all of them), oldest first, as they were
-        numbered; [] for none. A file that cannot be read is reported and left as it is (the next write
-        appends to it)."""
+        """The newest `limit` events of each part of a store (bulk, alarm, lifecycle; None: all of them) the
+        files hold, in id order, as they were numbered; [] for none. A file that cannot be read is reported
+        and left as it is (the next write appends to it)."""
         try:
-            fresh = not self.path.exists() and not self.previous.exists()
+            fresh = not self._kept.exist() and not self._bulk.exist()
         except OSError:
             fresh = False  # its directory cannot be searched: reading says why
         if fresh:
@@ -100,12 +154,13 @@ class EventJournal:
                 extra={"path": str(self.path.absolute())},
             )
             return []
-        events, bad = self._read(self.path)
-        if limit is None or len(events) < limit:
-            # The older file only when the current one holds too few: it is most of a start's reading.
-            older, bad_older = self._read(self.previous)
-            wanted = len(older) if limit is None else limit - len(events)
-            events, bad = older[max(0, len(older) - wanted) :] + events, bad + bad_older
+        parts: list[list[Event]] = [[], [], []]
+        bad = 0
+        for path in (self._kept.previous, self._kept.path, self._bulk.previous, self._bulk.path):
+            # A file from before the bulk kinds had files of their own holds every kind: each to its part.
+            read, bad_here = self._read(path, limit)
+            parts = [_newest((*held, *new), limit) for held, new in zip(parts, read, strict=True)]
+            bad += bad_here
         if bad:
             self.unreadable += bad
             log.warning(
@@ -115,27 +170,30 @@ class EventJournal:
                 bad,
                 extra={"path": str(self.path), "unreadable": bad},
             )
-        return events if limit is None else events[max(0, len(events) - limit) :]
+        return _newest(itertools.chain.from_iterable(parts), None)
 
     @staticmethod
-    def _read(path: Path) -> tuple[list[Event], int]:
-        """The events of one file, and how many of its lines were not events."""
+    def _read(path: Path, limit: int | None) -> tuple[list[deque[Event]], int]:
+        """The newest `limit` events of each part of one file, read a line at a time, and how many of its
+        lines were not events."""
+        parts: list[deque[Event]] = [deque(maxlen=limit) for _ in range(3)]
+        bad = 0
         try:
-            data = path.read_bytes()
+            with path.open("rb") as f:
+                for line in f:
+                    if not line.strip():
+                        continue
+                    try:
+                        event = _DECODER.decode(line)
+                    except msgspec.DecodeError:
+                        bad += 1
+                        continue
+                    parts[_part(event.kind)].append(event)
         except FileNotFoundError:
-            return [], 0
+            pass
         except OSError as exc:
             log.error("the event journal %s cannot be read (%s); its events are not shown", path, exc)
-            return [], 0
-        events, bad = [], 0
-        for line in data.splitlines():
-            if not line.strip():
-                continue
-            try:
-                events.append(_DECODER.decode(line))
-            except msgspec.DecodeError:
-                bad += 1
-        return events, bad
+        return parts, bad
 
     # -- writing -------------------------------------------------------------------------------------------
 
@@ -148,7 +206,7 @@ class EventJournal:
             self._pending.append(event)
 
     def flush(self) -> bool:
-        """Append what is queued; False when the write failed (logged, counted; the next flush tries again
+        """Append what is queued; False when a write failed (logged, counted; the next flush tries again
         with what is queued then)."""
         with self._write_lock:
             with self._lock:
@@ -156,18 +214,26 @@ class EventJournal:
                 self._pending.clear()
             if not batch:
                 return True
-            try:
-                self._write(batch)
-            except OSError as exc:
-                self.not_written += len(batch)
+            failed, error = 0, None
+            bulk = [e for e in batch if e.kind in BULK_KINDS]
+            kept = [e for e in batch if e.kind not in BULK_KINDS]
+            for files, events in ((self._kept, kept), (self._bulk, bulk)):
+                if not events:
+                    continue
+                try:
+                    files.write(events)
+                except OSError as exc:
+                    failed, error = failed + len(events), exc
+                    # Closing flushes what the failed write left in the file's buffer, which fails the same
+                    # way: that is this failure again, told (once a minute) by _warn, not a line per flush.
+                    files.close(after_failure=True)
+            self.written += len(batch) - failed
+            if error is not None:
+                self.not_written += failed
                 self.write_failures += 1
-                self.last_error = f"{type(exc).__name__}: {exc}"
-                # Closing flushes what the failed write left in the file's buffer, which fails the same way:
-                # that is this failure again, told (once a minute) by _warn, not a line per flush.
-                self._close_file(after_failure=True)
-                self._warn(exc, len(batch))
+                self.last_error = f"{type(error).__name__}: {error}"
+                self._warn(error, failed)
                 return False
-            self.written += len(batch)
             if self._error_lines.streak:
                 log.warning(
                     "the event journal %s is written again, after %d failed write(s); %d event(s) in all "
@@ -183,7 +249,8 @@ class EventJournal:
         """Flush what is queued and close the file (a later flush opens it again)."""
         with self._write_lock:
             self.flush()
-            self._close_file()
+            self._kept.close()
+            self._bulk.close()
 
     @property
     def pending(self) -> int:
@@ -201,31 +268,6 @@ class EventJournal:
             last_error=self.last_error,
         )
 
-    def _write(self, batch: Sequence[Event]) -> None:
-        f = self._file
-        if f is None:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            f = self._file = open(self.path, "ab")  # noqa: SIM115 - kept open between flushes
-            if _ends_cut_short(self.path):
-                # A kill cut the last line short: without a line end the first event written now would
-                # join it and be skipped with it when read back.
-                f.write(b"\n")
-        # One write a flush: a kill leaves at most its last line cut short, which `load` skips.
-        f.write(b"".join(_ENCODER.encode(e) + b"\n" for e in batch))
-        f.flush()
-        if f.tell() >= self.max_bytes:
-            self._close_file()
-            os.replace(self.path, self.previous)
-
-    def _close_file(self, *, after_failure: bool = False) -> None:
-        f, self._file = self._file, None
-        if f is not None:
-            try:
-                f.close()  # the descriptor is released even when the flush inside it fails
-            except OSError as exc:
-                if not after_failure:
-                    log.warning("the event journal %s could not be closed: %s", self.path, exc)
-
     def _warn(self, exc: OSError, count: int) -> None:
         if self._error_lines.due() is None:
             return
@@ -239,6 +281,19 @@ class EventJournal:
             self.not_written,
             extra={"path": str(self.path), "not_written": self.not_written},
         )
+
+
+def _part(kind: str) -> int:
+    """Which part of a store (events.EventStore) holds events of `kind`: 0 bulk, 1 alarm, 2 lifecycle."""
+    if kind in BULK_KINDS:
+        return 0
+    return 2 if kind in LIFECYCLE_KINDS else 1
+
+
+def _newest(events: Iterable[Event], limit: int | None) -> list[Event]:
+    """The newest `limit` of `events` (None: all), in id order, each id once."""
+    by_id = sorted({e.id: e for e in events}.values(), key=_ID)
+    return by_id if limit is None else by_id[max(0, len(by_id) - limit) :]
 
 
 def _ends_cut_short(path: Path) -> bool:
