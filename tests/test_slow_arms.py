@@ -93,7 +93,7 @@ def test_rate_watch_takes_back_a_slow_report_and_waits_for_the_rates_to_fill_bef
     assert watch.slow == ("arm-001",)
     watch.sweep({"arm-001": 10.0}, 100.0 + events.RESTORED_SETTLE_S / 2)  # a fresh meter reads anything
     for at in (120.0, 140.0, 160.0):
-        watch.sweep({"arm-001": 2.0}, at)
+        watch.sweep({"arm-001": 1.0}, at)
     assert _rate_events(s) == []
     watch.sweep({"arm-001": 10.0}, 165.0)
     assert _rate_events(s) == [("arm-001", "info", "expected", 10.0)] and watch.slow == ()
@@ -277,3 +277,43 @@ def test_a_fleet_at_2_hz_against_10_makes_one_slow_warning_an_arm_and_few_status
     # What the Fleet page shows is the arms' status as it is, whatever the events held back.
     shown = mirror.statuses()
     assert shown["arm-100"] == "ONLINE" and {str(shown[d]) for d in slow} <= {"ONLINE", "STALE"}
+
+
+def test_a_worker_started_again_keeps_a_flapping_arms_episode_and_its_settle_timer() -> None:
+    """The checkpoint carries the status watch's flapping episodes: a worker started again told an arm known
+    to flap as "(restored)", then each of its round trips until a third made a second "is flapping" warning,
+    and the info that it settled never came (the episode, and its timer, were lost)."""
+    clock, rng = Clock(), random.Random(13)
+    first = _mirror(clock)
+    _run(first, clock, 20.0, {"arm-001": 1.0}, rng)
+    told = [e.data.get("flapping", "") for e in first.events(EventQuery(device="arm-001"))]
+    assert "started" in told
+    checkpoint = pickle.loads(pickle.dumps(first.checkpoint(), protocol=pickle.HIGHEST_PROTOCOL))
+    assert [row[0] for row in checkpoint.flapping] == ["arm-001"]
+
+    again = _mirror(clock)
+    again.restore(checkpoint)
+    _run(again, clock, 20.0, {"arm-001": 1.0}, rng)
+    assert again.events(EventQuery(kinds=frozenset({EventKind.STATUS.value}))) == []
+    # It settles at its rate: the episode's end is told once it has kept ONLINE for FLAP_SETTLE_S.
+    _run(again, clock, events.FLAP_SETTLE_S + 2.0, {"arm-001": 10.0}, rng)
+    found = again.events(EventQuery(kinds=frozenset({EventKind.STATUS.value})))
+    assert [(e.level, e.data["status"], e.data.get("flapping", "")) for e in found] == [
+        ("info", "ONLINE", "settled")
+    ]
+
+
+def test_a_checkpoint_without_the_flapping_episodes_still_loads_and_restores() -> None:
+    """A checkpoint pickled before the field was added (its state has no `flapping`) reads as none."""
+    clock, rng = Clock(), random.Random(14)
+    first = _mirror(clock)
+    _run(first, clock, 20.0, {"arm-001": 1.0}, rng)
+    checkpoint = first.checkpoint()
+    vars(checkpoint).pop("flapping")
+    old = pickle.loads(pickle.dumps(checkpoint, protocol=pickle.HIGHEST_PROTOCOL))
+    assert old.flapping == ()
+    again = _mirror(clock)
+    assert again.restore(old).devices == 1
+    _run(again, clock, 2.0, {"arm-001": 10.0}, rng)
+    found = again.events(EventQuery(kinds=frozenset({EventKind.STATUS.value})))
+    assert [e.message for e in found] == ["arm-001 is ONLINE (restored)"]

@@ -60,6 +60,7 @@ __all__ = [
     "EventLevel",
     "EventQuery",
     "EventStore",
+    "FlapRow",
     "FleetWatch",
     "RateWatch",
     "RejectionThrottle",
@@ -436,6 +437,12 @@ FLAP_SUMMARY_S = 300.0
 FLAP_SETTLE_S = 60.0
 
 
+# A flapping episode as a worker's checkpoint carries it (service.shards, MirrorCheckpoint.flapping): the
+# device, then `_Flapping`'s fields in order. Its times are the host's monotonic clock, which a worker
+# started again on the same host shares.
+FlapRow = tuple[str, float, float, int, int, float]
+
+
 @dataclass(slots=True)
 class _Flapping:
     """A device reported flapping: when it began and its last ONLINE/STALE change (monotonic), the round
@@ -463,6 +470,18 @@ class StatusWatch:
     @property
     def flapping(self) -> tuple[str, ...]:
         return tuple(sorted(self._flapping))
+
+    def flapping_rows(self) -> tuple[FlapRow, ...]:
+        """The episodes as plain values, for a worker's checkpoint (`restore_flapping` takes them back)."""
+        episodes = sorted(self._flapping.items())
+        return tuple((d, f.since, f.changed, f.trips, f.pending, f.next_summary) for d, f in episodes)
+
+    def restore_flapping(self, rows: Iterable[FlapRow]) -> None:
+        """Episodes a checkpoint carried (the devices `restored` too): a worker started again neither warns
+        of them a second time nor loses when they began, their round trips and their settle and summary
+        times. The device's first reading after it, ONLINE or STALE, is held in the episode."""
+        for device, since, changed, trips, pending, next_summary in rows:
+            self._flapping[device] = _Flapping(since, changed, trips, pending, next_summary)
 
     def arrived(self, device: str) -> None:
         """`device` sent its first valid message since this watch began: it is ONLINE now. Nothing for a
@@ -519,6 +538,8 @@ class StatusWatch:
         flap = self._flapping.get(device)
         between = {before, now} == {"ONLINE", "STALE"}
         if flap is not None:
+            if before == _RESTORED and now in ("ONLINE", "STALE"):
+                return True  # its worker was started again: no change of its own, nor a round trip
             if not between:
                 del self._flapping[device]  # OFFLINE (or restored): told as itself, and the episode ends
                 return False
@@ -1097,6 +1118,14 @@ class FleetWatch:
     def statuses(self, statuses: Mapping[str, object], now: float | None = None) -> None:
         """`now`: a monotonic time (for StatusWatch's flapping rule)."""
         self._statuses.sweep(statuses, now)
+
+    @property
+    def flapping(self) -> tuple[FlapRow, ...]:
+        """The arms' flapping episodes, for a worker's checkpoint (StatusWatch.flapping_rows)."""
+        return self._statuses.flapping_rows()
+
+    def flapping_restored(self, rows: Iterable[FlapRow]) -> None:
+        self._statuses.restore_flapping(rows)
 
     def arrived(self, device: str) -> None:
         self._statuses.arrived(device)

@@ -847,6 +847,7 @@ class Mirror:
                 slow=self._watch.slow,
                 losing=self._watch.losing,
                 clocks_off=self._watch.clocks_off,
+                flapping=self._watch.flapping,
                 kept=self._fleet.kept,
                 history_rows=self._history.handed_in_all if self._history is not None else 0,
             )
@@ -927,6 +928,7 @@ class Mirror:
                 self._watch.crowded_restored(checkpoint.crowded, self._clock(), checkpoint.slow)
                 self._watch.losing_restored(checkpoint.losing)
                 self._watch.clocks_restored(checkpoint.clocks_off)
+                self._watch.flapping_restored(checkpoint.flapping)
             else:
                 restored = 0
             restored += self._alarms.restore(alarms)

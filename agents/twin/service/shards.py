@@ -72,7 +72,7 @@ from twin.output.sinks import SinkStats
 from twin.service.admission import DeviceBudget
 from twin.service.config import AgentConfig, ConfigError
 from twin.service.console import FleetRow
-from twin.service.events import Event
+from twin.service.events import Event, FlapRow
 from twin.service.logs import name_native_thread
 from twin.service.state import (
     AgentInfo,
@@ -450,6 +450,10 @@ class MirrorCheckpoint:
     # were reported off (events.ClockWatch), for the same reason.
     losing: tuple[str, ...] = ()
     clocks_off: tuple[str, ...] = ()
+    # The status watch's flapping episodes (events.StatusWatch), so a restarted worker neither warns of an arm
+    # known to flap a second time nor loses its settle and summary times. A checkpoint pickled without the
+    # field reads this default.
+    flapping: tuple[FlapRow, ...] = ()
     # The arms listed for the alarms the state file kept though not heard since (FleetHealth.keep): without
     # them a restarted worker would drop those arms from /state and the Fleet page, their alarms still shown.
     kept: tuple[str, ...] = ()
