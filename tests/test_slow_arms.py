@@ -317,3 +317,41 @@ def test_a_checkpoint_without_the_flapping_episodes_still_loads_and_restores() -
     _run(again, clock, 2.0, {"arm-001": 10.0}, rng)
     found = again.events(EventQuery(kinds=frozenset({EventKind.STATUS.value})))
     assert [e.message for e in found] == ["arm-001 is ONLINE (restored)"]
+
+
+def test_an_arm_sending_less_than_once_a_rate_window_is_reported_slow_through_the_mirror() -> None:
+    """An edge sending one message every 8 s against 10 Hz: its 5 s rate windows read 0.2 or 0, and every 0
+    ended its time under the slow line, so it was never held there and never reported. Not OFFLINE, it has
+    not stopped: it is slow, and told so once with its rate over the hold (about 0.125 Hz)."""
+    clock, rng = Clock(), random.Random(15)
+    mirror = _mirror(clock)
+    # units=auto decides its units from its first few messages (about 20 s), then the hold runs.
+    _run(mirror, clock, events.SLOW_HOLD_S + 40.0, {"arm-001": 10.0, "arm-002": 0.125}, rng)
+    assert _twin_events(mirror, "rate") == [("arm-002", "warning", "slow")]
+    (warning,) = [e for e in mirror.events(EventQuery(device="arm-002")) if "rate" in e.data]
+    assert 0.08 <= float(warning.data["rate_hz"]) <= 0.2, warning.data
+    assert "expected_rate_hz = 0.1 " in warning.message
+
+
+def test_rate_watch_holds_a_slow_arm_between_its_messages_but_not_one_that_stopped() -> None:
+    s = EventStore(100)
+    watch = RateWatch(s, expected_rate_hz=10.0)
+    live = {"arm-001": "STALE", "arm-002": "STALE", "arm-003": "ONLINE"}
+    # arm-001 sends every 8 s: its windows read 0.2 and 0; arm-002 sent some, then stopped (OFFLINE at 10 s).
+    # arm-003 sent at 3 Hz for 25 s, then stopped: STALE, its hold passing in the silence, then OFFLINE.
+    readings = [0.2, 0.2, 0.0, 0.2, 0.2, 0.0, 0.2, 0.0]
+    for k, rate in enumerate(readings):
+        live["arm-002"] = "OFFLINE" if k >= 2 else "STALE"
+        live["arm-003"] = "ONLINE" if k <= 5 else "STALE" if k <= 7 else "OFFLINE"
+        rates = {"arm-001": rate, "arm-002": 1.0 if k == 0 else 0.0, "arm-003": 3.0 if k <= 5 else 0.0}
+        watch.sweep(rates, 5.0 * k, statuses=live)
+    assert _rate_events(s) == [("arm-001", "warning", "slow", 0.14)]
+    assert watch.slow == ("arm-001",) and "arm-002" not in watch.slowing
+    live["arm-003"] = "OFFLINE"
+    watch.sweep({"arm-001": 0.2, "arm-003": 0.0}, 40.0, statuses=live)
+    assert len(_rate_events(s)) == 1 and watch.slowing == {"arm-001"}
+    # Without the statuses (or OFFLINE), a reading of 0 ends the time under the line, as before.
+    other = RateWatch(EventStore(100), expected_rate_hz=10.0)
+    for k, rate in enumerate(readings):
+        other.sweep({"arm-001": rate}, 5.0 * k)
+    assert other.slow == ()

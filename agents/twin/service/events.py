@@ -714,7 +714,10 @@ CROWDED_HOLD_S = 30.0
 # whose every gap is two nominal periods, so core.loss reads it as half its messages lost; an edge at 6 Hz,
 # whose gaps fit no whole number of periods and read as no loss, is not. Below a third of the rate (the
 # stale_periods default) the arm also goes STALE between its messages. The hold lets the dip of a pause or a
-# reconnect (at most one 5 s rate window) pass, and a fresh rate meter fill.
+# reconnect (at most one 5 s rate window) pass, and a fresh rate meter fill. An arm sending less than once a
+# rate window (one message every 8 s) reads 0 in some windows: a 0 does not begin a time under the line,
+# but it goes on with one while the arm is not OFFLINE (it has not stopped, its next message is due), and
+# the rate reported is the mean of the readings over the hold.
 SLOW_RATIO = 0.55
 SLOW_CLEAR_RATIO = 0.75
 SLOW_HOLD_S = 30.0
@@ -739,6 +742,8 @@ class RateWatch:
         self._stale_after_s = stale_after_s
         self._over_since: dict[str, float] = {}
         self._under_since: dict[str, float] = {}
+        # The readings' sum and count over each device's time under the slow line (its mean is reported).
+        self._under_rates: dict[str, tuple[float, int]] = {}
         self._reported: set[str] = set()
         self._slow: set[str] = set()
         self._settling: dict[str, float] = {}  # restored device -> until when it cannot be back
@@ -772,15 +777,22 @@ class RateWatch:
         """`device` was forgotten: nothing of it stays (it is judged anew if it publishes again)."""
         self._over_since.pop(device, None)
         self._under_since.pop(device, None)
+        self._under_rates.pop(device, None)
         self._reported.discard(device)
         self._slow.discard(device)
         self._settling.pop(device, None)
 
-    def sweep(self, rates: Mapping[str, float], now: float) -> None:
-        """`rates`: each device heard from -> its valid messages per second now; `now` a monotonic time."""
+    def sweep(
+        self, rates: Mapping[str, float], now: float, *, statuses: Mapping[str, object] | None = None
+    ) -> None:
+        """`rates`: each device heard from -> its valid messages per second now; `now` a monotonic time;
+        `statuses`: their statuses at the same point (StatusWatch's reading), without which a rate of 0 ends a
+        device's time under the slow line."""
         for since in (self._over_since, self._under_since):
             for device in [d for d in since if d not in rates]:
                 del since[device]
+        for device in [d for d in self._under_rates if d not in self._under_since]:
+            del self._under_rates[device]
         # Evicted or restarted elsewhere: nothing to clear here.
         self._reported.intersection_update(rates)
         self._slow.intersection_update(rates)
@@ -800,10 +812,35 @@ class RateWatch:
             elif _held(self._over_since, device, rate >= CROWDED_RATIO * expected, now, CROWDED_HOLD_S):
                 self._reported.add(device)
                 self._crowded(device, rate)
-            # Some messages, but few: an arm that stopped reads 0, and its status events tell of it.
-            elif _held(self._under_since, device, 0.0 < rate <= SLOW_RATIO * expected, now, SLOW_HOLD_S):
-                self._slow.add(device)
-                self._slowed(device, rate)
+            else:
+                held = self._held_under(device, rate, now, statuses)
+                if held is not None:
+                    self._slow.add(device)
+                    self._slowed(device, held)
+
+    def _held_under(
+        self, device: str, rate: float, now: float, statuses: Mapping[str, object] | None
+    ) -> float | None:
+        """The mean rate of `device` over its time under the slow line once that is SLOW_HOLD_S, else None.
+        Some messages, but few: an arm that stopped reads 0 and its status events tell of it; a 0 between the
+        messages of an arm sending less than once a rate window goes on with its time under, not OFFLINE."""
+        if 0.0 < rate <= SLOW_RATIO * self._expected:
+            under = True
+        elif rate == 0.0 and statuses is not None and device in self._under_since:
+            under = str(statuses.get(device, "OFFLINE")) != "OFFLINE"
+        else:
+            under = False
+        if not under:
+            self._under_since.pop(device, None)
+            self._under_rates.pop(device, None)
+            return None
+        total, count = self._under_rates.get(device, (0.0, 0))
+        total, count = self._under_rates[device] = (total + rate, count + 1)
+        # Told at a reading with messages in it, not in a silence that may be the arm stopping.
+        if rate == 0.0 or now - self._under_since.setdefault(device, now) < SLOW_HOLD_S:
+            return None
+        del self._under_since[device], self._under_rates[device]
+        return total / count
 
     def _crowded(self, device: str, rate: float) -> None:
         message = (
@@ -1069,8 +1106,11 @@ class FleetWatch:
         self._next_rates = now + RATE_INTERVAL_S
         return True
 
-    def rates(self, rates: Mapping[str, float], now: float) -> None:
-        self._rates.sweep(rates, now)
+    def rates(
+        self, rates: Mapping[str, float], now: float, statuses: Mapping[str, object] | None = None
+    ) -> None:
+        """`statuses`: the arms' statuses read at the same point (an arm not OFFLINE has not stopped)."""
+        self._rates.sweep(rates, now, statuses=statuses)
 
     def losses(self, recent: Mapping[str, tuple[int, int]], now: float) -> None:
         """Read with the rates (`rates_due`): each arm's (received, lost) over its recent window."""

@@ -1530,7 +1530,7 @@ class Mirror:
                 rates = self._fleet.rates(at)
                 # Of the arms heard from, as the rates: an arm's loss estimate is made with its record.
                 recent = {device: loss.recent(now) for device, loss in self._loss.items() if device in rates}
-            self._watch.rates(rates, now)
+            self._watch.rates(rates, now, statuses)
             self._watch.losses(recent, now)
         if self._watch.clocks_due(now):
             # An edge clock far off (events.ClockWatch): a minimum over each arm's window, so not every sweep.
