@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import signal_and_await_restart, wait_for
+from conftest import NO_BROKER, signal_and_await_restart, wait_for
 from test_alerts import hot, hot_arm_settings
 from test_servo_alarms_e2e import alarms, post
 from twin.core.alarms import AlarmKind, AlarmRecord, AlarmState, ServoAlarms
@@ -742,3 +742,36 @@ def test_a_churning_fleet_whose_arms_leave_with_alarms_up_stays_bounded_and_keep
         assert event.level == "warning" and event.data["by"] == "agent", event
         assert f"dropped unseen: {event.device}/elbow_flex/" in event.message, event.message
         assert "forget_unseen_after_s" in event.message, event.message
+
+
+def test_forgetting_arms_drops_the_agents_routes_to_their_topics() -> None:
+    """The agent remembers where each topic goes (its shard) for MAX_ROUTES topics before it starts over:
+    a forgotten arm's route goes with it, so a fleet whose ids come and go does not keep the ones gone."""
+    config = load_config(
+        None,
+        {
+            "broker.url": NO_BROKER,  # never answers: the test feeds the agent
+            "http.listen": "127.0.0.1:0",
+            "telemetry.units": "ticks",
+            "health.offline_after_s": 1.0,
+        },
+    )
+    agent = AgentService(config)
+    agent.start()
+    try:
+        arms = [f"arm-{i:03d}" for i in range(12)]
+        for i, arm in enumerate(arms):
+            payload = make_payload(arm, 0.1, "ticks", random.Random(i), timestamp_ms=1_763_000_000_000 + i)
+            agent.feed(telemetry_topic(DEFAULT_TOPIC_PREFIX, arm), encode(payload))
+
+        def offline() -> bool:
+            devices = agent.state().devices
+            return all(a in devices and devices[a].health.status == "OFFLINE" for a in arms)
+
+        wait_for(offline, 30, "every arm tracked, then OFFLINE")
+        assert len(agent._routes) == len(arms)
+        for arm in arms[4:]:
+            agent.forget_arm(arm)
+        assert sorted(device for _, device in agent._routes.values()) == arms[:4]
+    finally:
+        agent.stop()

@@ -43,7 +43,7 @@ from typing import TYPE_CHECKING, Any, Generic, TypeVar
 
 from twin.core.alarms import WAITING_STATES, AlarmRecord, worst_first
 from twin.core.health import DeviceStatus
-from twin.core.topics import device_from_topic
+from twin.core.topics import TELEMETRY_SUFFIX, device_from_topic
 from twin.output.alerts import Alert, AlertPublisher, sns_publisher
 from twin.output.emf import EmfFileWriter, EmfPublisher, FleetTotals
 from twin.output.history_feed import HistoryProcess, HistoryStartError, WriterFigures
@@ -822,6 +822,11 @@ class AgentService:
         routes[topic] = route
         return route
 
+    def _forget_route(self, device: str) -> None:
+        """Drop the route of a forgotten arm's topic: a fleet whose ids come and go otherwise kept every
+        one gone until MAX_ROUTES. A message racing this only puts it back, as it would any route."""
+        self._routes.pop(f"{self._prefix}/{device}/{TELEMETRY_SUFFIX}", None)
+
     # ------------------------------------------------------------------------------------------- requests
 
     def _ask_all(self, request: Request, read: Callable[[Reply], _T]) -> list[tuple[Shard, _T]]:
@@ -1101,9 +1106,10 @@ class AgentService:
             forgotten = forgotten_of(shard.request(request)())
             return dataclasses.replace(forgotten, checkpoint=None), forgotten.checkpoint
 
-        # Once kept: the agent's own counts of it (its queue's drops) go, as the mirror's went.
+        # Once kept: the agent's own counts of it (its queue's drops) go, as the mirror's went, and its route.
         def kept() -> None:
             shard.forget(device)
+            self._forget_route(device)
             if self._state_file is not None:  # and the alarms of kinds only a newer agent knows
                 self._state_file.forget(device)
 
