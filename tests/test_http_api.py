@@ -125,6 +125,20 @@ def test_metrics_endpoint_serves_the_text_format(server) -> None:
     assert metric(samples, "twin_messages_rejected_total", device="_untracked", reason="bad_device_id") == 4
 
 
+def test_metrics_hands_its_renders_freed_memory_back_after_answering(server, monkeypatch) -> None:
+    """A large fleet's render peaks at several times its body; the freed pages go back to the system once
+    the answer is sent (the process's RSS stayed at that peak between scrapes)."""
+    from twin.core import heap
+
+    trims: list[int] = []
+    monkeypatch.setattr(heap, "trim", lambda: trims.append(1) or True)
+    srv, _ = server
+    assert get(srv.url + "/metrics")[0] == 200
+    wait_for(lambda: trims, 10, "a trim after the answer")
+    assert get(srv.url + "/state")[0] == 200
+    assert trims == [1]  # only a metrics render asks for one
+
+
 def test_healthz_codes(server) -> None:
     srv, source = server
     assert get(srv.url + "/healthz")[0] == 200
