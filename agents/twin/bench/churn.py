@@ -145,12 +145,15 @@ def _sample(t_s: float, base: str, agent_pid: int, events: EventCounts) -> dict[
     """One sample: each process's RSS, the stores' counts, the fleet /state lists, the size of /metrics."""
     state = get_state(base, timeout=30)
     pids = {RECEIVING: agent_pid, **{f"worker {w.index}": w.pid for w in state.agent.workers}}
+    # Read before this sample's /metrics render: what the process holds between scrapes, not the peak of
+    # the render the bench itself is about to ask for.
+    rss_mb = {name: _rss_mb(pid) for name, pid in pids.items()}
     metrics = _get(f"{base}/metrics").decode()
     return {
         "t_s": t_s,
         "load_average": list(os.getloadavg()),
         "pids": pids,
-        "rss_mb": {name: _rss_mb(pid) for name, pid in pids.items()},
+        "rss_mb": rss_mb,
         "events": events.stores(),
         "events_missed": events.missed,
         "events_unattributed": events.unattributed,
