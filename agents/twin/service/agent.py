@@ -72,7 +72,10 @@ from twin.service.logs import setup_logging
 from twin.service.persist import NotSavedError, PreviousRun, StateFile
 from twin.service.shards import (
     CHECKPOINT_EVERY_S,
+    AckManyRequest,
+    AckOutcome,
     AckRequest,
+    AckResult,
     AlarmsRequest,
     ArmForgotten,
     ArmNotForgettableError,
@@ -96,6 +99,7 @@ from twin.service.shards import (
     WorkerError,
     WorkerPlan,
     WorkerShard,
+    acked_many_of,
     acknowledged_of,
     alarms_of,
     applied_of,
@@ -1092,6 +1096,52 @@ class AgentService:
             "acknowledgement",
             lambda checkpoint: acknowledged_of(shard.request(AckRequest(alarm_id, checkpoint=checkpoint))()),
         )
+
+    def acknowledge_alarms(self, alarm_ids: Sequence[str]) -> tuple[AckResult, ...]:
+        """`acknowledge_alarm` of many ids (POST /alarms/ack), each id's outcome in the order given: one
+        request to each worker that mirrors any of them, and the state file written once for them all (one
+        write per alarm made a few hundred take minutes). An id whose worker is being started again is
+        answered WORKER_UNAVAILABLE, the others are made. Raises NotSavedError (its `result` the outcomes)
+        when the state file could not be written."""
+        by_shard: dict[int, list[str]] = {}
+        for alarm_id in alarm_ids:
+            by_shard.setdefault(self.plan.worker_of(alarm_id.split("/", 1)[0]), []).append(alarm_id)
+        results: dict[str, AckResult] = {}
+        with self._keep_lock:
+            for index, ids in by_shard.items():
+                results.update((r.alarm_id, r) for r in self._acknowledge_on(self._shards[index], ids))
+            self._cached = None
+            saved = self._save_alarms_now()  # once, before the answer, as for one acknowledgement
+        self._wake.set()
+        answered = tuple(results[alarm_id] for alarm_id in alarm_ids)
+        if not saved and self._state_file is not None:
+            raise NotSavedError(
+                f"the acknowledgements are made, but the state file {self._state_file.path} could not be "
+                f"written ({self._state_file.last_error}): a restart before it can be would undo them. Free "
+                "space in (or fix the permissions of) its directory; the agent writes it again every second",
+                answered,
+            )
+        return answered
+
+    def _acknowledge_on(self, shard: Shard, alarm_ids: list[str]) -> tuple[AckResult, ...]:
+        """One shard's share of `acknowledge_alarms`, its checkpoint confirmed as `_keep_act` does; the caller
+        holds the keep lock. A worker that cannot be asked, or died as it answered: every id unavailable."""
+
+        def unavailable(why: str) -> tuple[AckResult, ...]:
+            detail = f"{why}; acknowledge again once it runs (GET /state, agent.workers)"
+            return tuple(AckResult(a, AckOutcome.WORKER_UNAVAILABLE, None, detail) for a in alarm_ids)
+
+        if not shard.answering:
+            return unavailable(f"worker {shard.index} is being started again")
+        restarts = shard.restarts
+        request = AckManyRequest(tuple(alarm_ids), checkpoint=self._mirror is None)
+        try:
+            answer = acked_many_of(shard.request(request)())
+        except WorkerError as exc:
+            return unavailable(str(exc))
+        if answer.checkpoint is not None and not shard.confirm(answer.checkpoint, restarts=restarts):
+            return unavailable(_DIED_AFTER.format(index=shard.index, act="acknowledgement"))
+        return answer.results
 
     def forget_arm(self, device: str, *, reason: str = "") -> ArmForgotten:
         """Remove an OFFLINE arm from the fleet, by the mirror of its device (Mirror.forget_arm). Raises

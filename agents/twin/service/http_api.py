@@ -15,6 +15,8 @@ Endpoints (docs/http-api.md has examples; docs/console.md the console's own API)
 - POST /alarms/<device>/<joint>/<kind>/ack  acknowledge one (ACTIVE -> ACKNOWLEDGED, LATCHED -> NORMAL); the
                 id may also come percent-encoded as one segment. Loopback clients only; a browser's request
                 only from the console's origin with its CSRF token (twin.service.http_guard)
+- POST /alarms/ack  acknowledge many: the body a JSON list of alarm ids (at most ACK_MANY_MAX), each id's
+                outcome in one answer, the state file written once for them all; guarded like the single one
 - POST /api/arm/<device>/forget  remove an OFFLINE arm (its twin, health, alarms) from the fleet; guarded
                 like the acknowledgement
 - GET /  (a browser) the console; (anything else) the list of endpoints, as before
@@ -32,6 +34,7 @@ import asyncio
 import contextlib
 import dataclasses
 import functools
+import json
 import logging
 import re
 import socket
@@ -93,7 +96,15 @@ from twin.service.metrics import CONTENT_TYPE as PROMETHEUS_CONTENT_TYPE
 from twin.service.metrics import render_metrics
 from twin.service.persist import NotSavedError
 from twin.service.session_files import SessionFiles
-from twin.service.shards import ArmForgotten, ArmNotForgettableError, ArmNotFoundError, WorkerError
+from twin.service.shards import (
+    ACK_MANY_MAX,
+    AckOutcome,
+    AckResult,
+    ArmForgotten,
+    ArmNotForgettableError,
+    ArmNotFoundError,
+    WorkerError,
+)
 from twin.service.state import AgentState, AlarmInfo, AlarmList, HealthReport
 from twin.service.stream_hub import (
     ARM_PREFIX,
@@ -160,6 +171,13 @@ class AlarmSource(Protocol):
     def alarms(self, *, include_normal: bool = False) -> tuple[AlarmInfo, ...]: ...
 
     def acknowledge_alarm(self, alarm_id: str) -> AlarmInfo: ...
+
+
+@runtime_checkable
+class BulkAlarmSource(Protocol):
+    """What POST /alarms/ack needs (the agent service has it; a source without it answers 404)."""
+
+    def acknowledge_alarms(self, alarm_ids: Sequence[str]) -> tuple[AckResult, ...]: ...
 
 
 @runtime_checkable
@@ -452,6 +470,7 @@ class AgentHttpServer:
             Route("/healthz", r(self._healthz)),
             Route("/stream", r(self._stream)),
             Route("/alarms", r(self._alarms)),
+            Route("/alarms/ack", r(self._acknowledge_many), methods=["POST"]),
             Route("/alarms/{alarm_id:path}/ack", r(self._acknowledge), methods=["POST"]),
             Route("/arm/{device}", r(self._page_arm)),
             Route("/sessions", r(self._page("sessions"))),
@@ -502,7 +521,7 @@ class AgentHttpServer:
         return _error(
             405,
             "method_not_allowed",
-            allowed=["GET", "POST /alarms/<id>/ack", "POST /api/arm/<device>/forget"],
+            allowed=["GET", "POST /alarms/<id>/ack", "POST /alarms/ack", "POST /api/arm/<device>/forget"],
         )
 
     async def _call(self, fn: Callable[[], _T]) -> _T:
@@ -567,8 +586,13 @@ class AgentHttpServer:
     async def _read_body(self, request: Request) -> Response | None:
         """Read a POST's body, which is not used, within the limits (so the connection stays in step); the
         refusal when it is too large or too slow."""
+        body = await self._body(request)
+        return body if isinstance(body, Response) else None
+
+    async def _body(self, request: Request) -> bytes | Response:
+        """A POST's body, read within the limits; the refusal when it is too large or too slow."""
         try:
-            await asyncio.wait_for(request.body(), self.settings.timeout_s)
+            return await asyncio.wait_for(request.body(), self.settings.timeout_s)
         except BodyTooLarge as exc:
             return _error(413, "body_too_large", detail=str(exc))
         except TimeoutError:
@@ -577,7 +601,6 @@ class AgentHttpServer:
                 "request_timeout",
                 detail=f"the request body did not arrive within {self.settings.timeout_s} s",
             )
-        return None
 
     async def _forget(self, request: Request) -> Response:
         refused = await self._read_body(request)
@@ -633,6 +656,27 @@ class AgentHttpServer:
             # Acknowledged in memory, but not kept: said as a failure, so nobody takes it for a lasting one.
             return _error(503, "not_saved", alarm_id=alarm_id, detail=str(exc))
         return _json(200, AlarmList(alarms=(info,)).to_json())
+
+    async def _acknowledge_many(self, request: Request) -> Response:
+        """POST /alarms/ack: every id of the body's list acknowledged as the single endpoint would, each id's
+        outcome answered in one 200; a body that is not such a list is refused whole, nothing changed."""
+        body = await self._body(request)
+        if isinstance(body, Response):
+            return body
+        source = self._source
+        if not isinstance(source, BulkAlarmSource):
+            return _error(404, "not_found", detail="this source has no alarms")
+        try:
+            alarm_ids = bulk_alarm_ids(body)
+        except BulkAckError as exc:
+            return _error(exc.status, exc.error, detail=str(exc))
+        try:
+            results = await self._call(lambda: source.acknowledge_alarms(alarm_ids))
+        except NotSavedError as exc:
+            # Made in memory, but not kept: said as a failure, each id's outcome with it.
+            made = cast(tuple[AckResult, ...], exc.result)
+            return _error(503, "not_saved", detail=str(exc), **ack_results_json(made))
+        return JSONResponse(ack_results_json(results), headers=SECURITY_HEADERS)
 
     # ------------------------------------------------------------------------------------------ the console
 
@@ -901,6 +945,69 @@ def alarm_id_of(scope: Scope) -> str:
     raw = bytes(scope.get("raw_path") or scope["path"].encode()).decode("latin-1").split("?", 1)[0]
     inner = raw.rstrip("/").removeprefix("/alarms/").removesuffix("/ack")
     return "/".join(unquote(part) for part in inner.split("/"))
+
+
+class BulkAckError(ValueError):
+    """A body POST /alarms/ack refuses whole: `status` and `error` its answer's, the message what to fix."""
+
+    def __init__(self, status: int, error: str, detail: str) -> None:
+        super().__init__(detail)
+        self.status = status
+        self.error = error
+
+
+_BULK_SHAPE = 'a JSON list of alarm ids as GET /alarms lists them, e.g. ["arm-001/elbow_flex/overload"]'
+
+
+def bulk_alarm_ids(body: bytes) -> tuple[str, ...]:
+    """The ids of a POST /alarms/ack body; BulkAckError naming what is wrong and the fix: not JSON, not a
+    list, more than ACK_MANY_MAX ids, an id that is not a string, an id twice."""
+    try:
+        parsed = json.loads(body)
+    except (ValueError, RecursionError):
+        raise BulkAckError(400, "bad_json", f"the body is not JSON: send {_BULK_SHAPE}") from None
+    if not isinstance(parsed, list):
+        what = type(parsed).__name__
+        raise BulkAckError(400, "not_a_list", f"the body is a JSON {what}: send {_BULK_SHAPE}")
+    if len(parsed) > ACK_MANY_MAX:
+        raise BulkAckError(
+            413,
+            "too_many_alarm_ids",
+            f"{len(parsed)} alarm ids, at most {ACK_MANY_MAX} per request: send them in chunks of "
+            f"{ACK_MANY_MAX} or fewer",
+        )
+    seen: set[str] = set()
+    for i, item in enumerate(parsed):
+        if not isinstance(item, str):
+            raise BulkAckError(
+                400,
+                "bad_alarm_id",
+                f"item {i} ({json.dumps(item)[:60]}) is not a string: send {_BULK_SHAPE}",
+            )
+        if item in seen:
+            raise BulkAckError(
+                400, "duplicate_alarm_id", f"item {i} ({item[:200]!r}) is listed twice: send each id once"
+            )
+        seen.add(item)
+    return tuple(parsed)
+
+
+def ack_results_json(results: Sequence[AckResult]) -> dict[str, object]:
+    """The answer of POST /alarms/ack: each id's outcome, in the order asked, with the alarm's state after
+    (None when there is no such alarm), and how many of each outcome."""
+    counts = {str(outcome): 0 for outcome in AckOutcome}
+    rows: list[dict[str, object]] = []
+    for r in results:
+        counts[str(r.outcome)] += 1
+        row: dict[str, object] = {
+            "alarm_id": r.alarm_id,
+            "outcome": str(r.outcome),
+            "state": None if r.alarm is None else str(r.alarm.state),
+        }
+        if r.detail:
+            row["detail"] = r.detail
+        rows.append(row)
+    return {"results": rows, "counts": counts}
 
 
 def _int_param(request: Request, name: str, default: int, *, least: int = 0) -> int:

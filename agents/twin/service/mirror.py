@@ -64,9 +64,11 @@ from twin.core.alarms import (
     WAITING_STATES,
     AlarmCounters,
     AlarmEvent,
+    AlarmNotFound,
     AlarmRecord,
     AlarmState,
     JointHealth,
+    NothingToAcknowledge,
     ServoAlarms,
     Severity,
 )
@@ -110,8 +112,12 @@ from twin.service.shards import (
     ARM_CONFIGURED,
     ARM_NOT_OFFLINE,
     EVENTS_PER_ASK,
+    AckedMany,
+    AckManyRequest,
     Acknowledged,
+    AckOutcome,
     AckRequest,
+    AckResult,
     AlarmsRequest,
     ArmForgotten,
     ArmNotForgettableError,
@@ -1468,6 +1474,10 @@ class Mirror:
             if request.checkpoint:
                 return self.acknowledge_checkpointed(request.alarm_id)
             return self.acknowledge_alarm(request.alarm_id)
+        if isinstance(request, AckManyRequest):
+            if request.checkpoint:
+                return self.acknowledge_many_checkpointed(request.alarm_ids)
+            return AckedMany(self.acknowledge_alarms(request.alarm_ids))
         if isinstance(request, ForgetRequest):
             return self.forget_arm(request.device, checkpoint=request.checkpoint, reason=request.reason)
         if isinstance(request, EventsRequest):
@@ -1782,6 +1792,41 @@ class Mirror:
 
         info, capture = self._between_batches(act)
         return Acknowledged(info, self._act_checkpoint(capture))
+
+    def acknowledge_alarms(self, alarm_ids: Sequence[str]) -> tuple[AckResult, ...]:
+        """`acknowledge_alarm` of each id in one hold of the mirror's lock, each id's outcome answered (an
+        unknown one, or one with nothing to acknowledge, does not stop the others), in the order given."""
+        results: list[AckResult] = []
+        events: list[AlarmEvent] = []
+        wall = self._wall_clock()
+        with self._lock:
+            now = self._clock()
+            for alarm_id in alarm_ids:
+                outcome, detail = AckOutcome.ACKNOWLEDGED, ""
+                try:
+                    events.append(self._alarms.acknowledge(alarm_id, now))
+                except AlarmNotFound:
+                    detail = "no alarm has this id (its arm forgotten?); GET /alarms?all=1 lists every id"
+                    results.append(AckResult(alarm_id, AckOutcome.ALARM_NOT_FOUND, None, detail))
+                    continue
+                except NothingToAcknowledge as exc:
+                    outcome, detail = AckOutcome.NOTHING_TO_ACKNOWLEDGE, str(exc)
+                view = self._alarms.views_of((alarm_id,))[0]
+                results.append(AckResult(alarm_id, outcome, alarm_info(view, now, wall), detail))
+        for event in events:
+            _log_alarm_event(event)
+            self._watch.alarm(event)
+        return tuple(results)
+
+    def acknowledge_many_checkpointed(self, alarm_ids: Sequence[str]) -> AckedMany:
+        """`acknowledge_alarms`, and one checkpoint begun right after them (acknowledge_checkpointed's)."""
+
+        def act() -> tuple[tuple[AckResult, ...], Capture]:
+            self._finish_capture()
+            return self.acknowledge_alarms(alarm_ids), self._begin_capture()
+
+        results, capture = self._between_batches(act)
+        return AckedMany(results, self._act_checkpoint(capture))
 
     def _act_checkpoint(self, capture: Capture) -> MirrorCheckpoint | None:
         """The checkpoint an acknowledgement or a forget began, if taken within ACT_CHECKPOINT_S."""
