@@ -219,3 +219,10 @@ def test_a_refused_bulk_request_changes_nothing(agent: AgentService) -> None:
     status, body = post(url, ids, {"Origin": origin, "Sec-Fetch-Site": "same-origin", "X-CSRF-Token": token})
     assert status == 200 and body["counts"]["acknowledged"] == 2, body
 
+
+def test_the_console_sends_at_most_what_one_request_takes() -> None:
+    """The console chunks its ids by its own copy of the limit: a larger one had every chunk refused."""
+    from twin.service.console import ASSETS
+
+    script = (Path(ASSETS) / "common.js").read_text()
+    assert f"const ACK_MANY_MAX = {ACK_MANY_MAX};" in script

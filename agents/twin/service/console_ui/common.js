@@ -95,18 +95,24 @@ const Twin = (() => {
   // Each agent start makes a new token, so a page left open over a restart carries one the agent refuses:
   // the page reads the new one from its own document, fetched again (same origin only), and sends once more.
   // Only when that fails too does the operator see the refusal and its "reload".
-  async function post(url) {
-    let result = await send(url);
+  // `json`, when given, is sent as the request's JSON body.
+  async function post(url, json) {
+    let result = await send(url, json);
     if (result.status === 403 && result.payload && result.payload.error === "csrf_token_invalid" &&
         await renewToken()) {
-      result = await send(url);
+      result = await send(url, json);
     }
     return result;
   }
 
-  async function send(url) {
+  async function send(url, json) {
     const token = document.querySelector('meta[name="csrf-token"]').content;
-    const response = await fetch(url, { method: "POST", headers: { "X-CSRF-Token": token } });
+    const init = { method: "POST", headers: { "X-CSRF-Token": token } };
+    if (json !== undefined) {
+      init.headers["Content-Type"] = "application/json";
+      init.body = JSON.stringify(json);
+    }
+    const response = await fetch(url, init);
     let payload = null;
     try { payload = await response.json(); } catch (_) { payload = null; }
     return { ok: response.ok, status: response.status, payload };
@@ -139,36 +145,67 @@ const Twin = (() => {
   // The alarm states that wait for a person (twin.core.alarms.WAITING_STATES): what the pages count and send.
   const WAITING = new Set(["ACTIVE", "LATCHED"]);
 
-  // Several alarms acknowledged at once (an arm's, or the Fleet page's shown): one POST /alarms/<id>/ack
-  // each, so each is guarded, answered and recorded (its own event) exactly as a single click's. Only the
-  // ids the operator confirmed are sent: one raised meanwhile waits for its own look. A refusal of the page
-  // itself (403: a token that could not be renewed; no answer at all) ends the run, the rest counted unsent.
+  // Several alarms acknowledged at once (an arm's, or the Fleet page's shown): POST /alarms/ack with their
+  // ids, ACK_MANY_MAX a request (twin.service.shards), which the agent makes in one go and keeps with one
+  // write of its state file; one POST per alarm, each waiting for that write, took minutes for a few hundred,
+  // and logged a 409 for each already cleared. The answer says each id's outcome (each recorded as its own
+  // event, as a single click's). A request the agent finds too large (413: a small [http] max_body_bytes,
+  // long ids) goes again as two halves. Only the ids the operator confirmed are sent: one raised meanwhile
+  // waits for its own look. A refusal of the page itself (403: a token that could not be renewed; no answer
+  // at all) ends the run: that request's ids counted refused, the rest unsent.
+  const ACK_MANY_MAX = 1000;
+
   async function acknowledgeMany(alarms, progress) {
     const tally = { acknowledged: 0, reset: 0, ACKNOWLEDGED: 0, NORMAL: 0, gone: 0, notKept: 0, refused: 0,
       unsent: 0, why: "" };
-    for (const [i, alarm] of alarms.entries()) {
-      if (progress) progress(i, alarms.length);
+    const ids = alarms.map((a) => a.alarm_id);
+    const pending = [];
+    for (let i = 0; i < ids.length; i += ACK_MANY_MAX) pending.push(ids.slice(i, i + ACK_MANY_MAX));
+    let done = 0;
+    while (pending.length) {
+      const chunk = pending.shift();
+      if (progress) progress(done, ids.length);
       let result;
       try {
-        result = await post(`/alarms/${alarm.alarm_id.split("/").map(encodeURIComponent).join("/")}/ack`);
+        result = await post("/alarms/ack", chunk);
       } catch (_) {
         result = { ok: false, status: 0, payload: null };
       }
       const p = result.payload || {};
-      if (result.ok) {
-        const now = p.alarms && p.alarms[0];
-        tally[now && now.state === "NORMAL" ? "reset" : "acknowledged"] += 1;
+      if (result.status === 413 && chunk.length > 1) {
+        const half = Math.ceil(chunk.length / 2);
+        pending.unshift(chunk.slice(0, half), chunk.slice(half));
         continue;
       }
-      const already = result.status === 409 && /is (ACKNOWLEDGED|NORMAL):/.exec(p.detail || "");
-      if (already) { tally[already[1]] += 1; continue; }
-      if (result.status === 404) { tally.gone += 1; continue; }
+      done += chunk.length;
+      if (Array.isArray(p.results)) {
+        const notKept = result.status === 503 && p.error === "not_saved";
+        if (notKept && !tally.why) tally.why = refusal(result);
+        for (const r of p.results) countOutcome(tally, r, notKept);
+        continue;
+      }
       if (!tally.why) tally.why = refusal(result);
-      if (result.status === 503 && p.error === "not_saved") { tally.notKept += 1; continue; }
-      tally.refused += 1;
-      if (!result.status || result.status === 403) { tally.unsent = alarms.length - i - 1; break; }
+      tally.refused += chunk.length;
+      if (!result.status || result.status === 403) {
+        tally.unsent = pending.reduce((n, c) => n + c.length, 0);
+        break;
+      }
     }
     return tally;
+  }
+
+  function countOutcome(tally, r, notKept) {
+    if (r.outcome === "acknowledged") {
+      if (notKept) tally.notKept += 1;
+      else tally[r.state === "NORMAL" ? "reset" : "acknowledged"] += 1;
+    } else if (r.outcome === "nothing_to_acknowledge" && (r.state === "ACKNOWLEDGED" || r.state === "NORMAL")) {
+      tally[r.state] += 1;
+    } else if (r.outcome === "alarm_not_found") {
+      tally.gone += 1;
+    } else {
+      tally.refused += 1;
+      if (!tally.why) tally.why = r.detail || r.outcome;
+    }
   }
 
   // "7 acknowledged, 1 already cleared": each outcome counted, the first refusal in the agent's words.

@@ -255,7 +255,7 @@
     showAckShown();
     ackResult.hidden = false;
     ackResult.className = "";
-    const tally = await Twin.acknowledgeMany(alarms, (i, n) => { ackResult.textContent = `acknowledging ${i + 1} of ${n}…`; });
+    const tally = await Twin.acknowledgeMany(alarms, (i, n) => { ackResult.textContent = `acknowledging ${n}${i ? ` (${i} done)` : ""}…`; });
     ackBusy = false;
     showAckShown();
     ackResult.className = Twin.tallyOk(tally) ? "ack-ok" : "ack-refused";
