@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import logging
 import random
+import threading
 import time
 from pathlib import Path
 
@@ -137,9 +138,10 @@ def test_a_failed_write_is_counted_told_with_its_fix_and_tried_again(
         raise_alarms(store, 1)
         assert not journal.flush()  # within WARN_EVERY_S: counted, not told again
     assert journal.not_written == 3
-    stats = journal.stats()  # an output's figures in /state: SinkDrops counts them
+    stats, bulk = journal.sinks()  # each pair an output's figures in /state: SinkDrops counts them
     assert (stats.name, stats.dropped, stats.errors) == ("events_journal", 3, 2)
     assert "IsADirectoryError" in stats.last_error
+    assert (bulk.name, bulk.dropped, bulk.errors, bulk.last_error) == ("events_journal_bulk", 0, 0, "")
     told = [r.getMessage() for r in caplog.records]
     assert len(told) == 1, told
     assert "2 event(s) could not be written" in told[0] and "Make room on its disk" in told[0]
@@ -191,6 +193,75 @@ def test_what_waits_for_a_flush_is_bounded(tmp_path: Path, monkeypatch: pytest.M
     assert [e.id for e in EventJournal(tmp_path / "events.jsonl").load()] == list(range(6, 16))
 
 
+def test_a_flood_of_status_events_on_a_failing_disk_leaves_the_alarms_waiting_with_it(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # One queue held both pairs' events: while the disk failed, a flood of status events pushed the alarms
+    # waiting for the next flush out of it, and the failure's log line named the alarms' file either way.
+    monkeypatch.setattr(event_journal, "MAX_PENDING", 10)
+    path = tmp_path / "events.jsonl"
+    path.mkdir()  # both pairs' files fail to open, as on a full or read-only disk
+    bulk_path(path).mkdir()
+    store, journal = journaled_store(path)
+    raise_alarms(store, 2)
+    emit(store, 5)
+    with caplog.at_level(logging.ERROR, logger="twin.service.event_journal"):
+        assert not journal.flush()
+    # One line per file that failed, each naming it and its own events.
+    told = {r.getMessage().split(" (")[0] for r in caplog.records}
+    assert len(caplog.records) == 2 and told == {
+        f"2 event(s) could not be written to the event journal {path}",
+        f"5 event(s) could not be written to the event journal {bulk_path(path)}",
+    }, told
+    waiting = raise_alarms(store, 3)
+    flood = emit(store, 25)  # past MAX_PENDING before the next flush
+    path.rmdir()
+    bulk_path(path).rmdir()
+    assert journal.flush()
+    journal.close()
+    assert EventJournal(path).load(None) == [*waiting, *flood[-10:]]
+    kept, bulk = journal.sinks()
+    assert (kept.delivered, kept.dropped, kept.errors, kept.pending) == (3, 2, 1, 0)
+    assert (bulk.delivered, bulk.dropped, bulk.errors, bulk.pending) == (10, 5 + 15, 1, 0)
+
+
+def test_a_flood_of_status_events_behind_a_slow_disk_leaves_the_alarms_waiting_with_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The supervisor's flush held in a write (a slow disk) while the store kept adding: the status events
+    # queued during it pushed out the alarms queued with them before any was written.
+    monkeypatch.setattr(event_journal, "MAX_PENDING", 10)
+    held, release = threading.Event(), threading.Event()
+    write = event_journal._Files.write
+
+    def slow_write(files: event_journal._Files, batch: list[Event]) -> None:
+        if not held.is_set():  # the first write only
+            held.set()
+            assert release.wait(30), "the test did not release the write"
+        write(files, batch)
+
+    monkeypatch.setattr(event_journal._Files, "write", slow_write)
+    path = tmp_path / "events.jsonl"
+    store, journal = journaled_store(path)
+    first = raise_alarms(store, 1)
+    flushing = threading.Thread(target=journal.flush, name="flush-held")
+    flushing.start()
+    try:
+        assert held.wait(30), "the flush never reached its write"
+        waiting = raise_alarms(store, 3)
+        flood = emit(store, 25)
+        assert journal.pending == 3 + 10
+    finally:
+        release.set()
+        flushing.join(30)
+    assert not flushing.is_alive()
+    assert journal.flush()
+    journal.close()
+    assert EventJournal(path).load(None) == [*first, *waiting, *flood[-10:]]
+    kept, bulk = journal.sinks()
+    assert (kept.delivered, kept.dropped, bulk.delivered, bulk.dropped) == (4, 0, 10, 15)
+
+
 def _agent_events(agent: object) -> list[Event]:
     return agent.events(EventQuery(limit=10_000))  # type: ignore[attr-defined]
 
@@ -208,13 +279,19 @@ def test_the_agent_reads_its_events_back_and_says_how_its_run_before_ended(tmp_p
         wait_for(lambda: len(agent.events(arrived)) == 3, 30, "the arrivals collected")
 
         # Written as the supervisor collects them; its figures are an output's in /state.
-        def journal() -> SinkStats:
-            (stats,) = [s for s in agent.state().agent.sinks if s.name == "events_journal"]
-            return stats
+        def journal() -> tuple[SinkStats, SinkStats]:
+            names = ("events_journal", "events_journal_bulk")
+            kept, bulk = [s for s in agent.state().agent.sinks if s.name in names]
+            return kept, bulk
 
-        wait_for(lambda: journal().delivered >= 4, 30, "the started event and the arrivals written")
+        # The started event to the file named, the arrivals (status events) to the bulk pair.
+        wait_for(
+            lambda: [s.delivered >= n for s, n in zip(journal(), (1, 3), strict=True)] == [True, True],
+            30,
+            "the started event and the arrivals written",
+        )
         written = events_file.read_text() + event_journal.bulk_path(events_file).read_text()
-        assert journal().dropped == 0 and written.count("\n") >= 4
+        assert [s.dropped for s in journal()] == [0, 0] and written.count("\n") >= 4
     finally:
         agent.stop()
     first_run = _agent_events(agent)

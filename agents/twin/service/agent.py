@@ -910,7 +910,10 @@ class AgentService:
                 state = dataclasses.replace(
                     state, agent=dataclasses.replace(state.agent, history=self._history_state(self._history))
                 )
-            own = [kept.stats() for kept in (self._journal, self._state_file) if kept is not None]
+            own = [
+                *(self._journal.sinks() if self._journal is not None else ()),
+                *((self._state_file.stats(),) if self._state_file is not None else ()),
+            ]
             if own:
                 sinks = (*state.agent.sinks, *own)
                 state = dataclasses.replace(state, agent=dataclasses.replace(state.agent, sinks=sinks))

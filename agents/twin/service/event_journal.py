@@ -24,9 +24,12 @@ same before and after.
 - **What goes wrong.** A line cut short by a kill, or one that is not an event, is skipped when read back and
   counted (`unreadable`, one warning); the next write starts on a line of its own. A write that fails (disk
   full, permissions) is logged with what to do and its events counted (`not_written`); they stay in the
-  store, and the next flush tries again with the events made since. What waits for a flush is bounded
-  (`MAX_PENDING`; the oldest go, counted), so a disk that stays broken cannot grow the agent's memory. The
-  counts are an output's in /state (`agent.sinks`, `events_journal`), so they reach CloudWatch's SinkDrops.
+  store, and the next flush tries again with the events made since. What waits for a flush is bounded, in
+  a queue per pair (`MAX_PENDING` each; the oldest of that pair go, counted), so a disk that stays broken or
+  slow cannot grow the agent's memory, and a flood of status events waiting behind it pushes out only older
+  bulk events, never the alarms waiting with them. Each pair's counts are an output's in /state
+  (`agent.sinks`: `events_journal` for the file named, `events_journal_bulk` for the bulk pair), so they
+  reach CloudWatch's SinkDrops; its log lines name the file that failed.
 """
 
 from __future__ import annotations
@@ -50,15 +53,17 @@ from twin.service.events import BULK_KINDS, DEFAULT_CAPACITY, LIFECYCLE_KINDS, E
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MAX_BYTES", "MAX_PENDING", "SINK_NAME", "EventJournal"]
+__all__ = ["BULK_SINK_NAME", "MAX_BYTES", "MAX_PENDING", "SINK_NAME", "EventJournal"]
 
-# Its name among the outputs of /state's `agent.sinks` and /metrics' `sink` label.
-SINK_NAME = "events_journal"
+# The pairs' names among the outputs of /state's `agent.sinks` and /metrics' `sink` label.
+SINK_NAME = "events_journal"  # the file named: alarm, calibration, agent, worker, broker
+BULK_SINK_NAME = "events_journal_bulk"  # status, rejected, twin
 
 # Each of the four files is renamed away once past this: at about 300 bytes an event (600 an alarm), each
 # pair holds more of its kinds than a store of DEFAULT_CAPACITY keeps.
 MAX_BYTES = 8 * 1024 * 1024
-# Events waiting for a flush: a store's worth. More only while writes fail; then the oldest go, counted.
+# Events waiting for a flush, in each pair's queue: a store's worth. More only while writes fail or are slow;
+# then the oldest of that pair go, counted, so the memory held is at most twice this.
 MAX_PENDING = DEFAULT_CAPACITY
 # A write that keeps failing is logged again at most this often (each flush would otherwise log).
 WARN_EVERY_S = 60.0
@@ -74,13 +79,32 @@ def bulk_path(path: Path) -> Path:
 
 
 class _Files:
-    """One pair of the journal's files: `path`, appended to, renamed `<name>.1` once past `max_bytes`."""
+    """One pair of the journal's files: `path`, appended to, renamed `<name>.1` once past `max_bytes`; the
+    events waiting for it (`pending`, guarded by the journal's queue lock) and what became of them, as the
+    output `name` reports them. The other fields are its journal's writing thread's."""
 
-    def __init__(self, path: Path, max_bytes: int) -> None:
+    def __init__(self, path: Path, max_bytes: int, *, name: str, clock: Callable[[], float]) -> None:
         self.path = path
         self.previous = path.with_name(path.name + ".1")
         self.max_bytes = max_bytes
+        self.name = name
         self._file: BinaryIO | None = None
+        self.pending: deque[Event] = deque()
+        self.error_lines = Throttle(WARN_EVERY_S, clock=clock)
+        self.written = 0
+        self.write_failures = 0
+        self.last_error = ""
+        self.not_written = 0  # failed writes, and events pushed out of the waiting queue by newer ones
+
+    def stats(self) -> SinkStats:
+        return SinkStats(
+            name=self.name,
+            delivered=self.written,
+            dropped=self.not_written,
+            errors=self.write_failures,
+            pending=len(self.pending),
+            last_error=self.last_error,
+        )
 
     def exist(self) -> bool:
         return self.path.exists() or self.previous.exists()
@@ -122,18 +146,13 @@ class EventJournal:
             raise ValueError(f"an event journal's files hold at least one byte, got max_bytes = {max_bytes}")
         self.path = Path(path)
         self.max_bytes = max_bytes
-        self._kept = _Files(self.path, max_bytes)  # alarm, calibration, agent, worker, broker
-        self._bulk = _Files(bulk_path(self.path), max_bytes)  # status, rejected, twin
+        # alarm, calibration, agent, worker, broker; and status, rejected, twin
+        self._kept = _Files(self.path, max_bytes, name=SINK_NAME, clock=clock)
+        self._bulk = _Files(bulk_path(self.path), max_bytes, name=BULK_SINK_NAME, clock=clock)
         self.previous = self._kept.previous
-        self._pending: deque[Event] = deque()
-        self._lock = threading.Lock()  # the queue
+        self._lock = threading.Lock()  # the pairs' queues
         # One flush at a time: a supervisor round still flushing as the stop closes must not interleave.
         self._write_lock = threading.RLock()
-        self._error_lines = Throttle(WARN_EVERY_S, clock=clock)
-        self.written = 0
-        self.write_failures = 0
-        self.last_error = ""
-        self.not_written = 0  # failed writes, and events pushed out of the waiting queue by newer ones
         self.unreadable = 0  # lines of the files read back that were not events
 
     # -- reading -------------------------------------------------------------------------------------------
@@ -199,51 +218,51 @@ class EventJournal:
 
     def add(self, event: Event) -> None:
         """Queue `event` (numbered by its store) for the next flush. Any thread; never blocks on the disk."""
+        files = self._bulk if event.kind in BULK_KINDS else self._kept
         with self._lock:
-            if len(self._pending) >= MAX_PENDING:
-                self._pending.popleft()
-                self.not_written += 1
-            self._pending.append(event)
+            # Each pair's own bound: a flood of status events behind a slow disk never pushes out an alarm.
+            if len(files.pending) >= MAX_PENDING:
+                files.pending.popleft()
+                files.not_written += 1
+            files.pending.append(event)
 
     def flush(self) -> bool:
         """Append what is queued; False when a write failed (logged, counted; the next flush tries again
         with what is queued then)."""
         with self._write_lock:
-            with self._lock:
-                batch = list(self._pending)
-                self._pending.clear()
-            if not batch:
-                return True
-            failed, error = 0, None
-            bulk = [e for e in batch if e.kind in BULK_KINDS]
-            kept = [e for e in batch if e.kind not in BULK_KINDS]
-            for files, events in ((self._kept, kept), (self._bulk, bulk)):
-                if not events:
-                    continue
-                try:
-                    files.write(events)
-                except OSError as exc:
-                    failed, error = failed + len(events), exc
-                    # Closing flushes what the failed write left in the file's buffer, which fails the same
-                    # way: that is this failure again, told (once a minute) by _warn, not a line per flush.
-                    files.close(after_failure=True)
-            self.written += len(batch) - failed
-            if error is not None:
-                self.not_written += failed
-                self.write_failures += 1
-                self.last_error = f"{type(error).__name__}: {error}"
-                self._warn(error, failed)
-                return False
-            if self._error_lines.streak:
-                log.warning(
-                    "the event journal %s is written again, after %d failed write(s); %d event(s) in all "
-                    "were not written",
-                    self.path,
-                    self._error_lines.streak,
-                    self.not_written,
-                )
-                self._error_lines.clear()
-            return True
+            ok = True
+            for files in (self._kept, self._bulk):
+                with self._lock:
+                    batch = list(files.pending)
+                    files.pending.clear()
+                if batch:
+                    ok = self._write(files, batch) and ok
+            return ok
+
+    def _write(self, files: _Files, batch: Sequence[Event]) -> bool:
+        """Append `batch` to `files`; a failure logged (naming that file) and counted as that pair's."""
+        try:
+            files.write(batch)
+        except OSError as exc:
+            # Closing flushes what the failed write left in the file's buffer, which fails the same way:
+            # that is this failure again, told (once a minute) by _warn, not a line per flush.
+            files.close(after_failure=True)
+            files.not_written += len(batch)
+            files.write_failures += 1
+            files.last_error = f"{type(exc).__name__}: {exc}"
+            _warn(files, exc, len(batch))
+            return False
+        files.written += len(batch)
+        if files.error_lines.streak:
+            log.warning(
+                "the event journal %s is written again, after %d failed write(s); %d event(s) in all "
+                "were not written",
+                files.path,
+                files.error_lines.streak,
+                files.not_written,
+            )
+            files.error_lines.clear()
+        return True
 
     def close(self) -> None:
         """Flush what is queued and close the file (a later flush opens it again)."""
@@ -254,33 +273,41 @@ class EventJournal:
 
     @property
     def pending(self) -> int:
-        return len(self._pending)
+        return len(self._kept.pending) + len(self._bulk.pending)
 
-    def stats(self) -> SinkStats:
-        """The journal as an output in /state's `agent.sinks`: what it could not write reaches the SinkDrops
-        metric and its alarm like any output's drops."""
-        return SinkStats(
-            name=SINK_NAME,
-            delivered=self.written,
-            dropped=self.not_written,
-            errors=self.write_failures,
-            pending=self.pending,
-            last_error=self.last_error,
-        )
+    @property
+    def written(self) -> int:
+        return self._kept.written + self._bulk.written
 
-    def _warn(self, exc: OSError, count: int) -> None:
-        if self._error_lines.due() is None:
-            return
-        log.error(
-            "%d event(s) could not be written to the event journal %s (%s): they are shown until the agent "
-            "stops, and missing from the Events page after its next start. Make room on its disk, or let "
-            "the agent's user write there (%d not written so far)",
-            count,
-            self.path,
-            exc,
-            self.not_written,
-            extra={"path": str(self.path), "not_written": self.not_written},
-        )
+    @property
+    def not_written(self) -> int:
+        return self._kept.not_written + self._bulk.not_written
+
+    @property
+    def write_failures(self) -> int:
+        return self._kept.write_failures + self._bulk.write_failures
+
+    def sinks(self) -> tuple[SinkStats, SinkStats]:
+        """The journal as two outputs in /state's `agent.sinks`, a pair each (`events_journal`, the file
+        named; `events_journal_bulk`): what either could not write reaches the SinkDrops metric and its
+        alarm like any output's drops."""
+        return self._kept.stats(), self._bulk.stats()
+
+
+def _warn(files: _Files, exc: OSError, count: int) -> None:
+    """A failed write of `files`, told at once and then once a minute, naming the file that failed."""
+    if files.error_lines.due() is None:
+        return
+    log.error(
+        "%d event(s) could not be written to the event journal %s (%s): they are shown until the agent "
+        "stops, and missing from the Events page after its next start. Make room on its disk, or let "
+        "the agent's user write there (%d not written to it so far)",
+        count,
+        files.path,
+        exc,
+        files.not_written,
+        extra={"path": str(files.path), "not_written": files.not_written},
+    )
 
 
 def _part(kind: str) -> int:
