@@ -1338,6 +1338,134 @@ def test_a_check_of_a_commit_in_doubt_stuck_on_its_store_ends_on_sigterm_and_lea
     assert DeltaTable(str(table)).version() == 0 and rows_of(str(uri)).height == 3
 
 
+def _table_with_a_stuck_read(uri: Path) -> tuple[Path, dict[str, bytes]]:
+    """A telemetry table at `uri` whose log has a file that blocks whoever opens it to read (a store that
+    never answers), and its log's files as they were before: (that file, the files)."""
+    table = uri / TELEMETRY_TABLE
+    pl.DataFrame({"a": [1, 2, 3]}).write_delta(str(table))
+    log_dir = table / "_delta_log"
+    before = {p.name: p.read_bytes() for p in log_dir.iterdir()}
+    stuck = log_dir / "_last_checkpoint"
+    os.mkfifo(stuck)  # opening it to read blocks until something opens it to write: nothing will
+    return stuck, before
+
+
+def test_a_writer_stuck_checking_a_commit_in_doubt_at_its_start_ends_on_sigterm_holding_no_row(
+    tmp_path: Path,
+) -> None:
+    """A writer started again asks the table about the dead one's commit in doubt before it takes any row.
+    Stuck there (a store that never answers), it ignored SIGTERM as a running writer does, so it outlived an
+    agent systemd stopped, and the agent's stop waited on its start. It now ends within CHECK_TERM_GRACE_S of
+    a SIGTERM (its start fails, nothing read), the commit stays in doubt, and the agent's stop asks the table
+    itself: the dead writer's 5 rows did not land and count as lost, once."""
+    from twin.output import history_feed
+
+    uri = tmp_path / "history"
+    stuck, before = _table_with_a_stuck_read(uri)
+    history = HistoryProcess({"uri": str(uri)}, multiprocessing.get_context("spawn"))
+    history._in_doubt = history_feed._InDoubt("a-dead-writer", TELEMETRY_TABLE, 1, 5)
+    failed: list[Exception] = []
+
+    def launch() -> None:
+        try:
+            history.launch()
+        except history_feed.HistoryStartError as exc:
+            failed.append(exc)
+
+    starting = threading.Thread(target=launch, daemon=True)
+    starting.start()
+    try:
+        wait_for(lambda: history._process is not None, 30, "the writer process started")
+        writer = history._process
+        assert writer is not None and writer.pid is not None
+        wait_for(lambda: _opening_a_fifo(writer.pid), 60, "the writer stuck reading the table at its start")
+        os.kill(writer.pid, signal.SIGTERM)
+        starting.join(history_feed.CHECK_TERM_GRACE_S + 10.0)
+        ended = not starting.is_alive()
+    finally:
+        if history._process is not None:
+            history._process.kill()
+        starting.join(10.0)
+    assert ended, "the writer stuck in its check was still starting after SIGTERM"
+    assert history._process.exitcode == 1
+    assert failed and "exited while starting" in str(failed[0])
+    assert history.figures().rows_received == 0 and history.figures().rows_lost == 0  # not counted yet
+    stuck.unlink()
+    history.stopping()
+    history.stop(timeout=30.0)
+    assert history.figures().rows_lost == 5 and history.unwritten_rows() == 0
+    assert {p.name: p.read_bytes() for p in (uri / TELEMETRY_TABLE / "_delta_log").iterdir()} == before
+
+
+# A parent that starts a history process stuck reading the table (as the agent starts them: spawned, the
+# parent holding its end of the control pipe), says its pid in argv[3], and waits for it.
+_PARENT_OF_A_STUCK_READ = """
+import multiprocessing, os, sys
+from pathlib import Path
+from twin.output import history_feed as hf
+
+uri, kind, said = sys.argv[1:]
+ctx = multiprocessing.get_context("spawn")
+doubt = hf._InDoubt("a-dead-writer", hf.TELEMETRY_TABLE, 1, 5)
+control, child = ctx.Pipe()
+if kind == "check":
+    args = ({"uri": uri}, doubt, child)
+    process = ctx.Process(target=hf.check_main, args=args)
+else:
+    link = hf.HistoryLink.new(str(Path(said).with_name("writer.sock")), os.urandom(32), ctx)
+    counters = ctx.Array("q", hf._COUNTERS, lock=False)
+    args = ({"uri": uri}, link, child, counters, hf._Launch("a-new-writer", doubt))
+    process = ctx.Process(target=hf.writer_main, args=args)
+process.start()
+child.close()
+Path(said + ".part").write_text(str(process.pid))
+os.replace(said + ".part", said)
+process.join()
+"""
+
+
+def _gone(pid: int) -> bool:
+    """Whether process `pid` has ended (a zombie its new parent has not reaped yet counts as ended)."""
+    import psutil
+
+    try:
+        return psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return True
+
+
+@pytest.mark.parametrize("kind", ["check", "writer"])
+def test_a_history_process_stuck_reading_the_table_ends_when_the_agent_is_killed(
+    tmp_path: Path, kind: str
+) -> None:
+    """The check of a commit in doubt and a writer checking one at its start, stuck on a store that never
+    answers, ran on for as long as the read hung when their agent was killed (SIGKILL: the OOM killer, a
+    `kill -9`): orphaned, no one was left to stop them. They now watch the agent's end of their control pipe
+    and end when it closes (nothing read yet: no row is lost), and the table is as it was."""
+    uri = tmp_path / "history"
+    stuck, before = _table_with_a_stuck_read(uri)
+    said = tmp_path / "pid"
+    parent = subprocess.Popen(
+        [sys.executable, "-c", _PARENT_OF_A_STUCK_READ, str(uri), kind, str(said)], start_new_session=True
+    )
+    child = 0
+    try:
+        wait_for(said.exists, 60, f"the {kind} process started")
+        child = int(said.read_text())
+        wait_for(lambda: _opening_a_fifo(child), 60, f"the {kind} stuck reading the table")
+        parent.kill()
+        parent.wait(10.0)
+        wait_for(lambda: _gone(child), 15, f"the {kind} ended with its agent")
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+        if child and not _gone(child):
+            os.kill(child, signal.SIGKILL)
+        parent.wait(10.0)
+    stuck.unlink()
+    assert {p.name: p.read_bytes() for p in (uri / TELEMETRY_TABLE / "_delta_log").iterdir()} == before
+
+
 def _opening_a_fifo(pid: int) -> bool:
     """Whether a thread of process `pid` waits in the kernel to open a FIFO (for a writer to open it too)."""
     for task in Path(f"/proc/{pid}/task").iterdir():

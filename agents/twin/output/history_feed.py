@@ -89,10 +89,12 @@ MAX_RESTART_PAUSE_S = 60.0
 # started for it (`check_main`): it has what is left of the stop's timeout, and at least this long (a spawned
 # Python, deltalake and one read of the table's log took 0.4-0.5 s on a local disk).
 CHECK_MIN_S = 10.0
-# A check told to stop (SIGTERM: an operator's kill, or a stop that reaches a check its agent no longer waits
-# for, the agent having been killed) answers within this long or ends without answering. It only reads the
-# table, so ending it leaves the table as it was; its rows count as not checked. A check stuck on a store that
-# never answers otherwise held on for object_store's timeouts and retries, or for ever on a hung file system.
+# A check told to stop (SIGTERM: an operator's kill, or systemd's stop of the unit, which reaches every
+# process of it) answers within this long or ends without answering; so does a writer in the same check at its
+# start (it holds no row yet). It only reads the table, so ending it leaves the table as it was; its rows
+# count as not checked. A check stuck on a store that never answers otherwise held on for object_store's
+# timeouts and retries, or for ever on a hung file system. An agent that was killed ends both at once: they
+# watch its end of their control pipe (`_ask_table`).
 CHECK_TERM_GRACE_S = 2.0
 # The writer process runs this much nicer than the mirrors (os.nice; its threads, deltalake's included, and
 # its maintenance process inherit it). Its commits are bursts of Parquet encoding every commit_every_s; at the
@@ -560,9 +562,12 @@ def writer_main(
     `launch.in_doubt`. `settings["writer_nice"]`, if given, is how much nicer than the agent it runs
     (WRITER_NICE by default)."""
     # The agent stops it in order (the feeds first, then a _Stop), so a Ctrl-C or systemd's SIGTERM to the
-    # process group must not cut its last commit short.
+    # process group must not cut its last commit short. But for its check of a commit in doubt, first: it
+    # holds no row yet, and a check stuck on its store ends on SIGTERM (`_ask_table`), from now on.
+    in_doubt = launch.in_doubt if launch is not None else None
+    terminated = threading.Event()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN if in_doubt is None else _setting(terminated))
     if launch is not None and launch.log is not None:
         setup, level = launch.log
         setup(level)
@@ -580,7 +585,12 @@ def writer_main(
     except ValueError as exc:  # HistoryError: a setting
         control.send(_Failed(f"[history]: {exc}", setting=True))
         return
-    landed = _landed(writer, launch.in_doubt if launch else None)
+    landed = None
+    if in_doubt is not None:
+        answer = _ask_table(control, lambda: _landed(writer, in_doubt), terminated, what="history writer")
+        if answer is None:
+            os._exit(1)  # it holds no row yet; its reader may be stuck in native code for good
+        landed = answer[0]
     writer.start()
     try:
         with contextlib.suppress(FileNotFoundError):
@@ -613,44 +623,110 @@ def check_main(
 ) -> None:
     """The agent's check of a commit in doubt at its stop, in a process of its own (the agent's does not load
     deltalake): sends `_landed`'s answer for `in_doubt` (None: the table could not be read). On SIGTERM it
-    ends within CHECK_TERM_GRACE_S, answered or not."""
-    # A Ctrl-C to the process group must not cut it short (the agent kills it at its timeout). SIGTERM ends it
-    # after a grace: the read runs on a thread of its own so that the handler runs even while the read is
-    # stuck in deltalake's native code (Python runs handlers on the main thread only, between bytecodes).
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    woken = threading.Event()
+    ends within CHECK_TERM_GRACE_S, answered or not; when the agent is gone (killed), at once."""
+    # A Ctrl-C to the process group must not cut it short (the agent kills it at its timeout).
     terminated = threading.Event()
-
-    def on_term(*_: object) -> None:
-        terminated.set()
-        woken.set()
-
-    signal.signal(signal.SIGTERM, on_term)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _setting(terminated))
     if log_setup is not None:
         setup, level = log_setup
         setup(level)
-    answer: list[bool | None] = []
-
-    def read() -> None:
-        try:
-            answer.append(_checked(settings, in_doubt))
-        finally:
-            woken.set()
-
-    reader = threading.Thread(target=read, name="history-check-read", daemon=True)
-    reader.start()
-    woken.wait()
-    if terminated.is_set():
-        reader.join(CHECK_TERM_GRACE_S)
-    if not answer:
-        log.error(
-            "history: the check of the last writer's last commit was stopped (SIGTERM) before the table "
-            "answered; the table is as it was, and its rows count as not checked"
-        )
-        # The reader may be stuck in native code for good: nothing of this process's exit may wait for it.
-        os._exit(1)
+    answer = _ask_table(control, lambda: _checked(settings, in_doubt), terminated, what="check")
+    if answer is None:
+        os._exit(1)  # the reader may be stuck in native code for good: nothing of the exit may wait for it
     with contextlib.suppress(OSError, ValueError):
         control.send(answer[0])
+
+
+def _setting(event: threading.Event) -> Callable[[int, Any], None]:
+    """A signal handler that sets `event` (SIGTERM's, for `_ask_table`)."""
+
+    def handler(*_: object) -> None:
+        event.set()
+
+    return handler
+
+
+def _ask_table(
+    control: Connection, read: Callable[[], bool | None], terminated: threading.Event, *, what: str
+) -> tuple[bool | None] | None:
+    """`read()`'s answer (whether a commit in doubt landed), read on a thread of its own while this, the
+    main thread, watches `terminated` (set by SIGTERM's handler, `_setting`) and the agent's end of `control`;
+    None when the process is to end without an answer: a SIGTERM came and the read did not answer within
+    CHECK_TERM_GRACE_S, or the agent hung up (killed: no one is left to answer, and no pipe or socket of a
+    dead agent ever says more). The read only reads the table, so ending it leaves the table as it was.
+    Python runs signal handlers on the main thread only, between bytecodes: with the read on a thread of its
+    own, one stuck in deltalake's native code (a store that never answers) no longer holds them. SIGTERM is
+    ignored from the return on."""
+    wake, woken = os.pipe()
+    os.set_blocking(woken, False)
+    answer: list[bool | None] = []
+    done = threading.Event()
+
+    def run() -> None:
+        try:
+            answer.append(read())
+        finally:
+            done.set()  # before the wake-up: the main thread that reads that byte finds it set
+            with contextlib.suppress(OSError):
+                os.write(woken, b"r")
+
+    # The wakeup fd: whichever thread the kernel gives the signal to, the main thread's wait returns.
+    previous = signal.set_wakeup_fd(woken, warn_on_full_buffer=False)
+    reader = threading.Thread(target=run, name="history-check-read", daemon=True)
+    reader.start()
+    try:
+        gone = _wait_answer(done, control, wake, terminated)
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        signal.set_wakeup_fd(previous)
+        os.close(wake)
+        os.close(woken)
+    if answer:
+        return (answer[0],)
+    log.error(
+        "history: the %s's read of whether the last writer's last commit landed was stopped (%s) before the "
+        "table answered; the table is as it was, and its rows count as not checked",
+        what,
+        "the agent is gone" if gone else "SIGTERM" if terminated.is_set() else "it failed",
+    )
+    return None
+
+
+def _wait_answer(done: threading.Event, control: Connection, wake: int, terminated: threading.Event) -> bool:
+    """Until the read is `done`, CHECK_TERM_GRACE_S after a SIGTERM, or the agent hangs up `control`: True
+    for the last. (The agent sends nothing while a process reads: a writer's start holds its lock, a check
+    has no request; so a message there is left for later, and only the hang-up counts.)"""
+    watched: list[Any] = [wake, control]
+    deadline: float | None = None
+    while not done.is_set():
+        if terminated.is_set() and deadline is None:
+            deadline = time.monotonic() + CHECK_TERM_GRACE_S
+        timeout = None if deadline is None else deadline - time.monotonic()
+        if timeout is not None and timeout <= 0:
+            break
+        ready = wait(watched, timeout)
+        if wake in ready:
+            os.read(wake, 512)
+        if control in ready:
+            if _hung_up(control):
+                return True
+            watched.remove(control)
+    return False
+
+
+def _hung_up(conn: Connection) -> bool:
+    """Whether the other end of `conn`, found readable, has closed (EOF), peeked so that a message waiting
+    stays for its reader. False when that cannot be told (no socket; the agent's pipes are socket pairs)."""
+    try:
+        with socket.fromfd(conn.fileno(), socket.AF_UNIX, socket.SOCK_STREAM) as peer:
+            return peer.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+    except BlockingIOError:
+        return False  # a message, not EOF
+    except ConnectionResetError:
+        return True
+    except OSError:
+        return False
 
 
 def _checked(settings: dict[str, Any], in_doubt: _InDoubt) -> bool | None:
