@@ -319,6 +319,112 @@ def test_a_checkpoint_without_the_flapping_episodes_still_loads_and_restores() -
     assert [e.message for e in found] == ["arm-001 is ONLINE (restored)"]
 
 
+def _status_of(mirror: Mirror, device: str) -> list[tuple[str, str, str, str]]:
+    found = mirror.events(EventQuery(device=device, kinds=frozenset({EventKind.STATUS.value})))
+    return [(e.level, e.data["status"], e.data["previous"], e.data.get("flapping", "")) for e in found]
+
+
+def test_an_arm_quieter_than_offline_after_s_is_told_as_flapping_and_its_outage_still_told() -> None:
+    """An edge sending every 12 s against offline_after_s = 10 went STALE, OFFLINE and back ONLINE with each
+    message, three events an operator sees every 12 s and no flapping warning: its round trips went through
+    OFFLINE, which the rule did not count. They count: one warning naming the fix, its changes held, a
+    restarted worker holds them too; an arm that then stops is told OFFLINE once it has been silent past the
+    hold, and its next OFFLINE, once heard again, at once."""
+    clock, rng = Clock(), random.Random(21)
+    mirror = _mirror(clock)
+    arms = {"arm-001": 1 / 12, "arm-002": 10.0}
+    _run(mirror, clock, 180.0, arms, rng)
+    got = _status_of(mirror, "arm-001")
+    cycle = [("warning", "STALE", "ONLINE", ""), ("warning", "OFFLINE", "STALE", "")]
+    told = events.FLAP_ROUND_TRIPS - 1  # the round trips told as such before the rule
+    returned = [*cycle, ("info", "ONLINE", "OFFLINE", "")]
+    assert got == [
+        ("info", "ONLINE", "", ""),
+        *returned * told,
+        *cycle,
+        ("warning", "ONLINE", "OFFLINE", "started"),
+    ]
+    (started,) = [e for e in mirror.events(EventQuery(device="arm-001")) if e.data.get("flapping")]
+    assert started.message.startswith("arm-001 is flapping between ONLINE and OFFLINE: back ONLINE 3 times")
+    assert "less often than [health] offline_after_s (10 s)" in started.message
+    assert "publish more often, or set offline_after_s above its period" in started.message
+    assert _status_of(mirror, "arm-002") == [("info", "ONLINE", "", "")]
+    # A worker started again carries the episode: no event of the arm's own, nor a second warning.
+    again = _mirror(clock)
+    again.restore(pickle.loads(pickle.dumps(mirror.checkpoint(), protocol=pickle.HIGHEST_PROTOCOL)))
+    _run(again, clock, 120.0, arms, rng)
+    assert _status_of(again, "arm-001") == []
+    # It stops (after a last burst, held too): STALE and OFFLINE held, then told once it has been OFFLINE for
+    # FLAP_OFFLINE_HOLD_S, offline_after_s + the hold after its last message; the episode ends.
+    _run(again, clock, 1.0, arms | {"arm-001": 10.0}, rng)
+    silent = arms | {"arm-001": 0.0}
+    _run(again, clock, 10.0 + events.FLAP_OFFLINE_HOLD_S - 2.0, silent, rng)
+    assert _status_of(again, "arm-001") == []
+    _run(again, clock, 4.0, silent, rng)
+    assert _status_of(again, "arm-001") == [("warning", "OFFLINE", "", "settled")]
+    assert again.events(EventQuery(device="arm-001"))[-1].message.startswith(
+        "arm-001 no longer flaps: OFFLINE for"
+    )
+    # Heard again, then silent: each change told as itself, the OFFLINE at once.
+    _run(again, clock, 5.0, arms | {"arm-001": 10.0}, rng)
+    _run(again, clock, 10.0 + 1.0, silent, rng)
+    assert _status_of(again, "arm-001")[1:] == [
+        ("info", "ONLINE", "OFFLINE", ""),
+        ("warning", "STALE", "ONLINE", ""),
+        ("warning", "OFFLINE", "STALE", ""),
+    ]
+
+
+def test_an_arm_that_goes_offline_and_stays_so_is_told_at_once_every_time() -> None:
+    """OFFLINE round trips count as returns for the flapping rule, but the rule begins at a return: an arm
+    that goes OFFLINE and stays so is told at once however often it came back before, an arm flapping
+    between ONLINE and STALE is told OFFLINE at once, and so is one that settled after flapping through
+    OFFLINE."""
+    s = EventStore(1000)
+    watch = StatusWatch(s)
+    for device in ("arm-001", "arm-002", "arm-003"):
+        watch.arrived(device)
+    # arm-001 back from OFFLINE twice within the window, then OFFLINE for good: each OFFLINE told at once.
+    for k in range(events.FLAP_ROUND_TRIPS - 1):
+        watch.sweep({"arm-001": "OFFLINE"}, 10.0 * k)
+        assert _status_events(s)[-1] == ("arm-001", "warning", "OFFLINE", "")
+        watch.sweep({"arm-001": "ONLINE"}, 10.0 * k + 1.0)
+    watch.sweep({"arm-001": "OFFLINE"}, 30.0)
+    assert _status_events(s)[-1] == ("arm-001", "warning", "OFFLINE", "") and watch.flapping == ()
+    # arm-002 flaps between ONLINE and STALE, then goes OFFLINE: told at once, the episode over.
+    for k in range(2 * events.FLAP_ROUND_TRIPS + 1):
+        watch.sweep({"arm-002": "ONLINE" if k % 2 else "STALE"}, 100.0 + k)
+    assert watch.flapping == ("arm-002",)
+    watch.sweep({"arm-002": "OFFLINE"}, 120.0)
+    assert watch.flapping == () and _status_events(s)[-1] == ("arm-002", "warning", "OFFLINE", "")
+    # arm-003 flaps through OFFLINE, held, settles ONLINE; its first OFFLINE after that is told at once.
+    for k in range(3 * events.FLAP_ROUND_TRIPS):
+        watch.sweep({"arm-003": ("STALE", "OFFLINE", "ONLINE")[k % 3]}, 200.0 + k)
+    assert watch.flapping == ("arm-003",) and _status_events(s)[-1][3] == "started"
+    for k in range(6):
+        watch.sweep({"arm-003": ("STALE", "OFFLINE", "ONLINE")[k % 3]}, 210.0 + k)
+    assert _status_events(s)[-1][3] == "started"
+    watch.sweep({"arm-003": "ONLINE"}, 215.0 + events.FLAP_SETTLE_S)
+    watch.sweep({"arm-003": "OFFLINE"}, 216.0 + events.FLAP_SETTLE_S)
+    assert _status_events(s)[-2:] == [
+        ("arm-003", "info", "ONLINE", "settled"),
+        ("arm-003", "warning", "OFFLINE", ""),
+    ]
+
+
+def test_a_checkpoint_row_without_the_offline_field_restores_an_episode_between_online_and_stale() -> None:
+    """Rows pickled before the field: six values, an episode between ONLINE and STALE (all were then)."""
+    s = EventStore(100)
+    watch = StatusWatch(s)
+    watch.restored("arm-001")
+    watch.restore_flapping([("arm-001", 0.0, 5.0, 7, 1, 300.0)])
+    watch.sweep({"arm-001": "STALE"}, 6.0)
+    watch.sweep({"arm-001": "ONLINE"}, 7.0)
+    assert _status_events(s) == [] and watch.flapping_rows() == (("arm-001", 0.0, 7.0, 8, 2, 300.0, False),)
+    watch.sweep({"arm-001": "OFFLINE"}, 20.0)
+    assert _status_events(s) == [("arm-001", "warning", "OFFLINE", "")] and watch.flapping == ()
+
+
 def test_an_arm_sending_less_than_once_a_rate_window_is_reported_slow_through_the_mirror() -> None:
     """An edge sending one message every 8 s against 10 Hz: its 5 s rate windows read 0.2 or 0, and every 0
     ended its time under the slow line, so it was never held there and never reported. Not OFFLINE, it has

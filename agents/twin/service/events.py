@@ -22,7 +22,7 @@ must only hand it on).
 
 The emitters that need memory live here too, so the runtime calls each with one line: `StatusWatch` turns the
 fleet's statuses (which change by the passing of time, not by a message) into transitions (an arm that
-flaps between ONLINE and STALE into one warning and a summary an interval), `BrokerWatch` the
+flaps between ONLINE and STALE, or OFFLINE, into one warning and a summary an interval), `BrokerWatch` the
 connection pool's counters into disconnects and reconnects, `RejectionThrottle` a flood of rejected messages
 into at most one event per device and reason per interval, with the count it stands for.
 """
@@ -424,47 +424,65 @@ _STATUS_LEVEL = {"ONLINE": EventLevel.INFO, "STALE": EventLevel.WARNING, "OFFLIN
 # What StatusWatch holds for a device taken back from a checkpoint until a sweep reads its status.
 _RESTORED = "restored"
 
-# An arm back ONLINE from STALE for the FLAP_ROUND_TRIPS-th time within FLAP_WINDOW_S is flapping: one warning
-# says so (with the count), and its ONLINE/STALE changes make no event of their own after it, only a summary
-# at most every FLAP_SUMMARY_S (the round trips since the last one, and where it stands), until it has kept
-# one status for FLAP_SETTLE_S (one info event) or goes OFFLINE (told as always). An edge publishing slower
-# than the stale line (stale_periods / expected_rate_hz) crosses it at nearly every sweep: 300 such arms made
-# two events each a second, and pushed everything else out of the store in minutes. Three round trips a
-# minute is not what an arm that pauses now and then does: a pause is one STALE and one ONLINE, as before.
+# An arm back ONLINE (from STALE or OFFLINE) for the FLAP_ROUND_TRIPS-th time within FLAP_WINDOW_S is
+# flapping: one warning says so (with the count), and its status changes make no event of their own
+# after it, only a summary at most every FLAP_SUMMARY_S (the round trips since the last one, and where it
+# stands), until it has kept one status for FLAP_SETTLE_S (one info event). An edge publishing slower than
+# the stale line (stale_periods / expected_rate_hz) crosses it at nearly every sweep: 300 such arms made two
+# events each a second, and pushed everything else out of the store in minutes. Three round trips a minute is
+# not what an arm that pauses now and then does: a pause is one STALE and one ONLINE, as before.
+# OFFLINE is told as always, and ends the episode, unless the arm's round trips went through OFFLINE (an edge
+# publishing less often than offline_after_s: OFFLINE, then ONLINE with each message, three events a cycle):
+# then its OFFLINE changes are held as well, and one that lasts FLAP_OFFLINE_HOLD_S is told (a warning) and
+# ends the episode. That hold is the longest a round trip can take at the rule's pace, so an arm that stops
+# is told OFFLINE that much later than one that was not flapping; the first OFFLINE after an episode ended
+# is told at once.
 FLAP_ROUND_TRIPS = 3
 FLAP_WINDOW_S = 60.0
 FLAP_SUMMARY_S = 300.0
 FLAP_SETTLE_S = 60.0
+FLAP_OFFLINE_HOLD_S = FLAP_WINDOW_S / FLAP_ROUND_TRIPS
 
 
 # A flapping episode as a worker's checkpoint carries it (service.shards, MirrorCheckpoint.flapping): the
 # device, then `_Flapping`'s fields in order. Its times are the host's monotonic clock, which a worker
-# started again on the same host shares.
-FlapRow = tuple[str, float, float, int, int, float]
+# started again on the same host shares. A row without the last field (`offline`, added later) reads False:
+# the episodes before it were all between ONLINE and STALE.
+FlapRow = tuple[str, float, float, int, int, float, bool]
+_FlapRowBefore = tuple[str, float, float, int, int, float]
 
 
 @dataclass(slots=True)
 class _Flapping:
-    """A device reported flapping: when it began and its last ONLINE/STALE change (monotonic), the round
-    trips in all and since the last summary, and when the next summary may come."""
+    """A device reported flapping: when it began and its last status change (monotonic), the round trips in
+    all and since the last summary, when the next summary may come, and whether its round trips went
+    through OFFLINE (then its OFFLINE changes are held too)."""
 
     since: float
     changed: float
     trips: int
     pending: int
     next_summary: float
+    offline: bool = False
+
+    @property
+    def between(self) -> str:
+        return "ONLINE and OFFLINE" if self.offline else "ONLINE and STALE"
 
 
 class StatusWatch:
     """Device status transitions from successive readings of the fleet's statuses, and each device's arrival.
     The arrival is told by the device's first valid message (`arrived`), not read by a later sweep: a sweep
     that comes over the STALE time after that message (a busy host) would say the arm arrived STALE. A device
-    going STALE and back over and over is told as flapping instead (FLAP_ROUND_TRIPS)."""
+    going STALE or OFFLINE and back over and over is told as flapping instead (FLAP_ROUND_TRIPS).
+    `offline_after_s` (the health setting) is only named in the warning of an arm flapping through OFFLINE."""
 
-    def __init__(self, store: EventStore) -> None:
+    def __init__(self, store: EventStore, offline_after_s: float = 10.0) -> None:
         self._store = store
+        self._offline_after_s = offline_after_s
         self._last: dict[str, str] = {}
-        self._returns: dict[str, deque[float]] = {}  # the times of each device's recent returns to ONLINE
+        # Each device's recent returns to ONLINE: when, and whether from OFFLINE.
+        self._returns: dict[str, deque[tuple[float, bool]]] = {}
         self._flapping: dict[str, _Flapping] = {}
 
     @property
@@ -474,14 +492,18 @@ class StatusWatch:
     def flapping_rows(self) -> tuple[FlapRow, ...]:
         """The episodes as plain values, for a worker's checkpoint (`restore_flapping` takes them back)."""
         episodes = sorted(self._flapping.items())
-        return tuple((d, f.since, f.changed, f.trips, f.pending, f.next_summary) for d, f in episodes)
+        return tuple(
+            (d, f.since, f.changed, f.trips, f.pending, f.next_summary, f.offline) for d, f in episodes
+        )
 
-    def restore_flapping(self, rows: Iterable[FlapRow]) -> None:
+    def restore_flapping(self, rows: Iterable[FlapRow | _FlapRowBefore]) -> None:
         """Episodes a checkpoint carried (the devices `restored` too): a worker started again neither warns
         of them a second time nor loses when they began, their round trips and their settle and summary
-        times. The device's first reading after it, ONLINE or STALE, is held in the episode."""
-        for device, since, changed, trips, pending, next_summary in rows:
-            self._flapping[device] = _Flapping(since, changed, trips, pending, next_summary)
+        times. The device's first reading after it, one of the statuses it flaps between, is held in the
+        episode."""
+        for row in rows:
+            device, since, changed, trips, pending, next_summary = row[:6]
+            self._flapping[device] = _Flapping(since, changed, trips, pending, next_summary, any(row[6:]))
 
     def arrived(self, device: str) -> None:
         """`device` sent its first valid message since this watch began: it is ONLINE now. Nothing for a
@@ -536,39 +558,59 @@ class StatusWatch:
     def _flapped(self, device: str, before: str, now: str, at: float) -> bool:
         """Whether the change of `device` from `before` to `now` is told as flapping (or held in it)."""
         flap = self._flapping.get(device)
-        between = {before, now} == {"ONLINE", "STALE"}
         if flap is not None:
-            if before == _RESTORED and now in ("ONLINE", "STALE"):
-                return True  # its worker was started again: no change of its own, nor a round trip
-            if not between:
-                del self._flapping[device]  # OFFLINE (or restored): told as itself, and the episode ends
-                return False
-            flap.changed = at
-            if now == "ONLINE":
-                flap.trips += 1
-                flap.pending += 1
-            return True
-        if not between or now != "ONLINE":
+            return self._held(flap, device, before, now, at)
+        if now != "ONLINE" or before not in ("STALE", "OFFLINE"):
             return False
         returns = self._returns.setdefault(device, deque(maxlen=FLAP_ROUND_TRIPS))
-        returns.append(at)
-        if len(returns) < FLAP_ROUND_TRIPS or at - returns[0] > FLAP_WINDOW_S:
+        returns.append((at, before == "OFFLINE"))
+        first = returns[0][0]
+        if len(returns) < FLAP_ROUND_TRIPS or at - first > FLAP_WINDOW_S:
             return False
         del self._returns[device]
-        self._flapping[device] = _Flapping(at, at, FLAP_ROUND_TRIPS, 0, at + FLAP_SUMMARY_S)
+        flap = _Flapping(at, at, FLAP_ROUND_TRIPS, 0, at + FLAP_SUMMARY_S, any(o for _, o in returns))
+        self._flapping[device] = flap
+        hold = f" (OFFLINE: {FLAP_OFFLINE_HOLD_S:.0f} s, then told)" if flap.offline else ""
+        if flap.offline:
+            cause = (
+                f"An edge publishing less often than [health] offline_after_s ({self._offline_after_s:g} s) "
+                "goes OFFLINE between its messages: make it publish more often, or set offline_after_s "
+                "above its period"
+            )
+        else:
+            cause = (
+                "An edge publishing slower than [health] expected_rate_hz (its gaps pass the stale line, "
+                "stale_periods / expected_rate_hz) does this, and so does a link that delivers in bursts"
+            )
         self._emit(
             device,
             now,
             before,
-            f"{device} is flapping between ONLINE and STALE: back ONLINE {FLAP_ROUND_TRIPS} times within "
-            f"{at - returns[0]:.0f} s. Its changes are summarised every {FLAP_SUMMARY_S / 60:.0f} min until "
-            f"it keeps one status for {FLAP_SETTLE_S:.0f} s; the Fleet page shows its status as it is. An "
-            "edge publishing slower than [health] expected_rate_hz (its gaps pass the stale line, "
-            "stale_periods / expected_rate_hz) does this, and so does a link that delivers in bursts",
+            f"{device} is flapping between {flap.between}: back ONLINE {FLAP_ROUND_TRIPS} times within "
+            f"{at - first:.0f} s. Its changes are summarised every {FLAP_SUMMARY_S / 60:.0f} min until "
+            f"it keeps one status for {FLAP_SETTLE_S:.0f} s{hold}; the Fleet page shows its status as it is. "
+            + cause,
             EventLevel.WARNING,
             flapping="started",
             trips=FLAP_ROUND_TRIPS,
         )
+        return True
+
+    def _held(self, flap: _Flapping, device: str, before: str, now: str, at: float) -> bool:
+        """Whether a flapping device's change is held in its episode: one between the statuses it flaps
+        between is; any other (OFFLINE for one that flapped through STALE only) is told, and ends it."""
+        held = ("ONLINE", "STALE", "OFFLINE") if flap.offline else ("ONLINE", "STALE")
+        if now not in held:
+            del self._flapping[device]
+            return False
+        if before == _RESTORED:  # its worker was started again: no change of its own, nor a round trip
+            if now == "OFFLINE":
+                flap.changed = at  # its hold runs from here: the restart's gap is no time seen OFFLINE
+            return True
+        flap.changed = at
+        if now == "ONLINE":
+            flap.trips += 1
+            flap.pending += 1
         return True
 
     def _sweep_flapping(self, statuses: Mapping[str, object], at: float) -> None:
@@ -579,17 +621,18 @@ class StatusWatch:
                 del self._flapping[device]
                 continue
             status = str(statuses[device])
-            if at - flap.changed >= FLAP_SETTLE_S:
+            kept = at - flap.changed
+            if kept >= FLAP_SETTLE_S or (status == "OFFLINE" and kept >= FLAP_OFFLINE_HOLD_S):
                 del self._flapping[device]
                 message = (
-                    f"{device} no longer flaps: {status} for {at - flap.changed:.0f} s, after {flap.trips} "
-                    f"round trips to STALE over {(flap.changed - flap.since) / 60:.0f} min"
+                    f"{device} no longer flaps: {status} for {kept:.0f} s, after {flap.trips} round trips "
+                    f"between {flap.between} over {(flap.changed - flap.since) / 60:.0f} min"
                 )
                 level = _STATUS_LEVEL.get(status, EventLevel.INFO)
                 self._emit(device, status, "", message, level, flapping="settled", trips=flap.trips)
             elif at >= flap.next_summary and flap.pending:
                 message = (
-                    f"{device} still flaps between ONLINE and STALE: {flap.pending} round trips in the last "
+                    f"{device} still flaps between {flap.between}: {flap.pending} round trips in the last "
                     f"{(at - flap.next_summary + FLAP_SUMMARY_S) / 60:.0f} min ({flap.trips} in all); "
                     f"{status} now"
                 )
@@ -1082,10 +1125,15 @@ class FleetWatch:
     interval_s = WATCH_INTERVAL_S
 
     def __init__(
-        self, store: EventStore, *, expected_rate_hz: float = 10.0, stale_after_s: float | None = None
+        self,
+        store: EventStore,
+        *,
+        expected_rate_hz: float = 10.0,
+        stale_after_s: float | None = None,
+        offline_after_s: float = 10.0,
     ) -> None:
         self.store = store
-        self._statuses = StatusWatch(store)
+        self._statuses = StatusWatch(store, offline_after_s)
         self._broker = BrokerWatch(store)
         self._rates = RateWatch(store, expected_rate_hz, stale_after_s=stale_after_s)
         self._losses = LossWatch(store)

@@ -531,6 +531,7 @@ class Mirror:
             self._events,
             expected_rate_hz=config.health.expected_rate_hz,
             stale_after_s=config.health.stale_after_s,
+            offline_after_s=config.health.offline_after_s,
         )
         self._rejections = RejectionThrottle(self._events, clock=clock)
         self.batches = 0
