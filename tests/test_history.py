@@ -1310,11 +1310,8 @@ def test_a_check_of_a_commit_in_doubt_stuck_on_its_store_ends_on_sigterm_and_lea
 
     uri = tmp_path / "history"
     table = uri / TELEMETRY_TABLE
-    pl.DataFrame({"a": [1, 2, 3]}).write_delta(str(table))
-    log_dir = table / "_delta_log"
-    before = {p.name: p.read_bytes() for p in log_dir.iterdir()}
-    stuck = log_dir / "_last_checkpoint"
-    os.mkfifo(stuck)  # opening it to read blocks until something opens it to write: nothing will
+    stuck, before = _table_with_a_stuck_read(uri)
+    log_dir = stuck.parent
     ctx = multiprocessing.get_context("spawn")
     answers, child = ctx.Pipe()
     doubt = history_feed._InDoubt("a-dead-writer", TELEMETRY_TABLE, 1, 5)
