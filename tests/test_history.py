@@ -1394,6 +1394,114 @@ def test_a_writer_stuck_checking_a_commit_in_doubt_at_its_start_ends_on_sigterm_
     assert {p.name: p.read_bytes() for p in (uri / TELEMETRY_TABLE / "_delta_log").iterdir()} == before
 
 
+def test_a_stop_during_a_restart_abandons_the_start_and_keeps_its_budget(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A writer killed in a commit that landed, and the one started again stuck checking it (a store that
+    never answers). The supervisor held the writer's lock through that start, which may wait START_TIMEOUT_S,
+    and the agent's stop needs the lock to send its _Stop: the stop waited for the start on top of its
+    budget, past the unit's stop timeout. The stop now abandons the start (the writer holds no row yet: it is
+    killed), the feeds give up at once, the stop asks the table itself, and every row handed is counted once:
+    written, or not written."""
+    from twin.output import history_feed
+
+    monkeypatch.setattr(history_feed, "QUICK_DEATH_S", 0.0)  # started again at the next supervise
+    monkeypatch.setattr(history_feed, "START_TIMEOUT_S", 600.0)  # the start would outlast any budget
+    uri = str(tmp_path / "history")
+    caplog.set_level(logging.INFO, logger="twin.output.history_feed")
+    history, feed, send = _writer_to_kill_in_a_commit(uri, tmp_path, monkeypatch, "after")
+    first = history._process
+    assert history.figures().stats is not None  # its answer (nothing written yet) is the last one known
+    supervisor = threading.Thread(target=history.supervise, name="test-supervisor", daemon=True)
+    stopper = threading.Thread(target=history.stop, args=(2.0,), name="test-stop", daemon=True)
+    try:
+        send(7)  # its first commit: it lands, and the writer is killed before counting it
+        wait_for(lambda: not history.alive, 60, "the writer killed in its first commit")
+        stuck = Path(uri) / TELEMETRY_TABLE / "_delta_log" / "_last_checkpoint"
+        os.mkfifo(stuck)  # the next writer's check of that commit opens it and blocks: a store that hangs
+        send(5)  # they wait in the feed while no writer runs
+        supervisor.start()
+        wait_for(lambda: history._process is not first, 30, "a writer started again")
+        second = history._process
+        assert second is not None and second.pid is not None
+        wait_for(lambda: _opening_a_fifo(second.pid), 60, "the writer started again stuck in its check")
+        # Meanwhile /state answers at once, from the last writer's counts (the supervisor held the lock the
+        # figures are asked under for the whole start).
+        answers: list[Any] = []
+        asker = threading.Thread(target=lambda: answers.append(history.figures()), daemon=True)
+        asker.start()
+        asker.join(history_feed.ASK_TIMEOUT_S)
+        during = list(answers)  # (one that waited for the start answers once the writer is killed, below)
+        stuck.unlink()  # it stays stuck in its open; the stop's own check can read the table
+        history.stopping()
+        feed.close(timeout=20.0)
+        gave_up = not feed._thread.is_alive()  # it did not wait its whole budget for that writer
+        stopper.start()
+        # Its budget: 2 s, a second for the writer to exit, and the check (at least CHECK_MIN_S).
+        stopper.join(2.0 + 1.0 + history_feed.CHECK_MIN_S + 15.0)
+        within = not stopper.is_alive()
+    finally:
+        feed.close(timeout=1.0)
+        for process in (history._process, first):
+            if process is not None and process.is_alive():
+                process.kill()
+        if supervisor.is_alive():
+            supervisor.join(30.0)
+        if stopper.ident is None:
+            history.stop(timeout=1.0)
+        else:
+            stopper.join(60.0)  # one that waited for the start goes on once the writer is killed
+    assert during and (during[0].rows_received, during[0].rows_lost) == (7, 0), "/state waited for the start"
+    assert within, "the stop waited for the writer's start"
+    assert gave_up and feed.stats().pending == 5, "the feed waited for a writer being started at the stop"
+    assert not supervisor.is_alive()
+    assert second.exitcode == -signal.SIGKILL
+    # 7 written (the commit in doubt, checked by the stop), 5 not delivered (the feed's pending): 12 handed.
+    after = history.figures()
+    assert after.stats is not None
+    assert (after.stats.rows_committed, after.rows_lost) == (7, 0)
+    assert (history.unwritten_rows(), history.count_unread()) == (0, 0)
+    assert _table_rows(uri) == 7
+    said = [r.getMessage() for r in caplog.records]
+    assert any("start abandoned: the agent is stopping" in m for m in said), said
+    assert any("had committed its last 7 rows to telemetry: written, not lost" in m for m in said), said
+
+
+def test_a_start_that_times_out_kills_the_writer_it_started_and_the_next_is_started_again(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A writer that did not say it was ready within START_TIMEOUT_S (stuck checking a commit in doubt on a
+    store that never answers) was left running: the supervisor saw it alive and never started another, and
+    only the agent's stop killed it. It is now killed at the timeout, and the next supervise starts a writer
+    again, which checks the commit: it did not land, its 5 rows count as lost."""
+    from twin.output import history_feed
+
+    monkeypatch.setattr(history_feed, "START_TIMEOUT_S", 3.0)
+    monkeypatch.setattr(history_feed, "QUICK_DEATH_S", 0.0)
+    uri = tmp_path / "history"
+    stuck, _ = _table_with_a_stuck_read(uri)
+    history = HistoryProcess({"uri": str(uri)}, multiprocessing.get_context("spawn"))
+    history._in_doubt = history_feed._InDoubt("a-dead-writer", TELEMETRY_TABLE, 1, 5)
+    try:
+        with pytest.raises(history_feed.HistoryStartError, match="did not start within 3 s"):
+            history.launch()
+        first = history._process
+        assert first is not None and not first.is_alive(), "the writer that did not start was left running"
+        stuck.unlink()
+
+        def running() -> bool:
+            history.supervise()
+            return history.alive
+
+        wait_for(running, 120, "a writer started again after the one that timed out")
+        assert history.restarts == 1 and history._process is not first
+        assert history.figures().rows_lost == 5  # the new writer asked the table: the commit did not land
+    finally:
+        if history._process is not None and history._process.is_alive() and history.restarts == 0:
+            history._process.kill()
+        history.stop(timeout=10.0)
+
+
 # A parent that starts a history process stuck reading the table (as the agent starts them: spawned, the
 # parent holding its end of the control pipe), says its pid in argv[3], and waits for it.
 _PARENT_OF_A_STUCK_READ = """

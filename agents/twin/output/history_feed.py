@@ -80,6 +80,8 @@ RECONNECT_S = 0.5
 NO_WRITER = "no-writer"
 # The writer process must be up within this (Python, pyarrow, deltalake; the table opened on first commit).
 START_TIMEOUT_S = 60.0
+# Why a start ends at the agent's stop (the stop kills a writer being started: HistoryProcess._abandon_start).
+ABANDONED = "start abandoned: the agent is stopping"
 # How long the writer may take to answer the agent's request for its figures.
 ASK_TIMEOUT_S = 10.0
 # A writer that dies within this long of starting is started again after a growing pause.
@@ -695,8 +697,9 @@ def _ask_table(
 
 def _wait_answer(done: threading.Event, control: Connection, wake: int, terminated: threading.Event) -> bool:
     """Until the read is `done`, CHECK_TERM_GRACE_S after a SIGTERM, or the agent hangs up `control`: True
-    for the last. (The agent sends nothing while a process reads: a writer's start holds its lock, a check
-    has no request; so a message there is left for later, and only the hang-up counts.)"""
+    for the last. (The agent sends nothing while a process reads: it asks a starting writer nothing
+    (`HistoryProcess._ask`), a check has no request; so a message there is left for later, and only the
+    hang-up counts.)"""
     watched: list[Any] = [wake, control]
     deadline: float | None = None
     while not done.is_set():
@@ -989,7 +992,14 @@ class HistoryProcess:
         self._counters: SynchronizedArray[int] = context.Array("q", _COUNTERS, lock=False)
         self._process: SpawnProcess | None = None
         self._control: Connection | None = None
+        # The control pipe's users, one at a time, and the start's state below. A launch holds it only to
+        # start the process and to take its answer, never while it waits for that (up to START_TIMEOUT_S):
+        # the agent's stop, which needs it, would have waited as long on top of its budget.
         self._lock = threading.Lock()
+        # A launch waits for the writer's first word (its control pipe is the launch's until then); and the
+        # stop killed that writer, abandoning its start (`_abandon_start`).
+        self._starting = False
+        self._abandoned = False
         self.pid: int | None = None
         self.started_at = 0.0
         self.restarts = 0
@@ -1010,45 +1020,75 @@ class HistoryProcess:
         self._watch: threading.Thread | None = None
         self._last: WriterFigures | None = None
         self._last_at = 0.0  # when _last was answered (time.monotonic)
+        self._last_own = False  # _last is the current writer's answer (not an earlier writer's)
         self._stop_answered = False
 
     def launch(self) -> None:
         """Start the writer process and wait until it listens; HistoryStartError when it cannot (`setting`:
-        because of a setting)."""
-        for i in range(_COUNTERS):
-            self._counters[i] = 0
-        self.writer_id = f"so101-twin-{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-        control, child = self._ctx.Pipe()
-        process = self._ctx.Process(
-            target=self.target,
-            args=(
-                self.settings,
-                self.link,
-                child,
-                self._counters,
-                _Launch(self.writer_id, self._in_doubt, self._log),
-            ),
-            name="twin-history-writer",
-        )
-        process.start()
-        child.close()
-        self._process, self._control = process, control
-        self.started_at = time.monotonic()
-        if not control.poll(START_TIMEOUT_S):
-            raise HistoryStartError(f"the history writer did not start within {START_TIMEOUT_S:.0f} s")
+        because of a setting), did not say so within START_TIMEOUT_S (it is killed), or the agent's stop
+        began (none is started, and one being started is killed: `_abandon_start`)."""
+        with self._lock:
+            if self._stopped:
+                raise HistoryStartError(ABANDONED)
+            if self._control is not None:
+                self._control.close()  # a dead writer's
+            for i in range(_COUNTERS):
+                self._counters[i] = 0
+            self.writer_id = f"so101-twin-{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+            control, child = self._ctx.Pipe()
+            process = self._ctx.Process(
+                target=self.target,
+                args=(
+                    self.settings,
+                    self.link,
+                    child,
+                    self._counters,
+                    _Launch(self.writer_id, self._in_doubt, self._log),
+                ),
+                name="twin-history-writer",
+            )
+            process.start()
+            child.close()
+            self._process, self._control = process, control
+            self.started_at = time.monotonic()
+            self._starting, self._last_own = True, False
         try:
-            hello = control.recv()
-        except (EOFError, OSError):
-            process.join(5.0)
-            raise HistoryStartError(
-                f"the history writer exited while starting (exit code {process.exitcode}); its log lines "
-                "above say why"
-            ) from None
+            hello = self._hello(process, control)
+        except HistoryStartError:
+            with self._lock:
+                self._starting = False
+            raise
+        with self._lock:
+            self._starting = False
+            if not self._abandoned and isinstance(hello, _Ready):
+                self.pid = hello.pid
+                self._settle(hello.landed)
+                return
+        if self._abandoned:  # killed by the stop, which counts what it held: nothing of it is left to do here
+            control.close()  # the stop left it to this launch, which was reading it
+            raise HistoryStartError(ABANDONED)
+        process.join(5.0)
         if isinstance(hello, _Failed):
-            process.join(5.0)
             raise HistoryStartError(hello.message, setting=hello.setting)
-        self.pid = hello.pid
-        self._settle(hello.landed)
+        raise HistoryStartError(
+            f"the history writer exited while starting (exit code {process.exitcode}); its log lines above "
+            "say why"
+        )
+
+    @staticmethod
+    def _hello(process: SpawnProcess, control: Connection) -> _Ready | _Failed | None:
+        """The starting writer's first word on `control`; None when it exited first (or was killed by the
+        stop). One that says nothing within START_TIMEOUT_S is killed (HistoryStartError): left running, it
+        looked alive to the supervisor, which then never started another."""
+        try:
+            if control.poll(START_TIMEOUT_S):
+                hello: _Ready | _Failed = control.recv()
+                return hello
+        except (EOFError, OSError):
+            return None
+        process.kill()
+        process.join(5.0)
+        raise HistoryStartError(f"the history writer did not start within {START_TIMEOUT_S:.0f} s; killed")
 
     def _doubt(self) -> _InDoubt | None:
         """The commit a writer that died was in and had not counted, by its counters."""
@@ -1092,9 +1132,9 @@ class HistoryProcess:
         before = self._before
         dead = self._restart_at is not None
         if stats is not None and (self.restarts or dead or self._written_at_stop):
-            # While a dead writer waits to be started again, its counts are in `before` already: its last
-            # answer (`stats`) gives the rest, not these.
-            own = WriterFigures() if dead else stats
+            # While a dead writer waits to be started again, or the next one starts (not answered yet), the
+            # dead one's counts are in `before` already: its last answer (`stats`) gives the rest, not these.
+            own = stats if self._last_own and not dead else WriterFigures()
             stats = dataclasses.replace(
                 stats,
                 rows_committed=own.rows_committed + before[_COMMITTED],
@@ -1135,7 +1175,7 @@ class HistoryProcess:
     def _ask(self) -> WriterFigures | None:
         with self._lock:
             conn = self._control
-            if conn is None or not self.alive:
+            if conn is None or self._starting or not self.alive:
                 return None
             try:
                 conn.send(_StatsRequest())
@@ -1145,7 +1185,7 @@ class HistoryProcess:
                 stats: WriterFigures = conn.recv()
             except (EOFError, OSError, ValueError):
                 return None
-            self._last, self._last_at = stats, time.monotonic()
+            self._last, self._last_at, self._last_own = stats, time.monotonic(), True
             return stats
 
     def supervise(self) -> None:
@@ -1160,14 +1200,15 @@ class HistoryProcess:
             return
         self._restart_at = None
         self.restarts += 1
-        with self._lock:
-            if self._control is not None:
-                self._control.close()
-            try:
-                self.launch()
-            except HistoryStartError as exc:
-                log.error("the history writer could not be started again: %s", exc)
-                return
+        try:
+            self.launch()  # holds the lock only while it starts the process, not while it waits for it
+        except HistoryStartError as exc:
+            log.log(
+                logging.WARNING if self._stopped else logging.ERROR,
+                "the history writer could not be started again: %s",
+                exc,
+            )
+            return
         log.info("history writer running again", extra={"pid": self.pid})
 
     def _count_dead(self, exitcode: int | None, now: float) -> float:
@@ -1213,7 +1254,7 @@ class HistoryProcess:
         told the moment it exits: it may die while they close, and the supervisor that would notice is gone.
         (A writer that exits at the end of a stop that went well is told of too, but by then every feed has
         closed or been given up at the budget, its rows counted: the counts stay as they were.)"""
-        self._stopped = True
+        self._abandon_start()
         process = self._process
         if process is None or not process.is_alive():
             self._no_writer()
@@ -1224,6 +1265,20 @@ class HistoryProcess:
                 target=self._watch_writer, args=(process,), name="history-writer-watch", daemon=True
             )
             self._watch.start()
+
+    def _abandon_start(self) -> bool:
+        """The stop begins: no writer is started from now on, and one being started (a restart) is killed, its
+        start abandoned: waiting for it (up to START_TIMEOUT_S) would have gone past the stop's budget and the
+        unit's stop timeout. It has read no row unless it said it was ready just now; what it read is counted
+        by its counters as a writer's that ended in the stop, and the commit in doubt it was to check is asked
+        of the table by the stop (`_settle_at_stop`). True when a start was abandoned (now or before)."""
+        with self._lock:
+            self._stopped = True
+            if self._starting and not self._abandoned and self._process is not None:
+                self._abandoned = True
+                log.warning("history writer (pid %s): %s; killed", self._process.pid, ABANDONED)
+                self._process.kill()
+            return self._abandoned
 
     def _watch_writer(self, process: SpawnProcess) -> None:
         """The stop's watch on the writer: it ends with the writer process (stop() sees to that)."""
@@ -1239,16 +1294,16 @@ class HistoryProcess:
         """After the mirrors have closed their feeds: the writer commits what it holds (retrying for at most
         `timeout` seconds), then exits; one that has not answered by then is killed. A commit in doubt that no
         writer will check is asked of the table last (`_settle_at_stop`)."""
-        self._stopped = True
         deadline = time.monotonic() + timeout
+        abandoned = self._abandon_start()
         process, conn = self._process, self._control
-        if process is not None and conn is not None and process.is_alive():
+        if not abandoned and process is not None and conn is not None and process.is_alive():
             with self._lock:
                 try:
                     conn.send(_Stop(timeout_s=timeout))
                     if conn.poll(timeout):
                         self._last, self._last_at = conn.recv(), time.monotonic()
-                        self._stop_answered = True
+                        self._stop_answered = self._last_own = True
                 except (EOFError, OSError, ValueError):
                     pass
         if process is not None:
@@ -1259,7 +1314,7 @@ class HistoryProcess:
                 process.join(5.0)
         if self._watch is not None and process is not None and not process.is_alive():
             self._watch.join(5.0)  # it has seen the exit: NO_WRITER is made before the directory goes
-        if conn is not None:
+        if conn is not None and not abandoned:  # else the launch's until it returns (it is woken by the kill)
             conn.close()
         self._settle_at_stop(process, deadline)
         scratch.remove(self._dir)
