@@ -372,3 +372,55 @@ def test_arms_listed_for_their_kept_alarms_hold_places_in_the_device_budget() ->
     clock.now += config.health.offline_after_s + 1.0
     again.forget_arm("gone-2")
     assert budget.taken == 1
+
+
+# --- NORMAL alarms ------------------------------------------------------------------------------------------
+
+
+def _hot_then_cool(mirror: Mirror, clock: _Clock, devices: list[str]) -> None:
+    """10 Hz rounds of `devices`: the first one's wrist_roll at 62 C for 3 s (raised), then 40 C for 11 s
+    (cleared, LATCHED), the others' as the mock sends them."""
+    rng = random.Random(5)
+    for r in range(140):
+        messages = []
+        for device in devices:
+            doc = make_payload(device, r * 0.1, "ticks", rng, timestamp_ms=1_700_000_000_000 + r * 100)
+            if device == devices[0]:
+                doc["joints"]["wrist_roll"]["temp"] = 62 if r < 30 else 40
+            messages.append((device, telemetry_topic(DEFAULT_TOPIC_PREFIX, device), encode(doc)))
+        mirror._handle(next(_batches([messages], clock, size=len(messages))), 0)  # 0.1 s on
+
+
+def test_a_mirror_started_again_keeps_its_normal_alarms_and_how_often_each_was_raised() -> None:
+    # The checkpoint carried only the alarms that are not NORMAL (or are timing a raise): a restarted worker
+    # counted NORMAL alarms only as its arms were heard again (a moving arm's model check, or an arm gone
+    # quiet, never), and an alarm raised, cleared and acknowledged came back as never raised.
+    clock = _Clock()
+    first = _still_mirror(clock)
+    devices = ["arm-0001", "arm-0002", "arm-0003"]
+    _hot_then_cool(first, clock, devices)
+    hot = "arm-0001/wrist_roll/over_temperature"
+    assert [(a.alarm_id, str(a.state)) for a in first.alarms()] == [(hot, "LATCHED")]
+    first.acknowledge_alarm(hot)  # back to NORMAL, raised once
+    before = first.report().alarms
+    assert before.by_state["warning"]["NORMAL"] > 10 and before.raised_total == {"over_temperature": 1}
+    listed = {a.alarm_id: a for a in first.alarms(include_normal=True)}
+    assert listed[hot].state == "NORMAL" and listed[hot].raised == 1
+
+    checkpoint = pickle.loads(pickle.dumps(first.checkpoint(), protocol=pickle.HIGHEST_PROTOCOL))
+    assert hot not in {r.alarm_id for r in checkpoint.alarms}
+    again = _still_mirror(clock)  # not a message since: only the checkpoint speaks
+    again.restore(checkpoint)
+    assert again.report().alarms == before
+    restored = {a.alarm_id: a for a in again.alarms(include_normal=True)}
+    assert sorted(restored) == sorted(listed)
+    assert (restored[hot].state, restored[hot].raised) == ("NORMAL", 1)
+    assert restored[hot].changed_at == listed[hot].changed_at  # when it went NORMAL (same clocks)
+    assert restored[hot].message == listed[hot].message != ""
+
+    # A checkpoint of an agent from before the field still restores (its NORMAL alarms come with messages).
+    old = pickle.loads(pickle.dumps(checkpoint, protocol=pickle.HIGHEST_PROTOCOL))
+    del old.__dict__["idle_alarms"]
+    assert old.idle_alarms == ()
+    older = _still_mirror(clock)
+    assert older.restore(old).devices == len(devices)

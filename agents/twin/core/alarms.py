@@ -409,6 +409,11 @@ TorqueSource = Mapping[str, float] | Callable[[], Mapping[str, float]]
 TorquesOf = Callable[[Sequence[TorqueSource]], Sequence[Mapping[str, float]]]
 
 
+# One device's idle alarms (`ServoAlarms.idle`): its id, a mask with the bit of each alarm's cell (joint *
+# kinds + kind), and for those raised before, (cell, times raised, when it went NORMAL, its raise message).
+IdleRow = tuple[str, int, tuple[tuple[int, int, float, str], ...]]
+
+
 class _Torques:
     """One pose's holding torques, asked for at most once: the agent passes a function that runs inverse
     dynamics (about 30 us per arm), which only a still joint's model check and a reader of
@@ -546,6 +551,8 @@ _CODE = {state: code for code, state in enumerate(_STATES)}
 _JOINTS = len(so101.JOINT_NAMES)
 _N_KINDS = len(_KINDS)
 _KIND_INDEX = {kind: k for k, kind in enumerate(_KINDS)}
+# An alarm's cell in a device's row, joint * _N_KINDS + kind: its bit in an IdleRow's mask.
+_CELLS = _JOINTS * _N_KINDS
 # A fleet's arrays start with room for this many devices and double when full.
 _FIRST_CAPACITY = 64
 # Rounds of at most this many messages are evaluated row by row in plain Python (ServoAlarms._evaluate_one):
@@ -1304,6 +1311,55 @@ class ServoAlarms:
             else:
                 self._messages.pop(at, None)
             restored += 1
+        return restored
+
+    def idle(self) -> list[IdleRow]:
+        """The alarms `records` leaves out (NORMAL, condition absent, no raise timing), by device (IdleRow):
+        a worker's checkpoint carries them, so a restarted worker still counts them in NORMAL and still
+        knows how often each was raised. Picked out with the arrays, a few ints per arm: every second's
+        checkpoint of a 1,000-arm fleet would pay for 30,000 records."""
+        fleet = self._fleet
+        if fleet is None:
+            return []
+        np = _np()
+        rows = len(self._devices)
+        idle = fleet.exists[:rows] & ~(
+            (fleet.state[:rows] != _NORMAL) | fleet.present[:rows] | ~np.isnan(fleet.raise_since[:rows])
+        )
+        bits = idle.reshape(rows, _CELLS).astype(np.uint64) << np.arange(_CELLS, dtype=np.uint64)
+        masks = bits.sum(axis=1).tolist()  # distinct powers of two: the sum is the mask
+        raised: dict[int, list[tuple[int, int, float, str]]] = {}
+        for slot, j, n in np.argwhere(idle & (fleet.raised[:rows] > 0)).tolist():
+            at = (slot, j, n)
+            cell = (int(fleet.raised[at]), float(fleet.since[at]), self._messages.get(at, ""))
+            raised.setdefault(slot, []).append((j * _N_KINDS + n, *cell))
+        return [
+            (self._devices[slot], mask, tuple(raised.get(slot, ())))
+            for slot, mask in enumerate(masks)
+            if mask
+        ]
+
+    def restore_idle(self, rows: Iterable[IdleRow], since: float) -> int:
+        """Take back the alarms `idle` exported (a restarted worker, before any message), as NORMAL, since
+        `since` unless their row says when they cleared; an alarm the engine already has stays as it is.
+        Returns how many were restored."""
+        restored = 0
+        for device, mask, raised in rows:
+            slot = self._row(device)
+            fleet = self._arrays()  # after _row: it may have grown the arrays
+            counts = {cell: (times, cleared, message) for cell, times, cleared, message in raised}
+            for cell in range(_CELLS):
+                at = (slot, cell // _N_KINDS, cell % _N_KINDS)
+                if not mask >> cell & 1 or fleet.exists[at]:
+                    continue
+                times, cleared, message = counts.get(cell, (0, since, ""))
+                fleet.exists[at] = True
+                fleet.state[at] = _NORMAL
+                fleet.since[at] = cleared
+                fleet.raised[at] = times
+                if message:
+                    self._messages[at] = message
+                restored += 1
         return restored
 
     def restore_counters(self, counters: AlarmCounters) -> None:

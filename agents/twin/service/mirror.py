@@ -857,6 +857,7 @@ class Mirror:
                 flapping=self._watch.flapping,
                 kept=self._fleet.kept,
                 history_rows=self._history.handed_in_all if self._history is not None else 0,
+                idle_alarms=tuple(self._alarms.idle()),
             )
             capture = Capture(
                 head, list(self._fleet.devices), lambda device: self._checkpoint_row(device, decided)
@@ -932,6 +933,7 @@ class Mirror:
                     self._restore_device(device, saved)
                     devices += 1
                 restored = self._alarms.restore(checkpoint.alarms)
+                self._alarms.restore_idle(checkpoint.idle_alarms, checkpoint.at)
                 self._watch.crowded_restored(checkpoint.crowded, self._clock(), checkpoint.slow)
                 self._watch.losing_restored(checkpoint.losing)
                 self._watch.clocks_restored(checkpoint.clocks_off)

@@ -59,6 +59,7 @@ from twin.core.alarms import (
     AlarmRecord,
     AlarmState,
     AlarmView,
+    IdleRow,
     NothingToAcknowledge,
     record_view,
     what_to_do,
@@ -502,6 +503,10 @@ class MirrorCheckpoint:
     # The rows handed to history for the messages `taken` counts, over every process of the worker (its
     # restart counts those its dead feed held and nothing sends again: history_feed.resume_point).
     history_rows: int = 0
+    # The NORMAL alarms `alarms` leaves out (ServoAlarms.idle), so a restarted worker's NORMAL counts and each
+    # alarm's times raised do not drop until its arms are heard again (a moving arm's model check, an arm
+    # gone quiet: maybe never). Not with `alarms_only`. A checkpoint pickled without the field reads this.
+    idle_alarms: tuple[IdleRow, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)
