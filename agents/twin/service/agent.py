@@ -1425,7 +1425,8 @@ class AgentService:
     def _offer_alert(self, event: Event) -> None:
         """An event of the agent's store (on the thread that added it): an alarm transition of a severity the
         config sends goes to the alert publisher's queue."""
-        if event.kind != EventKind.ALARM or self._alerts is None:
+        # A burst's summary (events.MismatchBurst) names no alarm: its alarms are sent each as ever.
+        if event.kind != EventKind.ALARM or self._alerts is None or not event.data.get("alarm_id"):
             return
         alert = alert_of(event)
         if alert.severity == "critical" or self.config.alerts.warnings:

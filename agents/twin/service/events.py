@@ -1112,10 +1112,74 @@ def _skew_message(device: str, offset: float) -> str:
 
 
 _ALARM_LEVEL = {"raised": EventLevel.WARNING, "cleared": EventLevel.INFO}
+# A change of what publishes for the arms (another edge or simulator taking over their device ids, with
+# another model, calibration or servo version) makes every still servo of every arm mismatch the model at
+# once: each is an alarm of its own (listed, e-mailed, counted in its session), but told one by one a swap of
+# simulators was 160 warnings in a second, on the Events page and in the log. Of the model_mismatch raises
+# within MISMATCH_BURST_WINDOW_S of the first, the first MISMATCH_BURST_TOLD are told as ever (a contact on
+# one arm is a warning at once); the rest are info events and log lines, and one warning at the window's end
+# says how many, on how many arms, and what to check (`MismatchBurst`).
+MISMATCH_BURST_TOLD = 3
+MISMATCH_BURST_WINDOW_S = 5.0
+# The arms a burst's warning names (the count says how many more).
+MISMATCH_BURST_NAMED = 5
 # How often FleetWatch reads the fleet's statuses and the broker's counters.
 WATCH_INTERVAL_S = 0.5
 # How often it reads the devices' rates (RateWatch): a sum over each one's rate buckets, not every sweep.
 RATE_INTERVAL_S = 5.0
+
+
+class MismatchBurst:
+    """The model_mismatch raises of one window (MISMATCH_BURST_TOLD above): which are told at their own
+    level, and the one warning that sums up the rest. Times are the alarm engine's (monotonic seconds)."""
+
+    def __init__(self, store: EventStore) -> None:
+        self.store = store
+        self._opened: float | None = None
+        self._told = 0
+        self._arms: dict[str, int] = {}  # raises per arm in the window, in the order first raised
+        self._joints: dict[str, int] = {}
+
+    def raised(self, event: AlarmEvent) -> bool:
+        """A model_mismatch raise: True to tell it at its own level, False to tell it at info (the window's
+        warning counts it)."""
+        self.sweep(event.at)
+        if self._opened is None:
+            self._opened, self._told = event.at, 0
+        self._arms[event.device] = self._arms.get(event.device, 0) + 1
+        self._joints[event.joint] = self._joints.get(event.joint, 0) + 1
+        if self._told < MISMATCH_BURST_TOLD:
+            self._told += 1
+            return True
+        return False
+
+    def sweep(self, now: float) -> None:
+        """End the window once MISMATCH_BURST_WINDOW_S have passed since its first raise: its warning, if
+        more were raised than were told."""
+        opened = self._opened
+        if opened is None or now - opened < MISMATCH_BURST_WINDOW_S:
+            return
+        raised = sum(self._arms.values())
+        if raised > self._told:
+            self._summary(raised)
+        self._opened = None
+        self._arms, self._joints = {}, {}
+
+    def _summary(self, raised: int) -> None:
+        arms = list(self._arms)
+        named = ", ".join(arms[:MISMATCH_BURST_NAMED])
+        more = f" and {len(arms) - MISMATCH_BURST_NAMED} more" if len(arms) > MISMATCH_BURST_NAMED else ""
+        joints = ", ".join(f"{joint} {n}" for joint, n in sorted(self._joints.items(), key=lambda x: -x[1]))
+        message = (
+            f"model_mismatch raised on {raised} servos of {len(arms)} arms within "
+            f"{MISMATCH_BURST_WINDOW_S:g} s ({named}{more}; {joints}); the first {self._told} told one by "
+            "one, the rest as info events. So many at once is rarely contact: check what publishes for these "
+            "arms (another edge or simulator on their device ids, another model or calibration) and [alarms] "
+            "servo_version; each alarm stays listed in /alarms, acknowledge them together once explained"
+        )
+        data = {"action": "burst", "kind": "model_mismatch", "raised": raised, "arms": len(arms)}
+        log.warning("%s", message, extra={**data, "event": "servo_alarm_burst", "joints": dict(self._joints)})
+        self.store.emit(EventKind.ALARM, EventLevel.WARNING, message, data={**data, "told": self._told})
 
 
 class FleetWatch:
@@ -1138,6 +1202,7 @@ class FleetWatch:
         self._rates = RateWatch(store, expected_rate_hz, stale_after_s=stale_after_s)
         self._losses = LossWatch(store)
         self._clocks = ClockWatch(store)
+        self._mismatches = MismatchBurst(store)
         self._next = 0.0
         self._next_rates = 0.0
         self._next_clocks = 0.0
@@ -1250,10 +1315,16 @@ class FleetWatch:
             },
         )
 
-    def alarm(self, event: AlarmEvent) -> None:
+    def alarm(self, event: AlarmEvent) -> bool:
+        """An alarm transition as an event; False when it is told at info, as one of a burst (`MismatchBurst`,
+        whose warning counts it): its log line goes at info too."""
         level = _ALARM_LEVEL.get(event.action, EventLevel.INFO)
-        if event.action == "raised" and str(event.severity) == "critical":
-            level = EventLevel.ERROR
+        told = True
+        if event.action == "raised":
+            if str(event.severity) == "critical":
+                level = EventLevel.ERROR
+            elif event.kind == "model_mismatch" and not self._mismatches.raised(event):
+                level, told = EventLevel.INFO, False
         self.store.emit(
             EventKind.ALARM,
             level,
@@ -1273,6 +1344,11 @@ class FleetWatch:
                 "text": event.message,
             },
         )
+        return told
+
+    def alarm_bursts(self, now: float) -> None:
+        """Sum up a burst of alarm raises whose window has passed (MismatchBurst), on the status sweep."""
+        self._mismatches.sweep(now)
 
     def clock_reset(self, device: str, last_ms: int | None, now_ms: int) -> None:
         self.store.emit(

@@ -1080,8 +1080,7 @@ class Mirror:
             stage_cpu["health_alarms"] += _span(twin_done, started, read) * weight
             for message_events in events:
                 for event in message_events:
-                    _log_alarm_event(event)
-                    self._watch.alarm(event)
+                    _log_alarm_event(event, told=self._watch.alarm(event))
             if self._sinks or self._rows is not None:
                 self._hand_all(entries, applied, events, batch)
                 stage_cpu["sinks"] += _span(started, cpu(), read) * weight
@@ -1538,6 +1537,7 @@ class Mirror:
             # Of the arms heard from only: their arrivals were told by `_admit`.
             statuses = self._fleet.statuses(at, heard_only=True)
         self._watch.statuses(statuses, now)
+        self._watch.alarm_bursts(now)
         if self._watch.rates_due(now):
             with self._lock:
                 rates = self._fleet.rates(at)
@@ -2082,9 +2082,10 @@ def _rounds(decoded: list[_Decoded]) -> list[list[_Decoded]]:
 _ALARM_LOG_LEVEL = {"raised": logging.WARNING, "cleared": logging.INFO}
 
 
-def _log_alarm_event(event: AlarmEvent) -> None:
-    """One JSON log line per alarm state change (twin.service.logs formats the fields)."""
-    level = _ALARM_LOG_LEVEL.get(event.action, logging.INFO)
+def _log_alarm_event(event: AlarmEvent, *, told: bool = True) -> None:
+    """One JSON log line per alarm state change (twin.service.logs formats the fields); at info when the
+    event was not `told` at its own level (one of a burst, whose warning counts it: events.MismatchBurst)."""
+    level = _ALARM_LOG_LEVEL.get(event.action, logging.INFO) if told else logging.INFO
     if event.action == "raised" and event.severity is Severity.CRITICAL:
         level = logging.ERROR
     # The arm in the text too: a plain-text log (`twin demo`'s) shows no fields, and a fleet has many
