@@ -553,6 +553,8 @@ _N_KINDS = len(_KINDS)
 _KIND_INDEX = {kind: k for k, kind in enumerate(_KINDS)}
 # An alarm's cell in a device's row, joint * _N_KINDS + kind: its bit in an IdleRow's mask.
 _CELLS = _JOINTS * _N_KINDS
+if _CELLS > 64:  # the mask is built in a uint64: a 65th cell would wrap onto the first, silently
+    raise RuntimeError(f"{_CELLS} alarm cells per arm do not fit an IdleRow's 64-bit mask")
 # A fleet's arrays start with room for this many devices and double when full.
 _FIRST_CAPACITY = 64
 # Rounds of at most this many messages are evaluated row by row in plain Python (ServoAlarms._evaluate_one):
