@@ -8,6 +8,8 @@ import os
 import random
 import signal
 import urllib.request
+from collections import Counter
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +17,7 @@ import pytest
 from conftest import http_get, unbrokered_agent, wait_for
 from twin.edge.payload import encode, make_payload
 from twin.rig.local import LocalRig
+from twin.service.agent import UNHEARD_MIN_REJECTED
 from twin.service.console import FLEET_COLUMNS, fleet_rows
 from twin.service.shards import WorkerError
 
@@ -167,4 +170,56 @@ def test_an_arm_whose_worker_does_not_answer_is_shown_from_its_checkpoint(tmp_pa
         assert agent.arm_view("arm-404").state is None
     finally:
         del shard.request
+        agent.stop()
+
+
+def fleet_notices(url: str, frames: int) -> list[list[str]]:
+    """The notices of the next `frames` frames of the Fleet page's stream, read as a console reads it."""
+    said: list[list[str]] = []
+    with urllib.request.urlopen(f"{url}/api/stream/fleet", timeout=60) as stream:
+        for line in stream:
+            if line.startswith(b"data: "):
+                said.append(json.loads(line[len(b"data: ") :])["notices"])
+                if len(said) == frames:
+                    break
+    return said
+
+
+def test_open_consoles_ask_no_worker_for_the_refused_arms_notice(tmp_path: Path) -> None:
+    # The Fleet page's notice naming an arm whose every message is refused asked every worker over its pipe
+    # at each console tick, beside the rows; it is read from the checkpoints the agent takes anyway. And the
+    # consoles share the tick: three open cost the workers one rows ask per tick each, not three.
+    agent = unbrokered_agent(tmp_path, 2)
+    asked: Counter[str] = Counter()
+    shards = list(agent._shards)
+    try:
+        for shard in shards:
+
+            def counted(request: Any, ask: Any = shard.request) -> Any:
+                asked[type(request).__name__] += 1
+                return ask(request)
+
+            shard.request = counted  # type: ignore[method-assign]
+        for _ in range(UNHEARD_MIN_REJECTED):
+            agent.feed("dt/lerobot/arm-009/telemetry", b"not telemetry")
+
+        def named(notices: list[str]) -> bool:
+            return any(n.startswith("arm-009 publishes, but the agent refused all") for n in notices)
+
+        wait_for(lambda: named(agent.notices()), 60, "the notice naming arm-009")
+        hub = agent._http._hub  # type: ignore[union-attr]
+        assert hub is not None and hub.clients == 0
+        asked.clear()
+        ticks = hub.ticks
+        with ThreadPoolExecutor(3) as pool:
+            consoles = list(pool.map(lambda _: fleet_notices(agent.http_url, 4), range(3)))
+        wait_for(lambda: hub.clients == 0, 30, "the consoles' streams closed")
+        ticked = hub.ticks - ticks
+        assert all(named(notices) for frames in consoles for notices in frames), consoles
+        assert asked["UnheardRequest"] == 0, asked
+        # One ask per worker and tick (one more for a tick under way as the count was read).
+        assert 0 < asked["FleetRowsRequest"] <= len(shards) * (ticked + 1), (asked, ticked)
+    finally:
+        for shard in shards:
+            shard.__dict__.pop("request", None)
         agent.stop()

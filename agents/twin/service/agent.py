@@ -95,6 +95,7 @@ from twin.service.shards import (
     Shard,
     StatusesRequest,
     StopReport,
+    UnheardArm,
     UnheardRequest,
     WorkerError,
     WorkerPlan,
@@ -985,8 +986,7 @@ class AgentService:
         arms = sorted(
             (
                 arm
-                for _, part in self._ask_all(UnheardRequest(), unheard_of)
-                for arm in part
+                for arm in self._unheard_arms()
                 if arm.device not in held
                 and arm.rejected >= UNHEARD_MIN_REJECTED
                 and arm.last_s <= UNHEARD_RECENT_S
@@ -999,6 +999,21 @@ class AgentService:
             for a in arms
         ]
         return _named_then_counted(lines, "whose messages are all refused")
+
+    def _unheard_arms(self) -> list[UnheardArm]:
+        """Every mirror's arms not tracked whose every message was refused. Worker processes': from their
+        latest checkpoints (taken every CHECKPOINT_EVERY_S anyway), so a console tick, twice a second, asks
+        no worker over its pipe for them; a restarting worker's as its last checkpoint left them."""
+        if self._mirror is not None:  # the mirror in this process: asking it is a call, not a pipe's trip
+            return [arm for _, part in self._ask_all(UnheardRequest(), unheard_of) for arm in part]
+        now = time.monotonic()  # worker processes share the host's monotonic clock, their checkpoints' too
+        arms: list[UnheardArm] = []
+        for shard in self._shards:
+            checkpoint = shard.checkpoint
+            if checkpoint is not None:
+                since = max(0.0, now - checkpoint.at)
+                arms.extend(dataclasses.replace(a, last_s=a.last_s + since) for a in checkpoint.unheard)
+        return arms
 
     def _held_problems(self) -> dict[str, str]:
         """The arms with no calibration to keep (their file was bad at the start), held, by device: why."""

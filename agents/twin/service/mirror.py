@@ -858,6 +858,7 @@ class Mirror:
                 kept=self._fleet.kept,
                 history_rows=self._history.handed_in_all if self._history is not None else 0,
                 idle_alarms=tuple(self._alarms.idle()),
+                unheard=self._unheard_locked(),
             )
             capture = Capture(
                 head, list(self._fleet.devices), lambda device: self._checkpoint_row(device, decided)
@@ -1563,11 +1564,15 @@ class Mirror:
         """The devices not tracked whose every message was refused so far, the most recent first
         (core.health.FleetHealth.unheard)."""
         with self._lock:
-            now = self._clock()
-            return tuple(
-                UnheardArm(device, u.rejected, u.reason, now - u.last_mono)
-                for device, u in reversed(self._fleet.unheard.items())
-            )
+            return self._unheard_locked()
+
+    def _unheard_locked(self) -> tuple[UnheardArm, ...]:
+        """`unheard`, the lock held."""
+        now = self._clock()
+        return tuple(
+            UnheardArm(device, u.rejected, u.reason, now - u.last_mono)
+            for device, u in reversed(self._fleet.unheard.items())
+        )
 
     def fleet_rows(self) -> list[FleetRow]:
         """One row per arm for the console's Fleet page, read without building the report (no device

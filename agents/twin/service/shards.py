@@ -507,6 +507,9 @@ class MirrorCheckpoint:
     # alarm's times raised do not drop until its arms are heard again (a moving arm's model check, an arm
     # gone quiet: maybe never). Not with `alarms_only`. A checkpoint pickled without the field reads this.
     idle_alarms: tuple[IdleRow, ...] = ()
+    # The devices not tracked whose every message was refused (UnheardArm, `last_s` as of `at`): the Fleet
+    # page's notice naming them is read from here, so a console tick asks no worker for them.
+    unheard: tuple[UnheardArm, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)
