@@ -448,6 +448,45 @@ def test_a_worker_behind_its_input_shows_its_arms_online_and_says_how_far_behind
         mirror.stop()
 
 
+def test_a_worker_held_in_one_batch_shows_its_lag_growing() -> None:
+    """The lag used to be taken at the worker's status sweep only, after a batch: a worker held in one long
+    batch (or hung in it) kept the low figure of the sweep before, and /state, the metric and the Fleet
+    page's notice stayed quiet exactly while it fell behind. It is now read when asked: the age of the
+    oldest message of the batch being handled counts too."""
+    arms = [f"arm-{n:03d}" for n in range(3)]
+    starved = _StarvedMirror([(0, 1000.0)], seed=7)
+    mirror, clock = starved.mirror, starved.clock
+    decode = mirror._decode_all
+    held, entered, release = threading.Event(), threading.Event(), threading.Event()
+
+    def held_decode(*args: Any) -> Any:
+        if held.is_set():  # the worker thread waits here, in its batch, until the test lets it go
+            entered.set()
+            release.wait(60)
+        return decode(*args)
+
+    mirror._decode_all = held_decode  # type: ignore[method-assign]
+    mirror.start()
+    try:
+        starved.put(arms, 999.9, 0.0)
+        wait_for(lambda: mirror.behind_s < 1.0, 60, "the worker caught up")
+        held.set()
+        for d in arms:  # the next round, received at 1000.0, stays in the worker's hands
+            stamp = round((1.7e9 + 1000.0) * 1000)
+            payload = encode(make_payload(d, 0.1, "ticks", starved.rng, timestamp_ms=stamp))
+            starved.queue.put(d, (f"dt/lerobot/{d}/telemetry", payload, 1000.0, 1.7e9 + 1000.0))
+        assert entered.wait(60), "the worker never took the round"
+        clock.now = 1005.0  # five seconds later, the worker still in that batch
+        assert mirror.behind_s == pytest.approx(5.0)
+        assert mirror.report().worker.behind_s == pytest.approx(5.0)
+        assert {r.behind_s for r in mirror.fleet_rows()} == {5.0}
+        _, (notice,), _ = console.fleet_parts(mirror)
+        assert notice.startswith("the agent is 5.0 s behind the arms' messages")
+    finally:
+        release.set()
+        mirror.stop()
+
+
 class Conn:
     def __init__(
         self, successes: int, disconnections: int, last_error: str = "", refused: tuple[str, ...] = ()

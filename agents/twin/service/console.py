@@ -77,7 +77,7 @@ FLEET_COLUMNS = (
     "uncalibrated",  # true: no LeRobot calibration while its units need one (docs/agent.md, "Calibration")
     "mirror",  # running | restarting: its worker process is started again, the row is its last checkpoint
     "unacknowledged",  # how many of its alarms wait for a person: ACTIVE, or LATCHED (cleared, unseen)
-    "behind_s",  # how far its worker is behind its messages: its status and rate are read there
+    "behind_s",  # how far its worker is behind its messages now (its status and rate: at its last sweep)
     # true: its newest calibration file in the store was refused, and it keeps the one it read before
     "calibration_refused",
 )

@@ -91,8 +91,8 @@ def _agent_families(agent: AgentInfo) -> Iterator[Metric]:
     )
     yield _gauge(
         "twin_worker_behind_seconds",
-        "How far behind its messages a worker stood at its last sweep, the most of any worker (its arms' "
-        "statuses are read there).",
+        "How far behind its messages a worker stands, the most of any worker: its last sweep's lag, or the "
+        "age of the oldest message of the batch it is handling if more.",
         agent.worker.behind_s,
     )
     yield from _sink_families(agent)

@@ -544,8 +544,12 @@ class Mirror:
         self.errors = 0
         # How far behind its input the worker stood at its last status sweep (_watch_statuses): the readers
         # read the arms' statuses and rates there too, so a host short of CPU shows no arm STALE whose
-        # messages are only waiting. Written by the worker thread alone (one float: no lock needed).
-        self.behind_s = 0.0
+        # messages are only waiting. And the receive time of the oldest message of the batch it is handling
+        # (None between batches): the lag shown (`behind_s`) is read from both when asked, so a worker stuck
+        # in one batch shows it growing, not the figure of the sweep before it. Written by the worker thread
+        # alone (one value each, once a batch: no lock needed).
+        self._swept_behind_s = 0.0
+        self._handling_since: float | None = None
 
     @staticmethod
     def _load_robot(config: AgentConfig, mode: TwinMode) -> RobotModel:
@@ -756,10 +760,14 @@ class Mirror:
                 self._finish_capture()
                 return
             if count:
+                # The oldest message not yet handled, until the batch is (`behind_s`): no clock read here.
+                self._handling_since = batch.recv_mono[0]
                 try:
                     self._handle_batch(batch, sampler.batch_weight(sampled, count))
                 except Exception:  # every stage guards its messages; this guards the mirror itself
                     self._count_error(None, "handling a batch failed")
+                finally:
+                    self._handling_since = None
             if physics:
                 now = self._clock()
                 self._step_physics(min(now - last_step, MAX_PHYSICS_STEP_S))
@@ -1533,7 +1541,7 @@ class Mirror:
         if not self._watch.due(now):
             return
         at = min(now, max(received)) if received else now
-        self.behind_s = now - at
+        self._swept_behind_s = now - at
         with self._lock:
             # Of the arms heard from only: their arrivals were told by `_admit`.
             statuses = self._fleet.statuses(at, heard_only=True)
@@ -1554,11 +1562,28 @@ class Mirror:
                 offsets = self._fleet.clock_offsets(at)
             self._watch.clocks(offsets)
 
+    @property
+    def behind_s(self) -> float:
+        """How far behind its input the worker stands now (`_behind`)."""
+        return self._behind(self._clock())
+
+    def _behind(self, now: float) -> float:
+        """How far behind its input the worker stands at `now` (monotonic): where its last status sweep found
+        it, or, while it handles a batch, the age of that batch's oldest message if more. Read when asked,
+        so a worker held in one long batch (or hung in it) shows its lag growing. The arms' statuses and rates
+        stay read at the sweep's point: a worker that stops handling messages lets them go STALE on the clock
+        (docs/agent.md, "Health")."""
+        behind = self._swept_behind_s
+        since = self._handling_since
+        if since is not None and now - since > behind:
+            behind = now - since
+        return behind
+
     def statuses(self) -> dict[str, DeviceStatus]:
         """Each device's status now (those configured too, heard from or not), without the report; read where
-        the worker stands in its input (`behind_s`)."""
+        the worker stood in its input at its last status sweep (`_behind`)."""
         with self._lock:
-            return self._fleet.statuses(self._clock() - self.behind_s)
+            return self._fleet.statuses(self._clock() - self._swept_behind_s)
 
     def unheard(self) -> tuple[UnheardArm, ...]:
         """The devices not tracked whose every message was refused so far, the most recent first
@@ -1615,12 +1640,12 @@ class Mirror:
         record = self._devices.get(device)
         diagnostics = record.diagnostics if record is not None and record.diagnostics else {}
         last = h.last_message_mono
-        behind = self.behind_s
+        swept = self._swept_behind_s
         return fleet_row(
             device,
-            status=str(h.status(now - behind)),
+            status=str(h.status(now - swept)),
             last_seen=wall - (now - last) if last is not None else None,
-            rate_hz=h.rate_hz(now - behind),
+            rate_hz=h.rate_hz(now - swept),
             loss_ratio=lost / (received + lost) if received + lost else 0.0,
             temperatures={j: d.temperature_c for j, d in diagnostics.items()},
             rejected=h.rejected_total,
@@ -1632,7 +1657,7 @@ class Mirror:
                 else self.config.telemetry.units,
             ),
             unacknowledged=unacknowledged,
-            behind_s=behind,
+            behind_s=self._behind(now),
             calibration_refused=device in self._calibration_problems,
         )
 
@@ -1658,7 +1683,7 @@ class Mirror:
                 stage_cpu_s=readout.stage_cpu_s,
                 stage_timed_batches=readout.stage_timed_batches,
                 alarm_rows=readout.alarm_rows,
-                behind_s=round(self.behind_s, 3),
+                behind_s=round(self._behind(readout.now), 3),
             ),
             recording=self._recording_state(),
             # The agent has the history's own figures (its writer process); the feed's are a sink's.
@@ -1681,7 +1706,7 @@ class Mirror:
             now = self._clock()
             if only is None:
                 devices: Iterable[_Device] = self._devices.values()
-                health = self._fleet.readings(now, self.behind_s)
+                health = self._fleet.readings(now, self._swept_behind_s)
                 worst = alarms.worst_by_device()
                 losses: Iterable[tuple[str, DeviceLoss]] = self._loss.items()
             else:
@@ -1690,7 +1715,7 @@ class Mirror:
                     known = None  # admitted, its first message not yet counted (FleetHealth.shown)
                 loss = self._loss.get(only)
                 devices = [record] if record is not None else []
-                health = {only: known.reading(now, self.behind_s)} if known is not None else {}
+                health = {only: known.reading(now, self._swept_behind_s)} if known is not None else {}
                 worst = {only: alarms.worst_by_joint(only)}
                 losses = [(only, loss)] if loss is not None else []
             return _Readout(
@@ -1872,7 +1897,7 @@ class Mirror:
             if health is None:
                 raise ArmNotFoundError(device)
             # Where the worker stands: an arm whose messages wait behind it is not silent.
-            status = health.status(self._clock() - self.behind_s)
+            status = health.status(self._clock() - self._swept_behind_s)
             if device in self._fleet.configured:
                 raise ArmNotForgettableError(
                     ARM_CONFIGURED,

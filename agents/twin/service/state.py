@@ -242,9 +242,11 @@ class WorkerState:
     # Messages the servo alarm engine evaluated, summed over the workers since each started: 0 with
     # [alarms] enabled = false (`twin bench cost --no-alarms` shows it was).
     alarm_rows: int = 0
-    # How far behind its messages a worker stood at its last status sweep (the newest receive time of the
-    # batch it handled then, to the clock; 0 once it found nothing waiting), the most of any worker: the arms'
-    # statuses and rates are read there (docs/agent.md, "Health").
+    # How far behind its messages a worker stands, the most of any worker, read when asked: where its last
+    # status sweep found it (the newest receive time of the batch it handled then, to the clock; 0 once it
+    # found nothing waiting), or the age of the oldest message of the batch it is handling if more, so a
+    # worker held in one batch shows its lag growing. The arms' statuses and rates are read at the sweep's
+    # point (docs/agent.md, "Health").
     behind_s: float = 0.0
 
 
