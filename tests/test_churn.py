@@ -100,6 +100,19 @@ def test_a_store_that_never_filled_or_a_restarted_worker_is_not_judged() -> None
     assert churn.analyse(_series(0.0, restarts=1), CAPACITY)["verdict"]["ok"] is None
 
 
+def test_a_request_the_agent_does_not_answer_is_noted_and_the_run_goes_on() -> None:
+    """A busy host once kept the agent from answering a sample's /metrics within 30 s, and the timeout ended
+    a 55-minute run with nothing written."""
+    unanswered: list[dict[str, Any]] = []
+
+    def timed_out() -> int:
+        raise TimeoutError("timed out")
+
+    assert churn.answered(timed_out, 541.04, unanswered, "sample") is None
+    assert churn.answered(lambda: 7, 543.0, unanswered, "events") == 7
+    assert unanswered == [{"t_s": 541.0, "what": "sample", "error": "timed out"}]
+
+
 def test_the_slope_of_a_line_is_exact_and_of_two_points_undefined() -> None:
     b, se, first = churn.slope([0.0, 1.0, 2.0, 3.0], [5.0, 7.0, 9.0, 11.0])
     assert (b, se, first) == pytest.approx((2.0, 0.0, 5.0))

@@ -37,10 +37,10 @@ import subprocess
 import time
 import urllib.request
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import psutil
 
@@ -60,6 +60,7 @@ FIRST_CHURN_ID = 100_000
 # process's own.
 MIRROR_KINDS = frozenset({"status", "alarm", "rejected", "twin", "calibration"})
 RECEIVING = "receiving"
+_T = TypeVar("_T")
 
 
 @dataclass(frozen=True)
@@ -99,6 +100,18 @@ class Churn:
 def _get(url: str) -> bytes:
     with urllib.request.urlopen(url, timeout=30) as response:
         return response.read()
+
+
+def answered(call: Callable[[], _T], t_s: float, unanswered: list[dict[str, Any]], what: str) -> _T | None:
+    """`call()`'s result, or None when the agent did not answer it: noted in `unanswered` and the run goes on.
+    On a host busy enough that the agent, at its priority, took more than _get's 30 s over a /metrics render,
+    one timed-out sample ended a 55-minute run at its ninth minute with nothing written. The next poll reads
+    the events on from where the last one stopped; a sample missed is a gap in the series."""
+    try:
+        return call()
+    except OSError as exc:  # TimeoutError, URLError, a connection reset
+        unanswered.append({"t_s": round(t_s, 1), "what": what, "error": str(exc)})
+        return None
 
 
 class EventCounts:
@@ -221,19 +234,23 @@ def measure(churn: Churn, out: Path) -> dict[str, Any]:
             events = EventCounts(base, churn.workers)
             started = time.monotonic()
             next_sample = 0.0
+            unanswered: list[dict[str, Any]] = []
             while (t_s := time.monotonic() - started) < seconds:
                 if proc.poll() is not None:
                     raise RuntimeError(f"the agent exited during the churn soak (code {proc.returncode})")
                 waves.tick(t_s)
-                events.poll()
+                answered(events.poll, t_s, unanswered, "events")
                 if t_s >= next_sample:
-                    samples.append(_sample(t_s, base, proc.pid, events))
+                    sample = answered(lambda: _sample(t_s, base, proc.pid, events), t_s, unanswered, "sample")
+                    samples.extend([sample] if sample is not None else [])
                     next_sample += churn.sample_s
                 time.sleep(EVENTS_POLL_S)  # the events' polling period, not synchronisation
             sent = collect(steady, timeout=120)
             waves.finish()
-            events.poll()
-            samples.append(_sample(time.monotonic() - started, base, proc.pid, events))
+            t_s = time.monotonic() - started
+            answered(events.poll, t_s, unanswered, "events")
+            last = answered(lambda: _sample(t_s, base, proc.pid, events), t_s, unanswered, "sample")
+            samples.extend([last] if last is not None else [])
     shutil.rmtree(out / "rig", ignore_errors=True)
     return {
         "scenario": "churn",
@@ -243,6 +260,7 @@ def measure(churn: Churn, out: Path) -> dict[str, Any]:
         "load_average_before": list(load_before),
         "kinds": dict(events.kinds),
         "samples": samples,
+        "unanswered": unanswered,
     }
 
 
