@@ -21,7 +21,7 @@ import time
 import urllib.error
 import urllib.parse
 import urllib.request
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -1935,6 +1935,27 @@ def alarms_path(url: str) -> bool:
     return urllib.parse.urlsplit(url).path == "/alarms"
 
 
+@contextlib.contextmanager
+def fleet_of_made_alarms(
+    page: Any, doc: dict[str, Any], made: list[dict[str, Any]], bulk: Callable[[Any], None]
+) -> Iterator[None]:
+    """The Fleet page's document `doc`, GET /alarms answering `made`, and POST /alarms/ack handled by `bulk`,
+    all served by the test for the `with` block (exact-path routes, taken off again whatever happens)."""
+
+    def listed(route: Any) -> None:
+        route.fulfill(status=200, json={"alarms": made})
+
+    serve_document(page, "/api/fleet", "fleet", doc)
+    page.route(alarms_path, listed)
+    page.route(bulk_path, bulk)
+    try:
+        yield
+    finally:
+        page.unroute(bulk_path, bulk)
+        page.unroute(alarms_path, listed)
+        unserve(page, "/api/fleet")
+
+
 def test_the_fleet_page_acknowledges_the_alarms_of_the_arms_shown(
     console: str, page: Any, browser_errors: list[str]
 ) -> None:
@@ -1957,26 +1978,14 @@ def test_the_fleet_page_acknowledges_the_alarms_of_the_arms_shown(
     ]
     sent: list[tuple[list[str], str, str]] = []
     answer = bulk_answer(made, sent, cleared=set())
-
-    def listed(route: Any) -> None:
-        route.fulfill(status=200, json={"alarms": made})
-
-    serve_document(page, "/api/fleet", "fleet", doc)
-    page.route(alarms_path, listed)
-    page.route(bulk_path, answer)
-    try:
-        with dialogs_accepted(page) as asked:
-            page.goto(console + "/")
-            page.get_by_label("alarm").select_option("critical")
-            button = page.locator("#ack-shown:not([disabled])", has_text="Acknowledge shown (2)")
-            button.wait_for()
-            token = page.evaluate("document.querySelector('meta[name=csrf-token]').content")
-            button.click()
-            told = answered(page, "#fleet-ack-result")
-    finally:
-        page.unroute(bulk_path, answer)
-        page.unroute(alarms_path, listed)
-        unserve(page, "/api/fleet")
+    with fleet_of_made_alarms(page, doc, made, answer), dialogs_accepted(page) as asked:
+        page.goto(console + "/")
+        page.get_by_label("alarm").select_option("critical")
+        button = page.locator("#ack-shown:not([disabled])", has_text="Acknowledge shown (2)")
+        button.wait_for()
+        token = page.evaluate("document.querySelector('meta[name=csrf-token]').content")
+        button.click()
+        told = answered(page, "#fleet-ack-result")
     assert len(asked) == 1 and asked[0].startswith("Acknowledge 2 alarms of the 1 arm shown"), asked
     assert len(sent) == 1, sent
     ids, sent_token, _ = sent[0]
@@ -2010,24 +2019,13 @@ def test_the_fleet_page_acknowledges_more_than_one_requests_worth_in_chunks(
             return
         answer(route)
 
-    def listed(route: Any) -> None:
-        route.fulfill(status=200, json={"alarms": made})
-
     errors_before = len(browser_errors)
-    serve_document(page, "/api/fleet", "fleet", doc)
-    page.route(alarms_path, listed)
-    page.route(bulk_path, limited)
-    try:
-        with dialogs_accepted(page) as asked:
-            page.goto(console + "/")
-            button = page.locator("#ack-shown:not([disabled])", has_text=f"Acknowledge shown ({many})")
-            button.wait_for()
-            button.click()
-            told = answered(page, "#fleet-ack-result")
-    finally:
-        page.unroute(bulk_path, limited)
-        page.unroute(alarms_path, listed)
-        unserve(page, "/api/fleet")
+    with fleet_of_made_alarms(page, doc, made, limited), dialogs_accepted(page) as asked:
+        page.goto(console + "/")
+        button = page.locator("#ack-shown:not([disabled])", has_text=f"Acknowledge shown ({many})")
+        button.wait_for()
+        button.click()
+        told = answered(page, "#fleet-ack-result")
     assert len(asked) == 1 and asked[0].startswith(f"Acknowledge {many} alarms of the 1 arm shown"), asked
     # The first chunk refused as too large, then its halves; the last two ids in a chunk of their own.
     assert too_large == [ACK_MANY_MAX], too_large
