@@ -351,7 +351,7 @@
     // walk read "80.0 C" next to "at 75 C" and took one for wrong).
     setText(row.text, a.message ? `When raised: ${a.message}` : "");
     setText(row.advice, a.advice ? `What to do: ${a.advice}` : "");
-    row.button.hidden = !(a.state === "ACTIVE" || a.state === "LATCHED");
+    row.button.hidden = !Twin.WAITING.has(a.state);
   }
 
   function renderAlarms(alarms) {
