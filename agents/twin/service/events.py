@@ -1112,6 +1112,16 @@ def _skew_message(device: str, offset: float) -> str:
 
 
 _ALARM_LEVEL = {"raised": EventLevel.WARNING, "cleared": EventLevel.INFO}
+
+
+def alarm_level(event: AlarmEvent) -> EventLevel:
+    """An alarm transition's own level: a raise a warning (a critical one an error), the rest info. Its event
+    and its log line (twin.service.mirror) both go at it, unless it is one of a burst (FleetWatch.alarm)."""
+    if event.action == "raised" and str(event.severity) == "critical":
+        return EventLevel.ERROR
+    return _ALARM_LEVEL.get(event.action, EventLevel.INFO)
+
+
 # A change of what publishes for the arms (another edge or simulator taking over their device ids, with
 # another model, calibration or servo version) makes every still servo of every arm mismatch the model at
 # once: each is an alarm of its own (listed, e-mailed, counted in its session), but told one by one a swap of
@@ -1318,13 +1328,11 @@ class FleetWatch:
     def alarm(self, event: AlarmEvent) -> bool:
         """An alarm transition as an event; False when it is told at info, as one of a burst (`MismatchBurst`,
         whose warning counts it): its log line goes at info too."""
-        level = _ALARM_LEVEL.get(event.action, EventLevel.INFO)
-        told = True
-        if event.action == "raised":
-            if str(event.severity) == "critical":
-                level = EventLevel.ERROR
-            elif event.kind == "model_mismatch" and not self._mismatches.raised(event):
-                level, told = EventLevel.INFO, False
+        level, told = alarm_level(event), True
+        # A critical raise is never held (its level is ERROR).
+        mismatch = level is EventLevel.WARNING and event.kind == "model_mismatch"
+        if mismatch and not self._mismatches.raised(event):
+            level, told = EventLevel.INFO, False
         self.store.emit(
             EventKind.ALARM,
             level,

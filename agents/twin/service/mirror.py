@@ -106,7 +106,7 @@ from twin.service.capture import CHUNK as CAPTURE_CHUNK
 from twin.service.capture import Capture
 from twin.service.config import AgentConfig, ConfigError
 from twin.service.console import FleetRow, fleet_row
-from twin.service.events import Event, EventQuery, EventStore, FleetWatch, RejectionThrottle
+from twin.service.events import Event, EventQuery, EventStore, FleetWatch, RejectionThrottle, alarm_level
 from twin.service.logs import RateLimitedLog, name_native_thread
 from twin.service.shards import (
     ARM_CONFIGURED,
@@ -2109,15 +2109,11 @@ def _rounds(decoded: list[_Decoded]) -> list[list[_Decoded]]:
     return rounds
 
 
-_ALARM_LOG_LEVEL = {"raised": logging.WARNING, "cleared": logging.INFO}
-
-
 def _log_alarm_event(event: AlarmEvent, *, told: bool = True) -> None:
     """One JSON log line per alarm state change (twin.service.logs formats the fields); at info when the
     event was not `told` at its own level (one of a burst, whose warning counts it: events.MismatchBurst)."""
-    level = _ALARM_LOG_LEVEL.get(event.action, logging.INFO) if told else logging.INFO
-    if event.action == "raised" and event.severity is Severity.CRITICAL:
-        level = logging.ERROR
+    # EventLevel's values are logging's: the line goes at its event's level.
+    level = int(alarm_level(event)) if told else logging.INFO
     # The arm in the text too: a plain-text log (`twin demo`'s) shows no fields, and a fleet has many
     # servos of one name.
     log.log(
