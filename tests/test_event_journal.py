@@ -85,7 +85,7 @@ def test_a_reader_after_the_gap_between_two_runs_gets_exactly_what_followed(tmp_
         assert [e.id for e in again.after(after, limit=2)] == expected[:2], after
 
 
-def test_the_files_stay_within_twice_their_size_and_keep_the_newest(tmp_path: Path) -> None:
+def test_a_pair_of_files_stays_within_twice_its_size_and_keeps_the_newest(tmp_path: Path) -> None:
     path = tmp_path / "events.jsonl"
     store, journal = journaled_store(path, max_bytes=4_000)
     for _ in range(40):

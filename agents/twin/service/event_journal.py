@@ -49,7 +49,7 @@ import msgspec
 
 from twin.core.throttle import Throttle
 from twin.output.sinks import SinkStats
-from twin.service.events import BULK_KINDS, DEFAULT_CAPACITY, LIFECYCLE_KINDS, Event
+from twin.service.events import BULK_KINDS, DEFAULT_CAPACITY, Event, part_index
 
 log = logging.getLogger(__name__)
 
@@ -145,11 +145,9 @@ class EventJournal:
         if max_bytes < 1:
             raise ValueError(f"an event journal's files hold at least one byte, got max_bytes = {max_bytes}")
         self.path = Path(path)
-        self.max_bytes = max_bytes
         # alarm, calibration, agent, worker, broker; and status, rejected, twin
         self._kept = _Files(self.path, max_bytes, name=SINK_NAME, clock=clock)
         self._bulk = _Files(bulk_path(self.path), max_bytes, name=BULK_SINK_NAME, clock=clock)
-        self.previous = self._kept.previous
         self._lock = threading.Lock()  # the pairs' queues
         # One flush at a time: a supervisor round still flushing as the stop closes must not interleave.
         self._write_lock = threading.RLock()
@@ -174,21 +172,19 @@ class EventJournal:
             )
             return []
         parts: list[list[Event]] = [[], [], []]
-        bad = 0
         for path in (self._kept.previous, self._kept.path, self._bulk.previous, self._bulk.path):
             # A file from before the bulk kinds had files of their own holds every kind: each to its part.
-            read, bad_here = self._read(path, limit)
+            read, bad = self._read(path, limit)
             parts = [_newest((*held, *new), limit) for held, new in zip(parts, read, strict=True)]
-            bad += bad_here
-        if bad:
-            self.unreadable += bad
-            log.warning(
-                "the event journal %s has %d line(s) that are not events (a write cut short by a kill or a "
-                "full disk, or the file edited by hand); they are skipped, the rest is read",
-                self.path,
-                bad,
-                extra={"path": str(self.path), "unreadable": bad},
-            )
+            if bad:  # named by its own file: there are four
+                self.unreadable += bad
+                log.warning(
+                    "the event journal %s has %d line(s) that are not events (a write cut short by a kill "
+                    "or a full disk, or the file edited by hand); they are skipped, the rest is read",
+                    path,
+                    bad,
+                    extra={"path": str(path), "unreadable": bad},
+                )
         return _newest(itertools.chain.from_iterable(parts), None)
 
     @staticmethod
@@ -207,7 +203,7 @@ class EventJournal:
                     except msgspec.DecodeError:
                         bad += 1
                         continue
-                    parts[_part(event.kind)].append(event)
+                    parts[part_index(event.kind)].append(event)
         except FileNotFoundError:
             pass
         except OSError as exc:
@@ -265,7 +261,7 @@ class EventJournal:
         return True
 
     def close(self) -> None:
-        """Flush what is queued and close the file (a later flush opens it again)."""
+        """Flush what is queued and close both pairs' files (a later flush opens them again)."""
         with self._write_lock:
             self.flush()
             self._kept.close()
@@ -282,10 +278,6 @@ class EventJournal:
     @property
     def not_written(self) -> int:
         return self._kept.not_written + self._bulk.not_written
-
-    @property
-    def write_failures(self) -> int:
-        return self._kept.write_failures + self._bulk.write_failures
 
     def sinks(self) -> tuple[SinkStats, SinkStats]:
         """The journal as two outputs in /state's `agent.sinks`, a pair each (`events_journal`, the file
@@ -308,13 +300,6 @@ def _warn(files: _Files, exc: OSError, count: int) -> None:
         files.not_written,
         extra={"path": str(files.path), "not_written": files.not_written},
     )
-
-
-def _part(kind: str) -> int:
-    """Which part of a store (events.EventStore) holds events of `kind`: 0 bulk, 1 alarm, 2 lifecycle."""
-    if kind in BULK_KINDS:
-        return 0
-    return 2 if kind in LIFECYCLE_KINDS else 1
 
 
 def _newest(events: Iterable[Event], limit: int | None) -> list[Event]:

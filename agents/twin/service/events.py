@@ -130,6 +130,16 @@ LIFECYCLE_KINDS: frozenset[str] = frozenset(
 # The lifecycle kinds' reserve: one event in this many of a store's capacity (1,000 of the default 20,000),
 # at least one, at most the non-bulk share.
 LIFECYCLE_RESERVE_ONE_IN = 20
+# The parts a store keeps (EventStore), in this order: the numbers `part_index` gives.
+BULK_PART, ALARM_PART, LIFECYCLE_PART = 0, 1, 2
+
+
+def part_index(kind: str) -> int:
+    """Which part of a store holds events of `kind` (BULK_PART, ALARM_PART, LIFECYCLE_PART): the store and
+    the journal (which keeps the newest of each part at a start) by one rule."""
+    if kind in BULK_KINDS:
+        return BULK_PART
+    return LIFECYCLE_PART if kind in LIFECYCLE_KINDS else ALARM_PART
 
 
 class Event(msgspec.Struct, frozen=True, gc=False):
@@ -263,6 +273,7 @@ class EventStore:
         self._bulk = _Part()
         self._alarms = _Part()
         self._lifecycle = _Part()
+        self._by_index = (self._bulk, self._alarms, self._lifecycle)  # part_index's order
         self._ids = itertools.count(1)
         self._last_id = 0
         self._lock = threading.Lock()
@@ -329,14 +340,12 @@ class EventStore:
         return numbered
 
     def _part_of(self, kind: str) -> _Part:
-        if kind in BULK_KINDS:
-            return self._bulk
-        return self._lifecycle if kind in LIFECYCLE_KINDS else self._alarms
+        return self._by_index[part_index(kind)]
 
     def _parts(self, kinds: Collection[str]) -> tuple[_Part, ...]:
         """The parts that hold a kind of `kinds` (every part for none)."""
         if not kinds:
-            return (self._bulk, self._alarms, self._lifecycle)
+            return self._by_index
         return tuple(dict.fromkeys(self._part_of(kind) for kind in kinds))
 
     def _place(self, event: Event) -> None:
