@@ -997,7 +997,7 @@ def test_an_arm_whose_id_two_edges_share_is_not_sent_to_look_at_its_network() ->
     its edge's network, or its broker connection" beside the two-edges warning; the loss estimate reads the
     two interleaved timestamp grids as one finer one with holes. The loss warning now names the shared id."""
     s, _ = store()
-    watch = events.FleetWatch(s, expected_rate_hz=10.0)
+    watch = events.FleetWatch(s)
     for at in (0.0, max(events.CROWDED_HOLD_S, LOSING_HOLD_S)):  # as the mirror: rates, then losses
         watch.rates({"arm-003": 20.0, "arm-004": 10.0}, at)
         watch.losses({"arm-003": (100, 300), "arm-004": (60, 30)}, at)
@@ -1033,7 +1033,7 @@ def test_only_the_agent_dropping_alarms_no_one_saw_makes_a_forget_a_warning() ->
     its alarms seen; the agent dropping an ACTIVE or LATCHED alarm (telemetry.forget_unseen_after_s) is a loss
     to look at (warning). Only the slow churning-fleet test of test_forget.py saw the level before."""
     s, _ = store()
-    watch = events.FleetWatch(s, expected_rate_hz=10.0)
+    watch = events.FleetWatch(s)
     unseen = "by the agent: silent for 30 days with alarms no person has seen"
     watch.forgotten("by-hand", "OFFLINE", {"ACTIVE": 1, "LATCHED": 1})
     watch.forgotten("seen", "OFFLINE", {"ACKNOWLEDGED": 2}, reason="by the agent: silent for 7 days")

@@ -103,7 +103,7 @@ def test_a_slow_arm_is_not_also_reported_as_losing_but_a_lossy_arm_at_its_rate_i
     """A walk: 300 edges at 2 Hz against 10 each read "loss 80 %" (their gaps are five nominal periods); the
     slow warning names that reading, so the loss watch does not add a second warning an arm."""
     s = EventStore(100)
-    watch = FleetWatch(s, expected_rate_hz=10.0)
+    watch = FleetWatch(s)
     hold = max(events.SLOW_HOLD_S, events.LOSING_HOLD_S)
     for at in (0.0, hold / 2, hold):  # as the mirror: rates, then losses
         watch.rates({"arm-001": 2.0, "arm-002": 8.0}, at)

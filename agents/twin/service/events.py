@@ -486,7 +486,7 @@ class StatusWatch:
     going STALE or OFFLINE and back over and over is told as flapping instead (FLAP_ROUND_TRIPS).
     `offline_after_s` (the health setting) is only named in the warning of an arm flapping through OFFLINE."""
 
-    def __init__(self, store: EventStore, offline_after_s: float = 10.0) -> None:
+    def __init__(self, store: EventStore, offline_after_s: float = HealthThresholds.offline_after_s) -> None:
         self._store = store
         self._offline_after_s = offline_after_s
         self._last: dict[str, str] = {}
@@ -1121,6 +1121,8 @@ def _skew_message(device: str, offset: float) -> str:
 
 
 _ALARM_LEVEL = {"raised": EventLevel.WARNING, "cleared": EventLevel.INFO}
+# The [health] settings of a watch not given any (tests, a demo's store).
+_DEFAULT_HEALTH = HealthThresholds()
 
 
 def alarm_level(event: AlarmEvent) -> EventLevel:
@@ -1211,14 +1213,12 @@ class FleetWatch:
         self,
         store: EventStore,
         *,
-        expected_rate_hz: float = 10.0,
-        stale_after_s: float | None = None,
-        offline_after_s: float = 10.0,
+        health: HealthThresholds = _DEFAULT_HEALTH,
     ) -> None:
         self.store = store
-        self._statuses = StatusWatch(store, offline_after_s)
+        self._statuses = StatusWatch(store, health.offline_after_s)
         self._broker = BrokerWatch(store)
-        self._rates = RateWatch(store, expected_rate_hz, stale_after_s=stale_after_s)
+        self._rates = RateWatch(store, health.expected_rate_hz, stale_after_s=health.stale_after_s)
         self._losses = LossWatch(store)
         self._clocks = ClockWatch(store)
         self._mismatches = MismatchBurst(store)

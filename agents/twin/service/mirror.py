@@ -527,12 +527,7 @@ class Mirror:
         self._error_log = RateLimitedLog(log, interval_s=10.0, clock=clock)
         # The twin's events (the console's Events page): this mirror's, which the agent collects.
         self._events = EventStore(config.twin.events_capacity, wall_clock=self._wall_clock)
-        self._watch = FleetWatch(
-            self._events,
-            expected_rate_hz=config.health.expected_rate_hz,
-            stale_after_s=config.health.stale_after_s,
-            offline_after_s=config.health.offline_after_s,
-        )
+        self._watch = FleetWatch(self._events, health=config.health)
         self._rejections = RejectionThrottle(self._events, clock=clock)
         self.batches = 0
         # Fleet-wide distributions since start (every applied message of every device), for `twin bench`
