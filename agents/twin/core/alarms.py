@@ -1256,12 +1256,7 @@ class ServoAlarms:
             return []
         wanted = None if devices is None else set(devices)
         np = _np()
-        rows = len(self._devices)
-        # Selected with the arrays: the agent checkpoints every mirror each second, and a walk over every
-        # alarm of a 1,000-arm fleet (30,000) held the worker for 40-80 ms (docs/performance.md).
-        keep = fleet.exists[:rows] & (
-            (fleet.state[:rows] != _NORMAL) | fleet.present[:rows] | ~np.isnan(fleet.raise_since[:rows])
-        )
+        keep = self._recorded(fleet, len(self._devices))
         out = []
         for slot, j, n in np.argwhere(keep).tolist():
             at = (slot, j, n)
@@ -1315,19 +1310,28 @@ class ServoAlarms:
             restored += 1
         return restored
 
+    @staticmethod
+    def _recorded(fleet: _Fleet, rows: int) -> Any:
+        """Which of the first `rows` devices' alarms `records` gives (not NORMAL, condition present or a
+        raise being timed), as a boolean array. Selected with the arrays: the agent checkpoints every mirror
+        each second, and a walk over every alarm of a 1,000-arm fleet (30,000) held the worker for 40-80 ms
+        (docs/performance.md)."""
+        np = _np()
+        return fleet.exists[:rows] & (
+            (fleet.state[:rows] != _NORMAL) | fleet.present[:rows] | ~np.isnan(fleet.raise_since[:rows])
+        )
+
     def idle(self) -> list[IdleRow]:
         """The alarms `records` leaves out (NORMAL, condition absent, no raise timing), by device (IdleRow):
         a worker's checkpoint carries them, so a restarted worker still counts them in NORMAL and still
         knows how often each was raised. Picked out with the arrays, a few ints per arm: every second's
-        checkpoint of a 1,000-arm fleet would pay for 30,000 records."""
+        checkpoint of a 1,000-arm fleet would pay for 36,000 records."""
         fleet = self._fleet
         if fleet is None:
             return []
         np = _np()
         rows = len(self._devices)
-        idle = fleet.exists[:rows] & ~(
-            (fleet.state[:rows] != _NORMAL) | fleet.present[:rows] | ~np.isnan(fleet.raise_since[:rows])
-        )
+        idle = fleet.exists[:rows] & ~self._recorded(fleet, rows)
         bits = idle.reshape(rows, _CELLS).astype(np.uint64) << np.arange(_CELLS, dtype=np.uint64)
         masks = bits.sum(axis=1).tolist()  # distinct powers of two: the sum is the mask
         raised: dict[int, list[tuple[int, int, float, str]]] = {}
@@ -1341,11 +1345,10 @@ class ServoAlarms:
             if mask
         ]
 
-    def restore_idle(self, rows: Iterable[IdleRow], since: float) -> int:
+    def restore_idle(self, rows: Iterable[IdleRow], since: float) -> None:
         """Take back the alarms `idle` exported (a restarted worker, before any message), as NORMAL, since
-        `since` unless their row says when they cleared; an alarm the engine already has stays as it is.
-        Returns how many were restored."""
-        restored = 0
+        `since` unless their row says when they went NORMAL (cleared, or reset by an acknowledgement); an
+        alarm the engine already has stays as it is."""
         for device, mask, raised in rows:
             slot = self._row(device)
             fleet = self._arrays()  # after _row: it may have grown the arrays
@@ -1361,8 +1364,6 @@ class ServoAlarms:
                 fleet.raised[at] = times
                 if message:
                     self._messages[at] = message
-                restored += 1
-        return restored
 
     def restore_counters(self, counters: AlarmCounters) -> None:
         """Add `counters` (a previous run's totals) to this engine's."""
