@@ -1003,7 +1003,7 @@ def ack_results_json(results: Sequence[AckResult]) -> dict[str, object]:
         row: dict[str, object] = {
             "alarm_id": r.alarm_id,
             "outcome": str(r.outcome),
-            "state": None if r.alarm is None else str(r.alarm.state),
+            "state": r.state,
         }
         if r.detail:
             row["detail"] = r.detail

@@ -1826,7 +1826,6 @@ class Mirror:
         unknown one, or one with nothing to acknowledge, does not stop the others), in the order given."""
         results: list[AckResult] = []
         events: list[AlarmEvent] = []
-        wall = self._wall_clock()
         with self._lock:
             now = self._clock()
             for alarm_id in alarm_ids:
@@ -1840,7 +1839,7 @@ class Mirror:
                 except NothingToAcknowledge as exc:
                     outcome, detail = AckOutcome.NOTHING_TO_ACKNOWLEDGE, str(exc)
                 view = self._alarms.views_of((alarm_id,))[0]
-                results.append(AckResult(alarm_id, outcome, alarm_info(view, now, wall), detail))
+                results.append(AckResult(alarm_id, outcome, str(view.state), detail))
         for event in events:
             _log_alarm_event(event)
             self._watch.alarm(event)

@@ -247,11 +247,12 @@ class AckOutcome(StrEnum):
 
 @dataclass(frozen=True, slots=True)
 class AckResult:
-    """One id's outcome; `alarm` as it is after (None when there is none), `detail` why it was not made."""
+    """One id's outcome; `state` the alarm's state after (None when there is no such alarm), `detail` why it
+    was not made. The state alone: the answer of 1,000 ids is pickled back over a worker's pipe."""
 
     alarm_id: str
     outcome: AckOutcome
-    alarm: AlarmInfo | None = None
+    state: str | None = None
     detail: str = ""
 
 
