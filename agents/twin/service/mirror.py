@@ -1084,7 +1084,7 @@ class Mirror:
             stage_cpu["health_alarms"] += _span(twin_done, started, read) * weight
             for message_events in events:
                 for event in message_events:
-                    _log_alarm_event(event, told=self._watch.alarm(event))
+                    self._tell_alarm(event)
             if self._sinks or self._rows is not None:
                 self._hand_all(entries, applied, events, batch)
                 stage_cpu["sinks"] += _span(started, cpu(), read) * weight
@@ -1805,21 +1805,14 @@ class Mirror:
             now = self._clock()
             event = self._alarms.acknowledge(alarm_id, now)
             view = self._alarms.views_of((alarm_id,))[0]
-        _log_alarm_event(event)
-        self._watch.alarm(event)
+        self._tell_alarm(event)
         return alarm_info(view, now, self._wall_clock())
 
     def acknowledge_checkpointed(self, alarm_id: str) -> Acknowledged:
         """`acknowledge_alarm`, and the mirror's checkpoint begun right after it between the same two batches:
         a worker's restart point that holds the acknowledgement, so a worker that dies before the agent's next
         checkpoint does not come back with the alarm ACTIVE (or LATCHED) again."""
-
-        def act() -> tuple[AlarmInfo, Capture]:
-            self._finish_capture()  # one begun before the acknowledgement would not hold it
-            return self.acknowledge_alarm(alarm_id), self._begin_capture()
-
-        info, capture = self._between_batches(act)
-        return Acknowledged(info, self._act_checkpoint(capture))
+        return Acknowledged(*self._checkpointed(lambda: self.acknowledge_alarm(alarm_id)))
 
     def acknowledge_alarms(self, alarm_ids: Sequence[str]) -> tuple[AckResult, ...]:
         """`acknowledge_alarm` of each id in one hold of the mirror's lock, each id's outcome answered (an
@@ -1841,19 +1834,27 @@ class Mirror:
                 view = self._alarms.views_of((alarm_id,))[0]
                 results.append(AckResult(alarm_id, outcome, str(view.state), detail))
         for event in events:
-            _log_alarm_event(event)
-            self._watch.alarm(event)
+            self._tell_alarm(event)
         return tuple(results)
 
     def acknowledge_many_checkpointed(self, alarm_ids: Sequence[str]) -> AckedMany:
         """`acknowledge_alarms`, and one checkpoint begun right after them (acknowledge_checkpointed's)."""
+        return AckedMany(*self._checkpointed(lambda: self.acknowledge_alarms(alarm_ids)))
 
-        def act() -> tuple[tuple[AckResult, ...], Capture]:
+    def _tell_alarm(self, event: AlarmEvent) -> None:
+        """An alarm transition as its event (FleetWatch.alarm) and its log line, at the same level."""
+        _log_alarm_event(event, told=self._watch.alarm(event))
+
+    def _checkpointed(self, act: Callable[[], _T]) -> tuple[_T, MirrorCheckpoint | None]:
+        """`act()` between two batches, and the mirror's checkpoint begun right after it there (a worker's
+        restart point that holds what it did: one begun before would not), if taken in ACT_CHECKPOINT_S."""
+
+        def run() -> tuple[_T, Capture]:
             self._finish_capture()
-            return self.acknowledge_alarms(alarm_ids), self._begin_capture()
+            return act(), self._begin_capture()
 
-        results, capture = self._between_batches(act)
-        return AckedMany(results, self._act_checkpoint(capture))
+        result, capture = self._between_batches(run)
+        return result, self._act_checkpoint(capture)
 
     def _act_checkpoint(self, capture: Capture) -> MirrorCheckpoint | None:
         """The checkpoint an acknowledgement or a forget began, if taken within ACT_CHECKPOINT_S."""
@@ -1877,10 +1878,8 @@ class Mirror:
         why the agent forgot it itself (its event says so), empty for an operator."""
         if not checkpoint:
             return self._between_batches(lambda: self._forget_arm(device, reason))
-        forgotten, capture = self._between_batches(
-            lambda: (self._forget_arm(device, reason), self._begin_capture())
-        )
-        return dataclasses.replace(forgotten, checkpoint=self._act_checkpoint(capture))
+        forgotten, taken = self._checkpointed(lambda: self._forget_arm(device, reason))
+        return dataclasses.replace(forgotten, checkpoint=taken)
 
     def _forget_arm(self, device: str, reason: str = "") -> ArmForgotten:
         # A checkpoint being taken would carry the arm's row and alarms: finish it first, so the one the agent
