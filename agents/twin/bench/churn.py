@@ -174,7 +174,8 @@ def _sample(t_s: float, base: str, agent_pid: int, events: EventCounts) -> dict[
         "load_average": list(os.getloadavg()),
         "pids": pids,
         "rss_mb": rss_mb,
-        # And right after it: the peak a host scraped often sees, which the first read leaves out.
+        # And once it is answered: what is left of that render's peak then. The agent trims its heap after
+        # sending the answer, so this read may come before or after the trim; reported, never judged.
         "rss_after_metrics_mb": {name: _rss_mb(pid) for name, pid in pids.items()},
         "events": events.stores(),
         "events_missed": events.missed,
@@ -235,22 +236,26 @@ def measure(churn: Churn, out: Path) -> dict[str, Any]:
             started = time.monotonic()
             next_sample = 0.0
             unanswered: list[dict[str, Any]] = []
+
+            def sample(t_s: float) -> None:
+                taken = answered(lambda: _sample(t_s, base, proc.pid, events), t_s, unanswered, "sample")
+                if taken is not None:
+                    samples.append(taken)
+
             while (t_s := time.monotonic() - started) < seconds:
                 if proc.poll() is not None:
                     raise RuntimeError(f"the agent exited during the churn soak (code {proc.returncode})")
                 waves.tick(t_s)
                 answered(events.poll, t_s, unanswered, "events")
                 if t_s >= next_sample:
-                    sample = answered(lambda: _sample(t_s, base, proc.pid, events), t_s, unanswered, "sample")
-                    samples.extend([sample] if sample is not None else [])
+                    sample(t_s)
                     next_sample += churn.sample_s
                 time.sleep(EVENTS_POLL_S)  # the events' polling period, not synchronisation
             sent = collect(steady, timeout=120)
             waves.finish()
             t_s = time.monotonic() - started
             answered(events.poll, t_s, unanswered, "events")
-            last = answered(lambda: _sample(t_s, base, proc.pid, events), t_s, unanswered, "sample")
-            samples.extend([last] if last is not None else [])
+            sample(t_s)
     shutil.rmtree(out / "rig", ignore_errors=True)
     return {
         "scenario": "churn",
@@ -319,7 +324,7 @@ def _process(
         "slope_se_mb_h": se * 3600.0,
         "rise_mb": rise,
         "growth": growth,
-        # Not judged: a render's peak, kept by the allocator as it likes (docs/performance.md).
+        # Not judged: what a render left when its answer arrived, before or after the agent's trim.
         "after_metrics_max_mb": max((r for _, r in peaks), default=None),
         "after_metrics_slope_mb_h": peak_b * 3600.0,
         "ok": (growth <= limit) if judged else None,
