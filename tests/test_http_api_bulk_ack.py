@@ -226,3 +226,36 @@ def test_the_console_sends_at_most_what_one_request_takes() -> None:
 
     script = (Path(ASSETS) / "common.js").read_text()
     assert f"const ACK_MANY_MAX = {ACK_MANY_MAX};" in script
+
+
+@pytest.mark.slow
+def test_every_worker_is_asked_before_any_answer_is_awaited(tmp_path: Path) -> None:
+    """With two worker processes each takes its share and its checkpoint at the same time: the agent sends
+    both requests before it waits for either (asked one by one, a request held the keep lock for the sum
+    of the workers' checkpoints)."""
+    agent = hot_agent(tmp_path / "state.json", 2)
+    try:
+        heat(agent, (WARM, OTHER))
+        seen: list[tuple[str, int]] = []
+        for shard in agent._shards:
+            real = shard.request
+
+            def request(req: Any, real: Any = real, index: int = shard.index) -> Any:
+                wait = real(req)
+                if type(req).__name__ != "AckManyRequest":
+                    return wait
+                seen.append(("asked", index))
+
+                def waited() -> Any:
+                    seen.append(("awaited", index))
+                    return wait()
+
+                return waited
+
+            shard.request = request  # type: ignore[method-assign]
+        status, body = post(agent.http_url, json.dumps([WARM, OTHER]).encode())
+        assert status == 200 and body["counts"]["acknowledged"] == 2, body
+        assert [what for what, _ in seen] == ["asked", "asked", "awaited", "awaited"], seen
+        assert {index for _, index in seen} == {0, 1}, seen
+    finally:
+        agent.stop()

@@ -1124,42 +1124,42 @@ class AgentService:
         by_shard: dict[int, list[str]] = {}
         for alarm_id in alarm_ids:
             by_shard.setdefault(self.plan.worker_of(alarm_id.split("/", 1)[0]), []).append(alarm_id)
-        results: dict[str, AckResult] = {}
-        with self._keep_lock:
-            for index, ids in by_shard.items():
-                results.update((r.alarm_id, r) for r in self._acknowledge_on(self._shards[index], ids))
-            self._cached = None
-            saved = self._save_alarms_now()  # once, before the answer, as for one acknowledgement
-        self._wake.set()
-        answered = tuple(results[alarm_id] for alarm_id in alarm_ids)
-        if not saved and self._state_file is not None:
-            raise NotSavedError(
-                f"the acknowledgements are made, but the state file {self._state_file.path} could not be "
-                f"written ({self._state_file.last_error}): a restart before it can be would undo them. Free "
-                "space in (or fix the permissions of) its directory; the agent writes it again every second",
-                answered,
-            )
-        return answered
 
-    def _acknowledge_on(self, shard: Shard, alarm_ids: list[str]) -> tuple[AckResult, ...]:
-        """One shard's share of `acknowledge_alarms`, its checkpoint confirmed as `_keep_act` does; the caller
-        holds the keep lock. A worker that cannot be asked, or died as it answered: every id unavailable."""
+        def make() -> tuple[AckResult, ...]:
+            # Every worker asked before any answer is waited for: they take their checkpoints in parallel.
+            waits = [self._acknowledge_on(self._shards[index], ids) for index, ids in by_shard.items()]
+            results = {r.alarm_id: r for wait in waits for r in wait()}
+            return tuple(results[alarm_id] for alarm_id in alarm_ids)
+
+        return self._kept("acknowledgement", make, many=True)
+
+    def _acknowledge_on(self, shard: Shard, alarm_ids: list[str]) -> Callable[[], tuple[AckResult, ...]]:
+        """One shard's share of `acknowledge_alarms`, asked now; the returned call waits for its answer and
+        confirms its checkpoint (`_confirm_act`). A worker that cannot be asked, or died as it answered:
+        every id unavailable."""
 
         def unavailable(why: str) -> tuple[AckResult, ...]:
             detail = f"{why}; acknowledge again once it runs (GET /state, agent.workers)"
             return tuple(AckResult(a, AckOutcome.WORKER_UNAVAILABLE, None, detail) for a in alarm_ids)
 
-        if not shard.answering:
-            return unavailable(f"worker {shard.index} is being started again")
         restarts = shard.restarts
-        request = AckManyRequest(tuple(alarm_ids), checkpoint=self._mirror is None)
         try:
-            answer = acked_many_of(shard.request(request)())
+            if not shard.answering:
+                raise WorkerError(f"worker {shard.index} is being started again")
+            wait = shard.request(AckManyRequest(tuple(alarm_ids), checkpoint=self._mirror is None))
         except WorkerError as exc:
-            return unavailable(str(exc))
-        if answer.checkpoint is not None and not shard.confirm(answer.checkpoint, restarts=restarts):
-            return unavailable(_DIED_AFTER.format(index=shard.index, act="acknowledgement"))
-        return answer.results
+            why = str(exc)
+            return lambda: unavailable(why)
+
+        def answer() -> tuple[AckResult, ...]:
+            try:
+                acked = acked_many_of(wait())
+                self._confirm_act(shard, "acknowledgement", restarts, acked.checkpoint)
+            except WorkerError as exc:
+                return unavailable(str(exc))
+            return acked.results
+
+        return answer
 
     def forget_arm(self, device: str, *, reason: str = "") -> ArmForgotten:
         """Remove an OFFLINE arm from the fleet, by the mirror of its device (Mirror.forget_arm). Raises
@@ -1191,25 +1191,44 @@ class AgentService:
         kept: Callable[[], None] = lambda: None,
     ) -> _T:
         """A person's act (an acknowledgement, a forget) by `shard`'s mirror, kept before it is answered.
-        `ask(checkpoint)` makes it, with worker processes asking for the checkpoint begun right after it:
-        that becomes the worker's restart point (the one held before would give a worker that dies before
-        the supervisor's next checkpoint the alarm back ACTIVE, or the forgotten arm back). The lock keeps
-        the supervisor from confirming or saving a checkpoint it took before the act over the ones here."""
-        with self._keep_lock:
+        `ask(checkpoint)` makes it, with worker processes asking for the checkpoint begun right after it,
+        which `_confirm_act` makes the worker's restart point."""
+
+        def make() -> _T:
             restarts = shard.restarts
             result, checkpoint = ask(self._mirror is None)
-            if checkpoint is not None and not shard.confirm(checkpoint, restarts=restarts):
-                raise WorkerError(_DIED_AFTER.format(index=shard.index, act=act))
+            self._confirm_act(shard, act, restarts, checkpoint)
             kept()
+            return result
+
+        return self._kept(act, make)
+
+    def _confirm_act(
+        self, shard: Shard, act: str, restarts: int, checkpoint: MirrorCheckpoint | None
+    ) -> None:
+        """The checkpoint a worker began right after a person's act becomes its restart point: the one held
+        before would give a worker that dies before the supervisor's next checkpoint the alarm back ACTIVE,
+        or the forgotten arm back. WorkerError when it died since `restarts` was read, before asking."""
+        if checkpoint is not None and not shard.confirm(checkpoint, restarts=restarts):
+            raise WorkerError(_DIED_AFTER.format(index=shard.index, act=act))
+
+    def _kept(self, act: str, make: Callable[[], _T], *, many: bool = False) -> _T:
+        """`make()` under the keep lock, then the state file written once before the answer. The lock keeps
+        the supervisor from confirming or saving a checkpoint it took before the act over the ones `make`
+        confirms. Raises NotSavedError (its `result` what `make` gave, its detail naming the `act`, or
+        `many` of them) when the file could not be written."""
+        with self._keep_lock:
+            result = make()
             self._cached = None
-            saved = self._save_alarms_now()  # the state file has it before the answer
+            saved = self._save_alarms_now()
         self._wake.set()
         if not saved and self._state_file is not None:
             # Made, and kept in memory; a restart before the next write that succeeds would undo it.
+            made, them = (f"the {act}s are", "them") if many else (f"the {act} is", "it")
             raise NotSavedError(
-                f"the {act} is made, but the state file {self._state_file.path} could not be written "
-                f"({self._state_file.last_error}): a restart before it can be would undo it. Free space in "
-                "(or fix the permissions of) its directory; the agent writes it again every second",
+                f"{made} made, but the state file {self._state_file.path} could not be written "
+                f"({self._state_file.last_error}): a restart before it can be would undo {them}. Free space "
+                "in (or fix the permissions of) its directory; the agent writes it again every second",
                 result,
             )
         return result
