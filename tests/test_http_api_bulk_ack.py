@@ -156,6 +156,7 @@ def test_many_alarms_are_acknowledged_in_one_request_and_one_write_kept_over_a_r
         (HOT, "acknowledged", "ACKNOWLEDGED"),
     ], body
     assert "is ACKNOWLEDGED" in body["results"][2]["detail"], body
+    assert "no alarm has this id" in body["results"][1]["detail"], body  # as one acknowledgement's 404 says
     assert body["counts"] == {
         "acknowledged": 2,
         "nothing_to_acknowledge": 1,

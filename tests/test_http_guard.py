@@ -167,6 +167,7 @@ def test_a_browser_post_needs_the_csrf_token(agent: AgentService) -> None:
 def test_a_loopback_client_without_browser_marks_needs_no_token(agent: AgentService) -> None:
     status, body = post(agent, ACK)
     assert status == 404 and body["error"] == "alarm_not_found"
+    assert "no alarm has this id" in body["detail"] and "GET /alarms?all=1" in body["detail"], body
 
 
 def test_alarm_ids_are_accepted_literally_or_percent_encoded(agent: AgentService) -> None:

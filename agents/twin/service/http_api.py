@@ -98,6 +98,7 @@ from twin.service.persist import NotSavedError
 from twin.service.session_files import SessionFiles
 from twin.service.shards import (
     ACK_MANY_MAX,
+    ALARM_NOT_FOUND_DETAIL,
     AckOutcome,
     AckResult,
     ArmForgotten,
@@ -640,9 +641,7 @@ class AgentHttpServer:
         try:
             info = await self._call(lambda: source.acknowledge_alarm(alarm_id))
         except AlarmNotFound:
-            return _error(
-                404, "alarm_not_found", alarm_id=alarm_id, detail="GET /alarms?all=1 lists every id"
-            )
+            return _error(404, "alarm_not_found", alarm_id=alarm_id, detail=ALARM_NOT_FOUND_DETAIL)
         except NothingToAcknowledge as exc:
             return _error(409, "nothing_to_acknowledge", detail=str(exc))
         except WorkerError as exc:

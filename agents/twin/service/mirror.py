@@ -109,6 +109,7 @@ from twin.service.console import FleetRow, fleet_row
 from twin.service.events import Event, EventQuery, EventStore, FleetWatch, RejectionThrottle, alarm_level
 from twin.service.logs import RateLimitedLog, name_native_thread
 from twin.service.shards import (
+    ALARM_NOT_FOUND_DETAIL,
     ARM_CONFIGURED,
     ARM_NOT_OFFLINE,
     EVENTS_PER_ASK,
@@ -542,7 +543,8 @@ class Mirror:
         # messages are only waiting. And the receive time of the oldest message of the batch it is handling
         # (None between batches): the lag shown (`behind_s`) is read from both when asked, so a worker stuck
         # in one batch shows it growing, not the figure of the sweep before it. Written by the worker thread
-        # alone (one value each, once a batch: no lock needed).
+        # alone: the first at each sweep, the second as each batch begins and ends. A reader reads each one
+        # whole (a float or None), so no lock is needed.
         self._swept_behind_s = 0.0
         self._handling_since: float | None = None
 
@@ -1826,8 +1828,9 @@ class Mirror:
                 try:
                     events.append(self._alarms.acknowledge(alarm_id, now))
                 except AlarmNotFound:
-                    detail = "no alarm has this id (its arm forgotten?); GET /alarms?all=1 lists every id"
-                    results.append(AckResult(alarm_id, AckOutcome.ALARM_NOT_FOUND, None, detail))
+                    results.append(
+                        AckResult(alarm_id, AckOutcome.ALARM_NOT_FOUND, None, ALARM_NOT_FOUND_DETAIL)
+                    )
                     continue
                 except NothingToAcknowledge as exc:
                     outcome, detail = AckOutcome.NOTHING_TO_ACKNOWLEDGE, str(exc)

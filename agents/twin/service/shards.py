@@ -245,6 +245,10 @@ class AckOutcome(StrEnum):
     WORKER_UNAVAILABLE = "worker_unavailable"  # its worker is being started again: not asked
 
 
+# What an unknown id's answer says, to one acknowledgement (404) and in a bulk one's results alike.
+ALARM_NOT_FOUND_DETAIL = "no alarm has this id (its arm forgotten?); GET /alarms?all=1 lists every id"
+
+
 @dataclass(frozen=True, slots=True)
 class AckResult:
     """One id's outcome; `state` the alarm's state after (None when there is no such alarm), `detail` why it
