@@ -293,21 +293,24 @@ def fleet_near_peak_s(samples: Sequence[dict[str, Any]]) -> float | None:
     return next((s["t_s"] for s in samples if s["devices"] >= FLEET_NEAR_PEAK * peak), None) if peak else None
 
 
+def _series(samples: Sequence[dict[str, Any]], key: str, name: str) -> list[tuple[float, float]]:
+    """(time, MB) of one process's RSS read `key` ("rss_mb", "rss_after_metrics_mb"), where it was read."""
+    return [(s["t_s"], s[key][name]) for s in samples if s.get(key, {}).get(name) is not None]
+
+
 def _process(
     samples: Sequence[dict[str, Any]], name: str, capacity: int, limit: float, fleet_s: float | None
 ) -> dict[str, Any]:
     """One process's figures: RSS at the start, when judging starts (the later of its store's fill and
     `fleet_s`) and at the end, and from then on the least-squares slope (MB/h), the line's rise over the
     window against its value at the window's start, the verdict."""
-    points = [(s["t_s"], s["rss_mb"][name]) for s in samples if s["rss_mb"].get(name) is not None]
+    points = _series(samples, "rss_mb", name)
     fill = _fill_s(samples, name, capacity)
     start = None if fill is None or fleet_s is None else max(fill, fleet_s)
     window = [(t, r) for t, r in points if start is not None and t >= start]
     b, se, at_start = slope([t for t, _ in window], [r for _, r in window])
     peaks = [
-        (s["t_s"], s["rss_after_metrics_mb"][name])
-        for s in samples
-        if start is not None and s["t_s"] >= start and s.get("rss_after_metrics_mb", {}).get(name) is not None
+        (t, r) for t, r in _series(samples, "rss_after_metrics_mb", name) if start is not None and t >= start
     ]
     peak_b = slope([t for t, _ in peaks], [r for _, r in peaks])[0]
     rise = b * (window[-1][0] - window[0][0]) if window and not math.isnan(b) else math.nan
