@@ -793,9 +793,9 @@ class RateWatch:
             stale_after_s = HealthThresholds(expected_rate_hz=expected_rate_hz).stale_after_s
         self._stale_after_s = stale_after_s
         self._over_since: dict[str, float] = {}
-        self._under_since: dict[str, float] = {}
-        # The readings' sum and count over each device's time under the slow line (its mean is reported).
-        self._under_rates: dict[str, tuple[float, int]] = {}
+        # Each device under the slow line -> when that began, and the sum and count of its readings since
+        # (their mean is what is reported).
+        self._under: dict[str, tuple[float, float, int]] = {}
         self._reported: set[str] = set()
         self._slow: set[str] = set()
         self._settling: dict[str, float] = {}  # restored device -> until when it cannot be back
@@ -812,7 +812,7 @@ class RateWatch:
     @property
     def slowing(self) -> frozenset[str]:
         """The devices reported slow and those under the slow line now, not yet held there long enough."""
-        return frozenset(self._slow.union(self._under_since))
+        return frozenset(self._slow.union(self._under))
 
     def restore(self, devices: Iterable[str], now: float, slow: Iterable[str] = ()) -> None:
         """Devices a checkpoint says were reported crowded (`reported`) or `slow`, before the mirror's process
@@ -828,8 +828,7 @@ class RateWatch:
     def forget(self, device: str) -> None:
         """`device` was forgotten: nothing of it stays (it is judged anew if it publishes again)."""
         self._over_since.pop(device, None)
-        self._under_since.pop(device, None)
-        self._under_rates.pop(device, None)
+        self._under.pop(device, None)
         self._reported.discard(device)
         self._slow.discard(device)
         self._settling.pop(device, None)
@@ -840,11 +839,9 @@ class RateWatch:
         """`rates`: each device heard from -> its valid messages per second now; `now` a monotonic time;
         `statuses`: their statuses at the same point (StatusWatch's reading), without which a rate of 0 ends a
         device's time under the slow line."""
-        for since in (self._over_since, self._under_since):
-            for device in [d for d in since if d not in rates]:
-                del since[device]
-        for device in [d for d in self._under_rates if d not in self._under_since]:
-            del self._under_rates[device]
+        for near in (self._over_since, self._under):
+            for device in [d for d in near if d not in rates]:
+                del near[device]
         # Evicted or restarted elsewhere: nothing to clear here.
         self._reported.intersection_update(rates)
         self._slow.intersection_update(rates)
@@ -878,21 +875,20 @@ class RateWatch:
         messages of an arm sending less than once a rate window goes on with its time under, not OFFLINE."""
         if 0.0 < rate <= SLOW_RATIO * self._expected:
             under = True
-        elif rate == 0.0 and statuses is not None and device in self._under_since:
+        elif rate == 0.0 and statuses is not None and device in self._under:
             under = str(statuses.get(device, "OFFLINE")) != "OFFLINE"
         else:
             under = False
         if not under:
-            self._under_since.pop(device, None)
-            self._under_rates.pop(device, None)
+            self._under.pop(device, None)
             return None
-        total, count = self._under_rates.get(device, (0.0, 0))
-        total, count = self._under_rates[device] = (total + rate, count + 1)
+        since, total, count = self._under.get(device, (now, 0.0, 0))
+        self._under[device] = (since, total + rate, count + 1)
         # Told at a reading with messages in it, not in a silence that may be the arm stopping.
-        if rate == 0.0 or now - self._under_since.setdefault(device, now) < SLOW_HOLD_S:
+        if rate == 0.0 or now - since < SLOW_HOLD_S:
             return None
-        del self._under_since[device], self._under_rates[device]
-        return total / count
+        del self._under[device]
+        return (total + rate) / (count + 1)
 
     def _crowded(self, device: str, rate: float) -> None:
         message = (
