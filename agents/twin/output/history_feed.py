@@ -1052,12 +1052,7 @@ class HistoryProcess:
             self._process, self._control = process, control
             self.started_at = time.monotonic()
             self._starting, self._last_own = True, False
-        try:
-            hello = self._hello(process, control)
-        except HistoryStartError:
-            with self._lock:
-                self._starting = False
-            raise
+        hello = self._hello(process, control)
         with self._lock:
             self._starting = False
             if not self._abandoned and isinstance(hello, _Ready):
@@ -1078,8 +1073,8 @@ class HistoryProcess:
     @staticmethod
     def _hello(process: SpawnProcess, control: Connection) -> _Ready | _Failed | None:
         """The starting writer's first word on `control`; None when it exited first (or was killed by the
-        stop). One that says nothing within START_TIMEOUT_S is killed (HistoryStartError): left running, it
-        looked alive to the supervisor, which then never started another."""
+        stop). One that says nothing within START_TIMEOUT_S is killed (a _Failed that says so): left running,
+        it looked alive to the supervisor, which then never started another."""
         try:
             if control.poll(START_TIMEOUT_S):
                 hello: _Ready | _Failed = control.recv()
@@ -1088,7 +1083,8 @@ class HistoryProcess:
             return None
         process.kill()
         process.join(5.0)
-        raise HistoryStartError(f"the history writer did not start within {START_TIMEOUT_S:.0f} s; killed")
+        message = f"the history writer did not start within {START_TIMEOUT_S:.0f} s; killed"
+        return _Failed(message, setting=False)
 
     def _doubt(self) -> _InDoubt | None:
         """The commit a writer that died was in and had not counted, by its counters."""
