@@ -149,6 +149,26 @@ def lifecycle_events(s: EventStore) -> list[Event]:
     ]
 
 
+def test_a_store_says_from_when_its_alarms_are_all_there_were() -> None:
+    """The Sessions page's counts hold from this time: the store answers it from its own parts, so no reader
+    rebuilds which kinds sit in which part."""
+    s, _ = store(capacity=100)
+    assert s.alarms_complete_from() is None  # holds nothing: not known
+    s.emit(EventKind.STATUS, EventLevel.INFO, "arm-001 is ONLINE", device="arm-001", at=900.0)
+    assert s.alarms_complete_from() == 900.0  # of the oldest event, when it holds no alarm or lifecycle one
+    # The oldest alarm or lifecycle event, by the order the store took them (a collected round may date an
+    # event just before one the agent made as it collected), not an older bulk one.
+    s.emit(EventKind.WORKER, EventLevel.ERROR, "worker 1 exited", at=1_000.5)
+    s.emit(EventKind.ALARM, EventLevel.WARNING, "hot", device="arm-002", at=1_000.2)
+    assert s.alarms_complete_from() == 1_000.5
+    # A flood of alarms lets the oldest go while the worker's exit stays in its reserve: after the newest.
+    for i in range(3 * s.capacity):
+        s.emit(EventKind.ALARM, EventLevel.WARNING, "hot", device="arm-002", at=2_000.0 + i)
+    let_go = s.alarms_let_go_until
+    assert let_go is not None and let_go > 2_000.0 and s.query(EventQuery(kinds=frozenset({"worker"})))
+    assert s.alarms_complete_from() == let_go
+
+
 def test_a_flood_of_alarms_does_not_push_the_agent_worker_and_broker_events_out() -> None:
     # An alarm storm (every arm of a hot cell raising and clearing) took the whole non-bulk share and pushed
     # out the agent's start, the worker that died and the broker loss that explain it.

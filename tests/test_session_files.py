@@ -21,7 +21,7 @@ import pytest
 from conftest import http_get
 from test_http_api import StubSource
 from twin.output import scratch
-from twin.service import session_files
+from twin.service import http_api, session_files
 from twin.service.config import ConfigError, HttpSection, load_config
 from twin.service.console import SessionInfo
 from twin.service.events import Event, EventKind, EventLevel, EventQuery, EventStore
@@ -179,8 +179,8 @@ def test_a_killed_agents_session_files_go_when_the_next_server_starts(
         own.close()
 
 
-class EventfulSource(StubSource):
-    """A source with the events `store` holds (the agent's EventSource)."""
+class EventsOnlySource(StubSource):
+    """A source with the events `store` holds, which does not say from when its alarms are complete."""
 
     def __init__(self, store: EventStore) -> None:
         super().__init__()
@@ -189,8 +189,12 @@ class EventfulSource(StubSource):
     def events(self, query: EventQuery) -> list[Event]:
         return self.store.query(query)
 
-    def alarms_let_go_until(self) -> float | None:
-        return self.store.alarms_let_go_until
+
+class EventfulSource(EventsOnlySource):
+    """A source with the events `store` holds (the agent's EventSource)."""
+
+    def alarms_complete_from(self) -> float | None:
+        return self.store.alarms_complete_from()
 
 
 def test_a_sessions_alarm_count_is_unknown_before_the_oldest_event_kept() -> None:
@@ -282,6 +286,42 @@ def test_alarm_counts_are_not_known_from_an_agent_event_older_than_the_alarms_a_
     answer = sessions_answer(store, sessions)
     assert [s["alarms_raised"] for s in answer["sessions"]] == [None, 0]
     assert answer["alarms_known_since"] == oldest_alarm - 1
+
+
+def test_alarm_counts_hold_only_from_the_oldest_alarm_the_read_took(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The page reads at most EVENTS_READ_FOR_SESSIONS alarm events: when more are held, the older ones are
+    # not counted, so a session that began before the oldest read is not known, whatever the store holds.
+    monkeypatch.setattr(http_api, "EVENTS_READ_FOR_SESSIONS", 5)
+    store = EventStore(100)
+    store.emit(EventKind.AGENT, EventLevel.INFO, "the agent started", at=1_000.0)
+    raised = {"action": "raised", "alarm_id": "arm-002/wrist_roll/over_temperature"}
+    for i in range(10):
+        store.emit(EventKind.ALARM, EventLevel.WARNING, "hot", device="arm-002", data=raised, at=2_000.0 + i)
+    assert store.alarms_complete_from() == 1_000.0
+    sessions = [
+        SessionInfo("arm-002", start=1_500.0, end=2_100.0, messages=1_900),  # 10 raised, 5 read
+        SessionInfo("arm-002", start=2_005.0, end=2_100.0, messages=900),  # the 5 read
+    ]
+    answer = sessions_answer(store, sessions)
+    assert [s["alarms_raised"] for s in answer["sessions"]] == [None, 5]
+    assert answer["alarms_known_since"] == 2_005.0
+
+
+def test_a_source_that_does_not_say_from_when_its_alarms_are_complete_has_no_counts() -> None:
+    # The counts' time is the store's to tell (EventStore.alarms_complete_from): a source with events but
+    # without it is not guessed at from the kinds of its events.
+    store = EventStore(100)
+    store.emit(EventKind.AGENT, EventLevel.INFO, "the agent started", at=1_000.0)
+    source = EventsOnlySource(store)
+    sessions = [SessionInfo("arm-002", start=1_500.0, end=2_100.0, messages=1_900)]
+    server = AgentHttpServer(source, "127.0.0.1", 0, sessions=SizedCatalog(sessions, 1))
+    server.start()
+    try:
+        answer = json.loads(http_get(f"http://127.0.0.1:{server.port}/api/sessions")[2])
+    finally:
+        server.stop()
+    assert [s["alarms_raised"] for s in answer["sessions"]] == [None]
+    assert answer["alarms_known_since"] is None
 
 
 def test_without_events_no_sessions_alarm_count_is_known() -> None:

@@ -1302,9 +1302,11 @@ class AgentService:
         collected every supervisor round, so at most about SUPERVISE_EVERY_S late."""
         return self._events.query(query)
 
-    def alarms_let_go_until(self) -> float | None:
-        """The time of the newest alarm event the agent's store let go of (console.AlarmHorizon)."""
-        return self._events.alarms_let_go_until
+    def alarms_complete_from(self) -> float | None:
+        """From when the alarm events of the agent's store are all there were (console.AlarmHorizon): the
+        mirrors' are collected into it, so it tells what it let go of (one a mirror's store let go of
+        before a round collected it is only logged: _new_events)."""
+        return self._events.alarms_complete_from()
 
     def _collect_events(self) -> None:
         """On the supervisor thread: broker reconnects, worker exits and restarts, and each mirror's new

@@ -104,11 +104,11 @@ class EventSource(Protocol):
 
 @runtime_checkable
 class AlarmHorizon(Protocol):
-    """The optional part of an EventSource whose store may let go of alarm events while older events of
-    other kinds stay (service.events: the lifecycle kinds' reserve): the time of the newest alarm event it
-    let go of, None for none. The Sessions page's alarm counts hold only for sessions after it."""
+    """The optional part of an EventSource that says from when the alarm events it holds are all there were
+    (EventStore.alarms_complete_from; None: not known). The Sessions page counts the raises of the sessions
+    that began then or later; without it, no count is known."""
 
-    def alarms_let_go_until(self) -> float | None: ...
+    def alarms_complete_from(self) -> float | None: ...
 
 
 class SessionInfo(msgspec.Struct, frozen=True):
@@ -119,7 +119,7 @@ class SessionInfo(msgspec.Struct, frozen=True):
     end: float
     messages: int
     status: str = "completed"  # active | completed
-    # None: not known, the session began before the oldest event the agent holds (docs/console.md).
+    # None: not known, the session began before the agent's alarm events are complete (docs/console.md).
     alarms_raised: int | None = 0
 
     @property

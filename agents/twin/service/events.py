@@ -281,7 +281,7 @@ class EventStore:
         self._wall_clock = wall_clock
         self.dropped = 0  # let go of for newer ones
         # The time of the newest alarm event let go of (None: none was), this run's or a restored one's: the
-        # alarms held are all there are from then on (the Sessions page's counts, alarms_let_go_until).
+        # alarms held are all there are from then on (alarms_complete_from).
         self._alarms_let_go_until: float | None = None
 
     @property
@@ -296,6 +296,20 @@ class EventStore:
     def alarms_let_go_until(self) -> float | None:
         """The time of the newest alarm event this store let go of; None when it let go of none."""
         return self._alarms_let_go_until
+
+    def alarms_complete_from(self) -> float | None:
+        """The time from which the alarm events held are all there were (the Sessions page counts raises from
+        it); None when the store holds no event. The time of the oldest alarm or lifecycle event held (the
+        journal's file named keeps those together, service.event_journal): the bulk part, let go of on its
+        own, may hold older events, of a time whose alarms are gone. Of the oldest event when it holds
+        neither. Never before the newest alarm let go of: the lifecycle reserve may keep older events."""
+        with self._lock:
+            kept = [part.oldest for part in (self._alarms, self._lifecycle) if part]
+            if not kept and not self._bulk:
+                return None
+            oldest = min(kept, key=_ID).time if kept else self._bulk.oldest.time
+            let_go = self._alarms_let_go_until
+            return oldest if let_go is None else max(oldest, let_go)
 
     def __len__(self) -> int:
         return len(self._bulk) + len(self._alarms) + len(self._lifecycle)

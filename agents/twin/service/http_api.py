@@ -76,7 +76,6 @@ from twin.service.console import (
     render_page,
 )
 from twin.service.events import (
-    BULK_KINDS,
     Event,
     EventKind,
     EventLevel,
@@ -134,7 +133,7 @@ CONSOLE_PAGES = ("/", "/arm/<device>", "/sessions", "/events")
 JSON_CONTENT_TYPE = "application/json"
 # How long a list of sessions is reused: reading them scans the history table.
 SESSIONS_REUSE_S = 5.0
-# Events read to count the sessions' alarms: more than the event store's default capacity holds.
+# Alarm events read to count the sessions' raises: as many as the largest store holds (config).
 EVENTS_READ_FOR_SESSIONS = 100_000
 # The most events one GET /api/events answers (the exports take up to 100,000).
 EVENTS_ANSWERED = 1000
@@ -813,7 +812,7 @@ class AgentHttpServer:
         wall = time.time()
 
         def count(s: SessionInfo) -> int | None:
-            # Began before the oldest event held: its raises may be gone with the events before it.
+            # Began before the raises are all held from: some of its own may be gone.
             if since is None or s.start < since:
                 return None
             return sum(1 for device, t in raised if device == s.device and s.start <= t <= s.end + gap)
@@ -833,27 +832,22 @@ class AgentHttpServer:
         return out, since
 
     async def _alarm_raises(self) -> tuple[list[tuple[str, float]], float | None]:
-        """Each alarm raise the agent's events hold (device, time), and the time of the oldest event of
-        their part of the store (of any, when it holds none of it): the counts hold from then on (None: the
-        source keeps no events, so no count is known)."""
+        """Each alarm raise the agent's events hold (device, time), and the time from which those are all
+        there were (None: not known, so no count is)."""
         source = self._source
-        if not isinstance(source, EventSource):
+        if not isinstance(source, EventSource) or not isinstance(source, AlarmHorizon):
             return [], None
-        events = await self._call(lambda: source.events(EventQuery(limit=EVENTS_READ_FOR_SESSIONS)))
-        raises = [
-            (e.device, e.time)
-            for e in events
-            if e.kind == EventKind.ALARM.value and e.data.get("action") == "raised"
-        ]
-        # The raises are all held from the oldest alarm, calibration, agent, worker or broker event on
-        # (service.events): the bulk part, status events and the like, may hold older ones, of which no raise
-        # went with them. The lifecycle kinds keep a reserve an alarm flood cannot take: their events may be
-        # older than an alarm let go of, so the counts hold only after the newest of those.
-        kept = [e.time for e in events if e.kind not in BULK_KINDS] or [e.time for e in events]
-        if not kept:
-            return raises, None
-        let_go = source.alarms_let_go_until() if isinstance(source, AlarmHorizon) else None
-        return raises, max(min(kept), let_go) if let_go is not None else min(kept)
+        query = EventQuery(kinds=frozenset({EventKind.ALARM.value}), limit=EVENTS_READ_FOR_SESSIONS)
+
+        def read() -> tuple[Sequence[Event], float | None]:
+            # The events first: an alarm let go of after the read moves the time later, never earlier.
+            return source.events(query), source.alarms_complete_from()
+
+        alarms, since = await self._call(read)
+        if since is not None and len(alarms) >= EVENTS_READ_FOR_SESSIONS:
+            since = max(since, alarms[0].time)  # the read left older ones out
+        raises = [(e.device, e.time) for e in alarms if e.data.get("action") == "raised"]
+        return raises, since
 
     async def _api_sessions(self, request: Request) -> Response:
         sessions, since = await self._sessions_counted()
