@@ -300,9 +300,9 @@ class EventStore:
     def alarms_complete_from(self) -> float | None:
         """The time from which the alarm events held are all there were (the Sessions page counts raises from
         it); None when the store holds no event. The time of the oldest alarm or lifecycle event held (the
-        journal's file named keeps those together, service.event_journal): the bulk part, let go of on its
-        own, may hold older events, of a time whose alarms are gone. Of the oldest event when it holds
-        neither. Never before the newest alarm let go of: the lifecycle reserve may keep older events."""
+        journal keeps those in one file pair, service.event_journal): the bulk part, let go of on its own,
+        may hold older events, of a time whose alarms are gone. Of the oldest event when it holds neither.
+        Never before the newest alarm let go of: the lifecycle reserve may keep older events."""
         with self._lock:
             kept = [part.oldest for part in (self._alarms, self._lifecycle) if part]
             if not kept and not self._bulk:
