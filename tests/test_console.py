@@ -1021,7 +1021,7 @@ def test_a_session_from_before_the_agents_events_shows_its_alarms_as_not_known(
         cell = page.locator('#sessions tr[data-device="arm-old"] td[data-label="alarms raised"]')
         cell.wait_for()
         assert cell.inner_text() == "not known"
-        assert "the agent's events begin at" in (cell.get_attribute("title") or "")
+        assert "the agent holds every alarm raise from" in (cell.get_attribute("title") or "")
     finally:
         page.unroute("**/api/sessions")
     assert browser_errors == []

@@ -52,11 +52,12 @@
     }));
   }
 
-  // null: the session began before the oldest event the agent holds, so its raises may be gone with them.
+  // null: the session began before the time from which the agent holds every alarm raise, so some of its
+  // raises may be gone.
   function alarmsCell(s) {
     if (s.alarms_raised !== null) return el("td", { text: String(s.alarms_raised), "data-label": "alarms raised" });
     const since = doc.alarms_known_since === null ? "the agent keeps no events"
-      : `the agent's events begin at ${Twin.time(doc.alarms_known_since)}`;
+      : `the agent holds every alarm raise from ${Twin.time(doc.alarms_known_since)}`;
     return el("td", { class: "unknown", text: "not known", title: `${since}; this session began before (docs/console.md, "Sessions")`,
       "data-label": "alarms raised" });
   }
