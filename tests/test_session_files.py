@@ -218,8 +218,10 @@ def test_a_sessions_alarm_count_is_unknown_before_the_oldest_event_kept() -> Non
     assert answer["alarms_known_since"] == 2_000.0
 
 
-def sessions_answer(store: EventStore, sessions: list[SessionInfo]) -> dict[str, Any]:
-    server = AgentHttpServer(EventfulSource(store), "127.0.0.1", 0, sessions=SizedCatalog(sessions, 1))
+def sessions_answer(source: EventStore | Any, sessions: list[SessionInfo]) -> dict[str, Any]:
+    """GET /api/sessions of a server over `source` (an EventStore: served as the agent serves its own)."""
+    source = EventfulSource(source) if isinstance(source, EventStore) else source
+    server = AgentHttpServer(source, "127.0.0.1", 0, sessions=SizedCatalog(sessions, 1))
     server.start()
     try:
         status, _, body = http_get(f"http://127.0.0.1:{server.port}/api/sessions")
@@ -312,25 +314,15 @@ def test_a_source_that_does_not_say_from_when_its_alarms_are_complete_has_no_cou
     # without it is not guessed at from the kinds of its events.
     store = EventStore(100)
     store.emit(EventKind.AGENT, EventLevel.INFO, "the agent started", at=1_000.0)
-    source = EventsOnlySource(store)
     sessions = [SessionInfo("arm-002", start=1_500.0, end=2_100.0, messages=1_900)]
-    server = AgentHttpServer(source, "127.0.0.1", 0, sessions=SizedCatalog(sessions, 1))
-    server.start()
-    try:
-        answer = json.loads(http_get(f"http://127.0.0.1:{server.port}/api/sessions")[2])
-    finally:
-        server.stop()
+    answer = sessions_answer(EventsOnlySource(store), sessions)
     assert [s["alarms_raised"] for s in answer["sessions"]] == [None]
     assert answer["alarms_known_since"] is None
 
 
 def test_without_events_no_sessions_alarm_count_is_known() -> None:
-    sessions = [SessionInfo("arm-001", start=1_900.0, end=2_100.0, messages=2_000)]
-    server = AgentHttpServer(StubSource(), "127.0.0.1", 0, sessions=SizedCatalog(sessions, 1))
-    server.start()
-    try:
-        answer = json.loads(http_get(f"http://127.0.0.1:{server.port}/api/sessions")[2])
-    finally:
-        server.stop()
+    answer = sessions_answer(
+        StubSource(), [SessionInfo("arm-001", start=1_900.0, end=2_100.0, messages=2_000)]
+    )
     assert [s["alarms_raised"] for s in answer["sessions"]] == [None]
     assert answer["alarms_known_since"] is None
