@@ -1143,9 +1143,7 @@ class AgentService:
             return tuple(AckResult(a, AckOutcome.WORKER_UNAVAILABLE, None, detail) for a in alarm_ids)
 
         restarts = shard.restarts
-        try:
-            if not shard.answering:
-                raise WorkerError(f"worker {shard.index} is being started again")
+        try:  # a worker being started again refuses the request (WorkerShard.request)
             wait = shard.request(AckManyRequest(tuple(alarm_ids), checkpoint=self._mirror is None))
         except WorkerError as exc:
             why = str(exc)
