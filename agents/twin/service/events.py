@@ -897,12 +897,13 @@ class RateWatch:
             self._under.pop(device, None)
             return None
         since, total, count = self._under.get(device, (now, 0.0, 0))
-        self._under[device] = (since, total + rate, count + 1)
+        total, count = total + rate, count + 1
         # Told at a reading with messages in it, not in a silence that may be the arm stopping.
         if rate == 0.0 or now - since < SLOW_HOLD_S:
+            self._under[device] = (since, total, count)
             return None
-        del self._under[device]
-        return (total + rate) / (count + 1)
+        self._under.pop(device, None)
+        return total / count
 
     def _crowded(self, device: str, rate: float) -> None:
         message = (
