@@ -197,10 +197,10 @@ class EventfulSource(EventsOnlySource):
         return self.store.alarms_complete_from()
 
 
-def test_a_sessions_alarm_count_is_unknown_before_the_oldest_event_kept() -> None:
-    """Its alarms are counted from the events the agent holds: a session that began before the oldest of
-    them (an agent started since, with no events file, or events pushed out of the store) used to read 0
-    alarms raised whatever it had. It reads null now, and the answer says from when the counts hold."""
+def test_a_sessions_alarm_count_is_unknown_before_its_alarms_are_all_held() -> None:
+    """Its alarms are counted from the time the agent holds every raise from: a session that began before it
+    (an agent started since, with no events file, or events pushed out of the store) used to read 0 alarms
+    raised whatever it had. It reads null now, and the answer says from when the counts hold."""
     store = EventStore(10)
     store.emit(EventKind.AGENT, EventLevel.INFO, "the agent started", at=2_000.0)
     for at in (2_050.0, 2_055.0, 3_020.0):

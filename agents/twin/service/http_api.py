@@ -60,7 +60,7 @@ from twin.core import heap
 from twin.core.alarms import AlarmNotFound, NothingToAcknowledge
 from twin.core.topics import device_id_problem
 from twin.service import session_files
-from twin.service.config import DEFAULT_HTTP_HOST, DEFAULT_HTTP_PORT, HttpSection
+from twin.service.config import DEFAULT_HTTP_HOST, DEFAULT_HTTP_PORT, MAX_EVENTS_CAPACITY, HttpSection
 from twin.service.console import (
     ASSETS,
     SESSION_FILE_KINDS,
@@ -134,7 +134,7 @@ JSON_CONTENT_TYPE = "application/json"
 # How long a list of sessions is reused: reading them scans the history table.
 SESSIONS_REUSE_S = 5.0
 # Alarm events read to count the sessions' raises: as many as the largest store holds (config).
-EVENTS_READ_FOR_SESSIONS = 100_000
+EVENTS_READ_FOR_SESSIONS = MAX_EVENTS_CAPACITY
 # The most events one GET /api/events answers (the exports take up to 100,000).
 EVENTS_ANSWERED = 1000
 # Answers every page and API response carries: nothing is cached, nothing may frame the console, scripts and
@@ -845,7 +845,9 @@ class AgentHttpServer:
 
         alarms, since = await self._call(read)
         if since is not None and len(alarms) >= EVENTS_READ_FOR_SESSIONS:
-            since = max(since, alarms[0].time)  # the read left older ones out
+            # The read may have left older ones out: not with today's bound on a store (the read takes as
+            # many as the largest holds), but counting from them would claim raises never read.
+            since = max(since, alarms[0].time)
         raises = [(e.device, e.time) for e in alarms if e.data.get("action") == "raised"]
         return raises, since
 
