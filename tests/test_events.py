@@ -4,6 +4,7 @@ and the exports whose formula-like cells are neutralised."""
 from __future__ import annotations
 
 import csv
+import functools
 import io
 import json
 import logging
@@ -279,11 +280,63 @@ def test_a_mirror_hands_a_burst_of_events_over_oldest_first_over_the_rounds() ->
         mirror._events.emit(EventKind.STATUS, EventLevel.WARNING, f"{device} is STALE", device=device)
     handed: list[Event] = []
     while len(handed) < burst:
-        answer = events_of(mirror.answer(EventsRequest(handed[-1].id if handed else 0)))
+        answer = events_of(mirror.answer(EventsRequest(handed[-1].id if handed else 0))).events
         assert 0 < len(answer) <= EVENTS_PER_ASK
         handed.extend(answer)
     assert [e.id for e in handed] == list(range(1, burst + 1))
-    assert events_of(mirror.answer(EventsRequest(burst))) == ()
+    assert events_of(mirror.answer(EventsRequest(burst))).events == ()
+
+
+def test_a_store_tells_a_reader_of_the_alarms_it_let_go_of_before_the_reader_had_them() -> None:
+    store = EventStore(100)
+    raised = {"action": "raised", "alarm_id": "arm-001/wrist_roll/over_temperature"}
+    emitted = [
+        store.emit(EventKind.ALARM, EventLevel.WARNING, "hot", device="arm-001", data=raised, at=1_000.0 + i)
+        for i in range(150)
+    ]
+    kept = {e.id for e in store.after(0, 1000)}
+    lost = [e for e in emitted if e.id not in kept]
+    assert lost and store.alarms_let_go_until == lost[-1].time
+    assert store.alarms_let_go_after(0) == lost[-1].time
+    assert store.alarms_let_go_after(lost[-1].id - 1) == lost[-1].time  # the newest one went unread
+    assert store.alarms_let_go_after(lost[-1].id) is None  # each went after the reader had it
+    assert store.alarms_let_go_after(store.last_id) is None
+
+
+def test_alarms_a_mirror_let_go_of_before_the_agent_collected_them_leave_the_counts_unknown(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A mirror's store let go of alarm events before the agent's round collected them (a flood faster than
+    the rounds): the agent's store, which never had them, held its raises complete from its own oldest event,
+    so the Sessions page counted a session that had them as raising fewer. The mirror's answer now says
+    until when they were lost, and the agent's store holds its alarms complete only after that. The mirror's
+    store is made smaller than the agent's here, so the agent's lets go of none itself: with two workers its
+    own letting go takes the oldest alarms of every worker, which need not be the lost ones' time."""
+    small = functools.partial(EventStore, 100)
+    monkeypatch.setattr("twin.service.mirror.EventStore", lambda _capacity, **kw: small(**kw))
+    agent = unbrokered_agent(tmp_path, workers=1)
+    try:
+        assert agent._events.capacity > 1000
+        mirror = agent._mirror
+        assert mirror is not None
+        raised = {"action": "raised", "alarm_id": "arm-001/wrist_roll/over_temperature"}
+        with agent._events_lock:  # no round collects while the flood is made
+            start = time.time()
+            for i in range(150):
+                at = start + i * 0.001
+                mirror._events.emit(
+                    EventKind.ALARM, EventLevel.WARNING, "hot", device="arm-001", data=raised, at=at
+                )
+            lost_until = mirror._events.alarms_let_go_until
+        assert lost_until is not None
+
+        def complete_from() -> float | None:
+            since = agent.alarms_complete_from()
+            return since if since is not None and since >= lost_until else None
+
+        wait_for(complete_from, 30, "the agent's alarms complete only after those the mirror let go of")
+    finally:
+        agent.stop()
 
 
 def test_the_agent_and_each_mirror_keep_as_many_events_as_configured(tmp_path: Path) -> None:
@@ -297,7 +350,7 @@ def test_the_agent_and_each_mirror_keep_as_many_events_as_configured(tmp_path: P
         mirror._events.emit(
             EventKind.STATUS, EventLevel.WARNING, f"arm-{n:03d} is STALE", device=f"arm-{n:03d}"
         )
-    assert len(events_of(mirror.answer(EventsRequest(0)))) == 150
+    assert len(events_of(mirror.answer(EventsRequest(0))).events) == 150
     agent = unbrokered_agent(tmp_path, workers=1, **{"twin.events_capacity": 150})
     try:
         assert agent._events.capacity == 150

@@ -1328,10 +1328,13 @@ class AgentService:
             after = self._events_seen.get(shard.index, 0)
             asked = self._wall_clock()
             try:
-                fresh = events_of(shard.request(EventsRequest(after))())
+                answer = events_of(shard.request(EventsRequest(after))())
             except WorkerError as exc:
                 log.debug("events of shard %d not collected: %s", shard.index, exc)
                 continue
+            if answer.alarms_lost_until is not None:
+                self._events.alarms_lost_until(answer.alarms_lost_until)
+            fresh = answer.events
             line = asked if line is None else line
             if fresh:
                 self._events_seen[shard.index] = fresh[-1].id

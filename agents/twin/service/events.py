@@ -283,6 +283,7 @@ class EventStore:
         # The time of the newest alarm event let go of (None: none was), this run's or a restored one's: the
         # alarms held are all there are from then on (alarms_complete_from).
         self._alarms_let_go_until: float | None = None
+        self._alarm_let_go_id = 0  # and its id (0: none), which tells whether a reader had it first
 
     @property
     def capacity(self) -> int:
@@ -296,6 +297,22 @@ class EventStore:
     def alarms_let_go_until(self) -> float | None:
         """The time of the newest alarm event this store let go of; None when it let go of none."""
         return self._alarms_let_go_until
+
+    def alarms_let_go_after(self, after_id: int) -> float | None:
+        """The time of the newest alarm event let go of when one numbered after `after_id` was: a reader that
+        had read up to `after_id` never had it. None when every alarm let go of was numbered before."""
+        with self._lock:
+            return self._alarms_let_go_until if self._alarm_let_go_id > after_id else None
+
+    def alarms_lost_until(self, at: float) -> None:
+        """Alarm events up to `at` that this store never took were let go of elsewhere (a worker's store
+        before the agent collected them): its alarms are complete only after `at` (alarms_complete_from)."""
+        with self._lock:
+            self._note_let_go(at)
+
+    def _note_let_go(self, at: float) -> None:
+        before = self._alarms_let_go_until
+        self._alarms_let_go_until = at if before is None else max(before, at)
 
     def alarms_complete_from(self) -> float | None:
         """The time from which the alarm events held are all there were (the Sessions page counts raises from
@@ -379,8 +396,8 @@ class EventStore:
         elif len(lifecycle) <= self._lifecycle_share or (alarms and alarms.oldest.id < lifecycle.oldest.id):
             let_go = alarms.oldest
             alarms.drop_oldest()
-            before = self._alarms_let_go_until
-            self._alarms_let_go_until = let_go.time if before is None else max(before, let_go.time)
+            self._note_let_go(let_go.time)
+            self._alarm_let_go_id = max(self._alarm_let_go_id, let_go.id)
         else:
             lifecycle.drop_oldest()
         self.dropped += 1

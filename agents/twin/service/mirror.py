@@ -129,6 +129,7 @@ from twin.service.shards import (
     CheckpointRequest,
     DeviceCheckpoint,
     DeviceRow,
+    EventsReply,
     EventsRequest,
     FleetRowsRequest,
     ForgetRequest,
@@ -1490,7 +1491,8 @@ class Mirror:
             return self.forget_arm(request.device, checkpoint=request.checkpoint, reason=request.reason)
         if isinstance(request, EventsRequest):
             # The oldest first: a burst over EVENTS_PER_ASK comes over the rounds that follow, none skipped.
-            return tuple(self._events.after(request.after_id, EVENTS_PER_ASK))
+            events = tuple(self._events.after(request.after_id, EVENTS_PER_ASK))
+            return EventsReply(events, self._events.alarms_let_go_after(request.after_id))
         if isinstance(request, FleetRowsRequest):
             return tuple(self.fleet_rows())
         if isinstance(request, ArmRequest):

@@ -327,6 +327,16 @@ class EventsRequest:
 
 
 @dataclass(frozen=True, slots=True)
+class EventsReply:
+    """The answer to an EventsRequest: the events, and the time of the newest alarm event the mirror's store
+    let go of before it was asked for (None: none was). The agent's store then holds no alarm raise up to
+    it as complete (EventStore.alarms_lost_until): a flood faster than the agent collects, for one."""
+
+    events: tuple[Event, ...]
+    alarms_lost_until: float | None = None
+
+
+@dataclass(frozen=True, slots=True)
 class FleetRowsRequest:
     """The console's row of each of the mirror's devices (twin.service.console.FleetRow)."""
 
@@ -574,7 +584,7 @@ Reply = (
     | Acknowledged
     | AckedMany
     | ArmForgotten
-    | tuple[Event, ...]
+    | EventsReply
     | tuple[FleetRow, ...]
     | tuple[UnheardArm, ...]
     | ArmReply
@@ -599,11 +609,11 @@ def alarms_of(reply: Reply) -> tuple[AlarmInfo, ...]:
     return tuple(a for a in reply if isinstance(a, AlarmInfo))
 
 
-def events_of(reply: Reply) -> tuple[Event, ...]:
+def events_of(reply: Reply) -> EventsReply:
     """The answer to an EventsRequest; WorkerError for anything else."""
-    if not isinstance(reply, tuple) or not all(isinstance(e, Event) for e in reply):
+    if not isinstance(reply, EventsReply):
         raise WorkerError(f"events were asked for, the answer was {type(reply).__name__}")
-    return tuple(e for e in reply if isinstance(e, Event))
+    return reply
 
 
 def fleet_rows_of(reply: Reply) -> tuple[FleetRow, ...]:
@@ -1837,6 +1847,7 @@ __all__ = [
     "CheckpointRequest",
     "DeviceCheckpoint",
     "DeviceRow",
+    "EventsReply",
     "EventsRequest",
     "FleetRowsRequest",
     "ForgetRequest",
