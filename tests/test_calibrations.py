@@ -206,6 +206,29 @@ def test_a_missing_directory_is_told_once_and_a_refusal_at_start_says_what_the_a
     assert "its twin holds still until a good file is pushed" in refused, refused
 
 
+def test_the_log_says_which_arm_lost_its_calibration_and_how_to_put_a_refused_one_right(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # A removal was logged without the device field a pick-up and a refusal carry, so a search of the log by
+    # device missed it; a refusal while the agent ran named no fix, nor that its next start holds the arm.
+    store = DirectoryStore(tmp_path / "calibration")
+    watcher = CalibrationWatcher(store)
+    store.write("arm-001", EXAMPLE.read_bytes())
+    store.write("arm-002", EXAMPLE.read_bytes())
+    watcher.poll()
+    with caplog.at_level("INFO", logger="twin.service.calibrations"):
+        store.delete("arm-001")
+        (tmp_path / "calibration" / "arm-002.json").write_text("{not json")
+        watcher.poll()
+    by_event = {getattr(r, "event", ""): r for r in caplog.records}
+    assert getattr(by_event["calibration_removed"], "device", "") == "arm-001"
+    refused = by_event["calibration_refused"]
+    assert getattr(refused, "device", "") == "arm-002"
+    said = refused.getMessage()
+    assert "keeps the one it had until the agent starts again" in said, said
+    assert f"twin calibration push arm-002 FILE --store {tmp_path / 'calibration'}" in said, said
+
+
 def test_an_unreadable_store_keeps_the_book_and_says_why(tmp_path: Path) -> None:
     store = DirectoryStore(tmp_path / "cal")
     store.write("arm-001", EXAMPLE.read_bytes())
@@ -871,7 +894,8 @@ def test_each_arm_decodes_with_its_own_and_a_new_one_needs_no_restart(tmp_path: 
         (refused,) = [e for e in agent.events(_calibration_events()) if e.data.get("action") == "refused"]
         push = f"twin calibration push arm-002 FILE --store {tmp_path / 'cal'}"
         assert refused.message.endswith(f"; push a good file: {push}"), refused.message
-        assert "it keeps the one it had" in refused.message, refused.message
+        # Kept only until the agent starts again, which holds the arm: the page said only "kept".
+        assert "it keeps the one it had until the agent starts again" in refused.message, refused.message
         # Its Fleet row says so (the row is its mirror's own, not cut from the whole state).
         rows = {row.device: row for row in agent.fleet_rows()}
         assert rows["arm-002"].calibration_refused and not rows["arm-001"].calibration_refused

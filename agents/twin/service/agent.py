@@ -1491,7 +1491,12 @@ class AgentService:
         for change in book.changes:
             if change.action == "refused":
                 # The page is where an operator reads it: what the arm does now, and what puts it right.
-                now = "it keeps the one it had" if change.device in book.entries else "its twin holds still"
+                # Kept only while the agent runs: its next start holds the arm, which the page did not say.
+                now = (
+                    "it keeps the one it had until the agent starts again"
+                    if change.device in book.entries
+                    else "its twin holds still"
+                )
                 push = push_hint(change.device, self._calibration_store).command
                 why = f"{change.detail}; push a good file: {push}"
                 level, message = EventLevel.WARNING, f"calibration of {change.device} refused, {now}: {why}"

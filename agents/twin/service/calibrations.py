@@ -591,7 +591,13 @@ class CalibrationWatcher:
             del entries[device]
             self._seen.pop(device, None)
             changes.append(CalibrationChange(device, "removed"))
-            log.info("calibration of %s removed from the store: it decodes with the config's again", device)
+            # With the event's fields, as a pick-up's and a refusal's: a search of the log by device found
+            # when an arm got its calibration but not when it lost it.
+            log.info(
+                "calibration of %s removed from the store: it decodes with the config's again",
+                device,
+                extra={"event": "calibration_removed", "device": device},
+            )
         for device, version in sorted(listing.items()):
             if self._seen.get(device) == version:
                 continue
@@ -602,17 +608,7 @@ class CalibrationWatcher:
             except (ValueError, CalibrationStoreError) as exc:
                 problems[device] = str(exc)
                 changes.append(CalibrationChange(device, "refused", str(exc)))
-                log.warning(
-                    "calibration of %s refused, %s: %s",
-                    device,
-                    # At a start the arm had none from the store: the config's is another arm's, so its
-                    # twin holds still (its messages refused as calibration_refused) until a good one comes.
-                    "it keeps the one it had"
-                    if device in entries
-                    else "its twin holds still until a good file is pushed, restored or the file removed",
-                    exc,
-                    extra={"event": "calibration_refused", "device": device},
-                )
+                self._log_refused(device, exc, kept=device in entries)
                 continue
             problems.pop(device, None)
             entries[device] = StoredCalibration(calibration, source, version)
@@ -628,6 +624,21 @@ class CalibrationWatcher:
         self._book = CalibrationBook(entries, problems, tuple(changes))
         self._on_change(self._book)
         return True
+
+    def _log_refused(self, device: str, exc: Exception, *, kept: bool) -> None:
+        log.warning(
+            "calibration of %s refused, %s: %s; push a good file: %s",
+            device,
+            # At a start the arm had none from the store: the config's is another arm's, so its twin holds
+            # still (its messages refused as calibration_refused) until a good one comes. While it runs the
+            # arm keeps the one it had, but only until the agent starts again, which the log did not say.
+            "it keeps the one it had until the agent starts again, which holds its twin still"
+            if kept
+            else "its twin holds still until a good file is pushed, restored or the file removed",
+            exc,
+            push_hint(device, self.store.uri).command,
+            extra={"event": "calibration_refused", "device": device},
+        )
 
     def _warn_missing(self, missing: bool) -> None:
         # A mistyped path and a directory no push has made yet look alike: both hold nothing, and every arm
