@@ -540,6 +540,25 @@ def test_config_check_refuses_a_calibration_file_the_agent_would_refuse(
     assert reason in capsys.readouterr().err
 
 
+def test_config_check_notes_a_store_directory_that_is_not_there(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A mistyped calibrations path was "a valid agent config" with no note, though `twin run` warns of it at
+    # its start and every arm then decodes with the config's calibration.
+    monkeypatch.chdir(tmp_path)
+    config = tmp_path / "agent.toml"
+    config.write_text('[telemetry]\ncalibrations = "out/calibratoin"\n')
+    assert main(["config", "check", str(config)]) == 0
+    out = capsys.readouterr().out
+    missing = tmp_path / "out" / "calibratoin"
+    assert f"note: [telemetry] calibrations = 'out/calibratoin': {missing} does not exist" in out, out
+    assert f"`twin calibration push ARM FILE --store {missing}`" in out, out
+    # Once it is there (a push made it), nothing to note.
+    missing.mkdir(parents=True)
+    assert main(["config", "check", str(config)]) == 0
+    assert "calibratoin" not in capsys.readouterr().out.split("a valid agent config", 1)[1]
+
+
 def test_push_goes_to_the_stacks_calibration_uri(s3: Any, capsys: pytest.CaptureFixture[str]) -> None:
     template = {
         "Resources": {"Topic": {"Type": "AWS::SNS::Topic"}},

@@ -12,8 +12,12 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from twin.cli.output import Console
+
+if TYPE_CHECKING:
+    from twin.service.config import AgentConfig
 
 console = Console("config")
 
@@ -62,6 +66,24 @@ def run(args: argparse.Namespace) -> int:
         console.out(connection_plan(config))
         console.out(health_plan(config))  # the rate the loss estimate and the stale line take as the edges'
         # Valid, so still exit 0: what the agent would start with, and what it would warn of.
-        for note in config_notes(args.files, config):
+        for note in config_notes(args.files, config) + _store_notes(config):
             console.out(f"note: {note}")
     return 0
+
+
+def _store_notes(config: AgentConfig) -> list[str]:
+    """A calibration store directory that is not there, as `twin run` started here would warn at its start: a
+    mistyped path was called a valid config, and every arm then decoded with the config's calibration."""
+    from twin.service.calibrations import open_store, push_hint
+
+    uri = config.telemetry.calibrations
+    if not uri or uri.startswith("s3://"):
+        return []
+    where = open_store(uri).uri
+    if Path(where).exists():
+        return []
+    return [
+        f"[telemetry] calibrations = {uri!r}: {where} does not exist, so an agent started in this directory "
+        "reads no arm's calibration from it until a push makes it: check the path (a relative one is from "
+        f"the directory the agent starts in), or push a file there (`{push_hint('ARM', where).command}`)"
+    ]
