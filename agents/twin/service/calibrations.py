@@ -471,6 +471,15 @@ def store_option(store: str) -> str:
     return f" --store {shlex.quote(store)}"
 
 
+def missing_store_notice(store: str) -> str:
+    """What the agent warns of, and `twin config check` notes, for a directory store that is not there."""
+    return (
+        f"{store} does not exist, so no arm has its own calibration: each decodes with the config's. "
+        "Check [telemetry] calibrations (a relative path is from the directory the agent starts in), or push "
+        f"a file there, which makes it (`{push_hint('ARM', store).command}`)"
+    )
+
+
 def push_hint(device: str, store: str) -> PushHint:
     """What to run so the agent whose store is `store` (store_location) picks up `device`'s calibration:
     `--store` for a directory, nothing more for the stack's bucket (the command's default), and for no store
@@ -645,11 +654,8 @@ class CalibrationWatcher:
         # decodes with the config's calibration without a word, so the person is told, once.
         if missing and not self._missing:
             log.warning(
-                "calibrations: %s does not exist, so no arm has its own calibration: each decodes with the "
-                "config's. Check [telemetry] calibrations (a relative path is from the directory the agent "
-                "started in), or push a file there, which makes it (`%s`)",
-                self.store.uri,
-                push_hint("ARM", self.store.uri).command,
+                "calibrations: %s",
+                missing_store_notice(self.store.uri),
                 extra={"event": "calibration_store_missing", "store": self.store.uri},
             )
         elif self._missing and not missing:

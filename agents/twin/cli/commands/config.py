@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
 def _store_notes(config: AgentConfig) -> list[str]:
     """A calibration store directory that is not there, as `twin run` started here would warn at its start: a
     mistyped path was called a valid config, and every arm then decoded with the config's calibration."""
-    from twin.service.calibrations import open_store, push_hint
+    from twin.service.calibrations import missing_store_notice, open_store
 
     uri = config.telemetry.calibrations
     if not uri or uri.startswith("s3://"):
@@ -82,8 +82,4 @@ def _store_notes(config: AgentConfig) -> list[str]:
     where = open_store(uri).uri
     if Path(where).exists():
         return []
-    return [
-        f"[telemetry] calibrations = {uri!r}: {where} does not exist, so an agent started in this directory "
-        "reads no arm's calibration from it until a push makes it: check the path (a relative one is from "
-        f"the directory the agent starts in), or push a file there (`{push_hint('ARM', where).command}`)"
-    ]
+    return [f"[telemetry] calibrations = {uri!r}: {missing_store_notice(where)}"]
