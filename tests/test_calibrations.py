@@ -369,6 +369,26 @@ def test_push_ls_rm_with_a_directory_store(tmp_path: Path, capsys: pytest.Captur
     assert "arm-001 has no calibration" in capsys.readouterr().err
 
 
+def test_ls_marks_a_file_the_agent_refuses_with_the_agents_reason(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # A truncated file was listed like any other: an operator checking why an arm is held saw nothing wrong.
+    store = DirectoryStore(tmp_path / "cal")
+    store.write("arm-001", EXAMPLE.read_bytes())
+    (tmp_path / "cal" / "arm-002.json").write_bytes(EXAMPLE.read_bytes()[:100])
+    books: list[CalibrationBook] = []
+    CalibrationWatcher(store, on_change=books.append).poll()
+    why = books[-1].problems["arm-002"]
+    assert main(["calibration", "ls", "--store", str(tmp_path / "cal")]) == cmd.EXIT_OK
+    listed = capsys.readouterr()
+    assert listed.out.splitlines() == [
+        f"arm-001\t{store.uri_of('arm-001')}",
+        f"arm-002\t{store.uri_of('arm-002')}\trefused: {why}",
+    ], listed.out
+    assert "not valid JSON" in why
+    assert "refused: the agent does not use that file" in listed.err, listed.err
+
+
 def test_push_refuses_what_is_not_a_calibration(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"shoulder_pan": {"id": 1}}))

@@ -509,6 +509,13 @@ def push_hint(device: str, store: str) -> PushHint:
     return PushHint(store, command, f"push one: {command} (this agent reads {store})")
 
 
+def read_calibration(store: CalibrationStore, device: str) -> Calibration:
+    """`device`'s calibration in `store`, checked as the agent checks it before an arm uses it (the watcher,
+    and `twin calibration ls`, which marks a file the agent refuses). ValueError (not a valid SO-101
+    calibration) or CalibrationStoreError (it could not be read): the reason the agent gives."""
+    return parse_calibration(store.read(device), store.uri_of(device))
+
+
 @dataclass(frozen=True)
 class StoredCalibration:
     calibration: Calibration
@@ -613,7 +620,7 @@ class CalibrationWatcher:
             self._seen[device] = version
             source = self.store.uri_of(device)
             try:
-                calibration = parse_calibration(self.store.read(device), source)
+                calibration = read_calibration(self.store, device)
             except (ValueError, CalibrationStoreError) as exc:
                 problems[device] = str(exc)
                 changes.append(CalibrationChange(device, "refused", str(exc)))

@@ -202,21 +202,33 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _ls(store: CalibrationStore, again: str) -> int:
-    """A line per arm: its calibration's place, and the kept one's when there is one (an arm whose own was
-    removed shows `(removed)`), so what `restore` would bring back is seen before it is needed. Files no arm
-    reads (named for no device id) are named on stderr."""
+    """A line per arm: its calibration's place, `refused: <why>` when the agent refuses that file, and the
+    kept one's place when there is one (an arm whose own was removed shows `(removed)`), so what `restore`
+    would bring back is seen before it is needed. Files no arm reads (named for no device id) are named on
+    stderr."""
     from twin.service.calibrations import KEPT_SUFFIX, SUFFIX, ignored_fix
 
     found = store.scan()
     listing, kept = found.calibrations, found.kept
     if not listing and not kept:
         console.out(f"no calibration in {store.uri}")
+    refused = False
     for device in sorted(listing.keys() | kept):
         place = store.uri_of(device)
         line = f"{device}\t{place if device in listing else '(removed)'}"
+        why = _refusal(store, device) if device in listing else ""
+        if why:
+            refused = True
+            line += f"\trefused: {why}"
         if device in kept:
             line += f"\tkept: {place.removesuffix(SUFFIX)}{KEPT_SUFFIX}"
         console.out(line)
+    if refused:
+        console.err(
+            "refused: the agent does not use that file: an arm keeps the calibration it had until the agent "
+            "starts again, and one with none (after a start) is held, its messages refused; push a good "
+            f"file (`twin calibration push ARM FILE{again}`) or remove it"
+        )
     if kept:
         console.err(
             f"kept: what a push or rm replaced; `twin calibration restore ARM{again}` swaps it back in, "
@@ -226,6 +238,18 @@ def _ls(store: CalibrationStore, again: str) -> int:
     for name in found.ignored:
         console.err(f"ignored: {name} (no arm reads it: {ignored_fix(name, push)})")
     return EXIT_OK
+
+
+def _refusal(store: CalibrationStore, device: str) -> str:
+    """Why the agent refuses `device`'s file in the store, in its words ("" when it takes it): the agent's
+    own check, so `ls` shows what holds an arm rather than list a broken file like any other."""
+    from twin.service.calibrations import CalibrationStoreError, read_calibration
+
+    try:
+        read_calibration(store, device)
+    except (ValueError, CalibrationStoreError) as exc:
+        return str(exc)
+    return ""
 
 
 def _calibration_file(file: Path) -> bytes | int:
