@@ -389,6 +389,27 @@ def test_ls_marks_a_file_the_agent_refuses_with_the_agents_reason(
     assert "refused: the agent does not use that file" in listed.err, listed.err
 
 
+def test_a_push_or_rm_over_a_refused_file_keeps_it_but_offers_no_restore(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # The broken file was kept with a hint to `restore`, which then refused it: "not valid JSON ...; nothing
+    # restored", exit 1. It is still kept (nothing the user had is lost), and the output says what it is.
+    store = DirectoryStore(tmp_path / "cal")
+    broken = EXAMPLE.read_bytes()[:100]
+    (tmp_path / "cal").mkdir()
+    (tmp_path / "cal" / "arm-002.json").write_bytes(broken)
+    kept = f"{store.uri_of('arm-002')}.previous"
+    assert main(["calibration", "push", "arm-002", str(EXAMPLE), "--store", store.uri]) == cmd.EXIT_OK
+    out = capsys.readouterr().out
+    assert "twin calibration restore" not in out and store.read_kept("arm-002") == broken, out
+    assert "the file it replaced was not a valid calibration (" in out and f"kept at {kept}" in out, out
+    (tmp_path / "cal" / "arm-002.json").write_bytes(broken)
+    assert main(["calibration", "rm", "arm-002", "--store", store.uri]) == cmd.EXIT_OK
+    out = capsys.readouterr().out
+    assert "twin calibration restore" not in out and store.read_kept("arm-002") == broken, out
+    assert "it was not a valid calibration (" in out and f"kept at {kept}" in out, out
+
+
 def test_push_refuses_what_is_not_a_calibration(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"shoulder_pan": {"id": 1}}))

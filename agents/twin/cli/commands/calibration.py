@@ -337,9 +337,30 @@ def _push(store: CalibrationStore, arm: str, file: Path, data: bytes, again: str
     kept = None if current is None else store.write_kept(arm, current)
     where = store.write(arm, data)
     console.out(f"{arm}: {where} (the agent picks it up within its calibration_poll_s, 30 s by default)")
-    if kept is not None:
-        console.out(f"{arm}: the one it replaced is kept at {kept} (`twin calibration restore {arm}{again}`)")
+    if kept is not None and current is not None:
+        why = _invalid(store, arm, current)
+        if why:
+            console.out(
+                f"{arm}: the file it replaced was not a valid calibration ({why}), so no restore can put it "
+                f"back; it is kept at {kept} all the same"
+            )
+        else:
+            console.out(
+                f"{arm}: the one it replaced is kept at {kept} (`twin calibration restore {arm}{again}`)"
+            )
     return EXIT_OK
+
+
+def _invalid(store: CalibrationStore, arm: str, data: bytes) -> str:
+    """Why `data`, ARM's file in the store, is no calibration the agent or `restore` takes ("" when it is
+    one): push and rm keep it all the same, but must not offer a restore that would refuse it."""
+    from twin.robot.calibration import parse_calibration
+
+    try:
+        parse_calibration(data, store.uri_of(arm))
+    except ValueError as exc:
+        return str(exc)
+    return ""
 
 
 def _arms_have(arms: list[str]) -> str:
@@ -358,6 +379,8 @@ def _same_calibration(store: CalibrationStore, arm: str, data: bytes, listing: d
 
 def _undo(store: CalibrationStore, arm: str, current: bytes | None, again: str) -> str:
     """How a push about to replace `current` (None: the arm has none) is undone, if it was a slip."""
+    if current is not None and _invalid(store, arm, current):
+        return "if that was a slip, push the right file: the one it replaces is not a valid calibration"
     if current is not None:
         return f"if that was a slip: `twin calibration restore {arm}{again}`"  # push keeps what it replaces
     if store.read_kept(arm) is None:
@@ -376,10 +399,14 @@ def _rm(store: CalibrationStore, arm: str, again: str) -> int:
         return EXIT_STORE
     kept = store.write_kept(arm, current)
     store.delete(arm)
-    console.out(
-        f"{arm}: removed from {store.uri}; it decodes with the config's calibration again (kept at {kept}: "
-        f"`twin calibration restore {arm}{again}`)"
+    why = _invalid(store, arm, current)
+    back = (
+        f"it was not a valid calibration ({why}), so no restore can put it back; it is kept at {kept} "
+        "all the same"
+        if why
+        else f"kept at {kept}: `twin calibration restore {arm}{again}`"
     )
+    console.out(f"{arm}: removed from {store.uri}; it decodes with the config's calibration again ({back})")
     return EXIT_OK
 
 
