@@ -229,6 +229,33 @@ def test_the_log_says_which_arm_lost_its_calibration_and_how_to_put_a_refused_on
     assert f"twin calibration push arm-002 FILE --store {tmp_path / 'calibration'}" in said, said
 
 
+@pytest.mark.parametrize("fallback", ["", str(EXAMPLE)])
+def test_a_removal_says_what_the_arm_decodes_with_now(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, capsys: pytest.CaptureFixture[str], fallback: str
+) -> None:
+    # Both said "it decodes with the config's again", also for a config with no calibration key, where the
+    # arm then decodes with the nominal SO-101 calibration and is flagged uncalibrated.
+    store = DirectoryStore(tmp_path / "cal")
+    store.write("arm-001", EXAMPLE.read_bytes())
+    agent = agent_with_store(tmp_path / "cal", **{"telemetry.calibration": fallback})
+    watcher = agent._calibrations
+    assert watcher is not None
+    watcher.poll()
+    assert main(["calibration", "rm", "arm-001", "--store", store.uri]) == cmd.EXIT_OK
+    said = capsys.readouterr().out
+    assert "[telemetry] calibration, or, where that is not set, the nominal SO-101 calibration" in said, said
+    with caplog.at_level("INFO", logger="twin.service.calibrations"):
+        watcher.poll()
+    (removed,) = [r.getMessage() for r in caplog.records if getattr(r, "event", "") == "calibration_removed"]
+    if fallback:
+        assert f"it decodes with the config's calibration again ({fallback})" in removed, removed
+    else:
+        assert "it decodes with the nominal SO-101 calibration, and is flagged uncalibrated" in removed, (
+            removed
+        )
+        assert "config's" not in removed, removed
+
+
 def test_an_unreadable_store_keeps_the_book_and_says_why(tmp_path: Path) -> None:
     store = DirectoryStore(tmp_path / "cal")
     store.write("arm-001", EXAMPLE.read_bytes())

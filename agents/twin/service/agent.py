@@ -324,7 +324,9 @@ class AgentService:
         if not t.calibrations:
             return None
         store = open_store(t.calibrations, region=config.broker.region or config.history.region)
-        return CalibrationWatcher(store, interval_s=t.calibration_poll_s, on_change=self._hand_calibrations)
+        return CalibrationWatcher(
+            store, interval_s=t.calibration_poll_s, on_change=self._hand_calibrations, fallback=t.calibration
+        )
 
     def _build_shards(self, config: AgentConfig, sinks: Sequence[TwinSink]) -> list[Shard]:
         count = self.plan.count

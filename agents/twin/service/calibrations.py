@@ -10,7 +10,7 @@ redeploy or a restart:
 - `CalibrationWatcher` lists the store every `telemetry.calibration_poll_s` (one LIST call for the whole
   fleet: S3 returns each object's ETag, a directory each file's modification time and size) and reads only
   the files that are new or changed since the last poll; a file that is removed takes its arm back to the
-  config's calibration.
+  config's calibration, or the nominal SO-101's when the config has none.
 - A file that is not a valid SO-101 calibration is refused with the reason (logged, and kept in
   `CalibrationBook.problems`); the arm keeps the calibration it had, so a bad upload never moves its twin.
   An arm with none to keep (the agent started with the bad file there) is held: its messages are refused as
@@ -480,6 +480,19 @@ def missing_store_notice(store: str) -> str:
     )
 
 
+def without_own(fallback: str | None) -> str:
+    """What an arm without its own calibration in the store decodes with, to follow "it decodes with":
+    `fallback` is the agent's [telemetry] calibration ("": none set), None when it is not known (`twin
+    calibration` runs without the agent's config). Not "the config's" when there is none: the arm then takes
+    the nominal SO-101's and is flagged, which a person reading "the config's" would not look for."""
+    nominal = "the nominal SO-101 calibration, and is flagged uncalibrated"
+    if fallback is None:
+        return f"the agent's [telemetry] calibration, or, where that is not set, {nominal}"
+    if fallback:
+        return f"the config's calibration again ({fallback})"
+    return f"{nominal} (the config sets no [telemetry] calibration)"
+
+
 def push_hint(device: str, store: str) -> PushHint:
     """What to run so the agent whose store is `store` (store_location) picks up `device`'s calibration:
     `--store` for a directory, nothing more for the stack's bucket (the command's default), and for no store
@@ -566,8 +579,11 @@ class CalibrationWatcher:
         *,
         interval_s: float = DEFAULT_POLL_S,
         on_change: Callable[[CalibrationBook], None] = lambda _book: None,
+        fallback: str = "",
     ) -> None:
         self.store = store
+        # The agent's [telemetry] calibration ("": none), what an arm whose file is removed decodes with.
+        self.fallback = fallback
         self.interval_s = interval_s
         self._on_change = on_change
         self._book = CalibrationBook()
@@ -610,8 +626,9 @@ class CalibrationWatcher:
             # With the event's fields, as a pick-up's and a refusal's: a search of the log by device found
             # when an arm got its calibration but not when it lost it.
             log.info(
-                "calibration of %s removed from the store: it decodes with the config's again",
+                "calibration of %s removed from the store: it decodes with %s",
                 device,
+                without_own(self.fallback),
                 extra={"event": "calibration_removed", "device": device},
             )
         for device, version in sorted(listing.items()):

@@ -89,7 +89,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     push.add_argument("file", metavar="FILE", type=Path, help="the arm's LeRobot calibration JSON")
     ls = actions.add_parser("ls", parents=[common], help="list the arms that have a calibration in the store")
     rm = actions.add_parser(
-        "rm", parents=[common], help="remove ARM's calibration (the arm decodes with the config's again)"
+        "rm",
+        parents=[common],
+        help="remove ARM's calibration (it decodes with the agent's [telemetry] calibration, else nominal)",
     )
     rm.add_argument("arm", metavar="ARM")
     rm.add_argument(
@@ -393,6 +395,8 @@ def _undo(store: CalibrationStore, arm: str, current: bytes | None, again: str) 
 
 
 def _rm(store: CalibrationStore, arm: str, again: str) -> int:
+    from twin.service.calibrations import without_own
+
     current, _ = _current(store, arm)
     if current is None:
         console.err(f"{arm} has no calibration in {store.uri}")
@@ -406,7 +410,8 @@ def _rm(store: CalibrationStore, arm: str, again: str) -> int:
         if why
         else f"kept at {kept}: `twin calibration restore {arm}{again}`"
     )
-    console.out(f"{arm}: removed from {store.uri}; it decodes with the config's calibration again ({back})")
+    # The agent's config is not known here: it may set no [telemetry] calibration.
+    console.out(f"{arm}: removed from {store.uri}; it decodes with {without_own(None)} ({back})")
     return EXIT_OK
 
 
