@@ -256,6 +256,32 @@ def test_a_removal_says_what_the_arm_decodes_with_now(
         assert "config's" not in removed, removed
 
 
+def test_a_held_arm_is_offered_a_restore_only_when_a_calibration_is_kept_for_it(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # The refusal named `twin calibration restore` with nothing kept, which then exits 1.
+    store = DirectoryStore(tmp_path / "cal")
+    store.write("arm-002", b"{not json")
+    books: list[CalibrationBook] = []
+    watcher = CalibrationWatcher(store, on_change=books.append)
+    with caplog.at_level("WARNING", logger="twin.service.calibrations"):
+        watcher.poll()
+    (refused,) = [r.getMessage() for r in caplog.records if getattr(r, "event", "") == "calibration_refused"]
+    assert "restore" not in refused and books[-1].restorable == frozenset(), refused
+    # A kept one appears (a push over it kept one, or by hand): the held arm can be put back with it.
+    store.write_kept("arm-002", EXAMPLE.read_bytes())
+    assert watcher.poll() is True and books[-1].restorable == {"arm-002"}
+    store.delete_kept("arm-002")
+    assert watcher.poll() is True and books[-1].restorable == frozenset()
+    caplog.clear()
+    store.write_kept("arm-002", EXAMPLE.read_bytes())
+    with caplog.at_level("WARNING", logger="twin.service.calibrations"):
+        store.write("arm-002", b"{still not json")
+        watcher.poll()
+    (refused,) = [r.getMessage() for r in caplog.records if getattr(r, "event", "") == "calibration_refused"]
+    assert f"twin calibration restore arm-002 --store {store.uri}" in refused, refused
+
+
 def test_an_unreadable_store_keeps_the_book_and_says_why(tmp_path: Path) -> None:
     store = DirectoryStore(tmp_path / "cal")
     store.write("arm-001", EXAMPLE.read_bytes())
@@ -1032,7 +1058,18 @@ def test_an_arm_whose_file_is_bad_at_the_start_is_held_until_a_good_one_comes(
         assert f"twin calibration push arm-002 FILE {option}" in held_notice, held_notice
         rejected = EventQuery(kinds=frozenset({"rejected"}), device="arm-002")
         refused = wait_for(lambda: agent.events(rejected), 30, "arm-002's rejected event")
-        assert f"twin calibration restore arm-002 {option}`" in refused[-1].message, refused
+        # Nothing is kept for arm-002, so no restore is offered: it would only exit 1.
+        assert f"twin calibration push arm-002 FILE {option}`" in refused[-1].message, refused
+        assert "restore" not in refused[-1].message, refused
+        # Once a calibration is kept for it, the refusal offers to put it back (the next poll hands it on).
+        store.write_kept("arm-002", shifted(50))
+
+        def offered() -> bool:
+            ts[0] += 100
+            agent.feed("dt/lerobot/arm-002/telemetry", ticks_message("arm-002", ts[0]))
+            return any("twin calibration restore arm-002" in e.message for e in agent.events(rejected))
+
+        wait_for(offered, 30, "arm-002's refusal offering a restore", interval=0.1)
         assert not [r for r in agent.healthz().reasons if "calibration" in r]
         # A good file, and the arm is mirrored with it, no restart.
         store.write("arm-002", shifted(100))

@@ -777,10 +777,15 @@ def test_an_arm_whose_own_calibration_was_refused_is_held_not_decoded_with_anoth
         dec.decode(payload(TICKS_EXAMPLE))
     assert info.value.reason is RejectReason.CALIBRATION_REFUSED
     text = str(info.value)
-    assert "arm-001" in text and "wrist_roll" in text and "twin calibration restore arm-001" in text
+    assert "arm-001" in text and "wrist_roll" in text and "twin calibration push arm-001" in text
+    # Nothing kept for it: a restore would only exit 1, so none is offered.
+    assert "restore" not in text, text
     assert dec.decode(payload(TICKS_EXAMPLE, device="arm-002")).device_id == "arm-002"  # others decode
-    # The agent's own store goes into each command, so they reach the store it reads.
-    dec.set_calibrations({}, held={"arm-001": "a problem"}, store_option=" --store /srv/cal")
+    # The agent's own store goes into each command, so they reach the store it reads; a restore is offered
+    # once the store keeps a calibration for the arm.
+    dec.set_calibrations(
+        {}, held={"arm-001": "a problem"}, store_option=" --store /srv/cal", restorable=["arm-001"]
+    )
     commands = r"push arm-001 FILE --store /srv/cal`.*restore arm-001 --store /srv/cal`"
     with pytest.raises(TelemetryRejected, match=commands):
         dec.decode(payload(TICKS_EXAMPLE))

@@ -29,7 +29,7 @@ import json
 import logging
 import math
 from array import array
-from collections.abc import ItemsView, Iterator, Mapping, ValuesView
+from collections.abc import Collection, ItemsView, Iterator, Mapping, ValuesView
 from dataclasses import dataclass, field
 from enum import StrEnum
 from operator import attrgetter
@@ -96,13 +96,18 @@ class TelemetryRejected(ValueError):  # noqa: N818 - a public name: callers catc
         self.reason = reason
 
 
-def _held(device_id: str, why: str, store_option: str) -> TelemetryRejected:
+def _held(device_id: str, why: str, store_option: str, restorable: bool) -> TelemetryRejected:
+    # `restore` only when the store keeps a calibration for the arm: with none it exits 1, a dead end.
+    restore = (
+        f", put the one it replaced back (`twin calibration restore {device_id}{store_option}`)"
+        if restorable
+        else ""
+    )
     return TelemetryRejected(
         RejectReason.CALIBRATION_REFUSED,
         f"the calibration of {device_id} in the store was refused ({why}); the twin holds still rather than "
         f"decode with the config's, another arm's: push a good file (`twin calibration push {device_id} "
-        f"FILE{store_option}`), put the one it replaced back (`twin calibration restore {device_id}"
-        f"{store_option}`), or remove it",
+        f"FILE{store_option}`){restore}, or remove it",
     )
 
 
@@ -557,6 +562,7 @@ class TelemetryDecoder:
         # Arms whose own calibration was refused, with no good one to keep: why, by device (set_calibrations).
         self._held: dict[str, str] = {}
         self._store_option = ""
+        self._restorable: frozenset[str] = frozenset()  # held arms the store keeps a calibration for
         # The default map's angle of every whole tick (_tick_tables), made on the first message in ticks. Only
         # the default's: an arm with its own calibration converts by arithmetic, since a table per arm would
         # cost about 1.1 MB each (2,000 calibrated arms: 2.2 GB).
@@ -573,6 +579,7 @@ class TelemetryDecoder:
         calibrations: Mapping[str, Calibration],
         held: Mapping[str, str] | None = None,
         store_option: str = "",
+        restorable: Collection[str] = (),
     ) -> None:
         """Each arm's own LeRobot calibration (device id -> file), replacing the previous set; an arm not in
         it decodes with the config's calibration. Safe to call from another thread than the decoding one: the
@@ -581,8 +588,10 @@ class TelemetryDecoder:
         `held`: arms whose own calibration exists but was refused (device -> why), with none to keep. Their
         messages are refused as `calibration_refused`: the config's calibration is another arm's, and decoding
         with it would move the twin to a wrong pose. `store_option` (e.g. ` --store DIR`) goes into the
-        commands their refusal names, so they reach the store this agent reads."""
+        commands their refusal names, so they reach the store this agent reads; `restorable`, the held arms
+        the store keeps a calibration for, the only ones their refusal offers `twin calibration restore`."""
         self._store_option = store_option
+        self._restorable = frozenset(restorable)
         self._held = {d: why for d, why in (held or {}).items() if d not in calibrations}
         kept = {d: m for d, m in self._per_device.items() if self._calibrations.get(d) == calibrations.get(d)}
         fresh = {
@@ -648,7 +657,7 @@ class TelemetryDecoder:
         readings: tuple[JointReading, ...] = _readings_of(msg.joints)
         positions = [r.position for r in readings]
         if self._held and device_id in self._held:
-            raise _held(device_id, self._held[device_id], self._store_option)
+            raise _held(device_id, self._held[device_id], self._store_option, device_id in self._restorable)
         undecided = False
         if units is Units.AUTO:
             units, angles, percent, undecided = self._units_and_angles(device_id, positions)

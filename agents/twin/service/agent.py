@@ -1482,6 +1482,7 @@ class AgentService:
             ),
             problems=tuple(book.problems.items()),
             store_option=store_option(self._calibration_store),
+            restorable=tuple(sorted(book.restorable)),
         )
         self._calibration_request = request
         for shard in self._shards:

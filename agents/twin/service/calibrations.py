@@ -554,6 +554,9 @@ class CalibrationBook:
     entries: Mapping[str, StoredCalibration] = field(default_factory=dict)
     problems: Mapping[str, str] = field(default_factory=dict)
     changes: tuple[CalibrationChange, ...] = ()
+    # The arms in `problems` the store keeps a calibration for (KEPT_SUFFIX): only for them does a held
+    # arm's refusal offer `twin calibration restore`, which for any other exits 1.
+    restorable: frozenset[str] = frozenset()
 
     def calibrations(self) -> dict[str, Calibration]:
         return {device: e.calibration for device, e in self.entries.items()}
@@ -641,7 +644,7 @@ class CalibrationWatcher:
             except (ValueError, CalibrationStoreError) as exc:
                 problems[device] = str(exc)
                 changes.append(CalibrationChange(device, "refused", str(exc)))
-                self._log_refused(device, exc, kept=device in entries)
+                self._log_refused(device, exc, kept=device in entries, restorable=device in found.kept)
                 continue
             problems.pop(device, None)
             entries[device] = StoredCalibration(calibration, source, version)
@@ -652,24 +655,28 @@ class CalibrationWatcher:
                 source,
                 extra={"event": "calibration", "device": device},
             )
-        if not changes and problems == self._book.problems:
+        restorable = frozenset(d for d in problems if d in found.kept)
+        if not changes and problems == self._book.problems and restorable == self._book.restorable:
             return False
-        self._book = CalibrationBook(entries, problems, tuple(changes))
+        self._book = CalibrationBook(entries, problems, tuple(changes), restorable)
         self._on_change(self._book)
         return True
 
-    def _log_refused(self, device: str, exc: Exception, *, kept: bool) -> None:
+    def _log_refused(self, device: str, exc: Exception, *, kept: bool, restorable: bool) -> None:
+        # `restore` only when a calibration is kept for the arm: with none it exits 1, a dead end.
+        restore = f"twin calibration restore {device}{store_option(self.store.uri)}"
         log.warning(
-            "calibration of %s refused, %s: %s; push a good file: %s",
+            "calibration of %s refused, %s: %s; push a good file: %s%s",
             device,
             # At a start the arm had none from the store: the config's is another arm's, so its twin holds
             # still (its messages refused as calibration_refused) until a good one comes. While it runs the
             # arm keeps the one it had, but only until the agent starts again, which the log did not say.
             "it keeps the one it had until the agent starts again, which holds its twin still"
             if kept
-            else "its twin holds still until a good file is pushed, restored or the file removed",
+            else "its twin holds still until a good file is pushed or the file removed",
             exc,
             push_hint(device, self.store.uri).command,
+            f", or put back the one kept: {restore}" if restorable else "",
             extra={"event": "calibration_refused", "device": device},
         )
 

@@ -1515,7 +1515,10 @@ class Mirror:
         calibrations = {device: Calibration.from_dict(data, source) for device, source, data in request.files}
         # An arm whose file was refused, with no good one from this run to keep, is held (the decoder's doc).
         self._decoder.set_calibrations(
-            calibrations, held=dict(request.problems), store_option=request.store_option
+            calibrations,
+            held=dict(request.problems),
+            store_option=request.store_option,
+            restorable=request.restorable,
         )
         with self._lock:
             self._calibration_sources = {device: source for device, source, _ in request.files}
