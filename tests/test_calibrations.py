@@ -910,12 +910,31 @@ def test_the_calibration_another_arm_has_is_stored_with_a_warning(
     assert main(["calibration", "push", "arm-002", str(first), *store]) == cmd.EXIT_OK
     err = capsys.readouterr().err
     assert "follower.json is the calibration arm-001 already has in" in err, err
-    assert "push arm-002's own file" in err and "`twin calibration rm arm-002 --store" in err, err
+    assert "one of arm-002 and arm-001 has the other's" in err, err
+    assert "`twin calibration rm arm-002 --store" in err, err
     assert DirectoryStore(tmp_path / "cal").read("arm-002") == EXAMPLE.read_bytes()  # stored, as asked
     # Two arms hold it now: the warning names both, as a sentence (it read "arm-001, arm-002 already has").
     assert main(["calibration", "push", "arm-004", str(first), *store]) == cmd.EXIT_OK
     err = capsys.readouterr().err
     assert "follower.json is the calibration arm-001 and arm-002 already have in" in err, err
+    assert "one of arm-004, arm-001 and arm-002 has another's" in err, err
+
+
+def test_pushing_an_arms_own_file_that_another_arm_holds_names_both_and_blames_neither(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # arm-002's file went to arm-003 by mistake; pushing it as arm-002's, where it belongs, was told to "push
+    # arm-002's own file", the very one being pushed: the slip was arm-003's.
+    store = ["--store", str(tmp_path / "cal")]
+    own = tmp_path / "arm-002.json"
+    own.write_bytes(shifted(40))
+    assert main(["calibration", "push", "arm-003", str(own), *store]) == cmd.EXIT_OK
+    capsys.readouterr()
+    assert main(["calibration", "push", "arm-002", str(own), *store]) == cmd.EXIT_OK
+    err = capsys.readouterr().err
+    assert "push arm-002's own file" not in err, err
+    assert "one of arm-002 and arm-003 has the other's" in err, err
+    assert "arm-002.json is named for arm-002, so arm-003's may be the copy" in err, err
 
 
 def test_pushing_the_example_calibration_says_it_was_measured_on_no_arm(

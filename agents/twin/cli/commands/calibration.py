@@ -328,12 +328,18 @@ def _push(store: CalibrationStore, arm: str, file: Path, data: bytes, again: str
         )
     same = _same_calibration(store, arm, data, listing)
     if same:
-        # No two arms share a calibration (LeRobot measures each arm's ranges by hand): a copy is a slip.
+        # No two arms share a calibration (LeRobot measures each arm's ranges by hand): a copy is a slip, but
+        # maybe an earlier push's (arm-002's file pushed as arm-003's, now as arm-002's own), so both are
+        # named and neither is blamed.
+        whose = "the other's" if len(same) == 1 else "another's"
+        named = (
+            f" {file.name} is named for {arm}, so {_and(same)}'s may be the copy." if named_for == arm else ""
+        )
         console.err(
-            f"warning: {file.name} is the calibration {_arms_have(same)} in {store.uri}; each "
-            f"arm has its own, and another arm's puts its twin in a wrong pose. It is stored as {arm}'s, as "
-            f"asked; push {arm}'s own file (lerobot-calibrate on its computer) "
-            f"({_undo(store, arm, current, again)})"
+            f"warning: {file.name} is the calibration {_arms_have(same)} in {store.uri}; each arm has its "
+            f"own, so one of {_and([arm, *same])} has {whose}, and its twin shows a wrong pose.{named} It is "
+            f"stored as {arm}'s, as asked; find the arm it was not measured on and push that arm's own file "
+            f"(lerobot-calibrate on its computer) ({_undo(store, arm, current, again)})"
         )
     # The one it replaces is kept first: if that fails, nothing has changed.
     kept = None if current is None else store.write_kept(arm, current)
@@ -367,9 +373,12 @@ def _invalid(store: CalibrationStore, arm: str, data: bytes) -> str:
 
 def _arms_have(arms: list[str]) -> str:
     """The words for one or more arms having a thing: "arm-001 already has", "a and b already have"."""
-    if len(arms) == 1:
-        return f"{arms[0]} already has"
-    return f"{', '.join(arms[:-1])} and {arms[-1]} already have"
+    return f"{_and(arms)} already {'has' if len(arms) == 1 else 'have'}"
+
+
+def _and(arms: list[str]) -> str:
+    """ "a", "a and b", "a, b and c"."""
+    return arms[0] if len(arms) == 1 else f"{', '.join(arms[:-1])} and {arms[-1]}"
 
 
 def _same_calibration(store: CalibrationStore, arm: str, data: bytes, listing: dict[str, str]) -> list[str]:
