@@ -1251,6 +1251,25 @@ def test_degrees_need_no_calibration_so_they_are_not_flagged(tmp_path: Path) -> 
         agent.stop()
 
 
+def test_an_arm_publishing_degrees_shows_no_calibration_in_use(tmp_path: Path) -> None:
+    # Its file in the store was shown as its `calibration` in /state, though degrees never use one.
+    store = DirectoryStore(tmp_path / "cal")
+    store.write("arm-001", EXAMPLE.read_bytes())
+    agent = agent_with_store(tmp_path / "cal", **{"telemetry.units": "degrees"})
+    agent.start()
+    try:
+        joints = {name: {"position": 1.5} for name in so101.JOINT_NAMES}
+        agent.feed(
+            "dt/lerobot/arm-001/telemetry",
+            encode({"device_id": "arm-001", "timestamp": int(time.time() * 1000), "joints": joints}),
+        )
+        state = wait_for(lambda: agent.state().devices["arm-001"].joints_rad and agent.state(), 30, "arm-001")
+        arm = state.devices["arm-001"]
+        assert arm.calibration == "" and arm.uncalibrated is False, arm.calibration
+    finally:
+        agent.stop()
+
+
 @pytest.mark.slow
 def test_a_restarted_worker_decodes_with_the_arms_own_from_its_first_message(tmp_path: Path) -> None:
     """The new process is handed the arms' calibrations before the messages it is sent again and those that

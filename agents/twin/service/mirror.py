@@ -145,6 +145,7 @@ from twin.service.shards import (
     UnheardArm,
     UnheardRequest,
     alarm_info,
+    calibration_in_use,
     uncalibrated,
 )
 from twin.service.stagetiming import StageSampler
@@ -1940,7 +1941,7 @@ class Mirror:
             gripper_percent=readout.gripper.get(device),
             servos=self._servo_states(readout.servos[device]) if device in readout.servos else None,
             loss=readout.loss.get(device, LossSnapshot()),
-            calibration=self._calibration_source(device),
+            calibration=calibration_in_use(self._calibration_source(device), units),
             uncalibrated=self._uncalibrated(device, units),
             calibration_problem=self._calibration_problems.get(device, ""),
         )

@@ -1484,6 +1484,12 @@ def _payload_size(message: tuple[str, bytes, float, float]) -> int:
     return len(message[1])
 
 
+def calibration_in_use(calibration: str, units: Units) -> str:
+    """The calibration an arm's angles are decoded with, as /state shows it: none for degrees, which are
+    already relative to the arm's calibrated middle and ignore any file (its own in the store included)."""
+    return "" if units is Units.DEGREES else calibration
+
+
 def uncalibrated(calibration: str, units: Units) -> bool:
     """No calibration while the units need one: degrees are already relative to the arm's calibrated
     middle, ticks and range100 are not."""
