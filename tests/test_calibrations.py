@@ -248,7 +248,7 @@ def test_a_removal_says_what_the_arm_decodes_with_now(
         watcher.poll()
     (removed,) = [r.getMessage() for r in caplog.records if getattr(r, "event", "") == "calibration_removed"]
     if fallback:
-        assert f"it decodes with the config's calibration again ({fallback})" in removed, removed
+        assert f"it decodes with the config's calibration ({fallback})" in removed, removed
     else:
         assert "it decodes with the nominal SO-101 calibration, and is flagged uncalibrated" in removed, (
             removed
@@ -647,6 +647,8 @@ def test_config_check_notes_a_store_directory_that_is_not_there(
     missing = tmp_path / "out" / "calibratoin"
     assert f"note: [telemetry] calibrations = 'out/calibratoin': {missing} does not exist" in out, out
     assert f"`twin calibration push ARM FILE --store {missing}`" in out, out
+    # The config sets no calibration: the arms decode with the nominal one, flagged, not "the config's".
+    assert "each decodes with the nominal SO-101 calibration, and is flagged uncalibrated" in out, out
     # Once it is there (a push made it), nothing to note.
     missing.mkdir(parents=True)
     assert main(["config", "check", str(config)]) == 0

@@ -471,12 +471,13 @@ def store_option(store: str) -> str:
     return f" --store {shlex.quote(store)}"
 
 
-def missing_store_notice(store: str) -> str:
-    """What the agent warns of, and `twin config check` notes, for a directory store that is not there."""
+def missing_store_notice(store: str, fallback: str) -> str:
+    """What the agent warns of, and `twin config check` notes, for a directory store that is not there;
+    `fallback` the config's [telemetry] calibration ("": none set), as for without_own."""
     return (
-        f"{store} does not exist, so no arm has its own calibration: each decodes with the config's. "
-        "Check [telemetry] calibrations (a relative path is from the directory the agent starts in), or push "
-        f"a file there, which makes it (`{push_hint('ARM', store).command}`)"
+        f"{store} does not exist, so no arm has its own calibration: each decodes with "
+        f"{without_own(fallback)}. Check [telemetry] calibrations (a relative path is from the directory the "
+        f"agent starts in), or push a file there, which makes it (`{push_hint('ARM', store).command}`)"
     )
 
 
@@ -489,7 +490,7 @@ def without_own(fallback: str | None) -> str:
     if fallback is None:
         return f"the agent's [telemetry] calibration, or, where that is not set, {nominal}"
     if fallback:
-        return f"the config's calibration again ({fallback})"
+        return f"the config's calibration ({fallback})"
     return f"{nominal} (the config sets no [telemetry] calibration)"
 
 
@@ -686,7 +687,7 @@ class CalibrationWatcher:
         if missing and not self._missing:
             log.warning(
                 "calibrations: %s",
-                missing_store_notice(self.store.uri),
+                missing_store_notice(self.store.uri, self.fallback),
                 extra={"event": "calibration_store_missing", "store": self.store.uri},
             )
         elif self._missing and not missing:

@@ -82,4 +82,5 @@ def _store_notes(config: AgentConfig) -> list[str]:
     where = open_store(uri).uri
     if Path(where).exists():
         return []
-    return [f"[telemetry] calibrations = {uri!r}: {missing_store_notice(where)}"]
+    notice = missing_store_notice(where, config.telemetry.calibration)
+    return [f"[telemetry] calibrations = {uri!r}: {notice}"]
