@@ -797,6 +797,23 @@ def test_an_arm_whose_own_calibration_was_refused_is_held_not_decoded_with_anoth
     assert dec.decode(payload(TICKS_EXAMPLE)).device_id == "arm-001"
 
 
+def test_an_arm_publishing_degrees_is_not_held_for_a_calibration_it_does_not_use() -> None:
+    """Degrees ignore every calibration (they are already relative to the arm's calibrated middle), yet a
+    degrees arm whose own file was refused had each message refused as calibration_refused: its twin held
+    still for a file it would never read. Under units=auto the message's own evidence says so."""
+    for units in (Units.DEGREES, Units.AUTO):
+        dec = decoder(units, auto_evidence_messages=1)
+        dec.set_calibrations({}, held={"arm-001": "not valid JSON"})
+        assert dec.decode(payload(DEGREES_EXAMPLE)).units is Units.DEGREES, units
+    # Ticks under auto, or an auto message that cannot tell yet: the arm is held as before.
+    for positions in (TICKS_EXAMPLE, (0, 0, 0, 0, 0, 0)):
+        dec = decoder(Units.AUTO, auto_evidence_messages=1)
+        dec.set_calibrations({}, held={"arm-001": "not valid JSON"})
+        with pytest.raises(TelemetryRejected) as info:
+            dec.decode(payload(positions))
+        assert info.value.reason is RejectReason.CALIBRATION_REFUSED, positions
+
+
 def test_every_reason_is_exercised() -> None:
     exercised = {r[3] for r in REJECTS} | {RejectReason.DEVICE_MISMATCH, RejectReason.CALIBRATION_REFUSED}
     assert exercised == set(RejectReason)

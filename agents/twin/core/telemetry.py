@@ -96,6 +96,15 @@ class TelemetryRejected(ValueError):  # noqa: N818 - a public name: callers catc
         self.reason = reason
 
 
+def _uses_calibration(units: Units, positions: list[int | float]) -> bool:
+    """Whether a message in `units` is decoded with a calibration: degrees are not (already relative to the
+    arm's calibrated middle), so a held arm that publishes them is not held. An arm units=auto has not decided
+    yet is judged by its message's evidence; one that cannot tell may use one."""
+    if units is Units.AUTO:
+        units = _evidence(positions) or Units.TICKS
+    return units is not Units.DEGREES
+
+
 def _held(device_id: str, why: str, store_option: str, restorable: bool) -> TelemetryRejected:
     # `restore` only when the store keeps a calibration for the arm: with none it exits 1, a dead end.
     restore = (
@@ -656,7 +665,7 @@ class TelemetryDecoder:
             raise _mismatch(device_id, topic_device)
         readings: tuple[JointReading, ...] = _readings_of(msg.joints)
         positions = [r.position for r in readings]
-        if self._held and device_id in self._held:
+        if self._held and device_id in self._held and _uses_calibration(units, positions):
             raise _held(device_id, self._held[device_id], self._store_option, device_id in self._restorable)
         undecided = False
         if units is Units.AUTO:
