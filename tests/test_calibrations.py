@@ -273,6 +273,9 @@ def test_a_held_arm_is_offered_a_restore_only_when_a_calibration_is_kept_for_it(
     assert watcher.poll() is True and books[-1].restorable == {"arm-002"}
     store.delete_kept("arm-002")
     assert watcher.poll() is True and books[-1].restorable == frozenset()
+    # A kept file that is no valid calibration either: restore would refuse it, so it is not offered.
+    store.write_kept("arm-002", EXAMPLE.read_bytes()[:100])
+    assert watcher.poll() is False and books[-1].restorable == frozenset()
     caplog.clear()
     store.write_kept("arm-002", EXAMPLE.read_bytes())
     with caplog.at_level("WARNING", logger="twin.service.calibrations"):
@@ -460,7 +463,25 @@ def test_a_push_or_rm_over_a_refused_file_keeps_it_but_offers_no_restore(
     assert main(["calibration", "rm", "arm-002", "--store", store.uri]) == cmd.EXIT_OK
     out = capsys.readouterr().out
     assert "twin calibration restore" not in out and store.read_kept("arm-002") == broken, out
-    assert "it was not a valid calibration (" in out and f"kept at {kept}" in out, out
+    assert "the file it replaced was not a valid calibration (" in out and f"kept at {kept}" in out, out
+
+
+def test_a_broken_file_does_not_push_out_the_valid_calibration_kept_from_before(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # One kept slot per arm: a push (or rm) over a truncated upload kept the upload in place of the arm's
+    # last good calibration, which was then gone. The good one stays, and the output says so.
+    store = DirectoryStore(tmp_path / "cal")
+    good = EXAMPLE.read_bytes()
+    broken = good[:100]
+    for command in (["push", "arm-002", str(EXAMPLE)], ["rm", "arm-002"]):
+        store.write_kept("arm-002", good)
+        (tmp_path / "cal" / "arm-002.json").write_bytes(broken)
+        assert main(["calibration", *command, "--store", store.uri]) == cmd.EXIT_OK
+        out = capsys.readouterr().out
+        assert store.read_kept("arm-002") == good, command
+        assert "not a valid calibration (" in out and "the valid one kept from before stays for" in out, out
+        assert f"`twin calibration restore arm-002 --store {store.uri}`" in out, out
 
 
 def test_push_refuses_what_is_not_a_calibration(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -342,21 +342,40 @@ def _push(store: CalibrationStore, arm: str, file: Path, data: bytes, again: str
             f"(lerobot-calibrate on its computer) ({_undo(store, arm, current, again)})"
         )
     # The one it replaces is kept first: if that fails, nothing has changed.
-    kept = None if current is None else store.write_kept(arm, current)
+    kept = None if current is None else _keep(store, arm, current)
     where = store.write(arm, data)
     console.out(f"{arm}: {where} (the agent picks it up within its calibration_poll_s, 30 s by default)")
-    if kept is not None and current is not None:
-        why = _invalid(store, arm, current)
-        if why:
-            console.out(
-                f"{arm}: the file it replaced was not a valid calibration ({why}), so no restore can put it "
-                f"back; it is kept at {kept} all the same"
-            )
-        else:
-            console.out(
-                f"{arm}: the one it replaced is kept at {kept} (`twin calibration restore {arm}{again}`)"
-            )
+    if current is not None:
+        console.out(f"{arm}: {_kept_said(store, arm, current, kept, again)}")
     return EXIT_OK
+
+
+def _keep(store: CalibrationStore, arm: str, current: bytes) -> str | None:
+    """Keep what a push or rm replaces, for a restore; where it is kept. Not a file that is no valid
+    calibration in place of a valid one kept from before (None): that one is what a restore can still put
+    back, and a truncated upload is worth less than the arm's last good calibration."""
+    if _invalid(store, arm, current):
+        before = store.read_kept(arm)
+        if before is not None and not _invalid(store, arm, before):
+            return None
+    return store.write_kept(arm, current)
+
+
+def _kept_said(store: CalibrationStore, arm: str, current: bytes, kept: str | None, again: str) -> str:
+    """What push and rm say of the file they replaced (`kept`: where _keep put it, None: nowhere)."""
+    why = _invalid(store, arm, current)
+    restore = f"`twin calibration restore {arm}{again}`"
+    if kept is None:
+        return (
+            f"the file it replaced was not a valid calibration ({why}) and is not kept, so the valid one "
+            f"kept from before stays for {restore}"
+        )
+    if why:
+        return (
+            f"the file it replaced was not a valid calibration ({why}), so no restore can put it back; it is "
+            f"kept at {kept} all the same"
+        )
+    return f"the one it replaced is kept at {kept} ({restore})"
 
 
 def _invalid(store: CalibrationStore, arm: str, data: bytes) -> str:
@@ -410,17 +429,11 @@ def _rm(store: CalibrationStore, arm: str, again: str) -> int:
     if current is None:
         console.err(f"{arm} has no calibration in {store.uri}")
         return EXIT_STORE
-    kept = store.write_kept(arm, current)
+    kept = _keep(store, arm, current)
     store.delete(arm)
-    why = _invalid(store, arm, current)
-    back = (
-        f"it was not a valid calibration ({why}), so no restore can put it back; it is kept at {kept} "
-        "all the same"
-        if why
-        else f"kept at {kept}: `twin calibration restore {arm}{again}`"
-    )
     # The agent's config is not known here: it may set no [telemetry] calibration.
-    console.out(f"{arm}: removed from {store.uri}; it decodes with {without_own(None)} ({back})")
+    console.out(f"{arm}: removed from {store.uri}; it decodes with {without_own(None)}")
+    console.out(f"{arm}: {_kept_said(store, arm, current, kept, again)}")
     return EXIT_OK
 
 
