@@ -29,7 +29,7 @@ import os
 import shlex
 import threading
 import time
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -645,7 +645,8 @@ class CalibrationWatcher:
             except (ValueError, CalibrationStoreError) as exc:
                 problems[device] = str(exc)
                 changes.append(CalibrationChange(device, "refused", str(exc)))
-                self._log_refused(device, exc, kept=device in entries, restorable=device in found.kept)
+                restorable = self._restorable(device, found.kept)
+                self._log_refused(device, exc, kept=device in entries, restorable=restorable)
                 continue
             problems.pop(device, None)
             entries[device] = StoredCalibration(calibration, source, version)
@@ -656,11 +657,25 @@ class CalibrationWatcher:
                 source,
                 extra={"event": "calibration", "device": device},
             )
-        restorable = frozenset(d for d in problems if d in found.kept)
-        if not changes and problems == self._book.problems and restorable == self._book.restorable:
+        restorables = frozenset(d for d in problems if self._restorable(d, found.kept))
+        if not changes and problems == self._book.problems and restorables == self._book.restorable:
             return False
-        self._book = CalibrationBook(entries, problems, tuple(changes), restorable)
+        self._book = CalibrationBook(entries, problems, tuple(changes), restorables)
         self._on_change(self._book)
+        return True
+
+    def _restorable(self, device: str, kept: Collection[str]) -> bool:
+        """Whether a restore could put `device`'s kept calibration back: one is kept and it is valid (restore
+        refuses one that is not, so offering it only led to an exit 1). Read for refused arms only."""
+        if device not in kept:
+            return False
+        try:
+            data = self.store.read_kept(device)
+            if data is None:
+                return False
+            parse_calibration(data, f"{device}'s kept calibration")
+        except (ValueError, CalibrationStoreError):
+            return False
         return True
 
     def _log_refused(self, device: str, exc: Exception, *, kept: bool, restorable: bool) -> None:
