@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import shlex
 import tempfile
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -43,6 +44,9 @@ EXIT_USAGE = 2
 EXIT_SETUP = 3
 EXIT_NO_STACK = 4
 EXIT_NO_OUTPUTS = 5
+
+# How many arms' files `ls` reads at once to check them as the agent does (a GET each on S3).
+LS_READERS = 16
 
 EPILOG = """examples:
   twin calibration push arm-003 ~/.cache/huggingface/lerobot/calibration/robots/so_follower/arm-003.json
@@ -215,10 +219,11 @@ def _ls(store: CalibrationStore, again: str) -> int:
     if not listing and not kept:
         console.out(f"no calibration in {store.uri}")
     refused = False
+    refusals = _refusals(store, sorted(listing))
     for device in sorted(listing.keys() | kept):
         place = store.uri_of(device)
         line = f"{device}\t{place if device in listing else '(removed)'}"
-        why = _refusal(store, device) if device in listing else ""
+        why = refusals.get(device, "")
         if why:
             refused = True
             line += f"\trefused: {why}"
@@ -240,6 +245,13 @@ def _ls(store: CalibrationStore, again: str) -> int:
     for name in found.ignored:
         console.err(f"ignored: {name} (no arm reads it: {ignored_fix(name, push)})")
     return EXIT_OK
+
+
+def _refusals(store: CalibrationStore, devices: list[str]) -> dict[str, str]:
+    """`_refusal` of each device, LS_READERS at a time: on S3 each is a GET, and read one after another a
+    large fleet's `ls` waits on a round trip per arm. The store's client exists by now (its scan made it)."""
+    with ThreadPoolExecutor(max_workers=LS_READERS) as pool:
+        return dict(zip(devices, pool.map(lambda device: _refusal(store, device), devices), strict=True))
 
 
 def _refusal(store: CalibrationStore, device: str) -> str:
