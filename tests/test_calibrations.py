@@ -22,7 +22,7 @@ from twin.cli.commands import calibration as cmd
 from twin.edge.payload import encode
 from twin.robot import so101
 from twin.robot.calibration import load_calibration
-from twin.service import calibrations
+from twin.service import calibrations, console
 from twin.service.agent import AgentService
 from twin.service.calibrations import (
     STACK_PREFIX,
@@ -1117,6 +1117,43 @@ def test_an_arm_whose_file_is_bad_at_the_start_is_held_until_a_good_one_comes(
         store.write("arm-002", shifted(100))
         feed_until(agent, "arm-002", pan_angle(shifted(100)), ts)
         assert not [n for n in agent.notices() if "calibration" in n]
+    finally:
+        agent.stop()
+
+
+@pytest.mark.parametrize("units", ["auto", "degrees"])
+def test_an_arm_publishing_degrees_has_its_card_and_no_held_notice(tmp_path: Path, units: str) -> None:
+    """Degrees use no calibration: such an arm with a refused file at the start decodes (the decoder's rule),
+    and the Fleet page must not also say it is held, nor the Events page that its twin holds still."""
+    (tmp_path / "cal").mkdir()
+    (tmp_path / "cal" / "arm-002.json").write_text('{"shoulder_pan": {}}')
+    agent = agent_with_store(tmp_path / "cal", **{"telemetry.units": units, "twin.workers": 1})
+    agent.start()
+    try:
+        ts = [int(time.time() * 1000)]
+        # Degrees (negative, so units=auto knows them), the gripper in 0..100 percent as LeRobot sends it.
+        joints = {name: {"position": -12.5} for name in so101.JOINT_NAMES}
+        joints["gripper"] = {"position": 40.0}
+
+        def decoded() -> bool:
+            ts[0] += 100
+            message = {"device_id": "arm-002", "timestamp": ts[0], "joints": joints}
+            agent.feed("dt/lerobot/arm-002/telemetry", json.dumps(message).encode())
+            arm = agent.state().devices.get("arm-002")
+            return arm is not None and arm.joints_rad is not None
+
+        wait_for(decoded, 60, "arm-002's degrees decoded", interval=0.1)
+        rows, notices, _ = console.fleet_parts(agent)
+        assert "arm-002" in {row.device for row in rows}
+        assert not [n for n in notices if n.startswith("arm-002's calibration")], notices
+        refused = EventQuery(kinds=frozenset({"calibration"}), device="arm-002")
+        (event,) = wait_for(lambda: agent.events(refused), 30, "arm-002's refused calibration event")
+        said = "which changes nothing" if units == "degrees" else "unless it publishes degrees"
+        assert said in event.message, event.message
+        # Asked without the page's cards: under auto the arm is named (its units are the message's to say),
+        # with units = degrees no arm is ever held.
+        named = [n for n in agent.notices() if n.startswith("arm-002's calibration")]
+        assert len(named) == (0 if units == "degrees" else 1), named
     finally:
         agent.stop()
 

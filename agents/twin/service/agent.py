@@ -36,7 +36,7 @@ import threading
 import time
 from bisect import bisect_right
 from collections import Counter
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Collection, Iterable, Sequence
 from operator import attrgetter
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Generic, TypeVar
@@ -44,6 +44,7 @@ from typing import TYPE_CHECKING, Any, Generic, TypeVar
 from twin.core.alarms import WAITING_STATES, AlarmRecord, worst_first
 from twin.core.health import DeviceStatus
 from twin.core.topics import TELEMETRY_SUFFIX, device_from_topic
+from twin.core.units import Units
 from twin.output.alerts import Alert, AlertPublisher, sns_publisher
 from twin.output.emf import EmfFileWriter, EmfPublisher, FleetTotals
 from twin.output.history_feed import HistoryProcess, HistoryStartError, WriterFigures
@@ -54,6 +55,7 @@ from twin.service.calibrations import (
     CalibrationWatcher,
     open_store,
     push_hint,
+    refused_effect,
     store_location,
     store_option,
 )
@@ -325,7 +327,11 @@ class AgentService:
             return None
         store = open_store(t.calibrations, region=config.broker.region or config.history.region)
         return CalibrationWatcher(
-            store, interval_s=t.calibration_poll_s, on_change=self._hand_calibrations, fallback=t.calibration
+            store,
+            interval_s=t.calibration_poll_s,
+            on_change=self._hand_calibrations,
+            fallback=t.calibration,
+            units=t.units,
         )
 
     def _build_shards(self, config: AgentConfig, sinks: Sequence[TwinSink]) -> list[Shard]:
@@ -974,11 +980,12 @@ class AgentService:
             total.update(shard.dropped())
         return total
 
-    def notices(self) -> list[str]:
+    def notices(self, shown: Collection[str] = ()) -> list[str]:
         """What the console's fleet page shows above the arms: the broker's (`broker_notices`), then each arm
         held by a refused calibration file, and each other arm whose messages are all refused: no card
-        shows them."""
-        return [*self.broker_notices(), *self._held_notices(), *self._unheard_notices()]
+        shows them. An arm in `shown` has a card: it is not held (one publishing degrees under units=auto
+        decodes, as degrees use no calibration)."""
+        return [*self.broker_notices(), *self._held_notices(shown), *self._unheard_notices()]
 
     def _unheard_notices(self) -> list[str]:
         # A walk's arm whose edge sent what the agent refuses had no card, and the empty Fleet page said no
@@ -1018,18 +1025,22 @@ class AgentService:
         return arms
 
     def _held_problems(self) -> dict[str, str]:
-        """The arms with no calibration to keep (their file was bad at the start), held, by device: why."""
+        """The arms with no calibration to keep (their file was bad at the start), held, by device: why. None
+        with units = degrees, which use no calibration (the decoder holds no such arm)."""
+        if self.config.telemetry.units is Units.DEGREES:
+            return {}
         request = self._calibration_request  # read once: a new book may replace it meanwhile
         kept = {device for device, _, _ in request.files}
         return {device: problem for device, problem in request.problems if device not in kept}
 
-    def _held_notices(self) -> list[str]:
+    def _held_notices(self, shown: Collection[str]) -> list[str]:
         # An arm with no calibration to keep (its file was bad at the start) is held: with the whole fleet
         # subscribed it is never admitted, so only the log and the Events page named it.
         lines = [
             f"{device}'s calibration in the store is refused ({problem}), so its messages are refused and "
             f"its twin does not move: push a valid one ({push_hint(device, self._calibration_store).command})"
             for device, problem in self._held_problems().items()
+            if device not in shown
         ]
         return _named_then_counted(lines, "held the same way")
 
@@ -1495,11 +1506,7 @@ class AgentService:
             if change.action == "refused":
                 # The page is where an operator reads it: what the arm does now, and what puts it right.
                 # Kept only while the agent runs: its next start holds the arm, which the page did not say.
-                now = (
-                    "it keeps the one it had until the agent starts again"
-                    if change.device in book.entries
-                    else "its twin holds still"
-                )
+                now = refused_effect(kept=change.device in book.entries, units=self.config.telemetry.units)
                 push = push_hint(change.device, self._calibration_store).command
                 why = f"{change.detail}; push a good file: {push}"
                 level, message = EventLevel.WARNING, f"calibration of {change.device} refused, {now}: {why}"

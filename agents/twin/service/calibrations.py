@@ -36,6 +36,7 @@ from typing import Any, Protocol
 
 from twin.core.aws import region_or_env
 from twin.core.topics import POLICY_DEVICE_ID_RULE, policy_device_id_problem
+from twin.core.units import Units
 from twin.robot.calibration import MAX_FILE_BYTES, Calibration, parse_calibration
 from twin.service.persist import is_temporary, write_atomically
 
@@ -471,6 +472,22 @@ def store_option(store: str) -> str:
     return f" --store {shlex.quote(store)}"
 
 
+def refused_effect(*, kept: bool, units: Units) -> str:
+    """What a refused file does to its arm, as the log and the Events page say it (`kept`: the arm has a
+    calibration from the store to keep)."""
+    if units is Units.DEGREES:
+        return "which changes nothing: the arms publish degrees, which use no calibration"
+    # At a start the arm had none from the store: the config's is another arm's, so its twin holds still (its
+    # messages refused as calibration_refused) until a good one comes. While it runs the arm keeps the one
+    # it had, but only until the agent starts again, which the log did not say.
+    effect = (
+        "it keeps the one it had until the agent starts again, which holds its twin still"
+        if kept
+        else "its twin holds still until a good file is pushed or the file removed"
+    )
+    return effect + (" (unless it publishes degrees, which use none)" if units is Units.AUTO else "")
+
+
 def missing_store_notice(store: str, fallback: str) -> str:
     """What the agent warns of, and `twin config check` notes, for a directory store that is not there;
     `fallback` the config's [telemetry] calibration ("": none set), as for without_own."""
@@ -584,10 +601,12 @@ class CalibrationWatcher:
         interval_s: float = DEFAULT_POLL_S,
         on_change: Callable[[CalibrationBook], None] = lambda _book: None,
         fallback: str = "",
+        units: Units = Units.AUTO,
     ) -> None:
         self.store = store
         # The agent's [telemetry] calibration ("": none), what an arm whose file is removed decodes with.
         self.fallback = fallback
+        self.units = units  # the agent's [telemetry] units: degrees use no calibration (refused_effect)
         self.interval_s = interval_s
         self._on_change = on_change
         self._book = CalibrationBook()
@@ -684,12 +703,7 @@ class CalibrationWatcher:
         log.warning(
             "calibration of %s refused, %s: %s; push a good file: %s%s",
             device,
-            # At a start the arm had none from the store: the config's is another arm's, so its twin holds
-            # still (its messages refused as calibration_refused) until a good one comes. While it runs the
-            # arm keeps the one it had, but only until the agent starts again, which the log did not say.
-            "it keeps the one it had until the agent starts again, which holds its twin still"
-            if kept
-            else "its twin holds still until a good file is pushed or the file removed",
+            refused_effect(kept=kept, units=self.units),
             exc,
             push_hint(device, self.store.uri).command,
             f", or put back the one kept: {restore}" if restorable else "",

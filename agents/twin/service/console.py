@@ -19,7 +19,7 @@ from __future__ import annotations
 import html
 import math
 from collections import Counter
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from pathlib import Path
 from string import Template
 from typing import NamedTuple, Protocol, runtime_checkable
@@ -212,9 +212,10 @@ class ArmViewSource(Protocol):
 @runtime_checkable
 class NoticeSource(Protocol):
     """The optional part of the service surface that says what the fleet page must show above the arms: a
-    problem no arm's card can show (a subscription the broker refuses, whose arms are never heard)."""
+    problem no arm's card can show (a subscription the broker refuses, whose arms are never heard). `shown`:
+    the arms the page has a card for, of which no notice need say they have none."""
 
-    def notices(self) -> list[str]: ...
+    def notices(self, shown: Collection[str] = ()) -> list[str]: ...
 
 
 class Listening(NamedTuple):
@@ -266,7 +267,7 @@ def fleet_parts(
         if alarms is None:
             alarms = source.alarms() if isinstance(source, AlarmLister) else ()
         rows = fleet_rows(state, alarms)
-    notices, listening = fleet_notes(source)
+    notices, listening = fleet_notes(source, {row.device for row in rows})
     return rows, [*behind_notice(rows), *notices], listening
 
 
@@ -284,10 +285,10 @@ def behind_notice(rows: Sequence[FleetRow]) -> list[str]:
     ]
 
 
-def fleet_notes(source: object) -> tuple[list[str], Listening | None]:
+def fleet_notes(source: object, shown: Collection[str] = ()) -> tuple[list[str], Listening | None]:
     """The fleet page's notices and what the agent listens on, from a source that says (else none of
-    either). Blocking: both read the agent under its locks."""
-    notices = source.notices() if isinstance(source, NoticeSource) else []
+    either); `shown` the arms with a card (NoticeSource). Blocking: both read the agent under its locks."""
+    notices = source.notices(shown) if isinstance(source, NoticeSource) else []
     listening = source.listening() if isinstance(source, ListeningSource) else None
     return notices, listening
 
