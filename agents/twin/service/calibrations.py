@@ -14,7 +14,9 @@ redeploy or a restart:
 - A file that is not a valid SO-101 calibration is refused with the reason (logged, and kept in
   `CalibrationBook.problems`); the arm keeps the calibration it had, so a bad upload never moves its twin.
   An arm with none to keep (the agent started with the bad file there) is held: its messages are refused as
-  `calibration_refused` rather than decoded with the config's calibration, another arm's.
+  `calibration_refused` rather than decoded with the config's calibration, another arm's (unless they are
+  in degrees, which use none). The kept file of a refused arm is read too, once a version, to offer
+  `restore` only when it is valid.
 - The agent hands each new book to its mirrors (AgentService), whose decoders swap the arm's table in whole.
 
 Listing and reading go through `CalibrationStore`, one for a directory and one for S3 (boto3, built lazily,
@@ -29,7 +31,7 @@ import os
 import shlex
 import threading
 import time
-from collections.abc import Callable, Collection, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -118,7 +120,7 @@ class StoreScan:
     """What one listing of a store found (`CalibrationStore.scan`)."""
 
     calibrations: dict[str, str]  # device id -> a version that changes whenever its file does
-    kept: frozenset[str]  # the device ids with a kept calibration (KEPT_SUFFIX)
+    kept: dict[str, str]  # device id -> the version of its kept calibration (KEPT_SUFFIX)
     # Names ending in `.json` (or KEPT_SUFFIX) that name no device id: `arm 9.json`, `ARM-001.JSON`. No arm
     # reads them, so a person who copied a file in by hand is told rather than left to wonder.
     ignored: tuple[str, ...]
@@ -129,7 +131,7 @@ class StoreScan:
 def scan_of(names: Iterable[tuple[str, str]]) -> StoreScan:
     """A store's (file name, version) pairs, sorted into a StoreScan."""
     calibrations: dict[str, str] = {}
-    kept: set[str] = set()
+    kept: dict[str, str] = {}
     ignored: list[str] = []
     for name, version in names:
         device = device_of(name)
@@ -138,10 +140,10 @@ def scan_of(names: Iterable[tuple[str, str]]) -> StoreScan:
             continue
         device = device_of(name, KEPT_SUFFIX)
         if device is not None:
-            kept.add(device)
+            kept[device] = version
         elif name.lower().endswith((SUFFIX, KEPT_SUFFIX)):
             ignored.append(name)
-    return StoreScan(calibrations, frozenset(kept), tuple(sorted(ignored)))
+    return StoreScan(calibrations, kept, tuple(sorted(ignored)))
 
 
 def device_of(name: str, suffix: str = SUFFIX) -> str | None:
@@ -610,8 +612,10 @@ class CalibrationWatcher:
         self.interval_s = interval_s
         self._on_change = on_change
         self._book = CalibrationBook()
-        # The version each device's file had when it was last read (good or refused), so it is read once.
+        # The version each device's file had when it was last read (good or refused), so it is read once;
+        # and of each refused arm's kept file, with whether it is one restore takes.
         self._seen: dict[str, str] = {}
+        self._kept_seen: dict[str, tuple[str, bool]] = {}
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.polls = 0
@@ -677,25 +681,32 @@ class CalibrationWatcher:
                 extra={"event": "calibration", "device": device},
             )
         restorables = frozenset(d for d in problems if self._restorable(d, found.kept))
+        self._kept_seen = {d: seen for d, seen in self._kept_seen.items() if d in problems}
         if not changes and problems == self._book.problems and restorables == self._book.restorable:
             return False
         self._book = CalibrationBook(entries, problems, tuple(changes), restorables)
         self._on_change(self._book)
         return True
 
-    def _restorable(self, device: str, kept: Collection[str]) -> bool:
+    def _restorable(self, device: str, kept: Mapping[str, str]) -> bool:
         """Whether a restore could put `device`'s kept calibration back: one is kept and it is valid (restore
-        refuses one that is not, so offering it only led to an exit 1). Read for refused arms only."""
-        if device not in kept:
+        refuses one that is not, so offering it only led to an exit 1). Read for refused arms only, once a
+        version of the kept file, as the arms' own files are."""
+        version = kept.get(device)
+        if version is None:
             return False
+        seen = self._kept_seen.get(device)
+        if seen is not None and seen[0] == version:
+            return seen[1]
         try:
             data = self.store.read_kept(device)
-            if data is None:
-                return False
-            parse_calibration(data, f"{device}'s kept calibration")
+            if data is not None:
+                parse_calibration(data, f"{device}'s kept calibration")
+            valid = data is not None
         except (ValueError, CalibrationStoreError):
-            return False
-        return True
+            valid = False
+        self._kept_seen[device] = (version, valid)
+        return valid
 
     def _log_refused(self, device: str, exc: Exception, *, kept: bool, restorable: bool) -> None:
         # `restore` only when a calibration is kept for the arm: with none it exits 1, a dead end.
