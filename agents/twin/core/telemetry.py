@@ -106,7 +106,7 @@ def _uses_calibration(units: Units, positions: list[int | float]) -> bool:
 
 
 def _held(device_id: str, why: str, store_option: str, restorable: bool) -> TelemetryRejected:
-    # `restore` only when the store keeps a calibration for the arm: with none it exits 1, a dead end.
+    # `restore` only when the store keeps a valid calibration for the arm: else it exits 1, a dead end.
     restore = (
         f", put the one it replaced back (`twin calibration restore {device_id}{store_option}`)"
         if restorable
@@ -571,7 +571,7 @@ class TelemetryDecoder:
         # Arms whose own calibration was refused, with no good one to keep: why, by device (set_calibrations).
         self._held: dict[str, str] = {}
         self._store_option = ""
-        self._restorable: frozenset[str] = frozenset()  # held arms the store keeps a calibration for
+        self._restorable: frozenset[str] = frozenset()  # arms the store keeps a valid calibration for
         # The default map's angle of every whole tick (_tick_tables), made on the first message in ticks. Only
         # the default's: an arm with its own calibration converts by arithmetic, since a table per arm would
         # cost about 1.1 MB each (2,000 calibrated arms: 2.2 GB).
@@ -595,10 +595,11 @@ class TelemetryDecoder:
         table is built aside and swapped in whole, so a message decodes with the old set or the new one.
 
         `held`: arms whose own calibration exists but was refused (device -> why), with none to keep. Their
-        messages are refused as `calibration_refused`: the config's calibration is another arm's, and decoding
-        with it would move the twin to a wrong pose. `store_option` (e.g. ` --store DIR`) goes into the
-        commands their refusal names, so they reach the store this agent reads; `restorable`, the held arms
-        the store keeps a calibration for, the only ones their refusal offers `twin calibration restore`."""
+        messages are refused as `calibration_refused` (unless in degrees, which use none): the config's
+        calibration is another arm's, and decoding with it would move the twin to a wrong pose.
+        `store_option` (e.g. ` --store DIR`) goes into the commands their refusal names, so they reach the
+        store this agent reads; `restorable`, the refused arms the store keeps a valid calibration for, the
+        only ones a refusal offers `twin calibration restore`."""
         self._store_option = store_option
         self._restorable = frozenset(restorable)
         self._held = {d: why for d, why in (held or {}).items() if d not in calibrations}

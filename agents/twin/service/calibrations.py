@@ -574,7 +574,7 @@ class CalibrationBook:
     entries: Mapping[str, StoredCalibration] = field(default_factory=dict)
     problems: Mapping[str, str] = field(default_factory=dict)
     changes: tuple[CalibrationChange, ...] = ()
-    # The arms in `problems` the store keeps a calibration for (KEPT_SUFFIX): only for them does a held
+    # The arms in `problems` the store keeps a valid calibration for (KEPT_SUFFIX): only for them does a held
     # arm's refusal offer `twin calibration restore`, which for any other exits 1.
     restorable: frozenset[str] = frozenset()
 

@@ -391,7 +391,7 @@ class CalibrationsRequest:
     # What `twin calibration` needs to reach the agent's store (calibrations.store_option), so a held arm's
     # refusal names commands that work for this agent, not the stack's store.
     store_option: str = ""
-    # The held arms the store keeps a calibration for, whose refusal may offer `twin calibration restore`.
+    # The refused arms the store keeps a valid calibration for, whose refusal may offer a restore.
     restorable: tuple[str, ...] = ()
 
 

@@ -238,8 +238,8 @@ def _ls(store: CalibrationStore, again: str) -> int:
         )
     if kept:
         console.err(
-            f"kept: what a push or rm replaced; `twin calibration restore ARM{again}` swaps it back in, "
-            f"`twin calibration rm --kept ARM{again}` removes it"
+            f"kept: what a push or rm replaced; `twin calibration restore ARM{again}` swaps it back in when "
+            f"it is a valid calibration, `twin calibration rm --kept ARM{again}` removes it"
         )
     push = f"twin calibration push ARM FILE{again}"
     for name in found.ignored:

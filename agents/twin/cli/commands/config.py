@@ -74,13 +74,11 @@ def run(args: argparse.Namespace) -> int:
 def _store_notes(config: AgentConfig) -> list[str]:
     """A calibration store directory that is not there, as `twin run` started here would warn at its start: a
     mistyped path was called a valid config, and every arm then decoded with the config's calibration."""
-    from twin.service.calibrations import missing_store_notice, open_store
+    from twin.service.calibrations import DirectoryStore, missing_store_notice, open_store
 
     uri = config.telemetry.calibrations
-    if not uri or uri.startswith("s3://"):
-        return []
-    where = open_store(uri).uri
-    if Path(where).exists():
-        return []
-    notice = missing_store_notice(where, config.telemetry.calibration)
+    store = open_store(uri) if uri else None
+    if not isinstance(store, DirectoryStore) or store.path.exists():
+        return []  # none, on S3 (made by the stack), or there
+    notice = missing_store_notice(store.uri, config.telemetry.calibration)
     return [f"[telemetry] calibrations = {uri!r}: {notice}"]
