@@ -1302,8 +1302,9 @@ def _calibration_events() -> Any:
     return EventQuery(kinds=frozenset({"calibration"}))
 
 
-def test_degrees_need_no_calibration_so_they_are_not_flagged(tmp_path: Path) -> None:
-    agent = agent_with_store(tmp_path / "none", **{"telemetry.units": "degrees"})
+def degrees_arm(store: Path) -> Any:
+    """arm-001 as /state shows it, in an agent with units = degrees over `store`, once a message decoded."""
+    agent = agent_with_store(store, **{"telemetry.units": "degrees"})
     agent.start()
     try:
         joints = {name: {"position": 1.5} for name in so101.JOINT_NAMES}
@@ -1312,28 +1313,20 @@ def test_degrees_need_no_calibration_so_they_are_not_flagged(tmp_path: Path) -> 
             encode({"device_id": "arm-001", "timestamp": int(time.time() * 1000), "joints": joints}),
         )
         state = wait_for(lambda: agent.state().devices["arm-001"].joints_rad and agent.state(), 30, "arm-001")
-        assert state.devices["arm-001"].uncalibrated is False
+        return state.devices["arm-001"]
     finally:
         agent.stop()
+
+
+def test_degrees_need_no_calibration_so_they_are_not_flagged(tmp_path: Path) -> None:
+    assert degrees_arm(tmp_path / "none").uncalibrated is False
 
 
 def test_an_arm_publishing_degrees_shows_no_calibration_in_use(tmp_path: Path) -> None:
     # Its file in the store was shown as its `calibration` in /state, though degrees never use one.
-    store = DirectoryStore(tmp_path / "cal")
-    store.write("arm-001", EXAMPLE.read_bytes())
-    agent = agent_with_store(tmp_path / "cal", **{"telemetry.units": "degrees"})
-    agent.start()
-    try:
-        joints = {name: {"position": 1.5} for name in so101.JOINT_NAMES}
-        agent.feed(
-            "dt/lerobot/arm-001/telemetry",
-            encode({"device_id": "arm-001", "timestamp": int(time.time() * 1000), "joints": joints}),
-        )
-        state = wait_for(lambda: agent.state().devices["arm-001"].joints_rad and agent.state(), 30, "arm-001")
-        arm = state.devices["arm-001"]
-        assert arm.calibration == "" and arm.uncalibrated is False, arm.calibration
-    finally:
-        agent.stop()
+    DirectoryStore(tmp_path / "cal").write("arm-001", EXAMPLE.read_bytes())
+    arm = degrees_arm(tmp_path / "cal")
+    assert arm.calibration == "" and arm.uncalibrated is False, arm.calibration
 
 
 @pytest.mark.slow
