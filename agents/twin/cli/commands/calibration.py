@@ -218,19 +218,17 @@ def _ls(store: CalibrationStore, again: str) -> int:
     listing, kept = found.calibrations, found.kept
     if not listing and not kept:
         console.out(f"no calibration in {store.uri}")
-    refused = False
     refusals = _refusals(store, sorted(listing))
     for device in sorted(listing.keys() | kept):
         place = store.uri_of(device)
         line = f"{device}\t{place if device in listing else '(removed)'}"
         why = refusals.get(device, "")
         if why:
-            refused = True
             line += f"\trefused: {why}"
         if device in kept:
             line += f"\tkept: {place.removesuffix(SUFFIX)}{KEPT_SUFFIX}"
         console.out(line)
-    if refused:
+    if any(refusals.values()):
         console.err(
             "refused: the agent does not use that file: an arm keeps the calibration it had until the agent "
             "starts again, and one with none (after a start) is held, its messages refused; push a good "
@@ -354,28 +352,30 @@ def _push(store: CalibrationStore, arm: str, file: Path, data: bytes, again: str
             f"(lerobot-calibrate on its computer) ({_undo(store, arm, current, again)})"
         )
     # The one it replaces is kept first: if that fails, nothing has changed.
-    kept = None if current is None else _keep(store, arm, current)
+    why = "" if current is None else _invalid(store, arm, current)
+    kept = None if current is None else _keep(store, arm, current, why)
     where = store.write(arm, data)
     console.out(f"{arm}: {where} (the agent picks it up within its calibration_poll_s, 30 s by default)")
     if current is not None:
-        console.out(f"{arm}: {_kept_said(store, arm, current, kept, again)}")
+        console.out(f"{arm}: {_kept_said(arm, why, kept, again)}")
     return EXIT_OK
 
 
-def _keep(store: CalibrationStore, arm: str, current: bytes) -> str | None:
+def _keep(store: CalibrationStore, arm: str, current: bytes, why: str) -> str | None:
     """Keep what a push or rm replaces, for a restore; where it is kept. Not a file that is no valid
-    calibration in place of a valid one kept from before (None): that one is what a restore can still put
-    back, and a truncated upload is worth less than the arm's last good calibration."""
-    if _invalid(store, arm, current):
+    calibration (`why` it is not, "" when it is one) in place of a valid one kept from before (None): that
+    one is what a restore can still put back, and a truncated upload is worth less than the arm's last good
+    calibration."""
+    if why:
         before = store.read_kept(arm)
         if before is not None and not _invalid(store, arm, before):
             return None
     return store.write_kept(arm, current)
 
 
-def _kept_said(store: CalibrationStore, arm: str, current: bytes, kept: str | None, again: str) -> str:
-    """What push and rm say of the file they replaced (`kept`: where _keep put it, None: nowhere)."""
-    why = _invalid(store, arm, current)
+def _kept_said(arm: str, why: str, kept: str | None, again: str) -> str:
+    """What push and rm say of the file they replaced (`why` it was no valid calibration, "" when it was
+    one; `kept`: where _keep put it, None: nowhere)."""
     restore = f"`twin calibration restore {arm}{again}`"
     if kept is None:
         return (
@@ -441,11 +441,12 @@ def _rm(store: CalibrationStore, arm: str, again: str) -> int:
     if current is None:
         console.err(f"{arm} has no calibration in {store.uri}")
         return EXIT_STORE
-    kept = _keep(store, arm, current)
+    why = _invalid(store, arm, current)
+    kept = _keep(store, arm, current, why)
     store.delete(arm)
     # The agent's config is not known here: it may set no [telemetry] calibration.
     console.out(f"{arm}: removed from {store.uri}; it decodes with {without_own(None)}")
-    console.out(f"{arm}: {_kept_said(store, arm, current, kept, again)}")
+    console.out(f"{arm}: {_kept_said(arm, why, kept, again)}")
     return EXIT_OK
 
 
