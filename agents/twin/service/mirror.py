@@ -50,8 +50,10 @@ import dataclasses
 import gc
 import logging
 import os
+import sys
 import threading
 import time
+import traceback
 from collections import Counter, deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -186,6 +188,12 @@ CLOCK_RESET_MIN_MESSAGES = 5
 MAX_PHYSICS_STEP_S = 0.1
 # How often the worker wakes with nothing to do (kinematic mode): bounds the stop latency.
 IDLE_WAKE_S = 0.2
+# The worker thread turns its loop at least every IDLE_WAKE_S (a physics step, or a batch of milliseconds),
+# so one in-process that has not turned for this long is stuck: a sink or a native call that never returns.
+# The shard then counts as failed, and `twin run` exits for systemd to start it again (LocalShard.supervise).
+STALL_AFTER_S = 60.0
+# How long the stop of an agent with such a mirror waits for it to finish (it may have come free meanwhile).
+STALLED_STOP_S = 5.0
 # Python's cyclic garbage collector walks every tracked object in a full pass. At fleet scale most of them are
 # the arms' own state (twins, health windows, alarm records), alive for the whole run, and a full pass held
 # the worker for 60 ms at 1,000 arms (docs/performance.md). So this often the worker collects the young
@@ -533,6 +541,8 @@ class Mirror:
         self._watch = FleetWatch(self._events, health=config.health)
         self._rejections = RejectionThrottle(self._events, clock=clock)
         self.batches = 0
+        # Loop turns of the worker thread, idle ones too: whether it is stuck (LocalShard.supervise).
+        self.turns = 0
         # Fleet-wide distributions since start (every applied message of every device), for `twin bench`
         # and capacity questions; the per-device windows in health answer "how is this arm doing now".
         self._internal_hist = LatencyHistogram()
@@ -720,6 +730,13 @@ class Mirror:
     def running(self) -> bool:
         return self._worker is not None and self._worker.is_alive()
 
+    def worker_stack(self) -> str:
+        """Where the worker thread is now, as a traceback prints it ("" when it does not run): what a stuck
+        one waits in."""
+        worker = self._worker
+        frame = None if worker is None or worker.ident is None else sys._current_frames().get(worker.ident)
+        return "" if frame is None else "".join(traceback.format_stack(frame))
+
     @property
     def recording_path(self) -> Path | None:
         return self._recording.path if self._recording is not None else None
@@ -742,6 +759,7 @@ class Mirror:
         sampler = self._stage_sampler
         cpu = self._cpu_clock
         while True:
+            self.turns += 1
             # The stage timers read the thread's CPU clock (a system call here) only on sampled turns
             # (service.stagetiming); the others read no clock for them at all.
             sampled = sampler.sample()
@@ -2000,6 +2018,10 @@ class LocalShard:
             history=history,
         )
         self._closed = False
+        self._clock = clock
+        # The worker thread's loop turns when last seen to change, and when (supervise).
+        self._turned: tuple[int, float] | None = None
+        self._stalled = False
 
     def put(self, key: str, topic: str, payload: bytes, recv_mono: float, recv_wall: float) -> None:
         self._inbox.put(key, (topic, payload, recv_mono, recv_wall))
@@ -2018,10 +2040,34 @@ class LocalShard:
         self._gate.close()
 
     def join(self, deadline: float) -> StopReport | None:
+        if self._stalled:
+            # A stuck thread does not finish its batch however long it is given: the stop's budget goes to
+            # the sinks and the state file, and systemd starts the agent again sooner.
+            deadline = min(deadline, time.monotonic() + STALLED_STOP_S)
         return self.mirror.stop(max(0.1, deadline - time.monotonic()))
 
     def supervise(self) -> None:
-        return  # nothing to start again: a dead worker thread is `failed`
+        """Nothing to start again (a dead worker thread is `failed`), but a stuck one must not pass for a
+        running mirror: with no turn of its loop for STALL_AFTER_S it is `failed` too, so `twin run` exits and
+        systemd starts the agent again, from its state file, as a worker process would be from its checkpoint.
+        It cannot be stopped from here, nor started again beside itself (it holds the twins)."""
+        if self._closed or self._stalled or not self.mirror.running:
+            return
+        turns, now = self.mirror.turns, self._clock()
+        if self._turned is None or self._turned[0] != turns:
+            self._turned = (turns, now)
+            return
+        if now - self._turned[1] < STALL_AFTER_S:
+            return
+        self._stalled = True
+        log.error(
+            "the mirror's worker thread has not turned for %.0f s, %d messages queued for it: it is stuck; "
+            "the agent stops (under systemd, its unit starts it again). It waits in:\n%s",
+            now - self._turned[1],
+            len(self._inbox),
+            self.mirror.worker_stack(),
+            extra={"stalled_s": round(now - self._turned[1], 1), "queued": len(self._inbox)},
+        )
 
     restarting = False
 
@@ -2042,7 +2088,7 @@ class LocalShard:
 
     @property
     def failed(self) -> bool:
-        return not self._closed and not self.mirror.running
+        return not self._closed and (self._stalled or not self.mirror.running)
 
     @property
     def answering(self) -> bool:

@@ -2,14 +2,17 @@
 
 Exit codes: 0 after SIGTERM/SIGINT and a clean stop (recording flushed); 2 when the configuration is invalid
 (the reason on stderr and as a JSON log line); 1 when the service cannot start or dies (e.g. the HTTP address
-is taken). Logs are JSON lines on stdout.
+is taken, or a mirror stopped or is stuck). Logs are JSON lines on stdout. Under systemd it tells the unit
+when it is ready, stopping, and alive (twin.service.systemd).
 """
 
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import logging
 import signal
+import threading
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -30,6 +33,7 @@ from twin.service.logs import setup_logging
 if TYPE_CHECKING:
     from twin.output.sinks import TwinSink
     from twin.service.agent import AgentService
+    from twin.service.systemd import Notifier
 
 log = logging.getLogger("twin.run")
 console = Console("run")
@@ -203,6 +207,12 @@ def serve(config: AgentConfig, on_started: Callable[[AgentService], None] | None
     if isinstance(service, int):
         return service
 
+    from twin.service.systemd import Notifier
+
+    # systemd's watchdog kills a process whose main thread stopped (WatchdogSec, twin.service.systemd) with
+    # SIGABRT: every thread's stack then goes to stderr, the unit's journal, saying where it was stuck.
+    faulthandler.enable(all_threads=True)
+    notifier = Notifier.from_env()
     received: list[str] = []
     with stop_on_signals(lambda signum: received.append(signal.Signals(signum).name)) as stop:
         try:
@@ -213,16 +223,31 @@ def serve(config: AgentConfig, on_started: Callable[[AgentService], None] | None
         except (OSError, ValueError, RuntimeError) as exc:  # RuntimeError: a worker could not start
             service.stop()  # closes the sinks too
             return _cannot_start(exc)
+        notifier.ready(f"mirroring {', '.join(service.topic_filters)}; console {service.http_url}")
         if on_started is not None:
             on_started(service)
-        while not stop.wait(1.0):
-            if not service.running:
-                log.error("the twin worker stopped unexpectedly; exiting", extra={"exit_code": EXIT_FAILURE})
-                service.stop()
-                return EXIT_FAILURE
-        log.info("signal received; stopping", extra={"signal": received[0] if received else None})
-        service.stop()
-        return EXIT_OK
+        try:
+            return _run_until_stopped(service, stop, notifier, received)
+        finally:
+            notifier.close()
+
+
+def _run_until_stopped(
+    service: AgentService, stop: threading.Event, notifier: Notifier, received: list[str]
+) -> int:
+    """Until a signal (EXIT_OK) or a mirror gone for good (EXIT_FAILURE: systemd starts the agent again),
+    telling systemd's watchdog every turn that the main thread runs; then the agent's stop."""
+    while not stop.wait(1.0):
+        notifier.watchdog()
+        if not service.running:
+            log.error("the twin worker stopped unexpectedly; exiting", extra={"exit_code": EXIT_FAILURE})
+            notifier.stopping("a mirror stopped unexpectedly: exiting to be started again")
+            service.stop()
+            return EXIT_FAILURE
+    log.info("signal received; stopping", extra={"signal": received[0] if received else None})
+    notifier.stopping(f"stopping ({received[0] if received else 'asked'})")
+    service.stop()
+    return EXIT_OK
 
 
 def _build_service(config: AgentConfig) -> AgentService | int:

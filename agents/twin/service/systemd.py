@@ -1,0 +1,93 @@
+"""What `twin run` tells systemd, by its notify protocol (sd_notify(3)), when the unit runs it with
+`Type=notify` and `WatchdogSec=` (userdata/install-agent.sh):
+
+- `READY=1` once the agent is up (its mirrors run, HTTP answers): `systemctl start` returns then, and the
+  host checks ordered after the agent's unit see it serving;
+- `WATCHDOG=1` from the main thread while the agent runs: a process whose main thread cannot run any more
+  (a native call stuck holding the GIL, a deadlock) sends none, and systemd kills it after `WatchdogSec`
+  and starts it again (`Restart=always`);
+- `STOPPING=1` as it stops, and a `STATUS=` line `systemctl status` shows.
+
+Outside systemd (`NOTIFY_SOCKET` unset: a laptop, the tests' own agents) every call does nothing. A message
+that cannot be sent is logged once and never stops the agent: systemd's watchdog then says what went wrong.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import time
+from collections.abc import Mapping
+
+log = logging.getLogger(__name__)
+
+
+class Notifier:
+    """The notify socket of the service manager that started this process (none: every call is a no-op)."""
+
+    def __init__(self, address: str | None, watchdog_s: float | None) -> None:
+        # A name starting with "@" is in Linux's abstract namespace (a leading NUL byte), as sd_notify reads.
+        self._address = None if not address else "\0" + address[1:] if address.startswith("@") else address
+        self.watchdog_s = watchdog_s
+        self._socket: socket.socket | None = None
+        self._failed = False
+        self._pinged = float("-inf")
+
+    @classmethod
+    def from_env(cls, env: Mapping[str, str] | None = None) -> Notifier:
+        """From `NOTIFY_SOCKET`, `WATCHDOG_USEC` and `WATCHDOG_PID` as systemd sets them; the watchdog only
+        when it is this process's (`WATCHDOG_PID` unset or ours). Unsupported addresses (vsock) notify
+        nothing, said once in the log."""
+        env = os.environ if env is None else env
+        address = env.get("NOTIFY_SOCKET", "")
+        if address and not address.startswith(("/", "@")):
+            log.warning("NOTIFY_SOCKET %r is not a unix socket: systemd is not notified", address)
+            address = ""
+        watchdog_s = None
+        usec, pid = env.get("WATCHDOG_USEC", ""), env.get("WATCHDOG_PID", "")
+        if usec.isdigit() and int(usec) > 0 and (not pid or pid == str(os.getpid())):
+            watchdog_s = int(usec) / 1e6
+        return cls(address or None, watchdog_s)
+
+    @property
+    def enabled(self) -> bool:
+        return self._address is not None
+
+    def ready(self, status: str) -> None:
+        self._send(f"READY=1\nSTATUS={status}")
+
+    def stopping(self, status: str) -> None:
+        self._send(f"STOPPING=1\nSTATUS={status}")
+
+    def status(self, status: str) -> None:
+        self._send(f"STATUS={status}")
+
+    def watchdog(self) -> None:
+        """Tell the watchdog the main thread runs; at most four times a watchdog interval (systemd's advice
+        is every half interval), so a caller may call it on every turn of its loop."""
+        if self.watchdog_s is None:
+            return
+        now = time.monotonic()
+        if now - self._pinged < self.watchdog_s / 4.0:
+            return
+        self._pinged = now
+        self._send("WATCHDOG=1")
+
+    def close(self) -> None:
+        if self._socket is not None:
+            self._socket.close()
+            self._socket = None
+
+    def _send(self, message: str) -> None:
+        if self._address is None:
+            return
+        try:
+            if self._socket is None:
+                self._socket = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+            self._socket.sendto(message.encode(), self._address)
+        except OSError as exc:
+            if not self._failed:
+                # Once: a manager that went away fails every send the same way.
+                self._failed = True
+                log.error("cannot notify systemd at %s: %s", self._address.replace("\0", "@"), exc)

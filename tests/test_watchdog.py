@@ -1,0 +1,212 @@
+"""A stuck agent is started again: what `twin run` tells systemd (its notify protocol, which the host's unit
+uses with `Type=notify` and `WatchdogSec=`), and an in-process mirror whose worker thread stopped turning.
+
+systemd itself cannot run here: its side of the protocol is a unix datagram socket the test binds, as
+systemd's is, and reads as systemd would (sd_notify(3): newline-separated `KEY=VALUE` lines a datagram).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import tempfile
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from conftest import NO_BROKER, wait_for
+from test_sinks import _Sink
+from twin.rig.local import LocalRig
+from twin.service import mirror as mirror_module
+from twin.service.agent import AgentService
+from twin.service.config import load_config
+from twin.service.systemd import Notifier
+
+PAYLOAD = (
+    b'{"device_id":"arm-001","timestamp":1760000000000,"joints":{"shoulder_pan":{"position":2048},'
+    b'"shoulder_lift":{"position":2048},"elbow_flex":{"position":2048},"wrist_flex":{"position":2048},'
+    b'"wrist_roll":{"position":2048},"gripper":{"position":2048}}}'
+)
+
+
+@pytest.fixture
+def manager() -> Iterator[tuple[socket.socket, str]]:
+    """systemd's end: a bound datagram socket, and its path (short: a unix socket's path has 108 bytes)."""
+    directory = tempfile.mkdtemp(prefix="notify-", dir="/tmp")
+    path = os.path.join(directory, "s")
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(path)
+    try:
+        yield sock, path
+    finally:
+        sock.close()
+        os.unlink(path)
+        os.rmdir(directory)
+
+
+def messages_until(sock: socket.socket, wanted: str, timeout: float) -> list[dict[str, str]]:
+    """Every datagram received, parsed, up to and including the first that sets `wanted` (e.g. READY=1)."""
+    got: list[dict[str, str]] = []
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        sock.settimeout(max(0.01, deadline - time.monotonic()))
+        try:
+            data = sock.recv(4096)
+        except TimeoutError:
+            break
+        got.append(dict(line.split("=", 1) for line in data.decode().splitlines()))
+        key, value = wanted.split("=", 1)
+        if got[-1].get(key) == value:
+            return got
+    raise AssertionError(f"no {wanted} within {timeout} s; received {got}")
+
+
+def test_twin_run_says_it_is_ready_once_it_serves_pings_the_watchdog_and_says_it_stops(
+    rig: LocalRig, manager: tuple[socket.socket, str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    sock, path = manager
+    monkeypatch.setenv("NOTIFY_SOCKET", path)
+    # 2 s: the agent pings at most every half second, and its loop turns every second.
+    monkeypatch.setenv("WATCHDOG_USEC", "2000000")
+    with rig.agent_process(devices="arm-001", config_text="[twin]\nworkers = 1\n") as (proc, url):
+        before = messages_until(sock, "READY=1", 60)
+        # Ready once it serves: the console's address it names answers.
+        assert not any("WATCHDOG" in m for m in before), before
+        assert before[-1]["STATUS"].endswith(f"console {url}"), before
+        assert "dt/lerobot/arm-001/telemetry" in before[-1]["STATUS"]
+        for _ in range(2):
+            messages_until(sock, "WATCHDOG=1", 30)
+        assert proc.poll() is None
+    assert proc.returncode == 0
+    said = messages_until(sock, "STOPPING=1", 5)
+    assert said[-1]["STATUS"] == "stopping (SIGTERM)", said
+
+
+def test_no_watchdog_for_another_process_and_none_without_systemd(
+    manager: tuple[socket.socket, str],
+) -> None:
+    _, path = manager
+    ours = Notifier.from_env({"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "60000000"})
+    assert ours.enabled and ours.watchdog_s == 60.0
+    mine = {"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "60000000", "WATCHDOG_PID": str(os.getpid())}
+    assert Notifier.from_env(mine).watchdog_s == 60.0
+    # systemd sets WATCHDOG_PID to its main process: a child that inherited the variables is not watched.
+    other = Notifier.from_env({**mine, "WATCHDOG_PID": str(os.getpid() + 1)})
+    assert other.enabled and other.watchdog_s is None
+    outside = Notifier.from_env({})
+    assert not outside.enabled and outside.watchdog_s is None
+    outside.ready("up")  # nothing to tell, nothing raised
+    outside.watchdog()
+
+
+def test_an_abstract_socket_is_reached_and_a_vsock_one_is_refused_with_a_warning(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    name = f"so101-twin-test-{os.getpid()}-{time.monotonic_ns()}"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
+        sock.bind("\0" + name)
+        notifier = Notifier.from_env({"NOTIFY_SOCKET": "@" + name})
+        notifier.ready("up")
+        notifier.close()
+        assert messages_until(sock, "READY=1", 5)[-1]["STATUS"] == "up"
+    with caplog.at_level(logging.WARNING, logger="twin.service.systemd"):
+        vsock = Notifier.from_env({"NOTIFY_SOCKET": "vsock:2:1234"})
+    assert not vsock.enabled
+    assert "not a unix socket" in caplog.text
+
+
+def test_a_manager_that_went_away_is_logged_once_and_never_raises(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    notifier = Notifier.from_env({"NOTIFY_SOCKET": str(tmp_path / "gone"), "WATCHDOG_USEC": "4"})
+    with caplog.at_level(logging.ERROR, logger="twin.service.systemd"):
+        notifier.ready("up")
+        notifier.stopping("down")
+    assert [r.getMessage().split(":")[0] for r in caplog.records] == [
+        f"cannot notify systemd at {tmp_path}/gone"
+    ]
+
+
+class _StuckSink(_Sink):
+    """A sink that breaks the rule (`applied` must return at once) the way a stuck native call would: it
+    holds the mirror's worker thread until the test lets go."""
+
+    name = "stuck"
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.holding = threading.Event()
+        self.release = threading.Event()
+
+    def applied(self, sample: Any) -> None:
+        self.holding.set()
+        self.release.wait(120)
+        super().applied(sample)
+
+
+def in_process_agent(sinks: list[Any]) -> AgentService:
+    config = load_config(
+        None,
+        {
+            "broker.url": NO_BROKER,
+            "http.listen": "127.0.0.1:0",
+            "telemetry.devices": ["arm-001"],
+            "telemetry.units": "ticks",
+        },
+    )
+    service = AgentService(config, sinks=sinks)
+    service.start()
+    return service
+
+
+def test_a_stuck_in_process_mirror_fails_the_agent_and_the_log_says_where_it_waits(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A worker process that stops answering is killed and started again; the one mirror of an agent with
+    `workers = 1` (the default for a small listed fleet) runs in the agent's own process, where nothing can
+    start it again: stuck, it fails the agent, so `twin run` exits and systemd starts it again."""
+    monkeypatch.setattr(mirror_module, "STALL_AFTER_S", 1.0)
+    sink = _StuckSink()
+    service = in_process_agent([sink])
+    try:
+        with caplog.at_level(logging.ERROR, logger="twin.service.mirror"):
+            service.feed("dt/lerobot/arm-001/telemetry", PAYLOAD)
+            assert sink.holding.wait(30)
+            wait_for(lambda: not service.running, 30, "the agent to count its stuck mirror as failed")
+        (record,) = [r for r in caplog.records if "is stuck" in r.getMessage()]
+        said = record.getMessage()
+        assert said.startswith("the mirror's worker thread has not turned for "), said
+        # Where it waits: this sink's frame, in this file.
+        assert "in applied" in said and "test_watchdog.py" in said and "self.release.wait" in said, said
+        # Its stop waits a few seconds for it, not the whole shutdown budget: it will not finish its batch.
+        with caplog.at_level(logging.ERROR, logger="twin.service.mirror"):
+            service.stop()
+        assert f"twin worker did not finish within {mirror_module.STALLED_STOP_S:.1f} s" in caplog.text
+    finally:
+        sink.release.set()
+        service.stop()
+
+
+def test_an_idle_in_process_mirror_is_not_taken_for_a_stuck_one(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Its worker thread turns its loop while nothing arrives (every IDLE_WAKE_S): no message for many times
+    STALL_AFTER_S is no stall."""
+    monkeypatch.setattr(mirror_module, "STALL_AFTER_S", 1.0)
+    service = in_process_agent([])
+    try:
+        (shard,) = service._shards
+        start, turns = time.monotonic(), shard.mirror.turns
+        # Past three stall windows by the mirror's own turns, each seen by the supervisor (every 0.5 s).
+        wait_for(
+            lambda: (
+                shard.mirror.turns > turns + 3 / mirror_module.IDLE_WAKE_S and time.monotonic() - start > 3
+            ),
+            60,
+            "three stall windows of idle turns",
+        )
+        assert service.running
+    finally:
+        service.stop()
