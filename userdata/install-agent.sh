@@ -389,7 +389,15 @@ Wants=network-online.target
 After=network-online.target
 
 [Service]
-Type=simple
+# \`twin run\` tells systemd when it is up (READY=1: its mirrors run and HTTP answers), so the host checks
+# ordered after this unit find it serving, and pings the watchdog from its main thread every few seconds: one
+# that stops (a native call stuck holding the GIL, a deadlock) is killed after WatchdogSec, with every
+# thread's stack in the journal, and started again (agents/twin/service/systemd.py).
+Type=notify
+NotifyAccess=main
+WatchdogSec=60
+# Its workers may take up to 120 s to start (shards.START_TIMEOUT_S), history's writer too, side by side.
+TimeoutStartSec=300
 User=${AGENT_USER}
 Group=${AGENT_USER}
 # MuJoCo renders offscreen through EGL on the GPU (/dev/nvidia*); no X display for the service.
@@ -541,7 +549,9 @@ if [ -n "$ALARM_BACKUP" ]; then
     log "warning: ${ALARM_STATE} could not be saved to ${ALARM_BACKUP} now; it is saved at its next change"
 fi
 if [ "$CHANGED" = 1 ] || ! systemctl is-active --quiet so101-twin-agent.service; then
-  systemctl restart so101-twin-agent.service
+  # Not waited for (a notify unit's restart waits for READY=1): the host check after the install says
+  # whether it came up, naming the setting when it refused its configuration.
+  systemctl restart --no-block so101-twin-agent.service
   log "agent service (re)started"
 fi
 log "done (changed=$CHANGED)"

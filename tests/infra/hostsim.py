@@ -160,7 +160,9 @@ args=("$@"); quiet=0; runtime=0
 [ "${args[0]}" = --global ] && args=("${args[@]:1}")
 rest=()
 for a in "${args[@]:1}"; do
-  case "$a" in --quiet) quiet=1 ;; --runtime) runtime=1 ;; -p|--value) rest+=("$a") ;; *) rest+=("$a") ;; esac
+  case "$a" in
+    --quiet) quiet=1 ;; --runtime) runtime=1 ;; --no-block) ;; -p|--value) rest+=("$a") ;; *) rest+=("$a") ;;
+  esac
 done
 verb="${args[0]}"
 x_can_start() {

@@ -317,6 +317,26 @@ def test_the_agent_runs_as_its_own_user_in_a_sandbox(installed: tuple[Path, Path
     assert not {"PrivateDevices", "ProtectClock", "DeviceAllow"} & set(directives)
 
 
+def test_systemd_knows_when_the_agent_is_up_and_when_it_is_stuck(installed: tuple[Path, Path]) -> None:
+    """`twin run` notifies systemd (twin.service.systemd): ready once it serves, so what is ordered after the
+    unit finds it up, and alive from its main thread, so one stuck is killed and started again."""
+    from twin.service.shards import START_TIMEOUT_S
+
+    root, _ = installed
+    directives = unit_directives((root / "etc/systemd/system/so101-twin-agent.service").read_text())
+    assert directives["Type"] == ["notify"] and directives["NotifyAccess"] == ["main"]
+    assert directives["Restart"] == ["always"]
+    # The agent pings at most every quarter of the interval, from a loop that turns every second.
+    (watchdog,) = directives["WatchdogSec"]
+    assert int(watchdog) >= 8
+    # Its workers' start may take START_TIMEOUT_S; a start that takes longer is killed and tried again.
+    (start,) = directives["TimeoutStartSec"]
+    assert int(start) > START_TIMEOUT_S
+    # The installer does not wait for READY=1 (a restart of a notify unit would): the host check says it.
+    calls = (root.parent / f"{root.name}-sim" / "sim" / "calls.log").read_text().splitlines()
+    assert "systemctl restart --no-block so101-twin-agent.service" in calls, calls
+
+
 def test_the_unit_is_valid_for_systemd(installed: tuple[Path, Path], tmp_path: Path) -> None:
     """systemd's own parser reads the units without a complaint about any directive."""
     systemd_analyze = shutil.which("systemd-analyze")
