@@ -2018,8 +2018,8 @@ class LocalShard:
             history=history,
         )
         self._closed = False
-        self._clock = clock
-        # The worker thread's loop turns when last seen to change, and when (supervise).
+        # The worker thread's loop turns when last seen to change, and when (supervise; on the host's own
+        # clock, not the injected one: a test's timeline may leap while the thread turns as ever).
         self._turned: tuple[int, float] | None = None
         self._stalled = False
 
@@ -2053,7 +2053,7 @@ class LocalShard:
         It cannot be stopped from here, nor started again beside itself (it holds the twins)."""
         if self._closed or self._stalled or not self.mirror.running:
             return
-        turns, now = self.mirror.turns, self._clock()
+        turns, now = self.mirror.turns, time.monotonic()
         if self._turned is None or self._turned[0] != turns:
             self._turned = (turns, now)
             return
