@@ -163,6 +163,23 @@ def test_stop_then_start_changes_the_ec2_state(stack, capsys):
     assert commands[-1]["Parameters"]["commands"] == lib.START_VERDICT_COMMANDS
 
 
+def test_start_of_a_running_host_says_so_and_waits_for_nothing(stack, capsys, monkeypatch):
+    """Right after `cdk deploy` the host runs and its start checks have never run (the first boot verifies
+    itself): waiting for their verdict would take the whole --timeout and end in "no verdict"."""
+    instance_id = stack["InstanceId"]
+    sent: list[str] = []
+    intercept(monkeypatch, "SendCommand", lambda original, params: sent.append("x") or original())
+
+    assert main(["instance", "start", "--timeout", "5"]) == 0
+    out = capsys.readouterr().out
+    assert f"instance {instance_id}: already running" in out
+    assert "`twin instance check`" in out
+    assert f"DCV URL: {stack['DcvUrl']}" in out
+    assert "waiting" not in out
+    assert sent == []
+    assert ec2_state(instance_id) == "running"
+
+
 def test_no_wait_returns_the_transitional_state(stack, capsys):
     assert main(["instance", "stop", "--no-wait"]) == 0
     out = capsys.readouterr().out

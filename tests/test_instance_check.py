@@ -207,6 +207,12 @@ def deploy(dcv_url: str) -> dict[str, str]:
     return {o["OutputKey"]: o["OutputValue"] for o in outputs}
 
 
+def stopped(outputs: dict[str, str]) -> None:
+    """The deployed host stopped (moto's instance runs from the start), so `start` has a start to check."""
+    ec2 = boto3.client("ec2", region_name=REGION)
+    ec2.stop_instances(InstanceIds=[outputs["InstanceId"]])
+
+
 SIGNAL_SUCCESS = {
     "ResourceType": "AWS::EC2::Instance",
     "LogicalResourceId": "HostInstance2C59A3BE",
@@ -485,7 +491,7 @@ def test_start_waits_for_the_hosts_own_checks_and_prints_their_verdict(
 ):
     stdout = start_verdict_output(tmp_path)
     with mock_aws():
-        deploy(f"https://127.0.0.1:{dcv_port}/#console")
+        stopped(deploy(f"https://127.0.0.1:{dcv_port}/#console"))
         intercept(monkeypatch, {"GetCommandInvocation": host_answers(stdout)})
         code = main(["instance", "start", "--timeout", "60"])
         out = capsys.readouterr().out
@@ -500,7 +506,7 @@ def test_start_fails_with_the_failing_checks_and_their_fixes(
 ):
     stdout = start_verdict_output(tmp_path, viewer=False)
     with mock_aws():
-        deploy(f"https://127.0.0.1:{dcv_port}/#console")
+        stopped(deploy(f"https://127.0.0.1:{dcv_port}/#console"))
         intercept(monkeypatch, {"GetCommandInvocation": host_answers(stdout)})
         code = main(["instance", "start", "--timeout", "60"])
         out = capsys.readouterr().out

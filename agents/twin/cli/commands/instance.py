@@ -22,7 +22,8 @@ Exit codes:
 the browser, until Ctrl-C.
 
 `start` waits for the checks the host runs after every start (X, then DCV's console session, the agent, the
-viewer, a capture of the console) and prints their verdict. The agent's health does not change the exit code
+viewer, a capture of the console) and prints their verdict; a host already running is left alone (nothing
+starts, so no checks run: `check` checks it). The agent's health does not change the exit code
 of `status` (a freshly started host reports "unknown" until its SSM agent registers); scripts that need it
 read its `agent ...` line.
 """
@@ -301,6 +302,13 @@ def _start(twin: TwinInstance, args: argparse.Namespace) -> int:
     from twin.ops.instance import PASS, UNKNOWN
 
     outputs = twin.outputs()
+    if twin.state() == "running":
+        # Nothing starts, so no start checks run: their verdict of this boot may never come (after the
+        # first boot, which verifies itself, they have not run at all), and waiting would end in "no verdict".
+        console.out(f"instance {outputs.instance_id}: already running (not started now, so no start checks)")
+        console.out(f"DCV URL: {outputs.dcv_url}")
+        console.out("whether the twin works: `twin instance check`")
+        return EXIT_OK
     wait = not args.no_wait
     state = twin.start(wait=wait, timeout_s=args.timeout)
     console.out(f"instance {outputs.instance_id}: {state}")
