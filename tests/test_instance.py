@@ -180,6 +180,25 @@ def test_start_of_a_running_host_says_so_and_waits_for_nothing(stack, capsys, mo
     assert ec2_state(instance_id) == "running"
 
 
+def test_stop_of_a_host_still_starting_says_what_to_wait_for(stack, capsys, monkeypatch):
+    """EC2 refuses StopInstances while the instance is pending (moto does not, so the refusal is injected)."""
+    instance_id = stack["InstanceId"]
+
+    def refuse(original, params):
+        raise client_error(
+            "IncorrectInstanceState",
+            f"The instance '{instance_id}' is not in a state from which it can be stopped.",
+            "StopInstances",
+        )
+
+    intercept(monkeypatch, "StopInstances", refuse)
+    assert main(["instance", "stop", "--timeout", "5"]) == cmd.EXIT_AWS
+    err = capsys.readouterr().err
+    # The state in parentheses is EC2's at the time (pending on AWS; moto's instance runs).
+    assert f"instance {instance_id} cannot be stopped now (" in err
+    assert "wait until it is running (`twin instance status`), then stop it again" in err
+
+
 def test_no_wait_returns_the_transitional_state(stack, capsys):
     assert main(["instance", "stop", "--no-wait"]) == 0
     out = capsys.readouterr().out

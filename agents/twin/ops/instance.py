@@ -533,10 +533,21 @@ class TwinInstance:
 
     def stop(self, wait: bool = True, timeout_s: float = 900.0) -> str:
         """Stop the instance (EBS and the Elastic IP stay); with `wait`, return once it is stopped."""
+        from botocore.exceptions import ClientError  # noqa: PLC0415
+
         instance_id = self.outputs().instance_id
         log.info("stopping %s", instance_id)
         with self._aws(f"stop instance {instance_id}"):
-            response = self._client("ec2").stop_instances(InstanceIds=[instance_id])
+            try:
+                response = self._client("ec2").stop_instances(InstanceIds=[instance_id])
+            except ClientError as exc:
+                # EC2 refuses to stop an instance still starting (pending), as `start` refuses one stopping.
+                if exc.response.get("Error", {}).get("Code") == "IncorrectInstanceState":
+                    raise AwsCallError(
+                        f"instance {instance_id} cannot be stopped now ({self.state()}): wait until it "
+                        "is running (`twin instance status`), then stop it again"
+                    ) from exc
+                raise
         state = response["StoppingInstances"][0]["CurrentState"]["Name"]
         if wait:
             self._wait("instance_stopped", "stopped", timeout_s)
