@@ -250,7 +250,7 @@ def test_missing_stack_is_a_clear_message(aws_env, capsys, tmp_path, monkeypatch
         captured = capsys.readouterr()
         assert captured.err.strip() == (
             "twin instance start: stack GoneTwin not found in us-east-1: deploy it with "
-            "`cdk deploy` (docs/deploy.md) or pass --stack"
+            "`cdk deploy` (docs/deploy.md) or pass --stack, or --region if it was deployed to another region"
         )
         assert "Traceback" not in captured.err and captured.out == ""
         # The default name, with no settings file here or above: said, since the deployed stack may be named
@@ -260,8 +260,18 @@ def test_missing_stack_is_a_clear_message(aws_env, capsys, tmp_path, monkeypatch
         assert err == (
             "twin instance start: stack So101TwinStack not found in us-east-1 (the default name: no "
             f"twin.settings.toml in {tmp_path.resolve()} or above it; run from the checkout you deployed "
-            "from): deploy it with `cdk deploy` (docs/deploy.md) or pass --stack"
+            "from): deploy it with `cdk deploy` (docs/deploy.md) or pass --stack, or --region if it was "
+            "deployed to another region"
         )
+
+
+def test_a_stack_looked_for_in_another_region_points_at_region(stack, capsys):
+    """The stack is there, in another region (AWS_REGION, the profile's, or --region): a person told only to
+    deploy it would build a second twin host."""
+    assert main(["instance", "status", "--region", "eu-west-1"]) == cmd.EXIT_NO_STACK
+    err = capsys.readouterr().err
+    assert "stack So101TwinStack not found in eu-west-1" in err
+    assert "or --region if it was deployed to another region" in err
 
 
 def test_the_stack_name_comes_from_the_settings_file_where_there_is_one(aws_env, tmp_path, monkeypatch):

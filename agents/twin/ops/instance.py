@@ -472,7 +472,7 @@ class TwinInstance:
             )
         return (
             f"stack {self.stack_name} not found in {self.region}{where}: deploy it with "
-            "`cdk deploy` (docs/deploy.md) or pass --stack"
+            "`cdk deploy` (docs/deploy.md) or pass --stack, or --region if it was deployed to another region"
         )
 
     def url(self) -> str:
