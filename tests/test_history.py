@@ -21,6 +21,7 @@ import subprocess
 import sys
 import threading
 import time
+import urllib.request
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -806,6 +807,16 @@ def test_the_writer_process_writes_what_it_received_and_a_crash_is_counted_and_s
         samples = get_metrics(agent.http_url)
         assert metric(samples, "twin_history_rows_lost_total") == 7
         assert metric(samples, "twin_history_writer_restarts_total") == 1
+
+        # ... and told on the Events page, as a worker's exit is: a session's hole has its cause beside it.
+        def writer_events() -> list[dict[str, Any]] | None:
+            with urllib.request.urlopen(f"{agent.http_url}/api/events?kind=worker", timeout=10) as answer:
+                events = json.load(answer)["events"]
+            return events if len(events) == 2 else None
+
+        exited, running = wait_for(writer_events, 60, "the writer's exit and its restart as events")
+        assert (exited["level"], exited["data"]["history_rows_lost"]) == ("error", "7"), exited
+        assert (running["level"], running["data"]["pid"]) == ("info", str(again.writer_pid)), running
         feed(31, 20)
         # The figures run on across the restart.
         wait_for(lambda: history().rows_committed == 40, 60, "the new writer's first commit")

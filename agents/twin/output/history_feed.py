@@ -1003,6 +1003,10 @@ class HistoryProcess:
         self.pid: int | None = None
         self.started_at = 0.0
         self.restarts = 0
+        # The writer processes that died, and the last one's exit code and the rows it lost: the agent makes
+        # an event of each (the Events page explains a hole in a session's history, as for a worker).
+        self.exits = 0
+        self.last_exit: tuple[int | None, int] = (None, 0)
         self._restart_at: float | None = None
         # Over the processes that ended: what they received, committed and dropped, and the rows they held
         # when they died (the figures of /state run on across restarts).
@@ -1217,6 +1221,8 @@ class HistoryProcess:
         for i in range(_COUNTED):
             self._before[i] += counters[i]
         self._rows_lost += held - doubtful
+        self.exits += 1
+        self.last_exit = (exitcode, held - doubtful)
         # A writer that never got as far as committing leaves an earlier writer's commit in doubt as it was.
         if doubt is not None and doubtful:
             self._settle(None)  # (an older one would have been checked by the writer that made this commit)

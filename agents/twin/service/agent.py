@@ -277,6 +277,7 @@ class AgentService:
         self._events_held: list[Event] = []  # collected from a mirror, for the next round (_collect_events)
         self._events_lock = threading.Lock()  # a supervisor round and the stop's last collection
         self._workers_seen: dict[int, tuple[bool, int]] = {}
+        self._history_seen = (0, 0)  # the history writer's exits and restarts the events have told
         self._state_file = StateFile(config.twin.state_file) if config.twin.state_file else None
         # The events over a restart (service.event_journal): read back and subscribed at start().
         self._journal = EventJournal(config.twin.events_file) if config.twin.events_file else None
@@ -618,6 +619,7 @@ class AgentService:
                 shard.supervise()
             if self._history is not None:
                 self._history.supervise()
+                self._watch_history_writer(self._history)
             self._collect_events()
             if self._journal is not None:
                 self._journal.flush()
@@ -1418,6 +1420,30 @@ class AgentService:
                 f"worker {shard.index} running again (restart {info.restarts})",
                 data={"worker": shard.index, "pid": info.pid, "restarts": info.restarts},
             )
+
+    def _watch_history_writer(self, history: HistoryProcess) -> None:
+        """The history writer's deaths and restarts as events, as a worker's: the rows it lost are a hole in
+        a session's history that only the log named, not the Events page an operator reads."""
+        told_exits, told_restarts = self._history_seen
+        self._history_seen = (history.exits, history.restarts)
+        if history.exits > told_exits:
+            code, lost = history.last_exit
+            self._events.emit(
+                EventKind.WORKER,
+                EventLevel.ERROR,
+                f"the history writer exited (code {code}); the {lost} rows it held, not yet written, are "
+                "lost; it is started again",
+                data={"worker": "history", "exit_code": code, "history_rows_lost": lost},
+            )
+        if history.restarts > told_restarts and history.alive:
+            self._events.emit(
+                EventKind.WORKER,
+                EventLevel.INFO,
+                f"the history writer runs again (restart {history.restarts})",
+                data={"worker": "history", "pid": history.pid, "restarts": history.restarts},
+            )
+        elif history.restarts > told_restarts:
+            self._history_seen = (history.exits, told_restarts)  # not running yet: told once it is
 
     # ------------------------------------------------------------------------------- the agent's own events
 

@@ -105,7 +105,7 @@ class EventKind(StrEnum):
     ALARM = "alarm"  # a servo alarm was raised, cleared, acknowledged or reset
     REJECTED = "rejected"  # telemetry the decoder refused, by reason
     BROKER = "broker"  # a broker connection went down or came (back) up
-    WORKER = "worker"  # a worker process of a sharded agent exited or runs again
+    WORKER = "worker"  # a worker process of a sharded agent, or the history writer, exited or runs again
     # a device's twin was rebuilt (its edge clock jumped back), its rate is far from the expected, or it was
     # forgotten
     TWIN = "twin"
