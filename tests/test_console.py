@@ -894,6 +894,37 @@ def test_an_acknowledgement_the_agent_could_not_keep_is_told_as_made_but_not_kep
     assert browser_errors == []
 
 
+def test_an_alarm_acknowledged_meanwhile_elsewhere_is_told_as_done(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """Two tabs on one arm (or a colleague's): the alarm is acknowledged in one, and the other's button,
+    clicked before its row is redrawn, gets the agent's 409 nothing_to_acknowledge. What it asked for is done:
+    the page says so, as Acknowledge all counts it ("already acknowledged"), not as a red "was not
+    acknowledged". The answer is the agent's, word for word; here the page's reading of it."""
+    page.goto(console + "/arm/arm-003")
+    button = page.locator("#alarms tr[data-alarm] button").first
+    button.wait_for(timeout=TIMEOUT_S * 1000)
+    alarm_id = button.get_attribute("data-alarm")
+    detail = f"alarm {alarm_id} is ACKNOWLEDGED: only ACTIVE or LATCHED alarms can be acknowledged"
+
+    def done_elsewhere(route: Any) -> None:
+        route.fulfill(status=409, json={"error": "nothing_to_acknowledge", "detail": detail})
+
+    page.route("**/alarms/**/ack", done_elsewhere)
+    try:
+        button.click()
+        answer = page.wait_for_selector("#ack-result:not([hidden])")
+        told = answer.inner_text()
+    finally:
+        page.unroute("**/alarms/**/ack", done_elsewhere)
+    said = "was acknowledged already (another tab, person or script did it first)"
+    assert told == f"{alarm_id} {said}: {detail}", told
+    assert answer.get_attribute("class") == "ack-ok", told
+    # The browser logs the 409 this test made; nothing else.
+    browser_errors[:] = [e for e in browser_errors if not ("status of 409" in e and "/ack)" in e)]
+    assert browser_errors == []
+
+
 def test_an_alarms_row_and_its_button_stay_put_while_its_value_changes(
     console: str, page: Any, browser_errors: list[str]
 ) -> None:

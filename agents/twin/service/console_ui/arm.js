@@ -169,7 +169,18 @@
     }
     // Made, but the state file could not keep it: "not acknowledged" would be wrong, "acknowledged" too little.
     if (notSaved(result)) return `${alarm.alarm_id} acknowledged, but not kept: ${Twin.refusal(result)}`;
+    if (doneElsewhere(result)) {
+      return `${alarm.alarm_id} was acknowledged already (another tab, person or script did it first): ` +
+        (result.payload.detail || "");
+    }
     return `${alarm.alarm_id} was not acknowledged: ${Twin.refusal(result)}`;
+  }
+
+  // 409 nothing_to_acknowledge: the alarm is ACKNOWLEDGED, or NORMAL after an acknowledgement, since the row
+  // was drawn. What the click asked for is done: a walk's second tab read a red "was not acknowledged", where
+  // Acknowledge all counts the same answer as "already acknowledged".
+  function doneElsewhere(result) {
+    return result.status === 409 && !!result.payload && result.payload.error === "nothing_to_acknowledge";
   }
 
   async function acknowledge(alarm, button) {
@@ -183,9 +194,10 @@
     }
     button.disabled = false;
     ackResult.hidden = false;
-    ackResult.className = result.ok ? "ack-ok" : "ack-refused";
+    const done = result.ok || doneElsewhere(result);
+    ackResult.className = done ? "ack-ok" : "ack-refused";
     ackResult.textContent = ackOutcome(alarm, result);
-    if (result.ok) {
+    if (done) {
       // The stream shows the new state within a tick anyway; this only shows it sooner.
       Twin.getJSON("/alarms?device=" + encodeURIComponent(device))
         .then((doc) => renderAlarms(doc.alarms), () => {});
