@@ -402,15 +402,35 @@
     title.textContent = `${device}: not known to this agent`;
     // An arm this page has shown and the agent dropped was not "never heard": it was forgotten elsewhere, or
     // the agent started again and has not heard it yet; the sentence says so rather than blame the id.
+    if (!shown) askForgotten();
     const text = shown
       ? "This agent no longer knows this arm: it was forgotten (the Events page has a twin event for it), " +
         "or the agent started again and has not heard the arm since. This page fills in by itself once it " +
         "is heard."
-      : "This agent has had no valid message from an arm with this id since it started. Check the id " +
-        "against the Fleet page, which lists every arm it has heard; this page fills in by itself once the " +
-        "arm is heard.";
+      : forgottenAt
+        ? `This arm was forgotten at ${Twin.time(forgottenAt)} (${Twin.zone()}; the Events page has its twin ` +
+          "event), and this agent has not heard it since. If it publishes again it comes back as a new arm, " +
+          "and this page fills in by itself."
+        : "This agent has had no valid message from an arm with this id since it started. Check the id " +
+          "against the Fleet page, which lists every arm it has heard; this page fills in by itself once the " +
+          "arm is heard.";
     summary.replaceChildren(el("p", { id: "unknown", text }));
     clearArm();
+  }
+
+  // A page opened (or reloaded) on an arm this agent forgot said it had "no valid message from an arm with
+  // this id since it started", untrue of an arm heard and forgotten, and told the operator to check the id.
+  // The arm's newest twin event says whether it was forgotten, and when: asked once, not at every frame.
+  let forgottenAt;  // undefined: not asked (or the ask failed); null: not forgotten; else epoch seconds
+  function askForgotten() {
+    if (forgottenAt !== undefined) return;
+    forgottenAt = null;
+    Twin.getJSON(`/api/events?device=${encodeURIComponent(device)}&kind=twin&limit=1`).then((doc) => {
+      const last = doc.events[doc.events.length - 1];
+      if (!last || !last.data || last.data.action !== "forgotten") return;
+      forgottenAt = last.time;
+      if (!shown && !forgotten) unknown(null);
+    }, () => { forgottenAt = undefined; });
   }
 
   let shown = false;  // this page has shown the arm's state at least once
