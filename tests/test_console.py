@@ -2036,6 +2036,34 @@ def test_the_fleet_page_acknowledges_the_alarms_of_the_arms_shown(
     assert browser_errors == []
 
 
+def test_the_fleet_page_says_when_to_try_again_when_the_alarms_cannot_be_read(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """ "Acknowledge shown" reads the ids from /alarms first; with the agent gone (no answer at all) the page
+    says so and when to try again, as an act without an answer does, not a failure that reads as current
+    once the agent is back. Made rows; /alarms aborted by the test."""
+    doc = made_fleet(console, {"arm-x": alarmed("critical", "ACTIVE", 1)})
+    made = [made_alarm("arm-x", "elbow_flex", "over_temperature_critical", "ACTIVE")]
+    errors_before = len(browser_errors)
+    with fleet_of_made_alarms(page, doc, made, lambda route: route.abort()):
+        page.route(alarms_path, lambda route: route.abort())
+        try:
+            page.goto(console + "/")
+            page.locator("#ack-shown:not([disabled])", has_text="Acknowledge shown (1)").click()
+            told = answered(page, "#fleet-ack-result")
+        finally:
+            page.unroute(alarms_path)
+    assert told == (
+        "refused: the alarms could not be read: the agent did not answer (it may be restarting); try again "
+        "once the header says live"
+    ), told
+    leave(page)
+    ours = browser_errors[errors_before:]
+    assert ours and all("Failed to load resource" in e for e in ours), ours
+    del browser_errors[errors_before:]
+    assert browser_errors == []
+
+
 def test_the_fleet_page_acknowledges_more_than_one_requests_worth_in_chunks(
     console: str, page: Any, browser_errors: list[str]
 ) -> None:

@@ -244,7 +244,9 @@
     } catch (_) {
       ackResult.hidden = false;
       ackResult.className = "ack-refused";
-      ackResult.textContent = "the alarms could not be read: the agent did not answer (it may be restarting)";
+      // The same words as an act without an answer: the page goes on showing what it had, so say when to
+      // try again rather than leave a failure that reads as current once the agent is back.
+      ackResult.textContent = "the alarms could not be read: " + Twin.refusal({ status: 0 });
       return;
     }
     const arms = new Set(alarms.map((a) => a.device)).size;
