@@ -2036,6 +2036,56 @@ def test_the_fleet_page_acknowledges_the_alarms_of_the_arms_shown(
     assert browser_errors == []
 
 
+def test_the_fleet_page_keeps_its_filters_in_its_address(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """A walk filtered the Fleet page, opened an arm and reloaded: every filter was gone. They live in the
+    address now, so a reload, the way back and a link show the same arms; values the lists do not offer are
+    left out, and the defaults stay out of the address. Made rows, served by the test."""
+    doc = made_fleet(
+        console,
+        {
+            "arm-x": alarmed("critical", "ACTIVE", 1),
+            "arm-xy": alarmed("warning", "ACKNOWLEDGED", 0),
+            "arm-y": alarmed("critical", "ACTIVE", 1),
+        },
+    )
+
+    def shown() -> list[str]:
+        return list(
+            page.evaluate(
+                "() => [...document.querySelectorAll('#fleet-view [data-device]')].map(e => e.dataset.device)"
+            )
+        )
+
+    def chosen() -> list[str]:
+        return [
+            page.get_by_label(label).input_value() for label in ("search by id", "status", "alarm", "sort")
+        ]
+
+    serve_document(page, "/api/fleet", "fleet", doc)
+    try:
+        page.goto(console + "/?q=arm-x&alarm=waiting&sort=bogus&status=ASLEEP")
+        page.wait_for_function("() => document.body.dataset.ready === '1'")
+        assert chosen() == ["arm-x", "", "waiting", "id"]
+        assert shown() == ["arm-x"]
+        page.get_by_label("alarm").select_option("any")
+        page.get_by_label("sort").select_option("alarm")
+        page.wait_for_function("() => location.search === '?q=arm-x&alarm=any&sort=alarm'")
+        page.reload()
+        page.wait_for_function("() => document.body.dataset.ready === '1'")
+        assert chosen() == ["arm-x", "", "any", "alarm"]
+        assert shown() == ["arm-x", "arm-xy"]
+        page.get_by_label("search by id").fill("")
+        page.get_by_label("alarm").select_option("")
+        page.get_by_label("sort").select_option("id")
+        page.wait_for_function("() => location.search === ''")
+    finally:
+        unserve(page, "/api/fleet")
+    leave(page)
+    assert browser_errors == []
+
+
 def test_the_fleet_page_says_when_to_try_again_when_the_alarms_cannot_be_read(
     console: str, page: Any, browser_errors: list[str]
 ) -> None:

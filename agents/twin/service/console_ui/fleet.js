@@ -359,7 +359,24 @@
     }
   }
 
-  for (const input of [search, status, alarm, sort]) input.addEventListener("input", () => { filter(); render(); });
+  // The filters live in the page's address (/?status=OFFLINE&alarm=waiting), so a reload, the way back from
+  // an arm's page and a link sent to a colleague show the same arms; a value the lists do not offer is left out.
+  const CHOSEN = [["q", search], ["status", status], ["alarm", alarm], ["sort", sort]];
+  const asked = new URLSearchParams(location.search);
+  for (const [key, input] of CHOSEN) {
+    const value = asked.get(key) || "";
+    if (input === search || [...input.options].some((o) => o.value === value)) input.value = value;
+  }
+  function keepChosen() {
+    const chosen = new URLSearchParams();
+    for (const [key, input] of CHOSEN) {
+      // The defaults stay out of the address: a plain "/" is the page as it first opens.
+      if (input.value.trim() && !(input === sort && input.value === "id")) chosen.set(key, input.value.trim());
+    }
+    const query = chosen.toString();
+    history.replaceState(null, "", location.pathname + (query ? "?" + query : "") + location.hash);
+  }
+  for (const input of [search, status, alarm, sort]) input.addEventListener("input", () => { keepChosen(); filter(); render(); });
   let pending = false;
   viewport.addEventListener("scroll", () => {
     if (pending) return;
