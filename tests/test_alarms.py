@@ -493,15 +493,38 @@ def test_records_restore_acknowledged_and_latched_alarms_into_a_new_engine() -> 
     assert state(new, AlarmKind.OVER_TEMPERATURE) is AlarmState.ACKNOWLEDGED
     assert state(new, AlarmKind.OVER_CURRENT, "wrist_flex") is AlarmState.LATCHED
     assert new.counters.acknowledged[AlarmKind.OVER_TEMPERATURE] == 1
-    # The old engine saw the elbow cool (35 C, the idle reading) from 4.0 s on: its clear timer carried over,
-    # so the new engine clears the alarm at its first cool reading 10 s after that, though it is a quiet one.
-    events = run(new, [(20.0, {"temperature_c": 40.0})])
-    assert events == [(20.0, "cleared", AlarmKind.OVER_TEMPERATURE, AlarmState.NORMAL)]
+    # The old engine saw the elbow cool (35 C, the idle reading) from 4.0 s on, but not what came between
+    # its last reading and the restart: the clear timer starts again at the new engine's first cool reading.
+    assert run(new, [(20.0, {"temperature_c": 40.0})]) == []
+    events = run(new, [(30.0, {"temperature_c": 40.0})])
+    assert events == [(30.0, "cleared", AlarmKind.OVER_TEMPERATURE, AlarmState.NORMAL)]
     # The latched alarm stays until a person acknowledges it, as before the restart.
     run(new, [(31.0, {"current_a": 0.1})], joint="wrist_flex")
     assert state(new, AlarmKind.OVER_CURRENT, "wrist_flex") is AlarmState.LATCHED
     new.acknowledge(alarm_id(DEV, "wrist_flex", AlarmKind.OVER_CURRENT), 32.0)
     assert state(new, AlarmKind.OVER_CURRENT, "wrist_flex") is AlarmState.NORMAL
+
+
+def test_a_timer_pending_at_a_restart_starts_again_from_the_first_reading_after_it() -> None:
+    """A worker's checkpoint holds the model check's raise timer, started by a still reading with contact
+    load; the restarted worker takes up the messages since in catch-up mode, one reading of the arm, and
+    never sees those in between (the joint moving, which resets the timer). The timer must start again
+    from that reading, not complete on it: a walk saw model_mismatch raised on every arm of a restarted
+    worker at once, and on no arm of the other."""
+    contact, moving = {"load_percent": 70.0}, {"load_percent": 70.0, "velocity_rad_s": 0.8, "moving": True}
+    old = ServoAlarms()
+    assert run(old, [(0.0, contact)], joint="shoulder_lift", torques=HOLD) == []
+    records = old.records()
+    # The old engine, left running, sees the joint move: the timer restarts, nothing is raised.
+    assert run(old, [(0.5, moving), (1.5, contact)], joint="shoulder_lift", torques=HOLD) == []
+
+    new = ServoAlarms()
+    new.restore(records)
+    assert run(new, [(1.5, contact)], joint="shoulder_lift", torques=HOLD) == []
+    # Held still for the rule's 1 s from there, it is raised, as on the engine that saw every reading.
+    for engine in (old, new):
+        events = run(engine, [(2.0, contact), (2.5, contact)], joint="shoulder_lift", torques=HOLD)
+        assert events == [(2.5, "raised", AlarmKind.MODEL_MISMATCH, AlarmState.ACTIVE)]
 
 
 def test_a_record_shows_as_the_engine_that_took_it_back_shows_the_alarm() -> None:

@@ -424,3 +424,62 @@ def test_a_mirror_started_again_keeps_its_normal_alarms_and_how_often_each_was_r
     assert old.idle_alarms == ()
     older = _still_mirror(clock)
     assert older.restore(old).devices == len(devices)
+
+
+# --- a timer pending at the checkpoint ----------------------------------------------------------------------
+
+
+def _held_arm(step: int, *, moving: bool) -> bytes:
+    """arm-001 holding one pose, its shoulder_lift at 70 % load (contact: far off the model's), still or
+    turning fast, one message every 0.1 s of edge time."""
+    stamp = 1_700_000_000_000 + step * 100
+    doc = make_payload("arm-001", 0.0, "ticks", random.Random(step), timestamp_ms=stamp)
+    for joint in doc["joints"].values():
+        joint["velocity"] = 0
+    doc["joints"]["shoulder_lift"]["load"] = 700
+    if moving:
+        doc["joints"]["shoulder_lift"]["velocity"] = 500  # 0.77 rad/s
+    return encode(doc)
+
+
+def test_a_mirror_started_again_does_not_raise_on_a_timer_the_messages_sent_again_would_have_reset() -> None:
+    # A worker killed and started again raised model_mismatch on all its arms at once: its checkpoint held
+    # the model check's raise timer of a still reading, the messages since (the joint moving: each resets
+    # it) came again as a backlog the mirror catches up on, taking each arm's newest only, and that one
+    # still reading completed the timer. The timer must start again from it.
+    topic = telemetry_topic(DEFAULT_TOPIC_PREFIX, "arm-001")
+    clock = _Clock()
+    first = _ticks_mirror(clock)
+    rounds = [[("arm-001", topic, _held_arm(0, moving=False))]]
+    first._handle(next(_batches(rounds, clock, size=1)), 0)
+    checkpoint = pickle.loads(pickle.dumps(first.checkpoint(), protocol=pickle.HIGHEST_PROTOCOL))
+    sent: list[Batch] = []
+    # 1.4 s turning, then still again, each message handled as it comes: nothing is raised.
+    since = [[("arm-001", topic, _held_arm(step, moving=step < 15))] for step in range(1, 16)]
+    for batch in _batches(since, clock, size=1):
+        sent.append(batch)
+        first._handle(batch, 0)
+    assert first.alarms() == ()
+
+    again = _ticks_mirror(clock)
+    again.restore(checkpoint)
+    backlog = Batch(*(tuple(item for part in field for item in part) for field in zip(*sent, strict=True)))
+    again._handle(backlog, 0)  # received 1.4 s ago: caught up on, the newest message only
+    assert again.report().devices["arm-001"].health.counters.coalesced == 14
+    assert again.alarms() == ()
+    # Still for the rule's 1 s from there: both raise it with the same message.
+    held = [[("arm-001", topic, _held_arm(step, moving=False))] for step in range(16, 26)]
+    for batch in _batches(held, clock, size=1):
+        first._handle(batch, 0)
+        again._handle(batch, 0)
+    assert [a.alarm_id for a in again.alarms()] == ["arm-001/shoulder_lift/model_mismatch"]
+    assert [a.changed_at for a in again.alarms()] == [a.changed_at for a in first.alarms()]
+
+
+def _ticks_mirror(clock: _Clock) -> Mirror:
+    config = load_config(
+        None, {"telemetry.devices": ["*"], "telemetry.units": "ticks", "telemetry.max_devices": 64}
+    )
+    return Mirror(
+        config, inbox=PipeInbox(Pipe(duplex=False)[0]), budget=DeviceBudget(64), clock=clock, wall_clock=clock
+    )

@@ -381,10 +381,10 @@ class AlarmView:
 
 @dataclass(frozen=True, slots=True)
 class AlarmRecord:
-    """What an alarm must carry across a restart: its state and the condition's debounce, the times on the
-    engine's clock (monotonic seconds). `ServoAlarms.records` exports them, `ServoAlarms.restore` takes them
-    back; the agent keeps them over a worker's restart and, for the states a person must see, in its state
-    file over its own (service.persist)."""
+    """What an alarm must carry across a restart: its state and whether its condition is present, the times on
+    the engine's clock (monotonic seconds). `ServoAlarms.records` exports them, `ServoAlarms.restore` takes
+    them back; the agent keeps them over a worker's restart and, for the states a person must see, in its
+    state file over its own (service.persist). Not a raise or clear being timed: see `ServoAlarms.restore`."""
 
     device: str
     joint: str
@@ -395,8 +395,6 @@ class AlarmRecord:
     raised: int
     value: float | None = None
     message: str = ""
-    raise_since: float | None = None
-    clear_since: float | None = None
 
     @property
     def alarm_id(self) -> str:
@@ -1249,8 +1247,8 @@ class ServoAlarms:
     # -- restarts -------------------------------------------------------------------------------------------
 
     def records(self, *, devices: Iterable[str] | None = None) -> list[AlarmRecord]:
-        """Every alarm that is not NORMAL or whose condition is present or timing a raise (a NORMAL, idle
-        alarm is made again from the next message), of `devices` or of all."""
+        """Every alarm that is not NORMAL or whose condition is present (`idle` gives the others), of
+        `devices` or of all."""
         fleet = self._fleet
         if fleet is None:
             return []
@@ -1264,7 +1262,6 @@ class ServoAlarms:
             if wanted is not None and device not in wanted:
                 continue
             state, present = int(fleet.state[at]), bool(fleet.present[at])
-            raise_since = _optional(float(fleet.raise_since[at]))
             out.append(
                 AlarmRecord(
                     device=device,
@@ -1276,8 +1273,6 @@ class ServoAlarms:
                     raised=int(fleet.raised[at]),
                     value=_optional(float(fleet.value[at])),
                     message=self._messages.get(at, ""),
-                    raise_since=raise_since,
-                    clear_since=_optional(float(fleet.clear_since[at])),
                 )
             )
         return out
@@ -1285,7 +1280,14 @@ class ServoAlarms:
     def restore(self, records: Iterable[AlarmRecord]) -> int:
         """Take back alarms `records` exported (after a restart, before any message of their devices): each
         replaces what the engine has for its id. Records of joints or kinds this engine does not know are
-        skipped. Returns how many were restored."""
+        skipped. Returns how many were restored.
+
+        A raise or clear being timed is not taken back: its timer starts again at the alarm's first reading
+        after the restart. A timer holds only while every reading keeps it running, and the readings between
+        the checkpoint and that one were never checked: a restarted worker takes the messages since as a
+        backlog and catches up on it (service.mirror), evaluating each arm's newest only. A model check's
+        raise timer, started by one still reading among moving ones (each of which resets it), completed on
+        that first reading raised a false model_mismatch on every arm of the worker at once."""
         restored = 0
         for record in records:
             j = _JOINT_INDEX.get(record.joint)
@@ -1301,8 +1303,8 @@ class ServoAlarms:
             fleet.present[at] = record.present
             fleet.raised[at] = record.raised
             fleet.value[at] = _float(record.value)
-            fleet.raise_since[at] = _float(record.raise_since)
-            fleet.clear_since[at] = _float(record.clear_since)
+            fleet.raise_since[at] = math.nan
+            fleet.clear_since[at] = math.nan
             if record.message:
                 self._messages[at] = record.message
             else:
@@ -1312,17 +1314,13 @@ class ServoAlarms:
 
     @staticmethod
     def _recorded(fleet: _Fleet, rows: int) -> Any:
-        """Which of the first `rows` devices' alarms `records` gives (not NORMAL, condition present or a
-        raise being timed), as a boolean array. Selected with the arrays: the agent checkpoints every mirror
-        each second, and a walk over every alarm of a 1,000-arm fleet (30,000) held the worker for 40-80 ms
-        (docs/performance.md)."""
-        np = _np()
-        return fleet.exists[:rows] & (
-            (fleet.state[:rows] != _NORMAL) | fleet.present[:rows] | ~np.isnan(fleet.raise_since[:rows])
-        )
+        """Which of the first `rows` devices' alarms `records` gives (not NORMAL, or condition present), as a
+        boolean array. Selected with the arrays: the agent checkpoints every mirror each second, and a walk
+        over every alarm of a 1,000-arm fleet (30,000) held the worker for 40-80 ms (docs/performance.md)."""
+        return fleet.exists[:rows] & ((fleet.state[:rows] != _NORMAL) | fleet.present[:rows])
 
     def idle(self) -> list[IdleRow]:
-        """The alarms `records` leaves out (NORMAL, condition absent, no raise timing), by device (IdleRow):
+        """The alarms `records` leaves out (NORMAL, condition absent), by device (IdleRow):
         a worker's checkpoint carries them, so a restarted worker still counts them in NORMAL and still
         knows how often each was raised. Picked out with the arrays, a few ints per arm: every second's
         checkpoint of a 1,000-arm fleet would pay for 36,000 records."""
