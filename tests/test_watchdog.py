@@ -70,7 +70,7 @@ def test_twin_run_says_it_is_ready_once_it_serves_pings_the_watchdog_and_says_it
 ) -> None:
     sock, path = manager
     monkeypatch.setenv("NOTIFY_SOCKET", path)
-    # 2 s: the agent pings at most every half second, and its loop turns every second.
+    # 2 s: the agent pings on every turn of its loop, every second.
     monkeypatch.setenv("WATCHDOG_USEC", "2000000")
     with rig.agent_process(devices="arm-001", config_text="[twin]\nworkers = 1\n") as (proc, url):
         before = messages_until(sock, "READY=1", 60)
@@ -169,7 +169,8 @@ def test_a_stuck_in_process_mirror_fails_the_agent_and_the_log_says_where_it_wai
     """A worker process that stops answering is killed and started again; the one mirror of an agent with
     `workers = 1` (the default for a small listed fleet) runs in the agent's own process, where nothing can
     start it again: stuck, it fails the agent, so `twin run` exits and systemd starts it again."""
-    monkeypatch.setattr(mirror_module, "STALL_AFTER_S", 1.0)
+    # Over four of the supervisor's half-second turns: shorter, its looks would read as the process paused.
+    monkeypatch.setattr(mirror_module, "STALL_AFTER_S", 4.0)
     sink = _StuckSink()
     service = in_process_agent([sink])
     try:
@@ -194,7 +195,7 @@ def test_a_stuck_in_process_mirror_fails_the_agent_and_the_log_says_where_it_wai
 def test_an_idle_in_process_mirror_is_not_taken_for_a_stuck_one(monkeypatch: pytest.MonkeyPatch) -> None:
     """Its worker thread turns its loop while nothing arrives (every IDLE_WAKE_S): no message for many times
     STALL_AFTER_S is no stall."""
-    monkeypatch.setattr(mirror_module, "STALL_AFTER_S", 1.0)
+    monkeypatch.setattr(mirror_module, "STALL_AFTER_S", 4.0)
     service = in_process_agent([])
     try:
         (shard,) = service._shards
@@ -202,7 +203,7 @@ def test_an_idle_in_process_mirror_is_not_taken_for_a_stuck_one(monkeypatch: pyt
         # Past three stall windows by the mirror's own turns, each seen by the supervisor (every 0.5 s).
         wait_for(
             lambda: (
-                shard.mirror.turns > turns + 3 / mirror_module.IDLE_WAKE_S and time.monotonic() - start > 3
+                shard.mirror.turns > turns + 12 / mirror_module.IDLE_WAKE_S and time.monotonic() - start > 12
             ),
             60,
             "three stall windows of idle turns",
@@ -210,3 +211,34 @@ def test_an_idle_in_process_mirror_is_not_taken_for_a_stuck_one(monkeypatch: pyt
         assert service.running
     finally:
         service.stop()
+
+
+def test_the_stall_watch_judges_a_thread_by_its_turns_not_by_a_pause_of_the_whole_process() -> None:
+    """Looked at every half second (the agent's supervisor): a thread that turns is never stuck; one that has
+    not turned for STALL_AFTER_S is, and the watch says for how long. A gap between two looks (a process
+    paused by SIGSTOP, a suspended VM) starts the window again; a thread that waits longer than that between
+    two turns when idle (a slow physics rate) gets three of its waits."""
+    stall = mirror_module.STALL_AFTER_S
+    watch = mirror_module.StallWatch()
+    looks = [0.5 * i for i in range(int(3 * stall))]
+    assert [watch.look(i, t, 0.2) for i, t in enumerate(looks)] == [None] * len(looks)
+
+    stuck = mirror_module.StallWatch()
+    said = [stuck.look(7, t, 0.2) for t in looks]
+    first = said.index(stall)
+    assert said[:first] == [None] * first and said[first:] == [t for t in looks[first:]]
+
+    paused = mirror_module.StallWatch()
+    assert paused.look(7, 0.0, 0.2) is None
+    # The whole process stopped for longer than a stall, then the supervisor looked before the thread ran:
+    # a stall only once it has not turned for a whole window of regular looks after that.
+    after = [2 * stall + 0.5 * i for i in range(int(2 * stall) + 1)]
+    said = [paused.look(7, t, 0.2) for t in after]
+    assert said == [None] * (len(after) - 1) + [stall], said
+
+    slow = mirror_module.StallWatch()
+    wait = stall  # a physics step a minute apart
+    times = [0.5 * i for i in range(int(8 * stall))]
+    verdicts = [slow.look(7, t, wait) for t in times]
+    due = times.index(3 * wait)
+    assert verdicts[:due] == [None] * due and verdicts[due] == 3 * wait

@@ -188,9 +188,9 @@ CLOCK_RESET_MIN_MESSAGES = 5
 MAX_PHYSICS_STEP_S = 0.1
 # How often the worker wakes with nothing to do (kinematic mode): bounds the stop latency.
 IDLE_WAKE_S = 0.2
-# The worker thread turns its loop at least every IDLE_WAKE_S (a physics step, or a batch of milliseconds),
-# so one in-process that has not turned for this long is stuck: a sink or a native call that never returns.
-# The shard then counts as failed, and `twin run` exits for systemd to start it again (LocalShard.supervise).
+# The worker thread turns its loop after every batch and, idle, every IDLE_WAKE_S (a physics step in physics
+# mode), so one in-process that has not turned for this long is stuck: a sink or native call that never
+# returns. The shard then counts as failed, and `twin run` exits for systemd to start it again (StallWatch).
 STALL_AFTER_S = 60.0
 # How long the stop of an agent with such a mirror waits for it to finish (it may have come free meanwhile).
 STALLED_STOP_S = 5.0
@@ -730,6 +730,12 @@ class Mirror:
     def running(self) -> bool:
         return self._worker is not None and self._worker.is_alive()
 
+    @property
+    def wake_s(self) -> float:
+        """How long the worker thread waits for a batch before it turns its loop anyway: a physics step, or
+        IDLE_WAKE_S."""
+        return 1.0 / self.config.twin.physics_rate_hz if self.mode is TwinMode.PHYSICS else IDLE_WAKE_S
+
     def worker_stack(self) -> str:
         """Where the worker thread is now, as a traceback prints it ("" when it does not run): what a stuck
         one waits in."""
@@ -751,7 +757,7 @@ class Mirror:
     def _work(self) -> None:
         name_native_thread()
         physics = self.mode is TwinMode.PHYSICS
-        wake = 1.0 / self.config.twin.physics_rate_hz if physics else IDLE_WAKE_S
+        wake = self.wake_s
         last_step = last_freeze = self._clock()
         frozen_devices = 0
         inbox = self._mailbox
@@ -2018,9 +2024,7 @@ class LocalShard:
             history=history,
         )
         self._closed = False
-        # The worker thread's loop turns when last seen to change, and when (supervise; on the host's own
-        # clock, not the injected one: a test's timeline may leap while the thread turns as ever).
-        self._turned: tuple[int, float] | None = None
+        self._stall = StallWatch()
         self._stalled = False
 
     def put(self, key: str, topic: str, payload: bytes, recv_mono: float, recv_wall: float) -> None:
@@ -2053,20 +2057,18 @@ class LocalShard:
         It cannot be stopped from here, nor started again beside itself (it holds the twins)."""
         if self._closed or self._stalled or not self.mirror.running:
             return
-        turns, now = self.mirror.turns, time.monotonic()
-        if self._turned is None or self._turned[0] != turns:
-            self._turned = (turns, now)
-            return
-        if now - self._turned[1] < STALL_AFTER_S:
+        # On the host's own clock, not the injected one: a test's timeline may leap while the thread turns.
+        stalled = self._stall.look(self.mirror.turns, time.monotonic(), self.mirror.wake_s)
+        if stalled is None:
             return
         self._stalled = True
         log.error(
             "the mirror's worker thread has not turned for %.0f s, %d messages queued for it: it is stuck; "
             "the agent stops (under systemd, its unit starts it again). It waits in:\n%s",
-            now - self._turned[1],
+            stalled,
             len(self._inbox),
             self.mirror.worker_stack(),
-            extra={"stalled_s": round(now - self._turned[1], 1), "queued": len(self._inbox)},
+            extra={"stalled_s": round(stalled, 1), "queued": len(self._inbox)},
         )
 
     restarting = False
@@ -2108,6 +2110,27 @@ class LocalShard:
         return  # the mirror forgot its queue's count of it (Mirror.forget_arm)
 
     dropped_total = 0
+
+
+class StallWatch:
+    """Whether a thread that counts the turns of its loop is stuck, from looks at its count now and then: no
+    turn for STALL_AFTER_S (at least three of its waits, for a thread that waits longer: a slow physics rate).
+    A whole process paused (SIGSTOP, a suspended VM) wakes its threads in any order: after a gap between two
+    looks of half that, the window starts again rather than judge a thread that had no time to turn."""
+
+    def __init__(self) -> None:
+        self._turned: tuple[int, float] | None = None  # the count when last seen to change, and when
+        self._looked = float("-inf")
+
+    def look(self, turns: int, now: float, wait_s: float) -> float | None:
+        """How long the thread has not turned, once that is a stall; else None. `wait_s`: its longest wait
+        between two turns when idle."""
+        paused, self._looked = now - self._looked > STALL_AFTER_S / 2, now
+        if self._turned is None or self._turned[0] != turns or paused:
+            self._turned = (turns, now)
+            return None
+        still = now - self._turned[1]
+        return still if still >= max(STALL_AFTER_S, 3 * wait_s) else None
 
 
 def _payload_size(message: QueuedMessage) -> int:

@@ -816,12 +816,13 @@ class Shard(Protocol):
         ...
 
     def supervise(self) -> None:
-        """Called every half second while the agent runs: start a dead worker again."""
+        """Called every half second while the agent runs: start a dead or hung worker again; an in-process
+        mirror's stuck thread makes the shard `failed`."""
         ...
 
     @property
     def failed(self) -> bool:
-        """The mirror stopped for good while the agent runs (nothing will start it again)."""
+        """The mirror stopped for good, or is stuck, while the agent runs (nothing will start it again)."""
         ...
 
     @property

@@ -17,7 +17,6 @@ from __future__ import annotations
 import logging
 import os
 import socket
-import time
 from collections.abc import Mapping
 
 log = logging.getLogger(__name__)
@@ -28,11 +27,12 @@ class Notifier:
 
     def __init__(self, address: str | None, watchdog_s: float | None) -> None:
         # A name starting with "@" is in Linux's abstract namespace (a leading NUL byte), as sd_notify reads.
-        self._address = None if not address else "\0" + address[1:] if address.startswith("@") else address
+        if address is not None and address.startswith("@"):
+            address = "\0" + address[1:]
+        self._address = address
         self.watchdog_s = watchdog_s
         self._socket: socket.socket | None = None
         self._failed = False
-        self._pinged = float("-inf")
 
     @classmethod
     def from_env(cls, env: Mapping[str, str] | None = None) -> Notifier:
@@ -40,15 +40,15 @@ class Notifier:
         when it is this process's (`WATCHDOG_PID` unset or ours). Unsupported addresses (vsock) notify
         nothing, said once in the log."""
         env = os.environ if env is None else env
-        address = env.get("NOTIFY_SOCKET", "")
-        if address and not address.startswith(("/", "@")):
+        address = env.get("NOTIFY_SOCKET") or None
+        if address is not None and not address.startswith(("/", "@")):
             log.warning("NOTIFY_SOCKET %r is not a unix socket: systemd is not notified", address)
-            address = ""
+            address = None
         watchdog_s = None
         usec, pid = env.get("WATCHDOG_USEC", ""), env.get("WATCHDOG_PID", "")
         if usec.isdigit() and int(usec) > 0 and (not pid or pid == str(os.getpid())):
             watchdog_s = int(usec) / 1e6
-        return cls(address or None, watchdog_s)
+        return cls(address, watchdog_s)
 
     @property
     def enabled(self) -> bool:
@@ -60,19 +60,11 @@ class Notifier:
     def stopping(self, status: str) -> None:
         self._send(f"STOPPING=1\nSTATUS={status}")
 
-    def status(self, status: str) -> None:
-        self._send(f"STATUS={status}")
-
     def watchdog(self) -> None:
-        """Tell the watchdog the main thread runs; at most four times a watchdog interval (systemd's advice
-        is every half interval), so a caller may call it on every turn of its loop."""
-        if self.watchdog_s is None:
-            return
-        now = time.monotonic()
-        if now - self._pinged < self.watchdog_s / 4.0:
-            return
-        self._pinged = now
-        self._send("WATCHDOG=1")
+        """Tell the watchdog the main thread runs (systemd asks for it at least every half interval; `twin
+        run` sends it every second, one datagram)."""
+        if self.watchdog_s is not None:
+            self._send("WATCHDOG=1")
 
     def close(self) -> None:
         if self._socket is not None:

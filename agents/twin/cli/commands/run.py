@@ -29,11 +29,11 @@ from twin.service.config import (
     load_config,
 )
 from twin.service.logs import setup_logging
+from twin.service.systemd import Notifier
 
 if TYPE_CHECKING:
     from twin.output.sinks import TwinSink
     from twin.service.agent import AgentService
-    from twin.service.systemd import Notifier
 
 log = logging.getLogger("twin.run")
 console = Console("run")
@@ -207,8 +207,6 @@ def serve(config: AgentConfig, on_started: Callable[[AgentService], None] | None
     if isinstance(service, int):
         return service
 
-    from twin.service.systemd import Notifier
-
     # systemd's watchdog kills a process whose main thread stopped (WatchdogSec, twin.service.systemd) with
     # SIGABRT: every thread's stack then goes to stderr, the unit's journal, saying where it was stuck.
     faulthandler.enable(all_threads=True)
@@ -240,12 +238,14 @@ def _run_until_stopped(
     while not stop.wait(1.0):
         notifier.watchdog()
         if not service.running:
-            log.error("the twin worker stopped unexpectedly; exiting", extra={"exit_code": EXIT_FAILURE})
-            notifier.stopping("a mirror stopped unexpectedly: exiting to be started again")
+            said = "a twin worker stopped or is stuck; exiting to be started again"
+            log.error(said, extra={"exit_code": EXIT_FAILURE})
+            notifier.stopping("a mirror stopped or is stuck: exiting to be started again")
             service.stop()
             return EXIT_FAILURE
-    log.info("signal received; stopping", extra={"signal": received[0] if received else None})
-    notifier.stopping(f"stopping ({received[0] if received else 'asked'})")
+    signal_name = received[0] if received else None
+    log.info("signal received; stopping", extra={"signal": signal_name})
+    notifier.stopping(f"stopping ({signal_name or 'asked'})")
     service.stop()
     return EXIT_OK
 
