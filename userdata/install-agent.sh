@@ -552,6 +552,6 @@ if [ "$CHANGED" = 1 ] || ! systemctl is-active --quiet so101-twin-agent.service;
   # Not waited for (a notify unit's restart waits for READY=1): the host check after the install says
   # whether it came up, naming the setting when it refused its configuration.
   systemctl restart --no-block so101-twin-agent.service
-  log "agent service (re)started"
+  log "agent service (re)start requested"
 fi
 log "done (changed=$CHANGED)"

@@ -333,7 +333,7 @@ def test_systemd_knows_when_the_agent_is_up_and_when_it_is_stuck(installed: tupl
     (start,) = directives["TimeoutStartSec"]
     assert int(start) > START_TIMEOUT_S
     # The installer does not wait for READY=1 (a restart of a notify unit would): the host check says it.
-    calls = (root.parent / f"{root.name}-sim" / "sim" / "calls.log").read_text().splitlines()
+    calls = HostSim.attach(root.parent / f"{root.name}-sim").calls()
     assert "systemctl restart --no-block so101-twin-agent.service" in calls, calls
 
 
