@@ -2107,6 +2107,18 @@ def test_the_fleet_page_says_when_to_try_again_when_the_alarms_cannot_be_read(
         "refused: the alarms could not be read: the agent did not answer (it may be restarting); try again "
         "once the header says live"
     ), told
+    # An answer that refuses is told in the agent's words, not as no answer.
+    detail = "the agent is stopping: its workers do not answer"
+    with fleet_of_made_alarms(page, doc, made, lambda route: route.abort()):
+        refused = {"error": "stopping", "detail": detail}
+        page.route(alarms_path, lambda route: route.fulfill(status=503, json=refused))
+        try:
+            page.goto(console + "/")
+            page.locator("#ack-shown:not([disabled])", has_text="Acknowledge shown (1)").click()
+            told = answered(page, "#fleet-ack-result")
+        finally:
+            page.unroute(alarms_path)
+    assert told == f"refused: the alarms could not be read: {detail} (503 stopping)", told
     leave(page)
     ours = browser_errors[errors_before:]
     assert ours and all("Failed to load resource" in e for e in ours), ours

@@ -85,10 +85,22 @@ const Twin = (() => {
     };
   }
 
+  // Thrown for an answer that is not 2xx carries its status (and its JSON, when it has one), so a page can say
+  // what the agent answered, not that it did not (`refusal`); a fetch that got no answer throws as fetch does.
   async function getJSON(url) {
     const response = await fetch(url, { headers: { Accept: "application/json" } });
-    if (!response.ok) throw new Error(`${url}: ${response.status}`);
+    if (!response.ok) {
+      const error = new Error(`${url}: ${response.status}`);
+      error.status = response.status;
+      error.payload = await response.json().catch(() => null);
+      throw error;
+    }
     return response.json();
+  }
+
+  // A select takes `value` only when it offers it (a link or an address may carry anything), else keeps its own.
+  function choose(select, value) {
+    if ([...select.options].some((o) => o.value === value)) select.value = value;
   }
 
   // A request that changes state: the server wants the page's CSRF token (the Origin is the browser's).
@@ -261,7 +273,7 @@ const Twin = (() => {
     if (a.dataset.nav === page || (page === "arm" && a.dataset.nav === "fleet")) a.classList.add("active");
   }
 
-  return { el, stream, getJSON, post, refusal, WAITING, acknowledgeMany, tallyText, tallyOk, ago, time, zone, duration, num, setLink, breaks: () => breaks,
+  return { el, stream, getJSON, choose, post, refusal, WAITING, acknowledgeMany, tallyText, tallyOk, ago, time, zone, duration, num, setLink, breaks: () => breaks,
     main: document.getElementById("main"),
     device: body.dataset.device, rerun: body.dataset.rerun };
 })();

@@ -164,9 +164,6 @@
   device.value = asked.get("device") || asked.get("device_part") || "";
   whole.checked = asked.has("device");
   text.value = asked.get("q") || "";
-  for (const [select, key] of [[level, "level"], [kind, "kind"]]) {
-    const value = asked.get(key) || "";
-    if ([...select.options].some((o) => o.value === value)) select.value = value;
-  }
+  for (const [select, key] of [[level, "level"], [kind, "kind"]]) Twin.choose(select, asked.get(key) || "");
   load();
 })();

@@ -241,12 +241,13 @@
     let alarms;
     try {
       alarms = (await Twin.getJSON("/alarms")).alarms.filter((a) => devices.has(a.device) && WAITING.has(a.state));
-    } catch (_) {
+    } catch (error) {
       ackResult.hidden = false;
       ackResult.className = "ack-refused";
-      // The same words as an act without an answer: the page goes on showing what it had, so say when to
-      // try again rather than leave a failure that reads as current once the agent is back.
-      ackResult.textContent = "the alarms could not be read: " + Twin.refusal({ status: 0 });
+      // The same words as an act refused or without an answer: without one the page goes on showing what it
+      // had, so say when to try again rather than leave a failure that reads as current once the agent is back.
+      ackResult.textContent = "the alarms could not be read: " +
+        Twin.refusal({ status: error.status || 0, payload: error.payload });
       return;
     }
     const arms = new Set(alarms.map((a) => a.device)).size;
@@ -361,18 +362,15 @@
 
   // The filters live in the page's address (/?status=OFFLINE&alarm=waiting), so a reload, the way back from
   // an arm's page and a link sent to a colleague show the same arms; a value the lists do not offer is left out.
-  const CHOSEN = [["q", search], ["status", status], ["alarm", alarm], ["sort", sort]];
+  const LISTS = [["status", status], ["alarm", alarm], ["sort", sort]];
   const asked = new URLSearchParams(location.search);
-  for (const [key, input] of CHOSEN) {
-    const value = asked.get(key) || "";
-    if (input === search || [...input.options].some((o) => o.value === value)) input.value = value;
-  }
+  search.value = asked.get("q") || "";
+  for (const [key, select] of LISTS) Twin.choose(select, asked.get(key) || "");
   function keepChosen() {
     const chosen = new URLSearchParams();
-    for (const [key, input] of CHOSEN) {
-      // The defaults stay out of the address: a plain "/" is the page as it first opens.
-      if (input.value.trim() && !(input === sort && input.value === "id")) chosen.set(key, input.value.trim());
-    }
+    // The defaults (an empty search, each list's first choice) stay out: a plain "/" is the page as it opens.
+    if (search.value.trim()) chosen.set("q", search.value.trim());
+    for (const [key, select] of LISTS) if (select.selectedIndex > 0) chosen.set(key, select.value);
     const query = chosen.toString();
     history.replaceState(null, "", location.pathname + (query ? "?" + query : "") + location.hash);
   }
