@@ -14,11 +14,21 @@ from pathlib import Path
 import msgspec
 import pytest
 from conftest import unbrokered_agent, wait_for
+from twin.core.alarms import AlarmEvent, AlarmKind, AlarmState, Severity
 from twin.edge.payload import encode, make_payload
 from twin.output.sinks import SinkStats
+from twin.robot import so101
 from twin.service import event_journal
 from twin.service.event_journal import EventJournal, bulk_path
-from twin.service.events import Event, EventKind, EventLevel, EventQuery, EventStore
+from twin.service.events import (
+    DEFAULT_CAPACITY,
+    Event,
+    EventKind,
+    EventLevel,
+    EventQuery,
+    EventStore,
+    FleetWatch,
+)
 
 
 class Clock:
@@ -434,3 +444,67 @@ def test_a_start_reads_the_newest_of_each_part_however_big_the_files(tmp_path: P
     journal.close()
     assert EventJournal(path).load(10) == [started, *alarms[-10:], *statuses[-10:]]
     assert len(EventJournal(path).load(None)) == 531
+
+
+def mismatch_raise(device: str, joint: str, k: int) -> AlarmEvent:
+    """A raise as the alarm engine makes it, with its text: an alarm event's line at its real size."""
+    servo = so101.servo_name(joint)
+    return AlarmEvent(
+        alarm_id=f"{device}/{joint}/{AlarmKind.MODEL_MISMATCH}",
+        device=device,
+        joint=joint,
+        kind=AlarmKind.MODEL_MISMATCH,
+        severity=Severity.WARNING,
+        previous=AlarmState.NORMAL,
+        state=AlarmState.ACTIVE,
+        action="raised",
+        value=30.0 + k % 10,
+        threshold=15.0,
+        at=float(k),
+        message=f"{servo} load differs from the model's holding load (12.5 %) by {30.0 + k % 10:.1f} points "
+        "while still (alarm at 15): contact, a payload or a failing servo",
+    )
+
+
+@pytest.mark.parametrize("capacity", [100, DEFAULT_CAPACITY])
+def test_a_store_full_of_alarms_comes_back_whole_after_a_restart_just_after_a_rotation(
+    tmp_path: Path, capacity: int
+) -> None:
+    # A walk: an alarm flood at the default capacity left the store 20,000 alarms of about 600 bytes, and
+    # each file was renamed away at 8 MiB: a restart just after a rename gave back 16,600 of them.
+    path = tmp_path / "events.jsonl"
+    store = EventStore(capacity, wall_clock=Clock())
+    journal = EventJournal(path, capacity=capacity)
+    store.subscribe(journal.add)
+    watch = FleetWatch(store)
+    devices = [f"so101-cell-{c:02d}-arm-{a:04d}" for c in range(4) for a in range(25)]
+    for k in range(4 * capacity):
+        watch.alarm(mismatch_raise(devices[k % len(devices)], so101.JOINT_NAMES[k % 6], k))
+        if k % 10 == 9:
+            assert journal.flush()
+            if len(store) == capacity and not path.exists() and path.with_name(path.name + ".1").exists():
+                break  # the file was just renamed: its pair holds the least it ever does
+    else:
+        pytest.fail("the alarm flood never renamed the file away")
+    journal.close()
+    held = store.after(0)
+    assert len(held) == capacity and {e.kind for e in held} == {"alarm"}
+    # Lines of their real size: more than the 8 MiB files gave each of a default store's events.
+    assert min(len(msgspec.json.encode(e)) for e in held) > 8 * 2**20 / DEFAULT_CAPACITY
+    again = EventStore(capacity, wall_clock=Clock())
+    again.restore(EventJournal(path, capacity=capacity).load(capacity))
+    assert again.after(0) == held
+
+
+def test_the_agents_journal_files_are_sized_by_its_events_capacity(tmp_path: Path) -> None:
+    # A store of 100 events keeps at most 100 alarms: its journal's alarm file is renamed away past 100 of its
+    # longest lines (100,000 bytes), not at a size made for the default 20,000.
+    path = tmp_path / "events.jsonl"
+    store, journal = journaled_store(path)
+    raise_alarms(store, 2_000)  # about 220,000 bytes, from a run before
+    journal.close()
+    assert 100 * event_journal.KEPT_LINE_BYTES < path.stat().st_size < 2**20
+    agent = unbrokered_agent(tmp_path, 1, **{"twin.events_file": str(path), "twin.events_capacity": 100})
+    agent.stop()  # its start and stop events are written after the lines before: the file is past its size
+    assert path.with_name(path.name + ".1").exists()
+    assert EventJournal(path).load(None)[-1].data["action"] == "stopped"

@@ -280,7 +280,7 @@ class AgentService:
         self._history_seen = (0, 0)  # the history writer's exits and restarts the events have told
         self._state_file = StateFile(config.twin.state_file) if config.twin.state_file else None
         # The events over a restart (service.event_journal): read back and subscribed at start().
-        self._journal = EventJournal(config.twin.events_file) if config.twin.events_file else None
+        self._journal = _event_journal(config)
         # Set to make the supervisor take checkpoints now (an acknowledgement must reach the state file).
         self._wake = threading.Event()
         # Held while the supervisor takes, confirms and saves checkpoints, and while a forget does: a
@@ -1584,6 +1584,13 @@ def _case_hint(device: str, ids: Iterable[str]) -> str:
     """ " (ids are case-sensitive: did you mean arm-03?)" when `ids` has one that differs by case alone."""
     same = sorted(i for i in ids if i != device and i.casefold() == device.casefold())
     return f" (ids are case-sensitive: did you mean {same[0]}?)" if same else ""
+
+
+def _event_journal(config: AgentConfig) -> EventJournal | None:
+    """The agent's event journal (None without `[twin] events_file`), its files sized by the store's
+    capacity: each pair holds all the store keeps of its kinds (service.event_journal)."""
+    tw = config.twin
+    return EventJournal(tw.events_file, capacity=tw.events_capacity) if tw.events_file else None
 
 
 def _previous_stopped(journal_last: Event | None, previous: PreviousRun | None) -> bool | None:

@@ -194,9 +194,11 @@ KEY_DOCS: dict[str, str] = {
         "start: without it a restart begins the page anew, and the Sessions page no longer knows the "
         "alarms raised in a session from before it. The alarm, calibration, agent, worker and broker "
         "events go to this file, the status, rejected and twin events to `<stem>.bulk<suffix>` beside "
-        "it, so a flood of status events never rotates the alarms out; each file up to 8 MiB, then "
-        "renamed `<name>.1` (the older), so four files and 32 MiB at most. Empty = memory only. The "
-        "twin host's config names `/var/lib/so101-twin-agent/events.jsonl`."
+        "it, so a flood of status events never rotates the alarms out. Each file is renamed `<name>.1` "
+        "(the older) once past `events_capacity` x 1,000 bytes (x 500 for the bulk pair), so each pair "
+        "holds all the store keeps of its kinds, and the four files take at most `events_capacity` x "
+        "3,000 bytes (60 MB at the default 20,000). Empty = memory only. The twin host's config names "
+        "`/var/lib/so101-twin-agent/events.jsonl`."
     ),
     "twin.events_capacity": (
         "How many events the agent keeps in memory for the Events page, its exports and the Sessions "
@@ -206,7 +208,7 @@ KEY_DOCS: dict[str, str] = {
         "ONLINE) takes the rest and the room they leave, never their half. Within that half, "
         "calibration, agent, worker and broker events keep a twentieth (1,000 of 20,000) that a flood "
         "of alarms cannot take. With `events_file` set, a restart reads back the newest of each of "
-        "those three parts the files hold, within it."
+        "those three parts the files hold, within it, and the files' size grows with it (`events_file`)."
     ),
     "twin.shutdown_budget_s": (
         "How long a stop may take in all: the workers handle what is queued and flush their sinks "

@@ -15,9 +15,14 @@ same before and after.
   `<stem>.bulk<suffix>` beside it (`events.bulk.jsonl`), the others (alarm, calibration, agent, worker,
   broker) to the file named: a flood of status events rotates only its own file, never the alarms before it
   out. A file from before the split holds both, and is read as it is (each event goes where its kind does).
-- **How big it gets.** Each file is renamed `<name>.1` once it passes `max_bytes` (replacing the one before)
-  and a new one begun, so the disk holds at most about four times `max_bytes` (32 MiB by default). Each
-  pair holds more than a store keeps of its kinds (about 300 bytes an event, 600 an alarm).
+- **How big it gets.** Each file is renamed `<name>.1` once it passes its pair's size (replacing the one
+  before) and a new one begun. Either part of a store may fill all of it (an alarm flood with no status
+  events leaves `capacity` alarms in it), so a pair's size is `[twin] events_capacity` of its longest lines
+  (KEPT_LINE_BYTES, BULK_LINE_BYTES): just after a rename its `.1` alone holds that many, so each pair holds
+  every event the store keeps of its kinds. The disk holds at most twice both sizes and a flush more each:
+  `capacity` x 3,000 bytes, 60 MB at the default 20,000 (300 MB at the largest, 100,000). Not kept over a
+  restart: the lifecycle events the store's reserve keeps from before an alarm flood longer than the store,
+  which the flood's lines rotate out of their pair.
 - **How a start reads it.** Line by line, keeping the newest `limit` events of each of the store's parts
   (bulk, alarm, lifecycle: `events.EventStore`), so a start holds at most three times `limit` events
   however big the files are, and hands them over in id order.
@@ -53,15 +58,25 @@ from twin.service.events import BULK_KINDS, DEFAULT_CAPACITY, Event, part_index
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BULK_SINK_NAME", "MAX_BYTES", "MAX_PENDING", "SINK_NAME", "EventJournal"]
+__all__ = [
+    "BULK_LINE_BYTES",
+    "BULK_SINK_NAME",
+    "KEPT_LINE_BYTES",
+    "MAX_PENDING",
+    "SINK_NAME",
+    "EventJournal",
+]
 
 # The pairs' names among the outputs of /state's `agent.sinks` and /metrics' `sink` label.
 SINK_NAME = "events_journal"  # the file named: alarm, calibration, agent, worker, broker
 BULK_SINK_NAME = "events_journal_bulk"  # status, rejected, twin
 
-# Each of the four files is renamed away once past this: at about 300 bytes an event (600 an alarm), each
-# pair holds more of its kinds than a store of DEFAULT_CAPACITY keeps.
-MAX_BYTES = 8 * 1024 * 1024
+# Each pair's files are renamed away once past its store's capacity times these: the most a line of its kinds
+# takes. An alarm's line is about 530 to 760 bytes for a 7-character arm id (the id is in it three times, its
+# text twice), up to about 940 for a 64-character one (IoT Core's longest); a status event's about 200 to
+# 300, a twin event's up to about 500. Either part may fill a whole store, so each pair needs `capacity`.
+KEPT_LINE_BYTES = 1_000  # alarm, calibration, agent, worker, broker: 20 MB a file at the default capacity
+BULK_LINE_BYTES = 500  # status, rejected, twin: 10 MB a file at the default capacity
 # Events waiting for a flush, in each pair's queue: a store's worth. More only while writes fail or are slow;
 # then the oldest of that pair go, counted, so the memory held is at most twice this.
 MAX_PENDING = DEFAULT_CAPACITY
@@ -140,14 +155,25 @@ class EventJournal:
     `flush` from the agent's supervisor and its stop, one at a time."""
 
     def __init__(
-        self, path: str | Path, *, max_bytes: int = MAX_BYTES, clock: Callable[[], float] = time.monotonic
+        self,
+        path: str | Path,
+        *,
+        capacity: int = DEFAULT_CAPACITY,
+        max_bytes: int | None = None,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
-        if max_bytes < 1:
+        """`capacity`: the store's (`[twin] events_capacity`), which sizes each pair's files (module doc);
+        `max_bytes`, when given, sizes both pairs' instead."""
+        if capacity < 1:
+            raise ValueError(f"an event journal's store holds at least one event, got capacity = {capacity}")
+        if max_bytes is not None and max_bytes < 1:
             raise ValueError(f"an event journal's files hold at least one byte, got max_bytes = {max_bytes}")
         self.path = Path(path)
+        kept_bytes = capacity * KEPT_LINE_BYTES if max_bytes is None else max_bytes
+        bulk_bytes = capacity * BULK_LINE_BYTES if max_bytes is None else max_bytes
         # alarm, calibration, agent, worker, broker; and status, rejected, twin
-        self._kept = _Files(self.path, max_bytes, name=SINK_NAME, clock=clock)
-        self._bulk = _Files(bulk_path(self.path), max_bytes, name=BULK_SINK_NAME, clock=clock)
+        self._kept = _Files(self.path, kept_bytes, name=SINK_NAME, clock=clock)
+        self._bulk = _Files(bulk_path(self.path), bulk_bytes, name=BULK_SINK_NAME, clock=clock)
         self._lock = threading.Lock()  # the pairs' queues
         # One flush at a time: a supervisor round still flushing as the stop closes must not interleave.
         self._write_lock = threading.RLock()
