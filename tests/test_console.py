@@ -1279,6 +1279,15 @@ def test_a_page_says_its_figures_are_not_live_while_the_agent_is_away(
     second = agent_on(rig, "arm-001", first.http_url)
     try:
         banner.wait_for(state="hidden")
+        # The new start's CSRF token is read as the page comes back, before any act needs it (an act would
+        # otherwise be refused once, a 403 in the browser's log, and sent again).
+        asked = urllib.request.Request(second.http_url + "/", headers={"Accept": "text/html"})
+        with urllib.request.urlopen(asked, timeout=30) as answer:
+            html = answer.read().decode()
+        (token,) = re.findall(r'<meta name="csrf-token" content="([^"]+)">', html)
+        page.wait_for_function(
+            "(t) => document.querySelector('meta[name=csrf-token]').content === t", arg=token
+        )
     finally:
         leave(page)
         second.stop()

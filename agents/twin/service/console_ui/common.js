@@ -38,6 +38,9 @@ const Twin = (() => {
       linkState.textContent = text;
     }
     if (live) {
+      // Back after a break, the agent may be a new start with a new CSRF token: read it now, so the operator's
+      // next act is not refused first (a 403 in the browser's log) before the page renews it.
+      if (downSince !== null) renewToken();
       downSince = null;
       banner.hidden = true;
       body.classList.remove("link-down");
