@@ -62,6 +62,8 @@ _STACK_NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9-]{0,127}$")
 _TIMEZONE_RE = re.compile(r"^(UTC|[A-Za-z]+(/[A-Za-z0-9_+-]+)+)$")
 # EventBridge Scheduler cron: minutes hours day-of-month month day-of-week year.
 _CRON_FIELD_RE = re.compile(r"^[0-9A-Za-z*?,/#L W-]+$")
+# DCV's [connectivity] idle-timeout is in minutes, 0 for never; a week is the most the stack writes.
+DCV_IDLE_TIMEOUT_MAX = 7 * 24 * 60
 VOLUME_GB_MIN = 50
 VOLUME_GB_MAX = 16384
 # One arm must fit one connection's planned budget.
@@ -105,6 +107,9 @@ class TwinSettings:
     # (`deploy_blockers`).
     client_cidr: str | None = None
     allow_any_client: bool = False
+    # Minutes without input before DCV disconnects a client (its [connectivity] idle-timeout); 0: never.
+    # DCV's own default is 60, but the twin is watched for hours without being touched.
+    dcv_idle_timeout_minutes: int = 0
     availability_zone: str | None = None
     instance_type: str = "g6e.2xlarge"
     volume_gb: int = 100
@@ -193,6 +198,7 @@ class TwinSettings:
         settings = cls(
             client_cidr=_client_cidr(_str(get, "clientCidr"), allow_any),
             allow_any_client=allow_any,
+            dcv_idle_timeout_minutes=_dcv_idle_timeout_minutes(get("dcvIdleTimeoutMinutes")),
             availability_zone=_availability_zone(_str(get, "availabilityZone")),
             instance_type=_instance_type(_str(get, "instanceType") or cls.instance_type),
             volume_gb=_volume_gb(get("volumeGb")),
@@ -230,6 +236,7 @@ class TwinSettings:
 SETTING_FIELDS: dict[str, str] = {
     "clientCidr": "client_cidr",
     "allowAnyClient": "allow_any_client",
+    "dcvIdleTimeoutMinutes": "dcv_idle_timeout_minutes",
     "stackName": "stack_name",
     "devices": "devices",
     "armRateHz": "arm_rate_hz",
@@ -509,6 +516,22 @@ def _volume_gb(value: object) -> int:
             "of GB; gp3 tops out at 16 TiB); pass e.g. -c volumeGb=100"
         )
     return size
+
+
+def _dcv_idle_timeout_minutes(value: object) -> int:
+    minutes, inside = _whole(
+        "dcvIdleTimeoutMinutes",
+        value,
+        TwinSettings.dcv_idle_timeout_minutes,
+        example=0,
+        bounds=(0, DCV_IDLE_TIMEOUT_MAX),
+    )
+    if not inside:
+        raise SettingsError(
+            f"dcvIdleTimeoutMinutes={minutes} is outside 0..{DCV_IDLE_TIMEOUT_MAX} (minutes without input "
+            "before DCV disconnects a client; 0: never); pass e.g. -c dcvIdleTimeoutMinutes=0"
+        )
+    return minutes
 
 
 def _history_ia_after_days(value: object) -> int:

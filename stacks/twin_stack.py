@@ -124,6 +124,8 @@ class TwinStack(Stack):
                 # The host turns this alarm's actions on once it is up (stacks/monitoring.py).
                 "SILENT_ALARM": silent_alarm_name(settings.stack_name),
                 "RECORD_SESSIONS": "true" if settings.record_sessions else "false",
+                # DCV's idle-timeout in dcv.conf (bootstrap.sh, step dcv).
+                "DCV_IDLE_TIMEOUT": str(settings.dcv_idle_timeout_minutes),
             },
             agent_source=agent_source or REPO_ROOT,
         )

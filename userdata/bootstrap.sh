@@ -516,7 +516,10 @@ dcv_current() {
 }
 
 step_dcv() {
-  local groups
+  local groups idle_timeout="${DCV_IDLE_TIMEOUT:-0}"
+  # The stack's dcvIdleTimeoutMinutes (0 without it: a deployment parameter older than the setting).
+  [[ $idle_timeout =~ ^[0-9]{1,6}$ ]] ||
+    die "DCV_IDLE_TIMEOUT=$idle_timeout is not a number of minutes: the stack's dcvIdleTimeoutMinutes"
   if ! dcv_current; then
     install_dcv_packages
     DISPLAY_CHANGED=1
@@ -543,6 +546,9 @@ web-client-max-head-resolution = (${VIRTUAL_SCREEN%x*}, ${VIRTUAL_SCREEN#*x})
 web-port = 8443
 quic-port = 8443
 enable-quic-frontend = true
+# Minutes without input before a client is disconnected (DCV's default 60; 0 never): the twin is watched
+# for hours without being touched (the stack's dcvIdleTimeoutMinutes).
+idle-timeout = ${idle_timeout}
 
 [security]
 authentication = "system"

@@ -32,6 +32,7 @@ ALL_OPTIONS = {
     "units": "ticks",
     "topicPrefix": "fleet/so101",
     "ros2": "true",
+    "dcvIdleTimeoutMinutes": "90",
 }
 
 

@@ -370,11 +370,16 @@ def test_the_desktop_gets_a_browser_for_the_console_launcher(booted) -> None:
     assert os.access(host.root / command.lstrip("/"), os.X_OK), f"{command} was not installed by the boot"
 
 
-def test_dcv_config_password_at_awscurrent_and_start_ordering(booted) -> None:
+def test_dcv_config_password_at_awscurrent_and_start_ordering(booted, deployed: Deployed) -> None:
     host, _ = booted
     conf = host.file("/etc/dcv/dcv.conf")
     assert 'owner = "ubuntu"' in conf and "create-session = true" in conf
     assert "web-client-max-head-resolution = (4096, 2160)" in conf
+    # An untouched viewer is never disconnected (the stack's dcvIdleTimeoutMinutes, 0 by default; DCV's own
+    # default would end it after 60 minutes).
+    assert deployed.settings["DCV_IDLE_TIMEOUT"] == "0"
+    connectivity = conf.split("[connectivity]\n", 1)[1].split("\n[", 1)[0]
+    assert "\nidle-timeout = 0\n" in connectivity
     # The version staged AWSCURRENT, not the first in the map (AWSPREVIOUS here).
     assert (host.sim / "chpasswd.log").read_text() == f"chpasswd user=ubuntu password={PASSWORD}\n"
     log = host.file("/var/log/so101-twin-bootstrap.log")
@@ -624,6 +629,25 @@ def test_second_run_through_the_association_changes_nothing(
     log = host.file("/var/log/so101-twin-bootstrap.log")
     assert f"update of deployment {deployed.version}" in log
     assert "install-agent: " in log and "done (changed=0)" in log
+
+
+def test_an_update_with_a_new_dcv_idle_timeout_rewrites_dcv_conf_and_restarts_dcv(
+    booted, deployed: Deployed, tmp_path: Path
+) -> None:
+    """dcvIdleTimeoutMinutes changed: the association's run writes it into dcv.conf and restarts DCV, which
+    reads it only at its start, after X (its console session needs X)."""
+    source, _ = booted
+    host = copy_of(source, tmp_path)
+    parameter = host.sim / "parameter"
+    parameter.write_text(parameter.read_text().replace("DCV_IDLE_TIMEOUT=0", "DCV_IDLE_TIMEOUT=90"))
+    calls_before = len(host.calls())
+    rerun = run_association(host, deployed.update_script)
+    assert rerun.returncode == 0, rerun.stdout[-4000:] + rerun.stderr[-2000:]
+    conf = host.file("/etc/dcv/dcv.conf")
+    assert "\nidle-timeout = 90\n" in conf.split("[connectivity]\n", 1)[1].split("\n[", 1)[0]
+    new_calls = host.calls()[calls_before:]
+    assert new_calls.index("systemctl restart gdm3") < new_calls.index("systemctl restart dcvserver")
+    assert (host.sim / "state" / "console").read_text().strip() == "ubuntu"
 
 
 def test_update_waits_for_the_parameter_to_show_its_version(

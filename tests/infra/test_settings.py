@@ -120,6 +120,15 @@ def test_record_sessions_and_replace_instance_flags() -> None:
     assert settings(replaceInstance=True).replace_instance is True
 
 
+def test_dcv_idle_timeout_never_disconnects_by_default_and_takes_minutes() -> None:
+    """DCV's own default (60 minutes) would disconnect a viewer watched, untouched, for more than an hour."""
+    assert settings().dcv_idle_timeout_minutes == 0
+    assert settings(dcvIdleTimeoutMinutes="90").dcv_idle_timeout_minutes == 90
+    assert settings(dcvIdleTimeoutMinutes=120).dcv_idle_timeout_minutes == 120
+    assert "dcvIdleTimeoutMinutes=-1 is outside 0..10080" in refused(dcvIdleTimeoutMinutes="-1")
+    assert "is not a whole number" in refused(dcvIdleTimeoutMinutes="1h")
+
+
 def test_instance_fingerprint_names_what_replaces_the_instance() -> None:
     assert settings().instance_fingerprint == {
         "availabilityZone": "",

@@ -502,6 +502,8 @@ def test_deployment_parameter_carries_assets_settings_and_version(synth_default:
         "UNITS=auto",
         "RECORD_SESSIONS=false",
         "ROS2=false",
+        # DCV never disconnects an untouched viewer unless dcvIdleTimeoutMinutes says so.
+        "DCV_IDLE_TIMEOUT=0",
         "HISTORY_URI=s3://",
         "CLIENT_ID_PREFIX=so101-twin-So101TwinStack-",
         "LOG_GROUP=",
@@ -513,6 +515,11 @@ def test_deployment_parameter_carries_assets_settings_and_version(synth_default:
     assert len(reads) == 1
     resource = flatten(reads[0]["Resource"])
     assert ":parameter" in resource and '"Ref": "HostDeployment' in resource
+
+
+def test_dcv_idle_timeout_setting_reaches_the_host(synth_all_options: Synth) -> None:
+    value = flatten(synth_all_options.one("AWS::SSM::Parameter")["Properties"]["Value"])
+    assert "DCV_IDLE_TIMEOUT=90" in value
 
 
 def test_ros2_setting_reaches_the_host_and_opens_no_port(synth_all_options: Synth) -> None:
