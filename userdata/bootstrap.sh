@@ -552,6 +552,9 @@ idle-timeout = ${idle_timeout}
 
 [security]
 authentication = "system"
+# DCV locks the OS session when its last client disconnects (default true): the next person would meet
+# GNOME's lock screen, not the viewer. GNOME's own lock is off too (disable-lock-screen, step desktop).
+os-auto-lock = false
 CONF
   # DCV attaches its console session to the X display that runs when it starts: after a reboot it must
   # start after the display manager (so101-twin-start.service then checks that it found X).

@@ -380,6 +380,12 @@ def test_dcv_config_password_at_awscurrent_and_start_ordering(booted, deployed: 
     assert deployed.settings["DCV_IDLE_TIMEOUT"] == "0"
     connectivity = conf.split("[connectivity]\n", 1)[1].split("\n[", 1)[0]
     assert "\nidle-timeout = 0\n" in connectivity
+    # The desktop stays unlocked when the last client disconnects: DCV's own lock off (its default locks),
+    # GNOME's too (disable-lock-screen), each where its program reads it.
+    security = conf.split("[security]\n", 1)[1].split("\n[", 1)[0]
+    assert "\nos-auto-lock = false\n" in security
+    schema = host.file("/usr/share/glib-2.0/schemas/90_so101-twin.gschema.override")
+    assert "[org.gnome.desktop.lockdown]\ndisable-lock-screen=true\n" in schema
     # The version staged AWSCURRENT, not the first in the map (AWSPREVIOUS here).
     assert (host.sim / "chpasswd.log").read_text() == f"chpasswd user=ubuntu password={PASSWORD}\n"
     log = host.file("/var/log/so101-twin-bootstrap.log")
