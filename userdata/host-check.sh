@@ -30,6 +30,7 @@ WAIT_AGENT_TRIES=60
 WAIT_VIEWER_TRIES=36
 WAIT_SCREEN_TRIES=12
 DETAIL=""
+GL_DETAIL=""
 
 check_x_on_gpu() {
   local smi gpu
@@ -51,7 +52,62 @@ check_x_on_gpu() {
     return 1
   fi
   gpu="$(nvidia-smi --query-gpu=name,driver_version --format=csv,noheader 2>&1)" || gpu="the GPU"
-  DETAIL="Xorg runs on ${gpu//$'\n'/; }"
+  # Xorg on the GPU can still render OpenGL in software (Mesa's llvmpipe, when the NVIDIA GLX library is
+  # not the one X loaded): the viewer would run, slowly, on the CPU.
+  if ! check_gl_on_gpu; then
+    DETAIL="Xorg runs on ${gpu//$'\n'/; }, but $GL_DETAIL"
+    return 1
+  fi
+  DETAIL="Xorg runs on ${gpu//$'\n'/; }; $GL_DETAIL"
+}
+
+# The X server's authority file, the -auth argument of a running Xorg (GDM's, readable by root), as AWS's
+# DCV guide finds it for its checks on :0.
+x_authority() {
+  local pid arg next
+  for pid in $(pgrep -x Xorg || true); do
+    [ -r "${ROOT}/proc/$pid/cmdline" ] || continue
+    next=0
+    while IFS= read -r -d '' arg; do
+      if [ "$next" = 1 ]; then
+        echo "$arg"
+        return 0
+      fi
+      [ "$arg" != -auth ] || next=1
+    done <"${ROOT}/proc/$pid/cmdline"
+  done
+  return 1
+}
+
+# What renders OpenGL on X's display :0 (AWS's DCV guide checks the same with glxinfo): NVIDIA's driver, or
+# GL_DETAIL names what does instead. glxinfo comes with mesa-utils (bootstrap.sh, step packages).
+check_gl_on_gpu() {
+  local auth out line vendor="" renderer=""
+  if ! command -v glxinfo >/dev/null 2>&1; then
+    GL_DETAIL="glxinfo is missing (mesa-utils, the boot's packages step): cannot tell what renders OpenGL"
+    return 1
+  fi
+  if ! auth="$(x_authority)"; then
+    GL_DETAIL="no Xorg process gives an -auth file: cannot ask X on :0 what renders OpenGL"
+    return 1
+  fi
+  # The output is captured whole and read here: no reader that stops early in a pipe (pipefail).
+  if ! out="$(DISPLAY=:0 XAUTHORITY="$auth" timeout 30 glxinfo -B 2>&1)"; then
+    GL_DETAIL="glxinfo on :0 failed: ${out:0:300}"
+    return 1
+  fi
+  while IFS= read -r line; do
+    case "$line" in
+      "OpenGL vendor string: "*) vendor="${line#*: }" ;;
+      "OpenGL renderer string: "*) renderer="${line#*: }" ;;
+    esac
+  done <<<"$out"
+  if [[ $vendor != *NVIDIA* ]]; then
+    GL_DETAIL="OpenGL on :0 is rendered by ${renderer:-an unknown renderer} (${vendor:-no vendor given}), not"
+    GL_DETAIL+=" NVIDIA's driver: software rendering on the CPU (see /var/log/Xorg.0.log for the GLX module)"
+    return 1
+  fi
+  GL_DETAIL="OpenGL on :0: ${renderer:-?} (${vendor})"
 }
 
 # The owner of DCV's console session from `dcv list-sessions --json` (a JSON array of sessions with id,

@@ -6,14 +6,15 @@ Manager association), tar on a DCV tarball of realistic size and layout, python3
 the fcntl lock probe), gpg and ar (every signature check runs for real, against test keys), coreutils (sync
 logged on its way), timeout, flock, Pillow on the console capture. What stands in, and why: the tools that
 would change this machine or need AWS, a GPU, a display or a package mirror (apt-get, apt-cache, dpkg-query,
-dpkg, systemctl, journalctl, nvidia-smi, nvidia-xconfig, dcv, chpasswd, chown, usermod, useradd, gpasswd, id,
-ps, pgrep, glib-compile-schemas, snap, aws, curl, sleep). Each stand-in logs its arguments to `calls.log` and
-keeps the host's state in SIM (installed packages and snaps, active and masked units, whether X runs on the
-GPU, the DCV sessions, the viewer), and encodes the dependencies that matter for the order of the boot: X
-starts on the GPU only with the NVIDIA Xorg module, Xorg.wrap and an xorg.conf for the nvidia driver;
-dcvserver creates the automatic console session only if X runs when it starts; the viewer runs once X runs and
-the autostart entry and its supervisor exist; a masked unit does not start; the agent answers /healthz only
-while its service is active. A file SIM/fail/<tool> makes that stand-in fail (to test a failing step).
+dpkg, systemctl, journalctl, nvidia-smi, nvidia-xconfig, glxinfo, dcv, chpasswd, chown, usermod, useradd,
+gpasswd, id, ps, pgrep, glib-compile-schemas, snap, aws, curl, sleep). Each stand-in logs its arguments to
+`calls.log` and keeps the host's state in SIM (installed packages and snaps, active and masked units, whether
+X runs on the GPU and what renders its OpenGL, the DCV sessions, the viewer), and encodes the dependencies
+that matter for the order of the boot: X starts on the GPU only with the NVIDIA Xorg module, Xorg.wrap and an
+xorg.conf for the nvidia driver; dcvserver creates the automatic console session only if X runs when it
+starts; the viewer runs once X runs and the autostart entry and its supervisor exist; a masked unit does not
+start; the agent answers /healthz only while its service is active; glxinfo answers only on :0 with the
+authority file of X's command line. A file SIM/fail/<tool> makes that stand-in fail (to test a failing step).
 
 The CDN stand-in (curl) serves files from SIM/cdn: a DCV release whose packages carry dpkg-sig builder
 signatures and a CloudWatch agent package with a detached signature, both made here with throw-away keys
@@ -40,6 +41,24 @@ from pathlib import Path
 from typing import Any
 
 INSTANCE_ID = "i-0123456789abcdef0"
+XORG_PID = "1234"
+XORG_ARGS = [
+    "/usr/lib/xorg/Xorg",
+    "vt2",
+    "-displayfd",
+    "3",
+    "-auth",
+    "/run/user/1000/gdm/Xauthority",
+    "-nolisten",
+    "tcp",
+    "-background",
+    "none",
+    "-noreset",
+    "-keeptty",
+    "-novtswitch",
+    "-verbose",
+    "3",
+]
 BOOT_ID = "6f1c2d3e-4a5b-4c6d-8e9f-0a1b2c3d4e5f"
 REGION = "us-east-1"
 ACCOUNT = "111111111111"
@@ -247,6 +266,27 @@ case "${1:-}" in
     echo "| Processes:                                                                |"
     if has state xorg; then echo "|    0   N/A  N/A      1234      G   /usr/lib/xorg/Xorg      4MiB |"; fi ;;
 esac
+""",
+    "glxinfo": r"""
+# DISPLAY=:0 XAUTHORITY=FILE glxinfo -B: what renders OpenGL on X. Only X on :0 with its Xorg's -auth file
+# answers; SIM/glx holds another renderer's lines (Mesa's llvmpipe: X without NVIDIA's GLX library).
+if ! has state xorg || [ "${DISPLAY:-}" != :0 ]; then
+  echo "Error: unable to open display ${DISPLAY:-}" >&2; exit 1
+fi
+auth="$(tr '\0' '\n' <"$ROOT/proc/1234/cmdline" | sed -n '/^-auth$/{n;p;}')"
+if [ "${XAUTHORITY:-}" != "$auth" ]; then
+  echo "Authorization required, but no authorization protocol specified" >&2
+  echo "Error: unable to open display :0" >&2; exit 1
+fi
+if [ -f "$SIM/glx" ]; then cat "$SIM/glx"; exit 0; fi
+echo "name of display: :0"
+echo "display: :0  screen: 0"
+echo "direct rendering: Yes"
+echo "Memory info (GL_NVX_gpu_memory_info):"
+echo "    Dedicated video memory: 46068 MB"
+echo "OpenGL vendor string: NVIDIA Corporation"
+echo "OpenGL renderer string: NVIDIA L40S/PCIe/SSE2"
+echo "OpenGL core profile version string: 4.6.0 NVIDIA 580.95.05"
 """,
     "nvidia-xconfig": r"""
 out=/etc/X11/xorg.conf; virtual=""; empty=0
@@ -808,6 +848,12 @@ class HostSim:
         (self.root / "var" / "lib" / "dpkg" / "lock-frontend").touch()
         (self.root / "proc" / "sys" / "kernel" / "random").mkdir(parents=True, exist_ok=True)
         (self.root / "proc" / "sys" / "kernel" / "random" / "boot_id").write_text(BOOT_ID + "\n")
+        # GDM's Xorg, the pid the pgrep stand-in gives while X runs, with the authority file a client of :0
+        # needs on its command line.
+        (self.root / "proc" / XORG_PID).mkdir(parents=True, exist_ok=True)
+        (self.root / "proc" / XORG_PID / "cmdline").write_bytes(
+            b"\0".join(arg.encode() for arg in XORG_ARGS) + b"\0"
+        )
         pci = self.root / "sys" / "bus" / "pci" / "devices" / "0000:00:1e.0"
         pci.mkdir(parents=True, exist_ok=True)
         (pci / "vendor").write_text("0x10de\n")

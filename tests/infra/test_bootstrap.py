@@ -217,7 +217,7 @@ def test_first_boot_succeeds_and_signals_success_after_verifying(booted, deploye
     assert host.file("/var/lib/so101-twin/deployed-version").strip() == deployed.version
     log = host.file("/var/log/so101-twin-bootstrap.log")
     for check in (
-        "x-on-gpu: Xorg runs on NVIDIA L40S",
+        "x-on-gpu: Xorg runs on NVIDIA L40S, 580.95.05; OpenGL on :0: NVIDIA L40S/PCIe/SSE2 (NVIDIA",
         "dcv-session: console session owned by ubuntu",
         "agent: connected and subscribed",
         "viewer: twin view runs in ubuntu's desktop session (the same process for 120 s)",
@@ -487,6 +487,33 @@ def test_host_check_reports_every_line(booted, tmp_path: Path) -> None:
     assert "arm-001 OFFLINE 0.0 Hz, never seen" in details["telemetry"]
 
 
+LLVMPIPE = (
+    "name of display: :0\n"
+    "display: :0  screen: 0\n"
+    "direct rendering: Yes\n"
+    "OpenGL vendor string: Mesa\n"
+    "OpenGL renderer string: llvmpipe (LLVM 20.1.2, 256 bits)\n"
+    "OpenGL core profile version string: 4.5 (Core Profile) Mesa 25.0.7-0ubuntu0.24.04.2\n"
+)
+
+
+def test_host_check_fails_x_on_gpu_when_opengl_on_x_is_not_nvidias(booted, tmp_path: Path) -> None:
+    """nvidia-smi lists Xorg, yet X's OpenGL is Mesa's software renderer (what AWS's DCV guide checks with
+    glxinfo on :0): the x-on-gpu line fails and names what renders instead."""
+    source, _ = booted
+    host = copy_of(source, tmp_path)
+    (host.sim / "glx").write_text(LLVMPIPE)
+    result = host.run(host.root / "opt/so101-twin/userdata/host-check.sh")
+    assert result.returncode == 1, result.stdout + result.stderr
+    lines = {
+        name: (state, detail) for name, state, detail in (ln.split("\t") for ln in result.stdout.splitlines())
+    }
+    state, detail = lines["x-on-gpu"]
+    assert state == "FAIL"
+    assert detail.startswith("Xorg runs on NVIDIA L40S, 580.95.05, but OpenGL on :0 is rendered by llvmpipe")
+    assert "(Mesa), not NVIDIA's driver" in detail
+
+
 def test_host_check_fails_the_agent_line_when_iot_core_refuses_a_filter(booted, tmp_path: Path) -> None:
     """One filter refused, another granted: the agent is connected and has a subscription, yet the refused
     filter's arms are never heard, and the check says which filter and which right."""
@@ -713,6 +740,21 @@ def test_a_uniform_screen_is_a_failure_of_the_verify_step(
     assert "viewer:" not in reason.split("; last log lines:")[0]
     # A boot that failed never armed the silent alarm (the stack rolls back).
     assert host.armed() == []
+    apt_restored(host)
+
+
+def test_x_whose_opengl_is_software_is_a_failure_of_the_display_step(
+    tmp_path: Path, deployed: Deployed, release
+) -> None:
+    host = new_host(tmp_path, deployed, release)
+    (host.sim / "glx").write_text(LLVMPIPE)
+    result = first_boot(host, deployed)
+    assert result.returncode != 0
+    reason = failure_reason(host)
+    assert reason.startswith("step display failed (exit 1): X did not start on the GPU: Xorg runs on NVIDIA")
+    assert "OpenGL on :0 is rendered by llvmpipe (LLVM 20.1.2, 256 bits) (Mesa)" in reason
+    # X was asked with the authority file of its own command line, as root has to.
+    assert "glxinfo -B" in host.calls()
     apt_restored(host)
 
 
