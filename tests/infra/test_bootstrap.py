@@ -514,6 +514,28 @@ def test_host_check_fails_x_on_gpu_when_opengl_on_x_is_not_nvidias(booted, tmp_p
     assert "(Mesa), not NVIDIA's driver" in detail
 
 
+def test_host_check_passes_x_on_gpu_saying_so_when_x_cannot_be_asked_about_opengl(
+    booted, tmp_path: Path
+) -> None:
+    """X runs on the GPU (nvidia-smi lists it) but its OpenGL could not be asked about: here no Xorg gives an
+    -auth file, so glxinfo is refused. Only a renderer seen not to be NVIDIA's fails: a guess about a host's
+    X authority must not fail every boot. The line says what it could not ask."""
+    source, _ = booted
+    host = copy_of(source, tmp_path)
+    cmdline = host.root / "proc/1234/cmdline"
+    cmdline.write_bytes(cmdline.read_bytes().replace(b"-auth\0", b"-noauth\0"))
+    result = host.run(host.root / "opt/so101-twin/userdata/host-check.sh")
+    lines = {
+        name: (state, detail) for name, state, detail in (ln.split("\t") for ln in result.stdout.splitlines())
+    }
+    state, detail = lines["x-on-gpu"]
+    assert state == "OK", detail
+    assert detail == (
+        "Xorg runs on NVIDIA L40S, 580.95.05; not asked what renders OpenGL: no Xorg process gives an "
+        "-auth file"
+    ), detail
+
+
 def test_host_check_fails_the_agent_line_when_iot_core_refuses_a_filter(booted, tmp_path: Path) -> None:
     """One filter refused, another granted: the agent is connected and has a subscription, yet the refused
     filter's arms are never heard, and the check says which filter and which right."""
