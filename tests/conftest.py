@@ -313,6 +313,25 @@ def unbrokered_agent(tmp_path: Path, workers: int = 2, **overrides: Any) -> Agen
     return agent
 
 
+def one_arm_agent(sinks: Sequence[Any] = (), clock: Any = None) -> AgentService:
+    """A started in-process AgentService of arm-001 in ticks, on no broker (fed with `service.feed`), with
+    `sinks` and, when given, on `clock` (a ManualClock); the caller stops it."""
+    config = load_config(
+        None,
+        {
+            "broker.url": NO_BROKER,
+            "http.listen": "127.0.0.1:0",
+            "telemetry.devices": ["arm-001"],
+            "telemetry.units": "ticks",
+        },
+    )
+    service = (
+        AgentService(config, sinks=sinks) if clock is None else AgentService(config, sinks=sinks, clock=clock)
+    )
+    service.start()
+    return service
+
+
 @contextmanager
 def fed_agent(messages: int = 12, *, sinks: Sequence[Any] = (), **overrides: Any) -> Iterator[AgentService]:
     """A started AgentService fed through `feed` (no broker needed: the configured one never

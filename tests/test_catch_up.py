@@ -14,22 +14,23 @@ import time
 from collections.abc import Iterator
 
 import pytest
-from conftest import NO_BROKER, ManualClock, wait_for
+from conftest import ManualClock, one_arm_agent, wait_for
 from twin.edge.payload import encode, make_payload
 from twin.output.sinks import AppliedSample, RejectedSample, SinkStats
 from twin.service.agent import AgentService
-from twin.service.config import load_config
 from twin.service.mirror import CATCH_UP_AFTER_S
 
 TOPIC = "dt/lerobot/arm-001/telemetry"
 
 
 class GateSink:
-    """Blocks the worker in the first applied sample until released; records what it was handed."""
+    """Blocks the worker in the first applied sample until released (at most `hold_s`); records what it was
+    handed."""
 
     name = "gate"
 
-    def __init__(self) -> None:
+    def __init__(self, hold_s: float = 10.0) -> None:
+        self.hold_s = hold_s
         self.entered = threading.Event()
         self.release = threading.Event()
         self.applied_ms: list[int] = []
@@ -39,7 +40,7 @@ class GateSink:
         self.applied_ms.append(sample.timestamp_ms)
         if not self.entered.is_set():
             self.entered.set()
-            self.release.wait(10)
+            self.release.wait(self.hold_s)
 
     def rejected(self, sample: RejectedSample) -> None:
         self.rejected_reasons.append(sample.reason)
@@ -53,19 +54,9 @@ class GateSink:
 
 @pytest.fixture
 def gated() -> Iterator[tuple[AgentService, GateSink, ManualClock]]:
-    config = load_config(
-        None,
-        {
-            "broker.url": NO_BROKER,
-            "http.listen": "127.0.0.1:0",
-            "telemetry.devices": ["arm-001"],
-            "telemetry.units": "ticks",
-        },
-    )
     gate = GateSink()
     clock = ManualClock()
-    service = AgentService(config, sinks=[gate], clock=clock)
-    service.start()
+    service = one_arm_agent([gate], clock)
     try:
         yield service, gate, clock
     finally:

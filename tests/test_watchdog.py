@@ -15,15 +15,12 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import pytest
-from conftest import NO_BROKER, wait_for
-from test_sinks import _Sink
+from conftest import one_arm_agent, wait_for
+from test_catch_up import GateSink
 from twin.rig.local import LocalRig
 from twin.service import mirror as mirror_module
-from twin.service.agent import AgentService
-from twin.service.config import load_config
 from twin.service.systemd import Notifier
 
 PAYLOAD = (
@@ -131,38 +128,6 @@ def test_a_manager_that_went_away_is_logged_once_and_never_raises(
     ]
 
 
-class _StuckSink(_Sink):
-    """A sink that breaks the rule (`applied` must return at once) the way a stuck native call would: it
-    holds the mirror's worker thread until the test lets go."""
-
-    name = "stuck"
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.holding = threading.Event()
-        self.release = threading.Event()
-
-    def applied(self, sample: Any) -> None:
-        self.holding.set()
-        self.release.wait(120)
-        super().applied(sample)
-
-
-def in_process_agent(sinks: list[Any]) -> AgentService:
-    config = load_config(
-        None,
-        {
-            "broker.url": NO_BROKER,
-            "http.listen": "127.0.0.1:0",
-            "telemetry.devices": ["arm-001"],
-            "telemetry.units": "ticks",
-        },
-    )
-    service = AgentService(config, sinks=sinks)
-    service.start()
-    return service
-
-
 def test_a_stuck_in_process_mirror_fails_the_agent_and_the_log_says_where_it_waits(
     monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -172,18 +137,19 @@ def test_a_stuck_in_process_mirror_fails_the_agent_and_the_log_says_where_it_wai
     # Many of the supervisor's half-second turns: shorter, its looks on a loaded machine could read as the
     # process paused (a gap of half the window), each starting the window again.
     monkeypatch.setattr(mirror_module, "STALL_AFTER_S", 6.0)
-    sink = _StuckSink()
-    service = in_process_agent([sink])
+    # Held in its first sample, as a stuck native call would hold it, until the test lets go.
+    sink = GateSink(hold_s=120)
+    service = one_arm_agent([sink])
     try:
         with caplog.at_level(logging.ERROR, logger="twin.service.mirror"):
             service.feed("dt/lerobot/arm-001/telemetry", PAYLOAD)
-            assert sink.holding.wait(30)
+            assert sink.entered.wait(30)
             wait_for(lambda: not service.running, 90, "the agent to count its stuck mirror as failed")
         (record,) = [r for r in caplog.records if "is stuck" in r.getMessage()]
         said = record.getMessage()
         assert said.startswith("the mirror's worker thread has not turned for "), said
-        # Where it waits: this sink's frame, in this file.
-        assert "in applied" in said and "test_watchdog.py" in said and "self.release.wait" in said, said
+        # Where it waits: the sink's frame.
+        assert "in applied" in said and "test_catch_up.py" in said and "self.release.wait" in said, said
         # Its stop waits a few seconds for it, not the whole shutdown budget: it will not finish its batch.
         with caplog.at_level(logging.ERROR, logger="twin.service.mirror"):
             service.stop()
@@ -197,7 +163,7 @@ def test_an_idle_in_process_mirror_is_not_taken_for_a_stuck_one(monkeypatch: pyt
     """Its worker thread turns its loop while nothing arrives (every IDLE_WAKE_S): no message for many times
     STALL_AFTER_S is no stall."""
     monkeypatch.setattr(mirror_module, "STALL_AFTER_S", 4.0)
-    service = in_process_agent([])
+    service = one_arm_agent()
     try:
         (shard,) = service._shards
         start, turns = time.monotonic(), shard.mirror.turns
