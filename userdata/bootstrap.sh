@@ -567,6 +567,23 @@ DROPIN
   [ "$CHANGED" = 0 ] || DISPLAY_CHANGED=1
   systemctl daemon-reload
   systemctl enable dcvserver
+  open_dcv_in_ufw
+}
+
+# An AMI that comes with ufw on (the default DLAMI's is off) drops DCV's port after the security group let
+# it in: every check on the host would pass while the person's browser met a closed port. AWS's DLAMI sample
+# opens the same two when ufw is active. ufw keeps its rules, so this runs once per change.
+open_dcv_in_ufw() {
+  local status proto
+  command -v ufw >/dev/null 2>&1 || return 0
+  status="$(ufw status 2>&1)" || die "ufw status failed: ${status:0:300}"
+  [[ $status == "Status: active"* ]] || return 0
+  for proto in tcp udp; do
+    if [[ $status != *"8443/${proto}"*ALLOW* ]]; then
+      ufw allow "8443/${proto}" >/dev/null
+      log "ufw is active: opened 8443/${proto} for DCV"
+    fi
+  done
 }
 
 # --- display: X first, then DCV, then the console session -------------------------------------------

@@ -233,6 +233,21 @@ esac
 unit=""; while [ $# -gt 0 ]; do [ "$1" = -u ] && unit="${2%.service}"; shift; done
 cat "$SIM/journal/$unit" 2>/dev/null || true
 """,
+    "ufw": r"""
+# ufw status | ufw allow PORT/PROTO: inactive unless SIM/ufw-active exists (the default DLAMI's is off).
+case "${1:-}" in
+  status)
+    if [ ! -e "$SIM/ufw-active" ]; then echo "Status: inactive"; exit 0; fi
+    echo "Status: active"; echo; echo "To                         Action      From"
+    echo "--                         ------      ----"; echo "22/tcp                     ALLOW       Anywhere"
+    for rule in "$SIM"/ufw-rules/*; do
+      [ -e "$rule" ] && echo "$(basename "$rule" | tr _ /)                   ALLOW       Anywhere"
+    done
+    exit 0 ;;
+  allow) mkdir -p "$SIM/ufw-rules"; : >"$SIM/ufw-rules/${2//\//_}"; echo "Rule added" ;;
+  *) echo "ufw stand-in: unsupported $*" >&2; exit 1 ;;
+esac
+""",
     "pgrep": r"""
 # pgrep -x Xorg | pgrep -u USER -f PATTERN
 if [ "$1" = -x ] && [ "$2" = Xorg ]; then has state xorg && { echo 1234; exit 0; }; exit 1; fi

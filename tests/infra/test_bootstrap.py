@@ -765,6 +765,29 @@ def test_a_uniform_screen_is_a_failure_of_the_verify_step(
     apt_restored(host)
 
 
+def test_an_active_ufw_lets_dcv_in_and_an_inactive_one_is_left_alone(
+    booted, tmp_path: Path, deployed: Deployed, release
+) -> None:
+    """An AMI with ufw on would drop DCV's port after the security group let it in, while every check on the
+    host passed: the boot opens 8443 over TCP and UDP, as AWS's DLAMI sample does, and only then."""
+    default, _ = booted
+    assert not [c for c in default.calls() if c.startswith("ufw allow")]
+    host = new_host(tmp_path, deployed, release)
+    (host.sim / "ufw-active").touch()
+    result = first_boot(host, deployed)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    allowed = [c for c in host.calls() if c.startswith("ufw allow")]
+    assert allowed == ["ufw allow 8443/tcp", "ufw allow 8443/udp"], allowed
+    assert (
+        "ufw is active: opened 8443/udp for DCV"
+        in (host.root / "var/log/so101-twin-bootstrap.log").read_text()
+    )
+    # ufw keeps its rules: an update finds them there and adds none.
+    rerun = run_association(host, deployed.update_script)
+    assert rerun.returncode == 0, rerun.stdout[-3000:] + rerun.stderr[-3000:]
+    assert [c for c in host.calls() if c.startswith("ufw allow")] == allowed
+
+
 def test_x_whose_opengl_is_software_is_a_failure_of_the_display_step(
     tmp_path: Path, deployed: Deployed, release
 ) -> None:
