@@ -56,6 +56,9 @@ export DEBIAN_FRONTEND=noninteractive
 STEP=settings
 FAIL_DETAIL=""
 DISPLAY_CHANGED=0
+# Set when only DCV's own configuration changed (dcv.conf, its unit's drop-in): DCV alone is restarted, and
+# attaches its console session to the X that runs; GDM's restart would end the desktop and its viewer.
+DCV_CHANGED=0
 
 # die MESSAGE: fail the current step with a message that says what is wrong.
 die() {
@@ -518,8 +521,9 @@ dcv_current() {
 step_dcv() {
   local groups idle_timeout="${DCV_IDLE_TIMEOUT:-0}"
   # The stack's dcvIdleTimeoutMinutes (0 without it: a deployment parameter older than the setting).
-  [[ $idle_timeout =~ ^[0-9]{1,6}$ ]] ||
-    die "DCV_IDLE_TIMEOUT=$idle_timeout is not a number of minutes: the stack's dcvIdleTimeoutMinutes"
+  if ! [[ $idle_timeout =~ ^[0-9]{1,5}$ ]] || ((10#$idle_timeout > 10080)); then
+    die "DCV_IDLE_TIMEOUT=$idle_timeout is not 0..10080 minutes: the stack's dcvIdleTimeoutMinutes"
+  fi
   if ! dcv_current; then
     install_dcv_packages
     DISPLAY_CHANGED=1
@@ -564,7 +568,7 @@ CONF
 Wants=display-manager.service
 After=display-manager.service
 DROPIN
-  [ "$CHANGED" = 0 ] || DISPLAY_CHANGED=1
+  [ "$CHANGED" = 0 ] || DCV_CHANGED=1
   systemctl daemon-reload
   systemctl enable dcvserver
   open_dcv_in_ufw
@@ -595,7 +599,7 @@ step_display() {
     wait_for "$WAIT_X_TRIES" 5 "X on the GPU" check_x_on_gpu || die "X did not start on the GPU: $DETAIL"
     # DCV attaches its console session to the X display that runs when it starts.
     systemctl restart dcvserver
-  elif ! systemctl is-active --quiet dcvserver; then
+  elif [ "$DCV_CHANGED" = 1 ] || ! systemctl is-active --quiet dcvserver; then
     systemctl restart dcvserver
   fi
   log "X: $DETAIL"

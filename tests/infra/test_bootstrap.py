@@ -689,8 +689,9 @@ def test_second_run_through_the_association_changes_nothing(
 def test_an_update_with_a_new_dcv_idle_timeout_rewrites_dcv_conf_and_restarts_dcv(
     booted, deployed: Deployed, tmp_path: Path
 ) -> None:
-    """dcvIdleTimeoutMinutes changed: the association's run writes it into dcv.conf and restarts DCV, which
-    reads it only at its start, after X (its console session needs X)."""
+    """dcvIdleTimeoutMinutes changed: the association's run writes it into dcv.conf and restarts DCV alone,
+    which attaches its console session to the X that runs; GDM is not restarted (that would end the desktop
+    and the viewer in it)."""
     source, _ = booted
     host = copy_of(source, tmp_path)
     parameter = host.sim / "parameter"
@@ -701,8 +702,23 @@ def test_an_update_with_a_new_dcv_idle_timeout_rewrites_dcv_conf_and_restarts_dc
     conf = host.file("/etc/dcv/dcv.conf")
     assert "\nidle-timeout = 90\n" in conf.split("[connectivity]\n", 1)[1].split("\n[", 1)[0]
     new_calls = host.calls()[calls_before:]
-    assert new_calls.index("systemctl restart gdm3") < new_calls.index("systemctl restart dcvserver")
+    assert "systemctl restart dcvserver" in new_calls and "systemctl restart gdm3" not in new_calls, new_calls
     assert (host.sim / "state" / "console").read_text().strip() == "ubuntu"
+
+
+def test_an_idle_timeout_past_the_stacks_bound_is_refused_by_the_boot_too(
+    booted, deployed: Deployed, tmp_path: Path
+) -> None:
+    """A hand-edited deployment parameter gets past the stack's check: the boot holds the same bound
+    (0..10080 minutes) and says so, and dcv.conf keeps what it had."""
+    source, _ = booted
+    host = copy_of(source, tmp_path)
+    parameter = host.sim / "parameter"
+    parameter.write_text(parameter.read_text().replace("DCV_IDLE_TIMEOUT=0", "DCV_IDLE_TIMEOUT=20000"))
+    rerun = run_association(host, deployed.update_script)
+    assert rerun.returncode != 0
+    assert "DCV_IDLE_TIMEOUT=20000 is not 0..10080 minutes" in rerun.stdout + rerun.stderr
+    assert "\nidle-timeout = 0\n" in host.file("/etc/dcv/dcv.conf")
 
 
 def test_update_waits_for_the_parameter_to_show_its_version(
