@@ -195,8 +195,7 @@ def test_a_full_disk_is_told_once_a_minute_not_once_per_flush(
 
 
 def test_what_waits_for_a_flush_is_bounded(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(event_journal, "MAX_PENDING", 10)
-    store, journal = journaled_store(tmp_path / "events.jsonl")
+    store, journal = journaled_store(tmp_path / "events.jsonl", max_pending=10)
     emit(store, 15)
     assert journal.pending == 10 and journal.not_written == 5
     journal.close()
@@ -208,11 +207,10 @@ def test_a_flood_of_status_events_on_a_failing_disk_leaves_the_alarms_waiting_wi
 ) -> None:
     # One queue held both pairs' events: while the disk failed, a flood of status events pushed the alarms
     # waiting for the next flush out of it, and the failure's log line named the alarms' file either way.
-    monkeypatch.setattr(event_journal, "MAX_PENDING", 10)
     path = tmp_path / "events.jsonl"
     path.mkdir()  # both pairs' files fail to open, as on a full or read-only disk
     bulk_path(path).mkdir()
-    store, journal = journaled_store(path)
+    store, journal = journaled_store(path, max_pending=10)
     raise_alarms(store, 2)
     emit(store, 5)
     with caplog.at_level(logging.ERROR, logger="twin.service.event_journal"):
@@ -224,7 +222,7 @@ def test_a_flood_of_status_events_on_a_failing_disk_leaves_the_alarms_waiting_wi
         f"5 event(s) could not be written to the event journal {bulk_path(path)}",
     }, told
     waiting = raise_alarms(store, 3)
-    flood = emit(store, 25)  # past MAX_PENDING before the next flush
+    flood = emit(store, 25)  # past max_pending before the next flush
     path.rmdir()
     bulk_path(path).rmdir()
     assert journal.flush()
@@ -240,7 +238,6 @@ def test_a_flood_of_status_events_behind_a_slow_disk_leaves_the_alarms_waiting_w
 ) -> None:
     # The supervisor's flush held in a write (a slow disk) while the store kept adding: the status events
     # queued during it pushed out the alarms queued with them before any was written.
-    monkeypatch.setattr(event_journal, "MAX_PENDING", 10)
     held, release = threading.Event(), threading.Event()
     write = event_journal._Files.write
 
@@ -252,7 +249,7 @@ def test_a_flood_of_status_events_behind_a_slow_disk_leaves_the_alarms_waiting_w
 
     monkeypatch.setattr(event_journal._Files, "write", slow_write)
     path = tmp_path / "events.jsonl"
-    store, journal = journaled_store(path)
+    store, journal = journaled_store(path, max_pending=10)
     first = raise_alarms(store, 1)
     flushing = threading.Thread(target=journal.flush, name="flush-held")
     flushing.start()
@@ -508,3 +505,12 @@ def test_the_agents_journal_files_are_sized_by_its_events_capacity(tmp_path: Pat
     agent.stop()  # its start and stop events are written after the lines before: the file is past its size
     assert path.with_name(path.name + ".1").exists()
     assert EventJournal(path).load(None)[-1].data["action"] == "stopped"
+
+
+def test_what_waits_for_a_flush_is_a_store_of_the_agents_capacity(tmp_path: Path) -> None:
+    """Each pair's queue holds a store's worth of events: at `[twin] events_capacity` 100, the 101st waiting
+    for a flush pushes the oldest out, counted (a fixed 20,000 held 200 stores)."""
+    store, journal = journaled_store(tmp_path / "events.jsonl", capacity=100)
+    emit(store, 101)
+    assert journal.pending == 100 and journal.not_written == 1
+    journal.close()

@@ -30,9 +30,9 @@ same before and after.
   counted (`unreadable`, one warning); the next write starts on a line of its own. A write that fails (disk
   full, permissions) is logged with what to do and its events counted (`not_written`); they stay in the
   store, and the next flush tries again with the events made since. What waits for a flush is bounded, in
-  a queue per pair (`MAX_PENDING` each; the oldest of that pair go, counted), so a disk that stays broken or
-  slow cannot grow the agent's memory, and a flood of status events waiting behind it pushes out only older
-  bulk events, never the alarms waiting with them. Each pair's counts are an output's in /state
+  a queue per pair (a store's capacity each; the oldest of that pair go, counted), so a disk that stays
+  broken or slow cannot grow the agent's memory, and a flood of status events waiting behind it pushes out
+  only older bulk events, never the alarms waiting with them. Each pair's counts are an output's in /state
   (`agent.sinks`: `events_journal` for the file named, `events_journal_bulk` for the bulk pair), so they
   reach CloudWatch's SinkDrops; its log lines name the file that failed.
 """
@@ -62,7 +62,6 @@ __all__ = [
     "BULK_LINE_BYTES",
     "BULK_SINK_NAME",
     "KEPT_LINE_BYTES",
-    "MAX_PENDING",
     "SINK_NAME",
     "EventJournal",
 ]
@@ -77,9 +76,6 @@ BULK_SINK_NAME = "events_journal_bulk"  # status, rejected, twin
 # 300, a twin event's up to about 500. Either part may fill a whole store, so each pair needs `capacity`.
 KEPT_LINE_BYTES = 1_000  # alarm, calibration, agent, worker, broker: 20 MB a file at the default capacity
 BULK_LINE_BYTES = 500  # status, rejected, twin: 10 MB a file at the default capacity
-# Events waiting for a flush, in each pair's queue: a store's worth. More only while writes fail or are slow;
-# then the oldest of that pair go, counted, so the memory held is at most twice this.
-MAX_PENDING = DEFAULT_CAPACITY
 # A write that keeps failing is logged again at most this often (each flush would otherwise log).
 WARN_EVERY_S = 60.0
 
@@ -160,10 +156,12 @@ class EventJournal:
         *,
         capacity: int = DEFAULT_CAPACITY,
         max_bytes: int | None = None,
+        max_pending: int | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
-        """`capacity`: the store's (`[twin] events_capacity`), which sizes each pair's files (module doc);
-        `max_bytes`, when given, sizes both pairs' instead."""
+        """`capacity`: the store's (`[twin] events_capacity`), which sizes each pair's files (module doc)
+        and its queue; `max_bytes`, when given, sizes both pairs' files instead, `max_pending` their
+        queues."""
         if capacity < 1:
             raise ValueError(f"an event journal's store holds at least one event, got capacity = {capacity}")
         if max_bytes is not None and max_bytes < 1:
@@ -175,6 +173,9 @@ class EventJournal:
         self._kept = _Files(self.path, kept_bytes, name=SINK_NAME, clock=clock)
         self._bulk = _Files(bulk_path(self.path), bulk_bytes, name=BULK_SINK_NAME, clock=clock)
         self._lock = threading.Lock()  # the pairs' queues
+        # Events waiting for a flush, in each pair's queue: a store's worth. More only while writes fail or
+        # are slow; then the oldest of that pair go, counted, so the memory held is at most twice the store's.
+        self._max_pending = capacity if max_pending is None else max_pending
         # One flush at a time: a supervisor round still flushing as the stop closes must not interleave.
         self._write_lock = threading.RLock()
         self.unreadable = 0  # lines of the files read back that were not events
@@ -243,7 +244,7 @@ class EventJournal:
         files = self._bulk if event.kind in BULK_KINDS else self._kept
         with self._lock:
             # Each pair's own bound: a flood of status events behind a slow disk never pushes out an alarm.
-            if len(files.pending) >= MAX_PENDING:
+            if len(files.pending) >= self._max_pending:
                 files.pending.popleft()
                 files.not_written += 1
             files.pending.append(event)
