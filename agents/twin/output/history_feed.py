@@ -1003,10 +1003,13 @@ class HistoryProcess:
         self.pid: int | None = None
         self.started_at = 0.0
         self.restarts = 0
-        # The writer processes that died, and the last one's exit code and the rows it lost: the agent makes
-        # an event of each (the Events page explains a hole in a session's history, as for a worker).
+        # The writer processes that died once running, and the last one's exit code and the rows it lost: the
+        # agent makes an event of each (the Events page explains a hole in a session's history, as for a
+        # worker). Not a start that failed before it was ready: retried up to once a minute while a store is
+        # out of reach, each would be an event, and a weekend of them pushed every other lifecycle event out.
         self.exits = 0
         self.last_exit: tuple[int | None, int] = (None, 0)
+        self._ran = False  # the current process said it was ready
         self._restart_at: float | None = None
         # Over the processes that ended: what they received, committed and dropped, and the rows they held
         # when they died (the figures of /state run on across restarts).
@@ -1061,6 +1064,7 @@ class HistoryProcess:
             self._starting = False
             if not self._abandoned and isinstance(hello, _Ready):
                 self.pid = hello.pid
+                self._ran = True
                 self._settle(hello.landed)
                 return
         if self._abandoned:  # killed by the stop, which counts what it held: nothing of it is left to do here
@@ -1221,8 +1225,10 @@ class HistoryProcess:
         for i in range(_COUNTED):
             self._before[i] += counters[i]
         self._rows_lost += held - doubtful
-        self.exits += 1
-        self.last_exit = (exitcode, held - doubtful)
+        if self._ran:
+            self.exits += 1
+            self.last_exit = (exitcode, held - doubtful)
+        self._ran = False
         # A writer that never got as far as committing leaves an earlier writer's commit in doubt as it was.
         if doubt is not None and doubtful:
             self._settle(None)  # (an older one would have been checked by the writer that made this commit)
