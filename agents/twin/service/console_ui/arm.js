@@ -420,8 +420,9 @@
 
   // A page opened (or reloaded) on an arm this agent forgot said it had "no valid message from an arm with
   // this id since it started", untrue of an arm heard and forgotten, and told the operator to check the id.
-  // The arm's newest twin event says whether it was forgotten, and when: asked once, not at every frame.
-  let forgottenAt;  // undefined: not asked (or the ask failed); null: not forgotten; else epoch seconds
+  // The arm's newest twin event says whether it was forgotten, and when: asked once, not at every frame (again
+  // only after an ask that got no answer at all; one the agent refused is not asked again).
+  let forgottenAt;  // undefined: not asked (or no answer); null: not forgotten, or refused; else epoch seconds
   function askForgotten() {
     if (forgottenAt !== undefined) return;
     forgottenAt = null;
@@ -430,7 +431,7 @@
       if (!last || !last.data || last.data.action !== "forgotten") return;
       forgottenAt = last.time;
       if (!shown && !forgotten) unknown(null);
-    }, () => { forgottenAt = undefined; });
+    }, (error) => { forgottenAt = error && error.status ? null : undefined; });
   }
 
   let shown = false;  // this page has shown the arm's state at least once

@@ -39,7 +39,8 @@ const Twin = (() => {
     }
     if (live) {
       // Back after a break, the agent may be a new start with a new CSRF token: read it now, so the operator's
-      // next act is not refused first (a 403 in the browser's log) before the page renews it.
+      // next act is most likely not refused first (a 403 in the browser's log). Best effort: an act made before
+      // this read returns, or from a tab hidden through the restart, is refused once and renewed by post().
       if (downSince !== null) renewToken();
       downSince = null;
       banner.hidden = true;
