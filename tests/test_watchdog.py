@@ -140,11 +140,23 @@ def test_a_stuck_in_process_mirror_fails_the_agent_and_the_log_says_where_it_wai
     # Held in its first sample, as a stuck native call would hold it, until the test lets go.
     sink = GateSink(hold_s=120)
     service = one_arm_agent([sink])
+    # Whether the agent still ran when the stall was logged: the reason must be in the log before anyone
+    # sees the agent fail (a final check read the log the moment it failed, and the line was not there yet).
+    running_when_told: list[bool] = []
+
+    class Told(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            if "is stuck" in record.getMessage():
+                running_when_told.append(service.running)
+
+    told = Told()
+    logging.getLogger("twin.service.mirror").addHandler(told)
     try:
         with caplog.at_level(logging.ERROR, logger="twin.service.mirror"):
             service.feed("dt/lerobot/arm-001/telemetry", PAYLOAD)
             assert sink.entered.wait(30)
             wait_for(lambda: not service.running, 90, "the agent to count its stuck mirror as failed")
+        assert running_when_told == [True]
         (record,) = [r for r in caplog.records if "is stuck" in r.getMessage()]
         said = record.getMessage()
         assert said.startswith("the mirror's worker thread has not turned for "), said
@@ -155,6 +167,7 @@ def test_a_stuck_in_process_mirror_fails_the_agent_and_the_log_says_where_it_wai
             service.stop()
         assert f"twin worker did not finish within {mirror_module.STALLED_STOP_S:.1f} s" in caplog.text
     finally:
+        logging.getLogger("twin.service.mirror").removeHandler(told)
         sink.release.set()
         service.stop()
 

@@ -2061,7 +2061,6 @@ class LocalShard:
         stalled = self._stall.look(self.mirror.turns, time.monotonic(), self.mirror.wake_s)
         if stalled is None:
             return
-        self._stalled = True
         log.error(
             "the mirror's worker thread has not turned for %.0f s, %d messages queued for it: it is stuck; "
             "the agent stops (under systemd, its unit starts it again). It waits in:\n%s",
@@ -2070,6 +2069,8 @@ class LocalShard:
             self.mirror.worker_stack(),
             extra={"stalled_s": round(stalled, 1), "queued": len(self._inbox)},
         )
+        # Failed only once said: whoever sees the agent stop finds the reason already in its log.
+        self._stalled = True
 
     restarting = False
 
