@@ -191,10 +191,7 @@ def test_the_fleet_page_lists_the_arms(console: str, page: Any, browser_errors: 
     # The list view and the search filter, live without a reload.
     page.get_by_role("button", name="List").click()
     page.get_by_label("search by id").fill("arm-002")
-    page.wait_for_function(
-        "() => [...document.querySelectorAll('#fleet-view [data-device]')].map(e => e.dataset.device)"
-        ".join() === 'arm-002'"
-    )
+    page.wait_for_function(f"() => ({SHOWN_ARMS})().join() === 'arm-002'")
     # The list says "uncalibrated" as the cards do.
     row = page.locator('#fleet-view [data-device="arm-002"]')
     assert "(uncalibrated)" in row.inner_text(), row.inner_text()
@@ -294,6 +291,10 @@ def serve_document(page: Any, path: str, event: str, doc: dict[str, Any]) -> Non
         _stream_of(path),
         lambda route: route.fulfill(status=200, headers={"Content-Type": "text/event-stream"}, body=frame),
     )
+
+
+# The arms the Fleet page shows, in its order (a function for page.evaluate).
+SHOWN_ARMS = "() => [...document.querySelectorAll('#fleet-view [data-device]')].map(e => e.dataset.device)"
 
 
 def unserve(page: Any, path: str) -> None:
@@ -2061,11 +2062,7 @@ def test_the_fleet_page_keeps_its_filters_in_its_address(
     )
 
     def shown() -> list[str]:
-        return list(
-            page.evaluate(
-                "() => [...document.querySelectorAll('#fleet-view [data-device]')].map(e => e.dataset.device)"
-            )
-        )
+        return list(page.evaluate(SHOWN_ARMS))
 
     def chosen() -> list[str]:
         return [
