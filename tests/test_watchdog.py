@@ -20,7 +20,10 @@ import pytest
 from conftest import one_arm_agent, wait_for
 from test_catch_up import GateSink
 from twin.rig.local import LocalRig
+from twin.service import agent as agent_module
 from twin.service import mirror as mirror_module
+from twin.service import shards as shards_module
+from twin.service.stall import StallWatch
 from twin.service.systemd import Notifier
 
 PAYLOAD = (
@@ -173,24 +176,64 @@ def test_a_stuck_in_process_mirror_fails_the_agent_and_the_log_says_where_it_wai
 
 
 def test_an_idle_in_process_mirror_is_not_taken_for_a_stuck_one(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Its worker thread turns its loop while nothing arrives (every IDLE_WAKE_S): no message for many times
-    STALL_AFTER_S is no stall."""
+    """Its worker thread turns its loop while nothing arrives (every IDLE_WAKE_S), and the supervisor its
+    own (every SUPERVISE_EVERY_S): no message for many times either window is no stall."""
     monkeypatch.setattr(mirror_module, "STALL_AFTER_S", 4.0)
+    monkeypatch.setattr(agent_module, "SUPERVISOR_STUCK_S", 4.0)
     service = one_arm_agent()
     try:
         (shard,) = service._shards
         start, turns = time.monotonic(), shard.mirror.turns
+        # Asked as `twin run`'s main thread asks it, all along: the supervisor's watch judges on each ask.
+        stopped_running: list[float] = []
+
+        def three_windows_passed() -> bool:
+            if not service.running:
+                stopped_running.append(time.monotonic() - start)
+            idle_turns = shard.mirror.turns - turns
+            return idle_turns > 12 / mirror_module.IDLE_WAKE_S and time.monotonic() - start > 12
+
         # Past three stall windows by the mirror's own turns, each seen by the supervisor (every 0.5 s).
-        wait_for(
-            lambda: (
-                shard.mirror.turns > turns + 12 / mirror_module.IDLE_WAKE_S and time.monotonic() - start > 12
-            ),
-            60,
-            "three stall windows of idle turns",
-        )
-        assert service.running
+        wait_for(three_windows_passed, 60, "three stall windows of idle turns")
+        assert not stopped_running and service.running
     finally:
         service.stop()
+
+
+def test_a_stuck_supervisor_fails_the_agent_and_the_log_says_where_it_waits(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The agent's supervisor starts dead workers again, keeps the state file and collects events; the main
+    thread tells systemd's watchdog all is well. A supervisor stuck in one step (here its event collection,
+    standing in for a lock a stuck thread holds or a disk that hangs) fails the agent, so `twin run` exits
+    and systemd starts it again; the log says where it waits."""
+    monkeypatch.setattr(agent_module, "SUPERVISOR_STUCK_S", 6.0)
+    service = one_arm_agent()
+    hang, entered = threading.Event(), threading.Event()
+
+    def collect_hangs() -> None:
+        entered.set()
+        hang.wait(120)
+
+    monkeypatch.setattr(service, "_collect_events", collect_hangs)
+    try:
+        with caplog.at_level(logging.ERROR, logger="twin.service.agent"):
+            assert entered.wait(30)
+            assert service.running  # not yet: a step may take a while
+            wait_for(lambda: not service.running, 90, "the agent to count its stuck supervisor as failed")
+        (record,) = [r for r in caplog.records if "supervisor has got past no step" in r.getMessage()]
+        said = record.getMessage()
+        assert "in collect_hangs" in said and "hang.wait(120)" in said, said
+    finally:
+        hang.set()
+        service.stop()
+
+
+def test_the_supervisor_waits_out_its_longest_step_a_worker_started_again() -> None:
+    """A worker process started again (its start, hello and restore, each with its own timeout) is one step
+    of the supervisor: it must not be taken for a stuck supervisor."""
+    restart = shards_module.START_TIMEOUT_S + 2 * shards_module.ASK_TIMEOUT_S
+    assert restart < agent_module.SUPERVISOR_STUCK_S
 
 
 def test_the_stall_watch_judges_a_thread_by_its_turns_not_by_a_pause_of_the_whole_process() -> None:
@@ -199,16 +242,16 @@ def test_the_stall_watch_judges_a_thread_by_its_turns_not_by_a_pause_of_the_whol
     paused by SIGSTOP, a suspended VM) starts the window again; a thread that waits longer than that between
     two turns when idle (a slow physics rate) gets three of its waits."""
     stall = mirror_module.STALL_AFTER_S
-    watch = mirror_module.StallWatch()
+    watch = StallWatch(stall)
     looks = [0.5 * i for i in range(int(3 * stall))]
     assert [watch.look(i, t, 0.2) for i, t in enumerate(looks)] == [None] * len(looks)
 
-    stuck = mirror_module.StallWatch()
+    stuck = StallWatch(stall)
     said = [stuck.look(7, t, 0.2) for t in looks]
     first = said.index(stall)
     assert said[:first] == [None] * first and said[first:] == [t for t in looks[first:]]
 
-    paused = mirror_module.StallWatch()
+    paused = StallWatch(stall)
     assert paused.look(7, 0.0, 0.2) is None
     # The whole process stopped for longer than a stall, then the supervisor looked before the thread ran:
     # a stall only once it has not turned for a whole window of regular looks after that.
@@ -216,7 +259,7 @@ def test_the_stall_watch_judges_a_thread_by_its_turns_not_by_a_pause_of_the_whol
     said = [paused.look(7, t, 0.2) for t in after]
     assert said == [None] * (len(after) - 1) + [stall], said
 
-    slow = mirror_module.StallWatch()
+    slow = StallWatch(stall)
     wait = stall  # a physics step a minute apart
     times = [0.5 * i for i in range(int(8 * stall))]
     verdicts = [slow.look(7, t, wait) for t in times]

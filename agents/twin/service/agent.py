@@ -70,7 +70,7 @@ from twin.service.console import (
 )
 from twin.service.event_journal import EventJournal
 from twin.service.events import Event, EventKind, EventLevel, EventQuery, EventStore, FleetWatch
-from twin.service.logs import setup_logging
+from twin.service.logs import setup_logging, thread_stack
 from twin.service.persist import NotSavedError, PreviousRun, StateFile
 from twin.service.shards import (
     CHECKPOINT_EVERY_S,
@@ -119,6 +119,7 @@ from twin.service.shards import (
     with_dropped,
     worker_config,
 )
+from twin.service.stall import StallWatch
 from twin.service.state import (
     AgentInfo,
     AgentState,
@@ -151,6 +152,12 @@ _T = TypeVar("_T")
 STATE_REUSE_S = 0.05
 # How often the agent looks for a worker process to start again.
 SUPERVISE_EVERY_S = 0.5
+# The supervisor counts each step it gets past (a shard looked after, a request answered, the state kept); one
+# that has not got past any for this long is stuck (a lock a stuck thread holds, a disk that hangs): nothing
+# would start a dead worker again, keep state or collect events, while the main thread still told systemd's
+# watchdog all was well. The agent then fails, so `twin run` exits and systemd starts it again. Its longest
+# step is a worker started again: up to START_TIMEOUT_S for the new process, then its restore.
+SUPERVISOR_STUCK_S = 300.0
 # At a stop, the alert publisher has at least this long for what is pending, even when the workers' flush took
 # the whole shutdown budget (the unit's stop timeout leaves room for it: docs/host.md).
 ALERTS_STOP_MIN_S = 5.0
@@ -312,6 +319,10 @@ class AgentService:
         self._http: AgentHttpServer | None = None
         self._emf: EmfPublisher | None = None
         self._supervisor: threading.Thread | None = None
+        self._supervisor_turns = 0  # the steps it got past (_turned)
+        self._supervisor_watch = StallWatch(SUPERVISOR_STUCK_S)
+        self._supervisor_stuck = False
+        self._supervisor_watch_lock = threading.Lock()
         self._running = False
         self._stopping = threading.Event()
         self._stop_lock = threading.Lock()
@@ -611,12 +622,14 @@ class AgentService:
             self._wake.wait(SUPERVISE_EVERY_S)
             if self._stopping.is_set():
                 return
+            self._turned()
             urgent = self._wake.is_set()
             self._wake.clear()
             for shard in self._shards:
                 if self._stopping.is_set():
                     return
                 shard.supervise()
+                self._turned()
             if self._history is not None:
                 self._history.supervise()
                 self._watch_history_writer(self._history)
@@ -634,6 +647,12 @@ class AgentService:
                 except Exception:
                     # The supervisor restarts workers and keeps state: a sweep's fault must not end it.
                     log.exception("looking for arms silent past telemetry.forget_offline_after_s failed")
+
+    def _turned(self) -> None:
+        """The supervisor got past one more step (SUPERVISOR_STUCK_S). Only its own steps count: an
+        acknowledgement's state file write on an HTTP thread, going by, must not hide a supervisor stuck."""
+        if threading.current_thread() is self._supervisor:
+            self._supervisor_turns += 1
 
     def _forget_long_offline(self) -> None:
         """Forget each arm silent for telemetry.forget_offline_after_s with no alarm waiting for a person, as
@@ -715,6 +734,7 @@ class AgentService:
         records: list[AlarmRecord] = []
         for shard in self._shards:
             alarms = alarms_of(shard)
+            self._turned()
             if alarms is None:
                 checkpoint = shard.checkpoint
                 alarms = () if checkpoint is None else checkpoint.alarms
@@ -777,8 +797,31 @@ class AgentService:
 
     @property
     def running(self) -> bool:
-        """Started, not stopping, and no mirror gone for good (a dead worker process is started again)."""
-        return self._running and not self._stopping.is_set() and not any(s.failed for s in self._shards)
+        """Started, not stopping, no mirror gone for good (a dead worker process is started again) and the
+        supervisor not stuck."""
+        running = self._running and not self._stopping.is_set()
+        return running and not any(s.failed for s in self._shards) and not self._supervisor_stalled()
+
+    def _supervisor_stalled(self) -> bool:
+        """Whether the supervisor got past no step for SUPERVISOR_STUCK_S (said once, with where it waits).
+        Judged by whoever asks `running` (the main thread of `twin run`, every second), never by itself."""
+        with self._supervisor_watch_lock:
+            if self._supervisor_stuck or self._supervisor is None:
+                return self._supervisor_stuck
+            stalled = self._supervisor_watch.look(self._supervisor_turns, time.monotonic(), SUPERVISE_EVERY_S)
+            if stalled is None:
+                return False
+            log.error(
+                "the agent's supervisor has got past no step for %.0f s: it is stuck, so no worker would be "
+                "started again, no state kept and no event collected; the agent stops (under systemd, its "
+                "unit starts it again). It waits in:\n%s",
+                stalled,
+                thread_stack(self._supervisor),
+                extra={"stalled_s": round(stalled, 1)},
+            )
+            # Failed only once said: whoever sees the agent stop finds the reason already in its log.
+            self._supervisor_stuck = True
+            return True
 
     @property
     def http_url(self) -> str:
@@ -1347,6 +1390,8 @@ class AgentService:
             except WorkerError as exc:
                 log.debug("events of shard %d not collected: %s", shard.index, exc)
                 continue
+            finally:
+                self._turned()
             if answer.alarms_lost_until is not None:
                 self._events.alarms_lost_until(answer.alarms_lost_until)
             fresh = answer.events

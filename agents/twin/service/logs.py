@@ -15,10 +15,17 @@ import math
 import sys
 import threading
 import time
+import traceback
 from collections import OrderedDict
 from typing import Any, TextIO
 
 _PR_SET_NAME = 15
+
+
+def thread_stack(thread: threading.Thread | None) -> str:
+    """Where `thread` is now, as a traceback prints it ("" when it does not run): where a stuck one waits."""
+    frame = None if thread is None or thread.ident is None else sys._current_frames().get(thread.ident)
+    return "" if frame is None else "".join(traceback.format_stack(frame))
 
 
 def name_native_thread() -> None:

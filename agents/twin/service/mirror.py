@@ -50,10 +50,8 @@ import dataclasses
 import gc
 import logging
 import os
-import sys
 import threading
 import time
-import traceback
 from collections import Counter, deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -109,7 +107,7 @@ from twin.service.capture import Capture
 from twin.service.config import AgentConfig, ConfigError
 from twin.service.console import FleetRow, fleet_row
 from twin.service.events import Event, EventQuery, EventStore, FleetWatch, RejectionThrottle, alarm_level
-from twin.service.logs import RateLimitedLog, name_native_thread
+from twin.service.logs import RateLimitedLog, name_native_thread, thread_stack
 from twin.service.shards import (
     ALARM_NOT_FOUND_DETAIL,
     ARM_CONFIGURED,
@@ -151,6 +149,7 @@ from twin.service.shards import (
     uncalibrated,
 )
 from twin.service.stagetiming import StageSampler
+from twin.service.stall import StallWatch
 from twin.service.state import (
     AlarmInfo,
     AlarmsSummary,
@@ -739,9 +738,7 @@ class Mirror:
     def worker_stack(self) -> str:
         """Where the worker thread is now, as a traceback prints it ("" when it does not run): what a stuck
         one waits in."""
-        worker = self._worker
-        frame = None if worker is None or worker.ident is None else sys._current_frames().get(worker.ident)
-        return "" if frame is None else "".join(traceback.format_stack(frame))
+        return thread_stack(self._worker)
 
     @property
     def recording_path(self) -> Path | None:
@@ -2024,7 +2021,7 @@ class LocalShard:
             history=history,
         )
         self._closed = False
-        self._stall = StallWatch()
+        self._stall = StallWatch(STALL_AFTER_S)
         self._stalled = False
 
     def put(self, key: str, topic: str, payload: bytes, recv_mono: float, recv_wall: float) -> None:
@@ -2111,27 +2108,6 @@ class LocalShard:
         return  # the mirror forgot its queue's count of it (Mirror.forget_arm)
 
     dropped_total = 0
-
-
-class StallWatch:
-    """Whether a thread that counts the turns of its loop is stuck, from looks at its count now and then: no
-    turn for STALL_AFTER_S (at least three of its waits, for a thread that waits longer: a slow physics rate).
-    A whole process paused (SIGSTOP, a suspended VM) wakes its threads in any order: after a gap between two
-    looks of half that, the window starts again rather than judge a thread that had no time to turn."""
-
-    def __init__(self) -> None:
-        self._turned: tuple[int, float] | None = None  # the count when last seen to change, and when
-        self._looked = float("-inf")
-
-    def look(self, turns: int, now: float, wait_s: float) -> float | None:
-        """How long the thread has not turned, once that is a stall; else None. `wait_s`: its longest wait
-        between two turns when idle."""
-        paused, self._looked = now - self._looked > STALL_AFTER_S / 2, now
-        if self._turned is None or self._turned[0] != turns or paused:
-            self._turned = (turns, now)
-            return None
-        still = now - self._turned[1]
-        return still if still >= max(STALL_AFTER_S, 3 * wait_s) else None
 
 
 def _payload_size(message: QueuedMessage) -> int:
