@@ -236,8 +236,9 @@ step_packages() {
   # Named here too, so a host whose desktop was installed without recommends gets it on its next update.
   apt_install --recommends ubuntu-desktop-minimal gdm3 xserver-xorg-legacy
   # dpkg-dev: the DCV server's postinst calls dpkg-architecture. python3.12-venv: the agent's venv.
-  # binutils (ar) and gnupg: the signature checks of the DCV packages.
-  apt_install mesa-utils dpkg-dev python3.12-venv curl rsyslog binutils gnupg
+  # binutils (ar) and gnupg: the signature checks of the DCV packages. mesa-utils (glxinfo) and x11-utils
+  # (xwininfo): the host checks ask X what renders OpenGL and where the viewer's window is.
+  apt_install mesa-utils x11-utils dpkg-dev python3.12-venv curl rsyslog binutils gnupg
   [ -x "$ROOT/usr/lib/xorg/Xorg.wrap" ] ||
     die "xserver-xorg-legacy installed no /usr/lib/xorg/Xorg.wrap: GDM could not start X for the NVIDIA driver"
   install_browser

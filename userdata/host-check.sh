@@ -9,7 +9,8 @@
 #     line per check: NAME<TAB>OK|WARN|FAIL<TAB>detail (exit status 1 when any FAIL).
 # Checks: x-on-gpu, dcv-session, agent, telemetry (WARN only: no arm may be publishing), calibration (WARN
 # only: an arm whose raw positions are turned into angles without its own LeRobot calibration), viewer (the
-# same process for 20 s), screen (a capture of the console that is not one flat colour), version.
+# same process for 20 s), screen (a capture of the console that is not one flat colour, nor is the viewer's
+# window in it), version.
 
 CHECK_VENV="${VENV:-/opt/so101-twin/venv}"
 # The agent's DEFAULT_AGENT_URL (agents/twin/service/config.py), which install-agent.sh configures.
@@ -31,6 +32,9 @@ WAIT_VIEWER_TRIES=36
 WAIT_SCREEN_TRIES=12
 DETAIL=""
 GL_DETAIL=""
+XWIN_TREE=""
+XWIN_ROOT=""
+XWIN_DETAIL=""
 
 check_x_on_gpu() {
   local smi gpu
@@ -275,8 +279,28 @@ check_viewer() {
   return 1
 }
 
+# The windows on X's display :0, asked with xwininfo (x11-utils, the boot's packages step): XWIN_TREE holds
+# the window tree, XWIN_ROOT the screen's size; or XWIN_DETAIL says why X was not asked. As for glxinfo, a
+# question X could not be asked is no failure: the capture is then judged as a whole only.
+ask_x_windows() {
+  local auth
+  XWIN_TREE="" XWIN_ROOT="" XWIN_DETAIL=""
+  if ! command -v xwininfo >/dev/null 2>&1; then
+    XWIN_DETAIL="xwininfo is missing (x11-utils, the boot's packages step)"
+  elif ! auth="$(x_authority)"; then
+    XWIN_DETAIL="no Xorg process gives an -auth file"
+  elif ! XWIN_TREE="$(DISPLAY=:0 XAUTHORITY="$auth" timeout 30 xwininfo -root -tree 2>&1)"; then
+    XWIN_DETAIL="xwininfo on :0 failed: ${XWIN_TREE:0:300}"
+    XWIN_TREE=""
+  elif ! XWIN_ROOT="$(DISPLAY=:0 XAUTHORITY="$auth" timeout 30 xwininfo -root 2>&1)"; then
+    XWIN_DETAIL="xwininfo on :0 failed: ${XWIN_ROOT:0:300}"
+    XWIN_TREE="" XWIN_ROOT=""
+  fi
+}
+
 # What a person would see: a capture of the console session, which must not be one flat colour (a black
-# or blank screen). Kept on the host for `twin instance check --screenshot`.
+# or blank screen), nor may the viewer's window in it (MuJoCo drawing nothing: a desktop around a black
+# window passed before). Kept on the host for `twin instance check --screenshot`.
 check_screen() {
   local out
   mkdir -p "${ROOT}${CHECK_STATE}"
@@ -286,28 +310,73 @@ check_screen() {
     return 1
   fi
   chmod 0640 "${ROOT}${SCREENSHOT}"
-  out="$("${ROOT}${CHECK_VENV}/bin/python" - "${ROOT}${SCREENSHOT}" "$SCREENSHOT" <<'PY' 2>&1
+  ask_x_windows
+  out="$(XWIN_TREE="$XWIN_TREE" XWIN_ROOT="$XWIN_ROOT" XWIN_DETAIL="$XWIN_DETAIL" \
+    DESKTOP_USER="$DESKTOP_USER" "${ROOT}${CHECK_VENV}/bin/python" - "${ROOT}${SCREENSHOT}" "$SCREENSHOT" <<'PY' 2>&1
+import os
+import re
 import sys
 
 from PIL import Image, ImageStat
 
+# A line of `xwininfo -root -tree`: id "name": ("instance" "class")  WxH+relX+relY  +absX+absY. MuJoCo's
+# viewer names its window "MuJoCo : " and the model's name.
+WINDOW = re.compile(r'^\s*0x[0-9a-f]+ "MuJoCo[^"]*":.*\s(\d+)x(\d+)[+-]\d+[+-]\d+\s+([+-]\d+)([+-]\d+)\s*$')
+
+
+def judge(image):
+    """(flat, top colour, its share, colours): one colour over nearly all, or hardly any variation."""
+    small = image.copy()
+    small.thumbnail((320, 320))
+    pixels = small.width * small.height
+    colours = small.getcolors(maxcolors=pixels)
+    count, top = max(colours)
+    share = count / pixels
+    flat = share >= 0.99 or max(ImageStat.Stat(small).stddev) < 2.0
+    return flat, "#%02x%02x%02x" % top, share, len(colours)
+
+
+def viewer_window(image):
+    """(the viewer's window cut from the capture, where it is), or (None, why not judged or a failure)."""
+    tree, root = os.environ["XWIN_TREE"], os.environ["XWIN_ROOT"]
+    if not tree:
+        return None, f"not asked where the viewer's window is: {os.environ['XWIN_DETAIL']}"
+    found = [tuple(int(v) for v in m.groups()) for m in map(WINDOW.match, tree.splitlines()) if m]
+    size = re.search(r"Width: (\d+)\s+Height: (\d+)", root)
+    if not found:
+        return None, "FAIL: twin view runs, but no MuJoCo window is on X's display :0"
+    if size is None:
+        return None, "not told the screen's size by xwininfo -root"
+    w, h, x, y = max(found, key=lambda f: f[0] * f[1])
+    scale = image.width / int(size.group(1))  # the capture keeps the screen's proportions
+    box = [round(v * scale) for v in (max(x, 0), max(y, 0), min(x + w, int(size.group(1))),
+                                      min(y + h, int(size.group(2))))]
+    where = f"{w}x{h} at +{x}+{y}"
+    if box[2] - box[0] < 8 or box[3] - box[1] < 8:
+        return None, f"FAIL: the viewer's window ({where}) is not on the screen"
+    return image.crop(box), where
+
+
 path, shown = sys.argv[1], sys.argv[2]
-with Image.open(path) as image:
-    width, height = image.size
-    small = image.convert("RGB")
-small.thumbnail((320, 320))
-pixels = small.width * small.height
-colours = small.getcolors(maxcolors=pixels)
-count, top = max(colours)
-share = count / pixels
-spread = max(ImageStat.Stat(small).stddev)
-# One colour over nearly all of it, or hardly any variation: a black, blank or frozen-grey screen.
-if share >= 0.99 or spread < 2.0:
-    hex_colour = "#%02x%02x%02x" % top
-    print(f"FAIL\tthe console shows one flat colour ({hex_colour} over {share:.1%} of {width}x{height}): no"
+with Image.open(path) as opened:
+    image = opened.convert("RGB")
+width, height = image.size
+flat, top, share, colours = judge(image)
+window, where = viewer_window(image)
+if flat:
+    print(f"FAIL\tthe console shows one flat colour ({top} over {share:.1%} of {width}x{height}): no"
           f" desktop is drawn (capture kept in {shown})")
+elif window is None and where.startswith("FAIL: "):
+    print(f"FAIL\t{where[6:]} (capture kept in {shown})")
+elif window is not None and judge(window)[0]:
+    _, top, share, _ = judge(window)
+    print(f"FAIL\tthe viewer's window ({where}) shows one flat colour ({top} over {share:.1%}): MuJoCo draws"
+          f" nothing in it (its log: journalctl _UID=$(id -u {os.environ['DESKTOP_USER']}) | grep twin-view;"
+          f" capture kept in {shown})")
 else:
-    print(f"OK\tthe console shows a desktop ({width}x{height}, {len(colours)} colours; capture kept in {shown})")
+    seen = f"the viewer drawn in its window ({where})" if window is not None else where
+    print(f"OK\tthe console shows a desktop ({width}x{height}, {colours} colours), {seen}; capture kept in"
+          f" {shown}")
 PY
 )" || {
     DETAIL="could not analyse the capture: ${out:0:300}"

@@ -6,15 +6,16 @@ Manager association), tar on a DCV tarball of realistic size and layout, python3
 the fcntl lock probe), gpg and ar (every signature check runs for real, against test keys), coreutils (sync
 logged on its way), timeout, flock, Pillow on the console capture. What stands in, and why: the tools that
 would change this machine or need AWS, a GPU, a display or a package mirror (apt-get, apt-cache, dpkg-query,
-dpkg, systemctl, journalctl, nvidia-smi, nvidia-xconfig, glxinfo, dcv, chpasswd, chown, usermod, useradd,
-gpasswd, id, ps, pgrep, glib-compile-schemas, snap, aws, curl, sleep). Each stand-in logs its arguments to
-`calls.log` and keeps the host's state in SIM (installed packages and snaps, active and masked units, whether
-X runs on the GPU and what renders its OpenGL, the DCV sessions, the viewer), and encodes the dependencies
-that matter for the order of the boot: X starts on the GPU only with the NVIDIA Xorg module, Xorg.wrap and an
-xorg.conf for the nvidia driver; dcvserver creates the automatic console session only if X runs when it
-starts; the viewer runs once X runs and the autostart entry and its supervisor exist; a masked unit does not
-start; the agent answers /healthz only while its service is active; glxinfo answers only on :0 with the
-authority file of X's command line. A file SIM/fail/<tool> makes that stand-in fail (to test a failing step).
+dpkg, systemctl, journalctl, nvidia-smi, nvidia-xconfig, glxinfo, xwininfo, dcv, chpasswd, chown, usermod,
+useradd, gpasswd, id, ps, pgrep, glib-compile-schemas, snap, aws, curl, sleep). Each stand-in logs its
+arguments to `calls.log` and keeps the host's state in SIM (installed packages and snaps, active and masked
+units, whether X runs on the GPU and what renders its OpenGL, the DCV sessions, the viewer), and encodes the
+dependencies that matter for the order of the boot: X starts on the GPU only with the NVIDIA Xorg module,
+Xorg.wrap and an xorg.conf for the nvidia driver; dcvserver creates the automatic console session only if X
+runs when it starts; the viewer runs once X runs and the autostart entry and its supervisor exist; a masked
+unit does not start; the agent answers /healthz only while its service is active; glxinfo and xwininfo answer
+only on :0 with the authority file of X's command line. A file SIM/fail/<tool> makes that stand-in fail (to
+test a failing step).
 
 The CDN stand-in (curl) serves files from SIM/cdn: a DCV release whose packages carry dpkg-sig builder
 signatures and a CloudWatch agent package with a detached signature, both made here with throw-away keys
@@ -302,6 +303,39 @@ echo "    Dedicated video memory: 46068 MB"
 echo "OpenGL vendor string: NVIDIA Corporation"
 echo "OpenGL renderer string: NVIDIA L40S/PCIe/SSE2"
 echo "OpenGL core profile version string: 4.6.0 NVIDIA 580.95.05"
+""",
+    "xwininfo": r"""
+# DISPLAY=:0 XAUTHORITY=FILE xwininfo -root [-tree]: X's windows, answered as glxinfo is (only on :0 with its
+# Xorg's -auth file). The lines are as the real tool prints them (x11-utils 7.7, against Xvfb with MuJoCo's
+# viewer open): the screen 1920x1080, the viewer's window where the capture stand-in draws it; SIM/xwin-tree
+# holds other windows.
+if ! has state xorg || [ "${DISPLAY:-}" != :0 ]; then
+  echo "xwininfo: error: unable to open display \"${DISPLAY:-}\"" >&2; exit 1
+fi
+auth="$(tr '\0' '\n' <"$ROOT/proc/1234/cmdline" | sed -n '/^-auth$/{n;p;}')"
+if [ "${XAUTHORITY:-}" != "$auth" ]; then
+  echo "Authorization required, but no authorization protocol specified" >&2
+  echo "xwininfo: error: unable to open display \":0\"" >&2; exit 1
+fi
+echo ""
+echo "xwininfo: Window id: 0x50d (the root window) (has no name)"
+echo ""
+if [ "$*" = "-root -tree" ]; then
+  echo "  Root window id: 0x50d (the root window) (has no name)"
+  echo "  Parent window id: 0x0 (none)"
+  if [ -f "$SIM/xwin-tree" ]; then cat "$SIM/xwin-tree"; exit 0; fi
+  echo "     2 children:"
+  echo "     0x1a00003 (has no name): ()  1332x786+294+144  +294+144"
+  echo "        1 child:"
+  echo "        0x2200007 \"MuJoCo : so101\": (\"MuJoCo\" \"MuJoCo\")  1320x750+6+30  +300+180"
+  echo "     0x200001 (has no name): ()  1x1+0+0  +0+0"
+else
+  echo "  Absolute upper-left X:  0"
+  echo "  Absolute upper-left Y:  0"
+  echo "  Width: 1920"
+  echo "  Height: 1080"
+  echo "  Depth: 24"
+fi
 """,
     "nvidia-xconfig": r"""
 out=/etc/X11/xorg.conf; virtual=""; empty=0
@@ -770,7 +804,8 @@ def dpkg_lock_held(lock: Path) -> Iterator[int]:
 
 
 def desktop_png(path: Path) -> Path:
-    """A capture with something drawn on it: a desktop bar, a window, a gradient, as a desktop would look."""
+    """A capture with something drawn on it: a desktop bar, a window with the arm in it (where xwininfo's
+    stand-in puts the viewer's window), a gradient, as a desktop would look."""
     from PIL import Image, ImageDraw
 
     image = Image.new("RGB", (1280, 720), (48, 10, 36))
@@ -780,6 +815,19 @@ def desktop_png(path: Path) -> Path:
     draw.rectangle([0, 0, 1280, 32], fill=(30, 30, 30))
     draw.rectangle([200, 120, 1080, 620], fill=(90, 110, 140), outline=(230, 230, 230))
     draw.ellipse([560, 280, 720, 440], fill=(240, 160, 40))
+    image.save(path)
+    return path
+
+
+def black_viewer_png(path: Path) -> Path:
+    """A desktop drawn around a black viewer window (MuJoCo drawing nothing): the window xwininfo's stand-in
+    places at 1320x750+300+180 on a 1920x1080 screen, scaled as the capture is (to 1280x720)."""
+    from PIL import Image, ImageDraw
+
+    desktop_png(path)
+    with Image.open(path) as opened:
+        image = opened.convert("RGB")
+    ImageDraw.Draw(image).rectangle([200, 120, 1079, 619], fill=(0, 0, 0))
     image.save(path)
     return path
 

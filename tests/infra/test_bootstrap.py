@@ -42,6 +42,7 @@ from .hostsim import (
     STACK_NAME,
     HostSim,
     TestSigner,
+    black_viewer_png,
     dpkg_lock_held,
     lock_text,
     lock_wheels,
@@ -222,6 +223,7 @@ def test_first_boot_succeeds_and_signals_success_after_verifying(booted, deploye
         "agent: connected and subscribed",
         "viewer: twin view runs in ubuntu's desktop session (the same process for 120 s)",
         "screen: the console shows a desktop (1280x720",
+        "the viewer drawn in its window (1320x750 at +300+180)",
     ):
         assert check in log
     # The capture a person would have seen is kept on the host.
@@ -533,6 +535,50 @@ def test_host_check_passes_x_on_gpu_saying_so_when_x_cannot_be_asked_about_openg
     assert detail == (
         "Xorg runs on NVIDIA L40S, 580.95.05; not asked what renders OpenGL: no Xorg process gives an "
         "-auth file"
+    ), detail
+    # Nor where the viewer's window is: the capture is judged as a whole, and the line says so.
+    state, detail = lines["screen"]
+    assert state == "OK", detail
+    assert "not asked where the viewer's window is: no Xorg process gives an -auth file" in detail, detail
+
+
+def check_lines(host: HostSim) -> dict[str, tuple[str, str]]:
+    """host-check.sh's lines on `host`: NAME -> (OK|WARN|FAIL, detail)."""
+    result = host.run(host.root / "opt/so101-twin/userdata/host-check.sh")
+    return {
+        name: (state, detail) for name, state, detail in (ln.split("\t") for ln in result.stdout.splitlines())
+    }
+
+
+def test_host_check_fails_the_screen_when_the_viewers_window_is_black(booted, tmp_path: Path) -> None:
+    """A desktop drawn around a black viewer window (MuJoCo drawing nothing) passed as "a desktop": the
+    window xwininfo finds on :0 is cut from the capture, scaled as the capture is, and judged on its own."""
+    source, _ = booted
+    host = copy_of(source, tmp_path)
+    black_viewer_png(host.sim / "screen.png")
+    state, detail = check_lines(host)["screen"]
+    assert state == "FAIL", detail
+    assert detail.startswith(
+        "the viewer's window (1320x750 at +300+180) shows one flat colour (#000000 over 100.0%): MuJoCo draws"
+        " nothing in it (its log: journalctl _UID=$(id -u ubuntu) | grep twin-view; capture kept in"
+    ), detail
+    assert "xwininfo -root -tree" in host.calls()
+
+
+def test_host_check_fails_the_screen_when_no_viewer_window_is_on_x(booted, tmp_path: Path) -> None:
+    """twin view runs (its line passes) but no MuJoCo window is on :0 (opened on another display, or none):
+    what a person would see has no twin in it."""
+    source, _ = booted
+    host = copy_of(source, tmp_path)
+    (host.sim / "xwin-tree").write_text(
+        '     1 child:\n     0x1a00003 "Terminal": ("gnome-terminal" "Terminal")  800x600+0+0  +0+0\n'
+    )
+    lines = check_lines(host)
+    assert lines["viewer"][0] == "OK"
+    state, detail = lines["screen"]
+    assert (state, detail.split(" (capture")[0]) == (
+        "FAIL",
+        "twin view runs, but no MuJoCo window is on X's display :0",
     ), detail
 
 
