@@ -128,6 +128,8 @@ def stand_in_host(
     (host.sim / "state" / "console").write_text("ubuntu\n")
     (host.sim / "services").mkdir(exist_ok=True)
     (host.sim / "services" / "so101-twin-agent").touch()
+    # DCV runs (it listens on 8443, the ss stand-in says), as its console session shows.
+    (host.sim / "services" / "dcvserver").touch()
     (host.root / "etc/so101-twin").mkdir(parents=True, exist_ok=True)
     (host.root / "etc/so101-twin/deployment.env").write_text(
         f"DESKTOP_USER=ubuntu\nDEPLOYMENT_VERSION={deployed}\n"

@@ -21,6 +21,8 @@ SCREENSHOT="$CHECK_STATE/console.png"
 LAST_START="$CHECK_STATE/last-start"
 # The on-start run's log, shipped to CloudWatch (bootstrap.sh, step logs); its metric lines: lib.sh.
 START_LOG=/var/log/so101-twin-start.log
+# DCV's port for browsers, TCP and UDP (bootstrap.sh writes it into dcv.conf as web-port and quic-port).
+DCV_PORT=8443
 # A viewer counts once the same process has run this long: its supervisor restarts a crashing one within
 # seconds, so "a process exists" proves nothing.
 VIEWER_STABLE_S=20
@@ -119,7 +121,7 @@ check_gl_on_gpu() {
 
 # The owner of DCV's console session from `dcv list-sessions --json` (a JSON array of sessions with id,
 # owner and type), or a line saying what was found instead.
-check_dcv_session() {
+dcv_console_session() {
   local out verdict
   if ! out="$(dcv list-sessions --json 2>&1)"; then
     DETAIL="dcv list-sessions failed: ${out:0:300} (is dcvserver running? systemctl status dcvserver)"
@@ -150,6 +152,42 @@ PY
 )"
   DETAIL="${verdict#*$'\t'}"
   [ "${verdict%%$'\t'*}" = OK ]
+}
+
+# The console session (dcv_console_session), and DCV listening where a browser connects: TCP DCV_PORT (its
+# web port; nothing there and the session is out of reach however open the security group is), and UDP
+# DCV_PORT for QUIC (only noted when missing: the browser then streams over TCP). Asked of `ss` (iproute2).
+check_dcv_session() {
+  local tcp udp session
+  dcv_console_session || return 1
+  session="$DETAIL"
+  if ! command -v ss >/dev/null 2>&1; then
+    DETAIL="${session}; not asked whether DCV listens on ${DCV_PORT}: ss is missing (iproute2)"
+    return 0
+  fi
+  # Listening sockets' lines (no header): STATE RECV-Q SEND-Q LOCAL:PORT PEER:PORT; captured whole.
+  tcp="$(ss -Hltn 2>&1 || true)"
+  udp="$(ss -Hlun 2>&1 || true)"
+  if ! _listens "$tcp"; then
+    DETAIL="${session}, but nothing listens on TCP ${DCV_PORT}, DCV's web port: no browser can connect"
+    DETAIL+=" (dcv.conf [connectivity] web-port; journalctl -u dcvserver, /var/log/dcv/server.log)"
+    return 1
+  fi
+  DETAIL="${session}; DCV listens on TCP ${DCV_PORT}"
+  if _listens "$udp"; then
+    DETAIL+=" and UDP ${DCV_PORT} (QUIC)"
+  else
+    DETAIL+=", not on UDP ${DCV_PORT}: no QUIC, browsers stream over TCP (dcv.conf enable-quic-frontend)"
+  fi
+}
+
+# Whether a listing of `ss -H` has a socket whose local address ends in :DCV_PORT.
+_listens() {
+  local fields
+  while read -r -a fields; do
+    [[ ${fields[3]:-} == *":${DCV_PORT}" ]] && return 0
+  done <<<"$1"
+  return 1
 }
 
 # Sets AGENT_RESULT, TELEMETRY_RESULT and CALIBRATION_RESULT to "STATUS<TAB>detail" from the agent's
@@ -396,15 +434,15 @@ report() {
 # runs, DCV came first (after a reboot, or a restart of GDM), so restart it; create the session by hand
 # only when that did not help.
 ensure_console_session() {
-  wait_for 6 5 "the DCV console session" check_dcv_session && return 0
+  wait_for 6 5 "the DCV console session" dcv_console_session && return 0
   if check_x_on_gpu; then
     log "no console session while X runs ($DETAIL): restarting dcvserver so it attaches to X"
     systemctl restart dcvserver
   fi
-  wait_for "$WAIT_DCV_TRIES" 5 "the DCV console session" check_dcv_session && return 0
+  wait_for "$WAIT_DCV_TRIES" 5 "the DCV console session" dcv_console_session && return 0
   log "no automatic console session ($DETAIL); creating it"
   dcv create-session --type=console --owner "$DESKTOP_USER" console || true
-  wait_for 12 5 "the DCV console session" check_dcv_session
+  wait_for 12 5 "the DCV console session" dcv_console_session
 }
 
 # _verified NAME OK|FAIL: one line of verify_host's table from DETAIL (uses its VERIFY_LINES and failures).

@@ -6,7 +6,7 @@ Manager association), tar on a DCV tarball of realistic size and layout, python3
 the fcntl lock probe), gpg and ar (every signature check runs for real, against test keys), coreutils (sync
 logged on its way), timeout, flock, Pillow on the console capture. What stands in, and why: the tools that
 would change this machine or need AWS, a GPU, a display or a package mirror (apt-get, apt-cache, dpkg-query,
-dpkg, systemctl, journalctl, nvidia-smi, nvidia-xconfig, glxinfo, xwininfo, dcv, chpasswd, chown, usermod,
+dpkg, systemctl, journalctl, nvidia-smi, nvidia-xconfig, glxinfo, xwininfo, ss, dcv, chpasswd, chown, usermod,
 useradd, gpasswd, id, ps, pgrep, glib-compile-schemas, snap, aws, curl, sleep). Each stand-in logs its
 arguments to `calls.log` and keeps the host's state in SIM (installed packages and snaps, active and masked
 units, whether X runs on the GPU and what renders its OpenGL, the DCV sessions, the viewer), and encodes the
@@ -335,6 +335,21 @@ else
   echo "  Width: 1920"
   echo "  Height: 1080"
   echo "  Depth: 24"
+fi
+""",
+    "ss": r"""
+# ss -Hltn | ss -Hlun: listening TCP or UDP sockets, no header, as iproute2 prints them. dcvserver, while
+# active, listens on 8443 over both (its web and QUIC ports); SIM/ss-tcp or SIM/ss-udp replace a listing.
+case "$*" in
+  -Hltn) kind=tcp; state=LISTEN; queue="0      10" ;;
+  -Hlun) kind=udp; state=UNCONN; queue="0      0" ;;
+  *) echo "ss stand-in: only -Hltn or -Hlun" >&2; exit 1 ;;
+esac
+echo "$state $queue         127.0.0.53%lo:53        0.0.0.0:*"
+if [ -f "$SIM/ss-$kind" ]; then cat "$SIM/ss-$kind"; exit 0; fi
+if has services dcvserver; then
+  echo "$state $queue               0.0.0.0:8443      0.0.0.0:*"
+  echo "$state $queue                  [::]:8443         [::]:*"
 fi
 """,
     "nvidia-xconfig": r"""

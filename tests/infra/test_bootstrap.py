@@ -219,7 +219,7 @@ def test_first_boot_succeeds_and_signals_success_after_verifying(booted, deploye
     log = host.file("/var/log/so101-twin-bootstrap.log")
     for check in (
         "x-on-gpu: Xorg runs on NVIDIA L40S, 580.95.05; OpenGL on :0: NVIDIA L40S/PCIe/SSE2 (NVIDIA",
-        "dcv-session: console session owned by ubuntu",
+        "dcv-session: console session owned by ubuntu; DCV listens on TCP 8443 and UDP 8443 (QUIC)",
         "agent: connected and subscribed",
         "viewer: twin view runs in ubuntu's desktop session (the same process for 120 s)",
         "screen: the console shows a desktop (1280x720",
@@ -548,6 +548,29 @@ def check_lines(host: HostSim) -> dict[str, tuple[str, str]]:
     return {
         name: (state, detail) for name, state, detail in (ln.split("\t") for ln in result.stdout.splitlines())
     }
+
+
+def test_host_check_fails_the_dcv_line_when_nothing_listens_on_dcvs_web_port(booted, tmp_path: Path) -> None:
+    """The console session exists, yet no browser could reach it: nothing listens on TCP 8443 (another web
+    port in dcv.conf, DCV's web frontend failing). UDP 8443 missing alone is only noted: no QUIC, and the
+    browser streams over TCP."""
+    source, _ = booted
+    host = copy_of(source, tmp_path)
+    (host.sim / "ss-tcp").write_text("LISTEN 0      10               0.0.0.0:8080      0.0.0.0:*\n")
+    state, detail = check_lines(host)["dcv-session"]
+    assert (state, detail) == (
+        "FAIL",
+        "console session owned by ubuntu, but nothing listens on TCP 8443, DCV's web port: no browser can "
+        "connect (dcv.conf [connectivity] web-port; journalctl -u dcvserver, /var/log/dcv/server.log)",
+    )
+    (host.sim / "ss-tcp").unlink()
+    (host.sim / "ss-udp").write_text("")
+    state, detail = check_lines(host)["dcv-session"]
+    assert (state, detail) == (
+        "OK",
+        "console session owned by ubuntu; DCV listens on TCP 8443, not on UDP 8443: no QUIC, browsers stream "
+        "over TCP (dcv.conf enable-quic-frontend)",
+    )
 
 
 def test_host_check_fails_the_screen_when_the_viewers_window_is_black(booted, tmp_path: Path) -> None:

@@ -50,7 +50,8 @@ HOST_FIXES = {
     "x-on-gpu": "X must run on the NVIDIA GPU: docs/deploy.md, Troubleshooting, 'X does not run on the "
     "NVIDIA GPU' (on the host: nvidia-smi; /var/log/Xorg.0.log; restart gdm3, then dcvserver)",
     "dcv-session": "restart DCV once X is up (sudo systemctl restart dcvserver), or create the session: "
-    "sudo dcv create-session --type=console --owner ubuntu console",
+    "sudo dcv create-session --type=console --owner ubuntu console; nothing on TCP 8443: docs/deploy.md, "
+    "Troubleshooting, 'No DCV console session'",
     "agent": "on the host: journalctl -u so101-twin-agent -n 50; the role may subscribe only to the "
     "configured devices' topics (set devices in twin.settings.toml and cdk deploy); sudo systemctl restart "
     "so101-twin-agent",
