@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import socket
 import xml.etree.ElementTree as ET
 
 import msgspec
@@ -28,6 +29,7 @@ from twin.output.ros2 import (
     JointStateEncoder,
     Ros2Error,
     Ros2Settings,
+    check_peers,
     cyclone_config,
     dds_topic_name,
     encode_joint_state,
@@ -265,6 +267,39 @@ def test_bad_settings_are_refused_with_the_fix(kwargs: dict, fix: str) -> None:
     with pytest.raises(Ros2Error, match=r"ros2\.") as excinfo:
         Ros2Settings(**kwargs)
     assert fix in str(excinfo.value)
+
+
+def test_peers_cyclone_could_not_use_are_refused_with_the_fix(monkeypatch) -> None:
+    check_peers(["10.0.1.23", "10.0.1.23:7410", "localhost"])
+    for peer, fix in [
+        ("::1", "an IPv6 address"),
+        ("[::1]:7410", "an IPv6 address"),
+        ("10.0.1.23:abc", "port is not 1..65535"),
+        ("10.0.1.23:70000", "port is not 1..65535"),
+    ]:
+        with pytest.raises(Ros2Error, match=r"ros2\.peers holds") as excinfo:
+            check_peers([peer])
+        assert fix in str(excinfo.value), peer
+
+    def no_such_host(host, *args, **kwargs):
+        raise socket.gaierror(socket.EAI_NONAME, "Name or service not known")
+
+    # A stand-in resolver: the test must not wait on the machine's DNS.
+    monkeypatch.setattr(socket, "getaddrinfo", no_such_host)
+    with pytest.raises(Ros2Error, match=r"'rviz\.internal', which does not resolve to an IPv4 address"):
+        check_peers(["rviz.internal"])
+
+
+@pytest.mark.slow
+def test_twin_run_refuses_a_peer_cyclone_would_abort_on(tmp_path) -> None:
+    """A walk: `peers = ["::1"]` (or a name that did not resolve) made Cyclone DDS abort the agent (SIGABRT,
+    exit 134) with one line of its own on stderr; the agent must exit 2 and name the peer."""
+    config = tmp_path / "agent.toml"
+    config.write_text('[broker]\nurl = "mqtt://127.0.0.1:1"\n[ros2]\nenabled = true\npeers = ["::1"]\n')
+    args = ["run", "--config", str(config), "--workers", "1", "--http", "127.0.0.1:0"]
+    proc = run_twin(args, os.environ, timeout=60)
+    assert proc.returncode == 2, (proc.returncode, proc.stderr)
+    assert "ros2.peers holds '::1', an IPv6 address" in proc.stderr, proc.stderr
 
 
 def test_fixed_topic_is_detected() -> None:

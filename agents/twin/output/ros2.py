@@ -479,6 +479,42 @@ def cyclone_config(settings: Ros2Settings, environ: Mapping[str, str] | None = N
     return f"{xml},{user}" if user else xml
 
 
+def check_peers(peers: Sequence[str]) -> None:
+    """Ros2Error naming the peer when Cyclone DDS could not use it: not an IPv4 address or a name that
+    resolves to one, with an optional `:port`.
+
+    Cyclone does not fail such a peer with an error: it aborts the whole process (SIGABRT), which took the
+    agent down with one line on stderr. So each peer is resolved here first, before the domain starts.
+    """
+    for peer in peers:
+        host, _, port = peer.rpartition(":") if peer.count(":") == 1 else (peer, "", "")
+        if port and not (port.isdigit() and 0 < int(port) < 65536):
+            raise Ros2Error(
+                f'ros2.peers holds {peer!r}, whose port is not 1..65535; e.g. peers = ["10.0.1.23"] '
+                "(the discovery port follows from the domain id, so none is needed)"
+            )
+        if ":" in host or host.startswith("["):
+            raise Ros2Error(
+                f"ros2.peers holds {peer!r}, an IPv6 address; the bridge's DDS runs over IPv4: give the "
+                "ROS 2 machine's IPv4 address or a name that resolves to one"
+            )
+        _resolve_ipv4(peer, host)
+
+
+def _resolve_ipv4(peer: str, host: str) -> None:
+    # Here, not at the top: the config loader imports this module on every cold start, and only a bridge
+    # with peers needs a resolver.
+    import socket  # noqa: PLC0415
+
+    try:
+        socket.getaddrinfo(host, None, family=socket.AF_INET)
+    except (OSError, UnicodeError) as exc:  # socket.gaierror is an OSError
+        raise Ros2Error(
+            f"ros2.peers holds {peer!r}, which does not resolve to an IPv4 address ({exc}); give the "
+            'address of the ROS 2 machine, e.g. peers = ["10.0.1.23"]'
+        ) from None
+
+
 # --- the bridge --------------------------------------------------------------------------------------------
 
 
@@ -536,6 +572,7 @@ class Ros2Bridge:
         self._write = ddspy_write
         self._idl_type = JointState_
         self._velocity = settings.velocity
+        check_peers(settings.peers)
         config = cyclone_config(settings)
         try:
             # The domain object carries our configuration; it must outlive the participant.

@@ -395,7 +395,8 @@ KEY_DOCS: dict[str, str] = {
         'The network interface DDS uses, by name (`"ens5"`) or address. Empty = Cyclone picks one.'
     ),
     "ros2.peers": (
-        "Unicast discovery peers (addresses or host names), for networks without multicast such as EC2."
+        "Unicast discovery peers (IPv4 addresses or host names), for networks without multicast such as EC2; "
+        "the agent refuses one that does not resolve to IPv4."
     ),
     "ros2.max_pending": (
         "Samples queued for the DDS thread before the oldest are dropped (counted): about a second of"
