@@ -29,6 +29,7 @@ from twin.output.ros2 import (
     JointStateEncoder,
     Ros2Error,
     Ros2Settings,
+    check_interface,
     check_peers,
     cyclone_config,
     dds_topic_name,
@@ -288,6 +289,18 @@ def test_peers_cyclone_could_not_use_are_refused_with_the_fix(monkeypatch) -> No
     monkeypatch.setattr(socket, "getaddrinfo", no_such_host)
     with pytest.raises(Ros2Error, match=r"'rviz\.internal', which does not resolve to an IPv4 address"):
         check_peers(["rviz.internal"])
+
+
+def test_an_interface_the_machine_lacks_is_refused_by_name() -> None:
+    """A walk: `interface = "eth9"` stopped the agent with Cyclone's "Non specific error"; the error must
+    name the setting and the interfaces there are."""
+    from twin.output.ros2 import Ros2Bridge
+
+    check_interface("lo")
+    check_interface("10.0.1.5")  # an address is Cyclone's to match
+    with pytest.raises(Ros2Error, match=r"ros2\.interface = 'nosuchif0' is not a network interface") as exc:
+        Ros2Bridge(Ros2Settings(enabled=True, interface="nosuchif0"))
+    assert "lo" in str(exc.value)
 
 
 @pytest.mark.slow

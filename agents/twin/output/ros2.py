@@ -456,8 +456,7 @@ def cyclone_config(settings: Ros2Settings, environ: Mapping[str, str] | None = N
     general = ""
     if settings.interface:
         iface = settings.interface
-        # An address (IPv4 or IPv6) selects by address, anything else by interface name.
-        kind = "address" if iface.replace(".", "").isdigit() or ":" in iface else "name"
+        kind = "address" if _is_address(iface) else "name"
         general = f"<General><Interfaces><NetworkInterface {kind}={quoteattr(iface)}/></Interfaces></General>"
     discovery = ""
     if settings.peers:
@@ -477,6 +476,29 @@ def cyclone_config(settings: Ros2Settings, environ: Mapping[str, str] | None = N
     env = os.environ if environ is None else environ
     user = env.get("CYCLONEDDS_URI", "").strip()
     return f"{xml},{user}" if user else xml
+
+
+def _is_address(interface: str) -> bool:
+    # An address (IPv4 or IPv6) selects by address, anything else by interface name.
+    return interface.replace(".", "").isdigit() or ":" in interface
+
+
+def check_interface(interface: str) -> None:
+    """Ros2Error when `interface` names a network interface this machine does not have.
+
+    Cyclone fails such a name with a "Non specific error" of its domain; this names the setting and what the
+    machine has. An address is left to Cyclone, which matches it against the interfaces' addresses.
+    """
+    if not interface or _is_address(interface):
+        return
+    import socket  # noqa: PLC0415 - as in _resolve_ipv4
+
+    names = [name for _, name in socket.if_nameindex()]
+    if interface not in names:
+        raise Ros2Error(
+            f"ros2.interface = {interface!r} is not a network interface of this machine (it has "
+            f"{', '.join(names) or 'none'}; ip -br addr lists them with their addresses)"
+        )
 
 
 def check_peers(peers: Sequence[str]) -> None:
@@ -572,6 +594,7 @@ class Ros2Bridge:
         self._write = ddspy_write
         self._idl_type = JointState_
         self._velocity = settings.velocity
+        check_interface(settings.interface)
         check_peers(settings.peers)
         config = cyclone_config(settings)
         try:
