@@ -382,3 +382,27 @@ def test_an_agent_with_worker_processes_refuses_a_missing_ros2_extra_before_it_c
     assert "the ROS 2 bridge needs cyclonedds (not installed)" in proc.stderr, proc.stderr
     out = proc.stdout + proc.stderr
     assert "could not connect" not in out and "messages_not_mirrored" not in out, out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("ros2", "env", "said"),
+    [
+        ("", {"ROS_DOMAIN_ID": "abc"}, "ROS_DOMAIN_ID='abc' is not a domain id"),
+        ('peers = ["::1"]\n', {}, "ros2.peers holds '::1', an IPv6 address"),
+        ('interface = "nosuchif0"\n', {}, "ros2.interface = 'nosuchif0' is not a network interface"),
+    ],
+)
+def test_an_agent_with_worker_processes_refuses_bad_ros2_settings_before_it_connects(
+    tmp_path, ros2: str, env: dict, said: str
+) -> None:
+    """A walk: with worker processes these were told only after the agent had connected, with "not
+    everything was written: N messages_not_mirrored" (an unresolvable peer: "worker 0 exited", code -6)."""
+    config = tmp_path / "agent.toml"
+    config.write_text(f'[broker]\nurl = "mqtt://127.0.0.1:1"\n[ros2]\nenabled = true\n{ros2}')
+    args = ["run", "--config", str(config), "--workers", "2", "--http", "127.0.0.1:0"]
+    proc = run_twin(args, {**os.environ, **env}, timeout=60)
+    assert proc.returncode == 2, (proc.returncode, proc.stderr)
+    assert said in proc.stderr, proc.stderr
+    out = proc.stdout + proc.stderr
+    assert "connecting to" not in out and "messages_not_mirrored" not in out, out[-2000:]

@@ -568,6 +568,15 @@ def check_available() -> None:
         raise Ros2Error(f"the ROS 2 bridge needs cyclonedds (not installed); {INSTALL_HINT}")
 
 
+def preflight(settings: Ros2Settings) -> None:
+    """Every check the bridge makes before DDS starts, without starting it: for an agent whose workers
+    open their bridges only after it has connected, so a bad setting is told before it connects."""
+    check_available()
+    settings.effective_domain_id()
+    check_interface(settings.interface)
+    check_peers(settings.peers)
+
+
 def _load_cyclonedds() -> Any:
     # Imported here, not at the top: cyclonedds is the optional ros2 extra, needed only when a bridge opens.
     try:

@@ -257,12 +257,12 @@ def _build_service(config: AgentConfig) -> AgentService | int:
 
     workers = worker_count(config)
     if workers > 1 and config.ros2.enabled:
-        # The workers open the bridge after the agent has connected: a missing extra is told before, as for
-        # an in-process mirror, not as messages that were never mirrored.
-        from twin.output.ros2 import Ros2Error, check_available
+        # The workers open the bridge after the agent has connected: a missing extra or a bad setting is
+        # told before, as for an in-process mirror, not as messages that were never mirrored.
+        from twin.output.ros2 import Ros2Error, preflight
 
         try:
-            check_available()
+            preflight(config.ros2)
         except Ros2Error as exc:
             return _config_error(str(exc))
     if workers > 1:
