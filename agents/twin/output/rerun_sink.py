@@ -331,6 +331,10 @@ class RerunWorker:
         self._served: rr.RecordingStream | None = None
         if self.save_path is not None:
             self.save_path.parent.mkdir(parents=True, exist_ok=True)
+            # rr.FileSink fails a file it cannot create with a RuntimeError (a traceback, for `twin run`):
+            # opening it here first raises the OSError, with the path, that start-up says how to fix.
+            with self.save_path.open("ab"):
+                pass
             self._file = self._stream(rr.FileSink(str(self.save_path)))
         if settings.serve:
             grpc_port = bindable_port(settings.grpc_port, "rerun.grpc_port", "--grpc-port")
