@@ -176,6 +176,22 @@ def test_twin_web_refuses_what_is_not_a_recording(tmp_path: Path) -> None:
     assert f"twin web: {tmp_path / 'nosuch.rrd'} does not exist; give a recording" in missing.stderr
 
 
+def test_twin_web_refuses_bad_ports_for_a_recording_before_it_binds(tmp_path: Path) -> None:
+    """A walk: `twin web FILE.rrd --web-port 70000` ended in an OverflowError traceback, and the same port
+    for both in the rerun binary's own coloured error; a file's ports get the agent's checks."""
+    path = tmp_path / "fleet.rrd"
+    path.write_bytes(b"")  # refused before it is read
+    for flags, said in [
+        (["--web-port", "70000"], "argument --web-port: 70000 is outside 0..65535"),
+        (["--grpc-port", "-1"], "argument --grpc-port: -1 is outside 0..65535"),
+        (["--grpc-port", "x"], "argument --grpc-port: 'x' is not a port number"),
+        (["--grpc-port", "9999", "--web-port", "9999"], "--grpc-port and --web-port are both 9999"),
+    ]:
+        proc = twin_web(str(path), *flags)
+        assert proc.returncode == 2, (flags, proc.stderr)
+        assert said in proc.stderr and "Traceback" not in proc.stderr, (flags, proc.stderr)
+
+
 def test_twin_web_with_its_stream_port_taken_names_its_own_flag() -> None:
     """The agent `twin web` runs cannot listen on its stream's port: the error names `twin web` (not `twin
     run`) and the flag that chooses another port."""

@@ -63,17 +63,29 @@ def register(subparsers: Any) -> None:
     parser.set_defaults(func=run)
 
 
+def port_number(text: str) -> int:
+    """A TCP port from the command line: `twin web FILE.rrd` binds it without the config's checks, and a
+    socket refuses one past 65535 with an OverflowError (a traceback)."""
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port number (0..65535)") from None
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"{port} is outside 0..65535 (0 picks a free port)")
+    return port
+
+
 def add_rerun_port_arguments(parser: argparse.ArgumentParser) -> None:
     """The loopback ports of Rerun's stream and web viewer (`twin run --rerun-serve`, `twin web`)."""
     parser.add_argument(
         "--grpc-port",
-        type=int,
+        type=port_number,
         metavar="PORT",
         help=f"the stream's loopback port ([rerun] grpc_port, default {DEFAULT_GRPC_PORT}; 0 = any free)",
     )
     parser.add_argument(
         "--web-port",
-        type=int,
+        type=port_number,
         metavar="PORT",
         help=f"the web viewer's loopback port ([rerun] web_port, default {DEFAULT_WEB_PORT}; 0 = any free)",
     )

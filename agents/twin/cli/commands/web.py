@@ -94,12 +94,16 @@ def serve_file(path: Path, args: argparse.Namespace) -> int:
     if path.suffix != ".rrd" or not path.is_file():
         console.err(f"{path} is not a .rrd file; give a recording (e.g. out/demo/twin.rrd)")
         return run_command.EXIT_CONFIG
+    grpc_port = DEFAULT_GRPC_PORT if args.grpc_port is None else args.grpc_port
+    web_port = DEFAULT_WEB_PORT if args.web_port is None else args.web_port
+    if grpc_port != 0 and grpc_port == web_port:
+        # The agent's settings refuse this too; here the rerun binary would, in its own coloured log lines.
+        console.err(f"--grpc-port and --web-port are both {grpc_port}; give them different ports")
+        return run_command.EXIT_CONFIG
     with stop_on_signals() as stop:
         try:
-            grpc = bindable_port(
-                DEFAULT_GRPC_PORT if args.grpc_port is None else args.grpc_port, "--grpc-port"
-            )
-            page = bindable_port(DEFAULT_WEB_PORT if args.web_port is None else args.web_port, "--web-port")
+            grpc = bindable_port(grpc_port, "--grpc-port")
+            page = bindable_port(web_port, "--web-port")
             proc = start_web_viewer(str(path.resolve()), page, grpc_port=grpc)
         except RerunSinkError as exc:
             console.err(str(exc))
