@@ -13,6 +13,7 @@ import argparse
 import json
 import sys
 import time
+from pathlib import Path
 
 import rclpy
 from rclpy.node import Node
@@ -82,6 +83,8 @@ def main() -> int:
             for info in node.get_publishers_info_by_topic(topic)
         ]
     graph = {name: types for name, types in node.get_topic_names_and_types()}
+    # docs/ros2.md has a user write the report under out/, which a fresh checkout has not yet.
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     with open(args.out, "w", encoding="utf-8") as fh:
         json.dump({"received": received, "publishers": publishers, "graph": graph}, fh)
     node.destroy_node()
