@@ -506,3 +506,36 @@ def test_an_alarm_raised_and_cleared_between_two_looks_is_in_the_story_as_raised
     _follow_story(story, agent, no_state, 1000.0, notes.append)
     _follow_story(story, agent, no_state, 1000.0, notes.append)
     assert len(story.alarms) == 1 and len(notes) == 1
+
+
+def test_demo_refuses_to_replace_a_history_it_did_not_write(tmp_path):
+    """A walk ran `twin run --history out/history` as the guide shows, then `twin demo --out out`: the demo
+    deleted the agent's history to make room for its own."""
+    table = tmp_path / "history" / "telemetry" / "_delta_log"
+    table.mkdir(parents=True)
+    (table / "00000000000000000000.json").write_text("{}\n")
+    proc = subprocess.run(
+        [str(TWIN), "demo", "--out", str(tmp_path), "--seconds", "1"],
+        check=False,
+        env=demo_env(),
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 1, proc.stderr
+    assert f"{tmp_path / 'history'} holds a history the demo did not write" in proc.stderr
+    assert "another --out" in proc.stderr
+    assert (table / "00000000000000000000.json").read_text() == "{}\n"
+
+
+def test_a_history_an_earlier_demo_wrote_is_replaced(tmp_path):
+    """Its mark, or an earlier run's stats.json beside it (a demo from before the mark), lets a run
+    replace it."""
+    from twin.rig import demo as rig_demo
+
+    for witness in (Path("history") / rig_demo.HISTORY_MARK, Path("stats.json")):
+        (tmp_path / "history" / "telemetry").mkdir(parents=True)
+        (tmp_path / witness).write_text("{}")
+        rig_demo._clear_outputs(tmp_path)
+        assert [p.name for p in (tmp_path / "history").iterdir()] == [rig_demo.HISTORY_MARK]
+        shutil.rmtree(tmp_path / "history")

@@ -64,6 +64,10 @@ OUTPUT_PATTERNS = (
     "console-arm.png",
 )
 HISTORY_DIR = "history"
+# Left in the history directory a run makes: the next run replaces only a history that carries it (or one
+# beside an earlier run's stats.json, from before the mark), never one an agent of the user's wrote there
+# (`twin run --history out/history`, then `twin demo --out out`).
+HISTORY_MARK = ".twin-demo"
 RRD_NAME = "twin.rrd"
 STATUS_INTERVAL_S = 0.25
 _T = TypeVar("_T")
@@ -191,11 +195,21 @@ def _internal_latency(state: AgentState, pct: str) -> float | None:
 
 
 def _clear_outputs(out_dir: Path) -> None:
+    history = out_dir / HISTORY_DIR
+    ours = (history / HISTORY_MARK).exists() or (out_dir / "stats.json").exists()
+    if history.exists() and not ours:
+        # Checked before anything is removed: a refused run leaves the directory as it was.
+        raise DemoError(
+            f"{history} holds a history the demo did not write, and a run would replace it; "
+            "give another --out, or move that directory away first"
+        )
     for pattern in OUTPUT_PATTERNS:
         for path in out_dir.glob(pattern):
             path.unlink()
     # A new table per run: appending to the last run's would mix two runs in one history.
-    shutil.rmtree(out_dir / HISTORY_DIR, ignore_errors=True)
+    shutil.rmtree(history, ignore_errors=True)
+    history.mkdir()
+    (history / HISTORY_MARK).write_text("made by twin demo; the next run replaces this directory\n")
 
 
 @dataclass
