@@ -1954,6 +1954,41 @@ def test_history_commands_keep_what_a_person_had_and_refuse_a_selection_of_nothi
     assert json.loads(capsys.readouterr().out)["rejected"] == {}
 
 
+@pytest.mark.parametrize("damage", ["cut", "missing"])
+def test_a_damaged_or_missing_data_file_is_named_with_the_fix(
+    damage: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A walk cut one data file of the demo's history short (a copy that stopped half way) and removed
+    another: every history command ended in a polars traceback, a Rust panic for the cut file, naming
+    neither the file nor what to do."""
+    from twin.cli import main
+
+    _history_with(tmp_path, samples(50))
+    uri = _history_with(tmp_path, samples(50, start_s=T0 + 60, seed=2))
+    table = Path(uri) / TELEMETRY_TABLE
+    victim = sorted(table.glob("date=*/*.parquet"))[0]
+    if damage == "cut":
+        victim.write_bytes(victim.read_bytes()[:100])
+    else:
+        victim.unlink()
+    out = tmp_path / "e.csv"
+    for args in (
+        ["ls"],
+        ["plot", "--device", "arm-001", "--out", str(tmp_path / "p.png")],
+        ["export", "--format", "csv", "--out", str(out)],
+    ):
+        assert main(["history", args[0], "--history", uri, *args[1:]]) == 1
+        err = capsys.readouterr().err
+        assert f"a data file its log names is missing or damaged: {victim}" in err, err
+        assert f"DeltaTable('{table}').repair()" in err
+    assert not out.exists() and not (tmp_path / "p.png").exists()
+    # The fix as said: the cut file out of the table, its entry out of the log; the other rows read again.
+    victim.unlink(missing_ok=True)
+    DeltaTable(str(table)).repair()
+    assert main(["history", "ls", "--history", uri, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["devices"][0]["rows"] == 50
+
+
 def test_an_interrupted_export_leaves_the_file_as_it_was(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -9,12 +9,16 @@ expressions give what `twin.core.telemetry` decodes from the same messages.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
+import errno
 import logging
 import math
 import os
 import re
-from collections.abc import Mapping
+import shlex
+import sys
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -183,6 +187,63 @@ def _unreadable(location: str, exc: Exception) -> str:
     return f"cannot read history at {location}: {text}"
 
 
+# polars names an I/O error's cause only in its text ("No space left on device (os error 28)").
+_OS_ERROR = re.compile(r"\(os error (\d+)\)")
+
+
+def _os_errno(exc: BaseException) -> int | None:
+    """The errno of an OSError, also of one polars raised with it in the text only."""
+    if isinstance(exc, OSError) and exc.errno is not None:
+        return exc.errno
+    match = _OS_ERROR.search(str(exc))
+    return int(match.group(1)) if match else None
+
+
+def _damaged_files(location: str) -> list[str]:
+    """The data files of a local table that are missing or not whole Parquet (a footer that does not read):
+    what to move out of it. Remote tables are not walked (a GET per file); [] then."""
+    if "://" in location:
+        return []
+    import pyarrow as pa  # noqa: PLC0415
+    import pyarrow.parquet as pq  # noqa: PLC0415
+    from deltalake import DeltaTable  # noqa: PLC0415
+
+    bad = []
+    for uri in DeltaTable(location).file_uris():
+        path = uri.removeprefix("file://")
+        try:
+            pq.read_metadata(path)
+        except (OSError, ValueError, pa.ArrowException):
+            bad.append(path)
+    return bad
+
+
+@contextlib.contextmanager
+def reading(location: str) -> Iterator[None]:
+    """Turns what polars raises when a data file the table's log names is missing or damaged (a file removed
+    by hand, a copy cut short: a FileNotFoundError, a ComputeError or a Rust panic, deep in `collect`) into
+    a HistoryReadError naming the table, the files and what to do, instead of a traceback."""
+    try:
+        yield
+    except (OSError, pl.exceptions.PolarsError, pl.exceptions.PanicException) as exc:
+        # An error of the file being written (an export's disk full) is the caller's, with its path.
+        if _os_errno(exc) not in (None, errno.ENOENT, errno.EIO):
+            raise
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        try:
+            bad = _damaged_files(location)
+        except Exception:  # the walk is a hint; the error below stands without it
+            bad = []
+        named = f": {', '.join(bad[:5])}{' and more' if len(bad) > 5 else ''}" if bad else ""
+        raise HistoryReadError(
+            f"cannot read history at {location}: a data file its log names is missing or damaged{named} "
+            f"({first}). Move a damaged file out of the table, then drop the missing ones from its log: "
+            f"{shlex.quote(sys.executable)} -c "
+            f"\"from deltalake import DeltaTable; print(DeltaTable('{location}').repair())\" "
+            "(their rows are lost unless a copy of the file is put back instead)"
+        ) from exc
+
+
 class HistoryReader:
     """Reads the history tables under one base URI (a directory or s3://bucket/prefix)."""
 
@@ -215,6 +276,11 @@ class HistoryReader:
     def scan(self) -> pl.LazyFrame:
         return self._scan(TELEMETRY_TABLE)
 
+    def collect(self, frame: pl.LazyFrame, table: str = TELEMETRY_TABLE) -> pl.DataFrame:
+        """`frame.collect()`, a missing or damaged data file of `table` said as a HistoryReadError."""
+        with reading(table_uri(self.uri, table)):
+            return frame.collect()
+
     def scan_rejected(self) -> pl.LazyFrame:
         return self._scan(REJECTED_TABLE)
 
@@ -234,7 +300,7 @@ class HistoryReader:
 
     def known_devices(self) -> list[str]:
         """Every device the telemetry table holds rows of (to name them when a device has none)."""
-        frame = self.scan().select(pl.col("device_id").unique().sort()).collect()
+        frame = self.collect(self.scan().select(pl.col("device_id").unique().sort()))
         return [str(d) for d in frame["device_id"]]
 
     def summary(
@@ -250,7 +316,7 @@ class HistoryReader:
             raise HistoryArgumentError(f"--gap {gap_s:g} must be greater than 0 seconds")
         frame = self.window(device, since, until, decoded=False).select(["device_id", "received_at", "units"])
         gap = dt.timedelta(seconds=gap_s)
-        runs = (
+        runs = self.collect(
             frame.with_columns(
                 (pl.col("received_at").diff().over("device_id") > gap).fill_null(True).alias("_new")
             )
@@ -263,7 +329,6 @@ class HistoryReader:
                 pl.col("units").unique().alias("units"),
             )
             .sort(["device_id", "start"])
-            .collect()
         )
         out: dict[str, DeviceSummary] = {}
         for row in runs.iter_rows(named=True):
@@ -293,7 +358,7 @@ class HistoryReader:
         except HistoryReadError:
             return {}
         frame = _selected(frame, device, since, until)
-        counts = frame.group_by("reason").agg(pl.len().alias("n")).collect()
+        counts = self.collect(frame.group_by("reason").agg(pl.len().alias("n")), REJECTED_TABLE)
         return {r["reason"]: r["n"] for r in counts.iter_rows(named=True)}
 
 
@@ -342,11 +407,14 @@ def export(
     out.parent.mkdir(parents=True, exist_ok=True)
     partial = out.with_name(f".{out.name}.partial-{os.getpid()}")
     try:
+        with reading(table_uri(reader.uri, TELEMETRY_TABLE)):
+            if fmt == "parquet":
+                frame.sink_parquet(partial, compression="zstd")
+            else:
+                frame.sink_csv(partial)
         if fmt == "parquet":
-            frame.sink_parquet(partial, compression="zstd")
             rows = pl.scan_parquet(partial).select(pl.len()).collect().item()
         else:
-            frame.sink_csv(partial)
             rows = pl.scan_csv(partial).select(pl.len()).collect().item()
         if not rows:
             hint = devices_hint(reader, device)
@@ -455,7 +523,7 @@ def plot(
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
     _not_a_directory(out, "png")
-    frame = reader.window(device, since, until).collect()
+    frame = reader.collect(reader.window(device, since, until))
     if frame.height == 0:
         window = (
             f" between {iso_utc(since) if since else 'the start'} and {iso_utc(until) if until else 'now'}"

@@ -115,7 +115,7 @@ def recorded_rows(reader: HistoryReader, device: str, start: dt.datetime, end: d
     cursor = start
     while cursor < end:
         upper = min(end, cursor + READ_WINDOW)
-        frame = reader.window(device, cursor, upper, decoded=False).select(columns).collect()
+        frame = reader.collect(reader.window(device, cursor, upper, decoded=False).select(columns))
         yield from frame.iter_rows(named=True)
         cursor = upper
 
