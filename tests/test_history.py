@@ -1989,6 +1989,36 @@ def test_a_damaged_or_missing_data_file_is_named_with_the_fix(
     assert json.loads(capsys.readouterr().out)["devices"][0]["rows"] == 50
 
 
+@pytest.mark.parametrize("command", ["plot", "export"])
+def test_a_full_disk_keeps_the_file_a_person_had_and_names_the_path(
+    command: str, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A walk wrote to a full disk: both ended in a traceback naming no path (polars and PIL raise the error
+    without one), and `plot --force` left a cut PNG where the picture it replaced had been."""
+    import matplotlib.figure
+    from twin.cli import main
+
+    uri = _history_with(tmp_path, samples(50))
+    out = tmp_path / "kept.out"
+    out.write_text("before\n")
+
+    def full(self: Any, path: Any, **_: Any) -> None:
+        Path(path).write_text("half a file\n")
+        raise OSError("No space left on device (os error 28)")  # as polars raises it: no errno, no path
+
+    if command == "plot":
+        monkeypatch.setattr(matplotlib.figure.Figure, "savefig", full)
+        args = ["--device", "arm-001"]
+    else:
+        monkeypatch.setattr(pl.LazyFrame, "sink_csv", full)
+        args = ["--format", "csv"]
+    code = main(["history", command, "--history", uri, *args, "--out", str(out), "--force"])
+    assert code == 1
+    assert f"cannot use {out}: No space left on device; free some space" in capsys.readouterr().err
+    assert out.read_text() == "before\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["history", "kept.out"]
+
+
 def test_an_interrupted_export_leaves_the_file_as_it_was(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -405,9 +405,9 @@ def export(
     _not_a_directory(out, fmt)
     frame = reader.window(device, since, until, decoded=decoded)
     out.parent.mkdir(parents=True, exist_ok=True)
-    partial = out.with_name(f".{out.name}.partial-{os.getpid()}")
+    partial = _partial(out)
     try:
-        with reading(table_uri(reader.uri, TELEMETRY_TABLE)):
+        with writing_to(out), reading(table_uri(reader.uri, TELEMETRY_TABLE)):
             if fmt == "parquet":
                 frame.sink_parquet(partial, compression="zstd")
             else:
@@ -425,6 +425,24 @@ def export(
     finally:
         partial.unlink(missing_ok=True)
     return int(rows)
+
+
+def _partial(out: Path) -> Path:
+    """Where `out` is written before it is renamed over it, whole: beside it, so the rename is atomic."""
+    return out.with_name(f".{out.name}.partial-{os.getpid()}")
+
+
+@contextlib.contextmanager
+def writing_to(out: Path) -> Iterator[None]:
+    """An error writing `out` that names no file (a full disk, as polars and PIL raise it) raised again with
+    `out` as its file, so `twin` says which path and the fix (twin.cli.main.path_error_message)."""
+    try:
+        yield
+    except OSError as exc:
+        code = _os_errno(exc)
+        if exc.filename is not None or code is None:
+            raise
+        raise OSError(code, os.strerror(code), str(out)) from exc
 
 
 def _not_a_directory(out: Path, extension: str) -> None:
@@ -556,8 +574,15 @@ def plot(
     fig.suptitle(f"{device}: {rows} messages, {iso_utc(first)} .. {iso_utc(last)}{note}", y=0.99, fontsize=11)
     fig.tight_layout(rect=(0, 0, 1, 0.93))
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, format="png")  # the very path given: without it, `--out x` wrote x.png
-    plt.close(fig)
+    # Beside it, then renamed over it once whole: a full disk left a cut PNG where the old one was (--force).
+    partial = _partial(out)
+    try:
+        with writing_to(out):
+            fig.savefig(partial, format="png")  # format given: without it, `--out x` wrote x.png
+            os.replace(partial, out)
+    finally:
+        plt.close(fig)
+        partial.unlink(missing_ok=True)
     return {
         "device_id": device,
         "rows": rows,
