@@ -1832,10 +1832,11 @@ def test_history_ls_splits_sessions_as_the_console_does(
     # 10 s of messages, a 20 s pause, 10 s more.
     uri = _history_with(tmp_path, samples(100) + samples(100, start_s=T0 + 30, seed=2))
     counts = []
-    for extra in ([], ["--gap", "10"]):
+    # --gap inf (never split) and one past timedelta's range were an OverflowError traceback in a walk.
+    for extra in ([], ["--gap", "10"], ["--gap", "inf"], ["--gap", "1e300"]):
         assert main(["history", "ls", "--history", uri, "--json", *extra]) == 0
         counts.append(len(json.loads(capsys.readouterr().out)["devices"][0]["sessions"]))
-    assert counts == [1, 2]
+    assert counts == [1, 2, 1, 1]
 
 
 @pytest.mark.slow

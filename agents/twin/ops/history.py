@@ -43,6 +43,8 @@ log = logging.getLogger(__name__)
 # A device's rows belong to one session while consecutive messages are at most this far apart: the console's
 # default ([http] session_gap_s), so `twin history ls` and the Sessions page count the same sessions.
 DEFAULT_SESSION_GAP_S = 30.0
+# Any gap longer than this splits no history into sessions: larger ones (`--gap inf`) are taken as this.
+MAX_SESSION_GAP_S = 100 * 365.25 * 86400.0
 # A plot breaks its lines where messages lie further apart than this: the agent's default offline_after_s,
 # after which a silent arm counts as gone, so a line never bridges a time the arm was offline.
 PLOT_GAP_S = 10.0
@@ -315,7 +317,8 @@ class HistoryReader:
         if not gap_s > 0:
             raise HistoryArgumentError(f"--gap {gap_s:g} must be greater than 0 seconds")
         frame = self.window(device, since, until, decoded=False).select(["device_id", "received_at", "units"])
-        gap = dt.timedelta(seconds=gap_s)
+        # `--gap inf` (never split) is a fair ask; past a century it means the same, and timedelta overflows.
+        gap = dt.timedelta(seconds=min(gap_s, MAX_SESSION_GAP_S))
         runs = self.collect(
             frame.with_columns(
                 (pl.col("received_at").diff().over("device_id") > gap).fill_null(True).alias("_new")
