@@ -2020,6 +2020,27 @@ def test_a_full_disk_keeps_the_file_a_person_had_and_names_the_path(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["history", "kept.out"]
 
 
+def test_plot_of_a_device_with_no_history_names_a_few_others_and_its_case_twin(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A walk asked plot for ARM-003: unlike ls and export, it did not say ids are case-sensitive, and it
+    named every device of the table, which for a fleet is a screenful."""
+    from twin.cli import main
+    from twin.ops.history import HINT_DEVICES
+
+    batch = [s for i in range(HINT_DEVICES + 5) for s in samples(3, device=f"arm-{i:03}")]
+    uri = _history_with(tmp_path, batch)
+
+    def plot(device: str) -> str:
+        args = ["--device", device, "--out", str(tmp_path / "p.png")]
+        assert main(["history", "plot", "--history", uri, *args]) == 1
+        return capsys.readouterr().err
+
+    assert "case-sensitive, and 'arm-003' has history" in plot("ARM-003")
+    err = plot("arm-404")
+    assert f"arm-{HINT_DEVICES - 1:03} and 5 more" in err and f"arm-{HINT_DEVICES:03}" not in err
+
+
 def test_an_interrupted_export_leaves_the_file_as_it_was(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:

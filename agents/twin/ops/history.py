@@ -549,11 +549,9 @@ def plot(
         window = (
             f" between {iso_utc(since) if since else 'the start'} and {iso_utc(until) if until else 'now'}"
         )
-        known = reader.known_devices()  # not summary(): its sessions of the whole table are not wanted here
-        raise HistoryReadError(
-            f"no history rows for device {device!r}{window}; devices with history: "
-            f"{', '.join(known) if known else 'none'} (see `twin history ls`)"
-        )
+        # As ls and export say it: a case twin, or the first of a fleet's devices, not all 2,000 of them.
+        hint = devices_hint(reader, device)
+        raise HistoryReadError(f"no history rows for device {device!r}{window}{hint} (see `twin history ls`)")
     rows = frame.height
     frame = frame.with_columns([(pl.col(position_column(j)) * (180.0 / math.pi)).alias(j) for j in JOINTS])
     sampled, bucket_s = _downsample(frame, max_points)
