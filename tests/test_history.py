@@ -1990,6 +1990,25 @@ def test_a_damaged_or_missing_data_file_is_named_with_the_fix(
     assert json.loads(capsys.readouterr().out)["devices"][0]["rows"] == 50
 
 
+def test_a_read_whose_files_were_vacuumed_meanwhile_is_told_to_run_again(tmp_path: Path) -> None:
+    """Maintenance may compact and vacuum a table while a reader streams an older version of it: the files
+    are gone, not damaged, and the repair the damaged-file message gives would do nothing."""
+    _history_with(tmp_path, samples(20))
+    uri = _history_with(tmp_path, samples(20, start_s=T0 + 60, seed=2))
+    from twin.ops.history import reading
+
+    location = str(Path(uri) / TELEMETRY_TABLE)
+    table = DeltaTable(location)
+    before = table.version()
+    table.optimize.compact()
+    table.vacuum(retention_hours=0, enforce_retention_duration=False, dry_run=False)
+    # What a reader that listed the table's files before the vacuum then reads.
+    gone = pytest.raises(HistoryReadError, match=r"vacuumed it meanwhile .*; run the command again")
+    with gone, reading(location):
+        pl.scan_delta(location, version=before).collect()
+    assert HistoryReader(uri).collect(HistoryReader(uri).window()).height == 40
+
+
 @pytest.mark.parametrize("command", ["plot", "export"])
 def test_a_full_disk_keeps_the_file_a_person_had_and_names_the_path(
     command: str, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch

@@ -201,11 +201,11 @@ def _os_errno(exc: BaseException) -> int | None:
     return int(match.group(1)) if match else None
 
 
-def _damaged_files(location: str) -> list[str]:
+def _damaged_files(location: str) -> list[str] | None:
     """The data files of a local table that are missing or not whole Parquet (a footer that does not read):
-    what to move out of it. Remote tables are not walked (a GET per file); [] then."""
+    what to move out of it. None for a remote table, which is not walked (a GET per file)."""
     if "://" in location:
-        return []
+        return None
     import pyarrow as pa  # noqa: PLC0415
     import pyarrow.parquet as pq  # noqa: PLC0415
     from deltalake import DeltaTable  # noqa: PLC0415
@@ -220,6 +220,30 @@ def _damaged_files(location: str) -> list[str]:
     return bad
 
 
+def _unreadable_data(location: str, exc: BaseException) -> str:
+    """Why the rows of a table whose log opened could not be read, and what to do."""
+    first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    try:
+        bad = _damaged_files(location)
+    except Exception:  # the walk is a hint; the message stands without it
+        bad = None
+    if bad == []:
+        # Every file of the table's version now reads: the one that failed was replaced meanwhile.
+        return (
+            f"cannot read history at {location}: a file went away during the read ({first}), and every data "
+            "file of the table reads whole now: its maintenance compacted and vacuumed it meanwhile (see "
+            "[history] vacuum_retention_hours); run the command again"
+        )
+    named = f": {', '.join(bad[:5])}{' and more' if len(bad) > 5 else ''}" if bad else ""
+    return (
+        f"cannot read history at {location}: a data file its log names is missing or damaged{named} "
+        f"({first}). Move a damaged file out of the table, then drop the missing ones from its log: "
+        f"{shlex.quote(sys.executable)} -c "
+        f"\"from deltalake import DeltaTable; print(DeltaTable('{location}').repair())\" "
+        "(their rows are lost unless a copy of the file is put back instead)"
+    )
+
+
 @contextlib.contextmanager
 def reading(location: str) -> Iterator[None]:
     """Turns what polars raises when a data file the table's log names is missing or damaged (a file removed
@@ -231,19 +255,7 @@ def reading(location: str) -> Iterator[None]:
         # An error of the file being written (an export's disk full) is the caller's, with its path.
         if _os_errno(exc) not in (None, errno.ENOENT, errno.EIO):
             raise
-        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        try:
-            bad = _damaged_files(location)
-        except Exception:  # the walk is a hint; the error below stands without it
-            bad = []
-        named = f": {', '.join(bad[:5])}{' and more' if len(bad) > 5 else ''}" if bad else ""
-        raise HistoryReadError(
-            f"cannot read history at {location}: a data file its log names is missing or damaged{named} "
-            f"({first}). Move a damaged file out of the table, then drop the missing ones from its log: "
-            f"{shlex.quote(sys.executable)} -c "
-            f"\"from deltalake import DeltaTable; print(DeltaTable('{location}').repair())\" "
-            "(their rows are lost unless a copy of the file is put back instead)"
-        ) from exc
+        raise HistoryReadError(_unreadable_data(location, exc)) from exc
 
 
 class HistoryReader:
