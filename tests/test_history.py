@@ -8,6 +8,7 @@ what the agent would store.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import datetime as dt
 import itertools
 import json
@@ -2039,7 +2040,7 @@ def test_a_full_disk_keeps_the_file_a_person_had_and_names_the_path(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["history", "kept.out"]
 
 
-def test_plot_of_a_device_with_no_history_names_a_few_others_and_its_case_twin(
+def test_plot_and_replay_of_a_device_with_no_history_name_a_few_others_and_its_case_twin(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """A walk asked plot for ARM-003: unlike ls and export, it did not say ids are case-sensitive, and it
@@ -2058,6 +2059,17 @@ def test_plot_of_a_device_with_no_history_names_a_few_others_and_its_case_twin(
     assert "case-sensitive, and 'arm-003' has history" in plot("ARM-003")
     err = plot("arm-404")
     assert f"arm-{HINT_DEVICES - 1:03} and 5 more" in err and f"arm-{HINT_DEVICES:03}" not in err
+    # Replay, too: it worked out every session of the table to name every device.
+    from twin.ops.replay import replay
+
+    for device, said in (
+        ("ARM-003", "'arm-003' has history"),
+        ("arm-404", f"arm-{HINT_DEVICES - 1:03} and 5"),
+    ):
+        config = dataclasses.replace(_replay_config(uri, NO_BROKER), device=device)
+        with pytest.raises(HistoryReadError) as refused:
+            replay(config)
+        assert said in str(refused.value) and f"arm-{HINT_DEVICES:03}" not in str(refused.value)
 
 
 def test_an_interrupted_export_leaves_the_file_as_it_was(

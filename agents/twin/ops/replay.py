@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from twin.core.topics import telemetry_topic
-from twin.ops.history import HistoryReader, HistoryReadError, iso_utc
+from twin.ops.history import HistoryReader, HistoryReadError, devices_hint, iso_utc
 from twin.output.history import JOINTS, RAW_FIELDS, raw_column
 from twin.transport.broker import BrokerConfig, new_client_id
 from twin.transport.client import build_mqtt5_client
@@ -134,11 +134,12 @@ def replay(
     rows = recorded_rows(reader, config.device, config.start, config.end)
     first = next(rows, None)
     if first is None:
-        known = [s.device_id for s in reader.summary()]
+        # As ls, plot and export say it: not summary(), which worked out every session of the whole table,
+        # nor every id of a fleet.
+        hint = devices_hint(reader, config.device)
         raise HistoryReadError(
             f"no history rows for device {config.device!r} between {iso_utc(config.start)} and "
-            f"{iso_utc(config.end)}; devices with history: {', '.join(known) if known else 'none'} "
-            "(see `twin history ls`)"
+            f"{iso_utc(config.end)}{hint} (see `twin history ls`)"
         )
     if config.broker.kind == "iot" and 10.0 * config.speed > IOT_PUBLISHES_PER_S:
         log.warning(
