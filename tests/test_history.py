@@ -612,6 +612,27 @@ def test_reader_errors_and_times() -> None:
         HistoryReader("/nonexistent/history").scan()
 
 
+def test_a_history_location_one_level_off_is_answered_with_where_the_history_is(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A walk after `make demo` typed `twin history ls` (the default out/history), then --history out/demo
+    and out/demo/history/telemetry: each said only that nothing was recorded there."""
+    from twin.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    _history_with(tmp_path / "out" / "demo", samples(5))
+    said = {}
+    for uri in (None, "out/demo", "out/demo/history/telemetry"):
+        assert main(["history", "ls", *(["--history", uri] if uri else [])]) == 1
+        said[uri] = capsys.readouterr().err
+    assert said[None].endswith("; there is history at --history out/demo/history\n")
+    assert said["out/demo"].endswith("; history lies one level down: --history out/demo/history\n")
+    assert (
+        "is a table itself: give the directory that holds it, --history out/demo/history"
+        in said["out/demo/history/telemetry"]
+    )
+
+
 @pytest.mark.parametrize("command", ["ls", "plot", "export"])
 def test_a_time_not_understood_is_a_usage_error(
     command: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]

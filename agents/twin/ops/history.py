@@ -258,6 +258,23 @@ def reading(location: str) -> Iterator[None]:
         raise HistoryReadError(_unreadable_data(location, exc)) from exc
 
 
+def _one_level_off(uri: str, table: str) -> str:
+    """For a local --history one level off the directory that holds the tables (the table itself, as
+    `pl.scan_delta("<uri>/telemetry")` names it, the demo's out/demo, or the default out/history after only
+    `make demo` ran): where the history is."""
+    if "://" in uri:
+        return ""
+    base = Path(uri)
+    if (base / "_delta_log").is_dir():
+        return f"; {uri} is a table itself: give the directory that holds it, --history {base.parent}"
+    below = sorted(str(p.parent.parent) for p in base.glob(f"*/{table}/_delta_log"))
+    if below:
+        return f"; history lies one level down: --history {' or '.join(below[:3])}"
+    # The default out/history after `make demo`, whose history is out/demo/history.
+    beside = sorted(str(p.parent.parent) for p in base.parent.glob(f"*/{base.name}/{table}/_delta_log"))
+    return f"; there is history at --history {' or '.join(beside[:3])}" if beside else ""
+
+
 class HistoryReader:
     """Reads the history tables under one base URI (a directory or s3://bucket/prefix)."""
 
@@ -276,7 +293,7 @@ class HistoryReader:
         except TableNotFoundError as exc:
             raise HistoryReadError(
                 f"no history table at {location}: nothing was recorded there yet (check --history / "
-                "[history] uri, and that the agent ran with history on)"
+                f"[history] uri, and that the agent ran with history on){_one_level_off(self.uri, table)}"
             ) from exc
         except Exception as exc:
             raise HistoryReadError(_unreadable(location, exc)) from exc
