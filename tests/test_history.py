@@ -633,6 +633,24 @@ def test_a_history_location_one_level_off_is_answered_with_where_the_history_is(
     )
 
 
+def test_the_docs_way_to_remove_old_history_keeps_the_tables_readable(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """History has no budget, so docs/history.md gives a way to drop old days; these are its lines, run."""
+    docs = (Path(__file__).parents[1] / "docs/history.md").read_text()
+    section = docs.split("## Removing old history", 1)[1]
+    code = section.split("```python\n", 1)[1].split("```", 1)[0]
+    monkeypatch.chdir(tmp_path)
+    day = 86400.0
+    uri = _history_with_a_rejection(tmp_path / "out")  # T0's day, both tables
+    _history_with(tmp_path / "out", samples(10, start_s=T0 + 3 * day))
+    cut = dt.datetime.fromtimestamp(T0 + day, dt.UTC).date().isoformat()
+    exec(code.replace("2026-11-01", cut), {})  # the docs' own lines
+    reader = HistoryReader(uri)
+    assert reader.collect(reader.window()).height == 10
+    assert reader.rejected_counts() == {}
+
+
 @pytest.mark.parametrize("command", ["ls", "plot", "export"])
 def test_a_time_not_understood_is_a_usage_error(
     command: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
