@@ -1997,7 +1997,7 @@ def test_history_commands_keep_what_a_person_had_and_refuse_a_selection_of_nothi
 
 @pytest.mark.parametrize("damage", ["cut", "missing"])
 def test_a_damaged_or_missing_data_file_is_named_with_the_fix(
-    damage: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    damage: str, tmp_path: Path, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
 ) -> None:
     """A walk cut one data file of the demo's history short (a copy that stopped half way) and removed
     another: every history command ended in a polars traceback, a Rust panic for the cut file, naming
@@ -2023,6 +2023,16 @@ def test_a_damaged_or_missing_data_file_is_named_with_the_fix(
         assert f"a data file its log names is missing or damaged: {victim}" in err, err
         assert f"DeltaTable('{table}').repair()" in err
     assert not out.exists() and not (tmp_path / "p.png").exists()
+    # The console's Sessions page, empty either way, says why in the log when the table is there.
+    from twin.ops.sessions import HistorySessions
+
+    with caplog.at_level(logging.DEBUG, logger="twin.ops.sessions"):
+        assert HistorySessions(str(tmp_path / "none")).sessions(30.0) == []
+        assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+        assert HistorySessions(uri).sessions(30.0) == []
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warned) == 1 and warned[0].startswith("history: the console lists no sessions: cannot read")
+    assert "missing or damaged" in warned[0]
     # The fix as said: the cut file out of the table, its entry out of the log; the other rows read again.
     victim.unlink(missing_ok=True)
     DeltaTable(str(table)).repair()

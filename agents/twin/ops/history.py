@@ -62,6 +62,11 @@ class HistoryReadError(ValueError):
     """History cannot be read as asked; the message says what to change."""
 
 
+class NoHistoryTableError(HistoryReadError):
+    """No table at the location (nothing recorded there yet), where other read errors mean one is there and
+    cannot be read."""
+
+
 class HistoryArgumentError(HistoryReadError):
     """An argument that cannot select anything (an end before its start, a gap of 0): a bad argument (exit 2),
     where other read errors mean nothing to show or storage unreadable (exit 1)."""
@@ -291,7 +296,7 @@ class HistoryReader:
             # Opened here so a missing table is a clear error now rather than a traceback at collect().
             dtable = DeltaTable(location, storage_options=self._options or None)
         except TableNotFoundError as exc:
-            raise HistoryReadError(
+            raise NoHistoryTableError(
                 f"no history table at {location}: nothing was recorded there yet (check --history / "
                 f"[history] uri, and that the agent ran with history on){_one_level_off(self.uri, table)}"
             ) from exc

@@ -49,12 +49,16 @@ class HistorySessions:
         return HistoryReader(self.uri, self._options)
 
     def sessions(self, gap_s: float) -> list[SessionInfo]:
-        from twin.ops.history import HistoryReadError  # noqa: PLC0415
+        from twin.ops.history import HistoryReadError, NoHistoryTableError  # noqa: PLC0415
 
         try:
             summaries = self._reader().summary(gap_s=gap_s)
-        except HistoryReadError as exc:
+        except NoHistoryTableError as exc:
             log.debug("no sessions yet: %s", exc)
+            return []
+        except HistoryReadError as exc:
+            # A table that is there and cannot be read (a damaged file) must not pass for an empty one.
+            log.warning("history: the console lists no sessions: %s", exc)
             return []
         out = [
             SessionInfo(device=d.device_id, start=s.start.timestamp(), end=s.end.timestamp(), messages=s.rows)
