@@ -271,6 +271,27 @@ def test_an_outage_keeps_rows_bounded_counts_drops_and_recovers(tmp_path: Path) 
     assert writer.stats().tables[TELEMETRY_TABLE].rows_committed == 300
 
 
+def test_a_commit_failing_at_the_stop_says_it_is_retried_each_second(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A walk stopped an agent on a full disk: for the minute of its stop budget the log said "retrying in
+    60 s" (the backoff it had reached) while it retried every second."""
+    base = tmp_path / "h"
+    base.mkdir()
+    (base / TELEMETRY_TABLE).write_text("not a directory")  # every commit fails
+    now = [1000.0]
+    settings = HistorySettings(uri=str(base), commit_every_s=3600, retry_min_s=60, retry_max_s=60)
+    writer = HistoryWriter(settings, clock=lambda: now[0]).start()
+    writer.add(TELEMETRY_TABLE, telemetry_table(samples(10))[0])
+    with caplog.at_level(logging.ERROR, logger="twin.output.history"):
+        assert not writer.flush(5)
+        now[0] += 11  # the next error line is due
+        writer.close(timeout=1.5)
+    said = [r.getMessage() for r in caplog.records if "rows kept in memory" in r.getMessage()]
+    assert len(said) >= 2 and "retrying in 60 s" in said[0]
+    assert all("retrying in 1 s" in line for line in said[1:]), said
+
+
 def test_a_full_disk_is_a_clear_error_and_writing_resumes_when_space_returns(tmp_path: Path) -> None:
     mount = tmp_path / "small"
     mount.mkdir()

@@ -866,7 +866,9 @@ class HistoryWriter:
             stats.rows_buffered += n
             dropped = self._trim(table)
             self._retry_at = now + self._backoff
-            retry_in = self._backoff
+            # A stop retries a second apart until its deadline, whatever the backoff had reached: the line
+            # said "retrying in 60 s" while the stop retried each second.
+            retry_in = 1.0 if self._closing else self._backoff
             self._backoff = min(self._backoff * 2.0, self.settings.retry_max_s)
             buffered = stats.rows_buffered
             failures = stats.commit_failures
