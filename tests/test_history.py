@@ -36,7 +36,7 @@ from dying_writer import check_that_dies, check_that_hangs, writer_killed_in_its
 from moto_s3 import MotoS3
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
 from twin.edge.payload import encode, make_payload
-from twin.ops.history import HistoryReader, HistoryReadError, parse_time, with_decoded
+from twin.ops.history import HistoryArgumentError, HistoryReader, HistoryReadError, parse_time, with_decoded
 from twin.output.history import (
     JOINTS,
     REJECTED_TABLE,
@@ -629,6 +629,10 @@ def test_reader_errors_and_times() -> None:
     assert parse_time("1795000000") == dt.datetime.fromtimestamp(1_795_000_000, dt.UTC)
     with pytest.raises(HistoryReadError, match="ISO 8601"):
         parse_time("yesterday-ish")
+    # Out of datetime's range: an OverflowError or ValueError traceback in a walk, now a usage error.
+    for far in ("1e20", "99999999999999", "100000000d"):
+        with pytest.raises(HistoryArgumentError, match=f"time '{far}' is out of range"):
+            parse_time(far, now=now)
     with pytest.raises(HistoryReadError, match="no history table"):
         HistoryReader("/nonexistent/history").scan()
 

@@ -79,6 +79,18 @@ class TimeFormatError(HistoryArgumentError):
 def parse_time(text: str, *, now: dt.datetime | None = None) -> dt.datetime:
     """A point in time from the command line: ISO 8601 (no zone = UTC), epoch seconds, `now`, or `-2h` /
     `90m` (that long before now)."""
+    try:
+        return _parse_time(text, now)
+    except (OverflowError, ValueError, OSError) as exc:
+        if isinstance(exc, TimeFormatError):
+            raise
+        # Epoch seconds past year 9999, or a span before year 1: a traceback from datetime otherwise.
+        raise TimeFormatError(
+            f"time {text!r} is out of range ({exc}); give one between the years 1 and 9999"
+        ) from None
+
+
+def _parse_time(text: str, now: dt.datetime | None) -> dt.datetime:
     value = text.strip()
     now = now or dt.datetime.now(dt.UTC)
     if value.lower() == "now":
