@@ -499,7 +499,7 @@ def test_start_waits_for_the_hosts_own_checks_and_prints_their_verdict(
         out = capsys.readouterr().out
         sent = boto3.client("ssm", region_name=REGION).list_commands()["Commands"][-1]
     assert code == cmd.EXIT_OK, out
-    assert "start checks: PASS: X on the GPU, DCV console session, agent subscribed, viewer stable" in out
+    assert "start checks: PASS: X on the GPU, DCV console session listening on 8443, agent subscribed" in out
     assert sent["Parameters"]["commands"] == lib.START_VERDICT_COMMANDS
 
 

@@ -548,8 +548,8 @@ owner = "${DESKTOP_USER}"
 web-client-max-head-resolution = (${VIRTUAL_SCREEN%x*}, ${VIRTUAL_SCREEN#*x})
 
 [connectivity]
-web-port = 8443
-quic-port = 8443
+web-port = ${DCV_PORT}
+quic-port = ${DCV_PORT}
 enable-quic-frontend = true
 # Minutes without input before a client is disconnected (DCV's default 60; 0 never): the twin is watched
 # for hours without being touched (the stack's dcvIdleTimeoutMinutes).
@@ -584,9 +584,9 @@ open_dcv_in_ufw() {
   status="$(ufw status 2>&1)" || die "ufw status failed: ${status:0:300}"
   [[ $status == "Status: active"* ]] || return 0
   for proto in tcp udp; do
-    if [[ $status != *"8443/${proto}"*ALLOW* ]]; then
-      ufw allow "8443/${proto}" >/dev/null
-      log "ufw is active: opened 8443/${proto} for DCV"
+    if [[ $status != *"${DCV_PORT}/${proto}"*ALLOW* ]]; then
+      ufw allow "${DCV_PORT}/${proto}" >/dev/null
+      log "ufw is active: opened ${DCV_PORT}/${proto} for DCV"
     fi
   done
 }

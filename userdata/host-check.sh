@@ -9,8 +9,8 @@
 #     line per check: NAME<TAB>OK|WARN|FAIL<TAB>detail (exit status 1 when any FAIL).
 # Checks: x-on-gpu, dcv-session, agent, telemetry (WARN only: no arm may be publishing), calibration (WARN
 # only: an arm whose raw positions are turned into angles without its own LeRobot calibration), viewer (the
-# same process for 20 s), screen (a capture of the console that is not one flat colour, nor is the viewer's
-# window in it), version.
+# same process for 20 s), screen (a capture of the console that is not one flat colour, and whose viewer
+# window is not one flat colour either), version.
 
 CHECK_VENV="${VENV:-/opt/so101-twin/venv}"
 # The agent's DEFAULT_AGENT_URL (agents/twin/service/config.py), which install-agent.sh configures.
@@ -21,7 +21,8 @@ SCREENSHOT="$CHECK_STATE/console.png"
 LAST_START="$CHECK_STATE/last-start"
 # The on-start run's log, shipped to CloudWatch (bootstrap.sh, step logs); its metric lines: lib.sh.
 START_LOG=/var/log/so101-twin-start.log
-# DCV's port for browsers, TCP and UDP (bootstrap.sh writes it into dcv.conf as web-port and quic-port).
+# DCV's port for browsers, TCP and UDP: bootstrap.sh writes it into dcv.conf (web-port, quic-port) and opens
+# it in an active ufw. The stack's security group opens the same (stacks/network.py, DCV_PORT).
 DCV_PORT=8443
 # A viewer counts once the same process has run this long: its supervisor restarts a crashing one within
 # seconds, so "a process exists" proves nothing.
@@ -155,10 +156,11 @@ PY
 }
 
 # The console session (dcv_console_session), and DCV listening where a browser connects: TCP DCV_PORT (its
-# web port; nothing there and the session is out of reach however open the security group is), and UDP
-# DCV_PORT for QUIC (only noted when missing: the browser then streams over TCP). Asked of `ss` (iproute2).
+# web port) on an address other than loopback (nothing there and the session is out of reach however open
+# the security group is), and UDP DCV_PORT for QUIC (only noted when missing: the browser then streams over
+# TCP). Asked of `ss` (iproute2).
 check_dcv_session() {
-  local tcp udp session
+  local tcp="" udp="" session
   dcv_console_session || return 1
   session="$DETAIL"
   if ! command -v ss >/dev/null 2>&1; then
@@ -166,11 +168,13 @@ check_dcv_session() {
     return 0
   fi
   # Listening sockets' lines (no header): STATE RECV-Q SEND-Q LOCAL:PORT PEER:PORT; captured whole.
-  tcp="$(ss -Hltn 2>&1 || true)"
-  udp="$(ss -Hlun 2>&1 || true)"
+  if ! tcp="$(ss -Hltn 2>&1)" || ! udp="$(ss -Hlun 2>&1)"; then
+    DETAIL="${session}; not told whether DCV listens on ${DCV_PORT}: ss failed: ${tcp:0:200}${udp:0:200}"
+    return 0
+  fi
   if ! _listens "$tcp"; then
-    DETAIL="${session}, but nothing listens on TCP ${DCV_PORT}, DCV's web port: no browser can connect"
-    DETAIL+=" (dcv.conf [connectivity] web-port; journalctl -u dcvserver, /var/log/dcv/server.log)"
+    DETAIL="${session}, but nothing listens on TCP ${DCV_PORT} beyond loopback, DCV's web port: no browser"
+    DETAIL+=" can connect (dcv.conf [connectivity] web-port; journalctl -u dcvserver, /var/log/dcv/server.log)"
     return 1
   fi
   DETAIL="${session}; DCV listens on TCP ${DCV_PORT}"
@@ -181,11 +185,15 @@ check_dcv_session() {
   fi
 }
 
-# Whether a listing of `ss -H` has a socket whose local address ends in :DCV_PORT.
+# Whether a listing of `ss -H` has a socket on :DCV_PORT at an address other than loopback (0.0.0.0, [::],
+# *, or an interface's own address; a scope like %eth0 may follow it).
 _listens() {
-  local fields
+  local fields address
   while read -r -a fields; do
-    [[ ${fields[3]:-} == *":${DCV_PORT}" ]] && return 0
+    address="${fields[3]:-}"
+    [[ $address == *":${DCV_PORT}" ]] || continue
+    [[ $address == 127.* || $address == "[::1]"* || $address == "[::ffff:127."* ]] && continue
+    return 0
   done <<<"$1"
   return 1
 }
@@ -337,7 +345,7 @@ ask_x_windows() {
 }
 
 # What a person would see: a capture of the console session, which must not be one flat colour (a black
-# or blank screen), nor may the viewer's window in it (MuJoCo drawing nothing: a desktop around a black
+# or blank screen), nor may the viewer's window in it be (MuJoCo drawing nothing: a desktop around a black
 # window passed before). Kept on the host for `twin instance check --screenshot`.
 check_screen() {
   local out
@@ -349,21 +357,37 @@ check_screen() {
   fi
   chmod 0640 "${ROOT}${SCREENSHOT}"
   ask_x_windows
-  out="$(XWIN_TREE="$XWIN_TREE" XWIN_ROOT="$XWIN_ROOT" XWIN_DETAIL="$XWIN_DETAIL" \
-    DESKTOP_USER="$DESKTOP_USER" "${ROOT}${CHECK_VENV}/bin/python" - "${ROOT}${SCREENSHOT}" "$SCREENSHOT" <<'PY' 2>&1
-import os
+  if ! out="$(judge_capture "${ROOT}${SCREENSHOT}" 2>&1)"; then
+    DETAIL="could not analyse the capture: ${out:0:300}"
+    return 1
+  fi
+  DETAIL="${out#*$'\t'}"
+  [ "${out%%$'\t'*}" = OK ]
+}
+
+# judge_capture PNG: "OK|FAIL<TAB>detail" for the capture, and for the viewer's window in it when X told
+# where it is (ask_x_windows). X's answers go through files: a window tree can outgrow an environment
+# variable's limit (128 KiB).
+judge_capture() {
+  local xwin status=0
+  xwin="$(mktemp -d)"
+  printf '%s' "$XWIN_TREE" >"$xwin/tree"
+  printf '%s' "$XWIN_ROOT" >"$xwin/root"
+  printf '%s' "$XWIN_DETAIL" >"$xwin/detail"
+  "${ROOT}${CHECK_VENV}/bin/python" - "$1" "$SCREENSHOT" "$xwin" "$DESKTOP_USER" <<'PY' || status=$?
 import re
 import sys
+from pathlib import Path
 
 from PIL import Image, ImageStat
 
-# A line of `xwininfo -root -tree`: id "name": ("instance" "class")  WxH+relX+relY  +absX+absY. MuJoCo's
-# viewer names its window "MuJoCo : " and the model's name.
-WINDOW = re.compile(r'^\s*0x[0-9a-f]+ "MuJoCo[^"]*":.*\s(\d+)x(\d+)[+-]\d+[+-]\d+\s+([+-]\d+)([+-]\d+)\s*$')
+# A line of `xwininfo -root -tree`: id "name": ("instance" "class")  WxH+relX+relY  +absX+absY, where an
+# offset left of or above the screen prints as +-N. MuJoCo's viewer names its window "MuJoCo : <model>".
+WINDOW = re.compile(r'^\s*0x[0-9a-f]+ "MuJoCo[^"]*":.*\s(\d+)x(\d+)\+-?\d+\+-?\d+\s+\+(-?\d+)\+(-?\d+)\s*$')
 
 
 def judge(image):
-    """(flat, top colour, its share, colours): one colour over nearly all, or hardly any variation."""
+    """(flat, what it shows): one colour over nearly all of it, or hardly any variation, is nothing drawn."""
     small = image.copy()
     small.thumbnail((320, 320))
     pixels = small.width * small.height
@@ -371,57 +395,52 @@ def judge(image):
     count, top = max(colours)
     share = count / pixels
     flat = share >= 0.99 or max(ImageStat.Stat(small).stddev) < 2.0
-    return flat, "#%02x%02x%02x" % top, share, len(colours)
+    shown = f"#{top[0]:02x}{top[1]:02x}{top[2]:02x} over {share:.1%}" if flat else f"{len(colours)} colours"
+    return flat, shown
 
 
-def viewer_window(image):
-    """(the viewer's window cut from the capture, where it is), or (None, why not judged or a failure)."""
-    tree, root = os.environ["XWIN_TREE"], os.environ["XWIN_ROOT"]
+def viewer_window(image, xwin):
+    """(its cut of the capture or None, where it is or why it was not judged, whether that fails)."""
+    tree, root = (xwin / "tree").read_text(), (xwin / "root").read_text()
     if not tree:
-        return None, f"not asked where the viewer's window is: {os.environ['XWIN_DETAIL']}"
+        return None, f"not asked where the viewer's window is: {(xwin / 'detail').read_text()}", False
     found = [tuple(int(v) for v in m.groups()) for m in map(WINDOW.match, tree.splitlines()) if m]
     size = re.search(r"Width: (\d+)\s+Height: (\d+)", root)
     if not found:
-        return None, "FAIL: twin view runs, but no MuJoCo window is on X's display :0"
+        return None, "twin view runs, but no MuJoCo window is on X's display :0", True
     if size is None:
-        return None, "not told the screen's size by xwininfo -root"
+        return None, "not told the screen's size by xwininfo -root", False
     w, h, x, y = max(found, key=lambda f: f[0] * f[1])
-    scale = image.width / int(size.group(1))  # the capture keeps the screen's proportions
-    box = [round(v * scale) for v in (max(x, 0), max(y, 0), min(x + w, int(size.group(1))),
-                                      min(y + h, int(size.group(2))))]
-    where = f"{w}x{h} at +{x}+{y}"
+    screen_w, screen_h = int(size.group(1)), int(size.group(2))
+    scale = image.width / screen_w  # dcv get-screenshot keeps the screen's proportions
+    box = [round(v * scale) for v in (max(x, 0), max(y, 0), min(x + w, screen_w), min(y + h, screen_h))]
+    where = f"{w}x{h} at {x:+d}{y:+d}"
     if box[2] - box[0] < 8 or box[3] - box[1] < 8:
-        return None, f"FAIL: the viewer's window ({where}) is not on the screen"
-    return image.crop(box), where
+        return None, f"the viewer's window ({where}) is not on the {screen_w}x{screen_h} screen", True
+    return image.crop(box), where, False
 
 
-path, shown = sys.argv[1], sys.argv[2]
-with Image.open(path) as opened:
+png, kept, xwin, user = sys.argv[1], sys.argv[2], Path(sys.argv[3]), sys.argv[4]
+with Image.open(png) as opened:
     image = opened.convert("RGB")
-width, height = image.size
-flat, top, share, colours = judge(image)
-window, where = viewer_window(image)
+size = f"{image.width}x{image.height}"
+flat, shown = judge(image)
+window, where, fails = viewer_window(image, xwin)
+drawn = judge(window) if window is not None else (False, "")
 if flat:
-    print(f"FAIL\tthe console shows one flat colour ({top} over {share:.1%} of {width}x{height}): no"
-          f" desktop is drawn (capture kept in {shown})")
-elif window is None and where.startswith("FAIL: "):
-    print(f"FAIL\t{where[6:]} (capture kept in {shown})")
-elif window is not None and judge(window)[0]:
-    _, top, share, _ = judge(window)
-    print(f"FAIL\tthe viewer's window ({where}) shows one flat colour ({top} over {share:.1%}): MuJoCo draws"
-          f" nothing in it (its log: journalctl _UID=$(id -u {os.environ['DESKTOP_USER']}) | grep twin-view;"
-          f" capture kept in {shown})")
+    print(f"FAIL\tthe console shows one flat colour ({shown} of {size}): no desktop is drawn (capture kept in"
+          f" {kept})")
+elif fails:
+    print(f"FAIL\t{where} (capture kept in {kept})")
+elif drawn[0]:
+    print(f"FAIL\tthe viewer's window ({where}) shows one flat colour ({drawn[1]}): MuJoCo draws nothing in"
+          f" it (its log: journalctl _UID=$(id -u {user}) | grep twin-view; capture kept in {kept})")
 else:
     seen = f"the viewer drawn in its window ({where})" if window is not None else where
-    print(f"OK\tthe console shows a desktop ({width}x{height}, {colours} colours), {seen}; capture kept in"
-          f" {shown}")
+    print(f"OK\tthe console shows a desktop ({size}, {shown}), {seen}; capture kept in {kept}")
 PY
-)" || {
-    DETAIL="could not analyse the capture: ${out:0:300}"
-    return 1
-  }
-  DETAIL="${out#*$'\t'}"
-  [ "${out%%$'\t'*}" = OK ]
+  rm -rf "$xwin"
+  return "$status"
 }
 
 # Prints NAME<TAB>STATUS<TAB>DETAIL with the detail on one line.
@@ -485,7 +504,8 @@ verify_host() {
     VERIFY_SUMMARY="${VERIFY_SUMMARY%; }"
     return 1
   fi
-  VERIFY_SUMMARY="X on the GPU, DCV console session, agent subscribed, viewer stable, desktop on screen"
+  VERIFY_SUMMARY="X on the GPU, DCV console session listening on ${DCV_PORT}, agent subscribed, viewer stable,"
+  VERIFY_SUMMARY+=" desktop and viewer drawn on screen"
 }
 
 host_check_main() {

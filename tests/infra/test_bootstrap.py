@@ -551,18 +551,30 @@ def check_lines(host: HostSim) -> dict[str, tuple[str, str]]:
 
 
 def test_host_check_fails_the_dcv_line_when_nothing_listens_on_dcvs_web_port(booted, tmp_path: Path) -> None:
-    """The console session exists, yet no browser could reach it: nothing listens on TCP 8443 (another web
-    port in dcv.conf, DCV's web frontend failing). UDP 8443 missing alone is only noted: no QUIC, and the
-    browser streams over TCP."""
+    """The console session exists, yet no browser could reach it: nothing listens on TCP 8443 beyond
+    loopback (another web port in dcv.conf, DCV's web frontend failing, bound to 127.0.0.1). UDP 8443 missing
+    alone is only noted: no QUIC, and the browser streams over TCP. ss failing is said as such."""
     source, _ = booted
     host = copy_of(source, tmp_path)
-    (host.sim / "ss-tcp").write_text("LISTEN 0      10               0.0.0.0:8080      0.0.0.0:*\n")
-    state, detail = check_lines(host)["dcv-session"]
-    assert (state, detail) == (
-        "FAIL",
-        "console session owned by ubuntu, but nothing listens on TCP 8443, DCV's web port: no browser can "
-        "connect (dcv.conf [connectivity] web-port; journalctl -u dcvserver, /var/log/dcv/server.log)",
+    unreachable = (
+        "console session owned by ubuntu, but nothing listens on TCP 8443 beyond loopback, DCV's web port: "
+        "no browser can connect (dcv.conf [connectivity] web-port; journalctl -u dcvserver, "
+        "/var/log/dcv/server.log)"
     )
+    for listing in ("0.0.0.0:8080      0.0.0.0:*", "127.0.0.1:8443      0.0.0.0:*", "[::1]:8443      [::]:*"):
+        (host.sim / "ss-tcp").write_text(f"LISTEN 0      10               {listing}\n")
+        assert check_lines(host)["dcv-session"] == ("FAIL", unreachable), listing
+    # Any address beyond loopback is reachable: all of IPv4's, all of both stacks', one interface's.
+    for listing in ("*:8443      *:*", "10.0.1.23%ens5:8443      0.0.0.0:*"):
+        (host.sim / "ss-tcp").write_text(f"LISTEN 0      10               {listing}\n")
+        assert check_lines(host)["dcv-session"][0] == "OK", listing
+    (host.sim / "fail" / "ss").touch()
+    assert check_lines(host)["dcv-session"] == (
+        "OK",
+        "console session owned by ubuntu; not told whether DCV listens on 8443: ss failed: ss: failing on "
+        "purpose (test)",
+    )
+    (host.sim / "fail" / "ss").unlink()
     (host.sim / "ss-tcp").unlink()
     (host.sim / "ss-udp").write_text("")
     state, detail = check_lines(host)["dcv-session"]
@@ -586,6 +598,22 @@ def test_host_check_fails_the_screen_when_the_viewers_window_is_black(booted, tm
         " nothing in it (its log: journalctl _UID=$(id -u ubuntu) | grep twin-view; capture kept in"
     ), detail
     assert "xwininfo -root -tree" in host.calls()
+
+
+def test_host_check_finds_a_viewer_window_partly_off_the_screen(booted, tmp_path: Path) -> None:
+    """xwininfo prints an offset left of or above the screen as +-N: such a window is found, and judged on
+    the part of it on the screen."""
+    source, _ = booted
+    host = copy_of(source, tmp_path)
+    (host.sim / "xwin-tree").write_text(
+        "     1 child:\n"
+        '     0x2200007 "MuJoCo : so101": ("MuJoCo" "MuJoCo")  1620x930+-300+-180  +-300+-180\n'
+    )
+    state, detail = check_lines(host)["screen"]
+    # On the screen: 0..1320 x 0..750 of 1920x1080, the capture's 0..880 x 0..500 (its desktop bar and the
+    # left of the window stand-in): drawn.
+    assert state == "OK", detail
+    assert "the viewer drawn in its window (1620x930 at -300-180)" in detail, detail
 
 
 def test_host_check_fails_the_screen_when_no_viewer_window_is_on_x(booted, tmp_path: Path) -> None:
@@ -647,8 +675,8 @@ def test_after_a_reboot_dcv_is_put_on_x_and_the_checks_report(booted, tmp_path: 
     last_start = host.file("/var/lib/so101-twin/last-start").splitlines()
     assert last_start[0].startswith(f"boot={BOOT_ID} ")
     assert (
-        " PASS X on the GPU, DCV console session, agent subscribed, viewer stable, desktop on screen"
-        in last_start[0]
+        " PASS X on the GPU, DCV console session listening on 8443, agent subscribed, viewer stable, desktop"
+        " and viewer drawn on screen" in last_start[0]
     )
     assert {line.split("\t")[0] for line in last_start[1:]} == {
         "x-on-gpu",
