@@ -22,7 +22,6 @@ from test_catch_up import GateSink
 from twin.rig.local import LocalRig
 from twin.service import agent as agent_module
 from twin.service import mirror as mirror_module
-from twin.service import shards as shards_module
 from twin.service.stall import StallWatch
 from twin.service.systemd import Notifier
 
@@ -229,11 +228,38 @@ def test_a_stuck_supervisor_fails_the_agent_and_the_log_says_where_it_waits(
         service.stop()
 
 
-def test_the_supervisor_waits_out_its_longest_step_a_worker_started_again() -> None:
-    """A worker process started again (its start, hello and restore, each with its own timeout) is one step
-    of the supervisor: it must not be taken for a stuck supervisor."""
-    restart = shards_module.START_TIMEOUT_S + 2 * shards_module.ASK_TIMEOUT_S
-    assert restart < agent_module.SUPERVISOR_STUCK_S
+def test_a_supervisor_that_fails_fails_the_agent_at_once_with_its_traceback(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A supervisor ended by an error it did not expect would start no worker again, keep no state and
+    collect no event: the agent fails at once (not a stuck window later), its log holding the traceback."""
+    monkeypatch.setattr(agent_module, "SUPERVISOR_STUCK_S", 3600.0)
+    service = one_arm_agent()
+
+    def collect_fails() -> None:
+        raise RuntimeError("a fault the supervisor did not expect")
+
+    try:
+        with caplog.at_level(logging.ERROR, logger="twin.service.agent"):
+            monkeypatch.setattr(service, "_collect_events", collect_fails)
+            wait_for(lambda: not service.running, 30, "the agent to count its failed supervisor")
+        (record,) = [r for r in caplog.records if "supervisor failed" in r.getMessage()]
+        assert record.exc_info is not None and "did not expect" in str(record.exc_info[1])
+    finally:
+        service.stop()
+
+
+def test_only_the_supervisors_own_steps_count_as_its_turns() -> None:
+    """An acknowledgement writes the state file on an HTTP thread through the supervisor's own helpers:
+    those steps must not pass for the supervisor's, or a stuck one would be hidden while people click."""
+    service = one_arm_agent()
+    try:
+        before = service._supervisor_turns
+        service._turned()  # this thread is not the supervisor
+        assert service._supervisor_turns == before
+        wait_for(lambda: service._supervisor_turns > before, 30, "the supervisor to turn")
+    finally:
+        service.stop()
 
 
 def test_the_stall_watch_judges_a_thread_by_its_turns_not_by_a_pause_of_the_whole_process() -> None:

@@ -156,7 +156,8 @@ SUPERVISE_EVERY_S = 0.5
 # that has not got past any for this long is stuck (a lock a stuck thread holds, a disk that hangs): nothing
 # would start a dead worker again, keep state or collect events, while the main thread still told systemd's
 # watchdog all was well. The agent then fails, so `twin run` exits and systemd starts it again. Its longest
-# step is a worker started again: up to START_TIMEOUT_S for the new process, then its restore.
+# step is a worker started again: up to START_TIMEOUT_S (120 s) for the new process, then an ask or two for
+# its restore (ASK_TIMEOUT_S each) and the messages sent again, so well within this.
 SUPERVISOR_STUCK_S = 300.0
 # At a stop, the alert publisher has at least this long for what is pending, even when the workers' flush took
 # the whole shutdown budget (the unit's stop timeout leaves room for it: docs/host.md).
@@ -322,6 +323,7 @@ class AgentService:
         self._supervisor_turns = 0  # the steps it got past (_turned)
         self._supervisor_watch = StallWatch(SUPERVISOR_STUCK_S)
         self._supervisor_stuck = False
+        self._supervisor_ended = False  # its thread ended while the agent ran (_supervise)
         self._supervisor_watch_lock = threading.Lock()
         self._running = False
         self._stopping = threading.Event()
@@ -616,6 +618,19 @@ class AgentService:
             log.info("agent stopped", extra=fields)
 
     def _supervise(self) -> None:
+        try:
+            self._supervise_loop()
+        except Exception:
+            # Nothing would start a dead worker again, keep state or collect events: the agent fails
+            # (`running`), so `twin run` exits and systemd starts it again; the traceback says why.
+            log.exception(
+                "the agent's supervisor failed; the agent stops (under systemd, its unit starts it again)"
+            )
+        finally:
+            # Only a stop ends it otherwise; set after the log line, so whoever sees the agent fail finds it.
+            self._supervisor_ended = not self._stopping.is_set()
+
+    def _supervise_loop(self) -> None:
         next_checkpoint = time.monotonic() + CHECKPOINT_EVERY_S
         next_forget = time.monotonic() + FORGET_SWEEP_S
         while not self._stopping.is_set():
@@ -803,8 +818,11 @@ class AgentService:
         return running and not any(s.failed for s in self._shards) and not self._supervisor_stalled()
 
     def _supervisor_stalled(self) -> bool:
-        """Whether the supervisor got past no step for SUPERVISOR_STUCK_S (said once, with where it waits).
-        Judged by whoever asks `running` (the main thread of `twin run`, every second), never by itself."""
+        """Whether the supervisor ended, or got past no step for SUPERVISOR_STUCK_S (said once, with where it
+        waits). Judged by whoever asks `running` (the main thread of `twin run`, every second), never by
+        itself."""
+        if self._supervisor_ended:
+            return True
         with self._supervisor_watch_lock:
             if self._supervisor_stuck or self._supervisor is None:
                 return self._supervisor_stuck

@@ -2,8 +2,8 @@
 
 Exit codes: 0 after SIGTERM/SIGINT and a clean stop (recording flushed); 2 when the configuration is invalid
 (the reason on stderr and as a JSON log line); 1 when the service cannot start or dies (e.g. the HTTP address
-is taken, or a mirror stopped or is stuck). Logs are JSON lines on stdout. Under systemd it tells the unit
-when it is ready, stopping, and alive (twin.service.systemd).
+is taken, or a mirror or the supervisor stopped or is stuck). Logs are JSON lines on stdout. Under systemd it
+tells the unit when it is ready, stopping, and alive (twin.service.systemd).
 """
 
 from __future__ import annotations
@@ -250,9 +250,9 @@ def _run_until_stopped(
     while not stop.wait(1.0):
         notifier.watchdog()
         if not service.running:
-            said = "a twin worker stopped or is stuck; exiting to be started again"
-            log.error(said, extra={"exit_code": EXIT_FAILURE})
-            notifier.stopping("a mirror stopped or is stuck: exiting to be started again")
+            said = "a twin worker or the agent's supervisor stopped or is stuck (the log above says which)"
+            log.error(f"{said}; exiting to be started again", extra={"exit_code": EXIT_FAILURE})
+            notifier.stopping("a mirror or the supervisor stopped or is stuck: exiting to be started again")
             service.stop()
             return EXIT_FAILURE
     signal_name = received[0] if received else None
