@@ -539,3 +539,27 @@ def test_a_history_an_earlier_demo_wrote_is_replaced(tmp_path):
         rig_demo._clear_outputs(tmp_path)
         assert [p.name for p in (tmp_path / "history").iterdir()] == [rig_demo.HISTORY_MARK]
         shutil.rmtree(tmp_path / "history")
+
+
+def test_only_the_recording_the_last_run_named_is_removed(tmp_path):
+    """An agent of the user's may record its USD sessions into the demo's directory (its twin.record_dir):
+    a run removes only the recording the last run's stats.json names, never another session file there."""
+    from twin.rig import demo as rig_demo
+
+    theirs = tmp_path / "session-20261201T080000Z.usda"
+    theirs.write_text("#usda 1.0\n")
+    demos = tmp_path / "session-20261206T090000Z.usda"
+    demos.write_text("#usda 1.0\n")
+    (tmp_path / "stats.json").write_text(json.dumps({"files": {"usd": demos.name}}))
+    rig_demo._clear_outputs(tmp_path)
+    assert theirs.is_file() and not demos.exists() and not (tmp_path / "stats.json").exists()
+    # A stats.json that names no file, one in another directory, or one that is no session, removes nothing.
+    elsewhere = tmp_path / "kept" / "session-20261130T080000Z.usda"
+    elsewhere.parent.mkdir()
+    others = [theirs, elsewhere, tmp_path / "notes.txt"]
+    for path in others[1:]:
+        path.write_text("#usda 1.0\n")
+    for named in ({}, {"files": {"usd": "kept/" + elsewhere.name}}, {"files": {"usd": "notes.txt"}}):
+        (tmp_path / "stats.json").write_text(json.dumps(named))
+        rig_demo._clear_outputs(tmp_path)
+        assert all(path.is_file() for path in others), named

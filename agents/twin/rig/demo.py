@@ -52,13 +52,13 @@ from twin.service.state import AgentState, DeviceState
 log = logging.getLogger(__name__)
 
 # Files this module writes into the output directory; earlier runs' copies are removed first so the directory
-# always describes one run. Nothing else in the directory is touched.
+# always describes one run. Nothing else in the directory is touched: of the USD session recordings there,
+# only the one the last run's stats.json names is the demo's (an agent of the user's may record into the same
+# directory: its twin.record_dir).
 OUTPUT_PATTERNS = (
     "twin.png",
     "twin.gif",
     "twin.rrd",
-    "stats.json",
-    "session-*.usda",
     "history.png",
     "console-fleet.png",
     "console-arm.png",
@@ -194,6 +194,18 @@ def _internal_latency(state: AgentState, pct: str) -> float | None:
     return _worst([getattr(d.health.internal_latency_s, pct) for d in state.devices.values()])
 
 
+def _last_recording(stats: Path) -> Path | None:
+    """The USD session recording an earlier run's stats.json names (files.usd), when it names one by a plain
+    file name in its own directory: nothing else is taken for the demo's."""
+    try:
+        name = json.loads(stats.read_text())["files"]["usd"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    if not isinstance(name, str) or Path(name).name != name or not name.startswith("session-"):
+        return None
+    return stats.parent / name
+
+
 def _clear_outputs(out_dir: Path) -> None:
     history = out_dir / HISTORY_DIR
     ours = (history / HISTORY_MARK).exists() or (out_dir / "stats.json").exists()
@@ -206,6 +218,10 @@ def _clear_outputs(out_dir: Path) -> None:
     for pattern in OUTPUT_PATTERNS:
         for path in out_dir.glob(pattern):
             path.unlink()
+    recording = _last_recording(out_dir / "stats.json")
+    if recording is not None:
+        recording.unlink(missing_ok=True)
+    (out_dir / "stats.json").unlink(missing_ok=True)
     # A new table per run: appending to the last run's would mix two runs in one history.
     shutil.rmtree(history, ignore_errors=True)
     history.mkdir()
