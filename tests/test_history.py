@@ -633,6 +633,9 @@ def test_reader_errors_and_times() -> None:
     for far in ("1e20", "99999999999999", "100000000d"):
         with pytest.raises(HistoryArgumentError, match=f"time '{far}' is out of range"):
             parse_time(far, now=now)
+    # A bare negative number was epoch seconds before 1970: --since=-5 selected everything, said nowhere.
+    with pytest.raises(HistoryArgumentError, match=r"'-5' is epoch seconds before 1970.*-5m, -5h or -5d"):
+        parse_time("-5", now=now)
     with pytest.raises(HistoryReadError, match="no history table"):
         HistoryReader("/nonexistent/history").scan()
 

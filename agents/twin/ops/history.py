@@ -103,6 +103,12 @@ def _parse_time(text: str, now: dt.datetime | None) -> dt.datetime:
     except ValueError:
         pass
     else:
+        if seconds < 0:
+            # Before 1970, no history's time: a span before now missing its unit, which selected everything.
+            raise TimeFormatError(
+                f"time {text!r} is epoch seconds before 1970, older than any history; for a span before now "
+                f"give its unit: {value}m, {value}h or {value}d"
+            )
         if math.isfinite(seconds):
             return dt.datetime.fromtimestamp(seconds, dt.UTC)
     try:
