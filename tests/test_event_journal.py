@@ -148,10 +148,11 @@ def test_a_failed_write_is_counted_told_with_its_fix_and_tried_again(
         raise_alarms(store, 1)
         assert not journal.flush()  # within WARN_EVERY_S: counted, not told again
     assert journal.not_written == 3
-    stats, bulk = journal.sinks()  # each pair an output's figures in /state: SinkDrops counts them
+    stats, bulk, lifecycle = journal.sinks()  # each pair an output's figures in /state: SinkDrops counts them
     assert (stats.name, stats.dropped, stats.errors) == ("events_journal", 3, 2)
     assert "IsADirectoryError" in stats.last_error
     assert (bulk.name, bulk.dropped, bulk.errors, bulk.last_error) == ("events_journal_bulk", 0, 0, "")
+    assert (lifecycle.name, lifecycle.dropped) == ("events_journal_lifecycle", 0)
     told = [r.getMessage() for r in caplog.records]
     assert len(told) == 1, told
     assert "2 event(s) could not be written" in told[0] and "Make room on its disk" in told[0]
@@ -228,7 +229,7 @@ def test_a_flood_of_status_events_on_a_failing_disk_leaves_the_alarms_waiting_wi
     assert journal.flush()
     journal.close()
     assert EventJournal(path).load(None) == [*waiting, *flood[-10:]]
-    kept, bulk = journal.sinks()
+    kept, bulk, _ = journal.sinks()
     assert (kept.delivered, kept.dropped, kept.errors, kept.pending) == (3, 2, 1, 0)
     assert (bulk.delivered, bulk.dropped, bulk.errors, bulk.pending) == (10, 5 + 15, 1, 0)
 
@@ -265,7 +266,7 @@ def test_a_flood_of_status_events_behind_a_slow_disk_leaves_the_alarms_waiting_w
     assert journal.flush()
     journal.close()
     assert EventJournal(path).load(None) == [*first, *waiting, *flood[-10:]]
-    kept, bulk = journal.sinks()
+    kept, bulk, _ = journal.sinks()
     assert (kept.delivered, kept.dropped, bulk.delivered, bulk.dropped) == (4, 0, 10, 15)
 
 
@@ -287,17 +288,18 @@ def test_the_agent_reads_its_events_back_and_says_how_its_run_before_ended(tmp_p
 
         # Written as the supervisor collects them; its figures are an output's in /state.
         def journal() -> tuple[SinkStats, SinkStats]:
-            names = ("events_journal", "events_journal_bulk")
-            kept, bulk = [s for s in agent.state().agent.sinks if s.name in names]
-            return kept, bulk
+            names = ("events_journal_lifecycle", "events_journal_bulk")
+            bulk, lifecycle = [s for s in agent.state().agent.sinks if s.name in names]
+            return lifecycle, bulk
 
-        # The started event to the file named, the arrivals (status events) to the bulk pair.
+        # The started event to the lifecycle pair, the arrivals (status events) to the bulk pair.
         wait_for(
             lambda: [s.delivered >= n for s, n in zip(journal(), (1, 3), strict=True)] == [True, True],
             30,
             "the started event and the arrivals written",
         )
-        written = events_file.read_text() + event_journal.bulk_path(events_file).read_text()
+        lifecycle = event_journal.lifecycle_path(events_file)
+        written = lifecycle.read_text() + event_journal.bulk_path(events_file).read_text()
         assert [s.dropped for s in journal()] == [0, 0] and written.count("\n") >= 4
     finally:
         agent.stop()
@@ -316,8 +318,8 @@ def test_the_agent_reads_its_events_back_and_says_how_its_run_before_ended(tmp_p
 
     # A run that did not reach its stop (killed) wrote no `agent stopped`, and its state file says it had
     # not stopped: the next start warns.
-    lines = events_file.read_bytes().splitlines(keepends=True)
-    events_file.write_bytes(b"".join(lines[:-1]))
+    lines = lifecycle.read_bytes().splitlines(keepends=True)
+    lifecycle.write_bytes(b"".join(lines[:-1]))
     state_says(tmp_path / "state.json", stopped=False)
     agent = unbrokered_agent(tmp_path, 1, **{"twin.events_file": str(events_file)})
     agent.stop()
@@ -415,6 +417,25 @@ def test_a_flood_of_status_events_past_the_files_size_leaves_the_alarms_before_i
     assert held[-1] == later[-1] and held[: len(alarms)] == alarms
 
 
+def test_an_alarm_flood_past_the_files_size_leaves_the_restarts_before_it_in_theirs(tmp_path: Path) -> None:
+    """The alarms and the lifecycle kinds shared a pair: an alarm flood longer than its files rotated the
+    agent's starts, worker restarts and calibrations before it out, which the store had kept in a reserve of
+    their own, and a restart lost them. Each part has its own pair now."""
+    path = tmp_path / "events.jsonl"
+    store, journal = journaled_store(path, max_bytes=20_000)
+    started = store.emit(EventKind.AGENT, EventLevel.INFO, "the agent started")
+    restarted = store.emit(EventKind.WORKER, EventLevel.WARNING, "worker 0 exited (exit code -9)")
+    for _ in range(40):  # about 100,000 bytes of alarm events: five times the alarms' files
+        raise_alarms(store, 10)
+        assert journal.flush()
+    journal.close()
+    assert path.with_name(path.name + ".1").exists()  # the alarms' pair rotated
+    again = EventStore(100, wall_clock=Clock())
+    again.restore(EventJournal(path).load(again.capacity))
+    assert [started, restarted] == again.query(EventQuery(kinds=frozenset({"agent", "worker"})))
+    assert [started, restarted] == [e for e in store.after(0) if e.kind in ("agent", "worker")]
+
+
 def test_a_journal_from_before_the_bulk_kinds_had_files_of_their_own_is_read(tmp_path: Path) -> None:
     # Its one pair holds every kind, in id order; the new events go to two pairs; a start reads all four.
     path = tmp_path / "events.jsonl"
@@ -494,16 +515,18 @@ def test_a_store_full_of_alarms_comes_back_whole_after_a_restart_just_after_a_ro
 
 
 def test_the_agents_journal_files_are_sized_by_its_events_capacity(tmp_path: Path) -> None:
-    # A store of 100 events keeps at most 100 alarms: its journal's alarm file is renamed away past 100 of its
-    # longest lines (100,000 bytes), not at a size made for the default 20,000.
+    # A store of 100 events keeps at most 100 of its lifecycle kinds: its journal's lifecycle file is renamed
+    # away past 100 of their longest lines (100,000 bytes), not at a size made for the default 20,000.
     path = tmp_path / "events.jsonl"
+    lifecycle = event_journal.lifecycle_path(path)
     store, journal = journaled_store(path)
-    raise_alarms(store, 2_000)  # about 220,000 bytes, from a run before
+    for i in range(2_000):  # a run before that restarted its workers often
+        store.emit(EventKind.WORKER, EventLevel.WARNING, f"worker 0 exited (exit code -9), {i}")
     journal.close()
-    assert 100 * event_journal.KEPT_LINE_BYTES < path.stat().st_size < 2**20
+    assert 100 * event_journal.KEPT_LINE_BYTES < lifecycle.stat().st_size < 2**20
     agent = unbrokered_agent(tmp_path, 1, **{"twin.events_file": str(path), "twin.events_capacity": 100})
     agent.stop()  # its start and stop events are written after the lines before: the file is past its size
-    assert path.with_name(path.name + ".1").exists()
+    assert lifecycle.with_name(lifecycle.name + ".1").exists()
     assert EventJournal(path).load(None)[-1].data["action"] == "stopped"
 
 

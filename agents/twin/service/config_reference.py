@@ -192,13 +192,13 @@ KEY_DOCS: dict[str, str] = {
     "twin.events_file": (
         "Where the agent appends its events (the console's Events page), to read them back at its next "
         "start: without it a restart begins the page anew, and the Sessions page no longer knows the "
-        "alarms raised in a session from before it. The alarm, calibration, agent, worker and broker "
-        "events go to this file, the status, rejected and twin events to `<stem>.bulk<suffix>` beside "
-        "it, so a flood of status events never rotates the alarms out. Each file is renamed `<name>.1` "
-        "(the older) once past `events_capacity` x 1,000 bytes (x 500 for the bulk pair), so each pair "
-        "holds all the store keeps of its kinds, and the four files take at most `events_capacity` x "
-        "3,000 bytes (60 MB at the default 20,000). Empty = memory only. The twin host's config names "
-        "`/var/lib/so101-twin-agent/events.jsonl`."
+        "alarms raised in a session from before it. The alarm events go to this file, the status, "
+        "rejected and twin events to `<stem>.bulk<suffix>` beside it, the calibration, agent, worker and "
+        "broker events to `<stem>.lifecycle<suffix>`, so a flood of one kind never rotates the others "
+        "out. Each file is renamed `<name>.1` (the older) once past `events_capacity` x 1,000 bytes (x 500 "
+        "for the bulk pair), so each pair holds all the store keeps of its kinds, and the six files take "
+        "at most `events_capacity` x 5,000 bytes (100 MB at the default 20,000). Empty = memory only. "
+        "The twin host's config names `/var/lib/so101-twin-agent/events.jsonl`."
     ),
     "twin.events_capacity": (
         "How many events the agent keeps in memory for the Events page, its exports and the Sessions "

@@ -11,18 +11,20 @@ same before and after.
   on; the agent's supervisor calls `flush` every round (half a second) and the stop calls it last. So a
   process killed outright loses at most its last round of events, and the run after it says so
   (`AgentService` reads the journal's last event: a run that stopped wrote `agent stopped` last).
-- **Two pairs of files.** The kinds that come in floods (`events.BULK_KINDS`: status, rejected, twin) go to
-  `<stem>.bulk<suffix>` beside it (`events.bulk.jsonl`), the others (alarm, calibration, agent, worker,
-  broker) to the file named: a flood of status events rotates only its own file, never the alarms before it
-  out. A file from before the split holds both, and is read as it is (each event goes where its kind does).
+- **Three pairs of files, one per part of the store.** The kinds that come in floods (`events.BULK_KINDS`:
+  status, rejected, twin) go to `<stem>.bulk<suffix>` beside it (`events.bulk.jsonl`), the rare lifecycle
+  kinds (`events.LIFECYCLE_KINDS`: calibration, agent, worker, broker) to `<stem>.lifecycle<suffix>`, the
+  alarms to the file named: a flood of status events rotates only its own file, never the alarms before it
+  out, and an alarm flood only the alarms' file, never the restarts and calibrations before it (the store
+  keeps those in a reserve of their own). A file from before a split holds several parts, and is read as it
+  is (each event goes where its kind does).
 - **How big it gets.** Each file is renamed `<name>.1` once it passes its pair's size (replacing the one
-  before) and a new one begun. Either part of a store may fill all of it (an alarm flood with no status
+  before) and a new one begun. Any part of a store may fill nearly all of it (an alarm flood with no status
   events leaves `capacity` alarms in it), so a pair's size is `[twin] events_capacity` of its longest lines
   (KEPT_LINE_BYTES, BULK_LINE_BYTES): just after a rename its `.1` alone holds that many, so each pair holds
-  every event the store keeps of its kinds. The disk holds at most twice both sizes and a flush more each:
-  `capacity` x 3,000 bytes, 60 MB at the default 20,000 (300 MB at the largest, 100,000). Not kept over a
-  restart: the lifecycle events the store's reserve keeps from before an alarm flood longer than the store,
-  which the flood's lines rotate out of their pair.
+  every event the store keeps of its kinds. The disk holds at most twice the three sizes and a flush more
+  each: `capacity` x 5,000 bytes, 100 MB at the default 20,000 (500 MB at the largest, 100,000); the
+  lifecycle pair, its kinds rare, is far from its size in practice.
 - **How a start reads it.** Line by line, keeping the newest `limit` events of each of the store's parts
   (bulk, alarm, lifecycle: `events.EventStore`), so a start holds at most three times `limit` events
   however big the files are, and hands them over in id order.
@@ -33,8 +35,9 @@ same before and after.
   a queue per pair (a store's capacity each; the oldest of that pair go, counted), so a disk that stays
   broken or slow cannot grow the agent's memory, and a flood of status events waiting behind it pushes out
   only older bulk events, never the alarms waiting with them. Each pair's counts are an output's in /state
-  (`agent.sinks`: `events_journal` for the file named, `events_journal_bulk` for the bulk pair), so they
-  reach CloudWatch's SinkDrops; its log lines name the file that failed.
+  (`agent.sinks`: `events_journal` for the file named, `events_journal_bulk` and
+  `events_journal_lifecycle` for the others), so they reach CloudWatch's SinkDrops; its log lines name the
+  file that failed.
 """
 
 from __future__ import annotations
@@ -54,7 +57,14 @@ import msgspec
 
 from twin.core.throttle import Throttle
 from twin.output.sinks import SinkStats
-from twin.service.events import BULK_KINDS, DEFAULT_CAPACITY, Event, part_index
+from twin.service.events import (
+    ALARM_PART,
+    BULK_PART,
+    DEFAULT_CAPACITY,
+    LIFECYCLE_PART,
+    Event,
+    part_index,
+)
 
 log = logging.getLogger(__name__)
 
@@ -62,19 +72,21 @@ __all__ = [
     "BULK_LINE_BYTES",
     "BULK_SINK_NAME",
     "KEPT_LINE_BYTES",
+    "LIFECYCLE_SINK_NAME",
     "SINK_NAME",
     "EventJournal",
 ]
 
 # The pairs' names among the outputs of /state's `agent.sinks` and /metrics' `sink` label.
-SINK_NAME = "events_journal"  # the file named: alarm, calibration, agent, worker, broker
+SINK_NAME = "events_journal"  # the file named: alarm
 BULK_SINK_NAME = "events_journal_bulk"  # status, rejected, twin
+LIFECYCLE_SINK_NAME = "events_journal_lifecycle"  # calibration, agent, worker, broker
 
 # Each pair's files are renamed away once past its store's capacity times these: the most a line of its kinds
 # takes. An alarm's line is about 530 to 760 bytes for a 7-character arm id (the id is in it three times, its
 # text twice), up to about 940 for a 64-character one (IoT Core's longest); a status event's about 200 to
-# 300, a twin event's up to about 500. Either part may fill a whole store, so each pair needs `capacity`.
-KEPT_LINE_BYTES = 1_000  # alarm, calibration, agent, worker, broker: 20 MB a file at the default capacity
+# 300, a twin event's up to about 500. Any part may fill nearly a whole store, so each pair needs `capacity`.
+KEPT_LINE_BYTES = 1_000  # alarm; and calibration, agent, worker, broker: 20 MB a file at the default capacity
 BULK_LINE_BYTES = 500  # status, rejected, twin: 10 MB a file at the default capacity
 # A write that keeps failing is logged again at most this often (each flush would otherwise log).
 WARN_EVERY_S = 60.0
@@ -87,6 +99,11 @@ _ID = attrgetter("id")
 def bulk_path(path: Path) -> Path:
     """Where a journal at `path` keeps the bulk kinds' events: `events.jsonl` -> `events.bulk.jsonl`."""
     return path.with_name(f"{path.stem}.bulk{path.suffix}")
+
+
+def lifecycle_path(path: Path) -> Path:
+    """Where a journal at `path` keeps the lifecycle kinds' events: `events.lifecycle.jsonl`."""
+    return path.with_name(f"{path.stem}.lifecycle{path.suffix}")
 
 
 class _Files:
@@ -160,7 +177,7 @@ class EventJournal:
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         """`capacity`: the store's (`[twin] events_capacity`), which sizes each pair's files (module doc)
-        and its queue; `max_bytes`, when given, sizes both pairs' files instead, `max_pending` their
+        and its queue; `max_bytes`, when given, sizes every pair's files instead, `max_pending` their
         queues."""
         if capacity < 1:
             raise ValueError(f"an event journal's store holds at least one event, got capacity = {capacity}")
@@ -169,9 +186,13 @@ class EventJournal:
         self.path = Path(path)
         kept_bytes = capacity * KEPT_LINE_BYTES if max_bytes is None else max_bytes
         bulk_bytes = capacity * BULK_LINE_BYTES if max_bytes is None else max_bytes
-        # alarm, calibration, agent, worker, broker; and status, rejected, twin
         self._kept = _Files(self.path, kept_bytes, name=SINK_NAME, clock=clock)
         self._bulk = _Files(bulk_path(self.path), bulk_bytes, name=BULK_SINK_NAME, clock=clock)
+        lifecycle = _Files(lifecycle_path(self.path), kept_bytes, name=LIFECYCLE_SINK_NAME, clock=clock)
+        # Indexed by the store's parts (events.part_index): the pair each event's kind goes to.
+        by_part = {BULK_PART: self._bulk, ALARM_PART: self._kept, LIFECYCLE_PART: lifecycle}
+        self._by_part = tuple(by_part[part] for part in range(len(by_part)))
+        self._pairs = (self._kept, self._bulk, lifecycle)
         self._lock = threading.Lock()  # the pairs' queues
         # Events waiting for a flush, in each pair's queue: a store's worth. More only while writes fail or
         # are slow; then the oldest of that pair go, counted, so the memory held is at most twice the store's.
@@ -187,7 +208,7 @@ class EventJournal:
         files hold, in id order, as they were numbered; [] for none. A file that cannot be read is reported
         and left as it is (the next write appends to it)."""
         try:
-            fresh = not self._kept.exist() and not self._bulk.exist()
+            fresh = not any(files.exist() for files in self._pairs)
         except OSError:
             fresh = False  # its directory cannot be searched: reading says why
         if fresh:
@@ -199,11 +220,11 @@ class EventJournal:
             )
             return []
         parts: list[list[Event]] = [[], [], []]
-        for path in (self._kept.previous, self._kept.path, self._bulk.previous, self._bulk.path):
-            # A file from before the bulk kinds had files of their own holds every kind: each to its part.
+        for path in itertools.chain.from_iterable((files.previous, files.path) for files in self._pairs):
+            # A file from before a part had files of its own holds several kinds: each to its part.
             read, bad = self._read(path, limit)
             parts = [_newest((*held, *new), limit) for held, new in zip(parts, read, strict=True)]
-            if bad:  # named by its own file: there are four
+            if bad:  # named by its own file: there are six
                 self.unreadable += bad
                 log.warning(
                     "the event journal %s has %d line(s) that are not events (a write cut short by a kill "
@@ -241,7 +262,7 @@ class EventJournal:
 
     def add(self, event: Event) -> None:
         """Queue `event` (numbered by its store) for the next flush. Any thread; never blocks on the disk."""
-        files = self._bulk if event.kind in BULK_KINDS else self._kept
+        files = self._by_part[part_index(event.kind)]
         with self._lock:
             # Each pair's own bound: a flood of status events behind a slow disk never pushes out an alarm.
             if len(files.pending) >= self._max_pending:
@@ -254,7 +275,7 @@ class EventJournal:
         with what is queued then)."""
         with self._write_lock:
             ok = True
-            for files in (self._kept, self._bulk):
+            for files in self._pairs:
                 with self._lock:
                     batch = list(files.pending)
                     files.pending.clear()
@@ -288,29 +309,29 @@ class EventJournal:
         return True
 
     def close(self) -> None:
-        """Flush what is queued and close both pairs' files (a later flush opens them again)."""
+        """Flush what is queued and close every pair's files (a later flush opens them again)."""
         with self._write_lock:
             self.flush()
-            self._kept.close()
-            self._bulk.close()
+            for files in self._pairs:
+                files.close()
 
     @property
     def pending(self) -> int:
-        return len(self._kept.pending) + len(self._bulk.pending)
+        return sum(len(files.pending) for files in self._pairs)
 
     @property
     def written(self) -> int:
-        return self._kept.written + self._bulk.written
+        return sum(files.written for files in self._pairs)
 
     @property
     def not_written(self) -> int:
-        return self._kept.not_written + self._bulk.not_written
+        return sum(files.not_written for files in self._pairs)
 
-    def sinks(self) -> tuple[SinkStats, SinkStats]:
-        """The journal as two outputs in /state's `agent.sinks`, a pair each (`events_journal`, the file
-        named; `events_journal_bulk`): what either could not write reaches the SinkDrops metric and its
-        alarm like any output's drops."""
-        return self._kept.stats(), self._bulk.stats()
+    def sinks(self) -> tuple[SinkStats, SinkStats, SinkStats]:
+        """The journal as three outputs in /state's `agent.sinks`, a pair each (`events_journal`, the file
+        named; `events_journal_bulk`; `events_journal_lifecycle`): what any could not write reaches the
+        SinkDrops metric and its alarm like any output's drops."""
+        return self._kept.stats(), self._bulk.stats(), self._pairs[2].stats()
 
 
 def _warn(files: _Files, exc: OSError, count: int) -> None:
