@@ -104,6 +104,20 @@ printf '%s\n' "$me $*" >>"$SIM/calls.log"
 if [ -e "$SIM/fail/$me" ]; then echo "$me: failing on purpose (test)" >&2; exit 1; fi
 mark() { mkdir -p "$SIM/$1"; : >"$SIM/$1/$2"; }
 has() { [ -e "$SIM/$1/$2" ]; }
+# X on :0 answers a client (glxinfo, xwininfo) only while it runs, with its Xorg's -auth file in XAUTHORITY:
+# x_refuses PREFIX prints the client's error lines, each headed PREFIX, and succeeds when it would refuse.
+x_refuses() {
+  if ! has state xorg || [ "${DISPLAY:-}" != :0 ]; then
+    echo "$1unable to open display \"${DISPLAY:-}\"" >&2; return 0
+  fi
+  local auth
+  auth="$(tr '\0' '\n' <"$ROOT/proc/1234/cmdline" | sed -n '/^-auth$/{n;p;}')"
+  if [ "${XAUTHORITY:-}" != "$auth" ]; then
+    echo "Authorization required, but no authorization protocol specified" >&2
+    echo "$1unable to open display \":0\"" >&2; return 0
+  fi
+  return 1
+}
 """
 
 STANDINS: dict[str, str] = {
@@ -286,14 +300,7 @@ esac
     "glxinfo": r"""
 # DISPLAY=:0 XAUTHORITY=FILE glxinfo -B: what renders OpenGL on X. Only X on :0 with its Xorg's -auth file
 # answers; SIM/glx holds another renderer's lines (Mesa's llvmpipe: X without NVIDIA's GLX library).
-if ! has state xorg || [ "${DISPLAY:-}" != :0 ]; then
-  echo "Error: unable to open display ${DISPLAY:-}" >&2; exit 1
-fi
-auth="$(tr '\0' '\n' <"$ROOT/proc/1234/cmdline" | sed -n '/^-auth$/{n;p;}')"
-if [ "${XAUTHORITY:-}" != "$auth" ]; then
-  echo "Authorization required, but no authorization protocol specified" >&2
-  echo "Error: unable to open display :0" >&2; exit 1
-fi
+if x_refuses "Error: "; then exit 1; fi
 if [ -f "$SIM/glx" ]; then cat "$SIM/glx"; exit 0; fi
 echo "name of display: :0"
 echo "display: :0  screen: 0"
@@ -309,14 +316,7 @@ echo "OpenGL core profile version string: 4.6.0 NVIDIA 580.95.05"
 # Xorg's -auth file). The lines are as the real tool prints them (x11-utils 7.7, against Xvfb with MuJoCo's
 # viewer open): the screen 1920x1080, the viewer's window where the capture stand-in draws it; SIM/xwin-tree
 # holds other windows.
-if ! has state xorg || [ "${DISPLAY:-}" != :0 ]; then
-  echo "xwininfo: error: unable to open display \"${DISPLAY:-}\"" >&2; exit 1
-fi
-auth="$(tr '\0' '\n' <"$ROOT/proc/1234/cmdline" | sed -n '/^-auth$/{n;p;}')"
-if [ "${XAUTHORITY:-}" != "$auth" ]; then
-  echo "Authorization required, but no authorization protocol specified" >&2
-  echo "xwininfo: error: unable to open display \":0\"" >&2; exit 1
-fi
+if x_refuses "xwininfo: error: "; then exit 1; fi
 echo ""
 echo "xwininfo: Window id: 0x50d (the root window) (has no name)"
 echo ""
