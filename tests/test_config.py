@@ -81,6 +81,7 @@ def test_history_section_defaults_match_the_writers() -> None:
     for key in ("commit_every_s", "commit_every_rows", "max_buffer_rows", "queue_max", "maintain_every_s"):
         assert getattr(section, key) == getattr(writer, key), key
     assert section.vacuum_retention_hours == writer.vacuum_retention_hours
+    assert section.keep_days == writer.keep_days == 0  # an upgrade deletes no one's history
     assert section.writer_nice == WRITER_NICE
     assert not section.enabled
 
@@ -95,6 +96,9 @@ def test_history_section_defaults_match_the_writers() -> None:
         ('[history]\nuri = "h"\nurl = "x"', "unknown key 'history.url'"),
         ('[history]\nuri = "h"\nwriter_nice = -1', "history.writer_nice = -1 must be from 0"),
         ('[history]\nuri = "h"\nwriter_nice = 20', "history.writer_nice = 20 must be from 0"),
+        ('[history]\nuri = "h"\nkeep_days = -1', "history.keep_days = -1 must be at least 0"),
+        ('[history]\nuri = "h"\nkeep_days = 1.5', "history.keep_days = 1.5 must be a whole number"),
+        ('[history]\nuri = "h"\nkeep_days = "30"', "history.keep_days = '30' must be a whole number"),
     ],
 )
 def test_history_settings_are_checked(tmp_path: Path, toml: str, message: str) -> None:

@@ -46,6 +46,7 @@ from twin.output.history import (
     HistorySink,
     HistoryWriter,
     raw_column,
+    rejected_table,
     telemetry_table,
 )
 from twin.output.history_feed import WRITER_NICE, HistoryFeed, HistoryProcess, WriterFigures
@@ -449,6 +450,88 @@ def test_maintenance_runs_in_a_process_that_exits_and_its_log_reaches_ours(
     assert compacted and getattr(compacted[0], "maintenance_pid", os.getpid()) != os.getpid()
     assert getattr(compacted[0], "files_removed", None) == 3
     assert rows_of(uri).height == 300
+
+
+DAY_S = 86400.0
+
+
+def _history_on_days(uri: str, days_back: Iterable[int]) -> dict[str, int]:
+    """10 telemetry rows on each of the days `days_back` before T0's, and one rejected row on each; the
+    rows per UTC date."""
+    writer = HistoryWriter(HistorySettings(uri=uri, commit_every_s=3600, maintain_every_s=0)).start()
+    written: dict[str, int] = {}
+    for back in days_back:
+        start = T0 - back * DAY_S
+        writer.add(TELEMETRY_TABLE, telemetry_table(samples(10, start_s=start))[0])
+        rejected = RejectedSample("arm-001", "dt/lerobot/arm-001/telemetry", start, "not_json", "bad", b"{x")
+        writer.add(REJECTED_TABLE, rejected_table([rejected], 100))
+        written[dt.datetime.fromtimestamp(start, dt.UTC).date().isoformat()] = 10
+    assert writer.flush(10)
+    writer.close()
+    return written
+
+
+def _rows_per_day(uri: str, table: str = TELEMETRY_TABLE) -> dict[str, int]:
+    counts = rows_of(uri, table).group_by("date").len()
+    return {str(day): n for day, n in counts.iter_rows()}
+
+
+def test_keep_days_deletes_the_days_before_the_last_n_and_vacuum_frees_their_files(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    uri = str(tmp_path / "h")
+    written = _history_on_days(uri, [40, 3, 2, 1, 0])
+    today = dt.datetime.fromtimestamp(T0, dt.UTC).date()
+    kept = {day: n for day, n in written.items() if day >= (today - dt.timedelta(days=2)).isoformat()}
+    assert len(kept) == 3  # today and the two whole days before it
+    settings = HistorySettings(uri=uri, maintain_every_s=0, vacuum_retention_hours=0, keep_days=2)
+    wall = [T0]
+    writer = HistoryWriter(settings, wall_clock=lambda: wall[0])
+    caplog.set_level("INFO", logger="twin.output.history")
+    writer.maintain_now(today)  # in the maintenance process, as the agent runs it
+    assert _rows_per_day(uri) == kept
+    assert set(_rows_per_day(uri, REJECTED_TABLE)) == set(kept)
+    stats = writer.stats()
+    assert (stats.rows_expired, stats.maintenance_runs, stats.maintenance_failures) == (2 * 10 + 2, 2, 0)
+    said = [r.getMessage() for r in caplog.records if "older than keep_days" in r.getMessage()]
+    old = sorted(set(written) - set(kept))
+    assert f"history: deleted 20 rows of telemetry older than keep_days = 2 ({', '.join(old)})" in said
+    # The vacuum (retention 0 here) took the deleted days' files off the disk.
+    for table in (TELEMETRY_TABLE, REJECTED_TABLE):
+        assert not [p for day in old for p in (Path(uri) / table / f"date={day}").glob("*.parquet")]
+    # A second run finds nothing more to delete: it says nothing of it and commits nothing for it.
+    caplog.clear()
+    wall[0] = T0 + 3600  # the next maintenance window (the lease is per window), the same day
+    writer.maintain_now(today)
+    assert (writer.stats().rows_expired, writer.stats().maintenance_runs) == (22, 4)
+    assert not [r for r in caplog.records if "older than keep_days" in r.getMessage()]
+    operations = [c["operation"] for c in DeltaTable(str(Path(uri) / TELEMETRY_TABLE)).history()]
+    assert operations.count("DELETE") == 1
+
+
+def test_keep_days_0_keeps_every_day(tmp_path: Path) -> None:
+    uri = str(tmp_path / "h")
+    written = _history_on_days(uri, [400, 40, 1, 0])
+    writer = HistoryWriter(HistorySettings(uri=uri, maintain_every_s=0, vacuum_retention_hours=0))
+    writer.maintain_now(dt.datetime.fromtimestamp(T0, dt.UTC).date())
+    assert _rows_per_day(uri) == written
+    assert len(_rows_per_day(uri, REJECTED_TABLE)) == 4
+    assert (writer.stats().rows_expired, writer.stats().maintenance_failures) == (0, 0)
+
+
+def test_keep_days_reaches_the_writer_from_the_config(tmp_path: Path) -> None:
+    from twin.service.agent import history_settings
+
+    settings = history_settings(load_config(None, {"history.uri": str(tmp_path), "history.keep_days": 30}))
+    assert settings is not None
+    settings.pop("writer_nice")  # the writer process's own, not HistorySettings'
+    assert HistorySettings(**settings).keep_days == 30
+
+
+@pytest.mark.parametrize("bad", [-1, 1.5, True, "30"])
+def test_a_keep_days_that_is_not_a_whole_number_of_days_is_refused(tmp_path: Path, bad: Any) -> None:
+    with pytest.raises(HistoryError, match=re.escape(f"history keep_days = {bad!r} must be a whole number")):
+        HistorySettings(uri=str(tmp_path / "h"), keep_days=bad)
 
 
 def test_a_failed_maintenance_process_is_counted_and_named(

@@ -147,6 +147,9 @@ class HistorySettings:
     maintain_every_s: float = 3600.0
     # Files replaced by compaction stay this long for readers still using an older version.
     vacuum_retention_hours: float = 24.0
+    # Each maintenance run deletes the days before the last keep_days whole UTC days (0 = keep everything:
+    # an upgrade must not remove anyone's rows); the vacuum then frees their files.
+    keep_days: int = 0
     target_file_mb: int = 128
     retry_min_s: float = 1.0
     retry_max_s: float = 60.0
@@ -184,6 +187,11 @@ class HistorySettings:
             raise HistoryError("history maintain_every_s and vacuum_retention_hours must not be negative")
         if self.rejected_payload_max_bytes < 0:
             raise HistoryError("history rejected_payload_max_bytes must not be negative")
+        if isinstance(self.keep_days, bool) or not isinstance(self.keep_days, int) or self.keep_days < 0:
+            raise HistoryError(
+                f"history keep_days = {self.keep_days!r} must be a whole number of days, at least 0 "
+                "(0 keeps everything)"
+            )
 
     @property
     def is_s3(self) -> bool:
@@ -381,6 +389,8 @@ class WriterStats:
     maintenance_conflicts: int = 0
     # Windows in which another writer held the maintenance lease.
     maintenance_skipped: int = 0
+    # Rows maintenance deleted for being older than keep_days (their files go at a later vacuum).
+    rows_expired: int = 0
     slow_parses: int = 0
     conversion_failures: int = 0
     rows_lost_in_conversion: int = 0
@@ -979,6 +989,7 @@ class HistoryWriter:
             if dtable is None:
                 continue
             try:
+                self._expire(table, dtable, today)
                 self._maintain_table(table, dtable, days)
                 with self._cond:
                     self._stats.maintenance_runs += 1
@@ -1012,6 +1023,38 @@ class HistoryWriter:
             if type(exc).__name__ != "TableNotFoundError":
                 self._maintenance_failed(table, exc)
             return None
+
+    def _expire(self, table: str, dtable: Any, today: dt.date) -> None:
+        """Delete the rows of the days before the last keep_days whole UTC days (today, partial, is kept as
+        well). The predicate is on the partition column alone, so delta-rs removes whole files without
+        reading them; they stay on storage, for readers of older versions, until the vacuum after
+        vacuum_retention_hours frees them."""
+        if self.settings.keep_days <= 0:
+            return
+        cut = today - dt.timedelta(days=self.settings.keep_days)
+        old = sorted(
+            day for p in dtable.partitions() if (day := str(p.get(PARTITION_COLUMN))) < cut.isoformat()
+        )
+        if not old:  # no day old enough: no delete to run, nothing to log
+            return
+        metrics = dtable.delete(f"{PARTITION_COLUMN} < '{cut.isoformat()}'")
+        # delta-rs leaves the count out when it could only know it by reading the files.
+        counted = metrics.get("num_deleted_rows")
+        rows = int(counted or 0)
+        with self._cond:
+            self._stats.rows_expired += rows
+        log.info(
+            "history: deleted %s rows of %s older than keep_days = %d (%s)",
+            "the" if counted is None else rows,
+            table,
+            self.settings.keep_days,
+            ", ".join(old) if len(old) <= 10 else f"{old[0]} to {old[-1]}, {len(old)} days",
+            extra={
+                "rows_expired": rows,
+                "days_expired": len(old),
+                "files_removed": metrics.get("num_removed_files"),
+            },
+        )
 
     def _maintain_table(self, table: str, dtable: Any, days: list[dt.date]) -> None:
         existing = {str(p.get(PARTITION_COLUMN)) for p in dtable.partitions()}
@@ -1069,6 +1112,7 @@ class HistoryWriter:
                 "maintenance_failures": stats.maintenance_failures,
                 "maintenance_conflicts": stats.maintenance_conflicts,
                 "maintenance_skipped": stats.maintenance_skipped,
+                "rows_expired": stats.rows_expired,
                 "last_error": stats.last_error,
             }
 
@@ -1091,6 +1135,7 @@ class HistoryWriter:
             for name in ("maintenance_runs", "maintenance_failures", "maintenance_conflicts"):
                 setattr(stats, name, getattr(stats, name) + int(result.get(name, 0)))
             stats.maintenance_skipped += int(result.get("maintenance_skipped", 0))
+            stats.rows_expired += int(result.get("rows_expired", 0))
             if result.get("maintenance_failures") and result.get("last_error"):
                 stats.last_error = str(result["last_error"])
 

@@ -1854,6 +1854,7 @@ def history_settings(config: AgentConfig) -> dict[str, Any] | None:
         "queue_max": h.queue_max,
         "maintain_every_s": h.maintain_every_s,
         "vacuum_retention_hours": h.vacuum_retention_hours,
+        "keep_days": h.keep_days,
         "storage_options": {"AWS_REGION": h.region} if h.region else {},
         "writer_nice": h.writer_nice,  # the writer process's own, not HistorySettings'
     }

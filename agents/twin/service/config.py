@@ -193,6 +193,8 @@ class HistorySection:
     queue_max: int = 30_000
     maintain_every_s: float = 3600.0
     vacuum_retention_hours: float = 24.0
+    # Days of history kept; 0 = all (the default, so an upgrade removes no one's rows).
+    keep_days: int = 0
     # How much nicer than the mirrors the writer process runs (twin.output.history_feed.WRITER_NICE says why
     # 5; a host with cores to spare may run it at 0).
     writer_nice: int = 5
@@ -661,6 +663,11 @@ def _validate_history(hs: HistorySection) -> None:
     for key in ("commit_every_rows", "max_buffer_rows", "queue_max"):
         if getattr(hs, key) < 1:
             raise ConfigError(f"history.{key} = {getattr(hs, key)!r} must be at least 1")
+    if hs.keep_days < 0:
+        raise ConfigError(
+            f"history.keep_days = {hs.keep_days} must be at least 0: the whole UTC days of history kept, "
+            "e.g. keep_days = 90, or keep_days = 0 to keep everything"
+        )
     if hs.max_buffer_rows < hs.commit_every_rows:
         raise ConfigError(
             f"history.max_buffer_rows = {hs.max_buffer_rows} must be at least commit_every_rows = "

@@ -264,6 +264,10 @@ KEY_DOCS: dict[str, str] = {
         "Compaction, checkpoint and vacuum interval; 0 = never (another writer maintains)."
     ),
     "history.vacuum_retention_hours": "Files replaced by compaction are deleted after this long.",
+    "history.keep_days": (
+        "Rows older than this many whole UTC days (today is kept too) are deleted at each maintenance, "
+        "their files at the vacuum after `vacuum_retention_hours`; 0 = keep everything."
+    ),
     "history.writer_nice": (
         "How much nicer than the mirrors the history writer process runs, 0 to 19: its commits' bursts of "
         "Parquet encoding then yield to the mirrors (docs/history.md). 0 on a host with cores to spare."
