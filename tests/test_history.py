@@ -762,6 +762,15 @@ def test_the_docs_way_to_remove_old_history_keeps_the_tables_readable(
     assert reader.rejected_counts() == {}
 
 
+def test_the_docs_setting_to_remove_old_history_is_one_the_agent_reads(tmp_path: Path) -> None:
+    docs = (Path(__file__).parents[1] / "docs/history.md").read_text()
+    section = docs.split("## Removing old history", 1)[1].split("\n## ", 1)[0]
+    toml = section.split("```toml\n", 1)[1].split("```", 1)[0]
+    (tmp_path / "agent.toml").write_text(toml)
+    config = load_config(tmp_path / "agent.toml", {"history.uri": str(tmp_path / "h")})
+    assert config.history.keep_days == 90
+
+
 @pytest.mark.parametrize("command", ["ls", "plot", "export"])
 def test_a_time_not_understood_is_a_usage_error(
     command: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
