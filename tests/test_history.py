@@ -2179,6 +2179,28 @@ def test_a_read_whose_files_were_vacuumed_meanwhile_is_told_to_run_again(tmp_pat
     assert HistoryReader(uri).collect(HistoryReader(uri).window()).height == 40
 
 
+def test_a_history_whose_path_has_a_space_is_not_called_damaged(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A walk kept its history under a folder with a space: every command called each data file damaged and
+    said to move them all out of the table. deltalake gives their paths escaped (`a%20b`), which polars then
+    fails to open; the files are whole."""
+    from twin.cli import main
+    from twin.ops.history import _damaged_files
+
+    uri = _history_with(tmp_path / "my data", samples(20))
+    table = Path(uri) / TELEMETRY_TABLE
+    assert _damaged_files(str(table)) == []
+    assert main(["history", "ls", "--history", uri]) == 1
+    err = capsys.readouterr().err
+    assert "reads no table whose path holds a space or another character a URI escapes (' ')" in err, err
+    assert "damaged" not in err and "vacuumed" not in err
+    # A file that is really cut short is still the one named.
+    victim = sorted(table.glob("date=*/*.parquet"))[0]
+    victim.write_bytes(victim.read_bytes()[:100])
+    assert _damaged_files(str(table)) == [str(victim)]
+
+
 @pytest.mark.parametrize("command", ["plot", "export"])
 def test_a_full_disk_keeps_the_file_a_person_had_and_names_the_path(
     command: str, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch

@@ -18,6 +18,7 @@ import os
 import re
 import shlex
 import sys
+import urllib.parse
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -235,12 +236,25 @@ def _damaged_files(location: str) -> list[str] | None:
 
     bad = []
     for uri in DeltaTable(location).file_uris():
-        path = uri.removeprefix("file://")
+        # deltalake gives a local file as a URI path: a space in it is `%20`, which no file is named.
+        path = urllib.parse.unquote(uri.removeprefix("file://"))
         try:
             pq.read_metadata(path)
         except (OSError, ValueError, pa.ArrowException):
             bad.append(path)
     return bad
+
+
+# What a URL's path keeps as it is (RFC 3986's sub-delims, `:` and `@`): deltalake escapes the rest.
+_URL_PATH_SAFE = "/!$&'()*+,:;=@~"
+
+
+def _escaped(location: str) -> str:
+    """The characters of a local path that a file URI escapes (a space is `%20`), quoted; "" if none."""
+    if "://" in location:
+        return ""
+    path = str(Path(location).resolve())
+    return " ".join(sorted({repr(c) for c in path if urllib.parse.quote(c, safe=_URL_PATH_SAFE) != c}))
 
 
 def _unreadable_data(location: str, exc: BaseException) -> str:
@@ -250,6 +264,13 @@ def _unreadable_data(location: str, exc: BaseException) -> str:
         bad = _damaged_files(location)
     except Exception:  # the walk is a hint; the message stands without it
         bad = None
+    if bad == [] and _escaped(location):
+        # polars opens each file at the escaped path deltalake gives it (`a%20b`): it reads no such table.
+        return (
+            f"cannot read history at {location}: polars reads no table whose path holds a space or another "
+            f"character a URI escapes ({_escaped(location)}), and found none of its files ({first}): move "
+            "the history to a path without one (a symbolic link does not help: polars resolves it)"
+        )
     if bad == []:
         # Every file of the table's version now reads: the one that failed was replaced meanwhile.
         return (
