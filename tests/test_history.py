@@ -2179,6 +2179,29 @@ def test_a_read_whose_files_were_vacuumed_meanwhile_is_told_to_run_again(tmp_pat
     assert HistoryReader(uri).collect(HistoryReader(uri).window()).height == 40
 
 
+def test_only_a_data_files_error_is_given_the_missing_file_advice(tmp_path: Path) -> None:
+    """Any polars error of a read was said as a missing or vacuumed data file: a missing column, a failed
+    strict cast or expired S3 credentials were told to repair the table or run again."""
+    from twin.ops.history import reading
+
+    location = str(Path(_history_with(tmp_path, samples(20))) / TELEMETRY_TABLE)
+    with pytest.raises(pl.exceptions.ColumnNotFoundError), reading(location):
+        pl.scan_delta(location).select("nope").collect()
+    with pytest.raises(pl.exceptions.InvalidOperationError), reading(location):
+        pl.scan_delta(location).select(pl.col("device_id").cast(pl.Int64, strict=True)).collect()
+    expired = pl.exceptions.ComputeError("Generic S3 error: ExpiredToken: The provided token has expired")
+    with pytest.raises(pl.exceptions.ComputeError), reading(location):
+        raise expired
+    # A Parquet error, with every file whole now, is the error: nothing was vacuumed, as ENOENT would say.
+    footer = pl.exceptions.ComputeError("parquet: File out of specification: invalid footer")
+    said = pytest.raises(HistoryReadError, match=r"invalid footer \(every data file")
+    with said as caught, reading(location):
+        raise footer
+    assert "vacuumed" not in str(caught.value)
+    with pytest.raises(HistoryReadError, match="vacuumed it meanwhile"), reading(location):
+        raise FileNotFoundError(2, "No such file or directory")
+
+
 def test_a_history_whose_path_has_a_space_is_not_called_damaged(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -271,13 +271,15 @@ def _unreadable_data(location: str, exc: BaseException) -> str:
             f"character a URI escapes ({_escaped(location)}), and found none of its files ({first}): move "
             "the history to a path without one (a symbolic link does not help: polars resolves it)"
         )
-    if bad == []:
-        # Every file of the table's version now reads: the one that failed was replaced meanwhile.
+    if bad == [] and _os_errno(exc) == errno.ENOENT:
+        # Every file of the table's version now reads: the one that went away was replaced meanwhile.
         return (
             f"cannot read history at {location}: a file went away during the read ({first}), and every data "
             "file of the table reads whole now: its maintenance compacted and vacuumed it meanwhile (see "
             "[history] vacuum_retention_hours); run the command again"
         )
+    if bad == []:
+        return f"cannot read history at {location}: {first} (every data file its log names reads whole now)"
     named = f": {', '.join(bad[:5])}{' and more' if len(bad) > 5 else ''}" if bad else ""
     return (
         f"cannot read history at {location}: a data file its log names is missing or damaged{named} "
@@ -288,6 +290,19 @@ def _unreadable_data(location: str, exc: BaseException) -> str:
     )
 
 
+def _a_data_file_failed(exc: BaseException) -> bool:
+    """Whether an error of a read is a data file's: gone or unreadable (ENOENT, EIO), not Parquet (polars
+    says so in its text), or a Rust panic (what a file cut short gives). Anything else (a missing column,
+    a strict cast, expired credentials, an export's full disk) is no file's, and the repair advice wrong."""
+    if isinstance(exc, pl.exceptions.PanicException):
+        return True
+    code = _os_errno(exc)
+    if code is not None:
+        return code in (errno.ENOENT, errno.EIO)
+    text = str(exc).lower()
+    return any(word in text for word in ("parquet", "footer", "out of specification"))
+
+
 @contextlib.contextmanager
 def reading(location: str) -> Iterator[None]:
     """Turns what polars raises when a data file the table's log names is missing or damaged (a file removed
@@ -296,8 +311,7 @@ def reading(location: str) -> Iterator[None]:
     try:
         yield
     except (OSError, pl.exceptions.PolarsError, pl.exceptions.PanicException) as exc:
-        # An error of the file being written (an export's disk full) is the caller's, with its path.
-        if _os_errno(exc) not in (None, errno.ENOENT, errno.EIO):
+        if not _a_data_file_failed(exc):
             raise
         raise HistoryReadError(_unreadable_data(location, exc)) from exc
 
