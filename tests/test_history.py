@@ -2224,29 +2224,31 @@ def test_a_history_whose_path_has_a_space_is_not_called_damaged(
     assert _damaged_files(str(table)) == [str(victim)]
 
 
-@pytest.mark.parametrize("command", ["plot", "export"])
+@pytest.mark.parametrize("what", ["plot", "csv", "parquet"])
 def test_a_full_disk_keeps_the_file_a_person_had_and_names_the_path(
-    command: str, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+    what: str, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """A walk wrote to a full disk: both ended in a traceback naming no path (polars and PIL raise the error
-    without one), and `plot --force` left a cut PNG where the picture it replaced had been."""
+    without one), and `plot --force` left a cut PNG where the picture it replaced had been. The default
+    export, Parquet, still did: polars raises its full disk as a ComputeError, not an OSError."""
     import matplotlib.figure
     from twin.cli import main
 
     uri = _history_with(tmp_path, samples(50))
     out = tmp_path / "kept.out"
     out.write_text("before\n")
+    error = pl.exceptions.ComputeError if what == "parquet" else OSError
 
     def full(self: Any, path: Any, **_: Any) -> None:
         Path(path).write_text("half a file\n")
-        raise OSError("No space left on device (os error 28)")  # as polars raises it: no errno, no path
+        raise error("No space left on device (os error 28)")  # as polars raises it: no errno, no path
 
-    if command == "plot":
+    command, args = "export", ["--format", what]
+    if what == "plot":
         monkeypatch.setattr(matplotlib.figure.Figure, "savefig", full)
-        args = ["--device", "arm-001"]
+        command, args = "plot", ["--device", "arm-001"]
     else:
-        monkeypatch.setattr(pl.LazyFrame, "sink_csv", full)
-        args = ["--format", "csv"]
+        monkeypatch.setattr(pl.LazyFrame, f"sink_{what}", full)
     code = main(["history", command, "--history", uri, *args, "--out", str(out), "--force"])
     assert code == 1
     assert f"cannot use {out}: No space left on device; free some space" in capsys.readouterr().err

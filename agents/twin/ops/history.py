@@ -528,9 +528,10 @@ def writing_to(out: Path) -> Iterator[None]:
     `out` as its file, so `twin` says which path and the fix (twin.cli.main.path_error_message)."""
     try:
         yield
-    except OSError as exc:
+    except (OSError, pl.exceptions.PolarsError) as exc:
+        # sink_parquet's full disk is a ComputeError, its errno in its text only.
         code = _os_errno(exc)
-        if exc.filename is not None or code is None:
+        if getattr(exc, "filename", None) is not None or code is None:
             raise
         raise OSError(code, os.strerror(code), str(out)) from exc
 
