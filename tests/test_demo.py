@@ -534,11 +534,70 @@ def test_a_history_an_earlier_demo_wrote_is_replaced(tmp_path):
     from twin.rig import demo as rig_demo
 
     for witness in (Path("history") / rig_demo.HISTORY_MARK, Path("stats.json")):
-        (tmp_path / "history" / "telemetry").mkdir(parents=True)
+        log = tmp_path / "history" / "telemetry" / "_delta_log"
+        log.mkdir(parents=True)
+        (log / "00000000000000000000.json").write_text("{}\n")
+        os.utime(log / "00000000000000000000.json", ns=(0, 0))  # the run's commits, older than its witness
         (tmp_path / witness).write_text("{}")
         rig_demo._clear_outputs(tmp_path)
         assert [p.name for p in (tmp_path / "history").iterdir()] == [rig_demo.HISTORY_MARK]
         shutil.rmtree(tmp_path / "history")
+
+
+def test_a_history_written_after_the_demo_is_not_taken_for_its(tmp_path):
+    """A walk ran `twin demo --out out`, then `rm -rf out/history; twin run --history out/history`, then the
+    demo again: the old stats.json made it delete the agent's history. An agent writing into the demo's own
+    folder after it (its mark there) lost its history the same way."""
+    from twin.rig import demo as rig_demo
+
+    log = tmp_path / "history" / "telemetry" / "_delta_log"
+    log.mkdir(parents=True)
+    commit = log / "00000000000000000001.json"
+    commit.write_text("{}\n")
+    for witness in (Path("history") / rig_demo.HISTORY_MARK, Path("stats.json")):
+        (tmp_path / witness).write_text("{}")
+        os.utime(tmp_path / witness, ns=(0, 0))  # from a run before the agent's commit
+        with pytest.raises(rig_demo.DemoError, match="holds a history the demo did not write"):
+            rig_demo._clear_outputs(tmp_path)
+        assert commit.read_text() == "{}\n"
+        (tmp_path / witness).unlink()
+
+
+def test_a_run_marks_its_history_again_once_its_agent_stopped(tmp_path, monkeypatch):
+    """The mark written at the start is older than the run's own commits: without a new one after them, the
+    next run would refuse the demo's own history."""
+    from twin.rig import demo as rig_demo
+
+    def agent(config, devices, out_dir, run, **_):
+        os.utime(out_dir / "history" / rig_demo.HISTORY_MARK, ns=(0, 0))
+        log = out_dir / "history" / "telemetry" / "_delta_log"
+        log.mkdir(parents=True)
+        (log / "00000000000000000000.json").write_text("{}\n")
+        raise rig_demo.DemoError("the agent stopped")  # a failed run marks it too
+
+    monkeypatch.setattr(rig_demo, "_run_on_rig", agent)
+    config = rig_demo.DemoConfig(out_dir=tmp_path, console=False)
+    with pytest.raises(rig_demo.DemoError, match="the agent stopped"):
+        rig_demo.run_demo(config)
+    rig_demo._clear_outputs(tmp_path)
+    assert [p.name for p in (tmp_path / "history").iterdir()] == [rig_demo.HISTORY_MARK]
+
+
+def test_a_history_the_demo_cannot_make_anew_is_named(tmp_path, monkeypatch):
+    """A file named history, or a history rmtree could not remove all of, was a FileExistsError traceback."""
+    from twin.rig import demo as rig_demo
+
+    (tmp_path / "stats.json").write_text("{}")
+    (tmp_path / "history").write_text("notes\n")
+    with pytest.raises(rig_demo.DemoError, match=f"{tmp_path / 'history'} is a file"):
+        rig_demo._clear_outputs(tmp_path)
+    assert (tmp_path / "history").read_text() == "notes\n"
+    (tmp_path / "history").unlink()
+    (tmp_path / "history").mkdir()
+    (tmp_path / "history" / rig_demo.HISTORY_MARK).write_text("")
+    monkeypatch.setattr(rig_demo.shutil, "rmtree", lambda *_, **__: None)  # as if a file in it stayed
+    with pytest.raises(rig_demo.DemoError, match=f"could not remove the last run's history {tmp_path}"):
+        rig_demo._clear_outputs(tmp_path)
 
 
 def test_only_the_recording_the_last_run_named_is_removed(tmp_path):

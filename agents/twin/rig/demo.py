@@ -30,6 +30,7 @@ docs/viewer.md explains stats.json.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import shutil
@@ -64,9 +65,9 @@ OUTPUT_PATTERNS = (
     "console-arm.png",
 )
 HISTORY_DIR = "history"
-# Left in the history directory a run makes: the next run replaces only a history that carries it (or one
-# beside an earlier run's stats.json, from before the mark), never one an agent of the user's wrote there
-# (`twin run --history out/history`, then `twin demo --out out`).
+# Left in the history directory a run makes, and written again once its agent stopped: the next run replaces
+# only a history whose commits are all older than it (or than an earlier run's stats.json, from before the
+# mark), never one an agent of the user's wrote there (`twin run --history out/history`, then `twin demo`).
 HISTORY_MARK = ".twin-demo"
 RRD_NAME = "twin.rrd"
 STATUS_INTERVAL_S = 0.25
@@ -206,11 +207,32 @@ def _last_recording(stats: Path) -> Path | None:
     return stats.parent / name
 
 
+def _written_by_demo(out_dir: Path, history: Path) -> bool:
+    """Whether the history folder is the demo's: none of its tables' commits is newer than the mark the run
+    writes once its agent stopped (or, from before the mark, than that run's stats.json). A mark or a
+    stats.json alone would let a later agent's history there (`twin run --history out/history`) be taken."""
+    witness = history / HISTORY_MARK
+    if not witness.exists():
+        witness = out_dir / "stats.json"
+    try:
+        since = witness.stat().st_mtime_ns
+    except OSError:
+        return False
+    logs = [path for log_dir in history.rglob("_delta_log") for path in log_dir.rglob("*")]
+    return not any(path.stat().st_mtime_ns > since for path in logs)
+
+
+def _mark_history(history: Path) -> None:
+    """Written at a run's start, and again once its agent stopped: every commit of the run is older."""
+    (history / HISTORY_MARK).write_text("made by twin demo; the next run replaces this directory\n")
+
+
 def _clear_outputs(out_dir: Path) -> None:
     history = out_dir / HISTORY_DIR
-    ours = (history / HISTORY_MARK).exists() or (out_dir / "stats.json").exists()
-    if history.exists() and not ours:
-        # Checked before anything is removed: a refused run leaves the directory as it was.
+    # Checked before anything is removed: a refused run leaves the directory as it was.
+    if history.exists() and not history.is_dir():
+        raise DemoError(f"{history} is a file, where the demo writes its history; give another --out")
+    if history.exists() and not _written_by_demo(out_dir, history):
         raise DemoError(
             f"{history} holds a history the demo did not write, and a run would replace it; "
             "give another --out, or move that directory away first"
@@ -224,8 +246,11 @@ def _clear_outputs(out_dir: Path) -> None:
     (out_dir / "stats.json").unlink(missing_ok=True)
     # A new table per run: appending to the last run's would mix two runs in one history.
     shutil.rmtree(history, ignore_errors=True)
-    history.mkdir()
-    (history / HISTORY_MARK).write_text("made by twin demo; the next run replaces this directory\n")
+    try:
+        history.mkdir()
+    except FileExistsError as exc:  # rmtree left some of it (a file it may not remove)
+        raise DemoError(f"could not remove the last run's history {history}; remove it by hand") from exc
+    _mark_history(history)
 
 
 @dataclass
@@ -346,9 +371,15 @@ def run_demo(
     _clear_outputs(out_dir)
     devices = device_ids(config.devices)
     run = _prepared_run(config, devices, note)
-    broker, service = _run_on_rig(
-        config, devices, out_dir, run, on_status=on_status, on_viewer=on_viewer, note=note, stop=stop
-    )
+    try:
+        broker, service = _run_on_rig(
+            config, devices, out_dir, run, on_status=on_status, on_viewer=on_viewer, note=note, stop=stop
+        )
+    finally:
+        # The agent has stopped, its history's last commit made: the next run finds the mark newer. (A folder
+        # removed meanwhile is no longer the demo's to mark.)
+        with contextlib.suppress(OSError):
+            _mark_history(out_dir / HISTORY_DIR)
     stats, final = _checked_stats(config, run, broker, service, interrupted=stop.is_set())
     # History first: stats.json, written with the other outputs, says what the table holds.
     _write_history_outputs(devices, stats, out_dir)
