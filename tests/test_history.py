@@ -17,6 +17,7 @@ import multiprocessing
 import os
 import random
 import re
+import shlex
 import signal
 import subprocess
 import sys
@@ -2141,7 +2142,8 @@ def test_a_damaged_or_missing_data_file_is_named_with_the_fix(
         assert main(["history", args[0], "--history", uri, *args[1:]]) == 1
         err = capsys.readouterr().err
         assert f"a data file its log names is missing or damaged: {victim}" in err, err
-        assert f"DeltaTable('{table}').repair()" in err
+        repair = f"from deltalake import DeltaTable; print(DeltaTable('{table}').repair())"
+        assert _repair_command(err)[-1] == repair
     assert not out.exists() and not (tmp_path / "p.png").exists()
     # The console's Sessions page, empty either way, says why in the log when the table is there.
     from twin.ops.sessions import HistorySessions
@@ -2158,6 +2160,32 @@ def test_a_damaged_or_missing_data_file_is_named_with_the_fix(
     DeltaTable(str(table)).repair()
     assert main(["history", "ls", "--history", uri, "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["devices"][0]["rows"] == 50
+
+
+def _repair_command(err: str) -> list[str]:
+    """The repair command line a damaged-file message prints, split as a shell would."""
+    match = re.search(r"from its log: (.*) \(their rows", err)
+    assert match, err
+    return shlex.split(match.group(1))
+
+
+def test_the_repair_command_printed_runs_for_a_path_with_quotes_and_a_dollar(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The printed repair command put the path in '...' inside "...": a `'` in it ended the Python string,
+    and a `$` was expanded by the shell."""
+    from twin.cli import main
+
+    base = tmp_path / "it's$HOME"  # (a `"` is one of the characters polars reads no table under)
+    _history_with(base, samples(20))
+    uri = _history_with(base, samples(20, start_s=T0 + 60, seed=2))
+    victim = sorted((Path(uri) / TELEMETRY_TABLE).glob("date=*/*.parquet"))[0]
+    victim.unlink()
+    assert main(["history", "ls", "--history", uri]) == 1
+    command = _repair_command(capsys.readouterr().err)
+    subprocess.run(command, check=True, capture_output=True)
+    assert main(["history", "ls", "--history", uri, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["devices"][0]["rows"] == 20
 
 
 def test_a_read_whose_files_were_vacuumed_meanwhile_is_told_to_run_again(tmp_path: Path) -> None:

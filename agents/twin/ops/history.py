@@ -285,7 +285,8 @@ def _unreadable_data(location: str, exc: BaseException) -> str:
         f"cannot read history at {location}: a data file its log names is missing or damaged{named} "
         f"({first}). Move a damaged file out of the table, then drop the missing ones from its log: "
         f"{shlex.quote(sys.executable)} -c "
-        f"\"from deltalake import DeltaTable; print(DeltaTable('{location}').repair())\" "
+        # Quoted whole: a `'`, `"` or `$` in the path would break the line or be expanded by the shell.
+        f"{shlex.quote(f'from deltalake import DeltaTable; print(DeltaTable({location!r}).repair())')} "
         "(their rows are lost unless a copy of the file is put back instead)"
     )
 
