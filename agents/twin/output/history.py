@@ -879,18 +879,23 @@ class HistoryWriter:
             # A stop retries a second apart until its deadline, whatever the backoff had reached: the line
             # said "retrying in 60 s" while the stop retried each second.
             retry_in = 1.0 if self._closing else self._backoff
+            # The stop's last attempt: `_run` returns at the deadline, before another second is up.
+            last = self._closing and time.monotonic() + retry_in >= self._close_deadline
+            then = f"retrying in {retry_in:.0f} s"
+            if last:
+                then = "not retried: the stop gives up on them at its deadline"
             self._backoff = min(self._backoff * 2.0, self.settings.retry_max_s)
             buffered = stats.rows_buffered
             failures = stats.commit_failures
-        # A drop is a loss, told whatever the interval.
-        if self._error_lines.due(force=bool(dropped), now=now) is not None:
+        # A drop is a loss, told whatever the interval; so is the stop's last attempt, whose rows it loses.
+        if self._error_lines.due(force=bool(dropped) or last, now=now) is not None:
             log.error(
-                "history: %s; %d %s rows kept in memory (bound %d), retrying in %.0f s",
+                "history: %s; %d %s rows kept in memory (bound %d), %s",
                 message,
                 buffered,
                 table,
                 self._limits[table],
-                retry_in,
+                then,
                 extra={"table": table, "commit_failures": failures, "history_dropped_rows": dropped},
             )
 
