@@ -2153,7 +2153,8 @@ def test_a_damaged_or_missing_data_file_is_named_with_the_fix(
     with caplog.at_level(logging.DEBUG, logger="twin.ops.sessions"):
         assert HistorySessions(str(tmp_path / "none")).sessions(30.0) == []
         assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
-        assert HistorySessions(uri).sessions(30.0) == []
+        catalog = HistorySessions(uri)
+        assert catalog.sessions(30.0) == [] and catalog.sessions(30.0) == []  # each refresh reads again
     warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warned) == 1 and warned[0].startswith("history: the console lists no sessions: cannot read")
     assert "missing or damaged" in warned[0]

@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import datetime as dt
 import logging
+import re
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -42,6 +43,8 @@ class HistorySessions:
         self.uri = uri
         self._options = storage_options or {}
         self._model = model
+        # Each console refresh reads the history again: a damaged table is told once per distinct error.
+        self._warned: set[str] = set()
 
     def _reader(self) -> HistoryReader:
         from twin.ops.history import HistoryReader  # noqa: PLC0415 - polars and deltalake load here
@@ -58,7 +61,11 @@ class HistorySessions:
             return []
         except HistoryReadError as exc:
             # A table that is there and cannot be read (a damaged file) must not pass for an empty one.
-            log.warning("history: the console lists no sessions: %s", exc)
+            # Numbers aside: a panic's text names the Rust task that read the file, another one each time.
+            said = re.sub(r"\d+", "#", str(exc))
+            level = logging.DEBUG if said in self._warned else logging.WARNING
+            self._warned.add(said)
+            log.log(level, "history: the console lists no sessions: %s", exc)
             return []
         out = [
             SessionInfo(device=d.device_id, start=s.start.timestamp(), end=s.end.timestamp(), messages=s.rows)
