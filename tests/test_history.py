@@ -762,6 +762,8 @@ def test_the_docs_way_to_remove_old_history_keeps_the_tables_readable(
     exec(code.replace("2026-11-01", cut), {})  # the docs' own lines
     reader = HistoryReader(uri)
     assert reader.collect(reader.window()).height == 10
+    # On the table itself: rejected_counts() is {} for a table that is gone or unreadable too.
+    assert DeltaTable(str(Path(uri) / REJECTED_TABLE)).to_pyarrow_table().num_rows == 0
     assert reader.rejected_counts() == {}
 
 
