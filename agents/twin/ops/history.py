@@ -312,9 +312,23 @@ def reading(location: str) -> Iterator[None]:
     try:
         yield
     except (OSError, pl.exceptions.PolarsError, pl.exceptions.PanicException) as exc:
+        if _storage_refused(exc):
+            raise HistoryReadError(
+                f"cannot read history at {location}: the storage refused it ({str(exc)[:300]}); refresh "
+                "the AWS credentials in use (`aws sts get-caller-identity` names them), then run it again"
+            ) from exc
         if not _a_data_file_failed(exc):
             raise
         raise HistoryReadError(_unreadable_data(location, exc)) from exc
+
+
+def _storage_refused(exc: BaseException) -> bool:
+    """Whether a read failed on the object store's refusal (expired or missing credentials, access denied),
+    which polars raises as a ComputeError in the middle of a read: a traceback otherwise."""
+    text = str(exc)
+    return isinstance(exc, pl.exceptions.ComputeError) and any(
+        word in text for word in ("ExpiredToken", "InvalidAccessKeyId", "AccessDenied", "credential", "403")
+    )
 
 
 def _one_level_off(uri: str, table: str) -> str:
