@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import datetime as dt
+import errno
 import itertools
 import json
 import logging
@@ -2257,6 +2258,26 @@ def test_a_history_whose_path_has_a_space_is_not_called_damaged(
     victim = sorted(table.glob("date=*/*.parquet"))[0]
     victim.write_bytes(victim.read_bytes()[:100])
     assert _damaged_files(str(table)) == [str(victim)]
+
+
+def test_an_error_naming_the_hidden_file_written_first_names_out_instead(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """plot writes beside --out, then renames: a refusal to write that file (permissions) named it, a hidden
+    `.name.partial-N` the person never asked for."""
+    import matplotlib.figure
+    from twin.cli import main
+
+    uri = _history_with(tmp_path, samples(20))
+    out = tmp_path / "picture.png"
+
+    def refused(self: Any, path: Any, **_: Any) -> None:
+        raise PermissionError(errno.EACCES, "Permission denied", str(path))
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", refused)
+    code = main(["history", "plot", "--history", uri, "--device", "arm-001", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 1 and f"cannot use {out}: Permission denied" in err and ".partial-" not in err, err
 
 
 @pytest.mark.parametrize("what", ["plot", "csv", "parquet"])

@@ -509,10 +509,8 @@ def export(
         raise HistoryArgumentError(f"--format {fmt!r} is not one of {', '.join(EXPORT_FORMATS)}")
     _not_a_directory(out, fmt)
     frame = reader.window(device, since, until, decoded=decoded)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    partial = _partial(out)
-    try:
-        with writing_to(out), reading(table_uri(reader.uri, TELEMETRY_TABLE)):
+    with written_whole(out) as partial:
+        with reading(table_uri(reader.uri, TELEMETRY_TABLE)):
             if fmt == "parquet":
                 frame.sink_parquet(partial, compression="zstd")
             else:
@@ -526,9 +524,6 @@ def export(
             raise HistoryReadError(
                 f"no rows in this selection, so nothing was written (see `twin history ls`{hint})"
             )
-        os.replace(partial, out)
-    finally:
-        partial.unlink(missing_ok=True)
     return int(rows)
 
 
@@ -538,15 +533,31 @@ def _partial(out: Path) -> Path:
 
 
 @contextlib.contextmanager
-def writing_to(out: Path) -> Iterator[None]:
-    """An error writing `out` that names no file (a full disk, as polars and PIL raise it) raised again with
-    `out` as its file, so `twin` says which path and the fix (twin.cli.main.path_error_message)."""
+def written_whole(out: Path) -> Iterator[Path]:
+    """Where to write `out`: a file beside it, renamed over it once the block ends without an error, so an
+    interrupted or failed write (a full disk) leaves `out` as it was, never a cut file that looks whole."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    partial = _partial(out)
+    try:
+        with writing_to(out, partial):
+            yield partial
+        os.replace(partial, out)
+    finally:
+        partial.unlink(missing_ok=True)
+
+
+@contextlib.contextmanager
+def writing_to(out: Path, partial: Path | None = None) -> Iterator[None]:
+    """An error writing `out` that names no file (a full disk, as polars and PIL raise it), or names the
+    hidden `partial` it is written to first, raised again with `out` as its file, so `twin` says which path
+    and the fix (twin.cli.main.path_error_message)."""
     try:
         yield
     except (OSError, pl.exceptions.PolarsError) as exc:
         # sink_parquet's full disk is a ComputeError, its errno in its text only.
         code = _os_errno(exc)
-        if getattr(exc, "filename", None) is not None or code is None:
+        named = getattr(exc, "filename", None)
+        if code is None or (named is not None and (partial is None or str(named) != str(partial))):
             raise
         raise OSError(code, os.strerror(code), str(out)) from exc
 
@@ -677,16 +688,11 @@ def plot(
     axes[-1].set_xlabel("received at (UTC)")
     fig.suptitle(f"{device}: {rows} messages, {iso_utc(first)} .. {iso_utc(last)}{note}", y=0.99, fontsize=11)
     fig.tight_layout(rect=(0, 0, 1, 0.93))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    # Beside it, then renamed over it once whole: a full disk left a cut PNG where the old one was (--force).
-    partial = _partial(out)
     try:
-        with writing_to(out):
+        with written_whole(out) as partial:  # a full disk left a cut PNG where the old one was (--force)
             fig.savefig(partial, format="png")  # format given: without it, `--out x` wrote x.png
-            os.replace(partial, out)
     finally:
         plt.close(fig)
-        partial.unlink(missing_ok=True)
     return {
         "device_id": device,
         "rows": rows,
