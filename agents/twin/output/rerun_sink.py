@@ -330,12 +330,7 @@ class RerunWorker:
         self._file: rr.RecordingStream | None = None
         self._served: rr.RecordingStream | None = None
         if self.save_path is not None:
-            self.save_path.parent.mkdir(parents=True, exist_ok=True)
-            # rr.FileSink fails a file it cannot create with a RuntimeError (a traceback, for `twin run`):
-            # opening it here first raises the OSError, with the path, that start-up says how to fix.
-            with self.save_path.open("ab"):
-                pass
-            self._file = self._stream(rr.FileSink(str(self.save_path)))
+            self._file = self._file_stream(self.save_path)
         if settings.serve:
             grpc_port = bindable_port(settings.grpc_port, "rerun.grpc_port", "--grpc-port")
             self._served = self._stream(
@@ -378,6 +373,15 @@ class RerunWorker:
         self._rejects: dict[str | None, tuple[float, int]] = {}
         self.samples_logged = 0
         self.batches_sent = 0
+
+    def _file_stream(self, path: Path) -> rr.RecordingStream:
+        """The stream into the file at `path`. rr.FileSink fails a file it cannot create with a RuntimeError
+        (a traceback, for `twin run`): opening it here first raises the OSError, with the path, that start-up
+        says how to fix."""
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with path.open("ab"):
+            pass
+        return self._stream(rr.FileSink(str(path)))
 
     def _stream(self, sink: rr.FileSink | rr.GrpcServerSink, *, layout: bool = True) -> rr.RecordingStream:
         """A stream of this sink's one recording into `sink`, with the recording's name and root axes, and the
