@@ -568,19 +568,57 @@ def test_a_run_marks_its_history_again_once_its_agent_stopped(tmp_path, monkeypa
     next run would refuse the demo's own history."""
     from twin.rig import demo as rig_demo
 
+    theirs = tmp_path / "session-20261201T080000Z.usda"  # an agent's own, from before the run
+    theirs.write_text("#usda 1.0\n")
+
     def agent(config, devices, out_dir, run, **_):
         os.utime(out_dir / "history" / rig_demo.HISTORY_MARK, ns=(0, 0))
         log = out_dir / "history" / "telemetry" / "_delta_log"
         log.mkdir(parents=True)
         (log / "00000000000000000000.json").write_text("{}\n")
+        (out_dir / "session-20261206T090000Z.usda").write_text("#usda 1.0\n")  # the run's recording
         raise rig_demo.DemoError("the agent stopped")  # a failed run marks it too
 
     monkeypatch.setattr(rig_demo, "_run_on_rig", agent)
     config = rig_demo.DemoConfig(out_dir=tmp_path, console=False)
     with pytest.raises(rig_demo.DemoError, match="the agent stopped"):
         rig_demo.run_demo(config)
+    # No stats.json from the failed run: the mark names its recording, for the next run to remove.
     rig_demo._clear_outputs(tmp_path)
     assert [p.name for p in (tmp_path / "history").iterdir()] == [rig_demo.HISTORY_MARK]
+    assert sorted(p.name for p in tmp_path.glob("session-*.usda")) == [theirs.name]
+
+
+def test_a_history_an_earlier_version_of_the_demo_left_is_replaced(tmp_path):
+    """The version before wrote its mark at a run's start only, then the run's commits, then stats.json: the
+    newest of the mark and stats.json is what the commits are older than."""
+    from twin.rig import demo as rig_demo
+
+    history = tmp_path / "history"
+    log = history / "telemetry" / "_delta_log"
+    log.mkdir(parents=True)
+    (history / rig_demo.HISTORY_MARK).write_text("made by twin demo; the next run replaces this directory\n")
+    os.utime(history / rig_demo.HISTORY_MARK, ns=(0, 0))
+    (log / "00000000000000000000.json").write_text("{}\n")
+    os.utime(log / "00000000000000000000.json", ns=(10**9, 10**9))
+    (tmp_path / "stats.json").write_text("{}")
+    rig_demo._clear_outputs(tmp_path)
+    assert [p.name for p in history.iterdir()] == [rig_demo.HISTORY_MARK]
+
+
+def test_a_history_folder_holding_no_table_is_not_taken_for_the_demos(tmp_path):
+    """Only the table's log was compared with the witness: a history/ with a person's own file in it and no
+    table, next to an old stats.json, was removed whole."""
+    from twin.rig import demo as rig_demo
+
+    (tmp_path / "history").mkdir()
+    mine = tmp_path / "history" / "export.csv"
+    mine.write_text("received_at,device_id\n")
+    os.utime(mine, ns=(0, 0))
+    (tmp_path / "stats.json").write_text("{}")
+    with pytest.raises(rig_demo.DemoError, match="holds a history the demo did not write"):
+        rig_demo._clear_outputs(tmp_path)
+    assert mine.is_file() and (tmp_path / "stats.json").is_file()
 
 
 def test_a_history_the_demo_cannot_make_anew_is_named(tmp_path, monkeypatch):

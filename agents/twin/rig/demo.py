@@ -36,7 +36,7 @@ import logging
 import shutil
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
@@ -195,36 +195,46 @@ def _internal_latency(state: AgentState, pct: str) -> float | None:
     return _worst([getattr(d.health.internal_latency_s, pct) for d in state.devices.values()])
 
 
-def _last_recording(stats: Path) -> Path | None:
-    """The USD session recording an earlier run's stats.json names (files.usd), when it names one by a plain
-    file name in its own directory: nothing else is taken for the demo's."""
-    try:
-        name = json.loads(stats.read_text())["files"]["usd"]
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
-    if not isinstance(name, str) or Path(name).name != name or not name.startswith("session-"):
-        return None
-    return stats.parent / name
+def _demo_recordings(out_dir: Path) -> list[Path]:
+    """The USD session recordings earlier runs made: the one their stats.json names (files.usd) and those
+    the mark lists (a run that failed before its stats.json). Plain session file names in `out_dir` only:
+    nothing else is taken for the demo's."""
+    names: list[object] = []
+    with contextlib.suppress(OSError, ValueError, KeyError, TypeError):
+        names.append(json.loads((out_dir / "stats.json").read_text())["files"]["usd"])
+    with contextlib.suppress(OSError, ValueError, KeyError, TypeError):
+        names.extend(json.loads((out_dir / HISTORY_DIR / HISTORY_MARK).read_text())["recordings"])
+    plain = {n for n in names if isinstance(n, str) and Path(n).name == n and n.startswith("session-")}
+    return [out_dir / name for name in sorted(plain)]
 
 
 def _written_by_demo(out_dir: Path, history: Path) -> bool:
-    """Whether the history folder is the demo's: none of its tables' commits is newer than the mark the run
-    writes once its agent stopped (or, from before the mark, than that run's stats.json). A mark or a
-    stats.json alone would let a later agent's history there (`twin run --history out/history`) be taken."""
-    witness = history / HISTORY_MARK
-    if not witness.exists():
-        witness = out_dir / "stats.json"
-    try:
-        since = witness.stat().st_mtime_ns
-    except OSError:
+    """Whether the history folder is the demo's to replace: nothing in it but the mark, or tables none of
+    whose files is newer than the newest of the mark (written again once a run's agent stopped) and the
+    run's stats.json (written after it; an earlier version wrote its mark at the start only). A mark or a
+    stats.json alone would let a later agent's history there (`twin run --history out/history`) be taken,
+    and a folder with no table in it is no history the demo wrote."""
+    files = []
+    for path in history.rglob("*"):
+        with contextlib.suppress(OSError):  # gone meanwhile: not there to lose
+            if path.name != HISTORY_MARK and path.is_file():
+                files.append(path.stat().st_mtime_ns)
+    if not files:
+        return True  # nothing to lose (a run that failed before its first commit)
+    witnesses = []
+    for witness in (history / HISTORY_MARK, out_dir / "stats.json"):
+        with contextlib.suppress(OSError):
+            witnesses.append(witness.stat().st_mtime_ns)
+    if not witnesses or not any(history.rglob("_delta_log")):
         return False
-    logs = [path for log_dir in history.rglob("_delta_log") for path in log_dir.rglob("*")]
-    return not any(path.stat().st_mtime_ns > since for path in logs)
+    return max(files) <= max(witnesses)
 
 
-def _mark_history(history: Path) -> None:
-    """Written at a run's start, and again once its agent stopped: every commit of the run is older."""
-    (history / HISTORY_MARK).write_text("made by twin demo; the next run replaces this directory\n")
+def _mark_history(history: Path, recordings: Sequence[str] = ()) -> None:
+    """Written at a run's start, and again once its agent stopped (every commit of the run older), with the
+    recordings the run made, for the next run to remove even if this one never writes its stats.json."""
+    mark = {"made_by": "twin demo; the next run replaces this directory", "recordings": list(recordings)}
+    (history / HISTORY_MARK).write_text(json.dumps(mark) + "\n")
 
 
 def _clear_outputs(out_dir: Path) -> None:
@@ -240,10 +250,8 @@ def _clear_outputs(out_dir: Path) -> None:
     for pattern in OUTPUT_PATTERNS:
         for path in out_dir.glob(pattern):
             path.unlink()
-    recording = _last_recording(out_dir / "stats.json")
-    if recording is not None:
+    for recording in _demo_recordings(out_dir):
         recording.unlink(missing_ok=True)
-    (out_dir / "stats.json").unlink(missing_ok=True)
     # A new table per run: appending to the last run's would mix two runs in one history.
     shutil.rmtree(history, ignore_errors=True)
     try:
@@ -251,6 +259,8 @@ def _clear_outputs(out_dir: Path) -> None:
     except FileExistsError as exc:  # rmtree left some of it (a file it may not remove)
         raise DemoError(f"could not remove the last run's history {history}; remove it by hand") from exc
     _mark_history(history)
+    # Last: until the history is gone, it still says whose the history was.
+    (out_dir / "stats.json").unlink(missing_ok=True)
 
 
 @dataclass
@@ -369,6 +379,7 @@ def run_demo(
     out_dir = Path(config.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     _clear_outputs(out_dir)
+    before = {path.name for path in out_dir.glob("session-*.usda")}
     devices = device_ids(config.devices)
     run = _prepared_run(config, devices, note)
     try:
@@ -378,8 +389,9 @@ def run_demo(
     finally:
         # The agent has stopped, its history's last commit made: the next run finds the mark newer. (A folder
         # removed meanwhile is no longer the demo's to mark.)
+        made = sorted(path.name for path in out_dir.glob("session-*.usda") if path.name not in before)
         with contextlib.suppress(OSError):
-            _mark_history(out_dir / HISTORY_DIR)
+            _mark_history(out_dir / HISTORY_DIR, made)
     stats, final = _checked_stats(config, run, broker, service, interrupted=stop.is_set())
     # History first: stats.json, written with the other outputs, says what the table holds.
     _write_history_outputs(devices, stats, out_dir)
