@@ -2226,8 +2226,16 @@ def test_only_a_data_files_error_is_given_the_missing_file_advice(tmp_path: Path
     # The storage's refusal is one line with its own fix, not a file's advice nor a traceback.
     expired = pl.exceptions.ComputeError("Generic S3 error: ExpiredToken: The provided token has expired")
     refused = pytest.raises(HistoryReadError, match=r"storage refused it .*ExpiredToken.* refresh the AWS")
-    with refused, reading(location):
+    with refused, reading("s3://twin-history/history/telemetry"):
         raise expired
+    # A local table is refused by no object store; a file name holding 403 is no HTTP 403.
+    local = pl.exceptions.ComputeError("Generic S3 error: ExpiredToken")
+    with pytest.raises(pl.exceptions.ComputeError), reading(location):
+        raise local
+    named = pl.exceptions.ComputeError("cannot read part-00403-abc.zstd.parquet: unexpected token")
+    with pytest.raises(HistoryReadError) as caught, reading("s3://twin-history/history/telemetry"):
+        raise named
+    assert "storage refused" not in str(caught.value)
     # A Parquet error, with every file whole now, is the error: nothing was vacuumed, as ENOENT would say.
     footer = pl.exceptions.ComputeError("parquet: File out of specification: invalid footer")
     said = pytest.raises(HistoryReadError, match=r"invalid footer \(every data file")
@@ -2278,6 +2286,25 @@ def test_an_error_naming_the_hidden_file_written_first_names_out_instead(
     code = main(["history", "plot", "--history", uri, "--device", "arm-001", "--out", str(out)])
     err = capsys.readouterr().err
     assert code == 1 and f"cannot use {out}: Permission denied" in err and ".partial-" not in err, err
+
+
+def test_a_reads_error_during_an_export_is_not_blamed_on_out(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Only a write's own failures (a full disk, a read-only one) name --out: too many open files while
+    reading a large table is no fault of the file written, and `twin` must not say to free space there."""
+    from twin.ops.history import HistoryReader, export
+
+    uri = _history_with(tmp_path, samples(20))
+    out = tmp_path / "rows.parquet"
+
+    def too_many(self: Any, path: Any, **_: Any) -> None:
+        raise pl.exceptions.ComputeError("Too many open files (os error 24)")
+
+    monkeypatch.setattr(pl.LazyFrame, "sink_parquet", too_many)
+    with pytest.raises(pl.exceptions.ComputeError, match="Too many open files"):
+        export(HistoryReader(uri), out, "parquet")
+    assert not out.exists()
 
 
 @pytest.mark.parametrize("what", ["plot", "csv", "parquet"])

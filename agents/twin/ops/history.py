@@ -104,7 +104,7 @@ def _parse_time(text: str, now: dt.datetime | None) -> dt.datetime:
     except ValueError:
         pass
     else:
-        if seconds < 0:
+        if seconds < 0 and math.isfinite(seconds):
             # Before 1970, no history's time: a span before now missing its unit, which selected everything.
             raise TimeFormatError(
                 f"time {text!r} is epoch seconds before 1970, older than any history; for a span before now "
@@ -312,7 +312,7 @@ def reading(location: str) -> Iterator[None]:
     try:
         yield
     except (OSError, pl.exceptions.PolarsError, pl.exceptions.PanicException) as exc:
-        if _storage_refused(exc):
+        if _storage_refused(location, exc):
             raise HistoryReadError(
                 f"cannot read history at {location}: the storage refused it ({str(exc)[:300]}); refresh "
                 "the AWS credentials in use (`aws sts get-caller-identity` names them), then run it again"
@@ -322,13 +322,21 @@ def reading(location: str) -> Iterator[None]:
         raise HistoryReadError(_unreadable_data(location, exc)) from exc
 
 
-def _storage_refused(exc: BaseException) -> bool:
-    """Whether a read failed on the object store's refusal (expired or missing credentials, access denied),
-    which polars raises as a ComputeError in the middle of a read: a traceback otherwise."""
-    text = str(exc)
-    return isinstance(exc, pl.exceptions.ComputeError) and any(
-        word in text for word in ("ExpiredToken", "InvalidAccessKeyId", "AccessDenied", "credential", "403")
+def _storage_refused(location: str, exc: BaseException) -> bool:
+    """Whether a read of an object store (`location` a URI) failed on its refusal (expired or missing
+    credentials, access denied), which polars raises as a ComputeError in the middle of a read."""
+    return (
+        "://" in location
+        and isinstance(exc, pl.exceptions.ComputeError)
+        and _REFUSED.search(str(exc)) is not None
     )
+
+
+# What an object store's refusal says (S3's error codes, HTTP 403), as whole words: a file named part-00403
+# is no refusal.
+_REFUSED = re.compile(
+    r"ExpiredToken|InvalidAccessKeyId|AccessDenied|\bcredentials?\b|\b403\b|Forbidden", re.IGNORECASE
+)
 
 
 def _one_level_off(uri: str, table: str) -> str:
@@ -557,9 +565,15 @@ def writing_to(out: Path, partial: Path | None = None) -> Iterator[None]:
         # sink_parquet's full disk is a ComputeError, its errno in its text only.
         code = _os_errno(exc)
         named = getattr(exc, "filename", None)
-        if code is None or (named is not None and (partial is None or str(named) != str(partial))):
+        of_partial = named is not None and partial is not None and str(named) == str(partial)
+        # Only a write's own failures: a read's (too many open files, a data file refused) is no --out's.
+        if code is None or not (of_partial or (named is None and code in _WRITE_ERRNOS)):
             raise
         raise OSError(code, os.strerror(code), str(out)) from exc
+
+
+# What writing a file fails on whatever is read: the disk full, over quota, the file too big, read-only.
+_WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS})
 
 
 def _not_a_directory(out: Path, extension: str) -> None:

@@ -35,6 +35,11 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+# The distinct errors the Sessions page's reads were told of, at most (then the set starts again).
+MAX_WARNED = 64
+# What differs from one read's error to the next's: numbers, hexadecimal ids.
+_VARYING = re.compile(r"[0-9a-f]{6,}|\d+")
+
 
 class HistorySessions:
     """A `twin.service.console.SessionCatalog` over the history at `uri`."""
@@ -60,10 +65,14 @@ class HistorySessions:
             log.debug("no sessions yet: %s", exc)
             return []
         except HistoryReadError as exc:
-            # A table that is there and cannot be read (a damaged file) must not pass for an empty one.
-            # Numbers aside: a panic's text names the Rust task that read the file, another one each time.
-            said = re.sub(r"\d+", "#", str(exc))
+            # A table that is there and cannot be read (a damaged file) must not pass for an empty one. Told
+            # by what comes before its first parenthesis: after it come request ids, file names and the Rust
+            # task of a panic, another each time. Bounded: a run of distinct errors starts the set again.
+            head = _VARYING.sub("#", str(exc).split("(", 1)[0])
+            said = f"{type(exc).__name__}: {head}"
             level = logging.DEBUG if said in self._warned else logging.WARNING
+            if len(self._warned) >= MAX_WARNED:
+                self._warned.clear()
             self._warned.add(said)
             log.log(level, "history: the console lists no sessions: %s", exc)
             return []
