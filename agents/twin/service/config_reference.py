@@ -549,7 +549,7 @@ def render_reference() -> str:
         "<!-- Generated from the config loader by `twin config reference` (`make config-docs`); edit the",
         "     meanings in agents/twin/service/config_reference.py, not here. -->",
         "",
-        *textwrap.wrap(REFERENCE_INTRO, 110),
+        *textwrap.wrap(REFERENCE_INTRO, 110, break_on_hyphens=False),
     ]
     current = ""
     for key in keys():
@@ -559,7 +559,7 @@ def render_reference() -> str:
                 "",
                 f"## `[{current}]`",
                 "",
-                *textwrap.wrap(SECTION_DOCS[current], 110),
+                *textwrap.wrap(SECTION_DOCS[current], 110, break_on_hyphens=False),
                 "",
                 "| key | type | default | meaning |",
                 "|---|---|---|---|",
@@ -570,16 +570,16 @@ def render_reference() -> str:
 
 def render_example() -> str:
     """examples/agent.toml: every key at its default, each with its meaning as a comment."""
-    lines = [f"# {line}" for line in textwrap.wrap(EXAMPLE_INTRO, 106)]
+    lines = [f"# {line}" for line in textwrap.wrap(EXAMPLE_INTRO, 106, break_on_hyphens=False)]
     current = ""
     for key in keys():
         if key.section != current:
             current = key.section
             lines += [
                 "",
-                *(f"# {line}" for line in textwrap.wrap(SECTION_DOCS[current], 106)),
+                *(f"# {line}" for line in textwrap.wrap(SECTION_DOCS[current], 106, break_on_hyphens=False)),
                 f"[{current}]",
             ]
-        lines += [f"# {line}" for line in textwrap.wrap(key.meaning, 106)]
+        lines += [f"# {line}" for line in textwrap.wrap(key.meaning, 106, break_on_hyphens=False)]
         lines.append(f"{key.name} = {toml_value(key.default)}")
     return "\n".join(lines) + "\n"

@@ -188,11 +188,11 @@ class EventJournal:
         bulk_bytes = capacity * BULK_LINE_BYTES if max_bytes is None else max_bytes
         self._kept = _Files(self.path, kept_bytes, name=SINK_NAME, clock=clock)
         self._bulk = _Files(bulk_path(self.path), bulk_bytes, name=BULK_SINK_NAME, clock=clock)
-        lifecycle = _Files(lifecycle_path(self.path), kept_bytes, name=LIFECYCLE_SINK_NAME, clock=clock)
+        self._lifecycle = _Files(lifecycle_path(self.path), kept_bytes, name=LIFECYCLE_SINK_NAME, clock=clock)
         # Indexed by the store's parts (events.part_index): the pair each event's kind goes to.
-        by_part = {BULK_PART: self._bulk, ALARM_PART: self._kept, LIFECYCLE_PART: lifecycle}
+        by_part = {BULK_PART: self._bulk, ALARM_PART: self._kept, LIFECYCLE_PART: self._lifecycle}
         self._by_part = tuple(by_part[part] for part in range(len(by_part)))
-        self._pairs = (self._kept, self._bulk, lifecycle)
+        self._pairs = (self._kept, self._bulk, self._lifecycle)
         self._lock = threading.Lock()  # the pairs' queues
         # Events waiting for a flush, in each pair's queue: a store's worth. More only while writes fail or
         # are slow; then the oldest of that pair go, counted, so the memory held is at most twice the store's.
@@ -331,7 +331,7 @@ class EventJournal:
         """The journal as three outputs in /state's `agent.sinks`, a pair each (`events_journal`, the file
         named; `events_journal_bulk`; `events_journal_lifecycle`): what any could not write reaches the
         SinkDrops metric and its alarm like any output's drops."""
-        return self._kept.stats(), self._bulk.stats(), self._pairs[2].stats()
+        return self._kept.stats(), self._bulk.stats(), self._lifecycle.stats()
 
 
 def _warn(files: _Files, exc: OSError, count: int) -> None:
