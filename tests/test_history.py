@@ -2168,6 +2168,33 @@ def test_a_damaged_or_missing_data_file_is_named_with_the_fix(
     assert json.loads(capsys.readouterr().out)["devices"][0]["rows"] == 50
 
 
+def test_the_sessions_page_warns_once_per_error_however_its_details_vary(
+    caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each console refresh reads the history again: a storage refusal carries another request id each time
+    (a set keyed on the whole text grew by one and warned at every refresh). The set stays bounded."""
+    from twin.ops import sessions as sessions_module
+    from twin.ops.history import HistoryReader
+
+    said: list[str] = []
+
+    def summary(self: Any, **_: Any) -> Any:
+        raise HistoryReadError(said[-1])
+
+    monkeypatch.setattr(HistoryReader, "summary", summary)
+    catalog = sessions_module.HistorySessions("s3://b/h")
+    with caplog.at_level(logging.DEBUG, logger="twin.ops.sessions"):
+        for n in range(5):
+            said.append(f"cannot read history at s3://b/h/telemetry: the storage refused it (id {n:08x}a1)")
+            assert catalog.sessions(30.0) == []
+    assert len([r for r in caplog.records if r.levelno == logging.WARNING]) == 1
+    monkeypatch.setattr(sessions_module, "MAX_WARNED", 3)
+    for n in range(10):  # distinct errors past the bound: the set starts again, never past it
+        said.append(f"error kind {chr(ord('g') + n)}")
+        catalog.sessions(30.0)
+        assert len(catalog._warned) <= 3
+
+
 def _repair_command(err: str) -> list[str]:
     """The repair command line a damaged-file message prints, split as a shell would."""
     match = re.search(r"from its log: (.*) \(their rows", err)
