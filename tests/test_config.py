@@ -97,6 +97,14 @@ def test_history_section_defaults_match_the_writers() -> None:
         ('[history]\nuri = "h"\nwriter_nice = -1', "history.writer_nice = -1 must be from 0"),
         ('[history]\nuri = "h"\nwriter_nice = 20', "history.writer_nice = 20 must be from 0"),
         ('[history]\nuri = "h"\nkeep_days = -1', "history.keep_days = -1 must be at least 0"),
+        (
+            '[history]\nuri = "h"\nvacuum_retention_hours = -1',
+            "history.vacuum_retention_hours = -1.0 must be at least 0 (0 = files replaced go at once)",
+        ),
+        (
+            '[history]\nuri = "h"\nmaintain_every_s = -1',
+            "history.maintain_every_s = -1.0 must be at least 0 (0 = never)",
+        ),
         ('[history]\nuri = "h"\nkeep_days = 1.5', "history.keep_days = 1.5 must be a whole number"),
         ('[history]\nuri = "h"\nkeep_days = "30"', "history.keep_days = '30' must be a whole number"),
     ],

@@ -414,10 +414,18 @@ def test_only_one_of_two_writers_maintains_a_table_per_window(tmp_path: Path) ->
     assert leases == sorted(f"{table}-{window}.lease" for table in (TELEMETRY_TABLE, REJECTED_TABLE))
 
 
-def test_maintenance_compacts_checkpoints_and_vacuums(tmp_path: Path) -> None:
+@pytest.mark.parametrize(("retention_hours", "kept"), [(0, 1), (0.5, 5)])
+def test_maintenance_compacts_checkpoints_and_vacuums(
+    tmp_path: Path, retention_hours: float, kept: int
+) -> None:
+    """Compaction replaces the four small files with one; the vacuum removes them at once with a retention
+    of 0, and keeps them with half an hour (rounded up to the whole hour delta-rs takes: truncated, it was 0
+    and took the files from under a reader still on the version before)."""
     uri = str(tmp_path / "h")
     writer = HistoryWriter(
-        HistorySettings(uri=uri, commit_every_s=3600, maintain_every_s=0, vacuum_retention_hours=0),
+        HistorySettings(
+            uri=uri, commit_every_s=3600, maintain_every_s=0, vacuum_retention_hours=retention_hours
+        ),
         wall_clock=lambda: T0,  # the rows' day is the day maintained, whenever the test runs
     ).start()
     for k in range(4):
@@ -430,7 +438,7 @@ def test_maintenance_compacts_checkpoints_and_vacuums(tmp_path: Path) -> None:
     location = Path(uri) / TELEMETRY_TABLE
     assert len(DeltaTable(str(location)).file_uris()) == 1
     data_files = [p for p in location.rglob("*.parquet") if "_delta_log" not in p.parts]
-    assert len(data_files) == 1  # the four small files were vacuumed
+    assert len(data_files) == kept  # the four small files vacuumed, or kept for the retention
     assert list((location / "_delta_log").glob("*.checkpoint.parquet"))
     assert rows_of(uri).height == 400
 

@@ -33,6 +33,7 @@ import importlib.util
 import io
 import json
 import logging
+import math
 import operator
 import os
 import socket
@@ -1082,7 +1083,9 @@ class HistoryWriter:
             )
         dtable.create_checkpoint()
         dtable.vacuum(
-            retention_hours=int(self.settings.vacuum_retention_hours),
+            # Whole hours, rounded up: a retention shorter than asked (0.5 h truncated was 0) would take
+            # files from under a reader still on an older version.
+            retention_hours=math.ceil(self.settings.vacuum_retention_hours),
             enforce_retention_duration=False,
             dry_run=False,
         )

@@ -654,12 +654,11 @@ def _validate_history(hs: HistorySection) -> None:
         raise ConfigError(f'history.uri = {hs.uri!r} names no bucket; use uri = "s3://<bucket>/history"')
     if "://" not in uri and Path(uri).exists() and not Path(uri).is_dir():
         raise ConfigError(f"history.uri = {hs.uri!r} is a file; give a directory (created if missing)")
-    for key in ("commit_every_s", "maintain_every_s", "vacuum_retention_hours"):
-        value = getattr(hs, key)
-        if value < 0 or (key == "commit_every_s" and value == 0):
-            raise ConfigError(
-                f"history.{key} = {value!r} must be greater than 0 (maintain_every_s: 0 = never)"
-            )
+    if hs.commit_every_s <= 0:
+        raise ConfigError(f"history.commit_every_s = {hs.commit_every_s!r} must be greater than 0")
+    for key, zero in (("maintain_every_s", "never"), ("vacuum_retention_hours", "files replaced go at once")):
+        if getattr(hs, key) < 0:
+            raise ConfigError(f"history.{key} = {getattr(hs, key)!r} must be at least 0 (0 = {zero})")
     for key in ("commit_every_rows", "max_buffer_rows", "queue_max"):
         if getattr(hs, key) < 1:
             raise ConfigError(f"history.{key} = {getattr(hs, key)!r} must be at least 1")

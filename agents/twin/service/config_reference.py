@@ -263,7 +263,10 @@ KEY_DOCS: dict[str, str] = {
     "history.maintain_every_s": (
         "Compaction, checkpoint and vacuum interval; 0 = never (another writer maintains)."
     ),
-    "history.vacuum_retention_hours": "Files replaced by compaction are deleted after this long.",
+    "history.vacuum_retention_hours": (
+        "Files replaced by compaction are deleted after this long, in whole hours rounded up (a reader "
+        "still on an older version needs them); 0 = at once."
+    ),
     "history.keep_days": (
         "Rows older than this many whole UTC days (today is kept too) are deleted at each maintenance, "
         "their files at the vacuum after `vacuum_retention_hours`; 0 = keep everything."
