@@ -150,11 +150,12 @@ def _common_arguments() -> argparse.ArgumentParser:
 
 
 def _add_console_arguments(action: argparse.ArgumentParser) -> None:
+    from twin.cli.commands.run import port_number
     from twin.service.config import DEFAULT_HTTP_PORT
 
     action.add_argument(
         "--port",
-        type=int,
+        type=port_number,
         default=DEFAULT_HTTP_PORT,
         metavar="PORT",
         help="the local port (default %(default)s, the agent's own; 0 = any free port)",
@@ -169,9 +170,6 @@ def _console(twin: TwinInstance, args: argparse.Namespace) -> int:
     from twin.cli.output import stop_on_signals
     from twin.service.config import DEFAULT_HTTP_PORT
 
-    if not 0 <= args.port <= 65535:
-        console.err(f"--port {args.port} must be a port number (0 for any free port)")
-        return 2
     with stop_on_signals() as stop:
         forward = twin.forward_port(DEFAULT_HTTP_PORT, args.port)
         try:

@@ -64,8 +64,9 @@ def register(subparsers: Any) -> None:
 
 
 def port_number(text: str) -> int:
-    """A TCP port from the command line: `twin web FILE.rrd` binds it without the config's checks, and a
-    socket refuses one past 65535 with an OverflowError (a traceback)."""
+    """A TCP port from the command line (argparse's `type`, for every command's port flag): `twin web
+    FILE.rrd` binds it without the config's checks, and a socket refuses one past 65535 with an
+    OverflowError (a traceback)."""
     try:
         port = int(text)
     except ValueError:
