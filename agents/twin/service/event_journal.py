@@ -189,10 +189,9 @@ class EventJournal:
         self._kept = _Files(self.path, kept_bytes, name=SINK_NAME, clock=clock)
         self._bulk = _Files(bulk_path(self.path), bulk_bytes, name=BULK_SINK_NAME, clock=clock)
         self._lifecycle = _Files(lifecycle_path(self.path), kept_bytes, name=LIFECYCLE_SINK_NAME, clock=clock)
-        # Indexed by the store's parts (events.part_index): the pair each event's kind goes to.
+        # Every pair, indexed by the store's parts (events.part_index): where each event's kind goes.
         by_part = {BULK_PART: self._bulk, ALARM_PART: self._kept, LIFECYCLE_PART: self._lifecycle}
-        self._by_part = tuple(by_part[part] for part in range(len(by_part)))
-        self._pairs = (self._kept, self._bulk, self._lifecycle)
+        self._pairs = tuple(by_part[part] for part in sorted(by_part))
         self._lock = threading.Lock()  # the pairs' queues
         # Events waiting for a flush, in each pair's queue: a store's worth. More only while writes fail or
         # are slow; then the oldest of that pair go, counted, so the memory held is at most twice the store's.
@@ -262,7 +261,7 @@ class EventJournal:
 
     def add(self, event: Event) -> None:
         """Queue `event` (numbered by its store) for the next flush. Any thread; never blocks on the disk."""
-        files = self._by_part[part_index(event.kind)]
+        files = self._pairs[part_index(event.kind)]
         with self._lock:
             # Each pair's own bound: a flood of status events behind a slow disk never pushes out an alarm.
             if len(files.pending) >= self._max_pending:
