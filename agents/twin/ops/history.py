@@ -264,11 +264,12 @@ def _unreadable_data(location: str, exc: BaseException) -> str:
         bad = _damaged_files(location)
     except Exception:  # the walk is a hint; the message stands without it
         bad = None
-    if bad == [] and _escaped(location):
+    escaped = _escaped(location)
+    if bad == [] and escaped:
         # polars opens each file at the escaped path deltalake gives it (`a%20b`): it reads no such table.
         return (
             f"cannot read history at {location}: polars reads no table whose path holds a space or another "
-            f"character a URI escapes ({_escaped(location)}), and found none of its files ({first}): move "
+            f"character a URI escapes ({escaped}), and found none of its files ({first}): move "
             "the history to a path without one (a symbolic link does not help: polars resolves it)"
         )
     if bad == [] and _os_errno(exc) == errno.ENOENT:
