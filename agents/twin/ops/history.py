@@ -536,41 +536,29 @@ def export(
     return int(rows)
 
 
-def _partial(out: Path) -> Path:
-    """Where `out` is written before it is renamed over it, whole: beside it, so the rename is atomic."""
-    return out.with_name(f".{out.name}.partial-{os.getpid()}")
-
-
 @contextlib.contextmanager
 def written_whole(out: Path) -> Iterator[Path]:
-    """Where to write `out`: a file beside it, renamed over it once the block ends without an error, so an
-    interrupted or failed write (a full disk) leaves `out` as it was, never a cut file that looks whole."""
+    """Where to write `out`: a hidden file beside it (so the rename is atomic), renamed over it once the block
+    ends without an error, so an interrupted or failed write leaves `out` as it was, never a cut file that
+    looks whole. A write's own failure naming no file (a full disk, as polars and PIL raise it) or naming
+    that hidden one is raised again with `out` as its file, so `twin` says which path and the fix
+    (twin.cli.main.path_error_message)."""
     out.parent.mkdir(parents=True, exist_ok=True)
-    partial = _partial(out)
+    partial = out.with_name(f".{out.name}.partial-{os.getpid()}")
     try:
-        with writing_to(out, partial):
-            yield partial
+        yield partial
         os.replace(partial, out)
-    finally:
-        partial.unlink(missing_ok=True)
-
-
-@contextlib.contextmanager
-def writing_to(out: Path, partial: Path | None = None) -> Iterator[None]:
-    """An error writing `out` that names no file (a full disk, as polars and PIL raise it), or names the
-    hidden `partial` it is written to first, raised again with `out` as its file, so `twin` says which path
-    and the fix (twin.cli.main.path_error_message)."""
-    try:
-        yield
     except (OSError, pl.exceptions.PolarsError) as exc:
         # sink_parquet's full disk is a ComputeError, its errno in its text only.
         code = _os_errno(exc)
         named = getattr(exc, "filename", None)
-        of_partial = named is not None and partial is not None and str(named) == str(partial)
         # Only a write's own failures: a read's (too many open files, a data file refused) is no --out's.
-        if code is None or not (of_partial or (named is None and code in _WRITE_ERRNOS)):
+        ours = str(named) == str(partial) if named is not None else code in _WRITE_ERRNOS
+        if code is None or not ours:
             raise
         raise OSError(code, os.strerror(code), str(out)) from exc
+    finally:
+        partial.unlink(missing_ok=True)
 
 
 # What writing a file fails on whatever is read: the disk full, over quota, the file too big, read-only.
