@@ -54,8 +54,8 @@ log = logging.getLogger(__name__)
 
 # Files this module writes into the output directory; earlier runs' copies are removed first so the directory
 # always describes one run. Nothing else in the directory is touched: of the USD session recordings there,
-# only the one the last run's stats.json names is the demo's (an agent of the user's may record into the same
-# directory: its twin.record_dir).
+# only those earlier runs made are the demo's (_demo_recordings; an agent of the user's may record into the
+# same directory: its twin.record_dir).
 OUTPUT_PATTERNS = (
     "twin.png",
     "twin.gif",
@@ -196,9 +196,9 @@ def _internal_latency(state: AgentState, pct: str) -> float | None:
 
 
 def _demo_recordings(out_dir: Path) -> list[Path]:
-    """The USD session recordings earlier runs made: the one their stats.json names (files.usd) and those
-    the mark lists (a run that failed before its stats.json). Plain session file names in `out_dir` only:
-    nothing else is taken for the demo's."""
+    """The USD session recordings earlier runs made: those the mark lists (written after every run, also one
+    that failed before its stats.json) and the one stats.json names (files.usd: a run of the version before,
+    whose mark listed none). Plain session file names in `out_dir` only: nothing else is the demo's."""
     names: list[object] = []
     with contextlib.suppress(OSError, ValueError, KeyError, TypeError):
         names.append(json.loads((out_dir / "stats.json").read_text())["files"]["usd"])
