@@ -38,6 +38,7 @@ GL_DETAIL=""
 XWIN_TREE=""
 XWIN_ROOT=""
 XWIN_DETAIL=""
+XWIN_MAP=""
 
 check_x_on_gpu() {
   local smi gpu
@@ -326,11 +327,13 @@ check_viewer() {
 }
 
 # The windows on X's display :0, asked with xwininfo (x11-utils, the boot's packages step): XWIN_TREE holds
-# the window tree, XWIN_ROOT the screen's size; or XWIN_DETAIL says why X was not asked. As for glxinfo, a
-# question X could not be asked is no failure: the capture is then judged as a whole only.
+# the window tree, XWIN_ROOT the screen's size, XWIN_MAP each MuJoCo window's "ID<TAB>map state" (the tree
+# lists windows whether shown or not: a minimised or withdrawn one is IsUnMapped or IsUnviewable); or
+# XWIN_DETAIL says why X was not asked. As for glxinfo, a question X could not be asked is no failure: the
+# capture is then judged as a whole only.
 ask_x_windows() {
-  local auth
-  XWIN_TREE="" XWIN_ROOT="" XWIN_DETAIL=""
+  local auth line id answer
+  XWIN_TREE="" XWIN_ROOT="" XWIN_DETAIL="" XWIN_MAP=""
   if ! command -v xwininfo >/dev/null 2>&1; then
     XWIN_DETAIL="xwininfo is missing (x11-utils, the boot's packages step)"
   elif ! auth="$(x_authority)"; then
@@ -342,6 +345,14 @@ ask_x_windows() {
     XWIN_DETAIL="xwininfo on :0 failed: ${XWIN_ROOT:0:300}"
     XWIN_TREE="" XWIN_ROOT=""
   fi
+  [ -n "$XWIN_ROOT" ] || return 0
+  while IFS= read -r line; do
+    [[ $line =~ ^[[:space:]]*(0x[0-9a-f]+)\ \"MuJoCo ]] || continue
+    id="${BASH_REMATCH[1]}"
+    # A window gone since the tree was asked, or any other refusal: its state is not known, not failed.
+    answer="$(DISPLAY=:0 XAUTHORITY="$auth" timeout 30 xwininfo -id "$id" 2>/dev/null)" || continue
+    if [[ $answer =~ Map\ State:\ ([A-Za-z]+) ]]; then XWIN_MAP+="${id}"$'\t'"${BASH_REMATCH[1]}"$'\n'; fi
+  done <<<"$XWIN_TREE"
 }
 
 # What a person would see: a capture of the console session, which must not be one flat colour (a black
@@ -374,6 +385,7 @@ judge_capture() {
   printf '%s' "$XWIN_TREE" >"$xwin/tree"
   printf '%s' "$XWIN_ROOT" >"$xwin/root"
   printf '%s' "$XWIN_DETAIL" >"$xwin/detail"
+  printf '%s' "$XWIN_MAP" >"$xwin/map"
   "${ROOT}${CHECK_VENV}/bin/python" - "$1" "$SCREENSHOT" "$xwin" "$DESKTOP_USER" <<'PY' || status=$?
 import re
 import sys
@@ -383,7 +395,7 @@ from PIL import Image, ImageStat
 
 # A line of `xwininfo -root -tree`: id "name": ("instance" "class")  WxH+relX+relY  +absX+absY, where an
 # offset left of or above the screen prints as +-N. MuJoCo's viewer names its window "MuJoCo : <model>".
-WINDOW = re.compile(r'^\s*0x[0-9a-f]+ "MuJoCo[^"]*":.*\s(\d+)x(\d+)\+-?\d+\+-?\d+\s+\+(-?\d+)\+(-?\d+)\s*$')
+WINDOW = re.compile(r'^\s*(0x[0-9a-f]+) "MuJoCo[^"]*":.*\s(\d+)x(\d+)\+-?\d+\+-?\d+\s+\+(-?\d+)\+(-?\d+)\s*$')
 
 
 def judge(image):
@@ -404,13 +416,20 @@ def viewer_window(image, xwin):
     tree, root = (xwin / "tree").read_text(), (xwin / "root").read_text()
     if not tree:
         return None, f"not asked where the viewer's window is: {(xwin / 'detail').read_text()}", False
-    found = [tuple(int(v) for v in m.groups()) for m in map(WINDOW.match, tree.splitlines()) if m]
+    found = [m.groups() for m in map(WINDOW.match, tree.splitlines()) if m]
     size = re.search(r"Width: (\d+)\s+Height: (\d+)", root)
     if not found:
         return None, "twin view runs, but no MuJoCo window is on X's display :0", True
     if size is None:
         return None, "not told the screen's size by xwininfo -root", False
-    w, h, x, y = max(found, key=lambda f: f[0] * f[1])
+    # A window whose map state X did not tell counts as shown: the capture then judges it.
+    states = dict(line.split("\t") for line in (xwin / "map").read_text().splitlines())
+    shown = [f for f in found if states.get(f[0], "IsViewable") == "IsViewable"]
+    if not shown:
+        told = ", ".join(sorted(set(states.values())))
+        return None, f"twin view runs, but its MuJoCo window is not shown on :0 (X says {told}: minimised" \
+            " or withdrawn; restore it in the DCV session)", True
+    w, h, x, y = max((tuple(int(v) for v in f[1:]) for f in shown), key=lambda f: f[0] * f[1])
     screen_w, screen_h = int(size.group(1)), int(size.group(2))
     scale = image.width / screen_w  # dcv get-screenshot keeps the screen's proportions
     box = [round(v * scale) for v in (max(x, 0), max(y, 0), min(x + w, screen_w), min(y + h, screen_h))]

@@ -312,11 +312,21 @@ echo "OpenGL renderer string: NVIDIA L40S/PCIe/SSE2"
 echo "OpenGL core profile version string: 4.6.0 NVIDIA 580.95.05"
 """,
     "xwininfo": r"""
-# DISPLAY=:0 XAUTHORITY=FILE xwininfo -root [-tree]: X's windows, answered as glxinfo is (only on :0 with its
-# Xorg's -auth file). The lines are as the real tool prints them (x11-utils 7.7, against Xvfb with MuJoCo's
-# viewer open): the screen 1920x1080, the viewer's window where the capture stand-in draws it; SIM/xwin-tree
-# holds other windows.
+# DISPLAY=:0 XAUTHORITY=FILE xwininfo -root [-tree] | -id ID: X's windows, answered as glxinfo is (only on :0
+# with its Xorg's -auth file). The lines are as the real tool prints them (x11-utils 7.7, against Xvfb with
+# MuJoCo's viewer open): the screen 1920x1080, the viewer's window where the capture stand-in draws it;
+# SIM/xwin-tree holds other windows, SIM/xwin-map/ID a window's map state (IsViewable when absent).
 if x_refuses "xwininfo: error: "; then exit 1; fi
+if [ "${1:-}" = -id ]; then
+  echo ""
+  echo "xwininfo: Window id: $2 \"MuJoCo : so101\""
+  echo ""
+  echo "  Width: 1320"
+  echo "  Height: 750"
+  echo "  Map State: $(cat "$SIM/xwin-map/$2" 2>/dev/null || echo IsViewable)"
+  echo "  Override Redirect State: no"
+  exit 0
+fi
 echo ""
 echo "xwininfo: Window id: 0x50d (the root window) (has no name)"
 echo ""

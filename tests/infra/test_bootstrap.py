@@ -616,6 +616,31 @@ def test_host_check_finds_a_viewer_window_partly_off_the_screen(booted, tmp_path
     assert "the viewer drawn in its window (1620x930 at -300-180)" in detail, detail
 
 
+def test_host_check_fails_the_screen_when_the_viewers_window_is_not_shown(booted, tmp_path: Path) -> None:
+    """X's tree lists a window whether it is shown or not: a minimised or withdrawn viewer window, judged by
+    what the capture shows at its place, passed. Its map state is asked, and only a shown one is judged."""
+    source, _ = booted
+    host = copy_of(source, tmp_path)
+    (host.sim / "xwin-map").mkdir()
+    (host.sim / "xwin-map" / "0x2200007").write_text("IsUnMapped")
+    state, detail = check_lines(host)["screen"]
+    assert (state, detail.split(" (capture")[0]) == (
+        "FAIL",
+        "twin view runs, but its MuJoCo window is not shown on :0 (X says IsUnMapped: minimised or withdrawn;"
+        " restore it in the DCV session)",
+    ), detail
+    assert "xwininfo -id 0x2200007" in host.calls()
+    # A second viewer window, shown and smaller, is the one judged (a restarted viewer beside a stale one).
+    (host.sim / "xwin-tree").write_text(
+        "     2 children:\n"
+        '     0x2200007 "MuJoCo : so101": ("MuJoCo" "MuJoCo")  1620x930+0+0  +0+0\n'
+        '     0x2400007 "MuJoCo : so101": ("MuJoCo" "MuJoCo")  1320x750+6+30  +300+180\n'
+    )
+    state, detail = check_lines(host)["screen"]
+    assert state == "OK", detail
+    assert "the viewer drawn in its window (1320x750 at +300+180)" in detail, detail
+
+
 def test_host_check_fails_the_screen_when_no_viewer_window_is_on_x(booted, tmp_path: Path) -> None:
     """twin view runs (its line passes) but no MuJoCo window is on :0 (opened on another display, or none):
     what a person would see has no twin in it."""
