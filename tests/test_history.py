@@ -521,6 +521,28 @@ def test_keep_days_deletes_the_days_before_the_last_n_and_vacuum_frees_their_fil
     assert operations.count("DELETE") == 1
 
 
+def test_the_rows_keep_days_deleted_reach_state_and_metrics(tmp_path: Path) -> None:
+    """Rows deleted on purpose are counted where an operator looks, apart from rows lost: the writer's count
+    crosses the process boundary (its figures), becomes /state's, sums over workers, and is on /metrics."""
+    from types import SimpleNamespace
+
+    from twin.output.history import TableStats, WriterStats
+    from twin.output.history_feed import HistoryFigures, _figures_of
+    from twin.service.agent import AgentService
+    from twin.service.metrics import render_metrics
+    from twin.service.state import AgentInfo, AgentState
+
+    stats = WriterStats(tables={name: TableStats() for name in (TELEMETRY_TABLE, REJECTED_TABLE)})
+    stats.rows_expired = 22
+    figures = HistoryFigures(_figures_of(stats, 0), pid=None, restarts=0, rows_received=0, rows_lost=0)
+    agent = SimpleNamespace(config=load_config(None, {"history.uri": str(tmp_path)}))
+    process = SimpleNamespace(figures=lambda: figures)
+    history = AgentService._history_state(agent, process)  # type: ignore[arg-type]
+    assert (history.rows_expired, history.rows_not_written) == (22, 0)
+    text = render_metrics(AgentState(agent=AgentInfo(history=history), devices={}))
+    assert "twin_history_rows_expired_total 22.0" in text.splitlines()
+
+
 def test_keep_days_0_keeps_every_day(tmp_path: Path) -> None:
     uri = str(tmp_path / "h")
     written = _history_on_days(uri, [400, 40, 1, 0])

@@ -929,6 +929,7 @@ class WriterFigures:
     rows_buffered: int = 0
     maintenance_runs: int = 0
     maintenance_failures: int = 0
+    rows_expired: int = 0  # deleted by maintenance for being older than keep_days
     storage_ok: bool = True
     last_error: str = ""
     # How long the oldest row not yet written has waited (0: none waits); it grows while commits fail.
@@ -946,6 +947,7 @@ def _figures_of(stats: WriterStats, buffered: int) -> WriterFigures:
         rows_buffered=buffered,
         maintenance_runs=stats.maintenance_runs,
         maintenance_failures=stats.maintenance_failures,
+        rows_expired=stats.rows_expired,
         storage_ok=stats.storage_ok,
         last_error=stats.last_error,
         lag_s=stats.lag_s,

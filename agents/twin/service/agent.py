@@ -1007,6 +1007,7 @@ class AgentService:
             rejected_rows_committed=stats.rejected_rows_committed,
             maintenance_runs=stats.maintenance_runs,
             maintenance_failures=stats.maintenance_failures,
+            rows_expired=stats.rows_expired,
             last_error=stats.last_error,
             writer_pid=figures.pid,
             writer_restarts=figures.restarts,

@@ -148,6 +148,11 @@ def _history_families(h: HistoryState) -> Iterator[Metric]:
         h.rows_lost,
     )
     yield _counter(
+        "twin_history_rows_expired_total",
+        "History rows deleted by maintenance for being older than [history] keep_days.",
+        h.rows_expired,
+    )
+    yield _counter(
         "twin_history_writer_restarts_total",
         "Times the history writer process was started again after it died.",
         h.writer_restarts,

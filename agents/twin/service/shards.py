@@ -1785,6 +1785,7 @@ def _merge_history(parts: list[HistoryState]) -> HistoryState | None:
         rejected_rows_committed=sum(p.rejected_rows_committed for p in parts),
         maintenance_runs=sum(p.maintenance_runs for p in parts),
         maintenance_failures=sum(p.maintenance_failures for p in parts),
+        rows_expired=sum(p.rows_expired for p in parts),
         last_error=next((p.last_error for p in parts if p.last_error), ""),
         writer_restarts=sum(p.writer_restarts for p in parts),
         rows_received=sum(p.rows_received for p in parts),

@@ -281,6 +281,8 @@ class HistoryState:
     rejected_rows_committed: int = 0
     maintenance_runs: int = 0
     maintenance_failures: int = 0
+    # Rows maintenance deleted for being older than [history] keep_days: gone on purpose, not lost.
+    rows_expired: int = 0
     last_error: str = ""
     # How long the oldest row not yet written has waited, seconds (0: nothing waits); grows in an outage.
     lag_s: float = 0.0
