@@ -17,8 +17,8 @@ export PYOPENGL_PLATFORM ?= $(MUJOCO_GL)
 DEMO_APT_PACKAGES := mosquitto libosmesa6 libgl1-mesa-dri libglfw3 chromium
 # What the tests need on top: Xvfb for the viewer window; shellcheck for userdata/; iproute2 for the ROS 2 tests'
 # loopback-only network namespace (unshare -n, ip); chromium for the browser tests; desktop-file-utils to
-# validate the desktop launchers userdata/ writes.
-TEST_APT_PACKAGES := xvfb xauth shellcheck iproute2 chromium desktop-file-utils
+# validate the desktop launchers userdata/ writes; logrotate to run the rotation userdata/ configures.
+TEST_APT_PACKAGES := xvfb xauth shellcheck iproute2 chromium desktop-file-utils logrotate
 
 # Python environments come from locks (docs/development.md): uv.lock for the agents and their tests, and
 # hashed requirements files for the tools that live in venvs of their own. uv itself is installed from a hashed
@@ -108,7 +108,7 @@ demo-system-packages:
 
 system-packages: demo-system-packages
 	@missing=""; \
-	for bin in Xvfb shellcheck ip unshare chromium desktop-file-validate; do \
+	for bin in Xvfb shellcheck ip unshare chromium desktop-file-validate logrotate; do \
 	  command -v $$bin >/dev/null 2>&1 || missing=1; done; \
 	if [ -n "$$missing" ]; then $(call apt_install,$(TEST_APT_PACKAGES)); fi
 

@@ -39,6 +39,10 @@ XORG_CONF=/etc/X11/xorg.conf
 DCV_CDN=https://d1uj6qtbmh3dt5.cloudfront.net
 CLOUDWATCH_KEY_URL=https://amazoncloudwatch-agent.s3.amazonaws.com/assets/amazon-cloudwatch-agent.gpg
 START_UNIT=/etc/systemd/system/so101-twin-start.service
+# The host's own logs, rotated every hour (step_logs); the state file beside the boot's own state.
+ROTATE_UNIT=so101-twin-logrotate
+ROTATE_CONF=/etc/so101-twin/logrotate.conf
+ROTATE_STATE=/var/lib/so101-twin/logrotate.status
 # The largest screen a DCV web client may ask for (dcv.conf) and the X screen's virtual size: with no
 # monitor attached the NVIDIA driver has no mode to start from, so X needs the size given.
 VIRTUAL_SCREEN=4096x2160
@@ -190,8 +194,14 @@ step_logs() {
 RSYSLOG
   # rsyslog ships with Ubuntu server images; the packages step installs it otherwise and it reads the rule then.
   if [ "$CHANGED" = 1 ] && installed rsyslog; then systemctl restart rsyslog; fi
-  write_file /etc/logrotate.d/so101-twin 0644 <<ROTATE
+  CHANGED=0
+  # logrotate's own timer runs once a day, and judges maxsize only then: an agent logging an error flood
+  # could write gigabytes before it. Ours runs every hour with a state file of its own, its config outside
+  # /etc/logrotate.d so that the daily run does not rotate the same files on a second state.
+  rm -f "${ROOT}/etc/logrotate.d/so101-twin"
+  write_file "$ROTATE_CONF" 0644 <<ROTATE
 # Managed by so101-twin bootstrap.sh: bound the host's own logs on disk (CloudWatch keeps them a year).
+# Run every hour by ${ROTATE_UNIT}.timer; a log is rotated weekly, or at the first run it is over maxsize.
 /var/log/so101-twin-bootstrap.log /var/log/so101-twin-agent.log ${START_LOG} ${HOST_EMF_FILE} {
   weekly
   rotate 4
@@ -202,6 +212,31 @@ RSYSLOG
   copytruncate
 }
 ROTATE
+  write_file "/etc/systemd/system/${ROTATE_UNIT}.service" 0644 <<UNIT
+# Managed by so101-twin bootstrap.sh.
+[Unit]
+Description=so101-twin: rotate the host's own logs (${ROTATE_CONF})
+
+[Service]
+Type=oneshot
+ExecStart=/usr/sbin/logrotate --state ${ROTATE_STATE} ${ROTATE_CONF}
+Nice=19
+IOSchedulingClass=idle
+UNIT
+  write_file "/etc/systemd/system/${ROTATE_UNIT}.timer" 0644 <<UNIT
+# Managed by so101-twin bootstrap.sh.
+[Unit]
+Description=so101-twin: rotate the host's own logs every hour
+
+[Timer]
+OnCalendar=hourly
+RandomizedDelaySec=5min
+
+[Install]
+WantedBy=timers.target
+UNIT
+  if [ "$CHANGED" = 1 ]; then systemctl daemon-reload; fi
+  systemctl enable --now "${ROTATE_UNIT}.timer" >/dev/null 2>&1
   CHANGED=0
   # The agent's Embedded Metric Format lines: CloudWatch Logs turns each into the SO101Twin metrics the
   # stack's alarms watch (agents/twin/output/emf.py, stacks/monitoring.py); the host checks after each start
@@ -237,8 +272,9 @@ step_packages() {
   apt_install --recommends ubuntu-desktop-minimal gdm3 xserver-xorg-legacy
   # dpkg-dev: the DCV server's postinst calls dpkg-architecture. python3.12-venv: the agent's venv.
   # binutils (ar) and gnupg: the signature checks of the DCV packages. mesa-utils (glxinfo) and x11-utils
-  # (xwininfo): the host checks ask X what renders OpenGL and where the viewer's window is.
-  apt_install mesa-utils x11-utils dpkg-dev python3.12-venv curl rsyslog binutils gnupg
+  # (xwininfo): the host checks ask X what renders OpenGL and where the viewer's window is. logrotate: the
+  # logs step's hourly rotation runs it (Ubuntu's images have it; named so that none goes without).
+  apt_install mesa-utils x11-utils dpkg-dev python3.12-venv curl rsyslog binutils gnupg logrotate
   [ -x "$ROOT/usr/lib/xorg/Xorg.wrap" ] ||
     die "xserver-xorg-legacy installed no /usr/lib/xorg/Xorg.wrap: GDM could not start X for the NVIDIA driver"
   install_browser

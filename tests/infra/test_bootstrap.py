@@ -467,6 +467,36 @@ def test_agent_config_and_its_own_user(booted, deployed: Deployed) -> None:
     assert probe.stdout.strip() == "from requirements/host.txt", probe.stderr
 
 
+def test_the_hosts_logs_are_rotated_every_hour_and_past_maxsize(booted, tmp_path: Path) -> None:
+    """logrotate's own daily run judges maxsize once a day: an agent logging an error flood outgrew it many
+    times before. Ours runs every hour on a state of its own; the real logrotate, given the config the boot
+    wrote (its logs moved under tmp_path), rotates a log past maxsize at its first run and leaves the rest."""
+    host, _ = booted
+    assert not (host.root / "etc/logrotate.d/so101-twin").exists()  # the daily run's copy is gone
+    assert "OnCalendar=hourly\n" in host.file("/etc/systemd/system/so101-twin-logrotate.timer")
+    run = "/usr/sbin/logrotate --state /var/lib/so101-twin/logrotate.status /etc/so101-twin/logrotate.conf"
+    assert f"ExecStart={run}\n" in host.file("/etc/systemd/system/so101-twin-logrotate.service")
+    assert "systemctl enable --now so101-twin-logrotate.timer" in host.calls()
+    logs = tmp_path / "log"
+    logs.mkdir()
+    config = tmp_path / "logrotate.conf"
+    config.write_text(host.file("/etc/so101-twin/logrotate.conf").replace("/var/log/", f"{logs}/"))
+    flooded, quiet = logs / "so101-twin-agent.log", logs / "so101-twin-bootstrap.log"
+    with flooded.open("wb") as f:
+        f.truncate(51 << 20)  # past maxsize 50M, in a day of the week
+    quiet.write_text("booted\n")
+    rotated = subprocess.run(
+        ["logrotate", "--state", str(tmp_path / "state"), str(config)],
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=120,
+    )
+    assert rotated.returncode == 0, rotated.stderr
+    assert (logs / "so101-twin-agent.log.1.gz").exists() and flooded.stat().st_size == 0  # copytruncate
+    assert quiet.read_text() == "booted\n" and not (logs / "so101-twin-bootstrap.log.1.gz").exists()
+
+
 def test_host_check_reports_every_line(booted, tmp_path: Path) -> None:
     # On a copy: the module's booted host is shared, and this run's calls would land after the boot's signal.
     source, _ = booted
