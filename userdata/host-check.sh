@@ -159,9 +159,10 @@ PY
 # The console session (dcv_console_session), and DCV listening where a browser connects: TCP DCV_PORT (its
 # web port) on an address other than loopback (nothing there and the session is out of reach however open
 # the security group is), and UDP DCV_PORT for QUIC (only noted when missing: the browser then streams over
-# TCP). Asked of `ss` (iproute2).
+# TCP). Asked of `ss` (iproute2), which names the listening process: one outside DCV's unit (another server
+# on the port) would be what a browser reaches instead of DCV.
 check_dcv_session() {
-  local tcp="" udp="" session
+  local tcp="" udp="" session other
   dcv_console_session || return 1
   session="$DETAIL"
   if ! command -v ss >/dev/null 2>&1; then
@@ -169,13 +170,18 @@ check_dcv_session() {
     return 0
   fi
   # Listening sockets' lines (no header): STATE RECV-Q SEND-Q LOCAL:PORT PEER:PORT; captured whole.
-  if ! tcp="$(ss -Hltn 2>&1)" || ! udp="$(ss -Hlun 2>&1)"; then
+  if ! tcp="$(ss -Hltnp 2>&1)" || ! udp="$(ss -Hlun 2>&1)"; then
     DETAIL="${session}; not told whether DCV listens on ${DCV_PORT}: ss failed: ${tcp:0:200}${udp:0:200}"
     return 0
   fi
   if ! _listens "$tcp"; then
     DETAIL="${session}, but nothing listens on TCP ${DCV_PORT} beyond loopback, DCV's web port: no browser"
     DETAIL+=" can connect (dcv.conf [connectivity] web-port; journalctl -u dcvserver, /var/log/dcv/server.log)"
+    return 1
+  fi
+  if other="$(_foreign_listener "$tcp")"; then
+    DETAIL="${session}, but TCP ${DCV_PORT} is held by ${other}, not by DCV's server (dcvserver.service): a"
+    DETAIL+=" browser reaches it instead; stop it or move it to another port (ss -ltnp), then restart dcvserver"
     return 1
   fi
   DETAIL="${session}; DCV listens on TCP ${DCV_PORT}"
@@ -189,12 +195,36 @@ check_dcv_session() {
 # Whether a listing of `ss -H` has a socket on :DCV_PORT at an address other than loopback (0.0.0.0, [::],
 # *, or an interface's own address; a scope like %eth0 may follow it).
 _listens() {
-  local fields address
+  local fields
   while read -r -a fields; do
-    address="${fields[3]:-}"
-    [[ $address == *":${DCV_PORT}" ]] || continue
-    [[ $address == 127.* || $address == "[::1]"* || $address == "[::ffff:127."* ]] && continue
-    return 0
+    if _public_dcv_port "${fields[3]:-}"; then return 0; fi
+  done <<<"$1"
+  return 1
+}
+
+_public_dcv_port() {
+  [[ $1 == *":${DCV_PORT}" ]] || return 1
+  [[ $1 != 127.* && $1 != "[::1]"* && $1 != "[::ffff:127."* ]]
+}
+
+# Of the sockets on :DCV_PORT beyond loopback in a listing of `ss -Hltnp`, the first none of whose processes
+# is in dcvserver.service's cgroup, printed as "NAME (pid N)"; fails when DCV holds each, or ss names no
+# process (not judged then). By the unit, not the name: whichever of DCV's processes holds the socket.
+_foreign_listener() {
+  local fields users name pid ours
+  while read -r -a fields; do
+    _public_dcv_port "${fields[3]:-}" || continue
+    users="${fields[*]:5}"
+    ours=0 name="" pid=""
+    while [[ $users =~ \(\"([^\"]*)\",pid=([0-9]+) ]]; do
+      name="${BASH_REMATCH[1]}" pid="${BASH_REMATCH[2]}"
+      if grep -qs '/dcvserver\.service$' "${ROOT}/proc/${pid}/cgroup"; then ours=1; fi
+      users="${users#*pid="${pid}"}"
+    done
+    if [ -n "$pid" ] && [ "$ours" = 0 ]; then
+      echo "${name} (pid ${pid})"
+      return 0
+    fi
   done <<<"$1"
   return 1
 }

@@ -102,6 +102,7 @@ set -u
 me="$(basename "$0")"
 printf '%s\n' "$me $*" >>"$SIM/calls.log"
 if [ -e "$SIM/fail/$me" ]; then echo "$me: failing on purpose (test)" >&2; exit 1; fi
+DCV_PID=2345  # dcvserver's process while it runs
 mark() { mkdir -p "$SIM/$1"; : >"$SIM/$1/$2"; }
 has() { [ -e "$SIM/$1/$2" ]; }
 # X on :0 answers a client (glxinfo, xwininfo) only while it runs, with its Xorg's -auth file in XAUTHORITY:
@@ -219,6 +220,8 @@ start_unit() {
       fi ;;
     dcvserver)
       rm -f "$SIM/state/console"
+      # Its process, in its unit's cgroup as systemd puts it (what the DCV port check asks of a listener).
+      mkdir -p "$ROOT/proc/$DCV_PID"; echo "0::/system.slice/dcvserver.service" >"$ROOT/proc/$DCV_PID/cgroup"
       if has state xorg && grep -qs '^create-session = true' "$ROOT/etc/dcv/dcv.conf"; then
         sed -n 's/^owner = "\(.*\)"/\1/p' "$ROOT/etc/dcv/dcv.conf" >"$SIM/state/console"
       fi ;;
@@ -348,18 +351,22 @@ else
 fi
 """,
     "ss": r"""
-# ss -Hltn | ss -Hlun: listening TCP or UDP sockets, no header, as iproute2 prints them. dcvserver, while
-# active, listens on 8443 over both (its web and QUIC ports); SIM/ss-tcp or SIM/ss-udp replace a listing.
+# ss -Hltnp | ss -Hlun: listening TCP or UDP sockets, no header, as iproute2 prints them (-p: with the
+# processes holding each). dcvserver, while active, listens on 8443 over both (its web and QUIC ports);
+# SIM/ss-tcp or SIM/ss-udp replace a listing.
+users=""
 case "$*" in
-  -Hltn) kind=tcp; state=LISTEN; queue="0      10" ;;
+  -Hltnp)
+    kind=tcp; state=LISTEN; queue="0      10"; users=' users:(("dcvserver",pid='"$DCV_PID"',fd=12))' ;;
   -Hlun) kind=udp; state=UNCONN; queue="0      0" ;;
-  *) echo "ss stand-in: only -Hltn or -Hlun" >&2; exit 1 ;;
+  *) echo "ss stand-in: only -Hltnp or -Hlun" >&2; exit 1 ;;
 esac
-echo "$state $queue         127.0.0.53%lo:53        0.0.0.0:*"
+resolver=' users:(("systemd-resolve",pid=511,fd=15))'
+echo "$state $queue         127.0.0.53%lo:53        0.0.0.0:*${users:+$resolver}"
 if [ -f "$SIM/ss-$kind" ]; then cat "$SIM/ss-$kind"; exit 0; fi
 if has services dcvserver; then
-  echo "$state $queue               0.0.0.0:8443      0.0.0.0:*"
-  echo "$state $queue                  [::]:8443         [::]:*"
+  echo "$state $queue               0.0.0.0:8443      0.0.0.0:*$users"
+  echo "$state $queue                  [::]:8443         [::]:*$users"
 fi
 """,
     "nvidia-xconfig": r"""

@@ -615,6 +615,31 @@ def test_host_check_fails_the_dcv_line_when_nothing_listens_on_dcvs_web_port(boo
     )
 
 
+def test_host_check_fails_the_dcv_line_when_another_process_holds_its_port(booted, tmp_path: Path) -> None:
+    """A listener on TCP 8443 passed whoever it was: another server there is what a browser reaches. The
+    process ss names must be in dcvserver.service's cgroup (by unit, not by name); a socket ss names no
+    process for is not judged."""
+    source, _ = booted
+    host = copy_of(source, tmp_path)
+    assert check_lines(host)["dcv-session"][0] == "OK"  # dcvserver's own, in its unit
+    (host.root / "proc/777").mkdir()
+    (host.root / "proc/777/cgroup").write_text("0::/system.slice/nginx.service\n")
+    (host.sim / "ss-tcp").write_text(
+        'LISTEN 0      511               0.0.0.0:8443      0.0.0.0:*    users:(("nginx",pid=777,fd=6))\n'
+    )
+    assert check_lines(host)["dcv-session"] == (
+        "FAIL",
+        "console session owned by ubuntu, but TCP 8443 is held by nginx (pid 777), not by DCV's server "
+        "(dcvserver.service): a browser reaches it instead; stop it or move it to another port (ss -ltnp), "
+        "then restart dcvserver",
+    )
+    # The same process moved into DCV's unit (a name is no proof either way): DCV's.
+    (host.root / "proc/777/cgroup").write_text("0::/system.slice/dcvserver.service\n")
+    assert check_lines(host)["dcv-session"][0] == "OK"
+    (host.sim / "ss-tcp").write_text("LISTEN 0      511               0.0.0.0:8443      0.0.0.0:*\n")
+    assert check_lines(host)["dcv-session"][0] == "OK"
+
+
 def test_host_check_fails_the_screen_when_the_viewers_window_is_black(booted, tmp_path: Path) -> None:
     """A desktop drawn around a black viewer window (MuJoCo drawing nothing) passed as "a desktop": the
     window xwininfo finds on :0 is cut from the capture, scaled as the capture is, and judged on its own."""
