@@ -293,11 +293,15 @@ def test_peers_cyclone_could_not_use_are_refused_with_the_fix(monkeypatch) -> No
 
 def test_an_interface_the_machine_lacks_is_refused_by_name() -> None:
     """A walk: `interface = "eth9"` stopped the agent with Cyclone's "Non specific error"; the error must
-    name the setting and the interfaces there are."""
+    name the setting and the interfaces there are. An address the machine lacks did the same."""
     from twin.output.ros2 import Ros2Bridge
 
     check_interface("lo")
-    check_interface("10.0.1.5")  # an address is Cyclone's to match
+    check_interface("127.0.0.1")
+    # 192.0.2.0/24 is for documentation only (RFC 5737): no machine has it.
+    lacked = r"ros2\.interface = '192\.0\.2\.7' is not an address of this machine"
+    with pytest.raises(Ros2Error, match=lacked):
+        check_interface("192.0.2.7")
     with pytest.raises(Ros2Error, match=r"ros2\.interface = 'nosuchif0' is not a network interface") as exc:
         Ros2Bridge(Ros2Settings(enabled=True, interface="nosuchif0"))
     assert "lo" in str(exc.value)

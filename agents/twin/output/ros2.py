@@ -484,15 +484,27 @@ def _is_address(interface: str) -> bool:
 
 
 def check_interface(interface: str) -> None:
-    """Ros2Error when `interface` names a network interface this machine does not have.
+    """Ros2Error when `interface` names a network interface, or an address, this machine does not have.
 
-    Cyclone fails such a name with a "Non specific error" of its domain; this names the setting and what the
-    machine has. An address is left to Cyclone, which matches it against the interfaces' addresses.
+    Cyclone fails either with a "Non specific error" of its domain; this names the setting and what the
+    machine has. An address is tried as the kernel would take it: a socket bound to it.
     """
-    if not interface or _is_address(interface):
+    if not interface:
         return
     import socket  # noqa: PLC0415 - as in _resolve_ipv4
 
+    if _is_address(interface):
+        address = interface.strip("[]")
+        family = socket.AF_INET6 if ":" in address else socket.AF_INET
+        try:
+            with socket.socket(family, socket.SOCK_DGRAM) as probe:
+                probe.bind((address, 0))
+        except (OSError, ValueError) as exc:
+            raise Ros2Error(
+                f"ros2.interface = {interface!r} is not an address of this machine ({exc}); give one of its "
+                "interfaces' addresses or names (ip -br addr lists them), or leave it empty"
+            ) from exc
+        return
     names = [name for _, name in socket.if_nameindex()]
     if interface not in names:
         raise Ros2Error(
