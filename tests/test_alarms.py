@@ -148,8 +148,9 @@ def test_over_temperature_raised_acknowledged_cleared() -> None:
     )
     # Every message of the alarm names the servo as its raise did (a walk: "cleared" had no motor id).
     assert ack.message.startswith("elbow_flex servo (motor id 3) over_temperature acknowledged"), ack.message
-    with pytest.raises(NothingToAcknowledge, match="ACKNOWLEDGED"):
+    with pytest.raises(NothingToAcknowledge, match="is ACKNOWLEDGED: only ACTIVE or LATCHED") as already:
         alarms.acknowledge(view.alarm_id, 4.5)
+    assert already.value.state == "ACKNOWLEDGED"
 
     events = run(
         alarms,
@@ -188,8 +189,9 @@ def test_unacknowledged_alarm_latches_until_acknowledged() -> None:
     assert alarms.present_by_severity() == {Severity.WARNING: 0, Severity.CRITICAL: 0}
     reset = alarms.acknowledge(alarm_id(DEV, "elbow_flex", AlarmKind.OVER_TEMPERATURE), 20.0)
     assert (reset.previous, reset.state, reset.action) == (AlarmState.LATCHED, AlarmState.NORMAL, "reset")
-    with pytest.raises(NothingToAcknowledge, match="NORMAL"):
+    with pytest.raises(NothingToAcknowledge, match="is NORMAL, already cleared: nothing waits") as cleared:
         alarms.acknowledge(reset.alarm_id, 21.0)
+    assert cleared.value.state == "NORMAL"
 
 
 def test_latched_alarm_that_returns_is_active_again() -> None:

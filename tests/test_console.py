@@ -11,6 +11,7 @@ import contextlib
 import copy
 import csv
 import errno
+import functools
 import io
 import json
 import math
@@ -895,32 +896,44 @@ def test_an_acknowledgement_the_agent_could_not_keep_is_told_as_made_but_not_kep
     assert browser_errors == []
 
 
+def fulfilled(route: Any, status: int, body: dict[str, Any]) -> None:
+    route.fulfill(status=status, json=body)
+
+
 def test_an_alarm_acknowledged_meanwhile_elsewhere_is_told_as_done(
     console: str, page: Any, browser_errors: list[str]
 ) -> None:
     """Two tabs on one arm (or a colleague's): the alarm is acknowledged in one, and the other's button,
     clicked before its row is redrawn, gets the agent's 409 nothing_to_acknowledge. What it asked for is done:
     the page says so, as Acknowledge all counts it ("already acknowledged"), not as a red "was not
-    acknowledged". The answer is the agent's, word for word; here the page's reading of it."""
+    acknowledged". One found NORMAL has cleared meanwhile, and is said to be, not to be acknowledged already.
+    The answers are the agent's, word for word; here the page's reading of them."""
     page.goto(console + "/arm/arm-003")
     button = page.locator("#alarms tr[data-alarm] button").first
     button.wait_for(timeout=TIMEOUT_S * 1000)
     alarm_id = button.get_attribute("data-alarm")
-    detail = f"alarm {alarm_id} is ACKNOWLEDGED: only ACTIVE or LATCHED alarms can be acknowledged"
-
-    def done_elsewhere(route: Any) -> None:
-        route.fulfill(status=409, json={"error": "nothing_to_acknowledge", "detail": detail})
-
-    page.route("**/alarms/**/ack", done_elsewhere)
-    try:
-        button.click()
-        answer = page.wait_for_selector("#ack-result:not([hidden])")
-        told = answer.inner_text()
-    finally:
-        page.unroute("**/alarms/**/ack", done_elsewhere)
-    said = "was acknowledged already (another tab, person or script did it first)"
-    assert told == f"{alarm_id} {said}: {detail}", told
-    assert answer.get_attribute("class") == "ack-ok", told
+    only = "only ACTIVE or LATCHED alarms can be acknowledged"
+    found = {
+        "ACKNOWLEDGED": f"alarm {alarm_id} is ACKNOWLEDGED: {only}",
+        "NORMAL": f"alarm {alarm_id} is NORMAL, already cleared: nothing waits to be acknowledged",
+    }
+    said = {
+        "ACKNOWLEDGED": "was acknowledged already (another tab, person or script did it first)",
+        "NORMAL": "was already cleared (nothing waits for a person)",
+    }
+    for state, detail in found.items():
+        body = {"error": "nothing_to_acknowledge", "alarm_id": alarm_id, "state": state, "detail": detail}
+        done_elsewhere = functools.partial(fulfilled, status=409, body=body)
+        page.route("**/alarms/**/ack", done_elsewhere)
+        try:
+            button.click()
+            answer = page.locator("#ack-result:not([hidden])", has_text=detail)
+            answer.wait_for()
+            told = answer.inner_text()
+        finally:
+            page.unroute("**/alarms/**/ack", done_elsewhere)
+        assert told == f"{alarm_id} {said[state]}: {detail}", told
+        assert answer.get_attribute("class") == "ack-ok", told
     # The browser logs the 409 this test made; nothing else.
     browser_errors[:] = [e for e in browser_errors if not ("status of 409" in e and "/ack)" in e)]
     assert browser_errors == []
@@ -1789,7 +1802,7 @@ def bulk_answer(made: list[dict[str, Any]], sent: list[tuple[list[str], str, str
             if alarm is None:
                 results.append({"alarm_id": alarm_id, "outcome": "alarm_not_found", "state": None})
             elif alarm_id in cleared:
-                detail = f"alarm {alarm_id} is NORMAL: only ACTIVE or LATCHED alarms can be acknowledged"
+                detail = f"alarm {alarm_id} is NORMAL, already cleared: nothing waits to be acknowledged"
                 outcome = {"outcome": "nothing_to_acknowledge", "state": "NORMAL", "detail": detail}
                 results.append({"alarm_id": alarm_id, **outcome})
             else:

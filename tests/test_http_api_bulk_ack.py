@@ -83,11 +83,13 @@ def http_get_html(url: str) -> tuple[int, str, bytes]:
         return resp.status, resp.headers.get("Content-Type", ""), resp.read()
 
 
-def hot_agent(state_file: Path, workers: int) -> AgentService:
+def hot_agent(state_file: Path, workers: int, **overrides: Any) -> AgentService:
     from test_alerts import hot_arm_settings
     from twin.service.config import load_config
 
-    settings = hot_arm_settings(**{"twin.state_file": str(state_file), "telemetry.devices": ARMS})
+    settings = hot_arm_settings(
+        **{"twin.state_file": str(state_file), "telemetry.devices": ARMS, **overrides}
+    )
     agent = AgentService(load_config(None, settings), workers=workers)
     agent.start()
     return agent
@@ -97,17 +99,18 @@ def states(agent: AgentService) -> dict[str, str]:
     return {a.alarm_id: a.state for a in agent.alarms(include_normal=True)}
 
 
-def heat(agent: AgentService, ids: tuple[str, ...]) -> None:
-    """Both arms' elbows at 68 C until every alarm of `ids` is ACTIVE (the warning and the critical)."""
+def heat(agent: AgentService, ids: tuple[str, ...], temp: float = 68, state: str = "ACTIVE") -> None:
+    """Both arms' elbows at `temp` C until every alarm of `ids` is in `state` (at 68 C the warning and the
+    critical are ACTIVE)."""
     from test_alerts import hot
 
-    def active() -> bool:
+    def reached() -> bool:
         for device in ARMS:
-            agent.feed(f"dt/lerobot/{device}/telemetry", hot(device, int(time.time() * 1000), 68))
+            agent.feed(f"dt/lerobot/{device}/telemetry", hot(device, int(time.time() * 1000), temp))
         now = states(agent)
-        return all(now.get(a) == "ACTIVE" for a in ids)
+        return all(now.get(a) == state for a in ids)
 
-    wait_for(active, 60, f"{ids} ACTIVE", interval=0.2)
+    wait_for(reached, 60, f"{ids} {state}", interval=0.2)
 
 
 @pytest.fixture(params=[1, 2], ids=["in-process", "two-worker-processes"])
@@ -187,6 +190,46 @@ def test_many_alarms_are_acknowledged_in_one_request_and_one_write_kept_over_a_r
         )
     finally:
         again.stop()
+
+
+@pytest.mark.slow
+def test_one_acknowledgement_of_a_cleared_alarm_says_it_is_cleared(tmp_path: Path, workers: int) -> None:
+    """The single acknowledgement's 409 told a NORMAL alarm in the words of one acknowledged already; it
+    names the alarm and its state, and a NORMAL one is said to have cleared (through a worker process too)."""
+    agent = hot_agent(tmp_path / "state.json", workers, **{"alarms.temperature_clear_after_s": 0.0})
+    try:
+        heat(agent, (WARM,))
+        url = f"{agent.http_url}/alarms/{WARM}/ack"
+        status, body = single(url)
+        assert status == 200 and body["alarms"][0]["state"] == "ACKNOWLEDGED", body
+        status, body = single(url)
+        assert (status, body["error"], body["state"], body["alarm_id"]) == (
+            409,
+            "nothing_to_acknowledge",
+            "ACKNOWLEDGED",
+            WARM,
+        ), body
+        assert "already cleared" not in body["detail"], body
+        heat(agent, (WARM,), temp=35, state="NORMAL")
+        status, body = single(url)
+        assert (status, body["error"], body["state"], body["alarm_id"]) == (
+            409,
+            "nothing_to_acknowledge",
+            "NORMAL",
+            WARM,
+        ), body
+        assert f"alarm {WARM} is NORMAL, already cleared: " in body["detail"], body
+    finally:
+        agent.stop()
+
+
+def single(url: str) -> tuple[int, dict[str, Any]]:
+    request = urllib.request.Request(url, data=b"", method="POST")
+    try:
+        with urllib.request.urlopen(request, timeout=30) as resp:
+            return resp.status, json.loads(resp.read())
+    except urllib.error.HTTPError as err:
+        return err.code, json.loads(err.read())
 
 
 @pytest.mark.slow

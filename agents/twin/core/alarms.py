@@ -334,7 +334,11 @@ class AlarmNotFound(KeyError):  # noqa: N818 - reads as the HTTP answer it becom
 
 
 class NothingToAcknowledge(ValueError):  # noqa: N818 - reads as the HTTP answer it becomes (409)
-    """The alarm is NORMAL or already ACKNOWLEDGED."""
+    """The alarm is NORMAL (cleared) or already ACKNOWLEDGED; `state` says which (the 409 carries it)."""
+
+    def __init__(self, message: str, state: str = "") -> None:
+        super().__init__(message)
+        self.state = state
 
 
 def alarm_id(device: str, joint: str, kind: AlarmKind | str) -> str:
@@ -1433,9 +1437,14 @@ class ServoAlarms:
         elif state == _LATCHED:
             target, action = _NORMAL, "reset"
         else:
-            raise NothingToAcknowledge(
-                f"alarm {alarm_id_} is {_STATES[state]}: only ACTIVE or LATCHED alarms can be acknowledged"
+            # NORMAL is not "acknowledged already": the alarm has cleared (and a non-latching one may never
+            # have been acknowledged), which is what the person who clicked needs to read.
+            why = (
+                "is NORMAL, already cleared: nothing waits to be acknowledged"
+                if state == _NORMAL
+                else f"is {_STATES[state]}: only ACTIVE or LATCHED alarms can be acknowledged"
             )
+            raise NothingToAcknowledge(f"alarm {alarm_id_} {why}", str(_STATES[state]))
         event = self._move(at, target, action, now=now)
         self.counters.acknowledged[_KINDS[at[2]]] += 1
         return event

@@ -642,7 +642,8 @@ class AgentHttpServer:
         except AlarmNotFound:
             return _error(404, "alarm_not_found", alarm_id=alarm_id, detail=ALARM_NOT_FOUND_DETAIL)
         except NothingToAcknowledge as exc:
-            return _error(409, "nothing_to_acknowledge", detail=str(exc))
+            # Its state with it: NORMAL (cleared) and ACKNOWLEDGED are told apart on the page.
+            return _error(409, "nothing_to_acknowledge", alarm_id=alarm_id, state=exc.state, detail=str(exc))
         except WorkerError as exc:
             # /alarms lists a restarting worker's alarms from its checkpoint; only the worker can change one.
             return _error(

@@ -745,6 +745,7 @@ class Refused:
     call_id: int
     refusal: Refusal
     message: str
+    state: str = ""  # NOTHING_TO_ACKNOWLEDGE's: the alarm's state (NothingToAcknowledge.state)
 
 
 @dataclass(frozen=True, slots=True)
@@ -771,7 +772,7 @@ def _raise_refusal(refused: Refused, worker: int) -> None:
     if refused.refusal is Refusal.ALARM_NOT_FOUND:
         raise AlarmNotFound(refused.message)
     if refused.refusal is Refusal.NOTHING_TO_ACKNOWLEDGE:
-        raise NothingToAcknowledge(refused.message)
+        raise NothingToAcknowledge(refused.message, refused.state)
     if refused.refusal is Refusal.ARM_NOT_FOUND:
         raise ArmNotFoundError(refused.message)
     if refused.refusal in (Refusal.ARM_NOT_OFFLINE, Refusal.ARM_CONFIGURED):
@@ -1635,7 +1636,7 @@ def _serve_control(mirror: Mirror, control: Connection) -> None:
         except AlarmNotFound as exc:
             reply = Refused(call.call_id, Refusal.ALARM_NOT_FOUND, str(exc.args[0]) if exc.args else "")
         except NothingToAcknowledge as exc:
-            reply = Refused(call.call_id, Refusal.NOTHING_TO_ACKNOWLEDGE, str(exc))
+            reply = Refused(call.call_id, Refusal.NOTHING_TO_ACKNOWLEDGE, str(exc), exc.state)
         except ArmNotFoundError as exc:
             reply = Refused(call.call_id, Refusal.ARM_NOT_FOUND, str(exc.args[0]) if exc.args else "")
         except ArmNotForgettableError as exc:

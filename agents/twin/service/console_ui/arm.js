@@ -170,15 +170,18 @@
     // Made, but the state file could not keep it: "not acknowledged" would be wrong, "acknowledged" too little.
     if (notSaved(result)) return `${alarm.alarm_id} acknowledged, but not kept: ${Twin.refusal(result)}`;
     if (doneElsewhere(result)) {
-      return `${alarm.alarm_id} was acknowledged already (another tab, person or script did it first): ` +
-        (result.payload.detail || "");
+      // NORMAL: it cleared since the row was drawn (reset by another click, or a warning that does not
+      // latch), which "acknowledged already" would misstate; the agent's 409 says which state it found.
+      const why = result.payload.state === "NORMAL" ? "was already cleared (nothing waits for a person)"
+        : "was acknowledged already (another tab, person or script did it first)";
+      return `${alarm.alarm_id} ${why}: ${result.payload.detail || ""}`;
     }
     return `${alarm.alarm_id} was not acknowledged: ${Twin.refusal(result)}`;
   }
 
-  // 409 nothing_to_acknowledge: the alarm is ACKNOWLEDGED, or NORMAL after an acknowledgement, since the row
-  // was drawn. What the click asked for is done: a walk's second tab read a red "was not acknowledged", where
-  // Acknowledge all counts the same answer as "already acknowledged".
+  // 409 nothing_to_acknowledge: the alarm is ACKNOWLEDGED, or NORMAL (cleared), since the row was drawn.
+  // Nothing is left for the click to do: a walk's second tab read a red "was not acknowledged", where
+  // Acknowledge all counts the same answers as "already acknowledged" and "already cleared".
   function doneElsewhere(result) {
     return result.status === 409 && !!result.payload && result.payload.error === "nothing_to_acknowledge";
   }
