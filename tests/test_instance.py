@@ -199,6 +199,26 @@ def test_stop_of_a_host_still_starting_says_what_to_wait_for(stack, capsys, monk
     assert "wait until it is running (`twin instance status`), then stop it again" in err
 
 
+def test_start_of_a_host_still_stopping_says_what_to_wait_for(stack, capsys, monkeypatch):
+    """EC2 refuses StartInstances while the instance is stopping (moto does not: the refusal is injected)."""
+    instance_id = stack["InstanceId"]
+    assert main(["instance", "stop", "--no-wait"]) == 0
+
+    def refuse(original, params):
+        raise client_error(
+            "IncorrectInstanceState",
+            f"The instance '{instance_id}' is not in a state from which it can be started.",
+            "StartInstances",
+        )
+
+    intercept(monkeypatch, "StartInstances", refuse)
+    capsys.readouterr()
+    assert main(["instance", "start", "--timeout", "5"]) == cmd.EXIT_AWS
+    err = capsys.readouterr().err
+    assert f"instance {instance_id} cannot be started now (" in err
+    assert "wait until it is stopped (`twin instance status`), then start it again" in err
+
+
 def test_no_wait_returns_the_transitional_state(stack, capsys):
     assert main(["instance", "stop", "--no-wait"]) == 0
     out = capsys.readouterr().out

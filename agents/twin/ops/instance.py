@@ -520,10 +520,7 @@ class TwinInstance:
                 if code == "InsufficientInstanceCapacity":
                     raise self._capacity_error(exc) from exc
                 if code == "IncorrectInstanceState":
-                    raise AwsCallError(
-                        f"instance {instance_id} cannot be started now ({self.state()}): wait until it "
-                        "is stopped (`twin instance status`), then start it again"
-                    ) from exc
+                    raise self._not_now("start", "stopped") from exc
                 raise
         state = response["StartingInstances"][0]["CurrentState"]["Name"]
         if wait:
@@ -541,18 +538,23 @@ class TwinInstance:
             try:
                 response = self._client("ec2").stop_instances(InstanceIds=[instance_id])
             except ClientError as exc:
-                # EC2 refuses to stop an instance still starting (pending), as `start` refuses one stopping.
                 if exc.response.get("Error", {}).get("Code") == "IncorrectInstanceState":
-                    raise AwsCallError(
-                        f"instance {instance_id} cannot be stopped now ({self.state()}): wait until it "
-                        "is running (`twin instance status`), then stop it again"
-                    ) from exc
+                    raise self._not_now("stop", "running") from exc
                 raise
         state = response["StoppingInstances"][0]["CurrentState"]["Name"]
         if wait:
             self._wait("instance_stopped", "stopped", timeout_s)
             state = "stopped"
         return state
+
+    def _not_now(self, action: str, ready: str) -> AwsCallError:
+        """EC2's IncorrectInstanceState for `action` (start, stop) as what to do: it refuses to stop an
+        instance still starting (pending) and to start one still stopping; `ready`: the state to wait for."""
+        done = {"start": "started", "stop": "stopped"}[action]
+        return AwsCallError(
+            f"instance {self.outputs().instance_id} cannot be {done} now ({self.state()}): wait until it "
+            f"is {ready} (`twin instance status`), then {action} it again"
+        )
 
     def _capacity_error(self, exc: Exception) -> InsufficientCapacityError:
         try:
