@@ -1692,6 +1692,11 @@ def test_an_offline_arm_is_forgotten_from_its_page(
     assert page.locator("#forget-result a#forget-fleet").get_attribute("href") == "/"
     page.locator("h1", has_text="arm-retired: forgotten").wait_for()
     assert "arm-retired" not in agent.state().devices
+    # Said once under the title, in the forget's answer, and what comes next: a second "was forgotten by
+    # this agent" above the answer read as the page repeating itself.
+    told = page.locator("main").inner_text().replace("arm-retired: forgotten", "", 1)
+    assert told.count("forgotten") == 1 and "arm-retired is forgotten: its twin" in told, told
+    assert page.locator("#forgotten").inner_text().startswith("If it publishes again it comes back as a new")
     # The browser logs the refused POSTs and the page read that was cut off; they are this test's doing, and
     # only they may be there.
     ours = browser_errors[errors_before:]

@@ -276,11 +276,12 @@
   }
   forgetButton.addEventListener("click", forget);
 
-  // After a forget the agent no longer knows the arm: the page says so instead of "not known".
+  // After a forget the agent no longer knows the arm: the page says so instead of "not known". The title
+  // and the forget's own answer say it is forgotten; a third "was forgotten" here read as a repeat.
   function showForgotten() {
     title.textContent = `${device}: forgotten`;
-    summary.replaceChildren(el("p", { id: "forgotten", text: "This arm was forgotten by this agent. If it " +
-      "publishes again it comes back as a new arm, and this page fills in by itself." }));
+    summary.replaceChildren(el("p", { id: "forgotten", text: "If it publishes again it comes back as a new " +
+      "arm, and this page fills in by itself." }));
     clearArm();
   }
 
