@@ -958,7 +958,7 @@ _BULK_SHAPE = 'a JSON list of alarm ids as GET /alarms lists them, e.g. ["arm-00
 
 def bulk_alarm_ids(body: bytes) -> tuple[str, ...]:
     """The ids of a POST /alarms/ack body; BulkAckError naming what is wrong and the fix: not JSON, not a
-    list, an empty list, more than ACK_MANY_MAX ids, an id that is not a string, an id twice."""
+    list, more than ACK_MANY_MAX ids, an id that is not a string, an id twice."""
     try:
         parsed = json.loads(body)
     except (ValueError, RecursionError):
@@ -966,9 +966,6 @@ def bulk_alarm_ids(body: bytes) -> tuple[str, ...]:
     if not isinstance(parsed, list):
         what = type(parsed).__name__
         raise BulkAckError(400, "not_a_list", f"the body is a JSON {what}: send {_BULK_SHAPE}")
-    if not parsed:
-        # A 200 with every count 0 reads as done; a client that sent nothing has a bug to be told of.
-        raise BulkAckError(400, "no_alarm_ids", f"the body is an empty list: send {_BULK_SHAPE}")
     if len(parsed) > ACK_MANY_MAX:
         raise BulkAckError(
             413,
