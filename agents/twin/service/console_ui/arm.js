@@ -172,9 +172,10 @@
     if (doneElsewhere(result)) {
       // NORMAL: it cleared since the row was drawn (reset by another click, or a warning that does not
       // latch), which "acknowledged already" would misstate; the agent's 409 says which state it found.
+      // Its detail says the same again, so the page's sentence stands alone.
       const why = result.payload.state === "NORMAL" ? "was already cleared (nothing waits for a person)"
         : "was acknowledged already (another tab, person or script did it first)";
-      return `${alarm.alarm_id} ${why}: ${result.payload.detail || ""}`;
+      return `${alarm.alarm_id} ${why}`;
     }
     return `${alarm.alarm_id} was not acknowledged: ${Twin.refusal(result)}`;
   }
