@@ -219,6 +219,25 @@ def test_start_of_a_host_still_stopping_says_what_to_wait_for(stack, capsys, mon
     assert "wait until it is stopped (`twin instance status`), then start it again" in err
 
 
+def test_a_terminated_host_is_not_waited_for(stack, capsys, monkeypatch):
+    """A host terminated outside the stack: "wait until it is stopped" would never come true."""
+    instance_id = stack["InstanceId"]
+    boto3.client("ec2", region_name=REGION).terminate_instances(InstanceIds=[instance_id])
+
+    def refuse(original, params):
+        raise client_error(
+            "IncorrectInstanceState",
+            f"The instance '{instance_id}' is not in a state from which it can be started.",
+            "StartInstances",
+        )
+
+    intercept(monkeypatch, "StartInstances", refuse)
+    assert main(["instance", "start", "--timeout", "5"]) == cmd.EXIT_AWS
+    err = capsys.readouterr().err
+    assert f"instance {instance_id} cannot be started: it is terminated, and EC2 never starts" in err, err
+    assert "`cdk destroy`, then `cdk deploy`" in err and "wait until" not in err, err
+
+
 def test_no_wait_returns_the_transitional_state(stack, capsys):
     assert main(["instance", "stop", "--no-wait"]) == 0
     out = capsys.readouterr().out

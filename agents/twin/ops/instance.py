@@ -551,8 +551,17 @@ class TwinInstance:
         """EC2's IncorrectInstanceState for `action` (start, stop) as what to do: it refuses to stop an
         instance still starting (pending) and to start one still stopping; `ready`: the state to wait for."""
         done = {"start": "started", "stop": "stopped"}[action]
+        instance_id, state = self.outputs().instance_id, self.state()
+        if state in ("shutting-down", "terminated"):
+            # Waiting would never end: EC2 starts and stops no terminated instance.
+            return AwsCallError(
+                f"instance {instance_id} cannot be {done}: it is {state}, and EC2 never starts or stops a "
+                "terminated instance; `cdk destroy`, then `cdk deploy`, makes the stack's host again (the "
+                "history bucket, with the arms' calibrations and agent.local.toml, is kept unless "
+                "retainHistory is false: docs/deploy.md)"
+            )
         return AwsCallError(
-            f"instance {self.outputs().instance_id} cannot be {done} now ({self.state()}): wait until it "
+            f"instance {instance_id} cannot be {done} now ({state}): wait until it "
             f"is {ready} (`twin instance status`), then {action} it again"
         )
 
