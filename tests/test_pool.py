@@ -163,3 +163,38 @@ def test_index_patterns_match_exactly_the_pools_indexes(count: int) -> None:
     assert [c for c in candidates if any(r.match(c) for r in rules)] == [str(i) for i in range(count)]
     # Compact: a handful a digit, not one an index.
     assert len(patterns) <= 10 * len(str(count))
+
+
+@pytest.mark.parametrize("subscribe_ticks", [3, 6])
+def test_a_growing_shared_pool_waits_for_its_new_connections_before_it_doubles_again(
+    subscribe_ticks: int,
+) -> None:
+    """A walk's 40 arms (400 msg/s) under a budget of 100 a connection ended on 16 connections, where 8
+    carry them: a connection takes a moment to subscribe, and the pool doubled again on the old connections,
+    still at their budget (and measured over seconds from before it grew), before the new ones took their
+    share."""
+    settings = PoolSettings("dt/lerobot", ("*",), limit=100.0, max_connections=64)
+    pool, held = _pool_at(settings, 1)
+    pool._add_connection = lambda filters: held.append(_Counted(len(held)).connection)  # type: ignore[attr-defined]
+    added = {0: -4}
+    for tick in range(1, 120):  # quarter seconds; the pool rescales every fourth
+        # A connection receives once it has subscribed, 0.75 s or 1.5 s (IoT Core's handshakes) after it was
+        # added; the broker spreads the fleet over the group's subscribed members, its quota caps each.
+        members = [c for i, c in enumerate(held) if added.setdefault(i, tick) + subscribe_ticks <= tick]
+        for c in members:
+            c.messages += min(25, 100 // len(members))  # type: ignore[attr-defined]
+        if tick % 4 == 0:
+            pool.rescale(tick / 4)  # type: ignore[attr-defined]
+    assert 5 <= len(held) <= 8, len(held)
+
+
+def test_a_shared_pool_with_a_connection_that_never_receives_still_grows() -> None:
+    """A connection the broker refuses receives nothing: the pool must not wait on it for ever before it
+    grows on the others at their budget."""
+    settings = PoolSettings("dt/lerobot", ("*",), limit=100.0, max_connections=8)
+    pool, held = _pool_at(settings, 1)
+    pool._add_connection = lambda filters: held.append(_Counted(len(held)).connection)  # type: ignore[attr-defined]
+    for t in range(1, 30):
+        held[0].messages += 100  # type: ignore[attr-defined]  # the rest are refused: they receive nothing
+        pool.rescale(float(t))  # type: ignore[attr-defined]
+    assert len(held) > 2, len(held)

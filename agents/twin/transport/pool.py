@@ -12,9 +12,10 @@ each kept under a budget, used with a safety margin (SAFETY_MARGIN) because arri
 - The whole fleet (`*`) is a shared subscription, `$share/<group>/<prefix>/+/telemetry`, over K connections:
   the broker spreads the fleet's messages across the group's members. K grows as soon as the measured rate
   nears K x budget x margin (at once to what the rate needs; doubling when a connection sits at its raw
-  budget, since then the real demand cannot be seen), shrinks by one after a sustained quiet spell, and stays
-  within 1..max_connections. A shared subscription does not keep one device's messages on one connection,
-  so order across connections is the twin's job (it orders by edge timestamp).
+  budget, since then the real demand cannot be seen, once the connections the last growth added receive),
+  shrinks by one after a sustained quiet spell, and stays within 1..max_connections. A shared subscription
+  does not keep one device's messages on one connection, so order across connections is the twin's job (it
+  orders by edge timestamp).
 
 Each connection is a `TelemetrySubscriber`: it reconnects and re-subscribes on its own. Client ids are
 `<client_id_prefix><12 random hex>-<index>`, the index below max_connections (or the listed plan's count),
@@ -58,6 +59,9 @@ Clock = Callable[[], float]
 # goes once they have been under it this long (not one quiet second).
 QUOTA_HELD_S = 10.0
 QUOTA_CALM_S = 30.0
+# A shared pool that grew doubles again on connections at their budget only once those it added receive
+# (they take a moment, more on IoT Core, to connect and subscribe), or after this long without.
+SETTLE_MAX_S = 10.0
 
 
 @dataclass(frozen=True)
@@ -108,6 +112,10 @@ class _Connection:
         self.rate_hz = (self.messages - n0) / (now - t0) if now > t0 else 0.0
         return self.rate_hz
 
+    def restart_window(self, now: float) -> None:
+        """Measure from `now` on: before the pool grew, the fleet was split another way."""
+        self._samples = [(now, self.messages)]
+
 
 class ConnectionPool:
     """The agent's subscriber connections (module doc). `on_message(topic, payload, received)` runs on the
@@ -135,6 +143,7 @@ class ConnectionPool:
         self.rate_hz = 0.0
         self._removed_messages = 0
         self.grown = 0
+        self._grown_at = -math.inf
         self.shrunk = 0
         # What the agent shows (console, /healthz) while the broker's quota discards messages the pool cannot
         # take on: "" otherwise (`_watch_quota`).
@@ -303,7 +312,11 @@ class ConnectionPool:
             return len(connections)
         k = len(connections)
         capacity = limit * SAFETY_MARGIN
-        saturated = full > 0
+        # A connection that has received nothing since the pool grew is still connecting or subscribing:
+        # until it takes its share, the others stay at their budget, which says nothing of what the pool as
+        # grown carries. Not for ever: a connection the broker refuses never receives.
+        settling = now - self._grown_at < SETTLE_MAX_S and any(c.messages == 0 for c in connections)
+        saturated = full > 0 and not settling
         target = k
         if saturated:
             target = 2 * k
@@ -321,6 +334,11 @@ class ConnectionPool:
             )
             for _ in range(target - k):
                 self._add_connection([self._shared])
+            # Rates that still held the seconds at the budget before the growth doubled it again (a walk's
+            # 400 msg/s grew to 16 connections, where 8 carry it).
+            for c in connections:
+                c.restart_window(now)
+            self._grown_at = now
             self.grown += 1
             return target
         if k > 1 and total < SHRINK_BELOW * (k - 1) * capacity:
