@@ -198,3 +198,24 @@ def test_a_shared_pool_with_a_connection_that_never_receives_still_grows() -> No
         held[0].messages += 100  # type: ignore[attr-defined]  # the rest are refused: they receive nothing
         pool.rescale(float(t))  # type: ignore[attr-defined]
     assert len(held) > 2, len(held)
+
+
+def test_the_quota_notice_is_in_state_and_metrics_not_only_in_healthz() -> None:
+    """A walk's fleet over the pool's budget: /healthz and the console said so, but /state had no field for
+    it and /metrics no series, so a scraper saw the loss and not its cause."""
+    from twin.service.agent import broker_state
+    from twin.service.metrics import render_metrics
+    from twin.service.state import AgentInfo, AgentState
+
+    settings = PoolSettings("dt/lerobot", ("*",), limit=100.0, max_connections=2)
+    pool, _ = _pool_at(settings, 0)
+
+    def seen() -> tuple[str, str]:
+        broker = broker_state("mqtt://127.0.0.1:1", settings, pool, True)  # type: ignore[arg-type]
+        text = render_metrics(AgentState(agent=AgentInfo(broker=broker), devices={}))
+        gauge = next(line for line in text.splitlines() if line.startswith("twin_broker_quota"))
+        return broker.quota_notice, gauge
+
+    assert seen() == ("", "twin_broker_quota_discarding 0.0")
+    pool.quota_notice = "the broker's per-connection quota discards messages: ..."  # type: ignore[attr-defined]
+    assert seen() == (pool.quota_notice, "twin_broker_quota_discarding 1.0")  # type: ignore[attr-defined]

@@ -1820,6 +1820,7 @@ def broker_state(url: str, settings: PoolSettings, pool: ConnectionPool, started
         per_connection_limit=limit,
         rate_hz=pool.rate_hz,
         subscriptions_refused=sum(len(c.refused) for c in infos),
+        quota_notice=pool.quota_notice,
         connections=tuple(
             ConnectionState(
                 index=c.index,

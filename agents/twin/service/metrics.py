@@ -254,6 +254,11 @@ def _pool_families(agent: AgentInfo) -> Iterator[Metric]:
         broker.per_connection_limit,
     )
     yield _gauge("twin_broker_connections", "Connections in the subscriber pool.", len(broker.connections))
+    yield _gauge(
+        "twin_broker_quota_discarding",
+        "1 while the broker's per-connection quota discards what the pool cannot take on (/healthz: why).",
+        1.0 if broker.quota_notice else 0.0,
+    )
     labels = ["connection", "client_id"]
     up = GaugeMetricFamily("twin_connection_up", "1 while this pool connection is connected.", labels=labels)
     rate = GaugeMetricFamily(

@@ -206,6 +206,9 @@ class BrokerState:
     rate_hz: float = 0.0
     # Topic filters refused now, over every connection (an IoT policy that does not allow them).
     subscriptions_refused: int = 0
+    # While the broker's per-connection quota discards what the pool cannot take on, what /healthz says of it
+    # (the cause and the fix); "" otherwise. A scraper or script reading /state saw only the loss it causes.
+    quota_notice: str = ""
     connections: tuple[ConnectionState, ...] = ()
 
 
