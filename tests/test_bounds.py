@@ -249,3 +249,37 @@ def test_100000_junk_device_ids_leave_every_per_device_table_within_its_cap() ->
         assert counted + untracked + state.agent.mailbox.overwritten_total == fed
     finally:
         agent.stop()
+
+
+def test_every_valid_message_of_an_arm_kept_out_by_max_devices_counts_as_too_many_devices(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A walk's 40 arms under max_devices = 30, units=auto: each refusal forgot the arm's units, so units=auto
+    gathered them again, two of every three of its messages were counted as units_undecided instead of
+    too_many_devices (the CloudWatch count the DeviceLimitReached alarm reads), and its units decision was
+    logged three times a second."""
+    config = load_config(
+        None,
+        {
+            "broker.url": NO_BROKER,
+            "http.listen": "127.0.0.1:0",
+            "telemetry.units": "auto",
+            "telemetry.max_devices": 2,
+        },
+    )
+    agent = AgentService(config)
+    caplog.set_level(logging.INFO, logger="twin.core.telemetry")
+    agent.start()
+    try:
+        fed = 0
+        for device in ("arm-001", "arm-002", "arm-003"):  # the third finds both places taken
+            for i in range(9):
+                agent.feed(f"dt/lerobot/{device}/telemetry", _valid(device, i))
+                fed += 1
+        wait_for(lambda: agent.state().messages_handled() == fed, 30, "every message counted", interval=0.05)
+        untracked = agent.state().untracked_rejected
+    finally:
+        agent.stop()
+    # units=auto turns away the first two messages of each admitted arm; each of the third is refused.
+    assert untracked == {"units_undecided": 4, "too_many_devices": 9}
+    assert not [r for r in caplog.records if "arm-003: units=auto decided" in r.getMessage()]

@@ -1355,6 +1355,9 @@ class Mirror:
     ) -> DeviceLoss | None:
         """Count, log and hand on one rejection; the loss estimator of the topic's device, if it is tracked
         (it arrived: the hole it leaves in the device's timestamps is not transit loss)."""
+        if topic_device is not None and self._kept_out(topic_device, rejected):
+            self._refuse(topic_device)
+            return None
         reason = str(rejected.reason)
         loss = None
         with self._lock:
@@ -1411,20 +1414,7 @@ class Mirror:
         held = device in self._kept_places
         self._kept_places.discard(device)
         if not held and not self._budget.take(self._slot):
-            with self._lock:
-                # Under its id (counted as untracked all the same): the Fleet page names an arm kept out.
-                self._fleet.record_rejected(device, TOO_MANY_DEVICES)
-            self._rejections.rejected(device, TOO_MANY_DEVICES, "telemetry.max_devices reached")
-            # units=auto may have decided this device's units already: an invented id must leave nothing.
-            self._decoder.forget(device)
-            self._reject_log.log(
-                TOO_MANY_DEVICES,
-                logging.WARNING,
-                "device ignored: telemetry.max_devices devices already sent valid telemetry; raise it if "
-                "the fleet is really this large",
-                device=device,
-                max_devices=self._budget.limit,
-            )
+            self._refuse(device)
             return None
         twin = DeviceTwin(self.robot, device, self.mode)
         with self._lock:
@@ -1434,6 +1424,35 @@ class Mirror:
         log.info("new device", extra={"device": device, "mode": str(self.mode)})
         self._watch.arrived(device)
         return record
+
+    def _kept_out(self, device: str, rejected: TelemetryRejected) -> bool:
+        """Whether a message units=auto turned away while it gathers evidence is of a device the full budget
+        keeps out. Its units are forgotten at each refusal, so it gathered them again and again: two of every
+        three of its messages were counted as units_undecided, not too_many_devices, and each decision
+        logged a line (three a second for an arm at 10 Hz)."""
+        return (
+            rejected.reason is RejectReason.UNITS_UNDECIDED
+            and device not in self._devices
+            and device not in self._kept_places
+            and self._budget.taken >= self._budget.limit
+        )
+
+    def _refuse(self, device: str) -> None:
+        """Count and log a valid message of a device the fleet's device budget has no place for."""
+        with self._lock:
+            # Under its id (counted as untracked all the same): the Fleet page names an arm kept out.
+            self._fleet.record_rejected(device, TOO_MANY_DEVICES)
+        self._rejections.rejected(device, TOO_MANY_DEVICES, "telemetry.max_devices reached")
+        # units=auto may have decided this device's units already: an invented id must leave nothing.
+        self._decoder.forget(device)
+        self._reject_log.log(
+            TOO_MANY_DEVICES,
+            logging.WARNING,
+            "device ignored: telemetry.max_devices devices already sent valid telemetry; raise it if "
+            "the fleet is really this large",
+            device=device,
+            max_devices=self._budget.limit,
+        )
 
     def _loss_of(self, device: str) -> DeviceLoss:
         """The device's loss estimator (under the lock). Its nominal period is the configured edge rate; a gap
