@@ -68,13 +68,13 @@ def test_bad_pool_settings(kwargs: dict[str, float], needle: str) -> None:
 class _Counted:
     """A connection as the pool rates it: a message count, no subscriber (rescale reads nothing else)."""
 
-    def __init__(self, index: int, *, connected: bool = True) -> None:
+    def __init__(self, index: int, *, connected: bool = True, filters: tuple[str, ...] = ()) -> None:
         from types import SimpleNamespace
 
         from twin.transport.pool import _Connection
 
         stats = SimpleNamespace(connection_successes=1 if connected else 0)
-        subscriber = SimpleNamespace(connected=connected, stats=stats)
+        subscriber = SimpleNamespace(connected=connected, stats=stats, topic_filters=list(filters))
         self.connection = _Connection(index, subscriber=subscriber)  # type: ignore[arg-type]
 
 
@@ -219,3 +219,21 @@ def test_the_quota_notice_is_in_state_and_metrics_not_only_in_healthz() -> None:
     assert seen() == ("", "twin_broker_quota_discarding 0.0")
     pool.quota_notice = "the broker's per-connection quota discards messages: ..."  # type: ignore[attr-defined]
     assert seen() == (pool.quota_notice, "twin_broker_quota_discarding 1.0")  # type: ignore[attr-defined]
+
+
+def test_a_listed_plan_at_its_budget_names_the_arms_on_the_connections_at_it() -> None:
+    """A walk's one arm at 50 Hz among 16 listed at 10 Hz took its connection's budget: the notice said to
+    set expected_rate_hz for every arm and named none, while its seven neighbours lost messages."""
+    settings = PoolSettings("dt/lerobot", tuple(ARMS[:16]), limit=100.0)
+    pool, _ = _pool_at(settings, 0)
+    plan = plan_listed("dt/lerobot", ARMS[:16], rate_hz=10.0, limit=100.0, iot=False)
+    held = [_Counted(i, filters=tuple(filters)).connection for i, filters in enumerate(plan)]
+    pool._connections = held  # type: ignore[attr-defined]
+    for t in range(20):
+        held[0].messages += 80  # type: ignore[attr-defined]
+        held[1].messages += 100  # type: ignore[attr-defined]  # arm-016 at 50 Hz, seven arms at 10 Hz
+        pool.rescale(float(t))  # type: ignore[attr-defined]
+    notice = pool.quota_notice  # type: ignore[attr-defined]
+    assert "1 of 2 connections" in notice, notice
+    assert "carry arm-009, arm-010, arm-011, arm-012, arm-013, arm-014, arm-015, arm-016:" in notice
+    assert "arm-001" not in notice and "slow that edge down" in notice

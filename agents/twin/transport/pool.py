@@ -33,6 +33,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from twin.core.topics import device_from_topic
 from twin.transport.broker import IOT, BrokerConfig
 from twin.transport.plan import (
     GROW_AT,
@@ -62,6 +63,8 @@ QUOTA_CALM_S = 30.0
 # A shared pool that grew doubles again on connections at their budget only once those it added receive
 # (they take a moment, more on IoT Core, to connect and subscribe), or after this long without.
 SETTLE_MAX_S = 10.0
+# The quota notice names at most this many of the listed arms on connections at their budget.
+NOTICE_ARMS = 16
 
 
 @dataclass(frozen=True)
@@ -408,8 +411,21 @@ class ConnectionPool:
             f"their budget of {limit:g} msg/s, planned for arms at {settings.rate_hz:g} Hz ([health] "
             "expected_rate_hz): the arms publish faster, or more of them share a connection than its budget "
             "carries. Set expected_rate_hz to their rate, so the plan spreads them over more connections (on "
-            "the stack, armRateHz in twin.settings.toml sets it and the client ids its IAM policy allows)"
+            "the stack, armRateHz in twin.settings.toml sets it and the client ids its IAM policy allows). "
+            f"Those connections carry {self._arms_at_budget(limit)}: if one of them publishes far faster "
+            "than the rest (the console's Events page names an arm above its rate), slow that edge down "
+            "instead, as the others on its connection lose what it takes"
         )
+
+    def _arms_at_budget(self, limit: float) -> str:
+        """The listed arms on connections at their budget, for the quota notice (a walk's one arm at 50 Hz
+        took its connection's budget, and the notice named no arm: only its neighbours' loss showed)."""
+        with self._lock:
+            full = [c for c in self._connections if c.rate_hz >= SATURATED_AT * limit]
+        prefix = self.settings.prefix
+        arms = [d for c in full for f in c.subscriber.topic_filters if (d := device_from_topic(f, prefix))]
+        shown = ", ".join(arms[:NOTICE_ARMS])
+        return shown if len(arms) <= NOTICE_ARMS else f"{shown} and {len(arms) - NOTICE_ARMS} more"
 
     def _remove_last(self) -> None:
         with self._lock:
