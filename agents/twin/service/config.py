@@ -774,10 +774,11 @@ def connection_plan(config: AgentConfig) -> str:
     if settings.shared:
         k = settings.most_connections(iot=iot)
         arms = limit * SAFETY_MARGIN / rate
+        # The fleet's total too: a walk's operator of 40 arms read "about 8 arms" as the pool's whole.
         return (
             f"connections: 1 to {k} for the whole fleet (broker.max_connections), each planned for "
-            f"{limit * SAFETY_MARGIN:g} msg/s, about {arms:.0f} arms at {rate:g} Hz; client id indexes 0 to "
-            f"{k - 1}"
+            f"{limit * SAFETY_MARGIN:g} msg/s, about {arms:.0f} arms at {rate:g} Hz, so about {k * arms:.0f} "
+            f"arms in all; client id indexes 0 to {k - 1}"
         )
     k = settings.most_connections(iot=iot)
     per = devices_per_connection(rate, limit, iot=iot)
