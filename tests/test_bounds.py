@@ -283,3 +283,6 @@ def test_every_valid_message_of_an_arm_kept_out_by_max_devices_counts_as_too_man
     # units=auto turns away the first two messages of each admitted arm; each of the third is refused.
     assert untracked == {"units_undecided": 4, "too_many_devices": 9}
     assert not [r for r in caplog.records if "arm-003: units=auto decided" in r.getMessage()]
+    # A fleet whose ids come and go fills its places with arms that left: the advice says how to free them.
+    (refusal,) = [r.getMessage() for r in caplog.records if r.getMessage().startswith("device ignored")]
+    assert "telemetry.forget_offline_after_s" in refusal, refusal

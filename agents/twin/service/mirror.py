@@ -1449,7 +1449,8 @@ class Mirror:
             TOO_MANY_DEVICES,
             logging.WARNING,
             "device ignored: telemetry.max_devices devices already sent valid telemetry; raise it if "
-            "the fleet is really this large",
+            "the fleet is really this large. Arms that left keep their places until forgotten: for a fleet "
+            "whose ids come and go, set telemetry.forget_offline_after_s, or forget them on the console",
             device=device,
             max_devices=self._budget.limit,
         )
