@@ -169,7 +169,8 @@ def test_deployable_ids_are_a_subset_of_what_the_agent_accepts() -> None:
     [
         ([], "empty"),
         (["*", "arm-001"], "mixes"),
-        (["arm-001", "arm-001"], "twice"),
+        (["arm-001", "arm-001"], "names 'arm-001' more than once"),
+        (["arm-001", "arm-002", "arm-003", "arm-002"], "names 'arm-002' more than once"),
         (["arm/1"], "not usable"),
     ],
 )

@@ -31,6 +31,7 @@ in one file.
 from __future__ import annotations
 
 import re
+from collections import Counter
 from collections.abc import Iterable, Sequence
 
 DEFAULT_TOPIC_PREFIX = "dt/lerobot"
@@ -160,7 +161,12 @@ def check_devices(devices: Sequence[str]) -> tuple[str, ...]:
     for device in devices:
         check_device_id(device)
     if len(set(devices)) != len(devices):
-        raise TopicError(f"the device list {list(devices)} names a device twice; list each once")
+        # Named: a walk's list of 40 ids said only that one of them was there twice.
+        twice = sorted(d for d, n in Counter(devices).items() if n > 1)
+        raise TopicError(
+            f"the device list names {', '.join(map(repr, twice))} more than once ({len(devices)} ids); "
+            "list each once"
+        )
     return devices
 
 
