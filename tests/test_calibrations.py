@@ -1195,6 +1195,29 @@ def test_a_calibration_for_an_arm_not_heard_yet_says_so(tmp_path: Path) -> None:
         agent.stop()
 
 
+def test_a_good_file_for_a_held_arm_does_not_say_it_was_never_heard(tmp_path: Path) -> None:
+    """A walk: with the whole fleet subscribed, an arm held by a bad file at the start has no card, and the
+    good file pushed for it said "no message from arm-002 yet" while its refused messages were counted."""
+    (tmp_path / "cal").mkdir()
+    (tmp_path / "cal" / "arm-002.json").write_text('{"shoulder_pan": {}}')
+    agent = agent_with_store(tmp_path / "cal", **{"telemetry.devices": ["*"], "twin.workers": 1})
+    agent.start()
+    try:
+        ts = [int(time.time() * 1000)]
+
+        def held() -> bool:
+            ts[0] += 100
+            agent.feed("dt/lerobot/arm-002/telemetry", ticks_message("arm-002", ts[0]))
+            return agent.state().untracked_rejected.get("calibration_refused", 0) >= 3
+
+        wait_for(held, 60, "arm-002's messages refused as calibration_refused", interval=0.1)
+        DirectoryStore(tmp_path / "cal").write("arm-002", shifted(100))
+        event = wait_for(lambda: _picked_up(agent, "arm-002"), 30, "arm-002's calibration event")
+        assert event.level == "info" and "no message" not in event.message, event
+    finally:
+        agent.stop()
+
+
 @pytest.mark.parametrize("workers", [1, 2], ids=["in-process", "two-worker-processes"])
 def test_messages_that_arrive_while_the_mirrors_start_decode_with_the_arms_own(
     tmp_path: Path, workers: int

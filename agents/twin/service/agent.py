@@ -1626,6 +1626,10 @@ class AgentService:
             # Asked of the arm's own mirror (or its checkpoint), not every worker's rows of the whole fleet.
             if self.arm_view(device).state is not None:
                 return ""
+            # An arm whose messages were all refused (one held by its bad file, above all) was heard: it has
+            # no card, but "no message yet" would send its owner to check an id that is right.
+            if any(arm.device == device for arm in self._unheard_arms()):
+                return ""
             # A miss only: then the fleet's ids, for one that differs by case alone (ARM-03 for arm-03).
             heard = [row.device for row in self.fleet_rows()]
             hint = (
