@@ -661,6 +661,22 @@ def test_config_check_refuses_a_calibration_file_the_agent_would_refuse(
     assert reason in capsys.readouterr().err
 
 
+def test_a_calibration_saved_with_a_utf8_bom_is_the_same_calibration(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A walk: the arm's file copied on Windows (PowerShell's `Set-Content -Encoding UTF8`, an older Notepad)
+    starts with a byte order mark, and every reader refused it with Python's hint to "decode using
+    utf-8-sig", which no user can act on. The mark says only that the text is UTF-8."""
+    marked = tmp_path / "arm-001.json"
+    marked.write_bytes(b"\xef\xbb\xbf" + EXAMPLE.read_bytes())
+    assert load_calibration(marked) == load_calibration(EXAMPLE)
+    assert main(["calibration", "push", "arm-001", str(marked), "--store", str(tmp_path / "cal")]) == 0
+    assert "BOM" not in capsys.readouterr().err
+    books: list[Any] = []
+    assert CalibrationWatcher(DirectoryStore(tmp_path / "cal"), on_change=books.append).poll() is True
+    assert books[-1].problems == {} and books[-1].entries["arm-001"].calibration == load_calibration(EXAMPLE)
+
+
 def test_config_check_notes_a_store_directory_that_is_not_there(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:

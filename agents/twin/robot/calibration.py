@@ -201,7 +201,8 @@ def parse_calibration(data: bytes | str, source: str) -> Calibration:
             f"{MAX_FILE_BYTES}): is it the right file?"
         )
     try:
-        text = data if isinstance(data, str) else data.decode("utf-8")
+        # utf-8-sig: a file saved on Windows may start with a byte order mark, which says only "UTF-8".
+        text = data if isinstance(data, str) else data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         raise ValueError(f"{source} is not UTF-8 text: {exc}") from None
     try:
