@@ -470,6 +470,12 @@ def test_a_push_or_rm_over_a_refused_file_keeps_it_but_offers_no_restore(
     out = capsys.readouterr().out
     assert "twin calibration restore" not in out and store.read_kept("arm-002") == broken, out
     assert "the file it replaced was not a valid calibration (" in out and f"kept at {kept}" in out, out
+    # A walk: ls listed the broken kept file like a good one, under the hint that restore swaps it back in,
+    # and the restore then exited 1. It says what restore would say.
+    assert main(["calibration", "ls", "--store", store.uri]) == cmd.EXIT_OK
+    (line,) = capsys.readouterr().out.splitlines()
+    assert line.startswith(f"arm-002\t(removed)\tkept: {kept} (refused, no restore: arm-002's kept "), line
+    assert "is not valid JSON" in line, line
 
 
 def test_a_broken_file_does_not_push_out_the_valid_calibration_kept_from_before(

@@ -34,6 +34,8 @@ from typing import TYPE_CHECKING
 from twin.cli.output import Console
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from twin.service.calibrations import CalibrationStore
 
 console = Console("calibration")
@@ -209,16 +211,17 @@ def run(args: argparse.Namespace) -> int:
 
 def _ls(store: CalibrationStore, again: str) -> int:
     """A line per arm: its calibration's place, `refused: <why>` when the agent refuses that file, and the
-    kept one's place when there is one (an arm whose own was removed shows `(removed)`), so what `restore`
-    would bring back is seen before it is needed. Files no arm reads (named for no device id) are named on
-    stderr."""
+    kept one's place when there is one (an arm whose own was removed shows `(removed)`), marked when `restore`
+    would refuse it, so what `restore` would bring back is seen before it is needed. Files no arm reads
+    (named for no device id) are named on stderr."""
     from twin.service.calibrations import KEPT_SUFFIX, SUFFIX, ignored_fix
 
     found = store.scan()
     listing, kept = found.calibrations, found.kept
     if not listing and not kept:
         console.out(f"no calibration in {store.uri}")
-    refusals = _refusals(store, sorted(listing))
+    refusals = _refusals(store, sorted(listing), _refusal)
+    kept_refusals = _refusals(store, sorted(kept), _kept_refusal)
     for device in sorted(listing.keys() | kept):
         place = store.uri_of(device)
         line = f"{device}\t{place if device in listing else '(removed)'}"
@@ -227,6 +230,8 @@ def _ls(store: CalibrationStore, again: str) -> int:
             line += f"\trefused: {why}"
         if device in kept:
             line += f"\tkept: {place.removesuffix(SUFFIX)}{KEPT_SUFFIX}"
+            if kept_refusals.get(device):
+                line += f" (refused, no restore: {kept_refusals[device]})"
         console.out(line)
     if any(refusals.values()):
         console.err(
@@ -245,11 +250,28 @@ def _ls(store: CalibrationStore, again: str) -> int:
     return EXIT_OK
 
 
-def _refusals(store: CalibrationStore, devices: list[str]) -> dict[str, str]:
-    """`_refusal` of each device, LS_READERS at a time: on S3 each is a GET, and read one after another a
-    large fleet's `ls` waits on a round trip per arm. The store's client exists by now (its scan made it)."""
+def _refusals(
+    store: CalibrationStore, devices: list[str], refusal: Callable[[CalibrationStore, str], str]
+) -> dict[str, str]:
+    """`refusal` of each device (`_refusal`, `_kept_refusal`), LS_READERS at a time: on S3 each is a GET, and
+    read one after another a large fleet's `ls` waits on a round trip per arm. The store's client exists by
+    now (its scan made it)."""
     with ThreadPoolExecutor(max_workers=LS_READERS) as pool:
-        return dict(zip(devices, pool.map(lambda device: _refusal(store, device), devices), strict=True))
+        return dict(zip(devices, pool.map(lambda device: refusal(store, device), devices), strict=True))
+
+
+def _kept_refusal(store: CalibrationStore, device: str) -> str:
+    """Why `restore` would refuse `device`'s kept calibration, in its words ("" when it would take it)."""
+    from twin.robot.calibration import parse_calibration
+    from twin.service.calibrations import CalibrationStoreError
+
+    try:
+        kept = store.read_kept(device)
+        if kept is not None:
+            parse_calibration(kept, f"{device}'s kept calibration")
+    except (ValueError, CalibrationStoreError) as exc:
+        return str(exc)
+    return ""
 
 
 def _refusal(store: CalibrationStore, device: str) -> str:
