@@ -1126,6 +1126,8 @@ def test_an_arm_whose_file_is_bad_at_the_start_is_held_until_a_good_one_comes(
         option = f"--store {tmp_path / 'cal'}"
         (held_notice,) = [n for n in agent.notices() if n.startswith("arm-002's calibration")]
         assert f"twin calibration push arm-002 FILE {option}" in held_notice, held_notice
+        # Its servo readings are refused with its messages: an operator must know the arm is unwatched.
+        assert "no servo alarm is checked for it" in held_notice, held_notice
         rejected = EventQuery(kinds=frozenset({"rejected"}), device="arm-002")
         refused = wait_for(lambda: agent.events(rejected), 30, "arm-002's rejected event")
         # Nothing is kept for arm-002, so no restore is offered: it would only exit 1.
