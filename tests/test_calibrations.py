@@ -1126,8 +1126,9 @@ def test_an_arm_whose_file_is_bad_at_the_start_is_held_until_a_good_one_comes(
         option = f"--store {tmp_path / 'cal'}"
         (held_notice,) = [n for n in agent.notices() if n.startswith("arm-002's calibration")]
         assert f"twin calibration push arm-002 FILE {option}" in held_notice, held_notice
-        # Its servo readings are refused with its messages: an operator must know the arm is unwatched.
-        assert "no servo alarm is checked for it" in held_notice, held_notice
+        # Its pose waits for a good file, its servos do not: the notice must not leave the operator thinking
+        # the arm unwatched.
+        assert "its servos' alarms are still checked" in held_notice, held_notice
         rejected = EventQuery(kinds=frozenset({"rejected"}), device="arm-002")
         refused = wait_for(lambda: agent.events(rejected), 30, "arm-002's rejected event")
         # Nothing is kept for arm-002, so no restore is offered: it would only exit 1.
@@ -1147,6 +1148,41 @@ def test_an_arm_whose_file_is_bad_at_the_start_is_held_until_a_good_one_comes(
         store.write("arm-002", shifted(100))
         feed_until(agent, "arm-002", pan_angle(shifted(100)), ts)
         assert not [n for n in agent.notices() if "calibration" in n]
+    finally:
+        agent.stop()
+
+
+@pytest.mark.parametrize(
+    ("workers", "units"), [(1, "ticks"), (2, "ticks"), (1, "auto")], ids=["in-process", "two-workers", "auto"]
+)
+def test_a_held_arms_servos_are_still_watched(tmp_path: Path, workers: int, units: str) -> None:
+    """A walk: a held arm's elbow servo passed 65 C with no alarm while the other arm raised two: its servo
+    readings were refused with its pose. They need no calibration: its alarms are raised and named as any
+    arm's (log, /alarms, events), while its twin still holds still."""
+    from test_alerts import hot
+
+    (tmp_path / "cal").mkdir()
+    (tmp_path / "cal" / "arm-002.json").write_text('{"shoulder_pan": {}}')
+    settings = {"twin.workers": workers, "telemetry.units": units, "alarms.temperature_raise_after_s": 0.0}
+    agent = agent_with_store(tmp_path / "cal", **settings)
+    agent.start()
+    try:
+        ts = [int(time.time() * 1000)]
+
+        def raised() -> list[Any] | None:
+            ts[0] += 100
+            agent.feed("dt/lerobot/arm-002/telemetry", hot("arm-002", ts[0], 68))
+            found = [a for a in agent.alarms() if a.device == "arm-002" and a.state == "ACTIVE"]
+            return found if len(found) == 2 else None
+
+        alarms = wait_for(raised, 60, "arm-002's heat alarms", interval=0.1)
+        kinds = {("elbow_flex", "over_temperature"), ("elbow_flex", "over_temperature_critical")}
+        assert {(a.joint, a.kind) for a in alarms} == kinds, alarms
+        arm = agent.state().devices.get("arm-002")
+        assert arm is None or arm.joints_rad is None  # held: no pose, whatever its servos say
+        # On the Events page too (collected from the mirrors every half second), where alerts come from.
+        told = EventQuery(kinds=frozenset({"alarm"}), device="arm-002")
+        wait_for(lambda: [e for e in agent.events(told) if "elbow_flex" in e.message], 30, "its alarm events")
     finally:
         agent.stop()
 

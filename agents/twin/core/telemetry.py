@@ -89,7 +89,11 @@ class RejectReason(StrEnum):
 
 
 class TelemetryRejected(ValueError):  # noqa: N818 - a public name: callers catch it, docs/telemetry.md names it
-    """A message the decoder refuses; `reason` is for counting, `str(exc)` for people."""
+    """A message the decoder refuses; `reason` is for counting, `str(exc)` for people. `servo_diagnostics`:
+    the servo readings of a message refused for its arm's calibration alone (CALIBRATION_REFUSED), which
+    need none, so that arm's servos are still watched; None for every other refusal."""
+
+    servo_diagnostics: Mapping[str, JointDiagnostics] | None = None
 
     def __init__(self, reason: RejectReason, message: str) -> None:
         super().__init__(message)
@@ -667,7 +671,12 @@ class TelemetryDecoder:
         readings: tuple[JointReading, ...] = _readings_of(msg.joints)
         positions = [r.position for r in readings]
         if self._held and device_id in self._held and _uses_calibration(units, positions):
-            raise _held(device_id, self._held[device_id], self._store_option, device_id in self._restorable)
+            held = _held(device_id, self._held[device_id], self._store_option, device_id in self._restorable)
+            # Temperatures, loads and currents need no calibration: the servos are watched while the pose
+            # waits for a good file. The variant as units=auto would judge this message.
+            variant = units if units is not Units.AUTO else _evidence(positions) or Units.TICKS
+            held.servo_diagnostics = _LazyDiagnostics(readings, variant is not Units.TICKS)
+            raise held
         undecided = False
         if units is Units.AUTO:
             units, angles, percent, undecided = self._units_and_angles(device_id, positions)

@@ -1101,8 +1101,8 @@ class AgentService:
         # An arm with no calibration to keep (its file was bad at the start) is held: with the whole fleet
         # subscribed it is never admitted, so only the log and the Events page named it.
         lines = [
-            f"{device}'s calibration in the store is refused ({problem}), so its messages are refused, "
-            "its twin does not move and no servo alarm is checked for it: push a valid one "
+            f"{device}'s calibration in the store is refused ({problem}), so its messages are refused and "
+            "its twin does not move (its servos' alarms are still checked): push a valid one "
             f"({push_hint(device, self._calibration_store).command})"
             for device, problem in self._held_problems().items()
             if device not in shown

@@ -1368,6 +1368,9 @@ class Mirror:
             self._fleet.record_rejected(topic_device, reason)
         if rejected.reason is not RejectReason.UNITS_UNDECIDED:
             self._rejections.rejected(topic_device, reason, str(rejected))
+        held = rejected.servo_diagnostics
+        if held is not None and topic_device is not None and self._alarms_on:
+            self._watch_held(topic_device, held, batch.recv_mono[i])
         topic = batch.topics[i]
         self._reject_log.log(
             (topic_device, reason),
@@ -1407,6 +1410,20 @@ class Mirror:
                 )
             )
         return loss
+
+    def _watch_held(self, device: str, diagnostics: Mapping[str, JointDiagnostics], received: float) -> None:
+        """Servo alarms of an arm held for its refused calibration: its pose waits for a good file, its
+        servos' heat and load do not (a held arm's servo passed 65 C unwatched). No pose, so no model check
+        (no holding torques) and no speeds from poses; the edge's own velocities still count."""
+        try:
+            with self._lock:
+                self.alarm_rows += 1
+                events = self._alarms.evaluate(device, diagnostics, {}, received)
+        except Exception:
+            self._count_error(device, "evaluating servo alarms failed")
+            return
+        for event in events:
+            self._tell_alarm(event)
 
     def _admit(self, device: str) -> _Device | None:
         """A new device's record, created on its first valid message while the fleet's device budget
