@@ -147,6 +147,8 @@ class ConnectionPool:
         self._removed_messages = 0
         self.grown = 0
         self._grown_at = -math.inf
+        # The connections the last growth added, until each has received (or SETTLE_MAX_S is over).
+        self._joining: list[_Connection] = []
         self.shrunk = 0
         # What the agent shows (console, /healthz) while the broker's quota discards messages the pool cannot
         # take on: "" otherwise (`_watch_quota`).
@@ -315,11 +317,7 @@ class ConnectionPool:
             return len(connections)
         k = len(connections)
         capacity = limit * SAFETY_MARGIN
-        # A connection that has received nothing since the pool grew is still connecting or subscribing:
-        # until it takes its share, the others stay at their budget, which says nothing of what the pool as
-        # grown carries. Not for ever: a connection the broker refuses never receives.
-        settling = now - self._grown_at < SETTLE_MAX_S and any(c.messages == 0 for c in connections)
-        saturated = full > 0 and not settling
+        saturated = full > 0 and not self._settling(now, connections)
         target = k
         if saturated:
             target = 2 * k
@@ -337,10 +335,8 @@ class ConnectionPool:
             )
             for _ in range(target - k):
                 self._add_connection([self._shared])
-            # Rates that still held the seconds at the budget before the growth doubled it again (a walk's
-            # 400 msg/s grew to 16 connections, where 8 carry it).
-            for c in connections:
-                c.restart_window(now)
+            with self._lock:
+                self._joining = self._connections[k:]
             self._grown_at = now
             self.grown += 1
             return target
@@ -355,6 +351,21 @@ class ConnectionPool:
         else:
             self._quiet_since = None
         return k
+
+    def _settling(self, now: float, connections: list[_Connection]) -> bool:
+        """Whether the last growth is still settling: a connection it added has received nothing yet (it is
+        connecting or subscribing), so the others stay at their budget, which says nothing of what the pool
+        as grown carries. Not for ever: one the broker refuses never receives. The tick it ends judges
+        nothing either: every rate then still holds seconds from before all took their share (doubling on
+        them took a walk's 400 msg/s to 16 connections, where 8 carry it), so each is measured afresh."""
+        if not self._joining:
+            return False
+        if now - self._grown_at < SETTLE_MAX_S and any(c.messages == 0 for c in self._joining):
+            return True
+        self._joining = []
+        for c in connections:
+            c.restart_window(now)
+        return True
 
     def _watch_quota(self, now: float, full: int, pool: tuple[int, int], limit: float) -> None:
         """Set `quota_notice` once connections have received at their budget for QUOTA_HELD_S while the pool
