@@ -130,6 +130,7 @@ def test_a_shared_fleet_held_at_its_connections_budget_is_told_on_the_fleet_page
     arm's loss, while /healthz answered 200 and the Fleet page said nothing (the log, every second). Told
     there now, and in CloudWatch: the LossPercent the stack's MessagesLost alarm pages on."""
     import json
+    import re
 
     from conftest import http_get
     from twin.transport import pool
@@ -149,7 +150,9 @@ def test_a_shared_fleet_held_at_its_connections_budget_is_told_on_the_fleet_page
 
     health = wait_for(told, 60, "the quota's notice in /healthz")
     (reason,) = [r for r in health["reasons"] if "quota" in r]  # type: ignore[attr-defined]
-    assert "all 2 connections (broker.max_connections) receive at their budget of 100 msg/s" in reason
+    # How many are at their budget is counted, not assumed: "all" was said of one saturated in eight.
+    said = r"[12] of 2 connections \(broker.max_connections\) receive at their budget of 100 msg/s"
+    assert re.search(said, reason), reason
     assert "Raise broker.max_connections (up to 64)" in reason and "list the fleet's devices" in reason
     fleet = json.loads(http_get(agent.http_url + "/api/fleet")[2])
     assert any("per-connection quota" in n for n in fleet["notices"]), fleet["notices"]

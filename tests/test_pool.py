@@ -142,6 +142,18 @@ def test_a_shared_pool_whose_extra_connections_are_refused_says_raising_them_is_
     assert "Raise broker.max_connections" not in notice
 
 
+def test_the_shared_quota_notice_counts_the_connections_at_their_budget() -> None:
+    """A review's run: one connection of eight at its budget, the rest connected and silent, was told as
+    "all 8 connections ... receive at their budget"."""
+    settings = PoolSettings("dt/lerobot", ("*",), limit=100.0, max_connections=8)
+    pool, held = _pool_at(settings, 8)
+    for t in range(1, 20):  # past QUOTA_HELD_S, before the idle pool would shrink (30 s)
+        held[0].messages += 100  # type: ignore[attr-defined]
+        pool.rescale(float(t))  # type: ignore[attr-defined]
+    notice = pool.quota_notice  # type: ignore[attr-defined]
+    assert "1 of 8 connections (broker.max_connections) receive at their budget" in notice, notice
+
+
 def test_a_shared_pool_that_can_still_grow_gives_no_notice() -> None:
     settings = PoolSettings("dt/lerobot", ("*",), limit=100.0, max_connections=8)
     pool, held = _pool_at(settings, 2)

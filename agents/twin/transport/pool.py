@@ -409,7 +409,7 @@ class ConnectionPool:
         if settings.shared:
             arms = k * limit * SAFETY_MARGIN / settings.rate_hz
             return (
-                f"the broker's per-connection quota discards messages: all {k} connections "
+                f"the broker's per-connection quota discards messages: {full} of {k} connections "
                 f"(broker.max_connections) receive at their budget of {limit:g} msg/s, about {arms:.0f} arms "
                 f"at {settings.rate_hz:g} Hz, so arms are mirrored below their rate and the rest counted as "
                 "lost. Raise broker.max_connections (up to 64), which needs a broker policy that allows that "
