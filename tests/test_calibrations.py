@@ -478,6 +478,25 @@ def test_a_push_or_rm_over_a_refused_file_keeps_it_but_offers_no_restore(
     assert "is not valid JSON" in line, line
 
 
+def test_ls_stops_on_a_kept_file_it_cannot_read(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A review: a kept file `ls` could not read (S3 throttling, access denied) was marked "refused, no
+    restore", telling the operator that a calibration which may be good cannot come back. A failed read
+    stops `ls` with the store's error, as its other reads do."""
+    store = DirectoryStore(tmp_path / "cal")
+    store.write("arm-002", EXAMPLE.read_bytes())
+    store.write_kept("arm-002", EXAMPLE.read_bytes())
+
+    def denied(self: DirectoryStore, device: str) -> bytes:
+        raise CalibrationStoreError(f"cannot read {device}'s kept file: access denied (test)")
+
+    monkeypatch.setattr(DirectoryStore, "read_kept", denied)
+    assert main(["calibration", "ls", "--store", store.uri]) == cmd.EXIT_STORE
+    said = capsys.readouterr()
+    assert "access denied (test)" in said.err and "refused" not in said.out, said
+
+
 def test_a_broken_file_does_not_push_out_the_valid_calibration_kept_from_before(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -681,6 +700,13 @@ def test_a_calibration_saved_with_a_utf8_bom_is_the_same_calibration(
     books: list[Any] = []
     assert CalibrationWatcher(DirectoryStore(tmp_path / "cal"), on_change=books.append).poll() is True
     assert books[-1].problems == {} and books[-1].entries["arm-001"].calibration == load_calibration(EXAMPLE)
+    # Windows PowerShell 5's `>` writes UTF-16: refused, with the way to UTF-8 (a review's finding).
+    for encoding in ("utf-16", "utf-16-be"):
+        marked.write_bytes(EXAMPLE.read_text().encode(encoding))
+        if encoding == "utf-16-be":
+            marked.write_bytes(b"\xfe\xff" + marked.read_bytes())
+        with pytest.raises(ValueError, match=r"is UTF-16 text .*: save it as UTF-8 \(Out-File -Encoding"):
+            load_calibration(marked)
 
 
 def test_config_check_notes_a_store_directory_that_is_not_there(

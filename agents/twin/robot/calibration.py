@@ -200,6 +200,12 @@ def parse_calibration(data: bytes | str, source: str) -> Calibration:
             f"{source} is {len(data)} bytes; a LeRobot calibration of six motors is about 1 KB (at most "
             f"{MAX_FILE_BYTES}): is it the right file?"
         )
+    if isinstance(data, bytes) and data[:2] in (b"\xff\xfe", b"\xfe\xff"):
+        # What Windows PowerShell 5's `>` and Out-File write; Python's decode error would name no fix.
+        raise ValueError(
+            f"{source} is UTF-16 text (as Windows PowerShell's > and Out-File write it), not UTF-8: save it "
+            "as UTF-8 (Out-File -Encoding utf8, or copy the file itself rather than its printed text)"
+        )
     try:
         # utf-8-sig: a file saved on Windows may start with a byte order mark, which says only "UTF-8".
         text = data if isinstance(data, str) else data.decode("utf-8-sig")

@@ -261,15 +261,16 @@ def _refusals(
 
 
 def _kept_refusal(store: CalibrationStore, device: str) -> str:
-    """Why `restore` would refuse `device`'s kept calibration, in its words ("" when it would take it)."""
+    """Why `restore` would refuse `device`'s kept calibration, in its words ("" when it would take it). A
+    read that fails (no access, throttled) is the store's error, which stops `ls`: marked as refused, a
+    kept file that may be good would read as one restore cannot bring back."""
     from twin.robot.calibration import parse_calibration
-    from twin.service.calibrations import CalibrationStoreError
 
+    kept = store.read_kept(device)
     try:
-        kept = store.read_kept(device)
         if kept is not None:
             parse_calibration(kept, f"{device}'s kept calibration")
-    except (ValueError, CalibrationStoreError) as exc:
+    except ValueError as exc:
         return str(exc)
     return ""
 
