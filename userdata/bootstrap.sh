@@ -202,6 +202,9 @@ RSYSLOG
   write_file "$ROTATE_CONF" 0644 <<ROTATE
 # Managed by so101-twin bootstrap.sh: bound the host's own logs on disk (CloudWatch keeps them a year).
 # Run every hour by ${ROTATE_UNIT}.timer; a log is rotated weekly, or at the first run it is over maxsize.
+# As Ubuntu's /etc/logrotate.conf says for its own files: /var/log is group-writable (root:syslog 0775), and
+# logrotate refuses every file under such a directory unless told whom to rotate as.
+su root adm
 /var/log/so101-twin-bootstrap.log /var/log/so101-twin-agent.log ${START_LOG} ${HOST_EMF_FILE} {
   weekly
   rotate 4

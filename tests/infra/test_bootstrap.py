@@ -13,6 +13,7 @@ encodes, is described in hostsim.py. Nothing here reaches AWS or the network.
 
 from __future__ import annotations
 
+import grp
 import json
 import os
 import re
@@ -479,6 +480,10 @@ def test_the_hosts_logs_are_rotated_every_hour_and_past_maxsize(booted, tmp_path
     assert "systemctl enable --now so101-twin-logrotate.timer" in host.calls()
     logs = tmp_path / "log"
     logs.mkdir()
+    # As Ubuntu's /var/log, root:syslog 0775 (adm here: every Debian has it): logrotate refuses a directory
+    # writable by a group other than root's unless its config says whom to rotate as (`su`).
+    os.chown(logs, 0, grp.getgrnam("adm").gr_gid)
+    logs.chmod(0o775)
     config = tmp_path / "logrotate.conf"
     config.write_text(host.file("/etc/so101-twin/logrotate.conf").replace("/var/log/", f"{logs}/"))
     flooded, quiet = logs / "so101-twin-agent.log", logs / "so101-twin-bootstrap.log"
