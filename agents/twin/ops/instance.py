@@ -555,10 +555,10 @@ class TwinInstance:
         if state in ("shutting-down", "terminated"):
             # Waiting would never end: EC2 starts and stops no terminated instance.
             return AwsCallError(
-                f"instance {instance_id} cannot be {done}: it is {state}, and EC2 never starts or stops a "
-                "terminated instance; `cdk destroy`, then `cdk deploy`, makes the stack's host again (the "
-                "history bucket, with the arms' calibrations and agent.local.toml, is kept unless "
-                "retainHistory is false: docs/deploy.md)"
+                f"instance {instance_id} cannot be {done}: it is {state}, and EC2 never starts or stops "
+                "a terminated instance. A deploy that replaces the instance makes a new host on the same "
+                "bucket (history, calibrations, alarms and agent.local.toml come back: docs/deploy.md, "
+                '"Changes that replace the instance"); `cdk destroy` and `cdk deploy` make a new, empty one'
             )
         return AwsCallError(
             f"instance {instance_id} cannot be {done} now ({state}): wait until it "
