@@ -1195,6 +1195,18 @@ def test_a_held_arms_servos_are_still_watched(tmp_path: Path, workers: int, unit
     try:
         ts = [int(time.time() * 1000)]
 
+        def refused(count: int) -> bool:
+            arm = agent.state().devices.get("arm-002")
+            return arm is not None and arm.health.counters.rejected.get("calibration_refused", 0) >= count
+
+        # Readings older than the newest judged (a replayed backlog, a redelivery) raise nothing.
+        agent.feed("dt/lerobot/arm-002/telemetry", hot("arm-002", ts[0], 35))
+        wait_for(lambda: refused(1), 60, "arm-002's first message refused", interval=0.1)
+        for back in (3, 2, 1):
+            agent.feed("dt/lerobot/arm-002/telemetry", hot("arm-002", ts[0] - 100 * back, 68))
+        wait_for(lambda: refused(4), 60, "arm-002's old messages refused", interval=0.1)
+        assert not [a for a in agent.alarms() if a.device == "arm-002"], agent.alarms()
+
         def raised() -> list[Any] | None:
             ts[0] += 100
             agent.feed("dt/lerobot/arm-002/telemetry", hot("arm-002", ts[0], 68))

@@ -94,6 +94,7 @@ class TelemetryRejected(ValueError):  # noqa: N818 - a public name: callers catc
     need none, so that arm's servos are still watched; None for every other refusal."""
 
     servo_diagnostics: Mapping[str, JointDiagnostics] | None = None
+    servo_timestamp_ms: int = 0  # the edge's stamp of those readings
 
     def __init__(self, reason: RejectReason, message: str) -> None:
         super().__init__(message)
@@ -676,6 +677,7 @@ class TelemetryDecoder:
             # waits for a good file. The variant as units=auto would judge this message.
             variant = units if units is not Units.AUTO else _evidence(positions) or Units.TICKS
             held.servo_diagnostics = _LazyDiagnostics(readings, variant is not Units.TICKS)
+            held.servo_timestamp_ms = msg.timestamp
             raise held
         undecided = False
         if units is Units.AUTO:

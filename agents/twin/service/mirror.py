@@ -490,6 +490,9 @@ class Mirror:
         # why a newer file of it was refused; the config's file is every other arm's.
         self._calibration_sources: dict[str, str] = {}
         self._calibration_problems: dict[str, str] = {}
+        # The edge stamp of each held arm's newest servo readings judged (_watch_held); at most one entry an
+        # arm with a refused file in the store.
+        self._held_stamps: dict[str, int] = {}
         self.mode = TwinMode(config.twin.mode)
         self.robot = self._load_robot(config, self.mode)
         # The alarm engine takes a round's poses as rows in the contract's joint order (so101.JOINT_NAMES):
@@ -1358,6 +1361,10 @@ class Mirror:
         if topic_device is not None and self._kept_out(topic_device, rejected):
             self._refuse(topic_device)
             return None
+        held = rejected.servo_diagnostics
+        if held is not None and topic_device is not None and self._alarms_on:
+            # Before the refusal is counted: whoever sees the count sees what its readings raised.
+            self._watch_held(topic_device, held, (rejected.servo_timestamp_ms, batch.recv_mono[i]))
         reason = str(rejected.reason)
         loss = None
         with self._lock:
@@ -1368,9 +1375,6 @@ class Mirror:
             self._fleet.record_rejected(topic_device, reason)
         if rejected.reason is not RejectReason.UNITS_UNDECIDED:
             self._rejections.rejected(topic_device, reason, str(rejected))
-        held = rejected.servo_diagnostics
-        if held is not None and topic_device is not None and self._alarms_on:
-            self._watch_held(topic_device, held, batch.recv_mono[i])
         topic = batch.topics[i]
         self._reject_log.log(
             (topic_device, reason),
@@ -1411,10 +1415,18 @@ class Mirror:
             )
         return loss
 
-    def _watch_held(self, device: str, diagnostics: Mapping[str, JointDiagnostics], received: float) -> None:
+    def _watch_held(
+        self, device: str, diagnostics: Mapping[str, JointDiagnostics], stamped: tuple[int, float]
+    ) -> None:
         """Servo alarms of an arm held for its refused calibration: its pose waits for a good file, its
         servos' heat and load do not (a held arm's servo passed 65 C unwatched). No pose, so no model check
-        (no holding torques) and no speeds from poses; the edge's own velocities still count."""
+        (no holding torques) and no speeds from poses; the edge's own velocities still count. As for an
+        applied message, only readings newer than the last judged count: a replayed backlog or a QoS 1
+        redelivery must not raise or clear an alarm on old readings. `stamped`: (edge ms, received)."""
+        timestamp_ms, received = stamped
+        if timestamp_ms <= self._held_stamps.get(device, -1):
+            return
+        self._held_stamps[device] = timestamp_ms
         try:
             with self._lock:
                 self.alarm_rows += 1
@@ -1430,6 +1442,7 @@ class Mirror:
         (telemetry.max_devices, shared by every mirror) has a place, or already holds one (`_hold_place`)."""
         held = device in self._kept_places
         self._kept_places.discard(device)
+        self._held_stamps.pop(device, None)  # its twin judges what is newer from now on
         if not held and not self._budget.take(self._slot):
             self._refuse(device)
             return None
