@@ -153,6 +153,32 @@ def test_a_hidden_file_in_the_store_is_never_an_arms_and_its_notice_says_rename_
     assert "DS_Store" not in listed.err, listed.err
 
 
+def test_a_file_the_store_could_not_read_is_read_again_at_the_next_poll(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A review: a read that failed (S3 throttled, a network blip) refused the arm's file as a bad one and
+    marked its version seen, so it was never read again: an arm held at the start stayed held until its
+    file changed. It is read again at each poll, said once while it fails the same way."""
+    store = DirectoryStore(tmp_path / "cal")
+    store.write("arm-002", EXAMPLE.read_bytes())
+    failing = [True]
+    read = DirectoryStore.read
+
+    def throttled(self: DirectoryStore, device: str) -> bytes:
+        if failing[0]:
+            raise CalibrationStoreError(f"cannot read {device}'s calibration: throttled (test)")
+        return read(self, device)
+
+    monkeypatch.setattr(DirectoryStore, "read", throttled)
+    books: list[CalibrationBook] = []
+    watcher = CalibrationWatcher(store, on_change=books.append)
+    assert watcher.poll() is True and "throttled (test)" in books[-1].problems["arm-002"]
+    assert watcher.poll() is False and len(books) == 1  # the same failure: not said again
+    failing[0] = False
+    assert watcher.poll() is True
+    assert books[-1].problems == {} and books[-1].entries["arm-002"].calibration == load_calibration(EXAMPLE)
+
+
 def test_the_watcher_picks_up_changes_refuses_bad_files_and_keeps_what_it_had(tmp_path: Path) -> None:
     store = DirectoryStore(tmp_path / "calibration")
     books: list[CalibrationBook] = []

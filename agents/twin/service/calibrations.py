@@ -666,6 +666,13 @@ class CalibrationWatcher:
             try:
                 calibration = read_calibration(self.store, device)
             except (ValueError, CalibrationStoreError) as exc:
+                if isinstance(exc, CalibrationStoreError):
+                    # Not the file's fault (throttled, a network blip): read it again at the next poll,
+                    # said once while it fails the same way. Marked seen, an arm held at the start stayed
+                    # held until its file changed.
+                    del self._seen[device]
+                    if problems.get(device) == str(exc):
+                        continue
                 problems[device] = str(exc)
                 changes.append(CalibrationChange(device, "refused", str(exc)))
                 restorable = self._restorable(device, found.kept)
@@ -703,8 +710,10 @@ class CalibrationWatcher:
             if data is not None:
                 parse_calibration(data, f"{device}'s kept calibration")
             valid = data is not None
-        except (ValueError, CalibrationStoreError):
+        except ValueError:
             valid = False
+        except CalibrationStoreError:
+            return False  # not read, not judged: asked again at the next poll
         self._kept_seen[device] = (version, valid)
         return valid
 
