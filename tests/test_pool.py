@@ -152,6 +152,13 @@ def test_the_shared_quota_notice_counts_the_connections_at_their_budget() -> Non
         pool.rescale(float(t))  # type: ignore[attr-defined]
     notice = pool.quota_notice  # type: ignore[attr-defined]
     assert "1 of 8 connections (broker.max_connections) receive at their budget" in notice, notice
+    # And kept current: a second connection at its budget is counted on the next look, not left as it was.
+    for t in range(20, 25):
+        for c in held[:2]:
+            c.messages += 100  # type: ignore[attr-defined]
+        pool.rescale(float(t))  # type: ignore[attr-defined]
+    notice = pool.quota_notice  # type: ignore[attr-defined]
+    assert "2 of 8 connections (broker.max_connections) receive at their budget" in notice, notice
 
 
 def test_a_shared_pool_that_can_still_grow_gives_no_notice() -> None:

@@ -379,9 +379,13 @@ class ConnectionPool:
             self._calm_since = None
             if self._full_since is None:
                 self._full_since = now
-            if not self.quota_notice and now - self._full_since >= QUOTA_HELD_S:
+            if now - self._full_since >= QUOTA_HELD_S:
+                said = self.quota_notice
+                # Kept current (how many are at their budget, which arms), logged once: written once, its
+                # count and arms went stale while the load moved.
                 self.quota_notice = self._quota_text(full, pool, limit)
-                log.warning("connection pool: %s", self.quota_notice)
+                if not said:
+                    log.warning("connection pool: %s", self.quota_notice)
             return
         self._full_since = None
         if self.quota_notice:
