@@ -211,14 +211,16 @@ _public_dcv_port() {
 # is in dcvserver.service's cgroup, printed as "NAME (pid N)"; fails when DCV holds each, or ss names no
 # process (not judged then). By the unit, not the name: whichever of DCV's processes holds the socket.
 _foreign_listener() {
-  local fields users name pid ours
+  local fields users name pid ours cgroup
   while read -r -a fields; do
     _public_dcv_port "${fields[3]:-}" || continue
     users="${fields[*]:5}"
     ours=0 name="" pid=""
     while [[ $users =~ \(\"([^\"]*)\",pid=([0-9]+) ]]; do
       name="${BASH_REMATCH[1]}" pid="${BASH_REMATCH[2]}"
-      if grep -qs '/dcvserver\.service$' "${ROOT}/proc/${pid}/cgroup"; then ours=1; fi
+      # A process gone since ss answered (DCV restarting) cannot be judged: not counted against DCV.
+      cgroup="${ROOT}/proc/${pid}/cgroup"
+      if [ ! -r "$cgroup" ] || grep -qs '/dcvserver\.service$' "$cgroup"; then ours=1; fi
       users="${users#*pid="${pid}"}"
     done
     if [ -n "$pid" ] && [ "$ours" = 0 ]; then

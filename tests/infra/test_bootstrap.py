@@ -638,6 +638,9 @@ def test_host_check_fails_the_dcv_line_when_another_process_holds_its_port(boote
         "(dcvserver.service): a browser reaches it instead; stop it or move it to another port (ss -ltnp), "
         "then restart dcvserver",
     )
+    # A process gone since ss answered (DCV restarting): not judged, so not called another server.
+    (host.root / "proc/777/cgroup").unlink()
+    assert check_lines(host)["dcv-session"][0] == "OK"
     # The same process moved into DCV's unit (a name is no proof either way): DCV's.
     (host.root / "proc/777/cgroup").write_text("0::/system.slice/dcvserver.service\n")
     assert check_lines(host)["dcv-session"][0] == "OK"
