@@ -521,6 +521,12 @@ def test_ls_stops_on_a_kept_file_it_cannot_read(
     assert main(["calibration", "ls", "--store", store.uri]) == cmd.EXIT_STORE
     said = capsys.readouterr()
     assert "access denied (test)" in said.err and "refused" not in said.out, said
+    # The same for the arm's own file: not "refused: ... push a good file" for one that may be good.
+    monkeypatch.undo()
+    monkeypatch.setattr(DirectoryStore, "read", denied)
+    assert main(["calibration", "ls", "--store", store.uri]) == cmd.EXIT_STORE
+    said = capsys.readouterr()
+    assert "access denied (test)" in said.err and "refused" not in said.out, said
 
 
 def test_a_broken_file_does_not_push_out_the_valid_calibration_kept_from_before(

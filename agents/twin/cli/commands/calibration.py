@@ -277,12 +277,13 @@ def _kept_refusal(store: CalibrationStore, device: str) -> str:
 
 def _refusal(store: CalibrationStore, device: str) -> str:
     """Why the agent refuses `device`'s file in the store, in its words ("" when it takes it): the agent's
-    own check, so `ls` shows what holds an arm rather than list a broken file like any other."""
-    from twin.service.calibrations import CalibrationStoreError, read_calibration
+    own check, so `ls` shows what holds an arm rather than list a broken file like any other. A read that
+    fails is the store's error, which stops `ls`, as for a kept file (`_kept_refusal`)."""
+    from twin.service.calibrations import read_calibration
 
     try:
         read_calibration(store, device)
-    except (ValueError, CalibrationStoreError) as exc:
+    except ValueError as exc:
         return str(exc)
     return ""
 
