@@ -149,6 +149,35 @@ def test_the_rate_limit_holds_transitions_back_and_sends_them_together_later() -
     assert len(sent) == 3 and all(f"arm arm-01{i}" in sent[-1][1] for i in range(3))
 
 
+def test_the_stop_sends_what_the_rate_limit_held_back() -> None:
+    """A restart never sends this run's transitions again, so the stop's flush may not leave them held."""
+    sent: list[tuple[str, str]] = []
+    p = publisher(sent, Clock(), burst=1, max_per_hour=1)
+    p.offer(alert("raised"))
+    assert p.flush()
+    p.offer(alert("cleared"))
+    assert p.flush() is False  # the limit is used up
+    p.stop()
+    assert len(sent) == 2 and "CRITICAL cleared: arm arm-003" in sent[1][1], sent
+    assert p.counters().pending == 0
+
+
+def test_what_the_stop_could_not_send_is_logged(caplog: pytest.LogCaptureFixture) -> None:
+    def publish(subject: str, body: str) -> None:
+        raise ConnectionError("no route to SNS")
+
+    p = AlertPublisher(publish, agent_name="LabTwin", how_to_acknowledge=ACK, clock=Clock())
+    p.offer(alert("raised"))
+    p.offer(alert("raised", device="arm-004"))
+    with caplog.at_level(logging.WARNING, logger="twin.output.alerts"):
+        p.stop()
+    said = [r.getMessage() for r in caplog.records if getattr(r, "event", "") == "alerts_unsent"]
+    assert said == [
+        "2 alarm(s) changed but were not notified (ConnectionError: no route to SNS): the console's Events "
+        "page lists them"
+    ], said
+
+
 def test_a_failed_publish_keeps_the_batch_for_the_next_flush() -> None:
     sent: list[tuple[str, str]] = []
     failing = [True]

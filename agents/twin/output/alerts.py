@@ -12,7 +12,8 @@ sent within 10 s):
 - a token bucket bounds the messages: `burst` at once, then `max_per_hour`; transitions that arrive while it
   is empty wait and go out together in the next message it allows, so a flapping servo cannot flood anyone's
   mailbox, and nothing is dropped (beyond `max_pending` alarms, the oldest are summed up as a count);
-- a publish that fails (no network, throttled) keeps the batch for the next flush.
+- a publish that fails (no network, throttled) keeps the batch for the next flush; the stop's last flush
+  sends what is pending beyond the limit (a restart never sends it), and logs what it could not send.
 
 Pure but for the thread and the injected `publish(subject, body)` (boto3's SNS client in the agent, a list in
 tests); the clock is injected too.
@@ -142,15 +143,16 @@ class AlertPublisher:
 
     # -- out -------------------------------------------------------------------------------------------
 
-    def flush(self) -> bool:
-        """Publish what is pending as one message if the rate limit allows; True when a message went out."""
+    def flush(self, *, last: bool = False) -> bool:
+        """Publish what is pending as one message if the rate limit allows; True when a message went out.
+        `last` (the stop's flush) sends it even when the limit is used up: a restart never sends it again."""
         with self._lock:
             if not self._pending and not self._overflow:
                 return False
             now = self._clock()
             self._tokens = min(self._burst, self._tokens + (now - self._refilled) * self._rate)
             self._refilled = now
-            if self._tokens < 1.0:
+            if self._tokens < 1.0 and not last:
                 self._delayed += 1
                 return False
             # Copies: transitions that arrive while this one is published stay for the next message.
@@ -167,7 +169,7 @@ class AlertPublisher:
             log.warning("alarm notification not published (kept for the next try): %s", exc)
             return False
         with self._lock:
-            self._tokens -= 1.0
+            self._tokens = max(0.0, self._tokens - 1.0)
             self._messages += 1
             self._alerts += len(batch)
             self._last_error = ""
@@ -264,14 +266,24 @@ class AlertPublisher:
                 log.exception("alarm notification flush failed")
 
     def stop(self, timeout: float = 10.0) -> None:
-        """Stop the thread after one last flush (what is pending goes out if the rate limit allows)."""
+        """Stop the thread after one last flush: what is pending goes out, the rate limit's used up or not
+        (one message more; the events of this run are never sent again). What a failed publish leaves is
+        logged, since nothing else would say those transitions were never sent."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout)
         try:
-            self.flush()
+            self.flush(last=True)
         except Exception:
             log.exception("alarm notification flush failed")
+        unsent = self.counters()
+        if unsent.pending:
+            log.warning(
+                "%d alarm(s) changed but were not notified (%s): the console's Events page lists them",
+                unsent.pending,
+                unsent.last_error or "the agent stopped first",
+                extra={"event": "alerts_unsent", "alarms": unsent.pending},
+            )
 
 
 # The fewest characters of a device id a shortened subject keeps: its first and last few, where ids of one
