@@ -275,6 +275,57 @@ def topic(aws_env: None) -> Any:
         yield arn, received
 
 
+def mismatches(p: AlertPublisher, arms: int) -> None:
+    """Every still servo of `arms` arms mismatching at once (another edge publishing under their ids)."""
+    text = (
+        "wrist_flex servo (motor id 4) load differs from the model's holding load (8.6 %) by 81.4 points "
+        "while still (alarm at 15): contact, a payload or a failing servo"
+    )
+    for arm in range(arms):
+        for joint in so101.JOINT_NAMES[:5]:
+            p.offer(
+                alert(
+                    device=f"arm-{arm:03d}",
+                    joint=joint,
+                    alarm_id=f"arm-{arm:03d}/{joint}/model_mismatch",
+                    kind="model_mismatch",
+                    severity="warning",
+                    unit="% points",
+                    message=text,
+                )
+            )
+    p.offer(alert(device="arm-099", at=1_795_000_100.0))  # the critical one comes last
+
+
+def test_a_fleets_burst_goes_out_in_messages_sns_accepts_and_names_every_alarm(topic: Any) -> None:
+    """SNS refuses a message over 256 KiB (moto as well): 500 alarms in one were refused at every flush, so
+    nothing was sent again. Those that do not fit wait for the next message, the critical one first."""
+    arn, received = topic
+    sns = boto3.client("sns", region_name=AWS_TEST_REGION)
+    p = AlertPublisher(
+        lambda subject, body: sns.publish(TopicArn=arn, Subject=subject, Message=body),
+        agent_name="LabTwin",
+        how_to_acknowledge=ACK,
+        clock=Clock(),
+    )
+    mismatches(p, 99)  # 496 alarms: under max_pending (500), so every one is named
+    assert p.flush() and p.flush()
+    assert p.counters().failures == 0 and p.counters().pending == 0, p.counters()
+    bodies = [m["Message"] for m in received() + received()]
+    assert len(bodies) == 2 and bodies[0].startswith("CRITICAL raised: arm arm-099"), bodies[0][:80]
+    assert "more alarm(s) changed: too many for one message, they follow in the next." in bodies[0]
+    named = [line for body in bodies for line in body.splitlines() if line.startswith("  alarm id ")]
+    assert len(named) == len(set(named)) == 496
+
+
+def test_the_stop_sends_a_burst_too_big_for_one_message_in_several() -> None:
+    sent: list[tuple[str, str]] = []
+    p = publisher(sent, Clock())
+    mismatches(p, 99)
+    p.stop()
+    assert len(sent) == 2 and p.counters().pending == 0, (len(sent), p.counters())
+
+
 def hot(device: str, ts: int, temp: float) -> bytes:
     joints = {name: {"position": 2048, "temp": 35} for name in so101.JOINT_NAMES}
     joints["elbow_flex"]["temp"] = temp

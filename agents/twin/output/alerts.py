@@ -8,7 +8,8 @@ what came in once every `flush_s` (at most 9.5 s, so with the agent's half-secon
 sent within 10 s):
 
 - one message per flush, however many transitions: each alarm once, with its latest state, how many times
-  it changed since the last message, and its value, threshold and message;
+  it changed since the last message, and its value, threshold and message (as many alarms as fit in SNS's
+  256 KiB, the critical first: the rest wait for the next message);
 - a token bucket bounds the messages: `burst` at once, then `max_per_hour`; transitions that arrive while it
   is empty wait and go out together in the next message it allows, so a flapping servo cannot flood anyone's
   mailbox, and nothing is dropped (beyond `max_pending` alarms, the oldest are summed up as a count);
@@ -39,6 +40,11 @@ log = logging.getLogger(__name__)
 MAX_FLUSH_S = 9.5
 # SNS refuses a subject over 100 characters (ASCII, no line breaks).
 SUBJECT_MAX = 100
+# ... and a message over 256 KiB of UTF-8: a fleet's burst of alarms (500 still servos mismatching at once)
+# as one message was refused at every flush, so no e-mail went out again.
+BODY_MAX = 262_144
+# The stop sends what is pending in this many messages at most (a burst too big for one takes a few).
+STOP_MESSAGES_MAX = 20
 
 Publish = Callable[[str, str], None]
 
@@ -159,7 +165,7 @@ class AlertPublisher:
             originals = list(self._pending.values())
             batch = [_Pending(e.latest, e.first_at, e.changes, list(e.actions)) for e in originals]
             overflow = self._overflow
-        subject, body = self.compose(batch, overflow)
+        subject, body, listed = self.compose(batch, overflow)
         try:
             self._publish(subject, body)
         except Exception as exc:  # the next flush tries again with everything still pending
@@ -171,9 +177,12 @@ class AlertPublisher:
         with self._lock:
             self._tokens = max(0.0, self._tokens - 1.0)
             self._messages += 1
-            self._alerts += len(batch)
+            self._alerts += len(listed)
             self._last_error = ""
+            ids = {id(entry) for entry in listed}
             for original, sent in zip(originals, batch, strict=True):
+                if id(sent) not in ids:
+                    continue  # no room in this message: it waits for the next
                 current = self._pending.get(sent.latest.alarm_id)
                 if current is not original:
                     continue  # gone (pushed out) or a new entry since
@@ -186,41 +195,30 @@ class AlertPublisher:
             self._overflow -= overflow
         log.info(
             "alarm notification published",
-            extra={"event": "alert_published", "alarms": len(batch), "subject": subject},
+            extra={"event": "alert_published", "alarms": len(listed), "subject": subject},
         )
         return True
 
-    def compose(self, batch: Iterable[_Pending], overflow: int = 0) -> tuple[str, str]:
-        """The message for a batch: a subject naming the worst alarm, a body with every alarm in it."""
+    def compose(self, batch: Iterable[_Pending], overflow: int = 0) -> tuple[str, str, list[_Pending]]:
+        """The message for a batch: a subject naming the worst alarm, a body with every alarm that fits in
+        SNS's size (the critical first), and the entries listed; the others wait for the next message."""
         entries = sorted(batch, key=lambda e: (e.latest.severity != "critical", e.first_at))
-        lines = []
+        closing = ["How to acknowledge:", self.how_to_acknowledge]
+        # The closing lines, and the lines saying what was left out (a few hundred bytes at most).
+        room = BODY_MAX - _size(closing) - 512
+        lines: list[str] = []
+        listed: list[_Pending] = []
         for entry in entries:
-            a = entry.latest
-            value = "no value" if a.value is None else f"{a.value:.3g} {a.unit}".strip()
-            threshold = "" if a.threshold is None else f", threshold {a.threshold:.3g} {a.unit}".rstrip()
-            if a.kind == "servo_error" and a.value is not None:
-                # Its value is the status's error bits: named, and no threshold (any set bit raises).
-                bits = int(a.value)
-                names = ", ".join(sts3215.status_names(bits)) or "none"
-                value, threshold = f"status bits {bits} ({names})", ""
-            history = (
-                f" ({entry.changes} changes since the last message: {', '.join(entry.actions)})"
-                if entry.changes > 1
-                else ""
-            )
-            servo = so101.servo_name(a.joint)
+            block = _describe(entry)
+            if listed and _size(block) > room:
+                break
+            room -= _size(block)
+            lines += block
+            listed.append(entry)
+        if len(listed) < len(entries):
             lines += [
-                f"{a.severity.upper()} {a.action}: arm {a.device}, {servo}, {a.kind}{history}",
-                f"  now {a.state}; value {value}{threshold}",
-                f"  {a.message}",
-            ]
-            # While the alarm is up, or it rose since the last message (and maybe cleared already: the servo
-            # still went through it); an acknowledged one needs nothing more done at the arm.
-            advice = what_to_do(a.kind, a.joint)
-            if (a.state == "ACTIVE" or "raised" in entry.actions) and advice:
-                lines.append(f"  What to do: {advice}")
-            lines += [
-                f"  alarm id {a.alarm_id}, at {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime(a.at))}",
+                f"... and {len(entries) - len(listed)} more alarm(s) changed: too many for one message, "
+                "they follow in the next.",
                 "",
             ]
         if overflow:
@@ -235,8 +233,7 @@ class AlertPublisher:
             )
         else:
             subject = f"[{self.agent_name}] {overflow} servo alarm(s) changed"
-        lines += ["How to acknowledge:", self.how_to_acknowledge]
-        return _subject(subject), "\n".join(lines)
+        return _subject(subject), "\n".join(lines + closing), listed
 
     def counters(self) -> AlertCounters:
         with self._lock:
@@ -273,7 +270,9 @@ class AlertPublisher:
         if self._thread is not None:
             self._thread.join(timeout)
         try:
-            self.flush(last=True)
+            for _ in range(STOP_MESSAGES_MAX):
+                if not self.flush(last=True):
+                    break
         except Exception:
             log.exception("alarm notification flush failed")
         unsent = self.counters()
@@ -284,6 +283,44 @@ class AlertPublisher:
                 unsent.last_error or "the agent stopped first",
                 extra={"event": "alerts_unsent", "alarms": unsent.pending},
             )
+
+
+def _describe(entry: _Pending) -> list[str]:
+    """One alarm's lines in a message: what changed, its value, its message, what to do, its id and time."""
+    a = entry.latest
+    value = "no value" if a.value is None else f"{a.value:.3g} {a.unit}".strip()
+    threshold = "" if a.threshold is None else f", threshold {a.threshold:.3g} {a.unit}".rstrip()
+    if a.kind == "servo_error" and a.value is not None:
+        # Its value is the status's error bits: named, and no threshold (any set bit raises).
+        bits = int(a.value)
+        names = ", ".join(sts3215.status_names(bits)) or "none"
+        value, threshold = f"status bits {bits} ({names})", ""
+    history = (
+        f" ({entry.changes} changes since the last message: {', '.join(entry.actions)})"
+        if entry.changes > 1
+        else ""
+    )
+    servo = so101.servo_name(a.joint)
+    lines = [
+        f"{a.severity.upper()} {a.action}: arm {a.device}, {servo}, {a.kind}{history}",
+        f"  now {a.state}; value {value}{threshold}",
+        f"  {a.message}",
+    ]
+    # While the alarm is up, or it rose since the last message (and maybe cleared already: the servo
+    # still went through it); an acknowledged one needs nothing more done at the arm.
+    advice = what_to_do(a.kind, a.joint)
+    if (a.state == "ACTIVE" or "raised" in entry.actions) and advice:
+        lines.append(f"  What to do: {advice}")
+    lines += [
+        f"  alarm id {a.alarm_id}, at {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime(a.at))}",
+        "",
+    ]
+    return lines
+
+
+def _size(lines: list[str]) -> int:
+    """The bytes `lines` take in a message body, as SNS counts them (UTF-8, a line break each)."""
+    return sum(len(line.encode()) + 1 for line in lines)
 
 
 # The fewest characters of a device id a shortened subject keeps: its first and last few, where ids of one
