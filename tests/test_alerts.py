@@ -131,6 +131,47 @@ def test_a_flapping_servo_makes_one_message_per_flush_not_one_per_change() -> No
     assert body.index("elbow_flex servo (motor id 3)") < body.index("wrist_roll servo (motor id 5)")
 
 
+def test_a_servo_flapping_through_an_outage_is_counted_and_its_last_changes_named() -> None:
+    sent: list[tuple[str, str]] = []
+    failing = [True]
+
+    def publish(subject: str, body: str) -> None:
+        if failing[0]:
+            raise ConnectionError("no route to SNS")
+        sent.append((subject, body))
+
+    p = AlertPublisher(publish, agent_name="LabTwin", how_to_acknowledge=ACK, clock=Clock())
+    for _ in range(1000):
+        p.offer(alert("raised"))
+        assert p.flush() is False
+        p.offer(alert("cleared"))
+    failing[0] = False
+    assert p.flush()
+    (line,) = [line for line in sent[0][1].splitlines() if "changes since" in line]
+    assert line.endswith(
+        "(2000 changes since the last message, the last 10: " + "raised, cleared, " * 4 + "raised, cleared)"
+    ), line
+    assert "\n  What to do: stop the task now" in sent[0][1]
+
+
+def test_changes_during_a_publish_are_named_in_the_next_message() -> None:
+    sent: list[tuple[str, str]] = []
+    p: AlertPublisher
+
+    def publish(subject: str, body: str) -> None:
+        if not sent:
+            for action in ("cleared", "acknowledged", "reset"):
+                p.offer(alert(action))
+        sent.append((subject, body))
+
+    p = AlertPublisher(publish, agent_name="LabTwin", how_to_acknowledge=ACK, clock=Clock())
+    for action in ("raised", "cleared") * 5 + ("raised",):
+        p.offer(alert(action))
+    assert p.flush() and p.flush()
+    assert "(11 changes since the last message, the last 10: cleared, raised, " in sent[0][1]
+    assert "(3 changes since the last message: cleared, acknowledged, reset)" in sent[1][1], sent[1][1]
+
+
 def test_the_rate_limit_holds_transitions_back_and_sends_them_together_later() -> None:
     sent: list[tuple[str, str]] = []
     clock = Clock()

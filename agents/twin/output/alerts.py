@@ -43,6 +43,9 @@ SUBJECT_MAX = 100
 # ... and a message over 256 KiB of UTF-8: a fleet's burst of alarms (500 still servos mismatching at once)
 # as one message was refused at every flush, so no e-mail went out again.
 BODY_MAX = 262_144
+# A message names an alarm's last this many changes and counts the rest: a servo flapping through an hour's
+# outage of SNS would otherwise make one line of thousands of words, and hold them all in memory.
+ACTIONS_KEPT = 10
 # The stop sends what is pending in this many messages at most (a burst too big for one takes a few).
 STOP_MESSAGES_MAX = 20
 
@@ -146,6 +149,7 @@ class AlertPublisher:
                 entry.latest = alert
                 entry.changes += 1
                 entry.actions.append(alert.action)
+                del entry.actions[:-ACTIONS_KEPT]
 
     # -- out -------------------------------------------------------------------------------------------
 
@@ -190,7 +194,7 @@ class AlertPublisher:
                     del self._pending[sent.latest.alarm_id]
                 else:
                     current.changes -= sent.changes
-                    current.actions = current.actions[sent.changes :]
+                    current.actions = current.actions[-current.changes :]
                     current.first_at = current.latest.at
             self._overflow -= overflow
         log.info(
@@ -295,8 +299,9 @@ def _describe(entry: _Pending) -> list[str]:
         bits = int(a.value)
         names = ", ".join(sts3215.status_names(bits)) or "none"
         value, threshold = f"status bits {bits} ({names})", ""
+    last = "" if entry.changes == len(entry.actions) else f", the last {len(entry.actions)}"
     history = (
-        f" ({entry.changes} changes since the last message: {', '.join(entry.actions)})"
+        f" ({entry.changes} changes since the last message{last}: {', '.join(entry.actions)})"
         if entry.changes > 1
         else ""
     )
