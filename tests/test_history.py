@@ -1999,6 +1999,27 @@ def test_history_on_s3_without_aws_credentials_names_the_fix(
     assert "no AWS credentials found: run `aws configure`" in said, said
 
 
+def test_history_in_a_bucket_that_does_not_exist_names_where_the_name_comes_from(s3: MotoS3) -> None:
+    """deltalake's error for a mistyped bucket is a failed GET, S3's XML answer and a terminal's colour
+    codes; `twin history` says there is no such bucket and where its name is given."""
+    reader = HistoryReader("s3://so101-no-such-bucket/history", s3.storage_options())
+    with pytest.raises(HistoryReadError) as caught:
+        reader.summary()
+    said = str(caught.value)
+    assert said == (
+        "cannot read history at s3://so101-no-such-bucket/history/telemetry: there is no bucket "
+        "'so101-no-such-bucket' (S3: NoSuchBucket); give --history the stack's HistoryUri output, as "
+        "docs/getting-started.md prints it"
+    ), said
+    # Any other of deltalake's errors keeps its text, without the colour codes.
+    from twin.ops.history import _unreadable
+
+    chain = Exception("Generic S3 error\n  \x1b[31m↳\x1b[0m builder error")
+    assert _unreadable("s3://b/h/telemetry", chain) == (
+        "cannot read history at s3://b/h/telemetry: Generic S3 error\n  ↳ builder error"
+    )
+
+
 def test_a_replay_to_iot_core_without_a_region_names_the_fix(
     tmp_path: Path, aws_env: None, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -200,9 +200,21 @@ def iso_utc(value: dt.datetime) -> str:
     return value.astimezone(dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
+# deltalake colours the arrows of its error chain for a terminal: escape codes in a log or a message.
+_ANSI = re.compile(r"\x1b\[[0-9;]*m")
+
+
 def _unreadable(location: str, exc: Exception) -> str:
-    """Why a table could not be opened; for missing AWS credentials, also how to give this machine some."""
-    text = str(exc)
+    """Why a table could not be opened; for missing AWS credentials, also how to give this machine some, and
+    for a bucket that does not exist, where its name comes from."""
+    text = _ANSI.sub("", str(exc))
+    if "NoSuchBucket" in text:
+        # deltalake's own text is five lines of a failed HTTP GET and S3's XML answer.
+        bucket = urllib.parse.urlsplit(location).netloc
+        return (
+            f"cannot read history at {location}: there is no bucket {bucket!r} (S3: NoSuchBucket); give "
+            "--history the stack's HistoryUri output, as docs/getting-started.md prints it"
+        )
     if "no credentials found" in text.lower():
         # deltalake's own text is the chain of every provider it tried, twenty lines that name no fix.
         return (
