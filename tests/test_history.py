@@ -2172,6 +2172,31 @@ def test_history_commands_keep_what_a_person_had_and_refuse_a_selection_of_nothi
     assert json.loads(capsys.readouterr().out)["rejected"] == {}
 
 
+def test_a_window_that_misses_the_rows_says_when_they_are(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A walk's finding: `--since` past the rows (or a local time taken for UTC) was answered "no rows in
+    this selection", as a device that never published is. Each command now says when the rows are."""
+    from twin.cli import main
+    from twin.ops.history import iso_utc
+
+    uri = _history_with_a_rejection(tmp_path)
+    times = pl.scan_delta(f"{uri}/{TELEMETRY_TABLE}").select("device_id", "received_at").collect()
+    ones = times.filter(pl.col("device_id") == "arm-001")["received_at"]
+    later = str(T0 + 3600)
+
+    def said(*args: str) -> str:
+        assert main(["history", *args[:1], "--history", uri, *args[1:]]) == 1
+        return capsys.readouterr().err
+
+    arm = f"arm-001's rows span {iso_utc(ones.min())} .. {iso_utc(ones.max())}"  # type: ignore[arg-type]
+    table = f"its rows span {iso_utc(times['received_at'].min())} .. "  # type: ignore[arg-type]
+    assert table in said("ls", "--since", later)
+    assert arm in said("ls", "--device", "arm-001", "--since", later)
+    assert arm in said("export", "--device", "arm-001", "--since", later, "--out", str(tmp_path / "a.csv"))
+    assert arm in said("plot", "--device", "arm-001", "--since", later, "--out", str(tmp_path / "a.png"))
+
+
 @pytest.mark.parametrize("damage", ["cut", "missing"])
 def test_a_damaged_or_missing_data_file_is_named_with_the_fix(
     damage: str, tmp_path: Path, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture

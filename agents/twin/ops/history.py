@@ -428,6 +428,19 @@ class HistoryReader:
         frame = self.collect(self.scan().select(pl.col("device_id").unique().sort()))
         return [str(d) for d in frame["device_id"]]
 
+    def span(self, device: str | None = None) -> tuple[dt.datetime, dt.datetime] | None:
+        """The first and last receive time of `device`'s rows (the table's when None); None without rows."""
+        received = pl.col("received_at")
+        frame = self.collect(
+            self.window(device, None, None, decoded=False).select(
+                received.min().alias("first"), received.max().alias("last")
+            )
+        )
+        first, last = frame["first"][0], frame["last"][0]
+        if not isinstance(first, dt.datetime) or not isinstance(last, dt.datetime):
+            return None
+        return first, last
+
     def summary(
         self,
         *,
@@ -541,7 +554,7 @@ def export(
         else:
             rows = pl.scan_csv(partial).select(pl.len()).collect().item()
         if not rows:
-            hint = devices_hint(reader, device)
+            hint = empty_hint(reader, device)
             raise HistoryReadError(
                 f"no rows in this selection, so nothing was written (see `twin history ls`{hint})"
             )
@@ -583,6 +596,19 @@ def _not_a_directory(out: Path, extension: str) -> None:
         raise HistoryArgumentError(
             f"--out {out} is a directory; give a file name, e.g. {out / f'history.{extension}'}"
         )
+
+
+def empty_hint(reader: HistoryReader, device: str | None) -> str:
+    """Why a selection holds no row: a device with none at all (`devices_hint`), else the time its rows (or
+    the table's) span, so a window that missed them, or a clock taken for UTC, shows at once."""
+    hint = devices_hint(reader, device)
+    if hint:
+        return hint
+    span = reader.span(device)
+    if span is None:
+        return ""
+    whose = f"{device}'s rows" if device else "its rows"
+    return f"; {whose} span {iso_utc(span[0])} .. {iso_utc(span[1])}"
 
 
 def devices_hint(reader: HistoryReader, device: str | None) -> str:
@@ -679,7 +705,7 @@ def plot(
             f" between {iso_utc(since) if since else 'the start'} and {iso_utc(until) if until else 'now'}"
         )
         # As ls and export say it: a case twin, or the first of a fleet's devices, not all 2,000 of them.
-        hint = devices_hint(reader, device)
+        hint = empty_hint(reader, device)
         raise HistoryReadError(f"no history rows for device {device!r}{window}{hint} (see `twin history ls`)")
     rows = frame.height
     frame = frame.with_columns([(pl.col(position_column(j)) * (180.0 / math.pi)).alias(j) for j in JOINTS])

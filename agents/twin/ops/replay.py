@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from twin.core.topics import telemetry_topic
-from twin.ops.history import HistoryReader, HistoryReadError, devices_hint, iso_utc
+from twin.ops.history import HistoryReader, HistoryReadError, empty_hint, iso_utc
 from twin.output.history import JOINTS, RAW_FIELDS, raw_column
 from twin.transport.broker import BrokerConfig, new_client_id
 from twin.transport.client import build_mqtt5_client
@@ -136,7 +136,7 @@ def replay(
     if first is None:
         # As ls, plot and export say it: not summary(), which worked out every session of the whole table,
         # nor every id of a fleet.
-        hint = devices_hint(reader, config.device)
+        hint = empty_hint(reader, config.device)
         raise HistoryReadError(
             f"no history rows for device {config.device!r} between {iso_utc(config.start)} and "
             f"{iso_utc(config.end)}{hint} (see `twin history ls`)"

@@ -112,7 +112,7 @@ def _taken(command: str, out: Path, force: bool) -> int | None:
 
 
 def run_ls(args: argparse.Namespace) -> int:
-    from twin.ops.history import HistoryReader, HistoryReadError, devices_hint
+    from twin.ops.history import HistoryReader, HistoryReadError, empty_hint
 
     console = _console("ls")
     try:
@@ -120,7 +120,7 @@ def run_ls(args: argparse.Namespace) -> int:
         reader = HistoryReader(args.history)
         devices = reader.summary(device=args.device, since=since, until=until, gap_s=args.gap)
         rejected = reader.rejected_counts(device=args.device, since=since, until=until)
-        hint = devices_hint(reader, args.device) if not devices else ""
+        hint = empty_hint(reader, args.device) if not devices else ""
     except HistoryReadError as exc:
         return _fail("ls", exc)
     if args.json:
