@@ -219,6 +219,32 @@ def test_what_the_stop_could_not_send_is_logged(caplog: pytest.LogCaptureFixture
     ], said
 
 
+def test_a_burst_of_warnings_past_max_pending_never_pushes_a_critical_alarm_out() -> None:
+    """Beyond `max_pending` alarms one is only counted: it was the oldest, so a critical alarm that came
+    first became a bare count under a burst of model-mismatch warnings, and the subject a warning's."""
+    sent: list[tuple[str, str]] = []
+    p = publisher(sent, Clock(), max_pending=3)
+    p.offer(alert(device="arm-001"))
+    for arm in (2, 3, 4):
+        p.offer(alert(device=f"arm-00{arm}", severity="warning", kind="model_mismatch", alarm_id=f"w{arm}"))
+    assert p.flush()
+    subject, body = sent[0]
+    assert subject == "[LabTwin] CRITICAL arm-001 elbow_flex over_temperature_critical raised (+3 more)"
+    assert "arm arm-001" in body and "arm arm-002" not in body and "arm arm-004" in body, body
+    assert "... and 1 more alarm(s) changed" in body
+    # Every waiting alarm critical: a warning is the one counted, a critical one pushes the oldest out.
+    sent.clear()
+    p = publisher(sent, Clock(), max_pending=2)
+    for arm in (1, 2):
+        p.offer(alert(device=f"arm-00{arm}"))
+    p.offer(alert(device="arm-003", severity="warning", kind="model_mismatch", alarm_id="w3"))
+    p.offer(alert(device="arm-004"))
+    assert p.flush()
+    body = sent[0][1]
+    assert "arm arm-002" in body and "arm arm-004" in body and "arm arm-003" not in body, body
+    assert "... and 2 more alarm(s) changed" in body
+
+
 def test_a_failed_publish_keeps_the_batch_for_the_next_flush() -> None:
     sent: list[tuple[str, str]] = []
     failing = [True]

@@ -12,7 +12,8 @@ sent within 10 s):
   256 KiB, the critical first: the rest wait for the next message);
 - a token bucket bounds the messages: `burst` at once, then `max_per_hour`; transitions that arrive while it
   is empty wait and go out together in the next message it allows, so a flapping servo cannot flood anyone's
-  mailbox, and nothing is dropped (beyond `max_pending` alarms, the oldest are summed up as a count);
+  mailbox, and nothing is dropped (beyond `max_pending` alarms, the oldest warnings, then the oldest
+  critical ones, are summed up as a count);
 - a publish that fails (no network, throttled) keeps the batch for the next flush; the stop's last flush
   sends what is pending beyond the limit (a restart never sends it), and logs what it could not send.
 
@@ -141,15 +142,30 @@ class AlertPublisher:
             self._offered += 1
             entry = self._pending.get(alert.alarm_id)
             if entry is None:
-                if len(self._pending) >= self._max_pending:
-                    self._pending.popitem(last=False)
+                if len(self._pending) >= self._max_pending and not self._make_room(alert):
                     self._overflow += 1
+                    return
                 self._pending[alert.alarm_id] = _Pending(alert, alert.at, 1, [alert.action])
             else:
                 entry.latest = alert
                 entry.changes += 1
                 entry.actions.append(alert.action)
                 del entry.actions[:-ACTIONS_KEPT]
+
+    def _make_room(self, alert: Alert) -> bool:
+        """With `max_pending` alarms waiting (under the lock): push out the oldest warning, counted, so that
+        a fleet's burst of warnings never turns a critical alarm into a bare count (nor the subject into a
+        warning's); with none, the oldest critical one for a critical `alert`. False: `alert` is the one
+        counted (a warning, with every waiting alarm critical)."""
+        victim = next((k for k, e in self._pending.items() if e.latest.severity != "critical"), None)
+        if victim is None and alert.severity != "critical":
+            return False
+        if victim is None:
+            self._pending.popitem(last=False)
+        else:
+            del self._pending[victim]
+        self._overflow += 1
+        return True
 
     # -- out -------------------------------------------------------------------------------------------
 
