@@ -2193,6 +2193,10 @@ def test_a_window_that_misses_the_rows_says_when_they_are(
     table = f"its rows span {iso_utc(times['received_at'].min())} .. "  # type: ignore[arg-type]
     assert table in said("ls", "--since", later)
     assert arm in said("ls", "--device", "arm-001", "--since", later)
+    # With --json, the reason too, on stderr: stdout is the JSON alone.
+    assert main(["history", "ls", "--history", uri, "--device", "arm-001", "--since", later, "--json"]) == 1
+    out, err = capsys.readouterr()
+    assert json.loads(out)["devices"] == [] and arm in err, err
     assert arm in said("export", "--device", "arm-001", "--since", later, "--out", str(tmp_path / "a.csv"))
     assert arm in said("plot", "--device", "arm-001", "--since", later, "--out", str(tmp_path / "a.png"))
 

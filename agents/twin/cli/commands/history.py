@@ -126,10 +126,12 @@ def run_ls(args: argparse.Namespace) -> int:
     if args.json:
         out = {"uri": args.history, "devices": [d.as_dict() for d in devices], "rejected": rejected}
         console.out(json.dumps(out, indent=2))
-        return 0 if devices else EXIT_EMPTY
     if not devices:
+        # With --json too, on stderr: a script's exit 1 otherwise came with no reason at all.
         console.err(f"no rows in {args.history} for this selection{hint}")
         return EXIT_EMPTY
+    if args.json:
+        return 0
     rows = sum(d.rows for d in devices)
     total_rejected = sum(rejected.values())
     console.out(f"{args.history}: {len(devices)} device(s), {rows} messages, {total_rejected} rejected")
