@@ -645,19 +645,7 @@ class CalibrationWatcher:
         listing = found.calibrations
         entries = dict(self._book.entries)
         problems = {d: p for d, p in self._book.problems.items() if d in listing}
-        changes: list[CalibrationChange] = []
-        for device in [d for d in entries if d not in listing]:
-            del entries[device]
-            self._seen.pop(device, None)
-            changes.append(CalibrationChange(device, "removed"))
-            # With the event's fields, as a pick-up's and a refusal's: a search of the log by device found
-            # when an arm got its calibration but not when it lost it.
-            log.info(
-                "calibration of %s removed from the store: it decodes with %s",
-                device,
-                without_own(self.fallback),
-                extra={"event": "calibration_removed", "device": device},
-            )
+        changes = self._drop_removed(entries, listing)
         for device, version in sorted(listing.items()):
             if self._seen.get(device) == version:
                 continue
@@ -694,6 +682,25 @@ class CalibrationWatcher:
         self._book = CalibrationBook(entries, problems, tuple(changes), restorables)
         self._on_change(self._book)
         return True
+
+    def _drop_removed(
+        self, entries: dict[str, StoredCalibration], listing: Mapping[str, str]
+    ) -> list[CalibrationChange]:
+        """Take the arms whose file left the store out of `entries`; their changes, each logged."""
+        changes = []
+        for device in [d for d in entries if d not in listing]:
+            del entries[device]
+            self._seen.pop(device, None)
+            changes.append(CalibrationChange(device, "removed"))
+            # With the event's fields, as a pick-up's and a refusal's: a search of the log by device found
+            # when an arm got its calibration but not when it lost it.
+            log.info(
+                "calibration of %s removed from the store: it decodes with %s",
+                device,
+                without_own(self.fallback),
+                extra={"event": "calibration_removed", "device": device},
+            )
+        return changes
 
     def _restorable(self, device: str, kept: Mapping[str, str]) -> bool:
         """Whether a restore could put `device`'s kept calibration back: one is kept and it is valid (restore

@@ -1361,10 +1361,8 @@ class Mirror:
         if topic_device is not None and self._kept_out(topic_device, rejected):
             self._refuse(topic_device)
             return None
-        held = rejected.servo_diagnostics
-        if held is not None and topic_device is not None and self._alarms_on:
-            # Before the refusal is counted: whoever sees the count sees what its readings raised.
-            self._watch_held(topic_device, held, (rejected.servo_timestamp_ms, batch.recv_mono[i]))
+        # Before the refusal is counted: whoever sees the count sees what its readings raised.
+        self._watch_held(topic_device, rejected, batch.recv_mono[i])
         reason = str(rejected.reason)
         loss = None
         with self._lock:
@@ -1415,15 +1413,15 @@ class Mirror:
             )
         return loss
 
-    def _watch_held(
-        self, device: str, diagnostics: Mapping[str, JointDiagnostics], stamped: tuple[int, float]
-    ) -> None:
-        """Servo alarms of an arm held for its refused calibration: its pose waits for a good file, its
-        servos' heat and load do not (a held arm's servo passed 65 C unwatched). No pose, so no model check
-        (no holding torques) and no speeds from poses; the edge's own velocities still count. As for an
-        applied message, only readings newer than the last judged count: a replayed backlog or a QoS 1
-        redelivery must not raise or clear an alarm on old readings. `stamped`: (edge ms, received)."""
-        timestamp_ms, received = stamped
+    def _watch_held(self, device: str | None, rejected: TelemetryRejected, received: float) -> None:
+        """Servo alarms of an arm held for its refused calibration (a rejection that carries its servo
+        readings): its pose waits for a good file, its servos' heat and load do not (a held arm's servo
+        passed 65 C unwatched). No pose, so no model check (no holding torques) and no speeds from poses;
+        the edge's own velocities still count. As for an applied message, only readings newer than the last
+        judged count: a replayed backlog or a QoS 1 redelivery must not raise or clear an alarm on them."""
+        diagnostics, timestamp_ms = rejected.servo_diagnostics, rejected.servo_timestamp_ms
+        if diagnostics is None or device is None or not self._alarms_on:
+            return
         if timestamp_ms <= self._held_stamps.get(device, -1):
             return
         self._held_stamps[device] = timestamp_ms
