@@ -14,7 +14,7 @@ import pytest
 from conftest import AWS_TEST_REGION, NO_BROKER, wait_for
 from moto import mock_aws
 from twin.core.alarms import WHAT_TO_DO, AlarmKind
-from twin.output.alerts import MAX_FLUSH_S, SUBJECT_MAX, Alert, AlertPublisher
+from twin.output.alerts import BODY_MAX, MAX_FLUSH_S, SUBJECT_MAX, Alert, AlertPublisher
 from twin.robot import so101
 from twin.service.agent import AgentService
 from twin.service.config import ConfigError, load_config
@@ -391,6 +391,35 @@ def test_the_stop_sends_a_burst_too_big_for_one_message_in_several() -> None:
     mismatches(p, 99)
     p.stop()
     assert len(sent) == 2 and p.counters().pending == 0, (len(sent), p.counters())
+
+
+def test_the_stop_begins_no_publish_past_its_timeout() -> None:
+    """A review: the stop's sends after the thread's join had no deadline, so a slow SNS (each publish
+    taking seconds through boto's retries) held the agent's stop past its 60 s budget and systemd's 90 s.
+    Here each publish takes 6 s of the injected clock: a 10 s stop begins two, and says what is left."""
+    sent: list[tuple[str, str]] = []
+    clock = Clock()
+
+    def slow(subject: str, body: str) -> None:
+        clock.now += 6.0
+        sent.append((subject, body))
+
+    p = AlertPublisher(slow, agent_name="LabTwin", how_to_acknowledge=ACK, clock=clock, burst=1)
+    for arm in range(400):  # about 800 kB of alarms: four messages at least
+        p.offer(alert(device=f"arm-{arm:03d}", message="over its line " * 140))
+    p.stop(timeout=10.0)
+    assert len(sent) == 2 and p.counters().pending > 0, (len(sent), p.counters())
+
+
+def test_an_alarm_with_a_message_beyond_reason_still_fits_an_sns_message() -> None:
+    """A review: the first alarm always goes into a message, so one whose text alone passed SNS's 256 KiB
+    was refused at every flush and no alarm e-mail went out again."""
+    sent: list[tuple[str, str]] = []
+    p = publisher(sent, Clock())
+    p.offer(alert(message="x" * 300_000))
+    assert p.flush() is True
+    ((_, body),) = sent
+    assert len(body.encode()) < BODY_MAX and "x" * 2000 + " ..." in body, len(body)
 
 
 def hot(device: str, ts: int, temp: float) -> bytes:

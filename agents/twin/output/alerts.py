@@ -49,6 +49,8 @@ BODY_MAX = 262_144
 ACTIONS_KEPT = 10
 # The stop sends what is pending in this many messages at most (a burst too big for one takes a few).
 STOP_MESSAGES_MAX = 20
+# The longest alarm message an e-mail quotes whole (the agent's own are about 200 characters).
+MESSAGE_TEXT_MAX = 2000
 
 Publish = Callable[[str, str], None]
 
@@ -283,15 +285,17 @@ class AlertPublisher:
                 log.exception("alarm notification flush failed")
 
     def stop(self, timeout: float = 10.0) -> None:
-        """Stop the thread after one last flush: what is pending goes out, the rate limit's used up or not
-        (one message more; the events of this run are never sent again). What a failed publish leaves is
-        logged, since nothing else would say those transitions were never sent."""
+        """Stop the thread, then send what is pending, the rate limit's used up or not (the events of this
+        run are never sent again): up to STOP_MESSAGES_MAX messages, begun within `timeout` of the call, so
+        a slow SNS cannot hold the agent's stop past its budget (one publish begun may still take boto's
+        own timeouts). What is left is logged, since nothing else would say it was never sent."""
+        deadline = self._clock() + timeout
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout)
         try:
             for _ in range(STOP_MESSAGES_MAX):
-                if not self.flush(last=True):
+                if self._clock() >= deadline or not self.flush(last=True):
                     break
         except Exception:
             log.exception("alarm notification flush failed")
@@ -322,10 +326,13 @@ def _describe(entry: _Pending) -> list[str]:
         else ""
     )
     servo = so101.servo_name(a.joint)
+    # An alarm's own message is a sentence; cut, one beyond reason cannot take a whole SNS message alone
+    # (the first alarm always goes in, and one over the limit would be refused at every flush).
+    message = a.message if len(a.message) <= MESSAGE_TEXT_MAX else a.message[:MESSAGE_TEXT_MAX] + " ..."
     lines = [
         f"{a.severity.upper()} {a.action}: arm {a.device}, {servo}, {a.kind}{history}",
         f"  now {a.state}; value {value}{threshold}",
-        f"  {a.message}",
+        f"  {message}",
     ]
     # While the alarm is up, or it rose since the last message (and maybe cleared already: the servo
     # still went through it); an acknowledged one needs nothing more done at the arm.
