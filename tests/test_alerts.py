@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections.abc import Callable
 from typing import Any
 
 import boto3
@@ -60,6 +61,17 @@ def publisher(sent: list[tuple[str, str]], clock: Clock, **kw: Any) -> AlertPubl
         clock=clock,
         **kw,
     )
+
+
+def unless_failing(sent: list[tuple[str, str]], failing: list[bool]) -> Callable[[str, str], None]:
+    """A publish into `sent` that fails as SNS out of reach does while `failing[0]`."""
+
+    def publish(subject: str, body: str) -> None:
+        if failing[0]:
+            raise ConnectionError("no route to SNS")
+        sent.append((subject, body))
+
+    return publish
 
 
 def test_one_transition_is_one_message_that_says_what() -> None:
@@ -134,13 +146,9 @@ def test_a_flapping_servo_makes_one_message_per_flush_not_one_per_change() -> No
 def test_a_servo_flapping_through_an_outage_is_counted_and_its_last_changes_named() -> None:
     sent: list[tuple[str, str]] = []
     failing = [True]
-
-    def publish(subject: str, body: str) -> None:
-        if failing[0]:
-            raise ConnectionError("no route to SNS")
-        sent.append((subject, body))
-
-    p = AlertPublisher(publish, agent_name="LabTwin", how_to_acknowledge=ACK, clock=Clock())
+    p = AlertPublisher(
+        unless_failing(sent, failing), agent_name="LabTwin", how_to_acknowledge=ACK, clock=Clock()
+    )
     for _ in range(1000):
         p.offer(alert("raised"))
         assert p.flush() is False
@@ -248,13 +256,9 @@ def test_a_burst_of_warnings_past_max_pending_never_pushes_a_critical_alarm_out(
 def test_a_failed_publish_keeps_the_batch_for_the_next_flush() -> None:
     sent: list[tuple[str, str]] = []
     failing = [True]
-
-    def publish(subject: str, body: str) -> None:
-        if failing[0]:
-            raise ConnectionError("no route to SNS")
-        sent.append((subject, body))
-
-    p = AlertPublisher(publish, agent_name="LabTwin", how_to_acknowledge=ACK, clock=Clock())
+    p = AlertPublisher(
+        unless_failing(sent, failing), agent_name="LabTwin", how_to_acknowledge=ACK, clock=Clock()
+    )
     p.offer(alert())
     assert p.flush() is False
     assert p.counters().failures == 1 and "no route to SNS" in p.counters().last_error

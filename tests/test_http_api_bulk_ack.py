@@ -196,13 +196,15 @@ def test_many_alarms_are_acknowledged_in_one_request_and_one_write_kept_over_a_r
 def test_one_acknowledgement_of_a_cleared_alarm_says_it_is_cleared(tmp_path: Path, workers: int) -> None:
     """The single acknowledgement's 409 told a NORMAL alarm in the words of one acknowledged already; it
     names the alarm and its state, and a NORMAL one is said to have cleared (through a worker process too)."""
+    from test_servo_alarms_e2e import post as post_once  # one POST with no body, its status and JSON
+
     agent = hot_agent(tmp_path / "state.json", workers, **{"alarms.temperature_clear_after_s": 0.0})
     try:
         heat(agent, (WARM,))
         url = f"{agent.http_url}/alarms/{WARM}/ack"
-        status, body = single(url)
+        status, body = post_once(url)
         assert status == 200 and body["alarms"][0]["state"] == "ACKNOWLEDGED", body
-        status, body = single(url)
+        status, body = post_once(url)
         assert (status, body["error"], body["state"], body["alarm_id"]) == (
             409,
             "nothing_to_acknowledge",
@@ -211,7 +213,7 @@ def test_one_acknowledgement_of_a_cleared_alarm_says_it_is_cleared(tmp_path: Pat
         ), body
         assert "already cleared" not in body["detail"], body
         heat(agent, (WARM,), temp=35, state="NORMAL")
-        status, body = single(url)
+        status, body = post_once(url)
         assert (status, body["error"], body["state"], body["alarm_id"]) == (
             409,
             "nothing_to_acknowledge",
@@ -221,15 +223,6 @@ def test_one_acknowledgement_of_a_cleared_alarm_says_it_is_cleared(tmp_path: Pat
         assert f"alarm {WARM} is NORMAL, already cleared: " in body["detail"], body
     finally:
         agent.stop()
-
-
-def single(url: str) -> tuple[int, dict[str, Any]]:
-    request = urllib.request.Request(url, data=b"", method="POST")
-    try:
-        with urllib.request.urlopen(request, timeout=30) as resp:
-            return resp.status, json.loads(resp.read())
-    except urllib.error.HTTPError as err:
-        return err.code, json.loads(err.read())
 
 
 @pytest.mark.slow

@@ -95,6 +95,21 @@ def intercept(monkeypatch: pytest.MonkeyPatch, operation: str, handler) -> None:
     monkeypatch.setattr(botocore.client.BaseClient, "_make_api_call", patched)
 
 
+def refuse_state(monkeypatch: pytest.MonkeyPatch, operation: str, instance_id: str) -> None:
+    """EC2's IncorrectInstanceState for `operation` (StartInstances, StopInstances), which moto never
+    answers: injected."""
+    done = {"StartInstances": "started", "StopInstances": "stopped"}[operation]
+
+    def refuse(original, params):
+        raise client_error(
+            "IncorrectInstanceState",
+            f"The instance '{instance_id}' is not in a state from which it can be {done}.",
+            operation,
+        )
+
+    intercept(monkeypatch, operation, refuse)
+
+
 def client_error(code: str, message: str, operation: str) -> ClientError:
     return ClientError({"Error": {"Code": code, "Message": message}}, operation)
 
@@ -184,14 +199,7 @@ def test_stop_of_a_host_still_starting_says_what_to_wait_for(stack, capsys, monk
     """EC2 refuses StopInstances while the instance is pending (moto does not, so the refusal is injected)."""
     instance_id = stack["InstanceId"]
 
-    def refuse(original, params):
-        raise client_error(
-            "IncorrectInstanceState",
-            f"The instance '{instance_id}' is not in a state from which it can be stopped.",
-            "StopInstances",
-        )
-
-    intercept(monkeypatch, "StopInstances", refuse)
+    refuse_state(monkeypatch, "StopInstances", instance_id)
     assert main(["instance", "stop", "--timeout", "5"]) == cmd.EXIT_AWS
     err = capsys.readouterr().err
     # The state in parentheses is EC2's at the time (pending on AWS; moto's instance runs).
@@ -204,14 +212,7 @@ def test_start_of_a_host_still_stopping_says_what_to_wait_for(stack, capsys, mon
     instance_id = stack["InstanceId"]
     assert main(["instance", "stop", "--no-wait"]) == 0
 
-    def refuse(original, params):
-        raise client_error(
-            "IncorrectInstanceState",
-            f"The instance '{instance_id}' is not in a state from which it can be started.",
-            "StartInstances",
-        )
-
-    intercept(monkeypatch, "StartInstances", refuse)
+    refuse_state(monkeypatch, "StartInstances", instance_id)
     capsys.readouterr()
     assert main(["instance", "start", "--timeout", "5"]) == cmd.EXIT_AWS
     err = capsys.readouterr().err
@@ -224,14 +225,7 @@ def test_a_terminated_host_is_not_waited_for(stack, capsys, monkeypatch):
     instance_id = stack["InstanceId"]
     boto3.client("ec2", region_name=REGION).terminate_instances(InstanceIds=[instance_id])
 
-    def refuse(original, params):
-        raise client_error(
-            "IncorrectInstanceState",
-            f"The instance '{instance_id}' is not in a state from which it can be started.",
-            "StartInstances",
-        )
-
-    intercept(monkeypatch, "StartInstances", refuse)
+    refuse_state(monkeypatch, "StartInstances", instance_id)
     assert main(["instance", "start", "--timeout", "5"]) == cmd.EXIT_AWS
     err = capsys.readouterr().err
     assert f"instance {instance_id} cannot be started: it is terminated, and EC2 never starts" in err, err
