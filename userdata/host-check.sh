@@ -219,8 +219,10 @@ _foreign_listener() {
     while [[ $users =~ \(\"([^\"]*)\",pid=([0-9]+) ]]; do
       name="${BASH_REMATCH[1]}" pid="${BASH_REMATCH[2]}"
       # A process gone since ss answered (DCV restarting) cannot be judged: not counted against DCV.
-      cgroup="${ROOT}/proc/${pid}/cgroup"
-      if [ ! -r "$cgroup" ] || grep -qs '/dcvserver\.service$' "$cgroup"; then ours=1; fi
+      # Read whole in the shell (no grep -q, which may stop reading early under pipefail); a file that
+      # cannot be read (the process gone since ss answered) reads as empty.
+      cgroup="$({ cat "${ROOT}/proc/${pid}/cgroup"; } 2>/dev/null || true)"
+      if [ -z "$cgroup" ] || [[ $'\n'$cgroup$'\n' == *"/dcvserver.service"$'\n'* ]]; then ours=1; fi
       users="${users#*pid="${pid}"}"
     done
     if [ -n "$pid" ] && [ "$ours" = 0 ]; then
