@@ -4,6 +4,7 @@ here: moto stands in for SNS (and for an SQS queue subscribed to the topic, whic
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
@@ -14,12 +15,19 @@ import boto3
 import pytest
 from conftest import AWS_TEST_REGION, NO_BROKER, wait_for
 from moto import mock_aws
-from twin.core.alarms import WHAT_TO_DO, AlarmKind
+from twin.core.alarms import (
+    SERVO_ERROR_BIT_ADVICE,
+    WHAT_TO_DO,
+    AlarmKind,
+    AlarmState,
+    AlarmView,
+    Severity,
+)
 from twin.output.alerts import BODY_MAX, MAX_FLUSH_S, SUBJECT_MAX, Alert, AlertPublisher
-from twin.robot import so101
+from twin.robot import so101, sts3215
 from twin.service.agent import AgentService
 from twin.service.config import ConfigError, load_config
-from twin.service.shards import UNMIRRORED
+from twin.service.shards import UNMIRRORED, alarm_info
 
 ACK = "Open the console and press Acknowledge."
 
@@ -532,3 +540,40 @@ def test_a_start_that_fails_after_a_message_arrived_sends_its_alert_or_counts_it
     else:
         assert unmirrored == 1 and received() == []
         assert stopped == [f"agent stopped; not everything was written: 1 {UNMIRRORED}"], stopped
+
+
+def test_a_servo_errors_advice_is_for_the_bits_its_servo_set() -> None:
+    """A read-through: every servo error's e-mail listed the advice for all six bits, so a voltage error
+    also told the person at the arm to calibrate again."""
+    sent: list[tuple[str, str]] = []
+    p = publisher(sent, Clock())
+    p.offer(alert(kind="servo_error", value=1.0, threshold=1.0, unit="status"))  # voltage
+    assert p.flush() is True
+    advice = sent[-1][1].split("What to do: ", 1)[1].split("\n", 1)[0]
+    assert advice.startswith("the arm may not hold its pose: stop the motion and support it."), advice
+    assert "Voltage: check the supply" in advice and "calibrate" not in advice, advice
+    p.offer(alert(kind="servo_error", joint="wrist_flex", value=17.0, threshold=1.0, unit="status"))
+    assert p.flush() is True
+    advice = sent[-1][1].split("What to do: ", 1)[1].split("\n", 1)[0]
+    assert "Voltage:" in advice and "Angle: " in advice and "Overload" not in advice, advice
+    # Every bit has its own advice.
+    assert set(SERVO_ERROR_BIT_ADVICE) == set(sts3215.STATUS_BITS)
+    # The console's Arm page and GET /alarms say the same while the bits are set; with none set (the
+    # condition gone, the alarm waiting to clear or latched) the advice covers every bit.
+    view = AlarmView(
+        alarm_id="arm-003/elbow_flex/servo_error",
+        device="arm-003",
+        joint="elbow_flex",
+        kind=AlarmKind.SERVO_ERROR,
+        severity=Severity.CRITICAL,
+        state=AlarmState.ACTIVE,
+        value=32.0,  # the overload bit
+        threshold=1.0,
+        unit="status",
+        since=0.0,
+        raised=1,
+        message="elbow_flex servo reports an error of its own: overload",
+    )
+    advice = alarm_info(view, 0.0, 0.0).advice
+    assert "Overload: reduce the payload" in advice and "Voltage" not in advice, advice
+    assert alarm_info(dataclasses.replace(view, value=0.0), 0.0, 0.0).advice == WHAT_TO_DO["servo_error"]

@@ -91,8 +91,10 @@ def test_each_servo_fault_raises_and_clears_its_alarms(
 
     raised = wait_for(all_raised, 60, "every fault's alarms to be raised", interval=0.1)
     assert set(raised) == EXPECTED, raised
-    # Each says what to do at the arm about its kind, as its e-mail and the Arm page do.
-    assert all(a.advice == what_to_do(a.kind, a.joint) != "" for a in alarms(url).alarms), alarms(url)
+    # Each says what to do at the arm about its kind, as its e-mail and the Arm page do (a servo error's
+    # about the bits its value holds: test_alerts).
+    listed = alarms(url).alarms
+    assert all(a.advice == what_to_do(a.kind, a.joint, a.value) != "" for a in listed), listed
 
     # The readings are in /state and /metrics while the faults run: read first, as the faults end about 7 s
     # into the run.

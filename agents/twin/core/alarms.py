@@ -114,6 +114,19 @@ WHAT_TO_DO: dict[str, str] = {
         "check the supply and its cable; angle: calibrate again; sensor: power-cycle, replace if it recurs."
     ),
 }
+# A servo error's advice, per status bit set: the person at the arm reads the bits the servo set, not a
+# list of all six (a voltage error sent them to calibrate as well). Lead: what every servo error needs.
+SERVO_ERROR_LEAD = "the arm may not hold its pose: stop the motion and support it."
+SERVO_ERROR_BIT_ADVICE: dict[str, str] = {
+    "voltage": "Voltage: check the supply and its cable under load.",
+    "sensor": "Sensor: power-cycle the arm; if it recurs, replace the servo.",
+    "temperature": "Temperature: the servo cut its torque at 70 C; let it cool below 55 C before resuming.",
+    "current": "Current: check for a collision or a trapped cable, then let the servo rest.",
+    "angle": (
+        "Angle: a goal position outside the servo's limits (from the leader or the policy): calibrate again."
+    ),
+    "overload": "Overload: reduce the payload or bring it closer to the base, then let the servo rest.",
+}
 # Where a joint's own servo calls for other advice than the kind's: an alarm names one servo, and the person
 # at the arm reads only its advice (the gripper's jaw on an elbow's overload sent them to the wrong joint).
 WHAT_TO_DO_AT: dict[tuple[str, str], str] = {
@@ -124,9 +137,13 @@ WHAT_TO_DO_AT: dict[tuple[str, str], str] = {
 }
 
 
-def what_to_do(kind: str, joint: str) -> str:
+def what_to_do(kind: str, joint: str, value: float | None = None) -> str:
     """What a person does at the arm about an alarm of `kind` on `joint`'s servo; "" for a kind this agent
-    has no advice for."""
+    has no advice for. A servo error's `value` (its set status bits) narrows the advice to those bits."""
+    if kind == AlarmKind.SERVO_ERROR and value is not None and math.isfinite(value):
+        names = sts3215.status_names(int(value))
+        if names:
+            return " ".join([SERVO_ERROR_LEAD, *(SERVO_ERROR_BIT_ADVICE[name] for name in names)])
     return WHAT_TO_DO_AT.get((joint, kind)) or WHAT_TO_DO.get(kind, "")
 
 

@@ -336,7 +336,7 @@ def _describe(entry: _Pending) -> list[str]:
     ]
     # While the alarm is up, or it rose since the last message (and maybe cleared already: the servo
     # still went through it); an acknowledged one needs nothing more done at the arm.
-    advice = what_to_do(a.kind, a.joint)
+    advice = what_to_do(a.kind, a.joint, a.value)
     if (a.state == "ACTIVE" or "raised" in entry.actions) and advice:
         lines.append(f"  What to do: {advice}")
     lines += [
