@@ -140,6 +140,10 @@ def test_config_check_notes_a_per_connection_limit_the_broker_will_not_honour(tm
     (note,) = check_notes(tmp_path, capsys, local)
     assert "per_connection_limit = 5 carries less than one arm at 10 Hz" in note
     assert check_notes(tmp_path, capsys, iot + "per_connection_limit = 100\n") == []
+    # IoT Core's own budget, which no setting raises: the rate is what can be wrong.
+    (note,) = check_notes(tmp_path, capsys, iot + "[health]\nexpected_rate_hz = 100.0\n")
+    assert "expected_rate_hz = 100 is more than one IoT Core connection carries" in note, note
+    assert check_notes(tmp_path, capsys, iot + "[health]\nexpected_rate_hz = 80.0\n") == []
 
 
 def test_config_check_shows_the_connections_a_broker_policy_must_allow(tmp_path: Path, capsys) -> None:
@@ -164,6 +168,9 @@ def test_config_check_shows_the_connections_a_broker_policy_must_allow(tmp_path:
     assert fleet.startswith("connections: 1 to 50 for the whole fleet (broker.max_connections)")
     # A walk's operator of 40 arms read "about 8 arms" as what the whole pool carries.
     assert fleet.endswith("about 8 arms at 10 Hz, so about 400 arms in all; client id indexes 0 to 49")
+    fleet_at = iot + 'max_connections = 50\n[telemetry]\ndevices = ["*"]\n[health]\n'
+    fast = plan(fleet_at + "expected_rate_hz = 200.0\n")
+    assert "msg/s, less than one arm at 200 Hz, so about 50 arms in all;" in fast, fast
     local = plan('[broker]\nurl = "mqtt://127.0.0.1:1883"\n')
     assert local == "connections: 1 (the broker has no per-connection limit); client id index 0"
 

@@ -775,9 +775,10 @@ def connection_plan(config: AgentConfig) -> str:
         k = settings.most_connections(iot=iot)
         arms = limit * SAFETY_MARGIN / rate
         # The fleet's total too: a walk's operator of 40 arms read "about 8 arms" as the pool's whole.
+        each = f"about {arms:.0f} arms" if arms >= 1 else "less than one arm"
         return (
             f"connections: 1 to {k} for the whole fleet (broker.max_connections), each planned for "
-            f"{limit * SAFETY_MARGIN:g} msg/s, about {arms:.0f} arms at {rate:g} Hz, so about {k * arms:.0f} "
+            f"{limit * SAFETY_MARGIN:g} msg/s, {each} at {rate:g} Hz, so about {k * max(arms, 1):.0f} "
             f"arms in all; client id indexes 0 to {k - 1}"
         )
     k = settings.most_connections(iot=iot)
@@ -863,6 +864,14 @@ def _pool_notes(config: AgentConfig) -> list[str]:
             f"[broker] per_connection_limit = {limit} carries less than one arm at {rate:g} Hz ([health] "
             f"expected_rate_hz) with the pool's {SAFETY_MARGIN:.0%} margin: each connection takes one arm "
             "and the broker discards the rest of its messages; raise the limit to what the broker allows"
+        )
+    elif limit == 0 and config.broker.url == IOT and rate > IOT_PUBLISHES_PER_CONNECTION * SAFETY_MARGIN:
+        # IoT Core's own budget: the plan said "about 0 arms" a connection, and nothing said why.
+        notes.append(
+            f"[health] expected_rate_hz = {rate:g} is more than one IoT Core connection carries "
+            f"({IOT_PUBLISHES_PER_CONNECTION} publishes a second, {SAFETY_MARGIN:.0%} of it planned), which "
+            "cannot be raised: each connection takes one arm and IoT Core discards the rest of its messages; "
+            "give the rate the edges publish at (10 Hz for the LeRobot edge)"
         )
     return notes
 
