@@ -267,6 +267,19 @@ def test_auto_zero_degrees_is_undecided_never_ticks() -> None:
     assert d.units_for("arm-001") is Units.AUTO
 
 
+@pytest.mark.parametrize("position", [5000, 10**400, 361.0, 2048.0])
+def test_auto_rejects_a_position_no_units_allow_as_out_of_range(position: int | float) -> None:
+    """Past every setting's range (ticks' 4095, a JSON float past 360): no later message can make it fit, so
+    waiting for evidence, the units_undecided answer, would be wrong advice; it is counted as out_of_range."""
+    d = decoder()
+    with pytest.raises(TelemetryRejected) as info:
+        d.decode(payload((*TICKS_EXAMPLE[:5], position)))
+    assert info.value.reason is RejectReason.OUT_OF_RANGE
+    assert "of gripper fits no units" in str(info.value)
+    assert "check the edge's position source" in str(info.value)
+    assert d.units_for("arm-001") is Units.AUTO
+
+
 def test_auto_decides_degrees_then_zero_payload_is_zero(caplog: pytest.LogCaptureFixture) -> None:
     d = decoder()
     with caplog.at_level(logging.INFO, logger="twin.core.telemetry"):
@@ -930,7 +943,8 @@ def test_missing_calibration_file_names_lerobot_location(tmp_path: Path) -> None
 # --- exact messages -----------------------------------------------------------------------------------------
 
 # Reason and message of every case above under every units setting, as the decoder produced them before
-# it moved its parsing to msgspec (tests/data/telemetry_rejections.json, written once by that decoder).
+# it moved its parsing to msgspec (tests/data/telemetry_rejections.json, written once by that decoder), but
+# for one rule changed on purpose since: under auto, a position no units allow is out_of_range, not undecided.
 # People and runbooks match on these sentences, so a rewrite of the parsing must keep them word for word.
 GOLDEN = json.loads((Path(__file__).parent / "data" / "telemetry_rejections.json").read_text())
 

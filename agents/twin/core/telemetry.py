@@ -998,6 +998,7 @@ class TelemetryDecoder:
     def _evidence_or_reject(device_id: str, positions: list[int | float]) -> Units:
         kind = _evidence(positions)
         if kind is None:
+            _check_fits_some_units(positions)
             raise _rejected(
                 RejectReason.UNITS_UNDECIDED,
                 f"units=auto has not decided {device_id}'s units yet and this message cannot tell (whole, "
@@ -1066,6 +1067,18 @@ def _position(name: str, entry: _JsonObject) -> int | float:
             f"position of {name} must be a JSON number, got {_fmt(pos)}",
         )
     return pos
+
+
+def _check_fits_some_units(positions: list[int | float]) -> None:
+    """Rejects a position no units setting allows: waiting for clearer messages would never help it."""
+    for name, value in zip(_JOINTS, positions, strict=True):
+        if value > so101.TICK_MAX or (type(value) is float and value > DEGREES_LIMIT):
+            raise _rejected(
+                RejectReason.OUT_OF_RANGE,
+                f"position {_fmt(value)} of {name} fits no units (ticks: JSON integers 0..{so101.TICK_MAX}, "
+                f"degrees: -{DEGREES_LIMIT:g}..{DEGREES_LIMIT:g}, range100: -{RANGE100_LIMIT:g}.."
+                f"{RANGE100_LIMIT:g}); no units produce this value: check the edge's position source",
+            )
 
 
 def _evidence(positions: list[int | float]) -> Units | None:
