@@ -944,7 +944,8 @@ def test_missing_calibration_file_names_lerobot_location(tmp_path: Path) -> None
 
 # Reason and message of every case above under every units setting, as the decoder produced them before
 # it moved its parsing to msgspec (tests/data/telemetry_rejections.json, written once by that decoder), but
-# for one rule changed on purpose since: under auto, a position no units allow is out_of_range, not undecided.
+# for changes made on purpose since: under auto, a position no units allow is out_of_range, not undecided, and
+# a missing timestamp or position says who fixes it.
 # People and runbooks match on these sentences, so a rewrite of the parsing must keep them word for word.
 GOLDEN = json.loads((Path(__file__).parent / "data" / "telemetry_rejections.json").read_text())
 

@@ -860,7 +860,10 @@ class TelemetryDecoder:
     def _timestamp(doc: _JsonObject) -> int:
         ts = doc.get("timestamp", _MISSING)
         if ts is _MISSING:
-            raise _rejected(RejectReason.MISSING_FIELD, "message has no 'timestamp' (epoch milliseconds)")
+            raise _rejected(
+                RejectReason.MISSING_FIELD,
+                "message has no 'timestamp' (epoch milliseconds); update or reconfigure the edge component",
+            )
         if type(ts) is not int:
             raise _rejected(
                 RejectReason.BAD_TIMESTAMP,
@@ -1061,7 +1064,10 @@ def _position(name: str, entry: _JsonObject) -> int | float:
         return pos
     if type(pos) is not int:
         if pos is _MISSING:
-            raise _rejected(RejectReason.MISSING_FIELD, f"joint {name} has no 'position'")
+            raise _rejected(
+                RejectReason.MISSING_FIELD,
+                f"joint {name} has no 'position'; update or reconfigure the edge component",
+            )
         raise _rejected(
             RejectReason.WRONG_TYPE,
             f"position of {name} must be a JSON number, got {_fmt(pos)}",
