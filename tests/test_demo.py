@@ -312,6 +312,7 @@ def test_the_summary_names_its_programs_by_paths_that_run_from_here(
 
     here = Path(sys.executable).parent.parent.parent
     monkeypatch.chdir(here)
+    monkeypatch.setenv("DISPLAY", ":0")  # where Rerun's native viewer can open a window
     stats = {
         "duration_s": 30.0,
         "messages": {"sent": 10, "received": 10, "rejected": 0},
@@ -328,6 +329,32 @@ def test_the_summary_names_its_programs_by_paths_that_run_from_here(
     assert sorted(commands) == sorted(
         [[twin, "history", "ls", "--history", "out/demo/history"], [rerun, "out/demo/twin.rrd"]]
     )
+
+
+def test_without_a_display_the_summary_opens_the_recording_with_twin_web(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Rerun's native viewer stops at once with no display ("neither WAYLAND_DISPLAY nor ... DISPLAY is
+    set"), as on the headless machines make demo runs on, so the summary offers twin web, which serves the
+    same file to a browser."""
+    from twin.cli.commands.demo import _summary
+
+    here = Path(sys.executable).parent.parent.parent
+    monkeypatch.chdir(here)
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.setattr(sys, "platform", "linux")
+    stats = {
+        "duration_s": 30.0,
+        "messages": {"sent": 10, "received": 10, "rejected": 0},
+        "latency_s": {"end_to_end": {"p50": 0.004, "p99": 0.05}},
+        "files": {"rrd": "twin.rrd"},
+        "story": None,
+        "console": {"taken": False, "skipped": None},
+    }
+    _summary(stats, Path("out/demo"))
+    twin = os.path.relpath(Path(sys.executable).with_name("twin"), here)
+    assert assert_runnable_as_printed(capsys.readouterr().out, here) == [[twin, "web", "out/demo/twin.rrd"]]
 
 
 def test_missing_playwright_is_named_with_the_way_to_install_it():

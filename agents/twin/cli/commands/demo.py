@@ -208,8 +208,16 @@ def _summary(stats: dict[str, Any], out_dir: Path) -> None:
         console.out(f"  console pictures skipped: {stats['console']['skipped']}")
     if "rrd" in stats["files"]:
         rrd = shlex.quote(str(out_dir / stats["files"]["rrd"]))
-        viewer = program("rerun") or f"{_twin_program()} web"  # twin web serves a recording as well
+        # Rerun's native viewer exits at once without a display, which is how make demo often runs; twin web
+        # serves the recording to a browser instead.
+        native = program("rerun") if _has_display() else None
+        viewer = native or f"{_twin_program()} web"
         console.out(f"  open the Rerun recording: `{viewer} {rrd}`  (docs/web.md)")
+
+
+def _has_display() -> bool:
+    env = os.environ
+    return sys.platform != "linux" or bool(env.get("DISPLAY") or env.get("WAYLAND_DISPLAY"))
 
 
 def _twin_program() -> str:
