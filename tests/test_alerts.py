@@ -556,6 +556,11 @@ def test_a_servo_errors_advice_is_for_the_bits_its_servo_set() -> None:
     assert p.flush() is True
     advice = sent[-1][1].split("What to do: ", 1)[1].split("\n", 1)[0]
     assert "Voltage:" in advice and "Angle: " in advice and "Overload" not in advice, advice
+    # The gripper's overload bit is its jaw, as its overload alarm's advice says.
+    p.offer(alert(kind="servo_error", joint="gripper", value=32.0, threshold=1.0, unit="status"))
+    assert p.flush() is True
+    advice = sent[-1][1].split("What to do: ", 1)[1].split("\n", 1)[0]
+    assert "Overload: the jaw is squeezing" in advice and "payload" not in advice, advice
     # Every bit has its own advice.
     assert set(SERVO_ERROR_BIT_ADVICE) == set(sts3215.STATUS_BITS)
     # The console's Arm page and GET /alarms say the same while the bits are set; with none set (the

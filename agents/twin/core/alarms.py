@@ -127,6 +127,10 @@ SERVO_ERROR_BIT_ADVICE: dict[str, str] = {
     ),
     "overload": "Overload: reduce the payload or bring it closer to the base, then let the servo rest.",
 }
+# As WHAT_TO_DO_AT, for a bit: the gripper's overload is its jaw, not a payload.
+SERVO_ERROR_BIT_ADVICE_AT: dict[tuple[str, str], str] = {
+    ("gripper", "overload"): "Overload: the jaw is squeezing something hard: open it, grip with less force.",
+}
 # Where a joint's own servo calls for other advice than the kind's: an alarm names one servo, and the person
 # at the arm reads only its advice (the gripper's jaw on an elbow's overload sent them to the wrong joint).
 WHAT_TO_DO_AT: dict[tuple[str, str], str] = {
@@ -143,7 +147,8 @@ def what_to_do(kind: str, joint: str, value: float | None = None) -> str:
     if kind == AlarmKind.SERVO_ERROR and value is not None and math.isfinite(value):
         names = sts3215.status_names(int(value))
         if names:
-            return " ".join([SERVO_ERROR_LEAD, *(SERVO_ERROR_BIT_ADVICE[name] for name in names)])
+            advice = (SERVO_ERROR_BIT_ADVICE_AT.get((joint, n)) or SERVO_ERROR_BIT_ADVICE[n] for n in names)
+            return " ".join([SERVO_ERROR_LEAD, *advice])
     return WHAT_TO_DO_AT.get((joint, kind)) or WHAT_TO_DO.get(kind, "")
 
 

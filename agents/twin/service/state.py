@@ -103,7 +103,7 @@ class AlarmInfo:
     changed_at: float = 0.0
     raised: int = 0
     message: str = ""
-    advice: str = ""  # what to do at the arm (core.alarms.WHAT_TO_DO)
+    advice: str = ""  # what to do at the arm (core.alarms.what_to_do)
 
 
 @dataclass(frozen=True)
