@@ -141,9 +141,27 @@ def test_config_check_notes_a_per_connection_limit_the_broker_will_not_honour(tm
     assert "per_connection_limit = 5 carries less than one arm at 10 Hz" in note
     assert check_notes(tmp_path, capsys, iot + "per_connection_limit = 100\n") == []
     # IoT Core's own budget, which no setting raises: the rate is what can be wrong.
-    (note,) = check_notes(tmp_path, capsys, iot + "[health]\nexpected_rate_hz = 100.0\n")
-    assert "expected_rate_hz = 100 is more than one IoT Core connection carries" in note, note
+    (note,) = check_notes(tmp_path, capsys, iot + "[health]\nexpected_rate_hz = 200.0\n")
+    assert "expected_rate_hz = 200 is more than the pool plans for one IoT Core connection" in note, note
+    assert "IoT Core discards what passes 100 a second" in note and "raise the limit" not in note, note
+    # Within IoT Core's 100, nothing is discarded: only the margin is gone.
+    (note,) = check_notes(tmp_path, capsys, iot + "[health]\nexpected_rate_hz = 90.0\n")
+    assert "within its 100 a second, with none of the margin" in note and "discards" not in note, note
     assert check_notes(tmp_path, capsys, iot + "[health]\nexpected_rate_hz = 80.0\n") == []
+    # A limit set by hand on IoT Core: the rate is named, not a limit no setting can raise.
+    (note,) = check_notes(
+        tmp_path, capsys, iot + "per_connection_limit = 100\n[health]\nexpected_rate_hz = 200.0\n"
+    )
+    assert "expected_rate_hz = 200" in note and "raise the limit" not in note, note
+    above, rate_note = check_notes(
+        tmp_path, capsys, iot + "per_connection_limit = 200\n[health]\nexpected_rate_hz = 200.0\n"
+    )
+    assert "leave it 0" in above and "discards what passes 100 a second" in rate_note, (above, rate_note)
+    # One set below IoT Core's by hand can be raised, up to it.
+    (note,) = check_notes(
+        tmp_path, capsys, iot + "per_connection_limit = 50\n[health]\nexpected_rate_hz = 50.0\n"
+    )
+    assert "per_connection_limit = 50 carries less than one arm at 50 Hz" in note, note
 
 
 def test_config_check_shows_the_connections_a_broker_policy_must_allow(tmp_path: Path, capsys) -> None:

@@ -853,27 +853,41 @@ def _pool_notes(config: AgentConfig) -> list[str]:
     proxy: both planned silently, and the broker discarded the excess)."""
     limit, rate = config.broker.per_connection_limit, config.health.expected_rate_hz
     notes = []
-    if config.broker.url == IOT and limit > IOT_PUBLISHES_PER_CONNECTION:
+    iot = config.broker.url == IOT
+    if iot and limit > IOT_PUBLISHES_PER_CONNECTION:
         notes.append(
             f"[broker] per_connection_limit = {limit} is above IoT Core's {IOT_PUBLISHES_PER_CONNECTION} "
             "publishes a second per connection, which cannot be raised: the pool would plan too few "
             "connections and the broker discard the excess; leave it 0 (the broker's own)"
         )
-    if 0 < limit * SAFETY_MARGIN < rate:
+    if iot and (limit == 0 or limit >= IOT_PUBLISHES_PER_CONNECTION):
+        notes += _iot_rate_notes(rate)
+    elif 0 < limit * SAFETY_MARGIN < rate:
         notes.append(
             f"[broker] per_connection_limit = {limit} carries less than one arm at {rate:g} Hz ([health] "
             f"expected_rate_hz) with the pool's {SAFETY_MARGIN:.0%} margin: each connection takes one arm "
             "and the broker discards the rest of its messages; raise the limit to what the broker allows"
         )
-    elif limit == 0 and config.broker.url == IOT and rate > IOT_PUBLISHES_PER_CONNECTION * SAFETY_MARGIN:
-        # IoT Core's own budget: the plan said "about 0 arms" a connection, and nothing said why.
-        notes.append(
-            f"[health] expected_rate_hz = {rate:g} is more than one IoT Core connection carries "
-            f"({IOT_PUBLISHES_PER_CONNECTION} publishes a second, {SAFETY_MARGIN:.0%} of it planned), which "
-            "cannot be raised: each connection takes one arm and IoT Core discards the rest of its messages; "
-            "give the rate the edges publish at (10 Hz for the LeRobot edge)"
-        )
     return notes
+
+
+def _iot_rate_notes(rate: float) -> list[str]:
+    """An arm rate one IoT Core connection does not carry with the pool's margin at IoT Core's own budget,
+    which no setting raises: the plan said "about 0 arms" a connection, and nothing why. The rate is what
+    can be wrong then, not the limit (a limit set lower by hand can be raised: _pool_notes says so)."""
+    limit = IOT_PUBLISHES_PER_CONNECTION
+    if rate <= limit * SAFETY_MARGIN:
+        return []
+    lost = (
+        f"and IoT Core discards what passes {limit:g} a second"
+        if rate > limit
+        else f"within its {limit:g} a second, with none of the margin the pool keeps"
+    )
+    return [
+        f"[health] expected_rate_hz = {rate:g} is more than the pool plans for one IoT Core connection "
+        f"({limit * SAFETY_MARGIN:g} of its {limit:g} publishes a second, which cannot be raised): each "
+        f"connection takes one arm, {lost}; give the rate the edges publish at (10 Hz for the LeRobot edge)"
+    ]
 
 
 def _shown(value: Any) -> str:
