@@ -252,3 +252,13 @@ def test_twin_run_rerun_save_records_every_applied_message(rig, tmp_path: Path) 
         ]
         assert len(poses) == applied
         assert f"/arms/{device}:Transform3D:translation" in static.schema.names
+
+
+def test_the_ssm_hint_says_it_is_for_the_twin_host() -> None:
+    """A walk on a laptop: `twin web` printed "from a laptop: forward both ports over SSM" under the URL
+    that laptop's browser could already open, as if the agent ran elsewhere."""
+    from twin.cli.commands.web import _ssm_hint
+
+    hint = _ssm_hint("http://127.0.0.1:9090/?url=x", "rerun+http://127.0.0.1:9876/proxy")
+    assert hint.startswith("when this runs on the twin host, a laptop reaches it"), hint
+    assert "for p in 9090 9876; do aws ssm start-session" in hint, hint

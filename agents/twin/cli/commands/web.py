@@ -21,8 +21,10 @@ from twin.output.rerun_settings import DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 
 console = Console("web")
 
+# Said wherever `twin web` runs, which it cannot tell: on a laptop the URL above is already the one to open.
 SSM_HINT = (
-    "from a laptop: forward both ports over SSM (docs/web.md), e.g. "
+    "when this runs on the twin host, a laptop reaches it by forwarding both ports over SSM "
+    "(docs/web.md), e.g. "
     "for p in {web} {grpc}; do aws ssm start-session --target <InstanceId> --document-name "
     'AWS-StartPortForwardingSession --parameters "{{\\"portNumber\\":[\\"$p\\"],\\"localPortNumber\\":'
     '[\\"$p\\"]}}" & done; wait'
