@@ -15,6 +15,7 @@ from typing import Any
 
 import pytest
 from conftest import wait_for
+from twin.edge.servo_faults import ServoFault
 from twin.edge.simulator import FaultConfig
 from twin.rig.local import LocalRig
 from twin.service.console import Listening, fleet_summary
@@ -112,18 +113,32 @@ def test_an_arm_held_by_its_refused_calibration_has_a_page_that_says_so(
     agent = rig.start_agent(
         {"telemetry.devices": ["*"], "telemetry.units": "ticks", "telemetry.calibrations": str(store)}
     )
-    rig.start_edge(["arm-007"], seconds=None, rate_hz=10.0)
+    # A stalled wrist: its servo alarms are raised from the refused messages, and no card shows them.
+    stall = (ServoFault("overload", "wrist_roll", 0.0, 600.0),)
+    rig.start_edge(["arm-007"], seconds=None, rate_hz=10.0, servo_faults=stall)
 
     def named() -> list[str]:
         return [n for n in fleet_document(agent.http_url)["notices"] if n.startswith("arm-007's calibration")]
 
     wait_for(named, 60, "the Fleet page's notice naming arm-007")
     page = chromium_page
-    page.goto(agent.http_url + "/arm/arm-007")
+    page.goto(agent.http_url + "/")
+    # Its notice leads to its page, where its alarms are: the Fleet page has no card for it.
+    page.click('#fleet-notices a.held-arm[data-device="arm-007"]', timeout=60_000)
+    page.wait_for_url("**/arm/arm-007", timeout=60_000)
     said = page.wait_for_selector("#unknown", timeout=60_000).inner_text()
     assert said.startswith("This agent holds this arm: its calibration in the store is refused ("), said
     assert f"twin calibration push arm-007 FILE --store {store}" in said, said
+    assert "alarms are still checked" in said, said
     assert "held" in page.locator("h1").inner_text()
+    # Its alarms are listed, and one acknowledged there is acknowledged in the agent.
+    alarm_id = "arm-007/wrist_roll/overload"
+    button = page.wait_for_selector(f'button[data-alarm="{alarm_id}"]', timeout=60_000)
+    button.click()
+    page.wait_for_selector(f"#ack-result.ack-ok >> text={alarm_id} acknowledged", timeout=60_000)
+    with urllib.request.urlopen(agent.http_url + "/alarms?device=arm-007", timeout=60) as response:
+        states = {a["alarm_id"]: a["state"] for a in json.load(response)["alarms"]}
+    assert states[alarm_id] == "ACKNOWLEDGED", states
 
 
 def test_an_arm_kept_out_by_max_devices_is_named(rig: LocalRig) -> None:

@@ -391,19 +391,27 @@
     if (order.length !== shown.length || order.some((tr, i) => tr !== shown[i])) alarmsBody.replaceChildren(...order);
   }
 
+  // Held by its calibration (refused at the start): its messages come and are refused, so "no valid message"
+  // is true, but the id is right and the fix is a push, not a check of the id. Its servos' alarms are still
+  // raised from the refused messages, and no Fleet card shows them: this page lists them to acknowledge (a
+  // walk found the table saying "no alarm" beside three critical ones).
+  function held(doc) {
+    title.textContent = `${device}: held, its calibration is refused`;
+    summary.replaceChildren(el("p", { id: "unknown", text: `This agent holds this arm: its calibration in the ` +
+      `store is refused (${doc.calibration_refused}), so its messages are refused and its twin does not ` +
+      `move; its servos' alarms are still checked, and listed below. Push a valid one: ` +
+      `${doc.calibration_push.command}. This page fills in by itself once it is read.` }));
+    // Not clearArm: its rows must stay the same elements from one frame to the next, under the pointer.
+    forgetButton.hidden = true;
+    lossBox.replaceChildren();
+    rejectsBody.replaceChildren();
+    renderAlarms(doc.alarms || []);
+  }
+
   // An id this agent has had no valid message from (mistyped, or an arm not heard yet): the page says what
   // to check instead of empty panels under a bare "not known", and fills in by itself once the arm is heard.
   function unknown(doc) {
-    // Held by its calibration (refused at the start): its messages come and are refused, so "no valid
-    // message" is true, but the id is right and the fix is a push, not a check of the id.
-    if (doc && doc.calibration_refused) {
-      title.textContent = `${device}: held, its calibration is refused`;
-      summary.replaceChildren(el("p", { id: "unknown", text: `This agent holds this arm: its calibration in the ` +
-        `store is refused (${doc.calibration_refused}), so its messages are refused and its twin does not ` +
-        `move. Push a valid one: ${doc.calibration_push.command}. This page fills in by itself once it is read.` }));
-      clearArm();
-      return;
-    }
+    if (doc && doc.calibration_refused) { held(doc); return; }
     title.textContent = `${device}: not known to this agent`;
     // An arm this page has shown and the agent dropped was not "never heard": it was forgotten elsewhere, or
     // the agent started again and has not heard it yet; the sentence says so rather than blame the id.

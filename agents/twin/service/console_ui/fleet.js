@@ -317,6 +317,16 @@
       "IoT Core drops, without a word, what an identity may not iot:Receive (docs/agent.md, IAM permissions).";
   }
 
+  // An arm held by its refused calibration has no card, yet its servos' alarms are raised: its notice (the
+  // agent's words, agent.py's _held_notices) links to its page, which lists them to acknowledge.
+  const HELD = /^(\S+)'s calibration in the store is refused \(/;
+  function notice(text) {
+    const arm = HELD.exec(text);
+    if (!arm) return el("p", { text });
+    return el("p", {}, text + " ", el("a", { href: "/arm/" + encodeURIComponent(arm[1]), class: "held-arm",
+      "data-device": arm[1], text: `Open ${arm[1]}'s page: its alarms, to acknowledge` }));
+  }
+
   let updates = 0, updateTotalMs = 0;
   function update(doc) {
     const t0 = performance.now();
@@ -344,7 +354,7 @@
       said.unshift("The agent is not connected to its broker: no arm's messages reach it, so every arm " +
         "goes STALE, then OFFLINE, whatever it does. GET /healthz says why; the Events page says when.");
     }
-    notices.replaceChildren(...said.map((text) => el("p", { text })));
+    notices.replaceChildren(...said.map(notice));
     notices.hidden = !notices.childElementCount;
     filter();
     render();
