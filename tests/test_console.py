@@ -2195,6 +2195,51 @@ def test_the_fleet_page_acknowledges_more_than_one_requests_worth_in_chunks(
     assert browser_errors == []
 
 
+def test_a_reload_in_the_middle_of_acknowledge_shown_is_told_after_it(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """A walk reloaded the Fleet page while "Acknowledge shown" sent its chunks: the chunks not yet sent were
+    never sent, and the page said nothing of them. Now the page, loaded again, says how many had no answer
+    and to press again. Three alarms: the first request is refused as too large (413), its first half is
+    answered, its second half held unanswered by the test while the page reloads. Made rows, alarms and
+    answers, served by the test."""
+    doc = made_fleet(console, {"arm-v": alarmed("warning", "ACTIVE", 3)})
+    made = [made_alarm("arm-v", f"joint_{i}", "over_temperature", "ACTIVE") for i in range(3)]
+    sent: list[tuple[list[str], str, str]] = []
+    answer = bulk_answer(made, sent, cleared=set())
+    held: list[Any] = []
+
+    def halting(route: Any) -> None:
+        ids = json.loads(route.request.post_data or "null")
+        if len(ids) == len(made):
+            route.fulfill(status=413, json={"error": "body_too_large", "detail": "over the limit"})
+        elif sent:
+            held.append(route)  # never answered: the reload cuts the run here
+        else:
+            answer(route)
+
+    errors_before = len(browser_errors)
+    with fleet_of_made_alarms(page, doc, made, halting), dialogs_accepted(page):
+        page.goto(console + "/")
+        page.locator("#ack-shown:not([disabled])", has_text="Acknowledge shown (3)").click()
+        # Two answered, the last one sent (a route handler runs only while Playwright is called: no wait_for).
+        page.wait_for_selector("#fleet-ack-result >> text=acknowledging 3 (2 done)", timeout=TIMEOUT_S * 1000)
+        page.reload()
+        told = answered(page, "#fleet-ack-result")
+    assert [len(ids) for ids, _, _ in sent] == [2], sent
+    assert told.startswith("refused: An acknowledgement of 3 alarms begun at "), told
+    assert "1 of them was not sent or had no answer" in told and '"Acknowledge shown" again' in told, told
+    # Said once: the page opened again says nothing of a run it has told.
+    page.reload()
+    page.wait_for_function("() => document.body.dataset.ready === '1'")
+    assert page.locator("#fleet-ack-result").is_hidden()
+    leave(page)
+    mine = browser_errors[errors_before:]
+    assert all("status of 413" in e for e in mine), mine
+    del browser_errors[errors_before:]
+    assert browser_errors == []
+
+
 def test_a_selection_too_large_for_the_agents_body_limit_is_sent_in_halves_and_loses_nothing(
     console: str, page: Any, browser_errors: list[str]
 ) -> None:

@@ -50,6 +50,13 @@
   // there (disabled with none waiting), beside the table's title: appearing, it would move the rows.
   const ackAllButton = el("button", { type: "button", id: "ack-all", disabled: true, text: "Acknowledge all (0)" });
   let ackAllBusy = false;
+  // Its Acknowledge all cut short by a reload: said at once (Twin.interruptedAck), as on the Fleet page.
+  const cut = Twin.interruptedAck();
+  if (cut) {
+    ackResult.hidden = false;
+    ackResult.className = "ack-refused";
+    ackResult.textContent = Twin.interruptedText(cut, '"Acknowledge all"');
+  }
   const lossBox = el("div", { class: "kv" });
   const rejectsBody = el("tbody");
   main.append(

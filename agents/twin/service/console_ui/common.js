@@ -171,10 +171,63 @@ const Twin = (() => {
   // at all) ends the run: that request's ids counted refused, the rest unsent.
   const ACK_MANY_MAX = 1000;
 
+  // A run cut short by a reload (or by leaving the page) ended without a word, its later chunks never sent.
+  // It is kept in the tab's sessionStorage while it runs, so the page, opened again, says how many had no
+  // answer (interruptedAck) and the operator can press again.
+  const ACK_RUN = "twin.ack.run";
+  // A reload aborts the request in flight, and the run then ends as if that request were answered: the record
+  // stays as it was before, or the page opened again has nothing (or too little) to say.
+  let leaving = false;
+  window.addEventListener("pagehide", () => { leaving = true; });
+  window.addEventListener("pageshow", () => { leaving = false; });  // back from the browser's page cache
+
+  function keepRun(total, answered) {
+    if (leaving) return;
+    try {
+      if (total === null) sessionStorage.removeItem(ACK_RUN);
+      else {
+        const run = { path: location.pathname, total, answered, at: Date.now() / 1000 };
+        sessionStorage.setItem(ACK_RUN, JSON.stringify(run));
+      }
+    } catch (_) { /* no storage (a browser's setting): the page only cannot say it after a reload */ }
+  }
+
+  // The run this page (its path) left unfinished, once: {total, answered, at}, else null. Another page's
+  // is left for that page (an arm's link followed mid-way must not swallow the Fleet page's).
+  function interruptedAck() {
+    try {
+      const run = JSON.parse(sessionStorage.getItem(ACK_RUN) || "null");
+      if (!run || run.path !== location.pathname) return null;
+      sessionStorage.removeItem(ACK_RUN);
+      return run;
+    } catch (_) {
+      return null;
+    }
+  }
+
+  // What a page says of it: how many of the alarms had no answer, and to press `button` again.
+  function interruptedText(run, button) {
+    const left = run.total - run.answered;
+    return `An acknowledgement of ${run.total} alarm${run.total === 1 ? "" : "s"} begun at ${time(run.at)} ` +
+      `(${zone()}) was cut short by a reload or by leaving the page: ` +
+      `${left} of them ${left === 1 ? "was" : "were"} not sent or had no answer. Press ${button} again for ` +
+      "the rest (one done meanwhile counts as already acknowledged).";
+  }
+
   async function acknowledgeMany(alarms, progress) {
     const tally = { acknowledged: 0, reset: 0, ACKNOWLEDGED: 0, NORMAL: 0, gone: 0, notKept: 0, refused: 0,
       unsent: 0, why: "" };
     const ids = alarms.map((a) => a.alarm_id);
+    keepRun(ids.length, 0);
+    try {
+      await sendChunks(ids, tally, progress);
+    } finally {
+      keepRun(null);
+    }
+    return tally;
+  }
+
+  async function sendChunks(ids, tally, progress) {
     const pending = [];
     for (let i = 0; i < ids.length; i += ACK_MANY_MAX) pending.push(ids.slice(i, i + ACK_MANY_MAX));
     let done = 0;
@@ -194,6 +247,7 @@ const Twin = (() => {
         continue;
       }
       done += chunk.length;
+      keepRun(ids.length, done);
       if (Array.isArray(p.results)) {
         const notKept = result.status === 503 && p.error === "not_saved";
         if (notKept && !tally.why) tally.why = refusal(result);
@@ -207,7 +261,6 @@ const Twin = (() => {
         break;
       }
     }
-    return tally;
   }
 
   function countOutcome(tally, r, notKept) {
@@ -278,6 +331,7 @@ const Twin = (() => {
   }
 
   return { el, stream, getJSON, choose, post, refusal, WAITING, acknowledgeMany, tallyText, tallyOk, ago, time, zone, duration, num, setLink, breaks: () => breaks,
+    interruptedAck, interruptedText,
     main: document.getElementById("main"),
     device: body.dataset.device, rerun: body.dataset.rerun };
 })();

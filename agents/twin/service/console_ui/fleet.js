@@ -35,6 +35,13 @@
   const ackShown = el("button", { type: "button", id: "ack-shown", disabled: true, text: "Acknowledge shown (0)" });
   const ackResult = el("p", { id: "fleet-ack-result", role: "status", hidden: true });
   let ackBusy = false;
+  // An acknowledgement this page began and a reload cut short: said at once, or its unsent ids go unnoticed.
+  const cut = Twin.interruptedAck();
+  if (cut) {
+    ackResult.hidden = false;
+    ackResult.className = "ack-refused";
+    ackResult.textContent = Twin.interruptedText(cut, '"Acknowledge shown"');
+  }
   // What no card can show: a subscription the broker refuses, whose arms are never heard.
   const notices = el("div", { class: "notices", id: "fleet-notices", role: "alert" });
   notices.hidden = true;
