@@ -1599,6 +1599,17 @@ def test_the_events_page_loads_again_after_a_failed_load(console: str, page: Any
         tab.close()
 
 
+def test_a_malformed_session_key_is_told_as_malformed_not_as_not_found(console: str) -> None:
+    """A walk asked for /api/sessions/<arm>/abc/csv and was told session_not_found, as if a session of that
+    start might exist; a key is a whole number of milliseconds, and the answer says so."""
+    status, _, data = http_get(f"{console}/api/sessions/arm-003/abc/csv")
+    answer = json.loads(data)
+    assert status == 400 and answer["error"] == "bad_session", (status, answer)
+    assert "'abc'" in answer["detail"] and "epoch milliseconds" in answer["detail"], answer
+    status, _, data = http_get(f"{console}/api/sessions/arm-003/12/csv")  # well formed, no such session
+    assert status == 404 and json.loads(data)["error"] == "session_not_found", data
+
+
 def test_a_sessions_other_files_are_made_from_history(console: str, tmp_path: Path) -> None:
     session = wait_for_a_session(console, "arm-003")
     base = f"{console}/api/sessions/arm-003/{session['key']}/"

@@ -882,6 +882,16 @@ class AgentHttpServer:
         device, start, kind = (request.path_params[k] for k in ("device", "start", "kind"))
         if kind not in SESSION_FILE_KINDS:
             return _error(404, "unknown_kind", kind=kind, kinds=list(SESSION_FILE_KINDS))
+        # Not "session_not_found", which sends a person looking for a session that may well exist.
+        if not (start.isascii() and start.isdigit()):
+            return _error(
+                400,
+                "bad_session",
+                device=device,
+                start=start,
+                detail=f"session {start!r} is not a session's key: its start in epoch milliseconds, a whole "
+                "number such as 1796614097848 (GET /api/sessions gives each session's key)",
+            )
         session = next((s for s in await self._session_list() if s.device == device and s.key == start), None)
         if session is None:
             return _error(
