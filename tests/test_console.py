@@ -1195,10 +1195,16 @@ def test_the_events_page_tails_the_twins_events(console: str, page: Any, browser
         exported = json.loads(answer.read())
     exported = exported["events"]
     assert exported and {e["device"] for e in exported} == {"arm-003"}, exported[:3]
-    # With whole id ticked, part of an id matches nothing: the table says so, and what the box wants.
+    # With whole id ticked, part of an id matches nothing: the table says so, that the agent has no event of
+    # that id at all (the agent's answer says so), and what the box wants.
     page.get_by_label("whole id").check()
-    none = page.wait_for_selector("#events-none").inner_text()
-    assert "no event matches these filters" in none and "whole id" in none, none
+    none = page.wait_for_selector('#events-none:has-text("at all")').inner_text()
+    assert 'no event of "RM-003" at all' in none and "Fleet page" in none and "whole id" in none, none
+    # A known arm's selection that is empty says the filters match nothing.
+    page.get_by_label("device").fill("arm-003")
+    page.get_by_label("kind").select_option("broker")
+    none = page.wait_for_selector('#events-none:has-text("these filters")').inner_text()
+    assert "no event matches these filters" in none, none
     assert browser_errors == []
 
 

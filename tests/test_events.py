@@ -750,6 +750,28 @@ def test_a_filter_that_matches_nothing_answers_the_newest_id(tmp_path: Path) -> 
         agent.stop()
 
 
+def test_a_device_the_agent_holds_no_event_of_is_named_in_the_answer(tmp_path: Path) -> None:
+    """A walk asked for the events of a mistyped id and got an empty list, as for a known arm whose filters
+    match nothing. An id with no event at all is said so, with what to check; a known one's empty
+    selection is not."""
+    from conftest import http_get
+
+    agent = unbrokered_agent(tmp_path, 1, **{"telemetry.devices": ["arm-001"]})
+    try:
+        rng = random.Random(5)
+        agent.feed("dt/lerobot/arm-001/telemetry", encode(make_payload("arm-001", 0.0, "ticks", rng)))
+        wait_for(lambda: agent.events(EventQuery(device="arm-001")), 30, "arm-001's arrival event")
+        url = f"{agent.http_url}/api/events"
+        doc = json.loads(http_get(f"{url}?device=ARM-001")[2])
+        assert doc["events"] == [] and "no event of 'ARM-001' at all" in doc["detail"], doc
+        assert "Fleet page" in doc["detail"] and "device_part=" in doc["detail"], doc
+        # Known, but its selection empty (no broker event of it): no such word.
+        assert "detail" not in json.loads(http_get(f"{url}?device=arm-001&kind=broker")[2])
+        assert "detail" not in json.loads(http_get(f"{url}?device=arm-001")[2])
+    finally:
+        agent.stop()
+
+
 def test_a_servo_error_bit_is_an_alarm_and_an_event_naming_the_servo(tmp_path: Path) -> None:
     """A walk: the servo's status bits (the overload bit on wrist_flex) were shown and raised nothing."""
     from conftest import http_get

@@ -769,7 +769,20 @@ class AgentHttpServer:
         events, more = answer
         last = max(newest, events[-1].id if events else _int_param(request, "after", 0))
         head = b'{"last_id":' + str(last).encode() + b',"more":' + (b"true" if more else b"false")
+        device = request.query_params.get("device", "").strip()
+        if not events and device and await self._call(lambda: not self._any_event_of(device)):
+            note = (
+                f"the agent holds no event of {device!r} at all: check the id against the Fleet page (a "
+                "whole one, case-sensitive; device_part= finds part of one)"
+            )
+            head += b',"detail":' + json.dumps(note).encode()
         return _json(200, head + b',"events":' + encode_events(events) + b"}")
+
+    def _any_event_of(self, device: str) -> bool:
+        """Whether the source holds any event of `device` (a selection of its that is empty may just be
+        narrow; one with none at all names an id the agent does not know: a slip of the id)."""
+        source = self._source
+        return isinstance(source, EventSource) and bool(source.events(EventQuery(device=device, limit=1)))
 
     async def _export_events_csv(self, request: Request) -> Response:
         answer = await self._query_events(request, limit=100_000)

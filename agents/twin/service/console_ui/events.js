@@ -70,8 +70,9 @@
   }
 
   // A loaded selection with no event says so in the table, and what the device box wants (an exact id).
-  const none = el("tr", { id: "events-none" }, el("td", { colspan: 5, class: "empty",
-    text: "no event matches these filters (the device box finds part of an arm's id, or with whole id ticked one arm's whole id, e.g. arm-001)" }));
+  const NONE = "no event matches these filters (the device box finds part of an arm's id, or with whole id " +
+    "ticked one arm's whole id, e.g. arm-001)";
+  const none = el("tr", { id: "events-none" }, el("td", { colspan: 5, class: "empty", text: NONE }));
 
   function render(loaded = true) {
     body.replaceChildren(...(events.length || !loaded ? events.map(row) : [none]));
@@ -114,6 +115,11 @@
       if (mine !== loads) return;
       failures = 0;
       events = doc.events;
+      // A whole id the agent holds no event of at all (the agent's `detail` says so): a slip of the id, more
+      // likely than filters too narrow.
+      none.firstChild.textContent = doc.detail ? `no event matches: the agent holds no event of ` +
+        `"${device.value.trim()}" at all. Check the id against the Fleet page: with whole id ticked the ` +
+        "box wants one arm's whole id, in its case, e.g. arm-001" : NONE;
       // The agent says whether the selection holds more than it answered: a selection of exactly LOAD_MAX
       // is all of it.
       loadedAll = !doc.more;
