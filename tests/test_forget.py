@@ -34,13 +34,7 @@ from twin.service.config import ConfigError, load_config
 from twin.service.console import FleetRow
 from twin.service.events import EventKind, EventQuery
 from twin.service.mirror import Mirror, PipeInbox
-from twin.service.shards import (
-    ArmNotForgettableError,
-    ArmNotFoundError,
-    CalibrationsRequest,
-    WorkerPlan,
-    WorkerShard,
-)
+from twin.service.shards import ArmNotForgettableError, ArmNotFoundError, WorkerPlan, WorkerShard
 from twin.service.state import DeviceState
 from twin.transport.mailbox import InboundQueue
 from twin.transport.pipe import Batch
@@ -174,41 +168,6 @@ def test_a_mirror_forgets_an_offline_arm_and_a_later_message_makes_a_new_arm() -
     assert not [a for a in mirror.alarms() if a.device == "arm-002"]
     statuses = mirror.events(EventQuery(kinds=frozenset({EventKind.STATUS.value}), device="arm-002"))
     assert statuses[-1].message == "arm-002 is ONLINE (first message)"
-
-
-def test_a_mirror_forgets_the_alarms_of_a_retired_arm_held_by_its_refused_calibration() -> None:
-    """An arm held by its calibration file (refused at the start) is never admitted, but its servo alarms are
-    raised from its refused messages: once it was retired they stayed for good, since a forget answered
-    arm_not_found. Refused while it publishes, as for an arm ONLINE; once silent, its alarms go."""
-    clock, rng = _Clock(), random.Random(3)
-    config = load_config(
-        None,
-        {"telemetry.devices": ["*"], "telemetry.units": "ticks", "health.offline_after_s": OFFLINE_AFTER_S},
-    )
-    mirror = Mirror(config, inbox=PipeInbox(Pipe(duplex=False)[0]), budget=DeviceBudget(3), clock=clock)
-    mirror.set_calibrations(CalibrationsRequest(problems=(("arm-002", "entry 'x' must be an object"),)))
-    t = 0.0
-    while not any(a.device == "arm-002" for a in mirror.alarms()):
-        assert t < 20.0, "held arm-002's hot wrist raised no alarm"
-        t += 0.1
-        _round(mirror, clock, ["arm-001", "arm-002"], rng, t)
-    assert [r.device for r in mirror.fleet_rows()] == ["arm-001"]  # held: no card
-    with pytest.raises(ArmNotForgettableError) as refused:
-        mirror.forget_arm("arm-002")
-    assert refused.value.code == "arm_not_offline" and "held by its refused calibration" in str(refused.value)
-    for _ in range(round(OFFLINE_AFTER_S * 10) + 1):
-        t += 0.1
-        _round(mirror, clock, ["arm-001"], rng, t)
-
-    forgotten = mirror.forget_arm("arm-002")
-
-    assert sum(forgotten.alarms_removed.values()) >= 1, forgotten
-    assert not [a for a in mirror.alarms(include_normal=True) if a.device == "arm-002"]
-    assert all(r.device != "arm-002" for r in mirror.checkpoint().alarms)
-    event = mirror.events(EventQuery(kinds=frozenset({EventKind.TWIN.value}), device="arm-002"))[-1]
-    assert event.data["action"] == "forgotten"
-    with pytest.raises(ArmNotFoundError):
-        mirror.forget_arm("arm-404")
 
 
 class _CountingLock:

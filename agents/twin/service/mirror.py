@@ -49,7 +49,6 @@ from __future__ import annotations
 import dataclasses
 import gc
 import logging
-import math
 import os
 import threading
 import time
@@ -1964,8 +1963,6 @@ class Mirror:
         # A checkpoint being taken would carry the arm's row and alarms: finish it first, so the one the agent
         # takes next (it is woken for it) no longer holds them.
         self._finish_capture()
-        if device in self._calibration_problems and self._fleet.get(device) is None:
-            return self._forget_held(device, reason)
         with self._lock:
             health = self._fleet.get(device)
             if health is None:
@@ -1996,27 +1993,6 @@ class Mirror:
         self._watch.forgotten(device, str(status), removed, reason)
         log.info("device forgotten", extra={"device": device, "alarms_removed": removed})
         return ArmForgotten(device=device, status=str(status), alarms_removed=removed)
-
-    def _forget_held(self, device: str, reason: str) -> ArmForgotten:
-        """`_forget_arm` of an arm held by its refused calibration: never admitted, it has no twin or health,
-        but alarms raised from its refused messages (`_watch_held`), which nothing else would ever remove
-        once it is retired. Refused while it publishes (silent for less than health.offline_after_s)."""
-        offline_s = self.config.health.offline_after_s
-        with self._lock:
-            seen = self._fleet.unheard.get(device)
-            silent_s = self._clock() - self._swept_behind_s - seen.last_mono if seen is not None else math.inf
-            if silent_s < offline_s:
-                raise ArmNotForgettableError(
-                    ARM_NOT_OFFLINE,
-                    f"{device}, held by its refused calibration, was heard {max(silent_s, 0.0):.0f} s ago: "
-                    f"only an arm silent for health.offline_after_s = {offline_s:g} s can be forgotten",
-                )
-            removed = {str(state): n for state, n in sorted(self._alarms.forget(device).items())}
-            self._held_stamps.pop(device, None)
-            self._fleet.unheard.pop(device, None)
-        self._watch.forgotten(device, "OFFLINE", removed, reason)
-        log.info("held device forgotten", extra={"device": device, "alarms_removed": removed})
-        return ArmForgotten(device=device, status="OFFLINE", alarms_removed=removed)
 
     def _device_state(self, device: str, health: HealthSnapshot, readout: _Readout) -> DeviceState:
         snap = readout.snapshots.get(device)

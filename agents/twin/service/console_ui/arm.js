@@ -45,7 +45,6 @@
   const forgetButton = el("button", { type: "button", id: "forget", hidden: true, text: "Forget this arm" });
   const forgetResult = el("p", { id: "forget-result", role: "status", hidden: true });
   let forgotten = false;
-  let heldArm = false;  // held by its refused calibration: no twin, only its alarms to forget
   let shownAlarms = [];
   // Every alarm of the arm waiting for a person, in one go: one by one, ten hot arms took twenty clicks. Always
   // there (disabled with none waiting), beside the table's title: appearing, it would move the rows.
@@ -250,10 +249,6 @@
       ? ` and ${Object.entries(byState).map(([state, n]) => `${n} ${state}`).join(", ")} alarm(s) (also from ` +
         "the state file)"
       : " (it has no alarm)";
-    if (heldArm) {
-      return `Forget ${device}? It is held by its refused calibration, so the agent has no twin of it: it ` +
-        `removes${alarmsText.replace(/^ and/, "")}.`;
-    }
     return `Forget ${device}? The agent removes its twin, its health and message counters and its loss ` +
       `estimate${alarmsText}; it leaves the Fleet page. If it publishes again it comes back as a new arm.`;
   }
@@ -262,8 +257,7 @@
     if (result.ok) {
       const removed = Object.entries((result.payload && result.payload.alarms_removed) || {});
       const alarmsText = removed.length ? removed.map(([state, n]) => `${n} ${state}`).join(", ") : "none";
-      const what = heldArm ? "" : "its twin, health and counters are removed; ";
-      return `${device} is forgotten: ${what}alarms removed: ${alarmsText}. `;
+      return `${device} is forgotten: its twin, health and counters are removed; alarms removed: ${alarmsText}. `;
     }
     if (notSaved(result)) return `${device} is forgotten, but not kept: ${Twin.refusal(result)}`;
     return `${device} was not forgotten: ${Twin.refusal(result)}`;
@@ -415,10 +409,7 @@
       `move; its servos' alarms are still checked, and listed below. Push a valid one: ` +
       `${doc.calibration_push.command}. This page fills in by itself once it is read.` }));
     // Not clearArm: its rows must stay the same elements from one frame to the next, under the pointer.
-    // Retired while held, its alarms would stay for good: Forget removes them once it is silent (the agent
-    // refuses, in words the page shows, while it publishes).
-    heldArm = true;
-    forgetButton.hidden = !(doc.alarms || []).length;
+    forgetButton.hidden = true;
     lossBox.replaceChildren();
     rejectsBody.replaceChildren();
     renderAlarms(doc.alarms || []);
