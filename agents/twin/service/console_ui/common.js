@@ -174,11 +174,15 @@ const Twin = (() => {
   // A run cut short by a reload (or by leaving the page) ended without a word, its later chunks never sent.
   // It is kept in the tab's sessionStorage while it runs, so the page, opened again, says how many had no
   // answer (interruptedAck) and the operator can press again.
-  const ACK_RUN = "twin.ack.run";
+  // One record a page (its path): an arm's Acknowledge all, run after a Fleet run was cut short by following
+  // a link, wrote over the Fleet page's record and removed it on its end (a review).
+  const ACK_RUN = `twin.ack.run:${location.pathname}`;
   // A reload aborts the request in flight, and the run then ends as if that request were answered: the record
   // stays as it was before, or the page opened again has nothing (or too little) to say.
   let leaving = false;
   window.addEventListener("pagehide", () => { leaving = true; });
+  // A link followed (not a reload) may abort the request before pagehide: beforeunload comes first.
+  window.addEventListener("beforeunload", () => { leaving = true; });
   window.addEventListener("pageshow", () => { leaving = false; });  // back from the browser's page cache
 
   function keepRun(total, answered) {
