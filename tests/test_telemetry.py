@@ -267,17 +267,69 @@ def test_auto_zero_degrees_is_undecided_never_ticks() -> None:
     assert d.units_for("arm-001") is Units.AUTO
 
 
-@pytest.mark.parametrize("position", [5000, 10**400, 361.0, 2048.0])
-def test_auto_rejects_a_position_no_units_allow_as_out_of_range(position: int | float) -> None:
-    """Past every setting's range (ticks' 4095, a JSON float past 360): no later message can make it fit, so
-    waiting for evidence, the units_undecided answer, would be wrong advice; it is counted as out_of_range."""
+# Positions no units allow for their joint, with the ranges and the hint the rejection names. Ticks are JSON
+# integers 0..4095 on every joint; a JSON float fits degrees up to 360 on an arm joint, but the gripper is a
+# 0..100 percent in both normalised settings. A whole float that could be a tick count keeps the ticks hint.
+NO_UNITS = [
+    ("gripper", 5000, "0..100 percent", "no units produce this value: check the edge's position source"),
+    ("gripper", 10**400, "0..100 percent", "no units produce this value"),
+    ("gripper", 150.0, "0..100 percent", "if it is a tick count, ticks arrive as JSON integers"),
+    ("gripper", 1500.0, "0..100 percent", "if it is a tick count, ticks arrive as JSON integers"),
+    ("gripper", 4096.0, "0..100 percent", "no units produce this value"),
+    ("shoulder_pan", 4096, "degrees: -360..360", "no units produce this value"),
+    ("elbow_flex", 361.0, "degrees: -360..360", "if it is a tick count, ticks arrive as JSON integers"),
+]
+NO_UNITS_IDS = [f"{joint}={position!r:.12}" for joint, position, *_ in NO_UNITS]
+
+
+def with_joint(joint: str, position: int | float) -> tuple[int | float, ...]:
+    """TICKS_EXAMPLE with one joint's position replaced."""
+    return tuple(position if name == joint else p for name, p in zip(NAMES, TICKS_EXAMPLE, strict=True))
+
+
+@pytest.mark.parametrize(("joint", "position", "ranges", "hint"), NO_UNITS, ids=NO_UNITS_IDS)
+def test_auto_rejects_a_position_no_units_allow_as_out_of_range(
+    joint: str, position: int | float, ranges: str, hint: str
+) -> None:
+    """Past every setting's range for its joint: no later message can make it fit, so waiting for evidence,
+    the units_undecided answer, would be wrong advice; it is counted as out_of_range."""
     d = decoder()
     with pytest.raises(TelemetryRejected) as info:
-        d.decode(payload((*TICKS_EXAMPLE[:5], position)))
+        d.decode(payload(with_joint(joint, position)))
     assert info.value.reason is RejectReason.OUT_OF_RANGE
-    assert "of gripper fits no units" in str(info.value)
-    assert "check the edge's position source" in str(info.value)
+    assert f"of {joint} fits no units (ticks: JSON integers 0..4095, " in str(info.value)
+    assert ranges in str(info.value)
+    assert hint in str(info.value)
     assert d.units_for("arm-001") is Units.AUTO
+
+
+@pytest.mark.parametrize(("joint", "position", "ranges", "hint"), NO_UNITS, ids=NO_UNITS_IDS)
+def test_a_position_no_units_allow_reads_the_same_on_both_paths(
+    joint: str, position: int | float, ranges: str, hint: str
+) -> None:
+    """The msgspec hot path, the rule-by-rule path forced, and that path as a schema refusal reaches it (a
+    bad velocity, which the rules check only after the units) give one reason and one message."""
+    plain = payload(with_joint(joint, position))
+    spoiled = payload(with_joint(joint, position), velocity="fast")
+    answers = []
+    for run in (
+        lambda d: d.decode(plain),
+        lambda d: d._explain(d._envelope(plain), None),
+        lambda d: d.decode(spoiled),
+    ):
+        with pytest.raises(TelemetryRejected) as info:
+            run(decoder())
+        answers.append((info.value.reason, str(info.value)))
+    assert answers[0][0] is RejectReason.OUT_OF_RANGE
+    assert answers == [answers[0]] * 3
+
+
+@pytest.mark.parametrize(("joint", "position"), [("gripper", 100.0), ("shoulder_pan", 360.0)])
+def test_auto_still_waits_on_a_whole_float_some_units_allow(joint: str, position: float) -> None:
+    """The last whole float each joint's degrees allow: ambiguous, so still units_undecided."""
+    with pytest.raises(TelemetryRejected) as info:
+        decoder().decode(payload(with_joint(joint, position)))
+    assert info.value.reason is RejectReason.UNITS_UNDECIDED
 
 
 def test_auto_decides_degrees_then_zero_payload_is_zero(caplog: pytest.LogCaptureFixture) -> None:

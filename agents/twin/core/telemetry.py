@@ -1076,15 +1076,31 @@ def _position(name: str, entry: _JsonObject) -> int | float:
 
 
 def _check_fits_some_units(positions: list[int | float]) -> None:
-    """Rejects a position no units setting allows: waiting for clearer messages would never help it."""
+    """Rejects a position no units setting allows for its joint: waiting for clearer messages never helps it.
+    Only for messages `_evidence` found ambiguous, so every position here is whole and non-negative."""
     for name, value in zip(_JOINTS, positions, strict=True):
-        if value > so101.TICK_MAX or (type(value) is float and value > DEGREES_LIMIT):
-            raise _rejected(
-                RejectReason.OUT_OF_RANGE,
-                f"position {_fmt(value)} of {name} fits no units (ticks: JSON integers 0..{so101.TICK_MAX}, "
-                f"degrees: -{DEGREES_LIMIT:g}..{DEGREES_LIMIT:g}, range100: -{RANGE100_LIMIT:g}.."
-                f"{RANGE100_LIMIT:g}); no units produce this value: check the edge's position source",
-            )
+        # A whole, non-negative JSON integer fits ticks up to TICK_MAX; a JSON float never fits ticks, and
+        # the gripper is a 0..100 percent in both normalised settings.
+        float_max = PERCENT_MAX if name == so101.GRIPPER else DEGREES_LIMIT
+        if value <= so101.TICK_MAX and (type(value) is int or value <= float_max):
+            continue
+        ranges = (
+            f"degrees and range100: 0..{PERCENT_MAX:g} percent"
+            if name == so101.GRIPPER
+            else f"degrees: -{DEGREES_LIMIT:g}..{DEGREES_LIMIT:g}, range100: -{RANGE100_LIMIT:g}.."
+            f"{RANGE100_LIMIT:g}"
+        )
+        hint = (
+            "if it is a tick count, ticks arrive as JSON integers: check the edge sends raw ticks; if not, "
+            "check the edge's position source"
+            if value <= so101.TICK_MAX
+            else "no units produce this value: check the edge's position source"
+        )
+        raise _rejected(
+            RejectReason.OUT_OF_RANGE,
+            f"position {_fmt(value)} of {name} fits no units (ticks: JSON integers 0..{so101.TICK_MAX}, "
+            f"{ranges}); {hint}",
+        )
 
 
 def _evidence(positions: list[int | float]) -> Units | None:
