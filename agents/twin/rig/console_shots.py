@@ -78,8 +78,10 @@ def wait_for_settled_fleet(page: Page, timeout_s: float) -> bool:
     from playwright.sync_api import TimeoutError as PlaywrightTimeout  # noqa: PLC0415 - optional dependency
 
     try:
+        # A grid card carries its status as a class, a list row only on its status span (fleet.js): the
+        # span's class holds in both views, whichever one the browser's stored choice opens.
         page.wait_for_function(
-            "() => !document.querySelector('[data-device].STALE')", timeout=timeout_s * 1000
+            "() => !document.querySelector('[data-device] .status.STALE')", timeout=timeout_s * 1000
         )
     except PlaywrightTimeout:
         return False
