@@ -1,10 +1,11 @@
 """Refuse a deploy whose settings would replace the twin host, unless the deployer confirms it.
 
-CloudFormation replaces an instance whose availability zone, root volume size or image changes: a new root
-disk, the first boot again (about 15 minutes), everything kept on the old disk gone. The stack publishes the
-values it was deployed with as the output `InstanceFingerprint`, and synth compares them with the new ones
-(stacks/deployed.py reads the outputs). The refusal is an error annotation, so `cdk deploy` stops on it while
-`cdk destroy` (which removes the host anyway) does not.
+CloudFormation replaces an instance whose availability zone, root volume size or image changes, and the stack
+builds a new one when its hostGeneration does: a new root disk, the first boot again (about 15 minutes),
+everything kept on the old disk gone. The stack publishes the values it was deployed with as the output
+`InstanceFingerprint`, and synth compares them with the new ones (stacks/deployed.py reads the outputs). The
+refusal is an error annotation, so `cdk deploy` stops on it while `cdk destroy` (which removes the host
+anyway) does not.
 """
 
 from __future__ import annotations
@@ -13,10 +14,14 @@ import json
 from collections.abc import Mapping
 
 from stacks.deployed import DeployedUnknownError
+from stacks.settings import TwinSettings
 
 FINGERPRINT_OUTPUT = "InstanceFingerprint"
 CONFIRM_FLAG = "replaceInstance"
 _SHOWN = {"availabilityZone": "availabilityZone", "volumeGb": "volumeGb", "image": "amiId/amiSsmParameter"}
+# A fingerprint leaves out a key at this value (so stacks deployed before the key existed compare equal): its
+# absence on either side means the value, not "not set".
+_LEFT_OUT = {"hostGeneration": str(TwinSettings.host_generation)}
 
 
 def deployed_fingerprint(outputs: Mapping[str, str]) -> dict[str, str] | None:
@@ -36,7 +41,7 @@ def replacing_changes(deployed: Mapping[str, str], wanted: Mapping[str, str]) ->
     """Human-readable `key: deployed -> wanted` for every fingerprint entry that differs."""
     changes = []
     for key in sorted(set(deployed) | set(wanted)):
-        before, after = deployed.get(key, ""), wanted.get(key, "")
+        before, after = (side.get(key, _LEFT_OUT.get(key, "")) for side in (deployed, wanted))
         if before != after:
             changes.append(f"{_SHOWN.get(key, key)}: {before or '(not set)'} -> {after or '(not set)'}")
     return changes

@@ -66,6 +66,7 @@ _CRON_FIELD_RE = re.compile(r"^[0-9A-Za-z*?,/#L W-]+$")
 DCV_IDLE_TIMEOUT_MAX = 7 * 24 * 60
 VOLUME_GB_MIN = 50
 VOLUME_GB_MAX = 16384
+HOST_GENERATION_MAX = 9999
 # One arm must fit one connection's planned budget.
 ARM_RATE_HZ_MAX = IOT_PUBLISHES_PER_CONNECTION * SAFETY_MARGIN
 # The host role allows each listed device's topic filter and topic by name, and IAM bounds a role's policies
@@ -138,17 +139,25 @@ class TwinSettings:
     # bucket survives `cdk destroy`.
     history_ia_after_days: int = 30
     retain_history: bool = True
+    # Which host the stack runs: part of the instance's construct id, so a new value is a new instance (the
+    # way back from a terminated one, which no deploy of unchanged settings replaces). At 1, the first
+    # host's id, so upgrading so101-twin replaces no deployed host.
+    host_generation: int = 1
     replace_instance: bool = False
 
     @property
     def instance_fingerprint(self) -> dict[str, str]:
         """The settings whose change replaces the instance (and its root disk): the replacement guard compares
         these with the deployed stack's."""
-        return {
+        fingerprint = {
             "availabilityZone": self.availability_zone or "",
             "volumeGb": str(self.volume_gb),
             "image": self.ami_id or f"resolve:ssm:{self.ami_ssm_parameter}",
         }
+        # Left out at the first host, so a stack deployed before the setting existed compares equal.
+        if self.host_generation != TwinSettings.host_generation:
+            fingerprint["hostGeneration"] = str(self.host_generation)
+        return fingerprint
 
     @property
     def whole_fleet(self) -> bool:
@@ -219,6 +228,7 @@ class TwinSettings:
             alarm_warnings=_bool(get, "alarmWarnings", False),
             history_ia_after_days=_history_ia_after_days(get("historyIaAfterDays")),
             retain_history=_bool(get, "retainHistory", True),
+            host_generation=_host_generation(get("hostGeneration")),
             replace_instance=_bool(get, "replaceInstance", False),
         )
         return settings
@@ -251,6 +261,7 @@ SETTING_FIELDS: dict[str, str] = {
     "amiSsmParameter": "ami_ssm_parameter",
     "amiId": "ami_id",
     "terminationProtection": "termination_protection",
+    "hostGeneration": "host_generation",
     "autoStopCron": "auto_stop_cron",
     "autoStopTimezone": "auto_stop_timezone",
     "ros2": "ros2",
@@ -545,6 +556,18 @@ def _history_ia_after_days(value: object) -> int:
             "days); pass e.g. -c historyIaAfterDays=30"
         )
     return days
+
+
+def _host_generation(value: object) -> int:
+    generation, inside = _whole(
+        "hostGeneration", value, TwinSettings.host_generation, example=2, bounds=(1, HOST_GENERATION_MAX)
+    )
+    if not inside:
+        raise SettingsError(
+            f"hostGeneration={generation} is outside 1..{HOST_GENERATION_MAX} (1 is the stack's first host; "
+            "raise it by one to build a new host in place of the deployed one); pass e.g. -c hostGeneration=2"
+        )
+    return generation
 
 
 def _devices(value: object) -> tuple[str, ...]:

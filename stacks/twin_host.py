@@ -148,6 +148,7 @@ class TwinHost(Construct):
         ami_id: str | None,
         termination_protection: bool,
         agent_settings: Mapping[str, str],
+        host_generation: int = 1,
         boot_timeout_minutes: int = BOOT_TIMEOUT_MINUTES,
         agent_source: Path = REPO_ROOT,
     ) -> None:
@@ -157,7 +158,7 @@ class TwinHost(Construct):
         self.password_secret = self._password_secret(role)
         agent_asset, scripts_asset = self._assets(stack, role, agent_source)
         self._deployment(stack, role, agent_asset, scripts_asset, agent_settings)
-        self._boot_signals(stack, role, boot_timeout_minutes)
+        self._boot_signals(stack, role, boot_timeout_minutes, host_generation)
 
         # Filled in below, once the instance's logical id (which the UserData signals) exists.
         user_data = ec2.UserData.for_linux(shebang="#!/bin/bash")
@@ -169,6 +170,7 @@ class TwinHost(Construct):
             volume_gb=volume_gb,
             machine_image=_machine_image(ami_id, ami_ssm_parameter),
             user_data=user_data,
+            host_generation=host_generation,
         )
         self._launch_settings(termination_protection, boot_timeout_minutes)
         self._first_boot(stack, role, user_data)
@@ -274,7 +276,9 @@ class TwinHost(Construct):
         )
         self.deployment_parameter.grant_read(role)
 
-    def _boot_signals(self, stack: Stack, role: iam.IRole, boot_timeout_minutes: int) -> None:
+    def _boot_signals(
+        self, stack: Stack, role: iam.IRole, boot_timeout_minutes: int, host_generation: int
+    ) -> None:
         """What the first boot reports to (`boot_handle`, `boot_wait`), and the role's right to signal."""
         # The first boot's two reports: SignalResource answers the instance's CreationPolicy, on the
         # stack's own ARN only; the wait condition's handle (a pre-signed URL) takes a reason, which
@@ -284,10 +288,12 @@ class TwinHost(Construct):
                 sid="SignalFirstBoot", actions=["cloudformation:SignalResource"], resources=[stack.stack_id]
             )
         )
-        self.boot_handle = CfnWaitConditionHandle(self, "BootHandle")
+        # A new host's boot gets a wait condition of its own: the first host's completed long ago, and a
+        # failure posted to it would never reach `cdk deploy`.
+        self.boot_handle = CfnWaitConditionHandle(self, _of_generation("BootHandle", host_generation))
         self.boot_wait = CfnWaitCondition(
             self,
-            "BootWait",
+            _of_generation("BootWait", host_generation),
             handle=self.boot_handle.ref,
             count=1,
             # Created before the instance launches, so it gets the instance's budget plus launch time.
@@ -304,11 +310,14 @@ class TwinHost(Construct):
         volume_gb: int,
         machine_image: ec2.IMachineImage,
         user_data: ec2.UserData,
+        host_generation: int,
     ) -> ec2.Instance:
         """The GPU instance in the public subnet, with its encrypted gp3 root disk."""
         return ec2.Instance(
             self,
-            "Instance",
+            # A new id is a new logical id, which CloudFormation creates even where the old instance is gone
+            # (terminated outside the stack), and a new Name tag; the old resource is deleted after.
+            _of_generation("Instance", host_generation),
             vpc=vpc,
             vpc_subnets=ec2.SubnetSelection(subnet_type=ec2.SubnetType.PUBLIC),
             instance_type=ec2.InstanceType(instance_type),
@@ -447,6 +456,11 @@ class TwinHost(Construct):
             instance_id=self.instance.instance_id,
         )
         return eip
+
+
+def _of_generation(construct_id: str, host_generation: int) -> str:
+    """The construct id of what belongs to one host: the first host's is the id it always had."""
+    return construct_id if host_generation == 1 else f"{construct_id}Gen{host_generation}"
 
 
 def _machine_image(ami_id: str | None, ami_ssm_parameter: str) -> ec2.IMachineImage:

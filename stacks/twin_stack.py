@@ -100,6 +100,7 @@ class TwinStack(Stack):
             ami_ssm_parameter=settings.ami_ssm_parameter,
             ami_id=settings.ami_id,
             termination_protection=settings.termination_protection,
+            host_generation=settings.host_generation,
             agent_settings={
                 "TOPIC_PREFIX": settings.topic_prefix,
                 "DEVICES": ",".join(settings.devices),

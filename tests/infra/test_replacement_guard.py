@@ -80,6 +80,13 @@ def test_changes_are_named_with_both_values() -> None:
     assert replacing_changes(DEPLOYED, dict(DEPLOYED)) == []
 
 
+def test_a_host_generation_left_out_is_the_first_host() -> None:
+    """Fingerprints leave hostGeneration out at 1, the value of stacks deployed before the setting."""
+    assert replacing_changes(DEPLOYED, {**DEPLOYED, "hostGeneration": "2"}) == ["hostGeneration: 1 -> 2"]
+    assert replacing_changes({**DEPLOYED, "hostGeneration": "3"}, DEPLOYED) == ["hostGeneration: 3 -> 1"]
+    assert replacing_changes({**DEPLOYED, "hostGeneration": "2"}, {**DEPLOYED, "hostGeneration": "2"}) == []
+
+
 def refusal(cfn, wanted: dict[str, str], *, confirmed: bool = False) -> str | None:
     return replacement_refusal(
         stack_name="So101TwinStack", deployed_outputs=outputs(cfn), wanted=wanted, confirmed=confirmed
@@ -116,6 +123,24 @@ def test_the_app_stops_the_deploy_with_an_error_annotation(tmp_path: Path) -> No
     )
     (error,) = annotations(stack, "error")
     assert "availabilityZone: us-east-1b -> us-east-1c" in error
+
+
+def test_a_new_host_generation_asks_for_the_confirmation_once(tmp_path: Path) -> None:
+    """The way back from a terminated host: a stack deployed before hostGeneration existed (its fingerprint
+    has no such key) and hostGeneration = 2 in the settings file is refused until -c replaceInstance=true."""
+    deployed = {"InstanceFingerprint": json.dumps({**DEPLOYED, "image": "ami-0123456789abcdef0"})}
+    settings = tmp_path / "twin.settings.toml"
+    settings.write_text(
+        f'clientCidr = "{CLIENT_CIDR}"\navailabilityZone = "us-east-1b"\namiId = "ami-0123456789abcdef0"\n'
+        "hostGeneration = 2\n"
+    )
+    refused = app_stack(tmp_path / "refused", reader=lambda _n, _r: deployed, settings_file=settings)
+    (error,) = annotations(refused, "error")
+    assert "hostGeneration: 1 -> 2" in error and "-c replaceInstance=true" in error
+    confirmed = app_stack(
+        tmp_path / "confirmed", reader=lambda _n, _r: deployed, settings_file=settings, replaceInstance="true"
+    )
+    assert annotations(confirmed, "error") == []
 
 
 def test_without_credentials_nothing_is_compared(tmp_path: Path) -> None:

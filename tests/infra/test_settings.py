@@ -143,6 +143,22 @@ def test_instance_fingerprint_names_what_replaces_the_instance() -> None:
     }
 
 
+def test_host_generation_is_in_the_fingerprint_once_raised() -> None:
+    """The first host's fingerprint is the one stacks deployed before the setting publish (no key), so an
+    upgrade of so101-twin compares equal; a raised generation is a replacing change."""
+    assert settings().host_generation == 1
+    assert "hostGeneration" not in settings(hostGeneration="1").instance_fingerprint
+    # -c gives a string, the settings file a TOML integer.
+    assert settings(hostGeneration="2").instance_fingerprint["hostGeneration"] == "2"
+    assert settings(hostGeneration=3).instance_fingerprint["hostGeneration"] == "3"
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "10000", "two", "1.5"])
+def test_bad_host_generation_is_refused(value: str) -> None:
+    message = refused(hostGeneration=value)
+    assert message.startswith("hostGeneration=") and value in message and "-c hostGeneration=2" in message
+
+
 @pytest.mark.parametrize("zone", ["us-east-1b", "eu-central-1a", "us-west-2-lax-1a", "us-gov-west-1a"])
 def test_availability_zone_names_are_accepted(zone: str) -> None:
     assert settings(availabilityZone=zone).availability_zone == zone
