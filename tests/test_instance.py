@@ -229,8 +229,56 @@ def test_a_terminated_host_is_not_waited_for(stack, capsys, monkeypatch):
     assert main(["instance", "start", "--timeout", "5"]) == cmd.EXIT_AWS
     err = capsys.readouterr().err
     assert f"instance {instance_id} cannot be started: it is terminated, and EC2 never starts" in err, err
-    assert "a deploy that replaces the instance makes a new host on the same bucket" in err.lower(), err
+    # The stack's first host (its Settings output has no hostGeneration): the exact line and command.
+    assert "write hostGeneration = 2 into twin.settings.toml" in err, err
+    assert "and run `cdk deploy -c replaceInstance=true`" in err, err
+    # What comes back and what does not.
+    assert "It keeps the DCV address and password" in err, err
+    assert "the history, the calibrations, the servo alarms and your agent.local.toml" in err, err
+    assert "USD recordings, the console's Events list) is gone" in err, err
     assert "wait until" not in err, err
+
+
+def deployed_with(settings: dict | None, stack_name: str) -> str:
+    """A twin stack in moto whose Settings output holds `settings` as the given values (None: a stack older
+    than the output, without it); its instance id."""
+    template = json.loads(json.dumps(TEMPLATE))
+    if settings is None:
+        del template["Outputs"]["Settings"]
+    else:
+        document = {"version": 1, "values": settings, "given": {key: "file" for key in settings}}
+        template["Outputs"]["Settings"]["Value"] = json.dumps(document)
+    cfn = boto3.client("cloudformation", region_name=REGION)
+    cfn.create_stack(StackName=stack_name, TemplateBody=json.dumps(template))
+    outputs = cfn.describe_stacks(StackName=stack_name)["Stacks"][0]["Outputs"]
+    return next(o["OutputValue"] for o in outputs if o["OutputKey"] == "InstanceId")
+
+
+def terminated_refusal(monkeypatch: pytest.MonkeyPatch, capsys, settings: dict | None, action: str) -> str:
+    """What `twin instance <action>` (start, stop) prints for a terminated host of a stack deployed with
+    `settings`."""
+    operation, done = {"start": ("StartInstances", "started"), "stop": ("StopInstances", "stopped")}[action]
+    with mock_aws():
+        instance_id = deployed_with(settings, "LaterTwin")
+        boto3.client("ec2", region_name=REGION).terminate_instances(InstanceIds=[instance_id])
+        refuse_state(monkeypatch, operation, instance_id)
+        capsys.readouterr()
+        assert main(["instance", action, "--stack", "LaterTwin", "--timeout", "5"]) == cmd.EXIT_AWS
+    err = capsys.readouterr().err
+    assert f"instance {instance_id} cannot be {done}: it is terminated" in err, err
+    return err
+
+
+def test_a_terminated_later_host_is_told_the_next_generation(aws_env, capsys, monkeypatch):
+    deployed = {"clientCidr": "203.0.113.7/32", "hostGeneration": 3}
+    err = terminated_refusal(monkeypatch, capsys, deployed, "stop")
+    assert "write hostGeneration = 4 into twin.settings.toml" in err, err
+
+
+def test_a_terminated_host_of_an_older_stack_is_told_to_raise_the_generation(aws_env, capsys, monkeypatch):
+    err = terminated_refusal(monkeypatch, capsys, None, "start")
+    assert "raise hostGeneration by one in twin.settings.toml (to 2 if it is not there" in err, err
+    assert "`cdk deploy -c replaceInstance=true`" in err, err
 
 
 def test_no_wait_returns_the_transitional_state(stack, capsys):

@@ -556,14 +556,37 @@ class TwinInstance:
             # Waiting would never end: EC2 starts and stops no terminated instance.
             return AwsCallError(
                 f"instance {instance_id} cannot be {done}: it is {state}, and EC2 never starts or stops "
-                "a terminated instance. A deploy that replaces the instance makes a new host on the same "
-                "bucket (history, calibrations, alarms and agent.local.toml come back: docs/deploy.md, "
-                '"Changes that replace the instance"); `cdk destroy` and `cdk deploy` make a new, empty one'
+                f"a terminated instance. {self.new_host_advice()}"
             )
         return AwsCallError(
             f"instance {instance_id} cannot be {done} now ({state}): wait until it "
             f"is {ready} (`twin instance status`), then {action} it again"
         )
+
+    def new_host_advice(self) -> str:
+        """How to build a host in place of a terminated one, with the deployed stack's next hostGeneration:
+        a deploy of unchanged settings does nothing, since CloudFormation does not see that it is gone."""
+        generation = self._next_generation()
+        write = (
+            f"write hostGeneration = {generation} into {SETTINGS_FILE}"
+            if generation is not None
+            else f"raise hostGeneration by one in {SETTINGS_FILE} (to 2 if it is not there; `twin instance "
+            "settings` prints the deployed value)"
+        )
+        return (
+            f"Build a new host in its place: {write} and run `cdk deploy -c replaceInstance=true` (about 15 "
+            "minutes). It keeps the DCV address and password, and takes from the stack's bucket the history, "
+            "the calibrations, the servo alarms and your agent.local.toml; what was only on the old disk "
+            '(USD recordings, the console\'s Events list) is gone: docs/deploy.md, "A terminated host"'
+        )
+
+    def _next_generation(self) -> int | None:
+        """The deployed hostGeneration plus one; None when the stack's Settings output cannot say."""
+        try:
+            value = self.settings().values.get("hostGeneration", 1)
+        except TwinInstanceError:
+            return None
+        return value + 1 if isinstance(value, int) and not isinstance(value, bool) else None
 
     def _capacity_error(self, exc: Exception) -> InsufficientCapacityError:
         try:
