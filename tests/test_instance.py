@@ -281,6 +281,27 @@ def test_a_terminated_host_of_an_older_stack_is_told_to_raise_the_generation(aws
     assert "`cdk deploy -c replaceInstance=true`" in err, err
 
 
+@pytest.mark.parametrize("command", [["start", "--timeout", "5"], ["stop", "--timeout", "5"], ["status"]])
+def test_a_host_ec2_has_forgotten_gets_the_same_way_back(stack, capsys, monkeypatch, command):
+    """EC2 lists a terminated instance for about an hour; an account's cleanup is noticed later, when every
+    call about the instance answers InvalidInstanceID.NotFound (which moto never does for a known id)."""
+    instance_id = stack["InstanceId"]
+    original = botocore.client.BaseClient._make_api_call
+
+    def forgotten(self, operation_name, api_params):
+        if operation_name in ("DescribeInstances", "StartInstances", "StopInstances"):
+            message = f"The instance ID '{instance_id}' does not exist"
+            raise client_error("InvalidInstanceID.NotFound", message, operation_name)
+        return original(self, operation_name, api_params)
+
+    monkeypatch.setattr(botocore.client.BaseClient, "_make_api_call", forgotten)
+    assert main(["instance", *command]) == cmd.EXIT_AWS
+    err = capsys.readouterr().err
+    assert f"instance {instance_id} of stack So101TwinStack no longer exists: it was terminated" in err, err
+    assert "write hostGeneration = 2 into twin.settings.toml" in err, err
+    assert "InvalidInstanceID" not in err, err
+
+
 def test_no_wait_returns_the_transitional_state(stack, capsys):
     assert main(["instance", "stop", "--no-wait"]) == 0
     out = capsys.readouterr().out

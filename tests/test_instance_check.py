@@ -409,6 +409,24 @@ def test_a_stopped_instance_skips_the_host(aws_env, dcv_port, monkeypatch, capsy
     assert "instance: start it: twin instance start" in out
 
 
+def test_a_terminated_instance_fails_the_check_with_the_way_to_a_new_host(
+    aws_env, dcv_port, monkeypatch, capsys
+):
+    """It once was a warning, "check again in a minute", and the verdict said the twin works."""
+    with mock_aws():
+        outputs = deploy(f"https://127.0.0.1:{dcv_port}/#console")
+        boto3.client("ec2", region_name=REGION).terminate_instances(InstanceIds=[outputs["InstanceId"]])
+        intercept(monkeypatch, {"DescribeStackEvents": with_events(SIGNAL_SUCCESS)})
+        code, out = run_check(capsys)
+    assert code == cmd.EXIT_CHECK_FAILED
+    rows = table(out)
+    assert rows["instance"] == ("FAIL", f"{outputs['InstanceId']} terminated: EC2 never starts it again")
+    # This stack publishes no Settings output, so the generation to write is not known.
+    assert "instance: Build a new host in its place: raise hostGeneration by one in twin.settings.toml" in out
+    assert "and run `cdk deploy -c replaceInstance=true`" in out
+    assert "the twin works" not in out
+
+
 def test_an_unregistered_ssm_agent_is_one_clear_line(aws_env, dcv_port, monkeypatch, capsys):
     from botocore.exceptions import ClientError
 

@@ -50,6 +50,10 @@ log = logging.getLogger(__name__)
 
 DEFAULT_STACK_NAME = "So101TwinStack"
 STACK_ENV_VAR = "SO101_TWIN_STACK"
+# EC2 starts no instance in these states again: the stack needs a new host (TwinInstance.new_host_advice).
+TERMINATED_STATES = ("shutting-down", "terminated")
+# EC2's answer for an instance it does not know, e.g. one terminated more than about an hour ago.
+INSTANCE_NOT_FOUND = "InvalidInstanceID.NotFound"
 # The deployment's settings file (stacks/settings.py reads it for `cdk deploy`): its stackName is the default.
 SETTINGS_FILE = "twin.settings.toml"
 
@@ -495,13 +499,28 @@ class TwinInstance:
         return self._describe()
 
     def _describe(self) -> dict[str, Any]:
+        from botocore.exceptions import ClientError  # noqa: PLC0415
+
         instance_id = self.outputs().instance_id
         with self._aws(f"describe instance {instance_id}"):
-            reservations = self._client("ec2").describe_instances(InstanceIds=[instance_id])["Reservations"]
-        instances = [i for r in reservations for i in r.get("Instances", [])]
+            try:
+                reservations = self._client("ec2").describe_instances(InstanceIds=[instance_id])
+            except ClientError as exc:
+                if exc.response.get("Error", {}).get("Code") == INSTANCE_NOT_FOUND:
+                    raise self._gone(instance_id) from exc
+                raise
+        instances = [i for r in reservations["Reservations"] for i in r.get("Instances", [])]
         if not instances:
-            raise AwsCallError(f"instance {instance_id} from stack {self.stack_name} no longer exists")
+            raise self._gone(instance_id)
         return instances[0]
+
+    def _gone(self, instance_id: str) -> AwsCallError:
+        """The stack's instance unknown to EC2: terminated more than about an hour ago (EC2 lists a terminated
+        instance for about that long, and an account's cleanup may be noticed days later)."""
+        return AwsCallError(
+            f"instance {instance_id} of stack {self.stack_name} no longer exists: it was terminated, and EC2 "
+            f"forgets a terminated instance about an hour later. {self.new_host_advice()}"
+        )
 
     def state(self) -> str:
         return self._describe()["State"]["Name"]
@@ -538,8 +557,11 @@ class TwinInstance:
             try:
                 response = self._client("ec2").stop_instances(InstanceIds=[instance_id])
             except ClientError as exc:
-                if exc.response.get("Error", {}).get("Code") == "IncorrectInstanceState":
+                code = exc.response.get("Error", {}).get("Code")
+                if code == "IncorrectInstanceState":
                     raise self._not_now("stop", "running") from exc
+                if code == INSTANCE_NOT_FOUND:
+                    raise self._gone(instance_id) from exc
                 raise
         state = response["StoppingInstances"][0]["CurrentState"]["Name"]
         if wait:
@@ -552,7 +574,7 @@ class TwinInstance:
         instance still starting (pending) and to start one still stopping; `ready`: the state to wait for."""
         done = {"start": "started", "stop": "stopped"}[action]
         instance_id, state = self.outputs().instance_id, self.state()
-        if state in ("shutting-down", "terminated"):
+        if state in TERMINATED_STATES:
             # Waiting would never end: EC2 starts and stops no terminated instance.
             return AwsCallError(
                 f"instance {instance_id} cannot be {done}: it is {state}, and EC2 never starts or stops "

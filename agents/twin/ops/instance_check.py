@@ -22,6 +22,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
 
+from twin.ops.instance import TERMINATED_STATES
+
 if TYPE_CHECKING:
     from twin.ops.instance import TwinInstance
 
@@ -172,11 +174,16 @@ def check_boot_signal(events: list[dict]) -> CheckLine:
     )
 
 
-def check_instance(state: str, instance_id: str) -> CheckLine:
+def check_instance(state: str, instance_id: str, new_host_advice: str = "") -> CheckLine:
+    """The instance's state; `new_host_advice`: what to do when it is terminated (no start brings it back)."""
     if state == "running":
         return CheckLine("instance", OK, f"{instance_id} running")
     if state in ("stopped", "stopping"):
         return CheckLine("instance", FAIL, f"{instance_id} {state}", "start it: twin instance start")
+    if state in TERMINATED_STATES:
+        return CheckLine(
+            "instance", FAIL, f"{instance_id} {state}: EC2 never starts it again", new_host_advice
+        )
     return CheckLine("instance", WARN, f"{instance_id} {state}", "check again in a minute")
 
 
@@ -307,7 +314,8 @@ def check_twin(
     outputs = twin.outputs()
     lines.append(check_boot_signal(twin.stack_events()))
     state = twin.describe_instance()["State"]["Name"]
-    lines.append(check_instance(state, outputs.instance_id))
+    advice = twin.new_host_advice() if state in TERMINATED_STATES else ""
+    lines.append(check_instance(state, outputs.instance_id, advice))
     if state != "running":
         lines.append(CheckLine("dcv port", SKIP, f"the instance is {state}"))
         lines.append(CheckLine("host", SKIP, f"the instance is {state}"))
