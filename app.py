@@ -140,8 +140,8 @@ def _compare_with_deployed(
     except DeployedUnknownError as exc:
         return [], (
             f"could not read the deployed {settings.stack_name} in {region} ({exc}); nothing was compared: a "
-            "change of availabilityZone, volumeGb, amiId or amiSsmParameter replaces the instance and its "
-            "disk, and a setting left out of twin.settings.toml goes back to its default"
+            "change of availabilityZone, volumeGb, amiId, amiSsmParameter or hostGeneration replaces the "
+            "instance and its disk, and a setting left out of twin.settings.toml goes back to its default"
         )
     return [r for r in refusals if r], None
 

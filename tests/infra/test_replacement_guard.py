@@ -160,3 +160,4 @@ def test_a_failed_lookup_warns_instead_of_refusing(tmp_path: Path) -> None:
     assert annotations(stack, "error") == []
     warnings = " ".join(annotations(stack, "warning"))
     assert "ExpiredToken" in warnings and "replaces the instance" in warnings
+    assert "amiSsmParameter or hostGeneration replaces" in warnings
