@@ -101,8 +101,9 @@ KEY_DOCS: dict[str, str] = {
     "telemetry.units": (
         "What `position` means: `ticks` (raw servo), `degrees` or `range100` (LeRobot-normalised), or"
         " `auto`. With `auto`, each device's units are decided from evidence over the first messages,"
-        " never guessed per message; until then its messages are rejected as `units_undecided`. Set "
-        "the units when you know them. Flag `--units`."
+        " never guessed per message; until then its messages are rejected, as `units_undecided` unless"
+        " they break another rule (a position no units allow is `out_of_range`). Set the units when you"
+        " know them. Flag `--units`."
     ),
     "telemetry.calibration": (
         "One LeRobot calibration JSON for every arm that has none of its own (docs/agent.md, "
