@@ -421,8 +421,10 @@ def test_a_terminated_instance_fails_the_check_with_the_way_to_a_new_host(
     assert code == cmd.EXIT_CHECK_FAILED
     rows = table(out)
     assert rows["instance"] == ("FAIL", f"{outputs['InstanceId']} terminated: EC2 never starts it again")
-    # This stack publishes no Settings output, so the generation to write is not known.
+    # This stack publishes no Settings output (older than hostGeneration): its first host, so 2; and no
+    # pointer to `twin instance settings`, which fails on such a stack.
     assert "instance: Build a new host in its place: raise hostGeneration by one in twin.settings.toml" in out
+    assert "(write hostGeneration = 2 if it is not there)" in out and "instance settings" not in out, out
     assert "and run `cdk deploy -c replaceInstance=true`" in out
     assert "the twin works" not in out
 

@@ -592,8 +592,10 @@ class TwinInstance:
         write = (
             f"write hostGeneration = {generation} into {SETTINGS_FILE}"
             if generation is not None
-            else f"raise hostGeneration by one in {SETTINGS_FILE} (to 2 if it is not there; `twin instance "
-            "settings` prints the deployed value)"
+            # No readable Settings output: a stack from before hostGeneration (its first host), unless the
+            # output's version is one this agent cannot read. `twin instance settings` would fail alike.
+            else f"raise hostGeneration by one in {SETTINGS_FILE} (write hostGeneration = 2 if it is not "
+            "there)"
         )
         return (
             f"Build a new host in its place: {write} and run `cdk deploy -c replaceInstance=true` (about 15 "
