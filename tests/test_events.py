@@ -724,16 +724,26 @@ def test_a_time_range_whose_end_is_not_after_its_start_is_a_bad_query(tmp_path: 
         agent.stop()
 
 
-def test_a_filter_that_matches_nothing_answers_the_newest_id(tmp_path: Path) -> None:
-    """The Events page starts its stream at `last_id`: a device filter with no match answered the `after` it
-    was given, so the page's stream began again at every other arm's first event."""
-    from conftest import http_get
-
+def arm_001_heard(tmp_path: Path) -> Any:
+    """An agent without a broker that has had one message of arm-001, and its arrival event."""
     agent = unbrokered_agent(tmp_path, 1, **{"telemetry.devices": ["arm-001"]})
     try:
         rng = random.Random(5)
         agent.feed("dt/lerobot/arm-001/telemetry", encode(make_payload("arm-001", 0.0, "ticks", rng)))
         wait_for(lambda: agent.events(EventQuery(device="arm-001")), 30, "arm-001's arrival event")
+    except BaseException:
+        agent.stop()
+        raise
+    return agent
+
+
+def test_a_filter_that_matches_nothing_answers_the_newest_id(tmp_path: Path) -> None:
+    """The Events page starts its stream at `last_id`: a device filter with no match answered the `after` it
+    was given, so the page's stream began again at every other arm's first event."""
+    from conftest import http_get
+
+    agent = arm_001_heard(tmp_path)
+    try:
         url = f"{agent.http_url}/api/events"
         everything = json.loads(http_get(url)[2])
         newest = everything["events"][-1]["id"]
@@ -756,11 +766,8 @@ def test_a_device_the_agent_holds_no_event_of_is_named_in_the_answer(tmp_path: P
     selection is not."""
     from conftest import http_get
 
-    agent = unbrokered_agent(tmp_path, 1, **{"telemetry.devices": ["arm-001"]})
+    agent = arm_001_heard(tmp_path)
     try:
-        rng = random.Random(5)
-        agent.feed("dt/lerobot/arm-001/telemetry", encode(make_payload("arm-001", 0.0, "ticks", rng)))
-        wait_for(lambda: agent.events(EventQuery(device="arm-001")), 30, "arm-001's arrival event")
         url = f"{agent.http_url}/api/events"
         doc = json.loads(http_get(f"{url}?device=ARM-001")[2])
         assert doc["events"] == [] and "no event of 'ARM-001' at all" in doc["detail"], doc
