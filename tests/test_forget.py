@@ -170,6 +170,33 @@ def test_a_mirror_forgets_an_offline_arm_and_a_later_message_makes_a_new_arm() -
     assert statuses[-1].message == "arm-002 is ONLINE (first message)"
 
 
+def test_an_offline_arm_whose_refused_messages_still_arrive_is_not_forgotten() -> None:
+    """An arm whose every message is refused is OFFLINE (its status is of valid messages) yet publishes: a
+    held arm listed after a restart for its kept alarms lost them to a forget, and they came back
+    unacknowledged. Once it is silent for health.offline_after_s it can be forgotten."""
+    clock, rng = _Clock(), random.Random(5)
+    config = load_config(
+        None,
+        {"telemetry.devices": ["*"], "telemetry.units": "ticks", "health.offline_after_s": OFFLINE_AFTER_S},
+    )
+    mirror = Mirror(
+        config, inbox=PipeInbox(Pipe(duplex=False)[0]), budget=DeviceBudget(3), clock=clock, wall_clock=clock
+    )
+    _round(mirror, clock, ["arm-001"], rng, 0.0)
+    topic = telemetry_topic(DEFAULT_TOPIC_PREFIX, "arm-001")
+    for _ in range(round(OFFLINE_AFTER_S * 10) + 5):  # garbage only, until it is OFFLINE, and on
+        clock.now += 0.1
+        mirror._handle(Batch(("arm-001",), (topic,), (b"{not json",), (clock.now,), (1.7e9 + clock.now,)), 0)
+    assert mirror.statuses()["arm-001"] == "OFFLINE"
+    with pytest.raises(ArmNotForgettableError) as refused:
+        mirror.forget_arm("arm-001")
+    said = str(refused.value)
+    assert refused.value.code == "arm_not_offline" and "arm-001 still publishes" in said, said
+    assert "was refused (not_json)" in said and "stop its edge" in said, said
+    clock.now += OFFLINE_AFTER_S
+    assert mirror.forget_arm("arm-001").status == "OFFLINE"
+
+
 class _CountingLock:
     """The mirror's lock, recording how many Fleet rows each hold of it built."""
 
@@ -356,6 +383,43 @@ def test_an_arm_with_alarms_kept_over_a_restart_is_listed_before_it_is_heard_aga
         again.stop()
 
 
+def test_a_held_arm_listed_after_a_restart_for_its_alarms_is_not_forgotten_while_it_publishes(
+    tmp_path: Path,
+) -> None:
+    """A review: an arm held by its refused calibration raises servo alarms from its refused messages; after
+    a restart it is listed for them, OFFLINE (no message of it is valid), and a forget removed the alarms of
+    an arm still publishing: they came back seconds later, unacknowledged."""
+    (tmp_path / "cal").mkdir()
+    (tmp_path / "cal" / "held-1.json").write_text('{"shoulder_pan": {}}')
+    state_file, device = tmp_path / "state.json", "held-1"
+    store = {"telemetry.calibrations": str(tmp_path / "cal")}
+    first = _hot_arm_agent(state_file, workers=1, **store)
+    first.start()
+    try:
+        _heat_until_alarmed(first, device)
+        wait_for(lambda: _saved_alarms(state_file), 30, "the alarm in the state file")
+    finally:
+        first.stop()
+    again = _hot_arm_agent(state_file, workers=1, **store)
+    again.start()
+    try:
+
+        def publishing_and_offline() -> bool:
+            again.feed(f"dt/lerobot/{device}/telemetry", hot(device, int(time.time() * 1000), 68))
+            return _row_status(again, device) == "OFFLINE"
+
+        wait_for(publishing_and_offline, 30, f"{device} OFFLINE while it publishes", interval=0.1)
+        again.feed(f"dt/lerobot/{device}/telemetry", hot(device, int(time.time() * 1000), 68))
+        with pytest.raises(ArmNotForgettableError) as refused:
+            again.forget_arm(device)
+        said = str(refused.value)
+        assert refused.value.code == "arm_not_offline" and "calibration_refused" in said, said
+        assert "push a valid calibration for it" in said, said
+        assert [a for a in again.alarms() if a.device == device]
+    finally:
+        again.stop()
+
+
 def _row_status(agent: AgentService, device: str) -> str | None:
     return next((r.status for r in agent.fleet_rows() if r.device == device), None)
 
@@ -370,7 +434,7 @@ def _saved_alarms(state_file: Path) -> list[dict[str, Any]]:
 # --- durable: neither a worker restart nor an agent restart brings it back ----------------------------------
 
 
-def _hot_arm_agent(state_file: Path, workers: int) -> AgentService:
+def _hot_arm_agent(state_file: Path, workers: int, **overrides: Any) -> AgentService:
     """An agent of the whole fleet (`*`: a listed arm cannot be forgotten), fed through feed(), whose heat
     alarms raise at once and whose arms go OFFLINE after 2 s of silence."""
     settings = hot_arm_settings(
@@ -378,6 +442,7 @@ def _hot_arm_agent(state_file: Path, workers: int) -> AgentService:
             "telemetry.devices": ["*"],
             "health.offline_after_s": 2.0,
             "twin.state_file": str(state_file),
+            **overrides,
         }
     )
     return AgentService(load_config(None, settings), workers=workers)

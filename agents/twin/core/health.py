@@ -304,6 +304,9 @@ class DeviceHealth:
         self._since = since  # when tracking began: a device never heard from is silent since then
         self.last_message_mono: float | None = None
         self.last_applied_mono: float | None = None
+        # The last refused message's arrival: an arm whose every message is refused is OFFLINE (its
+        # status is of valid messages) yet still publishes, so it is not retired (Mirror.forget_arm).
+        self.last_refused_mono: float | None = None
         self.last_timestamp_ms: int | None = None
         self.received = 0
         self.decoded = 0
@@ -328,8 +331,10 @@ class DeviceHealth:
         """A message for this device left the mailbox (before decoding)."""
         self.received += 1
 
-    def record_rejected(self, reason: str) -> None:
+    def record_rejected(self, reason: str, recv_mono: float | None = None) -> None:
         self.rejected[str(reason)] += 1
+        if recv_mono is not None and (self.last_refused_mono is None or recv_mono > self.last_refused_mono):
+            self.last_refused_mono = recv_mono
 
     def record_error(self) -> None:
         self.errors += 1
@@ -565,14 +570,14 @@ class FleetHealth:
         """The ids readers list (`shown`), in table order."""
         return [device for device, health in self.devices.items() if self.shown(device, health)]
 
-    def record_rejected(self, device_id: str | None, reason: str) -> None:
+    def record_rejected(self, device_id: str | None, reason: str, recv_mono: float | None = None) -> None:
         health = self.devices.get(device_id) if device_id is not None else None
         if health is None:
             self.untracked_rejected[str(reason)] += 1
             if device_id is not None:
                 self._unheard(device_id, str(reason))
         else:
-            health.record_rejected(reason)
+            health.record_rejected(reason, recv_mono)
 
     def _unheard(self, device_id: str, reason: str) -> None:
         now = self._clock()

@@ -1370,7 +1370,7 @@ class Mirror:
             if topic_device is not None and health is not None:
                 health.record_received()
                 loss = self._loss_of(topic_device)
-            self._fleet.record_rejected(topic_device, reason)
+            self._fleet.record_rejected(topic_device, reason, batch.recv_mono[i])
         if rejected.reason is not RejectReason.UNITS_UNDECIDED:
             self._rejections.rejected(topic_device, reason, str(rejected))
         topic = batch.topics[i]
@@ -1980,6 +1980,7 @@ class Mirror:
                     f"{device} is {status}: only an OFFLINE arm (silent for health.offline_after_s = "
                     f"{self.config.health.offline_after_s:g} s) can be forgotten",
                 )
+            self._refuse_forgetting_a_publishing_arm(device, health)
             self._fleet.forget(device)
             record = self._devices.pop(device, None)
             self._loss.pop(device, None)
@@ -1993,6 +1994,28 @@ class Mirror:
         self._watch.forgotten(device, str(status), removed, reason)
         log.info("device forgotten", extra={"device": device, "alarms_removed": removed})
         return ArmForgotten(device=device, status=str(status), alarms_removed=removed)
+
+    def _refuse_forgetting_a_publishing_arm(self, device: str, health: DeviceHealth) -> None:
+        """Under the lock: an OFFLINE arm whose refused messages still arrive is not retired. An arm held by
+        its refused calibration, listed after a restart for its kept alarms, lost them to a forget while it
+        published, and they came back unacknowledged seconds later."""
+        last = health.last_refused_mono
+        offline_after = self.config.health.offline_after_s
+        ago = self._clock() - self._swept_behind_s - last if last is not None else None
+        if ago is None or ago >= offline_after:
+            return
+        reasons = ", ".join(sorted(health.rejected))
+        if device in self._calibration_problems:
+            fix = "push a valid calibration for it (its Arm page gives the command)"
+        else:
+            fix = "mend what its edge sends (the Events page says why each message was refused)"
+        raise ArmNotForgettableError(
+            ARM_NOT_OFFLINE,
+            f"{device} still publishes: its last message, {max(ago, 0.0):.1f} s ago, was refused "
+            f"({reasons}). "
+            f"Only an arm silent for health.offline_after_s = {offline_after:g} s can be forgotten: {fix}, "
+            "or stop its edge",
+        )
 
     def _device_state(self, device: str, health: HealthSnapshot, readout: _Readout) -> DeviceState:
         snap = readout.snapshots.get(device)
