@@ -239,6 +239,16 @@ def test_a_terminated_host_is_not_waited_for(stack, capsys, monkeypatch):
     assert "wait until" not in err, err
 
 
+def test_the_status_of_a_terminated_host_gives_the_way_to_a_new_one(stack, capsys, monkeypatch):
+    """It said "terminated" and "agent health unknown", and nothing of what to do."""
+    instance_id = stack["InstanceId"]
+    boto3.client("ec2", region_name=REGION).terminate_instances(InstanceIds=[instance_id])
+    assert main(["instance", "status"]) == 0
+    out = capsys.readouterr().out
+    assert f"instance {instance_id}: terminated" in out, out
+    assert "Build a new host in its place: write hostGeneration = 2 into twin.settings.toml" in out, out
+
+
 def deployed_with(settings: dict | None, stack_name: str) -> str:
     """A twin stack in moto whose Settings output holds `settings` as the given values (None: a stack older
     than the output, without it); its instance id."""

@@ -28,6 +28,7 @@ from typing import Any
 
 import boto3
 import botocore.client
+import botocore.exceptions
 import pytest
 from conftest import AWS_TEST_REGION
 from infra.hostsim import BOOT_ID, HostSim
@@ -409,14 +410,29 @@ def test_a_stopped_instance_skips_the_host(aws_env, dcv_port, monkeypatch, capsy
     assert "instance: start it: twin instance start" in out
 
 
+def forgotten_by_ec2(call, params):
+    """EC2's answer about an instance terminated over an hour ago (moto lists a terminated one for good)."""
+    (instance_id,) = params["InstanceIds"]
+    error = {
+        "Code": "InvalidInstanceID.NotFound",
+        "Message": f"The instance ID '{instance_id}' does not exist",
+    }
+    raise botocore.exceptions.ClientError({"Error": error}, "DescribeInstances")
+
+
+@pytest.mark.parametrize("listed", [True, False], ids=["listed", "forgotten-by-ec2"])
 def test_a_terminated_instance_fails_the_check_with_the_way_to_a_new_host(
-    aws_env, dcv_port, monkeypatch, capsys
+    aws_env, dcv_port, monkeypatch, capsys, listed
 ):
-    """It once was a warning, "check again in a minute", and the verdict said the twin works."""
+    """It once was a warning, "check again in a minute", and the verdict said the twin works. An hour after
+    the termination EC2 no longer lists it: the check said only an AWS error then, with no table."""
+    handlers: dict[str, Any] = {"DescribeStackEvents": with_events(SIGNAL_SUCCESS)}
+    if not listed:
+        handlers["DescribeInstances"] = forgotten_by_ec2
     with mock_aws():
         outputs = deploy(f"https://127.0.0.1:{dcv_port}/#console")
         boto3.client("ec2", region_name=REGION).terminate_instances(InstanceIds=[outputs["InstanceId"]])
-        intercept(monkeypatch, {"DescribeStackEvents": with_events(SIGNAL_SUCCESS)})
+        intercept(monkeypatch, handlers)
         code, out = run_check(capsys)
     assert code == cmd.EXIT_CHECK_FAILED
     rows = table(out)

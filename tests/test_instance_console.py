@@ -241,6 +241,15 @@ def test_without_the_plugin_it_says_how_to_install_it_and_opens_no_session(
     assert sessions["StartSession"] == []
 
 
+def test_a_terminated_instance_is_not_told_to_start(stack, plugin, sessions, capsys):
+    boto3.client("ec2", region_name=AWS_TEST_REGION).terminate_instances(InstanceIds=[stack["InstanceId"]])
+    assert main(["instance", "console", "--no-browser"]) == cmd.EXIT_AWS
+    err = capsys.readouterr().err
+    assert "is terminated. Build a new host in its place: write hostGeneration = 2" in err, err
+    assert "twin instance start" not in err, err
+    assert sessions["StartSession"] == []
+
+
 def test_a_stopped_instance_is_named_with_the_way_out(stack, plugin, sessions, capsys):
     boto3.client("ec2", region_name=AWS_TEST_REGION).stop_instances(InstanceIds=[stack["InstanceId"]])
     assert main(["instance", "console", "--no-browser"]) == cmd.EXIT_WAIT

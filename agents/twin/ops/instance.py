@@ -160,6 +160,10 @@ class AwsCallError(TwinInstanceError):
     """Any other AWS error."""
 
 
+class InstanceGoneError(AwsCallError):
+    """The stack's instance is unknown to EC2: terminated more than about an hour ago."""
+
+
 @dataclass(frozen=True)
 class StackOutputs:
     instance_id: str
@@ -514,10 +518,10 @@ class TwinInstance:
             raise self._gone(instance_id)
         return instances[0]
 
-    def _gone(self, instance_id: str) -> AwsCallError:
+    def _gone(self, instance_id: str) -> InstanceGoneError:
         """The stack's instance unknown to EC2: terminated more than about an hour ago (EC2 lists a terminated
         instance for about that long, and an account's cleanup may be noticed days later)."""
-        return AwsCallError(
+        return InstanceGoneError(
             f"instance {instance_id} of stack {self.stack_name} no longer exists: it was terminated, and EC2 "
             f"forgets a terminated instance about an hour later. {self.new_host_advice()}"
         )
@@ -750,6 +754,9 @@ class TwinInstance:
         path = plugin or find_plugin()  # before any AWS call: a missing plugin leaves no session behind
         instance_id = self.outputs().instance_id
         state = self.state()
+        if state in TERMINATED_STATES:
+            # "Start it" would fail alike: EC2 starts no terminated instance.
+            raise AwsCallError(f"instance {instance_id} is {state}. {self.new_host_advice()}")
         if state != "running":
             raise WaitError(
                 f"instance {instance_id} is {state}: start it with `twin instance start`, then run this again"

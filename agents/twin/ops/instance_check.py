@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
 
-from twin.ops.instance import TERMINATED_STATES
+from twin.ops.instance import TERMINATED_STATES, InstanceGoneError
 
 if TYPE_CHECKING:
     from twin.ops.instance import TwinInstance
@@ -313,7 +313,12 @@ def check_twin(
     lines.append(check_stack(stack.get("StackStatus", "?"), stack.get("StackStatusReason", "")))
     outputs = twin.outputs()
     lines.append(check_boot_signal(twin.stack_events()))
-    state = twin.describe_instance()["State"]["Name"]
+    try:
+        state = twin.describe_instance()["State"]["Name"]
+    except InstanceGoneError:
+        # Terminated over an hour ago: the same verdict and way back as while EC2 still lists it, in the
+        # table, not an AWS error in its place.
+        state = "terminated"
     advice = twin.new_host_advice() if state in TERMINATED_STATES else ""
     lines.append(check_instance(state, outputs.instance_id, advice))
     if state != "running":

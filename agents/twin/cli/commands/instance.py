@@ -325,10 +325,14 @@ def _start(twin: TwinInstance, args: argparse.Namespace) -> int:
 def _status(twin: TwinInstance) -> int:
     """The instance's state, its DCV URL, the agent's health and the version it runs (exit 0 whatever the
     health: module doc)."""
+    from twin.ops.instance import TERMINATED_STATES
+
     status = twin.status(check_health=True, health_timeout_s=HEALTH_TIMEOUT_S)
     zone = f" in {status.availability_zone}" if status.availability_zone else ""
     console.out(f"instance {status.instance_id}: {status.state} ({status.instance_type}{zone})")
     console.out(f"DCV URL: {status.dcv_url}")
     console.out(_health_line(status.health))
     console.out(_version_line(status.host_version, status.expected_version))
+    if status.state in TERMINATED_STATES:
+        console.out(twin.new_host_advice())  # no start brings it back
     return EXIT_OK
