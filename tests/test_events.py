@@ -737,6 +737,32 @@ def arm_001_heard(tmp_path: Path) -> Any:
     return agent
 
 
+def test_a_known_arm_whose_events_aged_out_is_not_called_a_slip_of_the_id(tmp_path: Path) -> None:
+    """The detail for an id with no event told the operator to check the id, untrue of an arm on the Fleet
+    page whose events a flood of other arms' pushed out of the store."""
+    from conftest import http_get
+
+    settings = {"telemetry.devices": ["*"], "twin.events_capacity": 100}
+    agent = unbrokered_agent(tmp_path, 1, **settings)
+    try:
+        rng, others = random.Random(5), iter(range(100, 10_000))
+        agent.feed("dt/lerobot/arm-001/telemetry", encode(make_payload("arm-001", 0.0, "ticks", rng)))
+        wait_for(lambda: agent.events(EventQuery(device="arm-001")), 30, "arm-001's arrival event")
+
+        def aged_out() -> bool:
+            for _ in range(10):
+                other = f"arm-{next(others)}"
+                agent.feed(f"dt/lerobot/{other}/telemetry", encode(make_payload(other, 0.0, "ticks", rng)))
+            return not agent.events(EventQuery(device="arm-001"))
+
+        wait_for(aged_out, 60, "arm-001's events pushed out by other arms'", interval=0.1)
+        doc = json.loads(http_get(f"{agent.http_url}/api/events?device=arm-001")[2])
+        assert doc["events"] == [] and "knows 'arm-001'" in doc["detail"], doc
+        assert "events_capacity" in doc["detail"] and "check the id" not in doc["detail"], doc
+    finally:
+        agent.stop()
+
+
 def test_a_filter_that_matches_nothing_answers_the_newest_id(tmp_path: Path) -> None:
     """The Events page starts its stream at `last_id`: a device filter with no match answered the `after` it
     was given, so the page's stream began again at every other arm's first event."""

@@ -771,12 +771,24 @@ class AgentHttpServer:
         head = b'{"last_id":' + str(last).encode() + b',"more":' + (b"true" if more else b"false")
         device = request.query_params.get("device", "").strip()
         if not events and device and await self._call(lambda: not self._any_event_of(device)):
-            note = (
-                f"the agent holds no event of {device!r} at all: check the id against the Fleet page (a "
-                "whole one, case-sensitive; device_part= finds part of one)"
-            )
+            note = await self._call(lambda: self._no_event_note(device))
             head += b',"detail":' + json.dumps(note).encode()
         return _json(200, head + b',"events":' + encode_events(events) + b"}")
+
+    def _no_event_note(self, device: str) -> str:
+        """Why the agent holds no event of `device` (blocking): a known arm's aged out of the store (telling
+        the operator to check the id would be untrue of it), else the id is likely a slip."""
+        view = arm_view_of(self._source, device)
+        if view.state is not None or view.calibration_refused:
+            return (
+                f"the agent knows {device!r} (its Arm page) but holds none of its events any more: they aged "
+                "out of the newest [twin] events_capacity it keeps, pushed out by other events; raise it to "
+                "keep more"
+            )
+        return (
+            f"the agent holds no event of {device!r} at all: check the id against the Fleet page (a "
+            "whole one, case-sensitive; device_part= finds part of one)"
+        )
 
     def _any_event_of(self, device: str) -> bool:
         """Whether the source holds any event of `device` (a selection of its that is empty may just be
