@@ -485,6 +485,8 @@ def test_an_alarm_transition_reaches_sns_as_one_message_naming_arm_and_servo(top
         assert "arm arm-003, elbow_flex servo (motor id 3)" in body
         assert "now ACTIVE; value 68 C, threshold 65 C" in body
         assert "How to acknowledge:" in body and "/alarms/<alarm id>/ack" in body
+        # Read away from the host: the console through the port forward, first.
+        assert "run `twin instance console` on your machine" in body, body
         assert "over_temperature raised" not in body  # the warning: not sent unless asked for
         # Acknowledging is a transition too; it goes out on the next flush.
         agent.acknowledge_alarm("arm-003/elbow_flex/over_temperature_critical")

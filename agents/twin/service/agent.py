@@ -1690,11 +1690,14 @@ def alert_publisher(config: AgentConfig) -> AlertPublisher:
     """The publisher of servo alarm transitions to the config's SNS topic."""
     a = config.alerts
     url = f"http://{config.http.host}:{config.http.port}"
+    # Read on a phone or a laptop, not on the twin host: the console reaches the laptop through
+    # `twin instance console`, and an agent run on the laptop serves it at `url` itself.
     how = (
-        f"On the twin's desktop (DCV: `twin instance url`) open the console, {url}/arm/<arm>, and press "
-        f"Acknowledge; or in a shell on the host (`twin instance` prints SsmSessionCommand): curl -X POST "
-        f"{url}/alarms/<alarm id>/ack. Until acknowledged, an alarm whose condition went away stays LATCHED "
-        "(docs/servo-health.md)."
+        f"Open the agent's console, {url}/arm/<arm>, and press Acknowledge: for the twin host, run "
+        "`twin instance console` on your machine (it forwards that port), or use the host's DCV desktop "
+        f"(`twin instance url`). Or, where the agent runs (on the host, a Session Manager shell): curl -X "
+        f"POST {url}/alarms/<alarm id>/ack. Until acknowledged, an alarm whose condition went away stays "
+        "LATCHED (docs/servo-health.md)."
     )
     return AlertPublisher(
         sns_publisher(a.topic_arn.strip(), a.region or config.broker.region),
