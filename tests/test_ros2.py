@@ -302,6 +302,12 @@ def test_an_interface_the_machine_lacks_is_refused_by_name() -> None:
     lacked = r"ros2\.interface = '192\.0\.2\.7' is not an address of this machine"
     with pytest.raises(Ros2Error, match=lacked):
         check_interface("192.0.2.7")
+    # A socket binds to a multicast group and to the any address alike: neither is the machine's.
+    for group in ("239.255.0.1", "ff02::1"):
+        with pytest.raises(Ros2Error, match=r"is not an address of this machine \(a multicast group address"):
+            check_interface(group)
+    with pytest.raises(Ros2Error, match=r"\(the any address, which names no one interface\)"):
+        check_interface("0.0.0.0")
     with pytest.raises(Ros2Error, match=r"ros2\.interface = 'nosuchif0' is not a network interface") as exc:
         Ros2Bridge(Ros2Settings(enabled=True, interface="nosuchif0"))
     assert "lo" in str(exc.value)

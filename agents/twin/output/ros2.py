@@ -497,6 +497,7 @@ def check_interface(interface: str) -> None:
         address = interface.strip("[]")
         family = socket.AF_INET6 if ":" in address else socket.AF_INET
         try:
+            _not_a_group_or_any(address)
             with socket.socket(family, socket.SOCK_DGRAM) as probe:
                 probe.bind((address, 0))
         except (OSError, ValueError) as exc:
@@ -511,6 +512,18 @@ def check_interface(interface: str) -> None:
             f"ros2.interface = {interface!r} is not a network interface of this machine (it has "
             f"{', '.join(names) or 'none'}; ip -br addr lists them with their addresses)"
         )
+
+
+def _not_a_group_or_any(address: str) -> None:
+    """ValueError for a multicast or the unspecified address: a socket binds to either (so the probe took
+    them), but neither is one of the machine's, and Cyclone selects no interface by it."""
+    import ipaddress  # noqa: PLC0415 - only when an address is given
+
+    parsed = ipaddress.ip_address(address)
+    if parsed.is_multicast:
+        raise ValueError("a multicast group address, not an interface's")
+    if parsed.is_unspecified:
+        raise ValueError("the any address, which names no one interface")
 
 
 def check_peers(peers: Sequence[str]) -> None:
