@@ -108,6 +108,7 @@ def test_rejected_payload_exits_2_with_reason(tmp_path: Path, capsys: pytest.Cap
     assert (code, out) == (2, None)
     assert "rejected: wrong_type: position 2.01 of shoulder_pan is not a whole tick count" in err
     assert "set units=degrees" in err
+    assert err.rstrip().endswith("(here: --units degrees)"), err  # this command's flag, not a setting
 
 
 def test_unreadable_inputs_exit_1(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -66,6 +67,10 @@ def run(args: argparse.Namespace) -> int:
         telemetry = decoder.decode(raw)
     except TelemetryRejected as exc:
         hint = " (pass --units ticks|degrees|range100)" if exc.reason == "units_undecided" else ""
+        # The agent's words name its setting; here the same choice is this command's flag.
+        said = re.search(r"set units=(\w+)", str(exc))
+        if said and not hint:
+            hint = f" (here: --units {said.group(1)})"
         # A line of its own, no command prefix: scripts match on "rejected: <reason>:" (docs/telemetry.md).
         sys.stderr.write(f"rejected: {exc.reason}: {exc}{hint}\n")
         return EXIT_REJECTED
