@@ -38,7 +38,7 @@ MALFORMED_KINDS: tuple[str, ...] = (
     "missing_field",
     "missing_joint",
     "not_finite",
-    "oversized",
+    "too_large",
     "wrong_type",
     "bad_timestamp",
     "device_mismatch",
@@ -324,7 +324,7 @@ def make_malformed(kind: str, payload: dict[str, Any], rng: random.Random) -> by
         joints[joint]["position"] = rng.choice([math.nan, math.inf, -math.inf])
         # allow_nan: Python's json writes the NaN/Infinity tokens a sloppy C or JS producer might emit.
         return json.dumps(broken, separators=(",", ":"), allow_nan=True).encode()
-    elif kind == "oversized":
+    elif kind == "too_large":
         broken["padding"] = "x" * (MAX_PAYLOAD_BYTES + 4096)
     elif kind == "wrong_type":
         joints[joint]["position"] = rng.choice([str(joints[joint]["position"]), None, [1, 2], True])
