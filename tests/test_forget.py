@@ -197,6 +197,29 @@ def test_an_offline_arm_whose_refused_messages_still_arrive_is_not_forgotten() -
     assert mirror.forget_arm("arm-001").status == "OFFLINE"
 
 
+def test_an_arm_kept_for_its_alarms_without_a_place_is_not_forgotten_while_it_publishes() -> None:
+    """An arm listed after a restart for its kept alarms takes a place only when one is left: with none, its
+    valid messages are refused as too_many_devices, and it still publishes."""
+    clock, rng = _Clock(), random.Random(7)
+    config = load_config(
+        None,
+        {"telemetry.devices": ["*"], "telemetry.units": "ticks", "health.offline_after_s": OFFLINE_AFTER_S},
+    )
+    mirror = Mirror(
+        config, inbox=PipeInbox(Pipe(duplex=False)[0]), budget=DeviceBudget(1), clock=clock, wall_clock=clock
+    )
+    _round(mirror, clock, ["arm-001"], rng, 0.0)  # the one place
+    kept = _record("arm-002", "wrist_roll", AlarmKind.OVER_TEMPERATURE, AlarmState.LATCHED, "hot")
+    mirror.restore(None, [kept])
+    for _ in range(round(OFFLINE_AFTER_S * 10) + 5):
+        _round(mirror, clock, ["arm-002"], rng, 0.0)
+    assert mirror.statuses()["arm-002"] == "OFFLINE"
+    with pytest.raises(ArmNotForgettableError) as refused:
+        mirror.forget_arm("arm-002")
+    said = str(refused.value)
+    assert "was refused (too_many_devices)" in said and "raise telemetry.max_devices" in said, said
+
+
 class _CountingLock:
     """The mirror's lock, recording how many Fleet rows each hold of it built."""
 

@@ -307,6 +307,7 @@ class DeviceHealth:
         # The last refused message's arrival: an arm whose every message is refused is OFFLINE (its
         # status is of valid messages) yet still publishes, so it is not retired (Mirror.forget_arm).
         self.last_refused_mono: float | None = None
+        self.last_refused_reason = ""
         self.last_timestamp_ms: int | None = None
         self.received = 0
         self.decoded = 0
@@ -333,8 +334,8 @@ class DeviceHealth:
 
     def record_rejected(self, reason: str, recv_mono: float | None = None) -> None:
         self.rejected[str(reason)] += 1
-        if recv_mono is not None and (self.last_refused_mono is None or recv_mono > self.last_refused_mono):
-            self.last_refused_mono = recv_mono
+        if recv_mono is not None and (self.last_refused_mono is None or recv_mono >= self.last_refused_mono):
+            self.last_refused_mono, self.last_refused_reason = recv_mono, str(reason)
 
     def record_error(self) -> None:
         self.errors += 1

@@ -134,7 +134,8 @@ KEY_DOCS: dict[str, str] = {
     "telemetry.forget_offline_after_s": (
         "Forget an arm silent this long (seconds; OFFLINE from `health.offline_after_s` of silence on) as "
         'an operator would (docs/console.md, "Forget an arm"), unless an alarm of it waits for a person '
-        "(ACTIVE or LATCHED) or it is listed in `devices`: "
+        "(ACTIVE or LATCHED), it is listed in `devices`, or its messages still arrive, all refused (the "
+        "sweep tries it again every 5 s): "
         "for a fleet whose ids come and go, so retired arms give their `max_devices` places to new ones. "
         "One event says so. 0, the default, never; else longer than `health.offline_after_s`, e.g. 604800 "
         "for a week."

@@ -1468,8 +1468,9 @@ class Mirror:
     def _refuse(self, device: str) -> None:
         """Count and log a valid message of a device the fleet's device budget has no place for."""
         with self._lock:
-            # Under its id (counted as untracked all the same): the Fleet page names an arm kept out.
-            self._fleet.record_rejected(device, TOO_MANY_DEVICES)
+            # Under its id (counted as untracked all the same): the Fleet page names an arm kept out. An arm
+            # listed for its kept alarms with no place left lands here too: it still publishes (forget_arm).
+            self._fleet.record_rejected(device, TOO_MANY_DEVICES, self._clock())
         self._rejections.rejected(device, TOO_MANY_DEVICES, "telemetry.max_devices reached")
         # units=auto may have decided this device's units already: an invented id must leave nothing.
         self._decoder.forget(device)
@@ -2004,15 +2005,16 @@ class Mirror:
         ago = self._clock() - self._swept_behind_s - last if last is not None else None
         if ago is None or ago >= offline_after:
             return
-        reasons = ", ".join(sorted(health.rejected))
-        if device in self._calibration_problems:
+        if health.last_refused_reason == TOO_MANY_DEVICES:
+            fix = "raise telemetry.max_devices, so that it has a place"
+        elif device in self._calibration_problems:
             fix = "push a valid calibration for it (its Arm page gives the command)"
         else:
             fix = "mend what its edge sends (the Events page says why each message was refused)"
         raise ArmNotForgettableError(
             ARM_NOT_OFFLINE,
             f"{device} still publishes: its last message, {max(ago, 0.0):.1f} s ago, was refused "
-            f"({reasons}). "
+            f"({health.last_refused_reason}). "
             f"Only an arm silent for health.offline_after_s = {offline_after:g} s can be forgotten: {fix}, "
             "or stop its edge",
         )
