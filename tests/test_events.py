@@ -763,6 +763,20 @@ def test_a_known_arm_whose_events_aged_out_is_not_called_a_slip_of_the_id(tmp_pa
         agent.stop()
 
 
+def test_a_listed_arm_never_heard_is_said_to_have_no_event_yet(tmp_path: Path) -> None:
+    """A review: an arm listed in telemetry.devices and never heard was said to have had its events aged
+    out, and told to raise events_capacity, which does nothing for it."""
+    from conftest import http_get
+
+    agent = unbrokered_agent(tmp_path, 1, **{"telemetry.devices": ["arm-007"]})
+    try:
+        doc = json.loads(http_get(f"{agent.http_url}/api/events?device=arm-007")[2])
+        assert doc["events"] == [] and "no message of it since it started" in doc["detail"], doc
+        assert "events_capacity" not in doc["detail"], doc
+    finally:
+        agent.stop()
+
+
 def test_a_filter_that_matches_nothing_answers_the_newest_id(tmp_path: Path) -> None:
     """The Events page starts its stream at `last_id`: a device filter with no match answered the `after` it
     was given, so the page's stream began again at every other arm's first event."""

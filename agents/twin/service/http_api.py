@@ -779,11 +779,17 @@ class AgentHttpServer:
         """Why the agent holds no event of `device` (blocking): a known arm's aged out of the store (telling
         the operator to check the id would be untrue of it), else the id is likely a slip."""
         view = arm_view_of(self._source, device)
+        if view.state is not None and not view.state.health.counters.received:
+            # Listed in telemetry.devices, or kept for its alarms over a restart: tracked, never heard.
+            return (
+                f"the agent knows {device!r} (its Arm page) but has had no message of it since it started, "
+                "so it holds no event of it yet"
+            )
         if view.state is not None or view.calibration_refused:
             return (
                 f"the agent knows {device!r} (its Arm page) but holds none of its events any more: they aged "
-                "out of the newest [twin] events_capacity it keeps, pushed out by other events; raise it to "
-                "keep more"
+                "out of the newest [twin] events_capacity it keeps, pushed out by other events (raise it to "
+                "keep more), or came before a restart with no [twin] events_file to keep them"
             )
         return (
             f"the agent holds no event of {device!r} at all: check the id against the Fleet page (a "
