@@ -2113,6 +2113,30 @@ def test_history_commands_list_plot_and_export(tmp_path: Path, capsys: pytest.Ca
     assert "arm-001, arm-002" in capsys.readouterr().err
 
 
+def test_export_takes_its_format_from_out_and_plot_writes_no_png_under_another_name(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A walk's findings: `export --out a.csv` wrote Parquet into a.csv (and `--format csv --out b.parquet`
+    CSV into b.parquet), and `plot --out p.svg` wrote PNG bytes into p.svg, each saying "wrote"."""
+    from twin.cli import main
+
+    uri = _history_with(tmp_path, samples(20))
+
+    def run(*args: str) -> int:
+        return main(["history", *args, "--history", uri])
+
+    assert run("export", "--out", str(tmp_path / "a.CSV")) == 0
+    assert pl.read_csv(tmp_path / "a.CSV").height == 20
+    assert "wrote" in capsys.readouterr().out
+    assert run("export", "--format", "csv", "--out", str(tmp_path / "b.parquet")) == 2
+    assert "names a .parquet file but --format is csv" in capsys.readouterr().err
+    assert run("export", "--format", "csv", "--out", str(tmp_path / "b.txt")) == 0
+    assert pl.read_csv(tmp_path / "b.txt").height == 20
+    assert run("plot", "--device", "arm-001", "--out", str(tmp_path / "p.svg")) == 2
+    assert "plot writes PNG only; give a name ending .png" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.CSV", "b.txt", "history"]
+
+
 def _history_with_a_rejection(tmp_path: Path) -> str:
     """600 messages of arm-001, 300 of arm-002 from T0 + 30 s, one rejected message of each at T0 + 5 s."""
     uri = str(tmp_path / "history")

@@ -24,6 +24,11 @@ SESSION_GAP_S = 30.0
 EXIT_EMPTY = 1
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
+EXPORT_SUFFIXES = ["parquet", "csv"]
+# What matplotlib (or a viewer) would read as another format: `plot --out x.svg` wrote PNG bytes into it.
+NOT_PNG_SUFFIXES = frozenset(
+    {".jpg", ".jpeg", ".svg", ".svgz", ".pdf", ".eps", ".ps", ".tif", ".tiff", ".webp", ".gif", ".bmp"}
+)
 
 
 def add_window_arguments(parser: argparse.ArgumentParser) -> None:
@@ -75,7 +80,9 @@ def register(subparsers: Any) -> None:
     add_uri_argument(ex)
     add_window_arguments(ex)
     ex.add_argument("--device", metavar="D", help="only this device (default: all)")
-    ex.add_argument("--format", choices=["parquet", "csv"], default="parquet", help="default parquet")
+    ex.add_argument(
+        "--format", choices=EXPORT_SUFFIXES, help="default: --out's suffix (.csv or .parquet), else parquet"
+    )
     ex.add_argument("--out", metavar="FILE", type=Path, help="default history.parquet / history.csv")
     ex.add_argument(
         "--raw-only", action="store_true", help="stored columns only, without the decoded diagnostics"
@@ -109,6 +116,20 @@ def _taken(command: str, out: Path, force: bool) -> int | None:
         return None
     _console(command).err(f"{out} exists; pass --force to replace it, or another --out")
     return EXIT_USAGE
+
+
+def _export_format(fmt: str | None, out: Path | None) -> str | None:
+    """The format `--out`'s suffix names when `--format` is not given (`--out a.csv` wrote Parquet into
+    a.csv); None, said, when the two disagree, so no file holds what its name does not say."""
+    named = out.suffix.lower().lstrip(".") if out is not None else ""
+    if named not in EXPORT_SUFFIXES:
+        return fmt or "parquet"
+    if fmt is None or fmt == named:
+        return named
+    _console("export").err(
+        f"--out {out} names a .{named} file but --format is {fmt}; drop --format, or give --out a .{fmt} name"
+    )
+    return None
 
 
 def run_ls(args: argparse.Namespace) -> int:
@@ -153,6 +174,9 @@ def run_ls(args: argparse.Namespace) -> int:
 def run_plot(args: argparse.Namespace) -> int:
     from twin.ops.history import HistoryReader, HistoryReadError, plot
 
+    if args.out.suffix.lower() in NOT_PNG_SUFFIXES:
+        _console("plot").err(f"--out {args.out}: plot writes PNG only; give a name ending .png")
+        return EXIT_USAGE
     taken = _taken("plot", args.out, args.force)
     if taken is not None:
         return taken
@@ -171,7 +195,10 @@ def run_plot(args: argparse.Namespace) -> int:
 def run_export(args: argparse.Namespace) -> int:
     from twin.ops.history import HistoryReader, HistoryReadError, export
 
-    out = args.out or Path(f"history.{args.format}")
+    fmt = _export_format(args.format, args.out)
+    if fmt is None:
+        return EXIT_USAGE
+    out = args.out or Path(f"history.{fmt}")
     taken = _taken("export", out, args.force)
     if taken is not None:
         return taken
@@ -180,7 +207,7 @@ def run_export(args: argparse.Namespace) -> int:
         rows = export(
             HistoryReader(args.history),
             out,
-            args.format,
+            fmt,
             device=args.device,
             since=since,
             until=until,
@@ -192,5 +219,5 @@ def run_export(args: argparse.Namespace) -> int:
         # The export writes beside `out` and renames once whole: stopped, it leaves `out` as it was.
         _console("export").err(f"interrupted: nothing written ({out} is as it was)")
         return EXIT_INTERRUPTED
-    _console("export").out(f"wrote {out}: {rows} rows ({args.format})")
+    _console("export").out(f"wrote {out}: {rows} rows ({fmt})")
     return 0
