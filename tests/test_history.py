@@ -2196,6 +2196,32 @@ def test_history_commands_keep_what_a_person_had_and_refuse_a_selection_of_nothi
     assert json.loads(capsys.readouterr().out)["rejected"] == {}
 
 
+def test_a_damaged_log_entry_is_named_with_its_fix(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A walk's finding: a log entry that is not whole JSON stopped every command with deltalake's "Json
+    error: Encountered unexpected 'g'" and two `<unknown>` backtrace frames, naming neither entry nor
+    fix."""
+    from twin.cli import main
+
+    uri = _history_with(tmp_path, samples(20))
+    _history_with(tmp_path, samples(30, start_s=T0 + 10, seed=2))
+    entries = sorted((Path(uri) / TELEMETRY_TABLE / "_delta_log").glob("*.json"))
+    assert len(entries) >= 2
+    for entry, fix in ((entries[0], "put back a whole copy"), (entries[-1], "move it out of _delta_log")):
+        whole = entry.read_bytes()
+        entry.write_bytes(whole[:50])
+        assert main(["history", "ls", "--history", uri]) == 1
+        err = capsys.readouterr().err
+        assert f"its log entry {entry} is not whole JSON" in err and fix in err, err
+        assert "<unknown>" not in err
+        entry.write_bytes(whole)
+    # The fix for the newest holds: out of the log, the table reads as before its commit.
+    entries[-1].rename(tmp_path / entries[-1].name)
+    assert main(["history", "ls", "--history", uri, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["devices"][0]["rows"] == 20
+
+
 def test_a_window_that_misses_the_rows_says_when_they_are(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import datetime as dt
 import errno
+import json
 import logging
 import math
 import os
@@ -222,7 +223,42 @@ def _unreadable(location: str, exc: Exception) -> str:
             "`aws sso login`, set AWS_PROFILE, or export AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY "
             f"(deltalake: {text})"
         )
+    damaged = _damaged_log(location, text)
+    if damaged:
+        return damaged
     return f"cannot read history at {location}: {text}"
+
+
+def _damaged_log(location: str, text: str) -> str:
+    """For a local table whose log does not open on an entry that is not JSON (a disk's damage, a copy cut
+    short): the entries and the fix. deltalake's own text names neither, and ends in a backtrace of
+    `<unknown>` frames. "" when that is not the failure, or the walk finds no such entry."""
+    if "://" in location or "json error" not in text.lower():
+        return ""
+    entries = sorted(Path(location, "_delta_log").glob("*.json"))
+    bad = []
+    for entry in entries:
+        try:
+            for line in entry.read_text().splitlines():
+                if line.strip():
+                    json.loads(line)
+        except (OSError, ValueError):  # a bad byte is a UnicodeDecodeError, a ValueError too
+            bad.append(entry)
+    if not bad:
+        return ""
+    newest = bad == entries[-1:]
+    fix = (
+        "move it out of _delta_log (elsewhere, to keep it): the table then reads as it was before that "
+        "commit, without that commit's rows"
+        if newest
+        else "put back a whole copy from a backup: the entries after it need it (only a log's newest entry "
+        "can be moved out, which reads the table as it was before that commit)"
+    )
+    first = text.splitlines()[0] if text else ""
+    return (
+        f"cannot read history at {location}: its log entry {', '.join(map(str, bad[:5]))} is not whole "
+        f"JSON ({first}); {fix}"
+    )
 
 
 # polars names an I/O error's cause only in its text ("No space left on device (os error 28)").
