@@ -2222,6 +2222,23 @@ def test_a_damaged_log_entry_is_named_with_its_fix(
     assert json.loads(capsys.readouterr().out)["devices"][0]["rows"] == 20
 
 
+def test_a_table_whose_rows_were_all_deleted_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A walk's finding: with every day deleted (keep_days, or a delete by hand), `ls` said only "no rows
+    for this selection", and plot, export and replay that the "devices with history are none"."""
+    from deltalake import DeltaTable
+    from twin.cli import main
+
+    uri = _history_with(tmp_path, samples(20))
+    DeltaTable(f"{uri}/{TELEMETRY_TABLE}").delete("date < '2100-01-01'")
+    out = ["--out", str(tmp_path / "out.png")]
+    for args in (["ls"], ["ls", "--device", "arm-001"], ["plot", "--device", "arm-001", *out], ["export"]):
+        assert main(["history", *args, "--history", uri]) == 1
+        err = capsys.readouterr().err
+        assert "the table holds no row of any device now" in err and "none" not in err, err
+
+
 def test_a_window_that_misses_the_rows_says_when_they_are(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -2839,4 +2856,5 @@ def test_the_hint_for_a_device_without_history_names_a_large_fleet_in_part() -> 
         "; no row of 'ARM-0007' at all: device ids are case-sensitive, and 'arm-0007' has history"
     )
     assert devices_hint(fleet, "arm-0007") == ""  # type: ignore[arg-type]
-    assert devices_hint(Known([]), "arm-1").endswith("devices with history are none")  # type: ignore[arg-type]
+    empty = devices_hint(Known([]), "arm-1")  # type: ignore[arg-type]
+    assert empty == "; the table holds no row of any device now (keep_days, or a delete, removed them)"

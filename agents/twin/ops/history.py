@@ -642,9 +642,13 @@ def empty_hint(reader: HistoryReader, device: str | None) -> str:
         return hint
     span = reader.span(device)
     if span is None:
-        return ""
+        return _EMPTY_TABLE
     whose = f"{device}'s rows" if device else "its rows"
     return f"; {whose} span {iso_utc(span[0])} .. {iso_utc(span[1])}"
+
+
+# A table whose rows were all deleted: "devices with history are none" read like a mistyped --device.
+_EMPTY_TABLE = "; the table holds no row of any device now (keep_days, or a delete, removed them)"
 
 
 def devices_hint(reader: HistoryReader, device: str | None) -> str:
@@ -655,10 +659,12 @@ def devices_hint(reader: HistoryReader, device: str | None) -> str:
     known = reader.known_devices()
     if device in known:
         return ""
+    if not known:
+        return _EMPTY_TABLE
     twin = case_twin(device, known)
     if twin is not None:
         return f"; no row of {device!r} at all: device ids are case-sensitive, and {twin!r} has history"
-    named = ", ".join(known[:HINT_DEVICES]) or "none"
+    named = ", ".join(known[:HINT_DEVICES])
     more = f" and {len(known) - HINT_DEVICES} more" if len(known) > HINT_DEVICES else ""
     return f"; no row of {device!r} at all: devices with history are {named}{more}"
 
