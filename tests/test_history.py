@@ -2268,13 +2268,14 @@ def test_a_window_that_misses_the_rows_says_when_they_are(
     assert arm in said("plot", "--device", "arm-001", "--since", later, "--out", str(tmp_path / "a.png"))
 
 
-@pytest.mark.parametrize("damage", ["cut", "missing"])
+@pytest.mark.parametrize("damage", ["cut", "missing", "inside"])
 def test_a_damaged_or_missing_data_file_is_named_with_the_fix(
     damage: str, tmp_path: Path, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
 ) -> None:
     """A walk cut one data file of the demo's history short (a copy that stopped half way) and removed
     another: every history command ended in a polars traceback, a Rust panic for the cut file, naming
-    neither the file nor what to do."""
+    neither the file nor what to do. A later walk damaged bytes inside one, its footer whole: the commands
+    said "every data file its log names reads whole now", which sent the user nowhere."""
     from twin.cli import main
 
     _history_with(tmp_path, samples(50))
@@ -2283,6 +2284,12 @@ def test_a_damaged_or_missing_data_file_is_named_with_the_fix(
     victim = sorted(table.glob("date=*/*.parquet"))[0]
     if damage == "cut":
         victim.write_bytes(victim.read_bytes()[:100])
+    elif damage == "inside":
+        data = bytearray(victim.read_bytes())
+        pages_end = len(data) - 8 - int.from_bytes(data[-8:-4], "little")  # the footer stays whole
+        for i in range(4, pages_end):  # every column's pages: `ls` reads only a few columns
+            data[i] ^= 0xFF
+        victim.write_bytes(bytes(data))
     else:
         victim.unlink()
     out = tmp_path / "e.csv"

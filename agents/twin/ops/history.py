@@ -273,9 +273,10 @@ def _os_errno(exc: BaseException) -> int | None:
     return int(match.group(1)) if match else None
 
 
-def _damaged_files(location: str) -> list[str] | None:
-    """The data files of a local table that are missing or not whole Parquet (a footer that does not read):
-    what to move out of it. None for a remote table, which is not walked (a GET per file)."""
+def _damaged_files(location: str, *, deep: bool = False) -> list[str] | None:
+    """The data files of a local table that are missing or not whole Parquet (a footer that does not read,
+    or with `deep` any of its pages): what to move out of it. None for a remote table, which is not walked
+    (a GET per file)."""
     if "://" in location:
         return None
     import pyarrow as pa  # noqa: PLC0415
@@ -287,7 +288,12 @@ def _damaged_files(location: str) -> list[str] | None:
         # deltalake gives a local file as a URI path: a space in it is `%20`, which no file is named.
         path = urllib.parse.unquote(uri.removeprefix("file://"))
         try:
-            pq.read_metadata(path)
+            if deep:
+                parquet = pq.ParquetFile(path)
+                for group in range(parquet.num_row_groups):
+                    parquet.read_row_group(group)
+            else:
+                pq.read_metadata(path)
         except (OSError, ValueError, pa.ArrowException):
             bad.append(path)
     return bad
@@ -310,6 +316,10 @@ def _unreadable_data(location: str, exc: BaseException) -> str:
     first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
     try:
         bad = _damaged_files(location)
+        if bad == [] and _os_errno(exc) != errno.ENOENT:
+            # Every footer reads, yet a page did not (damage inside a file): read them whole, once, as this
+            # error's hint. It said "every data file its log names reads whole now" of a corrupt file.
+            bad = _damaged_files(location, deep=True)
     except Exception:  # the walk is a hint; the message stands without it
         bad = None
     escaped = _escaped(location)
