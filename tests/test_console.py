@@ -1085,6 +1085,27 @@ def test_the_sessions_page_says_its_filters_hide_every_session(console: str, pag
     assert "no session matches these filters" in empty.inner_text(), empty.inner_text()
 
 
+def test_a_history_that_cannot_be_read_is_said_on_the_sessions_page(console: str, page: Any) -> None:
+    """A walk damaged a data file of the agent's history: the page read "no session yet", as of a history
+    holding nothing. The agent's answer is stood in for at the browser (a damaged history would break the
+    module's other tests); its shape is GET /api/sessions's."""
+    detail = "cannot read history at out/history/telemetry: a data file its log names is missing or damaged"
+    answer = {"history": True, "unreadable": detail, "gap_s": 30.0, "alarms_known_since": None,
+              "kinds": ["csv"], "sessions": []}  # fmt: skip
+
+    def the_list(url: str) -> bool:
+        return urllib.parse.urlsplit(url).path == "/api/sessions"
+
+    page.route(the_list, lambda route: route.fulfill(status=200, json=answer))
+    try:
+        page.goto(console + "/sessions")
+        empty = page.locator("#sessions td.empty")
+        empty.wait_for()
+        assert empty.inner_text() == f"the history cannot be read, so no session is listed: {detail}"
+    finally:
+        page.unroute(the_list)
+
+
 @pytest.mark.parametrize("width", [768, 390])
 def test_the_tables_fit_the_window_with_a_long_id(
     long_id: str, console: str, page: Any, browser_errors: list[str], width: int

@@ -2312,6 +2312,8 @@ def test_a_damaged_or_missing_data_file_is_named_with_the_fix(
         assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
         catalog = HistorySessions(uri)
         assert catalog.sessions(30.0) == [] and catalog.sessions(30.0) == []  # each refresh reads again
+        # ... and says why to the page, which read "no session yet" of it.
+        assert catalog.unreadable is not None and "missing or damaged" in catalog.unreadable
     warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warned) == 1 and warned[0].startswith("history: the console lists no sessions: cannot read")
     assert "missing or damaged" in warned[0]
@@ -2320,6 +2322,7 @@ def test_a_damaged_or_missing_data_file_is_named_with_the_fix(
     DeltaTable(str(table)).repair()
     assert main(["history", "ls", "--history", uri, "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["devices"][0]["rows"] == 50
+    assert catalog.sessions(30.0) and catalog.unreadable is None
 
 
 def test_the_sessions_page_warns_once_per_error_however_its_details_vary(

@@ -218,10 +218,23 @@ def test_a_sessions_alarm_count_is_unknown_before_its_alarms_are_all_held() -> N
     assert answer["alarms_known_since"] == 2_000.0
 
 
-def sessions_answer(source: EventStore | Any, sessions: list[SessionInfo]) -> dict[str, Any]:
+def test_a_history_that_cannot_be_read_is_said_not_listed_as_empty() -> None:
+    """A walk damaged a data file of the agent's history: GET /api/sessions answered an empty list and the
+    page "no session yet", as of a history holding nothing; the reason was in the agent's log only."""
+    catalog = SizedCatalog([], 1)
+    answer = sessions_answer(EventStore(10), [], catalog)
+    assert answer["sessions"] == [] and answer["unreadable"] is None
+    said = "cannot read history at h/telemetry: a data file its log names is missing"
+    catalog.unreadable = said  # type: ignore[attr-defined]
+    assert sessions_answer(EventStore(10), [], catalog)["unreadable"] == said
+
+
+def sessions_answer(
+    source: EventStore | Any, sessions: list[SessionInfo], catalog: Any = None
+) -> dict[str, Any]:
     """GET /api/sessions of a server over `source` (an EventStore: served as the agent serves its own)."""
     source = EventfulSource(source) if isinstance(source, EventStore) else source
-    server = AgentHttpServer(source, "127.0.0.1", 0, sessions=SizedCatalog(sessions, 1))
+    server = AgentHttpServer(source, "127.0.0.1", 0, sessions=catalog or SizedCatalog(sessions, 1))
     server.start()
     try:
         status, _, body = http_get(f"http://127.0.0.1:{server.port}/api/sessions")

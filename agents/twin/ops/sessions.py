@@ -50,6 +50,9 @@ class HistorySessions:
         self._model = model
         # Each console refresh reads the history again: a damaged table is told once per distinct error.
         self._warned: set[str] = set()
+        # Why the last read listed nothing though a table is there (None: it read, or there is none yet): the
+        # page said "no session yet" of a damaged history, as if it held nothing.
+        self.unreadable: str | None = None
 
     def _reader(self) -> HistoryReader:
         from twin.ops.history import HistoryReader  # noqa: PLC0415 - polars and deltalake load here
@@ -59,12 +62,14 @@ class HistorySessions:
     def sessions(self, gap_s: float) -> list[SessionInfo]:
         from twin.ops.history import HistoryReadError, NoHistoryTableError  # noqa: PLC0415
 
+        self.unreadable = None
         try:
             summaries = self._reader().summary(gap_s=gap_s)
         except NoHistoryTableError as exc:
             log.debug("no sessions yet: %s", exc)
             return []
         except HistoryReadError as exc:
+            self.unreadable = str(exc)
             # A table that is there and cannot be read (a damaged file) must not pass for an empty one. Told
             # by what comes before its first parenthesis: after it come request ids, file names and the Rust
             # task of a panic, another each time. Bounded: a run of distinct errors starts the set again.

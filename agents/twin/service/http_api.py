@@ -887,6 +887,8 @@ class AgentHttpServer:
         sessions, since = await self._sessions_counted()
         body = {
             "history": self._sessions is not None,
+            # Of the read the list comes from; a catalog that cannot fail to read has no such attribute.
+            "unreadable": getattr(self._sessions, "unreadable", None),
             "gap_s": self.settings.session_gap_s,
             "alarms_known_since": since,
             "kinds": list(SESSION_FILE_KINDS),

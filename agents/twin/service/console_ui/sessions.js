@@ -28,8 +28,11 @@
     note.textContent = `${rows.length} of ${doc.sessions.length} sessions, newest first · a gap of ${doc.gap_s} s ends one`;
     // "no session yet" under a device box that matched nothing read as an empty history (a walk typed an id
     // that no session has while history held several): the filters are named when they hide every session.
+    // A damaged history listed nothing and read "no session yet", as if it held none: the agent's reason.
     const empty = doc.sessions.length
-      ? "no session matches these filters (the device box finds part of an id)" : "no session yet";
+      ? "no session matches these filters (the device box finds part of an id)"
+      : doc.unreadable ? `the history cannot be read, so no session is listed: ${doc.unreadable}`
+      : "no session yet";
     if (!rows.length) {
       body.replaceChildren(el("tr", {}, el("td", { colspan: 7, class: "empty", text: empty })));
       return;
