@@ -2239,6 +2239,29 @@ def test_a_table_whose_rows_were_all_deleted_says_so(
         assert "the table holds no row of any device now" in err and "none" not in err, err
 
 
+def test_a_history_uri_the_agent_would_refuse_is_refused_by_the_commands(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A walk's finding: `--history gs://x/h` or `http://x/h` was answered "no history table ... nothing was
+    recorded there yet", and a file as a table not there; the agent refuses each as `[history] uri`."""
+    from twin.cli import main
+
+    a_file = tmp_path / "history"
+    a_file.write_text("not a directory\n")
+    said = {
+        "gs://x/h": "'gs://x/h' is not a directory or s3://bucket/prefix",
+        "s3://": "'s3://' names no bucket",
+        str(a_file): f"'{a_file}' is a file; give the directory that holds the history",
+    }
+    for uri, why in said.items():
+        for command in (["history", "ls"], ["replay", "--device", "arm-001", "--from", "1h", "--to", "now"]):
+            with pytest.raises(SystemExit) as exited:
+                main([*command, "--history", uri])
+            assert exited.value.code == 2
+            err = capsys.readouterr().err
+            assert f"argument --history: {why}" in err, err
+
+
 def test_a_window_that_misses_the_rows_says_when_they_are(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

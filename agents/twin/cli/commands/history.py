@@ -36,10 +36,26 @@ def add_window_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--until", metavar="T", help="before this time (ISO 8601, epoch s, or 30m ago)")
 
 
+def history_uri(text: str) -> str:
+    """`--history` as the agent takes `[history] uri`: another scheme (`gs://`, `http://`) was answered "no
+    history table ... nothing was recorded there yet", and a file as a table not there."""
+    uri = text.strip()
+    if "://" in uri and not uri.startswith(("s3://", "file://")):
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a directory or s3://bucket/prefix; e.g. --history {DEFAULT_URI}"
+        )
+    if uri.startswith("s3://") and not uri.removeprefix("s3://").split("/", 1)[0]:
+        raise argparse.ArgumentTypeError(f"{text!r} names no bucket; e.g. --history s3://<bucket>/history")
+    if "://" not in uri and Path(uri).is_file():
+        raise argparse.ArgumentTypeError(f"{text!r} is a file; give the directory that holds the history")
+    return text
+
+
 def add_uri_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--history",
         metavar="URI",
+        type=history_uri,
         default=DEFAULT_URI,
         help=f"history location: a directory or s3://bucket/prefix (default {DEFAULT_URI})",
     )
