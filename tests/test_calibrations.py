@@ -504,6 +504,25 @@ def test_a_push_or_rm_over_a_refused_file_keeps_it_but_offers_no_restore(
     assert "is not valid JSON" in line, line
 
 
+def test_a_restore_over_a_refused_file_offers_no_swap_back(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A walk: a restore over a hand-copied file with reversed ranges said "restore again to swap back",
+    and that second restore refused the file it had kept, exit 1. It says what push and rm say instead."""
+    store = DirectoryStore(tmp_path / "cal")
+    reversed_ranges = json.loads(EXAMPLE.read_bytes())
+    elbow = reversed_ranges["elbow_flex"]
+    elbow["range_min"], elbow["range_max"] = elbow["range_max"], elbow["range_min"]
+    broken = json.dumps(reversed_ranges).encode()
+    store.write("arm-003", broken)
+    store.write_kept("arm-003", EXAMPLE.read_bytes())
+    assert main(["calibration", "restore", "arm-003", "--store", store.uri]) == cmd.EXIT_OK
+    out = capsys.readouterr().out
+    assert store.read("arm-003") == EXAMPLE.read_bytes() and store.read_kept("arm-003") == broken
+    assert "swap back" not in out and "the file it replaced was not a valid calibration (" in out, out
+    assert "range_min=3104 range_max=868" in out and f"kept at {store.uri_of('arm-003')}.previous" in out, out
+
+
 def test_ls_stops_on_a_kept_file_it_cannot_read(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -520,7 +520,7 @@ def _restore(store: CalibrationStore, arm: str, again: str) -> int:
         store.delete_kept(arm)
         console.out(f"{arm}: {where} holds the calibration rm removed again")
         return EXIT_OK
-    store.write_kept(arm, current)
+    kept_at = store.write_kept(arm, current)
     try:
         where = store.write(arm, kept)
     except CalibrationStoreError:
@@ -531,6 +531,12 @@ def _restore(store: CalibrationStore, arm: str, again: str) -> int:
             f"{arm}'s kept calibration is saved in {saved}: `twin calibration push {arm} {saved}{again}`"
         )
         raise
+    why = _invalid(store, arm, current)
+    if why:
+        # A second restore would refuse it: say so, as push and rm do, rather than offer the swap back.
+        said = _kept_said(arm, why, kept_at, again)
+        console.out(f"{arm}: {where} holds the kept calibration again; {said}")
+        return EXIT_OK
     console.out(
         f"{arm}: {where} holds the kept calibration again; the one it replaced is kept in its place "
         "(restore again to swap back)"
