@@ -17,6 +17,7 @@ from twin.core.alarms import AlarmEvent, AlarmKind, AlarmState, Severity
 from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
 from twin.edge.payload import encode, make_payload
 from twin.edge.servo_faults import ModelLoads
+from twin.service import mirror as mirror_module
 from twin.service.admission import DeviceBudget
 from twin.service.config import load_config
 from twin.service.events import (
@@ -142,3 +143,27 @@ def test_a_lone_mismatch_is_a_warning_at_once_and_a_burst_window_ends() -> None:
     assert watch.alarm(_raise("arm-060", "elbow_flex", 100.0 + MISMATCH_BURST_WINDOW_S))
     bursts = [e for e in store.query(EventQuery()) if e.data.get("action") == "burst"]
     assert [(e.data["raised"], e.data["arms"], e.data["told"]) for e in bursts] == [("10", "10", "3")]
+
+
+def test_a_raised_alarms_log_line_says_what_to_do_at_the_arm(caplog: pytest.LogCaptureFixture) -> None:
+    """A walk: the e-mail and /alarms said what to do about a hot servo, the log line only what it was; on a
+    host whose e-mail is off the log is what a person reads. A clear needs nothing done at the arm."""
+
+    def event(action: str, state: AlarmState, value: float) -> AlarmEvent:
+        return AlarmEvent(
+            "arm-003/wrist_flex/servo_error", "arm-003", "wrist_flex", AlarmKind.SERVO_ERROR,
+            Severity.CRITICAL, AlarmState.NORMAL, state, action, value, 1.0, 0.0,
+            "wrist_flex servo (motor id 4) reports overload",
+        )  # fmt: skip
+
+    caplog.set_level(logging.INFO, logger="twin.service.mirror")
+    mirror_module._log_alarm_event(event("raised", AlarmState.ACTIVE, 32.0))
+    mirror_module._log_alarm_event(event("cleared", AlarmState.LATCHED, 0.0))
+    raised, cleared = [r for r in caplog.records if getattr(r, "event", None) == "servo_alarm"]
+    advice: str = vars(raised)["advice"]
+    # The servo's own bits narrow it: overload's advice, not the voltage supply's.
+    assert advice.startswith("the arm may not hold its pose") and "Overload:" in advice
+    assert "Voltage" not in advice
+    assert raised.getMessage().startswith("servo alarm raised on arm-003: wrist_flex servo (motor id 4) ")
+    assert raised.getMessage().endswith(f"; what to do: {advice}")
+    assert not hasattr(cleared, "advice") and "what to do" not in cleared.getMessage()

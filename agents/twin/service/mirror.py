@@ -71,6 +71,7 @@ from twin.core.alarms import (
     NothingToAcknowledge,
     ServoAlarms,
     Severity,
+    what_to_do,
 )
 from twin.core.health import (
     DeviceHealth,
@@ -2235,14 +2236,18 @@ def _log_alarm_event(event: AlarmEvent, *, told: bool = True) -> None:
     event was not `told` at its own level (one of a burst, whose warning counts it: events.MismatchBurst)."""
     # EventLevel's values are logging's: the line goes at its event's level.
     level = int(alarm_level(event)) if told else logging.INFO
+    # A raised alarm's line says what to do at the arm, as its e-mail and /alarms do: the log may be all
+    # a person on the host reads.
+    advice = what_to_do(event.kind, event.joint, event.value) if event.action == "raised" else ""
     # The arm in the text too: a plain-text log (`twin demo`'s) shows no fields, and a fleet has many
     # servos of one name.
     log.log(
         level,
-        "servo alarm %s on %s: %s",
+        "servo alarm %s on %s: %s%s",
         event.action,
         event.device,
         event.message,
+        f"; what to do: {advice}" if advice else "",
         extra={
             "event": "servo_alarm",
             "alarm_id": event.alarm_id,
@@ -2255,5 +2260,6 @@ def _log_alarm_event(event: AlarmEvent, *, told: bool = True) -> None:
             "state": str(event.state),
             "value": event.value,
             "threshold": event.threshold,
+            **({"advice": advice} if advice else {}),
         },
     )
