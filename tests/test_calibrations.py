@@ -760,6 +760,27 @@ def test_a_calibration_saved_with_a_utf8_bom_is_the_same_calibration(
             load_calibration(marked)
 
 
+def test_a_file_nested_too_deeply_is_refused_with_its_name_not_a_recursion_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A walk: 60 KB of nested brackets (under the size limit) crashed `push` and `decode` with a
+    RecursionError traceback, and in the store it stopped `twin run` from starting ("maximum recursion
+    depth exceeded", no file named) and each poll of a running agent. It is refused like any bad file."""
+    deep = tmp_path / "arm-002.json"
+    deep.write_text("[" * 30_000 + "]" * 30_000)
+    with pytest.raises(ValueError, match=r"arm-002.json nests its JSON too deeply .*the right file\?"):
+        load_calibration(deep)
+    assert main(["calibration", "push", "arm-002", str(deep), "--store", str(tmp_path / "cal")]) == 2
+    assert "nests its JSON too deeply" in capsys.readouterr().err
+    store = DirectoryStore(tmp_path / "cal")
+    store.write("arm-001", EXAMPLE.read_bytes())
+    store.write("arm-002", deep.read_bytes())
+    books: list[Any] = []
+    assert CalibrationWatcher(store, on_change=books.append).poll() is True
+    assert "nests its JSON too deeply" in books[-1].problems["arm-002"]
+    assert books[-1].entries["arm-001"].calibration == load_calibration(EXAMPLE)
+
+
 def test_config_check_notes_a_store_directory_that_is_not_there(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:

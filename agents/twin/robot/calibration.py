@@ -215,6 +215,12 @@ def parse_calibration(data: bytes | str, source: str) -> Calibration:
         parsed = json.loads(text)
     except ValueError as exc:
         raise ValueError(f"{source} is not valid JSON: {exc}") from None
+    except RecursionError:
+        # A few KB of nested brackets: uncaught, it stopped `twin run` from starting and each push and poll.
+        raise ValueError(
+            f"{source} nests its JSON too deeply to be a LeRobot calibration (one object of six motors): "
+            "is it the right file?"
+        ) from None
     return Calibration.from_dict(parsed, source)
 
 
