@@ -181,6 +181,21 @@ def test_a_file_of_bytes_that_are_not_text_is_set_aside_and_not_adopted(tmp_path
     assert not (tmp_path / "adopted.json").exists()
 
 
+def test_a_file_nested_too_deeply_is_set_aside_and_not_adopted(tmp_path: Path) -> None:
+    """A walk: 60 KB of nested brackets in the state file stopped `twin run` at its start ("cannot start:
+    maximum recursion depth exceeded", naming no file); it is a broken file like any other."""
+    deep = b"[" * 30_000 + b"]" * 30_000
+    path = tmp_path / "state.json"
+    path.write_bytes(deep)
+    state = StateFile(path)
+    assert state.load(0.0, 0.0) == []
+    assert (tmp_path / "state.json.bad").read_bytes() == deep
+    assert "nested too deeply" in state.stats().last_error, state.stats().last_error
+    with pytest.raises(StateFileError, match="nested too deeply"):
+        adopt_file(str(tmp_path / "state.json.bad"), str(tmp_path / "adopted.json"))
+    assert not (tmp_path / "adopted.json").exists()
+
+
 def test_a_file_written_whole_keeps_its_mode_and_a_new_one_gets_the_umasks(tmp_path: Path) -> None:
     """The temporary file is 0600: renamed as it was, a calibration root pushed into a directory store was
     one the agent's own user could no longer read (its next read: Permission denied)."""

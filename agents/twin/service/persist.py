@@ -358,6 +358,9 @@ def _document_of(text: str | bytes) -> dict[str, Any]:
         document = json.loads(text)
     except ValueError as exc:
         raise StateFileError(f"not JSON: {exc}") from None
+    except RecursionError:
+        # Uncaught, it passed the start's checks: "cannot start: maximum recursion depth exceeded".
+        raise StateFileError("not JSON: nested too deeply") from None
     if not isinstance(document, dict) or document.get("version") != VERSION:
         raise StateFileError(f"not a version-{VERSION} state file")
     return document
