@@ -523,6 +523,21 @@ def test_a_restore_over_a_refused_file_offers_no_swap_back(
     assert "range_min=3104 range_max=868" in out and f"kept at {store.uri_of('arm-003')}.previous" in out, out
 
 
+def test_ls_of_a_directory_that_does_not_exist_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A walk: `ls --store` with a mistyped directory said "no calibration in ...", as for an empty store,
+    where the agent's log and `twin config check` say the directory is not there."""
+    assert main(["calibration", "ls", "--store", str(tmp_path / "calibratoin")]) == cmd.EXIT_OK
+    out = capsys.readouterr().out
+    missing = tmp_path / "calibratoin"
+    assert out.startswith(f"no calibration in {missing}: that directory does not exist; "), out
+    assert "[telemetry] calibrations" in out, out
+    (tmp_path / "calibration").mkdir()
+    assert main(["calibration", "ls", "--store", str(tmp_path / "calibration")]) == cmd.EXIT_OK
+    assert capsys.readouterr().out == f"no calibration in {tmp_path / 'calibration'}\n"
+
+
 def test_ls_stops_on_a_kept_file_it_cannot_read(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:

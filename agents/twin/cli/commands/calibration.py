@@ -218,7 +218,13 @@ def _ls(store: CalibrationStore, again: str) -> int:
 
     found = store.scan()
     listing, kept = found.calibrations, found.kept
-    if not listing and not kept:
+    if found.missing:
+        # A mistyped --store read as an empty store: the user looked for their arms' files elsewhere.
+        console.out(
+            f"no calibration in {store.uri}: that directory does not exist; check --store against the "
+            "agent's [telemetry] calibrations (a push makes it)"
+        )
+    elif not listing and not kept:
         console.out(f"no calibration in {store.uri}")
     refusals = _refusals(store, sorted(listing), _refusal)
     kept_refusals = _refusals(store, sorted(kept), _kept_refusal)
