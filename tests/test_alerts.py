@@ -108,6 +108,21 @@ def test_a_servo_error_says_its_bits_and_no_threshold() -> None:
         assert "threshold" not in sent[-1][1]
 
 
+def test_a_servo_error_that_cleared_before_its_message_is_advised_on_the_bits_that_raised_it() -> None:
+    """A walk: an overload error raised and cleared within one flush was sent with the advice for every
+    bit (check the supply, calibrate again, power-cycle), since its value had gone back to no bits."""
+    sent: list[tuple[str, str]] = []
+    p = publisher(sent, Clock())
+    error = {"kind": "servo_error", "joint": "wrist_flex", "threshold": 1.0, "unit": "status"}
+    p.offer(alert("raised", value=32.0, **error))
+    p.offer(alert("cleared", value=0.0, **error))
+    assert p.flush() is True
+    body = sent[-1][1]
+    assert "What to do: the arm may not hold its pose" in body, body
+    assert "Overload: reduce the payload" in body, body
+    assert "Voltage" not in body, body
+
+
 def test_a_raised_alarm_says_what_to_do_at_the_arm_and_a_cleared_one_does_not() -> None:
     """A walk: the e-mail named the arm and the servo, and how to acknowledge, but not what to do about an
     over-current at 3 a.m.; that was only in docs/servo-health.md."""

@@ -79,6 +79,8 @@ class _Pending:
     first_at: float
     changes: int = 1
     actions: list[str] = field(default_factory=list)
+    # The value of its last raise: a servo error that cleared since holds no bits, its advice needs them.
+    raised_value: float | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -147,12 +149,14 @@ class AlertPublisher:
                 if len(self._pending) >= self._max_pending and not self._make_room(alert):
                     self._overflow += 1
                     return
-                self._pending[alert.alarm_id] = _Pending(alert, alert.at, 1, [alert.action])
+                entry = self._pending[alert.alarm_id] = _Pending(alert, alert.at, 1, [alert.action])
             else:
                 entry.latest = alert
                 entry.changes += 1
                 entry.actions.append(alert.action)
                 del entry.actions[:-ACTIONS_KEPT]
+            if alert.action == "raised":
+                entry.raised_value = alert.value
 
     def _make_room(self, alert: Alert) -> bool:
         """With `max_pending` alarms waiting (under the lock): push out the oldest warning, counted, so that
@@ -185,7 +189,9 @@ class AlertPublisher:
                 return False
             # Copies: transitions that arrive while this one is published stay for the next message.
             originals = list(self._pending.values())
-            batch = [_Pending(e.latest, e.first_at, e.changes, list(e.actions)) for e in originals]
+            batch = [
+                _Pending(e.latest, e.first_at, e.changes, list(e.actions), e.raised_value) for e in originals
+            ]
             overflow = self._overflow
         subject, body, listed = self.compose(batch, overflow)
         try:
@@ -336,7 +342,7 @@ def _describe(entry: _Pending) -> list[str]:
     ]
     # While the alarm is up, or it rose since the last message (and maybe cleared already: the servo
     # still went through it); an acknowledged one needs nothing more done at the arm.
-    advice = what_to_do(a.kind, a.joint, a.value)
+    advice = what_to_do(a.kind, a.joint, a.value if a.state == "ACTIVE" else entry.raised_value)
     if (a.state == "ACTIVE" or "raised" in entry.actions) and advice:
         lines.append(f"  What to do: {advice}")
     lines += [
