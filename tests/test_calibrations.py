@@ -1234,6 +1234,9 @@ def test_an_arm_whose_file_is_bad_at_the_start_is_held_until_a_good_one_comes(
         arm = agent.state().devices["arm-002"]
         assert arm.joints_rad is None, arm.joints_rad  # never moved, to no pose at all
         assert arm.uncalibrated and "shoulder_pan" in arm.calibration_problem, arm.calibration_problem
+        # A walk: with a card (this fleet is listed), its Arm page said it decodes with the nominal SO-101.
+        assert "shoulder_pan" in agent.arm_view("arm-002").calibration_refused
+        assert agent.arm_view("arm-001").calibration_refused == ""
         # The Fleet page names it (no card would, with the whole fleet subscribed); /healthz does not.
         # Each command it names reaches this agent's store: without --store, push writes to the stack's.
         option = f"--store {tmp_path / 'cal'}"

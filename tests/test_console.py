@@ -513,6 +513,38 @@ def test_an_arm_page_says_a_refused_file_is_not_the_calibration_in_force(
     assert browser_errors == []
 
 
+def test_a_held_arm_with_a_card_is_said_to_be_held_not_nominal(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """A walk: in a listed fleet an arm whose file was bad at the start has a card; it read "uncalibrated",
+    and its page "none: the nominal SO-101's zero and range", though each of its messages is refused and its
+    twin holds still. Both documents are the agent's own, made so."""
+    doc: dict[str, Any] = json.loads(http_get(console + "/api/arm/arm-003")[2])
+    doc["device"]["uncalibrated"], doc["device"]["calibration"] = True, ""
+    why = "/srv/calibration/arm-003.json is not valid JSON: line 1 column 2"
+    doc["device"]["calibration_problem"] = doc["calibration_refused"] = why
+    fleet: dict[str, Any] = json.loads(http_get(console + "/api/fleet")[2])
+    col = {name: i for i, name in enumerate(fleet["columns"])}
+    for row in fleet["rows"]:
+        if row[col["device"]] == "arm-003":
+            row[col["uncalibrated"]], row[col["calibration_refused"]] = True, True
+    serve_document(page, "/api/arm/arm-003", "arm", doc)
+    serve_document(page, "/api/fleet", "fleet", fleet)
+    try:
+        page.goto(console + "/arm/arm-003")
+        said = page.locator("#calibration-held").inner_text()
+        assert said.startswith("none: this agent holds this arm"), said
+        assert why in said and "twin does not move" in said and "nominal" not in said, said
+        assert doc["calibration_push"]["command"] in said, said
+        page.goto(console + "/")
+        page.locator('#fleet-view [data-device="arm-003"] .uncalibrated', has_text="held").wait_for()
+    finally:
+        unserve(page, "/api/arm/arm-003")
+        unserve(page, "/api/fleet")
+        leave(page)
+    assert browser_errors == []
+
+
 def test_an_arm_page_draws_its_charts(console: str, page: Any, browser_errors: list[str]) -> None:
     page.goto(console + "/arm/arm-003")
     wait_for_charts(page, TIMEOUT_S)

@@ -1363,7 +1363,9 @@ class AgentService:
         dropped = shard.dropped().get(device, 0) if state is not None else 0
         if state is not None and dropped:
             state = with_dropped(state, dropped)
-        refused = "" if state is not None else self._held_problems().get(device, "")
+        # Held with a card too (a listed fleet admits it; kept alarms list it): its page read "the nominal
+        # SO-101's zero and range" for an arm whose messages are all refused.
+        refused = self._held_problems().get(device, "")
         return ArmView(
             self._wall_clock(),
             state,

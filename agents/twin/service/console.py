@@ -196,8 +196,8 @@ class ArmView(NamedTuple):
     alarms: Sequence[AlarmInfo]
     calibration_store: str
     started_at: float | None = None
-    # Why the agent holds an arm it has no state for: its calibration in the store was refused at the start
-    # (with the whole fleet subscribed such an arm is never admitted, and its page read "not known").
+    # Why the agent holds the arm: its calibration in the store was refused and it has none to keep (with
+    # the whole fleet subscribed such an arm is never admitted, and its page read "not known").
     calibration_refused: str = ""
 
 
@@ -435,8 +435,8 @@ def arm_document(device: str, view: ArmView) -> bytes:
     "calibration_refused"}; its alarms are every one that is not NORMAL, worst first, "calibration_push"
     says how to give the arm a calibration this agent reads (calibrations.push_hint), "agent_started_at"
     (epoch seconds) is where the arm's counters begin, and "motor_ids" each joint's servo id, by which the
-    page names a servo as the alarms do; "calibration_refused" why an arm with no state is held ("" when
-    it is not)."""
+    page names a servo as the alarms do; "calibration_refused" why the agent holds the arm, with a state or
+    none ("" when it does not)."""
     # Made here, not in the page: only the agent knows its store, and a command for another store (the
     # stack's, from a laptop's agent) would push a file this agent never reads.
     hint = push_hint(device, view.calibration_store)

@@ -79,7 +79,14 @@
 
   // Where the arm's LeRobot calibration came from; flagged when it has none while its units need one, with
   // how to push one to the store this agent reads: the agent writes that sentence, since only it knows its store.
-  function calibration(d, push) {
+  function calibration(d, push, held) {
+    // Held (its file refused, none to keep): no calibration decodes it, the nominal one included.
+    if (held) {
+      return el("span", { class: "uncalibrated", id: "calibration-held", "data-command": push.command,
+        text: `none: this agent holds this arm, as its calibration in the store is refused (${held}): its ` +
+          `messages are refused and its twin does not move (its servos' alarms are still checked); push a ` +
+          `valid one: ${push.command}` });
+    }
     const problem = d.calibration_problem ? ` (newest file refused: ${d.calibration_problem})` : "";
     if (d.uncalibrated) {
       return el("span", { class: "uncalibrated", id: "uncalibrated", "data-command": push.command,
@@ -468,7 +475,7 @@
       ["last seen", h.age_s === null ? "never" : `${Twin.num(h.age_s, 1)} s ago`],
       ["rate", `${Twin.num(h.rate_hz, 1)} Hz`],
       ["units", d.units], ["mode", d.mode],
-      ["calibration", calibration(d, doc.calibration_push)],
+      ["calibration", calibration(d, doc.calibration_push, doc.calibration_refused)],
       // The counters begin at the agent's start: said, so a restart's zeros do not read as a silent arm.
       ["messages", `${h.counters.received} received, ${h.counters.applied} applied` +
         (doc.agent_started_at ? ` since the agent started (${Twin.time(doc.agent_started_at)}, ${Twin.zone()})` : "")],

@@ -178,12 +178,15 @@
 
   // An arm with no calibration of its own, or whose newest file in the store was refused (it keeps the one
   // it had): the card said nothing of the second, and the file someone just pushed was not in force.
+  // Both at once is an arm held: its file refused with none to keep, its messages refused (not the nominal).
   const CALIBRATION_MARKS = {
     uncalibrated: "no LeRobot calibration: its page says how to push one",
     "file refused": "its newest calibration file is refused; it keeps the one it had: its page says why",
+    held: "its calibration file is refused and it has none to keep: its twin holds still; its page says why",
   };
   function calibrationWord(r) {
-    return r[columns.uncalibrated] ? "uncalibrated" : r[columns.calibration_refused] ? "file refused" : "";
+    const none = r[columns.uncalibrated], refused = r[columns.calibration_refused];
+    return none && refused ? "held" : none ? "uncalibrated" : refused ? "file refused" : "";
   }
   function calibrationMark(r) {
     const word = calibrationWord(r);
