@@ -1218,6 +1218,8 @@ def test_an_arm_whose_file_is_bad_at_the_start_is_held_until_a_good_one_comes(
     store = DirectoryStore(tmp_path / "cal")
     store.write("arm-001", EXAMPLE.read_bytes())
     (tmp_path / "cal" / "arm-002.json").write_text('{"shoulder_pan": {}}')
+    # An arm this listed fleet leaves out: the Fleet page named it held, its messages "refused".
+    (tmp_path / "cal" / "arm-009.json").write_text('{"shoulder_pan": {}}')
     agent = agent_with_store(tmp_path / "cal", **{"twin.workers": workers})
     agent.start()
     try:
@@ -1241,6 +1243,7 @@ def test_an_arm_whose_file_is_bad_at_the_start_is_held_until_a_good_one_comes(
         # Each command it names reaches this agent's store: without --store, push writes to the stack's.
         option = f"--store {tmp_path / 'cal'}"
         (held_notice,) = [n for n in agent.notices() if n.startswith("arm-002's calibration")]
+        assert not [n for n in agent.notices() if "arm-009" in n], agent.notices()
         assert f"twin calibration push arm-002 FILE {option}" in held_notice, held_notice
         # Its pose waits for a good file, its servos do not: the notice must not leave the operator thinking
         # the arm unwatched.

@@ -1091,11 +1091,17 @@ class AgentService:
     def _held_problems(self) -> dict[str, str]:
         """The arms with no calibration to keep (their file was bad at the start), held, by device: why. None
         with units = degrees, which use no calibration (the decoder holds no such arm)."""
-        if self.config.telemetry.units is Units.DEGREES:
+        t = self.config.telemetry
+        if t.units is Units.DEGREES:
             return {}
         request = self._calibration_request  # read once: a new book may replace it meanwhile
         kept = {device for device, _, _ in request.files}
-        return {device: problem for device, problem in request.problems if device not in kept}
+        # An arm a listed fleet leaves out is never heard: the Fleet page said its messages were refused.
+        return {
+            device: problem
+            for device, problem in request.problems
+            if device not in kept and (t.all_devices or device in t.devices)
+        }
 
     def _held_notices(self, shown: Collection[str]) -> list[str]:
         # An arm with no calibration to keep (its file was bad at the start) is held: with the whole fleet
