@@ -83,6 +83,10 @@ class Calibration(Mapping[str, MotorCalibration]):
                 "keyed its files by motor name: calibrate the arm again with a current LeRobot "
                 "(lerobot-calibrate), which writes robots/so_follower/<id>.json"
             )
+        # Six motors and a key more (a note, a tool's metadata): that key is named as unknown. Checked
+        # entry by entry, it read as "motor 'meta' lacks id", which sent the user to calibrate again.
+        if set(so101.JOINT_NAMES).issubset(data):
+            _check_motor_names(set(data), source)
         motors: dict[str, MotorCalibration] = {}
         for name, entry in data.items():
             if not isinstance(entry, dict):
@@ -116,8 +120,8 @@ class Calibration(Mapping[str, MotorCalibration]):
 _OLD_LAYOUT = frozenset({"homing_offset", "drive_mode", "start_pos", "end_pos", "calib_mode", "motor_names"})
 
 
-def _validate_motors(motors: Mapping[str, MotorCalibration], source: str) -> dict[str, MotorCalibration]:
-    names = set(motors)
+def _check_motor_names(names: set[str], source: str) -> None:
+    """ValueError unless `names` are exactly the SO-101 follower's motors."""
     missing = [n for n in so101.JOINT_NAMES if n not in names]
     extra = sorted(names.difference(so101.JOINT_NAMES))
     if missing or extra:
@@ -130,6 +134,10 @@ def _validate_motors(motors: Mapping[str, MotorCalibration], source: str) -> dic
             f"{source}: not an SO-101 follower calibration ({'; '.join(parts)}); expected exactly the motors "
             f"{', '.join(so101.JOINT_NAMES)} (LeRobot robots/so_follower/<id>.json)"
         )
+
+
+def _validate_motors(motors: Mapping[str, MotorCalibration], source: str) -> dict[str, MotorCalibration]:
+    _check_motor_names(set(motors), source)
     ordered: dict[str, MotorCalibration] = {}
     for name in so101.JOINT_NAMES:
         m = motors[name]
