@@ -24,13 +24,14 @@ tests); the clock is injected too.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
-from twin.core.alarms import what_to_do
+from twin.core.alarms import AlarmKind, what_to_do
 from twin.core.aws import region_or_env
 from twin.robot import so101, sts3215
 
@@ -156,7 +157,7 @@ class AlertPublisher:
                 entry.actions.append(alert.action)
                 del entry.actions[:-ACTIONS_KEPT]
             if alert.action == "raised":
-                entry.raised_value = alert.value
+                entry.raised_value = _raised(entry.raised_value, alert)
 
     def _make_room(self, alert: Alert) -> bool:
         """With `max_pending` alarms waiting (under the lock): push out the oldest warning, counted, so that
@@ -342,7 +343,11 @@ def _describe(entry: _Pending) -> list[str]:
     ]
     # While the alarm is up, or it rose since the last message (and maybe cleared already: the servo
     # still went through it); an acknowledged one needs nothing more done at the arm.
-    advice = what_to_do(a.kind, a.joint, a.value if a.state == "ACTIVE" else entry.raised_value)
+    # A servo error's bits: those of every raise since the last message, and the present ones while the
+    # condition lasts (ACTIVE, ACKNOWLEDGED): advice for a voltage error raised, then gone, then an
+    # overload, was the overload's alone.
+    present = a.state in ("ACTIVE", "ACKNOWLEDGED")
+    advice = what_to_do(a.kind, a.joint, _raised(entry.raised_value, a) if present else entry.raised_value)
     if (a.state == "ACTIVE" or "raised" in entry.actions) and advice:
         lines.append(f"  What to do: {advice}")
     lines += [
@@ -350,6 +355,17 @@ def _describe(entry: _Pending) -> list[str]:
         "",
     ]
     return lines
+
+
+def _raised(before: float | None, alert: Alert) -> float | None:
+    """`alert`'s value joined to the raises' `before`: a servo error's status bits, or'ed together; any other
+    kind's value as it is (its advice does not depend on it)."""
+    now = alert.value
+    if before is None or alert.kind != AlarmKind.SERVO_ERROR:
+        return now
+    if now is None or not math.isfinite(now):
+        return before
+    return float(int(before) | int(now)) if math.isfinite(before) else now
 
 
 def _size(lines: list[str]) -> int:
