@@ -1371,7 +1371,10 @@ class AgentService:
             state = with_dropped(state, dropped)
         # Held with a card too (a listed fleet admits it; kept alarms list it): its page read "the nominal
         # SO-101's zero and range" for an arm whose messages are all refused.
-        refused = self._held_problems().get(device, "")
+        # Not one whose units use no calibration: under units = auto an arm publishing degrees decodes (the
+        # decoder's rule), and its page said "its twin does not move" of a twin that moved.
+        degrees = state is not None and state.units is Units.DEGREES
+        refused = "" if degrees else self._held_problems().get(device, "")
         return ArmView(
             self._wall_clock(),
             state,

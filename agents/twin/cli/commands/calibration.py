@@ -498,7 +498,7 @@ def _rm_kept(store: CalibrationStore, arm: str, again: str) -> int:
 
 def _restore(store: CalibrationStore, arm: str, again: str) -> int:
     """The kept calibration becomes ARM's again, and the one it replaces is kept in its place: a second
-    restore swaps back."""
+    restore swaps back, unless what it replaced is no valid calibration (a restore would refuse it)."""
     from twin.robot.calibration import parse_calibration
     from twin.service.calibrations import KEPT_SUFFIX, CalibrationStoreError
 
