@@ -2348,6 +2348,49 @@ def test_a_damaged_or_missing_data_file_is_named_with_the_fix(
     assert catalog.sessions(30.0) and catalog.unreadable is None
 
 
+def _damage_inside(path: Path) -> bytes:
+    """Flip the bytes of every page of a Parquet file, its footer whole; the file's bytes before."""
+    before = path.read_bytes()
+    data = bytearray(before)
+    pages_end = len(data) - 8 - int.from_bytes(data[-8:-4], "little")
+    for i in range(4, pages_end):
+        data[i] ^= 0xFF
+    path.write_bytes(bytes(data))
+    return before
+
+
+def test_the_deep_walk_of_a_damaged_table_is_done_once_until_its_files_change(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A review: the Sessions page asks every 10 s, and each time the walk read every page of every file of
+    a table damaged inside (seconds on a large one). Once per table state; a file put back is seen."""
+    from twin.ops import history as history_ops
+    from twin.ops.sessions import HistorySessions
+
+    _history_with(tmp_path, samples(50))
+    uri = _history_with(tmp_path, samples(50, start_s=T0 + 60, seed=2))
+    first, second = sorted((Path(uri) / TELEMETRY_TABLE).glob("date=*/*.parquet"))[:2]
+    kept = _damage_inside(first)
+    _damage_inside(second)
+    walks: list[bool] = []
+    walk = history_ops._walk
+
+    def counted(uris: list[str], *, deep: bool) -> list[str]:
+        walks.append(deep)
+        return walk(uris, deep=deep)
+
+    monkeypatch.setattr(history_ops, "_walk", counted)
+    catalog = HistorySessions(uri)
+    for _ in range(3):
+        assert catalog.sessions(30.0) == []
+        assert catalog.unreadable is not None and str(first) in catalog.unreadable, catalog.unreadable
+    assert walks.count(True) == 1, walks
+    first.write_bytes(kept)  # put back whole: the next answer names only the other
+    assert catalog.sessions(30.0) == []
+    assert catalog.unreadable is not None and str(second) in catalog.unreadable, catalog.unreadable
+    assert str(first) not in catalog.unreadable and walks.count(True) == 2, walks
+
+
 def test_the_sessions_page_warns_once_per_error_however_its_details_vary(
     caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -273,20 +273,59 @@ def _os_errno(exc: BaseException) -> int | None:
     return int(match.group(1)) if match else None
 
 
+# How many damaged files a message names (then "and more").
+NAMED_FILES = 5
+# The deep walk's findings by table, version and its files' sizes and times: the console's Sessions page
+# asks again every 10 s while a table stays damaged, and a deep walk reads every page of every file
+# (seconds on a large table). A file put back whole under the same name changes its time.
+_DEEP_FOUND: dict[tuple[str, int, int], list[str]] = {}
+_DEEP_FOUND_MAX = 8
+
+
 def _damaged_files(location: str, *, deep: bool = False) -> list[str] | None:
     """The data files of a local table that are missing or not whole Parquet (a footer that does not read,
     or with `deep` any of its pages): what to move out of it. None for a remote table, which is not walked
-    (a GET per file)."""
+    (a GET per file). The deep walk stops past the files a message names, and is done once per version."""
     if "://" in location:
         return None
-    import pyarrow as pa  # noqa: PLC0415
-    import pyarrow.parquet as pq  # noqa: PLC0415
     from deltalake import DeltaTable  # noqa: PLC0415
 
-    bad = []
-    for uri in DeltaTable(location).file_uris():
-        # deltalake gives a local file as a URI path: a space in it is `%20`, which no file is named.
-        path = urllib.parse.unquote(uri.removeprefix("file://"))
+    table = DeltaTable(location)
+    if not deep:
+        return _walk(table.file_uris(), deep=False)
+    uris = table.file_uris()
+    key = (str(Path(location).resolve()), table.version(), hash(tuple(_stamp(uri) for uri in uris)))
+    found = _DEEP_FOUND.get(key)
+    if found is None:
+        found = _walk(uris, deep=True)
+        if len(_DEEP_FOUND) >= _DEEP_FOUND_MAX:
+            _DEEP_FOUND.clear()
+        _DEEP_FOUND[key] = found
+    return list(found)
+
+
+def _local_path(uri: str) -> str:
+    # deltalake gives a local file as a URI path: a space in it is `%20`, which no file is named.
+    return urllib.parse.unquote(uri.removeprefix("file://"))
+
+
+def _stamp(uri: str) -> tuple[int, int]:
+    try:
+        st = os.stat(_local_path(uri))
+    except OSError:
+        return (-1, -1)
+    return (st.st_mtime_ns, st.st_size)
+
+
+def _walk(uris: list[str], *, deep: bool) -> list[str]:
+    import pyarrow as pa  # noqa: PLC0415
+    import pyarrow.parquet as pq  # noqa: PLC0415
+
+    bad: list[str] = []
+    for uri in uris:
+        if deep and len(bad) > NAMED_FILES:
+            break  # enough to name, and to say there are more
+        path = _local_path(uri)
         try:
             if deep:
                 parquet = pq.ParquetFile(path)
@@ -339,7 +378,7 @@ def _unreadable_data(location: str, exc: BaseException) -> str:
         )
     if bad == []:
         return f"cannot read history at {location}: {first} (every data file its log names reads whole now)"
-    named = f": {', '.join(bad[:5])}{' and more' if len(bad) > 5 else ''}" if bad else ""
+    named = f": {', '.join(bad[:NAMED_FILES])}{' and more' if len(bad) > NAMED_FILES else ''}" if bad else ""
     return (
         f"cannot read history at {location}: a data file its log names is missing or damaged{named} "
         f"({first}). Move a damaged file out of the table, then drop the missing ones from its log: "

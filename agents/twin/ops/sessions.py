@@ -62,11 +62,13 @@ class HistorySessions:
     def sessions(self, gap_s: float) -> list[SessionInfo]:
         from twin.ops.history import HistoryReadError, NoHistoryTableError  # noqa: PLC0415
 
-        self.unreadable = None
+        # Set once, at the end: a request between a reset and a failing read's reason (another tab's) read
+        # None, and its page said "no session yet" of a damaged table.
         try:
             summaries = self._reader().summary(gap_s=gap_s)
         except NoHistoryTableError as exc:
             log.debug("no sessions yet: %s", exc)
+            self.unreadable = None
             return []
         except HistoryReadError as exc:
             self.unreadable = str(exc)
@@ -81,6 +83,7 @@ class HistorySessions:
             self._warned.add(said)
             log.log(level, "history: the console lists no sessions: %s", exc)
             return []
+        self.unreadable = None
         out = [
             SessionInfo(device=d.device_id, start=s.start.timestamp(), end=s.end.timestamp(), messages=s.rows)
             for d in summaries
