@@ -1340,7 +1340,7 @@ def test_an_arm_publishing_degrees_has_its_card_and_no_held_notice(tmp_path: Pat
             return arm is not None and arm.joints_rad is not None
 
         wait_for(decoded, 60, "arm-002's degrees decoded", interval=0.1)
-        rows, notices, _ = console.fleet_parts(agent)
+        rows, notices, _, _ = console.fleet_parts(agent)
         assert "arm-002" in {row.device for row in rows}
         # Nor its page that the agent holds it (a review: it did, under auto, of a twin that moved).
         assert agent.arm_view("arm-002").calibration_refused == "", agent.arm_view("arm-002")

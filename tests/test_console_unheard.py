@@ -18,7 +18,7 @@ from conftest import wait_for
 from twin.edge.servo_faults import ServoFault
 from twin.edge.simulator import FaultConfig
 from twin.rig.local import LocalRig
-from twin.service.console import Listening, fleet_summary
+from twin.service.console import HeldArm, Listening, fleet_summary
 
 pytestmark = pytest.mark.slow
 
@@ -42,6 +42,23 @@ def test_the_document_says_what_the_agent_listens_on_or_nothing() -> None:
     assert json.loads(fleet_summary([], 1.0))["listening"] is None  # a source that does not say
     stopping = Listening(("dt/lerobot/+/telemetry",), False, stopping=True)
     assert json.loads(fleet_summary([], 1.0, listening=stopping))["listening"]["stopping"] is True
+
+
+def test_a_held_arms_alarm_counts_among_the_alarmed_arms() -> None:
+    """A held arm has no row, yet its servos' alarms are raised: the Fleet page counted fewer arms alarmed
+    than /alarms listed. Its worst alarm counts as a row's does, and the document lists it for its link."""
+    held = [HeldArm("arm-007", "bad file", 2, "critical"), HeldArm("arm-008", "bad file", 0, None)]
+    said = json.loads(fleet_summary([], 1.0, held=held))
+    assert said["counts"]["alarmed_devices"] == {"critical": 1, "warning": 0}, said["counts"]
+    assert said["counts"]["devices"] == 0  # arms with a card
+    assert said["held"][0] == {
+        "device": "arm-007",
+        "why": "bad file",
+        "unacknowledged": 2,
+        "alarm_severity": "critical",
+    }
+    assert [h["device"] for h in said["held"]] == ["arm-007", "arm-008"]
+    assert json.loads(fleet_summary([], 1.0))["held"] == []
 
 
 def test_an_empty_fleet_page_names_the_filter_and_what_to_check_until_an_arm_is_heard(
@@ -121,6 +138,18 @@ def test_an_arm_held_by_its_refused_calibration_has_a_page_that_says_so(
         return [n for n in fleet_document(agent.http_url)["notices"] if n.startswith("arm-007's calibration")]
 
     wait_for(named, 60, "the Fleet page's notice naming arm-007")
+
+    def alarmed() -> dict[str, Any] | None:
+        doc = fleet_document(agent.http_url)
+        return doc if doc["held"] and doc["held"][0]["unacknowledged"] == 2 else None
+
+    # The document lists it with its two alarms waiting (the stall's current and load), and counts it among
+    # the arms alarmed, as /alarms does.
+    doc = wait_for(alarmed, 60, "arm-007 held with its two alarms waiting")
+    (held,) = doc["held"]
+    assert held["device"] == "arm-007" and "shoulder_pan" in held["why"], held
+    assert held["alarm_severity"] == "critical", held
+    assert doc["counts"]["alarmed_devices"][held["alarm_severity"]] == 1, doc["counts"]
     page = chromium_page
     page.goto(agent.http_url + "/")
     # Its notice leads to its page, where its alarms are: the Fleet page has no card for it.

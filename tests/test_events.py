@@ -510,7 +510,7 @@ def test_a_worker_behind_its_input_shows_its_arms_online_and_says_how_far_behind
         report = mirror.report()
         assert {d.health.status for d in report.devices.values()} == {DeviceStatus.ONLINE}
         assert report.worker.behind_s == pytest.approx(2.0)
-        _, (notice,), _ = console.fleet_parts(mirror)  # the Fleet page's parts
+        _, (notice,), _, _ = console.fleet_parts(mirror)  # the Fleet page's parts
         assert notice.startswith("the agent is 2.0 s behind the arms' messages")
         assert "docs/scaling.md" in notice
         clock.now = 1003.0  # nothing more comes: an empty turn, and the silence is real
@@ -553,7 +553,7 @@ def test_a_worker_held_in_one_batch_shows_its_lag_growing() -> None:
         assert mirror.behind_s == pytest.approx(5.0)
         assert mirror.report().worker.behind_s == pytest.approx(5.0)
         assert {r.behind_s for r in mirror.fleet_rows()} == {5.0}
-        _, (notice,), _ = console.fleet_parts(mirror)
+        _, (notice,), _, _ = console.fleet_parts(mirror)
         assert notice.startswith("the agent is 5.0 s behind the arms' messages")
     finally:
         release.set()

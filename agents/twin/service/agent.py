@@ -63,9 +63,11 @@ from twin.service.config import AgentConfig, ConfigError, pool_settings
 from twin.service.console import (
     ArmView,
     FleetRow,
+    HeldArm,
     Listening,
     SessionCatalog,
     device_rows,
+    held_arms,
     rerun_viewer_url,
 )
 from twin.service.event_journal import EventJournal
@@ -1114,6 +1116,14 @@ class AgentService:
             if device not in shown
         ]
         return _named_then_counted(lines, "held the same way")
+
+    def held_arms(self, shown: Collection[str] = ()) -> list[HeldArm]:
+        """Every arm `_held_notices` names (it names five), with its alarms, for the Fleet page's links and
+        counts: no row has them. Only with an arm held does a console tick ask the mirrors their alarms."""
+        problems = {d: why for d, why in self._held_problems().items() if d not in shown}
+        if not problems:
+            return []
+        return held_arms(problems, [a for a in self.alarms() if a.device in problems])
 
     def broker_notices(self) -> list[str]:
         """/healthz's reasons from the broker: each topic filter it refuses (the arms it covers are never

@@ -4,7 +4,8 @@ The fleet page of a 2,000-arm fleet must not receive 2,000 full device states (~
 gets one row per arm with what a card shows (status, last seen, rate, loss, worst alarm, hottest servo), as
 arrays under one list of column names, built once per tick from the state every client shares
 (`fleet_summary`), with the notices a card cannot show (a subscription the broker refuses) and what the agent
-listens on (for the page's word while no arm has been heard from). An arm's page
+listens on (for the page's word while no arm has been heard from), and the arms held by a refused calibration,
+which have no row but whose alarms are raised (`HeldArm`). An arm's page
 gets that arm's full state and its alarms (`arm_document`), read from its own mirror where the source can
 (`ArmViewSource`), otherwise cut from the whole state (`arm_view_of`).
 
@@ -42,6 +43,8 @@ __all__ = [
     "EventSource",
     "FleetRow",
     "FleetRowSource",
+    "HeldArm",
+    "HeldSource",
     "Listening",
     "ListeningSource",
     "NoticeSource",
@@ -54,6 +57,7 @@ __all__ = [
     "fleet_row",
     "fleet_rows",
     "fleet_summary",
+    "held_arms",
     "not_found_page",
     "render_page",
     "rerun_viewer_url",
@@ -218,6 +222,34 @@ class NoticeSource(Protocol):
     def notices(self, shown: Collection[str] = ()) -> list[str]: ...
 
 
+class HeldArm(msgspec.Struct, frozen=True):
+    """An arm held by its calibration file, refused at the agent's start, with no card: its messages are
+    refused, yet its servos' alarms are raised. The Fleet page links it to its page, which lists them."""
+
+    device: str
+    why: str  # the refusal, as the arm's page and its notice say it
+    unacknowledged: int = 0  # how many of its alarms wait for a person: ACTIVE, or LATCHED
+    alarm_severity: str | None = None  # its worst alarm that is not NORMAL: critical | warning | null
+
+
+@runtime_checkable
+class HeldSource(Protocol):
+    """The optional part of the service surface that lists the arms held by a refused calibration, every
+    one (the notices name five), but those in `shown`, which have a card."""
+
+    def held_arms(self, shown: Collection[str] = ()) -> list[HeldArm]: ...
+
+
+def held_arms(problems: Mapping[str, str], alarms: Sequence[AlarmInfo]) -> list[HeldArm]:
+    """The arms of `problems` (device: why it is held), by id, each with its `alarms` (worst first)."""
+    worst = _worst_alarms(alarms)
+    waiting = Counter(a.device for a in alarms if a.state in WAITING_STATES)
+    return [
+        HeldArm(device, why, waiting[device], worst[device].severity if device in worst else None)
+        for device, why in sorted(problems.items())
+    ]
+
+
 class Listening(NamedTuple):
     """What the agent subscribes to, and whether every connection to its broker is up: the fleet page says so
     while no arm has been heard from, the moment a new user is most likely to be looking at an empty page."""
@@ -249,13 +281,20 @@ class StateReader(Protocol):
     def state(self) -> AgentState: ...
 
 
-FleetParts = tuple[Sequence[FleetRow], list[str], Listening | None]
+class FleetParts(NamedTuple):
+    """What `fleet_summary` makes the fleet document of."""
+
+    rows: Sequence[FleetRow]
+    notices: list[str]
+    listening: Listening | None
+    held: list[HeldArm]
 
 
 def fleet_parts(
     source: StateReader, state: AgentState | None = None, alarms: Sequence[AlarmInfo] | None = None
 ) -> FleetParts:
-    """The fleet document's parts: its rows, its notices and what the agent listens on. The rows are the
+    """The fleet document's parts: its rows, its notices, what the agent listens on and the arms held with
+    no card (a source that is no HeldSource holds none). The rows are the
     source's own when it can give them without its whole state (`FleetRowSource`), else made from `state`
     and `alarms`, each read from the source when not given. Blocking (it reads the agent under its locks):
     the console's HTTP handler and its stream both call it in one hop to a thread."""
@@ -267,8 +306,10 @@ def fleet_parts(
         if alarms is None:
             alarms = source.alarms() if isinstance(source, AlarmLister) else ()
         rows = fleet_rows(state, alarms)
-    notices, listening = fleet_notes(source, {row.device for row in rows})
-    return rows, [*behind_notice(rows), *notices], listening
+    shown = {row.device for row in rows}
+    notices, listening = fleet_notes(source, shown)
+    held = source.held_arms(shown) if isinstance(source, HeldSource) else []
+    return FleetParts(rows, [*behind_notice(rows), *notices], listening, held)
 
 
 def behind_notice(rows: Sequence[FleetRow]) -> list[str]:
@@ -376,15 +417,20 @@ def fleet_summary(
     time_s: float,
     notices: Sequence[str] = (),
     listening: Listening | None = None,
+    *,
+    held: Sequence[HeldArm] = (),
 ) -> bytes:
-    """The fleet page's document: {"time", "columns", "rows", "counts", "notices", "listening"} (module
-    doc); "listening" is {"filters", "connected", "stopping"}, or null from a source that does not say."""
+    """The fleet page's document: {"time", "columns", "rows", "counts", "notices", "listening", "held"}
+    (module doc); "listening" is {"filters", "connected", "stopping"}, or null from a source that does not
+    say; "held" the arms held by a refused calibration, with no row (HeldArm)."""
     statuses: dict[str, int] = {"ONLINE": 0, "STALE": 0, "OFFLINE": 0}
     severities: dict[str, int] = {"critical": 0, "warning": 0}
     for row in rows:
         statuses[row.status] = statuses.get(row.status, 0) + 1
-        if row.alarm_severity:
-            severities[row.alarm_severity] = severities.get(row.alarm_severity, 0) + 1
+    # A held arm's alarms are raised as a row's: the page counted fewer arms alarmed than /alarms listed.
+    for severity in [*(row.alarm_severity for row in rows), *(arm.alarm_severity for arm in held)]:
+        if severity:
+            severities[severity] = severities.get(severity, 0) + 1
     return msgspec.json.encode(
         {
             "time": time_s,
@@ -401,6 +447,7 @@ def fleet_summary(
                     "stopping": listening.stopping,
                 }
             ),
+            "held": list(held),
         }
     )
 

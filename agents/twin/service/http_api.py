@@ -707,8 +707,8 @@ class AgentHttpServer:
         return await self._call(source.alarms)
 
     async def _api_fleet(self, request: Request) -> Response:
-        rows, notices, listening = await self._call(functools.partial(fleet_parts, self._source))
-        return _json(200, fleet_summary(rows, time.time(), notices, listening))
+        rows, notices, listening, held = await self._call(functools.partial(fleet_parts, self._source))
+        return _json(200, fleet_summary(rows, time.time(), notices, listening, held=held))
 
     async def _api_arm(self, request: Request) -> Response:
         device = request.path_params["device"]

@@ -204,8 +204,9 @@ class StreamHub:
             alarms = await asyncio.to_thread(source.alarms)
         if fleet:
             # The rows and the notices in one hop to a thread: both read the agent under its locks.
-            rows, notices, listening = await asyncio.to_thread(fleet_parts, source, state, alarms)
-            self._publish(FLEET, sse_frame("fleet", fleet_summary(rows, time.time(), notices, listening)))
+            rows, notices, listening, held = await asyncio.to_thread(fleet_parts, source, state, alarms)
+            doc = fleet_summary(rows, time.time(), notices, listening, held=held)
+            self._publish(FLEET, sse_frame("fleet", doc))
         for topic in arms:
             device = topic[len(ARM_PREFIX) :]
             view = await asyncio.to_thread(arm_view_of, source, device, state, alarms)
