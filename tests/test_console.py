@@ -2134,6 +2134,59 @@ def test_the_fleet_page_acknowledges_the_alarms_of_the_arms_shown(
     assert browser_errors == []
 
 
+def held_arm(device: str, unacknowledged: int, severity: str | None) -> dict[str, Any]:
+    """An arm held by its refused calibration, as the Fleet document lists it under "held"."""
+    why = "no 'homing_offset' for shoulder_pan"
+    return {"device": device, "why": why, "unacknowledged": unacknowledged, "alarm_severity": severity}
+
+
+def held_notices(devices: list[str]) -> list[str]:
+    """The agent's notices for held arms (agent.py's _held_notices): five by name, then a count."""
+    lines = [
+        f"{d}'s calibration in the store is refused (bad), so its messages are refused and its twin does not "
+        f"move (its servos' alarms are still checked): push a valid one (twin calibration push {d} FILE)"
+        for d in devices[:5]
+    ]
+    more = len(devices) - 5
+    counted = f"and {more} more arm(s) held the same way (the Events page names them)"
+    return [*lines, counted] if more > 0 else lines
+
+
+def test_the_fleet_page_links_every_held_arm_with_its_alarms_waiting(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """A held arm has no card, and its notice was linked to its page by matching the notice's words: the
+    sixth and later held arms, only counted, had no link at all, though their alarms were raised. The page
+    links every arm of the document's "held", with how many alarms wait, and keeps the notices' text."""
+    devices = [f"arm-h{k}" for k in range(1, 8)]
+    doc = made_fleet(console, {"arm-x": alarmed(None, None, 0)})
+    doc["held"] = [held_arm(d, 0, None) for d in devices[:-1]] + [held_arm("arm-h7", 2, "critical")]
+    doc["notices"] = held_notices(devices)
+    links_js = (
+        "() => Object.fromEntries([...document.querySelectorAll('#fleet-notices a.held-arm')]"
+        ".map(a => [a.dataset.device, [a.getAttribute('href'), a.textContent]]))"
+    )
+    serve_document(page, "/api/fleet", "fleet", doc)
+    try:
+        page.goto(console + "/")
+        page.locator("#fleet-notices", has_text="and 2 more arm(s) held the same way").wait_for()
+        page.wait_for_function(f"() => Object.keys(({links_js})()).length === {len(devices)}")
+        links = page.evaluate(links_js)
+        assert {d: href for d, (href, _) in links.items()} == {d: f"/arm/{d}" for d in devices}, links
+        assert "2 alarms waiting" in links["arm-h7"][1] and "waiting" not in links["arm-h6"][1], links
+        # Past five, the links fold away as the notices do, and open to be followed.
+        page.locator("#held-arms summary").click()
+        page.locator('#fleet-notices a.held-arm[data-device="arm-h7"]').wait_for(state="visible")
+        # ... and stay open when the next document redraws them (twice a second from a live agent).
+        updates = page.evaluate("() => window.twinUpdates")
+        page.wait_for_function("(n) => window.twinUpdates > n", arg=updates)
+        assert page.evaluate("() => document.querySelector('details#held-arms').open")
+    finally:
+        unserve(page, "/api/fleet")
+        leave(page)
+    assert browser_errors == []
+
+
 def test_the_fleet_page_keeps_its_filters_in_its_address(
     console: str, page: Any, browser_errors: list[str]
 ) -> None:

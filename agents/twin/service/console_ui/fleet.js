@@ -11,6 +11,8 @@
   const PHONE = window.matchMedia("(max-width: 700px)");
   let rowH = ROW_H;
   let columns = {}, rows = [], shown = [], now = Date.now() / 1000, listening = null;
+  // The arms held by a refused calibration (the document's "held"): no card, yet their alarms are raised.
+  let held = [];
   // Until the agent's first document arrives the page knows nothing of the fleet: it must not say that no
   // arm has been heard from (a slow first answer showed that bare line to a new user).
   let loaded = false;
@@ -327,14 +329,26 @@
       "IoT Core drops, without a word, what an identity may not iot:Receive (docs/agent.md, IAM permissions).";
   }
 
-  // An arm held by its refused calibration has no card, yet its servos' alarms are raised: its notice (the
-  // agent's words, agent.py's _held_notices) links to its page, which lists them to acknowledge.
-  const HELD = /^(\S+)'s calibration in the store is refused \(/;
-  function notice(text) {
-    const arm = HELD.exec(text);
-    if (!arm) return el("p", { text });
-    return el("p", {}, text + " ", el("a", { href: "/arm/" + encodeURIComponent(arm[1]), class: "held-arm",
-      "data-device": arm[1], text: `Open ${arm[1]}'s page: its alarms, to acknowledge` }));
+  // An arm held by its refused calibration has no card, yet its servos' alarms are raised: each one is
+  // linked to its page, which lists them to acknowledge. Every one, from the document's list (the notices
+  // name five and count the rest); past five folded, as the notices are, kept open across updates.
+  const HELD_SHOWN = 5;
+  function plural(n) { return n === 1 ? "" : "s"; }
+  function heldLink(h) {
+    const n = h.unacknowledged, text = n ? `${h.device}: ${n} alarm${plural(n)} waiting` : h.device;
+    return el("a", { href: "/arm/" + encodeURIComponent(h.device), class: "held-arm", "data-device": h.device,
+      title: h.why, text });
+  }
+  function heldLinks() {
+    if (!held.length) return [];
+    const links = held.flatMap((h, i) => [i ? " · " : "", heldLink(h)]);
+    const line = el("p", {}, "Each held arm's page lists its servos' alarms, to acknowledge: ", ...links);
+    if (held.length <= HELD_SHOWN) return [Object.assign(line, { id: "held-arms" })];
+    const waiting = held.reduce((sum, h) => sum + h.unacknowledged, 0);
+    const summary = `The ${held.length} held arms' pages (${waiting} alarm${plural(waiting)} waiting)`;
+    const box = el("details", { id: "held-arms" }, el("summary", { text: summary }), line);
+    box.open = Boolean(document.querySelector("details#held-arms[open]"));
+    return [box];
   }
 
   let updates = 0, updateTotalMs = 0;
@@ -364,7 +378,8 @@
       said.unshift("The agent is not connected to its broker: no arm's messages reach it, so every arm " +
         "goes STALE, then OFFLINE, whatever it does. GET /healthz says why; the Events page says when.");
     }
-    notices.replaceChildren(...said.map(notice));
+    held = doc.held || [];
+    notices.replaceChildren(...said.map((text) => el("p", { text })), ...heldLinks());
     notices.hidden = !notices.childElementCount;
     filter();
     render();
