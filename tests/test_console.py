@@ -2187,6 +2187,47 @@ def test_the_fleet_page_links_every_held_arm_with_its_alarms_waiting(
     assert browser_errors == []
 
 
+def test_the_fleet_page_acknowledges_the_alarms_of_the_held_arms_shown(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """A held arm's alarms are shown by its link (with how many wait), so "Acknowledge shown" takes them as
+    it takes a card's, under the same search and alarm filter (none under a status filter: a held arm has no
+    status), and its confirmation says how many of them are of which held arm. Made document and answers."""
+    doc = made_fleet(console, {"arm-x": alarmed("warning", "ACTIVE", 1)})
+    doc["held"] = [held_arm("arm-h", 2, "critical")]
+    made = [
+        made_alarm("arm-x", "elbow_flex", "over_temperature", "ACTIVE"),
+        made_alarm("arm-h", "elbow_flex", "over_temperature_critical", "ACTIVE"),
+        made_alarm("arm-h", "wrist_roll", "overload", "LATCHED"),
+        made_alarm("arm-q", "wrist_roll", "overload", "ACTIVE"),  # no card, not held: not shown
+    ]
+    sent: list[tuple[list[str], str, str]] = []
+    with fleet_of_made_alarms(page, doc, made, bulk_answer(made, sent, cleared=set())):
+        page.goto(console + "/")
+        shown = page.locator("#ack-shown:not([disabled])", has_text="Acknowledge shown (3)")
+        shown.wait_for()
+        # Not under a search that leaves it out, nor under a status filter; kept by an alarm filter it passes.
+        page.get_by_label("search by id").fill("arm-x")
+        page.locator("#ack-shown", has_text="Acknowledge shown (1)").wait_for()
+        page.get_by_label("search by id").fill("")
+        page.get_by_label("status").select_option("ONLINE")
+        page.locator("#ack-shown", has_text="Acknowledge shown (1)").wait_for()
+        page.get_by_label("status").select_option("")
+        page.get_by_label("alarm").select_option("critical")
+        page.locator("#ack-shown", has_text="Acknowledge shown (2)").wait_for()
+        page.get_by_label("alarm").select_option("")
+        with dialogs_accepted(page) as asked:
+            shown.click()
+            told = answered(page, "#fleet-ack-result")
+    assert len(asked) == 1, asked
+    assert asked[0].startswith("Acknowledge 3 alarms of the 2 arms shown (ACTIVE or LATCHED)"), asked
+    assert "2 of them of the held arm arm-h (no card: linked above)" in asked[0], asked
+    assert len(sent) == 1 and sorted(sent[0][0]) == sorted(a["alarm_id"] for a in made[:3]), sent
+    assert told == "2 arms: 2 acknowledged, 1 reset (it had cleared)", told
+    leave(page)
+    assert browser_errors == []
+
+
 def test_the_fleet_page_keeps_its_filters_in_its_address(
     console: str, page: Any, browser_errors: list[str]
 ) -> None:

@@ -67,19 +67,21 @@
   }
 
   const SEVERITY = { critical: 2, warning: 1 };
+  // Whether the filters let an arm through; a held arm has no status (null), so none passes a status filter.
+  function passes(device, st, sev, waiting) {
+    const q = search.value.trim().toLowerCase(), al = alarm.value;
+    if (q && !device.toLowerCase().includes(q)) return false;
+    if (status.value && st !== status.value) return false;
+    if (al === "any" && !sev) return false;
+    if (al === "none" && sev) return false;
+    if ((al === "critical" || al === "warning") && sev !== al) return false;
+    // Any alarm of the arm waiting for a person (ACTIVE, or LATCHED: cleared, unseen), not only its worst.
+    if (al === "waiting" && !(waiting > 0)) return false;
+    return true;
+  }
   function filter() {
-    const c = columns, q = search.value.trim().toLowerCase(), st = status.value, al = alarm.value;
-    shown = rows.filter((r) => {
-      if (q && !r[c.device].toLowerCase().includes(q)) return false;
-      if (st && r[c.status] !== st) return false;
-      const sev = r[c.alarm_severity];
-      if (al === "any" && !sev) return false;
-      if (al === "none" && sev) return false;
-      if ((al === "critical" || al === "warning") && sev !== al) return false;
-      // Any alarm of the arm waiting for a person (ACTIVE, or LATCHED: cleared, not yet seen), not only its worst.
-      if (al === "waiting" && !(r[c.unacknowledged] > 0)) return false;
-      return true;
-    });
+    const c = columns;
+    shown = rows.filter((r) => passes(r[c.device], r[c.status], r[c.alarm_severity], r[c.unacknowledged]));
     const key = sort.value;
     if (key === "alarm") shown.sort((a, b) => alarmRank(b) - alarmRank(a));
     else if (key === "hot") shown.sort((a, b) => (b[c.hot_c] ?? -1e9) - (a[c.hot_c] ?? -1e9));
@@ -239,17 +241,35 @@
     return node;
   }
 
+  // The held arms the filters let through: their links show their alarms waiting, as a card does its own.
+  function heldShown() {
+    return held.filter((h) => passes(h.device, null, h.alarm_severity, h.unacknowledged));
+  }
+
   function showAckShown() {
-    const n = shown.reduce((sum, r) => sum + (r[columns.unacknowledged] || 0), 0);
+    const n = shown.reduce((sum, r) => sum + (r[columns.unacknowledged] || 0), 0) +
+      heldShown().reduce((sum, h) => sum + h.unacknowledged, 0);
     const text = `Acknowledge shown (${n})`;
     if (ackShown.textContent !== text) ackShown.textContent = text;
     ackShown.disabled = ackBusy || n === 0;
   }
 
-  // The ids are read from /alarms once the operator asks, for the arms shown then; the confirmation says how
-  // many of how many arms, and only those are sent.
+  // What the confirmation adds of the held arms shown, whose alarms would otherwise be taken unannounced.
+  function heldText(alarms, heldDevices) {
+    const mine = alarms.filter((a) => heldDevices.has(a.device));
+    const names = [...new Set(mine.map((a) => a.device))];
+    if (!names.length) return "";
+    const more = names.length > HELD_SHOWN ? ` and ${names.length - HELD_SHOWN} more` : "";
+    return `, ${mine.length} of them of the held arm${plural(names.length)} ` +
+      `${names.slice(0, HELD_SHOWN).join(", ")}${more} (no card: linked above)`;
+  }
+
+  // The ids are read from /alarms once the operator asks, for the arms shown then (with the held arms the
+  // filters let through); the confirmation says how many of how many arms, and only those are sent.
   async function acknowledgeShown() {
+    const heldDevices = new Set(heldShown().filter((h) => h.unacknowledged > 0).map((h) => h.device));
     const devices = new Set(shown.filter((r) => r[columns.unacknowledged] > 0).map((r) => r[columns.device]));
+    for (const device of heldDevices) devices.add(device);
     let alarms;
     try {
       alarms = (await Twin.getJSON("/alarms")).alarms.filter((a) => devices.has(a.device) && WAITING.has(a.state));
@@ -265,7 +285,8 @@
     const arms = new Set(alarms.map((a) => a.device)).size;
     if (!alarms.length) { ackResult.hidden = false; ackResult.className = "ack-ok"; ackResult.textContent = "nothing to acknowledge"; return; }
     if (!window.confirm(`Acknowledge ${alarms.length} alarm${alarms.length === 1 ? "" : "s"} of the ${arms} ` +
-      `arm${arms === 1 ? "" : "s"} shown (ACTIVE or LATCHED)? Each is acknowledged as from its arm's page.`)) return;
+      `arm${arms === 1 ? "" : "s"} shown (ACTIVE or LATCHED)${heldText(alarms, heldDevices)}? Each is ` +
+      "acknowledged as from its arm's page.")) return;
     ackBusy = true;
     showAckShown();
     ackResult.hidden = false;
