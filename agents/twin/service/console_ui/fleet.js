@@ -381,7 +381,11 @@
     listening = doc.listening || null;
     now = doc.time || Date.now() / 1000;
     const s = doc.counts.status, a = doc.counts.alarmed_devices;
-    counts.replaceChildren(el("b", { text: String(doc.counts.devices) }), " arms · ",
+    held = doc.held || [];
+    // The alarm counts take the held arms' worst alarms: "0 arms" beside "critical: 1" read as a wrong count.
+    const heldWord = `${held.length} held, no card`;
+    const heldCount = held.length ? [" · ", el("span", { id: "held-count", text: heldWord })] : [];
+    counts.replaceChildren(el("b", { text: String(doc.counts.devices) }), " arms", ...heldCount, " · ",
       el("span", { class: "status ONLINE", text: `${s.ONLINE} online` }), " · ",
       el("span", { class: "status STALE", text: `${s.STALE} stale` }), " · ",
       el("span", { class: "status OFFLINE", text: `${s.OFFLINE} offline` }), " · ",
@@ -399,7 +403,6 @@
       said.unshift("The agent is not connected to its broker: no arm's messages reach it, so every arm " +
         "goes STALE, then OFFLINE, whatever it does. GET /healthz says why; the Events page says when.");
     }
-    held = doc.held || [];
     notices.replaceChildren(...said.map((text) => el("p", { text })), ...heldLinks());
     notices.hidden = !notices.childElementCount;
     filter();
