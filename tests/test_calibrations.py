@@ -1311,6 +1311,9 @@ def test_a_held_arms_servos_are_still_watched(tmp_path: Path, workers: int, unit
         assert {(a.joint, a.kind) for a in alarms} == kinds, alarms
         arm = agent.state().devices.get("arm-002")
         assert arm is None or arm.joints_rad is None  # held: no pose, whatever its servos say
+        # Listed, it has a card, which says "held" (a review: under auto it read "file refused").
+        (row,) = [r for r in agent.fleet_rows() if r.device == "arm-002"]
+        assert row.uncalibrated and row.calibration_refused, row
         # On the Events page too (collected from the mirrors every half second), where alerts come from.
         told = EventQuery(kinds=frozenset({"alarm"}), device="arm-002")
         wait_for(lambda: [e for e in agent.events(told) if "elbow_flex" in e.message], 30, "its alarm events")

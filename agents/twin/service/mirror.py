@@ -2046,6 +2046,11 @@ class Mirror:
         return self._calibration_sources.get(device) or self.config.telemetry.calibration
 
     def _uncalibrated(self, device: str, units: Units) -> bool:
+        # Held (its own file refused, none kept; degrees use none): no calibration decodes it, neither one
+        # units = auto has yet to decide nor the config's for every arm, whose cards read "file refused".
+        problems, sources = self._calibration_problems, self._calibration_sources  # each replaced whole
+        if units is not Units.DEGREES and device in problems and device not in sources:
+            return True
         return uncalibrated(self._calibration_source(device), units)
 
     def _recording_state(self) -> RecordingState | None:
