@@ -71,7 +71,17 @@ def console(workdir: Path, rig: LocalRig) -> str:
         }
     )
     rig.start_edge(DEVICES, variant="ticks", rate_hz=10.0, servo_faults=HEAT)
-    return agent.http_url
+    url = agent.http_url
+    # Every arm heard before a test reads one: a test that was the first of its worker to use this agent
+    # read arm-001's 404 as its document (tests ran in another order on another xdist worker), and its page
+    # threw on it until the module ended, failing every test after it there.
+    wait_for(
+        lambda: all(http_get(f"{url}/api/arm/{device}")[0] == 200 for device in DEVICES),
+        TIMEOUT_S,
+        "every arm of the console's agent heard",
+        interval=0.2,
+    )
+    return url
 
 
 @pytest.fixture(scope="module")
