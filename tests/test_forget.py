@@ -170,18 +170,28 @@ def test_a_mirror_forgets_an_offline_arm_and_a_later_message_makes_a_new_arm() -
     assert statuses[-1].message == "arm-002 is ONLINE (first message)"
 
 
+def _fleet_mirror(clock: _Clock, places: int) -> Mirror:
+    """A mirror of the whole fleet in ticks, on `clock`, with `places` in its device budget."""
+    settings = {
+        "telemetry.devices": ["*"],
+        "telemetry.units": "ticks",
+        "health.offline_after_s": OFFLINE_AFTER_S,
+    }
+    return Mirror(
+        load_config(None, settings),
+        inbox=PipeInbox(Pipe(duplex=False)[0]),
+        budget=DeviceBudget(places),
+        clock=clock,
+        wall_clock=clock,
+    )
+
+
 def test_an_offline_arm_whose_refused_messages_still_arrive_is_not_forgotten() -> None:
     """An arm whose every message is refused is OFFLINE (its status is of valid messages) yet publishes: a
     held arm listed after a restart for its kept alarms lost them to a forget, and they came back
     unacknowledged. Once it is silent for health.offline_after_s it can be forgotten."""
     clock, rng = _Clock(), random.Random(5)
-    config = load_config(
-        None,
-        {"telemetry.devices": ["*"], "telemetry.units": "ticks", "health.offline_after_s": OFFLINE_AFTER_S},
-    )
-    mirror = Mirror(
-        config, inbox=PipeInbox(Pipe(duplex=False)[0]), budget=DeviceBudget(3), clock=clock, wall_clock=clock
-    )
+    mirror = _fleet_mirror(clock, places=3)
     _round(mirror, clock, ["arm-001"], rng, 0.0)
     topic = telemetry_topic(DEFAULT_TOPIC_PREFIX, "arm-001")
     for _ in range(round(OFFLINE_AFTER_S * 10) + 5):  # garbage only, until it is OFFLINE, and on
@@ -201,13 +211,7 @@ def test_an_arm_kept_for_its_alarms_without_a_place_is_not_forgotten_while_it_pu
     """An arm listed after a restart for its kept alarms takes a place only when one is left: with none, its
     valid messages are refused as too_many_devices, and it still publishes."""
     clock, rng = _Clock(), random.Random(7)
-    config = load_config(
-        None,
-        {"telemetry.devices": ["*"], "telemetry.units": "ticks", "health.offline_after_s": OFFLINE_AFTER_S},
-    )
-    mirror = Mirror(
-        config, inbox=PipeInbox(Pipe(duplex=False)[0]), budget=DeviceBudget(1), clock=clock, wall_clock=clock
-    )
+    mirror = _fleet_mirror(clock, places=1)
     _round(mirror, clock, ["arm-001"], rng, 0.0)  # the one place
     kept = _record("arm-002", "wrist_roll", AlarmKind.OVER_TEMPERATURE, AlarmState.LATCHED, "hot")
     mirror.restore(None, [kept])
