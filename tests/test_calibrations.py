@@ -1314,6 +1314,9 @@ def test_a_held_arms_servos_are_still_watched(tmp_path: Path, workers: int, unit
         # Listed, it has a card, which says "held" (a review: under auto it read "file refused").
         (row,) = [r for r in agent.fleet_rows() if r.device == "arm-002"]
         assert row.uncalibrated and row.calibration_refused, row
+        # ... and is not also listed among the held arms with no card, whose alarms the counts add again.
+        parts = console.fleet_parts(agent)
+        assert "arm-002" in {r.device for r in parts.rows} and not parts.held, parts.held
         # On the Events page too (collected from the mirrors every half second), where alerts come from.
         told = EventQuery(kinds=frozenset({"alarm"}), device="arm-002")
         wait_for(lambda: [e for e in agent.events(told) if "elbow_flex" in e.message], 30, "its alarm events")

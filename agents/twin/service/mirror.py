@@ -1724,7 +1724,7 @@ class Mirror:
             temperatures={j: d.temperature_c for j, d in diagnostics.items()},
             rejected=h.rejected_total,
             alarm=alarm,
-            uncalibrated=self._uncalibrated(
+            uncalibrated=self._card_uncalibrated(
                 device,
                 record.units
                 if record is not None and record.units is not None
@@ -2046,12 +2046,17 @@ class Mirror:
         return self._calibration_sources.get(device) or self.config.telemetry.calibration
 
     def _uncalibrated(self, device: str, units: Units) -> bool:
-        # Held (its own file refused, none kept; degrees use none): no calibration decodes it, neither one
-        # units = auto has yet to decide nor the config's for every arm, whose cards read "file refused".
+        return uncalibrated(self._calibration_source(device), units)
+
+    def _card_uncalibrated(self, device: str, units: Units) -> bool:
+        """The Fleet row's `uncalibrated`, which with `calibration_refused` makes the card say "held": also
+        true of a held arm (its own file refused, none kept; degrees use none), which no calibration
+        decodes, neither one units = auto has yet to decide nor the config's for every arm (its card read
+        "file refused, it keeps the one it had"). /state's flag stays the calibration's alone."""
         problems, sources = self._calibration_problems, self._calibration_sources  # each replaced whole
         if units is not Units.DEGREES and device in problems and device not in sources:
             return True
-        return uncalibrated(self._calibration_source(device), units)
+        return self._uncalibrated(device, units)
 
     def _recording_state(self) -> RecordingState | None:
         if self._recording is None:

@@ -175,7 +175,7 @@ class DeviceState:
     # Where the LeRobot calibration it decodes with came from: its own file in the calibration store, the
     # config's one for every arm, or "" for none (the nominal SO-101). `uncalibrated`: none, while its units
     # (ticks, range100) need one, so its angles are the nominal arm's, not this arm's (docs/agent.md,
-    # "Calibration"); or held, its own file refused with none to keep, so no calibration decodes it.
+    # "Calibration").
     calibration: str = ""
     uncalibrated: bool = False
     # Why its file in the calibration store was refused (it keeps the calibration it had); "" when it was not.
