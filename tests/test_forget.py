@@ -384,13 +384,7 @@ def test_an_arm_with_alarms_kept_over_a_restart_is_listed_before_it_is_heard_aga
     """A walk: after a restart an arm's kept alarms were in /alarms and /metrics, but not on the Fleet page,
     its Arm page said "not known to this agent" and Forget answered 404, until the arm published again."""
     state_file, device = tmp_path / "state.json", "race-1"
-    first = _hot_arm_agent(state_file, workers=1)
-    first.start()
-    try:
-        _heat_until_alarmed(first, device)
-        wait_for(lambda: _saved_alarms(state_file), 30, "the alarm in the state file")
-    finally:
-        first.stop()
+    _alarm_kept_over_a_stop(state_file, device)
     again = _hot_arm_agent(state_file, workers=workers)
     again.start()
     try:
@@ -420,13 +414,7 @@ def test_a_held_arm_listed_after_a_restart_for_its_alarms_is_not_forgotten_while
     (tmp_path / "cal" / "held-1.json").write_text('{"shoulder_pan": {}}')
     state_file, device = tmp_path / "state.json", "held-1"
     store = {"telemetry.calibrations": str(tmp_path / "cal")}
-    first = _hot_arm_agent(state_file, workers=1, **store)
-    first.start()
-    try:
-        _heat_until_alarmed(first, device)
-        wait_for(lambda: _saved_alarms(state_file), 30, "the alarm in the state file")
-    finally:
-        first.stop()
+    _alarm_kept_over_a_stop(state_file, device, **store)
     again = _hot_arm_agent(state_file, workers=1, **store)
     again.start()
     try:
@@ -445,6 +433,18 @@ def test_a_held_arm_listed_after_a_restart_for_its_alarms_is_not_forgotten_while
         assert [a for a in again.alarms() if a.device == device]
     finally:
         again.stop()
+
+
+def _alarm_kept_over_a_stop(state_file: Path, device: str, **overrides: Any) -> None:
+    """An agent of one worker heats `device` until it raises an alarm, waits for the state file to keep
+    it, and stops: the next agent on `state_file` starts with it."""
+    first = _hot_arm_agent(state_file, workers=1, **overrides)
+    first.start()
+    try:
+        _heat_until_alarmed(first, device)
+        wait_for(lambda: _saved_alarms(state_file), 30, "the alarm in the state file")
+    finally:
+        first.stop()
 
 
 def _row_status(agent: AgentService, device: str) -> str | None:
