@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import pickle
 import random
 import time
 import urllib.error
@@ -189,7 +190,8 @@ def _fleet_mirror(clock: _Clock, places: int) -> Mirror:
 def test_an_offline_arm_whose_refused_messages_still_arrive_is_not_forgotten() -> None:
     """An arm whose every message is refused is OFFLINE (its status is of valid messages) yet publishes: a
     held arm listed after a restart for its kept alarms lost them to a forget, and they came back
-    unacknowledged. Once it is silent for health.offline_after_s it can be forgotten."""
+    unacknowledged. Once it is silent for health.offline_after_s it can be forgotten. A worker started again
+    from its checkpoint refuses too, before the arm's next message (it let such a forget through)."""
     clock, rng = _Clock(), random.Random(5)
     mirror = _fleet_mirror(clock, places=3)
     _round(mirror, clock, ["arm-001"], rng, 0.0)
@@ -203,6 +205,11 @@ def test_an_offline_arm_whose_refused_messages_still_arrive_is_not_forgotten() -
     said = str(refused.value)
     assert refused.value.code == "arm_not_offline" and "arm-001 still publishes" in said, said
     assert "was refused (not_json)" in said and "stop its edge" in said, said
+    again = _fleet_mirror(clock, places=3)
+    again.restore(pickle.loads(pickle.dumps(mirror.checkpoint(), protocol=pickle.HIGHEST_PROTOCOL)))
+    with pytest.raises(ArmNotForgettableError) as refused_again:
+        again.forget_arm("arm-001")
+    assert str(refused_again.value) == said
     clock.now += OFFLINE_AFTER_S
     assert mirror.forget_arm("arm-001").status == "OFFLINE"
 

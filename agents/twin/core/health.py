@@ -104,9 +104,24 @@ class HealthSnapshot:
 
 # A HealthCheckpoint as plain values (`DeviceHealth.checkpoint_row`, `HealthCheckpoint.from_row`), which
 # pickle without a call into Python per object: received, decoded, applied, ignored_stale, coalesced,
-# overwritten, errors, clock_resets, clamped, the rejections by reason, then the three times.
+# overwritten, errors, clock_resets, clamped, the rejections by reason, the three times, then the last refused
+# message's arrival and reason.
 HealthRow = tuple[
-    int, int, int, int, int, int, int, int, int, dict[str, int], float | None, float | None, int | None
+    int,
+    int,
+    int,
+    int,
+    int,
+    int,
+    int,
+    int,
+    int,
+    dict[str, int],
+    float | None,
+    float | None,
+    int | None,
+    float | None,
+    str,
 ]
 
 
@@ -120,6 +135,10 @@ class HealthCheckpoint:
     last_message_mono: float | None = None
     last_applied_mono: float | None = None
     last_timestamp_ms: int | None = None
+    # A worker started again refused no forget of an arm whose refused messages still arrived, until the
+    # next one: it did not know of the last (DeviceHealth.last_refused_mono).
+    last_refused_mono: float | None = None
+    last_refused_reason: str = ""
 
     @classmethod
     def from_row(cls, row: HealthRow) -> HealthCheckpoint:
@@ -143,6 +162,8 @@ class HealthCheckpoint:
             last_message_mono=row[10],
             last_applied_mono=row[11],
             last_timestamp_ms=row[12],
+            last_refused_mono=row[13],
+            last_refused_reason=row[14],
         )
 
     def snapshot(self, thresholds: HealthThresholds, now: float, since: float) -> HealthSnapshot:
@@ -388,6 +409,8 @@ class DeviceHealth:
             last_message_mono=self.last_message_mono,
             last_applied_mono=self.last_applied_mono,
             last_timestamp_ms=self.last_timestamp_ms,
+            last_refused_mono=self.last_refused_mono,
+            last_refused_reason=self.last_refused_reason,
         )
 
     def checkpoint_row(self) -> HealthRow:
@@ -407,6 +430,8 @@ class DeviceHealth:
             self.last_message_mono,
             self.last_applied_mono,
             self.last_timestamp_ms,
+            self.last_refused_mono,
+            self.last_refused_reason,
         )
 
     def restore(self, checkpoint: HealthCheckpoint) -> None:
@@ -425,6 +450,8 @@ class DeviceHealth:
         self.last_message_mono = checkpoint.last_message_mono
         self.last_applied_mono = checkpoint.last_applied_mono
         self.last_timestamp_ms = checkpoint.last_timestamp_ms
+        self.last_refused_mono = checkpoint.last_refused_mono
+        self.last_refused_reason = checkpoint.last_refused_reason
 
     def _counters(self) -> DeviceCounters:
         return DeviceCounters(
