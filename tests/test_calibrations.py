@@ -9,6 +9,7 @@ import json
 import os
 import shlex
 import signal
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -1392,6 +1393,55 @@ def test_a_calibration_for_an_arm_not_heard_yet_says_so(tmp_path: Path) -> None:
         assert "ids are case-sensitive: did you mean arm-001?" in upper.message, upper
     finally:
         agent.stop()
+
+
+def test_a_held_arms_card_says_held_while_its_worker_is_started_again(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A held arm's card, drawn from its worker's checkpoint while the worker was started again, read "file
+    refused, it keeps the one it had": with the config's calibration for every arm, /state's flag is off.
+    It says held there too, as the running worker's row does. The new process waits here to be launched."""
+    (tmp_path / "cal").mkdir()
+    (tmp_path / "cal" / "arm-002.json").write_text('{"shoulder_pan": {}}')
+    settings = {"twin.workers": 2, "telemetry.calibration": str(EXAMPLE)}
+    agent = agent_with_store(tmp_path / "cal", **settings)
+    release = threading.Event()
+    agent.start()
+    try:
+        shard = agent._shards[agent.plan.worker_of("arm-002")]
+        ts = [int(time.time() * 1000)]
+
+        def refused_and_kept() -> bool:
+            ts[0] += 100
+            agent.feed("dt/lerobot/arm-002/telemetry", ticks_message("arm-002", ts[0]))
+            arm = agent.state().devices.get("arm-002")
+            checkpoint = shard.checkpoint
+            held = arm is not None and arm.health.counters.rejected.get("calibration_refused", 0) >= 1
+            return held and checkpoint is not None and "arm-002" in checkpoint.devices
+
+        wait_for(refused_and_kept, 60, "arm-002 refused, in its worker's checkpoint", interval=0.1)
+        assert _row(agent, "arm-002").uncalibrated  # the running worker's row: held
+        launch = shard.launch
+
+        def held_launch() -> None:
+            release.wait(120)
+            launch()
+
+        monkeypatch.setattr(shard, "launch", held_launch)
+        os.kill(shard.pid, signal.SIGKILL)
+        wait_for(lambda: _row(agent, "arm-002").mirror == "restarting", 60, "arm-002 restarting")
+        row = _row(agent, "arm-002")
+        assert row.uncalibrated and row.calibration_refused, row
+        release.set()
+        wait_for(lambda: shard.restarts == 1 and shard.answering, 120, "the worker running again")
+    finally:
+        release.set()
+        agent.stop()
+
+
+def _row(agent: AgentService, device: str) -> console.FleetRow:
+    (row,) = [r for r in agent.fleet_rows() if r.device == device]
+    return row
 
 
 @pytest.mark.parametrize("workers", [1, 2], ids=["in-process", "two-worker-processes"])

@@ -1355,7 +1355,8 @@ class AgentService:
         rows = [row for _, part in asked.answers for row in part]
         if asked.silent:
             alarms = sorted(self._checkpoint_alarms(asked.silent, include_normal=False), key=alarm_order)
-            rows.extend(device_rows(self._checkpoint_devices(asked.silent), alarms, time.time()))
+            devices = self._checkpoint_devices(asked.silent)
+            rows.extend(device_rows(devices, alarms, time.time(), held=self._held_problems()))
         return sorted(rows, key=lambda row: row.device)
 
     def arm_view(self, device: str) -> ArmView:

@@ -28,6 +28,7 @@ from typing import NamedTuple, Protocol, runtime_checkable
 import msgspec
 
 from twin.core.alarms import WAITING_STATES
+from twin.core.units import Units
 from twin.robot import so101
 from twin.service.calibrations import push_hint
 from twin.service.events import Event, EventQuery
@@ -385,9 +386,14 @@ def fleet_rows(state: AgentState, alarms: Sequence[AlarmInfo]) -> list[FleetRow]
 
 
 def device_rows(
-    devices: Mapping[str, DeviceState], alarms: Sequence[AlarmInfo], now: float
+    devices: Mapping[str, DeviceState],
+    alarms: Sequence[AlarmInfo],
+    now: float,
+    held: Collection[str] = (),
 ) -> list[FleetRow]:
-    """One row per device state, in the order given; `alarms` worst first, `now` the wall time."""
+    """One row per device state, in the order given; `alarms` worst first, `now` the wall time. `held`: the
+    arms held by a refused calibration, whose card says so (Mirror's Fleet row rule, `_card_uncalibrated`):
+    from a restarting worker's checkpoint such a card read "file refused, it keeps the one it had"."""
     worst = _worst_alarms(alarms)
     waiting = Counter(a.device for a in alarms if a.state in WAITING_STATES)
     rows: list[FleetRow] = []
@@ -403,7 +409,7 @@ def device_rows(
                 temperatures={joint: servo.temperature_c for joint, servo in (d.servos or {}).items()},
                 rejected=sum(d.health.counters.rejected.values()),
                 alarm=(a.severity, a.state, a.kind, a.joint) if a else None,
-                uncalibrated=d.uncalibrated,
+                uncalibrated=d.uncalibrated or (device_id in held and d.units is not Units.DEGREES),
                 mirror=str(d.mirror),
                 unacknowledged=waiting[device_id],
                 calibration_refused=bool(d.calibration_problem),
