@@ -38,6 +38,7 @@ from twin.service.calibrations import (
 )
 from twin.service.config import ConfigError, load_config
 from twin.service.events import EventQuery
+from twin.service.shards import AlarmsRequest
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "robots" / "so101" / "calibration" / "so101_follower_example.json"
@@ -1442,6 +1443,43 @@ def test_a_held_arms_card_says_held_while_its_worker_is_started_again(
 def _row(agent: AgentService, device: str) -> console.FleetRow:
     (row,) = [r for r in agent.fleet_rows() if r.device == device]
     return row
+
+
+def test_a_console_tick_asks_only_the_held_arms_mirror_for_their_alarms(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The Fleet page counts and links a held arm's alarms (it has no card): each tick, twice a second, asked
+    every worker for all its alarms to find them. Only the held arm's worker is asked."""
+    from test_alerts import hot
+
+    (tmp_path / "cal").mkdir()
+    (tmp_path / "cal" / "arm-002.json").write_text('{"shoulder_pan": {}}')
+    settings = {"twin.workers": 2, "telemetry.devices": ["*"], "alarms.temperature_raise_after_s": 0.0}
+    agent = agent_with_store(tmp_path / "cal", **settings)
+    agent.start()
+    try:
+        ts = [int(time.time() * 1000)]
+
+        def raised() -> bool:
+            ts[0] += 100
+            agent.feed("dt/lerobot/arm-002/telemetry", hot("arm-002", ts[0], 68))
+            return len([a for a in agent.alarms() if a.device == "arm-002"]) == 2
+
+        wait_for(raised, 60, "arm-002's heat alarms", interval=0.1)
+        asked: list[int] = []
+        for shard in agent._shards:
+
+            def counted(request: Any, shard: Any = shard, ask: Any = shard.request) -> Any:
+                if isinstance(request, AlarmsRequest):
+                    asked.append(shard.index)
+                return ask(request)
+
+            monkeypatch.setattr(shard, "request", counted)
+        (held,) = agent.held_arms()
+        assert held.device == "arm-002" and held.unacknowledged == 2, held
+        assert asked == [agent.plan.worker_of("arm-002")], asked
+    finally:
+        agent.stop()
 
 
 @pytest.mark.parametrize("workers", [1, 2], ids=["in-process", "two-worker-processes"])

@@ -907,11 +907,13 @@ class AgentService:
 
     # ------------------------------------------------------------------------------------------- requests
 
-    def _ask_all(self, request: Request, read: Callable[[Reply], _T]) -> list[tuple[Shard, _T]]:
-        """`request` to every shard that can answer now, then their answers (worker processes work on it in
-        parallel); a worker that does not answer is logged and left out."""
+    def _ask_all(
+        self, request: Request, read: Callable[[Reply], _T], shards: Sequence[Shard] | None = None
+    ) -> list[tuple[Shard, _T]]:
+        """`request` to every shard (or those of `shards`) that can answer now, then their answers (worker
+        processes work on it in parallel); a worker that does not answer is logged and left out."""
         waiting = []
-        for shard in self._shards:
+        for shard in self._shards if shards is None else shards:
             if not shard.answering:
                 continue
             try:
@@ -926,15 +928,19 @@ class AgentService:
                 log.warning("%s", exc)
         return answers
 
-    def _ask_fleet(self, request: Request, read: Callable[[Reply], _T]) -> _FleetAnswers[_T]:
-        """`_ask_all`, and the shards that gave no answer to it. Readers show those shards' arms and alarms
-        from their latest checkpoints, decided on this one read whatever `restarting` says afterwards: a
-        worker passed over while being started again may be running by the time `restarting` is read (its
-        arms left /state for that read: seen under load), and one that did not answer is not serving them
-        either. An arm and its alarms never leave a reader while its worker restarts."""
-        answers = self._ask_all(request, read)
+    def _ask_fleet(
+        self, request: Request, read: Callable[[Reply], _T], shards: Sequence[Shard] | None = None
+    ) -> _FleetAnswers[_T]:
+        """`_ask_all` (of `shards`, default all), and the shards that gave no answer to it. Readers show
+        those shards' arms and alarms from their latest checkpoints, decided on this one read whatever
+        `restarting` says afterwards: a worker passed over while being started again may be running by the
+        time `restarting` is read (its arms left /state for that read: seen under load), and one that did
+        not answer is not serving them either. An arm and its alarms never leave a reader while its worker
+        restarts."""
+        asked = self._shards if shards is None else shards
+        answers = self._ask_all(request, read, asked)
         answered = {shard.index for shard, _ in answers}
-        silent = tuple(shard for shard in self._shards if shard.index not in answered)
+        silent = tuple(shard for shard in asked if shard.index not in answered)
         return _FleetAnswers(answers, silent)
 
     def _checkpoint_devices(self, silent: Sequence[Shard]) -> dict[str, DeviceState]:
@@ -1119,11 +1125,11 @@ class AgentService:
 
     def held_arms(self, shown: Collection[str] = ()) -> list[HeldArm]:
         """Every arm `_held_notices` names (it names five), with its alarms, for the Fleet page's links and
-        counts: no row has them. Only with an arm held does a console tick ask the mirrors their alarms."""
+        counts: no row has them. Only with an arm held does a console tick ask its mirror their alarms."""
         problems = {d: why for d, why in self._held_problems().items() if d not in shown}
         if not problems:
             return []
-        return held_arms(problems, [a for a in self.alarms() if a.device in problems])
+        return held_arms(problems, [a for a in self.alarms(devices=problems) if a.device in problems])
 
     def broker_notices(self) -> list[str]:
         """/healthz's reasons from the broker: each topic filter it refuses (the arms it covers are never
@@ -1189,10 +1195,16 @@ class AgentService:
             reasons=tuple(reasons),
         )
 
-    def alarms(self, *, include_normal: bool = False) -> tuple[AlarmInfo, ...]:
+    def alarms(
+        self, *, include_normal: bool = False, devices: Collection[str] | None = None
+    ) -> tuple[AlarmInfo, ...]:
         """Servo alarms of every mirror, worst first (GET /alarms); NORMAL ones only when asked. A worker
-        being started again lists its alarms from its latest checkpoint."""
-        asked = self._ask_fleet(AlarmsRequest(include_normal), alarms_of)
+        being started again lists its alarms from its latest checkpoint. With `devices`: only the mirrors
+        of those arms are asked (the others' alarms may come with theirs)."""
+        shards = None
+        if devices is not None:
+            shards = [self._shards[i] for i in sorted({self.plan.worker_of(d) for d in devices})]
+        asked = self._ask_fleet(AlarmsRequest(include_normal), alarms_of, shards)
         merged = [a for _, alarms in asked.answers for a in alarms]
         merged.extend(self._checkpoint_alarms(asked.silent, include_normal=include_normal))
         return tuple(sorted(merged, key=alarm_order))
