@@ -13,6 +13,7 @@ from typing import Any
 
 import pytest
 from twin.core.alarms import (
+    SERVO_ERROR_LEAD,
     AlarmKind,
     AlarmNotFound,
     AlarmState,
@@ -26,6 +27,7 @@ from twin.core.alarms import (
 )
 from twin.core.telemetry import JointDiagnostics
 from twin.robot import so101, sts3215
+from twin.service.shards import alarm_info
 
 DEV = "arm-001"
 STILL: dict[str, Any] = {"velocity_rad_s": 0.0, "moving": False}
@@ -318,6 +320,11 @@ def test_a_servo_error_bit_raises_at_once_and_names_the_servo_and_the_bit() -> N
         "wrist_flex servo (motor id 4) reports an error of its own: overload (status bits 32); its "
         "protection acted and may have cut or limited its torque"
     )
+    # Latched, its value holds no bit: /alarms advised on all six (voltage, calibrate...), not its overload.
+    assert view.state is AlarmState.LATCHED and view.value == 0.0, view
+    advice = alarm_info(view, 0.0, 0.0).advice
+    assert advice.startswith(SERVO_ERROR_LEAD) and "Overload: reduce the payload" in advice, advice
+    assert "Voltage" not in advice and "calibrate" not in advice, advice
 
 
 def test_a_negative_status_names_no_error_bit() -> None:

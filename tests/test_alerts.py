@@ -595,7 +595,8 @@ def test_a_servo_errors_advice_is_for_the_bits_its_servo_set() -> None:
     # Every bit has its own advice.
     assert set(SERVO_ERROR_BIT_ADVICE) == set(sts3215.STATUS_BITS)
     # The console's Arm page and GET /alarms say the same while the bits are set; with none set (the
-    # condition gone, the alarm waiting to clear or latched) the advice covers every bit.
+    # condition gone, the alarm waiting to clear or latched) it is for the bits its raise message names, and
+    # covers every bit only if it names none.
     view = AlarmView(
         alarm_id="arm-003/elbow_flex/servo_error",
         device="arm-003",

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from array import array
 from collections import Counter
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -141,15 +142,32 @@ WHAT_TO_DO_AT: dict[tuple[str, str], str] = {
 }
 
 
-def what_to_do(kind: str, joint: str, value: float | None = None) -> str:
+def what_to_do(kind: str, joint: str, value: float | None = None, message: str = "") -> str:
     """What a person does at the arm about an alarm of `kind` on `joint`'s servo; "" for a kind this agent
-    has no advice for. A servo error's `value` (its set status bits) narrows the advice to those bits."""
-    if kind == AlarmKind.SERVO_ERROR and value is not None and math.isfinite(value):
-        names = sts3215.status_names(int(value))
+    has no advice for. A servo error's `value` (its set status bits) narrows the advice to those bits; with
+    none set (its condition gone: LATCHED, or waiting to clear), the bits its raise `message` names do."""
+    if kind == AlarmKind.SERVO_ERROR:
+        names = _error_names(value) or _error_names(_raised_bits(message))
         if names:
             advice = (SERVO_ERROR_BIT_ADVICE_AT.get((joint, n)) or SERVO_ERROR_BIT_ADVICE[n] for n in names)
             return " ".join([SERVO_ERROR_LEAD, *advice])
     return WHAT_TO_DO_AT.get((joint, kind)) or WHAT_TO_DO.get(kind, "")
+
+
+def _error_names(value: float | None) -> tuple[str, ...]:
+    if value is None or not math.isfinite(value):
+        return ()
+    return sts3215.status_names(int(value))
+
+
+# A servo error's raise message gives its bits as "(status bits N)" (`_describe`): a LATCHED error's value
+# is the register's now, no bit set, and whoever acknowledges it got the advice for all six bits.
+_RAISED_BITS = re.compile(r"\(status bits (\d+)\)")
+
+
+def _raised_bits(message: str) -> float | None:
+    found = _RAISED_BITS.search(message)
+    return float(found.group(1)) if found else None
 
 
 UNITS: dict[AlarmKind, str] = {
@@ -1739,6 +1757,7 @@ def _describe(joint: str, kind: AlarmKind, value: float, rule: Hysteresis, model
         )
     if kind is AlarmKind.SERVO_ERROR:
         bits = int(value)
+        # "(status bits N)": what a LATCHED error's advice is for (`_raised_bits`).
         return (
             f"{servo} reports an error of its own: {', '.join(sts3215.status_names(bits))} (status bits "
             f"{bits}); its protection acted and may have cut or limited its torque"

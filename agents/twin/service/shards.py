@@ -1514,7 +1514,7 @@ def alarm_info(view: AlarmView, now_mono: float, now_wall: float) -> AlarmInfo:
         changed_at=now_wall - (now_mono - view.since),
         raised=view.raised,
         message=view.message,
-        advice=what_to_do(str(view.kind), view.joint, view.value),
+        advice=what_to_do(str(view.kind), view.joint, view.value, view.message),
     )
 
 
