@@ -196,6 +196,25 @@ def test_a_file_nested_too_deeply_is_set_aside_and_not_adopted(tmp_path: Path) -
     assert not (tmp_path / "adopted.json").exists()
 
 
+def test_an_unknown_kind_alarm_nested_near_the_parsers_limit_sets_the_file_aside(tmp_path: Path) -> None:
+    """An alarm of an unknown kind is carried and written back as read: nested hundreds of levels deep, under
+    json.loads' limit, the file loaded, and every save from a thread a little deeper in its stack raised
+    RecursionError in json.dumps. Such a file is set aside as a bad one."""
+    path = tmp_path / "state.json"
+    store = StateFile(path)
+    assert store.save([_record(AlarmState.ACKNOWLEDGED)], 110.0, 1e6)
+    document = json.loads(path.read_text())
+    odd = {**document["alarms"][0], "kind": "a_future_kind", "extra": "@"}
+    text = json.dumps({**document, "alarms": [*document["alarms"], odd]})
+    deep = text.replace('"@"', "[" * 900 + "]" * 900)
+    path.write_text(deep)
+    later = StateFile(path)
+    assert later.load(5.0, 1e6 + 60) == []
+    assert (tmp_path / "state.json.bad").read_text() == deep
+    assert "nested more than 32 levels deep" in later.stats().last_error, later.stats().last_error
+    assert later.save([], 6.0, 1e6 + 61)
+
+
 def test_a_file_written_whole_keeps_its_mode_and_a_new_one_gets_the_umasks(tmp_path: Path) -> None:
     """The temporary file is 0600: renamed as it was, a calibration root pushed into a directory store was
     one the agent's own user could no longer read (its next read: Permission denied)."""

@@ -366,6 +366,10 @@ def _document_of(text: str | bytes) -> dict[str, Any]:
     return document
 
 
+# An alarm entry is an object of scalars: a newer agent's may add some nesting, not hundreds of levels.
+MAX_CARRIED_DEPTH = 32
+
+
 def _split_unknown_kinds(document: dict[str, Any]) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """The document without its alarms of kinds this agent does not know, and those alarms. An agent rolled
     back to a version without a kind would otherwise refuse the whole file, and with it every acknowledgement
@@ -379,7 +383,26 @@ def _split_unknown_kinds(document: dict[str, Any]) -> tuple[dict[str, Any], list
     for item in alarms:
         kind = item.get("kind") if isinstance(item, dict) else None
         (unknown if isinstance(kind, str) and kind not in known_kinds else known).append(item)
+    for item in unknown:
+        if _depth(item) > MAX_CARRIED_DEPTH:
+            # Carried as read, it is written back with each save: nested near the parser's limit, it loaded
+            # and every save after raised RecursionError in json.dumps.
+            raise StateFileError(
+                f"alarm {str(item.get('alarm_id', item['kind']))[:80]!r} of an unknown kind is nested more "
+                f"than {MAX_CARRIED_DEPTH} levels deep, which no agent writes"
+            )
     return {**document, "alarms": known}, unknown
+
+
+def _depth(value: Any) -> int:
+    """How deeply `value` (parsed JSON) nests lists and objects, without recursion."""
+    deepest, stack = 0, [(value, 1)]
+    while stack:
+        item, depth = stack.pop()
+        deepest = max(deepest, depth)
+        children = item.values() if isinstance(item, dict) else item if isinstance(item, list) else ()
+        stack.extend((child, depth + 1) for child in children if isinstance(child, dict | list))
+    return deepest
 
 
 def records_of(document: dict[str, Any], now_mono: float, now_wall: float) -> list[AlarmRecord]:
