@@ -712,6 +712,18 @@ def test_push_refuses_a_leader_arms_calibration(tmp_path: Path, capsys: pytest.C
     follower.parent.mkdir(parents=True)
     follower.write_bytes(EXAMPLE.read_bytes())
     assert main(["calibration", "push", "arm-001", str(follower), "--store", store]) == cmd.EXIT_OK
+    # Another robot type's follower (Koch) names its motors as the SO-101's: taken, it decoded at its angles.
+    koch = tmp_path / "calibration" / "robots" / "koch_follower" / "arm-001.json"
+    koch.parent.mkdir(parents=True)
+    koch.write_bytes(EXAMPLE.read_bytes())
+    assert main(["calibration", "push", "arm-001", str(koch), "--store", store]) == cmd.EXIT_USAGE
+    err = capsys.readouterr().err
+    assert "is a koch_follower robot's calibration" in err and "robots/so_follower/<id>.json" in err, err
+    for name in ("so100_follower", "so101_follower", "bi_so100_follower"):
+        other = tmp_path / "calibration" / "robots" / name / "arm-001.json"
+        other.parent.mkdir(parents=True)
+        other.write_bytes(EXAMPLE.read_bytes())
+        assert main(["calibration", "push", "arm-001", str(other), "--store", store]) == cmd.EXIT_OK, name
 
 
 def test_decode_and_the_config_refuse_a_leader_arms_calibration_as_push_does(

@@ -13,6 +13,7 @@ never uses it; it is loaded only so a file round-trips and a bad value is caught
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +29,9 @@ MAX_FILE_BYTES = 64 * 1024
 # Where LeRobot keeps a leader arm's calibration (calibration/teleoperators/so_leader/<id>.json, beside the
 # follower's robots/so_follower/): the same six motor names, so only its place tells it apart.
 LEADER_DIRECTORIES = frozenset({"teleoperators", "so_leader", "so100_leader", "so101_leader"})
+# LeRobot keeps each robot type's under calibration/robots/<type>/; another follower (koch_follower) names its
+# motors as the SO-101's, ids 1 to 6, so its file parses too and would decode the arm at its angles.
+SO_FOLLOWER_DIRECTORY = re.compile(r"(bi_)?so(\d+)?_follower")
 FOLLOWER_FILE = "~/.cache/huggingface/lerobot/calibration/robots/so_follower/<id>.json"
 
 
@@ -170,10 +174,18 @@ def _validate_motors(motors: Mapping[str, MotorCalibration], source: str) -> dic
 
 
 def leader_problem(path: str | Path) -> str | None:
-    """What is wrong when `path` is where LeRobot keeps a leader arm's calibration, to follow the path in a
-    message (the caller adds what to do with the follower's file); None when it is not there."""
-    leader = LEADER_DIRECTORIES.intersection(Path(path).expanduser().parts)
+    """What is wrong when `path` is where LeRobot keeps a leader arm's calibration, or another robot type's
+    than an SO follower, to follow the path in a message (the caller adds what to do with the follower's
+    file); None when it is not there."""
+    parts = Path(path).expanduser().parts
+    leader = LEADER_DIRECTORIES.intersection(parts)
     if not leader:
+        folder = parts[-2] if len(parts) >= 2 else ""
+        if folder.endswith("_follower") and not SO_FOLLOWER_DIRECTORY.fullmatch(folder):
+            return (
+                f"is a {folder} robot's calibration (LeRobot keeps each robot type's under its own folder): "
+                f"this twin is of an SO-101 follower arm, whose file is {FOLLOWER_FILE}"
+            )
         return None
     # A leader's file parses like the follower's, and would decode the follower at wrong angles.
     return (
