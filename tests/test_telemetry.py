@@ -845,7 +845,15 @@ def test_an_arm_whose_own_calibration_was_refused_is_held_not_decoded_with_anoth
     assert "arm-001" in text and "wrist_roll" in text and "twin calibration push arm-001" in text
     # Nothing kept for it: a restore would only exit 1, so none is offered.
     assert "restore" not in text, text
+    assert "rather than decode with the config's, another arm's:" in text, text
     assert dec.decode(payload(TICKS_EXAMPLE, device="arm-002")).device_id == "arm-002"  # others decode
+    # With no calibration in the config, the refusal named "the config's, another arm's", which is none.
+    bare = decoder(Units.TICKS)
+    bare.set_calibrations({}, held={"arm-001": "entry 'wrist_roll' is missing"})
+    with pytest.raises(TelemetryRejected) as info:
+        bare.decode(payload(TICKS_EXAMPLE))
+    said = str(info.value)
+    assert "rather than decode with the nominal SO-101's zero and range, not this arm's:" in said, said
     # The agent's own store goes into each command, so they reach the store it reads; a restore is offered
     # once the store keeps a calibration for the arm.
     dec.set_calibrations(

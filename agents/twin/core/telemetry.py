@@ -110,7 +110,15 @@ def _uses_calibration(units: Units, positions: list[int | float]) -> bool:
     return units is not Units.DEGREES
 
 
-def _held(device_id: str, why: str, store_option: str, restorable: bool) -> TelemetryRejected:
+# What a held arm would decode with instead (`_held`): with no calibration in the config, it was told the
+# config's was another arm's.
+_FALLBACK = {
+    True: "the config's, another arm's",
+    False: "the nominal SO-101's zero and range, not this arm's",
+}
+
+
+def _held(device_id: str, why: str, store_option: str, restorable: bool, fallback: bool) -> TelemetryRejected:
     # `restore` only when the store keeps a valid calibration for the arm: else it exits 1, a dead end.
     restore = (
         f", put the one it replaced back (`twin calibration restore {device_id}{store_option}`)"
@@ -120,7 +128,7 @@ def _held(device_id: str, why: str, store_option: str, restorable: bool) -> Tele
     return TelemetryRejected(
         RejectReason.CALIBRATION_REFUSED,
         f"the calibration of {device_id} in the store was refused ({why}); the twin holds still rather than "
-        f"decode with the config's, another arm's: push a good file (`twin calibration push {device_id} "
+        f"decode with {_FALLBACK[fallback]}: push a good file (`twin calibration push {device_id} "
         f"FILE{store_option}`){restore}, or remove it",
     )
 
@@ -672,7 +680,13 @@ class TelemetryDecoder:
         readings: tuple[JointReading, ...] = _readings_of(msg.joints)
         positions = [r.position for r in readings]
         if self._held and device_id in self._held and _uses_calibration(units, positions):
-            held = _held(device_id, self._held[device_id], self._store_option, device_id in self._restorable)
+            held = _held(
+                device_id,
+                self._held[device_id],
+                self._store_option,
+                device_id in self._restorable,
+                self.config.calibration is not None,
+            )
             # Temperatures, loads and currents need no calibration: the servos are watched while the pose
             # waits for a good file. The variant as units=auto would judge this message.
             variant = units if units is not Units.AUTO else _evidence(positions) or Units.TICKS
