@@ -944,6 +944,12 @@ def _write(tmp_path: Path, data: Any) -> Path:
     return path
 
 
+def _example_without(joint: str) -> dict:
+    data = json.loads(EXAMPLE_CALIBRATION.read_text())
+    del data[joint]
+    return data
+
+
 def _example_with(joint: str, key: str, value: Any) -> dict:
     data = json.loads(EXAMPLE_CALIBRATION.read_text())
     data[joint][key] = value
@@ -967,6 +973,11 @@ def _example_with(joint: str, key: str, value: Any) -> dict:
         # Six motors and one key more: that key is named, not taken for a motor lacking its fields.
         ({**json.loads(EXAMPLE_CALIBRATION.read_text()), "elbow_roll": 5}, r"\(unknown elbow_roll\)"),
         ({**json.loads(EXAMPLE_CALIBRATION.read_text()), "meta": {"note": "x"}}, r"\(unknown meta\)"),
+        # ... and five with it: the missing motor and the key are named, not "motor 'meta' lacks id".
+        (
+            {**_example_without("wrist_roll"), "meta": {"note": "x"}},
+            r"\(missing wrist_roll; unknown meta\)",
+        ),
         # A walk: these two were taken, or refused without saying why.
         (
             _example_with("wrist_flex", "id", 17),

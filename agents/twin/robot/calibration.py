@@ -87,9 +87,10 @@ class Calibration(Mapping[str, MotorCalibration]):
                 "keyed its files by motor name: calibrate the arm again with a current LeRobot "
                 "(lerobot-calibrate), which writes robots/so_follower/<id>.json"
             )
-        # Six motors and a key more (a note, a tool's metadata): that key is named as unknown. Checked
-        # entry by entry, it read as "motor 'meta' lacks id", which sent the user to calibrate again.
-        if set(so101.JOINT_NAMES).issubset(data):
+        # A key that names no motor (a note, a tool's metadata), or six motors: the names are checked first,
+        # and that key is named as unknown. Checked entry by entry, it read as "motor 'meta' lacks id", which
+        # sent the user to calibrate again.
+        if not set(data).issubset(so101.JOINT_NAMES) or set(so101.JOINT_NAMES).issubset(data):
             _check_motor_names(set(data), source)
         motors: dict[str, MotorCalibration] = {}
         for name, entry in data.items():
