@@ -2035,6 +2035,47 @@ def test_a_replay_to_iot_core_without_a_region_names_the_fix(
     assert "no AWS region for IoT Core: give --region" in capsys.readouterr().err
 
 
+def test_a_replay_to_a_port_nobody_listens_on_says_so_at_once_and_names_the_fix(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A walk: a replay to a mistyped port sat silent for 15 s, then said only "check that the broker
+    runs". Its first failed connect is logged at once, and the error names it with what to check."""
+    from twin.ops.replay import replay
+
+    uri = _history_with(tmp_path, samples(20))
+    config = dataclasses.replace(_replay_config(uri, NO_BROKER), connect_timeout_s=2.0)
+    logged = caplog.at_level(logging.WARNING, logger="twin.ops.replay")
+    with logged, pytest.raises(HistoryReadError) as caught:
+        replay(config)
+    said = str(caught.value)
+    assert said.startswith(f"could not connect to the broker {NO_BROKER} within 2 s: "), said
+    assert "Is a broker listening on 127.0.0.1 port 1" in said and "fix the URL in --broker" in said, said
+    (line,) = [r.getMessage() for r in caplog.records if "could not connect" in r.getMessage()]
+    assert "Is a broker listening" in line and "retrying for up to 2 s" in line, line
+
+
+@pytest.mark.slow
+def test_replay_says_it_has_begun_and_how_far_it_got(
+    tmp_path: Path, mosquitto: Any, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`twin replay` printed nothing until it ended, minutes for a long window: a line as it begins, then
+    how far it got at most every PROGRESS_EVERY_S (here every publish past the hundredth)."""
+    from twin.cli import main
+    from twin.cli.commands import replay as replay_command
+
+    monkeypatch.setattr(replay_command, "PROGRESS_EVERY_S", 0.0)
+    uri = _history_with(tmp_path, samples(120))
+    window = ["--from", str(T0 - 1), "--to", str(T0 + 60), "--speed", "20"]
+    args = ["replay", "--history", uri, "--device", "arm-001", *window, "--broker", mosquitto.url]
+    assert main(args) == 0
+    out, err = capsys.readouterr()
+    lines = err.splitlines()
+    begun = f"twin replay: replaying arm-001 as arm-001 to {mosquitto.url} at 20x, from 20"
+    assert lines[0].startswith(begun) and lines[0].endswith("Z (Ctrl-C stops)"), lines
+    assert re.fullmatch(r"twin replay: replayed 100 messages, recorded up to \S+Z", lines[1]), lines
+    assert out.startswith("replayed 120 messages of arm-001"), out
+
+
 def test_history_ls_splits_sessions_as_the_console_does(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -27,7 +27,7 @@ from typing import Any
 from twin.core.topics import telemetry_topic
 from twin.ops.history import HistoryReader, HistoryReadError, empty_hint, iso_utc
 from twin.output.history import JOINTS, RAW_FIELDS, raw_column
-from twin.transport.broker import BrokerConfig, new_client_id
+from twin.transport.broker import BrokerConfig, connect_hint, crt_error_text, new_client_id
 from twin.transport.client import build_mqtt5_client
 
 log = logging.getLogger(__name__)
@@ -127,8 +127,9 @@ def replay(
     reader: HistoryReader | None = None,
     on_progress: Callable[[ReplayReport], None] | None = None,
 ) -> ReplayReport:
-    """Publish the recorded window; returns the counts. Raises HistoryReadError when there is nothing, and
-    ReplayRefusedError when the target device is live (or that could not be checked)."""
+    """Publish the recorded window; returns the counts. Raises HistoryReadError when there is nothing (or
+    no broker), and ReplayRefusedError when the target device is live (or that could not be checked).
+    `on_progress`: called as the publishing begins (nothing published yet), then every 100 published."""
     stop = stop or threading.Event()
     reader = reader or HistoryReader(config.uri, config.storage_options)
     rows = recorded_rows(reader, config.device, config.start, config.end)
@@ -149,12 +150,19 @@ def replay(
         )
     report = ReplayReport()
     heard = _Heard()
-    client, connected, on_done, outstanding = _client(config, report, heard)
+    client, connection, on_done, outstanding = _client(config, report, heard)
     try:
-        if not connected.wait(config.connect_timeout_s):
+        if not connection.connected.wait(config.connect_timeout_s):
+            # The last failed connect's error and what to check: "check that the broker runs" alone left a
+            # user with a mistyped port to guess, after a wait with no word.
+            why = (
+                f": {connection.failure}"
+                if connection.failure
+                else "; check --broker and that the broker runs"
+            )
             raise HistoryReadError(
                 f"could not connect to the broker {config.broker.url} within "
-                f"{config.connect_timeout_s:.0f} s; check --broker and that the broker runs"
+                f"{config.connect_timeout_s:.0f} s{why}"
             )
         if not _check_not_live(config, client, heard, stop):
             report.stopped = True
@@ -252,12 +260,34 @@ class _Outstanding:
             return self._cond.wait_for(lambda: self.count == 0, timeout)
 
 
+class _Connection:
+    """The replay's connection: whether it is up, and the last failed connect's error with what to check."""
+
+    def __init__(self, config: BrokerConfig, timeout_s: float) -> None:
+        self.connected = threading.Event()
+        self.failure = ""
+        self._config = config
+        self._timeout_s = timeout_s
+
+    def on_failure(self, data: Any) -> None:
+        hint = connect_hint(self._config, data.exception)
+        first = not self.failure
+        self.failure = f"{crt_error_text(data.exception)}{f'. {hint}' if hint else ''}"
+        if first:  # said at once: the command otherwise sat silent until its timeout
+            log.warning(
+                "replay could not connect to %s: %s; retrying for up to %.0f s",
+                self._config.url,
+                self.failure,
+                self._timeout_s,
+            )
+
+
 def _client(
     config: ReplayConfig, report: ReplayReport, heard: _Heard
-) -> tuple[Any, threading.Event, Callable[[Any], None], _Outstanding]:
-    """A started MQTT5 client, its connected event, the publish callback that counts failures in `report`,
-    and the count of publishes not yet completed. What it receives is counted in `heard`."""
-    connected = threading.Event()
+) -> tuple[Any, _Connection, Callable[[Any], None], _Outstanding]:
+    """A started MQTT5 client, its connection, the publish callback that counts failures in `report`, and
+    the count of publishes not yet completed. What it receives is counted in `heard`."""
+    connection = _Connection(config.broker, config.connect_timeout_s)
     lock = threading.Lock()
     outstanding = _Outstanding()
 
@@ -271,10 +301,11 @@ def _client(
         config.broker,
         new_client_id(config.broker.client_id_prefix),
         on_publish_received=heard.on_publish,
-        on_connection_success=lambda _data: connected.set(),
+        on_connection_success=lambda _data: connection.connected.set(),
+        on_connection_failure=connection.on_failure,
     )
     client.start()
-    return client, connected, on_done, outstanding
+    return client, connection, on_done, outstanding
 
 
 def _publish_rows(
@@ -303,6 +334,8 @@ def _publish_rows(
             first_received = row["received_at"]
             first_edge_ms = row["edge_time"].timestamp() * 1000.0
             report.first_recorded = iso_utc(first_received)
+            if on_progress is not None:
+                on_progress(report)
         if stop.is_set():
             report.stopped = True
             break

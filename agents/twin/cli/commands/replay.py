@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import time
 from typing import Any
 
 from twin.cli.commands.history import add_uri_argument
@@ -17,6 +18,7 @@ console = Console("replay")
 
 EXIT_FAILED = 1
 EXIT_USAGE = 2
+PROGRESS_EVERY_S = 10.0
 
 
 def register(subparsers: Any) -> None:
@@ -62,6 +64,29 @@ def register(subparsers: Any) -> None:
     parser.set_defaults(func=run)
 
 
+class _Progress:
+    """Lines on stderr while the replay runs (it printed nothing until it ended, minutes for a long window):
+    one as it begins, then one at most every PROGRESS_EVERY_S."""
+
+    def __init__(self, config: Any) -> None:
+        self._config = config
+        self._said_at: float | None = None
+
+    def __call__(self, report: Any) -> None:
+        now = time.monotonic()
+        config = self._config
+        if self._said_at is None:
+            console.err(
+                f"replaying {config.device} as {config.target_device} to {config.broker.url} at "
+                f"{config.speed:g}x, from {report.first_recorded} (Ctrl-C stops)"
+            )
+        elif now - self._said_at >= PROGRESS_EVERY_S:
+            console.err(f"replayed {report.published} messages, recorded up to {report.last_recorded}")
+        else:
+            return
+        self._said_at = now
+
+
 def run(args: argparse.Namespace) -> int:
     from twin.ops.history import HistoryReadError, parse_time
     from twin.ops.replay import ReplayConfig, ReplayRefusedError, replay
@@ -84,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_USAGE
     with stop_on_signals() as stop:
         try:
-            report = replay(config, stop=stop)
+            report = replay(config, stop=stop, on_progress=_Progress(config))
         # BrokerConfigError here: what only building the client finds out (no region, no such AWS profile),
         # said as the fix it names, as `twin edge-sim` says it, rather than as a traceback.
         except (HistoryReadError, ReplayRefusedError, BrokerConfigError) as exc:
