@@ -431,12 +431,14 @@ def test_the_stacks_prefix_is_the_one_a_plain_push_is_told_for() -> None:
 def test_store_uris_are_checked() -> None:
     assert isinstance(open_store("out/calibration"), DirectoryStore)
     assert isinstance(open_store("file:///tmp/cal"), DirectoryStore)
-    for bad in ("s3://", "http://x/y"):
-        with pytest.raises(ValueError):
+    # "s3:/b/cal", a slash short, was a directory store: push made a local folder "s3:" and wrote there.
+    for bad in ("s3://", "http://x/y", "s3:/b/cal", "S3:b"):
+        with pytest.raises(ValueError, match=r"names no bucket|not a directory|lacks the '//'"):
             open_store(bad)
     for key, value, message in [
         ("telemetry.calibrations", "http://example.com/c", "not a directory or s3://"),
         ("telemetry.calibrations", "s3:///calibration", "names no bucket"),
+        ("telemetry.calibrations", "s3:/b/calibration", "lacks the '//' after 's3:'"),
         ("telemetry.calibration_poll_s", 0.5, "outside 1..3600"),
     ]:
         with pytest.raises(ConfigError, match=message):

@@ -91,6 +91,8 @@ def test_history_section_defaults_match_the_writers() -> None:
     [
         ('[history]\nuri = "gs://b/h"', "is not a directory or s3://bucket/prefix"),
         ('[history]\nuri = "s3:///h"', "names no bucket"),
+        # A slash short: read as a URI it sent deltalake to the metadata service before a vague error.
+        ('[history]\nuri = "s3:/b/h"', "lacks the '//' after 's3:', as in s3://bucket/prefix"),
         ('[history]\nuri = "h"\ncommit_every_s = 0', "history.commit_every_s = 0.0 must be greater than 0"),
         ('[history]\nuri = "h"\nmax_buffer_rows = 10', "must be at least commit_every_rows"),
         ('[history]\nuri = "h"\nurl = "x"', "unknown key 'history.url'"),

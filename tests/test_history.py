@@ -2292,6 +2292,7 @@ def test_a_history_uri_the_agent_would_refuse_is_refused_by_the_commands(
     said = {
         "gs://x/h": "'gs://x/h' is not a directory or s3://bucket/prefix",
         "s3://": "'s3://' names no bucket",
+        "s3:/x/h": "'s3:/x/h' lacks the '//' after 's3:', as in s3://bucket/prefix",
         str(a_file): f"'{a_file}' is a file; give the directory that holds the history",
     }
     for uri, why in said.items():

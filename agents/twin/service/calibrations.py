@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from twin.core.aws import region_or_env
+from twin.core.locations import location_problem
 from twin.core.topics import POLICY_DEVICE_ID_RULE, policy_device_id_problem
 from twin.core.units import Units
 from twin.robot.calibration import MAX_FILE_BYTES, Calibration, parse_calibration
@@ -436,13 +437,12 @@ class S3Store:
 def open_store(uri: str, *, region: str = "", s3_client: Any = None) -> CalibrationStore:
     """The store at `uri`: s3://bucket[/prefix], file:///dir or a directory path."""
     uri = uri.strip()
+    problem = location_problem(uri)
+    if problem:
+        raise ValueError(f"{uri!r} {problem}; e.g. s3://<bucket>/calibration or a directory")
     if uri.startswith("s3://"):
         bucket, _, prefix = uri.removeprefix("s3://").partition("/")
-        if not bucket:
-            raise ValueError(f"{uri!r} names no bucket; use s3://<bucket>/calibration")
         return S3Store(bucket, prefix.strip("/"), region, s3_client)
-    if "://" in uri and not uri.startswith("file://"):
-        raise ValueError(f"{uri!r} is not a directory or s3://bucket/prefix")
     return DirectoryStore(Path(uri.removeprefix("file://")).expanduser())
 
 

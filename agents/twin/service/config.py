@@ -22,6 +22,7 @@ from typing import Any
 
 from twin.core.alarms import AlarmThresholds
 from twin.core.health import HealthThresholds
+from twin.core.locations import location_problem
 from twin.core.modes import TwinMode
 from twin.core.topics import (
     ALL_DEVICES,
@@ -491,14 +492,11 @@ def _validate_telemetry(t: TelemetrySection) -> None:
         except ValueError as exc:
             raise ConfigError(f"telemetry.calibration = {t.calibration!r}: {exc}") from None
     store = t.calibrations.strip()
-    if "://" in store and not store.startswith(("s3://", "file://")):
+    problem = location_problem(store)
+    if problem:
         raise ConfigError(
-            f"telemetry.calibrations = {t.calibrations!r} is not a directory or s3://bucket/prefix; e.g. "
+            f"telemetry.calibrations = {t.calibrations!r} {problem}; e.g. "
             'calibrations = "s3://<bucket>/calibration" (or "" for none)'
-        )
-    if store.startswith("s3://") and not store.removeprefix("s3://").split("/", 1)[0]:
-        raise ConfigError(
-            f'telemetry.calibrations = {t.calibrations!r} names no bucket; use "s3://<bucket>/calibration"'
         )
     if "://" not in store and store and Path(store).expanduser().is_file():
         raise ConfigError(
@@ -646,12 +644,11 @@ def _validate_history(hs: HistorySection) -> None:
     if not hs.enabled:
         return
     uri = hs.uri.strip()
-    if "://" in uri and not uri.startswith(("s3://", "file://")):
+    problem = location_problem(uri)
+    if problem:
         raise ConfigError(
-            f'history.uri = {hs.uri!r} is not a directory or s3://bucket/prefix; e.g. uri = "out/history"'
+            f'history.uri = {hs.uri!r} {problem}; e.g. uri = "out/history" or "s3://<bucket>/history"'
         )
-    if uri.startswith("s3://") and not uri.removeprefix("s3://").split("/", 1)[0]:
-        raise ConfigError(f'history.uri = {hs.uri!r} names no bucket; use uri = "s3://<bucket>/history"')
     if "://" not in uri and Path(uri).exists() and not Path(uri).is_dir():
         raise ConfigError(f"history.uri = {hs.uri!r} is a file; give a directory (created if missing)")
     if hs.commit_every_s <= 0:

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from twin.cli.output import Console
+from twin.core.locations import location_problem
 
 DEFAULT_URI = "out/history"
 # twin.ops.history.DEFAULT_SESSION_GAP_S, the console's [http] session_gap_s, as a plain number: `twin --help`
@@ -40,12 +41,11 @@ def history_uri(text: str) -> str:
     """`--history` as the agent takes `[history] uri`: another scheme (`gs://`, `http://`) was answered "no
     history table ... nothing was recorded there yet", and a file as a table not there."""
     uri = text.strip()
-    if "://" in uri and not uri.startswith(("s3://", "file://")):
+    problem = location_problem(uri)
+    if problem:
         raise argparse.ArgumentTypeError(
-            f"{text!r} is not a directory or s3://bucket/prefix; e.g. --history {DEFAULT_URI}"
+            f"{text!r} {problem}; e.g. --history {DEFAULT_URI} or --history s3://<bucket>/history"
         )
-    if uri.startswith("s3://") and not uri.removeprefix("s3://").split("/", 1)[0]:
-        raise argparse.ArgumentTypeError(f"{text!r} names no bucket; e.g. --history s3://<bucket>/history")
     if "://" not in uri and Path(uri).is_file():
         raise argparse.ArgumentTypeError(f"{text!r} is a file; give the directory that holds the history")
     return text
