@@ -2058,22 +2058,32 @@ def test_a_replay_to_a_port_nobody_listens_on_says_so_at_once_and_names_the_fix(
 def test_replay_says_it_has_begun_and_how_far_it_got(
     tmp_path: Path, mosquitto: Any, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """`twin replay` printed nothing until it ended, minutes for a long window: a line as it begins, then
-    how far it got at most every PROGRESS_EVERY_S (here every publish past the hundredth)."""
+    """`twin replay` printed nothing until it ended, minutes for a long window: a line as it begins, how far
+    it got at most every PROGRESS_EVERY_S (here: after every message), and a line before each pause in the
+    window (here 26 s recorded, 6.5 s at 4x; told from PAUSE_S, here 1 s)."""
     from twin.cli import main
     from twin.cli.commands import replay as replay_command
+    from twin.ops import replay as replay_module
 
     monkeypatch.setattr(replay_command, "PROGRESS_EVERY_S", 0.0)
-    uri = _history_with(tmp_path, samples(120))
-    window = ["--from", str(T0 - 1), "--to", str(T0 + 60), "--speed", "20"]
+    monkeypatch.setattr(replay_module, "PAUSE_S", 1.0)
+    uri = _history_with(tmp_path, samples(40) + samples(40, start_s=T0 + 30, seed=2))
+    window = ["--from", str(T0 - 1), "--to", str(T0 + 60), "--speed", "4"]
     args = ["replay", "--history", uri, "--device", "arm-001", *window, "--broker", mosquitto.url]
     assert main(args) == 0
     out, err = capsys.readouterr()
     lines = err.splitlines()
-    begun = f"twin replay: replaying arm-001 as arm-001 to {mosquitto.url} at 20x, from 20"
+    begun = f"twin replay: replaying arm-001 as arm-001 to {mosquitto.url} at 4x, from 20"
     assert lines[0].startswith(begun) and lines[0].endswith("Z (Ctrl-C stops)"), lines
-    assert re.fullmatch(r"twin replay: replayed 100 messages, recorded up to \S+Z", lines[1]), lines
-    assert out.startswith("replayed 120 messages of arm-001"), out
+    assert re.fullmatch(r"twin replay: replayed 1 messages, recorded up to \S+Z", lines[1]), lines
+    (pause,) = [line for line in lines if "pauses" in line]
+    assert re.fullmatch(
+        r"twin replay: replayed 40 messages; the recording pauses after \S+Z: "
+        r"the next message is in \d s at 4x",
+        pause,
+    ), pause
+    assert lines[-1].startswith("twin replay: replayed 80 messages, recorded up to"), lines
+    assert out.startswith("replayed 80 messages of arm-001"), out
 
 
 def test_history_ls_splits_sessions_as_the_console_does(

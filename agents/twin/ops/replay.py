@@ -27,7 +27,7 @@ from typing import Any
 from twin.core.topics import telemetry_topic
 from twin.ops.history import HistoryReader, HistoryReadError, empty_hint, iso_utc
 from twin.output.history import JOINTS, RAW_FIELDS, raw_column
-from twin.transport.broker import BrokerConfig, connect_hint, crt_error_text, new_client_id
+from twin.transport.broker import BrokerConfig, connack_hint, connect_hint, crt_error_text, new_client_id
 from twin.transport.client import build_mqtt5_client
 
 log = logging.getLogger(__name__)
@@ -40,6 +40,13 @@ READ_WINDOW = dt.timedelta(minutes=10)
 FLUSH_TIMEOUT_S = 30.0
 # How long a replay listens on its topic for a live arm first: the edge publishes at 10 Hz, so about 20 times.
 LIVE_CHECK_S = 2.0
+# A wait for the next recorded message at least this long is a pause in the window (the arm off), told.
+PAUSE_S = 10.0
+
+
+# What a replay tells as it goes: its report so far, and the wait before the next message when the window
+# pauses there (else 0).
+Progress = Callable[["ReplayReport", float], None]
 
 
 class ReplayRefusedError(Exception):
@@ -125,11 +132,12 @@ def replay(
     *,
     stop: threading.Event | None = None,
     reader: HistoryReader | None = None,
-    on_progress: Callable[[ReplayReport], None] | None = None,
+    on_progress: Progress | None = None,
 ) -> ReplayReport:
     """Publish the recorded window; returns the counts. Raises HistoryReadError when there is nothing (or
     no broker), and ReplayRefusedError when the target device is live (or that could not be checked).
-    `on_progress`: called as the publishing begins (nothing published yet), then every 100 published."""
+    `on_progress(report, pause_s)`: called as the publishing begins (nothing published yet), after each
+    message, and before a pause in the window (`pause_s`: the wait for the next message, else 0)."""
     stop = stop or threading.Event()
     reader = reader or HistoryReader(config.uri, config.storage_options)
     rows = recorded_rows(reader, config.device, config.start, config.end)
@@ -152,18 +160,7 @@ def replay(
     heard = _Heard()
     client, connection, on_done, outstanding = _client(config, report, heard)
     try:
-        if not connection.connected.wait(config.connect_timeout_s):
-            # The last failed connect's error and what to check: "check that the broker runs" alone left a
-            # user with a mistyped port to guess, after a wait with no word.
-            why = (
-                f": {connection.failure}"
-                if connection.failure
-                else "; check --broker and that the broker runs"
-            )
-            raise HistoryReadError(
-                f"could not connect to the broker {config.broker.url} within "
-                f"{config.connect_timeout_s:.0f} s{why}"
-            )
+        connection.wait()
         if not _check_not_live(config, client, heard, stop):
             report.stopped = True
             return report
@@ -270,16 +267,30 @@ class _Connection:
         self._timeout_s = timeout_s
 
     def on_failure(self, data: Any) -> None:
-        hint = connect_hint(self._config, data.exception)
+        # A CONNACK's reason (a bad password, a client id the policy does not allow) says more than
+        # awscrt's error, which says only that the CONNACK was not a success.
+        reason = getattr(getattr(data, "connack_packet", None), "reason_code", None)
+        code = None if reason is None else int(reason)
+        hint = connack_hint(self._config, code) or connect_hint(self._config, data.exception)
         first = not self.failure
         self.failure = f"{crt_error_text(data.exception)}{f'. {hint}' if hint else ''}"
         if first:  # said at once: the command otherwise sat silent until its timeout
             log.warning(
-                "replay could not connect to %s: %s; retrying for up to %.0f s",
-                self._config.url,
+                "could not connect to %s: %s; retrying for up to %.0f s",
+                self._config.where(),
                 self.failure,
                 self._timeout_s,
             )
+
+    def wait(self) -> None:
+        """Until connected; HistoryReadError after the timeout, with the last failed connect's error and
+        what to check ("check that the broker runs" alone left a user with a mistyped port to guess)."""
+        if self.connected.wait(self._timeout_s):
+            return
+        why = f": {self.failure}" if self.failure else "; check --broker and that the broker runs"
+        raise HistoryReadError(
+            f"could not connect to the broker {self._config.where()} within {self._timeout_s:.0f} s{why}"
+        )
 
 
 def _client(
@@ -317,7 +328,7 @@ def _publish_rows(
     on_done: Callable[[Any], None],
     outstanding: _Outstanding,
     stop: threading.Event,
-    on_progress: Callable[[ReplayReport], None] | None,
+    on_progress: Progress | None,
 ) -> None:
     """Publish each row at its recorded time (divided by the speed), restamped unless asked not to."""
     from awscrt import mqtt5  # noqa: PLC0415
@@ -335,13 +346,15 @@ def _publish_rows(
             first_edge_ms = row["edge_time"].timestamp() * 1000.0
             report.first_recorded = iso_utc(first_received)
             if on_progress is not None:
-                on_progress(report)
+                on_progress(report, 0.0)
         if stop.is_set():
             report.stopped = True
             break
         wait = (
             started + (row["received_at"] - first_received).total_seconds() / config.speed - time.monotonic()
         )
+        if on_progress is not None and wait >= PAUSE_S:
+            on_progress(report, wait)  # the window pauses (the arm was off): said, not a silent wait
         if wait > 0 and stop.wait(wait):
             report.stopped = True
             break
@@ -361,8 +374,8 @@ def _publish_rows(
         future.add_done_callback(on_done)
         report.published += 1
         report.last_recorded = iso_utc(row["received_at"])
-        if on_progress is not None and report.published % 100 == 0:
-            on_progress(report)
+        if on_progress is not None:
+            on_progress(report, 0.0)
     report.elapsed_s = time.monotonic() - started
 
 

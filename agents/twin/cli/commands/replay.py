@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import time
 from typing import Any
 
@@ -66,19 +67,25 @@ def register(subparsers: Any) -> None:
 
 class _Progress:
     """Lines on stderr while the replay runs (it printed nothing until it ended, minutes for a long window):
-    one as it begins, then one at most every PROGRESS_EVERY_S."""
+    one as it begins, then one at most every PROGRESS_EVERY_S while it publishes, and one before each pause
+    in the window."""
 
     def __init__(self, config: Any) -> None:
         self._config = config
         self._said_at: float | None = None
 
-    def __call__(self, report: Any) -> None:
+    def __call__(self, report: Any, pause_s: float) -> None:
         now = time.monotonic()
         config = self._config
         if self._said_at is None:
             console.err(
-                f"replaying {config.device} as {config.target_device} to {config.broker.url} at "
+                f"replaying {config.device} as {config.target_device} to {config.broker.where()} at "
                 f"{config.speed:g}x, from {report.first_recorded} (Ctrl-C stops)"
+            )
+        elif pause_s:
+            console.err(
+                f"replayed {report.published} messages; the recording pauses after "
+                f"{report.last_recorded}: the next message is in {pause_s:.0f} s at {config.speed:g}x"
             )
         elif now - self._said_at >= PROGRESS_EVERY_S:
             console.err(f"replayed {report.published} messages, recorded up to {report.last_recorded}")
@@ -107,6 +114,9 @@ def run(args: argparse.Namespace) -> int:
     except (ValueError, BrokerConfigError) as exc:
         console.err(str(exc))
         return EXIT_USAGE
+    # The replay's warnings (a failed connect, said at once; a speed over IoT Core's quota) as its other
+    # lines: they came through Python's last-resort handler, bare.
+    logging.basicConfig(level=logging.WARNING, format=f"twin {console.command}: %(message)s")
     with stop_on_signals() as stop:
         try:
             report = replay(config, stop=stop, on_progress=_Progress(config))
