@@ -721,11 +721,18 @@ def test_push_refuses_a_leader_arms_calibration(tmp_path: Path, capsys: pytest.C
     assert main(["calibration", "push", "arm-001", str(koch), "--store", store]) == cmd.EXIT_USAGE
     err = capsys.readouterr().err
     assert "is a koch_follower robot's calibration" in err and "robots/so_follower/<id>.json" in err, err
-    for name in ("so100_follower", "so101_follower", "bi_so100_follower"):
-        other = tmp_path / "calibration" / "robots" / name / "arm-001.json"
+    # A review: the rule is LeRobot's layout's, not a user's own folders ("left_follower" of their choosing).
+    for parts in (
+        ("robots", "so100_follower"),
+        ("robots", "so101_follower"),
+        ("robots", "bi_so100_follower"),
+        ("robots", "SO101_follower"),
+        ("mine", "left_follower"),
+    ):
+        other = tmp_path.joinpath("calibration", *parts, "arm-001.json")
         other.parent.mkdir(parents=True)
         other.write_bytes(EXAMPLE.read_bytes())
-        assert main(["calibration", "push", "arm-001", str(other), "--store", store]) == cmd.EXIT_OK, name
+        assert main(["calibration", "push", "arm-001", str(other), "--store", store]) == cmd.EXIT_OK, parts
 
 
 def test_decode_and_the_config_refuse_a_leader_arms_calibration_as_push_does(

@@ -181,8 +181,10 @@ def leader_problem(path: str | Path) -> str | None:
     parts = Path(path).expanduser().parts
     leader = LEADER_DIRECTORIES.intersection(parts)
     if not leader:
-        folder = parts[-2] if len(parts) >= 2 else ""
-        if folder.endswith("_follower") and not SO_FOLLOWER_DIRECTORY.fullmatch(folder):
+        # LeRobot's layout only (robots/<type>/<id>.json): a folder of the user's own ("left_follower") is
+        # theirs to name.
+        folder = parts[-2] if len(parts) >= 3 and parts[-3] == "robots" else ""
+        if folder.endswith("_follower") and not SO_FOLLOWER_DIRECTORY.fullmatch(folder.lower()):
             return (
                 f"is a {folder} robot's calibration (LeRobot keeps each robot type's under its own folder): "
                 f"this twin is of an SO-101 follower arm, whose file is {FOLLOWER_FILE}"
