@@ -9,7 +9,8 @@ import re
 # "s3:/bucket/h" or "s3:bucket/h": a slash short of a URI. Taken as a directory, the calibration store made a
 # local folder named "s3:" and pushed there; read as a URI, the history asked the host's metadata service for
 # credentials before a vague error.
-_SCHEME_SHORT_OF_SLASHES = re.compile(r"(s3a?|gs|https?):/?(?!/)", re.IGNORECASE)
+# S3 only: a local folder named "https:x" or "gs:old" is rare, but the user's to name (a review).
+_SCHEME_SHORT_OF_SLASHES = re.compile(r"(s3):/?(?!/)", re.IGNORECASE)
 
 
 def location_problem(location: str) -> str:

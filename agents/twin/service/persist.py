@@ -150,6 +150,7 @@ class StateFile:
             if document is None:
                 document = _document_of(text)
             document, carried = _split_unknown_kinds(document)
+            carried = _writable(carried, self.path)
             records = records_of(document, now_mono, now_wall)
         except StateFileError as exc:
             self._set_aside(f"is not valid: {exc}")
@@ -383,15 +384,30 @@ def _split_unknown_kinds(document: dict[str, Any]) -> tuple[dict[str, Any], list
     for item in alarms:
         kind = item.get("kind") if isinstance(item, dict) else None
         (unknown if isinstance(kind, str) and kind not in known_kinds else known).append(item)
-    for item in unknown:
-        if _depth(item) > MAX_CARRIED_DEPTH:
-            # Carried as read, it is written back with each save: nested near the parser's limit, it loaded
-            # and every save after raised RecursionError in json.dumps.
-            raise StateFileError(
-                f"alarm {str(item.get('alarm_id', item['kind']))[:80]!r} of an unknown kind is nested more "
-                f"than {MAX_CARRIED_DEPTH} levels deep, which no agent writes"
-            )
     return {**document, "alarms": known}, unknown
+
+
+def _writable(carried: list[dict[str, Any]], path: Path) -> list[dict[str, Any]]:
+    """The carried alarms that can be written back. One nested near the parser's limit loaded, and every save
+    after raised RecursionError in json.dumps: no agent writes one so deep, so it alone is dropped, said,
+    and the file's other alarms (acknowledgements) are kept."""
+    kept: list[dict[str, Any]] = []
+    dropped: list[str] = []
+    for item in carried:
+        if _depth(item) <= MAX_CARRIED_DEPTH:
+            kept.append(item)
+        else:
+            dropped.append(str(item.get("alarm_id", item["kind"]))[:80])
+    if dropped:
+        log.warning(
+            "state file %s: dropped %d alarm(s) of an unknown kind nested more than %d levels deep, which no "
+            "agent writes (%s); the file's other alarms are kept",
+            path,
+            len(dropped),
+            MAX_CARRIED_DEPTH,
+            ", ".join(repr(d) for d in dropped),
+        )
+    return kept
 
 
 def _depth(value: Any) -> int:
