@@ -711,7 +711,7 @@ class AgentService:
         if not devices:
             return {}
         named: dict[str, list[str]] = {}
-        for alarm in self.alarms():
+        for alarm in self.alarms(devices=devices):
             if alarm.device in devices and alarm.state in WAITING_STATES:
                 named.setdefault(alarm.device, []).append(f"{alarm.alarm_id} {alarm.state}: {alarm.message}")
         return named
