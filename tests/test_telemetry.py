@@ -426,6 +426,21 @@ def test_wrong_type_message_names_the_fix() -> None:
     )
 
 
+@pytest.mark.parametrize("keep_six", [False, True], ids=["missing_joint", "extra_joint"])
+def test_unknown_joint_names_do_not_grow_the_message(keep_six: bool) -> None:
+    """A payload under the size limit may carry a thousand joint names: its rejection, which goes into an
+    event, a log line and /state, names a few and counts the rest (a walk: one was 42 KB)."""
+    msg = message(TICKS_EXAMPLE)
+    if not keep_six:
+        msg["joints"] = {}
+    msg["joints"].update({f"joint_{'x' * 60}_{i}": {"position": 1} for i in range(1000)})
+    with pytest.raises(TelemetryRejected) as info:
+        decoder(Units.TICKS).decode(json.dumps(msg).encode())
+    text = str(info.value)
+    assert len(text) < 1000, text
+    assert "and 992 more" in text
+
+
 # --- diagnostics --------------------------------------------------------------------------------------------
 
 

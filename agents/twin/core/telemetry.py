@@ -443,6 +443,17 @@ def _fmt(value: object) -> str:
     return text if len(text) <= 40 else text[:37] + "..."
 
 
+# A payload may carry thousands of joint names; its rejection goes into an event, a log line and /state,
+# so it names the first few and counts the rest rather than growing with the payload.
+MAX_NAMES_LISTED = 8
+
+
+def _fmt_names(names: list[str]) -> str:
+    listed = ", ".join(map(_fmt, names[:MAX_NAMES_LISTED]))
+    rest = len(names) - MAX_NAMES_LISTED
+    return f"{listed} and {rest} more" if rest > 0 else listed
+
+
 def _units_hint(value: int | float) -> str:
     """What a position that does not fit the configured units looks like instead."""
     if type(value) is int and 360 < value <= so101.TICK_MAX:
@@ -900,7 +911,7 @@ class TelemetryDecoder:
         missing = [n for n in _JOINTS if n not in joints]
         extra = sorted(str(k) for k in joints if k not in _JOINT_SET)
         if missing:
-            also = f" (it sent unknown joints {', '.join(map(_fmt, extra))})" if extra else ""
+            also = f" (it sent unknown joints {_fmt_names(extra)})" if extra else ""
             raise _rejected(
                 RejectReason.MISSING_JOINT,
                 f"joints {', '.join(missing)} are missing{also}; the SO-101 edge sends exactly "
@@ -908,7 +919,7 @@ class TelemetryDecoder:
             )
         raise _rejected(
             RejectReason.EXTRA_JOINT,
-            f"unknown joints {', '.join(map(_fmt, extra))}; this decoder handles the six SO-101 joints "
+            f"unknown joints {_fmt_names(extra)}; this decoder handles the six SO-101 joints "
             f"{', '.join(_JOINTS)} only (is this another robot's telemetry?)",
         )
 
