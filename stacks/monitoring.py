@@ -1,4 +1,4 @@
-"""The alarm topic and what notifies it: the host's servo alarms directly, and thirteen CloudWatch alarms.
+"""The alarm topic and what notifies it: the host's servo alarms directly, and seventeen CloudWatch alarms.
 
 One SNS topic (encrypted, TLS only; an e-mail address subscribed when the settings give one):
 
@@ -22,6 +22,8 @@ One SNS topic (encrypted, TLS only; an e-mail address subscribed when the settin
   than it holds); history commits failing for 5 minutes; history's oldest unwritten row over a minute old, 2
   minutes running (storage slow or unreachable; rows are dropped once the buffer is full).
 - **a refused subscription** (CloudWatch): IoT Core refuses the agent a topic filter for 2 minutes.
+- **the broker out of reach** (CloudWatch): a connection of the agent to IoT Core down for 3 minutes. Its
+  arms then all read OFFLINE, which does not page, so nothing else would say it.
 - **messages lost on the way** (CloudWatch): the arms that are not OFFLINE deliver at least 10 % less than
   their expected rate, 5 minutes running. IoT Core discards what a connection receives over its quota without
   an error, so this is how such a loss reaches a person (as a weak edge network, or armRateHz set above the
@@ -67,6 +69,10 @@ HISTORY_COMMIT_FAILURES = "HistoryCommitFailures"
 HISTORY_LAG = "HistoryLagSeconds"
 # Topic filters the broker refuses the agent (agents/twin/output/emf.py, SUBSCRIPTIONS_REFUSED).
 SUBSCRIPTIONS_REFUSED = "SubscriptionsRefused"
+# Broker connections down now (emf.BROKER_DISCONNECTED), and what pages: any, three minutes running (the agent
+# reconnects within seconds: a broker restart or a network blip passes).
+BROKER_DISCONNECTED = "BrokerDisconnected"
+BROKER_DISCONNECTED_MINUTES = 3
 # The share of the arms' expected messages that did not arrive (emf.LOSS_PERCENT), and what pages: a tenth,
 # five minutes running (an arm starting up, or a minute of a weak network, passes).
 LOSS_PERCENT = "LossPercent"
@@ -198,6 +204,7 @@ class TwinMonitoring(Construct):
         self._alarms_for_loss()
         self._alarms_for_history()
         self.alarms["SubscriptionsRefused"] = self._subscriptions_refused_alarm()
+        self.alarms["BrokerDisconnected"] = self._broker_disconnected_alarm()
         self.alarms["MessagesLost"] = self._messages_lost_alarm()
         self.alarms["ArmLosingMessages"] = self._arm_losing_alarm()
         self.alarms["DeviceLimitReached"] = self._device_limit_alarm()
@@ -371,6 +378,22 @@ class TwinMonitoring(Construct):
             self._metric(SUBSCRIPTIONS_REFUSED, "Maximum"),
             threshold=1,
             minutes=2,
+        )
+
+    def _broker_disconnected_alarm(self) -> cw.Alarm:
+        """BrokerDisconnected: a connection to the broker down for 3 minutes. Every arm it carries then reads
+        OFFLINE (not paged: arms are switched off on schedules) and the loss figures leave OFFLINE arms out,
+        while the agent runs and sends its heartbeat: no other alarm would say it."""
+        return self._sustained_alarm(
+            "BrokerDisconnected",
+            f"The agent of {self.agent_name} has had a connection to IoT Core down for "
+            f"{BROKER_DISCONNECTED_MINUTES} minutes, so the arms it carries are not heard (they read "
+            "OFFLINE). /healthz says 'broker connection down' and /state agent.broker.last_error, like the "
+            "agent's log, names why: the host's network or DNS, the endpoint, or the role's iot:Connect. "
+            "docs/deploy.md, Troubleshooting",
+            self._metric(BROKER_DISCONNECTED, "Maximum"),
+            threshold=1,
+            minutes=BROKER_DISCONNECTED_MINUTES,
         )
 
     def _messages_lost_alarm(self) -> cw.Alarm:

@@ -34,7 +34,7 @@ from twin.output.emf import (
     fleet_documents,
 )
 from twin.service.agent import fleet_totals
-from twin.service.state import AgentInfo, AgentState, DeviceState
+from twin.service.state import AgentInfo, AgentState, BrokerState, ConnectionState, DeviceState
 
 CLOUDWATCH_UNITS = (
     "Seconds|Microseconds|Milliseconds|Bytes|Kilobytes|Megabytes|Gigabytes|Terabytes|Bits|Kilobits|Megabits|"
@@ -155,6 +155,7 @@ def test_fleet_lines_written_to_the_file_are_valid_emf(tmp_path: Path) -> None:
         "SinkDrops": "Count",
         "WorkerRestarts": "Count",
         "SubscriptionsRefused": "Count",
+        "BrokerDisconnected": "Count",
         "DeviceLimitRefusals": "Count",
     }
     assert (fleet["MessagesPerSecond"], fleet["DevicesStale"], fleet["InternalLatencyP99"]) == (29.8, 1, 1.9)
@@ -421,3 +422,24 @@ def test_arms_kept_out_by_the_device_limit_are_counted_per_interval(tmp_path: Pa
     publisher.publish_once()
     docs = [validate_emf_line(line) for line in writer.path.read_text().splitlines()]
     assert [d["DeviceLimitRefusals"] for d in docs] == [40, 60, 0]
+
+
+def test_a_broker_connection_down_is_reported_in_every_interval_it_lasts(tmp_path: Path) -> None:
+    """With the broker out of reach every arm reads OFFLINE and the loss figures leave OFFLINE arms out, so
+    the connections down now are the figure the stack pages on (a walk: the agent sent AgentUp and nothing
+    else told of it). A refused filter is a connection that is up."""
+    connections = tuple(
+        ConnectionState(index=i, state=s) for i, s in enumerate(("connected", "connecting", "refused"))
+    )
+    offline = {"arm-1": DeviceState("arm-1", HealthSnapshot(status=DeviceStatus.OFFLINE))}
+    info = AgentInfo(running=True, broker=BrokerState(connected=False, connections=connections))
+    totals = fleet_totals(AgentState(agent=info, devices=offline), 10.0)
+    assert (totals.broker_disconnected, totals.loss_percent) == (1, 0.0)
+    clock = [0.0]
+    writer = EmfFileWriter(tmp_path / "emf.log")
+    publisher = EmfPublisher(writer, "a", lambda: totals, clock=lambda: clock[0], wall=lambda: 1.0)
+    for _ in range(3):
+        publisher.publish_once()
+        clock[0] += 60.0
+    docs = [validate_emf_line(line) for line in writer.path.read_text().splitlines()]
+    assert [d["BrokerDisconnected"] for d in docs if "AgentUp" in d] == [1, 1, 1]

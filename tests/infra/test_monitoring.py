@@ -47,6 +47,7 @@ def test_names_agree_with_the_agents_emf() -> None:
     )
     assert stack_side == emf.LOSS_METRICS
     assert monitoring.SUBSCRIPTIONS_REFUSED == emf.SUBSCRIPTIONS_REFUSED
+    assert monitoring.BROKER_DISCONNECTED == emf.BROKER_DISCONNECTED
     assert monitoring.LOSS_PERCENT == emf.LOSS_PERCENT
     assert monitoring.WORST_ARM_LOSS_PERCENT == emf.WORST_ARM_LOSS_PERCENT
     assert monitoring.INTERNAL_LATENCY_P99 == emf.INTERNAL_LATENCY_P99
@@ -89,8 +90,9 @@ def test_alarm_email_subscribes_to_the_topic(synth_factory: Any) -> None:
 def test_every_alarm_notifies_the_topic_on_alarm_and_ok(synth_default: Synth) -> None:
     # Servo alarms reach the topic from the host directly (test_host_publishes_servo_alarms_to_the_topic_
     # only), not through a CloudWatch alarm on a once-a-minute metric: agent silent, arms stale, the six
-    # loss alarms, a refused subscription, the fleet's and one arm's messages lost, the host scripts' three.
-    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 16)
+    # loss alarms, a refused subscription, the broker out of reach, the fleet's and one arm's messages lost,
+    # the host scripts' three.
+    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 17)
     ref = topic_ref(synth_default)
     for props in synth_default.resources("AWS::CloudWatch::Alarm").values():
         assert props["Properties"]["AlarmActions"] == [ref]
@@ -136,7 +138,7 @@ def test_agent_silent_is_armed_by_the_host_once_it_is_up(synth_default: Synth) -
         for p in synth_default.resources("AWS::CloudWatch::Alarm").values()
         if p["Properties"].get("AlarmName") != "So101TwinStack-AgentSilent"
     ]
-    assert len(others) == 15 and all(p.get("ActionsEnabled", True) for p in others)
+    assert len(others) == 16 and all(p.get("ActionsEnabled", True) for p in others)
     arm = statement(policy_statements(synth_default, "IdentityHostRole"), "AgentSilentArm")
     assert arm["Action"] == "cloudwatch:EnableAlarmActions"
     resource = json.dumps(arm["Resource"])
@@ -294,7 +296,7 @@ def test_the_dashboard_shows_every_alarm_and_is_an_output(synth_default: Synth) 
     body = dashboard_body(synth_default)
     status = [w for w in body["widgets"] if w["type"] == "alarm"]
     alarms = synth_default.resources("AWS::CloudWatch::Alarm")
-    assert len(status) == 1 and len(status[0]["properties"]["alarms"]) == len(alarms) == 16
+    assert len(status) == 1 and len(status[0]["properties"]["alarms"]) == len(alarms) == 17
     # One point a minute, the agent's EMF interval, each with the statistic its figure needs.
     for widget in body["widgets"]:
         for row in widget["properties"].get("metrics", []):
@@ -372,6 +374,14 @@ def test_a_refused_subscription_alarms_after_two_minutes_of_it(synth_default: Sy
     props = _alarm_on(synth_default, emf.SUBSCRIPTIONS_REFUSED)
     assert_sustained_maximum(props, threshold=1, minutes=2)
     assert "iot:Subscribe" in props["AlarmDescription"]
+
+
+def test_a_broker_connection_down_alarms_after_three_minutes_of_it(synth_default: Synth) -> None:
+    """Cut off from IoT Core, the agent runs and sends its heartbeat while every arm reads OFFLINE, which
+    is not paged and which the loss alarms leave out: this alarm is what pages, naming where to look."""
+    props = _alarm_on(synth_default, emf.BROKER_DISCONNECTED)
+    assert_sustained_maximum(props, threshold=1, minutes=3)
+    assert "iot:Connect" in props["AlarmDescription"] and "Troubleshooting" in props["AlarmDescription"]
 
 
 def test_messages_that_never_arrive_page_after_five_minutes_of_a_tenth_lost(synth_default: Synth) -> None:

@@ -48,6 +48,9 @@ HISTORY_ROWS_DROPPED = "HistoryRowsDropped"  # history rows dropped: the write b
 HISTORY_COMMIT_FAILURES = "HistoryCommitFailures"  # history commits that failed (retried)
 HISTORY_LAG = "HistoryLagSeconds"  # how long the oldest unwritten history row has waited
 SUBSCRIPTIONS_REFUSED = "SubscriptionsRefused"  # topic filters the broker refuses now (an IAM policy)
+# The broker connections down now (a stack alarm): every arm then reads OFFLINE, which is not paged, and the
+# loss figures count only arms that are not OFFLINE, so without it a host cut off from IoT Core pages no one.
+BROKER_DISCONNECTED = "BrokerDisconnected"
 LOSS_PERCENT = "LossPercent"  # the share of the arms' expected messages that did not arrive (a stack alarm)
 # The share of its messages the arm losing most lost over its recent window (a stack alarm): LossPercent
 # averages the arms, so one arm's loss shows there as a fraction of it.
@@ -135,6 +138,7 @@ class FleetMetrics:
     history_commit_failures: int | None = None
     history_lag_s: float | None = None
     worst_arm_loss_percent: float = 0.0  # WORST_ARM_LOSS_PERCENT
+    broker_disconnected: int = 0  # BROKER_DISCONNECTED: connections down at the end of the interval
     device_limit_refusals: int = 0  # DEVICE_LIMIT_REFUSALS during the interval
 
 
@@ -160,6 +164,7 @@ def fleet_documents(
         Metric(SINK_DROPS, fleet.sink_drops, "Count"),
         Metric(WORKER_RESTARTS, fleet.worker_restarts, "Count"),
         Metric(SUBSCRIPTIONS_REFUSED, fleet.subscriptions_refused, "Count"),
+        Metric(BROKER_DISCONNECTED, fleet.broker_disconnected, "Count"),
         Metric(DEVICE_LIMIT_REFUSALS, fleet.device_limit_refusals, "Count"),
     ]
     if fleet.history_lag_s is not None:
@@ -255,6 +260,7 @@ class FleetTotals:
     history_lag_s: float | None = None
     worst_arm_loss_percent: float = 0.0  # a gauge: WORST_ARM_LOSS_PERCENT
     device_limit_refusals: int = 0  # a running total: DEVICE_LIMIT_REFUSALS
+    broker_disconnected: int = 0  # now, not a running total: BROKER_DISCONNECTED
 
 
 def increase(now: int | None, before: int | None) -> int:
@@ -329,6 +335,7 @@ class EmfPublisher:
             sink_drops=increase(totals.sink_drops, before.sink_drops if before else None),
             worker_restarts=increase(totals.worker_restarts, before.worker_restarts if before else None),
             subscriptions_refused=totals.subscriptions_refused,
+            broker_disconnected=totals.broker_disconnected,
             device_limit_refusals=increase(
                 totals.device_limit_refusals, before.device_limit_refusals if before else None
             ),

@@ -1833,6 +1833,7 @@ def fleet_totals(state: AgentState, expected_rate_hz: float) -> FleetTotals:
         worker_restarts=sum(w.restarts for w in state.agent.workers)
         + (history.writer_restarts if history is not None else 0),
         subscriptions_refused=state.agent.broker.subscriptions_refused,
+        broker_disconnected=sum(c.state == "connecting" for c in state.agent.broker.connections),
         device_limit_refusals=state.untracked_rejected.get(TOO_MANY_DEVICES, 0),
         history_rows_dropped=history.rows_not_written if history is not None else None,
         history_commit_failures=history.commit_failures if history is not None else None,
