@@ -8,7 +8,8 @@ One SNS topic (encrypted, TLS only; an e-mail address subscribed when the settin
   acknowledge: within 10 s, where a CloudWatch alarm on a once-a-minute metric took minutes and named
   neither. Its role may `sns:Publish` on this topic only (`grant_host`).
 - **agent silent** (CloudWatch): the instance runs (EC2 reports its CPU) but the agent sent no AgentUp
-  heartbeat for 5 minutes: the agent or the host's CloudWatch agent is down. A stopped instance reports no
+  heartbeat for 5 minutes: the agent or the host's CloudWatch agent is down, or a full disk keeps the agent
+  from writing its EMF file. A stopped instance reports no
   CPU, so stopping it (by hand or on the auto-stop schedule) does not page. The template creates it with its
   actions off and the host turns them on (userdata/lib.sh, `arm_silent_alarm`) once its first boot is over
   and at every start: the first boot installs for longer than 5 minutes before the agent runs, and would
@@ -242,8 +243,9 @@ class TwinMonitoring(Construct):
             actions_enabled=False,
             alarm_description=(
                 f"The so101-twin agent of {self.agent_name} sent no heartbeat for 5 minutes while its "
-                "host runs: the agent or the host's CloudWatch agent is down (a stopped host does not "
-                "count). docs/servo-health.md"
+                "host runs: the agent or the host's CloudWatch agent is down, or the host's disk is full "
+                "and the agent cannot write its metrics file (`df -h /var/log`; its log says 'No space "
+                "left on device'). A stopped host does not count. docs/servo-health.md"
             ),
             # 1 while the instance reports CPU (it runs) and the agent no heartbeat; a stopped instance
             # reports nothing, which FILL makes 0: not breaching.

@@ -123,6 +123,13 @@ def test_agent_silent_pages_only_while_the_host_runs(synth_default: Synth) -> No
     assert props["TreatMissingData"] == "notBreaching"
 
 
+def test_agent_silent_names_a_full_disk(synth_default: Synth) -> None:
+    """A full disk keeps the agent from writing its EMF file while it runs on, so the heartbeat stops with
+    the agent and the CloudWatch agent both up: a walk's person would look for a dead process."""
+    description = alarm(synth_default, "The so101-twin agent")["AlarmDescription"]
+    assert "disk is full" in description and "df -h /var/log" in description
+
+
 def test_agent_silent_is_armed_by_the_host_once_it_is_up(synth_default: Synth) -> None:
     """A first boot installs for longer than 5 minutes before the agent runs: the alarm is created with its
     actions off, under a fixed name, and the host's role may turn on this alarm's actions and no other's
