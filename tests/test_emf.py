@@ -305,6 +305,20 @@ def test_the_file_rotates_at_its_bound(tmp_path: Path) -> None:
         EmfFileWriter(tmp_path / "small.log", max_bytes=100)
 
 
+def test_a_line_a_full_disk_cut_short_does_not_take_the_next_document_with_it(tmp_path: Path) -> None:
+    """A write the disk could not take leaves part of a line (a walk filled a tmpfs under the file); once
+    there is room again, the next interval's documents each begin a line of their own and parse."""
+    writer = EmfFileWriter(tmp_path / "emf.log")
+    writer.write(fleet_documents(FLEET, "a", 1))
+    with writer.path.open("a", encoding="utf-8") as fh:
+        fh.write('{"Agent":"a","AgentUp":1,"_aws":{"Timest')
+    writer.write(fleet_documents(FLEET, "a", 2))
+    lines = writer.path.read_text().splitlines()
+    whole = [json.loads(line)["_aws"]["Timestamp"] for line in lines if line.endswith("}")]
+    assert whole == [1] * 3 + [2] * 3
+    assert sum(not line.endswith("}") for line in lines) == 1
+
+
 def test_publisher_turns_totals_into_interval_figures(tmp_path: Path) -> None:
     clock = [100.0]
     totals = [FleetTotals(0, 0, 0, 0, 1, 100.0, None, {"critical": 0, "warning": 0})]

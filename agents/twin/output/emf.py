@@ -231,10 +231,20 @@ class EmfFileWriter:
             if size and size + len(data) > self.max_bytes:
                 os.replace(self.path, self.path.with_name(self.path.name + ".1"))
                 self.rotations += 1
+            elif size and _ends_cut_short(self.path):
+                # A write the disk could not take (full) left part of a line: without a line end the next
+                # interval's first document would join it and be lost with it.
+                data = "\n" + data
             with self.path.open("a", encoding="utf-8") as fh:
                 fh.write(data)
                 fh.flush()
             self.lines_written += len(lines)
+
+
+def _ends_cut_short(path: Path) -> bool:
+    with path.open("rb") as fh:
+        fh.seek(-1, os.SEEK_END)
+        return fh.read(1) != b"\n"
 
 
 @dataclass(frozen=True, slots=True)
