@@ -326,13 +326,15 @@ class TwinMonitoring(Construct):
             "MessagesDropped",
             MESSAGES_DROPPED,
             f"The agent of {agent_name} dropped telemetry before decoding it: a queue was full (the host "
-            "cannot keep up) or a worker process died with messages it had not counted.",
+            "cannot keep up: give it fewer arms or more cores) or a worker process died with messages it "
+            "had not counted (WorkerRestarts then fires too).",
         )
         self.alarms["SinkDrops"] = self._any_loss_alarm(
             "SinkDrops",
             SINK_DROPS,
             f"An output of {agent_name} (USD recording, history, Rerun or ROS 2) dropped samples it could "
-            "not keep up with; /state agent.sinks says which.",
+            "not keep up with, or the servo alarm state file or the event journal could not be written (a "
+            "full or read-only disk: df -h /var/lib); /state agent.sinks says which, with its last_error.",
         )
         self.alarms["WorkerRestarts"] = self._any_loss_alarm(
             "WorkerRestarts",

@@ -350,6 +350,20 @@ def test_any_loss_in_a_minute_alarms(synth_default: Synth, name: str) -> None:
     assert props["EvaluationPeriods"] == 1 and props["TreatMissingData"] == "notBreaching"
 
 
+@pytest.mark.parametrize(
+    ("name", "needles"),
+    [
+        (emf.MESSAGES_DROPPED, ("fewer arms or more cores",)),
+        # The state file and the event journal report their failed writes as sink drops (docs/agent.md):
+        # a walk filled the disk and the e-mail's cause was a sink that could not keep up.
+        (emf.SINK_DROPS, ("state file", "event journal", "full or read-only disk", "last_error")),
+    ],
+)
+def test_a_loss_alarm_names_each_cause_and_its_fix(synth_default: Synth, name: str, needles: tuple) -> None:
+    description = _alarm_on(synth_default, name)["AlarmDescription"]
+    assert all(n in description for n in needles), description
+
+
 def test_history_commit_failures_alarm_after_five_minutes_of_them(synth_default: Synth) -> None:
     props = _alarm_on(synth_default, emf.HISTORY_COMMIT_FAILURES)
     assert (props["Statistic"], props["Threshold"]) == ("Sum", 1)
