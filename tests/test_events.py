@@ -1091,6 +1091,31 @@ def test_a_worker_started_again_just_before_the_stop_has_its_last_events_listed(
     assert arrived() == [*mine[:6], last]
 
 
+@pytest.mark.slow
+def test_a_worker_started_again_before_a_round_saw_it_dead_is_told_as_an_exit(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The supervisor starts a worker that ran a while again within the round that finds it dead, before that
+    # round's watch; a walk's kill -9 left only "running again" (info) on the Events page, no error.
+    agent = unbrokered_agent(tmp_path, 2)
+    worker = EventQuery(kinds=frozenset({EventKind.WORKER.value}))
+    try:
+        shard = agent._shards[1]
+        wait_for(lambda: shard.answering, 60, "worker 1 running")
+        collect = agent._collect_events
+        monkeypatch.setattr(agent, "_collect_events", lambda: None)  # no round sees it dead
+        os.kill(shard.pid, signal.SIGKILL)
+        wait_for(lambda: shard.restarts == 1 and shard.answering, 60, "worker 1 running again")
+        monkeypatch.setattr(agent, "_collect_events", collect)
+        wait_for(
+            lambda: any("running again" in e.message for e in agent.events(worker)), 30, "the restart told"
+        )
+        told = [(e.level, e.message) for e in agent.events(worker)]
+    finally:
+        agent.stop()
+    assert any(level == "error" and m.startswith("worker 1 exited") for level, m in told), told
+
+
 def test_the_events_page_offers_every_kind_in_its_filter() -> None:
     # The page's kind filter is written out in its script: a kind added to EventKind must be added there too,
     # or its events can be found only under "any kind".

@@ -1501,7 +1501,9 @@ class AgentService:
         answering = shard.answering
         was_answering, restarts = self._workers_seen.get(shard.index, (True, 0))
         self._workers_seen[shard.index] = (answering, info.restarts)
-        if was_answering and not answering:
+        # The supervisor starts a worker that ran a while again at once, in the round that finds it dead and
+        # before that round's watch: one started again since the last watch died unseen, and is told too.
+        if was_answering and (not answering or info.restarts > restarts):
             self._events.emit(
                 EventKind.WORKER,
                 EventLevel.ERROR,
