@@ -541,6 +541,26 @@ def test_warnings_go_too_when_asked(topic: Any) -> None:
     assert "WARNING raised: arm arm-003, elbow_flex servo (motor id 3), over_temperature" in said
 
 
+def test_a_publish_that_keeps_failing_shows_in_the_agents_sinks(topic: Any) -> None:
+    """SNS refusing every publish (here a topic that is not there; on the host the role or the topic's key)
+    held every servo alarm e-mail back with only a log line to say so: /state shows it as an output."""
+    arn, _received = topic
+    agent = agent_with_topic(arn + "-deleted")
+    agent.start()
+    try:
+        agent.feed("dt/lerobot/arm-003/telemetry", hot("arm-003", int(time.time() * 1000), 68))
+
+        def failing() -> Any:
+            found = [s for s in agent.state().agent.sinks if s.name == "alerts"]
+            return found[0] if found and found[0].errors >= 2 else None
+
+        alerts = wait_for(failing, 60, "two failed publishes in agent.sinks", interval=0.2)
+    finally:
+        agent.stop()
+    assert alerts.pending >= 1 and alerts.delivered == 0 and alerts.dropped == 0
+    assert "NotFound" in alerts.last_error, alerts
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("workers", [1, 2], ids=["in-process", "two-worker-processes"])
 def test_a_start_that_fails_after_a_message_arrived_sends_its_alert_or_counts_it(

@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 
 from twin.core.alarms import AlarmKind, what_to_do
 from twin.core.aws import region_or_env
+from twin.output.sinks import SinkStats
 from twin.robot import so101, sts3215
 
 log = logging.getLogger(__name__)
@@ -275,6 +276,19 @@ class AlertPublisher:
                 pending=len(self._pending) + self._overflow,
                 last_error=self._last_error,
             )
+
+    def sink_stats(self) -> SinkStats:
+        """The publisher as an output in /state `agent.sinks` and /metrics: a publish that keeps failing (the
+        role, the topic's key) held every servo alarm e-mail back with only a log line to say so. Nothing
+        pending is lost while it retries, so no `dropped`: `errors` and `last_error` tell it."""
+        c = self.counters()
+        return SinkStats(
+            name="alerts",
+            delivered=c.published_alerts,
+            errors=c.failures,
+            pending=c.pending,
+            last_error=c.last_error,
+        )
 
     # -- thread ----------------------------------------------------------------------------------------
 

@@ -993,6 +993,7 @@ class AgentService:
             own = [
                 *(self._journal.sinks() if self._journal is not None else ()),
                 *((self._state_file.stats(),) if self._state_file is not None else ()),
+                *((self._alerts.sink_stats(),) if self._alerts is not None else ()),
             ]
             if own:
                 sinks = (*state.agent.sinks, *own)
