@@ -319,6 +319,32 @@ def test_a_line_a_full_disk_cut_short_does_not_take_the_next_document_with_it(tm
     assert sum(not line.endswith("}") for line in lines) == 1
 
 
+def test_an_interval_the_disk_could_not_take_is_counted_in_the_next(tmp_path: Path) -> None:
+    """The counts are differences of running totals: an interval whose document could not be written (a
+    walk's full disk) must not take its losses with it, or MessagesDropped never pages for them."""
+    clock = [0.0]
+    totals = [FleetTotals(0, 0, 1, 0, 0, 0.0, None, {}, messages_dropped=0)]
+    writer = EmfFileWriter(tmp_path / "emf.log")
+    publisher = EmfPublisher(writer, "a", lambda: totals[-1], clock=lambda: clock[0], wall=lambda: 1.0)
+    publisher.publish_once()
+    write = writer.write
+
+    def full(_documents: Any) -> None:
+        raise OSError(28, "No space left on device")
+
+    writer.write = full  # type: ignore[method-assign]
+    clock[0] = 60.0
+    totals.append(dataclasses.replace(totals[-1], messages_dropped=7))
+    with pytest.raises(OSError):
+        publisher.publish_once()
+    writer.write = write  # type: ignore[method-assign]
+    clock[0] = 120.0
+    totals.append(dataclasses.replace(totals[-1], messages_dropped=9))
+    assert publisher.publish_once().messages_dropped == 9
+    docs = [validate_emf_line(line) for line in writer.path.read_text().splitlines()]
+    assert [d["MessagesDropped"] for d in docs if "AgentUp" in d] == [0, 9]
+
+
 def test_publisher_turns_totals_into_interval_figures(tmp_path: Path) -> None:
     clock = [100.0]
     totals = [FleetTotals(0, 0, 0, 0, 1, 100.0, None, {"critical": 0, "warning": 0})]

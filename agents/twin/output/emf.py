@@ -326,7 +326,6 @@ class EmfPublisher:
             since, before = now - self.interval_s, None
         else:
             since, before = self._last
-        self._last = (now, totals)
         span = max(now - since, 1e-9)
         decoded = totals.decoded - (before.decoded if before else 0)
         rejected = totals.rejected - (before.rejected if before else 0)
@@ -362,6 +361,9 @@ class EmfPublisher:
             history_lag_s=totals.history_lag_s,
         )
         self.writer.write(fleet_documents(fleet, self.agent, round(self._wall() * 1000)))
+        # Only once written: an interval whose write failed (a full disk) is counted in the next one, so its
+        # losses still reach the alarms instead of leaving with the document that could not be written.
+        self._last = (now, totals)
         self.published += 1
         return fleet
 
