@@ -224,6 +224,25 @@ def test_twin_run_serves_rerun_on_the_ports_its_flags_name() -> None:
             assert f"or {flag} 0, picks a free one" in proc.stderr
 
 
+def test_twin_run_refuses_a_viewer_port_while_the_viewer_is_off(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A walk: `twin run --grpc-port 9999` without --rerun-serve started the agent and served no viewer,
+    saying nothing."""
+    from twin.cli.commands import run as run_command
+    from twin.cli.main import main
+
+    monkeypatch.setattr(run_command, "serve", lambda config: pytest.fail("the agent started"))
+    for flag in ("--grpc-port", "--web-port"):
+        assert main(["run", "--broker", "mqtt://127.0.0.1:1", flag, "9999"]) == 2
+        said = capsys.readouterr().err
+        assert f"{flag} 9999 is a port of the Rerun web viewer, which is off: add --rerun-serve" in said
+    served: list[int] = []
+    monkeypatch.setattr(run_command, "serve", lambda config: served.append(config.rerun.grpc_port) or 0)
+    assert main(["run", "--broker", "mqtt://127.0.0.1:1", "--rerun-serve", "--grpc-port", "9999"]) == 0
+    assert served == [9999]
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(180)
 def test_twin_run_rerun_save_records_every_applied_message(rig, tmp_path: Path) -> None:

@@ -193,6 +193,14 @@ def run(args: argparse.Namespace) -> int:
     config = configure(args, overrides_from_args(args))
     if isinstance(config, int):
         return config
+    if not config.rerun.serve:
+        # A port flag alone reads as "serve Rerun there"; ignored, the user waits for a page that never opens.
+        for flag, port in (("--grpc-port", args.grpc_port), ("--web-port", args.web_port)):
+            if port is not None:
+                return _config_error(
+                    f"{flag} {port} is a port of the Rerun web viewer, which is off: add --rerun-serve "
+                    "(or [rerun] serve = true) to serve it there, or leave the flag out"
+                )
     return serve(config)
 
 
