@@ -404,3 +404,23 @@ def test_the_agent_config_examples_are_accepted_by_the_agent(tmp_path: Path) -> 
             if "/path/to/" in text and "does not exist" in str(exc):
                 continue  # a file the reader supplies: all else about the example was accepted
             pytest.fail(f"{page}'s example is refused by the agent:\n{text}\n{exc}")
+
+
+# "add [rerun] ... to `/etc/so101-twin/agent.toml`": a key a guide has the reader put into the host's
+# generated config, within one clause.
+INTO_GENERATED = re.compile(
+    r"\b(?:add|put|set|write|edit)\b[^.;:]*?\b(?:to|in|into)\s+`/etc/so101-twin/agent\.toml`", re.IGNORECASE
+)
+
+
+def test_no_guide_puts_keys_into_the_hosts_generated_config() -> None:
+    """A walk: web.md had the reader add `[rerun]` to /etc/so101-twin/agent.toml, which every boot and update
+    of the host writes anew (docs/host.md), so the viewer went away at the next deploy. A host's own keys go
+    in /etc/so101-twin/agent.local.toml."""
+    found = [
+        (page.name, match.group(0))
+        for page in PAGES
+        for match in INTO_GENERATED.finditer(" ".join(page.read_text(encoding="utf-8").split()))
+    ]
+    assert not found, f"these put keys into the generated config; use agent.local.toml: {found}"
+    assert INTO_GENERATED.search("add `[rerun]` with `serve = true` to `/etc/so101-twin/agent.toml` and")
