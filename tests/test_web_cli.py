@@ -174,6 +174,15 @@ def test_twin_web_refuses_what_is_not_a_recording(tmp_path: Path) -> None:
     missing = twin_web(str(tmp_path / "nosuch.rrd"))
     assert missing.returncode == 2
     assert f"twin web: {tmp_path / 'nosuch.rrd'} does not exist; give a recording" in missing.stderr
+    # A walk: a file named .rrd that Rerun did not write was served as an empty page, the rerun binary's
+    # error in a log nobody reads.
+    cases = [(b"# notes\n", "does not begin as a Rerun recording does (b'# n')"), (b"", "is empty")]
+    for content, said in cases:
+        named = tmp_path / "named.rrd"
+        named.write_bytes(content)
+        proc = twin_web(str(named), "--grpc-port", "0", "--web-port", "0")
+        assert proc.returncode == 2, proc.stdout
+        assert f"twin web: {named} {said}; give a .rrd that Rerun wrote" in proc.stderr
 
 
 def test_twin_web_refuses_bad_ports_for_a_recording_before_it_binds(tmp_path: Path) -> None:

@@ -20,6 +20,8 @@ from twin.cli.output import Console, program, stop_on_signals
 from twin.output.rerun_settings import DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 
 console = Console("web")
+# How every Rerun recording begins (its FourCC; the version digit after it is the rerun binary's to judge).
+RRD_MAGIC = b"RRF"
 
 # Said wherever `twin web` runs, which it cannot tell: on a laptop the URL above is already the one to open.
 SSM_HINT = (
@@ -101,6 +103,17 @@ def serve_file(path: Path, args: argparse.Namespace) -> int:
     if grpc_port != 0 and grpc_port == web_port:
         # The agent's settings refuse this too; here the rerun binary would, in its own coloured log lines.
         console.err(f"--grpc-port and --web-port are both {grpc_port}; give them different ports")
+        return run_command.EXIT_CONFIG
+    try:
+        with path.open("rb") as file:
+            head = file.read(len(RRD_MAGIC))
+    except OSError as exc:
+        console.err(f"{path} cannot be read ({exc.strerror}); give a recording this user may read")
+        return run_command.EXIT_CONFIG
+    if head != RRD_MAGIC:
+        # The rerun binary says so only in its own log, which nobody reads: the page would open empty.
+        said = "is empty" if not head else f"does not begin as a Rerun recording does ({head!r})"
+        console.err(f"{path} {said}; give a .rrd that Rerun wrote (e.g. out/demo/twin.rrd)")
         return run_command.EXIT_CONFIG
     with stop_on_signals() as stop:
         try:
