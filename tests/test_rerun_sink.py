@@ -347,6 +347,34 @@ def test_servo_alarms_raised_and_cleared_are_events(robot: RobotModel, tmp_path:
     assert [t for t, _ in lines] == [raised_at, cleared_at]
 
 
+def test_after_an_edge_clock_reset_the_live_end_shows_the_newest_pose(
+    robot: RobotModel, tmp_path: Path
+) -> None:
+    """A walk: an edge whose clock jumped back 30 s (rebooted without NTP, so the mirror rebuilt its twin) was
+    logged 30 s behind its own earlier samples, and a viewer at the live end showed the pose from before the
+    reset until the clock caught up. Its samples now follow its last one, in the order they were applied."""
+    decoder = TelemetryDecoder(DecoderConfig(units=Units.DEGREES))
+    path = tmp_path / "reset.rrd"
+    sink = RerunSink(robot, RerunSettings(save=str(path), flush_s=0.05))
+    docs = [payload("arm-001", i) for i in range(SAMPLES)]
+    for doc in docs[SAMPLES // 2 :]:
+        doc["timestamp"] -= 30_000
+    for i, doc in enumerate(docs):
+        telemetry = decoder.decode(json.dumps(doc), topic_device="arm-001")
+        sink.applied(AppliedSample("arm-001", time.time(), i * 0.1, telemetry, dict(telemetry.angles_rad)))
+    sink.close()
+    temporal, _ = read_rrd(path)
+    series = column(temporal, "/arms/arm-001/joints/angle_deg", "Scalars:scalars")
+    rows = sorted((t, a) for t, a in zip(times_ms(temporal), series, strict=True) if a)
+    assert len(rows) == SAMPLES
+    for (_, logged), doc in zip(rows, docs, strict=True):
+        by_hand = hand_angles_rad(doc)
+        assert logged == pytest.approx([math.degrees(by_hand[j]) for j in so101.JOINT_NAMES], abs=1e-6)
+    # Before the reset each sample is at the edge's own time; after it, straight after the last one.
+    assert [t for t, _ in rows[: SAMPLES // 2]] == [d["timestamp"] for d in docs[: SAMPLES // 2]]
+    assert rows[SAMPLES // 2][0] == docs[SAMPLES // 2 - 1]["timestamp"] + 1
+
+
 def test_status_text_names_each_error_bit() -> None:
     assert status_text({"shoulder_pan": 0, "gripper": 0}) == ""
     assert status_text({"elbow_flex": 0b100100}) == "elbow_flex: temperature, overload error"
