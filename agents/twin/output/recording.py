@@ -42,6 +42,35 @@ SESSION_GLOB = "session-*.usd[ac]"
 BROKEN_RETRY_S = 5.0
 # A new session that keeps failing to open is told at once, then at most this often (with the count).
 OPEN_ERROR_EVERY_S = 60.0
+# A device's samples are placed at its edge's spacing while that stays this close to the receive clock
+# (EdgeSpacing); past it (an edge clock reset or jump, a long stall) they are anchored again.
+REANCHOR_S = 1.0
+# EdgeSpacing's anchors are dropped all at once past this many devices (a fleet whose ids churn), as the
+# agent's own tables are bounded: each device is anchored again at its next sample.
+MAX_ANCHORS = 20_000
+
+
+class EdgeSpacing:
+    """Each device's sample times for the recorder: its edge timestamps' spacing, anchored on the receive
+    clock at its first sample. Receive times bunch messages the edge sent 100 ms apart (a burst after a
+    stall, a batch handed over at once), and the recorder keeps one sample per time code (1/30 s): the
+    second of two received within it was dropped, 1 to 3 % of a demo's samples, and the stage replayed the
+    network's jitter. Anchored again whenever edge time and receive time part by more than REANCHOR_S, so
+    an edge clock reset neither stops the recording nor moves it off the other arms' time."""
+
+    def __init__(self) -> None:
+        self._anchors: dict[str, tuple[float, int]] = {}  # device -> (receive time, edge ms) at the anchor
+
+    def time_of(self, device: str, received_s: float, edge_ms: int) -> float:
+        anchor = self._anchors.get(device)
+        if anchor is not None:
+            placed = anchor[0] + (edge_ms - anchor[1]) / 1000.0
+            if abs(placed - received_s) <= REANCHOR_S:
+                return placed
+        if len(self._anchors) >= MAX_ANCHORS:
+            self._anchors.clear()
+        self._anchors[device] = (received_s, edge_ms)
+        return received_s
 
 
 @dataclass(frozen=True)
@@ -106,6 +135,7 @@ class _RecorderWorker:
         self.unwritten = 0
         self.last_error = ""
         self._open_errors = Throttle(OPEN_ERROR_EVERY_S, clock=clock)
+        self._spacing = EdgeSpacing()
 
     def handle_applied(self, sample: AppliedSample) -> None:
         if self.recorder.broken:
@@ -116,7 +146,8 @@ class _RecorderWorker:
             self._rotate_if_due()
             return
         poses = self._robot.body_poses(sample.joint_angles)
-        self.recorder.record(sample.device_id, sample.received_mono_s, poses, sample.telemetry.diagnostics)
+        placed = self._spacing.time_of(sample.device_id, sample.received_mono_s, sample.timestamp_ms)
+        self.recorder.record(sample.device_id, placed, poses, sample.telemetry.diagnostics)
         self._rotate_if_due()
 
     def handle_rejected(self, sample: RejectedSample) -> None:
