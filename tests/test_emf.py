@@ -343,6 +343,26 @@ def test_an_interval_the_disk_could_not_take_is_counted_in_the_next(tmp_path: Pa
     assert publisher.publish_once().messages_dropped == 9
     docs = [validate_emf_line(line) for line in writer.path.read_text().splitlines()]
     assert [d["MessagesDropped"] for d in docs if "AgentUp" in d] == [0, 9]
+    # A review: the disk full inside the severity lines, after the counts were in the file. The counts are
+    # not sent again in the next interval.
+    written: list[Any] = []
+
+    def counts_then_full(documents: Any) -> None:
+        if written:
+            raise OSError(28, "No space left on device")
+        written.append(documents)
+        write(documents)
+
+    writer.write = counts_then_full  # type: ignore[method-assign]
+    clock[0] = 180.0
+    totals.append(dataclasses.replace(totals[-1], messages_dropped=16, active_alarms={"critical": 1}))
+    with pytest.raises(OSError):
+        publisher.publish_once()
+    writer.write = write  # type: ignore[method-assign]
+    clock[0] = 240.0
+    assert publisher.publish_once().messages_dropped == 0
+    docs = [validate_emf_line(line) for line in writer.path.read_text().splitlines()]
+    assert [d["MessagesDropped"] for d in docs if "AgentUp" in d] == [0, 9, 7, 0]
 
 
 def test_publisher_turns_totals_into_interval_figures(tmp_path: Path) -> None:
