@@ -245,7 +245,8 @@ class TwinMonitoring(Construct):
                 f"The so101-twin agent of {self.agent_name} sent no heartbeat for 5 minutes while its "
                 "host runs: the agent or the host's CloudWatch agent is down, or the host's disk is full "
                 "and the agent cannot write its metrics file (`df -h /var/log`; its log says 'No space "
-                "left on device'). A stopped host does not count. docs/servo-health.md"
+                "left on device'), or the host's network is cut (no route out, outbound 443, DNS): the "
+                "metrics travel that way too. A stopped host does not count. docs/servo-health.md"
             ),
             # 1 while the instance reports CPU (it runs) and the agent no heartbeat; a stopped instance
             # reports nothing, which FILL makes 0: not breaching.
@@ -393,7 +394,8 @@ class TwinMonitoring(Construct):
             f"The agent of {self.agent_name} has had a connection to IoT Core down for "
             f"{BROKER_DISCONNECTED_MINUTES} minutes, so the arms it carries are not heard (they read "
             "OFFLINE). /healthz says 'broker connection down' and /state agent.broker.last_error, like the "
-            "agent's log, names why: the host's network or DNS, the endpoint, or the role's iot:Connect. "
+            "agent's log, names why: the endpoint, the role's iot:Connect, or IoT Core itself (a host cut "
+            "off from the network pages as AgentSilent instead: its metrics cannot leave either). "
             "docs/deploy.md, Troubleshooting",
             self._metric(BROKER_DISCONNECTED, "Maximum"),
             threshold=1,

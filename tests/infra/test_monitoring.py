@@ -28,6 +28,10 @@ def alarm(synth: Synth, description_start: str) -> dict[str, Any]:
     return found[0]
 
 
+def alarms_described(synth: Synth) -> list[str]:
+    return [a["Properties"]["AlarmDescription"] for a in synth.resources("AWS::CloudWatch::Alarm").values()]
+
+
 def topic_ref(synth: Synth) -> dict[str, str]:
     (logical_id,) = synth.resources("AWS::SNS::Topic")
     return {"Ref": logical_id}
@@ -128,6 +132,11 @@ def test_agent_silent_names_a_full_disk(synth_default: Synth) -> None:
     the agent and the CloudWatch agent both up: a walk's person would look for a dead process."""
     description = alarm(synth_default, "The so101-twin agent")["AlarmDescription"]
     assert "disk is full" in description and "df -h /var/log" in description
+    # A review: a host cut off from the network sends no metric at all, so this alarm, not the broker's
+    # (whose description named the network), is the one that pages for it.
+    assert "the host's network is cut" in description, description
+    broker = next(a for a in alarms_described(synth_default) if "IoT Core down" in a)
+    assert "pages as AgentSilent instead" in broker and "network or DNS" not in broker, broker
 
 
 def test_agent_silent_is_armed_by_the_host_once_it_is_up(synth_default: Synth) -> None:
