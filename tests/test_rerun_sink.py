@@ -352,12 +352,13 @@ def test_after_an_edge_clock_reset_the_live_end_shows_the_newest_pose(
 ) -> None:
     """A walk: an edge whose clock jumped back 30 s (rebooted without NTP, so the mirror rebuilt its twin) was
     logged 30 s behind its own earlier samples, and a viewer at the live end showed the pose from before the
-    reset until the clock caught up. Its samples now follow its last one, in the order they were applied."""
+    reset until the clock caught up. Its samples now follow its last one, in the order they were applied; once
+    its clock is set right again (the last quarter), they are back at the edge's own time."""
     decoder = TelemetryDecoder(DecoderConfig(units=Units.DEGREES))
     path = tmp_path / "reset.rrd"
     sink = RerunSink(robot, RerunSettings(save=str(path), flush_s=0.05))
     docs = [payload("arm-001", i) for i in range(SAMPLES)]
-    for doc in docs[SAMPLES // 2 :]:
+    for doc in docs[SAMPLES // 2 : 3 * SAMPLES // 4]:
         doc["timestamp"] -= 30_000
     for i, doc in enumerate(docs):
         telemetry = decoder.decode(json.dumps(doc), topic_device="arm-001")
@@ -373,6 +374,7 @@ def test_after_an_edge_clock_reset_the_live_end_shows_the_newest_pose(
     # Before the reset each sample is at the edge's own time; after it, straight after the last one.
     assert [t for t, _ in rows[: SAMPLES // 2]] == [d["timestamp"] for d in docs[: SAMPLES // 2]]
     assert rows[SAMPLES // 2][0] == docs[SAMPLES // 2 - 1]["timestamp"] + 1
+    assert [t for t, _ in rows[3 * SAMPLES // 4 :]] == [d["timestamp"] for d in docs[3 * SAMPLES // 4 :]]
 
 
 def test_status_text_names_each_error_bit() -> None:

@@ -519,7 +519,11 @@ class RerunWorker:
         """The sample's place on edge_time. The mirror applies a sample older than the arm's last one only
         after an edge clock reset (docs/agent.md, "Ordering and edge clock resets"); at its own time it would
         sit behind the arm's old samples, and a viewer at the live end would show the pose from before the
-        reset for as long as the clock jumped. From there on the arm's samples follow its last one instead."""
+        reset for as long as the clock jumped. From there on the arm's samples follow its last one instead,
+        until the edge's own time is past its last one again (its clock set right: NTP once it is up), where
+        they are back at it: a shift kept for good left the arm ahead of every other arm (a review)."""
+        if arm.shift_ms and sample.timestamp_ms > arm.last_ms:
+            arm.shift_ms = 0
         ms = sample.timestamp_ms + arm.shift_ms
         if ms < arm.last_ms:
             arm.shift_ms += arm.last_ms + 1 - ms
