@@ -25,6 +25,8 @@ from twin.cli import main
 from twin.cli.commands import instance as cmd
 from twin.ops import instance as lib
 
+from stacks import replacement_guard
+
 REGION = AWS_TEST_REGION
 COMMAND_ID = "5c9a1d1e-0000-4000-8000-000000000001"  # SSM command ids are UUIDs
 
@@ -467,8 +469,12 @@ def test_insufficient_capacity_explains_the_way_out(stack, capsys, monkeypatch):
     captured = capsys.readouterr()
     err = captured.err
     assert "no g6e.2xlarge capacity in us-east-1a" in err
-    assert "G6e capacity in that Availability Zone is exhausted" in err
-    assert "-c availabilityZone=<zone>" in err
+    assert "that Availability Zone's g6e.2xlarge capacity is exhausted" in err
+    # A bare -c availabilityZone= is refused at synth (it replaces the host) and undone by the next deploy
+    # without it: the way out named is the one the replacement guard lets through.
+    assert "-c availabilityZone=" not in err
+    assert 'write availabilityZone = "<zone>" into twin.settings.toml' in err
+    assert f"cdk deploy -c {replacement_guard.CONFIRM_FLAG}=true" in err
     assert (
         "aws ec2 describe-instance-type-offerings --location-type availability-zone "
         "--filters Name=instance-type,Values=g6e.2xlarge --region us-east-1" in err

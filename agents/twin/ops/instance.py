@@ -56,6 +56,8 @@ TERMINATED_STATES = ("shutting-down", "terminated")
 INSTANCE_NOT_FOUND = "InvalidInstanceID.NotFound"
 # The deployment's settings file (stacks/settings.py reads it for `cdk deploy`): its stackName is the default.
 SETTINGS_FILE = "twin.settings.toml"
+# The -c flag that confirms a deploy which replaces the host (stacks/replacement_guard.py, CONFIRM_FLAG).
+REPLACE_FLAG = "replaceInstance"
 
 # Output keys of the CDK stack (stacks/); InstanceId and DcvUrl are the ones this module cannot work without.
 OUTPUT_INSTANCE_ID = "InstanceId"
@@ -626,9 +628,13 @@ class TwinInstance:
         offerings = G6E_OFFERINGS_COMMAND.format(instance_type=instance_type, region=self.region)
         return InsufficientCapacityError(
             f"AWS has no {instance_type} capacity in {zone} right now (InsufficientInstanceCapacity): "
-            f"G6e capacity in that Availability Zone is exhausted. Retry in a few minutes, or redeploy in "
-            f"another zone that offers {instance_type} with `cdk deploy -c availabilityZone=<zone>` "
-            f"(list them with `{offerings}`). Detail: {exc}"
+            f"that Availability Zone's {instance_type} capacity is exhausted. Retry in a few minutes, or "
+            f"move the host to another zone that offers {instance_type} (list them with `{offerings}`): "
+            f'write availabilityZone = "<zone>" into {SETTINGS_FILE} and run '
+            f"`cdk deploy -c {REPLACE_FLAG}=true`, which builds a new host there (about 15 minutes; the "
+            'replacement guard refuses the move without it: docs/deploy.md, "Changes that replace the '
+            'instance"). '
+            f"Detail: {exc}"
         )
 
     def _wait(self, waiter_name: str, target: str, timeout_s: float) -> None:
