@@ -165,9 +165,12 @@ upload_file() {
 }
 
 # apt's own limits: the boot holds automatic updates still and checks the dpkg lock first (bootstrap.sh,
-# step apt), so a lock wait here is short; downloads time out and are retried instead of hanging.
+# step apt), so a lock wait here is short; downloads time out and are retried instead of hanging. dpkg's
+# conffile options: a package upgraded over a conffile the boot rewrote (DCV's dcv.conf, when releases.env
+# pins a new DCV) would stop at dpkg's question, which no one answers under cloud-init or SSM, and fail the
+# package; the file on the host is kept (the boot writes it again anyway), an unchanged one is upgraded.
 APT_OPTS=(-o DPkg::Lock::Timeout=120 -o Acquire::Retries=3 -o Acquire::http::Timeout=30
-  -o Acquire::https::Timeout=30)
+  -o Acquire::https::Timeout=30 -o Dpkg::Options::=--force-confdef -o Dpkg::Options::=--force-confold)
 
 # apt_install [--recommends] PKG...: the packages not installed yet; without recommends unless asked.
 apt_install() {

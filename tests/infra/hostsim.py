@@ -123,7 +123,8 @@ x_refuses() {
 
 STANDINS: dict[str, str] = {
     "apt-get": r"""
-while [ "${1:-}" = -o ]; do shift 2; done  # -o Option=value
+opts=" "
+while [ "${1:-}" = -o ]; do opts+="$2 "; shift 2; done  # -o Option=value
 case "${1:-}" in
   update) exit 0 ;;
   install)
@@ -140,6 +141,17 @@ case "${1:-}" in
         *) pkg="$a" ;;
       esac
       [ -n "$pkg" ] || { echo "apt-get: $a is not a package" >&2; exit 100; }
+      # dpkg asks what to do with a conffile changed on the host when a new version ships another one, and
+      # with no terminal to answer (cloud-init, SSM) fails the package: DCV's dcv.conf, which the boot
+      # writes, on an upgrade of nice-dcv-server.
+      if [ "$pkg" = nice-dcv-server ] && [ -f "$ROOT/etc/dcv/dcv.conf" ] && has dpkg "$pkg" &&
+        [[ $opts != *" Dpkg::Options::=--force-confold "* ]]; then
+        echo "Configuration file '/etc/dcv/dcv.conf'" >&2
+        echo " ==> Modified (by you or by a script) since installation." >&2
+        echo "dpkg: error processing package nice-dcv-server (--install):" >&2
+        echo " end of file on stdin at conffile prompt" >&2
+        exit 100
+      fi
       mark dpkg "$pkg"
       # A package file's version is the second field of its name (name_version_arch.deb).
       case "$a" in

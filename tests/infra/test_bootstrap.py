@@ -891,6 +891,25 @@ def test_an_update_with_a_new_dcv_idle_timeout_rewrites_dcv_conf_and_restarts_dc
     assert (host.sim / "state" / "console").read_text().strip() == "ubuntu"
 
 
+def test_an_update_that_upgrades_dcv_keeps_the_boots_dcv_conf_without_asking(
+    booted, deployed: Deployed, tmp_path: Path
+) -> None:
+    """A new DCV release pinned in releases.env reaches a running host through the update: dpkg would ask
+    what to do with dcv.conf (the boot's, not the package's) and, with no terminal to answer, fail the
+    package. apt tells it to keep the file on the host (the boot rewrites it anyway)."""
+    source, _ = booted
+    host = copy_of(source, tmp_path)
+    (host.sim / "dpkg" / "nice-dcv-server").write_text("2024.0.19030-1\n")
+    conf = host.file("/etc/dcv/dcv.conf")
+    calls_before = len(host.calls())
+    rerun = run_association(host, deployed.update_script)
+    assert rerun.returncode == 0, rerun.stdout[-4000:] + rerun.stderr[-2000:]
+    installs = [c for c in host.calls()[calls_before:] if "nice-dcv-server_" in c]
+    assert installs and all("Dpkg::Options::=--force-confold" in c for c in installs), installs
+    assert host.file("/etc/dcv/dcv.conf") == conf
+    assert (host.sim / "dpkg" / "nice-dcv-server").read_text().startswith("2025.0.")
+
+
 def test_an_idle_timeout_past_the_stacks_bound_is_refused_by_the_boot_too(
     booted, deployed: Deployed, tmp_path: Path
 ) -> None:
