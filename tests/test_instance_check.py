@@ -642,3 +642,35 @@ def test_a_missing_capture_is_a_failing_line_not_a_crash(aws_env, dcv_port, tmp_
         "no capture to fetch from /var/lib/so101-twin/console.png (missing)",
     )
     assert not (tmp_path / "x.png").exists()
+
+
+@pytest.mark.parametrize(
+    ("detail", "fix_part"),
+    [
+        # verify_host, when no viewer ran its 20 s: nothing was captured, so nothing on the console is known.
+        ("not captured: no viewer ran 20 s", "fix the viewer line first"),
+        ("dcv get-screenshot of the console session failed: no such session", "see the dcv-session line"),
+        (
+            "the viewer's window (1280x720 at +0+0) shows one flat colour (#000000 over 100.0%): MuJoCo "
+            "draws nothing in it",
+            "'The viewer's window is black'",
+        ),
+        (
+            "twin view runs, but its MuJoCo window is not shown on :0 (X says IsUnMapped: minimised or "
+            "withdrawn)",
+            "'The viewer's window is black'",
+        ),
+        ("twin view runs, but no MuJoCo window is on X's display :0", "'The viewer's window is black'"),
+        (
+            "the console shows one flat colour (#000000 over 100.0% of 1280x720): no desktop is drawn",
+            "'The console is black or blank'",
+        ),
+    ],
+)
+def test_a_failing_screen_line_gets_the_fix_for_what_it_saw(detail: str, fix_part: str) -> None:
+    """The screen line fails for a flat console, a black, hidden or missing viewer window, a failed capture,
+    or no capture at all: each gets its own fix, not the flat console's."""
+    (line,) = chk.parse_host_check(f"screen\tFAIL\t{detail}\n", None, None)
+    assert fix_part in line.fix, line.fix
+    flat_console = "one flat colour:" in line.fix
+    assert flat_console == detail.startswith("the console shows one flat colour"), line.fix

@@ -68,6 +68,34 @@ HOST_FIXES = {
     "blank' (bring the capture back with --screenshot FILE; on the host: sudo systemctl restart gdm3, then "
     "dcvserver)",
 }
+# The screen line fails for more than a flat console (host-check.sh, check_screen and verify_host): the fix
+# for the first of these its detail contains, else HOST_FIXES["screen"].
+SCREEN_FIXES = (
+    (
+        "not captured",
+        "the console is captured once a viewer has run 20 s: fix the viewer line first, then check again",
+    ),
+    (
+        "dcv get-screenshot",
+        "the capture comes from DCV's console session: see the dcv-session line (on the host: sudo dcv "
+        "list-sessions; sudo systemctl restart dcvserver)",
+    ),
+    (
+        "window",
+        "the viewer's window is missing, hidden or drawn in one colour: docs/deploy.md, Troubleshooting, "
+        "'The viewer's window is black' (bring the capture back with --screenshot FILE; its log on the host: "
+        "journalctl _UID=$(id -u ubuntu) | grep twin-view)",
+    ),
+)
+
+
+def host_fix(name: str, detail: str) -> str:
+    """What to do about a failing or warning host-check line: by its name; for the screen, by what it saw."""
+    if name == "screen":
+        for seen, fix in SCREEN_FIXES:
+            if seen in detail:
+                return fix
+    return HOST_FIXES.get(name, "")
 
 
 @dataclass(frozen=True)
@@ -237,7 +265,7 @@ def parse_host_check(
         if name == "version":
             lines.append(_version_line(detail, expected_version, association_id))
             continue
-        lines.append(CheckLine(name, status, detail, HOST_FIXES.get(name, "") if status != OK else ""))
+        lines.append(CheckLine(name, status, detail, host_fix(name, detail) if status != OK else ""))
     return lines
 
 
