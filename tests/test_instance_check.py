@@ -516,6 +516,25 @@ def test_boot_signal_without_events_is_a_warning_not_a_pass() -> None:
     assert chk.check_boot_signal([timeout]).status == chk.FAIL
 
 
+def test_the_newest_boots_signal_decides_not_an_older_failure() -> None:
+    """Events come newest first. A host built again after a failed boot (a raised hostGeneration, a deploy
+    after a rollback) leaves that failure among the recent events: the newer SUCCESS is the verdict, and a
+    failure after an older SUCCESS is the verdict, with the reason its wait condition carried."""
+    failure_signal = {
+        "ResourceType": "AWS::EC2::Instance",
+        "ResourceStatus": "CREATE_FAILED",
+        "ResourceStatusReason": "Received FAILURE signal with UniqueId i-0123456789abcdef0",
+    }
+    rebuilt = chk.check_boot_signal([SIGNAL_SUCCESS, failure_signal, WAIT_FAILED])
+    assert (rebuilt.status, rebuilt.fix) == (chk.OK, ""), rebuilt
+    broke = chk.check_boot_signal([failure_signal, WAIT_FAILED, SIGNAL_SUCCESS])
+    assert broke.status == chk.FAIL and broke.detail == WAIT_FAILED["ResourceStatusReason"], broke
+    assert (
+        chk.check_boot_signal([failure_signal, SIGNAL_SUCCESS]).detail
+        == failure_signal["ResourceStatusReason"]
+    )
+
+
 def test_unparseable_host_output_is_ignored_line_by_line() -> None:
     lines = chk.parse_host_check("garbage\nagent\tOK\tconnected\nx\tMAYBE\ty\n", None, None)
     assert [(line.name, line.status) for line in lines] == [("agent", "OK")]

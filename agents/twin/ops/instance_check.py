@@ -169,25 +169,44 @@ def check_stack(status: str, reason: str) -> CheckLine:
     )
 
 
+def _wait_failed(kind: str, reason: str) -> bool:
+    return kind == "AWS::CloudFormation::WaitCondition" and "failed message" in reason
+
+
+def _boot_failed(kind: str, reason: str) -> bool:
+    return _wait_failed(kind, reason) or "FAILURE signal" in reason
+
+
+def _boot_ended(kind: str, reason: str) -> bool:
+    """A boot's end other than a failure: its SUCCESS, or the CreationPolicy's timeout."""
+    return (
+        "SUCCESS signal" in reason
+        or "within the specified duration" in reason
+        or "timed out" in reason.lower()
+    )
+
+
 def check_boot_signal(events: list[dict]) -> CheckLine:
-    """The first boot's verdict as CloudFormation recorded it: the instance's signal, the wait condition."""
-    reasons = [
-        (e.get("ResourceType", ""), e.get("ResourceStatus", ""), e.get("ResourceStatusReason") or "")
-        for e in events
-    ]
-    failed = [r for t, _, r in reasons if t == "AWS::CloudFormation::WaitCondition" and "failed message" in r]
-    if failed or any("FAILURE signal" in r for _, _, r in reasons):
-        detail = failed[0] if failed else next(r for _, _, r in reasons if "FAILURE signal" in r)
+    """The verdict of the newest first boot as CloudFormation recorded it: the instance's signal, the wait
+    condition. Events come newest first, and the newest verdict decides: a host built again after a failed
+    one (hostGeneration, or a deploy after a rollback) leaves the old failure among the recent events."""
+    reasons = [(e.get("ResourceType", ""), e.get("ResourceStatusReason") or "") for e in events]
+    ends = [i for i, (kind, reason) in enumerate(reasons) if _boot_ended(kind, reason)]
+    # The events of the newest boot: those newer than the end of any boot before it.
+    newest = reasons[: ends[0]] if ends else reasons
+    failed = [reason for kind, reason in newest if _wait_failed(kind, reason)]
+    failure = failed or [reason for kind, reason in newest if _boot_failed(kind, reason)]
+    if failure:
         return CheckLine(
             "boot signal",
             FAIL,
-            detail,
+            failure[0],
             "the first boot failed at the step named here: docs/deploy.md, Troubleshooting; the full log "
             "is in the HostLogGroup stream <instance-id>/bootstrap",
         )
-    if any("SUCCESS signal" in r for _, _, r in reasons):
+    if ends and "SUCCESS signal" in reasons[ends[0]][1]:
         return CheckLine("boot signal", OK, "the first boot signalled SUCCESS after verifying the host")
-    if any("within the specified duration" in r or "timed out" in r.lower() for _, _, r in reasons):
+    if ends:
         return CheckLine(
             "boot signal",
             FAIL,
