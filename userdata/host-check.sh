@@ -453,7 +453,8 @@ def viewer_window(image, xwin):
     found = [m.groups() for m in map(WINDOW.match, tree.splitlines()) if m]
     size = re.search(r"Width: (\d+)\s+Height: (\d+)", root)
     if not found:
-        return None, "twin view runs, but no MuJoCo window is on X's display :0", True
+        # Whether twin view runs is the viewer line's to say (`twin instance check` runs both either way).
+        return None, "no MuJoCo window is on X's display :0", True
     if size is None:
         return None, "not told the screen's size by xwininfo -root", False
     # A window whose map state X did not tell counts as shown: the capture then judges it.

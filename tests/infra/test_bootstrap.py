@@ -715,10 +715,23 @@ def test_host_check_fails_the_screen_when_no_viewer_window_is_on_x(booted, tmp_p
     lines = check_lines(host)
     assert lines["viewer"][0] == "OK"
     state, detail = lines["screen"]
-    assert (state, detail.split(" (capture")[0]) == (
-        "FAIL",
-        "twin view runs, but no MuJoCo window is on X's display :0",
-    ), detail
+    assert (state, detail.split(" (capture")[0]) == ("FAIL", "no MuJoCo window is on X's display :0"), detail
+
+
+def test_host_check_says_not_that_the_viewer_runs_when_it_does_not(booted, tmp_path: Path) -> None:
+    """`twin instance check` runs the screen line whatever the viewer line found: with no viewer (and so no
+    MuJoCo window on :0) the screen line fails for the missing window, without saying twin view runs."""
+    source, _ = booted
+    host = copy_of(source, tmp_path)
+    (host.sim / "state" / "viewer").unlink()
+    (host.sim / "xwin-tree").write_text(
+        '     1 child:\n     0x1a00003 "Terminal": ("gnome-terminal" "Terminal")  800x600+0+0  +0+0\n'
+    )
+    lines = check_lines(host)
+    assert lines["viewer"][0] == "FAIL" and "twin view is not running" in lines["viewer"][1], lines["viewer"]
+    state, detail = lines["screen"]
+    assert state == "FAIL" and "no MuJoCo window is on X's display :0" in detail, detail
+    assert "twin view runs" not in detail, detail
 
 
 def test_host_check_fails_the_agent_line_when_iot_core_refuses_a_filter(booted, tmp_path: Path) -> None:
