@@ -480,7 +480,12 @@ APPORT
   chown -R "$DESKTOP_USER:" "$ROOT/home/${DESKTOP_USER}/.config"
 
   if ! xorg_conf_ok; then
-    command -v nvidia-xconfig >/dev/null 2>&1 || apt_install nvidia-xconfig
+    if ! command -v nvidia-xconfig >/dev/null 2>&1; then
+      # NVIDIA's driver installs it, though not every packaging does: apt is asked, and else the boot says so.
+      { apt_install nvidia-xconfig && command -v nvidia-xconfig >/dev/null 2>&1; } ||
+        die "nvidia-xconfig is missing and apt installed none: X cannot be set up for a GPU without a" \
+          "monitor. Use an AMI whose NVIDIA driver includes nvidia-xconfig (the default DLAMI Base OSS NVIDIA)"
+    fi
     # nvidia-xconfig edits a legacy XF86Config instead of writing xorg.conf when one exists.
     rm -f "$ROOT"/etc/X11/XF86Config*
     nvidia-xconfig --preserve-busid --enable-all-gpus --allow-empty-initial-configuration \

@@ -967,6 +967,22 @@ def test_no_nvidia_driver_is_a_failure_of_the_gpu_step(tmp_path: Path, deployed:
     apt_restored(host)
 
 
+def test_no_nvidia_xconfig_is_a_named_failure_of_the_desktop_step(
+    tmp_path: Path, deployed: Deployed, release
+) -> None:
+    """The driver came without nvidia-xconfig and apt's package brought none: the desktop step says so and
+    what to use, instead of failing on a command not found with no reason."""
+    host = new_host(tmp_path, deployed, release)
+    (host.bin / "nvidia-xconfig").unlink()
+    result = first_boot(host, deployed)
+    assert result.returncode != 0
+    reason = failure_reason(host)
+    assert reason.startswith("step desktop failed (exit 1): nvidia-xconfig is missing"), reason
+    assert "DLAMI Base OSS NVIDIA" in reason
+    assert not (host.root / "etc/X11/xorg.conf").exists()
+    apt_restored(host)
+
+
 def test_a_held_dpkg_lock_is_a_failure_of_the_apt_step(tmp_path: Path, deployed: Deployed, release) -> None:
     """A process that keeps the dpkg lock (an fcntl lock, as apt and dpkg take it) past the wait."""
     host = new_host(tmp_path, deployed, release)
