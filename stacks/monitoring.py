@@ -1,4 +1,4 @@
-"""The alarm topic and what notifies it: the host's servo alarms directly, and seventeen CloudWatch alarms.
+"""The alarm topic and what notifies it: the host's servo alarms directly, and eighteen CloudWatch alarms.
 
 One SNS topic (encrypted, TLS only; an e-mail address subscribed when the settings give one):
 
@@ -29,6 +29,10 @@ One SNS topic (encrypted, TLS only; an e-mail address subscribed when the settin
   their expected rate, 5 minutes running. IoT Core discards what a connection receives over its quota without
   an error, so this is how such a loss reaches a person (as a weak edge network, or armRateHz set above the
   edges' rate, does); the console's Fleet page and /healthz name the quota's case and its fix.
+- **messages refused** (CloudWatch): half or more of the messages that arrive are refused, 5 minutes
+  running. An arm whose every message is refused (the edge's units or firmware changed, a calibration refused)
+  is OFFLINE, which does not page, and the loss figures leave it out: without this, a fleet-wide change of
+  what the edges send went unpaged.
 - **the host's own scripts** (CloudWatch, three alarms): the checks after a start failed (host-check.sh);
   the bucket does not hold the operator's agent.local.toml as it is (save-local-config.sh), or the servo
   alarm state as the agent last wrote it (save-alarm-state.sh). Each holds its state until the script's next
@@ -94,6 +98,10 @@ BEHIND_ALARM_MINUTES = 5
 # and what pages: any, five minutes running (arms that publish and are kept out; one stray id passes).
 DEVICE_LIMIT_REFUSALS = "DeviceLimitRefusals"
 DEVICE_LIMIT_MINUTES = 5
+# The share of arriving messages the agent refused (emf Rejects against MessagesPerSecond over the minute),
+# and what pages: half, five minutes running (an arm deciding its units, a stray bad message, passes).
+REFUSED_ALARM_PERCENT = 50
+REFUSED_ALARM_MINUTES = 5
 # The host scripts' own metrics (userdata/lib.sh, emit_host_metrics): the verdict of the checks after each
 # start (host-check.sh), and whether the bucket holds the operator's agent.local.toml (save-local-config.sh)
 # and the agent's servo alarm state (save-alarm-state.sh).
@@ -207,6 +215,7 @@ class TwinMonitoring(Construct):
         self.alarms["SubscriptionsRefused"] = self._subscriptions_refused_alarm()
         self.alarms["BrokerDisconnected"] = self._broker_disconnected_alarm()
         self.alarms["MessagesLost"] = self._messages_lost_alarm()
+        self.alarms["MessagesRefused"] = self._messages_refused_alarm()
         self.alarms["ArmLosingMessages"] = self._arm_losing_alarm()
         self.alarms["DeviceLimitReached"] = self._device_limit_alarm()
         self._alarms_for_host_scripts()
@@ -417,6 +426,38 @@ class TwinMonitoring(Construct):
             self._metric(LOSS_PERCENT, "Maximum"),
             threshold=LOSS_ALARM_PERCENT,
             minutes=LOSS_ALARM_MINUTES,
+        )
+
+    def _messages_refused_alarm(self) -> cw.Alarm:
+        """MessagesRefused: half the arriving messages refused for 5 minutes. Such arms are OFFLINE (their
+        status is of valid messages) and out of the loss figures, and the agent runs: nothing else pages."""
+        share = cw.MathExpression(
+            # No message at all in a minute divides by zero, which CloudWatch leaves out: not breaching.
+            expression="100 * refused / (refused + valid * 60)",
+            using_metrics={
+                "refused": self._metric("Rejects", "Sum"),
+                "valid": self._metric("MessagesPerSecond", "Average"),
+            },
+            period=PERIOD,
+            label="messages refused (%)",
+        )
+        return cw.Alarm(
+            self,
+            "MessagesRefused",
+            alarm_description=(
+                f"The agent of {self.agent_name} refuses at least {REFUSED_ALARM_PERCENT} % of the "
+                f"messages that arrive (Rejects), {REFUSED_ALARM_MINUTES} minutes running: those arms read "
+                "OFFLINE and their twins hold still. The console's Fleet page names the arms whose every "
+                "message is refused, and its Events page (or /state health.counters.rejected) gives the "
+                "reason and the fix: the edge's units or payload changed, a calibration refused. "
+                "docs/telemetry.md"
+            ),
+            metric=share,
+            threshold=REFUSED_ALARM_PERCENT,
+            comparison_operator=cw.ComparisonOperator.GREATER_THAN_OR_EQUAL_TO_THRESHOLD,
+            evaluation_periods=REFUSED_ALARM_MINUTES,
+            datapoints_to_alarm=REFUSED_ALARM_MINUTES,
+            treat_missing_data=cw.TreatMissingData.NOT_BREACHING,
         )
 
     def _arm_losing_alarm(self) -> cw.Alarm:

@@ -96,7 +96,7 @@ def test_every_alarm_notifies_the_topic_on_alarm_and_ok(synth_default: Synth) ->
     # only), not through a CloudWatch alarm on a once-a-minute metric: agent silent, arms stale, the six
     # loss alarms, a refused subscription, the broker out of reach, the fleet's and one arm's messages lost,
     # the host scripts' three.
-    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 17)
+    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 18)
     ref = topic_ref(synth_default)
     for props in synth_default.resources("AWS::CloudWatch::Alarm").values():
         assert props["Properties"]["AlarmActions"] == [ref]
@@ -154,7 +154,7 @@ def test_agent_silent_is_armed_by_the_host_once_it_is_up(synth_default: Synth) -
         for p in synth_default.resources("AWS::CloudWatch::Alarm").values()
         if p["Properties"].get("AlarmName") != "So101TwinStack-AgentSilent"
     ]
-    assert len(others) == 16 and all(p.get("ActionsEnabled", True) for p in others)
+    assert len(others) == 17 and all(p.get("ActionsEnabled", True) for p in others)
     arm = statement(policy_statements(synth_default, "IdentityHostRole"), "AgentSilentArm")
     assert arm["Action"] == "cloudwatch:EnableAlarmActions"
     resource = json.dumps(arm["Resource"])
@@ -312,7 +312,7 @@ def test_the_dashboard_shows_every_alarm_and_is_an_output(synth_default: Synth) 
     body = dashboard_body(synth_default)
     status = [w for w in body["widgets"] if w["type"] == "alarm"]
     alarms = synth_default.resources("AWS::CloudWatch::Alarm")
-    assert len(status) == 1 and len(status[0]["properties"]["alarms"]) == len(alarms) == 17
+    assert len(status) == 1 and len(status[0]["properties"]["alarms"]) == len(alarms) == 18
     # One point a minute, the agent's EMF interval, each with the statistic its figure needs.
     for widget in body["widgets"]:
         for row in widget["properties"].get("metrics", []):
@@ -412,6 +412,27 @@ def test_a_broker_connection_down_alarms_after_three_minutes_of_it(synth_default
     props = _alarm_on(synth_default, emf.BROKER_DISCONNECTED)
     assert_sustained_maximum(props, threshold=1, minutes=3)
     assert "iot:Connect" in props["AlarmDescription"] and "Troubleshooting" in props["AlarmDescription"]
+
+
+def test_half_the_messages_refused_pages_after_five_minutes_of_it(synth_default: Synth) -> None:
+    """A walk: arms whose every message is refused (the edges' units changed, a calibration refused) read
+    OFFLINE, which does not page, and the loss figures leave them out: nothing paged. The share of arriving
+    messages refused does, from the agent's Rejects and MessagesPerSecond of each minute."""
+    (props,) = [
+        a["Properties"]
+        for a in synth_default.resources("AWS::CloudWatch::Alarm").values()
+        if "refuses at least" in a["Properties"]["AlarmDescription"]
+    ]
+    (expression,) = [m["Expression"] for m in props["Metrics"] if "Expression" in m]
+    assert expression == "100 * refused / (refused + valid * 60)"
+    used = {m["Id"]: m["MetricStat"] for m in props["Metrics"] if "MetricStat" in m}
+    assert {k: (v["Metric"]["MetricName"], v["Stat"]) for k, v in used.items()} == {
+        "refused": ("Rejects", "Sum"),
+        "valid": ("MessagesPerSecond", "Average"),
+    }
+    assert props["Threshold"] == 50 and props["EvaluationPeriods"] == props["DatapointsToAlarm"] == 5
+    assert props["TreatMissingData"] == "notBreaching"
+    assert "Events page" in props["AlarmDescription"] and "OFFLINE" in props["AlarmDescription"]
 
 
 def test_messages_that_never_arrive_page_after_five_minutes_of_a_tenth_lost(synth_default: Synth) -> None:
