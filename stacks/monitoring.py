@@ -1,4 +1,4 @@
-"""The alarm topic and what notifies it: the host's servo alarms directly, and eighteen CloudWatch alarms.
+"""The alarm topic and what notifies it: the host's servo alarms directly, and nineteen CloudWatch alarms.
 
 One SNS topic (encrypted, TLS only; an e-mail address subscribed when the settings give one):
 
@@ -33,6 +33,9 @@ One SNS topic (encrypted, TLS only; an e-mail address subscribed when the settin
   running. An arm whose every message is refused (the edge's units or firmware changed, a calibration refused)
   is OFFLINE, which does not page, and the loss figures leave it out: without this, a fleet-wide change of
   what the edges send went unpaged.
+- **alarm e-mails unsent** (CloudWatch): the host's publishes of servo alarm e-mails to the topic keep
+  failing, 3 minutes running (its role, the topic's key). CloudWatch publishes to the topic with rights of
+  its own, so this reaches the person the e-mails did not.
 - **the host's own scripts** (CloudWatch, three alarms): the checks after a start failed (host-check.sh);
   the bucket does not hold the operator's agent.local.toml as it is (save-local-config.sh), or the servo
   alarm state as the agent last wrote it (save-alarm-state.sh). Each holds its state until the script's next
@@ -102,6 +105,10 @@ DEVICE_LIMIT_MINUTES = 5
 # and what pages: half, five minutes running (an arm deciding its units, a stray bad message, passes).
 REFUSED_ALARM_PERCENT = 50
 REFUSED_ALARM_MINUTES = 5
+# Servo alarm e-mails the host failed to publish (emf.ALERT_PUBLISH_FAILURES; it retries every 5 s while
+# any waits), and what pages: failures in each of 3 minutes (a passing SNS error clears first).
+ALERT_PUBLISH_FAILURES = "AlertPublishFailures"
+ALERT_FAILURES_MINUTES = 3
 # The host scripts' own metrics (userdata/lib.sh, emit_host_metrics): the verdict of the checks after each
 # start (host-check.sh), and whether the bucket holds the operator's agent.local.toml (save-local-config.sh)
 # and the agent's servo alarm state (save-alarm-state.sh).
@@ -216,6 +223,7 @@ class TwinMonitoring(Construct):
         self.alarms["BrokerDisconnected"] = self._broker_disconnected_alarm()
         self.alarms["MessagesLost"] = self._messages_lost_alarm()
         self.alarms["MessagesRefused"] = self._messages_refused_alarm()
+        self.alarms["AlertsUnsent"] = self._alerts_unsent_alarm()
         self.alarms["ArmLosingMessages"] = self._arm_losing_alarm()
         self.alarms["DeviceLimitReached"] = self._device_limit_alarm()
         self._alarms_for_host_scripts()
@@ -458,6 +466,21 @@ class TwinMonitoring(Construct):
             evaluation_periods=REFUSED_ALARM_MINUTES,
             datapoints_to_alarm=REFUSED_ALARM_MINUTES,
             treat_missing_data=cw.TreatMissingData.NOT_BREACHING,
+        )
+
+    def _alerts_unsent_alarm(self) -> cw.Alarm:
+        """AlertsUnsent: the host's servo alarm e-mails fail to publish, 3 minutes running. The failures
+        showed only in /state; CloudWatch's own right to publish to the topic carries this one."""
+        return self._sustained_alarm(
+            "AlertsUnsent",
+            f"The host of {self.agent_name} cannot publish its servo alarm e-mails to this topic "
+            f"({ALERT_PUBLISH_FAILURES}), {ALERT_FAILURES_MINUTES} minutes running: servo alarms reach no "
+            "one by e-mail. /state agent.sinks 'alerts' last_error, like the agent's log, names SNS's "
+            "refusal: the host role's sns:Publish on the topic, or the topic's KMS key. The console's "
+            "Fleet and Arm pages show the alarms meanwhile. docs/servo-health.md",
+            self._metric(ALERT_PUBLISH_FAILURES, "Sum"),
+            threshold=1,
+            minutes=ALERT_FAILURES_MINUTES,
         )
 
     def _arm_losing_alarm(self) -> cw.Alarm:

@@ -25,7 +25,7 @@ from twin.core.alarms import (
 )
 from twin.output.alerts import BODY_MAX, MAX_FLUSH_S, SUBJECT_MAX, Alert, AlertPublisher
 from twin.robot import so101, sts3215
-from twin.service.agent import AgentService
+from twin.service.agent import AgentService, fleet_totals
 from twin.service.config import ConfigError, load_config
 from twin.service.shards import UNMIRRORED, alarm_info
 
@@ -555,10 +555,13 @@ def test_a_publish_that_keeps_failing_shows_in_the_agents_sinks(topic: Any) -> N
             return found[0] if found and found[0].errors >= 2 else None
 
         alerts = wait_for(failing, 60, "two failed publishes in agent.sinks", interval=0.2)
+        # ... and in the CloudWatch totals, whose AlertPublishFailures pages (AlertsUnsent).
+        totals = fleet_totals(agent.state(), 10.0)
     finally:
         agent.stop()
     assert alerts.pending >= 1 and alerts.delivered == 0 and alerts.dropped == 0
     assert "NotFound" in alerts.last_error, alerts
+    assert totals.alert_publish_failures >= alerts.errors >= 2, totals
 
 
 @pytest.mark.slow

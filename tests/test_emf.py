@@ -157,6 +157,7 @@ def test_fleet_lines_written_to_the_file_are_valid_emf(tmp_path: Path) -> None:
         "SubscriptionsRefused": "Count",
         "BrokerDisconnected": "Count",
         "DeviceLimitRefusals": "Count",
+        "AlertPublishFailures": "Count",
     }
     assert (fleet["MessagesPerSecond"], fleet["DevicesStale"], fleet["InternalLatencyP99"]) == (29.8, 1, 1.9)
     assert (fleet["LossPercent"], fleet["WorstArmLossPercent"]) == (0.7, 33.0)

@@ -96,7 +96,7 @@ def test_every_alarm_notifies_the_topic_on_alarm_and_ok(synth_default: Synth) ->
     # only), not through a CloudWatch alarm on a once-a-minute metric: agent silent, arms stale, the six
     # loss alarms, a refused subscription, the broker out of reach, the fleet's and one arm's messages lost,
     # the host scripts' three.
-    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 18)
+    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 19)
     ref = topic_ref(synth_default)
     for props in synth_default.resources("AWS::CloudWatch::Alarm").values():
         assert props["Properties"]["AlarmActions"] == [ref]
@@ -154,7 +154,7 @@ def test_agent_silent_is_armed_by_the_host_once_it_is_up(synth_default: Synth) -
         for p in synth_default.resources("AWS::CloudWatch::Alarm").values()
         if p["Properties"].get("AlarmName") != "So101TwinStack-AgentSilent"
     ]
-    assert len(others) == 17 and all(p.get("ActionsEnabled", True) for p in others)
+    assert len(others) == 18 and all(p.get("ActionsEnabled", True) for p in others)
     arm = statement(policy_statements(synth_default, "IdentityHostRole"), "AgentSilentArm")
     assert arm["Action"] == "cloudwatch:EnableAlarmActions"
     resource = json.dumps(arm["Resource"])
@@ -312,7 +312,7 @@ def test_the_dashboard_shows_every_alarm_and_is_an_output(synth_default: Synth) 
     body = dashboard_body(synth_default)
     status = [w for w in body["widgets"] if w["type"] == "alarm"]
     alarms = synth_default.resources("AWS::CloudWatch::Alarm")
-    assert len(status) == 1 and len(status[0]["properties"]["alarms"]) == len(alarms) == 18
+    assert len(status) == 1 and len(status[0]["properties"]["alarms"]) == len(alarms) == 19
     # One point a minute, the agent's EMF interval, each with the statistic its figure needs.
     for widget in body["widgets"]:
         for row in widget["properties"].get("metrics", []):
@@ -433,6 +433,17 @@ def test_half_the_messages_refused_pages_after_five_minutes_of_it(synth_default:
     assert props["Threshold"] == 50 and props["EvaluationPeriods"] == props["DatapointsToAlarm"] == 5
     assert props["TreatMissingData"] == "notBreaching"
     assert "Events page" in props["AlarmDescription"] and "OFFLINE" in props["AlarmDescription"]
+
+
+def test_alarm_e_mails_the_host_cannot_publish_page_after_three_minutes(synth_default: Synth) -> None:
+    """A walk: SNS refusing the host's publishes (the role, the topic's key) held every servo alarm e-mail
+    back, shown only in /state. The agent counts the failures, and this alarm, which CloudWatch publishes
+    with rights of its own, says so."""
+    props = _alarm_on(synth_default, emf.ALERT_PUBLISH_FAILURES)
+    assert props["Statistic"] == "Sum" and props["Threshold"] == 1
+    assert props["EvaluationPeriods"] == props["DatapointsToAlarm"] == 3
+    assert props["TreatMissingData"] == "notBreaching"
+    assert "sns:Publish" in props["AlarmDescription"] and "KMS key" in props["AlarmDescription"]
 
 
 def test_messages_that_never_arrive_page_after_five_minutes_of_a_tenth_lost(synth_default: Synth) -> None:

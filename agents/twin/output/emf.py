@@ -48,6 +48,8 @@ HISTORY_ROWS_DROPPED = "HistoryRowsDropped"  # history rows dropped: the write b
 HISTORY_COMMIT_FAILURES = "HistoryCommitFailures"  # history commits that failed (retried)
 HISTORY_LAG = "HistoryLagSeconds"  # how long the oldest unwritten history row has waited
 SUBSCRIPTIONS_REFUSED = "SubscriptionsRefused"  # topic filters the broker refuses now (an IAM policy)
+# Servo alarm e-mails the host could not publish to the alarm topic (attempts that failed; retried).
+ALERT_PUBLISH_FAILURES = "AlertPublishFailures"
 # The broker connections down now (a stack alarm): every arm then reads OFFLINE, which is not paged, and the
 # loss figures count only arms that are not OFFLINE, so without it a host cut off from IoT Core pages no one.
 BROKER_DISCONNECTED = "BrokerDisconnected"
@@ -140,6 +142,7 @@ class FleetMetrics:
     worst_arm_loss_percent: float = 0.0  # WORST_ARM_LOSS_PERCENT
     broker_disconnected: int = 0  # BROKER_DISCONNECTED: connections down at the end of the interval
     device_limit_refusals: int = 0  # DEVICE_LIMIT_REFUSALS during the interval
+    alert_publish_failures: int = 0  # ALERT_PUBLISH_FAILURES during the interval
 
 
 def fleet_documents(
@@ -166,6 +169,7 @@ def fleet_documents(
         Metric(SUBSCRIPTIONS_REFUSED, fleet.subscriptions_refused, "Count"),
         Metric(BROKER_DISCONNECTED, fleet.broker_disconnected, "Count"),
         Metric(DEVICE_LIMIT_REFUSALS, fleet.device_limit_refusals, "Count"),
+        Metric(ALERT_PUBLISH_FAILURES, fleet.alert_publish_failures, "Count"),
     ]
     if fleet.history_lag_s is not None:
         metrics += [
@@ -271,6 +275,7 @@ class FleetTotals:
     worst_arm_loss_percent: float = 0.0  # a gauge: WORST_ARM_LOSS_PERCENT
     device_limit_refusals: int = 0  # a running total: DEVICE_LIMIT_REFUSALS
     broker_disconnected: int = 0  # now, not a running total: BROKER_DISCONNECTED
+    alert_publish_failures: int = 0  # a running total: ALERT_PUBLISH_FAILURES
 
 
 def increase(now: int | None, before: int | None) -> int:
@@ -347,6 +352,9 @@ class EmfPublisher:
             broker_disconnected=totals.broker_disconnected,
             device_limit_refusals=increase(
                 totals.device_limit_refusals, before.device_limit_refusals if before else None
+            ),
+            alert_publish_failures=increase(
+                totals.alert_publish_failures, before.alert_publish_failures if before else None
             ),
             history_rows_dropped=increase(
                 totals.history_rows_dropped, before.history_rows_dropped if before else None

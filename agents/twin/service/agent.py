@@ -1838,6 +1838,8 @@ def fleet_totals(state: AgentState, expected_rate_hz: float) -> FleetTotals:
         subscriptions_refused=state.agent.broker.subscriptions_refused,
         broker_disconnected=sum(c.state == "connecting" for c in state.agent.broker.connections),
         device_limit_refusals=state.untracked_rejected.get(TOO_MANY_DEVICES, 0),
+        # The alarm e-mails' publisher is an output of the agent's own (/state agent.sinks, "alerts").
+        alert_publish_failures=sum(s.errors for s in state.agent.sinks if s.name == "alerts"),
         history_rows_dropped=history.rows_not_written if history is not None else None,
         history_commit_failures=history.commit_failures if history is not None else None,
         history_lag_s=history.lag_s if history is not None else None,
