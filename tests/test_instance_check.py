@@ -533,6 +533,18 @@ def test_the_newest_boots_signal_decides_not_an_older_failure() -> None:
         chk.check_boot_signal([failure_signal, SIGNAL_SUCCESS]).detail
         == failure_signal["ResourceStatusReason"]
     )
+    # A review: the wait condition's message quotes the boot's last log lines, often "timed out after N s
+    # waiting for ...": taken for a boot's end, it lost the step's name. On either side of its signal.
+    quoted = dict(WAIT_FAILED)
+    quoted["ResourceStatusReason"] = WAIT_FAILED["ResourceStatusReason"].replace(
+        "last log lines: ...", "last log lines: timed out after 60 s waiting for Xorg"
+    )
+    orders = ([quoted, failure_signal], [failure_signal, quoted], [failure_signal, quoted, SIGNAL_SUCCESS])
+    for events in orders:
+        said = chk.check_boot_signal(events)
+        assert said.status == chk.FAIL and said.detail == quoted["ResourceStatusReason"], (events, said)
+    # An old boot's failure after its own signal, then a newer SUCCESS: the SUCCESS decides.
+    assert chk.check_boot_signal([SIGNAL_SUCCESS, quoted, failure_signal]).status == chk.OK
 
 
 def test_unparseable_host_output_is_ignored_line_by_line() -> None:
@@ -680,6 +692,8 @@ def test_a_missing_capture_is_a_failing_line_not_a_crash(aws_env, dcv_port, tmp_
             "'The viewer's window is black'",
         ),
         ("no MuJoCo window is on X's display :0", "'The viewer's window is black'"),
+        # A review: a capture the check could not judge got the flat console's fix.
+        ("could not analyse the capture: ModuleNotFoundError: PIL", "could not judge it"),
         (
             "the console shows one flat colour (#000000 over 100.0% of 1280x720): no desktop is drawn",
             "'The console is black or blank'",

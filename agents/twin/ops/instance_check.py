@@ -81,6 +81,13 @@ SCREEN_FIXES = (
         "list-sessions; sudo systemctl restart dcvserver)",
     ),
     (
+        # The capture was taken, but judging it failed: nothing about the console is known.
+        "could not analyse the capture",
+        "the capture was taken but the check could not judge it (its error is quoted): bring the capture "
+        "back with --screenshot FILE and look at it; on the host the check runs in /opt/so101-twin/venv, "
+        "which re-running the host's setup rebuilds (docs/deploy.md, 'Updates in place')",
+    ),
+    (
         "window",
         "the viewer's window is missing, hidden or drawn in one colour: docs/deploy.md, Troubleshooting, "
         "'The viewer's window is black' (bring the capture back with --screenshot FILE; its log on the host: "
@@ -173,14 +180,13 @@ def _wait_failed(kind: str, reason: str) -> bool:
     return kind == "AWS::CloudFormation::WaitCondition" and "failed message" in reason
 
 
-def _boot_failed(kind: str, reason: str) -> bool:
-    return _wait_failed(kind, reason) or "FAILURE signal" in reason
-
-
 def _boot_ended(kind: str, reason: str) -> bool:
-    """A boot's end other than a failure: its SUCCESS, or the CreationPolicy's timeout."""
-    return (
+    """A boot's end as its instance recorded it: its SUCCESS or FAILURE signal, or the CreationPolicy's
+    timeout. The instance's events only: a wait condition's failure quotes the boot's last log lines, which
+    often say "timed out" (a review: the step's name was then lost)."""
+    return kind == "AWS::EC2::Instance" and (
         "SUCCESS signal" in reason
+        or "FAILURE signal" in reason
         or "within the specified duration" in reason
         or "timed out" in reason.lower()
     )
@@ -192,15 +198,18 @@ def check_boot_signal(events: list[dict]) -> CheckLine:
     one (hostGeneration, or a deploy after a rollback) leaves the old failure among the recent events."""
     reasons = [(e.get("ResourceType", ""), e.get("ResourceStatusReason") or "") for e in events]
     ends = [i for i, (kind, reason) in enumerate(reasons) if _boot_ended(kind, reason)]
-    # The events of the newest boot: those newer than the end of any boot before it.
+    # A failure newer than any end is a newer boot's (its instance's signal may not be recorded yet); one
+    # between the newest end and the end before it is that end's own boot's, on either side of its signal.
     newest = reasons[: ends[0]] if ends else reasons
-    failed = [reason for kind, reason in newest if _wait_failed(kind, reason)]
-    failure = failed or [reason for kind, reason in newest if _boot_failed(kind, reason)]
-    if failure:
+    last = reasons[ends[0] : ends[1] if len(ends) > 1 else None] if ends else []
+    failed = [r for kind, r in newest if _wait_failed(kind, r)]
+    if not failed and ends and "FAILURE signal" in reasons[ends[0]][1]:
+        failed = [r for kind, r in last if _wait_failed(kind, r)] or [reasons[ends[0]][1]]
+    if failed:
         return CheckLine(
             "boot signal",
             FAIL,
-            failure[0],
+            failed[0],
             "the first boot failed at the step named here: docs/deploy.md, Troubleshooting; the full log "
             "is in the HostLogGroup stream <instance-id>/bootstrap",
         )
