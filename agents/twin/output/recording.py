@@ -18,6 +18,7 @@ oldest are deleted first, never the one being recorded.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -42,35 +43,62 @@ SESSION_GLOB = "session-*.usd[ac]"
 BROKEN_RETRY_S = 5.0
 # A new session that keeps failing to open is told at once, then at most this often (with the count).
 OPEN_ERROR_EVERY_S = 60.0
-# A device's samples are placed at its edge's spacing while that stays this close to the receive clock
-# (EdgeSpacing); past it (an edge clock reset or jump, a long stall) they are anchored again.
-REANCHOR_S = 1.0
-# EdgeSpacing's anchors are dropped all at once past this many devices (a fleet whose ids churn), as the
-# agent's own tables are bounded: each device is anchored again at its next sample.
-MAX_ANCHORS = 20_000
+# EdgeSpacing: a change of a device's receive-minus-edge offset larger than this is an edge clock set or
+# reset (or a stall that long): its samples are placed from the new offset at once.
+JUMP_S = 5.0
+# EdgeSpacing's offset is the least seen over the last one to two of these windows: a drifting edge clock
+# is followed, and an old small delay does not hold for good.
+OFFSET_WINDOW_S = 60.0
+# EdgeSpacing's devices are dropped all at once past this many (a fleet whose ids churn), as the agent's
+# own tables are bounded: each is placed afresh at its next sample.
+MAX_PLACED_DEVICES = 20_000
+
+
+@dataclass(slots=True)
+class _Placement:
+    offset: float  # the least receive time minus edge time of the windows below (seconds)
+    window_min: float  # the least of the window begun at `window_start`
+    window_start: float
+    last: float  # the last time given
 
 
 class EdgeSpacing:
-    """Each device's sample times for the recorder: its edge timestamps' spacing, anchored on the receive
-    clock at its first sample. Receive times bunch messages the edge sent 100 ms apart (a burst after a
-    stall, a batch handed over at once), and the recorder keeps one sample per time code (1/30 s): the
-    second of two received within it was dropped, 1 to 3 % of a demo's samples, and the stage replayed the
-    network's jitter. Anchored again whenever edge time and receive time part by more than REANCHOR_S, so
-    an edge clock reset neither stops the recording nor moves it off the other arms' time."""
+    """Each device's sample times for the recorder: its edge timestamps, shifted onto the receive clock by
+    the least receive-minus-edge offset seen lately (the transit with the least delay, and the edge clock's
+    offset), and never closer than `step_s` (one time code) to the previous one.
 
-    def __init__(self) -> None:
-        self._anchors: dict[str, tuple[float, int]] = {}  # device -> (receive time, edge ms) at the anchor
+    Receive times bunch messages the edge sent 100 ms apart (a batch handed over at once, a burst after a
+    stall), and the recorder keeps one sample per time code (1/30 s): the second of two received within one
+    was dropped, 1 to 3 % of a demo's samples, and the stage replayed the network's jitter. The least offset
+    is not one message's delay (a first message received late held an arm behind the others), follows a
+    drifting edge clock within a window or two, and is taken afresh when it moves by JUMP_S (an edge clock
+    reset). The floor of one time code keeps what arrives bunched anyway (after such a jump) from being
+    dropped."""
+
+    def __init__(self, step_s: float) -> None:
+        self._step_s = step_s
+        self._devices: dict[str, _Placement] = {}
 
     def time_of(self, device: str, received_s: float, edge_ms: int) -> float:
-        anchor = self._anchors.get(device)
-        if anchor is not None:
-            placed = anchor[0] + (edge_ms - anchor[1]) / 1000.0
-            if abs(placed - received_s) <= REANCHOR_S:
-                return placed
-        if len(self._anchors) >= MAX_ANCHORS:
-            self._anchors.clear()
-        self._anchors[device] = (received_s, edge_ms)
-        return received_s
+        edge_s = edge_ms / 1000.0
+        offset = received_s - edge_s
+        arm = self._devices.get(device)
+        if arm is None or abs(offset - arm.offset) > JUMP_S:
+            if arm is None and len(self._devices) >= MAX_PLACED_DEVICES:
+                self._devices.clear()
+            last = arm.last if arm is not None else -math.inf
+            arm = _Placement(offset, offset, received_s, last)
+            self._devices[device] = arm
+        elif received_s - arm.window_start >= OFFSET_WINDOW_S:
+            # The window turns: the offset is the least of the one ending and the one beginning.
+            arm.offset = min(arm.window_min, offset)
+            arm.window_min, arm.window_start = offset, received_s
+        else:
+            arm.window_min = min(arm.window_min, offset)
+            arm.offset = min(arm.offset, offset)
+        placed = max(edge_s + arm.offset, arm.last + self._step_s)
+        arm.last = placed
+        return placed
 
 
 @dataclass(frozen=True)
@@ -135,7 +163,8 @@ class _RecorderWorker:
         self.unwritten = 0
         self.last_error = ""
         self._open_errors = Throttle(OPEN_ERROR_EVERY_S, clock=clock)
-        self._spacing = EdgeSpacing()
+        # A hair over one time code: the recorder's rounding must not read the floor as less than one.
+        self._spacing = EdgeSpacing(1.0001 / recorder.time_codes_per_second)
 
     def handle_applied(self, sample: AppliedSample) -> None:
         if self.recorder.broken:
