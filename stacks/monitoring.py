@@ -307,7 +307,7 @@ class TwinMonitoring(Construct):
         )
 
     def _sustained_alarm(
-        self, id_: str, description: str, metric: cw.Metric, threshold: float, minutes: int
+        self, id_: str, description: str, metric: cw.IMetric, threshold: float, minutes: int
     ) -> cw.Alarm:
         """Alarm when `metric` is at or above `threshold` in each of `minutes` minutes in a row; no data (the
         agent silent, history off) is not breaching: AgentSilent says that."""
@@ -449,23 +449,17 @@ class TwinMonitoring(Construct):
             period=PERIOD,
             label="messages refused (%)",
         )
-        return cw.Alarm(
-            self,
+        return self._sustained_alarm(
             "MessagesRefused",
-            alarm_description=(
-                f"The agent of {self.agent_name} refuses at least {REFUSED_ALARM_PERCENT} % of the "
-                f"messages that arrive (Rejects), {REFUSED_ALARM_MINUTES} minutes running: those arms read "
-                "OFFLINE and their twins hold still. The console's Fleet page names the arms whose every "
-                "message is refused, and its Events page (or /state health.counters.rejected) gives the "
-                "reason and the fix: the edge's units or payload changed, a calibration refused. "
-                "docs/telemetry.md"
-            ),
-            metric=share,
+            f"The agent of {self.agent_name} refuses at least {REFUSED_ALARM_PERCENT} % of the "
+            f"messages that arrive (Rejects), {REFUSED_ALARM_MINUTES} minutes running: those arms read "
+            "OFFLINE and their twins hold still. The console's Fleet page names the arms whose every "
+            "message is refused, and its Events page (or /state health.counters.rejected) gives the "
+            "reason and the fix: the edge's units or payload changed, a calibration refused. "
+            "docs/telemetry.md",
+            share,
             threshold=REFUSED_ALARM_PERCENT,
-            comparison_operator=cw.ComparisonOperator.GREATER_THAN_OR_EQUAL_TO_THRESHOLD,
-            evaluation_periods=REFUSED_ALARM_MINUTES,
-            datapoints_to_alarm=REFUSED_ALARM_MINUTES,
-            treat_missing_data=cw.TreatMissingData.NOT_BREACHING,
+            minutes=REFUSED_ALARM_MINUTES,
         )
 
     def _alerts_unsent_alarm(self) -> cw.Alarm:

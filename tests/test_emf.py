@@ -454,15 +454,19 @@ def test_losses_are_counted_per_interval_and_history_only_when_it_is_on(tmp_path
 def test_refused_subscriptions_are_reported_as_they_are_not_as_an_increase(tmp_path: Path) -> None:
     """SubscriptionsRefused is a state (filters refused now), so the stack's alarm sees 2 in every interval
     the refusal lasts, not 2 once and then 0."""
+    docs = _three_intervals(tmp_path, FleetTotals(0, 0, 1, 0, 0, 0.0, None, {}, subscriptions_refused=2))
+    assert [d["SubscriptionsRefused"] for d in docs] == [2, 2, 2]
+
+
+def _three_intervals(tmp_path: Path, totals: FleetTotals) -> list[dict[str, Any]]:
+    """The EMF documents of three intervals a minute apart, each with the same `totals`."""
     clock = [0.0]
-    totals = FleetTotals(0, 0, 1, 0, 0, 0.0, None, {}, subscriptions_refused=2)
     writer = EmfFileWriter(tmp_path / "emf.log")
     publisher = EmfPublisher(writer, "a", lambda: totals, clock=lambda: clock[0], wall=lambda: 1.0)
     for _ in range(3):
         publisher.publish_once()
         clock[0] += 60.0
-    docs = [validate_emf_line(line) for line in writer.path.read_text().splitlines()]
-    assert [d["SubscriptionsRefused"] for d in docs] == [2, 2, 2]
+    return [validate_emf_line(line) for line in writer.path.read_text().splitlines()]
 
 
 def test_arms_kept_out_by_the_device_limit_are_counted_per_interval(tmp_path: Path) -> None:
@@ -496,11 +500,5 @@ def test_a_broker_connection_down_is_reported_in_every_interval_it_lasts(tmp_pat
     info = AgentInfo(running=True, broker=BrokerState(connected=False, connections=connections))
     totals = fleet_totals(AgentState(agent=info, devices=offline), 10.0)
     assert (totals.broker_disconnected, totals.loss_percent) == (1, 0.0)
-    clock = [0.0]
-    writer = EmfFileWriter(tmp_path / "emf.log")
-    publisher = EmfPublisher(writer, "a", lambda: totals, clock=lambda: clock[0], wall=lambda: 1.0)
-    for _ in range(3):
-        publisher.publish_once()
-        clock[0] += 60.0
-    docs = [validate_emf_line(line) for line in writer.path.read_text().splitlines()]
+    docs = _three_intervals(tmp_path, totals)
     assert [d["BrokerDisconnected"] for d in docs if "AgentUp" in d] == [1, 1, 1]
