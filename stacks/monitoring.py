@@ -29,10 +29,10 @@ One SNS topic (encrypted, TLS only; an e-mail address subscribed when the settin
   their expected rate, 5 minutes running. IoT Core discards what a connection receives over its quota without
   an error, so this is how such a loss reaches a person (as a weak edge network, or armRateHz set above the
   edges' rate, does); the console's Fleet page and /healthz name the quota's case and its fix.
-- **messages refused** (CloudWatch): half or more of the messages that arrive are refused, 5 minutes
-  running. An arm whose every message is refused (the edge's units or firmware changed, a calibration refused)
-  is OFFLINE, which does not page, and the loss figures leave it out: without this, a fleet-wide change of
-  what the edges send went unpaged.
+- **messages refused** (CloudWatch): half or more of the messages that arrive are refused (the device
+  limit's refusals aside: they have their own alarm), 5 minutes running. An arm whose every message is
+  refused (the edge's units or firmware changed, a calibration refused) is OFFLINE, which does not page, and
+  the loss figures leave it out: without this, a fleet-wide change of what the edges send went unpaged.
 - **alarm e-mails unsent** (CloudWatch): the host's publishes of servo alarm e-mails to the topic keep
   failing, 3 minutes running (its role, the topic's key). CloudWatch publishes to the topic with rights of
   its own, so this reaches the person the e-mails did not.
@@ -441,9 +441,11 @@ class TwinMonitoring(Construct):
         status is of valid messages) and out of the loss figures, and the agent runs: nothing else pages."""
         share = cw.MathExpression(
             # No message at all in a minute divides by zero, which CloudWatch leaves out: not breaching.
-            expression="100 * refused / (refused + valid * 60)",
+            # The device limit's refusals have their own alarm (DeviceLimitReached), with its own fix.
+            expression="100 * (refused - kept_out) / (refused + valid * 60)",
             using_metrics={
                 "refused": self._metric("Rejects", "Sum"),
+                "kept_out": self._metric(DEVICE_LIMIT_REFUSALS, "Sum"),
                 "valid": self._metric("MessagesPerSecond", "Average"),
             },
             period=PERIOD,

@@ -65,7 +65,8 @@ class _Placement:
 class EdgeSpacing:
     """Each device's sample times for the recorder: its edge timestamps, shifted onto the receive clock by
     the least receive-minus-edge offset seen lately (the transit with the least delay, and the edge clock's
-    offset), and never closer than `step_s` (one time code) to the previous one.
+    offset), and no closer than `step_s` (one time code) to the previous one unless that would place it more
+    than a time code past its receive time.
 
     Receive times bunch messages the edge sent 100 ms apart (a batch handed over at once, a burst after a
     stall), and the recorder keeps one sample per time code (1/30 s): the second of two received within one
@@ -96,8 +97,11 @@ class EdgeSpacing:
         else:
             arm.window_min = min(arm.window_min, offset)
             arm.offset = min(arm.offset, offset)
-        placed = max(edge_s + arm.offset, arm.last + self._step_s)
-        arm.last = placed
+        # The floor is at most a time code past the receive time (a review): an edge faster than the time
+        # codes, or a run of samples after a late first one, would otherwise run ahead without bound; those
+        # that fall under it are the recorder's to drop.
+        placed = max(edge_s + arm.offset, min(arm.last + self._step_s, received_s + self._step_s))
+        arm.last = max(arm.last, placed)
         return placed
 
 
