@@ -42,6 +42,8 @@ from twin.robot import so101
 
 log = logging.getLogger(__name__)
 
+# The stage's time codes (and frames) per second unless a caller says otherwise.
+TIME_CODES_PER_SECOND = 30.0
 # A sample that lands a hair under one time code after the previous one (float rounding of t * fps) is kept.
 _DROP_TOLERANCE = 1e-6
 # usd-core saves a usdc layer that is already on disk in place, appending what is new: a save the disk cannot
@@ -117,7 +119,7 @@ class SessionRecorder:
         *,
         asset_path: Path | None = None,
         flush_interval_s: float = 2.0,
-        time_codes_per_second: float = 30.0,
+        time_codes_per_second: float = TIME_CODES_PER_SECOND,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         if not (math.isfinite(time_codes_per_second) and time_codes_per_second > 0):
@@ -180,6 +182,9 @@ class SessionRecorder:
         crash, while the disk was full, and its arms stopped being mirrored for a recording."""
         self = cls.__new__(cls)
         self.path = Path(path).resolve()
+        # Read by the sink as it places samples (recording.EdgeSpacing): a set-aside first session stopped
+        # the agent's start on a full disk without it.
+        self.time_codes_per_second = TIME_CODES_PER_SECOND
         self._devices = {}
         self._closed = True  # nothing to save or close: record() drops, close() does nothing
         self.broken = True
