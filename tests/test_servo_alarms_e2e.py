@@ -94,7 +94,7 @@ def test_each_servo_fault_raises_and_clears_its_alarms(
     # Each says what to do at the arm about its kind, as its e-mail and the Arm page do (a servo error's
     # about the bits its value holds: test_alerts).
     listed = alarms(url).alarms
-    assert all(a.advice == what_to_do(a.kind, a.joint, a.value) != "" for a in listed), listed
+    assert all(a.advice == what_to_do(a.kind, a.joint, a.value, a.message) != "" for a in listed), listed
 
     # The readings are in /state and /metrics while the faults run: read first, as the faults end about 7 s
     # into the run.
