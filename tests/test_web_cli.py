@@ -241,6 +241,9 @@ def test_twin_run_refuses_a_viewer_port_while_the_viewer_is_off(
     from twin.cli.commands import run as run_command
     from twin.cli.main import main
 
+    # In this process, the agent's JSON log handler would stay on the root logger and write later tests'
+    # records into their stdout (a stress run's random order found it).
+    monkeypatch.setattr(run_command, "setup_logging", lambda *_args, **_kwargs: None)
     monkeypatch.setattr(run_command, "serve", lambda config: pytest.fail("the agent started"))
     for flag in ("--grpc-port", "--web-port"):
         assert main(["run", "--broker", "mqtt://127.0.0.1:1", flag, "9999"]) == 2
