@@ -27,7 +27,7 @@ from typing import Any
 from twin.core.topics import telemetry_topic
 from twin.ops.history import HistoryReader, HistoryReadError, empty_hint, iso_utc
 from twin.output.history import JOINTS, RAW_FIELDS, raw_column
-from twin.transport.broker import BrokerConfig, connack_hint, connect_hint, crt_error_text, new_client_id
+from twin.transport.broker import BrokerConfig, crt_error_text, failure_hint, new_client_id
 from twin.transport.client import build_mqtt5_client
 
 log = logging.getLogger(__name__)
@@ -267,11 +267,7 @@ class _Connection:
         self._timeout_s = timeout_s
 
     def on_failure(self, data: Any) -> None:
-        # A CONNACK's reason (a bad password, a client id the policy does not allow) says more than
-        # awscrt's error, which says only that the CONNACK was not a success.
-        reason = getattr(getattr(data, "connack_packet", None), "reason_code", None)
-        code = None if reason is None else int(reason)
-        hint = connack_hint(self._config, code) or connect_hint(self._config, data.exception)
+        hint = failure_hint(self._config, data)
         first = not self.failure
         self.failure = f"{crt_error_text(data.exception)}{f'. {hint}' if hint else ''}"
         if first:  # said at once: the command otherwise sat silent until its timeout

@@ -12,6 +12,7 @@ import secrets
 import socket
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 from urllib.parse import urlsplit
 
 # Every agent's client ids start with this, then a name of its own (`agent_client_id_prefix`): the stack's
@@ -175,6 +176,18 @@ def crt_error_text(error: BaseException | None) -> str:
     """awscrt's error as text to go inside a sentence: its message ends with a full stop, which put
     "refused.; retrying" and "refused.. Is a broker ..." in the lines around it."""
     return str(error).rstrip(" .")
+
+
+def connack_code(data: Any) -> int | None:
+    """The reason code of a failed connect's CONNACK (awscrt's LifecycleConnectFailureData), None without
+    one: it says more than awscrt's error, which says only that the CONNACK was not a success."""
+    reason = getattr(getattr(data, "connack_packet", None), "reason_code", None)
+    return None if reason is None else int(reason)
+
+
+def failure_hint(config: BrokerConfig, data: Any) -> str:
+    """What to check after a failed connect: the CONNACK's refusal, else what awscrt's error names."""
+    return connack_hint(config, connack_code(data)) or connect_hint(config, data.exception)
 
 
 def connect_hint(config: BrokerConfig, error: BaseException | None) -> str:

@@ -23,9 +23,9 @@ from twin.core.throttle import Throttle
 from twin.transport.broker import (
     CONNACK_REFUSALS,
     BrokerConfig,
-    connack_hint,
-    connect_hint,
+    connack_code,
     crt_error_text,
+    failure_hint,
     new_client_id,
 )
 from twin.transport.client import build_mqtt5_client
@@ -363,10 +363,7 @@ class TelemetrySubscriber:
         )
 
     def _on_connection_failure(self, data: mqtt5.LifecycleConnectFailureData) -> None:
-        # A CONNACK's reason says more than awscrt's error, which says only that the CONNACK was not a
-        # success.
-        reason = getattr(getattr(data, "connack_packet", None), "reason_code", None)
-        code = None if reason is None else int(reason)
+        code = connack_code(data)
         refused = CONNACK_REFUSALS.get(code, "") if code is not None else ""
         with self._stats_lock:
             self._stats.connection_failures += 1
@@ -379,7 +376,7 @@ class TelemetrySubscriber:
                 return
             streak = self._failure_lines.streak
         # The hint rides on each line: the first may have scrolled away.
-        hint = connack_hint(self.config, code) or connect_hint(self.config, data.exception)
+        hint = failure_hint(self.config, data)
         log.warning(
             "subscriber %s could not connect to %s (failure #%d%s): %s; retrying with backoff%s",
             self.client_id,
