@@ -279,8 +279,9 @@ class AlertPublisher:
 
     def sink_stats(self) -> SinkStats:
         """The publisher as an output in /state `agent.sinks` and /metrics: a publish that keeps failing (the
-        role, the topic's key) held every servo alarm e-mail back with only a log line to say so. Nothing
-        pending is lost while it retries, so no `dropped`: `errors` and `last_error` tell it."""
+        role, the topic's key) held every servo alarm e-mail back with only a log line to say so. What waits
+        is kept while it retries (past max_pending, as a count in the next e-mail), so no `dropped`:
+        `errors` and `last_error` tell it."""
         c = self.counters()
         return SinkStats(
             name="alerts",
