@@ -371,9 +371,11 @@ def test_after_an_edge_clock_reset_the_live_end_shows_the_newest_pose(
     for (_, logged), doc in zip(rows, docs, strict=True):
         by_hand = hand_angles_rad(doc)
         assert logged == pytest.approx([math.degrees(by_hand[j]) for j in so101.JOINT_NAMES], abs=1e-6)
-    # Before the reset each sample is at the edge's own time; after it, straight after the last one.
+    # Before the reset each sample is at the edge's own time; after it, the 100 ms the agent received it
+    # after the last one (the time that passed), then at the edge's spacing.
     assert [t for t, _ in rows[: SAMPLES // 2]] == [d["timestamp"] for d in docs[: SAMPLES // 2]]
-    assert rows[SAMPLES // 2][0] == docs[SAMPLES // 2 - 1]["timestamp"] + 1
+    after_reset = [t for t, _ in rows[SAMPLES // 2 - 1 : 3 * SAMPLES // 4]]
+    assert {b - a for a, b in itertools.pairwise(after_reset)} == {100}, after_reset
     assert [t for t, _ in rows[3 * SAMPLES // 4 :]] == [d["timestamp"] for d in docs[3 * SAMPLES // 4 :]]
 
 

@@ -9,8 +9,8 @@ For each device it writes an entity tree under `arms/<device>/` (docs/web.md dra
     arms/<device>/servo/<quantity>         six servo readings per quantity, when the edge sends them
     arms/<device>/events                   servo status and rejected messages, as text
 
-Everything temporal sits on the `edge_time` timeline (the edge's own timestamps; after an edge clock reset,
-moved to follow the arm's last sample). Forward kinematics runs in
+Everything temporal sits on the `edge_time` timeline (the edge's own timestamps, never running backwards per
+arm: twin.output.edge_time). Forward kinematics runs in
 the sink's thread (`RobotModel.body_pose_array`). Cost is what decides the shape of the code: building a Rerun
 archetype in Python costs far more than the sample it carries, so samples are buffered per device and sent as
 Arrow columns, one record batch per device every `flush_s` (docs/web.md has the figures). The blocking part
@@ -48,6 +48,7 @@ from rerun.chunk import Chunk
 from twin.core import heap
 from twin.core.lifetime import die_with_parent
 from twin.core.telemetry import JointDiagnostics
+from twin.output.edge_time import EdgeTime
 from twin.output.rerun_settings import RerunSettings
 from twin.output.sinks import AppliedSample, DeviceRateCap, QueuedSink, RejectedSample, SinkStats
 from twin.robot import so101
@@ -162,10 +163,8 @@ class _Arm:
         default_factory=lambda: np.empty((0, len(so101.JOINT_NAMES), len(SERVO_SERIES)))
     )
     first_pending: float = 0.0
-    # The arm's place on edge_time: its last sample's, and how far its samples are moved since an edge clock
-    # reset (RerunSink._edge_ms).
-    last_ms: int = -(2**62)
-    shift_ms: int = 0
+    # The arm's place on edge_time, which never runs backwards (twin.output.edge_time).
+    edge: EdgeTime = field(default_factory=EdgeTime)
     status: str = ""
     status_key: tuple[int | None, ...] = ()
     servo_styled: set[str] = field(default_factory=set)
@@ -496,7 +495,10 @@ class RerunWorker:
         if arm.n == 0:
             arm.first_pending = now
         row = arm.next_row()
-        arm.times_ns[row] = self._edge_ms(arm, sample) * 1_000_000
+        edge_ms = arm.edge.place(
+            sample.timestamp_ms, sample.received_mono_s, device=sample.device_id, output="rerun"
+        )
+        arm.times_ns[row] = edge_ms * 1_000_000
         angles = sample.joint_angles
         arm.poses[row] = self.robot.body_pose_array(angles)
         arm.angles_rad[row] = [angles.get(j, math.nan) for j in so101.JOINT_NAMES]
@@ -514,28 +516,6 @@ class RerunWorker:
             self._rotate_if_due(now)
         if self._statics:
             self._log_statics(now)
-
-    def _edge_ms(self, arm: _Arm, sample: AppliedSample) -> int:
-        """The sample's place on edge_time. The mirror applies a sample older than the arm's last one only
-        after an edge clock reset (docs/agent.md, "Ordering and edge clock resets"); at its own time it would
-        sit behind the arm's old samples, and a viewer at the live end would show the pose from before the
-        reset for as long as the clock jumped. From there on the arm's samples follow its last one instead,
-        until the edge's own time is past its last one again (its clock set right: NTP once it is up), where
-        they are back at it: a shift kept for good left the arm ahead of every other arm (a review)."""
-        if arm.shift_ms and sample.timestamp_ms > arm.last_ms:
-            arm.shift_ms = 0
-        ms = sample.timestamp_ms + arm.shift_ms
-        if ms < arm.last_ms:
-            arm.shift_ms += arm.last_ms + 1 - ms
-            log.warning(
-                "rerun: the edge clock of %s jumped back %.1f s; its samples now follow its last one on %s",
-                sample.device_id,
-                (arm.last_ms + 1 - ms) / 1000,
-                TIMELINE,
-            )
-            ms = arm.last_ms + 1
-        arm.last_ms = ms
-        return ms
 
     def handle_rejected(self, sample: RejectedSample) -> None:
         device = sample.device_id
@@ -668,13 +648,13 @@ class RerunWorker:
         cleared = not text
         message = "all servos report no error" if cleared else text
         arm.status = text
-        self._rec.set_time(TIMELINE, timestamp=np.datetime64(arm.last_ms, "ms"))
+        self._rec.set_time(TIMELINE, timestamp=np.datetime64(arm.edge.last_ms, "ms"))
         level = rr.TextLogLevel.INFO if cleared else rr.TextLogLevel.WARN
         self._rec.log(f"{arm.entity}/events", rr.TextLog(f"servo status: {message}", level=level))
 
     def _alarms(self, arm: _Arm, sample: AppliedSample) -> None:
         # Raised and cleared servo alarms (docs/servo-health.md) as the alarm engine words them.
-        self._rec.set_time(TIMELINE, timestamp=np.datetime64(arm.last_ms, "ms"))
+        self._rec.set_time(TIMELINE, timestamp=np.datetime64(arm.edge.last_ms, "ms"))
         for event in sample.alarm_events:
             if event.action == "raised":
                 level = rr.TextLogLevel.ERROR if event.severity == "critical" else rr.TextLogLevel.WARN

@@ -1,0 +1,52 @@
+"""Each arm's time line in the outputs (Rerun's `edge_time`, the ROS 2 `header.stamp`, the USD recording's
+time codes): the edge's own timestamps, never running backwards per arm.
+
+The mirror applies a sample older than the arm's last one only after an edge clock reset (docs/agent.md,
+"Ordering and edge clock resets"). At its own time it would land behind the arm's earlier samples: Rerun's
+live end would show the pose from before the reset until the clock caught up, and a ROS 2 stamp that goes
+backwards breaks tf buffers and bag players that expect one frame's stamps in order. So from a reset on,
+the arm's samples follow its last one, as far after it as the agent received them after it (the time that
+really passed: a stamp 1 ms after a pose 2 s older gave a subscriber that differentiates positions a spike),
+and keep the edge's spacing. Once the edge's own time is past the arm's last one again (its clock set right,
+by NTP once it is up) they are back at it: a shift kept for good left the arm ahead of every other arm.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(slots=True)
+class EdgeTime:
+    """One arm's place on its time line (module doc). `place` is called once per applied sample, in the
+    order the mirror applied them."""
+
+    last_ms: int = -(2**62)
+    shift_ms: int = 0
+    last_received_s: float = math.nan
+
+    def place(self, edge_ms: int, received_s: float, *, device: str, output: str) -> int:
+        """The sample's time (ms) on the arm's line, from its edge timestamp and the agent's monotonic
+        receive time; `device` and `output` name the arm and the output in the warning a reset logs."""
+        if self.shift_ms and edge_ms > self.last_ms:
+            self.shift_ms = 0
+        ms = edge_ms + self.shift_ms
+        if ms < self.last_ms:
+            passed_s = received_s - self.last_received_s
+            # A receive clock that stood still (or no earlier receive time, NaN): at least 1 ms on.
+            after = self.last_ms + (max(1, round(passed_s * 1000)) if passed_s > 0 else 1)
+            self.shift_ms += after - ms
+            log.warning(
+                "%s: the edge clock of %s jumped back %.1f s; its samples now follow its last one",
+                output,
+                device,
+                (after - ms) / 1000,
+            )
+            ms = after
+        self.last_ms = ms
+        self.last_received_s = received_s
+        return ms

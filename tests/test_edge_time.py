@@ -1,0 +1,41 @@
+"""twin.output.edge_time: the one rule that places an arm's samples on its time line in Rerun, ROS 2 and the
+USD recording, across an edge clock reset."""
+
+from __future__ import annotations
+
+import logging
+
+import pytest
+from twin.output.edge_time import EdgeTime
+
+
+def place_all(line: EdgeTime, samples: list[tuple[int, float]]) -> list[int]:
+    return [line.place(edge, received, device="arm-001", output="test") for edge, received in samples]
+
+
+def test_the_edge_time_as_is_while_it_runs_forward() -> None:
+    samples = [(1_000_000 + 100 * i, 50.0 + 0.1 * i + (0.03 if i % 3 else 0.0)) for i in range(20)]
+    assert place_all(EdgeTime(), samples) == [edge for edge, _ in samples]
+
+
+def test_after_a_reset_the_line_goes_on_by_the_time_that_passed_then_back_at_the_edge_time(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Reset 30 s back, 2.5 s after the last sample (the mirror ignores older ones that long first): the next
+    sample is 2.5 s after the last one, the rest at the edge's spacing; once the edge clock is set right (a
+    step past the line), its own time again."""
+    steady = [(1_000_000 + 100 * i, 50.0 + 0.1 * i) for i in range(10)]
+    reset = [(973_400 + 100 * i, 53.4 + 0.1 * i) for i in range(10)]
+    set_right = [(1_010_000 + 100 * i, 54.4 + 0.1 * i) for i in range(5)]
+    caplog.set_level(logging.WARNING, logger="twin.output.edge_time")
+    placed = place_all(EdgeTime(), steady + reset + set_right)
+    assert placed[:10] == [edge for edge, _ in steady]
+    assert placed[10:20] == [1_000_900 + 2_500 + 100 * i for i in range(10)]
+    assert placed[20:] == [edge for edge, _ in set_right]
+    [warning] = [r.getMessage() for r in caplog.records]
+    assert "arm-001" in warning and "jumped back 30.0 s" in warning and warning.startswith("test:")
+
+
+def test_a_reset_with_no_receive_time_passed_still_moves_on() -> None:
+    placed = place_all(EdgeTime(), [(5_000, 1.0), (4_000, 1.0), (4_000, 1.0)])
+    assert placed == [5_000, 5_001, 5_001]
