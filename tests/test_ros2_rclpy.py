@@ -8,6 +8,7 @@ names, CDR layout, QoS and XTypes matching all have to agree with rmw_fastrtps).
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import sys
@@ -38,6 +39,7 @@ def drive(
     *,
     env: dict[str, str] | None = None,
     ros: str = "jazzy",
+    extra: tuple[str, ...] = (),
 ) -> dict:
     out = tmp_path / "result.json"
     proc = run_in_loopback_namespace(
@@ -54,6 +56,7 @@ def drive(
             json.dumps(settings),
             "--out",
             str(out),
+            *extra,
         ],
         env={**os.environ, **(env or {})},
         cwd=REPO,
@@ -92,6 +95,24 @@ def test_rclpy_receives_every_arm_with_names_positions_velocity_and_type_hash(tm
         assert publisher["type_hash"] == rihs01("sensor_msgs/msg/JointState")
         assert (publisher["reliability"], publisher["durability"]) == ("RELIABLE", "VOLATILE")
         assert listener["graph"][topic] == ["sensor_msgs/msg/JointState"]
+
+
+def test_stamps_never_go_backwards_after_an_edge_clock_reset(tmp_path: Path) -> None:
+    """An edge clock set 30 s back (the mirror then applies samples older than the arm's last one) stamped
+    JointState 30 s before the message rclpy had just received: tf buffers and bag players that expect a
+    frame's stamps in order dropped or misordered it. The stamps now go on from the last one, as far after it
+    as the time that passed (the driver publishes at 10 Hz)."""
+    extra = ("--count", "30", "--reset-after", "15", "--reset-back-ms", "30000")
+    result = drive(tmp_path, ["arm-001"], {}, extra=extra)
+    assert result["stats"]["errors"] == 0, result["stats"]["last_error"]
+    messages = result["listener"]["received"]["/arm_001/joint_states"]
+    stamps_ms = [m["sec"] * 1000 + m["nanosec"] // 1_000_000 for m in messages]
+    # rclpy received messages from both sides of the reset: the edge's own stamps before it, then others.
+    before = {s["timestamp_ms"] for s in result["sent"]["arm-001"][:15]}
+    assert stamps_ms[0] in before and stamps_ms[-1] not in before, stamps_ms
+    steps = [b - a for a, b in itertools.pairwise(stamps_ms)]
+    # Never back, nor a few ms on (a velocity from the stamps would spike): about the driver's 100 ms.
+    assert all(50 <= step < 2000 for step in steps), steps
 
 
 def test_fixed_topic_over_unicast_peer_on_a_named_interface_carries_one_arm(tmp_path: Path) -> None:

@@ -31,6 +31,10 @@ def main() -> int:
     parser.add_argument("--settings", required=True, help="Ros2Settings keyword arguments as JSON")
     parser.add_argument("--count", type=int, default=5)
     parser.add_argument("--seconds", type=float, default=40.0)
+    parser.add_argument(
+        "--reset-after", type=int, default=0, help="from each arm's N-th sample on, its edge clock is reset"
+    )
+    parser.add_argument("--reset-back-ms", type=int, default=30_000, help="how far back the reset sets it")
     parser.add_argument("--out", required=True)
     args = parser.parse_args()
 
@@ -52,12 +56,16 @@ def main() -> int:
     bridge = Ros2Bridge(settings)
     sink = QueuedSink("ros2", bridge)
     sent: dict[str, list[dict]] = {d: [] for d in devices}
+    # What the mirror applies after an edge clock reset (docs/agent.md): samples older than the arm's last.
+    back_ms = args.reset_back_ms if args.reset_after else 0
     started = time.monotonic()
     deadline = started + args.seconds
     while listener.poll() is None and time.monotonic() < deadline:
         for index, device in enumerate(devices):
             # Each arm its own phase of the motion, so one arm's message can never pass for another's.
             payload = make_payload(device, time.monotonic() - started + 1.7 * index, "ticks", rng)
+            if back_ms and len(sent[device]) >= args.reset_after:
+                payload["timestamp"] -= back_ms
             telemetry = decoder.decode(json.dumps(payload).encode(), topic_device=device)
             angles = {j: telemetry.angles_rad[j] for j in so101.JOINT_NAMES}
             sink.applied(AppliedSample(device, time.time(), time.monotonic(), telemetry, angles))

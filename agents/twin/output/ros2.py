@@ -39,6 +39,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from twin.output.edge_time import EdgeTime
 from twin.output.sinks import AppliedSample, QueuedSink, RejectedSample
 from twin.robot import so101
 
@@ -572,6 +573,8 @@ class _Arm:
     writer: Any
     encoder: JointStateEncoder
     published: int = 0
+    # header.stamp never runs backwards per arm (twin.output.edge_time): tf and bag players need it in order.
+    edge: EdgeTime = field(default_factory=EdgeTime)
 
 
 @dataclass
@@ -693,7 +696,10 @@ class Ros2Bridge:
         angles = sample.joint_angles
         position = [angles[joint] for joint in so101.JOINT_NAMES]
         velocity = sample_velocities(sample) if self._velocity else None
-        payload = arm.encoder.encode(sample.timestamp_ms, position, velocity)
+        stamp_ms = arm.edge.place(
+            sample.timestamp_ms, sample.received_mono_s, device=sample.device_id, output="ros2"
+        )
+        payload = arm.encoder.encode(stamp_ms, position, velocity)
         # cyclonedds' DataWriter.write(sample) is sample.serialize() + this call; the payload above is the
         # same bytes (tests/test_ros2.py checks it against cyclonedds' and rosbags' serializers).
         ret = self._write(arm.writer._ref, payload)
