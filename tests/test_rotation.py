@@ -350,3 +350,16 @@ def test_edge_spacing_follows_a_drifting_clock_a_late_first_message_a_stall_and_
     assert all(b - a >= step - 1e-9 for a, b in itertools.pairwise(placed))
     # The burst keeps the edge's 100 ms between its messages (the stall is in its past, where they were sent).
     assert all(abs(b - a - 0.1) < 1e-9 for a, b in itertools.pairwise(placed[50:70]))
+
+
+def test_edge_spacing_keeps_the_edge_spacing_after_a_reset_of_a_few_seconds() -> None:
+    """An edge clock set 3 s back moved the receive-minus-edge offset by less than JUMP_S: placed from the
+    old offset, 3 s behind, each sample went a time code after the last (30 samples in 1 s of time codes)
+    until the window turned. On the arm's edge time line (twin.output.edge_time) the offset does not move."""
+    step = 1.0001 / 30
+    steady = [(2000.0 + 0.1 * i + 0.02, 1_000_000 + 100 * i) for i in range(50)]
+    # The mirror ignores the older samples for 2 s or more before it applies them: 2.5 s after the last.
+    reset = [(2007.42 + 0.1 * k, 1_004_400 + 100 * k) for k in range(30)]
+    placed = _placed(EdgeSpacing(step), steady + reset)
+    assert all(abs(b - a - 0.1) < 1e-6 for a, b in itertools.pairwise(placed[50:])), placed[50:]
+    assert all(abs(received - p) < 1e-6 for (received, _), p in zip(reset, placed[50:], strict=True))

@@ -27,6 +27,7 @@ from pathlib import Path
 
 from twin.core import heap
 from twin.core.throttle import Throttle
+from twin.output.edge_time import EdgeTime
 from twin.output.recorder import SessionRecorder, file_size
 from twin.output.sinks import AppliedSample, DeviceRateCap, QueuedSink, RejectedSample, SinkStats
 from twin.robot.model import RobotModel
@@ -43,8 +44,9 @@ SESSION_GLOB = "session-*.usd[ac]"
 BROKEN_RETRY_S = 5.0
 # A new session that keeps failing to open is told at once, then at most this often (with the count).
 OPEN_ERROR_EVERY_S = 60.0
-# EdgeSpacing: a change of a device's receive-minus-edge offset larger than this is an edge clock set or
-# reset (or a stall that long): its samples are placed from the new offset at once.
+# EdgeSpacing: a change of a device's receive-minus-edge offset larger than this is an edge clock set forward
+# past the arm's time line, or a stall that long: its samples are placed from the new offset at once. A reset
+# backwards does not move it: the arm's time line goes on from its last sample (twin.output.edge_time).
 JUMP_S = 5.0
 # EdgeSpacing's offset is the least seen over the last one to two of these windows: a drifting edge clock
 # is followed, and an old small delay does not hold for good.
@@ -60,35 +62,38 @@ class _Placement:
     window_min: float  # the least of the window begun at `window_start`
     window_start: float
     last: float  # the last time given
+    edge: EdgeTime  # the arm's edge time line, which never runs backwards
 
 
 class EdgeSpacing:
-    """Each device's sample times for the recorder: its edge timestamps, shifted onto the receive clock by
-    the least receive-minus-edge offset seen lately (the transit with the least delay, and the edge clock's
-    offset), and no closer than `step_s` (one time code) to the previous one unless that would place it more
-    than a time code past its receive time.
+    """Each device's sample times for the recorder: its edge timestamps (on the arm's time line, which never
+    runs backwards: twin.output.edge_time), shifted onto the receive clock by the least receive-minus-edge
+    offset seen lately (the transit with the least delay, and the edge clock's offset), and no closer than
+    `step_s` (one time code) to the previous one unless that would place it more than a time code past its
+    receive time.
 
     Receive times bunch messages the edge sent 100 ms apart (a batch handed over at once, a burst after a
     stall), and the recorder keeps one sample per time code (1/30 s): the second of two received within one
     was dropped, 1 to 3 % of a demo's samples, and the stage replayed the network's jitter. The least offset
     is not one message's delay (a first message received late held an arm behind the others), follows a
     drifting edge clock within a window or two, and is taken afresh when it moves by JUMP_S (an edge clock
-    reset). The floor of one time code keeps what arrives bunched anyway (after such a jump) from being
-    dropped."""
+    set forward, a long stall). The floor of one time code keeps what arrives bunched anyway (after such a
+    jump) from being dropped."""
 
     def __init__(self, step_s: float) -> None:
         self._step_s = step_s
         self._devices: dict[str, _Placement] = {}
 
     def time_of(self, device: str, received_s: float, edge_ms: int) -> float:
-        edge_s = edge_ms / 1000.0
-        offset = received_s - edge_s
         arm = self._devices.get(device)
+        if arm is None and len(self._devices) >= MAX_PLACED_DEVICES:
+            self._devices.clear()
+        line = arm.edge if arm is not None else EdgeTime()
+        edge_s = line.place(edge_ms, received_s, device=device, output="usd recording") / 1000.0
+        offset = received_s - edge_s
         if arm is None or abs(offset - arm.offset) > JUMP_S:
-            if arm is None and len(self._devices) >= MAX_PLACED_DEVICES:
-                self._devices.clear()
             last = arm.last if arm is not None else -math.inf
-            arm = _Placement(offset, offset, received_s, last)
+            arm = _Placement(offset, offset, received_s, last, line)
             self._devices[device] = arm
         elif received_s - arm.window_start >= OFFSET_WINDOW_S:
             # The window turns: the offset is the least of the one ending and the one beginning.
