@@ -35,13 +35,16 @@ class EdgeTime:
         if self.shift_ms and edge_ms > self.last_ms:
             self.shift_ms = 0
         ms = edge_ms + self.shift_ms
-        if ms < self.last_ms:
+        # Equal counts as behind: two samples at one stamp are one frame twice to tf, a bag and Rerun.
+        if ms <= self.last_ms:
             passed_s = received_s - self.last_received_s
             # A receive clock that stood still (or no earlier receive time, NaN): at least 1 ms on.
             after = self.last_ms + (max(1, round(passed_s * 1000)) if passed_s > 0 else 1)
             self.shift_ms += after - ms
             log.warning(
-                "%s: the edge clock of %s jumped back %.1f s; its samples now follow its last one",
+                "%s: the edge clock of %s went back or stood still (%.1f s behind the arm's time line); its "
+                "samples now follow its last one. Fix: keep the edge's clock set by NTP (docs/agent.md, "
+                "'Ordering and edge clock resets')",
                 output,
                 device,
                 (after - ms) / 1000,
