@@ -51,32 +51,9 @@ def main() -> int:
     if listener is None:
         return 1
 
-    decoder = TelemetryDecoder(DecoderConfig(units=Units.TICKS))
-    rng = random.Random(7)
     bridge = Ros2Bridge(settings)
     sink = QueuedSink("ros2", bridge)
-    sent: dict[str, list[dict]] = {d: [] for d in devices}
-    # What the mirror applies after an edge clock reset (docs/agent.md): samples older than the arm's last.
-    back_ms = args.reset_back_ms if args.reset_after else 0
-    started = time.monotonic()
-    deadline = started + args.seconds
-    while listener.poll() is None and time.monotonic() < deadline:
-        for index, device in enumerate(devices):
-            # Each arm its own phase of the motion, so one arm's message can never pass for another's.
-            payload = make_payload(device, time.monotonic() - started + 1.7 * index, "ticks", rng)
-            if back_ms and len(sent[device]) >= args.reset_after:
-                payload["timestamp"] -= back_ms
-            telemetry = decoder.decode(json.dumps(payload).encode(), topic_device=device)
-            angles = {j: telemetry.angles_rad[j] for j in so101.JOINT_NAMES}
-            sink.applied(AppliedSample(device, time.time(), time.monotonic(), telemetry, angles))
-            sent[device].append(
-                {
-                    "timestamp_ms": telemetry.timestamp_ms,
-                    "position": [angles[j] for j in so101.JOINT_NAMES],
-                    "velocity": [telemetry.diagnostics[j].velocity_rad_s for j in so101.JOINT_NAMES],
-                }
-            )
-        time.sleep(0.1)
+    sent = feed(sink, bridge, devices, listener, args)
     listener.wait(15)
     sink.close()
     stats = sink.stats()
@@ -94,6 +71,50 @@ def main() -> int:
     }
     Path(args.out).write_text(json.dumps(result))
     return 0
+
+
+def matched(bridge: Ros2Bridge, device: str) -> bool:
+    """Whether the arm's writer has matched the listener's reader: samples written before it are lost
+    (volatile durability), however long discovery took."""
+    arm = bridge._arms.get(device)
+    return arm is not None and arm.writer.get_publication_matched_status().current_count > 0
+
+
+def feed(sink: QueuedSink, bridge: Ros2Bridge, devices: list[str], listener, args) -> dict[str, list[dict]]:
+    """One sample per arm at 10 Hz until the listener is done. Receive times are the sample's index times
+    100 ms, not the clock's: a test can then tell a step on the time line exactly, however loaded the host.
+    With --reset-after, an arm's edge clock is set back from its N-th sample after its writer matched."""
+    decoder = TelemetryDecoder(DecoderConfig(units=Units.TICKS))
+    rng = random.Random(7)
+    sent: dict[str, list[dict]] = {d: [] for d in devices}
+    matched_at: dict[str, int] = {}
+    # What the mirror applies after an edge clock reset (docs/agent.md): samples older than the arm's last.
+    back_ms = args.reset_back_ms if args.reset_after else 0
+    started = time.monotonic()
+    deadline = started + args.seconds
+    while listener.poll() is None and time.monotonic() < deadline:
+        for index, device in enumerate(devices):
+            if device not in matched_at and matched(bridge, device):
+                matched_at[device] = len(sent[device])
+            # Each arm its own phase of the motion, so one arm's message can never pass for another's.
+            payload = make_payload(device, time.monotonic() - started + 1.7 * index, "ticks", rng)
+            reset = bool(back_ms) and len(sent[device]) >= matched_at.get(device, 1 << 30) + args.reset_after
+            if reset:
+                payload["timestamp"] -= back_ms
+            telemetry = decoder.decode(json.dumps(payload).encode(), topic_device=device)
+            angles = {j: telemetry.angles_rad[j] for j in so101.JOINT_NAMES}
+            received_mono_s = 0.1 * len(sent[device])
+            sink.applied(AppliedSample(device, time.time(), received_mono_s, telemetry, angles))
+            sent[device].append(
+                {
+                    "timestamp_ms": telemetry.timestamp_ms,
+                    "reset": reset,
+                    "position": [angles[j] for j in so101.JOINT_NAMES],
+                    "velocity": [telemetry.diagnostics[j].velocity_rad_s for j in so101.JOINT_NAMES],
+                }
+            )
+        time.sleep(0.1)
+    return sent
 
 
 if __name__ == "__main__":
