@@ -730,8 +730,17 @@ def test_the_writer_opens_its_table_anew_every_n_commits(tmp_path: Path) -> None
 def test_settings_refuse_bad_values_with_the_fix() -> None:
     with pytest.raises(HistoryError, match="uri is empty"):
         HistorySettings(uri=" ")
-    with pytest.raises(HistoryError, match="unsupported scheme"):
-        HistorySettings(uri="gs://bucket/h")
+    # The shared rule for locations (core.locations), as `[history] uri` and `--history` take it: the value
+    # named, with a directory or s3:// to give instead.
+    for uri, problem in (
+        ("gs://bucket/h", "is not a directory or s3://bucket/prefix"),
+        ("s3a://bucket/h", "is not a directory or s3://bucket/prefix"),
+        ("s3:/bucket/h", "lacks the '//'"),
+        ("s3:///h", "names no bucket"),
+    ):
+        with pytest.raises(HistoryError, match=re.escape(f"history uri {uri!r} {problem}")) as refused:
+            HistorySettings(uri=uri)
+        assert '"s3://bucket/history"' in str(refused.value)
     with pytest.raises(HistoryError, match="max_buffer_rows"):
         HistorySettings(uri="h", max_buffer_rows=10, commit_every_rows=100)
 

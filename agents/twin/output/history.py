@@ -52,6 +52,7 @@ import pyarrow.json as pa_json
 
 from twin.core import heap
 from twin.core.aws import region_or_env
+from twin.core.locations import location_problem
 from twin.core.throttle import Throttle
 from twin.output.history_feed import REJECTED_PAYLOAD_MAX_BYTES, REJECTED_TABLE, TELEMETRY_TABLE
 from twin.output.history_maintain import run_child
@@ -165,9 +166,13 @@ class HistorySettings:
             raise HistoryError(
                 'history uri is empty: give a directory ("out/history") or "s3://bucket/history"'
             )
-        if "://" in self.uri and not self.uri.startswith(("s3://", "s3a://", "file://")):
+        # The rule `[history] uri` and `--history` are held to: s3a:// passed here (the writer's object
+        # store reads it) while the settings refused it, so a location was good or bad by where it was given.
+        problem = location_problem(self.uri)
+        if problem:
             raise HistoryError(
-                f"history uri {self.uri!r} has an unsupported scheme; use a local path or s3://bucket/prefix"
+                f'history uri {self.uri!r} {problem}; give a directory ("out/history") or '
+                '"s3://bucket/history"'
             )
         for name in ("commit_every_s", "chunk_max_age_s", "retry_min_s", "retry_max_s"):
             if not getattr(self, name) > 0:
@@ -196,7 +201,7 @@ class HistorySettings:
 
     @property
     def is_s3(self) -> bool:
-        return self.uri.startswith(("s3://", "s3a://"))
+        return self.uri.startswith("s3://")
 
     def table_uri(self, table: str) -> str:
         return table_uri(self.uri, table)
@@ -216,7 +221,7 @@ def object_store_options(uri: str, extra: Mapping[str, str] | None = None) -> di
     """delta-rs storage options: bounded timeouts on S3 so an outage surfaces as an error in seconds, not
     after object_store's default of ten retries over three minutes; `extra` wins."""
     options: dict[str, str] = {}
-    if uri.startswith(("s3://", "s3a://")):
+    if uri.startswith("s3://"):
         options.update(
             {"timeout": "30s", "connect_timeout": "5s", "max_retries": "3", "retry_timeout": "20s"}
         )
