@@ -20,6 +20,7 @@ from conftest import AWS_TEST_REGION, NO_BROKER, http_get, wait_for
 from moto import mock_aws
 from twin.cli import main
 from twin.cli.commands import calibration as cmd
+from twin.core.units import Units
 from twin.edge.payload import encode
 from twin.robot import so101
 from twin.robot.calibration import load_calibration
@@ -1415,6 +1416,16 @@ def test_a_calibration_for_an_arm_not_heard_yet_says_so(tmp_path: Path) -> None:
         assert "ids are case-sensitive: did you mean arm-001?" in upper.message, upper
     finally:
         agent.stop()
+
+
+def test_one_rule_says_whose_card_is_held() -> None:
+    """The mirror's rows and the rows read from a restarting worker's checkpoint had each their own copy of
+    when a card's `uncalibrated` is on (with `calibration_refused`, "held"): one function now decides."""
+    rule = console.card_uncalibrated
+    assert rule(False, True, Units.TICKS) and rule(False, True, Units.AUTO) and rule(False, True, None)
+    assert not rule(False, True, Units.DEGREES)  # degrees use no calibration: such an arm is not held
+    assert rule(True, False, Units.TICKS) and rule(True, True, Units.DEGREES)  # /state's own flag stands
+    assert not rule(False, False, Units.TICKS)
 
 
 def test_a_held_arms_card_says_held_while_its_worker_is_started_again(

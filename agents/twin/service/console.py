@@ -385,6 +385,15 @@ def fleet_rows(state: AgentState, alarms: Sequence[AlarmInfo]) -> list[FleetRow]
     return device_rows(state.devices, alarms, state.agent.time)
 
 
+def card_uncalibrated(uncalibrated: bool, held: bool, units: Units | None) -> bool:
+    """A Fleet row's `uncalibrated`, which with `calibration_refused` makes its card say "held": the arm's
+    own flag (/state's, the calibration's alone), or the arm is `held` (its file in the store refused at the
+    start, none kept), which no calibration decodes, neither one units = auto has yet to decide nor the
+    config's for every arm (its card read "file refused, it keeps the one it had"). Not with degrees, which
+    use no calibration. The one rule for the mirror's rows and those read from a worker's checkpoint."""
+    return uncalibrated or (held and units is not Units.DEGREES)
+
+
 def device_rows(
     devices: Mapping[str, DeviceState],
     alarms: Sequence[AlarmInfo],
@@ -392,8 +401,8 @@ def device_rows(
     held: Collection[str] = (),
 ) -> list[FleetRow]:
     """One row per device state, in the order given; `alarms` worst first, `now` the wall time. `held`: the
-    arms held by a refused calibration, whose card says so (Mirror's Fleet row rule, `_card_uncalibrated`):
-    from a restarting worker's checkpoint such a card read "file refused, it keeps the one it had"."""
+    arms held by a refused calibration, whose card says so (`card_uncalibrated`, as the mirror's rows): from
+    a restarting worker's checkpoint such a card read "file refused, it keeps the one it had"."""
     worst = _worst_alarms(alarms)
     waiting = Counter(a.device for a in alarms if a.state in WAITING_STATES)
     rows: list[FleetRow] = []
@@ -409,7 +418,7 @@ def device_rows(
                 temperatures={joint: servo.temperature_c for joint, servo in (d.servos or {}).items()},
                 rejected=sum(d.health.counters.rejected.values()),
                 alarm=(a.severity, a.state, a.kind, a.joint) if a else None,
-                uncalibrated=d.uncalibrated or (device_id in held and d.units is not Units.DEGREES),
+                uncalibrated=card_uncalibrated(d.uncalibrated, device_id in held, d.units),
                 mirror=str(d.mirror),
                 unacknowledged=waiting[device_id],
                 calibration_refused=bool(d.calibration_problem),

@@ -106,7 +106,7 @@ from twin.service.admission import TOO_MANY_DEVICES, DeviceBudget
 from twin.service.capture import CHUNK as CAPTURE_CHUNK
 from twin.service.capture import Capture
 from twin.service.config import AgentConfig, ConfigError
-from twin.service.console import FleetRow, fleet_row
+from twin.service.console import FleetRow, card_uncalibrated, fleet_row
 from twin.service.events import Event, EventQuery, EventStore, FleetWatch, RejectionThrottle, alarm_level
 from twin.service.logs import RateLimitedLog, name_native_thread, thread_stack
 from twin.service.shards import (
@@ -2049,14 +2049,11 @@ class Mirror:
         return uncalibrated(self._calibration_source(device), units)
 
     def _card_uncalibrated(self, device: str, units: Units) -> bool:
-        """The Fleet row's `uncalibrated`, which with `calibration_refused` makes the card say "held": also
-        true of a held arm (its own file refused, none kept; degrees use none), which no calibration
-        decodes, neither one units = auto has yet to decide nor the config's for every arm (its card read
-        "file refused, it keeps the one it had"). /state's flag stays the calibration's alone."""
+        """The Fleet row's `uncalibrated` (console.card_uncalibrated): held is its own file refused, none
+        kept."""
         problems, sources = self._calibration_problems, self._calibration_sources  # each replaced whole
-        if units is not Units.DEGREES and device in problems and device not in sources:
-            return True
-        return self._uncalibrated(device, units)
+        held = device in problems and device not in sources
+        return card_uncalibrated(self._uncalibrated(device, units), held, units)
 
     def _recording_state(self) -> RecordingState | None:
         if self._recording is None:
