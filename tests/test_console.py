@@ -2162,6 +2162,50 @@ def held_notices(devices: list[str]) -> list[str]:
     return [*lines, counted] if more > 0 else lines
 
 
+def test_a_held_arms_card_says_held_and_whether_its_messages_come(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """A held arm with a card (a listed fleet) read "held" beside its id and "OFFLINE · never" under it, the
+    same for an arm publishing (every message refused) as for one switched off; beside a long id "held" was
+    cut. Its status line says both: the status, and held with how many messages were refused or none heard,
+    whole on a card of the least width and in the list's "last seen". Made rows, served by the test."""
+    held = {"uncalibrated": True, "calibration_refused": True, "last_seen": None, "rate_hz": 0.0}
+    held |= {"hot_c": None, "hot_joint": None, "alarm_severity": None, "alarm_state": None}
+    long_id = "held-arm-of-the-north-bench-" + "x" * 20
+    doc = made_fleet(
+        console,
+        {
+            "arm-pub": {**held, "status": "OFFLINE", "rejected": 12345},
+            "arm-off": {**held, "status": "STALE", "rejected": 0},
+            long_id: {**held, "status": "OFFLINE", "rejected": 7},
+        },
+    )
+    serve_document(page, "/api/fleet", "fleet", doc)
+    lines = "(d) => document.querySelector(`#fleet-view [data-device='${d}'] .line`)"
+    try:
+        page.set_viewport_size({"width": 280, "height": 800})  # one card, of the least width
+        page.goto(console + "/")
+        page.get_by_role("button", name="Grid").click()
+        for device, said in (
+            ("arm-pub", "OFFLINE · held: 12345 refused"),
+            ("arm-off", "STALE · held: none heard"),
+            (long_id, "OFFLINE · held: 7 refused"),
+        ):
+            page.locator(f'#fleet-view .card[data-device="{device}"] .line', has_text=said).wait_for()
+            line = page.evaluate_handle(lines, device)
+            assert line.evaluate("l => l.scrollWidth <= l.clientWidth"), said
+        page.set_viewport_size({"width": 1400, "height": 800})
+        page.get_by_role("button", name="List").click()
+        row = page.locator('#fleet-view .row[data-device="arm-off"]')
+        row.locator("span.wide", has_text="held: none heard").wait_for()
+    finally:
+        unserve(page, "/api/fleet")
+        page.set_viewport_size({"width": 1280, "height": 800})  # the module's page: the next test expects it
+        page.get_by_role("button", name="Grid").click()
+        leave(page)
+    assert browser_errors == []
+
+
 def test_the_fleet_page_links_every_held_arm_with_its_alarms_waiting(
     console: str, page: Any, browser_errors: list[str]
 ) -> None:

@@ -192,6 +192,16 @@
     const none = r[columns.uncalibrated], refused = r[columns.calibration_refused];
     return none && refused ? "held" : none ? "uncalibrated" : refused ? "file refused" : "";
   }
+  // When the arm was last heard from; for a held arm, that it is held and whether its messages come: its
+  // card read "OFFLINE · never" whether it published (every message refused) or was off, and the word
+  // "held" beside a long id was cut with it.
+  function lastSeen(r) {
+    const c = columns, seen = Twin.ago(r[c.last_seen], now);
+    if (calibrationWord(r) !== "held") return seen;
+    // Short enough for a card of the least width: "STALE · held: 12345 refused".
+    const held = r[c.rejected] ? `held: ${r[c.rejected]} refused` : "held: none heard";
+    return r[c.last_seen] === null ? held : `${seen}, ${held}`;
+  }
   function calibrationMark(r) {
     const word = calibrationWord(r);
     return word ? [" ", el("span", { class: "uncalibrated", title: CALIBRATION_MARKS[word], text: word })] : [];
@@ -206,7 +216,7 @@
       el("div", { class: "id", title: id }, id, ...calibrationMark(r)),
       // "restarting" or "stopping" beside the status it qualifies: after the id and "uncalibrated" a card cut it.
       el("div", { class: "line" }, el("span", { class: "status " + r[c.status], text: r[c.status] }),
-        " · " + Twin.ago(r[c.last_seen], now), ...restarting(r).map((n) => (n === " " ? " · " : n))),
+        " · " + lastSeen(r), ...restarting(r).map((n) => (n === " " ? " · " : n))),
       el("div", { class: "line", text: `${Twin.num(r[c.rate_hz], 1)} Hz · loss ${Twin.num(r[c.loss_pct], 1)} %` }),
       el("div", { class: "line", text: cardHot(r) }),
       ...cardAlarm(r));
@@ -222,7 +232,7 @@
     const node = el("a", { class: "row", href: "/arm/" + encodeURIComponent(id), role: "listitem", "data-device": id },
       el("span", { text: name, title: name, class: "arm-id" + (word ? " uncalibrated" : "") }, ...restarting(r)),
       el("span", { class: "status " + r[c.status], text: r[c.status] }),
-      el("span", { class: "wide", text: Twin.ago(r[c.last_seen], now) }),
+      el("span", { class: "wide", text: lastSeen(r) }),
       el("span", { class: "wide minor", text: Twin.num(r[c.rate_hz], 1) + " Hz" }),
       el("span", { class: "wide minor", text: Twin.num(r[c.loss_pct], 1) + " %" }),
       alarmCell(r), stateCell(r),
