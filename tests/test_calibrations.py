@@ -1507,6 +1507,10 @@ def test_a_console_tick_asks_only_the_held_arms_mirror_for_their_alarms(
                 return ask(request)
 
             monkeypatch.setattr(shard, "request", counted)
+        # Its refused messages counted, from its worker's checkpoint (within a second): "none heard" is for
+        # a held arm that sent nothing.
+        wait_for(lambda: agent.held_arms()[0].refused >= 1, 60, "arm-002's refused messages counted")
+        asked.clear()
         (held,) = agent.held_arms()
         assert held.device == "arm-002" and held.unacknowledged == 2, held
         assert asked == [agent.plan.worker_of("arm-002")], asked

@@ -2144,10 +2144,16 @@ def test_the_fleet_page_acknowledges_the_alarms_of_the_arms_shown(
     assert browser_errors == []
 
 
-def held_arm(device: str, unacknowledged: int, severity: str | None) -> dict[str, Any]:
+def held_arm(device: str, unacknowledged: int, severity: str | None, refused: int = 40) -> dict[str, Any]:
     """An arm held by its refused calibration, as the Fleet document lists it under "held"."""
     why = "no 'homing_offset' for shoulder_pan"
-    return {"device": device, "why": why, "unacknowledged": unacknowledged, "alarm_severity": severity}
+    return {
+        "device": device,
+        "why": why,
+        "unacknowledged": unacknowledged,
+        "alarm_severity": severity,
+        "refused": refused,
+    }
 
 
 def held_notices(devices: list[str]) -> list[str]:
@@ -2214,7 +2220,9 @@ def test_the_fleet_page_links_every_held_arm_with_its_alarms_waiting(
     links every arm of the document's "held", with how many alarms wait, and keeps the notices' text."""
     devices = [f"arm-h{k}" for k in range(1, 8)]
     doc = made_fleet(console, {"arm-x": alarmed(None, None, 0)})
-    doc["held"] = [held_arm(d, 0, None) for d in devices[:-1]] + [held_arm("arm-h7", 2, "critical")]
+    doc["held"] = [held_arm(d, 0, None) for d in devices[1:-1]] + [held_arm("arm-h7", 2, "critical")]
+    # One that sent nothing since the start: it was linked as one publishing with no twin is.
+    doc["held"].insert(0, held_arm("arm-h1", 0, None, refused=0))
     doc["notices"] = held_notices(devices)
     links_js = (
         "() => Object.fromEntries([...document.querySelectorAll('#fleet-notices a.held-arm')]"
@@ -2230,6 +2238,7 @@ def test_the_fleet_page_links_every_held_arm_with_its_alarms_waiting(
         links = page.evaluate(links_js)
         assert {d: href for d, (href, _) in links.items()} == {d: f"/arm/{d}" for d in devices}, links
         assert "2 alarms waiting" in links["arm-h7"][1] and "waiting" not in links["arm-h6"][1], links
+        assert links["arm-h1"][1] == "arm-h1: none heard" and links["arm-h6"][1] == "arm-h6", links
         # Past five, the links fold away as the notices do, and open to be followed.
         page.locator("#held-arms summary").click()
         page.locator('#fleet-notices a.held-arm[data-device="arm-h7"]').wait_for(state="visible")

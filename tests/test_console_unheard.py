@@ -18,7 +18,7 @@ from conftest import wait_for
 from twin.edge.servo_faults import ServoFault
 from twin.edge.simulator import FaultConfig
 from twin.rig.local import LocalRig
-from twin.service.console import HeldArm, Listening, fleet_summary
+from twin.service.console import HeldArm, Listening, fleet_summary, held_arms
 
 pytestmark = pytest.mark.slow
 
@@ -44,6 +44,14 @@ def test_the_document_says_what_the_agent_listens_on_or_nothing() -> None:
     assert json.loads(fleet_summary([], 1.0, listening=stopping))["listening"]["stopping"] is True
 
 
+def test_a_held_arm_says_how_many_of_its_messages_were_refused() -> None:
+    """A held arm publishing with no twin and one switched off were listed alike: each says how many of its
+    messages were refused, 0 for none heard."""
+    said = held_arms({"arm-007": "bad file", "arm-008": "bad file"}, [], {"arm-007": 5})
+    assert [(h.device, h.refused) for h in said] == [("arm-007", 5), ("arm-008", 0)]
+    assert json.loads(fleet_summary([], 1.0, held=said))["held"][0]["refused"] == 5
+
+
 def test_a_held_arms_alarm_counts_among_the_alarmed_arms() -> None:
     """A held arm has no row, yet its servos' alarms are raised: the Fleet page counted fewer arms alarmed
     than /alarms listed. Its worst alarm counts as a row's does, and the document lists it for its link."""
@@ -56,6 +64,7 @@ def test_a_held_arms_alarm_counts_among_the_alarmed_arms() -> None:
         "why": "bad file",
         "unacknowledged": 2,
         "alarm_severity": "critical",
+        "refused": 0,
     }
     assert [h["device"] for h in said["held"]] == ["arm-007", "arm-008"]
     assert json.loads(fleet_summary([], 1.0))["held"] == []

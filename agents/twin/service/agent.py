@@ -1130,7 +1130,12 @@ class AgentService:
         problems = {d: why for d, why in self._held_problems().items() if d not in shown}
         if not problems:
             return []
-        return held_arms(problems, [a for a in self.alarms(devices=problems) if a.device in problems])
+        alarms = [a for a in self.alarms(devices=problems) if a.device in problems]
+        # A held arm is never admitted, so its refused messages are counted among the arms not tracked (the
+        # 64 most recent ids: one publishing keeps its place, unless 64 others are refused between two of
+        # its messages).
+        refused = {a.device: a.rejected for a in self._unheard_arms() if a.device in problems}
+        return held_arms(problems, alarms, refused)
 
     def broker_notices(self) -> list[str]:
         """/healthz's reasons from the broker: each topic filter it refuses (the arms it covers are never

@@ -231,6 +231,9 @@ class HeldArm(msgspec.Struct, frozen=True):
     why: str  # the refusal, as the arm's page and its notice say it
     unacknowledged: int = 0  # how many of its alarms wait for a person: ACTIVE, or LATCHED
     alarm_severity: str | None = None  # its worst alarm that is not NORMAL: critical | warning | null
+    # How many of its messages were refused since the start, 0 for none heard: an arm publishing with no
+    # twin, and one that is off, read the same.
+    refused: int = 0
 
 
 @runtime_checkable
@@ -241,12 +244,22 @@ class HeldSource(Protocol):
     def held_arms(self, shown: Collection[str] = ()) -> list[HeldArm]: ...
 
 
-def held_arms(problems: Mapping[str, str], alarms: Sequence[AlarmInfo]) -> list[HeldArm]:
-    """The arms of `problems` (device: why it is held), by id, each with its `alarms` (worst first)."""
+def held_arms(
+    problems: Mapping[str, str], alarms: Sequence[AlarmInfo], refused: Mapping[str, int] | None = None
+) -> list[HeldArm]:
+    """The arms of `problems` (device: why it is held), by id, each with its `alarms` (worst first) and how
+    many of its messages were `refused` (device: count; none heard when absent)."""
     worst = _worst_alarms(alarms)
     waiting = Counter(a.device for a in alarms if a.state in WAITING_STATES)
+    counts = refused or {}
     return [
-        HeldArm(device, why, waiting[device], worst[device].severity if device in worst else None)
+        HeldArm(
+            device,
+            why,
+            waiting[device],
+            worst[device].severity if device in worst else None,
+            counts.get(device, 0),
+        )
         for device, why in sorted(problems.items())
     ]
 

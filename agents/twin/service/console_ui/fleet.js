@@ -365,8 +365,12 @@
   // name five and count the rest); past five folded, as the notices are, kept open across updates.
   const HELD_SHOWN = 5;
   function plural(n) { return n === 1 ? "" : "s"; }
+  // "none heard" for one that has sent nothing since the agent started: an arm publishing with no twin and
+  // one switched off were linked alike.
   function heldLink(h) {
-    const n = h.unacknowledged, text = n ? `${h.device}: ${n} alarm${plural(n)} waiting` : h.device;
+    const n = h.unacknowledged;
+    const said = [...(h.refused === 0 ? ["none heard"] : []), ...(n ? [`${n} alarm${plural(n)} waiting`] : [])];
+    const text = said.length ? `${h.device}: ${said.join(", ")}` : h.device;
     return el("a", { href: "/arm/" + encodeURIComponent(h.device), class: "held-arm", "data-device": h.device,
       title: h.why, text });
   }
