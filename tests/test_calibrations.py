@@ -656,7 +656,7 @@ def test_push_refuses_an_id_whose_store_holds_one_differing_in_case(
     """ARM-001 and arm-001 are two arms to MQTT and S3 but one file to a Mac's directory store, and most
     often one arm typed two ways: the second push is refused, naming the first, whichever the store."""
     store = open_store(str(tmp_path / "cal") if uri == "directory" else uri, s3_client=s3)
-    monkeypatch.setattr(cmd, "_store", lambda _args: store)
+    monkeypatch.setattr(cmd, "_store", lambda _args: (store, None))
     assert main(["calibration", "push", "ARM-001", str(EXAMPLE), "--store", store.uri]) == cmd.EXIT_OK
     assert main(["calibration", "push", "arm-001", str(EXAMPLE), "--store", store.uri]) == cmd.EXIT_USAGE
     err = capsys.readouterr().err
@@ -672,7 +672,7 @@ def test_restore_refuses_an_id_whose_store_holds_one_differing_in_case(
     """rm ARM-001 keeps its file, a push of arm-001 then finds no twin, and a restore of ARM-001 would put
     the kept file back beside arm-001's (on a Mac's directory store, over it): refused as the push is."""
     store = open_store(str(tmp_path / "cal") if uri == "directory" else uri, s3_client=s3)
-    monkeypatch.setattr(cmd, "_store", lambda _args: store)
+    monkeypatch.setattr(cmd, "_store", lambda _args: (store, None))
     other = tmp_path / "other.json"
     other.write_bytes(shifted(40))
     assert main(["calibration", "push", "ARM-001", str(EXAMPLE), "--store", store.uri]) == cmd.EXIT_OK
@@ -858,6 +858,31 @@ def test_push_goes_to_the_stacks_calibration_uri(s3: Any, capsys: pytest.Capture
     body = s3.get_object(Bucket="twin-bucket", Key="calibration/arm-005.json")["Body"].read()
     assert body == EXAMPLE.read_bytes()
     assert main(["calibration", "ls", "--stack", "Missing"]) == cmd.EXIT_NO_STACK
+
+
+def settings_output(devices: list[str]) -> dict[str, Any]:
+    """The stack's Settings output (stacks/settings_guard.py) for a deploy of `devices`."""
+    document = {"version": 1, "values": {"devices": devices}, "given": {"devices": "file"}}
+    return {"Value": json.dumps(document)}
+
+
+@pytest.mark.parametrize(("devices", "warned"), [(["arm-001", "arm-002"], True), (["*"], False)])
+def test_a_push_to_the_stack_for_an_arm_it_does_not_mirror_says_so(
+    s3: Any, capsys: pytest.CaptureFixture[str], devices: list[str], warned: bool
+) -> None:
+    # moto stands in for CloudFormation and S3. A walk: arm-0O3's calibration went in without a word; only
+    # the host's log said no twin would use it, as the host subscribes to the listed arms alone.
+    create_stack("s3://twin-bucket/calibration", Settings=settings_output(devices))
+    assert main(["calibration", "push", "arm-001", str(EXAMPLE)]) == cmd.EXIT_OK
+    assert "mirrors" not in capsys.readouterr().err  # a listed arm: nothing to say
+    assert main(["calibration", "push", "arm-0O3", str(EXAMPLE)]) == cmd.EXIT_OK
+    err = capsys.readouterr().err
+    if not warned:
+        assert "mirrors" not in err, err  # the whole fleet: any arm's may come
+        return
+    assert "the stack mirrors arm-001, arm-002 (its devices setting), not arm-0O3" in err, err
+    assert "add it to devices in twin.settings.toml" in err and "`twin calibration rm arm-0O3`" in err, err
+    assert s3.get_object(Bucket="twin-bucket", Key="calibration/arm-0O3.json")  # stored, as asked
 
 
 def kept_cycle(store_arg: list[str], store: Any, capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
@@ -1576,14 +1601,16 @@ def test_messages_that_arrive_while_the_mirrors_start_decode_with_the_arms_own(
         agent.stop()
 
 
-def create_stack(calibration_uri: str) -> None:
-    """A stack in moto whose CalibrationUri output is `calibration_uri` (what a plain push writes to)."""
+def create_stack(calibration_uri: str, **outputs: Any) -> None:
+    """A stack in moto whose CalibrationUri output is `calibration_uri` (what a plain push writes to), with
+    `outputs` besides."""
     template = {
         "Resources": {"Topic": {"Type": "AWS::SNS::Topic"}},
         "Outputs": {
             "InstanceId": {"Value": "i-0123456789abcdef0"},
             "DcvUrl": {"Value": "https://192.0.2.1:8443/#console"},
             "CalibrationUri": {"Value": calibration_uri},
+            **outputs,
         },
     }
     boto3.client("cloudformation", region_name=AWS_TEST_REGION).create_stack(

@@ -18,7 +18,7 @@ Exit codes:
   1  the store could not be read or written (the message says why), `rm` found nothing to remove, or
      `restore` found nothing kept
   2  bad command line, or FILE is not an SO-101 calibration, or ARM is not a device id (1 to 64 letters,
-     digits, '-' or '_': the ids the stack mirrors, for every store)
+     digits, '-', '_' or '.': the ids the stack mirrors, for every store)
   3  no AWS credentials or region; 4 stack not found; 5 the stack has no CalibrationUri output
 """
 
@@ -37,6 +37,10 @@ if TYPE_CHECKING:
     from collections.abc import Callable
 
     from twin.service.calibrations import CalibrationStore
+
+    # What `_store` finds: the store, and the arms its stack mirrors (None: a --store, the whole fleet, or a
+    # stack whose settings cannot be read), which only the stack's store knows.
+    Found = tuple[CalibrationStore, tuple[str, ...] | None]
 
 console = Console("calibration")
 
@@ -115,13 +119,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         action.set_defaults(func=run)
 
 
-def _store(args: argparse.Namespace) -> CalibrationStore | int:
+def _store(args: argparse.Namespace) -> Found | int:
     """The store --store names, else the stack's; an exit code when there is none."""
     from twin.service.calibrations import open_store
 
     if args.store:
         try:
-            return open_store(args.store, region=args.region or "")
+            return open_store(args.store, region=args.region or ""), None
         except ValueError as exc:
             console.err(f"--store {exc}")
             return EXIT_USAGE
@@ -142,7 +146,22 @@ def _store(args: argparse.Namespace) -> CalibrationStore | int:
             "deploy it once with this version (`cdk deploy`), or pass --store"
         )
         return EXIT_NO_OUTPUTS
-    return open_store(outputs.calibration_uri, region=twin.region)
+    return open_store(outputs.calibration_uri, region=twin.region), _mirrored(outputs.settings)
+
+
+def _mirrored(settings: str | None) -> tuple[str, ...] | None:
+    """The device ids the stack's Settings output lists; None for the whole fleet or an unreadable output
+    (an older stack), where nothing tells an arm the host does not mirror."""
+    from twin.core.topics import ALL_DEVICES
+    from twin.ops.deployed_settings import DeployedSettingsError, parse_deployed_settings
+
+    try:
+        devices = parse_deployed_settings(settings, "").values.get("devices")
+    except DeployedSettingsError:
+        return None
+    if not isinstance(devices, list) or ALL_DEVICES in devices:
+        return None
+    return tuple(str(device) for device in devices)
 
 
 def _store_flags(args: argparse.Namespace) -> str:
@@ -191,13 +210,14 @@ def run(args: argparse.Namespace) -> int:
         if isinstance(read, int):
             return read
         data = read
-    store = _store(args)
-    if isinstance(store, int):
-        return store
+    found = _store(args)
+    if isinstance(found, int):
+        return found
+    store, mirrored = found
     again = _store_flags(args)
     try:
         if args.action == "push":
-            return _push(store, args.arm, args.file, data, again)
+            return _push(store, args.arm, args.file, data, again, mirrored=mirrored)
         if args.action == "rm":
             return _rm_kept(store, args.arm, again) if args.kept else _rm(store, args.arm, again)
         if args.action == "restore":
@@ -352,13 +372,30 @@ def _case_twin_refused(
     return True
 
 
-def _push(store: CalibrationStore, arm: str, file: Path, data: bytes, again: str) -> int:
+def _push(
+    store: CalibrationStore,
+    arm: str,
+    file: Path,
+    data: bytes,
+    again: str,
+    *,
+    mirrored: tuple[str, ...] | None,
+) -> int:
     current, listing = _current(store, arm)
     if _case_twin_refused(store, arm, listing, again, "stored"):
         return EXIT_USAGE
     if current == data:
         console.out(f"{arm}: {store.uri_of(arm)} already holds this calibration; nothing written")
         return EXIT_OK
+    if mirrored is not None and arm not in mirrored:
+        # The host subscribes to the listed arms' topics only: a mistyped id would sit in the bucket unused,
+        # told only in the host's log. Stored all the same: an arm may be calibrated before it is deployed.
+        console.err(
+            f"warning: the stack mirrors {', '.join(mirrored)} (its devices setting), not {arm}, so no twin "
+            f"uses this calibration yet; if {arm} is the id its edge publishes as, add it to devices in "
+            f"twin.settings.toml and deploy (`npx cdk deploy`), else push under the arm's id. It is stored "
+            f"as asked ({_undo(store, arm, current, again)})"
+        )
     named_for = file.stem
     if named_for != arm and named_for in listing:
         # LeRobot names the file for the arm it calibrated: this may be another arm's, pushed by mistake.
