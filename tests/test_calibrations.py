@@ -879,10 +879,18 @@ def test_a_push_to_the_stack_for_an_arm_it_does_not_mirror_says_so(
     err = capsys.readouterr().err
     if not warned:
         assert "mirrors" not in err, err  # the whole fleet: any arm's may come
+        assert main(["calibration", "ls"]) == cmd.EXIT_OK
+        assert "mirrored" not in "".join(capsys.readouterr())
         return
     assert "the stack mirrors arm-001, arm-002 (its devices setting), not arm-0O3" in err, err
     assert "add it to devices in twin.settings.toml" in err and "`twin calibration rm arm-0O3`" in err, err
     assert s3.get_object(Bucket="twin-bucket", Key="calibration/arm-0O3.json")  # stored, as asked
+    # ls marks it too, long after the push's warning scrolled away.
+    assert main(["calibration", "ls"]) == cmd.EXIT_OK
+    out, err = capsys.readouterr()
+    assert "arm-0O3\ts3://twin-bucket/calibration/arm-0O3.json\tnot mirrored\n" in out, out
+    assert "arm-001\ts3://twin-bucket/calibration/arm-001.json\n" in out, out
+    assert "the stack's devices (arm-001, arm-002) do not list arm-0O3" in err, err
 
 
 def kept_cycle(store_arg: list[str], store: Any, capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:

@@ -222,18 +222,19 @@ def run(args: argparse.Namespace) -> int:
             return _rm_kept(store, args.arm, again) if args.kept else _rm(store, args.arm, again)
         if args.action == "restore":
             return _restore(store, args.arm, again)
-        return _ls(store, again)
+        return _ls(store, again, mirrored)
     except CalibrationStoreError as exc:
         console.err(str(exc))
         # No credentials is the setup problem exit 3 stands for, as without --store (the stack's lookup).
         return EXIT_SETUP if isinstance(exc, StoreCredentialsError) else EXIT_STORE
 
 
-def _ls(store: CalibrationStore, again: str) -> int:
-    """A line per arm: its calibration's place, `refused: <why>` when the agent refuses that file, and the
-    kept one's place when there is one (an arm whose own was removed shows `(removed)`), marked when `restore`
-    would refuse it, so what `restore` would bring back is seen before it is needed. Files no arm reads
-    (named for no device id) are named on stderr."""
+def _ls(store: CalibrationStore, again: str, mirrored: tuple[str, ...] | None = None) -> int:
+    """A line per arm: its calibration's place, `refused: <why>` when the agent refuses that file, `not
+    mirrored` for an arm the stack's `mirrored` devices do not list, and the kept one's place when there is
+    one (an arm whose own was removed shows `(removed)`), marked when `restore` would refuse it, so what
+    `restore` would bring back is seen before it is needed. Files no arm reads (named for no device id) are
+    named on stderr."""
     from twin.service.calibrations import KEPT_SUFFIX, SUFFIX, ignored_fix
 
     found = store.scan()
@@ -254,6 +255,8 @@ def _ls(store: CalibrationStore, again: str) -> int:
         why = refusals.get(device, "")
         if why:
             line += f"\trefused: {why}"
+        if mirrored is not None and device in listing and device not in mirrored:
+            line += "\tnot mirrored"
         if device in kept:
             line += f"\tkept: {place.removesuffix(SUFFIX)}{KEPT_SUFFIX}"
             if kept_refusals.get(device):
@@ -264,6 +267,13 @@ def _ls(store: CalibrationStore, again: str) -> int:
             "refused: the agent does not use that file: an arm keeps the calibration it had until the agent "
             "starts again, and one with none (after a start) is held, its messages refused; push a good "
             f"file (`twin calibration push ARM FILE{again}`) or remove it"
+        )
+    unmirrored = [d for d in sorted(listing) if mirrored is not None and d not in mirrored]
+    if unmirrored:
+        console.err(
+            f"not mirrored: the stack's devices ({', '.join(mirrored or ())}) do not list "
+            f"{_and(unmirrored)}, so no twin uses that calibration: add the arm to devices in "
+            f"twin.settings.toml and deploy, or remove a mistyped one (`twin calibration rm ARM{again}`)"
         )
     if kept:
         console.err(
