@@ -884,6 +884,29 @@ def test_second_run_through_the_association_changes_nothing(
     assert "install-agent: " in log and "done (changed=0)" in log
 
 
+def test_an_update_keeps_the_operators_own_settings_and_rewrites_the_generated_config(
+    booted, deployed: Deployed, tmp_path: Path
+) -> None:
+    """What docs/deploy.md promises of a redeploy, through the whole update (the association runs the
+    UserData again): agent.local.toml comes out as the operator left it, and saved to the bucket; an edit of
+    the generated agent.toml is undone."""
+    source, result = booted
+    assert result.returncode == 0
+    host = copy_of(source, tmp_path)
+    local = host.root / "etc/so101-twin/agent.local.toml"
+    mine = "# my lab's servos run warm\n[alarms]\ntemperature_warning_c = 58.0\n"
+    local.write_text(mine)
+    generated = host.root / "etc/so101-twin/agent.toml"
+    as_deployed = generated.read_text()
+    generated.write_text(as_deployed.replace('units = "', 'units = "degrees" # "'))
+    assert generated.read_text() != as_deployed  # an edit the next deploy undoes
+    rerun = run_association(host, deployed.update_script)
+    assert rerun.returncode == 0, rerun.stdout[-4000:] + rerun.stderr[-2000:]
+    assert local.read_text() == mine
+    assert (host.sim / "s3" / HISTORY_BUCKET / "host" / "agent.local.toml").read_text() == mine
+    assert generated.read_text() == as_deployed
+
+
 def test_an_update_with_a_new_dcv_idle_timeout_rewrites_dcv_conf_and_restarts_dcv(
     booted, deployed: Deployed, tmp_path: Path
 ) -> None:
