@@ -10,8 +10,8 @@ names: s3://bucket/prefix, or a directory for an agent on this machine ([telemet
 
 A push over another calibration, and `rm`, keep the one they replace beside it (`<ARM>.json.previous`, one
 per arm; the stack's bucket keeps no versions), and `restore ARM` swaps it back in. A file named for another
-arm that has a calibration of its own in the store, or the very calibration another arm has there, is stored
-as asked, with a warning.
+arm that has a calibration of its own in the store, the very calibration another arm has there, or one for an
+arm the stack's devices do not list (the host mirrors those only), is stored as asked, with a warning.
 
 Exit codes:
   0  done
