@@ -861,9 +861,12 @@ def test_push_goes_to_the_stacks_calibration_uri(s3: Any, capsys: pytest.Capture
 
 
 def settings_output(devices: list[str]) -> dict[str, Any]:
-    """The stack's Settings output (stacks/settings_guard.py) for a deploy of `devices`."""
-    document = {"version": 1, "values": {"devices": devices}, "given": {"devices": "file"}}
-    return {"Value": json.dumps(document)}
+    """The stack's Settings output for a deploy of `devices`, as the stack writes it."""
+    from stacks.settings import resolve
+    from stacks.settings_guard import settings_output as written
+
+    file = {"clientCidr": "203.0.113.7/32", "devices": devices}
+    return {"Value": written(resolve(lambda _key: None, file))}
 
 
 @pytest.mark.parametrize(("devices", "warned"), [(["arm-001", "arm-002"], True), (["*"], False)])
