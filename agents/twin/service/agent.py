@@ -102,6 +102,7 @@ from twin.service.shards import (
     UnheardArm,
     UnheardRequest,
     WorkerError,
+    WorkerExit,
     WorkerPlan,
     WorkerShard,
     acked_many_of,
@@ -1510,11 +1511,14 @@ class AgentService:
         # The supervisor starts a worker that ran a while again at once, in the round that finds it dead and
         # before that round's watch: one started again since the last watch died unseen, and is told too.
         if was_answering and (not answering or info.restarts > restarts):
+            # Not info.pid: a restart made before this watch has put the new process's pid there.
+            ended = shard.last_exit() or WorkerExit(info.pid, None)
             self._events.emit(
                 EventKind.WORKER,
                 EventLevel.ERROR,
-                f"worker {shard.index} exited; it is started again from its last checkpoint, its arms kept",
-                data={"worker": shard.index, "pid": info.pid},
+                f"worker {shard.index} (pid {ended.pid}) exited, {ended.how()}; it is started again from "
+                "its last checkpoint, its arms kept",
+                data={"worker": shard.index, "pid": ended.pid, "exit_code": ended.exit_code},
             )
         if info.restarts > restarts and answering:
             self._events_seen[shard.index] = 0  # a new process numbers its events from 1

@@ -145,6 +145,7 @@ from twin.service.shards import (
     StopReport,
     UnheardArm,
     UnheardRequest,
+    WorkerExit,
     alarm_info,
     calibration_in_use,
     uncalibrated,
@@ -2181,6 +2182,9 @@ class LocalShard:
 
     def describe(self, report: MirrorReport | None) -> WorkerInfo | None:
         return None  # `agent.workers` lists worker processes only
+
+    def last_exit(self) -> WorkerExit | None:
+        return None  # no process of its own
 
     def dropped(self) -> dict[str, int]:
         return {}  # the mirror counts its own queue's drops

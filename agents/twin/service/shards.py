@@ -783,6 +783,27 @@ def _raise_refusal(refused: Refused, worker: int) -> None:
 # ------------------------------------------------------------------------------------------------- shards
 
 
+@dataclass(frozen=True)
+class WorkerExit:
+    """A worker process that ended: its own pid (not its successor's) and how it ended."""
+
+    pid: int
+    exit_code: int | None  # multiprocessing's: negative for the signal that killed it, None if unknown
+
+    def how(self) -> str:
+        """`exit code 1`, `killed by SIGKILL (signal 9)` or `exit code unknown`."""
+        code = self.exit_code
+        if code is None:
+            return "exit code unknown"
+        if code < 0:
+            try:
+                name = signal.Signals(-code).name
+            except ValueError:
+                name = "an unknown signal"
+            return f"killed by {name} (signal {-code})"
+        return f"exit code {code}"
+
+
 class Shard(Protocol):
     """What the agent needs of one share of the fleet, whether its mirror runs in-process or in a worker."""
 
@@ -887,6 +908,11 @@ class Shard(Protocol):
         its first message."""
         ...
 
+    def last_exit(self) -> WorkerExit | None:
+        """The worker process that ended last: the shard's own while it is dead, else the one its latest
+        restart replaced; None in-process or before any ended."""
+        ...
+
 
 _CALL_IDS = itertools.count(1)
 
@@ -931,6 +957,8 @@ class WorkerShard:
         self.started_at = 0.0
         self.restarts = 0
         self._restart_at: float | None = None
+        # The last process found dead: once started again, `pid` names its successor.
+        self._ended: WorkerExit | None = None
         self._sender: threading.Thread | None = None
         # Messages taken from the queue while the worker was down: sent first once it runs again.
         self._held: list[Message] = []
@@ -967,6 +995,12 @@ class WorkerShard:
     @property
     def failed(self) -> bool:
         return False  # a dead worker is started again
+
+    def last_exit(self) -> WorkerExit | None:
+        process = self.process
+        if process is not None and process.exitcode is not None:
+            return WorkerExit(process.pid or self.pid, process.exitcode)
+        return self._ended
 
     def put(self, key: str, topic: str, payload: bytes, recv_mono: float, recv_wall: float) -> None:
         self.queue.put(key, (topic, payload, recv_mono, recv_wall))
@@ -1051,17 +1085,7 @@ class WorkerShard:
             return
         now = time.monotonic()
         if self._restart_at is None:
-            with self._send_lock:
-                self.ready = False
-            quick = now - self.started_at < QUICK_DEATH_S
-            pause = min(MAX_RESTART_PAUSE_S, 2.0 ** min(self.restarts, 6)) if quick else 0.0
-            self._restart_at = now + pause
-            log.error(
-                "%s; starting it again%s",
-                _how_it_ended(self.index, process.exitcode, self.pid),
-                f" in {pause:.0f} s" if pause else "",
-                extra={"worker": self.index, "exit_code": process.exitcode},
-            )
+            self._restart_at = self._found_dead(process, now)
         if now < self._restart_at:
             return
         self._restart_at = None
@@ -1101,6 +1125,21 @@ class WorkerShard:
                 "messages_sent_again": replayed,
             },
         )
+
+    def _found_dead(self, process: ForkServerProcess, now: float) -> float:
+        """Note a dead process (logged, kept for `last_exit`); returns when to start it again."""
+        with self._send_lock:
+            self.ready = False
+        self._ended = WorkerExit(process.pid or self.pid, process.exitcode)
+        quick = now - self.started_at < QUICK_DEATH_S
+        pause = min(MAX_RESTART_PAUSE_S, 2.0 ** min(self.restarts, 6)) if quick else 0.0
+        log.error(
+            "%s; starting it again%s",
+            _how_it_ended(self.index, process.exitcode, self.pid),
+            f" in {pause:.0f} s" if pause else "",
+            extra={"worker": self.index, "exit_code": process.exitcode},
+        )
+        return now + pause
 
     def _kill_if_hung(self, process: ForkServerProcess) -> None:
         """A worker process that runs but answers nothing (stopped, or stuck in a native call with the GIL
