@@ -101,8 +101,9 @@ BEHIND_ALARM_MINUTES = 5
 # and what pages: any, five minutes running (arms that publish and are kept out; one stray id passes).
 DEVICE_LIMIT_REFUSALS = "DeviceLimitRefusals"
 DEVICE_LIMIT_MINUTES = 5
-# The share of arriving messages the agent refused (emf Rejects against MessagesPerSecond over the minute),
-# and what pages: half, five minutes running (an arm deciding its units, a stray bad message, passes).
+# The share of arriving messages the agent refused (emf Rejects against MessagesPerSecond over the minute:
+# exact because the agent's [cloudwatch] interval_s must divide 60), and what pages: half, five minutes
+# running (an arm deciding its units, a stray bad message, passes).
 REFUSED_ALARM_PERCENT = 50
 REFUSED_ALARM_MINUTES = 5
 # Servo alarm e-mails the host failed to publish (emf.ALERT_PUBLISH_FAILURES; it retries every 5 s while

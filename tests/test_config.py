@@ -304,11 +304,19 @@ def test_alarms_and_cloudwatch_sections() -> None:
     assert config.alarms.temperature_warning_c == 58.0
     assert config.alarms.servo.stall_torque_nm > 2.9
     assert config.cloudwatch.interval_s == 60.0
+    # Any interval that divides 60, the tests' half second too.
+    for seconds in (30.0, 20.0, 15.0, 10.0, 1.0, 0.5, 0.1):
+        assert load_config(None, {"cloudwatch.interval_s": seconds}).cloudwatch.interval_s == seconds
     for overrides, words in [
         ({"alarms.temperature_warning_clear_c": 61.0}, ["[alarms]", "hysteresis"]),
         ({"alarms.servo_version": "24v"}, ["[alarms]", "7.4v"]),
         ({"alarms.overload": 80}, ["alarms.overload", "overload_percent"]),
         ({"cloudwatch.interval_s": 0.0}, ["cloudwatch.interval_s", "greater than 0"]),
+        # The stack's per-minute alarms: a 45 s interval gives minutes one document or two (MessagesRefused
+        # weighed 45 s of Rejects against 60 s of messages), a 120 s one minutes with none.
+        ({"cloudwatch.interval_s": 45.0}, ["cloudwatch.interval_s = 45.0", "divide 60", "30, 20"]),
+        ({"cloudwatch.interval_s": 120.0}, ["cloudwatch.interval_s = 120.0", "divide 60", "set one of 60"]),
+        ({"cloudwatch.interval_s": 0.7}, ["cloudwatch.interval_s = 0.7", "divide 60"]),
     ]:
         with pytest.raises(ConfigError) as info:
             load_config(None, overrides)

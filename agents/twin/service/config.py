@@ -402,6 +402,26 @@ def _positive(key: str, value: float) -> None:
         raise ConfigError(f"{key} = {value!r} must be greater than 0")
 
 
+# EMF intervals (seconds) that put the same number of documents in every minute, for the error's advice.
+_EMF_INTERVALS = (60, 30, 20, 15, 10, 5)
+
+
+def _validate_emf_interval(interval_s: float) -> None:
+    """The stack's alarms judge each minute (stacks/monitoring.py): MessagesRefused weighs a minute's Rejects
+    (summed) against its MessagesPerSecond (averaged) times 60, and the sustained alarms need a document in
+    every minute. Only an interval that divides 60 gives each minute whole intervals, all alike."""
+    _positive("cloudwatch.interval_s", interval_s)
+    per_minute = 60.0 / interval_s
+    if abs(per_minute - round(per_minute)) > 1e-6 * per_minute:
+        choices = ", ".join(str(s) for s in _EMF_INTERVALS)
+        raise ConfigError(
+            f"cloudwatch.interval_s = {interval_s!r} does not divide 60 s: the stack's CloudWatch alarms "
+            "judge each minute, and with it some minutes get no document or a part of one (MessagesRefused "
+            f"would misjudge the refused share, the sustained alarms miss minutes); set one of {choices} "
+            "(60, the default, is the cheapest)"
+        )
+
+
 def validate(config: AgentConfig) -> AgentConfig:
     """Check every cross-field and range rule; returns the config unchanged or raises ConfigError.
 
@@ -412,7 +432,7 @@ def validate(config: AgentConfig) -> AgentConfig:
     _validate_health(config.health)
     _validate_forget(config.telemetry, config.health)
     _validate_http(config.http)
-    _positive("cloudwatch.interval_s", config.cloudwatch.interval_s)
+    _validate_emf_interval(config.cloudwatch.interval_s)
     if config.cloudwatch.emf_file and not config.cloudwatch.agent_name:
         raise ConfigError("cloudwatch.agent_name is empty; name the agent (the stack renders its stack name)")
     _validate_history(config.history)

@@ -368,7 +368,11 @@ KEY_DOCS: dict[str, str] = {
     "cloudwatch.agent_name": (
         "The metrics' `Agent` dimension; the stack renders its stack name, which its alarms watch."
     ),
-    "cloudwatch.interval_s": "Seconds between EMF writes (one line for the fleet, one per alarm severity).",
+    "cloudwatch.interval_s": (
+        "Seconds between EMF writes (one line for the fleet, one per alarm severity). It must divide 60 "
+        "(60, 30, 20, 15, 10, 5, ...): the stack's alarms judge each minute, so every minute needs whole "
+        "intervals, the same number of them."
+    ),
     "alerts.topic_arn": (
         "The SNS topic; empty: nothing is sent. The caller needs `sns:Publish` on it (and, for an "
         "encrypted topic, `kms:GenerateDataKey` and `kms:Decrypt` on its key)."
