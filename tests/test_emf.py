@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -158,6 +159,7 @@ def test_fleet_lines_written_to_the_file_are_valid_emf(tmp_path: Path) -> None:
         "BrokerDisconnected": "Count",
         "DeviceLimitRefusals": "Count",
         "AlertPublishFailures": "Count",
+        "EmfWriteFailures": "Count",
     }
     assert (fleet["MessagesPerSecond"], fleet["DevicesStale"], fleet["InternalLatencyP99"]) == (29.8, 1, 1.9)
     assert (fleet["LossPercent"], fleet["WorstArmLossPercent"]) == (0.7, 33.0)
@@ -393,6 +395,37 @@ def test_publisher_turns_totals_into_interval_figures(tmp_path: Path) -> None:
     assert [d["ActiveAlarms"] for d in docs if d.get("Severity") == "critical"] == [0, 1, 0]
     with pytest.raises(ValueError, match="positive"):
         EmfPublisher(writer, "x", lambda: totals[0], interval_s=0)
+
+
+def test_writes_the_disk_refused_are_counted_where_a_person_looks(tmp_path: Path) -> None:
+    """A full disk's failed writes were only logged: now /state and /metrics count them (the `emf` output)
+    and the first document written after them says how many intervals CloudWatch did not get."""
+    writer = EmfFileWriter(tmp_path / "emf.log")
+    write = writer.write
+    disk_full = threading.Event()
+    disk_full.set()
+
+    def full_or_not(documents: Any) -> None:
+        if disk_full.is_set():
+            raise OSError(28, "No space left on device")
+        write(documents)
+
+    writer.write = full_or_not  # type: ignore[method-assign]
+    totals = FleetTotals(0, 0, 1, 0, 0, 0.0, 1.0, {})
+    publisher = EmfPublisher(writer, "so101-twin", lambda: totals, interval_s=0.05)
+    publisher.start()
+    try:
+        wait_for(lambda: publisher.errors >= 3, 30, "three writes refused")
+        disk_full.clear()
+        wait_for(lambda: publisher.published >= 2, 30, "two documents written once the disk has room")
+    finally:
+        publisher.stop()
+    stats = publisher.sink_stats()
+    assert (stats.name, stats.errors, stats.delivered) == ("emf", publisher.errors, publisher.published)
+    assert "No space left on device" in stats.last_error
+    told = [validate_emf_line(line)["EmfWriteFailures"] for line in writer.path.read_text().splitlines()]
+    # Each failure told once, in the first document written after it.
+    assert told[0] >= 3 and sum(told) == publisher.errors and told[1:] == [0] * (len(told) - 1)
 
 
 def test_publisher_thread_writes_until_stopped(tmp_path: Path) -> None:

@@ -177,6 +177,9 @@ def test_a_shared_fleet_held_at_its_connections_budget_is_told_on_the_fleet_page
     assert all(LOSS_ALARM_PERCENT <= loss < 90 for loss, _ in seen), seen
     # Every arm loses, so the arm losing most (from its own timestamps' gaps) is over the fleet's line too.
     assert all(worst >= LOSS_ALARM_PERCENT for _, worst in seen), seen
+    # The metrics file is an output of the agent's in /state (and /metrics): its writes, none failed.
+    (emf,) = [s for s in agent.state().agent.sinks if s.name == "emf"]
+    assert emf.delivered >= 3 and emf.errors == 0, emf
     edge.stop()
     edge.join(30)
     wait_for(lambda: not agent.notices(), 60, "the notice gone once under the budget")

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from twin.output.sinks import SinkStats
+
 log = logging.getLogger(__name__)
 
 NAMESPACE = "SO101Twin"
@@ -63,6 +65,9 @@ INTERNAL_LATENCY_P99 = "InternalLatencyP99"
 # Messages refused because the agent already tracked telemetry.max_devices arms (a stack alarm): arms that
 # publish and are kept out, which no other figure tells from garbage.
 DEVICE_LIMIT_REFUSALS = "DeviceLimitRefusals"
+# The agent's own documents that could not be written (a full disk, say), told in the next one written: the
+# intervals CloudWatch got nothing for, which a heartbeat gap alone does not count.
+EMF_WRITE_FAILURES = "EmfWriteFailures"
 LOSS_METRICS: tuple[str, ...] = (
     MESSAGES_DROPPED,
     SINK_DROPS,
@@ -143,6 +148,7 @@ class FleetMetrics:
     broker_disconnected: int = 0  # BROKER_DISCONNECTED: connections down at the end of the interval
     device_limit_refusals: int = 0  # DEVICE_LIMIT_REFUSALS during the interval
     alert_publish_failures: int = 0  # ALERT_PUBLISH_FAILURES during the interval
+    emf_write_failures: int = 0  # EMF_WRITE_FAILURES since the last document written
 
 
 def fleet_documents(
@@ -170,6 +176,7 @@ def fleet_documents(
         Metric(BROKER_DISCONNECTED, fleet.broker_disconnected, "Count"),
         Metric(DEVICE_LIMIT_REFUSALS, fleet.device_limit_refusals, "Count"),
         Metric(ALERT_PUBLISH_FAILURES, fleet.alert_publish_failures, "Count"),
+        Metric(EMF_WRITE_FAILURES, fleet.emf_write_failures, "Count"),
     ]
     if fleet.history_lag_s is not None:
         metrics += [
@@ -293,7 +300,8 @@ class EmfPublisher:
 
     Rates and counts are differences between successive totals, over the time between them (monotonic
     clock); the EMF timestamp is the wall clock. Runs on its own thread; a failed write is logged and
-    counted, never raised, so CloudWatch trouble cannot stop the twin.
+    counted (`failed`), never raised, so CloudWatch trouble cannot stop the twin. The count is in /state and
+    /metrics (`sink_stats`) and in the next document written (EMF_WRITE_FAILURES).
     """
 
     def __init__(
@@ -319,11 +327,12 @@ class EmfPublisher:
         self._thread: threading.Thread | None = None
         self.published = 0
         self.errors = 0
+        self.last_error = ""
+        self._errors_told = 0  # `errors` as the last document written told them
 
     def publish_once(self, totals: FleetTotals | None = None) -> FleetMetrics:
         """Sample (or take `totals`: the agent's last document, at its stop), write this interval's documents,
-        return the figures (the first call covers since start of tracking: totals are taken as rising from
-        zero)."""
+        return the figures (the first call's totals are taken as rising from zero, since tracking began)."""
         now = self._clock()
         if totals is None:
             totals = self._sample()
@@ -335,6 +344,7 @@ class EmfPublisher:
         decoded = totals.decoded - (before.decoded if before else 0)
         rejected = totals.rejected - (before.rejected if before else 0)
         history = totals.history_lag_s is not None
+        errors = self.errors
         fleet = FleetMetrics(
             messages_per_s=max(0, decoded) / span,
             rejects=max(0, rejected),
@@ -367,6 +377,7 @@ class EmfPublisher:
             if history
             else None,
             history_lag_s=totals.history_lag_s,
+            emf_write_failures=errors - self._errors_told,
         )
         counts, *by_severity = fleet_documents(fleet, self.agent, round(self._wall() * 1000))
         self.writer.write([counts])
@@ -374,10 +385,21 @@ class EmfPublisher:
         # is counted in the next one (its losses still reach the alarms), and one whose counts are in the
         # file is not counted again if the severity lines after them fail (a review saw 7 drops sent as 14).
         self._last = (now, totals)
+        self._errors_told = errors
         if by_severity:
             self.writer.write(by_severity)
         self.published += 1
         return fleet
+
+    def failed(self, exc: BaseException) -> None:
+        """Count a publish that raised `exc` (the caller logs it)."""
+        self.errors += 1
+        self.last_error = f"{type(exc).__name__}: {exc}"
+
+    def sink_stats(self) -> SinkStats:
+        """The EMF file as an output in /state `agent.sinks` and /metrics (`emf`): its failed writes were only
+        logged, so metrics lost to a full disk showed nowhere a person looks."""
+        return SinkStats(name="emf", delivered=self.published, errors=self.errors, last_error=self.last_error)
 
     def start(self) -> None:
         if self._thread is not None:
@@ -395,6 +417,6 @@ class EmfPublisher:
         while not self._stop.wait(self.interval_s):
             try:
                 self.publish_once()
-            except Exception:
-                self.errors += 1
+            except Exception as exc:
+                self.failed(exc)
                 log.exception("writing CloudWatch metrics to %s failed", self.writer.path)

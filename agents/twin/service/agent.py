@@ -599,8 +599,8 @@ class AgentService:
         totals = dataclasses.replace(totals, sink_drops=totals.sink_drops + samples)
         try:
             self._emf.publish_once(totals)
-        except Exception:
-            self._emf.errors += 1
+        except Exception as exc:
+            self._emf.failed(exc)
             log.exception("the last CloudWatch metrics could not be written")
 
     def _report_stop(self, budget: float, unwritten: Counter[str], killed: list[int], message: str) -> None:
@@ -995,6 +995,7 @@ class AgentService:
                 *(self._journal.sinks() if self._journal is not None else ()),
                 *((self._state_file.stats(),) if self._state_file is not None else ()),
                 *((self._alerts.sink_stats(),) if self._alerts is not None else ()),
+                *((self._emf.sink_stats(),) if self._emf is not None else ()),
             ]
             if own:
                 sinks = (*state.agent.sinks, *own)
