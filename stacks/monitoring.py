@@ -75,6 +75,8 @@ WORKER_RESTARTS = "WorkerRestarts"
 HISTORY_ROWS_DROPPED = "HistoryRowsDropped"
 HISTORY_COMMIT_FAILURES = "HistoryCommitFailures"
 HISTORY_LAG = "HistoryLagSeconds"
+# 1 while history's last commit failed (emf.HISTORY_COMMITS_FAILING): what HistoryCommitFailures pages on.
+HISTORY_COMMITS_FAILING = "HistoryCommitsFailing"
 # Topic filters the broker refuses the agent (agents/twin/output/emf.py, SUBSCRIPTIONS_REFUSED).
 SUBSCRIPTIONS_REFUSED = "SubscriptionsRefused"
 # Broker connections down now (emf.BROKER_DISCONNECTED), and what pages: any, three minutes running (the agent
@@ -370,11 +372,13 @@ class TwinMonitoring(Construct):
     def _alarms_for_history(self) -> None:
         """History's two alarms of its own: commits failing, and the oldest unwritten row waiting too long."""
         agent_name = self.agent_name
+        # Not the failures' count: the writer backs off to a retry a minute or rarer (a slow failing attempt
+        # plus retry_max_s), which leaves minutes with none, and five in a row never came.
         self.alarms["HistoryCommitFailures"] = self._sustained_alarm(
             "HistoryCommitFailures",
             f"History commits of {agent_name} have failed for 5 minutes: the bucket is unreachable or "
             "refuses the role (/state agent.history.last_error). docs/history.md",
-            self._metric(HISTORY_COMMIT_FAILURES, "Sum"),
+            self._metric(HISTORY_COMMITS_FAILING, "Maximum"),
             threshold=1,
             minutes=5,
         )

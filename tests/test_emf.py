@@ -35,7 +35,14 @@ from twin.output.emf import (
     fleet_documents,
 )
 from twin.service.agent import fleet_totals
-from twin.service.state import AgentInfo, AgentState, BrokerState, ConnectionState, DeviceState
+from twin.service.state import (
+    AgentInfo,
+    AgentState,
+    BrokerState,
+    ConnectionState,
+    DeviceState,
+    HistoryState,
+)
 
 CLOUDWATCH_UNITS = (
     "Seconds|Microseconds|Milliseconds|Bytes|Kilobytes|Megabytes|Gigabytes|Terabytes|Bits|Kilobits|Megabits|"
@@ -183,6 +190,25 @@ def test_the_arm_losing_most_is_its_own_figure_and_an_offline_arm_is_not_it() ->
     totals = fleet_totals(state, 10.0)
     assert round(totals.loss_percent, 6) == 4.0
     assert round(totals.worst_arm_loss_percent, 6) == 40.0
+
+
+def test_history_commits_failing_is_told_while_the_last_commit_failed(tmp_path: Path) -> None:
+    """The gauge HistoryCommitFailures pages on: between two backed-off retries no commit fails, yet storage
+    is still out; in every interval until a commit works, and never while history is off."""
+    history: list[HistoryState | None] = [HistoryState(storage_ok=False, commit_failures=3)]
+
+    def totals() -> FleetTotals:
+        return fleet_totals(AgentState(agent=AgentInfo(running=True, history=history[-1]), devices={}), 10.0)
+
+    writer = EmfFileWriter(tmp_path / "emf.log")
+    publisher = EmfPublisher(writer, "a", totals)
+    assert [publisher.publish_once().history_commits_failing for _ in range(2)] == [1, 1]
+    history.append(HistoryState(storage_ok=True, commit_failures=3))
+    assert publisher.publish_once().history_commits_failing == 0
+    history.append(None)
+    publisher.publish_once()
+    docs = [validate_emf_line(line) for line in writer.path.read_text().splitlines()]
+    assert [d.get("HistoryCommitsFailing") for d in docs] == [1, 1, 0, None]
 
 
 def test_no_latency_figure_when_nothing_was_applied() -> None:

@@ -8,10 +8,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
+import types
 from typing import Any
 
 import pytest
 from twin.output import emf
+from twin.output.history import HistorySettings
 
 from stacks import monitoring
 
@@ -51,6 +54,7 @@ def test_names_agree_with_the_agents_emf() -> None:
     )
     assert stack_side == emf.LOSS_METRICS
     assert monitoring.SUBSCRIPTIONS_REFUSED == emf.SUBSCRIPTIONS_REFUSED
+    assert monitoring.HISTORY_COMMITS_FAILING == emf.HISTORY_COMMITS_FAILING
     assert monitoring.BROKER_DISCONNECTED == emf.BROKER_DISCONNECTED
     assert monitoring.LOSS_PERCENT == emf.LOSS_PERCENT
     assert monitoring.WORST_ARM_LOSS_PERCENT == emf.WORST_ARM_LOSS_PERCENT
@@ -373,10 +377,84 @@ def test_a_loss_alarm_names_each_cause_and_its_fix(synth_default: Synth, name: s
     assert all(n in description for n in needles), description
 
 
-def test_history_commit_failures_alarm_after_five_minutes_of_them(synth_default: Synth) -> None:
-    props = _alarm_on(synth_default, emf.HISTORY_COMMIT_FAILURES)
-    assert (props["Statistic"], props["Threshold"]) == ("Sum", 1)
-    assert (props["EvaluationPeriods"], props["DatapointsToAlarm"]) == (5, 5)
+def _outage_documents(outage_s: float, attempt_s: float, minutes: int) -> list[dict[str, Any]]:
+    """The agent's EMF documents, one a minute, through a storage outage of `outage_s` from 0: each commit
+    attempt fails after `attempt_s` (a connect timeout) and the writer waits its backoff (the defaults,
+    doubling from retry_min_s to retry_max_s) before the next; the first attempt after the outage works."""
+    settings = HistorySettings(uri="s3://b/t")
+    failures: list[float] = []
+    backoff, at = settings.retry_min_s, 0.0
+    while at < outage_s:
+        failures.append(at + attempt_s)
+        at += attempt_s + backoff
+        backoff = min(backoff * 2.0, settings.retry_max_s)
+    works_at = at + 1.0
+    now = [0.0]
+
+    def totals() -> emf.FleetTotals:
+        failed = sum(t <= now[0] for t in failures)
+        failing = int(bool(failed) and now[0] < works_at)
+        return emf.FleetTotals(
+            0,
+            0,
+            1,
+            0,
+            0,
+            0.0,
+            None,
+            {},
+            history_rows_dropped=0,
+            history_commit_failures=failed,
+            history_lag_s=0.0,
+            history_commits_failing=failing,
+        )
+
+    written: list[dict[str, Any]] = []
+    writer = types.SimpleNamespace(write=written.extend, path="memory")
+    publisher = emf.EmfPublisher(writer, "So101TwinStack", totals, clock=lambda: now[0], wall=lambda: now[0])
+    for minute in range(1, minutes + 1):
+        now[0] = minute * 60.0 - 0.5  # a document in each minute, written near its end
+        publisher.publish_once()
+    return [d for d in written if "AgentUp" in d]
+
+
+def _alarm_states(props: dict[str, Any], documents: list[dict[str, Any]]) -> list[bool]:
+    """Whether the alarm `props` is in ALARM at the end of each minute, as CloudWatch evaluates it: the
+    statistic of each minute's values, the last EvaluationPeriods minutes all at or over the threshold (a
+    minute without the metric is missing, not breaching)."""
+    assert props["ComparisonOperator"] == "GreaterThanOrEqualToThreshold"
+    assert props["Period"] == 60 and props["TreatMissingData"] == "notBreaching"
+    assert props["EvaluationPeriods"] == props["DatapointsToAlarm"]
+    reduce = {"Sum": sum, "Maximum": max}[props["Statistic"]]
+    by_minute: dict[int, list[float]] = {}
+    for doc in documents:
+        if props["MetricName"] in doc:
+            by_minute.setdefault(int(doc["_aws"]["Timestamp"] // 60_000), []).append(doc[props["MetricName"]])
+    last = max(by_minute)
+    breaching = [
+        bool(by_minute.get(m)) and reduce(by_minute[m]) >= props["Threshold"] for m in range(last + 1)
+    ]
+    n = props["EvaluationPeriods"]
+    return [m + 1 >= n and all(breaching[m + 1 - n : m + 1]) for m in range(last + 1)]
+
+
+@pytest.mark.parametrize("attempt_s", [0.5, 30.0, 90.0])
+def test_history_commit_failures_pages_a_sustained_outage_in_its_five_minutes_and_clears(
+    synth_default: Synth, attempt_s: float
+) -> None:
+    """The writer backs off to a retry every retry_max_s (60 s) after a failing attempt (a connect timeout
+    takes 30 s or more): the failures' count left minutes at 0, so five failing minutes in a row never came
+    and an S3 outage paged no one. The alarm reads "commits failing" now, present in every document."""
+    props = alarm(synth_default, "History commits of So101TwinStack have failed for 5 minutes")
+    # Twenty minutes of outage, then storage back; thirty minutes of documents.
+    states = _alarm_states(props, _outage_documents(1200.0, attempt_s, 30))
+    # The first failure is told in the first minute (at attempt_s), and pages five minutes of them later,
+    # plus the minute a slow attempt takes to fail.
+    first_page = states.index(True)
+    assert first_page <= 4 + math.ceil(attempt_s / 60.0), states
+    assert all(states[first_page:20]), states
+    # Once a commit works, the next minute clears it.
+    assert not any(states[22:]), states
 
 
 def test_history_lag_alarms_over_a_minute_for_two(synth_default: Synth) -> None:

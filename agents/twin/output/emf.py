@@ -49,6 +49,9 @@ WORKER_RESTARTS = "WorkerRestarts"  # worker processes that died and were starte
 HISTORY_ROWS_DROPPED = "HistoryRowsDropped"  # history rows dropped: the write buffer was full (an outage)
 HISTORY_COMMIT_FAILURES = "HistoryCommitFailures"  # history commits that failed (retried)
 HISTORY_LAG = "HistoryLagSeconds"  # how long the oldest unwritten history row has waited
+# 1 while history's last commit failed, 0 once one works (a gauge, a stack alarm): in an outage the writer
+# backs off to a commit a minute or rarer, so HistoryCommitFailures leaves minutes at 0 and cannot page.
+HISTORY_COMMITS_FAILING = "HistoryCommitsFailing"
 SUBSCRIPTIONS_REFUSED = "SubscriptionsRefused"  # topic filters the broker refuses now (an IAM policy)
 # Servo alarm e-mails the host could not publish to the alarm topic (attempts that failed; retried).
 ALERT_PUBLISH_FAILURES = "AlertPublishFailures"
@@ -144,6 +147,7 @@ class FleetMetrics:
     history_rows_dropped: int | None = None
     history_commit_failures: int | None = None
     history_lag_s: float | None = None
+    history_commits_failing: int = 0  # HISTORY_COMMITS_FAILING: 1 while the last commit failed
     worst_arm_loss_percent: float = 0.0  # WORST_ARM_LOSS_PERCENT
     broker_disconnected: int = 0  # BROKER_DISCONNECTED: connections down at the end of the interval
     device_limit_refusals: int = 0  # DEVICE_LIMIT_REFUSALS during the interval
@@ -183,6 +187,7 @@ def fleet_documents(
             Metric(HISTORY_ROWS_DROPPED, fleet.history_rows_dropped or 0, "Count"),
             Metric(HISTORY_COMMIT_FAILURES, fleet.history_commit_failures or 0, "Count"),
             Metric(HISTORY_LAG, fleet.history_lag_s, "Seconds"),
+            Metric(HISTORY_COMMITS_FAILING, fleet.history_commits_failing, "Count"),
         ]
     docs = [emf_document(metrics, {AGENT_DIMENSION: agent}, timestamp_ms, namespace)]
     for severity, count in sorted(fleet.active_alarms.items()):
@@ -279,6 +284,7 @@ class FleetTotals:
     history_rows_dropped: int | None = None
     history_commit_failures: int | None = None
     history_lag_s: float | None = None
+    history_commits_failing: int = 0  # a gauge: HISTORY_COMMITS_FAILING
     worst_arm_loss_percent: float = 0.0  # a gauge: WORST_ARM_LOSS_PERCENT
     device_limit_refusals: int = 0  # a running total: DEVICE_LIMIT_REFUSALS
     broker_disconnected: int = 0  # now, not a running total: BROKER_DISCONNECTED
@@ -293,6 +299,50 @@ def increase(now: int | None, before: int | None) -> int:
     if before is None or now < before:
         return now
     return now - before
+
+
+def _interval_metrics(
+    totals: FleetTotals, before: FleetTotals | None, span: float, write_failures: int
+) -> FleetMetrics:
+    """One interval's figures: `totals` less `before` (the last written), over `span` seconds."""
+    decoded = totals.decoded - (before.decoded if before else 0)
+    rejected = totals.rejected - (before.rejected if before else 0)
+    history = totals.history_lag_s is not None
+    return FleetMetrics(
+        messages_per_s=max(0, decoded) / span,
+        rejects=max(0, rejected),
+        loss_percent=totals.loss_percent,
+        worst_arm_loss_percent=totals.worst_arm_loss_percent,
+        devices_online=totals.devices_online,
+        devices_stale=totals.devices_stale,
+        devices_offline=totals.devices_offline,
+        internal_latency_p99_ms=totals.internal_latency_p99_ms,
+        active_alarms=totals.active_alarms,
+        messages_dropped=increase(totals.messages_dropped, before.messages_dropped if before else None),
+        sink_drops=increase(totals.sink_drops, before.sink_drops if before else None),
+        worker_restarts=increase(totals.worker_restarts, before.worker_restarts if before else None),
+        subscriptions_refused=totals.subscriptions_refused,
+        broker_disconnected=totals.broker_disconnected,
+        device_limit_refusals=increase(
+            totals.device_limit_refusals, before.device_limit_refusals if before else None
+        ),
+        alert_publish_failures=increase(
+            totals.alert_publish_failures, before.alert_publish_failures if before else None
+        ),
+        history_rows_dropped=increase(
+            totals.history_rows_dropped, before.history_rows_dropped if before else None
+        )
+        if history
+        else None,
+        history_commit_failures=increase(
+            totals.history_commit_failures, before.history_commit_failures if before else None
+        )
+        if history
+        else None,
+        history_lag_s=totals.history_lag_s,
+        history_commits_failing=totals.history_commits_failing,
+        emf_write_failures=write_failures,
+    )
 
 
 class EmfPublisher:
@@ -341,44 +391,8 @@ class EmfPublisher:
         else:
             since, before = self._last
         span = max(now - since, 1e-9)
-        decoded = totals.decoded - (before.decoded if before else 0)
-        rejected = totals.rejected - (before.rejected if before else 0)
-        history = totals.history_lag_s is not None
         errors = self.errors
-        fleet = FleetMetrics(
-            messages_per_s=max(0, decoded) / span,
-            rejects=max(0, rejected),
-            loss_percent=totals.loss_percent,
-            worst_arm_loss_percent=totals.worst_arm_loss_percent,
-            devices_online=totals.devices_online,
-            devices_stale=totals.devices_stale,
-            devices_offline=totals.devices_offline,
-            internal_latency_p99_ms=totals.internal_latency_p99_ms,
-            active_alarms=totals.active_alarms,
-            messages_dropped=increase(totals.messages_dropped, before.messages_dropped if before else None),
-            sink_drops=increase(totals.sink_drops, before.sink_drops if before else None),
-            worker_restarts=increase(totals.worker_restarts, before.worker_restarts if before else None),
-            subscriptions_refused=totals.subscriptions_refused,
-            broker_disconnected=totals.broker_disconnected,
-            device_limit_refusals=increase(
-                totals.device_limit_refusals, before.device_limit_refusals if before else None
-            ),
-            alert_publish_failures=increase(
-                totals.alert_publish_failures, before.alert_publish_failures if before else None
-            ),
-            history_rows_dropped=increase(
-                totals.history_rows_dropped, before.history_rows_dropped if before else None
-            )
-            if history
-            else None,
-            history_commit_failures=increase(
-                totals.history_commit_failures, before.history_commit_failures if before else None
-            )
-            if history
-            else None,
-            history_lag_s=totals.history_lag_s,
-            emf_write_failures=errors - self._errors_told,
-        )
+        fleet = _interval_metrics(totals, before, span, errors - self._errors_told)
         counts, *by_severity = fleet_documents(fleet, self.agent, round(self._wall() * 1000))
         self.writer.write([counts])
         # Only once the counts are written, and before the rest: an interval whose counts a full disk refused
