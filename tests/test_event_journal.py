@@ -514,6 +514,62 @@ def test_a_store_full_of_alarms_comes_back_whole_after_a_restart_just_after_a_ro
     assert again.after(0) == held
 
 
+def test_an_event_longer_than_its_line_comes_back_cut_and_says_so(tmp_path: Path) -> None:
+    """Bulk files are sized for lines of BULK_LINE_BYTES: rejections with a long detail were written whole,
+    so the files held fewer events than the store and a restart just after a rename gave back fewer. Each
+    line is cut to fit now, and the event says it was cut and from what size."""
+    capacity = 50
+    path = tmp_path / "events.jsonl"
+    store = EventStore(capacity, wall_clock=Clock())
+    journal = EventJournal(path, capacity=capacity)
+    store.subscribe(journal.add)
+    bulk = bulk_path(path)
+    detail = "field 'positions' holds " + "[1.5, 2.5, 3.5] " * 40  # a message of about 700 bytes
+    for k in range(4 * capacity):
+        store.emit(
+            EventKind.REJECTED,
+            EventLevel.WARNING,
+            f"telemetry from arm-{k:03d} rejected: bad_payload: {detail}",
+            device=f"arm-{k:03d}",
+            data={"reason": "bad_payload", "count": 1},
+        )
+        assert journal.flush()
+        if len(store) == capacity and not bulk.exists() and bulk.with_name(bulk.name + ".1").exists():
+            break  # the file was just renamed: its pair holds the least it ever does
+    else:
+        pytest.fail("the flood never renamed the bulk file away")
+    journal.close()
+    held = store.after(0)
+    assert len(held) == capacity and all(len(msgspec.json.encode(e)) > 600 for e in held)
+    back = EventJournal(path, capacity=capacity).load(capacity)
+    assert [e.id for e in back] == [e.id for e in held]
+    for whole, cut in zip(held, back, strict=True):
+        assert len(msgspec.json.encode(cut)) < event_journal.BULK_LINE_BYTES
+        assert cut.message.endswith(event_journal.CUT_MARK)
+        assert whole.message.startswith(cut.message.removesuffix(event_journal.CUT_MARK))
+        assert cut.data == {**whole.data, "cut_from_bytes": str(len(msgspec.json.encode(whole)) + 1)}
+        assert (cut.kind, cut.device, cut.time, cut.level) == (
+            whole.kind,
+            whole.device,
+            whole.time,
+            whole.level,
+        )
+
+
+def test_data_too_long_for_a_line_is_cut_too_and_a_short_line_is_left_whole(tmp_path: Path) -> None:
+    path = tmp_path / "events.jsonl"
+    store, journal = journaled_store(path)
+    long_data = store.emit(
+        EventKind.STATUS, EventLevel.INFO, "x" * 50, device="arm-1", data={"why": "y" * 900}
+    )
+    short = store.emit(EventKind.STATUS, EventLevel.INFO, "arm-1 is ONLINE", device="arm-1")
+    journal.close()
+    cut, whole = EventJournal(path).load()
+    assert whole == short
+    assert len(msgspec.json.encode(cut)) < event_journal.BULK_LINE_BYTES and cut.id == long_data.id
+    assert cut.data["why"] == "y" * event_journal.CUT_DATA_CHARS and cut.message.endswith("[cut]")
+
+
 def test_the_agents_journal_files_are_sized_by_its_events_capacity(tmp_path: Path) -> None:
     # A store of 100 events keeps at most 100 of its lifecycle kinds: its journal's lifecycle file is renamed
     # away past 100 of their longest lines (100,000 bytes), not at a size made for the default 20,000.

@@ -38,6 +38,10 @@ same before and after.
   (`agent.sinks`: `events_journal` for the file named, `events_journal_bulk` and
   `events_journal_lifecycle` for the others), so they reach CloudWatch's SinkDrops; its log lines name the
   file that failed.
+- **A line longer than its pair's longest** (KEPT_LINE_BYTES, BULK_LINE_BYTES: a rejection's detail, a long
+  arm id) would leave its pair's files fewer events than the store keeps, and a restart fewer back. Its
+  message is cut to fit, ending in CUT_MARK, with `data.cut_from_bytes` the line's whole size: the event comes
+  back, saying it was cut. The store keeps it whole until the agent stops.
 """
 
 from __future__ import annotations
@@ -90,6 +94,11 @@ KEPT_LINE_BYTES = 1_000  # alarm; and calibration, agent, worker, broker: 20 MB 
 BULK_LINE_BYTES = 500  # status, rejected, twin: 10 MB a file at the default capacity
 # A write that keeps failing is logged again at most this often (each flush would otherwise log).
 WARN_EVERY_S = 60.0
+# The end of a message cut to fit its pair's line (module doc), and the key of the line's whole size.
+CUT_MARK = "… [cut]"
+CUT_KEY = "cut_from_bytes"
+# A data value of a line still too long once its message is cut keeps this many characters.
+CUT_DATA_CHARS = 40
 
 _DECODER = msgspec.json.Decoder(Event)
 _ENCODER = msgspec.json.Encoder()
@@ -111,8 +120,11 @@ class _Files:
     events waiting for it (`pending`, guarded by the journal's queue lock) and what became of them, as the
     output `name` reports them. The other fields are its journal's writing thread's."""
 
-    def __init__(self, path: Path, max_bytes: int, *, name: str, clock: Callable[[], float]) -> None:
+    def __init__(
+        self, path: Path, max_bytes: int, *, name: str, line_bytes: int, clock: Callable[[], float]
+    ) -> None:
         self.path = path
+        self.line_bytes = line_bytes
         self.previous = path.with_name(path.name + ".1")
         self.max_bytes = max_bytes
         self.name = name
@@ -147,7 +159,7 @@ class _Files:
                 # join it and be skipped with it when read back.
                 f.write(b"\n")
         # One write a flush: a kill leaves at most its last line cut short, which `load` skips.
-        f.write(b"".join(_ENCODER.encode(e) + b"\n" for e in batch))
+        f.write(b"".join(_line(e, self.line_bytes) for e in batch))
         f.flush()
         if f.tell() >= self.max_bytes:
             self.close()
@@ -186,9 +198,14 @@ class EventJournal:
         self.path = Path(path)
         kept_bytes = capacity * KEPT_LINE_BYTES if max_bytes is None else max_bytes
         bulk_bytes = capacity * BULK_LINE_BYTES if max_bytes is None else max_bytes
-        self._kept = _Files(self.path, kept_bytes, name=SINK_NAME, clock=clock)
-        self._bulk = _Files(bulk_path(self.path), bulk_bytes, name=BULK_SINK_NAME, clock=clock)
-        self._lifecycle = _Files(lifecycle_path(self.path), kept_bytes, name=LIFECYCLE_SINK_NAME, clock=clock)
+        kept, bulk = KEPT_LINE_BYTES, BULK_LINE_BYTES
+        self._kept = _Files(self.path, kept_bytes, name=SINK_NAME, line_bytes=kept, clock=clock)
+        self._bulk = _Files(
+            bulk_path(self.path), bulk_bytes, name=BULK_SINK_NAME, line_bytes=bulk, clock=clock
+        )
+        self._lifecycle = _Files(
+            lifecycle_path(self.path), kept_bytes, name=LIFECYCLE_SINK_NAME, line_bytes=kept, clock=clock
+        )
         # Every pair, indexed by the store's parts (events.part_index): where each event's kind goes.
         by_part = {BULK_PART: self._bulk, ALARM_PART: self._kept, LIFECYCLE_PART: self._lifecycle}
         self._pairs = tuple(by_part[part] for part in sorted(by_part))
@@ -353,6 +370,35 @@ def _newest(events: Iterable[Event], limit: int | None) -> list[Event]:
     """The newest `limit` of `events` (None: all), in id order, each id once."""
     by_id = sorted({e.id: e for e in events}.values(), key=_ID)
     return by_id if limit is None else by_id[max(0, len(by_id) - limit) :]
+
+
+def _line(event: Event, limit: int) -> bytes:
+    """`event` as one line of at most `limit` bytes (its end included): a longer one's message cut (module
+    doc), and its data values too if that is not enough; longer still only for an arm id of such a size."""
+    line = _ENCODER.encode(event) + b"\n"
+    if len(line) <= limit:
+        return line
+    data = {**event.data, CUT_KEY: str(len(line))}
+    cut = _cut_message(msgspec.structs.replace(event, data=data), event.message, limit)
+    if cut is None:
+        short = {k: v if k == CUT_KEY else v[:CUT_DATA_CHARS] for k, v in data.items()}
+        cut = _cut_message(msgspec.structs.replace(event, data=short), event.message, limit)
+    return cut if cut is not None else _ENCODER.encode(event) + b"\n"
+
+
+def _cut_message(event: Event, message: str, limit: int) -> bytes | None:
+    """The line of `event` with the longest start of `message` that fits in `limit` (None: none does)."""
+
+    def encoded(keep: int) -> bytes:
+        return _ENCODER.encode(msgspec.structs.replace(event, message=message[:keep] + CUT_MARK)) + b"\n"
+
+    if len(encoded(0)) > limit:
+        return None
+    fits, over = 0, len(message)  # the longest start known to fit, the shortest known not to
+    while over - fits > 1:
+        mid = (fits + over) // 2
+        fits, over = (mid, over) if len(encoded(mid)) <= limit else (fits, mid)
+    return encoded(fits)
 
 
 def _ends_cut_short(path: Path) -> bool:
