@@ -315,6 +315,12 @@ def test_s3_stopped_longer_than_the_history_buffer(
                 PROGRESS_S,
                 "the lag in EMF",
             )
+            # ... and that commits are failing, which the HistoryCommitFailures alarm pages on.
+            wait_for(
+                lambda: any(d.get("HistoryCommitsFailing") == 1 for d in _emf(emf)),
+                PROGRESS_S,
+                "commits failing in EMF",
+            )
             # ... and /metrics on the host (a commit in flight when S3 stopped may still have landed, which
             # starts the lag again from the rows after it: it grows from there while the outage lasts).
             wait_for(
@@ -345,6 +351,8 @@ def test_s3_stopped_longer_than_the_history_buffer(
         # Each line counts its interval's drops (the last interval's may come after the agent stopped).
         assert 0 < sum(d.get("HistoryRowsDropped", 0) for d in lines) <= history.rows_dropped
         assert sum(d.get("HistoryCommitFailures", 0) for d in lines) > 0
+        # Storage back and every row written: the last line clears the alarm.
+        assert [d["HistoryCommitsFailing"] for d in lines if "HistoryCommitsFailing" in d][-1] == 0
         # Every decoded message is a row in the table, or one counted as dropped.
         assert _table_rows(uri, options) + history.rows_dropped == decoded
     finally:
