@@ -41,8 +41,9 @@ MAX_DIMENSION_VALUE_CHARS = 1024
 MAX_EVENT_BYTES = 1024 * 1024
 # CloudWatch's unit names (MetricDatum); only the ones used here.
 UNITS = frozenset({"Count", "Count/Second", "Percent", "Milliseconds", "Seconds", "None"})
-# What was lost, per interval (counts) and how far history lags (a gauge): each has a stack alarm
-# (stacks/monitoring.py, whose names tests/infra/test_monitoring.py checks against these).
+# What was lost, per interval (counts) and how far history lags (a gauge): each has a stack alarm, but for
+# HistoryCommitFailures, whose alarm reads HISTORY_COMMITS_FAILING (stacks/monitoring.py, whose names
+# tests/infra/test_monitoring.py checks against these).
 MESSAGES_DROPPED = "MessagesDropped"  # dropped before they were decoded (a queue full, a worker lost)
 SINK_DROPS = "SinkDrops"  # samples a sink's queue dropped (it could not keep up)
 WORKER_RESTARTS = "WorkerRestarts"  # worker processes that died and were started again
