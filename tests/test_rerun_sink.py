@@ -12,6 +12,7 @@ import json
 import math
 import time
 from collections.abc import Iterator
+from multiprocessing import Pipe
 from pathlib import Path
 
 import msgspec
@@ -21,13 +22,20 @@ import pyarrow as pa
 import pytest
 from conftest import read_rrd, wait_for
 from twin.core.alarms import AlarmThresholds, ServoAlarms
+from twin.core.health import DeviceStatus
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
+from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
 from twin.output.rerun_settings import RerunSettings, RerunSettingsError
 from twin.output.rerun_sink import RerunSink, status_text
 from twin.output.sinks import AppliedSample, RejectedSample
 from twin.robot import so101
 from twin.robot.model import RobotModel, default_model_path
 from twin.robot.visuals import fit_face_budget, visual_geoms
+from twin.service.admission import DeviceBudget
+from twin.service.config import load_config
+from twin.service.events import FleetWatch
+from twin.service.mirror import Mirror, PipeInbox
+from twin.transport.pipe import Batch
 
 T0_MS = 1_706_000_000_000
 SAMPLES = 24
@@ -377,6 +385,75 @@ def test_after_an_edge_clock_reset_the_live_end_shows_the_newest_pose(
     after_reset = [t for t, _ in rows[SAMPLES // 2 - 1 : 3 * SAMPLES // 4]]
     assert {b - a for a, b in itertools.pairwise(after_reset)} == {100}, after_reset
     assert [t for t, _ in rows[3 * SAMPLES // 4 :]] == [d["timestamp"] for d in docs[3 * SAMPLES // 4 :]]
+
+
+class _Clock:
+    def __init__(self, t: float) -> None:
+        self.now = t
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_an_arm_going_stale_offline_and_back_is_told_at_the_live_end(
+    robot: RobotModel, tmp_path: Path
+) -> None:
+    """A walk: an arm that went quiet kept its last pose in the viewer with no sign, while the console said
+    STALE, then OFFLINE. A real mirror on an injected clock, as its worker drives it (a batch, then a status
+    sweep, every 0.1 s), hands each change to the sink, which logs it on the arm's line after its last
+    sample: where a viewer at the live end, which shows that sample's pose, sees it."""
+    config = load_config(None, {"telemetry.devices": ["*"], "telemetry.units": "degrees"})
+    clock = _Clock(1000.0)
+    path = tmp_path / "status.rrd"
+    sink = RerunSink(robot, RerunSettings(save=str(path), flush_s=0.05))
+    mirror = Mirror(
+        config,
+        inbox=PipeInbox(Pipe(duplex=False)[0]),
+        budget=DeviceBudget(4),
+        clock=clock,
+        wall_clock=lambda: T0_MS / 1000 + clock.now,
+        sinks=[sink],
+    )
+    mirror._open_sinks()  # the sinks without the worker thread: the test turns its loop
+    step, sent = 0, []
+
+    def run(seconds: float, *, sending: bool) -> None:
+        nonlocal step
+        for _ in range(round(seconds * 10)):
+            step += 1
+            clock.now = 1000.0 + step / 10
+            if sending:
+                doc = payload("arm-001", step)
+                sent.append(doc["timestamp"])
+                topic = telemetry_topic(DEFAULT_TOPIC_PREFIX, "arm-001")
+                batch = Batch(("arm-001",), (topic,), (json.dumps(doc).encode(),), (clock.now,), (clock(),))
+                mirror._handle(batch, 0)
+            mirror._watch_statuses((clock.now,) if sending else ())
+
+    health = config.health
+    run(1.0, sending=True)
+    last_before = sent[-1]
+    run(health.offline_after_s + 1.0, sending=False)
+    assert mirror.statuses()["arm-001"] is DeviceStatus.OFFLINE
+    run(1.0, sending=True)
+    mirror.stop()
+    temporal, _ = read_rrd(path)
+    cells = zip(times_ms(temporal), column(temporal, "/arms/arm-001/events", "TextLog:text"), strict=True)
+    # (The payloads' overload bits make servo lines too: the status lines are those of the arm.)
+    lines = [(t, line) for t, cell in cells if cell for line in cell if line.startswith("arm ")]
+    assert [line for _, line in lines] == [
+        "arm STALE (was ONLINE): its pose is the last one it sent",
+        "arm OFFLINE (was STALE): its pose is the last one it sent",
+        "arm ONLINE (was OFFLINE)",
+    ]
+    (stale, _), (offline, _), (online, _) = lines
+    # On the arm's line as long after its last sample as the mirror's sweep read the change (a sweep every
+    # WATCH_INTERVAL_S, so within one of the thresholds), and the return at its first sample back.
+    sweep_ms = FleetWatch.interval_s * 1000 + 100
+    assert 0 < stale - last_before - health.stale_after_s * 1000 <= sweep_ms
+    assert 0 <= offline - last_before - health.offline_after_s * 1000 <= sweep_ms
+    first_back = sent[len(sent) // 2]
+    assert offline < first_back <= online <= first_back + sweep_ms
 
 
 def test_status_text_names_each_error_bit() -> None:

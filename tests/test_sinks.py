@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 from conftest import fed_agent, full_disk, metric, parse_metrics, wait_for
 from twin.core import heap
+from twin.core.health import DeviceStatus
 from twin.core.telemetry import Telemetry, Units
 from twin.core.twin import DeviceTwin
-from twin.output.sinks import AppliedSample, QueuedSink, RejectedSample, SinkStats
+from twin.output.sinks import AppliedSample, QueuedSink, RejectedSample, SinkStats, StatusChange
 from twin.robot import so101
 from twin.robot.model import RobotModel
 from twin.service.metrics import render_metrics
@@ -73,6 +74,42 @@ def test_close_delivers_everything_queued_in_order() -> None:
     assert worker.closed == 1
     stats = sink.stats()
     assert (stats.delivered, stats.dropped, stats.errors, stats.pending) == (500, 0, 0, 0)
+
+
+class _StatusRecorder(_Recorder):
+    def __init__(self) -> None:
+        super().__init__()
+        self.order: list[str] = []
+
+    def handle_applied(self, sample: AppliedSample) -> None:
+        self.order.append("sample")
+
+    def handle_status(self, change: StatusChange) -> None:
+        self.order.append(f"{change.device_id} {change.status}")
+
+
+def test_status_changes_reach_only_the_workers_that_show_them_in_order_with_samples() -> None:
+    stale = StatusChange("arm-001", DeviceStatus.ONLINE, DeviceStatus.STALE, at_mono_s=5.0, at_wall_s=5.0)
+    shows = _StatusRecorder()
+    sink = QueuedSink("shows", shows)
+    sink.applied(_sample(0))
+    sink.status(stale)
+    sink.close()
+    assert shows.order == ["sample", "arm-001 STALE"]
+    assert (sink.stats().delivered, sink.stats().errors) == (1, 0)
+    # A worker with no `handle_status` (the USD recording, ROS 2) is handed none: held on its first sample,
+    # its queue stays empty, so a change takes no room from samples, and no error is counted.
+    gate = threading.Event()
+    ignores = _Recorder(gate=gate)
+    sink = QueuedSink("ignores", ignores)
+    sink.applied(_sample(0))
+    assert ignores.entered.wait(30), "the sink's thread never took the first sample"
+    sink.status(stale)
+    assert sink.stats().pending == 1
+    gate.set()
+    sink.close()
+    assert ignores.applied == [0]
+    assert (sink.stats().delivered, sink.stats().errors) == (1, 0)
 
 
 def test_a_stalled_worker_never_blocks_the_caller_and_drops_the_oldest() -> None:

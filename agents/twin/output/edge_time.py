@@ -53,3 +53,11 @@ class EdgeTime:
         self.last_ms = ms
         self.last_received_s = received_s
         return ms
+
+    def after_last(self, at_s: float) -> int:
+        """The time (ms) on the arm's line of something the agent saw at `at_s` (monotonic, the receive
+        times' clock) after the arm's last sample, such as its going STALE: as long after that sample as the
+        agent saw it after receiving it, never before it. The line does not move: the arm's next sample is
+        placed as if this had not been."""
+        passed_s = at_s - self.last_received_s
+        return self.last_ms + (round(passed_s * 1000) if passed_s > 0 else 0)

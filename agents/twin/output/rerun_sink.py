@@ -7,7 +7,8 @@ For each device it writes an entity tree under `arms/<device>/` (docs/web.md dra
     arms/<device>/<body>/visual/<geom>     the geom's triangles and colour, posed in the body (static)
     arms/<device>/joints/angle_deg         six joint angles, degrees (one series per joint)
     arms/<device>/servo/<quantity>         six servo readings per quantity, when the edge sends them
-    arms/<device>/events                   servo status and rejected messages, as text
+    arms/<device>/events                   the arm going STALE, OFFLINE and back ONLINE, servo status and
+                                           rejected messages, as text
 
 Everything temporal sits on the `edge_time` timeline (the edge's own timestamps, never running backwards per
 arm: twin.output.edge_time). Forward kinematics runs in
@@ -50,7 +51,14 @@ from twin.core.lifetime import die_with_parent
 from twin.core.telemetry import JointDiagnostics
 from twin.output.edge_time import EdgeTime
 from twin.output.rerun_settings import RerunSettings
-from twin.output.sinks import AppliedSample, DeviceRateCap, QueuedSink, RejectedSample, SinkStats
+from twin.output.sinks import (
+    AppliedSample,
+    DeviceRateCap,
+    QueuedSink,
+    RejectedSample,
+    SinkStats,
+    StatusChange,
+)
 from twin.robot import so101
 from twin.robot.model import RobotModel
 from twin.robot.visuals import VisualGeom, fit_face_budget, visual_geoms
@@ -115,6 +123,8 @@ _SCALARS = pa.list_(pa.field("item", pa.float64(), nullable=False))
 _NS = pa.timestamp("ns")
 _XYZW = [4, 5, 6, 3]  # columns of a (x y z qw qx qy qz) pose row that make Rerun's (qx qy qz qw)
 _NO_READINGS: tuple[None, ...] = (None,) * len(SERVO_SERIES)
+# An arm's status line's level in the events view: silence is a warning, as on the console's Events page.
+_STATUS_LEVELS = {"STALE": rr.TextLogLevel.WARN, "OFFLINE": rr.TextLogLevel.WARN}
 
 
 class RerunSinkError(OSError):
@@ -535,6 +545,19 @@ class RerunWorker:
         text = f"rejected ({sample.reason}): {sample.detail}{more}"
         self._rec.log(entity, rr.TextLog(text, level=rr.TextLogLevel.WARN))
 
+    def handle_status(self, change: StatusChange) -> None:
+        """The arm's status as a line of its events, on its own line after its last sample (where a viewer at
+        the live end sees it: the pose there is the last one the arm sent)."""
+        arm = self._arms.get(change.device_id)
+        if arm is None:
+            return  # nothing of it is shown (its samples were all skipped or dropped)
+        self._rec.set_time(TIMELINE, timestamp=np.datetime64(arm.edge.after_last(change.at_mono_s), "ms"))
+        level = _STATUS_LEVELS.get(change.status, rr.TextLogLevel.INFO)
+        text = f"arm {change.status} (was {change.previous})"
+        if change.status != "ONLINE":
+            text += ": its pose is the last one it sent"
+        self._rec.log(f"{arm.entity}/events", rr.TextLog(text, level=level))
+
     def idle(self) -> None:
         now = time.monotonic()
         self._sweep(now)
@@ -841,6 +864,10 @@ class RerunSink:
 
     def rejected(self, sample: RejectedSample) -> None:
         self._queue.rejected(sample)
+
+    def status(self, change: StatusChange) -> None:
+        # Not rate-capped: a change is rare, and the one a viewer must not miss.
+        self._queue.status(change)
 
     def stats(self) -> SinkStats:
         with self._lock:

@@ -1,8 +1,10 @@
 """Sinks: where each mirrored sample goes besides the twin itself (USD recording, history, Rerun, ROS 2).
 
 The agent's worker applies a message to the device's twin and then hands one `AppliedSample` to every sink
-(and one `RejectedSample` for each rejected message). The worker is the mirror's hot path, so a sink's
-`applied`/`rejected` must return in microseconds and never block on I/O. Sinks that do I/O (a file, S3, a
+(and one `RejectedSample` for each rejected message, and one `StatusChange` when an arm goes STALE, OFFLINE
+or back ONLINE: silence changes those, not a message, so a sink could not tell them from its samples). The
+worker is the mirror's hot path, so a sink's `applied`/`rejected`/`status` must return in microseconds and
+never block on I/O. Sinks that do I/O (a file, S3, a
 network peer) wrap their blocking work in `QueuedSink`: a bounded queue and a thread of their own, which drops
 the oldest queued item when the sink falls behind and counts it, so a slow disk, a stalled viewer or an absent
 ROS peer never slows mirroring and never grows memory without bound.
@@ -25,6 +27,7 @@ from typing import TYPE_CHECKING, Protocol
 
 from twin.core import heap
 from twin.core.alarms import AlarmEvent
+from twin.core.health import DeviceStatus
 
 if TYPE_CHECKING:
     # Annotations only: the config imports the ROS 2 sink's settings, which import this module, and
@@ -102,9 +105,22 @@ def rejected_sample(
     )
 
 
-def sample_bytes(item: AppliedSample | RejectedSample) -> int:
+@dataclass(frozen=True, slots=True)
+class StatusChange:
+    """An arm's status changed (docs/agent.md, "Health"), as the mirror's status sweep read it: `at_mono_s`
+    is where the mirror stood in its input then, on the clock of the samples' `received_mono_s`."""
+
+    device_id: str
+    previous: DeviceStatus
+    status: DeviceStatus
+    at_mono_s: float
+    at_wall_s: float
+
+
+def sample_bytes(item: AppliedSample | RejectedSample | StatusChange) -> int:
     """What a queued sample weighs, roughly: its payload plus a fixed overhead (SAMPLE_OVERHEAD_BYTES)."""
-    return len(item.payload) + SAMPLE_OVERHEAD_BYTES
+    payload = 0 if isinstance(item, StatusChange) else len(item.payload)
+    return payload + SAMPLE_OVERHEAD_BYTES
 
 
 @dataclass(frozen=True, slots=True)
@@ -130,13 +146,18 @@ class TwinSink(Protocol):
 
     def rejected(self, sample: RejectedSample) -> None: ...
 
+    def status(self, change: StatusChange) -> None:
+        """An arm's status changed; a sink that shows no statuses does nothing. (The mirror looks this up
+        per sink: a sink written before it is handed none.)"""
+
     def stats(self) -> SinkStats: ...
 
     def close(self, timeout: float = 5.0) -> None: ...
 
 
 class SinkWorker(Protocol):
-    """The blocking half of a queued sink; runs on the sink's own thread only."""
+    """The blocking half of a queued sink; runs on the sink's own thread only. One that shows arms' statuses
+    also has `handle_status(change: StatusChange)`; `QueuedSink` hands the others none."""
 
     def handle_applied(self, sample: AppliedSample) -> None: ...
 
@@ -241,7 +262,10 @@ class QueuedSink:
             raise ValueError(f"hand_off_s must be >= 0, got {hand_off_s}")
         self.name = name
         self._worker = worker
-        self._queue: collections.deque[AppliedSample | RejectedSample] = collections.deque()
+        self._queue: collections.deque[AppliedSample | RejectedSample | StatusChange] = collections.deque()
+        # Looked up once: a worker that shows no statuses (the USD recording, ROS 2) is handed none, so they
+        # take no room in its queue.
+        self._handle_status: Callable[[StatusChange], None] | None = getattr(worker, "handle_status", None)
         self._max = max_pending
         self._max_bytes = max_pending_bytes
         self._bytes = 0
@@ -272,7 +296,11 @@ class QueuedSink:
     def rejected(self, sample: RejectedSample) -> None:
         self._put(sample)
 
-    def _put(self, item: AppliedSample | RejectedSample) -> None:
+    def status(self, change: StatusChange) -> None:
+        if self._handle_status is not None:
+            self._put(change)
+
+    def _put(self, item: AppliedSample | RejectedSample | StatusChange) -> None:
         with self._cond:
             if self._closing:
                 self._dropped += 1
@@ -331,6 +359,9 @@ class QueuedSink:
             for item in items:
                 if isinstance(item, AppliedSample):
                     delivered += self._guard(worker.handle_applied, item)
+                elif isinstance(item, StatusChange):
+                    if self._handle_status is not None:
+                        self._guard(self._handle_status, item)
                 else:
                     self._guard(worker.handle_rejected, item)
             with self._cond:

@@ -28,9 +28,10 @@ A device is admitted (gets a twin) on its first valid message, while the fleet's
 decode takes no place.
 
 Sinks (twin.output.sinks) receive every applied message as an `AppliedSample` and every rejected one as a
-`RejectedSample`, on the worker thread; each returns at once (I/O sinks queue to a thread of their own). The
-history sink also gets the valid messages the twin did not apply (late or duplicate), so it holds every
-decoded message. The USD recording is one such sink; `AgentService(..., sinks=[...])` adds more.
+`RejectedSample`, on the worker thread, and each change of an arm's status its sweep reads as a `StatusChange`
+(`_hand_statuses`); each returns at once (I/O sinks queue to a thread of their own). The history sink also
+gets the valid messages the twin did not apply (late or duplicate), so it holds every decoded message. The
+USD recording is one such sink; `AgentService(..., sinks=[...])` adds more.
 
 Ordering uses the edge timestamp (DeviceTwin.apply ignores anything not newer), liveness uses the agent's
 monotonic receive time (twin.core.health). The two meet in one place: when a device keeps sending valid
@@ -95,7 +96,7 @@ from twin.core.telemetry import (
     diagnostic_columns,
 )
 from twin.core.twin import DeviceTwin, TwinSnapshot, holding_torques_of
-from twin.output.sinks import AppliedSample, RejectedSample, TwinSink, rejected_sample
+from twin.output.sinks import AppliedSample, RejectedSample, StatusChange, TwinSink, rejected_sample
 
 # This module is the heavy end of the agent (MuJoCo, USD): the agent imports it only for an in-process
 # mirror, and worker processes import it; the agent with worker processes never does.
@@ -176,7 +177,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 Clock = Callable[[], float]
-_SampleT = TypeVar("_SampleT", AppliedSample, RejectedSample)
+_SampleT = TypeVar("_SampleT", AppliedSample, RejectedSample, StatusChange)
 _T = TypeVar("_T")
 
 # A device whose valid messages have all been older than its last applied one for this long (and this many
@@ -514,6 +515,9 @@ class Mirror:
         self._history_from = 0
         self._extra_sinks: tuple[TwinSink, ...] = tuple(sinks)
         self._sinks: tuple[TwinSink, ...] = ()
+        # The sinks' `status` methods, and each arm's status as last handed to them (worker thread only).
+        self._status_sinks: tuple[tuple[TwinSink, Callable[[StatusChange], None]], ...] = ()
+        self._sinks_saw: dict[str, DeviceStatus] = {}
         self._worker: threading.Thread | None = None
         self._stopped = False
         self._stop_lock = threading.Lock()
@@ -641,6 +645,10 @@ class Mirror:
             # Marked from the start: the feed never hands over part of a batch unrecorded (HistoryFeed.mark).
             self._history.mark(self.processed)
         self._sinks = (*((self._recording,) if self._recording else ()), *self._extra_sinks)
+        # Looked up, not assumed: a sink written before statuses were handed over has no `status`.
+        self._status_sinks = tuple(
+            (sink, method) for sink in self._sinks if (method := getattr(sink, "status", None)) is not None
+        )
 
     def _first_recorder(self, directory: Path) -> SessionRecorder:
         """The first session; on a disk with no room for it, one set aside that the sink replaces once
@@ -1621,6 +1629,7 @@ class Mirror:
             # Of the arms heard from only: their arrivals were told by `_admit`.
             statuses = self._fleet.statuses(at, heard_only=True)
         self._watch.statuses(statuses, now)
+        self._hand_statuses(statuses, at, now)
         self._watch.alarm_bursts(now)
         if self._watch.rates_due(now):
             with self._lock:
@@ -1636,6 +1645,23 @@ class Mirror:
             with self._lock:
                 offsets = self._fleet.clock_offsets(at)
             self._watch.clocks(offsets)
+
+    def _hand_statuses(self, statuses: Mapping[str, DeviceStatus], at: float, now: float) -> None:
+        """Every change of an arm's status since the last sweep, to the sinks that show statuses. Each change
+        as it is, flapping or not (the events summarise flapping; a viewer shows the arm as it is). A sink
+        knows an arm by its samples, so an arm it was not told of was ONLINE to it."""
+        if not self._status_sinks:
+            return
+        saw = self._sinks_saw
+        wall = self._wall_clock() - (now - at)
+        for device, status in statuses.items():
+            previous = saw.get(device, DeviceStatus.ONLINE)
+            if status is previous:
+                continue
+            saw[device] = status
+            change = StatusChange(device, previous, status, at_mono_s=at, at_wall_s=wall)
+            for sink, method in self._status_sinks:
+                self._guard_sink(sink, method, change)
 
     @property
     def behind_s(self) -> float:
@@ -1995,6 +2021,7 @@ class Mirror:
             self._kept_places.discard(device)
             self._budget.give_back(self._slot)
         self._watch.forgotten(device, str(status), removed, reason)
+        self._sinks_saw.pop(device, None)
         log.info("device forgotten", extra={"device": device, "alarms_removed": removed})
         return ArmForgotten(device=device, status=str(status), alarms_removed=removed)
 
