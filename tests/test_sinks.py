@@ -3,8 +3,10 @@ survives a failing worker, and delivers everything queued on close; RobotModel.b
 
 from __future__ import annotations
 
+import random
 import threading
 import time
+from multiprocessing import Pipe
 from pathlib import Path
 
 import numpy as np
@@ -13,11 +15,18 @@ from conftest import fed_agent, full_disk, metric, parse_metrics, wait_for
 from twin.core import heap
 from twin.core.health import DeviceStatus
 from twin.core.telemetry import Telemetry, Units
+from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
 from twin.core.twin import DeviceTwin
+from twin.edge.payload import encode, make_payload
 from twin.output.sinks import AppliedSample, QueuedSink, RejectedSample, SinkStats, StatusChange
 from twin.robot import so101
 from twin.robot.model import RobotModel
+from twin.service.admission import DeviceBudget
+from twin.service.config import load_config
+from twin.service.events import FleetWatch
 from twin.service.metrics import render_metrics
+from twin.service.mirror import Mirror, PipeInbox
+from twin.transport.pipe import send_batch, send_end
 
 
 def _sample(i: int) -> AppliedSample:
@@ -269,6 +278,69 @@ class _Sink:
 
     def close(self, timeout: float = 5.0) -> None:
         self.closed = True
+
+
+class _StatusSink(_Sink):
+    def __init__(self) -> None:
+        super().__init__()
+        self.changes: list[tuple[str, str, str]] = []
+
+    def status(self, change: StatusChange) -> None:
+        self.changes.append((change.device_id, change.previous, change.status))
+
+
+class _Clock:
+    def __init__(self, t: float) -> None:
+        self.now = t
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_a_worker_process_mirror_hands_its_sinks_each_status_change() -> None:
+    """The mirror a worker process runs (`worker_main`: fed by its pipe, its sinks built from the config),
+    on its own thread, on an injected clock: each change its sweeps read reaches its sinks."""
+    config = load_config(None, {"telemetry.devices": ["*"], "telemetry.units": "ticks"})
+    clock, rng = _Clock(1000.0), random.Random(1)
+    reader, writer = Pipe(duplex=False)
+    sink = _StatusSink()
+    mirror = Mirror(
+        config,
+        inbox=PipeInbox(reader),
+        budget=DeviceBudget(4),
+        clock=clock,
+        wall_clock=lambda: 1.7e9 + clock.now,
+        sinks=[sink],
+    )
+
+    def send(received: float) -> None:
+        stamp = 1.7e9 + received  # the edge's clock, in epoch seconds
+        doc = make_payload("arm-001", stamp, "ticks", rng, timestamp_ms=round(stamp * 1000))
+        topic = telemetry_topic(DEFAULT_TOPIC_PREFIX, "arm-001")
+        send_batch(writer, [("arm-001", (topic, encode(doc), received, stamp))])
+
+    mirror.start()
+    try:
+        send(clock.now)
+        wait_for(lambda: sink.applied_samples, 30, "the first sample")
+        health = config.health
+        clock.now += health.stale_after_s + FleetWatch.interval_s
+        wait_for(lambda: len(sink.changes) == 1, 30, "the arm to go STALE")
+        clock.now += health.offline_after_s
+        wait_for(lambda: len(sink.changes) == 2, 30, "the arm to go OFFLINE")
+        # Received a sweep's interval on, and the clock moved there after: a sweep that ran in between found
+        # it not yet due, so the one that reads the arm back is the next.
+        send(clock.now + FleetWatch.interval_s)
+        clock.now += FleetWatch.interval_s
+        wait_for(lambda: len(sink.changes) == 3, 30, "the arm to come back")
+    finally:
+        send_end(writer)
+        mirror.stop(timeout=30.0)
+    assert sink.changes == [
+        ("arm-001", "ONLINE", "STALE"),
+        ("arm-001", "STALE", "OFFLINE"),
+        ("arm-001", "OFFLINE", "ONLINE"),
+    ]
 
 
 @pytest.mark.slow
