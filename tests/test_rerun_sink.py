@@ -454,6 +454,9 @@ def test_an_arm_going_stale_offline_and_back_is_told_at_the_live_end(
     assert 0 <= offline - last_before - health.offline_after_s * 1000 <= sweep_ms
     first_back = sent[len(sent) // 2]
     assert offline < first_back <= online <= first_back + sweep_ms
+    # Over the arm in the fleet view, a point labelled with its status, at the same times; cleared once back.
+    labels = rows_of(temporal, "/arms/arm-001/status", "Points3D:labels")
+    assert labels == {stale: ["STALE"], offline: ["OFFLINE"], online: []}
 
 
 def test_status_text_names_each_error_bit() -> None:

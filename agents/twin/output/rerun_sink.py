@@ -7,6 +7,7 @@ For each device it writes an entity tree under `arms/<device>/` (docs/web.md dra
     arms/<device>/<body>/visual/<geom>     the geom's triangles and colour, posed in the body (static)
     arms/<device>/joints/angle_deg         six joint angles, degrees (one series per joint)
     arms/<device>/servo/<quantity>         six servo readings per quantity, when the edge sends them
+    arms/<device>/status                   a labelled point over an arm that is STALE or OFFLINE
     arms/<device>/events                   the arm going STALE, OFFLINE and back ONLINE, servo status and
                                            rejected messages, as text
 
@@ -125,6 +126,9 @@ _XYZW = [4, 5, 6, 3]  # columns of a (x y z qw qx qy qz) pose row that make Reru
 _NO_READINGS: tuple[None, ...] = (None,) * len(SERVO_SERIES)
 # An arm's status line's level in the events view: silence is a warning, as on the console's Events page.
 _STATUS_LEVELS = {"STALE": rr.TextLogLevel.WARN, "OFFLINE": rr.TextLogLevel.WARN}
+# And the point labelled with it over the arm (in its base frame, above its reach): amber, red.
+_STATUS_COLOURS = {"STALE": (255, 176, 0), "OFFLINE": (220, 40, 40)}
+STATUS_LABEL_AT = (0.0, 0.0, 0.55)
 
 
 class RerunSinkError(OSError):
@@ -554,8 +558,16 @@ class RerunWorker:
         self._rec.set_time(TIMELINE, timestamp=np.datetime64(arm.edge.after_last(change.at_mono_s), "ms"))
         level = _STATUS_LEVELS.get(change.status, rr.TextLogLevel.INFO)
         text = f"arm {change.status} (was {change.previous})"
-        if change.status != "ONLINE":
+        colour = _STATUS_COLOURS.get(change.status)
+        if colour is None:
+            self._rec.log(f"{arm.entity}/status", rr.Clear(recursive=False))
+        else:
             text += ": its pose is the last one it sent"
+            # Over the arm in the fleet view too: the events view shows the focus arm's lines only.
+            label = rr.Points3D(
+                [STATUS_LABEL_AT], radii=0.02, colors=[colour], labels=[change.status], show_labels=True
+            )
+            self._rec.log(f"{arm.entity}/status", label)
         self._rec.log(f"{arm.entity}/events", rr.TextLog(text, level=level))
 
     def idle(self) -> None:
