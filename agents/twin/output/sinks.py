@@ -1,13 +1,13 @@
 """Sinks: where each mirrored sample goes besides the twin itself (USD recording, history, Rerun, ROS 2).
 
 The agent's worker applies a message to the device's twin and then hands one `AppliedSample` to every sink
-(and one `RejectedSample` for each rejected message, and one `StatusChange` when an arm goes STALE, OFFLINE
-or back ONLINE: silence changes those, not a message, so a sink could not tell them from its samples). The
-worker is the mirror's hot path, so a sink's `applied`/`rejected`/`status` must return in microseconds and
-never block on I/O. Sinks that do I/O (a file, S3, a
-network peer) wrap their blocking work in `QueuedSink`: a bounded queue and a thread of their own, which drops
-the oldest queued item when the sink falls behind and counts it, so a slow disk, a stalled viewer or an absent
-ROS peer never slows mirroring and never grows memory without bound.
+(and one `RejectedSample` for each rejected message, and one `StatusChange` when an arm goes STALE, OFFLINE or
+back ONLINE: silence changes those, not a message, so a sink could not tell them from its samples). The worker
+is the mirror's hot path, so a sink's `applied`/`rejected`/`status` must return in microseconds and never
+block on I/O. Sinks that do I/O (a file, S3, a network peer) wrap their blocking work in `QueuedSink`: a
+bounded queue and a thread of their own, which drops the oldest queued item when the sink falls behind and
+counts it, so a slow disk, a stalled viewer or an absent ROS peer never slows mirroring and never grows memory
+without bound.
 
 A sample carries joint angles, not body poses: forward kinematics is computed where it is needed, in the
 sink's own thread (`RobotModel.body_poses`), because MuJoCo scratch data is per thread and most sinks need
@@ -108,7 +108,8 @@ def rejected_sample(
 @dataclass(frozen=True, slots=True)
 class StatusChange:
     """An arm's status changed (docs/agent.md, "Health"), as the mirror's status sweep read it: `at_mono_s`
-    is where the mirror stood in its input then, on the clock of the samples' `received_mono_s`."""
+    is where the mirror stood in its input then, on the clock of the samples' `received_mono_s` (to place it
+    among the arm's samples), and `at_wall_s` the same moment on the wall clock."""
 
     device_id: str
     previous: DeviceStatus
