@@ -896,6 +896,23 @@ def test_a_push_to_the_stack_for_an_arm_it_does_not_mirror_says_so(
     assert "the stack's devices (arm-001, arm-002) do not list arm-0O3" in err, err
 
 
+def test_the_unmirrored_arm_warning_offers_the_listed_id_it_is_close_to(
+    s3: Any, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # moto stands in for CloudFormation and S3. A stack of 20 arms: the warning named every one of them (up to
+    # 150) and left the user to find the one meant among them.
+    devices = [f"arm-{n:03d}" for n in range(1, 21)]
+    create_stack("s3://twin-bucket/calibration", Settings=settings_output(devices))
+    assert main(["calibration", "push", "arm-0O3", str(EXAMPLE)]) == cmd.EXIT_OK
+    err = capsys.readouterr().err
+    assert "mirrors arm-001, arm-002, arm-003, arm-004, arm-005, arm-006, arm-007, arm-008 and 12 more" in err
+    assert "not arm-0O3 (did you mean arm-003 or arm-013?), so no twin" in err, err
+    assert "arm-020" not in err, err
+    assert main(["calibration", "push", "robot-x", str(EXAMPLE)]) == cmd.EXIT_OK
+    err = capsys.readouterr().err
+    assert "not robot-x, so no twin" in err and "did you mean" not in err, err
+
+
 def kept_cycle(store_arg: list[str], store: Any, capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     """push over another calibration, rm and restore keep what they replace (one per arm), for `store`."""
     newer = tmp_path / "newer.json"

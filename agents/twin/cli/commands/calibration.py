@@ -25,6 +25,7 @@ Exit codes:
 from __future__ import annotations
 
 import argparse
+import difflib
 import shlex
 import tempfile
 from concurrent.futures import ThreadPoolExecutor
@@ -97,7 +98,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     push.add_argument("arm", metavar="ARM", help="the arm's device id, as its edge publishes it (arm-003)")
     push.add_argument("file", metavar="FILE", type=Path, help="the arm's LeRobot calibration JSON")
-    ls = actions.add_parser("ls", parents=[common], help="list the arms that have a calibration in the store")
+    ls = actions.add_parser(
+        "ls",
+        parents=[common],
+        help="list the arms that have a calibration in the store (refused and not mirrored ones marked)",
+    )
     rm = actions.add_parser(
         "rm",
         parents=[common],
@@ -271,7 +276,7 @@ def _ls(store: CalibrationStore, again: str, mirrored: tuple[str, ...] | None = 
     unmirrored = [d for d in sorted(listing) if mirrored is not None and d not in mirrored]
     if unmirrored:
         console.err(
-            f"not mirrored: the stack's devices ({', '.join(mirrored or ())}) do not list "
+            f"not mirrored: the stack's devices ({_devices_named(mirrored or ())}) do not list "
             f"{_and(unmirrored)}, so no twin uses that calibration: add the arm to devices in "
             f"twin.settings.toml and deploy, or remove a mistyped one (`twin calibration rm ARM{again}`)"
         )
@@ -401,7 +406,8 @@ def _push(
         # The host subscribes to the listed arms' topics only: a mistyped id would sit in the bucket unused,
         # told only in the host's log. Stored all the same: an arm may be calibrated before it is deployed.
         console.err(
-            f"warning: the stack mirrors {', '.join(mirrored)} (its devices setting), not {arm}, so no twin "
+            f"warning: the stack mirrors {_devices_named(mirrored)} (its devices setting), not {arm}"
+            f"{_nearest(arm, mirrored)}, so no twin "
             f"uses this calibration yet; if {arm} is the id its edge publishes as, add it to devices in "
             f"twin.settings.toml and deploy (`npx cdk deploy`), else push under the arm's id. It is stored "
             f"as asked ({_undo(store, arm, current, again)})"
@@ -494,6 +500,27 @@ def _same_calibration(store: CalibrationStore, arm: str, data: bytes, listing: d
     read (every store's version ends in `:<size>`), so a push over a fleet's store reads few."""
     size = f":{len(data)}"
     return sorted(d for d, v in listing.items() if d != arm and v.endswith(size) and store.read(d) == data)
+
+
+# A stack may list up to MAX_LISTED_DEVICES arms: a warning names the first few, not a screenful.
+SHOWN_DEVICES = 8
+
+
+def _devices_named(mirrored: tuple[str, ...]) -> str:
+    rest = len(mirrored) - SHOWN_DEVICES
+    shown = ", ".join(mirrored[:SHOWN_DEVICES])
+    return f"{shown} and {rest} more" if rest > 0 else shown
+
+
+def _nearest(arm: str, mirrored: tuple[str, ...]) -> str:
+    """The listed ids closest to `arm` (a mistyped 0 for O, one character off), offered as what was meant:
+    all that are as close, up to three, as one character off one id is as far off its neighbours."""
+    ratios = {d: difflib.SequenceMatcher(None, arm, d).ratio() for d in mirrored}
+    best = max(ratios.values(), default=0.0)
+    if best < 0.8:
+        return ""
+    close = sorted(d for d, ratio in ratios.items() if ratio == best)[:3]
+    return f" (did you mean {' or '.join(close)}?)"
 
 
 def _undo(store: CalibrationStore, arm: str, current: bytes | None, again: str) -> str:
