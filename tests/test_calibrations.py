@@ -1525,6 +1525,41 @@ def test_a_held_arms_card_says_held_while_its_worker_is_started_again(
         agent.stop()
 
 
+def test_a_held_arms_refused_messages_stay_counted_when_its_worker_is_started_again(
+    tmp_path: Path,
+) -> None:
+    """A held arm's refused messages are counted among the arms not tracked, and the Fleet page reads the
+    count from its worker's checkpoint: a worker started again after a crash began with none, so the held
+    arm's link said "none heard" though the count was in the checkpoint it was started from."""
+    (tmp_path / "cal").mkdir()
+    (tmp_path / "cal" / "arm-002.json").write_text('{"shoulder_pan": {}}')
+    agent = agent_with_store(tmp_path / "cal", **{"twin.workers": 2, "telemetry.devices": ["*"]})
+    agent.start()
+    try:
+        shard = agent._shards[agent.plan.worker_of("arm-002")]
+        ts = int(time.time() * 1000)
+        for step in range(5):
+            agent.feed("dt/lerobot/arm-002/telemetry", ticks_message("arm-002", ts + 100 * step))
+
+        def checkpointed(since: float = 0.0) -> int | None:
+            checkpoint = shard.checkpoint
+            if checkpoint is None or checkpoint.at <= since:
+                return None
+            return sum(a.rejected for a in checkpoint.unheard if a.device == "arm-002")
+
+        # All five in the checkpoint: nothing is sent again to the new process, which starts from it alone.
+        wait_for(lambda: checkpointed() == 5, 60, "all five refused in arm-002's worker's checkpoint")
+        assert [h.refused for h in agent.held_arms()] == [5]
+        os.kill(shard.pid, signal.SIGKILL)
+        wait_for(lambda: shard.restarts == 1 and shard.answering, 120, "the worker running again")
+        again = time.monotonic()  # worker processes share the host's monotonic clock
+        wait_for(lambda: checkpointed(again) is not None, 60, "a checkpoint of the new process")
+        assert checkpointed(again) == 5
+        assert [h.refused for h in agent.held_arms()] == [5]
+    finally:
+        agent.stop()
+
+
 def _row(agent: AgentService, device: str) -> console.FleetRow:
     (row,) = [r for r in agent.fleet_rows() if r.device == device]
     return row

@@ -19,6 +19,7 @@ import pytest
 import twin.core.loss as loss_module
 from twin.bench.worker import _feed, _fleet
 from twin.core.alarms import AlarmKind, AlarmRecord, AlarmState
+from twin.core.telemetry import RejectReason
 from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
 from twin.edge.payload import encode, make_payload
 from twin.service.admission import DeviceBudget
@@ -33,7 +34,7 @@ from twin.service.events import (
     EventQuery,
 )
 from twin.service.mirror import Mirror, PipeInbox
-from twin.service.shards import MirrorCheckpoint, MirrorReport, PackedDevices
+from twin.service.shards import MirrorCheckpoint, MirrorReport, PackedDevices, UnheardArm
 from twin.transport.pipe import Batch, send_end
 
 ARMS = 12
@@ -483,3 +484,21 @@ def _ticks_mirror(clock: _Clock) -> Mirror:
     return Mirror(
         config, inbox=PipeInbox(Pipe(duplex=False)[0]), budget=DeviceBudget(64), clock=clock, wall_clock=clock
     )
+
+
+def test_a_mirror_started_again_keeps_the_arms_whose_every_message_was_refused() -> None:
+    # A held arm (its calibration refused) is never tracked: the Fleet page's count of its refused messages
+    # is read from the checkpoint's `unheard`. A worker started again did not take them back, so the count
+    # fell to 0 and the held arm's link said "none heard" after a crash.
+    refused = str(RejectReason.CALIBRATION_REFUSED)
+    checkpoint = MirrorCheckpoint(
+        at=100.0,
+        unheard=(UnheardArm("arm-b", 3, refused, 2.0), UnheardArm("arm-a", 5, refused, 10.0)),
+    )
+    clock = _Clock()
+    clock.now = 104.0
+    again = _still_mirror(clock)
+    again.restore(checkpoint)
+    # The most recent first still, each as long ago as it was (4 s passed since the checkpoint).
+    expected = (UnheardArm("arm-b", 3, refused, 6.0), UnheardArm("arm-a", 5, refused, 14.0))
+    assert again.unheard() == expected

@@ -618,6 +618,16 @@ class FleetHealth:
         seen.rejected, seen.reason, seen.last_mono = seen.rejected + 1, reason, now
         self.unheard.move_to_end(device_id)
 
+    def restore_unheard(self, rows: Iterable[tuple[str, Unheard]]) -> None:
+        """Take back a previous process's `unheard` (oldest first; a restarted worker, before any message), so
+        a held arm's refused messages are not counted from zero again. A device tracked here is left out."""
+        for device_id, seen in rows:
+            if device_id in self.devices or device_id in self.unheard:
+                continue
+            self.unheard[device_id] = seen
+            if len(self.unheard) > MAX_UNHEARD:
+                self.unheard.popitem(last=False)
+
     def statuses(self, now: float | None = None, *, heard_only: bool = False) -> dict[str, DeviceStatus]:
         """The status of each device. `heard_only` keeps the devices heard from (a decoded message), for the
         status events: a configured device not yet heard from counts as silent since start-up, so its status

@@ -81,6 +81,7 @@ from twin.core.health import (
     HealthReading,
     HealthSnapshot,
     HealthThresholds,
+    Unheard,
 )
 from twin.core.latency import LatencyHistogram
 from twin.core.loss import DeviceLoss, LossSnapshot
@@ -970,6 +971,11 @@ class Mirror:
                 self.errors = checkpoint.errors
                 self.batches = checkpoint.batches
                 self._fleet.untracked_rejected.update(checkpoint.untracked_rejected)
+                # Processes of one host share the monotonic clock: `last_s` was counted back from `at`.
+                self._fleet.restore_unheard(
+                    (a.device, Unheard(a.rejected, a.reason, checkpoint.at - a.last_s))
+                    for a in reversed(checkpoint.unheard)
+                )
                 self._alarms.restore_counters(checkpoint.alarm_counters)
                 for device, saved in checkpoint.devices.items():
                     self._restore_device(device, saved)
