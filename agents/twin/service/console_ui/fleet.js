@@ -369,7 +369,9 @@
   // one switched off were linked alike.
   function heldLink(h) {
     const n = h.unacknowledged;
-    const said = [...(h.refused === 0 ? ["none heard"] : []), ...(n ? [`${n} alarm${plural(n)} waiting`] : [])];
+    const said = [
+      ...(h.refused === 0 ? ["none heard"] : []), ...(n ? [`${n} alarm${plural(n)} waiting`] : []),
+    ];
     const text = said.length ? `${h.device}: ${said.join(", ")}` : h.device;
     return el("a", { href: "/arm/" + encodeURIComponent(h.device), class: "held-arm", "data-device": h.device,
       title: h.why, text });
