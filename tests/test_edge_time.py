@@ -47,3 +47,19 @@ def test_a_stamp_equal_to_the_last_one_moves_on_by_the_time_that_passed() -> Non
     stamp twice: one frame twice to tf, a bag player and Rerun."""
     placed = place_all(EdgeTime(), [(1_000, 0.0), (1_100, 0.1), (1_100, 2.2), (1_100, 2.3)])
     assert placed == [1_000, 1_100, 3_200, 3_300]
+
+
+def test_a_clock_that_stands_still_is_told_once_a_minute_with_the_count_between(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A review: the mirror rebuilds a stood-still clock's twin every 2 s, and each output warned each time,
+    three warnings every 2 s beside the mirror's own."""
+    line = EdgeTime()
+    caplog.set_level(logging.WARNING, logger="twin.output.edge_time")
+    line.place(1_000, 0.0, device="arm-001", output="test")
+    for n in range(1, 32):  # the same stamp every 2 s for a minute
+        line.place(1_000, 2.0 * n, device="arm-001", output="test")
+    warnings = [r.getMessage() for r in caplog.records]
+    assert len(warnings) == 2, warnings
+    assert "more such" not in warnings[0]
+    assert "; 29 more such since the last warning)" in warnings[1], warnings[1]

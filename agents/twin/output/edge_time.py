@@ -19,6 +19,8 @@ from dataclasses import dataclass
 
 log = logging.getLogger(__name__)
 
+WARN_EVERY_S = 60.0
+
 
 @dataclass(slots=True)
 class EdgeTime:
@@ -28,6 +30,10 @@ class EdgeTime:
     last_ms: int = -(2**62)
     shift_ms: int = 0
     last_received_s: float = math.nan
+    # A clock that stands still is rebuilt on every 2 s by the mirror: one warning a minute per output, with
+    # how many were not told, rather than three every 2 s beside the mirror's own.
+    warned_s: float = -math.inf
+    untold: int = 0
 
     def place(self, edge_ms: int, received_s: float, *, device: str, output: str) -> int:
         """The sample's time (ms) on the arm's line, from its edge timestamp and the agent's monotonic
@@ -41,18 +47,27 @@ class EdgeTime:
             # A receive clock that stood still (or no earlier receive time, NaN): at least 1 ms on.
             after = self.last_ms + (max(1, round(passed_s * 1000)) if passed_s > 0 else 1)
             self.shift_ms += after - ms
-            log.warning(
-                "%s: the edge clock of %s went back or stood still (%.1f s behind the arm's time line); its "
-                "samples now follow its last one. Fix: keep the edge's clock set by NTP (docs/agent.md, "
-                "'Ordering and edge clock resets')",
-                output,
-                device,
-                (after - ms) / 1000,
-            )
+            self._warn(received_s, (after - ms) / 1000, device, output)
             ms = after
         self.last_ms = ms
         self.last_received_s = received_s
         return ms
+
+    def _warn(self, received_s: float, behind_s: float, device: str, output: str) -> None:
+        if received_s - self.warned_s < WARN_EVERY_S:
+            self.untold += 1
+            return
+        log.warning(
+            "%s: the edge clock of %s went back or stood still (%.1f s behind the arm's time line%s); its "
+            "samples now follow its last one. Fix: keep the edge's clock set by NTP (docs/agent.md, "
+            "'Ordering and edge clock resets')",
+            output,
+            device,
+            behind_s,
+            f"; {self.untold} more such since the last warning" if self.untold else "",
+        )
+        self.warned_s = received_s
+        self.untold = 0
 
     def after_last(self, at_s: float) -> int:
         """The time (ms) on the arm's line of something the agent saw at `at_s` (monotonic, the receive
