@@ -512,15 +512,31 @@ def _devices_named(mirrored: tuple[str, ...]) -> str:
     return f"{shown} and {rest} more" if rest > 0 else shown
 
 
+# Characters a person types for one another in an id: a letter O for a zero, an l or I for a one.
+_LOOK_ALIKE = str.maketrans("oli", "011")
+
+
+def _slips(arm: str, listed: str) -> int:
+    """How many characters `listed` differs from `arm` in, over case and look-alike characters (3 for a
+    different length: an inserted or dropped character is left to difflib)."""
+    a, b = (x.casefold().translate(_LOOK_ALIKE) for x in (arm, listed))
+    return sum(x != y for x, y in zip(a, b, strict=True)) if len(a) == len(b) else 3
+
+
 def _nearest(arm: str, mirrored: tuple[str, ...]) -> str:
-    """The listed ids closest to `arm` (a mistyped 0 for O, one character off), offered as what was meant:
-    all that are as close, up to three, as one character off one id is as far off its neighbours."""
-    ratios = {d: difflib.SequenceMatcher(None, arm, d).ratio() for d in mirrored}
-    best = max(ratios.values(), default=0.0)
-    if best < 0.8:
+    """The listed ids `arm` is most likely a slip for, offered as what was meant: a case or look-alike slip
+    first (arm-0O3 for arm-003), then one character off, then one inserted or dropped (difflib)."""
+    by_slips = {d: _slips(arm, d) for d in mirrored}
+    fewest = min(by_slips.values(), default=3)
+    close = sorted(d for d, n in by_slips.items() if n == fewest) if fewest <= 1 else []
+    if not close:
+        ratios = {d: difflib.SequenceMatcher(None, arm, d).ratio() for d in mirrored}
+        best = max(ratios.values(), default=0.0)
+        close = sorted(d for d, ratio in ratios.items() if ratio == best) if best >= 0.8 else []
+    if not close:
         return ""
-    close = sorted(d for d, ratio in ratios.items() if ratio == best)[:3]
-    return f" (did you mean {' or '.join(close)}?)"
+    more = f" ({len(close) - 3} more as close)" if len(close) > 3 else ""
+    return f" (did you mean {' or '.join(close[:3])}?{more})"
 
 
 def _undo(store: CalibrationStore, arm: str, current: bytes | None, again: str) -> str:
