@@ -33,6 +33,7 @@ from twin.output.emf import (
     Metric,
     emf_document,
     fleet_documents,
+    next_slot,
 )
 from twin.service.agent import fleet_totals
 from twin.service.state import (
@@ -561,3 +562,40 @@ def test_a_broker_connection_down_is_reported_in_every_interval_it_lasts(tmp_pat
     assert (totals.broker_disconnected, totals.loss_percent) == (1, 0.0)
     docs = _three_intervals(tmp_path, totals)
     assert [d["BrokerDisconnected"] for d in docs if "AgentUp" in d] == [1, 1, 1]
+
+
+def _scheduled_documents(tmp_path: Path, sample_s: float, documents: int) -> list[int]:
+    """The minute (of the wall clock, here the same as the monotonic one) of each document that the
+    publisher's own loop writes, every 60 s from 0.5 s into the first minute, when each sample takes
+    `sample_s` (the agent asks every worker for its state, up to ASK_TIMEOUT_S)."""
+    clock = [0.5]
+    writer = EmfFileWriter(tmp_path / "emf.log")
+
+    def slow_sample() -> FleetTotals:
+        clock[0] += sample_s
+        return FleetTotals(0, 0, 1, 0, 0, 0.0, None, {})
+
+    def wait(seconds: float) -> bool:
+        clock[0] += seconds
+        return publisher.published >= documents
+
+    publisher = EmfPublisher(
+        writer, "a", slow_sample, clock=lambda: clock[0], wall=lambda: clock[0], wait=wait
+    )
+    publisher.run()
+    stamps = [validate_emf_line(line)["_aws"]["Timestamp"] for line in writer.path.read_text().splitlines()]
+    return [stamp // 60_000 for stamp in stamps]
+
+
+def test_documents_are_written_on_a_fixed_grid_however_long_sampling_takes(tmp_path: Path) -> None:
+    """Waiting the interval after each write put documents an interval plus the sample's time apart, so
+    some minutes had none and the sustained alarms (5 of 5 minutes) cleared mid-outage and paged again."""
+    assert _scheduled_documents(tmp_path, 10.0, 12) == list(range(1, 13))
+
+
+def test_a_publish_longer_than_the_interval_skips_the_slots_it_missed(tmp_path: Path) -> None:
+    """Not written at once afterwards (two in one minute and none later): the next slot still ahead."""
+    assert _scheduled_documents(tmp_path, 70.0, 3) == [1, 3, 5]
+    assert next_slot(60.0, 60.0, 60.0) == 120.0
+    assert next_slot(60.0, 200.0, 60.0) == 240.0
+    assert next_slot(60.0, 119.0, 60.0) == 120.0

@@ -378,9 +378,10 @@ def test_a_loss_alarm_names_each_cause_and_its_fix(synth_default: Synth, name: s
 
 
 def _outage_documents(outage_s: float, attempt_s: float, minutes: int) -> list[dict[str, Any]]:
-    """The agent's EMF documents, one a minute, through a storage outage of `outage_s` from 0: each commit
-    attempt fails after `attempt_s` (a connect timeout) and the writer waits its backoff (the defaults,
-    doubling from retry_min_s to retry_max_s) before the next; the first attempt after the outage works."""
+    """The agent's EMF documents, as its publisher schedules them, through a storage outage of `outage_s`
+    from 0: each commit attempt fails after `attempt_s` (a connect timeout) and the writer waits its backoff
+    (the defaults, doubling from retry_min_s to retry_max_s) before the next; the first attempt after the
+    outage works."""
     settings = HistorySettings(uri="s3://b/t")
     failures: list[float] = []
     backoff, at = settings.retry_min_s, 0.0
@@ -389,11 +390,12 @@ def _outage_documents(outage_s: float, attempt_s: float, minutes: int) -> list[d
         at += attempt_s + backoff
         backoff = min(backoff * 2.0, settings.retry_max_s)
     works_at = at + 1.0
-    now = [0.0]
+    now = [-0.5]  # the publisher's slots then fall near the end of each minute
 
     def totals() -> emf.FleetTotals:
         failed = sum(t <= now[0] for t in failures)
         failing = int(bool(failed) and now[0] < works_at)
+        now[0] += 10.0  # asking the workers for their state can take up to ASK_TIMEOUT_S
         return emf.FleetTotals(
             0,
             0,
@@ -411,10 +413,16 @@ def _outage_documents(outage_s: float, attempt_s: float, minutes: int) -> list[d
 
     written: list[dict[str, Any]] = []
     writer = types.SimpleNamespace(write=written.extend, path="memory")
-    publisher = emf.EmfPublisher(writer, "So101TwinStack", totals, clock=lambda: now[0], wall=lambda: now[0])
-    for minute in range(1, minutes + 1):
-        now[0] = minute * 60.0 - 0.5  # a document in each minute, written near its end
-        publisher.publish_once()
+
+    def wait(seconds: float) -> bool:
+        now[0] += seconds
+        return publisher.published >= minutes
+
+    # The publisher's own loop, not documents written at chosen times: its schedule is what the alarm sees.
+    publisher = emf.EmfPublisher(
+        writer, "So101TwinStack", totals, clock=lambda: now[0], wall=lambda: now[0], wait=wait
+    )
+    publisher.run()
     return [d for d in written if "AgentUp" in d]
 
 

@@ -346,6 +346,17 @@ def _interval_metrics(
     )
 
 
+def next_slot(scheduled: float, now: float, interval_s: float) -> float:
+    """The first time after `now` on the grid `scheduled` + k * `interval_s` (k >= 1). A publish that took
+    longer than the interval (asking slow workers for their state) skips the slots it missed rather than
+    writing them at once, and a slow one never pushes the later ones back: one document per interval, on
+    the same second of each minute, so no minute the stack's alarms read goes without one."""
+    slot = scheduled + interval_s
+    if slot <= now:
+        slot += (math.floor((now - slot) / interval_s) + 1) * interval_s
+    return slot
+
+
 class EmfPublisher:
     """Every `interval_s`, turns the service's totals into one interval's FleetMetrics and writes them.
 
@@ -364,7 +375,10 @@ class EmfPublisher:
         interval_s: float = 60.0,
         clock: Callable[[], float] = time.monotonic,
         wall: Callable[[], float] = time.time,
+        wait: Callable[[float], bool] | None = None,
     ) -> None:
+        """`wait(seconds)` sleeps until a slot and returns True once stop() was called (tests pass one that
+        moves their `clock` instead)."""
         if not interval_s > 0:
             raise ValueError(f"the EMF interval must be positive seconds, got {interval_s}")
         self.writer = writer
@@ -375,6 +389,7 @@ class EmfPublisher:
         self._wall = wall
         self._last: tuple[float, FleetTotals] | None = None
         self._stop = threading.Event()
+        self._wait = wait or self._stop.wait
         self._thread: threading.Thread | None = None
         self.published = 0
         self.errors = 0
@@ -385,6 +400,9 @@ class EmfPublisher:
         """Sample (or take `totals`: the agent's last document, at its stop), write this interval's documents,
         return the figures (the first call's totals are taken as rising from zero, since tracking began)."""
         now = self._clock()
+        # The time written is the slot's, not the end of a sample that can wait seconds on slow workers:
+        # CloudWatch files the document under that minute.
+        wall_ms = round(self._wall() * 1000)
         if totals is None:
             totals = self._sample()
         if self._last is None:
@@ -394,7 +412,7 @@ class EmfPublisher:
         span = max(now - since, 1e-9)
         errors = self.errors
         fleet = _interval_metrics(totals, before, span, errors - self._errors_told)
-        counts, *by_severity = fleet_documents(fleet, self.agent, round(self._wall() * 1000))
+        counts, *by_severity = fleet_documents(fleet, self.agent, wall_ms)
         self.writer.write([counts])
         # Only once the counts are written, and before the rest: an interval whose counts a full disk refused
         # is counted in the next one (its losses still reach the alarms), and one whose counts are in the
@@ -419,7 +437,7 @@ class EmfPublisher:
     def start(self) -> None:
         if self._thread is not None:
             return
-        self._thread = threading.Thread(target=self._run, name="twin-emf", daemon=True)
+        self._thread = threading.Thread(target=self.run, name="twin-emf", daemon=True)
         self._thread.start()
 
     def stop(self, timeout: float = 5.0) -> None:
@@ -428,10 +446,14 @@ class EmfPublisher:
             self._thread.join(timeout)
             self._thread = None
 
-    def _run(self) -> None:
-        while not self._stop.wait(self.interval_s):
+    def run(self) -> None:
+        """Publish at every slot of a fixed grid, `interval_s` apart from now (next_slot), until stop();
+        start() runs this on its own thread."""
+        slot = self._clock() + self.interval_s
+        while not self._wait(max(0.0, slot - self._clock())):
             try:
                 self.publish_once()
             except Exception as exc:
                 self.failed(exc)
                 log.exception("writing CloudWatch metrics to %s failed", self.writer.path)
+            slot = next_slot(slot, self._clock(), self.interval_s)
