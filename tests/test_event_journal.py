@@ -557,6 +557,8 @@ def test_an_event_longer_than_its_line_comes_back_cut_and_says_so(tmp_path: Path
 
 
 def test_data_too_long_for_a_line_is_cut_too_and_a_short_line_is_left_whole(tmp_path: Path) -> None:
+    """A message that fits once the data values are cut is kept whole: it lost its last character to a
+    cut mark ("short ms… [cut]"), though `cut_from_bytes` already says the line was cut."""
     path = tmp_path / "events.jsonl"
     store, journal = journaled_store(path)
     long_data = store.emit(
@@ -567,7 +569,8 @@ def test_data_too_long_for_a_line_is_cut_too_and_a_short_line_is_left_whole(tmp_
     cut, whole = EventJournal(path).load()
     assert whole == short
     assert len(msgspec.json.encode(cut)) < event_journal.BULK_LINE_BYTES and cut.id == long_data.id
-    assert cut.data["why"] == "y" * event_journal.CUT_DATA_CHARS and cut.message.endswith("[cut]")
+    assert cut.data["why"] == "y" * event_journal.CUT_DATA_CHARS and cut.message == "x" * 50
+    assert cut.data[event_journal.CUT_KEY] == str(len(msgspec.json.encode(long_data)) + 1)
 
 
 def test_the_agents_journal_files_are_sized_by_its_events_capacity(tmp_path: Path) -> None:

@@ -41,7 +41,9 @@ same before and after.
 - **A line longer than its pair's longest** (KEPT_LINE_BYTES, BULK_LINE_BYTES: a rejection's detail, a long
   arm id) would leave its pair's files fewer events than the store keeps, and a restart fewer back. Its
   message is cut to fit, ending in CUT_MARK, with `data.cut_from_bytes` the line's whole size: the event comes
-  back, saying it was cut. The store keeps it whole until the agent stops.
+  back, saying it was cut. If no start of the message fits, its data values are cut to CUT_DATA_CHARS first
+  and the message only as much as it then must (not at all if it fits). The store keeps it whole until the
+  agent stops.
 """
 
 from __future__ import annotations
@@ -387,14 +389,18 @@ def _line(event: Event, limit: int) -> bytes:
 
 
 def _cut_message(event: Event, message: str, limit: int) -> bytes | None:
-    """The line of `event` with the longest start of `message` that fits in `limit` (None: none does)."""
+    """The line of `event` with `message` whole if it fits in `limit`, else its longest start that does (None:
+    none does). Once the data values are cut, a short message can fit whole and keeps its last characters."""
+    whole = _ENCODER.encode(msgspec.structs.replace(event, message=message)) + b"\n"
+    if len(whole) <= limit:
+        return whole
 
     def encoded(keep: int) -> bytes:
         return _ENCODER.encode(msgspec.structs.replace(event, message=message[:keep] + CUT_MARK)) + b"\n"
 
     if len(encoded(0)) > limit:
         return None
-    fits, over = 0, len(message)  # the longest start known to fit, the shortest known not to
+    fits, over = 0, len(message)  # the longest start known to fit, the shortest known not to (whole does not)
     while over - fits > 1:
         mid = (fits + over) // 2
         fits, over = (mid, over) if len(encoded(mid)) <= limit else (fits, mid)
