@@ -13,6 +13,7 @@ import pickle
 import random
 import re
 import signal
+import subprocess
 import threading
 import time
 from collections.abc import Sequence
@@ -49,7 +50,7 @@ from twin.service.events import (
     neutralise_cell,
 )
 from twin.service.mirror import Mirror, PipeInbox, QueuedMessage, QueueInbox
-from twin.service.shards import EVENTS_PER_ASK, EventsRequest, WorkerPlan, events_of
+from twin.service.shards import EVENTS_PER_ASK, EventsRequest, WorkerExit, WorkerPlan, events_of
 from twin.transport.mailbox import InboundQueue
 
 
@@ -1121,6 +1122,27 @@ def test_a_worker_started_again_before_a_round_saw_it_dead_is_told_as_an_exit(
     ]
     assert told[0].data == {"worker": "1", "pid": str(victim), "exit_code": str(-signal.SIGKILL)}
     assert shard.pid != victim
+
+
+def test_a_worker_exit_says_how_it_ended_and_blames_no_worker_for_its_fork_servers_255() -> None:
+    """The Events page said "(pid X) exited, exit code 255" of a worker that still ran when its fork server
+    was killed (multiprocessing's code for a lost server); the log already named the fork server."""
+    dead = WorkerExit.seen(_a_dead_pid(), 255)
+    assert not dead.server_lost and dead.how() == "exited, exit code 255"
+    running = WorkerExit.seen(os.getpid(), 255)
+    assert running.server_lost
+    assert running.how() == "can no longer be watched: the fork server that started it is gone (killed?)"
+    assert WorkerExit.seen(os.getpid(), 1).how() == "exited, exit code 1"  # only 255 is the server's
+    assert WorkerExit.seen(os.getpid(), None).how() == "exited, exit code unknown"
+    assert WorkerExit.seen(os.getpid(), -9).how() == "exited, killed by SIGKILL (signal 9)"
+    assert WorkerExit(1, -200).how() == "exited, killed by an unknown signal (signal 200)"
+
+
+def _a_dead_pid() -> int:
+    """The pid of a child that has exited and been reaped."""
+    child = subprocess.Popen(["true"])
+    child.wait()
+    return child.pid
 
 
 def test_the_events_page_offers_every_kind_in_its_filter() -> None:

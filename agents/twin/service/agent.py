@@ -1517,7 +1517,7 @@ class AgentService:
             self._events.emit(
                 EventKind.WORKER,
                 EventLevel.ERROR,
-                f"worker {shard.index} (pid {ended.pid}) exited, {ended.how()}; it is started again from "
+                f"worker {shard.index} (pid {ended.pid}) {ended.how()}; it is started again from "
                 "its last checkpoint, its arms kept",
                 data={"worker": shard.index, "pid": ended.pid, "exit_code": ended.exit_code},
             )

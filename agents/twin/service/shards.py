@@ -789,19 +789,30 @@ class WorkerExit:
 
     pid: int
     exit_code: int | None  # multiprocessing's: negative for the signal that killed it, None if unknown
+    server_lost: bool = False  # 255 came from its killed fork server while the worker still ran (`seen`)
+
+    @classmethod
+    def seen(cls, pid: int, exit_code: int | None) -> WorkerExit:
+        """The exit of the worker `pid` as found now. Its code reaches the agent through the fork server that
+        started it: with that process gone (killed), multiprocessing reports 255 while the worker may well
+        still run, so that is checked now, before the worker is stopped to be started again."""
+        return cls(pid, exit_code, exit_code == 255 and pid > 0 and _still_runs(pid))
 
     def how(self) -> str:
-        """`exit code 1`, `killed by SIGKILL (signal 9)` or `exit code unknown`."""
+        """What became of it, after its pid: `exited, exit code 1`, `exited, killed by SIGKILL (signal 9)`,
+        `exited, exit code unknown`, or that its fork server is gone (a worker that did not exit)."""
         code = self.exit_code
+        if self.server_lost:
+            return "can no longer be watched: the fork server that started it is gone (killed?)"
         if code is None:
-            return "exit code unknown"
+            return "exited, exit code unknown"
         if code < 0:
             try:
                 name = signal.Signals(-code).name
             except ValueError:
                 name = "an unknown signal"
-            return f"killed by {name} (signal {-code})"
-        return f"exit code {code}"
+            return f"exited, killed by {name} (signal {-code})"
+        return f"exited, exit code {code}"
 
 
 class Shard(Protocol):
@@ -999,7 +1010,7 @@ class WorkerShard:
     def last_exit(self) -> WorkerExit | None:
         process = self.process
         if process is not None and process.exitcode is not None:
-            return WorkerExit(process.pid or self.pid, process.exitcode)
+            return WorkerExit.seen(process.pid or self.pid, process.exitcode)
         return self._ended
 
     def put(self, key: str, topic: str, payload: bytes, recv_mono: float, recv_wall: float) -> None:
@@ -1130,12 +1141,12 @@ class WorkerShard:
         """Note a dead process (logged, kept for `last_exit`); returns when to start it again."""
         with self._send_lock:
             self.ready = False
-        self._ended = WorkerExit(process.pid or self.pid, process.exitcode)
+        self._ended = ended = WorkerExit.seen(process.pid or self.pid, process.exitcode)
         quick = now - self.started_at < QUICK_DEATH_S
         pause = min(MAX_RESTART_PAUSE_S, 2.0 ** min(self.restarts, 6)) if quick else 0.0
         log.error(
             "%s; starting it again%s",
-            _how_it_ended(self.index, process.exitcode, self.pid),
+            _how_it_ended(self.index, ended),
             f" in {pause:.0f} s" if pause else "",
             extra={"worker": self.index, "exit_code": process.exitcode},
         )
@@ -1500,17 +1511,14 @@ class WorkerShard:
         )
 
 
-def _how_it_ended(index: int, exitcode: int | None, pid: int) -> str:
-    """What the log says of a worker no longer seen running. A worker's exit code reaches the agent through
-    the fork server that started it; with that process gone (killed), multiprocessing reports 255 while the
-    worker may well still run. It is then started again all the same (the agent has lost sight of it, and
-    it stops once the agent closes its pipes), but the log must not blame a worker that did not exit."""
-    if exitcode == 255 and pid > 0 and _still_runs(pid):
-        return (
-            f"worker {index} (pid {pid}) can no longer be watched: the fork server that started it is gone "
-            "(killed?); the worker is stopped and a new fork server starts"
-        )
-    return f"worker {index} exited (code {exitcode})"
+def _how_it_ended(index: int, ended: WorkerExit) -> str:
+    """What the log says of a worker no longer seen running. One whose fork server was killed is started
+    again all the same (the agent has lost sight of it, and it stops once the agent closes its pipes), but
+    the log must not blame a worker that did not exit (WorkerExit.seen)."""
+    if ended.server_lost:
+        stopped = "the worker is stopped and a new fork server starts"
+        return f"worker {index} (pid {ended.pid}) {ended.how()}; {stopped}"
+    return f"worker {index} exited (code {ended.exit_code})"
 
 
 def _still_runs(pid: int) -> bool:
