@@ -599,3 +599,30 @@ def test_a_publish_longer_than_the_interval_skips_the_slots_it_missed(tmp_path: 
     assert next_slot(60.0, 60.0, 60.0) == 120.0
     assert next_slot(60.0, 200.0, 60.0) == 240.0
     assert next_slot(60.0, 119.0, 60.0) == 120.0
+
+
+def test_severity_lines_the_disk_refused_after_the_counts_are_a_write_failure(tmp_path: Path) -> None:
+    """docs/servo-health.md: EmfWriteFailures counts an interval whose per-severity ActiveAlarms were lost
+    too (the counts got through), since those figures are missing from CloudWatch and the disk is full."""
+    clock = [0.0]
+    writer = EmfFileWriter(tmp_path / "emf.log")
+    write, calls = writer.write, [0]
+
+    def second_severity_lines_refused(documents: Any) -> None:
+        calls[0] += 1
+        if calls[0] == 4:  # the second interval's severity lines, after its counts
+            raise OSError(28, "No space left on device")
+        write(documents)
+
+    def wait(seconds: float) -> bool:
+        clock[0] += seconds
+        return publisher.published + publisher.errors >= 3
+
+    writer.write = second_severity_lines_refused  # type: ignore[method-assign]
+    totals = FleetTotals(0, 0, 1, 0, 0, 0.0, None, {"critical": 1})
+    publisher = EmfPublisher(writer, "a", lambda: totals, clock=lambda: clock[0], wall=lambda: 1.0, wait=wait)
+    publisher.run()
+    docs = [validate_emf_line(line) for line in writer.path.read_text().splitlines()]
+    assert [d["EmfWriteFailures"] for d in docs if "AgentUp" in d] == [0, 0, 1]
+    assert [d.get("ActiveAlarms") for d in docs if "AgentUp" not in d] == [1, 1]
+    assert publisher.sink_stats().errors == 1
