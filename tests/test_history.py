@@ -274,6 +274,30 @@ def test_an_outage_keeps_rows_bounded_counts_drops_and_recovers(tmp_path: Path) 
     assert writer.stats().tables[TELEMETRY_TABLE].rows_committed == 300
 
 
+def test_storage_reads_failing_while_any_tables_last_commit_failed(tmp_path: Path) -> None:
+    """One table failing and another committing set storage_ok back to 1 at each good commit, mid-round:
+    the HistoryCommitsFailing gauge could read 0 in a minute and break its alarm's five-minute run."""
+    base = tmp_path / "h"
+    base.mkdir()
+    blocker = base / TELEMETRY_TABLE
+    blocker.write_text("not a directory")  # telemetry's commits fail; rejected's work
+    writer = HistoryWriter(HistorySettings(uri=str(base), commit_every_s=3600)).start()
+    seen: list[bool] = []
+    writer.on_commit = lambda: seen.append(writer.stats().storage_ok)  # right after each good commit
+    try:
+        for k in range(2):  # two rounds: whichever table a round commits first, the other's state counts
+            writer.add(TELEMETRY_TABLE, telemetry_table(samples(10, start_s=T0 + k))[0])
+            bad = RejectedSample("arm-001", "dt/lerobot/arm-001/telemetry", T0 + k, "not_json", "bad", b"{x")
+            writer.add(REJECTED_TABLE, rejected_table([bad], 100))
+            assert not writer.flush(10)
+        assert seen == [False, False] and not writer.stats().storage_ok
+        blocker.unlink()
+        assert writer.flush(10) and writer.stats().storage_ok
+    finally:
+        writer.close()
+    assert writer.stats().tables[TELEMETRY_TABLE].rows_committed == 20
+
+
 def test_a_commit_failing_at_the_stop_says_it_is_retried_each_second(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:

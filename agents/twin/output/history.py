@@ -511,6 +511,9 @@ class HistoryWriter:
             REJECTED_TABLE: max(1, settings.max_buffer_rows // 10),
         }
         self._inflight_rows = dict.fromkeys(SCHEMAS, 0)
+        # Whether each table's last commit worked: storage_ok is all of them, so one table that keeps failing
+        # holds the commits-failing gauge at 1 while another's commits work (its alarm needs 5 minutes of 1).
+        self._commit_ok = dict.fromkeys(SCHEMAS, True)
         # When the oldest row not yet written arrived (None: every row is written). Dropped rows do not move
         # it: while commits fail, the lag keeps growing however many rows the bound drops.
         self._unwritten_since: float | None = None
@@ -704,12 +707,10 @@ class HistoryWriter:
                 # A burst (a backlog after an outage, a full buffer): its Arrow tables are freed now.
                 heap.trim()
             with self._cond:
-                if batches:
-                    self._stats.storage_ok = ok
-                    if ok:
-                        # Written up to here: the lag starts again from what arrived meanwhile.
-                        waiting = [q[0].since for q in self._pending.values() if q]
-                        self._unwritten_since = min(waiting) if waiting else None
+                if batches and ok:
+                    # Written up to here: the lag starts again from what arrived meanwhile.
+                    waiting = [q[0].since for q in self._pending.values() if q]
+                    self._unwritten_since = min(waiting) if waiting else None
                 if flush or closing:
                     self._flushes_done += 1
                     self._cond.notify_all()
@@ -761,9 +762,10 @@ class HistoryWriter:
                 stats.duplicate_commits_skipped += 1
             else:
                 stats.last_commit_version = version
-            if not self._stats.storage_ok:
+            self._commit_ok[table] = True
+            if not self._stats.storage_ok and all(self._commit_ok.values()):
                 log.warning("history: writing to %s works again", self.settings.uri)
-            self._stats.storage_ok = True
+            self._stats.storage_ok = all(self._commit_ok.values())
             self._backoff = self.settings.retry_min_s
             self._error_lines.clear()
         hook = self.on_commit
@@ -873,6 +875,7 @@ class HistoryWriter:
             stats.commit_failures += 1
             stats.last_error = message
             self._stats.last_error = message
+            self._commit_ok[table] = False
             self._stats.storage_ok = False
             self._inflight_rows[table] -= n
             # Back to the front of the queue, oldest first, still within the bound.

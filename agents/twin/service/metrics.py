@@ -159,7 +159,9 @@ def _history_families(h: HistoryState) -> Iterator[Metric]:
     )
     yield _gauge("twin_history_rows_buffered", "History rows waiting for a commit.", h.rows_buffered)
     yield _gauge(
-        "twin_history_storage_ok", "1 while the last history commit succeeded.", 1.0 if h.storage_ok else 0.0
+        "twin_history_storage_ok",
+        "1 while each history table's last commit succeeded.",
+        1.0 if h.storage_ok else 0.0,
     )
     yield _gauge(
         "twin_history_lag_seconds",
