@@ -385,6 +385,9 @@ class TableStats:
     opens: int = 0
     last_commit_version: int | None = None
     last_error: str = ""
+    # The writer's storage_ok is all its tables' (a table that keeps failing holds the commits-failing gauge
+    # at 1 while another's commits work: its alarm needs 5 minutes of it in a row).
+    last_commit_ok: bool = True
 
 
 @dataclass
@@ -511,9 +514,6 @@ class HistoryWriter:
             REJECTED_TABLE: max(1, settings.max_buffer_rows // 10),
         }
         self._inflight_rows = dict.fromkeys(SCHEMAS, 0)
-        # Whether each table's last commit worked: storage_ok is all of them, so one table that keeps failing
-        # holds the commits-failing gauge at 1 while another's commits work (its alarm needs 5 minutes of 1).
-        self._commit_ok = dict.fromkeys(SCHEMAS, True)
         # When the oldest row not yet written arrived (None: every row is written). Dropped rows do not move
         # it: while commits fail, the lag keeps growing however many rows the bound drops.
         self._unwritten_since: float | None = None
@@ -762,10 +762,11 @@ class HistoryWriter:
                 stats.duplicate_commits_skipped += 1
             else:
                 stats.last_commit_version = version
-            self._commit_ok[table] = True
-            if not self._stats.storage_ok and all(self._commit_ok.values()):
+            stats.last_commit_ok = True
+            all_ok = all(t.last_commit_ok for t in self._stats.tables.values())
+            if not self._stats.storage_ok and all_ok:
                 log.warning("history: writing to %s works again", self.settings.uri)
-            self._stats.storage_ok = all(self._commit_ok.values())
+            self._stats.storage_ok = all_ok
             self._backoff = self.settings.retry_min_s
             self._error_lines.clear()
         hook = self.on_commit
@@ -875,7 +876,7 @@ class HistoryWriter:
             stats.commit_failures += 1
             stats.last_error = message
             self._stats.last_error = message
-            self._commit_ok[table] = False
+            stats.last_commit_ok = False
             self._stats.storage_ok = False
             self._inflight_rows[table] -= n
             # Back to the front of the queue, oldest first, still within the bound.
