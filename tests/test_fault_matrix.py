@@ -279,56 +279,14 @@ def test_s3_stopped_longer_than_the_history_buffer(
         uri = f"s3://{s3.bucket}/history"
         devices = [f"s3-{i}" for i in range(10)]
         emf = tmp_path / "emf.log"
-        agent = matrix_rig.start_agent(
-            {
-                "telemetry.devices": devices,
-                "telemetry.units": "ticks",
-                "history.uri": uri,
-                "history.commit_every_s": 0.5,
-                "history.commit_every_rows": 50,
-                "history.max_buffer_rows": 300,
-                "cloudwatch.emf_file": str(emf),
-                "cloudwatch.agent_name": "matrix",
-                "cloudwatch.interval_s": 0.5,
-            }
-        )
+        agent = _start_with_s3_history(matrix_rig, devices, uri, emf)
         fleet = Fleet(matrix_publisher, devices)
         try:
             wait_for(
                 lambda: (agent.state().agent.history.commits or 0) >= 2, PROGRESS_S, "history committing"
             )
             s3.stop()
-            wait_for(
-                lambda: agent.state().agent.history.rows_dropped > 0,
-                60,
-                "the buffer to overflow",
-                interval=0.2,
-            )
-            # The EMF lines CloudWatch gets carry the drops, and the lag growing while the outage lasts.
-            wait_for(
-                lambda: any(d.get("HistoryRowsDropped", 0) > 0 for d in _emf(emf)),
-                PROGRESS_S,
-                "the drops in EMF",
-            )
-            wait_for(
-                lambda: any(d.get("HistoryLagSeconds", 0.0) > 2.0 for d in _emf(emf)),
-                PROGRESS_S,
-                "the lag in EMF",
-            )
-            # ... and that commits are failing, which the HistoryCommitFailures alarm pages on.
-            wait_for(
-                lambda: any(d.get("HistoryCommitsFailing") == 1 for d in _emf(emf)),
-                PROGRESS_S,
-                "commits failing in EMF",
-            )
-            # ... and /metrics on the host (a commit in flight when S3 stopped may still have landed, which
-            # starts the lag again from the rows after it: it grows from there while the outage lasts).
-            wait_for(
-                lambda: metric(get_metrics(agent.http_url), "twin_history_lag_seconds") > 2.0,
-                PROGRESS_S,
-                "the lag in /metrics",
-                interval=0.2,
-            )
+            _wait_for_the_outage_to_show(agent, emf)
             s3.start()
         finally:
             fleet.stop()
@@ -342,21 +300,71 @@ def test_s3_stopped_longer_than_the_history_buffer(
         wait_for(lambda: _caught_up(agent, decoded), PROGRESS_S, "the writer to catch up with S3 back")
         agent.stop()
         check_accounts(state)
-        report = agent.stop_reports[0]
-        assert report is not None and "history_rows" not in report.unwritten
-        # The writer's figures once it stopped (a failed commit's rows may be dropped after the fleet stops).
-        history = agent.state().agent.history
-        assert history is not None
-        lines = _emf(emf)
-        # Each line counts its interval's drops (the last interval's may come after the agent stopped).
-        assert 0 < sum(d.get("HistoryRowsDropped", 0) for d in lines) <= history.rows_dropped
-        assert sum(d.get("HistoryCommitFailures", 0) for d in lines) > 0
-        # Storage back and every row written: the last line clears the alarm.
-        assert [d["HistoryCommitsFailing"] for d in lines if "HistoryCommitsFailing" in d][-1] == 0
-        # Every decoded message is a row in the table, or one counted as dropped.
-        assert _table_rows(uri, options) + history.rows_dropped == decoded
+        _check_every_row_written_or_dropped(agent, emf, _table_rows(uri, options), decoded)
     finally:
         s3.close()
+
+
+def _start_with_s3_history(rig: LocalRig, devices: list[str], uri: str, emf: Path) -> AgentService:
+    """An agent writing history to `uri` with a buffer an outage soon outlasts, and EMF every half second."""
+    return rig.start_agent(
+        {
+            "telemetry.devices": devices,
+            "telemetry.units": "ticks",
+            "history.uri": uri,
+            "history.commit_every_s": 0.5,
+            "history.commit_every_rows": 50,
+            "history.max_buffer_rows": 300,
+            "cloudwatch.emf_file": str(emf),
+            "cloudwatch.agent_name": "matrix",
+            "cloudwatch.interval_s": 0.5,
+        }
+    )
+
+
+def _wait_for_the_outage_to_show(agent: AgentService, emf: Path) -> None:
+    """With S3 stopped: rows dropped, and the EMF lines CloudWatch gets carry the drops, the lag growing while
+    the outage lasts, and that commits are failing (the stack alarms on each); /metrics shows the lag too."""
+    wait_for(lambda: agent.state().agent.history.rows_dropped > 0, 60, "the buffer to overflow", interval=0.2)
+    wait_for(
+        lambda: any(d.get("HistoryRowsDropped", 0) > 0 for d in _emf(emf)), PROGRESS_S, "the drops in EMF"
+    )
+    wait_for(
+        lambda: any(d.get("HistoryLagSeconds", 0.0) > 2.0 for d in _emf(emf)), PROGRESS_S, "the lag in EMF"
+    )
+    # The HistoryCommitFailures alarm pages on this gauge.
+    wait_for(
+        lambda: any(d.get("HistoryCommitsFailing") == 1 for d in _emf(emf)),
+        PROGRESS_S,
+        "commits failing in EMF",
+    )
+    # A commit in flight when S3 stopped may still have landed, which starts the lag again from the rows
+    # after it: it grows from there while the outage lasts.
+    wait_for(
+        lambda: metric(get_metrics(agent.http_url), "twin_history_lag_seconds") > 2.0,
+        PROGRESS_S,
+        "the lag in /metrics",
+        interval=0.2,
+    )
+
+
+def _check_every_row_written_or_dropped(
+    agent: AgentService, emf: Path, table_rows: int, decoded: int
+) -> None:
+    """After the stop, with S3 back: the EMF lines told the drops and commit failures and cleared the alarm,
+    and every decoded message is one of the table's `table_rows` or counted as dropped."""
+    report = agent.stop_reports[0]
+    assert report is not None and "history_rows" not in report.unwritten
+    # The writer's figures once it stopped (a failed commit's rows may be dropped after the fleet stops).
+    history = agent.state().agent.history
+    assert history is not None
+    lines = _emf(emf)
+    # Each line counts its interval's drops (the last interval's may come after the agent stopped).
+    assert 0 < sum(d.get("HistoryRowsDropped", 0) for d in lines) <= history.rows_dropped
+    assert sum(d.get("HistoryCommitFailures", 0) for d in lines) > 0
+    # Storage back and every row written: the last line clears the alarm.
+    assert [d["HistoryCommitsFailing"] for d in lines if "HistoryCommitsFailing" in d][-1] == 0
+    assert table_rows + history.rows_dropped == decoded
 
 
 def _caught_up(agent: AgentService, decoded: int) -> bool:
