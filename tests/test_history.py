@@ -298,6 +298,31 @@ def test_storage_reads_failing_while_any_tables_last_commit_failed(tmp_path: Pat
     assert writer.stats().tables[TELEMETRY_TABLE].rows_committed == 20
 
 
+def test_a_table_that_keeps_failing_backs_off_while_another_commits(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Each good commit of the rejected table set the backoff back to retry_min_s and let the next failure's
+    line through: telemetry failing alone was retried and logged every second."""
+    base = tmp_path / "h"
+    base.mkdir()
+    (base / TELEMETRY_TABLE).write_text("not a directory")  # telemetry's commits fail; rejected's work
+    now = [1000.0]
+    settings = HistorySettings(uri=str(base), commit_every_s=3600, retry_min_s=1, retry_max_s=60)
+    writer = HistoryWriter(settings, clock=lambda: now[0]).start()
+    try:
+        with caplog.at_level(logging.ERROR, logger="twin.output.history"):
+            for k in range(3):
+                writer.add(TELEMETRY_TABLE, telemetry_table(samples(10, start_s=T0 + k))[0])
+                bad = RejectedSample("arm-001", "dt/lerobot/arm-001/telemetry", T0 + k, "not_json", "", b"{")
+                writer.add(REJECTED_TABLE, rejected_table([bad], 100))
+                assert not writer.flush(10)
+        said = [r.getMessage() for r in caplog.records if "rows kept in memory" in r.getMessage()]
+    finally:
+        writer.close(timeout=0)
+    assert len(said) == 1 and "retrying in 1 s" in said[0], said  # then 2 s, 4 s: within the line's 10 s
+    assert writer.stats().tables[REJECTED_TABLE].rows_committed == 3
+
+
 def test_a_commit_failing_at_the_stop_says_it_is_retried_each_second(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:

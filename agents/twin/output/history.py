@@ -764,11 +764,13 @@ class HistoryWriter:
                 stats.last_commit_version = version
             stats.last_commit_ok = True
             all_ok = all(t.last_commit_ok for t in self._stats.tables.values())
-            if not self._stats.storage_ok and all_ok:
-                log.warning("history: writing to %s works again", self.settings.uri)
+            if all_ok:
+                if not self._stats.storage_ok:
+                    log.warning("history: writing to %s works again", self.settings.uri)
+                # Not while another table still fails: its retries would come each retry_min_s, each logged.
+                self._backoff = self.settings.retry_min_s
+                self._error_lines.clear()
             self._stats.storage_ok = all_ok
-            self._backoff = self.settings.retry_min_s
-            self._error_lines.clear()
         hook = self.on_commit
         if hook is not None:
             try:
