@@ -328,11 +328,22 @@ def test_a_worker_process_mirror_hands_its_sinks_each_status_change() -> None:
         wait_for(lambda: len(sink.changes) == 1, 30, "the arm to go STALE")
         clock.now += health.offline_after_s
         wait_for(lambda: len(sink.changes) == 2, 30, "the arm to go OFFLINE")
-        # Received a sweep's interval on, and the clock moved there after: a sweep that ran in between found
-        # it not yet due, so the one that reads the arm back is the next.
-        send(clock.now + FleetWatch.interval_s)
-        clock.now += FleetWatch.interval_s
-        wait_for(lambda: len(sink.changes) == 3, 30, "the arm to come back")
+        # The arm publishes again, and the clock steps on until a sweep reads it back: a sweep may have read
+        # the clock just before a sample came and put the next one an interval on. A step is taken only once
+        # the worker has applied every sample sent, and is shorter than stale_after_s, so however the
+        # threads interleave no sweep finds the returning arm silent long enough to go STALE again.
+        step = health.stale_after_s / 3
+        sent = len(sink.applied_samples)
+
+        def back_online() -> bool:
+            nonlocal sent
+            if len(sink.changes) < 3 and len(sink.applied_samples) == sent:
+                clock.now += step
+                send(clock.now)
+                sent += 1
+            return len(sink.changes) == 3
+
+        wait_for(back_online, 30, "the arm to come back")
     finally:
         send_end(writer)
         mirror.stop(timeout=30.0)
