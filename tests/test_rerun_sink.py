@@ -395,6 +395,39 @@ class _Clock:
         return self.now
 
 
+class _Walk:
+    """A real mirror on an injected clock with the Rerun sink, its worker's loop turned by the test: a batch
+    of one sample of arm-001 (while it sends), then a status sweep, every 0.1 s."""
+
+    def __init__(self, robot: RobotModel, path: Path) -> None:
+        self.config = load_config(None, {"telemetry.devices": ["*"], "telemetry.units": "degrees"})
+        self.clock = clock = _Clock(1000.0)
+        self.mirror = Mirror(
+            self.config,
+            inbox=PipeInbox(Pipe(duplex=False)[0]),
+            budget=DeviceBudget(4),
+            clock=clock,
+            wall_clock=lambda: T0_MS / 1000 + clock.now,
+            sinks=[RerunSink(robot, RerunSettings(save=str(path), flush_s=0.05))],
+        )
+        self.mirror._open_sinks()  # the sinks without the worker thread: the test turns its loop
+        self.step = 0
+        self.sent: list[int] = []
+
+    def run(self, seconds: float, *, sending: bool) -> None:
+        mirror, clock = self.mirror, self.clock
+        for _ in range(round(seconds * 10)):
+            self.step += 1
+            clock.now = 1000.0 + self.step / 10
+            if sending:
+                doc = payload("arm-001", self.step)
+                self.sent.append(doc["timestamp"])
+                topic = telemetry_topic(DEFAULT_TOPIC_PREFIX, "arm-001")
+                batch = Batch(("arm-001",), (topic,), (json.dumps(doc).encode(),), (clock.now,), (clock(),))
+                mirror._handle(batch, 0)
+            mirror._watch_statuses((clock.now,) if sending else ())
+
+
 def test_an_arm_going_stale_offline_and_back_is_told_at_the_live_end(
     robot: RobotModel, tmp_path: Path
 ) -> None:
@@ -402,40 +435,14 @@ def test_an_arm_going_stale_offline_and_back_is_told_at_the_live_end(
     STALE, then OFFLINE. A real mirror on an injected clock, as its worker drives it (a batch, then a status
     sweep, every 0.1 s), hands each change to the sink, which logs it on the arm's line after its last
     sample: where a viewer at the live end, which shows that sample's pose, sees it."""
-    config = load_config(None, {"telemetry.devices": ["*"], "telemetry.units": "degrees"})
-    clock = _Clock(1000.0)
     path = tmp_path / "status.rrd"
-    sink = RerunSink(robot, RerunSettings(save=str(path), flush_s=0.05))
-    mirror = Mirror(
-        config,
-        inbox=PipeInbox(Pipe(duplex=False)[0]),
-        budget=DeviceBudget(4),
-        clock=clock,
-        wall_clock=lambda: T0_MS / 1000 + clock.now,
-        sinks=[sink],
-    )
-    mirror._open_sinks()  # the sinks without the worker thread: the test turns its loop
-    step, sent = 0, []
-
-    def run(seconds: float, *, sending: bool) -> None:
-        nonlocal step
-        for _ in range(round(seconds * 10)):
-            step += 1
-            clock.now = 1000.0 + step / 10
-            if sending:
-                doc = payload("arm-001", step)
-                sent.append(doc["timestamp"])
-                topic = telemetry_topic(DEFAULT_TOPIC_PREFIX, "arm-001")
-                batch = Batch(("arm-001",), (topic,), (json.dumps(doc).encode(),), (clock.now,), (clock(),))
-                mirror._handle(batch, 0)
-            mirror._watch_statuses((clock.now,) if sending else ())
-
-    health = config.health
-    run(1.0, sending=True)
+    walk = _Walk(robot, path)
+    health, mirror, sent = walk.config.health, walk.mirror, walk.sent
+    walk.run(1.0, sending=True)
     last_before = sent[-1]
-    run(health.offline_after_s + 1.0, sending=False)
+    walk.run(health.offline_after_s + 1.0, sending=False)
     assert mirror.statuses()["arm-001"] is DeviceStatus.OFFLINE
-    run(1.0, sending=True)
+    walk.run(1.0, sending=True)
     mirror.stop()
     temporal, _ = read_rrd(path)
     cells = zip(times_ms(temporal), column(temporal, "/arms/arm-001/events", "TextLog:text"), strict=True)
@@ -456,7 +463,28 @@ def test_an_arm_going_stale_offline_and_back_is_told_at_the_live_end(
     assert offline < first_back <= online <= first_back + sweep_ms
     # Over the arm in the fleet view, a point labelled with its status, at the same times; cleared once back.
     labels = rows_of(temporal, "/arms/arm-001/status", "Points3D:labels")
-    assert labels == {stale: ["STALE"], offline: ["OFFLINE"], online: []}
+    assert labels == {stale: ["STALE"], offline: ["OFFLINE"], first_back: []}
+
+
+def test_an_arm_forgotten_while_offline_loses_its_label_when_it_publishes_again(
+    robot: RobotModel, tmp_path: Path
+) -> None:
+    """A walk: the agent forgets an arm OFFLINE that long, which tells no sink; an arm of that name that
+    publishes again is new to the mirror, so no change to ONLINE goes out, and the red OFFLINE label stayed
+    over the live arm. Its first sample clears it."""
+    path = tmp_path / "forgotten.rrd"
+    walk = _Walk(robot, path)
+    walk.run(1.0, sending=True)
+    walk.run(walk.config.health.offline_after_s + 1.0, sending=False)
+    walk.mirror.forget_arm("arm-001")
+    back = len(walk.sent)
+    walk.run(1.0, sending=True)
+    assert walk.mirror.statuses()["arm-001"] is DeviceStatus.ONLINE
+    walk.mirror.stop()
+    temporal, _ = read_rrd(path)
+    labels = rows_of(temporal, "/arms/arm-001/status", "Points3D:labels")
+    assert list(labels.values()) == [["STALE"], ["OFFLINE"], []]
+    assert max(labels) == walk.sent[back]
 
 
 def test_status_text_names_each_error_bit() -> None:

@@ -181,6 +181,8 @@ class _Arm:
     edge: EdgeTime = field(default_factory=EdgeTime)
     status: str = ""
     status_key: tuple[int | None, ...] = ()
+    # The arm's status as its label over it shows it (handle_status): ONLINE is no label.
+    shown: str = "ONLINE"
     servo_styled: set[str] = field(default_factory=set)
     schemas: dict[tuple[str, ...], pa.Schema] = field(default_factory=dict)
 
@@ -520,6 +522,8 @@ class RerunWorker:
         # One (joints, quantities) block; a reading the edge did not send is None, which becomes NaN.
         arm.servo[row] = [_servo_row(d) for d in map(diagnostics.get, so101.JOINT_NAMES)]
         self._status(arm, sample)
+        if arm.shown != "ONLINE":
+            self._unlabel(arm, arm.edge.last_ms)
         if sample.alarm_events:
             self._alarms(arm, sample)
         self.samples_logged += 1
@@ -558,17 +562,33 @@ class RerunWorker:
         self._rec.set_time(TIMELINE, timestamp=np.datetime64(arm.edge.after_last(change.at_mono_s), "ms"))
         level = _STATUS_LEVELS.get(change.status, rr.TextLogLevel.INFO)
         text = f"arm {change.status} (was {change.previous})"
-        colour = _STATUS_COLOURS.get(change.status)
-        if colour is None:
-            self._rec.log(f"{arm.entity}/status", rr.Clear(recursive=False))
-        else:
+        if change.status in _STATUS_COLOURS:
             text += ": its pose is the last one it sent"
-            # Over the arm in the fleet view too: the events view shows the focus arm's lines only.
-            label = rr.Points3D(
-                [STATUS_LABEL_AT], radii=0.02, colors=[colour], labels=[change.status], show_labels=True
-            )
-            self._rec.log(f"{arm.entity}/status", label)
+            arm.shown = change.status
+            self._label(arm)
+        elif arm.shown != "ONLINE":
+            self._rec.log(f"{arm.entity}/status", rr.Clear(recursive=False))
+            arm.shown = "ONLINE"
         self._rec.log(f"{arm.entity}/events", rr.TextLog(text, level=level))
+
+    def _label(self, arm: _Arm, rec: _Tee | None = None) -> None:
+        """The arm's status over it in the fleet view (the events view shows the focus arm's lines only)."""
+        label = rr.Points3D(
+            [STATUS_LABEL_AT],
+            radii=0.02,
+            colors=[_STATUS_COLOURS[arm.shown]],
+            labels=[arm.shown],
+            show_labels=True,
+        )
+        (rec or self._rec).log(f"{arm.entity}/status", label)
+
+    def _unlabel(self, arm: _Arm, at_ms: int) -> None:
+        """A sample after a STALE or OFFLINE label: the arm publishes, so the label goes. Not every return
+        comes as a change to ONLINE: an arm the agent forgot while OFFLINE, which publishes again, is new to
+        the mirror, and so ONLINE to the sinks from its first sample."""
+        self._rec.set_time(TIMELINE, timestamp=np.datetime64(at_ms, "ms"))
+        self._rec.log(f"{arm.entity}/status", rr.Clear(recursive=False))
+        arm.shown = "ONLINE"
 
     def idle(self) -> None:
         now = time.monotonic()
