@@ -17,12 +17,13 @@ import pytest
 from conftest import read_rrd, wait_for
 from pxr import Usd
 from test_rerun_sink import DEVICES, payload
+from twin.core.health import DeviceStatus
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
 from twin.output.recorder import SessionRecorder
 from twin.output.recording import EdgeSpacing, RecordingLimits, RecordingSink
 from twin.output.rerun_settings import RerunSettings, RerunSettingsError
 from twin.output.rerun_sink import RerunSink, SaveRotation
-from twin.output.sinks import AppliedSample
+from twin.output.sinks import AppliedSample, StatusChange
 from twin.robot.model import RobotModel
 
 
@@ -139,6 +140,32 @@ def test_the_rerun_save_rotates_and_every_file_opens_on_its_own(robot: RobotMode
         names = {n.split(":", 1)[0] for n in static.schema.names if n.startswith("/arms/")}
         assert {f"/arms/{d}" for d in DEVICES} <= names
         assert {f"/arms/{d}/servo/temperature_c" for d in DEVICES} <= names, rrd.name
+
+
+def test_a_rotated_rerun_file_carries_a_quiet_arms_status_label(robot: RobotModel, tmp_path: Path) -> None:
+    """A walk: the file after a rotation showed an OFFLINE arm with no label, as the arm sends no sample
+    that would log it again. Each new file gets the label of each arm not ONLINE, at its own time."""
+    path = tmp_path / "twin.rrd"
+    settings = _rerun_save(
+        path, save_max_mb=0.2, save_budget_mb=4.0, mesh_faces_per_arm=300, mesh_faces_far=100
+    )
+    sink = RerunSink(robot, settings)
+    quiet, busy = DEVICES
+    after = _feed_until_rotated(sink, 1)
+    at = after + 10.0  # (the monotonic clock of the samples' receive times)
+    sink.status(StatusChange(quiet, DeviceStatus.STALE, DeviceStatus.OFFLINE, at_mono_s=at, at_wall_s=0.0))
+    after = _feed_until_rotated(sink, 3, (busy,))
+    for sample in _samples(10, (busy,), start_mono=after):  # the live file has samples of its own too
+        sink.applied(sample)
+    sink.close()
+    labelled = []
+    for rrd in [*sorted(tmp_path.glob("twin-*.rrd")), path]:
+        temporal, _ = read_rrd(rrd)
+        column = f"/arms/{quiet}/status:Points3D:labels"
+        cells = temporal.column(column).to_pylist() if column in temporal.schema.names else []
+        labelled.append([cell for cell in cells if cell])
+    # The file the change came in, and the two after it.
+    assert labelled[-3:] == [[["OFFLINE"]]] * 3, labelled
 
 
 def test_a_rotation_logs_the_arms_static_parts_a_slice_at_a_time(robot: RobotModel, tmp_path: Path) -> None:

@@ -181,8 +181,9 @@ class _Arm:
     edge: EdgeTime = field(default_factory=EdgeTime)
     status: str = ""
     status_key: tuple[int | None, ...] = ()
-    # The arm's status as its label over it shows it (handle_status): ONLINE is no label.
+    # The arm's status as its label over it shows it (handle_status), and the label's time: ONLINE is none.
     shown: str = "ONLINE"
+    shown_ms: int = 0
     servo_styled: set[str] = field(default_factory=set)
     schemas: dict[tuple[str, ...], pa.Schema] = field(default_factory=dict)
 
@@ -458,6 +459,9 @@ class RerunWorker:
         for arm in self._arms.values():
             arm.servo_styled.clear()  # logged again with the next batch
             arm.status, arm.status_key = "", ()
+            # A quiet arm sends no sample to log it again with: its label goes into the new file now.
+            if arm.shown != "ONLINE":
+                self._label(arm, _Tee([new]))
         # Static data holds for every time, so an arm's may follow its first samples in the file
         # (STATICS_SLICE_S).
         self._statics.extend((arm, False) for arm in self._arms.values())
@@ -564,7 +568,7 @@ class RerunWorker:
         text = f"arm {change.status} (was {change.previous})"
         if change.status in _STATUS_COLOURS:
             text += ": its pose is the last one it sent"
-            arm.shown = change.status
+            arm.shown, arm.shown_ms = change.status, arm.edge.after_last(change.at_mono_s)
             self._label(arm)
         elif arm.shown != "ONLINE":
             self._rec.log(f"{arm.entity}/status", rr.Clear(recursive=False))
@@ -572,7 +576,10 @@ class RerunWorker:
         self._rec.log(f"{arm.entity}/events", rr.TextLog(text, level=level))
 
     def _label(self, arm: _Arm, rec: _Tee | None = None) -> None:
-        """The arm's status over it in the fleet view (the events view shows the focus arm's lines only)."""
+        """The arm's status over it in the fleet view (the events view shows the focus arm's lines only), into
+        `rec` (all the sink's streams by default)."""
+        rec = rec or self._rec
+        rec.set_time(TIMELINE, timestamp=np.datetime64(arm.shown_ms, "ms"))
         label = rr.Points3D(
             [STATUS_LABEL_AT],
             radii=0.02,
@@ -580,7 +587,7 @@ class RerunWorker:
             labels=[arm.shown],
             show_labels=True,
         )
-        (rec or self._rec).log(f"{arm.entity}/status", label)
+        rec.log(f"{arm.entity}/status", label)
 
     def _unlabel(self, arm: _Arm, at_ms: int) -> None:
         """A sample after a STALE or OFFLINE label: the arm publishes, so the label goes. Not every return
