@@ -9,6 +9,7 @@ import logging
 import random
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import msgspec
@@ -496,14 +497,11 @@ def test_a_store_full_of_alarms_comes_back_whole_after_a_restart_just_after_a_ro
     store.subscribe(journal.add)
     watch = FleetWatch(store)
     devices = [f"so101-cell-{c:02d}-arm-{a:04d}" for c in range(4) for a in range(25)]
-    for k in range(4 * capacity):
+
+    def raise_alarm(k: int) -> None:
         watch.alarm(mismatch_raise(devices[k % len(devices)], so101.JOINT_NAMES[k % 6], k))
-        if k % 10 == 9:
-            assert journal.flush()
-            if len(store) == capacity and not path.exists() and path.with_name(path.name + ".1").exists():
-                break  # the file was just renamed: its pair holds the least it ever does
-    else:
-        pytest.fail("the alarm flood never renamed the file away")
+
+    flood_until_renamed(store, journal, path, raise_alarm, every=10)
     journal.close()
     held = store.after(0)
     assert len(held) == capacity and {e.kind for e in held} == {"alarm"}
@@ -525,7 +523,8 @@ def test_an_event_longer_than_its_line_comes_back_cut_and_says_so(tmp_path: Path
     store.subscribe(journal.add)
     bulk = bulk_path(path)
     detail = "field 'positions' holds " + "[1.5, 2.5, 3.5] " * 40  # a message of about 700 bytes
-    for k in range(4 * capacity):
+
+    def reject(k: int) -> None:
         store.emit(
             EventKind.REJECTED,
             EventLevel.WARNING,
@@ -533,11 +532,8 @@ def test_an_event_longer_than_its_line_comes_back_cut_and_says_so(tmp_path: Path
             device=f"arm-{k:03d}",
             data={"reason": "bad_payload", "count": 1},
         )
-        assert journal.flush()
-        if len(store) == capacity and not bulk.exists() and bulk.with_name(bulk.name + ".1").exists():
-            break  # the file was just renamed: its pair holds the least it ever does
-    else:
-        pytest.fail("the flood never renamed the bulk file away")
+
+    flood_until_renamed(store, journal, bulk, reject, every=1)
     journal.close()
     held = store.after(0)
     assert len(held) == capacity and all(len(msgspec.json.encode(e)) > 600 for e in held)
@@ -596,3 +592,18 @@ def test_what_waits_for_a_flush_is_a_store_of_the_agents_capacity(tmp_path: Path
     emit(store, 101)
     assert journal.pending == 100 and journal.not_written == 1
     journal.close()
+
+
+def flood_until_renamed(
+    store: EventStore, journal: EventJournal, file: Path, emit: Callable[[int], None], *, every: int
+) -> None:
+    """emit(k) for k = 0, 1, ... (flushing every `every`) until `file` was just renamed away, with the store
+    full: its pair then holds the least it ever does."""
+    capacity = store.capacity
+    for k in range(4 * capacity):
+        emit(k)
+        if k % every == every - 1:
+            assert journal.flush()
+            if len(store) == capacity and not file.exists() and file.with_name(file.name + ".1").exists():
+                return
+    pytest.fail(f"the flood never renamed {file.name} away")
