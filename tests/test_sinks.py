@@ -18,14 +18,7 @@ from twin.core.telemetry import Telemetry, Units
 from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
 from twin.core.twin import DeviceTwin
 from twin.edge.payload import encode, make_payload
-from twin.output.sinks import (
-    MAX_PENDING_STATUSES,
-    AppliedSample,
-    QueuedSink,
-    RejectedSample,
-    SinkStats,
-    StatusChange,
-)
+from twin.output.sinks import AppliedSample, QueuedSink, RejectedSample, SinkStats, StatusChange
 from twin.robot import so101
 from twin.robot.model import RobotModel
 from twin.service.admission import DeviceBudget
@@ -126,48 +119,6 @@ def test_status_changes_reach_only_the_workers_that_show_them_in_order_with_samp
     sink.close()
     assert ignores.applied == [0]
     assert (sink.stats().delivered, sink.stats().errors) == (1, 0)
-
-
-class _GatedStatusRecorder(_Recorder):
-    def __init__(self, gate: threading.Event) -> None:
-        super().__init__(gate=gate)
-        self.changes: list[tuple[str, str, str]] = []
-
-    def handle_status(self, change: StatusChange) -> None:
-        self.changes.append((change.device_id, change.previous, change.status))
-
-
-def _change(device: str, previous: DeviceStatus, status: DeviceStatus) -> StatusChange:
-    return StatusChange(device, previous, status, at_mono_s=5.0, at_wall_s=5.0)
-
-
-def test_a_full_queue_keeps_the_status_changes_and_bounds_them_by_arm() -> None:
-    """Status changes shared the drop-oldest queue with samples: under load a queued OFFLINE or ONLINE was
-    pushed out, and the viewer's label was wrong until the next change. They are not dropped; an arm has
-    MAX_PENDING_STATUSES waiting at most, the last from where it stood to the newest."""
-    online, stale, offline = DeviceStatus.ONLINE, DeviceStatus.STALE, DeviceStatus.OFFLINE
-    gate = threading.Event()
-    worker = _GatedStatusRecorder(gate)
-    sink = QueuedSink("slow", worker, max_pending=4)
-    sink.applied(_sample(0))
-    assert worker.entered.wait(30), "the sink's thread never took the first sample"
-    sink.status(_change("arm-001", online, stale))
-    for flap in range(10):  # arm-002 goes STALE and back five times
-        sink.status(_change("arm-002", stale, online) if flap % 2 else _change("arm-002", online, stale))
-    for i in range(1, 20):
-        sink.applied(_sample(i))
-        if i == 5:
-            sink.status(_change("arm-001", stale, offline))
-    assert sink.stats().pending == 1 + 4 + 2 + MAX_PENDING_STATUSES  # in flight, samples, statuses
-    gate.set()
-    sink.close()
-    assert worker.changes == [
-        ("arm-001", "ONLINE", "STALE"),
-        *[("arm-002", "ONLINE", "STALE"), ("arm-002", "STALE", "ONLINE")] * 2,
-        ("arm-001", "STALE", "OFFLINE"),
-    ]
-    assert worker.applied == [0, 16, 17, 18, 19]
-    assert (sink.stats().delivered, sink.stats().dropped) == (5, 15)
 
 
 def test_a_stalled_worker_never_blocks_the_caller_and_drops_the_oldest() -> None:

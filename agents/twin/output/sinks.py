@@ -5,9 +5,9 @@ The agent's worker applies a message to the device's twin and then hands one `Ap
 back ONLINE: silence changes those, not a message, so a sink could not tell them from its samples). The worker
 is the mirror's hot path, so a sink's `applied`/`rejected`/`status` must return in microseconds and never
 block on I/O. Sinks that do I/O (a file, S3, a network peer) wrap their blocking work in `QueuedSink`: a
-bounded queue and a thread of their own, which drops the oldest queued sample when the sink falls behind and
-counts it (an arm's status changes are kept, a few per arm at most), so a slow disk, a stalled viewer or an
-absent ROS peer never slows mirroring and never grows memory without bound.
+bounded queue and a thread of their own, which drops the oldest queued item when the sink falls behind and
+counts it, so a slow disk, a stalled viewer or an absent ROS peer never slows mirroring and never grows memory
+without bound.
 
 A sample carries joint angles, not body poses: forward kinematics is computed where it is needed, in the
 sink's own thread (`RobotModel.body_poses`), because MuJoCo scratch data is per thread and most sinks need
@@ -22,7 +22,7 @@ import math
 import threading
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
 from twin.core import heap
@@ -118,24 +118,10 @@ class StatusChange:
     at_wall_s: float
 
 
-def sample_bytes(item: AppliedSample | RejectedSample) -> int:
+def sample_bytes(item: AppliedSample | RejectedSample | StatusChange) -> int:
     """What a queued sample weighs, roughly: its payload plus a fixed overhead (SAMPLE_OVERHEAD_BYTES)."""
-    return len(item.payload) + SAMPLE_OVERHEAD_BYTES
-
-
-# A QueuedSink holds this many status changes of one arm at most (a STALE, OFFLINE, ONLINE round and one
-# more): past that, the arm's last one waiting takes the newer ones in.
-MAX_PENDING_STATUSES = 4
-
-
-class _PendingStatus:
-    """An arm's status change in a QueuedSink's queue, in its place among the samples (`change` may be
-    updated there to a later one: from the status it changed from to the newest, MAX_PENDING_STATUSES)."""
-
-    __slots__ = ("change",)
-
-    def __init__(self, change: StatusChange) -> None:
-        self.change = change
+    payload = 0 if isinstance(item, StatusChange) else len(item.payload)
+    return payload + SAMPLE_OVERHEAD_BYTES
 
 
 @dataclass(frozen=True, slots=True)
@@ -253,8 +239,7 @@ class DeviceRateCap:
 
 class QueuedSink:
     """Runs a `SinkWorker` on its own thread behind a queue bounded by samples (`max_pending`) and by their
-    bytes (`max_pending_bytes`, sample_bytes), which drops the oldest when full. Status changes are kept apart
-    from that, in their place among the samples (`status`).
+    bytes (`max_pending_bytes`, sample_bytes), which drops the oldest when full.
 
     Errors raised by the worker are caught, counted and logged (at most once per `error_log_s`), never
     propagated: a broken sink must not stop the mirror or the other sinks.
@@ -278,10 +263,7 @@ class QueuedSink:
             raise ValueError(f"hand_off_s must be >= 0, got {hand_off_s}")
         self.name = name
         self._worker = worker
-        self._queue: collections.deque[AppliedSample | RejectedSample | _PendingStatus] = collections.deque()
-        # The arms' changes in the queue, by device, and how many in all: never dropped (`status`).
-        self._statuses: dict[str, list[_PendingStatus]] = {}
-        self._status_items = 0
+        self._queue: collections.deque[AppliedSample | RejectedSample | StatusChange] = collections.deque()
         # Looked up once: a worker that shows no statuses (the USD recording, ROS 2) is handed none, so they
         # take no room in its queue.
         self._handle_status: Callable[[StatusChange], None] | None = getattr(worker, "handle_status", None)
@@ -316,26 +298,10 @@ class QueuedSink:
         self._put(sample)
 
     def status(self, change: StatusChange) -> None:
-        """Queued apart from the drop policy: a lost change would leave the arm shown wrong until its next.
-        Bounded by the arms instead (MAX_PENDING_STATUSES each)."""
-        if self._handle_status is None:
-            return
-        with self._cond:
-            if self._closing:
-                self._dropped += 1
-                return
-            pending = self._statuses.setdefault(change.device_id, [])
-            if len(pending) >= MAX_PENDING_STATUSES:
-                pending[-1].change = replace(change, previous=pending[-1].change.previous)
-                return
-            item = _PendingStatus(change)
-            pending.append(item)
-            self._status_items += 1
-            self._queue.append(item)
-            if self._waiting and len(self._queue) == 1:
-                self._cond.notify()
+        if self._handle_status is not None:
+            self._put(change)
 
-    def _put(self, item: AppliedSample | RejectedSample) -> None:
+    def _put(self, item: AppliedSample | RejectedSample | StatusChange) -> None:
         with self._cond:
             if self._closing:
                 self._dropped += 1
@@ -343,19 +309,10 @@ class QueuedSink:
             queue = self._queue
             queue.append(item)
             self._bytes += sample_bytes(item)
-            # Newest wins: a live view wants the present, and history counts what it lost. The status changes
-            # are kept, in their order, ahead of the samples left.
-            kept: list[_PendingStatus] = []
-            samples = len(queue) - self._status_items
-            while samples > 1 and (samples > self._max or self._bytes > self._max_bytes):
-                old = queue.popleft()
-                if isinstance(old, _PendingStatus):
-                    kept.append(old)
-                    continue
-                self._bytes -= sample_bytes(old)
+            # Newest wins: a live view wants the present, and history counts what it lost.
+            while len(queue) > 1 and (len(queue) > self._max or self._bytes > self._max_bytes):
+                self._bytes -= sample_bytes(queue.popleft())
                 self._dropped += 1
-                samples -= 1
-            queue.extendleft(reversed(kept))
             if self._waiting and len(queue) == 1:
                 self._cond.notify()
 
@@ -389,8 +346,6 @@ class QueuedSink:
                     self._waiting = False
                 items = list(self._queue)
                 self._queue.clear()
-                self._statuses.clear()
-                self._status_items = 0
                 self._bytes = 0
                 self._in_flight = len(items)
                 closing = self._closing
@@ -405,11 +360,9 @@ class QueuedSink:
             for item in items:
                 if isinstance(item, AppliedSample):
                     delivered += self._guard(worker.handle_applied, item)
-                elif isinstance(item, _PendingStatus):
-                    change = item.change
-                    # Back to what the sink last heard before it heard the rest: nothing to tell it.
-                    if self._handle_status is not None and change.status != change.previous:
-                        self._guard(self._handle_status, change)
+                elif isinstance(item, StatusChange):
+                    if self._handle_status is not None:
+                        self._guard(self._handle_status, item)
                 else:
                     self._guard(worker.handle_rejected, item)
             with self._cond:
