@@ -414,13 +414,14 @@ class _Walk:
         self.step = 0
         self.sent: list[int] = []
 
-    def run(self, seconds: float, *, sending: bool) -> None:
+    def run(self, seconds: float, *, sending: bool, lag: int = 0) -> None:
+        """`lag`: the samples sent are that many steps older than the clock (delivered late)."""
         mirror, clock = self.mirror, self.clock
         for _ in range(round(seconds * 10)):
             self.step += 1
             clock.now = 1000.0 + self.step / 10
             if sending:
-                doc = payload("arm-001", self.step)
+                doc = payload("arm-001", self.step - lag)
                 self.sent.append(doc["timestamp"])
                 topic = telemetry_topic(DEFAULT_TOPIC_PREFIX, "arm-001")
                 batch = Batch(("arm-001",), (topic,), (json.dumps(doc).encode(),), (clock.now,), (clock(),))
@@ -485,6 +486,27 @@ def test_an_arm_forgotten_while_offline_loses_its_label_when_it_publishes_again(
     labels = rows_of(temporal, "/arms/arm-001/status", "Points3D:labels")
     assert list(labels.values()) == [["STALE"], ["OFFLINE"], []]
     assert max(labels) == walk.sent[back]
+
+
+def test_a_late_sample_clears_the_label_after_it_not_behind_it(robot: RobotModel, tmp_path: Path) -> None:
+    """A review: samples delivered late (a backlog after an outage), newer than the arm's last one but
+    measured before the label's time, cleared it at their own time, behind the label: a viewer at the live end
+    still saw STALE over the live arm."""
+    path = tmp_path / "late.rrd"
+    walk = _Walk(robot, path)
+    walk.run(1.0, sending=True)
+    walk.run(walk.config.health.stale_after_s + 0.5, sending=False)
+    assert walk.mirror.statuses()["arm-001"] is DeviceStatus.STALE
+    quiet = round((walk.config.health.stale_after_s + 0.5) * 10)
+    walk.run(1.0, sending=True, lag=quiet - 1)  # the next after the last one sent on, delivered late
+    assert walk.mirror.statuses()["arm-001"] is DeviceStatus.ONLINE
+    walk.mirror.stop()
+    temporal, _ = read_rrd(path)
+    labels = rows_of(temporal, "/arms/arm-001/status", "Points3D:labels")
+    [(stale_ms, stale)] = [(t, v) for t, v in labels.items() if v]
+    assert stale == ["STALE"] and walk.sent[10] < stale_ms
+    cleared = [t for t, v in labels.items() if not v]
+    assert cleared and min(cleared) > stale_ms, labels
 
 
 def test_status_text_names_each_error_bit() -> None:

@@ -571,8 +571,7 @@ class RerunWorker:
             arm.shown, arm.shown_ms = change.status, arm.edge.after_last(change.at_mono_s)
             self._label(arm)
         elif arm.shown != "ONLINE":
-            self._rec.log(f"{arm.entity}/status", rr.Clear(recursive=False))
-            arm.shown = "ONLINE"
+            self._unlabel(arm, arm.edge.after_last(change.at_mono_s))
         self._rec.log(f"{arm.entity}/events", rr.TextLog(text, level=level))
 
     def _label(self, arm: _Arm, rec: _Tee | None = None) -> None:
@@ -592,8 +591,9 @@ class RerunWorker:
     def _unlabel(self, arm: _Arm, at_ms: int) -> None:
         """A sample after a STALE or OFFLINE label: the arm publishes, so the label goes. Not every return
         comes as a change to ONLINE: an arm the agent forgot while OFFLINE, which publishes again, is new to
-        the mirror, and so ONLINE to the sinks from its first sample."""
-        self._rec.set_time(TIMELINE, timestamp=np.datetime64(at_ms, "ms"))
+        the mirror, and so ONLINE to the sinks from its first sample. Never behind the label: a sample
+        delivered late (a backlog after an outage) may have been measured before the label's time."""
+        self._rec.set_time(TIMELINE, timestamp=np.datetime64(max(at_ms, arm.shown_ms + 1), "ms"))
         self._rec.log(f"{arm.entity}/status", rr.Clear(recursive=False))
         arm.shown = "ONLINE"
 
