@@ -154,7 +154,9 @@ def test_a_rotated_rerun_file_carries_a_quiet_arms_status_label(robot: RobotMode
     after = _feed_until_rotated(sink, 1)
     at = after + 10.0  # (the monotonic clock of the samples' receive times)
     sink.status(StatusChange(quiet, DeviceStatus.STALE, DeviceStatus.OFFLINE, at_mono_s=at, at_wall_s=0.0))
-    after = _feed_until_rotated(sink, 3, (busy,))
+    # Samples still queued may rotate the file before the change is handled: count from where it landed.
+    wait_for(lambda: sink.worker._arms[quiet].shown == "OFFLINE", 30, "the change handled")
+    after = _feed_until_rotated(sink, sink.worker.rotations + 2, (busy,))
     for sample in _samples(10, (busy,), start_mono=after):  # the live file has samples of its own too
         sink.applied(sample)
     sink.close()
