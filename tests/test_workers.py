@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+import logging
 import os
 import random
 import signal
@@ -35,6 +36,7 @@ from conftest import (
     metric,
     run_twin,
     signal_and_await_restart,
+    unbrokered_agent,
     wait_for,
     wait_handled,
 )
@@ -827,3 +829,19 @@ def test_a_start_that_fails_reports_only_the_stop_it_made(tmp_path: Path, failur
     assert [line["msg"] for line in lines if line["level"] == "ERROR"] == ["cannot start"], done.stdout
     kept = StateFile(state_file).load(time.monotonic(), time.time())
     assert [(r.alarm_id, r.state) for r in kept] == [(latched.alarm_id, AlarmState.LATCHED)]
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_the_started_line_counts_the_mirrors_and_names_each_process(
+    tmp_path: Path, workers: int, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A walk: `--workers 1` logged "workers": 0, as its one mirror runs in the agent's own process, which
+    read as no mirror at all."""
+    caplog.set_level(logging.INFO, logger="twin.service.agent")
+    agent = unbrokered_agent(tmp_path, workers=workers)
+    try:
+        [started] = [r for r in caplog.records if r.getMessage() == "agent started"]
+        assert started.workers == workers
+        assert len(started.worker_pids) == (0 if workers == 1 else workers)
+    finally:
+        agent.stop()

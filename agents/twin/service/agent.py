@@ -416,7 +416,9 @@ class AgentService:
                 "http": self._http.url,
                 "mode": self.config.twin.mode,
                 "units": self.config.telemetry.units,
-                "workers": len(workers),
+                # Mirrors, not processes: one mirror runs in the agent's own process (no pid of its own), and
+                # "workers": 0 for `--workers 1` read as no mirror at all (a walk).
+                "workers": len(self._shards),
                 "worker_pids": [w.pid for w in workers],
             },
         )
