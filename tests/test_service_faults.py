@@ -6,6 +6,7 @@ import logging
 import random
 import threading
 import time
+from multiprocessing import Pipe
 from typing import Any
 
 import pytest
@@ -23,10 +24,16 @@ from conftest import (
 )
 from twin.core.health import DeviceStatus
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
+from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
 from twin.edge.payload import MALFORMED_KINDS, encode, make_malformed, make_payload
 from twin.rig.local import LocalRig
+from twin.service.admission import DeviceBudget
 from twin.service.agent import AgentService
+from twin.service.config import load_config
+from twin.service.events import EventKind, EventQuery
+from twin.service.mirror import Mirror, PipeInbox
 from twin.service.state import AgentState
+from twin.transport.pipe import Batch
 
 pytestmark = pytest.mark.slow
 
@@ -219,6 +226,44 @@ def test_reordered_and_duplicated_never_move_the_twin_backwards(rig: LocalRig, p
         assert abs(dev.joints_rad[joint] - angle) <= 1e-9
     samples = get_metrics(service.http_url)
     assert metric(samples, "twin_messages_ignored_stale_total", device="arm-001") == expected_ignored
+
+
+class _Now:
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_a_clock_that_stands_still_is_told_once_a_minute_with_the_rebuilds_between(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A review: an edge whose clock stands still sends no newer stamp, so the mirror rebuilds its twin every
+    2 s (CLOCK_RESET_AFTER_S), and each rebuild logged a warning and made an event, "jumped backwards": 30 a
+    minute of each, wrongly named. A real mirror on an injected clock, 2.5 messages a second for 130 s."""
+    config = load_config(None, {"telemetry.devices": ["arm-001"], "telemetry.units": "ticks"})
+    clock = _Now()
+    mirror = Mirror(config, inbox=PipeInbox(Pipe(duplex=False)[0]), budget=DeviceBudget(4), clock=clock)
+    rng = random.Random(3)
+    stamp = int(time.time() * 1000)
+    topic = telemetry_topic(DEFAULT_TOPIC_PREFIX, "arm-001")
+    caplog.set_level(logging.WARNING, logger="twin.service.mirror")
+    for i in range(326):
+        clock.now += 0.4
+        body = encode(make_payload("arm-001", i * 0.4, "ticks", rng, timestamp_ms=stamp))
+        mirror._handle(Batch(("arm-001",), (topic,), (body,), (clock.now,), (clock.now,)), 0)
+    resets = mirror.report().devices["arm-001"].health.counters.clock_resets
+    assert resets >= 50  # every 6 messages (2 s at 2.5 Hz): each rebuild still counted
+    told = [e.message for e in mirror._events.query(EventQuery()) if e.kind == EventKind.TWIN]
+    logged = [r.getMessage() for r in caplog.records if "edge clock of arm-001" in r.getMessage()]
+    assert len(told) == len(logged) == 3, (told, logged)  # at its first rebuild, then once a minute
+    assert all("stands still" in line for line in told + logged), told
+    assert "more rebuilds since the last word" not in told[0]
+    untold = [int(line.split(" (")[1].split(" ")[0]) for line in told[1:]]
+    # Each rebuild told or counted in the next word, but for those since the last one (under a minute's).
+    assert 0 <= resets - sum(untold) - len(told) < 26, (untold, resets)
+    assert "fix: set the edge's clock by NTP" in told[0]
 
 
 def test_edge_clock_jump_backwards_rebuilds_the_twin(rig: LocalRig, publisher: Publisher) -> None:

@@ -1395,13 +1395,19 @@ class FleetWatch:
         """Sum up a burst of alarm raises whose window has passed (MismatchBurst), on the status sweep."""
         self._mismatches.sweep(now)
 
-    def clock_reset(self, device: str, last_ms: int | None, now_ms: int) -> None:
+    def clock_reset(
+        self, device: str, last_ms: int | None, now_ms: int, *, how: str = "jumped backwards", untold: int = 0
+    ) -> None:
+        """`how` the clock went ("jumped backwards", "stands still"); `untold`: the rebuilds since the last
+        such event that made none (the mirror tells them once a minute)."""
+        more = f" ({untold} more rebuilds since the last word)" if untold else ""
         self.store.emit(
             EventKind.TWIN,
             EventLevel.WARNING,
-            f"edge clock of {device} jumped backwards; twin rebuilt on the new timeline",
+            f"edge clock of {device} {how}; twin rebuilt on the new timeline{more}; fix: set the edge's "
+            "clock by NTP",
             device=device,
-            data={"last_ms": last_ms, "now_ms": now_ms},
+            data={"last_ms": last_ms, "now_ms": now_ms, "untold": untold},
         )
 
 

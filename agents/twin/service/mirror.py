@@ -185,6 +185,9 @@ _T = TypeVar("_T")
 # messages) has had its edge clock jump backwards: rebuild its twin on the new timeline. Reordering and
 # duplicates interleave with newer messages, which end a streak long before this.
 CLOCK_RESET_AFTER_S = 2.0
+# A clock that stands still is rebuilt on every CLOCK_RESET_AFTER_S: its warning and event at most this often
+# per device, naming how many rebuilds came between (clock_resets counts each).
+CLOCK_RESET_TELL_EVERY_S = 60.0
 CLOCK_RESET_MIN_MESSAGES = 5
 # physics mode: at most this much simulated time per worker wake-up, so a stalled worker catches up smoothly
 # instead of running seconds of simulation in one go.
@@ -247,6 +250,8 @@ class _Device:
         "gripper_percent",
         "health",
         "loss",
+        "reset_told",
+        "resets_untold",
         "stale_since",
         "stale_streak",
         "twin",
@@ -260,6 +265,8 @@ class _Device:
         self.loss = loss
         self.stale_streak = 0
         self.stale_since = 0.0
+        self.reset_told = -float("inf")
+        self.resets_untold = 0
         self.gripper_percent: float | None = None
         self.units: Units | None = None
         self.diagnostics: Mapping[str, JointDiagnostics] | None = None
@@ -1252,12 +1259,21 @@ class Mirror:
         applied = twin.apply(telemetry.angles_rad, telemetry.timestamp_ms)
         record.health.clock_resets += 1
         record.health.clamped += twin.clamped
+        if 0 <= recv_mono - record.reset_told < CLOCK_RESET_TELL_EVERY_S:
+            record.resets_untold += 1
+            return applied
+        how = "stands still" if previous == telemetry.timestamp_ms else "jumped backwards"
+        more = f" ({record.resets_untold} more rebuilds since the last word)" if record.resets_untold else ""
         log.warning(
-            "edge clock of %s jumped backwards; twin rebuilt on the new timeline",
+            "edge clock of %s %s; twin rebuilt on the new timeline%s",
             device,
+            how,
+            more,
             extra={"device": device, "last_ms": previous, "now_ms": telemetry.timestamp_ms},
         )
-        self._watch.clock_reset(device, previous, telemetry.timestamp_ms)
+        untold = record.resets_untold
+        self._watch.clock_reset(device, previous, telemetry.timestamp_ms, how=how, untold=untold)
+        record.reset_told, record.resets_untold = recv_mono, 0
         return applied
 
     def _record_all(
