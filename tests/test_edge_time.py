@@ -63,3 +63,12 @@ def test_a_clock_that_stands_still_is_told_once_a_minute_with_the_count_between(
     assert len(warnings) == 2, warnings
     assert "more such" not in warnings[0]
     assert "; 29 more such since the last warning)" in warnings[1], warnings[1]
+
+
+def test_a_receive_clock_stepped_back_does_not_silence_the_warning(caplog: pytest.LogCaptureFixture) -> None:
+    """A review: a session export passes wall-clock receive times; one stepped back an hour kept every reset
+    untold for that hour."""
+    line = EdgeTime()
+    caplog.set_level(logging.WARNING, logger="twin.output.edge_time")
+    place_all(line, [(5_000, 7_200.0), (4_000, 7_201.0), (4_000, 3_600.0)])
+    assert len(caplog.records) == 2, [r.getMessage() for r in caplog.records]

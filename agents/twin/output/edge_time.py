@@ -54,7 +54,8 @@ class EdgeTime:
         return ms
 
     def _warn(self, received_s: float, behind_s: float, device: str, output: str) -> None:
-        if received_s - self.warned_s < WARN_EVERY_S:
+        # A receive time behind the last warning's (a session export's wall clock stepped back) tells again.
+        if 0 <= received_s - self.warned_s < WARN_EVERY_S:
             self.untold += 1
             return
         log.warning(
