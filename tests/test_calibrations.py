@@ -918,15 +918,17 @@ def test_the_unmirrored_arm_warning_offers_the_listed_id_it_is_close_to(
     [
         ("ARM-007", " (did you mean arm-007?)"),  # case
         ("arm-l07", " (did you mean arm-107?)"),  # a letter l for a one
-        ("arm-151", " (did you mean arm-051 or arm-101 or arm-111? (4 more as close))"),
+        ("arm-151", " (did you mean arm-051 or arm-101 or arm-111, or 4 more as close?)"),
         ("arm-0007", " (did you mean arm-007?)"),  # one character too many (difflib)
         ("robot-x", ""),
+        ("a1", ""),  # a short id one character off another: as likely an id of its own
+        ("ARM1", " (did you mean arm1?)"),
     ],
 )
 def test_the_ids_offered_for_a_slip_are_the_closest_and_say_when_more_are(arm: str, hint: str) -> None:
     """A review: difflib alone offered ids as close as many others (arm-013 for arm-0O3) and cut the rest off
     without a word."""
-    assert cmd._nearest(arm, tuple(f"arm-{n:03d}" for n in range(1, 151))) == hint
+    assert cmd._nearest(arm, (*(f"arm-{n:03d}" for n in range(1, 151)), "b1", "arm1")) == hint
 
 
 def kept_cycle(store_arg: list[str], store: Any, capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:

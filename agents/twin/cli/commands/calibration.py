@@ -512,6 +512,8 @@ def _devices_named(mirrored: tuple[str, ...]) -> str:
     return f"{shown} and {rest} more" if rest > 0 else shown
 
 
+# Ids shorter than this get no one-character-off hint (difflib's 0.8 never offered one either).
+MIN_SLIP_LENGTH = 5
 # Characters a person types for one another in an id: a letter O for a zero, an l or I for a one.
 _LOOK_ALIKE = str.maketrans("oli", "011")
 
@@ -528,15 +530,17 @@ def _nearest(arm: str, mirrored: tuple[str, ...]) -> str:
     first (arm-0O3 for arm-003), then one character off, then one inserted or dropped (difflib)."""
     by_slips = {d: _slips(arm, d) for d in mirrored}
     fewest = min(by_slips.values(), default=3)
-    close = sorted(d for d, n in by_slips.items() if n == fewest) if fewest <= 1 else []
+    # One character off a short id (b1, a1) is as likely another id as a slip: case and look-alikes only.
+    allowed = 1 if len(arm) >= MIN_SLIP_LENGTH else 0
+    close = sorted(d for d, n in by_slips.items() if n == fewest) if fewest <= allowed else []
     if not close:
         ratios = {d: difflib.SequenceMatcher(None, arm, d).ratio() for d in mirrored}
         best = max(ratios.values(), default=0.0)
         close = sorted(d for d, ratio in ratios.items() if ratio == best) if best >= 0.8 else []
     if not close:
         return ""
-    more = f" ({len(close) - 3} more as close)" if len(close) > 3 else ""
-    return f" (did you mean {' or '.join(close[:3])}?{more})"
+    more = f", or {len(close) - 3} more as close" if len(close) > 3 else ""
+    return f" (did you mean {' or '.join(close[:3])}{more}?)"
 
 
 def _undo(store: CalibrationStore, arm: str, current: bytes | None, again: str) -> str:
