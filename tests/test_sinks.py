@@ -121,6 +121,36 @@ def test_status_changes_reach_only_the_workers_that_show_them_in_order_with_samp
     assert (sink.stats().delivered, sink.stats().errors) == (1, 0)
 
 
+class _GatedStatusRecorder(_Recorder):
+    """Stalls on its first sample (the gate) and records the status changes it is handed."""
+
+    def __init__(self, gate: threading.Event) -> None:
+        super().__init__(gate=gate)
+        self.statuses: list[str] = []
+
+    def handle_status(self, change: StatusChange) -> None:
+        self.statuses.append(f"{change.device_id} {change.status}")
+
+
+def test_a_status_change_a_full_queue_drops_is_counted() -> None:
+    """Status changes share the drop-oldest queue with samples (so a sink call stays a constant-time put):
+    under overload one may be dropped, and it is counted, as docs/web.md says."""
+    gate = threading.Event()
+    worker = _GatedStatusRecorder(gate)
+    sink = QueuedSink("shows", worker, max_pending=2)
+    sink.applied(_sample(0))
+    assert worker.entered.wait(30), "the sink's thread never took the first sample"
+    sink.status(
+        StatusChange("arm-001", DeviceStatus.ONLINE, DeviceStatus.STALE, at_mono_s=5.0, at_wall_s=5.0)
+    )
+    sink.applied(_sample(1))
+    sink.applied(_sample(2))  # the queue holds two: the change, the oldest, goes
+    gate.set()
+    sink.close()
+    assert worker.statuses == [] and worker.applied == [0, 1, 2]
+    assert (sink.stats().dropped, sink.stats().delivered) == (1, 3)
+
+
 def test_a_stalled_worker_never_blocks_the_caller_and_drops_the_oldest() -> None:
     gate = threading.Event()
     worker = _Recorder(gate=gate)
