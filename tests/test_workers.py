@@ -402,6 +402,40 @@ def test_a_mirror_thread_that_handles_batches_but_misses_the_timeout_is_busy_not
         assert not worker.killed, kind
 
 
+class _ServerLostWorker:
+    """A worker process as multiprocessing shows it once its fork server is killed: not alive, exit code
+    255, while the process of that pid (`child`) still runs."""
+
+    def __init__(self, child: subprocess.Popen[bytes]) -> None:
+        self.pid, self.exitcode = child.pid, 255
+
+    def is_alive(self) -> bool:
+        return False
+
+
+def test_a_worker_its_lost_fork_server_left_running_is_not_said_to_have_exited_once_it_does(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The agent's Events page asks `last_exit` after the supervisor found the worker dead. Judged again
+    then, a worker that still ran when its fork server was killed, and exited since (its pipes closed for
+    the restart), read as "exited, exit code 255"."""
+    now = [1000.0]
+    monkeypatch.setattr(shards.time, "monotonic", lambda: now[0])
+    config = load_config(None, {"telemetry.devices": ["*"]})
+    shard = shards.WorkerShard(0, config, DeviceBudget(10), context=None)  # type: ignore[arg-type]
+    child = subprocess.Popen(["sleep", "600"])
+    try:
+        shard.process = _ServerLostWorker(child)  # type: ignore[assignment]
+        shard.pid, shard.started_at = child.pid, now[0]
+        shard.supervise()  # found dead; a quick death, so started again only after a pause
+        assert shard.restarting
+    finally:
+        child.kill()
+        child.wait()
+    ended = shard.last_exit()
+    assert ended is not None and ended.pid == child.pid and ended.server_lost, ended
+
+
 def test_the_worker_answers_busy_when_its_mirror_thread_worked_through_the_wait() -> None:
     """What the worker's control thread answers when a wait for its mirror thread runs out: BUSY when the
     thread handled batches meanwhile (mirror.MirrorBusyError), STUCK when it handled none."""

@@ -1008,10 +1008,15 @@ class WorkerShard:
         return False  # a dead worker is started again
 
     def last_exit(self) -> WorkerExit | None:
-        process = self.process
+        process, ended = self.process, self._ended
         if process is not None and process.exitcode is not None:
-            return WorkerExit.seen(process.pid or self.pid, process.exitcode)
-        return self._ended
+            pid = process.pid or self.pid
+            # Judged once, when found dead: a worker its lost fork server left running exits once its pipes
+            # close, and judged again it would read as having exited with the server's 255.
+            if ended is not None and ended.pid == pid:
+                return ended
+            return WorkerExit.seen(pid, process.exitcode)
+        return ended
 
     def put(self, key: str, topic: str, payload: bytes, recv_mono: float, recv_wall: float) -> None:
         self.queue.put(key, (topic, payload, recv_mono, recv_wall))
