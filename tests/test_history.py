@@ -323,6 +323,30 @@ def test_a_table_that_keeps_failing_backs_off_while_another_commits(
     assert writer.stats().tables[REJECTED_TABLE].rows_committed == 3
 
 
+def test_a_failing_table_does_not_hold_back_the_commits_of_one_whose_storage_works(tmp_path: Path) -> None:
+    """Both tables waited out one backoff: with the rejected table failing, telemetry committed once per
+    retry_max_s, and at high rates its buffer filled and dropped rows its storage would have taken."""
+    base = tmp_path / "h"
+    base.mkdir()
+    (base / REJECTED_TABLE).write_text("not a directory")  # rejected's commits fail; telemetry's work
+    now = [1000.0]
+    settings = HistorySettings(uri=str(base), commit_every_s=5, retry_min_s=60, retry_max_s=60)
+    writer = HistoryWriter(settings, clock=lambda: now[0]).start()
+    try:
+        writer.add(TELEMETRY_TABLE, telemetry_table(samples(10))[0])
+        bad = RejectedSample("arm-001", "dt/lerobot/arm-001/telemetry", T0, "not_json", "", b"{")
+        writer.add(REJECTED_TABLE, rejected_table([bad], 100))
+        assert not writer.flush(10)  # rejected now waits out its 60 s
+        writer.add(TELEMETRY_TABLE, telemetry_table(samples(10, start_s=T0 + 1))[0])
+        now[0] += 5  # telemetry's commit_every_s, well within rejected's backoff
+        committed = lambda: writer.stats().tables[TELEMETRY_TABLE].rows_committed  # noqa: E731
+        wait_for(lambda: committed() == 20, 10, "telemetry's second commit")
+        tables = writer.stats().tables
+    finally:
+        writer.close(timeout=0)
+    assert tables[REJECTED_TABLE].commit_failures == 1  # and rejected is not retried before its time
+
+
 def test_a_commit_failing_at_the_stop_says_it_is_retried_each_second(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -523,8 +523,10 @@ class HistoryWriter:
         self._flushes_done = 0
         self._closing = False
         self._close_deadline = 0.0
-        self._retry_at = 0.0
-        self._backoff = settings.retry_min_s
+        # Each table backs off on its own: one whose commits fail must not slow the other's working ones
+        # until its buffer fills and drops rows that its storage would take.
+        self._retry_at = dict.fromkeys(SCHEMAS, 0.0)
+        self._backoff = dict.fromkeys(SCHEMAS, settings.retry_min_s)
         self._next_maintenance = self._maintenance_after(clock())
         self._tables: dict[str, Any] = {}
         self._appends_since_open = dict.fromkeys(SCHEMAS, 0)
@@ -595,7 +597,7 @@ class HistoryWriter:
         with self._cond:
             target = self._flushes_done + 1
             self._flush_requested = True
-            self._retry_at = 0.0
+            self._retry_at = dict.fromkeys(SCHEMAS, 0.0)
             self._cond.notify()
             deadline = time.monotonic() + timeout
             while self._flushes_done < target:
@@ -610,7 +612,7 @@ class HistoryWriter:
         with self._cond:
             self._closing = True
             self._close_deadline = time.monotonic() + timeout
-            self._retry_at = 0.0
+            self._retry_at = dict.fromkeys(SCHEMAS, 0.0)
             self._cond.notify()
         if self._started:
             self._thread.join(timeout + 5.0)
@@ -658,10 +660,8 @@ class HistoryWriter:
     def _due(self, now: float) -> bool:
         if self._closing or self._flush_requested:
             return True
-        if now < self._retry_at:
-            return False
         for table, queue in self._pending.items():
-            if not queue:
+            if not queue or now < self._retry_at[table]:
                 continue
             if self._stats.tables[table].rows_buffered >= self.settings.commit_every_rows:
                 return True
@@ -671,11 +671,10 @@ class HistoryWriter:
 
     def _wait_s(self, now: float) -> float:
         waits = [self._next_maintenance - now]
-        if self._retry_at > now:
-            waits.append(self._retry_at - now)
-        for queue in self._pending.values():
+        for table, queue in self._pending.items():
             if queue:
-                waits.append(queue[0].since + self.settings.commit_every_s - now)
+                due = max(queue[0].since + self.settings.commit_every_s, self._retry_at[table])
+                waits.append(due - now)
         return min(max(0.01, min(waits)), 1.0)
 
     def _run(self) -> None:
@@ -690,14 +689,13 @@ class HistoryWriter:
                 flush = self._flush_requested
                 self._flush_requested = False
                 batches: dict[str, list[_Pending]] = {}
-                if closing or flush or now >= self._retry_at:
-                    for table, queue in self._pending.items():
-                        if queue:
-                            batches[table] = list(queue)
-                            queue.clear()
-                            rows = sum(p.table.num_rows for p in batches[table])
-                            self._stats.tables[table].rows_buffered -= rows
-                            self._inflight_rows[table] += rows
+                for table, queue in self._pending.items():
+                    if queue and (closing or flush or now >= self._retry_at[table]):
+                        batches[table] = list(queue)
+                        queue.clear()
+                        rows = sum(p.table.num_rows for p in batches[table])
+                        self._stats.tables[table].rows_buffered -= rows
+                        self._inflight_rows[table] += rows
             ok = True
             for table, items in batches.items():
                 ok = self._commit_round(table, items) and ok
@@ -767,9 +765,8 @@ class HistoryWriter:
             if all_ok:
                 if not self._stats.storage_ok:
                     log.warning("history: writing to %s works again", self.settings.uri)
-                # Not while another table still fails: its retries would come each retry_min_s, each logged.
-                self._backoff = self.settings.retry_min_s
                 self._error_lines.clear()
+            self._backoff[table] = self.settings.retry_min_s
             self._stats.storage_ok = all_ok
         hook = self.on_commit
         if hook is not None:
@@ -887,16 +884,16 @@ class HistoryWriter:
                 queue.appendleft(item)
             stats.rows_buffered += n
             dropped = self._trim(table)
-            self._retry_at = now + self._backoff
+            self._retry_at[table] = now + self._backoff[table]
             # A stop retries a second apart until its deadline, whatever the backoff had reached: the line
             # said "retrying in 60 s" while the stop retried each second.
-            retry_in = 1.0 if self._closing else self._backoff
+            retry_in = 1.0 if self._closing else self._backoff[table]
             # The stop's last attempt: `_run` returns at the deadline, before another second is up.
             last = self._closing and time.monotonic() + retry_in >= self._close_deadline
             then = f"retrying in {retry_in:.0f} s"
             if last:
                 then = "not retried: the stop gives up on them at its deadline"
-            self._backoff = min(self._backoff * 2.0, self.settings.retry_max_s)
+            self._backoff[table] = min(self._backoff[table] * 2.0, self.settings.retry_max_s)
             buffered = stats.rows_buffered
             failures = stats.commit_failures
         # A drop is a loss, told whatever the interval; so is the stop's last attempt, whose rows it loses.
