@@ -10,6 +10,7 @@ itself tested on documents that break each rule, so it cannot pass everything.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 import math
 import threading
@@ -566,7 +567,7 @@ def test_a_broker_connection_down_is_reported_in_every_interval_it_lasts(tmp_pat
 
 def _scheduled_documents(tmp_path: Path, sample_s: float, documents: int) -> list[int]:
     """The minute (of the wall clock, here the same as the monotonic one) of each document that the
-    publisher's own loop writes, every 60 s from 0.5 s into the first minute, when each sample takes
+    publisher's own loop writes, every 60 s, started 0.5 s into the first minute, when each sample takes
     `sample_s` (the agent asks every worker for its state, up to ASK_TIMEOUT_S)."""
     clock = [0.5]
     writer = EmfFileWriter(tmp_path / "emf.log")
@@ -599,6 +600,39 @@ def test_a_publish_longer_than_the_interval_skips_the_slots_it_missed(tmp_path: 
     assert next_slot(60.0, 60.0, 60.0) == 120.0
     assert next_slot(60.0, 200.0, 60.0) == 240.0
     assert next_slot(60.0, 119.0, 60.0) == 120.0
+
+
+@pytest.mark.parametrize(("interval_s", "phase"), [(60.0, 30.0), (10.0, 5.0)])
+def test_slots_lie_mid_minute_by_the_wall_clock_and_keep_to_the_monotonic_one(
+    tmp_path: Path, interval_s: float, phase: float
+) -> None:
+    """Slots were an interval apart from the start, wherever that fell in the wall minute: one a few ms
+    from a minute boundary could leave a minute empty and break the 5-of-5 alarms. The first is lined up
+    with the middle of a wall minute; the rest stay on the monotonic clock (a wall clock stepped by NTP
+    moves none of them). The two clocks differ here, so scheduling on the wrong one shows."""
+    mono, wall = [500.0], [1_000_000_012.3]  # 52.3 s into a wall minute, 20 s into a monotonic one
+    started = (mono[0], wall[0])
+    published: list[tuple[float, float]] = []
+    writer = EmfFileWriter(tmp_path / "emf.log")
+
+    def sample() -> FleetTotals:
+        published.append((mono[0], wall[0]))
+        return FleetTotals(0, 0, 1, 0, 0, 0.0, None, {})
+
+    def wait(seconds: float) -> bool:
+        mono[0] += seconds
+        wall[0] += seconds + (7.0 if len(published) == 1 else 0.0)  # stepped once, after the first
+        return len(published) >= 4
+
+    publisher = EmfPublisher(
+        writer, "a", sample, interval_s=interval_s, clock=lambda: mono[0], wall=lambda: wall[0], wait=wait
+    )
+    publisher.run()
+    (first_mono, first_wall), *_ = published
+    assert interval_s <= first_mono - started[0] < 2 * interval_s
+    assert first_wall % interval_s == pytest.approx(phase, abs=1e-5)
+    gaps = [b[0] - a[0] for a, b in itertools.pairwise(published)]
+    assert gaps == pytest.approx([interval_s] * 3)
 
 
 def test_severity_lines_the_disk_refused_after_the_counts_are_a_write_failure(tmp_path: Path) -> None:

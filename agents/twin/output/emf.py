@@ -357,6 +357,15 @@ def next_slot(scheduled: float, now: float, interval_s: float) -> float:
     return slot
 
 
+def first_slot(mono: float, wall: float, interval_s: float) -> float:
+    """The monotonic time of the first publish: an interval or more from now, where the wall clock reads the
+    middle of a minute (30 s past it; for a shorter interval, half an interval past a grid line from the
+    minute's start). A slot the start's chance put a few ms from a minute boundary could land, after some
+    drift, in the next minute or the one before, leaving a minute empty and breaking its 5-of-5 alarms."""
+    phase = min(interval_s / 2.0, 30.0)
+    return mono + interval_s + (phase - (wall + interval_s)) % interval_s
+
+
 class EmfPublisher:
     """Every `interval_s`, turns the service's totals into one interval's FleetMetrics and writes them.
 
@@ -400,8 +409,8 @@ class EmfPublisher:
         """Sample (or take `totals`: the agent's last document, at its stop), write this interval's documents,
         return the figures (the first call's totals are taken as rising from zero, since tracking began)."""
         now = self._clock()
-        # The time written is the slot's, not the end of a sample that can wait seconds on slow workers:
-        # CloudWatch files the document under that minute.
+        # The wall clock as the publish begins, not at the end of a sample that can wait seconds on slow
+        # workers: a slot lies mid-minute (first_slot), so CloudWatch files the document under its minute.
         wall_ms = round(self._wall() * 1000)
         if totals is None:
             totals = self._sample()
@@ -447,9 +456,10 @@ class EmfPublisher:
             self._thread = None
 
     def run(self) -> None:
-        """Publish at every slot of a fixed grid, `interval_s` apart from now (next_slot), until stop();
-        start() runs this on its own thread."""
-        slot = self._clock() + self.interval_s
+        """Publish at every slot of a fixed grid, `interval_s` apart on the monotonic clock from a first slot
+        lined up with the wall clock's minutes (first_slot, next_slot), until stop(); start() runs this on its
+        own thread."""
+        slot = first_slot(self._clock(), self._wall(), self.interval_s)
         while not self._wait(max(0.0, slot - self._clock())):
             try:
                 self.publish_once()
