@@ -523,8 +523,6 @@ class HistoryWriter:
         self._flushes_done = 0
         self._closing = False
         self._close_deadline = 0.0
-        # Each table backs off on its own: one whose commits fail must not slow the other's working ones
-        # until its buffer fills and drops rows that its storage would take.
         self._retry_at = dict.fromkeys(SCHEMAS, 0.0)
         self._backoff = dict.fromkeys(SCHEMAS, settings.retry_min_s)
         self._next_maintenance = self._maintenance_after(clock())
@@ -661,6 +659,8 @@ class HistoryWriter:
         if self._closing or self._flush_requested:
             return True
         for table, queue in self._pending.items():
+            # Each table backs off on its own: one whose commits fail must not slow the other's working ones
+            # until its buffer fills and drops rows that its storage would take.
             if not queue or now < self._retry_at[table]:
                 continue
             if self._stats.tables[table].rows_buffered >= self.settings.commit_every_rows:
