@@ -635,6 +635,18 @@ def test_slots_lie_mid_minute_by_the_wall_clock_and_keep_to_the_monotonic_one(
     assert gaps == pytest.approx([interval_s] * 3)
 
 
+def test_the_first_documents_rate_is_over_the_time_since_the_start(tmp_path: Path) -> None:
+    """A review: the first slot lies one to two intervals after the start (mid-minute), but its totals were
+    divided by one interval, overstating MessagesPerSecond up to twice."""
+    mono = [100.0]
+    publisher = EmfPublisher(EmfFileWriter(tmp_path / "emf.log"), "a", lambda: None, clock=lambda: mono[0])
+    mono[0] += 90.0  # the first slot, 1.5 intervals on
+    fleet = publisher.publish_once(FleetTotals(900, 0, 1, 0, 0, 0.0, None, {}))
+    assert fleet.messages_per_s == pytest.approx(10.0)
+    mono[0] += 60.0
+    assert publisher.publish_once(FleetTotals(1500, 0, 1, 0, 0, 0.0, None, {})).messages_per_s == 10.0
+
+
 def test_severity_lines_the_disk_refused_after_the_counts_are_a_write_failure(tmp_path: Path) -> None:
     """docs/servo-health.md: EmfWriteFailures counts an interval whose per-severity ActiveAlarms were lost
     too (the counts got through), since those figures are missing from CloudWatch and the disk is full."""

@@ -397,6 +397,7 @@ class EmfPublisher:
         self._clock = clock
         self._wall = wall
         self._last: tuple[float, FleetTotals] | None = None
+        self._started = clock()
         self._stop = threading.Event()
         self._wait = wait or self._stop.wait
         self._thread: threading.Thread | None = None
@@ -415,7 +416,9 @@ class EmfPublisher:
         if totals is None:
             totals = self._sample()
         if self._last is None:
-            since, before = now - self.interval_s, None
+            # The first slot lies one to two intervals after the start (first_slot): its totals rose over
+            # all of that time, which one interval would overstate up to twice.
+            since, before = min(now - self.interval_s, self._started), None
         else:
             since, before = self._last
         span = max(now - since, 1e-9)
