@@ -263,7 +263,14 @@ def test_a_clock_that_stands_still_is_told_once_a_minute_with_the_rebuilds_betwe
     untold = [int(line.split(" (")[1].split(" ")[0]) for line in told[1:]]
     # Each rebuild told or counted in the next word, but for those since the last one (under a minute's).
     assert 0 <= resets - sum(untold) - len(told) < 26, (untold, resets)
-    assert "fix: set the edge's clock by NTP" in told[0]
+    assert "fix: set the edge's clock by NTP" in told[0] and "fix: set the edge's clock by NTP" in logged[0]
+    # A jump back during the standstill is named at once, not counted under the standstill's word.
+    for i in range(6):
+        clock.now += 0.4
+        body = encode(make_payload("arm-001", i * 0.4, "ticks", rng, timestamp_ms=stamp - 10_000 + i))
+        mirror._handle(Batch(("arm-001",), (topic,), (body,), (clock.now,), (clock.now,)), 0)
+    told = [e.message for e in mirror._events.query(EventQuery()) if e.kind == EventKind.TWIN]
+    assert len(told) == 4 and "jumped backwards" in told[-1], told
 
 
 def test_edge_clock_jump_backwards_rebuilds_the_twin(rig: LocalRig, publisher: Publisher) -> None:

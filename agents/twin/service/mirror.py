@@ -250,6 +250,7 @@ class _Device:
         "gripper_percent",
         "health",
         "loss",
+        "reset_how",
         "reset_told",
         "resets_untold",
         "stale_since",
@@ -266,6 +267,7 @@ class _Device:
         self.stale_streak = 0
         self.stale_since = 0.0
         self.reset_told = -float("inf")
+        self.reset_how = ""
         self.resets_untold = 0
         self.gripper_percent: float | None = None
         self.units: Units | None = None
@@ -1259,13 +1261,14 @@ class Mirror:
         applied = twin.apply(telemetry.angles_rad, telemetry.timestamp_ms)
         record.health.clock_resets += 1
         record.health.clamped += twin.clamped
-        if 0 <= recv_mono - record.reset_told < CLOCK_RESET_TELL_EVERY_S:
+        how = "stands still" if previous == telemetry.timestamp_ms else "jumped backwards"
+        # Within a minute of the last word, and the same kind: a jump during a standstill is still named.
+        if 0 <= recv_mono - record.reset_told < CLOCK_RESET_TELL_EVERY_S and how == record.reset_how:
             record.resets_untold += 1
             return applied
-        how = "stands still" if previous == telemetry.timestamp_ms else "jumped backwards"
         more = f" ({record.resets_untold} more rebuilds since the last word)" if record.resets_untold else ""
         log.warning(
-            "edge clock of %s %s; twin rebuilt on the new timeline%s",
+            "edge clock of %s %s; twin rebuilt on the new timeline%s; fix: set the edge's clock by NTP",
             device,
             how,
             more,
@@ -1273,7 +1276,7 @@ class Mirror:
         )
         untold = record.resets_untold
         self._watch.clock_reset(device, previous, telemetry.timestamp_ms, how=how, untold=untold)
-        record.reset_told, record.resets_untold = recv_mono, 0
+        record.reset_told, record.reset_how, record.resets_untold = recv_mono, how, 0
         return applied
 
     def _record_all(
