@@ -36,8 +36,9 @@ class EdgeTime:
     untold: int = 0
 
     def place(self, edge_ms: int, received_s: float, *, device: str, output: str) -> int:
-        """The sample's time (ms) on the arm's line, from its edge timestamp and the agent's monotonic
-        receive time; `device` and `output` name the arm and the output in the warning a reset logs."""
+        """The sample's time (ms) on the arm's line, from its edge timestamp and the agent's receive time
+        (monotonic live; a session export's are wall-clock); `device` and `output` name the arm and the
+        output in the warning a reset logs."""
         if self.shift_ms and edge_ms > self.last_ms:
             self.shift_ms = 0
         ms = edge_ms + self.shift_ms
