@@ -298,17 +298,28 @@ def test_storage_reads_failing_while_any_tables_last_commit_failed(tmp_path: Pat
     assert writer.stats().tables[TELEMETRY_TABLE].rows_committed == 20
 
 
+def writer_with_a_broken_table(
+    tmp_path: Path, broken: str, *, commit_every_s: float, retry_min_s: float
+) -> tuple[HistoryWriter, list[float]]:
+    """A started writer whose `broken` table's commits fail (a file where its directory goes), on a clock
+    the test moves (`now[0]`), backing off up to 60 s."""
+    base = tmp_path / "h"
+    base.mkdir()
+    (base / broken).write_text("not a directory")
+    now = [1000.0]
+    settings = HistorySettings(
+        uri=str(base), commit_every_s=commit_every_s, retry_min_s=retry_min_s, retry_max_s=60
+    )
+    return HistoryWriter(settings, clock=lambda: now[0]).start(), now
+
+
 def test_a_table_that_keeps_failing_backs_off_while_another_commits(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     """Each good commit of the rejected table set the backoff back to retry_min_s and let the next failure's
     line through: telemetry failing alone was retried and logged every second."""
-    base = tmp_path / "h"
-    base.mkdir()
-    (base / TELEMETRY_TABLE).write_text("not a directory")  # telemetry's commits fail; rejected's work
-    now = [1000.0]
-    settings = HistorySettings(uri=str(base), commit_every_s=3600, retry_min_s=1, retry_max_s=60)
-    writer = HistoryWriter(settings, clock=lambda: now[0]).start()
+    # telemetry's commits fail; rejected's work
+    writer, _ = writer_with_a_broken_table(tmp_path, TELEMETRY_TABLE, commit_every_s=3600, retry_min_s=1)
     try:
         with caplog.at_level(logging.ERROR, logger="twin.output.history"):
             for k in range(3):
@@ -326,12 +337,8 @@ def test_a_table_that_keeps_failing_backs_off_while_another_commits(
 def test_a_failing_table_does_not_hold_back_the_commits_of_one_whose_storage_works(tmp_path: Path) -> None:
     """Both tables waited out one backoff: with the rejected table failing, telemetry committed once per
     retry_max_s, and at high rates its buffer filled and dropped rows its storage would have taken."""
-    base = tmp_path / "h"
-    base.mkdir()
-    (base / REJECTED_TABLE).write_text("not a directory")  # rejected's commits fail; telemetry's work
-    now = [1000.0]
-    settings = HistorySettings(uri=str(base), commit_every_s=5, retry_min_s=60, retry_max_s=60)
-    writer = HistoryWriter(settings, clock=lambda: now[0]).start()
+    # rejected's commits fail; telemetry's work
+    writer, now = writer_with_a_broken_table(tmp_path, REJECTED_TABLE, commit_every_s=5, retry_min_s=60)
     try:
         writer.add(TELEMETRY_TABLE, telemetry_table(samples(10))[0])
         bad = RejectedSample("arm-001", "dt/lerobot/arm-001/telemetry", T0, "not_json", "", b"{")

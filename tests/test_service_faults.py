@@ -228,14 +228,6 @@ def test_reordered_and_duplicated_never_move_the_twin_backwards(rig: LocalRig, p
     assert metric(samples, "twin_messages_ignored_stale_total", device="arm-001") == expected_ignored
 
 
-class _Now:
-    def __init__(self) -> None:
-        self.now = 1000.0
-
-    def __call__(self) -> float:
-        return self.now
-
-
 def test_a_clock_that_stands_still_is_told_once_a_minute_with_the_rebuilds_between(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
@@ -243,7 +235,7 @@ def test_a_clock_that_stands_still_is_told_once_a_minute_with_the_rebuilds_betwe
     2 s (CLOCK_RESET_AFTER_S), and each rebuild logged a warning and made an event, "jumped backwards": 30 a
     minute of each, wrongly named. A real mirror on an injected clock, 2.5 messages a second for 130 s."""
     config = load_config(None, {"telemetry.devices": ["arm-001"], "telemetry.units": "ticks"})
-    clock = _Now()
+    clock = ManualClock()
     mirror = Mirror(config, inbox=PipeInbox(Pipe(duplex=False)[0]), budget=DeviceBudget(4), clock=clock)
     rng = random.Random(3)
     stamp = int(time.time() * 1000)
