@@ -47,7 +47,9 @@ class Throttle:
         self.streak += 1
         self._untold += 1
         now = self._clock() if now is None else now
-        if not force and self.streak > self.first and now - self._told_at < self.interval_s:
+        # A reading behind the last line's (a wall clock stepped back, where a caller passes one) tells again:
+        # held back, the condition would stay untold for as long as the step.
+        if not force and self.streak > self.first and 0 <= now - self._told_at < self.interval_s:
             return None
         self._told_at = now
         self.told += 1

@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+
+from twin.core.throttle import Throttle
 
 log = logging.getLogger(__name__)
 
@@ -32,8 +34,7 @@ class EdgeTime:
     last_received_s: float = math.nan
     # A clock that stands still is rebuilt on every 2 s by the mirror: one warning a minute per output, with
     # how many were not told, rather than three every 2 s beside the mirror's own.
-    warned_s: float = -math.inf
-    untold: int = 0
+    warnings: Throttle = field(default_factory=lambda: Throttle(WARN_EVERY_S))
 
     def place(self, edge_ms: int, received_s: float, *, device: str, output: str) -> int:
         """The sample's time (ms) on the arm's line, from its edge timestamp and the agent's receive time
@@ -55,9 +56,8 @@ class EdgeTime:
         return ms
 
     def _warn(self, received_s: float, behind_s: float, device: str, output: str) -> None:
-        # A receive time behind the last warning's (a session export's wall clock stepped back) tells again.
-        if 0 <= received_s - self.warned_s < WARN_EVERY_S:
-            self.untold += 1
+        since = self.warnings.due(now=received_s)
+        if since is None:
             return
         log.warning(
             "%s: the edge clock of %s went back or stood still (%.1f s behind the arm's time line%s); its "
@@ -66,10 +66,8 @@ class EdgeTime:
             output,
             device,
             behind_s,
-            f"; {self.untold} more such since the last warning" if self.untold else "",
+            f"; {since - 1} more such since the last warning" if since > 1 else "",
         )
-        self.warned_s = received_s
-        self.untold = 0
 
     def after_last(self, at_s: float) -> int:
         """The time (ms) on the arm's line of something the agent saw at `at_s` (monotonic, the receive

@@ -96,6 +96,7 @@ from twin.core.telemetry import (
     Units,
     diagnostic_columns,
 )
+from twin.core.throttle import Throttle
 from twin.core.twin import DeviceTwin, TwinSnapshot, holding_torques_of
 from twin.output.sinks import AppliedSample, RejectedSample, StatusChange, TwinSink, rejected_sample
 
@@ -251,8 +252,7 @@ class _Device:
         "health",
         "loss",
         "reset_how",
-        "reset_told",
-        "resets_untold",
+        "reset_words",
         "stale_since",
         "stale_streak",
         "twin",
@@ -266,9 +266,9 @@ class _Device:
         self.loss = loss
         self.stale_streak = 0
         self.stale_since = 0.0
-        self.reset_told = -float("inf")
+        # The clock reset's word (CLOCK_RESET_TELL_EVERY_S), made at the first reset, and its kind.
+        self.reset_words: Throttle | None = None
         self.reset_how = ""
-        self.resets_untold = 0
         self.gripper_percent: float | None = None
         self.units: Units | None = None
         self.diagnostics: Mapping[str, JointDiagnostics] | None = None
@@ -1262,11 +1262,15 @@ class Mirror:
         record.health.clock_resets += 1
         record.health.clamped += twin.clamped
         how = "stands still" if previous == telemetry.timestamp_ms else "jumped backwards"
-        # Within a minute of the last word, and the same kind: a jump during a standstill is still named.
-        if 0 <= recv_mono - record.reset_told < CLOCK_RESET_TELL_EVERY_S and how == record.reset_how:
-            record.resets_untold += 1
+        words = record.reset_words = record.reset_words or Throttle(CLOCK_RESET_TELL_EVERY_S)
+        # A jump during a standstill is named at once, not counted under the standstill's word.
+        carried = words.clear() if how != record.reset_how else 0
+        record.reset_how = how
+        since = words.due(now=recv_mono)
+        if since is None:
             return applied
-        more = f" ({record.resets_untold} more rebuilds since the last word)" if record.resets_untold else ""
+        untold = since - 1 + carried
+        more = f" ({untold} more rebuilds since the last word)" if untold else ""
         log.warning(
             "edge clock of %s %s; twin rebuilt on the new timeline%s; fix: set the edge's clock by NTP",
             device,
@@ -1274,9 +1278,7 @@ class Mirror:
             more,
             extra={"device": device, "last_ms": previous, "now_ms": telemetry.timestamp_ms},
         )
-        untold = record.resets_untold
         self._watch.clock_reset(device, previous, telemetry.timestamp_ms, how=how, untold=untold)
-        record.reset_told, record.reset_how, record.resets_untold = recv_mono, how, 0
         return applied
 
     def _record_all(
