@@ -563,15 +563,16 @@ class RerunWorker:
         arm = self._arms.get(change.device_id)
         if arm is None:
             return  # nothing of it is shown (its samples were all skipped or dropped)
-        self._rec.set_time(TIMELINE, timestamp=np.datetime64(arm.edge.after_last(change.at_mono_s), "ms"))
+        at_ms = arm.edge.after_last(change.at_mono_s)
+        self._rec.set_time(TIMELINE, timestamp=np.datetime64(at_ms, "ms"))
         level = _STATUS_LEVELS.get(change.status, rr.TextLogLevel.INFO)
         text = f"arm {change.status} (was {change.previous})"
         if change.status in _STATUS_COLOURS:
             text += ": its pose is the last one it sent"
-            arm.shown, arm.shown_ms = change.status, arm.edge.after_last(change.at_mono_s)
+            arm.shown, arm.shown_ms = change.status, at_ms
             self._label(arm)
         elif arm.shown != "ONLINE":
-            self._unlabel(arm, arm.edge.after_last(change.at_mono_s))
+            self._unlabel(arm, at_ms)
         self._rec.log(f"{arm.entity}/events", rr.TextLog(text, level=level))
 
     def _label(self, arm: _Arm, rec: _Tee | None = None) -> None:
