@@ -309,6 +309,10 @@ def _interval_metrics(
     decoded = totals.decoded - (before.decoded if before else 0)
     rejected = totals.rejected - (before.rejected if before else 0)
     history = totals.history_lag_s is not None
+
+    def grew(name: str) -> int:
+        return increase(getattr(totals, name), getattr(before, name) if before else None)
+
     return FleetMetrics(
         messages_per_s=max(0, decoded) / span,
         rejects=max(0, rejected),
@@ -319,27 +323,15 @@ def _interval_metrics(
         devices_offline=totals.devices_offline,
         internal_latency_p99_ms=totals.internal_latency_p99_ms,
         active_alarms=totals.active_alarms,
-        messages_dropped=increase(totals.messages_dropped, before.messages_dropped if before else None),
-        sink_drops=increase(totals.sink_drops, before.sink_drops if before else None),
-        worker_restarts=increase(totals.worker_restarts, before.worker_restarts if before else None),
+        messages_dropped=grew("messages_dropped"),
+        sink_drops=grew("sink_drops"),
+        worker_restarts=grew("worker_restarts"),
         subscriptions_refused=totals.subscriptions_refused,
         broker_disconnected=totals.broker_disconnected,
-        device_limit_refusals=increase(
-            totals.device_limit_refusals, before.device_limit_refusals if before else None
-        ),
-        alert_publish_failures=increase(
-            totals.alert_publish_failures, before.alert_publish_failures if before else None
-        ),
-        history_rows_dropped=increase(
-            totals.history_rows_dropped, before.history_rows_dropped if before else None
-        )
-        if history
-        else None,
-        history_commit_failures=increase(
-            totals.history_commit_failures, before.history_commit_failures if before else None
-        )
-        if history
-        else None,
+        device_limit_refusals=grew("device_limit_refusals"),
+        alert_publish_failures=grew("alert_publish_failures"),
+        history_rows_dropped=grew("history_rows_dropped") if history else None,
+        history_commit_failures=grew("history_commit_failures") if history else None,
         history_lag_s=totals.history_lag_s,
         history_commits_failing=totals.history_commits_failing,
         emf_write_failures=write_failures,
