@@ -888,6 +888,13 @@ def test_a_push_to_the_stack_for_an_arm_it_does_not_mirror_says_so(
     assert "the stack mirrors arm-001, arm-002 (its devices setting), not arm-0O3" in err, err
     assert "add it to devices in twin.settings.toml" in err and "`twin calibration rm arm-0O3`" in err, err
     assert s3.get_object(Bucket="twin-bucket", Key="calibration/arm-0O3.json")  # stored, as asked
+    # The same file again writes nothing, but says why no twin uses it: a walk's re-push said "nothing
+    # written" alone, as if all were well.
+    assert main(["calibration", "push", "arm-0O3", str(EXAMPLE)]) == cmd.EXIT_OK
+    out, err = capsys.readouterr()
+    assert "already holds this calibration; nothing written" in out, out
+    assert "the stack mirrors arm-001, arm-002 (its devices setting), not arm-0O3" in err, err
+    assert "It was stored before (if that was a slip: `twin calibration rm arm-0O3`)" in err, err
     # ls marks it too, long after the push's warning scrolled away.
     assert main(["calibration", "ls"]) == cmd.EXIT_OK
     out, err = capsys.readouterr()

@@ -401,17 +401,14 @@ def _push(
         return EXIT_USAGE
     if current == data:
         console.out(f"{arm}: {store.uri_of(arm)} already holds this calibration; nothing written")
+        if mirrored is not None and arm not in mirrored:
+            # A re-push is often a retry of a twin that never moved: the reason is the same as the first
+            # push's, whose warning may have scrolled away. Removing it is an rm, as if just stored.
+            _warn_unmirrored(arm, mirrored, f"It was stored before ({_undo(store, arm, None, again)})")
         return EXIT_OK
     if mirrored is not None and arm not in mirrored:
-        # The host subscribes to the listed arms' topics only: a mistyped id would sit in the bucket unused,
-        # told only in the host's log. Stored all the same: an arm may be calibrated before it is deployed.
-        console.err(
-            f"warning: the stack mirrors {_devices_named(mirrored)} (its devices setting), not {arm}"
-            f"{_nearest(arm, mirrored)}, so no twin "
-            f"uses this calibration yet; if {arm} is the id its edge publishes as, add it to devices in "
-            f"twin.settings.toml and deploy (`npx cdk deploy`), else push under the arm's id. It is stored "
-            f"as asked ({_undo(store, arm, current, again)})"
-        )
+        # Stored all the same: an arm may be calibrated before it is deployed.
+        _warn_unmirrored(arm, mirrored, f"It is stored as asked ({_undo(store, arm, current, again)})")
     named_for = file.stem
     if named_for != arm and named_for in listing:
         # LeRobot names the file for the arm it calibrated: this may be another arm's, pushed by mistake.
@@ -442,6 +439,19 @@ def _push(
     if current is not None:
         console.out(f"{arm}: {_kept_said(arm, why, kept, again)}")
     return EXIT_OK
+
+
+def _warn_unmirrored(arm: str, mirrored: tuple[str, ...], stored: str) -> None:
+    """Say that the stack does not mirror ARM, so no twin uses its calibration (`stored`: where that leaves
+    the calibration, and its undo)."""
+    # The host subscribes to the listed arms' topics only: a mistyped id would sit in the bucket unused,
+    # told only in the host's log.
+    console.err(
+        f"warning: the stack mirrors {_devices_named(mirrored)} (its devices setting), not {arm}"
+        f"{_nearest(arm, mirrored)}, so no twin uses this calibration yet; if {arm} is the id its edge "
+        f"publishes as, add it to devices in twin.settings.toml and deploy (`npx cdk deploy`), else push "
+        f"under the arm's id. {stored}"
+    )
 
 
 def _keep(store: CalibrationStore, arm: str, current: bytes, why: str) -> str | None:
