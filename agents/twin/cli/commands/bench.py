@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -245,24 +246,32 @@ def _every_scenario(args: argparse.Namespace) -> dict[str, Any]:
     """`twin bench all`: the two throughput loads the targets name, fidelity, footprint, ROS 2, render, Rerun,
     the quota (one connection vs the pool), decode and a USD recording sample against json.loads, a worker's
     cost per message, and the agent's whole cost per message in json.loads units; then the plot of them."""
-    throughput = _bench("throughput")
-    results = {
-        "throughput": [
-            throughput.run(arms=100, rate=10.0, seconds=args.seconds),
-            throughput.run(arms=2000, rate=10.0, seconds=args.seconds),
-        ],
-        "fidelity": _bench("fidelity").run(),
-        "footprint": _bench("footprint").run(),
-        "ros2": _bench("ros2").run(arms=100, rate=10.0, seconds=args.seconds),
-        "render": _bench("render").run(),
-        "rerun": _bench("rerun").run(arms=100, rate=10.0, seconds=args.seconds),
-        "quota": _bench("quota").run(seconds=args.seconds),
-        "decode": _bench("decode").run(),
-        "usd": _bench("usd").run(),
-        "worker": _bench("worker").run(),
-        "console": _bench("console").run(seconds=args.seconds),
-        "cost": _bench("cost").run(seconds=args.seconds),
-    }
+    throughput, seconds = _bench("throughput"), args.seconds
+    steps: list[tuple[str, Callable[[], dict[str, Any]]]] = [
+        ("throughput", lambda: throughput.run(arms=100, rate=10.0, seconds=seconds)),
+        ("throughput", lambda: throughput.run(arms=2000, rate=10.0, seconds=seconds)),
+        ("fidelity", lambda: _bench("fidelity").run()),
+        ("footprint", lambda: _bench("footprint").run()),
+        ("ros2", lambda: _bench("ros2").run(arms=100, rate=10.0, seconds=seconds)),
+        ("render", lambda: _bench("render").run()),
+        ("rerun", lambda: _bench("rerun").run(arms=100, rate=10.0, seconds=seconds)),
+        ("quota", lambda: _bench("quota").run(seconds=seconds)),
+        ("decode", lambda: _bench("decode").run()),
+        ("usd", lambda: _bench("usd").run()),
+        ("worker", lambda: _bench("worker").run()),
+        ("console", lambda: _bench("console").run(seconds=seconds)),
+        ("cost", lambda: _bench("cost").run(seconds=seconds)),
+    ]
+    results: dict[str, Any] = {"throughput": []}
+    for n, (name, step) in enumerate(steps, 1):
+        # Minutes with no output otherwise (more on a busy machine), and stdout is often a file: say where it
+        # is, on stderr, so the figures stay as they were.
+        console.err(f"{n} of {len(steps)}: {name}")
+        figures = step()
+        if name == "throughput":
+            results[name].append(figures)
+        else:
+            results[name] = figures
     results["plot"] = str(_bench("plot").write(results, args.plot))
     return results
 
