@@ -36,8 +36,11 @@ def test_bench_all_says_which_scenario_runs_on_stderr_and_prints_only_figures(
     out, err = capsys.readouterr()
     figures = json.loads(out)  # stdout stays the figures alone
     lines = err.splitlines()
-    assert lines[0] == "twin bench: 1 of 13: throughput" and lines[-1] == "twin bench: 13 of 13: cost", err
+    assert (
+        lines[0] == "twin bench: 1 of 13: throughput (100 arms)" and lines[-1] == "twin bench: 13 of 13: cost"
+    ), err
     assert len(lines) == 13 == len(ran), err
+    assert lines[1] == "twin bench: 2 of 13: throughput (2000 arms)", err
     assert [f["arms"] for f in figures["throughput"]] == [100, 2000]
     assert list(figures)[1:] == [
         *("fidelity", "footprint", "ros2", "render", "rerun", "quota", "decode", "usd", "worker", "console"),

@@ -248,8 +248,8 @@ def _every_scenario(args: argparse.Namespace) -> dict[str, Any]:
     cost per message, and the agent's whole cost per message in json.loads units; then the plot of them."""
     throughput, seconds = _bench("throughput"), args.seconds
     steps: list[tuple[str, Callable[[], dict[str, Any]]]] = [
-        ("throughput", lambda: throughput.run(arms=100, rate=10.0, seconds=seconds)),
-        ("throughput", lambda: throughput.run(arms=2000, rate=10.0, seconds=seconds)),
+        ("throughput (100 arms)", lambda: throughput.run(arms=100, rate=10.0, seconds=seconds)),
+        ("throughput (2000 arms)", lambda: throughput.run(arms=2000, rate=10.0, seconds=seconds)),
         ("fidelity", lambda: _bench("fidelity").run()),
         ("footprint", lambda: _bench("footprint").run()),
         ("ros2", lambda: _bench("ros2").run(arms=100, rate=10.0, seconds=seconds)),
@@ -268,8 +268,8 @@ def _every_scenario(args: argparse.Namespace) -> dict[str, Any]:
         # is, on stderr, so the figures stay as they were.
         console.err(f"{n} of {len(steps)}: {name}")
         figures = step()
-        if name == "throughput":
-            results[name].append(figures)
+        if name.startswith("throughput"):
+            results["throughput"].append(figures)
         else:
             results[name] = figures
     results["plot"] = str(_bench("plot").write(results, args.plot))

@@ -544,8 +544,9 @@ def _nearest(arm: str, mirrored: tuple[str, ...]) -> str:
     allowed = 1 if len(arm) >= MIN_SLIP_LENGTH else 0
     close = sorted(d for d, n in by_slips.items() if n == fewest) if fewest <= allowed else []
     if not close:
-        # Not difflib.get_close_matches: its n best cut ties off unsaid (for arm-15, arm-150, arm-145 and
-        # arm-135 of 7 as close, arm-015 not among them) and fill up with less close ids; here all ties count.
+        # Not difflib.get_close_matches: its n best cut ties off unsaid (for arm-15 among arm-001..arm-150:
+        # arm-150, arm-145 and arm-135 of 7 as close, arm-015 not among them) and fill up with less close
+        # ids; here all ties count.
         ratios = {d: difflib.SequenceMatcher(None, arm, d).ratio() for d in mirrored}
         best = max(ratios.values(), default=0.0)
         close = sorted(d for d, ratio in ratios.items() if ratio == best) if best >= 0.8 else []
