@@ -122,33 +122,45 @@ def test_status_changes_reach_only_the_workers_that_show_them_in_order_with_samp
 
 
 class _GatedStatusRecorder(_Recorder):
-    """Stalls on its first sample (the gate) and records the status changes it is handed."""
+    """Stalls on its first sample (the gate); records the samples and status changes it gets, in order."""
 
     def __init__(self, gate: threading.Event) -> None:
         super().__init__(gate=gate)
-        self.statuses: list[str] = []
+        self.order: list[int | str] = []
+
+    def handle_applied(self, sample: AppliedSample) -> None:
+        super().handle_applied(sample)
+        self.order.append(self.applied[-1])
 
     def handle_status(self, change: StatusChange) -> None:
-        self.statuses.append(f"{change.device_id} {change.status}")
+        self.order.append(f"{change.device_id} {change.status}")
 
 
-def test_a_status_change_a_full_queue_drops_is_counted() -> None:
-    """Status changes share the drop-oldest queue with samples (so a sink call stays a constant-time put):
-    under overload one may be dropped, and it is counted, as docs/web.md says."""
+def _change(device: str, previous: DeviceStatus, status: DeviceStatus) -> StatusChange:
+    return StatusChange(device, previous, status, at_mono_s=5.0, at_wall_s=5.0)
+
+
+def test_a_full_queue_drops_samples_but_each_arms_newest_status_change_gets_through() -> None:
+    """A review: status changes shared the drop-oldest queue with samples, so under overload a change could
+    be dropped, and a quiet arm (which sends no sample to correct it) stayed unlabelled in Rerun until its
+    next change. An arm's newest change the queue drops now waits beside it and goes first; one a newer change
+    of the arm replaced is dropped and counted, like a sample."""
     gate = threading.Event()
     worker = _GatedStatusRecorder(gate)
     sink = QueuedSink("shows", worker, max_pending=2)
     sink.applied(_sample(0))
     assert worker.entered.wait(30), "the sink's thread never took the first sample"
-    sink.status(
-        StatusChange("arm-001", DeviceStatus.ONLINE, DeviceStatus.STALE, at_mono_s=5.0, at_wall_s=5.0)
-    )
-    sink.applied(_sample(1))
-    sink.applied(_sample(2))  # the queue holds two: the change, the oldest, goes
+    sink.status(_change("arm-002", DeviceStatus.ONLINE, DeviceStatus.STALE))
+    sink.status(_change("arm-001", DeviceStatus.ONLINE, DeviceStatus.STALE))
+    for i in (1, 2):
+        sink.applied(_sample(i))  # the queue holds two: both changes leave it, and are kept
+    assert sink.stats().pending == 1 + 2 + 2
+    sink.applied(_sample(3))  # sample 1 goes
+    sink.status(_change("arm-001", DeviceStatus.STALE, DeviceStatus.OFFLINE))  # arm-001's STALE and 2 go
     gate.set()
     sink.close()
-    assert worker.statuses == [] and worker.applied == [0, 1, 2]
-    assert (sink.stats().dropped, sink.stats().delivered) == (1, 3)
+    assert worker.order == [0, "arm-002 STALE", 3, "arm-001 OFFLINE"]
+    assert (sink.stats().dropped, sink.stats().delivered, sink.stats().pending) == (3, 2, 0)
 
 
 def test_a_stalled_worker_never_blocks_the_caller_and_drops_the_oldest() -> None:

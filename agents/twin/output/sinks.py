@@ -6,8 +6,8 @@ back ONLINE: silence changes those, not a message, so a sink could not tell them
 is the mirror's hot path, so a sink's `applied`/`rejected`/`status` must return in microseconds and never
 block on I/O. Sinks that do I/O (a file, S3, a network peer) wrap their blocking work in `QueuedSink`: a
 bounded queue and a thread of their own, which drops the oldest queued item when the sink falls behind and
-counts it, so a slow disk, a stalled viewer or an absent ROS peer never slows mirroring and never grows memory
-without bound.
+counts it (save an arm's newest status change, which is kept), so a slow disk, a stalled viewer or an absent
+ROS peer never slows mirroring and never grows memory without bound.
 
 A sample carries joint angles, not body poses: forward kinematics is computed where it is needed, in the
 sink's own thread (`RobotModel.body_poses`), because MuJoCo scratch data is per thread and most sinks need
@@ -239,7 +239,9 @@ class DeviceRateCap:
 
 class QueuedSink:
     """Runs a `SinkWorker` on its own thread behind a queue bounded by samples (`max_pending`) and by their
-    bytes (`max_pending_bytes`, sample_bytes), which drops the oldest when full.
+    bytes (`max_pending_bytes`, sample_bytes), which drops the oldest when full. Status changes queue with the
+    samples, in order, but an arm's newest is never lost: dropped from the queue, it waits in a slot of its
+    own (one per arm) and goes to the worker before the rest of the queue.
 
     Errors raised by the worker are caught, counted and logged (at most once per `error_log_s`), never
     propagated: a broken sink must not stop the mirror or the other sinks.
@@ -267,6 +269,12 @@ class QueuedSink:
         # Looked up once: a worker that shows no statuses (the USD recording, ROS 2) is handed none, so they
         # take no room in its queue.
         self._handle_status: Callable[[StatusChange], None] | None = getattr(worker, "handle_status", None)
+        # A quiet arm sends no sample to correct a status change the queue dropped: it would be shown wrong
+        # until its next change. So each arm's newest change not yet taken by the thread is known (`_latest`),
+        # and when dropped it waits in `_rescued` instead, until taken or replaced by a newer one. Both hold
+        # one change per arm at most and empty at each batch taken: every change in them came after the last.
+        self._latest: dict[str, StatusChange] = {}
+        self._rescued: dict[str, StatusChange] = {}
         self._max = max_pending
         self._max_bytes = max_pending_bytes
         self._bytes = 0
@@ -298,23 +306,38 @@ class QueuedSink:
         self._put(sample)
 
     def status(self, change: StatusChange) -> None:
-        if self._handle_status is not None:
-            self._put(change)
-
-    def _put(self, item: AppliedSample | RejectedSample | StatusChange) -> None:
+        if self._handle_status is None:
+            return
         with self._cond:
-            if self._closing:
+            if not self._closing:
+                device = change.device_id
+                if self._rescued.pop(device, None) is not None:
+                    self._dropped += 1  # replaced by this newer change before the thread took it
+                self._latest[device] = change
+            self._append(change)
+
+    def _put(self, item: AppliedSample | RejectedSample) -> None:
+        with self._cond:
+            self._append(item)
+
+    def _append(self, item: AppliedSample | RejectedSample | StatusChange) -> None:
+        """Queue `item` (the lock held), dropping the oldest beyond the bounds."""
+        if self._closing:
+            self._dropped += 1
+            return
+        queue = self._queue
+        queue.append(item)
+        self._bytes += sample_bytes(item)
+        # Newest wins: a live view wants the present, and history counts what it lost.
+        while len(queue) > 1 and (len(queue) > self._max or self._bytes > self._max_bytes):
+            old = queue.popleft()
+            self._bytes -= sample_bytes(old)
+            if isinstance(old, StatusChange) and self._latest.get(old.device_id) is old:
+                self._rescued[old.device_id] = old
+            else:
                 self._dropped += 1
-                return
-            queue = self._queue
-            queue.append(item)
-            self._bytes += sample_bytes(item)
-            # Newest wins: a live view wants the present, and history counts what it lost.
-            while len(queue) > 1 and (len(queue) > self._max or self._bytes > self._max_bytes):
-                self._bytes -= sample_bytes(queue.popleft())
-                self._dropped += 1
-            if self._waiting and len(queue) == 1:
-                self._cond.notify()
+        if self._waiting and len(queue) == 1:
+            self._cond.notify()
 
     def stats(self) -> SinkStats:
         with self._cond:
@@ -323,7 +346,7 @@ class QueuedSink:
                 delivered=self._delivered,
                 dropped=self._dropped,
                 errors=self._errors,
-                pending=len(self._queue) + self._in_flight,
+                pending=len(self._queue) + len(self._rescued) + self._in_flight,
                 last_error=self._last_error,
             )
 
@@ -344,8 +367,11 @@ class QueuedSink:
                     self._waiting = True
                     self._cond.wait(self._idle_s)
                     self._waiting = False
-                items = list(self._queue)
+                # The rescued changes came before everything still queued (each was the oldest item then).
+                items = [*self._rescued.values(), *self._queue]
                 self._queue.clear()
+                self._rescued.clear()
+                self._latest.clear()
                 self._bytes = 0
                 self._in_flight = len(items)
                 closing = self._closing
