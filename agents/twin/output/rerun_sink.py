@@ -184,6 +184,9 @@ class _Arm:
     # The arm's status as its label over it shows it (handle_status), and the label's time: ONLINE is none.
     shown: str = "ONLINE"
     shown_ms: int = 0
+    # A sample cleared the label and wrote the arm's line back (_back): the change to ONLINE the mirror sends
+    # after it, if any (none for an arm it forgot), writes no second one.
+    back_told: bool = False
     servo_styled: set[str] = field(default_factory=set)
     schemas: dict[tuple[str, ...], pa.Schema] = field(default_factory=dict)
 
@@ -527,7 +530,7 @@ class RerunWorker:
         arm.servo[row] = [_servo_row(d) for d in map(diagnostics.get, so101.JOINT_NAMES)]
         self._status(arm, sample)
         if arm.shown != "ONLINE":
-            self._unlabel(arm, arm.edge.last_ms)
+            self._back(arm)
         if sample.alarm_events:
             self._alarms(arm, sample)
         self.samples_logged += 1
@@ -569,8 +572,11 @@ class RerunWorker:
         text = f"arm {change.status} (was {change.previous})"
         if change.status in _STATUS_COLOURS:
             text += ": its pose is the last one it sent"
-            arm.shown, arm.shown_ms = change.status, at_ms
+            arm.shown, arm.shown_ms, arm.back_told = change.status, at_ms, False
             self._label(arm)
+        elif arm.back_told:
+            arm.back_told = False
+            return  # its first sample back wrote the line (_back)
         elif arm.shown != "ONLINE":
             self._unlabel(arm, at_ms)
         self._rec.log(f"{arm.entity}/events", rr.TextLog(text, level=level))
@@ -588,6 +594,15 @@ class RerunWorker:
             show_labels=True,
         )
         rec.log(f"{arm.entity}/status", label)
+
+    def _back(self, arm: _Arm) -> None:
+        """A sample of an arm labelled STALE or OFFLINE: the label goes, and a line says the arm is back, at
+        the sample. Written here, not at the mirror's change to ONLINE: an arm the mirror forgot gets none."""
+        previous = arm.shown
+        self._unlabel(arm, arm.edge.last_ms)
+        line = rr.TextLog(f"arm ONLINE (was {previous})", level=rr.TextLogLevel.INFO)
+        self._rec.log(f"{arm.entity}/events", line)
+        arm.back_told = True
 
     def _unlabel(self, arm: _Arm, at_ms: int) -> None:
         """A sample after a STALE or OFFLINE label: the arm publishes, so the label goes. Not every return
