@@ -205,6 +205,22 @@ def test_a_session_that_cannot_be_saved_at_its_start_leaves_no_empty_file(tmp_pa
         assert sorted(p.name for p in disk.iterdir()) == ["filler"]
 
 
+def test_a_session_that_recorded_no_sample_leaves_no_file_at_close(tmp_path: Path, mj) -> None:
+    """A walk: `twin run --workers 3 --record-dir DIR` with one arm left two empty session files, one for each
+    worker given no arm. A session that recorded nothing (a sample rejected or dropped is not recorded) is
+    removed at close; one that recorded a sample is kept."""
+    model, data = mj
+    empty = SessionRecorder(tmp_path / "session-empty.usdc")
+    assert not empty.record("arm", 0.0, {})  # rejected: nothing of it in the file
+    assert empty.path.is_file()  # begun at once, so a full disk is told at start
+    empty.close()
+    empty.close()
+    recorded = SessionRecorder(tmp_path / "session-kept.usdc")
+    assert recorded.record("arm", 0.0, _fk_poses(model, data, ANGLE_SETS[0]))
+    recorded.close()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["session-kept.usdc"]
+
+
 def test_at_most_time_codes_per_second_per_device(tmp_path: Path, mj) -> None:
     model, data = mj
     poses = _fk_poses(model, data, ANGLE_SETS[2])

@@ -401,8 +401,14 @@ class SessionRecorder:
             )
 
     def close(self) -> None:
-        """Final save (none for a session whose save failed); later calls do nothing."""
+        """Final save (none for a session whose save failed); later calls do nothing. A session that recorded
+        no sample is removed instead: each worker of an agent opens one at start, and one given no arm left
+        an empty file beside the others at every run."""
         if self._closed:
+            return
+        if self.samples_written == 0:
+            self._closed = True
+            self._remove_empty()
             return
         if not self.broken:
             self.flush()
@@ -414,6 +420,19 @@ class SessionRecorder:
             self.samples_dropped,
             self.samples_rejected,
             len(self._devices),
+        )
+
+    def _remove_empty(self) -> None:
+        try:
+            self.path.unlink(missing_ok=True)
+        except OSError as exc:
+            log.warning("session %s recorded no sample; its file could not be removed: %s", self.path, exc)
+            return
+        log.info(
+            "session %s closed with no sample recorded (%d dropped, %d rejected): its file is removed",
+            self.path,
+            self.samples_dropped,
+            self.samples_rejected,
         )
 
     def __enter__(self) -> SessionRecorder:

@@ -220,7 +220,7 @@ class _RecorderWorker:
 
     def _rotate(self, recorder: SessionRecorder, *, size: int, force: bool = False) -> None:
         if self._open_next is None or (recorder.samples_written == 0 and not force):
-            return  # nothing to rotate to, or an empty session (an idle agent's keeps its file)
+            return  # nothing to rotate to, or an empty session (kept open, removed if it closes empty)
         recorder.close()
         # Every attempt gets a name of its own: a failed one may leave its file behind.
         self._attempts += 1

@@ -154,7 +154,8 @@ KEY_DOCS: dict[str, str] = {
     "twin.model": "MJCF file. Empty = the bundled SO-101.",
     "twin.record_dir": (
         "Record a USD session here (`session-<UTC time>-<pid>.<record_format>`, and `-<n>` before the"
-        " format for the n-th file after a rotation). Empty = no recording. Flag `--record-dir`."
+        " format for the n-th file after a rotation). A session that recorded no sample (a worker given"
+        " no arm) is removed when it closes. Empty = no recording. Flag `--record-dir`."
     ),
     "twin.record_format": (
         "`usdc` (binary: each flush appends, constant cost, for long runs) or `usda` (text: readable,"
