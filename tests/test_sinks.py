@@ -163,6 +163,46 @@ def test_a_full_queue_drops_samples_but_each_arms_newest_status_change_gets_thro
     assert (sink.stats().dropped, sink.stats().delivered, sink.stats().pending) == (3, 2, 0)
 
 
+def test_an_arms_older_change_dropped_while_its_newer_one_waits_is_dropped_not_kept() -> None:
+    """A review: no test dropped an arm's older change from the queue while its newer change was still queued
+    behind it. Only the newest is kept aside: the older is dropped and counted, and never reaches the worker
+    (kept, it would go first, and a viewer would show the arm's old status before its new one)."""
+    gate = threading.Event()
+    worker = _GatedStatusRecorder(gate)
+    sink = QueuedSink("shows", worker, max_pending=2)
+    sink.applied(_sample(0))
+    assert worker.entered.wait(30), "the sink's thread never took the first sample"
+    sink.status(_change("arm-001", DeviceStatus.ONLINE, DeviceStatus.STALE))
+    sink.status(_change("arm-001", DeviceStatus.STALE, DeviceStatus.OFFLINE))
+    sink.applied(_sample(1))  # the STALE change, the oldest, goes: its OFFLINE change is still queued
+    assert sink.stats().pending == 1 + 2
+    gate.set()
+    sink.close()
+    assert worker.order == [0, "arm-001 OFFLINE", 1]
+    assert (sink.stats().dropped, sink.stats().delivered) == (1, 2)
+
+
+def test_the_slot_of_kept_changes_is_bounded_and_drops_its_oldest() -> None:
+    """A review: the slot of arms' newest changes was outside every bound, so a stuck sink thread, with arms
+    forgotten and replaced by new ones, kept a change for every device id it was ever told of. It holds no
+    more changes than the queue holds items; full, it drops its oldest, counted."""
+    gate = threading.Event()
+    worker = _GatedStatusRecorder(gate)
+    sink = QueuedSink("shows", worker, max_pending=2)
+    sink.applied(_sample(0))
+    assert worker.entered.wait(30), "the sink's thread never took the first sample"
+    for n in range(1, 6):
+        sink.status(_change(f"arm-{n:03d}", DeviceStatus.ONLINE, DeviceStatus.OFFLINE))
+    sink.applied(_sample(1))
+    sink.applied(_sample(2))  # every change has left the queue: the slot keeps the newest two arms'
+    assert sink.stats().pending == 1 + 2 + 2
+    assert len(sink._latest) == 2
+    gate.set()
+    sink.close()
+    assert worker.order == [0, "arm-004 OFFLINE", "arm-005 OFFLINE", 1, 2]
+    assert (sink.stats().dropped, sink.stats().delivered) == (3, 3)
+
+
 def test_a_stalled_worker_never_blocks_the_caller_and_drops_the_oldest() -> None:
     gate = threading.Event()
     worker = _Recorder(gate=gate)

@@ -6,8 +6,8 @@ back ONLINE: silence changes those, not a message, so a sink could not tell them
 is the mirror's hot path, so a sink's `applied`/`rejected`/`status` must return in microseconds and never
 block on I/O. Sinks that do I/O (a file, S3, a network peer) wrap their blocking work in `QueuedSink`: a
 bounded queue and a thread of their own, which drops the oldest queued item when the sink falls behind and
-counts it (save an arm's newest status change, which is kept), so a slow disk, a stalled viewer or an absent
-ROS peer never slows mirroring and never grows memory without bound.
+counts it (save an arm's newest status change, kept aside in a slot bounded like the queue), so a slow disk,
+a stalled viewer or an absent ROS peer never slows mirroring and never grows memory without bound.
 
 A sample carries joint angles, not body poses: forward kinematics is computed where it is needed, in the
 sink's own thread (`RobotModel.body_poses`), because MuJoCo scratch data is per thread and most sinks need
@@ -240,8 +240,8 @@ class DeviceRateCap:
 class QueuedSink:
     """Runs a `SinkWorker` on its own thread behind a queue bounded by samples (`max_pending`) and by their
     bytes (`max_pending_bytes`, sample_bytes), which drops the oldest when full. Status changes queue with the
-    samples, in order, but an arm's newest is never lost: dropped from the queue, it waits in a slot of its
-    own (one per arm) and goes to the worker before the rest of the queue.
+    samples, in order, but an arm's newest is kept: dropped from the queue, it waits in a slot of its own (one
+    per arm, bounded like the queue: full, it drops its oldest) and goes to the worker before the rest.
 
     Errors raised by the worker are caught, counted and logged (at most once per `error_log_s`), never
     propagated: a broken sink must not stop the mirror or the other sinks.
@@ -273,10 +273,13 @@ class QueuedSink:
         # until its next change. So each arm's newest change not yet taken by the thread is known (`_latest`),
         # and when dropped it waits in `_rescued` instead, until taken or replaced by a newer one. Both hold
         # one change per arm at most and empty at each batch taken: every change in them came after the last.
+        # `_rescued` is bounded (`_rescue`), and `_latest` holds only changes queued or in it.
         self._latest: dict[str, StatusChange] = {}
         self._rescued: dict[str, StatusChange] = {}
         self._max = max_pending
         self._max_bytes = max_pending_bytes
+        # The slot holds no more changes than the queue would (by count and by bytes).
+        self._max_rescued = max(1, min(max_pending, max_pending_bytes // SAMPLE_OVERHEAD_BYTES))
         self._bytes = 0
         self._cond = threading.Condition(threading.Lock())
         self._idle_s = idle_s
@@ -333,11 +336,23 @@ class QueuedSink:
             old = queue.popleft()
             self._bytes -= sample_bytes(old)
             if isinstance(old, StatusChange) and self._latest.get(old.device_id) is old:
-                self._rescued[old.device_id] = old
+                self._rescue(old)
             else:
                 self._dropped += 1
         if self._waiting and len(queue) == 1:
             self._cond.notify()
+
+    def _rescue(self, change: StatusChange) -> None:
+        """Keep `change`, the newest of its arm, in the slot (the lock held). The slot is bounded like the
+        queue: a stuck thread with arms forgotten and replaced would fill it with every new device id. Full,
+        it drops its oldest change, counted: that arm waits for its next change, as before the slot."""
+        rescued = self._rescued
+        rescued[change.device_id] = change
+        if len(rescued) > self._max_rescued:
+            device = next(iter(rescued))
+            del rescued[device]
+            del self._latest[device]  # it was the arm's newest (a newer one takes its slot entry away)
+            self._dropped += 1
 
     def stats(self) -> SinkStats:
         with self._cond:
