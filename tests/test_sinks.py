@@ -436,6 +436,25 @@ def test_a_worker_process_mirror_hands_its_sinks_each_status_change() -> None:
     ]
 
 
+def test_what_the_sinks_were_told_of_forgotten_arms_is_kept_for_max_devices_of_them() -> None:
+    """The mirror keeps what its sinks were last told of an arm it forgets (they still label it OFFLINE), so
+    an arm of that name that publishes again is told back ONLINE. Forgotten arms come and go without end under
+    a churning fleet: it keeps telemetry.max_devices of them, the newest."""
+    config = load_config(None, {"telemetry.devices": ["*"], "telemetry.max_devices": 2})
+    sink = _StatusSink()
+    mirror = Mirror(config, inbox=PipeInbox(Pipe(duplex=False)[0]), budget=DeviceBudget(4), sinks=[sink])
+    mirror._open_sinks()  # the sinks without the worker thread: the test calls the mirror's steps
+    arms = ("arm-001", "arm-002", "arm-003")
+    mirror._hand_statuses(dict.fromkeys(arms, DeviceStatus.OFFLINE), 1.0, 1.0)
+    for arm in arms:
+        mirror._sinks_forgot(arm)
+    sink.changes.clear()
+    mirror._hand_statuses(dict.fromkeys(arms, DeviceStatus.ONLINE), 2.0, 2.0)
+    # arm-001, the oldest forgotten past the bound, is ONLINE to the sinks from the start, as before.
+    assert sink.changes == [("arm-002", "OFFLINE", "ONLINE"), ("arm-003", "OFFLINE", "ONLINE")]
+    assert mirror._sinks_saw_forgotten == {}
+
+
 @pytest.mark.slow
 def test_an_agent_recording_onto_a_full_disk_still_starts_and_mirrors(tmp_path: Path) -> None:
     """A worker's first session on a full disk raised, so `twin run` exited 1 and a worker that died could

@@ -184,9 +184,6 @@ class _Arm:
     # The arm's status as its label over it shows it (handle_status), and the label's time: ONLINE is none.
     shown: str = "ONLINE"
     shown_ms: int = 0
-    # A sample cleared the label and wrote the arm's line back (_back): the change to ONLINE the mirror sends
-    # after it, if any (none for an arm it forgot), writes no second one.
-    back_told: bool = False
     servo_styled: set[str] = field(default_factory=set)
     schemas: dict[tuple[str, ...], pa.Schema] = field(default_factory=dict)
 
@@ -530,7 +527,7 @@ class RerunWorker:
         arm.servo[row] = [_servo_row(d) for d in map(diagnostics.get, so101.JOINT_NAMES)]
         self._status(arm, sample)
         if arm.shown != "ONLINE":
-            self._back(arm)
+            self._unlabel(arm, arm.edge.last_ms)
         if sample.alarm_events:
             self._alarms(arm, sample)
         self.samples_logged += 1
@@ -572,11 +569,8 @@ class RerunWorker:
         text = f"arm {change.status} (was {change.previous})"
         if change.status in _STATUS_COLOURS:
             text += ": its pose is the last one it sent"
-            arm.shown, arm.shown_ms, arm.back_told = change.status, at_ms, False
+            arm.shown, arm.shown_ms = change.status, at_ms
             self._label(arm)
-        elif arm.back_told:
-            arm.back_told = False
-            return  # its first sample back wrote the line (_back)
         elif arm.shown != "ONLINE":
             self._unlabel(arm, at_ms)
         self._rec.log(f"{arm.entity}/events", rr.TextLog(text, level=level))
@@ -595,20 +589,11 @@ class RerunWorker:
         )
         rec.log(f"{arm.entity}/status", label)
 
-    def _back(self, arm: _Arm) -> None:
-        """A sample of an arm labelled STALE or OFFLINE: the label goes, and a line says the arm is back, at
-        the sample. Written here, not at the mirror's change to ONLINE: an arm the mirror forgot gets none."""
-        previous = arm.shown
-        self._unlabel(arm, arm.edge.last_ms)
-        line = rr.TextLog(f"arm ONLINE (was {previous})", level=rr.TextLogLevel.INFO)
-        self._rec.log(f"{arm.entity}/events", line)
-        arm.back_told = True
-
     def _unlabel(self, arm: _Arm, at_ms: int) -> None:
-        """A sample after a STALE or OFFLINE label: the arm publishes, so the label goes. Not every return
-        comes as a change to ONLINE: an arm the agent forgot while OFFLINE, which publishes again, is new to
-        the mirror, and so ONLINE to the sinks from its first sample. Never behind the label: a sample
-        delivered late (a backlog after an outage) may have been measured before the label's time."""
+        """A sample after a STALE or OFFLINE label: the arm publishes, so the label over its live pose goes.
+        The line that says it is back waits for the mirror's change (handle_status): a STALE arm that sends
+        one sample and falls quiet again stays STALE to the mirror, which sends no change. Never behind the
+        label: a sample delivered late (a backlog after an outage) may have been measured before its time."""
         self._rec.set_time(TIMELINE, timestamp=np.datetime64(max(at_ms, arm.shown_ms + 1), "ms"))
         self._rec.log(f"{arm.entity}/status", rr.Clear(recursive=False))
         arm.shown = "ONLINE"

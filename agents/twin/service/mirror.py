@@ -528,6 +528,8 @@ class Mirror:
         # The sinks' `status` methods, and each arm's status as last handed to them (worker thread only).
         self._status_sinks: tuple[tuple[TwinSink, Callable[[StatusChange], None]], ...] = ()
         self._sinks_saw: dict[str, DeviceStatus] = {}
+        # The same of the arms forgotten since, oldest first: the sinks still show them so (`_sinks_forgot`).
+        self._sinks_saw_forgotten: dict[str, DeviceStatus] = {}
         self._worker: threading.Thread | None = None
         self._stopped = False
         self._stop_lock = threading.Lock()
@@ -1679,10 +1681,12 @@ class Mirror:
         knows an arm by its samples, so an arm it was not told of was ONLINE to it."""
         if not self._status_sinks:
             return
-        saw = self._sinks_saw
+        saw, forgotten = self._sinks_saw, self._sinks_saw_forgotten
         wall = self._wall_clock() - (now - at)
         for device, status in statuses.items():
-            previous = saw.get(device, DeviceStatus.ONLINE)
+            previous = saw.get(device)
+            if previous is None:
+                previous = saw[device] = forgotten.pop(device, DeviceStatus.ONLINE)
             if status is previous:
                 continue
             saw[device] = status
@@ -2048,9 +2052,21 @@ class Mirror:
             self._kept_places.discard(device)
             self._budget.give_back(self._slot)
         self._watch.forgotten(device, str(status), removed, reason)
-        self._sinks_saw.pop(device, None)
+        self._sinks_forgot(device)
         log.info("device forgotten", extra={"device": device, "alarms_removed": removed})
         return ArmForgotten(device=device, status=str(status), alarms_removed=removed)
+
+    def _sinks_forgot(self, device: str) -> None:
+        """What the sinks were last told of the forgotten `device` is kept: they still label it OFFLINE (they
+        are not told of a forget), and without it an arm of that name that publishes again would be ONLINE
+        to them from the start, with no change to say it is back."""
+        told = self._sinks_saw.pop(device, None)
+        if told is None or told is DeviceStatus.ONLINE:
+            return
+        kept = self._sinks_saw_forgotten
+        kept[device] = told
+        if len(kept) > self.config.telemetry.max_devices:
+            del kept[next(iter(kept))]  # the oldest: an arm of it that returns is ONLINE to them at once
 
     def _refuse_forgetting_a_publishing_arm(self, device: str, health: DeviceHealth) -> None:
         """Under the lock: an OFFLINE arm whose refused messages still arrive is not retired. An arm held by
