@@ -455,6 +455,26 @@ def test_what_the_sinks_were_told_of_forgotten_arms_is_kept_for_max_devices_of_t
     assert mirror._sinks_saw_forgotten == {}
 
 
+def test_a_stop_report_names_a_sinks_queued_status_changes_with_its_samples() -> None:
+    """A review: the stop report counted what a queued sink still held as `<sink>_samples`, though a sink
+    that shows statuses holds status changes too. Both count, under a name that says items."""
+    gate = threading.Event()
+    worker = _GatedStatusRecorder(gate)
+    queued = QueuedSink("shows", worker, max_pending=10)
+    config = load_config(None, {"telemetry.devices": ["*"]})
+    mirror = Mirror(config, inbox=PipeInbox(Pipe(duplex=False)[0]), budget=DeviceBudget(4), sinks=[queued])
+    mirror._open_sinks()  # the sinks without the worker thread: the test calls the mirror's steps
+    try:
+        queued.applied(_sample(0))
+        assert worker.entered.wait(30), "the sink's thread never took the first sample"
+        queued.status(_change("arm-001", DeviceStatus.ONLINE, DeviceStatus.STALE))
+        queued.applied(_sample(1))
+        assert mirror.stop_report().unwritten == {"shows_items": 1 + 2}
+    finally:
+        gate.set()
+        queued.close()
+
+
 @pytest.mark.slow
 def test_an_agent_recording_onto_a_full_disk_still_starts_and_mirrors(tmp_path: Path) -> None:
     """A worker's first session on a full disk raised, so `twin run` exited 1 and a worker that died could

@@ -76,6 +76,7 @@ from twin.service.logs import setup_logging, thread_stack
 from twin.service.persist import NotSavedError, PreviousRun, StateFile
 from twin.service.shards import (
     CHECKPOINT_EVERY_S,
+    SINK_UNWRITTEN_SUFFIX,
     AckManyRequest,
     AckOutcome,
     AckRequest,
@@ -597,7 +598,7 @@ class AgentService:
             dropped = max(totals.history_rows_dropped, history.figures().rows_not_written)
             dropped += unwritten["history_rows"]
             totals = dataclasses.replace(totals, history_rows_dropped=dropped)
-        samples = sum(n for kind, n in unwritten.items() if kind.endswith("_samples"))
+        samples = sum(n for kind, n in unwritten.items() if kind.endswith(SINK_UNWRITTEN_SUFFIX))
         totals = dataclasses.replace(totals, sink_drops=totals.sink_drops + samples)
         try:
             self._emf.publish_once(totals)

@@ -117,6 +117,7 @@ from twin.service.shards import (
     ARM_CONFIGURED,
     ARM_NOT_OFFLINE,
     EVENTS_PER_ASK,
+    SINK_UNWRITTEN_SUFFIX,
     AckedMany,
     AckManyRequest,
     Acknowledged,
@@ -733,14 +734,14 @@ class Mirror:
             self._history.close(max(1.0, deadline - time.monotonic()))
 
     def stop_report(self) -> StopReport:
-        """After `stop`: what the sinks could not write (every sink's queued samples, the rows for history
+        """After `stop`: what the sinks could not write (every sink's queued items, the rows for history
         the feed could not hand to the writer process) and the alarms a restart must not forget. The writer
         process says itself what it could not commit (service.agent)."""
         unwritten: dict[str, int] = {}
         for sink in self._sinks:
             pending = sink.stats().pending
             if pending:
-                unwritten[f"{sink.name}_samples"] = pending
+                unwritten[sink.name + SINK_UNWRITTEN_SUFFIX] = pending  # samples and status changes
         if self._history is not None:
             pending = self._history.stats().pending
             if pending:

@@ -553,9 +553,13 @@ class Restored:
     alarms: int
 
 
+# A stop report's key for what a queued sink still held, after its name: its samples and status changes.
+SINK_UNWRITTEN_SUFFIX = "_items"
+
+
 @dataclass(frozen=True, slots=True)
 class StopReport:
-    """What a mirror could not write when it stopped (by sink: `history_rows`, `<sink>_samples`), its alarms
+    """What a mirror could not write when it stopped (by sink: `history_rows`, `<sink>_items`), its alarms
     for the agent's state file, and its newest events (at most EVENTS_PER_ASK, oldest first): those the agent
     has not collected yet, made in its last half second or as it handled what was queued at the stop."""
 
