@@ -15,7 +15,9 @@ import json
 import math
 import threading
 import time
+from collections import Counter
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import jsonschema
@@ -36,7 +38,7 @@ from twin.output.emf import (
     fleet_documents,
     next_slot,
 )
-from twin.service.agent import fleet_totals
+from twin.service.agent import AgentService, fleet_totals
 from twin.service.state import (
     AgentInfo,
     AgentState,
@@ -672,3 +674,14 @@ def test_severity_lines_the_disk_refused_after_the_counts_are_a_write_failure(tm
     assert [d["EmfWriteFailures"] for d in docs if "AgentUp" in d] == [0, 0, 1]
     assert [d.get("ActiveAlarms") for d in docs if "AgentUp" not in d] == [1, 1]
     assert publisher.sink_stats().errors == 1
+
+
+def test_the_last_document_counts_what_each_sink_still_held_at_the_stop_as_sink_drops() -> None:
+    """A stop report names a sink's unwritten items `<sink>_items` (tests/test_sinks.py pins the mirror's
+    side); the agent must add them to the last SinkDrops, or a loss at the stop never reaches CloudWatch."""
+    published: list[FleetTotals] = []
+    holder = SimpleNamespace(_emf=SimpleNamespace(publish_once=published.append), _history=None)
+    unwritten = Counter({"rerun_items": 4, "usd_items": 2, "history_rows": 9})
+    totals = dataclasses.replace(FleetTotals(0, 0, 1, 0, 0, 0.0, None, {}), sink_drops=1)
+    AgentService._publish_last(holder, totals, unwritten)  # type: ignore[arg-type]
+    assert [t.sink_drops for t in published] == [1 + 4 + 2]

@@ -558,7 +558,7 @@ class AgentService:
 
     def _unwritten(self) -> tuple[Counter[str], list[int]]:
         """After the shards and the history writer stopped: what they could not write, by kind
-        (`history_rows`, `history_rows_unread`, `<sink>_samples`), and the workers killed at the budget."""
+        (`history_rows`, `history_rows_unread`, `<sink>_items`), and the workers killed at the budget."""
         unwritten: Counter[str] = Counter()
         killed = []
         for index, report in sorted(self.stop_reports.items()):
