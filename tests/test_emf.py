@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import json
+import logging
 import math
 import threading
 import time
@@ -610,8 +611,9 @@ def test_slots_lie_mid_minute_by_the_wall_clock_and_keep_to_the_monotonic_one(
 ) -> None:
     """Slots were an interval apart from the start, wherever that fell in the wall minute: one a few ms
     from a minute boundary could leave a minute empty and break the 5-of-5 alarms. The first is lined up
-    with the middle of a wall minute; the rest stay on the monotonic clock (a wall clock stepped by NTP
-    moves none of them). The two clocks differ here, so scheduling on the wrong one shows."""
+    with the middle of a wall minute; the rest stay on the monotonic clock (a wall clock slewed by NTP, by
+    less than CLOCK_STEP_TOLERANCE_S, moves none of them). The two clocks differ here, so scheduling on the
+    wrong one shows."""
     mono, wall = [500.0], [1_000_000_012.3]  # 52.3 s into a wall minute, 20 s into a monotonic one
     started = (mono[0], wall[0])
     published: list[tuple[float, float]] = []
@@ -623,7 +625,7 @@ def test_slots_lie_mid_minute_by_the_wall_clock_and_keep_to_the_monotonic_one(
 
     def wait(seconds: float) -> bool:
         mono[0] += seconds
-        wall[0] += seconds + (7.0 if len(published) == 1 else 0.0)  # stepped once, after the first
+        wall[0] += seconds + (0.9 if len(published) == 1 else 0.0)  # slewed, after the first
         return len(published) >= 4
 
     publisher = EmfPublisher(
@@ -635,6 +637,40 @@ def test_slots_lie_mid_minute_by_the_wall_clock_and_keep_to_the_monotonic_one(
     assert first_wall % interval_s == pytest.approx(phase, abs=1e-5)
     gaps = [b[0] - a[0] for a, b in itertools.pairwise(published)]
     assert gaps == pytest.approx([interval_s] * 3)
+
+
+@pytest.mark.parametrize("step_s", [29.0, -29.0, 7.0, -40.0, 3600.0])
+def test_a_wall_clock_stepped_after_the_start_lines_the_grid_up_again(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, step_s: float
+) -> None:
+    """The grid was lined up with the wall clock once, at the start: a wall clock stepped later (chrony at
+    first boot) left every document at its old place in the wall minute, up to a minute boundary, until a
+    restart. After the step the documents lie mid-minute again, one a wall minute, each half an interval to
+    one and a half from the last, and the step is counted and logged once."""
+    mono, wall = [500.0], [1_000_000_012.3]
+    published: list[tuple[float, float]] = []
+
+    def sample() -> FleetTotals:
+        published.append((mono[0], wall[0]))
+        return FleetTotals(0, 0, 1, 0, 0, 0.0, None, {})
+
+    def wait(seconds: float) -> bool:
+        mono[0] += seconds
+        wall[0] += seconds + (step_s if len(published) == 1 else 0.0)  # stepped once, after the first
+        return len(published) >= 6
+
+    writer = EmfFileWriter(tmp_path / "emf.log")
+    publisher = EmfPublisher(writer, "a", sample, clock=lambda: mono[0], wall=lambda: wall[0], wait=wait)
+    with caplog.at_level(logging.WARNING, logger="twin.output.emf"):
+        publisher.run()
+    # The publish that follows the step is at the old phase (the step is seen after it); the rest are not.
+    assert [w % 60.0 for _, w in published[2:]] == pytest.approx([30.0] * 4, abs=1e-5)
+    minutes = [w // 60.0 for _, w in published[1:]]
+    assert [b - a for a, b in itertools.pairwise(minutes)] == [1.0] * 4
+    gaps = [b[0] - a[0] for a, b in itertools.pairwise(published)]
+    assert all(30.0 <= gap <= 90.0 for gap in gaps), gaps
+    assert publisher.clock_steps == 1
+    assert len([r for r in caplog.records if "wall clock moved" in r.getMessage()]) == 1
 
 
 def test_the_first_documents_rate_is_over_the_time_since_the_start(tmp_path: Path) -> None:

@@ -358,6 +358,23 @@ def first_slot(mono: float, wall: float, interval_s: float) -> float:
     return mono + interval_s + (phase - (wall + interval_s)) % interval_s
 
 
+# How far the wall clock may move against the monotonic one before the grid is lined up with it again: a step
+# (chrony setting the clock at first boot, a person) beyond this left every slot at its old place in the wall
+# minute until a restart, possibly on a minute boundary. NTP's slewing (at most 0.5 ms/s) crosses it only
+# after half an hour or more, well short of the 2.5 s a 5 s interval's slots lie from a boundary.
+CLOCK_STEP_TOLERANCE_S = 1.0
+
+
+def realigned_slot(slot: float, now: float, offset: float, interval_s: float) -> float:
+    """`slot` moved to the nearest monotonic time at which the wall clock (monotonic + `offset`) reads a
+    slot's place in its minute (first_slot), at most half an interval either way, so no wall minute is
+    skipped or written twice by the move; the next such time after `now` if that one has passed."""
+    phase = min(interval_s / 2.0, 30.0)
+    shift = (phase - (slot + offset) + interval_s / 2.0) % interval_s - interval_s / 2.0
+    moved = slot + shift
+    return moved if moved > now else next_slot(moved, now, interval_s)
+
+
 class EmfPublisher:
     """Every `interval_s`, turns the service's totals into one interval's FleetMetrics and writes them.
 
@@ -397,6 +414,7 @@ class EmfPublisher:
         self.errors = 0
         self.last_error = ""
         self._errors_told = 0  # `errors` as the last document written told them
+        self.clock_steps = 0  # wall clock steps that moved the grid (CLOCK_STEP_TOLERANCE_S)
 
     def publish_once(self, totals: FleetTotals | None = None) -> FleetMetrics:
         """Sample (or take `totals`: the agent's last document, at its stop), write this interval's documents,
@@ -452,9 +470,10 @@ class EmfPublisher:
 
     def run(self) -> None:
         """Publish at every slot of a fixed grid, `interval_s` apart on the monotonic clock from a first slot
-        lined up with the wall clock's minutes (first_slot, next_slot), until stop(); start() runs this on its
-        own thread."""
-        slot = first_slot(self._clock(), self._wall(), self.interval_s)
+        lined up with the wall clock's minutes (first_slot, next_slot), and lined up again after a step of the
+        wall clock (realigned_slot), until stop(); start() runs this on its own thread."""
+        mono, wall = self._clock(), self._wall()
+        slot, offset = first_slot(mono, wall, self.interval_s), wall - mono
         while not self._wait(max(0.0, slot - self._clock())):
             try:
                 self.publish_once()
@@ -462,3 +481,19 @@ class EmfPublisher:
                 self.failed(exc)
                 log.exception("writing CloudWatch metrics to %s failed", self.writer.path)
             slot = next_slot(slot, self._clock(), self.interval_s)
+            slot, offset = self._follow_wall_steps(slot, offset)
+
+    def _follow_wall_steps(self, slot: float, offset: float) -> tuple[float, float]:
+        """The next slot and the wall-minus-monotonic offset it is lined up with, both moved if the wall clock
+        was stepped since `offset` was read (logged once per step)."""
+        mono, wall = self._clock(), self._wall()
+        step = (wall - mono) - offset
+        if abs(step) <= CLOCK_STEP_TOLERANCE_S:
+            return slot, offset
+        self.clock_steps += 1
+        log.warning(
+            "the wall clock moved %+.1f s against the monotonic one (stepped by NTP or by hand); CloudWatch "
+            "metrics are lined up with the middle of its minutes again",
+            step,
+        )
+        return realigned_slot(slot, mono, wall - mono, self.interval_s), wall - mono
