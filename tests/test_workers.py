@@ -23,6 +23,7 @@ import urllib.request
 from collections import Counter
 from multiprocessing import Pipe
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import psutil
@@ -53,6 +54,7 @@ from twin.rig.local import LocalRig, child_env
 from twin.rig.quota_proxy import QuotaProxy
 from twin.service import shards
 from twin.service.admission import DeviceBudget
+from twin.service.agent import AgentService
 from twin.service.config import ConfigError, load_config
 from twin.service.mirror import Mirror, MirrorBusyError, PipeInbox
 from twin.service.persist import StateFile
@@ -400,6 +402,59 @@ def test_a_mirror_thread_that_handles_batches_but_misses_the_timeout_is_busy_not
             shard.request(shards.StatusesRequest())()
         shard.supervise()
         assert not worker.killed, kind
+
+
+class _HungWorker(_SilentWorker):
+    """A worker process that runs and answers nothing until killed, after which it is dead by SIGKILL."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.pid, self.exitcode, self.alive = 4242, None, True
+
+    def is_alive(self) -> bool:
+        return self.alive
+
+    def kill(self) -> None:
+        self.alive, self.exitcode = False, -signal.SIGKILL
+
+    def join(self, timeout: float) -> None:
+        pass
+
+
+def test_a_hung_worker_the_supervisor_killed_is_said_to_be_so_in_the_log_and_on_the_events_page(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A worker that ran but answered nothing was told as "exited, exit code unknown" or as killed by
+    SIGKILL, as if it had crashed: now as hung for so long and killed by the supervisor, in one wording in
+    the log line and the event."""
+    now = [1000.0]
+    monkeypatch.setattr(shards.time, "monotonic", lambda: now[0])
+    config = load_config(None, {"telemetry.devices": ["*"]})
+    shard = shards.WorkerShard(0, config, DeviceBudget(10), context=None)  # type: ignore[arg-type]
+    worker = _HungWorker()
+    shard.process, shard.control, shard.ready = worker, worker, True  # type: ignore[assignment]
+    shard.pid, shard.started_at = worker.pid, now[0]
+    for _ in range(shards.HUNG_AFTER_ASKS):
+        with pytest.raises(shards.WorkerError, match="did not answer"):
+            shard.request(shards.ReportRequest())()
+        now[0] += 5.0  # the silent pipe's poll returns at once, as at the end of its wait
+    with caplog.at_level(logging.ERROR, logger="twin.service.shards"):
+        shard.supervise()  # finds it hung and kills it
+        shard.supervise()  # finds it dead; started again after a pause (it died young)
+    killing, found = [r.getMessage() for r in caplog.records]
+    assert "nothing for 15 s): it is hung; killing it (SIGKILL)" in killing
+    how = "answered no request for 15 s (hung) and was killed by the supervisor with SIGKILL"
+    assert found == f"worker 0 (pid 4242) {how}; starting it again in 1 s"
+    events: list[tuple[str, dict[str, Any]]] = []
+    emit = lambda _kind, _level, message, data: events.append((message, data))  # noqa: E731
+    watcher = SimpleNamespace(_workers_seen={}, _events=SimpleNamespace(emit=emit))
+    AgentService._watch_worker(watcher, shard)  # type: ignore[arg-type]
+    assert events == [
+        (
+            f"worker 0 (pid 4242) {how}; it is started again from its last checkpoint, its arms kept",
+            {"worker": 0, "pid": 4242, "exit_code": -9, "hung_s": 15},
+        )
+    ]
 
 
 class _ServerLostWorker:

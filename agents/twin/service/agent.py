@@ -1522,7 +1522,8 @@ class AgentService:
                 EventLevel.ERROR,
                 f"worker {shard.index} (pid {ended.pid}) {ended.how()}; it is started again from "
                 "its last checkpoint, its arms kept",
-                data={"worker": shard.index, "pid": ended.pid, "exit_code": ended.exit_code},
+                data={"worker": shard.index, "pid": ended.pid, "exit_code": ended.exit_code}
+                | ({"hung_s": round(ended.hung_s)} if ended.hung_s else {}),
             )
         if info.restarts > restarts and answering:
             self._events_seen[shard.index] = 0  # a new process numbers its events from 1

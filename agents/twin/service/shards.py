@@ -794,6 +794,8 @@ class WorkerExit:
     pid: int
     exit_code: int | None  # multiprocessing's: negative for the signal that killed it, None if unknown
     server_lost: bool = False  # 255 came from its killed fork server while the worker still ran (`seen`)
+    # Seconds it had answered no request when the supervisor killed it as hung; 0 if not ended so.
+    hung_s: float = 0.0
 
     @classmethod
     def seen(cls, pid: int, exit_code: int | None) -> WorkerExit:
@@ -804,8 +806,14 @@ class WorkerExit:
 
     def how(self) -> str:
         """What became of it, after its pid: `exited, exit code 1`, `exited, killed by SIGKILL (signal 9)`,
-        `exited, exit code unknown`, or that its fork server is gone (a worker that did not exit)."""
+        `exited, exit code unknown`, that the supervisor killed it as hung (its exit code is then only the
+        kill's), or that its fork server is gone (a worker that did not exit)."""
         code = self.exit_code
+        if self.hung_s:
+            return (
+                f"answered no request for {self.hung_s:.0f} s (hung) and was killed by the supervisor "
+                "with SIGKILL"
+            )
         if self.server_lost:
             return "can no longer be watched: the fork server that started it is gone (killed?)"
         if code is None:
@@ -993,6 +1001,7 @@ class WorkerShard:
         self._closed = False
         # Asks in a row this process let time out (HUNG_AFTER_ASKS), read and reset under the control lock.
         self._unanswered = 0
+        self._answered_at = 0.0  # monotonic time of its last answer (the hung one's silence)
 
     @property
     def alive(self) -> bool:
@@ -1018,7 +1027,9 @@ class WorkerShard:
             # Judged once, when found dead: a worker its lost fork server left running exits once its pipes
             # close, and judged again it would read as having exited with the server's 255.
             if ended is not None and ended.pid == pid:
-                return ended
+                # The supervisor's kill of a hung one is noted before its exit code is known.
+                known = ended.exit_code is not None
+                return ended if known else dataclasses.replace(ended, exit_code=process.exitcode)
             return WorkerExit.seen(pid, process.exitcode)
         return ended
 
@@ -1150,7 +1161,11 @@ class WorkerShard:
         """Note a dead process (logged, kept for `last_exit`); returns when to start it again."""
         with self._send_lock:
             self.ready = False
-        self._ended = ended = WorkerExit.seen(process.pid or self.pid, process.exitcode)
+        pid, killed = process.pid or self.pid, self._ended
+        ended = WorkerExit.seen(pid, process.exitcode)
+        if killed is not None and killed.pid == pid and killed.hung_s:
+            ended = dataclasses.replace(ended, hung_s=killed.hung_s)  # its own kill, not a crash
+        self._ended = ended
         quick = now - self.started_at < QUICK_DEATH_S
         pause = min(MAX_RESTART_PAUSE_S, 2.0 ** min(self.restarts, 6)) if quick else 0.0
         log.error(
@@ -1170,17 +1185,22 @@ class WorkerShard:
             return
         with self._control_lock:
             unanswered, self._unanswered = self._unanswered, 0
+        silent_s = time.monotonic() - max(self._answered_at, self.started_at)
         log.error(
-            "worker %d (pid %d) runs but answered none of the last %d requests (%.0f s each): it is hung; "
-            "killing it to start it again from its checkpoint",
+            "worker %d (pid %d) runs but answered none of the last %d requests (%.0f s each; nothing for "
+            "%.0f s): it is hung; killing it (SIGKILL) to start it again from its checkpoint",
             self.index,
             self.pid,
             unanswered,
             ASK_TIMEOUT_S,
+            silent_s,
             extra={"worker": self.index, "pid": self.pid},
         )
         process.kill()
         process.join(ASK_TIMEOUT_S)
+        # Said so when it is found dead, in the log and on the Events page: its exit code alone (or none, if
+        # the kill is not reaped yet) read as a crash of unknown cause.
+        self._ended = WorkerExit(self.pid, None, hung_s=max(silent_s, 1.0))
 
     def _restore(self, checkpoint: MirrorCheckpoint | None) -> Restored:
         """Hand the new process `checkpoint`, the latest when the restart began (control lock held)."""
@@ -1462,6 +1482,7 @@ class WorkerShard:
                     raise WorkerError(f"worker {self.index}: {message.message}")
                 continue
             self._unanswered = 0  # it answers, if late
+            self._answered_at = time.monotonic()
             if isinstance(message, Answer) and message.call_id == call_id:
                 return message.reply
             if isinstance(message, Refused) and message.call_id == call_id:
@@ -1524,10 +1545,10 @@ def _how_it_ended(index: int, ended: WorkerExit) -> str:
     """What the log says of a worker no longer seen running. One whose fork server was killed is started
     again all the same (the agent has lost sight of it, and it stops once the agent closes its pipes), but
     the log must not blame a worker that did not exit (WorkerExit.seen)."""
+    told = f"worker {index} (pid {ended.pid}) {ended.how()}"
     if ended.server_lost:
-        stopped = "the worker is stopped and a new fork server starts"
-        return f"worker {index} (pid {ended.pid}) {ended.how()}; {stopped}"
-    return f"worker {index} exited (code {ended.exit_code})"
+        return f"{told}; the worker is stopped and a new fork server starts"
+    return told
 
 
 def _still_runs(pid: int) -> bool:
