@@ -587,7 +587,8 @@ def _graph(
 
 
 def _fleet_graphs(labelled: Callable[..., cw.Metric]) -> list[cw.GraphWidget]:
-    """The dashboard's graphs, in order: arms, messages, loss, servo alarms, history, what was lost."""
+    """The dashboard's graphs, in order: arms, messages, loss, servo alarms, history, what was lost, whether
+    history's commits fail."""
     return [
         _graph(
             "Arms by status",
@@ -633,5 +634,12 @@ def _fleet_graphs(labelled: Callable[..., cw.Metric]) -> list[cw.GraphWidget]:
                 labelled(HISTORY_COMMIT_FAILURES, "Sum", "history commit failures"),
             ],
             left_y_axis=cw.YAxisProps(min=0),
+        ),
+        # Under the history graph, after the one counting commit failures: in an outage the writer backs off
+        # to a commit a minute or rarer, so those counts leave minutes at 0; this is what the alarm reads.
+        _graph(
+            "History: commits failing (1 while the last commit failed)",
+            [labelled(HISTORY_COMMITS_FAILING, "Maximum", "commits failing")],
+            left_y_axis=cw.YAxisProps(min=0, max=1),
         ),
     ]

@@ -305,6 +305,8 @@ def test_the_dashboard_draws_only_metrics_the_agent_emits(synth_default: Synth) 
     for severity in ("critical", "warning"):
         assert ("ActiveAlarms", agent | {("Severity", severity)}) in by_metric
     assert {(monitoring.HISTORY_LAG, agent), (monitoring.HISTORY_ROWS_DROPPED, agent)} <= by_metric
+    # What the HistoryCommitFailures alarm reads: the failure counts leave minutes of an outage at 0.
+    assert (monitoring.HISTORY_COMMITS_FAILING, agent) in by_metric
     assert monitoring.HISTORY_LAG == emf.HISTORY_LAG
     assert monitoring.HISTORY_ROWS_DROPPED == emf.HISTORY_ROWS_DROPPED
     # ... and what the twin lost, each figure a loss alarm watches.
