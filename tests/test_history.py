@@ -377,6 +377,29 @@ def test_a_commit_failing_at_the_stop_says_it_is_retried_each_second(
     assert "not retried: the stop gives up on them at its deadline" in said[-1], said
 
 
+def test_a_flush_that_got_a_failing_table_through_puts_its_commits_back_on_schedule(tmp_path: Path) -> None:
+    """A flush (and the stop) commits whatever the backoff says; it also ends the backoff's wait, or a table
+    whose storage came back during a flush would wait out the rest of its 60 s before its next commit."""
+    base = tmp_path / "h"
+    base.mkdir()
+    broken = base / TELEMETRY_TABLE
+    broken.write_text("not a directory")  # every commit fails until it goes
+    now = [1000.0]
+    settings = HistorySettings(uri=str(base), commit_every_s=5, retry_min_s=60, retry_max_s=60)
+    writer = HistoryWriter(settings, clock=lambda: now[0]).start()
+    try:
+        writer.add(TELEMETRY_TABLE, telemetry_table(samples(10))[0])
+        assert not writer.flush(10)  # the table now backs off 60 s
+        broken.unlink()
+        assert writer.flush(10)
+        writer.add(TELEMETRY_TABLE, telemetry_table(samples(10, start_s=T0 + 1))[0])
+        now[0] += 5  # commit_every_s, well within the 60 s backoff
+        committed = lambda: writer.stats().tables[TELEMETRY_TABLE].rows_committed  # noqa: E731
+        wait_for(lambda: committed() == 20, 10, "the commit on schedule")
+    finally:
+        writer.close(timeout=0)
+
+
 def test_a_full_disk_is_a_clear_error_and_writing_resumes_when_space_returns(tmp_path: Path) -> None:
     mount = tmp_path / "small"
     mount.mkdir()

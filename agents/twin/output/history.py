@@ -410,6 +410,11 @@ class WriterStats:
     lag_s: float = 0.0
 
 
+def _no_backoff_waits() -> dict[str, float]:
+    """When each table may commit next, none held back by a backoff (the start, a flush, the close)."""
+    return dict.fromkeys(SCHEMAS, 0.0)
+
+
 @dataclass
 class _Pending:
     table: pa.Table
@@ -523,7 +528,7 @@ class HistoryWriter:
         self._flushes_done = 0
         self._closing = False
         self._close_deadline = 0.0
-        self._retry_at = dict.fromkeys(SCHEMAS, 0.0)
+        self._retry_at = _no_backoff_waits()
         self._backoff = dict.fromkeys(SCHEMAS, settings.retry_min_s)
         self._next_maintenance = self._maintenance_after(clock())
         self._tables: dict[str, Any] = {}
@@ -595,7 +600,7 @@ class HistoryWriter:
         with self._cond:
             target = self._flushes_done + 1
             self._flush_requested = True
-            self._retry_at = dict.fromkeys(SCHEMAS, 0.0)
+            self._retry_at = _no_backoff_waits()
             self._cond.notify()
             deadline = time.monotonic() + timeout
             while self._flushes_done < target:
@@ -610,7 +615,7 @@ class HistoryWriter:
         with self._cond:
             self._closing = True
             self._close_deadline = time.monotonic() + timeout
-            self._retry_at = dict.fromkeys(SCHEMAS, 0.0)
+            self._retry_at = _no_backoff_waits()
             self._cond.notify()
         if self._started:
             self._thread.join(timeout + 5.0)
