@@ -324,6 +324,18 @@ def test_alarms_and_cloudwatch_sections() -> None:
             assert word in str(info.value), (overrides, str(info.value))
 
 
+def test_a_wrong_emf_interval_is_told_every_whole_interval_that_divides_60() -> None:
+    """The advice was a hand list that left 12 and 6 out."""
+    with pytest.raises(ConfigError, match=r"set one of ([\d, ]+) \(60") as info:
+        load_config(None, {"cloudwatch.interval_s": 45.0})
+    advice = re.search(r"set one of ([\d, ]+) \(60", str(info.value))
+    assert advice is not None
+    named = [int(s) for s in advice.group(1).split(", ")]
+    assert named == sorted((s for s in range(1, 61) if 60 % s == 0), reverse=True)
+    for seconds in named:
+        assert load_config(None, {"cloudwatch.interval_s": float(seconds)}).cloudwatch.interval_s == seconds
+
+
 _RULE_KEYS = {
     ("over_temperature", False): ("temperature_warning_c", "temperature_warning_clear_c"),
     ("over_temperature_critical", False): ("temperature_critical_c", "temperature_critical_clear_c"),

@@ -402,8 +402,9 @@ def _positive(key: str, value: float) -> None:
         raise ConfigError(f"{key} = {value!r} must be greater than 0")
 
 
-# EMF intervals (seconds) that put the same number of documents in every minute, for the error's advice.
-_EMF_INTERVALS = (60, 30, 20, 15, 10, 5)
+# EMF intervals (whole seconds) that put the same number of documents in every minute, for the error's
+# advice: every divisor of 60, longest first, so the advice cannot leave one out.
+_EMF_INTERVALS = tuple(s for s in range(60, 0, -1) if 60 % s == 0)
 
 
 def _validate_emf_interval(interval_s: float) -> None:
