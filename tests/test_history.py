@@ -646,6 +646,44 @@ def test_the_rows_keep_days_deleted_reach_state_and_metrics(tmp_path: Path) -> N
     assert "twin_history_rows_expired_total 22.0" in text.splitlines()
 
 
+def test_a_writer_that_has_not_tried_its_storage_yet_reports_it_unknown_not_ok(tmp_path: Path) -> None:
+    """A history writer started again (or new) said its storage was OK before its first commit: /state's
+    storage_ok is null and /metrics has no twin_history_storage_ok until then, and CloudWatch's
+    HistoryCommitsFailing stays 0 (no commit has failed)."""
+    from types import SimpleNamespace
+
+    from twin.output.history_feed import HistoryFigures, _figures_of
+    from twin.service.agent import AgentService, fleet_totals
+    from twin.service.metrics import render_metrics
+    from twin.service.shards import _merge_history
+    from twin.service.state import AgentInfo, AgentState
+
+    writer = HistoryWriter(HistorySettings(uri=str(tmp_path / "h"), commit_every_s=3600)).start()
+    try:
+        assert writer.flush(10)  # nothing queued: no attempt, nothing failed
+        untried = writer.stats()
+        writer.add(TELEMETRY_TABLE, telemetry_table(samples(10))[0])
+        assert writer.flush(10)
+        tried = writer.stats()
+    finally:
+        writer.close()
+    assert (untried.storage_ok, tried.storage_ok) == (None, True)
+    agent = SimpleNamespace(config=load_config(None, {"history.uri": str(tmp_path)}))
+    for stats, shown in [(untried, None), (tried, "1.0")]:
+        figures = HistoryFigures(_figures_of(stats, 0), pid=None, restarts=0, rows_received=0, rows_lost=0)
+        process = SimpleNamespace(figures=lambda f=figures: f)
+        history = AgentService._history_state(agent, process)  # type: ignore[arg-type]
+        state = AgentState(agent=AgentInfo(history=history), devices={})
+        read_back = AgentState.from_json(state.to_json()).agent.history
+        assert read_back is not None and read_back.storage_ok is stats.storage_ok
+        ok = [ln for ln in render_metrics(state).splitlines() if ln.startswith("twin_history_storage_ok ")]
+        assert ok == ([f"twin_history_storage_ok {shown}"] if shown else [])
+        assert fleet_totals(state, 10.0).history_commits_failing == 0
+    pairs = [(None, None), (None, True), (True, False), (None, False)]
+    merged = [_merge_history([HistoryState(storage_ok=a), HistoryState(storage_ok=b)]) for a, b in pairs]
+    assert [m.storage_ok for m in merged if m is not None] == [None, True, False, False]
+
+
 def test_keep_days_0_keeps_every_day(tmp_path: Path) -> None:
     uri = str(tmp_path / "h")
     written = _history_on_days(uri, [400, 40, 1, 0])
@@ -2897,7 +2935,8 @@ def test_replay_publishes_what_was_recorded_and_the_agent_mirrors_it(
     assert rejected.height == mirrored.health.counters.rejected_total + sum(state.untracked_rejected.values())
     assert set(rejected["reason"].to_list()) == {"units_undecided"}
     history = state.agent.history
-    assert history is not None and history.storage_ok and history.commit_failures == 0
+    # Read before the stop's commit: None if no commit was attempted yet, never a failure.
+    assert history is not None and history.storage_ok is not False and history.commit_failures == 0
 
 
 @pytest.mark.slow

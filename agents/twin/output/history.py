@@ -403,7 +403,9 @@ class WriterStats:
     slow_parses: int = 0
     conversion_failures: int = 0
     rows_lost_in_conversion: int = 0
-    storage_ok: bool = True
+    # Whether every table's last commit worked; None until the first commit attempt: a writer started again
+    # has not yet seen its storage, which claiming OK would hide for as long as no row came to write.
+    storage_ok: bool | None = None
     last_error: str = ""
     # How long ago the oldest row not yet written arrived (0 when every row is written): history's lag behind
     # the twin, which grows for as long as commits fail, rows dropped or not (CloudWatch alarms on it).
@@ -608,7 +610,7 @@ class HistoryWriter:
                 if left <= 0 or not self._thread.is_alive():
                     return False
                 self._cond.wait(left)
-            return self._stats.storage_ok
+            return self._stats.storage_ok is not False  # no attempt yet: nothing was queued, nothing failed
 
     def close(self, timeout: float = 30.0) -> None:
         """Commit what is queued (retrying until `timeout`), then stop. Rows still unwritten are logged."""
@@ -768,7 +770,7 @@ class HistoryWriter:
             stats.last_commit_ok = True
             all_ok = all(t.last_commit_ok for t in self._stats.tables.values())
             if all_ok:
-                if not self._stats.storage_ok:
+                if self._stats.storage_ok is False:
                     log.warning("history: writing to %s works again", self.settings.uri)
                 self._error_lines.clear()
             self._backoff[table] = self.settings.retry_min_s

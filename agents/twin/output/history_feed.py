@@ -930,7 +930,7 @@ class WriterFigures:
     maintenance_runs: int = 0
     maintenance_failures: int = 0
     rows_expired: int = 0  # deleted by maintenance for being older than keep_days
-    storage_ok: bool = True
+    storage_ok: bool | None = None  # None: no commit attempted yet (WriterStats)
     last_error: str = ""
     # How long the oldest row not yet written has waited (0: none waits); it grows while commits fail.
     lag_s: float = 0.0

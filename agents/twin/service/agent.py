@@ -1857,7 +1857,7 @@ def fleet_totals(state: AgentState, expected_rate_hz: float) -> FleetTotals:
         history_rows_dropped=history.rows_not_written if history is not None else None,
         history_commit_failures=history.commit_failures if history is not None else None,
         history_lag_s=history.lag_s if history is not None else None,
-        history_commits_failing=int(history is not None and not history.storage_ok),
+        history_commits_failing=int(history is not None and history.storage_ok is False),
     )
 
 

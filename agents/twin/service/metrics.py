@@ -158,11 +158,12 @@ def _history_families(h: HistoryState) -> Iterator[Metric]:
         h.writer_restarts,
     )
     yield _gauge("twin_history_rows_buffered", "History rows waiting for a commit.", h.rows_buffered)
-    yield _gauge(
-        "twin_history_storage_ok",
-        "1 while each history table's last commit succeeded.",
-        1.0 if h.storage_ok else 0.0,
-    )
+    if h.storage_ok is not None:  # unknown until the writer's first commit attempt: no sample, not a 1
+        yield _gauge(
+            "twin_history_storage_ok",
+            "1 while each history table's last commit succeeded (absent before the first attempt).",
+            1.0 if h.storage_ok else 0.0,
+        )
     yield _gauge(
         "twin_history_lag_seconds",
         "How long ago the oldest history row not yet written arrived (0: every row is written).",

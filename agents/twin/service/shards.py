@@ -1849,12 +1849,18 @@ def _merge_recording(parts: list[RecordingState]) -> RecordingState | None:
     )
 
 
+def _storage_ok(parts: Iterator[bool | None]) -> bool | None:
+    """False if any part's commit failed, True if any worked, None while none was attempted."""
+    seen = set(parts)
+    return False if False in seen else True if True in seen else None
+
+
 def _merge_history(parts: list[HistoryState]) -> HistoryState | None:
     if not parts:
         return None
     return HistoryState(
         uri=parts[0].uri,
-        storage_ok=all(p.storage_ok for p in parts),
+        storage_ok=_storage_ok(p.storage_ok for p in parts),
         rows_committed=sum(p.rows_committed for p in parts),
         commits=sum(p.commits for p in parts),
         commit_failures=sum(p.commit_failures for p in parts),

@@ -274,7 +274,8 @@ class HistoryState:
     """The telemetry history writer (docs/history.md; its queue figures are in `agent.sinks`)."""
 
     uri: str = ""
-    storage_ok: bool = True
+    # Each table's last commit worked; None (null) until the writer process's first commit attempt.
+    storage_ok: bool | None = None
     rows_committed: int = 0
     commits: int = 0
     commit_failures: int = 0
