@@ -16,6 +16,7 @@ import logging
 import math
 import threading
 import time
+import types
 from collections import Counter
 from pathlib import Path
 from types import SimpleNamespace
@@ -38,6 +39,7 @@ from twin.output.emf import (
     emf_document,
     fleet_documents,
     next_slot,
+    realigned_slot,
 )
 from twin.service.agent import AgentService, fleet_totals
 from twin.service.state import (
@@ -611,9 +613,9 @@ def test_slots_lie_mid_minute_by_the_wall_clock_and_keep_to_the_monotonic_one(
 ) -> None:
     """Slots were an interval apart from the start, wherever that fell in the wall minute: one a few ms
     from a minute boundary could leave a minute empty and break the 5-of-5 alarms. The first is lined up
-    with the middle of a wall minute; the rest stay on the monotonic clock (a wall clock slewed by NTP, by
-    less than CLOCK_STEP_TOLERANCE_S, moves none of them). The two clocks differ here, so scheduling on the
-    wrong one shows."""
+    with the middle of a wall minute; the rest stay on the monotonic clock (a wall clock moved against it by
+    less than clock_step_tolerance, read noise, moves none of them). The two clocks differ here, so
+    scheduling on the wrong one shows."""
     mono, wall = [500.0], [1_000_000_012.3]  # 52.3 s into a wall minute, 20 s into a monotonic one
     started = (mono[0], wall[0])
     published: list[tuple[float, float]] = []
@@ -623,9 +625,14 @@ def test_slots_lie_mid_minute_by_the_wall_clock_and_keep_to_the_monotonic_one(
         published.append((mono[0], wall[0]))
         return FleetTotals(0, 0, 1, 0, 0, 0.0, None, {})
 
+    moved = []
+
     def wait(seconds: float) -> bool:
         mono[0] += seconds
-        wall[0] += seconds + (0.9 if len(published) == 1 else 0.0)  # slewed, after the first
+        wall[0] += seconds
+        if len(published) == 1 and not moved:  # once, after the first: less than the step tolerance
+            wall[0] += 0.9
+            moved.append(True)
         return len(published) >= 4
 
     publisher = EmfPublisher(
@@ -639,38 +646,132 @@ def test_slots_lie_mid_minute_by_the_wall_clock_and_keep_to_the_monotonic_one(
     assert gaps == pytest.approx([interval_s] * 3)
 
 
-@pytest.mark.parametrize("step_s", [29.0, -29.0, 7.0, -40.0, 3600.0])
-def test_a_wall_clock_stepped_after_the_start_lines_the_grid_up_again(
-    tmp_path: Path, caplog: pytest.LogCaptureFixture, step_s: float
-) -> None:
-    """The grid was lined up with the wall clock once, at the start: a wall clock stepped later (chrony at
-    first boot) left every document at its old place in the wall minute, up to a minute boundary, until a
-    restart. After the step the documents lie mid-minute again, one a wall minute, each half an interval to
-    one and a half from the last, and the step is counted and logged once."""
+def _around_a_step(
+    step_s: float, late_s: float, at_slot: bool = False, interval_s: float = 60.0, stall_s: float = 0.0
+) -> tuple[list[float], EmfPublisher]:
+    """The wall times of six documents the publisher's own loop writes when the wall clock is stepped by
+    `step_s` once after the first (at the first wait, or at the wait that reaches the next slot if
+    `at_slot`), every wait returning `late_s` late, and the publisher. With `stall_s`, the first read of the
+    wall clock after the first document takes that long (the thread stalled)."""
     mono, wall = [500.0], [1_000_000_012.3]
     published: list[tuple[float, float]] = []
+    stepped: list[bool] = []
+    stalled: list[bool] = []
 
     def sample() -> FleetTotals:
         published.append((mono[0], wall[0]))
         return FleetTotals(0, 0, 1, 0, 0, 0.0, None, {})
 
     def wait(seconds: float) -> bool:
-        mono[0] += seconds
-        wall[0] += seconds + (step_s if len(published) == 1 else 0.0)  # stepped once, after the first
+        mono[0] += seconds + late_s
+        wall[0] += seconds + late_s
+        due = len(published) == 1 and (not at_slot or mono[0] >= published[0][0] + interval_s)
+        if due and not stepped:
+            wall[0] += step_s
+            stepped.append(True)
         return len(published) >= 6
 
-    writer = EmfFileWriter(tmp_path / "emf.log")
-    publisher = EmfPublisher(writer, "a", sample, clock=lambda: mono[0], wall=lambda: wall[0], wait=wait)
+    def read_wall() -> float:
+        if stall_s and len(published) == 1 and not stalled:
+            stalled.append(True)
+            mono[0] += stall_s
+            wall[0] += stall_s
+        return wall[0]
+
+    writer = types.SimpleNamespace(write=lambda documents: None, path="memory")
+    publisher = EmfPublisher(
+        writer,  # type: ignore[arg-type]
+        "a",
+        sample,
+        interval_s=interval_s,
+        clock=lambda: mono[0],
+        wall=read_wall,
+        wait=wait,
+    )
+    publisher.run()
+    return [w for _, w in published], publisher
+
+
+def _minutes(walls: list[float]) -> list[int]:
+    """How many documents each wall minute from the first document's to the last one's got."""
+    counts = Counter(int(w // 60.0) for w in walls)
+    return [counts[m] for m in range(min(counts), max(counts) + 1)]
+
+
+@pytest.mark.parametrize(
+    ("step_s", "late_s"),
+    [
+        (30.0, 0.0),
+        (-30.0, 0.0),
+        (29.9, 0.2),
+        (-30.5, 0.6),
+        (29.0, 0.0),
+        (-29.0, 0.0),
+        (7.0, 0.3),
+        (-40.0, 0.0),
+    ],
+)
+def test_a_wall_clock_stepped_between_two_documents_leaves_each_minute_one(
+    caplog: pytest.LogCaptureFixture, step_s: float, late_s: float
+) -> None:
+    """The grid was lined up with the wall clock once, at the start: a wall clock stepped later (chrony at
+    first boot) left every document at its old place in the wall minute, up to a minute boundary. Then a
+    step was seen only after the next document was written at the old place (stepped +30 s: documents at
+    :30, :00.0, :30, a minute with none and one with two), and the grid moved to the place nearest the old
+    one, not to the minute after the last document's. Now the step is seen before that document: each
+    wall minute, the ones either side of the step too, gets exactly one, mid-minute, and the step is
+    counted and logged once."""
     with caplog.at_level(logging.WARNING, logger="twin.output.emf"):
-        publisher.run()
-    # The publish that follows the step is at the old phase (the step is seen after it); the rest are not.
-    assert [w % 60.0 for _, w in published[2:]] == pytest.approx([30.0] * 4, abs=1e-5)
-    minutes = [w // 60.0 for _, w in published[1:]]
-    assert [b - a for a, b in itertools.pairwise(minutes)] == [1.0] * 4
-    gaps = [b[0] - a[0] for a, b in itertools.pairwise(published)]
-    assert all(30.0 <= gap <= 90.0 for gap in gaps), gaps
+        walls, publisher = _around_a_step(step_s, late_s)
+    assert _minutes(walls) == [1] * 6
+    assert all(30.0 - 1e-5 <= w % 60.0 <= 30.0 + late_s + 1e-5 for w in walls), walls
     assert publisher.clock_steps == 1
     assert len([r for r in caplog.records if "wall clock moved" in r.getMessage()]) == 1
+
+
+@pytest.mark.parametrize(("step_s", "minutes"), [(30.0, [1, 0, 1, 1, 1, 1, 1]), (-30.5, [1] * 6)])
+def test_a_step_seen_only_at_the_slot_is_followed_before_the_document(
+    step_s: float, minutes: list[int]
+) -> None:
+    """A step just as the slot is reached was followed only after a document at the old place: stepped
+    forward past the slot's place, the next document is at the next one (the minute the clock jumped over
+    gets none, no minute two); stepped back, at the place of the minute after the last document's."""
+    walls, _ = _around_a_step(step_s, 0.6, at_slot=True)
+    assert _minutes(walls) == minutes
+    assert all(30.0 - 1e-5 <= w % 60.0 <= 30.6 + 1e-5 for w in walls), walls
+
+
+def test_a_forward_step_of_an_hour_skips_the_minutes_jumped_over_and_writes_none_twice() -> None:
+    walls, publisher = _around_a_step(3600.0, 0.0)
+    assert max(Counter(int(w // 60.0) for w in walls).values()) == 1
+    assert [w % 60.0 for w in walls] == pytest.approx([30.0] * 6, abs=1e-5)
+    assert publisher.clock_steps == 1
+
+
+def test_a_backward_step_of_an_hour_waits_no_more_than_two_intervals() -> None:
+    """Waiting for the wall clock to come round to the minute after the last document's would leave an
+    hour without metrics: the next document is at most two intervals on, in a minute written before the
+    step."""
+    walls, _ = _around_a_step(-3600.0, 0.0)
+    assert 0.0 < walls[1] - (walls[0] - 3600.0) <= 120.0
+    assert _minutes(walls[1:]) == [1] * 5
+    assert 160.0 < realigned_slot(160.0, 100.0, 101.0, -3600.0, 60.0) <= 220.0
+
+
+def test_a_step_of_two_fifths_of_a_short_interval_lines_the_grid_up_again() -> None:
+    """A fixed 1 s tolerance let a 0.9 s step stand with a 2 s interval: slots 0.1 s from a boundary."""
+    walls, publisher = _around_a_step(0.9, 0.0, interval_s=2.0)
+    assert [w % 2.0 for w in walls] == pytest.approx([1.0] * 6, abs=1e-5)
+    assert publisher.clock_steps == 1
+
+
+def test_a_thread_stalled_between_the_clock_reads_is_not_a_step(caplog: pytest.LogCaptureFixture) -> None:
+    """The monotonic and the wall clock were read one after the other: a thread stalled between the two
+    read as a step of the wall clock, moved the grid and warned (and again, back, at the next read)."""
+    with caplog.at_level(logging.WARNING, logger="twin.output.emf"):
+        walls, publisher = _around_a_step(0.0, 0.0, stall_s=3.0)
+    assert publisher.clock_steps == 0 and not caplog.records
+    assert [w % 60.0 for w in walls] == pytest.approx([30.0] * 6, abs=1e-5)
 
 
 def test_the_first_documents_rate_is_over_the_time_since_the_start(tmp_path: Path) -> None:
@@ -704,7 +805,9 @@ def test_severity_lines_the_disk_refused_after_the_counts_are_a_write_failure(tm
 
     writer.write = second_severity_lines_refused  # type: ignore[method-assign]
     totals = FleetTotals(0, 0, 1, 0, 0, 0.0, None, {"critical": 1})
-    publisher = EmfPublisher(writer, "a", lambda: totals, clock=lambda: clock[0], wall=lambda: 1.0, wait=wait)
+    publisher = EmfPublisher(
+        writer, "a", lambda: totals, clock=lambda: clock[0], wall=lambda: clock[0], wait=wait
+    )
     publisher.run()
     docs = [validate_emf_line(line) for line in writer.path.read_text().splitlines()]
     assert [d["EmfWriteFailures"] for d in docs if "AgentUp" in d] == [0, 0, 1]

@@ -358,21 +358,27 @@ def first_slot(mono: float, wall: float, interval_s: float) -> float:
     return mono + interval_s + (phase - (wall + interval_s)) % interval_s
 
 
-# How far the wall clock may move against the monotonic one before the grid is lined up with it again: a step
-# (chrony setting the clock at first boot, a person) beyond this left every slot at its old place in the wall
-# minute until a restart, possibly on a minute boundary. NTP's slewing (at most 0.5 ms/s) crosses it only
-# after half an hour or more, well short of the 2.5 s a 5 s interval's slots lie from a boundary.
-CLOCK_STEP_TOLERANCE_S = 1.0
+def clock_step_tolerance(interval_s: float) -> float:
+    """How far the wall clock may move against the monotonic one before the grid is lined up with it again
+    (a step: chrony setting the clock at first boot, a person, a leap second, a resumed suspend). NTP's
+    slewing changes both clocks alike, so their difference moves only by such steps, and a move under this
+    is read noise. A slot lies half an interval from a minute's boundaries: one left in place by a move under
+    a quarter interval still lies a quarter interval or more from them."""
+    return min(1.0, interval_s / 4.0)
 
 
-def realigned_slot(slot: float, now: float, offset: float, interval_s: float) -> float:
-    """`slot` moved to the nearest monotonic time at which the wall clock (monotonic + `offset`) reads a
-    slot's place in its minute (first_slot), at most half an interval either way, so no wall minute is
-    skipped or written twice by the move; the next such time after `now` if that one has passed."""
-    phase = min(interval_s / 2.0, 30.0)
-    shift = (phase - (slot + offset) + interval_s / 2.0) % interval_s - interval_s / 2.0
-    moved = slot + shift
-    return moved if moved > now else next_slot(moved, now, interval_s)
+def realigned_slot(slot: float, last: float, now: float, step: float, interval_s: float) -> float:
+    """The next slot, due at monotonic time `slot` after the one at `last`, once the wall clock was stepped
+    by `step` seconds: moved to where the wall clock now reads what it read there before, the next place in
+    its minutes after the last document's, so no minute gets two. If a forward step passed it, the first
+    such place after `now` (the minutes the clock jumped over get none); a backward step of more than an
+    interval would put it more than two intervals after `last`, so then the place one to two intervals
+    after `last` (its minute had a document before the step, and gets a second)."""
+    slot -= step
+    latest = last + 2.0 * interval_s
+    if slot > latest:
+        slot -= math.ceil((slot - latest) / interval_s) * interval_s
+    return slot if slot > now else next_slot(slot, now, interval_s)
 
 
 class EmfPublisher:
@@ -414,7 +420,7 @@ class EmfPublisher:
         self.errors = 0
         self.last_error = ""
         self._errors_told = 0  # `errors` as the last document written told them
-        self.clock_steps = 0  # wall clock steps that moved the grid (CLOCK_STEP_TOLERANCE_S)
+        self.clock_steps = 0  # wall clock steps that moved the grid (clock_step_tolerance)
 
     def publish_once(self, totals: FleetTotals | None = None) -> FleetMetrics:
         """Sample (or take `totals`: the agent's last document, at its stop), write this interval's documents,
@@ -472,28 +478,55 @@ class EmfPublisher:
         """Publish at every slot of a fixed grid, `interval_s` apart on the monotonic clock from a first slot
         lined up with the wall clock's minutes (first_slot, next_slot), and lined up again after a step of the
         wall clock (realigned_slot), until stop(); start() runs this on its own thread."""
-        mono, wall = self._clock(), self._wall()
-        slot, offset = first_slot(mono, wall, self.interval_s), wall - mono
-        while not self._wait(max(0.0, slot - self._clock())):
+        offset = None
+        for _ in range(3):  # a stalled read is retried; a loose one only moves the grid once, later
+            mono, offset = self._clock_offset()
+            if offset is not None:
+                break
+        if offset is None:
+            mono, offset = self._clock(), self._wall() - self._clock()
+        slot = first_slot(mono, mono + offset, self.interval_s)
+        last = slot - self.interval_s  # where the grid had its last slot, as if before the first
+        # The wait is cut into short ones so a step is seen before the slot it moves, not only after it.
+        poll_s = clock_step_tolerance(self.interval_s)
+        while True:
+            due = slot - self._clock()
+            if self._wait(max(0.0, min(due, poll_s))):
+                return
+            moved, offset = self._follow_wall_steps(slot, last, offset)
+            if moved is not None:
+                slot = moved
+                continue
+            if due > poll_s and self._clock() < slot:  # a late wake past the slot publishes at once
+                continue
             try:
                 self.publish_once()
             except Exception as exc:
                 self.failed(exc)
                 log.exception("writing CloudWatch metrics to %s failed", self.writer.path)
-            slot = next_slot(slot, self._clock(), self.interval_s)
-            slot, offset = self._follow_wall_steps(slot, offset)
+            last, slot = slot, next_slot(slot, self._clock(), self.interval_s)
 
-    def _follow_wall_steps(self, slot: float, offset: float) -> tuple[float, float]:
-        """The next slot and the wall-minus-monotonic offset it is lined up with, both moved if the wall clock
-        was stepped since `offset` was read (logged once per step)."""
-        mono, wall = self._clock(), self._wall()
-        step = (wall - mono) - offset
-        if abs(step) <= CLOCK_STEP_TOLERANCE_S:
-            return slot, offset
+    def _clock_offset(self) -> tuple[float, float | None]:
+        """The monotonic time and the wall clock minus it, read between two reads of the monotonic one. The
+        difference is None if those lie over a quarter of the step tolerance apart (the thread stalled
+        between the reads): so loose a reading, taken for a step, would move the grid and warn twice."""
+        before = self._clock()
+        wall = self._wall()
+        after = self._clock()
+        if after - before > clock_step_tolerance(self.interval_s) / 4.0:
+            return after, None
+        return after, wall - (before + after) / 2.0
+
+    def _follow_wall_steps(self, slot: float, last: float, offset: float) -> tuple[float | None, float]:
+        """`slot` moved (realigned_slot) if the wall clock was stepped since `offset` (wall minus monotonic)
+        was read, else None, and the offset the grid is lined up with then (a step is logged once)."""
+        now, read = self._clock_offset()
+        if read is None or abs(read - offset) <= clock_step_tolerance(self.interval_s):
+            return None, offset
         self.clock_steps += 1
         log.warning(
             "the wall clock moved %+.1f s against the monotonic one (stepped by NTP or by hand); CloudWatch "
             "metrics are lined up with the middle of its minutes again",
-            step,
+            read - offset,
         )
-        return realigned_slot(slot, mono, wall - mono, self.interval_s), wall - mono
+        return realigned_slot(slot, last, now, read - offset, self.interval_s), read
