@@ -405,33 +405,51 @@ def test_a_mirror_thread_that_handles_batches_but_misses_the_timeout_is_busy_not
 
 
 class _HungWorker(_SilentWorker):
-    """A worker process that runs and answers nothing until killed, after which it is dead by SIGKILL."""
+    """A worker process that runs and answers nothing until killed, after which it is dead with `ended`
+    (SIGKILL's code; another if it exited or crashed by itself just before the kill reached it)."""
 
-    def __init__(self) -> None:
+    def __init__(self, ended: int | None = -signal.SIGKILL) -> None:
         super().__init__()
-        self.pid, self.exitcode, self.alive = 4242, None, True
+        self.pid, self.exitcode, self.alive, self.ended = 4242, None, True, ended
 
     def is_alive(self) -> bool:
         return self.alive
 
     def kill(self) -> None:
-        self.alive, self.exitcode = False, -signal.SIGKILL
+        self.alive, self.exitcode = False, self.ended
 
     def join(self, timeout: float) -> None:
         pass
 
 
+_KILLED_AS_HUNG = "answered no request for 15 s (hung) and was killed by the supervisor with SIGKILL"
+
+
+@pytest.mark.parametrize(
+    ("ended", "how", "data"),
+    [
+        (-signal.SIGKILL, _KILLED_AS_HUNG, {"exit_code": -9, "hung_s": 15}),
+        (None, _KILLED_AS_HUNG, {"exit_code": None, "hung_s": 15}),
+        (1, "exited, exit code 1, while found hung", {"exit_code": 1}),
+        (-signal.SIGSEGV, "exited, killed by SIGSEGV (signal 11), while found hung", {"exit_code": -11}),
+    ],
+)
 def test_a_hung_worker_the_supervisor_killed_is_said_to_be_so_in_the_log_and_on_the_events_page(
-    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+    monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture,
+    ended: int | None,
+    how: str,
+    data: dict[str, Any],
 ) -> None:
     """A worker that ran but answered nothing was told as "exited, exit code unknown" or as killed by
     SIGKILL, as if it had crashed: now as hung for so long and killed by the supervisor, in one wording in
-    the log line and the event."""
+    the log line and the event. One that exited or crashed by itself just before the kill keeps its own
+    exit code (a review: it was told as killed by the supervisor while the data said exit code 1 or -11)."""
     now = [1000.0]
     monkeypatch.setattr(shards.time, "monotonic", lambda: now[0])
     config = load_config(None, {"telemetry.devices": ["*"]})
     shard = shards.WorkerShard(0, config, DeviceBudget(10), context=None)  # type: ignore[arg-type]
-    worker = _HungWorker()
+    worker = _HungWorker(ended)
     shard.process, shard.control, shard.ready = worker, worker, True  # type: ignore[assignment]
     shard.pid, shard.started_at = worker.pid, now[0]
     for _ in range(shards.HUNG_AFTER_ASKS):
@@ -443,7 +461,6 @@ def test_a_hung_worker_the_supervisor_killed_is_said_to_be_so_in_the_log_and_on_
         shard.supervise()  # finds it dead; started again after a pause (it died young)
     killing, found = [r.getMessage() for r in caplog.records]
     assert "nothing for 15 s): it is hung; killing it (SIGKILL)" in killing
-    how = "answered no request for 15 s (hung) and was killed by the supervisor with SIGKILL"
     assert found == f"worker 0 (pid 4242) {how}; starting it again in 1 s"
     events: list[tuple[str, dict[str, Any]]] = []
     emit = lambda _kind, _level, message, data: events.append((message, data))  # noqa: E731
@@ -452,7 +469,7 @@ def test_a_hung_worker_the_supervisor_killed_is_said_to_be_so_in_the_log_and_on_
     assert events == [
         (
             f"worker 0 (pid 4242) {how}; it is started again from its last checkpoint, its arms kept",
-            {"worker": 0, "pid": 4242, "exit_code": -9, "hung_s": 15},
+            {"worker": 0, "pid": 4242} | data,
         )
     ]
 

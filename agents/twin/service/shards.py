@@ -796,6 +796,8 @@ class WorkerExit:
     server_lost: bool = False  # 255 came from its killed fork server while the worker still ran (`seen`)
     # Seconds it had answered no request when the supervisor killed it as hung; 0 if not ended so.
     hung_s: float = 0.0
+    # Found hung, but its exit code says it ended otherwise (exited or crashed before the kill reached it).
+    found_hung: bool = False
 
     @classmethod
     def seen(cls, pid: int, exit_code: int | None) -> WorkerExit:
@@ -807,7 +809,8 @@ class WorkerExit:
     def how(self) -> str:
         """What became of it, after its pid: `exited, exit code 1`, `exited, killed by SIGKILL (signal 9)`,
         `exited, exit code unknown`, that the supervisor killed it as hung (its exit code is then only the
-        kill's), or that its fork server is gone (a worker that did not exit)."""
+        kill's), or that its fork server is gone (a worker that did not exit); `, while found hung` after an
+        exit of its own as the supervisor went to kill it."""
         code = self.exit_code
         if self.hung_s:
             return (
@@ -817,14 +820,16 @@ class WorkerExit:
         if self.server_lost:
             return "can no longer be watched: the fork server that started it is gone (killed?)"
         if code is None:
-            return "exited, exit code unknown"
-        if code < 0:
+            how = "exited, exit code unknown"
+        elif code < 0:
             try:
                 name = signal.Signals(-code).name
             except ValueError:
                 name = "an unknown signal"
-            return f"exited, killed by {name} (signal {-code})"
-        return f"exited, exit code {code}"
+            how = f"exited, killed by {name} (signal {-code})"
+        else:
+            how = f"exited, exit code {code}"
+        return f"{how}, while found hung" if self.found_hung else how
 
 
 class Shard(Protocol):
@@ -1164,7 +1169,12 @@ class WorkerShard:
         pid, killed = process.pid or self.pid, self._ended
         ended = WorkerExit.seen(pid, process.exitcode)
         if killed is not None and killed.pid == pid and killed.hung_s:
-            ended = dataclasses.replace(ended, hung_s=killed.hung_s)  # its own kill, not a crash
+            # Its exit is the supervisor's kill only if the code is the kill's (or unknown): one that exited
+            # or crashed (SIGSEGV) between is_alive() and kill() keeps its own code, told as found hung.
+            if ended.exit_code in (None, -signal.SIGKILL):
+                ended = dataclasses.replace(ended, hung_s=killed.hung_s)
+            else:
+                ended = dataclasses.replace(ended, found_hung=True)
         self._ended = ended
         quick = now - self.started_at < QUICK_DEATH_S
         pause = min(MAX_RESTART_PAUSE_S, 2.0 ** min(self.restarts, 6)) if quick else 0.0
