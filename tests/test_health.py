@@ -291,3 +291,23 @@ def test_the_rate_of_a_steady_stream_reads_its_rate_whenever_it_is_read() -> Non
     readings = [meter.rate(19.84 + 0.0024 * j) for j in range(40)]
     assert all(abs(r - 10.0) <= 0.2 for r in readings), (min(readings), max(readings))
     assert abs(sum(readings) / len(readings) - 10.0) < 0.03, sum(readings) / len(readings)
+
+
+def test_a_held_arms_refused_messages_say_when_it_was_last_heard_and_how_often() -> None:
+    # A walk's held arm (every message refused) published ten a second while its page read "last seen
+    # never, 0.0 Hz": its refused messages still show it is on, apart from its valid ones.
+    clock = FakeClock()
+    fleet = FleetHealth(TH, ["arm-held"], clock=clock)
+    for _ in range(50):
+        clock.advance(0.1)
+        fleet.record_rejected("arm-held", "calibration_refused", clock.t)
+    clock.advance(0.4)
+    snap = fleet.device("arm-held").snapshot()
+    assert (snap.age_s, snap.rate_hz) == (None, 0.0)
+    assert snap.refused_age_s == pytest.approx(0.4)
+    assert snap.refused_rate_hz == pytest.approx(10.0, abs=1.0)
+    checkpointed = fleet.device("arm-held").checkpoint().snapshot(TH, clock.t + 1.0, 0.0)
+    assert checkpointed.refused_age_s == pytest.approx(1.4)
+    # An arm none of whose messages was refused says none.
+    quiet = FleetHealth(TH, ["arm-quiet"], clock=clock).device("arm-quiet").snapshot()
+    assert (quiet.refused_age_s, quiet.refused_rate_hz) == (None, 0.0)

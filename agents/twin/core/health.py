@@ -100,6 +100,10 @@ class HealthSnapshot:
     edge_clock_offset_s: float | None = None
     edge_transit_jitter_p99_s: float | None = None
     internal_latency_s: WindowLatency = field(default_factory=WindowLatency)
+    # Its refused messages (rejected for its topic): a held arm's are all refused, yet they show it is on.
+    # Its page read "last seen never, 0.0 Hz" while it published ten a second.
+    refused_age_s: float | None = None
+    refused_rate_hz: float = 0.0
 
 
 # A HealthCheckpoint as plain values (`DeviceHealth.checkpoint_row`, `HealthCheckpoint.from_row`), which
@@ -175,6 +179,7 @@ class HealthCheckpoint:
             age_s=None if self.last_message_mono is None else max(0.0, now - self.last_message_mono),
             last_timestamp_ms=self.last_timestamp_ms,
             counters=self.counters,
+            refused_age_s=None if self.last_refused_mono is None else max(0.0, now - self.last_refused_mono),
         )
 
 
@@ -245,6 +250,8 @@ class HealthReading:
     counters: DeviceCounters
     edge_latencies: tuple[tuple[float, float], ...]  # (receive time, latency) samples
     internal_latencies: tuple[tuple[float, float], ...]
+    refused_age_s: float | None = None
+    refused_rate_hz: float = 0.0
 
     def snapshot(self) -> HealthSnapshot:
         """The health this reading holds, as /state publishes it."""
@@ -260,6 +267,8 @@ class HealthReading:
             edge_clock_offset_s=offset,
             edge_transit_jitter_p99_s=None if offset is None or edge.p99 is None else edge.p99 - offset,
             internal_latency_s=internal,
+            refused_age_s=self.refused_age_s,
+            refused_rate_hz=self.refused_rate_hz,
         )
 
 
@@ -329,6 +338,7 @@ class DeviceHealth:
         # status is of valid messages) yet still publishes, so it is not retired (Mirror.forget_arm).
         self.last_refused_mono: float | None = None
         self.last_refused_reason = ""
+        self._refused_rate: RateMeter | None = None  # made at the first refusal: most arms have none
         self.last_timestamp_ms: int | None = None
         self.received = 0
         self.decoded = 0
@@ -355,7 +365,12 @@ class DeviceHealth:
 
     def record_rejected(self, reason: str, recv_mono: float | None = None) -> None:
         self.rejected[str(reason)] += 1
-        if recv_mono is not None and (self.last_refused_mono is None or recv_mono >= self.last_refused_mono):
+        if recv_mono is None:
+            return
+        if self._refused_rate is None:
+            self._refused_rate = RateMeter(self.thresholds.window_s)
+        self._refused_rate.add(recv_mono)
+        if self.last_refused_mono is None or recv_mono >= self.last_refused_mono:
             self.last_refused_mono, self.last_refused_reason = recv_mono, str(reason)
 
     def record_error(self) -> None:
@@ -505,6 +520,8 @@ class DeviceHealth:
             counters=self._counters(),
             edge_latencies=self._edge_latency.samples(at),
             internal_latencies=self._internal_latency.samples(at),
+            refused_age_s=None if self.last_refused_mono is None else max(0.0, now - self.last_refused_mono),
+            refused_rate_hz=0.0 if self._refused_rate is None else self._refused_rate.rate(at),
         )
 
 
