@@ -1585,6 +1585,36 @@ def test_a_held_arms_refused_messages_stay_counted_when_its_worker_is_started_ag
         agent.stop()
 
 
+def test_a_held_arm_nothing_was_received_from_is_not_said_to_have_its_messages_refused(
+    tmp_path: Path,
+) -> None:
+    """A walk: a held arm switched off was said to have "its messages refused", in the Fleet page's notice
+    and on its page, which sent the operator looking for refused messages. Said of it: nothing received
+    yet; of one publishing, its messages refused, how many and when the last came (on its page)."""
+    (tmp_path / "cal").mkdir()
+    for device in ("arm-002", "arm-004"):
+        (tmp_path / "cal" / f"{device}.json").write_text('{"shoulder_pan": {}}')
+    agent = agent_with_store(tmp_path / "cal", **{"telemetry.devices": ["*"]})
+    agent.start()
+    try:
+        ts = int(time.time() * 1000)
+        for step in range(3):
+            agent.feed("dt/lerobot/arm-002/telemetry", ticks_message("arm-002", ts + 100 * step))
+        wait_for(lambda: agent.arm_view("arm-002").refused is not None, 60, "arm-002's refused messages")
+        (fed,) = [n for n in agent.notices() if n.startswith("arm-002")]
+        (silent,) = [n for n in agent.notices() if n.startswith("arm-004")]
+        assert "so its messages are refused" in fed, fed
+        assert "nothing has been received from it" in silent and "so its messages are" not in silent
+        assert "twin calibration push arm-004 FILE" in silent, silent
+        count, age_s = agent.arm_view("arm-002").refused or (0, 0.0)
+        assert count == 3 and age_s >= 0.0
+        assert agent.arm_view("arm-004").refused is None
+        doc = json.loads(console.arm_document("arm-002", agent.arm_view("arm-002")))
+        assert doc["refused"]["count"] == 3, doc["refused"]
+    finally:
+        agent.stop()
+
+
 def _row(agent: AgentService, device: str) -> console.FleetRow:
     (row,) = [r for r in agent.fleet_rows() if r.device == device]
     return row

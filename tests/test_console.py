@@ -555,6 +555,74 @@ def test_a_held_arm_with_a_card_is_said_to_be_held_not_nominal(
     assert browser_errors == []
 
 
+def held_arm_document(console: str, device: str) -> dict[str, Any]:
+    """The agent's own arm document of `device`, made so: held by a refused file, with a card and nothing
+    received (every valid message's figures of the live arm taken out)."""
+    doc: dict[str, Any] = json.loads(http_get(console + f"/api/arm/{device}")[2])
+    doc["device"]["uncalibrated"], doc["device"]["calibration"] = True, ""
+    doc["device"]["calibration_problem"] = doc["calibration_refused"] = "not valid JSON: line 1 column 2"
+    health = doc["device"]["health"]
+    health |= {"status": "OFFLINE", "age_s": None, "rate_hz": 0.0}
+    health |= {"refused_age_s": None, "refused_rate_hz": 0.0}
+    health["counters"] |= {"received": 0, "decoded": 0, "applied": 0, "rejected_total": 0, "rejected": {}}
+    return doc
+
+
+def test_a_held_arms_page_says_what_is_true_of_its_messages(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """A walk: the page of a held arm that had sent nothing said "its messages are refused", and that of a
+    held arm publishing ten a second "last seen never, 0.0 Hz". The first says nothing was received yet and
+    what to check; the second when its last refused message came and their rate, apart from the valid."""
+    doc = held_arm_document(console, "arm-003")
+    serve_document(page, "/api/arm/arm-003", "arm", doc)
+    try:
+        page.goto(console + "/arm/arm-003")
+        said = page.locator("#calibration-held").inner_text()
+        assert "column 2): nothing has been received from it" in said, said
+        assert "publishes under this id" in said and doc["calibration_push"]["command"] in said, said
+        health = doc["device"]["health"]
+        health |= {"refused_age_s": 0.31, "refused_rate_hz": 9.96}
+        health["counters"] |= {"received": 40, "rejected_total": 40, "rejected": {"calibration_refused": 40}}
+        unserve(page, "/api/arm/arm-003")
+        serve_document(page, "/api/arm/arm-003", "arm", doc)
+        page.reload()
+        page.locator("#calibration-held", has_text="its messages are refused").wait_for()
+        pairs = page.evaluate(
+            "() => { const s = [...document.querySelectorAll('.kv > span')].map(e => e.textContent);"
+            " return Object.fromEntries(s.flatMap((t, i) => i % 2 ? [] : [[t, s[i + 1]]])); }"
+        )
+        assert pairs["last seen"] == "never a valid message; a refused one 0.3 s ago (not mirrored)", pairs
+        assert pairs["rate"] == "0.0 Hz mirrored, 10.0 Hz refused", pairs
+    finally:
+        unserve(page, "/api/arm/arm-003")
+        leave(page)
+    assert browser_errors == []
+
+
+def test_a_held_arms_page_without_a_card_says_whether_its_messages_came(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """With the whole fleet subscribed a held arm has no state: its page said "its messages are refused"
+    whether it published or was off. The document's "refused" says which; the page says it."""
+    doc: dict[str, Any] = json.loads(http_get(console + "/api/arm/arm-003")[2])
+    doc |= {"device": None, "alarms": [], "calibration_refused": "not valid JSON", "refused": None}
+    serve_document(page, "/api/arm/arm-003", "arm", doc)
+    try:
+        page.goto(console + "/arm/arm-003")
+        said = page.locator("#unknown", has_text="This agent holds this arm").inner_text()
+        assert "nothing has been received from it" in said and "so its messages are" not in said, said
+        unserve(page, "/api/arm/arm-003")
+        serve_document(page, "/api/arm/arm-003", "arm", doc | {"refused": {"count": 41, "age_s": 0.42}})
+        page.reload()
+        said = page.locator("#unknown", has_text="This agent holds this arm").inner_text()
+        assert "so 41 of its messages were refused so far (the last 0.4 s ago), none mirrored" in said, said
+    finally:
+        unserve(page, "/api/arm/arm-003")
+        leave(page)
+    assert browser_errors == []
+
+
 def test_an_arm_page_draws_its_charts(console: str, page: Any, browser_errors: list[str]) -> None:
     page.goto(console + "/arm/arm-003")
     wait_for_charts(page, TIMEOUT_S)

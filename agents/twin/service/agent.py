@@ -1120,12 +1120,20 @@ class AgentService:
     def _held_notices(self, shown: Collection[str]) -> list[str]:
         # An arm with no calibration to keep (its file was bad at the start) is held: with the whole fleet
         # subscribed it is never admitted, so only the log and the Events page named it.
+        problems = {d: why for d, why in self._held_problems().items() if d not in shown}
+        # "its messages are refused" was said of an arm nothing was received from: asked only with one held.
+        heard = {a.device for a in self._unheard_arms()} if problems else set()
         lines = [
-            f"{device}'s calibration in the store is refused ({problem}), so its messages are refused and "
-            "its twin does not move (its servos' alarms are still checked): push a valid one "
-            f"({push_hint(device, self._calibration_store).command})"
-            for device, problem in self._held_problems().items()
-            if device not in shown
+            f"{device}'s calibration in the store is refused ({problem}), so "
+            + (
+                "its messages are refused and its twin does not move (its servos' alarms are still checked)"
+                if device in heard
+                else "it is held: nothing has been received from it since the agent started, and once it "
+                "publishes its messages are refused and its twin stays still (check that it is on and "
+                "publishes under this id)"
+            )
+            + f": push a valid one ({push_hint(device, self._calibration_store).command})"
+            for device, problem in problems.items()
         ]
         return _named_then_counted(lines, "held the same way")
 
@@ -1409,6 +1417,9 @@ class AgentService:
         # decoder's rule), and its page said "its twin does not move" of a twin that moved.
         degrees = state is not None and state.units is Units.DEGREES
         refused = "" if degrees else self._held_problems().get(device, "")
+        # With no card its refused messages are counted among the arms not tracked: the page says whether
+        # any came, and when the last did (its state's health says so for one with a card).
+        heard = [a for a in self._unheard_arms() if a.device == device] if refused and state is None else []
         return ArmView(
             self._wall_clock(),
             state,
@@ -1416,6 +1427,7 @@ class AgentService:
             self._calibration_store,
             self._started_wall,
             calibration_refused=refused,
+            refused=(heard[0].rejected, heard[0].last_s) if heard else None,
         )
 
     def events(self, query: EventQuery) -> list[Event]:

@@ -204,6 +204,9 @@ class ArmView(NamedTuple):
     # Why the agent holds the arm: its calibration in the store was refused and it has none to keep (with
     # the whole fleet subscribed such an arm is never admitted, and its page read "not known").
     calibration_refused: str = ""
+    # A held arm with no state: how many of its messages were refused, and how many seconds ago the last one
+    # came (None: none heard, or an arm with a state, whose health says so).
+    refused: tuple[int, float] | None = None
 
 
 @runtime_checkable
@@ -511,7 +514,8 @@ def arm_document(device: str, view: ArmView) -> bytes:
     says how to give the arm a calibration this agent reads (calibrations.push_hint), "agent_started_at"
     (epoch seconds) is where the arm's counters begin, and "motor_ids" each joint's servo id, by which the
     page names a servo as the alarms do; "calibration_refused" why the agent holds the arm, with a state or
-    none ("" when it does not)."""
+    none ("" when it does not), and "refused" {"count", "age_s"} of such an arm with no state: its messages
+    refused so far and how long ago the last came (null: none heard, or an arm with a state)."""
     # Made here, not in the page: only the agent knows its store, and a command for another store (the
     # stack's, from a laptop's agent) would push a file this agent never reads.
     hint = push_hint(device, view.calibration_store)
@@ -524,6 +528,7 @@ def arm_document(device: str, view: ArmView) -> bytes:
             "agent_started_at": view.started_at,
             "motor_ids": so101.MOTOR_IDS,
             "calibration_refused": view.calibration_refused,
+            "refused": None if view.refused is None else {"count": view.refused[0], "age_s": view.refused[1]},
         }
     )
 

@@ -83,9 +83,8 @@
     // Held (its file refused, none to keep): no calibration decodes it, the nominal one included.
     if (held) {
       return el("span", { class: "uncalibrated", id: "calibration-held", "data-command": push.command,
-        text: `none: this agent holds this arm, as its calibration in the store is refused (${held}): its ` +
-          `messages are refused and its twin does not move (its servos' alarms are still checked); push a ` +
-          `valid one: ${push.command}` });
+        text: `none: this agent holds this arm, as its calibration in the store is refused (${held}): ` +
+          heldWords(d.health.counters.received > 0) + `; push a valid one: ${push.command}` });
     }
     const problem = d.calibration_problem ? ` (newest file refused: ${d.calibration_problem})` : "";
     if (d.uncalibrated) {
@@ -100,6 +99,27 @@
           `(${d.calibration_problem}), so the twin keeps that one; push a valid one: ${push.command}` });
     }
     return el("span", { text: d.calibration || "not needed for these units" });
+  }
+
+  // What holding does to the arm: "its messages are refused" was said of an arm nothing was received from
+  // (switched off, or a wrong id on its edge), which sent the operator looking for a refused message.
+  function heldWords(heard) {
+    return heard
+      ? "its messages are refused and its twin does not move (its servos' alarms are still checked)"
+      : "nothing has been received from it since the agent started (check that the arm is on and publishes " +
+        "under this id); once it does, its messages are refused and its twin stays still";
+  }
+
+  // A held arm's messages are all refused, yet they show it is on: its page read "last seen never, 0.0 Hz"
+  // while it published ten a second. Said apart from the valid ones, so none reads as mirrored.
+  function lastSeen(h) {
+    if (h.age_s !== null) return `${Twin.num(h.age_s, 1)} s ago`;
+    if (h.refused_age_s == null) return "never";
+    return `never a valid message; a refused one ${Twin.num(h.refused_age_s, 1)} s ago (not mirrored)`;
+  }
+  function rate(h) {
+    const valid = `${Twin.num(h.rate_hz, 1)} Hz`;
+    return h.refused_rate_hz ? `${valid} mirrored, ${Twin.num(h.refused_rate_hz, 1)} Hz refused` : valid;
   }
 
   function kv(box, pairs) {
@@ -411,9 +431,13 @@
   // walk found the table saying "no alarm" beside three critical ones).
   function held(doc) {
     title.textContent = `${device}: held, its calibration is refused`;
+    // Its refused messages are all that shows it is on: how many, and when the last came (not mirrored).
+    const r = doc.refused;
+    const heard = r ? `${r.count} of its messages were refused so far (the last ${Twin.num(r.age_s, 1)} s ` +
+      "ago), none mirrored; its twin does not move and its servos' alarms are still checked, listed below"
+      : heldWords(false);
     summary.replaceChildren(el("p", { id: "unknown", text: `This agent holds this arm: its calibration in the ` +
-      `store is refused (${doc.calibration_refused}), so its messages are refused and its twin does not ` +
-      `move; its servos' alarms are still checked, and listed below. Push a valid one: ` +
+      `store is refused (${doc.calibration_refused}), so ${heard}. Push a valid one: ` +
       `${doc.calibration_push.command}. This page fills in by itself once it is read.` }));
     // Not clearArm: its rows must stay the same elements from one frame to the next, under the pointer.
     forgetButton.hidden = true;
@@ -472,8 +496,8 @@
     const now = doc.time, h = d.health;
     kv(summary, [
       ["status", el("span", { class: "status " + h.status, text: h.status })],
-      ["last seen", h.age_s === null ? "never" : `${Twin.num(h.age_s, 1)} s ago`],
-      ["rate", `${Twin.num(h.rate_hz, 1)} Hz`],
+      ["last seen", lastSeen(h)],
+      ["rate", rate(h)],
       ["units", d.units], ["mode", d.mode],
       ["calibration", calibration(d, doc.calibration_push, doc.calibration_refused)],
       // The counters begin at the agent's start: said, so a restart's zeros do not read as a silent arm.
