@@ -623,6 +623,36 @@ def test_a_held_arms_page_without_a_card_says_whether_its_messages_came(
     assert browser_errors == []
 
 
+def test_an_arm_pages_loss_names_its_setting_and_reads_steady_gaps_as_a_slower_edge(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """A walk's edge at 5 Hz against expected_rate_hz = 10 showed a steady 50 % loss, and the page named no
+    setting. Its loss says what it is estimated from, the setting named; with every recent gap two periods
+    (core.loss's steady_periods), the edge's likely rate and the value to set. The document is the agent's
+    own, made so."""
+    doc: dict[str, Any] = json.loads(http_get(console + "/api/arm/arm-003")[2])
+    expected = doc["expected_rate_hz"]
+    assert expected > 0, doc["expected_rate_hz"]
+    loss = {"period_s": 1 / expected, "recent_lost": 50, "recent_loss_ratio": 0.5, "losing": True}
+    doc["device"]["loss"] |= loss | {"steady_periods": None}
+    serve_document(page, "/api/arm/arm-003", "arm", doc)
+    try:
+        page.goto(console + "/arm/arm-003")
+        said = page.locator("#loss-basis", has_text="expected_rate_hz").inner_text()
+        assert f"[health] expected_rate_hz = {expected:g}" in said and "likely" not in said, said
+        doc["device"]["loss"]["steady_periods"] = 2
+        unserve(page, "/api/arm/arm-003")
+        serve_document(page, "/api/arm/arm-003", "arm", doc)
+        page.reload()
+        said = page.locator("#loss-basis", has_text="likely").inner_text()
+        assert f"likely publishes at ~{expected / 2:g} Hz" in said, said
+        assert f"set expected_rate_hz = {expected / 2:g} in the agent config" in said, said
+    finally:
+        unserve(page, "/api/arm/arm-003")
+        leave(page)
+    assert browser_errors == []
+
+
 def test_an_arm_page_draws_its_charts(console: str, page: Any, browser_errors: list[str]) -> None:
     page.goto(console + "/arm/arm-003")
     wait_for_charts(page, TIMEOUT_S)

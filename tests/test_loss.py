@@ -151,6 +151,22 @@ def test_a_loss_locked_in_phase_needs_the_nominal_rate() -> None:
     assert loss.lost == 1990 - 199
 
 
+@pytest.mark.parametrize("jitter_ms", [0, 3])
+def test_an_edge_slower_than_the_nominal_rate_reads_as_steady_gaps_and_random_loss_does_not(
+    jitter_ms: int,
+) -> None:
+    # A walk's edge at 5 Hz against expected_rate_hz = 10 showed a steady 50 % loss, and the page could not
+    # tell it from random loss of the same share: each gap is two periods, every time.
+    slow, _ = stream(600, jitter_ms=jitter_ms, period_ms=2 * PERIOD_MS)
+    assert feed(slow, nominal_period_s=0.1).snapshot().steady_periods == 2
+    halved, _ = stream(1200, drop=0.5, jitter_ms=jitter_ms)
+    random_loss = feed(halved, nominal_period_s=0.1).snapshot()
+    assert random_loss.losing and random_loss.steady_periods is None
+    # Not losing: nothing to explain.
+    whole, _ = stream(600, jitter_ms=jitter_ms)
+    assert feed(whole, nominal_period_s=0.1).snapshot().steady_periods is None
+
+
 def test_rejected_messages_arrived() -> None:
     timestamps, truth = stream(500, drop=0.1)
     loss = feed(timestamps)

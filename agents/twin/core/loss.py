@@ -78,6 +78,11 @@ WINDOW_BUCKET_S = 1.0
 # "losing": over the recent window at least this many samples and this share of the expected were lost.
 LOSING_MIN_LOST = 2
 LOSING_RATIO = 0.01
+# A device losing now whose newest this many gaps each span the same whole number (2 or more) of periods is
+# "steady": an edge slower than [health] expected_rate_hz, or a loss locked in phase with it, which the
+# timestamps cannot tell apart (the edge sends no sequence number). Random loss of any share leaves gaps of
+# mixed lengths: the odds that 32 in a row agree by chance are nil.
+STEADY_GAPS = 32
 
 
 # Spreads the moments many devices settle their estimates (a prime step, so consecutive devices land far
@@ -180,6 +185,9 @@ class LossSnapshot:
     recent_lost: int = 0
     recent_loss_ratio: float = 0.0
     losing: bool = False
+    # While losing: the whole number of periods each of its newest STEADY_GAPS gaps spans, all alike (None:
+    # they differ, or it is not losing). 2 for an edge at 5 Hz against expected_rate_hz = 10.
+    steady_periods: int | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -498,6 +506,7 @@ class DeviceLoss:
         recent_received, recent_lost = self.recent(now)
         recent_expected = recent_received + recent_lost
         recent_ratio = recent_lost / recent_expected if recent_expected else 0.0
+        losing = recent_lost >= LOSING_MIN_LOST and recent_ratio >= LOSING_RATIO
         return LossSnapshot(
             period_s=self.period_s,
             received=received,
@@ -505,8 +514,23 @@ class DeviceLoss:
             loss_ratio=lost / (received + lost) if received + lost else 0.0,
             recent_lost=recent_lost,
             recent_loss_ratio=recent_ratio,
-            losing=recent_lost >= LOSING_MIN_LOST and recent_ratio >= LOSING_RATIO,
+            losing=losing,
+            steady_periods=self.steady_periods() if losing else None,
         )
+
+    def steady_periods(self) -> int | None:
+        """The whole number of periods, 2 or more, that each of the newest STEADY_GAPS gaps spans when they
+        all span the same (LossSnapshot.steady_periods); else None."""
+        period, gaps = self._period_ms, self._gaps
+        if period is None or len(gaps) < STEADY_GAPS:
+            return None
+        periods = round(gaps[-1] / period)
+        if periods < 2:
+            return None
+        for gap in itertools.islice(reversed(gaps), STEADY_GAPS):
+            if abs(gap - periods * period) > FIT_TOLERANCE * period:
+                return None
+        return periods
 
 
 def fleet_loss(devices: Iterable[LossSnapshot]) -> FleetLoss:

@@ -1428,6 +1428,7 @@ class AgentService:
             self._started_wall,
             calibration_refused=refused,
             refused=(heard[0].rejected, heard[0].last_s) if heard else None,
+            expected_rate_hz=self.config.health.expected_rate_hz,
         )
 
     def events(self, query: EventQuery) -> list[Event]:

@@ -207,6 +207,9 @@ class ArmView(NamedTuple):
     # A held arm with no state: how many of its messages were refused, and how many seconds ago the last one
     # came (None: none heard, or an arm with a state, whose health says so).
     refused: tuple[int, float] | None = None
+    # [health] expected_rate_hz, on which its loss estimate rests (None: not known): an edge at half of it
+    # read as a steady 50 % loss, with nothing on the page to say which setting.
+    expected_rate_hz: float | None = None
 
 
 @runtime_checkable
@@ -515,7 +518,8 @@ def arm_document(device: str, view: ArmView) -> bytes:
     (epoch seconds) is where the arm's counters begin, and "motor_ids" each joint's servo id, by which the
     page names a servo as the alarms do; "calibration_refused" why the agent holds the arm, with a state or
     none ("" when it does not), and "refused" {"count", "age_s"} of such an arm with no state: its messages
-    refused so far and how long ago the last came (null: none heard, or an arm with a state)."""
+    refused so far and how long ago the last came (null: none heard, or an arm with a state);
+    "expected_rate_hz" the setting its loss is estimated with (null: not known)."""
     # Made here, not in the page: only the agent knows its store, and a command for another store (the
     # stack's, from a laptop's agent) would push a file this agent never reads.
     hint = push_hint(device, view.calibration_store)
@@ -529,6 +533,7 @@ def arm_document(device: str, view: ArmView) -> bytes:
             "motor_ids": so101.MOTOR_IDS,
             "calibration_refused": view.calibration_refused,
             "refused": None if view.refused is None else {"count": view.refused[0], "age_s": view.refused[1]},
+            "expected_rate_hz": view.expected_rate_hz,
         }
     )
 

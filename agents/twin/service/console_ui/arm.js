@@ -122,6 +122,22 @@
     return h.refused_rate_hz ? `${valid} mirrored, ${Twin.num(h.refused_rate_hz, 1)} Hz refused` : valid;
   }
 
+  // The loss is read from gaps in the edge timestamps, counted in periods of [health] expected_rate_hz (the
+  // edge sends no sequence number): an edge at 5 Hz against 10 showed a steady 50 % "loss", and the page
+  // named no setting. Gaps all alike (core.loss's steady_periods) read as a slower edge first; any loss
+  // names the setting it rests on.
+  function lossBasis(d, expected) {
+    const setting = "[health] expected_rate_hz" + (expected ? ` = ${hz(expected)}` : "");
+    const basis = `gaps in its edge timestamps, in periods of ${setting} (the edge sends no sequence number)`;
+    const k = d.loss.steady_periods;
+    if (!k || !d.loss.period_s) return `${basis}; an edge publishing slower than that reads as loss`;
+    const edge = hz(1 / (d.loss.period_s * k));
+    return `${basis}. Every recent gap is ${k} periods: its edge likely publishes at ~${edge} Hz, and then ` +
+      `nothing is lost: set expected_rate_hz = ${edge} in the agent config (on the twin host the stack's ` +
+      `armRateHz). Else its messages are lost in a fixed pattern on the way in (docs/agent.md, "Loss")`;
+  }
+  function hz(value) { return String(Math.round(value * 10) / 10); }
+
   function kv(box, pairs) {
     box.replaceChildren(...pairs.flatMap(([k, v]) => [el("span", { class: "muted", text: k }), v instanceof Node ? v : el("span", { text: v })]));
   }
@@ -511,6 +527,8 @@
     kv(lossBox, [
       ["lost (estimated)", `${d.loss.lost} of ${d.loss.received + d.loss.lost} (${Twin.num(d.loss.loss_ratio * 100, 2)} %)`],
       ["recent window", `${d.loss.recent_lost} (${Twin.num(d.loss.recent_loss_ratio * 100, 2)} %)${d.loss.losing ? " — losing now" : ""}`],
+      // Always there, as the rows above: a row appearing mid-view must not move the alarms under the pointer.
+      ["estimated from", el("span", { id: "loss-basis", text: lossBasis(d, doc.expected_rate_hz) })],
     ]);
     const reasons = Object.entries(h.counters.rejected || {});
     rejectsBody.replaceChildren(...(reasons.length ? reasons.map(([r, n]) => el("tr", {}, el("td", { text: r }), el("td", { text: String(n) })))
