@@ -623,16 +623,16 @@ def test_a_held_arms_page_without_a_card_says_whether_its_messages_came(
     assert browser_errors == []
 
 
-def test_an_arm_pages_loss_names_its_setting_and_reads_steady_gaps_as_a_slower_edge(
+def test_an_arm_pages_loss_names_its_setting_and_reads_steady_gaps_as_a_slower_edge_or_the_quota(
     console: str, page: Any, browser_errors: list[str]
 ) -> None:
     """A walk's edge at 5 Hz against expected_rate_hz = 10 showed a steady 50 % loss, and the page named no
     setting. Its loss says what it is estimated from, the setting named; with every recent gap two periods
-    (core.loss's steady_periods), the edge's likely rate and the value to set. The document is the agent's
-    own, made so."""
+    (core.loss's steady_periods), the two causes, the quota's first, and how to tell them apart; with the
+    quota's notice on, only the quota. The document is the agent's own, made so."""
     doc: dict[str, Any] = json.loads(http_get(console + "/api/arm/arm-003")[2])
     expected = doc["expected_rate_hz"]
-    assert expected > 0, doc["expected_rate_hz"]
+    assert expected > 0 and doc["quota_notice"] == "", doc
     loss = {"period_s": 1 / expected, "recent_lost": 50, "recent_loss_ratio": 0.5, "losing": True}
     doc["device"]["loss"] |= loss | {"steady_periods": None}
     serve_document(page, "/api/arm/arm-003", "arm", doc)
@@ -644,9 +644,20 @@ def test_an_arm_pages_loss_names_its_setting_and_reads_steady_gaps_as_a_slower_e
         unserve(page, "/api/arm/arm-003")
         serve_document(page, "/api/arm/arm-003", "arm", doc)
         page.reload()
-        said = page.locator("#loss-basis", has_text="likely").inner_text()
-        assert f"likely publishes at ~{expected / 2:g} Hz" in said, said
-        assert f"set expected_rate_hz = {expected / 2:g} in the agent config" in said, said
+        said = page.locator("#loss-basis", has_text="either of two causes").inner_text()
+        # Not "nothing is lost, set it" first: a loss locked in phase (a connection over its quota) reads
+        # the same, and a lower setting puts more arms on each connection (a review).
+        quota_at = said.index("per-connection quota")
+        edge_at = said.index(f"publishes at ~{expected / 2:g} Hz")
+        assert quota_at < edge_at and "keep expected_rate_hz" in said, said
+        assert f"only if it is {expected / 2:g} Hz set expected_rate_hz = {expected / 2:g}" in said, said
+        # With the pool's quota notice on, the quota is named and no lower setting is offered.
+        unserve(page, "/api/arm/arm-003")
+        serve_document(page, "/api/arm/arm-003", "arm", doc | {"quota_notice": "2 of 2 connections full"})
+        page.reload()
+        said = page.locator("#loss-basis", has_text="quota discards").inner_text()
+        assert "(2 of 2 connections full). Keep expected_rate_hz" in said, said
+        assert "set expected_rate_hz" not in said and "publishes at" not in said, said
     finally:
         unserve(page, "/api/arm/arm-003")
         leave(page)

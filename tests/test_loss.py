@@ -167,6 +167,22 @@ def test_an_edge_slower_than_the_nominal_rate_reads_as_steady_gaps_and_random_lo
     assert feed(whole, nominal_period_s=0.1).snapshot().steady_periods is None
 
 
+def test_gaps_of_two_periods_left_by_rejected_messages_are_not_steady_loss() -> None:
+    # A review: a 10 Hz arm with every other message rejected, and a few lost, read as "likely publishes at
+    # ~5 Hz" (gaps of 2 periods) at a recent loss of 6 %: each rejection offsets its hole.
+    clock = Clock()
+    loss = DeviceLoss(clock=clock, nominal_period_s=0.1)
+    for k in range(600):
+        clock.now = k / 10
+        if k % 2:
+            loss.record_rejected()
+        elif k not in (510, 514, 520):
+            loss.observe(T0 + k * PERIOD_MS)
+    snap = loss.snapshot()
+    assert snap.losing and snap.recent_loss_ratio < 0.1, snap
+    assert loss.steady_periods() == 2 and snap.steady_periods is None, snap
+
+
 def test_rejected_messages_arrived() -> None:
     timestamps, truth = stream(500, drop=0.1)
     loss = feed(timestamps)

@@ -83,6 +83,9 @@ LOSING_RATIO = 0.01
 # timestamps cannot tell apart (the edge sends no sequence number). Random loss of any share leaves gaps of
 # mixed lengths: the odds that 32 in a row agree by chance are nil.
 STEADY_GAPS = 32
+# ... and whose recent loss ratio is within this of 1 - 1/k for gaps of k periods: a 10 Hz arm with every
+# other message rejected (each offsets a hole) has gaps of 2 periods and almost no loss, not a 5 Hz edge.
+STEADY_RATIO_TOLERANCE = 0.05
 
 
 # Spreads the moments many devices settle their estimates (a prime step, so consecutive devices land far
@@ -185,8 +188,9 @@ class LossSnapshot:
     recent_lost: int = 0
     recent_loss_ratio: float = 0.0
     losing: bool = False
-    # While losing: the whole number of periods each of its newest STEADY_GAPS gaps spans, all alike (None:
-    # they differ, or it is not losing). 2 for an edge at 5 Hz against expected_rate_hz = 10.
+    # While losing: the whole number of periods each of its newest STEADY_GAPS gaps spans, all alike, its
+    # recent loss about 1 - 1/k (None: they differ, it is not losing, or its loss disagrees). 2 for an edge
+    # at 5 Hz against expected_rate_hz = 10.
     steady_periods: int | None = None
 
 
@@ -515,8 +519,14 @@ class DeviceLoss:
             recent_lost=recent_lost,
             recent_loss_ratio=recent_ratio,
             losing=losing,
-            steady_periods=self.steady_periods() if losing else None,
+            steady_periods=self._steady_with(recent_ratio) if losing else None,
         )
+
+    def _steady_with(self, recent_ratio: float) -> int | None:
+        periods = self.steady_periods()
+        if periods is None or abs(recent_ratio - (1.0 - 1.0 / periods)) > STEADY_RATIO_TOLERANCE:
+            return None
+        return periods
 
     def steady_periods(self) -> int | None:
         """The whole number of periods, 2 or more, that each of the newest STEADY_GAPS gaps spans when they

@@ -124,17 +124,26 @@
 
   // The loss is read from gaps in the edge timestamps, counted in periods of [health] expected_rate_hz (the
   // edge sends no sequence number): an edge at 5 Hz against 10 showed a steady 50 % "loss", and the page
-  // named no setting. Gaps all alike (core.loss's steady_periods) read as a slower edge first; any loss
-  // names the setting it rests on.
-  function lossBasis(d, expected) {
+  // named no setting. Gaps all alike (core.loss's steady_periods) are a slower edge or a loss locked in
+  // phase, as a broker connection over its quota: a lower setting then puts more arms on each connection and
+  // loses more, so neither is said first, and with the quota's notice on none is said but the quota.
+  function lossBasis(d, expected, quota) {
     const setting = "[health] expected_rate_hz" + (expected ? ` = ${hz(expected)}` : "");
     const basis = `gaps in its edge timestamps, in periods of ${setting} (the edge sends no sequence number)`;
     const k = d.loss.steady_periods;
     if (!k || !d.loss.period_s) return `${basis}; an edge publishing slower than that reads as loss`;
     const edge = hz(1 / (d.loss.period_s * k));
-    return `${basis}. Every recent gap is ${k} periods: its edge likely publishes at ~${edge} Hz, and then ` +
-      `nothing is lost: set expected_rate_hz = ${edge} in the agent config (on the twin host the stack's ` +
-      `armRateHz). Else its messages are lost in a fixed pattern on the way in (docs/agent.md, "Loss")`;
+    const gaps = `${basis}. Every recent gap is ${k} periods, a fixed pattern`;
+    if (quota) {
+      return `${gaps}: the broker's per-connection quota discards messages now (${quota}). Keep ` +
+        "expected_rate_hz: a lower one puts more arms on each connection, which loses more";
+    }
+    return `${gaps}, either of two causes. Its messages may be lost on the way in, locked in phase, as ` +
+      "by a broker connection over IoT Core's per-connection quota: then keep expected_rate_hz, as a lower " +
+      `one puts more arms on each connection. Or its edge publishes at ~${edge} Hz. To tell them apart, ` +
+      `read the rate configured on the edge itself: only if it is ${edge} Hz set ` +
+      `expected_rate_hz = ${edge} in the agent config (on the twin host the stack's armRateHz) ` +
+      '(docs/agent.md, "Loss")';
   }
   function hz(value) { return String(Math.round(value * 10) / 10); }
 
@@ -528,7 +537,8 @@
       ["lost (estimated)", `${d.loss.lost} of ${d.loss.received + d.loss.lost} (${Twin.num(d.loss.loss_ratio * 100, 2)} %)`],
       ["recent window", `${d.loss.recent_lost} (${Twin.num(d.loss.recent_loss_ratio * 100, 2)} %)${d.loss.losing ? " — losing now" : ""}`],
       // Always there, as the rows above: a row appearing mid-view must not move the alarms under the pointer.
-      ["estimated from", el("span", { id: "loss-basis", text: lossBasis(d, doc.expected_rate_hz) })],
+      ["estimated from", el("span", { id: "loss-basis",
+        text: lossBasis(d, doc.expected_rate_hz, doc.quota_notice) })],
     ]);
     const reasons = Object.entries(h.counters.rejected || {});
     rejectsBody.replaceChildren(...(reasons.length ? reasons.map(([r, n]) => el("tr", {}, el("td", { text: r }), el("td", { text: String(n) })))
