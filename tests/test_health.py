@@ -66,6 +66,26 @@ def test_untracked_refused_devices_are_kept_bounded_newest_last_and_leave_once_h
     assert "junk-006" not in fleet.unheard
 
 
+def test_a_held_arms_refused_messages_are_not_pushed_out_by_other_refused_ids() -> None:
+    # A review: a held arm's "nothing has been received" is read from `unheard`, and 64 other refused ids
+    # (garbage, arms over max_devices) pushed a publishing one out. Its own restarted worker keeps it too.
+    clock = FakeClock()
+    fleet = FleetHealth(TH, clock=clock)
+    fleet.record_rejected("arm-held", "calibration_refused")
+    for n in range(3 * MAX_UNHEARD):
+        clock.advance(0.1)
+        fleet.record_rejected(f"junk-{n:03d}", "not_json")
+    assert fleet.unheard["arm-held"].rejected == 1 and len(fleet.unheard) == MAX_UNHEARD + 1
+    restarted = FleetHealth(TH, clock=clock)
+    restarted.restore_unheard(list(fleet.unheard.items()))
+    for n in range(MAX_UNHEARD):
+        restarted.record_rejected(f"more-{n:03d}", "not_json")
+    assert "arm-held" in restarted.unheard and len(restarted.unheard) == MAX_UNHEARD + 1
+    restarted.device("arm-held")  # its file fixed: tracked, with a card
+    restarted.record_rejected("other", "not_json")
+    assert "arm-held" not in restarted.unheard and len(restarted.unheard) == MAX_UNHEARD
+
+
 def test_a_reading_behind_its_input_keeps_the_latency_windows_of_the_messages_handled() -> None:
     # The latency windows go by receive time. Read on the clock, a worker a window (5 s) or more behind had
     # no sample left: InternalLatencyP99 went unwritten (AgentBehind, its alarm, treats that as fine) while

@@ -528,6 +528,10 @@ class DeviceHealth:
 # How many ids of devices not tracked, all of whose messages were refused so far, FleetHealth keeps for the
 # console (the most recent): garbage under invented ids must not grow it.
 MAX_UNHEARD = 64
+# ... beside those whose messages were refused for their calibration (core.telemetry's
+# RejectReason.CALIBRATION_REFUSED), kept whatever comes: only the arms held by a refused calibration file get
+# that, so they are few; pushed out by 64 others, a held arm publishing was said to have sent nothing.
+HELD_REASON = "calibration_refused"
 
 
 @dataclass(slots=True)
@@ -562,6 +566,7 @@ class FleetHealth:
         # The devices behind those untracked rejections, most recent last (MAX_UNHEARD of them): an arm whose
         # every message is refused has no card, and the Fleet page otherwise said no arm was heard at all.
         self.unheard: OrderedDict[str, Unheard] = OrderedDict()
+        self._held_unheard: set[str] = set()  # those of them refused for HELD_REASON, kept past MAX_UNHEARD
         for device in self.configured:
             self.device(device)
         # Not configured, not heard since the start, but with alarms kept over a restart (`keep`).
@@ -571,6 +576,7 @@ class FleetHealth:
         health = self.devices.get(device_id)
         if health is None:
             self.unheard.pop(device_id, None)
+            self._held_unheard.discard(device_id)
             health = DeviceHealth(device_id, self.thresholds, self._clock, since=self._started)
             self.devices[device_id] = health
         return health
@@ -627,13 +633,19 @@ class FleetHealth:
     def _unheard(self, device_id: str, reason: str) -> None:
         now = self._clock()
         seen = self.unheard.get(device_id)
+        if reason == HELD_REASON:
+            self._held_unheard.add(device_id)
         if seen is None:
             self.unheard[device_id] = Unheard(1, reason, now)
-            if len(self.unheard) > MAX_UNHEARD:
-                self.unheard.popitem(last=False)
+            self._trim_unheard()
             return
         seen.rejected, seen.reason, seen.last_mono = seen.rejected + 1, reason, now
         self.unheard.move_to_end(device_id)
+
+    def _trim_unheard(self) -> None:
+        others = [device for device in self.unheard if device not in self._held_unheard]
+        for device in others[: max(0, len(others) - MAX_UNHEARD)]:
+            del self.unheard[device]
 
     def restore_unheard(self, rows: Iterable[tuple[str, Unheard]]) -> None:
         """Take back a previous process's `unheard` (oldest first; a restarted worker, before any message), so
@@ -642,8 +654,9 @@ class FleetHealth:
             if device_id in self.devices or device_id in self.unheard:
                 continue
             self.unheard[device_id] = seen
-            if len(self.unheard) > MAX_UNHEARD:
-                self.unheard.popitem(last=False)
+            if seen.reason == HELD_REASON:
+                self._held_unheard.add(device_id)
+        self._trim_unheard()
 
     def statuses(self, now: float | None = None, *, heard_only: bool = False) -> dict[str, DeviceStatus]:
         """The status of each device. `heard_only` keeps the devices heard from (a decoded message), for the

@@ -1148,9 +1148,8 @@ class AgentService:
         if not problems:
             return []
         alarms = [a for a in self.alarms(devices=problems) if a.device in problems]
-        # A held arm is never admitted, so its refused messages are counted among the arms not tracked (the
-        # 64 most recent ids: one publishing keeps its place, unless 64 others are refused between two of
-        # its messages).
+        # A held arm is never admitted, so its refused messages are counted among the arms not tracked (kept
+        # beside the 64 most recent other ids: core.health.HELD_REASON).
         refused = {a.device: a.rejected for a in self._unheard_arms() if a.device in problems}
         return held_arms(problems, alarms, refused)
 
