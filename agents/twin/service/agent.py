@@ -1122,11 +1122,7 @@ class AgentService:
         # subscribed it is never admitted, so only the log and the Events page named it.
         problems = {d: why for d, why in self._held_problems().items() if d not in shown}
         # "its messages are refused" was said of an arm nothing was received from: asked only with one held.
-        # A held arm of a listed fleet is tracked, its refusals counted on its row (the console shows it).
         heard = {a.device for a in self._unheard_arms()} if problems else set()
-        listed = {d for d in problems if d not in heard and d in self.config.telemetry.devices}
-        if listed:
-            heard.update(row.device for row in self.fleet_rows() if row.device in listed and row.rejected)
         lines = [
             f"{device}'s calibration in the store is refused ({problem}), so "
             + (
