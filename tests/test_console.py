@@ -594,6 +594,14 @@ def test_a_held_arms_page_says_what_is_true_of_its_messages(
         )
         assert pairs["last seen"] == "never a valid message; a refused one 0.3 s ago (not mirrored)", pairs
         assert pairs["rate"] == "0.0 Hz mirrored, 10.0 Hz refused", pairs
+        # Not known (a worker's checkpoint, or its window not filled): said so, not "0.0 Hz" (a review).
+        health["refused_rate_hz"] = None
+        unserve(page, "/api/arm/arm-003")
+        serve_document(page, "/api/arm/arm-003", "arm", doc)
+        page.reload()
+        rate = page.locator(".kv > span", has_text="mirrored,")
+        rate.wait_for()
+        assert rate.inner_text() == "0.0 Hz mirrored, refused rate not known yet", rate.inner_text()
     finally:
         unserve(page, "/api/arm/arm-003")
         leave(page)

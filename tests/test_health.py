@@ -318,9 +318,11 @@ def test_a_held_arms_refused_messages_say_when_it_was_last_heard_and_how_often()
     # never, 0.0 Hz": its refused messages still show it is on, apart from its valid ones.
     clock = FakeClock()
     fleet = FleetHealth(TH, ["arm-held"], clock=clock)
-    for _ in range(50):
+    for n in range(50):
         clock.advance(0.1)
         fleet.record_rejected("arm-held", "calibration_refused", clock.t)
+        if n == 20:  # its window not filled yet: not known, not the share counted so far
+            assert fleet.device("arm-held").snapshot().refused_rate_hz is None
     clock.advance(0.4)
     snap = fleet.device("arm-held").snapshot()
     assert (snap.age_s, snap.rate_hz) == (None, 0.0)
@@ -328,6 +330,13 @@ def test_a_held_arms_refused_messages_say_when_it_was_last_heard_and_how_often()
     assert snap.refused_rate_hz == pytest.approx(10.0, abs=1.0)
     checkpointed = fleet.device("arm-held").checkpoint().snapshot(TH, clock.t + 1.0, 0.0)
     assert checkpointed.refused_age_s == pytest.approx(1.4)
+    # A review: from a checkpoint (a worker started again) it read 0.0 Hz beside "a refused one 1.4 s ago".
+    assert checkpointed.refused_rate_hz is None
+    restarted = FleetHealth(TH, ["arm-held"], clock=clock)
+    restarted.device("arm-held").restore(fleet.device("arm-held").checkpoint())
+    assert restarted.device("arm-held").snapshot().refused_rate_hz is None
+    # None refused for a whole window: 0, known.
+    assert fleet.device("arm-held").checkpoint().snapshot(TH, clock.t + 6.0, 0.0).refused_rate_hz == 0.0
     # An arm none of whose messages was refused says none.
     quiet = FleetHealth(TH, ["arm-quiet"], clock=clock).device("arm-quiet").snapshot()
     assert (quiet.refused_age_s, quiet.refused_rate_hz) == (None, 0.0)

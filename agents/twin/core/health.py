@@ -101,9 +101,10 @@ class HealthSnapshot:
     edge_transit_jitter_p99_s: float | None = None
     internal_latency_s: WindowLatency = field(default_factory=WindowLatency)
     # Its refused messages (rejected for its topic): a held arm's are all refused, yet they show it is on.
-    # Its page read "last seen never, 0.0 Hz" while it published ten a second.
+    # Its page read "last seen never, 0.0 Hz" while it published ten a second. The rate is None while not
+    # known (`refused_rate`), not 0: read from a checkpoint it was 0 beside "a refused one 2 s ago".
     refused_age_s: float | None = None
-    refused_rate_hz: float = 0.0
+    refused_rate_hz: float | None = 0.0
 
 
 # A HealthCheckpoint as plain values (`DeviceHealth.checkpoint_row`, `HealthCheckpoint.from_row`), which
@@ -180,7 +181,20 @@ class HealthCheckpoint:
             last_timestamp_ms=self.last_timestamp_ms,
             counters=self.counters,
             refused_age_s=None if self.last_refused_mono is None else max(0.0, now - self.last_refused_mono),
+            refused_rate_hz=refused_rate(self.last_refused_mono, None, now, thresholds.window_s),
         )
+
+
+def refused_rate(
+    last_mono: float | None, meter: RateMeter | None, at: float, window_s: float
+) -> float | None:
+    """A device's refused messages per second at `at`: 0 with none within `window_s`, None (not known) while
+    `meter` has not counted them for a whole window (none: a checkpoint's, or a worker started again)."""
+    if last_mono is None or at - last_mono > window_s:
+        return 0.0
+    if meter is None or meter.since is None or at - meter.since < window_s:
+        return None
+    return meter.rate(at)
 
 
 def percentile(sorted_values: list[float], q: float) -> float | None:
@@ -251,7 +265,7 @@ class HealthReading:
     edge_latencies: tuple[tuple[float, float], ...]  # (receive time, latency) samples
     internal_latencies: tuple[tuple[float, float], ...]
     refused_age_s: float | None = None
-    refused_rate_hz: float = 0.0
+    refused_rate_hz: float | None = 0.0
 
     def snapshot(self) -> HealthSnapshot:
         """The health this reading holds, as /state publishes it."""
@@ -283,6 +297,11 @@ class RateMeter:
         # (service.events.RateWatch), and summing 50 buckets an arm held the worker's lock for milliseconds.
         self._count = 0.0
         self._first: float | None = None
+
+    @property
+    def since(self) -> float | None:
+        """When its first event came (None: none yet)."""
+        return self._first
 
     def add(self, now: float, n: int = 1) -> None:
         if self._first is None:
@@ -521,7 +540,9 @@ class DeviceHealth:
             edge_latencies=self._edge_latency.samples(at),
             internal_latencies=self._internal_latency.samples(at),
             refused_age_s=None if self.last_refused_mono is None else max(0.0, now - self.last_refused_mono),
-            refused_rate_hz=0.0 if self._refused_rate is None else self._refused_rate.rate(at),
+            refused_rate_hz=refused_rate(
+                self.last_refused_mono, self._refused_rate, at, self.thresholds.window_s
+            ),
         )
 
 

@@ -117,8 +117,11 @@
     if (h.refused_age_s == null) return "never";
     return `never a valid message; a refused one ${Twin.num(h.refused_age_s, 1)} s ago (not mirrored)`;
   }
+  // Null while not known (a worker started again, read from its checkpoint, or less than a window counted):
+  // read as 0 it said "0.0 Hz" beside "a refused one 2 s ago".
   function rate(h) {
     const valid = `${Twin.num(h.rate_hz, 1)} Hz`;
+    if (h.refused_rate_hz === null) return `${valid} mirrored, refused rate not known yet`;
     return h.refused_rate_hz ? `${valid} mirrored, ${Twin.num(h.refused_rate_hz, 1)} Hz refused` : valid;
   }
 
