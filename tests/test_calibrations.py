@@ -1350,6 +1350,9 @@ def test_an_arm_whose_file_is_bad_at_the_start_is_held_until_a_good_one_comes(
         # Its pose waits for a good file, its servos do not: the notice must not leave the operator thinking
         # the arm unwatched.
         assert "its servos' alarms are still checked" in held_notice, held_notice
+        # Listed, its refusals are on its card: asked without the cards, the notice must not say nothing
+        # came from it (a review), nor ask every worker for its rows.
+        assert "nothing has been received" not in held_notice, held_notice
         rejected = EventQuery(kinds=frozenset({"rejected"}), device="arm-002")
         refused = wait_for(lambda: agent.events(rejected), 30, "arm-002's rejected event")
         # Nothing is kept for arm-002, so no restore is offered: it would only exit 1.

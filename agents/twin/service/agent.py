@@ -1125,17 +1125,30 @@ class AgentService:
         heard = {a.device for a in self._unheard_arms()} if problems else set()
         lines = [
             f"{device}'s calibration in the store is refused ({problem}), so "
-            + (
-                "its messages are refused and its twin does not move (its servos' alarms are still checked)"
-                if device in heard
-                else "it is held: nothing has been received from it since the agent started, and once it "
-                "publishes its messages are refused and its twin stays still (check that it is on and "
-                "publishes under this id)"
-            )
-            + f": push a valid one ({push_hint(device, self._calibration_store).command})"
+            f"{self._held_words(device, heard)}: push a valid one "
+            f"({push_hint(device, self._calibration_store).command})"
             for device, problem in problems.items()
         ]
         return _named_then_counted(lines, "held the same way")
+
+    def _held_words(self, device: str, heard: Collection[str]) -> str:
+        if device in heard:
+            return (
+                "its messages are refused and its twin does not move (its servos' alarms are still checked)"
+            )
+        if device in self.config.telemetry.devices:
+            # Listed, so tracked: its refusals are on its card, not among the arms not tracked, and asking
+            # every worker for its rows is a pipe's trip each. The console passes its cards (`shown`), so
+            # only a caller without them gets this, worded to be true whether it publishes or not.
+            return (
+                "its messages are refused whenever they come and its twin does not move (its servos' alarms "
+                "are still checked); its card says whether any came"
+            )
+        return (
+            "it is held: nothing has been received from it since the agent started, and once it "
+            "publishes its messages are refused and its twin stays still (check that it is on and "
+            "publishes under this id)"
+        )
 
     def held_arms(self, shown: Collection[str] = ()) -> list[HeldArm]:
         """Every arm `_held_notices` names (it names five), with its alarms, for the Fleet page's links and
