@@ -1614,6 +1614,12 @@ def test_a_held_arm_nothing_was_received_from_is_not_said_to_have_its_messages_r
         assert agent.arm_view("arm-004").refused is None
         doc = json.loads(console.arm_document("arm-002", agent.arm_view("arm-002")))
         assert doc["refused"]["count"] == 3, doc["refused"]
+        # The pool's quota notice reaches the Arm page: with it on, steady gaps are not read as a slower edge.
+        assert doc["quota_notice"] == "", doc
+        notice = "the broker's per-connection quota discards messages"
+        agent._pool.quota_notice = notice  # type: ignore[attr-defined]
+        doc = json.loads(console.arm_document("arm-002", agent.arm_view("arm-002")))
+        assert doc["quota_notice"] == notice, doc
     finally:
         agent.stop()
 
