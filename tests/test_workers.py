@@ -430,6 +430,7 @@ _KILLED_AS_HUNG = "answered no request for 15 s (hung) and was killed by the sup
     [
         (-signal.SIGKILL, _KILLED_AS_HUNG, {"exit_code": -9, "hung_s": 15}),
         (None, _KILLED_AS_HUNG, {"exit_code": None, "hung_s": 15}),
+        (255, _KILLED_AS_HUNG, {"exit_code": 255, "hung_s": 15}),
         (1, "exited, exit code 1, while found hung", {"exit_code": 1}),
         (-signal.SIGSEGV, "exited, killed by SIGSEGV (signal 11), while found hung", {"exit_code": -11}),
     ],
@@ -447,6 +448,7 @@ def test_a_hung_worker_the_supervisor_killed_is_said_to_be_so_in_the_log_and_on_
     exit code (a review: it was told as killed by the supervisor while the data said exit code 1 or -11)."""
     now = [1000.0]
     monkeypatch.setattr(shards.time, "monotonic", lambda: now[0])
+    monkeypatch.setattr(shards, "_still_runs", lambda pid: False)  # 255: the fork server gone, pid 4242 too
     config = load_config(None, {"telemetry.devices": ["*"]})
     shard = shards.WorkerShard(0, config, DeviceBudget(10), context=None)  # type: ignore[arg-type]
     worker = _HungWorker(ended)

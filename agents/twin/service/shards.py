@@ -1169,9 +1169,10 @@ class WorkerShard:
         pid, killed = process.pid or self.pid, self._ended
         ended = WorkerExit.seen(pid, process.exitcode)
         if killed is not None and killed.pid == pid and killed.hung_s:
-            # Its exit is the supervisor's kill only if the code is the kill's (or unknown): one that exited
-            # or crashed (SIGSEGV) between is_alive() and kill() keeps its own code, told as found hung.
-            if ended.exit_code in (None, -signal.SIGKILL):
+            # Its exit is the supervisor's kill only if the code is the kill's or unknown (None, or the 255
+            # multiprocessing reports when its fork server is gone, `seen`): one that exited or crashed
+            # (SIGSEGV) between is_alive() and kill() keeps its own code, told as found hung.
+            if ended.exit_code in (None, 255, -signal.SIGKILL):
                 ended = dataclasses.replace(ended, hung_s=killed.hung_s)
             else:
                 ended = dataclasses.replace(ended, found_hung=True)
