@@ -18,6 +18,7 @@ import threading
 import time
 import types
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -29,6 +30,7 @@ from twin.core.health import DeviceStatus, HealthSnapshot
 from twin.core.loss import LossSnapshot
 from twin.output.emf import (
     AGENT_DIMENSION,
+    CLOCK_STEP_TELL_EVERY_S,
     LOSS_METRICS,
     NAMESPACE,
     EmfFileWriter,
@@ -772,6 +774,84 @@ def test_a_thread_stalled_between_the_clock_reads_is_not_a_step(caplog: pytest.L
         walls, publisher = _around_a_step(0.0, 0.0, stall_s=3.0)
     assert publisher.clock_steps == 0 and not caplog.records
     assert [w % 60.0 for w in walls] == pytest.approx([30.0] * 6, abs=1e-5)
+
+
+def _under_a_moving_clock(
+    wall_of: Callable[[float], float], waits: int, read_stalls: int = 0
+) -> tuple[list[float], EmfPublisher, float]:
+    """The monotonic times of the documents the publisher's own loop writes (60 s interval) in `waits` waits
+    when the wall clock reads `wall_of(monotonic)`, the publisher, and the monotonic time at the end. With
+    `read_stalls`, that many of the first reads of the wall clock stall 3 s before they read it."""
+    mono, published, count = [500.0], [], [0]
+
+    def sample() -> FleetTotals:
+        published.append(mono[0])
+        return FleetTotals(0, 0, 1, 0, 0, 0.0, None, {})
+
+    def wait(seconds: float) -> bool:
+        mono[0] += seconds
+        count[0] += 1
+        return count[0] >= waits
+
+    def read_wall() -> float:
+        if count[0] < read_stalls:
+            count[0] += 1  # a stall counts as a wait, so stalls at every read still end
+            mono[0] += 3.0
+        return wall_of(mono[0])
+
+    writer: Any = types.SimpleNamespace(write=lambda documents: None, path="memory")
+    publisher = EmfPublisher(writer, "a", sample, clock=lambda: mono[0], wall=read_wall, wait=wait)
+    publisher.run()
+    return published, publisher, mono[0]
+
+
+@pytest.mark.parametrize(
+    "wall_of",
+    [
+        lambda mono: 1e9,  # frozen
+        lambda mono: 1e9 + 2.0 * mono,  # running at twice the rate
+        lambda mono: 1e9 + mono + 3.0 * (mono // 1.5),  # stepped +3 s every 1.5 s
+        lambda mono: 1e9 + mono + 1.5 * ((mono // 2.0) % 2),  # flapping by 1.5 s every 2 s
+    ],
+    ids=["frozen", "twice-as-fast", "stepping", "flapping"],
+)
+def test_a_wall_clock_that_keeps_moving_stops_no_document(
+    caplog: pytest.LogCaptureFixture, wall_of: Callable[[float], float]
+) -> None:
+    """A review: each step moved the slot, and a wall clock that kept moving moved it on before every
+    publish: no document in 20,000 waits, so the AgentUp heartbeat stopped and AgentSilent paged on a live
+    agent, with a warning every other second. A slot is moved once at most: documents keep coming, at most
+    two intervals apart on the monotonic clock; every step is counted, and told once then every 10 minutes."""
+    with caplog.at_level(logging.WARNING, logger="twin.output.emf"):
+        published, publisher, end = _under_a_moving_clock(wall_of, 20_000)
+    gaps = [b - a for a, b in itertools.pairwise([500.0, *published, end])]
+    assert len(published) > 20 and max(gaps) <= 120.0 + 1e-6, gaps
+    lines = [r.getMessage() for r in caplog.records if "wall clock moved" in r.getMessage()]
+    assert publisher.clock_steps > 1000
+    assert 1 <= len(lines) <= 1 + (end - 500.0) / CLOCK_STEP_TELL_EVERY_S, len(lines)
+    assert "1 step(s) since the last" in lines[0] and "1 step(s)" not in lines[-1]
+
+
+def test_two_steps_before_one_slot_are_both_followed() -> None:
+    """Moving a slot once at most must not leave the second of two steps standing: the grid would keep the
+    place it had in the minute, up to a boundary, for good. It moves the next slot instead."""
+
+    def wall_of(mono: float) -> float:
+        return 1_000_000_000.0 + mono + (30.0 if mono >= 600.0 else 0.0) - (20.0 if mono >= 610.0 else 0.0)
+
+    published, _, _ = _under_a_moving_clock(wall_of, 2000)
+    walls = [wall_of(m) for m in published]
+    assert [w % 60.0 for w in walls[2:]] == pytest.approx([30.0] * len(walls[2:]), abs=1e-5), walls
+    assert max(Counter(int(w // 60.0) for w in walls).values()) == 1
+
+
+@pytest.mark.parametrize("stalls", [2, 10])
+def test_a_first_clock_read_that_stalls_is_retried_then_taken_loose(stalls: int) -> None:
+    """The first slot is lined up with a read of both clocks: two stalled reads are read again (no step
+    later), and ten (every try) still start the grid, loose, and it is lined up once the reads are good."""
+    published, publisher, _ = _under_a_moving_clock(lambda mono: 1_000_000_000.0 + mono, 1000, stalls)
+    assert publisher.clock_steps == (0 if stalls == 2 else 1)
+    assert [(1_000_000_000.0 + m) % 60.0 for m in published] == pytest.approx([30.0] * len(published))
 
 
 def test_the_first_documents_rate_is_over_the_time_since_the_start(tmp_path: Path) -> None:

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from twin.core.throttle import Throttle
 from twin.output.sinks import SinkStats
 
 log = logging.getLogger(__name__)
@@ -338,6 +339,10 @@ def _interval_metrics(
     )
 
 
+# A wall clock that keeps moving (frozen, fast, flapping) is told once, then once per this with a count.
+CLOCK_STEP_TELL_EVERY_S = 600.0
+
+
 def next_slot(scheduled: float, now: float, interval_s: float) -> float:
     """The first time after `now` on the grid `scheduled` + k * `interval_s` (k >= 1). A publish that took
     longer than the interval (asking slow workers for their state) skips the slots it missed rather than
@@ -420,7 +425,8 @@ class EmfPublisher:
         self.errors = 0
         self.last_error = ""
         self._errors_told = 0  # `errors` as the last document written told them
-        self.clock_steps = 0  # wall clock steps that moved the grid (clock_step_tolerance)
+        self.clock_steps = 0  # wall clock steps seen (clock_step_tolerance), each counted
+        self._step_lines = Throttle(CLOCK_STEP_TELL_EVERY_S, clock=clock)
 
     def publish_once(self, totals: FleetTotals | None = None) -> FleetMetrics:
         """Sample (or take `totals`: the agent's last document, at its stop), write this interval's documents,
@@ -477,27 +483,25 @@ class EmfPublisher:
     def run(self) -> None:
         """Publish at every slot of a fixed grid, `interval_s` apart on the monotonic clock from a first slot
         lined up with the wall clock's minutes (first_slot, next_slot), and lined up again after a step of the
-        wall clock (realigned_slot), until stop(); start() runs this on its own thread."""
-        offset = None
-        for _ in range(3):  # a stalled read is retried; a loose one only moves the grid once, later
-            mono, offset = self._clock_offset()
-            if offset is not None:
-                break
-        if offset is None:
-            mono, offset = self._clock(), self._wall() - self._clock()
+        wall clock (realigned_slot), until stop(); start() runs this on its own thread. A slot is moved once
+        at most, steps seen after that move the next one: a wall clock that keeps moving (frozen, fast,
+        flapping) moved every slot on before it came, and the AgentUp heartbeat stopped. So a document goes
+        out at most two intervals (monotonic) after the last slot, whatever the wall clock does."""
+        mono, offset = self._first_clock_offset()
         slot = first_slot(mono, mono + offset, self.interval_s)
         last = slot - self.interval_s  # where the grid had its last slot, as if before the first
         # The wait is cut into short ones so a step is seen before the slot it moves, not only after it.
         poll_s = clock_step_tolerance(self.interval_s)
+        moved, pending = False, 0.0  # the slot was moved already; the steps seen since, for the next one
         while True:
-            due = slot - self._clock()
-            if self._wait(max(0.0, min(due, poll_s))):
+            if self._wait(max(0.0, min(slot - self._clock(), poll_s))):
                 return
-            moved, offset = self._follow_wall_steps(slot, last, offset)
-            if moved is not None:
-                slot = moved
+            now, step, offset = self._wall_step(offset)
+            if step and not moved:
+                slot, moved = realigned_slot(slot, last, now, step, self.interval_s), True
                 continue
-            if due > poll_s and self._clock() < slot:  # a late wake past the slot publishes at once
+            pending += step
+            if self._clock() < slot:  # a wake before the slot waits again; a late one publishes at once
                 continue
             try:
                 self.publish_once()
@@ -505,6 +509,19 @@ class EmfPublisher:
                 self.failed(exc)
                 log.exception("writing CloudWatch metrics to %s failed", self.writer.path)
             last, slot = slot, next_slot(slot, self._clock(), self.interval_s)
+            if moved := bool(pending):
+                slot = realigned_slot(slot, last, self._clock(), pending, self.interval_s)
+            pending = 0.0
+
+    def _first_clock_offset(self) -> tuple[float, float]:
+        """The monotonic time and the wall clock minus it, to line the first slot up with: a stalled read is
+        retried, and after three a loose one is taken (it moves the grid once, later, as a step)."""
+        for _ in range(3):
+            mono, offset = self._clock_offset()
+            if offset is not None:
+                return mono, offset
+        mono = self._clock()
+        return mono, self._wall() - mono
 
     def _clock_offset(self) -> tuple[float, float | None]:
         """The monotonic time and the wall clock minus it, read between two reads of the monotonic one. The
@@ -517,16 +534,21 @@ class EmfPublisher:
             return after, None
         return after, wall - (before + after) / 2.0
 
-    def _follow_wall_steps(self, slot: float, last: float, offset: float) -> tuple[float | None, float]:
-        """`slot` moved (realigned_slot) if the wall clock was stepped since `offset` (wall minus monotonic)
-        was read, else None, and the offset the grid is lined up with then (a step is logged once)."""
+    def _wall_step(self, offset: float) -> tuple[float, float, float]:
+        """The monotonic time, how far the wall clock was stepped since `offset` (wall minus monotonic) was
+        read (0.0 if by no more than clock_step_tolerance), and the offset the grid is lined up with then.
+        Every step is counted; the warning is throttled, since a flapping clock steps every few seconds."""
         now, read = self._clock_offset()
         if read is None or abs(read - offset) <= clock_step_tolerance(self.interval_s):
-            return None, offset
+            return now, 0.0, offset
         self.clock_steps += 1
-        log.warning(
-            "the wall clock moved %+.1f s against the monotonic one (stepped by NTP or by hand); CloudWatch "
-            "metrics are lined up with the middle of its minutes again",
-            read - offset,
-        )
-        return realigned_slot(slot, last, now, read - offset, self.interval_s), read
+        steps = self._step_lines.due(now=now)
+        if steps is not None:
+            log.warning(
+                "the wall clock moved %+.1f s against the monotonic one (stepped by NTP or by hand; %d "
+                "step(s) since the last such line); CloudWatch metrics are lined up with the middle of its "
+                "minutes again",
+                read - offset,
+                steps,
+            )
+        return now, read - offset, read
