@@ -365,10 +365,12 @@ def first_slot(mono: float, wall: float, interval_s: float) -> float:
 
 def clock_step_tolerance(interval_s: float) -> float:
     """How far the wall clock may move against the monotonic one before the grid is lined up with it again
-    (a step: chrony setting the clock at first boot, a person, a leap second, a resumed suspend). NTP's
-    slewing changes both clocks alike, so their difference moves only by such steps, and a move under this
-    is read noise. A slot lies half an interval from a minute's boundaries: one left in place by a move under
-    a quarter interval still lies a quarter interval or more from them."""
+    (a step: chrony setting the clock at first boot, a person, a resumed suspend). NTP's slewing changes
+    both clocks alike, so their difference moves only by such steps, and a move up to this is read noise. A
+    leap second is no such step: exactly 1 s, it lies on this limit (intervals of 4 s and more), so read
+    noise decides whether it moves the grid, and either way a slot stays within 1 s of its place. A slot lies
+    half an interval from a minute's boundaries: one left in place by a move up to a quarter interval still
+    lies a quarter interval or more from them."""
     return min(1.0, interval_s / 4.0)
 
 
