@@ -548,8 +548,9 @@ class EmfPublisher:
         if steps is not None:
             log.warning(
                 "the wall clock moved %+.1f s against the monotonic one (stepped by NTP or by hand; %d "
-                "step(s) since the last such line); CloudWatch metrics are lined up with the middle of its "
-                "minutes again",
+                "step(s) since the last such line); the next CloudWatch metrics document is moved to the "
+                "middle of a minute after the last one. If this repeats, the host's time sync is wrong: "
+                "check `chronyc tracking`",
                 read - offset,
                 steps,
             )
