@@ -631,16 +631,17 @@ def test_a_held_arms_page_without_a_card_says_whether_its_messages_came(
     assert browser_errors == []
 
 
-def test_an_arm_pages_loss_names_its_setting_and_reads_steady_gaps_as_a_slower_edge_or_the_quota(
+def test_an_arm_pages_loss_names_its_setting_and_reads_steady_gaps_as_a_slower_edge_or_a_loss(
     console: str, page: Any, browser_errors: list[str]
 ) -> None:
     """A walk's edge at 5 Hz against expected_rate_hz = 10 showed a steady 50 % loss, and the page named no
     setting. Its loss says what it is estimated from, the setting named; with every recent gap two periods
-    (core.loss's steady_periods), the two causes, the quota's first, and how to tell them apart; with the
-    quota's notice on, only the quota. The document is the agent's own, made so."""
+    (core.loss's steady_periods), both causes, neither chosen, and how to tell them apart; a connection's
+    quota only where the broker limits each connection, pointing to the Fleet page's notice (a review: the
+    page blamed IoT Core's quota on a local broker, and quoted a pool-wide notice as this arm's cause)."""
     doc: dict[str, Any] = json.loads(http_get(console + "/api/arm/arm-003")[2])
     expected = doc["expected_rate_hz"]
-    assert expected > 0 and doc["quota_notice"] == "", doc
+    assert expected > 0 and doc["per_connection_limit"] is False, doc
     loss = {"period_s": 1 / expected, "recent_lost": 50, "recent_loss_ratio": 0.5, "losing": True}
     doc["device"]["loss"] |= loss | {"steady_periods": None}
     serve_document(page, "/api/arm/arm-003", "arm", doc)
@@ -649,23 +650,15 @@ def test_an_arm_pages_loss_names_its_setting_and_reads_steady_gaps_as_a_slower_e
         said = page.locator("#loss-basis", has_text="expected_rate_hz").inner_text()
         assert f"[health] expected_rate_hz = {expected:g}" in said and "likely" not in said, said
         doc["device"]["loss"]["steady_periods"] = 2
-        unserve(page, "/api/arm/arm-003")
-        serve_document(page, "/api/arm/arm-003", "arm", doc)
-        page.reload()
-        said = page.locator("#loss-basis", has_text="either of two causes").inner_text()
-        # Not "nothing is lost, set it" first: a loss locked in phase (a connection over its quota) reads
-        # the same, and a lower setting puts more arms on each connection (a review).
-        quota_at = said.index("per-connection quota")
-        edge_at = said.index(f"publishes at ~{expected / 2:g} Hz")
-        assert quota_at < edge_at and "keep expected_rate_hz" in said, said
-        assert f"only if it is {expected / 2:g} Hz set expected_rate_hz = {expected / 2:g}" in said, said
-        # With the pool's quota notice on, the quota is named and no lower setting is offered.
-        unserve(page, "/api/arm/arm-003")
-        serve_document(page, "/api/arm/arm-003", "arm", doc | {"quota_notice": "2 of 2 connections full"})
-        page.reload()
-        said = page.locator("#loss-basis", has_text="quota discards").inner_text()
-        assert "(2 of 2 connections full). Keep expected_rate_hz" in said, said
-        assert "set expected_rate_hz" not in said and "publishes at" not in said, said
+        for limited in (False, True):
+            unserve(page, "/api/arm/arm-003")
+            serve_document(page, "/api/arm/arm-003", "arm", doc | {"per_connection_limit": limited})
+            page.reload()
+            said = page.locator("#loss-basis", has_text="either of two causes").inner_text()
+            assert f"publishes at ~{expected / 2:g} Hz" in said and "lost in a fixed pattern" in said, said
+            assert f"only if it is {expected / 2:g} Hz set expected_rate_hz = {expected / 2:g}" in said, said
+            assert ("per-connection quota" in said) is limited and ("Fleet page" in said) is limited, said
+            assert "keep expected_rate_hz" not in said.lower() and "IoT Core" not in said, said
     finally:
         unserve(page, "/api/arm/arm-003")
         leave(page)

@@ -1441,7 +1441,7 @@ class AgentService:
             calibration_refused=refused,
             refused=(heard[0].rejected, heard[0].last_s) if heard else None,
             expected_rate_hz=self.config.health.expected_rate_hz,
-            quota_notice=self._pool.quota_notice if self._started_pool else "",
+            per_connection_limit=self._pool_settings.limit is not None,
         )
 
     def events(self, query: EventQuery) -> list[Event]:

@@ -210,9 +210,9 @@ class ArmView(NamedTuple):
     # [health] expected_rate_hz, on which its loss estimate rests (None: not known): an edge at half of it
     # read as a steady 50 % loss, with nothing on the page to say which setting.
     expected_rate_hz: float | None = None
-    # The broker's per-connection quota discarding messages now (BrokerState.quota_notice, "" for not): gaps
-    # all alike are then its loss, and a lower expected_rate_hz would put more arms on each connection.
-    quota_notice: str = ""
+    # Whether the broker limits each connection ([broker] per_connection_limit): only then can a connection's
+    # quota be why its gaps are all alike (a local broker has none, and the page said IoT Core's did it).
+    per_connection_limit: bool = False
 
 
 @runtime_checkable
@@ -510,7 +510,7 @@ def arm_view_of(
         mine,
         state.agent.calibration_store,
         state.agent.started_at,
-        quota_notice=state.agent.broker.quota_notice,
+        per_connection_limit=state.agent.broker.per_connection_limit is not None,
     )
 
 
@@ -523,8 +523,8 @@ def arm_document(device: str, view: ArmView) -> bytes:
     page names a servo as the alarms do; "calibration_refused" why the agent holds the arm, with a state or
     none ("" when it does not), and "refused" {"count", "age_s"} of such an arm with no state: its messages
     refused so far and how long ago the last came (null: none heard, or an arm with a state);
-    "expected_rate_hz" the setting its loss is estimated with (null: not known); "quota_notice" the broker's
-    quota discarding messages now ("" for not)."""
+    "expected_rate_hz" the setting its loss is estimated with (null: not known); "per_connection_limit"
+    whether the broker limits each connection's messages (a quota that can lose them)."""
     # Made here, not in the page: only the agent knows its store, and a command for another store (the
     # stack's, from a laptop's agent) would push a file this agent never reads.
     hint = push_hint(device, view.calibration_store)
@@ -539,7 +539,7 @@ def arm_document(device: str, view: ArmView) -> bytes:
             "calibration_refused": view.calibration_refused,
             "refused": None if view.refused is None else {"count": view.refused[0], "age_s": view.refused[1]},
             "expected_rate_hz": view.expected_rate_hz,
-            "quota_notice": view.quota_notice,
+            "per_connection_limit": view.per_connection_limit,
         }
     )
 

@@ -127,24 +127,21 @@
 
   // The loss is read from gaps in the edge timestamps, counted in periods of [health] expected_rate_hz (the
   // edge sends no sequence number): an edge at 5 Hz against 10 showed a steady 50 % "loss", and the page
-  // named no setting. Gaps all alike (core.loss's steady_periods) are a slower edge or a loss locked in
-  // phase, as a broker connection over its quota: a lower setting then puts more arms on each connection and
-  // loses more, so neither is said first, and with the quota's notice on none is said but the quota.
-  function lossBasis(d, expected, quota) {
+  // named no setting. Gaps all alike (core.loss's steady_periods) are a slower edge or a loss in a fixed
+  // pattern on the way in, which the page cannot tell apart, so it names both and what tells them apart.
+  // The quota only where the broker limits each connection, and the Fleet page's notice, not quoted: it is
+  // the pool's, and this arm's connection may be under its budget.
+  function lossBasis(d, expected, limited) {
     const setting = "[health] expected_rate_hz" + (expected ? ` = ${hz(expected)}` : "");
     const basis = `gaps in its edge timestamps, in periods of ${setting} (the edge sends no sequence number)`;
     const k = d.loss.steady_periods;
     if (!k || !d.loss.period_s) return `${basis}; an edge publishing slower than that reads as loss`;
     const edge = hz(1 / (d.loss.period_s * k));
-    const gaps = `${basis}. Every recent gap is ${k} periods, a fixed pattern`;
-    if (quota) {
-      return `${gaps}: the broker's per-connection quota discards messages now (${quota}). Keep ` +
-        "expected_rate_hz: a lower one puts more arms on each connection, which loses more";
-    }
-    return `${gaps}, either of two causes. Its messages may be lost on the way in, locked in phase, as ` +
-      "by a broker connection over IoT Core's per-connection quota: then keep expected_rate_hz, as a lower " +
-      `one puts more arms on each connection. Or its edge publishes at ~${edge} Hz. To tell them apart, ` +
-      `read the rate configured on the edge itself: only if it is ${edge} Hz set ` +
+    const quota = limited ? " (as by a broker connection over its per-connection quota: the Fleet page " +
+      "says so in a notice while the quota discards messages)" : "";
+    return `${basis}. Every recent gap is ${k} periods, a fixed pattern, from either of two causes: its ` +
+      `edge publishes at ~${edge} Hz, or its messages are lost in a fixed pattern on the way in${quota}. ` +
+      `To tell them apart, read the rate configured on the edge itself: only if it is ${edge} Hz set ` +
       `expected_rate_hz = ${edge} in the agent config (on the twin host the stack's armRateHz) ` +
       '(docs/agent.md, "Loss")';
   }
@@ -541,7 +538,7 @@
       ["recent window", `${d.loss.recent_lost} (${Twin.num(d.loss.recent_loss_ratio * 100, 2)} %)${d.loss.losing ? " — losing now" : ""}`],
       // Always there, as the rows above: a row appearing mid-view must not move the alarms under the pointer.
       ["estimated from", el("span", { id: "loss-basis",
-        text: lossBasis(d, doc.expected_rate_hz, doc.quota_notice) })],
+        text: lossBasis(d, doc.expected_rate_hz, doc.per_connection_limit) })],
     ]);
     const reasons = Object.entries(h.counters.rejected || {});
     rejectsBody.replaceChildren(...(reasons.length ? reasons.map(([r, n]) => el("tr", {}, el("td", { text: r }), el("td", { text: String(n) })))
