@@ -1623,6 +1623,28 @@ def test_a_held_arm_nothing_was_received_from_is_not_said_to_have_its_messages_r
         agent.stop()
 
 
+def test_an_arm_no_longer_held_leaves_the_refused_ids_kept_beside_the_cap(tmp_path: Path) -> None:
+    """A review: an id refused for its calibration was kept beside the 64 newest other refused ids for good,
+    also once its file was removed. The mirror tells its fleet which ids are held now."""
+    (tmp_path / "cal").mkdir()
+    bad = tmp_path / "cal" / "arm-002.json"
+    bad.write_text('{"shoulder_pan": {}}')
+    agent = agent_with_store(tmp_path / "cal", **{"telemetry.devices": ["*"]})
+    agent.start()
+    try:
+        agent.feed("dt/lerobot/arm-002/telemetry", ticks_message("arm-002", int(time.time() * 1000)))
+        wait_for(lambda: agent.arm_view("arm-002").refused is not None, 60, "arm-002's refused message")
+        bad.unlink()
+        wait_for(lambda: agent.arm_view("arm-002").calibration_refused == "", 60, "arm-002 no longer held")
+        for n in range(64):
+            agent.feed(f"dt/lerobot/junk-{n:03d}/telemetry", b"not json")
+        unheard = agent._unheard_arms  # type: ignore[attr-defined]
+        wait_for(lambda: "junk-063" in {a.device for a in unheard()}, 60, "the 64 other refused ids")
+        assert "arm-002" not in {a.device for a in unheard()}
+    finally:
+        agent.stop()
+
+
 def _row(agent: AgentService, device: str) -> console.FleetRow:
     (row,) = [r for r in agent.fleet_rows() if r.device == device]
     return row

@@ -86,6 +86,42 @@ def test_a_held_arms_refused_messages_are_not_pushed_out_by_other_refused_ids() 
     assert "arm-held" not in restarted.unheard and len(restarted.unheard) == MAX_UNHEARD
 
 
+def test_a_refused_ids_exemption_from_the_cap_lasts_only_while_it_is_held() -> None:
+    # A review: exempt for good, an id whose file was removed, or refused since for another reason, stayed
+    # so, and the exempt rows grew with every id ever held, in every checkpoint too.
+    clock = FakeClock()
+    fleet = FleetHealth(TH, clock=clock)
+
+    def refuse(devices: list[str], reason: str = "not_json") -> None:
+        for device in devices:
+            clock.advance(0.1)
+            fleet.record_rejected(device, reason)
+
+    junk = [f"junk-{n:03d}" for n in range(MAX_UNHEARD)]
+    fleet.hold(["arm-a", "arm-b"])
+    refuse(["arm-a", "arm-b"], "calibration_refused")
+    refuse(junk)
+    assert {"arm-a", "arm-b"} <= set(fleet.unheard) and len(fleet.unheard) == MAX_UNHEARD + 2
+    fleet.hold(["arm-a"])  # arm-b's file removed: no longer held, it goes as the oldest of the others
+    assert "arm-b" not in fleet.unheard and len(fleet.unheard) == MAX_UNHEARD + 1
+    refuse(["arm-a"])  # held still, but refused since for a payload it cannot read: one of the others
+    refuse([f"more-{n:03d}" for n in range(MAX_UNHEARD)])
+    assert "arm-a" not in fleet.unheard and len(fleet.unheard) == MAX_UNHEARD
+    for n in range(3 * MAX_UNHEARD):  # ids held one after another: only the one held now is beside the cap
+        fleet.hold([f"churn-{n:03d}"])
+        refuse([f"churn-{n:03d}"], "calibration_refused")
+        assert len(fleet.unheard) <= MAX_UNHEARD + 1
+    refuse([f"last-{n:03d}" for n in range(MAX_UNHEARD)])  # churn-191, held, is the oldest row now
+    # A worker started again takes back its checkpoint before its calibrations come: then as the live one.
+    restarted = FleetHealth(TH, clock=clock)
+    restarted.restore_unheard(list(fleet.unheard.items()))
+    restarted.hold(["churn-191"])
+    assert list(restarted.unheard) == list(fleet.unheard) and "churn-191" in restarted.unheard
+    restarted.hold([])
+    fleet.hold([])
+    assert list(restarted.unheard) == list(fleet.unheard) and len(fleet.unheard) == MAX_UNHEARD
+
+
 def test_a_reading_behind_its_input_keeps_the_latency_windows_of_the_messages_handled() -> None:
     # The latency windows go by receive time. Read on the clock, a worker a window (5 s) or more behind had
     # no sample left: InternalLatencyP99 went unwritten (AgentBehind, its alarm, treats that as fine) while

@@ -550,8 +550,9 @@ class DeviceHealth:
 # console (the most recent): garbage under invented ids must not grow it.
 MAX_UNHEARD = 64
 # ... beside those whose messages were refused for their calibration (core.telemetry's
-# RejectReason.CALIBRATION_REFUSED), kept whatever comes: only the arms held by a refused calibration file get
-# that, so they are few; pushed out by 64 others, a held arm publishing was said to have sent nothing.
+# RejectReason.CALIBRATION_REFUSED) while they are held (FleetHealth.hold), whatever comes: only the arms held
+# by a refused calibration file now get that, so they are few; pushed out by 64 others, a held arm publishing
+# was said to have sent nothing.
 HELD_REASON = "calibration_refused"
 
 
@@ -587,7 +588,10 @@ class FleetHealth:
         # The devices behind those untracked rejections, most recent last (MAX_UNHEARD of them): an arm whose
         # every message is refused has no card, and the Fleet page otherwise said no arm was heard at all.
         self.unheard: OrderedDict[str, Unheard] = OrderedDict()
-        self._held_unheard: set[str] = set()  # those of them refused for HELD_REASON, kept past MAX_UNHEARD
+        # The ids held now by a refused calibration (`hold`), whose rows refused for HELD_REASON are kept past
+        # MAX_UNHEARD; None until told, when every such row is (a restarted worker takes back its checkpoint
+        # before its calibrations come).
+        self._held: frozenset[str] | None = None
         for device in self.configured:
             self.device(device)
         # Not configured, not heard since the start, but with alarms kept over a restart (`keep`).
@@ -597,7 +601,6 @@ class FleetHealth:
         health = self.devices.get(device_id)
         if health is None:
             self.unheard.pop(device_id, None)
-            self._held_unheard.discard(device_id)
             health = DeviceHealth(device_id, self.thresholds, self._clock, since=self._started)
             self.devices[device_id] = health
         return health
@@ -654,8 +657,6 @@ class FleetHealth:
     def _unheard(self, device_id: str, reason: str) -> None:
         now = self._clock()
         seen = self.unheard.get(device_id)
-        if reason == HELD_REASON:
-            self._held_unheard.add(device_id)
         if seen is None:
             self.unheard[device_id] = Unheard(1, reason, now)
             self._trim_unheard()
@@ -663,8 +664,20 @@ class FleetHealth:
         seen.rejected, seen.reason, seen.last_mono = seen.rejected + 1, reason, now
         self.unheard.move_to_end(device_id)
 
+    def hold(self, devices: Iterable[str]) -> None:
+        """The ids held now by a refused calibration (the decoder's calibration problems). Only they keep
+        their refused rows past MAX_UNHEARD: exempt for good, an id whose file was removed, or refused since
+        for another reason, stayed so, and the exempt rows grew with every id ever held."""
+        self._held = frozenset(devices)
+        self._trim_unheard()
+
     def _trim_unheard(self) -> None:
-        others = [device for device in self.unheard if device not in self._held_unheard]
+        held = self._held
+        others = [
+            device
+            for device, seen in self.unheard.items()
+            if seen.reason != HELD_REASON or (held is not None and device not in held)
+        ]
         for device in others[: max(0, len(others) - MAX_UNHEARD)]:
             del self.unheard[device]
 
@@ -675,8 +688,6 @@ class FleetHealth:
             if device_id in self.devices or device_id in self.unheard:
                 continue
             self.unheard[device_id] = seen
-            if seen.reason == HELD_REASON:
-                self._held_unheard.add(device_id)
         self._trim_unheard()
 
     def statuses(self, now: float | None = None, *, heard_only: bool = False) -> dict[str, DeviceStatus]:

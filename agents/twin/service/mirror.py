@@ -1634,6 +1634,7 @@ class Mirror:
         with self._lock:
             self._calibration_sources = {device: source for device, source, _ in request.files}
             self._calibration_problems = dict(request.problems)
+            self._fleet.hold(self._calibration_problems)
         return len(calibrations)
 
     def events(self, query: EventQuery) -> list[Event]:
