@@ -210,8 +210,9 @@ class ArmView(NamedTuple):
     # [health] expected_rate_hz, on which its loss estimate rests (None: not known): an edge at half of it
     # read as a steady 50 % loss, with nothing on the page to say which setting.
     expected_rate_hz: float | None = None
-    # Whether the broker limits each connection ([broker] per_connection_limit): only then can a connection's
-    # quota be why its gaps are all alike (a local broker has none, and the page said IoT Core's did it).
+    # Whether the broker limits each connection (IoT Core's, or [broker] per_connection_limit): only then can
+    # a connection's quota be why its gaps are all alike (a local broker has none, and the page said IoT
+    # Core's did it).
     per_connection_limit: bool = False
 
 

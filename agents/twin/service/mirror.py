@@ -1624,6 +1624,10 @@ class Mirror:
         """Each arm's own calibration from now on (from any thread: the decoder swaps its table in whole);
         returns how many arms have one. The files were validated by the agent that read them."""
         calibrations = {device: Calibration.from_dict(data, source) for device, source, data in request.files}
+        with self._lock:
+            # Before the decoder holds a newly refused arm: its first refusal must find it held here, or it
+            # is trimmed as one of the 64 others.
+            self._fleet.hold(dict(request.problems))
         # An arm whose file was refused, with no good one from this run to keep, is held (the decoder's doc).
         self._decoder.set_calibrations(
             calibrations,
@@ -1634,7 +1638,6 @@ class Mirror:
         with self._lock:
             self._calibration_sources = {device: source for device, source, _ in request.files}
             self._calibration_problems = dict(request.problems)
-            self._fleet.hold(self._calibration_problems)
         return len(calibrations)
 
     def events(self, query: EventQuery) -> list[Event]:

@@ -138,7 +138,7 @@
     if (!k || !d.loss.period_s) return `${basis}; an edge publishing slower than that reads as loss`;
     const edge = hz(1 / (d.loss.period_s * k));
     const quota = limited ? " (as by a broker connection over its per-connection quota: the Fleet page " +
-      "says so in a notice while the quota discards messages)" : "";
+      "says so in a notice once the connections cannot take the load on)" : "";
     return `${basis}. Every recent gap is ${k} periods, a fixed pattern, from either of two causes: its ` +
       `edge publishes at ~${edge} Hz, or its messages are lost in a fixed pattern on the way in${quota}. ` +
       `To tell them apart, read the rate configured on the edge itself: only if it is ${edge} Hz set ` +
