@@ -140,16 +140,22 @@ def _change(device: str, previous: DeviceStatus, status: DeviceStatus) -> Status
     return StatusChange(device, previous, status, at_mono_s=5.0, at_wall_s=5.0)
 
 
-def test_a_full_queue_drops_samples_but_each_arms_newest_status_change_gets_through() -> None:
-    """A review: status changes shared the drop-oldest queue with samples, so under overload a change could
-    be dropped, and a quiet arm (which sends no sample to correct it) stayed unlabelled in Rerun until its
-    next change. An arm's newest change the queue drops now waits beside it and goes first; one a newer change
-    of the arm replaced is dropped and counted, like a sample."""
+def _sink_held_at_its_first_sample() -> tuple[threading.Event, _GatedStatusRecorder, QueuedSink]:
+    """A sink of two items whose thread took sample 0 and waits at the gate: what comes next queues."""
     gate = threading.Event()
     worker = _GatedStatusRecorder(gate)
     sink = QueuedSink("shows", worker, max_pending=2)
     sink.applied(_sample(0))
     assert worker.entered.wait(30), "the sink's thread never took the first sample"
+    return gate, worker, sink
+
+
+def test_a_full_queue_drops_samples_but_each_arms_newest_status_change_gets_through() -> None:
+    """A review: status changes shared the drop-oldest queue with samples, so under overload a change could
+    be dropped, and a quiet arm (which sends no sample to correct it) stayed unlabelled in Rerun until its
+    next change. An arm's newest change the queue drops now waits beside it and goes first; one a newer change
+    of the arm replaced is dropped and counted, like a sample."""
+    gate, worker, sink = _sink_held_at_its_first_sample()
     sink.status(_change("arm-002", DeviceStatus.ONLINE, DeviceStatus.STALE))
     sink.status(_change("arm-001", DeviceStatus.ONLINE, DeviceStatus.STALE))
     for i in (1, 2):
@@ -167,11 +173,7 @@ def test_an_arms_older_change_dropped_while_its_newer_one_waits_is_dropped_not_k
     """A review: no test dropped an arm's older change from the queue while its newer change was still queued
     behind it. Only the newest is kept aside: the older is dropped and counted, and never reaches the worker
     (kept, it would go first, and a viewer would show the arm's old status before its new one)."""
-    gate = threading.Event()
-    worker = _GatedStatusRecorder(gate)
-    sink = QueuedSink("shows", worker, max_pending=2)
-    sink.applied(_sample(0))
-    assert worker.entered.wait(30), "the sink's thread never took the first sample"
+    gate, worker, sink = _sink_held_at_its_first_sample()
     sink.status(_change("arm-001", DeviceStatus.ONLINE, DeviceStatus.STALE))
     sink.status(_change("arm-001", DeviceStatus.STALE, DeviceStatus.OFFLINE))
     sink.applied(_sample(1))  # the STALE change, the oldest, goes: its OFFLINE change is still queued
@@ -186,11 +188,7 @@ def test_the_slot_of_kept_changes_is_bounded_and_drops_its_oldest() -> None:
     """A review: the slot of arms' newest changes was outside every bound, so a stuck sink thread, with arms
     forgotten and replaced by new ones, kept a change for every device id it was ever told of. It holds no
     more changes than the queue holds items; full, it drops its oldest, counted."""
-    gate = threading.Event()
-    worker = _GatedStatusRecorder(gate)
-    sink = QueuedSink("shows", worker, max_pending=2)
-    sink.applied(_sample(0))
-    assert worker.entered.wait(30), "the sink's thread never took the first sample"
+    gate, worker, sink = _sink_held_at_its_first_sample()
     for n in range(1, 6):
         sink.status(_change(f"arm-{n:03d}", DeviceStatus.ONLINE, DeviceStatus.OFFLINE))
     sink.applied(_sample(1))
