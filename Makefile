@@ -76,7 +76,7 @@ help:
 	@echo "make test-stress - the whole suite three times in random order with every core busy (finds flaky tests)"
 	@echo "make setup  - system packages (apt), .venv from the lock, the test tools, CDK CLI; idempotent"
 	@echo "make lock   - re-resolve the locks after a change to pyproject.toml or requirements/*.in"
-	@echo "make bench  - run the benchmarks and print figures (docs/performance.md)"
+	@echo "make bench  - run the benchmarks, print figures, redraw docs/performance.png (docs/performance.md)"
 	@echo "make config-docs - regenerate docs/configuration.md and examples/agent.toml from the config loader"
 	@echo "make usd-asset - regenerate robots/so101 USD asset from the MJCF"
 	@echo "make meshes - re-fetch the SO-101 part meshes (checked against their provenance), re-make visual/"
