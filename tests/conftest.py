@@ -217,7 +217,9 @@ class ManualClock:
     """A monotonic clock that stands still until the test moves it, for the `clock=` an agent, its health and
     its pool take: ages, staleness and "behind" are then decided by the test, not by how long this shared
     machine took to run it. The agent stamps what it receives (`feed`, its broker connections) with it too.
-    Starts at the real monotonic time, so stamps taken with time.monotonic() around it stay comparable."""
+    Starts at the real monotonic time, so stamps taken with time.monotonic() around it stay comparable. That
+    start is the machine's uptime, so decimal steps meant to sum to a threshold exactly (5 x 0.4 s to a 2 s
+    limit) land a hair under or over it by machine: step past thresholds with a margin (0.41 s)."""
 
     def __init__(self) -> None:
         self.now = time.monotonic()
