@@ -3,6 +3,7 @@ themselves are tests/test_bench.py's, which are slow)."""
 
 from __future__ import annotations
 
+import importlib
 import json
 from pathlib import Path
 from types import SimpleNamespace
@@ -13,24 +14,37 @@ from twin.cli.commands import bench as cmd
 from twin.cli.main import build_parser
 
 
+def _scenarios(ran: list[str], real: tuple[str, ...] = (), broken: str = "") -> Any:
+    """A stand-in for cmd._bench: each scenario records that it ran and returns its options, except those
+    named in `real` (the real module) and `broken` (raises as a step that ran and failed)."""
+
+    def scenario(name: str) -> Any:
+        if name in ("unavailable", *real):
+            return importlib.import_module(f"twin.bench.{name}")
+
+        def run(**options: Any) -> dict[str, Any]:
+            ran.append(name)
+            if name == broken:
+                raise RuntimeError(f"the agent exited during the {name} run (code 1)")
+            return {"scenario": name, **options}
+
+        def write(results: dict[str, Any], plot: Path) -> Path:
+            if name == broken:
+                raise ValueError(f"cannot draw {plot}")
+            return plot
+
+        return SimpleNamespace(run=run, write=write)
+
+    return scenario
+
+
 def test_bench_all_says_which_scenario_runs_on_stderr_and_prints_only_figures(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:
     # A walk: `twin bench all --json > docs/performance.json`, as the docs reproduce it, sat silent for more
     # than the "about 6 minutes" said, on a busy machine, with no word of where it was.
     ran: list[str] = []
-
-    def scenario(name: str) -> Any:
-        def run(**options: Any) -> dict[str, Any]:
-            ran.append(name)
-            return {"scenario": name, **options}
-
-        def write(results: dict[str, Any], plot: Path) -> Path:
-            return plot
-
-        return SimpleNamespace(run=run, write=write)
-
-    monkeypatch.setattr(cmd, "_bench", scenario)
+    monkeypatch.setattr(cmd, "_bench", _scenarios(ran))
     args = build_parser().parse_args(["bench", "all", "--json", "--plot", str(tmp_path / "p.png")])
     assert cmd.run(args) == 0
     out, err = capsys.readouterr()
@@ -46,3 +60,69 @@ def test_bench_all_says_which_scenario_runs_on_stderr_and_prints_only_figures(
         *("fidelity", "footprint", "ros2", "render", "rerun", "quota", "decode", "usd", "worker", "console"),
         *("cost", "plot"),
     ]
+
+
+def test_bench_all_without_root_skips_ros2_keeps_the_other_figures_and_exits_3(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    # A walk: as a user without root, the ros2 step's namespace error stopped `bench all` at step 5 and the
+    # figures of the four steps before it were lost. The real ros2 scenario runs here, with an `unshare` that
+    # fails as it does for a user without CAP_SYS_ADMIN.
+    tools = tmp_path / "bin"
+    tools.mkdir()
+    for tool, script in [
+        ("unshare", "echo 'unshare: unshare failed: Operation not permitted' >&2; exit 1"),
+        ("ip", "exit 0"),
+    ]:
+        (tools / tool).write_text(f"#!/bin/sh\n{script}\n")
+        (tools / tool).chmod(0o755)
+    monkeypatch.setenv("PATH", str(tools))
+    ran: list[str] = []
+    monkeypatch.setattr(cmd, "_bench", _scenarios(ran, real=("ros2",)))
+    args = build_parser().parse_args(["bench", "all", "--json", "--plot", str(tmp_path / "p.png")])
+    assert cmd.run(args) == cmd.EXIT_SKIPPED == 3
+    out, err = capsys.readouterr()
+    figures = json.loads(out)
+    assert "ros2" not in figures and "ros2" not in ran
+    assert [f["arms"] for f in figures["throughput"]] == [100, 2000]
+    assert {"fidelity", "footprint", "render", "cost", "plot"} <= set(figures), figures
+    assert list(figures["skipped"]) == ["ros2"] and "failed" not in figures
+    assert "Operation not permitted" in figures["skipped"]["ros2"], figures
+    assert "run it as root" in figures["skipped"]["ros2"], figures
+    lines = err.splitlines()
+    assert (
+        lines[-1] == "twin bench: 0 step(s) failed, 1 skipped: ros2; the figures above are the other steps'"
+    )
+    assert lines[-2].startswith("twin bench: skipped ros2: unshare -n failed"), err
+    assert "twin bench: 13 of 13: cost" in lines, err
+
+
+def test_bench_all_reports_a_step_that_failed_runs_the_rest_and_exits_1(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    # A step that ran and broke is a real failure: the run fails, but the other steps' figures are printed.
+    ran: list[str] = []
+    monkeypatch.setattr(cmd, "_bench", _scenarios(ran, broken="render"))
+    args = build_parser().parse_args(["bench", "all", "--json", "--plot", str(tmp_path / "p.png")])
+    assert cmd.run(args) == 1
+    out, err = capsys.readouterr()
+    figures = json.loads(out)
+    assert figures["failed"] == {"render": "RuntimeError: the agent exited during the render run (code 1)"}
+    assert "render" not in figures and "skipped" not in figures
+    assert {"ros2", "rerun", "cost", "plot"} <= set(figures) and ran[-1] == "cost", figures
+    assert err.splitlines()[-2:] == [
+        "twin bench: FAILED render: RuntimeError: the agent exited during the render run (code 1)",
+        "twin bench: 1 step(s) failed, 0 skipped: render; the figures above are the other steps'",
+    ], err
+
+
+def test_bench_all_whose_plot_fails_still_prints_every_step_and_exits_1(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    ran: list[str] = []
+    monkeypatch.setattr(cmd, "_bench", _scenarios(ran, broken="plot"))
+    args = build_parser().parse_args(["bench", "all", "--json", "--plot", str(tmp_path / "p.png")])
+    assert cmd.run(args) == 1
+    figures = json.loads(capsys.readouterr().out)
+    assert figures["failed"] == {"plot": f"ValueError: cannot draw {tmp_path / 'p.png'}"}
+    assert len(ran) == 13 and "cost" in figures, figures

@@ -28,6 +28,7 @@ from typing import Any
 import psutil
 
 from twin.bench.harness import ProcessSampler, publishers, running_agent, spread, wait_subscribed
+from twin.bench.unavailable import Unavailable
 from twin.rig.console_shots import CHROMIUM, CHROMIUM_FLAGS, loopback_only
 from twin.rig.local import LocalRig
 
@@ -53,7 +54,7 @@ def _browser() -> Iterator[Any]:
     from playwright.sync_api import sync_playwright  # noqa: PLC0415 - development dependency
 
     if not CHROMIUM.is_file():
-        raise RuntimeError(f"{CHROMIUM} is missing; `make setup` installs Debian's chromium")
+        raise Unavailable(f"{CHROMIUM} is missing; `make setup` installs Debian's chromium")
     with sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=list(CHROMIUM_FLAGS))
         try:

@@ -13,13 +13,15 @@ import subprocess
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+from twin.bench.unavailable import Unavailable
+
 # Set inside the namespace, so a command that re-executes itself there knows it has arrived.
 INSIDE_ENV = "TWIN_LOOPBACK_NETNS"
 # lo is down in a new namespace and has no multicast route: DDS discovery multicasts to 239.255.0.1.
 _SETUP = 'ip link set lo up && ip link set lo multicast on && ip route add 224.0.0.0/4 dev lo && exec "$@"'
 
 
-class NamespaceError(RuntimeError):
+class NamespaceError(Unavailable):
     """A loopback namespace cannot be made here; the message says what is missing."""
 
 
@@ -35,7 +37,10 @@ def missing_prerequisites() -> str | None:
         ["unshare", "-n", "sh", "-c", "ip link set lo up"], capture_output=True, text=True, check=False
     )
     if probe.returncode != 0:
-        return f"unshare -n failed ({probe.stderr.strip()}); a loopback namespace needs root or CAP_SYS_ADMIN"
+        return (
+            f"unshare -n failed ({probe.stderr.strip()}): a loopback namespace needs root or CAP_SYS_ADMIN; "
+            "run it as root"
+        )
     return None
 
 

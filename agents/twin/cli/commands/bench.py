@@ -262,18 +262,64 @@ def _every_scenario(args: argparse.Namespace) -> dict[str, Any]:
         ("console", lambda: _bench("console").run(seconds=seconds)),
         ("cost", lambda: _bench("cost").run(seconds=seconds)),
     ]
+    results = _run_steps(steps)
+    try:
+        results["plot"] = str(_bench("plot").write(results, args.plot))
+    except Exception as exc:  # the figures are printed all the same; the run fails
+        results.setdefault("failed", {})["plot"] = f"{type(exc).__name__}: {exc}"
+    return results
+
+
+# `twin bench all`'s exit codes beyond 0 (every step ran) and 1 (a step failed): steps skipped, none failed.
+EXIT_SKIPPED = 3
+
+
+def _run_steps(steps: list[tuple[str, Callable[[], dict[str, Any]]]]) -> dict[str, Any]:
+    """Every step's figures, in order. A step that cannot run here (twin.bench.unavailable) is skipped and one
+    that raises anything else failed; either way the steps after it still run, so the figures of a long run
+    are not lost to one, and `skipped` and `failed` (step name -> why) say which."""
+    unavailable = _bench("unavailable").Unavailable
     results: dict[str, Any] = {"throughput": []}
+    skipped: dict[str, str] = {}
+    failed: dict[str, str] = {}
     for n, (name, step) in enumerate(steps, 1):
         # Minutes with no output otherwise (more on a busy machine), and stdout is often a file: say where it
         # is, on stderr, so the figures stay as they were.
         console.err(f"{n} of {len(steps)}: {name}")
-        figures = step()
+        try:
+            figures = step()
+        except unavailable as exc:
+            skipped[name] = str(exc)
+            console.err(f"{name}: skipped, it cannot run here: {exc}")
+            continue
+        except Exception as exc:  # any error is the step's: reported, and the run goes on
+            failed[name] = f"{type(exc).__name__}: {exc}"
+            console.err(f"{name}: failed: {failed[name]}")
+            continue
         if name.startswith("throughput"):
             results["throughput"].append(figures)
         else:
             results[name] = figures
-    results["plot"] = str(_bench("plot").write(results, args.plot))
+    if skipped:
+        results["skipped"] = skipped
+    if failed:
+        results["failed"] = failed
     return results
+
+
+def _summary(figures: dict[str, Any]) -> int:
+    """Say on stderr which steps of `bench all` did not give figures; the exit code that tells it."""
+    skipped, failed = figures.get("skipped", {}), figures.get("failed", {})
+    for name, why in skipped.items():
+        console.err(f"skipped {name}: {why}")
+    for name, why in failed.items():
+        console.err(f"FAILED {name}: {why}")
+    if failed or skipped:
+        console.err(
+            f"{len(failed)} step(s) failed, {len(skipped)} skipped: {', '.join([*failed, *skipped])}; "
+            "the figures above are the other steps'"
+        )
+    return 1 if failed else EXIT_SKIPPED if skipped else 0
 
 
 def _fmt(value: Any) -> str:
@@ -308,4 +354,4 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(figures, indent=2))
     else:
         _print_tree(figures)
-    return 0
+    return _summary(figures) if args.scenario == "all" else 0
