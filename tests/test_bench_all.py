@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib
 import json
+import sys
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -163,3 +164,55 @@ def test_bench_all_stops_at_an_interrupt_in_a_step(
         cmd.run(args)
     assert ran[-1] == "footprint" and len(ran) == 4, ran
     assert not (tmp_path / "p.png").exists() and capsys.readouterr().out == ""
+
+
+def _console_cannot_start(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> list[str]:
+    """The real console scenario, whose rig records that it was started instead of starting."""
+    console = importlib.import_module("twin.bench.console")
+    started: list[str] = []
+    monkeypatch.setattr(console, "LocalRig", lambda: started.append("rig"))
+    monkeypatch.setattr(console, "CHROMIUM", tmp_path / "chromium")
+    return started
+
+
+@pytest.mark.parametrize("missing", ["chromium", "playwright"])
+def test_bench_all_without_a_browser_skips_console_before_starting_its_fleet(
+    missing: str, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    # A review: without chromium the console step started the rig and a 2,000-arm fleet and waited for it
+    # (minutes, and a timeout on a busy machine was a failure) before it found out; without Playwright it
+    # failed where a missing chromium was skipped.
+    started = _console_cannot_start(monkeypatch, tmp_path)
+    if missing == "chromium":
+        why = f"{tmp_path / 'chromium'} is missing: `make setup` installs Debian's chromium"
+    else:
+        (tmp_path / "chromium").write_text("")
+        monkeypatch.setitem(sys.modules, "playwright.sync_api", None)
+        why = "Playwright is not installed"
+    ran: list[str] = []
+    monkeypatch.setattr(cmd, "_bench", _scenarios(ran, real=("console",)))
+    args = build_parser().parse_args(["bench", "all", "--json", "--plot", str(tmp_path / "p.png")])
+    assert cmd.run(args) == cmd.EXIT_SKIPPED
+    figures = json.loads(capsys.readouterr().out)
+    assert started == [] and list(figures["skipped"]) == ["console"], figures
+    assert figures["skipped"]["console"].startswith(why) and "make setup" in figures["skipped"]["console"]
+    assert "failed" not in figures and "console" not in figures and "plot" in figures
+
+
+def test_bench_all_without_cyclonedds_skips_ros2_before_making_its_namespace(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    # Inside the namespace a missing cyclonedds surfaced only as the child's error: a failure, not a skip.
+    netns = importlib.import_module("twin.bench.netns")
+    made: list[str] = []
+    monkeypatch.setattr(netns, "run_in_loopback_namespace", lambda *a, **k: made.append("netns"))
+    monkeypatch.setitem(sys.modules, "cyclonedds", None)
+    monkeypatch.setattr(cmd, "_bench", _scenarios([], real=("ros2",)))
+    args = build_parser().parse_args(["bench", "all", "--json", "--plot", str(tmp_path / "p.png")])
+    assert cmd.run(args) == cmd.EXIT_SKIPPED
+    figures = json.loads(capsys.readouterr().out)
+    assert made == [] and "failed" not in figures, figures
+    assert figures["skipped"] == {
+        "ros2": "cyclonedds is not installed: `make setup` installs it (the `ros2` extra of the agent "
+        "package: pip install 'so101-twin[ros2]')"
+    }

@@ -53,8 +53,6 @@ async (id) => {
 def _browser() -> Iterator[Any]:
     from playwright.sync_api import sync_playwright  # noqa: PLC0415 - development dependency
 
-    if not CHROMIUM.is_file():
-        raise Unavailable(f"{CHROMIUM} is missing; `make setup` installs Debian's chromium")
     with sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=list(CHROMIUM_FLAGS))
         try:
@@ -255,10 +253,27 @@ def _chromium_pid() -> int | None:
     return min(candidates)[1] if candidates else None
 
 
+def _require_browser() -> None:
+    """Raise Unavailable, naming the fix, when Playwright or Debian's chromium is not installed."""
+    try:
+        import playwright.sync_api  # noqa: F401, PLC0415 - development dependency: is it there?
+    except ImportError as exc:
+        raise Unavailable(
+            f"Playwright is not installed ({exc}): `make setup` installs it (the `demo` extra of the agent "
+            "package: pip install 'so101-twin[demo]')"
+        ) from exc
+    if not CHROMIUM.is_file():
+        raise Unavailable(
+            f"{CHROMIUM} is missing: `make setup` installs Debian's chromium (apt package chromium)"
+        )
+
+
 def run(
     *, arms: int = 2000, cpu_arms: int = 1000, rate: float = 2.0, runs: int = 5, seconds: float = 20.0
 ) -> dict[str, Any]:
     """Both phases as one JSON-ready dict (nothing asserted: a benchmark measures)."""
+    # Before the rig and the fleet: otherwise minutes go by before the browser is found missing.
+    _require_browser()
     load_before = os.getloadavg()
     with LocalRig() as rig:
         interactive = _interactive(rig, arms, rate, runs)

@@ -12,6 +12,7 @@ loopback-only network namespace: `run()` re-executes the scenario there (twin.be
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import sys
@@ -20,6 +21,7 @@ from typing import Any
 from twin.bench import netns
 from twin.bench.harness import last_json_line, load_process
 from twin.bench.throughput import agent_phase
+from twin.bench.unavailable import Unavailable
 from twin.rig.local import LocalRig
 
 # The bridge as deployed, with the default topic pattern and joint names.
@@ -72,6 +74,12 @@ def measure(*, arms: int, rate: float, seconds: float) -> dict[str, Any]:
 
 def run(*, arms: int = 100, rate: float = 10.0, seconds: float = 20.0) -> dict[str, Any]:
     """The scenario's figures; re-executes itself in a loopback-only namespace unless already inside one."""
+    # Inside the namespace its absence would only surface as the child's error, a failure of the step.
+    if importlib.util.find_spec("cyclonedds") is None:
+        raise Unavailable(
+            "cyclonedds is not installed: `make setup` installs it (the `ros2` extra of the agent package: "
+            "pip install 'so101-twin[ros2]')"
+        )
     if netns.inside():
         return measure(arms=arms, rate=rate, seconds=seconds)
     argv = [sys.executable, "-m", "twin.bench.ros2", str(arms), str(rate), str(seconds)]
