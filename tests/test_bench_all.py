@@ -81,6 +81,7 @@ def test_bench_all_without_root_skips_ros2_keeps_the_other_figures_and_exits_3(
         (tools / tool).write_text(f"#!/bin/sh\n{script}\n")
         (tools / tool).chmod(0o755)
     monkeypatch.setenv("PATH", str(tools))
+    monkeypatch.setattr(importlib.import_module("twin.bench.netns").os, "geteuid", lambda: 1000)
     ran: list[str] = []
     monkeypatch.setattr(cmd, "_bench", _scenarios(ran, real=("ros2",)))
     args = build_parser().parse_args(["bench", "all", "--json", "--plot", str(tmp_path / "p.png")])
@@ -216,3 +217,20 @@ def test_bench_all_without_cyclonedds_skips_ros2_before_making_its_namespace(
         "ros2": "cyclonedds is not installed: `make setup` installs it (the `ros2` extra of the agent "
         "package: pip install 'so101-twin[ros2]')"
     }
+
+
+def test_unshare_failing_as_root_names_the_missing_capability_not_root(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    # A review: root in a container without CAP_SYS_ADMIN was told to run it as root.
+    netns = importlib.import_module("twin.bench.netns")
+    fails = "echo 'unshare: Operation not permitted' >&2; exit 1"
+    for tool, script in [("unshare", fails), ("ip", "exit 0")]:
+        (tmp_path / tool).write_text(f"#!/bin/sh\n{script}\n")
+        (tmp_path / tool).chmod(0o755)
+    monkeypatch.setenv("PATH", str(tmp_path))
+    monkeypatch.setattr(netns.os, "geteuid", lambda: 0)
+    why = netns.missing_prerequisites()
+    assert why is not None and "run it as root" not in why, why
+    assert why.startswith("unshare -n failed (unshare: Operation not permitted)") and "CAP_SYS_ADMIN" in why
+    assert why.endswith("this root lacks CAP_SYS_ADMIN: give it (docker run --cap-add SYS_ADMIN)"), why

@@ -37,10 +37,10 @@ def missing_prerequisites() -> str | None:
         ["unshare", "-n", "sh", "-c", "ip link set lo up"], capture_output=True, text=True, check=False
     )
     if probe.returncode != 0:
-        return (
-            f"unshare -n failed ({probe.stderr.strip()}): a loopback namespace needs root or CAP_SYS_ADMIN; "
-            "run it as root"
-        )
+        why = f"unshare -n failed ({probe.stderr.strip()}): a loopback namespace needs root or CAP_SYS_ADMIN"
+        if os.geteuid() == 0:  # root already: what is missing is the capability (a container without it)
+            return f"{why}; this root lacks CAP_SYS_ADMIN: give it (docker run --cap-add SYS_ADMIN)"
+        return f"{why}; run it as root"
     return None
 
 
