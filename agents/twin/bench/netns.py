@@ -2,7 +2,8 @@
 
 `run_in_loopback_namespace(argv)` runs a command under `unshare -n` with only `lo`, brought up with multicast
 routed over it, so DDS discovery (multicast SPDP) works inside and never reaches a real interface. Needs root
-or CAP_SYS_ADMIN, as the development machine and CI have.
+with CAP_SYS_ADMIN (to make the namespace) and CAP_NET_ADMIN (to bring lo up), as the development machine and
+CI have.
 """
 
 from __future__ import annotations
@@ -37,11 +38,26 @@ def missing_prerequisites() -> str | None:
         ["unshare", "-n", "sh", "-c", "ip link set lo up"], capture_output=True, text=True, check=False
     )
     if probe.returncode != 0:
-        why = f"unshare -n failed ({probe.stderr.strip()}): a loopback namespace needs root or CAP_SYS_ADMIN"
-        if os.geteuid() == 0:  # root already: what is missing is the capability (a container without it)
-            return f"{why}; this root lacks CAP_SYS_ADMIN: give it (docker run --cap-add SYS_ADMIN)"
-        return f"{why}; run it as root"
+        return _probe_failed(probe.stderr.strip(), root=os.geteuid() == 0)
     return None
+
+
+def _probe_failed(stderr: str, *, root: bool) -> str:
+    """The probe's failure with its fix: which capability is missing depends on which command failed."""
+    if not root:
+        return f"unshare -n failed ({stderr}): a loopback namespace needs root; run it as root"
+    # Root already, so a capability is missing (a container without it). unshare names itself when it cannot
+    # make the namespace (CAP_SYS_ADMIN); otherwise the namespace was made and `ip` could not bring lo up
+    # (CAP_NET_ADMIN, which Docker drops by default).
+    if stderr.startswith("unshare"):
+        return (
+            f"unshare -n failed ({stderr}): this root lacks CAP_SYS_ADMIN, which a network namespace needs: "
+            "give it (docker run --cap-add SYS_ADMIN --cap-add NET_ADMIN: the namespace needs both)"
+        )
+    return (
+        f"`ip link set lo up` in a new namespace failed ({stderr}): this root lacks CAP_NET_ADMIN, which "
+        "bringing lo up needs: give it (docker run --cap-add NET_ADMIN --cap-add SYS_ADMIN: it needs both)"
+    )
 
 
 def run_in_loopback_namespace(
