@@ -9,8 +9,9 @@ import os
 import shutil
 import subprocess
 import sys
+from importlib.machinery import ModuleSpec
 from pathlib import Path
-from types import SimpleNamespace
+from types import ModuleType, SimpleNamespace
 from typing import Any
 
 import pytest
@@ -43,6 +44,14 @@ def _scenarios(
         return SimpleNamespace(run=run, write=write)
 
     return scenario
+
+
+def _installed(monkeypatch: pytest.MonkeyPatch, *names: str) -> None:
+    """Stand-in modules, so a test of something else does not depend on what this venv has installed."""
+    for name in names:
+        module = ModuleType(name)
+        module.__spec__ = ModuleSpec(name, loader=None)
+        monkeypatch.setitem(sys.modules, name, module)
 
 
 def test_bench_all_says_which_scenario_runs_on_stderr_and_prints_only_figures(
@@ -85,6 +94,8 @@ def test_bench_all_without_root_skips_ros2_keeps_the_other_figures_and_exits_3(
         (tools / tool).chmod(0o755)
     monkeypatch.setenv("PATH", str(tools))
     monkeypatch.setattr(importlib.import_module("twin.bench.netns").os, "geteuid", lambda: 1000)
+    # ros2.run looks for cyclonedds first: without it here the step would be skipped for that instead.
+    _installed(monkeypatch, "cyclonedds")
     ran: list[str] = []
     monkeypatch.setattr(cmd, "_bench", _scenarios(ran, real=("ros2",)))
     args = build_parser().parse_args(["bench", "all", "--json", "--plot", str(tmp_path / "p.png")])
@@ -188,6 +199,8 @@ def test_bench_all_without_a_browser_skips_console_before_starting_its_fleet(
     # failed where a missing chromium was skipped.
     started = _console_cannot_start(monkeypatch, tmp_path)
     if missing == "chromium":
+        # Playwright is looked for first: without it here the step would be skipped for that instead.
+        _installed(monkeypatch, "playwright", "playwright.sync_api")
         why = f"{tmp_path / 'chromium'} is missing: `make setup` installs Debian's chromium"
     else:
         (tmp_path / "chromium").write_text("")
