@@ -295,3 +295,24 @@ def test_root_without_a_capability_is_told_that_one(dropped: str, lacks: str) ->
         check=True,
     )
     assert f"this root lacks {lacks}" in dropped_run.stdout, dropped_run
+
+
+@pytest.mark.parametrize("missing", ["chromium", "playwright"])
+def test_bench_console_says_what_the_demo_says_with_its_own_setup_target(
+    missing: str, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    # A review: the bench's browser check repeated the demo's with other words, so the two could drift.
+    console = importlib.import_module("twin.bench.console")
+    shots = importlib.import_module("twin.rig.console_shots")
+    chromium = tmp_path / "chromium"
+    monkeypatch.setattr(console, "CHROMIUM", chromium)
+    if missing == "chromium":
+        _installed(monkeypatch, "playwright", "playwright.sync_api")
+    else:
+        chromium.write_text("")
+        monkeypatch.setitem(sys.modules, "playwright.sync_api", None)
+    with pytest.raises(console.Unavailable) as raised:
+        console._require_browser()
+    demo = shots.missing_for_shots(chromium)
+    assert demo is not None and "`make setup-demo`" in demo, demo
+    assert str(raised.value) == demo.replace("`make setup-demo`", "`make setup`"), (str(raised.value), demo)

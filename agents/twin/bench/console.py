@@ -29,7 +29,7 @@ import psutil
 
 from twin.bench.harness import ProcessSampler, publishers, running_agent, spread, wait_subscribed
 from twin.bench.unavailable import Unavailable
-from twin.rig.console_shots import CHROMIUM, CHROMIUM_FLAGS, loopback_only
+from twin.rig.console_shots import CHROMIUM, CHROMIUM_FLAGS, loopback_only, missing_for_shots
 from twin.rig.local import LocalRig
 
 # The fleet must be in the agent's state before the page is timed.
@@ -255,17 +255,10 @@ def _chromium_pid() -> int | None:
 
 def _require_browser() -> None:
     """Raise Unavailable, naming the fix, when Playwright or Debian's chromium is not installed."""
-    try:
-        import playwright.sync_api  # noqa: F401, PLC0415 - development dependency: is it there?
-    except ImportError as exc:
-        raise Unavailable(
-            f"Playwright is not installed ({exc}): `make setup` installs it (the `demo` extra of the agent "
-            "package: pip install 'so101-twin[demo]')"
-        ) from exc
-    if not CHROMIUM.is_file():
-        raise Unavailable(
-            f"{CHROMIUM} is missing: `make setup` installs Debian's chromium (apt package chromium)"
-        )
+    # The demo's check, so the two cannot drift; the development setup installs both here.
+    missing = missing_for_shots(CHROMIUM, setup="make setup")
+    if missing is not None:
+        raise Unavailable(missing)
 
 
 def run(

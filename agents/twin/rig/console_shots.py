@@ -88,17 +88,20 @@ def wait_for_settled_fleet(page: Page, timeout_s: float) -> bool:
     return True
 
 
-def missing_for_shots(chromium: Path = CHROMIUM) -> str | None:
-    """Why the pictures cannot be taken here (what to install, and how), or None when they can."""
+def missing_for_shots(chromium: Path = CHROMIUM, *, setup: str = "make setup-demo") -> str | None:
+    """Why the pictures cannot be taken here (what to install, and how), or None when they can.
+
+    `setup` is the make target that installs both for the caller's users (`twin bench console`: make setup).
+    """
     try:
         import playwright.sync_api  # noqa: F401, PLC0415 - an optional dependency: is it there?
     except ImportError:
         return (
-            "Playwright is not installed: `make setup-demo` installs it (the `demo` extra of the agent "
+            f"Playwright is not installed: `{setup}` installs it (the `demo` extra of the agent "
             "package: pip install 'so101-twin[demo]')"
         )
     if not chromium.is_file():
-        return f"{chromium} is missing: `make setup-demo` installs Debian's chromium (apt package chromium)"
+        return f"{chromium} is missing: `{setup}` installs Debian's chromium (apt package chromium)"
     return None
 
 
