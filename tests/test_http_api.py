@@ -10,6 +10,7 @@ import threading
 import time
 import urllib.error
 import urllib.request
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -303,6 +304,21 @@ def test_metrics_of_a_real_state_agree_with_it() -> None:
     assert metric(samples, "twin_internal_latency_p50_seconds", device="arm-001") == pytest.approx(
         arm.health.internal_latency_s.p50
     )
+
+
+def test_the_wall_clock_steps_the_emf_publisher_saw_are_in_state_and_metrics(tmp_path: Path) -> None:
+    """They were only logged: a host whose time sync kept stepping its clock for weeks showed it nowhere a
+    person looks. Without an EMF file the count is unknown, so /metrics leaves it out (no made-up 0)."""
+    with fed_agent(**{"cloudwatch.emf_file": str(tmp_path / "emf.log")}) as service:
+        assert service.state().agent.emf_clock_steps == 0
+        assert service._emf is not None
+        service._emf.clock_steps = 3  # as the publisher counts the steps it sees
+        body = http_get(service.http_url + "/state")[2]
+        text = http_get(service.http_url + "/metrics")[2].decode()
+    assert AgentState.from_json(body).agent.emf_clock_steps == 3
+    assert metric(parse_metrics(text), "twin_emf_clock_steps_total") == 3
+    without = parse_metrics(render_metrics(AgentState(AgentInfo(), {})))
+    assert ("twin_emf_clock_steps_total", ()) not in without
 
 
 @pytest.mark.parametrize(

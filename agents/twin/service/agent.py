@@ -1003,6 +1003,9 @@ class AgentService:
             if own:
                 sinks = (*state.agent.sinks, *own)
                 state = dataclasses.replace(state, agent=dataclasses.replace(state.agent, sinks=sinks))
+            if self._emf is not None:
+                agent = dataclasses.replace(state.agent, emf_clock_steps=self._emf.clock_steps)
+                state = dataclasses.replace(state, agent=agent)
             self._cached = (time.monotonic(), state)
             return state
 

@@ -96,6 +96,11 @@ def _agent_families(agent: AgentInfo) -> Iterator[Metric]:
         agent.worker.behind_s,
     )
     yield from _sink_families(agent)
+    yield _counter(
+        "twin_emf_clock_steps_total",
+        "Steps of the host's wall clock the CloudWatch metrics publisher saw (time sync stepping it).",
+        agent.emf_clock_steps,
+    )
     if agent.history is not None:
         yield from _history_families(agent.history)
     yield from _alarm_families(agent)

@@ -349,6 +349,9 @@ class AgentInfo:
     # Where it reads each arm's own calibration ([telemetry] calibrations): s3://bucket/prefix or an absolute
     # directory, "" for none. The console's Arm page says how to push to it (docs/agent.md, "Calibration").
     calibration_store: str = ""
+    # Steps of the host's wall clock the CloudWatch metrics publisher saw (`null` without [cloudwatch]
+    # emf_file): only logged before, so a host whose time sync keeps stepping showed it nowhere one looks.
+    emf_clock_steps: int | None = None
 
 
 @dataclass(frozen=True)
