@@ -517,13 +517,16 @@ class EmfPublisher:
 
     def _first_clock_offset(self) -> tuple[float, float]:
         """The monotonic time and the wall clock minus it, to line the first slot up with: a stalled read is
-        retried, and after three a loose one is taken (it moves the grid once, later, as a step)."""
+        retried, and after three a loose one is taken (if it is off, it moves the grid once, later, as a
+        step). The wall clock is read first: a stall while it is read (the thread descheduled in the call)
+        then passes before the monotonic read, instead of landing in the offset."""
         for _ in range(3):
             mono, offset = self._clock_offset()
             if offset is not None:
                 return mono, offset
+        wall = self._wall()
         mono = self._clock()
-        return mono, self._wall() - mono
+        return mono, wall - mono
 
     def _clock_offset(self) -> tuple[float, float | None]:
         """The monotonic time and the wall clock minus it, read between two reads of the monotonic one. The
