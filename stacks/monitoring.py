@@ -1,4 +1,4 @@
-"""The alarm topic and what notifies it: the host's servo alarms directly, and nineteen CloudWatch alarms.
+"""The alarm topic and what notifies it: the host's servo alarms directly, and twenty CloudWatch alarms.
 
 One SNS topic (encrypted, TLS only; an e-mail address subscribed when the settings give one):
 
@@ -22,6 +22,10 @@ One SNS topic (encrypted, TLS only; an e-mail address subscribed when the settin
   and was started again; history rows dropped (the writer's buffer overflowed: storage unreachable longer
   than it holds); history commits failing for 5 minutes; history's oldest unwritten row over a minute old, 2
   minutes running (storage slow or unreachable; rows are dropped once the buffer is full).
+- **metrics unwritten** (CloudWatch): the agent could not write its EMF file (a disk that filled, the
+  file's permissions), told in the first document written after: CloudWatch got nothing, or only part, for
+  those minutes, so every other alarm was blind then. A disk that stays full writes nothing, this count
+  included, and pages as agent silent.
 - **a refused subscription** (CloudWatch): IoT Core refuses the agent a topic filter for 2 minutes.
 - **the broker out of reach** (CloudWatch): a connection of the agent to IoT Core down for 3 minutes. Its
   arms then all read OFFLINE, which does not page, so nothing else would say it.
@@ -118,6 +122,9 @@ ALERT_FAILURES_MINUTES = 3
 HOST_CHECKS_FAILED = "HostChecksFailed"
 LOCAL_CONFIG_NOT_SAVED = "LocalConfigNotSaved"
 ALARM_STATE_NOT_SAVED = "AlarmStateNotSaved"
+# The agent's failed writes of its EMF file (emf.EMF_WRITE_FAILURES), told in the first document written
+# after them: only once the disk has room again, so it pages an outage that ended, which AgentSilent may miss.
+EMF_WRITE_FAILURES = "EmfWriteFailures"
 PERIOD = Duration.minutes(1)
 # History commits every 10 s by default (docs/history.md): a minute's lag means commits are failing.
 HISTORY_LAG_ALARM_S = 60
@@ -222,6 +229,7 @@ class TwinMonitoring(Construct):
         }
         self._alarms_for_loss()
         self._alarms_for_history()
+        self.alarms["EmfWriteFailures"] = self._emf_write_failures_alarm()
         self.alarms["SubscriptionsRefused"] = self._subscriptions_refused_alarm()
         self.alarms["BrokerDisconnected"] = self._broker_disconnected_alarm()
         self.alarms["MessagesLost"] = self._messages_lost_alarm()
@@ -326,12 +334,14 @@ class TwinMonitoring(Construct):
             treat_missing_data=cw.TreatMissingData.NOT_BREACHING,
         )
 
-    def _any_loss_alarm(self, id_: str, name: str, description: str) -> cw.Alarm:
+    def _any_loss_alarm(
+        self, id_: str, name: str, description: str, *, doc: str = 'docs/agent.md, "Bounds and restarts"'
+    ) -> cw.Alarm:
         """Alarm when `name` counted anything in a minute."""
         return cw.Alarm(
             self,
             id_,
-            alarm_description=f'{description} docs/agent.md, "Bounds and restarts"',
+            alarm_description=f"{description} {doc}",
             metric=self._metric(name, "Sum"),
             threshold=1,
             comparison_operator=cw.ComparisonOperator.GREATER_THAN_OR_EQUAL_TO_THRESHOLD,
@@ -367,6 +377,21 @@ class TwinMonitoring(Construct):
             HISTORY_ROWS_DROPPED,
             f"Telemetry history of {agent_name} is being lost: storage was unreachable longer than the write "
             "buffer holds (history.max_buffer_rows).",
+        )
+
+    def _emf_write_failures_alarm(self) -> cw.Alarm:
+        """EmfWriteFailures: the agent's metrics file refused writes. Those minutes reached no alarm, and
+        AgentSilent pages only after five silent minutes: a disk full for less, or filled again and again (a
+        log that grows, rotated), lost metrics without paging anyone."""
+        return self._any_loss_alarm(
+            "EmfWriteFailures",
+            EMF_WRITE_FAILURES,
+            f"The agent of {self.agent_name} could not write its CloudWatch metrics file: CloudWatch got "
+            "nothing, or only part, for those minutes, so no other alarm could fire then. Told once the "
+            "file takes writes again. Usually a full disk: `df -h /var/log` and what fills it; the agent's "
+            "log ('writing CloudWatch metrics to ... failed') and /state agent.sinks 'emf' last_error name "
+            "the error (a file's permissions too). A disk that stays full pages as AgentSilent instead.",
+            doc="docs/servo-health.md",
         )
 
     def _alarms_for_history(self) -> None:

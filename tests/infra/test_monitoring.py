@@ -60,6 +60,7 @@ def test_names_agree_with_the_agents_emf() -> None:
     assert monitoring.WORST_ARM_LOSS_PERCENT == emf.WORST_ARM_LOSS_PERCENT
     assert monitoring.INTERNAL_LATENCY_P99 == emf.INTERNAL_LATENCY_P99
     assert monitoring.DEVICE_LIMIT_REFUSALS == emf.DEVICE_LIMIT_REFUSALS
+    assert monitoring.EMF_WRITE_FAILURES == emf.EMF_WRITE_FAILURES
 
 
 def test_topic_is_encrypted_tls_only_and_cloudwatch_may_publish(synth_default: Synth) -> None:
@@ -99,8 +100,9 @@ def test_every_alarm_notifies_the_topic_on_alarm_and_ok(synth_default: Synth) ->
     # Servo alarms reach the topic from the host directly (test_host_publishes_servo_alarms_to_the_topic_
     # only), not through a CloudWatch alarm on a once-a-minute metric: agent silent, arms stale, the six
     # loss alarms, a refused subscription, the broker out of reach, the device limit, the fleet's and one
-    # arm's messages lost, most messages refused, alarm e-mails unsent, the host scripts' three.
-    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 19)
+    # arm's messages lost, most messages refused, alarm e-mails unsent, metrics unwritten, the host scripts'
+    # three.
+    synth_default.template.resource_count_is("AWS::CloudWatch::Alarm", 20)
     ref = topic_ref(synth_default)
     for props in synth_default.resources("AWS::CloudWatch::Alarm").values():
         assert props["Properties"]["AlarmActions"] == [ref]
@@ -158,7 +160,7 @@ def test_agent_silent_is_armed_by_the_host_once_it_is_up(synth_default: Synth) -
         for p in synth_default.resources("AWS::CloudWatch::Alarm").values()
         if p["Properties"].get("AlarmName") != "So101TwinStack-AgentSilent"
     ]
-    assert len(others) == 18 and all(p.get("ActionsEnabled", True) for p in others)
+    assert len(others) == 19 and all(p.get("ActionsEnabled", True) for p in others)
     arm = statement(policy_statements(synth_default, "IdentityHostRole"), "AgentSilentArm")
     assert arm["Action"] == "cloudwatch:EnableAlarmActions"
     resource = json.dumps(arm["Resource"])
@@ -318,7 +320,7 @@ def test_the_dashboard_shows_every_alarm_and_is_an_output(synth_default: Synth) 
     body = dashboard_body(synth_default)
     status = [w for w in body["widgets"] if w["type"] == "alarm"]
     alarms = synth_default.resources("AWS::CloudWatch::Alarm")
-    assert len(status) == 1 and len(status[0]["properties"]["alarms"]) == len(alarms) == 19
+    assert len(status) == 1 and len(status[0]["properties"]["alarms"]) == len(alarms) == 20
     # One point a minute, the agent's EMF interval, each with the statistic its figure needs.
     for widget in body["widgets"]:
         for row in widget["properties"].get("metrics", []):
@@ -354,7 +356,13 @@ def _alarm_on(synth: Synth, metric_name: str) -> dict[str, Any]:
 
 @pytest.mark.parametrize(
     "name",
-    [emf.MESSAGES_DROPPED, emf.SINK_DROPS, emf.WORKER_RESTARTS, emf.HISTORY_ROWS_DROPPED],
+    [
+        emf.MESSAGES_DROPPED,
+        emf.SINK_DROPS,
+        emf.WORKER_RESTARTS,
+        emf.HISTORY_ROWS_DROPPED,
+        emf.EMF_WRITE_FAILURES,
+    ],
 )
 def test_any_loss_in_a_minute_alarms(synth_default: Synth, name: str) -> None:
     props = _alarm_on(synth_default, name)
@@ -372,6 +380,11 @@ def test_any_loss_in_a_minute_alarms(synth_default: Synth, name: str) -> None:
         # The state file and the event journal report their failed writes as sink drops (docs/agent.md):
         # a walk filled the disk and the e-mail's cause was a sink that could not keep up.
         (emf.SINK_DROPS, ("state file", "event journal", "full or read-only disk", "last_error")),
+        # A walk: only AgentSilent paged on a full disk, and only one that stayed full for 5 minutes.
+        (
+            emf.EMF_WRITE_FAILURES,
+            ("df -h /var/log", "agent.sinks 'emf'", "AgentSilent", "docs/servo-health.md"),
+        ),
     ],
 )
 def test_a_loss_alarm_names_each_cause_and_its_fix(synth_default: Synth, name: str, needles: tuple) -> None:
