@@ -651,12 +651,14 @@ def _fleet_graphs(labelled: Callable[..., cw.Metric]) -> list[cw.GraphWidget]:
             [labelled(HISTORY_ROWS_DROPPED, "Sum", "rows dropped per minute")],
         ),
         _graph(
-            "Lost: messages dropped, sink drops, worker restarts, history commit failures (per minute)",
+            "Lost: messages dropped, sink drops, worker restarts, history commit failures, "
+            "metrics file writes failed (per minute)",
             [
                 labelled(MESSAGES_DROPPED, "Sum", "messages dropped"),
                 labelled(SINK_DROPS, "Sum", "sink drops"),
                 labelled(WORKER_RESTARTS, "Sum", "worker restarts"),
                 labelled(HISTORY_COMMIT_FAILURES, "Sum", "history commit failures"),
+                labelled(EMF_WRITE_FAILURES, "Sum", "metrics file writes failed"),
             ],
             left_y_axis=cw.YAxisProps(min=0),
         ),

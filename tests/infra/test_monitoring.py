@@ -313,6 +313,8 @@ def test_the_dashboard_draws_only_metrics_the_agent_emits(synth_default: Synth) 
     assert monitoring.HISTORY_ROWS_DROPPED == emf.HISTORY_ROWS_DROPPED
     # ... and what the twin lost, each figure a loss alarm watches.
     losses = {emf.MESSAGES_DROPPED, emf.SINK_DROPS, emf.WORKER_RESTARTS, emf.HISTORY_COMMIT_FAILURES}
+    # The metrics file's failed writes too: its alarm fires for a minute, the graph keeps them in sight.
+    losses.add(emf.EMF_WRITE_FAILURES)
     assert {(name, agent) for name in losses} <= by_metric
 
 
