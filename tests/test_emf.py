@@ -779,11 +779,17 @@ def test_a_thread_stalled_between_the_clock_reads_is_not_a_step(caplog: pytest.L
 
 
 def _under_a_moving_clock(
-    wall_of: Callable[[float], float], waits: int, read_stalls: int = 0
+    wall_of: Callable[[float], float],
+    waits: int,
+    read_stalls: int = 0,
+    *,
+    stall_s: float = 3.0,
+    stall_after: bool = False,
 ) -> tuple[list[float], EmfPublisher, float]:
     """The monotonic times of the documents the publisher's own loop writes (60 s interval) in `waits` waits
     when the wall clock reads `wall_of(monotonic)`, the publisher, and the monotonic time at the end. With
-    `read_stalls`, that many of the first reads of the wall clock stall 3 s before they read it."""
+    `read_stalls`, that many of the first reads of the wall clock stall `stall_s` before they read it (after
+    it, before the call returns, with `stall_after`)."""
     mono, published, count = [500.0], [], [0]
 
     def sample() -> FleetTotals:
@@ -796,10 +802,11 @@ def _under_a_moving_clock(
         return count[0] >= waits
 
     def read_wall() -> float:
+        wall = wall_of(mono[0])
         if count[0] < read_stalls:
             count[0] += 1  # a stall counts as a wait, so stalls at every read still end
-            mono[0] += 3.0
-        return wall_of(mono[0])
+            mono[0] += stall_s
+        return wall if stall_after else wall_of(mono[0])
 
     writer: Any = types.SimpleNamespace(write=lambda documents: None, path="memory")
     publisher = EmfPublisher(writer, "a", sample, clock=lambda: mono[0], wall=read_wall, wait=wait)
@@ -847,15 +854,22 @@ def test_two_steps_before_one_slot_are_both_followed() -> None:
     assert max(Counter(int(w // 60.0) for w in walls).values()) == 1
 
 
-@pytest.mark.parametrize("stalls", [2, 10])
-def test_a_first_clock_read_that_stalls_is_retried_then_taken_loose(stalls: int) -> None:
+@pytest.mark.parametrize("stall_after", [False, True], ids=["stall-before-the-wall-read", "stall-after-it"])
+@pytest.mark.parametrize(("stalls", "stall_s"), [(2, 3.0), (10, 1.6)], ids=["retried", "every-try"])
+def test_a_first_clock_read_that_stalls_is_retried_then_the_least_stalled_taken(
+    stalls: int, stall_s: float, stall_after: bool
+) -> None:
     """The first slot is lined up with a read of both clocks: two stalled reads are read again, and ten
-    (every try) still start the grid. The last try read the monotonic clock before the wall one, so the
-    stall landed in the offset and was counted as a step later: the wall clock is read first now, and
-    neither case counts one."""
-    published, publisher, _ = _under_a_moving_clock(lambda mono: 1_000_000_000.0 + mono, 1000, stalls)
+    (every try) still start the grid. The last try read the monotonic clock once, before or after the wall
+    one, so a stall on one side or the other landed in the offset in full and a 1.6 s one was counted as a
+    step later: the offset is taken against the middle of two monotonic reads, off by half a stall at most."""
+    published, publisher, _ = _under_a_moving_clock(
+        lambda mono: 1_000_000_000.0 + mono, 1000, stalls, stall_s=stall_s, stall_after=stall_after
+    )
     assert publisher.clock_steps == 0
-    assert [(1_000_000_000.0 + m) % 60.0 for m in published] == pytest.approx([30.0] * len(published))
+    off = 0.0 if stalls == 2 else stall_s / 2.0  # a loose read within the tolerance leaves the grid there
+    phases = [(1_000_000_000.0 + m) % 60.0 for m in published]
+    assert phases == pytest.approx([30.0] * len(published), abs=off + 1e-5)
 
 
 def test_the_first_documents_rate_is_over_the_time_since_the_start(tmp_path: Path) -> None:

@@ -517,27 +517,32 @@ class EmfPublisher:
 
     def _first_clock_offset(self) -> tuple[float, float]:
         """The monotonic time and the wall clock minus it, to line the first slot up with: a stalled read is
-        retried, and after three a loose one is taken (if it is off, it moves the grid once, later, as a
-        step). The wall clock is read first: a stall while it is read (the thread descheduled in the call)
-        then passes before the monotonic read, instead of landing in the offset."""
+        retried, and after three the one with the shortest stall is taken. Its offset is off by half that
+        stall at most, wherever in the reads it fell (two reads, one before the wall read and one after,
+        took it in full); a stall over twice clock_step_tolerance on every try then moves the grid once,
+        later, as a step."""
+        reads: list[tuple[float, float, float]] = []
         for _ in range(3):
-            mono, offset = self._clock_offset()
-            if offset is not None:
-                return mono, offset
-        wall = self._wall()
-        mono = self._clock()
-        return mono, wall - mono
+            reads.append(self._clock_read())
+            if reads[-1][0] <= clock_step_tolerance(self.interval_s) / 4.0:
+                break
+        _, mono, offset = min(reads)
+        return mono, offset
 
     def _clock_offset(self) -> tuple[float, float | None]:
-        """The monotonic time and the wall clock minus it, read between two reads of the monotonic one. The
-        difference is None if those lie over a quarter of the step tolerance apart (the thread stalled
-        between the reads): so loose a reading, taken for a step, would move the grid and warn twice."""
+        """The monotonic time and the wall clock minus it (_clock_read). The difference is None if the two
+        monotonic reads lie over a quarter of the step tolerance apart (the thread stalled between the
+        reads): so loose a reading, taken for a step, would move the grid and warn twice."""
+        gap, after, offset = self._clock_read()
+        return after, (None if gap > clock_step_tolerance(self.interval_s) / 4.0 else offset)
+
+    def _clock_read(self) -> tuple[float, float, float]:
+        """How far apart two monotonic reads lie, the second, and the wall clock read between them minus
+        their middle: a stall anywhere in the reads moves that offset by half the gap at most."""
         before = self._clock()
         wall = self._wall()
         after = self._clock()
-        if after - before > clock_step_tolerance(self.interval_s) / 4.0:
-            return after, None
-        return after, wall - (before + after) / 2.0
+        return after - before, after, wall - (before + after) / 2.0
 
     def _wall_step(self, offset: float) -> tuple[float, float, float]:
         """The monotonic time, how far the wall clock was stepped since `offset` (wall minus monotonic) was
