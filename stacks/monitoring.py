@@ -122,8 +122,9 @@ ALERT_FAILURES_MINUTES = 3
 HOST_CHECKS_FAILED = "HostChecksFailed"
 LOCAL_CONFIG_NOT_SAVED = "LocalConfigNotSaved"
 ALARM_STATE_NOT_SAVED = "AlarmStateNotSaved"
-# The agent's failed writes of its EMF file (emf.EMF_WRITE_FAILURES), told in the first document written
+# The agent's failed publishes of its EMF file (emf.EMF_WRITE_FAILURES), told in the first document written
 # after them: only once the disk has room again, so it pages an outage that ended, which AgentSilent may miss.
+# The count is in the agent's memory: a restart before that document loses it, and this pages nothing.
 EMF_WRITE_FAILURES = "EmfWriteFailures"
 PERIOD = Duration.minutes(1)
 # History commits every 10 s by default (docs/history.md): a minute's lag means commits are failing.
@@ -386,11 +387,13 @@ class TwinMonitoring(Construct):
         return self._any_loss_alarm(
             "EmfWriteFailures",
             EMF_WRITE_FAILURES,
-            f"The agent of {self.agent_name} could not write its CloudWatch metrics file: CloudWatch got "
-            "nothing, or only part, for those minutes, so no other alarm could fire then. Told once the "
-            "file takes writes again. Usually a full disk: `df -h /var/log` and what fills it; the agent's "
-            "log ('writing CloudWatch metrics to ... failed') and /state agent.sinks 'emf' last_error name "
-            "the error (a file's permissions too). A disk that stays full pages as AgentSilent instead.",
+            f"The agent of {self.agent_name} could not publish its CloudWatch metrics: CloudWatch got "
+            "nothing, or only part, for those minutes, so no other alarm could fire then. Told once a "
+            "document is written again; counted in memory only, so an agent restarted before that loses it "
+            "and this does not fire. Usually a full disk: `df -h /var/log` and what fills it. Any failed "
+            "publish counts, not only a write (reading the twin's state, a value EMF cannot hold): the "
+            "agent's log ('writing CloudWatch metrics to ... failed') has the traceback, /state agent.sinks "
+            "'emf' last_error the error. A disk that stays full pages as AgentSilent instead.",
             doc="docs/servo-health.md",
         )
 

@@ -70,8 +70,9 @@ INTERNAL_LATENCY_P99 = "InternalLatencyP99"
 # Messages refused because the agent already tracked telemetry.max_devices arms (a stack alarm): arms that
 # publish and are kept out, which no other figure tells from garbage.
 DEVICE_LIMIT_REFUSALS = "DeviceLimitRefusals"
-# The agent's own documents that could not be written (a full disk, say), told in the next one written: the
-# intervals CloudWatch got nothing for, which a heartbeat gap alone does not count.
+# The agent's own documents that could not be published, told in the next one written: the intervals
+# CloudWatch got nothing for, which a heartbeat gap alone does not count. Mostly writes a full disk refused,
+# but any error in publish_once counts (sampling the state, a value EMF cannot hold); in memory only.
 EMF_WRITE_FAILURES = "EmfWriteFailures"
 LOSS_METRICS: tuple[str, ...] = (
     MESSAGES_DROPPED,
@@ -392,9 +393,10 @@ class EmfPublisher:
     """Every `interval_s`, turns the service's totals into one interval's FleetMetrics and writes them.
 
     Rates and counts are differences between successive totals, over the time between them (monotonic
-    clock); the EMF timestamp is the wall clock. Runs on its own thread; a failed write is logged and
-    counted (`failed`), never raised, so CloudWatch trouble cannot stop the twin. The count is in /state and
-    /metrics (`sink_stats`) and in the next document written (EMF_WRITE_FAILURES).
+    clock); the EMF timestamp is the wall clock. Runs on its own thread; a failed publish (a write, or the
+    sample or encoding before it) is logged and counted (`failed`), never raised, so CloudWatch trouble cannot
+    stop the twin. The count is in /state and /metrics (`sink_stats`) and in the next document written
+    (EMF_WRITE_FAILURES), in memory only: a restart loses what no document told yet.
     """
 
     def __init__(
