@@ -783,13 +783,13 @@ def _under_a_moving_clock(
     waits: int,
     read_stalls: int = 0,
     *,
-    stall_s: float = 3.0,
+    stall_s: float | tuple[float, ...] = 3.0,
     stall_after: bool = False,
 ) -> tuple[list[float], EmfPublisher, float]:
     """The monotonic times of the documents the publisher's own loop writes (60 s interval) in `waits` waits
     when the wall clock reads `wall_of(monotonic)`, the publisher, and the monotonic time at the end. With
     `read_stalls`, that many of the first reads of the wall clock stall `stall_s` before they read it (after
-    it, before the call returns, with `stall_after`)."""
+    it, before the call returns, with `stall_after`); a tuple gives each of them its own stall."""
     mono, published, count = [500.0], [], [0]
 
     def sample() -> FleetTotals:
@@ -804,8 +804,8 @@ def _under_a_moving_clock(
     def read_wall() -> float:
         wall = wall_of(mono[0])
         if count[0] < read_stalls:
+            mono[0] += stall_s if isinstance(stall_s, float) else stall_s[count[0]]
             count[0] += 1  # a stall counts as a wait, so stalls at every read still end
-            mono[0] += stall_s
         return wall if stall_after else wall_of(mono[0])
 
     writer: Any = types.SimpleNamespace(write=lambda documents: None, path="memory")
@@ -870,6 +870,18 @@ def test_a_first_clock_read_that_stalls_is_retried_then_the_least_stalled_taken(
     off = 0.0 if stalls == 2 else stall_s / 2.0  # a loose read within the tolerance leaves the grid there
     phases = [(1_000_000_000.0 + m) % 60.0 for m in published]
     assert phases == pytest.approx([30.0] * len(published), abs=off + 1e-5)
+
+
+@pytest.mark.parametrize("stall_after", [False, True], ids=["stall-before-the-wall-read", "stall-after-it"])
+def test_of_three_stalled_first_clock_reads_the_least_stalled_is_taken(stall_after: bool) -> None:
+    """Three tries that all stall, the middle one least: the grid takes that one's offset, off by half its
+    0.6 s, not the first's or the last's (off by 0.8 s, within the step tolerance, so it would stay)."""
+    published, publisher, _ = _under_a_moving_clock(
+        lambda mono: 1_000_000_000.0 + mono, 1000, 3, stall_s=(1.6, 0.6, 1.6), stall_after=stall_after
+    )
+    assert publisher.clock_steps == 0
+    phases = [(1_000_000_000.0 + m) % 60.0 for m in published]
+    assert phases == pytest.approx([30.0] * len(published), abs=0.3 + 1e-5)
 
 
 def test_the_first_documents_rate_is_over_the_time_since_the_start(tmp_path: Path) -> None:
