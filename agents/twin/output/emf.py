@@ -518,11 +518,11 @@ class EmfPublisher:
             pending = 0.0
 
     def _first_clock_offset(self) -> tuple[float, float]:
-        """The monotonic time and the wall clock minus it, to line the first slot up with: a stalled read is
-        retried, and after three the one with the shortest stall is taken. Its offset is off by half that
-        stall at most, wherever in the reads it fell (two reads, one before the wall read and one after,
-        took it in full); a stall over twice clock_step_tolerance on every try then moves the grid once,
-        later, as a step."""
+        """The monotonic time and the wall clock minus it, to line the first slot up with. Each try reads the
+        wall clock between two monotonic reads and sets it against their middle (_clock_read); a try whose
+        two reads lie over a quarter of the step tolerance apart (the thread stalled) is tried again, and
+        after three the one with the shortest stall is taken. Its offset is off by half that stall at most; a
+        stall over twice clock_step_tolerance on every try then moves the grid once, later, as a step."""
         reads: list[tuple[float, float, float]] = []
         for _ in range(3):
             reads.append(self._clock_read())
