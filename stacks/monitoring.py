@@ -392,8 +392,9 @@ class TwinMonitoring(Construct):
             "document is written again; counted in memory only, so an agent restarted before that loses it "
             "and this does not fire. Usually a full disk: `df -h /var/log` and what fills it. Any failed "
             "publish counts, not only a write (reading the twin's state, a value EMF cannot hold): the "
-            "agent's log ('writing CloudWatch metrics to ... failed') has the traceback, /state agent.sinks "
-            "'emf' last_error the error. A disk that stays full pages as AgentSilent instead.",
+            "agent's log ('publishing CloudWatch metrics to ... failed', or at a stop 'the last CloudWatch "
+            "metrics could not be written') has the traceback, /state agent.sinks 'emf' last_error the "
+            "error. A disk that stays full pages as AgentSilent instead.",
             doc="docs/servo-health.md",
         )
 

@@ -884,6 +884,26 @@ def test_of_three_stalled_first_clock_reads_the_least_stalled_is_taken(stall_aft
     assert phases == pytest.approx([30.0] * len(published), abs=0.3 + 1e-5)
 
 
+def test_a_sample_that_raises_is_logged_as_a_failed_publish(caplog: pytest.LogCaptureFixture) -> None:
+    """Any error in a publish is counted and logged, not only a write: the log line said "writing" when
+    reading the twin's state raised, and sent a reader to the disk."""
+    clock = [0.0]
+
+    def sample() -> FleetTotals:
+        raise RuntimeError("worker 2 did not answer")
+
+    def wait(seconds: float) -> bool:
+        clock[0] += seconds
+        return publisher.errors >= 1
+
+    writer: Any = types.SimpleNamespace(write=lambda documents: None, path="memory")
+    publisher = EmfPublisher(writer, "a", sample, clock=lambda: clock[0], wall=lambda: clock[0], wait=wait)
+    with caplog.at_level(logging.ERROR, logger="twin.output.emf"):
+        publisher.run()
+    assert [r.getMessage() for r in caplog.records] == ["publishing CloudWatch metrics to memory failed"]
+    assert publisher.last_error == "RuntimeError: worker 2 did not answer"
+
+
 def test_the_first_documents_rate_is_over_the_time_since_the_start(tmp_path: Path) -> None:
     """A review: the first slot lies one to two intervals after the start (mid-minute), but its totals were
     divided by one interval, overstating MessagesPerSecond up to twice."""

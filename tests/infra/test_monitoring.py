@@ -385,7 +385,15 @@ def test_any_loss_in_a_minute_alarms(synth_default: Synth, name: str) -> None:
         # A walk: only AgentSilent paged on a full disk, and only one that stayed full for 5 minutes.
         (
             emf.EMF_WRITE_FAILURES,
-            ("df -h /var/log", "agent.sinks 'emf'", "AgentSilent", "docs/servo-health.md"),
+            # Its log line: any failed publish, at a stop too, not only a write.
+            (
+                "df -h /var/log",
+                "agent.sinks 'emf'",
+                "AgentSilent",
+                "docs/servo-health.md",
+                "'publishing CloudWatch metrics to ... failed'",
+                "'the last CloudWatch metrics could not be written'",
+            ),
         ),
     ],
 )

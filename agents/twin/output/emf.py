@@ -511,7 +511,7 @@ class EmfPublisher:
                 self.publish_once()
             except Exception as exc:
                 self.failed(exc)
-                log.exception("writing CloudWatch metrics to %s failed", self.writer.path)
+                log.exception("publishing CloudWatch metrics to %s failed", self.writer.path)
             last, slot = slot, next_slot(slot, self._clock(), self.interval_s)
             if moved := bool(pending):
                 slot = realigned_slot(slot, last, self._clock(), pending, self.interval_s)
