@@ -124,7 +124,8 @@ LOCAL_CONFIG_NOT_SAVED = "LocalConfigNotSaved"
 ALARM_STATE_NOT_SAVED = "AlarmStateNotSaved"
 # The agent's failed publishes of its EMF file (emf.EMF_WRITE_FAILURES), told in the first document written
 # after them: only once the disk has room again, so it pages an outage that ended, which AgentSilent may miss.
-# The count is in the agent's memory: a restart before that document loses it, and this pages nothing.
+# The count is in the agent's memory: a clean stop writes it in a last document, but a stop that cannot
+# write that one either (the disk still full), or a crash or kill, loses it, and this pages nothing.
 EMF_WRITE_FAILURES = "EmfWriteFailures"
 PERIOD = Duration.minutes(1)
 # History commits every 10 s by default (docs/history.md): a minute's lag means commits are failing.
@@ -389,12 +390,13 @@ class TwinMonitoring(Construct):
             EMF_WRITE_FAILURES,
             f"The agent of {self.agent_name} could not publish its CloudWatch metrics: CloudWatch got "
             "nothing, or only part, for those minutes, so no other alarm could fire then. Told once a "
-            "document is written again; counted in memory only, so an agent restarted before that loses it "
-            "and this does not fire. Usually a full disk: `df -h /var/log` and what fills it. Any failed "
-            "publish counts, not only a write (reading the twin's state, a value EMF cannot hold): the "
-            "agent's log ('publishing CloudWatch metrics to ... failed', or at a stop 'the last CloudWatch "
-            "metrics could not be written') has the traceback, /state agent.sinks 'emf' last_error the "
-            "error. A disk that stays full pages as AgentSilent instead.",
+            "document is written again (the next, or the last one the agent writes at a clean stop); counted "
+            "in memory only, so a crash, a kill, or a stop whose last document cannot be written either "
+            "loses it and this does not fire. Usually a full disk: `df -h /var/log` and what fills it. Any "
+            "failed publish counts, not only a write (reading the twin's state, a value EMF cannot hold): "
+            "the agent's log ('publishing CloudWatch metrics to ... failed', or at a stop 'the last "
+            "CloudWatch metrics could not be written') has the traceback, /state agent.sinks 'emf' "
+            "last_error the error. A disk that stays full pages as AgentSilent instead.",
             doc="docs/servo-health.md",
         )
 

@@ -945,6 +945,20 @@ def test_severity_lines_the_disk_refused_after_the_counts_are_a_write_failure(tm
     assert publisher.sink_stats().errors == 1
 
 
+def test_the_last_document_at_a_stop_tells_the_failed_publishes_no_document_told(tmp_path: Path) -> None:
+    """The count is in memory: the docs say a clean stop still tells it, in the last document, and only a
+    stop that cannot write that one (or a crash) loses it."""
+    writer = EmfFileWriter(tmp_path / "emf.log")
+    publisher = EmfPublisher(writer, "a", lambda: totals, clock=lambda: 60.0, wall=lambda: 60.0)
+    totals = FleetTotals(0, 0, 1, 0, 0, 0.0, None, {})
+    publisher.failed(OSError(28, "No space left on device"))
+    publisher.failed(OSError(28, "No space left on device"))
+    holder = SimpleNamespace(_emf=publisher, _history=None)
+    AgentService._publish_last(holder, totals, Counter())  # type: ignore[arg-type]
+    docs = [validate_emf_line(line) for line in writer.path.read_text().splitlines()]
+    assert [d["EmfWriteFailures"] for d in docs if "AgentUp" in d] == [2]
+
+
 def test_the_last_document_counts_what_each_sink_still_held_at_the_stop_as_sink_drops() -> None:
     """A stop report names a sink's unwritten items `<sink>_items` (tests/test_sinks.py pins the mirror's
     side); the agent must add them to the last SinkDrops, or a loss at the stop never reaches CloudWatch."""

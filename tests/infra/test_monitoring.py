@@ -393,6 +393,7 @@ def test_any_loss_in_a_minute_alarms(synth_default: Synth, name: str) -> None:
                 "docs/servo-health.md",
                 "'publishing CloudWatch metrics to ... failed'",
                 "'the last CloudWatch metrics could not be written'",
+                "at a clean stop",
             ),
         ),
     ],

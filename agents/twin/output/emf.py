@@ -72,7 +72,8 @@ INTERNAL_LATENCY_P99 = "InternalLatencyP99"
 DEVICE_LIMIT_REFUSALS = "DeviceLimitRefusals"
 # The agent's own documents that could not be published, told in the next one written: the intervals
 # CloudWatch got nothing for, which a heartbeat gap alone does not count. Mostly writes a full disk refused,
-# but any error in publish_once counts (sampling the state, a value EMF cannot hold); in memory only.
+# but any error in publish_once counts (sampling the state, a value EMF cannot hold). In memory only: a clean
+# stop tells it in its last document, a crash or a stop that cannot write that one loses it.
 EMF_WRITE_FAILURES = "EmfWriteFailures"
 LOSS_METRICS: tuple[str, ...] = (
     MESSAGES_DROPPED,
@@ -396,7 +397,8 @@ class EmfPublisher:
     clock); the EMF timestamp is the wall clock. Runs on its own thread; a failed publish (a write, or the
     sample or encoding before it) is logged and counted (`failed`), never raised, so CloudWatch trouble cannot
     stop the twin. The count is in /state and /metrics (`sink_stats`) and in the next document written
-    (EMF_WRITE_FAILURES), in memory only: a restart loses what no document told yet.
+    (EMF_WRITE_FAILURES), in memory only: a clean stop tells it in the agent's last document, so only a
+    crash, a kill, or a stop whose last document cannot be written either (the disk still full) loses it.
     """
 
     def __init__(
