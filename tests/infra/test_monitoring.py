@@ -591,3 +591,10 @@ def test_a_host_scripts_failure_pages_until_a_later_run_succeeds(synth_default: 
     assert (props["Statistic"], props["Period"]) == ("Maximum", 60)
     assert (props["ComparisonOperator"], props["Threshold"]) == ("GreaterThanOrEqualToThreshold", 1)
     assert props["EvaluationPeriods"] == 1 and props["TreatMissingData"] == "ignore"
+
+
+def test_every_alarm_description_fits_cloudwatch(synth_default: Synth) -> None:
+    # PutMetricAlarm refuses an AlarmDescription over 1,024 characters, so a long fix text would only
+    # fail at deploy time; the longest grows each time an alarm learns a new cause.
+    longest = max(alarms_described(synth_default), key=len)
+    assert len(longest) <= 1024, f"{len(longest)} characters: {longest[:80]}..."
