@@ -11,6 +11,7 @@ import shlex
 import signal
 import threading
 import time
+from multiprocessing import Pipe
 from pathlib import Path
 from typing import Any
 
@@ -20,11 +21,13 @@ from conftest import AWS_TEST_REGION, NO_BROKER, http_get, wait_for
 from moto import mock_aws
 from twin.cli import main
 from twin.cli.commands import calibration as cmd
+from twin.core.health import HELD_REASON, MAX_UNHEARD
 from twin.core.units import Units
 from twin.edge.payload import encode
 from twin.robot import so101
 from twin.robot.calibration import load_calibration
 from twin.service import calibrations, console
+from twin.service.admission import DeviceBudget
 from twin.service.agent import AgentService
 from twin.service.calibrations import (
     STACK_PREFIX,
@@ -39,7 +42,8 @@ from twin.service.calibrations import (
 )
 from twin.service.config import ConfigError, load_config
 from twin.service.events import EventQuery
-from twin.service.shards import AlarmsRequest
+from twin.service.mirror import Mirror, PipeInbox
+from twin.service.shards import AlarmsRequest, CalibrationsRequest
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "robots" / "so101" / "calibration" / "so101_follower_example.json"
@@ -1904,3 +1908,25 @@ def test_a_restarted_worker_decodes_with_the_arms_own_from_its_first_message(tmp
         assert abs(back.joints_rad["shoulder_pan"] - pan_angle(EXAMPLE.read_bytes(), 2500)) < 1e-9
     finally:
         agent.stop()
+
+
+def test_a_newly_held_arms_first_refusal_finds_it_held_already() -> None:
+    """The mirror tells its fleet which arms are held before the decoder holds them: a message the decoder
+    refuses at once for its calibration, recorded before the fleet knew, was trimmed as one of the 64 other
+    refused ids, and the held arm said to have sent nothing."""
+    config = load_config(None, {"telemetry.devices": ["*"]})
+    mirror = Mirror(config, inbox=PipeInbox(Pipe(duplex=False)[0]), budget=DeviceBudget(4))
+    mirror.set_calibrations(CalibrationsRequest())  # none held: the fleet is told so, not left untold
+    decoder_set = mirror._decoder.set_calibrations
+    fleet = mirror._fleet
+
+    def refuse_at_once(*args: Any, **kwargs: Any) -> None:
+        # As a worker does between the decoder's swap and the rest: the held arm's message, then garbage.
+        decoder_set(*args, **kwargs)
+        fleet.record_rejected("arm-002", HELD_REASON)
+        for n in range(MAX_UNHEARD):
+            fleet.record_rejected(f"junk-{n:03d}", "invalid_json")
+
+    mirror._decoder = type("Spy", (), {"set_calibrations": staticmethod(refuse_at_once)})()
+    mirror.set_calibrations(CalibrationsRequest(problems=(("arm-002", "its file is not a calibration"),)))
+    assert "arm-002" in {arm.device for arm in mirror.unheard()}
