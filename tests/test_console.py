@@ -602,6 +602,16 @@ def test_a_held_arms_page_says_what_is_true_of_its_messages(
         rate = page.locator(".kv > span", has_text="mirrored,")
         rate.wait_for()
         assert rate.inner_text() == "0.0 Hz mirrored, refused rate not known yet", rate.inner_text()
+        # Nor is the valid rate from a checkpoint: it said "0.0 Hz" beside a valid message 0.1 s old.
+        for refused_hz, said in (
+            (None, "mirrored rate not known yet, refused rate not known yet"),
+            (0.0, "not known yet (its worker was started again)"),
+        ):
+            health |= {"rate_hz": None, "refused_rate_hz": refused_hz}
+            unserve(page, "/api/arm/arm-003")
+            serve_document(page, "/api/arm/arm-003", "arm", doc)
+            page.reload()
+            page.locator(".kv > span", has_text=said).wait_for()
     finally:
         unserve(page, "/api/arm/arm-003")
         leave(page)

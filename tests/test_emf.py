@@ -199,6 +199,12 @@ def test_the_arm_losing_most_is_its_own_figure_and_an_offline_arm_is_not_it() ->
     totals = fleet_totals(state, 10.0)
     assert round(totals.loss_percent, 6) == 4.0
     assert round(totals.worst_arm_loss_percent, 6) == 40.0
+    # An arm read from a restarting worker's checkpoint has no rate known: not counted as 100 % loss.
+    restarting = DeviceState(
+        device_id="restarting", health=HealthSnapshot(rate_hz=None, status=DeviceStatus.ONLINE)
+    )
+    state = AgentState(agent=AgentInfo(running=True), devices={d.device_id: d for d in [*arms, restarting]})
+    assert round(fleet_totals(state, 10.0).loss_percent, 6) == 4.0
 
 
 def test_history_commits_failing_is_told_while_the_last_commit_failed(tmp_path: Path) -> None:

@@ -376,3 +376,19 @@ def test_a_held_arms_refused_messages_say_when_it_was_last_heard_and_how_often()
     # An arm none of whose messages was refused says none.
     quiet = FleetHealth(TH, ["arm-quiet"], clock=clock).device("arm-quiet").snapshot()
     assert (quiet.refused_age_s, quiet.refused_rate_hz) == (None, 0.0)
+
+
+def test_a_checkpoints_valid_rate_is_not_known_unless_none_came_for_a_window() -> None:
+    # A walk: read from a checkpoint (a worker started again), an arm publishing ten a second read 0.0 Hz
+    # beside a valid message 0.1 s old. Its meter starts empty: the rate is not known, unless none came
+    # for a whole window, which is 0.
+    clock = FakeClock()
+    fleet = FleetHealth(TH, ["arm-1"], clock=clock)
+    for _ in range(50):
+        clock.advance(0.1)
+        fleet.device("arm-1").record_decoded(clock.t, 1000.0 + clock.t, int(clock.t * 1000))
+    checkpoint = fleet.device("arm-1").checkpoint()
+    assert checkpoint.snapshot(TH, clock.t + 0.1, 0.0).rate_hz is None
+    assert checkpoint.snapshot(TH, clock.t + TH.window_s + 1.0, 0.0).rate_hz == 0.0
+    never = FleetHealth(TH, ["arm-2"], clock=clock).device("arm-2").checkpoint()
+    assert never.snapshot(TH, clock.t, 0.0).rate_hz == 0.0

@@ -321,6 +321,17 @@ def test_the_wall_clock_steps_the_emf_publisher_saw_are_in_state_and_metrics(tmp
     assert ("twin_emf_clock_steps_total", ()) not in without
 
 
+def test_an_arms_rate_not_known_is_absent_from_the_metrics() -> None:
+    # Read from a restarting worker's checkpoint an arm's rate is not known (None): absent, not a fake 0,
+    # and the rest of /metrics is served.
+    arm = DeviceState(device_id="arm-001", health=HealthSnapshot(rate_hz=None))
+    samples = parse_metrics(
+        render_metrics(AgentState(agent=AgentInfo(running=True), devices={"arm-001": arm}))
+    )
+    assert ("twin_device_message_rate_hz", (("device", "arm-001"),)) not in samples
+    assert metric(samples, "twin_device_status", device="arm-001", status="OFFLINE") == 1
+
+
 @pytest.mark.parametrize(
     ("address", "loopback"),
     [

@@ -90,7 +90,9 @@ class HealthSnapshot:
 
     status: DeviceStatus = DeviceStatus.OFFLINE
     age_s: float | None = None
-    rate_hz: float = 0.0
+    # None while not known: read from a checkpoint (a worker started again), whose meter starts empty, it
+    # read 0 beside a valid message 1 s old.
+    rate_hz: float | None = 0.0
     last_timestamp_ms: int | None = None
     counters: DeviceCounters = field(default_factory=DeviceCounters)
     # Receive wall time minus the edge timestamp. The edge clock is not NTP-disciplined, so this is transit
@@ -178,6 +180,7 @@ class HealthCheckpoint:
         return HealthSnapshot(
             status=thresholds.classify(max(0.0, now - last)),
             age_s=None if self.last_message_mono is None else max(0.0, now - self.last_message_mono),
+            rate_hz=refused_rate(self.last_message_mono, None, now, thresholds.window_s),
             last_timestamp_ms=self.last_timestamp_ms,
             counters=self.counters,
             refused_age_s=None if self.last_refused_mono is None else max(0.0, now - self.last_refused_mono),
@@ -189,7 +192,8 @@ def refused_rate(
     last_mono: float | None, meter: RateMeter | None, at: float, window_s: float
 ) -> float | None:
     """A device's refused messages per second at `at`: 0 with none within `window_s`, None (not known) while
-    `meter` has not counted them for a whole window (none: a checkpoint's, or a worker started again)."""
+    `meter` has not counted them for a whole window (none: a checkpoint's, or a worker started again). A
+    checkpoint's valid rate is read so too, with no meter."""
     if last_mono is None or at - last_mono > window_s:
         return 0.0
     if meter is None or meter.since is None or at - meter.since < window_s:

@@ -174,7 +174,7 @@ def _totals(state: AgentState) -> _Totals:
         totals.applied += c.applied
         totals.ignored_stale += c.ignored_stale
         totals.overwritten += c.overwritten
-        totals.rate_hz += d.health.rate_hz
+        totals.rate_hz += d.health.rate_hz or 0.0
         for reason, n in c.rejected.items():
             totals.rejected[reason] = totals.rejected.get(reason, 0) + n
     for reason, n in state.untracked_rejected.items():

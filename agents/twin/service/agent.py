@@ -1850,12 +1850,10 @@ def fleet_totals(state: AgentState, expected_rate_hz: float) -> FleetTotals:
     statuses = [d.health.status for d in state.devices.values()]
     live = [d for d in state.devices.values() if d.health.status is not DeviceStatus.OFFLINE]
     # Per arm, the share of the expected rate that did not arrive, averaged over arms that are not OFFLINE
-    # (an OFFLINE arm is counted as such, not as 100 % loss).
-    loss = (
-        100.0 * sum(max(0.0, 1.0 - d.health.rate_hz / expected_rate_hz) for d in live) / len(live)
-        if live
-        else 0.0
-    )
+    # (an OFFLINE arm is counted as such, not as 100 % loss), and whose rate is known: read from a restarting
+    # worker's checkpoint it is not, and its arms counted as 100 % loss at 0 Hz.
+    rates = [d.health.rate_hz for d in live if d.health.rate_hz is not None]
+    loss = 100.0 * sum(max(0.0, 1.0 - r / expected_rate_hz) for r in rates) / len(rates) if rates else 0.0
     p99s = [
         d.health.internal_latency_s.p99 for d in state.devices.values() if d.health.internal_latency_s.p99
     ]

@@ -363,7 +363,7 @@ def fleet_row(
     *,
     status: str,
     last_seen: float | None,
-    rate_hz: float,
+    rate_hz: float | None,
     loss_ratio: float,
     temperatures: Mapping[str, float | None],
     rejected: int,

@@ -385,7 +385,7 @@ class _DeviceFamilies:
         for status in _STATUSES:
             self.status.add_metric([device, status.value], 1 if d.health.status == status else 0)
         _maybe(self.age, [device], d.health.age_s)
-        self.rate.add_metric([device], d.health.rate_hz)
+        _maybe(self.rate, [device], d.health.rate_hz)
         c = d.health.counters
         for key, family in self.messages.items():
             family.add_metric([device], getattr(c, key))

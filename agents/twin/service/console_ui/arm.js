@@ -119,10 +119,13 @@
   }
   // Null while not known (a worker started again, read from its checkpoint, or less than a window counted):
   // read as 0 it said "0.0 Hz" beside "a refused one 2 s ago".
+  // So is the valid rate read from a checkpoint, which said "0.0 Hz" beside "last seen 0.1 s ago".
   function rate(h) {
-    const valid = `${Twin.num(h.rate_hz, 1)} Hz`;
-    if (h.refused_rate_hz === null) return `${valid} mirrored, refused rate not known yet`;
-    return h.refused_rate_hz ? `${valid} mirrored, ${Twin.num(h.refused_rate_hz, 1)} Hz refused` : valid;
+    const known = h.rate_hz !== null;
+    const valid = known ? `${Twin.num(h.rate_hz, 1)} Hz mirrored` : "mirrored rate not known yet";
+    if (h.refused_rate_hz === null) return `${valid}, refused rate not known yet`;
+    if (h.refused_rate_hz) return `${valid}, ${Twin.num(h.refused_rate_hz, 1)} Hz refused`;
+    return known ? `${Twin.num(h.rate_hz, 1)} Hz` : "not known yet (its worker was started again)";
   }
 
   // The loss is read from gaps in the edge timestamps, counted in periods of [health] expected_rate_hz (the
