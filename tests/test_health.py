@@ -9,6 +9,7 @@ from twin.core.health import (
     MAX_UNHEARD,
     DeviceStatus,
     FleetHealth,
+    HealthSnapshot,
     HealthThresholds,
     RateMeter,
     SampleWindow,
@@ -376,6 +377,8 @@ def test_a_held_arms_refused_messages_say_when_it_was_last_heard_and_how_often()
     # An arm none of whose messages was refused says none.
     quiet = FleetHealth(TH, ["arm-quiet"], clock=clock).device("arm-quiet").snapshot()
     assert (quiet.refused_age_s, quiet.refused_rate_hz) == (None, 0.0)
+    # A snapshot built without them knows nothing of its refused messages: not known, not 0.
+    assert (HealthSnapshot().refused_age_s, HealthSnapshot().refused_rate_hz) == (None, None)
 
 
 def test_a_checkpoints_valid_rate_is_not_known_unless_none_came_for_a_window() -> None:

@@ -104,9 +104,10 @@ class HealthSnapshot:
     internal_latency_s: WindowLatency = field(default_factory=WindowLatency)
     # Its refused messages (rejected for its topic): a held arm's are all refused, yet they show it is on.
     # Its page read "last seen never, 0.0 Hz" while it published ten a second. The rate is None while not
-    # known (`refused_rate`), not 0: read from a checkpoint it was 0 beside "a refused one 2 s ago".
+    # known (`refused_rate`), not 0: read from a checkpoint it was 0 beside "a refused one 2 s ago". So is
+    # the default: a snapshot built without it knows nothing of its refused messages.
     refused_age_s: float | None = None
-    refused_rate_hz: float | None = 0.0
+    refused_rate_hz: float | None = None
 
 
 # A HealthCheckpoint as plain values (`DeviceHealth.checkpoint_row`, `HealthCheckpoint.from_row`), which
@@ -269,7 +270,7 @@ class HealthReading:
     edge_latencies: tuple[tuple[float, float], ...]  # (receive time, latency) samples
     internal_latencies: tuple[tuple[float, float], ...]
     refused_age_s: float | None = None
-    refused_rate_hz: float | None = 0.0
+    refused_rate_hz: float | None = None
 
     def snapshot(self) -> HealthSnapshot:
         """The health this reading holds, as /state publishes it."""
