@@ -594,14 +594,24 @@ def test_a_held_arms_page_says_what_is_true_of_its_messages(
         )
         assert pairs["last seen"] == "never a valid message; a refused one 0.3 s ago (not mirrored)", pairs
         assert pairs["rate"] == "0.0 Hz mirrored, 10.0 Hz refused", pairs
+        # OFFLINE yet publishing: the agent refuses to forget it, so the page does not offer to (a walk).
+        held = page.locator("#forget-held")
+        held.wait_for()
+        assert page.locator("#forget").is_hidden()
+        assert held.inner_text().startswith("It still publishes (a refused message 0.3 s ago)"), (
+            held.inner_text()
+        )
+        assert "push a valid calibration for it" in held.inner_text(), held.inner_text()
         # Not known (a worker's checkpoint, or its window not filled): said so, not "0.0 Hz" (a review).
-        health["refused_rate_hz"] = None
+        health |= {"refused_rate_hz": None, "refused_age_s": doc["offline_after_s"] + 1.0}
         unserve(page, "/api/arm/arm-003")
         serve_document(page, "/api/arm/arm-003", "arm", doc)
         page.reload()
         rate = page.locator(".kv > span", has_text="mirrored,")
         rate.wait_for()
         assert rate.inner_text() == "0.0 Hz mirrored, refused rate not known yet", rate.inner_text()
+        page.locator("#forget").wait_for()  # silent for offline_after_s: offered again
+        assert held.is_hidden()
         # Nor is the valid rate from a checkpoint: it said "0.0 Hz" beside a valid message 0.1 s old.
         for refused_hz, said in (
             (None, "mirrored rate not known yet, refused rate not known yet"),

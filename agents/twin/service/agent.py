@@ -1445,6 +1445,7 @@ class AgentService:
             refused=(heard[0].rejected, heard[0].last_s) if heard else None,
             expected_rate_hz=self.config.health.expected_rate_hz,
             per_connection_limit=self._pool_settings.limit is not None,
+            offline_after_s=self.config.health.offline_after_s,
         )
 
     def events(self, query: EventQuery) -> list[Event]:

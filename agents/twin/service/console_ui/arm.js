@@ -44,6 +44,8 @@
   // Forget: offered for an OFFLINE arm only (the agent refuses any other); its outcome stays on the page.
   const forgetButton = el("button", { type: "button", id: "forget", hidden: true, text: "Forget this arm" });
   const forgetResult = el("p", { id: "forget-result", role: "status", hidden: true });
+  // Not offered while its refused messages still arrive, which the agent refuses too: what to do instead.
+  const forgetHeld = el("p", { id: "forget-held", class: "muted", hidden: true });
   let forgotten = false;
   let shownAlarms = [];
   // Every alarm of the arm waiting for a person, in one go: one by one, ten hot arms took twenty clicks. Always
@@ -66,7 +68,7 @@
     title,
     el("div", { class: "grid2" },
       el("div", { class: "panel" }, summary, el("p", {}, rerun,
-        el("span", { class: "muted", text: ` (this arm is arms/${device})` })), forgetButton, forgetResult),
+        el("span", { class: "muted", text: ` (this arm is arms/${device})` })), forgetButton, forgetHeld, forgetResult),
       el("div", { class: "panel" }, el("h2", { text: "loss" }), lossBox, el("h2", { text: "rejected messages by reason" }),
         el("table", {}, el("thead", {}, el("tr", {}, el("th", { text: "reason" }), el("th", { text: "messages" }))), rejectsBody))),
     // What an acknowledgement was answered comes under the table: above it, its first appearance pushed every
@@ -352,7 +354,7 @@
   // open) has nothing left to act on or to read: a walk found its alarms still offered to Acknowledge (the
   // agent answers 404), "Forget this arm" still shown, and its loss figures as if live.
   function clearArm() {
-    forgetButton.hidden = true;
+    forgetButton.hidden = forgetHeld.hidden = true;
     shownAlarms = [];
     renderAlarms([]);
     lossBox.replaceChildren();
@@ -468,7 +470,7 @@
       `store is refused (${doc.calibration_refused}), so ${heard}. Push a valid one: ` +
       `${doc.calibration_push.command}. This page fills in by itself once it is read.` }));
     // Not clearArm: its rows must stay the same elements from one frame to the next, under the pointer.
-    forgetButton.hidden = true;
+    forgetButton.hidden = forgetHeld.hidden = true;
     lossBox.replaceChildren();
     rejectsBody.replaceChildren();
     renderAlarms(doc.alarms || []);
@@ -513,6 +515,20 @@
     }, (error) => { forgottenAt = error && error.status ? null : undefined; });
   }
 
+  // An OFFLINE arm whose refused messages came within offline_after_s still publishes: the agent refuses to
+  // forget it, and the page offered it anyway (a held arm sending ten a second).
+  function offerForget(h, doc) {
+    const limit = doc.offline_after_s;
+    const publishing = h.refused_age_s != null && limit != null && h.refused_age_s < limit;
+    forgetButton.hidden = h.status !== "OFFLINE" || publishing;
+    forgetHeld.hidden = h.status !== "OFFLINE" || !publishing;
+    if (forgetHeld.hidden) return;
+    const fix = doc.calibration_refused ? "push a valid calibration for it (the command above)"
+      : "mend what its edge sends (the Events page says why each message was refused)";
+    forgetHeld.textContent = `It still publishes (a refused message ${Twin.num(h.refused_age_s, 1)} s ago), ` +
+      `so it can be forgotten only once silent for ${Twin.num(limit, 0)} s: ${fix}, or stop its edge.`;
+  }
+
   let shown = false;  // this page has shown the arm's state at least once
   function update(doc) {
     const d = doc.device;
@@ -520,7 +536,7 @@
     shown = true;
     title.textContent = device;
     shownAlarms = doc.alarms;
-    forgetButton.hidden = d.health.status !== "OFFLINE";
+    offerForget(d.health, doc);
     const now = doc.time, h = d.health;
     kv(summary, [
       ["status", el("span", { class: "status " + h.status, text: h.status })],
