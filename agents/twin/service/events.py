@@ -815,10 +815,18 @@ class RateWatch:
     now or reported and not yet back: bounded by the fleet."""
 
     def __init__(
-        self, store: EventStore, expected_rate_hz: float, *, stale_after_s: float | None = None
+        self,
+        store: EventStore,
+        expected_rate_hz: float,
+        *,
+        stale_after_s: float | None = None,
+        per_connection_limit: float | None = None,
     ) -> None:
         self._store = store
         self._expected = expected_rate_hz
+        # The broker's publishes per second per connection (transport.plan.default_limit; None: no limit),
+        # which the slow warning names as a cause only where there is one.
+        self._limit = per_connection_limit
         # [health] stale_after_s, which the slow warning names (the default stale_periods' when not given)
         if stale_after_s is None:
             stale_after_s = HealthThresholds(expected_rate_hz=expected_rate_hz).stale_after_s
@@ -932,14 +940,22 @@ class RateWatch:
         self._say(device, rate, "crowded", message)
 
     def _slowed(self, device: str, rate: float) -> None:
+        # The checks first, the setting last: set on a guess, it hid a loss as a slower edge.
+        quota = (
+            ""
+            if self._limit is None
+            else f"If the Fleet page has a notice of the broker's per-connection quota ({self._limit:g} "
+            "messages/s a connection, IoT Core's or [broker] per_connection_limit), the quota discards "
+            "them: its notice says what to change. "
+        )
         message = (
             f"{device} sends {rate:.1f} valid messages/s, well under the expected {self._expected:g} Hz, "
-            f"for {SLOW_HOLD_S:.0f} s. Either its edge publishes at {rate:.1f} Hz: then set [health] "
-            f"expected_rate_hz = {_hz(rate)} in your agent config (on the twin host the stack's armRateHz), "
-            f"as until then its loss reads about {max(0.0, 1.0 - rate / self._expected):.0%} and it goes "
-            f"STALE whenever a gap passes {self._stale_after_s:.2g} s. Or most of its messages are lost on "
-            "the way in a fixed pattern: its edge's network, or its broker connection over its quota "
-            '(docs/agent.md, "Loss")'
+            f"for {SLOW_HOLD_S:.0f} s: its messages are lost on the way in, or its edge publishes slower. "
+            f"{quota}Read the rate configured on its edge: if it is {self._expected:g} Hz, its edge's "
+            f"network loses them; only if it is {rate:.1f} Hz set [health] expected_rate_hz = {_hz(rate)} "
+            "in your agent config (on the twin host the stack's armRateHz), as until then its loss reads "
+            f"about {max(0.0, 1.0 - rate / self._expected):.0%} and it goes STALE whenever a gap passes "
+            f'{self._stale_after_s:.2g} s (docs/agent.md, "Loss")'
         )
         self._say(device, rate, "slow", message)
 
@@ -1242,11 +1258,17 @@ class FleetWatch:
         store: EventStore,
         *,
         health: HealthThresholds = _DEFAULT_HEALTH,
+        per_connection_limit: float | None = None,
     ) -> None:
         self.store = store
         self._statuses = StatusWatch(store, health.offline_after_s)
         self._broker = BrokerWatch(store)
-        self._rates = RateWatch(store, health.expected_rate_hz, stale_after_s=health.stale_after_s)
+        self._rates = RateWatch(
+            store,
+            health.expected_rate_hz,
+            stale_after_s=health.stale_after_s,
+            per_connection_limit=per_connection_limit,
+        )
         self._losses = LossWatch(store)
         self._clocks = ClockWatch(store)
         self._mismatches = MismatchBurst(store)
