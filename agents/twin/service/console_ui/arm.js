@@ -68,7 +68,8 @@
     title,
     el("div", { class: "grid2" },
       el("div", { class: "panel" }, summary, el("p", {}, rerun,
-        el("span", { class: "muted", text: ` (this arm is arms/${device})` })), forgetButton, forgetHeld, forgetResult),
+        el("span", { class: "muted", text: ` (this arm is arms/${device})` })),
+        forgetButton, forgetHeld, forgetResult),
       el("div", { class: "panel" }, el("h2", { text: "loss" }), lossBox, el("h2", { text: "rejected messages by reason" }),
         el("table", {}, el("thead", {}, el("tr", {}, el("th", { text: "reason" }), el("th", { text: "messages" }))), rejectsBody))),
     // What an acknowledgement was answered comes under the table: above it, its first appearance pushed every
@@ -525,7 +526,8 @@
     if (forgetHeld.hidden) return;
     const fix = doc.calibration_refused ? "push a valid calibration for it (the command above)"
       : "mend what its edge sends (the Events page says why each message was refused)";
-    forgetHeld.textContent = `It still publishes (a refused message ${Twin.num(h.refused_age_s, 1)} s ago), ` +
+    const ago = Twin.num(h.refused_age_s, 1);
+    forgetHeld.textContent = `It still publishes (a refused message ${ago} s ago), ` +
       `so it can be forgotten only once silent for ${Twin.num(limit, 0)} s: ${fix}, or stop its edge.`;
   }
 
