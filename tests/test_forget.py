@@ -205,12 +205,20 @@ def test_an_offline_arm_whose_refused_messages_still_arrive_is_not_forgotten() -
     said = str(refused.value)
     assert refused.value.code == "arm_not_offline" and "arm-001 still publishes" in said, said
     assert "was refused (not_json)" in said and "stop its edge" in said, said
+    # The Arm page shows the mirror's own answer, in the same words: its own rule offered what was refused.
+    assert mirror.arm("arm-001").forget == (False, said)
     again = _fleet_mirror(clock, places=3)
     again.restore(pickle.loads(pickle.dumps(mirror.checkpoint(), protocol=pickle.HIGHEST_PROTOCOL)))
     with pytest.raises(ArmNotForgettableError) as refused_again:
         again.forget_arm("arm-001")
     assert str(refused_again.value) == said
     clock.now += OFFLINE_AFTER_S
+    # A worker behind its input reads on its own clock, which the page's rule had not (a review).
+    mirror._swept_behind_s = 0.5
+    offer = mirror.arm("arm-001").forget
+    assert offer is not None and not offer.allowed and "still publishes" in offer.why, offer
+    mirror._swept_behind_s = 0.0
+    assert mirror.arm("arm-001").forget == (True, "")
     assert mirror.forget_arm("arm-001").status == "OFFLINE"
 
 
@@ -229,6 +237,7 @@ def test_an_arm_kept_for_its_alarms_without_a_place_is_not_forgotten_while_it_pu
         mirror.forget_arm("arm-002")
     said = str(refused.value)
     assert "was refused (too_many_devices)" in said and "raise telemetry.max_devices" in said, said
+    assert mirror.arm("arm-002").forget == (False, said)  # the page names the same fix
 
 
 class _CountingLock:

@@ -63,6 +63,7 @@ from twin.service.config import AgentConfig, ConfigError, pool_settings
 from twin.service.console import (
     ArmView,
     FleetRow,
+    ForgetOffer,
     HeldArm,
     Listening,
     SessionCatalog,
@@ -1417,8 +1418,10 @@ class AgentService:
                 reply = arm_reply_of(shard.request(ArmRequest(device))())
             except WorkerError as exc:
                 log.debug("arm %s asked of its mirror: %s; shown from its checkpoint", device, exc)
+        # Not answering, the worker cannot forget it: the page says so, in the words forget_arm refuses with.
+        forget: ForgetOffer | None = ForgetOffer(False, f"worker {shard.index} is being started again")
         if reply is not None:
-            state, alarms = reply.state, list(reply.alarms)
+            state, alarms, forget = reply.state, list(reply.alarms), reply.forget
         else:
             state = self._checkpoint_devices([shard]).get(device)
             silent = self._checkpoint_alarms([shard], include_normal=False)
@@ -1445,7 +1448,7 @@ class AgentService:
             refused=(heard[0].rejected, heard[0].last_s) if heard else None,
             expected_rate_hz=self.config.health.expected_rate_hz,
             per_connection_limit=self._pool_settings.limit is not None,
-            offline_after_s=self.config.health.offline_after_s,
+            forget=forget if state is not None else None,
         )
 
     def events(self, query: EventQuery) -> list[Event]:

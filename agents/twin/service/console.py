@@ -191,6 +191,14 @@ class FleetRowSource(Protocol):
     def fleet_rows(self) -> list[FleetRow]: ...
 
 
+class ForgetOffer(NamedTuple):
+    """Whether the agent would forget an arm now, and if not, the words it would refuse it with: the Arm page
+    shows this, not a rule of its own (its own, on another clock, offered forgets the agent refused)."""
+
+    allowed: bool
+    why: str = ""
+
+
 class ArmView(NamedTuple):
     """What an arm page shows of one arm: its state (None: no mirror tracks it), its alarms that are not
     NORMAL, worst first, the agent's wall time, its calibration store and when it started (its counters
@@ -214,9 +222,8 @@ class ArmView(NamedTuple):
     # a connection's quota be why its gaps are all alike (a local broker has none, and the page said IoT
     # Core's did it).
     per_connection_limit: bool = False
-    # [health] offline_after_s (None: not known): an OFFLINE arm whose refused messages came within it still
-    # publishes, and the agent refuses to forget it, so the page does not offer to.
-    offline_after_s: float | None = None
+    # Whether the agent would forget it now (None: not known), as its mirror decides a forget.
+    forget: ForgetOffer | None = None
 
 
 @runtime_checkable
@@ -528,8 +535,8 @@ def arm_document(device: str, view: ArmView) -> bytes:
     none ("" when it does not), and "refused" {"count", "age_s"} of such an arm with no state: its messages
     refused so far and how long ago the last came (null: none heard, or an arm with a state);
     "expected_rate_hz" the setting its loss is estimated with (null: not known); "per_connection_limit"
-    whether the broker limits each connection's messages (a quota that can lose them); "offline_after_s" the
-    silence after which the agent forgets an arm (null: not known)."""
+    whether the broker limits each connection's messages (a quota that can lose them); "forget" {"allowed",
+    "why"} whether the agent would forget the arm now and, if not, the words it would refuse it with."""
     # Made here, not in the page: only the agent knows its store, and a command for another store (the
     # stack's, from a laptop's agent) would push a file this agent never reads.
     hint = push_hint(device, view.calibration_store)
@@ -545,7 +552,7 @@ def arm_document(device: str, view: ArmView) -> bytes:
             "refused": None if view.refused is None else {"count": view.refused[0], "age_s": view.refused[1]},
             "expected_rate_hz": view.expected_rate_hz,
             "per_connection_limit": view.per_connection_limit,
-            "offline_after_s": view.offline_after_s,
+            "forget": None if view.forget is None else view.forget._asdict(),
         }
     )
 

@@ -109,7 +109,7 @@ from twin.service.admission import TOO_MANY_DEVICES, DeviceBudget
 from twin.service.capture import CHUNK as CAPTURE_CHUNK
 from twin.service.capture import Capture
 from twin.service.config import AgentConfig, ConfigError
-from twin.service.console import FleetRow, card_uncalibrated, fleet_row
+from twin.service.console import FleetRow, ForgetOffer, card_uncalibrated, fleet_row
 from twin.service.events import Event, EventQuery, EventStore, FleetWatch, RejectionThrottle, alarm_level
 from twin.service.logs import RateLimitedLog, name_native_thread, thread_stack
 from twin.service.shards import (
@@ -1891,6 +1891,7 @@ class Mirror:
         return ArmReply(
             state=self._device_state(device, reading.snapshot(), readout) if reading is not None else None,
             alarms=self.alarms(device=device),
+            forget=self._forget_offer(device),
         )
 
     @staticmethod
@@ -2035,20 +2036,10 @@ class Mirror:
             health = self._fleet.get(device)
             if health is None:
                 raise ArmNotFoundError(device)
-            # Where the worker stands: an arm whose messages wait behind it is not silent.
-            status = health.status(self._clock() - self._swept_behind_s)
-            if device in self._fleet.configured:
-                raise ArmNotForgettableError(
-                    ARM_CONFIGURED,
-                    f"{device} is listed in telemetry.devices: take it out of the config instead",
-                )
-            if status is not DeviceStatus.OFFLINE:
-                raise ArmNotForgettableError(
-                    ARM_NOT_OFFLINE,
-                    f"{device} is {status}: only an OFFLINE arm (silent for health.offline_after_s = "
-                    f"{self.config.health.offline_after_s:g} s) can be forgotten",
-                )
-            self._refuse_forgetting_a_publishing_arm(device, health)
+            refusal = self._forget_refusal(device, health)
+            if refusal is not None:
+                raise refusal
+            status = DeviceStatus.OFFLINE  # as _forget_refusal found it
             self._fleet.forget(device)
             record = self._devices.pop(device, None)
             self._loss.pop(device, None)
@@ -2076,7 +2067,23 @@ class Mirror:
         if len(kept) > self.config.telemetry.max_devices:
             del kept[next(iter(kept))]  # the oldest: an arm of it that returns is ONLINE to them at once
 
-    def _refuse_forgetting_a_publishing_arm(self, device: str, health: DeviceHealth) -> None:
+    def _forget_refusal(self, device: str, health: DeviceHealth) -> ArmNotForgettableError | None:
+        """Under the lock: why `device` may not be forgotten now (None: it may). The Arm page shows this
+        answer (Mirror.arm): derived in the page, on another clock, it offered what the agent refused."""
+        if device in self._fleet.configured:
+            why = f"{device} is listed in telemetry.devices: take it out of the config instead"
+            return ArmNotForgettableError(ARM_CONFIGURED, why)
+        # Where the worker stands: an arm whose messages wait behind it is not silent.
+        status = health.status(self._clock() - self._swept_behind_s)
+        if status is not DeviceStatus.OFFLINE:
+            return ArmNotForgettableError(
+                ARM_NOT_OFFLINE,
+                f"{device} is {status}: only an OFFLINE arm (silent for health.offline_after_s = "
+                f"{self.config.health.offline_after_s:g} s) can be forgotten",
+            )
+        return self._publishing_refusal(device, health)
+
+    def _publishing_refusal(self, device: str, health: DeviceHealth) -> ArmNotForgettableError | None:
         """Under the lock: an OFFLINE arm whose refused messages still arrive is not retired. An arm held by
         its refused calibration, listed after a restart for its kept alarms, lost them to a forget while it
         published, and they came back unacknowledged seconds later."""
@@ -2084,20 +2091,30 @@ class Mirror:
         offline_after = self.config.health.offline_after_s
         ago = self._clock() - self._swept_behind_s - last if last is not None else None
         if ago is None or ago >= offline_after:
-            return
+            return None
         if health.last_refused_reason == TOO_MANY_DEVICES:
             fix = "raise telemetry.max_devices, so that it has a place"
         elif device in self._calibration_problems:
             fix = "push a valid calibration for it (its Arm page gives the command)"
         else:
             fix = "mend what its edge sends (the Events page says why each message was refused)"
-        raise ArmNotForgettableError(
+        return ArmNotForgettableError(
             ARM_NOT_OFFLINE,
             f"{device} still publishes: its last message, {max(ago, 0.0):.1f} s ago, was refused "
             f"({health.last_refused_reason}). "
             f"Only an arm silent for health.offline_after_s = {offline_after:g} s can be forgotten: {fix}, "
             "or stop its edge",
         )
+
+    def _forget_offer(self, device: str) -> ForgetOffer | None:
+        """Whether `device` may be forgotten now, and if not the words the forget would be refused with
+        (None: not tracked here)."""
+        with self._lock:
+            health = self._fleet.get(device)
+            if health is None:
+                return None
+            refusal = self._forget_refusal(device, health)
+        return ForgetOffer(True) if refusal is None else ForgetOffer(False, str(refusal))
 
     def _device_state(self, device: str, health: HealthSnapshot, readout: _Readout) -> DeviceState:
         snap = readout.snapshots.get(device)

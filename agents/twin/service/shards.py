@@ -72,7 +72,7 @@ from twin.core.units import Units
 from twin.output.sinks import SinkStats
 from twin.service.admission import DeviceBudget
 from twin.service.config import AgentConfig, ConfigError
-from twin.service.console import FleetRow
+from twin.service.console import FleetRow, ForgetOffer
 from twin.service.events import Event, FlapRow
 from twin.service.logs import name_native_thread
 from twin.service.state import (
@@ -351,10 +351,12 @@ class ArmRequest:
 
 @dataclass(frozen=True, slots=True)
 class ArmReply:
-    """`Mirror.arm`: the arm's state (None: not tracked by this mirror) and its alarms, worst first."""
+    """`Mirror.arm`: the arm's state (None: not tracked by this mirror), its alarms, worst first, and whether
+    the mirror would forget it now (None: not tracked)."""
 
     state: DeviceState | None
     alarms: tuple[AlarmInfo, ...]
+    forget: ForgetOffer | None = None
 
 
 @dataclass(frozen=True, slots=True)

@@ -41,10 +41,10 @@
   // The outcome of the last Acknowledge, kept outside the table: the live stream redraws the table whenever
   // a reading changes an alarm's value, and would wipe a refusal written into its row.
   const ackResult = el("p", { id: "ack-result", role: "status", hidden: true });
-  // Forget: offered for an OFFLINE arm only (the agent refuses any other); its outcome stays on the page.
+  // Forget: offered when the agent says it would forget the arm (doc.forget); its outcome stays on the page.
   const forgetButton = el("button", { type: "button", id: "forget", hidden: true, text: "Forget this arm" });
   const forgetResult = el("p", { id: "forget-result", role: "status", hidden: true });
-  // Not offered while its refused messages still arrive, which the agent refuses too: what to do instead.
+  // An OFFLINE arm the agent would not forget: its words why, and what to do instead.
   const forgetHeld = el("p", { id: "forget-held", class: "muted", hidden: true });
   let forgotten = false;
   let shownAlarms = [];
@@ -516,19 +516,14 @@
     }, (error) => { forgottenAt = error && error.status ? null : undefined; });
   }
 
-  // An OFFLINE arm whose refused messages came within offline_after_s still publishes: the agent refuses to
-  // forget it, and the page offered it anyway (a held arm sending ten a second).
+  // The agent's own answer (doc.forget), not a rule of the page's: the page's, on its clock and not the
+  // worker's, offered forgets the agent refused, and named the wrong fix for an arm with too many devices.
+  // Why not is said for an OFFLINE arm only: any other's status says it.
   function offerForget(h, doc) {
-    const limit = doc.offline_after_s;
-    const publishing = h.refused_age_s != null && limit != null && h.refused_age_s < limit;
-    forgetButton.hidden = h.status !== "OFFLINE" || publishing;
-    forgetHeld.hidden = h.status !== "OFFLINE" || !publishing;
-    if (forgetHeld.hidden) return;
-    const fix = doc.calibration_refused ? "push a valid calibration for it (the command above)"
-      : "mend what its edge sends (the Events page says why each message was refused)";
-    const ago = Twin.num(h.refused_age_s, 1);
-    forgetHeld.textContent = `It still publishes (a refused message ${ago} s ago), ` +
-      `so it can be forgotten only once silent for ${Twin.num(limit, 0)} s: ${fix}, or stop its edge.`;
+    const offer = doc.forget || { allowed: false, why: "" };
+    forgetButton.hidden = !offer.allowed;
+    forgetHeld.hidden = offer.allowed || h.status !== "OFFLINE" || !offer.why;
+    forgetHeld.textContent = `Not offered: ${offer.why}.`;
   }
 
   let shown = false;  // this page has shown the arm's state at least once
