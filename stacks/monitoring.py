@@ -459,7 +459,8 @@ class TwinMonitoring(Construct):
         """MessagesLost: the arms deliver a tenth less than expected for 5 minutes. Nothing in the agent drops
         these (the loss alarms above say when it does): they never arrived, and IoT Core's per-connection
         quota discards without an error, so without this a fleet past its connections is mirrored at a
-        fraction of its rate while every other alarm stays quiet."""
+        fraction of its rate while every other alarm stays quiet. A minute without LossPercent (no arm's rate
+        known, its worker restarting: WorkerRestarts pages on that) is not breaching, and breaks the run."""
         return self._sustained_alarm(
             "MessagesLost",
             f"The arms of {self.agent_name} deliver on average at least {LOSS_ALARM_PERCENT} % fewer "

@@ -136,7 +136,8 @@ class FleetMetrics:
 
     messages_per_s: float  # valid messages decoded per second over the interval, all devices
     rejects: int  # messages rejected by the decoder during the interval
-    loss_percent: float  # estimated share of expected messages that never arrived (see the service)
+    # Estimated share of expected messages that never arrived (see the service); None: no arm's rate known.
+    loss_percent: float | None
     devices_online: int
     devices_stale: int
     devices_offline: int
@@ -168,7 +169,11 @@ def fleet_documents(
         Metric("AgentUp", 1, "Count"),
         Metric("MessagesPerSecond", fleet.messages_per_s, "Count/Second"),
         Metric("Rejects", fleet.rejects, "Count"),
-        Metric(LOSS_PERCENT, fleet.loss_percent, "Percent"),
+    ]
+    # Not known is left out, not 0 %: MessagesLost takes a minute without it as not breaching.
+    if fleet.loss_percent is not None:
+        metrics.append(Metric(LOSS_PERCENT, fleet.loss_percent, "Percent"))
+    metrics += [
         Metric(WORST_ARM_LOSS_PERCENT, fleet.worst_arm_loss_percent, "Percent"),
         Metric("DevicesOnline", fleet.devices_online, "Count"),
         Metric("DevicesStale", fleet.devices_stale, "Count"),
@@ -276,7 +281,7 @@ class FleetTotals:
     devices_online: int
     devices_stale: int
     devices_offline: int
-    loss_percent: float
+    loss_percent: float | None  # None: arms deliver, but no rate of theirs is known (left out of the metrics)
     internal_latency_p99_ms: float | None
     active_alarms: Mapping[str, int]
     # Running totals of what was lost (a restarted worker's count starts again: see EmfPublisher).
