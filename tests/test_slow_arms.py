@@ -9,6 +9,7 @@ import pickle
 import random
 from multiprocessing import Pipe
 
+import pytest
 from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
 from twin.edge.payload import encode, make_payload
 from twin.service import events
@@ -472,3 +473,31 @@ def test_rate_watch_holds_a_slow_arm_between_its_messages_but_not_one_that_stopp
     for k, rate in enumerate(readings):
         other.sweep({"arm-001": rate}, 5.0 * k)
     assert other.slow == ()
+
+
+@pytest.mark.parametrize(
+    ("settings", "named", "not_named"),
+    [
+        (
+            {"broker.url": "mqtt://127.0.0.1:1883", "broker.per_connection_limit": 40},
+            "40 messages/s a connection, [broker] per_connection_limit)",
+            "IoT Core",
+        ),
+        ({"broker.url": "iot"}, "100 messages/s a connection, IoT Core's quota)", "per_connection_limit"),
+    ],
+)
+def test_the_slow_warning_names_the_quota_that_applies(
+    settings: dict[str, object], named: str, not_named: str
+) -> None:
+    """The slow warning named "IoT Core's or [broker] per_connection_limit" whichever applied: the mirror
+    knows which (transport.plan.default_limit), and names that one."""
+    mirror = Mirror(
+        load_config(None, {"telemetry.devices": ["arm-001"], **settings}),
+        inbox=PipeInbox(Pipe(duplex=False)[0]),
+        budget=DeviceBudget(1),
+    )
+    hold = events.SLOW_HOLD_S
+    for at in (0.0, hold / 2, hold + 1.0):
+        mirror._watch.rates({"arm-001": 2.0}, at)
+    said = [e.message for e in mirror.events(EventQuery()) if e.data.get("rate") == "slow"]
+    assert len(said) == 1 and named in said[0] and not_named not in said[0], said

@@ -821,12 +821,15 @@ class RateWatch:
         *,
         stale_after_s: float | None = None,
         per_connection_limit: float | None = None,
+        limit_source: str = "",
     ) -> None:
         self._store = store
         self._expected = expected_rate_hz
         # The broker's publishes per second per connection (transport.plan.default_limit; None: no limit),
         # which the slow warning names as a cause only where there is one.
         self._limit = per_connection_limit
+        # Where it comes from (transport.plan.limit_source): the warning named both, though one applies.
+        self._limit_source = limit_source or "IoT Core's quota or [broker] per_connection_limit"
         # [health] stale_after_s, which the slow warning names (the default stale_periods' when not given)
         if stale_after_s is None:
             stale_after_s = HealthThresholds(expected_rate_hz=expected_rate_hz).stale_after_s
@@ -945,8 +948,8 @@ class RateWatch:
             ""
             if self._limit is None
             else f"If the Fleet page has a notice of the broker's per-connection quota ({self._limit:g} "
-            "messages/s a connection, IoT Core's or [broker] per_connection_limit), the quota discards "
-            "them: its notice says what to change. "
+            f"messages/s a connection, {self._limit_source}), the quota discards them: its notice says what "
+            "to change. "
         )
         message = (
             f"{device} sends {rate:.1f} valid messages/s, well under the expected {self._expected:g} Hz, "
@@ -1259,6 +1262,7 @@ class FleetWatch:
         *,
         health: HealthThresholds = _DEFAULT_HEALTH,
         per_connection_limit: float | None = None,
+        limit_source: str = "",
     ) -> None:
         self.store = store
         self._statuses = StatusWatch(store, health.offline_after_s)
@@ -1268,6 +1272,7 @@ class FleetWatch:
             health.expected_rate_hz,
             stale_after_s=health.stale_after_s,
             per_connection_limit=per_connection_limit,
+            limit_source=limit_source,
         )
         self._losses = LossWatch(store)
         self._clocks = ClockWatch(store)

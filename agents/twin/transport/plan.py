@@ -40,6 +40,13 @@ def default_limit(config: BrokerConfig) -> float | None:
     return float(IOT_PUBLISHES_PER_CONNECTION) if config.kind == IOT else None
 
 
+def limit_source(config: BrokerConfig) -> str:
+    """Where `default_limit`'s budget comes from, as an operator would look it up ("" for none)."""
+    if config.per_connection_limit > 0:
+        return "[broker] per_connection_limit"
+    return "IoT Core's quota" if config.kind == IOT else ""
+
+
 def shared_group(client_id_prefix: str) -> str:
     """The shared-subscription group name: the client id prefix without trailing separators."""
     return client_id_prefix.rstrip("-_.:") or "so101-twin"
