@@ -555,6 +555,30 @@ def test_a_held_arm_with_a_card_is_said_to_be_held_not_nominal(
     assert browser_errors == []
 
 
+def test_a_card_whose_rate_is_not_known_says_so_on_hover(
+    console: str, page: Any, browser_errors: list[str]
+) -> None:
+    """A rate not known (its worker restarting) read as a dash and "Hz" on the Fleet page, with no why."""
+    fleet: dict[str, Any] = json.loads(http_get(console + "/api/fleet")[2])
+    col = {name: i for i, name in enumerate(fleet["columns"])}
+    for row in fleet["rows"]:
+        if row[col["device"]] == "arm-003":
+            row[col["rate_hz"]] = None
+    serve_document(page, "/api/fleet", "fleet", fleet)
+    try:
+        page.goto(console + "/")
+        line = page.locator('#fleet-view [data-device="arm-003"] .line', has_text="Hz")
+        line.wait_for()
+        title = line.get_attribute("title") or ""
+        assert title.startswith("rate not known yet"), title
+        known = page.locator('#fleet-view [data-device="arm-001"] .line', has_text="Hz")
+        assert known.get_attribute("title") is None
+    finally:
+        unserve(page, "/api/fleet")
+        leave(page)
+    assert browser_errors == []
+
+
 def held_arm_document(console: str, device: str) -> dict[str, Any]:
     """The agent's own arm document of `device`, made so: held by a refused file, with a card and nothing
     received (every valid message's figures of the live arm taken out)."""

@@ -207,6 +207,11 @@
     return word ? [" ", el("span", { class: "uncalibrated", title: CALIBRATION_MARKS[word], text: word })] : [];
   }
 
+  // A rate not known (read from a restarting worker's checkpoint, or its window not full) reads "– Hz",
+  // which said nothing of why: its title does.
+  const RATE_UNKNOWN = "rate not known yet: its worker was started again, or its window is not full";
+  function rateTitle(r) { return r[columns.rate_hz] == null ? RATE_UNKNOWN : null; }
+
   function card(r, x, y, w) {
     const c = columns, id = r[c.device];
     const critical = r[c.alarm_severity] === "critical" ? " critical" : "";
@@ -217,7 +222,8 @@
       // "restarting" or "stopping" beside the status it qualifies: after the id and "uncalibrated" a card cut it.
       el("div", { class: "line" }, el("span", { class: "status " + r[c.status], text: r[c.status] }),
         " · " + lastSeen(r), ...restarting(r).map((n) => (n === " " ? " · " : n))),
-      el("div", { class: "line", text: `${Twin.num(r[c.rate_hz], 1)} Hz · loss ${Twin.num(r[c.loss_pct], 1)} %` }),
+      el("div", { class: "line", title: rateTitle(r),
+        text: `${Twin.num(r[c.rate_hz], 1)} Hz · loss ${Twin.num(r[c.loss_pct], 1)} %` }),
       el("div", { class: "line", text: cardHot(r) }),
       ...cardAlarm(r));
     node.style.transform = `translate(${x}px, ${y}px)`;
@@ -233,7 +239,7 @@
       el("span", { text: name, title: name, class: "arm-id" + (word ? " uncalibrated" : "") }, ...restarting(r)),
       el("span", { class: "status " + r[c.status], text: r[c.status] }),
       el("span", { class: "wide", text: lastSeen(r) }),
-      el("span", { class: "wide minor", text: Twin.num(r[c.rate_hz], 1) + " Hz" }),
+      el("span", { class: "wide minor", title: rateTitle(r), text: Twin.num(r[c.rate_hz], 1) + " Hz" }),
       el("span", { class: "wide minor", text: Twin.num(r[c.loss_pct], 1) + " %" }),
       alarmCell(r), stateCell(r),
       hotCell(r));
