@@ -211,9 +211,8 @@ def test_loss_percent_is_left_out_while_no_delivering_arms_rate_is_known(tmp_pat
     """A one-worker fleet while its worker restarts: every arm is read from its checkpoint, with no rate
     known, and LossPercent read 0 %, an all-clear no one measured. It is left out of the document (the
     MessagesLost alarm takes a minute without it as not breaching); the other figures are still sent."""
-    restarting = DeviceState(
-        device_id="restarting", health=HealthSnapshot(rate_hz=None, status=DeviceStatus.ONLINE)
-    )
+    # Built without a rate, a snapshot knows none (as refused_rate_hz): 0.0 there read as 100 % loss.
+    restarting = DeviceState(device_id="restarting", health=HealthSnapshot(status=DeviceStatus.ONLINE))
     totals = fleet_totals(AgentState(agent=AgentInfo(running=True), devices={"restarting": restarting}), 10.0)
     assert totals.loss_percent is None
     docs = [d for d in _three_intervals(tmp_path, totals) if "AgentUp" in d]

@@ -91,8 +91,8 @@ class HealthSnapshot:
     status: DeviceStatus = DeviceStatus.OFFLINE
     age_s: float | None = None
     # None while not known: read from a checkpoint (a worker started again), whose meter starts empty, it
-    # read 0 beside a valid message 1 s old.
-    rate_hz: float | None = 0.0
+    # read 0 beside a valid message 1 s old. So is the default, as refused_rate_hz's.
+    rate_hz: float | None = None
     last_timestamp_ms: int | None = None
     counters: DeviceCounters = field(default_factory=DeviceCounters)
     # Receive wall time minus the edge timestamp. The edge clock is not NTP-disciplined, so this is transit
