@@ -883,3 +883,31 @@ def test_forgetting_arms_drops_the_agents_routes_to_their_topics() -> None:
         assert sorted(device for _, device in agent._routes.values()) == arms[:4]
     finally:
         agent.stop()
+
+
+class _TickingClock(_Clock):
+    """A clock that moves on by `step` at each read: whatever the mirror reads after the first, at a
+    boundary, is past it."""
+
+    def __init__(self, step: float) -> None:
+        super().__init__()
+        self.step = step
+
+    def __call__(self) -> float:
+        self.now += self.step
+        return self.now - self.step
+
+
+def test_an_arm_pages_forget_answer_is_read_on_the_clock_its_status_was() -> None:
+    """A review: Mirror.arm read the arm's status under one hold of the lock and its forget answer under a
+    second, on a later read of the clock; at the OFFLINE boundary the page offered Forget beside STALE."""
+    clock, rng = _Clock(), random.Random(11)
+    mirror = _fleet_mirror(clock, places=3)
+    _round(mirror, clock, ["arm-001"], rng, 0.0)
+    ticking = _TickingClock(0.01)
+    ticking.now = clock.now + OFFLINE_AFTER_S - ticking.step / 2  # the next read is STALE, any later OFFLINE
+    mirror._clock = ticking
+    reply = mirror.arm("arm-001")
+    assert reply.state is not None and reply.state.health.status == "STALE", reply.state
+    assert reply.forget is not None and not reply.forget.allowed, reply.forget
+    assert "arm-001 is STALE" in reply.forget.why, reply.forget

@@ -306,6 +306,8 @@ class _Readout:
     servos: dict[str, _ServoReadout]
     alarms: AlarmsSummary
     loss: dict[str, LossSnapshot]
+    # An arm page's (`_read` of one device): whether it may be forgotten, on the clock its status was read on.
+    forget: ForgetOffer | None = None
 
 
 class _Job:
@@ -1884,6 +1886,7 @@ class Mirror:
                 },
                 alarms=self._alarms_summary(),
                 loss={device: loss.snapshot(now) for device, loss in losses},
+                forget=self._forget_offer(only, now) if only is not None else None,
             )
 
     def arm(self, device: str) -> ArmReply:
@@ -1894,7 +1897,7 @@ class Mirror:
         return ArmReply(
             state=self._device_state(device, reading.snapshot(), readout) if reading is not None else None,
             alarms=self.alarms(device=device),
-            forget=self._forget_offer(device),
+            forget=readout.forget,
         )
 
     @staticmethod
@@ -2039,7 +2042,7 @@ class Mirror:
             health = self._fleet.get(device)
             if health is None:
                 raise ArmNotFoundError(device)
-            refusal = self._forget_refusal(device, health)
+            refusal = self._forget_refusal(device, health, self._clock())
             if refusal is not None:
                 raise refusal
             status = DeviceStatus.OFFLINE  # as _forget_refusal found it
@@ -2070,29 +2073,31 @@ class Mirror:
         if len(kept) > self.config.telemetry.max_devices:
             del kept[next(iter(kept))]  # the oldest: an arm of it that returns is ONLINE to them at once
 
-    def _forget_refusal(self, device: str, health: DeviceHealth) -> ArmNotForgettableError | None:
-        """Under the lock: why `device` may not be forgotten now (None: it may). The Arm page shows this
+    def _forget_refusal(self, device: str, health: DeviceHealth, now: float) -> ArmNotForgettableError | None:
+        """Under the lock: why `device` may not be forgotten at `now` (None: it may). The Arm page shows this
         answer (Mirror.arm): derived in the page, on another clock, it offered what the agent refused."""
         if device in self._fleet.configured:
             why = f"{device} is listed in telemetry.devices: take it out of the config instead"
             return ArmNotForgettableError(ARM_CONFIGURED, why)
         # Where the worker stands: an arm whose messages wait behind it is not silent.
-        status = health.status(self._clock() - self._swept_behind_s)
+        status = health.status(now - self._swept_behind_s)
         if status is not DeviceStatus.OFFLINE:
             return ArmNotForgettableError(
                 ARM_NOT_OFFLINE,
                 f"{device} is {status}: only an OFFLINE arm (silent for health.offline_after_s = "
                 f"{self.config.health.offline_after_s:g} s) can be forgotten",
             )
-        return self._publishing_refusal(device, health)
+        return self._publishing_refusal(device, health, now)
 
-    def _publishing_refusal(self, device: str, health: DeviceHealth) -> ArmNotForgettableError | None:
+    def _publishing_refusal(
+        self, device: str, health: DeviceHealth, now: float
+    ) -> ArmNotForgettableError | None:
         """Under the lock: an OFFLINE arm whose refused messages still arrive is not retired. An arm held by
         its refused calibration, listed after a restart for its kept alarms, lost them to a forget while it
         published, and they came back unacknowledged seconds later."""
         last = health.last_refused_mono
         offline_after = self.config.health.offline_after_s
-        ago = self._clock() - self._swept_behind_s - last if last is not None else None
+        ago = now - self._swept_behind_s - last if last is not None else None
         if ago is None or ago >= offline_after:
             return None
         if health.last_refused_reason == TOO_MANY_DEVICES:
@@ -2109,14 +2114,14 @@ class Mirror:
             "or stop its edge",
         )
 
-    def _forget_offer(self, device: str) -> ForgetOffer | None:
-        """Whether `device` may be forgotten now, and if not the words the forget would be refused with
-        (None: not tracked here)."""
-        with self._lock:
-            health = self._fleet.get(device)
-            if health is None:
-                return None
-            refusal = self._forget_refusal(device, health)
+    def _forget_offer(self, device: str, now: float) -> ForgetOffer | None:
+        """Under the lock: whether `device` may be forgotten at `now`, and if not the words the forget would
+        be refused with (None: not tracked here). The clock its state was read on: one read after it, at a
+        boundary, offered Forget beside a STALE arm."""
+        health = self._fleet.get(device)
+        if health is None:
+            return None
+        refusal = self._forget_refusal(device, health, now)
         return ForgetOffer(True) if refusal is None else ForgetOffer(False, str(refusal))
 
     def _device_state(self, device: str, health: HealthSnapshot, readout: _Readout) -> DeviceState:
