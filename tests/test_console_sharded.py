@@ -18,7 +18,7 @@ from conftest import http_get, unbrokered_agent, wait_for
 from twin.edge.payload import encode, make_payload
 from twin.rig.local import LocalRig
 from twin.service.agent import UNHEARD_MIN_REJECTED
-from twin.service.console import FLEET_COLUMNS, fleet_rows
+from twin.service.console import FLEET_COLUMNS, ForgetOffer, fleet_rows
 from twin.service.shards import WorkerError
 
 pytestmark = pytest.mark.slow
@@ -147,15 +147,23 @@ def test_an_arm_page_is_read_from_its_own_worker_without_the_fleet_state(rig: Lo
     wait_for(lambda: view_attention() == dict.fromkeys(DEVICES, "STALE"), 60, "every quiet arm marked STALE")
 
 
-def test_an_arm_whose_worker_does_not_answer_is_shown_from_its_checkpoint(tmp_path: Path) -> None:
+def test_an_arm_whose_worker_does_not_answer_is_shown_from_its_checkpoint(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     # One ask per arm and tick, not two: a worker that does not answer is not asked again for the whole state.
     agent = unbrokered_agent(tmp_path, 2)
     try:
         device = next(d for d in DEVICES if agent.plan.worker_of(d) == 1)
+        unknown = next(f"arm-{n}" for n in range(500, 600) if agent.plan.worker_of(f"arm-{n}") == 1)
         payload = encode(make_payload(device, 0.0, "ticks", random.Random(2)))
         agent.feed(f"dt/lerobot/{device}/telemetry", payload)
         shard = agent._shards[1]
         wait_for(lambda: (c := shard.checkpoint) is not None and c.taken >= 1, 60, "a checkpoint of the arm")
+        # Its worker's answer, which came over the pipe inside the arm's reply: not OFFLINE, not forgotten.
+        offer = agent.arm_view(device).forget
+        assert isinstance(offer, ForgetOffer) and not offer.allowed, offer
+        assert "only an OFFLINE arm" in offer.why, offer
+        assert agent.arm_view(unknown).forget is None  # no state, nothing to forget
         asked: list[object] = []
 
         def silent(request: object) -> Any:
@@ -167,9 +175,23 @@ def test_an_arm_whose_worker_does_not_answer_is_shown_from_its_checkpoint(tmp_pa
         assert len(asked) == 1  # the arm's own ask, and no whole state after it
         assert view.state is not None and view.state.device_id == device
         assert view.state.health.counters.received == 1
+        # The page says why it cannot forget the arm now, in the words of the failed ask: the worker is not
+        # being started again (a review: it said so).
+        assert view.forget == ForgetOffer(False, "worker 1 did not answer within 10 s")
         assert agent.arm_view("arm-404").state is None
-    finally:
+        assert agent.arm_view(unknown).forget is None
         del shard.request
+        # A worker being started again: its checkpoint's arm, with the words forget_arm refuses with.
+        monkeypatch.setattr(type(shard), "answering", property(lambda s: s.index != 1))
+        view = agent.arm_view(device)
+        assert view.state is not None and view.forget == ForgetOffer(False, "worker 1 is being started again")
+        with pytest.raises(WorkerError) as refused:
+            agent.forget_arm(device)
+        assert str(refused.value) == view.forget.why
+        assert agent.arm_view(unknown).forget is None
+    finally:
+        vars(shard).pop("request", None)
+        monkeypatch.undo()
         agent.stop()
 
 

@@ -1413,13 +1413,15 @@ class AgentService:
         without asking any worker again."""
         shard = self._shards[self.plan.worker_of(device)]
         reply = None
+        # Not answering, the worker cannot forget it: the page says so, in the words forget_arm refuses with
+        # (a request that failed, in that failure's words: its worker is not being started again, maybe).
+        forget: ForgetOffer | None = ForgetOffer(False, f"worker {shard.index} is being started again")
         if shard.answering:
             try:
                 reply = arm_reply_of(shard.request(ArmRequest(device))())
             except WorkerError as exc:
                 log.debug("arm %s asked of its mirror: %s; shown from its checkpoint", device, exc)
-        # Not answering, the worker cannot forget it: the page says so, in the words forget_arm refuses with.
-        forget: ForgetOffer | None = ForgetOffer(False, f"worker {shard.index} is being started again")
+                forget = ForgetOffer(False, str(exc))
         if reply is not None:
             state, alarms, forget = reply.state, list(reply.alarms), reply.forget
         else:
