@@ -207,9 +207,9 @@
     return word ? [" ", el("span", { class: "uncalibrated", title: CALIBRATION_MARKS[word], text: word })] : [];
   }
 
-  // A rate not known (read from a restarting worker's checkpoint, or its window not full) reads "– Hz",
-  // which said nothing of why: its title does.
-  const RATE_UNKNOWN = "rate not known yet: its worker was started again, or its window is not full";
+  // A rate not known reads "– Hz", which said nothing of why: its title does. Only a restarting worker's
+  // checkpoint leaves it unknown (a live mirror's meter always gives a number).
+  const RATE_UNKNOWN = "rate not known yet: its worker was started again";
   function rateTitle(r) { return r[columns.rate_hz] == null ? RATE_UNKNOWN : null; }
 
   function card(r, x, y, w) {
