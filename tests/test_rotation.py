@@ -86,6 +86,34 @@ def test_a_usd_session_rotates_by_size_and_keeps_its_directory_within_the_budget
         assert prims and stage.GetEndTimeCode() >= stage.GetStartTimeCode()
 
 
+def test_a_usd_recording_names_no_session_removed_as_empty_at_close(
+    robot: RobotModel, tmp_path: Path
+) -> None:
+    """A session that recorded no sample is removed at close: the totals named it all the same, so a stop
+    report pointed at a file that was not there. They name the newest session kept, or none."""
+    now = [0.0]
+
+    def session(name: str) -> SessionRecorder:
+        return SessionRecorder(tmp_path / name, flush_interval_s=1.0, clock=lambda: now[0])
+
+    idle = RecordingSink(session("session-idle.usdc"), robot)
+    assert Path(idle.totals().path).is_file()  # begun at start: a full disk is told then
+    idle.close()
+    assert idle.totals().path == ""
+    # Every save rotates; the session it rotates to gets no sample and is removed at close.
+    limits = RecordingLimits(max_bytes=1, rate_hz=100.0)
+    sink = RecordingSink(
+        session("session-1.usdc"), robot, limits=limits, open_next=lambda n: session(f"s-{n}.usdc")
+    )
+    sink.applied(_samples(1, DEVICES[:1])[0])
+    wait_for(lambda: sink.stats().pending == 0, 30, "the recorder to write its sample")
+    now[0] += 1.5
+    wait_for(lambda: sink.totals().rotations == 1, 30, "the save to rotate the session")
+    sink.close()
+    assert sink.totals().path == str(tmp_path.resolve() / "session-1.usdc")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["session-1.usdc"]
+
+
 def test_a_usd_recording_keeps_each_arm_to_its_rate(robot: RobotModel, tmp_path: Path) -> None:
     recorder = SessionRecorder(tmp_path / "session.usdc", flush_interval_s=60.0)
     sink = RecordingSink(recorder, robot, limits=RecordingLimits(rate_hz=2.0))

@@ -271,6 +271,14 @@ def test_every_count_of_the_recording_history_and_sinks_is_summed() -> None:
         assert counts and set(counts.values()) == {2}, (type(item).__name__, counts)
 
 
+def test_the_merged_recording_names_a_worker_session_that_was_kept() -> None:
+    """Worker 0's session, given no arm, is removed at stop: the merged report named it all the same."""
+    removed, kept = ones(RecordingState, path=""), ones(RecordingState, path="w1.usdc")
+    reports = [mirror_report({}, recording=removed), mirror_report({}, recording=kept)]
+    state = merge_reports(AgentInfo(), reports, (), dropped=Counter())
+    assert state.agent.recording is not None and state.agent.recording.path == "w1.usdc"
+
+
 def test_a_worker_that_does_not_answer_is_not_running_in_the_merged_state() -> None:
     report = mirror_report({"a": DeviceCounters(received=1)})
     state = merge_reports(

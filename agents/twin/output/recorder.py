@@ -261,6 +261,12 @@ class SessionRecorder:
         return self._closed
 
     @property
+    def kept(self) -> bool:
+        """Whether the session's file is on disk: not for a session closed with no sample (close() removes
+        its file), nor one set aside before its file was begun (not_begun)."""
+        return self.samples_written > 0 or not self._closed
+
+    @property
     def devices(self) -> dict[str, str]:
         """Device id -> prim path of every device recorded so far."""
         return {device_id: track.prim_path for device_id, track in self._devices.items()}

@@ -298,7 +298,8 @@ class _RecorderWorker:
 def _add(totals: RecordingTotals, recorder: SessionRecorder) -> RecordingTotals:
     # Counters written by the sink's thread; int reads are atomic, and a figure one sample behind is fine.
     return RecordingTotals(
-        path=str(recorder.path),
+        # The newest session whose file is there: a report must not name one removed as empty at close.
+        path=str(recorder.path) if recorder.kept else totals.path,
         samples_written=totals.samples_written + recorder.samples_written,
         samples_dropped=totals.samples_dropped + recorder.samples_dropped,
         flushes=totals.flushes + recorder.flushes,

@@ -1850,9 +1850,10 @@ def _merge_worker(reports: Sequence[MirrorReport], *, workers_alive: bool) -> Wo
 def _merge_recording(parts: list[RecordingState]) -> RecordingState | None:
     if not parts:
         return None
-    # Each worker records its own devices into its own session file; `agent.workers` lists every path.
+    # Each worker records its own devices into its own session file; `agent.workers` lists every path. A
+    # worker whose session was removed as empty names none ("").
     return RecordingState(
-        path=parts[0].path,
+        path=next((p.path for p in parts if p.path), ""),
         samples_written=sum(p.samples_written for p in parts),
         samples_dropped=sum(p.samples_dropped for p in parts),
         flushes=sum(p.flushes for p in parts),

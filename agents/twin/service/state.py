@@ -257,6 +257,7 @@ class WorkerState:
 class RecordingState:
     """The USD session recording (a sink; its queue figures are in `agent.sinks`)."""
 
+    # The newest session file on disk; "" once none is (a session with no sample is removed at close).
     path: str = ""
     samples_written: int = 0
     # Samples less than one time code (1/30 s) after the device's previous one: the stage keeps 30 per second.
