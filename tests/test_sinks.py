@@ -364,9 +364,11 @@ class _StatusSink(_Sink):
     def __init__(self) -> None:
         super().__init__()
         self.changes: list[tuple[str, str, str]] = []
+        self.told: list[StatusChange] = []
 
     def status(self, change: StatusChange) -> None:
         self.changes.append((change.device_id, change.previous, change.status))
+        self.told.append(change)
 
 
 class _Clock:
@@ -434,23 +436,26 @@ def test_a_worker_process_mirror_hands_its_sinks_each_status_change() -> None:
     ]
 
 
-def test_what_the_sinks_were_told_of_forgotten_arms_is_kept_for_max_devices_of_them() -> None:
-    """The mirror keeps what its sinks were last told of an arm it forgets (they still label it OFFLINE), so
-    an arm of that name that publishes again is told back ONLINE. Forgotten arms come and go without end under
-    a churning fleet: it keeps telemetry.max_devices of them, the newest."""
+def test_the_sinks_are_told_of_a_forget_and_the_mirror_keeps_nothing_of_the_arm() -> None:
+    """The mirror kept what its sinks were last told of each arm it forgot (they still labelled it OFFLINE),
+    a second record beside the sink's own. The sinks are told of the forget instead, and drop theirs."""
     config = load_config(None, {"telemetry.devices": ["*"], "telemetry.max_devices": 2})
     sink = _StatusSink()
     mirror = Mirror(config, inbox=PipeInbox(Pipe(duplex=False)[0]), budget=DeviceBudget(4), sinks=[sink])
     mirror._open_sinks()  # the sinks without the worker thread: the test calls the mirror's steps
+    told = sink.told
     arms = ("arm-001", "arm-002", "arm-003")
     mirror._hand_statuses(dict.fromkeys(arms, DeviceStatus.OFFLINE), 1.0, 1.0)
     for arm in arms:
         mirror._sinks_forgot(arm)
-    sink.changes.clear()
+    assert [(c.device_id, c.previous, c.forgotten) for c in told[3:]] == [
+        (arm, DeviceStatus.OFFLINE, True) for arm in arms
+    ]
+    assert mirror._sinks_saw == {}
+    told.clear()
+    # An arm of that name that publishes again is new: ONLINE to the sinks from the start.
     mirror._hand_statuses(dict.fromkeys(arms, DeviceStatus.ONLINE), 2.0, 2.0)
-    # arm-001, the oldest forgotten past the bound, is ONLINE to the sinks from the start, as before.
-    assert sink.changes == [("arm-002", "OFFLINE", "ONLINE"), ("arm-003", "OFFLINE", "ONLINE")]
-    assert mirror._sinks_saw_forgotten == {}
+    assert told == []
 
 
 def test_a_stop_report_names_a_sinks_queued_status_changes_with_its_samples() -> None:

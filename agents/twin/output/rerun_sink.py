@@ -377,7 +377,8 @@ class RerunWorker:
                 raise
             self.viewer_url = viewer_url(web_port, self.grpc_url or "")
 
-        self._arms: dict[str, _Arm] = {}
+        self._arms: dict[str, _Arm] = {}  # the arms drawn, less those the agent forgot (handle_status)
+        self._placed = 0  # the arms given a place in the fleet grid so far
         self._focus: str | None = None
         # Triangles per arm of the detailed and the far copy (see _log_arm).
         self.mesh_faces: dict[bool, int] = {}
@@ -563,6 +564,9 @@ class RerunWorker:
         arm = self._arms.get(change.device_id)
         if arm is None:
             return  # nothing of it is shown (its samples were all skipped or dropped)
+        if change.forgotten:
+            self._forget(arm, change)
+            return
         at_ms = arm.edge.after_last(change.at_mono_s)
         self._rec.set_time(TIMELINE, timestamp=np.datetime64(at_ms, "ms"))
         level = _STATUS_LEVELS.get(change.status, rr.TextLogLevel.INFO)
@@ -574,6 +578,19 @@ class RerunWorker:
         elif arm.shown != "ONLINE":
             self._unlabel(arm, at_ms)
         self._rec.log(f"{arm.entity}/events", rr.TextLog(text, level=level))
+
+    def _forget(self, arm: _Arm, change: StatusChange) -> None:
+        """The agent forgot the arm: its samples still buffered go, its label is cleared and a line says so,
+        and its record is dropped (an arm of that name that publishes again is a new one, in a new place), so
+        the records stay within the arms tracked at once however many come and go."""
+        if arm.n:
+            self._flush(arm)
+        at_ms = max(arm.edge.after_last(change.at_mono_s), arm.shown_ms + 1)
+        self._rec.set_time(TIMELINE, timestamp=np.datetime64(at_ms, "ms"))
+        self._rec.log(f"{arm.entity}/status", rr.Clear(recursive=False))
+        text = f"arm forgotten by the agent (was {change.previous})"
+        self._rec.log(f"{arm.entity}/events", rr.TextLog(text, level=rr.TextLogLevel.INFO))
+        del self._arms[arm.device]
 
     def _label(self, arm: _Arm, rec: _Tee | None = None) -> None:
         """The arm's status over it in the fleet view (the events view shows the focus arm's lines only), into
@@ -639,7 +656,9 @@ class RerunWorker:
         arm = self._arms.get(device)
         if arm is not None:
             return arm
-        arm = _Arm(device=device, entity=entity_of(device), index=len(self._arms), bodies=len(self._bodies))
+        # A forgotten arm's place is not taken again: its meshes stay there in the recording (static).
+        arm = _Arm(device=device, entity=entity_of(device), index=self._placed, bodies=len(self._bodies))
+        self._placed += 1
         self._arms[device] = arm
         self._statics.append((arm, True))  # logged by _log_statics, a slice at a time
         focus = self.settings.focus_device

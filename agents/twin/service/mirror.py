@@ -532,8 +532,6 @@ class Mirror:
         # The sinks' `status` methods, and each arm's status as last handed to them (worker thread only).
         self._status_sinks: tuple[tuple[TwinSink, Callable[[StatusChange], None]], ...] = ()
         self._sinks_saw: dict[str, DeviceStatus] = {}
-        # The same of the arms forgotten since, oldest first: the sinks still show them so (`_sinks_forgot`).
-        self._sinks_saw_forgotten: dict[str, DeviceStatus] = {}
         self._worker: threading.Thread | None = None
         self._stopped = False
         self._stop_lock = threading.Lock()
@@ -1694,12 +1692,12 @@ class Mirror:
         knows an arm by its samples, so an arm it was not told of was ONLINE to it."""
         if not self._status_sinks:
             return
-        saw, forgotten = self._sinks_saw, self._sinks_saw_forgotten
+        saw = self._sinks_saw
         wall = self._wall_clock() - (now - at)
         for device, status in statuses.items():
             previous = saw.get(device)
             if previous is None:
-                previous = saw[device] = forgotten.pop(device, DeviceStatus.ONLINE)
+                previous = saw[device] = DeviceStatus.ONLINE
             if status is previous:
                 continue
             saw[device] = status
@@ -2062,16 +2060,18 @@ class Mirror:
         return ArmForgotten(device=device, status=str(status), alarms_removed=removed)
 
     def _sinks_forgot(self, device: str) -> None:
-        """What the sinks were last told of the forgotten `device` is kept: they still label it OFFLINE (they
-        are not told of a forget), and without it an arm of that name that publishes again would be ONLINE
-        to them from the start, with no change to say it is back."""
-        told = self._sinks_saw.pop(device, None)
-        if told is None or told is DeviceStatus.ONLINE:
+        """The sinks that show statuses are told of the forget, so they drop what they keep of the arm (the
+        Rerun sink its label and record): under a fleet that churns for weeks neither they nor the mirror
+        keep anything of the arms gone. An arm of that name that publishes again is new to them, as here."""
+        told = self._sinks_saw.pop(device, DeviceStatus.ONLINE)
+        if not self._status_sinks:
             return
-        kept = self._sinks_saw_forgotten
-        kept[device] = told
-        if len(kept) > self.config.telemetry.max_devices:
-            del kept[next(iter(kept))]  # the oldest: an arm of it that returns is ONLINE to them at once
+        behind = self._swept_behind_s
+        at, wall = self._clock() - behind, self._wall_clock() - behind
+        gone = DeviceStatus.OFFLINE
+        change = StatusChange(device, told, gone, at_mono_s=at, at_wall_s=wall, forgotten=True)
+        for sink, method in self._status_sinks:
+            self._guard_sink(sink, method, change)
 
     def _forget_refusal(self, device: str, health: DeviceHealth, now: float) -> ArmNotForgettableError | None:
         """Under the lock: why `device` may not be forgotten at `now` (None: it may). The Arm page shows this
