@@ -527,8 +527,6 @@ class RerunWorker:
         # One (joints, quantities) block; a reading the edge did not send is None, which becomes NaN.
         arm.servo[row] = [_servo_row(d) for d in map(diagnostics.get, so101.JOINT_NAMES)]
         self._status(arm, sample)
-        if arm.shown != "ONLINE":
-            self._unlabel(arm, arm.edge.last_ms)
         if sample.alarm_events:
             self._alarms(arm, sample)
         self.samples_logged += 1
@@ -607,10 +605,10 @@ class RerunWorker:
         rec.log(f"{arm.entity}/status", label)
 
     def _unlabel(self, arm: _Arm, at_ms: int) -> None:
-        """A sample after a STALE or OFFLINE label: the arm publishes, so the label over its live pose goes.
-        The line that says it is back waits for the mirror's change (handle_status): a STALE arm that sends
-        one sample and falls quiet again stays STALE to the mirror, which sends no change. Never behind the
-        label: a sample delivered late (a backlog after an outage) may have been measured before its time."""
+        """The mirror reads the arm ONLINE again: the label over its live pose goes, with the change, not
+        with its first sample back: a STALE arm that sends one sample and falls quiet again stays STALE to the
+        mirror (and on the console), which sends no change. Never behind the label: a sample delivered late
+        (a backlog after an outage) may have been measured before its time."""
         self._rec.set_time(TIMELINE, timestamp=np.datetime64(max(at_ms, arm.shown_ms + 1), "ms"))
         self._rec.log(f"{arm.entity}/status", rr.Clear(recursive=False))
         arm.shown = "ONLINE"
