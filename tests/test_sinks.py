@@ -539,6 +539,17 @@ def test_the_agent_hands_every_sample_to_every_sink_and_reports_them(tmp_path: P
     assert Path(recording.path).parent == tmp_path.resolve() and Path(recording.path).is_file()
 
 
+def test_a_stopped_agent_names_no_session_file_it_removed(tmp_path: Path) -> None:
+    """A walk: after the stop, `agent.recording.path` named a session that recorded no sample, which the
+    recorder removes at close. A stopped agent that recorded nothing names none."""
+    with fed_agent(0, **{"twin.record_dir": str(tmp_path)}) as service:
+        path = service.recording_path
+        assert path is not None and path.is_file()
+    recording = service.state().agent.recording
+    assert recording is not None and recording.path == "" and service.recording_path is None
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_body_pose_array_is_body_poses_stacked() -> None:
     robot = RobotModel.load()
     angles = {

@@ -864,7 +864,8 @@ class AgentService:
 
     @property
     def recording_path(self) -> Path | None:
-        """The in-process mirror's USD session file (each worker process records its own: `agent.workers`)."""
+        """The in-process mirror's newest USD session file on disk, None once none is (each worker process
+        records its own: `agent.workers`)."""
         return self._mirror.recording_path if self._mirror is not None else None
 
     @property

@@ -774,7 +774,9 @@ class Mirror:
 
     @property
     def recording_path(self) -> Path | None:
-        return self._recording.path if self._recording is not None else None
+        """The newest session file on disk (None once none is: one with no sample is removed at close)."""
+        path = self._recording.totals().path if self._recording is not None else ""
+        return Path(path) if path else None
 
     @property
     def sinks(self) -> tuple[TwinSink, ...]:
