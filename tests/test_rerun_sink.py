@@ -512,6 +512,33 @@ def test_the_arms_the_agent_forgets_leave_no_record_in_the_sink(robot: RobotMode
     assert list(arms) == ["arm-019"] and arms["arm-019"].index == 19
 
 
+def test_a_forgotten_focus_arm_hands_the_focus_on(robot: RobotModel, tmp_path: Path) -> None:
+    """A review: the focus arm was kept after the agent forgot it, so the blueprint framed an empty place.
+    Its forget hands the focus to an arm still drawn, and with none left the next arm seen takes it."""
+    decoder = TelemetryDecoder(DecoderConfig(units=Units.DEGREES))
+    sink = RerunSink(robot, RerunSettings(save=str(tmp_path / "focus.rrd"), flush_s=0.05))
+    gone = DeviceStatus.OFFLINE
+
+    def send(device: str, n: int) -> None:
+        telemetry = decoder.decode(json.dumps(payload(device, n)), topic_device=device)
+        sink.applied(AppliedSample(device, time.time(), n * 1.0, telemetry, dict(telemetry.angles_rad)))
+
+    def forget(device: str, n: int) -> None:
+        sink.status(StatusChange(device, gone, gone, at_mono_s=n + 0.5, at_wall_s=n, forgotten=True))
+        wait_for(lambda: sink.stats().pending == 0, 30, "the sink to take every item")
+
+    send("arm-000", 0)
+    send("arm-001", 1)
+    forget("arm-000", 2)
+    assert sink.worker._focus == "arm-001"
+    forget("arm-001", 3)
+    assert sink.worker._focus is None
+    send("arm-002", 4)
+    wait_for(lambda: sink.stats().pending == 0, 30, "the sink to take every item")
+    sink.close()
+    assert sink.worker._focus == "arm-002"
+
+
 def test_a_lone_sample_of_a_stale_arm_writes_no_return_the_mirror_did_not_read(
     robot: RobotModel, tmp_path: Path
 ) -> None:

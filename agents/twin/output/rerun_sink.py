@@ -589,6 +589,14 @@ class RerunWorker:
         text = f"arm forgotten by the agent (was {change.previous})"
         self._rec.log(f"{arm.entity}/events", rr.TextLog(text, level=rr.TextLogLevel.INFO))
         del self._arms[arm.device]
+        if self._focus == arm.device:
+            self._refocus()
+
+    def _refocus(self) -> None:
+        """The focus arm was forgotten: the blueprint would keep framing its empty place. Another arm drawn
+        takes the focus, or with none (or a `focus_device` set, which keeps its claim) the next arm seen."""
+        self._focus = None if self.settings.focus_device else next(iter(self._arms), None)
+        self._rec.send_blueprint(self._blueprint(self._focus), make_active=True, make_default=True)
 
     def _label(self, arm: _Arm, rec: _Tee | None = None) -> None:
         """The arm's status over it in the fleet view (the events view shows the focus arm's lines only), into
