@@ -493,6 +493,29 @@ def test_an_arm_forgotten_while_offline_loses_its_label_at_the_forget(
     assert at == max(labels) < walk.sent[back]
 
 
+def test_a_forget_that_overtakes_the_sweep_says_the_arm_was_offline(
+    robot: RobotModel, tmp_path: Path
+) -> None:
+    """A review: the forget line said `(was STALE)` for an arm the mirror read OFFLINE, when the forget came
+    before the sweep that would have told the sink. It says what the mirror read."""
+    path = tmp_path / "overtaken.rrd"
+    walk = _Walk(robot, path)
+    health = walk.config.health
+    walk.run(1.0, sending=True)
+    walk.run(health.stale_after_s + 1.0, sending=False)
+    assert walk.mirror.statuses()["arm-001"] is DeviceStatus.STALE
+    walk.clock.now += health.offline_after_s  # no sweep in between: the sink was last told STALE
+    walk.mirror.forget_arm("arm-001")
+    walk.mirror.stop()
+    temporal, _ = read_rrd(path)
+    cells = column(temporal, "/arms/arm-001/events", "TextLog:text")
+    lines = [line for cell in cells if cell for line in cell if line.startswith("arm ")]
+    assert lines[-2:] == [
+        "arm STALE (was ONLINE): its pose is the last one it sent",
+        "arm forgotten by the agent (was OFFLINE)",
+    ]
+
+
 def test_the_arms_the_agent_forgets_leave_no_record_in_the_sink(robot: RobotModel, tmp_path: Path) -> None:
     """The sink kept a record of every device id it ever drew: bounded by the arms tracked at once, but not
     by arms coming and going for weeks. A forget drops the arm's record."""

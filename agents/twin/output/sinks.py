@@ -110,8 +110,9 @@ class StatusChange:
     """An arm's status changed (docs/agent.md, "Health"), as the mirror's status sweep read it: `at_mono_s`
     is where the mirror stood in its input then, on the clock of the samples' `received_mono_s` (to place it
     among the arm's samples), and `at_wall_s` the same moment on the wall clock. `forgotten`: the agent
-    forgot the OFFLINE arm (`previous` is what the sink was last told of it): a sink drops what it keeps of
-    it, and an arm of that name that publishes again is new to it, ONLINE from its first sample."""
+    forgot the OFFLINE arm (`previous` is OFFLINE, as the mirror read it, even if the sweep had not yet told
+    the sink so): a sink drops what it keeps of it, and an arm of that name that publishes again is new to
+    it, ONLINE from its first sample."""
 
     device_id: str
     previous: DeviceStatus

@@ -2065,13 +2065,15 @@ class Mirror:
         """The sinks that show statuses are told of the forget, so they drop what they keep of the arm (the
         Rerun sink its label and record): under a fleet that churns for weeks neither they nor the mirror
         keep anything of the arms gone. An arm of that name that publishes again is new to them, as here."""
-        told = self._sinks_saw.pop(device, DeviceStatus.ONLINE)
+        self._sinks_saw.pop(device, None)
         if not self._status_sinks:
             return
         behind = self._swept_behind_s
         at, wall = self._clock() - behind, self._wall_clock() - behind
+        # Only an OFFLINE arm is forgotten: `previous` says so even when the forget overtook the sweep that
+        # would have told the sinks (their last word of it may still be STALE).
         gone = DeviceStatus.OFFLINE
-        change = StatusChange(device, told, gone, at_mono_s=at, at_wall_s=wall, forgotten=True)
+        change = StatusChange(device, gone, gone, at_mono_s=at, at_wall_s=wall, forgotten=True)
         for sink, method in self._status_sinks:
             self._guard_sink(sink, method, change)
 
