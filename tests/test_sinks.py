@@ -18,11 +18,19 @@ from twin.core.telemetry import Telemetry, Units
 from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
 from twin.core.twin import DeviceTwin
 from twin.edge.payload import encode, make_payload
-from twin.output.sinks import AppliedSample, QueuedSink, RejectedSample, SinkStats, StatusChange
+from twin.output import sinks
+from twin.output.sinks import (
+    RESCUE_MIN_ARMS,
+    AppliedSample,
+    QueuedSink,
+    RejectedSample,
+    SinkStats,
+    StatusChange,
+)
 from twin.robot import so101
 from twin.robot.model import RobotModel
 from twin.service.admission import DeviceBudget
-from twin.service.config import load_config
+from twin.service.config import ConfigError, load_config
 from twin.service.events import FleetWatch
 from twin.service.metrics import render_metrics
 from twin.service.mirror import Mirror, PipeInbox
@@ -184,21 +192,42 @@ def test_an_arms_older_change_dropped_while_its_newer_one_waits_is_dropped_not_k
     assert (sink.stats().dropped, sink.stats().delivered) == (1, 2)
 
 
-def test_the_slot_of_kept_changes_is_bounded_and_drops_its_oldest() -> None:
-    """A review: the slot of arms' newest changes was outside every bound, so a stuck sink thread, with arms
-    forgotten and replaced by new ones, kept a change for every device id it was ever told of. It holds no
-    more changes than the queue holds items; full, it drops its oldest, counted."""
+def test_the_slot_keeps_every_tracked_arms_newest_change_however_small_the_queue() -> None:
+    """A review: the slot was bounded like the queue (two items here), so with more arms changing than that
+    while the thread was stuck it threw the oldest away: a lost change to ONLINE (or a lost forget, with an
+    arm of that name back) left a red OFFLINE label over a live arm. It keeps one per arm tracked at once."""
     gate, worker, sink = _sink_held_at_its_first_sample()
     for n in range(1, 6):
-        sink.status(_change(f"arm-{n:03d}", DeviceStatus.ONLINE, DeviceStatus.OFFLINE))
+        sink.status(_change(f"arm-{n:03d}", DeviceStatus.OFFLINE, DeviceStatus.ONLINE))
     sink.applied(_sample(1))
-    sink.applied(_sample(2))  # every change has left the queue: the slot keeps the newest two arms'
-    assert sink.stats().pending == 1 + 2 + 2
+    sink.applied(_sample(2))  # every change has left the queue: the slot keeps them all
+    gate.set()
+    sink.close()
+    assert worker.order == [0, *(f"arm-{n:03d} ONLINE" for n in range(1, 6)), 1, 2]
+    assert (sink.stats().dropped, sink.stats().delivered) == (0, 3)
+    # It holds as many as one agent may track: telemetry.max_devices allows no more.
+    with pytest.raises(ConfigError, match="max_devices"):
+        load_config(None, {"telemetry.max_devices": RESCUE_MIN_ARMS + 1})
+
+
+def test_a_full_slot_drops_a_forgotten_arms_change_before_a_tracked_ones(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The slot is still bounded (a stuck thread with arms forgotten and replaced would fill it with every new
+    device id): full, it drops the oldest forget, counted, never the newest change of an arm still tracked."""
+    monkeypatch.setattr(sinks, "RESCUE_MIN_ARMS", 2)
+    gate, worker, sink = _sink_held_at_its_first_sample()
+    sink.status(_change("arm-001", DeviceStatus.ONLINE, DeviceStatus.STALE))
+    for n in (2, 3):
+        gone = DeviceStatus.OFFLINE
+        sink.status(StatusChange(f"arm-{n:03d}", gone, gone, at_mono_s=5.0, at_wall_s=5.0, forgotten=True))
+    sink.applied(_sample(1))
+    sink.applied(_sample(2))  # every change has left the queue: the slot of two drops arm-002's forget
     assert len(sink._latest) == 2
     gate.set()
     sink.close()
-    assert worker.order == [0, "arm-004 OFFLINE", "arm-005 OFFLINE", 1, 2]
-    assert (sink.stats().dropped, sink.stats().delivered) == (3, 3)
+    assert worker.order == [0, "arm-001 STALE", "arm-003 OFFLINE", 1, 2]
+    assert (sink.stats().dropped, sink.stats().delivered) == (1, 3)
 
 
 def test_a_stalled_worker_never_blocks_the_caller_and_drops_the_oldest() -> None:

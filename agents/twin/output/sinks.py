@@ -6,7 +6,7 @@ back ONLINE: silence changes those, not a message, so a sink could not tell them
 is the mirror's hot path, so a sink's `applied`/`rejected`/`status` must return in microseconds and never
 block on I/O. Sinks that do I/O (a file, S3, a network peer) wrap their blocking work in `QueuedSink`: a
 bounded queue and a thread of their own, which drops the oldest queued item when the sink falls behind and
-counts it (save an arm's newest status change, kept aside in a slot bounded like the queue), so a slow disk,
+counts it (save an arm's newest status change, kept aside in a slot of one per arm tracked), so a slow disk,
 a stalled viewer or an absent ROS peer never slows mirroring and never grows memory without bound.
 
 A sample carries joint angles, not body poses: forward kinematics is computed where it is needed, in the
@@ -179,6 +179,9 @@ class SinkWorker(Protocol):
 
 # A queued sink holds at most this many bytes of samples (payloads and their overhead) besides its count.
 DEFAULT_MAX_PENDING_BYTES = 64 * 2**20
+# The most arms one agent tracks at once (the limit of telemetry.max_devices): a queued sink keeps aside the
+# newest status change of at least this many (a few hundred bytes each), so none of them is lost.
+RESCUE_MIN_ARMS = 10_000
 
 
 # DeviceRateCap forgets a device silent this long at least (longer when its bucket takes longer to refill).
@@ -245,7 +248,8 @@ class QueuedSink:
     """Runs a `SinkWorker` on its own thread behind a queue bounded by samples (`max_pending`) and by their
     bytes (`max_pending_bytes`, sample_bytes), which drops the oldest when full. Status changes queue with the
     samples, in order, but an arm's newest is kept: dropped from the queue, it waits in a slot of its own (one
-    per arm, bounded like the queue: full, it drops its oldest) and goes to the worker before the rest.
+    per arm, for every arm tracked at once: full, it drops a forgotten arm's first) and goes to the worker
+    before the rest.
 
     Errors raised by the worker are caught, counted and logged (at most once per `error_log_s`), never
     propagated: a broken sink must not stop the mirror or the other sinks.
@@ -282,8 +286,11 @@ class QueuedSink:
         self._rescued: dict[str, StatusChange] = {}
         self._max = max_pending
         self._max_bytes = max_pending_bytes
-        # The slot holds no more changes than the queue would (by count and by bytes).
-        self._max_rescued = max(1, min(max_pending, max_pending_bytes // SAMPLE_OVERHEAD_BYTES))
+        # The slot holds as many changes as the queue would (by count and by bytes), and at least one for
+        # every arm an agent may track at once, however small the queue: an arm's newest status never goes
+        # for want of room (`_rescue`).
+        queued = min(max_pending, max_pending_bytes // SAMPLE_OVERHEAD_BYTES)
+        self._max_rescued = max(RESCUE_MIN_ARMS, queued)
         self._bytes = 0
         self._cond = threading.Condition(threading.Lock())
         self._idle_s = idle_s
@@ -347,13 +354,15 @@ class QueuedSink:
             self._cond.notify()
 
     def _rescue(self, change: StatusChange) -> None:
-        """Keep `change`, the newest of its arm, in the slot (the lock held). The slot is bounded like the
-        queue: a stuck thread with arms forgotten and replaced would fill it with every new device id. Full,
-        it drops its oldest change, counted: that arm waits for its next change, as before the slot."""
+        """Keep `change`, the newest of its arm, in the slot (the lock held). The slot is bounded: a stuck
+        thread with arms forgotten and replaced would fill it with every new device id. Full, it drops the
+        oldest forget first, counted (its arm is gone, and shown wrong only if that name returns before the
+        thread does): the arms tracked, one change each, fit in it, so none of them loses its newest."""
         rescued = self._rescued
         rescued[change.device_id] = change
         if len(rescued) > self._max_rescued:
-            device = next(iter(rescued))
+            forgets = (device for device, kept in rescued.items() if kept.forgotten)
+            device = next(forgets, None) or next(iter(rescued))
             del rescued[device]
             del self._latest[device]  # it was the arm's newest (a newer one takes its slot entry away)
             self._dropped += 1
