@@ -25,6 +25,7 @@ from twin.core.alarms import AlarmThresholds, ServoAlarms
 from twin.core.health import DeviceStatus
 from twin.core.telemetry import DecoderConfig, TelemetryDecoder, Units
 from twin.core.topics import DEFAULT_TOPIC_PREFIX, telemetry_topic
+from twin.output import rerun_sink
 from twin.output.rerun_settings import RerunSettings, RerunSettingsError
 from twin.output.rerun_sink import RerunSink, status_text
 from twin.output.sinks import AppliedSample, RejectedSample, StatusChange
@@ -468,12 +469,14 @@ def test_an_arm_going_stale_offline_and_back_is_told_at_the_live_end(
     assert labels == {stale: ["STALE"], offline: ["OFFLINE"], online: []}
 
 
-def test_an_arm_forgotten_while_offline_loses_its_label_at_the_forget(
+def test_an_arm_forgotten_while_offline_is_labelled_forgotten_at_the_forget(
     robot: RobotModel, tmp_path: Path
 ) -> None:
     """A walk: the agent forgot an arm OFFLINE that long and told no sink, so the red OFFLINE label stayed
     over it, and an arm of that name that published again was new to the mirror. The sink is told of the
-    forget: the label goes with a line that says why, and the arm that publishes again is a new one."""
+    forget: its meshes stay drawn with the last pose, so a grey FORGOTTEN label says so (cleared, they read
+    as an idle live arm), with a line that says why; the arm that publishes again is a new one, unlabelled
+    from its first sample."""
     path = tmp_path / "forgotten.rrd"
     walk = _Walk(robot, path)
     walk.run(1.0, sending=True)
@@ -485,12 +488,15 @@ def test_an_arm_forgotten_while_offline_loses_its_label_at_the_forget(
     walk.mirror.stop()
     temporal, _ = read_rrd(path)
     labels = rows_of(temporal, "/arms/arm-001/status", "Points3D:labels")
-    assert list(labels.values()) == [["STALE"], ["OFFLINE"], []]
+    assert list(labels.values()) == [["STALE"], ["OFFLINE"], ["FORGOTTEN"], []]
+    colours = rows_of(temporal, "/arms/arm-001/status", "Points3D:colors")
+    forgotten_at, cleared_at = sorted(labels)[-2:]
+    assert colours[forgotten_at] == [0x8C8C8CFF]  # grey: not live
     cells = zip(times_ms(temporal), column(temporal, "/arms/arm-001/events", "TextLog:text"), strict=True)
     lines = [(t, line) for t, cell in cells if cell for line in cell if line.startswith("arm ")]
     at, last = lines[-1]
     assert last == "arm forgotten by the agent (was OFFLINE)"
-    assert at == max(labels) < walk.sent[back]
+    assert at == forgotten_at < walk.sent[back] == cleared_at
 
 
 def test_a_forget_that_overtakes_the_sweep_says_the_arm_was_offline(
@@ -516,9 +522,13 @@ def test_a_forget_that_overtakes_the_sweep_says_the_arm_was_offline(
     ]
 
 
-def test_the_arms_the_agent_forgets_leave_no_record_in_the_sink(robot: RobotModel, tmp_path: Path) -> None:
+def test_the_arms_the_agent_forgets_leave_no_record_in_the_sink(
+    robot: RobotModel, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """The sink kept a record of every device id it ever drew: bounded by the arms tracked at once, but not
-    by arms coming and going for weeks. A forget drops the arm's record."""
+    by arms coming and going for weeks. A forget drops the arm's record, and keeps the time of its label
+    for the newest FORGOTTEN_KEPT ids only."""
+    monkeypatch.setattr(rerun_sink, "FORGOTTEN_KEPT", 5)
     decoder = TelemetryDecoder(DecoderConfig(units=Units.DEGREES))
     sink = RerunSink(robot, RerunSettings(save=str(tmp_path / "churn.rrd"), flush_s=0.05))
     for n in range(20):
@@ -533,6 +543,7 @@ def test_the_arms_the_agent_forgets_leave_no_record_in_the_sink(robot: RobotMode
     arms = sink.worker._arms
     # The one left stands in a place of its own: a forgotten arm's meshes stay in theirs in the recording.
     assert list(arms) == ["arm-019"] and arms["arm-019"].index == 19
+    assert list(sink.worker._forgotten) == [f"arm-{n:03d}" for n in range(14, 19)]
 
 
 def test_a_forgotten_focus_arm_hands_the_focus_on(robot: RobotModel, tmp_path: Path) -> None:

@@ -7,7 +7,7 @@ For each device it writes an entity tree under `arms/<device>/` (docs/web.md dra
     arms/<device>/<body>/visual/<geom>     the geom's triangles and colour, posed in the body (static)
     arms/<device>/joints/angle_deg         six joint angles, degrees (one series per joint)
     arms/<device>/servo/<quantity>         six servo readings per quantity, when the edge sends them
-    arms/<device>/status                   a labelled point over an arm that is STALE or OFFLINE
+    arms/<device>/status                   a labelled point over an arm that is STALE, OFFLINE or FORGOTTEN
     arms/<device>/events                   the arm going STALE, OFFLINE and back ONLINE, servo status and
                                            rejected messages, as text
 
@@ -126,8 +126,12 @@ _XYZW = [4, 5, 6, 3]  # columns of a (x y z qw qx qy qz) pose row that make Reru
 _NO_READINGS: tuple[None, ...] = (None,) * len(SERVO_SERIES)
 # An arm's status line's level in the events view: silence is a warning, as on the console's Events page.
 _STATUS_LEVELS = {"STALE": rr.TextLogLevel.WARN, "OFFLINE": rr.TextLogLevel.WARN}
-# And the point labelled with it over the arm (in its base frame, above its reach): amber, red.
-_STATUS_COLOURS = {"STALE": (255, 176, 0), "OFFLINE": (220, 40, 40)}
+# And the point labelled with it over the arm (in its base frame, above its reach): amber, red, and grey
+# over an arm the agent forgot, whose meshes stay drawn with its last pose (the label says it is not live).
+_STATUS_COLOURS = {"STALE": (255, 176, 0), "OFFLINE": (220, 40, 40), "FORGOTTEN": (140, 140, 140)}
+# Forgotten ids whose FORGOTTEN label a new arm of that id clears (it takes its entity path): the newest
+# ones, so ids churning for weeks keep the sink's memory bounded.
+FORGOTTEN_KEPT = 10_000
 STATUS_LABEL_AT = (0.0, 0.0, 0.55)
 
 
@@ -379,6 +383,7 @@ class RerunWorker:
 
         self._arms: dict[str, _Arm] = {}  # the arms drawn, less those the agent forgot (handle_status)
         self._placed = 0  # the arms given a place in the fleet grid so far
+        self._forgotten: dict[str, int] = {}  # a forgotten id: its FORGOTTEN label's time (FORGOTTEN_KEPT)
         self._focus: str | None = None
         # Triangles per arm of the detailed and the far copy (see _log_arm).
         self.mesh_faces: dict[bool, int] = {}
@@ -526,6 +531,8 @@ class RerunWorker:
         diagnostics = sample.telemetry.diagnostics
         # One (joints, quantities) block; a reading the edge did not send is None, which becomes NaN.
         arm.servo[row] = [_servo_row(d) for d in map(diagnostics.get, so101.JOINT_NAMES)]
+        if arm.shown == "FORGOTTEN":
+            self._unlabel(arm, edge_ms)  # a new arm of a forgotten id: the label was its predecessor's
         self._status(arm, sample)
         if sample.alarm_events:
             self._alarms(arm, sample)
@@ -578,17 +585,23 @@ class RerunWorker:
         self._rec.log(f"{arm.entity}/events", rr.TextLog(text, level=level))
 
     def _forget(self, arm: _Arm, change: StatusChange) -> None:
-        """The agent forgot the arm: its samples still buffered go, its label is cleared and a line says so,
-        and its record is dropped (an arm of that name that publishes again is a new one, in a new place), so
-        the records stay within the arms tracked at once however many come and go."""
+        """The agent forgot the arm: its samples still buffered go, a grey FORGOTTEN label goes over its
+        meshes (which stay drawn with its last pose) and a line says so, and its record is dropped (an arm of
+        that name that publishes again is a new one, in a new place, and clears the label), so the records
+        stay within the arms tracked at once however many come and go."""
         if arm.n:
             self._flush(arm)
         at_ms = max(arm.edge.after_last(change.at_mono_s), arm.shown_ms + 1)
+        arm.shown, arm.shown_ms = "FORGOTTEN", at_ms
+        self._label(arm)
         self._rec.set_time(TIMELINE, timestamp=np.datetime64(at_ms, "ms"))
-        self._rec.log(f"{arm.entity}/status", rr.Clear(recursive=False))
         text = f"arm forgotten by the agent (was {change.previous})"
         self._rec.log(f"{arm.entity}/events", rr.TextLog(text, level=rr.TextLogLevel.INFO))
         del self._arms[arm.device]
+        self._forgotten.pop(arm.device, None)
+        self._forgotten[arm.device] = at_ms
+        if len(self._forgotten) > FORGOTTEN_KEPT:
+            del self._forgotten[next(iter(self._forgotten))]
         if self._focus == arm.device:
             self._refocus()
 
@@ -662,8 +675,12 @@ class RerunWorker:
         arm = self._arms.get(device)
         if arm is not None:
             return arm
-        # A forgotten arm's place is not taken again: its meshes stay there in the recording (static).
+        # A forgotten arm's place is not taken again: its meshes stay there, labelled FORGOTTEN, in the
+        # recording (static), until an arm of its id takes its entity path, and moves them to its new place.
         arm = _Arm(device=device, entity=entity_of(device), index=self._placed, bodies=len(self._bodies))
+        forgot_ms = self._forgotten.pop(device, None)
+        if forgot_ms is not None:
+            arm.shown, arm.shown_ms = "FORGOTTEN", forgot_ms  # cleared at its first sample (handle_applied)
         self._placed += 1
         self._arms[device] = arm
         self._statics.append((arm, True))  # logged by _log_statics, a slice at a time
