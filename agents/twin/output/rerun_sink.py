@@ -385,6 +385,7 @@ class RerunWorker:
         self._placed = 0  # the arms given a place in the fleet grid so far
         self._forgotten: dict[str, int] = {}  # a forgotten id: its FORGOTTEN label's time (FORGOTTEN_KEPT)
         self._focus: str | None = None
+        self._focus_index: int | None = None  # the focus arm's grid place, kept for its id's return
         # Triangles per arm of the detailed and the far copy (see _log_arm).
         self.mesh_faces: dict[bool, int] = {}
         # Built now, on the caller's thread before any telemetry flows: thinning detailed meshes takes a
@@ -602,14 +603,9 @@ class RerunWorker:
         self._forgotten[arm.device] = at_ms
         if len(self._forgotten) > FORGOTTEN_KEPT:
             del self._forgotten[next(iter(self._forgotten))]
-        if self._focus == arm.device:
-            self._refocus()
-
-    def _refocus(self) -> None:
-        """The focus arm was forgotten: the blueprint would keep framing its empty place. Another arm drawn
-        takes the focus, or with none (or a `focus_device` set, which keeps its claim) the next arm seen."""
-        self._focus = None if self.settings.focus_device else next(iter(self._arms), None)
-        self._rec.send_blueprint(self._blueprint(self._focus), make_active=True, make_default=True)
+        # The focus stays on the forgotten arm (labelled FORGOTTEN, so the view is truthful): handing it on
+        # would send a blueprint, and each keeps a stream and two threads for as long as the process runs
+        # (SDK 0.41), so arms churning for weeks would pile them up. An arm of that id takes the place back.
 
     def _label(self, arm: _Arm, rec: _Tee | None = None) -> None:
         """The arm's status over it in the fleet view (the events view shows the focus arm's lines only), into
@@ -677,16 +673,21 @@ class RerunWorker:
             return arm
         # A forgotten arm's place is not taken again: its meshes stay there, labelled FORGOTTEN, in the
         # recording (static), until an arm of its id takes its entity path, and moves them to its new place.
-        arm = _Arm(device=device, entity=entity_of(device), index=self._placed, bodies=len(self._bodies))
+        # The focus arm's id returning takes its old place back, where the layout's camera looks (the layout
+        # is sent once: see _forget).
+        back = self._focus_index if device == self._focus else None
+        index = self._placed if back is None else back
+        arm = _Arm(device=device, entity=entity_of(device), index=index, bodies=len(self._bodies))
         forgot_ms = self._forgotten.pop(device, None)
         if forgot_ms is not None:
             arm.shown, arm.shown_ms = "FORGOTTEN", forgot_ms  # cleared at its first sample (handle_applied)
-        self._placed += 1
+        if back is None:
+            self._placed += 1
         self._arms[device] = arm
         self._statics.append((arm, True))  # logged by _log_statics, a slice at a time
         focus = self.settings.focus_device
         if self._focus is None and (not focus or focus == device):
-            self._focus = device
+            self._focus, self._focus_index = device, arm.index
             self._rec.send_blueprint(self._blueprint(device), make_active=True, make_default=True)
         return arm
 
