@@ -546,6 +546,33 @@ def test_the_arms_the_agent_forgets_leave_no_record_in_the_sink(
     assert list(sink.worker._forgotten) == [f"arm-{n:03d}" for n in range(14, 19)]
 
 
+def test_an_arm_of_an_id_forgotten_too_long_ago_to_be_kept_still_clears_its_label(
+    robot: RobotModel, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A review: once an id dropped out of the FORGOTTEN_KEPT kept, an arm of that id came back onto its
+    entity path under the grey label, never cleared. Once any id is dropped, every new arm clears the label,
+    after the latest one dropped."""
+    monkeypatch.setattr(rerun_sink, "FORGOTTEN_KEPT", 2)
+    decoder = TelemetryDecoder(DecoderConfig(units=Units.DEGREES))
+    path = tmp_path / "floor.rrd"
+    sink = RerunSink(robot, RerunSettings(save=str(path), flush_s=0.05))
+    gone = DeviceStatus.OFFLINE
+    for n, device in enumerate(["arm-000", "arm-001", "arm-002", "arm-000"]):
+        telemetry = decoder.decode(json.dumps(payload(device, n)), topic_device=device)
+        sink.applied(AppliedSample(device, time.time(), n * 1.0, telemetry, dict(telemetry.angles_rad)))
+        if n < 3:  # arm-000's time is dropped with arm-002's forget
+            sink.status(StatusChange(device, gone, gone, at_mono_s=n + 0.5, at_wall_s=n, forgotten=True))
+    wait_for(lambda: sink.stats().pending == 0, 30, "the sink to take every item")
+    sink.close()
+    assert "arm-000" not in sink.worker._forgotten
+    temporal, _ = read_rrd(path)
+    labels = rows_of(temporal, "/arms/arm-000/status", "Points3D:labels")
+    assert list(labels.values()) == [["FORGOTTEN"], []]
+    # After its label: the only time dropped, arm-000's own, is the floor.
+    forgotten_at, cleared_at = sorted(labels)
+    assert cleared_at > forgotten_at
+
+
 def test_forgetting_the_focus_arm_sends_no_layout_and_its_id_takes_its_place_back(
     robot: RobotModel, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -130,7 +130,7 @@ _STATUS_LEVELS = {"STALE": rr.TextLogLevel.WARN, "OFFLINE": rr.TextLogLevel.WARN
 # over an arm the agent forgot, whose meshes stay drawn with its last pose (the label says it is not live).
 _STATUS_COLOURS = {"STALE": (255, 176, 0), "OFFLINE": (220, 40, 40), "FORGOTTEN": (140, 140, 140)}
 # Forgotten ids whose FORGOTTEN label a new arm of that id clears (it takes its entity path): the newest
-# ones, so ids churning for weeks keep the sink's memory bounded.
+# ones, so ids churning for weeks keep the sink's memory bounded (older ones: `_forgotten_floor`).
 FORGOTTEN_KEPT = 10_000
 STATUS_LABEL_AT = (0.0, 0.0, 0.55)
 
@@ -380,10 +380,12 @@ class RerunWorker:
                 self._rec.disconnect()
                 raise
             self.viewer_url = viewer_url(web_port, self.grpc_url or "")
-
         self._arms: dict[str, _Arm] = {}  # the arms drawn, less those the agent forgot (handle_status)
         self._placed = 0  # the arms given a place in the fleet grid so far
         self._forgotten: dict[str, int] = {}  # a forgotten id: its FORGOTTEN label's time (FORGOTTEN_KEPT)
+        # Past `_forgotten`, the latest label time dropped: once set, any new arm may have inherited a label,
+        # so each clears it after that (a clear with no label to clear costs one small row).
+        self._forgotten_floor: int | None = None
         self._focus: str | None = None
         self._focus_index: int | None = None  # the focus arm's grid place, kept for its id's return
         # Triangles per arm of the detailed and the far copy (see _log_arm).
@@ -396,8 +398,7 @@ class RerunWorker:
         self._moving = tuple(b for b in self._bodies if int(robot.model.body_weldid[robot.body_ids[b]]) != 0)
         self._moving_idx = np.array([self._bodies.index(b) for b in self._moving], dtype=np.int64)
         self._next_sweep = 0.0
-        # Per device (None: messages no device could be read from): last rejection text time, and how many
-        # rejections were not written since.
+        # Per device (None: no device could be read): last rejection text time, rejections unwritten since.
         self._rejects: dict[str | None, tuple[float, int]] = {}
         self.samples_logged = 0
         self.batches_sent = 0
@@ -602,7 +603,8 @@ class RerunWorker:
         self._forgotten.pop(arm.device, None)
         self._forgotten[arm.device] = at_ms
         if len(self._forgotten) > FORGOTTEN_KEPT:
-            del self._forgotten[next(iter(self._forgotten))]
+            dropped = self._forgotten.pop(next(iter(self._forgotten)))
+            self._forgotten_floor = max(self._forgotten_floor or dropped, dropped)
         # The focus stays on the forgotten arm (labelled FORGOTTEN, so the view is truthful): handing it on
         # would send a blueprint, and each keeps a stream and two threads for as long as the process runs
         # (SDK 0.41), so arms churning for weeks would pile them up. An arm of that id takes the place back.
@@ -678,7 +680,7 @@ class RerunWorker:
         back = self._focus_index if device == self._focus else None
         index = self._placed if back is None else back
         arm = _Arm(device=device, entity=entity_of(device), index=index, bodies=len(self._bodies))
-        forgot_ms = self._forgotten.pop(device, None)
+        forgot_ms = self._forgotten.pop(device, self._forgotten_floor)
         if forgot_ms is not None:
             arm.shown, arm.shown_ms = "FORGOTTEN", forgot_ms  # cleared at its first sample (handle_applied)
         if back is None:
