@@ -102,7 +102,7 @@ class _StatusRecorder(_Recorder):
         self.order.append("sample")
 
     def handle_status(self, change: StatusChange) -> None:
-        self.order.append(f"{change.device_id} {change.status}")
+        self.order.append(f"{change.device_id} {change.status}" + (" forgotten" if change.forgotten else ""))
 
 
 def test_status_changes_reach_only_the_workers_that_show_them_in_order_with_samples() -> None:
@@ -141,7 +141,7 @@ class _GatedStatusRecorder(_Recorder):
         self.order.append(self.applied[-1])
 
     def handle_status(self, change: StatusChange) -> None:
-        self.order.append(f"{change.device_id} {change.status}")
+        self.order.append(f"{change.device_id} {change.status}" + (" forgotten" if change.forgotten else ""))
 
 
 def _change(device: str, previous: DeviceStatus, status: DeviceStatus) -> StatusChange:
@@ -226,8 +226,43 @@ def test_a_full_slot_drops_a_forgotten_arms_change_before_a_tracked_ones(
     assert len(sink._latest) == 2
     gate.set()
     sink.close()
-    assert worker.order == [0, "arm-001 STALE", "arm-003 OFFLINE", 1, 2]
+    assert worker.order == [0, "arm-003 OFFLINE forgotten", "arm-001 STALE", 1, 2]
     assert (sink.stats().dropped, sink.stats().delivered) == (1, 3)
+
+
+def _forget(device: str) -> StatusChange:
+    gone = DeviceStatus.OFFLINE
+    return StatusChange(device, gone, gone, at_mono_s=5.0, at_wall_s=5.0, forgotten=True)
+
+
+def test_an_arms_return_never_replaces_its_forget_waiting_in_the_slot() -> None:
+    """A review: the returning arm's first change replaced its forget waiting in the slot, so the worker
+    never saw the forget and the old arm's red OFFLINE label stayed over the live one. The forget stays,
+    and goes before the return."""
+    gate, worker, sink = _sink_held_at_its_first_sample()
+    sink.status(_forget("arm-001"))
+    sink.applied(_sample(1))
+    sink.applied(_sample(2))  # the forget leaves the queue for the slot
+    sink.status(_change("arm-001", DeviceStatus.OFFLINE, DeviceStatus.ONLINE))
+    sink.applied(_sample(3))
+    sink.applied(_sample(4))  # and so does the return
+    gate.set()
+    sink.close()
+    assert worker.order == [0, "arm-001 OFFLINE forgotten", "arm-001 ONLINE", 3, 4]
+    assert (sink.stats().dropped, sink.stats().delivered, sink.stats().pending) == (2, 3, 0)
+
+
+def test_an_arms_return_queued_behind_its_forget_never_lets_the_forget_be_dropped() -> None:
+    """A review: the returning arm's change became its id's newest, so its forget still queued, no longer
+    the newest, was dropped when the queue overflowed. A forget leaving the queue is always kept."""
+    gate, worker, sink = _sink_held_at_its_first_sample()
+    sink.status(_forget("arm-001"))
+    sink.status(_change("arm-001", DeviceStatus.OFFLINE, DeviceStatus.ONLINE))
+    sink.applied(_sample(1))  # the forget leaves the queue; the return is still in it
+    gate.set()
+    sink.close()
+    assert worker.order == [0, "arm-001 OFFLINE forgotten", "arm-001 ONLINE", 1]
+    assert (sink.stats().dropped, sink.stats().delivered) == (0, 2)
 
 
 def test_a_stalled_worker_never_blocks_the_caller_and_drops_the_oldest() -> None:

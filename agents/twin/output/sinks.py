@@ -279,11 +279,14 @@ class QueuedSink:
         self._handle_status: Callable[[StatusChange], None] | None = getattr(worker, "handle_status", None)
         # A quiet arm sends no sample to correct a status change the queue dropped: it would be shown wrong
         # until its next change. So each arm's newest change not yet taken by the thread is known (`_latest`),
-        # and when dropped it waits in `_rescued` instead, until taken or replaced by a newer one. Both hold
-        # one change per arm at most and empty at each batch taken: every change in them came after the last.
-        # `_rescued` is bounded (`_rescue`), and `_latest` holds only changes queued or in it.
+        # and when dropped it waits in `_rescued` instead, until taken or replaced by a newer one. A dropped
+        # forget waits in `_forgets`, oldest first, never replaced (lost, an arm of its id back would keep
+        # the old one's OFFLINE label), and goes before its id's newer change in `_rescued`. All hold one
+        # change per arm at most and empty at each batch taken: every change in them came after the last.
+        # The slot (both) is bounded (`_rescue`), and `_latest` holds only changes queued or in it.
         self._latest: dict[str, StatusChange] = {}
         self._rescued: dict[str, StatusChange] = {}
+        self._forgets: dict[str, StatusChange] = {}
         self._max = max_pending
         self._max_bytes = max_pending_bytes
         # The slot holds as many changes as the queue would (by count and by bytes), and at least one for
@@ -325,8 +328,9 @@ class QueuedSink:
         with self._cond:
             if not self._closing:
                 device = change.device_id
+                # Replaced by this newer change before the thread took it (never a forget: `_forgets`).
                 if self._rescued.pop(device, None) is not None:
-                    self._dropped += 1  # replaced by this newer change before the thread took it
+                    self._dropped += 1
                 self._latest[device] = change
             self._append(change)
 
@@ -346,7 +350,7 @@ class QueuedSink:
         while len(queue) > 1 and (len(queue) > self._max or self._bytes > self._max_bytes):
             old = queue.popleft()
             self._bytes -= sample_bytes(old)
-            if isinstance(old, StatusChange) and self._latest.get(old.device_id) is old:
+            if isinstance(old, StatusChange) and (old.forgotten or self._latest.get(old.device_id) is old):
                 self._rescue(old)
             else:
                 self._dropped += 1
@@ -354,18 +358,29 @@ class QueuedSink:
             self._cond.notify()
 
     def _rescue(self, change: StatusChange) -> None:
-        """Keep `change`, the newest of its arm, in the slot (the lock held). The slot is bounded: a stuck
-        thread with arms forgotten and replaced would fill it with every new device id. Full, it drops the
-        oldest forget first, counted (its arm is gone, and shown wrong only if that name returns before the
-        thread does): the arms tracked, one change each, fit in it, so none of them loses its newest."""
-        rescued = self._rescued
-        rescued[change.device_id] = change
-        if len(rescued) > self._max_rescued:
-            forgets = (device for device, kept in rescued.items() if kept.forgotten)
-            device = next(forgets, None) or next(iter(rescued))
-            del rescued[device]
-            del self._latest[device]  # it was the arm's newest (a newer one takes its slot entry away)
-            self._dropped += 1
+        """Keep `change`, a forget or the newest of its arm, in the slot (the lock held). An id's forget kept
+        already stands for a later one: the sink saw nothing of the arm between them (it was older than this
+        one, and dropped first). The slot is bounded: a stuck thread with arms forgotten and replaced would
+        fill it with every new device id. Full, it drops the oldest forget first, counted (its arm is gone,
+        and shown wrong only if that name returns before the thread does): the arms tracked, one change each,
+        fit in it, so none of them loses its newest."""
+        forgets, rescued = self._forgets, self._rescued
+        if not change.forgotten:
+            rescued[change.device_id] = change
+        elif change.device_id in forgets:
+            self._drop_change(change)
+            return
+        else:
+            forgets[change.device_id] = change
+        if len(forgets) + len(rescued) > self._max_rescued:
+            oldest = forgets if forgets else rescued
+            self._drop_change(oldest.pop(next(iter(oldest))))
+
+    def _drop_change(self, change: StatusChange) -> None:
+        """Count `change` dropped, and let its id's `_latest` go with it if it was that (the lock held)."""
+        if self._latest.get(change.device_id) is change:
+            del self._latest[change.device_id]
+        self._dropped += 1
 
     def stats(self) -> SinkStats:
         with self._cond:
@@ -374,7 +389,7 @@ class QueuedSink:
                 delivered=self._delivered,
                 dropped=self._dropped,
                 errors=self._errors,
-                pending=len(self._queue) + len(self._rescued) + self._in_flight,
+                pending=len(self._queue) + len(self._forgets) + len(self._rescued) + self._in_flight,
                 last_error=self._last_error,
             )
 
@@ -395,9 +410,10 @@ class QueuedSink:
                     self._waiting = True
                     self._cond.wait(self._idle_s)
                     self._waiting = False
-                # The rescued changes came before everything still queued (each was the oldest item then).
-                items = [*self._rescued.values(), *self._queue]
+                # The slot's changes came before everything still queued (each was the oldest item then).
+                items = [*self._forgets.values(), *self._rescued.values(), *self._queue]
                 self._queue.clear()
+                self._forgets.clear()
                 self._rescued.clear()
                 self._latest.clear()
                 self._bytes = 0
