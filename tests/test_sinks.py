@@ -102,7 +102,7 @@ class _StatusRecorder(_Recorder):
         self.order.append("sample")
 
     def handle_status(self, change: StatusChange) -> None:
-        self.order.append(f"{change.device_id} {change.status}" + (" forgotten" if change.forgotten else ""))
+        self.order.append(f"{change.device_id} {change.status}")
 
 
 def test_status_changes_reach_only_the_workers_that_show_them_in_order_with_samples() -> None:
@@ -141,7 +141,8 @@ class _GatedStatusRecorder(_Recorder):
         self.order.append(self.applied[-1])
 
     def handle_status(self, change: StatusChange) -> None:
-        self.order.append(f"{change.device_id} {change.status}" + (" forgotten" if change.forgotten else ""))
+        forgotten = f" forgotten (was {change.previous})" if change.forgotten else ""
+        self.order.append(f"{change.device_id} {change.status}{forgotten}")
 
 
 def _change(device: str, previous: DeviceStatus, status: DeviceStatus) -> StatusChange:
@@ -226,13 +227,12 @@ def test_a_full_slot_drops_a_forgotten_arms_change_before_a_tracked_ones(
     assert len(sink._latest) == 2
     gate.set()
     sink.close()
-    assert worker.order == [0, "arm-003 OFFLINE forgotten", "arm-001 STALE", 1, 2]
+    assert worker.order == [0, "arm-003 OFFLINE forgotten (was OFFLINE)", "arm-001 STALE", 1, 2]
     assert (sink.stats().dropped, sink.stats().delivered) == (1, 3)
 
 
-def _forget(device: str) -> StatusChange:
-    gone = DeviceStatus.OFFLINE
-    return StatusChange(device, gone, gone, at_mono_s=5.0, at_wall_s=5.0, forgotten=True)
+def _forget(device: str, previous: DeviceStatus = DeviceStatus.OFFLINE) -> StatusChange:
+    return StatusChange(device, previous, DeviceStatus.OFFLINE, at_mono_s=5.0, at_wall_s=5.0, forgotten=True)
 
 
 def test_an_arms_return_never_replaces_its_forget_waiting_in_the_slot() -> None:
@@ -248,7 +248,7 @@ def test_an_arms_return_never_replaces_its_forget_waiting_in_the_slot() -> None:
     sink.applied(_sample(4))  # and so does the return
     gate.set()
     sink.close()
-    assert worker.order == [0, "arm-001 OFFLINE forgotten", "arm-001 ONLINE", 3, 4]
+    assert worker.order == [0, "arm-001 OFFLINE forgotten (was OFFLINE)", "arm-001 ONLINE", 3, 4]
     assert (sink.stats().dropped, sink.stats().delivered, sink.stats().pending) == (2, 3, 0)
 
 
@@ -261,8 +261,26 @@ def test_an_arms_return_queued_behind_its_forget_never_lets_the_forget_be_droppe
     sink.applied(_sample(1))  # the forget leaves the queue; the return is still in it
     gate.set()
     sink.close()
-    assert worker.order == [0, "arm-001 OFFLINE forgotten", "arm-001 ONLINE", 1]
+    assert worker.order == [0, "arm-001 OFFLINE forgotten (was OFFLINE)", "arm-001 ONLINE", 1]
     assert (sink.stats().dropped, sink.stats().delivered) == (0, 2)
+
+
+def test_a_second_forget_of_an_id_whose_forget_waits_in_the_slot_is_dropped() -> None:
+    """The slot keeps one forget per id: the first, of the arm the worker drew. A second one dropped from the
+    queue behind it stands for an arm of which everything older than it went first, so the worker saw none
+    of it: it is counted dropped, and the worker is told of the forget of the arm it knows."""
+    gate, worker, sink = _sink_held_at_its_first_sample()
+    sink.status(_forget("arm-001"))
+    sink.applied(_sample(1))
+    sink.applied(_sample(2))  # the forget leaves the queue for the slot
+    sink.status(_change("arm-001", DeviceStatus.OFFLINE, DeviceStatus.ONLINE))
+    sink.status(_forget("arm-001", DeviceStatus.STALE))  # samples 1 and 2 go
+    sink.applied(_sample(3))
+    sink.applied(_sample(4))  # the return (no longer the newest) goes, and the second forget
+    gate.set()
+    sink.close()
+    assert worker.order == [0, "arm-001 OFFLINE forgotten (was OFFLINE)", 3, 4]
+    assert (sink.stats().dropped, sink.stats().delivered, sink.stats().pending) == (4, 3, 0)
 
 
 def test_a_stalled_worker_never_blocks_the_caller_and_drops_the_oldest() -> None:
