@@ -573,6 +573,39 @@ def test_an_arm_of_an_id_forgotten_too_long_ago_to_be_kept_still_clears_its_labe
     assert cleared_at > forgotten_at
 
 
+def test_a_new_arms_labels_go_after_its_clear_when_the_floor_is_far_ahead(
+    robot: RobotModel, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A review: the floor of dropped label times comes from other arms' clocks, and one set to 2099 put every
+    new arm's first Clear there: its STALE and OFFLINE labels, at its own times, lost to that Clear at the
+    live end for as long as the process ran. A label goes after its arm's last Clear."""
+    monkeypatch.setattr(rerun_sink, "FORGOTTEN_KEPT", 1)
+    decoder = TelemetryDecoder(DecoderConfig(units=Units.DEGREES))
+    path = tmp_path / "ahead.rrd"
+    sink = RerunSink(robot, RerunSettings(save=str(path), flush_s=0.05))
+    gone, stale = DeviceStatus.OFFLINE, DeviceStatus.STALE
+    far_ms = int(np.datetime64("2099-06-01", "ms").astype(np.int64))
+    for n, device in enumerate(["arm-000", "arm-001", "arm-002", "arm-003"]):
+        doc = payload(device, n)
+        if device == "arm-000":
+            doc["timestamp"] = far_ms  # a clock far ahead: its label time becomes the floor once dropped
+        telemetry = decoder.decode(json.dumps(doc), topic_device=device)
+        sink.applied(AppliedSample(device, time.time(), n * 1.0, telemetry, dict(telemetry.angles_rad)))
+        if n != 2:  # arm-000's time is dropped with arm-001's forget; arm-003 is forgotten at once
+            sink.status(StatusChange(device, gone, gone, at_mono_s=n + 0.5, at_wall_s=n, forgotten=True))
+    sink.status(StatusChange("arm-002", DeviceStatus.ONLINE, stale, at_mono_s=3.0, at_wall_s=3.0))
+    sink.status(StatusChange("arm-002", stale, gone, at_mono_s=4.0, at_wall_s=4.0))
+    wait_for(lambda: sink.stats().pending == 0, 30, "the sink to take every item")
+    sink.close()
+    temporal, _ = read_rrd(path)
+    labels = rows_of(temporal, "/arms/arm-002/status", "Points3D:labels")
+    # The Clear first, past the floor; the labels after it, in order: OFFLINE shows at the live end.
+    assert [labels[t] for t in sorted(labels)] == [[], ["STALE"], ["OFFLINE"]], labels
+    assert min(labels) > far_ms
+    labels = rows_of(temporal, "/arms/arm-003/status", "Points3D:labels")
+    assert [labels[t] for t in sorted(labels)] == [[], ["FORGOTTEN"]], labels
+
+
 def test_forgetting_the_focus_arm_sends_no_layout_and_its_id_takes_its_place_back(
     robot: RobotModel, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -188,6 +188,9 @@ class _Arm:
     # The arm's status as its label over it shows it (handle_status), and the label's time: ONLINE is none.
     shown: str = "ONLINE"
     shown_ms: int = 0
+    # The time of the last Clear of that label: a later label goes after it, or the Clear hides it at the live
+    # end. A new arm's first one may be far past its own clock (the `_forgotten_floor`, from other arms).
+    cleared_ms: int = 0
     servo_styled: set[str] = field(default_factory=set)
     schemas: dict[tuple[str, ...], pa.Schema] = field(default_factory=dict)
 
@@ -580,7 +583,9 @@ class RerunWorker:
         text = f"arm {change.status} (was {change.previous})"
         if change.status in _STATUS_COLOURS:
             text += ": its pose is the last one it sent"
-            arm.shown, arm.shown_ms = change.status, at_ms
+            # After the arm's last label and Clear, which a far floor may have put past its own clock.
+            arm.shown_ms = max(at_ms, arm.shown_ms + 1, arm.cleared_ms + 1)
+            arm.shown = change.status
             self._label(arm)
         elif arm.shown != "ONLINE":
             self._unlabel(arm, at_ms)
@@ -589,11 +594,12 @@ class RerunWorker:
     def _forget(self, arm: _Arm, change: StatusChange) -> None:
         """The agent forgot the arm: its samples still buffered go, a grey FORGOTTEN label goes over its
         meshes (which stay drawn with its last pose) and a line says so, and its record is dropped (an arm of
-        that name that publishes again is a new one, in a new place, and clears the label), so the records
-        stay within the arms tracked at once however many come and go."""
+        that name that publishes again is a new one, in a new place unless it is the focus id, which takes its
+        old place back, and clears the label), so the records stay within the arms tracked at once however
+        many come and go."""
         if arm.n:
             self._flush(arm)
-        at_ms = max(arm.edge.after_last(change.at_mono_s), arm.shown_ms + 1)
+        at_ms = max(arm.edge.after_last(change.at_mono_s), arm.shown_ms + 1, arm.cleared_ms + 1)
         arm.shown, arm.shown_ms = "FORGOTTEN", at_ms
         self._label(arm)
         self._rec.set_time(TIMELINE, timestamp=np.datetime64(at_ms, "ms"))
@@ -628,7 +634,8 @@ class RerunWorker:
         with its first sample back: a STALE arm that sends one sample and falls quiet again stays STALE to the
         mirror (and on the console), which sends no change. Never behind the label: a sample delivered late
         (a backlog after an outage) may have been measured before its time."""
-        self._rec.set_time(TIMELINE, timestamp=np.datetime64(max(at_ms, arm.shown_ms + 1), "ms"))
+        arm.cleared_ms = max(at_ms, arm.shown_ms + 1)
+        self._rec.set_time(TIMELINE, timestamp=np.datetime64(arm.cleared_ms, "ms"))
         self._rec.log(f"{arm.entity}/status", rr.Clear(recursive=False))
         arm.shown = "ONLINE"
 
