@@ -6,8 +6,9 @@ back ONLINE: silence changes those, not a message, so a sink could not tell them
 is the mirror's hot path, so a sink's `applied`/`rejected`/`status` must return in microseconds and never
 block on I/O. Sinks that do I/O (a file, S3, a network peer) wrap their blocking work in `QueuedSink`: a
 bounded queue and a thread of their own, which drops the oldest queued item when the sink falls behind and
-counts it (save an arm's newest status change, kept aside in a slot of one per arm tracked), so a slow disk,
-a stalled viewer or an absent ROS peer never slows mirroring and never grows memory without bound.
+counts it (save an arm's newest status change, kept aside in a slot of one per arm tracked, and a forget,
+kept in a queue of its own in that slot, which drops the oldest forget first when full), so a slow disk, a
+stalled viewer or an absent ROS peer never slows mirroring and never grows memory without bound.
 
 A sample carries joint angles, not body poses: forward kinematics is computed where it is needed, in the
 sink's own thread (`RobotModel.body_poses`), because MuJoCo scratch data is per thread and most sinks need
@@ -248,8 +249,9 @@ class QueuedSink:
     """Runs a `SinkWorker` on its own thread behind a queue bounded by samples (`max_pending`) and by their
     bytes (`max_pending_bytes`, sample_bytes), which drops the oldest when full. Status changes queue with the
     samples, in order, but an arm's newest is kept: dropped from the queue, it waits in a slot of its own (one
-    per arm, for every arm tracked at once: full, it drops a forgotten arm's first) and goes to the worker
-    before the rest.
+    per arm, for every arm tracked at once) and goes to the worker before the rest. A dropped forget waits
+    there too, in a queue of its own that no later change of its id replaces; full, the slot drops the oldest
+    forget first.
 
     Errors raised by the worker are caught, counted and logged (at most once per `error_log_s`), never
     propagated: a broken sink must not stop the mirror or the other sinks.
@@ -411,6 +413,8 @@ class QueuedSink:
                     self._cond.wait(self._idle_s)
                     self._waiting = False
                 # The slot's changes came before everything still queued (each was the oldest item then).
+                # All its forgets go before the changes of its other ids: harmless, as each arm is drawn at
+                # its own times.
                 items = [*self._forgets.values(), *self._rescued.values(), *self._queue]
                 self._queue.clear()
                 self._forgets.clear()
