@@ -3,6 +3,7 @@ themselves are tests/test_bench.py's, which are slow)."""
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import json
 import os
@@ -54,6 +55,11 @@ def _installed(monkeypatch: pytest.MonkeyPatch, *names: str) -> None:
         monkeypatch.setitem(sys.modules, name, module)
 
 
+def _all_args(plot: Path) -> argparse.Namespace:
+    # Every test runs `bench all` the same way: figures as JSON on stdout, the plot out of docs/.
+    return build_parser().parse_args(["bench", "all", "--json", "--plot", str(plot)])
+
+
 def test_bench_all_says_which_scenario_runs_on_stderr_and_prints_only_figures(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:
@@ -61,7 +67,7 @@ def test_bench_all_says_which_scenario_runs_on_stderr_and_prints_only_figures(
     # than the "about 6 minutes" said, on a busy machine, with no word of where it was.
     ran: list[str] = []
     monkeypatch.setattr(cmd, "_bench", _scenarios(ran))
-    args = build_parser().parse_args(["bench", "all", "--json", "--plot", str(tmp_path / "p.png")])
+    args = _all_args(tmp_path / "p.png")
     assert cmd.run(args) == 0
     out, err = capsys.readouterr()
     figures = json.loads(out)  # stdout stays the figures alone
@@ -98,7 +104,7 @@ def test_bench_all_without_root_skips_ros2_keeps_the_other_figures_and_exits_3(
     _installed(monkeypatch, "cyclonedds")
     ran: list[str] = []
     monkeypatch.setattr(cmd, "_bench", _scenarios(ran, real=("ros2",)))
-    args = build_parser().parse_args(["bench", "all", "--json", "--plot", str(tmp_path / "p.png")])
+    args = _all_args(tmp_path / "p.png")
     assert cmd.run(args) == cmd.EXIT_SKIPPED == 3
     out, err = capsys.readouterr()
     figures = json.loads(out)
@@ -122,7 +128,7 @@ def test_bench_all_reports_a_step_that_failed_runs_the_rest_and_exits_1(
     # A step that ran and broke is a real failure: the run fails, but the other steps' figures are printed.
     ran: list[str] = []
     monkeypatch.setattr(cmd, "_bench", _scenarios(ran, broken="render"))
-    args = build_parser().parse_args(["bench", "all", "--json", "--plot", str(tmp_path / "p.png")])
+    args = _all_args(tmp_path / "p.png")
     assert cmd.run(args) == 1
     out, err = capsys.readouterr()
     figures = json.loads(out)
@@ -140,7 +146,7 @@ def test_bench_all_whose_plot_fails_still_prints_every_step_and_exits_1(
 ) -> None:
     ran: list[str] = []
     monkeypatch.setattr(cmd, "_bench", _scenarios(ran, broken="plot"))
-    args = build_parser().parse_args(["bench", "all", "--json", "--plot", str(tmp_path / "p.png")])
+    args = _all_args(tmp_path / "p.png")
     assert cmd.run(args) == 1
     figures = json.loads(capsys.readouterr().out)
     assert figures["failed"] == {"plot": f"ValueError: cannot draw {tmp_path / 'p.png'}"}
@@ -156,7 +162,7 @@ def test_bench_all_without_a_throughput_run_leaves_the_plot_as_it_was(
     plot.write_bytes(b"the committed plot")
     ran: list[str] = []
     monkeypatch.setattr(cmd, "_bench", _scenarios(ran, real=("plot",), broken="throughput"))
-    args = build_parser().parse_args(["bench", "all", "--json", "--plot", str(plot)])
+    args = _all_args(plot)
     assert cmd.run(args) == 1
     figures = json.loads(capsys.readouterr().out)
     assert plot.read_bytes() == b"the committed plot" and "plot" not in figures, figures
@@ -174,7 +180,7 @@ def test_bench_all_stops_at_an_interrupt_in_a_step(
     # Ctrl-C in a step of a 6-minute run must end the run, not be reported as that step's failure.
     ran: list[str] = []
     monkeypatch.setattr(cmd, "_bench", _scenarios(ran, broken="footprint", error=KeyboardInterrupt()))
-    args = build_parser().parse_args(["bench", "all", "--json", "--plot", str(tmp_path / "p.png")])
+    args = _all_args(tmp_path / "p.png")
     with pytest.raises(KeyboardInterrupt):
         cmd.run(args)
     assert ran[-1] == "footprint" and len(ran) == 4, ran
@@ -208,7 +214,7 @@ def test_bench_all_without_a_browser_skips_console_before_starting_its_fleet(
         why = "Playwright is not installed"
     ran: list[str] = []
     monkeypatch.setattr(cmd, "_bench", _scenarios(ran, real=("console",)))
-    args = build_parser().parse_args(["bench", "all", "--json", "--plot", str(tmp_path / "p.png")])
+    args = _all_args(tmp_path / "p.png")
     assert cmd.run(args) == cmd.EXIT_SKIPPED
     figures = json.loads(capsys.readouterr().out)
     assert started == [] and list(figures["skipped"]) == ["console"], figures
@@ -225,7 +231,7 @@ def test_bench_all_without_cyclonedds_skips_ros2_before_making_its_namespace(
     monkeypatch.setattr(netns, "run_in_loopback_namespace", lambda *a, **k: made.append("netns"))
     monkeypatch.setitem(sys.modules, "cyclonedds", None)
     monkeypatch.setattr(cmd, "_bench", _scenarios([], real=("ros2",)))
-    args = build_parser().parse_args(["bench", "all", "--json", "--plot", str(tmp_path / "p.png")])
+    args = _all_args(tmp_path / "p.png")
     assert cmd.run(args) == cmd.EXIT_SKIPPED
     figures = json.loads(capsys.readouterr().out)
     assert made == [] and "failed" not in figures, figures
