@@ -5,7 +5,7 @@ and events, starts or stops the EC2 instance, waits for the state with the EC2 w
 the host through SSM Run Command (`run_on_host`): the agent's health (its `/healthz` listens on 127.0.0.1
 only, so it can only be asked from the instance) with the deployment version the host runs, the verdict of
 the checks the host runs after every start (`start_verdict`), and the host checks of `twin instance check`
-(twin.ops.instance_check).
+(twin.ops.instance_check). `dcv_password` reads the DCV login password from the secret the stack names.
 
 Everything that can go wrong for a reason the user can fix is raised as a `TwinInstanceError` subclass whose
 message says what to do; the `twin instance` command maps each class to its own exit code:
@@ -71,6 +71,8 @@ OUTPUT_HOST_LOG_GROUP = "HostLogGroup"
 OUTPUT_SETTINGS = "Settings"
 OUTPUT_CALIBRATION_URI = "CalibrationUri"
 REQUIRED_OUTPUTS = (OUTPUT_INSTANCE_ID, OUTPUT_DCV_URL)
+# The codes AWS answers a caller whose policies do not allow the call with.
+ACCESS_DENIED = ("AccessDeniedException", "AccessDenied")
 
 HEALTH_URL = f"{DEFAULT_AGENT_URL}/healthz"
 # The body goes to stdout and the HTTP status is appended as the last three characters; curl prints 000 when
@@ -339,7 +341,7 @@ class TwinInstance:
 
     # --- clients -----------------------------------------------------------------------------------
 
-    def _client(self, service: Literal["cloudformation", "ec2", "ssm"]) -> Any:
+    def _client(self, service: Literal["cloudformation", "ec2", "ssm", "secretsmanager"]) -> Any:
         client = self._clients.get(service)
         if client is None:
             with self._aws(f"create the {service} client"):
@@ -488,6 +490,32 @@ class TwinInstance:
     def url(self) -> str:
         """The DCV browser URL (stable across stop/start because it is built from the Elastic IP)."""
         return self.outputs().dcv_url
+
+    def dcv_password(self) -> str:
+        """The DCV password: the current (AWSCURRENT) version of the secret in the DcvPasswordSecret output,
+        the version the host set at boot."""
+        from botocore.exceptions import ClientError  # noqa: PLC0415
+
+        secret = self.outputs().dcv_password_secret
+        if not secret:
+            raise StackOutputsError(
+                f"stack {self.stack_name} in {self.region} has no output {OUTPUT_DCV_PASSWORD_SECRET}; it is "
+                "not the twin stack or its deploy did not finish: redeploy with `cdk deploy` or pass the "
+                "right --stack"
+            )
+        client = self._client("secretsmanager")
+        with self._aws(f"read the DCV password secret {secret}"):
+            try:
+                return str(client.get_secret_value(SecretId=secret)["SecretString"])
+            except ClientError as exc:
+                if exc.response.get("Error", {}).get("Code") not in ACCESS_DENIED:
+                    raise
+                # Credentials that may read the stack but not its secret: say which permission is missing.
+                raise AwsCallError(
+                    f"not allowed to read the DCV password secret {secret} "
+                    f"({exc.response['Error'].get('Code')}): these credentials need "
+                    "secretsmanager:GetSecretValue on it; use the credentials that deployed the stack"
+                ) from exc
 
     def settings(self) -> DeployedSettings:
         """The settings the stack was deployed with; StackOutputsError when it does not publish them."""

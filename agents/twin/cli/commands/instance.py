@@ -1,5 +1,6 @@
-"""`twin instance start|stop|status|url|check|console|settings`: run and check the cloud twin host deployed by
-the CDK stack, open its operator console here, and print the settings it runs with.
+"""`twin instance start|stop|status|url|password|check|console|settings`: run and check the cloud twin host
+deployed by the CDK stack, print its DCV password, open its operator console here, and print the settings it
+runs with.
 
 The stack defaults to $SO101_TWIN_STACK, else the stackName of the checkout's twin.settings.toml (in the
 current directory or above it), else So101TwinStack; the region to --region, else AWS_REGION, else the AWS
@@ -11,7 +12,8 @@ Exit codes:
   2  bad command line (argparse)
   3  no AWS credentials or region, or credentials AWS rejects, or (`console`) no Session Manager plugin
   4  stack not found in that account and region
-  5  stack outputs missing (InstanceId or DcvUrl; for `settings`, the Settings output)
+  5  stack outputs missing (InstanceId or DcvUrl; for `settings`, the Settings output; for `password`,
+     DcvPasswordSecret)
   6  InsufficientInstanceCapacity on start (no G6e capacity in the stack's Availability Zone)
   7  the instance did not reach the wanted state within --timeout, or `start` got no verdict of its checks
   8  `check`: at least one check failed (the table says which and how to fix it); `start`: the host's checks
@@ -76,6 +78,11 @@ ACTIONS: tuple[tuple[str, str], ...] = (
     ("stop", "stop the instance (disk and Elastic IP are kept) and wait until stopped"),
     ("status", "print instance state, type, DCV URL and agent health"),
     ("url", "print only the DCV URL"),
+    (
+        "password",
+        "print only the DCV password of the desktop user 'ubuntu' (the current version of the stack's "
+        "DcvPasswordSecret, in Secrets Manager)",
+    ),
     (
         "console",
         "open the operator console here: forward the agent's port on the host to 127.0.0.1 through "
@@ -245,6 +252,9 @@ def run(args: argparse.Namespace, twin: TwinInstance | None = None) -> int:
     try:
         if args.action == "url":
             console.out(twin.url())
+            return EXIT_OK
+        if args.action == "password":
+            console.out(twin.dcv_password())
             return EXIT_OK
         if args.action == "console":
             return _console(twin, args)
