@@ -160,18 +160,21 @@ PY
 # web port) on an address other than loopback (nothing there and the session is out of reach however open
 # the security group is), and UDP DCV_PORT for QUIC (only noted when missing: the browser then streams over
 # TCP). Asked of `ss` (iproute2), which names the listening process: one outside DCV's unit (another server
-# on the port) would be what a browser reaches instead of DCV.
+# on the port) would be what a browser reaches instead of DCV. DCV_VERIFIED: what a pass verified, for
+# verify_host's summary (without ss, not the port).
 check_dcv_session() {
   local tcp="" udp="" session other
   dcv_console_session || return 1
   session="$DETAIL"
   if ! command -v ss >/dev/null 2>&1; then
     DETAIL="${session}; not asked whether DCV listens on ${DCV_PORT}: ss is missing (iproute2)"
+    DCV_VERIFIED="DCV console session (not asked whether DCV listens on ${DCV_PORT}: no ss)"
     return 0
   fi
   # Listening sockets' lines (no header): STATE RECV-Q SEND-Q LOCAL:PORT PEER:PORT; captured whole.
   if ! tcp="$(ss -Hltnp 2>&1)" || ! udp="$(ss -Hlun 2>&1)"; then
     DETAIL="${session}; not told whether DCV listens on ${DCV_PORT}: ss failed: ${tcp:0:200}${udp:0:200}"
+    DCV_VERIFIED="DCV console session (not told whether DCV listens on ${DCV_PORT}: ss failed)"
     return 0
   fi
   if ! _listens "$tcp"; then
@@ -185,6 +188,7 @@ check_dcv_session() {
     return 1
   fi
   DETAIL="${session}; DCV listens on TCP ${DCV_PORT}"
+  DCV_VERIFIED="DCV console session listening on ${DCV_PORT}"
   if _listens "$udp"; then
     DETAIL+=" and UDP ${DCV_PORT} (QUIC)"
   else
@@ -558,8 +562,8 @@ verify_host() {
     VERIFY_SUMMARY="${VERIFY_SUMMARY%; }"
     return 1
   fi
-  VERIFY_SUMMARY="X on the GPU, DCV console session listening on ${DCV_PORT}, agent subscribed, viewer stable,"
-  VERIFY_SUMMARY+=" desktop and viewer drawn on screen"
+  VERIFY_SUMMARY="X on the GPU, ${DCV_VERIFIED}, agent subscribed, viewer stable, desktop and viewer drawn"
+  VERIFY_SUMMARY+=" on screen"
 }
 
 host_check_main() {

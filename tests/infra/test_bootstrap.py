@@ -813,6 +813,40 @@ def test_a_start_whose_silent_alarm_cannot_be_armed_still_checks_and_says_why(bo
     assert host.armed() == [f"{STACK_NAME}-AgentSilent"]  # the first boot's only
 
 
+def path_without(tool: str, host: HostSim, tmp_path: Path) -> str:
+    """The PATH host.run gives, with every directory holding `tool` stood in for by one of links to the
+    rest of its programs: the host's stand-in gone and this machine's own not found either."""
+    directories = []
+    for entry in host.env()["PATH"].split(os.pathsep):
+        folder = Path(entry)
+        if not (folder / tool).exists():
+            directories.append(entry)
+            continue
+        mirror = tmp_path / f"without-{tool}-{len(directories)}"
+        mirror.mkdir()
+        for program in folder.iterdir():
+            if program.name != tool:
+                (mirror / program.name).symlink_to(program)
+        directories.append(str(mirror))
+    return os.pathsep.join(directories)
+
+
+def test_a_start_without_ss_claims_no_dcv_port_in_its_verdict(booted, tmp_path: Path) -> None:
+    """Without ss (iproute2) no check asked whether DCV listens on 8443: the verdict of a start that passes
+    says what was verified, not that port."""
+    source, _ = booted
+    host = copy_of(source, tmp_path)
+    no_ss = path_without("ss", host, tmp_path)
+    run = host.run(host.root / "opt/so101-twin/userdata/host-check.sh", "--on-start", PATH=no_ss)
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-2000:]
+    head = host.file("/var/lib/so101-twin/last-start").splitlines()[0]
+    assert (
+        " PASS X on the GPU, DCV console session (not asked whether DCV listens on 8443: no ss), agent "
+        "subscribed, viewer stable, desktop and viewer drawn on screen" in head
+    ), head
+    assert "listening on 8443" not in head
+
+
 def test_start_checks_fail_and_say_so_when_the_viewer_crash_loops(booted, tmp_path: Path) -> None:
     source, _ = booted
     host = copy_of(source, tmp_path)
