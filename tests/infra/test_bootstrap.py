@@ -832,8 +832,8 @@ def path_without(tool: str, host: HostSim, tmp_path: Path) -> str:
 
 
 def test_a_start_without_ss_claims_no_dcv_port_in_its_verdict(booted, tmp_path: Path) -> None:
-    """Without ss (iproute2) no check asked whether DCV listens on 8443: the verdict of a start that passes
-    says what was verified, not that port."""
+    """Without ss (iproute2), or with an ss that fails, no check learnt whether DCV listens on 8443: the
+    verdict of a start that passes says what was verified, not that port."""
     source, _ = booted
     host = copy_of(source, tmp_path)
     no_ss = path_without("ss", host, tmp_path)
@@ -845,6 +845,13 @@ def test_a_start_without_ss_claims_no_dcv_port_in_its_verdict(booted, tmp_path: 
         "subscribed, viewer stable, desktop and viewer drawn on screen" in head
     ), head
     assert "listening on 8443" not in head
+    # ss there but failing: no more told.
+    host.fail("ss")
+    run = host.run(host.root / "opt/so101-twin/userdata/host-check.sh", "--on-start")
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-2000:]
+    head = host.file("/var/lib/so101-twin/last-start").splitlines()[0]
+    told = " PASS X on the GPU, DCV console session (not told whether DCV listens on 8443: ss failed), "
+    assert told in head, head
 
 
 def test_start_checks_fail_and_say_so_when_the_viewer_crash_loops(booted, tmp_path: Path) -> None:
