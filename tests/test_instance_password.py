@@ -78,14 +78,15 @@ def test_a_stack_without_the_output_names_it(aws_env, capsys):
     assert "cdk deploy" in captured.err
 
 
-def test_access_denied_names_the_secret_and_the_permission(secret_arn, capsys, monkeypatch):
+def test_access_denied_names_the_secret_the_permission_and_aws_reason(secret_arn, capsys, monkeypatch):
+    # An explicit deny (SCP, boundary, resource policy) or a KMS refusal differ only in AWS's message.
+    reason = (
+        "User: arn:aws:iam::123456789012:user/viewer is not authorized to perform: "
+        "secretsmanager:GetSecretValue with an explicit deny in a service control policy"
+    )
+
     def refuse(_call, _params):
-        raise client_error(
-            "AccessDeniedException",
-            "User: arn:aws:iam::123456789012:user/viewer is not authorized to perform: "
-            "secretsmanager:GetSecretValue",
-            "GetSecretValue",
-        )
+        raise client_error("AccessDeniedException", reason, "GetSecretValue")
 
     intercept(monkeypatch, "GetSecretValue", refuse)
     assert main(["instance", "password", "--stack", "FiveArms"]) == cmd.EXIT_AWS
@@ -93,9 +94,39 @@ def test_access_denied_names_the_secret_and_the_permission(secret_arn, capsys, m
     assert captured.out == ""
     assert captured.err.strip() == (
         f"twin instance password: not allowed to read the DCV password secret {secret_arn} "
-        "(AccessDeniedException): these credentials need secretsmanager:GetSecretValue on it; use the "
-        "credentials that deployed the stack"
+        f"(AccessDeniedException: {reason}): use credentials allowed secretsmanager:GetSecretValue on "
+        f"{secret_arn}"
     )
+
+
+def test_a_secret_deleted_outside_the_stack_says_how_to_get_one_back(secret_arn, capsys):
+    boto3.client("secretsmanager", region_name=AWS_TEST_REGION).delete_secret(
+        SecretId=secret_arn, ForceDeleteWithoutRecovery=True
+    )
+    assert main(["instance", "password", "--stack", "FiveArms"]) == cmd.EXIT_AWS
+    err = capsys.readouterr().err
+    assert f"the DCV password secret {secret_arn} no longer exists (ResourceNotFoundException" in err
+    assert "`cdk deploy` does not recreate it; `cdk destroy` then `cdk deploy`" in err
+
+
+def test_a_secret_scheduled_for_deletion_says_how_to_restore_it(secret_arn, capsys):
+    boto3.client("secretsmanager", region_name=AWS_TEST_REGION).delete_secret(SecretId=secret_arn)
+    assert main(["instance", "password", "--stack", "FiveArms"]) == cmd.EXIT_AWS
+    err = capsys.readouterr().err
+    assert f"secret {secret_arn} is scheduled for deletion (InvalidRequestException" in err
+    assert f"`aws secretsmanager restore-secret --secret-id {secret_arn}`" in err
+
+
+def test_a_binary_secret_says_so_without_a_traceback(aws_env, capsys):
+    with mock_aws():
+        secrets = boto3.client("secretsmanager", region_name=AWS_TEST_REGION)
+        arn = secrets.create_secret(Name="DcvPassword-bin", SecretBinary=b"\x00\x01")["ARN"]
+        deploy("FiveArms", {"DcvPasswordSecret": {"Value": arn}})
+        assert main(["instance", "password", "--stack", "FiveArms"]) == cmd.EXIT_AWS
+    captured = capsys.readouterr()
+    assert captured.out == "" and "Traceback" not in captured.err
+    assert f"the DCV password secret {arn} holds binary data" in captured.err
+    assert "put-secret-value" in captured.err
 
 
 def test_no_credentials_says_how_to_configure(secret_arn, capsys, monkeypatch):

@@ -492,8 +492,11 @@ class TwinInstance:
         return self.outputs().dcv_url
 
     def dcv_password(self) -> str:
-        """The DCV password: the current (AWSCURRENT) version of the secret in the DcvPasswordSecret output,
-        the version the host set at boot."""
+        """The DCV password: the current (AWSCURRENT) version of the secret in the DcvPasswordSecret output.
+
+        The host applies a version only when its setup runs (the first boot and each in-place update), so a
+        version put into the secret since then is printed here but refused by DCV until the next update.
+        """
         from botocore.exceptions import ClientError  # noqa: PLC0415
 
         secret = self.outputs().dcv_password_secret
@@ -506,16 +509,19 @@ class TwinInstance:
         client = self._client("secretsmanager")
         with self._aws(f"read the DCV password secret {secret}"):
             try:
-                return str(client.get_secret_value(SecretId=secret)["SecretString"])
+                value = client.get_secret_value(SecretId=secret)
             except ClientError as exc:
-                if exc.response.get("Error", {}).get("Code") not in ACCESS_DENIED:
+                error = _secret_error(exc, secret)
+                if error is None:
                     raise
-                # Credentials that may read the stack but not its secret: say which permission is missing.
-                raise AwsCallError(
-                    f"not allowed to read the DCV password secret {secret} "
-                    f"({exc.response['Error'].get('Code')}): these credentials need "
-                    "secretsmanager:GetSecretValue on it; use the credentials that deployed the stack"
-                ) from exc
+                raise error from exc
+        if "SecretString" not in value:
+            raise AwsCallError(
+                f"the DCV password secret {secret} holds binary data, not the text password the stack "
+                "generates: it was changed outside the stack; put the password back as text with `aws "
+                f"secretsmanager put-secret-value --secret-id {secret} --secret-string ...`"
+            )
+        return str(value["SecretString"])
 
     def settings(self) -> DeployedSettings:
         """The settings the stack was deployed with; StackOutputsError when it does not publish them."""
@@ -824,3 +830,29 @@ class TwinInstance:
             health=health,
             expected_version=self.outputs().deployment_version,
         )
+
+
+def _secret_error(exc: Any, secret: str) -> AwsCallError | None:
+    """Our message for the ClientError `exc` of GetSecretValue on `secret`, with AWS's own message (an
+    explicit deny, a permissions boundary or a KMS refusal all arrive as AccessDenied and differ only
+    there); None leaves `exc` to the generic translation."""
+    error = exc.response.get("Error", {})
+    code, message = error.get("Code", ""), error.get("Message", "")
+    if code in ACCESS_DENIED:
+        return AwsCallError(
+            f"not allowed to read the DCV password secret {secret} ({code}: {message}): use credentials "
+            f"allowed secretsmanager:GetSecretValue on {secret}"
+        )
+    if code == "InvalidRequestException" and "delet" in message:  # AWS: "marked for deletion"
+        return AwsCallError(
+            f"the DCV password secret {secret} is scheduled for deletion ({code}: {message}): restore it "
+            f"with `aws secretsmanager restore-secret --secret-id {secret}`"
+        )
+    if code == "ResourceNotFoundException":
+        # CloudFormation does not notice a resource deleted behind its back: a plain deploy keeps it gone.
+        return AwsCallError(
+            f"the DCV password secret {secret} no longer exists ({code}: {message}): it was deleted outside "
+            "the stack, and `cdk deploy` does not recreate it; `cdk destroy` then `cdk deploy` makes a new "
+            "one (docs/deploy.md, Destroy, says what is kept)"
+        )
+    return None
