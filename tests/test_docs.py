@@ -424,3 +424,10 @@ def test_no_guide_puts_keys_into_the_hosts_generated_config() -> None:
     ]
     assert not found, f"these put keys into the generated config; use agent.local.toml: {found}"
     assert INTO_GENERATED.search("add `[rerun]` with `serve = true` to `/etc/so101-twin/agent.toml` and")
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
+def test_aws_cli_snippets_do_not_hard_code_the_default_stack_name(page: Path) -> None:
+    # stackName and SO101_TWIN_STACK rename the stack; a snippet naming So101TwinStack fails for that reader.
+    text = page.read_text(encoding="utf-8")
+    assert "--stack-name So101TwinStack" not in text, f"{page.name}: use <stack> and say it"
