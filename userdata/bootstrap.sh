@@ -510,8 +510,13 @@ step_password() {
   if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$version" ]; then
     return 0
   fi
+  # As JSON, not `--query SecretString --output text`: for a secret put back as binary that prints "None",
+  # which chpasswd would have made the password.
   secret="$(aws secretsmanager get-secret-value --region "$AWS_REGION" --secret-id "$DCV_SECRET_ARN" \
-    --version-id "$version" --query SecretString --output text "${AWS_LIMITS[@]}")"
+    --version-id "$version" --output json "${AWS_LIMITS[@]}" |
+    python3 -c 'import json, sys; s = json.load(sys.stdin).get("SecretString") or sys.exit(1); print(s)')" ||
+    die "the DCV password secret's AWSCURRENT version $version holds no text password (binary or empty):" \
+      "put one back with aws secretsmanager put-secret-value --secret-string, then run the update"
   printf '%s:%s\n' "$DESKTOP_USER" "$secret" | chpasswd
   unset secret
   printf '%s\n' "$version" >"$stamp"

@@ -545,7 +545,10 @@ case "$1 $2" in
     echo ' "VersionIdsToStages": {"v-1": ["AWSPREVIOUS"], "v-2": ["AWSCURRENT"]}}' ;;
   "secretsmanager get-secret-value")
     version=""; while [ $# -gt 0 ]; do [ "$1" = --version-id ] && version="$2"; shift; done
-    case "$version" in v-2) echo "Gener4tedPassw0rdOfTwentyFour" ;; v-1) echo "PreviousPassw0rdNotToBeUsed" ;;
+    # SIM/fail/secret: the current version was put back as binary (no SecretString).
+    if [ -e "$SIM/fail/secret" ]; then echo '{"SecretBinary": "AAEC"}'; exit 0; fi
+    case "$version" in v-2) echo '{"SecretString": "Gener4tedPassw0rdOfTwentyFour"}' ;;
+      v-1) echo '{"SecretString": "PreviousPassw0rdNotToBeUsed"}' ;;
       *) echo "aws stand-in: get-secret-value without --version-id" >&2; exit 2 ;; esac ;;
   "cloudformation signal-resource") printf '%s\n' "$*" >>"$SIM/signals.log" ;;
   "cloudwatch enable-alarm-actions")

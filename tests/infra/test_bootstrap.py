@@ -1031,6 +1031,23 @@ def test_no_nvidia_driver_is_a_failure_of_the_gpu_step(tmp_path: Path, deployed:
     apt_restored(host)
 
 
+def test_a_binary_password_secret_is_a_failure_of_the_password_step_not_a_password(
+    tmp_path: Path, deployed: Deployed, release
+) -> None:
+    """A secret put back as binary has no SecretString: read as text it printed "None", which chpasswd made
+    the DCV login's password."""
+    host = new_host(tmp_path, deployed, release)
+    host.fail("secret")
+    result = first_boot(host, deployed)
+    assert result.returncode != 0
+    reason = failure_reason(host)
+    assert reason.startswith(
+        "step password failed (exit 1): the DCV password secret's AWSCURRENT version v-2 holds no text"
+    ), reason
+    assert "put-secret-value --secret-string" in reason
+    assert not (host.sim / "chpasswd.log").exists()
+
+
 def test_no_nvidia_xconfig_is_a_named_failure_of_the_desktop_step(
     tmp_path: Path, deployed: Deployed, release
 ) -> None:

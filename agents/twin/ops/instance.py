@@ -519,7 +519,8 @@ class TwinInstance:
             raise AwsCallError(
                 f"the DCV password secret {secret} holds binary data, not the text password the stack "
                 "generates: it was changed outside the stack; put the password back as text with `aws "
-                f"secretsmanager put-secret-value --secret-id {secret} --secret-string ...`"
+                f"secretsmanager put-secret-value --secret-id {secret} --secret-string ...`, then run the "
+                "host's update (docs/deploy.md, Log in), which fails its password step until then"
             )
         return str(value["SecretString"])
 
@@ -843,7 +844,7 @@ def _secret_error(exc: Any, secret: str) -> AwsCallError | None:
             f"not allowed to read the DCV password secret {secret} ({code}: {message}): use credentials "
             f"allowed secretsmanager:GetSecretValue on {secret}"
         )
-    if code == "InvalidRequestException" and "delet" in message:  # AWS: "marked for deletion"
+    if code == "InvalidRequestException" and "delet" in message.lower():  # AWS: "marked for deletion"
         return AwsCallError(
             f"the DCV password secret {secret} is scheduled for deletion ({code}: {message}): restore it "
             f"with `aws secretsmanager restore-secret --secret-id {secret}`"
