@@ -322,3 +322,12 @@ def test_bench_console_says_what_the_demo_says_with_its_own_setup_target(
     demo = shots.missing_for_shots(chromium)
     assert demo is not None and "`make setup-demo`" in demo, demo
     assert str(raised.value) == demo.replace("`make setup-demo`", "`make setup`"), (str(raised.value), demo)
+
+
+def test_bench_all_help_says_what_its_exit_codes_mean(capsys: pytest.CaptureFixture[str]) -> None:
+    # A script that runs `bench all` tells a complete run from a partial one only by its exit code.
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["bench", "all", "--help"])
+    help_text = " ".join(capsys.readouterr().out.split())
+    assert f"{cmd.EXIT_SKIPPED} none failed, but a step that cannot run here was skipped" in help_text
+    assert "1 a step failed" in help_text

@@ -23,6 +23,12 @@ def _fleet_load(
     parser.add_argument("--seconds", type=float, default=20.0, help=seconds_help)
 
 
+# What `twin bench all --help` says of its exit status, which tells a complete run from a partial one.
+ALL_EPILOG = """exit codes: 0 every step gave figures; 1 a step failed (the other steps' figures are printed
+all the same); 2 bad command line; 3 none failed, but a step that cannot run here was skipped (no root
+for ros2, no chromium for console: stderr names the fix)"""
+
+
 def register(subparsers: Any) -> None:
     parser = subparsers.add_parser(
         "bench",
@@ -168,7 +174,10 @@ def _long_scenarios(sub: Any) -> list[argparse.ArgumentParser]:
     ch.add_argument("--sample-s", type=float, default=30.0, help="seconds between samples")
     ch.add_argument("--out", type=Path, default=Path("out/churn"), help="where churn.json goes")
 
-    al = sub.add_parser("all", help="every scenario as published in docs/performance.md, plus the plot")
+    all_help = "every scenario as published in docs/performance.md, plus the plot"
+    al = sub.add_parser(
+        "all", help=all_help, epilog=ALL_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     al.add_argument("--seconds", type=float, default=20.0, help="throughput run length")
     al.add_argument("--plot", type=Path, default=Path("docs/performance.png"))
     return [cs, co, so, ch, al]
@@ -279,7 +288,8 @@ def _every_scenario(args: argparse.Namespace) -> dict[str, Any]:
     return results
 
 
-# `twin bench all`'s exit codes beyond 0 (every step ran) and 1 (a step failed): steps skipped, none failed.
+# `twin bench all`'s exit codes beyond 0 (every step ran) and 1 (a step failed): steps skipped, none failed
+# (ALL_EPILOG).
 EXIT_SKIPPED = 3
 
 
