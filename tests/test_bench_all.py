@@ -17,7 +17,7 @@ from typing import Any
 
 import pytest
 from twin.cli.commands import bench as cmd
-from twin.cli.main import build_parser
+from twin.cli.main import build_parser, main
 
 
 def _scenarios(
@@ -174,17 +174,35 @@ def test_bench_all_without_a_throughput_run_leaves_the_plot_as_it_was(
     assert figures["throughput"] == [] and ran[-1] == "cost"
 
 
-def test_bench_all_stops_at_an_interrupt_in_a_step(
+def test_bench_all_interrupted_prints_the_finished_steps_figures_as_json_and_exits_130(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:
-    # Ctrl-C in a step of a 6-minute run must end the run, not be reported as that step's failure.
+    # A walk: Ctrl-C in a step of a 6-minute run lost the figures of every step before it. It must end the
+    # run (not be reported as that step's failure, the rest not run), print what finished, and exit 130.
     ran: list[str] = []
     monkeypatch.setattr(cmd, "_bench", _scenarios(ran, broken="footprint", error=KeyboardInterrupt()))
-    args = _all_args(tmp_path / "p.png")
-    with pytest.raises(KeyboardInterrupt):
-        cmd.run(args)
+    plot = tmp_path / "p.png"
+    assert main(["bench", "all", "--json", "--plot", str(plot)]) == cmd.EXIT_INTERRUPTED == 130
     assert ran[-1] == "footprint" and len(ran) == 4, ran
-    assert not (tmp_path / "p.png").exists() and capsys.readouterr().out == ""
+    out, err = capsys.readouterr()
+    figures = json.loads(out)
+    assert figures["interrupted"] == "footprint" and "failed" not in figures, figures
+    assert [f["arms"] for f in figures["throughput"]] == [100, 2000] and "fidelity" in figures, figures
+    assert "footprint" not in figures and "plot" not in figures and not plot.exists(), figures
+    assert err.splitlines()[-1] == (
+        "twin bench: interrupted during footprint: the figures above are the steps before it"
+    ), err
+
+
+def test_bench_all_interrupted_prints_the_finished_steps_as_text(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    ran: list[str] = []
+    monkeypatch.setattr(cmd, "_bench", _scenarios(ran, broken="render", error=KeyboardInterrupt()))
+    assert main(["bench", "all", "--plot", str(tmp_path / "p.png")]) == 130
+    lines = capsys.readouterr().out.splitlines()
+    assert "fidelity:" in lines and "ros2:" in lines and "interrupted: render" in lines, lines
+    assert "render:" not in lines, lines
 
 
 def _console_cannot_start(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> list[str]:
@@ -331,3 +349,4 @@ def test_bench_all_help_says_what_its_exit_codes_mean(capsys: pytest.CaptureFixt
     help_text = " ".join(capsys.readouterr().out.split())
     assert f"{cmd.EXIT_SKIPPED} none failed, but a step that cannot run here was skipped" in help_text
     assert "1 a step failed" in help_text
+    assert f"{cmd.EXIT_INTERRUPTED} interrupted (Ctrl-C): the figures of the steps that finished" in help_text

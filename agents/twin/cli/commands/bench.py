@@ -26,7 +26,8 @@ def _fleet_load(
 # What `twin bench all --help` says of its exit status, which tells a complete run from a partial one.
 ALL_EPILOG = """exit codes: 0 every step gave figures; 1 a step failed (the other steps' figures are printed
 all the same); 2 bad command line; 3 none failed, but a step that cannot run here was skipped (no root
-for ros2, no chromium for console: stderr names the fix)"""
+for ros2, no chromium for console: stderr names the fix); 130 interrupted (Ctrl-C): the figures of the steps
+that finished are printed, with "interrupted": the step it stopped, and the plot is left as it was"""
 
 
 def register(subparsers: Any) -> None:
@@ -272,6 +273,8 @@ def _every_scenario(args: argparse.Namespace) -> dict[str, Any]:
         ("cost", lambda: _bench("cost").run(seconds=seconds)),
     ]
     results = _run_steps(steps)
+    if "interrupted" in results:  # the plot of a part of the run would replace the whole run's
+        return results
     # The plot's latency panel is the two throughput runs: without one it would be drawn empty or half, and
     # replace the committed docs/performance.png with it, unnoticed.
     gave_none = {**results.get("skipped", {}), **results.get("failed", {})}
@@ -289,14 +292,16 @@ def _every_scenario(args: argparse.Namespace) -> dict[str, Any]:
 
 
 # `twin bench all`'s exit codes beyond 0 (every step ran) and 1 (a step failed): steps skipped, none failed
-# (ALL_EPILOG).
+# (ALL_EPILOG); interrupted, as a shell reports a command that SIGINT ended.
 EXIT_SKIPPED = 3
+EXIT_INTERRUPTED = 130
 
 
 def _run_steps(steps: list[tuple[str, Callable[[], dict[str, Any]]]]) -> dict[str, Any]:
     """Every step's figures, in order. A step that cannot run here (twin.bench.unavailable) is skipped and one
     that raises anything else failed; either way the steps after it still run, so the figures of a long run
-    are not lost to one, and `skipped` and `failed` (step name -> why) say which."""
+    are not lost to one, and `skipped` and `failed` (step name -> why) say which. Ctrl-C ends the run at
+    that step, and `interrupted` names it: the figures so far are returned, not lost with the run."""
     unavailable = _bench("unavailable").Unavailable
     results: dict[str, Any] = {"throughput": []}
     skipped: dict[str, str] = {}
@@ -307,6 +312,9 @@ def _run_steps(steps: list[tuple[str, Callable[[], dict[str, Any]]]]) -> dict[st
         console.err(f"{n} of {len(steps)}: {name}")
         try:
             figures = step()
+        except KeyboardInterrupt:
+            results["interrupted"] = name
+            break
         except unavailable as exc:
             skipped[name] = str(exc)
             console.err(f"{name}: skipped, it cannot run here: {exc}")
@@ -338,6 +346,9 @@ def _summary(figures: dict[str, Any]) -> int:
             f"{len(failed)} step(s) failed, {len(skipped)} skipped: {', '.join([*failed, *skipped])}; "
             "the figures above are the other steps'"
         )
+    if "interrupted" in figures:
+        console.err(f"interrupted during {figures['interrupted']}: the figures above are the steps before it")
+        return EXIT_INTERRUPTED
     return 1 if failed else EXIT_SKIPPED if skipped else 0
 
 
