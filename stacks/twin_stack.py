@@ -152,9 +152,11 @@ class TwinStack(Stack):
             self,
             "DcvUrl",
             value=f"https://{self.host.eip.attr_public_ip}:{DCV_PORT}/#console",
-            description=f"Open in a browser; log in as '{DESKTOP_USER}' with the password from "
-            "DcvPasswordSecret "
-            "(self-signed certificate: accept the warning).",
+            # `twin instance password` first: it names what is wrong (no credentials, a secret gone) where
+            # the raw secret ARN leaves a user to find the AWS CLI call themselves.
+            description=f"Open in a browser; log in as '{DESKTOP_USER}' with the password "
+            "`twin instance password` prints (with the AWS CLI: the command in DcvPasswordCommand); "
+            "the certificate is self-signed: accept the warning.",
         )
         CfnOutput(self, "InstanceId", value=self.host.instance.instance_id, description="The twin host")
         CfnOutput(

@@ -757,6 +757,13 @@ def test_dcv_url_is_built_from_the_elastic_ip(synth_default: Synth) -> None:
     assert join[2] == ":8443/#console"
 
 
+def test_dcv_url_says_to_read_the_password_with_twin_instance_password(synth_default: Synth) -> None:
+    # A walk: the description sent users to the DcvPasswordSecret ARN, not to the command that reads it.
+    description = synth_default.json["Outputs"]["DcvUrl"]["Description"]
+    assert "`twin instance password`" in description and "DcvPasswordCommand" in description, description
+    assert "DcvPasswordSecret" not in description, description
+
+
 def test_other_outputs(synth_default: Synth) -> None:
     outputs = synth_default.json["Outputs"]
     assert outputs["InstanceId"]["Value"]["Ref"].startswith("HostInstance")
