@@ -497,16 +497,47 @@ APPORT
 }
 
 # --- the desktop user's password = the DCV login (never traced, never logged, never in UserData) -----
-# The version whose stages include AWSCURRENT (the map's first key may be AWSPREVIOUS after a change).
-current_secret_version() {
-  aws secretsmanager describe-secret --region "$AWS_REGION" --secret-id "$DCV_SECRET_ARN" --output json \
-    "${AWS_LIMITS[@]}" |
-    python3 -c 'import json, sys; print(next(v for v, s in json.load(sys.stdin)["VersionIdsToStages"].items() if "AWSCURRENT" in s))'
+# The secret's deletion date ("-" for none) and the version whose stages include AWSCURRENT ("-" for none;
+# the map's first key may be AWSPREVIOUS after a change), from describe-secret's JSON on stdin.
+SECRET_FIELDS='import json, sys
+d = json.load(sys.stdin)
+current = [v for v, stages in d.get("VersionIdsToStages", {}).items() if "AWSCURRENT" in stages]
+print(d.get("DeletedDate") or "-", current[0] if current else "-")'
+
+# secret_version: the DCV password secret's AWSCURRENT version, into SECRET_VERSION; else the step fails
+# with what describe-secret said (its answer and errors hold no secret value, so they are safe to log).
+secret_version() {
+  local described errors problem fields deleted
+  errors="$(mktemp)"
+  if ! described="$(aws secretsmanager describe-secret --region "$AWS_REGION" --secret-id "$DCV_SECRET_ARN" \
+    --output json "${AWS_LIMITS[@]}" 2>"$errors")"; then
+    problem="$(head -c 300 "$errors")"
+    rm -f "$errors"
+    if [[ $problem == *ResourceNotFoundException* ]]; then
+      # CloudFormation does not notice a resource deleted behind its back: a plain deploy keeps it gone.
+      die "the DCV password secret $DCV_SECRET_ARN no longer exists (describe-secret: $problem): it was" \
+        "deleted outside the stack, which cdk deploy does not recreate; cdk destroy then cdk deploy makes" \
+        "a new one (docs/deploy.md, Log in)"
+    fi
+    die "describe-secret of the DCV password secret $DCV_SECRET_ARN failed: $problem (docs/deploy.md, Log in)"
+  fi
+  rm -f "$errors"
+  fields="$(printf '%s' "$described" | python3 -c "$SECRET_FIELDS")" ||
+    die "describe-secret of the DCV password secret $DCV_SECRET_ARN answered no JSON secret description"
+  read -r deleted SECRET_VERSION <<<"$fields"
+  if [ "$deleted" != - ]; then
+    die "the DCV password secret $DCV_SECRET_ARN is scheduled for deletion ($deleted, describe-secret's" \
+      "DeletedDate): restore it with aws secretsmanager restore-secret --secret-id $DCV_SECRET_ARN," \
+      "then run the update"
+  fi
+  [ "$SECRET_VERSION" != - ] ||
+    die "describe-secret of the DCV password secret $DCV_SECRET_ARN lists no AWSCURRENT version"
 }
 
 step_password() {
   local stamp="$STATE/password.version" version secret
-  version="$(current_secret_version)" || die "the DCV password secret has no AWSCURRENT version"
+  secret_version
+  version="$SECRET_VERSION"
   if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$version" ]; then
     return 0
   fi

@@ -540,8 +540,16 @@ case "$1 $2" in
       *) echo "aws stand-in: unsupported --query $query" >&2; exit 2 ;;
     esac ;;
   "secretsmanager describe-secret")
+    # SIM/fail/secret-gone: the secret was deleted outside the stack and is past recovery (what AWS answers).
+    if [ -e "$SIM/fail/secret-gone" ]; then
+      echo "An error occurred (ResourceNotFoundException) when calling the DescribeSecret operation:" \
+        "Secrets Manager can't find the specified secret." >&2; exit 254
+    fi
+    # SIM/fail/secret-deleting: the secret is scheduled for deletion (it still answers, with its date).
+    if [ -e "$SIM/fail/secret-deleting" ]; then echo '{"DeletedDate": "2026-12-01T10:00:00+00:00",'; else
+      echo '{'; fi
     # The map's first key is the previous version: the boot must pick the one staged AWSCURRENT.
-    echo '{"Name": "HostDcvPassword",'
+    echo ' "Name": "HostDcvPassword",'
     echo ' "VersionIdsToStages": {"v-1": ["AWSPREVIOUS"], "v-2": ["AWSCURRENT"]}}' ;;
   "secretsmanager get-secret-value")
     version=""; while [ $# -gt 0 ]; do [ "$1" = --version-id ] && version="$2"; shift; done

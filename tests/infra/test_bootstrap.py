@@ -1048,6 +1048,42 @@ def test_a_binary_password_secret_is_a_failure_of_the_password_step_not_a_passwo
     assert not (host.sim / "chpasswd.log").exists()
 
 
+def test_a_password_secret_deleted_outside_the_stack_fails_the_password_step_with_aws_reason_and_fix(
+    tmp_path: Path, deployed: Deployed, release
+) -> None:
+    """A walk: the step said "the DCV password secret has no AWSCURRENT version" for a secret that was gone,
+    which named neither that nor the fix."""
+    host = new_host(tmp_path, deployed, release)
+    host.fail("secret-gone")
+    result = first_boot(host, deployed)
+    assert result.returncode != 0
+    reason = failure_reason(host)
+    assert reason.startswith(
+        f"step password failed (exit 1): the DCV password secret {SECRET_ARN} no longer exists"
+        " (describe-secret: An error occurred (ResourceNotFoundException) when calling the DescribeSecret"
+        " operation: Secrets Manager can't find the specified secret.)"
+    ), reason
+    assert "cdk destroy then cdk deploy makes a new one" in reason, reason
+    assert not (host.sim / "chpasswd.log").exists()
+
+
+def test_a_password_secret_scheduled_for_deletion_fails_the_password_step_saying_restore_it(
+    tmp_path: Path, deployed: Deployed, release
+) -> None:
+    host = new_host(tmp_path, deployed, release)
+    host.fail("secret-deleting")
+    result = first_boot(host, deployed)
+    assert result.returncode != 0
+    reason = failure_reason(host)
+    assert reason.startswith(
+        f"step password failed (exit 1): the DCV password secret {SECRET_ARN} is scheduled for deletion"
+        " (2026-12-01T10:00:00+00:00"
+    ), reason
+    assert f"aws secretsmanager restore-secret --secret-id {SECRET_ARN}, then run the update" in reason
+    assert not (host.sim / "chpasswd.log").exists()
+    assert "Passw0rd" not in (host.root / "var/log/so101-twin-bootstrap.log").read_text()
+
+
 def test_no_nvidia_xconfig_is_a_named_failure_of_the_desktop_step(
     tmp_path: Path, deployed: Deployed, release
 ) -> None:
