@@ -511,7 +511,12 @@ secret_version() {
   errors="$(mktemp)"
   if ! described="$(aws secretsmanager describe-secret --region "$AWS_REGION" --secret-id "$DCV_SECRET_ARN" \
     --output json "${AWS_LIMITS[@]}" 2>"$errors")"; then
-    problem="$(head -c 300 "$errors")"
+    # The AWS CLI writes its error between newlines: one line, for the step's reason, last-run and the signal
+    # (read whole, not through head, which pipefail would fail on a long message).
+    problem="$(tr -s '\n' ' ' <"$errors")"
+    problem="${problem# }"
+    problem="${problem% }"
+    problem="${problem:0:300}"
     rm -f "$errors"
     if [[ $problem == *ResourceNotFoundException* ]]; then
       # CloudFormation does not notice a resource deleted behind its back: a plain deploy keeps it gone.

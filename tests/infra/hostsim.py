@@ -542,8 +542,9 @@ case "$1 $2" in
   "secretsmanager describe-secret")
     # SIM/fail/secret-gone: the secret was deleted outside the stack and is past recovery (what AWS answers).
     if [ -e "$SIM/fail/secret-gone" ]; then
-      echo "An error occurred (ResourceNotFoundException) when calling the DescribeSecret operation:" \
-        "Secrets Manager can't find the specified secret." >&2; exit 254
+      # Between newlines, as the AWS CLI writes an error.
+      printf '\n%s %s\n' "An error occurred (ResourceNotFoundException) when calling the DescribeSecret" \
+        "operation: Secrets Manager can't find the specified secret." >&2; exit 254
     fi
     # SIM/fail/secret-deleting: the secret is scheduled for deletion (it still answers, with its date).
     if [ -e "$SIM/fail/secret-deleting" ]; then echo '{"DeletedDate": "2026-12-01T10:00:00+00:00",'; else
