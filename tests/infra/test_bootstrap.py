@@ -1083,7 +1083,30 @@ def test_a_password_secret_scheduled_for_deletion_fails_the_password_step_saying
     ), reason
     assert f"aws secretsmanager restore-secret --secret-id {SECRET_ARN}, then run the update" in reason
     assert not (host.sim / "chpasswd.log").exists()
-    assert "Passw0rd" not in (host.root / "var/log/so101-twin-bootstrap.log").read_text()
+    assert not [c for c in host.calls() if "get-secret-value" in c]
+
+
+def test_an_update_whose_password_is_set_still_fails_on_a_secret_scheduled_for_deletion(
+    booted, deployed: Deployed, tmp_path: Path
+) -> None:
+    """The password stamp matches the secret's version, so the update would change nothing; yet after the
+    recovery window the password is gone for good, so the update says so now, and its later steps wait."""
+    source, result = booted
+    assert result.returncode == 0
+    host = copy_of(source, tmp_path)
+    assert host.file("/var/lib/so101-twin/password.version").strip() == "v-2"
+    host.fail("secret-deleting")
+    calls_before = len(host.calls())
+    rerun = run_association(host, deployed.update_script)
+    assert rerun.returncode != 0
+    last_run = host.file("/var/lib/so101-twin/last-run")
+    assert " update FAILURE step password failed (exit 1): " in last_run, last_run
+    assert f"restore-secret --secret-id {SECRET_ARN}, then run the update" in last_run, last_run
+    assert not [c for c in host.calls()[calls_before:] if "get-secret-value" in c or c.startswith("chpasswd")]
+    # The chain stops at the password: docs/deploy.md says the update's later steps wait for the restore.
+    log = host.file("/var/log/so101-twin-bootstrap.log")
+    update_log = log.split(f"update of deployment {deployed.version}")[-1]
+    assert "step password: start" in update_log and "step dcv: start" not in update_log
 
 
 def test_no_nvidia_xconfig_is_a_named_failure_of_the_desktop_step(
