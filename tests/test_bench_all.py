@@ -39,7 +39,7 @@ def _scenarios(
 
         def write(results: dict[str, Any], plot: Path) -> Path:
             if name == broken:
-                raise ValueError(f"cannot draw {plot}")
+                raise error or ValueError(f"cannot draw {plot}")
             return plot
 
         return SimpleNamespace(run=run, write=write)
@@ -151,6 +151,41 @@ def test_bench_all_whose_plot_fails_still_prints_every_step_and_exits_1(
     figures = json.loads(capsys.readouterr().out)
     assert figures["failed"] == {"plot": f"ValueError: cannot draw {tmp_path / 'p.png'}"}
     assert len(ran) == 13 and "cost" in figures, figures
+
+
+def test_bench_all_interrupted_while_the_plot_is_drawn_prints_every_step_and_exits_130(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    # A review: Ctrl-C while the plot was drawn, after every step had finished, lost every figure.
+    ran: list[str] = []
+    monkeypatch.setattr(cmd, "_bench", _scenarios(ran, broken="plot", error=KeyboardInterrupt()))
+    assert cmd.run(_all_args(tmp_path / "p.png")) == cmd.EXIT_INTERRUPTED
+    out, err = capsys.readouterr()
+    figures = json.loads(out)
+    assert figures["interrupted"] == "plot" and "plot" not in figures and "failed" not in figures, figures
+    assert len(ran) == 13 and "cost" in figures, figures
+    assert err.splitlines()[-1].endswith("interrupted during plot: the figures above are the steps before it")
+
+
+def test_the_plot_interrupted_while_saved_leaves_the_previous_plot_whole(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    # A review: the plot was saved straight over docs/performance.png, so Ctrl-C mid-save left it cut off.
+    from matplotlib.figure import Figure
+
+    plot_module = importlib.import_module("twin.bench.plot")
+    plot = tmp_path / "performance.png"
+    plot.write_bytes(b"the committed plot")
+
+    def cut_off(self: Figure, fname: Any, **kwargs: Any) -> None:
+        Path(fname).write_bytes(b"\x89PNG half")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Figure, "savefig", cut_off)
+    with pytest.raises(KeyboardInterrupt):
+        plot_module.write({"throughput": []}, plot)
+    assert plot.read_bytes() == b"the committed plot"
+    assert [p.name for p in tmp_path.iterdir()] == ["performance.png"]
 
 
 def test_bench_all_without_a_throughput_run_leaves_the_plot_as_it_was(

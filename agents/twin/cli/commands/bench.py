@@ -286,6 +286,8 @@ def _every_scenario(args: argparse.Namespace) -> dict[str, Any]:
         return results
     try:
         results["plot"] = str(_bench("plot").write(results, args.plot))
+    except KeyboardInterrupt:  # every step's figures are in: printed, and the plot is left as it was
+        results["interrupted"] = "plot"
     except Exception as exc:  # the figures are printed all the same; the run fails
         results.setdefault("failed", {})["plot"] = f"{type(exc).__name__}: {exc}"
     return results
