@@ -164,7 +164,9 @@ def test_bench_all_interrupted_while_the_plot_is_drawn_prints_every_step_and_exi
     figures = json.loads(out)
     assert figures["interrupted"] == "plot" and "plot" not in figures and "failed" not in figures, figures
     assert len(ran) == 13 and "cost" in figures, figures
-    assert err.splitlines()[-1].endswith("interrupted during plot: the figures above are the steps before it")
+    assert err.splitlines()[-1].endswith(
+        "interrupted during plot: the figures above are every step's, the plot not drawn"
+    )
 
 
 def test_the_plot_interrupted_while_saved_leaves_the_previous_plot_whole(

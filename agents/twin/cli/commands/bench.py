@@ -349,7 +349,10 @@ def _summary(figures: dict[str, Any]) -> int:
             "the figures above are the other steps'"
         )
     if "interrupted" in figures:
-        console.err(f"interrupted during {figures['interrupted']}: the figures above are the steps before it")
+        step = figures["interrupted"]
+        # The plot comes after every step: all the figures are there, only the picture is not.
+        done = "every step's, the plot not drawn" if step == "plot" else "the steps before it"
+        console.err(f"interrupted during {step}: the figures above are {done}")
         return EXIT_INTERRUPTED
     return 1 if failed else EXIT_SKIPPED if skipped else 0
 
