@@ -1031,21 +1031,27 @@ def test_no_nvidia_driver_is_a_failure_of_the_gpu_step(tmp_path: Path, deployed:
     apt_restored(host)
 
 
+def _password_step_failed(tmp_path: Path, deployed: Deployed, release, switch: str) -> tuple[HostSim, str]:
+    """A first boot whose DCV password secret is broken as the stand-in's `switch` says: it fails, and no
+    password was set (chpasswd never ran); the host and the failure's reason."""
+    host = new_host(tmp_path, deployed, release)
+    host.fail(switch)
+    result = first_boot(host, deployed)
+    assert result.returncode != 0
+    assert not (host.sim / "chpasswd.log").exists()
+    return host, failure_reason(host)
+
+
 def test_a_binary_password_secret_is_a_failure_of_the_password_step_not_a_password(
     tmp_path: Path, deployed: Deployed, release
 ) -> None:
     """A secret put back as binary has no SecretString: read as text it printed "None", which chpasswd made
     the DCV login's password."""
-    host = new_host(tmp_path, deployed, release)
-    host.fail("secret")
-    result = first_boot(host, deployed)
-    assert result.returncode != 0
-    reason = failure_reason(host)
+    _, reason = _password_step_failed(tmp_path, deployed, release, "secret")
     assert reason.startswith(
         "step password failed (exit 1): the DCV password secret's AWSCURRENT version v-2 holds no text"
     ), reason
     assert "put-secret-value --secret-string" in reason
-    assert not (host.sim / "chpasswd.log").exists()
 
 
 def test_a_password_secret_deleted_outside_the_stack_fails_the_password_step_with_aws_reason_and_fix(
@@ -1053,11 +1059,7 @@ def test_a_password_secret_deleted_outside_the_stack_fails_the_password_step_wit
 ) -> None:
     """A walk: the step said "the DCV password secret has no AWSCURRENT version" for a secret that was gone,
     which named neither that nor the fix."""
-    host = new_host(tmp_path, deployed, release)
-    host.fail("secret-gone")
-    result = first_boot(host, deployed)
-    assert result.returncode != 0
-    reason = failure_reason(host)
+    host, reason = _password_step_failed(tmp_path, deployed, release, "secret-gone")
     assert reason.startswith(
         f"step password failed (exit 1): the DCV password secret {SECRET_ARN} no longer exists"
         " (describe-secret: An error occurred (ResourceNotFoundException) when calling the DescribeSecret"
@@ -1066,23 +1068,17 @@ def test_a_password_secret_deleted_outside_the_stack_fails_the_password_step_wit
     assert "cdk destroy then cdk deploy makes a new one" in reason, reason
     # The AWS CLI's error comes between newlines: the record of the run stays one line.
     assert len(host.file("/var/lib/so101-twin/last-run").splitlines()) == 1
-    assert not (host.sim / "chpasswd.log").exists()
 
 
 def test_a_password_secret_scheduled_for_deletion_fails_the_password_step_saying_restore_it(
     tmp_path: Path, deployed: Deployed, release
 ) -> None:
-    host = new_host(tmp_path, deployed, release)
-    host.fail("secret-deleting")
-    result = first_boot(host, deployed)
-    assert result.returncode != 0
-    reason = failure_reason(host)
+    host, reason = _password_step_failed(tmp_path, deployed, release, "secret-deleting")
     assert reason.startswith(
         f"step password failed (exit 1): the DCV password secret {SECRET_ARN} is scheduled for deletion"
         " (2026-12-01T10:00:00+00:00"
     ), reason
     assert f"aws secretsmanager restore-secret --secret-id {SECRET_ARN}, then run the update" in reason
-    assert not (host.sim / "chpasswd.log").exists()
     assert not [c for c in host.calls() if "get-secret-value" in c]
 
 
