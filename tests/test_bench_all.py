@@ -180,7 +180,7 @@ def test_the_plot_interrupted_while_saved_leaves_the_previous_plot_whole(
     plot.write_bytes(b"the committed plot")
 
     def cut_off(self: Figure, fname: Any, **kwargs: Any) -> None:
-        Path(fname).write_bytes(b"\x89PNG half")
+        fname.write(b"\x89PNG half")
         raise KeyboardInterrupt
 
     monkeypatch.setattr(Figure, "savefig", cut_off)

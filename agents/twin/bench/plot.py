@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+import io
 import math
-import os
 from pathlib import Path
 from typing import Any
 
@@ -13,6 +13,7 @@ matplotlib.use("Agg")  # no display: the benchmark runs headless
 import matplotlib.pyplot as plt
 
 from twin.bench import fidelity
+from twin.service.persist import write_atomically
 
 
 def write(results: dict[str, Any], path: Path) -> Path:
@@ -59,13 +60,11 @@ def write(results: dict[str, Any], path: Path) -> Path:
     fid_ax.set_title("Fidelity at 60 Hz display, 10 Hz telemetry, 50 ms jitter")
     fid_ax.legend(fontsize=8)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    # Saved beside it, then renamed over it: Ctrl-C or an error mid-save leaves the old plot whole.
-    partial = path.with_name(f".{path.name}.partial")
+    # Drawn in memory, then written whole: Ctrl-C or an error mid-save leaves the old plot as it was.
+    image = io.BytesIO()
     try:
-        fig.savefig(partial, dpi=110, format=path.suffix.lstrip(".") or "png")
-        os.replace(partial, path)
+        fig.savefig(image, dpi=110, format=path.suffix.lstrip(".") or "png")
     finally:
         plt.close(fig)
-        partial.unlink(missing_ok=True)
+    write_atomically(path, image.getvalue())
     return path
