@@ -49,6 +49,7 @@ import msgspec
 from twin.core.alarms import UNITS as ALARM_UNITS
 from twin.core.alarms import WAITING_STATES, AlarmEvent
 from twin.core.health import HealthThresholds
+from twin.transport.plan import ConnectionLimit
 
 log = logging.getLogger(__name__)
 
@@ -820,16 +821,13 @@ class RateWatch:
         expected_rate_hz: float,
         *,
         stale_after_s: float | None = None,
-        per_connection_limit: float | None = None,
-        limit_source: str = "",
+        connection_limit: ConnectionLimit | None = None,
     ) -> None:
         self._store = store
         self._expected = expected_rate_hz
-        # The broker's publishes per second per connection (transport.plan.default_limit; None: no limit),
-        # which the slow warning names as a cause only where there is one.
-        self._limit = per_connection_limit
-        # Where it comes from (transport.plan.limit_source): the warning named both, though one applies.
-        self._limit_source = limit_source or "IoT Core's quota or [broker] per_connection_limit"
+        # The broker's publishes per second per connection and its source (None: no limit), which the slow
+        # warning names as a cause only where there is one.
+        self._limit = connection_limit
         # [health] stale_after_s, which the slow warning names (the default stale_periods' when not given)
         if stale_after_s is None:
             stale_after_s = HealthThresholds(expected_rate_hz=expected_rate_hz).stale_after_s
@@ -944,11 +942,12 @@ class RateWatch:
 
     def _slowed(self, device: str, rate: float) -> None:
         # The checks first, the setting last: set on a guess, it hid a loss as a slower edge.
+        limit = self._limit
         quota = (
             ""
-            if self._limit is None
-            else f"If the Fleet page has a notice of the broker's per-connection quota ({self._limit:g} "
-            f"messages/s a connection, {self._limit_source}), the quota discards them: its notice says what "
+            if limit is None
+            else f"If the Fleet page has a notice of the broker's per-connection quota ({limit.per_s:g} "
+            f"messages/s a connection, {limit.source}), the quota discards them: its notice says what "
             "to change. "
         )
         message = (
@@ -1261,8 +1260,7 @@ class FleetWatch:
         store: EventStore,
         *,
         health: HealthThresholds = _DEFAULT_HEALTH,
-        per_connection_limit: float | None = None,
-        limit_source: str = "",
+        connection_limit: ConnectionLimit | None = None,
     ) -> None:
         self.store = store
         self._statuses = StatusWatch(store, health.offline_after_s)
@@ -1271,8 +1269,7 @@ class FleetWatch:
             store,
             health.expected_rate_hz,
             stale_after_s=health.stale_after_s,
-            per_connection_limit=per_connection_limit,
-            limit_source=limit_source,
+            connection_limit=connection_limit,
         )
         self._losses = LossWatch(store)
         self._clocks = ClockWatch(store)

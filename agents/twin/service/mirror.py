@@ -169,7 +169,7 @@ from twin.service.state import (
 )
 from twin.transport.mailbox import UNTRACKED_KEY, InboundQueue
 from twin.transport.pipe import EMPTY, Batch, batch_of, read_batch
-from twin.transport.plan import default_limit, limit_source
+from twin.transport.plan import connection_limit
 
 if TYPE_CHECKING:
     # pyarrow and deltalake (~70 MB resident) load only when history is on, usd-core (~80 MB) only when
@@ -563,8 +563,7 @@ class Mirror:
         self._watch = FleetWatch(
             self._events,
             health=config.health,
-            per_connection_limit=default_limit(config.broker),
-            limit_source=limit_source(config.broker),
+            connection_limit=connection_limit(config.broker),
         )
         self._rejections = RejectionThrottle(self._events, clock=clock)
         self.batches = 0

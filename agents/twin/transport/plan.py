@@ -33,18 +33,28 @@ RATE_WINDOW_S = 3.0
 DEFAULT_MAX_CONNECTIONS = 8
 
 
-def default_limit(config: BrokerConfig) -> float | None:
+@dataclass(frozen=True)
+class ConnectionLimit:
+    """The broker's publishes per second per connection, and where an operator looks that figure up: the two
+    travel together so that a warning never names a limit without its source."""
+
+    per_s: float
+    source: str
+
+
+def connection_limit(config: BrokerConfig) -> ConnectionLimit | None:
     """The per-connection budget in force: the configured one, else IoT Core's quota on "iot", else none."""
     if config.per_connection_limit > 0:
-        return float(config.per_connection_limit)
-    return float(IOT_PUBLISHES_PER_CONNECTION) if config.kind == IOT else None
+        return ConnectionLimit(float(config.per_connection_limit), "[broker] per_connection_limit")
+    if config.kind == IOT:
+        return ConnectionLimit(float(IOT_PUBLISHES_PER_CONNECTION), "IoT Core's quota")
+    return None
 
 
-def limit_source(config: BrokerConfig) -> str:
-    """Where `default_limit`'s budget comes from, as an operator would look it up ("" for none)."""
-    if config.per_connection_limit > 0:
-        return "[broker] per_connection_limit"
-    return "IoT Core's quota" if config.kind == IOT else ""
+def default_limit(config: BrokerConfig) -> float | None:
+    """`connection_limit`'s figure alone (None: no limit), for the pool's plan."""
+    limit = connection_limit(config)
+    return None if limit is None else limit.per_s
 
 
 def shared_group(client_id_prefix: str) -> str:
