@@ -231,6 +231,27 @@ def test_bench_all_interrupted_prints_the_finished_steps_figures_as_json_and_exi
     ), err
 
 
+def test_bench_all_interrupted_on_the_progress_line_keeps_the_figures_before_it(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    # A review: Ctrl-C while the line that names the next step was written, between two steps, escaped the
+    # run and lost every figure before it.
+    ran: list[str] = []
+    monkeypatch.setattr(cmd, "_bench", _scenarios(ran))
+    said = cmd.console.err
+
+    def err(message: str) -> None:
+        if message.startswith("3 of "):
+            raise KeyboardInterrupt
+        said(message)
+
+    monkeypatch.setattr(cmd.console, "err", err)
+    assert main(["bench", "all", "--json", "--plot", str(tmp_path / "p.png")]) == 130
+    figures = json.loads(capsys.readouterr().out)
+    assert figures["interrupted"] == "fidelity" and ran == ["throughput", "throughput"], figures
+    assert [f["arms"] for f in figures["throughput"]] == [100, 2000], figures
+
+
 def test_bench_all_interrupted_prints_the_finished_steps_as_text(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:

@@ -309,10 +309,11 @@ def _run_steps(steps: list[tuple[str, Callable[[], dict[str, Any]]]]) -> dict[st
     skipped: dict[str, str] = {}
     failed: dict[str, str] = {}
     for n, (name, step) in enumerate(steps, 1):
-        # Minutes with no output otherwise (more on a busy machine), and stdout is often a file: say where it
-        # is, on stderr, so the figures stay as they were.
-        console.err(f"{n} of {len(steps)}: {name}")
         try:
+            # Minutes with no output otherwise (more on a busy machine), and stdout is often a file: say where
+            # it is, on stderr, so the figures stay as they were. Inside the try, as Ctrl-C on this line
+            # between two steps lost every figure before it.
+            console.err(f"{n} of {len(steps)}: {name}")
             figures = step()
         except KeyboardInterrupt:
             results["interrupted"] = name
