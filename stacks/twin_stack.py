@@ -169,7 +169,8 @@ class TwinStack(Stack):
             self,
             "DcvPasswordSecret",
             value=secret_arn,
-            description="Secret holding the DCV password; read it with the command in DcvPasswordCommand",
+            description="Secret holding the DCV password; read it with `twin instance password` "
+            "(with the AWS CLI: the command in DcvPasswordCommand)",
         )
         CfnOutput(
             self,

@@ -764,6 +764,12 @@ def test_dcv_url_says_to_read_the_password_with_twin_instance_password(synth_def
     assert "DcvPasswordSecret" not in description, description
 
 
+def test_the_password_secret_output_names_twin_instance_password_too(synth_default: Synth) -> None:
+    # A review: the secret's own output sent users only to the AWS CLI command, not to the project's own.
+    description = synth_default.json["Outputs"]["DcvPasswordSecret"]["Description"]
+    assert "`twin instance password`" in description and "DcvPasswordCommand" in description, description
+
+
 def test_other_outputs(synth_default: Synth) -> None:
     outputs = synth_default.json["Outputs"]
     assert outputs["InstanceId"]["Value"]["Ref"].startswith("HostInstance")
