@@ -24,8 +24,9 @@ One SNS topic (encrypted, TLS only; an e-mail address subscribed when the settin
   minutes running (storage slow or unreachable; rows are dropped once the buffer is full).
 - **metrics unwritten** (CloudWatch): the agent could not write its EMF file (a disk that filled, the
   file's permissions), told in the first document written after: CloudWatch got nothing, or only part, for
-  those minutes, so every other alarm was blind then. A disk that stays full writes nothing, this count
-  included, and pages as agent silent.
+  those minutes, so every other alarm was blind then. A disk that stays full writes nothing, so no
+  heartbeat: agent silent pages after 5 minutes, and this one once the disk takes a write again (the count
+  outlives an agent crash or restart meanwhile: the agent keeps it in a small file of its own).
 - **a refused subscription** (CloudWatch): IoT Core refuses the agent a topic filter for 2 minutes.
 - **the broker out of reach** (CloudWatch): a connection of the agent to IoT Core down for 3 minutes. Its
   arms then all read OFFLINE, which does not page, so nothing else would say it.
@@ -123,9 +124,9 @@ HOST_CHECKS_FAILED = "HostChecksFailed"
 LOCAL_CONFIG_NOT_SAVED = "LocalConfigNotSaved"
 ALARM_STATE_NOT_SAVED = "AlarmStateNotSaved"
 # The agent's failed publishes of its EMF file (emf.EMF_WRITE_FAILURES), told in the first document written
-# after them: only once the disk has room again, so it pages an outage that ended, which AgentSilent may miss.
-# The count is in the agent's memory: a clean stop writes it in a last document, but a stop that cannot
-# write that one either (the disk still full), or a crash or kill, loses it, and this pages nothing.
+# after them: only once the disk has room again, so it pages an outage that ended, which AgentSilent may miss
+# (one under 5 minutes, or a disk filled again and again). The agent keeps the count in a file of its own
+# (emf.UnsentCount), so a crash, a kill or a restart during the outage does not lose it.
 EMF_WRITE_FAILURES = "EmfWriteFailures"
 PERIOD = Duration.minutes(1)
 # History commits every 10 s by default (docs/history.md): a minute's lag means commits are failing.
@@ -390,13 +391,13 @@ class TwinMonitoring(Construct):
             EMF_WRITE_FAILURES,
             f"The agent of {self.agent_name} could not publish its CloudWatch metrics: CloudWatch got "
             "nothing, or only part, for those minutes, so no other alarm could fire then. Told once a "
-            "document is written again (the next, or the last one the agent writes at a clean stop); counted "
-            "in memory only, so a crash, a kill, or a stop whose last document cannot be written either "
-            "loses it and this does not fire. Usually a full disk: `df -h /var/log` and what fills it. Any "
-            "failed publish counts, not only a write (reading the twin's state, a value EMF cannot hold): "
-            "the agent's log ('publishing CloudWatch metrics to ... failed', or at a stop 'the last "
+            "document is written again, by this run of the agent or the next (the count outlives a crash: "
+            "/var/log/so101-twin/.emf.log.unsent). Usually a full disk: `df -h /var/log` and what fills it. "
+            "Any failed publish counts, not only a write (reading the twin's state, a value EMF cannot "
+            "hold): the agent's log ('publishing CloudWatch metrics to ... failed', or at a stop 'the last "
             "CloudWatch metrics could not be written') has the traceback, /state agent.sinks 'emf' "
-            "last_error the error. A disk that stays full pages as AgentSilent instead.",
+            "last_error the error. A disk that stays full pages as AgentSilent after 5 minutes, and as this "
+            "once it has room.",
             doc="docs/servo-health.md",
         )
 

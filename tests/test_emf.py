@@ -33,15 +33,18 @@ from twin.output.emf import (
     CLOCK_STEP_TELL_EVERY_S,
     LOSS_METRICS,
     NAMESPACE,
+    UNSENT_FILE_BYTES,
     EmfFileWriter,
     EmfPublisher,
     FleetMetrics,
     FleetTotals,
     Metric,
+    UnsentCount,
     emf_document,
     fleet_documents,
     next_slot,
     realigned_slot,
+    unsent_path,
 )
 from twin.service.agent import AgentService, fleet_totals
 from twin.service.state import (
@@ -965,8 +968,8 @@ def test_severity_lines_the_disk_refused_after_the_counts_are_a_write_failure(tm
 
 
 def test_the_last_document_at_a_stop_tells_the_failed_publishes_no_document_told(tmp_path: Path) -> None:
-    """The count is in memory: the docs say a clean stop still tells it, in the last document, and only a
-    stop that cannot write that one (or a crash) loses it."""
+    """A clean stop tells the count in its last document, without waiting for the next run (which tells only
+    what a crash or a stop that could not write that document left: the test after the next)."""
     writer = EmfFileWriter(tmp_path / "emf.log")
     publisher = EmfPublisher(writer, "a", lambda: totals, clock=lambda: 60.0, wall=lambda: 60.0)
     totals = FleetTotals(0, 0, 1, 0, 0, 0.0, None, {})
@@ -976,6 +979,64 @@ def test_the_last_document_at_a_stop_tells_the_failed_publishes_no_document_told
     AgentService._publish_last(holder, totals, Counter())  # type: ignore[arg-type]
     docs = [validate_emf_line(line) for line in writer.path.read_text().splitlines()]
     assert [d["EmfWriteFailures"] for d in docs if "AgentUp" in d] == [2]
+
+
+def _publish_on_a_full_disk(publisher: EmfPublisher, times: int) -> None:
+    """`times` publishes the full disk refuses, each counted as the publisher's own loop does (run)."""
+    write = publisher.writer.write
+
+    def full(_documents: Any) -> None:
+        raise OSError(28, "No space left on device")
+
+    publisher.writer.write = full  # type: ignore[method-assign]
+    for _ in range(times):
+        try:
+            publisher.publish_once()
+        except OSError as exc:
+            publisher.failed(exc)
+    publisher.writer.write = write  # type: ignore[method-assign]
+
+
+def test_failed_publishes_outlive_a_crash_and_the_next_run_tells_them(tmp_path: Path) -> None:
+    """The count travelled only in the file that refused it, and in memory: an agent that crashed (or was
+    killed) while the disk stayed full took it along, and EmfWriteFailures never fired for those minutes.
+    It is kept in a file of its own, written in place (its size and inode stay: a full disk takes that), and
+    the next run's first document written tells it, once."""
+    emf = tmp_path / "emf.log"
+    totals = FleetTotals(0, 0, 1, 0, 0, 0.0, None, {})
+
+    def run() -> EmfPublisher:
+        unsent = UnsentCount(unsent_path(emf))
+        return EmfPublisher(EmfFileWriter(emf), "a", lambda: totals, clock=lambda: 60.0, unsent=unsent)
+
+    crashed = run()
+    made = unsent_path(emf).stat()
+    _publish_on_a_full_disk(crashed, 3)
+    assert crashed.errors == 3 and not emf.exists()  # then the agent dies: no stop, no last document
+    kept = unsent_path(emf).stat()
+    assert (kept.st_ino, kept.st_size) == (made.st_ino, made.st_size) == (made.st_ino, UNSENT_FILE_BYTES)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [unsent_path(emf).name]
+    assert run().publish_once().emf_write_failures == 3
+    assert run().publish_once().emf_write_failures == 0  # told once, not again by the run after
+    docs = [validate_emf_line(line) for line in emf.read_text().splitlines()]
+    assert [d["EmfWriteFailures"] for d in docs if "AgentUp" in d] == [3, 0]
+
+
+def test_a_save_of_the_unsent_count_cut_short_leaves_the_one_before(tmp_path: Path) -> None:
+    """Written in place, a save a crash cut short would leave a count that is neither: two slots in turn,
+    each with its checksum, so the other slot still holds the save before it."""
+    path = tmp_path / ".emf.log.unsent"
+    count = UnsentCount(path)
+    assert count.load() == 0
+    assert count.save(5) and count.save(7) and UnsentCount(path).load() == 7
+    data = bytearray(path.read_bytes())
+    data[9] ^= 0xFF  # the count of the last save (the second: slot 0) is torn
+    path.write_bytes(bytes(data))
+    again = UnsentCount(path)
+    assert again.load() == 5
+    assert again.save(6) and UnsentCount(path).load() == 6  # the torn slot is the one written next
+    path.write_bytes(b"not a count")
+    assert UnsentCount(path).load() == 0
 
 
 def test_the_last_document_counts_what_each_sink_still_held_at_the_stop_as_sink_drops() -> None:

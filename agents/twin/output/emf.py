@@ -18,8 +18,10 @@ import json
 import logging
 import math
 import os
+import struct
 import threading
 import time
+import zlib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -72,8 +74,8 @@ INTERNAL_LATENCY_P99 = "InternalLatencyP99"
 DEVICE_LIMIT_REFUSALS = "DeviceLimitRefusals"
 # The agent's own documents that could not be published, told in the next one written: the intervals
 # CloudWatch got nothing for, which a heartbeat gap alone does not count. Mostly writes a full disk refused,
-# but any error in publish_once counts (sampling the state, a value EMF cannot hold). In memory only: a clean
-# stop tells it in its last document, a crash or a stop that cannot write that one loses it.
+# but any error in publish_once counts (sampling the state, a value EMF cannot hold): the name says what a
+# person finds, a document not written. Kept over a crash or a restart in a small file (UnsentCount).
 EMF_WRITE_FAILURES = "EmfWriteFailures"
 LOSS_METRICS: tuple[str, ...] = (
     MESSAGES_DROPPED,
@@ -272,6 +274,107 @@ def _ends_cut_short(path: Path) -> bool:
         return fh.read(1) != b"\n"
 
 
+def unsent_path(emf_file: str | Path) -> Path:
+    """Where the failed publishes no document told are kept: beside the EMF file, hidden, so the CloudWatch
+    agent (which follows the EMF file by its name) never ships it as metrics."""
+    path = Path(emf_file)
+    return path.with_name(f".{path.name}.unsent")
+
+
+class UnsentCount:
+    """The count of the agent's failed publishes that no document told yet, in a small file that survives a
+    crash, a kill or a reboot (docs/servo-health.md, "metrics unwritten").
+
+    It matters most while the disk is full, when a file written anew (a temporary file renamed over the old
+    one) cannot be: so the file has a fixed size, its blocks written once when it is made (at the start),
+    and each save overwrites them in place, which a filesystem that writes in place (ext4 and XFS, the host's
+    root volume) takes on a full disk. A copy-on-write one (btrfs) may refuse it; the save is then logged
+    and the count stays in memory. Two slots, each a sequence number, the count and their CRC-32, written
+    in turn and flushed to disk: a save a crash cut short leaves the other slot whole.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.saves = 0
+        self.save_errors = 0
+        self._seq = 0
+        self._lock = threading.Lock()
+        self._error_lines = Throttle(UNSENT_TELL_EVERY_S)
+
+    def load(self) -> int:
+        """The count the file keeps (0 without a file, or with neither slot whole), making the file if it is
+        missing or short, so the saves after it have their blocks."""
+        with self._lock:
+            try:
+                fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+            except OSError as exc:
+                self._failed("read", exc)
+                return 0
+            data = b""
+            try:
+                data = os.pread(fd, UNSENT_FILE_BYTES, 0)
+                if len(data) < UNSENT_FILE_BYTES:
+                    os.pwrite(fd, data.ljust(UNSENT_FILE_BYTES, b"\0"), 0)
+                    os.fsync(fd)
+            except OSError as exc:
+                self._failed("made", exc)
+            finally:
+                os.close(fd)
+            slots = [_unsent_slot(data[i : i + _SLOT.size]) for i in (0, _UNSENT_SLOT_BYTES)]
+            self._seq, count = max((slot for slot in slots if slot is not None), default=(0, 0))
+            return count
+
+    def save(self, count: int) -> bool:
+        """Keep `count` in the slot the last save did not write; False (logged) when it could not be."""
+        with self._lock:
+            seq = self._seq + 1
+            record = _SLOT.pack(seq, count, zlib.crc32(_SLOT_HEAD.pack(seq, count)))
+            try:
+                # No O_CREAT: a file that is gone is made again only by load, with its blocks.
+                fd = os.open(self.path, os.O_WRONLY | os.O_CLOEXEC)
+                try:
+                    os.pwrite(fd, record, (seq % 2) * _UNSENT_SLOT_BYTES)
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+            except OSError as exc:
+                self._failed("written", exc)
+                return False
+            self._seq = seq
+            self.saves += 1
+            return True
+
+    def _failed(self, what: str, exc: OSError) -> None:
+        self.save_errors += 1
+        if self._error_lines.due() is not None:
+            log.error(
+                "the count of unwritten CloudWatch metrics documents could not be %s in %s (%s): it is kept "
+                "in memory only, and a crash before a document is written loses it",
+                what,
+                self.path,
+                exc,
+            )
+
+
+# A file that cannot be written fails at each failed publish: told once, then once per this with a count.
+UNSENT_TELL_EVERY_S = 600.0
+# The file: two slots of 32 bytes, each (sequence number, count, CRC-32 of the two) little-endian.
+_SLOT_HEAD = struct.Struct("<QQ")
+_SLOT = struct.Struct("<QQI")
+_UNSENT_SLOT_BYTES = 32
+UNSENT_FILE_BYTES = 2 * _UNSENT_SLOT_BYTES
+
+
+def _unsent_slot(data: bytes) -> tuple[int, int] | None:
+    """A slot's (sequence number, count), or None if it is not whole (never written, or cut short)."""
+    if len(data) < _SLOT.size:
+        return None
+    seq, count, crc = _SLOT.unpack(data)
+    if seq == 0 or crc != zlib.crc32(_SLOT_HEAD.pack(seq, count)):
+        return None
+    return seq, count
+
+
 @dataclass(frozen=True, slots=True)
 class FleetTotals:
     """What the service reports at one moment: running totals plus the gauges of that moment."""
@@ -402,8 +505,9 @@ class EmfPublisher:
     clock); the EMF timestamp is the wall clock. Runs on its own thread; a failed publish (a write, or the
     sample or encoding before it) is logged and counted (`failed`), never raised, so CloudWatch trouble cannot
     stop the twin. The count is in /state and /metrics (`sink_stats`) and in the next document written
-    (EMF_WRITE_FAILURES), in memory only: a clean stop tells it in the agent's last document, so only a
-    crash, a kill, or a stop whose last document cannot be written either (the disk still full) loses it.
+    (EMF_WRITE_FAILURES). With `unsent`, the count no document told yet is kept there at each failure and
+    read back at the start, so a crash, a kill or a stop that cannot write its last document loses none of
+    it: the next run's first document written tells it.
     """
 
     def __init__(
@@ -416,9 +520,11 @@ class EmfPublisher:
         clock: Callable[[], float] = time.monotonic,
         wall: Callable[[], float] = time.time,
         wait: Callable[[float], bool] | None = None,
+        unsent: UnsentCount | None = None,
     ) -> None:
         """`wait(seconds)` sleeps until a slot and returns True once stop() was called (tests pass one that
-        moves their `clock` instead)."""
+        moves their `clock` instead). `unsent` keeps the failed publishes not told yet over a crash (read
+        here: the run before's are told in this run's first document written)."""
         if not interval_s > 0:
             raise ValueError(f"the EMF interval must be positive seconds, got {interval_s}")
         self.writer = writer
@@ -436,6 +542,16 @@ class EmfPublisher:
         self.errors = 0
         self.last_error = ""
         self._errors_told = 0  # `errors` as the last document written told them
+        self._unsent = unsent
+        # The run before's failed publishes that no document told (they count as this run's first).
+        self._carried = unsent.load() if unsent is not None else 0
+        if self._carried:
+            log.warning(
+                "%d CloudWatch metrics document(s) of the agent's run before could not be written and were "
+                "not told yet (%s): the first document written tells them as EmfWriteFailures",
+                self._carried,
+                unsent.path if unsent is not None else "",
+            )
         self.clock_steps = 0  # wall clock steps seen (clock_step_tolerance), each counted
         self._step_lines = Throttle(CLOCK_STEP_TELL_EVERY_S, clock=clock)
 
@@ -456,7 +572,8 @@ class EmfPublisher:
             since, before = self._last
         span = max(now - since, 1e-9)
         errors = self.errors
-        fleet = _interval_metrics(totals, before, span, errors - self._errors_told)
+        untold = self._carried + errors - self._errors_told
+        fleet = _interval_metrics(totals, before, span, untold)
         counts, *by_severity = fleet_documents(fleet, self.agent, wall_ms)
         self.writer.write([counts])
         # Only once the counts are written, and before the rest: an interval whose counts a full disk refused
@@ -464,6 +581,10 @@ class EmfPublisher:
         # file is not counted again if the severity lines after them fail (a review saw 7 drops sent as 14).
         self._last = (now, totals)
         self._errors_told = errors
+        if untold:
+            # A crash before this save tells them again in the next run: twice is better than never.
+            self._carried = 0
+            self._keep_untold()
         if by_severity:
             self.writer.write(by_severity)
         self.published += 1
@@ -473,6 +594,12 @@ class EmfPublisher:
         """Count a publish that raised `exc` (the caller logs it)."""
         self.errors += 1
         self.last_error = f"{type(exc).__name__}: {exc}"
+        self._keep_untold()
+
+    def _keep_untold(self) -> None:
+        """Save the count no document told yet, so a crash or a kill while the disk stays full loses none."""
+        if self._unsent is not None:
+            self._unsent.save(self._carried + self.errors - self._errors_told)
 
     def sink_stats(self) -> SinkStats:
         """The EMF file as an output in /state `agent.sinks` and /metrics (`emf`): its failed writes were only

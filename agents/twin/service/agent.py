@@ -46,7 +46,7 @@ from twin.core.health import DeviceStatus
 from twin.core.topics import TELEMETRY_SUFFIX, device_from_topic
 from twin.core.units import Units
 from twin.output.alerts import Alert, AlertPublisher, sns_publisher
-from twin.output.emf import EmfFileWriter, EmfPublisher, FleetTotals
+from twin.output.emf import EmfFileWriter, EmfPublisher, FleetTotals, UnsentCount, unsent_path
 from twin.output.history_feed import HistoryProcess, HistoryStartError, WriterFigures
 from twin.output.sinks import TwinSink
 from twin.service.admission import TOO_MANY_DEVICES, DeviceBudget
@@ -405,8 +405,14 @@ class AgentService:
         self._http.start()
         cw = self.config.cloudwatch
         if cw.emf_file:
+            # The failed publishes no document told yet, kept beside the file: a crash while the disk is full
+            # must not lose them (docs/servo-health.md, "metrics unwritten").
             self._emf = EmfPublisher(
-                EmfFileWriter(cw.emf_file), cw.agent_name, self._fleet_totals, interval_s=cw.interval_s
+                EmfFileWriter(cw.emf_file),
+                cw.agent_name,
+                self._fleet_totals,
+                interval_s=cw.interval_s,
+                unsent=UnsentCount(unsent_path(cw.emf_file)),
             )
             self._emf.start()
         workers = self._worker_infos({})
