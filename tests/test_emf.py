@@ -906,6 +906,33 @@ def test_of_three_stalled_first_clock_reads_the_least_stalled_is_taken(stall_aft
     assert phases == pytest.approx([30.0] * len(published), abs=0.3 + 1e-5)
 
 
+@pytest.mark.parametrize("stall_after", [False, True], ids=["stall-before-the-wall-read", "stall-after-it"])
+def test_three_first_clock_reads_that_stall_over_two_seconds_count_no_step(
+    caplog: pytest.LogCaptureFixture, stall_after: bool
+) -> None:
+    """Every first try stalled 3 s: the offset taken was off by 1.5 s, over the 1 s tolerance, and the first
+    clean read later counted (and warned of) a step of a wall clock nobody moved. The grid still moves to
+    the clean read, so the documents sit mid-minute; nothing is counted or told."""
+    with caplog.at_level(logging.WARNING, logger="twin.output.emf"):
+        published, publisher, _ = _under_a_moving_clock(
+            lambda mono: 1_000_000_000.0 + mono, 1000, 3, stall_s=3.0, stall_after=stall_after
+        )
+    assert publisher.clock_steps == 0 and not caplog.records
+    phases = [(1_000_000_000.0 + m) % 60.0 for m in published]
+    assert len(published) > 5 and phases == pytest.approx([30.0] * len(published), abs=1e-5)
+
+
+def test_a_step_after_first_clock_reads_that_stalled_is_still_counted() -> None:
+    """Only the first read's own error is forgiven: a step of the clock after it is counted as ever."""
+
+    def wall_of(mono: float) -> float:
+        return 1_000_000_000.0 + mono + (20.0 if mono >= 900.0 else 0.0)
+
+    published, publisher, _ = _under_a_moving_clock(wall_of, 2000, 3, stall_s=3.0)
+    assert publisher.clock_steps == 1
+    assert [wall_of(m) % 60.0 for m in published] == pytest.approx([30.0] * len(published), abs=1e-5)
+
+
 def test_a_sample_that_raises_is_logged_as_a_failed_publish(caplog: pytest.LogCaptureFixture) -> None:
     """Any error in a publish is counted and logged, not only a write: the log line said "writing" when
     reading the twin's state raised, and sent a reader to the disk."""

@@ -553,6 +553,9 @@ class EmfPublisher:
                 unsent.path if unsent is not None else "",
             )
         self.clock_steps = 0  # wall clock steps seen (clock_step_tolerance), each counted
+        # How far the offset the grid was first lined up with may be off: half the stall of a first clock
+        # read that never got a clean one (_first_clock_offset); 0 once a clean read came.
+        self._loose_s = 0.0
         self._step_lines = Throttle(CLOCK_STEP_TELL_EVERY_S, clock=clock)
 
     def publish_once(self, totals: FleetTotals | None = None) -> FleetMetrics:
@@ -655,14 +658,16 @@ class EmfPublisher:
         """The monotonic time and the wall clock minus it, to line the first slot up with. Each try reads the
         wall clock between two monotonic reads and sets it against their middle (_clock_read); a try whose
         two reads lie over a quarter of the step tolerance apart (the thread stalled) is tried again, and
-        after three the one with the shortest stall is taken. Its offset is off by half that stall at most; a
-        stall over twice clock_step_tolerance on every try then moves the grid once, later, as a step."""
+        after three the one with the shortest stall is taken. Its offset is off by half that stall at most
+        (`_loose_s`, until a clean read): a stall over twice clock_step_tolerance on every try then moves the
+        grid once, later, but is no step of the clock, so it is not counted or told (_wall_step)."""
         reads: list[tuple[float, float, float]] = []
         for _ in range(3):
             reads.append(self._clock_read())
             if reads[-1][0] <= clock_step_tolerance(self.interval_s) / 4.0:
                 break
-        _, mono, offset = min(reads)
+        gap, mono, offset = min(reads)
+        self._loose_s = gap / 2.0 if gap > clock_step_tolerance(self.interval_s) / 4.0 else 0.0
         return mono, offset
 
     def _clock_offset(self) -> tuple[float, float | None]:
@@ -683,10 +688,19 @@ class EmfPublisher:
     def _wall_step(self, offset: float) -> tuple[float, float, float]:
         """The monotonic time, how far the wall clock was stepped since `offset` (wall minus monotonic) was
         read (0.0 if by no more than clock_step_tolerance), and the offset the grid is lined up with then.
-        Every step is counted; the warning is throttled, since a flapping clock steps every few seconds."""
+        Every step is counted; the warning is throttled, since a flapping clock steps every few seconds. The
+        first clean read after a first read that never got one moves the grid like a step, but counts and
+        tells only a move larger than that read's own error could make (a review: three stalls over 2 s at
+        the start counted a step of a clock nobody touched)."""
         now, read = self._clock_offset()
-        if read is None or abs(read - offset) <= clock_step_tolerance(self.interval_s):
+        if read is None:
             return now, 0.0, offset
+        loose, self._loose_s = self._loose_s, 0.0
+        tolerance = clock_step_tolerance(self.interval_s)
+        if abs(read - offset) <= tolerance:
+            return now, 0.0, offset
+        if abs(read - offset) <= tolerance + loose:
+            return now, read - offset, read
         self.clock_steps += 1
         steps = self._step_lines.due(now=now)
         if steps is not None:
