@@ -306,6 +306,16 @@ def test_metrics_of_a_real_state_agree_with_it() -> None:
     )
 
 
+def test_an_agent_without_an_emf_file_states_no_clock_steps() -> None:
+    """The count is set where the agent's own state is made (not patched in after the merge): an agent that
+    publishes no CloudWatch metrics says it does not know (null), and /metrics leaves the figure out."""
+    with fed_agent() as service:
+        assert service._emf is None
+        assert service.state().agent.emf_clock_steps is None
+        text = http_get(service.http_url + "/metrics")[2].decode()
+    assert ("twin_emf_clock_steps_total", ()) not in parse_metrics(text)
+
+
 def test_the_wall_clock_steps_the_emf_publisher_saw_are_in_state_and_metrics(tmp_path: Path) -> None:
     """They were only logged: a host whose time sync kept stepping its clock for weeks showed it nowhere a
     person looks. Without an EMF file the count is unknown, so /metrics leaves it out (no made-up 0)."""

@@ -1011,9 +1011,6 @@ class AgentService:
             if own:
                 sinks = (*state.agent.sinks, *own)
                 state = dataclasses.replace(state, agent=dataclasses.replace(state.agent, sinks=sinks))
-            if self._emf is not None:
-                agent = dataclasses.replace(state.agent, emf_clock_steps=self._emf.clock_steps)
-                state = dataclasses.replace(state, agent=agent)
             self._cached = (time.monotonic(), state)
             return state
 
@@ -1042,7 +1039,7 @@ class AgentService:
         )
 
     def _info(self, now: float) -> AgentInfo:
-        """The agent's own part of the state: the process and the broker."""
+        """The agent's own part of the state: the process, the broker and the metrics publisher's clock."""
         started = self._started_mono
         return AgentInfo(
             running=self.running,
@@ -1056,6 +1053,7 @@ class AgentService:
             topic_filters=tuple(self.topic_filters),
             broker=broker_state(self.config.broker.url, self._pool_settings, self._pool, self._started_pool),
             calibration_store=self._calibration_store,
+            emf_clock_steps=self._emf.clock_steps if self._emf is not None else None,
         )
 
     def _worker_infos(self, reports: dict[int, MirrorReport]) -> tuple[WorkerInfo, ...]:
