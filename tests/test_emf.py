@@ -34,6 +34,7 @@ from twin.output.emf import (
     LOSS_METRICS,
     NAMESPACE,
     UNSENT_FILE_BYTES,
+    UNSENT_TELL_EVERY_S,
     EmfFileWriter,
     EmfPublisher,
     FleetMetrics,
@@ -1064,6 +1065,36 @@ def test_a_save_of_the_unsent_count_cut_short_leaves_the_one_before(tmp_path: Pa
     assert again.save(6) and UnsentCount(path).load() == 6  # the torn slot is the one written next
     path.write_bytes(b"not a count")
     assert UnsentCount(path).load() == 0
+
+
+def test_a_save_of_the_unsent_count_that_keeps_failing_says_how_many_failed_in_each_line(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A save fails at each failed publish, told once per 10 minutes: each line says how many failed since
+    the one before, so the held-back ones are not lost from the log."""
+    now = [0.0]
+    count = UnsentCount(tmp_path / ".emf.log.unsent", clock=lambda: now[0])  # never loaded: no file
+    caplog.set_level(logging.ERROR, logger="twin.output.emf")
+    for at in (0.0, 1.0, 2.0, UNSENT_TELL_EVERY_S + 1.0):
+        now[0] = at
+        assert not count.save(1)
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 2, said
+    assert "1 failure(s) since the last such line" in said[0]
+    assert "3 failure(s) since the last such line" in said[1]
+
+
+def test_an_unsent_count_file_that_cannot_be_made_says_so_and_what_to_check(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A directory the file cannot be made in (here: missing; on a host, one the agent's user cannot write)
+    was logged as a file that 'could not be read', with nothing to do about it."""
+    where = tmp_path / "gone"
+    caplog.set_level(logging.ERROR, logger="twin.output.emf")
+    assert UnsentCount(where / ".emf.log.unsent").load() == 0
+    [said] = [r.getMessage() for r in caplog.records]
+    assert "could not be opened or created" in said
+    assert f"the agent's user can write {where}" in said and f"df -h {where}" in said
 
 
 def test_the_last_document_counts_what_each_sink_still_held_at_the_stop_as_sink_drops() -> None:

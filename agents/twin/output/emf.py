@@ -293,13 +293,11 @@ class UnsentCount:
     in turn and flushed to disk: a save a crash cut short leaves the other slot whole.
     """
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, *, clock: Callable[[], float] = time.monotonic) -> None:
         self.path = Path(path)
-        self.saves = 0
-        self.save_errors = 0
         self._seq = 0
         self._lock = threading.Lock()
-        self._error_lines = Throttle(UNSENT_TELL_EVERY_S)
+        self._error_lines = Throttle(UNSENT_TELL_EVERY_S, clock=clock)
 
     def load(self) -> int:
         """The count the file keeps (0 without a file, or with neither slot whole), making the file if it is
@@ -308,7 +306,7 @@ class UnsentCount:
             try:
                 fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
             except OSError as exc:
-                self._failed("read", exc)
+                self._failed("opened or created", exc)
                 return 0
             data = b""
             try:
@@ -341,22 +339,29 @@ class UnsentCount:
                 self._failed("written", exc)
                 return False
             self._seq = seq
-            self.saves += 1
             return True
 
     def _failed(self, what: str, exc: OSError) -> None:
-        self.save_errors += 1
-        if self._error_lines.due() is not None:
+        since = self._error_lines.due()
+        if since is not None:
+            # The fix, as a person reads it in the log: a file not made is mostly a directory the agent's
+            # user cannot write, or a disk already full at the start; a save refused, a disk that filled.
             log.error(
-                "the count of unwritten CloudWatch metrics documents could not be %s in %s (%s): it is kept "
-                "in memory only, and a crash before a document is written loses it",
+                "the count of unwritten CloudWatch metrics documents could not be %s in %s (%s), "
+                "%d failure(s) since the last such line: it is kept in memory only, and a crash before a "
+                "document is written loses it; check that the agent's user can write %s and that the disk "
+                "has room (df -h %s)",
                 what,
                 self.path,
                 exc,
+                since,
+                self.path.parent,
+                self.path.parent,
             )
 
 
-# A file that cannot be written fails at each failed publish: told once, then once per this with a count.
+# A file that cannot be written fails at each failed publish: told at once, then at most once per this, each
+# line with how many failed since the one before.
 UNSENT_TELL_EVERY_S = 600.0
 # The file: two slots of 32 bytes, each (sequence number, count, CRC-32 of the two) little-endian.
 _SLOT_HEAD = struct.Struct("<QQ")
