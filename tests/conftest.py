@@ -335,11 +335,13 @@ def one_arm_agent(sinks: Sequence[Any] = (), clock: Any = None) -> AgentService:
 
 
 @contextmanager
-def fed_agent(messages: int = 12, *, sinks: Sequence[Any] = (), **overrides: Any) -> Iterator[AgentService]:
+def fed_agent(
+    messages: int = 12, *, sinks: Sequence[Any] = (), workers: int = 1, **overrides: Any
+) -> Iterator[AgentService]:
     """A started AgentService fed through `feed` (no broker needed: the configured one never
     answers, so the state also shows a disconnected broker): arm-001 mirrored from ticks telemetry with one
     rejected message, arm-002 configured but never heard from, and garbage on an unknown device.
-    `overrides` are config keys ({"twin.record_dir": ...})."""
+    `overrides` are config keys ({"twin.record_dir": ...}); `workers` > 1 mirrors in worker processes."""
     config = load_config(
         None,
         {
@@ -350,7 +352,7 @@ def fed_agent(messages: int = 12, *, sinks: Sequence[Any] = (), **overrides: Any
             **overrides,
         },
     )
-    service = AgentService(config, sinks=sinks)
+    service = AgentService(config, sinks=sinks, workers=workers)
     service.start()
     try:
         rng = random.Random(5)

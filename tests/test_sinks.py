@@ -632,6 +632,29 @@ def test_a_stopped_agent_names_no_session_file_it_removed(tmp_path: Path) -> Non
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("workers", [1, 2], ids=["in-process", "two-worker-processes"])
+def test_a_stopped_agent_still_reports_its_recording(tmp_path: Path, workers: int) -> None:
+    """A walk: with worker processes, the state after the stop had no recording (the workers that held it
+    were gone), so `twin run`'s last figures and a test reading them found none. The workers hand their
+    recording's final figures back with their stop report, and the agent keeps them, as in one process."""
+    with fed_agent(12, workers=workers, **{"twin.record_dir": str(tmp_path)}) as service:
+        wait_for(
+            lambda: next(s for s in service.state().agent.sinks if s.name == "usd").delivered == 12,
+            30,
+            "the recording sink to take every applied sample",
+        )
+    state = service.state()
+    recording = state.agent.recording
+    assert recording is not None, state.agent
+    assert recording.samples_written >= 1 and recording.samples_written + recording.samples_dropped == 12
+    assert recording.flushes >= 1
+    # arm-001's session, the one kept; with two workers arm-002's recorded nothing and was removed.
+    assert Path(recording.path).is_file() and list(tmp_path.iterdir()) == [Path(recording.path)]
+    if workers > 1:
+        assert [w.recording for w in state.agent.workers] == [recording.path, ""]
+
+
 def test_body_pose_array_is_body_poses_stacked() -> None:
     robot = RobotModel.load()
     angles = {

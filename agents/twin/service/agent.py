@@ -36,7 +36,7 @@ import threading
 import time
 from bisect import bisect_right
 from collections import Counter
-from collections.abc import Callable, Collection, Iterable, Sequence
+from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from operator import attrgetter
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Generic, TypeVar
@@ -135,6 +135,7 @@ from twin.service.state import (
     HealthReport,
     HistoryState,
     MirrorStatus,
+    RecordingState,
     WorkerInfo,
 )
 from twin.service.workerstart import start_fork_server, worker_context
@@ -415,7 +416,7 @@ class AgentService:
                 unsent=UnsentCount(unsent_path(cw.emf_file)),
             )
             self._emf.start()
-        workers = self._worker_infos({})
+        workers = self._worker_infos({}, {})
         log.info(
             "agent started",
             extra={
@@ -988,15 +989,22 @@ class AgentService:
             asked = self._ask_fleet(ReportRequest(), report_of)
             reports = {shard.index: report for shard, report in asked.answers}
             checkpoints = [shard.checkpoint for shard in asked.silent if shard.checkpoint is not None]
+            # After the stop a worker process is gone; its recording's figures are its stop report's.
+            stopped = {
+                shard.index: report.recording
+                for shard in asked.silent
+                if (report := self.stop_reports.get(shard.index)) is not None and report.recording is not None
+            }
             state = merge_reports(
                 self._info(now),
                 list(reports.values()),
-                self._worker_infos(reports),
+                self._worker_infos(reports, stopped),
                 dropped=self._dropped(),
                 dropped_total=sum(shard.dropped_total for shard in self._shards),
                 restarting=self._checkpoint_devices(asked.silent),
                 restarting_untracked=[c.untracked_rejected for c in checkpoints],
                 restarting_alarms=[c.alarms_summary for c in checkpoints if c.alarms_summary is not None],
+                stopped_recordings=list(stopped.values()),
             )
             if self._history is not None:
                 state = dataclasses.replace(
@@ -1056,9 +1064,18 @@ class AgentService:
             emf_clock_steps=self._emf.clock_steps if self._emf is not None else None,
         )
 
-    def _worker_infos(self, reports: dict[int, MirrorReport]) -> tuple[WorkerInfo, ...]:
-        infos = (shard.describe(reports.get(shard.index)) for shard in self._shards)
-        return tuple(info for info in infos if info is not None)
+    def _worker_infos(
+        self, reports: dict[int, MirrorReport], stopped: Mapping[int, RecordingState]
+    ) -> tuple[WorkerInfo, ...]:
+        """Each worker process's row; a stopped one names the session file its stop report left."""
+        infos = []
+        for shard in self._shards:
+            info = shard.describe(reports.get(shard.index))
+            if info is not None and shard.index in stopped:
+                info = dataclasses.replace(info, recording=stopped[shard.index].path)
+            if info is not None:
+                infos.append(info)
+        return tuple(infos)
 
     def _dropped(self) -> Counter[str]:
         """Messages of each device the agent could not hand to its mirror (the most recent devices)."""

@@ -754,7 +754,9 @@ class Mirror:
         with self._lock:
             alarms = tuple(self._alarms.records())
         events = tuple(self._events.after(max(0, self._events.last_id - EVENTS_PER_ASK)))
-        return StopReport(unwritten=unwritten, alarms=alarms, events=events)
+        return StopReport(
+            unwritten=unwritten, alarms=alarms, events=events, recording=self._recording_state()
+        )
 
     @property
     def running(self) -> bool:

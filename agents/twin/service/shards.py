@@ -563,11 +563,14 @@ SINK_UNWRITTEN_SUFFIX = "_items"
 class StopReport:
     """What a mirror could not write when it stopped (by sink: `history_rows`, `<sink>_items`), its alarms
     for the agent's state file, and its newest events (at most EVENTS_PER_ASK, oldest first): those the agent
-    has not collected yet, made in its last half second or as it handled what was queued at the stop."""
+    has not collected yet, made in its last half second or as it handled what was queued at the stop. And
+    its USD recording's figures once the recording closed (None: it recorded nothing), which a stopped
+    agent's state shows for a worker process that is gone."""
 
     unwritten: dict[str, int] = field(default_factory=dict)
     alarms: tuple[AlarmRecord, ...] = ()
     events: tuple[Event, ...] = ()
+    recording: RecordingState | None = None
 
 
 Request = (
@@ -1758,6 +1761,7 @@ def merge_reports(
     restarting: Mapping[str, DeviceState] | None = None,
     restarting_untracked: Sequence[Mapping[str, int]] = (),
     restarting_alarms: Sequence[AlarmsSummary] = (),
+    stopped_recordings: Sequence[RecordingState] = (),
 ) -> AgentState:
     """One fleet state from the mirrors' reports. `info` is the agent's own part (process, broker); `workers`
     its worker processes (empty when the mirror runs in-process); `dropped` the messages of each device it
@@ -1765,7 +1769,8 @@ def merge_reports(
     `dropped_total` all of them (per device only the most recent devices are kept; default: their sum).
     `restarting` are the devices of workers being started again, as their last checkpoints left them, and
     `restarting_untracked` those checkpoints' rejections of no device, `restarting_alarms` their alarm
-    counts.
+    counts. `stopped_recordings` are the recordings of mirrors that stopped and answer no more, as their stop
+    reports left them.
     """
     devices, untracked = _merge_devices(reports, dropped, restarting or {}, restarting_untracked)
     workers_alive = all(w.alive for w in workers)
@@ -1776,7 +1781,9 @@ def merge_reports(
             mailbox=_merge_mailbox(reports, workers, dropped, dropped_total),
             latency=_merge_latency(reports),
             worker=_merge_worker(reports, workers_alive=workers_alive),
-            recording=_merge_recording([r.recording for r in reports if r.recording is not None]),
+            recording=_merge_recording(
+                [*(r.recording for r in reports if r.recording is not None), *stopped_recordings]
+            ),
             history=_merge_history([r.history for r in reports if r.history is not None]),
             sinks=_merge_sinks([r.sinks for r in reports]),
             alarms=_merge_alarms([r.alarms for r in reports] + list(restarting_alarms)),
