@@ -543,7 +543,7 @@ def test_the_arms_the_agent_forgets_leave_no_record_in_the_sink(
     arms = sink.worker._arms
     # The one left stands in a place of its own: a forgotten arm's meshes stay in theirs in the recording.
     assert list(arms) == ["arm-019"] and arms["arm-019"].index == 19
-    assert list(sink.worker._forgotten) == [f"arm-{n:03d}" for n in range(14, 19)]
+    assert list(sink.worker._forgotten.times) == [f"arm-{n:03d}" for n in range(14, 19)]
 
 
 def test_an_arm_of_an_id_forgotten_too_long_ago_to_be_kept_still_clears_its_label(
@@ -557,14 +557,16 @@ def test_an_arm_of_an_id_forgotten_too_long_ago_to_be_kept_still_clears_its_labe
     path = tmp_path / "floor.rrd"
     sink = RerunSink(robot, RerunSettings(save=str(path), flush_s=0.05))
     gone = DeviceStatus.OFFLINE
+    wall0 = T0_MS / 1000  # the agent's clock, as the edges' (FLOOR_AHEAD_TOLERANCE_S)
     for n, device in enumerate(["arm-000", "arm-001", "arm-002", "arm-000"]):
         telemetry = decoder.decode(json.dumps(payload(device, n)), topic_device=device)
-        sink.applied(AppliedSample(device, time.time(), n * 1.0, telemetry, dict(telemetry.angles_rad)))
+        sink.applied(AppliedSample(device, wall0 + n, n * 1.0, telemetry, dict(telemetry.angles_rad)))
         if n < 3:  # arm-000's time is dropped with arm-002's forget
-            sink.status(StatusChange(device, gone, gone, at_mono_s=n + 0.5, at_wall_s=n, forgotten=True))
+            at = n + 0.5
+            sink.status(StatusChange(device, gone, gone, at_mono_s=at, at_wall_s=wall0 + at, forgotten=True))
     wait_for(lambda: sink.stats().pending == 0, 30, "the sink to take every item")
     sink.close()
-    assert "arm-000" not in sink.worker._forgotten
+    assert "arm-000" not in sink.worker._forgotten.times
     temporal, _ = read_rrd(path)
     labels = rows_of(temporal, "/arms/arm-000/status", "Points3D:labels")
     assert list(labels.values()) == [["FORGOTTEN"], []]
@@ -573,37 +575,73 @@ def test_an_arm_of_an_id_forgotten_too_long_ago_to_be_kept_still_clears_its_labe
     assert cleared_at > forgotten_at
 
 
-def test_a_new_arms_labels_go_after_its_clear_when_the_floor_is_far_ahead(
-    robot: RobotModel, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """A review: the floor of dropped label times comes from other arms' clocks, and one set to 2099 put every
-    new arm's first Clear there: its STALE and OFFLINE labels, at its own times, lost to that Clear at the
-    live end for as long as the process ran. A label goes after its arm's last Clear."""
-    monkeypatch.setattr(rerun_sink, "FORGOTTEN_KEPT", 1)
+def _forgets_after_one_clock_ahead(robot: RobotModel, path: Path, ahead_ms: int) -> RerunSink:
+    """arm-000's clock `ahead_ms` ahead of the agent's and the other arms': its FORGOTTEN label time is
+    dropped (FORGOTTEN_KEPT 1) with arm-001's forget; then arm-002 goes STALE and OFFLINE, and arm-003 is
+    forgotten at once. Returns the closed sink, its .rrd at `path`."""
     decoder = TelemetryDecoder(DecoderConfig(units=Units.DEGREES))
-    path = tmp_path / "ahead.rrd"
     sink = RerunSink(robot, RerunSettings(save=str(path), flush_s=0.05))
     gone, stale = DeviceStatus.OFFLINE, DeviceStatus.STALE
-    far_ms = int(np.datetime64("2099-06-01", "ms").astype(np.int64))
+    wall0 = T0_MS / 1000  # the agent's clock, as the sound edges'
     for n, device in enumerate(["arm-000", "arm-001", "arm-002", "arm-003"]):
         doc = payload(device, n)
         if device == "arm-000":
-            doc["timestamp"] = far_ms  # a clock far ahead: its label time becomes the floor once dropped
+            doc["timestamp"] += ahead_ms
         telemetry = decoder.decode(json.dumps(doc), topic_device=device)
-        sink.applied(AppliedSample(device, time.time(), n * 1.0, telemetry, dict(telemetry.angles_rad)))
+        sink.applied(AppliedSample(device, wall0 + n, n * 1.0, telemetry, dict(telemetry.angles_rad)))
         if n != 2:  # arm-000's time is dropped with arm-001's forget; arm-003 is forgotten at once
-            sink.status(StatusChange(device, gone, gone, at_mono_s=n + 0.5, at_wall_s=n, forgotten=True))
-    sink.status(StatusChange("arm-002", DeviceStatus.ONLINE, stale, at_mono_s=3.0, at_wall_s=3.0))
-    sink.status(StatusChange("arm-002", stale, gone, at_mono_s=4.0, at_wall_s=4.0))
+            at = n + 0.5
+            sink.status(StatusChange(device, gone, gone, at_mono_s=at, at_wall_s=wall0 + at, forgotten=True))
+    sink.status(StatusChange("arm-002", DeviceStatus.ONLINE, stale, at_mono_s=3.0, at_wall_s=wall0 + 3.0))
+    sink.status(StatusChange("arm-002", stale, gone, at_mono_s=4.0, at_wall_s=wall0 + 4.0))
     wait_for(lambda: sink.stats().pending == 0, 30, "the sink to take every item")
     sink.close()
+    return sink
+
+
+def test_a_new_arms_labels_go_after_its_clear_when_the_floor_is_ahead(
+    robot: RobotModel, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A review: the floor of dropped label times comes from other arms' clocks, and one ahead put every new
+    arm's first Clear there: its STALE and OFFLINE labels, at its own times, lost to that Clear at the live
+    end. A label goes after its arm's last Clear (here a clock ahead by less than FLOOR_AHEAD_TOLERANCE_S,
+    which moves the floor)."""
+    monkeypatch.setattr(rerun_sink, "FORGOTTEN_KEPT", 1)
+    path = tmp_path / "ahead.rrd"
+    ahead_ms = int(rerun_sink.FLOOR_AHEAD_TOLERANCE_S * 1000) // 2
+    sink = _forgets_after_one_clock_ahead(robot, path, ahead_ms)
+    assert sink.worker.floor_ahead_ignored == 0
     temporal, _ = read_rrd(path)
     labels = rows_of(temporal, "/arms/arm-002/status", "Points3D:labels")
     # The Clear first, past the floor; the labels after it, in order: OFFLINE shows at the live end.
     assert [labels[t] for t in sorted(labels)] == [[], ["STALE"], ["OFFLINE"]], labels
-    assert min(labels) > far_ms
+    assert min(labels) > T0_MS + ahead_ms
     labels = rows_of(temporal, "/arms/arm-003/status", "Points3D:labels")
     assert [labels[t] for t in sorted(labels)] == [[], ["FORGOTTEN"]], labels
+
+
+def test_an_edge_clock_far_ahead_does_not_move_later_arms_on_the_timeline(
+    robot: RobotModel, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A walk: one arm's clock set to 2099 made the floor of dropped label times 2099, so every later arm's
+    first Clear and its labels went there, 73 years from its samples on the timeline. A dropped time further
+    ahead of the agent's clock than FLOOR_AHEAD_TOLERANCE_S leaves the floor where it was, counted and
+    logged: later arms are labelled at their own times."""
+    monkeypatch.setattr(rerun_sink, "FORGOTTEN_KEPT", 1)
+    path = tmp_path / "far.rrd"
+    far_ms = int(np.datetime64("2099-06-01", "ms").astype(np.int64))
+    sink = _forgets_after_one_clock_ahead(robot, path, far_ms - T0_MS)
+    assert sink.worker.floor_ahead_ignored == 1
+    assert [r.getMessage() for r in caplog.records if "ahead of the agent's clock" in r.getMessage()]
+    temporal, _ = read_rrd(path)
+    labels = rows_of(temporal, "/arms/arm-002/status", "Points3D:labels")
+    # No label inherited, so no Clear: its own labels, within seconds of its samples.
+    assert [labels[t] for t in sorted(labels)] == [["STALE"], ["OFFLINE"]], labels
+    assert max(labels) < T0_MS + 10_000
+    labels = rows_of(temporal, "/arms/arm-003/status", "Points3D:labels")
+    assert list(labels.values()) == [["FORGOTTEN"]] and max(labels) < T0_MS + 10_000
+    # The arm whose clock was ahead keeps its own label at its own time.
+    assert rows_of(temporal, "/arms/arm-000/status", "Points3D:labels") == {far_ms + 500: ["FORGOTTEN"]}
 
 
 def test_forgetting_the_focus_arm_sends_no_layout_and_its_id_takes_its_place_back(

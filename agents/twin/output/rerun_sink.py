@@ -50,6 +50,7 @@ from rerun.chunk import Chunk
 from twin.core import heap
 from twin.core.lifetime import die_with_parent
 from twin.core.telemetry import JointDiagnostics
+from twin.core.throttle import Throttle
 from twin.output.edge_time import EdgeTime
 from twin.output.rerun_settings import RerunSettings
 from twin.output.sinks import (
@@ -130,8 +131,15 @@ _STATUS_LEVELS = {"STALE": rr.TextLogLevel.WARN, "OFFLINE": rr.TextLogLevel.WARN
 # over an arm the agent forgot, whose meshes stay drawn with its last pose (the label says it is not live).
 _STATUS_COLOURS = {"STALE": (255, 176, 0), "OFFLINE": (220, 40, 40), "FORGOTTEN": (140, 140, 140)}
 # Forgotten ids whose FORGOTTEN label a new arm of that id clears (it takes its entity path): the newest
-# ones, so ids churning for weeks keep the sink's memory bounded (older ones: `_forgotten_floor`).
+# ones, so ids churning for weeks keep the sink's memory bounded (older ones: `_ForgottenLabels.floor`).
 FORGOTTEN_KEPT = 10_000
+# A dropped label time further ahead of the wall clock at the forget that drops it than this does not move
+# the floor: it is an edge clock set wrong (one at 2099 put every later arm's first Clear and labels there,
+# far from the rest of the fleet on the timeline). NTP keeps a sound edge within milliseconds; a label time
+# is its arm's last sample plus the silence the agent saw, so only a clock this far ahead gets past it. Such
+# times are counted (`RerunWorker.floor_ahead_ignored`) and logged, at most once a minute.
+FLOOR_AHEAD_TOLERANCE_S = 60.0
+FLOOR_AHEAD_TELL_EVERY_S = 60.0
 STATUS_LABEL_AT = (0.0, 0.0, 0.55)
 
 
@@ -189,7 +197,7 @@ class _Arm:
     shown: str = "ONLINE"
     shown_ms: int = 0
     # The time of the last Clear of that label: a later label goes after it, or the Clear hides it at the live
-    # end. A new arm's first one may be far past its own clock (the `_forgotten_floor`, from other arms).
+    # end. A new arm's first one may be past its own clock (`_ForgottenLabels.floor`, from other arms).
     cleared_ms: int = 0
     servo_styled: set[str] = field(default_factory=set)
     schemas: dict[tuple[str, ...], pa.Schema] = field(default_factory=dict)
@@ -205,6 +213,53 @@ class _Arm:
             self.servo = np.resize(self.servo, (cap, *self.servo.shape[1:]))
         self.n += 1
         return row
+
+
+class _ForgottenLabels:
+    """The FORGOTTEN labels a new arm of an id may inherit, as it takes the forgotten arm's entity path: the
+    label times of the newest FORGOTTEN_KEPT ids, and past them a floor, the latest label time dropped (once
+    set, any new arm may have inherited a label, so each clears it after that: a clear with no label to clear
+    costs one small row). A dropped time too far ahead of the agent's clock leaves the floor where it is
+    (FLOOR_AHEAD_TOLERANCE_S)."""
+
+    def __init__(self) -> None:
+        self.times: dict[str, int] = {}  # a forgotten id: its label's time, oldest first
+        self.floor: int | None = None
+        self.ahead_ignored = 0
+        self._ahead_lines = Throttle(FLOOR_AHEAD_TELL_EVERY_S)
+
+    def keep(self, device: str, at_ms: int, wall_s: float) -> None:
+        """`device` forgotten, labelled at `at_ms` (its line) when the agent's wall clock read `wall_s`."""
+        self.times.pop(device, None)
+        self.times[device] = at_ms
+        if len(self.times) > FORGOTTEN_KEPT:
+            self._drop_oldest(wall_s)
+
+    def inherited(self, device: str) -> int | None:
+        """The time of the label a new arm of `device` may inherit (None: none), forgetting the id's own."""
+        return self.times.pop(device, self.floor)
+
+    def _drop_oldest(self, wall_s: float) -> None:
+        """Into the floor unless too far ahead of `wall_s` (the clock at the forget that drops it): the floor
+        puts every later arm after it. An id left out so keeps its label if it comes back with its clock set
+        right: one arm, not the fleet."""
+        device = next(iter(self.times))
+        dropped = self.times.pop(device)
+        ahead_s = dropped / 1000 - wall_s
+        if ahead_s <= FLOOR_AHEAD_TOLERANCE_S:
+            self.floor = max(self.floor or dropped, dropped)
+            return
+        self.ahead_ignored += 1
+        since = self._ahead_lines.due()
+        if since is not None:
+            log.warning(
+                "rerun: the FORGOTTEN label of %s is %.0f s ahead of the agent's clock (its edge clock was "
+                "set wrong); its time does not move later arms' labels%s. Fix: keep the edge's clock set by "
+                "NTP",
+                device,
+                ahead_s,
+                f" ({since - 1} more such since the last line)" if since > 1 else "",
+            )
 
 
 class _Tee:
@@ -385,10 +440,7 @@ class RerunWorker:
             self.viewer_url = viewer_url(web_port, self.grpc_url or "")
         self._arms: dict[str, _Arm] = {}  # the arms drawn, less those the agent forgot (handle_status)
         self._placed = 0  # the arms given a place in the fleet grid so far
-        self._forgotten: dict[str, int] = {}  # a forgotten id: its FORGOTTEN label's time (FORGOTTEN_KEPT)
-        # Past `_forgotten`, the latest label time dropped: once set, any new arm may have inherited a label,
-        # so each clears it after that (a clear with no label to clear costs one small row).
-        self._forgotten_floor: int | None = None
+        self._forgotten = _ForgottenLabels()  # the FORGOTTEN labels a new arm of an id may inherit
         self._focus: str | None = None
         self._focus_index: int | None = None  # the focus arm's grid place, kept for its id's return
         # Triangles per arm of the detailed and the far copy (see _log_arm).
@@ -434,6 +486,12 @@ class RerunWorker:
     @property
     def rotations(self) -> int:
         return self._rotation.rotations if self._rotation is not None else 0
+
+    @property
+    def floor_ahead_ignored(self) -> int:
+        """Dropped FORGOTTEN label times too far ahead of the agent's clock to move the floor
+        (FLOOR_AHEAD_TOLERANCE_S)."""
+        return self._forgotten.ahead_ignored
 
     @property
     def files_deleted(self) -> int:
@@ -606,11 +664,7 @@ class RerunWorker:
         text = f"arm forgotten by the agent (was {change.previous})"
         self._rec.log(f"{arm.entity}/events", rr.TextLog(text, level=rr.TextLogLevel.INFO))
         del self._arms[arm.device]
-        self._forgotten.pop(arm.device, None)
-        self._forgotten[arm.device] = at_ms
-        if len(self._forgotten) > FORGOTTEN_KEPT:
-            dropped = self._forgotten.pop(next(iter(self._forgotten)))
-            self._forgotten_floor = max(self._forgotten_floor or dropped, dropped)
+        self._forgotten.keep(arm.device, at_ms, change.at_wall_s)
         # The focus stays on the forgotten arm (labelled FORGOTTEN, so the view is truthful): handing it on
         # would send a blueprint, and each keeps a stream and two threads for as long as the process runs
         # (SDK 0.41), so arms churning for weeks would pile them up. An arm of that id takes the place back.
@@ -687,7 +741,7 @@ class RerunWorker:
         back = self._focus_index if device == self._focus else None
         index = self._placed if back is None else back
         arm = _Arm(device=device, entity=entity_of(device), index=index, bodies=len(self._bodies))
-        forgot_ms = self._forgotten.pop(device, self._forgotten_floor)
+        forgot_ms = self._forgotten.inherited(device)
         if forgot_ms is not None:
             arm.shown, arm.shown_ms = "FORGOTTEN", forgot_ms  # cleared at its first sample (handle_applied)
         if back is None:
