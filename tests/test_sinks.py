@@ -211,23 +211,58 @@ def test_the_slot_keeps_every_tracked_arms_newest_change_however_small_the_queue
         load_config(None, {"telemetry.max_devices": RESCUE_MIN_ARMS + 1})
 
 
-def test_a_full_slot_drops_a_forgotten_arms_change_before_a_tracked_ones(
+def test_a_full_slot_keeps_every_forget_and_every_tracked_arms_newest_change(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """The slot is still bounded (a stuck thread with arms forgotten and replaced would fill it with every new
-    device id): full, it drops the oldest forget, counted, never the newest change of an arm still tracked."""
+    """A walk: the slot of changes and forgets was bounded as one, and full it dropped the oldest forget; an
+    arm of that id back before the stuck thread (ONLINE to the sinks from its first sample, with no change)
+    kept the old arm's OFFLINE label. Forgets are bounded on their own, as many as the slot: the slot full of
+    tracked arms' changes drops no forget, and the worker hears of each before the samples that came after."""
+    monkeypatch.setattr(sinks, "RESCUE_MIN_ARMS", 2)
+    gate, worker, sink = _sink_held_at_its_first_sample()
+    for device in ("arm-001", "arm-004"):  # the slot's two places taken by tracked arms' changes
+        sink.status(_change(device, DeviceStatus.ONLINE, DeviceStatus.STALE))
+    for device in ("arm-002", "arm-003"):
+        sink.status(_forget(device))
+    sink.applied(_sample(1))
+    sink.applied(_sample(2))  # every change and forget has left the queue: none is dropped
+    assert (len(sink._rescued), len(sink._forgets), sink.stats().dropped) == (2, 2, 0)
+    gate.set()
+    sink.close()
+    assert worker.order == [
+        0,
+        "arm-002 OFFLINE forgotten (was OFFLINE)",
+        "arm-003 OFFLINE forgotten (was OFFLINE)",
+        "arm-001 STALE",
+        "arm-004 STALE",
+        1,
+        2,
+    ]
+    assert (sink.stats().dropped, sink.stats().delivered) == (0, 3)
+
+
+def test_more_forgets_waiting_than_their_bound_drop_the_oldest_forget_only(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The forgets' queue is still bounded (a stuck thread with arms forgotten and replaced would fill it with
+    every new device id): past it, the oldest forget is dropped, counted, never a tracked arm's change."""
     monkeypatch.setattr(sinks, "RESCUE_MIN_ARMS", 2)
     gate, worker, sink = _sink_held_at_its_first_sample()
     sink.status(_change("arm-001", DeviceStatus.ONLINE, DeviceStatus.STALE))
-    for n in (2, 3):
-        gone = DeviceStatus.OFFLINE
-        sink.status(StatusChange(f"arm-{n:03d}", gone, gone, at_mono_s=5.0, at_wall_s=5.0, forgotten=True))
+    for n in (2, 3, 4):
+        sink.status(_forget(f"arm-{n:03d}"))
     sink.applied(_sample(1))
-    sink.applied(_sample(2))  # every change has left the queue: the slot of two drops arm-002's forget
-    assert len(sink._latest) == 2
+    sink.applied(_sample(2))  # the forgets' queue of two drops arm-002's forget
     gate.set()
     sink.close()
-    assert worker.order == [0, "arm-003 OFFLINE forgotten (was OFFLINE)", "arm-001 STALE", 1, 2]
+    assert worker.order == [
+        0,
+        "arm-003 OFFLINE forgotten (was OFFLINE)",
+        "arm-004 OFFLINE forgotten (was OFFLINE)",
+        "arm-001 STALE",
+        1,
+        2,
+    ]
     assert (sink.stats().dropped, sink.stats().delivered) == (1, 3)
 
 

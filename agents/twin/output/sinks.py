@@ -7,7 +7,7 @@ is the mirror's hot path, so a sink's `applied`/`rejected`/`status` must return 
 block on I/O. Sinks that do I/O (a file, S3, a network peer) wrap their blocking work in `QueuedSink`: a
 bounded queue and a thread of their own, which drops the oldest queued item when the sink falls behind and
 counts it (save an arm's newest status change, kept aside in a slot of one per arm tracked, and a forget,
-kept in a queue of its own in that slot, which drops the oldest forget first when full), so a slow disk, a
+kept in a queue of its own as large, which drops only its own oldest when full), so a slow disk, a
 stalled viewer or an absent ROS peer never slows mirroring and never grows memory without bound.
 
 A sample carries joint angles, not body poses: forward kinematics is computed where it is needed, in the
@@ -250,8 +250,8 @@ class QueuedSink:
     bytes (`max_pending_bytes`, sample_bytes), which drops the oldest when full. Status changes queue with the
     samples, in order, but an arm's newest is kept: dropped from the queue, it waits in a slot of its own (one
     per arm, for every arm tracked at once) and goes to the worker before the rest. A dropped forget waits
-    there too, in a queue of its own that no later change of its id replaces; full, the slot drops the oldest
-    forget first.
+    too, in a queue of its own as large, that no later change of its id replaces; each is bounded on its own,
+    so no forget goes for want of room for changes, and no change for forgets.
 
     Errors raised by the worker are caught, counted and logged (at most once per `error_log_s`), never
     propagated: a broken sink must not stop the mirror or the other sinks.
@@ -285,7 +285,7 @@ class QueuedSink:
         # forget waits in `_forgets`, oldest first, never replaced (lost, an arm of its id back would keep
         # the old one's OFFLINE label), and goes before its id's newer change in `_rescued`. All hold one
         # change per arm at most and empty at each batch taken: every change in them came after the last.
-        # The slot (both) is bounded (`_rescue`), and `_latest` holds only changes queued or in it.
+        # Each is bounded (`_rescue`), and `_latest` holds only changes queued or in them.
         self._latest: dict[str, StatusChange] = {}
         self._rescued: dict[str, StatusChange] = {}
         self._forgets: dict[str, StatusChange] = {}
@@ -293,7 +293,7 @@ class QueuedSink:
         self._max_bytes = max_pending_bytes
         # The slot holds as many changes as the queue would (by count and by bytes), and at least one for
         # every arm an agent may track at once, however small the queue: an arm's newest status never goes
-        # for want of room (`_rescue`).
+        # for want of room (`_rescue`). The forgets' queue holds as many besides.
         queued = min(max_pending, max_pending_bytes // SAMPLE_OVERHEAD_BYTES)
         self._max_rescued = max(RESCUE_MIN_ARMS, queued)
         self._bytes = 0
@@ -360,23 +360,24 @@ class QueuedSink:
             self._cond.notify()
 
     def _rescue(self, change: StatusChange) -> None:
-        """Keep `change`, a forget or the newest of its arm, in the slot (the lock held). An id's forget kept
-        already stands for a later one: the sink saw nothing of the arm between them (it was older than this
-        one, and dropped first). The slot is bounded: a stuck thread with arms forgotten and replaced would
-        fill it with every new device id. Full, it drops the oldest forget first, counted (its arm is gone,
-        and shown wrong only if that name returns before the thread does): the arms tracked, one change each,
-        fit in it, so none of them loses its newest."""
+        """Keep `change`, a forget or the newest of its arm, in the slot or the forgets' queue (the lock
+        held). An id's forget kept already stands for a later one: the sink saw nothing of the arm between
+        them (it was older than this one, and dropped first). Each is bounded on its own: a stuck thread with
+        arms forgotten and replaced would fill them with every new device id. The arms tracked, one change
+        each, fit in the slot, so none of them loses its newest; and forgets never go to make room for them
+        (a lost forget leaves the old arm's OFFLINE label over its id's return, which sends no change). Only
+        more forgets waiting than the queue holds drop the oldest of them, counted."""
         forgets, rescued = self._forgets, self._rescued
         if not change.forgotten:
-            rescued[change.device_id] = change
+            kept = rescued
         elif change.device_id in forgets:
             self._drop_change(change)
             return
         else:
-            forgets[change.device_id] = change
-        if len(forgets) + len(rescued) > self._max_rescued:
-            oldest = forgets if forgets else rescued
-            self._drop_change(oldest.pop(next(iter(oldest))))
+            kept = forgets
+        kept[change.device_id] = change
+        if len(kept) > self._max_rescued:
+            self._drop_change(kept.pop(next(iter(kept))))
 
     def _drop_change(self, change: StatusChange) -> None:
         """Count `change` dropped, and let its id's `_latest` go with it if it was that (the lock held)."""
