@@ -546,18 +546,23 @@ def test_the_arms_the_agent_forgets_leave_no_record_in_the_sink(
     assert list(sink.worker._forgotten.times) == [f"arm-{n:03d}" for n in range(14, 19)]
 
 
+@pytest.mark.parametrize(
+    "agent_behind_s", [0.0, 365 * 86_400.0], ids=["agent-clock-right", "agent-clock-behind"]
+)
 def test_an_arm_of_an_id_forgotten_too_long_ago_to_be_kept_still_clears_its_label(
-    robot: RobotModel, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    robot: RobotModel, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, agent_behind_s: float
 ) -> None:
     """A review: once an id dropped out of the FORGOTTEN_KEPT kept, an arm of that id came back onto its
     entity path under the grey label, never cleared. Once any id is dropped, every new arm clears the label,
-    after the latest one dropped."""
+    after the latest one dropped. A second review: with the agent's clock a year behind (a board before NTP
+    syncs) and the edges right, every dropped time read as ahead (FLOOR_AHEAD_TOLERANCE_S), the floor never
+    moved and the label stayed; the forget's own label time outvotes the agent's clock."""
     monkeypatch.setattr(rerun_sink, "FORGOTTEN_KEPT", 2)
     decoder = TelemetryDecoder(DecoderConfig(units=Units.DEGREES))
     path = tmp_path / "floor.rrd"
     sink = RerunSink(robot, RerunSettings(save=str(path), flush_s=0.05))
     gone = DeviceStatus.OFFLINE
-    wall0 = T0_MS / 1000  # the agent's clock, as the edges' (FLOOR_AHEAD_TOLERANCE_S)
+    wall0 = T0_MS / 1000 - agent_behind_s  # the agent's clock; the edges' are right
     for n, device in enumerate(["arm-000", "arm-001", "arm-002", "arm-000"]):
         telemetry = decoder.decode(json.dumps(payload(device, n)), topic_device=device)
         sink.applied(AppliedSample(device, wall0 + n, n * 1.0, telemetry, dict(telemetry.angles_rad)))
@@ -567,6 +572,7 @@ def test_an_arm_of_an_id_forgotten_too_long_ago_to_be_kept_still_clears_its_labe
     wait_for(lambda: sink.stats().pending == 0, 30, "the sink to take every item")
     sink.close()
     assert "arm-000" not in sink.worker._forgotten.times
+    assert sink.worker.floor_ahead_ignored == 0
     temporal, _ = read_rrd(path)
     labels = rows_of(temporal, "/arms/arm-000/status", "Points3D:labels")
     assert list(labels.values()) == [["FORGOTTEN"], []]

@@ -133,11 +133,13 @@ _STATUS_COLOURS = {"STALE": (255, 176, 0), "OFFLINE": (220, 40, 40), "FORGOTTEN"
 # Forgotten ids whose FORGOTTEN label a new arm of that id clears (it takes its entity path): the newest
 # ones, so ids churning for weeks keep the sink's memory bounded (older ones: `_ForgottenLabels.floor`).
 FORGOTTEN_KEPT = 10_000
-# A dropped label time further ahead of the wall clock at the forget that drops it than this does not move
-# the floor: it is an edge clock set wrong (one at 2099 put every later arm's first Clear and labels there,
-# far from the rest of the fleet on the timeline). NTP keeps a sound edge within milliseconds; a label time
-# is its arm's last sample plus the silence the agent saw, so only a clock this far ahead gets past it. Such
-# times are counted (`RerunWorker.floor_ahead_ignored`) and logged, at most once a minute.
+# A dropped label time further ahead than this of the forget that drops it (the later of its label time and
+# the agent's wall clock then) does not move the floor: a clock is set wrong (an edge at 2099 put every later
+# arm's first Clear and labels there, far from the rest of the fleet on the timeline). NTP keeps a sound
+# clock within milliseconds; a label time is its arm's last sample plus the silence the agent saw, so only a
+# clock this far ahead gets past it. The forget's own label time is in the reference so that an agent whose
+# clock is behind (a board before NTP syncs) does not take every sound edge for one ahead. Such times are
+# logged, at most once a minute (and counted: `RerunWorker.floor_ahead_ignored`).
 FLOOR_AHEAD_TOLERANCE_S = 60.0
 FLOOR_AHEAD_TELL_EVERY_S = 60.0
 STATUS_LABEL_AT = (0.0, 0.0, 0.55)
@@ -219,8 +221,8 @@ class _ForgottenLabels:
     """The FORGOTTEN labels a new arm of an id may inherit, as it takes the forgotten arm's entity path: the
     label times of the newest FORGOTTEN_KEPT ids, and past them a floor, the latest label time dropped (once
     set, any new arm may have inherited a label, so each clears it after that: a clear with no label to clear
-    costs one small row). A dropped time too far ahead of the agent's clock leaves the floor where it is
-    (FLOOR_AHEAD_TOLERANCE_S)."""
+    costs one small row). A dropped time too far ahead of both the agent's clock and the label time of the
+    forget that drops it leaves the floor where it is (FLOOR_AHEAD_TOLERANCE_S)."""
 
     def __init__(self) -> None:
         self.times: dict[str, int] = {}  # a forgotten id: its label's time, oldest first
@@ -233,19 +235,20 @@ class _ForgottenLabels:
         self.times.pop(device, None)
         self.times[device] = at_ms
         if len(self.times) > FORGOTTEN_KEPT:
-            self._drop_oldest(wall_s)
+            self._drop_oldest(max(wall_s, at_ms / 1000))
 
     def inherited(self, device: str) -> int | None:
         """The time of the label a new arm of `device` may inherit (None: none), forgetting the id's own."""
         return self.times.pop(device, self.floor)
 
-    def _drop_oldest(self, wall_s: float) -> None:
-        """Into the floor unless too far ahead of `wall_s` (the clock at the forget that drops it): the floor
-        puts every later arm after it. An id left out so keeps its label if it comes back with its clock set
-        right: one arm, not the fleet."""
+    def _drop_oldest(self, now_s: float) -> None:
+        """Into the floor unless too far ahead of `now_s`, the later of the agent's clock and the label time
+        at the forget that drops it (so sound edges outvote an agent clock behind): the floor puts every later
+        arm after it. An id left out so keeps its label if an arm of it comes back with its clock set right:
+        one arm, not the fleet."""
         device = next(iter(self.times))
         dropped = self.times.pop(device)
-        ahead_s = dropped / 1000 - wall_s
+        ahead_s = dropped / 1000 - now_s
         if ahead_s <= FLOOR_AHEAD_TOLERANCE_S:
             self.floor = max(self.floor or dropped, dropped)
             return
@@ -253,9 +256,11 @@ class _ForgottenLabels:
         since = self._ahead_lines.due()
         if since is not None:
             log.warning(
-                "rerun: the FORGOTTEN label of %s is %.0f s ahead of the agent's clock (its edge clock was "
-                "set wrong); its time does not move later arms' labels%s. Fix: keep the edge's clock set by "
-                "NTP",
+                "rerun: the FORGOTTEN label of %s is %.0f s ahead of the agent's clock and of the arm "
+                "forgotten after it: the edge's clock, or the agent's own, is set wrong. Its time does not "
+                "move later arms' labels, and an arm of that id that comes back keeps the label%s. Fix: keep "
+                "the edge's clock set by NTP, or, if the agent's clock is the one behind, its host's "
+                "(chronyc tracking)",
                 device,
                 ahead_s,
                 f" ({since - 1} more such since the last line)" if since > 1 else "",
@@ -489,8 +494,8 @@ class RerunWorker:
 
     @property
     def floor_ahead_ignored(self) -> int:
-        """Dropped FORGOTTEN label times too far ahead of the agent's clock to move the floor
-        (FLOOR_AHEAD_TOLERANCE_S)."""
+        """Dropped FORGOTTEN label times too far ahead to move the floor (FLOOR_AHEAD_TOLERANCE_S): logged,
+        not in /state, where a sink has the generic SinkStats only."""
         return self._forgotten.ahead_ignored
 
     @property
