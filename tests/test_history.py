@@ -624,6 +624,35 @@ def test_keep_days_deletes_the_days_before_the_last_n_and_vacuum_frees_their_fil
     assert operations.count("DELETE") == 1
 
 
+def test_keep_days_under_a_wall_clock_stepped_far_forward_keeps_the_newest_days_with_rows(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A wall clock stepped to 2099 (a bad NTP answer at first boot) put every day before keep_days' cut,
+    and the first maintenance deleted the whole history. The newest keep_days + 1 days that hold rows stay;
+    older ones go only as rows of later days come in."""
+    uri = str(tmp_path / "h")
+    written = _history_on_days(uri, [40, 3, 2, 1, 0])
+    settings = HistorySettings(uri=uri, maintain_every_s=0, vacuum_retention_hours=0, keep_days=2)
+    y2099 = dt.datetime(2099, 6, 1, 12, tzinfo=dt.UTC).timestamp()
+    wall = [y2099]
+    writer = HistoryWriter(settings, wall_clock=lambda: wall[0])
+    caplog.set_level("INFO", logger="twin.output.history")
+    writer.maintain_now()  # today from the writer's (stepped) clock
+    newest = sorted(written)[-3:]
+    assert _rows_per_day(uri) == {day: written[day] for day in newest}
+    assert set(_rows_per_day(uri, REJECTED_TABLE)) == set(newest)
+    said = [r for r in caplog.records if "that the clock (today 2099-06-01)" in r.getMessage()]
+    assert said and said[0].levelno == logging.WARNING and "check the host's clock" in said[0].getMessage()
+    # The agent writes on at the stepped clock: each new day with rows lets one older day go, no more.
+    writer = HistoryWriter(HistorySettings(uri=uri, commit_every_s=3600, maintain_every_s=0)).start()
+    writer.add(TELEMETRY_TABLE, telemetry_table(samples(10, start_s=y2099))[0])
+    assert writer.flush(10)
+    writer.close()
+    wall[0] += 3600  # the next maintenance window (the lease is per window)
+    HistoryWriter(settings, wall_clock=lambda: wall[0]).maintain_now()
+    assert _rows_per_day(uri) == {**{day: written[day] for day in newest[1:]}, "2099-06-01": 10}
+
+
 def test_the_rows_keep_days_deleted_reach_state_and_metrics(tmp_path: Path) -> None:
     """Rows deleted on purpose are counted where an operator looks, apart from rows lost: the writer's count
     crosses the process boundary (its figures), becomes /state's, sums over workers, and is on /metrics."""

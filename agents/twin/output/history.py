@@ -149,8 +149,9 @@ class HistorySettings:
     maintain_every_s: float = 3600.0
     # Files replaced by compaction stay this long for readers still using an older version.
     vacuum_retention_hours: float = 24.0
-    # Each maintenance run deletes the days before the last keep_days whole UTC days (0 = keep everything:
-    # an upgrade must not remove anyone's rows); the vacuum then frees their files.
+    # Each maintenance run deletes the days before the last keep_days whole UTC days, never one of the newest
+    # keep_days + 1 days that hold rows (0 = keep everything: an upgrade must not remove anyone's rows); the
+    # vacuum then frees their files.
     keep_days: int = 0
     target_file_mb: int = 128
     retry_min_s: float = 1.0
@@ -1047,18 +1048,18 @@ class HistoryWriter:
 
     def _expire(self, table: str, dtable: Any, today: dt.date) -> None:
         """Delete the rows of the days before the last keep_days whole UTC days (today, partial, is kept as
-        well). The predicate is on the partition column alone, so delta-rs removes whole files without
-        reading them; they stay on storage, for readers of older versions, until the vacuum after
-        vacuum_retention_hours frees them."""
+        well), but never one of the newest keep_days + 1 days that hold rows (`_expiry_cut` says why). The
+        predicate is on the partition column alone, so delta-rs removes whole files without reading them;
+        they stay on storage, for readers of older versions, until the vacuum after vacuum_retention_hours
+        frees them."""
         if self.settings.keep_days <= 0:
             return
-        cut = today - dt.timedelta(days=self.settings.keep_days)
-        old = sorted(
-            day for p in dtable.partitions() if (day := str(p.get(PARTITION_COLUMN))) < cut.isoformat()
-        )
+        days = sorted({str(p.get(PARTITION_COLUMN)) for p in dtable.partitions()})
+        cut = _expiry_cut(table, days, today, self.settings.keep_days)
+        old = [day for day in days if day < cut]
         if not old:  # no day old enough: no delete to run, nothing to log
             return
-        metrics = dtable.delete(f"{PARTITION_COLUMN} < '{cut.isoformat()}'")
+        metrics = dtable.delete(f"{PARTITION_COLUMN} < '{cut}'")
         # delta-rs leaves the count out when it could only know it by reading the files.
         counted = metrics.get("num_deleted_rows")
         rows = int(counted or 0)
@@ -1178,6 +1179,41 @@ class HistoryWriter:
             self._stats.maintenance_failures += 1
             self._stats.last_error = message
         log.error("history: maintenance of %s failed: %s; retried at the next interval", table, message)
+
+
+def _expiry_cut(table: str, days: Sequence[str], today: dt.date, keep_days: int) -> str:
+    """The first day (ISO) keep_days keeps of `table`, whose days with rows are `days` (sorted).
+
+    The wall clock alone is not trusted: one stepped far forward (a bad NTP answer at first boot, the year
+    2099) put every day before its cut, and the first maintenance deleted the whole history. So the newest
+    keep_days + 1 days that hold rows are kept whatever the clock says; older days go as rows of later days
+    come in, as fast as the agent really writes them. A day held back that the clock alone would delete is
+    said: at WARNING when the rows jump forward by more than the whole window after it (a clock stepped
+    forward, or an agent off that long), else at INFO (an arm not used every day)."""
+    by_clock = (today - dt.timedelta(days=keep_days)).isoformat()
+    newest = days[-(keep_days + 1) :]
+    cut = min(by_clock, newest[0]) if newest else by_clock
+    held = [day for day in days if cut <= day < by_clock]
+    if held:
+        after = next((day for day in days if day > held[-1]), today.isoformat())
+        jump = (dt.date.fromisoformat(after) - dt.date.fromisoformat(held[-1])).days
+        log.log(
+            logging.WARNING if jump > keep_days else logging.INFO,
+            "history: keep_days = %d kept %d day(s) of %s that the clock (today %s) puts before its cut "
+            "(%s to %s): the table holds rows on fewer than %d later days%s; they go once it does",
+            keep_days,
+            len(held),
+            table,
+            today.isoformat(),
+            held[0],
+            held[-1],
+            keep_days + 1,
+            f", and its rows jump {jump} days forward after {held[-1]}: check the host's clock (timedatectl)"
+            if jump > keep_days
+            else "",
+            extra={"days_held": len(held), "table": table},
+        )
+    return cut
 
 
 def _s3_client(options: Mapping[str, str]) -> Any:

@@ -272,7 +272,8 @@ KEY_DOCS: dict[str, str] = {
     ),
     "history.keep_days": (
         "Rows older than this many whole UTC days (today is kept too) are deleted at each maintenance, "
-        "their files at the vacuum after `vacuum_retention_hours`; 0 = keep everything."
+        "their files at the vacuum after `vacuum_retention_hours`; the newest `keep_days` + 1 days that "
+        "hold rows are kept whatever the clock says; 0 = keep everything."
     ),
     "history.writer_nice": (
         "How much nicer than the mirrors the history writer process runs, 0 to 19: its commits' bursts of "
