@@ -2453,6 +2453,94 @@ def test_a_damaged_log_entry_is_named_with_its_fix(
     assert json.loads(capsys.readouterr().out)["devices"][0]["rows"] == 20
 
 
+def _three_commits(uri: str) -> list[Path]:
+    """Three commits of 10 telemetry rows each; the table's log entries, oldest first."""
+    for i in range(3):
+        writer = HistoryWriter(HistorySettings(uri=uri, commit_every_s=3600, maintain_every_s=0)).start()
+        writer.add(TELEMETRY_TABLE, telemetry_table(samples(10, start_s=T0 + 10 * i, seed=i))[0])
+        assert writer.flush(10)
+        writer.close()
+    return sorted((Path(uri) / TELEMETRY_TABLE / "_delta_log").glob("*.json"))
+
+
+def test_an_empty_newest_log_entry_is_named_to_a_reader_and_set_aside_by_the_writer(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
+) -> None:
+    """A commit cut short by a crash or a full disk can leave its log entry empty: deltalake reads it as a
+    commit with no action, so every read left its rows out without a word, and the writer committed on top
+    of it, after which it could no longer be moved out."""
+    from twin.cli import main
+    from twin.output.history import SET_ASIDE_DIR
+    from twin.output.history_feed import _figures_of
+    from twin.service.metrics import render_metrics
+    from twin.service.state import AgentInfo, AgentState
+
+    uri = str(tmp_path / "h")
+    entries = _three_commits(uri)
+    data_files = set((Path(uri) / TELEMETRY_TABLE).rglob("*.parquet"))
+    entries[-1].write_bytes(b"")
+    assert main(["history", "ls", "--history", uri]) == 1
+    err = capsys.readouterr().err
+    assert f"its newest log entry {entries[-1]} is empty" in err and "move it out of _delta_log" in err, err
+    caplog.set_level("ERROR", logger="twin.output.history")
+    writer = HistoryWriter(HistorySettings(uri=uri, commit_every_s=3600, maintain_every_s=0)).start()
+    try:
+        writer.add(TELEMETRY_TABLE, telemetry_table(samples(10, start_s=T0 + 100, seed=9))[0])
+        assert writer.flush(10)
+        stats = writer.stats()
+    finally:
+        writer.close()
+    moved = Path(uri) / TELEMETRY_TABLE / SET_ASIDE_DIR / entries[-1].name
+    assert moved.is_file() and moved.read_bytes() == b""  # kept, not deleted
+    assert any(str(moved) in r.getMessage() for r in caplog.records)
+    assert stats.tables[TELEMETRY_TABLE].log_entries_set_aside == 1
+    state = AgentState(agent=AgentInfo(history=HistoryState(log_entries_set_aside=1)), devices={})
+    assert "twin_history_log_entries_set_aside_total 1.0" in render_metrics(state).splitlines()
+    assert _figures_of(stats, 0).log_entries_set_aside == 1
+    assert data_files <= set((Path(uri) / TELEMETRY_TABLE).rglob("*.parquet"))  # no data file went
+    assert main(["history", "ls", "--history", uri, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["devices"][0]["rows"] == 30  # two commits and the new one
+
+
+@pytest.mark.parametrize("damage", [b"", b'{"add": {"path": "part'])
+def test_a_damaged_log_entry_that_is_not_the_newest_empty_one_refuses_commits_with_the_fix(
+    tmp_path: Path, damage: bytes
+) -> None:
+    """An empty entry with later ones after it, or an entry that is not whole JSON, cannot be moved out:
+    the writer keeps the rows, counts each refused commit and names the entry and the fix, and goes on
+    once the log is mended."""
+    from twin.output.history import NO_ACTION_ENTRY
+
+    uri = str(tmp_path / "h")
+    entries = _three_commits(uri)
+    damaged = entries[1] if damage == b"" else entries[-1]
+    whole = damaged.read_bytes()
+    damaged.write_bytes(damage)
+    writer = HistoryWriter(
+        HistorySettings(uri=uri, commit_every_s=3600, maintain_every_s=0, retry_min_s=0.05)
+    ).start()
+    try:
+        writer.add(TELEMETRY_TABLE, telemetry_table(samples(10, start_s=T0 + 100, seed=9))[0])
+        assert not writer.flush(10)
+        stats = writer.stats()
+        said = "is empty" if damage == b"" else "is not whole JSON"
+        assert f"its log entry {damaged} {said}" in stats.last_error, stats.last_error
+        fix = NO_ACTION_ENTRY if damage == b"" else "move it out of _delta_log"
+        assert fix in stats.last_error
+        assert stats.tables[TELEMETRY_TABLE].commit_failures >= 1 and writer.buffered_rows() == 10
+        assert sorted((Path(uri) / TELEMETRY_TABLE / "_delta_log").glob("*.json")) == entries  # moved none
+        # Maintenance leaves it too: a checkpoint over the entry would make the damage part of the table.
+        keeper = HistoryWriter(HistorySettings(uri=uri, maintain_every_s=0), maintain_in_child=False)
+        keeper.maintain_now(dt.datetime.fromtimestamp(T0, dt.UTC).date())
+        assert keeper.stats().maintenance_failures == 1 and str(damaged) in keeper.stats().last_error
+        assert not list((Path(uri) / TELEMETRY_TABLE / "_delta_log").glob("*.checkpoint.parquet"))
+        damaged.write_bytes(NO_ACTION_ENTRY.encode() if damage == b"" else whole)
+        assert writer.flush(10)
+    finally:
+        writer.close()
+    assert rows_of(uri).height == (30 if damage == b"" else 40)
+
+
 def test_a_table_whose_rows_were_all_deleted_says_so(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -199,7 +199,9 @@ def test_merged_state_sums_the_workers_and_adds_what_the_receiver_dropped() -> N
         {"a": DeviceCounters(received=10, applied=9, overwritten=1)},
         {"a": LossSnapshot(received=10)},
         sinks=(SinkStats(name="history", delivered=10, dropped=0, errors=0, pending=2, last_error=""),),
-        history=HistoryState(uri="out/h", rows_committed=8, commits=2, last_error=""),
+        history=HistoryState(
+            uri="out/h", rows_committed=8, commits=2, last_error="", log_entries_set_aside=1
+        ),
         alarms=AlarmsSummary(present={"critical": 1}, raised_total={"over_current": 1}),
         internal=histogram(0.001, 0.002),
     )
@@ -241,6 +243,7 @@ def test_merged_state_sums_the_workers_and_adds_what_the_receiver_dropped() -> N
     )
     assert agent.history is not None
     assert (agent.history.rows_committed, agent.history.commits, agent.history.storage_ok) == (33, 5, False)
+    assert agent.history.log_entries_set_aside == 1
     assert agent.alarms.present == {"critical": 2, "warning": 2}
     assert agent.alarms.raised_total == {"over_current": 3}
     assert (agent.loss.received, agent.loss.lost, agent.loss.devices_losing) == (35, 5, 1)

@@ -34,6 +34,7 @@ from twin.output.history import (
     PARTITION_COLUMN,
     REJECTED_TABLE,
     TELEMETRY_TABLE,
+    check_log,
     object_store_options,
     position_column,
     raw_column,
@@ -477,6 +478,11 @@ class HistoryReader:
         except Exception as exc:
             raise HistoryReadError(_unreadable(location, exc)) from exc
         del dtable
+        # deltalake reads an empty log entry as a commit with no action: that commit's rows were left out of
+        # every read without a word.
+        empty = check_log(location, parse=False).fix(location)
+        if empty:
+            raise HistoryReadError(f"cannot read history: {empty}")
         return pl.scan_delta(location, storage_options=self._polars_options() or None)
 
     def _polars_options(self) -> dict[str, str]:

@@ -36,6 +36,7 @@ import logging
 import math
 import operator
 import os
+import shlex
 import socket
 import sys
 import threading
@@ -118,6 +119,101 @@ _ANGLES = operator.itemgetter(*JOINTS)
 
 class HistoryError(ValueError):
     """A history setting is invalid; the message names it and the fix."""
+
+
+class HistoryLogError(HistoryError):
+    """A local table's log holds an entry that is empty or not whole JSON; the message says which, and the
+    fix."""
+
+
+# Where the writer moves a table's newest log entry that is empty: beside the log, never deleted.
+SET_ASIDE_DIR = "_delta_log_set_aside"
+# The one line a log entry needs to be a commit with no action (a fix the error offers for an empty entry).
+NO_ACTION_ENTRY = '{"commitInfo":{}}'
+
+
+@dataclass(frozen=True)
+class LogCheck:
+    """A local table's log entries after its last checkpoint that it cannot read whole (a checkpoint holds
+    everything before it): empty ones (zero bytes or blanks) and ones that are not whole JSON."""
+
+    empty: tuple[Path, ...] = ()
+    broken: tuple[Path, ...] = ()
+    newest: Path | None = None
+
+    @property
+    def newest_empty_only(self) -> bool:
+        """Whether the only damage is an empty newest entry: a commit cut short, holding nothing."""
+        return not self.broken and self.empty == (self.newest,)
+
+    def fix(self, location: str) -> str:
+        """The damage, and what to do about it ("" when the log is whole)."""
+        parts = []
+        for entry in self.empty:
+            if entry == self.newest:
+                parts.append(
+                    f"its newest log entry {entry} is empty (a commit cut short by a crash or a full disk): "
+                    f"move it out of _delta_log (the agent moves it to {SET_ASIDE_DIR} itself when it next "
+                    "opens the table), and the table reads as it was before that commit"
+                )
+            else:
+                parts.append(
+                    f"its log entry {entry} is empty (a commit cut short by a crash or a full disk) and "
+                    "later entries follow it: put back a whole copy from a backup, or, to go on without that "
+                    f"commit's rows, make it a commit with no action: echo {shlex.quote(NO_ACTION_ENTRY)} > "
+                    f"{shlex.quote(str(entry))}"
+                )
+        for entry in self.broken:
+            parts.append(
+                f"its log entry {entry} is not whole JSON: put back a whole copy from a backup"
+                + (
+                    ", or move it out of _delta_log (elsewhere, to keep it): the table then reads as it "
+                    "was before that commit, without that commit's rows"
+                    if entry == self.newest
+                    else ""
+                )
+            )
+        return f"the log of {location} is damaged: {'; '.join(parts)}" if parts else ""
+
+
+def _checkpoint_version(log_dir: Path) -> int:
+    """The version of the table's last checkpoint, -1 when it has none or its pointer does not read."""
+    try:
+        return int(json.loads((log_dir / "_last_checkpoint").read_text())["version"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return -1
+
+
+def check_log(location: str, *, parse: bool = True) -> LogCheck:
+    """The entries of a local table's log that do not read whole (`LogCheck`); with parse=False only the
+    empty ones (a stat each, for a reader asked every few seconds). An S3 table is not checked: a PUT is
+    whole or absent, so a crash leaves no entry cut short there."""
+    if "://" in location:
+        return LogCheck()
+    log_dir = Path(location) / "_delta_log"
+    after = _checkpoint_version(log_dir)
+    try:
+        entries = sorted(p for p in log_dir.glob("*.json") if p.stem.isdigit() and int(p.stem) > after)
+    except OSError:
+        return LogCheck()
+    empty: list[Path] = []
+    broken: list[Path] = []
+    for entry in entries:
+        try:
+            if entry.stat().st_size > 4096 and not parse:
+                continue
+            text = entry.read_bytes()
+            if not text.strip():
+                empty.append(entry)
+            elif parse:
+                for line in text.splitlines():
+                    if line.strip():
+                        json.loads(line)
+        except FileNotFoundError:
+            continue  # cleaned up meanwhile (the log's own clean-up): no entry, no damage
+        except (OSError, ValueError):  # a bad byte is a UnicodeDecodeError, a ValueError too
+            broken.append(entry)
+    return LogCheck(tuple(empty), tuple(broken), entries[-1] if entries else None)
 
 
 def require_history_libraries() -> None:
@@ -386,6 +482,8 @@ class TableStats:
     opens: int = 0
     last_commit_version: int | None = None
     last_error: str = ""
+    # Newest log entries found empty (a commit cut short by a crash) and moved to SET_ASIDE_DIR.
+    log_entries_set_aside: int = 0
     # The writer's storage_ok is all its tables' (a table that keeps failing holds the commits-failing gauge
     # at 1 while another's commits work: its alarm needs 5 minutes of it in a row).
     last_commit_ok: bool = True
@@ -852,6 +950,7 @@ class HistoryWriter:
         from deltalake import CommitProperties, DeltaTable  # noqa: PLC0415
         from deltalake.exceptions import TableNotFoundError  # noqa: PLC0415
 
+        self._mend_log(table, uri)
         try:
             return DeltaTable(uri, storage_options=self._options)
         except TableNotFoundError:
@@ -871,6 +970,31 @@ class HistoryWriter:
         except Exception:
             log.info("history: %s was created concurrently by another writer", uri, exc_info=True)
         return DeltaTable(uri, storage_options=self._options)
+
+    def _mend_log(self, table: str, uri: str) -> None:
+        """Before a local table is opened to append to: a newest log entry left empty (a commit cut short by
+        a crash or a full disk) is moved to SET_ASIDE_DIR, kept and counted, and the table reads as it was
+        before that commit; delta-rs took it for a commit with no action and appended after it, and every
+        read left that commit's rows out without a word. Any other damage refuses the append (HistoryLogError
+        names it and the fix): the rows wait in the buffer, and each retry looks again."""
+        check = check_log(uri)
+        if check.newest_empty_only and check.newest is not None:
+            moved = _set_aside(check.newest)
+            if moved is not None:
+                with self._cond:
+                    self._stats.tables[table].log_entries_set_aside += 1
+                log.error(
+                    "history: the newest log entry of %s was empty (a commit cut short by a crash or a full "
+                    "disk): moved it to %s, and the table reads as it was before that commit; that commit's "
+                    "rows, if its data file was written, stay unread in the table's folder",
+                    uri,
+                    moved,
+                    extra={"table": table, "log_entry_set_aside": str(moved)},
+                )
+                check = check_log(uri)
+        problem = check.fix(uri)
+        if problem:
+            raise HistoryLogError(problem)
 
     def _failed(self, table: str, failed: list[_Pending], later: list[_Pending], exc: BaseException) -> None:
         message = _describe_storage_error(self.settings.uri, exc)
@@ -1036,6 +1160,10 @@ class HistoryWriter:
                 with self._cond:
                     self._stats.maintenance_skipped += 1
                 return None
+            # A checkpoint over a log entry left empty would make it part of the table for good.
+            problem = check_log(self.settings.table_uri(table)).fix(self.settings.table_uri(table))
+            if problem:
+                raise HistoryLogError(problem)
         except Exception as exc:
             self._maintenance_failed(table, exc)
             return None
@@ -1236,7 +1364,26 @@ def _s3_client(options: Mapping[str, str]) -> Any:
     return boto3.client("s3", **kwargs)
 
 
+def _set_aside(entry: Path) -> Path | None:
+    """Move a table's newest log entry to SET_ASIDE_DIR beside its log (never over a file there); None, with
+    the entry put back, when another writer committed after it meanwhile: it is then no longer the newest."""
+    folder = entry.parent.parent / SET_ASIDE_DIR
+    folder.mkdir(exist_ok=True)
+    target = folder / entry.name
+    n = 0
+    while target.exists():
+        n += 1
+        target = folder / f"{entry.name}.{n}"
+    os.rename(entry, target)
+    if (entry.parent / f"{int(entry.stem) + 1:020d}.json").exists():
+        os.rename(target, entry)
+        return None
+    return target
+
+
 def _describe_storage_error(uri: str, exc: BaseException) -> str:
+    if isinstance(exc, HistoryLogError):  # names the entry and the fix itself
+        return f"cannot write history to {uri}: {exc}"
     text = " ".join(str(exc).split())
     if len(text) > 400:
         text = text[:397] + "..."

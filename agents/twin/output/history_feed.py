@@ -930,6 +930,7 @@ class WriterFigures:
     maintenance_runs: int = 0
     maintenance_failures: int = 0
     rows_expired: int = 0  # deleted by maintenance for being older than keep_days
+    log_entries_set_aside: int = 0  # newest log entries found empty and moved aside (TableStats)
     storage_ok: bool | None = None  # None: no commit attempted yet (WriterStats)
     last_error: str = ""
     # How long the oldest row not yet written has waited (0: none waits); it grows while commits fail.
@@ -948,6 +949,7 @@ def _figures_of(stats: WriterStats, buffered: int) -> WriterFigures:
         maintenance_runs=stats.maintenance_runs,
         maintenance_failures=stats.maintenance_failures,
         rows_expired=stats.rows_expired,
+        log_entries_set_aside=sum(t.log_entries_set_aside for t in tables.values()),
         storage_ok=stats.storage_ok,
         last_error=stats.last_error,
         lag_s=stats.lag_s,

@@ -1038,6 +1038,7 @@ class AgentService:
             maintenance_runs=stats.maintenance_runs,
             maintenance_failures=stats.maintenance_failures,
             rows_expired=stats.rows_expired,
+            log_entries_set_aside=stats.log_entries_set_aside,
             last_error=stats.last_error,
             writer_pid=figures.pid,
             writer_restarts=figures.restarts,

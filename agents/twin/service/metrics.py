@@ -158,6 +158,11 @@ def _history_families(h: HistoryState) -> Iterator[Metric]:
         h.rows_expired,
     )
     yield _counter(
+        "twin_history_log_entries_set_aside_total",
+        "Newest history log entries found empty (a commit cut short by a crash) and moved aside.",
+        h.log_entries_set_aside,
+    )
+    yield _counter(
         "twin_history_writer_restarts_total",
         "Times the history writer process was started again after it died.",
         h.writer_restarts,

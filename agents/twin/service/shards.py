@@ -1891,6 +1891,7 @@ def _merge_history(parts: list[HistoryState]) -> HistoryState | None:
         maintenance_runs=sum(p.maintenance_runs for p in parts),
         maintenance_failures=sum(p.maintenance_failures for p in parts),
         rows_expired=sum(p.rows_expired for p in parts),
+        log_entries_set_aside=sum(p.log_entries_set_aside for p in parts),
         last_error=next((p.last_error for p in parts if p.last_error), ""),
         writer_restarts=sum(p.writer_restarts for p in parts),
         rows_received=sum(p.rows_received for p in parts),

@@ -288,6 +288,8 @@ class HistoryState:
     maintenance_failures: int = 0
     # Rows maintenance deleted for being older than [history] keep_days: gone on purpose, not lost.
     rows_expired: int = 0
+    # Newest log entries found empty (a commit cut short by a crash or a full disk) and moved aside.
+    log_entries_set_aside: int = 0
     last_error: str = ""
     # How long the oldest row not yet written has waited, seconds (0: nothing waits); grows in an outage.
     lag_s: float = 0.0
