@@ -400,7 +400,11 @@ def test_a_flush_that_got_a_failing_table_through_puts_its_commits_back_on_sched
         writer.close(timeout=0)
 
 
-def test_a_full_disk_is_a_clear_error_and_writing_resumes_when_space_returns(tmp_path: Path) -> None:
+def test_a_full_disk_is_a_clear_error_and_writing_resumes_when_space_returns(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """On a full disk each commit attempt also printed deltalake's Rust panic on stderr ("Already shut
+    down", a backtrace with RUST_BACKTRACE set): the writer now fails it itself, and says it in its line."""
     mount = tmp_path / "small"
     mount.mkdir()
     # A real filesystem that really fills: a 2 MiB tmpfs (the tests run as root, as `make setup` does).
@@ -421,7 +425,10 @@ def test_a_full_disk_is_a_clear_error_and_writing_resumes_when_space_returns(tmp
                     pass
             writer.add(TELEMETRY_TABLE, telemetry_table(samples(2000, start_s=T0 + 100))[0])
             assert not writer.flush(10)
+            assert not writer.flush(10)  # a retry too
             assert "disk is full" in writer.stats().last_error
+            assert "'Already shut down', is deltalake's" in writer.stats().last_error
+            assert "panicked" not in capfd.readouterr().err
             assert writer.buffered_rows() == 2000
             filler.unlink()
             assert writer.flush(10)

@@ -29,6 +29,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import datetime as dt
+import errno
 import importlib.util
 import io
 import json
@@ -895,6 +896,8 @@ class HistoryWriter:
             rows = rows.sort_by([("device_id", "ascending"), ("received_at", "ascending")])
         else:
             rows = rows.sort_by([("received_at", "ascending")])
+        if not self.settings.is_s3:
+            _require_free_space(self.settings.uri)
         write_deltalake(
             dtable,
             rows,
@@ -1381,6 +1384,27 @@ def _set_aside(entry: Path) -> Path | None:
     return target
 
 
+# Below this much free space a local commit fails before deltalake is called: on a full disk deltalake's
+# object store panicked on a worker thread at each attempt, a Rust panic on stderr ("Already shut down", and
+# with RUST_BACKTRACE set its backtrace) beside the writer's own line, once a minute for as long as the disk
+# stayed full. A commit that fills the disk part way still meets it, once.
+MIN_FREE_BYTES = 1 << 20
+
+
+def _require_free_space(uri: str) -> None:
+    """Raise ENOSPC when the local history's filesystem has less than MIN_FREE_BYTES free."""
+    try:
+        st = os.statvfs(uri.removeprefix("file://"))
+    except OSError:
+        return  # the commit itself says what is wrong with the path
+    free = st.f_bavail * st.f_frsize
+    if free < MIN_FREE_BYTES:
+        raise OSError(
+            errno.ENOSPC,
+            f"No space left on device: {free} bytes free, below the {MIN_FREE_BYTES} a commit is tried with",
+        )
+
+
 def _describe_storage_error(uri: str, exc: BaseException) -> str:
     if isinstance(exc, HistoryLogError):  # names the entry and the fix itself
         return f"cannot write history to {uri}: {exc}"
@@ -1389,7 +1413,10 @@ def _describe_storage_error(uri: str, exc: BaseException) -> str:
         text = text[:397] + "..."
     lowered = text.lower()
     if "no space left" in lowered or "enospc" in lowered or "file too large" in lowered:
-        hint = "the disk is full: free space or point [history] uri at a larger volume"
+        hint = (
+            "the disk is full: free space or point [history] uri at a larger volume (a Rust panic on stderr, "
+            "'Already shut down', is deltalake's for this same failure, not a crash)"
+        )
     elif "permission denied" in lowered or "accessdenied" in lowered or "forbidden" in lowered:
         hint = "access denied: check the directory's permissions or the role's s3:PutObject on the prefix"
     elif "nosuchbucket" in lowered:
