@@ -2477,7 +2477,7 @@ def test_an_empty_newest_log_entry_is_named_to_a_reader_and_set_aside_by_the_wri
     commit with no action, so every read left its rows out without a word, and the writer committed on top
     of it, after which it could no longer be moved out."""
     from twin.cli import main
-    from twin.output.history import SET_ASIDE_DIR
+    from twin.output.history import SET_ASIDE_DIR, LogCheck, check_log
     from twin.output.history_feed import _figures_of
     from twin.service.metrics import render_metrics
     from twin.service.state import AgentInfo, AgentState
@@ -2501,6 +2501,7 @@ def test_an_empty_newest_log_entry_is_named_to_a_reader_and_set_aside_by_the_wri
     assert moved.is_file() and moved.read_bytes() == b""  # kept, not deleted
     assert any(str(moved) in r.getMessage() for r in caplog.records)
     assert stats.tables[TELEMETRY_TABLE].log_entries_set_aside == 1
+    assert check_log(f"file://{uri}/{TELEMETRY_TABLE}") == check_log(f"{uri}/{TELEMETRY_TABLE}") != LogCheck()
     state = AgentState(agent=AgentInfo(history=HistoryState(log_entries_set_aside=1)), devices={})
     assert "twin_history_log_entries_set_aside_total 1.0" in render_metrics(state).splitlines()
     assert _figures_of(stats, 0).log_entries_set_aside == 1

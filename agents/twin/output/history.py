@@ -189,9 +189,10 @@ def check_log(location: str, *, parse: bool = True) -> LogCheck:
     """The entries of a local table's log that do not read whole (`LogCheck`); with parse=False only the
     empty ones (a stat each, for a reader asked every few seconds). An S3 table is not checked: a PUT is
     whole or absent, so a crash leaves no entry cut short there."""
-    if "://" in location:
+    local = location.removeprefix("file://")
+    if "://" in local:
         return LogCheck()
-    log_dir = Path(location) / "_delta_log"
+    log_dir = Path(local) / "_delta_log"
     after = _checkpoint_version(log_dir)
     try:
         entries = sorted(p for p in log_dir.glob("*.json") if p.stem.isdigit() and int(p.stem) > after)
