@@ -2549,6 +2549,87 @@ def test_a_damaged_log_entry_that_is_not_the_newest_empty_one_refuses_commits_wi
     assert rows_of(uri).height == (30 if damage == b"" else 40)
 
 
+def test_a_trailing_run_of_empty_and_nul_entries_is_set_aside_newest_first(tmp_path: Path) -> None:
+    """A power loss often leaves several newest entries cut short: empty (ext4 writes a file's blocks late)
+    or all NUL bytes (XFS). The writer set aside only an empty newest one and refused the rest."""
+    from twin.output.history import SET_ASIDE_DIR, check_log
+
+    uri = str(tmp_path / "h")
+    entries = _three_commits(uri)
+    entries[-1].write_bytes(b"")
+    entries[-2].write_bytes(b"\0" * len(entries[-2].read_bytes()))
+    check = check_log(f"{uri}/{TELEMETRY_TABLE}", parse=False)
+    assert check.trailing_empty == (entries[-1], entries[-2]) and check.newest_empty_only
+    writer = HistoryWriter(HistorySettings(uri=uri, commit_every_s=3600, maintain_every_s=0)).start()
+    try:
+        writer.add(TELEMETRY_TABLE, telemetry_table(samples(10, start_s=T0 + 100, seed=9))[0])
+        assert writer.flush(10), writer.stats().last_error
+        assert writer.stats().tables[TELEMETRY_TABLE].log_entries_set_aside == 2
+    finally:
+        writer.close()
+    aside = Path(uri) / TELEMETRY_TABLE / SET_ASIDE_DIR
+    assert sorted(p.name for p in aside.iterdir()) == [entries[-2].name, entries[-1].name]
+    assert rows_of(uri).height == 20  # the first commit and the new one
+
+
+def test_setting_an_entry_aside_never_lands_on_an_entry_another_writer_committed_meanwhile(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Once the empty entry N was moved aside, a second writer could commit a new N (with rows) and N + 1;
+    the put back (a rename) then replaced that new N with the empty one."""
+    from twin.output import history
+
+    log_dir = tmp_path / "t" / "_delta_log"
+    log_dir.mkdir(parents=True)
+    (log_dir / f"{0:020d}.json").write_text('{"commitInfo":{}}\n')
+    entry = log_dir / f"{1:020d}.json"
+    entry.write_bytes(b"")
+    theirs = b'{"add":{"path":"theirs.parquet"}}\n'
+    unlink = os.unlink
+
+    def another_writer_commits(path: Any) -> None:
+        unlink(path)
+        if Path(path) == entry:  # the moment after the move aside
+            entry.write_bytes(theirs)
+            (log_dir / f"{2:020d}.json").write_text('{"commitInfo":{}}\n')
+
+    monkeypatch.setattr(history.os, "unlink", another_writer_commits)
+    moved = history._set_aside(entry)
+    assert entry.read_bytes() == theirs
+    assert moved is not None and moved.read_bytes() == b""  # ours stays aside, kept
+
+
+def test_the_log_check_looks_at_no_entry_before_the_last_checkpoint(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A log kept 30 days at a commit each 10 s holds some 259k entries: the check listed and sorted them
+    all at each read (each console /sessions request), 0.67 s a call, to look at the few after the
+    checkpoint."""
+    from twin.output.history import check_log
+
+    log_dir = tmp_path / "t" / "_delta_log"
+    log_dir.mkdir(parents=True)
+    for version in range(200):
+        (log_dir / f"{version:020d}.json").write_text('{"commitInfo":{}}\n')
+    (log_dir / f"{201:020d}.json").write_bytes(b"")
+    (log_dir / "_last_checkpoint").write_text('{"version": 197, "size": 1}')
+    looked: list[str] = []
+    stat = os.stat
+
+    def counted(path: Any, *args: Any, **kwargs: Any) -> Any:
+        looked.append(Path(path).name)
+        return stat(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "stat", counted)
+    monkeypatch.setattr(Path, "glob", lambda *_: pytest.fail("the check lists the log"))
+    for parse in (False, True):
+        looked.clear()
+        check = check_log(str(tmp_path / "t"), parse=parse)
+        assert check.newest == log_dir / f"{199:020d}.json" and check.empty == ()  # 200 is missing
+        entries = [name for name in looked if name.endswith(".json")]
+        assert entries and min(entries) == f"{198:020d}.json", looked
+
+
 def test_a_table_whose_rows_were_all_deleted_says_so(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

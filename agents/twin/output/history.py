@@ -136,34 +136,54 @@ NO_ACTION_ENTRY = '{"commitInfo":{}}'
 @dataclass(frozen=True)
 class LogCheck:
     """A local table's log entries after its last checkpoint that it cannot read whole (a checkpoint holds
-    everything before it): empty ones (zero bytes or blanks) and ones that are not whole JSON."""
+    everything before it): empty ones (zero bytes, blanks or NUL bytes) and ones that are not whole JSON."""
 
     empty: tuple[Path, ...] = ()
     broken: tuple[Path, ...] = ()
     newest: Path | None = None
 
     @property
+    def trailing_empty(self) -> tuple[Path, ...]:
+        """The empty entries that are the log's newest ones, a run with no whole entry after it, newest
+        first: commits cut short, holding nothing. A power loss can leave several so (ext4 writes a file's
+        blocks late; XFS can leave them all NUL bytes)."""
+        if self.newest is None:
+            return ()
+        newest = int(self.newest.stem)
+        run: list[Path] = []
+        for entry in sorted(self.empty, reverse=True):
+            if int(entry.stem) != newest - len(run):
+                break
+            run.append(entry)
+        return tuple(run)
+
+    @property
     def newest_empty_only(self) -> bool:
-        """Whether the only damage is an empty newest entry: a commit cut short, holding nothing."""
-        return not self.broken and self.empty == (self.newest,)
+        """Whether the only damage is a trailing run of empty entries (`trailing_empty`)."""
+        return bool(self.empty) and not self.broken and len(self.trailing_empty) == len(self.empty)
 
     def fix(self, location: str) -> str:
         """The damage, and what to do about it ("" when the log is whole)."""
         parts = []
+        trailing = self.trailing_empty
+        if trailing:
+            names = ", ".join(str(entry) for entry in trailing)
+            parts.append(
+                f"its newest log entr{'y' if len(trailing) == 1 else 'ies'} {names} "
+                f"{'is' if len(trailing) == 1 else 'are'} empty (a commit cut short by a crash, a power loss "
+                f"or a full disk): move {'it' if len(trailing) == 1 else 'them, newest first,'} out of "
+                f"_delta_log (the agent moves them to {SET_ASIDE_DIR} itself when it next opens the table), "
+                "and the table reads as it was before that commit"
+            )
         for entry in self.empty:
-            if entry == self.newest:
-                parts.append(
-                    f"its newest log entry {entry} is empty (a commit cut short by a crash or a full disk): "
-                    f"move it out of _delta_log (the agent moves it to {SET_ASIDE_DIR} itself when it next "
-                    "opens the table), and the table reads as it was before that commit"
-                )
-            else:
-                parts.append(
-                    f"its log entry {entry} is empty (a commit cut short by a crash or a full disk) and "
-                    "later entries follow it: put back a whole copy from a backup, or, to go on without that "
-                    f"commit's rows, make it a commit with no action: echo {shlex.quote(NO_ACTION_ENTRY)} > "
-                    f"{shlex.quote(str(entry))}"
-                )
+            if entry in trailing:
+                continue
+            parts.append(
+                f"its log entry {entry} is empty (a commit cut short by a crash or a full disk) and "
+                "later entries follow it: put back a whole copy from a backup, or, to go on without that "
+                f"commit's rows, make it a commit with no action: echo {shlex.quote(NO_ACTION_ENTRY)} > "
+                f"{shlex.quote(str(entry))}"
+            )
         for entry in self.broken:
             parts.append(
                 f"its log entry {entry} is not whole JSON: put back a whole copy from a backup"
@@ -185,37 +205,85 @@ def _checkpoint_version(log_dir: Path) -> int:
         return -1
 
 
+def _first_entry(log_dir: Path) -> int | None:
+    """The oldest version in the log, by name alone: where to start when `_last_checkpoint` does not read
+    and the entries from version 0 were cleaned up."""
+    first = None
+    try:
+        with os.scandir(log_dir) as names:
+            for item in names:
+                name = item.name
+                if len(name) == 25 and name.endswith(".json") and name[:20].isdigit():
+                    first = name if first is None or name < first else first
+    except OSError:
+        return None
+    return None if first is None else int(first[:20])
+
+
+# A log entry this long or shorter is read by a check that only looks for empty entries (parse=False); a
+# commit cut short leaves zero bytes, or NUL bytes as long as it was meant to be (XFS after a power loss).
+_SMALL_ENTRY = 4096
+
+
+def _blank(data: bytes) -> bool:
+    return not data.strip(b" \t\r\n\0")
+
+
+def _entry_damage(entry: Path, *, parse: bool) -> str:
+    """What is wrong with one log entry: "empty", "broken" or "" (FileNotFoundError when it is gone)."""
+    size = entry.stat().st_size
+    if size == 0:
+        return "empty"
+    if not parse and size > _SMALL_ENTRY:
+        with entry.open("rb") as fh:  # a whole entry starts with "{"; only a NUL one needs reading on
+            if not _blank(fh.read(64)):
+                return ""
+    data = entry.read_bytes()
+    if _blank(data):
+        return "empty"
+    if parse:
+        try:
+            for line in data.splitlines():
+                if line.strip():
+                    json.loads(line)
+        except ValueError:  # a bad byte is a UnicodeDecodeError, a ValueError too
+            return "broken"
+    return ""
+
+
 def check_log(location: str, *, parse: bool = True) -> LogCheck:
     """The entries of a local table's log that do not read whole (`LogCheck`); with parse=False only the
-    empty ones (a stat each, for a reader asked every few seconds). An S3 table is not checked: a PUT is
-    whole or absent, so a crash leaves no entry cut short there."""
+    empty ones (a stat each, and a read of small ones, for a reader asked every few seconds). Only the
+    entries after the last checkpoint are looked at, from its version up until one is missing: a log kept
+    30 days holds hundreds of thousands. An S3 table is not checked: a PUT is whole or absent, so a crash
+    leaves no entry cut short there."""
     local = location.removeprefix("file://")
     if "://" in local:
         return LogCheck()
     log_dir = Path(local) / "_delta_log"
-    after = _checkpoint_version(log_dir)
-    try:
-        entries = sorted(p for p in log_dir.glob("*.json") if p.stem.isdigit() and int(p.stem) > after)
-    except OSError:
-        return LogCheck()
+    version = _checkpoint_version(log_dir) + 1
+    if version == 0 and not (log_dir / f"{0:020d}.json").exists():
+        version = _first_entry(log_dir) or 0
     empty: list[Path] = []
     broken: list[Path] = []
-    for entry in entries:
+    newest = None
+    while True:
+        entry = log_dir / f"{version:020d}.json"
         try:
-            if entry.stat().st_size > 4096 and not parse:
-                continue
-            text = entry.read_bytes()
-            if not text.strip():
-                empty.append(entry)
-            elif parse:
-                for line in text.splitlines():
-                    if line.strip():
-                        json.loads(line)
+            damage = _entry_damage(entry, parse=parse)
         except FileNotFoundError:
-            continue  # cleaned up meanwhile (the log's own clean-up): no entry, no damage
-        except (OSError, ValueError):  # a bad byte is a UnicodeDecodeError, a ValueError too
+            break  # the newest entry was the one before
+        except OSError:  # unreadable: named as not whole, and the walk stops (each later one would fail too)
             broken.append(entry)
-    return LogCheck(tuple(empty), tuple(broken), entries[-1] if entries else None)
+            newest = entry
+            break
+        if damage == "empty":
+            empty.append(entry)
+        elif damage == "broken":
+            broken.append(entry)
+        newest = entry
+        version += 1
+    return LogCheck(tuple(empty), tuple(broken), newest)
 
 
 def require_history_libraries() -> None:
@@ -976,26 +1044,29 @@ class HistoryWriter:
         return DeltaTable(uri, storage_options=self._options)
 
     def _mend_log(self, table: str, uri: str) -> None:
-        """Before a local table is opened to append to: a newest log entry left empty (a commit cut short by
-        a crash or a full disk) is moved to SET_ASIDE_DIR, kept and counted, and the table reads as it was
-        before that commit; delta-rs took it for a commit with no action and appended after it, and every
-        read left that commit's rows out without a word. Any other damage refuses the append (HistoryLogError
-        names it and the fix): the rows wait in the buffer, and each retry looks again."""
+        """Before a local table is opened to append to: the newest log entries left empty (commits cut short
+        by a crash, a power loss or a full disk) are moved to SET_ASIDE_DIR, newest first, kept and counted,
+        and the table reads as it was before those commits; delta-rs took one for a commit with no action
+        and appended after it, and every read left that commit's rows out without a word. Any other damage
+        refuses the append (HistoryLogError names it and the fix): the rows wait in the buffer, and each
+        retry looks again."""
         check = check_log(uri)
-        if check.newest_empty_only and check.newest is not None:
-            moved = _set_aside(check.newest)
-            if moved is not None:
+        if check.newest_empty_only:
+            for entry in check.trailing_empty:  # newest first: the log stays a run with no gap
+                moved = _set_aside(entry)
+                if moved is None:
+                    break
                 with self._cond:
                     self._stats.tables[table].log_entries_set_aside += 1
                 log.error(
-                    "history: the newest log entry of %s was empty (a commit cut short by a crash or a full "
-                    "disk): moved it to %s, and the table reads as it was before that commit; that commit's "
-                    "rows, if its data file was written, stay unread in the table's folder",
+                    "history: the newest log entry of %s was empty (a commit cut short by a crash, a power "
+                    "loss or a full disk): moved it to %s, and the table reads as it was before that commit; "
+                    "that commit's rows, if its data file was written, stay unread in the table's folder",
                     uri,
                     moved,
                     extra={"table": table, "log_entry_set_aside": str(moved)},
                 )
-                check = check_log(uri)
+            check = check_log(uri)
         problem = check.fix(uri)
         if problem:
             raise HistoryLogError(problem)
@@ -1369,18 +1440,28 @@ def _s3_client(options: Mapping[str, str]) -> Any:
 
 
 def _set_aside(entry: Path) -> Path | None:
-    """Move a table's newest log entry to SET_ASIDE_DIR beside its log (never over a file there); None, with
-    the entry put back, when another writer committed after it meanwhile: it is then no longer the newest."""
+    """Move a table's newest log entry to SET_ASIDE_DIR beside its log; None, with the entry put back, when
+    another writer committed after it meanwhile: it is then no longer the newest. Each step is a hard link
+    and an unlink, never a rename: a rename replaces what it lands on, and a put back landed on the new
+    entry of that number another writer had committed meanwhile, with its rows. Still a check and then an
+    act: safe with one writer per local table (docs/history.md)."""
     folder = entry.parent.parent / SET_ASIDE_DIR
     folder.mkdir(exist_ok=True)
-    target = folder / entry.name
     n = 0
-    while target.exists():
-        n += 1
-        target = folder / f"{entry.name}.{n}"
-    os.rename(entry, target)
+    while True:
+        target = folder / (entry.name if n == 0 else f"{entry.name}.{n}")
+        try:
+            os.link(entry, target)
+            break
+        except FileExistsError:  # one set aside before, under this name: kept too
+            n += 1
+    os.unlink(entry)
     if (entry.parent / f"{int(entry.stem) + 1:020d}.json").exists():
-        os.rename(target, entry)
+        try:
+            os.link(target, entry)
+        except FileExistsError:  # another writer committed this version anew: its entry stays, ours aside
+            return target
+        os.unlink(target)
         return None
     return target
 
