@@ -659,6 +659,9 @@ class HistoryWriter:
     now and waits for it; `close()` commits what is left (bounded by its timeout) and stops the thread.
     """
 
+    # Whether the last commit failed on a full disk: the next one checks the free space first.
+    _disk_was_full = False
+
     def __init__(
         self,
         settings: HistorySettings,
@@ -927,6 +930,7 @@ class HistoryWriter:
             # The items keep their own identity (the bound trims them one by one) and share the sequence.
             self._failed(table, [dataclasses.replace(p, seq=seq) for p in group], later, exc)
             return False
+        self._disk_was_full = False
         with self._cond:
             stats = self._stats.tables[table]
             self._inflight_rows[table] -= n
@@ -965,7 +969,7 @@ class HistoryWriter:
             rows = rows.sort_by([("device_id", "ascending"), ("received_at", "ascending")])
         else:
             rows = rows.sort_by([("received_at", "ascending")])
-        if not self.settings.is_s3:
+        if self._disk_was_full and not self.settings.is_s3:
             _require_free_space(self.settings.uri)
         write_deltalake(
             dtable,
@@ -1073,6 +1077,7 @@ class HistoryWriter:
 
     def _failed(self, table: str, failed: list[_Pending], later: list[_Pending], exc: BaseException) -> None:
         message = _describe_storage_error(self.settings.uri, exc)
+        self._disk_was_full = _is_disk_full(exc)
         # The table handle may describe a state the failed commit left half-known; reload it next time.
         self._tables.pop(table, None)
         now = self._clock()
@@ -1466,20 +1471,30 @@ def _set_aside(entry: Path) -> Path | None:
     return target
 
 
-# Below this much free space a local commit fails before deltalake is called: on a full disk deltalake's
-# object store panicked on a worker thread at each attempt, a Rust panic on stderr ("Already shut down", and
-# with RUST_BACKTRACE set its backtrace) beside the writer's own line, once a minute for as long as the disk
-# stayed full. A commit that fills the disk part way still meets it, once.
+# Below this much free space a local commit that follows one failed on a full disk fails before deltalake is
+# called: on a full disk deltalake's object store panicked on a worker thread at each attempt, a Rust panic
+# on stderr ("Already shut down", and with RUST_BACKTRACE set its backtrace) beside the writer's own line,
+# once a minute for as long as the disk stayed full. Only then: statvfs's figures are not trusted at each
+# commit (a FUSE or network filesystem can report zeros, and root may write into the blocks kept for it).
 MIN_FREE_BYTES = 1 << 20
 
 
+def _is_disk_full(exc: BaseException) -> bool:
+    text = str(exc).lower()
+    return getattr(exc, "errno", None) == errno.ENOSPC or "no space left" in text or "enospc" in text
+
+
 def _require_free_space(uri: str) -> None:
-    """Raise ENOSPC when the local history's filesystem has less than MIN_FREE_BYTES free."""
+    """Raise ENOSPC when the local history's filesystem has less than MIN_FREE_BYTES free; nothing when
+    statvfs does not tell (zero blocks or block size, as FUSE and network filesystems can say)."""
     try:
         st = os.statvfs(uri.removeprefix("file://"))
     except OSError:
         return  # the commit itself says what is wrong with the path
-    free = st.f_bavail * st.f_frsize
+    if not st.f_blocks or not st.f_frsize:
+        return
+    # Root may write into the blocks the filesystem keeps for it (5 % on ext4), so those count for root.
+    free = (st.f_bfree if os.geteuid() == 0 else st.f_bavail) * st.f_frsize
     if free < MIN_FREE_BYTES:
         raise OSError(
             errno.ENOSPC,
