@@ -651,7 +651,7 @@ def test_keep_days_under_a_wall_clock_stepped_far_forward_keeps_the_newest_days_
     assert _rows_per_day(uri) == {day: written[day] for day in newest}
     assert set(_rows_per_day(uri, REJECTED_TABLE)) == set(newest)
     said = [r for r in caplog.records if "that the clock (today 2099-06-01)" in r.getMessage()]
-    assert said and said[0].levelno == logging.WARNING and "check the host's clock" in said[0].getMessage()
+    assert said and said[0].levelno == logging.WARNING and "the clock stepped" in said[0].getMessage()
     # The agent writes on at the stepped clock: each new day with rows lets one older day go, no more.
     writer = HistoryWriter(HistorySettings(uri=uri, commit_every_s=3600, maintain_every_s=0)).start()
     writer.add(TELEMETRY_TABLE, telemetry_table(samples(10, start_s=y2099))[0])
@@ -2673,6 +2673,28 @@ def test_the_free_space_check_waits_for_a_commit_failed_on_a_full_disk(
         assert "bytes free, below the" in writer.stats().last_error
     finally:
         writer.close(timeout=0)
+
+
+def test_rows_jumping_past_keep_days_warn_once_per_table(caplog: pytest.LogCaptureFixture) -> None:
+    """An arm used weekly with keep_days = 2 saw a WARNING about the host's clock at every maintenance."""
+    from twin.output.history import _expiry_cut
+
+    caplog.set_level("INFO", logger="twin.output.history")
+    days = ["2026-01-01", "2026-01-08", "2026-01-15"]
+    for _ in range(2):
+        assert _expiry_cut("weekly-table", days, dt.date(2026, 1, 16), 1) == "2026-01-08"
+    said = [r for r in caplog.records if "weekly-table" in r.getMessage()]
+    assert [r.levelno for r in said] == [logging.WARNING, logging.INFO]
+    assert "the clock stepped" in said[0].getMessage() and "no rows for 7 days" in said[0].getMessage()
+
+
+def test_a_partition_without_a_day_takes_no_day_keep_days_keeps() -> None:
+    """A null partition value became "None", sorted after every date, and held one of the newest days."""
+    from twin.output.history import PARTITION_COLUMN, _partition_days
+
+    days = ["2026-01-02", None, "2026-01-01"]
+    table = types.SimpleNamespace(partitions=lambda: [{PARTITION_COLUMN: day} for day in days])
+    assert _partition_days(table) == ["2026-01-01", "2026-01-02"]
 
 
 def test_a_table_whose_rows_were_all_deleted_says_so(

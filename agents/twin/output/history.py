@@ -1262,8 +1262,8 @@ class HistoryWriter:
         frees them."""
         if self.settings.keep_days <= 0:
             return
-        days = sorted({str(p.get(PARTITION_COLUMN)) for p in dtable.partitions()})
-        cut = _expiry_cut(table, days, today, self.settings.keep_days)
+        days = _partition_days(dtable)
+        cut = _expiry_cut(self.settings.table_uri(table), days, today, self.settings.keep_days)
         old = [day for day in days if day < cut]
         if not old:  # no day old enough: no delete to run, nothing to log
             return
@@ -1287,7 +1287,7 @@ class HistoryWriter:
         )
 
     def _maintain_table(self, table: str, dtable: Any, days: list[dt.date]) -> None:
-        existing = {str(p.get(PARTITION_COLUMN)) for p in dtable.partitions()}
+        existing = set(_partition_days(dtable))
         for day in days:
             if day.isoformat() not in existing:
                 continue
@@ -1389,15 +1389,29 @@ class HistoryWriter:
         log.error("history: maintenance of %s failed: %s; retried at the next interval", table, message)
 
 
+def _partition_days(dtable: Any) -> list[str]:
+    """The days (ISO, sorted) a table holds rows on. A partition without a value (null) is no day: as the
+    string "None" it sorted after every date and took one of the newest days keep_days always keeps."""
+    values = (p.get(PARTITION_COLUMN) for p in dtable.partitions())
+    return sorted({str(v) for v in values if v is not None and v != ""})
+
+
+# The tables whose held-back days were said at WARNING in this process: once each, then at INFO, as an arm
+# used weekly with a short keep_days would see the same warning at every maintenance.
+_CLOCK_WARNED: set[str] = set()
+
+
 def _expiry_cut(table: str, days: Sequence[str], today: dt.date, keep_days: int) -> str:
-    """The first day (ISO) keep_days keeps of `table`, whose days with rows are `days` (sorted).
+    """The first day (ISO) keep_days keeps of `table` (its location), whose days with rows are `days`
+    (sorted).
 
     The wall clock alone is not trusted: one stepped far forward (a bad NTP answer at first boot, the year
     2099) put every day before its cut, and the first maintenance deleted the whole history. So the newest
     keep_days + 1 days that hold rows are kept whatever the clock says; older days go as rows of later days
     come in, as fast as the agent really writes them. A day held back that the clock alone would delete is
     said: at WARNING when the rows jump forward by more than the whole window after it (a clock stepped
-    forward, or an agent off that long), else at INFO (an arm not used every day)."""
+    forward, or no rows that long), once per table in a process, else at INFO (an arm not used every
+    day)."""
     by_clock = (today - dt.timedelta(days=keep_days)).isoformat()
     newest = days[-(keep_days + 1) :]
     cut = min(by_clock, newest[0]) if newest else by_clock
@@ -1405,8 +1419,11 @@ def _expiry_cut(table: str, days: Sequence[str], today: dt.date, keep_days: int)
     if held:
         after = next((day for day in days if day > held[-1]), today.isoformat())
         jump = (dt.date.fromisoformat(after) - dt.date.fromisoformat(held[-1])).days
+        warn = jump > keep_days and table not in _CLOCK_WARNED
+        if warn:
+            _CLOCK_WARNED.add(table)
         log.log(
-            logging.WARNING if jump > keep_days else logging.INFO,
+            logging.WARNING if warn else logging.INFO,
             "history: keep_days = %d kept %d day(s) of %s that the clock (today %s) puts before its cut "
             "(%s to %s): the table holds rows on fewer than %d later days%s; they go once it does",
             keep_days,
@@ -1416,7 +1433,8 @@ def _expiry_cut(table: str, days: Sequence[str], today: dt.date, keep_days: int)
             held[0],
             held[-1],
             keep_days + 1,
-            f", and its rows jump {jump} days forward after {held[-1]}: check the host's clock (timedatectl)"
+            f", and its rows jump {jump} days forward after {held[-1]}: the clock stepped (check it with "
+            f"timedatectl), or the table had no rows for {jump} days"
             if jump > keep_days
             else "",
             extra={"days_held": len(held), "table": table},
