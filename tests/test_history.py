@@ -2688,6 +2688,26 @@ def test_rows_jumping_past_keep_days_warn_once_per_table(caplog: pytest.LogCaptu
     assert "the clock stepped" in said[0].getMessage() and "no rows for 7 days" in said[0].getMessage()
 
 
+def test_the_clock_warning_is_said_once_across_maintenance_processes(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Maintenance runs in a process of its own, new at each run: a warning remembered there alone was said
+    again at every run."""
+    uri = str(tmp_path / "h")
+    _history_on_days(uri, [40, 3, 2, 1, 0])
+    settings = HistorySettings(uri=uri, maintain_every_s=0, vacuum_retention_hours=0, keep_days=2)
+    wall = [dt.datetime(2099, 6, 1, 12, tzinfo=dt.UTC).timestamp()]
+    writer = HistoryWriter(settings, wall_clock=lambda: wall[0])
+    caplog.set_level("INFO", logger="twin.output.history")
+    levels = []
+    for _ in range(2):
+        caplog.clear()
+        writer.maintain_now()
+        wall[0] += 3600  # the next maintenance window (the lease is per window)
+        levels.append({r.levelno for r in caplog.records if "that the clock (today" in r.getMessage()})
+    assert levels == [{logging.WARNING}, {logging.INFO}], levels
+
+
 def test_a_partition_without_a_day_takes_no_day_keep_days_keeps() -> None:
     """A null partition value became "None", sorted after every date, and held one of the newest days."""
     from twin.output.history import PARTITION_COLUMN, _partition_days

@@ -43,7 +43,7 @@ import sys
 import threading
 import time
 import uuid
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -1333,6 +1333,7 @@ class HistoryWriter:
             "writer_id": self.writer_id,
             "today": today.isoformat(),
             "wall": self._wall(),
+            "clock_warned": sorted(_CLOCK_WARNED),
         }
 
     def maintenance_result(self) -> dict[str, Any]:
@@ -1346,6 +1347,7 @@ class HistoryWriter:
                 "maintenance_skipped": stats.maintenance_skipped,
                 "rows_expired": stats.rows_expired,
                 "last_error": stats.last_error,
+                "clock_warned": sorted(_CLOCK_WARNED),
             }
 
     def _maintain_in_process_of_its_own(self, today: dt.date, interruptible: bool) -> None:
@@ -1370,6 +1372,7 @@ class HistoryWriter:
             stats.rows_expired += int(result.get("rows_expired", 0))
             if result.get("maintenance_failures") and result.get("last_error"):
                 stats.last_error = str(result["last_error"])
+        remember_clock_warnings(result.get("clock_warned", ()))
 
     def _maintenance_process_failed(self, message: str) -> None:
         with self._cond:
@@ -1396,9 +1399,15 @@ def _partition_days(dtable: Any) -> list[str]:
     return sorted({str(v) for v in values if v is not None and v != ""})
 
 
-# The tables whose held-back days were said at WARNING in this process: once each, then at INFO, as an arm
-# used weekly with a short keep_days would see the same warning at every maintenance.
+# The tables whose held-back days were said at WARNING by this agent: once each, then at INFO, as an arm
+# used weekly with a short keep_days would see the same warning at every maintenance. The maintenance
+# process, new at each run, is handed it and hands it back (`remember_clock_warnings`).
 _CLOCK_WARNED: set[str] = set()
+
+
+def remember_clock_warnings(tables: Iterable[str]) -> None:
+    """Take the tables a maintenance process (or the writer that started it) already warned about."""
+    _CLOCK_WARNED.update(str(table) for table in tables)
 
 
 def _expiry_cut(table: str, days: Sequence[str], today: dt.date, keep_days: int) -> str:
@@ -1410,8 +1419,8 @@ def _expiry_cut(table: str, days: Sequence[str], today: dt.date, keep_days: int)
     keep_days + 1 days that hold rows are kept whatever the clock says; older days go as rows of later days
     come in, as fast as the agent really writes them. A day held back that the clock alone would delete is
     said: at WARNING when the rows jump forward by more than the whole window after it (a clock stepped
-    forward, or no rows that long), once per table in a process, else at INFO (an arm not used every
-    day)."""
+    forward, or no rows that long), once per table while the agent runs, else at INFO (an arm not used
+    every day)."""
     by_clock = (today - dt.timedelta(days=keep_days)).isoformat()
     newest = days[-(keep_days + 1) :]
     cut = min(by_clock, newest[0]) if newest else by_clock

@@ -49,7 +49,7 @@ class _Forward(logging.Handler):
 
 
 def main() -> int:
-    from twin.output.history import HistorySettings, HistoryWriter  # noqa: PLC0415
+    from twin.output.history import HistorySettings, HistoryWriter, remember_clock_warnings  # noqa: PLC0415
 
     # The writer process ignores SIGTERM (its last commit must not be cut short) and exec keeps that: take
     # the default back, so the writer can stop this process at shutdown.
@@ -59,6 +59,7 @@ def main() -> int:
     root.setLevel(logging.INFO)
     request = json.loads(sys.stdin.read())
     asked_at = float(request.get("wall", time.time()))
+    remember_clock_warnings(request.get("clock_warned", ()))
     writer = HistoryWriter(
         HistorySettings(**request["settings"]), writer_id=request["writer_id"], wall_clock=lambda: asked_at
     )
