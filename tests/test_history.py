@@ -2624,12 +2624,32 @@ def test_the_log_check_looks_at_no_entry_before_the_last_checkpoint(
 
     monkeypatch.setattr(os, "stat", counted)
     monkeypatch.setattr(Path, "glob", lambda *_: pytest.fail("the check lists the log"))
+    monkeypatch.setattr(os, "scandir", lambda *_: pytest.fail("the check lists the log"))
     for parse in (False, True):
         looked.clear()
         check = check_log(str(tmp_path / "t"), parse=parse)
         assert check.newest == log_dir / f"{199:020d}.json" and check.empty == ()  # 200 is missing
         entries = [name for name in looked if name.endswith(".json")]
         assert entries and min(entries) == f"{198:020d}.json", looked
+
+
+@pytest.mark.parametrize("pointer", [150, -7, 10**15, "not a version"])
+def test_the_log_check_finds_damage_after_a_stale_checkpoint_pointer(tmp_path: Path, pointer: object) -> None:
+    """A pointer to a checkpoint since cleaned up (or out of range) named no entry: the check found nothing,
+    and the writer committed after the empty entry, whose commit's rows were lost without a word."""
+    from twin.output.history import check_log
+
+    log_dir = tmp_path / "t" / "_delta_log"
+    log_dir.mkdir(parents=True)
+    for version in range(300, 500):
+        (log_dir / f"{version:020d}.json").write_text('{"commitInfo":{}}\n')
+    (log_dir / f"{500:020d}.json").write_bytes(b"")
+    (log_dir / "_last_checkpoint").write_text(json.dumps({"version": pointer, "size": 1}))
+    for parse in (False, True):
+        check = check_log(str(tmp_path / "t"), parse=parse)
+        assert check.empty == (log_dir / f"{500:020d}.json",) and check.newest == check.empty[0]
+    (log_dir / f"{400:020d}.checkpoint.parquet").write_bytes(b"")  # the newest checkpoint is where to start
+    assert check_log(str(tmp_path / "t")).empty == (log_dir / f"{500:020d}.json",)
 
 
 @pytest.mark.parametrize(

@@ -205,19 +205,32 @@ def _checkpoint_version(log_dir: Path) -> int:
         return -1
 
 
-def _first_entry(log_dir: Path) -> int | None:
-    """The oldest version in the log, by name alone: where to start when `_last_checkpoint` does not read
-    and the entries from version 0 were cleaned up."""
-    first = None
+def _first_version(log_dir: Path) -> int:
+    """Where the check starts: after the checkpoint `_last_checkpoint` names, when that one is there. A
+    stale pointer (a checkpoint since cleaned up with the entries after it), one that does not read, or a
+    version out of range names no entry: the log is then listed once, and the check starts after its newest
+    checkpoint, or at its oldest entry when that is later (or there is no checkpoint)."""
+    pointer = _checkpoint_version(log_dir)
+    if (log_dir / f"{pointer + 1:020d}.json").exists():
+        return pointer + 1
+    if pointer >= 0 and any(
+        (log_dir / f"{pointer:020d}{suffix}").exists() for suffix in (".json", ".checkpoint.parquet")
+    ):
+        return pointer + 1  # the pointer is right: no commit followed its checkpoint
+    checkpoint, first = -1, None
     try:
         with os.scandir(log_dir) as names:
             for item in names:
                 name = item.name
-                if len(name) == 25 and name.endswith(".json") and name[:20].isdigit():
+                if len(name) < 25 or not name[:20].isdigit():
+                    continue
+                if name[20:] == ".json":
                     first = name if first is None or name < first else first
+                elif name[20:].startswith(".checkpoint."):
+                    checkpoint = max(checkpoint, int(name[:20]))
     except OSError:
-        return None
-    return None if first is None else int(first[:20])
+        return 0
+    return max(checkpoint + 1, 0 if first is None else int(first[:20]))
 
 
 # A log entry this long or shorter is read by a check that only looks for empty entries (parse=False); a
@@ -261,9 +274,7 @@ def check_log(location: str, *, parse: bool = True) -> LogCheck:
     if "://" in local:
         return LogCheck()
     log_dir = Path(local) / "_delta_log"
-    version = _checkpoint_version(log_dir) + 1
-    if version == 0 and not (log_dir / f"{0:020d}.json").exists():
-        version = _first_entry(log_dir) or 0
+    version = _first_version(log_dir)
     empty: list[Path] = []
     broken: list[Path] = []
     newest = None
