@@ -2601,6 +2601,54 @@ def test_setting_an_entry_aside_never_lands_on_an_entry_another_writer_committed
     assert moved is not None and moved.read_bytes() == b""  # ours stays aside, kept
 
 
+@pytest.mark.parametrize("code", [errno.EPERM, errno.EOPNOTSUPP, errno.EXDEV])
+def test_an_entry_is_set_aside_where_the_filesystem_has_no_hard_links(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture, code: int
+) -> None:
+    """On vfat, exFAT, CIFS and some FUSE filesystems os.link is refused: setting an empty entry aside failed,
+    and with it every commit to the table."""
+    from twin.output import history
+
+    def no_links(*_: Any) -> None:
+        raise OSError(code, os.strerror(code))
+
+    monkeypatch.setattr(history.os, "link", no_links)
+    log_dir = tmp_path / "t" / "_delta_log"
+    aside = tmp_path / "t" / history.SET_ASIDE_DIR
+    aside.mkdir(parents=True)
+    log_dir.mkdir()
+    (log_dir / f"{0:020d}.json").write_text('{"commitInfo":{}}\n')
+    entry = log_dir / f"{1:020d}.json"
+    entry.write_bytes(b"")
+    (aside / entry.name).write_bytes(b"set aside before")
+    with caplog.at_level(logging.WARNING, logger="twin.output.history"):
+        moved = history._set_aside(entry)
+    assert moved == aside / f"{entry.name}.1" and not entry.exists()
+    assert (aside / entry.name).read_bytes() == b"set aside before"  # not replaced
+    assert "no hard links" in caplog.text
+    # A later entry appeared meanwhile: ours goes back, unless another writer committed this version anew.
+    entry.write_bytes(b"")
+    rename = os.rename
+
+    def a_later_entry_appears(source: Any, target: Any) -> None:
+        rename(source, target)
+        if Path(source) == entry:
+            (log_dir / f"{2:020d}.json").write_text('{"commitInfo":{}}\n')
+
+    monkeypatch.setattr(history.os, "rename", a_later_entry_appears)
+    assert history._set_aside(entry) is None and entry.read_bytes() == b""
+    theirs = b'{"add":{"path":"theirs.parquet"}}\n'
+
+    def another_writer_commits(source: Any, target: Any) -> None:
+        rename(source, target)
+        if Path(source) == entry:
+            entry.write_bytes(theirs)
+
+    monkeypatch.setattr(history.os, "rename", another_writer_commits)
+    moved = history._set_aside(entry)
+    assert entry.read_bytes() == theirs and moved is not None and moved.read_bytes() == b""
+
+
 def test_the_log_check_looks_at_no_entry_before_the_last_checkpoint(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

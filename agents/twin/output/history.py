@@ -1482,31 +1482,78 @@ def _s3_client(options: Mapping[str, str]) -> Any:
     return boto3.client("s3", **kwargs)
 
 
+# What os.link raises where the filesystem has no hard links (vfat, exFAT, CIFS, some FUSE): EPERM on vfat
+# and exFAT, ENOTSUP/EOPNOTSUPP on CIFS and FUSE, ENOSYS or EXDEV on some FUSE filesystems.
+_NO_HARD_LINKS = frozenset({errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.ENOSYS, errno.EXDEV})
+
+
+def _link(source: Path, target: Path) -> bool:
+    """os.link; False, having linked nothing, where the filesystem has no hard links."""
+    try:
+        os.link(source, target)
+    except OSError as exc:
+        if exc.errno in _NO_HARD_LINKS:
+            return False
+        raise
+    return True
+
+
 def _set_aside(entry: Path) -> Path | None:
     """Move a table's newest log entry to SET_ASIDE_DIR beside its log; None, with the entry put back, when
     another writer committed after it meanwhile: it is then no longer the newest. Each step is a hard link
     and an unlink, never a rename: a rename replaces what it lands on, and a put back landed on the new
     entry of that number another writer had committed meanwhile, with its rows. Still a check and then an
-    act: safe with one writer per local table (docs/history.md)."""
+    act: safe with one writer per local table (docs/history.md). Where the filesystem has no hard links,
+    each step is a check that the name is free and then a rename (`_set_aside_by_rename`)."""
     folder = entry.parent.parent / SET_ASIDE_DIR
     folder.mkdir(exist_ok=True)
     n = 0
     while True:
         target = folder / (entry.name if n == 0 else f"{entry.name}.{n}")
         try:
-            os.link(entry, target)
+            if not _link(entry, target):
+                return _set_aside_by_rename(entry, folder)
             break
         except FileExistsError:  # one set aside before, under this name: kept too
             n += 1
     os.unlink(entry)
     if (entry.parent / f"{int(entry.stem) + 1:020d}.json").exists():
         try:
-            os.link(target, entry)
+            linked = _link(target, entry)
         except FileExistsError:  # another writer committed this version anew: its entry stays, ours aside
             return target
+        if not linked:
+            return _put_back_by_rename(entry, target)
         os.unlink(target)
         return None
     return target
+
+
+def _set_aside_by_rename(entry: Path, folder: Path) -> Path | None:
+    """`_set_aside` where hard links are refused: a rename replaces what it lands on, so each name is checked
+    free first, which leaves a moment in which another writer's new entry can be replaced."""
+    log.warning(
+        "history: the filesystem has no hard links: the log entry %s is moved aside by rename, which "
+        "could replace an entry another writer commits at that moment (keep one writer per table)",
+        entry,
+        extra={"event": "history_set_aside_rename", "entry": str(entry)},
+    )
+    n = 0
+    target = folder / entry.name
+    while target.exists():  # one set aside before, under this name: kept too
+        n += 1
+        target = folder / f"{entry.name}.{n}"
+    os.rename(entry, target)
+    if (entry.parent / f"{int(entry.stem) + 1:020d}.json").exists():
+        return _put_back_by_rename(entry, target)
+    return target
+
+
+def _put_back_by_rename(entry: Path, target: Path) -> Path | None:
+    if entry.exists():  # another writer committed this version anew: its entry stays, ours aside
+        return target
+    os.rename(target, entry)
+    return None
 
 
 # Below this much free space a local commit that follows one failed on a full disk fails before deltalake is
