@@ -2743,17 +2743,42 @@ def test_the_free_space_check_waits_for_a_commit_failed_on_a_full_disk(
         writer.close(timeout=0)
 
 
-def test_rows_jumping_past_keep_days_warn_once_per_table(caplog: pytest.LogCaptureFixture) -> None:
+def test_rows_jumping_past_keep_days_warn_once_per_table(
+    caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """An arm used weekly with keep_days = 2 saw a WARNING about the host's clock at every maintenance."""
-    from twin.output.history import _expiry_cut
+    from twin.output import history
 
+    monkeypatch.setattr(history, "_CLOCK_WARNED", {})  # what another test warned about must not count here
     caplog.set_level("INFO", logger="twin.output.history")
     days = ["2026-01-01", "2026-01-08", "2026-01-15"]
     for _ in range(2):
-        assert _expiry_cut("weekly-table", days, dt.date(2026, 1, 16), 1) == "2026-01-08"
+        assert history._expiry_cut("weekly-table", days, dt.date(2026, 1, 16), 1) == "2026-01-08"
     said = [r for r in caplog.records if "weekly-table" in r.getMessage()]
     assert [r.levelno for r in said] == [logging.WARNING, logging.INFO]
     assert "the clock stepped" in said[0].getMessage() and "no rows for 7 days" in said[0].getMessage()
+
+
+def test_a_new_jump_of_a_table_already_warned_about_warns_again(
+    caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Once a table was warned about (an arm used weekly), the clock stepping to 2099 later was only INFO."""
+    from twin.output import history
+
+    monkeypatch.setattr(history, "_CLOCK_WARNED", {})
+    caplog.set_level("INFO", logger="twin.output.history")
+    weekly = ["2026-01-01", "2026-01-08", "2026-01-15"]
+    for days, today in ((weekly, dt.date(2026, 1, 16)), (weekly, dt.date(2026, 1, 16))):
+        history._expiry_cut("t", days, today, 1)
+    history._expiry_cut("t", [*weekly, "2099-06-01"], dt.date(2099, 6, 1), 1)
+    history._expiry_cut("t", [*weekly, "2099-06-01"], dt.date(2099, 6, 1), 1)
+    assert [r.levelno for r in caplog.records if "that the clock" in r.getMessage()] == [
+        logging.WARNING,
+        logging.INFO,
+        logging.WARNING,
+        logging.INFO,
+    ]
+    assert history._CLOCK_WARNED == {"t": ("2026-01-15", "2099-06-01")}  # one entry a table
 
 
 def test_the_clock_warning_is_said_once_across_maintenance_processes(

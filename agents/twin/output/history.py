@@ -43,7 +43,7 @@ import sys
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -1344,7 +1344,7 @@ class HistoryWriter:
             "writer_id": self.writer_id,
             "today": today.isoformat(),
             "wall": self._wall(),
-            "clock_warned": sorted(_CLOCK_WARNED),
+            "clock_warned": {table: list(jump) for table, jump in _CLOCK_WARNED.items()},
         }
 
     def maintenance_result(self) -> dict[str, Any]:
@@ -1358,7 +1358,7 @@ class HistoryWriter:
                 "maintenance_skipped": stats.maintenance_skipped,
                 "rows_expired": stats.rows_expired,
                 "last_error": stats.last_error,
-                "clock_warned": sorted(_CLOCK_WARNED),
+                "clock_warned": {table: list(jump) for table, jump in _CLOCK_WARNED.items()},
             }
 
     def _maintain_in_process_of_its_own(self, today: dt.date, interruptible: bool) -> None:
@@ -1383,7 +1383,7 @@ class HistoryWriter:
             stats.rows_expired += int(result.get("rows_expired", 0))
             if result.get("maintenance_failures") and result.get("last_error"):
                 stats.last_error = str(result["last_error"])
-        remember_clock_warnings(result.get("clock_warned", ()))
+        remember_clock_warnings(result.get("clock_warned", {}))
 
     def _maintenance_process_failed(self, message: str) -> None:
         with self._cond:
@@ -1410,15 +1410,19 @@ def _partition_days(dtable: Any) -> list[str]:
     return sorted({str(v) for v in values if v is not None and v != ""})
 
 
-# The tables whose held-back days were said at WARNING by this agent: once each, then at INFO, as an arm
-# used weekly with a short keep_days would see the same warning at every maintenance. The maintenance
-# process, new at each run, is handed it and hands it back (`remember_clock_warnings`).
-_CLOCK_WARNED: set[str] = set()
+# The jump (the last day held back, the next day with rows) said at WARNING by this agent, for each table:
+# the same jump is said again at INFO, as an arm used weekly with a short keep_days would see the same
+# warning at every maintenance, but a new one (the clock stepped to 2099 since) at WARNING. One entry a
+# table, so it stays as small as the tables are few. The maintenance process, new at each run, is handed it
+# and hands it back (`remember_clock_warnings`).
+_CLOCK_WARNED: dict[str, tuple[str, str]] = {}
 
 
-def remember_clock_warnings(tables: Iterable[str]) -> None:
-    """Take the tables a maintenance process (or the writer that started it) already warned about."""
-    _CLOCK_WARNED.update(str(table) for table in tables)
+def remember_clock_warnings(warned: Mapping[str, Sequence[str]]) -> None:
+    """Take the jumps a maintenance process (or the writer that started it) already warned about."""
+    for table, jump in warned.items():
+        if len(jump) == 2:
+            _CLOCK_WARNED[str(table)] = (str(jump[0]), str(jump[1]))
 
 
 def _expiry_cut(table: str, days: Sequence[str], today: dt.date, keep_days: int) -> str:
@@ -1430,8 +1434,8 @@ def _expiry_cut(table: str, days: Sequence[str], today: dt.date, keep_days: int)
     keep_days + 1 days that hold rows are kept whatever the clock says; older days go as rows of later days
     come in, as fast as the agent really writes them. A day held back that the clock alone would delete is
     said: at WARNING when the rows jump forward by more than the whole window after it (a clock stepped
-    forward, or no rows that long), once per table while the agent runs, else at INFO (an arm not used
-    every day)."""
+    forward, or no rows that long), once for each such jump of a table while the agent runs, else at INFO
+    (an arm not used every day)."""
     by_clock = (today - dt.timedelta(days=keep_days)).isoformat()
     newest = days[-(keep_days + 1) :]
     cut = min(by_clock, newest[0]) if newest else by_clock
@@ -1439,9 +1443,9 @@ def _expiry_cut(table: str, days: Sequence[str], today: dt.date, keep_days: int)
     if held:
         after = next((day for day in days if day > held[-1]), today.isoformat())
         jump = (dt.date.fromisoformat(after) - dt.date.fromisoformat(held[-1])).days
-        warn = jump > keep_days and table not in _CLOCK_WARNED
+        warn = jump > keep_days and _CLOCK_WARNED.get(table) != (held[-1], after)
         if warn:
-            _CLOCK_WARNED.add(table)
+            _CLOCK_WARNED[table] = (held[-1], after)
         log.log(
             logging.WARNING if warn else logging.INFO,
             "history: keep_days = %d kept %d day(s) of %s that the clock (today %s) puts before its cut "

@@ -59,7 +59,7 @@ def main() -> int:
     root.setLevel(logging.INFO)
     request = json.loads(sys.stdin.read())
     asked_at = float(request.get("wall", time.time()))
-    remember_clock_warnings(request.get("clock_warned", ()))
+    remember_clock_warnings(request.get("clock_warned", {}))
     writer = HistoryWriter(
         HistorySettings(**request["settings"]), writer_id=request["writer_id"], wall_clock=lambda: asked_at
     )
