@@ -1274,7 +1274,7 @@ class HistoryWriter:
         if self.settings.keep_days <= 0:
             return
         days = _partition_days(dtable)
-        cut = _expiry_cut(self.settings.table_uri(table), days, today, self.settings.keep_days)
+        cut = _expiry_cut(table, days, today, self.settings.keep_days, key=self.settings.table_uri(table))
         old = [day for day in days if day < cut]
         if not old:  # no day old enough: no delete to run, nothing to log
             return
@@ -1425,9 +1425,10 @@ def remember_clock_warnings(warned: Mapping[str, Sequence[str]]) -> None:
             _CLOCK_WARNED[str(table)] = (str(jump[0]), str(jump[1]))
 
 
-def _expiry_cut(table: str, days: Sequence[str], today: dt.date, keep_days: int) -> str:
-    """The first day (ISO) keep_days keeps of `table` (its location), whose days with rows are `days`
-    (sorted).
+def _expiry_cut(table: str, days: Sequence[str], today: dt.date, keep_days: int, *, key: str = "") -> str:
+    """The first day (ISO) keep_days keeps of `table` (its name, as every log line says it), whose days with
+    rows are `days` (sorted); `key` (its location, default its name) is what a warning is remembered by, as
+    two writers' tables of one name are not one table.
 
     The wall clock alone is not trusted: one stepped far forward (a bad NTP answer at first boot, the year
     2099) put every day before its cut, and the first maintenance deleted the whole history. So the newest
@@ -1443,9 +1444,10 @@ def _expiry_cut(table: str, days: Sequence[str], today: dt.date, keep_days: int)
     if held:
         after = next((day for day in days if day > held[-1]), today.isoformat())
         jump = (dt.date.fromisoformat(after) - dt.date.fromisoformat(held[-1])).days
-        warn = jump > keep_days and _CLOCK_WARNED.get(table) != (held[-1], after)
+        key = key or table
+        warn = jump > keep_days and _CLOCK_WARNED.get(key) != (held[-1], after)
         if warn:
-            _CLOCK_WARNED[table] = (held[-1], after)
+            _CLOCK_WARNED[key] = (held[-1], after)
         log.log(
             logging.WARNING if warn else logging.INFO,
             "history: keep_days = %d kept %d day(s) of %s that the clock (today %s) puts before its cut "
