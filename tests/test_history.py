@@ -2743,6 +2743,38 @@ def test_the_free_space_check_waits_for_a_commit_failed_on_a_full_disk(
         writer.close(timeout=0)
 
 
+@pytest.mark.parametrize(
+    "failure",
+    [
+        OSError(errno.ENOSPC, "No space left on device"),
+        OSError(errno.EFBIG, "File too large"),
+        RuntimeError("Generic LocalFileSystem error: File too large (os error 27)"),
+    ],
+)
+def test_a_commit_failed_on_a_full_disk_makes_the_next_one_check_free_space_first(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, failure: BaseException
+) -> None:
+    """The free-space check waits for a commit failed on a full disk: `_failed` must know one when it sees
+    it, a file too large as `_describe_storage_error` tells it."""
+    import deltalake
+
+    def full(*_: Any, **__: Any) -> None:
+        raise failure
+
+    monkeypatch.setattr(deltalake, "write_deltalake", full)
+    writer = HistoryWriter(
+        HistorySettings(uri=str(tmp_path / "h"), commit_every_s=3600, maintain_every_s=0, retry_min_s=60)
+    ).start()
+    try:
+        assert not writer._disk_was_full
+        writer.add(TELEMETRY_TABLE, telemetry_table(samples(10))[0])
+        assert not writer.flush(2)
+        assert "the disk is full" in writer.stats().last_error
+        assert writer._disk_was_full
+    finally:
+        writer.close(timeout=0)
+
+
 def test_rows_jumping_past_keep_days_warn_once_per_table(
     caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
 ) -> None:

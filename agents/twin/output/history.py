@@ -1571,8 +1571,14 @@ MIN_FREE_BYTES = 1 << 20
 
 
 def _is_disk_full(exc: BaseException) -> bool:
+    """What `_describe_storage_error` calls a full disk (a file past the filesystem's size limit too)."""
     text = str(exc).lower()
-    return getattr(exc, "errno", None) == errno.ENOSPC or "no space left" in text or "enospc" in text
+    return (
+        getattr(exc, "errno", None) in (errno.ENOSPC, errno.EFBIG)
+        or "no space left" in text
+        or "enospc" in text
+        or "file too large" in text
+    )
 
 
 def _require_free_space(uri: str) -> None:
