@@ -270,7 +270,10 @@ KEY_DOCS: dict[str, str] = {
         "Files replaced by compaction are deleted after this long, in whole hours rounded up (a reader "
         "still on an older version needs them); 0 = at once."
     ),
-    "history.keep_days": "Whole UTC days kept besides today (docs/history.md); 0 = keep all.",
+    "history.keep_days": (
+        "Whole UTC days kept besides today; the newest keep_days + 1 days holding rows are kept whatever the "
+        "clock says (docs/history.md). 0 = keep all."
+    ),
     "history.writer_nice": (
         "How much nicer than the mirrors the history writer process runs, 0 to 19: its commits' bursts of "
         "Parquet encoding then yield to the mirrors (docs/history.md). 0 on a host with cores to spare."
