@@ -1882,11 +1882,15 @@ def fleet_totals(state: AgentState, expected_rate_hz: float) -> FleetTotals:
     # (an OFFLINE arm is counted as such, not as 100 % loss), and whose rate is known: read from a restarting
     # worker's checkpoint it is not, and its arms counted as 100 % loss at 0 Hz.
     rates = [d.health.rate_hz for d in live if d.health.rate_hz is not None]
-    # None, left out of the metrics, when arms deliver but no rate is known (a one-worker fleet whose worker
-    # restarts): 0 there was a false all-clear. With no arm expected to deliver, none is lost.
-    loss = 100.0 * sum(max(0.0, 1.0 - r / expected_rate_hz) for r in rates) / len(rates) if rates else None
-    if not live:
-        loss = 0.0
+    # With no arm expected to deliver, none is lost. None, left out of the metrics, when arms deliver but no
+    # rate is known (a one-worker fleet whose worker restarts): 0 there was a false all-clear.
+    loss = (
+        0.0
+        if not live
+        else 100.0 * sum(max(0.0, 1.0 - r / expected_rate_hz) for r in rates) / len(rates)
+        if rates
+        else None
+    )
     p99s = [
         d.health.internal_latency_s.p99 for d in state.devices.values() if d.health.internal_latency_s.p99
     ]
