@@ -460,8 +460,9 @@ class TwinMonitoring(Construct):
         """MessagesLost: the arms deliver a tenth less than expected for 5 minutes. Nothing in the agent drops
         these (the loss alarms above say when it does): they never arrived, and IoT Core's per-connection
         quota discards without an error, so without this a fleet past its connections is mirrored at a
-        fraction of its rate while every other alarm stays quiet. A minute without LossPercent (no arm's rate
-        known, its worker restarting: WorkerRestarts pages on that) is not breaching, and breaks the run."""
+        fraction of its rate while every other alarm stays quiet. A minute without LossPercent (every arm
+        OFFLINE, which does not page; or no arm's rate known, its worker restarting: WorkerRestarts pages on
+        that) is not breaching, and breaks the run."""
         return self._sustained_alarm(
             "MessagesLost",
             f"The arms of {self.agent_name} deliver on average at least {LOSS_ALARM_PERCENT} % fewer "
@@ -519,7 +520,8 @@ class TwinMonitoring(Construct):
 
     def _arm_losing_alarm(self) -> cw.Alarm:
         """ArmLosingMessages: one arm loses a fifth of its messages for 10 minutes. MessagesLost averages
-        the arms, so at 100 arms one arm losing half its messages moves it by half a per cent."""
+        the arms, so at 100 arms one arm losing half its messages moves it by half a per cent. A minute
+        without WorstArmLossPercent (every arm OFFLINE) is not breaching."""
         return self._sustained_alarm(
             "ArmLosingMessages",
             f"An arm of {self.agent_name} loses at least {ARM_LOSS_ALARM_PERCENT} % of its messages "
@@ -638,7 +640,8 @@ def _fleet_graphs(labelled: Callable[..., cw.Metric]) -> list[cw.GraphWidget]:
             [labelled("Rejects", "Sum", "rejected per minute")],
         ),
         _graph(
-            "Loss: share of expected messages that never arrived (%)",
+            # The agent sends no loss it did not measure: 0 % beside a fleet all OFFLINE read as an all-clear.
+            "Loss: share of expected messages that never arrived (%; no line while every arm is OFFLINE)",
             [
                 labelled(LOSS_PERCENT, "Maximum", "loss % (fleet)"),
                 labelled(WORST_ARM_LOSS_PERCENT, "Maximum", "loss % (the arm losing most)"),

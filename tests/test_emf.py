@@ -224,6 +224,26 @@ def test_loss_percent_is_left_out_while_no_delivering_arms_rate_is_known(tmp_pat
     assert [d["DevicesOnline"] for d in docs] == [1, 1, 1]
 
 
+def test_no_loss_is_sent_while_every_arm_is_offline(tmp_path: Path) -> None:
+    """Nothing is expected of an OFFLINE arm, so nothing of it is measured: with every arm OFFLINE (or none
+    at all) LossPercent and WorstArmLossPercent read 0 %, which the dashboard drew as an all-clear beside a
+    fleet all offline. They are left out, as when no rate is known (the loss alarms take a minute without
+    them as not breaching); the arms' count says why."""
+    gone = {"arm-1": DeviceState("arm-1", HealthSnapshot(status=DeviceStatus.OFFLINE, rate_hz=0.0))}
+    for devices in (gone, {}):
+        totals = fleet_totals(AgentState(agent=AgentInfo(running=True), devices=devices), 10.0)
+        assert (totals.loss_percent, totals.worst_arm_loss_percent) == (None, None), devices
+        (where := tmp_path / f"arms-{len(devices)}").mkdir()
+        docs = [d for d in _three_intervals(where, totals) if "AgentUp" in d]
+        assert len(docs) == 3, docs
+        assert not [d for d in docs if "LossPercent" in d or "WorstArmLossPercent" in d], docs
+        assert [d["DevicesOffline"] for d in docs] == [len(devices)] * 3
+    # One arm STALE beside it is measured: its figures are sent, 0 % included.
+    stale = DeviceState("arm-2", HealthSnapshot(status=DeviceStatus.STALE, rate_hz=10.0))
+    totals = fleet_totals(AgentState(agent=AgentInfo(running=True), devices={**gone, "arm-2": stale}), 10.0)
+    assert (totals.loss_percent, totals.worst_arm_loss_percent) == (0.0, 0.0)
+
+
 def test_history_commits_failing_is_told_while_the_last_commit_failed(tmp_path: Path) -> None:
     """The gauge HistoryCommitFailures pages on: between two backed-off retries no commit fails, yet storage
     is still out; in every interval until a commit works, and never while history is off."""
@@ -590,7 +610,7 @@ def test_a_broker_connection_down_is_reported_in_every_interval_it_lasts(tmp_pat
     offline = {"arm-1": DeviceState("arm-1", HealthSnapshot(status=DeviceStatus.OFFLINE))}
     info = AgentInfo(running=True, broker=BrokerState(connected=False, connections=connections))
     totals = fleet_totals(AgentState(agent=info, devices=offline), 10.0)
-    assert (totals.broker_disconnected, totals.loss_percent) == (1, 0.0)
+    assert (totals.broker_disconnected, totals.loss_percent) == (1, None)
     docs = _three_intervals(tmp_path, totals)
     assert [d["BrokerDisconnected"] for d in docs if "AgentUp" in d] == [1, 1, 1]
 

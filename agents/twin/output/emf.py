@@ -138,7 +138,8 @@ class FleetMetrics:
 
     messages_per_s: float  # valid messages decoded per second over the interval, all devices
     rejects: int  # messages rejected by the decoder during the interval
-    # Estimated share of expected messages that never arrived (see the service); None: no arm's rate known.
+    # Estimated share of expected messages that never arrived (see the service); None: no arm's loss measured
+    # (every arm OFFLINE, or no rate known).
     loss_percent: float | None
     devices_online: int
     devices_stale: int
@@ -155,7 +156,7 @@ class FleetMetrics:
     history_commit_failures: int | None = None
     history_lag_s: float | None = None
     history_commits_failing: int = 0  # HISTORY_COMMITS_FAILING: 1 while the last commit failed
-    worst_arm_loss_percent: float = 0.0  # WORST_ARM_LOSS_PERCENT
+    worst_arm_loss_percent: float | None = 0.0  # WORST_ARM_LOSS_PERCENT; None: every arm OFFLINE
     broker_disconnected: int = 0  # BROKER_DISCONNECTED: connections down at the end of the interval
     device_limit_refusals: int = 0  # DEVICE_LIMIT_REFUSALS during the interval
     alert_publish_failures: int = 0  # ALERT_PUBLISH_FAILURES during the interval
@@ -172,11 +173,13 @@ def fleet_documents(
         Metric("MessagesPerSecond", fleet.messages_per_s, "Count/Second"),
         Metric("Rejects", fleet.rejects, "Count"),
     ]
-    # Not known is left out, not 0 %: MessagesLost takes a minute without it as not breaching.
+    # Not measured is left out, not 0 %: the dashboard's loss graph has a gap there, not an all-clear beside a
+    # fleet all OFFLINE, and MessagesLost and ArmLosingMessages take a minute without it as not breaching.
     if fleet.loss_percent is not None:
         metrics.append(Metric(LOSS_PERCENT, fleet.loss_percent, "Percent"))
+    if fleet.worst_arm_loss_percent is not None:
+        metrics.append(Metric(WORST_ARM_LOSS_PERCENT, fleet.worst_arm_loss_percent, "Percent"))
     metrics += [
-        Metric(WORST_ARM_LOSS_PERCENT, fleet.worst_arm_loss_percent, "Percent"),
         Metric("DevicesOnline", fleet.devices_online, "Count"),
         Metric("DevicesStale", fleet.devices_stale, "Count"),
         Metric("DevicesOffline", fleet.devices_offline, "Count"),
@@ -389,7 +392,8 @@ class FleetTotals:
     devices_online: int
     devices_stale: int
     devices_offline: int
-    loss_percent: float | None  # None: arms deliver, but no rate of theirs is known (left out of the metrics)
+    # None: no arm's loss measured, every arm OFFLINE or no rate of theirs known (left out of the metrics).
+    loss_percent: float | None
     internal_latency_p99_ms: float | None
     active_alarms: Mapping[str, int]
     # Running totals of what was lost (a restarted worker's count starts again: see EmfPublisher).
@@ -402,7 +406,7 @@ class FleetTotals:
     history_commit_failures: int | None = None
     history_lag_s: float | None = None
     history_commits_failing: int = 0  # a gauge: HISTORY_COMMITS_FAILING
-    worst_arm_loss_percent: float = 0.0  # a gauge: WORST_ARM_LOSS_PERCENT
+    worst_arm_loss_percent: float | None = 0.0  # a gauge: WORST_ARM_LOSS_PERCENT; None: every arm OFFLINE
     device_limit_refusals: int = 0  # a running total: DEVICE_LIMIT_REFUSALS
     broker_disconnected: int = 0  # now, not a running total: BROKER_DISCONNECTED
     alert_publish_failures: int = 0  # a running total: ALERT_PUBLISH_FAILURES

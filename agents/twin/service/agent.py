@@ -1882,20 +1882,16 @@ def fleet_totals(state: AgentState, expected_rate_hz: float) -> FleetTotals:
     # (an OFFLINE arm is counted as such, not as 100 % loss), and whose rate is known: read from a restarting
     # worker's checkpoint it is not, and its arms counted as 100 % loss at 0 Hz.
     rates = [d.health.rate_hz for d in live if d.health.rate_hz is not None]
-    # With no arm expected to deliver, none is lost. None, left out of the metrics, when arms deliver but no
-    # rate is known (a one-worker fleet whose worker restarts): 0 there was a false all-clear.
-    loss = (
-        0.0
-        if not live
-        else 100.0 * sum(max(0.0, 1.0 - r / expected_rate_hz) for r in rates) / len(rates)
-        if rates
-        else None
-    )
+    # None, left out of the metrics, when no arm's loss is measured: every arm OFFLINE (or none at all), where
+    # the dashboard's 0 % beside a fleet all offline read as an all-clear, or arms deliver but no rate is
+    # known (a one-worker fleet whose worker restarts), where 0 was a false all-clear too.
+    loss = 100.0 * sum(max(0.0, 1.0 - r / expected_rate_hz) for r in rates) / len(rates) if rates else None
     p99s = [
         d.health.internal_latency_s.p99 for d in state.devices.values() if d.health.internal_latency_s.p99
     ]
-    # Over each arm's recent window (core.loss): one arm's loss, which the average above dilutes.
-    worst = max((d.loss.recent_loss_ratio for d in live), default=0.0)
+    # Over each arm's recent window (core.loss): one arm's loss, which the average above dilutes. None with
+    # no arm live, as above.
+    worst = max((d.loss.recent_loss_ratio for d in live), default=None)
     history = state.agent.history
     return FleetTotals(
         decoded=sum(d.health.counters.decoded for d in state.devices.values()),
@@ -1905,7 +1901,7 @@ def fleet_totals(state: AgentState, expected_rate_hz: float) -> FleetTotals:
         devices_stale=statuses.count(DeviceStatus.STALE),
         devices_offline=statuses.count(DeviceStatus.OFFLINE),
         loss_percent=loss,
-        worst_arm_loss_percent=100.0 * worst,
+        worst_arm_loss_percent=100.0 * worst if worst is not None else None,
         internal_latency_p99_ms=max(p99s) * 1000.0 if p99s else None,
         active_alarms=state.agent.alarms.present,
         messages_dropped=state.agent.mailbox.overwritten_total,
