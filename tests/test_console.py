@@ -18,6 +18,7 @@ import math
 import random
 import re
 import shlex
+import threading
 import time
 import urllib.error
 import urllib.parse
@@ -2012,6 +2013,58 @@ def made_alarm(device: str, joint: str, kind: str, state: str) -> dict[str, Any]
         "message": f"{joint} at 61 C",
         "advice": "let it cool",
     }
+
+
+def test_a_forget_its_mirror_does_not_answer_in_time_says_it_is_not_known_and_what_to_do(
+    tmp_path: Path, page: Any, browser_errors: list[str]
+) -> None:
+    """A forget whose mirror thread does not get to it in time: the page said "was not forgotten", in the
+    words of whichever wait ran out (the mirror in the agent's process: a bare 500 internal_error), though the
+    request still waits for that thread and the arm may yet go. It now says it is not known, which mirror did
+    not answer, and what to do; and the arm is forgotten once the mirror gets to it."""
+    from twin.service.agent import forget_timed_out
+
+    agent = unbrokered_agent(tmp_path, 1, **{"health.offline_after_s": 1.5})
+    release = threading.Event()
+    try:
+        payload = encode(make_payload("arm-slow", 0.0, "ticks", random.Random(3)))
+        agent.feed("dt/lerobot/arm-slow/telemetry", payload)
+        wait_for(lambda: is_offline(agent, "arm-slow"), TIMEOUT_S, "arm-slow heard, then OFFLINE")
+        page.goto(agent.http_url + "/arm/arm-slow")
+        errors_before = len(browser_errors)
+        page.locator("#forget").wait_for()
+        # The mirror's worker thread busy with a job of its own until released: the forget's job waits
+        # behind it, past its wait (JOB_TIMEOUT_S).
+        mirror, holding = agent._mirror, threading.Event()
+
+        def hold() -> None:
+            holding.set()
+            release.wait(TIMEOUT_S)
+
+        holder = threading.Thread(target=type(mirror)._between_batches, args=(mirror, hold, TIMEOUT_S))
+        holder.start()
+        wait_for(holding.is_set, TIMEOUT_S, "the mirror's worker thread held")
+        with dialogs_accepted(page):
+            page.get_by_role("button", name="Forget this arm").click()
+            result = page.locator("#forget-result", has_text="Not known whether arm-slow is forgotten")
+            result.wait_for(timeout=TIMEOUT_S * 1000)
+        said = result.inner_text()
+        words = forget_timed_out("arm-slow", agent._shards[0])
+        assert said == f"Not known whether arm-slow is forgotten: {words} (504 forget_timed_out)", said
+        assert "the agent's mirror did not answer the forget within 10 s" in said, said
+        assert "Reload arm-slow's page in a minute, and forget it again if it is still there" in said, said
+        # As it says: the request waited, and once the mirror gets to it the arm is forgotten.
+        release.set()
+        holder.join(TIMEOUT_S)
+        wait_for(lambda: "arm-slow" not in agent.state().devices, TIMEOUT_S, "arm-slow forgotten after all")
+        # The 504 is this test's doing, and only it may be logged.
+        ours = browser_errors[errors_before:]
+        assert all("Failed to load resource" in e for e in ours), ours
+        del browser_errors[errors_before:]
+        page.goto("about:blank")
+    finally:
+        release.set()
+        agent.stop()
 
 
 @contextlib.contextmanager

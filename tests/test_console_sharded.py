@@ -7,6 +7,7 @@ import json
 import os
 import random
 import signal
+import urllib.error
 import urllib.request
 from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
@@ -17,7 +18,8 @@ import pytest
 from conftest import http_get, unbrokered_agent, wait_for
 from twin.edge.payload import encode, make_payload
 from twin.rig.local import LocalRig
-from twin.service.agent import UNHEARD_MIN_REJECTED
+from twin.service import shards
+from twin.service.agent import UNHEARD_MIN_REJECTED, forget_timed_out
 from twin.service.console import FLEET_COLUMNS, ForgetOffer, fleet_rows
 from twin.service.shards import WorkerError
 
@@ -192,6 +194,55 @@ def test_an_arm_whose_worker_does_not_answer_is_shown_from_its_checkpoint(
     finally:
         vars(shard).pop("request", None)
         monkeypatch.undo()
+        agent.stop()
+
+
+def test_a_forget_its_worker_does_not_answer_in_time_says_it_is_not_known_and_what_to_do(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A forget whose worker process does not answer within ASK_TIMEOUT_S (here: stopped with SIGSTOP) was
+    answered 503 "worker 1 did not answer within 10 s; try again once it runs", of a worker that runs, and
+    the page said "was not forgotten" though the request waits in its pipe. The answer is 504
+    forget_timed_out with the same words as for a mirror in the agent's process (test_console.py), and the
+    arm is forgotten once the worker goes on."""
+    monkeypatch.setattr(shards, "HUNG_AFTER_ASKS", 1_000_000)  # stopped, not killed as hung meanwhile
+    agent = unbrokered_agent(tmp_path, 2, **{"health.offline_after_s": 1.5})
+    shard = agent._shards[1]
+    stopped = False
+    try:
+        device = next(d for d in DEVICES if agent.plan.worker_of(d) == 1)
+        agent.feed(
+            f"dt/lerobot/{device}/telemetry", encode(make_payload(device, 0.0, "ticks", random.Random(4)))
+        )
+
+        def offline() -> bool:
+            arm = agent.state().devices.get(device)
+            return arm is not None and arm.health.status == "OFFLINE"
+
+        wait_for(offline, 60, f"{device} heard, then OFFLINE")
+        os.kill(shard.pid, signal.SIGSTOP)
+        stopped = True
+        request = urllib.request.Request(f"{agent.http_url}/api/arm/{device}/forget", data=b"", method="POST")
+        with pytest.raises(urllib.error.HTTPError) as answered:
+            urllib.request.urlopen(request, timeout=60.0)
+        body = json.loads(answered.value.read())
+        assert (answered.value.code, body["error"]) == (504, "forget_timed_out"), body
+        assert body["detail"] == forget_timed_out(device, shard), body
+        assert body["detail"].startswith(
+            f"worker 1, which mirrors {device}, did not answer the forget within 10 s"
+        )
+        os.kill(shard.pid, signal.SIGCONT)
+        stopped = False
+        wait_for(
+            lambda: device not in agent.state().devices, 60, f"{device} forgotten once its worker went on"
+        )
+        # The worker's own "did not get to it, busy" is a timed-out ask as well (its "stuck" is: _answer).
+        busy = "the mirror's worker did not get to the request within 10 s; it handled 3 batches meanwhile"
+        with pytest.raises(shards.AskTimedOutError):
+            shards._raise_refusal(shards.Refused(7, shards.Refusal.BUSY, busy), 1)
+    finally:
+        if stopped:
+            os.kill(shard.pid, signal.SIGCONT)
         agent.stop()
 
 

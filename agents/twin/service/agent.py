@@ -76,6 +76,7 @@ from twin.service.events import Event, EventKind, EventLevel, EventQuery, EventS
 from twin.service.logs import setup_logging, thread_stack
 from twin.service.persist import NotSavedError, PreviousRun, StateFile
 from twin.service.shards import (
+    ASK_TIMEOUT_S,
     CHECKPOINT_EVERY_S,
     SINK_UNWRITTEN_SUFFIX,
     AckManyRequest,
@@ -87,11 +88,13 @@ from twin.service.shards import (
     ArmNotForgettableError,
     ArmNotFoundError,
     ArmRequest,
+    AskTimedOutError,
     CalibrationsRequest,
     CheckpointRequest,
     EventsRequest,
     FleetRowsRequest,
     ForgetRequest,
+    ForgetTimedOutError,
     MirrorCheckpoint,
     MirrorReport,
     Reply,
@@ -1325,15 +1328,19 @@ class AgentService:
 
     def forget_arm(self, device: str, *, reason: str = "") -> ArmForgotten:
         """Remove an OFFLINE arm from the fleet, by the mirror of its device (Mirror.forget_arm). Raises
-        ArmNotFoundError, ArmNotForgettableError (not OFFLINE, or configured), or WorkerError when that
-        device's worker is being started again."""
+        ArmNotFoundError, ArmNotForgettableError (not OFFLINE, or configured), ForgetTimedOutError when its
+        mirror does not answer in time, or WorkerError when that device's worker is being started again."""
         shard = self._shards[self.plan.worker_of(device)]
         if not shard.answering:
             raise WorkerError(f"worker {shard.index} is being started again")
 
         def forget(checkpoint: bool) -> tuple[ArmForgotten, MirrorCheckpoint | None]:
             request = ForgetRequest(device, checkpoint=checkpoint, reason=reason)
-            forgotten = forgotten_of(shard.request(request)())
+            try:
+                forgotten = forgotten_of(shard.request(request)())
+            except (AskTimedOutError, TimeoutError) as exc:  # TimeoutError: the mirror in this process's wait
+                log.warning("the forget of %s got no answer in time: %s", device, exc)
+                raise ForgetTimedOutError(forget_timed_out(device, shard)) from exc
             return dataclasses.replace(forgotten, checkpoint=None), forgotten.checkpoint
 
         # Once kept: the agent's own counts of it (its queue's drops) go, as the mirror's went, and its route.
@@ -1855,6 +1862,24 @@ class _FleetAnswers(Generic[_T]):
 # An acknowledgement or a forget its worker answered just before it died: the restart takes up from the
 # checkpoint before, which does not hold it (the HTTP API answers 503: make it again once the worker runs).
 _DIED_AFTER = "worker {index} died as it answered, and is being started again without this {act}"
+
+
+def forget_timed_out(device: str, shard: Shard) -> str:
+    """The one answer to a forget whose answer did not come in time, whichever wait ran out (the agent's for a
+    worker process, the worker's or an in-process mirror's for its mirror thread): the request still waits
+    for the mirror thread, so the arm may yet be forgotten, and neither "was not forgotten" nor "try again
+    once it runs" (of a worker that runs) was true."""
+    if isinstance(shard, WorkerShard):
+        who, timeout_s = f"worker {shard.index}, which mirrors {device},", ASK_TIMEOUT_S
+    else:
+        from twin.service.mirror import JOB_TIMEOUT_S  # noqa: PLC0415 - loaded already: the mirror runs here
+
+        who, timeout_s = "the agent's mirror", JOB_TIMEOUT_S
+    return (
+        f"{who} did not answer the forget within {timeout_s:.0f} s: it is busy or stuck, and may still "
+        f"forget the arm when it gets to it. Reload {device}'s page in a minute, and forget it again if it "
+        "is still there"
+    )
 
 
 def alarm_order(info: AlarmInfo) -> tuple[int, int, str]:

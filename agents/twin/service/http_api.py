@@ -103,6 +103,7 @@ from twin.service.shards import (
     ArmForgotten,
     ArmNotForgettableError,
     ArmNotFoundError,
+    ForgetTimedOutError,
     WorkerError,
 )
 from twin.service.state import AgentState, AlarmInfo, AlarmList, HealthReport
@@ -617,6 +618,9 @@ class AgentHttpServer:
             return _error(404, "arm_not_found", device=device, detail="GET /api/fleet lists every arm")
         except ArmNotForgettableError as exc:
             return _error(409, exc.code, device=device, detail=str(exc))
+        except ForgetTimedOutError as exc:
+            # Not known whether it is forgotten: the request still waits for the arm's mirror.
+            return _error(504, "forget_timed_out", device=device, detail=str(exc))
         except WorkerError as exc:
             return _error(503, "worker_unavailable", device=device, detail=f"{exc}; try again once it runs")
         except NotSavedError as exc:

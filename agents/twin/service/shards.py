@@ -141,6 +141,16 @@ class WorkerError(RuntimeError):
     """A worker process could not start, or did not answer."""
 
 
+class AskTimedOutError(WorkerError):
+    """A worker's answer did not come in time (its mirror thread busy or stuck, or the process hung). What it
+    was asked may still be done: the request waits in the worker until its mirror thread gets to it."""
+
+
+class ForgetTimedOutError(WorkerError):
+    """A forget that got no answer in time, whichever wait ran out: not known whether the arm is forgotten
+    (HTTP 504 `forget_timed_out`). Its message is the one the console shows."""
+
+
 class WorkerPlan:
     """Which shard mirrors which device: listed devices dealt out in list order, any other by CRC-32."""
 
@@ -786,6 +796,8 @@ def _raise_refusal(refused: Refused, worker: int) -> None:
         raise ArmNotFoundError(refused.message)
     if refused.refusal in (Refusal.ARM_NOT_OFFLINE, Refusal.ARM_CONFIGURED):
         raise ArmNotForgettableError(str(refused.refusal), refused.message)
+    if refused.refusal is Refusal.BUSY:
+        raise AskTimedOutError(f"worker {worker}: {refused.message}")
     raise WorkerError(f"worker {worker}: {refused.message}")
 
 
@@ -1488,14 +1500,14 @@ class WorkerShard:
             try:
                 if remaining <= 0 or not conn.poll(remaining):
                     self._unanswered += 1
-                    raise WorkerError(f"worker {self.index} did not answer within {ASK_TIMEOUT_S:.0f} s")
+                    raise AskTimedOutError(f"worker {self.index} did not answer within {ASK_TIMEOUT_S:.0f} s")
                 message = conn.recv()
             except (EOFError, OSError) as exc:
                 raise WorkerError(f"worker {self.index} went away: {exc}") from exc
             if isinstance(message, Refused) and message.refusal is Refusal.STUCK:
                 if message.call_id == call_id:
                     self._unanswered += 1
-                    raise WorkerError(f"worker {self.index}: {message.message}")
+                    raise AskTimedOutError(f"worker {self.index}: {message.message}")
                 continue
             self._unanswered = 0  # it answers, if late
             self._answered_at = time.monotonic()

@@ -318,6 +318,11 @@
       return `${device} is forgotten: its twin, health and counters are removed; alarms removed: ${alarmsText}. `;
     }
     if (notSaved(result)) return `${device} is forgotten, but not kept: ${Twin.refusal(result)}`;
+    // No answer in time: the request still waits for the arm's mirror, so "was not forgotten" may be untrue.
+    // The agent's detail says so and what to do, whichever of its waits ran out.
+    if (result.payload && result.payload.error === "forget_timed_out") {
+      return `Not known whether ${device} is forgotten: ${Twin.refusal(result)}`;
+    }
     return `${device} was not forgotten: ${Twin.refusal(result)}`;
   }
 
