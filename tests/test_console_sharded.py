@@ -19,9 +19,9 @@ from conftest import http_get, unbrokered_agent, wait_for
 from twin.edge.payload import encode, make_payload
 from twin.rig.local import LocalRig
 from twin.service import shards
-from twin.service.agent import UNHEARD_MIN_REJECTED, forget_timed_out
-from twin.service.console import FLEET_COLUMNS, ForgetOffer, fleet_rows
-from twin.service.shards import WorkerError
+from twin.service.agent import UNHEARD_MIN_REJECTED, AgentService, forget_timed_out
+from twin.service.console import FLEET_COLUMNS, ForgetOffer, fleet_parts, fleet_rows
+from twin.service.shards import WorkerError, WorkerPlan
 
 pytestmark = pytest.mark.slow
 
@@ -240,6 +240,45 @@ def test_a_forget_its_worker_does_not_answer_in_time_says_it_is_not_known_and_wh
         busy = "the mirror's worker did not get to the request within 10 s; it handled 3 batches meanwhile"
         with pytest.raises(shards.AskTimedOutError):
             shards._raise_refusal(shards.Refused(7, shards.Refusal.BUSY, busy), 1)
+    finally:
+        if stopped:
+            os.kill(shard.pid, signal.SIGCONT)
+        agent.stop()
+
+
+def test_a_listed_held_arm_whose_worker_is_silent_before_its_first_checkpoint_is_named_without_a_card(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The Fleet page names a held arm only when it has no card. A listed arm always has one, but not while
+    its worker does not answer and no checkpoint holds the arm (it died or hangs before its first: no
+    checkpoint is taken here). Then the notice said "its card says whether any came", of a card not there."""
+    monkeypatch.setattr(shards, "HUNG_AFTER_ASKS", 1_000_000)  # stopped, not killed as hung meanwhile
+    monkeypatch.setattr(AgentService, "_checkpoint", lambda self, shard, **_: None)
+    held = next(d for d in DEVICES if WorkerPlan(2, DEVICES).worker_of(d) == 1)
+    (tmp_path / "cal").mkdir()
+    (tmp_path / "cal" / f"{held}.json").write_text('{"shoulder_pan": {}}')
+    overrides = {"telemetry.devices": DEVICES, "telemetry.calibrations": str(tmp_path / "cal")}
+    agent = unbrokered_agent(tmp_path, 2, **overrides)
+    shard = agent._shards[1]
+    stopped = False
+    try:
+        assert agent.plan.worker_of(held) == 1 and held in agent._held_problems()
+        parts = fleet_parts(agent)
+        assert held in {r.device for r in parts.rows} and not [n for n in parts.notices if held in n]
+        os.kill(shard.pid, signal.SIGSTOP)
+        stopped = True
+
+        def without_its_card() -> Any:
+            # Its worker's rows asked, and not given within ASK_TIMEOUT_S (an answer read before is kept a
+            # moment for the next tick).
+            parts = fleet_parts(agent)
+            return parts if held not in {r.device for r in parts.rows} else None
+
+        parts = wait_for(without_its_card, 60, f"{held}'s worker silent, with no card for it")
+        assert shard.checkpoint is None
+        (notice,) = [n for n in parts.notices if n.startswith(f"{held}'s calibration")]
+        assert "its card, back once its worker answers, says whether any came" in notice, notice
+        assert "nothing has been received" not in notice, notice  # listed: tracked, and maybe heard
     finally:
         if stopped:
             os.kill(shard.pid, signal.SIGCONT)

@@ -1168,11 +1168,13 @@ class AgentService:
             )
         if device in self.config.telemetry.devices:
             # Listed, so tracked: its refusals are on its card, not among the arms not tracked, and asking
-            # every worker for its rows is a pipe's trip each. The console passes its cards (`shown`), so
-            # only a caller without them gets this, worded to be true whether it publishes or not.
+            # every worker for its rows is a pipe's trip each. The console passes its cards (`shown`), so it
+            # gets this only while the arm's worker does not answer and no checkpoint of that worker holds
+            # the arm (it died or hangs before its first one): no card then, and "its card says" was untrue.
+            # Worded to be true whether it publishes or not.
             return (
                 "its messages are refused whenever they come and its twin does not move (its servos' alarms "
-                "are still checked); its card says whether any came"
+                "are still checked); its card, back once its worker answers, says whether any came"
             )
         return (
             "it is held: nothing has been received from it since the agent started, and once it "
