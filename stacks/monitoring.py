@@ -640,8 +640,8 @@ def _fleet_graphs(labelled: Callable[..., cw.Metric]) -> list[cw.GraphWidget]:
             [labelled("Rejects", "Sum", "rejected per minute")],
         ),
         _graph(
-            # The agent sends no loss it did not measure: 0 % beside a fleet all OFFLINE read as an all-clear.
-            "Loss: share of expected messages that never arrived (%; no line while every arm is OFFLINE)",
+            # The agent sends no loss it did not measure (agent.fleet_totals): 0 % read as an all-clear.
+            "Loss: share of expected messages that never arrived (%; no line while nothing is measured)",
             [
                 labelled(LOSS_PERCENT, "Maximum", "loss % (fleet)"),
                 labelled(WORST_ARM_LOSS_PERCENT, "Maximum", "loss % (the arm losing most)"),
