@@ -178,6 +178,9 @@ FAILED_START_STOP_S = 10.0
 # feed() remembers where each topic goes (its shard and mailbox key) for this many topics at most; beyond
 # that (junk on invented topics) it starts over, so memory stays bounded.
 MAX_ROUTES = 16_384
+# The forgets that timed out the supervisor still completes once their mirror gets to them (forget_arm): a
+# person's or the sweep's, a few at a time; past this the oldest is left to the next checkpoint alone.
+MAX_PENDING_FORGETS = 256
 # The arms held by a refused calibration the Fleet page names one by one; the rest as a count.
 MAX_HELD_NOTICES = 5
 # An arm not tracked whose messages are all refused is named on the Fleet page (`_unheard_notices`) once this
@@ -325,7 +328,7 @@ class AgentService:
 
     def _init_run_state(self) -> None:
         """What start() and stop() set: the HTTP server, the metrics publisher, the supervisor, whether and
-        since when the agent runs, and the merged state it reuses for a moment."""
+        since when the agent runs, the merged state it reuses for a moment, and the forgets still pending."""
         self._http: AgentHttpServer | None = None
         self._emf: EmfPublisher | None = None
         self._supervisor: threading.Thread | None = None
@@ -342,6 +345,9 @@ class AgentService:
         self._started_wall: float | None = None
         self._state_lock = threading.Lock()
         self._cached: tuple[float, AgentState] | None = None
+        # The arms whose forget got no answer in time, by the index of their shard (under the keep lock): the
+        # mirror may still forget one, and the agent's own part is then done by `_settle_forgets`.
+        self._forgets_pending: dict[str, int] = {}
 
     def _calibration_watcher(self, config: AgentConfig) -> CalibrationWatcher | None:
         """The watcher of each arm's calibration file, when the config names where they are."""
@@ -737,7 +743,7 @@ class AgentService:
         """Each worker's checkpoint (its restart's starting point) and the alarms the state file keeps.
         `final`: the shards have stopped; their stop reports hold their alarms."""
         workers = self._mirror is None
-        if not workers and self._state_file is None:
+        if not workers and self._state_file is None and not self._forgets_pending:
             return
         with self._keep_lock:
             self._keep_state_now(workers, final=final)
@@ -750,7 +756,10 @@ class AgentService:
                 report = self.stop_reports.get(shard.index)
                 return None if report is None else report.alarms
             checkpoint = self._checkpoint(shard, alarms_only=not workers)
-            return None if checkpoint is None else checkpoint.alarms
+            if checkpoint is None:
+                return None
+            self._settle_forgets(shard, checkpoint)
+            return checkpoint.alarms
 
         records = self._alarm_records(alarms_of)
         if self._state_file is not None:
@@ -1342,17 +1351,43 @@ class AgentService:
                 forgotten = forgotten_of(shard.request(request)())
             except (AskTimedOutError, TimeoutError) as exc:  # TimeoutError: the mirror in this process's wait
                 log.warning("the forget of %s got no answer in time: %s", device, exc)
+                # Still waiting in the mirror: the supervisor does the agent's part once it is made.
+                self._forgets_pending.pop(device, None)
+                if len(self._forgets_pending) >= MAX_PENDING_FORGETS:
+                    del self._forgets_pending[next(iter(self._forgets_pending))]
+                self._forgets_pending[device] = shard.index
                 raise ForgetTimedOutError(forget_timed_out(device, shard)) from exc
             return dataclasses.replace(forgotten, checkpoint=None), forgotten.checkpoint
 
-        # Once kept: the agent's own counts of it (its queue's drops) go, as the mirror's went, and its route.
-        def kept() -> None:
-            shard.forget(device)
-            self._forget_route(device)
-            if self._state_file is not None:  # and the alarms of kinds only a newer agent knows
-                self._state_file.forget(device)
+        return self._keep_act(shard, "forget", forget, kept=lambda: self._forgotten(shard, device))
 
-        return self._keep_act(shard, "forget", forget, kept=kept)
+    def _forgotten(self, shard: Shard, device: str) -> None:
+        """Once a forget is kept: the agent's own counts of the arm (its queue's drops) go, as the mirror's
+        went, and its route."""
+        shard.forget(device)
+        self._forget_route(device)
+        if self._state_file is not None:  # and the alarms of kinds only a newer agent knows
+            self._state_file.forget(device)
+
+    def _settle_forgets(self, shard: Shard, checkpoint: MirrorCheckpoint) -> None:
+        """The timed-out forgets of `shard`'s arms, now that its mirror answered for `checkpoint`, asked after
+        them (a mirror answers in order): one it made gets the agent's part (`_forgotten`), which otherwise
+        never came: the arm's drop count went to a new arm of its name, its route stayed, and the state file
+        kept its alarms of unknown kinds. `checkpoint`, confirmed, is already a worker's restart point without
+        it, and the state file is written next. An arm still there was not forgotten (refused, or its worker
+        started again from a checkpoint that holds it). Under the keep lock."""
+        for device in [d for d, index in self._forgets_pending.items() if index == shard.index]:
+            del self._forgets_pending[device]
+            if self._mirror is None:
+                there = device in checkpoint.devices
+            else:  # its checkpoint here is alarms only
+                there = arm_reply_of(shard.request(ArmRequest(device))()).state is not None
+            if there:
+                log.info("the forget of %s that timed out was not made: the arm is still there", device)
+                continue
+            self._forgotten(shard, device)
+            self._cached = None
+            log.info("the forget of %s that timed out was made; the agent's counts of it are dropped", device)
 
     def _keep_act(
         self,
@@ -1879,8 +1914,8 @@ def forget_timed_out(device: str, shard: Shard) -> str:
         who, timeout_s = "the agent's mirror", JOB_TIMEOUT_S
     return (
         f"{who} did not answer the forget within {timeout_s:.0f} s: it is busy or stuck, and may still "
-        f"forget the arm when it gets to it. Reload {device}'s page in a minute, and forget it again if it "
-        "is still there"
+        f"forget the arm when it gets to it. Look at {device} again in a minute (its Arm page, or GET "
+        f"/api/arm/{device}) and forget it again if it is still there"
     )
 
 
