@@ -911,3 +911,107 @@ def test_an_arm_pages_forget_answer_is_read_on_the_clock_its_status_was() -> Non
     assert reply.state is not None and reply.state.health.status == "STALE", reply.state
     assert reply.forget is not None and not reply.forget.allowed, reply.forget
     assert "arm-001 is STALE" in reply.forget.why, reply.forget
+
+
+@contextlib.contextmanager
+def _offline_arm_agent(arm: str, monkeypatch: pytest.MonkeyPatch) -> Iterator[AgentService]:
+    """An agent with its mirror in this process, fed one message of `arm`, which is OFFLINE by then. Its
+    supervisor keeps state only when woken (after a person's act): the test calls `_keep_state` itself."""
+    monkeypatch.setattr(agent_module, "CHECKPOINT_EVERY_S", 3600.0)
+    config = load_config(
+        None,
+        {
+            "broker.url": NO_BROKER,  # never answers: the test feeds the agent
+            "http.listen": "127.0.0.1:0",
+            "telemetry.units": "ticks",
+            "health.offline_after_s": 1.0,
+        },
+    )
+    agent = AgentService(config)
+    agent.start()
+    try:
+        payload = make_payload(arm, 0.1, "ticks", random.Random(1), timestamp_ms=1_763_000_000_000)
+        agent.feed(telemetry_topic(DEFAULT_TOPIC_PREFIX, arm), encode(payload))
+
+        def offline() -> bool:
+            device = agent.state().devices.get(arm)
+            return device is not None and device.health.status == "OFFLINE"
+
+        wait_for(offline, 30, f"{arm} tracked, then OFFLINE")
+        yield agent
+    finally:
+        agent.stop()
+
+
+def test_a_forget_answered_in_time_settles_an_earlier_one_of_the_arm_that_timed_out(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A person whose forget timed out forgets the arm again, answered this time: that forget did the
+    agent's part, so the supervisor's next checkpoint must not do it again (a false "was made" in the log,
+    and the drop count of a new arm of that name wiped)."""
+    arm = "arm-007"
+    parts: list[str] = []
+    forgotten = AgentService._forgotten
+
+    def counted(self: AgentService, shard: Any, device: str) -> None:
+        parts.append(device)
+        forgotten(self, shard, device)
+
+    monkeypatch.setattr(AgentService, "_forgotten", counted)
+    with _offline_arm_agent(arm, monkeypatch) as agent:
+        shard = agent._shards[agent.plan.worker_of(arm)]
+        with agent._keep_lock:  # as the forget that timed out left it
+            agent._forgets_pending[arm] = (shard.index, shard.restarts)
+        agent.forget_arm(arm)
+        agent._keep_state()  # the supervisor's next checkpoint, if its own, woken by the forget, is not done
+        assert arm not in agent._forgets_pending and parts == [arm], parts
+
+
+def test_a_forget_that_timed_out_is_not_settled_once_its_worker_started_again(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A worker started again from a restart point without the arm (its unconfirmed messages overflowed)
+    did not forget it: the arm's counts must stay, though the next checkpoint finds it gone."""
+    arm = "arm-008"
+    topic = telemetry_topic(DEFAULT_TOPIC_PREFIX, arm)
+    with _offline_arm_agent(arm, monkeypatch) as agent:
+        shard = agent._shards[agent.plan.worker_of(arm)]
+        assert agent._mirror is not None
+        agent._mirror.forget_arm(arm)  # the arm gone, and not by the agent's forget
+        with agent._keep_lock:  # a forget asked before the worker's last start
+            agent._forgets_pending[arm] = (shard.index, shard.restarts - 1)
+        agent._keep_state()
+        assert arm not in agent._forgets_pending and topic in agent._routes
+        # The same with the restart count unchanged: the forget is taken as made, its route goes.
+        with agent._keep_lock:
+            agent._forgets_pending[arm] = (shard.index, shard.restarts)
+        agent._keep_state()
+        assert arm not in agent._forgets_pending and topic not in agent._routes
+
+
+def test_asking_after_a_forget_that_timed_out_that_fails_keeps_it_for_the_next_checkpoint(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The supervisor asks the mirror whether the arm is still there: a fault in that ask must not end it
+    (nothing would start a dead worker again); the forget is asked after again at the next checkpoint."""
+    arm = "arm-009"
+    topic = telemetry_topic(DEFAULT_TOPIC_PREFIX, arm)
+    with _offline_arm_agent(arm, monkeypatch) as agent:
+        shard = agent._shards[agent.plan.worker_of(arm)]
+        assert agent._mirror is not None
+        agent._mirror.forget_arm(arm)  # made by the mirror after its answer was given up on
+        answer = shard.request
+
+        def failing(request: Any) -> Any:
+            if isinstance(request, agent_module.ArmRequest):
+                raise RuntimeError("an ask's fault")
+            return answer(request)
+
+        monkeypatch.setattr(shard, "request", failing)
+        with agent._keep_lock:
+            agent._forgets_pending[arm] = (shard.index, shard.restarts)
+        agent._keep_state()
+        assert arm in agent._forgets_pending and topic in agent._routes
+        monkeypatch.setattr(shard, "request", answer)
+        agent._keep_state()
+        assert arm not in agent._forgets_pending and topic not in agent._routes

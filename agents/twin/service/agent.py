@@ -345,9 +345,10 @@ class AgentService:
         self._started_wall: float | None = None
         self._state_lock = threading.Lock()
         self._cached: tuple[float, AgentState] | None = None
-        # The arms whose forget got no answer in time, by the index of their shard (under the keep lock): the
-        # mirror may still forget one, and the agent's own part is then done by `_settle_forgets`.
-        self._forgets_pending: dict[str, int] = {}
+        # The arms whose forget got no answer in time, by the index of their shard and its restart count when
+        # asked (under the keep lock): the mirror may still forget one, and the agent's own part is then done
+        # by `_settle_forgets`.
+        self._forgets_pending: dict[str, tuple[int, int]] = {}
 
     def _calibration_watcher(self, config: AgentConfig) -> CalibrationWatcher | None:
         """The watcher of each arm's calibration file, when the config names where they are."""
@@ -1347,6 +1348,7 @@ class AgentService:
 
         def forget(checkpoint: bool) -> tuple[ArmForgotten, MirrorCheckpoint | None]:
             request = ForgetRequest(device, checkpoint=checkpoint, reason=reason)
+            restarts = shard.restarts
             try:
                 forgotten = forgotten_of(shard.request(request)())
             except (AskTimedOutError, TimeoutError) as exc:  # TimeoutError: the mirror in this process's wait
@@ -1355,8 +1357,12 @@ class AgentService:
                 self._forgets_pending.pop(device, None)
                 if len(self._forgets_pending) >= MAX_PENDING_FORGETS:
                     del self._forgets_pending[next(iter(self._forgets_pending))]
-                self._forgets_pending[device] = shard.index
+                self._forgets_pending[device] = (shard.index, restarts)
                 raise ForgetTimedOutError(forget_timed_out(device, shard)) from exc
+            # Forgotten now, and its part done here: an earlier forget of it that timed out is settled, and
+            # must not be settled again on an arm of that name heard after. Not on a 404, which may be that
+            # earlier forget made.
+            self._forgets_pending.pop(device, None)
             return dataclasses.replace(forgotten, checkpoint=None), forgotten.checkpoint
 
         return self._keep_act(shard, "forget", forget, kept=lambda: self._forgotten(shard, device))
@@ -1374,14 +1380,27 @@ class AgentService:
         them (a mirror answers in order): one it made gets the agent's part (`_forgotten`), which otherwise
         never came: the arm's drop count went to a new arm of its name, its route stayed, and the state file
         kept its alarms of unknown kinds. `checkpoint`, confirmed, is already a worker's restart point without
-        it, and the state file is written next. An arm still there was not forgotten (refused, or its worker
-        started again from a checkpoint that holds it). Under the keep lock."""
-        for device in [d for d, index in self._forgets_pending.items() if index == shard.index]:
-            del self._forgets_pending[device]
+        it, and the state file is written next. An arm still there gets none: its forget was refused, or its
+        worker started again from a checkpoint that holds it, or (not told apart) it was forgotten and
+        published again before this checkpoint. A worker started again since the forget was asked settles
+        none: the arm may be missing from its restart point without having been forgotten. Under the keep
+        lock."""
+        mine = [(d, r) for d, (index, r) in self._forgets_pending.items() if index == shard.index]
+        for device, restarts in mine:
+            if restarts != shard.restarts:
+                del self._forgets_pending[device]
+                log.info("the forget of %s that timed out is not settled: its worker started again", device)
+                continue
             if self._mirror is None:
                 there = device in checkpoint.devices
             else:  # its checkpoint here is alarms only
-                there = arm_reply_of(shard.request(ArmRequest(device))()).state is not None
+                try:
+                    there = arm_reply_of(shard.request(ArmRequest(device))()).state is not None
+                except Exception:
+                    # Under the supervisor, which a fault here would end: the next checkpoint asks again.
+                    log.exception("asking after %s, whose forget timed out, failed", device)
+                    continue
+            del self._forgets_pending[device]
             if there:
                 log.info("the forget of %s that timed out was not made: the arm is still there", device)
                 continue
